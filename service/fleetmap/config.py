@@ -1,0 +1,153 @@
+"""Map configuration: resolution, tiling, layers and the parameters of each sensor and update model.
+
+These pydantic models are the one definition of a map's configuration: the engine reads them, the
+CLI loads them from JSON, and the REST API uses them as its request and response schema. Every field
+is optional; defaults are chosen to be right for a typical indoor 2D lidar.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+LayerName = Literal["occupancy", "counts", "tsdf"]
+ALL_LAYERS: tuple[LayerName, ...] = ("occupancy", "counts", "tsdf")
+
+
+def logit(p: float) -> float:
+    """Log-odds of probability `p`."""
+    return math.log(p / (1.0 - p))
+
+
+def probability(log_odds: float) -> float:
+    """Probability from log-odds: `1 - 1/(1 + exp(l))`, written to not overflow."""
+    if log_odds >= 0:
+        return 1.0 / (1.0 + math.exp(-log_odds))
+    e = math.exp(log_odds)
+    return e / (1.0 + e)
+
+
+#: Named occupancy parameter sets, as log-odds (l_hit, l_miss, l_min, l_max).
+OCCUPANCY_PRESETS: dict[str, tuple[float, float, float, float]] = {
+    # OctoMap's defaults: hit 0.7, miss 0.4, clamping 0.12 / 0.97.
+    "octomap": (logit(0.7), logit(0.4), logit(0.12), logit(0.97)),
+    # Cartographer's 2D probability grid: hit 0.55, miss 0.49, probabilities clamped to [0.1, 0.9].
+    "cartographer": (logit(0.55), logit(0.49), logit(0.1), logit(0.9)),
+    # The Coursera robotics course: l_occ 1, l_free 0.5, clamped to +-100.
+    "coursera": (1.0, -0.5, -100.0, 100.0),
+    # The seed notes' int8 accumulator: +-9 per update, saturating on [-128, 127]. The values are
+    # integers, so float32 storage reproduces the int8 arithmetic exactly.
+    "int8": (9.0, -9.0, -128.0, 127.0),
+}
+
+OccupancyPreset = Literal["octomap", "cartographer", "coursera", "int8"]
+
+
+class OccupancyParams(BaseModel):
+    """Log-odds update parameters. Give a preset, log-odds values, or probabilities.
+
+    Explicit values override the preset's. A value may be given as log-odds (`l_hit`) or as a
+    probability (`p_hit`), not both. After validation the `l_*` fields always hold the values in use.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    preset: OccupancyPreset = "octomap"
+    l_hit: float | None = Field(None, description="log-odds added for a hit (> 0)")
+    l_miss: float | None = Field(None, description="log-odds added for a miss (< 0)")
+    l_min: float | None = Field(None, description="lower clamp of a cell's log-odds")
+    l_max: float | None = Field(None, description="upper clamp of a cell's log-odds")
+    p_hit: float | None = Field(None, gt=0, lt=1, description="hit probability, instead of l_hit")
+    p_miss: float | None = Field(None, gt=0, lt=1, description="miss probability, instead of l_miss")
+    p_min: float | None = Field(None, gt=0, lt=1, description="lower clamp as a probability")
+    p_max: float | None = Field(None, gt=0, lt=1, description="upper clamp as a probability")
+    occupied_thresh: float = Field(0.65, gt=0, lt=1, description="p above this is `occupied`")
+    free_thresh: float = Field(0.196, gt=0, lt=1, description="p below this is `free`")
+
+    @model_validator(mode="after")
+    def _resolve(self) -> OccupancyParams:
+        hit, miss, lo, hi = OCCUPANCY_PRESETS[self.preset]
+        resolved = []
+        for name, default in (("hit", hit), ("miss", miss), ("min", lo), ("max", hi)):
+            l_val = getattr(self, f"l_{name}")
+            p_val = getattr(self, f"p_{name}")
+            if l_val is not None and p_val is not None:
+                raise ValueError(f"give l_{name} or p_{name}, not both")
+            if p_val is not None:
+                l_val = logit(p_val)
+            resolved.append(default if l_val is None else float(l_val))
+        hit, miss, lo, hi = resolved
+        if not all(math.isfinite(v) for v in resolved):
+            raise ValueError("occupancy parameters must be finite")
+        if hit <= 0:
+            raise ValueError(f"l_hit must be positive (p_hit > 0.5), got {hit}")
+        if miss >= 0:
+            raise ValueError(f"l_miss must be negative (p_miss < 0.5), got {miss}")
+        if not lo < 0 < hi:
+            raise ValueError(f"the clamp must satisfy l_min < 0 < l_max, got [{lo}, {hi}]")
+        if self.free_thresh >= self.occupied_thresh:
+            raise ValueError("free_thresh must be below occupied_thresh")
+        # Store the resolved values; probabilities are derived, so drop them to keep one truth.
+        object.__setattr__(self, "l_hit", hit)
+        object.__setattr__(self, "l_miss", miss)
+        object.__setattr__(self, "l_min", lo)
+        object.__setattr__(self, "l_max", hi)
+        for name in ("p_hit", "p_miss", "p_min", "p_max"):
+            object.__setattr__(self, name, None)
+        return self
+
+
+class BeamModelParams(BaseModel):
+    """The inverse range sensor model of Probabilistic Robotics (table 9.2), used when
+    `sensor_model` is `beam`. Occupied and free cells get the occupancy layer's l_hit / l_miss."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    alpha: float = Field(0.1, gt=0, description="obstacle thickness in metres")
+    beta: float = Field(0.0175, gt=0, lt=math.pi, description="beam width in radians")
+
+
+class TsdfParams(BaseModel):
+    """Truncated signed distance fusion along each beam."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    truncation: float = Field(0.2, gt=0, description="truncation distance t in metres")
+    max_weight: float = Field(1000.0, gt=0, description="cap on a cell's accumulated weight")
+
+
+class MapConfig(BaseModel):
+    """Everything that defines how a map stores and integrates scans."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    resolution: float = Field(0.05, gt=0.001, le=100.0, description="metres per cell")
+    tile_size: int = Field(256, ge=16, le=4096, description="cells per tile side, a power of two")
+    max_tiles: int = Field(
+        4096, ge=1, le=1_000_000, description="cap on tiles per map; a scan that needs more is rejected"
+    )
+    layers: list[LayerName] = Field(default_factory=lambda: list(ALL_LAYERS))
+    occupancy: OccupancyParams = Field(default_factory=OccupancyParams)
+    sensor_model: Literal["ray", "beam"] = "ray"
+    traversal: Literal["exact", "bresenham"] = "exact"
+    update: Literal["per_scan", "per_ray"] = "per_scan"
+    no_return_range: float = Field(
+        0.0, ge=0, le=1000.0, description="metres of a no-return beam to clear as free; 0 = ignore"
+    )
+    beam: BeamModelParams = Field(default_factory=BeamModelParams)
+    tsdf: TsdfParams = Field(default_factory=TsdfParams)
+
+    @model_validator(mode="after")
+    def _check(self) -> MapConfig:
+        if self.tile_size & (self.tile_size - 1):
+            raise ValueError(f"tile_size must be a power of two, got {self.tile_size}")
+        if not self.layers:
+            raise ValueError("a map needs at least one layer")
+        if len(set(self.layers)) != len(self.layers):
+            raise ValueError("layers must not repeat")
+        return self
+
+    def has(self, layer: LayerName) -> bool:
+        return layer in self.layers

@@ -1,0 +1,254 @@
+"""`GridMap`: one map, its configuration, its tiles, and the two things done to it: integrate and read.
+
+Writers and readers share one lock. Integration plans a scan without the lock (`plan_scan`), then
+creates the tiles it needs and applies every update inside the lock, so a reader sees each tile as it
+was before or after a scan, never half-way; a scan that would pass the tile cap is refused before
+anything changes.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from fleetmap.config import MapConfig
+from fleetmap.kernels.tsdf import fuse_tsdf, zero_crossings
+from fleetmap.kernels.update import apply_entries, apply_marks
+from fleetmap.scan import Scan
+from fleetmap.tiles import TileKey, TileStore
+from fleetmap.update_plan import UpdatePlan, plan_scan
+
+#: Layers a region can be read as: stored arrays plus the values derived from them.
+REGION_LAYERS = ("log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight")
+
+#: Codes of the `state` layer.
+STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED = 0, 1, 2
+STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
+
+#: The stored array each derived layer is read from, and the layer it needs.
+_SOURCE = {
+    "log_odds": ("log_odds", "occupancy"),
+    "probability": ("log_odds", "occupancy"),
+    "state": ("log_odds", "occupancy"),
+    "hits": ("hits", "counts"),
+    "misses": ("misses", "counts"),
+    "tsdf": ("tsdf", "tsdf"),
+    "tsdf_weight": ("tsdf_weight", "tsdf"),
+}
+
+
+class LayerUnavailableError(ValueError):
+    """A read asked for a layer the map does not keep or that does not exist."""
+
+
+@dataclass(frozen=True)
+class IntegrationResult:
+    """What one scan did: cell updates applied, and the tiles whose contents changed."""
+
+    cell_updates: int
+    tsdf_updates: int
+    changed_tiles: list[TileKey]
+    tiles_created: int
+
+
+class GridMap:
+    """A sparse, unbounded 2D map with the layers its `MapConfig` switches on."""
+
+    def __init__(self, config: MapConfig | None = None) -> None:
+        self.config = config or MapConfig()
+        self.store = TileStore(self.config.tile_size, self.config.layers, self.config.max_tiles)
+        self.lock = threading.RLock()
+
+    @property
+    def resolution(self) -> float:
+        return self.config.resolution
+
+    # -- writing ---------------------------------------------------------------------------------
+
+    def integrate(self, scan: Scan) -> IntegrationResult:
+        """Integrate one scan; raises `TileLimitError` (map unchanged) past the tile cap."""
+        return self.apply(self.plan(scan))
+
+    def plan(self, scan: Scan) -> UpdatePlan:
+        """The updates `scan` implies; touches no map state, so it needs no lock."""
+        return plan_scan(scan, self.config, self.store.shift)
+
+    def apply(self, plan: UpdatePlan) -> IntegrationResult:
+        """Write a plan's updates, atomically with respect to readers."""
+        if plan.num_tiles == 0:
+            return IntegrationResult(0, 0, [], 0)
+        cfg, store = self.config, self.store
+        ti0, ti1 = int(plan.tiles_i.min()), int(plan.tiles_i.max())
+        tj0, tj1 = int(plan.tiles_j.min()), int(plan.tiles_j.max())
+        compact = np.full((tj1 - tj0 + 1, ti1 - ti0 + 1), -1, dtype=np.int64)
+        compact[plan.tiles_j - tj0, plan.tiles_i - ti0] = np.arange(plan.num_tiles)
+        changed = np.zeros(plan.num_tiles, dtype=np.uint8)
+        with self.lock:
+            keys = list(zip(plan.tiles_i.tolist(), plan.tiles_j.tolist(), strict=True))
+            new = store.missing(keys)
+            store.create(new)  # all or nothing: raises before any cell is touched
+            lookup = store.tile_range(ti0, tj0, ti1, tj1)
+            occ = cfg.occupancy
+            pools = (store.pool("log_odds"), store.pool("hits"), store.pool("misses"))
+            params = (occ.l_hit, occ.l_miss, occ.l_min, occ.l_max)
+            occ_updates = 0
+            if plan.marks_i.size:
+                marks_changed = np.zeros(plan.marks_i.size, dtype=np.uint8)
+                slots = lookup[plan.marks_j - tj0, plan.marks_i - ti0]
+                occ_updates += apply_marks(
+                    plan.marks, plan.marks_planes, slots, *pools, *params, marks_changed
+                )
+                changed[compact[plan.marks_j - tj0, plan.marks_i - ti0]] |= marks_changed
+            if plan.occ_i.size:
+                occ_updates += apply_entries(
+                    plan.occ_i, plan.occ_j, plan.occ_kind, lookup, compact, ti0, tj0, store.shift,
+                    *pools, *params, changed,
+                )  # fmt: skip
+            tsdf_updates = 0
+            if plan.tsdf_i.size:
+                tsdf_updates = fuse_tsdf(
+                    plan.tsdf_i, plan.tsdf_j, plan.tsdf_value, lookup, compact, ti0, tj0, store.shift,
+                    store.pool("tsdf"), store.pool("tsdf_weight"), cfg.tsdf.max_weight, changed,
+                )  # fmt: skip
+            changed_idx = np.flatnonzero(changed)
+            slots = lookup[plan.tiles_j[changed_idx] - tj0, plan.tiles_i[changed_idx] - ti0]
+            store.bump(slots)
+        return IntegrationResult(
+            int(occ_updates), int(tsdf_updates), [keys[k] for k in changed_idx.tolist()], len(new)
+        )
+
+    # -- reading ---------------------------------------------------------------------------------
+
+    def cell_index(self, x: float, y: float) -> tuple[int, int]:
+        """The cell containing map point (x, y)."""
+        return math.floor(x / self.resolution), math.floor(y / self.resolution)
+
+    def region(self, layer: str, i0: int, j0: int, i1: int, j1: int) -> np.ndarray:
+        """A dense copy of one layer over cells `[i0, i1) x [j0, j1)`, shape (j1-j0, i1-i0), row 0 =
+        lowest y. Unknown is NaN for float layers, 0 for counts and `STATE_UNKNOWN` for `state`."""
+        source = self._source(layer)
+        ny, nx = max(0, j1 - j0), max(0, i1 - i0)
+        dtype = np.uint32 if source in ("hits", "misses") else np.float32
+        out = np.zeros((ny, nx), dtype=dtype) if dtype == np.uint32 else np.full((ny, nx), np.nan, dtype)
+        with self.lock:
+            self.store.fill_window(source, i0, j0, out)
+            if layer == "tsdf":
+                # A TSDF cell with zero weight was never observed.
+                weight = np.zeros((ny, nx), dtype=np.float32)
+                self.store.fill_window("tsdf_weight", i0, j0, weight)
+        if layer == "tsdf":
+            out[weight <= 0] = np.nan
+        elif layer == "tsdf_weight":
+            out = np.nan_to_num(out, nan=0.0)
+        elif layer == "probability":
+            out = log_odds_to_probability(out)
+        elif layer == "state":
+            out = self.classify(out)
+        return out
+
+    def classify(self, log_odds: np.ndarray) -> np.ndarray:
+        """`state` codes from log-odds by the map's thresholds (nav2's rule: p > occupied_thresh is
+        occupied, p < free_thresh is free, otherwise and for unknown cells unknown)."""
+        p = log_odds_to_probability(log_odds)
+        state = np.full(p.shape, STATE_UNKNOWN, dtype=np.uint8)
+        with np.errstate(invalid="ignore"):
+            state[p > self.config.occupancy.occupied_thresh] = STATE_OCCUPIED
+            state[p < self.config.occupancy.free_thresh] = STATE_FREE
+        return state
+
+    def cells(self, points: np.ndarray) -> dict[str, np.ndarray]:
+        """Every kept layer's value at each map point (rows of (x, y)); unknown as in `region`."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        ci = np.floor(pts[:, 0] / self.resolution).astype(np.int64)
+        cj = np.floor(pts[:, 1] / self.resolution).astype(np.int64)
+        s, mask = self.store.shift, self.store.mask
+        out: dict[str, np.ndarray] = {}
+        names = [a.name for a in self.store.arrays]
+        raw = {name: np.zeros(len(pts), dtype=self.store.pool(name).dtype) for name in names}
+        if "log_odds" in raw:
+            raw["log_odds"][:] = np.nan
+        with self.lock:
+            for k in range(len(pts)):
+                slot = self.store.slots.get((int(ci[k] >> s), int(cj[k] >> s)))
+                if slot is None:
+                    continue
+                for name in names:
+                    raw[name][k] = self.store.pools[name][slot, cj[k] & mask, ci[k] & mask]
+        if "log_odds" in raw:
+            lo = raw["log_odds"]
+            out["known"] = ~np.isnan(lo)
+            out["log_odds"] = lo
+            out["probability"] = np.nan_to_num(log_odds_to_probability(lo), nan=0.5)
+            out["state"] = self.classify(lo)
+        if "hits" in raw:
+            out["hits"], out["misses"] = raw["hits"], raw["misses"]
+            out.setdefault("known", (raw["hits"] + raw["misses"]) > 0)
+        if "tsdf" in raw:
+            weight = raw["tsdf_weight"]
+            out["tsdf"] = np.where(weight > 0, raw["tsdf"], np.nan).astype(np.float32)
+            out["tsdf_weight"] = weight
+            out.setdefault("known", weight > 0)
+        return out
+
+    def known_bounds(self) -> tuple[int, int, int, int] | None:
+        """Cell bounds `(i0, j0, i1, j1)`, exclusive ends, of every observed cell; None if none."""
+        with self.lock:
+            if not self.store.keys:
+                return None
+            name = self.store.arrays[0].name
+            lo = [math.inf, math.inf]
+            hi = [-math.inf, -math.inf]
+            t = self.store.tile_size
+            for (ti, tj), slot in self.store.slots.items():
+                tile = self.store.pools[name][slot]
+                seen = ~np.isnan(tile) if name == "log_odds" else self._observed(slot)
+                rows = np.flatnonzero(seen.any(axis=1))
+                cols = np.flatnonzero(seen.any(axis=0))
+                if rows.size == 0:
+                    continue
+                lo[0] = min(lo[0], ti * t + cols[0])
+                lo[1] = min(lo[1], tj * t + rows[0])
+                hi[0] = max(hi[0], ti * t + cols[-1] + 1)
+                hi[1] = max(hi[1], tj * t + rows[-1] + 1)
+        if lo[0] == math.inf:
+            return None
+        return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+
+    def _observed(self, slot: int) -> np.ndarray:
+        if self.store.has_array("hits"):
+            return (self.store.pools["hits"][slot] + self.store.pools["misses"][slot]) > 0
+        return self.store.pools["tsdf_weight"][slot] > 0
+
+    def surface(self, i0: int, j0: int, i1: int, j1: int) -> np.ndarray:
+        """TSDF zero-crossing points (rows of map (x, y)) between cells in `[i0, i1) x [j0, j1)`."""
+        self._source("tsdf")
+        with self.lock:
+            tsdf = np.zeros((max(0, j1 - j0), max(0, i1 - i0)), dtype=np.float32)
+            weight = np.zeros_like(tsdf)
+            self.store.fill_window("tsdf", i0, j0, tsdf)
+            self.store.fill_window("tsdf_weight", i0, j0, weight)
+        xs, ys = zero_crossings(tsdf, weight)
+        return np.stack([(xs + i0) * self.resolution, (ys + j0) * self.resolution], axis=1)
+
+    def memory_bytes(self) -> int:
+        return self.store.memory_bytes()
+
+    def _source(self, layer: str) -> str:
+        if layer not in _SOURCE:
+            raise LayerUnavailableError(f"unknown layer {layer!r}; one of {', '.join(REGION_LAYERS)}")
+        source, needs = _SOURCE[layer]
+        if not self.config.has(needs):  # type: ignore[arg-type]
+            raise LayerUnavailableError(
+                f"layer {layer!r} needs the {needs!r} layer, which this map does not keep"
+            )
+        return source
+
+
+def log_odds_to_probability(log_odds: np.ndarray) -> np.ndarray:
+    """`p = 1 - 1/(1 + exp(l))` elementwise, NaN stays NaN; float32 out."""
+    lo = np.asarray(log_odds, dtype=np.float64)
+    with np.errstate(over="ignore"):
+        return (1.0 - 1.0 / (1.0 + np.exp(lo))).astype(np.float32)

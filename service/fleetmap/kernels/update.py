@@ -1,0 +1,182 @@
+"""Applying per-cell updates to pooled tile arrays.
+
+Cells arrive as global indices; a small slot lookup over the tile window the scan touches maps each
+to its pool slot (`lookup[(j >> shift) - tj0, (i >> shift) - ti0]`), and `compact` numbers those
+tiles 0..m-1 for per-tile results (changed flags) and the per-scan scratch.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from fleetmap.kernels.ray_model import CELL_HIT
+
+_U32_MAX = np.uint32(0xFFFFFFFF)
+
+
+@njit(cache=True, nogil=True)
+def touched_tiles(ci: np.ndarray, cj: np.ndarray, shift: int) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct tiles `(ti, tj)` that the cells fall in, in row-major tile order."""
+    if ci.size == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    ti0 = ti1 = ci[0] >> shift
+    tj0 = tj1 = cj[0] >> shift
+    for k in range(ci.size):
+        ti = ci[k] >> shift
+        tj = cj[k] >> shift
+        ti0 = min(ti0, ti)
+        ti1 = max(ti1, ti)
+        tj0 = min(tj0, tj)
+        tj1 = max(tj1, tj)
+    mark = np.zeros((tj1 - tj0 + 1, ti1 - ti0 + 1), dtype=np.uint8)
+    count = 0
+    for k in range(ci.size):
+        a = (cj[k] >> shift) - tj0
+        b = (ci[k] >> shift) - ti0
+        if mark[a, b] == 0:
+            mark[a, b] = 1
+            count += 1
+    out_i = np.empty(count, dtype=np.int64)
+    out_j = np.empty(count, dtype=np.int64)
+    n = 0
+    for a in range(mark.shape[0]):
+        for b in range(mark.shape[1]):
+            if mark[a, b]:
+                out_i[n] = b + ti0
+                out_j[n] = a + tj0
+                n += 1
+    return out_i, out_j
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _apply_one(
+    slot: int,
+    lj: int,
+    li: int,
+    hit: bool,
+    log_odds: np.ndarray,
+    hits: np.ndarray,
+    misses: np.ndarray,
+    l_hit: float,
+    l_miss: float,
+    l_min: float,
+    l_max: float,
+) -> bool:
+    """One hit or miss on one cell of every enabled layer; True if a stored value changed."""
+    changed = False
+    if log_odds.size:
+        old = log_odds[slot, lj, li]
+        lo = 0.0 if math.isnan(old) else float(old)
+        lo += l_hit if hit else l_miss
+        # Clamp after every update, as OctoMap does, so a cell can always be changed back quickly.
+        if lo < l_min:
+            lo = l_min
+        elif lo > l_max:
+            lo = l_max
+        new = np.float32(lo)
+        if new != old:  # NaN != anything, so a first observation always counts as a change
+            log_odds[slot, lj, li] = new
+            changed = True
+    if hits.size:
+        if hit:
+            if hits[slot, lj, li] != _U32_MAX:
+                hits[slot, lj, li] += 1
+                changed = True
+        elif misses[slot, lj, li] != _U32_MAX:
+            misses[slot, lj, li] += 1
+            changed = True
+    return changed
+
+
+@njit(cache=True, nogil=True)
+def apply_marks(
+    marks: np.ndarray,
+    planes: np.ndarray,
+    slots: np.ndarray,
+    log_odds: np.ndarray,
+    hits: np.ndarray,
+    misses: np.ndarray,
+    l_hit: float,
+    l_miss: float,
+    l_min: float,
+    l_max: float,
+    changed: np.ndarray,
+) -> int:
+    """Apply per-scan mark planes (see `trace_rays_marks`) to pool slots; return cells updated.
+
+    Plane `marks[planes[k]]` goes to pool slot `slots[k]`; `changed[k]` is set to 1 where a stored
+    value changed.
+    Planes are swept in memory order, so both the marks and the pools stream through the cache.
+    """
+    updates = 0
+    for k in range(planes.size):
+        slot = slots[k]
+        plane = marks[planes[k]]
+        # The layer checks are hoisted out of the cell loops: one sweep per enabled layer keeps each
+        # inner loop branch-light and streaming.
+        if log_odds.size:
+            tile = log_odds[slot]
+            for lj in range(plane.shape[0]):
+                for li in range(plane.shape[1]):
+                    m = plane[lj, li]
+                    if m == 0:
+                        continue
+                    old = tile[lj, li]
+                    lo = (0.0 if math.isnan(old) else float(old)) + (l_hit if m & CELL_HIT else l_miss)
+                    new = np.float32(min(max(lo, l_min), l_max))
+                    if new != old:
+                        tile[lj, li] = new
+                        changed[k] = 1
+        if hits.size:
+            tile_hits = hits[slot]
+            tile_misses = misses[slot]
+            for lj in range(plane.shape[0]):
+                for li in range(plane.shape[1]):
+                    m = plane[lj, li]
+                    if m == 0:
+                        continue
+                    if m & CELL_HIT:
+                        if tile_hits[lj, li] != _U32_MAX:
+                            tile_hits[lj, li] += 1
+                    elif tile_misses[lj, li] != _U32_MAX:
+                        tile_misses[lj, li] += 1
+            changed[k] = 1
+        updates += np.count_nonzero(plane)
+    return updates
+
+
+@njit(cache=True, nogil=True)
+def apply_entries(
+    ci: np.ndarray,
+    cj: np.ndarray,
+    kind: np.ndarray,
+    lookup: np.ndarray,
+    compact: np.ndarray,
+    ti0: int,
+    tj0: int,
+    shift: int,
+    log_odds: np.ndarray,
+    hits: np.ndarray,
+    misses: np.ndarray,
+    l_hit: float,
+    l_miss: float,
+    l_min: float,
+    l_max: float,
+    changed: np.ndarray,
+) -> int:
+    """Apply hits and misses in order, each clamped (per-ray semantics); return updates applied.
+
+    `lookup[tile row, tile col]` is the pool slot and `compact[...]` the index into `changed` of the
+    tile each cell falls in. A disabled layer is passed as an empty array.
+    """
+    mask = (1 << shift) - 1
+    for k in range(ci.size):
+        a = (cj[k] >> shift) - tj0
+        b = (ci[k] >> shift) - ti0
+        if _apply_one(lookup[a, b], cj[k] & mask, ci[k] & mask, (kind[k] & CELL_HIT) != 0,
+                      log_odds, hits, misses, l_hit, l_miss, l_min, l_max):
+            changed[compact[a, b]] = 1
+    return ci.size

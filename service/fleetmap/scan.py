@@ -1,0 +1,149 @@
+"""One laser scan taken from a known sensor pose: the engine's input type.
+
+A `Scan` is validated when it is built, so everything downstream (sensor models, kernels) can assume
+finite poses, matching array lengths and a sane range window. Invalid input raises `ScanError` and
+builds nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Beams per scan accepted by the engine; far above any real 2D scanner (a 0.1 degree 360 degree
+#: scanner has 3600). Protects the kernels from absurd allocations.
+MAX_BEAMS = 100_000
+
+
+class ScanError(ValueError):
+    """A scan that cannot be integrated. The message says what is wrong with it."""
+
+
+@dataclass(frozen=True, slots=True)
+class Pose2D:
+    """A pose in the map frame: metres, and radians counter-clockwise from the +x axis."""
+
+    x: float
+    y: float
+    theta: float
+
+    def is_finite(self) -> bool:
+        return math.isfinite(self.x) and math.isfinite(self.y) and math.isfinite(self.theta)
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """A 2D range scan taken from `pose`, the SENSOR pose in the map frame.
+
+    `angles[i]` is beam i's bearing relative to the sensor heading, in radians. `ranges[i]` is its
+    measured range in metres, NaN for an invalid reading and +inf (or anything >= `range_max`) for
+    "no return". Readings below `range_min` or NaN are ignored by every sensor model.
+    """
+
+    pose: Pose2D
+    angles: np.ndarray  # float64, shape (n,)
+    ranges: np.ndarray  # float64, shape (n,)
+    range_min: float
+    range_max: float
+
+    def __post_init__(self) -> None:
+        angles = np.ascontiguousarray(self.angles, dtype=np.float64)
+        ranges = np.ascontiguousarray(self.ranges, dtype=np.float64)
+        object.__setattr__(self, "angles", angles)
+        object.__setattr__(self, "ranges", ranges)
+        if not self.pose.is_finite():
+            raise ScanError(f"pose must be finite, got {self.pose}")
+        if angles.ndim != 1 or ranges.ndim != 1:
+            raise ScanError("angles and ranges must be one-dimensional")
+        if angles.shape != ranges.shape:
+            raise ScanError(f"{angles.size} angles but {ranges.size} ranges: they must match")
+        if angles.size > MAX_BEAMS:
+            raise ScanError(f"{angles.size} beams is more than the limit of {MAX_BEAMS}")
+        if not np.all(np.isfinite(angles)):
+            raise ScanError("beam angles must be finite")
+        if not (math.isfinite(self.range_min) and self.range_min >= 0.0):
+            raise ScanError(f"range_min must be finite and >= 0, got {self.range_min}")
+        if not self.range_max > self.range_min:  # inf is allowed: "no maximum"
+            raise ScanError(f"range_max must be greater than range_min, got {self.range_max}")
+        if np.any(ranges < 0.0):
+            raise ScanError("ranges must not be negative")
+
+    @classmethod
+    def from_fan(
+        cls,
+        pose: Pose2D | tuple[float, float, float],
+        angle_min: float,
+        angle_increment: float,
+        ranges: Sequence[float | None] | np.ndarray,
+        range_min: float = 0.0,
+        range_max: float = math.inf,
+    ) -> Scan:
+        """Build a scan whose beam i points at `angle_min + i * angle_increment` (ROS LaserScan style)."""
+        r = ranges_to_array(ranges)
+        if not (math.isfinite(angle_min) and math.isfinite(angle_increment)):
+            raise ScanError("angle_min and angle_increment must be finite")
+        angles = angle_min + angle_increment * np.arange(r.size, dtype=np.float64)
+        return cls(_as_pose(pose), angles, r, float(range_min), float(range_max))
+
+    @classmethod
+    def from_angles(
+        cls,
+        pose: Pose2D | tuple[float, float, float],
+        angles: Sequence[float] | np.ndarray,
+        ranges: Sequence[float | None] | np.ndarray,
+        range_min: float = 0.0,
+        range_max: float = math.inf,
+    ) -> Scan:
+        """Build a scan from an explicit list of beam bearings."""
+        return cls(
+            _as_pose(pose),
+            np.asarray(angles, dtype=np.float64),
+            ranges_to_array(ranges),
+            float(range_min),
+            float(range_max),
+        )
+
+    @property
+    def num_beams(self) -> int:
+        return int(self.ranges.size)
+
+    def returns_mask(self) -> np.ndarray:
+        """Beams with a usable return: `range_min <= r < range_max`."""
+        r = self.ranges
+        with np.errstate(invalid="ignore"):
+            return (r >= self.range_min) & (r < self.range_max)
+
+    def no_return_mask(self) -> np.ndarray:
+        """Beams that saw nothing: `r >= range_max` (inf included). NaN is invalid, not "no return"."""
+        with np.errstate(invalid="ignore"):
+            return self.ranges >= self.range_max
+
+    def world_angles(self) -> np.ndarray:
+        """Beam directions in the map frame."""
+        return self.pose.theta + self.angles
+
+    def endpoints(self, ranges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Map-frame end points of every beam at `ranges` (default: the measured ones)."""
+        r = self.ranges if ranges is None else ranges
+        a = self.world_angles()
+        return self.pose.x + r * np.cos(a), self.pose.y + r * np.sin(a)
+
+
+def ranges_to_array(ranges: Sequence[float | None] | np.ndarray) -> np.ndarray:
+    """Ranges as float64; None (a JSON null) becomes +inf, i.e. "no return"."""
+    if isinstance(ranges, np.ndarray):
+        return ranges.astype(np.float64, copy=False)
+    try:
+        return np.array([math.inf if v is None else float(v) for v in ranges], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ScanError(f"ranges must be numbers or null: {exc}") from None
+
+
+def _as_pose(pose: Pose2D | tuple[float, float, float]) -> Pose2D:
+    if isinstance(pose, Pose2D):
+        return pose
+    x, y, theta = pose
+    return Pose2D(float(x), float(y), float(theta))

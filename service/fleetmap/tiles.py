@@ -1,0 +1,205 @@
+"""Sparse tiled storage: square tiles of cells, created when first touched.
+
+Cell (i, j) covers `[i*res, (i+1)*res) x [j*res, (j+1)*res)`; it lives in tile
+`(i >> shift, j >> shift)` at local position `(i & mask, j & mask)`, which holds for negative indices
+too (arithmetic shift floors). Tiles of one layer are slots of one pooled array of shape
+`(capacity, tile_size, tile_size)` indexed `[slot, local_j, local_i]`: the compiled kernels get a few
+plain arrays and a slot lookup instead of a dictionary of arrays. The pool doubles when full (an
+amortised copy; the cap bounds it).
+
+A `TileStore` is not thread-safe on its own: `GridMap` serialises writers and readers with its lock.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fleetmap.config import LayerName
+
+TileKey = tuple[int, int]
+
+
+class TileLimitError(RuntimeError):
+    """A scan needed more tiles than the map's cap allows. The map was not changed."""
+
+
+@dataclass(frozen=True)
+class LayerArray:
+    """One stored array of a layer: its name, dtype and the value of a never-observed cell."""
+
+    name: str
+    dtype: type
+    unknown: float
+
+
+#: The arrays each layer keeps per cell. Occupancy uses NaN as UNKNOWN (distinct from log-odds 0);
+#: counts start at zero; a TSDF cell is unknown while its weight is zero.
+LAYER_ARRAYS: dict[LayerName, tuple[LayerArray, ...]] = {
+    "occupancy": (LayerArray("log_odds", np.float32, np.nan),),
+    "counts": (LayerArray("hits", np.uint32, 0), LayerArray("misses", np.uint32, 0)),
+    "tsdf": (LayerArray("tsdf", np.float32, 0.0), LayerArray("tsdf_weight", np.float32, 0.0)),
+}
+
+
+class TileStore:
+    """Pooled per-layer tile arrays, a tile-key -> slot index, and a version per tile."""
+
+    def __init__(self, tile_size: int, layers: Iterable[LayerName], max_tiles: int) -> None:
+        if tile_size <= 0 or tile_size & (tile_size - 1):
+            raise ValueError(f"tile_size must be a power of two, got {tile_size}")
+        self.tile_size = tile_size
+        self.shift = tile_size.bit_length() - 1
+        self.mask = tile_size - 1
+        self.max_tiles = max_tiles
+        self.arrays: tuple[LayerArray, ...] = tuple(a for layer in layers for a in LAYER_ARRAYS[layer])
+        self._capacity = 0
+        self.pools: dict[str, np.ndarray] = {}
+        self.slots: dict[TileKey, int] = {}
+        self.keys: list[TileKey] = []
+        self.versions = np.zeros(0, dtype=np.int64)
+        self._version_clock = 0
+        self._grow(min(16, max_tiles))
+
+    # -- structure -------------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def __contains__(self, key: TileKey) -> bool:
+        return key in self.slots
+
+    def pool(self, name: str) -> np.ndarray:
+        """The pooled array of one stored layer array, or an empty stand-in if the layer is off.
+
+        Kernels take every pool as an argument; a disabled layer is a (0, 0, 0) array they skip.
+        """
+        found = self.pools.get(name)
+        if found is None:
+            dtype = next(a.dtype for arrays in LAYER_ARRAYS.values() for a in arrays if a.name == name)
+            return np.zeros((0, 0, 0), dtype=dtype)
+        return found
+
+    def has_array(self, name: str) -> bool:
+        return name in self.pools
+
+    def tile_range(self, ti0: int, tj0: int, ti1: int, tj1: int) -> np.ndarray:
+        """Slot lookup for the tile window `[ti0, ti1] x [tj0, tj1]` (inclusive): `[tj - tj0, ti - ti0]`
+        holds the slot of that tile or -1."""
+        lookup = np.full((tj1 - tj0 + 1, ti1 - ti0 + 1), -1, dtype=np.int64)
+        if len(self.keys) <= lookup.size:
+            for (ti, tj), slot in self.slots.items():
+                if ti0 <= ti <= ti1 and tj0 <= tj <= tj1:
+                    lookup[tj - tj0, ti - ti0] = slot
+        else:
+            for tj in range(tj0, tj1 + 1):
+                for ti in range(ti0, ti1 + 1):
+                    slot = self.slots.get((ti, tj))
+                    if slot is not None:
+                        lookup[tj - tj0, ti - ti0] = slot
+        return lookup
+
+    def missing(self, keys: Iterable[TileKey]) -> list[TileKey]:
+        """The keys among `keys` that have no tile yet."""
+        return [k for k in keys if k not in self.slots]
+
+    def create(self, keys: list[TileKey]) -> None:
+        """Create tiles for `keys` (none may exist yet), all or none: past the cap, raise
+        `TileLimitError` and create nothing."""
+        if len(self.keys) + len(keys) > self.max_tiles:
+            raise TileLimitError(
+                f"the scan needs {len(keys)} new tile(s) but the map holds {len(self.keys)} of at most "
+                f"{self.max_tiles} (max_tiles); the scan was not integrated"
+            )
+        needed = len(self.keys) + len(keys)
+        if needed > self._capacity:
+            self._grow(min(max(needed, 2 * self._capacity), self.max_tiles))
+        for key in keys:
+            slot = len(self.keys)
+            self.slots[key] = slot
+            self.keys.append(key)
+            for a in self.arrays:
+                self.pools[a.name][slot] = a.unknown
+            self.versions[slot] = self._tick()
+
+    def _grow(self, capacity: int) -> None:
+        t = self.tile_size
+        for a in self.arrays:
+            new = np.empty((capacity, t, t), dtype=a.dtype)
+            old = self.pools.get(a.name)
+            if old is not None:
+                new[: len(self.keys)] = old[: len(self.keys)]
+            self.pools[a.name] = new
+        versions = np.zeros(capacity, dtype=np.int64)
+        versions[: len(self.keys)] = self.versions[: len(self.keys)]
+        self.versions = versions
+        self._capacity = capacity
+
+    # -- versions --------------------------------------------------------------------------------
+
+    def _tick(self) -> int:
+        self._version_clock += 1
+        return self._version_clock
+
+    def bump(self, slots: np.ndarray) -> None:
+        """Give each tile in `slots` a new version (a store-wide clock, so versions never repeat)."""
+        for slot in slots:
+            self.versions[int(slot)] = self._tick()
+
+    def version(self, key: TileKey) -> int | None:
+        slot = self.slots.get(key)
+        return None if slot is None else int(self.versions[slot])
+
+    @property
+    def clock(self) -> int:
+        """The newest version handed out; it grows with every change to the store."""
+        return self._version_clock
+
+    # -- reads -----------------------------------------------------------------------------------
+
+    def tile_array(self, name: str, key: TileKey) -> np.ndarray | None:
+        """A view of one tile of a stored array (`[local_j, local_i]`), or None if no such tile."""
+        slot = self.slots.get(key)
+        return None if slot is None else self.pools[name][slot]
+
+    def fill_window(self, name: str, i0: int, j0: int, out: np.ndarray) -> None:
+        """Copy the cells `[i0, i0 + nx) x [j0, j0 + ny)` of one stored array into `out` (ny, nx).
+
+        Cells in tiles that do not exist are left as they are in `out`, so the caller pre-fills it
+        with the unknown value it wants.
+        """
+        ny, nx = out.shape
+        if ny == 0 or nx == 0:
+            return
+        s, t = self.shift, self.tile_size
+        pool = self.pools[name]
+        for tj in range((j0 >> s), ((j0 + ny - 1) >> s) + 1):
+            for ti in range((i0 >> s), ((i0 + nx - 1) >> s) + 1):
+                slot = self.slots.get((ti, tj))
+                if slot is None:
+                    continue
+                # Overlap of this tile with the window, in global cell indices.
+                gi0, gi1 = max(i0, ti * t), min(i0 + nx, (ti + 1) * t)
+                gj0, gj1 = max(j0, tj * t), min(j0 + ny, (tj + 1) * t)
+                out[gj0 - j0 : gj1 - j0, gi0 - i0 : gi1 - i0] = pool[
+                    slot, gj0 - tj * t : gj1 - tj * t, gi0 - ti * t : gi1 - ti * t
+                ]
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the pools (allocated capacity, not only tiles in use)."""
+        return int(sum(p.nbytes for p in self.pools.values()) + self.versions.nbytes)
+
+    def tile_bounds(self) -> tuple[int, int, int, int] | None:
+        """Cell-index bounds `(i0, j0, i1, j1)` (exclusive ends) of all tiles, or None if empty."""
+        if not self.keys:
+            return None
+        keys = np.array(self.keys, dtype=np.int64)
+        t = self.tile_size
+        return (
+            int(keys[:, 0].min()) * t,
+            int(keys[:, 1].min()) * t,
+            (int(keys[:, 0].max()) + 1) * t,
+            (int(keys[:, 1].max()) + 1) * t,
+        )
