@@ -129,7 +129,10 @@ def _beam_model(scan: Scan, config: MapConfig, ox: float, oy: float):
     # A no-return beam is free up to the clearing range, never beyond the sensor's maximum.
     r_max = scan.range_max if math.isfinite(scan.range_max) else math.inf
     z = np.where(has_return, scan.ranges, min(config.no_return_range, r_max))[use]
-    phi = (scan.angles[use] + math.pi) % (2 * math.pi) - math.pi
+    phi = scan.angles[use]
+    # Wrap to [-pi, pi) only where needed: wrapping an angle already in range can move it by an ulp.
+    outside = (phi < -math.pi) | (phi >= math.pi)
+    phi = np.where(outside, (phi + math.pi) % (2 * math.pi) - math.pi, phi)
     order = np.argsort(phi, kind="stable")
     if phi.size == 0:
         return _EMPTY_I, _EMPTY_I, _EMPTY_KIND

@@ -21,6 +21,16 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _angle_diff(a: float, b: float) -> float:
+    """|a - b| as an angle. Differences already within [-pi, pi] are used as they are, so that
+    the model decides beam edges exactly as a plain `abs(phi - phi_k)` does."""
+    d = a - b
+    if d > math.pi or d < -math.pi:
+        d = _wrap(d)
+    return abs(d)
+
+
 @njit(cache=True, nogil=True)
 def beam_model_cells(
     ox: float,
@@ -67,7 +77,7 @@ def beam_model_cells(
             best_d = math.inf
             for cand in (lo - 1, lo, 0, nb - 1):
                 if 0 <= cand < nb:
-                    d = abs(_wrap(p - phi[cand]))
+                    d = _angle_diff(p, phi[cand])
                     if d < best_d:
                         best_d = d
                         best = cand

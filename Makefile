@@ -1,0 +1,41 @@
+# fleetmap: every target creates .venv/ with the project installed when it is missing.
+# `make demo` runs the main job, `make test` the tests; see README.md.
+
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+OUT ?= out
+# Debian packages the test suite uses (none yet for the engine).
+SYSTEM_PACKAGES ?=
+
+.PHONY: demo test bench bench-service lint format clean system-deps
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+# Debian packages the tests need (you are root on the test machines). Skipped when already there.
+system-deps:
+	@bash scripts/system-deps.sh $(SYSTEM_PACKAGES)
+
+demo: $(STAMP)
+	$(VENV)/bin/fleetmap demo --out $(OUT)/demo
+
+test: $(STAMP) system-deps
+	$(VENV)/bin/ruff check service tests clients scripts benchmarks
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) benchmarks/bench_engine.py
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check service tests clients scripts benchmarks
+
+format: $(STAMP)
+	$(VENV)/bin/ruff format service tests clients scripts benchmarks
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache

@@ -1,0 +1,145 @@
+"""The `fleetmap` command line.
+
+`fleetmap build DATASET --out DIR` maps a recorded dataset with the engine and writes the exports;
+`fleetmap demo` maps a synthetic floor plan with the simulator.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from pydantic import ValidationError
+
+from fleetmap.config import MapConfig
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_build(sub)
+    _add_demo(sub)
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except CliError as exc:
+        print(f"fleetmap {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+class CliError(Exception):
+    """An error the user can fix; printed without a traceback."""
+
+
+def load_config(path: str | None, **overrides: object) -> MapConfig:
+    """A map configuration from a JSON file (or defaults), with command-line overrides applied."""
+    data: dict[str, object] = {}
+    if path:
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise CliError(f"cannot read config {path}: {exc}") from None
+        if not isinstance(data, dict):
+            raise CliError(f"config {path} must hold a JSON object")
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return MapConfig.model_validate(data)
+    except ValidationError as exc:
+        raise CliError(f"invalid map configuration:\n{exc}") from None
+
+
+# -- build -----------------------------------------------------------------------------------------
+
+
+def _add_build(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("build", help="build a map from a recorded dataset (CARMEN log or .mat)")
+    p.add_argument("dataset", help="CARMEN log (plain or .gz) or MATLAB .mat file")
+    p.add_argument("--out", required=True, help="directory for map.yaml, map.pgm, map.png, *.npy, meta.json")
+    p.add_argument("--config", help="map configuration as a JSON file")
+    p.add_argument("--resolution", type=float, help="metres per cell (default 0.05)")
+    p.add_argument("--range-min", type=float, help="ignore readings below this (metres)")
+    p.add_argument("--range-max", type=float, help="readings at or above this are 'no return' (metres)")
+    p.add_argument("--no-return-range", type=float, help="clear this many metres of no-return beams")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(run=_build)
+
+
+def _build(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from fleetmap.datasets import DatasetError, load_dataset
+    from fleetmap.export import write_build_outputs
+    from fleetmap.grid_map import GridMap
+    from fleetmap.scan import ScanError
+    from fleetmap.tiles import TileLimitError
+
+    config = load_config(args.config, resolution=args.resolution, no_return_range=args.no_return_range)
+    try:
+        dataset = load_dataset(args.dataset, range_min=args.range_min, range_max=args.range_max)
+    except (DatasetError, OSError) as exc:
+        raise CliError(str(exc)) from None
+    gmap = GridMap(config)
+    started = time.perf_counter()
+    updates = skipped = 0
+    for scan in tqdm(dataset, total=len(dataset), unit="scan", disable=args.quiet, file=sys.stderr):
+        try:
+            updates += gmap.integrate(scan).cell_updates
+        except (ScanError, TileLimitError) as exc:
+            skipped += 1
+            tqdm.write(f"skipped a scan: {exc}", file=sys.stderr)
+    elapsed = time.perf_counter() - started
+    try:
+        written = write_build_outputs(gmap, Path(args.out))
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    print(
+        f"{len(dataset) - skipped} scans integrated ({skipped} skipped) in {elapsed:.2f} s, "
+        f"{updates / max(elapsed, 1e-9) / 1e6:.1f} M cell updates/s, {len(gmap.store)} tiles"
+    )
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+# -- demo ------------------------------------------------------------------------------------------
+
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="map a synthetic floor plan with simulated robots")
+    p.add_argument("--out", default="out/demo", help="output directory")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--robots", type=int, default=3)
+    p.add_argument("--seconds", type=float, default=60.0, help="simulated time")
+    p.set_defaults(run=_demo)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from fleetmap.export import write_build_outputs
+    from fleetmap.grid_map import GridMap
+    from fleetmap.sim import SimulatedRobot, generate_floorplan
+
+    plan = generate_floorplan(args.seed)
+    robots = [SimulatedRobot(plan, seed=args.seed * 100 + k) for k in range(args.robots)]
+    gmap = GridMap(MapConfig())
+    scans = 0
+    started = time.perf_counter()
+    dt = 0.1
+    for _ in range(math.ceil(args.seconds / dt)):
+        for robot in robots:
+            robot.step(dt)
+            gmap.integrate(robot.scan())
+            scans += 1
+    elapsed = time.perf_counter() - started
+    written = write_build_outputs(gmap, Path(args.out))
+    print(f"{len(robots)} simulated robots, {scans} scans mapped in {elapsed:.1f} s")
+    print(f"map image: {next(p for p in written if p.name == 'map.png')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

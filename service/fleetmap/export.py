@@ -1,0 +1,158 @@
+"""Map exports: the ROS nav2 map_server format, grayscale PNG, and numpy arrays.
+
+Each export is a function of a `GridMap` and a cell window, returning bytes, so the command line
+writes them to files and the service sends them over HTTP from the same code.
+
+Conventions: arrays are (ny, nx) with row 0 = lowest y; images are the same data flipped so the top
+row is the highest y, as image viewers and map_server expect. The origin of an export is the map
+point of the lower-left corner of its cell window.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap
+
+#: map_server's trinary pixel values and the thresholds that read them back unchanged.
+PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN = 0, 254, 205
+NAV2_OCCUPIED_THRESH, NAV2_FREE_THRESH = 0.65, 0.196
+
+
+@dataclass(frozen=True)
+class Window:
+    """Cells `[i0, i1) x [j0, j1)` of a map."""
+
+    i0: int
+    j0: int
+    i1: int
+    j1: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.j1 - self.j0, self.i1 - self.i0
+
+    def origin(self, resolution: float) -> tuple[float, float]:
+        """Map point of the window's lower-left corner."""
+        return self.i0 * resolution, self.j0 * resolution
+
+
+def known_window(gmap: GridMap, margin: int = 0) -> Window | None:
+    """The smallest window holding every observed cell, grown by `margin` cells; None if empty."""
+    bounds = gmap.known_bounds()
+    if bounds is None:
+        return None
+    i0, j0, i1, j1 = bounds
+    return Window(i0 - margin, j0 - margin, i1 + margin, j1 + margin)
+
+
+def state_to_pgm(state: np.ndarray) -> np.ndarray:
+    """Trinary map_server pixels (top row = highest y) from `state` codes (row 0 = lowest y)."""
+    pixels = np.full(state.shape, PGM_UNKNOWN, dtype=np.uint8)
+    pixels[state == STATE_OCCUPIED] = PGM_OCCUPIED
+    pixels[state == STATE_FREE] = PGM_FREE
+    return pixels[::-1]
+
+
+def pgm_bytes(pixels: np.ndarray) -> bytes:
+    """A binary (P5) 8-bit PGM image."""
+    h, w = pixels.shape
+    return f"P5\n{w} {h}\n255\n".encode("ascii") + np.ascontiguousarray(pixels, dtype=np.uint8).tobytes()
+
+
+def nav2_yaml(image: str, resolution: float, origin: tuple[float, float]) -> str:
+    """The map_server YAML for a trinary image whose lower-left corner is at `origin`."""
+    return (
+        f"image: {image}\n"
+        "mode: trinary\n"
+        f"resolution: {resolution!r}\n"
+        f"origin: [{origin[0]!r}, {origin[1]!r}, 0.0]\n"
+        "negate: 0\n"
+        f"occupied_thresh: {NAV2_OCCUPIED_THRESH}\n"
+        f"free_thresh: {NAV2_FREE_THRESH}\n"
+    )
+
+
+def nav2_files(gmap: GridMap, window: Window, name: str = "map") -> dict[str, bytes]:
+    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format."""
+    state = gmap.region("state", window.i0, window.j0, window.i1, window.j1)
+    yaml_text = nav2_yaml(f"{name}.pgm", gmap.resolution, window.origin(gmap.resolution))
+    return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(state_to_pgm(state))}
+
+
+def nav2_zip(gmap: GridMap, window: Window, name: str = "map") -> bytes:
+    """The nav2 files in one zip archive."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for filename, data in nav2_files(gmap, window, name).items():
+            zf.writestr(filename, data)
+    return buf.getvalue()
+
+
+def probability_to_gray(probability: np.ndarray) -> np.ndarray:
+    """Grayscale pixels, darker = more likely occupied (255 * (1 - p)); unknown as p = 0.5.
+    Top row = highest y."""
+    p = np.nan_to_num(probability, nan=0.5)
+    return np.round(255.0 * (1.0 - p)).astype(np.uint8)[::-1]
+
+
+def png_bytes(pixels: np.ndarray) -> bytes:
+    """A PNG of a 2D uint8 (grayscale) or 3D uint8 (RGB / RGBA) array."""
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(pixels)).save(buf, format="PNG", optimize=False, compress_level=1)
+    return buf.getvalue()
+
+
+def map_png(gmap: GridMap, window: Window) -> bytes:
+    """The occupancy probability of a window as a grayscale PNG."""
+    p = gmap.region("probability", window.i0, window.j0, window.i1, window.j1)
+    return png_bytes(probability_to_gray(p))
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return buf.getvalue()
+
+
+def write_build_outputs(gmap: GridMap, out_dir: Path, margin: int = 2) -> list[Path]:
+    """Everything `fleetmap build` writes: map.yaml, map.pgm, map.png, one .npy per stored layer,
+    and meta.json. Returns the paths written; raises ValueError for a map with no observed cell."""
+    window = known_window(gmap, margin)
+    if window is None:
+        raise ValueError("the map has no observed cell: nothing to export")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files: dict[str, bytes] = {}
+    layers: list[str] = []
+    if gmap.config.has("occupancy"):
+        files.update(nav2_files(gmap, window))
+        files["map.png"] = map_png(gmap, window)
+        layers.append("log_odds")
+    if gmap.config.has("counts"):
+        layers += ["hits", "misses"]
+    if gmap.config.has("tsdf"):
+        layers += ["tsdf", "tsdf_weight"]
+    for layer in layers:
+        files[f"{layer}.npy"] = npy_bytes(gmap.region(layer, window.i0, window.j0, window.i1, window.j1))
+    meta = {
+        "resolution": gmap.resolution,
+        "origin": list(window.origin(gmap.resolution)),
+        "shape": list(window.shape),
+        "cell_window": [window.i0, window.j0, window.i1, window.j1],
+        "layers": layers,
+        "config": gmap.config.model_dump(mode="json"),
+    }
+    files["meta.json"] = (json.dumps(meta, indent=2) + "\n").encode()
+    written = []
+    for filename, data in files.items():
+        path = out_dir / filename
+        path.write_bytes(data)
+        written.append(path)
+    return written
