@@ -1,14 +1,15 @@
 """The `fleetmap` command line.
 
-`fleetmap build DATASET --out DIR` maps a recorded dataset with the engine and writes the exports;
-`fleetmap demo` maps a synthetic floor plan with the simulator.
+`fleetmap build DATASET --out DIR` maps a recorded dataset with the engine and writes the exports.
+Other commands live beside the code they drive, each module contributing an `add_parser(sub)`:
+see `COMMAND_MODULES`.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
-import math
 import sys
 import time
 from collections.abc import Sequence
@@ -23,13 +24,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_build(sub)
-    _add_demo(sub)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
     args = parser.parse_args(argv)
     try:
         return int(args.run(args) or 0)
     except CliError as exc:
         print(f"fleetmap {args.command}: error: {exc}", file=sys.stderr)
         return 2
+
+
+#: Modules that add subcommands: each has `add_parser(sub)` which calls `sub.add_parser(...)` and
+#: sets `run=callable(args) -> int`. Raising `CliError` from `run` prints a clean error, exit 2.
+COMMAND_MODULES = ["fleetmap.cli_demo"]
 
 
 class CliError(Exception):
@@ -103,41 +110,6 @@ def _build(args: argparse.Namespace) -> int:
     )
     for path in written:
         print(f"wrote {path}")
-    return 0
-
-
-# -- demo ------------------------------------------------------------------------------------------
-
-
-def _add_demo(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="map a synthetic floor plan with simulated robots")
-    p.add_argument("--out", default="out/demo", help="output directory")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--robots", type=int, default=3)
-    p.add_argument("--seconds", type=float, default=60.0, help="simulated time")
-    p.set_defaults(run=_demo)
-
-
-def _demo(args: argparse.Namespace) -> int:
-    from fleetmap.export import write_build_outputs
-    from fleetmap.grid_map import GridMap
-    from fleetmap.sim import SimulatedRobot, generate_floorplan
-
-    plan = generate_floorplan(args.seed)
-    robots = [SimulatedRobot(plan, seed=args.seed * 100 + k) for k in range(args.robots)]
-    gmap = GridMap(MapConfig())
-    scans = 0
-    started = time.perf_counter()
-    dt = 0.1
-    for _ in range(math.ceil(args.seconds / dt)):
-        for robot in robots:
-            robot.step(dt)
-            gmap.integrate(robot.scan())
-            scans += 1
-    elapsed = time.perf_counter() - started
-    written = write_build_outputs(gmap, Path(args.out))
-    print(f"{len(robots)} simulated robots, {scans} scans mapped in {elapsed:.1f} s")
-    print(f"map image: {next(p for p in written if p.name == 'map.png')}")
     return 0
 
 

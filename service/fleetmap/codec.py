@@ -1,0 +1,178 @@
+"""Scan payload codecs: bytes on the wire <-> `WireScan` (a sequence number, a stamp and an engine
+`Scan`).
+
+Two encodings, chosen by the Zenoh sample's encoding (`fleetmap.wire`): JSON (`ScanMessage`) and
+the compact little-endian binary layout below, documented byte by byte in docs/protocol.md. Every
+decode either returns a fully valid `WireScan` or raises `DecodeError` with a reason.
+
+Binary layout (little-endian), header of `HEADER.size` = 72 bytes, then the arrays:
+
+    offset size type    field
+    0      4    bytes   magic b"FMS1"
+    4      1    u8      version (1)
+    5      1    u8      flags: bit 0 = explicit angles follow (else angle_min/increment are used)
+    6      2    u16     reserved, 0
+    8      8    u64     seq
+    16     8    f64     stamp (s)
+    24     8    f64     pose x (m)
+    32     8    f64     pose y (m)
+    40     8    f64     pose theta (rad)
+    48     4    f32     range_min (m)
+    52     4    f32     range_max (m; +inf = no maximum)
+    56     8    f64     angle_min (rad; ignored with flag bit 0)
+    64     4    f32     angle_increment (rad; ignored with flag bit 0)
+    68     4    u32     n, the number of beams
+    72     4*n  f32     angles (only with flag bit 0)
+    ...    4*n  f32     ranges (NaN = invalid, +inf or >= range_max = no return)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import ValidationError
+
+from fleetmap.scan import MAX_BEAMS, Pose2D, Scan, ScanError
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage
+
+MAGIC = b"FMS1"
+VERSION = 1
+FLAG_ANGLES = 1
+HEADER = struct.Struct("<4sBBHQddddffdfI")
+assert HEADER.size == 72, "the layout documented above and in docs/protocol.md"
+#: The largest payload accepted: a binary scan of MAX_BEAMS with explicit angles, or its JSON.
+MAX_PAYLOAD_BYTES = 4 * 1024 * 1024
+
+
+class DecodeError(ValueError):
+    """A payload that is not a valid scan message. The message says why."""
+
+
+@dataclass(frozen=True)
+class WireScan:
+    """A decoded scan message: what the service integrates."""
+
+    seq: int
+    stamp: float
+    scan: Scan
+
+
+def decode(payload: bytes | bytearray | memoryview, encoding: str) -> WireScan:
+    """Decode a payload by its encoding; an unknown or empty encoding is sniffed (JSON object or
+    binary magic). Raises `DecodeError`."""
+    data = bytes(payload)
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise DecodeError(f"payload of {len(data)} bytes exceeds the limit of {MAX_PAYLOAD_BYTES}")
+    kind = encoding.split(";", 1)[0].strip()
+    if kind in ("", "zenoh/bytes", "application/octet-stream"):
+        kind = BINARY_ENCODING if data[:4] == MAGIC else JSON_ENCODING if data[:1] == b"{" else kind
+    if kind == JSON_ENCODING or kind == "text/json":
+        return decode_json(data)
+    if kind == BINARY_ENCODING:
+        return decode_binary(data)
+    raise DecodeError(f"unknown encoding {encoding!r}; use {JSON_ENCODING} or {BINARY_ENCODING}")
+
+
+def decode_json(data: bytes) -> WireScan:
+    try:
+        message = ScanMessage.model_validate_json(data)
+    except ValidationError as exc:
+        raise DecodeError(f"invalid JSON scan: {_first_error(exc)}") from None
+    return from_message(message)
+
+
+def from_message(message: ScanMessage) -> WireScan:
+    """A validated `ScanMessage` as a `WireScan`; raises `DecodeError` if the engine refuses it."""
+    try:
+        return WireScan(message.seq, message.stamp, message.to_scan())
+    except ScanError as exc:
+        raise DecodeError(str(exc)) from None
+
+
+def decode_binary(data: bytes) -> WireScan:
+    if len(data) < HEADER.size:
+        raise DecodeError(f"binary scan of {len(data)} bytes is shorter than its {HEADER.size}-byte header")
+    (magic, version, flags, _reserved, seq, stamp, x, y, theta, range_min, range_max, angle_min,
+     angle_increment, n) = HEADER.unpack_from(data)  # fmt: skip
+    if magic != MAGIC:
+        raise DecodeError(f"bad magic {magic!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise DecodeError(f"unsupported binary scan version {version}")
+    if flags & ~FLAG_ANGLES:
+        raise DecodeError(f"unknown flags {flags:#x}")
+    if n > MAX_BEAMS:
+        raise DecodeError(f"{n} beams is more than the limit of {MAX_BEAMS}")
+    arrays = 2 if flags & FLAG_ANGLES else 1
+    expected = HEADER.size + 4 * n * arrays
+    if len(data) != expected:
+        raise DecodeError(f"binary scan of {n} beams must be {expected} bytes, got {len(data)}")
+    if seq >= 2**63:
+        raise DecodeError("seq must be below 2**63")
+    for name, value in (("stamp", stamp), ("range_min", range_min), ("angle_min", angle_min),
+                        ("angle_increment", angle_increment)):  # fmt: skip
+        if not math.isfinite(value):
+            raise DecodeError(f"{name} must be finite")
+    body = np.frombuffer(data, dtype="<f4", offset=HEADER.size)
+    if flags & FLAG_ANGLES:
+        angles = body[:n].astype(np.float64)
+        ranges = body[n:].astype(np.float64)
+    else:
+        angles = angle_min + angle_increment * np.arange(n, dtype=np.float64)
+        ranges = body.astype(np.float64)
+    try:
+        scan = Scan(Pose2D(x, y, theta), angles, ranges, float(range_min), float(range_max))
+    except ScanError as exc:
+        raise DecodeError(str(exc)) from None
+    return WireScan(int(seq), float(stamp), scan)
+
+
+def encode_binary(scan: Scan, seq: int, stamp: float = 0.0, explicit_angles: bool | None = None) -> bytes:
+    """The binary encoding of a scan. Evenly spaced beams are sent as angle_min + increment unless
+    `explicit_angles` is True; other beams always with explicit angles."""
+    n = scan.num_beams
+    angles = scan.angles
+    even = n < 2 or bool(np.allclose(np.diff(angles), angles[1] - angles[0], rtol=0, atol=1e-9))
+    explicit = (not even) if explicit_angles is None else explicit_angles
+    angle_min = float(angles[0]) if n else 0.0
+    increment = float(angles[1] - angles[0]) if n > 1 else 0.0
+    header = HEADER.pack(
+        MAGIC, VERSION, FLAG_ANGLES if explicit else 0, 0, seq, stamp, scan.pose.x, scan.pose.y,
+        scan.pose.theta, scan.range_min, scan.range_max, angle_min, increment, n,
+    )  # fmt: skip
+    parts = [header]
+    if explicit:
+        parts.append(angles.astype("<f4").tobytes())
+    parts.append(scan.ranges.astype("<f4").tobytes())
+    return b"".join(parts)
+
+
+def encode_json(scan: Scan, seq: int, stamp: float = 0.0) -> bytes:
+    """The JSON encoding of a scan (angle_min + increment when evenly spaced)."""
+    n = scan.num_beams
+    angles = scan.angles
+    message: dict[str, object] = {
+        "seq": seq,
+        "stamp": stamp,
+        "pose": {"x": scan.pose.x, "y": scan.pose.y, "theta": scan.pose.theta},
+        "range_min": scan.range_min,
+        "ranges": [None if math.isinf(r) else (None if math.isnan(r) else r) for r in scan.ranges.tolist()],
+    }
+    if math.isfinite(scan.range_max):
+        message["range_max"] = scan.range_max
+    if n > 1 and np.allclose(np.diff(angles), angles[1] - angles[0], rtol=0, atol=1e-12):
+        message["angle_min"] = float(angles[0])
+        message["angle_increment"] = float(angles[1] - angles[0])
+    else:
+        message["angles"] = angles.tolist()
+    return json.dumps(message, separators=(",", ":")).encode()
+
+
+def _first_error(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    where = ".".join(str(p) for p in err.get("loc", ())) or "message"
+    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+    return f"{where}: {err.get('msg')}{more}"

@@ -1,0 +1,95 @@
+"""A bounded work queue that is fair between sources and keeps each source's items in order.
+
+Each source (a robot on a map) has its own bounded FIFO. Consumers take from sources round-robin,
+and never from a source that already has an item in flight, so one source's items are processed one
+at a time in arrival order while different sources proceed in parallel. A source that floods fills
+only its own FIFO: `put` refuses its surplus at once (the caller counts it) and never blocks.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Hashable
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
+
+
+class QueueClosed(Exception):
+    """`get` on a closed, drained queue."""
+
+
+class FairQueue(Generic[T]):
+    def __init__(self, per_source: int = 64, total: int = 4096) -> None:
+        self.per_source = per_source
+        self.total = total
+        self._fifos: dict[Hashable, deque[T]] = {}
+        self._ready: deque[Hashable] = deque()  # sources with items and nothing in flight
+        self._busy: set[Hashable] = set()
+        self._size = 0
+        self._closed = False
+        self._cond = threading.Condition()
+
+    def put(self, source: Hashable, item: T) -> bool:
+        """Enqueue without blocking; False if the source's FIFO or the whole queue is full."""
+        with self._cond:
+            if self._closed:
+                return False
+            fifo = self._fifos.get(source)
+            if fifo is None:
+                fifo = self._fifos[source] = deque()
+            if len(fifo) >= self.per_source or self._size >= self.total:
+                return False
+            fifo.append(item)
+            self._size += 1
+            if len(fifo) == 1 and source not in self._busy:
+                self._ready.append(source)
+                self._cond.notify()
+            return True
+
+    def get(self, timeout: float | None = None) -> tuple[Hashable, T] | None:
+        """The next item of the next ready source, marking that source busy until `done(source)`.
+        Returns None on timeout; raises QueueClosed once closed and drained."""
+        with self._cond:
+            while not self._ready:
+                if self._closed and self._size == 0:
+                    raise QueueClosed
+                if not self._cond.wait(timeout):
+                    return None
+            source = self._ready.popleft()
+            item = self._fifos[source].popleft()
+            self._size -= 1
+            self._busy.add(source)
+            return source, item
+
+    def done(self, source: Hashable) -> None:
+        """The consumer finished the item it took from `source`."""
+        with self._cond:
+            self._busy.discard(source)
+            fifo = self._fifos.get(source)
+            if fifo:
+                self._ready.append(source)
+                self._cond.notify()
+            elif fifo is not None:
+                del self._fifos[source]
+
+    def drop_source(self, predicate) -> int:  # noqa: ANN001 - Callable[[Hashable], bool]
+        """Discard every queued item of the sources for which `predicate(source)` holds."""
+        with self._cond:
+            dropped = 0
+            for source in [s for s in self._fifos if predicate(s)]:
+                dropped += len(self._fifos[source])
+                self._size -= len(self._fifos[source])
+                self._fifos[source].clear()
+            self._ready = deque(s for s in self._ready if self._fifos.get(s))
+            return dropped
+
+    def depth(self) -> int:
+        with self._cond:
+            return self._size
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()

@@ -1,0 +1,128 @@
+"""The wire schema: one definition of what robots send and what the service answers.
+
+`ScanMessage` is the JSON scan robots publish over Zenoh (and POST over REST); the compact binary
+encoding of the same message is in `fleetmap.codec`. The REST API, the Python client, the docs and
+`openapi/openapi.json` all use these models. Conversion to the engine's `Scan` happens here, in
+`ScanMessage.to_scan`, and nowhere else.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Annotated
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+
+from fleetmap.scan import MAX_BEAMS, Pose2D, Scan, ScanError
+
+#: Map and robot ids: what may stand in a Zenoh key expression and a URL path segment unescaped.
+ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+_ID_RE = re.compile(ID_PATTERN)
+
+#: Zenoh key expressions. `<map_id>` and `<robot_id>` match ID_PATTERN.
+SCAN_KEY = "fleetmap/{map_id}/{robot_id}/scan"
+ALIVE_KEY = "fleetmap/{map_id}/{robot_id}/alive"
+SCAN_KEY_WILDCARD = "fleetmap/*/*/scan"
+ALIVE_KEY_WILDCARD = "fleetmap/*/*/alive"
+
+#: Zenoh encodings of the two payload formats.
+JSON_ENCODING = "application/json"
+BINARY_ENCODING = "application/x-fleetmap-scan"
+
+
+def is_valid_id(value: str) -> bool:
+    return bool(_ID_RE.match(value))
+
+
+def _finite(value: float) -> float:
+    if not math.isfinite(value):
+        raise ValueError("must be a finite number")
+    return value
+
+
+Finite = Annotated[float, AfterValidator(_finite)]
+
+
+class PoseMessage(BaseModel):
+    """The SENSOR pose in the map frame: metres, radians counter-clockwise."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    x: Finite
+    y: Finite
+    theta: Finite
+
+
+class ScanMessage(BaseModel):
+    """One laser scan with the sensor's pose.
+
+    Beam i points at `angle_min + i * angle_increment` relative to the sensor heading, or at
+    `angles[i]` when `angles` is given. `ranges[i]` is a number in metres or null; null, inf or a
+    value >= `range_max` means "no return", NaN (binary encoding only) an invalid reading.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    seq: int = Field(ge=0, lt=2**63, description="per-robot sequence number, +1 per scan")
+    stamp: Finite = Field(0.0, description="acquisition time, seconds (any epoch)")
+    pose: PoseMessage
+    angle_min: Finite | None = None
+    angle_increment: Finite | None = None
+    angles: list[Finite] | None = Field(None, max_length=MAX_BEAMS)
+    range_min: Finite = Field(0.0, ge=0)
+    range_max: float = Field(math.inf, gt=0, description="metres; may be omitted for 'no maximum'")
+    ranges: list[float | None] = Field(max_length=MAX_BEAMS)
+
+    @model_validator(mode="after")
+    def _check_angles(self) -> ScanMessage:
+        if self.angles is not None:
+            if self.angle_min is not None or self.angle_increment is not None:
+                raise ValueError("give either angles or angle_min + angle_increment, not both")
+            if len(self.angles) != len(self.ranges):
+                raise ValueError(f"{len(self.angles)} angles but {len(self.ranges)} ranges")
+        elif self.angle_min is None or self.angle_increment is None:
+            raise ValueError("angle_min and angle_increment are required when angles is absent")
+        if math.isnan(self.range_max):
+            raise ValueError("range_max must be a number")
+        if self.range_max <= self.range_min:
+            raise ValueError("range_max must be greater than range_min")
+        return self
+
+    def to_scan(self) -> Scan:
+        """The engine's `Scan`; raises `ScanError` for content the engine refuses."""
+        pose = Pose2D(self.pose.x, self.pose.y, self.pose.theta)
+        if self.angles is not None:
+            return Scan.from_angles(pose, self.angles, self.ranges, self.range_min, self.range_max)
+        assert self.angle_min is not None and self.angle_increment is not None
+        return Scan.from_fan(
+            pose, self.angle_min, self.angle_increment, self.ranges, self.range_min, self.range_max
+        )
+
+    @classmethod
+    def from_scan(cls, scan: Scan, seq: int, stamp: float = 0.0) -> ScanMessage:
+        """The message for an engine scan (explicit angles; inf ranges become null)."""
+        return cls(
+            seq=seq,
+            stamp=stamp,
+            pose=PoseMessage(x=scan.pose.x, y=scan.pose.y, theta=scan.pose.theta),
+            angles=scan.angles.tolist(),
+            range_min=scan.range_min,
+            range_max=scan.range_max,
+            ranges=[None if math.isinf(r) else r for r in scan.ranges.tolist()],
+        )
+
+
+__all__ = [
+    "ALIVE_KEY",
+    "ALIVE_KEY_WILDCARD",
+    "BINARY_ENCODING",
+    "ID_PATTERN",
+    "JSON_ENCODING",
+    "SCAN_KEY",
+    "SCAN_KEY_WILDCARD",
+    "PoseMessage",
+    "ScanError",
+    "ScanMessage",
+    "is_valid_id",
+]
