@@ -6,10 +6,10 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
-# Debian packages the test suite uses (none yet for the engine).
-SYSTEM_PACKAGES ?=
+# Debian packages the test suite uses: Chromium for the web viewer's end-to-end test.
+SYSTEM_PACKAGES ?= chromium
 
-.PHONY: demo test bench bench-service lint format clean system-deps
+.PHONY: demo serve test bench bench-service lint format clean system-deps
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -28,8 +28,14 @@ test: $(STAMP) system-deps
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
 	$(PY) -m pytest -q
 
+serve: $(STAMP)
+	$(VENV)/bin/fleetmap serve $(SERVE_ARGS)
+
 bench: $(STAMP)
 	$(PY) benchmarks/bench_engine.py
+
+bench-service: $(STAMP)
+	$(PY) benchmarks/bench_service.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks

@@ -85,6 +85,11 @@ class FairQueue(Generic[T]):
             self._ready = deque(s for s in self._ready if self._fifos.get(s))
             return dropped
 
+    def idle(self) -> bool:
+        """Nothing queued and nothing in flight."""
+        with self._cond:
+            return self._size == 0 and not self._busy
+
     def depth(self) -> int:
         with self._cond:
             return self._size

@@ -8,6 +8,10 @@ a robot at a time (so each robot's scans are integrated in order), plan them wit
 apply them under the map's lock. When the robot's FIFO is full, the NEWEST scan is refused and
 counted as `dropped` (REST callers get 503 and may retry); robots that must not lose scans publish
 with Zenoh's blocking congestion control, and the service is sized to keep up.
+
+With a `DurableStore`, each applied scan is journaled under the map's lock (so the journal's order is
+the order of application) and counts as integrated (stats, REST answer) only once its journal row is
+committed. Viewers see its tiles change at once.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.fair_queue import FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult
+from fleetmap.persistence import DurableStore
 from fleetmap.scan import Pose2D, ScanError
 from fleetmap.tiles import TileLimitError
 from fleetmap.wire import is_valid_id
@@ -64,6 +69,24 @@ class RobotState:
     duplicates: int = 0
     dropped: int = 0
     trail: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))
+
+    #: The counters that survive a restart.
+    SAVED = ("last_seq", "scans_integrated", "scans_rejected", "last_error", "lost", "duplicates", "dropped")
+
+    def saved(self) -> dict:
+        out = {name: getattr(self, name) for name in self.SAVED}
+        out["last_pose"] = (
+            None if self.last_pose is None else [self.last_pose.x, self.last_pose.y, self.last_pose.theta]
+        )
+        return out
+
+    @classmethod
+    def from_saved(cls, data: dict) -> RobotState:
+        state = cls(**{name: data.get(name, getattr(cls, name, None)) for name in cls.SAVED})
+        if data.get("last_pose"):
+            state.last_pose = Pose2D(*data["last_pose"])
+            state.trail.append(tuple(data["last_pose"]))
+        return state
 
 
 @dataclass
@@ -122,6 +145,7 @@ class MapRegistry:
         queue_per_robot: int = 64,
         queue_total: int = 8192,
         on_integrated: Callable[[MapEntry, Job, IntegrationResult, float], None] | None = None,
+        durable: DurableStore | None = None,
     ) -> None:
         self.default_config = default_config or MapConfig()
         self.auto_create = auto_create
@@ -130,6 +154,7 @@ class MapRegistry:
         self.queue: FairQueue[Job] = FairQueue(queue_per_robot, queue_total)
         self._generations = itertools.count(1)
         self._on_integrated = on_integrated
+        self.durable = durable
         self._workers = [
             threading.Thread(target=self._work, name=f"fleetmap-integrate-{k}", daemon=True)
             for k in range(workers)
@@ -139,17 +164,60 @@ class MapRegistry:
     # -- lifecycle -------------------------------------------------------------------------------
 
     def start(self) -> None:
-        if not self._started:
-            self._started = True
-            for t in self._workers:
-                t.start()
+        """Restore durable maps (snapshot + journal replay), then start the workers and snapshots."""
+        if self._started:
+            return
+        self._started = True
+        if self.durable is not None:
+            self._restore()
+            self.durable.start_periodic(self.snapshot_all)
+        for t in self._workers:
+            t.start()
 
-    def close(self, timeout: float = 5.0) -> None:
-        """Stop taking scans, finish the queued ones, stop the workers."""
+    def close(self, timeout: float = 30.0) -> None:
+        """Stop taking scans, finish the queued ones, stop the workers, snapshot every map."""
         self.queue.close()
         for t in self._workers:
             if t.is_alive():
                 t.join(timeout)
+        if self.durable is not None:
+            self.snapshot_all(False)
+            self.durable.close()
+
+    def _restore(self) -> None:
+        assert self.durable is not None
+        for map_id, gmap, counters, journal in self.durable.load():
+            entry = MapEntry(map_id, gmap, next(self._generations))
+            entry.scans_integrated = counters["scans_integrated"]
+            entry.scans_rejected = counters["scans_rejected"]
+            entry.robots = {rid: RobotState.from_saved(data) for rid, data in counters["robots"].items()}
+            for robot_id, seq, stamp, scan in journal:
+                gmap.integrate(scan)  # the same engine, in journal order: the same map
+                robot = entry.robot(robot_id)
+                robot.scans_integrated += 1
+                robot.last_seq, robot.last_stamp, robot.last_pose = seq, stamp, scan.pose
+                robot.trail.append((scan.pose.x, scan.pose.y, scan.pose.theta))
+                entry.scans_integrated += 1
+            self.maps[map_id] = entry
+            log.info(
+                "restored map %s: %d tiles, %d journal scans replayed", map_id, len(gmap.store), len(journal)
+            )
+
+    def snapshot_all(self, only_overdue: bool = False) -> None:
+        """Snapshot every map with journaled scans (only those past the row threshold if asked)."""
+        if self.durable is None:
+            return
+        for entry in self.list():
+            if self.durable.needs_snapshot(entry.id) and (not only_overdue or self.durable.overdue(entry.id)):
+                self.durable.snapshot(entry.id, entry.gmap, lambda e=entry: self._saved_counters(e))
+
+    def _saved_counters(self, entry: MapEntry) -> dict:
+        with self.lock:
+            return {
+                "scans_integrated": entry.scans_integrated,
+                "scans_rejected": entry.scans_rejected,
+                "robots": {rid: state.saved() for rid, state in entry.robots.items()},
+            }
 
     # -- maps ------------------------------------------------------------------------------------
 
@@ -168,8 +236,24 @@ class MapRegistry:
                 return existing, False
             entry = MapEntry(map_id, GridMap(config), next(self._generations))
             self.maps[map_id] = entry
+            if self.durable is not None:
+                self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
             log.info("created map %s", map_id)
             return entry, True
+
+    def replace(self, map_id: str, gmap: GridMap) -> MapEntry:
+        """Install `gmap` (a restored snapshot) as map `map_id`, replacing any map of that id."""
+        _check_id("map id", map_id)
+        with self.lock:
+            old = self.maps.pop(map_id, None)
+            entry = MapEntry(map_id, gmap, next(self._generations))
+            self.maps[map_id] = entry
+            if self.durable is not None:
+                self.durable.map_created(map_id, gmap)
+        if old is not None:
+            self.queue.drop_source(lambda source: source[0] == map_id)
+        log.info("installed map %s from a snapshot (%d tiles)", map_id, len(gmap.store))
+        return entry
 
     def get(self, map_id: str) -> MapEntry:
         with self.lock:
@@ -182,6 +266,8 @@ class MapRegistry:
         with self.lock:
             if self.maps.pop(map_id, None) is None:
                 raise MapNotFound(map_id)
+            if self.durable is not None:
+                self.durable.map_deleted(map_id)
         self.queue.drop_source(lambda source: source[0] == map_id)
         log.info("deleted map %s", map_id)
 
@@ -282,22 +368,36 @@ class MapRegistry:
                 job.future.set_exception(IngestRejected(f"map {job.map_id!r} was deleted", 404))
             return
         started = time.perf_counter()
+        scan = job.wire.scan
         try:
-            plan = entry.gmap.plan(job.wire.scan)
-            result = entry.gmap.apply(plan)
+            plan = entry.gmap.plan(scan)
+            with entry.gmap.lock:
+                result = entry.gmap.apply(plan)
+                if self.durable is not None:
+                    # Under the map's lock: the journal's order is the order of application.
+                    elapsed = time.perf_counter() - started
+                    self.durable.journal(
+                        job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, scan,
+                        lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
+                    )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
             self._finish_rejected(job, str(exc))
             return
-        elapsed = time.perf_counter() - started
-        entry.changes.record(result.changed_tiles)
+        entry.changes.record(result.changed_tiles)  # viewers see the change now
+        if self.durable is None:
+            self._mark_integrated(entry, job, result, time.perf_counter() - started)
+
+    def _mark_integrated(self, entry: MapEntry, job: Job, result: IntegrationResult, elapsed: float) -> None:
+        """The scan is applied (and durable, with persistence): count it and answer its caller."""
         pose = job.wire.scan.pose
         with self.lock:
-            entry.scans_integrated += 1
-            robot = entry.robot(job.robot_id)
-            robot.scans_integrated += 1
-            robot.last_pose = pose
-            robot.last_stamp = job.wire.stamp
-            robot.trail.append((pose.x, pose.y, pose.theta))
+            if entry.generation == job.generation:
+                entry.scans_integrated += 1
+                robot = entry.robot(job.robot_id)
+                robot.scans_integrated += 1
+                robot.last_pose = pose
+                robot.last_stamp = job.wire.stamp
+                robot.trail.append((pose.x, pose.y, pose.theta))
         if self._on_integrated is not None:
             self._on_integrated(entry, job, result, elapsed)
         if job.future:
@@ -315,10 +415,12 @@ class MapRegistry:
             job.future.set_exception(IngestRejected(reason, 422))
 
     def wait_idle(self, timeout: float = 10.0) -> bool:
-        """Wait until the queue is empty and no scan is in flight (for tests and shutdown)."""
+        """Wait until the queue is empty, no scan is in flight and every applied scan is durable."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            if self.queue.depth() == 0 and not self.queue._busy:  # noqa: SLF001
+            if self.queue.idle():
+                if self.durable is not None:
+                    self.durable.writer.flush()
                 return True
             time.sleep(0.005)
         return False

@@ -152,6 +152,10 @@ class TileStore:
         slot = self.slots.get(key)
         return None if slot is None else int(self.versions[slot])
 
+    def restore_clock(self, clock: int) -> None:
+        """Continue the version clock from `clock` (a store restored from disk)."""
+        self._version_clock = max(self._version_clock, int(clock))
+
     @property
     def clock(self) -> int:
         """The newest version handed out; it grows with every change to the store."""

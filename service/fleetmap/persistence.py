@@ -1,0 +1,550 @@
+"""Durable maps: SQLite (WAL) in the data directory holds map configurations, tile snapshots, robot
+counters and a journal of accepted scans.
+
+The contract (see docs/durability.md):
+- A scan is journaled in the order it was applied to its map (the registry appends under the map's
+  lock) and counts as integrated only after its journal row is committed. `JournalWriter` commits in
+  groups: one transaction (one fsync) for every scan that arrived in the last few milliseconds.
+- A snapshot of a map first makes every applied scan durable, then copies the tiles that changed
+  since the last snapshot together with the id of the last journal row they include, and writes
+  them, the robot counters and the journal truncation in ONE transaction: a crash leaves either the
+  old snapshot with its journal or the new one, never a mix.
+- On start, each map is its snapshot plus its journal rows after it, replayed in order: exactly the
+  map of all durable scans.
+SQLite's atomic commits mean no half-written tile or journal row can survive a crash.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import logging
+import os
+import queue
+import shutil
+import sqlite3
+import struct
+import threading
+import time
+import zipfile
+import zlib
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
+from fleetmap.scan import Pose2D, Scan
+
+log = logging.getLogger("fleetmap.persistence")
+
+DB_NAME = "fleetmap.db"
+#: Refuse to start with less free space than this in the data directory.
+MIN_FREE_BYTES = 64 * 1024 * 1024
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS maps (
+    id TEXT PRIMARY KEY,
+    config TEXT NOT NULL,
+    created_at REAL NOT NULL,
+    snapshot_journal_id INTEGER NOT NULL DEFAULT 0,
+    clock INTEGER NOT NULL DEFAULT 0,
+    scans_integrated INTEGER NOT NULL DEFAULT 0,
+    scans_rejected INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS tiles (
+    map_id TEXT NOT NULL,
+    ti INTEGER NOT NULL,
+    tj INTEGER NOT NULL,
+    version INTEGER NOT NULL,
+    data BLOB NOT NULL,
+    PRIMARY KEY (map_id, ti, tj)
+);
+CREATE TABLE IF NOT EXISTS robots (
+    map_id TEXT NOT NULL,
+    robot_id TEXT NOT NULL,
+    state TEXT NOT NULL,
+    PRIMARY KEY (map_id, robot_id)
+);
+CREATE TABLE IF NOT EXISTS journal (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    map_id TEXT NOT NULL,
+    robot_id TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    stamp REAL NOT NULL,
+    scan BLOB NOT NULL
+);
+CREATE INDEX IF NOT EXISTS journal_map ON journal (map_id, id);
+"""
+
+
+class StorageError(RuntimeError):
+    """The data directory cannot hold the maps (unwritable, full, corrupt). The message says why."""
+
+
+# -- encodings ---------------------------------------------------------------------------------------
+
+_SCAN_HEADER = struct.Struct("<Bdddddi")  # version, x, y, theta, range_min, range_max, n
+
+
+def scan_to_blob(scan: Scan) -> bytes:
+    """An exact (float64) serialisation of an engine scan for the journal."""
+    head = _SCAN_HEADER.pack(
+        1, scan.pose.x, scan.pose.y, scan.pose.theta, scan.range_min, scan.range_max, scan.num_beams
+    )
+    return head + scan.angles.astype("<f8").tobytes() + scan.ranges.astype("<f8").tobytes()
+
+
+def scan_from_blob(blob: bytes) -> Scan:
+    version, x, y, theta, range_min, range_max, n = _SCAN_HEADER.unpack_from(blob)
+    if version != 1 or len(blob) != _SCAN_HEADER.size + 16 * n:
+        raise StorageError("corrupt journal entry")
+    body = np.frombuffer(blob, dtype="<f8", offset=_SCAN_HEADER.size)
+    return Scan(Pose2D(x, y, theta), body[:n].copy(), body[n:].copy(), range_min, range_max)
+
+
+def tile_to_blob(arrays: list[np.ndarray]) -> bytes:
+    """One tile's stored arrays (the store's order), concatenated and zlib-compressed."""
+    return zlib.compress(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays), 1)
+
+
+def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int, list[np.ndarray]]]:
+    """Copies of the tiles whose version is above `since`: (key, version, arrays in store order).
+    The caller holds the map's lock."""
+    store = gmap.store
+    return [
+        (key, int(store.versions[slot]), [store.pools[a.name][slot].copy() for a in store.arrays])
+        for key, slot in store.slots.items()
+        if store.versions[slot] > since
+    ]
+
+
+def tile_from_blob(blob: bytes, gmap: GridMap) -> list[np.ndarray]:
+    raw = zlib.decompress(blob)
+    t = gmap.store.tile_size
+    out, offset = [], 0
+    for a in gmap.store.arrays:
+        size = t * t * np.dtype(a.dtype).itemsize
+        out.append(np.frombuffer(raw, dtype=a.dtype, count=t * t, offset=offset).reshape(t, t))
+        offset += size
+    if offset != len(raw):
+        raise StorageError("corrupt tile: size does not match the map's layers")
+    return out
+
+
+# -- the database -------------------------------------------------------------------------------------
+
+
+def open_database(data_dir: Path) -> Path:
+    """Check the data directory can hold the maps and create the schema; return the database path.
+
+    Raises `StorageError` with a clear message when the directory cannot be created or written, or
+    the disk is (nearly) full, so the service never runs silently in memory only."""
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StorageError(f"cannot create data directory {data_dir}: {exc.strerror}") from None
+    probe = data_dir / ".write-test"
+    try:
+        with open(probe, "wb") as f:
+            f.write(b"\0" * 65536)
+            f.flush()
+            os.fsync(f.fileno())
+        probe.unlink()
+    except OSError as exc:
+        raise StorageError(f"data directory {data_dir} is not writable: {exc.strerror}") from None
+    free = shutil.disk_usage(data_dir).free
+    if free < MIN_FREE_BYTES:
+        raise StorageError(
+            f"data directory {data_dir} has only {free // (1024 * 1024)} MiB free; "
+            f"at least {MIN_FREE_BYTES // (1024 * 1024)} MiB are needed"
+        )
+    path = data_dir / DB_NAME
+    try:
+        conn = connect(path)
+        conn.executescript(SCHEMA)
+        conn.close()
+    except sqlite3.DatabaseError as exc:
+        raise StorageError(f"cannot open the map database {path}: {exc}") from None
+    return path
+
+
+def connect(path: Path) -> sqlite3.Connection:
+    conn = sqlite3.connect(path, timeout=30.0, isolation_level=None, check_same_thread=False)
+    conn.execute("PRAGMA journal_mode=WAL")
+    conn.execute("PRAGMA synchronous=FULL")  # a commit is on disk when COMMIT returns
+    return conn
+
+
+@dataclass
+class JournalEntry:
+    map_id: str
+    robot_id: str
+    seq: int
+    stamp: float
+    blob: bytes
+    on_durable: Callable[[int], None]
+
+
+class JournalWriter:
+    """The one thread that appends to the journal, committing in groups."""
+
+    def __init__(
+        self, path: Path, max_delay: float = 0.01, on_error: Callable[[Exception], None] | None = None
+    ):
+        self._conn = connect(path)
+        self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | None] = queue.Queue()
+        self._max_delay = max_delay
+        self._on_error = on_error
+        self._thread = threading.Thread(target=self._run, name="fleetmap-journal", daemon=True)
+        self._thread.start()
+        self.commits = 0
+        self.rows = 0
+
+    def append(self, entry: JournalEntry) -> None:
+        self._queue.put(entry)
+
+    def submit(self, op: Callable[[sqlite3.Connection], object]) -> Future:
+        """Queue a database operation for the writer thread, in order with the journal entries
+        appended before it (whose rows are committed and acknowledged by then). Never blocks."""
+        future: Future = Future()
+
+        def wrapped(conn: sqlite3.Connection) -> None:
+            try:
+                future.set_result(op(conn))
+            except BaseException as exc:  # handed back to whoever waits on the future
+                future.set_exception(exc)
+
+        self._queue.put(wrapped)
+        return future
+
+    def run(self, op: Callable[[sqlite3.Connection], object]) -> object:
+        """`submit` and wait. Never call it while holding a lock a durability callback takes."""
+        return self.submit(op).result()
+
+    def flush(self) -> None:
+        """Return once everything appended before this call is committed and acknowledged."""
+        self.run(lambda conn: None)
+
+    def close(self) -> None:
+        self._queue.put(None)
+        self._thread.join()
+        self._conn.close()
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            batch: list[JournalEntry] = []
+            deadline = time.monotonic() + self._max_delay
+            while True:
+                if isinstance(item, JournalEntry):
+                    batch.append(item)
+                else:
+                    self._commit(batch)
+                    batch = []
+                    if item is None:
+                        return
+                    item(self._conn)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or len(batch) >= 512:
+                    break
+                try:
+                    item = self._queue.get(timeout=remaining)
+                except queue.Empty:
+                    break
+            self._commit(batch)
+
+    def _commit(self, batch: list[JournalEntry]) -> None:
+        if not batch:
+            return
+        try:
+            ids = []
+            self._conn.execute("BEGIN IMMEDIATE")
+            for e in batch:
+                cur = self._conn.execute(
+                    "INSERT INTO journal (map_id, robot_id, seq, stamp, scan) VALUES (?, ?, ?, ?, ?)",
+                    (e.map_id, e.robot_id, e.seq, e.stamp, e.blob),
+                )
+                ids.append(cur.lastrowid)
+            self._conn.execute("COMMIT")
+        except sqlite3.Error as exc:
+            # Nothing of this batch is durable: the scans stay applied in memory but are never
+            # counted, and the service reports the storage failure loudly.
+            log.error("journal commit failed (%d scans not durable): %s", len(batch), exc)
+            with contextlib.suppress(sqlite3.Error):
+                self._conn.execute("ROLLBACK")
+            if self._on_error:
+                self._on_error(exc)
+            return
+        self.commits += 1
+        self.rows += len(batch)
+        for e, row_id in zip(batch, ids, strict=True):
+            e.on_durable(int(row_id))
+
+
+# -- snapshot files (download / restore) ----------------------------------------------------------------
+
+SNAPSHOT_FORMAT = "fleetmap-snapshot-1"
+
+
+def snapshot_file(map_id: str, gmap: GridMap) -> bytes:
+    """One map as a single file: a zip of `map.json` (format, id, config) and `tiles.npz`."""
+    with gmap.lock:
+        keys = list(gmap.store.keys)
+        arrays = {a.name: np.stack([gmap.store.tile_array(a.name, k) for k in keys]) if keys else
+                  np.zeros((0, gmap.store.tile_size, gmap.store.tile_size), dtype=a.dtype)
+                  for a in gmap.store.arrays}  # fmt: skip
+    buf = io.BytesIO()
+    npz = io.BytesIO()
+    np.savez_compressed(npz, keys=np.array(keys, dtype=np.int64).reshape(-1, 2), **arrays)
+    meta = {"format": SNAPSHOT_FORMAT, "id": map_id, "config": gmap.config.model_dump(mode="json")}
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
+        zf.writestr("map.json", json.dumps(meta, indent=2))
+        zf.writestr("tiles.npz", npz.getvalue())
+    return buf.getvalue()
+
+
+def map_from_snapshot_file(data: bytes, max_tiles: int | None = None) -> GridMap:
+    """A map restored from `snapshot_file` bytes; raises ValueError with a reason if they are not one."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            meta = json.loads(zf.read("map.json"))
+            if meta.get("format") != SNAPSHOT_FORMAT:
+                raise ValueError(f"not a {SNAPSHOT_FORMAT} file")
+            config = MapConfig.model_validate(meta["config"])
+            if max_tiles is not None and config.max_tiles > max_tiles:
+                config = config.model_copy(update={"max_tiles": max_tiles})
+            with np.load(io.BytesIO(zf.read("tiles.npz")), allow_pickle=False) as npz:
+                keys = [tuple(int(v) for v in k) for k in npz["keys"]]
+                gmap = GridMap(config)
+                if len(keys) > config.max_tiles:
+                    raise ValueError(
+                        f"the snapshot has {len(keys)} tiles, more than max_tiles {config.max_tiles}"
+                    )
+                gmap.store.create(keys)  # type: ignore[arg-type]
+                t = config.tile_size
+                for a in gmap.store.arrays:
+                    stacked = npz[a.name]
+                    if stacked.shape != (len(keys), t, t) or stacked.dtype != np.dtype(a.dtype):
+                        raise ValueError(
+                            f"layer {a.name} has shape {stacked.shape}, expected {(len(keys), t, t)}"
+                        )
+                    gmap.store.pools[a.name][: len(keys)] = stacked
+    except (KeyError, zipfile.BadZipFile, json.JSONDecodeError, OSError) as exc:
+        raise ValueError(f"not a fleetmap snapshot: {exc}") from None
+    return gmap
+
+
+# -- the durable store the registry uses ------------------------------------------------------------------
+
+
+class DurableStore:
+    """Persistence for a `MapRegistry`: restore on start, journal while running, snapshot now and then.
+
+    The registry calls `map_created`, `map_deleted` and, under a map's lock, `journal`; this class
+    calls back `on_durable(journal_id)` once a scan's row is committed.
+    """
+
+    def __init__(self, data_dir: Path, snapshot_interval: float = 10.0, snapshot_rows: int = 4000) -> None:
+        self.data_dir = Path(data_dir)
+        self.path = open_database(self.data_dir)
+        self.writer = JournalWriter(self.path, on_error=self._storage_failed)
+        self.snapshot_interval = snapshot_interval
+        self.snapshot_rows = snapshot_rows
+        self.failed: str | None = None  # the last storage failure, reported by /healthz
+        self._rows_since: dict[str, int] = {}
+        self._last_journal_id: dict[str, int] = {}
+        self._snapshot_clock: dict[str, int] = {}  # store clock of each map's last snapshot
+        self._snapshot_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- start ---------------------------------------------------------------------------------------
+
+    def load(self) -> list[tuple[str, GridMap, dict, list[tuple[str, int, float, Scan]]]]:
+        """Every stored map: (id, map from its snapshot, saved counters, journal rows after it).
+
+        The caller (the registry) replays the journal rows in order through its own bookkeeping."""
+        conn = connect(self.path)
+        try:
+            out = []
+            for map_id, config_json, snap_id, clock, integrated, rejected in conn.execute(
+                "SELECT id, config, snapshot_journal_id, clock, scans_integrated, scans_rejected FROM maps"
+            ).fetchall():
+                gmap = GridMap(MapConfig.model_validate_json(config_json))
+                rows = conn.execute(
+                    "SELECT ti, tj, version, data FROM tiles WHERE map_id = ?", (map_id,)
+                ).fetchall()
+                if rows:
+                    gmap.store.create([(ti, tj) for ti, tj, _, _ in rows])
+                    for ti, tj, version, data in rows:
+                        slot = gmap.store.slots[(ti, tj)]
+                        for a, arr in zip(gmap.store.arrays, tile_from_blob(data, gmap), strict=True):
+                            gmap.store.pools[a.name][slot] = arr
+                        gmap.store.versions[slot] = version
+                gmap.store.restore_clock(max(clock, max((r[2] for r in rows), default=0)))
+                robots = {rid: json.loads(state) for rid, state in conn.execute(
+                    "SELECT robot_id, state FROM robots WHERE map_id = ?", (map_id,))}  # fmt: skip
+                journal = [
+                    (robot_id, seq, stamp, scan_from_blob(blob))
+                    for _id, robot_id, seq, stamp, blob in conn.execute(
+                        "SELECT id, robot_id, seq, stamp, scan FROM journal WHERE map_id = ? AND id > ? "
+                        "ORDER BY id", (map_id, snap_id))
+                ]  # fmt: skip
+                last = conn.execute("SELECT MAX(id) FROM journal WHERE map_id = ?", (map_id,)).fetchone()[0]
+                self._last_journal_id[map_id] = int(last or snap_id)
+                self._rows_since[map_id] = len(journal)
+                # Tiles replayed from the journal are newer than the stored snapshot; restored tiles
+                # are not, so only versions above the restored clock count as changed.
+                self._snapshot_clock[map_id] = gmap.store.clock
+                counters = {"scans_integrated": integrated, "scans_rejected": rejected, "robots": robots}
+                out.append((map_id, gmap, counters, journal))
+            return out
+        except (sqlite3.DatabaseError, zlib.error) as exc:
+            raise StorageError(f"cannot read the map database {self.path}: {exc}") from None
+        finally:
+            conn.close()
+
+    # -- hooks called by the registry -------------------------------------------------------------------
+
+    def map_created(self, map_id: str, gmap: GridMap) -> Future:
+        """Record a new map (or one restored from a snapshot file, with its tiles). Queued, not
+        waited for: called under the registry's lock, it is ordered before any of the map's scans.
+
+        The map's journal starts after the journal's current sequence, so rows a deleted map of the
+        same id left behind are never replayed into this one."""
+        tiles = [(key, version, tile_to_blob(arrays)) for key, version, arrays in changed_tiles(gmap, -1)]
+        config_json, clock = gmap.config.model_dump_json(), gmap.store.clock
+
+        def op(conn: sqlite3.Connection) -> None:
+            conn.execute("BEGIN IMMEDIATE")
+            for table, column in (("tiles", "map_id"), ("robots", "map_id"), ("journal", "map_id")):
+                conn.execute(f"DELETE FROM {table} WHERE {column} = ?", (map_id,))
+            conn.execute(
+                "INSERT OR REPLACE INTO maps (id, config, created_at, clock, snapshot_journal_id) VALUES "
+                "(?, ?, ?, ?, (SELECT COALESCE(MAX(seq), 0) FROM sqlite_sequence WHERE name = 'journal'))",
+                (map_id, config_json, time.time(), clock),
+            )
+            conn.executemany(
+                "INSERT INTO tiles (map_id, ti, tj, version, data) VALUES (?, ?, ?, ?, ?)",
+                [(map_id, k[0], k[1], v, b) for k, v, b in tiles],
+            )
+            conn.execute("COMMIT")
+            self._last_journal_id[map_id] = 0
+
+        self._rows_since[map_id] = 0
+        self._snapshot_clock[map_id] = clock
+        return self.writer.submit(op)
+
+    def map_deleted(self, map_id: str) -> Future:
+        """Forget a map. Queued after its journaled scans, not waited for."""
+
+        def op(conn: sqlite3.Connection) -> None:
+            conn.execute("BEGIN IMMEDIATE")
+            for table, column in (
+                ("maps", "id"),
+                ("tiles", "map_id"),
+                ("robots", "map_id"),
+                ("journal", "map_id"),
+            ):
+                conn.execute(f"DELETE FROM {table} WHERE {column} = ?", (map_id,))
+            conn.execute("COMMIT")
+
+        for d in (self._rows_since, self._snapshot_clock):
+            d.pop(map_id, None)
+        return self.writer.submit(op)
+
+    def journal(self, map_id: str, robot_id: str, seq: int, stamp: float, scan: Scan,
+                on_durable: Callable[[int], None]) -> None:  # fmt: skip
+        """Append an applied scan; MUST be called under the map's lock so the journal's order is the
+        order scans were applied in."""
+
+        def durable(row_id: int) -> None:
+            self._last_journal_id[map_id] = row_id
+            self._rows_since[map_id] = self._rows_since.get(map_id, 0) + 1
+            on_durable(row_id)
+
+        self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, scan_to_blob(scan), durable))
+
+    # -- snapshots -------------------------------------------------------------------------------------
+
+    def snapshot(self, map_id: str, gmap: GridMap, counters: Callable[[], dict]) -> int:
+        """Write the tiles changed since the last snapshot and truncate the journal; returns the number
+        of tiles written.
+
+        Under the map's lock the changed tiles are copied and a marker is queued behind every scan
+        applied so far; the writer runs the marker after committing (and counting) exactly those
+        scans, so the journal id and the `counters()` it records match the copied tiles. Nothing here
+        waits on the writer while holding a lock."""
+        with self._snapshot_lock:
+            with gmap.lock:
+                since = self._snapshot_clock.get(map_id, 0)
+                copies = changed_tiles(gmap, since)
+                clock = gmap.store.clock
+                marker = self.writer.submit(lambda conn: (self._last_journal_id.get(map_id, 0), counters()))
+            last_id, saved = marker.result()
+            blobs = [(key, version, tile_to_blob(arrays)) for key, version, arrays in copies]
+
+            def op(conn: sqlite3.Connection) -> None:
+                conn.execute("BEGIN IMMEDIATE")
+                if conn.execute("SELECT 1 FROM maps WHERE id = ?", (map_id,)).fetchone() is None:
+                    conn.execute("ROLLBACK")  # deleted meanwhile
+                    return
+                conn.executemany(
+                    "INSERT OR REPLACE INTO tiles (map_id, ti, tj, version, data) VALUES (?, ?, ?, ?, ?)",
+                    [(map_id, k[0], k[1], v, b) for k, v, b in blobs],
+                )
+                conn.execute(
+                    "UPDATE maps SET snapshot_journal_id = MAX(snapshot_journal_id, ?), clock = ?, "
+                    "scans_integrated = ?, scans_rejected = ? WHERE id = ?",
+                    (last_id, clock, saved["scans_integrated"], saved["scans_rejected"], map_id),
+                )
+                conn.executemany(
+                    "INSERT OR REPLACE INTO robots (map_id, robot_id, state) VALUES (?, ?, ?)",
+                    [(map_id, rid, json.dumps(state)) for rid, state in saved["robots"].items()],
+                )
+                conn.execute("DELETE FROM journal WHERE map_id = ? AND id <= ?", (map_id, last_id))
+                conn.execute("COMMIT")
+
+            self.writer.run(op)
+            self._snapshot_clock[map_id] = clock
+            self._rows_since[map_id] = 0
+            return len(blobs)
+
+    def needs_snapshot(self, map_id: str) -> bool:
+        return self._rows_since.get(map_id, 0) > 0
+
+    def overdue(self, map_id: str) -> bool:
+        return self._rows_since.get(map_id, 0) >= self.snapshot_rows
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self.writer.close()
+
+    def start_periodic(self, snapshot_all: Callable[[bool], None]) -> None:
+        """Call `snapshot_all(only_overdue)` every second for maps past `snapshot_rows`, and for every
+        changed map each `snapshot_interval` seconds."""
+
+        def loop() -> None:
+            last_full = time.monotonic()
+            while not self._stop.wait(1.0):
+                full = time.monotonic() - last_full >= self.snapshot_interval
+                try:
+                    snapshot_all(not full)
+                except Exception:  # keep snapshotting; the failure is logged and shown in health
+                    log.exception("snapshot failed")
+                if full:
+                    last_full = time.monotonic()
+
+        self._thread = threading.Thread(target=loop, name="fleetmap-snapshot", daemon=True)
+        self._thread.start()
+
+    def _storage_failed(self, exc: Exception) -> None:
+        self.failed = f"storage error: {exc}"
