@@ -1,0 +1,344 @@
+"""Tests of `GridMap` and its tile store: coordinates (negative ones too), the layout of `region`,
+sparse tile creation, tile versions, the all-or-nothing tile cap, reads of unknown cells, layer
+availability, and that the compiled kernels release the GIL.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import threading
+
+import numpy as np
+import pytest
+from numba.core.dispatcher import Dispatcher
+
+from fleetmap.config import MapConfig, OccupancyParams
+from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap, LayerUnavailableError
+from fleetmap.kernels.traversal import EXACT, segment_cells
+from fleetmap.scan import Scan
+from fleetmap.tiles import TileLimitError
+
+ALL_READ_LAYERS = ("log_odds", "hits", "misses", "tsdf", "tsdf_weight")
+
+
+def make_map(**config: object) -> GridMap:
+    config.setdefault("resolution", 0.25)
+    config.setdefault("tile_size", 16)
+    return GridMap(MapConfig(**config))  # type: ignore[arg-type]
+
+
+def one_beam(pose: tuple[float, float, float], angle: float, r: float | None) -> Scan:
+    return Scan.from_angles(pose, [angle], [r])
+
+
+def snapshot(m: GridMap, window: tuple[int, int, int, int]) -> dict[str, object]:
+    """Everything observable about a map: every stored layer over a window, tiles and versions."""
+    out: dict[str, object] = {
+        layer: m.region(layer, *window) for layer in ALL_READ_LAYERS if m.config.has(_needs(layer))
+    }
+    out["keys"] = list(m.store.keys)
+    out["versions"] = {k: m.store.version(k) for k in m.store.keys}
+    out["clock"] = m.store.clock
+    out["bounds"] = m.known_bounds()
+    return out
+
+
+def _needs(layer: str) -> str:
+    return {"log_odds": "occupancy", "hits": "counts", "misses": "counts"}.get(layer, "tsdf")
+
+
+def assert_same(a: dict[str, object], b: dict[str, object]) -> None:
+    assert a.keys() == b.keys()
+    for key, value in a.items():
+        if isinstance(value, np.ndarray):
+            np.testing.assert_array_equal(value, b[key], err_msg=key)
+        else:
+            assert value == b[key], key
+
+
+# -- coordinates and region layout -------------------------------------------------------------------
+
+
+def test_cell_index_half_open_and_negative() -> None:
+    """Cell (i, j) covers [i*res, (i+1)*res) x [j*res, (j+1)*res), negative indices included."""
+    m = make_map()
+    assert m.cell_index(0.0, 0.0) == (0, 0)
+    assert m.cell_index(0.5, -0.5) == (2, -2)
+    assert m.cell_index(-0.01, -0.26) == (-1, -2)
+    assert m.cell_index(0.2499, 0.25) == (0, 1)
+
+
+def test_negative_coordinates() -> None:
+    """A beam entirely at negative coordinates: sensor at (-3.7, -2.2) looking along -x, return at
+    1.33 m, i.e. at x = -5.03. The cells -15..-21 of row -9 are known, -21 (which holds (-5.03, -2.2))
+    is the only hit, the tiles are (-1, -1) and (-2, -1), and point reads agree."""
+    occ = OccupancyParams()
+    m = make_map(layers=["occupancy"])
+    m.integrate(one_beam((-3.7, -2.2, math.pi), 0.0, 1.33))
+    a = m.region("log_odds", -30, -12, 0, 0)
+    jj, ii = np.nonzero(~np.isnan(a))
+    cells = sorted(zip((ii - 30).tolist(), (jj - 12).tolist(), strict=True))
+    assert cells == [(i, -9) for i in range(-21, -14)]
+    assert a[-9 + 12, -21 + 30] == pytest.approx(occ.l_hit)
+    assert np.nanmax(np.delete(a[3], 9)) == pytest.approx(occ.l_miss)
+    assert set(m.store.keys) == {(-1, -1), (-2, -1)}
+    got = m.cells(np.array([[-5.03, -2.2], [-4.5, -2.2], [-3.7, -2.0]]))
+    assert got["log_odds"][0] == pytest.approx(occ.l_hit)
+    assert got["log_odds"][1] == pytest.approx(occ.l_miss)
+    assert got["known"].tolist() == [True, True, False]
+    assert m.known_bounds() == (-21, -9, -14, -8)
+
+
+def test_region_layout_row_zero_is_lowest_y() -> None:
+    """region() returns (j1 - j0, i1 - i0) with [j - j0, i - i0] holding cell (i, j): a hit in cell
+    (5, -3) read over the window i in [3, 10), j in [-7, -1) is at [4, 2] of a (6, 7) array; a beam
+    along +y fills one column from low rows to high rows."""
+    occ = OccupancyParams()
+    m = make_map(layers=["occupancy"])
+    # Sensor in cell (5, -5), beam along +y ending at y = -0.6: cell (5, -3).
+    m.integrate(one_beam((1.375, -1.125, math.pi / 2), 0.0, 0.525))
+    a = m.region("log_odds", 3, -7, 10, -1)
+    assert a.shape == (6, 7)
+    assert a[4, 2] == pytest.approx(occ.l_hit)
+    assert a[2, 2] == pytest.approx(occ.l_miss) and a[3, 2] == pytest.approx(occ.l_miss)
+    known = ~np.isnan(a)
+    assert known.sum() == 3 and known[:, 2].sum() == 3
+    state = m.region("state", 3, -7, 10, -1)
+    assert state[4, 2] == STATE_OCCUPIED and state[0, 0] == STATE_UNKNOWN
+    # Empty and inverted windows give empty arrays.
+    assert m.region("log_odds", 3, 3, 3, 9).shape == (6, 0)
+    assert m.region("log_odds", 9, 9, 3, 3).shape == (0, 0)
+
+
+def test_region_agrees_with_point_reads_across_tiles() -> None:
+    """A 360-degree scan over many 16-cell tiles: every layer's region equals cell-by-cell reads via
+    cells() at the cell centres, so the window assembly across tiles is right."""
+    m = make_map()
+    rng = np.random.default_rng(11)
+    angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    m.integrate(Scan.from_angles((-0.3, 0.7, 0.2), angles, rng.uniform(0.5, 9.0, angles.size)))
+    i0, j0, i1, j1 = -45, -40, 41, 44
+    ii, jj = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1))
+    pts = np.stack([(ii.ravel() + 0.5) * 0.25, (jj.ravel() + 0.5) * 0.25], axis=1)
+    got = m.cells(pts)
+    for layer in ALL_READ_LAYERS:
+        np.testing.assert_array_equal(m.region(layer, i0, j0, i1, j1).ravel(), got[layer], err_msg=layer)
+    assert got["known"].sum() > 500
+
+
+def test_tile_size_does_not_change_the_map() -> None:
+    """The same scans in maps of 16-, 64- and 256-cell tiles (a scan spanning more than 256 tiles at
+    16 takes the sparse marking path) give identical layers."""
+    rng = np.random.default_rng(5)
+    scans = []
+    for _ in range(4):
+        angles = np.linspace(-math.pi, math.pi, 180, endpoint=False)
+        ranges = rng.uniform(0.2, 60.0, angles.size)  # ~30 x 30 tiles of 16 cells: the sparse path
+        ranges[rng.random(angles.size) < 0.1] = math.inf
+        pose = (float(rng.uniform(-2, 2)), float(rng.uniform(-2, 2)), float(rng.uniform(-3, 3)))
+        scans.append(Scan.from_angles(pose, angles, ranges))
+    window = (-260, -260, 260, 260)
+    reads = []
+    for tile_size in (16, 64, 256):
+        m = make_map(tile_size=tile_size, no_return_range=3.0)
+        for scan in scans:
+            m.integrate(scan)
+        reads.append({layer: m.region(layer, *window) for layer in ALL_READ_LAYERS})
+    for other in reads[1:]:
+        for layer in ALL_READ_LAYERS:
+            np.testing.assert_array_equal(reads[0][layer], other[layer], err_msg=layer)
+
+
+# -- tiles and versions ------------------------------------------------------------------------------
+
+
+def test_tiles_created_only_where_touched() -> None:
+    """A long diagonal beam through several 16-cell (4 m) tiles creates exactly the tiles of its
+    traversal cells, and nothing is created by a scan without usable beams."""
+    m = make_map(layers=["occupancy"])
+    assert len(m.store) == 0
+    result = m.integrate(one_beam((0.6, -3.1, 0.0), 0.9, 14.0))
+    x1, y1 = 0.6 + 14.0 * math.cos(0.9), -3.1 + 14.0 * math.sin(0.9)
+    cells = segment_cells(0.6 / 0.25, -3.1 / 0.25, x1 / 0.25, y1 / 0.25, EXACT)
+    expected = {(int(i) >> 4, int(j) >> 4) for i, j in cells}
+    assert set(m.store.keys) == expected
+    assert result.tiles_created == len(expected) >= 4
+    assert set(result.changed_tiles) == expected
+    before = list(m.store.keys)
+    empty = m.integrate(Scan.from_angles((40.0, 40.0, 0.0), [0.0, 1.0], [math.inf, math.nan]))
+    assert empty.tiles_created == 0 and empty.changed_tiles == []
+    assert m.store.keys == before
+
+
+def test_versions_change_only_for_changed_tiles() -> None:
+    """Each tile's version changes when one of its cells changes and not otherwise: a scan inside
+    tile (0, 0) leaves tile (2, 0)'s version alone and vice versa; versions never repeat."""
+    m = make_map()
+    m.integrate(one_beam((0.5, 0.5, 0.0), 0.0, 1.0))  # tile (0, 0) only
+    m.integrate(one_beam((9.0, 1.0, 0.0), 0.0, 1.5))  # tile (2, 0) only
+    assert set(m.store.keys) == {(0, 0), (2, 0)}
+    v_a, v_b = m.store.version((0, 0)), m.store.version((2, 0))
+    assert v_a is not None and v_b is not None and v_a != v_b
+    assert m.store.version((1, 0)) is None
+    result = m.integrate(one_beam((9.0, 1.0, 0.0), 0.0, 1.5))
+    assert result.changed_tiles == [(2, 0)]
+    assert m.store.version((0, 0)) == v_a
+    v_b2 = m.store.version((2, 0))
+    assert v_b2 != v_b
+    m.integrate(one_beam((0.5, 0.5, 0.0), 0.5, 2.0))
+    assert m.store.version((0, 0)) not in (v_a, v_b, v_b2)
+    assert m.store.version((2, 0)) == v_b2
+    assert len(set(m.store.versions[: len(m.store)].tolist())) == len(m.store)
+
+
+def test_tile_cap_rejects_whole_scan() -> None:
+    """max_tiles 2: after a scan in tile (0, 0), a scan that changes cells of tile (0, 0) AND needs
+    two new tiles is refused with TileLimitError and leaves every layer, tile, version and the
+    version clock exactly as they were; a scan needing one new tile is then accepted."""
+    m = make_map(max_tiles=2)
+    m.integrate(one_beam((0.5, 0.5, 0.0), 0.0, 1.0))
+    window = (-20, -20, 60, 20)
+    before = snapshot(m, window)
+    # Beams 1 and 3 stay in tile (0, 0); beam 2 reaches tile (2, 0) through tile (1, 0).
+    too_big = Scan.from_angles((0.5, 0.5, 0.0), [0.5, 0.0, -0.3], [2.0, 9.5, 1.0])
+    with pytest.raises(TileLimitError):
+        m.integrate(too_big)
+    assert_same(snapshot(m, window), before)
+    ok = m.integrate(one_beam((0.5, 0.5, 0.0), 0.0, 5.0))  # reaches tile (1, 0) only
+    assert ok.tiles_created == 1
+    assert set(m.store.keys) == {(0, 0), (1, 0)}
+    with pytest.raises(TileLimitError):
+        m.integrate(one_beam((-0.5, 0.5, 0.0), 0.0, 0.1))  # tile (-1, 0)
+    assert set(m.store.keys) == {(0, 0), (1, 0)}
+
+
+# -- reads of unknown cells and unavailable layers ---------------------------------------------------
+
+
+def test_cells_of_unknown_points() -> None:
+    """cells() of never-observed points, in a missing tile or an existing one: known False,
+    log-odds NaN, probability 0.5, state unknown, counts 0, tsdf NaN with weight 0."""
+    m = make_map()
+    empty = m.cells(np.array([[1.0, 1.0]]))
+    m.integrate(one_beam((0.125, 0.125, 0.0), 0.0, 1.0))
+    got = m.cells(np.array([[100.0, -100.0], [0.125, 1.125], [0.125, 0.125]]))
+    for res, k in ((empty, 0), (got, 0), (got, 1)):
+        assert not res["known"][k]
+        assert math.isnan(res["log_odds"][k])
+        assert res["probability"][k] == 0.5
+        assert res["state"][k] == STATE_UNKNOWN
+        assert res["hits"][k] == 0 and res["misses"][k] == 0
+        assert math.isnan(res["tsdf"][k]) and res["tsdf_weight"][k] == 0
+    assert got["known"][2]
+    assert got["probability"][2] == pytest.approx(0.4)
+
+
+def test_state_thresholds() -> None:
+    """state: p > 0.65 occupied, p < 0.196 free, in between unknown: one miss (p 0.4) is still
+    'unknown', four misses (p 0.165) are free, one hit (p 0.7) is occupied."""
+    m = make_map(layers=["occupancy"])
+    m.integrate(one_beam((0.125, 0.125, 0.0), 0.0, 1.0))  # cells 0..3 of row 0 missed, 4 hit
+    assert m.region("state", 0, 0, 5, 1)[0].tolist() == [STATE_UNKNOWN] * 4 + [STATE_OCCUPIED]
+    for _ in range(3):
+        m.integrate(one_beam((0.125, 0.125, math.pi / 2), 0.0, 1.0))  # misses the sensor cell again
+    assert m.region("state", 0, 0, 5, 1)[0].tolist() == [STATE_FREE] + [STATE_UNKNOWN] * 3 + [STATE_OCCUPIED]
+
+
+def test_layer_unavailable() -> None:
+    """Reading a layer the map does not keep, or no layer at all, raises LayerUnavailableError;
+    cells() reports only the kept layers."""
+    m = make_map(layers=["occupancy"])
+    m.integrate(one_beam((0.125, 0.125, 0.0), 0.0, 1.0))
+    for layer in ("tsdf", "tsdf_weight", "hits", "misses", "bogus"):
+        with pytest.raises(LayerUnavailableError):
+            m.region(layer, 0, 0, 4, 4)
+    with pytest.raises(LayerUnavailableError):
+        m.surface(0, 0, 4, 4)
+    assert set(m.cells(np.array([[0.1, 0.1]]))) == {"known", "log_odds", "probability", "state"}
+    t = make_map(layers=["tsdf"])
+    for layer in ("log_odds", "probability", "state", "hits"):
+        with pytest.raises(LayerUnavailableError):
+            t.region(layer, 0, 0, 4, 4)
+
+
+def test_known_bounds() -> None:
+    """known_bounds() is None for an empty map and the exclusive cell bounds of all observed cells."""
+    m = make_map(layers=["occupancy", "counts"])
+    assert m.known_bounds() is None
+    m.integrate(one_beam((0.125, 0.125, 0.0), 0.0, 1.0))  # cells 0..4 of row 0
+    assert m.known_bounds() == (0, 0, 5, 1)
+    m.integrate(one_beam((-5.1, -9.9, math.pi / 2), 0.0, 0.7))  # cells (-21, -40..-37)
+    assert m.known_bounds() == (-21, -40, 5, 1)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="grid_map.py known_bounds() judges 'observed' by store.arrays[0], which depends on the order "
+    "of config.layers: with layers ['tsdf', 'occupancy'] it uses the TSDF weight and ignores the "
+    "occupancy layer's free cells that cells() reports as known",
+)
+def test_known_bounds_independent_of_layer_order() -> None:
+    """The same scan in maps keeping the same layers listed in a different order has the same
+    known_bounds(), and those bounds contain every cell cells() calls known (here the sensor cell
+    (0, 0) and the free cells up to the hit in cell 8)."""
+    bounds = []
+    for layers in (["occupancy", "tsdf"], ["tsdf", "occupancy"]):
+        m = make_map(layers=layers)
+        m.integrate(one_beam((0.125, 0.125, 0.0), 0.0, 2.0))
+        assert m.cells(np.array([[0.125, 0.125]]))["known"][0]
+        bounds.append(m.known_bounds())
+    assert bounds[0] == (0, 0, 9, 1)
+    assert bounds[1] == bounds[0]
+
+
+# -- the GIL -----------------------------------------------------------------------------------------
+
+
+def test_kernels_release_the_gil() -> None:
+    """Every compiled kernel of fleetmap.kernels is compiled with nogil=True, so integration of
+    different maps can run on several threads at once."""
+    found = 0
+    for name in ("traversal", "ray_model", "update", "tsdf", "beam_model"):
+        module = importlib.import_module(f"fleetmap.kernels.{name}")
+        for attr, value in vars(module).items():
+            if isinstance(value, Dispatcher):
+                found += 1
+                assert value.targetoptions.get("nogil") is True, f"{name}.{attr} holds the GIL"
+    assert found >= 10
+
+
+def test_two_threads_integrate_two_maps() -> None:
+    """Two threads integrating into two different maps at the same time both finish, each map equal
+    to the same scans integrated sequentially."""
+    rng = np.random.default_rng(2)
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    scans = [
+        Scan.from_angles((float(x), float(y), 0.0), angles, rng.uniform(0.5, 8.0, angles.size))
+        for x, y in rng.uniform(-3, 3, (20, 2))
+    ]
+    maps = [make_map(tile_size=64), make_map(tile_size=64)]
+    errors: list[BaseException] = []
+
+    def work(m: GridMap, order: list[Scan]) -> None:
+        try:
+            for scan in order:
+                m.integrate(scan)
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(maps[0], scans)),
+               threading.Thread(target=work, args=(maps[1], scans[::-1]))]  # fmt: skip
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert not errors and not any(t.is_alive() for t in threads)
+    ref = make_map(tile_size=64)
+    for scan in scans:
+        ref.integrate(scan)
+    window = (-60, -60, 60, 60)
+    np.testing.assert_array_equal(maps[0].region("log_odds", *window), ref.region("log_odds", *window))
+    # Counts commute, so the reversed order gives the same counts.
+    for layer in ("hits", "misses"):
+        np.testing.assert_array_equal(maps[1].region(layer, *window), ref.region(layer, *window))

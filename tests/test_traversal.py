@@ -1,0 +1,275 @@
+"""Property tests of the grid traversals in `fleetmap.kernels.traversal` (coordinates in CELL units).
+
+`exact` (Amanatides-Woo) must visit every cell the segment crosses and only cells that touch it, as a
+4-connected chain of `|di| + |dj| + 1` distinct cells from the start cell to the end cell.
+`bresenham` must be the classic 8-connected line of `max(|di|, |dj|) + 1` cells between the start and
+end cells. Each property is checked on random segments, including negative coordinates, axis-aligned
+and zero-length segments, integer and half-integer end points and segments through cell corners.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+
+from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, segment_cells
+
+#: Slack for "touches": a visited cell's closed square may miss the segment by at most this much
+#: (floating-point rounding in the walk's boundary parameters).
+EPS = 1e-9
+
+Point = tuple[float, float]
+Segment = tuple[float, float, float, float]
+
+# -- strategies --------------------------------------------------------------------------------------
+
+_free = st.floats(-60.0, 60.0, allow_nan=False, allow_infinity=False)
+_grid = st.integers(-40, 40).map(float)  # exactly on grid lines
+_half = st.integers(-80, 80).map(lambda k: k / 2.0)  # grid lines and cell centres
+_quarter = st.integers(-160, 160).map(lambda k: k / 4.0)
+coord = st.one_of(_free, _grid, _half, _quarter)
+
+
+@st.composite
+def segments(draw: st.DrawFn) -> Segment:
+    """Random segments, biased towards the degenerate cases a traversal gets wrong."""
+    x0, y0 = draw(coord), draw(coord)
+    kind = draw(st.sampled_from(["free", "free", "horizontal", "vertical", "zero", "diagonal", "short"]))
+    if kind == "horizontal":
+        return x0, y0, draw(coord), y0
+    if kind == "vertical":
+        return x0, y0, x0, draw(coord)
+    if kind == "zero":
+        return x0, y0, x0, y0
+    if kind == "diagonal":
+        # Slope +-1 (or +-2, +-1/2) from a point: passes through cell corners when x0, y0 are
+        # centres or corners.
+        k = draw(st.integers(-30, 30))
+        sx, sy = draw(st.sampled_from([(1, 1), (1, -1), (-1, 1), (-1, -1), (2, 1), (1, 2), (-2, 1)]))
+        return x0, y0, x0 + sx * k, y0 + sy * k
+    if kind == "short":
+        dx = draw(st.floats(-1.5, 1.5, allow_nan=False))
+        dy = draw(st.floats(-1.5, 1.5, allow_nan=False))
+        return x0, y0, x0 + dx, y0 + dy
+    return x0, y0, draw(coord), draw(coord)
+
+
+# -- geometric helpers (independent of the engine) ---------------------------------------------------
+
+
+def segment_touches_square(seg: Segment, i: int, j: int, eps: float = EPS) -> bool:
+    """Whether the segment meets the closed square `[i, i+1] x [j, j+1]` grown by `eps` (Liang-Barsky)."""
+    x0, y0, x1, y1 = seg
+    t0, t1 = 0.0, 1.0
+    slabs = ((x1 - x0, i - eps - x0, i + 1 + eps - x0), (y1 - y0, j - eps - y0, j + 1 + eps - y0))
+    for p, q_lo, q_hi in slabs:
+        if p == 0.0:
+            if q_lo > 0.0 or q_hi < 0.0:
+                return False
+            continue
+        a, b = q_lo / p, q_hi / p
+        if a > b:
+            a, b = b, a
+        t0, t1 = max(t0, a), min(t1, b)
+        if t0 > t1:
+            return False
+    return True
+
+
+def interior_cells(seg: Segment) -> set[tuple[int, int]]:
+    """Every cell whose open interior the segment crosses over a positive length.
+
+    The parameters where the segment meets a grid line split it into pieces, each inside one cell;
+    a piece's midpoint names that cell. Pieces shorter than 1e-9 (rounding) are skipped, as are
+    midpoints within 1e-9 of a grid line (the piece runs along a line, not through a cell)."""
+    x0, y0, x1, y1 = seg
+    ts = {0.0, 1.0}
+    for a0, a1 in ((x0, x1), (y0, y1)):
+        if a0 != a1:
+            lo, hi = sorted((a0, a1))
+            for k in range(math.ceil(lo), math.floor(hi) + 1):
+                ts.add((k - a0) / (a1 - a0))
+    ordered = sorted(t for t in ts if 0.0 <= t <= 1.0)
+    out: set[tuple[int, int]] = set()
+    for ta, tb in zip(ordered, ordered[1:], strict=False):
+        if (tb - ta) * math.hypot(x1 - x0, y1 - y0) < 1e-9:
+            continue
+        tm = 0.5 * (ta + tb)
+        x, y = x0 + tm * (x1 - x0), y0 + tm * (y1 - y0)
+        if _near_grid(x) or _near_grid(y):
+            continue
+        out.add((math.floor(x), math.floor(y)))
+    return out
+
+
+def sampled_cells(seg: Segment, n: int = 400) -> set[tuple[int, int]]:
+    """Cells of `n` points spread along the segment, leaving out points within 1e-9 of a grid line."""
+    x0, y0, x1, y1 = seg
+    out: set[tuple[int, int]] = set()
+    for k in range(n + 1):
+        t = k / n
+        x, y = x0 + t * (x1 - x0), y0 + t * (y1 - y0)
+        if _near_grid(x) or _near_grid(y):
+            continue
+        out.add((math.floor(x), math.floor(y)))
+    return out
+
+
+def _near_grid(v: float) -> bool:
+    return abs(v - round(v)) < 1e-9
+
+
+def _cells(seg: Segment, method: int) -> list[tuple[int, int]]:
+    return [(int(i), int(j)) for i, j in segment_cells(*seg, method)]
+
+
+# -- exact traversal ---------------------------------------------------------------------------------
+
+CORNER_CASES: list[Segment] = [
+    (0.5, 0.5, 2.5, 2.5),
+    (2.5, 2.5, 0.5, 0.5),
+    (0.5, 2.5, 2.5, 0.5),
+    (-0.5, -0.5, -3.5, -3.5),
+    (0.0, 0.0, 3.0, 3.0),
+    (0.0, 0.0, -3.0, -3.0),
+    (3.0, 0.0, 0.0, 3.0),
+    (1.0, 1.0, 1.0, 1.0),
+    (0.0, 0.0, 0.0, 0.0),
+    (-1.0, 0.5, 2.0, 0.5),
+    (2.0, 0.0, -2.0, 0.0),
+    (0.0, 2.0, 0.0, -2.0),
+    (-0.5, -0.5, 1.5, 3.5),
+    (0.999999999, 0.5, 1.000000001, 0.5),
+    (-1e-12, -1e-12, 1e-12, 1e-12),
+]
+
+
+@settings(max_examples=250, deadline=None)
+@given(segments())
+@example((0.5, 0.5, 2.5, 2.5))
+@example((-3.0, -2.0, 4.0, 5.0))
+@example((-2.25, 7.75, 5.75, -0.25))
+@example((0.0, 0.0, 0.0, 0.0))
+@example((-5.0, 3.5, 12.0, 3.5))
+def test_exact_chain_properties(seg: Segment) -> None:
+    """The exact walk starts in the start cell, ends in the end cell, steps to a 4-neighbour each
+    time, never repeats a cell and visits exactly |di| + |dj| + 1 cells."""
+    check_exact_chain(seg)
+
+
+def check_exact_chain(seg: Segment) -> None:
+    got = _cells(seg, EXACT)
+    x0, y0, x1, y1 = seg
+    start = (math.floor(x0), math.floor(y0))
+    end = (math.floor(x1), math.floor(y1))
+    assert got[0] == start
+    assert got[-1] == end
+    assert len(got) == abs(end[0] - start[0]) + abs(end[1] - start[1]) + 1
+    assert len(got) == cell_count(*seg, EXACT)
+    assert len(set(got)) == len(got), f"a cell is visited twice: {got}"
+    for (ia, ja), (ib, jb) in zip(got, got[1:], strict=False):
+        assert abs(ia - ib) + abs(ja - jb) == 1, f"not 4-connected: ({ia}, {ja}) -> ({ib}, {jb})"
+
+
+@settings(max_examples=250, deadline=None)
+@given(segments())
+@example((0.5, 0.5, 2.5, 2.5))
+@example((0.5, 2.5, 2.5, 0.5))
+@example((0.0, 0.0, -3.0, -3.0))
+def test_exact_visits_only_touching_cells(seg: Segment) -> None:
+    """Every cell the exact walk visits has a closed square that the segment touches (possibly only
+    at a corner, where the walk must add one cell to stay 4-connected)."""
+    check_exact_touching(seg)
+
+
+def check_exact_touching(seg: Segment) -> None:
+    for i, j in _cells(seg, EXACT):
+        assert segment_touches_square(seg, i, j), f"cell ({i}, {j}) does not touch {seg}"
+
+
+@settings(max_examples=250, deadline=None)
+@given(segments())
+@example((0.5, 0.5, 2.5, 2.5))
+@example((-7.3, 2.1, 9.9, -4.4))
+@example((0.1, 0.1, 0.1, 39.9))
+def test_exact_visits_every_crossed_cell(seg: Segment) -> None:
+    """Every cell whose interior the segment crosses is visited: found both from the exact pieces
+    between grid-line crossings and from points sampled along the segment."""
+    check_exact_crossed(seg)
+
+
+def check_exact_crossed(seg: Segment) -> None:
+    got = set(_cells(seg, EXACT))
+    missing = (interior_cells(seg) | sampled_cells(seg)) - got
+    assert not missing, f"crossed cells {sorted(missing)} not visited by {sorted(got)}"
+
+
+def test_exact_corner_cases() -> None:
+    """Hand-picked corner passes, grid-line runs and zero-length segments satisfy every property."""
+    for seg in CORNER_CASES:
+        check_exact_chain(seg)
+        check_exact_touching(seg)
+        check_exact_crossed(seg)
+
+
+def test_exact_corner_pass_cells() -> None:
+    """Through cell corners (0.5,0.5)->(2.5,2.5): the diagonal cells and one side cell per corner."""
+    got = _cells((0.5, 0.5, 2.5, 2.5), EXACT)
+    assert {(0, 0), (1, 1), (2, 2)} <= set(got)
+    assert len(got) == 5
+    side = set(got) - {(0, 0), (1, 1), (2, 2)}
+    assert side <= {(0, 1), (1, 0), (1, 2), (2, 1)}
+
+
+def test_exact_axis_aligned_runs() -> None:
+    """A horizontal segment along y = 0.5 from x = -2.5 to 3.5 visits exactly cells -3..3 of row 0,
+    and one along the grid line y = 2.0 stays in row 2 (the half-open cell [2, 3))."""
+    assert _cells((-2.5, 0.5, 3.5, 0.5), EXACT) == [(i, 0) for i in range(-3, 4)]
+    assert _cells((3.5, 2.0, -2.5, 2.0), EXACT) == [(i, 2) for i in range(3, -4, -1)]
+    assert _cells((0.5, -0.5, 0.5, -4.5), EXACT) == [(0, j) for j in range(-1, -6, -1)]
+
+
+def test_cells_generator_matches_segment_cells() -> None:
+    """The compiled `cells` generator yields the same cells as `segment_cells`, for both methods."""
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        seg = tuple(float(v) for v in rng.uniform(-20, 20, 4))
+        for method in (EXACT, BRESENHAM):
+            assert [(int(i), int(j)) for i, j in cells(*seg, method)] == _cells(seg, method)
+
+
+# -- Bresenham ---------------------------------------------------------------------------------------
+
+
+@settings(max_examples=250, deadline=None)
+@given(segments())
+@example((0.5, 0.5, 2.5, 2.5))
+@example((-3.2, 1.7, 6.9, -2.4))
+@example((0.0, 0.0, 0.0, 0.0))
+def test_bresenham_properties(seg: Segment) -> None:
+    """Bresenham: start cell to end cell, 8-connected, no repeats, max(|di|, |dj|) + 1 cells, one step
+    along the major axis each time, and every cell within half a cell of the ideal line between the
+    start and end cell indices (the classic line)."""
+    got = _cells(seg, BRESENHAM)
+    x0, y0, x1, y1 = seg
+    i0, j0 = math.floor(x0), math.floor(y0)
+    i1, j1 = math.floor(x1), math.floor(y1)
+    di, dj = i1 - i0, j1 - j0
+    assert got[0] == (i0, j0)
+    assert got[-1] == (i1, j1)
+    assert len(got) == max(abs(di), abs(dj)) + 1
+    assert len(got) == cell_count(*seg, BRESENHAM)
+    assert len(set(got)) == len(got)
+    for (ia, ja), (ib, jb) in zip(got, got[1:], strict=False):
+        assert max(abs(ia - ib), abs(ja - jb)) == 1, f"not 8-connected: ({ia}, {ja}) -> ({ib}, {jb})"
+    if abs(di) >= abs(dj) and di != 0:
+        for k, (i, j) in enumerate(got):
+            assert i == i0 + k * (1 if di > 0 else -1)
+            assert abs(j - (j0 + (i - i0) * dj / di)) <= 0.5 + 1e-12
+    elif dj != 0:
+        for k, (i, j) in enumerate(got):
+            assert j == j0 + k * (1 if dj > 0 else -1)
+            assert abs(i - (i0 + (j - j0) * di / dj)) <= 0.5 + 1e-12
