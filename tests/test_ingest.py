@@ -1,0 +1,408 @@
+"""Zenoh ingest with real Zenoh sessions in this process: the service's `ZenohIngest` feeding a real
+`MapRegistry`, and robots as Zenoh client sessions connected to it over loopback TCP."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import zenoh
+from service_process import free_port, wait_for
+
+from fleetmap import codec
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
+from fleetmap.ingest import IngestStartError, RateLimitedLog, ZenohIngest, parse_key
+from fleetmap.registry import MapRegistry
+from fleetmap.scan import Scan
+from fleetmap.sim import SimulatedRobot, generate_floorplan
+from fleetmap.wire import ALIVE_KEY, BINARY_ENCODING, JSON_ENCODING, SCAN_KEY
+
+PLAN = generate_floorplan(3, width_m=16.0, height_m=12.0)
+
+
+def sim_scans(seed: int, count: int, beams: int = 181) -> list[Scan]:
+    robot = SimulatedRobot(PLAN, seed, num_beams=beams, range_max=10.0, scan_rate=5.0)
+    return [robot.tick() for _ in range(count)]
+
+
+def client_session(endpoint: str) -> zenoh.Session:
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(cfg)
+
+
+def scan_publisher(session: zenoh.Session, map_id: str, robot_id: str, encoding: str) -> zenoh.Publisher:
+    """A BLOCK publisher for the robot's scan key, returned once the service's subscriber matches
+    (samples published before that could be dropped)."""
+    pub = session.declare_publisher(
+        SCAN_KEY.format(map_id=map_id, robot_id=robot_id),
+        encoding=zenoh.Encoding(encoding),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
+    wait_for(lambda: pub.matching_status, timeout=10, interval=0.01, what="a matching subscriber")
+    return pub
+
+
+def engine_map(payloads: list[tuple[bytes, str]], config: MapConfig | None = None) -> GridMap:
+    """The engine's map of exactly what was sent: each payload decoded as the service decodes it
+    (binary ranges are float32), integrated in order."""
+    gmap = GridMap(config or MapConfig())
+    for payload, encoding in payloads:
+        gmap.integrate(codec.decode(payload, encoding).scan)
+    return gmap
+
+
+def assert_same_map(got: GridMap, want: GridMap) -> None:
+    bounds = want.known_bounds()
+    assert bounds is not None
+    assert got.known_bounds() == bounds
+    for layer in ("log_odds", "hits", "misses", "tsdf", "tsdf_weight"):
+        np.testing.assert_array_equal(got.region(layer, *bounds), want.region(layer, *bounds), err_msg=layer)
+
+
+@pytest.fixture
+def registry() -> Iterator[MapRegistry]:
+    reg = MapRegistry(workers=2)
+    reg.start()
+    yield reg
+    reg.close()
+
+
+@pytest.fixture
+def ingest(registry: MapRegistry) -> Iterator[ZenohIngest]:
+    ing = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{free_port()}"])
+    ing.start()
+    yield ing
+    ing.close()
+
+
+@pytest.fixture
+def robot(ingest: ZenohIngest) -> Iterator[zenoh.Session]:
+    session = client_session(ingest.listen[0])
+    yield session
+    session.close()
+
+
+def integrated(registry: MapRegistry, map_id: str, robot_id: str) -> int:
+    try:
+        entry = registry.get(map_id)
+    except KeyError:
+        return 0
+    with registry.lock:
+        state = entry.robots.get(robot_id)
+        return state.scans_integrated if state else 0
+
+
+def test_json_and_binary_scans_integrate_exactly_like_the_engine(
+    registry: MapRegistry, ingest: ZenohIngest, robot: zenoh.Session
+) -> None:
+    """Two robots, one per encoding and map: each map equals the engine's map of the same messages."""
+    sent: dict[str, list[tuple[bytes, str]]] = {"mj": [], "mb": []}
+    pub_j = scan_publisher(robot, "mj", "r1", JSON_ENCODING)
+    pub_b = scan_publisher(robot, "mb", "r1", BINARY_ENCODING)
+    for seq, (sj, sb) in enumerate(zip(sim_scans(1, 25), sim_scans(2, 25), strict=True)):
+        pj, pb = codec.encode_json(sj, seq, stamp=seq * 0.2), codec.encode_binary(sb, seq, stamp=seq * 0.2)
+        pub_j.put(pj)
+        pub_b.put(pb)
+        sent["mj"].append((pj, JSON_ENCODING))
+        sent["mb"].append((pb, BINARY_ENCODING))
+    for map_id in sent:
+        wait_for(lambda m=map_id: integrated(registry, m, "r1") == 25, what=f"25 scans on {map_id}")
+    assert registry.wait_idle()
+    for map_id, payloads in sent.items():
+        entry = registry.get(map_id)
+        assert_same_map(entry.gmap, engine_map(payloads))
+        state = entry.robots["r1"]
+        assert (state.last_seq, state.lost, state.duplicates, state.scans_rejected) == (24, 0, 0, 0)
+        assert state.last_stamp == pytest.approx(24 * 0.2)
+    status = ingest.status()
+    assert status["messages_received"] == 50 and status["scans_submitted"] == 50
+    assert status["decode_errors"] == 0 and status["invalid_keys"] == 0
+
+
+def test_bad_payloads_are_counted_per_robot_with_reasons_and_change_nothing(
+    registry: MapRegistry, ingest: ZenohIngest, robot: zenoh.Session
+) -> None:
+    good = sim_scans(4, 3)
+    pub = scan_publisher(robot, "m", "r1", BINARY_ENCODING)
+    for seq, scan in enumerate(good):
+        pub.put(codec.encode_binary(scan, seq))
+    wait_for(lambda: integrated(registry, "m", "r1") == 3, what="the good scans")
+    entry = registry.get("m")
+    before = (entry.gmap.store.clock, entry.gmap.region("log_odds", *entry.gmap.known_bounds()))
+
+    valid_json = json.loads(codec.encode_json(good[0], 10))
+    binary = codec.encode_binary(good[0], 11)
+    bad: list[tuple[bytes, str, str]] = [  # (payload, encoding, a word the reason must contain)
+        (b"not json at all", JSON_ENCODING, "invalid JSON"),
+        (json.dumps({k: v for k, v in valid_json.items() if k != "pose"}).encode(), JSON_ENCODING, "pose"),
+        (json.dumps({**valid_json, "ranges": [-1.0] * len(valid_json["ranges"])}).encode(),
+         JSON_ENCODING, "negative"),
+        (b"XXXX" + binary[4:], BINARY_ENCODING, "magic"),
+        (binary[:-4], BINARY_ENCODING, "bytes"),
+        (binary[:40], BINARY_ENCODING, "header"),
+        (binary, "text/plain", "unknown encoding"),
+    ]  # fmt: skip
+    state = entry.robots["r1"]
+    for k, (payload, encoding, reason) in enumerate(bad):
+        robot.put(SCAN_KEY.format(map_id="m", robot_id="r1"), payload, encoding=zenoh.Encoding(encoding),
+                  congestion_control=zenoh.CongestionControl.BLOCK)  # fmt: skip
+        # Checked one by one: last_error holds only the latest reason.
+        wait_for(lambda n=k + 1: ingest.status()["decode_errors"] == n, what=f"decode error {k}")
+        assert reason in (state.last_error or ""), (reason, state.last_error)
+    wait_for(lambda: ingest.status()["decode_errors"] == len(bad), what="every bad payload")
+    assert state.scans_rejected == len(bad) and entry.scans_rejected == len(bad)
+    assert "unknown encoding" in (state.last_error or "")
+    assert registry.wait_idle()
+    assert entry.gmap.store.clock == before[0]  # no tile was written
+    np.testing.assert_array_equal(entry.gmap.region("log_odds", *entry.gmap.known_bounds()), before[1])
+    assert state.scans_integrated == 3 and state.last_seq == 2  # refused messages do not move seq
+
+
+@pytest.mark.parametrize(
+    ("payload", "encoding", "reason"),
+    [
+        (b"{}", JSON_ENCODING, "seq"),
+        (b'{"seq": 1, "pose": {"x": 0, "y": 0, "theta": 0}, "ranges": [1.0]}', JSON_ENCODING, "angle_min"),
+        (b"FMS1" + bytes(68), BINARY_ENCODING, "version"),
+        (b"", BINARY_ENCODING, "header"),
+    ],
+)
+def test_each_decode_error_reason_reaches_the_robot(
+    registry: MapRegistry, ingest: ZenohIngest, robot: zenoh.Session, payload: bytes, encoding: str,
+    reason: str,
+) -> None:  # fmt: skip
+    registry.create("m")
+    robot.put(SCAN_KEY.format(map_id="m", robot_id="r9"), payload, encoding=zenoh.Encoding(encoding))
+    wait_for(lambda: ingest.status()["decode_errors"] == 1, what="the decode error")
+    state = registry.get("m").robots["r9"]
+    assert state.scans_rejected == 1 and reason in (state.last_error or "")
+    assert state.scans_integrated == 0 and state.last_seq is None
+
+
+def test_invalid_keys_are_counted_globally_and_create_nothing(
+    registry: MapRegistry, ingest: ZenohIngest, robot: zenoh.Session
+) -> None:
+    payload = codec.encode_binary(sim_scans(5, 1)[0], 0)
+    for key in ("fleetmap/bad.id/r1/scan", f"fleetmap/{'x' * 65}/r1/scan", "fleetmap/m/r~1/scan"):
+        robot.put(key, payload, encoding=zenoh.Encoding(BINARY_ENCODING))
+    wait_for(lambda: ingest.status()["invalid_keys"] == 3, what="three invalid keys")
+    assert registry.list() == []
+    assert ingest.status()["scans_submitted"] == 0
+
+
+def test_parse_key() -> None:
+    assert parse_key("fleetmap/m-1/r_2/scan", "scan") == ("m-1", "r_2")
+    assert parse_key("fleetmap/m/r/alive", "scan") is None
+    assert parse_key("fleetmap/m/r/x/scan", "scan") is None
+    assert parse_key("other/m/r/scan", "scan") is None
+    assert parse_key("fleetmap/m/r:1/scan", "scan") is None
+
+
+def test_seq_gaps_duplicates_and_restart_are_accounted(
+    registry: MapRegistry, ingest: ZenohIngest, robot: zenoh.Session
+) -> None:
+    scans = sim_scans(6, 10)
+    pub = scan_publisher(robot, "m", "r1", BINARY_ENCODING)
+    seqs = [0, 1, 2, 2, 5, 6, 1, 0, 1]  # dup 2; 3-4 lost; stale 1 is a duplicate; 0 restarts
+    for k, seq in enumerate(seqs):
+        pub.put(codec.encode_binary(scans[k], seq))
+    wait_for(lambda: ingest.status()["messages_received"] == len(seqs), what="every message")
+    assert registry.wait_idle()
+    state = registry.get("m").robots["r1"]
+    assert (state.scans_integrated, state.duplicates, state.lost, state.last_seq) == (7, 2, 2, 1)
+    assert ingest.status()["rejected"] == {"duplicate": 2}
+
+
+def test_full_queue_refuses_the_newest_without_blocking_the_callback() -> None:
+    """While the map is locked, integration stalls; the Zenoh callback keeps accepting (it never
+    waits), the per-robot queue fills, and the newest scans are refused and counted as dropped.
+    The scans that do get integrated are the oldest ones, in order."""
+    registry = MapRegistry(workers=1, queue_per_robot=2)
+    registry.start()
+    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{free_port()}"])
+    ingest.start()
+    session = client_session(ingest.listen[0])
+    try:
+        entry, _ = registry.create("m")
+        scans = sim_scans(7, 12)
+        pub = scan_publisher(session, "m", "r1", BINARY_ENCODING)
+        payloads = [codec.encode_binary(s, k) for k, s in enumerate(scans)]
+        with entry.gmap.lock:
+            for p in payloads:
+                pub.put(p)
+            wait_for(lambda: ingest.status()["messages_received"] == 12, what="all 12 delivered while locked")
+        assert registry.wait_idle()
+        state = entry.robots["r1"]
+        assert state.dropped >= 12 - 3  # at most one in flight and two queued got through
+        assert state.scans_integrated + state.dropped == 12
+        assert ingest.status()["rejected"] == {"queue_full": state.dropped}
+        kept = state.scans_integrated
+        assert_same_map(entry.gmap, engine_map([(p, BINARY_ENCODING) for p in payloads[:kept]]))
+    finally:
+        session.close()
+        ingest.close()
+        registry.close()
+
+
+def test_liveliness_online_offline_including_tokens_older_than_the_service(registry: MapRegistry) -> None:
+    port = free_port()
+    # A router already up with a robot online before the service joins: history=True reports it.
+    router_cfg = zenoh.Config()
+    router_cfg.insert_json5("mode", '"router"')
+    router_cfg.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    router_cfg.insert_json5("scouting/multicast/enabled", "false")
+    router = zenoh.open(router_cfg)
+    early = client_session(f"tcp/127.0.0.1:{port}")
+    early_token = early.liveliness().declare_token(ALIVE_KEY.format(map_id="m", robot_id="early"))
+    ingest = ZenohIngest(registry, connect=[f"tcp/127.0.0.1:{port}"])  # joins as a client
+    try:
+        ingest.start()
+        assert ingest.mode == "client"
+
+        def online(robot_id: str) -> bool | None:
+            try:
+                state = registry.get("m").robots.get(robot_id)
+            except KeyError:
+                return None
+            return state.online if state else None
+
+        wait_for(lambda: online("early") is True, what="the early robot online")
+        late = client_session(f"tcp/127.0.0.1:{port}")
+        late_token = late.liveliness().declare_token(ALIVE_KEY.format(map_id="m", robot_id="late"))
+        wait_for(lambda: online("late") is True, what="the late robot online")
+        late_token.undeclare()
+        wait_for(lambda: online("late") is False, what="the late robot offline after undeclare")
+        assert online("early") is True
+        early.close()  # the session goes away, and its token with it
+        del early_token
+        wait_for(lambda: online("early") is False, what="the early robot offline after its session closed")
+        late.close()
+        assert ingest.status()["liveliness_events"] == 4
+    finally:
+        ingest.close()
+        router.close()
+
+
+def test_robot_online_again_after_its_map_is_recreated(
+    registry: MapRegistry, ingest: ZenohIngest, robot: zenoh.Session
+) -> None:
+    """A deleted map comes back (auto-create) with its robot still online: the token is still there."""
+    token = robot.liveliness().declare_token(ALIVE_KEY.format(map_id="m", robot_id="r1"))
+    wait_for(lambda: "m" in registry.maps and registry.get("m").robots["r1"].online, what="online")
+    registry.delete("m")
+    pub = scan_publisher(robot, "m", "r1", BINARY_ENCODING)
+    pub.put(codec.encode_binary(sim_scans(8, 1)[0], 0))
+    wait_for(lambda: integrated(registry, "m", "r1") == 1, what="the scan on the new map")
+    assert registry.get("m").robots["r1"].online is True
+    token.undeclare()
+
+
+def test_joining_an_existing_network_as_a_peer(registry: MapRegistry) -> None:
+    """With connect AND listen endpoints the service is a peer: robots reach it both through the
+    existing router and directly."""
+    router_port, own_port = free_port(), free_port()
+    router_cfg = zenoh.Config()
+    router_cfg.insert_json5("mode", '"router"')
+    router_cfg.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{router_port}"]))
+    router_cfg.insert_json5("scouting/multicast/enabled", "false")
+    router = zenoh.open(router_cfg)
+    ingest = ZenohIngest(
+        registry, connect=[f"tcp/127.0.0.1:{router_port}"], listen=[f"tcp/127.0.0.1:{own_port}"]
+    )
+    sessions: list[zenoh.Session] = []
+    try:
+        ingest.start()
+        assert ingest.mode == "peer"
+        for robot_id, port in (("via-router", router_port), ("direct", own_port)):
+            session = client_session(f"tcp/127.0.0.1:{port}")
+            sessions.append(session)
+            pub = scan_publisher(session, "m", robot_id, BINARY_ENCODING)
+            pub.put(codec.encode_binary(sim_scans(9, 1)[0], 0))
+        for robot_id in ("via-router", "direct"):
+            wait_for(lambda r=robot_id: integrated(registry, "m", r) == 1, what=f"{robot_id}'s scan")
+    finally:
+        for session in sessions:
+            session.close()
+        ingest.close()
+        router.close()
+
+
+def test_config_file_is_loaded_first_and_arguments_apply_on_top(registry: MapRegistry, tmp_path) -> None:  # noqa: ANN001
+    port_file, port_arg = free_port(), free_port()
+    path = tmp_path / "zenoh.json5"
+    path.write_text(
+        "{\n  // a JSON5 comment\n  mode: 'peer',\n"
+        f"  listen: {{ endpoints: ['tcp/127.0.0.1:{port_file}'] }},\n}}\n"
+    )
+    from_file = ZenohIngest(registry, config_file=path)
+    cfg = from_file.build_config()
+    assert from_file.mode == "peer" and from_file.listen == [f"tcp/127.0.0.1:{port_file}"]
+    assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+    overridden = ZenohIngest(registry, config_file=path, listen=[f"tcp/127.0.0.1:{port_arg}"], mode="router")
+    overridden.start()
+    try:
+        status = overridden.status()
+        assert status["mode"] == "router" and status["endpoints"] == [f"tcp/127.0.0.1:{port_arg}"]
+        session = client_session(f"tcp/127.0.0.1:{port_arg}")  # really listening there
+        session.close()
+    finally:
+        overridden.close()
+
+
+def test_default_mode_is_a_router_on_the_default_endpoint(registry: MapRegistry) -> None:
+    ing = ZenohIngest(registry)
+    cfg = ing.build_config()
+    assert ing.mode == "router" and ing.listen == ["tcp/127.0.0.1:7447"]
+    assert json.loads(cfg.get_json("mode")) == "router"
+    assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+
+
+def test_start_errors_are_readable(registry: MapRegistry, tmp_path) -> None:  # noqa: ANN001
+    port = free_port()
+    first = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{port}"])
+    first.start()
+    try:
+        with pytest.raises(IngestStartError, match="in use") as info:
+            ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{port}"]).start()
+        assert ".rs:" not in str(info.value)  # no Rust source locations
+    finally:
+        first.close()
+    with pytest.raises(IngestStartError, match="endpoint"):
+        ZenohIngest(registry, listen=["nonsense"]).start()
+    with pytest.raises(IngestStartError, match="cannot load Zenoh config"):
+        ZenohIngest(registry, config_file=tmp_path / "missing.json5").start()
+    with pytest.raises(IngestStartError, match="cannot open"):
+        ZenohIngest(registry, connect=[f"tcp/127.0.0.1:{free_port()}"]).start()  # a client, nobody there
+    with pytest.raises(ValueError, match="mode"):
+        ZenohIngest(registry, mode="satellite")
+
+
+def test_close_is_idempotent_and_stops_ingest(registry: MapRegistry) -> None:
+    ing = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{free_port()}"])
+    ing.start()
+    endpoint = ing.listen[0]
+    ing.close()
+    ing.close()
+    assert ing.status()["running"] is False
+    with pytest.raises(zenoh.ZError):
+        client_session(endpoint)  # nothing listens any more
+
+
+def test_rate_limited_log_holds_back_repeats(caplog: pytest.LogCaptureFixture) -> None:
+    limited = RateLimitedLog(logging.getLogger("test.ratelimit"), interval=0.2)
+    with caplog.at_level(logging.WARNING, logger="test.ratelimit"):
+        results = [limited.warning("a", f"message {k}") for k in range(100)]
+        assert limited.warning("b", "other category")
+        time.sleep(0.25)
+        assert limited.warning("a", "after the interval")
+    assert results.count(True) == 1
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == ["message 0", "other category", "after the interval (99 similar messages suppressed)"]
