@@ -1,0 +1,43 @@
+"""Shared fixtures: the real service as a subprocess, and the shared datasets directory.
+
+Kept generic on purpose: only what several test files need. The process helpers themselves live in
+tests/service_process.py (`ServiceProcess`, `RobotProcess`, `free_port`, `wait_for`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+import pytest
+from service_process import DATASETS_DIR, ServiceProcess
+
+
+@pytest.fixture
+def service_factory(tmp_path: Path) -> Iterator[Callable[..., ServiceProcess]]:
+    """Start services with extra `fleetmap serve` arguments: `service_factory("--no-auto-create")`.
+    Every service started is stopped (SIGTERM, then kill) at teardown."""
+    started: list[ServiceProcess] = []
+
+    def start(*extra_args: str, args: Sequence[str] = ()) -> ServiceProcess:
+        svc = ServiceProcess(tmp_path, [*extra_args, *args])
+        started.append(svc)
+        return svc.start()
+
+    yield start
+    for svc in started:
+        svc.stop()
+
+
+@pytest.fixture
+def service(service_factory: Callable[..., ServiceProcess]) -> ServiceProcess:
+    """A running service with default options on free ports (`base_url`, `zenoh_endpoint`)."""
+    return service_factory()
+
+
+@pytest.fixture(scope="session")
+def datasets_dir() -> Path:
+    """../shared/datasets next to the repository; the test is skipped (visibly) when it is absent."""
+    if not DATASETS_DIR.is_dir():
+        pytest.skip(f"shared datasets not found at {DATASETS_DIR}")
+    return DATASETS_DIR

@@ -1,0 +1,217 @@
+"""Real processes for end-to-end tests: the service (`python -m fleetmap.server`) and robots
+(`tests/robot_process.py`), on free loopback ports, with their output kept for failure messages.
+
+    with ServiceProcess(tmp_path) as svc:          # started, /healthz answered
+        httpx.get(f"{svc.base_url}/maps")
+        robot = RobotProcess(svc.zenoh_endpoint, "m", "r1", sim=1, count=20, log_dir=tmp_path)
+        robot.start(); robot.wait()
+
+`ServiceProcess.stop()` sends SIGTERM, waits, and only then kills; it returns the exit code so a test
+can assert a clean shutdown.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import TypeVar
+
+import httpx
+
+TESTS_DIR = Path(__file__).resolve().parent
+REPO_DIR = TESTS_DIR.parent
+#: The shared recorded datasets (../shared/datasets from the repository); may be absent.
+DATASETS_DIR = REPO_DIR.parent / "shared" / "datasets"
+ROBOT_SCRIPT = TESTS_DIR / "robot_process.py"
+
+T = TypeVar("T")
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 right now (the OS picks it; tiny race until the child binds)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _child_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+class ServiceProcess:
+    """`python -m fleetmap.server` on free ports: HTTP on 127.0.0.1:<port>, Zenoh listening on
+    tcp/127.0.0.1:<zport>, plus `extra_args`. Output goes to `log_dir/service-<port>.log`."""
+
+    def __init__(self, log_dir: Path, extra_args: Sequence[str] = (), startup_timeout: float = 60.0) -> None:
+        self.port = free_port()
+        self.zenoh_port = free_port()
+        self.base_url = f"http://127.0.0.1:{self.port}"
+        self.zenoh_endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
+        self.args = [
+            sys.executable, "-m", "fleetmap.server",
+            "--http", f"127.0.0.1:{self.port}",
+            "--zenoh-listen", self.zenoh_endpoint,
+            *extra_args,
+        ]  # fmt: skip
+        self.log_path = Path(log_dir) / f"service-{self.port}.log"
+        self.startup_timeout = startup_timeout
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.returncode: int | None = None
+
+    def start(self) -> ServiceProcess:
+        """Start the service and wait until /healthz answers 200. Raises RuntimeError (with the
+        service's output) if it exits or does not answer within `startup_timeout`."""
+        log = open(self.log_path, "wb")  # noqa: SIM115 - the child writes to it until stop()
+        self.proc = subprocess.Popen(
+            self.args, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=_child_env()
+        )
+        log.close()
+        deadline = time.monotonic() + self.startup_timeout
+        with httpx.Client(timeout=2.0) as client:
+            while time.monotonic() < deadline:
+                if self.proc.poll() is not None:
+                    raise RuntimeError(f"service exited with {self.proc.returncode}:\n{self.logs()}")
+                try:
+                    if client.get(f"{self.base_url}/healthz").status_code == 200:
+                        return self
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.1)
+        self.stop()
+        raise RuntimeError(f"service did not answer /healthz within {self.startup_timeout} s:\n{self.logs()}")
+
+    def logs(self) -> str:
+        """Everything the service printed so far (stdout and stderr)."""
+        try:
+            return self.log_path.read_text(errors="replace")
+        except FileNotFoundError:
+            return ""
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def stop(self, timeout: float = 20.0) -> int | None:
+        """SIGTERM, wait up to `timeout`, then SIGKILL. Returns the exit code. Idempotent."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        self.returncode = self.proc.returncode
+        return self.returncode
+
+    def __enter__(self) -> ServiceProcess:
+        return self.start()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:  # fmt: skip
+        self.stop()
+
+
+class RobotProcess:
+    """`tests/robot_process.py` as a child process publishing to `endpoint` as robot
+    `map_id`/`robot_id`. Keyword arguments become its options (`sim=3` -> `--sim 3`,
+    `skip=[4, 5]` -> `--skip 4 5`); see robot_process.py for their meaning."""
+
+    def __init__(
+        self, endpoint: str, map_id: str, robot_id: str, *, log_dir: Path, **options: object
+    ) -> None:
+        self.map_id, self.robot_id = map_id, robot_id
+        self.options = options
+        self.args = [
+            sys.executable, str(ROBOT_SCRIPT), "--connect", endpoint, "--map", map_id, "--robot", robot_id,
+        ]  # fmt: skip
+        for name, value in options.items():
+            flag = "--" + name.replace("_", "-")
+            if isinstance(value, list | tuple):
+                self.args += [flag, *(str(v) for v in value)]
+            else:
+                self.args += [flag, str(value)]
+        self.log_path = Path(log_dir) / f"robot-{map_id}-{robot_id}-{os.getpid()}-{id(self)}.log"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> RobotProcess:
+        log = open(self.log_path, "wb")  # noqa: SIM115 - the child writes to it until it exits
+        # stdin is a pipe so that `--linger -1` robots stay online until we close it (or SIGTERM).
+        self.proc = subprocess.Popen(
+            self.args, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.PIPE, env=_child_env()
+        )
+        log.close()
+        return self
+
+    def logs(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")
+        except FileNotFoundError:
+            return ""
+
+    def wait(self, timeout: float = 60.0) -> int:
+        """Wait for the robot to exit; raises RuntimeError with its output unless it exits 0."""
+        assert self.proc is not None, "start() first"
+        try:
+            code = self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.stop()
+            message = f"robot {self.robot_id} did not finish in {timeout} s:\n{self.logs()}"
+            raise RuntimeError(message) from None
+        if code != 0:
+            raise RuntimeError(f"robot {self.robot_id} exited with {code}:\n{self.logs()}")
+        return code
+
+    def wait_published(self, timeout: float = 60.0) -> None:
+        """Wait until the robot printed `published N` (it may still be lingering, online)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if "published" in self.logs():
+                return
+            if self.proc is not None and self.proc.poll() is not None:
+                code = self.proc.returncode
+                raise RuntimeError(f"robot {self.robot_id} exited with {code}:\n{self.logs()}")
+            time.sleep(0.05)
+        raise RuntimeError(f"robot {self.robot_id} did not publish in {timeout} s:\n{self.logs()}")
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        """Close stdin (a `--linger -1` robot then leaves), SIGTERM if needed, then SIGKILL."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            try:
+                if self.proc.stdin:
+                    self.proc.stdin.close()
+                self.proc.wait(timeout / 2)
+            except (subprocess.TimeoutExpired, BrokenPipeError):
+                self.proc.send_signal(signal.SIGTERM)
+                try:
+                    self.proc.wait(timeout / 2)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait(10)
+        return self.proc.returncode
+
+
+def wait_for(
+    predicate: Callable[[], T], timeout: float = 30.0, interval: float = 0.1, what: str = "condition"
+) -> T:
+    """Poll `predicate()` until it returns something truthy (returned) or `timeout` passes
+    (AssertionError naming `what` and the last value)."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        last = predicate()
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}; last value: {last!r}")
