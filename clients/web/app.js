@@ -1,0 +1,679 @@
+/*
+ * fleetmap web viewer: plain JavaScript on Leaflet, no build step.
+ *
+ * What it shows and where it gets it (all URLs relative to the page, so a path prefix works):
+ *   GET maps                      -> the map selector (refreshed every MAPS_REFRESH_MS)
+ *   GET maps/{id}                 -> config.layers (layer selector), config.resolution, stats.bounds (fit),
+ *                                    stats.robots (initial robot list)
+ *   GET maps/{id}/tiles/{z}/{x}/{y}.png?layer=L&v=V
+ *                                 -> the map itself on L.CRS.Simple: one map unit = one CELL,
+ *                                    lng = cell x index i, lat = cell y index j, zoom 0 = one pixel per cell
+ *   GET maps/{id}/events (SSE)    -> `tiles` {version, tiles: [[i0, j0, i1, j1], ...]} or {version, reset},
+ *                                    `robots` {robots: {id: {online, pose, trail, scans_integrated}}},
+ *                                    `deleted` {id}
+ *   GET maps/{id}/cell?x=&y=      -> the values of the clicked cell
+ *
+ * The selected map and layer live in the URL hash: #map=<id>&layer=<layer>.
+ *
+ * Live refresh: the `v` query parameter of a tile URL is a counter this page bumps whenever tiles
+ * change. A displayed tile whose cells intersect a changed window gets a new URL (so a new request,
+ * never a stale browser-cache hit); tiles created later use the newest counter. Redraws are
+ * throttled to one per TILE_FLUSH_MS however fast events arrive.
+ */
+(function () {
+  'use strict';
+
+  // ---- constants -------------------------------------------------------------------------------
+
+  const TILE_PX = 256;            // tile size in pixels (the service's tile_render.TILE_PX)
+  const MIN_ZOOM = -8;            // 256 cells per pixel
+  const MAX_ZOOM = 4;             // 16 pixels per cell; the service renders zooms -8..4
+  const MAPS_REFRESH_MS = 5000;   // how often the map list is polled
+  const TILE_FLUSH_MS = 100;      // at most one tile redraw per this many ms
+  const RECONNECT_MS = 3000;      // retry delay when the browser gives up on the event stream
+  const ERROR_SHOW_MS = 15000;    // how long an error message stays visible
+
+  // Tile layers the service renders, and the map layer (config.layers) each one needs.
+  const LAYERS = [
+    { name: 'probability', needs: 'occupancy', label: 'probability' },
+    { name: 'state', needs: 'occupancy', label: 'state (free / occupied)' },
+    { name: 'log_odds', needs: 'occupancy', label: 'log odds' },
+    { name: 'hits', needs: 'counts', label: 'hits' },
+    { name: 'misses', needs: 'counts', label: 'misses' },
+    { name: 'tsdf', needs: 'tsdf', label: 'TSDF' },
+    { name: 'tsdf_weight', needs: 'tsdf', label: 'TSDF weight' },
+  ];
+
+  // Cell fields shown on click, in this order.
+  const CELL_FIELDS = ['known', 'probability', 'state', 'log_odds', 'hits', 'misses', 'tsdf', 'tsdf_weight'];
+
+  // A per-page-load prefix for tile versions: a map deleted and re-created restarts its versions,
+  // and a reloaded page must not hit tiles an earlier page load left in the browser cache.
+  const PAGE_STAMP = Date.now().toString(36);
+
+  // ---- elements --------------------------------------------------------------------------------
+
+  const $ = (id) => document.getElementById(id);
+  const mapSelect = $('map-select');
+  const layerSelect = $('layer-select');
+  const statusEl = $('status');
+  const coordsEl = $('coords');
+  const emptyEl = $('empty');
+  const robotList = $('robot-list');
+  const cellInfo = $('cell-info');
+  const errorEl = $('error');
+
+  // ---- state -----------------------------------------------------------------------------------
+
+  const state = {
+    mapId: null,          // selected map id
+    layer: null,          // selected tile layer name
+    info: null,           // last GET maps/{id} answer
+    res: 0.05,            // metres per cell of the selected map
+    fitted: false,        // view fitted to the map's bounds once (never again: the user may have moved)
+    infoInFlight: false,  // a GET maps/{id} for fitting is under way
+    selectToken: 0,       // bumped on each map selection; late answers for an older one are ignored
+    events: null,         // the EventSource of the selected map
+    eventsBroken: false,  // the stream failed since it last opened: redraw everything when it reopens
+    reconnectTimer: null,
+    connection: 'starting',
+    lastUpdate: null,     // Date of the last event received
+    robots: new Map(),    // robot id -> {data, marker, trail, color}
+    tileCounter: 0,       // tile version counter (see the header comment)
+    shownTiles: new Map(), // Leaflet tile key -> {el, coords} for every tile element on the map
+    pendingWindows: [],   // changed cell windows not yet redrawn
+    pendingReset: false,  // redraw everything at the next flush
+    flushTimer: null,
+    lastFlush: 0,
+    cellToken: 0,
+    errorTimer: null,
+  };
+
+  // ---- small helpers ---------------------------------------------------------------------------
+
+  const enc = encodeURIComponent;
+
+  /** Fetch JSON; throws an Error whose message is the service's error message when there is one. */
+  async function getJSON(url) {
+    let resp;
+    try {
+      resp = await fetch(url, { headers: { Accept: 'application/json' }, cache: 'no-store' });
+    } catch (err) {
+      throw new Error(`cannot reach the service (${err.message})`);
+    }
+    if (!resp.ok) {
+      let detail = resp.statusText;
+      try {
+        const body = await resp.json();
+        detail = typeof body.detail === 'string' ? body.detail : JSON.stringify(body.detail ?? body);
+      } catch (_) { /* not JSON: keep the status text */ }
+      const err = new Error(`${url}: ${resp.status} ${detail}`);
+      err.status = resp.status;
+      throw err;
+    }
+    return resp.json();
+  }
+
+  /** Show an error in the side panel (never thrown at the user); it fades after a while. */
+  function showError(message) {
+    errorEl.textContent = `${new Date().toLocaleTimeString()}: ${message}`;
+    errorEl.hidden = false;
+    clearTimeout(state.errorTimer);
+    state.errorTimer = setTimeout(() => { errorEl.hidden = true; }, ERROR_SHOW_MS);
+  }
+
+  window.addEventListener('error', (e) => showError(e.message || String(e)));
+  window.addEventListener('unhandledrejection', (e) => showError(String(e.reason && e.reason.message || e.reason)));
+
+  /** The status line: connection state of the event stream and the time of the last update. */
+  function setConnection(conn) {
+    state.connection = conn;
+    renderStatus();
+  }
+
+  function renderStatus() {
+    const texts = {
+      starting: 'starting…',
+      waiting: 'waiting for robots…',
+      connecting: 'connecting to events…',
+      connected: 'connected',
+      reconnecting: 'reconnecting to events…',
+      error: 'event stream lost; retrying…',
+    };
+    let text = texts[state.connection] || state.connection;
+    if (state.lastUpdate && state.connection !== 'waiting') {
+      text += ` · last update ${state.lastUpdate.toLocaleTimeString()}`;
+    }
+    statusEl.textContent = text;
+    statusEl.dataset.state = state.connection;
+  }
+
+  // Robot colours: saturated and dark enough to stand out on the light grey of free space.
+  const ROBOT_COLORS = ['#1f77b4', '#d62728', '#2ca02c', '#9467bd', '#e6550d',
+    '#8c564b', '#d6339c', '#0f8b8d', '#4b4bb3', '#b8860b'];
+
+  /** A stable colour per robot id (from a string hash), so a robot keeps its colour across reloads. */
+  function robotColor(id) {
+    let h = 0;
+    for (let k = 0; k < id.length; k++) h = (h * 31 + id.charCodeAt(k)) >>> 0;
+    return ROBOT_COLORS[h % ROBOT_COLORS.length];
+  }
+
+  /** Pose in any of the shapes the API may use ([x, y, theta] or {x, y, theta}) -> [x, y, theta] | null. */
+  function normPose(p) {
+    if (!p) return null;
+    if (Array.isArray(p)) return p.length >= 2 ? [+p[0], +p[1], +(p[2] || 0)] : null;
+    if (typeof p === 'object' && 'x' in p) return [+p.x, +p.y, +(p.theta || 0)];
+    return null;
+  }
+
+  /** Metres -> Leaflet LatLng (lat = y / res, lng = x / res: one map unit per cell). */
+  function toLatLng(x, y) {
+    return L.latLng(y / state.res, x / state.res);
+  }
+
+  /** stats.bounds (metres) as [xmin, ymin, xmax, ymax], accepting a list or an object; null if none. */
+  function normBounds(b) {
+    if (!b) return null;
+    if (Array.isArray(b) && b.length === 4) return b.map(Number);
+    if (typeof b === 'object') {
+      if ('xmin' in b) return [b.xmin, b.ymin, b.xmax, b.ymax].map(Number);
+      if (Array.isArray(b.min) && Array.isArray(b.max)) return [b.min[0], b.min[1], b.max[0], b.max[1]].map(Number);
+    }
+    return null;
+  }
+
+  function fmt(v, key) {
+    if (v === null || v === undefined || (typeof v === 'number' && Number.isNaN(v))) return '—';
+    if (typeof v === 'boolean') return v ? 'yes' : 'no';
+    if (typeof v === 'number') {
+      if (key === 'hits' || key === 'misses' || Number.isInteger(v)) return String(v);
+      return v.toFixed(key === 'probability' ? 4 : 3);
+    }
+    return String(v);
+  }
+
+  // ---- URL hash --------------------------------------------------------------------------------
+
+  function readHash() {
+    const p = new URLSearchParams(location.hash.replace(/^#/, ''));
+    return { map: p.get('map'), layer: p.get('layer') };
+  }
+
+  /** Replace (not push) the hash: switching maps should not fill the back button's history. */
+  function writeHash() {
+    const p = new URLSearchParams();
+    if (state.mapId) p.set('map', state.mapId);
+    if (state.layer) p.set('layer', state.layer);
+    const hash = `#${p.toString()}`;
+    if (location.hash !== hash) history.replaceState(null, '', hash);
+  }
+
+  // ---- the Leaflet map -------------------------------------------------------------------------
+
+  const map = L.map('map', {
+    crs: L.CRS.Simple,
+    minZoom: MIN_ZOOM,
+    maxZoom: MAX_ZOOM,
+    zoomSnap: 1,
+    // Tiles are reloaded in place when the map changes; the fade-in would make them blink.
+    fadeAnimation: false,
+    center: [0, 0],
+    zoom: 0,
+  });
+  map.attributionControl.setPrefix('Leaflet · fleetmap');
+
+  /** The tile layer: its URL carries the map, the layer and the version counter. */
+  const FleetTiles = L.TileLayer.extend({
+    getTileUrl(coords) {
+      const v = `${PAGE_STAMP}-${state.tileCounter}`;
+      return `maps/${enc(state.mapId)}/tiles/${coords.z}/${coords.x}/${coords.y}.png` +
+        `?layer=${enc(state.layer)}&v=${v}`;
+    },
+  });
+  const tiles = new FleetTiles('', {
+    tileSize: TILE_PX,
+    minZoom: MIN_ZOOM,
+    maxZoom: MAX_ZOOM,
+    maxNativeZoom: MAX_ZOOM,
+    minNativeZoom: MIN_ZOOM,
+    noWrap: true,
+    keepBuffer: 1,
+  });
+  // Keep our own list of tile elements on the map (public events, not Leaflet's private _tiles).
+  tiles.on('tileloadstart', (e) => {
+    state.shownTiles.set(`${e.coords.x}:${e.coords.y}:${e.coords.z}`, { el: e.tile, coords: e.coords });
+  });
+  tiles.on('tileunload', (e) => {
+    state.shownTiles.delete(`${e.coords.x}:${e.coords.y}:${e.coords.z}`);
+  });
+  tiles.on('tileerror', (e) => {
+    // A tile that fails (e.g. the map was deleted) stays blank; say why once in a while.
+    if (state.mapId) showError(`tile ${e.coords.z}/${e.coords.x}/${e.coords.y} failed to load`);
+  });
+
+  const robotLayer = L.layerGroup().addTo(map);
+  let cellMarker = null;
+
+  map.on('mousemove', (e) => {
+    const x = e.latlng.lng * state.res;
+    const y = e.latlng.lat * state.res;
+    coordsEl.textContent = `x ${x.toFixed(2)} m  y ${y.toFixed(2)} m`;
+  });
+  map.on('mouseout', () => { coordsEl.textContent = ''; });
+
+  // ---- tile refresh ----------------------------------------------------------------------------
+
+  /** The cell window [i0, j0, i1, j1) a tile covers (tile_render.tile_window without the step). */
+  function tileCells(c) {
+    const s = TILE_PX / Math.pow(2, c.z);
+    return [c.x * s, -(c.y + 1) * s, (c.x + 1) * s, -c.y * s];
+  }
+
+  function intersects(a, b) {
+    return a[0] < b[2] && b[0] < a[2] && a[1] < b[3] && b[1] < a[3];
+  }
+
+  /** Queue changed windows (or a reset) and schedule one throttled flush. */
+  function queueTiles(msg) {
+    if (msg.reset) state.pendingReset = true;
+    else if (Array.isArray(msg.tiles)) state.pendingWindows.push(...msg.tiles);
+    if (state.flushTimer === null) {
+      const wait = Math.max(0, state.lastFlush + TILE_FLUSH_MS - Date.now());
+      state.flushTimer = setTimeout(flushTiles, wait);
+    }
+  }
+
+  /** Reload the displayed tiles the queued windows touch (all of them after a reset). */
+  function flushTiles() {
+    state.flushTimer = null;
+    state.lastFlush = Date.now();
+    const windows = state.pendingWindows;
+    const reset = state.pendingReset;
+    state.pendingWindows = [];
+    state.pendingReset = false;
+    if (!state.mapId || !map.hasLayer(tiles)) return;
+    state.tileCounter += 1;
+    if (reset) {
+      tiles.redraw();
+      return;
+    }
+    for (const { el, coords } of state.shownTiles.values()) {
+      const cells = tileCells(coords);
+      if (windows.some((w) => intersects(cells, w))) {
+        // Setting src keeps the old image on screen until the new one has arrived: no blinking.
+        el.src = tiles.getTileUrl(coords);
+      }
+    }
+    // The first scans of a map: fit the view once the map has bounds.
+    if (!state.fitted && !state.infoInFlight) {
+      state.infoInFlight = true;
+      refreshInfo(state.selectToken, false).finally(() => { state.infoInFlight = false; });
+    }
+  }
+
+  // ---- robots ----------------------------------------------------------------------------------
+
+  function robotIcon(color, theta, online) {
+    // An arrow pointing along +x; CSS rotates clockwise and the map's y axis points up, hence -theta.
+    const deg = (-theta * 180) / Math.PI;
+    return L.divIcon({
+      className: `robot-marker${online ? '' : ' offline'}`,
+      iconSize: [26, 26],
+      iconAnchor: [13, 13],
+      html: `<svg width="26" height="26" viewBox="-13 -13 26 26" style="transform: rotate(${deg}deg)">` +
+        `<circle r="6" fill="${color}" fill-opacity="0.35"/>` +
+        `<path d="M12 0 L-7 -7 L-3 0 L-7 7 Z" fill="${color}" stroke="white" stroke-width="1.5"/></svg>`,
+    });
+  }
+
+  /** Merge robot reports ({id: {online, pose, trail, scans_integrated}}) and redraw them. */
+  function updateRobots(reports) {
+    for (const [id, report] of Object.entries(reports || {})) {
+      let robot = state.robots.get(id);
+      if (!robot) {
+        const color = robotColor(id);
+        robot = {
+          id,
+          color,
+          data: {},
+          trail: L.polyline([], { color, weight: 2, opacity: 0.8, interactive: false }).addTo(robotLayer),
+          marker: null,
+        };
+        state.robots.set(id, robot);
+      }
+      Object.assign(robot.data, report);
+      const pose = normPose(robot.data.pose ?? robot.data.last_pose);
+      const online = !!robot.data.online;
+      if (pose) {
+        const icon = robotIcon(robot.color, pose[2], online);
+        if (!robot.marker) {
+          robot.marker = L.marker(toLatLng(pose[0], pose[1]), { icon, keyboard: false, title: id })
+            .addTo(robotLayer);
+        } else {
+          robot.marker.setLatLng(toLatLng(pose[0], pose[1]));
+          robot.marker.setIcon(icon);
+        }
+        const el = robot.marker.getElement();
+        if (el) {
+          el.dataset.robotId = id;
+          el.dataset.online = String(online);
+        }
+      }
+      if (Array.isArray(report.trail)) {
+        const points = report.trail.map((p) => normPose(p)).filter(Boolean).map((p) => toLatLng(p[0], p[1]));
+        if (pose) points.push(toLatLng(pose[0], pose[1]));
+        robot.trail.setLatLngs(points);
+      }
+    }
+    renderRobotList();
+  }
+
+  function renderRobotList() {
+    robotList.replaceChildren();
+    if (state.robots.size === 0) {
+      const li = document.createElement('li');
+      li.className = 'none';
+      li.textContent = 'no robots';
+      robotList.append(li);
+      return;
+    }
+    const ids = [...state.robots.keys()].sort();
+    for (const id of ids) {
+      const robot = state.robots.get(id);
+      const online = !!robot.data.online;
+      const li = document.createElement('li');
+      li.dataset.robotId = id;
+      li.dataset.online = String(online);
+      li.title = 'Click to centre the map on this robot';
+      const swatch = document.createElement('span');
+      swatch.className = 'swatch';
+      swatch.style.background = robot.color;
+      const name = document.createElement('span');
+      name.className = 'name';
+      name.textContent = id;
+      const st = document.createElement('span');
+      st.className = 'online-state';
+      st.textContent = online ? 'online' : 'offline';
+      const scans = document.createElement('span');
+      scans.className = 'scans';
+      scans.textContent = `${robot.data.scans_integrated ?? 0} scans`;
+      li.append(swatch, name, st, scans);
+      li.addEventListener('click', () => {
+        if (robot.marker) map.panTo(robot.marker.getLatLng());
+      });
+      robotList.append(li);
+    }
+  }
+
+  function clearRobots() {
+    robotLayer.clearLayers();
+    state.robots.clear();
+    renderRobotList();
+  }
+
+  // ---- cell query ------------------------------------------------------------------------------
+
+  map.on('click', (e) => queryCell(Math.floor(e.latlng.lng), Math.floor(e.latlng.lat)));
+
+  /** Ask for cell (i, j) at its centre (no rounding doubts at cell edges) and show its values. */
+  async function queryCell(i, j) {
+    if (!state.mapId) return;
+    const token = ++state.cellToken;
+    const x = (i + 0.5) * state.res;
+    const y = (j + 0.5) * state.res;
+    if (cellMarker) cellMarker.remove();
+    // The cell's outline, and a ring of fixed screen size so it can be found at any zoom.
+    cellMarker = L.featureGroup([
+      L.rectangle([[j, i], [j + 1, i + 1]], { color: '#0969da', weight: 2, fill: false, interactive: false }),
+      L.circleMarker([j + 0.5, i + 0.5], { radius: 9, color: '#0969da', weight: 2, fill: false, interactive: false }),
+    ]).addTo(map);
+    cellInfo.innerHTML = '<p class="none">querying…</p>';
+    try {
+      const cell = await getJSON(`maps/${enc(state.mapId)}/cell?x=${x}&y=${y}`);
+      if (token !== state.cellToken) return;
+      // The service says which cell it answered for (i, j); trust it over our own arithmetic.
+      renderCell(Number.isInteger(cell.i) ? cell.i : i, Number.isInteger(cell.j) ? cell.j : j, x, y, cell);
+    } catch (err) {
+      if (token !== state.cellToken) return;
+      cellInfo.innerHTML = '<p class="none">no value</p>';
+      showError(`cell query: ${err.message}`);
+    }
+  }
+
+  function renderCell(i, j, x, y, cell) {
+    const where = document.createElement('p');
+    where.className = 'where';
+    where.textContent = `cell (${i}, ${j}) · x ${x.toFixed(3)} m, y ${y.toFixed(3)} m`;
+    const table = document.createElement('table');
+    for (const key of CELL_FIELDS) {
+      if (!(key in cell)) continue; // a layer the map does not keep
+      const tr = document.createElement('tr');
+      const th = document.createElement('th');
+      th.textContent = key;
+      const td = document.createElement('td');
+      td.dataset.field = key;
+      td.textContent = fmt(cell[key], key);
+      if (key === 'state') td.dataset.state = String(cell[key]);
+      tr.append(th, td);
+      table.append(tr);
+    }
+    cellInfo.replaceChildren(where, table);
+    cellInfo.dataset.i = String(i);
+    cellInfo.dataset.j = String(j);
+  }
+
+  // ---- event stream ----------------------------------------------------------------------------
+
+  function closeEvents() {
+    clearTimeout(state.reconnectTimer);
+    state.reconnectTimer = null;
+    if (state.events) state.events.close();
+    state.events = null;
+  }
+
+  function openEvents(mapId) {
+    closeEvents();
+    setConnection('connecting');
+    const es = new EventSource(`maps/${enc(mapId)}/events`);
+    state.events = es;
+    es.onopen = () => {
+      if (es !== state.events) return;
+      setConnection('connected');
+      // After a break: the service replays what we missed (EventSource sends Last-Event-ID), but a
+      // restarted service may not know our version; one full redraw is always right and rare.
+      if (state.eventsBroken) queueTiles({ reset: true });
+      state.eventsBroken = false;
+    };
+    es.onerror = () => {
+      if (es !== state.events) return;
+      state.eventsBroken = true;
+      if (es.readyState === EventSource.CLOSED) {
+        // The browser gave up (e.g. an HTTP error): try again ourselves after a pause.
+        setConnection('error');
+        state.reconnectTimer = setTimeout(() => {
+          if (state.mapId === mapId) openEvents(mapId);
+        }, RECONNECT_MS);
+      } else {
+        setConnection('reconnecting'); // EventSource retries by itself
+      }
+    };
+    const handle = (fn) => (e) => {
+      if (es !== state.events) return;
+      let data;
+      try {
+        data = JSON.parse(e.data);
+      } catch (err) {
+        showError(`bad ${e.type} event: ${err.message}`);
+        return;
+      }
+      state.lastUpdate = new Date();
+      renderStatus();
+      fn(data);
+    };
+    es.addEventListener('tiles', handle(queueTiles));
+    es.addEventListener('robots', handle((d) => updateRobots(d.robots)));
+    // The map was deleted: the stream ends; the map list poll picks another map (or waits).
+    es.addEventListener('deleted', handle(() => {
+      deselectMap();
+      showError(`map ${mapId} was deleted`);
+      refreshMaps();
+    }));
+  }
+
+  // ---- maps and layers -------------------------------------------------------------------------
+
+  /** Poll the map list; keep the selection, pick one when there is none. */
+  async function refreshMaps() {
+    let ids;
+    try {
+      const body = await getJSON('maps');
+      const items = Array.isArray(body) ? body : (body.maps || []);
+      ids = items.map((m) => (typeof m === 'string' ? m : m.id)).filter(Boolean).sort();
+    } catch (err) {
+      showError(`map list: ${err.message}`);
+      return;
+    }
+    const current = [...mapSelect.options].map((o) => o.value);
+    if (ids.join('\n') !== current.join('\n')) {
+      mapSelect.replaceChildren(...(ids.length ? ids : ['']).map((id) => {
+        const o = document.createElement('option');
+        o.value = id;
+        o.textContent = id || '(no maps)';
+        return o;
+      }));
+    }
+    mapSelect.disabled = ids.length === 0;
+    emptyEl.hidden = ids.length > 0;
+    if (ids.length === 0) {
+      if (state.mapId) deselectMap();
+      setConnection('waiting');
+      return;
+    }
+    if (state.mapId && ids.includes(state.mapId)) {
+      mapSelect.value = state.mapId;
+      return;
+    }
+    if (state.mapId) showError(`map ${state.mapId} was deleted`);
+    const wanted = readHash().map;
+    selectMap(ids.includes(wanted) ? wanted : ids[0]);
+  }
+
+  function deselectMap() {
+    state.mapId = null;
+    state.info = null;
+    closeEvents();
+    clearRobots();
+    if (map.hasLayer(tiles)) tiles.remove();
+    layerSelect.replaceChildren();
+    layerSelect.disabled = true;
+  }
+
+  /** Switch to a map: its layers, its tiles, its robots, its event stream. */
+  async function selectMap(mapId) {
+    const token = ++state.selectToken;
+    closeEvents();
+    clearRobots();
+    state.mapId = mapId;
+    state.info = null;
+    state.fitted = false;
+    state.eventsBroken = false;
+    mapSelect.value = mapId;
+    cellInfo.innerHTML = '<p class="none">Click the map to query a cell.</p>';
+    if (cellMarker) { cellMarker.remove(); cellMarker = null; }
+    if (map.hasLayer(tiles)) tiles.remove();
+    const ok = await refreshInfo(token, true);
+    if (token !== state.selectToken) return;
+    if (!ok) {
+      state.mapId = null; // the next map-list poll tries again
+      return;
+    }
+    tiles.addTo(map);
+    openEvents(mapId);
+  }
+
+  /** GET maps/{id}: layers, resolution, bounds (fit once), robots. Returns false on failure. */
+  async function refreshInfo(token, first) {
+    const mapId = state.mapId;
+    let info;
+    try {
+      info = await getJSON(`maps/${enc(mapId)}`);
+    } catch (err) {
+      showError(`map ${mapId}: ${err.message}`);
+      return false;
+    }
+    if (token !== state.selectToken) return false;
+    state.info = info;
+    const config = info.config || {};
+    if (first) {
+      state.res = Number(config.resolution) || 0.05;
+      setLayerOptions(config.layers);
+      const stats = info.stats || {};
+      if (stats.robots) {
+        const reports = {};
+        for (const [id, r] of Object.entries(stats.robots)) {
+          reports[id] = { online: r.online, pose: r.last_pose, scans_integrated: r.scans_integrated };
+        }
+        updateRobots(reports);
+      }
+    }
+    const b = normBounds(info.stats && info.stats.bounds);
+    if (b && !state.fitted) {
+      state.fitted = true;
+      map.fitBounds([[b[1] / state.res, b[0] / state.res], [b[3] / state.res, b[2] / state.res]],
+        { padding: [20, 20], maxZoom: 2, animate: false });
+    } else if (first && !b) {
+      map.setView([0, 0], 0, { animate: false });
+    }
+    return true;
+  }
+
+  /** Fill the layer selector with the tile layers this map keeps; keep the wanted one if possible. */
+  function setLayerOptions(mapLayers) {
+    const kept = Array.isArray(mapLayers) ? mapLayers : ['occupancy', 'counts', 'tsdf'];
+    const available = LAYERS.filter((l) => kept.includes(l.needs));
+    layerSelect.replaceChildren(...available.map((l) => {
+      const o = document.createElement('option');
+      o.value = l.name;
+      o.textContent = l.label;
+      return o;
+    }));
+    layerSelect.disabled = available.length === 0;
+    const names = available.map((l) => l.name);
+    const wanted = readHash().layer || state.layer;
+    state.layer = names.includes(wanted) ? wanted : (names[0] || null);
+    if (state.layer) layerSelect.value = state.layer;
+    writeHash();
+  }
+
+  mapSelect.addEventListener('change', () => {
+    if (mapSelect.value && mapSelect.value !== state.mapId) selectMap(mapSelect.value);
+  });
+
+  layerSelect.addEventListener('change', () => {
+    state.layer = layerSelect.value;
+    writeHash();
+    state.tileCounter += 1;
+    if (map.hasLayer(tiles)) tiles.redraw();
+  });
+
+  // Someone edited the hash (or followed a link): apply it.
+  window.addEventListener('hashchange', () => {
+    const h = readHash();
+    if (h.map && h.map !== state.mapId && [...mapSelect.options].some((o) => o.value === h.map)) {
+      selectMap(h.map);
+    } else if (h.layer && h.layer !== state.layer && [...layerSelect.options].some((o) => o.value === h.layer)) {
+      layerSelect.value = h.layer;
+      layerSelect.dispatchEvent(new Event('change'));
+    }
+  });
+
+  // ---- start -----------------------------------------------------------------------------------
+
+  renderStatus();
+  refreshMaps();
+  setInterval(refreshMaps, MAPS_REFRESH_MS);
+
+  // For tests and debugging from the console: read-only views of the viewer's state.
+  window.fleetmapViewer = { map, tiles, state };
+})();
