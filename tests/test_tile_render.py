@@ -1,0 +1,448 @@
+"""Map tiles (fleetmap.tile_render): the Leaflet CRS.Simple tile convention, pixel placement at every
+zoom (negative cell and tile indices included), zoomed-out aggregation that keeps walls, colours of
+every layer, versions / ETags, and the rendered-tile cache.
+
+Maps are real GridMaps fed real Scans; PNGs are decoded with Pillow. The pixel a cell should land on
+is computed here from the documented convention, independently of the module's code.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import threading
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fleetmap import tile_render
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import REGION_LAYERS, STATE_OCCUPIED, GridMap
+from fleetmap.registry import MapEntry
+from fleetmap.scan import Scan
+from fleetmap.tile_render import (
+    EMPTY_PNG,
+    MAX_ZOOM,
+    MIN_ZOOM,
+    TILE_PX,
+    TileCache,
+    TileError,
+    render_tile,
+    tile_version,
+    tile_window,
+)
+
+RES = 0.05
+
+
+def decode(png: bytes) -> np.ndarray:
+    """(256, 256, 4) uint8 RGBA."""
+    img = Image.open(io.BytesIO(png))
+    assert img.size == (TILE_PX, TILE_PX)
+    return np.asarray(img.convert("RGBA"))
+
+
+def tiles_side(z: int) -> int:
+    """Cells per tile side at zoom z, by the documented convention 256 / 2**z."""
+    return int(256 / 2**z)
+
+
+def where(i: int, j: int, z: int) -> tuple[int, int, slice, slice]:
+    """Tile (x, y) and the pixel rows / columns that show cell (i, j) at zoom z, from the convention:
+    tile (z, x, y) covers i in [x*S, (x+1)*S), j in [-(y+1)*S, -y*S); the top row is the highest j."""
+    s = tiles_side(z)
+    x, y = math.floor(i / s), -math.floor(j / s) - 1
+    col = (i - x * s) * 2**z  # pixel coordinate of the cell's low-i edge
+    row = (-y * s - 1 - j) * 2**z  # of its high-j edge, counted down from the top
+    if z >= 0:
+        k = 2**z
+        return x, y, slice(int(row), int(row) + k), slice(int(col), int(col) + k)
+    return x, y, slice(math.floor(row), math.floor(row) + 1), slice(math.floor(col), math.floor(col) + 1)
+
+
+def centre(i: int, j: int) -> tuple[float, float]:
+    return (i + 0.5) * RES, (j + 0.5) * RES
+
+
+def beam_to(i: int, j: int, cells: int = 20, times: int = 5) -> list[Scan]:
+    """Scans whose one beam runs along -x through `cells` free cells and returns in cell (i, j).
+    Repeated `times` so the hit is clearly occupied and the traversed cells clearly free."""
+    cx, cy = centre(i, j)
+    scan = Scan.from_fan((cx + cells * RES, cy, math.pi), 0.0, 0.01, [cells * RES])
+    return [scan] * times
+
+
+def make_map(*scans: Scan, **config: object) -> GridMap:
+    gmap = GridMap(MapConfig(resolution=RES, **config))  # type: ignore[arg-type]
+    for scan in scans:
+        gmap.integrate(scan)
+    return gmap
+
+
+HIT = (-300, -10)  # a cell at negative coordinates: x in [-15, -14.95), y in [-0.5, -0.45)
+
+
+@pytest.fixture(scope="module")
+def hit_map() -> GridMap:
+    gmap = make_map(*beam_to(*HIT))
+    state = gmap.cells(np.array([centre(*HIT), centre(HIT[0] + 1, HIT[1])]))["state"]
+    assert state[0] == STATE_OCCUPIED and state[1] != STATE_OCCUPIED  # the premise of the tests below
+    return gmap
+
+
+# -- geometry --------------------------------------------------------------------------------------------
+
+
+def test_tile_window_examples() -> None:
+    assert tile_window(0, 0, 0) == (0, -256, 256, 0, 1)
+    assert tile_window(0, -1, -1) == (-256, 0, 0, 256, 1)
+    assert tile_window(0, -2, 0) == (-512, -256, -256, 0, 1)
+    assert tile_window(2, 3, -2) == (192, 64, 256, 128, 1)
+    assert tile_window(4, 1, 1) == (16, -32, 32, -16, 1)
+    assert tile_window(-2, -1, 0) == (-1024, -1024, 0, 0, 4)
+    assert tile_window(-8, 0, -1) == (0, 0, 65536, 65536, 256)
+
+
+@pytest.mark.parametrize("z", range(MIN_ZOOM, MAX_ZOOM + 1))
+def test_tiles_partition_the_plane(z: int) -> None:
+    """Every cell is in exactly the tile the convention names, and neighbouring tiles abut."""
+    s = tiles_side(z)
+    rng = np.random.default_rng(z + 100)
+    for i, j in rng.integers(-300_000, 300_000, size=(50, 2)).tolist():
+        x, y, _, _ = where(i, j, z)
+        i0, j0, i1, j1, step = tile_window(z, x, y)
+        assert i0 <= i < i1 and j0 <= j < j1
+        assert i1 - i0 == j1 - j0 == s and step == max(1, 2**-z)
+        assert tile_window(z, x + 1, y)[0] == i1  # east neighbour starts where this one ends
+        assert tile_window(z, x, y - 1)[1] == j1  # the tile above (y - 1) starts at this one's top
+
+
+# -- pixel placement ---------------------------------------------------------------------------------------
+
+
+def test_hit_at_negative_cell_lands_on_its_pixel_at_z0(hit_map: GridMap) -> None:
+    x, y, rows, cols = where(*HIT, 0)
+    assert (x, y, rows.start, cols.start) == (-2, 0, 9, 212)  # by hand: i - (-512), (0 - 1) - j
+    img = decode(render_tile(hit_map, "probability", 0, x, y))
+    hit = img[9, 212]
+    assert hit[3] == 255 and hit[0] < 40, hit  # opaque and dark
+    free = img[9, 213]  # cell (-299, -10): traversed by the beam
+    assert free[3] == 255 and free[0] > 200, free
+    assert img[9, 211][3] == 0  # beyond the return: never observed
+    assert img[100, 100][3] == 0 and img[10, 212][3] == 0  # elsewhere and the row below
+    assert (img[..., 3] > 0).sum() == 21  # the hit and the 20 cells of the beam, nothing else
+
+
+def test_hit_is_a_4x4_block_at_z2(hit_map: GridMap) -> None:
+    x, y, rows, cols = where(*HIT, 2)
+    assert (x, y, rows.start, cols.start) == (-5, 0, 36, 80)
+    img = decode(render_tile(hit_map, "probability", 2, x, y))
+    block = img[36:40, 80:84]
+    assert (block[..., 3] == 255).all() and (block[..., 0] < 40).all()
+    assert (img[36:40, 84:88, 0] > 200).all() and (img[36:40, 84:88, 3] == 255).all()  # free cell
+    assert (img[36:40, 76:80, 3] == 0).all() and (img[32:36, 80:84, 3] == 0).all()  # unobserved
+
+
+def test_zoomed_out_pixel_keeps_the_occupied_cell(hit_map: GridMap) -> None:
+    """At z = -2 the pixel of cells i in [-300, -296) holds the hit and three free cells: it must be
+    dark (a wall never vanishes), while a pixel of free cells only is light."""
+    x, y, rows, cols = where(*HIT, -2)
+    assert (x, y, rows.start, cols.start) == (-1, 0, 2, 181)
+    img = decode(render_tile(hit_map, "probability", -2, x, y))
+    assert img[2, 181][3] == 255 and img[2, 181][0] < 40
+    assert img[2, 182][3] == 255 and img[2, 182][0] > 200  # cells -296..-293: free only
+    assert img[2, 180][3] == 0  # cells -304..-301: never observed
+    # The engine agrees the block is mostly free: the aggregation, not the data, makes it dark.
+    states = hit_map.region("state", -300, -12, -296, -8)
+    assert (states == STATE_OCCUPIED).sum() == 1
+
+
+@pytest.mark.parametrize("cell", [(-300, -10), (37, 5), (-1, 0), (0, -1), (1000, -2000)])
+@pytest.mark.parametrize("z", [-6, -3, -1, 0, 1, 4])
+def test_hit_pixel_at_every_zoom_and_quadrant(cell: tuple[int, int], z: int) -> None:
+    gmap = make_map(*beam_to(*cell, cells=6), tile_size=64)
+    x, y, rows, cols = where(*cell, z)
+    img = decode(render_tile(gmap, "state", z, x, y))
+    assert (img[rows, cols] == (20, 20, 20, 255)).all()
+    assert (img[..., 3] > 0).sum() > 0
+    # Only pixels in the beam's row band are drawn.
+    drawn_rows = np.flatnonzero(img[..., 3].any(axis=1))
+    assert drawn_rows.min() >= rows.start and drawn_rows.max() < rows.stop
+
+
+def test_unexplored_tiles_are_transparent(hit_map: GridMap) -> None:
+    for z, x, y in [(0, 5, 5), (-8, 3, 3), (4, -100, 7), (0, -1, -1)]:
+        for layer in REGION_LAYERS:
+            png = render_tile(hit_map, layer, z, x, y)
+            assert png == EMPTY_PNG
+            assert (decode(png)[..., 3] == 0).all()
+    # Inside an existing storage tile, away from anything observed: transparent too.
+    assert hit_map.store.version((HIT[0] >> hit_map.store.shift, HIT[1] >> hit_map.store.shift))
+    img = decode(render_tile(hit_map, "probability", 4, -19, 1))  # cells [-304, -288) x [-32, -16)
+    assert (img[..., 3] == 0).all()
+
+
+# -- aggregation against a brute-force reference -------------------------------------------------------
+
+
+def reference_tile(gmap: GridMap, layer: str, z: int, x: int, y: int) -> np.ndarray:
+    """The expected value grid (top row = highest j) from GridMap.region and the documented rules."""
+    i0, j0, i1, j1, step = tile_window(z, x, y)
+    source = {"probability": "log_odds", "state": "log_odds"}.get(layer, layer)
+    region = gmap.region(source, i0, j0, i1, j1)
+    n = region.shape[0] // step
+    blocks = region.reshape(n, step, n, step).transpose(0, 2, 1, 3).reshape(n, n, step * step)
+    if source in ("log_odds", "tsdf"):
+        score = np.where(np.isnan(blocks), -np.inf, blocks if source == "log_odds" else -np.abs(blocks))
+    else:
+        score = blocks.astype(np.float64)
+    best = np.take_along_axis(blocks, score.argmax(axis=-1)[..., None], -1)[..., 0]
+    return best[::-1]
+
+
+def scattered_scans(seed: int, n: int = 12) -> list[Scan]:
+    rng = np.random.default_rng(seed)
+    return [
+        Scan.from_fan((*rng.uniform(-12, 12, 2), rng.uniform(-3, 3)), -2.0, 0.02, rng.uniform(0.3, 9.0, 200))
+        for _ in range(n)
+    ]
+
+
+@pytest.mark.parametrize("layer", ["probability", "hits", "tsdf", "tsdf_weight"])
+def test_zoomed_out_matches_reference(layer: str) -> None:
+    gmap = make_map(*scattered_scans(1), tile_size=16, max_tiles=100_000)
+    for z, x, y in [(-1, -1, -1), (-2, 0, -1), (-3, -1, 0)]:
+        img = decode(render_tile(gmap, layer, z, x, y))
+        ref = reference_tile(gmap, layer, z, x, y)
+        known = ~np.isnan(ref) if layer in ("probability", "tsdf") else ref > 0
+        assert known.any()
+        assert ((img[..., 3] == 255) == known).all()
+        if layer == "probability":
+            grey = np.rint(255 * (1 - 1 / (1 + np.exp(-ref[known].astype(np.float64)))))
+            assert np.abs(img[..., 0][known].astype(int) - grey).max() <= 1
+        elif layer == "tsdf":
+            # Positive (in front of a surface) is red, negative blue; near 0 both are near white.
+            clear = known & (np.abs(np.nan_to_num(ref)) > 0.02)
+            red, blue = img[..., 0][clear].astype(int), img[..., 2][clear].astype(int)
+            assert ((red > blue) == (ref[clear] > 0)).all()
+
+
+def test_tile_size_does_not_change_the_picture() -> None:
+    """The same scans stored in 16-cell and 256-cell storage tiles render identical tiles, also where
+    one pixel spans many storage tiles (z = -6: 64 cells per pixel)."""
+    scans = scattered_scans(2)
+    small = make_map(*scans, tile_size=16, max_tiles=100_000)
+    large = make_map(*scans, tile_size=256)
+    for z, x, y in [(-6, -1, -1), (-6, 0, 0), (-4, -1, 0), (-2, 0, -1), (0, -1, -1), (3, 0, -1)]:
+        for layer in ("probability", "tsdf"):
+            assert render_tile(small, layer, z, x, y) == render_tile(large, layer, z, x, y), (z, x, y)
+
+
+# -- colours -------------------------------------------------------------------------------------------------
+
+
+def test_every_layer_renders_with_plausible_colours(hit_map: GridMap) -> None:
+    x, y, _, _ = where(*HIT, 0)
+    hit, free, front, behind, far_free = (9, 212), (9, 213), (9, 214), (9, 211), (9, 230)
+    img = {layer: decode(render_tile(hit_map, layer, 0, x, y)) for layer in REGION_LAYERS}
+    for layer in ("probability", "log_odds"):
+        h, f = img[layer][hit], img[layer][free]
+        assert h[0] == h[1] == h[2] < 40 and h[3] == 255
+        assert f[0] == f[1] == f[2] > 200 and f[3] == 255
+    assert tuple(img["state"][hit]) == (20, 20, 20, 255)
+    assert tuple(img["state"][free]) == (245, 245, 245, 255)
+    # Counts: 5 hits on the hit cell and 5 misses on the free cells, zero elsewhere (transparent).
+    assert img["hits"][hit][3] == 255 and img["hits"][free][3] == 0
+    assert img["misses"][free][3] == 255 and img["misses"][hit][3] == 0
+    assert (img["hits"][hit] == img["misses"][free]).all()  # same count, same colour (fixed scale)
+    assert len(set(img["hits"][hit][:3].tolist())) > 1  # a colour ramp, not grey
+    # TSDF: the cell in front of the return (towards the sensor) is positive -> red; the band ends
+    # within truncation (0.2 m = 4 cells); unobserved -> transparent.
+    assert img["tsdf"][front][0] > img["tsdf"][front][2] and img["tsdf"][front][3] == 255
+    assert img["tsdf"][behind][2] > img["tsdf"][behind][0] and img["tsdf"][behind][3] == 255
+    assert img["tsdf"][far_free][3] == 0 and img["tsdf_weight"][far_free][3] == 0
+    assert img["tsdf_weight"][hit][3] == 255
+
+
+def test_hit_count_colour_is_consistent_between_tiles() -> None:
+    """The count ramp has a fixed scale: a cell hit 3 times looks the same in any tile, next to
+    anything."""
+    a = make_map(*beam_to(10, 10, times=3), *beam_to(40, 10, times=50))
+    b = make_map(*beam_to(-700, 900, times=3))
+    pa = decode(render_tile(a, "hits", 0, *where(10, 10, 0)[:2]))[where(10, 10, 0)[2:]]
+    pb = decode(render_tile(b, "hits", 0, *where(-700, 900, 0)[:2]))[where(-700, 900, 0)[2:]]
+    p50 = decode(render_tile(a, "hits", 0, *where(40, 10, 0)[:2]))[where(40, 10, 0)[2:]]
+    assert (pa == pb).all() and pa[0, 0, 3] == 255
+    assert not (pa == p50).all()
+
+
+# -- errors ------------------------------------------------------------------------------------------------
+
+
+def test_bad_zoom_tile_and_layer_raise_tile_error(hit_map: GridMap) -> None:
+    entry = MapEntry("m", hit_map, 1)
+    cache = TileCache()
+    for z in (MIN_ZOOM - 1, MAX_ZOOM + 1, 100, True, 1.0):
+        for call in (
+            lambda: render_tile(hit_map, "probability", z, 0, 0),  # noqa: B023
+            lambda: tile_version(hit_map, z, 0, 0),  # noqa: B023
+            lambda: cache.get_or_render(entry, "probability", z, 0, 0),  # noqa: B023
+        ):
+            with pytest.raises(TileError, match="zoom"):
+                call()
+    with pytest.raises(TileError, match="unknown layer 'nope'.*probability"):
+        render_tile(hit_map, "nope", 0, 0, 0)
+    with pytest.raises(TileError, match="unknown layer"):
+        cache.get_or_render(entry, "nope", 0, 0, 0)
+    with pytest.raises(TileError, match="outside"):
+        render_tile(hit_map, "probability", 0, 2**60, 0)
+    occupancy_only = make_map(layers=["occupancy"])
+    for layer in ("hits", "misses", "tsdf", "tsdf_weight"):
+        with pytest.raises(TileError, match="does not keep"):
+            render_tile(occupancy_only, layer, 0, 0, 0)
+        with pytest.raises(TileError, match="does not keep"):
+            cache.get_or_render(MapEntry("o", occupancy_only, 2), layer, 0, 0, 0)
+    assert issubclass(TileError, ValueError)
+    assert len(cache) == 0
+
+
+# -- versions and the cache -------------------------------------------------------------------------------
+
+
+def test_version_changes_only_for_tiles_under_a_change() -> None:
+    gmap = make_map(*beam_to(*HIT))
+    here = where(*HIT, 0)[:2]
+    elsewhere = where(-5000, -3000, 0)[:2]
+    assert tile_version(gmap, 0, *here) > 0
+    assert tile_version(gmap, 0, *elsewhere) == 0
+    before = {z: tile_version(gmap, z, *where(*HIT, z)[:2]) for z in (-8, -2, 0, 4)}
+    gmap.integrate(beam_to(-5000, -3000, times=1)[0])  # far away: other storage tiles
+    assert tile_version(gmap, 0, *here) == before[0]
+    assert tile_version(gmap, 4, *where(*HIT, 4)[:2]) == before[4]
+    assert tile_version(gmap, 0, *elsewhere) > before[0]
+    assert tile_version(gmap, -8, *where(*HIT, -8)[:2]) > before[-8]  # covers both places
+    gmap.integrate(beam_to(HIT[0] + 5, HIT[1] + 3, times=1)[0])  # same storage tile, new cells
+    assert tile_version(gmap, 0, *here) > before[0]
+    assert tile_version(gmap, -2, *where(*HIT, -2)[:2]) > before[-2]
+
+
+@pytest.fixture
+def counted_renders(monkeypatch: pytest.MonkeyPatch) -> list[tuple]:
+    """Records every real render the cache triggers (a spy around the real renderer, not a mock)."""
+    calls: list[tuple] = []
+    real = tile_render.render_tile_versioned
+
+    def spy(*args: object, **kwargs: object) -> tuple[bytes, int]:
+        calls.append(args[1:5])
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(tile_render, "render_tile_versioned", spy)
+    return calls
+
+
+def test_cache_serves_unchanged_tiles_and_rerenders_changed_ones(counted_renders: list[tuple]) -> None:
+    gmap = make_map(*beam_to(*HIT))
+    entry = MapEntry("site", gmap, 7)
+    cache = TileCache()
+    x, y, _, _ = where(*HIT, 0)
+    png1, etag1 = cache.get_or_render(entry, "probability", 0, x, y)
+    assert etag1 == f'"7-probability-0-{x}-{y}-{tile_version(gmap, 0, x, y)}"'
+    assert decode(png1)[9, 212][3] == 255
+    png2, etag2 = cache.get_or_render(entry, "probability", 0, x, y)
+    assert png2 == png1 and etag2 == etag1
+    assert len(counted_renders) == 1
+    # Another layer and another zoom are other tiles; a far tile is cached too.
+    cache.get_or_render(entry, "state", 0, x, y)
+    far_png, far_etag = cache.get_or_render(entry, "probability", 0, 5, 5)
+    assert far_png == EMPTY_PNG and far_etag.endswith('-0"')
+    assert len(counted_renders) == 3
+    # A scan changing a cell under the tile: a new version, a new picture, one new render.
+    gmap.integrate(beam_to(HIT[0] + 5, HIT[1] + 3, times=1)[0])
+    png3, etag3 = cache.get_or_render(entry, "probability", 0, x, y)
+    assert etag3 != etag1 and png3 != png1 and len(counted_renders) == 4
+    assert cache.get_or_render(entry, "probability", 0, 5, 5) == (far_png, far_etag)
+    assert len(counted_renders) == 4
+    # The same map id re-created (new generation) never sees the old entries.
+    _, etag_new = cache.get_or_render(MapEntry("site", gmap, 8), "probability", 0, x, y)
+    assert etag_new.startswith('"8-') and len(counted_renders) == 5
+    assert cache.hits == 2 and cache.renders == 5
+    assert png3 == render_tile(gmap, "probability", 0, x, y)  # (a direct render, not the cache's)
+
+
+def test_cache_is_a_bounded_lru(counted_renders: list[tuple]) -> None:
+    entry = MapEntry("m", make_map(*beam_to(*HIT)), 1)
+    cache = TileCache(max_entries=2)
+    for x in (0, 1, 0, 2, 0, 1):
+        cache.get_or_render(entry, "probability", 0, x, 0)
+    # 0, 1 rendered; 0 hit; 2 evicts 1 (least recently used); 0 hit; 1 rendered again.
+    assert [c[2] for c in counted_renders] == [0, 1, 2, 1]
+    assert len(cache) == 2
+
+
+def test_zoomed_out_cache_follows_changes() -> None:
+    """Reduced storage-tile blocks are reused between renders but never when their tile changed."""
+    gmap = make_map(*scattered_scans(3, n=6), tile_size=16, max_tiles=100_000)
+    entry = MapEntry("m", gmap, 1)
+    cache = TileCache()
+    for scan in scattered_scans(4, n=3) + [None]:
+        for layer, z in (("probability", -3), ("tsdf", -5), ("hits", -2)):
+            for x, y in ((-1, -1), (0, 0), (-1, 0)):
+                png, _ = cache.get_or_render(entry, layer, z, x, y)
+                assert png == render_tile(gmap, layer, z, x, y), (layer, z, x, y)
+        if scan is not None:
+            gmap.integrate(scan)
+    assert cache.reduced.nbytes > 0
+
+
+def test_concurrent_requests_render_once_and_stay_consistent() -> None:
+    gmap = make_map(*beam_to(*HIT))
+    entry = MapEntry("m", gmap, 1)
+    cache = TileCache()
+    x, y, _, _ = where(*HIT, -1)
+    results: list[tuple[bytes, str]] = []
+    errors: list[BaseException] = []
+    barrier = threading.Barrier(16)
+
+    def ask() -> None:
+        try:
+            barrier.wait()
+            for _ in range(20):
+                results.append(cache.get_or_render(entry, "probability", -1, x, y))
+        except BaseException as exc:  # surfaced below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=ask) for _ in range(16)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert cache.renders == 1 and len(set(results)) == 1
+
+    # Now with a writer integrating scans under the same tile while readers ask for it.
+    scans = [beam_to(HIT[0] - k, HIT[1] + k % 7, cells=8, times=1)[0] for k in range(1, 60)]
+    stop = threading.Event()
+
+    def write() -> None:
+        for scan in scans:
+            gmap.integrate(scan)
+        stop.set()
+
+    def read() -> None:
+        try:
+            while not stop.is_set():
+                png, etag = cache.get_or_render(entry, "probability", -1, x, y)
+                assert decode(png)[..., 3].any()
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=read) for _ in range(6)] + [threading.Thread(target=write)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    png, etag = cache.get_or_render(entry, "probability", -1, x, y)
+    assert etag == f'"1-probability--1-{x}-{y}-{tile_version(gmap, -1, x, y)}"'
+    assert png == render_tile(gmap, "probability", -1, x, y)
