@@ -1,0 +1,298 @@
+"""`fleetmap serve`: the long-running service. Robots publish scans over Zenoh; maps are served over HTTP.
+
+    fleetmap serve [--http HOST:PORT] [--zenoh-listen EP ...] [--zenoh-connect EP ...]
+                   [--zenoh-config FILE.json5] [--data-dir DIR] [--config FILE] [--no-auto-create]
+                   [--workers N]
+
+One process holds everything: a `MapRegistry` (maps, robots, integration worker threads), a
+`ZenohIngest` (the service's own Zenoh session: a router by default, so robots connect to it
+directly in client mode and nothing else needs installing) and the REST API (`fleetmap.api`) run by
+uvicorn in the main thread.
+
+Start-up order: the HTTP socket is bound first (so a port in use fails before anything else starts),
+the compiled kernels are warmed, the registry's workers start, the Zenoh session opens, then uvicorn
+serves. Only then is the ready line printed on stdout:
+
+    fleetmap serving http://HOST:PORT  zenoh: ENDPOINTS
+
+SIGINT / SIGTERM shut down gracefully: uvicorn stops serving (open event streams get a few seconds),
+the Zenoh session closes (no more scans come in), the registry integrates every scan already queued
+and stops its workers, and the process exits 0. A configuration error (bad address, port in use,
+bad config file) prints one line `fleetmap serve: error: ...` and exits 2, without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import logging
+import signal
+import socket
+import sys
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+from fleetmap.cli import CliError, load_config
+from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
+
+log = logging.getLogger("fleetmap.server")
+
+DEFAULT_HTTP = "127.0.0.1:8000"
+#: Seconds uvicorn waits for open connections (event streams never end by themselves) at shutdown.
+GRACEFUL_HTTP_SECONDS = 3.0
+
+
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the `serve` subcommand to the `fleetmap` command line."""
+    p = sub.add_parser(
+        "serve",
+        help="run the service: Zenoh ingest from robots, REST API and web viewer",
+        description=(
+            "Run the fleetmap service: robots publish scans over Zenoh (key fleetmap/<map>/<robot>/scan, "
+            "see docs/protocol.md), maps are served over HTTP (REST API and web viewer). The service's "
+            "own Zenoh session is a router, so robots connect to it directly in client mode."
+        ),
+    )
+    p.add_argument(
+        "--http",
+        default=DEFAULT_HTTP,
+        metavar="HOST:PORT",
+        help=f"address of the REST API and web viewer (default {DEFAULT_HTTP}; port 0 picks a free port)",
+    )
+    p.add_argument(
+        "--zenoh-listen",
+        nargs="+",
+        metavar="ENDPOINT",
+        help=(
+            f"Zenoh endpoints robots connect to (default {' '.join(DEFAULT_LISTEN)}; with --zenoh-connect "
+            "the default is not to listen)"
+        ),
+    )
+    p.add_argument(
+        "--zenoh-connect",
+        nargs="+",
+        default=[],
+        metavar="ENDPOINT",
+        help=(
+            "join an existing Zenoh network through these endpoints (e.g. a zenohd router) instead of "
+            "being its own: the session is then a peer if it also listens, else a client"
+        ),
+    )
+    p.add_argument(
+        "--zenoh-config",
+        metavar="FILE.json5",
+        help=(
+            "Zenoh configuration file, loaded first; the --zenoh-* options apply on top of it. Its "
+            "'mode' is kept when set; multicast scouting stays off unless the file switches it on"
+        ),
+    )
+    p.add_argument(
+        "--data-dir",
+        metavar="DIR",
+        help="directory for durable map storage: accepted and stored, NOT USED YET (maps live in memory)",
+    )
+    p.add_argument(
+        "--config",
+        metavar="FILE",
+        help="map configuration (JSON, the schema of PUT /maps/{id}) for maps created automatically",
+    )
+    p.add_argument(
+        "--no-auto-create",
+        action="store_true",
+        help="refuse scans for maps that do not exist (create maps with PUT /maps/{id}) instead of "
+        "creating them with the default configuration",
+    )
+    p.add_argument(
+        "--workers",
+        type=_positive_int,
+        default=2,
+        metavar="N",
+        help="integration worker threads (default 2)",
+    )
+    p.set_defaults(run=run)
+    return p
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if not 1 <= value <= 64:
+        raise argparse.ArgumentTypeError(f"must be between 1 and 64, got {value}")
+    return value
+
+
+def parse_http(text: str) -> tuple[str, int]:
+    """(host, port) of `HOST:PORT`, `[IPV6]:PORT` or `:PORT` (all interfaces). Raises CliError."""
+    host, sep, port_text = text.rpartition(":")
+    if not sep or not port_text.isdigit():
+        raise CliError(f"--http {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8000")
+    port = int(port_text)
+    if port > 65535:
+        raise CliError(f"--http {text!r}: port must be at most 65535")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    return host or "0.0.0.0", port
+
+
+def bind_http(host: str, port: int) -> socket.socket:
+    """A listening TCP socket on (host, port), bound before anything else starts so that an address
+    in use is reported at once. Raises CliError with a readable reason."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise CliError(f"cannot listen on HTTP {host}:{port}: {exc.strerror}") from None
+    family, socktype, proto, _, address = infos[0]
+    sock = socket.socket(family, socktype, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if family == socket.AF_INET6:
+            sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+        sock.bind(address)
+        sock.listen(2048)
+    except OSError as exc:
+        sock.close()
+        reason = "address already in use" if exc.errno == errno.EADDRINUSE else exc.strerror or str(exc)
+        raise CliError(f"cannot listen on HTTP {host}:{port}: {reason}") from None
+    sock.setblocking(False)
+    return sock
+
+
+def _url_host(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
+
+
+def warm_up() -> None:
+    """Integrate one tiny scan into a throwaway map so the compiled kernels are loaded (or compiled)
+    before the first robot's scan: its latency should not include that."""
+    from fleetmap.config import MapConfig
+    from fleetmap.grid_map import GridMap
+    from fleetmap.scan import Scan
+
+    for sensor_model in ("ray", "beam"):
+        gmap = GridMap(MapConfig(sensor_model=sensor_model, tile_size=16, resolution=0.1))
+        gmap.integrate(Scan.from_fan((0.0, 0.0, 0.0), -0.5, 0.1, [1.0] * 10 + [None], 0.0, 5.0))
+
+
+def _integration_hook() -> Any:
+    """The metrics' `on_integrated` hook, or None when fleetmap.metrics is not available."""
+    try:
+        from fleetmap.metrics import IntegrationMetrics
+    except ImportError:  # the metrics module is optional for the service to run
+        return None
+    return IntegrationMetrics().on_integrated
+
+
+def _load_api() -> tuple[Any, Any]:
+    """(create_app, ApiSettings) of the REST API (fleetmap.api.app). Raises CliError if missing."""
+    try:
+        from fleetmap.api.app import ApiSettings, create_app
+    except ImportError as exc:
+        raise CliError(f"the REST API (fleetmap.api.app) cannot be imported: {exc}") from None
+    return create_app, ApiSettings
+
+
+def _http_server_class() -> type:
+    import uvicorn
+
+    class ReadyServer(uvicorn.Server):
+        """uvicorn's server, printing the ready line once it accepts connections."""
+
+        ready_line = ""
+
+        async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+            await super().startup(sockets=sockets)
+            if self.started and not self.should_exit:
+                print(self.ready_line, flush=True)
+
+    return ReadyServer
+
+
+def run(args: argparse.Namespace) -> int:
+    """`fleetmap serve`: run until SIGINT / SIGTERM, then shut down cleanly and return 0."""
+    import uvicorn
+
+    from fleetmap.registry import MapRegistry
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    stop = threading.Event()
+    server: Any = None
+
+    def on_signal(signum: int, _frame: object) -> None:
+        # Before uvicorn runs (start-up) and after it returns (uvicorn re-raises the signal it
+        # caught): note the request; uvicorn handles the signal itself while it serves.
+        stop.set()
+        if server is not None:
+            server.should_exit = True
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        host, port = parse_http(args.http)
+        default_config = load_config(args.config)
+        create_app, settings_cls = _load_api()
+        sock = bind_http(host, port)
+        port = sock.getsockname()[1]
+        if args.data_dir:
+            log.info("--data-dir %s noted; durable storage is not wired in yet", args.data_dir)
+        warm_up()
+        registry = MapRegistry(
+            default_config,
+            auto_create=not args.no_auto_create,
+            workers=args.workers,
+            on_integrated=_integration_hook(),
+        )
+        ingest = ZenohIngest(
+            registry,
+            listen=args.zenoh_listen,
+            connect=args.zenoh_connect,
+            config_file=args.zenoh_config,
+        )
+        registry.start()
+        try:
+            try:
+                ingest.start()
+            except IngestStartError as exc:
+                raise CliError(str(exc)) from None
+            app = create_app(registry, settings=settings_cls(zenoh_status=ingest.status))
+            config = uvicorn.Config(
+                app,
+                log_level="warning",
+                access_log=False,
+                timeout_graceful_shutdown=GRACEFUL_HTTP_SECONDS,
+                lifespan="auto",
+            )
+            server = _http_server_class()(config)
+            server.ready_line = (
+                f"fleetmap serving http://{_url_host(host)}:{port}  zenoh: {' '.join(ingest.endpoints)}"
+            )
+            if not stop.is_set():
+                server.run(sockets=[sock])
+        finally:
+            sock.close()
+            log.info("shutting down: closing the Zenoh session, integrating queued scans")
+            ingest.close()
+            registry.close()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    log.info("stopped")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m fleetmap.server [serve options]`: the same as `fleetmap serve`."""
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_parser(sub)
+    args = parser.parse_args(["serve", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return int(args.run(args) or 0)
+    except CliError as exc:
+        print(f"fleetmap serve: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
