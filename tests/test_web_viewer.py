@@ -3,9 +3,11 @@
 Everything is real: the service runs as a subprocess on free ports, a simulated robot publishes its
 scans through a real Zenoh client session (with a liveliness token, as robots do), and Debian's
 Chromium, driven by Playwright, loads the page the service serves at `/` with Leaflet from the
-service's own /vendor/leaflet (no internet). The assertions are on what the page shows: the map
-selector, tile images (HTTP 200, not transparent), live tile refresh without a page reload, the
-robot in the list and on the map, a clicked cell's values, and the layer switch.
+service's own /vendor/leaflet (no internet). The assertions are on what the page shows: "waiting
+for robots" before any map, the map selector, tile images (HTTP 200, not transparent), live tile
+refresh without a page reload, the robot in the list (online, then offline) and on the map at its
+pose with its heading and trail, a clicked cell's values (equal to the engine's own map of the same
+scans), the layer switch, a map keeping fewer layers, a deleted map, and the service going away.
 
 Chromium comes from the Debian package `chromium` (`make system-deps` installs it); the test is
 skipped, with that reason, only when /usr/bin/chromium is missing. `playwright install` is never used.
@@ -285,7 +287,7 @@ def test_web_viewer_end_to_end(service: ServiceProcess) -> None:
 
             # Tiles: loaded with HTTP 200 from the tile endpoint, and showing the map (not transparent).
             _wait(page, f"() => {_LOADED_TILES_JS}.length > 0", what="loaded tiles")
-            page.wait_for_load_state("networkidle")
+            _settled_tiles(page, tile_statuses)
             tiles = page.evaluate(_TILE_PIXELS_JS)
             for tile in tiles:
                 assert f"/maps/{MAP_ID}/tiles/" in tile["src"] and "layer=probability" in tile["src"], tile
@@ -356,7 +358,7 @@ def test_web_viewer_end_to_end(service: ServiceProcess) -> None:
 
             # A screenshot for people: the fitted view with the robot, its trail and the clicked cell.
             page.evaluate(_SET_VIEW_JS, fitted_view)
-            page.wait_for_load_state("networkidle")
+            _settled_tiles(page, tile_statuses)
             page.screenshot(path=str(SCREENSHOT))
 
             # Switching the layer reloads the tiles from the other layer and records it in the hash.
@@ -410,6 +412,13 @@ def test_web_viewer_end_to_end(service: ServiceProcess) -> None:
                 page, f"() => document.getElementById('map-select').value === '{MAP_ID}'", what="map switch"
             )
             assert f"map {other} was deleted" in page.inner_text("#error")
+
+            # The service goes away: the status line says the page is reconnecting, it does not break.
+            service.stop()
+            _wait(
+                page, "() => document.getElementById('status').dataset.state !== 'connected'", what="the loss"
+            )
+            assert page.inner_text("#status").startswith(("reconnecting", "event stream lost"))
             assert not page_errors, page_errors
         finally:
             browser.close()
