@@ -1,0 +1,190 @@
+"""`create_app(registry, settings=...)`: the service's FastAPI application.
+
+The app holds no map state of its own: every route reads or feeds the `MapRegistry` it is given
+(whose integration workers the caller starts). What the app adds is per-app: its Prometheus
+registry (`ServiceMetrics`), the tile PNG cache, and the static files of the web viewer.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.utils import get_openapi
+from pydantic import BaseModel
+
+from fleetmap.api import errors, routes_data, routes_maps, routes_tiles, static
+from fleetmap.api.events import router as events_router
+from fleetmap.api.state import ApiState
+from fleetmap.api_models import RegionJson, RobotsEvent, TilesEvent
+from fleetmap.metrics import IntegrationMetrics, ServiceMetrics
+from fleetmap.registry import MapRegistry
+from fleetmap.wire import ScanMessage
+
+log = logging.getLogger("fleetmap.api")
+
+#: The web viewer in a source checkout: <repo>/clients/web.
+DEFAULT_WEB_DIR = Path(__file__).resolve().parents[3] / "clients" / "web"
+
+DESCRIPTION = """\
+Shared occupancy, count and TSDF maps built from a fleet's 2D laser scans.
+
+Robots publish scans over Zenoh (see docs/protocol.md) or `POST /maps/{map_id}/scans`; clients read
+cells, regions, tiles, TSDF surfaces and exports, and follow changes live with
+`GET /maps/{map_id}/events`. Coordinates are metres in the map frame; cell `(i, j)` of a map with
+resolution `res` covers `[i*res, (i+1)*res) x [j*res, (j+1)*res)`. Every error is JSON
+`{"detail": "..."}`. See docs/api.md.
+"""
+
+TAGS = [
+    {"name": "service", "description": "Health and metrics."},
+    {"name": "maps", "description": "Create, inspect and delete maps."},
+    {"name": "ingest", "description": "Scans over HTTP, for clients without Zenoh."},
+    {"name": "queries", "description": "Cells, regions and surfaces of a map."},
+    {"name": "tiles", "description": "PNG tiles for Leaflet (CRS.Simple)."},
+    {"name": "export", "description": "Whole-map exports."},
+    {"name": "events", "description": "Server-sent events for live clients."},
+]
+
+
+@dataclass
+class ApiSettings:
+    """Options of the app. Everything has a default."""
+
+    #: Directory of the web viewer (index.html, app.js, ...), served at `/` and `/static/`.
+    #: None: the source checkout's clients/web, if it exists.
+    web_dir: Path | None = None
+    #: Origins allowed by CORS (e.g. ["http://localhost:5173"]); empty: no CORS headers.
+    cors_origins: list[str] = field(default_factory=list)
+    #: Called by GET /healthz for the Zenoh session's status (server.py provides it).
+    zenoh_status: Callable[[], dict[str, Any]] | None = None
+    #: The registry's integration hook. None: the `IntegrationMetrics` whose `on_integrated` the
+    #: registry was built with, or, if the registry has no hook, a new one installed on it.
+    metrics: IntegrationMetrics | None = None
+    #: Seconds POST /scans waits for the integration before answering 503.
+    scan_timeout: float = 10.0
+    #: Points per POST /cells request.
+    max_points: int = 100_000
+    #: Cells per region / surface (npy, png) and per export window.
+    max_region_cells: int = 16 * 1024 * 1024
+    #: Cells per region as JSON (much bigger per cell than npy).
+    max_json_cells: int = 1024 * 1024
+    #: Bytes of a request body (a scan of 100000 beams with angles is ~4 MB of JSON).
+    max_body_bytes: int = 16 * 1024 * 1024
+    #: Rendered tiles kept in memory.
+    tile_cache_size: int = 4096
+    #: Seconds between two polls of an event stream (and so the most often an event is sent).
+    events_period: float = 0.1
+    #: Seconds between `: keepalive` comments of an event stream.
+    keepalive: float = 15.0
+
+
+def _integration_metrics(registry: MapRegistry, given: IntegrationMetrics | None) -> IntegrationMetrics:
+    """The IntegrationMetrics fed by this registry's workers (see ApiSettings.metrics)."""
+    if given is not None:
+        return given
+    # MapRegistry has no public accessor for its hook; reading it here saves server.py from wiring
+    # the same object twice.
+    hook = getattr(registry, "_on_integrated", None)
+    owner = getattr(hook, "__self__", None)
+    if isinstance(owner, IntegrationMetrics):
+        return owner
+    metrics = IntegrationMetrics()
+    if hook is None:
+        registry._on_integrated = metrics.on_integrated  # noqa: SLF001 - see above
+    else:
+        log.warning("the registry's on_integrated hook is not IntegrationMetrics: no latency histograms")
+    return metrics
+
+
+def _version() -> str:
+    try:
+        return metadata.version("fleetmap")
+    except metadata.PackageNotFoundError:  # running from a source tree without installing
+        return "0.0.0"
+
+
+def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) -> FastAPI:
+    """The FastAPI app serving `registry`. The caller starts and closes the registry."""
+    settings = settings or ApiSettings()
+    app = FastAPI(
+        title="fleetmap",
+        version=_version(),
+        description=DESCRIPTION,
+        openapi_tags=TAGS,
+    )
+    integration = _integration_metrics(registry, settings.metrics)
+    app.state.fleetmap = ApiState(
+        registry=registry,
+        settings=settings,
+        metrics=ServiceMetrics(registry, integration),
+        web_dir=settings.web_dir if settings.web_dir is not None else DEFAULT_WEB_DIR,
+    )
+    errors.install(app)
+    app.include_router(routes_maps.router)
+    app.include_router(routes_data.router)
+    app.include_router(routes_tiles.router)
+    app.include_router(events_router)
+    static.install(app, app.state.fleetmap.web_dir)
+    app.add_middleware(errors.BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["GET", "PUT", "POST", "DELETE"],
+            allow_headers=["*"],
+            expose_headers=["ETag", "X-Fleetmap-Window", "X-Fleetmap-Origin", "X-Fleetmap-Resolution"],
+        )
+    _install_openapi(app)
+    return app
+
+
+#: Models that routes send without FastAPI seeing them as response models (raw JSON bodies, event
+#: data) but that clients need in the spec.
+EXTRA_SCHEMAS: tuple[type[BaseModel], ...] = (ScanMessage, RegionJson, TilesEvent, RobotsEvent)
+
+
+def _install_openapi(app: FastAPI) -> None:
+    """The generated spec, plus EXTRA_SCHEMAS: POST /scans decodes its body itself (with the same codec
+    as Zenoh messages, so FastAPI does not see it as a model), /region answers JSON as raw bytes, and
+    event data is not a response at all."""
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = get_openapi(
+                title=app.title,
+                version=app.version,
+                description=app.description,
+                routes=app.routes,
+                tags=app.openapi_tags,
+            )
+            schemas = schema.setdefault("components", {}).setdefault("schemas", {})
+            for model in EXTRA_SCHEMAS:
+                extra = model.model_json_schema(ref_template="#/components/schemas/{model}")
+                schemas.update(extra.pop("$defs", {}))
+                schemas[model.__name__] = extra
+            app.openapi_schema = _finite(schema)
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def _finite(node: Any) -> Any:
+    """The spec without non-finite numbers, which JSON cannot hold: a default of +inf (ScanMessage's
+    range_max, "no maximum") is dropped, as omitting the field means exactly that."""
+    if isinstance(node, dict):
+        return {
+            key: _finite(value)
+            for key, value in node.items()
+            if not (isinstance(value, float) and not math.isfinite(value))
+        }
+    if isinstance(node, list):
+        return [_finite(value) for value in node]
+    return node

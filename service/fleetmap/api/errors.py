@@ -1,0 +1,225 @@
+"""Errors of the REST API: every error answer is JSON `{"detail": "<what is wrong>"}` (`ErrorResponse`).
+
+Bad input never gives a 500: request validation failures become 422 with a sentence naming the
+parameter, fleetmap's own exceptions for bad requests (unknown map, conflicting configuration, invalid
+id, a layer the map does not keep, an undecodable scan, a bad tile address) get their 4xx status
+here, and anything else is a bug: logged with its traceback and answered 500 with a generic detail.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from fleetmap.api_models import ErrorItem, ErrorResponse
+from fleetmap.codec import DecodeError
+from fleetmap.grid_map import LayerUnavailableError
+from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound
+from fleetmap.scan import ScanError
+from fleetmap.tile_render import TileError
+from fleetmap.tiles import TileLimitError
+
+log = logging.getLogger("fleetmap.api")
+
+_DESCRIPTIONS = {
+    304: "Not modified: the tile's ETag matches If-None-Match",
+    404: "Unknown map (or robot, or path)",
+    409: "Conflicts with the map's state or configuration",
+    413: "The request asks for too much at once",
+    422: "Invalid request: bad parameter, body or id",
+    503: "The service is overloaded: retry later",
+}
+
+
+def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` entries for the error statuses a route may answer."""
+    return {s: {"model": ErrorResponse, "description": _DESCRIPTIONS[s]} for s in statuses}
+
+
+class ApiError(Exception):
+    """An error answer with a status and a detail (raised by routes)."""
+
+    def __init__(self, status: int, detail: str, headers: dict[str, str] | None = None) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+        self.headers = headers
+
+
+class BodyTooLarge(StarletteHTTPException):
+    """A request body past the limit. An HTTPException, so FastAPI's body parsing passes it on as is
+    (it turns other exceptions raised while reading into a 400)."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(413, f"the request body is larger than the limit of {limit} bytes")
+
+
+class BodyLimitMiddleware:
+    """Refuse request bodies over `max_bytes` with a JSON 413: at once when Content-Length says so,
+    else as soon as the streamed body passes the limit. (Starlette's own limit answers in plain text.)"""
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        limit = self.max_bytes
+        for name, value in scope.get("headers", ()):
+            if name == b"content-length" and value.isdigit() and int(value) > limit:
+                exc = BodyTooLarge(limit)
+                await _json(exc.status_code, exc.detail)(scope, receive, send)
+                return
+        received = 0
+
+        async def limited() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > limit:
+                    raise BodyTooLarge(limit)
+            return message
+
+        await self.app(scope, limited, send)
+
+
+def _json(
+    status: int, detail: str, errors: list[ErrorItem] | None = None, headers: dict[str, str] | None = None
+) -> JSONResponse:
+    body = ErrorResponse(detail=detail, errors=errors).model_dump(mode="json", exclude_none=True)
+    return JSONResponse(body, status_code=status, headers=headers)
+
+
+def _where(loc: Sequence[str | int]) -> str:
+    """A readable name for a validation error's location."""
+    if not loc:
+        return "request"
+    kind, rest = loc[0], list(loc[1:])
+    path = ""
+    for part in rest:
+        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
+    if kind in ("path", "query", "header", "cookie") and path:
+        return f"{kind} parameter {path!r}"
+    if kind == "body":
+        return f"body.{path}" if path else "body"
+    return ".".join(str(p) for p in loc)
+
+
+def _message(err: dict[str, Any]) -> str:
+    loc = list(err.get("loc", ()))
+    kind = err.get("type", "")
+    msg = str(err.get("msg", "invalid"))
+    name = loc[-1] if loc else ""
+    if kind == "string_pattern_mismatch" and isinstance(name, str) and name.endswith("_id"):
+        return (
+            f"{name.replace('_', ' ')} {err.get('input')!r} is not a valid id: ids match "
+            "[A-Za-z0-9_-]{1,64}"
+        )
+    if kind == "json_invalid":
+        reason = (err.get("ctx") or {}).get("error")
+        return f"body is not valid JSON{f' ({reason})' if reason else ''}"
+    if kind == "missing":
+        return f"{_where(loc)} is required"
+    if kind in ("literal_error", "enum") and "input" in err:
+        return f"{_where(loc)}: {err['input']!r} is not allowed; {msg[0].lower()}{msg[1:]}"
+    return f"{_where(loc)}: {msg.removeprefix('Value error, ')}"
+
+
+def validation_detail(errors: Sequence[dict[str, Any]]) -> tuple[str, list[ErrorItem]]:
+    """A one-line detail (the first problem, and how many more) and the list of all problems."""
+    items = [
+        ErrorItem(
+            loc=[p if isinstance(p, int) else str(p) for p in e.get("loc", ())],
+            msg=str(e.get("msg", "")),
+            type=str(e.get("type", "")),
+        )
+        for e in errors
+    ]
+    if not errors:
+        return "invalid request", items
+    detail = _message(dict(errors[0]))
+    if len(errors) > 1:
+        detail += f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})"
+    return detail, items
+
+
+def _allowed_methods(app: FastAPI, scope: Scope) -> str:
+    """The methods some route accepts at this request's path."""
+    allowed = []
+    for method in ("GET", "PUT", "POST", "DELETE", "PATCH"):
+        probe = {**scope, "method": method}
+        if any(route.matches(probe)[0] == Match.FULL for route in app.router.routes):
+            allowed.append(method)
+    return ", ".join(sorted(allowed))
+
+
+#: fleetmap exceptions that are the client's fault, and their statuses.
+_CLIENT_ERRORS: tuple[tuple[type[Exception], int], ...] = (
+    (MapNotFound, 404),
+    (MapConflict, 409),
+    (InvalidId, 422),
+    (LayerUnavailableError, 422),
+    (DecodeError, 422),
+    (ScanError, 422),
+    (TileError, 422),
+    (TileLimitError, 409),
+)
+
+
+def install(app: FastAPI) -> None:
+    """Register the handlers that turn every error into `ErrorResponse` JSON."""
+
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+        return _json(exc.status, exc.detail, headers=exc.headers)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        if exc.status_code == 404 and detail == "Not Found":
+            detail = f"no such resource: {request.url.path}"
+        elif exc.status_code == 405 and detail == "Method Not Allowed":
+            # Starlette's Allow lists the first matching route's methods only; list every route's.
+            allowed = _allowed_methods(app, request.scope)
+            detail = f"method {request.method} is not allowed on {request.url.path}; allowed: {allowed}"
+            return _json(405, detail, headers={"Allow": allowed})
+        elif exc.status_code == 400 and detail == "There was an error parsing the body":
+            # FastAPI's answer to a body it cannot even decode (e.g. not UTF-8): one more invalid body.
+            return _json(422, "body is not valid JSON (it could not be decoded as UTF-8 text)")
+        return _json(exc.status_code, detail, headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        detail, items = validation_detail(exc.errors())
+        return _json(422, detail, items)
+
+    @app.exception_handler(IngestRejected)
+    async def _ingest_rejected(request: Request, exc: IngestRejected) -> JSONResponse:
+        return _json(exc.status if exc.status >= 400 else 422, exc.reason)
+
+    def _client_error(status: int) -> Any:
+        async def handler(request: Request, exc: Exception) -> JSONResponse:
+            return _json(status, str(exc))  # fleetmap's exceptions carry a sentence for the user
+
+        return handler
+
+    for exc_type, status in _CLIENT_ERRORS:
+        app.add_exception_handler(exc_type, _client_error(status))
+
+    @app.exception_handler(Exception)
+    async def _bug(request: Request, exc: Exception) -> JSONResponse:
+        # A bug, not bad input: keep it visible (Starlette re-raises it after this answer, so the
+        # server logs it too) and tell the client nothing internal.
+        log.error("internal error on %s %s", request.method, request.url.path, exc_info=exc)
+        return _json(500, "internal server error (logged on the server)")

@@ -1,0 +1,138 @@
+"""`GET /maps/{map_id}/events`: server-sent events of a map's changed tiles and robots, for live clients.
+
+Each stream polls the map's change feed and robots every `ApiSettings.events_period` (100 ms), so
+whatever the ingest rate, a client gets at most one `tiles` and one `robots` event per period, each
+covering everything since the previous one. Polling a version number is cheap, and it keeps the
+integration workers free of any per-client work.
+
+Format (text/event-stream):
+
+    retry: 1000
+
+    id: 42
+    event: tiles
+    data: {"version": 42, "tiles": [[0, 0, 256, 256], [256, 0, 512, 256]]}
+
+    event: robots
+    data: {"robots": {"r1": {"online": true, "pose": [1.0, 2.0, 0.5], "trail": [[0.9, 2.0], ...],
+           "scans_integrated": 17}}}
+
+    : keepalive
+
+- `tiles`: cell windows `[i0, j0, i1, j1]` of the storage tiles changed since the last event (refetch
+  the web tiles that overlap them), or `{"version": v, "reset": true}`: too much changed to list,
+  reload everything. Its `id` is the map's change version: a reconnecting EventSource sends it back as
+  `Last-Event-ID` (or pass `?since=`) and gets the changes it missed.
+- `robots`: every robot of the map, sent when anything in it changed (and once on connect).
+- `deleted`: the map was deleted; the stream ends.
+- `: keepalive` comment lines every 15 s keep proxies from closing an idle stream.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query
+from fastapi.responses import StreamingResponse
+
+from fleetmap.api.errors import error_responses
+from fleetmap.api.state import ApiState, MapId, State
+from fleetmap.api_models import TilesEvent, robots_event, tile_windows
+from fleetmap.registry import MapEntry
+
+router = APIRouter()
+
+
+def _event(kind: str, data: str, event_id: int | None = None) -> str:
+    head = f"id: {event_id}\n" if event_id is not None else ""
+    return f"{head}event: {kind}\ndata: {data}\n\n"
+
+
+async def event_stream(state: ApiState, entry: MapEntry, since: int | None) -> AsyncIterator[str]:
+    """The events of one client until it disconnects (Starlette then cancels this generator) or the
+    map is deleted."""
+    registry, settings = state.registry, state.settings
+    feed = entry.changes
+    tile_size = entry.config.tile_size
+    yield "retry: 1000\n\n"  # EventSource reconnects after 1 s
+    version = feed.version if since is None else since
+    if since is not None and since > feed.version:
+        # A version this map never had (the id is from a deleted map of the same name): start over.
+        yield _event(
+            "tiles",
+            TilesEvent(version=feed.version, reset=True).model_dump_json(exclude_none=True),
+            feed.version,
+        )
+        version = feed.version
+    last_robots = ""
+    last_sent = time.monotonic()
+    while True:
+        with registry.lock:
+            alive = registry.maps.get(entry.id) is entry
+        if not alive:
+            yield _event("deleted", json.dumps({"id": entry.id}))
+            return
+        batch = feed.since(version)
+        if batch.version != version:
+            if batch.reset:
+                tiles = TilesEvent(version=batch.version, reset=True)
+            else:
+                tiles = TilesEvent(version=batch.version, tiles=tile_windows(batch.tiles, tile_size))
+            if batch.reset or batch.tiles:  # a version bump that changed no tile is not news
+                yield _event("tiles", tiles.model_dump_json(exclude_none=True), batch.version)
+                last_sent = time.monotonic()
+            version = batch.version
+        robots = robots_event(entry, registry.lock).model_dump_json()
+        if robots != last_robots:
+            yield _event("robots", robots)
+            last_robots = robots
+            last_sent = time.monotonic()
+        if time.monotonic() - last_sent >= settings.keepalive:
+            yield ": keepalive\n\n"
+            last_sent = time.monotonic()
+        await asyncio.sleep(settings.events_period)
+
+
+@router.get(
+    "/maps/{map_id}/events",
+    tags=["events"],
+    summary="Live changes of a map (server-sent events)",
+    response_class=StreamingResponse,
+    responses={
+        200: {
+            "content": {"text/event-stream": {"schema": {"type": "string"}}},
+            "description": "An endless text/event-stream; see the description for the events",
+        },
+        **error_responses(404, 422),
+    },
+)
+async def get_events(
+    map_id: MapId,
+    state: State,
+    since: Annotated[int | None, Query(ge=0, description="resume after this change version")] = None,
+    last_event_id: Annotated[str | None, Header(description="set by a reconnecting EventSource")] = None,
+) -> StreamingResponse:
+    """Server-sent events, at most one `tiles` and one `robots` event per 100 ms:
+
+    - `event: tiles`, `id: <version>`, data `{"version": int, "tiles": [[i0, j0, i1, j1], ...]}`: the
+      cell windows of the storage tiles changed since the previous event (refetch the overlapping web
+      tiles), or `{"version": int, "reset": true}`: reload everything;
+    - `event: robots`, data `{"robots": {"<robot_id>": {"online", "pose": [x, y, theta] | null,
+      "trail": [[x, y], ...], "scans_integrated"}}}`: sent on connect and whenever a robot changed;
+    - `event: deleted`, data `{"id": map_id}`: the map was deleted, the stream ends;
+    - `: keepalive` comments every 15 s.
+
+    A reconnecting EventSource sends `Last-Event-ID` (the last tiles version it got) and receives what
+    changed since; `?since=` does the same by hand."""
+    entry = state.entry(map_id)
+    if since is None and last_event_id is not None and last_event_id.strip().isdigit():
+        since = int(last_event_id.strip())
+    return StreamingResponse(
+        event_stream(state, entry, since),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+    )

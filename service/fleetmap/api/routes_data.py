@@ -1,0 +1,300 @@
+"""Reading maps: one cell, many cells, dense regions, TSDF surfaces, exports.
+
+Reads take the map's lock only inside the engine's read calls (`GridMap.cells`, `region`, ...), which
+copy what they need, so a read sees every tile before or after any scan, never half-way. The routes
+are plain functions: FastAPI runs them on its thread pool, so a large read never stalls the event loop.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+import numpy as np
+from fastapi import APIRouter, Query, Response
+
+from fleetmap.api.errors import ApiError, error_responses
+from fleetmap.api.state import MapId, RegionLayer, State, coordinate
+from fleetmap.api_models import (
+    CellsRequest,
+    CellsResponse,
+    CellValue,
+    RegionJson,
+    Surface,
+    cell_value,
+    cells_response,
+    region_json,
+    surface,
+)
+from fleetmap.export import Window, known_window, map_png, nav2_zip, npy_bytes, png_bytes
+from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap
+
+router = APIRouter()
+
+OptCoordinate = Annotated[float | None, coordinate("metres; give all four bounds or none")]
+
+
+def _json(model: CellsResponse | RegionJson | Surface) -> Response:
+    """Serialise a (possibly large) answer straight from the model, without FastAPI validating it a
+    second time against the response model it already is."""
+    return Response(model.model_dump_json(), media_type="application/json")
+
+
+def _window(
+    gmap: GridMap, bounds: tuple[float | None, float | None, float | None, float | None], limit: int
+) -> Window:
+    """The cells `[floor(xmin/res), floor(xmax/res)) x [floor(ymin/res), floor(ymax/res))`, or the
+    observed extent when no bound is given. 422 for a partial or empty window, 409 for no bounds on an
+    empty map, 413 past `limit` cells."""
+    given = [b is not None for b in bounds]
+    if not any(given):
+        window = known_window(gmap)
+        if window is None:
+            raise ApiError(409, "the map has no observed cell yet; give xmin, ymin, xmax and ymax")
+    elif not all(given):
+        raise ApiError(422, "give all of xmin, ymin, xmax and ymax, or none of them (the observed extent)")
+    else:
+        xmin, ymin, xmax, ymax = (float(b) for b in bounds)  # type: ignore[arg-type]
+        res = gmap.resolution
+        window = Window(
+            math.floor(xmin / res), math.floor(ymin / res), math.floor(xmax / res), math.floor(ymax / res)
+        )
+        if window.i1 <= window.i0 or window.j1 <= window.j0:
+            raise ApiError(
+                422,
+                f"the window holds no cell: at resolution {res} m, xmax must be at least one cell "
+                "beyond xmin and ymax one cell beyond ymin",
+            )
+    ny, nx = window.shape
+    if nx * ny > limit:
+        raise ApiError(
+            413,
+            f"the window has {nx} x {ny} = {nx * ny} cells, more than the limit of {limit}; "
+            "ask for smaller windows",
+        )
+    return window
+
+
+def _window_headers(window: Window, resolution: float) -> dict[str, str]:
+    x0, y0 = window.origin(resolution)
+    return {
+        "X-Fleetmap-Window": f"{window.i0},{window.j0},{window.i1},{window.j1}",
+        "X-Fleetmap-Origin": f"{x0!r},{y0!r}",
+        "X-Fleetmap-Resolution": repr(resolution),
+    }
+
+
+# -- cells ------------------------------------------------------------------------------------------
+
+
+@router.get(
+    "/maps/{map_id}/cell",
+    tags=["queries"],
+    summary="Every layer's value in the cell at a point",
+    response_model=CellValue,
+    responses=error_responses(404, 422),
+)
+def get_cell(
+    map_id: MapId,
+    state: State,
+    x: Annotated[float, coordinate("map x, metres")],
+    y: Annotated[float, coordinate("map y, metres")],
+) -> CellValue:
+    """The cell containing `(x, y)`: `known`, `log_odds`, `probability` (0.5 if unknown), `state`
+    (`occupied` if p > occupied_thresh, `free` if p < free_thresh, else `unknown`), `hits`, `misses`,
+    `tsdf`, `tsdf_weight`. A layer the map does not keep is null."""
+    return cell_value(state.entry(map_id).gmap, x, y)
+
+
+@router.post(
+    "/maps/{map_id}/cells",
+    tags=["queries"],
+    summary="Every layer's value at many points",
+    response_model=CellsResponse,
+    responses=error_responses(404, 413, 422),
+)
+def post_cells(map_id: MapId, state: State, body: CellsRequest) -> Response:
+    """The fields of GET /maps/{map_id}/cell, each an array with one entry per point, in the order
+    given: `{"count", "i": [...], "j": [...], "known": [...], "probability": [...], ...}`. An unknown
+    cell has `known` false and `probability` 0.5. At most 100000 points per request."""
+    limit = state.settings.max_points
+    if len(body.points) > limit:
+        raise ApiError(413, f"{len(body.points)} points is more than the limit of {limit} per request")
+    gmap = state.entry(map_id).gmap
+    points = np.array(body.points, dtype=np.float64).reshape(-1, 2)
+    return _json(cells_response(gmap, points))
+
+
+# -- regions ----------------------------------------------------------------------------------------
+
+_REGION_CONTENT = {
+    "application/json": {"schema": {"$ref": "#/components/schemas/RegionJson"}},
+    "application/octet-stream": {
+        "schema": {"type": "string", "format": "binary"},
+        "description": "format=npy: a NumPy .npy array, shape (ny, nx)",
+    },
+    "image/png": {"schema": {"type": "string", "format": "binary"}},
+}
+
+
+@router.get(
+    "/maps/{map_id}/region",
+    tags=["queries"],
+    summary="A dense window of one layer (npy, json or png)",
+    response_class=Response,
+    responses={
+        200: {"content": _REGION_CONTENT, "description": "The window; see the headers"},
+        **error_responses(404, 409, 413, 422),
+    },
+)
+def get_region(
+    map_id: MapId,
+    state: State,
+    xmin: OptCoordinate = None,
+    ymin: OptCoordinate = None,
+    xmax: OptCoordinate = None,
+    ymax: OptCoordinate = None,
+    layer: Annotated[RegionLayer, Query(description="the layer to read")] = "probability",
+    format: Annotated[Literal["npy", "json", "png"], Query(description="answer format")] = "npy",
+) -> Response:
+    """The cells with index in `[floor(xmin/res), floor(xmax/res))` x `[floor(ymin/res),
+    floor(ymax/res))` (no bounds: the observed extent), as:
+
+    - `npy`: a NumPy array of shape (ny, nx), row 0 = the LOWEST y; float32 with NaN for unknown
+      (`log_odds`, `probability`, `tsdf`; `tsdf_weight` 0), uint32 counts (`hits`, `misses`, 0 if
+      unknown), uint8 codes for `state` (0 unknown, 1 free, 2 occupied);
+    - `json`: `RegionJson`, the same values with null for NaN (at most 1048576 cells);
+    - `png`: a grayscale + alpha image, TOP row = highest y, unknown transparent; darker = more
+      occupied (`probability`, `log_odds`: 255 (1 - p); `state`: 0 occupied, 254 free), more hits
+      (`hits`, `misses`, `tsdf_weight`: scaled to the window's maximum), or more negative distance
+      (`tsdf`: 127.5 (1 + tsdf / truncation)).
+
+    Headers: `X-Fleetmap-Window: i0,j0,i1,j1`, `X-Fleetmap-Origin: x,y` (lower-left corner, metres),
+    `X-Fleetmap-Resolution`. 422 if the map does not keep the layer; 413 past 16777216 cells."""
+    entry = state.entry(map_id)
+    gmap = entry.gmap
+    limit = state.settings.max_json_cells if format == "json" else state.settings.max_region_cells
+    window = _window(gmap, (xmin, ymin, xmax, ymax), limit)
+    values = gmap.region(layer, window.i0, window.j0, window.i1, window.j1)
+    headers = _window_headers(window, gmap.resolution)
+    if format == "npy":
+        return Response(
+            npy_bytes(values),
+            media_type="application/octet-stream",
+            headers={**headers, "Content-Disposition": f'attachment; filename="{map_id}-{layer}.npy"'},
+        )
+    if format == "png":
+        pixels = region_pixels(gmap, layer, values)
+        return Response(png_bytes(pixels), media_type="image/png", headers=headers)
+    model = region_json(layer, [window.i0, window.j0, window.i1, window.j1], gmap.resolution, values)
+    return Response(model.model_dump_json(), media_type="application/json", headers=headers)
+
+
+def region_pixels(gmap: GridMap, layer: str, values: np.ndarray) -> np.ndarray:
+    """Gray + alpha pixels (h, w, 2) of a region (row 0 = lowest y in, top row = highest y out)."""
+    gray = np.zeros(values.shape, dtype=np.float64)
+    if layer in ("probability", "log_odds"):
+        known = ~np.isnan(values)
+        p = values if layer == "probability" else 1.0 - 1.0 / (1.0 + np.exp(np.clip(values, -50, 50)))
+        gray = 255.0 * (1.0 - np.nan_to_num(p, nan=0.5))
+    elif layer == "state":
+        known = values != 0
+        gray = np.where(values == STATE_OCCUPIED, 0.0, np.where(values == STATE_FREE, 254.0, 205.0))
+    elif layer == "tsdf":
+        known = ~np.isnan(values)
+        t = gmap.config.tsdf.truncation
+        gray = 127.5 * (1.0 + np.clip(np.nan_to_num(values) / t, -1.0, 1.0))
+    else:  # hits, misses, tsdf_weight: counts, 0 = never seen
+        v = np.nan_to_num(values.astype(np.float64))
+        known = v > 0
+        top = float(v.max()) if v.size else 0.0
+        gray = 255.0 - 255.0 * v / top if top > 0 else np.full(v.shape, 255.0)
+    pixels = np.empty((*values.shape, 2), dtype=np.uint8)
+    pixels[..., 0] = np.round(gray).astype(np.uint8)
+    pixels[..., 1] = np.where(known, 255, 0).astype(np.uint8)
+    return pixels[::-1]
+
+
+# -- surface ----------------------------------------------------------------------------------------
+
+
+@router.get(
+    "/maps/{map_id}/surface",
+    tags=["queries"],
+    summary="TSDF zero crossings (surface points)",
+    response_model=Surface,
+    responses=error_responses(404, 409, 413, 422),
+)
+def get_surface(
+    map_id: MapId,
+    state: State,
+    xmin: OptCoordinate = None,
+    ymin: OptCoordinate = None,
+    xmax: OptCoordinate = None,
+    ymax: OptCoordinate = None,
+) -> Response:
+    """Points where the TSDF changes sign between two observed neighbouring cells of the window
+    (as for /region; no bounds: the observed extent), placed by linear interpolation between the
+    cell centres: sub-cell surface points in metres. 422 if the map keeps no TSDF layer."""
+    gmap = state.entry(map_id).gmap
+    if not gmap.config.has("tsdf"):
+        raise ApiError(422, "this map keeps no 'tsdf' layer: no surface to extract")
+    window = _window(gmap, (xmin, ymin, xmax, ymax), state.settings.max_region_cells)
+    points = gmap.surface(window.i0, window.j0, window.i1, window.j1)
+    return _json(surface([window.i0, window.j0, window.i1, window.j1], points))
+
+
+# -- export -----------------------------------------------------------------------------------------
+
+
+@router.get(
+    "/maps/{map_id}/export",
+    tags=["export"],
+    summary="The map as nav2 map_server files (zip) or a PNG",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {
+                "application/zip": {"schema": {"type": "string", "format": "binary"}},
+                "image/png": {"schema": {"type": "string", "format": "binary"}},
+            },
+            "description": "The export, as an attachment",
+        },
+        **error_responses(404, 409, 413, 422),
+    },
+)
+def get_export(
+    map_id: MapId,
+    state: State,
+    format: Annotated[Literal["ros", "png"], Query(description="ros: zip of map.yaml + map.pgm")] = "ros",
+    margin: Annotated[int, Query(ge=0, le=1000, description="unknown cells added around the map")] = 2,
+) -> Response:
+    """The observed extent of the map, grown by `margin` cells, exactly as `fleetmap build` writes it:
+    `ros`: a zip of `map.yaml` + `map.pgm` (nav2 map_server, trinary: 0 occupied, 254 free, 205
+    unknown, by the map's thresholds; origin = lower-left corner); `png`: grayscale, 255 (1 - p),
+    unknown 128. 409 for a map with no observed cell yet, 422 for a map without an occupancy layer."""
+    gmap = state.entry(map_id).gmap
+    if not gmap.config.has("occupancy"):
+        raise ApiError(422, "this map keeps no 'occupancy' layer: nothing to export as an occupancy map")
+    window = known_window(gmap, margin)
+    if window is None:
+        raise ApiError(409, "the map has no observed cell yet: nothing to export")
+    ny, nx = window.shape
+    if nx * ny > state.settings.max_region_cells:
+        limit = state.settings.max_region_cells
+        raise ApiError(
+            413,
+            f"the map spans {nx} x {ny} cells, more than the export limit of {limit}; "
+            "read it by /region windows instead",
+        )
+    if format == "ros":
+        return Response(
+            nav2_zip(gmap, window),
+            media_type="application/zip",
+            headers={"Content-Disposition": f'attachment; filename="{map_id}.zip"'},
+        )
+    return Response(
+        map_png(gmap, window),
+        media_type="image/png",
+        headers={"Content-Disposition": f'attachment; filename="{map_id}.png"'},
+    )

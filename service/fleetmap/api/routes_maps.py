@@ -1,0 +1,187 @@
+"""Service routes (health, metrics), map lifecycle, and scans over HTTP."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Annotated
+
+from fastapi import APIRouter, Body, Request, Response
+
+from fleetmap import codec
+from fleetmap.api.errors import ApiError, error_responses
+from fleetmap.api.state import MapId, RobotId, State
+from fleetmap.api_models import Health, MapInfo, MapList, ScanResult, map_info, map_summary, tile_windows
+from fleetmap.config import MapConfig
+from fleetmap.metrics import CONTENT_TYPE
+from fleetmap.registry import IngestRejected
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
+
+router = APIRouter()
+
+
+@router.get("/healthz", tags=["service"], summary="Liveness and a few numbers", response_model=Health)
+def healthz(state: State) -> Health:
+    """Answers 200 while the service runs, with the number of maps, robots online, the ingest queue
+    depth and, when the service runs a Zenoh session, its status."""
+    registry = state.registry
+    maps = registry.list()
+    online = sum(1 for _, _, robot in registry.iter_robots() if robot.online)
+    zenoh = state.settings.zenoh_status() if state.settings.zenoh_status else None
+    return Health(maps=len(maps), robots_online=online, queue_depth=registry.queue.depth(), zenoh=zenoh)
+
+
+@router.get(
+    "/metrics",
+    tags=["service"],
+    summary="Prometheus metrics",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"text/plain": {"schema": {"type": "string"}}},
+            "description": "Prometheus text exposition format",
+        }
+    },
+)
+def metrics(state: State) -> Response:
+    """Counters per map and robot (`fleetmap_scans_integrated_total`, `fleetmap_scans_rejected_total`,
+    `fleetmap_scans_lost_total`, `fleetmap_scans_duplicate_total`, `fleetmap_scans_dropped_total`,
+    labels `map`, `robot`), `fleetmap_robot_online`, `fleetmap_queue_depth`, `fleetmap_maps`,
+    `fleetmap_map_tiles`, `fleetmap_map_memory_bytes`, and the histograms
+    `fleetmap_integration_seconds` (plan + apply of one scan), `fleetmap_ingest_latency_seconds`
+    (scan queued to integrated), `fleetmap_tile_render_seconds` (label `layer`; renders only) and the
+    tile cache's `fleetmap_tile_cache_hits_total`, `fleetmap_tile_renders_total`."""
+    return Response(state.metrics.render(), media_type=CONTENT_TYPE)
+
+
+# -- maps -------------------------------------------------------------------------------------------
+
+
+@router.get("/maps", tags=["maps"], summary="List maps", response_model=MapList)
+def list_maps(state: State) -> MapList:
+    """Every map with its resolution, layers and counters (no cell statistics: see GET /maps/{map_id})."""
+    registry = state.registry
+    return MapList(maps=[map_summary(e, registry.lock) for e in sorted(registry.list(), key=lambda e: e.id)])
+
+
+@router.put(
+    "/maps/{map_id}",
+    tags=["maps"],
+    summary="Create a map",
+    response_model=MapInfo,
+    responses={201: {"model": MapInfo, "description": "Created"}, **error_responses(409, 422)},
+)
+def put_map(
+    map_id: MapId,
+    state: State,
+    response: Response,
+    config: Annotated[
+        MapConfig | None,
+        Body(
+            description="The map's configuration; every field is optional. No body: the server's "
+            "default configuration."
+        ),
+    ] = None,
+) -> MapInfo:
+    """Creates the map (201). If it exists with the same configuration, nothing changes (200); with a
+    different one, 409: delete it first. Configurations compare after defaults and presets are
+    resolved, so `{}` equals the defaults written out."""
+    entry, created = state.registry.create(map_id, config)
+    response.status_code = 201 if created else 200
+    return map_info(entry, state.registry.lock)
+
+
+@router.get(
+    "/maps/{map_id}",
+    tags=["maps"],
+    summary="A map's configuration and statistics",
+    response_model=MapInfo,
+    responses=error_responses(404, 422),
+)
+def get_map(map_id: MapId, state: State) -> MapInfo:
+    """`{"id", "config", "resolution", "tile_size", "stats": {"scans_integrated", "scans_rejected",
+    "robots": {robot_id: {...}}, "bounds", "tiles", "memory_bytes", "version"}}`. `bounds` is
+    `[xmin, ymin, xmax, ymax]` in metres of the observed cells, or null for an empty map."""
+    return map_info(state.entry(map_id), state.registry.lock)
+
+
+@router.delete(
+    "/maps/{map_id}",
+    tags=["maps"],
+    summary="Delete a map",
+    status_code=204,
+    response_class=Response,
+    responses=error_responses(404, 422),
+)
+def delete_map(map_id: MapId, state: State) -> Response:
+    """Removes the map, its robots and its queued scans. Event streams of the map end."""
+    state.registry.delete(map_id)
+    state.tiles.drop_map(map_id)  # its tiles can never be served again (new maps get a new generation)
+    return Response(status_code=204)
+
+
+# -- scans ------------------------------------------------------------------------------------------
+
+_SCAN_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": "One scan: the JSON `ScanMessage` (Content-Type application/json), or its binary "
+        f"encoding (Content-Type {BINARY_ENCODING}, see docs/protocol.md).",
+        "content": {
+            JSON_ENCODING: {"schema": {"$ref": "#/components/schemas/ScanMessage"}},
+            BINARY_ENCODING: {"schema": {"type": "string", "format": "binary"}},
+        },
+    }
+}
+
+
+@router.post(
+    "/maps/{map_id}/scans",
+    tags=["ingest"],
+    summary="Integrate one scan",
+    response_model=ScanResult,
+    openapi_extra=_SCAN_BODY,
+    responses=error_responses(404, 413, 422, 503),
+)
+async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: State) -> ScanResult:
+    """The scan a robot would publish over Zenoh, for clients without Zenoh. Answers once the scan is
+    integrated (a tile or cell read after the answer includes it), with the cell updates and the
+    changed storage tiles; `{"status": "duplicate"}` (200) when `seq` is not above the robot's last
+    (seq 0 restarts a robot's sequence). Scans of one robot are integrated in seq order.
+
+    Errors: 404 unknown map when the server does not create maps on first use; 422 an invalid scan
+    (counted on the robot as rejected, with the reason as its `last_error`); 503 the robot's ingest
+    queue is full, or the integration did not finish within the server's timeout (the scan is still
+    integrated)."""
+    registry = state.registry
+    body = await request.body()
+    try:
+        wire = codec.decode(body, request.headers.get("content-type", ""))
+    except codec.DecodeError as exc:
+        registry.reject(map_id, robot_id, str(exc))
+        raise ApiError(422, str(exc)) from None
+    try:
+        future = registry.submit(map_id, robot_id, wire, wait=True)
+    except IngestRejected as exc:
+        if exc.status == 200:
+            return ScanResult(seq=wire.seq, status="duplicate", detail=exc.reason)
+        raise ApiError(exc.status, exc.reason) from None
+    assert future is not None  # wait=True always returns one
+    tile_size = registry.get(map_id).config.tile_size
+    timeout = state.settings.scan_timeout
+    try:
+        # shield: a timeout or a client that goes away must not cancel the registry's Future (the
+        # worker still completes it).
+        result = await asyncio.wait_for(asyncio.shield(asyncio.wrap_future(future)), timeout)
+    except TimeoutError:
+        raise ApiError(
+            503, f"the scan was queued but not integrated within {timeout:g} s; it will be integrated"
+        ) from None
+    except IngestRejected as exc:
+        raise ApiError(exc.status, exc.reason) from None
+    return ScanResult(
+        seq=wire.seq,
+        status="integrated",
+        cell_updates=result.cell_updates,
+        tsdf_updates=result.tsdf_updates,
+        changed_tiles=tile_windows(result.changed_tiles, tile_size),
+    )

@@ -1,0 +1,84 @@
+"""PNG map tiles for Leaflet, rendered and cached by `fleetmap.tile_render`, with ETags."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query, Response
+from fastapi import Path as PathParam
+
+from fleetmap import tile_render
+from fleetmap.api.errors import error_responses
+from fleetmap.api.state import MapId, RegionLayer, State
+from fleetmap.tile_render import MAX_ZOOM, MIN_ZOOM, check_layer, etag_for, tile_version
+
+router = APIRouter()
+
+
+def _convention() -> str:
+    """The tile convention, quoted from tile_render's docstring (its one definition)."""
+    doc = tile_render.__doc__ or ""
+    start, end = doc.find("Tile convention"), doc.find("Versions:")
+    section = doc[start:end] if start >= 0 and end > start else doc
+    return section.strip()
+
+
+TILE_DESCRIPTION = f"""\
+A 256 x 256 RGBA PNG of one layer. Unexplored space is transparent. `ETag` changes whenever a cell
+under the tile changes (and when the map is re-created); send it back as `If-None-Match` to get
+`304 Not Modified` while the tile is unchanged. `Cache-Control: no-cache`: clients revalidate, so a
+change is visible as soon as its scan is integrated. Leaflet:
+`L.tileLayer('/maps/{{map_id}}/tiles/{{z}}/{{x}}/{{y}}.png?layer=probability', {{minZoom: -8, maxZoom: 4,
+maxNativeZoom: 4, minNativeZoom: -8}})` on a map with `crs: L.CRS.Simple`.
+
+From fleetmap.tile_render:
+
+{_convention()}
+
+Errors: 422 for a zoom outside {MIN_ZOOM}..{MAX_ZOOM}, a tile beyond the cell range, or an unknown
+layer or one the map does not keep; 404 for an unknown map.
+"""
+
+
+def etag_matches(if_none_match: str, etag: str) -> bool:
+    """RFC 9110 If-None-Match: a list of (possibly weak) entity tags, or `*`."""
+    for candidate in if_none_match.split(","):
+        candidate = candidate.strip()
+        if candidate == "*" or candidate.removeprefix("W/") == etag.removeprefix("W/"):
+            return True
+    return False
+
+
+@router.get(
+    "/maps/{map_id}/tiles/{z}/{x}/{y}.png",
+    tags=["tiles"],
+    summary="A map tile (Leaflet CRS.Simple; zoom 0 = one pixel per cell)",
+    description=TILE_DESCRIPTION,
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
+            "description": "The tile, with its ETag",
+        },
+        304: {"description": "Not modified: the tile's ETag matches If-None-Match"},
+        **error_responses(404, 422),
+    },
+)
+def get_tile(
+    map_id: MapId,
+    z: Annotated[int, PathParam(ge=MIN_ZOOM, le=MAX_ZOOM, description="zoom: 2**z pixels per cell")],
+    x: Annotated[int, PathParam(description="tile column: cells i in [x*S, (x+1)*S), S = 256 / 2**z")],
+    y: Annotated[int, PathParam(description="tile row: cells j in [-(y+1)*S, -y*S)")],
+    state: State,
+    layer: Annotated[RegionLayer, Query(description="the layer to draw")] = "probability",
+    if_none_match: Annotated[str | None, Header(description="an ETag from an earlier answer")] = None,
+) -> Response:
+    entry = state.entry(map_id)
+    if if_none_match:
+        # Answer a revalidation from the version alone: no render, no cache lookup.
+        check_layer(entry.gmap, layer)
+        etag = etag_for(entry.generation, layer, z, x, y, tile_version(entry.gmap, z, x, y))
+        if etag_matches(if_none_match, etag):
+            return Response(status_code=304, headers={"ETag": etag, "Cache-Control": "no-cache"})
+    png, etag = state.tiles.get_or_render(entry, layer, z, x, y)
+    return Response(png, media_type="image/png", headers={"ETag": etag, "Cache-Control": "no-cache"})

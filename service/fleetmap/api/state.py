@@ -1,0 +1,60 @@
+"""What every route needs: the app's `ApiState` (registry, settings, metrics, tile cache) and the
+shared parameter types (validated map and robot ids, coordinates, layers)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Literal
+
+from fastapi import Depends, Query, Request
+from fastapi import Path as PathParam
+
+from fleetmap.api_models import MAX_COORDINATE
+from fleetmap.metrics import ServiceMetrics
+from fleetmap.registry import MapEntry, MapRegistry
+from fleetmap.tile_render import TileCache
+from fleetmap.wire import ID_PATTERN
+
+if TYPE_CHECKING:
+    from fleetmap.api.app import ApiSettings
+
+
+@dataclass
+class ApiState:
+    registry: MapRegistry
+    settings: ApiSettings
+    metrics: ServiceMetrics
+    web_dir: Path
+    tiles: TileCache = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.tiles = TileCache(self.settings.tile_cache_size, on_render=self.metrics.observe_render)
+        self.metrics.watch_tile_cache(self.tiles)
+
+    def entry(self, map_id: str) -> MapEntry:
+        """The map, or MapNotFound (answered 404)."""
+        return self.registry.get(map_id)
+
+
+def get_state(request: Request) -> ApiState:
+    return request.app.state.fleetmap  # type: ignore[no-any-return]
+
+
+State = Annotated[ApiState, Depends(get_state)]
+
+MapId = Annotated[
+    str,
+    PathParam(pattern=ID_PATTERN, description="map id, [A-Za-z0-9_-]{1,64}", examples=["warehouse"]),
+]
+RobotId = Annotated[
+    str,
+    Query(pattern=ID_PATTERN, description="robot id, [A-Za-z0-9_-]{1,64}", examples=["robot1"]),
+]
+
+RegionLayer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
+
+
+def coordinate(description: str) -> object:
+    """A finite map coordinate query parameter, metres."""
+    return Query(ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False, description=description)

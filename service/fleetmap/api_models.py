@@ -1,0 +1,478 @@
+"""The REST API's request and response models, and their conversion from the service's types.
+
+One definition of every JSON body the API sends or takes: the FastAPI routes (`fleetmap.api`) use
+these as response models, so `openapi/openapi.json` describes them, and the Python client
+(`fleetmap_client.rest`) parses answers with them. This module imports no web framework, only
+pydantic and fleetmap's own modules, so a client can import it without FastAPI.
+
+Conversions from registry and engine objects (`MapEntry`, `RobotState`, `GridMap.cells`, ...)
+live here and nowhere else, so the JSON shape is decided in one place.
+
+Conventions:
+- Map points are metres in the map frame; cell `(i, j)` covers `[i*res, (i+1)*res) x [j*res, (j+1)*res)`.
+- A cell window `[i0, j0, i1, j1]` is the cells with `i0 <= i < i1` and `j0 <= j < j1`.
+- Values a map does not hold (a layer it does not keep) are `null`; an unknown cell's float values are
+  `null` too, except `probability`, which is 0.5 for an unknown cell.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import STATE_NAMES, GridMap
+from fleetmap.registry import MapEntry, RobotState
+from fleetmap.scan import Pose2D
+from fleetmap.tiles import TileKey
+
+#: Map coordinates accepted in queries, metres: far beyond any real map, and small enough that cell
+#: indices stay exact integers at any allowed resolution.
+MAX_COORDINATE = 1.0e7
+
+#: Points one `POST /maps/{map_id}/cells` request may ask for.
+MAX_POINTS = 100_000
+
+StateName = Literal["unknown", "free", "occupied"]
+#: A map coordinate in a JSON body: a finite number (strict: no strings or booleans), metres.
+Coordinate = Annotated[float, Field(strict=True, ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False)]
+# Fixed-length arrays are lists with a length, not tuples: OpenAPI 3.1's `prefixItems` (what tuples
+# become) is still unknown to many generators and validators; `items` + min/max length is not.
+#: `[i0, j0, i1, j1]`: the cells with i0 <= i < i1 and j0 <= j < j1.
+CellWindow = Annotated[list[int], Field(min_length=4, max_length=4)]
+#: `[x, y]`, metres.
+Point = Annotated[list[float], Field(min_length=2, max_length=2)]
+
+
+class _Model(BaseModel):
+    """Answers ignore unknown fields when parsed, so an older client reads a newer server's answer."""
+
+    model_config = ConfigDict(extra="ignore")
+
+
+# -- errors and health ------------------------------------------------------------------------------
+
+
+class ErrorItem(_Model):
+    """One problem found in a request."""
+
+    loc: list[str | int] = Field(description="where: e.g. ['query', 'x'] or ['body', 'points', 3, 0]")
+    msg: str
+    type: str
+
+
+class ErrorResponse(_Model):
+    """Every error answer: `detail` says what is wrong in words; `errors` lists each problem found
+    when a request failed validation."""
+
+    detail: str
+    errors: list[ErrorItem] | None = None
+
+
+class Health(_Model):
+    """`GET /healthz`."""
+
+    status: Literal["ok"] = "ok"
+    maps: int = Field(description="maps held")
+    robots_online: int = Field(description="robots with a live liveliness token, over all maps")
+    queue_depth: int = Field(description="scans waiting for integration")
+    zenoh: dict[str, Any] | None = Field(None, description="the Zenoh session's status, if any")
+
+
+# -- maps -------------------------------------------------------------------------------------------
+
+
+class Pose(_Model):
+    """A sensor pose in the map frame: metres, radians counter-clockwise from +x."""
+
+    x: float
+    y: float
+    theta: float
+
+    @classmethod
+    def of(cls, pose: Pose2D | None) -> Pose | None:
+        return None if pose is None else cls(x=pose.x, y=pose.y, theta=pose.theta)
+
+
+class RobotStats(_Model):
+    """What the service knows of one robot on one map."""
+
+    online: bool = Field(description="its liveliness token is alive")
+    last_pose: Pose | None = Field(description="pose of its last integrated scan")
+    last_seq: int | None = Field(description="highest sequence number accepted")
+    last_stamp: float | None = Field(None, description="stamp of its last integrated scan")
+    scans_integrated: int
+    scans_rejected: int = Field(description="scans refused as invalid (see last_error)")
+    last_error: str | None = Field(description="why the last rejected scan was refused")
+    lost: int = Field(description="sequence numbers skipped (messages lost before reaching the service)")
+    duplicates: int = Field(description="scans ignored because their seq was not new")
+    dropped: int = Field(0, description="scans refused because the ingest queue was full")
+
+
+class MapStats(_Model):
+    scans_integrated: int
+    scans_rejected: int
+    robots: dict[str, RobotStats]
+    bounds: Annotated[list[float], Field(min_length=4, max_length=4)] | None = Field(
+        description="[xmin, ymin, xmax, ymax] in metres of every observed cell; null for an empty map"
+    )
+    tiles: int = Field(description="storage tiles allocated")
+    memory_bytes: int = Field(description="bytes held by the map's tile pools")
+    version: int = Field(0, description="the map's change version (as in the events stream)")
+
+
+class MapInfo(_Model):
+    """`GET /maps/{map_id}`: a map's configuration and statistics."""
+
+    id: str
+    config: MapConfig
+    resolution: float = Field(description="metres per cell (= config.resolution)")
+    tile_size: int = Field(description="cells per storage tile side (= config.tile_size)")
+    stats: MapStats
+
+
+class MapSummary(_Model):
+    """One map in `GET /maps`."""
+
+    id: str
+    resolution: float
+    tile_size: int
+    layers: list[str]
+    scans_integrated: int
+    scans_rejected: int
+    robots: int = Field(description="robots seen on this map")
+    robots_online: int
+    tiles: int
+    memory_bytes: int
+
+
+class MapList(_Model):
+    maps: list[MapSummary]
+
+
+# -- scans ------------------------------------------------------------------------------------------
+
+
+class ScanResult(_Model):
+    """`POST /maps/{map_id}/scans`: what happened to the scan."""
+
+    seq: int
+    status: Literal["integrated", "duplicate"] = Field(
+        description="integrated: the map now includes it; duplicate: its seq was not new, nothing done"
+    )
+    cell_updates: int = Field(0, description="occupancy / count cell updates applied")
+    tsdf_updates: int = Field(0, description="TSDF cell updates applied")
+    changed_tiles: list[CellWindow] = Field(
+        default_factory=list, description="cell windows [i0, j0, i1, j1] of the storage tiles that changed"
+    )
+    detail: str | None = Field(None, description="for a duplicate: why")
+
+
+# -- cells ------------------------------------------------------------------------------------------
+
+
+class CellValue(_Model):
+    """`GET /maps/{map_id}/cell`: every layer's value in the cell containing (x, y)."""
+
+    x: float
+    y: float
+    i: int = Field(description="cell index floor(x / resolution)")
+    j: int = Field(description="cell index floor(y / resolution)")
+    known: bool = Field(description="the cell was observed")
+    log_odds: float | None = Field(description="null if unknown or the map keeps no occupancy layer")
+    probability: float | None = Field(description="occupancy probability; 0.5 if unknown")
+    state: StateName | None = Field(description="by the map's occupied_thresh / free_thresh")
+    hits: int | None = Field(description="null if the map keeps no counts layer")
+    misses: int | None
+    tsdf: float | None = Field(description="signed distance, metres; null if unknown or no TSDF layer")
+    tsdf_weight: float | None
+
+
+class CellsRequest(BaseModel):
+    """`POST /maps/{map_id}/cells`."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    points: list[Annotated[list[Coordinate], Field(min_length=2, max_length=2)]] = Field(
+        max_length=MAX_POINTS, description=f"map points [x, y] in metres, at most {MAX_POINTS}"
+    )
+
+
+class CellsResponse(_Model):
+    """The same fields as `CellValue`, each an array with one entry per requested point, in order.
+    A field is null as a whole when the map does not keep its layer."""
+
+    count: int
+    i: list[int]
+    j: list[int]
+    known: list[bool]
+    log_odds: list[float | None] | None
+    probability: list[float] | None
+    state: list[StateName] | None
+    hits: list[int] | None
+    misses: list[int] | None
+    tsdf: list[float | None] | None
+    tsdf_weight: list[float] | None
+
+
+# -- regions, surfaces ------------------------------------------------------------------------------
+
+
+class RegionJson(_Model):
+    """`GET /maps/{map_id}/region?format=json`: a dense window of one layer."""
+
+    layer: str
+    window: CellWindow = Field(description="the cells [i0, j0, i1, j1]")
+    resolution: float
+    origin: Point = Field(description="map point of the window's lower-left corner")
+    shape: Annotated[list[int], Field(min_length=2, max_length=2)] = Field(description="[ny, nx]")
+    values: list[list[float | None]] = Field(
+        description="values[row][col] is cell (i0 + col, j0 + row): row 0 is the LOWEST y. Unknown is "
+        "null for float layers, 0 for counts, 0 (unknown) for state (0 unknown, 1 free, 2 occupied)"
+    )
+
+
+class Surface(_Model):
+    """`GET /maps/{map_id}/surface`: TSDF zero crossings."""
+
+    window: CellWindow
+    count: int
+    points: list[Point] = Field(description="map points [x, y] in metres")
+
+
+# -- events -----------------------------------------------------------------------------------------
+
+
+class TilesEvent(_Model):
+    """`event: tiles` of `GET /maps/{map_id}/events`: `tiles` lists the cell windows of the storage
+    tiles changed since the previous event; or `reset` (tiles absent) tells the client to reload
+    everything. Sent without its null field: `{"version", "tiles"}` or `{"version", "reset": true}`."""
+
+    version: int
+    tiles: list[CellWindow] | None = None
+    reset: bool | None = None
+
+
+class RobotLive(_Model):
+    online: bool
+    pose: Annotated[list[float], Field(min_length=3, max_length=3)] | None = Field(
+        description="[x, y, theta] of its last integrated scan"
+    )
+    trail: list[Point] = Field(description="recent positions [x, y], oldest first")
+    scans_integrated: int
+
+
+class RobotsEvent(_Model):
+    """`event: robots` of `GET /maps/{map_id}/events`: every robot of the map."""
+
+    robots: dict[str, RobotLive]
+
+
+# -- conversions ------------------------------------------------------------------------------------
+
+
+def robot_stats(state: RobotState) -> RobotStats:
+    """Call with the registry's lock held (it guards RobotState)."""
+    return RobotStats(
+        online=state.online,
+        last_pose=Pose.of(state.last_pose),
+        last_seq=state.last_seq,
+        last_stamp=state.last_stamp,
+        scans_integrated=state.scans_integrated,
+        scans_rejected=state.scans_rejected,
+        last_error=state.last_error,
+        lost=state.lost,
+        duplicates=state.duplicates,
+        dropped=state.dropped,
+    )
+
+
+def map_info(entry: MapEntry, registry_lock: threading.RLock) -> MapInfo:
+    """A map's configuration and statistics. Robot counters are read under `registry_lock` (the
+    registry's, which guards them), the tiles under the map's own lock."""
+    gmap = entry.gmap
+    cells = gmap.known_bounds()
+    res = gmap.resolution
+    bounds = None if cells is None else [cells[0] * res, cells[1] * res, cells[2] * res, cells[3] * res]
+    with gmap.lock:
+        tiles = len(gmap.store)
+        memory = gmap.memory_bytes()
+    with registry_lock:
+        robots = {rid: robot_stats(state) for rid, state in sorted(entry.robots.items())}
+        integrated, rejected = entry.scans_integrated, entry.scans_rejected
+    return MapInfo(
+        id=entry.id,
+        config=entry.config,
+        resolution=res,
+        tile_size=entry.config.tile_size,
+        stats=MapStats(
+            scans_integrated=integrated,
+            scans_rejected=rejected,
+            robots=robots,
+            bounds=bounds,
+            tiles=tiles,
+            memory_bytes=memory,
+            version=entry.changes.version,
+        ),
+    )
+
+
+def map_summary(entry: MapEntry, registry_lock: threading.RLock) -> MapSummary:
+    """A map's line in `GET /maps` (cheap: no scan over the cells)."""
+    with entry.gmap.lock:
+        tiles = len(entry.gmap.store)
+        memory = entry.gmap.memory_bytes()
+    with registry_lock:
+        robots = len(entry.robots)
+        online = sum(1 for state in entry.robots.values() if state.online)
+        integrated, rejected = entry.scans_integrated, entry.scans_rejected
+    return MapSummary(
+        id=entry.id,
+        resolution=entry.config.resolution,
+        tile_size=entry.config.tile_size,
+        layers=list(entry.config.layers),
+        scans_integrated=integrated,
+        scans_rejected=rejected,
+        robots=robots,
+        robots_online=online,
+        tiles=tiles,
+        memory_bytes=memory,
+    )
+
+
+def tile_windows(keys: list[TileKey] | frozenset[TileKey], tile_size: int) -> list[CellWindow]:
+    """Storage tile keys as cell windows, sorted."""
+    t = tile_size
+    return [[ti * t, tj * t, (ti + 1) * t, (tj + 1) * t] for ti, tj in sorted(keys)]
+
+
+def _floats(values: np.ndarray) -> list[float | None]:
+    """A float array as a list, NaN as None (JSON has no NaN)."""
+    return [None if v != v else v for v in values.tolist()]  # v != v: NaN
+
+
+def _states(codes: np.ndarray) -> list[StateName]:
+    names: list[StateName] = [STATE_NAMES[k] for k in sorted(STATE_NAMES)]  # type: ignore[misc]
+    return [names[c] for c in codes.tolist()]
+
+
+def cells_response(gmap: GridMap, points: np.ndarray) -> CellsResponse:
+    """Every kept layer at each map point (rows of (x, y))."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    values = gmap.cells(pts)
+    res = gmap.resolution
+    ci = np.floor(pts[:, 0] / res).astype(np.int64)
+    cj = np.floor(pts[:, 1] / res).astype(np.int64)
+    has_occ, has_counts, has_tsdf = "log_odds" in values, "hits" in values, "tsdf" in values
+    return CellsResponse(
+        count=len(pts),
+        i=ci.tolist(),
+        j=cj.tolist(),
+        known=values["known"].tolist(),
+        log_odds=_floats(values["log_odds"]) if has_occ else None,
+        probability=values["probability"].tolist() if has_occ else None,
+        state=_states(values["state"]) if has_occ else None,
+        hits=values["hits"].tolist() if has_counts else None,
+        misses=values["misses"].tolist() if has_counts else None,
+        tsdf=_floats(values["tsdf"]) if has_tsdf else None,
+        tsdf_weight=values["tsdf_weight"].tolist() if has_tsdf else None,
+    )
+
+
+def cell_value(gmap: GridMap, x: float, y: float) -> CellValue:
+    """Every kept layer in the cell containing (x, y)."""
+    many = cells_response(gmap, np.array([[x, y]], dtype=np.float64))
+
+    def first(values: list[Any] | None) -> Any:
+        return None if values is None else values[0]
+
+    return CellValue(
+        x=x,
+        y=y,
+        i=many.i[0],
+        j=many.j[0],
+        known=many.known[0],
+        log_odds=first(many.log_odds),
+        probability=first(many.probability),
+        state=first(many.state),
+        hits=first(many.hits),
+        misses=first(many.misses),
+        tsdf=first(many.tsdf),
+        tsdf_weight=first(many.tsdf_weight),
+    )
+
+
+def region_json(layer: str, window: CellWindow, resolution: float, values: np.ndarray) -> RegionJson:
+    """A dense window (`GridMap.region`'s array, row 0 = lowest y) as JSON."""
+    i0, j0, _, _ = window
+    if values.dtype.kind == "f":
+        rows: list[list[float | None]] = [_floats(row) for row in values]
+    else:
+        rows = values.tolist()
+    return RegionJson(
+        layer=layer,
+        window=window,
+        resolution=resolution,
+        origin=[i0 * resolution, j0 * resolution],
+        shape=[int(values.shape[0]), int(values.shape[1])],
+        values=rows,
+    )
+
+
+def surface(window: CellWindow, points: np.ndarray) -> Surface:
+    pairs = [[float(x), float(y)] for x, y in points.tolist()]
+    return Surface(window=window, count=len(pairs), points=pairs)
+
+
+def robots_event(entry: MapEntry, registry_lock: threading.RLock, trail_points: int = 100) -> RobotsEvent:
+    """Every robot of a map for a live viewer: at most `trail_points` recent positions each, rounded
+    to the millimetre (enough to draw; keeps the stream small)."""
+    with registry_lock:
+        robots = {}
+        for rid, state in sorted(entry.robots.items()):
+            trail = list(state.trail)[-trail_points:] if trail_points > 0 else []
+            pose = state.last_pose
+            robots[rid] = RobotLive(
+                online=state.online,
+                pose=None if pose is None else [pose.x, pose.y, pose.theta],
+                trail=[[round(x, 3), round(y, 3)] for x, y, _ in trail],
+                scans_integrated=state.scans_integrated,
+            )
+    return RobotsEvent(robots=robots)
+
+
+__all__ = [
+    "MAX_COORDINATE",
+    "MAX_POINTS",
+    "CellValue",
+    "CellWindow",
+    "CellsRequest",
+    "CellsResponse",
+    "ErrorItem",
+    "ErrorResponse",
+    "Health",
+    "MapInfo",
+    "MapList",
+    "MapStats",
+    "MapSummary",
+    "Pose",
+    "RegionJson",
+    "RobotLive",
+    "RobotStats",
+    "RobotsEvent",
+    "ScanResult",
+    "Surface",
+    "TilesEvent",
+    "cell_value",
+    "cells_response",
+    "map_info",
+    "map_summary",
+    "region_json",
+    "robot_stats",
+    "robots_event",
+    "surface",
+    "tile_windows",
+]

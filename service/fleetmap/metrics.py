@@ -1,0 +1,198 @@
+"""Prometheus metrics of the service.
+
+Two sources, so nothing is counted twice:
+
+- Counters the registry already keeps (scans integrated / rejected / lost / duplicates / dropped per
+  map and robot, robots online, queue depth, tiles and memory per map) are read from the registry
+  when Prometheus scrapes, by `RegistryCollector`. The registry stays the one truth.
+- Latencies only exist as events, so they are observed as they happen: `IntegrationMetrics` is the
+  registry's `on_integrated` hook (integration time, and enqueue-to-integrated time from
+  `job.enqueued_at`); the tile cache reports render times to `ServiceMetrics.observe_render`.
+
+Each app gets its own `CollectorRegistry` (`ServiceMetrics`), so several services (or tests) in one
+process never share or clash over metric names.
+
+Wiring (server.py):
+
+    metrics = IntegrationMetrics()
+    registry = MapRegistry(..., on_integrated=metrics.on_integrated)
+    app = create_app(registry, settings=ApiSettings(...))   # finds `metrics` through the hook
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator
+from typing import TYPE_CHECKING
+
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+if TYPE_CHECKING:
+    from fleetmap.grid_map import IntegrationResult
+    from fleetmap.registry import Job, MapEntry, MapRegistry
+    from fleetmap.tile_render import TileCache
+
+#: Prometheus' text exposition format.
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+
+#: Latency buckets in seconds: sub-millisecond integrations up to multi-second backlogs.
+LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
+
+
+class IntegrationMetrics:
+    """Latencies observed by the integration workers. Pass `on_integrated` to `MapRegistry`.
+
+    Its metrics are created unregistered; each `ServiceMetrics` registers them in its own registry.
+    `on_integrated` runs on worker threads; prometheus_client's metrics are thread-safe.
+    """
+
+    def __init__(self) -> None:
+        self.integration_seconds = Histogram(
+            "fleetmap_integration_seconds",
+            "Time to plan and apply one scan to its map",
+            buckets=LATENCY_BUCKETS,
+            registry=None,
+        )
+        self.ingest_latency_seconds = Histogram(
+            "fleetmap_ingest_latency_seconds",
+            "Time from a scan's arrival in the service (enqueued) to its integration in the map",
+            buckets=LATENCY_BUCKETS,
+            registry=None,
+        )
+        self.cell_updates = Counter(
+            "fleetmap_cell_updates",
+            "Cell updates applied by integrated scans (occupancy/counts and TSDF)",
+            registry=None,
+        )
+
+    def on_integrated(self, entry: MapEntry, job: Job, result: IntegrationResult, seconds: float) -> None:
+        """The registry's hook, called after each integration. Never raises into the worker."""
+        self.integration_seconds.observe(seconds)
+        # job.enqueued_at is time.monotonic() when the scan was queued: the service-side latency.
+        self.ingest_latency_seconds.observe(max(0.0, time.monotonic() - job.enqueued_at))
+        self.cell_updates.inc(result.cell_updates + result.tsdf_updates)
+
+    def collectors(self) -> Iterable[Collector]:
+        return (self.integration_seconds, self.ingest_latency_seconds, self.cell_updates)
+
+
+class RegistryCollector(Collector):
+    """Reads the registry's counters at scrape time (no double bookkeeping)."""
+
+    def __init__(self, registry: MapRegistry) -> None:
+        self.registry = registry
+
+    def describe(self) -> list[Metric]:
+        # Only the names matter here (for clash detection when registering); values come in collect.
+        return list(self._families())
+
+    def collect(self) -> Iterator[Metric]:
+        families = self._families()
+        integrated, rejected, lost, duplicates, dropped, online, tiles, memory, maps, depth = families
+        entries = self.registry.list()
+        for entry in entries:
+            # Tiles and memory under the map's lock, counters under the registry's, never both at once.
+            with entry.gmap.lock:
+                n_tiles = len(entry.gmap.store)
+                n_bytes = entry.gmap.memory_bytes()
+            tiles.add_metric([entry.id], n_tiles)
+            memory.add_metric([entry.id], n_bytes)
+        with self.registry.lock:
+            for entry in entries:
+                for robot_id, state in sorted(entry.robots.items()):
+                    labels = [entry.id, robot_id]
+                    integrated.add_metric(labels, state.scans_integrated)
+                    rejected.add_metric(labels, state.scans_rejected)
+                    lost.add_metric(labels, state.lost)
+                    duplicates.add_metric(labels, state.duplicates)
+                    dropped.add_metric(labels, state.dropped)
+                    online.add_metric(labels, 1.0 if state.online else 0.0)
+        maps.add_metric([], len(entries))
+        depth.add_metric([], self.registry.queue.depth())
+        yield from families
+
+    @staticmethod
+    def _families() -> tuple[Metric, ...]:
+        robot = ["map", "robot"]
+        return (
+            CounterMetricFamily("fleetmap_scans_integrated", "Scans integrated into the map", labels=robot),
+            CounterMetricFamily(
+                "fleetmap_scans_rejected",
+                "Scans refused as invalid (undecodable or refused by the engine)",
+                labels=robot,
+            ),
+            CounterMetricFamily("fleetmap_scans_lost", "Gaps in the robot's sequence numbers", labels=robot),
+            CounterMetricFamily(
+                "fleetmap_scans_duplicate", "Scans ignored because their seq was not new", labels=robot
+            ),
+            CounterMetricFamily(
+                "fleetmap_scans_dropped", "Scans refused because the ingest queue was full", labels=robot
+            ),
+            GaugeMetricFamily(
+                "fleetmap_robot_online", "1 while the robot's liveliness token is alive", labels=robot
+            ),
+            GaugeMetricFamily("fleetmap_map_tiles", "Storage tiles allocated", labels=["map"]),
+            GaugeMetricFamily("fleetmap_map_memory_bytes", "Bytes in the map's tile pools", labels=["map"]),
+            GaugeMetricFamily("fleetmap_maps", "Maps held"),
+            GaugeMetricFamily("fleetmap_queue_depth", "Scans waiting for integration"),
+        )
+
+
+class TileCacheCollector(Collector):
+    """The tile cache's own counters (requests served from the cache, tiles rendered), read at scrape."""
+
+    def __init__(self, cache: TileCache) -> None:
+        self.cache = cache
+
+    def describe(self) -> list[Metric]:
+        return list(self._families())
+
+    def collect(self) -> Iterator[Metric]:
+        hits, renders, entries = self._families()
+        hits.add_metric([], self.cache.hits)
+        renders.add_metric([], self.cache.renders)
+        entries.add_metric([], len(self.cache))
+        yield from (hits, renders, entries)
+
+    @staticmethod
+    def _families() -> tuple[Metric, ...]:
+        return (
+            CounterMetricFamily("fleetmap_tile_cache_hits", "Tile requests served from the cache"),
+            CounterMetricFamily("fleetmap_tile_renders", "Tiles rendered (cache misses)"),
+            GaugeMetricFamily("fleetmap_tile_cache_entries", "Rendered tiles held in the cache"),
+        )
+
+
+class ServiceMetrics:
+    """One app's metrics: its own CollectorRegistry with the registry's counters, the integration
+    latencies, the tile cache's counters and the tile render latency (`observe_render` is the tile
+    cache's `on_render` hook)."""
+
+    def __init__(self, registry: MapRegistry, integration: IntegrationMetrics) -> None:
+        self.integration = integration
+        self.collector_registry = CollectorRegistry()
+        self.collector_registry.register(RegistryCollector(registry))
+        for collector in integration.collectors():
+            self.collector_registry.register(collector)
+        self.tile_render_seconds = Histogram(
+            "fleetmap_tile_render_seconds",
+            "Time to render one tile PNG (a cache miss; hits are not rendered)",
+            ["layer"],
+            buckets=LATENCY_BUCKETS,
+            registry=self.collector_registry,
+        )
+
+    def observe_render(self, layer: str, z: int, seconds: float) -> None:
+        self.tile_render_seconds.labels(layer).observe(seconds)
+
+    def watch_tile_cache(self, cache: TileCache) -> None:
+        self.collector_registry.register(TileCacheCollector(cache))
+
+    def render(self) -> bytes:
+        """The Prometheus text exposition of every metric."""
+        return generate_latest(self.collector_registry)
+
+
+__all__ = ["CONTENT_TYPE", "IntegrationMetrics", "RegistryCollector", "ServiceMetrics", "TileCacheCollector"]

@@ -1,0 +1,548 @@
+"""The REST API end to end: a real uvicorn server on 127.0.0.1 (see test_api_support), real HTTP.
+
+What the service answers is compared with an engine `GridMap` fed the same scans in the same order,
+cell by cell and field by field, so the API adds nothing and loses nothing.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import queue
+import threading
+import time
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+from prometheus_client.parser import text_string_to_metric_families
+from test_api_support import RunningApi, fan_scan, room_scans, running_api
+
+from fleetmap.api import ApiSettings
+from fleetmap.codec import decode, encode_binary, encode_json
+from fleetmap.config import MapConfig
+from fleetmap.export import PGM_FREE, PGM_OCCUPIED, PGM_UNKNOWN, state_to_pgm
+from fleetmap.grid_map import REGION_LAYERS, STATE_NAMES, GridMap
+from fleetmap.scan import Scan
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
+
+RES = 0.05
+CONFIG = {"resolution": RES, "tile_size": 64}
+
+
+@pytest.fixture(scope="module")
+def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningApi]:
+    web = tmp_path_factory.mktemp("web")
+    (web / "index.html").write_text("<!doctype html><title>viewer under test</title>")
+    (web / "app.js").write_text("console.log('app under test');")
+    # A short keepalive so event readers (below) see a line at least every 0.3 s and can stop promptly.
+    settings = ApiSettings(web_dir=web, zenoh_status=lambda: {"mode": "router", "test": True}, keepalive=0.3)
+    with running_api(settings) as running:
+        yield running
+
+
+def post_scan(
+    api: RunningApi, map_id: str, robot: str, scan: Scan, seq: int, binary: bool = False
+) -> httpx.Response:
+    body = encode_binary(scan, seq) if binary else encode_json(scan, seq)
+    return api.client.post(
+        f"/maps/{map_id}/scans",
+        params={"robot_id": robot},
+        content=body,
+        headers={"content-type": BINARY_ENCODING if binary else JSON_ENCODING},
+    )
+
+
+def same_float(a: float | None, b: float) -> bool:
+    """JSON null stands for NaN."""
+    return (a is None and math.isnan(b)) or (a is not None and a == b)
+
+
+# -- lifecycle ----------------------------------------------------------------------------------------
+
+
+def test_map_lifecycle(api: RunningApi) -> None:
+    c = api.client
+    r = c.put("/maps/life", json={"resolution": 0.1, "layers": ["occupancy"]})
+    assert r.status_code == 201, r.text
+    info = r.json()
+    assert info["id"] == "life" and info["resolution"] == 0.1 and info["config"]["layers"] == ["occupancy"]
+    stats = info["stats"]
+    assert (stats["scans_integrated"], stats["scans_rejected"], stats["robots"]) == (0, 0, {})
+    assert (stats["bounds"], stats["tiles"], stats["version"]) == (None, 0, 0) and stats["memory_bytes"] > 0
+    # Same configuration, written out differently (a preset named, defaults explicit): 200, unchanged.
+    r = c.put(
+        "/maps/life", json={"resolution": 0.1, "layers": ["occupancy"], "occupancy": {"preset": "octomap"}}
+    )
+    assert r.status_code == 200 and r.json()["config"] == info["config"]
+    r = c.put("/maps/life", json={"resolution": 0.2})
+    assert r.status_code == 409 and "different configuration" in r.json()["detail"]
+    assert c.get("/maps/life").json()["config"]["resolution"] == 0.1  # the conflict changed nothing
+
+    listed = {m["id"]: m for m in c.get("/maps").json()["maps"]}
+    assert listed["life"]["layers"] == ["occupancy"] and listed["life"]["scans_integrated"] == 0
+
+    r = c.delete("/maps/life")
+    assert r.status_code == 204 and r.content == b""
+    for method, path in [
+        ("GET", "/maps/life"),
+        ("DELETE", "/maps/life"),
+        ("GET", "/maps/life/cell?x=0&y=0"),
+        ("GET", "/maps/life/region?format=json"),
+        ("GET", "/maps/life/tiles/0/0/0.png"),
+        ("GET", "/maps/life/export"),
+        ("GET", "/maps/life/events"),
+        ("GET", "/maps/life/surface"),
+    ]:
+        r = c.request(method, path)
+        assert r.status_code == 404, (method, path, r.text)
+        assert r.json()["detail"] == "no map 'life'"
+    r = c.post("/maps/life/cells", json={"points": [[0, 0]]})
+    assert r.status_code == 404
+    assert "life" not in {m["id"] for m in c.get("/maps").json()["maps"]}
+
+    # No body: the server's default configuration.
+    r = c.put("/maps/defaults")
+    assert r.status_code == 201 and MapConfig.model_validate(r.json()["config"]) == MapConfig()
+
+
+def test_scan_creates_map_unless_auto_create_is_off(api: RunningApi) -> None:
+    scan = fan_scan(0, 0, 0, [1.0] * 31)
+    r = post_scan(api, "autocreated", "r1", scan, 0)
+    assert r.status_code == 200 and r.json()["status"] == "integrated"
+    assert api.client.get("/maps/autocreated").json()["stats"]["scans_integrated"] == 1
+
+    with running_api(auto_create=False) as strict:
+        r = post_scan(strict, "nomap", "r1", scan, 0)
+        assert r.status_code == 404 and "auto-create is off" in r.json()["detail"]
+        assert strict.client.get("/maps").json()["maps"] == []
+        assert strict.client.put("/maps/nomap", json={}).status_code == 201
+        r = post_scan(strict, "nomap", "r1", scan, 0)
+        assert r.status_code == 200 and r.json()["cell_updates"] > 0
+
+
+def test_healthz_and_static_files(api: RunningApi) -> None:
+    c = api.client
+    health = c.get("/healthz").json()
+    assert health["status"] == "ok" and health["zenoh"] == {"mode": "router", "test": True}
+    assert health["queue_depth"] == 0 and health["maps"] == len(c.get("/maps").json()["maps"])
+    r = c.get("/")
+    assert (
+        r.status_code == 200
+        and "viewer under test" in r.text
+        and r.headers["content-type"].startswith("text/html")
+    )
+    assert "app under test" in c.get("/static/app.js").text
+    r = c.get("/static/missing.js")
+    assert r.status_code == 404 and r.json()["detail"]
+    leaflet = c.get("/vendor/leaflet/leaflet.js")
+    assert leaflet.status_code == 200 and "Leaflet" in leaflet.text[:2000]
+    assert c.get("/vendor/leaflet/leaflet.css").status_code == 200
+    assert c.get("/vendor/leaflet/images/marker-icon.png").content[:4] == b"\x89PNG"
+
+
+# -- scans, cells and regions against the engine -------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def engine_map(api: RunningApi) -> GridMap:
+    """Map "eng" on the service and the same map built by the engine from the same payloads, in the
+    same order: two robots, JSON and binary encodings, scans with no-return beams."""
+    assert api.client.put("/maps/eng", json=CONFIG).status_code == 201
+    gmap = GridMap(MapConfig(**CONFIG))
+    scans = room_scans(10, seed=3, beams=360)
+    scans.append(fan_scan(0.5, 0.2, 0.3, [None, 2.0, 4.0, None, 1.5] * 20, fov=2 * math.pi * 0.99))
+    for k, scan in enumerate(scans):
+        robot, seq, binary = ("r1", k // 2, k % 4 == 0) if k % 2 == 0 else ("r2", k // 2, k % 3 == 0)
+        payload = encode_binary(scan, seq) if binary else encode_json(scan, seq)
+        r = post_scan(api, "eng", robot, scan, seq, binary)
+        assert r.status_code == 200, r.text
+        # The engine gets exactly what the service decoded (binary ranges are float32 on the wire).
+        expected = gmap.integrate(decode(payload, BINARY_ENCODING if binary else JSON_ENCODING).scan)
+        got = r.json()
+        assert got["status"] == "integrated" and got["seq"] == seq
+        assert got["cell_updates"] == expected.cell_updates and got["tsdf_updates"] == expected.tsdf_updates
+        t = gmap.store.tile_size
+        assert got["changed_tiles"] == [
+            [i * t, j * t, (i + 1) * t, (j + 1) * t] for i, j in sorted(expected.changed_tiles)
+        ]
+    return gmap
+
+
+def test_cells_match_engine_cell_by_cell(api: RunningApi, engine_map: GridMap) -> None:
+    i0, j0, i1, j1 = engine_map.known_bounds()  # type: ignore[misc]
+    info = api.client.get("/maps/eng").json()
+    assert info["stats"]["bounds"] == [i0 * RES, j0 * RES, i1 * RES, j1 * RES]
+    assert info["stats"]["scans_integrated"] == 11 and set(info["stats"]["robots"]) == {"r1", "r2"}
+    # Every cell of the observed window and a margin of unknown cells, at cell centres.
+    ii, jj = np.meshgrid(np.arange(i0 - 2, i1 + 2), np.arange(j0 - 2, j1 + 2))
+    points = np.stack([(ii.ravel() + 0.5) * RES, (jj.ravel() + 0.5) * RES], axis=1)
+    r = api.client.post("/maps/eng/cells", json={"points": points.tolist()})
+    assert r.status_code == 200
+    got = r.json()
+    want = engine_map.cells(points)
+    assert got["count"] == len(points) and got["i"] == ii.ravel().tolist() and got["j"] == jj.ravel().tolist()
+    assert got["known"] == want["known"].tolist()
+    assert 0 < sum(got["known"]) < len(points)  # both known and unknown cells are compared
+    for name in ("log_odds", "tsdf"):
+        assert all(same_float(a, b) for a, b in zip(got[name], want[name].tolist(), strict=True)), name
+    for name in ("probability", "hits", "misses", "tsdf_weight"):
+        assert got[name] == want[name].tolist(), name
+    assert got["state"] == [STATE_NAMES[s] for s in want["state"].tolist()]
+    unknown = [k for k, known in enumerate(got["known"]) if not known]
+    assert {got["probability"][k] for k in unknown} == {0.5} and {got["state"][k] for k in unknown} == {
+        "unknown"
+    }
+
+    # GET /cell agrees too, at arbitrary (not centred) points, negative ones, and far away.
+    rng = np.random.default_rng(1)
+    for x, y in [*rng.uniform(-3.3, 3.3, (25, 2)).tolist(), [2.999, -1.999], [-3.0, 2.0], [500.0, -500.0]]:
+        cell = api.client.get("/maps/eng/cell", params={"x": x, "y": y}).json()
+        one = engine_map.cells(np.array([[x, y]]))
+        assert (cell["x"], cell["y"]) == (x, y)
+        assert (cell["i"], cell["j"]) == (math.floor(x / RES), math.floor(y / RES))
+        assert cell["known"] == bool(one["known"][0])
+        assert same_float(cell["log_odds"], float(one["log_odds"][0]))
+        assert same_float(cell["tsdf"], float(one["tsdf"][0]))
+        assert cell["probability"] == float(one["probability"][0])
+        assert cell["state"] == STATE_NAMES[int(one["state"][0])]
+        assert (cell["hits"], cell["misses"]) == (int(one["hits"][0]), int(one["misses"][0]))
+        assert cell["tsdf_weight"] == float(one["tsdf_weight"][0])
+
+
+def test_region_npy_json_png_match_engine(api: RunningApi, engine_map: GridMap) -> None:
+    i0, j0, i1, j1 = engine_map.known_bounds()  # type: ignore[misc]
+    i0, j0, i1, j1 = i0 - 3, j0 - 2, i1 + 1, j1 + 4  # unknown margins, uneven
+    # Bounds at cell centres: floor(x / res) is then exactly the intended index.
+    bounds = {
+        "xmin": (i0 + 0.5) * RES,
+        "ymin": (j0 + 0.5) * RES,
+        "xmax": (i1 + 0.5) * RES,
+        "ymax": (j1 + 0.5) * RES,
+    }
+    for layer in REGION_LAYERS:
+        want = engine_map.region(layer, i0, j0, i1, j1)
+        r = api.client.get("/maps/eng/region", params={**bounds, "layer": layer, "format": "npy"})
+        assert r.status_code == 200 and r.headers["x-fleetmap-window"] == f"{i0},{j0},{i1},{j1}"
+        got = np.load(io.BytesIO(r.content), allow_pickle=False)
+        assert got.shape == (j1 - j0, i1 - i0) and got.dtype == want.dtype
+        assert np.array_equal(got, want, equal_nan=True), layer
+
+        r = api.client.get("/maps/eng/region", params={**bounds, "layer": layer, "format": "json"})
+        body = r.json()
+        assert body["window"] == [i0, j0, i1, j1] and body["shape"] == [j1 - j0, i1 - i0]
+        assert body["origin"] == [i0 * RES, j0 * RES] and body["layer"] == layer
+        flat = [v for row in body["values"] for v in row]
+        assert all(same_float(a, float(b)) for a, b in zip(flat, want.ravel().tolist(), strict=True)), layer
+
+        r = api.client.get("/maps/eng/region", params={**bounds, "layer": layer, "format": "png"})
+        assert r.headers["content-type"] == "image/png"
+        image = Image.open(io.BytesIO(r.content))
+        assert image.mode == "LA" and image.size == (i1 - i0, j1 - j0)
+        pixels = np.asarray(image)[::-1]  # back to row 0 = lowest y
+        known = ~np.isnan(want) if want.dtype.kind == "f" and layer != "tsdf_weight" else want > 0
+        assert np.array_equal(pixels[..., 1] == 255, known), layer
+        assert known.any() and (~known).any()
+        if layer == "probability":
+            assert np.array_equal(pixels[..., 0][known], np.round(255 * (1 - want[known])).astype(np.uint8))
+
+    # No bounds: the observed extent.
+    r = api.client.get("/maps/eng/region", params={"layer": "hits"})
+    b = engine_map.known_bounds()
+    assert r.headers["x-fleetmap-window"] == ",".join(map(str, b))
+    assert np.array_equal(np.load(io.BytesIO(r.content)), engine_map.region("hits", *b))  # type: ignore[misc]
+
+
+def test_surface(api: RunningApi, engine_map: GridMap) -> None:
+    got = api.client.get("/maps/eng/surface").json()
+    b = engine_map.known_bounds()
+    want = engine_map.surface(*b)  # type: ignore[misc]
+    assert got["window"] == list(b) and got["count"] == len(want) > 50  # type: ignore[arg-type]
+    assert np.array_equal(np.array(got["points"]), want)
+    # Zero crossings of the room lie near its walls (x = +-3 or y = +-2).
+    pts = want
+    near_wall = np.minimum(np.abs(np.abs(pts[:, 0]) - 3), np.abs(np.abs(pts[:, 1]) - 2))
+    assert np.median(near_wall) < 2 * RES
+
+
+def test_too_many_points_at_the_default_cap(api: RunningApi) -> None:
+    r = api.client.post("/maps/eng/cells", json={"points": [[0.0, 0.0]] * 100_001})
+    assert r.status_code in (413, 422) and "100000" in r.json()["detail"]
+
+
+# -- tiles --------------------------------------------------------------------------------------------
+
+
+def test_tiles_etag_304_and_visible_change(api: RunningApi) -> None:
+    c = api.client
+    c.put("/maps/tiles", json={"resolution": RES})
+    assert post_scan(api, "tiles", "r", fan_scan(1.0, 1.0, 0.0, [2.0] * 91), 0).status_code == 200
+    url = "/maps/tiles/tiles/0/0/-1.png"  # cells i, j in [0, 256): x, y in [0, 12.8) m
+    r = c.get(url)
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    assert r.headers["cache-control"] == "no-cache"
+    etag = r.headers["etag"]
+    image = np.asarray(Image.open(io.BytesIO(r.content)).convert("RGBA"))
+    assert image.shape == (256, 256, 4)
+    # The pixel of cell (i, j) is row 255 - j, column i; its grey is 255 (1 - p) of that cell.
+    for x, y in [(3.0 - 0.01, 1.0), (2.0, 1.0), (1.0, 1.0), (5.0, 5.0)]:
+        cell = c.get("/maps/tiles/cell", params={"x": x, "y": y}).json()
+        px = image[255 - cell["j"], cell["i"]]
+        if cell["known"]:
+            assert px[3] == 255 and px[0] == round(255 * (1 - cell["probability"]))
+        else:
+            assert px[3] == 0
+
+    r = c.get(url, headers={"If-None-Match": etag})
+    assert r.status_code == 304 and r.content == b"" and r.headers["etag"] == etag
+    assert c.get(url, headers={"If-None-Match": f'W/{etag}, "other"'}).status_code == 304
+    # An unexplored tile: 200, fully transparent.
+    far = c.get("/maps/tiles/tiles/0/100/100.png")
+    assert (
+        far.status_code == 200
+        and not np.asarray(Image.open(io.BytesIO(far.content)).convert("RGBA"))[..., 3].any()
+    )
+
+    # A scan elsewhere (another storage tile) leaves this tile's ETag alone...
+    assert post_scan(api, "tiles", "r", fan_scan(-20.0, -20.0, 0.0, [1.0] * 31), 1).status_code == 200
+    assert c.get(url, headers={"If-None-Match": etag}).status_code == 304
+    # ... a scan under it changes it, visible to the very first request after the POST returns
+    # (the POST answers after integration, so no wait at all is needed, far less than 100 ms).
+    assert post_scan(api, "tiles", "r", fan_scan(4.0, 2.0, 1.0, [1.5] * 91), 2).status_code == 200
+    r = c.get(url, headers={"If-None-Match": etag})
+    assert r.status_code == 200 and r.headers["etag"] != etag
+    cell = c.get("/maps/tiles/cell", params={"x": 4.0, "y": 2.0}).json()
+    assert (
+        cell["known"]
+        and np.asarray(Image.open(io.BytesIO(r.content)).convert("RGBA"))[255 - cell["j"], cell["i"], 3]
+        == 255
+    )
+
+    # Other zooms and layers.
+    zoomed_out = c.get("/maps/tiles/tiles/-3/0/-1.png", params={"layer": "hits"})
+    assert zoomed_out.status_code == 200 and zoomed_out.headers["etag"] != r.headers["etag"]
+    assert c.get("/maps/tiles/tiles/4/4/-3.png", params={"layer": "state"}).status_code == 200
+    r = c.get("/maps/tiles/tiles/0/0/-1.png", params={"layer": "volume"})
+    assert r.status_code == 422 and "volume" in r.json()["detail"]
+    # Re-creating the map gives new ETags even where the tile versions coincide.
+    c.delete("/maps/tiles")
+    c.put("/maps/tiles", json={"resolution": RES})
+    assert post_scan(api, "tiles", "r", fan_scan(1.0, 1.0, 0.0, [2.0] * 91), 0).status_code == 200
+    assert c.get(url).headers["etag"] != etag
+
+
+# -- export -------------------------------------------------------------------------------------------
+
+
+def test_export_ros_zip_and_png(api: RunningApi, engine_map: GridMap) -> None:
+    r = api.client.get("/maps/eng/export", params={"format": "ros"})
+    assert r.status_code == 200 and r.headers["content-type"] == "application/zip"
+    assert 'filename="eng.zip"' in r.headers["content-disposition"]
+    with zipfile.ZipFile(io.BytesIO(r.content)) as zf:
+        assert sorted(zf.namelist()) == ["map.pgm", "map.yaml"]
+        meta = yaml.safe_load(zf.read("map.yaml"))
+        pgm = zf.read("map.pgm")
+    i0, j0, i1, j1 = engine_map.known_bounds()  # type: ignore[misc]
+    i0, j0, i1, j1 = i0 - 2, j0 - 2, i1 + 2, j1 + 2  # the default margin, as `fleetmap build`
+    assert meta["image"] == "map.pgm" and meta["mode"] == "trinary" and meta["resolution"] == RES
+    assert meta["origin"] == [i0 * RES, j0 * RES, 0.0] and meta["negate"] == 0
+    assert (meta["occupied_thresh"], meta["free_thresh"]) == (0.65, 0.196)
+    magic, size, maxval, data = pgm.split(b"\n", 3)
+    width, height = map(int, size.split())
+    assert (magic, maxval, width, height) == (b"P5", b"255", i1 - i0, j1 - j0)
+    pixels = np.frombuffer(data, dtype=np.uint8).reshape(height, width)
+    assert set(np.unique(pixels).tolist()) == {PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN}
+    assert np.array_equal(pixels, state_to_pgm(engine_map.region("state", i0, j0, i1, j1)))
+
+    r = api.client.get("/maps/eng/export", params={"format": "png", "margin": 0})
+    image = Image.open(io.BytesIO(r.content))
+    assert r.headers["content-type"] == "image/png" and image.size == (i1 - i0 - 4, j1 - j0 - 4)
+
+    api.client.put("/maps/empty", json={})
+    r = api.client.get("/maps/empty/export")
+    assert r.status_code == 409 and "no observed cell" in r.json()["detail"]
+
+
+# -- events -------------------------------------------------------------------------------------------
+
+
+class EventReader:
+    """Reads a server-sent event stream in a thread: (event, data, id) tuples on a queue."""
+
+    def __init__(self, url: str, headers: dict[str, str] | None = None) -> None:
+        self.events: queue.Queue[tuple[str, dict, str | None] | None] = queue.Queue()
+        self.status: int | None = None
+        self.content_type = ""
+        self.keepalives = 0
+        self._stop = threading.Event()
+        self._client = httpx.Client(timeout=httpx.Timeout(30, read=60))
+        self._thread = threading.Thread(target=self._run, args=(url, headers or {}), daemon=True)
+        self._thread.start()
+
+    def _run(self, url: str, headers: dict[str, str]) -> None:
+        try:
+            with self._client.stream("GET", url, headers=headers) as r:
+                self.status, self.content_type = r.status_code, r.headers.get("content-type", "")
+                kind, data, event_id = "message", "", None
+                for line in r.iter_lines():
+                    if self._stop.is_set():
+                        break  # leaving the `with` closes the connection
+                    if line.startswith(": keepalive"):
+                        self.keepalives += 1
+                    elif line.startswith("event: "):
+                        kind = line[7:]
+                    elif line.startswith("data: "):
+                        data += line[6:]
+                    elif line.startswith("id: "):
+                        event_id = line[4:]
+                    elif line == "" and data:
+                        self.events.put((kind, json.loads(data), event_id))
+                        kind, data, event_id = "message", "", None
+        except (httpx.HTTPError, RuntimeError):
+            pass  # closed by close()
+        finally:
+            self.events.put(None)
+
+    def next(self, kind: str, timeout: float = 5.0) -> tuple[dict, str | None]:
+        """The next event of `kind` (skipping others) within `timeout` seconds."""
+        deadline = time.monotonic() + timeout
+        while True:
+            item = self.events.get(timeout=max(0.01, deadline - time.monotonic()))
+            if item is None:
+                raise AssertionError(f"stream ended before a {kind!r} event")
+            if item[0] == kind:
+                return item[1], item[2]
+
+    def ended(self, timeout: float = 5.0) -> bool:
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    def close(self) -> None:
+        self._stop.set()
+        assert self.ended(), "the reader did not stop (no keepalive?)"
+        self._client.close()
+
+
+def covered(window: list[int], windows: list[list[int]]) -> bool:
+    return list(window) in [list(w) for w in windows]
+
+
+def test_events_tiles_robots_resume_and_delete(api: RunningApi) -> None:
+    c = api.client
+    c.put("/maps/ev", json=CONFIG)
+    reader = EventReader(f"{api.base_url}/maps/ev/events")
+    try:
+        first, _ = reader.next("robots")  # sent on connect: the stream is up
+        assert reader.status == 200 and reader.content_type.startswith("text/event-stream")
+        assert first == {"robots": {}}
+        scan = fan_scan(0.7, -0.4, 0.25, [1.2] * 121)
+        result = post_scan(api, "ev", "rA", scan, 0).json()
+        assert result["changed_tiles"]
+        seen: list[list[int]] = []
+        while not all(covered(w, seen) for w in result["changed_tiles"]):
+            data, event_id = reader.next("tiles")
+            assert "reset" not in data and event_id == str(data["version"])
+            seen += data["tiles"]
+        while True:  # robots events come whenever something changed; wait for this scan's
+            robots, _ = reader.next("robots")
+            if robots["robots"].get("rA", {}).get("scans_integrated") == 1:
+                break
+        robot = robots["robots"]["rA"]
+        assert (
+            robot["pose"] == [0.7, -0.4, 0.25]
+            and robot["trail"] == [[0.7, -0.4]]
+            and robot["online"] is False
+        )
+        deadline = time.monotonic() + 5
+        while reader.keepalives == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert reader.keepalives > 0  # comment lines keep an idle stream open
+
+        # Deleting the map ends the stream with a `deleted` event.
+        c.delete("/maps/ev")
+        assert reader.next("deleted")[0] == {"id": "ev"}
+        assert reader.ended()
+    finally:
+        reader.close()
+
+    # Resuming: changes after `since` (or Last-Event-ID) are sent at once.
+    c.put("/maps/ev2", json=CONFIG)
+    windows = []
+    for seq, x in enumerate([0.5, 5.0]):
+        windows += post_scan(api, "ev2", "rB", fan_scan(x, 0.0, 0.0, [1.0] * 61), seq).json()["changed_tiles"]
+    for url, headers in [
+        (f"{api.base_url}/maps/ev2/events?since=0", None),
+        (f"{api.base_url}/maps/ev2/events", {"Last-Event-ID": "0"}),
+    ]:
+        reader = EventReader(url, headers)
+        try:
+            data, _ = reader.next("tiles")
+            assert data["version"] == 2 and all(covered(w, data["tiles"]) for w in windows)
+        finally:
+            reader.close()
+    # An id from before the map was re-created (newer than anything this map had): reset.
+    reader = EventReader(f"{api.base_url}/maps/ev2/events?since=99")
+    try:
+        assert reader.next("tiles")[0] == {"version": 2, "reset": True}
+    finally:
+        reader.close()
+
+
+# -- metrics ------------------------------------------------------------------------------------------
+
+
+def test_metrics_count_per_robot(api: RunningApi) -> None:
+    c = api.client
+    c.put("/maps/met", json=CONFIG)
+    scan = fan_scan(0.0, 0.0, 0.0, [1.0] * 31)
+    for seq in (0, 1, 2):
+        assert post_scan(api, "met", "m1", scan, seq).json()["status"] == "integrated"
+    assert post_scan(api, "met", "m1", scan, 1).json()["status"] == "duplicate"
+    assert post_scan(api, "met", "m1", scan, 5).json()["status"] == "integrated"  # 3 and 4 lost
+    bad = encode_json(scan, 6).replace(b'"range_min":0.0', b'"range_min":-1.0')
+    r = c.post(
+        "/maps/met/scans", params={"robot_id": "m1"}, content=bad, headers={"content-type": JSON_ENCODING}
+    )
+    assert r.status_code == 422 and "range_min" in r.json()["detail"]
+    assert post_scan(api, "met", "m2", scan, 0, binary=True).json()["status"] == "integrated"
+    c.get("/maps/met/tiles/0/0/-1.png")
+
+    samples = {}
+    for family in text_string_to_metric_families(c.get("/metrics").text):
+        for s in family.samples:
+            samples[(s.name, tuple(sorted(s.labels.items())))] = s.value
+    m1 = (("map", "met"), ("robot", "m1"))
+    m2 = (("map", "met"), ("robot", "m2"))
+    assert samples[("fleetmap_scans_integrated_total", m1)] == 4
+    assert samples[("fleetmap_scans_duplicate_total", m1)] == 1
+    assert samples[("fleetmap_scans_lost_total", m1)] == 2
+    assert samples[("fleetmap_scans_rejected_total", m1)] == 1
+    assert samples[("fleetmap_scans_dropped_total", m1)] == 0
+    assert samples[("fleetmap_scans_integrated_total", m2)] == 1
+    assert samples[("fleetmap_robot_online", m2)] == 0
+    assert samples[("fleetmap_queue_depth", ())] == 0
+    assert samples[("fleetmap_map_tiles", (("map", "met"),))] >= 1
+    assert samples[("fleetmap_integration_seconds_count", ())] >= 5
+    assert samples[("fleetmap_ingest_latency_seconds_count", ())] >= 5
+    assert samples[("fleetmap_tile_render_seconds_count", (("layer", "probability"),))] >= 1
+    # The same numbers as GET /maps/{id}: one truth.
+    robot = c.get("/maps/met").json()["stats"]["robots"]["m1"]
+    assert (robot["scans_integrated"], robot["duplicates"], robot["lost"], robot["scans_rejected"]) == (
+        4,
+        1,
+        2,
+        1,
+    )
+    assert "range_min" in robot["last_error"] and robot["last_seq"] == 5
+
+
+def test_web_dir_default_is_the_checkout(api: RunningApi) -> None:
+    from fleetmap.api.app import DEFAULT_WEB_DIR
+
+    assert Path(__file__).resolve().parents[1] / "clients" / "web" == DEFAULT_WEB_DIR

@@ -1,0 +1,71 @@
+"""The committed openapi/openapi.json is exactly what the app generates, and the spec is complete:
+every operation summarised, typed, with its errors documented as `ErrorResponse`."""
+
+from __future__ import annotations
+
+import difflib
+import importlib.util
+import json
+from pathlib import Path
+from types import ModuleType
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMITTED = ROOT / "openapi" / "openapi.json"
+
+
+def _export_script() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("export_openapi", ROOT / "scripts" / "export_openapi.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_committed_spec_matches_the_app() -> None:
+    generated = _export_script().spec_text()
+    committed = COMMITTED.read_text(encoding="utf-8")
+    if generated != committed:
+        diff = "".join(
+            list(
+                difflib.unified_diff(
+                    committed.splitlines(keepends=True),
+                    generated.splitlines(keepends=True),
+                    "openapi/openapi.json (committed)",
+                    "generated from the app",
+                )
+            )[:60]
+        )
+        raise AssertionError(
+            "openapi/openapi.json is out of date with the API: run\n"
+            "    .venv/bin/python scripts/export_openapi.py\n"
+            f"and commit the result. First differences:\n{diff}"
+        )
+
+
+def test_spec_is_complete_and_typed() -> None:
+    def no_constants(name: str) -> None:
+        raise AssertionError(f"the spec holds {name}, which is not JSON")
+
+    spec = json.loads(COMMITTED.read_text(encoding="utf-8"), parse_constant=no_constants)
+    assert spec["info"]["title"] == "fleetmap"
+    schemas = spec["components"]["schemas"]
+    names = "MapConfig MapInfo ScanMessage ScanResult CellsResponse RegionJson TilesEvent RobotsEvent"
+    assert {*names.split(), "ErrorResponse"} <= set(schemas)
+    operations = [(path, method, op) for path, item in spec["paths"].items() for method, op in item.items()]
+    assert len(operations) == 14
+    for path, method, op in operations:
+        where = f"{method.upper()} {path}"
+        assert op.get("summary") and op.get("description"), where
+        assert op.get("tags"), where
+        assert "200" in op["responses"] or "201" in op["responses"] or "204" in op["responses"], where
+        for status, response in op["responses"].items():
+            if status.startswith("4"):
+                ref = response["content"]["application/json"]["schema"]["$ref"]
+                assert ref == "#/components/schemas/ErrorResponse", where
+    # The tile endpoint documents the zoom convention, quoted from tile_render.
+    tiles = spec["paths"]["/maps/{map_id}/tiles/{z}/{x}/{y}.png"]["get"]["description"]
+    assert "At zoom 0 one tile pixel is one cell" in tiles and "If-None-Match" in tiles
+    # Scans accept the wire schema (JSON) and the binary encoding.
+    body = spec["paths"]["/maps/{map_id}/scans"]["post"]["requestBody"]["content"]
+    assert body["application/json"]["schema"]["$ref"] == "#/components/schemas/ScanMessage"
+    assert "application/x-fleetmap-scan" in body

@@ -1,0 +1,98 @@
+"""Helpers for the REST API tests: the real app in a real uvicorn server on 127.0.0.1, in a thread.
+
+The API tests talk HTTP over a socket to a server started here (port 0: the kernel picks a free port,
+so test files can run in parallel), with a registry whose integration workers run. This module holds
+no tests itself.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import httpx
+import numpy as np
+import uvicorn
+
+from fleetmap.api import ApiSettings, create_app
+from fleetmap.metrics import IntegrationMetrics
+from fleetmap.registry import MapRegistry
+from fleetmap.scan import Pose2D, Scan
+
+
+@dataclass
+class RunningApi:
+    registry: MapRegistry
+    metrics: IntegrationMetrics
+    base_url: str
+    client: httpx.Client
+
+
+@contextmanager
+def running_api(settings: ApiSettings | None = None, **registry_args: object) -> Iterator[RunningApi]:
+    """Start registry workers and a uvicorn server for `create_app(registry, settings=settings)`;
+    stop both on exit."""
+    metrics = IntegrationMetrics()
+    registry = MapRegistry(on_integrated=metrics.on_integrated, **registry_args)  # type: ignore[arg-type]
+    registry.start()
+    app = create_app(registry, settings=settings)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    config = uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=1, lifespan="off")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            raise RuntimeError("uvicorn did not start")
+        time.sleep(0.01)
+    base_url = f"http://127.0.0.1:{port}"
+    try:
+        with httpx.Client(base_url=base_url, timeout=30) as client:
+            yield RunningApi(registry, metrics, base_url, client)
+    finally:
+        server.should_exit = True
+        thread.join(10)
+        sock.close()
+        registry.close()
+
+
+def fan_scan(
+    x: float,
+    y: float,
+    theta: float,
+    ranges: list[float | None],
+    fov: float = math.pi,
+    range_max: float = 10.0,
+) -> Scan:
+    """A scan of len(ranges) beams spread evenly over `fov`, centred on the heading."""
+    n = len(ranges)
+    inc = fov / (n - 1) if n > 1 else 0.0
+    return Scan.from_fan(Pose2D(x, y, theta), -fov / 2, inc, ranges, 0.0, range_max)
+
+
+def room_scans(count: int, seed: int = 0, beams: int = 181) -> list[Scan]:
+    """Scans from random poses inside a 6 m x 4 m box room (walls at x = -3, 3 and y = -2, 2), exact
+    ranges: a map with occupied walls, free inside and unknown outside."""
+    rng = np.random.default_rng(seed)
+    scans = []
+    for _ in range(count):
+        x, y = rng.uniform(-2.0, 2.0), rng.uniform(-1.2, 1.2)
+        theta = rng.uniform(-math.pi, math.pi)
+        angles = -math.pi + 2 * math.pi * np.arange(beams) / beams
+        world = theta + angles
+        c, s = np.cos(world), np.sin(world)
+        with np.errstate(divide="ignore"):
+            tx = np.where(c > 0, (3 - x) / c, np.where(c < 0, (-3 - x) / c, np.inf))
+            ty = np.where(s > 0, (2 - y) / s, np.where(s < 0, (-2 - y) / s, np.inf))
+        ranges = np.minimum(tx, ty)
+        scans.append(Scan.from_angles(Pose2D(x, y, theta), angles, ranges, 0.0, 10.0))
+    return scans
