@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.io
+
 from fleetmap.datasets import (
     DEFAULT_RANGE_MIN,
     UNBOUNDED_RANGE_MAX,

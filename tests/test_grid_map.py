@@ -272,12 +272,6 @@ def test_known_bounds() -> None:
     assert m.known_bounds() == (-21, -40, 5, 1)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="grid_map.py known_bounds() judges 'observed' by store.arrays[0], which depends on the order "
-    "of config.layers: with layers ['tsdf', 'occupancy'] it uses the TSDF weight and ignores the "
-    "occupancy layer's free cells that cells() reports as known",
-)
 def test_known_bounds_independent_of_layer_order() -> None:
     """The same scan in maps keeping the same layers listed in a different order has the same
     known_bounds(), and those bounds contain every cell cells() calls known (here the sensor cell

@@ -194,21 +194,18 @@ class GridMap:
         return out
 
     def known_bounds(self) -> tuple[int, int, int, int] | None:
-        """Cell bounds `(i0, j0, i1, j1)`, exclusive ends, of every observed cell; None if none."""
+        """Cell bounds `(i0, j0, i1, j1)`, exclusive ends, of every cell any kept layer has observed;
+        None if none."""
+        lo = [math.inf, math.inf]
+        hi = [-math.inf, -math.inf]
+        t = self.store.tile_size
         with self.lock:
-            if not self.store.keys:
-                return None
-            name = self.store.arrays[0].name
-            lo = [math.inf, math.inf]
-            hi = [-math.inf, -math.inf]
-            t = self.store.tile_size
             for (ti, tj), slot in self.store.slots.items():
-                tile = self.store.pools[name][slot]
-                seen = ~np.isnan(tile) if name == "log_odds" else self._observed(slot)
+                seen = self._observed(slot)
                 rows = np.flatnonzero(seen.any(axis=1))
-                cols = np.flatnonzero(seen.any(axis=0))
                 if rows.size == 0:
                     continue
+                cols = np.flatnonzero(seen.any(axis=0))
                 lo[0] = min(lo[0], ti * t + cols[0])
                 lo[1] = min(lo[1], tj * t + rows[0])
                 hi[0] = max(hi[0], ti * t + cols[-1] + 1)
@@ -218,9 +215,16 @@ class GridMap:
         return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
 
     def _observed(self, slot: int) -> np.ndarray:
-        if self.store.has_array("hits"):
-            return (self.store.pools["hits"][slot] + self.store.pools["misses"][slot]) > 0
-        return self.store.pools["tsdf_weight"][slot] > 0
+        """Cells of a tile that any kept layer has observed."""
+        pools = self.store.pools
+        seen = np.zeros((self.store.tile_size, self.store.tile_size), dtype=bool)
+        if "log_odds" in pools:
+            seen |= ~np.isnan(pools["log_odds"][slot])
+        if "hits" in pools:
+            seen |= (pools["hits"][slot] > 0) | (pools["misses"][slot] > 0)
+        if "tsdf_weight" in pools:
+            seen |= pools["tsdf_weight"][slot] > 0
+        return seen
 
     def surface(self, i0: int, j0: int, i1: int, j1: int) -> np.ndarray:
         """TSDF zero-crossing points (rows of map (x, y)) between cells in `[i0, i1) x [j0, j1)`."""

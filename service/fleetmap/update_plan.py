@@ -103,7 +103,8 @@ def _ray_model(scan: Scan, config: MapConfig, ox: float, oy: float, shift: int, 
     if config.no_return_range > 0:
         clear = scan.no_return_mask()
         kind[clear] = BEAM_CLEAR
-        ranges[clear] = config.no_return_range
+        # Never clear past what the sensor can see (the beam model stops there too).
+        ranges[clear] = min(config.no_return_range, scan.range_max)
     ex, ey = scan.endpoints(np.where(kind == BEAM_SKIP, 0.0, ranges))
     method = EXACT if config.traversal == "exact" else BRESENHAM
     ex /= res

@@ -1,0 +1,152 @@
+"""API tokens and roles for the REST API.
+
+Tokens come from a file (`--auth-tokens FILE`) or the environment variable `FLEETMAP_TOKENS`, one
+token per line as `ROLE TOKEN` (ROLE is `read`, `write` or `admin`; `#` starts a comment). Clients send
+`Authorization: Bearer TOKEN`. `admin` may do everything `write` may, `write` everything `read` may.
+
+What needs which role:
+- writing (POST scans, PUT/DELETE maps, PUT snapshots): `write`;
+- reading (every GET, and POST /maps/{id}/cells, which only reads): `read`, unless reading is left open
+  (`require_read=False`, the default), then anyone;
+- `/healthz` is always open (liveness probes carry no token).
+Tokens are compared in constant time against every configured token, and never logged.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import os
+import re
+from collections.abc import Awaitable, Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+ROLES = ("read", "write", "admin")
+_RANK = {role: rank for rank, role in enumerate(ROLES)}
+TOKENS_ENV = "FLEETMAP_TOKENS"
+#: Read-only requests that use POST.
+_READ_POSTS = re.compile(r"^/maps/[^/]+/cells$")
+#: Paths open to anyone, always.
+_OPEN_PATHS = {"/healthz"}
+
+Scope = dict
+Receive = Callable[[], Awaitable[dict]]
+Send = Callable[[dict], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+
+class TokenFileError(ValueError):
+    """The token file cannot be used; the message says which line and why (never the token)."""
+
+
+@dataclass(frozen=True)
+class TokenSet:
+    """Configured tokens, stored as SHA-256 digests so equal-length constant-time comparison is easy."""
+
+    digests: tuple[tuple[bytes, str], ...]  # (sha256(token), role)
+
+    @classmethod
+    def parse(cls, text: str, source: str = "tokens") -> TokenSet:
+        entries = []
+        for lineno, raw in enumerate(text.splitlines(), 1):
+            line = raw.split("#", 1)[0].strip()
+            if not line:
+                continue
+            parts = line.split()
+            if len(parts) != 2 or parts[0] not in _RANK:
+                raise TokenFileError(
+                    f"{source}:{lineno}: expected 'ROLE TOKEN' with ROLE one of {', '.join(ROLES)}"
+                )
+            role, token = parts
+            if len(token) < 16:
+                raise TokenFileError(f"{source}:{lineno}: tokens must be at least 16 characters")
+            entries.append((_digest(token), role))
+        if not entries:
+            raise TokenFileError(f"{source}: no tokens")
+        return cls(tuple(entries))
+
+    @classmethod
+    def load(cls, path: str | None, environ: dict[str, str] | None = None) -> TokenSet | None:
+        """Tokens from `path`, else from $FLEETMAP_TOKENS, else None (no authentication)."""
+        env = os.environ if environ is None else environ
+        if path:
+            try:
+                return cls.parse(Path(path).read_text(), path)
+            except OSError as exc:
+                raise TokenFileError(f"cannot read token file {path}: {exc.strerror}") from None
+        if env.get(TOKENS_ENV):
+            return cls.parse(env[TOKENS_ENV].replace(";", "\n"), f"${TOKENS_ENV}")
+        return None
+
+    def role_of(self, token: str) -> str | None:
+        """The role of `token`, comparing against every configured token in constant time."""
+        digest = _digest(token)
+        found = None
+        for known, role in self.digests:
+            if hmac.compare_digest(known, digest) and (found is None or _RANK[role] > _RANK[found]):
+                found = role
+        return found
+
+
+def required_role(method: str, path: str, require_read: bool) -> str | None:
+    """The role a request needs, or None if it is open."""
+    if path in _OPEN_PATHS:
+        return None
+    if method in ("GET", "HEAD", "OPTIONS") or (method == "POST" and _READ_POSTS.match(path)):
+        return "read" if require_read else None
+    return "write"
+
+
+class AuthMiddleware:
+    """ASGI middleware answering 401 (no or unknown token) or 403 (role too low) with a JSON detail."""
+
+    def __init__(self, app: ASGIApp, tokens: TokenSet, require_read: bool = False) -> None:
+        self.app = app
+        self.tokens = tokens
+        self.require_read = require_read
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        needed = required_role(scope["method"], scope["path"], self.require_read)
+        if needed is None:
+            await self.app(scope, receive, send)
+            return
+        token = _bearer(scope.get("headers", []))
+        if token is None:
+            await _deny(send, 401, f"this request needs a token with the {needed!r} role: "
+                        "send 'Authorization: Bearer <token>'")  # fmt: skip
+            return
+        role = self.tokens.role_of(token)
+        if role is None:
+            await _deny(send, 401, "unknown token")
+            return
+        if _RANK[role] < _RANK[needed]:
+            await _deny(send, 403, f"this request needs the {needed!r} role; the token has {role!r}")
+            return
+        await self.app(scope, receive, send)
+
+
+def _bearer(headers: Iterable[tuple[bytes, bytes]]) -> str | None:
+    for name, value in headers:
+        if name.lower() == b"authorization":
+            scheme, _, token = value.decode("latin-1").partition(" ")
+            if scheme.lower() == "bearer" and token.strip():
+                return token.strip()
+    return None
+
+
+async def _deny(send: Send, status: int, detail: str) -> None:
+    body = json.dumps({"detail": detail}).encode()
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    if status == 401:
+        headers.append((b"www-authenticate", b'Bearer realm="fleetmap"'))
+    await send({"type": "http.response.start", "status": status, "headers": headers})
+    await send({"type": "http.response.body", "body": body})
+
+
+def _digest(token: str) -> bytes:
+    return hashlib.sha256(token.encode()).digest()

@@ -1,0 +1,166 @@
+"""Scan codecs: round trips of both encodings, and fuzzing that only ever yields DecodeError."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from fleetmap.codec import (
+    HEADER,
+    MAGIC,
+    DecodeError,
+    decode,
+    decode_binary,
+    decode_json,
+    encode_binary,
+    encode_json,
+)
+from fleetmap.scan import Scan
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
+
+finite = st.floats(-1e4, 1e4, allow_nan=False, allow_infinity=False)
+ranges = st.lists(
+    st.one_of(st.floats(0.0, 100.0), st.just(math.inf), st.just(math.nan)), min_size=1, max_size=50
+)
+
+
+def make_scan(x: float, y: float, th: float, rs: list[float], explicit: bool) -> Scan:
+    if explicit:
+        angles = np.sort(np.random.default_rng(len(rs)).uniform(-3, 3, len(rs)))
+        return Scan.from_angles((x, y, th), angles, rs, 0.05, 60.0)
+    return Scan.from_fan((x, y, th), -1.5, 0.01, rs, 0.05, 60.0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(finite, finite, st.floats(-10, 10), ranges, st.booleans(), st.integers(0, 2**63 - 1))
+def test_binary_round_trip(x: float, y: float, th: float, rs: list[float], explicit: bool, seq: int) -> None:
+    """Binary keeps pose and seq exactly; angles and ranges to float32."""
+    scan = make_scan(x, y, th, rs, explicit)
+    got = decode(encode_binary(scan, seq, 12.5), BINARY_ENCODING)
+    assert got.seq == seq and got.stamp == 12.5
+    assert (got.scan.pose.x, got.scan.pose.y, got.scan.pose.theta) == (x, y, th)
+    np.testing.assert_allclose(got.scan.angles, scan.angles, atol=1e-6)
+    np.testing.assert_array_equal(np.isnan(got.scan.ranges), np.isnan(scan.ranges))
+    np.testing.assert_allclose(got.scan.ranges, scan.ranges.astype(np.float32), equal_nan=True)
+
+
+@settings(max_examples=200, deadline=None)
+@given(finite, finite, st.floats(-10, 10), ranges, st.booleans())
+def test_json_round_trip(x: float, y: float, th: float, rs: list[float], explicit: bool) -> None:
+    """JSON keeps every value exactly; NaN (not representable) and inf both become null = no return."""
+    scan = make_scan(x, y, th, rs, explicit)
+    got = decode(encode_json(scan, 7), JSON_ENCODING)
+    assert got.seq == 7
+    np.testing.assert_array_equal(got.scan.angles, scan.angles)
+    expected = np.where(np.isnan(scan.ranges), math.inf, scan.ranges)
+    np.testing.assert_array_equal(got.scan.ranges, expected)
+
+
+@settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    st.binary(max_size=400),
+    st.sampled_from([BINARY_ENCODING, JSON_ENCODING, "", "zenoh/bytes", "text/plain"]),
+)
+def test_random_bytes_only_raise_decode_error(data: bytes, encoding: str) -> None:
+    with pytest.raises(DecodeError):
+        decode(data, encoding)
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.data())
+def test_mutated_binary_is_valid_or_refused(data: st.DataObject) -> None:
+    """Flip bytes of a valid binary scan: the result decodes to a valid scan or raises DecodeError."""
+    payload = bytearray(encode_binary(make_scan(1.0, 2.0, 0.3, [1.0, 2.0, math.inf], False), 3))
+    for _ in range(data.draw(st.integers(1, 6))):
+        payload[data.draw(st.integers(0, len(payload) - 1))] = data.draw(st.integers(0, 255))
+    cut = data.draw(st.integers(0, len(payload)))
+    try:
+        got = decode_binary(bytes(payload[:cut]))
+    except DecodeError:
+        return
+    assert math.isfinite(got.scan.pose.x) and math.isfinite(got.scan.pose.theta)
+    assert got.scan.angles.shape == got.scan.ranges.shape
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4)
+    ),
+    max_leaves=20,
+)
+
+
+FIELDS = [
+    "seq",
+    "stamp",
+    "pose",
+    "angle_min",
+    "angle_increment",
+    "angles",
+    "range_min",
+    "range_max",
+    "ranges",
+    "x",
+]
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.dictionaries(st.sampled_from(FIELDS), json_values, max_size=9))
+def test_json_of_any_shape_is_valid_or_refused(message: dict) -> None:
+    try:
+        got = decode_json(json.dumps(message).encode())
+    except DecodeError:
+        return
+    assert got.scan.pose.is_finite()
+
+
+@pytest.mark.parametrize(
+    ("patch", "reason"),
+    [
+        ({"pose": {"x": 1e400, "y": 0, "theta": 0}}, "finite"),
+        ({"ranges": [1.0, 2.0], "angles": [0.0]}, "angles"),
+        ({"range_min": 5.0, "range_max": 1.0}, "greater"),
+        ({"seq": -1}, "seq"),
+        ({"angle_increment": None}, "required"),
+        ({"extra": 1}, "extra"),
+    ],
+)
+def test_json_errors_say_why(patch: dict, reason: str) -> None:
+    base = {"seq": 1, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": -1.0, "angle_increment": 0.1,
+            "range_max": 30.0, "ranges": [1.0, None, 2.0]}  # fmt: skip
+    base.update(patch)
+    if "angles" in patch:
+        base.pop("angle_min")
+        base.pop("angle_increment")
+    with pytest.raises(DecodeError, match=reason):
+        decode_json(json.dumps(base).encode())
+
+
+def test_binary_errors_say_why() -> None:
+    good = encode_binary(make_scan(0, 0, 0, [1.0, 2.0], False), 1)
+    with pytest.raises(DecodeError, match="magic"):
+        decode_binary(b"XXXX" + good[4:])
+    with pytest.raises(DecodeError, match="must be"):
+        decode_binary(good[:-1])
+    with pytest.raises(DecodeError, match="version"):
+        decode_binary(good[:4] + bytes([9]) + good[5:])
+    nan_pose = bytearray(good)
+    struct.pack_into("<d", nan_pose, 24, math.nan)
+    with pytest.raises(DecodeError, match="finite"):
+        decode_binary(bytes(nan_pose))
+    assert good[:4] == MAGIC and HEADER.size == 72
+
+
+def test_unknown_encoding_is_refused_and_bytes_are_sniffed() -> None:
+    scan = make_scan(0, 0, 0, [1.0], False)
+    with pytest.raises(DecodeError, match="unknown encoding"):
+        decode(encode_json(scan, 1), "text/csv")
+    assert decode(encode_binary(scan, 4), "zenoh/bytes").seq == 4
+    assert decode(encode_json(scan, 5), "").seq == 5

@@ -1,0 +1,158 @@
+"""The map registry and its fair queue: order per robot, fairness, seq accounting, refusals."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from fleetmap.codec import WireScan
+from fleetmap.config import MapConfig
+from fleetmap.fair_queue import FairQueue
+from fleetmap.grid_map import GridMap
+from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, MapRegistry
+from fleetmap.scan import Scan
+
+
+def scan_at(x: float, r: float = 2.0, n: int = 30) -> Scan:
+    return Scan.from_fan((x, 0.0, 0.0), -0.5, 1.0 / n, [r] * n, 0.0, 30.0)
+
+
+@pytest.fixture
+def registry():
+    reg = MapRegistry(workers=2)
+    reg.start()
+    yield reg
+    reg.close()
+
+
+def test_fair_queue_round_robin_and_one_in_flight_per_source() -> None:
+    q: FairQueue[int] = FairQueue(per_source=100)
+    for k in range(5):
+        q.put("flood", k)
+    q.put("quiet", 100)
+    first = q.get(0.1)
+    second = q.get(0.1)
+    assert {first[0], second[0]} == {"flood", "quiet"}  # the quiet source is not starved
+    assert q.get(0.05) is None  # flood has an item in flight: nothing else of it is handed out
+    q.done("flood")
+    assert q.get(0.1) == ("flood", 1)  # and its order is kept
+
+
+def test_fair_queue_refuses_past_the_source_limit_without_blocking() -> None:
+    q: FairQueue[int] = FairQueue(per_source=3, total=100)
+    assert all(q.put("a", k) for k in range(3))
+    started = time.monotonic()
+    assert q.put("a", 3) is False
+    assert time.monotonic() - started < 0.5
+    assert q.put("b", 0) is True  # another source still gets in
+
+
+def test_each_robot_is_integrated_in_seq_order(registry: MapRegistry) -> None:
+    """Per-robot order is kept across two workers: the map equals the engine fed in seq order.
+    The octomap clamp makes the order matter, so a reordering would show."""
+    scans = [scan_at(0.1 * k, r=1.0 + 0.37 * (k % 5)) for k in range(60)]
+    for k, s in enumerate(scans):
+        registry.submit("m", "r1", WireScan(k, 0.0, s))
+    assert registry.wait_idle()
+    ref = GridMap(MapConfig())
+    for s in scans:
+        ref.integrate(s)
+    got = registry.get("m").gmap
+    b = ref.known_bounds()
+    np.testing.assert_array_equal(got.region("log_odds", *b), ref.region("log_odds", *b))
+    assert registry.get("m").robots["r1"].scans_integrated == 60
+
+
+def test_seq_duplicates_gaps_and_restart(registry: MapRegistry) -> None:
+    registry.submit("m", "r", WireScan(5, 0.0, scan_at(0)))
+    with pytest.raises(IngestRejected) as dup:
+        registry.submit("m", "r", WireScan(5, 0.0, scan_at(0)))
+    assert dup.value.status == 200 and "duplicate" in dup.value.reason
+    registry.submit("m", "r", WireScan(9, 0.0, scan_at(0)))  # 6, 7, 8 lost
+    registry.submit("m", "r", WireScan(0, 0.0, scan_at(0)))  # a restarted robot
+    registry.submit("m", "r", WireScan(1, 0.0, scan_at(0)))
+    assert registry.wait_idle()
+    robot = registry.get("m").robots["r"]
+    assert (robot.duplicates, robot.lost, robot.scans_integrated, robot.last_seq) == (1, 3, 4, 1)
+
+
+def test_queue_full_refuses_newest_and_counts_it() -> None:
+    reg = MapRegistry(workers=1, queue_per_robot=2)  # workers not started: nothing drains
+    reg.submit("m", "r", WireScan(0, 0.0, scan_at(0)))
+    reg.submit("m", "r", WireScan(1, 0.0, scan_at(0)))
+    with pytest.raises(IngestRejected) as full:
+        reg.submit("m", "r", WireScan(2, 0.0, scan_at(0)))
+    assert full.value.status == 503
+    robot = reg.get("m").robots["r"]
+    assert robot.dropped == 1 and robot.lost == 0
+    reg.submit("m", "other", WireScan(0, 0.0, scan_at(0)))  # other robots are not affected
+
+
+def test_tile_cap_rejects_the_scan_and_counts_it(registry: MapRegistry) -> None:
+    registry.create("small", MapConfig(max_tiles=1, tile_size=16, resolution=0.1))
+    fut = registry.submit("small", "r", WireScan(0, 0.0, scan_at(0.0, r=20.0)), wait=True)
+    with pytest.raises(IngestRejected, match="max_tiles"):
+        fut.result(5)
+    entry = registry.get("small")
+    assert entry.scans_rejected == 1 and "max_tiles" in entry.robots["r"].last_error
+    assert len(entry.gmap.store) == 0
+
+
+def test_map_lifecycle_and_errors(registry: MapRegistry) -> None:
+    entry, created = registry.create("a", MapConfig(resolution=0.1))
+    assert created and registry.create("a", MapConfig(resolution=0.1)) == (entry, False)
+    with pytest.raises(MapConflict):
+        registry.create("a", MapConfig(resolution=0.2))
+    with pytest.raises(InvalidId):
+        registry.create("bad/id")
+    registry.delete("a")
+    with pytest.raises(MapNotFound):
+        registry.get("a")
+    off = MapRegistry(auto_create=False)
+    with pytest.raises(IngestRejected) as missing:
+        off.submit("nope", "r", WireScan(0, 0.0, scan_at(0)))
+    assert missing.value.status == 404
+
+
+def test_submit_never_blocks_while_a_map_is_locked(registry: MapRegistry) -> None:
+    """A reader holding the map lock delays integration, never the (Zenoh callback) caller."""
+    registry.submit("m", "r", WireScan(0, 0.0, scan_at(0)))
+    assert registry.wait_idle()
+    entry = registry.get("m")
+    with entry.gmap.lock:
+        started = time.monotonic()
+        for k in range(1, 30):
+            registry.submit("m", "r", WireScan(k, 0.0, scan_at(0)))
+        assert time.monotonic() - started < 1.0
+    assert registry.wait_idle()
+    assert entry.robots["r"].scans_integrated == 30
+
+
+def test_readers_never_see_half_a_scan(registry: MapRegistry) -> None:
+    """While scans integrate, every read of the hit counts sees a whole number of scans' hits."""
+    n = 40
+    s = scan_at(0.0, r=3.0, n=n)
+    registry.submit("m", "r", WireScan(0, 0.0, s))
+    assert registry.wait_idle()
+    gmap = registry.get("m").gmap
+    b = gmap.known_bounds()
+    per_scan = int(gmap.region("hits", *b).sum())
+    stop = threading.Event()
+    seen: list[int] = []
+
+    def read() -> None:
+        while not stop.is_set():
+            seen.append(int(gmap.region("hits", *b).sum()))
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    for k in range(1, 200):
+        registry.submit("m", "r", WireScan(k, 0.0, s))
+    assert registry.wait_idle()
+    stop.set()
+    reader.join()
+    assert len(seen) > 10
+    assert all(v % per_scan == 0 for v in seen)
