@@ -131,8 +131,10 @@ def test_submit_never_blocks_while_a_map_is_locked(registry: MapRegistry) -> Non
     assert entry.robots["r"].scans_integrated == 30
 
 
-def test_readers_never_see_half_a_scan(registry: MapRegistry) -> None:
+def test_readers_never_see_half_a_scan() -> None:
     """While scans integrate, every read of the hit counts sees a whole number of scans' hits."""
+    registry = MapRegistry(workers=2, queue_per_robot=256)
+    registry.start()
     n = 40
     s = scan_at(0.0, r=3.0, n=n)
     registry.submit("m", "r", WireScan(0, 0.0, s))
@@ -146,13 +148,17 @@ def test_readers_never_see_half_a_scan(registry: MapRegistry) -> None:
     def read() -> None:
         while not stop.is_set():
             seen.append(int(gmap.region("hits", *b).sum()))
+            time.sleep(0.0002)  # a viewer reads now and then; a reader spinning on the lock starves writers
 
-    reader = threading.Thread(target=read)
+    reader = threading.Thread(target=read, daemon=True)
     reader.start()
-    for k in range(1, 200):
-        registry.submit("m", "r", WireScan(k, 0.0, s))
-    assert registry.wait_idle()
-    stop.set()
-    reader.join()
+    try:
+        for k in range(1, 200):
+            registry.submit("m", "r", WireScan(k, 0.0, s))
+        assert registry.wait_idle(30)
+    finally:
+        stop.set()
+        reader.join(5)
+        registry.close()
     assert len(seen) > 10
     assert all(v % per_scan == 0 for v in seen)
