@@ -497,12 +497,11 @@ def equivalence(gmap: GridMap, tree: object, rng_seed: int = 0) -> list[str]:
 
 
 def fleetmap_breakdown(w: Workload) -> str:
-    """One untimed-for-the-table pass, occupancy only: plan vs apply time, cell visits of the ray
-    walks per distinct cell update, and mark-plane cells swept per update."""
+    """One untimed-for-the-table pass, occupancy only: plan vs apply time, and cell visits of the
+    ray walks per distinct cell update."""
     gmap = GridMap(fleetmap_config(OCC_ONLY))
     t_plan = t_apply = 0.0
-    visits = updates = swept = 0
-    tile_cells = gmap.config.tile_size**2
+    visits = updates = 0
     for scan in w.scans:
         t0 = time.perf_counter()
         plan = gmap.plan(scan)
@@ -512,16 +511,14 @@ def fleetmap_breakdown(w: Workload) -> str:
         t_plan += t1 - t0
         t_apply += t2 - t1
         updates += res.cell_updates
-        swept += plan.marks_planes.size * tile_cells
         hit = scan.returns_mask()
         ex, ey = scan.endpoints(np.where(hit, scan.ranges, 0.0))
         oi, oj = math.floor(scan.pose.x / RES), math.floor(scan.pose.y / RES)
         visits += int((np.abs(np.floor(ex[hit] / RES) - oi) + np.abs(np.floor(ey[hit] / RES) - oj) + 1).sum())
     total = t_plan + t_apply
     return (
-        f"{w.name:10s} plan (ray walk + marks) {t_plan / total:5.1%}, apply (sweep marks into tiles) "
-        f"{t_apply / total:5.1%}; {visits / updates:4.1f} ray-walk cell visits per distinct update; "
-        f"{swept / updates:5.1f} mark cells swept per update"
+        f"{w.name:10s} plan (ray walk, dedup) {t_plan / total:5.1%}, apply (updated cells into tiles) "
+        f"{t_apply / total:5.1%}; {visits / updates:4.1f} ray-walk cell visits per distinct update"
     )
 
 

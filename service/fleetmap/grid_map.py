@@ -16,7 +16,7 @@ import numpy as np
 
 from fleetmap.config import MapConfig
 from fleetmap.kernels.tsdf import fuse_tsdf, zero_crossings
-from fleetmap.kernels.update import apply_entries, apply_marks
+from fleetmap.kernels.update import apply_cells, apply_entries
 from fleetmap.scan import Scan
 from fleetmap.tiles import TileKey, TileStore
 from fleetmap.update_plan import UpdatePlan, plan_scan
@@ -81,43 +81,41 @@ class GridMap:
         if plan.num_tiles == 0:
             return IntegrationResult(0, 0, [], 0)
         cfg, store = self.config, self.store
-        ti0, ti1 = int(plan.tiles_i.min()), int(plan.tiles_i.max())
-        tj0, tj1 = int(plan.tiles_j.min()), int(plan.tiles_j.max())
-        compact = np.full((tj1 - tj0 + 1, ti1 - ti0 + 1), -1, dtype=np.int64)
-        compact[plan.tiles_j - tj0, plan.tiles_i - ti0] = np.arange(plan.num_tiles)
-        changed = np.zeros(plan.num_tiles, dtype=np.uint8)
+        occ = cfg.occupancy
+        keys = list(zip(plan.tiles_i.tolist(), plan.tiles_j.tolist(), strict=True))
+        changed = np.zeros(len(keys), dtype=np.uint8)
         with self.lock:
-            keys = list(zip(plan.tiles_i.tolist(), plan.tiles_j.tolist(), strict=True))
             new = store.missing(keys)
             store.create(new)  # all or nothing: raises before any cell is touched
-            lookup = store.tile_range(ti0, tj0, ti1, tj1)
-            occ = cfg.occupancy
+            slots = np.array([store.slots[k] for k in keys], dtype=np.int64)
             pools = (store.pool("log_odds"), store.pool("hits"), store.pool("misses"))
             params = (occ.l_hit, occ.l_miss, occ.l_min, occ.l_max)
-            occ_updates = 0
-            if plan.marks_i.size:
-                marks_changed = np.zeros(plan.marks_i.size, dtype=np.uint8)
-                slots = lookup[plan.marks_j - tj0, plan.marks_i - ti0]
-                occ_updates += apply_marks(
-                    plan.marks, plan.marks_planes, slots, *pools, *params, marks_changed
-                )
-                changed[compact[plan.marks_j - tj0, plan.marks_i - ti0]] |= marks_changed
-            if plan.occ_i.size:
-                occ_updates += apply_entries(
-                    plan.occ_i, plan.occ_j, plan.occ_kind, lookup, compact, ti0, tj0, store.shift,
-                    *pools, *params, changed,
-                )  # fmt: skip
+            updates = 0
+            if plan.cell.size:
+                updates += apply_cells(plan.cell, plan.kind, slots, store.shift, *pools, *params, changed)
             tsdf_updates = 0
-            if plan.tsdf_i.size:
-                tsdf_updates = fuse_tsdf(
-                    plan.tsdf_i, plan.tsdf_j, plan.tsdf_value, lookup, compact, ti0, tj0, store.shift,
-                    store.pool("tsdf"), store.pool("tsdf_weight"), cfg.tsdf.max_weight, changed,
-                )  # fmt: skip
+            if plan.occ_i.size or plan.tsdf_i.size:
+                # Ordered entries find their tile through a slot lookup over the plan's tile box.
+                ti0, tj0 = int(plan.tiles_i.min()), int(plan.tiles_j.min())
+                shape = (int(plan.tiles_j.max()) - tj0 + 1, int(plan.tiles_i.max()) - ti0 + 1)
+                lookup = np.full(shape, -1, dtype=np.int64)
+                compact = np.full(shape, -1, dtype=np.int64)
+                lookup[plan.tiles_j - tj0, plan.tiles_i - ti0] = slots
+                compact[plan.tiles_j - tj0, plan.tiles_i - ti0] = np.arange(len(keys))
+                if plan.occ_i.size:
+                    updates += apply_entries(
+                        plan.occ_i, plan.occ_j, plan.occ_kind, lookup, compact, ti0, tj0, store.shift,
+                        *pools, *params, changed,
+                    )  # fmt: skip
+                if plan.tsdf_i.size:
+                    tsdf_updates = fuse_tsdf(
+                        plan.tsdf_i, plan.tsdf_j, plan.tsdf_value, lookup, compact, ti0, tj0, store.shift,
+                        store.pool("tsdf"), store.pool("tsdf_weight"), cfg.tsdf.max_weight, changed,
+                    )  # fmt: skip
             changed_idx = np.flatnonzero(changed)
-            slots = lookup[plan.tiles_j[changed_idx] - tj0, plan.tiles_i[changed_idx] - ti0]
-            store.bump(slots)
+            store.bump(slots[changed_idx])
         return IntegrationResult(
-            int(occ_updates), int(tsdf_updates), [keys[k] for k in changed_idx.tolist()], len(new)
+            int(updates), int(tsdf_updates), [keys[k] for k in changed_idx.tolist()], len(new)
         )
 
     # -- reading ---------------------------------------------------------------------------------

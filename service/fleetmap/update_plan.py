@@ -9,13 +9,14 @@ writes a plan under the map's lock.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
 from fleetmap.config import MapConfig
 from fleetmap.kernels.beam_model import beam_model_cells
-from fleetmap.kernels.ray_model import BEAM_CLEAR, BEAM_HIT, BEAM_SKIP, trace_rays, trace_rays_marks
+from fleetmap.kernels.ray_model import BEAM_CLEAR, BEAM_HIT, BEAM_SKIP, scan_extent, trace_rays, trace_scan
 from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import trace_tsdf
 from fleetmap.kernels.update import touched_tiles
@@ -28,22 +29,23 @@ _EMPTY_KIND = np.empty(0, dtype=np.uint8)
 #: be an absurd extent for one 2D scan (e.g. 10 km across at 5 cm) and its bookkeeping would be large.
 MAX_SCAN_TILE_WINDOW = 1 << 20
 
+#: Each planning thread keeps one zeroed scratch for `trace_scan` (it leaves it zeroed).
+_scratch = threading.local()
+
 
 @dataclass(frozen=True)
 class UpdatePlan:
     """Cell updates of one scan, in global cell indices.
 
-    Hits and misses for the occupancy and counts layers come either as per-scan `marks` (tile
-    `(marks_i[k], marks_j[k])` has the `(T, T)` plane `marks[marks_planes[k]]` of CELL_MISS /
-    CELL_HIT flags: each cell updated once) or as
-    ordered entries `occ_*` (per-ray updates, and the beam model). `tsdf_*` are truncated distance
-    samples for the TSDF layer. `tiles_i/j` lists every tile any of them touches.
+    Hits and misses for the occupancy and counts layers come either as per-scan updates (`cell`,
+    `kind`: each cell once, a hit beating a miss; cell n lies in tile `cell[n] >> 2*shift` of
+    `tiles_i/j`, at local position `cell[n] & (T*T - 1)`) or as ordered entries `occ_*` (per-ray
+    updates, and the beam model). `tsdf_*` are truncated distance samples for the TSDF layer.
+    `tiles_i/j` lists every tile any of them touches, the per-scan updates' tiles first.
     """
 
-    marks: np.ndarray
-    marks_planes: np.ndarray
-    marks_i: np.ndarray
-    marks_j: np.ndarray
+    cell: np.ndarray
+    kind: np.ndarray
     occ_i: np.ndarray
     occ_j: np.ndarray
     occ_kind: np.ndarray
@@ -62,17 +64,16 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     """Every cell update `scan` implies under `config`, for tiles of `1 << shift` cells."""
     res = config.resolution
     ox, oy = scan.pose.x / res, scan.pose.y / res
-    t = 1 << shift
-    marks = np.zeros((0, t, t), dtype=np.uint8)
-    marks_planes = marks_i = marks_j = occ_i = occ_j = _EMPTY_I
-    occ_kind = _EMPTY_KIND
+    cell = occ_i = occ_j = _EMPTY_I
+    kind = occ_kind = _EMPTY_KIND
+    scan_ti = scan_tj = _EMPTY_I
     if config.has("occupancy") or config.has("counts"):
         if config.sensor_model == "beam":
             occ_i, occ_j, occ_kind = _beam_model(scan, config, ox, oy)
         elif config.update == "per_ray":
-            occ_i, occ_j, occ_kind = _ray_model(scan, config, ox, oy, shift, per_scan=False)
+            occ_i, occ_j, occ_kind = _ray_model_per_ray(scan, config, ox, oy)
         else:
-            marks_i, marks_j, marks_planes, marks = _ray_model(scan, config, ox, oy, shift, per_scan=True)
+            scan_ti, scan_tj, cell, kind = _ray_model_per_scan(scan, config, shift)
     tsdf_i = tsdf_j = _EMPTY_I
     tsdf_value = np.empty(0, dtype=np.float32)
     if config.has("tsdf"):
@@ -80,22 +81,48 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
         tsdf_i, tsdf_j, tsdf_value = trace_tsdf(
             ox, oy, scan.world_angles()[hit], scan.ranges[hit] / res, config.tsdf.truncation / res
         )
-    # One representative cell per marked tile stands for the tile in the union.
-    tiles_i, tiles_j = touched_tiles(
-        np.concatenate([marks_i << shift, occ_i, tsdf_i]),
-        np.concatenate([marks_j << shift, occ_j, tsdf_j]),
-        shift,
-    )
-    return UpdatePlan(
-        marks, marks_planes, marks_i, marks_j, occ_i, occ_j, occ_kind,
-        tsdf_i, tsdf_j, tsdf_value, tiles_i, tiles_j,
-    )  # fmt: skip
+    tiles_i, tiles_j = scan_ti, scan_tj
+    if occ_i.size or tsdf_i.size:
+        # The other updates' tiles go after the per-scan tiles, each tile once.
+        more_i, more_j = touched_tiles(
+            np.concatenate([occ_i, tsdf_i]), np.concatenate([occ_j, tsdf_j]), shift
+        )
+        known = set(zip(scan_ti.tolist(), scan_tj.tolist(), strict=True))
+        extra = [k for k in zip(more_i.tolist(), more_j.tolist(), strict=True) if k not in known]
+        if extra:
+            tiles_i = np.concatenate([scan_ti, np.array([k[0] for k in extra], dtype=np.int64)])
+            tiles_j = np.concatenate([scan_tj, np.array([k[1] for k in extra], dtype=np.int64)])
+    return UpdatePlan(cell, kind, occ_i, occ_j, occ_kind, tsdf_i, tsdf_j, tsdf_value, tiles_i, tiles_j)
 
 
-def _ray_model(scan: Scan, config: MapConfig, ox: float, oy: float, shift: int, per_scan: bool):
-    """Returns trace to their end cell (a hit); no-return beams clear `no_return_range` if set.
+def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int):
+    """The ray model with per-scan semantics, in one compiled pass (`kernels.ray_model.trace_scan`)."""
+    res = config.resolution
+    angles = scan.world_angles()
+    args = (scan.ranges, scan.range_min, scan.range_max, config.no_return_range, res)
+    xmin, ymin, xmax, ymax, used = scan_extent(scan.pose.x, scan.pose.y, angles, *args)
+    if used == 0:
+        return _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_KIND
+    ti0, ti1 = math.floor(xmin) >> shift, math.floor(xmax) >> shift
+    tj0, tj1 = math.floor(ymin) >> shift, math.floor(ymax) >> shift
+    if (ti1 - ti0 + 1) * (tj1 - tj0 + 1) > MAX_SCAN_TILE_WINDOW:
+        raise ScanError("the scan spans too large an area for one scan; check its ranges and resolution")
+    method = EXACT if config.traversal == "exact" else BRESENHAM
+    while True:
+        scratch = getattr(_scratch, "array", None)
+        if scratch is None or scratch.size < (1 << (2 * shift)):
+            scratch = _scratch.array = np.zeros(1 << (2 * shift), dtype=np.uint8)
+        tiles_i, tiles_j, cell, kind, needed = trace_scan(
+            scan.pose.x, scan.pose.y, angles, *args, method, shift, ti0, tj0, ti1, tj1, scratch
+        )
+        if not needed:
+            return tiles_i, tiles_j, cell, kind
+        _scratch.array = np.zeros(needed << (2 * shift), dtype=np.uint8)
 
-    Per scan: `(tiles_i, tiles_j, planes, marks)`; per ray: ordered entries `(ci, cj, kind)`."""
+
+def _ray_model_per_ray(scan: Scan, config: MapConfig, ox: float, oy: float):
+    """Ordered entries: returns trace to their end cell (a hit); no-return beams clear
+    `no_return_range` (at most `range_max`) if set."""
     res = config.resolution
     ranges = scan.ranges.copy()
     kind = np.full(ranges.size, BEAM_SKIP, dtype=np.uint8)
@@ -107,18 +134,7 @@ def _ray_model(scan: Scan, config: MapConfig, ox: float, oy: float, shift: int, 
         ranges[clear] = min(config.no_return_range, scan.range_max)
     ex, ey = scan.endpoints(np.where(kind == BEAM_SKIP, 0.0, ranges))
     method = EXACT if config.traversal == "exact" else BRESENHAM
-    ex /= res
-    ey /= res
-    if not per_scan:
-        return trace_rays(ox, oy, ex, ey, kind, method)
-    used = kind != BEAM_SKIP
-    xs = np.append(ex[used], ox)
-    ys = np.append(ey[used], oy)
-    ti0, ti1 = math.floor(xs.min()) >> shift, math.floor(xs.max()) >> shift
-    tj0, tj1 = math.floor(ys.min()) >> shift, math.floor(ys.max()) >> shift
-    if (ti1 - ti0 + 1) * (tj1 - tj0 + 1) > MAX_SCAN_TILE_WINDOW:
-        raise ScanError("the scan spans too large an area for one scan; check its ranges and resolution")
-    return trace_rays_marks(ox, oy, ex, ey, kind, method, shift, ti0, tj0, ti1, tj1)
+    return trace_rays(ox, oy, ex / res, ey / res, kind, method)
 
 
 def _beam_model(scan: Scan, config: MapConfig, ox: float, oy: float):

@@ -92,10 +92,11 @@ def _apply_one(
 
 
 @njit(cache=True, nogil=True)
-def apply_marks(
-    marks: np.ndarray,
-    planes: np.ndarray,
+def apply_cells(
+    cell: np.ndarray,
+    kind: np.ndarray,
     slots: np.ndarray,
+    shift: int,
     log_odds: np.ndarray,
     hits: np.ndarray,
     misses: np.ndarray,
@@ -105,47 +106,41 @@ def apply_marks(
     l_max: float,
     changed: np.ndarray,
 ) -> int:
-    """Apply per-scan mark planes (see `trace_rays_marks`) to pool slots; return cells updated.
+    """Apply per-scan updates (see `ray_model.trace_scan`) to the pools; return cells updated.
 
-    Plane `marks[planes[k]]` goes to pool slot `slots[k]`; `changed[k]` is set to 1 where a stored
-    value changed.
-    Planes are swept in memory order, so both the marks and the pools stream through the cache.
+    Cell n is in tile `cell[n] >> 2*shift`, which is pool slot `slots[that]`, at local position
+    `cell[n] & (T*T - 1)`; `changed[tile]` is set to 1 where a stored value changed. Each enabled layer
+    gets its own pass over the cells, so each inner loop is short and branch-light.
     """
-    updates = 0
-    for k in range(planes.size):
-        slot = slots[k]
-        plane = marks[planes[k]]
-        # The layer checks are hoisted out of the cell loops: one sweep per enabled layer keeps each
-        # inner loop branch-light and streaming.
-        if log_odds.size:
-            tile = log_odds[slot]
-            for lj in range(plane.shape[0]):
-                for li in range(plane.shape[1]):
-                    m = plane[lj, li]
-                    if m == 0:
-                        continue
-                    old = tile[lj, li]
-                    lo = (0.0 if math.isnan(old) else float(old)) + (l_hit if m & CELL_HIT else l_miss)
-                    new = np.float32(min(max(lo, l_min), l_max))
-                    if new != old:
-                        tile[lj, li] = new
-                        changed[k] = 1
-        if hits.size:
-            tile_hits = hits[slot]
-            tile_misses = misses[slot]
-            for lj in range(plane.shape[0]):
-                for li in range(plane.shape[1]):
-                    m = plane[lj, li]
-                    if m == 0:
-                        continue
-                    if m & CELL_HIT:
-                        if tile_hits[lj, li] != _U32_MAX:
-                            tile_hits[lj, li] += 1
-                    elif tile_misses[lj, li] != _U32_MAX:
-                        tile_misses[lj, li] += 1
-            changed[k] = 1
-        updates += np.count_nonzero(plane)
-    return updates
+    plane_shift = 2 * shift
+    local_mask = (1 << plane_shift) - 1
+    mask = (1 << shift) - 1
+    if log_odds.size:
+        flat_log_odds = log_odds.reshape(log_odds.shape[0], -1)
+        for n in range(cell.size):
+            tile = cell[n] >> plane_shift
+            slot = slots[tile]
+            q = cell[n] & local_mask
+            old = flat_log_odds[slot, q]
+            lo = (0.0 if math.isnan(old) else float(old)) + (l_hit if kind[n] & CELL_HIT else l_miss)
+            new = np.float32(min(max(lo, l_min), l_max))
+            if new != old:  # NaN != anything: a first observation is a change
+                flat_log_odds[slot, q] = new
+                changed[tile] = 1
+    if hits.size:
+        for n in range(cell.size):
+            tile = cell[n] >> plane_shift
+            slot = slots[tile]
+            q = cell[n] & local_mask
+            lj = q >> shift
+            li = q & mask
+            if kind[n] & CELL_HIT:
+                if hits[slot, lj, li] != _U32_MAX:
+                    hits[slot, lj, li] += 1
+            elif misses[slot, lj, li] != _U32_MAX:
+                misses[slot, lj, li] += 1
+            changed[tile] = 1
+    return cell.size
 
 
 @njit(cache=True, nogil=True)
@@ -176,7 +171,18 @@ def apply_entries(
     for k in range(ci.size):
         a = (cj[k] >> shift) - tj0
         b = (ci[k] >> shift) - ti0
-        if _apply_one(lookup[a, b], cj[k] & mask, ci[k] & mask, (kind[k] & CELL_HIT) != 0,
-                      log_odds, hits, misses, l_hit, l_miss, l_min, l_max):
+        if _apply_one(
+            lookup[a, b],
+            cj[k] & mask,
+            ci[k] & mask,
+            (kind[k] & CELL_HIT) != 0,
+            log_odds,
+            hits,
+            misses,
+            l_hit,
+            l_miss,
+            l_min,
+            l_max,
+        ):
             changed[compact[a, b]] = 1
     return ci.size
