@@ -1,0 +1,30 @@
+"""Python clients of the fleetmap service.
+
+* `fleetmap_client.publisher.ScanPublisher`: the robot side, publishing scans over Zenoh.
+* `fleetmap_client.rest.FleetmapClient`: a typed client of the REST API, for programs.
+* `fleetmap_client.cli`: the `fleetmap replay` and `fleetmap sim` commands.
+
+Submodules are imported lazily so that a robot that only publishes does not import httpx, and a
+program that only reads maps does not start Zenoh.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "ScanPublisher": "fleetmap_client.publisher",
+    "PublisherClosed": "fleetmap_client.publisher",
+    "FleetmapClient": "fleetmap_client.rest",
+    "FleetmapError": "fleetmap_client.rest",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'fleetmap_client' has no attribute {name!r}")
+    return getattr(importlib.import_module(module), name)

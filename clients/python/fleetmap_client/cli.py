@@ -1,0 +1,203 @@
+"""The `fleetmap replay` and `fleetmap sim` commands (robots for a running `fleetmap serve`).
+
+    fleetmap replay DATASET --map M --robot R [--rate X] [--connect EP ...] [--encoding binary|json]
+                    [--limit N] [--wait-timeout S] [--quiet]
+    fleetmap sim --robots N [--map M] [--seed S] [--rate HZ] [--seconds T] [--connect EP ...]
+                 [--encoding binary|json] [--beams B] [--wait-timeout S]
+
+`add_parser(sub)` adds both to the `fleetmap` command line (listed in `fleetmap.cli.COMMAND_MODULES`);
+`python -m fleetmap_client.cli replay ...` runs them without it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from fleetmap.cli import CliError
+
+from .publisher import DEFAULT_CONNECT, ScanPublisher
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Add `replay` and `sim` to a `fleetmap` subcommand parser."""
+    add_replay_parser(sub)
+    add_sim_parser(sub)
+
+
+def _add_connection(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--connect",
+        nargs="+",
+        metavar="EP",
+        default=None,
+        help=f"Zenoh endpoints of the service (default {DEFAULT_CONNECT[0]}, where `fleetmap serve` listens)",
+    )
+    p.add_argument("--encoding", choices=["binary", "json"], default="binary", help="payload encoding")
+    p.add_argument(
+        "--wait-timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="give up when the service is not reachable for S seconds (default: wait forever)",
+    )
+
+
+def _waiting(pub: ScanPublisher) -> None:
+    print(
+        f"waiting for the fleetmap service at {', '.join(pub.endpoints)} (start it with `fleetmap serve`; "
+        "Ctrl-C to stop)",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+# -- replay ----------------------------------------------------------------------------------------
+
+
+def add_replay_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "replay",
+        help="publish a recorded dataset to the service over Zenoh, as one robot",
+        description=(
+            "Publish a recorded laser log (CARMEN log, plain or .gz, or .mat) to a running fleetmap "
+            "service over Zenoh as one robot: scan k gets seq k. The logs carry no usable timestamps, "
+            "so --rate X publishes 10*X scans per second (0: as fast as possible, nothing dropped). "
+            "Waits for the service first; after a lost connection it waits and re-sends."
+        ),
+    )
+    p.add_argument("dataset", help="CARMEN log (plain or .gz) or MATLAB .mat file")
+    p.add_argument("--map", required=True, dest="map_id", help="map id ([A-Za-z0-9_-]{1,64})")
+    p.add_argument("--robot", required=True, dest="robot_id", help="robot id ([A-Za-z0-9_-]{1,64})")
+    p.add_argument(
+        "--rate", type=float, default=1.0, metavar="X",
+        help="speed: X times the nominal 10 scans/s (default 1; 0 = as fast as possible)",
+    )  # fmt: skip
+    p.add_argument("--limit", type=int, default=None, metavar="N", help="publish only the first N scans")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_connection(p)
+    p.set_defaults(run=run_replay)
+    return p
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    from fleetmap.datasets import DatasetError, load_dataset
+
+    from .replay import ReplayError, replay
+
+    try:
+        dataset = load_dataset(args.dataset)
+    except (DatasetError, OSError) as exc:
+        raise CliError(str(exc)) from None
+    try:
+        result = replay(
+            dataset,
+            args.map_id,
+            args.robot_id,
+            rate=args.rate,
+            connect=args.connect,
+            encoding=args.encoding,
+            limit=args.limit,
+            wait_timeout=args.wait_timeout,
+            progress=not args.quiet,
+            on_waiting=_waiting,
+        )
+    except (ValueError, ReplayError) as exc:
+        raise CliError(str(exc)) from None
+    except KeyboardInterrupt:
+        print("replay interrupted", file=sys.stderr)
+        return 130
+    resent = f", {result.resent} re-sent after a lost connection" if result.resent else ""
+    print(
+        f"replayed {result.scans} scans of {dataset.name} to map {args.map_id!r} as robot "
+        f"{args.robot_id!r} in {result.seconds:.1f} s{resent}"
+    )
+    return 0
+
+
+# -- sim -------------------------------------------------------------------------------------------
+
+
+def add_sim_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "sim",
+        help="simulated robots exploring a synthetic floor plan, publishing to the service",
+        description=(
+            "Simulated robots (ids sim-1, sim-2, ...) explore one synthetic floor plan and publish "
+            "their scans to a running fleetmap service over Zenoh in real time, each with its own "
+            "Zenoh session and liveliness token, until --seconds pass or Ctrl-C."
+        ),
+    )
+    p.add_argument("--robots", type=int, default=3, metavar="N", help="number of robots (default 3)")
+    p.add_argument("--map", default="sim", dest="map_id", help="map id (default sim)")
+    p.add_argument("--seed", type=int, default=1, help="floor plan and robots seed (default 1)")
+    p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="scans per second per robot")
+    p.add_argument(
+        "--seconds", type=float, default=None, metavar="T", help="stop after T s (default: Ctrl-C)"
+    )
+    p.add_argument("--beams", type=int, default=1081, help="beams per scan over 270 degrees (default 1081)")
+    p.add_argument("--speed", type=float, default=1.0, help="robot speed, m/s (default 1)")
+    _add_connection(p)
+    p.set_defaults(run=run_sim_command)
+    return p
+
+
+def run_sim_command(args: argparse.Namespace) -> int:
+    import threading
+
+    from .sim import SimError, run_sim
+
+    stop = threading.Event()
+    print(
+        f"sim: {args.robots} robots on map {args.map_id!r} (floor plan seed {args.seed}), "
+        f"{args.rate:g} scans/s each" + (f" for {args.seconds:g} s" if args.seconds is not None else ""),
+        flush=True,
+    )
+    try:
+        result = run_sim(
+            args.robots,
+            map_id=args.map_id,
+            seed=args.seed,
+            rate=args.rate,
+            seconds=args.seconds,
+            connect=args.connect,
+            encoding=args.encoding,
+            beams=args.beams,
+            speed=args.speed,
+            wait_timeout=args.wait_timeout,
+            stop=stop,
+            on_waiting=_waiting,
+        )
+    except (ValueError, SimError) as exc:
+        raise CliError(str(exc)) from None
+    except KeyboardInterrupt:
+        # run_sim's finally blocks stopped the robots and closed their sessions.
+        print("sim stopped", file=sys.stderr)
+        return 0
+    dropped = sum(result.dropped.values())
+    print(
+        f"sim: {len(result.robots)} robots published {result.total} scans in {result.seconds:.1f} s"
+        + (f" ({dropped} dropped while the service was unreachable)" if dropped else "")
+    )
+    return 0
+
+
+# -- standalone ------------------------------------------------------------------------------------
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m fleetmap_client.cli {replay,sim} ...`: the same commands outside `fleetmap`."""
+    parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    add_parser(sub)
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except CliError as exc:
+        print(f"fleetmap {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

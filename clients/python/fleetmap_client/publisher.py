@@ -1,0 +1,334 @@
+"""The robot side: publish laser scans to a fleetmap service over Zenoh.
+
+    from fleetmap_client.publisher import ScanPublisher
+
+    with ScanPublisher("warehouse", "robot-7", connect=["tcp/10.0.0.5:7447"]) as pub:
+        pub.wait_connected(timeout=30)          # optional: until the service is reachable
+        while running:
+            pub.publish(scan)                   # a fleetmap.scan.Scan: SENSOR pose in the map frame
+
+What it does on the wire (the schema is `fleetmap.wire`, the byte layout docs/protocol.md):
+
+* one Zenoh session in CLIENT mode connecting to `connect` (the service's own Zenoh session is a
+  router, so no zenohd is needed); multicast scouting is off;
+* a liveliness token `fleetmap/<map_id>/<robot_id>/alive`, so the service shows the robot online
+  while the session lives;
+* scans on `fleetmap/<map_id>/<robot_id>/scan`, binary (`application/x-fleetmap-scan`) or JSON
+  (`application/json`), RELIABLE, and by default with `CongestionControl.BLOCK` so that a busy link
+  slows the robot down instead of dropping scans.
+
+Connection behaviour. The constructor returns at once; the session is opened by a background thread
+that keeps trying until the service answers (Zenoh's own `zenoh.open` in client mode either fails
+at once or, with `connect/timeout_ms: -1`, blocks the caller until a router listens; a loop of
+bounded attempts gives the same "wait for the service" behaviour while letting `close()` and Ctrl-C
+stop it). Once connected, Zenoh itself reconnects after the service restarts or the link drops.
+
+A scan published while no router is connected is DROPPED (Zenoh keeps no backlog for a missing
+route): `publish` then returns False and counts it in `dropped`. Call `wait_connected()` before
+publishing anything that must arrive (the replay command does; it also re-sends a scan that was
+dropped that way after waiting for the reconnection).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
+
+import zenoh
+
+from fleetmap.codec import encode_binary, encode_json
+from fleetmap.scan import Scan
+from fleetmap.wire import ALIVE_KEY, BINARY_ENCODING, JSON_ENCODING, SCAN_KEY, ScanMessage, is_valid_id
+
+#: Where `fleetmap serve` listens by default.
+DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
+
+#: How long one connection attempt of the background opener may take. Zenoh retries within an
+#: attempt; between attempts the opener checks whether the publisher was closed.
+CONNECT_ATTEMPT_MS = 1000
+
+Encoding = Literal["binary", "json"]
+
+
+class PublisherClosed(RuntimeError):
+    """`publish` on a publisher that was closed."""
+
+
+def client_config(
+    connect: Sequence[str] | None = None, zenoh_config: zenoh.Config | str | Path | None = None
+) -> zenoh.Config:
+    """The Zenoh configuration of a robot's session.
+
+    Starts from `zenoh_config` (a `zenoh.Config`, or the path of a JSON5 configuration file) or an
+    empty configuration, then fills in what it leaves unset: mode `client`, connect endpoints
+    (`connect`, else `DEFAULT_CONNECT`; an explicit `connect` always wins), `connect/timeout_ms` of
+    one attempt (`CONNECT_ATTEMPT_MS`) and multicast scouting off. Raises ValueError for a bad file
+    or endpoint list.
+    """
+    if zenoh_config is None:
+        cfg = zenoh.Config()
+    elif isinstance(zenoh_config, zenoh.Config):
+        # zenoh.open does not consume a Config, but copy anyway so our insertions stay ours.
+        cfg = zenoh.Config.from_json5(str(zenoh_config))
+    else:
+        try:
+            cfg = zenoh.Config.from_file(str(zenoh_config))
+        except (zenoh.ZError, OSError) as exc:
+            raise ValueError(f"cannot read Zenoh configuration {zenoh_config}: {exc}") from None
+    if _get(cfg, "mode") is None:
+        cfg.insert_json5("mode", '"client"')
+    if connect is not None or not _get(cfg, "connect/endpoints"):
+        endpoints = list(DEFAULT_CONNECT if connect is None else connect)
+        if not endpoints or not all(isinstance(e, str) and e for e in endpoints):
+            raise ValueError(f"connect must be a non-empty list of Zenoh endpoints, got {connect!r}")
+        try:
+            cfg.insert_json5("connect/endpoints", _json_list(endpoints))
+        except zenoh.ZError as exc:
+            raise ValueError(f"invalid Zenoh endpoint in {endpoints}: {exc}") from None
+    if _get(cfg, "connect/timeout_ms") is None:
+        cfg.insert_json5("connect/timeout_ms", str(CONNECT_ATTEMPT_MS))
+    if _get(cfg, "scouting/multicast/enabled") is None:
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+    return cfg
+
+
+def _get(cfg: zenoh.Config, key: str) -> Any:
+    """A configuration value as Python (None when unset)."""
+    return json.loads(cfg.get_json(key))
+
+
+def _json_list(items: Sequence[str]) -> str:
+    return json.dumps(list(items))
+
+
+class ScanPublisher:
+    """Publishes one robot's scans to one map over Zenoh. Thread-safe.
+
+    Args:
+        map_id, robot_id: ids matching `fleetmap.wire.ID_PATTERN` (`[A-Za-z0-9_-]{1,64}`); anything
+            else raises ValueError at construction.
+        connect: Zenoh endpoints of the service (default: those of `zenoh_config`, else
+            `tcp/127.0.0.1:7447`, where `fleetmap serve` listens by default).
+        encoding: "binary" (compact, for high rates) or "json".
+        zenoh_config: a `zenoh.Config` or JSON5 file to start from (see `client_config`).
+        block: True (default) publishes with `CongestionControl.BLOCK` (a full link blocks `publish`,
+            no scan is dropped); False uses `DROP` (best effort: never blocks, may drop under load).
+
+    The session opens in the background (see the module docstring): use `wait_connected`.
+    """
+
+    def __init__(
+        self,
+        map_id: str,
+        robot_id: str,
+        connect: Sequence[str] | None = None,
+        encoding: Encoding = "binary",
+        zenoh_config: zenoh.Config | str | Path | None = None,
+        block: bool = True,
+    ) -> None:
+        for name, value in (("map_id", map_id), ("robot_id", robot_id)):
+            if not isinstance(value, str) or not is_valid_id(value):
+                raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
+        if encoding not in ("binary", "json"):
+            raise ValueError(f"encoding must be 'binary' or 'json', got {encoding!r}")
+        self.map_id = map_id
+        self.robot_id = robot_id
+        self.encoding: Encoding = encoding
+        self.block = block
+        self.scan_key = SCAN_KEY.format(map_id=map_id, robot_id=robot_id)
+        self.alive_key = ALIVE_KEY.format(map_id=map_id, robot_id=robot_id)
+        self._config = client_config(connect, zenoh_config)
+        self.endpoints: list[str] = list(_get(self._config, "connect/endpoints") or [])
+        self._encode = encode_binary if encoding == "binary" else encode_json
+        self._zenoh_encoding = zenoh.Encoding(BINARY_ENCODING if encoding == "binary" else JSON_ENCODING)
+        # _lock guards the session objects and the counters; the opener thread sets them.
+        self._lock = threading.Lock()
+        self._opened = threading.Event()
+        self._closed = threading.Event()
+        self._session: zenoh.Session | None = None
+        self._publisher: zenoh.Publisher | None = None
+        self._token: zenoh.LivelinessToken | None = None
+        self._next_seq = 0
+        self._last_seq: int | None = None
+        #: Scans handed to Zenoh while a router (or peer) was connected.
+        self.published = 0
+        #: Scans dropped because no router was connected (see the module docstring).
+        self.dropped = 0
+        #: The last error of a connection attempt (e.g. "Unable to connect ..."), for diagnostics.
+        self.last_connect_error: str | None = None
+        self._opener = threading.Thread(
+            target=self._open_loop, name=f"fleetmap-publisher-{map_id}-{robot_id}", daemon=True
+        )
+        self._opener.start()
+
+    # -- connection --------------------------------------------------------------------------------
+
+    def _open_loop(self) -> None:
+        """Open the session, retrying until it works or the publisher is closed."""
+        while not self._closed.is_set():
+            started = time.monotonic()
+            try:
+                session = zenoh.open(self._config)
+            except zenoh.ZError as exc:
+                self.last_connect_error = str(exc).split(" at /", 1)[0]
+                # An attempt that failed fast (e.g. connection refused with a zero timeout) must not spin.
+                self._closed.wait(max(0.0, 0.2 - (time.monotonic() - started)))
+                continue
+            congestion = zenoh.CongestionControl.BLOCK if self.block else zenoh.CongestionControl.DROP
+            with self._lock:
+                if self._closed.is_set():
+                    session.close()
+                    return
+                self._token = session.liveliness().declare_token(self.alive_key)
+                self._publisher = session.declare_publisher(
+                    self.scan_key,
+                    encoding=self._zenoh_encoding,
+                    congestion_control=congestion,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
+                self._session = session
+                self.last_connect_error = None
+            self._opened.set()
+            return
+
+    @property
+    def connected(self) -> bool:
+        """True while the session is connected to at least one router or peer."""
+        session = self._session
+        if session is None or self._closed.is_set():
+            return False
+        info = session.info
+        return bool(info.routers_zid() or info.peers_zid())
+
+    @property
+    def subscribed(self) -> bool:
+        """True when Zenoh knows a subscriber for this robot's scan key (the service is listening)."""
+        pub = self._publisher
+        return pub is not None and not self._closed.is_set() and bool(pub.matching_status.matching)
+
+    def wait_connected(self, timeout: float | None = None, *, require_subscriber: bool = True) -> bool:
+        """Wait until the session is connected and, with `require_subscriber` (default), until a
+        subscriber of the scan key is known, i.e. the service's ingest is reachable and listening.
+
+        Returns True when that happened, False when `timeout` seconds (None: no limit) passed first
+        or the publisher was closed. Polls every 10 ms, so Ctrl-C interrupts it.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._closed.is_set():
+            if self.connected and (not require_subscriber or self.subscribed):
+                return True
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+        return False
+
+    # -- publishing --------------------------------------------------------------------------------
+
+    @property
+    def last_seq(self) -> int | None:
+        """The seq of the last published (or dropped) scan, None before the first."""
+        return self._last_seq
+
+    @property
+    def next_seq(self) -> int:
+        """The seq the next `publish` without an explicit seq will use."""
+        return self._next_seq
+
+    def publish(self, scan: Scan | ScanMessage, seq: int | None = None, stamp: float | None = None) -> bool:
+        """Encode and publish one scan.
+
+        `scan` is an engine `Scan` (or a `ScanMessage`, converted with `to_scan`; its seq and stamp
+        are the defaults then). `seq` defaults to an automatic counter starting at 0; an explicit
+        seq also moves the counter to seq + 1. `stamp` defaults to the current time (seconds since
+        the epoch). With `block=True` this may block while the link is congested.
+
+        Returns True when the scan was handed to a connected session, False when it was dropped
+        because no router is connected (counted in `dropped`). Raises `PublisherClosed` after
+        `close()`, ValueError for a negative or too large seq or a non-finite stamp, and
+        `fleetmap.scan.ScanError` for a `ScanMessage` the engine refuses.
+        """
+        if isinstance(scan, ScanMessage):
+            seq = scan.seq if seq is None else seq
+            stamp = scan.stamp if stamp is None else stamp
+            scan = scan.to_scan()
+        if stamp is None:
+            stamp = time.time()
+        if not math.isfinite(stamp):
+            raise ValueError(f"stamp must be finite, got {stamp}")
+        with self._lock:
+            if self._closed.is_set():
+                raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
+            if seq is None:
+                seq = self._next_seq
+            if not 0 <= seq < 2**63:
+                raise ValueError(f"seq must be in [0, 2**63), got {seq}")
+            self._next_seq = seq + 1
+            self._last_seq = seq
+            publisher = self._publisher
+        payload = self._encode(scan, seq, float(stamp))
+        if publisher is None or not self.connected:
+            with self._lock:
+                self.dropped += 1
+            return False
+        try:
+            publisher.put(payload)
+        except zenoh.ZError:
+            # Only possible when close() raced with this call: report it like a disconnection.
+            with self._lock:
+                self.dropped += 1
+            return False
+        with self._lock:
+            self.published += 1
+        return True
+
+    # -- lifetime ----------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Withdraw the liveliness token, undeclare the publisher and close the session. Idempotent.
+
+        Scans already handed to Zenoh are flushed by the session close (reliable channel)."""
+        with self._lock:
+            if self._closed.is_set():
+                return
+            self._closed.set()
+            session, self._session = self._session, None
+            publisher, self._publisher = self._publisher, None
+            token, self._token = self._token, None
+        for thing in (token, publisher):
+            if thing is not None:
+                with contextlib.suppress(zenoh.ZError):
+                    thing.undeclare()
+        if session is not None:
+            with contextlib.suppress(zenoh.ZError):
+                session.close()
+        # The opener exits after its current attempt; it is a daemon, so don't wait for it long.
+        self._opener.join(timeout=0.1)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed.is_set()
+
+    def __enter__(self) -> ScanPublisher:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self.closed else "connected" if self.connected else "connecting"
+        return (
+            f"ScanPublisher(map_id={self.map_id!r}, robot_id={self.robot_id!r}, encoding={self.encoding!r}, "
+            f"{state}, endpoints={self.endpoints})"
+        )
+
+
+__all__ = ["CONNECT_ATTEMPT_MS", "DEFAULT_CONNECT", "PublisherClosed", "ScanPublisher", "client_config"]

@@ -1,0 +1,427 @@
+"""A typed client of the fleetmap REST API, for programs that read (or feed) maps over HTTP.
+
+    from fleetmap_client.rest import FleetmapClient, FleetmapError
+
+    with FleetmapClient("http://127.0.0.1:8000") as fm:
+        fm.create_map("warehouse", {"resolution": 0.05})
+        fm.post_scan("warehouse", "robot-7", scan, seq=0)   # a Scan, ScanMessage or dict
+        p = fm.cell("warehouse", 1.0, 2.0).probability
+        probs = fm.cells("warehouse", [[1.0, 2.0], [3.0, 4.0]])["probability"]   # numpy arrays
+        grid = fm.region("warehouse", 0, 0, 10, 10, layer="probability")      # (ny, nx), row 0 = lowest y
+        for event, data in fm.events("warehouse"):                             # live changes
+            ...
+
+Answers are parsed into the models of `fleetmap.api_models` (the same classes the server answers
+with), array answers into NumPy arrays. Every error answer of the server raises `FleetmapError` with
+its HTTP status and the server's `detail` sentence; network failures raise httpx's own
+`httpx.TransportError` (e.g. `httpx.ConnectError` when nothing listens). A service started with
+API tokens answers 401 / 403 without the right one: pass `token=` (or set $FLEETMAP_TOKEN).
+Map and robot ids are checked before any request (ValueError), because an id with a `/` would
+address another resource. The endpoint reference is the OpenAPI spec (openapi/openapi.json).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from types import TracebackType
+from typing import Any, Literal
+
+import httpx
+import numpy as np
+from pydantic import ValidationError
+
+from fleetmap.api_models import (
+    CellsResponse,
+    CellValue,
+    ErrorResponse,
+    Health,
+    MapInfo,
+    MapList,
+    MapSummary,
+    ScanResult,
+    Surface,
+)
+from fleetmap.codec import encode_binary, encode_json
+from fleetmap.config import MapConfig
+from fleetmap.scan import Scan
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
+
+#: The environment variable `FleetmapClient` reads its API token from when given none.
+TOKEN_ENV = "FLEETMAP_TOKEN"
+
+Layer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
+
+
+class FleetmapError(Exception):
+    """An error answer of the service: `status` (HTTP status code), `detail` (the server's sentence
+    saying what is wrong), `errors` (the individual validation problems, when the server listed them)."""
+
+    def __init__(self, status: int, detail: str, errors: list[dict[str, Any]] | None = None) -> None:
+        super().__init__(f"{status}: {detail}")
+        self.status = status
+        self.detail = detail
+        self.errors = errors or []
+
+
+def _check_id(name: str, value: str) -> str:
+    if not isinstance(value, str) or not is_valid_id(value):
+        raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
+    return value
+
+
+def _bounds(
+    xmin: float | None, ymin: float | None, xmax: float | None, ymax: float | None
+) -> dict[str, float]:
+    """Query parameters of a window: all four bounds, or none (the map's observed extent)."""
+    given = [b is not None for b in (xmin, ymin, xmax, ymax)]
+    if not any(given):
+        return {}
+    if not all(given):
+        raise ValueError("give all of xmin, ymin, xmax and ymax, or none of them (the observed extent)")
+    return {"xmin": float(xmin), "ymin": float(ymin), "xmax": float(xmax), "ymax": float(ymax)}  # type: ignore[arg-type]
+
+
+class FleetmapClient:
+    """A synchronous client of one fleetmap service at `base_url` (e.g. "http://127.0.0.1:8000").
+
+    `timeout` (seconds) applies to every request except the event stream's reads, which wait as long
+    as the stream lives (the server sends a keepalive every 15 s). `token`: an API token of the
+    service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
+    from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it).
+    Thread-safe (one httpx.Client); use as a context manager or call `close()`.
+    """
+
+    def __init__(
+        self, base_url: str = "http://127.0.0.1:8000", timeout: float = 10.0, token: str | None = None
+    ) -> None:
+        self.base_url = base_url.rstrip("/")
+        self.timeout = timeout
+        token = token if token is not None else os.environ.get(TOKEN_ENV) or None
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers)
+        #: Next automatic seq per (map_id, robot_id) for `post_scan` of a `Scan` without a seq.
+        self._next_seq: dict[tuple[str, str], int] = {}
+
+    # -- plumbing ----------------------------------------------------------------------------------
+
+    def _request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
+        response = self._http.request(method, url, **kwargs)
+        _raise_for_error(response)
+        return response
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> FleetmapClient:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"FleetmapClient({self.base_url!r})"
+
+    # -- service -----------------------------------------------------------------------------------
+
+    def health(self) -> Health:
+        """`GET /healthz`: maps held, robots online, ingest queue depth, Zenoh status."""
+        return Health.model_validate_json(self._request("GET", "/healthz").content)
+
+    def metrics(self) -> str:
+        """`GET /metrics`: the Prometheus text exposition."""
+        return self._request("GET", "/metrics").text
+
+    # -- maps --------------------------------------------------------------------------------------
+
+    def list_maps(self) -> list[MapSummary]:
+        """`GET /maps`: every map with its resolution, layers and counters, sorted by id."""
+        return MapList.model_validate_json(self._request("GET", "/maps").content).maps
+
+    def create_map(self, map_id: str, config: MapConfig | Mapping[str, Any] | None = None) -> MapInfo:
+        """`PUT /maps/{map_id}`: create a map with `config` (None: the server's default). Creating a
+        map that exists with the same configuration is a no-op; with a different one it raises
+        `FleetmapError` 409. A bad configuration raises 422 with the server's reason."""
+        _check_id("map_id", map_id)
+        if config is None:
+            kwargs: dict[str, Any] = {}
+        elif isinstance(config, MapConfig):
+            kwargs = {"content": config.model_dump_json(), "headers": {"content-type": JSON_ENCODING}}
+        else:
+            kwargs = {"json": dict(config)}
+        return MapInfo.model_validate_json(self._request("PUT", f"/maps/{map_id}", **kwargs).content)
+
+    def get_map(self, map_id: str) -> MapInfo:
+        """`GET /maps/{map_id}`: configuration and statistics (per-robot counters, bounds, tiles)."""
+        _check_id("map_id", map_id)
+        return MapInfo.model_validate_json(self._request("GET", f"/maps/{map_id}").content)
+
+    def delete_map(self, map_id: str) -> None:
+        """`DELETE /maps/{map_id}`; `FleetmapError` 404 if there is no such map."""
+        _check_id("map_id", map_id)
+        self._request("DELETE", f"/maps/{map_id}")
+
+    # -- scans -------------------------------------------------------------------------------------
+
+    def post_scan(
+        self,
+        map_id: str,
+        robot_id: str,
+        scan: Scan | ScanMessage | Mapping[str, Any],
+        seq: int | None = None,
+        stamp: float | None = None,
+        encoding: Literal["json", "binary"] = "json",
+    ) -> ScanResult:
+        """`POST /maps/{map_id}/scans?robot_id=...`: integrate one scan and wait until it is in the map.
+
+        `scan` is an engine `Scan` (sent with `seq`, default an automatic per-robot counter from 0 in
+        this client, and `stamp`, default 0), a `ScanMessage`, or a dict in the JSON scan format
+        (`seq` / `stamp`, when given, override theirs). `encoding` chooses the body for a `Scan`
+        (JSON or the binary encoding of docs/protocol.md). Returns the `ScanResult` (status
+        "integrated", or "duplicate" when the seq was not new). Raises `FleetmapError` 422 for an
+        invalid scan, 404 for an unknown map when the server does not create maps on first use.
+        """
+        _check_id("map_id", map_id)
+        _check_id("robot_id", robot_id)
+        if isinstance(scan, Scan):
+            if seq is None:
+                seq = self._next_seq.get((map_id, robot_id), 0)
+            stamp = 0.0 if stamp is None else float(stamp)
+            if encoding == "binary":
+                body, content_type = encode_binary(scan, seq, stamp), BINARY_ENCODING
+            else:
+                body, content_type = encode_json(scan, seq, stamp), JSON_ENCODING
+        else:
+            message: dict[str, Any] = (
+                scan.model_dump(mode="json", exclude_none=True)
+                if isinstance(scan, ScanMessage)
+                else dict(scan)
+            )
+            if seq is not None:
+                message["seq"] = seq
+            if stamp is not None:
+                message["stamp"] = stamp
+            body = json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+            content_type = JSON_ENCODING
+            seq = message.get("seq") if isinstance(message.get("seq"), int) else None
+        response = self._request(
+            "POST", f"/maps/{map_id}/scans", params={"robot_id": robot_id}, content=body,
+            headers={"content-type": content_type},
+        )  # fmt: skip
+        if seq is not None:
+            self._next_seq[(map_id, robot_id)] = seq + 1
+        return ScanResult.model_validate_json(response.content)
+
+    # -- queries -----------------------------------------------------------------------------------
+
+    def cell(self, map_id: str, x: float, y: float) -> CellValue:
+        """`GET /maps/{map_id}/cell`: every layer's value in the cell containing the map point (x, y)."""
+        _check_id("map_id", map_id)
+        response = self._request("GET", f"/maps/{map_id}/cell", params={"x": _finite(x), "y": _finite(y)})
+        return CellValue.model_validate_json(response.content)
+
+    def cells(self, map_id: str, points: Sequence[Sequence[float]] | np.ndarray) -> dict[str, np.ndarray]:
+        """`POST /maps/{map_id}/cells`: every layer at many map points at once.
+
+        `points` is (n, 2) x, y in metres. Returns one NumPy array per field, one entry per point in
+        order: `i`, `j` (int64 cell indices), `known` (bool), and for the layers the map keeps:
+        `log_odds` (float64, NaN if unknown), `probability` (float64, 0.5 if unknown), `state` (str:
+        "unknown" / "free" / "occupied"), `hits`, `misses` (int64), `tsdf` (float64, NaN if unknown),
+        `tsdf_weight` (float64). Fields of layers the map does not keep are absent.
+        """
+        _check_id("map_id", map_id)
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if not np.isfinite(pts).all():
+            raise ValueError("points must be finite numbers")
+        response = self._request("POST", f"/maps/{map_id}/cells", json={"points": pts.tolist()})
+        parsed = CellsResponse.model_validate_json(response.content)
+        out: dict[str, np.ndarray] = {
+            "i": np.array(parsed.i, dtype=np.int64),
+            "j": np.array(parsed.j, dtype=np.int64),
+            "known": np.array(parsed.known, dtype=bool),
+        }
+        floats = {"log_odds": parsed.log_odds, "probability": parsed.probability, "tsdf": parsed.tsdf,
+                  "tsdf_weight": parsed.tsdf_weight}  # fmt: skip
+        for name, values in floats.items():
+            if values is not None:
+                out[name] = np.array([math.nan if v is None else v for v in values], dtype=np.float64)
+        for name, counts in (("hits", parsed.hits), ("misses", parsed.misses)):
+            if counts is not None:
+                out[name] = np.array(counts, dtype=np.int64)
+        if parsed.state is not None:
+            out["state"] = np.array(parsed.state, dtype=str)
+        return out
+
+    def region(
+        self,
+        map_id: str,
+        xmin: float | None = None,
+        ymin: float | None = None,
+        xmax: float | None = None,
+        ymax: float | None = None,
+        layer: Layer = "probability",
+    ) -> np.ndarray:
+        """`GET /maps/{map_id}/region?format=npy`: a dense window of one layer.
+
+        The cells with index in [floor(xmin/res), floor(xmax/res)) x [floor(ymin/res), floor(ymax/res));
+        no bounds at all: the map's observed extent. Shape (ny, nx), row 0 = the LOWEST y; float32
+        with NaN for unknown (log_odds, probability, tsdf), uint32 counts (hits, misses), uint8 state
+        codes (0 unknown, 1 free, 2 occupied). Use `region_window` for where the window lies.
+        """
+        return self.region_window(map_id, xmin, ymin, xmax, ymax, layer)[0]
+
+    def region_window(
+        self,
+        map_id: str,
+        xmin: float | None = None,
+        ymin: float | None = None,
+        xmax: float | None = None,
+        ymax: float | None = None,
+        layer: Layer = "probability",
+    ) -> tuple[np.ndarray, tuple[int, int, int, int], tuple[float, float]]:
+        """`region`, plus the cell window (i0, j0, i1, j1) and the map point (x, y) of its lower-left
+        corner, from the answer's X-Fleetmap-Window / X-Fleetmap-Origin headers."""
+        _check_id("map_id", map_id)
+        params: dict[str, Any] = {**_bounds(xmin, ymin, xmax, ymax), "layer": layer, "format": "npy"}
+        response = self._request("GET", f"/maps/{map_id}/region", params=params)
+        array = np.load(io.BytesIO(response.content), allow_pickle=False)
+        i0, j0, i1, j1 = (int(v) for v in response.headers["X-Fleetmap-Window"].split(","))
+        ox, oy = (float(v) for v in response.headers["X-Fleetmap-Origin"].split(","))
+        return array, (i0, j0, i1, j1), (ox, oy)
+
+    def region_png(
+        self,
+        map_id: str,
+        xmin: float | None = None,
+        ymin: float | None = None,
+        xmax: float | None = None,
+        ymax: float | None = None,
+        layer: Layer = "probability",
+    ) -> bytes:
+        """`GET /maps/{map_id}/region?format=png`: the window as a grayscale + alpha PNG (top row =
+        highest y, unknown transparent)."""
+        _check_id("map_id", map_id)
+        params: dict[str, Any] = {**_bounds(xmin, ymin, xmax, ymax), "layer": layer, "format": "png"}
+        return self._request("GET", f"/maps/{map_id}/region", params=params).content
+
+    def tile(
+        self, map_id: str, z: int, x: int, y: int, layer: Layer = "probability", etag: str | None = None
+    ) -> tuple[bytes | None, str]:
+        """`GET /maps/{map_id}/tiles/{z}/{x}/{y}.png`: a 256 x 256 RGBA tile (Leaflet CRS.Simple,
+        zoom 0 = one pixel per cell). With the `etag` of an earlier answer, returns (None, etag) while
+        the tile is unchanged (the server answered 304), else (png bytes, new etag)."""
+        _check_id("map_id", map_id)
+        headers = {"If-None-Match": etag} if etag else {}
+        response = self._request(
+            "GET", f"/maps/{map_id}/tiles/{int(z)}/{int(x)}/{int(y)}.png", params={"layer": layer},
+            headers=headers,
+        )  # fmt: skip
+        new_etag = response.headers.get("ETag", "")
+        if response.status_code == 304:
+            return None, new_etag or (etag or "")
+        return response.content, new_etag
+
+    def surface(
+        self,
+        map_id: str,
+        xmin: float | None = None,
+        ymin: float | None = None,
+        xmax: float | None = None,
+        ymax: float | None = None,
+    ) -> np.ndarray:
+        """`GET /maps/{map_id}/surface`: TSDF zero-crossing points, sub-cell interpolated, as an
+        (n, 2) float64 array of x, y in metres (window as for `region`). `FleetmapError` 422 if the
+        map keeps no TSDF layer."""
+        _check_id("map_id", map_id)
+        response = self._request("GET", f"/maps/{map_id}/surface", params=_bounds(xmin, ymin, xmax, ymax))
+        parsed = Surface.model_validate_json(response.content)
+        return np.array(parsed.points, dtype=np.float64).reshape(-1, 2)
+
+    def export(self, map_id: str, format: Literal["ros", "png"] = "ros", margin: int | None = None) -> bytes:
+        """`GET /maps/{map_id}/export`: "ros" = a zip of map.yaml + map.pgm (nav2 map_server), "png"
+        = one grayscale PNG; `margin` unknown cells around the observed extent (server default 2).
+        `FleetmapError` 409 for a map with no observed cell."""
+        _check_id("map_id", map_id)
+        params: dict[str, Any] = {"format": format}
+        if margin is not None:
+            params["margin"] = margin
+        return self._request("GET", f"/maps/{map_id}/export", params=params).content
+
+    # -- live events -------------------------------------------------------------------------------
+
+    def events(self, map_id: str, since: int | None = None) -> Iterator[tuple[str, dict[str, Any]]]:
+        """`GET /maps/{map_id}/events`: the map's server-sent events as (event, data) pairs, e.g.
+        ("tiles", {"version": 7, "tiles": [[i0, j0, i1, j1], ...]}) or ("tiles", {"version": 9,
+        "reset": True}), ("robots", {"robots": {...}}), ("deleted", {"id": ...}) after which the
+        stream ends. Keepalive comments are skipped. `since`: resume after that change version.
+
+        The iterator is lazy: the request is made on the first `next()`. It ends when the server
+        closes the stream; close it early with `.close()` on the generator (or by leaving a `for`
+        loop and dropping it). Raises `FleetmapError` (e.g. 404 unknown map) on the first `next()`.
+        """
+        _check_id("map_id", map_id)
+        params = {} if since is None else {"since": since}
+        timeout = httpx.Timeout(self.timeout, read=None)  # the stream may be idle for a while
+        with self._http.stream("GET", f"/maps/{map_id}/events", params=params, timeout=timeout) as response:
+            if response.status_code >= 400:
+                response.read()
+                _raise_for_error(response)
+            yield from parse_sse(response.iter_lines())
+
+
+def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
+    """(event, data) pairs of a text/event-stream given as lines (without line ends), per the
+    HTML server-sent events rules: `event:` names the event (default "message"), `data:` lines are
+    joined by newlines and parsed as JSON (a non-JSON data becomes {"data": text}), a blank line
+    dispatches, lines starting with ":" are comments; `id:` and `retry:` are ignored."""
+    event, data = "", []
+    for line in lines:
+        if line == "":
+            if data:
+                text = "\n".join(data)
+                try:
+                    parsed = json.loads(text)
+                except json.JSONDecodeError:
+                    parsed = {"data": text}
+                yield event or "message", parsed if isinstance(parsed, dict) else {"data": parsed}
+            event, data = "", []
+            continue
+        if line.startswith(":"):
+            continue
+        field, _, value = line.partition(":")
+        value = value.removeprefix(" ")
+        if field == "event":
+            event = value
+        elif field == "data":
+            data.append(value)
+
+
+def _finite(value: float) -> float:
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"coordinates must be finite, got {value!r}")
+    return v
+
+
+def _raise_for_error(response: httpx.Response) -> None:
+    """Raise `FleetmapError` for a 4xx / 5xx answer, with the server's detail."""
+    if response.status_code < 400:
+        return
+    detail = response.text.strip() or response.reason_phrase
+    errors: list[dict[str, Any]] = []
+    try:
+        parsed = ErrorResponse.model_validate_json(response.content)
+    except ValidationError:
+        pass
+    else:
+        detail = parsed.detail
+        errors = [e.model_dump() for e in parsed.errors or []]
+    raise FleetmapError(response.status_code, detail, errors)
+
+
+__all__ = ["TOKEN_ENV", "FleetmapClient", "FleetmapError", "Layer", "parse_sse"]

@@ -1,0 +1,364 @@
+"""`FleetmapClient` (the typed REST client) against the real service, started as a process
+(`python -m fleetmap.server` on free ports, tests/service_process.py), over real HTTP; and the
+robot-side clients (`ScanPublisher`, `fleetmap replay`) feeding that service over real Zenoh.
+
+Where the service answers with map content, it is compared with the engine's own `GridMap` of the
+same scans (decoded from the same payloads, so float32 wire rounding is the same on both sides).
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+from fleetmap_client import cli
+from fleetmap_client.publisher import ScanPublisher
+from fleetmap_client.rest import FleetmapClient, FleetmapError, parse_sse
+from PIL import Image
+from service_process import ServiceProcess, free_port, wait_for
+
+from fleetmap.codec import decode, encode_binary, encode_json
+from fleetmap.config import MapConfig
+from fleetmap.datasets import load_dataset
+from fleetmap.grid_map import STATE_NAMES, GridMap
+from fleetmap.scan import Scan
+from fleetmap.sim import SimulatedRobot, generate_floorplan
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage
+
+CONFIG = MapConfig(resolution=0.1, tile_size=64)
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One real service for the module (each test uses its own map ids)."""
+    with ServiceProcess(tmp_path_factory.mktemp("service")) as svc:
+        yield svc
+
+
+@pytest.fixture
+def client(service: ServiceProcess) -> Iterator[FleetmapClient]:
+    with FleetmapClient(service.base_url, timeout=20.0) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def scans() -> list[Scan]:
+    plan = generate_floorplan(7, width_m=20.0, height_m=15.0)
+    robot = SimulatedRobot(plan, seed=11, num_beams=271, range_max=10.0)
+    return [robot.tick() for _ in range(8)]
+
+
+def _engine_map(wire_scans: list[Scan]) -> GridMap:
+    gmap = GridMap(CONFIG)
+    for scan in wire_scans:
+        gmap.integrate(scan)
+    return gmap
+
+
+def _assert_cells_equal(got: dict[str, np.ndarray], expected: dict[str, np.ndarray]) -> None:
+    """The client's cells() arrays against GridMap.cells() of the same points."""
+    np.testing.assert_array_equal(got["known"], expected["known"])
+    for name in ("log_odds", "probability", "tsdf", "tsdf_weight"):
+        np.testing.assert_allclose(got[name], expected[name].astype(np.float64), rtol=1e-6, equal_nan=True)
+    for name in ("hits", "misses"):
+        np.testing.assert_array_equal(got[name], expected[name].astype(np.int64))
+    np.testing.assert_array_equal(got["state"], [STATE_NAMES[int(c)] for c in expected["state"]])
+
+
+# -- maps ------------------------------------------------------------------------------------------
+
+
+def test_health_and_map_lifecycle(client: FleetmapClient) -> None:
+    health = client.health()
+    assert health.status == "ok" and health.zenoh is not None and health.zenoh["mode"] == "router"
+
+    created = client.create_map("life", {"resolution": 0.1})
+    assert created.id == "life" and created.resolution == 0.1 and created.stats.scans_integrated == 0
+    assert "life" in [m.id for m in client.list_maps()]
+    assert client.create_map("life", {"resolution": 0.1}).id == "life"  # same config: a no-op
+    with pytest.raises(FleetmapError) as conflict:
+        client.create_map("life", {"resolution": 0.2})
+    assert conflict.value.status == 409 and "different configuration" in conflict.value.detail
+
+    typed = client.create_map("life-typed", CONFIG)
+    assert typed.config == CONFIG and typed.tile_size == 64
+    assert client.get_map("life-typed").config == CONFIG
+
+    with pytest.raises(FleetmapError) as invalid:
+        client.create_map("bad-config", {"resolution": -1})
+    assert invalid.value.status == 422 and "resolution" in invalid.value.detail
+    assert invalid.value.errors and invalid.value.errors[0]["loc"][-1] == "resolution"
+    assert "bad-config" not in [m.id for m in client.list_maps()]  # bad input changed nothing
+
+    client.delete_map("life")
+    with pytest.raises(FleetmapError) as gone:
+        client.get_map("life")
+    assert gone.value.status == 404 and "life" in gone.value.detail
+    with pytest.raises(FleetmapError) as again:
+        client.delete_map("life")
+    assert again.value.status == 404
+    assert "fleetmap_queue_depth" in client.metrics()
+
+
+def test_ids_are_checked_before_any_request(client: FleetmapClient) -> None:
+    with pytest.raises(ValueError, match="map_id 'a/b' is invalid"):
+        client.get_map("a/b")
+    with pytest.raises(ValueError, match="robot_id 'r 1' is invalid"):
+        client.post_scan("m", "r 1", {})
+    with pytest.raises(ValueError, match="all of xmin"):
+        client.region("m", 0, 0, 1)
+    with pytest.raises(ValueError, match="finite"):
+        client.cell("m", float("nan"), 0)
+
+
+# -- scans and queries -----------------------------------------------------------------------------
+
+
+def test_posted_scans_and_every_query_match_the_engine(client: FleetmapClient, scans: list[Scan]) -> None:
+    client.create_map("q", CONFIG)
+    # Four scans in the four forms post_scan takes; the engine gets what the server decodes.
+    r0 = client.post_scan("q", "r1", scans[0], stamp=1.0)  # Scan as JSON, automatic seq 0
+    r1 = client.post_scan("q", "r1", scans[1], encoding="binary")  # automatic seq 1
+    r2 = client.post_scan("q", "r1", ScanMessage.from_scan(scans[2], seq=2, stamp=3.0))
+    message = ScanMessage.from_scan(scans[3], seq=0).model_dump(mode="json", exclude_none=True)
+    r3 = client.post_scan("q", "r1", message, seq=3)
+    assert [r.seq for r in (r0, r1, r2, r3)] == [0, 1, 2, 3]
+    assert all(r.status == "integrated" and r.cell_updates > 0 and r.changed_tiles for r in (r0, r1, r2, r3))
+    duplicate = client.post_scan("q", "r1", scans[4], seq=1)
+    assert duplicate.status == "duplicate"
+    wire = [
+        decode(encode_json(scans[0], 0, 1.0), JSON_ENCODING).scan,
+        decode(encode_binary(scans[1], 1, 0.0), BINARY_ENCODING).scan,
+        ScanMessage.from_scan(scans[2], seq=2).to_scan(),
+        ScanMessage.from_scan(scans[3], seq=3).to_scan(),
+    ]
+    gmap = _engine_map(wire)
+
+    info = client.get_map("q")
+    robot = info.stats.robots["r1"]
+    assert (robot.scans_integrated, robot.duplicates, robot.last_seq) == (4, 1, 3)
+    bounds = gmap.known_bounds()
+    assert bounds is not None
+    res = CONFIG.resolution
+    assert info.stats.bounds == pytest.approx(tuple(b * res for b in bounds))
+
+    # cells / cell: random points over the observed extent and beyond it.
+    rng = np.random.default_rng(0)
+    i0, j0, i1, j1 = bounds
+    points = rng.uniform([(i0 - 5) * res, (j0 - 5) * res], [(i1 + 5) * res, (j1 + 5) * res], size=(500, 2))
+    got = client.cells("q", points)
+    expected = gmap.cells(points)
+    assert got["known"].any() and not got["known"].all()
+    _assert_cells_equal(got, expected)
+    np.testing.assert_array_equal(got["i"], np.floor(points[:, 0] / res).astype(np.int64))
+    one = client.cell("q", *points[0])
+    assert (one.i, one.j, one.known) == (got["i"][0], got["j"][0], got["known"][0])
+    assert one.probability == pytest.approx(got["probability"][0])
+
+    # region: explicit bounds, every layer; then no bounds = the observed extent.
+    x0, y0, x1, y1 = i0 * res + 0.05, j0 * res + 0.05, (i0 + 40) * res + 0.05, (j0 + 30) * res + 0.05
+    for layer in ("probability", "log_odds", "state", "hits", "misses", "tsdf", "tsdf_weight"):
+        array = client.region("q", x0, y0, x1, y1, layer=layer)  # type: ignore[arg-type]
+        np.testing.assert_array_equal(array, gmap.region(layer, i0, j0, i0 + 40, j0 + 30), err_msg=layer)
+    whole, window, origin = client.region_window("q")
+    assert window == bounds and origin == pytest.approx((i0 * res, j0 * res))
+    np.testing.assert_array_equal(whole, gmap.region("probability", *bounds))
+    png = Image.open(io.BytesIO(client.region_png("q", layer="state")))
+    assert png.size == (i1 - i0, j1 - j0)
+
+    # surface: the engine's zero crossings of the same window.
+    surface = client.surface("q", x0, y0, x1, y1)
+    np.testing.assert_allclose(surface, gmap.surface(i0, j0, i0 + 40, j0 + 30), rtol=0, atol=1e-9)
+    assert surface.shape[0] > 0
+
+    # export: the nav2 zip and the PNG.
+    with zipfile.ZipFile(io.BytesIO(client.export("q"))) as zf:
+        assert sorted(zf.namelist()) == ["map.pgm", "map.yaml"]
+        assert b"resolution: 0.1" in zf.read("map.yaml")
+    assert Image.open(io.BytesIO(client.export("q", "png", margin=0))).size == (i1 - i0, j1 - j0)
+
+
+def test_tiles_with_etags(client: FleetmapClient, scans: list[Scan]) -> None:
+    client.create_map("tiles", CONFIG)
+    client.post_scan("tiles", "r1", scans[0], seq=0)
+    x0, y0 = scans[0].pose.x / CONFIG.resolution, scans[0].pose.y / CONFIG.resolution
+    # Zoom 0: one pixel per cell; tile (x, y) covers i in [256x, 256(x+1)), j in [-256(y+1), -256y).
+    tx, ty = int(x0 // 256), int(-(y0 // 256) - 1)
+    png, etag = client.tile("tiles", 0, tx, ty)
+    assert png is not None and etag
+    image = Image.open(io.BytesIO(png))
+    assert image.size == (256, 256) and image.mode == "RGBA"
+    assert np.asarray(image)[..., 3].any(), "the robot's surroundings are drawn"
+    assert client.tile("tiles", 0, tx, ty, etag=etag) == (None, etag)  # 304: unchanged
+    client.post_scan("tiles", "r1", scans[5], seq=1)
+    png2, etag2 = client.tile("tiles", 0, tx, ty, etag=etag)
+    assert png2 is not None and etag2 != etag
+    with pytest.raises(FleetmapError) as bad_zoom:
+        client.tile("tiles", 99, 0, 0)
+    assert bad_zoom.value.status == 422 and "z" in bad_zoom.value.detail
+
+
+def test_errors_carry_the_server_detail(client: FleetmapClient, scans: list[Scan]) -> None:
+    with pytest.raises(FleetmapError) as unknown:
+        client.cell("no-such-map", 0, 0)
+    assert unknown.value.status == 404 and "no-such-map" in unknown.value.detail
+    client.create_map("errs", {"resolution": 0.1, "layers": ["occupancy"]})
+    with pytest.raises(FleetmapError) as empty:
+        client.region("errs")
+    assert empty.value.status == 409 and "no observed cell" in empty.value.detail
+    with pytest.raises(FleetmapError) as export_empty:
+        client.export("errs")
+    assert export_empty.value.status == 409
+    with pytest.raises(FleetmapError) as no_tsdf:
+        client.surface("errs", 0, 0, 1, 1)
+    assert no_tsdf.value.status == 422 and "tsdf" in no_tsdf.value.detail
+    with pytest.raises(FleetmapError) as no_layer:
+        client.region("errs", 0, 0, 1, 1, layer="hits")
+    assert no_layer.value.status == 422 and "hits" in no_layer.value.detail
+    with pytest.raises(FleetmapError) as bad_layer:
+        client.region("errs", 0, 0, 1, 1, layer="colour")  # type: ignore[arg-type]
+    assert bad_layer.value.status == 422 and "colour" in bad_layer.value.detail
+    bad_scan: dict[str, Any] = {"seq": 0, "pose": {"x": 0, "y": 0, "theta": 0}, "ranges": [1.0]}
+    with pytest.raises(FleetmapError) as invalid:
+        client.post_scan("errs", "r1", bad_scan)
+    assert invalid.value.status == 422 and "angle_min" in invalid.value.detail
+    assert client.get_map("errs").stats.robots["r1"].scans_rejected == 1
+    with pytest.raises(httpx.ConnectError):
+        FleetmapClient(f"http://127.0.0.1:{free_port()}", timeout=2).health()
+
+
+def test_api_tokens(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import fleetmap.server
+
+    if "--auth-tokens" not in Path(fleetmap.server.__file__).read_text():
+        pytest.skip("this fleetmap serve has no --auth-tokens option")
+    writer, reader = "w" * 8 + "-secret-token-1", "r" * 8 + "-secret-token-2"
+    tokens = tmp_path / "tokens"
+    tokens.write_text(f"write {writer}\nread {reader}\n")
+    monkeypatch.delenv("FLEETMAP_TOKEN", raising=False)
+    with ServiceProcess(tmp_path, ["--in-memory", "--auth-tokens", str(tokens)]) as svc:
+        with FleetmapClient(svc.base_url) as anonymous:
+            assert anonymous.list_maps() == []  # reading is open by default
+            with pytest.raises(FleetmapError) as no_token:
+                anonymous.create_map("locked")
+            assert no_token.value.status == 401 and "Bearer" in no_token.value.detail
+        with FleetmapClient(svc.base_url, token=reader) as read_only:
+            with pytest.raises(FleetmapError) as too_low:
+                read_only.create_map("locked")
+            assert too_low.value.status == 403 and "'write'" in too_low.value.detail
+        monkeypatch.setenv("FLEETMAP_TOKEN", writer)
+        with FleetmapClient(svc.base_url) as from_env:
+            assert from_env.create_map("locked").id == "locked"
+
+
+# -- events ----------------------------------------------------------------------------------------
+
+
+def test_events_stream_tiles_robots_and_deletion(client: FleetmapClient, scans: list[Scan]) -> None:
+    client.create_map("ev", CONFIG)
+    received: list[tuple[str, dict[str, Any]]] = []
+    finished = threading.Event()
+
+    def listen() -> None:
+        with FleetmapClient(client.base_url) as own:
+            for event in own.events("ev"):
+                received.append(event)
+        finished.set()  # the stream ended: the map was deleted
+
+    thread = threading.Thread(target=listen, daemon=True)
+    thread.start()
+    wait_for(lambda: any(e == "robots" for e, _ in received), 10, 0.02, "the initial robots event")
+    result = client.post_scan("ev", "rob", scans[0], seq=0)
+
+    def tiles_seen() -> set[tuple[int, ...]]:
+        return {tuple(w) for e, d in received if e == "tiles" for w in d.get("tiles", [])}
+
+    wait_for(lambda: {tuple(w) for w in result.changed_tiles} <= tiles_seen(), 10, 0.02, "the tiles event")
+    wait_for(
+        lambda: any(e == "robots" and "rob" in d["robots"] for e, d in received), 10, 0.02, "robot 'rob'"
+    )
+    robots = next(d for e, d in reversed(received) if e == "robots")["robots"]["rob"]
+    assert robots["scans_integrated"] == 1 and robots["pose"] == pytest.approx(
+        [scans[0].pose.x, scans[0].pose.y, scans[0].pose.theta]
+    )
+    client.delete_map("ev")
+    assert finished.wait(10), "the event stream did not end after the map was deleted"
+    assert received[-1] == ("deleted", {"id": "ev"})
+
+
+def test_events_of_an_unknown_map(client: FleetmapClient) -> None:
+    with pytest.raises(FleetmapError) as exc:
+        next(client.events("nothing-here"))
+    assert exc.value.status == 404
+
+
+def test_parse_sse_follows_the_event_stream_format() -> None:
+    lines = [
+        *["retry: 1000", "", "id: 4", "event: tiles", 'data: {"version": 4,', 'data: "tiles": []}', ""],
+        *[": keepalive", "", "data: plain text", "", "event: robots", 'data: {"robots": {}}', ""],
+    ]
+    assert list(parse_sse(iter(lines))) == [
+        ("tiles", {"version": 4, "tiles": []}),
+        ("message", {"data": "plain text"}),
+        ("robots", {"robots": {}}),
+    ]
+
+
+# -- robots over Zenoh into the real service -------------------------------------------------------
+
+
+def test_publisher_scans_are_integrated_and_served(
+    service: ServiceProcess, client: FleetmapClient, scans: list[Scan]
+) -> None:
+    client.create_map("zen", CONFIG)
+    with ScanPublisher("zen", "z1", connect=[service.zenoh_endpoint]) as pub:
+        assert pub.wait_connected(20), pub.last_connect_error
+        for scan in scans:
+            assert pub.publish(scan)
+
+        def robot() -> Any:
+            return client.get_map("zen").stats.robots.get("z1")
+
+        wait_for(lambda: robot() and robot().scans_integrated == len(scans), 20, 0.05, "all scans integrated")
+        state = robot()
+        assert state.online and state.lost == 0 and state.dropped == 0 and state.last_seq == len(scans) - 1
+    wait_for(lambda: not robot().online, 10, 0.05, "the robot offline after close()")
+    # The whole pipeline (binary over Zenoh, service, REST) against the engine on the same payloads.
+    gmap = _engine_map([decode(encode_binary(s, k, 0.0), BINARY_ENCODING).scan for k, s in enumerate(scans)])
+    bounds = gmap.known_bounds()
+    assert bounds is not None
+    res = CONFIG.resolution
+    ii, jj = np.meshgrid(np.arange(bounds[0], bounds[2]), np.arange(bounds[1], bounds[3]))
+    points = np.stack([(ii.ravel() + 0.5) * res, (jj.ravel() + 0.5) * res], axis=1)
+    _assert_cells_equal(client.cells("zen", points), gmap.cells(points))
+
+
+def test_replay_command_into_the_service(
+    service: ServiceProcess, client: FleetmapClient, tmp_path: Path
+) -> None:
+    from test_client_zenoh import _write_carmen
+
+    log = tmp_path / "hall.log"
+    _write_carmen(log, 30)
+    args = ["replay", str(log), "--map", "hall", "--robot", "rp", "--rate", "5", "--quiet"]
+    assert cli.main([*args, "--connect", service.zenoh_endpoint, "--wait-timeout", "20"]) == 0
+
+    def robot() -> Any:
+        info = client.list_maps()
+        return "hall" in [m.id for m in info] and client.get_map("hall").stats.robots.get("rp")
+
+    wait_for(lambda: robot() and robot().scans_integrated == 30, 20, 0.05, "the replayed scans integrated")
+    state = robot()
+    assert (state.last_seq, state.lost, state.dropped, state.scans_rejected) == (29, 0, 0, 0)
+    ds = load_dataset(log)
+    last = ds[29].pose
+    assert (state.last_pose.x, state.last_pose.y, state.last_pose.theta) == pytest.approx(
+        (last.x, last.y, last.theta)
+    )

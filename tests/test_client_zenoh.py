@@ -1,0 +1,418 @@
+"""The robot-side Python clients over real Zenoh: `ScanPublisher`, `fleetmap replay`, `fleetmap sim`.
+
+The service side here is a real Zenoh ROUTER session in the test process (what `fleetmap serve` runs)
+listening on a free loopback port and subscribing to the scan and liveliness keys, so these tests
+check exactly what goes over the wire; tests/test_client_rest.py drives the real service.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from fleetmap_client import cli
+from fleetmap_client.publisher import PublisherClosed, ScanPublisher, client_config
+from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
+from fleetmap_client.sim import robot_ids, run_sim
+from service_process import DATASETS_DIR, free_port, wait_for
+
+from fleetmap.codec import WireScan, decode
+from fleetmap.datasets import load_dataset
+from fleetmap.scan import Scan
+from fleetmap.sim import SimulatedRobot, generate_floorplan
+from fleetmap.wire import ALIVE_KEY_WILDCARD, BINARY_ENCODING, JSON_ENCODING, SCAN_KEY_WILDCARD, ScanMessage
+
+
+class Router:
+    """A Zenoh router session recording every scan sample and liveliness change it sees.
+
+    Callbacks only append raw samples (they run on Zenoh threads and must not block); decoding
+    happens when a test reads them."""
+
+    def __init__(self, port: int | None = None) -> None:
+        self.port = port or free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self._lock = threading.Lock()
+        self._samples: list[tuple[str, str, bytes]] = []
+        self._alive: list[tuple[str, zenoh.SampleKind]] = []
+        self.session: zenoh.Session | None = None
+
+    def start(self) -> Router:
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", '"router"')
+        cfg.insert_json5("listen/endpoints", f'["{self.endpoint}"]')
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        self.session = zenoh.open(cfg)
+        self._subs = [
+            self.session.declare_subscriber(SCAN_KEY_WILDCARD, self._on_scan),
+            self.session.liveliness().declare_subscriber(ALIVE_KEY_WILDCARD, self._on_alive, history=True),
+        ]
+        return self
+
+    def stop(self) -> None:
+        if self.session is not None:
+            for sub in self._subs:
+                sub.undeclare()
+            self.session.close()
+            self.session = None
+
+    def _on_scan(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self._samples.append((str(sample.key_expr), str(sample.encoding), sample.payload.to_bytes()))
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self._alive.append((str(sample.key_expr), sample.kind))
+
+    def samples(self) -> list[tuple[str, str, bytes]]:
+        with self._lock:
+            return list(self._samples)
+
+    def scans(self, key: str | None = None) -> list[tuple[str, str, WireScan]]:
+        """(key, encoding, decoded scan) of every sample so far (of `key` only, if given)."""
+        return [(k, e, decode(p, e)) for k, e, p in self.samples() if key is None or k == key]
+
+    def wait_count(
+        self, n: int, key: str | None = None, timeout: float = 10.0
+    ) -> list[tuple[str, str, WireScan]]:
+        wait_for(lambda: len(self.scans(key)) >= n, timeout, 0.02, f"{n} scans on {key or 'any key'}")
+        return self.scans(key)
+
+    def alive_events(self) -> list[tuple[str, zenoh.SampleKind]]:
+        with self._lock:
+            return list(self._alive)
+
+    def online(self) -> set[str]:
+        """Keys whose last liveliness event is PUT."""
+        state: dict[str, bool] = {}
+        for key, kind in self.alive_events():
+            state[key] = kind == zenoh.SampleKind.PUT
+        return {k for k, up in state.items() if up}
+
+
+@pytest.fixture
+def router() -> Iterator[Router]:
+    r = Router().start()
+    yield r
+    r.stop()
+
+
+@pytest.fixture(scope="module")
+def sim_scans() -> list[Scan]:
+    """Exact simulated scans (with "no return" beams as +inf) from a small floor plan."""
+    plan = generate_floorplan(3, width_m=20.0, height_m=15.0)
+    robot = SimulatedRobot(plan, seed=5, num_beams=361, range_max=8.0)
+    return [robot.tick() for _ in range(6)]
+
+
+def _assert_same_scan(got: WireScan, sent: Scan, seq: int, stamp: float, encoding: str) -> None:
+    assert got.seq == seq
+    assert got.stamp == stamp
+    assert (got.scan.pose.x, got.scan.pose.y, got.scan.pose.theta) == (
+        sent.pose.x,
+        sent.pose.y,
+        sent.pose.theta,
+    )
+    assert got.scan.range_min == pytest.approx(sent.range_min, rel=1e-7)
+    assert got.scan.range_max == pytest.approx(sent.range_max, rel=1e-7)
+    if encoding == "binary":
+        # Ranges and the angle increment travel as float32 (docs/protocol.md).
+        np.testing.assert_array_equal(got.scan.ranges, sent.ranges.astype(np.float32).astype(np.float64))
+        np.testing.assert_allclose(got.scan.angles, sent.angles, rtol=0, atol=1e-5)
+    else:
+        np.testing.assert_array_equal(got.scan.ranges, sent.ranges)
+        np.testing.assert_allclose(got.scan.angles, sent.angles, rtol=0, atol=1e-12)
+
+
+# -- ScanPublisher ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("encoding", "zenoh_encoding"), [("binary", BINARY_ENCODING), ("json", JSON_ENCODING)]
+)
+def test_scans_arrive_decoded_identically(
+    router: Router, sim_scans: list[Scan], encoding: str, zenoh_encoding: str
+) -> None:
+    assert any(np.isinf(s.ranges).any() for s in sim_scans), "the scans should include no-return beams"
+    with ScanPublisher("lab", "r1", connect=[router.endpoint], encoding=encoding) as pub:  # type: ignore[arg-type]
+        assert pub.wait_connected(10)
+        stamps = [1000.0 + 0.1 * k for k in range(len(sim_scans))]
+        for scan, stamp in zip(sim_scans, stamps, strict=True):
+            assert pub.publish(scan, stamp=stamp) is True
+        got = router.wait_count(len(sim_scans))
+    assert [k for k, _, _ in got] == ["fleetmap/lab/r1/scan"] * len(sim_scans)
+    assert {e for _, e, _ in got} == {zenoh_encoding}
+    for k, ((_, _, wire), scan) in enumerate(zip(got, sim_scans, strict=True)):
+        _assert_same_scan(wire, scan, k, stamps[k], encoding)
+    assert pub.published == len(sim_scans) and pub.dropped == 0
+
+
+def test_seq_auto_increments_and_follows_explicit_seq(router: Router, sim_scans: list[Scan]) -> None:
+    with ScanPublisher("lab", "r2", connect=[router.endpoint]) as pub:
+        assert pub.next_seq == 0 and pub.last_seq is None
+        assert pub.wait_connected(10)
+        pub.publish(sim_scans[0])
+        pub.publish(sim_scans[1])
+        pub.publish(sim_scans[2], seq=10)
+        pub.publish(sim_scans[3])
+        assert pub.last_seq == 11 and pub.next_seq == 12
+        # A ScanMessage brings its own seq and stamp.
+        pub.publish(ScanMessage.from_scan(sim_scans[4], seq=40, stamp=4.5))
+        got = router.wait_count(5)
+    assert [w.seq for _, _, w in got] == [0, 1, 10, 11, 40]
+    assert got[-1][2].stamp == 4.5
+    stamps = [w.stamp for _, _, w in got[:4]]
+    assert all(abs(s - time.time()) < 60 for s in stamps), "default stamps are the wall-clock time"
+
+
+def test_liveliness_token_follows_the_publisher(router: Router) -> None:
+    pub = ScanPublisher("lab", "robot-7", connect=[router.endpoint])
+    assert pub.wait_connected(10)
+    wait_for(lambda: "fleetmap/lab/robot-7/alive" in router.online(), 5, 0.02, "the liveliness token")
+    pub.close()
+    wait_for(lambda: "fleetmap/lab/robot-7/alive" not in router.online(), 5, 0.02, "the token withdrawn")
+    kinds = [kind for key, kind in router.alive_events() if key == "fleetmap/lab/robot-7/alive"]
+    assert kinds == [zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE]
+
+
+def test_publisher_started_before_the_router_connects_when_it_appears(sim_scans: list[Scan]) -> None:
+    router = Router()  # not started: nothing listens on its port yet
+    with ScanPublisher("lab", "early", connect=[router.endpoint]) as pub:
+        assert pub.wait_connected(0.5) is False
+        assert not pub.connected
+        # Published while disconnected: dropped, and said so.
+        assert pub.publish(sim_scans[0]) is False
+        assert pub.dropped == 1 and pub.published == 0
+        router.start()
+        try:
+            assert pub.wait_connected(15), f"no connection; last error {pub.last_connect_error}"
+            assert pub.connected and pub.subscribed
+            for scan in sim_scans[1:4]:
+                assert pub.publish(scan)
+            got = router.wait_count(3)
+            assert [w.seq for _, _, w in got] == [1, 2, 3]  # seq 0 was the dropped one
+            wait_for(lambda: "fleetmap/lab/early/alive" in router.online(), 5, 0.02, "the token")
+        finally:
+            router.stop()
+
+
+def test_publisher_reconnects_after_the_router_restarts(sim_scans: list[Scan]) -> None:
+    router = Router().start()
+    with ScanPublisher("lab", "rb", connect=[router.endpoint]) as pub:
+        try:
+            assert pub.wait_connected(10)
+            assert pub.publish(sim_scans[0])
+            router.wait_count(1)
+            router.stop()
+            wait_for(lambda: not pub.connected, 10, 0.02, "the publisher to notice the router left")
+            assert pub.publish(sim_scans[1]) is False  # dropped while the service is away
+            router = Router(router.port).start()  # the service comes back on the same endpoint
+            assert pub.wait_connected(20), "Zenoh did not reconnect"
+            for scan in sim_scans[2:5]:
+                assert pub.publish(scan)
+            got = router.wait_count(3)
+            assert [w.seq for _, _, w in got] == [2, 3, 4]
+            # The liveliness token is declared again to the new router.
+            wait_for(
+                lambda: "fleetmap/lab/rb/alive" in router.online(), 5, 0.02, "the token after reconnecting"
+            )
+        finally:
+            router.stop()
+
+
+def test_publisher_rejects_bad_arguments_and_use_after_close(router: Router, sim_scans: list[Scan]) -> None:
+    with pytest.raises(ValueError, match="map_id 'a/b' is invalid"):
+        ScanPublisher("a/b", "r")
+    with pytest.raises(ValueError, match="robot_id '' is invalid"):
+        ScanPublisher("m", "")
+    with pytest.raises(ValueError, match="encoding must be"):
+        ScanPublisher("m", "r", encoding="xml")  # type: ignore[arg-type]
+    pub = ScanPublisher("m", "r", connect=[router.endpoint])
+    with pytest.raises(ValueError, match="seq must be"):
+        pub.publish(sim_scans[0], seq=-1)
+    with pytest.raises(ValueError, match="stamp must be finite"):
+        pub.publish(sim_scans[0], stamp=math.nan)
+    pub.close()
+    pub.close()  # idempotent
+    with pytest.raises(PublisherClosed):
+        pub.publish(sim_scans[0])
+    assert pub.wait_connected(0.1) is False
+
+
+def test_client_config_defaults_and_overrides() -> None:
+    import json
+
+    cfg = client_config()
+    assert json.loads(cfg.get_json("mode")) == "client"
+    assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+    base = zenoh.Config()
+    base.insert_json5("connect/endpoints", '["tcp/10.1.2.3:7447"]')
+    assert json.loads(client_config(None, base).get_json("connect/endpoints")) == ["tcp/10.1.2.3:7447"]
+    assert json.loads(client_config(["tcp/127.0.0.1:1"], base).get_json("connect/endpoints")) == [
+        "tcp/127.0.0.1:1"
+    ]
+    with pytest.raises(ValueError, match="non-empty list"):
+        client_config([])
+
+
+# -- replay ----------------------------------------------------------------------------------------
+
+
+def _write_carmen(path: Path, n: int) -> None:
+    """A small CARMEN log: n FLASER scans of 180 beams along a corridor, with a PARAM and comments."""
+    lines = ["# synthetic log for the client tests", "PARAM robot_frontlaser_offset 0.0"]
+    for k in range(n):
+        ranges = " ".join(f"{2.0 + 0.01 * ((i + k) % 50):.3f}" for i in range(180))
+        x, y, th = 0.1 * k, 0.05 * k, 0.01 * k
+        lines.append(
+            f"FLASER 180 {ranges} {x:.4f} {y:.4f} {th:.4f} {x:.4f} {y:.4f} {th:.4f} {k * 0.1:.3f} h 0"
+        )
+        lines.append(f"ODOM {x} {y} {th} 0 0 0 {k * 0.1:.3f} h 0")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_replay_of_a_carmen_log_arrives_complete_and_in_order(router: Router, tmp_path: Path) -> None:
+    log = tmp_path / "corridor.log"
+    _write_carmen(log, 40)
+    ds = load_dataset(log)
+    result = replay(log, "corr", "r1", rate=0, connect=[router.endpoint], progress=False, wait_timeout=20)
+    assert result.scans == 40 and result.resent == 0
+    got = router.wait_count(40)
+    assert [w.seq for _, _, w in got] == list(range(40))
+    for (_, enc, wire), k in zip(got, range(40), strict=True):
+        assert enc == BINARY_ENCODING
+        _assert_same_scan(wire, ds[k], k, wire.stamp, "binary")
+
+
+def test_replay_waits_for_the_service_then_paces_scans(tmp_path: Path) -> None:
+    log = tmp_path / "short.log"
+    _write_carmen(log, 6)
+    router = Router()
+    outcome: dict[str, object] = {}
+
+    def run() -> None:
+        try:
+            outcome["result"] = replay(
+                log, "m", "late", rate=1.0, connect=[router.endpoint], encoding="json", progress=False
+            )
+        except BaseException as exc:  # report it to the test thread
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    try:
+        time.sleep(1.5)  # the replay is waiting: nothing listens yet
+        assert thread.is_alive() and not outcome
+        router.start()
+        thread.join(30)
+        assert not thread.is_alive(), "the replay did not finish"
+        assert "error" not in outcome, outcome.get("error")
+        got = router.wait_count(6)
+    finally:
+        router.stop()
+    assert [w.seq for _, _, w in got] == list(range(6))
+    assert {e for _, e, _ in got} == {JSON_ENCODING}
+    # rate 1 = NOMINAL_SCAN_RATE scans per second: scan k leaves k / 10 s after the first.
+    result = outcome["result"]
+    assert result.seconds >= 5 / NOMINAL_SCAN_RATE - 0.02  # type: ignore[attr-defined]
+    stamps = [w.stamp for _, _, w in got]
+    assert stamps[-1] - stamps[0] >= 5 / NOMINAL_SCAN_RATE - 0.02
+
+
+def test_replay_of_the_intel_log_first_50_scans(router: Router) -> None:
+    path = DATASETS_DIR / "intel-corrected.log.gz"
+    if not path.exists():
+        pytest.skip(f"shared dataset not found: {path}")
+    ds = load_dataset(path)
+    code = cli.main(["replay", str(path), "--map", "intel", "--robot", "r1", "--rate", "0", "--limit", "50",
+                     "--connect", router.endpoint, "--quiet", "--wait-timeout", "20"])  # fmt: skip
+    assert code == 0
+    got = router.wait_count(50)
+    assert len(got) == 50
+    assert {k for k, _, _ in got} == {"fleetmap/intel/r1/scan"}
+    for k, (_, _, wire) in enumerate(got):
+        _assert_same_scan(wire, ds[k], k, wire.stamp, "binary")
+
+
+def test_replay_command_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "nope.log"
+    assert cli.main(["replay", str(missing), "--map", "m", "--robot", "r", "--quiet"]) == 2
+    assert "nope.log" in capsys.readouterr().err
+    log = tmp_path / "ok.log"
+    _write_carmen(log, 2)
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    args = [
+        "replay",
+        str(log),
+        "--map",
+        "m",
+        "--robot",
+        "r",
+        "--connect",
+        nobody,
+        "--wait-timeout",
+        "1.5",
+        "--quiet",
+    ]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert "fleetmap replay: error: no fleetmap service reachable at" in err and nobody in err
+    assert cli.main(["replay", str(log), "--map", "bad/id", "--robot", "r", "--quiet"]) == 2
+    assert "map_id 'bad/id' is invalid" in capsys.readouterr().err
+    with pytest.raises(ReplayError):
+        replay(log, "m", "r", connect=[nobody], wait_timeout=0.5, progress=False)
+
+
+# -- sim -------------------------------------------------------------------------------------------
+
+
+def test_sim_publishes_from_every_robot(router: Router) -> None:
+    plan = generate_floorplan(2, width_m=20.0, height_m=15.0)
+    result = run_sim(3, map_id="fleet", seed=2, rate=10.0, seconds=1.5, connect=[router.endpoint], beams=181,
+                     wait_timeout=20, plan=plan)  # fmt: skip
+    assert result.robots == robot_ids(3) == ["sim-1", "sim-2", "sim-3"]
+    assert sum(result.dropped.values()) == 0
+    for rid in result.robots:
+        sent = result.published[rid]
+        assert 1 <= sent <= 15  # at most seconds * rate
+        got = router.wait_count(sent, f"fleetmap/fleet/{rid}/scan")
+        assert [w.seq for _, _, w in got] == list(range(sent))
+        assert all(w.scan.num_beams == 181 for _, _, w in got)
+    events = router.alive_events()
+    for rid in result.robots:
+        key = f"fleetmap/fleet/{rid}/alive"
+        assert (key, zenoh.SampleKind.PUT) in events
+    wait_for(lambda: not router.online(), 5, 0.02, "every robot's token withdrawn after the run")
+    # Robots drive apart: their scans come from different poses.
+    first = {k: w.scan.pose for k, _, w in router.scans() if w.seq == 0}
+    assert len({(p.x, p.y) for p in first.values()}) == 3
+
+
+def test_sim_command_runs_and_reports(router: Router, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--seconds", "1", "--rate", "5", "--beams", "91", "--connect", router.endpoint]
+    code = cli.main(["sim", "--robots", "2", "--map", "simcli", "--wait-timeout", "20", *args])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "sim: 2 robots published" in out
+    keys = {k for k, _, _ in router.samples()}
+    assert keys == {"fleetmap/simcli/sim-1/scan", "fleetmap/simcli/sim-2/scan"}
+
+
+def test_sim_stops_on_request(router: Router) -> None:
+    stop = threading.Event()
+    timer = threading.Timer(1.0, stop.set)
+    timer.start()
+    started = time.monotonic()
+    result = run_sim(1, map_id="s", rate=20, seconds=None, connect=[router.endpoint], beams=91, stop=stop,
+                     wait_timeout=20, plan=generate_floorplan(4, width_m=20.0, height_m=15.0))  # fmt: skip
+    assert time.monotonic() - started < 15
+    assert result.published["sim-1"] >= 1
+    with pytest.raises(ValueError, match="robots must be"):
+        run_sim(0)
