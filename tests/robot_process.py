@@ -110,7 +110,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         deadline = time.monotonic() + 20.0
-        while not pub.matching_status:
+        while not pub.matching_status.matching:
             if time.monotonic() > deadline:
                 print("no matching subscriber", file=sys.stderr, flush=True)
                 return 3

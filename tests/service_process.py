@@ -56,10 +56,18 @@ class ServiceProcess:
         self.zenoh_port = free_port()
         self.base_url = f"http://127.0.0.1:{self.port}"
         self.zenoh_endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
+        # Durable storage is on by default: each service gets its own data directory unless the test
+        # names one (or asks for --in-memory), so services running side by side never share one.
+        storage = (
+            []
+            if {"--data-dir", "--in-memory"} & set(extra_args)
+            else ["--data-dir", str(Path(log_dir) / f"data-{self.port}")]
+        )
         self.args = [
             sys.executable, "-m", "fleetmap.server",
             "--http", f"127.0.0.1:{self.port}",
             "--zenoh-listen", self.zenoh_endpoint,
+            *storage,
             *extra_args,
         ]  # fmt: skip
         self.log_path = Path(log_dir) / f"service-{self.port}.log"

@@ -92,9 +92,9 @@ class TokenSet:
 
 def required_role(method: str, path: str, require_read: bool) -> str | None:
     """The role a request needs, or None if it is open."""
-    if path in _OPEN_PATHS:
+    if path in _OPEN_PATHS or method == "OPTIONS":  # CORS preflights carry no credentials
         return None
-    if method in ("GET", "HEAD", "OPTIONS") or (method == "POST" and _READ_POSTS.match(path)):
+    if method in ("GET", "HEAD") or (method == "POST" and _READ_POSTS.match(path)):
         return "read" if require_read else None
     return "write"
 

@@ -36,7 +36,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 #: Modules that add subcommands: each has `add_parser(sub)` which calls `sub.add_parser(...)` and
 #: sets `run=callable(args) -> int`. Raising `CliError` from `run` prints a clean error, exit 2.
-COMMAND_MODULES = ["fleetmap.cli_demo"]
+COMMAND_MODULES = ["fleetmap.cli_demo", "fleetmap.server", "fleetmap_client.cli"]
 
 
 class CliError(Exception):

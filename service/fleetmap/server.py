@@ -25,20 +25,25 @@ from __future__ import annotations
 
 import argparse
 import errno
+import ipaddress
 import logging
 import signal
 import socket
 import sys
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
+from fleetmap.auth import AuthMiddleware, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
+from fleetmap.persistence import DurableStore, StorageError
 
 log = logging.getLogger("fleetmap.server")
 
 DEFAULT_HTTP = "127.0.0.1:8000"
+DEFAULT_DATA_DIR = "./fleetmap-data"
 #: Seconds uvicorn waits for open connections (event streams never end by themselves) at shutdown.
 GRACEFUL_HTTP_SECONDS = 3.0
 
@@ -89,8 +94,42 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--data-dir",
+        default=DEFAULT_DATA_DIR,
         metavar="DIR",
-        help="directory for durable map storage: accepted and stored, NOT USED YET (maps live in memory)",
+        help=(
+            f"durable map storage (SQLite, WAL): configurations, tile snapshots and the scan journal "
+            f"(default {DEFAULT_DATA_DIR}). An unwritable or full directory stops the service at start"
+        ),
+    )
+    p.add_argument(
+        "--in-memory",
+        action="store_true",
+        help="keep maps in memory only (lost when the service stops); for demos and tests",
+    )
+    p.add_argument(
+        "--auth-tokens",
+        metavar="FILE",
+        help=(
+            "API tokens, one 'ROLE TOKEN' per line (ROLE: read, write or admin); also read from "
+            "$FLEETMAP_TOKENS ('ROLE TOKEN; ROLE TOKEN'). Writing needs write or admin"
+        ),
+    )
+    p.add_argument(
+        "--require-read-token",
+        action="store_true",
+        help="reading also needs a token (read, write or admin); by default reading is open",
+    )
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow binding HTTP to a non-loopback address without API tokens",
+    )
+    p.add_argument(
+        "--cors-origin",
+        nargs="+",
+        default=[],
+        metavar="ORIGIN",
+        help="origins allowed to call the API from a browser (CORS); default none",
     )
     p.add_argument(
         "--config",
@@ -112,6 +151,20 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     )
     p.set_defaults(run=run)
     return p
+
+
+def _load_tokens(path: str | None) -> TokenSet | None:
+    try:
+        return TokenSet.load(path)
+    except TokenFileError as exc:
+        raise CliError(str(exc)) from None
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
 
 
 def _positive_int(text: str) -> int:
@@ -232,16 +285,27 @@ def run(args: argparse.Namespace) -> int:
         host, port = parse_http(args.http)
         default_config = load_config(args.config)
         create_app, settings_cls = _load_api()
+        tokens = _load_tokens(args.auth_tokens)
+        if tokens is None and not _is_loopback(host) and not args.insecure:
+            raise CliError(
+                f"refusing to serve {host} without API tokens: anyone on the network could change the "
+                "maps. Give --auth-tokens FILE (or $FLEETMAP_TOKENS), or --insecure to accept that"
+            )
+        durable = None
+        if not args.in_memory:
+            try:
+                durable = DurableStore(Path(args.data_dir))
+            except StorageError as exc:
+                raise CliError(str(exc)) from None
         sock = bind_http(host, port)
         port = sock.getsockname()[1]
-        if args.data_dir:
-            log.info("--data-dir %s noted; durable storage is not wired in yet", args.data_dir)
         warm_up()
         registry = MapRegistry(
             default_config,
             auto_create=not args.no_auto_create,
             workers=args.workers,
             on_integrated=_integration_hook(),
+            durable=durable,
         )
         ingest = ZenohIngest(
             registry,
@@ -255,7 +319,17 @@ def run(args: argparse.Namespace) -> int:
                 ingest.start()
             except IngestStartError as exc:
                 raise CliError(str(exc)) from None
-            app = create_app(registry, settings=settings_cls(zenoh_status=ingest.status))
+            app = create_app(
+                registry, settings=settings_cls(zenoh_status=ingest.status, cors_origins=args.cors_origin)
+            )
+            if tokens is not None:
+                app.add_middleware(AuthMiddleware, tokens=tokens, require_read=args.require_read_token)
+            log.info(
+                "API tokens: %s; maps: %s",
+                "required to write" + (" and read" if args.require_read_token else "") if tokens
+                else "NONE: anyone who can reach the API may change maps (loopback only unless --insecure)",
+                f"durable in {args.data_dir}" if durable else "in memory only (--in-memory)",
+            )  # fmt: skip
             config = uvicorn.Config(
                 app,
                 log_level="warning",
