@@ -22,7 +22,7 @@ system-deps:
 	@bash scripts/system-deps.sh $(SYSTEM_PACKAGES)
 
 demo: $(STAMP)
-	$(VENV)/bin/fleetmap demo --out $(OUT)/demo
+	$(VENV)/bin/fleetmap demo $(DEMO_ARGS)
 
 test: $(STAMP) system-deps
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks

@@ -1,43 +1,85 @@
-"""`fleetmap demo`: the main job. For now it maps a synthetic floor plan with simulated robots in
-process and writes the exports; the service issue turns it into the live service plus robots."""
+"""`fleetmap demo`: the main job. Starts the service and a small fleet of simulated robots exploring
+a synthetic floor plan, and prints the web viewer's address; runs until Ctrl-C (or `--seconds`).
+
+The service runs as its own process (`fleetmap serve`), exactly as in production; the robots run
+in this process and publish over Zenoh in client mode, as real robots would.
+"""
 
 from __future__ import annotations
 
 import argparse
-import math
+import signal
+import subprocess
+import sys
+import threading
 import time
-from pathlib import Path
 
-from fleetmap.config import MapConfig
+import httpx
+
+from fleetmap.cli import CliError
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="map a synthetic floor plan with simulated robots")
-    p.add_argument("--out", default="out/demo", help="output directory")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--robots", type=int, default=3)
-    p.add_argument("--seconds", type=float, default=60.0, help="simulated time")
+    p = sub.add_parser("demo", help="run the service with simulated robots and print the viewer's address")
+    p.add_argument("--http", default="127.0.0.1:8000", metavar="HOST:PORT", help="viewer and API address")
+    p.add_argument("--zenoh", default="tcp/127.0.0.1:7447", metavar="ENDPOINT", help="where robots connect")
+    p.add_argument("--data-dir", default="./fleetmap-data", help="the service's durable storage")
+    p.add_argument("--robots", type=int, default=3, help="simulated robots (default 3)")
+    p.add_argument("--map", default="demo", help="map id the robots publish to")
+    p.add_argument("--seed", type=int, default=1, help="floor plan and robots' seed")
+    p.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: Ctrl-C)")
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from fleetmap.export import write_build_outputs
-    from fleetmap.grid_map import GridMap
-    from fleetmap.sim import SimulatedRobot, generate_floorplan
+    from fleetmap_client.sim import run_sim
 
-    plan = generate_floorplan(args.seed)
-    robots = [SimulatedRobot(plan, seed=args.seed * 100 + k) for k in range(args.robots)]
-    gmap = GridMap(MapConfig())
-    scans = 0
-    started = time.perf_counter()
-    dt = 0.1
-    for _ in range(math.ceil(args.seconds / dt)):
-        for robot in robots:
-            robot.step(dt)
-            gmap.integrate(robot.scan())
-            scans += 1
-    elapsed = time.perf_counter() - started
-    written = write_build_outputs(gmap, Path(args.out))
-    print(f"{len(robots)} simulated robots, {scans} scans mapped in {elapsed:.1f} s")
-    print(f"map image: {next(p for p in written if p.name == 'map.png')}")
-    return 0
+    service = subprocess.Popen(
+        [sys.executable, "-m", "fleetmap.server", "--http", args.http, "--zenoh-listen", args.zenoh,
+         "--data-dir", args.data_dir],
+    )  # fmt: skip
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        url = f"http://{args.http}/"
+        _wait_for_service(service, url, stop)
+        if stop.is_set():
+            return 0
+        print(f"\nfleetmap demo: open {url}#map={args.map} to watch {args.robots} robots map a floor plan")
+        print(
+            f"  (Ctrl-C stops the robots and the service; the map is kept in {args.data_dir})\n", flush=True
+        )
+        result = run_sim(
+            args.robots, map_id=args.map, seed=args.seed, rate=args.rate, seconds=args.seconds,
+            connect=[args.zenoh], stop=stop,
+        )  # fmt: skip
+        sent, dropped = sum(result.published.values()), sum(result.dropped.values())
+        print(f"fleetmap demo: {len(result.robots)} robots published {sent} scans ({dropped} dropped)")
+        return 0
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        service.terminate()
+        try:
+            service.wait(30)
+        except subprocess.TimeoutExpired:
+            service.kill()
+
+
+def _wait_for_service(
+    service: subprocess.Popen, url: str, stop: threading.Event, timeout: float = 120.0
+) -> None:
+    deadline = time.monotonic() + timeout
+    while not stop.is_set():
+        if service.poll() is not None:
+            raise CliError(
+                f"the service exited with code {service.returncode} (is {url} or the Zenoh port in use?)"
+            )
+        try:
+            if httpx.get(url + "healthz", timeout=1.0).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        if time.monotonic() > deadline:
+            raise CliError(f"the service did not answer at {url} within {timeout:.0f} s")
+        time.sleep(0.2)
