@@ -164,3 +164,24 @@ def test_unknown_encoding_is_refused_and_bytes_are_sniffed() -> None:
         decode(encode_json(scan, 1), "text/csv")
     assert decode(encode_binary(scan, 4), "zenoh/bytes").seq == 4
     assert decode(encode_json(scan, 5), "").seq == 5
+
+
+def test_input_limits_refuse_what_is_out_of_bounds_and_cap_the_range() -> None:
+    from fleetmap.codec import InputLimits, configure_limits, current_limits
+
+    saved = current_limits()
+    configure_limits(InputLimits(world_bound=100.0, max_beams=10, max_range=50.0))
+    try:
+        with pytest.raises(DecodeError, match="world bound"):
+            decode(encode_binary(make_scan(150.0, 0, 0, [1.0], False), 1), BINARY_ENCODING)
+        with pytest.raises(DecodeError, match="limit of 10"):
+            decode(encode_json(make_scan(0, 0, 0, [1.0] * 11, False), 1), JSON_ENCODING)
+        wide = Scan.from_angles((0, 0, 0), [0.0, 7.0], [1.0, 1.0], 0.0, 30.0)
+        with pytest.raises(DecodeError, match="one turn"):
+            decode(encode_binary(wide, 1), BINARY_ENCODING)
+        far = Scan.from_fan((0, 0, 0), 0.0, 0.1, [10.0, 60.0, 5000.0], 0.0, 1e6)
+        got = decode(encode_binary(far, 1), BINARY_ENCODING).scan
+        assert got.range_max == 50.0
+        assert got.returns_mask().tolist() == [True, False, False]  # beyond the cap: no return
+    finally:
+        configure_limits(saved)

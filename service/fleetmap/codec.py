@@ -44,12 +44,64 @@ VERSION = 1
 FLAG_ANGLES = 1
 HEADER = struct.Struct("<4sBBHQddddffdfI")
 assert HEADER.size == 72, "the layout documented above and in docs/protocol.md"
-#: The largest payload accepted: a binary scan of MAX_BEAMS with explicit angles, or its JSON.
-MAX_PAYLOAD_BYTES = 4 * 1024 * 1024
+#: The largest payload accepted by default (about 16 K beams as JSON with explicit angles).
+MAX_PAYLOAD_BYTES_DEFAULT = 4 * 1024 * 1024
 
 
 class DecodeError(ValueError):
     """A payload that is not a valid scan message. The message says why."""
+
+
+@dataclass(frozen=True)
+class InputLimits:
+    """What the service accepts from robots, beyond well-formedness. Checked on every decoded scan,
+    whichever way it came (Zenoh or REST), before it can touch a map.
+
+    - `world_bound`: |x| and |y| of the sensor pose, metres;
+    - `max_beams`: beams per scan;
+    - `max_range`: the longest range trusted, metres: readings at or beyond it (or the message's own
+      range_max, whichever is smaller) are "no return", never a return kilometres away;
+    - angles must be finite and span at most one turn (plus a rounding margin).
+    """
+
+    world_bound: float = 100_000.0
+    max_beams: int = 16_384
+    max_range: float = 1_000.0
+    max_payload_bytes: int = MAX_PAYLOAD_BYTES_DEFAULT
+
+    def check(self, wire: WireScan) -> WireScan:
+        """`wire`, with range_max capped at max_range; raises DecodeError if it breaks a limit."""
+        scan = wire.scan
+        pose = scan.pose
+        if abs(pose.x) > self.world_bound or abs(pose.y) > self.world_bound:
+            raise DecodeError(
+                f"pose ({pose.x:.6g}, {pose.y:.6g}) is outside the world bound of +-{self.world_bound:g} m"
+            )
+        if scan.num_beams > self.max_beams:
+            raise DecodeError(f"{scan.num_beams} beams is more than the limit of {self.max_beams}")
+        if scan.num_beams > 1 and float(np.ptp(scan.angles)) > 2 * math.pi + 1e-3:
+            raise DecodeError("beam angles span more than one turn")
+        if scan.range_max > self.max_range:
+            if scan.range_min >= self.max_range:
+                raise DecodeError(
+                    f"range_min {scan.range_min:g} m is beyond the limit of {self.max_range:g} m"
+                )
+            capped = Scan(pose, scan.angles, scan.ranges, scan.range_min, self.max_range)
+            return WireScan(wire.seq, wire.stamp, capped)
+        return wire
+
+
+#: The limits in force; `configure_limits` (called once by `fleetmap serve`) replaces them.
+_limits = InputLimits()
+
+
+def configure_limits(limits: InputLimits) -> None:
+    global _limits
+    _limits = limits
+
+
+def current_limits() -> InputLimits:
+    return _limits
 
 
 @dataclass(frozen=True)
@@ -65,8 +117,9 @@ def decode(payload: bytes | bytearray | memoryview, encoding: str) -> WireScan:
     """Decode a payload by its encoding; an unknown or empty encoding is sniffed (JSON object or
     binary magic). Raises `DecodeError`."""
     data = bytes(payload)
-    if len(data) > MAX_PAYLOAD_BYTES:
-        raise DecodeError(f"payload of {len(data)} bytes exceeds the limit of {MAX_PAYLOAD_BYTES}")
+    limit = _limits.max_payload_bytes
+    if len(data) > limit:
+        raise DecodeError(f"payload of {len(data)} bytes exceeds the limit of {limit}")
     kind = encoding.split(";", 1)[0].strip()
     if kind in ("", "zenoh/bytes", "application/octet-stream"):
         kind = BINARY_ENCODING if data[:4] == MAGIC else JSON_ENCODING if data[:1] == b"{" else kind
@@ -86,9 +139,10 @@ def decode_json(data: bytes) -> WireScan:
 
 
 def from_message(message: ScanMessage) -> WireScan:
-    """A validated `ScanMessage` as a `WireScan`; raises `DecodeError` if the engine refuses it."""
+    """A validated `ScanMessage` as a `WireScan` within the input limits; raises `DecodeError` if
+    the engine or the limits refuse it."""
     try:
-        return WireScan(message.seq, message.stamp, message.to_scan())
+        return _limits.check(WireScan(message.seq, message.stamp, message.to_scan()))
     except ScanError as exc:
         raise DecodeError(str(exc)) from None
 
@@ -127,7 +181,7 @@ def decode_binary(data: bytes) -> WireScan:
         scan = Scan(Pose2D(x, y, theta), angles, ranges, float(range_min), float(range_max))
     except ScanError as exc:
         raise DecodeError(str(exc)) from None
-    return WireScan(int(seq), float(stamp), scan)
+    return _limits.check(WireScan(int(seq), float(stamp), scan))
 
 
 def encode_binary(scan: Scan, seq: int, stamp: float = 0.0, explicit_angles: bool | None = None) -> bytes:
@@ -151,7 +205,8 @@ def encode_binary(scan: Scan, seq: int, stamp: float = 0.0, explicit_angles: boo
 
 
 def encode_json(scan: Scan, seq: int, stamp: float = 0.0) -> bytes:
-    """The JSON encoding of a scan (angle_min + increment when evenly spaced)."""
+    """The JSON encoding of a scan: exact (angle_min + increment only when that reproduces the
+    angles bit for bit, else explicit angles)."""
     n = scan.num_beams
     angles = scan.angles
     message: dict[str, object] = {
@@ -163,9 +218,11 @@ def encode_json(scan: Scan, seq: int, stamp: float = 0.0) -> bytes:
     }
     if math.isfinite(scan.range_max):
         message["range_max"] = scan.range_max
-    if n > 1 and np.allclose(np.diff(angles), angles[1] - angles[0], rtol=0, atol=1e-12):
+    increment = float(angles[1] - angles[0]) if n > 1 else 0.0
+    # The compact form only when it decodes to exactly these angles: JSON is the lossless encoding.
+    if n > 1 and np.array_equal(angles[0] + increment * np.arange(n, dtype=np.float64), angles):
         message["angle_min"] = float(angles[0])
-        message["angle_increment"] = float(angles[1] - angles[0])
+        message["angle_increment"] = increment
     else:
         message["angles"] = angles.tolist()
     return json.dumps(message, separators=(",", ":")).encode()

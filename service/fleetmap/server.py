@@ -37,6 +37,7 @@ from typing import Any
 
 from fleetmap.auth import AuthMiddleware, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config
+from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
 from fleetmap.persistence import DurableStore, StorageError
 
@@ -123,6 +124,28 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         "--insecure",
         action="store_true",
         help="allow binding HTTP to a non-loopback address without API tokens",
+    )
+    limits = InputLimits()
+    p.add_argument(
+        "--world-bound",
+        type=float,
+        default=limits.world_bound,
+        metavar="M",
+        help=f"refuse poses farther than this on x or y, metres (default {limits.world_bound:g})",
+    )
+    p.add_argument(
+        "--max-beams",
+        type=_positive_int,
+        default=limits.max_beams,
+        metavar="N",
+        help=f"refuse scans with more beams (default {limits.max_beams})",
+    )
+    p.add_argument(
+        "--max-range",
+        type=float,
+        default=limits.max_range,
+        metavar="M",
+        help=f"readings at or beyond this (metres) are 'no return' (default {limits.max_range:g})",
     )
     p.add_argument(
         "--cors-origin",
@@ -285,6 +308,9 @@ def run(args: argparse.Namespace) -> int:
         host, port = parse_http(args.http)
         default_config = load_config(args.config)
         create_app, settings_cls = _load_api()
+        if not (args.world_bound > 0 and args.max_range > 0):
+            raise CliError("--world-bound and --max-range must be positive")
+        configure_limits(InputLimits(args.world_bound, args.max_beams, args.max_range))
         tokens = _load_tokens(args.auth_tokens)
         if tokens is None and not _is_loopback(host) and not args.insecure:
             raise CliError(
