@@ -10,6 +10,7 @@ order-independent `counts` layer.
 from __future__ import annotations
 
 import io
+import json
 import random
 import sqlite3
 import time
@@ -22,7 +23,7 @@ import pytest
 from robot_process import scans_for
 from service_process import RobotProcess, ServiceProcess
 
-from fleetmap.codec import decode, encode_binary
+from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.persistence import DB_NAME, scan_from_blob
@@ -168,3 +169,40 @@ def test_unwritable_data_dir_is_a_clear_error_at_start(tmp_path: Path) -> None:
         svc.start()
     assert "data directory" in str(failed.value)
     assert svc.proc is not None and svc.proc.returncode == 2
+
+
+def test_snapshot_download_and_restore_moves_a_map_between_servers(tmp_path: Path) -> None:
+    """GET /snapshot from one service, PUT it into another: the maps are equal in every layer; a body
+    that is not a snapshot is a 422 that changes nothing."""
+    scans = [as_received(s) for s in scans_for(sim=5, plan_seed=1, count=40)]
+    with ServiceProcess(tmp_path) as a, ServiceProcess(tmp_path) as b:
+        for k, scan in enumerate(scans):
+            message = json.loads(encode_json(scan, k))
+            r = httpx.post(f"{a.base_url}/maps/src/scans", params={"robot_id": "r"}, json=message, timeout=30)
+            assert r.status_code == 200, r.text
+        snap = httpx.get(f"{a.base_url}/maps/src/snapshot", timeout=30)
+        assert snap.status_code == 200 and snap.headers["content-type"] == "application/zip"
+        bad = httpx.put(f"{b.base_url}/maps/dst/snapshot", content=b"not a zip", timeout=30)
+        assert bad.status_code == 422 and "snapshot" in bad.json()["detail"]
+        assert httpx.get(f"{b.base_url}/maps/dst", timeout=10).status_code == 404
+        put = httpx.put(f"{b.base_url}/maps/dst/snapshot", content=snap.content, timeout=30)
+        assert put.status_code == 201, put.text
+        ref = GridMap(MapConfig())
+        for scan in scans:
+            ref.integrate(scan)
+        i0, j0, i1, j1 = ref.known_bounds()
+        res = ref.resolution
+        window = ((i0 + 0.5) * res, (j0 + 0.5) * res, (i1 + 0.5) * res, (j1 + 0.5) * res)
+        for layer in ("log_odds", "hits", "misses", "tsdf", "tsdf_weight"):
+            expected = ref.region(layer, i0, j0, i1, j1)
+            for svc, map_id in ((a, "src"), (b, "dst")):
+                np.testing.assert_array_equal(region(svc.base_url, map_id, layer, window), expected)
+        b.stop()
+    # The restored map is durable: the second service's data directory holds it after a restart.
+    restarted = ServiceProcess(tmp_path, ["--data-dir", str(tmp_path / f"data-{b.port}")]).start()
+    try:
+        np.testing.assert_array_equal(
+            region(restarted.base_url, "dst", "log_odds", window), ref.region("log_odds", i0, j0, i1, j1)
+        )
+    finally:
+        restarted.stop()

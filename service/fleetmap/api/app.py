@@ -20,7 +20,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel
 
-from fleetmap.api import errors, routes_data, routes_maps, routes_tiles, static
+from fleetmap.api import errors, routes_data, routes_maps, routes_snapshot, routes_tiles, static
 from fleetmap.api.events import router as events_router
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import RegionJson, RobotsEvent, TilesEvent
@@ -131,6 +131,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.include_router(routes_maps.router)
     app.include_router(routes_data.router)
     app.include_router(routes_tiles.router)
+    app.include_router(routes_snapshot.router)
     app.include_router(events_router)
     static.install(app, app.state.fleetmap.web_dir)
     app.add_middleware(errors.BodyLimitMiddleware, max_bytes=settings.max_body_bytes)

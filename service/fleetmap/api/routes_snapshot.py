@@ -1,0 +1,66 @@
+"""A map as one file: download it for backup, upload it to restore or to move a map between servers."""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi import APIRouter, Request, Response
+
+from fleetmap.api.errors import ApiError, error_responses
+from fleetmap.api.state import MapId, State
+from fleetmap.api_models import MapInfo, map_info
+from fleetmap.persistence import SNAPSHOT_FORMAT, map_from_snapshot_file, snapshot_file
+
+router = APIRouter(tags=["maps"])
+
+MEDIA_TYPE = "application/zip"
+
+
+@router.get(
+    "/maps/{map_id}/snapshot",
+    summary="Download a map as one file",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
+            "description": f"a {SNAPSHOT_FORMAT} zip: map.json (configuration) and tiles.npz (every layer)",
+        },
+        **error_responses(404, 422),
+    },  # fmt: skip
+)
+async def get_snapshot(map_id: MapId, state: State) -> Response:
+    """The whole map (configuration and every tile of every layer) as one zip file, consistent: it
+    is taken under the map's lock, between two scans. `PUT` it to this or another server to restore."""
+    entry = state.entry(map_id)
+    data = await asyncio.to_thread(snapshot_file, map_id, entry.gmap)
+    return Response(
+        data, media_type=MEDIA_TYPE,
+        headers={"Content-Disposition": f'attachment; filename="{map_id}.fleetmap.zip"'},
+    )  # fmt: skip
+
+
+@router.put(
+    "/maps/{map_id}/snapshot",
+    summary="Restore a map from a snapshot file",
+    response_model=MapInfo,
+    status_code=201,
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
+        }
+    },
+    responses=error_responses(413, 422),
+)
+async def put_snapshot(map_id: MapId, request: Request, state: State) -> MapInfo:
+    """Replace map `map_id` (or create it) with the map in the uploaded snapshot file, durably. Its
+    robots' statistics start afresh; scans queued for the old map are dropped. 422 if the body is not
+    a fleetmap snapshot."""
+    body = await request.body()
+    try:
+        gmap = await asyncio.to_thread(map_from_snapshot_file, body)
+    except ValueError as exc:
+        raise ApiError(422, str(exc)) from None
+    entry = state.registry.replace(map_id, gmap)
+    state.tiles.drop_map(map_id)
+    return map_info(entry, state.registry.lock)

@@ -1,0 +1,81 @@
+"""The Docker files name real things. No Docker engine runs on these machines, so the images cannot be
+built here; instead this checks that every command, option, port and path the Dockerfile and the
+compose file rely on exists in the project, so they cannot silently rot."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+DOCKERFILE = REPO / "docker" / "Dockerfile"
+COMPOSE = REPO / "docker" / "compose.yaml"
+
+
+def fleetmap_help(*command: str) -> str:
+    out = subprocess.run(
+        [sys.executable, "-m", "fleetmap.cli", *command, "--help"], capture_output=True, text=True, check=True
+    )
+    return out.stdout
+
+
+def options_of(argv: list[str]) -> list[str]:
+    return [a.split("=", 1)[0] for a in argv if a.startswith("--")]
+
+
+def dockerfile_instructions() -> dict[str, list[str]]:
+    found: dict[str, list[str]] = {}
+    for line in DOCKERFILE.read_text().splitlines():
+        m = re.match(r"^([A-Z]+)\s+(.*)$", line)
+        if m:
+            found.setdefault(m.group(1), []).append(m.group(2))
+    return found
+
+
+def test_dockerfile_copies_paths_that_exist_and_runs_real_options() -> None:
+    ins = dockerfile_instructions()
+    for copy in ins["COPY"]:
+        *sources, _dest = copy.split()
+        for src in sources:
+            assert (REPO / src).exists(), f"Dockerfile copies {src}, which does not exist"
+    entry = eval(ins["ENTRYPOINT"][0])  # a JSON-style list literal
+    assert entry[:2] == ["fleetmap", "serve"]
+    serve_help = fleetmap_help("serve")
+    for option in options_of(entry):
+        assert option in serve_help, f"ENTRYPOINT uses {option}, which fleetmap serve does not have"
+    ports = {int(p) for line in ins["EXPOSE"] for p in line.split()}
+    assert {8000, 7447} <= ports
+    assert "0.0.0.0:8000" in entry and "tcp/0.0.0.0:7447" in entry
+    assert any("/healthz" in h for h in ins["HEALTHCHECK"])
+
+
+def test_compose_services_use_real_commands_and_ports() -> None:
+    compose = yaml.safe_load(COMPOSE.read_text())
+    services = compose["services"]
+    serve_help = fleetmap_help("serve")
+    for option in options_of(services["fleetmap"]["command"]):
+        assert option in serve_help
+    assert {"8000:8000", "7447:7447"} <= set(services["fleetmap"]["ports"])
+    robots = services["robots"]["entrypoint"]
+    assert robots[:2] == ["fleetmap", "sim"]
+    sim_help = fleetmap_help("sim")
+    for option in options_of(robots):
+        assert option in sim_help, f"compose runs fleetmap sim {option}, which does not exist"
+    connect = robots[robots.index("--connect") + 1]
+    assert connect == "tcp/fleetmap:7447", "robots must reach the service by its compose name and Zenoh port"
+    for service in services.values():
+        build = service.get("build")
+        if build:
+            assert (COMPOSE.parent / build["context"] / build["dockerfile"]).resolve() == DOCKERFILE
+
+
+def test_readme_documents_the_docker_commands() -> None:
+    readme = (REPO / "README.md").read_text()
+    assert "docker compose -f docker/compose.yaml up" in readme
+    first = shlex.split("docker build -f docker/Dockerfile -t fleetmap .")
+    assert " ".join(first) in readme
