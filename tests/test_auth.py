@@ -1,0 +1,120 @@
+"""API tokens on the real service: roles, 401 / 403 with clear messages, open or protected reads,
+loopback-only without tokens, and tokens never written to the logs."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import pytest
+from service_process import ServiceProcess, free_port
+
+from fleetmap.auth import TokenFileError, TokenSet, required_role
+
+READ, WRITE, ADMIN = "read-token-0123456789", "write-token-0123456789", "admin-token-0123456789"
+SCAN = {"seq": 0, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": -0.5, "angle_increment": 0.1,
+        "range_max": 10.0, "ranges": [2.0] * 11}  # fmt: skip
+
+
+@pytest.fixture
+def token_file(tmp_path: Path) -> Path:
+    path = tmp_path / "tokens.txt"
+    path.write_text(f"# roles\nread {READ}\nwrite {WRITE}\nadmin {ADMIN}  # the operator\n")
+    return path
+
+
+def bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def test_roles_on_the_real_service(tmp_path: Path, token_file: Path) -> None:
+    with ServiceProcess(tmp_path, ["--auth-tokens", str(token_file)]) as svc:
+        url = svc.base_url
+        # Writing needs write or admin.
+        r = httpx.put(f"{url}/maps/m", json={})
+        assert r.status_code == 401 and "Bearer" in r.json()["detail"]
+        assert r.headers["www-authenticate"].startswith("Bearer")
+        r = httpx.put(f"{url}/maps/m", json={}, headers=bearer("not-a-token-at-all-xx"))
+        assert r.status_code == 401 and r.json()["detail"] == "unknown token"
+        r = httpx.put(f"{url}/maps/m", json={}, headers=bearer(READ))
+        assert r.status_code == 403 and "'write'" in r.json()["detail"]
+        assert httpx.get(f"{url}/maps/m").status_code == 404  # nothing was created
+        assert httpx.put(f"{url}/maps/m", json={}, headers=bearer(WRITE)).status_code == 201
+        r = httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, json=SCAN, headers=bearer(READ))
+        assert r.status_code == 403
+        r = httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, json=SCAN, headers=bearer(ADMIN))
+        assert r.status_code == 200
+        # Reading is open by default, including the read-only POST /cells.
+        assert httpx.get(f"{url}/maps/m").status_code == 200
+        assert httpx.post(f"{url}/maps/m/cells", json={"points": [[2.0, 0.0]]}).status_code == 200
+        assert httpx.delete(f"{url}/maps/m", headers=bearer(READ)).status_code == 403
+        assert httpx.delete(f"{url}/maps/m", headers=bearer(ADMIN)).status_code == 204
+        assert httpx.get(f"{url}/healthz").status_code == 200
+        logs = svc.logs()
+    for token in (READ, WRITE, ADMIN, "not-a-token-at-all-xx"):
+        assert token not in logs
+
+
+def test_reads_can_require_a_token(tmp_path: Path, token_file: Path) -> None:
+    with ServiceProcess(tmp_path, ["--auth-tokens", str(token_file), "--require-read-token"]) as svc:
+        assert httpx.get(f"{svc.base_url}/maps").status_code == 401
+        assert httpx.get(f"{svc.base_url}/maps", headers=bearer(READ)).status_code == 200
+        assert httpx.post(f"{svc.base_url}/maps/x/cells", json={"points": []}).status_code == 401
+        assert httpx.get(f"{svc.base_url}/healthz").status_code == 200  # probes carry no token
+
+
+def test_tokens_from_the_environment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FLEETMAP_TOKENS", f"write {WRITE}; read {READ}")
+    with ServiceProcess(tmp_path) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/e", json={}).status_code == 401
+        assert httpx.put(f"{svc.base_url}/maps/e", json={}, headers=bearer(WRITE)).status_code == 201
+
+
+def serve(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "fleetmap.server", "--in-memory", *args],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+
+
+def test_no_tokens_means_loopback_only(tmp_path: Path) -> None:
+    out = serve("--http", f"0.0.0.0:{free_port()}", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}")
+    assert out.returncode == 2
+    assert "without API tokens" in out.stderr and "--insecure" in out.stderr
+
+
+def test_insecure_allows_all_interfaces() -> None:
+    """With --insecure the service binds 0.0.0.0 without tokens; reached here through loopback only."""
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fleetmap.server", "--in-memory", "--insecure", "--http", f"0.0.0.0:{port}",
+         "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if "fleetmap serving" in line:
+                break
+        assert httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=5).status_code == 200
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def test_token_files_are_checked_without_echoing_tokens(tmp_path: Path) -> None:
+    with pytest.raises(TokenFileError, match="tokens.txt:2") as bad:
+        TokenSet.parse("read aaaaaaaaaaaaaaaaaaaa\nsuper bbbbbbbbbbbbbbbbbbbbb\n", "tokens.txt")
+    assert "bbbb" not in str(bad.value)
+    with pytest.raises(TokenFileError, match="at least 16"):
+        TokenSet.parse("write short\n")
+    tokens = TokenSet.parse(f"read {READ}\nadmin {READ}\n")
+    assert tokens.role_of(READ) == "admin"  # the highest role a token is listed with
+    assert tokens.role_of(READ + "x") is None
+    assert required_role("OPTIONS", "/maps", True) is None
+    assert required_role("POST", "/maps/a/cells", False) is None
+    assert required_role("POST", "/maps/a/scans", False) == "write"
+    out = serve("--auth-tokens", str(tmp_path / "missing.txt"))
+    assert out.returncode == 2 and "cannot read token file" in out.stderr
