@@ -41,6 +41,12 @@ cells, regions, tiles, TSDF surfaces and exports, and follow changes live with
 `GET /maps/{map_id}/events`. Coordinates are metres in the map frame; cell `(i, j)` of a map with
 resolution `res` covers `[i*res, (i+1)*res) x [j*res, (j+1)*res)`. Every error is JSON
 `{"detail": "..."}`. See docs/api.md.
+
+Authentication: when the server runs with API tokens (`fleetmap serve --auth-tokens FILE`), requests
+send `Authorization: Bearer <token>`. Writing (POST scans, PUT and DELETE maps, PUT snapshots) needs a
+token with the `write` or `admin` role; reading is open unless the server requires a `read` token
+(`--require-read-token`); `/healthz` is always open. A missing or unknown token is a 401, a token whose
+role is too low a 403. Without tokens the server only listens on loopback. See docs/security.md.
 """
 
 TAGS = [
@@ -166,7 +172,13 @@ def _install_openapi(app: FastAPI) -> None:
                 routes=app.routes,
                 tags=app.openapi_tags,
             )
-            schemas = schema.setdefault("components", {}).setdefault("schemas", {})
+            components = schema.setdefault("components", {})
+            # Documented, not required per operation: whether tokens are needed depends on how the
+            # server runs (see DESCRIPTION), and clients of a tokenless server send none.
+            components["securitySchemes"] = {
+                "bearerToken": {"type": "http", "scheme": "bearer", "description": "an API token (see above)"}
+            }
+            schemas = components.setdefault("schemas", {})
             for model in EXTRA_SCHEMAS:
                 extra = model.model_json_schema(ref_template="#/components/schemas/{model}")
                 schemas.update(extra.pop("$defs", {}))
