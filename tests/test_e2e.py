@@ -297,7 +297,7 @@ def test_bad_messages_over_zenoh_are_reported_per_robot(
         "s = zenoh.open(c)\n"
         "p = s.declare_publisher('fleetmap/e2e-bad/r/scan')\n"
         "import time\n"
-        "while not p.matching_status: time.sleep(0.01)\n"
+        "while not p.matching_status.matching: time.sleep(0.01)\n"
         "p.put(b'{\"seq\": 5}', encoding=zenoh.Encoding.APPLICATION_JSON)\n"
         "time.sleep(0.3); s.close()\n"
     )
@@ -370,4 +370,3 @@ def test_serve_help_documents_the_options() -> None:
     for option in ("--http", "--zenoh-listen", "--zenoh-connect", "--zenoh-config", "--data-dir", "--config",
                    "--no-auto-create", "--workers"):  # fmt: skip
         assert option in text
-    assert "NOT USED YET" in text  # --data-dir is accepted but durable storage is not wired in

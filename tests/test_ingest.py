@@ -46,7 +46,7 @@ def scan_publisher(session: zenoh.Session, map_id: str, robot_id: str, encoding:
         encoding=zenoh.Encoding(encoding),
         congestion_control=zenoh.CongestionControl.BLOCK,
     )
-    wait_for(lambda: pub.matching_status, timeout=10, interval=0.01, what="a matching subscriber")
+    wait_for(lambda: pub.matching_status.matching, timeout=10, interval=0.01, what="a matching subscriber")
     return pub
 
 

@@ -31,7 +31,7 @@ import signal
 import socket
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +40,7 @@ from fleetmap.cli import CliError, load_config
 from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
 from fleetmap.persistence import DurableStore, StorageError
+from fleetmap.scan import MAX_BEAMS
 
 log = logging.getLogger("fleetmap.server")
 
@@ -135,7 +136,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--max-beams",
-        type=_positive_int,
+        type=_int_between(1, MAX_BEAMS),
         default=limits.max_beams,
         metavar="N",
         help=f"refuse scans with more beams (default {limits.max_beams})",
@@ -167,7 +168,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--workers",
-        type=_positive_int,
+        type=_int_between(1, 64),
         default=2,
         metavar="N",
         help="integration worker threads (default 2)",
@@ -190,14 +191,19 @@ def _is_loopback(host: str) -> bool:
         return host == "localhost"
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if not 1 <= value <= 64:
-        raise argparse.ArgumentTypeError(f"must be between 1 and 64, got {value}")
-    return value
+def _int_between(low: int, high: int) -> Callable[[str], int]:
+    """An argparse `type` accepting whole numbers in [low, high]."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be between {low} and {high}, got {value}")
+        return value
+
+    return parse
 
 
 def parse_http(text: str) -> tuple[str, int]:
