@@ -354,8 +354,9 @@ def test_serve_errors_exit_2_without_a_traceback(service: ServiceProcess, tmp_pa
         (["--http", "127.0.0.1:0", "--config", str(bad_config)], "invalid map configuration"),
     ]
     for args, message in cases:
-        result = subprocess.run([sys.executable, "-m", "fleetmap.server", *args], capture_output=True,
-                                text=True, timeout=60)  # fmt: skip
+        # --in-memory: these runs must not open (or create) ./fleetmap-data in the working directory.
+        command = [sys.executable, "-m", "fleetmap.server", "--in-memory", *args]
+        result = subprocess.run(command, capture_output=True, text=True, timeout=60)
         assert result.returncode == 2, (args, result.stdout, result.stderr)
         assert message in result.stderr and "fleetmap serve: error:" in result.stderr, result.stderr
         assert "Traceback" not in result.stderr, result.stderr

@@ -323,14 +323,17 @@ def run(args: argparse.Namespace) -> int:
                 f"refusing to serve {host} without API tokens: anyone on the network could change the "
                 "maps. Give --auth-tokens FILE (or $FLEETMAP_TOKENS), or --insecure to accept that"
             )
+        # The HTTP socket first: a second instance on a busy port must fail before it opens the
+        # (possibly shared) data directory.
+        sock = bind_http(host, port)
+        port = sock.getsockname()[1]
         durable = None
         if not args.in_memory:
             try:
                 durable = DurableStore(Path(args.data_dir))
             except StorageError as exc:
+                sock.close()
                 raise CliError(str(exc)) from None
-        sock = bind_http(host, port)
-        port = sock.getsockname()[1]
         warm_up()
         registry = MapRegistry(
             default_config,
