@@ -162,3 +162,17 @@ def test_readers_never_see_half_a_scan() -> None:
         registry.close()
     assert len(seen) > 10
     assert all(v % per_scan == 0 for v in seen)
+
+
+def test_scans_create_at_most_max_auto_maps() -> None:
+    """Made-up map ids cannot create maps without end; PUT-style creation still works."""
+    reg = MapRegistry(max_auto_maps=3)
+    for k in range(3):
+        reg.submit(f"m{k}", "r", WireScan(0, 0.0, scan_at(0)))
+    with pytest.raises(IngestRejected, match="PUT") as refused:
+        reg.submit("m3", "r", WireScan(0, 0.0, scan_at(0)))
+    assert refused.value.status == 404
+    reg.set_online("m4", "r", True)
+    assert len(reg.list()) == 3
+    reg.create("m5")
+    assert len(reg.list()) == 4

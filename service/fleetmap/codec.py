@@ -205,21 +205,23 @@ def encode_binary(scan: Scan, seq: int, stamp: float = 0.0, explicit_angles: boo
 
 
 def encode_json(scan: Scan, seq: int, stamp: float = 0.0) -> bytes:
-    """The JSON encoding of a scan: exact (angle_min + increment only when that reproduces the
-    angles bit for bit, else explicit angles)."""
-    n = scan.num_beams
-    angles = scan.angles
+    """The JSON encoding of a scan, exact: inf (no return) becomes null; beams with an invalid
+    reading (NaN, which JSON cannot hold) are left out, since every sensor model ignores them; the
+    compact angle_min + increment form is used only when it decodes to these angles bit for bit."""
+    valid = ~np.isnan(scan.ranges)
+    angles = scan.angles[valid]
+    ranges = scan.ranges[valid]
+    n = int(angles.size)
     message: dict[str, object] = {
         "seq": seq,
         "stamp": stamp,
         "pose": {"x": scan.pose.x, "y": scan.pose.y, "theta": scan.pose.theta},
         "range_min": scan.range_min,
-        "ranges": [None if math.isinf(r) else (None if math.isnan(r) else r) for r in scan.ranges.tolist()],
+        "ranges": [None if math.isinf(r) else r for r in ranges.tolist()],
     }
     if math.isfinite(scan.range_max):
         message["range_max"] = scan.range_max
     increment = float(angles[1] - angles[0]) if n > 1 else 0.0
-    # The compact form only when it decodes to exactly these angles: JSON is the lossless encoding.
     if n > 1 and np.array_equal(angles[0] + increment * np.arange(n, dtype=np.float64), angles):
         message["angle_min"] = float(angles[0])
         message["angle_increment"] = increment

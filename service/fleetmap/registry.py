@@ -146,6 +146,7 @@ class MapRegistry:
         queue_total: int = 8192,
         on_integrated: Callable[[MapEntry, Job, IntegrationResult, float], None] | None = None,
         durable: DurableStore | None = None,
+        max_auto_maps: int = 256,
     ) -> None:
         self.default_config = default_config or MapConfig()
         self.auto_create = auto_create
@@ -155,6 +156,9 @@ class MapRegistry:
         self._generations = itertools.count(1)
         self._on_integrated = on_integrated
         self.durable = durable
+        # Scans create maps, so scans with made-up map ids could create them without end: past this
+        # many maps, only PUT /maps/{id} creates one.
+        self.max_auto_maps = max_auto_maps
         self._workers = [
             threading.Thread(target=self._work, name=f"fleetmap-integrate-{k}", daemon=True)
             for k in range(workers)
@@ -291,6 +295,12 @@ class MapRegistry:
             if entry is None:
                 if not self.auto_create:
                     raise IngestRejected(f"no map {map_id!r} (auto-create is off)", 404)
+                if len(self.maps) >= self.max_auto_maps:
+                    raise IngestRejected(
+                        f"no map {map_id!r}, and the service already holds {len(self.maps)} maps, the most "
+                        "scans may create; create it with PUT /maps/{id}",
+                        404,
+                    )
                 entry, _ = self.create(map_id)
             robot = entry.robot(robot_id)
             seq = wire.seq
@@ -330,7 +340,7 @@ class MapRegistry:
         with self.lock:
             entry = self.maps.get(map_id)
             if entry is None:
-                if not (online and self.auto_create):
+                if not (online and self.auto_create) or len(self.maps) >= self.max_auto_maps:
                     return
                 entry, _ = self.create(map_id)
             entry.robot(robot_id).online = online
