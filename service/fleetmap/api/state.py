@@ -37,7 +37,8 @@ class ApiState:
         return self.registry.get(map_id)
 
 
-def get_state(request: Request) -> ApiState:
+async def get_state(request: Request) -> ApiState:
+    # async: a plain function here would cost a thread-pool hop on every request.
     return request.app.state.fleetmap  # type: ignore[no-any-return]
 
 
