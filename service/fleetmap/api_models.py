@@ -229,7 +229,7 @@ class RegionJson(_Model):
     resolution: float
     origin: Point = Field(description="map point of the window's lower-left corner")
     shape: Annotated[list[int], Field(min_length=2, max_length=2)] = Field(description="[ny, nx]")
-    values: list[list[float | None]] = Field(
+    values: list[list[int | float | None]] = Field(
         description="values[row][col] is cell (i0 + col, j0 + row): row 0 is the LOWEST y. Unknown is "
         "null for float layers, 0 for counts, 0 (unknown) for state (0 unknown, 1 free, 2 occupied)"
     )
@@ -409,7 +409,7 @@ def region_json(layer: str, window: CellWindow, resolution: float, values: np.nd
     """A dense window (`GridMap.region`'s array, row 0 = lowest y) as JSON."""
     i0, j0, _, _ = window
     if values.dtype.kind == "f":
-        rows: list[list[float | None]] = [_floats(row) for row in values]
+        rows: list[list[int | float | None]] = [_floats(row) for row in values]  # type: ignore[misc]
     else:
         rows = values.tolist()
     return RegionJson(
