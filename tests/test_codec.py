@@ -186,3 +186,13 @@ def test_input_limits_refuse_what_is_out_of_bounds_and_cap_the_range() -> None:
         assert got.returns_mask().tolist() == [True, False, False]  # beyond the cap: no return
     finally:
         configure_limits(saved)
+
+
+def test_rejection_reasons_cannot_inject_log_lines() -> None:
+    """Field names come from the sender: a newline in one must not reach the reason (and the log)."""
+    evil = {"seq": 1, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": 0.0, "angle_increment": 0.1,
+            "ranges": [1.0], "x\nERROR fake log line" + "y" * 500: 1}  # fmt: skip
+    with pytest.raises(DecodeError) as refused:
+        decode_json(json.dumps(evil).encode())
+    reason = str(refused.value)
+    assert "\n" not in reason and len(reason) < 400

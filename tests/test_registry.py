@@ -176,3 +176,16 @@ def test_scans_create_at_most_max_auto_maps() -> None:
     assert len(reg.list()) == 3
     reg.create("m5")
     assert len(reg.list()) == 4
+
+
+def test_robot_ids_per_map_are_capped() -> None:
+    reg = MapRegistry(max_robots_per_map=2)
+    reg.submit("m", "a", WireScan(0, 0.0, scan_at(0)))
+    reg.submit("m", "b", WireScan(0, 0.0, scan_at(0)))
+    with pytest.raises(IngestRejected) as refused:
+        reg.submit("m", "c", WireScan(0, 0.0, scan_at(0)))
+    assert refused.value.status == 429
+    reg.reject("m", "d", "garbage")
+    reg.set_online("m", "e", True)
+    entry = reg.get("m")
+    assert sorted(entry.robots) == ["a", "b"] and entry.scans_rejected == 1

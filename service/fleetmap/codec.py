@@ -231,7 +231,16 @@ def encode_json(scan: Scan, seq: int, stamp: float = 0.0) -> bytes:
 
 
 def _first_error(exc: ValidationError) -> str:
+    """The first validation error, safe to log and to show: field names come from the sender, so
+    they are quoted (no newlines or control characters get through) and cut short."""
     err = exc.errors()[0]
-    where = ".".join(str(p) for p in err.get("loc", ())) or "message"
+    where = ".".join(_safe_text(str(p), 40) for p in err.get("loc", ())) or "message"
     more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-    return f"{where}: {err.get('msg')}{more}"
+    return f"{where}: {_safe_text(str(err.get('msg')), 200)}{more}"
+
+
+def _safe_text(text: str, limit: int) -> str:
+    """`text` as is when it is short and plain, else its repr, cut to `limit` characters."""
+    if not text.isprintable() or len(text) > limit:
+        text = repr(text[:limit])
+    return text

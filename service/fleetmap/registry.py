@@ -147,6 +147,7 @@ class MapRegistry:
         on_integrated: Callable[[MapEntry, Job, IntegrationResult, float], None] | None = None,
         durable: DurableStore | None = None,
         max_auto_maps: int = 256,
+        max_robots_per_map: int = 1024,
     ) -> None:
         self.default_config = default_config or MapConfig()
         self.auto_create = auto_create
@@ -159,6 +160,8 @@ class MapRegistry:
         # Scans create maps, so scans with made-up map ids could create them without end: past this
         # many maps, only PUT /maps/{id} creates one.
         self.max_auto_maps = max_auto_maps
+        # Likewise for robot ids: a sender cycling through ids must not grow state (or logs) at will.
+        self.max_robots_per_map = max_robots_per_map
         self._workers = [
             threading.Thread(target=self._work, name=f"fleetmap-integrate-{k}", daemon=True)
             for k in range(workers)
@@ -302,6 +305,10 @@ class MapRegistry:
                         404,
                     )
                 entry, _ = self.create(map_id)
+            if robot_id not in entry.robots and len(entry.robots) >= self.max_robots_per_map:
+                raise IngestRejected(
+                    f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have", 429
+                )
             robot = entry.robot(robot_id)
             seq = wire.seq
             if robot.last_seq is not None and seq <= robot.last_seq and seq != 0:
@@ -328,6 +335,9 @@ class MapRegistry:
             entry = self.maps.get(map_id)
             if entry is None:
                 return
+            if robot_id not in entry.robots and len(entry.robots) >= self.max_robots_per_map:
+                entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
+                return
             robot = entry.robot(robot_id)
             robot.scans_rejected += 1
             robot.last_error = reason
@@ -343,7 +353,8 @@ class MapRegistry:
                 if not (online and self.auto_create) or len(self.maps) >= self.max_auto_maps:
                     return
                 entry, _ = self.create(map_id)
-            entry.robot(robot_id).online = online
+            if robot_id in entry.robots or len(entry.robots) < self.max_robots_per_map:
+                entry.robot(robot_id).online = online
 
     def iter_robots(self) -> Iterator[tuple[str, str, RobotState]]:
         with self.lock:

@@ -299,6 +299,10 @@ def run(args: argparse.Namespace) -> int:
     from fleetmap.registry import MapRegistry
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # Zenoh's own log: refused TLS handshakes and wrong passwords show there (RUST_LOG=warn for more).
+    import zenoh
+
+    zenoh.init_log_from_env_or("error")
     stop = threading.Event()
     server: Any = None
 

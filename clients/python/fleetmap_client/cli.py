@@ -34,6 +34,11 @@ def _add_connection(p: argparse.ArgumentParser) -> None:
         default=None,
         help=f"Zenoh endpoints of the service (default {DEFAULT_CONNECT[0]}, where `fleetmap serve` listens)",
     )
+    p.add_argument(
+        "--zenoh-config",
+        metavar="FILE.json5",
+        help="Zenoh configuration for the robot side (TLS, mutual TLS, user/password: docs/security.md)",
+    )
     p.add_argument("--encoding", choices=["binary", "json"], default="binary", help="payload encoding")
     p.add_argument(
         "--wait-timeout",
@@ -97,6 +102,7 @@ def run_replay(args: argparse.Namespace) -> int:
             args.robot_id,
             rate=args.rate,
             connect=args.connect,
+            zenoh_config=args.zenoh_config,
             encoding=args.encoding,
             limit=args.limit,
             wait_timeout=args.wait_timeout,
@@ -162,6 +168,7 @@ def run_sim_command(args: argparse.Namespace) -> int:
             rate=args.rate,
             seconds=args.seconds,
             connect=args.connect,
+            zenoh_config=args.zenoh_config,
             encoding=args.encoding,
             beams=args.beams,
             speed=args.speed,

@@ -53,6 +53,7 @@ def replay(
     *,
     rate: float = 1.0,
     connect: Sequence[str] | None = None,
+    zenoh_config: str | None = None,
     encoding: Encoding = "binary",
     limit: int | None = None,
     wait_timeout: float | None = None,
@@ -75,7 +76,9 @@ def replay(
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     count = len(ds) if limit is None else min(limit, len(ds))
     period = 0.0 if rate == 0.0 else 1.0 / (NOMINAL_SCAN_RATE * rate)
-    with ScanPublisher(map_id, robot_id, connect=connect, encoding=encoding) as pub:
+    with ScanPublisher(
+        map_id, robot_id, connect=connect, encoding=encoding, zenoh_config=zenoh_config
+    ) as pub:
         _wait(pub, wait_timeout, on_waiting)
         return _publish_all(pub, (ds[k] for k in range(count)), count, period, wait_timeout, progress)
 

@@ -56,6 +56,7 @@ def run_sim(
     rate: float = 10.0,
     seconds: float | None = None,
     connect: Sequence[str] | None = None,
+    zenoh_config: str | None = None,
     encoding: Encoding = "binary",
     beams: int = 1081,
     range_max: float = 30.0,
@@ -93,7 +94,9 @@ def run_sim(
     publishers: list[ScanPublisher] = []
     try:
         for rid in ids:
-            publishers.append(ScanPublisher(map_id, rid, connect=connect, encoding=encoding))
+            publishers.append(
+                ScanPublisher(map_id, rid, connect=connect, encoding=encoding, zenoh_config=zenoh_config)
+            )
         _wait_all(publishers, wait_timeout, stop, on_waiting)
         started = time.monotonic()
         deadline = None if seconds is None else started + seconds
