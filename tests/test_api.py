@@ -544,7 +544,11 @@ def test_metrics_count_per_robot(api: RunningApi) -> None:
     assert "range_min" in robot["last_error"] and robot["last_seq"] == 5
 
 
-def test_web_dir_default_is_the_checkout(api: RunningApi) -> None:
-    from fleetmap.api.app import DEFAULT_WEB_DIR
+def test_web_dir_default(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from fleetmap.api.app import DEFAULT_WEB_DIR, default_web_dir
 
-    assert Path(__file__).resolve().parents[1] / "clients" / "web" == DEFAULT_WEB_DIR
+    checkout = Path(__file__).resolve().parents[1] / "clients" / "web"
+    assert checkout == DEFAULT_WEB_DIR
+    assert default_web_dir() == checkout  # the viewer is in this checkout
+    monkeypatch.setenv("FLEETMAP_WEB_DIR", str(tmp_path))
+    assert default_web_dir() == tmp_path

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -32,6 +33,20 @@ log = logging.getLogger("fleetmap.api")
 
 #: The web viewer in a source checkout: <repo>/clients/web.
 DEFAULT_WEB_DIR = Path(__file__).resolve().parents[3] / "clients" / "web"
+#: Environment variable naming the web viewer's directory (overrides the defaults below).
+WEB_DIR_ENV = "FLEETMAP_WEB_DIR"
+
+
+def default_web_dir() -> Path:
+    """Where the web viewer is when `ApiSettings.web_dir` is None: $FLEETMAP_WEB_DIR; else the source
+    checkout's clients/web (an editable install); else ./clients/web (an installed package run from the
+    project directory, as in the Docker image); else the checkout path (then `/` answers 404)."""
+    if os.environ.get(WEB_DIR_ENV):
+        return Path(os.environ[WEB_DIR_ENV])
+    for candidate in (DEFAULT_WEB_DIR, Path.cwd() / "clients" / "web"):
+        if (candidate / "index.html").is_file():
+            return candidate
+    return DEFAULT_WEB_DIR
 
 DESCRIPTION = """\
 Shared occupancy, count and TSDF maps built from a fleet's 2D laser scans.
@@ -65,7 +80,7 @@ class ApiSettings:
     """Options of the app. Everything has a default."""
 
     #: Directory of the web viewer (index.html, app.js, ...), served at `/` and `/static/`.
-    #: None: the source checkout's clients/web, if it exists.
+    #: None: `default_web_dir()` ($FLEETMAP_WEB_DIR, the checkout's clients/web, ./clients/web).
     web_dir: Path | None = None
     #: Origins allowed by CORS (e.g. ["http://localhost:5173"]); empty: no CORS headers.
     cors_origins: list[str] = field(default_factory=list)
@@ -131,7 +146,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         registry=registry,
         settings=settings,
         metrics=ServiceMetrics(registry, integration),
-        web_dir=settings.web_dir if settings.web_dir is not None else DEFAULT_WEB_DIR,
+        web_dir=settings.web_dir if settings.web_dir is not None else default_web_dir(),
     )
     errors.install(app)
     app.include_router(routes_maps.router)
