@@ -61,6 +61,8 @@ class GridMap:
         self.config = config or MapConfig()
         self.store = TileStore(self.config.tile_size, self.config.layers, self.config.max_tiles)
         self.lock = threading.RLock()
+        #: Per tile: (version, local observed bounds or None), for known_bounds.
+        self._tile_bounds: dict[TileKey, tuple[int, tuple[int, int, int, int] | None]] = {}
 
     @property
     def resolution(self) -> float:
@@ -193,21 +195,26 @@ class GridMap:
 
     def known_bounds(self) -> tuple[int, int, int, int] | None:
         """Cell bounds `(i0, j0, i1, j1)`, exclusive ends, of every cell any kept layer has observed;
-        None if none."""
+        None if none. Each tile's own bounds are cached by its version, so only tiles changed since the
+        last call are scanned (under the lock)."""
         lo = [math.inf, math.inf]
         hi = [-math.inf, -math.inf]
         t = self.store.tile_size
         with self.lock:
             for (ti, tj), slot in self.store.slots.items():
-                seen = self._observed(slot)
-                rows = np.flatnonzero(seen.any(axis=1))
-                if rows.size == 0:
+                version = int(self.store.versions[slot])
+                cached = self._tile_bounds.get((ti, tj))
+                if cached is None or cached[0] != version:
+                    cached = (version, _local_bounds(self._observed(slot)))
+                    self._tile_bounds[(ti, tj)] = cached
+                local = cached[1]
+                if local is None:
                     continue
-                cols = np.flatnonzero(seen.any(axis=0))
-                lo[0] = min(lo[0], ti * t + cols[0])
-                lo[1] = min(lo[1], tj * t + rows[0])
-                hi[0] = max(hi[0], ti * t + cols[-1] + 1)
-                hi[1] = max(hi[1], tj * t + rows[-1] + 1)
+                c0, r0, c1, r1 = local
+                lo[0] = min(lo[0], ti * t + c0)
+                lo[1] = min(lo[1], tj * t + r0)
+                hi[0] = max(hi[0], ti * t + c1)
+                hi[1] = max(hi[1], tj * t + r1)
         if lo[0] == math.inf:
             return None
         return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
@@ -247,6 +254,15 @@ class GridMap:
                 f"layer {layer!r} needs the {needs!r} layer, which this map does not keep"
             )
         return source
+
+
+def _local_bounds(seen: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(col0, row0, col1, row1), exclusive ends, of the True cells of a tile; None if none."""
+    rows = np.flatnonzero(seen.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(seen.any(axis=0))
+    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
 
 
 def log_odds_to_probability(log_odds: np.ndarray) -> np.ndarray:

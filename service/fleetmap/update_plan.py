@@ -29,6 +29,10 @@ _EMPTY_KIND = np.empty(0, dtype=np.uint8)
 #: be an absurd extent for one 2D scan (e.g. 10 km across at 5 cm) and its bookkeeping would be large.
 MAX_SCAN_TILE_WINDOW = 1 << 20
 
+#: Cell indices must stay well inside int64 and exact in float64 (2**52): a scan reaching beyond
+#: +-2**40 cells (55 billion km at 5 cm) is refused rather than overflowing in the kernels.
+MAX_CELL_INDEX = float(2**40)
+
 #: Each planning thread keeps one zeroed scratch for `trace_scan` (it leaves it zeroed).
 _scratch = threading.local()
 
@@ -61,9 +65,13 @@ class UpdatePlan:
 
 
 def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
-    """Every cell update `scan` implies under `config`, for tiles of `1 << shift` cells."""
+    """Every cell update `scan` implies under `config`, for tiles of `1 << shift` cells. Raises
+    `ScanError` for a scan whose pose or reach lies beyond the map's index range."""
     res = config.resolution
     ox, oy = scan.pose.x / res, scan.pose.y / res
+    reach = _reach(scan, config) / res
+    if not (abs(ox) + reach < MAX_CELL_INDEX and abs(oy) + reach < MAX_CELL_INDEX):
+        raise ScanError("the scan's pose or ranges lie beyond the map's coordinate range")
     cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
     scan_ti = scan_tj = _EMPTY_I
@@ -93,6 +101,15 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
             tiles_i = np.concatenate([scan_ti, np.array([k[0] for k in extra], dtype=np.int64)])
             tiles_j = np.concatenate([scan_tj, np.array([k[1] for k in extra], dtype=np.int64)])
     return UpdatePlan(cell, kind, occ_i, occ_j, occ_kind, tsdf_i, tsdf_j, tsdf_value, tiles_i, tiles_j)
+
+
+def _reach(scan: Scan, config: MapConfig) -> float:
+    """The farthest any beam of the scan can reach, in metres (for the index-range check)."""
+    used = scan.returns_mask()
+    far = float(scan.ranges[used].max()) if used.any() else 0.0
+    if config.no_return_range > 0:
+        far = max(far, min(config.no_return_range, scan.range_max))
+    return far + config.tsdf.truncation + config.beam.alpha
 
 
 def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int):
