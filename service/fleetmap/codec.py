@@ -171,12 +171,15 @@ def decode_binary(data: bytes) -> WireScan:
         if not math.isfinite(value):
             raise DecodeError(f"{name} must be finite")
     body = np.frombuffer(data, dtype="<f4", offset=HEADER.size)
-    if flags & FLAG_ANGLES:
-        angles = body[:n].astype(np.float64)
-        ranges = body[n:].astype(np.float64)
-    else:
-        angles = angle_min + angle_increment * np.arange(n, dtype=np.float64)
-        ranges = body.astype(np.float64)
+    # Any 32-bit pattern may arrive, signalling NaNs included: widening them is fine (they stay NaN,
+    # an invalid reading), so numpy's warning about it is noise.
+    with np.errstate(invalid="ignore"):
+        if flags & FLAG_ANGLES:
+            angles = body[:n].astype(np.float64)
+            ranges = body[n:].astype(np.float64)
+        else:
+            angles = angle_min + angle_increment * np.arange(n, dtype=np.float64)
+            ranges = body.astype(np.float64)
     try:
         scan = Scan(Pose2D(x, y, theta), angles, ranges, float(range_min), float(range_max))
     except ScanError as exc:
