@@ -348,9 +348,14 @@ class DurableStore:
 
     The registry calls `map_created`, `map_deleted` and, under a map's lock, `journal`; this class
     calls back `on_durable(journal_id)` once a scan's row is committed.
+
+    Snapshot frequency trades restart time (journal rows to replay) against ingest latency: a
+    snapshot compresses every changed tile (about 1.3 MB each with all layers), which on a small
+    machine delays the scans integrated meanwhile. Every 30 s or 20 000 rows keeps a restart's
+    replay to about 10-20 s at 400 scans/s while touching ingest rarely.
     """
 
-    def __init__(self, data_dir: Path, snapshot_interval: float = 10.0, snapshot_rows: int = 4000) -> None:
+    def __init__(self, data_dir: Path, snapshot_interval: float = 30.0, snapshot_rows: int = 20000) -> None:
         self.data_dir = Path(data_dir)
         self.path = open_database(self.data_dir)
         self.writer = JournalWriter(self.path, on_error=self._storage_failed)
