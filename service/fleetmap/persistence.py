@@ -193,11 +193,10 @@ class JournalWriter:
     """The one thread that appends to the journal, committing in groups."""
 
     def __init__(
-        self, path: Path, max_delay: float = 0.01, on_error: Callable[[Exception], None] | None = None
+        self, path: Path, on_error: Callable[[Exception], None] | None = None
     ):
         self._conn = connect(path)
         self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | None] = queue.Queue()
-        self._max_delay = max_delay
         self._on_error = on_error
         self._thread = threading.Thread(target=self._run, name="fleetmap-journal", daemon=True)
         self._thread.start()
@@ -235,12 +234,12 @@ class JournalWriter:
         self._conn.close()
 
     def _run(self) -> None:
+        """Commit whatever has arrived, as soon as the writer is free: while one group's fsync runs,
+        the next group gathers, so batches grow with the load and an idle service commits a lone
+        scan at once. Operations (snapshots, map changes) run in queue order between groups."""
         while True:
             item = self._queue.get()
-            if item is None:
-                return
             batch: list[JournalEntry] = []
-            deadline = time.monotonic() + self._max_delay
             while True:
                 if isinstance(item, JournalEntry):
                     batch.append(item)
@@ -250,11 +249,10 @@ class JournalWriter:
                     if item is None:
                         return
                     item(self._conn)
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or len(batch) >= 512:
+                if len(batch) >= 512:
                     break
                 try:
-                    item = self._queue.get(timeout=remaining)
+                    item = self._queue.get_nowait()
                 except queue.Empty:
                     break
             self._commit(batch)
@@ -464,17 +462,17 @@ class DurableStore:
             d.pop(map_id, None)
         return self.writer.submit(op)
 
-    def journal(self, map_id: str, robot_id: str, seq: int, stamp: float, scan: Scan,
+    def journal(self, map_id: str, robot_id: str, seq: int, stamp: float, blob: bytes,
                 on_durable: Callable[[int], None]) -> None:  # fmt: skip
-        """Append an applied scan; MUST be called under the map's lock so the journal's order is the
-        order scans were applied in."""
+        """Append an applied scan (its `scan_to_blob`, made before taking the lock); MUST be called
+        under the map's lock so the journal's order is the order scans were applied in."""
 
         def durable(row_id: int) -> None:
             self._last_journal_id[map_id] = row_id
             self._rows_since[map_id] = self._rows_since.get(map_id, 0) + 1
             on_durable(row_id)
 
-        self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, scan_to_blob(scan), durable))
+        self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable))
 
     # -- snapshots -------------------------------------------------------------------------------------
 

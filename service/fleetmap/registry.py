@@ -30,7 +30,7 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.fair_queue import FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult
-from fleetmap.persistence import DurableStore
+from fleetmap.persistence import DurableStore, scan_to_blob
 from fleetmap.scan import Pose2D, ScanError
 from fleetmap.tiles import TileLimitError
 from fleetmap.wire import is_valid_id
@@ -390,6 +390,9 @@ class MapRegistry:
             return
         started = time.perf_counter()
         scan = job.wire.scan
+        # The journal blob is made before the lock: nothing under the map lock should need the GIL
+        # longer than it must.
+        blob = scan_to_blob(scan) if self.durable is not None else b""
         try:
             plan = entry.gmap.plan(scan)
             with entry.gmap.lock:
@@ -398,7 +401,7 @@ class MapRegistry:
                     # Under the map's lock: the journal's order is the order of application.
                     elapsed = time.perf_counter() - started
                     self.durable.journal(
-                        job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, scan,
+                        job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
                         lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
                     )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
