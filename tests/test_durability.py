@@ -206,3 +206,46 @@ def test_snapshot_download_and_restore_moves_a_map_between_servers(tmp_path: Pat
         )
     finally:
         restarted.stop()
+
+
+def test_a_snapshot_that_never_switched_is_ignored(tmp_path: Path) -> None:
+    """A crash after a snapshot wrote tile rows but before it switched the map to them: at start the
+    map is the previous snapshot plus the journal, and the stray rows are gone."""
+    from fleetmap.codec import WireScan
+    from fleetmap.persistence import DurableStore
+    from fleetmap.registry import MapRegistry
+
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=2, count=30)]
+    reg = MapRegistry(durable=DurableStore(tmp_path / "d"))
+    reg.start()
+    for k, scan in enumerate(scans):
+        reg.submit("m", "r", WireScan(k, 0.0, scan))
+        if k == 15:
+            assert reg.wait_idle()
+            reg.snapshot_all()  # a real snapshot half-way
+    assert reg.wait_idle()
+    expected = reg.get("m").gmap
+    i0, j0, i1, j1 = expected.known_bounds()
+    want = expected.region("log_odds", i0, j0, i1, j1)
+    # What a crashed snapshot leaves: rows of a newer generation, never switched to, with wrong data.
+    db = sqlite3.connect(tmp_path / "d" / DB_NAME)
+    rows = db.execute("SELECT ti, tj, version, data FROM tiles WHERE map_id = 'm'").fetchall()
+    garbage = zlib.compress(bytes(len(zlib.decompress(rows[0][3]))))
+    db.executemany(
+        "INSERT INTO tiles (map_id, ti, tj, gen, version, data) VALUES ('m', ?, ?, ?, ?, ?)",
+        [(ti, tj, 2**62, v + 1, garbage) for ti, tj, v, _ in rows],
+    )
+    db.commit()
+    db.close()
+    # The crash: no close(), no final snapshot. A new service starts on the same directory.
+    again = MapRegistry(durable=DurableStore(tmp_path / "d"))
+    again.start()
+    try:
+        np.testing.assert_array_equal(again.get("m").gmap.region("log_odds", i0, j0, i1, j1), want)
+        assert again.get("m").scans_integrated == len(scans)
+        db = sqlite3.connect(tmp_path / "d" / DB_NAME)
+        assert db.execute("SELECT COUNT(*) FROM tiles WHERE gen = ?", (2**62,)).fetchone()[0] == 0
+        db.close()
+    finally:
+        again.close()
+        reg.close()

@@ -51,6 +51,7 @@ CREATE TABLE IF NOT EXISTS maps (
     config TEXT NOT NULL,
     created_at REAL NOT NULL,
     snapshot_journal_id INTEGER NOT NULL DEFAULT 0,
+    snapshot_gen INTEGER NOT NULL DEFAULT 0,
     clock INTEGER NOT NULL DEFAULT 0,
     scans_integrated INTEGER NOT NULL DEFAULT 0,
     scans_rejected INTEGER NOT NULL DEFAULT 0
@@ -59,9 +60,10 @@ CREATE TABLE IF NOT EXISTS tiles (
     map_id TEXT NOT NULL,
     ti INTEGER NOT NULL,
     tj INTEGER NOT NULL,
+    gen INTEGER NOT NULL,
     version INTEGER NOT NULL,
     data BLOB NOT NULL,
-    PRIMARY KEY (map_id, ti, tj)
+    PRIMARY KEY (map_id, ti, tj, gen)
 );
 CREATE TABLE IF NOT EXISTS robots (
     map_id TEXT NOT NULL,
@@ -172,10 +174,12 @@ def open_database(data_dir: Path) -> Path:
     return path
 
 
-def connect(path: Path) -> sqlite3.Connection:
+def connect(path: Path, synchronous: str = "FULL", autocheckpoint: bool = True) -> sqlite3.Connection:
     conn = sqlite3.connect(path, timeout=30.0, isolation_level=None, check_same_thread=False)
     conn.execute("PRAGMA journal_mode=WAL")
-    conn.execute("PRAGMA synchronous=FULL")  # a commit is on disk when COMMIT returns
+    conn.execute(f"PRAGMA synchronous={synchronous}")  # FULL: a commit is on disk when COMMIT returns
+    if not autocheckpoint:
+        conn.execute("PRAGMA wal_autocheckpoint=0")
     return conn
 
 
@@ -192,10 +196,10 @@ class JournalEntry:
 class JournalWriter:
     """The one thread that appends to the journal, committing in groups."""
 
-    def __init__(
-        self, path: Path, on_error: Callable[[Exception], None] | None = None
-    ):
-        self._conn = connect(path)
+    def __init__(self, path: Path, on_error: Callable[[Exception], None] | None = None):
+        # The journal writer never checkpoints the WAL (a checkpoint copies megabytes of snapshot
+        # pages); the snapshot thread does, passively, after each snapshot.
+        self._conn = connect(path, autocheckpoint=False)
         self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | None] = queue.Queue()
         self._on_error = on_error
         self._thread = threading.Thread(target=self._run, name="fleetmap-journal", daemon=True)
@@ -366,6 +370,18 @@ class DurableStore:
         self._snapshot_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        # Snapshot generations: tile rows are written under a new generation, which becomes the
+        # map's only when a small final transaction switches to it. `_created` identifies a map's
+        # incarnation, so a snapshot of a map deleted and re-created meanwhile is discarded.
+        self._last_gen = 0
+        self._gen_lock = threading.Lock()
+        self._created: dict[str, float] = {}
+        self._snapshot_conn = connect(self.path, synchronous="NORMAL", autocheckpoint=False)
+
+    def _next_gen(self) -> int:
+        with self._gen_lock:
+            self._last_gen = max(self._last_gen + 1, time.time_ns())
+            return self._last_gen
 
     # -- start ---------------------------------------------------------------------------------------
 
@@ -376,13 +392,21 @@ class DurableStore:
         conn = connect(self.path)
         try:
             out = []
-            for map_id, config_json, snap_id, clock, integrated, rejected in conn.execute(
-                "SELECT id, config, snapshot_journal_id, clock, scans_integrated, scans_rejected FROM maps"
+            for map_id, config_json, snap_id, snap_gen, clock, integrated, rejected, created in conn.execute(
+                "SELECT id, config, snapshot_journal_id, snapshot_gen, clock, scans_integrated, "
+                "scans_rejected, created_at FROM maps"
             ).fetchall():
                 gmap = GridMap(MapConfig.model_validate_json(config_json))
+                # Rows of a snapshot that never switched its generation (a crash mid-snapshot) are
+                # not part of the map; each tile is its newest committed generation.
+                conn.execute("DELETE FROM tiles WHERE map_id = ? AND gen > ?", (map_id, snap_gen))
                 rows = conn.execute(
-                    "SELECT ti, tj, version, data FROM tiles WHERE map_id = ?", (map_id,)
+                    "SELECT ti, tj, version, data FROM tiles t WHERE map_id = ? AND gen = (SELECT MAX(gen) "
+                    "FROM tiles u WHERE u.map_id = t.map_id AND u.ti = t.ti AND u.tj = t.tj)",
+                    (map_id,),
                 ).fetchall()
+                self._created[map_id] = created
+                self._last_gen = max(self._last_gen, snap_gen)
                 if rows:
                     gmap.store.create([(ti, tj) for ti, tj, _, _ in rows])
                     for ti, tj, version, data in rows:
@@ -423,19 +447,23 @@ class DurableStore:
         same id left behind are never replayed into this one."""
         tiles = [(key, version, tile_to_blob(arrays)) for key, version, arrays in changed_tiles(gmap, -1)]
         config_json, clock = gmap.config.model_dump_json(), gmap.store.clock
+        gen = self._next_gen()
+        created = time.time()
+        self._created[map_id] = created
 
         def op(conn: sqlite3.Connection) -> None:
             conn.execute("BEGIN IMMEDIATE")
             for table, column in (("tiles", "map_id"), ("robots", "map_id"), ("journal", "map_id")):
                 conn.execute(f"DELETE FROM {table} WHERE {column} = ?", (map_id,))
             conn.execute(
-                "INSERT OR REPLACE INTO maps (id, config, created_at, clock, snapshot_journal_id) VALUES "
-                "(?, ?, ?, ?, (SELECT COALESCE(MAX(seq), 0) FROM sqlite_sequence WHERE name = 'journal'))",
-                (map_id, config_json, time.time(), clock),
+                "INSERT OR REPLACE INTO maps (id, config, created_at, clock, snapshot_gen, "
+                "snapshot_journal_id) VALUES (?, ?, ?, ?, ?, "
+                "(SELECT COALESCE(MAX(seq), 0) FROM sqlite_sequence WHERE name = 'journal'))",
+                (map_id, config_json, created, clock, gen),
             )
             conn.executemany(
-                "INSERT INTO tiles (map_id, ti, tj, version, data) VALUES (?, ?, ?, ?, ?)",
-                [(map_id, k[0], k[1], v, b) for k, v, b in tiles],
+                "INSERT INTO tiles (map_id, ti, tj, gen, version, data) VALUES (?, ?, ?, ?, ?, ?)",
+                [(map_id, k[0], k[1], gen, v, b) for k, v, b in tiles],
             )
             conn.execute("COMMIT")
             self._last_journal_id[map_id] = 0
@@ -482,42 +510,65 @@ class DurableStore:
 
         Under the map's lock the changed tiles are copied and a marker is queued behind every scan
         applied so far; the writer runs the marker after committing (and counting) exactly those
-        scans, so the journal id and the `counters()` it records match the copied tiles. Nothing here
-        waits on the writer while holding a lock."""
+        scans, so the journal id and the `counters()` it records match the copied tiles. The tiles are
+        then written under a new generation, a few per transaction on this thread's own connection,
+        so the journal's group commits are never held up for long; one small transaction on the
+        writer then switches the map to that generation, truncates the journal and drops the tile
+        rows it supersedes. A crash before the switch leaves the old generation and its journal
+        intact (the new rows are ignored and removed at start). Nothing here waits on the writer
+        while holding a lock."""
         with self._snapshot_lock:
             with gmap.lock:
                 since = self._snapshot_clock.get(map_id, 0)
                 copies = changed_tiles(gmap, since)
                 clock = gmap.store.clock
+                created = self._created.get(map_id)
                 marker = self.writer.submit(lambda conn: (self._last_journal_id.get(map_id, 0), counters()))
             last_id, saved = marker.result()
-            blobs = [(key, version, tile_to_blob(arrays)) for key, version, arrays in copies]
-
-            def op(conn: sqlite3.Connection) -> None:
+            gen = self._next_gen()
+            conn = self._snapshot_conn
+            for start in range(0, len(copies), 4):
+                rows = [(map_id, key[0], key[1], gen, version, tile_to_blob(arrays))
+                        for key, version, arrays in copies[start : start + 4]]  # fmt: skip
                 conn.execute("BEGIN IMMEDIATE")
-                if conn.execute("SELECT 1 FROM maps WHERE id = ?", (map_id,)).fetchone() is None:
-                    conn.execute("ROLLBACK")  # deleted meanwhile
-                    return
                 conn.executemany(
-                    "INSERT OR REPLACE INTO tiles (map_id, ti, tj, version, data) VALUES (?, ?, ?, ?, ?)",
-                    [(map_id, k[0], k[1], v, b) for k, v, b in blobs],
+                    "INSERT OR REPLACE INTO tiles (map_id, ti, tj, gen, version, data) "
+                    "VALUES (?, ?, ?, ?, ?, ?)",
+                    rows,
                 )
+                conn.execute("COMMIT")
+
+            def switch(conn: sqlite3.Connection) -> bool:
+                conn.execute("BEGIN IMMEDIATE")
+                row = conn.execute("SELECT created_at FROM maps WHERE id = ?", (map_id,)).fetchone()
+                if row is None or row[0] != created:  # deleted or re-created meanwhile
+                    conn.execute("DELETE FROM tiles WHERE map_id = ? AND gen = ?", (map_id, gen))
+                    conn.execute("COMMIT")
+                    return False
                 conn.execute(
-                    "UPDATE maps SET snapshot_journal_id = MAX(snapshot_journal_id, ?), clock = ?, "
-                    "scans_integrated = ?, scans_rejected = ? WHERE id = ?",
-                    (last_id, clock, saved["scans_integrated"], saved["scans_rejected"], map_id),
+                    "UPDATE maps SET snapshot_gen = ?, snapshot_journal_id = MAX(snapshot_journal_id, ?), "
+                    "clock = ?, scans_integrated = ?, scans_rejected = ? WHERE id = ?",
+                    (gen, last_id, clock, saved["scans_integrated"], saved["scans_rejected"], map_id),
                 )
                 conn.executemany(
                     "INSERT OR REPLACE INTO robots (map_id, robot_id, state) VALUES (?, ?, ?)",
                     [(map_id, rid, json.dumps(state)) for rid, state in saved["robots"].items()],
                 )
                 conn.execute("DELETE FROM journal WHERE map_id = ? AND id <= ?", (map_id, last_id))
+                conn.execute(
+                    "DELETE FROM tiles WHERE map_id = ? AND gen < ? AND EXISTS (SELECT 1 FROM tiles u WHERE "
+                    "u.map_id = tiles.map_id AND u.ti = tiles.ti AND u.tj = tiles.tj AND u.gen = ?)",
+                    (map_id, gen, gen),
+                )
                 conn.execute("COMMIT")
+                return True
 
-            self.writer.run(op)
-            self._snapshot_clock[map_id] = clock
-            self._rows_since[map_id] = 0
-            return len(blobs)
+            if self.writer.run(switch):
+                self._snapshot_clock[map_id] = clock
+                self._rows_since[map_id] = 0
+            with contextlib.suppress(sqlite3.Error):  # passive: never blocks the journal's commits
+                conn.execute("PRAGMA wal_checkpoint(PASSIVE)")
+            return len(copies)
 
     def needs_snapshot(self, map_id: str) -> bool:
         return self._rows_since.get(map_id, 0) > 0
@@ -530,6 +581,9 @@ class DurableStore:
         if self._thread is not None:
             self._thread.join()
         self.writer.close()
+        with contextlib.suppress(sqlite3.Error):
+            self._snapshot_conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        self._snapshot_conn.close()
 
     def start_periodic(self, snapshot_all: Callable[[bool], None]) -> None:
         """Call `snapshot_all(only_overdue)` every second for maps past `snapshot_rows`, and for every
