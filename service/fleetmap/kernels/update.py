@@ -52,6 +52,15 @@ def touched_tiles(ci: np.ndarray, cj: np.ndarray, shift: int) -> tuple[np.ndarra
 
 
 @njit(cache=True, nogil=True, inline="always")
+def updated_log_odds(old: float, hit: bool, l_hit: float, l_miss: float, l_min: float, l_max: float):
+    """The log-odds update rule, the one place it is written: an unknown cell (NaN) starts at 0, a
+    hit adds l_hit, a miss l_miss, and the result is clamped after every update, as OctoMap does, so a
+    cell can always be changed back quickly. Returns float32, as stored."""
+    lo = (0.0 if math.isnan(old) else float(old)) + (l_hit if hit else l_miss)
+    return np.float32(min(max(lo, l_min), l_max))
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _apply_one(
     slot: int,
     lj: int,
@@ -69,14 +78,7 @@ def _apply_one(
     changed = False
     if log_odds.size:
         old = log_odds[slot, lj, li]
-        lo = 0.0 if math.isnan(old) else float(old)
-        lo += l_hit if hit else l_miss
-        # Clamp after every update, as OctoMap does, so a cell can always be changed back quickly.
-        if lo < l_min:
-            lo = l_min
-        elif lo > l_max:
-            lo = l_max
-        new = np.float32(lo)
+        new = updated_log_odds(old, hit, l_hit, l_miss, l_min, l_max)
         if new != old:  # NaN != anything, so a first observation always counts as a change
             log_odds[slot, lj, li] = new
             changed = True
@@ -122,8 +124,7 @@ def apply_cells(
             slot = slots[tile]
             q = cell[n] & local_mask
             old = flat_log_odds[slot, q]
-            lo = (0.0 if math.isnan(old) else float(old)) + (l_hit if kind[n] & CELL_HIT else l_miss)
-            new = np.float32(min(max(lo, l_min), l_max))
+            new = updated_log_odds(old, (kind[n] & CELL_HIT) != 0, l_hit, l_miss, l_min, l_max)
             if new != old:  # NaN != anything: a first observation is a change
                 flat_log_odds[slot, q] = new
                 changed[tile] = 1
