@@ -26,7 +26,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     _add_build(sub)
     for name in COMMAND_MODULES:
         importlib.import_module(name).add_parser(sub)
-    args = parser.parse_args(argv)
+    return run_command(parser.parse_args(argv))
+
+
+def run_command(args: argparse.Namespace) -> int:
+    """Run a parsed subcommand; a `CliError` is printed without a traceback, exit code 2."""
     try:
         return int(args.run(args) or 0)
     except CliError as exc:

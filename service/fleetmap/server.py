@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetmap.auth import AuthMiddleware, TokenFileError, TokenSet
-from fleetmap.cli import CliError, load_config
+from fleetmap.cli import CliError, load_config, run_command
 from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
 from fleetmap.persistence import DurableStore, StorageError
@@ -404,11 +404,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     add_parser(sub)
     args = parser.parse_args(["serve", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return int(args.run(args) or 0)
-    except CliError as exc:
-        print(f"fleetmap serve: error: {exc}", file=sys.stderr)
-        return 2
+    return run_command(args)
 
 
 if __name__ == "__main__":

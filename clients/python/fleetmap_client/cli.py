@@ -15,7 +15,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from fleetmap.cli import CliError
+from fleetmap.cli import CliError, run_command
 
 from .publisher import DEFAULT_CONNECT, ScanPublisher
 
@@ -199,11 +199,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add_parser(sub)
     args = parser.parse_args(argv)
-    try:
-        return int(args.run(args) or 0)
-    except CliError as exc:
-        print(f"fleetmap {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    return run_command(args)
 
 
 if __name__ == "__main__":
