@@ -15,7 +15,10 @@ import numpy as np
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from fleetmap.config import MapConfig
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, segment_cells
+from fleetmap.scan import Scan
+from fleetmap.update_plan import plan_scan
 
 #: Slack for "touches": a visited cell's closed square may miss the segment by at most this much
 #: (floating-point rounding in the walk's boundary parameters).
@@ -273,3 +276,84 @@ def test_bresenham_properties(seg: Segment) -> None:
         for k, (i, j) in enumerate(got):
             assert j == j0 + k * (1 if dj > 0 else -1)
             assert abs(i - (i0 + (j - j0) * di / dj)) <= 0.5 + 1e-12
+
+
+# -- the per-scan trace: the union of the beams' walks --------------------------------------------------
+
+
+def _planned_cells(scan: Scan, config: MapConfig, shift: int) -> list[tuple[tuple[int, int], int]]:
+    """The per-scan plan's cells as global (i, j) with their kind, in the plan's order."""
+    plan = plan_scan(scan, config, shift)
+    local = (1 << (2 * shift)) - 1
+    mask = (1 << shift) - 1
+    out = []
+    for c, k in zip(plan.cell.tolist(), plan.kind.tolist(), strict=True):
+        tile, pos = c >> (2 * shift), c & local
+        i = (int(plan.tiles_i[tile]) << shift) + (pos & mask)
+        j = (int(plan.tiles_j[tile]) << shift) + (pos >> shift)
+        out.append(((i, j), k))
+    return out
+
+
+def _union_of_walks(scan: Scan, config: MapConfig) -> list[tuple[tuple[int, int], int]]:
+    """What per-scan semantics mean, beam by beam with `segment_cells`: every cell of every traced
+    beam once, in first-visit order, a hit (2) if any return ends in it (a hit beats a miss)."""
+    res = config.resolution
+    method = EXACT if config.traversal == "exact" else BRESENHAM
+    ox, oy = scan.pose.x / res, scan.pose.y / res
+    first: dict[tuple[int, int], int] = {}
+    for a, r in zip(scan.world_angles().tolist(), scan.ranges.tolist(), strict=True):
+        if math.isnan(r) or r < scan.range_min:
+            continue
+        hit = r < scan.range_max
+        if not hit:
+            if config.no_return_range <= 0:
+                continue
+            r = min(config.no_return_range, scan.range_max)
+        x1, y1 = ox + r / res * math.cos(a), oy + r / res * math.sin(a)
+        path = [(int(i), int(j)) for i, j in segment_cells(ox, oy, x1, y1, method)]
+        for c in path:
+            first.setdefault(c, 1)
+        if hit:
+            first[path[-1]] = 3
+    return list(first.items())
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    pose=st.tuples(st.floats(-30, 30), st.floats(-30, 30), st.floats(-math.pi, math.pi)),
+    beams=st.lists(st.tuples(st.floats(-math.pi, math.pi), st.floats(0.0, 1200.0)), min_size=1, max_size=40),
+    traversal=st.sampled_from(["exact", "bresenham"]),
+    tile_size=st.sampled_from([64, 256]),
+    clear=st.sampled_from([0.0, 3.0, 900.0]),
+)
+def test_per_scan_trace_is_the_union_of_the_walks(
+    pose: tuple[float, float, float],
+    beams: list[tuple[float, float]],
+    traversal: str,
+    tile_size: int,
+    clear: float,
+) -> None:
+    """`trace_scan` (a dense window for compact scans, per-tile planes when the box is too large for
+    one: here beams up to 1.2 km at 5 cm) yields exactly the union of the beams' own walks, in
+    first-visit order, with hits beating misses, and no-return beams (range >= 1000 m) cleared to
+    `clear` metres when that is set."""
+    angles, ranges = zip(*beams, strict=True)
+    scan = Scan.from_angles(pose, list(angles), list(ranges), range_min=0.02, range_max=1000.0)
+    config = MapConfig(
+        resolution=0.05, tile_size=tile_size, layers=["occupancy"], traversal=traversal, no_return_range=clear
+    )
+    assert _planned_cells(scan, config, tile_size.bit_length() - 1) == _union_of_walks(scan, config)
+
+
+def test_per_scan_trace_of_a_very_wide_scan() -> None:
+    """Two 900 m beams in opposite directions span 36,000 cells: too wide for the dense window
+    (rows of 2**16 cells x 256 = 2**24 > DENSE_WINDOW_CELLS), so the per-tile planes serve; a short
+    fan beside them shares cells. The result is still the union of the walks."""
+    angles = [0.0, math.pi, 0.3, 0.31, 0.32, 1.9]
+    ranges = [900.0, 900.0, 4.0, 4.0, 4.0, 2.5]
+    scan = Scan.from_angles((0.37, -0.11, 0.2), angles, ranges, range_min=0.0, range_max=1000.0)
+    config = MapConfig(resolution=0.05, layers=["occupancy"])
+    got = _planned_cells(scan, config, 8)
+    assert got == _union_of_walks(scan, config)
+    assert len(got) > 36_000

@@ -16,7 +16,7 @@ import numpy as np
 
 from fleetmap.config import MapConfig
 from fleetmap.kernels.beam_model import beam_model_cells
-from fleetmap.kernels.ray_model import BEAM_CLEAR, BEAM_HIT, BEAM_SKIP, scan_extent, trace_rays, trace_scan
+from fleetmap.kernels.ray_model import BEAM_CLEAR, BEAM_HIT, BEAM_SKIP, scan_endpoints, trace_rays, trace_scan
 from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import trace_tsdf
 from fleetmap.kernels.update import touched_tiles
@@ -117,7 +117,7 @@ def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int):
     res = config.resolution
     angles = scan.world_angles()
     args = (scan.ranges, scan.range_min, scan.range_max, config.no_return_range, res)
-    xmin, ymin, xmax, ymax, used = scan_extent(scan.pose.x, scan.pose.y, angles, *args)
+    ex, ey, kinds, xmin, ymin, xmax, ymax, used = scan_endpoints(scan.pose.x, scan.pose.y, angles, *args)
     if used == 0:
         return _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_KIND
     ti0, ti1 = math.floor(xmin) >> shift, math.floor(xmax) >> shift
@@ -125,16 +125,17 @@ def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int):
     if (ti1 - ti0 + 1) * (tj1 - tj0 + 1) > MAX_SCAN_TILE_WINDOW:
         raise ScanError("the scan spans too large an area for one scan; check its ranges and resolution")
     method = EXACT if config.traversal == "exact" else BRESENHAM
+    ox, oy = scan.pose.x / res, scan.pose.y / res
     while True:
         scratch = getattr(_scratch, "array", None)
-        if scratch is None or scratch.size < (1 << (2 * shift)):
+        if scratch is None:
             scratch = _scratch.array = np.zeros(1 << (2 * shift), dtype=np.uint8)
         tiles_i, tiles_j, cell, kind, needed = trace_scan(
-            scan.pose.x, scan.pose.y, angles, *args, method, shift, ti0, tj0, ti1, tj1, scratch
+            ox, oy, ex, ey, kinds, method, shift, ti0, tj0, ti1, tj1, scratch
         )
         if not needed:
             return tiles_i, tiles_j, cell, kind
-        _scratch.array = np.zeros(needed << (2 * shift), dtype=np.uint8)
+        _scratch.array = np.zeros(needed, dtype=np.uint8)
 
 
 def _ray_model_per_ray(scan: Scan, config: MapConfig, ox: float, oy: float):

@@ -48,12 +48,6 @@ def trace_rays(
     return ci, cj, kind
 
 
-#: Up to this many tiles in a scan's bounding box, `trace_scan` numbers every tile of the box
-#: (its scratch then needs a plane per tile: 16 MiB at 256 x 256) and walks once; beyond it, it
-#: first walks to find the touched tiles so that memory stays proportional to them.
-DENSE_TILE_LIMIT = 256
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _beam(
     b: int, ranges: np.ndarray, range_min: float, range_max: float, clear_range: float
@@ -70,42 +64,50 @@ def _beam(
     return BEAM_HIT, r
 
 
+#: `trace_scan` marks cells in a dense row-major window over the scan's whole tiles when it holds
+#: at most this many cells (8 MiB of scratch): steps are then a plain +-1 / +-W on one key. Larger
+#: boxes (very long clearing beams) use per-tile planes for the touched tiles only, so memory stays
+#: proportional to what the scan touches.
+DENSE_WINDOW_CELLS = 1 << 23
+
+
 @njit(cache=True, nogil=True)
-def scan_extent(
+def scan_endpoints(
     x: float, y: float, angles: np.ndarray, ranges: np.ndarray, range_min: float, range_max: float,
     clear_range: float, res: float,
-) -> tuple[float, float, float, float, int]:  # fmt: skip
-    """Bounding box in CELL units of every traced beam, with the sensor: (xmin, ymin, xmax, ymax,
-    number of traced beams)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float, int]:  # fmt: skip
+    """Every beam's kind (as in `_beam`) and end point in CELL units, and the bounding box of the
+    traced beams with the sensor: `(ex, ey, kinds, xmin, ymin, xmax, ymax, number traced)`."""
     ox = x / res
     oy = y / res
+    nb = ranges.size
+    ex = np.empty(nb)
+    ey = np.empty(nb)
+    kinds = np.empty(nb, dtype=np.uint8)
     xmin = xmax = ox
     ymin = ymax = oy
     used = 0
-    for b in range(ranges.size):
+    for b in range(nb):
         kind, r = _beam(b, ranges, range_min, range_max, clear_range)
-        if kind == BEAM_SKIP:
-            continue
-        used += 1
-        ex = ox + r / res * math.cos(angles[b])
-        ey = oy + r / res * math.sin(angles[b])
-        xmin = min(xmin, ex)
-        xmax = max(xmax, ex)
-        ymin = min(ymin, ey)
-        ymax = max(ymax, ey)
-    return xmin, ymin, xmax, ymax, used
+        kinds[b] = kind
+        ex[b] = ox + r / res * math.cos(angles[b])
+        ey[b] = oy + r / res * math.sin(angles[b])
+        if kind != BEAM_SKIP:
+            used += 1
+            xmin = min(xmin, ex[b])
+            xmax = max(xmax, ex[b])
+            ymin = min(ymin, ey[b])
+            ymax = max(ymax, ey[b])
+    return ex, ey, kinds, xmin, ymin, xmax, ymax, used
 
 
 @njit(cache=True, nogil=True)
 def trace_scan(
-    x: float,
-    y: float,
-    angles: np.ndarray,
-    ranges: np.ndarray,
-    range_min: float,
-    range_max: float,
-    clear_range: float,
-    res: float,
+    ox: float,
+    oy: float,
+    ex: np.ndarray,
+    ey: np.ndarray,
+    kinds: np.ndarray,
     method: int,
     shift: int,
     ti0: int,
@@ -117,14 +119,13 @@ def trace_scan(
     """Per-scan updates of the ray model: every cell any beam touches, once, a hit if any beam ends
     in it (a hit beats a miss).
 
-    Input is the sensor position (m), the beams' MAP-frame angles and ranges (m); beams are classified
-    as in `_beam`. `[ti0, ti1] x [tj0, tj1]` must hold every traced cell (see `scan_extent`).
-    `scratch` is a zeroed flat uint8 array; it is zeroed again on return, so one scratch serves every
-    scan of a thread. It needs a (T, T) plane per tile of the box (per touched tile for boxes larger
-    than DENSE_TILE_LIMIT): when it is too small, nothing is traced and the last value returned is
-    the number of planes needed (else 0).
+    Input is the sensor position and the beams' end points in CELL units with their kinds, as
+    `scan_endpoints` gives them. `[ti0, ti1] x [tj0, tj1]` must hold every traced cell. `scratch` is
+    a zeroed flat uint8 array; it is zeroed again on return, so one scratch serves every scan of a
+    thread. When it is too small, nothing is traced and the last value returned is the size it
+    needs (else 0).
 
-    Returns `(tiles_i, tiles_j, cell, kind, planes_needed)`: tile k is `(tiles_i[k], tiles_j[k])`;
+    Returns `(tiles_i, tiles_j, cell, kind, scratch_needed)`: tile k is `(tiles_i[k], tiles_j[k])`;
     updated cell n lies in tile `cell[n] >> 2*shift` at local position `cell[n] & (T*T - 1)`
     (= `local_j * T + local_i`) and is a `CELL_HIT` if `kind[n] & CELL_HIT`, else a miss. Cells come
     in the order beams first reach them.
@@ -132,93 +133,37 @@ def trace_scan(
     plane_shift = 2 * shift
     nj = tj1 - tj0 + 1
     ni = ti1 - ti0 + 1
-    ox = x / res
-    oy = y / res
-    nb = ranges.size
-    ex = np.empty(nb)
-    ey = np.empty(nb)
-    kinds = np.empty(nb, dtype=np.uint8)
     visits = 0
-    for b in range(nb):
-        kind, r = _beam(b, ranges, range_min, range_max, clear_range)
-        kinds[b] = kind
-        ex[b] = ox + r / res * math.cos(angles[b])
-        ey[b] = oy + r / res * math.sin(angles[b])
-        if kind != BEAM_SKIP:
+    for b in range(ex.size):
+        if kinds[b] != BEAM_SKIP:
             visits += cell_count(ox, oy, ex[b], ey[b], method)
-    if nj * ni <= DENSE_TILE_LIMIT:
+    wshift = shift  # the dense window's rows are 2**wshift cells, so a key splits with shifts
+    while (1 << wshift) < (ni << shift):
+        wshift += 1
+    dense = (nj << (shift + wshift)) <= DENSE_WINDOW_CELLS
+    if dense:
+        needed = nj << (shift + wshift)
         index = np.arange(nj * ni).reshape(nj, ni)
-        m = nj * ni
     else:
-        # Walk once to number only the touched tiles, so the scratch stays proportional to them.
-        index = np.full((nj, ni), -1, dtype=np.int64)
-        m = 0
-        for b in range(nb):
-            if kinds[b] != BEAM_SKIP:
-                for i, j in cells(ox, oy, ex[b], ey[b], method):
-                    if index[(j >> shift) - tj0, (i >> shift) - ti0] < 0:
-                        index[(j >> shift) - tj0, (i >> shift) - ti0] = m
-                        m += 1
-    if scratch.size < (m << plane_shift):
+        index, m = _touched_tile_index(ox, oy, ex, ey, kinds, method, shift, ti0, tj0, ni, nj)
+        needed = m << plane_shift
+    if scratch.size < needed:
         none = np.empty(0, dtype=np.int64)
-        return none, none, none, np.empty(0, dtype=np.uint8), m  # the caller grows the scratch
-    found = np.empty(visits + 1, dtype=np.int64)  # each cell the first time a beam reaches it
-    n = 0
-    t = 1 << shift
-    mask = t - 1
-    for b in range(nb):
-        if kinds[b] == BEAM_SKIP:
-            continue
-        flat = 0
-        if method == EXACT:
-            # The exact walk, inlined: this loop is most of the time a scan takes. The scratch key
-            # moves by +-1 (a step in i) or +-T (a step in j) inside a tile and is recomputed only
-            # when the walk enters another tile.
-            i, j, ie, je, step_i, step_j, t_max_x, t_max_y, t_delta_x, t_delta_y = exact_start(
-                ox, oy, ex[b], ey[b]
-            )
-            flat = _cell_key(i, j, index, ti0, tj0, shift)
-            edge_i = mask if step_i > 0 else 0  # the local i after which a step leaves the tile
-            edge_j = mask if step_j > 0 else 0
-            for _ in range(abs(ie - i) + abs(je - j)):
-                # Branch-free first-visit record: always write, advance only if the cell was unseen.
-                found[n] = flat
-                n += scratch[flat] == 0
-                scratch[flat] |= CELL_MISS
-                if exact_steps_i(i, j, ie, je, t_max_x, t_max_y):
-                    if (i & mask) == edge_i:
-                        i += step_i
-                        flat = _cell_key(i, j, index, ti0, tj0, shift)
-                    else:
-                        i += step_i
-                        flat += step_i
-                    t_max_x += t_delta_x
-                else:
-                    if (j & mask) == edge_j:
-                        j += step_j
-                        flat = _cell_key(i, j, index, ti0, tj0, shift)
-                    else:
-                        j += step_j
-                        flat += step_j * t
-                    t_max_y += t_delta_y
-            found[n] = flat
-            n += scratch[flat] == 0
-            scratch[flat] |= CELL_MISS
-        else:
-            for i, j in cells(ox, oy, ex[b], ey[b], method):
-                flat = _cell_key(i, j, index, ti0, tj0, shift)
-                found[n] = flat
-                n += scratch[flat] == 0
-                scratch[flat] |= CELL_MISS
-        if kinds[b] == BEAM_HIT:
-            scratch[flat] |= CELL_HIT  # the last cell walked is the end cell
-    kind_out = np.empty(n, dtype=np.uint8)
-    planes = np.zeros(index.size, dtype=np.int64)
-    for k in range(n):
-        kind_out[k] = scratch[found[k]]
-        scratch[found[k]] = 0
-        planes[found[k] >> plane_shift] = 1
-    # Renumber the planes that hold a cell 0..m-1 and report their tiles.
+        return none, none, none, np.empty(0, dtype=np.uint8), needed  # the caller grows the scratch
+    found = np.empty(visits, dtype=np.int64)  # each cell the first time a beam reaches it
+    kind_out = np.empty(visits, dtype=np.uint8)
+    planes = np.zeros(index.size, dtype=np.uint8)  # which planes hold a cell
+    if dense:
+        n = _walk_dense(ox, oy, ex, ey, kinds, method, shift, wshift, ti0, tj0, scratch, found)
+        _collect_dense(found, n, scratch, shift, wshift, ni, kind_out, planes)
+    else:
+        n = _walk_planes(ox, oy, ex, ey, kinds, method, shift, ti0, tj0, index, scratch, found)
+        for k in range(n):
+            kind_out[k] = scratch[found[k]]
+            scratch[found[k]] = 0
+            planes[found[k] >> plane_shift] = 1
+    # found[:n] are now plane keys (plane << 2*shift | local). Renumber the planes that hold a cell
+    # 0..m-1 and report their tiles.
     m = 0
     renum = np.full(index.size, -1, dtype=np.int64)
     tiles_i = np.empty(index.size, dtype=np.int64)
@@ -231,16 +176,185 @@ def trace_scan(
                 tiles_i[m] = c + ti0
                 tiles_j[m] = a + tj0
                 m += 1
+    if dense and m == index.size:
+        # The dense window numbers planes row-major over the box; when every plane holds a cell,
+        # that is the final numbering and the keys need no rewrite.
+        return tiles_i, tiles_j, found[:n], kind_out[:n], 0
     local = (1 << plane_shift) - 1
-    cell = np.empty(n, dtype=np.int64)
     for k in range(n):
-        cell[k] = (renum[found[k] >> plane_shift] << plane_shift) | (found[k] & local)
-    return tiles_i[:m], tiles_j[:m], cell, kind_out, 0
+        found[k] = (renum[found[k] >> plane_shift] << plane_shift) | (found[k] & local)
+    return tiles_i[:m], tiles_j[:m], found[:n], kind_out[:n], 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _record(found: np.ndarray, scratch: np.ndarray, n: int, key: int) -> int:
+    """Mark `key` visited as a miss and append it to `found` if it was unseen; returns the new count.
+    Branch-free: always write, advance only for a first visit. The unsigned casts only spare
+    numba's negative-index wraparound code in the hottest loop (keys and counts are >= 0)."""
+    u = np.uint64(key)
+    found[np.uint64(n)] = key
+    n += scratch[u] == 0
+    scratch[u] = CELL_MISS
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _walk_dense(
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, method: int, shift: int,
+    wshift: int, ti0: int, tj0: int, scratch: np.ndarray, found: np.ndarray,
+) -> int:  # fmt: skip
+    """Walk every traced beam, marking cells in a row-major window of rows `2**wshift` cells whose
+    cell (0, 0) is the first cell of tile (ti0, tj0); returns the number of distinct cells, whose
+    window keys are in `found[:n]` in first-visit order. End cells of returns become hits."""
+    i0 = ti0 << shift
+    j0 = tj0 << shift
+    row = 1 << wshift
+    ends = np.empty(ex.size, dtype=np.int64)
+    hits = 0
+    n = 0
+    for b in range(ex.size):
+        if kinds[b] == BEAM_SKIP:
+            continue
+        if method == EXACT:
+            # The exact walk, inlined (this loop is most of a scan's time): the same steps as
+            # `exact_start` / `exact_steps_i`, with the end-of-axis tests moved out of the loop. While
+            # both axes have steps left, only t_max decides; then the rest is a straight run.
+            i, j, ie, je, step_i, step_j, t_max_x, t_max_y, t_delta_x, t_delta_y = exact_start(
+                ox, oy, ex[b], ey[b]
+            )
+            key = ((j - j0) << wshift) + (i - i0)
+            left_i = abs(ie - i)
+            left_j = abs(je - j)
+            move_j = step_j * row
+            if left_i > 0 and left_j > 0:
+                while True:
+                    n = _record(found, scratch, n, key)
+                    if t_max_x < t_max_y:
+                        key += step_i
+                        t_max_x += t_delta_x
+                        left_i -= 1
+                        if left_i == 0:
+                            break
+                    else:
+                        key += move_j
+                        t_max_y += t_delta_y
+                        left_j -= 1
+                        if left_j == 0:
+                            break
+            move = step_i if left_i > 0 else move_j
+            for _ in range(left_i + left_j):
+                n = _record(found, scratch, n, key)
+                key += move
+            n = _record(found, scratch, n, key)
+        else:
+            for i, j in cells(ox, oy, ex[b], ey[b], method):
+                key = ((j - j0) << wshift) + (i - i0)
+                n = _record(found, scratch, n, key)
+        if kinds[b] == BEAM_HIT:
+            ends[hits] = key  # the last cell walked is the end cell
+            hits += 1
+    for k in range(hits):  # after all walks, so a later beam's miss cannot undo a hit
+        scratch[ends[k]] = CELL_MISS | CELL_HIT
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _collect_dense(
+    found: np.ndarray, n: int, scratch: np.ndarray, shift: int, wshift: int, ni: int, kind_out: np.ndarray,
+    planes: np.ndarray,
+) -> None:  # fmt: skip
+    """Read and re-zero the marks of `found[:n]` (window keys) into `kind_out`, turn the keys into
+    plane keys (plane = tile row * ni + tile column in the window, then `local_j * T + local_i`), and
+    flag in `planes` the planes that hold a cell."""
+    col_mask = (1 << wshift) - 1
+    t_mask = (1 << shift) - 1
+    for k in range(n):
+        key = found[k]
+        kind_out[k] = scratch[key]
+        scratch[key] = 0
+        li = key & col_mask
+        lj = key >> wshift
+        plane = (lj >> shift) * ni + (li >> shift)
+        planes[plane] = 1
+        found[k] = (((plane << shift) | (lj & t_mask)) << shift) | (li & t_mask)
+
+
+@njit(cache=True, nogil=True)
+def _touched_tile_index(
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, method: int, shift: int,
+    ti0: int, tj0: int, ni: int, nj: int,
+) -> tuple[np.ndarray, int]:  # fmt: skip
+    """Number the tiles of the box that any beam touches 0..m-1 (others -1), for large boxes."""
+    index = np.full((nj, ni), -1, dtype=np.int64)
+    m = 0
+    for b in range(ex.size):
+        if kinds[b] != BEAM_SKIP:
+            for i, j in cells(ox, oy, ex[b], ey[b], method):
+                if index[(j >> shift) - tj0, (i >> shift) - ti0] < 0:
+                    index[(j >> shift) - tj0, (i >> shift) - ti0] = m
+                    m += 1
+    return index, m
+
+
+@njit(cache=True, nogil=True)
+def _walk_planes(
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, method: int, shift: int,
+    ti0: int, tj0: int, index: np.ndarray, scratch: np.ndarray, found: np.ndarray,
+) -> int:  # fmt: skip
+    """`_walk_dense` for boxes too large for a window: the scratch holds one (T, T) plane per touched
+    tile (numbered by `index`), and the keys in `found[:n]` are plane keys."""
+    t = 1 << shift
+    mask = t - 1
+    ends = np.empty(ex.size, dtype=np.int64)
+    hits = 0
+    n = 0
+    for b in range(ex.size):
+        if kinds[b] == BEAM_SKIP:
+            continue
+        key = 0
+        if method == EXACT:
+            # Inside a tile the key moves by +-1 (a step in i) or +-T (a step in j); it is recomputed
+            # from the index only when the walk enters another tile.
+            i, j, ie, je, step_i, step_j, t_max_x, t_max_y, t_delta_x, t_delta_y = exact_start(
+                ox, oy, ex[b], ey[b]
+            )
+            key = _cell_key(i, j, index, ti0, tj0, shift)
+            edge_i = mask if step_i > 0 else 0  # the local i after which a step leaves the tile
+            edge_j = mask if step_j > 0 else 0
+            for _ in range(abs(ie - i) + abs(je - j)):
+                n = _record(found, scratch, n, key)
+                if exact_steps_i(i, j, ie, je, t_max_x, t_max_y):
+                    if (i & mask) == edge_i:
+                        i += step_i
+                        key = _cell_key(i, j, index, ti0, tj0, shift)
+                    else:
+                        i += step_i
+                        key += step_i
+                    t_max_x += t_delta_x
+                else:
+                    if (j & mask) == edge_j:
+                        j += step_j
+                        key = _cell_key(i, j, index, ti0, tj0, shift)
+                    else:
+                        j += step_j
+                        key += step_j * t
+                    t_max_y += t_delta_y
+            n = _record(found, scratch, n, key)
+        else:
+            for i, j in cells(ox, oy, ex[b], ey[b], method):
+                key = _cell_key(i, j, index, ti0, tj0, shift)
+                n = _record(found, scratch, n, key)
+        if kinds[b] == BEAM_HIT:
+            ends[hits] = key
+            hits += 1
+    for k in range(hits):
+        scratch[ends[k]] = CELL_MISS | CELL_HIT
+    return n
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _cell_key(i: int, j: int, index: np.ndarray, ti0: int, tj0: int, shift: int) -> int:
-    """A cell's key in the scratch: its tile's plane number, then `local_j * T + local_i`."""
+    """A cell's key in the plane scratch: its tile's plane number, then `local_j * T + local_i`."""
     mask = (1 << shift) - 1
     plane = index[(j >> shift) - tj0, (i >> shift) - ti0]
     return (plane << (2 * shift)) | ((j & mask) << shift) | (i & mask)

@@ -118,16 +118,16 @@ def apply_cells(
     local_mask = (1 << plane_shift) - 1
     mask = (1 << shift) - 1
     if log_odds.size:
-        flat_log_odds = log_odds.reshape(log_odds.shape[0], -1)
+        # One flat view of the pool; unsigned indices (all are >= 0) spare numba's negative-index
+        # wraparound code, and the store and change flag are unconditional (branch-free).
+        flat_log_odds = log_odds.reshape(-1)
         for n in range(cell.size):
-            tile = cell[n] >> plane_shift
-            slot = slots[tile]
-            q = cell[n] & local_mask
-            old = flat_log_odds[slot, q]
+            tile = np.uint64(cell[n] >> plane_shift)
+            at = np.uint64((slots[tile] << plane_shift) | (cell[n] & local_mask))
+            old = flat_log_odds[at]
             new = updated_log_odds(old, (kind[n] & CELL_HIT) != 0, l_hit, l_miss, l_min, l_max)
-            if new != old:  # NaN != anything: a first observation is a change
-                flat_log_odds[slot, q] = new
-                changed[tile] = 1
+            flat_log_odds[at] = new
+            changed[tile] |= new != old  # NaN != anything: a first observation is a change
     if hits.size:
         for n in range(cell.size):
             tile = cell[n] >> plane_shift
