@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.traversal import EXACT, cell_count, walk
+from fleetmap.kernels.traversal import EXACT, cell_count, exact_start, exact_steps_i
 
 
 @njit(cache=True, nogil=True)
@@ -25,33 +25,47 @@ def trace_tsdf(
     Beam b starts at (ox, oy), points at `angles[b]` (map frame) and returned at range `z[b]`.
     Returns `(ci, cj, value)`; a cell may appear once per beam that crosses it.
     """
+    nb = z.size
+    cos = np.empty(nb)
+    sin = np.empty(nb)
     total = 0
-    for b in range(z.size):
-        c = math.cos(angles[b])
-        s = math.sin(angles[b])
+    for b in range(nb):
+        cos[b] = math.cos(angles[b])
+        sin[b] = math.sin(angles[b])
         d0 = max(z[b] - trunc, 0.0)
         d1 = z[b] + trunc
-        total += cell_count(ox + c * d0, oy + s * d0, ox + c * d1, oy + s * d1, EXACT)
+        total += cell_count(ox + cos[b] * d0, oy + sin[b] * d0, ox + cos[b] * d1, oy + sin[b] * d1, EXACT)
     ci = np.empty(total, dtype=np.int64)
     cj = np.empty(total, dtype=np.int64)
     value = np.empty(total, dtype=np.float32)
     n = 0
-    for b in range(z.size):
-        c = math.cos(angles[b])
-        s = math.sin(angles[b])
+    for b in range(nb):
+        c = cos[b]
+        s = sin[b]
         d0 = max(z[b] - trunc, 0.0)
         d1 = z[b] + trunc
-        start = n
-        count = walk(ox + c * d0, oy + s * d0, ox + c * d1, oy + s * d1, EXACT, ci, cj, start)
-        # Keep only the cells whose centre projects into the band; compact them in place.
-        for k in range(start, start + count):
-            d = (ci[k] + 0.5 - ox) * c + (cj[k] + 0.5 - oy) * s
+        # The exact walk of the band's segment (inlined `cells`), keeping the cells whose centre
+        # projects into the band.
+        i, j, ie, je, step_i, step_j, t_max_x, t_max_y, t_delta_x, t_delta_y = exact_start(
+            ox + c * d0, oy + s * d0, ox + c * d1, oy + s * d1
+        )
+        steps = abs(ie - i) + abs(je - j)
+        for k in range(steps + 1):
+            d = (i + 0.5 - ox) * c + (j + 0.5 - oy) * s
             sdf = z[b] - d
             if abs(sdf) <= trunc:
-                ci[n] = ci[k]
-                cj[n] = cj[k]
+                ci[n] = i
+                cj[n] = j
                 value[n] = min(1.0, max(-1.0, sdf / trunc))
                 n += 1
+            if k == steps:
+                break
+            if exact_steps_i(i, j, ie, je, t_max_x, t_max_y):
+                i += step_i
+                t_max_x += t_delta_x
+            else:
+                j += step_j
+                t_max_y += t_delta_y
     return ci[:n], cj[:n], value[:n]
 
 
@@ -72,16 +86,16 @@ def fuse_tsdf(
 ) -> int:
     """Fuse each (cell, value) into the tsdf / weight pools, in order; return the updates made."""
     mask = (1 << shift) - 1
+    flat_tsdf = tsdf.reshape(-1)  # one flat view of each pool, indexed unsigned (no wraparound code)
+    flat_weight = weight.reshape(-1)
     for k in range(ci.size):
         a = (cj[k] >> shift) - tj0
         b = (ci[k] >> shift) - ti0
-        slot = lookup[a, b]
-        lj = cj[k] & mask
-        li = ci[k] & mask
-        w_old = float(weight[slot, lj, li])
-        d_old = float(tsdf[slot, lj, li])
-        tsdf[slot, lj, li] = (w_old * d_old + value[k]) / (w_old + 1.0)
-        weight[slot, lj, li] = min(w_old + 1.0, max_weight)
+        at = np.uint64((lookup[a, b] << (2 * shift)) | ((cj[k] & mask) << shift) | (ci[k] & mask))
+        w_old = float(flat_weight[at])
+        d_old = float(flat_tsdf[at])
+        flat_tsdf[at] = (w_old * d_old + value[k]) / (w_old + 1.0)
+        flat_weight[at] = min(w_old + 1.0, max_weight)
         changed[compact[a, b]] = 1
     return ci.size
 

@@ -116,7 +116,6 @@ def apply_cells(
     """
     plane_shift = 2 * shift
     local_mask = (1 << plane_shift) - 1
-    mask = (1 << shift) - 1
     if log_odds.size:
         # One flat view of the pool; unsigned indices (all are >= 0) spare numba's negative-index
         # wraparound code, and the store and change flag are unconditional (branch-free).
@@ -129,17 +128,16 @@ def apply_cells(
             flat_log_odds[at] = new
             changed[tile] |= new != old  # NaN != anything: a first observation is a change
     if hits.size:
+        flat_hits = hits.reshape(-1)
+        flat_misses = misses.reshape(-1)
         for n in range(cell.size):
-            tile = cell[n] >> plane_shift
-            slot = slots[tile]
-            q = cell[n] & local_mask
-            lj = q >> shift
-            li = q & mask
+            tile = np.uint64(cell[n] >> plane_shift)
+            at = np.uint64((slots[tile] << plane_shift) | (cell[n] & local_mask))
             if kind[n] & CELL_HIT:
-                if hits[slot, lj, li] != _U32_MAX:
-                    hits[slot, lj, li] += 1
-            elif misses[slot, lj, li] != _U32_MAX:
-                misses[slot, lj, li] += 1
+                if flat_hits[at] != _U32_MAX:  # counts saturate rather than wrap
+                    flat_hits[at] += 1
+            elif flat_misses[at] != _U32_MAX:
+                flat_misses[at] += 1
             changed[tile] = 1
     return cell.size
 
