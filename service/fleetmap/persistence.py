@@ -7,8 +7,10 @@ The contract (see docs/durability.md):
   groups: one transaction (one fsync) for every scan that arrived in the last few milliseconds.
 - A snapshot of a map first makes every applied scan durable, then copies the tiles that changed
   since the last snapshot together with the id of the last journal row they include, and writes
-  them, the robot counters and the journal truncation in ONE transaction: a crash leaves either the
-  old snapshot with its journal or the new one, never a mix.
+  them under a new generation; one small transaction then switches the map to that generation with
+  its robot counters and journal id: a crash leaves either the old snapshot with its journal or the
+  new one, never a mix. Journal rows up to that id are dead from then on; the writer deletes them
+  a few at a time.
 - On start, each map is its snapshot plus its journal rows after it, replayed in order: exactly the
   map of all durable scans.
 SQLite's atomic commits mean no half-written tile or journal row can survive a crash.
@@ -178,6 +180,12 @@ def connect(path: Path, synchronous: str = "FULL", autocheckpoint: bool = True) 
     conn = sqlite3.connect(path, timeout=30.0, isolation_level=None, check_same_thread=False)
     conn.execute("PRAGMA journal_mode=WAL")
     conn.execute(f"PRAGMA synchronous={synchronous}")  # FULL: a commit is on disk when COMMIT returns
+    # Debian builds SQLite with SECURE_DELETE on: every freed page would be overwritten with zeros,
+    # so truncating the journal (17 KB rows, thousands per snapshot) wrote as many bytes to the WAL
+    # as the rows themselves and took hundreds of ms. FAST zeroes deleted cells in b-tree pages but
+    # not whole freed pages (their old contents stay until the page is reused, which journal
+    # appends do within seconds); the map data is not secret.
+    conn.execute("PRAGMA secure_delete=FAST")
     if not autocheckpoint:
         conn.execute("PRAGMA wal_autocheckpoint=0")
     return conn
@@ -194,7 +202,15 @@ class JournalEntry:
 
 
 class JournalWriter:
-    """The one thread that appends to the journal, committing in groups."""
+    """The one thread that appends to the journal, committing in groups, and that deletes the rows
+    snapshots have superseded, a few at a time (`trim`)."""
+
+    #: Superseded rows deleted per transaction. A snapshot supersedes up to `snapshot_rows` rows of
+    #: 17 KB; deleting them at once held the journal's commits up for hundreds of ms. About 5 us a
+    #: row (with secure_delete=FAST), so a group commit carrying a share of them stays short.
+    TRIM_ROWS = 256
+    #: Seconds the writer waits idle before trimming in a transaction of its own.
+    TRIM_IDLE = 0.05
 
     def __init__(self, path: Path, on_error: Callable[[Exception], None] | None = None):
         # The journal writer never checkpoints the WAL (a checkpoint copies megabytes of snapshot
@@ -202,10 +218,25 @@ class JournalWriter:
         self._conn = connect(path, autocheckpoint=False)
         self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | None] = queue.Queue()
         self._on_error = on_error
+        # map id -> the journal id up to which that map's rows are superseded by a snapshot and
+        # still to be deleted. Only the writer thread touches it (from `trim`, called in an op).
+        self._trim: dict[str, int] = {}
         self._thread = threading.Thread(target=self._run, name="fleetmap-journal", daemon=True)
         self._thread.start()
         self.commits = 0
         self.rows = 0
+        self.trimmed = 0
+
+    def trim(self, map_id: str, upto: int | None) -> None:
+        """Delete `map_id`'s journal rows with id <= `upto` from now on, `TRIM_ROWS` per transaction
+        (riding along with group commits, or alone when the writer is idle); None cancels (a map
+        deleted or re-created). Call it ONLY on the writer thread, i.e. inside an op: the rows must
+        be superseded by a committed snapshot, because they are deleted whatever happens next.
+        Until then they are dead weight that `DurableStore.load` ignores (and deletes)."""
+        if upto is None:
+            self._trim.pop(map_id, None)
+        else:
+            self._trim[map_id] = max(upto, self._trim.get(map_id, 0))
 
     def append(self, entry: JournalEntry) -> None:
         self._queue.put(entry)
@@ -233,6 +264,7 @@ class JournalWriter:
         self.run(lambda conn: None)
 
     def close(self) -> None:
+        """Commit what is queued, delete every superseded row still left, and stop."""
         self._queue.put(None)
         self._thread.join()
         self._conn.close()
@@ -242,15 +274,22 @@ class JournalWriter:
         the next group gathers, so batches grow with the load and an idle service commits a lone
         scan at once. Operations (snapshots, map changes) run in queue order between groups."""
         while True:
-            item = self._queue.get()
+            try:
+                item = self._queue.get(timeout=self.TRIM_IDLE if self._trim else None)
+            except queue.Empty:  # idle with superseded rows left: delete a share of them alone
+                self._commit([])
+                continue
             batch: list[JournalEntry] = []
             while True:
                 if isinstance(item, JournalEntry):
                     batch.append(item)
                 else:
-                    self._commit(batch)
+                    if batch:  # (an empty one would commit a trim alone: an fsync for nothing urgent)
+                        self._commit(batch)
                     batch = []
                     if item is None:
+                        while self._trim and self._commit([]):  # shutting down: no hurry, all of them
+                            pass
                         return
                     item(self._conn)
                 if len(batch) >= 512:
@@ -259,11 +298,28 @@ class JournalWriter:
                     item = self._queue.get_nowait()
                 except queue.Empty:
                     break
-            self._commit(batch)
+            if batch:
+                self._commit(batch)
 
-    def _commit(self, batch: list[JournalEntry]) -> None:
-        if not batch:
-            return
+    def _trim_some(self) -> tuple[str, bool] | None:
+        """Inside the open transaction, delete up to `TRIM_ROWS` superseded rows of one map; return
+        (map id, whether none of its superseded rows are left) or None if nothing was pending."""
+        if not self._trim:
+            return None
+        map_id, upto = next(iter(self._trim.items()))
+        cur = self._conn.execute(
+            "DELETE FROM journal WHERE id IN (SELECT id FROM journal WHERE map_id = ? AND id <= ? "
+            "ORDER BY id LIMIT ?)",
+            (map_id, upto, self.TRIM_ROWS),
+        )
+        self.trimmed += max(cur.rowcount, 0)
+        return map_id, cur.rowcount < self.TRIM_ROWS
+
+    def _commit(self, batch: list[JournalEntry]) -> bool:
+        """Commit `batch` (which may be empty) and a share of the superseded rows in one transaction;
+        False if there was nothing to do or the commit failed."""
+        if not batch and not self._trim:
+            return False
         try:
             ids = []
             self._conn.execute("BEGIN IMMEDIATE")
@@ -273,6 +329,7 @@ class JournalWriter:
                     (e.map_id, e.robot_id, e.seq, e.stamp, e.blob),
                 )
                 ids.append(cur.lastrowid)
+            trimmed = self._trim_some()
             self._conn.execute("COMMIT")
         except sqlite3.Error as exc:
             # Nothing of this batch is durable: the scans stay applied in memory but are never
@@ -280,13 +337,21 @@ class JournalWriter:
             log.error("journal commit failed (%d scans not durable): %s", len(batch), exc)
             with contextlib.suppress(sqlite3.Error):
                 self._conn.execute("ROLLBACK")
+            # Superseded rows are harmless (ignored and deleted at start); retrying their deletion
+            # on a failing disk would only repeat the error every TRIM_IDLE seconds.
+            self._trim.clear()
             if self._on_error:
                 self._on_error(exc)
-            return
+            return False
+        if trimmed is not None and trimmed[1]:
+            del self._trim[trimmed[0]]
+        if not batch:
+            return True
         self.commits += 1
         self.rows += len(batch)
         for e, row_id in zip(batch, ids, strict=True):
             e.on_durable(int(row_id))
+        return True
 
 
 # -- snapshot files (download / restore) ----------------------------------------------------------------
@@ -400,6 +465,8 @@ class DurableStore:
                 # Rows of a snapshot that never switched its generation (a crash mid-snapshot) are
                 # not part of the map; each tile is its newest committed generation.
                 conn.execute("DELETE FROM tiles WHERE map_id = ? AND gen > ?", (map_id, snap_gen))
+                # Journal rows the snapshot supersedes that the writer had not deleted yet.
+                conn.execute("DELETE FROM journal WHERE map_id = ? AND id <= ?", (map_id, snap_id))
                 rows = conn.execute(
                     "SELECT ti, tj, version, data FROM tiles t WHERE map_id = ? AND gen = (SELECT MAX(gen) "
                     "FROM tiles u WHERE u.map_id = t.map_id AND u.ti = t.ti AND u.tj = t.tj)",
@@ -452,6 +519,7 @@ class DurableStore:
         self._created[map_id] = created
 
         def op(conn: sqlite3.Connection) -> None:
+            self.writer.trim(map_id, None)  # the DELETE below removes them all
             conn.execute("BEGIN IMMEDIATE")
             for table, column in (("tiles", "map_id"), ("robots", "map_id"), ("journal", "map_id")):
                 conn.execute(f"DELETE FROM {table} WHERE {column} = ?", (map_id,))
@@ -476,6 +544,7 @@ class DurableStore:
         """Forget a map. Queued after its journaled scans, not waited for."""
 
         def op(conn: sqlite3.Connection) -> None:
+            self.writer.trim(map_id, None)  # the DELETE below removes them all
             conn.execute("BEGIN IMMEDIATE")
             for table, column in (
                 ("maps", "id"),
@@ -513,10 +582,11 @@ class DurableStore:
         scans, so the journal id and the `counters()` it records match the copied tiles. The tiles are
         then written under a new generation, a few per transaction on this thread's own connection,
         so the journal's group commits are never held up for long; one small transaction on the
-        writer then switches the map to that generation, truncates the journal and drops the tile
-        rows it supersedes. A crash before the switch leaves the old generation and its journal
-        intact (the new rows are ignored and removed at start). Nothing here waits on the writer
-        while holding a lock."""
+        writer then switches the map to that generation, records the journal id the snapshot
+        includes and drops the tile rows it supersedes. The journal rows up to that id are deleted
+        afterwards by the writer, `JournalWriter.TRIM_ROWS` per transaction. A crash before the switch
+        leaves the old generation and its journal intact (the new rows are ignored and removed at
+        start). Nothing here waits on the writer while holding a lock."""
         with self._snapshot_lock:
             with gmap.lock:
                 since = self._snapshot_clock.get(map_id, 0)
@@ -554,13 +624,15 @@ class DurableStore:
                     "INSERT OR REPLACE INTO robots (map_id, robot_id, state) VALUES (?, ?, ?)",
                     [(map_id, rid, json.dumps(state)) for rid, state in saved["robots"].items()],
                 )
-                conn.execute("DELETE FROM journal WHERE map_id = ? AND id <= ?", (map_id, last_id))
                 conn.execute(
                     "DELETE FROM tiles WHERE map_id = ? AND gen < ? AND EXISTS (SELECT 1 FROM tiles u WHERE "
                     "u.map_id = tiles.map_id AND u.ti = tiles.ti AND u.tj = tiles.tj AND u.gen = ?)",
                     (map_id, gen, gen),
                 )
                 conn.execute("COMMIT")
+                # The journal rows up to last_id are dead from this commit on; deleting them here
+                # held the journal's commits up for 0.3-0.7 s, so the writer deletes them bit by bit.
+                self.writer.trim(map_id, last_id)
                 return True
 
             if self.writer.run(switch):
