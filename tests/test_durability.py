@@ -14,7 +14,6 @@ import json
 import random
 import sqlite3
 import time
-import zlib
 from pathlib import Path
 
 import httpx
@@ -26,7 +25,7 @@ from service_process import RobotProcess, ServiceProcess
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
-from fleetmap.persistence import DB_NAME, scan_from_blob
+from fleetmap.persistence import DB_NAME, scan_from_blob, tile_from_blob, tile_to_blob
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING
 
@@ -152,8 +151,10 @@ def check_database_intact(path: Path) -> None:
     conn = sqlite3.connect(path)
     try:
         assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
-        for (blob,) in conn.execute("SELECT data FROM tiles"):
-            zlib.decompress(blob)
+        configs = {map_id: GridMap(MapConfig.model_validate_json(c)) for map_id, c in conn.execute(
+            "SELECT id, config FROM maps")}  # fmt: skip
+        for map_id, blob in conn.execute("SELECT map_id, data FROM tiles"):
+            tile_from_blob(blob, configs[map_id])
         for (blob,) in conn.execute("SELECT scan FROM journal"):
             scan_from_blob(blob)
     finally:
@@ -230,7 +231,8 @@ def test_a_snapshot_that_never_switched_is_ignored(tmp_path: Path) -> None:
     # What a crashed snapshot leaves: rows of a newer generation, never switched to, with wrong data.
     db = sqlite3.connect(tmp_path / "d" / DB_NAME)
     rows = db.execute("SELECT ti, tj, version, data FROM tiles WHERE map_id = 'm'").fetchall()
-    garbage = zlib.compress(bytes(len(zlib.decompress(rows[0][3]))))
+    store = expected.store
+    garbage = tile_to_blob([np.full((store.tile_size,) * 2, 7, a.dtype) for a in store.arrays], store.arrays)
     db.executemany(
         "INSERT INTO tiles (map_id, ti, tj, gen, version, data) VALUES ('m', ?, ?, ?, ?, ?)",
         [(ti, tj, 2**62, v + 1, garbage) for ti, tj, v, _ in rows],

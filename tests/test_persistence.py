@@ -1,19 +1,33 @@
-"""`DurableStore` in-process: what a snapshot leaves in the database and how the journal and the WAL
-are kept small behind it (see docs/durability.md). The end-to-end crash test is test_durability.py."""
+"""`DurableStore` in-process: the stored tile format, what a snapshot leaves in the database, and how
+the journal and the WAL are kept small behind it (see docs/durability.md). The end-to-end crash test
+is test_durability.py."""
 
 from __future__ import annotations
 
 import sqlite3
 import threading
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
-from fleetmap.persistence import DB_NAME, DurableStore, JournalWriter, scan_to_blob
+from fleetmap.persistence import (
+    DB_NAME,
+    TILE_MAGIC,
+    DurableStore,
+    JournalWriter,
+    StorageError,
+    changed_tiles,
+    decode_tile,
+    scan_to_blob,
+    tile_to_blob,
+)
 from fleetmap.scan import Scan
+from fleetmap.tiles import LayerArray, TileStore
 
 
 def fan(x: float, n: int = 1081) -> Scan:
@@ -132,3 +146,118 @@ def test_the_wal_starts_over_after_each_snapshot(tmp_path: Path) -> None:
     finally:
         stop.set()
         store.close()
+
+
+# -- the stored tile format ----------------------------------------------------------------------------
+
+T = 16
+LAYOUT = TileStore(T, ["occupancy", "counts", "tsdf"], 1).arrays
+
+
+def bits(a: np.ndarray) -> np.ndarray:
+    return a.view(f"u{a.itemsize}")
+
+
+def assert_same_bits(got: list[np.ndarray], want: list[np.ndarray]) -> None:
+    assert len(got) == len(want)
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype and g.shape == w.shape
+        np.testing.assert_array_equal(bits(g), bits(w))
+
+
+def unknown_tile(layout: tuple[LayerArray, ...] = LAYOUT) -> list[np.ndarray]:
+    return [np.full((T, T), a.unknown, dtype=a.dtype) for a in layout]
+
+
+def odd_floats(n: int) -> np.ndarray:
+    """float32 values whose bits matter: NaNs with other payloads and signs, -0.0, 0.0, infinities,
+    a denormal, the extremes."""
+    patterns = np.array(
+        [0x7FC00000, 0xFFC00000, 0x7F800001, 0x7FC0BEEF, 0x80000000, 0, 0x7F800000, 0xFF800000, 1,
+         0x7F7FFFFF, 0xFF7FFFFF, 0x3F800000],
+        dtype=np.uint32,
+    )  # fmt: skip
+    return np.resize(patterns, n).view(np.float32)
+
+
+def test_tiles_round_trip_bit_for_bit_in_every_kind() -> None:
+    """All-unknown arrays, a few cells (sparse), every cell (dense): the exact bits come back,
+    including NaN payloads other than the unknown NaN, -0.0 where the unknown is 0.0, and uint32
+    extremes."""
+    sparse = unknown_tile()
+    sparse[0][3, 5] = -0.0  # log-odds: a real 0 among NaNs
+    sparse[0][0, 0] = np.float32(1.5)
+    sparse[0].reshape(-1)[100:112] = odd_floats(12)
+    sparse[1][T - 1, T - 1] = np.uint32(2**32 - 1)  # hits
+    sparse[3][7, 7] = -0.0  # tsdf: -0.0 is not its unknown 0.0
+    sparse[4].reshape(-1)[200:212] = odd_floats(12)
+    rng = np.random.default_rng(7)
+    dense = [
+        odd_floats(T * T).reshape(T, T) if a.dtype == np.float32 else
+        rng.integers(0, 2**32, (T, T), dtype=np.uint64).astype(np.uint32)
+        for a in LAYOUT
+    ]  # fmt: skip
+    for tile in (unknown_tile(), sparse, dense):
+        blob = tile_to_blob(tile, LAYOUT)
+        assert blob.startswith(TILE_MAGIC)
+        assert_same_bits(decode_tile(blob, LAYOUT, T), tile)
+    assert len(tile_to_blob(unknown_tile(), LAYOUT)) < 40  # nothing stored but the kinds
+
+
+@pytest.mark.parametrize("layers", [["occupancy"], ["counts"], ["tsdf"], ["occupancy", "counts", "tsdf"]])
+def test_a_real_map_round_trips_in_every_layer(layers: list) -> None:
+    gmap = GridMap(MapConfig(layers=layers))
+    for k in range(30):
+        gmap.integrate(fan(0.05 * k, n=361))
+    layout, t = gmap.store.arrays, gmap.store.tile_size
+    tiles = changed_tiles(gmap, -1)
+    assert tiles
+    for _key, _version, arrays in tiles:
+        assert_same_bits(decode_tile(tile_to_blob(arrays, layout), layout, t), arrays)
+
+
+def test_corrupt_or_foreign_tiles_are_a_clear_storage_error() -> None:
+    blob = tile_to_blob(unknown_tile(), LAYOUT)
+    raw = zlib.decompress(blob[len(TILE_MAGIC) :])
+    sparse = unknown_tile()
+    sparse[0][1, 1] = 1.0
+    sparse_raw = zlib.decompress(tile_to_blob(sparse, LAYOUT)[len(TILE_MAGIC) :])
+
+    def wrapped(body: bytes) -> bytes:
+        return TILE_MAGIC + zlib.compress(body)
+
+    old_format = zlib.compress(b"".join(a.tobytes() for a in unknown_tile()), 1)  # format 1
+    cases = {
+        "format 2": old_format,
+        "corrupt tile: Error -3": TILE_MAGIC + b"not zlib at all",
+        "holds 3 arrays": wrapped(bytes([3]) + raw[1:4]),
+        "unknown array kind 9": wrapped(raw[:2] + bytes([9]) + raw[3:]),
+        "ends early": wrapped(sparse_raw[:-1]),
+        "1 bytes after": wrapped(raw + b"x"),
+        "holds 0 arrays": wrapped(b""),
+    }
+    for message, bad in cases.items():
+        with pytest.raises(StorageError, match=message):
+            decode_tile(bad, LAYOUT, T)
+    with pytest.raises(StorageError, match="holds 5 arrays, the map's layers have 1"):
+        decode_tile(blob, LAYOUT[:1], T)  # a tile of another map's layers
+    with pytest.raises(ValueError, match="dtype"):
+        tile_to_blob([a.astype(np.float64) for a in unknown_tile()], LAYOUT)
+
+
+def test_a_data_directory_of_the_old_tile_format_is_refused_at_start(tmp_path: Path) -> None:
+    store = DurableStore(tmp_path)
+    gmap = GridMap(MapConfig())
+    gmap.integrate(fan(0.0, n=61))
+    store.map_created("m", gmap).result()
+    store.close()
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.execute("UPDATE tiles SET data = ?", (zlib.compress(bytes(5 * 4 * 256 * 256), 1),))
+    db.commit()
+    db.close()
+    again = DurableStore(tmp_path)
+    try:
+        with pytest.raises(StorageError, match="not in tile format 2"):
+            again.load()
+    finally:
+        again.close()

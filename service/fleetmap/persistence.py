@@ -31,7 +31,7 @@ import threading
 import time
 import zipfile
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +41,7 @@ import numpy as np
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
+from fleetmap.tiles import LayerArray
 
 log = logging.getLogger("fleetmap.persistence")
 
@@ -115,9 +116,94 @@ def scan_from_blob(blob: bytes) -> Scan:
     return Scan(Pose2D(x, y, theta), body[:n].copy(), body[n:].copy(), range_min, range_max)
 
 
-def tile_to_blob(arrays: list[np.ndarray]) -> bytes:
-    """One tile's stored arrays (the store's order), concatenated and zlib-compressed."""
-    return zlib.compress(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays), 1)
+#: Stored tiles, format 2 (docs/durability.md, "Tile rows"): this magic, then zlib (level 1) of one
+#: byte (the number of arrays) and, per stored array in the store's order, a kind byte and its data.
+TILE_MAGIC = b"FMT2"
+#: Kinds: every cell holds the array's never-observed value (no data); a bit mask of the cells that
+#: do not, then their values; all cells' values.
+TILE_UNKNOWN, TILE_SPARSE, TILE_DENSE = 0, 1, 2
+
+
+def _as_bits(array: np.ndarray, dtype: type) -> np.ndarray:
+    """`array` (of `dtype`) flat, as little-endian unsigned integers of the same width: cells are
+    compared and stored as bit patterns, so every NaN payload and -0.0 round-trip exactly."""
+    if array.dtype != np.dtype(dtype):
+        raise ValueError(f"tile array of dtype {array.dtype}, expected {np.dtype(dtype)}")
+    little = np.dtype(dtype).newbyteorder("<")
+    return np.ascontiguousarray(array, dtype=little).reshape(-1).view(f"<u{little.itemsize}")
+
+
+def _unknown_bits(a: LayerArray) -> np.ndarray:
+    return _as_bits(np.array([a.unknown], dtype=a.dtype), a.dtype)
+
+
+def tile_to_blob(arrays: Sequence[np.ndarray], layout: Sequence[LayerArray]) -> bytes:
+    """One tile's stored arrays (`layout`'s order, as `TileStore.arrays`), losslessly and compactly.
+
+    Most cells of most arrays still hold their never-observed value (a bench map's tiles: 70 % of
+    log-odds, 98 % of hits, 94 % of TSDF), so each array is stored as a bit mask of the other
+    cells and their values, or not at all, or whole when that is smaller; zlib then squeezes the
+    rest. 17 tiles (22 MB of arrays) take 26 ms instead of the 43 ms of compressing them whole, and
+    0.87 MB instead of 1.03 MB. `tile_from_blob` / `decode_tile` give back the exact bits."""
+    body = [bytes([len(layout)])]
+    for a, array in zip(layout, arrays, strict=True):
+        bits = _as_bits(array, a.dtype)
+        known = bits != _unknown_bits(a)
+        count = int(np.count_nonzero(known))
+        if count == 0:
+            body.append(bytes([TILE_UNKNOWN]))
+        elif count * bits.itemsize + bits.size // 8 < bits.nbytes:
+            body += [bytes([TILE_SPARSE]), np.packbits(known).tobytes(), bits[known].tobytes()]
+        else:
+            body += [bytes([TILE_DENSE]), bits.tobytes()]
+    return TILE_MAGIC + zlib.compress(b"".join(body), 1)
+
+
+def decode_tile(blob: bytes, layout: Sequence[LayerArray], tile_size: int) -> list[np.ndarray]:
+    """The arrays (each `(tile_size, tile_size)`, in `layout`'s order) of a `tile_to_blob` blob.
+    Raises `StorageError` saying what is wrong if the blob is not one, or not one of this layout."""
+    if blob[: len(TILE_MAGIC)] != TILE_MAGIC:
+        raise StorageError(
+            "a stored tile is not in tile format 2 (data directories of fleetmap before format 2 "
+            "cannot be read; see docs/durability.md)"
+        )
+    try:
+        raw = zlib.decompress(blob[len(TILE_MAGIC) :])
+    except zlib.error as exc:
+        raise StorageError(f"corrupt tile: {exc}") from None
+    cells = tile_size * tile_size
+    pos = 1
+
+    def take(n: int) -> memoryview:
+        nonlocal pos
+        if pos + n > len(raw):
+            raise StorageError("corrupt tile: its data ends early")
+        pos += n
+        return memoryview(raw)[pos - n : pos]
+
+    if not raw or raw[0] != len(layout):
+        held = raw[0] if raw else 0
+        raise StorageError(f"corrupt tile: it holds {held} arrays, the map's layers have {len(layout)}")
+    out = []
+    for a in layout:
+        unknown = _unknown_bits(a)
+        kind = take(1)[0]
+        if kind == TILE_UNKNOWN:
+            bits = np.full(cells, unknown[0], dtype=unknown.dtype)
+        elif kind == TILE_SPARSE:
+            known = np.unpackbits(np.frombuffer(take(cells // 8), dtype=np.uint8)).view(bool)
+            bits = np.full(cells, unknown[0], dtype=unknown.dtype)
+            count = int(np.count_nonzero(known))
+            bits[known] = np.frombuffer(take(count * unknown.itemsize), dtype=unknown.dtype)
+        elif kind == TILE_DENSE:
+            bits = np.frombuffer(take(cells * unknown.itemsize), dtype=unknown.dtype).copy()
+        else:
+            raise StorageError(f"corrupt tile: unknown array kind {kind}")
+        values = bits.view(np.dtype(a.dtype).newbyteorder("<")).astype(a.dtype, copy=False)
+        out.append(values.reshape(tile_size, tile_size))
+    if pos != len(raw):
+        raise StorageError(f"corrupt tile: {len(raw) - pos} bytes after its last array")
+    return out
 
 
 def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int, list[np.ndarray]]]:
@@ -132,16 +218,8 @@ def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int,
 
 
 def tile_from_blob(blob: bytes, gmap: GridMap) -> list[np.ndarray]:
-    raw = zlib.decompress(blob)
-    t = gmap.store.tile_size
-    out, offset = [], 0
-    for a in gmap.store.arrays:
-        size = t * t * np.dtype(a.dtype).itemsize
-        out.append(np.frombuffer(raw, dtype=a.dtype, count=t * t, offset=offset).reshape(t, t))
-        offset += size
-    if offset != len(raw):
-        raise StorageError("corrupt tile: size does not match the map's layers")
-    return out
+    """`decode_tile` for a tile of `gmap`."""
+    return decode_tile(blob, gmap.store.arrays, gmap.store.tile_size)
 
 
 # -- the database -------------------------------------------------------------------------------------
@@ -421,18 +499,28 @@ class DurableStore:
     The registry calls `map_created`, `map_deleted` and, under a map's lock, `journal`; this class
     calls back `on_durable(journal_id)` once a scan's row is committed.
 
-    Snapshot frequency trades restart time (journal rows to replay) against ingest latency: a
-    snapshot compresses every changed tile (about 1.3 MB each with all layers), which on a small
-    machine delays the scans integrated meanwhile. Every 30 s or 20 000 rows keeps a restart's
-    replay to about 10-20 s at 400 scans/s while touching ingest rarely.
+    Snapshot frequency trades restart time (journal rows to replay) against the work a snapshot
+    does while scans arrive: it copies every changed tile (about 1.3 MB each with all layers) under
+    the map's lock, encodes and writes them one by one (`tile_to_blob`), and checkpoints the WAL
+    (copying every journal row written since into the database file). Every 30 s or 20 000 rows
+    keeps a restart's replay to about 10-20 s at 400 scans/s. After each tile the snapshot thread
+    sleeps `snapshot_pace` times as long as the tile took, so it uses at most 1 / (1 + pace) of a
+    core (a quarter by default) instead of one for tens of ms.
     """
 
-    def __init__(self, data_dir: Path, snapshot_interval: float = 30.0, snapshot_rows: int = 20000) -> None:
+    def __init__(
+        self,
+        data_dir: Path,
+        snapshot_interval: float = 30.0,
+        snapshot_rows: int = 20000,
+        snapshot_pace: float = 3.0,
+    ) -> None:
         self.data_dir = Path(data_dir)
         self.path = open_database(self.data_dir)
         self.writer = JournalWriter(self.path, on_error=self._storage_failed)
         self.snapshot_interval = snapshot_interval
         self.snapshot_rows = snapshot_rows
+        self.snapshot_pace = snapshot_pace
         self.failed: str | None = None  # the last storage failure, reported by /healthz
         self._rows_since: dict[str, int] = {}
         self._last_journal_id: dict[str, int] = {}
@@ -517,7 +605,10 @@ class DurableStore:
 
         The map's journal starts after the journal's current sequence, so rows a deleted map of the
         same id left behind are never replayed into this one."""
-        tiles = [(key, version, tile_to_blob(arrays)) for key, version, arrays in changed_tiles(gmap, -1)]
+        layout = gmap.store.arrays
+        tiles = [
+            (key, version, tile_to_blob(arrays, layout)) for key, version, arrays in changed_tiles(gmap, -1)
+        ]
         config_json, clock = gmap.config.model_dump_json(), gmap.store.clock
         gen = self._next_gen()
         created = time.time()
@@ -602,16 +693,20 @@ class DurableStore:
             last_id, saved = marker.result()
             gen = self._next_gen()
             conn = self._snapshot_conn
-            for start in range(0, len(copies), 4):
-                rows = [(map_id, key[0], key[1], gen, version, tile_to_blob(arrays))
-                        for key, version, arrays in copies[start : start + 4]]  # fmt: skip
+            layout = gmap.store.arrays
+            for key, version, arrays in copies:
+                started = time.perf_counter()
+                blob = tile_to_blob(arrays, layout)
                 conn.execute("BEGIN IMMEDIATE")
-                conn.executemany(
+                conn.execute(
                     "INSERT OR REPLACE INTO tiles (map_id, ti, tj, gen, version, data) "
                     "VALUES (?, ?, ?, ?, ?, ?)",
-                    rows,
+                    (map_id, key[0], key[1], gen, version, blob),
                 )
                 conn.execute("COMMIT")
+                # The machine's few cores also integrate scans: spread the encoding out rather
+                # than take a core for tens of ms at once.
+                time.sleep((time.perf_counter() - started) * self.snapshot_pace)
 
             def switch(conn: sqlite3.Connection) -> bool:
                 conn.execute("BEGIN IMMEDIATE")
