@@ -234,6 +234,63 @@ def test_cells_of_unknown_points() -> None:
     assert got["probability"][2] == pytest.approx(0.4)
 
 
+@pytest.mark.parametrize(
+    "layers", [["occupancy", "counts", "tsdf"], ["occupancy"], ["counts"], ["tsdf"], ["tsdf", "counts"]]
+)
+def test_cells_equal_one_cell_region_reads(layers: list[str]) -> None:
+    """cells() (one gather per layer) gives at every point exactly what a 1 x 1 region() of its cell
+    gives, for random points in observed cells, unobserved cells of existing tiles, missing tiles,
+    negative coordinates, cell and tile boundaries, repeated and far-away points."""
+    m = make_map(layers=layers)
+    rng = np.random.default_rng(5)
+    angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    poses = np.column_stack([rng.uniform(-6, 6, 30), rng.uniform(-6, 6, 30), rng.uniform(-3, 3, 30)])
+    for x, y, theta in poses.tolist():
+        ranges = rng.uniform(0.3, 5.0, angles.size)
+        ranges[rng.random(angles.size) < 0.1] = np.inf  # some no-returns
+        m.integrate(Scan.from_angles((x, y, theta), angles, ranges, 0.0, 6.0))
+    res, tile = m.resolution, m.store.tile_size
+    points = np.concatenate(
+        [
+            rng.uniform(-15, 15, (1500, 2)),  # inside and around the observed area
+            np.arange(-8, 9)[:, None] * np.array([[res * tile, res]]),  # tile and cell boundaries
+            -np.arange(-8, 9)[:, None] * np.array([[res, res * tile]]),
+            [[1e6, -1e6], [-1e6, 1e6], [0.0, 0.0], [0.0, 0.0], [-1e-12, 1e-12]],  # far, repeated, edges
+        ]
+    )
+    got = m.cells(points)
+    assert 0 < got["known"].sum() < len(points)  # both kinds are in the sample
+    for k, (x, y) in enumerate(points):
+        i, j = m.cell_index(x, y)
+        one = {layer: m.region(layer, i, j, i + 1, j + 1)[0, 0] for layer in ALL_READ_LAYERS + ("state",)
+               if m.config.has(_needs(layer if layer != "state" else "log_odds"))}  # fmt: skip
+        known = []  # `known` is the first kept layer's: occupancy, else counts, else tsdf
+        if m.config.has("occupancy"):
+            np.testing.assert_equal(got["log_odds"][k], one["log_odds"])
+            assert got["state"][k] == one["state"]
+            p = m.region("probability", i, j, i + 1, j + 1)[0, 0]
+            assert got["probability"][k] == (0.5 if math.isnan(one["log_odds"]) else p)
+            known.append(not math.isnan(one["log_odds"]))
+        if m.config.has("counts"):
+            assert (got["hits"][k], got["misses"][k]) == (one["hits"], one["misses"])
+            known.append(one["hits"] + one["misses"] > 0)
+        if m.config.has("tsdf"):
+            np.testing.assert_equal(got["tsdf"][k], one["tsdf"])
+            assert got["tsdf_weight"][k] == one["tsdf_weight"]
+            known.append(one["tsdf_weight"] > 0)
+        assert got["known"][k] == known[0], k
+
+
+def test_cells_of_points_billions_of_tiles_apart() -> None:
+    """Points too far apart for one int64 key per tile still find their cells (the pairwise path)."""
+    m = make_map(layers=["counts"])
+    m.integrate(one_beam((0.125, 0.125, 0.0), 0.0, 1.0))
+    points = np.array([[1e11, -1e11], [0.125, 0.125], [-1e11, 1e11], [1.125, 0.125], [0.125, 0.125]])
+    got = m.cells(points)
+    assert got["known"].tolist() == [False, True, False, True, True]
+    assert got["hits"].tolist() == [0, 0, 0, 1, 0] and got["misses"].tolist() == [0, 1, 0, 0, 1]
+
+
 def test_state_thresholds() -> None:
     """state: p > 0.65 occupied, p < 0.196 free, in between unknown: one miss (p 0.4) is still
     'unknown', four misses (p 0.165) are free, one hit (p 0.7) is occupied."""

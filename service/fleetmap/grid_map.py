@@ -170,13 +170,22 @@ class GridMap:
         raw = {name: np.zeros(len(pts), dtype=self.store.pool(name).dtype) for name in names}
         if "log_odds" in raw:
             raw["log_odds"][:] = np.nan
+        # The distinct tiles of the points (one dict probe each, under the lock), then every point's
+        # cells by one gather per stored array: no Python work per point while readers and the
+        # integration workers wait for the lock.
+        ti, tj = ci >> s, cj >> s
+        tiles, inverse = _distinct_tiles(ti, tj)
+        li, lj = ci & mask, cj & mask
         with self.lock:
-            for k in range(len(pts)):
-                slot = self.store.slots.get((int(ci[k] >> s), int(cj[k] >> s)))
-                if slot is None:
-                    continue
+            tile_slots = np.array(
+                [self.store.slots.get(key, -1) for key in zip(*tiles, strict=True)], dtype=np.int64
+            )
+            slot = tile_slots[inverse]
+            inside = np.flatnonzero(slot >= 0)
+            if inside.size:
+                where = (slot[inside], lj[inside], li[inside])
                 for name in names:
-                    raw[name][k] = self.store.pools[name][slot, cj[k] & mask, ci[k] & mask]
+                    raw[name][inside] = self.store.pools[name][where]
         if "log_odds" in raw:
             lo = raw["log_odds"]
             out["known"] = ~np.isnan(lo)
@@ -254,6 +263,20 @@ class GridMap:
                 f"layer {layer!r} needs the {needs!r} layer, which this map does not keep"
             )
         return source
+
+
+def _distinct_tiles(ti: np.ndarray, tj: np.ndarray) -> tuple[tuple[list[int], list[int]], np.ndarray]:
+    """The distinct (ti, tj) pairs as two lists, and for each input pair the index of its pair."""
+    if ti.size == 0:
+        return ([], []), np.zeros(0, dtype=np.int64)
+    i0, j0 = int(ti.min()), int(tj.min())
+    width = int(tj.max()) - j0 + 1
+    if (int(ti.max()) - i0 + 1) * width < 2**62:
+        # One int64 key per pair (the common case: points within a few billion tiles of each other).
+        keys, inverse = np.unique((ti - i0) * width + (tj - j0), return_inverse=True)
+        return ((keys // width + i0).tolist(), (keys % width + j0).tolist()), inverse.reshape(-1)
+    pairs, inverse = np.unique(np.stack([ti, tj], axis=1), axis=0, return_inverse=True)
+    return (pairs[:, 0].tolist(), pairs[:, 1].tolist()), inverse.reshape(-1)
 
 
 def _local_bounds(seen: np.ndarray) -> tuple[int, int, int, int] | None:
