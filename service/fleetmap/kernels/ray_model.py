@@ -8,7 +8,16 @@ import math
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.traversal import EXACT, cell_count, cells, exact_start, exact_steps_i, walk
+from fleetmap.kernels.traversal import (
+    EXACT,
+    cell_at,
+    cell_count,
+    cells,
+    crossing,
+    exact_start,
+    exact_steps_i,
+    walk,
+)
 
 #: Per-beam kinds given to `trace_rays`.
 BEAM_SKIP = 0
@@ -127,8 +136,8 @@ def trace_scan(
 
     Returns `(tiles_i, tiles_j, cell, kind, scratch_needed)`: tile k is `(tiles_i[k], tiles_j[k])`;
     updated cell n lies in tile `cell[n] >> 2*shift` at local position `cell[n] & (T*T - 1)`
-    (= `local_j * T + local_i`) and is a `CELL_HIT` if `kind[n] & CELL_HIT`, else a miss. Cells come
-    in the order beams first reach them.
+    (= `local_j * T + local_i`) and is a `CELL_HIT` if `kind[n] & CELL_HIT`, else a miss. Each cell
+    comes once, in no particular order.
     """
     plane_shift = 2 * shift
     nj = tj1 - tj0 + 1
@@ -198,6 +207,112 @@ def _record(found: np.ndarray, scratch: np.ndarray, n: int, key: int) -> int:
     return n
 
 
+#: Distance (cells) from the sensor that every beam walks itself before any skip (see `skip_spans`).
+WALK_NEAR = 2.0
+#: Skip only gaps worth a restart (cells).
+MIN_SKIP = 4.0
+
+
+@njit(cache=True, nogil=True)
+def skip_spans(
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each beam, a stretch of its exact walk that other beams are certain to cover: the walk may
+    leave out the cells after segment parameter `stop[b]` and before the cell at `resume[b]`
+    (`resume[b] == 0`: walk it all). Per-scan updates are then unchanged: the union of the walks
+    is the same set of cells.
+
+    Why: beams form a hierarchy by index. Beam b (b > 0) has level k = lowest set bit of b; its
+    neighbours b - 2**k and b + 2**k have higher levels. A cell C that b's segment touches, lying
+    wholly within distance S of the sensor, has at least half a cell of its extent across b's line
+    on one side (the width of a unit square across any line is >= 1). A neighbour on that side at
+    angle g from b is offset by at most S*sin(g) within that distance, so when
+    `S*sin(g) <= 0.45*cos(g)` its line passes through C's interior with a margin, and when the
+    neighbour's segment is longer than S + 2 cells its segment does (C's contact with b beyond
+    WALK_NEAR keeps the crossing ahead of the sensor). So C is crossed by a neighbour, which records
+    it, or, if that neighbour skipped it too, by the same argument one level up; base beams walk
+    everything. Each beam still walks its first WALK_NEAR cells and its last 2 cells itself.
+    Neighbours must lie on opposite sides of b (monotonic angles) and be traced; otherwise the
+    beam is walked whole. Everything is in CELL units; the parameter t runs 0..1 along a segment.
+    """
+    nb = ex.size
+    stop = np.zeros(nb)
+    resume = np.zeros(nb)
+    length = np.empty(nb)
+    for b in range(nb):
+        length[b] = math.sqrt((ex[b] - ox) ** 2 + (ey[b] - oy) ** 2)
+    for b in range(1, nb):
+        step = b & -b  # 2**level
+        lo = b - step
+        hi = b + step
+        if hi >= nb or kinds[b] == BEAM_SKIP or kinds[lo] == BEAM_SKIP or kinds[hi] == BEAM_SKIP:
+            continue
+        ux = ex[b] - ox
+        uy = ey[b] - oy
+        # The neighbours must lie on opposite sides of b, ahead of the sensor.
+        cross_lo = (ex[lo] - ox) * uy - (ey[lo] - oy) * ux
+        cross_hi = (ex[hi] - ox) * uy - (ey[hi] - oy) * ux
+        dot_lo = (ex[lo] - ox) * ux + (ey[lo] - oy) * uy
+        dot_hi = (ex[hi] - ox) * ux + (ey[hi] - oy) * uy
+        if not (cross_lo * cross_hi < 0.0 and dot_lo > 0.0 and dot_hi > 0.0):
+            continue
+        # S * sin(g) <= 0.45 * cos(g) for both, i.e. S <= 0.45 * dot / |cross|; both neighbours
+        # longer than S + 2; the beam's own last 2 cells always walked.
+        safe = min(length[b], length[lo], length[hi]) - 2.0
+        safe = min(safe, 0.45 * dot_lo / abs(cross_lo), 0.45 * dot_hi / abs(cross_hi))
+        # Cells skipped are touched before `resume` and reach at most sqrt(2) cells further.
+        end_skip = safe - 1.5
+        if end_skip - WALK_NEAR >= MIN_SKIP:
+            stop[b] = WALK_NEAR / length[b]
+            resume[b] = end_skip / length[b]
+    return stop, resume
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _walk_rest(
+    found: np.ndarray, scratch: np.ndarray, n: int, i: int, j: int, ie: int, je: int, step_i: int,
+    step_j: int, base_x: float, scale_x: float, base_y: float, scale_y: float, i0: int, j0: int,
+    wshift: int,
+) -> tuple[int, int]:  # fmt: skip
+    """Record an exact walk from cell (i, j) to its end cell (ie, je) in the dense window (rows of
+    `2**wshift` cells, cell (0, 0) = (i0, j0)); returns (count, the end cell's key).
+
+    `exact_steps_i` with its end-of-axis tests moved out of the loop: while both axes have steps
+    left only the crossings decide; then the rest is a straight run."""
+    key = ((j - j0) << wshift) + (i - i0)
+    left_i = abs(ie - i)
+    left_j = abs(je - j)
+    move_j = step_j << wshift
+    if left_i > 0 and left_j > 0:
+        # The cell indices as floats (exact: integers far below 2**53), so each crossing is
+        # `crossing(i, ...)` bit for bit without an int-to-float conversion per step.
+        fi = float(i)
+        fj = float(j)
+        t_max_x = (fi + base_x) * scale_x
+        t_max_y = (fj + base_y) * scale_y
+        while True:
+            n = _record(found, scratch, n, key)
+            if t_max_x < t_max_y:
+                fi += step_i
+                key += step_i
+                t_max_x = (fi + base_x) * scale_x
+                left_i -= 1
+                if left_i == 0:
+                    break
+            else:
+                fj += step_j
+                key += move_j
+                t_max_y = (fj + base_y) * scale_y
+                left_j -= 1
+                if left_j == 0:
+                    break
+    move = step_i if left_i > 0 else move_j
+    for _ in range(left_i + left_j):
+        n = _record(found, scratch, n, key)
+        key += move
+    return _record(found, scratch, n, key), key
+
+
 @njit(cache=True, nogil=True)
 def _walk_dense(
     ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, method: int, shift: int,
@@ -205,47 +320,61 @@ def _walk_dense(
 ) -> int:  # fmt: skip
     """Walk every traced beam, marking cells in a row-major window of rows `2**wshift` cells whose
     cell (0, 0) is the first cell of tile (ti0, tj0); returns the number of distinct cells, whose
-    window keys are in `found[:n]` in first-visit order. End cells of returns become hits."""
+    window keys are in `found[:n]`. End cells of returns become hits.
+
+    Exact walks leave out the stretches `skip_spans` proves other beams cover, which indoors is most
+    of each walk: near the sensor dozens of beams cross every cell."""
     i0 = ti0 << shift
     j0 = tj0 << shift
-    row = 1 << wshift
     ends = np.empty(ex.size, dtype=np.int64)
     hits = 0
     n = 0
+    if method == EXACT:
+        stop, resume = skip_spans(ox, oy, ex, ey, kinds)
     for b in range(ex.size):
         if kinds[b] == BEAM_SKIP:
             continue
+        key = 0
         if method == EXACT:
-            # The exact walk, inlined (this loop is most of a scan's time): the same steps as
-            # `exact_start` / `exact_steps_i`, with the end-of-axis tests moved out of the loop. While
-            # both axes have steps left, only t_max decides; then the rest is a straight run.
-            i, j, ie, je, step_i, step_j, t_max_x, t_max_y, t_delta_x, t_delta_y = exact_start(
-                ox, oy, ex[b], ey[b]
-            )
-            key = ((j - j0) << wshift) + (i - i0)
-            left_i = abs(ie - i)
-            left_j = abs(je - j)
-            move_j = step_j * row
-            if left_i > 0 and left_j > 0:
-                while True:
-                    n = _record(found, scratch, n, key)
-                    if t_max_x < t_max_y:
-                        key += step_i
-                        t_max_x += t_delta_x
-                        left_i -= 1
-                        if left_i == 0:
-                            break
-                    else:
-                        key += move_j
-                        t_max_y += t_delta_y
-                        left_j -= 1
-                        if left_j == 0:
-                            break
-            move = step_i if left_i > 0 else move_j
-            for _ in range(left_i + left_j):
+            i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(ox, oy, ex[b], ey[b])
+            if resume[b] > 0.0:
+                # The first cells, up to the crossing past parameter stop[b] (the steps of
+                # `exact_steps_i`), then the rest of the walk from the cell at resume[b].
+                key = ((j - j0) << wshift) + (i - i0)
                 n = _record(found, scratch, n, key)
-                key += move
-            n = _record(found, scratch, n, key)
+                while True:
+                    t_max_x = crossing(i, base_x, scale_x)
+                    t_max_y = crossing(j, base_y, scale_y)
+                    if exact_steps_i(i, j, ie, je, t_max_x, t_max_y):
+                        if t_max_x >= stop[b]:
+                            break
+                        i += step_i
+                        key += step_i
+                    else:
+                        if j == je or t_max_y >= stop[b]:
+                            break
+                        j += step_j
+                        key += step_j << wshift
+                    n = _record(found, scratch, n, key)
+                i, j = cell_at(ox, oy, ex[b], ey[b], resume[b])
+            n, key = _walk_rest(
+                found,
+                scratch,
+                n,
+                i,
+                j,
+                ie,
+                je,
+                step_i,
+                step_j,
+                base_x,
+                scale_x,
+                base_y,
+                scale_y,
+                i0,
+                j0,
+                wshift,
+            )
         else:
             for i, j in cells(ox, oy, ex[b], ey[b], method):
                 key = ((j - j0) << wshift) + (i - i0)
@@ -315,22 +444,19 @@ def _walk_planes(
         if method == EXACT:
             # Inside a tile the key moves by +-1 (a step in i) or +-T (a step in j); it is recomputed
             # from the index only when the walk enters another tile.
-            i, j, ie, je, step_i, step_j, t_max_x, t_max_y, t_delta_x, t_delta_y = exact_start(
-                ox, oy, ex[b], ey[b]
-            )
+            i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(ox, oy, ex[b], ey[b])
             key = _cell_key(i, j, index, ti0, tj0, shift)
             edge_i = mask if step_i > 0 else 0  # the local i after which a step leaves the tile
             edge_j = mask if step_j > 0 else 0
             for _ in range(abs(ie - i) + abs(je - j)):
                 n = _record(found, scratch, n, key)
-                if exact_steps_i(i, j, ie, je, t_max_x, t_max_y):
+                if exact_steps_i(i, j, ie, je, crossing(i, base_x, scale_x), crossing(j, base_y, scale_y)):
                     if (i & mask) == edge_i:
                         i += step_i
                         key = _cell_key(i, j, index, ti0, tj0, shift)
                     else:
                         i += step_i
                         key += step_i
-                    t_max_x += t_delta_x
                 else:
                     if (j & mask) == edge_j:
                         j += step_j
@@ -338,7 +464,6 @@ def _walk_planes(
                     else:
                         j += step_j
                         key += step_j * t
-                    t_max_y += t_delta_y
             n = _record(found, scratch, n, key)
         else:
             for i, j in cells(ox, oy, ex[b], ey[b], method):

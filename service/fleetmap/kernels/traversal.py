@@ -29,29 +29,43 @@ def cell_count(x0: float, y0: float, x1: float, y1: float, method: int) -> int:
 
 
 @njit(cache=True, nogil=True, inline="always")
+def exact_axis(a0: float, a1: float) -> tuple[int, int, int, float, float]:
+    """One axis of an exact walk from a0 to a1: `(first cell, end cell, step, base, scale)`. The
+    segment parameter (0..1) at which the walk crosses the boundary after cell k is
+    `crossing(k, base, scale)`.
+
+    The crossing is computed from k alone, never accumulated step by step, so a walk resumed at any
+    cell of the segment (`cell_at`) makes exactly the decisions the whole walk makes there."""
+    d = a1 - a0
+    if d > 0.0:
+        return math.floor(a0), math.floor(a1), 1, 1.0 - a0, 1.0 / d
+    if d < 0.0:
+        return math.floor(a0), math.floor(a1), -1, -a0, 1.0 / d  # (k - a0) / d = (a0 - k) / |d|
+    return math.floor(a0), math.floor(a1), 1, 1.0 - a0, math.inf  # never crossed: +inf
+
+
+@njit(cache=True, nogil=True, inline="always")
+def crossing(k: int, base: float, scale: float) -> float:
+    """Segment parameter of the boundary an exact walk crosses when it leaves cell k (see
+    `exact_axis`)."""
+    return (k + base) * scale
+
+
+@njit(cache=True, nogil=True, inline="always")
 def exact_start(x0: float, y0: float, x1: float, y1: float):
-    """State of an exact walk at its start cell: `(i, j, ie, je, step_i, step_j, t_max_x, t_max_y,
-    t_delta_x, t_delta_y)`. `t_max_*` is the segment parameter (0..1) of the next vertical /
-    horizontal boundary crossing, `t_delta_*` how much it grows per cell."""
-    i = math.floor(x0)
-    j = math.floor(y0)
-    dx = x1 - x0
-    dy = y1 - y0
-    if dx != 0.0:
-        t_max_x = ((i + 1 - x0) if dx > 0 else (x0 - i)) / abs(dx)
-        t_delta_x = 1.0 / abs(dx)
-    else:
-        t_max_x = math.inf
-        t_delta_x = math.inf
-    if dy != 0.0:
-        t_max_y = ((j + 1 - y0) if dy > 0 else (y0 - j)) / abs(dy)
-        t_delta_y = 1.0 / abs(dy)
-    else:
-        t_max_y = math.inf
-        t_delta_y = math.inf
-    step_i = 1 if dx > 0 else -1
-    step_j = 1 if dy > 0 else -1
-    return i, j, math.floor(x1), math.floor(y1), step_i, step_j, t_max_x, t_max_y, t_delta_x, t_delta_y
+    """State of an exact walk at its start cell: `(i, j, ie, je, step_i, step_j, base_x, scale_x,
+    base_y, scale_y)`; the next vertical / horizontal boundary crossing is at segment parameter
+    `crossing(i, base_x, scale_x)` / `crossing(j, base_y, scale_y)`."""
+    i, ie, step_i, base_x, scale_x = exact_axis(x0, x1)
+    j, je, step_j, base_y, scale_y = exact_axis(y0, y1)
+    return i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cell_at(x0: float, y0: float, x1: float, y1: float, t: float) -> tuple[int, int]:
+    """The cell holding the segment's point at parameter t. An exact walk resumed there (with the
+    whole segment's `exact_start` bases and scales) makes the whole walk's decisions from there on."""
+    return math.floor(x0 + t * (x1 - x0)), math.floor(y0 + t * (y1 - y0))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -73,19 +87,17 @@ def exact_steps_i(i: int, j: int, ie: int, je: int, t_max_x: float, t_max_y: flo
 def cells(x0: float, y0: float, x1: float, y1: float, method: int):  # -> Iterator[tuple[int, int]]
     """Yield the cells `(i, j)` of the traversal of (x0, y0) -> (x1, y1), start cell to end cell.
 
-    A numba generator for kernels that are not the hottest; `trace_rays_marks` inlines the same
-    `exact_start` / `exact_steps_i` steps by hand.
+    A numba generator for kernels that are not the hottest; `ray_model` and `tsdf` inline the same
+    `exact_start` / `crossing` / `exact_steps_i` steps by hand.
     """
     if method == EXACT:
-        i, j, ie, je, step_i, step_j, t_max_x, t_max_y, t_delta_x, t_delta_y = exact_start(x0, y0, x1, y1)
+        i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(x0, y0, x1, y1)
         yield i, j
         for _ in range(abs(ie - i) + abs(je - j)):
-            if exact_steps_i(i, j, ie, je, t_max_x, t_max_y):
+            if exact_steps_i(i, j, ie, je, crossing(i, base_x, scale_x), crossing(j, base_y, scale_y)):
                 i += step_i
-                t_max_x += t_delta_x
             else:
                 j += step_j
-                t_max_y += t_delta_y
             yield i, j
     else:
         i = math.floor(x0)

@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.traversal import EXACT, cell_count, exact_start, exact_steps_i
+from fleetmap.kernels.traversal import EXACT, cell_count, crossing, exact_start, exact_steps_i
 
 
 @njit(cache=True, nogil=True)
@@ -46,7 +46,7 @@ def trace_tsdf(
         d1 = z[b] + trunc
         # The exact walk of the band's segment (inlined `cells`), keeping the cells whose centre
         # projects into the band.
-        i, j, ie, je, step_i, step_j, t_max_x, t_max_y, t_delta_x, t_delta_y = exact_start(
+        i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(
             ox + c * d0, oy + s * d0, ox + c * d1, oy + s * d1
         )
         steps = abs(ie - i) + abs(je - j)
@@ -60,12 +60,10 @@ def trace_tsdf(
                 n += 1
             if k == steps:
                 break
-            if exact_steps_i(i, j, ie, je, t_max_x, t_max_y):
+            if exact_steps_i(i, j, ie, je, crossing(i, base_x, scale_x), crossing(j, base_y, scale_y)):
                 i += step_i
-                t_max_x += t_delta_x
             else:
                 j += step_j
-                t_max_y += t_delta_y
     return ci[:n], cj[:n], value[:n]
 
 
