@@ -94,6 +94,12 @@ class FairQueue(Generic[T]):
         with self._cond:
             return self._size
 
+    def heads(self) -> tuple[int, list[T]]:
+        """(items queued, the first queued item of every source): each source's oldest item, so the
+        oldest of all is among them. In no particular order."""
+        with self._cond:
+            return self._size, [fifo[0] for fifo in self._fifos.values() if fifo]
+
     def close(self) -> None:
         with self._cond:
             self._closed = True

@@ -3,8 +3,9 @@
 Two sources, so nothing is counted twice:
 
 - Counters the registry already keeps (scans integrated / rejected / lost / duplicates / dropped per
-  map and robot, robots online, queue depth, tiles and memory per map) are read from the registry
-  when Prometheus scrapes, by `RegistryCollector`. The registry stays the one truth.
+  map and robot, robots online, queue depth and the age of the oldest queued scan, tiles and memory
+  per map) are read from the registry when Prometheus scrapes, by `RegistryCollector`. The registry
+  stays the one truth. Likewise the tile cache's and the ingest gate's counters.
 - Latencies only exist as events, so they are observed as they happen: `IntegrationMetrics` is the
   registry's `on_integrated` hook (integration time, and enqueue-to-integrated time from
   `job.enqueued_at`); the tile cache reports render times to `ServiceMetrics.observe_render`.
@@ -30,6 +31,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 if TYPE_CHECKING:
+    from fleetmap.api.priority import IngestGate
     from fleetmap.grid_map import IntegrationResult
     from fleetmap.registry import Job, MapEntry, MapRegistry
     from fleetmap.tile_render import TileCache
@@ -90,7 +92,7 @@ class RegistryCollector(Collector):
 
     def collect(self) -> Iterator[Metric]:
         families = self._families()
-        integrated, rejected, lost, duplicates, dropped, online, tiles, memory, maps, depth = families
+        integrated, rejected, lost, duplicates, dropped, online, tiles, memory, maps, depth, age = families
         entries = self.registry.list()
         for entry in entries:
             # Tiles and memory under the map's lock, counters under the registry's, never both at once.
@@ -110,7 +112,9 @@ class RegistryCollector(Collector):
                     dropped.add_metric(labels, state.dropped)
                     online.add_metric(labels, 1.0 if state.online else 0.0)
         maps.add_metric([], len(entries))
-        depth.add_metric([], self.registry.queue.depth())
+        queued, oldest = self.registry.backlog()
+        depth.add_metric([], queued)
+        age.add_metric([], oldest)
         yield from families
 
     @staticmethod
@@ -137,6 +141,43 @@ class RegistryCollector(Collector):
             GaugeMetricFamily("fleetmap_map_memory_bytes", "Bytes in the map's tile pools", labels=["map"]),
             GaugeMetricFamily("fleetmap_maps", "Maps held"),
             GaugeMetricFamily("fleetmap_queue_depth", "Scans waiting for integration"),
+            GaugeMetricFamily(
+                "fleetmap_ingest_backlog_seconds", "Seconds the oldest scan waiting for integration waited"
+            ),
+        )
+
+
+class IngestGateCollector(Collector):
+    """HTTP requests held back for ingest (`fleetmap.api.priority`), read at scrape."""
+
+    def __init__(self, gate: IngestGate) -> None:
+        self.gate = gate
+
+    def describe(self) -> list[Metric]:
+        return list(self._families())
+
+    def collect(self) -> Iterator[Metric]:
+        delayed, seconds, timeouts, waiting = self._families()
+        delayed.add_metric([], self.gate.delayed)
+        seconds.add_metric([], self.gate.delay_seconds)
+        timeouts.add_metric([], self.gate.timeouts)
+        waiting.add_metric([], self.gate.waiting)
+        yield from (delayed, seconds, timeouts, waiting)
+
+    @staticmethod
+    def _families() -> tuple[Metric, ...]:
+        return (
+            CounterMetricFamily(
+                "fleetmap_http_delayed_requests", "HTTP requests that waited for the ingest backlog to clear"
+            ),
+            CounterMetricFamily(
+                "fleetmap_http_delay_seconds", "Seconds HTTP requests spent waiting for the ingest backlog"
+            ),
+            CounterMetricFamily(
+                "fleetmap_http_delay_timeouts",
+                "Delayed HTTP requests served after the longest wait, with the backlog still there",
+            ),
+            GaugeMetricFamily("fleetmap_http_requests_waiting", "HTTP requests waiting for ingest now"),
         )
 
 
@@ -190,9 +231,19 @@ class ServiceMetrics:
     def watch_tile_cache(self, cache: TileCache) -> None:
         self.collector_registry.register(TileCacheCollector(cache))
 
+    def watch_gate(self, gate: IngestGate) -> None:
+        self.collector_registry.register(IngestGateCollector(gate))
+
     def render(self) -> bytes:
         """The Prometheus text exposition of every metric."""
         return generate_latest(self.collector_registry)
 
 
-__all__ = ["CONTENT_TYPE", "IntegrationMetrics", "RegistryCollector", "ServiceMetrics", "TileCacheCollector"]
+__all__ = [
+    "CONTENT_TYPE",
+    "IngestGateCollector",
+    "IntegrationMetrics",
+    "RegistryCollector",
+    "ServiceMetrics",
+    "TileCacheCollector",
+]

@@ -438,6 +438,16 @@ class MapRegistry:
         if job.future and not job.future.done():
             job.future.set_exception(IngestRejected(reason, 422))
 
+    def backlog(self) -> tuple[int, float]:
+        """(scans waiting for integration, seconds the oldest of them has waited). Cheap: one short
+        lock and a look at the head of each robot's FIFO (the oldest scan is at the head of one of
+        them). Scans being integrated are no longer waiting and are not counted."""
+        depth, heads = self.queue.heads()
+        if not heads:
+            return depth, 0.0
+        oldest = min(job.enqueued_at for job in heads)
+        return depth, max(0.0, time.monotonic() - oldest)
+
     def wait_idle(self, timeout: float = 10.0) -> bool:
         """Wait until the queue is empty, no scan is in flight and every applied scan is durable."""
         deadline = time.monotonic() + timeout

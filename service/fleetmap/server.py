@@ -2,7 +2,7 @@
 
     fleetmap serve [--http HOST:PORT] [--zenoh-listen EP ...] [--zenoh-connect EP ...]
                    [--zenoh-config FILE.json5] [--data-dir DIR] [--config FILE] [--no-auto-create]
-                   [--workers N]
+                   [--workers N] [--ingest-backlog-ms MS] [--max-read-delay-ms MS]
 
 One process holds everything: a `MapRegistry` (maps, robots, integration worker threads), a
 `ZenohIngest` (the service's own Zenoh session: a router by default, so robots connect to it
@@ -172,6 +172,23 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         default=2,
         metavar="N",
         help="integration worker threads (default 2)",
+    )
+    p.add_argument(
+        "--ingest-backlog-ms",
+        type=_int_between(0, 60_000),
+        default=20,
+        metavar="MS",
+        help=(
+            "ingest before reads: while the oldest scan waiting for integration has waited longer than "
+            "this, new HTTP requests wait (all but /healthz, /metrics and POST scans); 0: off (default 20)"
+        ),
+    )
+    p.add_argument(
+        "--max-read-delay-ms",
+        type=_int_between(0, 600_000),
+        default=1000,
+        metavar="MS",
+        help="the longest an HTTP request waits for the ingest backlog; then it is served (default 1000)",
     )
     p.set_defaults(run=run)
     return p
@@ -362,9 +379,13 @@ def run(args: argparse.Namespace) -> int:
                 ingest.start()
             except IngestStartError as exc:
                 raise CliError(str(exc)) from None
-            app = create_app(
-                registry, settings=settings_cls(zenoh_status=ingest.status, cors_origins=args.cors_origin)
+            settings = settings_cls(
+                zenoh_status=ingest.status,
+                cors_origins=args.cors_origin,
+                ingest_backlog=args.ingest_backlog_ms / 1000,
+                max_read_delay=args.max_read_delay_ms / 1000,
             )
+            app = create_app(registry, settings=settings)
             if tokens is not None:
                 app.add_middleware(AuthMiddleware, tokens=tokens, require_read=args.require_read_token)
             log.info(

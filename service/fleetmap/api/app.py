@@ -23,6 +23,7 @@ from pydantic import BaseModel
 
 from fleetmap.api import errors, routes_data, routes_maps, routes_snapshot, routes_tiles, static
 from fleetmap.api.events import router as events_router
+from fleetmap.api.priority import IngestGate, IngestPriority
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import RegionJson, RobotsEvent, TilesEvent
 from fleetmap.metrics import IntegrationMetrics, ServiceMetrics
@@ -105,6 +106,11 @@ class ApiSettings:
     events_period: float = 0.1
     #: Seconds between `: keepalive` comments of an event stream.
     keepalive: float = 15.0
+    #: Ingest before reads (`fleetmap.api.priority`): while the oldest scan waiting for integration
+    #: has waited longer than this many seconds, new HTTP requests wait; 0 switches it off.
+    ingest_backlog: float = 0.02
+    #: The longest a request waits for the ingest backlog to clear, seconds; then it is served anyway.
+    max_read_delay: float = 1.0
 
 
 def _integration_metrics(registry: MapRegistry, given: IntegrationMetrics | None) -> IntegrationMetrics:
@@ -142,11 +148,13 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         openapi_tags=TAGS,
     )
     integration = _integration_metrics(registry, settings.metrics)
+    gate = IngestGate(lambda: registry.backlog()[1], settings.ingest_backlog, settings.max_read_delay)
     app.state.fleetmap = ApiState(
         registry=registry,
         settings=settings,
         metrics=ServiceMetrics(registry, integration),
         web_dir=settings.web_dir if settings.web_dir is not None else default_web_dir(),
+        gate=gate,
     )
     errors.install(app)
     app.include_router(routes_maps.router)
@@ -164,6 +172,8 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
             allow_headers=["*"],
             expose_headers=["ETag", "X-Fleetmap-Window", "X-Fleetmap-Origin", "X-Fleetmap-Resolution"],
         )
+    # Outermost of the app's own middleware: a request held back has not been read or run at all.
+    app.add_middleware(IngestPriority, gate=gate)
     _install_openapi(app)
     return app
 

@@ -45,11 +45,15 @@ def healthz(state: State) -> Health:
 def metrics(state: State) -> Response:
     """Counters per map and robot (`fleetmap_scans_integrated_total`, `fleetmap_scans_rejected_total`,
     `fleetmap_scans_lost_total`, `fleetmap_scans_duplicate_total`, `fleetmap_scans_dropped_total`,
-    labels `map`, `robot`), `fleetmap_robot_online`, `fleetmap_queue_depth`, `fleetmap_maps`,
+    labels `map`, `robot`), `fleetmap_robot_online`, `fleetmap_queue_depth`,
+    `fleetmap_ingest_backlog_seconds` (how long the oldest queued scan has waited), `fleetmap_maps`,
     `fleetmap_map_tiles`, `fleetmap_map_memory_bytes`, and the histograms
     `fleetmap_integration_seconds` (plan + apply of one scan), `fleetmap_ingest_latency_seconds`
-    (scan queued to integrated), `fleetmap_tile_render_seconds` (label `layer`; renders only) and the
-    tile cache's `fleetmap_tile_cache_hits_total`, `fleetmap_tile_renders_total`."""
+    (scan queued to integrated), `fleetmap_tile_render_seconds` (label `layer`; renders only), the
+    tile cache's `fleetmap_tile_cache_hits_total`, `fleetmap_tile_renders_total`, and the requests
+    held back while scans wait (docs/api.md, "Ingest before reads"):
+    `fleetmap_http_delayed_requests_total`, `fleetmap_http_delay_seconds_total`,
+    `fleetmap_http_delay_timeouts_total`, `fleetmap_http_requests_waiting`."""
     return Response(state.metrics.render(), media_type=CONTENT_TYPE)
 
 

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Literal
 from fastapi import Depends, Query, Request
 from fastapi import Path as PathParam
 
+from fleetmap.api.priority import IngestGate
 from fleetmap.api_models import MAX_COORDINATE
 from fleetmap.metrics import ServiceMetrics
 from fleetmap.registry import MapEntry, MapRegistry
@@ -26,11 +27,13 @@ class ApiState:
     settings: ApiSettings
     metrics: ServiceMetrics
     web_dir: Path
+    gate: IngestGate
     tiles: TileCache = field(init=False)
 
     def __post_init__(self) -> None:
         self.tiles = TileCache(self.settings.tile_cache_size, on_render=self.metrics.observe_render)
         self.metrics.watch_tile_cache(self.tiles)
+        self.metrics.watch_gate(self.gate)
 
     def entry(self, map_id: str) -> MapEntry:
         """The map, or MapNotFound (answered 404)."""
