@@ -370,6 +370,30 @@ def test_cache_serves_unchanged_tiles_and_rerenders_changed_ones(counted_renders
     assert png3 == render_tile(gmap, "probability", 0, x, y)  # (a direct render, not the cache's)
 
 
+def test_cached_answers_only_current_hits_and_never_renders(counted_renders: list[tuple]) -> None:
+    """`cached` (what the HTTP route asks first, on its event loop) returns the cached tile only while
+    it is the tile's current version, counts it as a hit, and never renders; it validates like
+    get_or_render."""
+    gmap = make_map(*beam_to(*HIT))
+    entry = MapEntry("site", gmap, 7)
+    cache = TileCache()
+    x, y, _, _ = where(*HIT, 0)
+    assert cache.cached(entry, "probability", 0, x, y) is None  # not rendered yet: no render either
+    assert counted_renders == [] and cache.hits == 0
+    rendered = cache.get_or_render(entry, "probability", 0, x, y)
+    assert cache.cached(entry, "probability", 0, x, y) == rendered
+    assert cache.cached(entry, "state", 0, x, y) is None  # another layer is another tile
+    assert cache.hits == 1 and len(counted_renders) == 1
+    gmap.integrate(beam_to(HIT[0] + 5, HIT[1] + 3, times=1)[0])  # the tile changes: stale
+    assert cache.cached(entry, "probability", 0, x, y) is None
+    assert cache.cached(MapEntry("site", gmap, 8), "probability", 0, x, y) is None  # new generation
+    assert len(counted_renders) == 1
+    with pytest.raises(TileError):
+        cache.cached(entry, "probability", MAX_ZOOM + 1, 0, 0)
+    with pytest.raises(TileError):
+        cache.cached(entry, "bogus", 0, x, y)
+
+
 def test_cache_is_a_bounded_lru(counted_renders: list[tuple]) -> None:
     entry = MapEntry("m", make_map(*beam_to(*HIT)), 1)
     cache = TileCache(max_entries=2)

@@ -605,6 +605,22 @@ class TileCache:
     def __len__(self) -> int:
         return len(self._items)
 
+    def cached(self, entry: MapEntry, layer: str, z: int, x: int, y: int) -> tuple[bytes, str] | None:
+        """`(png_bytes, etag)` if the cache holds the tile's current version, else None: never
+        renders and never waits for a render, so an event loop may call it. Raises TileError for a
+        bad zoom, tile index or layer."""
+        gmap = entry.gmap
+        version = tile_version(gmap, z, x, y)  # validates z, x, y
+        check_layer(gmap, layer)
+        key = (entry.id, entry.generation, layer, z, x, y)
+        with self._lock:
+            hit = self._items.get(key)
+            if hit is None or hit.version < version:
+                return None
+            self._items.move_to_end(key)
+            self.hits += 1
+            return hit.png, hit.etag
+
     def get_or_render(self, entry: MapEntry, layer: str, z: int, x: int, y: int) -> tuple[bytes, str]:
         """`(png_bytes, etag)` of tile (z, x, y) of `layer` of the registry entry's map.
         Raises TileError for a bad zoom, tile index or layer."""

@@ -6,6 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Response
 from fastapi import Path as PathParam
+from fastapi.concurrency import run_in_threadpool
 
 from fleetmap import tile_render
 from fleetmap.api.errors import error_responses
@@ -64,7 +65,7 @@ def etag_matches(if_none_match: str, etag: str) -> bool:
         **error_responses(404, 422),
     },
 )
-def get_tile(
+async def get_tile(
     map_id: MapId,
     z: Annotated[int, PathParam(ge=MIN_ZOOM, le=MAX_ZOOM, description="zoom: 2**z pixels per cell")],
     x: Annotated[int, PathParam(description="tile column: cells i in [x*S, (x+1)*S), S = 256 / 2**z")],
@@ -73,6 +74,8 @@ def get_tile(
     layer: Annotated[RegionLayer, Query(description="the layer to draw")] = "probability",
     if_none_match: Annotated[str | None, Header(description="an ETag from an earlier answer")] = None,
 ) -> Response:
+    # On the event loop: a revalidation or a cache hit takes microseconds, and a hop to the thread
+    # pool would cost more than that (and another thread wanting the GIL). Only renders go there.
     entry = state.entry(map_id)
     if if_none_match:
         # Answer a revalidation from the version alone: no render, no cache lookup.
@@ -80,5 +83,8 @@ def get_tile(
         etag = etag_for(entry.generation, layer, z, x, y, tile_version(entry.gmap, z, x, y))
         if etag_matches(if_none_match, etag):
             return Response(status_code=304, headers={"ETag": etag, "Cache-Control": "no-cache"})
-    png, etag = state.tiles.get_or_render(entry, layer, z, x, y)
+    found = state.tiles.cached(entry, layer, z, x, y)
+    if found is None:
+        found = await run_in_threadpool(state.tiles.get_or_render, entry, layer, z, x, y)
+    png, etag = found
     return Response(png, media_type="image/png", headers={"ETag": etag, "Cache-Control": "no-cache"})
