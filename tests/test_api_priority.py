@@ -167,3 +167,15 @@ def test_the_service_takes_the_gate_options_and_reports_it(service_factory) -> N
     for name in ("fleetmap_ingest_backlog_seconds", "fleetmap_http_delayed_requests_total",
                  "fleetmap_http_delay_seconds_total", "fleetmap_http_delay_timeouts_total"):  # fmt: skip
         assert f"\n{name} 0.0\n" in text, name
+
+
+def test_the_service_freezes_its_start_up_objects(service_factory) -> None:  # noqa: ANN001
+    """`fleetmap serve` moves what lives as long as the process out of the collector's walks, so a
+    full collection (set off by requests that allocate many objects) does not stall ingest."""
+    svc = service_factory("--in-memory")
+    samples = {
+        s.name: s.value
+        for family in text_string_to_metric_families(httpx.get(f"{svc.base_url}/metrics", timeout=10).text)
+        for s in family.samples
+    }
+    assert samples["fleetmap_gc_frozen_objects"] > 50_000

@@ -22,6 +22,7 @@ Wiring (server.py):
 
 from __future__ import annotations
 
+import gc
 import time
 from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING
@@ -206,6 +207,34 @@ class TileCacheCollector(Collector):
         )
 
 
+class RuntimeCollector(Collector):
+    """The interpreter's garbage collector: collections per generation (a full collection holds the
+    GIL while it walks every tracked object) and the objects frozen out of its reach at start-up."""
+
+    def describe(self) -> list[Metric]:
+        return list(self._families())
+
+    def collect(self) -> Iterator[Metric]:
+        collections, frozen = self._families()
+        for generation, stats in enumerate(gc.get_stats()):
+            collections.add_metric([str(generation)], stats["collections"])
+        frozen.add_metric([], gc.get_freeze_count())
+        yield from (collections, frozen)
+
+    @staticmethod
+    def _families() -> tuple[Metric, ...]:
+        return (
+            CounterMetricFamily(
+                "fleetmap_gc_collections",
+                "Garbage collections by generation (2: full)",
+                labels=["generation"],
+            ),
+            GaugeMetricFamily(
+                "fleetmap_gc_frozen_objects", "Objects kept out of the garbage collector's walks (gc.freeze)"
+            ),
+        )
+
+
 class ServiceMetrics:
     """One app's metrics: its own CollectorRegistry with the registry's counters, the integration
     latencies, the tile cache's counters and the tile render latency (`observe_render` is the tile
@@ -215,6 +244,7 @@ class ServiceMetrics:
         self.integration = integration
         self.collector_registry = CollectorRegistry()
         self.collector_registry.register(RegistryCollector(registry))
+        self.collector_registry.register(RuntimeCollector())
         for collector in integration.collectors():
             self.collector_registry.register(collector)
         self.tile_render_seconds = Histogram(
@@ -244,6 +274,7 @@ __all__ = [
     "IngestGateCollector",
     "IntegrationMetrics",
     "RegistryCollector",
+    "RuntimeCollector",
     "ServiceMetrics",
     "TileCacheCollector",
 ]

@@ -53,7 +53,8 @@ def metrics(state: State) -> Response:
     tile cache's `fleetmap_tile_cache_hits_total`, `fleetmap_tile_renders_total`, and the requests
     held back while scans wait (docs/api.md, "Ingest before reads"):
     `fleetmap_http_delayed_requests_total`, `fleetmap_http_delay_seconds_total`,
-    `fleetmap_http_delay_timeouts_total`, `fleetmap_http_requests_waiting`."""
+    `fleetmap_http_delay_timeouts_total`, `fleetmap_http_requests_waiting`; and the garbage
+    collector's `fleetmap_gc_collections_total` (label `generation`) and `fleetmap_gc_frozen_objects`."""
     return Response(state.metrics.render(), media_type=CONTENT_TYPE)
 
 
