@@ -25,6 +25,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from test_api_support import RunningApi, fan_scan, room_scans, running_api
 
 from fleetmap.api import ApiSettings
+from fleetmap.api_models import cells_json, cells_response
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.export import PGM_FREE, PGM_OCCUPIED, PGM_UNKNOWN, state_to_pgm
@@ -185,6 +186,8 @@ def test_cells_match_engine_cell_by_cell(api: RunningApi, engine_map: GridMap) -
     points = np.stack([(ii.ravel() + 0.5) * RES, (jj.ravel() + 0.5) * RES], axis=1)
     r = api.client.post("/maps/eng/cells", json={"points": points.tolist()})
     assert r.status_code == 200
+    # Byte for byte what the response model serialises to (the answer is written without it).
+    assert r.content == cells_response(engine_map, points).model_dump_json().encode()
     got = r.json()
     want = engine_map.cells(points)
     assert got["count"] == len(points) and got["i"] == ii.ravel().tolist() and got["j"] == jj.ravel().tolist()
@@ -214,6 +217,19 @@ def test_cells_match_engine_cell_by_cell(api: RunningApi, engine_map: GridMap) -
         assert cell["state"] == STATE_NAMES[int(one["state"][0])]
         assert (cell["hits"], cell["misses"]) == (int(one["hits"][0]), int(one["misses"][0]))
         assert cell["tsdf_weight"] == float(one["tsdf_weight"][0])
+
+
+@pytest.mark.parametrize("layers", [["occupancy", "counts", "tsdf"], ["occupancy"], ["counts"], ["tsdf"]])
+def test_cells_json_is_the_response_models_json_byte_for_byte(layers: list[str]) -> None:
+    """POST /cells writes its answer straight from the arrays (cells_json); it must be exactly the JSON
+    of the documented CellsResponse: the same float text, null for NaN, null for layers not kept."""
+    gmap = GridMap(MapConfig(resolution=RES, tile_size=64, layers=layers))  # type: ignore[arg-type]
+    for scan in room_scans(6, seed=4, beams=200):
+        gmap.integrate(scan)
+    rng = np.random.default_rng(7)
+    points = np.concatenate([rng.uniform(-4, 4, (3000, 2)), [[1e6, -1e6], [-0.0, 0.0]]])
+    for pts in (points, points[:1], points[:0]):
+        assert cells_json(gmap, pts) == cells_response(gmap, pts).model_dump_json().encode()
 
 
 def test_region_npy_json_png_match_engine(api: RunningApi, engine_map: GridMap) -> None:

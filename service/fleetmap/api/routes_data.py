@@ -22,7 +22,7 @@ from fleetmap.api_models import (
     RegionJson,
     Surface,
     cell_value,
-    cells_response,
+    cells_json,
     region_json,
     surface,
 )
@@ -34,7 +34,7 @@ router = APIRouter()
 OptCoordinate = Annotated[float | None, coordinate("metres; give all four bounds or none")]
 
 
-def _json(model: CellsResponse | RegionJson | Surface) -> Response:
+def _json(model: RegionJson | Surface) -> Response:
     """Serialise a (possibly large) answer straight from the model, without FastAPI validating it a
     second time against the response model it already is."""
     return Response(model.model_dump_json(), media_type="application/json")
@@ -122,7 +122,7 @@ def post_cells(map_id: MapId, state: State, body: CellsRequest) -> Response:
         raise ApiError(413, f"{len(body.points)} points is more than the limit of {limit} per request")
     gmap = state.entry(map_id).gmap
     points = np.array(body.points, dtype=np.float64).reshape(-1, 2)
-    return _json(cells_response(gmap, points))
+    return Response(cells_json(gmap, points), media_type="application/json")
 
 
 # -- regions ----------------------------------------------------------------------------------------
