@@ -579,8 +579,37 @@ def run_ingest(
     return result
 
 
+def service_view(before: str, after: str) -> str:
+    """What the service's /metrics say happened between two scrapes: its own queued -> durable
+    latency (histogram buckets, so coarse), plan + apply time, scans dropped, and the HTTP requests
+    held back for ingest (docs/api.md, "Ingest before reads"), including the checker's polls."""
+
+    def delta(name: str) -> float:
+        return _scalar(after, name) - _scalar(before, name)
+
+    bounds, counts = histogram_delta(before, after, "fleetmap_ingest_latency_seconds")
+    n = delta("fleetmap_integration_seconds_count")
+    plan_apply = delta("fleetmap_integration_seconds_sum") / n * 1e3 if n > 0 else math.nan
+    dropped = sum(c.get("dropped", 0) for c in robot_counters(after).values()) - sum(
+        c.get("dropped", 0) for c in robot_counters(before).values()
+    )
+    delayed = delta("fleetmap_http_delayed_requests_total")
+    waited = delta("fleetmap_http_delay_seconds_total")
+    full_gc = _scalar(after, 'fleetmap_gc_collections_total{generation="2"}') - _scalar(
+        before, 'fleetmap_gc_collections_total{generation="2"}'
+    )
+    return (
+        f"queued -> durable p50 {histogram_quantile(bounds, counts, 0.5) * 1e3:.1f} ms, p99 "
+        f"{histogram_quantile(bounds, counts, 0.99) * 1e3:.1f} ms; plan+apply mean {plan_apply:.2f} ms; "
+        f"dropped {dropped}; HTTP requests held back for ingest {delayed:.0f}"
+        + (f" (mean wait {waited / delayed * 1e3:.1f} ms)" if delayed else "")
+        + f", served at the longest wait {delta('fleetmap_http_delay_timeouts_total'):.0f}; "
+        f"full GCs {full_gc:.0f}"
+    )
+
+
 def _scalar(text: str, name: str) -> float:
-    match = re.search(rf"^{name} (\S+)$", text, re.M)
+    match = re.search(rf"^{re.escape(name)} (\S+)$", text, re.M)
     return float(match.group(1)) if match else 0.0
 
 
@@ -891,17 +920,19 @@ def phase_reads(
         out: dict[str, Any] = {"wrk": None}
         time.sleep(max(0.0, t0 + SETTLE - time.time()))
         if wrk is not None:
-            start = time.time()
+            start, metrics_before = time.time(), client.get("/metrics").text
             out["wrk"] = run_wrk(
                 wrk, svc.base_url, paths, args.wrk_seconds, args.wrk_threads, args.wrk_connections, work_dir
             )
             out["wrk_span"] = (start, time.time())
+            out["wrk_metrics"] = (metrics_before, client.get("/metrics").text)
             time.sleep(SETTLE)
-        start = time.time()
+        start, metrics_before = time.time(), client.get("/metrics").text
         out["cells"] = run_cells(
             svc.base_url, "shared", info["stats"]["bounds"], args.points, args.cells_seconds
         )
         out["cells_span"] = (start, time.time())
+        out["cells_metrics"] = (metrics_before, client.get("/metrics").text)
         out["overran"] = time.time() > t0 + seconds
         return out
 
@@ -910,16 +941,18 @@ def phase_reads(
     after = client.get("/metrics").text
     client.close()
     print_ingest(p2)
-    spans = [("robots alone", p2.t0, p2.t0 + SETTLE)]
+    spans = [("robots alone", p2.t0, p2.t0 + SETTLE, None)]
     if wrk is not None:
-        spans.append(("during wrk", *p2.extra["wrk_span"]))
-    spans.append(("during cell queries", *p2.extra["cells_span"]))
-    for name, a, b in spans:
+        spans.append(("during wrk", *p2.extra["wrk_span"], p2.extra["wrk_metrics"]))
+    spans.append(("during cell queries", *p2.extra["cells_span"], p2.extra["cells_metrics"]))
+    for name, a, b, texts in spans:
         n, unseen, p50, p99 = p2.segment(a, b)
         print(
             f"  scans published {name} ({b - a:.0f} s): {n}, never visible {unseen}, p50 {p50:.1f} ms, "
             f"p99 {p99:.1f} ms"
         )
+        if texts is not None:
+            print("    service side: " + service_view(*texts))
     if p2.extra.get("overran"):
         print("  note: the reads outlasted the robots' publishing window")
     reads = Reads(
