@@ -127,9 +127,11 @@ def test_region_agrees_with_point_reads_across_tiles() -> None:
     assert got["known"].sum() > 500
 
 
-def test_tile_size_does_not_change_the_map() -> None:
+@pytest.mark.parametrize("model", [{}, {"update": "per_ray"}, {"sensor_model": "beam"}])
+def test_tile_size_does_not_change_the_map(model: dict[str, str]) -> None:
     """The same scans in maps of 16-, 64- and 256-cell tiles (a scan spanning more than 256 tiles at
-    16 takes the sparse marking path) give identical layers."""
+    16 takes the sparse marking path) give identical layers, for per-scan updates, ordered per-ray
+    entries and the beam model, with the TSDF band's tiles merged into the plan's tile list."""
     rng = np.random.default_rng(5)
     scans = []
     for _ in range(4):
@@ -141,7 +143,7 @@ def test_tile_size_does_not_change_the_map() -> None:
     window = (-260, -260, 260, 260)
     reads = []
     for tile_size in (16, 64, 256):
-        m = make_map(tile_size=tile_size, no_return_range=3.0)
+        m = make_map(tile_size=tile_size, no_return_range=3.0, **model)
         for scan in scans:
             m.integrate(scan)
         reads.append({layer: m.region(layer, *window) for layer in ALL_READ_LAYERS})

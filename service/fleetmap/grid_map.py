@@ -87,34 +87,30 @@ class GridMap:
         keys = list(zip(plan.tiles_i.tolist(), plan.tiles_j.tolist(), strict=True))
         changed = np.zeros(len(keys), dtype=np.uint8)
         with self.lock:
-            new = store.missing(keys)
-            store.create(new)  # all or nothing: raises before any cell is touched
-            slots = np.array([store.slots[k] for k in keys], dtype=np.int64)
-            pools = (store.pool("log_odds"), store.pool("hits"), store.pool("misses"))
+            found = [store.slots.get(k) for k in keys]
+            new = [k for k, slot in zip(keys, found, strict=True) if slot is None] if None in found else []
+            if new:
+                store.create(new)  # all or nothing: raises before any cell is touched
+                found = [store.slots[k] for k in keys]
+            slots = np.array(found, dtype=np.int64)
+            log_odds, hits, misses, tsdf, tsdf_weight = store.kernel_pools()
             params = (occ.l_hit, occ.l_miss, occ.l_min, occ.l_max)
-            updates = 0
+            updates = tsdf_updates = 0
             if plan.cell.size:
-                updates += apply_cells(plan.cell, plan.kind, slots, store.shift, *pools, *params, changed)
-            tsdf_updates = 0
-            if plan.occ_i.size or plan.tsdf_i.size:
-                # Ordered entries find their tile through a slot lookup over the plan's tile box.
-                ti0, tj0 = int(plan.tiles_i.min()), int(plan.tiles_j.min())
-                shape = (int(plan.tiles_j.max()) - tj0 + 1, int(plan.tiles_i.max()) - ti0 + 1)
-                lookup = np.full(shape, -1, dtype=np.int64)
-                compact = np.full(shape, -1, dtype=np.int64)
-                lookup[plan.tiles_j - tj0, plan.tiles_i - ti0] = slots
-                compact[plan.tiles_j - tj0, plan.tiles_i - ti0] = np.arange(len(keys))
-                if plan.occ_i.size:
-                    updates += apply_entries(
-                        plan.occ_i, plan.occ_j, plan.occ_kind, lookup, compact, ti0, tj0, store.shift,
-                        *pools, *params, changed,
-                    )  # fmt: skip
-                if plan.tsdf_i.size:
-                    tsdf_updates = fuse_tsdf(
-                        plan.tsdf_i, plan.tsdf_j, plan.tsdf_value, lookup, compact, ti0, tj0, store.shift,
-                        store.pool("tsdf"), store.pool("tsdf_weight"), cfg.tsdf.max_weight, changed,
-                    )  # fmt: skip
-            changed_idx = np.flatnonzero(changed)
+                updates += apply_cells(
+                    plan.cell, plan.kind, slots, store.shift, log_odds, hits, misses, *params, changed
+                )
+            if plan.occ_i.size:
+                updates += apply_entries(
+                    plan.occ_i, plan.occ_j, plan.occ_kind, plan.occ_tile, slots, store.shift,
+                    log_odds, hits, misses, *params, changed,
+                )  # fmt: skip
+            if plan.tsdf_i.size:
+                tsdf_updates = fuse_tsdf(
+                    plan.tsdf_i, plan.tsdf_j, plan.tsdf_value, plan.tsdf_tile, slots, store.shift,
+                    tsdf, tsdf_weight, cfg.tsdf.max_weight, changed,
+                )  # fmt: skip
+            changed_idx = changed.nonzero()[0]
             store.bump(slots[changed_idx])
         return IntegrationResult(
             int(updates), int(tsdf_updates), [keys[k] for k in changed_idx.tolist()], len(new)

@@ -113,8 +113,7 @@ class Scan:
     def returns_mask(self) -> np.ndarray:
         """Beams with a usable return: `range_min <= r < range_max`."""
         r = self.ranges
-        with np.errstate(invalid="ignore"):
-            return (r >= self.range_min) & (r < self.range_max)
+        return (r >= self.range_min) & (r < self.range_max)  # NaN compares False, without a warning
 
     def no_return_mask(self) -> np.ndarray:
         """Beams that saw nothing: `r >= range_max` (inf included). NaN is invalid, not "no return"."""

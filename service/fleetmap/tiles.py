@@ -82,6 +82,14 @@ class TileStore:
             return np.zeros((0, 0, 0), dtype=dtype)
         return found
 
+    def kernel_pools(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """`pool()` of log_odds, hits, misses, tsdf and tsdf_weight, as the update kernels take them
+        (cached; growing the store renews them)."""
+        if self._kernel_pools is None:
+            names = ("log_odds", "hits", "misses", "tsdf", "tsdf_weight")
+            self._kernel_pools = tuple(self.pool(n) for n in names)
+        return self._kernel_pools
+
     def has_array(self, name: str) -> bool:
         return name in self.pools
 
@@ -136,6 +144,7 @@ class TileStore:
         versions[: len(self.keys)] = self.versions[: len(self.keys)]
         self.versions = versions
         self._capacity = capacity
+        self._kernel_pools = None
 
     # -- versions --------------------------------------------------------------------------------
 
@@ -144,9 +153,10 @@ class TileStore:
         return self._version_clock
 
     def bump(self, slots: np.ndarray) -> None:
-        """Give each tile in `slots` a new version (a store-wide clock, so versions never repeat)."""
-        for slot in slots:
-            self.versions[int(slot)] = self._tick()
+        """Give each tile in `slots` (distinct) a new version (a store-wide clock, so versions never
+        repeat)."""
+        self.versions[slots] = np.arange(self._version_clock + 1, self._version_clock + 1 + len(slots))
+        self._version_clock += len(slots)
 
     def version(self, key: TileKey) -> int | None:
         slot = self.slots.get(key)

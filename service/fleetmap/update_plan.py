@@ -16,10 +16,18 @@ import numpy as np
 
 from fleetmap.config import MapConfig
 from fleetmap.kernels.beam_model import beam_model_cells
-from fleetmap.kernels.ray_model import BEAM_CLEAR, BEAM_HIT, BEAM_SKIP, scan_endpoints, trace_rays, trace_scan
+from fleetmap.kernels.ray_model import (
+    BEAM_CLEAR,
+    BEAM_HIT,
+    BEAM_SKIP,
+    longest_return,
+    scan_endpoints,
+    trace_rays,
+    trace_scan,
+)
 from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import trace_tsdf
-from fleetmap.kernels.update import touched_tiles
+from fleetmap.kernels.update import merge_tiles
 from fleetmap.scan import Scan, ScanError
 
 _EMPTY_I = np.empty(0, dtype=np.int64)
@@ -45,7 +53,8 @@ class UpdatePlan:
     `kind`: each cell once, a hit beating a miss; cell n lies in tile `cell[n] >> 2*shift` of
     `tiles_i/j`, at local position `cell[n] & (T*T - 1)`) or as ordered entries `occ_*` (per-ray
     updates, and the beam model). `tsdf_*` are truncated distance samples for the TSDF layer.
-    `tiles_i/j` lists every tile any of them touches, the per-scan updates' tiles first.
+    `tiles_i/j` lists every tile any of them touches, the per-scan updates' tiles first; `occ_tile`
+    and `tsdf_tile` give each ordered entry's tile in that list.
     """
 
     cell: np.ndarray
@@ -53,9 +62,11 @@ class UpdatePlan:
     occ_i: np.ndarray
     occ_j: np.ndarray
     occ_kind: np.ndarray
+    occ_tile: np.ndarray
     tsdf_i: np.ndarray
     tsdf_j: np.ndarray
     tsdf_value: np.ndarray
+    tsdf_tile: np.ndarray
     tiles_i: np.ndarray
     tiles_j: np.ndarray
 
@@ -72,50 +83,47 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     reach = _reach(scan, config) / res
     if not (abs(ox) + reach < MAX_CELL_INDEX and abs(oy) + reach < MAX_CELL_INDEX):
         raise ScanError("the scan's pose or ranges lie beyond the map's coordinate range")
+    angles = scan.world_angles()
     cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
-    scan_ti = scan_tj = _EMPTY_I
+    tiles_i = tiles_j = _EMPTY_I
     if config.has("occupancy") or config.has("counts"):
         if config.sensor_model == "beam":
             occ_i, occ_j, occ_kind = _beam_model(scan, config, ox, oy)
         elif config.update == "per_ray":
             occ_i, occ_j, occ_kind = _ray_model_per_ray(scan, config, ox, oy)
         else:
-            scan_ti, scan_tj, cell, kind = _ray_model_per_scan(scan, config, shift)
+            tiles_i, tiles_j, cell, kind = _ray_model_per_scan(scan, config, shift, angles)
     tsdf_i = tsdf_j = _EMPTY_I
     tsdf_value = np.empty(0, dtype=np.float32)
     if config.has("tsdf"):
-        hit = scan.returns_mask()
+        returns = scan.returns_mask()
         tsdf_i, tsdf_j, tsdf_value = trace_tsdf(
-            ox, oy, scan.world_angles()[hit], scan.ranges[hit] / res, config.tsdf.truncation / res
+            ox, oy, angles[returns], scan.ranges[returns] / res, config.tsdf.truncation / res
         )
-    tiles_i, tiles_j = scan_ti, scan_tj
-    if occ_i.size or tsdf_i.size:
-        # The other updates' tiles go after the per-scan tiles, each tile once.
-        more_i, more_j = touched_tiles(
-            np.concatenate([occ_i, tsdf_i]), np.concatenate([occ_j, tsdf_j]), shift
-        )
-        known = set(zip(scan_ti.tolist(), scan_tj.tolist(), strict=True))
-        extra = [k for k in zip(more_i.tolist(), more_j.tolist(), strict=True) if k not in known]
-        if extra:
-            tiles_i = np.concatenate([scan_ti, np.array([k[0] for k in extra], dtype=np.int64)])
-            tiles_j = np.concatenate([scan_tj, np.array([k[1] for k in extra], dtype=np.int64)])
-    return UpdatePlan(cell, kind, occ_i, occ_j, occ_kind, tsdf_i, tsdf_j, tsdf_value, tiles_i, tiles_j)
+    # The ordered entries' tiles go after the per-scan tiles, each tile once.
+    occ_tile = tsdf_tile = _EMPTY_I
+    if occ_i.size:
+        tiles_i, tiles_j, occ_tile = merge_tiles(tiles_i, tiles_j, occ_i, occ_j, shift)
+    if tsdf_i.size:
+        tiles_i, tiles_j, tsdf_tile = merge_tiles(tiles_i, tiles_j, tsdf_i, tsdf_j, shift)
+    return UpdatePlan(
+        cell, kind, occ_i, occ_j, occ_kind, occ_tile, tsdf_i, tsdf_j, tsdf_value, tsdf_tile, tiles_i, tiles_j
+    )
 
 
 def _reach(scan: Scan, config: MapConfig) -> float:
     """The farthest any beam of the scan can reach, in metres (for the index-range check)."""
-    used = scan.returns_mask()
-    far = float(scan.ranges[used].max()) if used.any() else 0.0
+    far = longest_return(scan.ranges, scan.range_min, scan.range_max)
     if config.no_return_range > 0:
         far = max(far, min(config.no_return_range, scan.range_max))
     return far + config.tsdf.truncation + config.beam.alpha
 
 
-def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int):
-    """The ray model with per-scan semantics, in one compiled pass (`kernels.ray_model.trace_scan`)."""
+def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, angles: np.ndarray):
+    """The ray model with per-scan semantics, in one compiled pass (`kernels.ray_model.trace_scan`);
+    `angles` are the beams' map-frame directions."""
     res = config.resolution
-    angles = scan.world_angles()
     args = (scan.ranges, scan.range_min, scan.range_max, config.no_return_range, res)
     ex, ey, kinds, xmin, ymin, xmax, ymax, used = scan_endpoints(scan.pose.x, scan.pose.y, angles, *args)
     if used == 0:

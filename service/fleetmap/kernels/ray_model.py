@@ -57,6 +57,16 @@ def trace_rays(
     return ci, cj, kind
 
 
+@njit(cache=True, nogil=True)
+def longest_return(ranges: np.ndarray, range_min: float, range_max: float) -> float:
+    """The longest usable return (`range_min <= r < range_max`), 0 if there is none."""
+    far = 0.0
+    for r in ranges:
+        if range_min <= r < range_max:  # False for NaN
+            far = max(far, r)
+    return far
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _beam(
     b: int, ranges: np.ndarray, range_min: float, range_max: float, clear_range: float

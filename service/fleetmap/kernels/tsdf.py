@@ -72,29 +72,26 @@ def fuse_tsdf(
     ci: np.ndarray,
     cj: np.ndarray,
     value: np.ndarray,
-    lookup: np.ndarray,
-    compact: np.ndarray,
-    ti0: int,
-    tj0: int,
+    tile: np.ndarray,
+    slots: np.ndarray,
     shift: int,
     tsdf: np.ndarray,
     weight: np.ndarray,
     max_weight: float,
     changed: np.ndarray,
 ) -> int:
-    """Fuse each (cell, value) into the tsdf / weight pools, in order; return the updates made."""
+    """Fuse each (cell, value) into the tsdf / weight pools, in order; return the updates made.
+    Entry k lies in the plan's tile `tile[k]`, pool slot `slots[tile[k]]`."""
     mask = (1 << shift) - 1
     flat_tsdf = tsdf.reshape(-1)  # one flat view of each pool, indexed unsigned (no wraparound code)
     flat_weight = weight.reshape(-1)
     for k in range(ci.size):
-        a = (cj[k] >> shift) - tj0
-        b = (ci[k] >> shift) - ti0
-        at = np.uint64((lookup[a, b] << (2 * shift)) | ((cj[k] & mask) << shift) | (ci[k] & mask))
+        at = np.uint64((slots[tile[k]] << (2 * shift)) | ((cj[k] & mask) << shift) | (ci[k] & mask))
         w_old = float(flat_weight[at])
         d_old = float(flat_tsdf[at])
         flat_tsdf[at] = (w_old * d_old + value[k]) / (w_old + 1.0)
         flat_weight[at] = min(w_old + 1.0, max_weight)
-        changed[compact[a, b]] = 1
+        changed[tile[k]] = 1
     return ci.size
 
 

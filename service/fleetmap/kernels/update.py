@@ -1,8 +1,8 @@
 """Applying per-cell updates to pooled tile arrays.
 
-Cells arrive as global indices; a small slot lookup over the tile window the scan touches maps each
-to its pool slot (`lookup[(j >> shift) - tj0, (i >> shift) - ti0]`), and `compact` numbers those
-tiles 0..m-1 for per-tile results (changed flags) and the per-scan scratch.
+Every update names a tile of its plan's tile list (numbered 0..m-1 at planning time, see
+`merge_tiles`); `slots[tile]` is that tile's pool slot and `changed[tile]` records whether a stored
+value of it changed.
 """
 
 from __future__ import annotations
@@ -18,37 +18,42 @@ _U32_MAX = np.uint32(0xFFFFFFFF)
 
 
 @njit(cache=True, nogil=True)
-def touched_tiles(ci: np.ndarray, cj: np.ndarray, shift: int) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct tiles `(ti, tj)` that the cells fall in, in row-major tile order."""
+def merge_tiles(
+    tiles_i: np.ndarray, tiles_j: np.ndarray, ci: np.ndarray, cj: np.ndarray, shift: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Extend the tile list `(tiles_i, tiles_j)` with the tiles of the cells `(ci, cj)` not yet in it,
+    in the order the cells first reach them, and give each cell the number of its tile in the
+    extended list. Returns `(tiles_i, tiles_j, tile of each cell)`."""
     if ci.size == 0:
-        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+        return tiles_i, tiles_j, np.empty(0, dtype=np.int64)
     ti0 = ti1 = ci[0] >> shift
     tj0 = tj1 = cj[0] >> shift
     for k in range(ci.size):
-        ti = ci[k] >> shift
-        tj = cj[k] >> shift
-        ti0 = min(ti0, ti)
-        ti1 = max(ti1, ti)
-        tj0 = min(tj0, tj)
-        tj1 = max(tj1, tj)
-    mark = np.zeros((tj1 - tj0 + 1, ti1 - ti0 + 1), dtype=np.uint8)
-    count = 0
+        ti0 = min(ti0, ci[k] >> shift)
+        ti1 = max(ti1, ci[k] >> shift)
+        tj0 = min(tj0, cj[k] >> shift)
+        tj1 = max(tj1, cj[k] >> shift)
+    number = np.full((tj1 - tj0 + 1, ti1 - ti0 + 1), -1, dtype=np.int64)
+    out_i = np.empty(tiles_i.size + ci.size, dtype=np.int64)
+    out_j = np.empty(tiles_i.size + ci.size, dtype=np.int64)
+    m = 0
+    for k in range(tiles_i.size):
+        out_i[m] = tiles_i[k]
+        out_j[m] = tiles_j[k]
+        if ti0 <= tiles_i[k] <= ti1 and tj0 <= tiles_j[k] <= tj1:
+            number[tiles_j[k] - tj0, tiles_i[k] - ti0] = m
+        m += 1
+    tile = np.empty(ci.size, dtype=np.int64)
     for k in range(ci.size):
         a = (cj[k] >> shift) - tj0
         b = (ci[k] >> shift) - ti0
-        if mark[a, b] == 0:
-            mark[a, b] = 1
-            count += 1
-    out_i = np.empty(count, dtype=np.int64)
-    out_j = np.empty(count, dtype=np.int64)
-    n = 0
-    for a in range(mark.shape[0]):
-        for b in range(mark.shape[1]):
-            if mark[a, b]:
-                out_i[n] = b + ti0
-                out_j[n] = a + tj0
-                n += 1
-    return out_i, out_j
+        if number[a, b] < 0:
+            number[a, b] = m
+            out_i[m] = ci[k] >> shift
+            out_j[m] = cj[k] >> shift
+            m += 1
+        tile[k] = number[a, b]
+    return out_i[:m], out_j[:m], tile
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -147,10 +152,8 @@ def apply_entries(
     ci: np.ndarray,
     cj: np.ndarray,
     kind: np.ndarray,
-    lookup: np.ndarray,
-    compact: np.ndarray,
-    ti0: int,
-    tj0: int,
+    tile: np.ndarray,
+    slots: np.ndarray,
     shift: int,
     log_odds: np.ndarray,
     hits: np.ndarray,
@@ -163,15 +166,13 @@ def apply_entries(
 ) -> int:
     """Apply hits and misses in order, each clamped (per-ray semantics); return updates applied.
 
-    `lookup[tile row, tile col]` is the pool slot and `compact[...]` the index into `changed` of the
-    tile each cell falls in. A disabled layer is passed as an empty array.
+    Entry k lies in the plan's tile `tile[k]`, which is pool slot `slots[tile[k]]`; `changed[tile]`
+    is set to 1 where a stored value changed. A disabled layer is passed as an empty array.
     """
     mask = (1 << shift) - 1
     for k in range(ci.size):
-        a = (cj[k] >> shift) - tj0
-        b = (ci[k] >> shift) - ti0
         if _apply_one(
-            lookup[a, b],
+            slots[tile[k]],
             cj[k] & mask,
             ci[k] & mask,
             (kind[k] & CELL_HIT) != 0,
@@ -183,5 +184,5 @@ def apply_entries(
             l_min,
             l_max,
         ):
-            changed[compact[a, b]] = 1
+            changed[tile[k]] = 1
     return ci.size
