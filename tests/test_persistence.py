@@ -19,10 +19,12 @@ from fleetmap.persistence import (
     DB_NAME,
     TILE_MAGIC,
     DurableStore,
+    JournalEntry,
     JournalWriter,
     StorageError,
     changed_tiles,
     decode_tile,
+    open_database,
     scan_to_blob,
     tile_to_blob,
 )
@@ -109,6 +111,33 @@ def test_superseded_rows_left_by_a_crash_are_deleted_at_start(tmp_path: Path, mo
         np.testing.assert_array_equal(restored.region("log_odds", *window), gmap.region("log_odds", *window))
     finally:
         again.close()
+
+
+def test_attached_rows_ride_along_with_the_next_group_commit(tmp_path: Path, monkeypatch) -> None:
+    """A snapshot's tile rows are written in the journal's own transactions: with the next group
+    commit while scans arrive, alone once none has come for ATTACH_WAIT."""
+    path = open_database(tmp_path)
+    insert = "INSERT INTO robots (map_id, robot_id, state) VALUES ('m', ?, '{}')"
+    writer = JournalWriter(path)
+    try:
+        writer.attach(insert, ("idle",)).result(timeout=5)  # no scan: committed alone
+        monkeypatch.setattr(JournalWriter, "ATTACH_WAIT", 3600.0)
+        attached = writer.attach(insert, ("busy",))
+        time.sleep(0.1)
+        assert not attached.done()  # waiting for a group to ride along with
+        durable = threading.Event()
+        writer.append(JournalEntry("m", "r", 0, 0.0, b"scan", lambda _row: durable.set()))
+        attached.result(timeout=5)
+        assert durable.wait(5) and writer.commits == 1  # one transaction for both
+        failed = writer.attach("INSERT INTO no_such_table VALUES (?)", (1,))
+        writer.append(JournalEntry("m", "r", 1, 0.0, b"scan", lambda _row: None))
+        with pytest.raises(sqlite3.OperationalError):
+            failed.result(timeout=5)
+    finally:
+        writer.close()
+    db = sqlite3.connect(path)
+    assert sorted(r[0] for r in db.execute("SELECT robot_id FROM robots")) == ["busy", "idle"]
+    db.close()
 
 
 def test_the_wal_starts_over_after_each_snapshot(tmp_path: Path) -> None:

@@ -18,6 +18,7 @@ SQLite's atomic commits mean no half-written tile or journal row can survive a c
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import io
 import json
@@ -50,7 +51,7 @@ DB_NAME = "fleetmap.db"
 #: CHECKPOINT_TAIL_FRAMES new WAL frames (4 KiB each; at most CHECKPOINT_PASSES of them); the journal
 #: writer then copies the rest, so the WAL can start over. See `DurableStore._checkpoint`.
 CHECKPOINT_PASSES = 4
-CHECKPOINT_TAIL_FRAMES = 1024
+CHECKPOINT_TAIL_FRAMES = 256
 #: Refuse to start with less free space than this in the data directory.
 MIN_FREE_BYTES = 64 * 1024 * 1024
 SCHEMA = """
@@ -284,9 +285,14 @@ class JournalEntry:
     on_durable: Callable[[int], None]
 
 
+#: Queued by `JournalWriter.attach` to wake an idle writer.
+_WAKE = object()
+
+
 class JournalWriter:
-    """The one thread that appends to the journal, committing in groups, and that deletes the rows
-    snapshots have superseded, a few at a time (`trim`)."""
+    """The one thread that appends to the journal, committing in groups. Its transactions also carry
+    the snapshots' tile rows (`attach`) and delete the journal rows snapshots have superseded, a few
+    at a time (`trim`)."""
 
     #: Superseded rows deleted per transaction. A snapshot supersedes up to `snapshot_rows` rows of
     #: 17 KB; deleting them at once held the journal's commits up for hundreds of ms. About 5 us a
@@ -294,16 +300,25 @@ class JournalWriter:
     TRIM_ROWS = 256
     #: Seconds the writer waits idle before trimming in a transaction of its own.
     TRIM_IDLE = 0.05
+    #: Seconds attached rows wait for a group commit to ride along with before they are committed
+    #: alone (a snapshot waits for them; under load a group comes every few ms anyway).
+    ATTACH_WAIT = 0.005
+    #: Bytes of attached rows one transaction carries at most (at least one row).
+    ATTACH_BYTES = 512 * 1024
 
     def __init__(self, path: Path, on_error: Callable[[Exception], None] | None = None):
         # The journal writer never checkpoints the WAL by itself (a checkpoint copies hundreds of MB);
         # the snapshot thread does after each snapshot, leaving only a short tail to the writer.
         self._conn = connect(path, autocheckpoint=False)
-        self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | None] = queue.Queue()
+        self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | object | None] = (
+            queue.Queue()
+        )
         self._on_error = on_error
         # map id -> the journal id up to which that map's rows are superseded by a snapshot and
         # still to be deleted. Only the writer thread touches it (from `trim`, called in an op).
         self._trim: dict[str, int] = {}
+        self._attached: collections.deque[tuple[str, tuple, Future]] = collections.deque()
+        self._attached_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="fleetmap-journal", daemon=True)
         self._thread.start()
         self.commits = 0
@@ -320,6 +335,21 @@ class JournalWriter:
             self._trim.pop(map_id, None)
         else:
             self._trim[map_id] = max(upto, self._trim.get(map_id, 0))
+
+    def attach(self, sql: str, params: tuple) -> Future:
+        """Execute `sql` with `params` inside one of the writer's next transactions: the next group
+        commit, or one of its own once no scan has arrived for `ATTACH_WAIT`. The future is resolved
+        when that transaction commits (with the exception if it failed). Never blocks.
+
+        Bulk background writes (a snapshot's tile rows) go this way: written on a second connection
+        they compete for SQLite's one write lock, and a journal commit that finds it taken sleeps in
+        SQLite's busy handler (1, 2, 5, 10, ... ms); with a snapshot's 17 tile transactions that
+        made group commits take 20-60 ms."""
+        future: Future = Future()
+        with self._attached_lock:
+            self._attached.append((sql, params, future))
+        self._queue.put(_WAKE)
+        return future
 
     def append(self, entry: JournalEntry) -> None:
         self._queue.put(entry)
@@ -347,7 +377,7 @@ class JournalWriter:
         self.run(lambda conn: None)
 
     def close(self) -> None:
-        """Commit what is queued, delete every superseded row still left, and stop."""
+        """Commit what is queued and attached, delete every superseded row still left, and stop."""
         self._queue.put(None)
         self._thread.join()
         self._conn.close()
@@ -357,23 +387,27 @@ class JournalWriter:
         the next group gathers, so batches grow with the load and an idle service commits a lone
         scan at once. Operations (snapshots, map changes) run in queue order between groups."""
         while True:
+            idle = self.ATTACH_WAIT if self._attached else self.TRIM_IDLE if self._trim else None
             try:
-                item = self._queue.get(timeout=self.TRIM_IDLE if self._trim else None)
-            except queue.Empty:  # idle with superseded rows left: delete a share of them alone
+                item = self._queue.get(timeout=idle)
+            except queue.Empty:  # idle with rows to delete or attached: commit a share of them alone
                 self._commit([])
                 continue
             batch: list[JournalEntry] = []
             while True:
                 if isinstance(item, JournalEntry):
                     batch.append(item)
+                elif item is _WAKE:  # attached rows wait for the next group, or for ATTACH_WAIT
+                    pass
                 else:
-                    if batch:  # (an empty one would commit a trim alone: an fsync for nothing urgent)
+                    if batch:  # (an empty one would commit background rows alone: an extra fsync)
                         self._commit(batch)
                     batch = []
-                    if item is None:
-                        while self._trim and self._commit([]):  # shutting down: no hurry, all of them
+                    if item is None:  # shutting down: no hurry, all of them
+                        while (self._trim or self._attached) and self._commit([]):
                             pass
                         return
+                    assert callable(item)
                     item(self._conn)
                 if len(batch) >= 512:
                     break
@@ -398,11 +432,22 @@ class JournalWriter:
         self.trimmed += max(cur.rowcount, 0)
         return map_id, cur.rowcount < self.TRIM_ROWS
 
+    def _take_attached(self) -> list[tuple[str, tuple, Future]]:
+        """The attached rows for one transaction: up to `ATTACH_BYTES`, at least one if any."""
+        taken: list[tuple[str, tuple, Future]] = []
+        size = 0
+        with self._attached_lock:
+            while self._attached and (not taken or size < self.ATTACH_BYTES):
+                taken.append(self._attached.popleft())
+                size += sum(len(p) for p in taken[-1][1] if isinstance(p, bytes))
+        return taken
+
     def _commit(self, batch: list[JournalEntry]) -> bool:
-        """Commit `batch` (which may be empty) and a share of the superseded rows in one transaction;
-        False if there was nothing to do or the commit failed."""
-        if not batch and not self._trim:
+        """Commit `batch` (which may be empty), a share of the attached rows and of the superseded
+        rows in one transaction; False if there was nothing to do or the commit failed."""
+        if not batch and not self._trim and not self._attached:
             return False
+        attached = self._take_attached()
         try:
             ids = []
             self._conn.execute("BEGIN IMMEDIATE")
@@ -412,6 +457,8 @@ class JournalWriter:
                     (e.map_id, e.robot_id, e.seq, e.stamp, e.blob),
                 )
                 ids.append(cur.lastrowid)
+            for sql, params, _future in attached:
+                self._conn.execute(sql, params)
             trimmed = self._trim_some()
             self._conn.execute("COMMIT")
         except sqlite3.Error as exc:
@@ -420,12 +467,16 @@ class JournalWriter:
             log.error("journal commit failed (%d scans not durable): %s", len(batch), exc)
             with contextlib.suppress(sqlite3.Error):
                 self._conn.execute("ROLLBACK")
+            for _sql, _params, future in attached:
+                future.set_exception(exc)
             # Superseded rows are harmless (ignored and deleted at start); retrying their deletion
             # on a failing disk would only repeat the error every TRIM_IDLE seconds.
             self._trim.clear()
             if self._on_error:
                 self._on_error(exc)
             return False
+        for _sql, _params, future in attached:
+            future.set_result(None)
         if trimmed is not None and trimmed[1]:
             del self._trim[trimmed[0]]
         if not batch:
@@ -534,6 +585,7 @@ class DurableStore:
         self._last_gen = 0
         self._gen_lock = threading.Lock()
         self._created: dict[str, float] = {}
+        # Only checkpoints: a checkpoint takes no write lock, so it runs beside the journal's commits.
         self._snapshot_conn = connect(self.path, synchronous="NORMAL", autocheckpoint=False)
 
     def _next_gen(self) -> int:
@@ -676,10 +728,11 @@ class DurableStore:
         Under the map's lock the changed tiles are copied and a marker is queued behind every scan
         applied so far; the writer runs the marker after committing (and counting) exactly those
         scans, so the journal id and the `counters()` it records match the copied tiles. The tiles are
-        then written under a new generation, a few per transaction on this thread's own connection,
-        so the journal's group commits are never held up for long; one small transaction on the
-        writer then switches the map to that generation, records the journal id the snapshot
-        includes and drops the tile rows it supersedes. The journal rows up to that id are deleted
+        then encoded one at a time (paced by `snapshot_pace`) and written under a new generation
+        inside the writer's next group commits (`JournalWriter.attach`), so nothing competes with
+        the journal for SQLite's write lock; one small transaction on the writer then switches the
+        map to that generation, records the journal id the snapshot includes and drops the tile rows
+        it supersedes. The journal rows up to that id are deleted
         afterwards by the writer, `JournalWriter.TRIM_ROWS` per transaction. A crash before the switch
         leaves the old generation and its journal intact (the new rows are ignored and removed at
         start). Nothing here waits on the writer while holding a lock."""
@@ -692,21 +745,23 @@ class DurableStore:
                 marker = self.writer.submit(lambda conn: (self._last_journal_id.get(map_id, 0), counters()))
             last_id, saved = marker.result()
             gen = self._next_gen()
-            conn = self._snapshot_conn
             layout = gmap.store.arrays
+            written = []
             for key, version, arrays in copies:
                 started = time.perf_counter()
                 blob = tile_to_blob(arrays, layout)
-                conn.execute("BEGIN IMMEDIATE")
-                conn.execute(
-                    "INSERT OR REPLACE INTO tiles (map_id, ti, tj, gen, version, data) "
-                    "VALUES (?, ?, ?, ?, ?, ?)",
-                    (map_id, key[0], key[1], gen, version, blob),
+                written.append(
+                    self.writer.attach(
+                        "INSERT OR REPLACE INTO tiles (map_id, ti, tj, gen, version, data) "
+                        "VALUES (?, ?, ?, ?, ?, ?)",
+                        (map_id, key[0], key[1], gen, version, blob),
+                    )
                 )
-                conn.execute("COMMIT")
                 # The machine's few cores also integrate scans: spread the encoding out rather
                 # than take a core for tens of ms at once.
                 time.sleep((time.perf_counter() - started) * self.snapshot_pace)
+            for future in written:
+                future.result()  # every row committed before the switch (raises if one failed)
 
             def switch(conn: sqlite3.Connection) -> bool:
                 conn.execute("BEGIN IMMEDIATE")
