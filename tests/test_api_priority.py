@@ -15,12 +15,14 @@ from contextlib import contextmanager
 
 import httpx
 import pytest
+import uvicorn
 from prometheus_client.parser import text_string_to_metric_families
 from test_api_support import RunningApi, fan_scan, running_api
 
-from fleetmap.api import ApiSettings
+from fleetmap.api import ApiSettings, create_app
 from fleetmap.api.priority import IngestGate, is_exempt
 from fleetmap.codec import WireScan
+from fleetmap.registry import MapRegistry
 
 
 def metric(api: RunningApi, name: str) -> float:
@@ -179,3 +181,11 @@ def test_the_service_freezes_its_start_up_objects(service_factory) -> None:  # n
         for s in family.samples
     }
     assert samples["fleetmap_gc_frozen_objects"] > 50_000
+
+
+def test_http_is_parsed_in_c() -> None:
+    """uvicorn's automatic choice (what `fleetmap serve` uses) is httptools, a dependency: each request
+    costs the service a quarter less CPU and GIL time than with the pure-Python h11."""
+    config = uvicorn.Config(create_app(MapRegistry()), http="auto")
+    config.load()
+    assert config.http_protocol_class.__name__ == "HttpToolsProtocol"

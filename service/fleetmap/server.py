@@ -406,12 +406,16 @@ def run(args: argparse.Namespace) -> int:
                 else "NONE: anyone who can reach the API may change maps (loopback only unless --insecure)",
                 f"durable in {args.data_dir}" if durable else "in memory only (--in-memory)",
             )  # fmt: skip
+            # http="auto" parses HTTP with httptools (a dependency; C) rather than h11 (pure Python):
+            # about a quarter less CPU, and GIL time the integration workers do not wait for, per
+            # cached tile.
             config = uvicorn.Config(
                 app,
                 log_level="warning",
                 access_log=False,
                 timeout_graceful_shutdown=GRACEFUL_HTTP_SECONDS,
                 lifespan="auto",
+                http="auto",
             )
             server = _http_server_class()(config)
             server.ready_line = (
