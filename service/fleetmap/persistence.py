@@ -832,9 +832,17 @@ class DurableStore:
             self._snapshot_conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         self._snapshot_conn.close()
 
+    def checkpoint_step(self) -> None:
+        """One passive checkpoint: copy what the WAL gained since the last one into the database,
+        beside the journal's commits. The snapshot thread calls it every second, so a snapshot's own
+        checkpoint finds little left: copying 30 s of journal (about 350 MB) at once slowed the
+        journal's fsyncs for 0.2 s, and the scans meanwhile reached p99 64-74 ms."""
+        with self._snapshot_lock, contextlib.suppress(sqlite3.Error):
+            self._snapshot_conn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+
     def start_periodic(self, snapshot_all: Callable[[bool], None]) -> None:
         """Call `snapshot_all(only_overdue)` every second for maps past `snapshot_rows`, and for every
-        changed map each `snapshot_interval` seconds."""
+        changed map each `snapshot_interval` seconds; `checkpoint_step` every second."""
 
         def loop() -> None:
             last_full = time.monotonic()
@@ -846,6 +854,7 @@ class DurableStore:
                     log.exception("snapshot failed")
                 if full:
                     last_full = time.monotonic()
+                self.checkpoint_step()
 
         self._thread = threading.Thread(target=loop, name="fleetmap-snapshot", daemon=True)
         self._thread.start()
