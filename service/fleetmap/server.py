@@ -177,11 +177,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument(
         "--ingest-backlog-ms",
         type=_int_between(0, 60_000),
-        default=20,
+        default=10,
         metavar="MS",
         help=(
             "ingest before reads: while the oldest scan waiting for integration has waited longer than "
-            "this, new HTTP requests wait (all but /healthz, /metrics and POST scans); 0: off (default 20)"
+            "this, new HTTP requests wait (all but /healthz, /metrics and POST scans); 0: off (default 10)"
         ),
     )
     p.add_argument(

@@ -108,7 +108,7 @@ class ApiSettings:
     keepalive: float = 15.0
     #: Ingest before reads (`fleetmap.api.priority`): while the oldest scan waiting for integration
     #: has waited longer than this many seconds, new HTTP requests wait; 0 switches it off.
-    ingest_backlog: float = 0.02
+    ingest_backlog: float = 0.01
     #: The longest a request waits for the ingest backlog to clear, seconds; then it is served anyway.
     max_read_delay: float = 1.0
 
