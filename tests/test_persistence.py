@@ -5,6 +5,7 @@ is test_durability.py."""
 from __future__ import annotations
 
 import sqlite3
+import struct
 import threading
 import time
 import zlib
@@ -25,6 +26,7 @@ from fleetmap.persistence import (
     changed_tiles,
     decode_tile,
     open_database,
+    scan_from_blob,
     scan_to_blob,
     tile_to_blob,
 )
@@ -290,3 +292,69 @@ def test_a_data_directory_of_the_old_tile_format_is_refused_at_start(tmp_path: P
             again.load()
     finally:
         again.close()
+
+
+# -- journal rows ---------------------------------------------------------------------------------------
+
+
+def _same_scan(a: Scan, b: Scan) -> bool:
+    """Bit-identical pose, limits, angles and ranges (NaN matching NaN)."""
+    return (
+        a.pose == b.pose
+        and (a.range_min, a.range_max) == (b.range_min, b.range_max)
+        and a.angles.tobytes() == b.angles.tobytes()
+        and np.array_equal(a.ranges, b.ranges, equal_nan=True)
+    )
+
+
+def test_journal_rows_of_binary_scans_are_compact_and_exact() -> None:
+    """A scan as the binary wire encoding delivers it (float32 fan and ranges) is journalled as its
+    fan and float32 ranges, 4x smaller than float64, and comes back bit for bit."""
+    rng = np.random.default_rng(3)
+    ranges = rng.uniform(0.1, 29.0, 1081).astype(np.float32).astype(np.float64)
+    ranges[[5, 17]] = np.inf
+    ranges[40] = np.nan
+    scan = Scan.from_fan(
+        (1.5, -2.25, 0.3), float(np.float32(-2.35)), float(np.float32(4.7 / 1080)), ranges, 0.05, 30.0
+    )
+    blob = scan_to_blob(scan)
+    assert len(blob) < 1081 * 4 + 100  # float64 would be 17 KB
+    assert _same_scan(scan_from_blob(blob), scan)
+
+
+@pytest.mark.parametrize(
+    "scan",
+    [
+        fan(0.7),  # float64 fan, float64 ranges
+        Scan.from_angles(
+            (0.0, 1.0, -3.0), [0.3, -0.1, 2.0, 2.0000001], [1.0, None, 0.1 + 0.2, np.nan], 0.0, 5.0
+        ),
+        Scan.from_fan((0.0, 0.0, 0.0), 0.1, 0.0, [1.0, 2.0], 0.0, 5.0),  # zero increment
+        Scan.from_angles((0.0, 0.0, 0.0), [1.0], [2.0], 0.0, 5.0),
+        Scan.from_angles((0.0, 0.0, 0.0), [], [], 0.0, 5.0),
+    ],
+)
+def test_journal_rows_round_trip_exactly(scan: Scan) -> None:
+    assert _same_scan(scan_from_blob(scan_to_blob(scan)), scan)
+
+
+def test_version_1_journal_rows_still_load() -> None:
+    """Rows written before the compact version (all float64) decode as before."""
+    scan = fan(0.2, n=7)
+    head = struct.pack("<Bdddddi", 1, 0.2, 0.0, 0.0, 0.0, 30.0, 7)
+    old = head + scan.angles.astype("<f8").tobytes() + scan.ranges.astype("<f8").tobytes()
+    assert _same_scan(scan_from_blob(old), scan)
+
+
+@pytest.mark.parametrize("cut", [0, 5, 40, 41, 60, -1])
+def test_corrupt_journal_rows_are_refused(cut: int) -> None:
+    """Truncated rows, unknown versions or flags: a clear StorageError, never a wrong scan."""
+    blob = scan_to_blob(fan(0.0, n=9))
+    with pytest.raises(StorageError, match="corrupt journal entry"):
+        scan_from_blob(blob[:cut])
+    with pytest.raises(StorageError, match="corrupt journal entry"):
+        scan_from_blob(bytes([9]) + blob[1:])
+    bad_flags = bytearray(blob)
+    bad_flags[struct.calcsize("<Bdddddi")] |= 0x80
+    with pytest.raises(StorageError, match="corrupt journal entry"):
+        scan_from_blob(bytes(bad_flags))

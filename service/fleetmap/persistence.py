@@ -23,6 +23,7 @@ import contextlib
 import io
 import json
 import logging
+import math
 import os
 import queue
 import shutil
@@ -99,22 +100,85 @@ class StorageError(RuntimeError):
 # -- encodings ---------------------------------------------------------------------------------------
 
 _SCAN_HEADER = struct.Struct("<Bdddddi")  # version, x, y, theta, range_min, range_max, n
+#: Journal scans, version 2: the version 1 header, then a flags byte. Flag `_FAN`: the angles are
+#: `angle_min + angle_increment * arange(n)` bit for bit, stored as those two float64; else n float64.
+#: Flag `_RANGES_F32`: every range is exactly a float32 (as the binary wire encoding sends them, NaN
+#: aside), stored as n float32; else n float64. A 1081-beam scan from the binary encoding takes 4.4 KB
+#: instead of 17 KB: the journal is most of the service's disk writes.
+_SCAN_FLAGS = struct.Struct("<B")
+_FAN, _RANGES_F32 = 1, 2
+
+
+def _fan_of(angles: np.ndarray) -> tuple[float, float] | None:
+    """(angle_min, angle_increment) that rebuild `angles` exactly as `Scan.from_fan` does, if any."""
+    n = angles.size
+    if n < 2:
+        return None
+    step = float(angles[1] - angles[0])
+    span = float(angles[-1] - angles[0]) / (n - 1)
+    index = np.arange(n, dtype=np.float64)
+    # The difference of the first two angles is within an ulp or two of the increment; a float32
+    # increment (the binary encoding) is recovered exactly by rounding to float32.
+    for inc in (step, float(np.float32(step)), span, float(np.float32(span)),
+                math.nextafter(step, math.inf), math.nextafter(step, -math.inf)):  # fmt: skip
+        if np.array_equal(angles[0] + inc * index, angles):
+            return float(angles[0]), inc
+    return None
 
 
 def scan_to_blob(scan: Scan) -> bytes:
-    """An exact (float64) serialisation of an engine scan for the journal."""
+    """An exact serialisation of an engine scan for the journal (version 2, compact when it can be)."""
+    flags = 0
+    parts = []
+    fan = _fan_of(scan.angles)
+    if fan is not None:
+        flags |= _FAN
+        parts.append(struct.pack("<dd", *fan))
+    else:
+        parts.append(scan.angles.astype("<f8").tobytes())
+    ranges32 = scan.ranges.astype("<f4")
+    if np.array_equal(ranges32.astype(np.float64), scan.ranges, equal_nan=True):
+        flags |= _RANGES_F32
+        parts.append(ranges32.tobytes())
+    else:
+        parts.append(scan.ranges.astype("<f8").tobytes())
     head = _SCAN_HEADER.pack(
-        1, scan.pose.x, scan.pose.y, scan.pose.theta, scan.range_min, scan.range_max, scan.num_beams
+        2, scan.pose.x, scan.pose.y, scan.pose.theta, scan.range_min, scan.range_max, scan.num_beams
     )
-    return head + scan.angles.astype("<f8").tobytes() + scan.ranges.astype("<f8").tobytes()
+    return head + _SCAN_FLAGS.pack(flags) + b"".join(parts)
 
 
 def scan_from_blob(blob: bytes) -> Scan:
-    version, x, y, theta, range_min, range_max, n = _SCAN_HEADER.unpack_from(blob)
-    if version != 1 or len(blob) != _SCAN_HEADER.size + 16 * n:
-        raise StorageError("corrupt journal entry")
-    body = np.frombuffer(blob, dtype="<f8", offset=_SCAN_HEADER.size)
-    return Scan(Pose2D(x, y, theta), body[:n].copy(), body[n:].copy(), range_min, range_max)
+    """The scan `scan_to_blob` stored (versions 1 and 2); `StorageError` if the row is corrupt."""
+    try:
+        version, x, y, theta, range_min, range_max, n = _SCAN_HEADER.unpack_from(blob)
+        at = _SCAN_HEADER.size
+        if version == 1:
+            if n < 0 or len(blob) != at + 16 * n:
+                raise StorageError("corrupt journal entry")
+            body = np.frombuffer(blob, dtype="<f8", offset=at)
+            return Scan(Pose2D(x, y, theta), body[:n].copy(), body[n:].copy(), range_min, range_max)
+        if version != 2 or n < 0:
+            raise StorageError("corrupt journal entry")
+        (flags,) = _SCAN_FLAGS.unpack_from(blob, at)
+        at += _SCAN_FLAGS.size
+        size = at + (16 if flags & _FAN else 8 * n) + (4 if flags & _RANGES_F32 else 8) * n
+        if flags & ~(_FAN | _RANGES_F32) or len(blob) != size:
+            raise StorageError("corrupt journal entry")
+        if flags & _FAN:
+            angle_min, inc = struct.unpack_from("<dd", blob, at)
+            angles = angle_min + inc * np.arange(n, dtype=np.float64)
+            at += 16
+        else:
+            angles = np.frombuffer(blob, dtype="<f8", count=n, offset=at).copy()
+            at += 8 * n
+        if flags & _RANGES_F32:
+            ranges = np.frombuffer(blob, dtype="<f4", count=n, offset=at).astype(np.float64)
+        else:
+            ranges = np.frombuffer(blob, dtype="<f8", count=n, offset=at).copy()
+        return Scan(Pose2D(x, y, theta), angles, ranges, range_min, range_max)
+    except (struct.error, ValueError) as exc:  # too short, or a Scan that cannot be (ScanError)
+        raise StorageError(f"corrupt journal entry: {exc}") from exc
 
 
 #: Stored tiles, format 2 (docs/durability.md, "Tile rows"): this magic, then zlib (level 1) of one
