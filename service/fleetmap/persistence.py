@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
@@ -109,6 +110,24 @@ _SCAN_FLAGS = struct.Struct("<B")
 _FAN, _RANGES_F32 = 1, 2
 
 
+@njit(cache=True, nogil=True)
+def _rebuilds(angles: np.ndarray, inc: float) -> bool:
+    """Whether `angles[0] + inc * k` (as `Scan.from_fan` computes it) is `angles[k]` for every k."""
+    for k in range(angles.size):  # noqa: SIM110 - a compiled loop, not a generator
+        if angles[0] + inc * float(k) != angles[k]:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _all_float32(values: np.ndarray) -> bool:
+    """Whether every value is exactly a float32 (NaN counts: its payload carries no meaning here)."""
+    for v in values:  # noqa: SIM110 - a compiled loop, not a generator
+        if np.float64(np.float32(v)) != v and not np.isnan(v):
+            return False
+    return True
+
+
 def _fan_of(angles: np.ndarray) -> tuple[float, float] | None:
     """(angle_min, angle_increment) that rebuild `angles` exactly as `Scan.from_fan` does, if any."""
     n = angles.size
@@ -116,12 +135,11 @@ def _fan_of(angles: np.ndarray) -> tuple[float, float] | None:
         return None
     step = float(angles[1] - angles[0])
     span = float(angles[-1] - angles[0]) / (n - 1)
-    index = np.arange(n, dtype=np.float64)
     # The difference of the first two angles is within an ulp or two of the increment; a float32
     # increment (the binary encoding) is recovered exactly by rounding to float32.
     for inc in (step, float(np.float32(step)), span, float(np.float32(span)),
                 math.nextafter(step, math.inf), math.nextafter(step, -math.inf)):  # fmt: skip
-        if np.array_equal(angles[0] + inc * index, angles):
+        if math.isfinite(inc) and _rebuilds(angles, inc):
             return float(angles[0]), inc
     return None
 
@@ -136,10 +154,9 @@ def scan_to_blob(scan: Scan) -> bytes:
         parts.append(struct.pack("<dd", *fan))
     else:
         parts.append(scan.angles.astype("<f8").tobytes())
-    ranges32 = scan.ranges.astype("<f4")
-    if np.array_equal(ranges32.astype(np.float64), scan.ranges, equal_nan=True):
+    if _all_float32(scan.ranges):
         flags |= _RANGES_F32
-        parts.append(ranges32.tobytes())
+        parts.append(scan.ranges.astype("<f4").tobytes())
     else:
         parts.append(scan.ranges.astype("<f8").tobytes())
     head = _SCAN_HEADER.pack(
