@@ -363,6 +363,19 @@ def test_default_mode_is_a_router_on_the_default_endpoint(registry: MapRegistry)
     assert ing.mode == "router" and ing.listen == ["tcp/127.0.0.1:7447"]
     assert json.loads(cfg.get_json("mode")) == "router"
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(cfg.get_json("transport/shared_memory/enabled")) is False  # Zenoh's default: true
+
+
+def test_shared_memory_only_when_asked(registry: MapRegistry, tmp_path) -> None:  # noqa: ANN001
+    """Shared memory stays off even when a config file switches it on, unless the service is told
+    (`--zenoh-shared-memory`)."""
+    path = tmp_path / "zenoh.json5"
+    path.write_text("{ transport: { shared_memory: { enabled: true } } }")
+    cfg = ZenohIngest(registry, config_file=path).build_config()
+    assert json.loads(cfg.get_json("transport/shared_memory/enabled")) is False
+    port = free_port()
+    ing = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{port}"], shared_memory=True)
+    assert json.loads(ing.build_config().get_json("transport/shared_memory/enabled")) is True
 
 
 def test_start_errors_are_readable(registry: MapRegistry, tmp_path) -> None:  # noqa: ANN001

@@ -137,6 +137,7 @@ class ZenohIngest:
         connect: Sequence[str] = (),
         config_file: str | Path | None = None,
         mode: str | None = None,
+        shared_memory: bool = False,
     ) -> None:
         if mode is not None and mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
@@ -144,6 +145,10 @@ class ZenohIngest:
         self._listen_arg = None if listen is None else list(listen)
         self.connect = list(connect)
         self.config_file = Path(config_file) if config_file is not None else None
+        #: Zenoh's shared-memory transport for robots on this host. Off by default: it maps a 16 MiB
+        #: pool per local robot (430 MiB of RSS for 25 robots) and delayed each robot's first samples
+        #: by up to 250 ms, while loopback TCP carries a 4 KB scan in microseconds.
+        self.shared_memory = shared_memory
         self._mode_arg = mode
         # Resolved by start(): what the session actually uses.
         self.mode: str | None = None
@@ -202,6 +207,7 @@ class ZenohIngest:
                 cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
             if json.loads(cfg.get_json("scouting/multicast/enabled")) is None:  # the file did not say
                 cfg.insert_json5("scouting/multicast/enabled", "false")
+            cfg.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
         except (zenoh.ZError, ValueError) as exc:
             raise IngestStartError(f"invalid Zenoh endpoint: {_clean_error(exc)}") from None
         self.mode, self.listen = mode, list(listen)
