@@ -109,10 +109,6 @@ class TileStore:
                         lookup[tj - tj0, ti - ti0] = slot
         return lookup
 
-    def missing(self, keys: Iterable[TileKey]) -> list[TileKey]:
-        """The keys among `keys` that have no tile yet."""
-        return [k for k in keys if k not in self.slots]
-
     def create(self, keys: list[TileKey]) -> None:
         """Create tiles for `keys` (none may exist yet), all or none: past the cap, raise
         `TileLimitError` and create nothing."""
