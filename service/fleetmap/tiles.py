@@ -93,22 +93,6 @@ class TileStore:
     def has_array(self, name: str) -> bool:
         return name in self.pools
 
-    def tile_range(self, ti0: int, tj0: int, ti1: int, tj1: int) -> np.ndarray:
-        """Slot lookup for the tile window `[ti0, ti1] x [tj0, tj1]` (inclusive): `[tj - tj0, ti - ti0]`
-        holds the slot of that tile or -1."""
-        lookup = np.full((tj1 - tj0 + 1, ti1 - ti0 + 1), -1, dtype=np.int64)
-        if len(self.keys) <= lookup.size:
-            for (ti, tj), slot in self.slots.items():
-                if ti0 <= ti <= ti1 and tj0 <= tj <= tj1:
-                    lookup[tj - tj0, ti - ti0] = slot
-        else:
-            for tj in range(tj0, tj1 + 1):
-                for ti in range(ti0, ti1 + 1):
-                    slot = self.slots.get((ti, tj))
-                    if slot is not None:
-                        lookup[tj - tj0, ti - ti0] = slot
-        return lookup
-
     def create(self, keys: list[TileKey]) -> None:
         """Create tiles for `keys` (none may exist yet), all or none: past the cap, raise
         `TileLimitError` and create nothing."""
