@@ -16,6 +16,8 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from fleetmap.config import MapConfig
+from fleetmap.kernels.fan_rows import trace_fan_rows
+from fleetmap.kernels.ray_model import scan_endpoints
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, segment_cells
 from fleetmap.scan import Scan
 from fleetmap.update_plan import plan_scan
@@ -376,7 +378,7 @@ def test_per_scan_trace_of_a_very_wide_scan() -> None:
     clear=st.sampled_from([0.0, 6.0]),
     data=st.data(),
 )
-def test_dense_fans_skip_only_covered_cells(
+def test_dense_fans_trace_exactly_the_union_of_the_walks(
     pose: tuple[float, float, float],
     beams: int,
     fov: float,
@@ -385,9 +387,10 @@ def test_dense_fans_skip_only_covered_cells(
     clear: float,
     data: st.DataObject,
 ) -> None:
-    """Dense fans, where `skip_spans` leaves most of each walk to the neighbouring beams: the trace
-    is still exactly the union of every beam's whole walk. Ranges vary smoothly with random jumps
-    (walls, doorways); some beams are missing (NaN) or have no return."""
+    """Dense fans, which `fan_rows` traces row by row with chains of neighbouring beams and hands
+    back to walks far out: the trace is still exactly the union of every beam's whole walk. Ranges
+    vary smoothly with random jumps (walls, doorways); some beams are missing (NaN) or have no
+    return."""
     k = np.arange(beams)
     base = np.interp(k, np.linspace(0, beams - 1, 4), ranges)
     jumps = data.draw(st.lists(st.integers(0, beams - 1), max_size=8))
@@ -399,3 +402,65 @@ def test_dense_fans_skip_only_covered_cells(
     scan = Scan.from_angles(pose, list(-fov / 2 + fov * k / beams), list(r), range_min=0.02, range_max=30.0)
     config = MapConfig(resolution=0.05, layers=["occupancy"], no_return_range=clear)
     assert _same_cells(_planned_cells(scan, config, 8), _union_of_walks(scan, config))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    cell=st.tuples(st.integers(-40, 40), st.integers(-40, 40)),
+    offset=st.sampled_from([0.0, 1e-12, 1e-4, 0.004, 0.5, 0.996, 0.9999, 1 - 1e-12]),
+    beams=st.integers(3, 700),
+    fov=st.floats(0.3, 2 * math.pi),
+    theta=st.sampled_from([0.0, math.pi / 2, math.pi, -math.pi / 4, 2.9]),
+    ranges=st.lists(st.floats(0.05, 9.0), min_size=3, max_size=3),
+    repeat=st.integers(1, 3),
+)
+def test_fans_from_degenerate_poses_trace_the_union_of_the_walks(
+    cell: tuple[int, int],
+    offset: float,
+    beams: int,
+    fov: float,
+    theta: float,
+    ranges: list[float],
+    repeat: int,
+) -> None:
+    """The row trace's rounding guards: sensors exactly on a cell corner or within 1e-12 of a row
+    line, beams exactly along the axes, and every beam repeated (equal directions) still give
+    exactly the union of the walks."""
+    res = 0.05
+    pose = ((cell[0] + offset) * res, (cell[1] + 1 - offset) * res, theta)
+    k = np.arange(beams)
+    angles = np.repeat(-fov / 2 + fov * k / beams, repeat)
+    r = np.repeat(np.interp(k, np.linspace(0, beams - 1, 3), ranges), repeat)
+    scan = Scan.from_angles(pose, angles, r, range_min=0.0, range_max=30.0)
+    config = MapConfig(resolution=res, layers=["occupancy"])
+    assert _same_cells(_planned_cells(scan, config, 6), _union_of_walks(scan, config))
+
+
+def _row_trace(scan: Scan) -> int:
+    """`trace_fan_rows`'s cell count for a scan at 5 cm in 256-cell tiles (-1: not traced by rows)."""
+    ex, ey, kinds, *_ = scan_endpoints(
+        scan.pose.x, scan.pose.y, scan.world_angles(), scan.ranges, scan.range_min, scan.range_max, 0.0, 0.05
+    )
+    size = 1 << 20
+    found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(64 * 64, np.uint8)
+    n, _ = trace_fan_rows(
+        scan.pose.x / 0.05, scan.pose.y / 0.05, ex, ey, kinds, 8, -32, -32, 64, found, kind, planes,
+        np.empty((0, 3), np.int64),
+    )  # fmt: skip
+    return n
+
+
+def test_row_trace_takes_fans_in_angle_order_and_leaves_the_rest_to_walks() -> None:
+    """Fans in angle order (either way round, wrapping past +-pi) are traced by rows; a scan whose
+    beams jump back and forth in direction is not (the caller walks it), and both give the union."""
+    k = np.arange(540)
+    fan = Scan.from_angles((1.0, 2.0, 2.8), -2.3 + 4.6 * k / 540, np.full(540, 6.0), range_max=30.0)
+    reverse = Scan.from_angles((1.0, 2.0, -3.1), 2.3 - 4.6 * k / 540, np.full(540, 6.0), range_max=30.0)
+    jumbled = np.random.default_rng(1).permutation(-2.3 + 4.6 * k / 540)
+    shuffled = Scan.from_angles((1.0, 2.0, 0.3), jumbled, np.full(540, 6.0), range_max=30.0)
+    assert _row_trace(fan) > 0
+    assert _row_trace(reverse) > 0
+    assert _row_trace(shuffled) == -1
+    config = MapConfig(resolution=0.05, layers=["occupancy"])
+    for scan in (fan, reverse, shuffled):
+        assert _same_cells(_planned_cells(scan, config, 8), _union_of_walks(scan, config))

@@ -8,6 +8,7 @@ import math
 import numpy as np
 from numba import njit
 
+from fleetmap.kernels.fan_rows import trace_fan_rows
 from fleetmap.kernels.traversal import (
     EXACT,
     cell_at,
@@ -160,6 +161,25 @@ def trace_scan(
     while (1 << wshift) < (ni << shift):
         wshift += 1
     dense = (nj << (shift + wshift)) <= DENSE_WINDOW_CELLS
+    if method == EXACT:
+        # Row by row near the sensor (`fan_rows`), in row order, and the far rows by walks in the
+        # dense window (when the box fits one).
+        if dense and scratch.size < nj << (shift + wshift):
+            none = np.empty(0, dtype=np.int64)
+            return none, none, none, np.empty(0, dtype=np.uint8), nj << (shift + wshift)
+        found = np.empty(visits, dtype=np.int64)
+        kind_out = np.empty(visits, dtype=np.uint8)
+        planes = np.zeros(nj * ni, dtype=np.uint8)
+        far = np.empty((ex.size if dense else 0, 3), dtype=np.int64)
+        n, h = trace_fan_rows(ox, oy, ex, ey, kinds, shift, ti0, tj0, ni, found, kind_out, planes, far)
+        if n >= 0:
+            if h:
+                n = _walk_far(
+                    ox, oy, ex, ey, kinds, far[:h], shift, wshift, ti0, tj0, ni, scratch, found, kind_out, n,
+                    planes,
+                )  # fmt: skip
+            index = np.arange(nj * ni).reshape(nj, ni)
+            return _number_tiles(index, planes, found, kind_out, n, plane_shift, ti0, tj0, True)
     if dense:
         needed = nj << (shift + wshift)
         index = np.arange(nj * ni).reshape(nj, ni)
@@ -181,8 +201,17 @@ def trace_scan(
             kind_out[k] = scratch[found[k]]
             scratch[found[k]] = 0
             planes[found[k] >> plane_shift] = 1
-    # found[:n] are now plane keys (plane << 2*shift | local). Renumber the planes that hold a cell
-    # 0..m-1 and report their tiles.
+    return _number_tiles(index, planes, found, kind_out, n, plane_shift, ti0, tj0, dense)
+
+
+@njit(cache=True, nogil=True)
+def _number_tiles(
+    index: np.ndarray, planes: np.ndarray, found: np.ndarray, kind_out: np.ndarray, n: int, plane_shift: int,
+    ti0: int, tj0: int, dense: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # fmt: skip
+    """`trace_scan`'s result from plane keys `found[:n]` (plane numbers from `index`, flagged in
+    `planes` when they hold a cell): the planes that hold a cell renumbered 0..m-1, and their tiles."""
+    nj, ni = index.shape
     m = 0
     renum = np.full(index.size, -1, dtype=np.int64)
     tiles_i = np.empty(index.size, dtype=np.int64)
@@ -394,6 +423,36 @@ def _walk_dense(
             hits += 1
     for k in range(hits):  # after all walks, so a later beam's miss cannot undo a hit
         scratch[ends[k]] = CELL_MISS | CELL_HIT
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _walk_far(
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, far: np.ndarray, shift: int,
+    wshift: int, ti0: int, tj0: int, ni: int, scratch: np.ndarray, found: np.ndarray, kind_out: np.ndarray,
+    n: int, planes: np.ndarray,
+) -> int:  # fmt: skip
+    """Walk the rests `trace_fan_rows` handed back (`far[h] = (beam, column, row)` of each rest's
+    first cell) in the dense window, append their distinct cells from `found[n]` as plane keys with
+    their kinds, and return the new count. Those rows hold no other cells of the scan."""
+    i0 = ti0 << shift
+    j0 = tj0 << shift
+    start = n
+    ends = np.empty(far.shape[0], dtype=np.int64)
+    hits = 0
+    for q in range(far.shape[0]):
+        b = far[q, 0]
+        _, _, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(ox, oy, ex[b], ey[b])
+        n, key = _walk_rest(
+            found, scratch, n, far[q, 1], far[q, 2], ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y,
+            i0, j0, wshift,
+        )  # fmt: skip
+        if kinds[b] == BEAM_HIT:
+            ends[hits] = key
+            hits += 1
+    for k in range(hits):
+        scratch[ends[k]] = CELL_MISS | CELL_HIT
+    _collect_dense(found[start:], n - start, scratch, shift, wshift, ni, kind_out[start:], planes)
     return n
 
 

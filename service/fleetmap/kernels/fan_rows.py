@@ -1,0 +1,500 @@
+"""The per-scan union of a fan of exact walks, computed row by row instead of cell by cell.
+
+Every beam of a scan starts in the sensor's cell, and within one grid row an exact walk covers one run
+of columns: from the column where it enters the row to the column where it leaves it. Both are found
+in O(1) from the walk's own boundary crossings (`exit_column`), so a beam's cells in a row cost the
+same whatever the row's length.
+
+Sorted by direction, the beams that go up (or down) have runs whose ends move monotonically along a
+row, and near the sensor the runs of neighbouring beams overlap or touch. A maximal group of such
+beams (a *chain*) covers, in that row, exactly the span between its two end beams' runs, however
+many beams it holds. So each row costs a few O(1) steps per chain plus one per beam ending in it,
+and the cells come out as spans in row order, which the apply then visits sequentially in memory.
+
+Why a chain's span is exact (all in CELL units; a row is crossed from its entry line to its exit
+line, `d` = distance from the sensor to the entry line, `key` = dx/|dy| of a beam):
+- A beam that passes through the row (does not end in it) touches every cell between its entry
+  point `ox + d*key` and exit point `ox + (d+1)*key` on the row's lines, and no other. Sorted by key,
+  both points move one way, so the runs' ends are monotonic: the chain's end beams bound its union.
+- Two such beams' real intervals are at most `d*|dkey| - w` apart (`w` = the smaller |key| when
+  both lean the same way, else 0). Below a gap of half a cell their cell runs overlap or touch, so
+  a chain is contiguous while `d <= (0.5 + w) / |dkey|` for each neighbouring pair. Gaps only
+  grow with distance, and a pair formed when a beam between them ends is farther apart, so a broken
+  pair stays broken.
+- Beams ending in the row are taken out of the chains first and their runs added on their own.
+- Floating-point rounding could reorder the runs of beams whose crossings are within about 1e-10
+  cells of each other. Pairs with `|dkey| < MIN_KEY_GAP` are therefore never chained, and a row
+  whose entry line is within `NEAR_LINE` of the sensor has every beam's run computed on its own.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from fleetmap.kernels.traversal import crossing, exact_start
+
+#: Neighbouring beams closer than this in dx/|dy| are never assumed contiguous (see module doc).
+MIN_KEY_GAP = 1e-7
+#: A row whose entry line is nearer the sensor than this (cells) is traced beam by beam.
+NEAR_LINE = 0.01
+#: Largest sensor coordinate and extent (cells) the row trace takes; the rounding argument above
+#: holds well inside these. Beyond them the caller walks the beams instead.
+MAX_COORD = float(1 << 24)
+MAX_EXTENT = float(1 << 20)
+#: Rows are handed back to walks once the chains average fewer beams than this (see
+#: `trace_fan_rows`): a row costs a few crossing computations per chain, a walk about one per cell.
+CHAIN_WALK_RATIO = 4
+
+_BEAM_SKIP = 0  # as in ray_model (not imported: ray_model imports this module)
+_BEAM_HIT = 1
+_CELL_HIT_MISS = 3
+_DE_BRUIJN = np.uint64(0x03F79D71B4CB0A89)
+_DE_BRUIJN_TABLE = np.array(
+    [
+        0, 1, 48, 2, 57, 49, 28, 3, 61, 58, 50, 42, 38, 29, 17, 4, 62, 55, 59, 36, 53, 51, 43, 22, 45, 39, 33,
+        30, 24, 18, 12, 5, 63, 47, 56, 27, 60, 41, 37, 16, 54, 35, 52, 21, 44, 32, 23, 11, 46, 26, 40, 15,
+        34, 20, 31, 10, 25, 14, 19, 9, 13, 8, 7, 6,
+    ],
+    dtype=np.int64,
+)  # fmt: skip
+
+
+@njit(cache=True, nogil=True, inline="always")
+def exit_column(i0: int, ie: int, step_i: int, base_x: float, scale_x: float, t: float) -> int:
+    """The column in which an exact walk (first column `i0`, last `ie`, x crossings `crossing(i,
+    base_x, scale_x)`) leaves a row whose exit boundary it crosses at segment parameter `t`: the
+    first column from i0 towards ie whose own x crossing is not before t, or ie. This is where
+    `exact_steps_i` stops stepping along i in that row (not a row the walk ends in)."""
+    if i0 == ie or math.isinf(scale_x):
+        return i0
+    if math.isinf(t):
+        return ie
+    k = math.floor(t / scale_x - base_x)  # the real solution of (k + base_x) * scale_x = t, +-1
+    if step_i > 0:
+        k = min(max(k, i0), ie)
+        while k > i0 and ((k - 1) + base_x) * scale_x >= t:
+            k -= 1
+        while k < ie and (k + base_x) * scale_x < t:
+            k += 1
+    else:
+        k = min(max(k, ie), i0)
+        while k < i0 and ((k + 1) + base_x) * scale_x >= t:
+            k += 1
+        while k > ie and (k + base_x) * scale_x < t:
+            k -= 1
+    return k
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lowest_bit(word: np.uint64) -> int:
+    """Index of the lowest set bit of a non-zero word."""
+    low = word & (~word + np.uint64(1))
+    return _DE_BRUIJN_TABLE[(low * _DE_BRUIJN) >> np.uint64(58)]
+
+
+@njit(cache=True, nogil=True)
+def trace_fan_rows(
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, shift: int, ti0: int, tj0: int,
+    ni: int, found: np.ndarray, kind_out: np.ndarray, planes: np.ndarray, far: np.ndarray,
+) -> tuple[int, int]:  # fmt: skip
+    """Per-scan exact-traversal updates of every traced beam (`kinds` as in `ray_model`), row by row.
+
+    Writes each touched cell once into `found` as a plane key (plane = tile row * ni + tile column
+    relative to tile (ti0, tj0), then `local_j * T + local_i`) with its kind in `kind_out` (hit if a
+    `BEAM_HIT` ends in it, else miss), and flags the planes used in `planes`.
+
+    Far from the sensor, where neighbouring beams no longer touch, a row costs more than walking its
+    few cells. Unless `far` is empty, the rows stop there (above and below the sensor separately)
+    and the beams still going on are handed back: `far[h] = (beam, column, row)` of the cell in which
+    the caller walks beam's rest. No cell of those rows is written here, so the caller only
+    de-duplicates its walks among themselves.
+
+    Returns `(cells written, beams handed back)`, or (-1, 0) with nothing useful written when the
+    fan is not ordered by direction or lies outside `MAX_COORD` / `MAX_EXTENT`; the caller then
+    walks the beams.
+    """
+    nb = ex.size
+    if not (abs(ox) < MAX_COORD and abs(oy) < MAX_COORD):
+        return -1, 0
+    i0 = math.floor(ox)
+    j0 = math.floor(oy)
+    ie = np.empty(nb, dtype=np.int64)
+    je = np.empty(nb, dtype=np.int64)
+    step_i = np.empty(nb, dtype=np.int64)
+    base_x = np.empty(nb)
+    scale_x = np.empty(nb)
+    base_y = np.empty(nb)
+    scale_y = np.empty(nb)
+    n_up = n_down = 0
+    for b in range(nb):
+        if kinds[b] == _BEAM_SKIP:
+            continue
+        if not (abs(ex[b] - ox) < MAX_EXTENT and abs(ey[b] - oy) < MAX_EXTENT):
+            return -1, 0
+        _, _, ie[b], je[b], step_i[b], _, base_x[b], scale_x[b], base_y[b], scale_y[b] = exact_start(
+            ox, oy, ex[b], ey[b]
+        )
+        if je[b] > j0:
+            n_up += 1
+        elif je[b] < j0:
+            n_down += 1
+    up = np.empty(n_up, dtype=np.int64)
+    down = np.empty(n_down, dtype=np.int64)
+    n_up = n_down = 0
+    for b in range(nb):
+        if kinds[b] != _BEAM_SKIP:
+            if je[b] > j0:
+                up[n_up] = b
+                n_up += 1
+            elif je[b] < j0:
+                down[n_down] = b
+                n_down += 1
+    up_order = _direction_order(up, ox, oy, ex, ey)
+    down_order = _direction_order(down, ox, oy, ex, ey)
+    if up_order.size != n_up or down_order.size != n_down:
+        return -1, 0
+    # The sensor's row: every beam's run starts at the sensor's column, so their union is one span.
+    lo = hi = i0
+    for b in range(nb):
+        if kinds[b] == _BEAM_SKIP:
+            continue
+        if je[b] == j0:
+            c = ie[b]
+        else:
+            c = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], crossing(j0, base_y[b], scale_y[b]))
+        lo = min(lo, c)
+        hi = max(hi, c)
+    n = _emit(found, kind_out, planes, 0, j0, lo, hi, shift, ti0, tj0, ni)
+    for b in range(nb):
+        if kinds[b] == _BEAM_HIT and je[b] == j0:
+            kind_out[ie[b] - lo] = _CELL_HIT_MISS
+    fy = oy - j0
+    n, h = _trace_rows(
+        up_order, 1, fy, n, 0, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x, scale_x, base_y,
+        scale_y, shift, ti0, tj0, ni, found, kind_out, planes, far,
+    )  # fmt: skip
+    if n < 0:
+        return -1, 0
+    return _trace_rows(
+        down_order, -1, 1.0 - fy, n, h, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x, scale_x,
+        base_y, scale_y, shift, ti0, tj0, ni, found, kind_out, planes, far,
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def _direction_order(members: np.ndarray, ox: float, oy: float, ex: np.ndarray, ey: np.ndarray) -> np.ndarray:
+    """`members` (beam numbers, all going up or all going down) rotated so that dx/|dy| is monotonic,
+    which it is for beams in angle order over less than a full turn, up to one wrap-around. Returns an
+    empty array when no rotation makes it monotonic."""
+    n = members.size
+    if n <= 2:
+        return members.copy()
+    key = np.empty(n)
+    for p in range(n):
+        b = members[p]
+        key[p] = (ex[b] - ox) / abs(ey[b] - oy)
+    for sign in (1.0, -1.0):  # try non-increasing, then non-decreasing
+        rises = 0
+        at = 0
+        for p in range(n - 1):
+            if sign * (key[p + 1] - key[p]) > 0.0:
+                rises += 1
+                at = p + 1
+        if rises == 0:
+            return members.copy()
+        if rises == 1 and sign * (key[0] - key[n - 1]) <= 0.0:
+            out = np.empty(n, dtype=np.int64)
+            for p in range(n):
+                out[p] = members[(at + p) % n]
+            return out
+    return np.empty(0, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _emit(
+    found: np.ndarray, kind_out: np.ndarray, planes: np.ndarray, n: int, row: int, lo: int, hi: int,
+    shift: int, ti0: int, tj0: int, ni: int,
+) -> int:  # fmt: skip
+    """Append the plane keys of cells lo..hi of `row`, split at tile edges, as misses; returns the new
+    count."""
+    mask = (1 << shift) - 1
+    tile_row = ((row >> shift) - tj0) * ni
+    local_row = (row & mask) << shift
+    c = lo
+    while c <= hi:
+        tile_start = (c >> shift) << shift
+        end = min(hi, tile_start + mask)
+        plane = tile_row + (c >> shift) - ti0
+        planes[plane] = 1
+        base = ((plane << (2 * shift)) | local_row) - tile_start
+        for x in range(c, end + 1):
+            found[n + x - c] = base + x
+            kind_out[n + x - c] = 1  # CELL_MISS
+        n += end + 1 - c
+        c = end + 1
+    return n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _break_row(ka: float, kb: float, c: float, rows: int) -> int:
+    """The first row offset m (distance m - c from the sensor to its entry line) at which beams with
+    keys ka, kb, neighbours in a chain, may leave a gap between their runs; rows + 1 if never within
+    `rows`, and 0 if they must never be chained."""
+    gap = abs(ka - kb)
+    if gap < MIN_KEY_GAP:
+        return 0
+    w = min(abs(ka), abs(kb)) if ka * kb > 0.0 else 0.0
+    limit = (0.5 + w) / gap + c
+    if limit >= rows:
+        return rows + 1
+    return math.floor(limit) + 1
+
+
+@njit(cache=True, nogil=True)
+def _trace_rows(
+    order: np.ndarray, step_j: int, c: float, n: int, h: int, ox: float, oy: float, ex: np.ndarray,
+    ey: np.ndarray, kinds: np.ndarray, i0: int, j0: int, ie: np.ndarray, je: np.ndarray, step_i: np.ndarray,
+    base_x: np.ndarray, scale_x: np.ndarray, base_y: np.ndarray, scale_y: np.ndarray, shift: int, ti0: int,
+    tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray, planes: np.ndarray, far: np.ndarray,
+) -> tuple[int, int]:  # fmt: skip
+    """The rows above (step_j = 1) or below (-1) the sensor's row, crossed by the beams `order`
+    (sorted by direction). Row offset m is row j0 + step_j * m, whose entry line lies m - c from the
+    sensor. Appends cells to `found` / `kind_out` from `n` and hand-backs to `far` from `h`; returns
+    both new counts."""
+    nu = order.size
+    if nu == 0:
+        return n, h
+    rows = 0
+    for p in range(nu):
+        rows = max(rows, abs(je[order[p]] - j0))
+    key = np.empty(nu)
+    for p in range(nu):
+        b = order[p]
+        key[p] = (ex[b] - ox) / abs(ey[b] - oy)
+    # Beams ending in each row offset, by a counting sort.
+    ends_at = np.zeros(rows + 2, dtype=np.int64)
+    for p in range(nu):
+        ends_at[abs(je[order[p]] - j0) + 1] += 1
+    for m in range(rows + 1):
+        ends_at[m + 1] += ends_at[m]
+    ending = np.empty(nu, dtype=np.int64)
+    fill = ends_at.copy()
+    for p in range(nu):
+        m = abs(je[order[p]] - j0)
+        ending[fill[m]] = p
+        fill[m] += 1
+    # The beams still going on, as a linked list in direction order; brk has bit p set when the
+    # chain breaks between p and the next beam still going on.
+    nxt = np.empty(nu, dtype=np.int64)
+    prv = np.empty(nu, dtype=np.int64)
+    for p in range(nu):
+        nxt[p] = p + 1
+        prv[p] = p - 1
+    nxt[nu - 1] = -1
+    head = 0
+    tail = nu - 1
+    words = (nu + 63) >> 6
+    brk = np.zeros(words, dtype=np.uint64)
+    # Pending breaks: pair (ev_a, ev_b) breaks at row offset m; a per-row linked list, checked when due
+    # (the pair may no longer be neighbours by then).
+    ev_head = np.full(rows + 2, -1, dtype=np.int64)
+    ev_a = np.empty(2 * nu, dtype=np.int64)
+    ev_b = np.empty(2 * nu, dtype=np.int64)
+    ev_next = np.empty(2 * nu, dtype=np.int64)
+    events = 0
+    for p in range(nu - 1):
+        m = _break_row(key[p], key[p + 1], c, rows)
+        if m <= 1:
+            brk[p >> 6] |= np.uint64(1) << np.uint64(p & 63)
+        elif m <= rows:
+            ev_a[events] = p
+            ev_b[events] = p + 1
+            ev_next[events] = ev_head[m]
+            ev_head[m] = events
+            events += 1
+    span_lo = np.empty(nu + 2, dtype=np.int64)
+    span_hi = np.empty(nu + 2, dtype=np.int64)
+    span_at = np.empty(nu + 2, dtype=np.int64)
+    tmp_lo = np.empty(nu + 2, dtype=np.int64)
+    tmp_hi = np.empty(nu + 2, dtype=np.int64)
+    descending = key[0] >= key[nu - 1]  # the runs' columns fall along `order`
+    going = nu
+    handing_back = False
+    for m in range(1, rows + 1):
+        row = j0 + step_j * m
+        if handing_back:
+            # Walk the rest: every beam still going on, from the cell where it enters this row.
+            p = head
+            while p >= 0:
+                b = order[p]
+                far[h, 0] = b
+                far[h, 1] = exit_column(
+                    i0, ie[b], step_i[b], base_x[b], scale_x[b], crossing(row - step_j, base_y[b], scale_y[b])
+                )
+                far[h, 2] = row
+                h += 1
+                p = nxt[p]
+            break
+        spans = 0
+        # Beams ending in this row: their own runs, then out of the chains.
+        for q in range(ends_at[m], ends_at[m + 1]):
+            p = ending[q]
+            b = order[p]
+            t_in = crossing(row - step_j, base_y[b], scale_y[b])
+            entry = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], t_in)
+            span_lo[spans] = min(entry, ie[b])
+            span_hi[spans] = max(entry, ie[b])
+            spans += 1
+            going -= 1
+            a = prv[p]
+            z = nxt[p]
+            brk[p >> 6] &= ~(np.uint64(1) << np.uint64(p & 63))
+            if a >= 0:
+                nxt[a] = z
+            else:
+                head = z
+            if z >= 0:
+                prv[z] = a
+            else:
+                tail = a
+            if a >= 0:
+                bit = np.uint64(1) << np.uint64(a & 63)
+                brk[a >> 6] &= ~bit
+                if z >= 0:
+                    mb = _break_row(key[a], key[z], c, rows)
+                    if mb <= m:
+                        brk[a >> 6] |= bit
+                    elif mb <= rows:
+                        ev_a[events] = a
+                        ev_b[events] = z
+                        ev_next[events] = ev_head[mb]
+                        ev_head[mb] = events
+                        events += 1
+        e = ev_head[m]
+        while e >= 0:
+            a = ev_a[e]
+            if nxt[a] == ev_b[e] and prv[ev_b[e]] == a:  # still neighbours, both going on
+                brk[a >> 6] |= np.uint64(1) << np.uint64(a & 63)
+            e = ev_next[e]
+        # The chains of beams going on: each covers the span between its end beams' runs.
+        ended = spans
+        if head >= 0:
+            if m - c < NEAR_LINE:
+                p = head
+                while p >= 0:
+                    b = order[p]
+                    span_lo[spans], span_hi[spans] = _row_run(
+                        i0, ie[b], step_i[b], base_x[b], scale_x[b], base_y[b], scale_y[b], row, step_j
+                    )
+                    spans += 1
+                    p = nxt[p]
+            else:
+                first = head
+                w = 0
+                word = brk[0]
+                while True:
+                    # The next chain: from `first` to the next break, or to the tail.
+                    while word == 0 and w + 1 < words:
+                        w += 1
+                        word = brk[w]
+                    if word:
+                        last = (w << 6) + _lowest_bit(word)
+                        word &= word - np.uint64(1)
+                    else:
+                        last = tail
+                    b = order[first]
+                    lo, hi = _row_run(
+                        i0, ie[b], step_i[b], base_x[b], scale_x[b], base_y[b], scale_y[b], row, step_j
+                    )
+                    if last != first:
+                        b = order[last]
+                        lo2, hi2 = _row_run(
+                            i0, ie[b], step_i[b], base_x[b], scale_x[b], base_y[b], scale_y[b], row, step_j
+                        )
+                        lo = min(lo, lo2)
+                        hi = max(hi, hi2)
+                    span_lo[spans] = lo
+                    span_hi[spans] = hi
+                    spans += 1
+                    if last == tail:
+                        break
+                    first = nxt[last]
+        if far.shape[0] and (spans - ended) * CHAIN_WALK_RATIO > going:
+            handing_back = True  # from the next row on, most chains are single beams
+        merged = _union(span_lo, span_hi, ended, spans, descending, tmp_lo, tmp_hi)
+        for s in range(merged):
+            if n + span_hi[s] - span_lo[s] >= found.size:
+                return -1, h  # cannot happen (the union is at most every walk's cells); never overrun
+            span_at[s] = n
+            n = _emit(found, kind_out, planes, n, row, span_lo[s], span_hi[s], shift, ti0, tj0, ni)
+        # Hits: the end cells of returns ending in this row.
+        for q in range(ends_at[m], ends_at[m + 1]):
+            b = order[ending[q]]
+            if kinds[b] == _BEAM_HIT:
+                s = 0
+                while s < merged - 1 and span_hi[s] < ie[b]:
+                    s += 1
+                if not span_lo[s] <= ie[b] <= span_hi[s]:
+                    return -1, h  # cannot happen (a walk covers its end cell); never write astray
+                kind_out[span_at[s] + ie[b] - span_lo[s]] = _CELL_HIT_MISS
+    return n, h
+
+
+@njit(cache=True, nogil=True)
+def _union(
+    span_lo: np.ndarray, span_hi: np.ndarray, ended: int, spans: int, descending: bool, tmp_lo: np.ndarray,
+    tmp_hi: np.ndarray,
+) -> int:  # fmt: skip
+    """Replace the row's spans by their union as disjoint spans in ascending order; returns how many.
+
+    The spans come as two runs, each in direction order: `[0, ended)` of the beams ending in the row
+    and `[ended, spans)` of the chains; `descending` says their columns fall. The runs are merged,
+    then an insertion pass puts right whatever rounding left out of order (it costs nothing on
+    sorted input), then touching spans are joined."""
+    a, a_end, b, b_end, d = 0, ended, ended, spans, 1
+    if descending:
+        a, a_end, b, b_end, d = ended - 1, -1, spans - 1, ended - 1, -1
+    for k in range(spans):
+        if b == b_end or (a != a_end and span_lo[a] <= span_lo[b]):
+            tmp_lo[k] = span_lo[a]
+            tmp_hi[k] = span_hi[a]
+            a += d
+        else:
+            tmp_lo[k] = span_lo[b]
+            tmp_hi[k] = span_hi[b]
+            b += d
+    for k in range(1, spans):
+        lo_k, hi_k = tmp_lo[k], tmp_hi[k]
+        t = k
+        while t > 0 and tmp_lo[t - 1] > lo_k:
+            tmp_lo[t] = tmp_lo[t - 1]
+            tmp_hi[t] = tmp_hi[t - 1]
+            t -= 1
+        tmp_lo[t] = lo_k
+        tmp_hi[t] = hi_k
+    merged = 0
+    for k in range(spans):
+        if merged and tmp_lo[k] <= span_hi[merged - 1] + 1:
+            span_hi[merged - 1] = max(span_hi[merged - 1], tmp_hi[k])
+        else:
+            span_lo[merged] = tmp_lo[k]
+            span_hi[merged] = tmp_hi[k]
+            merged += 1
+    return merged
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_run(
+    i0: int, ie: int, step_i: int, base_x: float, scale_x: float, base_y: float, scale_y: float, row: int,
+    step_j: int,
+) -> tuple[int, int]:  # fmt: skip
+    """A beam's run `(lo, hi)` of columns in `row`, a row it passes through (does not end in).
+
+    Scalars only: numba reference-counts every array handed to a helper, atomically, which in
+    these per-row loops cost more than the arithmetic."""
+    entry = exit_column(i0, ie, step_i, base_x, scale_x, crossing(row - step_j, base_y, scale_y))
+    leave = exit_column(i0, ie, step_i, base_x, scale_x, crossing(row, base_y, scale_y))
+    return min(entry, leave), max(entry, leave)
