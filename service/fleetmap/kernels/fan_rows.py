@@ -46,7 +46,7 @@ MAX_COORD = float(1 << 24)
 MAX_EXTENT = float(1 << 20)
 #: Rows are handed back to walks once the chains average fewer beams than this (see
 #: `trace_fan_rows`): a row costs a few crossing computations per chain, a walk about one per cell.
-CHAIN_WALK_RATIO = 4
+CHAIN_WALK_RATIO = 8
 
 _BEAM_SKIP = 0  # as in ray_model (not imported: ray_model imports this module)
 _BEAM_HIT = 1

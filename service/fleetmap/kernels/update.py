@@ -123,15 +123,28 @@ def apply_cells(
     local_mask = (1 << plane_shift) - 1
     if log_odds.size:
         # One flat view of the pool; unsigned indices (all are >= 0) spare numba's negative-index
-        # wraparound code, and the store and change flag are unconditional (branch-free).
+        # wraparound code, and the store is unconditional (branch-free). Cells come in runs of one
+        # tile (rows of the scan), so the change flag is kept in a register per run: or-ing it into
+        # `changed` per cell made every iteration wait on the previous one's store.
         flat_log_odds = log_odds.reshape(-1)
+        tile = np.uint64(0xFFFFFFFFFFFFFFFF)
+        start = np.uint64(0)
+        diff = False
         for n in range(cell.size):
-            tile = np.uint64(cell[n] >> plane_shift)
-            at = np.uint64((slots[tile] << plane_shift) | (cell[n] & local_mask))
+            t = np.uint64(cell[n] >> plane_shift)
+            if t != tile:
+                if diff:
+                    changed[tile] = 1
+                diff = False
+                tile = t
+                start = np.uint64(slots[t] << plane_shift)
+            at = start | np.uint64(cell[n] & local_mask)
             old = flat_log_odds[at]
             new = updated_log_odds(old, (kind[n] & CELL_HIT) != 0, l_hit, l_miss, l_min, l_max)
             flat_log_odds[at] = new
-            changed[tile] |= new != old  # NaN != anything: a first observation is a change
+            diff |= new != old  # NaN != anything: a first observation is a change
+        if diff:
+            changed[tile] = 1
     if hits.size:
         flat_hits = hits.reshape(-1)
         flat_misses = misses.reshape(-1)
