@@ -42,7 +42,8 @@ import numpy as np
 from fleetmap.config import LayerName, MapConfig, probability
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import GridMap
-from fleetmap.kernels.ray_model import scan_endpoints, skip_spans
+from fleetmap.kernels.fan_rows import trace_fan_rows
+from fleetmap.kernels.ray_model import scan_endpoints
 from fleetmap.scan import Scan
 from fleetmap.sim import FloorPlan, SimulatedRobot, generate_floorplan
 
@@ -497,34 +498,34 @@ def equivalence(gmap: GridMap, tree: object, rng_seed: int = 0) -> list[str]:
 # ----------------------------------------------------------------------------------------------
 
 
-def walked_cells(scan: Scan) -> tuple[int, int]:
-    """Cells of the scan's whole beam walks, and of what the per-scan trace walks after
-    `skip_spans` leaves out the stretches neighbouring beams cover (each part counted as a walk of
-    its own sub-segment, so within a cell or two per beam)."""
-    ex, ey, kinds, *_ = scan_endpoints(
+def traced_by_rows(scan: Scan) -> tuple[int, int, int]:
+    """How the per-scan trace covers `scan`: cells of the beams' whole walks, cells written by the
+    row trace (`kernels.fan_rows`) near the sensor, and cells the handed-back walks visit far out."""
+    ex, ey, kinds, xmin, ymin, xmax, ymax, _ = scan_endpoints(
         scan.pose.x, scan.pose.y, scan.world_angles(), scan.ranges, scan.range_min, scan.range_max, 0.0, RES
     )
     ox, oy = scan.pose.x / RES, scan.pose.y / RES
-    stop, resume = skip_spans(ox, oy, ex, ey, kinds)
     traced = kinds != 0
-
-    def count(x0: np.ndarray, y0: np.ndarray, x1: np.ndarray, y1: np.ndarray) -> np.ndarray:
-        return np.abs(np.floor(x1) - np.floor(x0)) + np.abs(np.floor(y1) - np.floor(y0)) + 1
-
-    whole = count(np.full(ex.size, ox), np.full(ey.size, oy), ex, ey)
-    dx, dy = ex - ox, ey - oy
-    first = count(np.full(ex.size, ox), np.full(ey.size, oy), ox + stop * dx, oy + stop * dy)
-    rest = count(ox + resume * dx, oy + resume * dy, ex, ey)
-    walked = np.where(resume > 0, first + rest, whole)
-    return int(whole[traced].sum()), int(walked[traced].sum())
+    whole = np.abs(np.floor(ex) - math.floor(ox)) + np.abs(np.floor(ey) - math.floor(oy)) + 1
+    ti0, tj0 = math.floor(xmin) >> 8, math.floor(ymin) >> 8
+    ni, nj = (math.floor(xmax) >> 8) - ti0 + 1, (math.floor(ymax) >> 8) - tj0 + 1
+    size = int(whole[traced].sum())
+    far = np.empty((ex.size, 3), dtype=np.int64)
+    found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(ni * nj, np.uint8)
+    rows, handed = trace_fan_rows(ox, oy, ex, ey, kinds, 8, ti0, tj0, ni, found, kind, planes, far)
+    if rows < 0:
+        return size, 0, size
+    b, i, j = far[:handed, 0], far[:handed, 1], far[:handed, 2]
+    walked = np.abs(np.floor(ex[b]) - i) + np.abs(np.floor(ey[b]) - j) + 1
+    return size, rows, int(walked.sum())
 
 
 def fleetmap_breakdown(w: Workload) -> str:
-    """One untimed-for-the-table pass, occupancy only: plan vs apply time, and cells of the ray
-    walks per distinct cell update, whole and after skipping covered stretches."""
+    """One untimed-for-the-table pass, occupancy only: plan vs apply time; cells of the beams' whole
+    walks per distinct update, and the share of the updates the row trace writes."""
     gmap = GridMap(fleetmap_config(OCC_ONLY))
     t_plan = t_apply = 0.0
-    whole = walked = updates = 0
+    whole = rows = walked = updates = 0
     for scan in w.scans:
         t0 = time.perf_counter()
         plan = gmap.plan(scan)
@@ -534,14 +535,16 @@ def fleetmap_breakdown(w: Workload) -> str:
         t_plan += t1 - t0
         t_apply += t2 - t1
         updates += res.cell_updates
-        a, b = walked_cells(scan)
+        a, b, c = traced_by_rows(scan)
         whole += a
-        walked += b
+        rows += b
+        walked += c
     total = t_plan + t_apply
     return (
-        f"{w.name:10s} plan (ray walk, dedup) {t_plan / total:5.1%}, apply (updated cells into tiles) "
-        f"{t_apply / total:5.1%}; per distinct update: {whole / updates:4.1f} cells on the beams' whole "
-        f"walks, {walked / updates:4.1f} walked after skipping covered stretches"
+        f"{w.name:10s} plan (trace, dedup) {t_plan / total:5.1%}, apply (updated cells into tiles) "
+        f"{t_apply / total:5.1%}; {whole / updates:4.1f} cells on the beams' whole walks per distinct "
+        f"update; {rows / updates:5.1%} of the updates traced by rows, the rest by {walked / updates:4.2f} "
+        f"walked cells per update"
     )
 
 
