@@ -139,6 +139,11 @@ def trace_scan(
     """Per-scan updates of the ray model: every cell any beam touches, once, a hit if any beam ends
     in it (a hit beats a miss).
 
+    Exact traversal of a fan in angle order is traced row by row near the sensor
+    (`fan_rows.trace_fan_rows`) and by walks in the dense window far out; other scans (Bresenham,
+    beams out of order, huge boxes) by walks that skip what neighbouring beams cover
+    (`skip_spans`). All give the union of the beams' whole walks.
+
     Input is the sensor position and the beams' end points in CELL units with their kinds, as
     `scan_endpoints` gives them. `[ti0, ti1] x [tj0, tj1]` must hold every traced cell. `scratch` is
     a zeroed flat uint8 array; it is zeroed again on return, so one scratch serves every scan of a
