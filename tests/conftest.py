@@ -13,6 +13,18 @@ import pytest
 from service_process import DATASETS_DIR, ServiceProcess
 
 
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels() -> None:
+    """Compile the engine's kernels (or load them from numba's cache) once, before any test.
+
+    A fresh clone has no cache, and the first integration compiles for about 10 s on the CI
+    machine. Tests that time integration (queue and timeout tests, in-process APIs) would otherwise
+    absorb that compile in whichever runs first. Service subprocesses load what this writes."""
+    from fleetmap.server import warm_up
+
+    warm_up()
+
+
 @pytest.fixture
 def service_factory(tmp_path: Path) -> Iterator[Callable[..., ServiceProcess]]:
     """Start services with extra `fleetmap serve` arguments: `service_factory("--no-auto-create")`.

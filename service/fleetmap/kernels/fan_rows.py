@@ -167,21 +167,24 @@ def trace_fan_rows(
             c = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], crossing(j0, base_y[b], scale_y[b]))
         lo = min(lo, c)
         hi = max(hi, c)
-    n = _emit(found, kind_out, planes, 0, j0, lo, hi, shift, ti0, tj0, ni)
+    # The counts (cells written, beams handed back) live in an array: passed as the literal 0, an int
+    # argument would make numba compile each callee twice, once for the literal.
+    counts = np.zeros(2, dtype=np.int64)
+    n = _emit(found, kind_out, planes, counts[0], j0, lo, hi, shift, ti0, tj0, ni)
     for b in range(nb):
         if kinds[b] == _BEAM_HIT and je[b] == j0:
             kind_out[ie[b] - lo] = _CELL_HIT_MISS
     fy = oy - j0
-    n, h = _trace_rows(
-        up_order, 1, fy, n, 0, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x, scale_x, base_y,
-        scale_y, shift, ti0, tj0, ni, found, kind_out, planes, far,
-    )  # fmt: skip
-    if n < 0:
-        return -1, 0
-    return _trace_rows(
-        down_order, -1, 1.0 - fy, n, h, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x, scale_x,
-        base_y, scale_y, shift, ti0, tj0, ni, found, kind_out, planes, far,
-    )  # fmt: skip
+    counts[0] = n
+    for g in range(2):  # up, then down
+        _trace_rows(
+            up_order if g == 0 else down_order, 1 - 2 * g, fy if g == 0 else 1.0 - fy, counts, ox, oy, ex,
+            ey, kinds, i0, j0, ie, je, step_i, base_x, scale_x, base_y, scale_y, shift, ti0, tj0, ni, found,
+            kind_out, planes, far,
+        )  # fmt: skip
+        if counts[0] < 0:
+            return -1, 0
+    return counts[0], counts[1]
 
 
 @njit(cache=True, nogil=True)
@@ -213,7 +216,7 @@ def _direction_order(members: np.ndarray, ox: float, oy: float, ex: np.ndarray, 
     return np.empty(0, dtype=np.int64)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _emit(
     found: np.ndarray, kind_out: np.ndarray, planes: np.ndarray, n: int, row: int, lo: int, hi: int,
     shift: int, ti0: int, tj0: int, ni: int,
@@ -255,20 +258,21 @@ def _break_row(ka: float, kb: float, c: float, rows: int) -> int:
 
 @njit(cache=True, nogil=True)
 def _trace_rows(
-    order: np.ndarray, step_j: int, c: float, n: int, h: int, ox: float, oy: float, ex: np.ndarray,
+    order: np.ndarray, step_j: int, c: float, counts: np.ndarray, ox: float, oy: float, ex: np.ndarray,
     ey: np.ndarray, kinds: np.ndarray, i0: int, j0: int, ie: np.ndarray, je: np.ndarray, step_i: np.ndarray,
     base_x: np.ndarray, scale_x: np.ndarray, base_y: np.ndarray, scale_y: np.ndarray, shift: int, ti0: int,
     tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray, planes: np.ndarray, far: np.ndarray,
-) -> tuple[int, int]:  # fmt: skip
+) -> None:  # fmt: skip
     """The rows above (step_j = 1) or below (-1) the sensor's row, crossed by the beams `order`
     (sorted by direction). Row offset m is row j0 + step_j * m, whose entry line lies m - c from the
-    sensor. Appends cells to `found` / `kind_out` from `n` and hand-backs to `far` from `h`; returns
-    both new counts."""
+    sensor. Appends cells to `found` / `kind_out` and hand-backs to `far` after the `counts` (cells,
+    hand-backs) so far, and updates them; a cell count of -1 means the row trace gave up."""
+    n, h = counts[0], counts[1]
     nu = order.size
     if nu == 0:
-        return n, h
-    rows = 0
-    for p in range(nu):
+        return
+    rows = abs(je[order[0]] - j0)
+    for p in range(1, nu):
         rows = max(rows, abs(je[order[p]] - j0))
     key = np.empty(nu)
     for p in range(nu):
@@ -338,16 +342,15 @@ def _trace_rows(
                 h += 1
                 p = nxt[p]
             break
-        spans = 0
         # Beams ending in this row: their own runs, then out of the chains.
-        for q in range(ends_at[m], ends_at[m + 1]):
-            p = ending[q]
+        ended = ends_at[m + 1] - ends_at[m]
+        for q in range(ended):
+            p = ending[ends_at[m] + q]
             b = order[p]
             t_in = crossing(row - step_j, base_y[b], scale_y[b])
             entry = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], t_in)
-            span_lo[spans] = min(entry, ie[b])
-            span_hi[spans] = max(entry, ie[b])
-            spans += 1
+            span_lo[q] = min(entry, ie[b])
+            span_hi[q] = max(entry, ie[b])
             going -= 1
             a = prv[p]
             z = nxt[p]
@@ -380,7 +383,7 @@ def _trace_rows(
                 brk[a >> 6] |= np.uint64(1) << np.uint64(a & 63)
             e = ev_next[e]
         # The chains of beams going on: each covers the span between its end beams' runs.
-        ended = spans
+        spans = ended
         if head >= 0:
             if m - c < NEAR_LINE:
                 p = head
@@ -427,7 +430,8 @@ def _trace_rows(
         merged = _union(span_lo, span_hi, ended, spans, descending, tmp_lo, tmp_hi)
         for s in range(merged):
             if n + span_hi[s] - span_lo[s] >= found.size:
-                return -1, h  # cannot happen (the union is at most every walk's cells); never overrun
+                counts[0] = -1  # cannot happen (the union is at most every walk's cells); never overrun
+                return
             span_at[s] = n
             n = _emit(found, kind_out, planes, n, row, span_lo[s], span_hi[s], shift, ti0, tj0, ni)
         # Hits: the end cells of returns ending in this row.
@@ -438,9 +442,11 @@ def _trace_rows(
                 while s < merged - 1 and span_hi[s] < ie[b]:
                     s += 1
                 if not span_lo[s] <= ie[b] <= span_hi[s]:
-                    return -1, h  # cannot happen (a walk covers its end cell); never write astray
+                    counts[0] = -1  # cannot happen (a walk covers its end cell); never write astray
+                    return
                 kind_out[span_at[s] + ie[b] - span_lo[s]] = _CELL_HIT_MISS
-    return n, h
+    counts[0] = n
+    counts[1] = h
 
 
 @njit(cache=True, nogil=True)

@@ -184,7 +184,7 @@ def trace_scan(
                     planes,
                 )  # fmt: skip
             index = np.arange(nj * ni).reshape(nj, ni)
-            return _number_tiles(index, planes, found, kind_out, n, plane_shift, ti0, tj0, True)
+            return _number_tiles(index, planes, found, kind_out, n, plane_shift, ti0, tj0, index.size > 0)
     if dense:
         needed = nj << (shift + wshift)
         index = np.arange(nj * ni).reshape(nj, ni)
