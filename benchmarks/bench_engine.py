@@ -43,7 +43,7 @@ from fleetmap.config import LayerName, MapConfig, probability
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import GridMap
 from fleetmap.kernels.fan_rows import trace_fan_rows
-from fleetmap.kernels.ray_model import scan_endpoints
+from fleetmap.kernels.ray_model import beam_directions, scan_endpoints
 from fleetmap.scan import Scan
 from fleetmap.sim import FloorPlan, SimulatedRobot, generate_floorplan
 
@@ -502,7 +502,14 @@ def traced_by_rows(scan: Scan) -> tuple[int, int, int]:
     """How the per-scan trace covers `scan`: cells of the beams' whole walks, cells written by the
     row trace (`kernels.fan_rows`) near the sensor, and cells the handed-back walks visit far out."""
     ex, ey, kinds, xmin, ymin, xmax, ymax, _ = scan_endpoints(
-        scan.pose.x, scan.pose.y, scan.world_angles(), scan.ranges, scan.range_min, scan.range_max, 0.0, RES
+        scan.pose.x,
+        scan.pose.y,
+        *beam_directions(scan.world_angles()),
+        scan.ranges,
+        scan.range_min,
+        scan.range_max,
+        0.0,
+        RES,
     )
     ox, oy = scan.pose.x / RES, scan.pose.y / RES
     traced = kinds != 0

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from fleetmap.config import MapConfig
 from fleetmap.kernels.fan_rows import trace_fan_rows
-from fleetmap.kernels.ray_model import scan_endpoints
+from fleetmap.kernels.ray_model import beam_directions, scan_endpoints
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, segment_cells
 from fleetmap.scan import Scan
 from fleetmap.update_plan import plan_scan
@@ -439,7 +439,14 @@ def test_fans_from_degenerate_poses_trace_the_union_of_the_walks(
 def _row_trace(scan: Scan) -> int:
     """`trace_fan_rows`'s cell count for a scan at 5 cm in 256-cell tiles (-1: not traced by rows)."""
     ex, ey, kinds, *_ = scan_endpoints(
-        scan.pose.x, scan.pose.y, scan.world_angles(), scan.ranges, scan.range_min, scan.range_max, 0.0, 0.05
+        scan.pose.x,
+        scan.pose.y,
+        *beam_directions(scan.world_angles()),
+        scan.ranges,
+        scan.range_min,
+        scan.range_max,
+        0.0,
+        0.05,
     )
     size = 1 << 20
     found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(64 * 64, np.uint8)

@@ -20,6 +20,7 @@ from fleetmap.kernels.ray_model import (
     BEAM_CLEAR,
     BEAM_HIT,
     BEAM_SKIP,
+    beam_directions,
     longest_return,
     scan_endpoints,
     trace_rays,
@@ -83,7 +84,7 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     reach = _reach(scan, config) / res
     if not (abs(ox) + reach < MAX_CELL_INDEX and abs(oy) + reach < MAX_CELL_INDEX):
         raise ScanError("the scan's pose or ranges lie beyond the map's coordinate range")
-    angles = scan.world_angles()
+    cos, sin = beam_directions(scan.world_angles())
     cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
     tiles_i = tiles_j = _EMPTY_I
@@ -93,13 +94,13 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
         elif config.update == "per_ray":
             occ_i, occ_j, occ_kind = _ray_model_per_ray(scan, config, ox, oy)
         else:
-            tiles_i, tiles_j, cell, kind = _ray_model_per_scan(scan, config, shift, angles)
+            tiles_i, tiles_j, cell, kind = _ray_model_per_scan(scan, config, shift, cos, sin)
     tsdf_i = tsdf_j = _EMPTY_I
     tsdf_value = np.empty(0, dtype=np.float32)
     if config.has("tsdf"):
         returns = scan.returns_mask()
         tsdf_i, tsdf_j, tsdf_value = trace_tsdf(
-            ox, oy, angles[returns], scan.ranges[returns] / res, config.tsdf.truncation / res
+            ox, oy, cos[returns], sin[returns], scan.ranges[returns] / res, config.tsdf.truncation / res
         )
     # The ordered entries' tiles go after the per-scan tiles, each tile once.
     occ_tile = tsdf_tile = _EMPTY_I
@@ -120,12 +121,12 @@ def _reach(scan: Scan, config: MapConfig) -> float:
     return far + config.tsdf.truncation + config.beam.alpha
 
 
-def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, angles: np.ndarray):
+def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, cos: np.ndarray, sin: np.ndarray):
     """The ray model with per-scan semantics, in one compiled pass (`kernels.ray_model.trace_scan`);
-    `angles` are the beams' map-frame directions."""
+    `cos`, `sin` are the beams' map-frame directions."""
     res = config.resolution
     args = (scan.ranges, scan.range_min, scan.range_max, config.no_return_range, res)
-    ex, ey, kinds, xmin, ymin, xmax, ymax, used = scan_endpoints(scan.pose.x, scan.pose.y, angles, *args)
+    ex, ey, kinds, xmin, ymin, xmax, ymax, used = scan_endpoints(scan.pose.x, scan.pose.y, cos, sin, *args)
     if used == 0:
         return _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_KIND
     ti0, ti1 = math.floor(xmin) >> shift, math.floor(xmax) >> shift

@@ -92,12 +92,25 @@ DENSE_WINDOW_CELLS = 1 << 23
 
 
 @njit(cache=True, nogil=True)
+def beam_directions(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cosine and sine of every beam's map-frame angle, computed once per scan for both the ray
+    trace and the TSDF band (libm's, so end points are bit for bit `x + r * cos(angle)`)."""
+    cos = np.empty(angles.size)
+    sin = np.empty(angles.size)
+    for b in range(angles.size):
+        cos[b] = math.cos(angles[b])
+        sin[b] = math.sin(angles[b])
+    return cos, sin
+
+
+@njit(cache=True, nogil=True)
 def scan_endpoints(
-    x: float, y: float, angles: np.ndarray, ranges: np.ndarray, range_min: float, range_max: float,
-    clear_range: float, res: float,
+    x: float, y: float, cos: np.ndarray, sin: np.ndarray, ranges: np.ndarray, range_min: float,
+    range_max: float, clear_range: float, res: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float, int]:  # fmt: skip
     """Every beam's kind (as in `_beam`) and end point in CELL units, and the bounding box of the
-    traced beams with the sensor: `(ex, ey, kinds, xmin, ymin, xmax, ymax, number traced)`."""
+    traced beams with the sensor: `(ex, ey, kinds, xmin, ymin, xmax, ymax, number traced)`. `cos`
+    and `sin` are the beams' map-frame directions (`beam_directions`)."""
     ox = x / res
     oy = y / res
     nb = ranges.size
@@ -110,8 +123,8 @@ def scan_endpoints(
     for b in range(nb):
         kind, r = _beam(b, ranges, range_min, range_max, clear_range)
         kinds[b] = kind
-        ex[b] = ox + r / res * math.cos(angles[b])
-        ey[b] = oy + r / res * math.sin(angles[b])
+        ex[b] = ox + r / res * cos[b]
+        ey[b] = oy + r / res * sin[b]
         if kind != BEAM_SKIP:
             used += 1
             xmin = min(xmin, ex[b])

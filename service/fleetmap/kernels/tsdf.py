@@ -8,8 +8,6 @@ truncation band around the return) are updated, by the weighted running average
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
@@ -18,20 +16,16 @@ from fleetmap.kernels.traversal import EXACT, cell_count, crossing, exact_start,
 
 @njit(cache=True, nogil=True)
 def trace_tsdf(
-    ox: float, oy: float, angles: np.ndarray, z: np.ndarray, trunc: float
+    ox: float, oy: float, cos: np.ndarray, sin: np.ndarray, z: np.ndarray, trunc: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Band cells of every beam and their tsdf values, in CELL units (z and trunc too).
 
-    Beam b starts at (ox, oy), points at `angles[b]` (map frame) and returned at range `z[b]`.
-    Returns `(ci, cj, value)`; a cell may appear once per beam that crosses it.
+    Beam b starts at (ox, oy), points along `(cos[b], sin[b])` (map frame) and returned at range
+    `z[b]`. Returns `(ci, cj, value)`; a cell may appear once per beam that crosses it.
     """
     nb = z.size
-    cos = np.empty(nb)
-    sin = np.empty(nb)
     total = 0
     for b in range(nb):
-        cos[b] = math.cos(angles[b])
-        sin[b] = math.sin(angles[b])
         d0 = max(z[b] - trunc, 0.0)
         d1 = z[b] + trunc
         total += cell_count(ox + cos[b] * d0, oy + sin[b] * d0, ox + cos[b] * d1, oy + sin[b] * d1, EXACT)
