@@ -109,7 +109,7 @@ def trace_fan_rows(
     Far from the sensor, where neighbouring beams no longer touch, a row costs more than walking its
     few cells. Unless `far` is empty, the rows stop there (above and below the sensor separately)
     and the beams still going on are handed back: `far[h] = (beam, column, row)` of the cell in which
-    the caller walks beam's rest. No cell of those rows is written here, so the caller only
+    the caller walks the beam's rest. No cell of those rows is written here, so the caller only
     de-duplicates its walks among themselves.
 
     Returns `(cells written, beams handed back)`, or (-1, 0) with nothing useful written when the
