@@ -153,9 +153,10 @@ def trace_scan(
     in it (a hit beats a miss).
 
     Exact traversal of a fan in angle order is traced row by row near the sensor
-    (`fan_rows.trace_fan_rows`) and by walks in the dense window far out; other scans (Bresenham,
-    beams out of order, huge boxes) by walks that skip what neighbouring beams cover
-    (`skip_spans`). All give the union of the beams' whole walks.
+    (`fan_rows.trace_fan_rows`) and by walks in the dense window far out (rows all the way when
+    the box is too large for the window). Other exact scans (beams out of angle order, coordinates
+    past `fan_rows`' limits) are walked beam by beam, skipping what neighbouring beams cover
+    (`skip_spans`); Bresenham lines are walked whole. All give the union of the beams' walks.
 
     Input is the sensor position and the beams' end points in CELL units with their kinds, as
     `scan_endpoints` gives them. `[ti0, ti1] x [tj0, tj1]` must hold every traced cell. `scratch` is
