@@ -366,6 +366,14 @@ def test_per_scan_trace_of_a_very_wide_scan() -> None:
     got = _planned_cells(scan, config, 8)
     assert _same_cells(got, _union_of_walks(scan, config))
     assert len(got) > 36_000
+    # The same box with the beams in angle order: the row trace takes it, rows all the way (no
+    # dense window to hand far rows to).
+    ordered = Scan.from_angles(
+        (0.37, -0.11, 0.2), [0.0, 0.3, 0.31, 0.32, 1.9, math.pi], [900.0, 4.0, 4.0, 4.0, 2.5, 900.0],
+        range_min=0.0, range_max=1000.0,
+    )  # fmt: skip
+    assert _row_trace(ordered) > 36_000
+    assert _same_cells(_planned_cells(ordered, config, 8), _union_of_walks(ordered, config))
 
 
 @settings(max_examples=60, deadline=None)
@@ -437,8 +445,9 @@ def test_fans_from_degenerate_poses_trace_the_union_of_the_walks(
 
 
 def _row_trace(scan: Scan) -> int:
-    """`trace_fan_rows`'s cell count for a scan at 5 cm in 256-cell tiles (-1: not traced by rows)."""
-    ex, ey, kinds, *_ = scan_endpoints(
+    """`trace_fan_rows`'s cell count for a scan at 5 cm in 256-cell tiles (-1: not traced by rows),
+    rows all the way (no hand-back to walks)."""
+    ex, ey, kinds, xmin, ymin, xmax, ymax, _ = scan_endpoints(
         scan.pose.x,
         scan.pose.y,
         *beam_directions(scan.world_angles()),
@@ -448,10 +457,12 @@ def _row_trace(scan: Scan) -> int:
         0.0,
         0.05,
     )
+    ti0, tj0 = math.floor(xmin) >> 8, math.floor(ymin) >> 8  # the scan's box, as the engine takes it
+    ni, nj = (math.floor(xmax) >> 8) - ti0 + 1, (math.floor(ymax) >> 8) - tj0 + 1
     size = 1 << 20
-    found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(64 * 64, np.uint8)
+    found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(ni * nj, np.uint8)
     n, _ = trace_fan_rows(
-        scan.pose.x / 0.05, scan.pose.y / 0.05, ex, ey, kinds, 8, -32, -32, 64, found, kind, planes,
+        scan.pose.x / 0.05, scan.pose.y / 0.05, ex, ey, kinds, 8, ti0, tj0, ni, found, kind, planes,
         np.empty((0, 3), np.int64),
     )  # fmt: skip
     return n
