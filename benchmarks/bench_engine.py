@@ -43,9 +43,10 @@ from fleetmap.config import LayerName, MapConfig, probability
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import GridMap
 from fleetmap.kernels.fan_rows import trace_fan_rows
-from fleetmap.kernels.ray_model import beam_directions, scan_endpoints
+from fleetmap.kernels.ray_model import beam_directions
 from fleetmap.scan import Scan
 from fleetmap.sim import FloorPlan, SimulatedRobot, generate_floorplan
+from fleetmap.update_plan import ray_trace_inputs
 
 try:
     import pyoctomap
@@ -501,21 +502,12 @@ def equivalence(gmap: GridMap, tree: object, rng_seed: int = 0) -> list[str]:
 def traced_by_rows(scan: Scan) -> tuple[int, int, int]:
     """How the per-scan trace covers `scan`: cells of the beams' whole walks, cells written by the
     row trace (`kernels.fan_rows`) near the sensor, and cells the handed-back walks visit far out."""
-    ex, ey, kinds, xmin, ymin, xmax, ymax, _ = scan_endpoints(
-        scan.pose.x,
-        scan.pose.y,
-        *beam_directions(scan.world_angles()),
-        scan.ranges,
-        scan.range_min,
-        scan.range_max,
-        0.0,
-        RES,
-    )
-    ox, oy = scan.pose.x / RES, scan.pose.y / RES
+    ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = ray_trace_inputs(
+        scan, *beam_directions(scan.world_angles()), 0.0, RES, 8
+    )  # every workload scan traces beams
+    ni, nj = ti1 - ti0 + 1, tj1 - tj0 + 1
     traced = kinds != 0
     whole = np.abs(np.floor(ex) - math.floor(ox)) + np.abs(np.floor(ey) - math.floor(oy)) + 1
-    ti0, tj0 = math.floor(xmin) >> 8, math.floor(ymin) >> 8
-    ni, nj = (math.floor(xmax) >> 8) - ti0 + 1, (math.floor(ymax) >> 8) - tj0 + 1
     size = int(whole[traced].sum())
     far = np.empty((ex.size, 3), dtype=np.int64)
     found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(ni * nj, np.uint8)

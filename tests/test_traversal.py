@@ -17,10 +17,10 @@ from hypothesis import strategies as st
 
 from fleetmap.config import MapConfig
 from fleetmap.kernels.fan_rows import trace_fan_rows
-from fleetmap.kernels.ray_model import beam_directions, scan_endpoints
+from fleetmap.kernels.ray_model import beam_directions
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, segment_cells
 from fleetmap.scan import Scan
-from fleetmap.update_plan import plan_scan
+from fleetmap.update_plan import plan_scan, ray_trace_inputs
 
 #: Slack for "touches": a visited cell's closed square may miss the segment by at most this much
 #: (floating-point rounding in the walk's boundary parameters).
@@ -447,24 +447,15 @@ def test_fans_from_degenerate_poses_trace_the_union_of_the_walks(
 def _row_trace(scan: Scan) -> int:
     """`trace_fan_rows`'s cell count for a scan at 5 cm in 256-cell tiles (-1: not traced by rows),
     rows all the way (no hand-back to walks)."""
-    ex, ey, kinds, xmin, ymin, xmax, ymax, _ = scan_endpoints(
-        scan.pose.x,
-        scan.pose.y,
-        *beam_directions(scan.world_angles()),
-        scan.ranges,
-        scan.range_min,
-        scan.range_max,
-        0.0,
-        0.05,
-    )
-    ti0, tj0 = math.floor(xmin) >> 8, math.floor(ymin) >> 8  # the scan's box, as the engine takes it
-    ni, nj = (math.floor(xmax) >> 8) - ti0 + 1, (math.floor(ymax) >> 8) - tj0 + 1
+    ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = ray_trace_inputs(
+        scan, *beam_directions(scan.world_angles()), 0.0, 0.05, 8
+    )  # the scan's box, as the engine takes it
+    ni, nj = ti1 - ti0 + 1, tj1 - tj0 + 1
     size = 1 << 20
     found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(ni * nj, np.uint8)
     n, _ = trace_fan_rows(
-        scan.pose.x / 0.05, scan.pose.y / 0.05, ex, ey, kinds, 8, ti0, tj0, ni, found, kind, planes,
-        np.empty((0, 3), np.int64),
-    )  # fmt: skip
+        ox, oy, ex, ey, kinds, 8, ti0, tj0, ni, found, kind, planes, np.empty((0, 3), np.int64)
+    )
     return n
 
 

@@ -121,20 +121,37 @@ def _reach(scan: Scan, config: MapConfig) -> float:
     return far + config.tsdf.truncation + config.beam.alpha
 
 
+def ray_trace_inputs(
+    scan: Scan, cos: np.ndarray, sin: np.ndarray, clear_range: float, res: float, shift: int
+) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray, int, int, int, int] | None:
+    """What the per-scan trace (`kernels.ray_model.trace_scan`) takes for `scan`: the sensor
+    `(ox, oy)`, end points `ex, ey` and kinds of the beams (CELL units), and the tile box
+    `ti0, tj0, ti1, tj1` holding them; None when no beam is traced. `cos`, `sin` are the beams'
+    map-frame directions (`beam_directions`), `clear_range` the no-return clearing range (m)."""
+    ex, ey, kinds, xmin, ymin, xmax, ymax, used = scan_endpoints(
+        scan.pose.x, scan.pose.y, cos, sin, scan.ranges, scan.range_min, scan.range_max, clear_range, res
+    )
+    if used == 0:
+        return None
+    box = (
+        math.floor(xmin) >> shift,
+        math.floor(ymin) >> shift,
+        math.floor(xmax) >> shift,
+        math.floor(ymax) >> shift,
+    )
+    return (scan.pose.x / res, scan.pose.y / res, ex, ey, kinds, *box)
+
+
 def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, cos: np.ndarray, sin: np.ndarray):
     """The ray model with per-scan semantics, in one compiled pass (`kernels.ray_model.trace_scan`);
     `cos`, `sin` are the beams' map-frame directions."""
-    res = config.resolution
-    args = (scan.ranges, scan.range_min, scan.range_max, config.no_return_range, res)
-    ex, ey, kinds, xmin, ymin, xmax, ymax, used = scan_endpoints(scan.pose.x, scan.pose.y, cos, sin, *args)
-    if used == 0:
+    inputs = ray_trace_inputs(scan, cos, sin, config.no_return_range, config.resolution, shift)
+    if inputs is None:
         return _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_KIND
-    ti0, ti1 = math.floor(xmin) >> shift, math.floor(xmax) >> shift
-    tj0, tj1 = math.floor(ymin) >> shift, math.floor(ymax) >> shift
+    ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = inputs
     if (ti1 - ti0 + 1) * (tj1 - tj0 + 1) > MAX_SCAN_TILE_WINDOW:
         raise ScanError("the scan spans too large an area for one scan; check its ranges and resolution")
     method = EXACT if config.traversal == "exact" else BRESENHAM
-    ox, oy = scan.pose.x / res, scan.pose.y / res
     while True:
         scratch = getattr(_scratch, "array", None)
         if scratch is None:
