@@ -511,9 +511,13 @@ def traced_by_rows(scan: Scan) -> tuple[int, int, int]:
     size = int(whole[traced].sum())
     far = np.empty((ex.size, 3), dtype=np.int64)
     found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(ni * nj, np.uint8)
-    rows, handed = trace_fan_rows(ox, oy, ex, ey, kinds, 8, ti0, tj0, ni, found, kind, planes, far)
-    if rows < 0:
+    run_key, run_len = np.empty(size, np.int64), np.empty(size, np.int64)
+    cells, runs, handed = trace_fan_rows(
+        ox, oy, ex, ey, kinds, 8, ti0, tj0, ni, found, kind, run_key, run_len, planes, far
+    )
+    if cells < 0:
         return size, 0, size
+    rows = cells + int(run_len[:runs].sum())
     b, i, j = far[:handed, 0], far[:handed, 1], far[:handed, 2]
     walked = np.abs(np.floor(ex[b]) - i) + np.abs(np.floor(ey[b]) - j) + 1
     return size, rows, int(walked.sum())

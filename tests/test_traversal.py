@@ -289,7 +289,10 @@ def _planned_cells(scan: Scan, config: MapConfig, shift: int) -> list[tuple[tupl
     local = (1 << (2 * shift)) - 1
     mask = (1 << shift) - 1
     out = []
-    for c, k in zip(plan.cell.tolist(), plan.kind.tolist(), strict=True):
+    runs = [
+        (c + x, 1) for c, n in zip(plan.run.tolist(), plan.run_len.tolist(), strict=True) for x in range(n)
+    ]
+    for c, k in list(zip(plan.cell.tolist(), plan.kind.tolist(), strict=True)) + runs:
         tile, pos = c >> (2 * shift), c & local
         i = (int(plan.tiles_i[tile]) << shift) + (pos & mask)
         j = (int(plan.tiles_j[tile]) << shift) + (pos >> shift)
@@ -453,10 +456,25 @@ def _row_trace(scan: Scan) -> int:
     ni, nj = ti1 - ti0 + 1, tj1 - tj0 + 1
     size = 1 << 20
     found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(ni * nj, np.uint8)
-    n, _ = trace_fan_rows(
-        ox, oy, ex, ey, kinds, 8, ti0, tj0, ni, found, kind, planes, np.empty((0, 3), np.int64)
+    run_key, run_len = np.empty(size, np.int64), np.empty(size, np.int64)
+    n, r, _ = trace_fan_rows(
+        ox,
+        oy,
+        ex,
+        ey,
+        kinds,
+        8,
+        ti0,
+        tj0,
+        ni,
+        found,
+        kind,
+        run_key,
+        run_len,
+        planes,
+        np.empty((0, 3), np.int64),
     )
-    return n
+    return n if n < 0 else n + int(run_len[:r].sum())
 
 
 def test_row_trace_takes_fans_in_angle_order_and_leaves_the_rest_to_walks() -> None:

@@ -96,10 +96,11 @@ class GridMap:
             log_odds, hits, misses, tsdf, tsdf_weight = store.kernel_pools()
             params = (occ.l_hit, occ.l_miss, occ.l_min, occ.l_max)
             updates = tsdf_updates = 0
-            if plan.cell.size:
+            if plan.cell.size or plan.run.size:
                 updates += apply_cells(
-                    plan.cell, plan.kind, slots, store.shift, log_odds, hits, misses, *params, changed
-                )
+                    plan.cell, plan.kind, plan.run, plan.run_len, slots, store.shift, log_odds, hits, misses,
+                    *params, changed,
+                )  # fmt: skip
             if plan.occ_i.size:
                 updates += apply_entries(
                     plan.occ_i, plan.occ_j, plan.occ_kind, plan.occ_tile, slots, store.shift,

@@ -50,16 +50,19 @@ _scratch = threading.local()
 class UpdatePlan:
     """Cell updates of one scan, in global cell indices.
 
-    Hits and misses for the occupancy and counts layers come either as per-scan updates (`cell`,
-    `kind`: each cell once, a hit beating a miss; cell n lies in tile `cell[n] >> 2*shift` of
-    `tiles_i/j`, at local position `cell[n] & (T*T - 1)`) or as ordered entries `occ_*` (per-ray
-    updates, and the beam model). `tsdf_*` are truncated distance samples for the TSDF layer.
-    `tiles_i/j` lists every tile any of them touches, the per-scan updates' tiles first; `occ_tile`
-    and `tsdf_tile` give each ordered entry's tile in that list.
+    Hits and misses for the occupancy and counts layers come either as per-scan updates (each cell
+    once, a hit beating a miss: `cell`, `kind`, where cell n lies in tile `cell[n] >> 2*shift` of
+    `tiles_i/j`, at local position `cell[n] & (T*T - 1)`; and `run`, `run_len`, where run k is
+    `run_len[k]` misses on consecutive cells of one tile row from `run[k]`, keyed like `cell`) or as
+    ordered entries `occ_*` (per-ray updates, and the beam model). `tsdf_*` are truncated distance
+    samples for the TSDF layer. `tiles_i/j` lists every tile any of them touches, the per-scan
+    updates' tiles first; `occ_tile` and `tsdf_tile` give each ordered entry's tile in that list.
     """
 
     cell: np.ndarray
     kind: np.ndarray
+    run: np.ndarray
+    run_len: np.ndarray
     occ_i: np.ndarray
     occ_j: np.ndarray
     occ_kind: np.ndarray
@@ -85,7 +88,7 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     if not (abs(ox) + reach < MAX_CELL_INDEX and abs(oy) + reach < MAX_CELL_INDEX):
         raise ScanError("the scan's pose or ranges lie beyond the map's coordinate range")
     cos, sin = beam_directions(scan.world_angles())
-    cell = occ_i = occ_j = _EMPTY_I
+    cell = run = run_len = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
     tiles_i = tiles_j = _EMPTY_I
     if config.has("occupancy") or config.has("counts"):
@@ -94,7 +97,7 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
         elif config.update == "per_ray":
             occ_i, occ_j, occ_kind = _ray_model_per_ray(scan, config, ox, oy)
         else:
-            tiles_i, tiles_j, cell, kind = _ray_model_per_scan(scan, config, shift, cos, sin)
+            tiles_i, tiles_j, cell, kind, run, run_len = _ray_model_per_scan(scan, config, shift, cos, sin)
     tsdf_i = tsdf_j = _EMPTY_I
     tsdf_value = np.empty(0, dtype=np.float32)
     if config.has("tsdf"):
@@ -109,7 +112,20 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     if tsdf_i.size:
         tiles_i, tiles_j, tsdf_tile = merge_tiles(tiles_i, tiles_j, tsdf_i, tsdf_j, shift)
     return UpdatePlan(
-        cell, kind, occ_i, occ_j, occ_kind, occ_tile, tsdf_i, tsdf_j, tsdf_value, tsdf_tile, tiles_i, tiles_j
+        cell,
+        kind,
+        run,
+        run_len,
+        occ_i,
+        occ_j,
+        occ_kind,
+        occ_tile,
+        tsdf_i,
+        tsdf_j,
+        tsdf_value,
+        tsdf_tile,
+        tiles_i,
+        tiles_j,
     )
 
 
@@ -147,7 +163,7 @@ def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, cos: np.ndarr
     `cos`, `sin` are the beams' map-frame directions."""
     inputs = ray_trace_inputs(scan, cos, sin, config.no_return_range, config.resolution, shift)
     if inputs is None:
-        return _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_KIND
+        return _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_KIND, _EMPTY_I, _EMPTY_I
     ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = inputs
     if (ti1 - ti0 + 1) * (tj1 - tj0 + 1) > MAX_SCAN_TILE_WINDOW:
         raise ScanError("the scan spans too large an area for one scan; check its ranges and resolution")
@@ -156,11 +172,11 @@ def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, cos: np.ndarr
         scratch = getattr(_scratch, "array", None)
         if scratch is None:
             scratch = _scratch.array = np.zeros(1 << (2 * shift), dtype=np.uint8)
-        tiles_i, tiles_j, cell, kind, needed = trace_scan(
+        tiles_i, tiles_j, cell, kind, run, run_len, needed = trace_scan(
             ox, oy, ex, ey, kinds, method, shift, ti0, tj0, ti1, tj1, scratch
         )
         if not needed:
-            return tiles_i, tiles_j, cell, kind
+            return tiles_i, tiles_j, cell, kind, run, run_len
         _scratch.array = np.zeros(needed, dtype=np.uint8)
 
 

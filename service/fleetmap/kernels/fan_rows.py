@@ -44,6 +44,9 @@ NEAR_LINE = 0.01
 #: holds well inside these. Beyond them the caller walks the beams instead.
 MAX_COORD = float(1 << 24)
 MAX_EXTENT = float(1 << 20)
+#: Shorter runs of misses in a row are written as single cells: the apply's per-run cost would
+#: outweigh its per-cell saving.
+MIN_RUN = 4
 #: Rows are handed back to walks once the chains average fewer beams than this (see
 #: `trace_fan_rows`): a row costs a few crossing computations per chain, a walk about one per cell.
 CHAIN_WALK_RATIO = 8
@@ -98,13 +101,16 @@ def _lowest_bit(word: np.uint64) -> int:
 @njit(cache=True, nogil=True)
 def trace_fan_rows(
     ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, shift: int, ti0: int, tj0: int,
-    ni: int, found: np.ndarray, kind_out: np.ndarray, planes: np.ndarray, far: np.ndarray,
-) -> tuple[int, int]:  # fmt: skip
+    ni: int, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray, run_len: np.ndarray,
+    planes: np.ndarray, far: np.ndarray,
+) -> tuple[int, int, int]:  # fmt: skip
     """Per-scan exact-traversal updates of every traced beam (`kinds` as in `ray_model`), row by row.
 
-    Writes each touched cell once into `found` as a plane key (plane = tile row * ni + tile column
-    relative to tile (ti0, tj0), then `local_j * T + local_i`) with its kind in `kind_out` (hit if a
-    `BEAM_HIT` ends in it, else miss), and flags the planes used in `planes`.
+    Writes each touched cell once, as a plane key (plane = tile row * ni + tile column relative to
+    tile (ti0, tj0), then `local_j * T + local_i`): runs of at least `MIN_RUN` misses on consecutive
+    cells of one tile row as `run_key` (the first cell) and `run_len`, every other cell into
+    `found` with its kind in `kind_out` (hit if a `BEAM_HIT` ends in it, else miss). Flags the
+    planes used in `planes`. `run_key` needs room for `found.size // MIN_RUN` runs.
 
     Far from the sensor, where neighbouring beams no longer touch, a row costs more than walking its
     few cells. Unless `far` is empty, the rows stop there (above and below the sensor separately)
@@ -112,13 +118,13 @@ def trace_fan_rows(
     the caller walks the beam's rest. No cell of those rows is written here, so the caller only
     de-duplicates its walks among themselves.
 
-    Returns `(cells written, beams handed back)`, or (-1, 0) with nothing useful written when the
-    fan is not ordered by direction or lies outside `MAX_COORD` / `MAX_EXTENT`; the caller then
-    walks the beams.
+    Returns `(cells written to found, runs written, beams handed back)`, or (-1, 0, 0) with nothing
+    useful written when the fan is not ordered by direction or lies outside `MAX_COORD` /
+    `MAX_EXTENT`; the caller then walks the beams.
     """
     nb = ex.size
     if not (abs(ox) < MAX_COORD and abs(oy) < MAX_COORD):
-        return -1, 0
+        return -1, 0, 0
     i0 = math.floor(ox)
     j0 = math.floor(oy)
     ie = np.empty(nb, dtype=np.int64)
@@ -133,7 +139,7 @@ def trace_fan_rows(
         if kinds[b] == _BEAM_SKIP:
             continue
         if not (abs(ex[b] - ox) < MAX_EXTENT and abs(ey[b] - oy) < MAX_EXTENT):
-            return -1, 0
+            return -1, 0, 0
         _, _, ie[b], je[b], step_i[b], _, base_x[b], scale_x[b], base_y[b], scale_y[b] = exact_start(
             ox, oy, ex[b], ey[b]
         )
@@ -155,7 +161,7 @@ def trace_fan_rows(
     up_order = _direction_order(up, ox, oy, ex, ey)
     down_order = _direction_order(down, ox, oy, ex, ey)
     if up_order.size != n_up or down_order.size != n_down:
-        return -1, 0
+        return -1, 0, 0
     # The sensor's row: every beam's run starts at the sensor's column, so their union is one span.
     lo = hi = i0
     for b in range(nb):
@@ -167,24 +173,31 @@ def trace_fan_rows(
             c = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], crossing(j0, base_y[b], scale_y[b]))
         lo = min(lo, c)
         hi = max(hi, c)
-    # The counts (cells written, beams handed back) live in an array: passed as the literal 0, an int
+    # The counts (cells, beams handed back, runs) live in an array: passed as the literal 0, an int
     # argument would make numba compile each callee twice, once for the literal.
-    counts = np.zeros(2, dtype=np.int64)
-    n = _emit(found, kind_out, planes, counts[0], j0, lo, hi, shift, ti0, tj0, ni)
+    counts = np.zeros(3, dtype=np.int64)
+    span = np.array([lo, hi], dtype=np.int64)
+    hit_cols = np.empty(nb, dtype=np.int64)
+    nh = 0
     for b in range(nb):
         if kinds[b] == _BEAM_HIT and je[b] == j0:
-            kind_out[ie[b] - lo] = _CELL_HIT_MISS
+            hit_cols[nh] = ie[b]
+            nh += 1
+    if not _emit_row(
+        found, kind_out, run_key, run_len, planes, counts, j0, span[:1], span[1:], 1, hit_cols, nh, shift,
+        ti0, tj0, ni,
+    ):  # fmt: skip
+        return -1, 0, 0
     fy = oy - j0
-    counts[0] = n
     for g in range(2):  # up, then down
         _trace_rows(
             up_order if g == 0 else down_order, 1 - 2 * g, fy if g == 0 else 1.0 - fy, counts, ox, oy, ex,
             ey, kinds, i0, j0, ie, je, step_i, base_x, scale_x, base_y, scale_y, shift, ti0, tj0, ni, found,
-            kind_out, planes, far,
+            kind_out, run_key, run_len, planes, far,
         )  # fmt: skip
         if counts[0] < 0:
-            return -1, 0
-    return counts[0], counts[1]
+            return -1, 0, 0
+    return counts[0], counts[2], counts[1]
 
 
 @njit(cache=True, nogil=True)
@@ -217,28 +230,72 @@ def _direction_order(members: np.ndarray, ox: float, oy: float, ex: np.ndarray, 
 
 
 @njit(cache=True, nogil=True)
-def _emit(
-    found: np.ndarray, kind_out: np.ndarray, planes: np.ndarray, n: int, row: int, lo: int, hi: int,
-    shift: int, ti0: int, tj0: int, ni: int,
-) -> int:  # fmt: skip
-    """Append the plane keys of cells lo..hi of `row`, split at tile edges, as misses; returns the new
-    count."""
+def _emit_row(
+    found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray, run_len: np.ndarray, planes: np.ndarray,
+    counts: np.ndarray, row: int, span_lo: np.ndarray, span_hi: np.ndarray, spans: int, hit_cols: np.ndarray,
+    nh: int, shift: int, ti0: int, tj0: int, ni: int,
+) -> bool:  # fmt: skip
+    """Write one row's cells: the disjoint ascending spans `span_lo/hi` as misses, except the columns
+    `hit_cols` (end cells of returns, in any order, repeats allowed), which are hits. Misses split
+    at tile edges and hits go out as runs (`MIN_RUN` cells or more) or single cells; `counts[0]`
+    and `counts[2]` (cells, runs) advance. Returns False, having written nothing past the counts,
+    if a hit lies outside the spans or `found` could overflow (neither can happen for a real trace)."""
+    # The hit columns sorted (a row holds only a few).
+    for k in range(1, nh):
+        v = hit_cols[k]
+        t = k
+        while t > 0 and hit_cols[t - 1] > v:
+            hit_cols[t] = hit_cols[t - 1]
+            t -= 1
+        hit_cols[t] = v
     mask = (1 << shift) - 1
     tile_row = ((row >> shift) - tj0) * ni
     local_row = (row & mask) << shift
-    c = lo
-    while c <= hi:
-        tile_start = (c >> shift) << shift
-        end = min(hi, tile_start + mask)
-        plane = tile_row + (c >> shift) - ti0
-        planes[plane] = 1
-        base = ((plane << (2 * shift)) | local_row) - tile_start
-        for x in range(c, end + 1):
-            found[n + x - c] = base + x
-            kind_out[n + x - c] = 1  # CELL_MISS
-        n += end + 1 - c
-        c = end + 1
-    return n
+    n = counts[0]
+    r = counts[2]
+    h = 0
+    for s in range(spans):
+        lo = span_lo[s]
+        hi = span_hi[s]
+        if n + hi - lo >= found.size:
+            return False
+        if h < nh and hit_cols[h] < lo:
+            return False  # a hit left of this span and in no earlier one
+        c = lo
+        while c <= hi:
+            # The misses from c up to the next hit, the span's end or the tile's edge.
+            tile_start = (c >> shift) << shift
+            end = min(hi, tile_start + mask)
+            if h < nh and hit_cols[h] <= end:
+                end = hit_cols[h] - 1
+            plane = tile_row + (c >> shift) - ti0
+            base = ((plane << (2 * shift)) | local_row) - tile_start
+            if end >= c:
+                planes[plane] = 1
+                if end - c + 1 >= MIN_RUN:
+                    run_key[r] = base + c
+                    run_len[r] = end - c + 1
+                    r += 1
+                else:
+                    for x in range(c, end + 1):
+                        found[n] = base + x
+                        kind_out[n] = 1  # CELL_MISS
+                        n += 1
+            c = end + 1
+            if h < nh and hit_cols[h] == c and c <= hi:
+                plane = tile_row + (c >> shift) - ti0
+                planes[plane] = 1
+                found[n] = ((plane << (2 * shift)) | local_row) + (c & mask)
+                kind_out[n] = _CELL_HIT_MISS
+                n += 1
+                c += 1
+                while h < nh and hit_cols[h] < c:  # repeats of this hit column
+                    h += 1
+    if h < nh:
+        return False
+    counts[0] = n
+    counts[2] = r
+    return True
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -261,13 +318,14 @@ def _trace_rows(
     order: np.ndarray, step_j: int, c: float, counts: np.ndarray, ox: float, oy: float, ex: np.ndarray,
     ey: np.ndarray, kinds: np.ndarray, i0: int, j0: int, ie: np.ndarray, je: np.ndarray, step_i: np.ndarray,
     base_x: np.ndarray, scale_x: np.ndarray, base_y: np.ndarray, scale_y: np.ndarray, shift: int, ti0: int,
-    tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray, planes: np.ndarray, far: np.ndarray,
+    tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray, run_len: np.ndarray,
+    planes: np.ndarray, far: np.ndarray,
 ) -> None:  # fmt: skip
     """The rows above (step_j = 1) or below (-1) the sensor's row, crossed by the beams `order`
     (sorted by direction). Row offset m is row j0 + step_j * m, whose entry line lies m - c from the
-    sensor. Appends cells to `found` / `kind_out` and hand-backs to `far` after the `counts` (cells,
-    hand-backs) so far, and updates them; a cell count of -1 means the row trace gave up."""
-    n, h = counts[0], counts[1]
+    sensor. Appends cells and runs (`_emit_row`) and hand-backs to `far` after the `counts` (cells,
+    hand-backs, runs) so far, and updates them; a cell count of -1 means the row trace gave up."""
+    h = counts[1]
     nu = order.size
     if nu == 0:
         return
@@ -321,9 +379,9 @@ def _trace_rows(
             events += 1
     span_lo = np.empty(nu + 2, dtype=np.int64)
     span_hi = np.empty(nu + 2, dtype=np.int64)
-    span_at = np.empty(nu + 2, dtype=np.int64)
     tmp_lo = np.empty(nu + 2, dtype=np.int64)
     tmp_hi = np.empty(nu + 2, dtype=np.int64)
+    hit_cols = np.empty(nu, dtype=np.int64)
     descending = key[0] >= key[nu - 1]  # the runs' columns fall along `order`
     going = nu
     handing_back = False
@@ -428,24 +486,19 @@ def _trace_rows(
         if far.shape[0] and (spans - ended) * CHAIN_WALK_RATIO > going:
             handing_back = True  # from the next row on, most chains are single beams
         merged = _union(span_lo, span_hi, ended, spans, descending, tmp_lo, tmp_hi)
-        for s in range(merged):
-            if n + span_hi[s] - span_lo[s] >= found.size:
-                counts[0] = -1  # cannot happen (the union is at most every walk's cells); never overrun
-                return
-            span_at[s] = n
-            n = _emit(found, kind_out, planes, n, row, span_lo[s], span_hi[s], shift, ti0, tj0, ni)
         # Hits: the end cells of returns ending in this row.
+        nh = 0
         for q in range(ends_at[m], ends_at[m + 1]):
             b = order[ending[q]]
             if kinds[b] == _BEAM_HIT:
-                s = 0
-                while s < merged - 1 and span_hi[s] < ie[b]:
-                    s += 1
-                if not span_lo[s] <= ie[b] <= span_hi[s]:
-                    counts[0] = -1  # cannot happen (a walk covers its end cell); never write astray
-                    return
-                kind_out[span_at[s] + ie[b] - span_lo[s]] = _CELL_HIT_MISS
-    counts[0] = n
+                hit_cols[nh] = ie[b]
+                nh += 1
+        if not _emit_row(
+            found, kind_out, run_key, run_len, planes, counts, row, span_lo, span_hi, merged, hit_cols, nh,
+            shift, ti0, tj0, ni,
+        ):  # fmt: skip
+            counts[0] = -1  # cannot happen (a walk covers its end cell, the union is at most every walk)
+            return
     counts[1] = h
 
 

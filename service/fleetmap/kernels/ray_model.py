@@ -8,7 +8,7 @@ import math
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.fan_rows import trace_fan_rows
+from fleetmap.kernels.fan_rows import MIN_RUN, trace_fan_rows
 from fleetmap.kernels.traversal import (
     EXACT,
     cell_at,
@@ -148,7 +148,7 @@ def trace_scan(
     ti1: int,
     tj1: int,
     scratch: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Per-scan updates of the ray model: every cell any beam touches, once, a hit if any beam ends
     in it (a hit beats a miss).
 
@@ -164,10 +164,12 @@ def trace_scan(
     thread. When it is too small, nothing is traced and the last value returned is the size it
     needs (else 0).
 
-    Returns `(tiles_i, tiles_j, cell, kind, scratch_needed)`: tile k is `(tiles_i[k], tiles_j[k])`;
-    updated cell n lies in tile `cell[n] >> 2*shift` at local position `cell[n] & (T*T - 1)`
-    (= `local_j * T + local_i`) and is a `CELL_HIT` if `kind[n] & CELL_HIT`, else a miss. Each cell
-    comes once, in no particular order.
+    Returns `(tiles_i, tiles_j, cell, kind, run, run_len, scratch_needed)`: tile k is
+    `(tiles_i[k], tiles_j[k])`; updated cell n lies in tile `cell[n] >> 2*shift` at local position
+    `cell[n] & (T*T - 1)` (= `local_j * T + local_i`) and is a `CELL_HIT` if `kind[n] & CELL_HIT`,
+    else a miss. Run k is `run_len[k]` misses on consecutive cells of one tile row from the cell
+    `run[k]` (keyed like `cell`; the row trace writes them). Each cell comes once, in no particular
+    order.
     """
     plane_shift = 2 * shift
     nj = tj1 - tj0 + 1
@@ -185,12 +187,16 @@ def trace_scan(
         # dense window (when the box fits one).
         if dense and scratch.size < nj << (shift + wshift):
             none = np.empty(0, dtype=np.int64)
-            return none, none, none, np.empty(0, dtype=np.uint8), nj << (shift + wshift)
+            return none, none, none, np.empty(0, dtype=np.uint8), none, none, nj << (shift + wshift)
         found = np.empty(visits, dtype=np.int64)
         kind_out = np.empty(visits, dtype=np.uint8)
+        run_key = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
+        run_len = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
         planes = np.zeros(nj * ni, dtype=np.uint8)
         far = np.empty((ex.size if dense else 0, 3), dtype=np.int64)
-        n, h = trace_fan_rows(ox, oy, ex, ey, kinds, shift, ti0, tj0, ni, found, kind_out, planes, far)
+        n, r, h = trace_fan_rows(
+            ox, oy, ex, ey, kinds, shift, ti0, tj0, ni, found, kind_out, run_key, run_len, planes, far
+        )
         if n >= 0:
             if h:
                 n = _walk_far(
@@ -198,7 +204,10 @@ def trace_scan(
                     planes,
                 )  # fmt: skip
             index = np.arange(nj * ni).reshape(nj, ni)
-            return _number_tiles(index, planes, found, kind_out, n, plane_shift, ti0, tj0, index.size > 0)
+            return _number_tiles(
+                index, planes, found[:n], kind_out[:n], run_key[:r], run_len[:r], plane_shift, ti0, tj0,
+                index.size > 0,
+            )  # fmt: skip
     if dense:
         needed = nj << (shift + wshift)
         index = np.arange(nj * ni).reshape(nj, ni)
@@ -207,7 +216,7 @@ def trace_scan(
         needed = m << plane_shift
     if scratch.size < needed:
         none = np.empty(0, dtype=np.int64)
-        return none, none, none, np.empty(0, dtype=np.uint8), needed  # the caller grows the scratch
+        return none, none, none, np.empty(0, dtype=np.uint8), none, none, needed  # the caller grows it
     found = np.empty(visits, dtype=np.int64)  # each cell the first time a beam reaches it
     kind_out = np.empty(visits, dtype=np.uint8)
     planes = np.zeros(index.size, dtype=np.uint8)  # which planes hold a cell
@@ -220,16 +229,18 @@ def trace_scan(
             kind_out[k] = scratch[found[k]]
             scratch[found[k]] = 0
             planes[found[k] >> plane_shift] = 1
-    return _number_tiles(index, planes, found, kind_out, n, plane_shift, ti0, tj0, dense)
+    none = np.empty(0, dtype=np.int64)
+    return _number_tiles(index, planes, found[:n], kind_out[:n], none, none, plane_shift, ti0, tj0, dense)
 
 
 @njit(cache=True, nogil=True)
 def _number_tiles(
-    index: np.ndarray, planes: np.ndarray, found: np.ndarray, kind_out: np.ndarray, n: int, plane_shift: int,
-    ti0: int, tj0: int, dense: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # fmt: skip
-    """`trace_scan`'s result from plane keys `found[:n]` (plane numbers from `index`, flagged in
-    `planes` when they hold a cell): the planes that hold a cell renumbered 0..m-1, and their tiles."""
+    index: np.ndarray, planes: np.ndarray, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray,
+    run_len: np.ndarray, plane_shift: int, ti0: int, tj0: int, dense: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # fmt: skip
+    """`trace_scan`'s result from the plane keys of cells `found` and runs `run_key` (plane numbers
+    from `index`, flagged in `planes` when they hold a cell): the planes that hold a cell renumbered
+    0..m-1, and their tiles."""
     nj, ni = index.shape
     m = 0
     renum = np.full(index.size, -1, dtype=np.int64)
@@ -246,11 +257,12 @@ def _number_tiles(
     if dense and m == index.size:
         # The dense window numbers planes row-major over the box; when every plane holds a cell,
         # that is the final numbering and the keys need no rewrite.
-        return tiles_i, tiles_j, found[:n], kind_out[:n], 0
+        return tiles_i, tiles_j, found, kind_out, run_key, run_len, 0
     local = (1 << plane_shift) - 1
-    for k in range(n):
-        found[k] = (renum[found[k] >> plane_shift] << plane_shift) | (found[k] & local)
-    return tiles_i[:m], tiles_j[:m], found[:n], kind_out[:n], 0
+    for keys in (found, run_key):
+        for k in range(keys.size):
+            keys[k] = (renum[keys[k] >> plane_shift] << plane_shift) | (keys[k] & local)
+    return tiles_i[:m], tiles_j[:m], found, kind_out, run_key, run_len, 0
 
 
 @njit(cache=True, nogil=True, inline="always")

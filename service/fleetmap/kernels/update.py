@@ -102,6 +102,8 @@ def _apply_one(
 def apply_cells(
     cell: np.ndarray,
     kind: np.ndarray,
+    run: np.ndarray,
+    run_len: np.ndarray,
     slots: np.ndarray,
     shift: int,
     log_odds: np.ndarray,
@@ -116,11 +118,15 @@ def apply_cells(
     """Apply per-scan updates (see `ray_model.trace_scan`) to the pools; return cells updated.
 
     Cell n is in tile `cell[n] >> 2*shift`, which is pool slot `slots[that]`, at local position
-    `cell[n] & (T*T - 1)`; `changed[tile]` is set to 1 where a stored value changed. Each enabled layer
-    gets its own pass over the cells, so each inner loop is short and branch-light.
+    `cell[n] & (T*T - 1)`; run k is `run_len[k]` misses on the consecutive cells from `run[k]` (keyed
+    the same way, within one tile row). `changed[tile]` is set to 1 where a stored value changed.
+    Each enabled layer gets its own pass, so each inner loop is short and branch-light.
     """
     plane_shift = 2 * shift
     local_mask = (1 << plane_shift) - 1
+    updates = cell.size
+    for k in range(run.size):
+        updates += run_len[k]
     if log_odds.size:
         # One flat view of the pool; unsigned indices (all are >= 0) spare numba's negative-index
         # wraparound code, and the store is unconditional (branch-free). Cells come in runs of one
@@ -145,6 +151,17 @@ def apply_cells(
             diff |= new != old  # NaN != anything: a first observation is a change
         if diff:
             changed[tile] = 1
+        for k in range(run.size):
+            t = np.uint64(run[k] >> plane_shift)
+            at = np.uint64((slots[t] << plane_shift) | (run[k] & local_mask))
+            diff = False
+            for x in range(np.uint64(run_len[k])):  # contiguous misses: a loop the compiler vectorises
+                old = flat_log_odds[at + x]
+                new = updated_log_odds(old, False, l_hit, l_miss, l_min, l_max)
+                flat_log_odds[at + x] = new
+                diff |= new != old
+            if diff:
+                changed[t] = 1
     if hits.size:
         flat_hits = hits.reshape(-1)
         flat_misses = misses.reshape(-1)
@@ -157,7 +174,14 @@ def apply_cells(
             elif flat_misses[at] != _U32_MAX:
                 flat_misses[at] += 1
             changed[tile] = 1
-    return cell.size
+        for k in range(run.size):
+            tile = np.uint64(run[k] >> plane_shift)
+            at = np.uint64((slots[tile] << plane_shift) | (run[k] & local_mask))
+            for x in range(np.uint64(run_len[k])):
+                if flat_misses[at + x] != _U32_MAX:
+                    flat_misses[at + x] += 1
+            changed[tile] = 1
+    return updates
 
 
 @njit(cache=True, nogil=True)
