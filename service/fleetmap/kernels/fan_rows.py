@@ -229,7 +229,10 @@ def _direction_order(members: np.ndarray, ox: float, oy: float, ex: np.ndarray, 
     return np.empty(0, dtype=np.int64)
 
 
-@njit(cache=True, nogil=True)
+# Called once per row with arrays: compiled without numba's reference counting (`_nrt=False`; it
+# allocates nothing), which otherwise costs an atomic increment and decrement per array argument on
+# every call, about 90 of this function's 140 ns per row.
+@njit(cache=True, nogil=True, _nrt=False)
 def _emit_row(
     found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray, run_len: np.ndarray, planes: np.ndarray,
     counts: np.ndarray, row: int, span_lo: np.ndarray, span_hi: np.ndarray, spans: int, hit_cols: np.ndarray,
@@ -502,7 +505,8 @@ def _trace_rows(
     counts[1] = h
 
 
-@njit(cache=True, nogil=True)
+# Once per row with arrays, allocates nothing: no reference counting (see `_emit_row`).
+@njit(cache=True, nogil=True, _nrt=False)
 def _union(
     span_lo: np.ndarray, span_hi: np.ndarray, ended: int, spans: int, descending: bool, tmp_lo: np.ndarray,
     tmp_hi: np.ndarray,
