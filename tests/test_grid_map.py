@@ -194,6 +194,29 @@ def test_versions_change_only_for_changed_tiles() -> None:
     assert len(set(m.store.versions[: len(m.store)].tolist())) == len(m.store)
 
 
+@pytest.mark.parametrize("layers", [["occupancy"], ["occupancy", "counts"]])
+def test_a_saturated_map_reports_no_change(layers: list[str]) -> None:
+    """The same dense fan again and again (its plan holds runs of misses as well as single cells,
+    hits among them, across tile edges): while cells still move, the tiles they are in change
+    version; once every log-odds value sits at its clamp, a scan changes nothing and no version
+    moves. Counts never saturate in practice, so with them every scan changes its tiles."""
+    m = make_map(layers=layers, tile_size=64)
+    fan = Scan.from_fan((3.17, 3.11, 0.4), -2.3, 4.6 / 540, np.full(540, 4.0), range_max=30.0)
+    plan = m.plan(fan)
+    assert plan.run.size > 0 and plan.cell.size > 0 and plan.num_tiles > 1
+    for _ in range(12):  # the octomap preset clamps after 5 misses or 5 hits
+        m.integrate(fan)
+    before = m.store.versions[: len(m.store)].copy()
+    result = m.integrate(fan)
+    assert result.cell_updates == plan.cell.size + int(plan.run_len.sum())
+    if layers == ["occupancy"]:
+        assert result.changed_tiles == []
+        assert (m.store.versions[: len(m.store)] == before).all()
+    else:
+        assert len(result.changed_tiles) == plan.num_tiles
+        assert (m.store.versions[: len(m.store)] != before).all()
+
+
 def test_tile_cap_rejects_whole_scan() -> None:
     """max_tiles 2: after a scan in tile (0, 0), a scan that changes cells of tile (0, 0) AND needs
     two new tiles is refused with TileLimitError and leaves every layer, tile, version and the

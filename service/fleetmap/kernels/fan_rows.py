@@ -238,11 +238,12 @@ def _emit_row(
     counts: np.ndarray, row: int, span_lo: np.ndarray, span_hi: np.ndarray, spans: int, hit_cols: np.ndarray,
     nh: int, shift: int, ti0: int, tj0: int, ni: int,
 ) -> bool:  # fmt: skip
-    """Write one row's cells: the disjoint ascending spans `span_lo/hi` as misses, except the columns
-    `hit_cols` (end cells of returns, in any order, repeats allowed), which are hits. Misses split
-    at tile edges and hits go out as runs (`MIN_RUN` cells or more) or single cells; `counts[0]`
-    and `counts[2]` (cells, runs) advance. Returns False, having written nothing past the counts,
-    if a hit lies outside the spans or `found` could overflow (neither can happen for a real trace)."""
+    """Write one row's cells: the first `spans` of the disjoint ascending spans `span_lo/hi` as
+    misses, except the columns `hit_cols[:nh]` (end cells of returns, in any order, repeats
+    allowed), which are hits. The misses, split at tile edges and around the hits, go out as runs
+    when they are `MIN_RUN` cells or more, else as single cells; hits as single cells. `counts[0]`
+    and `counts[2]` (cells, runs) advance. Returns False, advancing no count, if a hit lies outside
+    the spans or `found` or `run_key` could overflow (none can happen for a real trace)."""
     # The hit columns sorted (a row holds only a few).
     for k in range(1, nh):
         v = hit_cols[k]
@@ -276,6 +277,8 @@ def _emit_row(
             if end >= c:
                 planes[plane] = 1
                 if end - c + 1 >= MIN_RUN:
+                    if r >= run_key.size:
+                        return False
                     run_key[r] = base + c
                     run_len[r] = end - c + 1
                     r += 1
