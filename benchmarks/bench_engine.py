@@ -43,7 +43,6 @@ from fleetmap.config import LayerName, MapConfig, probability
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import GridMap
 from fleetmap.kernels.fan_rows import trace_fan_rows
-from fleetmap.kernels.ray_model import beam_directions
 from fleetmap.scan import Scan
 from fleetmap.sim import FloorPlan, SimulatedRobot, generate_floorplan
 from fleetmap.update_plan import ray_trace_inputs
@@ -502,9 +501,8 @@ def equivalence(gmap: GridMap, tree: object, rng_seed: int = 0) -> list[str]:
 def traced_by_rows(scan: Scan) -> tuple[int, int, int]:
     """How the per-scan trace covers `scan`: cells of the beams' whole walks, cells written by the
     row trace (`kernels.fan_rows`) near the sensor, and cells the handed-back walks visit far out."""
-    ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = ray_trace_inputs(
-        scan, *beam_directions(scan.world_angles()), 0.0, RES, 8
-    )  # every workload scan traces beams
+    # Every workload scan traces beams, so the inputs are not None.
+    ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = ray_trace_inputs(scan, 0.0, RES, 8)
     ni, nj = ti1 - ti0 + 1, tj1 - tj0 + 1
     traced = kinds != 0
     whole = np.abs(np.floor(ex) - math.floor(ox)) + np.abs(np.floor(ey) - math.floor(oy)) + 1

@@ -17,7 +17,6 @@ from hypothesis import strategies as st
 
 from fleetmap.config import MapConfig
 from fleetmap.kernels.fan_rows import trace_fan_rows
-from fleetmap.kernels.ray_model import beam_directions
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, segment_cells
 from fleetmap.scan import Scan
 from fleetmap.update_plan import plan_scan, ray_trace_inputs
@@ -450,9 +449,8 @@ def test_fans_from_degenerate_poses_trace_the_union_of_the_walks(
 def _row_trace(scan: Scan) -> int:
     """`trace_fan_rows`'s cell count for a scan at 5 cm in 256-cell tiles (-1: not traced by rows),
     rows all the way (no hand-back to walks)."""
-    ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = ray_trace_inputs(
-        scan, *beam_directions(scan.world_angles()), 0.0, 0.05, 8
-    )  # the scan's box, as the engine takes it
+    # The scan's box, as the engine takes it.
+    ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = ray_trace_inputs(scan, 0.0, 0.05, 8)
     ni, nj = ti1 - ti0 + 1, tj1 - tj0 + 1
     size = 1 << 20
     found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(ni * nj, np.uint8)

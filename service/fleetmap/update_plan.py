@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -20,9 +20,7 @@ from fleetmap.kernels.ray_model import (
     BEAM_CLEAR,
     BEAM_HIT,
     BEAM_SKIP,
-    beam_directions,
-    longest_return,
-    scan_endpoints,
+    scan_rays,
     trace_rays,
     trace_scan,
 )
@@ -46,9 +44,9 @@ MAX_CELL_INDEX = float(2**40)
 _scratch = threading.local()
 
 
-@dataclass(frozen=True)
-class UpdatePlan:
-    """Cell updates of one scan, in global cell indices.
+class UpdatePlan(NamedTuple):
+    """Cell updates of one scan, in global cell indices. (A named tuple rather than a frozen
+    dataclass: it is built once per scan, and the dataclass's `__init__` cost a microsecond.)
 
     Hits and misses for the occupancy and counts layers come either as per-scan updates (each cell
     once, a hit beating a miss: `cell`, `kind`, where cell n lies in tile `cell[n] >> 2*shift` of
@@ -83,11 +81,16 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     """Every cell update `scan` implies under `config`, for tiles of `1 << shift` cells. Raises
     `ScanError` for a scan whose pose or reach lies beyond the map's index range."""
     res = config.resolution
-    ox, oy = scan.pose.x / res, scan.pose.y / res
-    reach = _reach(scan, config) / res
+    pose = scan.pose
+    ox, oy = pose.x / res, pose.y / res
+    rays = scan_rays(
+        pose.x, pose.y, pose.theta, scan.angles, scan.ranges, scan.range_min, scan.range_max,
+        config.no_return_range, res,
+    )  # fmt: skip
+    cos, sin = rays[0], rays[1]
+    reach = _reach(scan, config, rays[-1]) / res
     if not (abs(ox) + reach < MAX_CELL_INDEX and abs(oy) + reach < MAX_CELL_INDEX):
         raise ScanError("the scan's pose or ranges lie beyond the map's coordinate range")
-    cos, sin = beam_directions(scan.world_angles())
     cell = run = run_len = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
     tiles_i = tiles_j = _EMPTY_I
@@ -97,7 +100,7 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
         elif config.update == "per_ray":
             occ_i, occ_j, occ_kind = _ray_model_per_ray(scan, config, ox, oy)
         else:
-            tiles_i, tiles_j, cell, kind, run, run_len = _ray_model_per_scan(scan, config, shift, cos, sin)
+            tiles_i, tiles_j, cell, kind, run, run_len = _ray_model_per_scan(scan, config, shift, rays)
     tsdf_i = tsdf_j = _EMPTY_I
     tsdf_value = np.empty(0, dtype=np.float32)
     if config.has("tsdf"):
@@ -129,25 +132,34 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     )
 
 
-def _reach(scan: Scan, config: MapConfig) -> float:
-    """The farthest any beam of the scan can reach, in metres (for the index-range check)."""
-    far = longest_return(scan.ranges, scan.range_min, scan.range_max)
+def _reach(scan: Scan, config: MapConfig, longest_return: float) -> float:
+    """The farthest any beam of the scan can reach, in metres (for the index-range check), from its
+    longest usable return."""
+    far = longest_return
     if config.no_return_range > 0:
         far = max(far, min(config.no_return_range, scan.range_max))
     return far + config.tsdf.truncation + config.beam.alpha
 
 
 def ray_trace_inputs(
-    scan: Scan, cos: np.ndarray, sin: np.ndarray, clear_range: float, res: float, shift: int
+    scan: Scan, clear_range: float, res: float, shift: int
 ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray, int, int, int, int] | None:
-    """What the per-scan trace (`kernels.ray_model.trace_scan`) takes for `scan`: the sensor
-    `(ox, oy)`, end points `ex, ey` and kinds of the beams (CELL units), and the tile box
-    `ti0, tj0, ti1, tj1` holding them; None when no beam is traced. `cos`, `sin` are the beams'
-    map-frame directions (`beam_directions`), `clear_range` the no-return clearing range (m)."""
-    ex, ey, kinds, xmin, ymin, xmax, ymax, used = scan_endpoints(
-        scan.pose.x, scan.pose.y, cos, sin, scan.ranges, scan.range_min, scan.range_max, clear_range, res
-    )
-    if used == 0:
+    """What the per-scan trace (`kernels.ray_model.trace_scan`) takes for `scan` at `res` metres per
+    cell in tiles of `1 << shift` cells, with no-return beams cleared to `clear_range` metres: the
+    sensor `(ox, oy)`, end points `ex, ey` and kinds of the beams (CELL units), and the tile box
+    `ti0, tj0, ti1, tj1` holding them; None when no beam is traced."""
+    rays = scan_rays(
+        scan.pose.x, scan.pose.y, scan.pose.theta, scan.angles, scan.ranges, scan.range_min,
+        scan.range_max, clear_range, res,
+    )  # fmt: skip
+    return _trace_inputs(scan, rays, res, shift)
+
+
+def _trace_inputs(scan: Scan, rays: tuple, res: float, shift: int):
+    """`ray_trace_inputs` from the scan's `scan_rays` (computed with the same `res` and clearing
+    range)."""
+    _, _, ex, ey, kinds, xmin, ymin, xmax, ymax, traced, _ = rays
+    if traced == 0:
         return None
     box = (
         math.floor(xmin) >> shift,
@@ -158,10 +170,10 @@ def ray_trace_inputs(
     return (scan.pose.x / res, scan.pose.y / res, ex, ey, kinds, *box)
 
 
-def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, cos: np.ndarray, sin: np.ndarray):
+def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, rays: tuple):
     """The ray model with per-scan semantics, in one compiled pass (`kernels.ray_model.trace_scan`);
-    `cos`, `sin` are the beams' map-frame directions."""
-    inputs = ray_trace_inputs(scan, cos, sin, config.no_return_range, config.resolution, shift)
+    `rays` is the scan's `scan_rays` with the map's resolution and clearing range."""
+    inputs = _trace_inputs(scan, rays, config.resolution, shift)
     if inputs is None:
         return _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_KIND, _EMPTY_I, _EMPTY_I
     ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = inputs

@@ -58,16 +58,6 @@ def trace_rays(
     return ci, cj, kind
 
 
-@njit(cache=True, nogil=True)
-def longest_return(ranges: np.ndarray, range_min: float, range_max: float) -> float:
-    """The longest usable return (`range_min <= r < range_max`), 0 if there is none."""
-    far = 0.0
-    for r in ranges:
-        if range_min <= r < range_max:  # False for NaN
-            far = max(far, r)
-    return far
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _beam(
     b: int, ranges: np.ndarray, range_min: float, range_max: float, clear_range: float
@@ -92,46 +82,47 @@ DENSE_WINDOW_CELLS = 1 << 23
 
 
 @njit(cache=True, nogil=True)
-def beam_directions(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cosine and sine of every beam's map-frame angle, computed once per scan for both the ray
-    trace and the TSDF band (libm's, so end points are bit for bit `x + r * cos(angle)`)."""
-    cos = np.empty(angles.size)
-    sin = np.empty(angles.size)
-    for b in range(angles.size):
-        cos[b] = math.cos(angles[b])
-        sin[b] = math.sin(angles[b])
-    return cos, sin
-
-
-@njit(cache=True, nogil=True)
-def scan_endpoints(
-    x: float, y: float, cos: np.ndarray, sin: np.ndarray, ranges: np.ndarray, range_min: float,
+def scan_rays(
+    x: float, y: float, theta: float, angles: np.ndarray, ranges: np.ndarray, range_min: float,
     range_max: float, clear_range: float, res: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float, int]:  # fmt: skip
-    """Every beam's kind (as in `_beam`) and end point in CELL units, and the bounding box of the
-    traced beams with the sensor: `(ex, ey, kinds, xmin, ymin, xmax, ymax, number traced)`. `cos`
-    and `sin` are the beams' map-frame directions (`beam_directions`)."""
+) -> tuple:  # fmt: skip
+    """One pass over a scan's beams (sensor at (x, y, theta), bearings `angles`, metres), for every
+    sensor model: each beam's map-frame direction, kind (as in `_beam`) and end point in CELL units
+    (`res` metres per cell); the bounding box of the traced beams' end points with the sensor; how
+    many beams are traced; and the longest usable return (`range_min <= r < range_max`, metres; 0
+    if none). The directions are libm's cosine and sine of `theta + angles[b]`, computed once per
+    scan for the ray trace and the TSDF band.
+
+    Returns `(cos, sin, ex, ey, kinds, xmin, ymin, xmax, ymax, traced, longest)`."""
     ox = x / res
     oy = y / res
     nb = ranges.size
+    cos = np.empty(nb)
+    sin = np.empty(nb)
     ex = np.empty(nb)
     ey = np.empty(nb)
     kinds = np.empty(nb, dtype=np.uint8)
     xmin = xmax = ox
     ymin = ymax = oy
-    used = 0
+    traced = 0
+    longest = 0.0
     for b in range(nb):
+        angle = theta + angles[b]
+        cos[b] = math.cos(angle)
+        sin[b] = math.sin(angle)
         kind, r = _beam(b, ranges, range_min, range_max, clear_range)
         kinds[b] = kind
         ex[b] = ox + r / res * cos[b]
         ey[b] = oy + r / res * sin[b]
+        if kind == BEAM_HIT:
+            longest = max(longest, r)
         if kind != BEAM_SKIP:
-            used += 1
+            traced += 1
             xmin = min(xmin, ex[b])
             xmax = max(xmax, ex[b])
             ymin = min(ymin, ey[b])
             ymax = max(ymax, ey[b])
-    return ex, ey, kinds, xmin, ymin, xmax, ymax, used
+    return cos, sin, ex, ey, kinds, xmin, ymin, xmax, ymax, traced, longest
 
 
 @njit(cache=True, nogil=True)
@@ -159,7 +150,7 @@ def trace_scan(
     (`skip_spans`); Bresenham lines are walked whole. All give the union of the beams' walks.
 
     Input is the sensor position and the beams' end points in CELL units with their kinds, as
-    `scan_endpoints` gives them. `[ti0, ti1] x [tj0, tj1]` must hold every traced cell. `scratch` is
+    `scan_rays` gives them. `[ti0, ti1] x [tj0, tj1]` must hold every traced cell. `scratch` is
     a zeroed flat uint8 array; it is zeroed again on return, so one scratch serves every scan of a
     thread. When it is too small, nothing is traced and the last value returned is the size it
     needs (else 0).
