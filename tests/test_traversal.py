@@ -15,8 +15,10 @@ import numpy as np
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from fleetmap import update_plan
 from fleetmap.config import MapConfig
 from fleetmap.kernels.fan_rows import trace_fan_rows
+from fleetmap.kernels.ray_model import beam_layout, scan_rays
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, segment_cells
 from fleetmap.scan import Scan
 from fleetmap.update_plan import plan_scan, ray_trace_inputs
@@ -301,12 +303,18 @@ def _planned_cells(scan: Scan, config: MapConfig, shift: int) -> list[tuple[tupl
 
 def _union_of_walks(scan: Scan, config: MapConfig) -> list[tuple[tuple[int, int], int]]:
     """What per-scan semantics mean, beam by beam with `segment_cells`: every cell of every traced
-    beam once, in first-visit order, a hit (2) if any return ends in it (a hit beats a miss)."""
+    beam once, in first-visit order, a hit (2) if any return ends in it (a hit beats a miss).
+
+    A beam's direction is computed as the engine defines it (`scan_rays`: the bearing's cosine and
+    sine rotated by the heading), so that end points on cell boundaries, which these tests seek
+    out, land in the same cell; `test_scan_rays_directions` checks that definition against
+    cos(theta + a)."""
     res = config.resolution
     method = EXACT if config.traversal == "exact" else BRESENHAM
     ox, oy = scan.pose.x / res, scan.pose.y / res
+    cos_t, sin_t = math.cos(scan.pose.theta), math.sin(scan.pose.theta)
     first: dict[tuple[int, int], int] = {}
-    for a, r in zip(scan.world_angles().tolist(), scan.ranges.tolist(), strict=True):
+    for a, r in zip(scan.angles.tolist(), scan.ranges.tolist(), strict=True):
         if math.isnan(r) or r < scan.range_min:
             continue
         hit = r < scan.range_max
@@ -314,13 +322,60 @@ def _union_of_walks(scan: Scan, config: MapConfig) -> list[tuple[tuple[int, int]
             if config.no_return_range <= 0:
                 continue
             r = min(config.no_return_range, scan.range_max)
-        x1, y1 = ox + r / res * math.cos(a), oy + r / res * math.sin(a)
+        cos_a, sin_a = math.cos(a), math.sin(a)
+        dx, dy = cos_t * cos_a - sin_t * sin_a, sin_t * cos_a + cos_t * sin_a
+        x1, y1 = ox + r / res * dx, oy + r / res * dy
         path = [(int(i), int(j)) for i, j in segment_cells(ox, oy, x1, y1, method)]
         for c in path:
             first.setdefault(c, 1)
         if hit:
             first[path[-1]] = 3
     return list(first.items())
+
+
+def test_scan_rays_directions() -> None:
+    """A beam's direction is its bearing's (cos, sin) rotated by the heading: within a few ulps of
+    cos(theta + a) and sin(theta + a), exactly libm's cos(a) and sin(a) at heading 0, and the same
+    bits whatever beam layout `scan_rays` is handed (its own, another with the same first and last
+    bearings, a shorter one, none)."""
+    rng = np.random.default_rng(5)
+    angles = np.sort(rng.uniform(-2.3, 2.3, 60))
+    ranges = rng.uniform(0.5, 20.0, 60)
+    other = angles.copy()
+    other[10:20] += 1e-3  # the same cache key (size, first, last), other bearings in between
+    layouts = [beam_layout(angles), beam_layout(other), beam_layout(angles[:7]), np.empty((3, 0))]
+    for theta in (0.0, 0.7, -2.9, math.pi):
+        rays = [
+            scan_rays(1.0, -2.0, theta, angles, layout, ranges, 0.0, 30.0, 0.0, 0.05) for layout in layouts
+        ]
+        for got in rays[1:]:
+            for k in range(5):  # cos, sin, ex, ey, kinds
+                assert np.array_equal(got[k], rays[0][k])
+        assert np.max(np.abs(rays[0][0] - np.cos(theta + angles))) < 1e-15
+        assert np.max(np.abs(rays[0][1] - np.sin(theta + angles))) < 1e-15
+        if theta == 0.0:
+            assert rays[0][0].tolist() == [math.cos(a) for a in angles.tolist()]
+            assert rays[0][1].tolist() == [math.sin(a) for a in angles.tolist()]
+
+
+def test_plans_do_not_depend_on_the_cached_beam_layouts() -> None:
+    """Scans whose bearings share the layout cache's key (beam count, first and last bearing) but
+    differ in between plan exactly as they do with an empty cache."""
+    config = MapConfig(resolution=0.05, layers=["occupancy"])
+    angles = np.linspace(-2.0, 2.0, 200)
+    other = angles.copy()
+    other[50:150] += 0.01
+    ranges = np.linspace(2.0, 9.0, 200)
+    scans = [Scan.from_angles((0.3, -1.2, 0.8), a, ranges, 0.0, 30.0) for a in (angles, other)]
+    alone = []
+    for scan in scans:
+        update_plan._layouts.clear()
+        alone.append(_planned_cells(scan, config, 8))
+    update_plan._layouts.clear()
+    after_each_other = [_planned_cells(scan, config, 8) for scan in scans]
+    assert len(update_plan._layouts) == 1  # both scans used one cached layout
+    assert alone[0] != alone[1]
+    assert after_each_other == alone
 
 
 def _same_cells(got: list[tuple[tuple[int, int], int]], want: list[tuple[tuple[int, int], int]]) -> bool:

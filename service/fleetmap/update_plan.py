@@ -20,6 +20,7 @@ from fleetmap.kernels.ray_model import (
     BEAM_CLEAR,
     BEAM_HIT,
     BEAM_SKIP,
+    beam_layout,
     scan_rays,
     trace_rays,
     trace_scan,
@@ -31,6 +32,7 @@ from fleetmap.scan import Scan, ScanError
 
 _EMPTY_I = np.empty(0, dtype=np.int64)
 _EMPTY_KIND = np.empty(0, dtype=np.uint8)
+_NO_LAYOUT = np.empty((3, 0))
 
 #: A scan whose beams span more tiles than this (its bounding box, in tiles) is refused: it would
 #: be an absurd extent for one 2D scan (e.g. 10 km across at 5 cm) and its bookkeeping would be large.
@@ -42,6 +44,13 @@ MAX_CELL_INDEX = float(2**40)
 
 #: Each planning thread keeps one zeroed scratch for `trace_scan` (it leaves it zeroed).
 _scratch = threading.local()
+
+#: Beam layouts (`kernels.ray_model.beam_layout`) of recently seen scans, by (beams, first bearing,
+#: last bearing): a fleet's robots send a few layouts again and again. A scan given another
+#: layout under the same key still gets exact directions (`scan_rays` checks every bearing).
+_layouts: dict[tuple[int, float, float], np.ndarray] = {}
+#: At most this many layouts are kept (the cache is emptied when full).
+MAX_LAYOUTS = 64
 
 
 class UpdatePlan(NamedTuple):
@@ -84,8 +93,8 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     pose = scan.pose
     ox, oy = pose.x / res, pose.y / res
     rays = scan_rays(
-        pose.x, pose.y, pose.theta, scan.angles, scan.ranges, scan.range_min, scan.range_max,
-        config.no_return_range, res,
+        pose.x, pose.y, pose.theta, scan.angles, _layout(scan.angles), scan.ranges, scan.range_min,
+        scan.range_max, config.no_return_range, res,
     )  # fmt: skip
     cos, sin = rays[0], rays[1]
     reach = _reach(scan, config, rays[-1]) / res
@@ -149,10 +158,23 @@ def ray_trace_inputs(
     sensor `(ox, oy)`, end points `ex, ey` and kinds of the beams (CELL units), and the tile box
     `ti0, tj0, ti1, tj1` holding them; None when no beam is traced."""
     rays = scan_rays(
-        scan.pose.x, scan.pose.y, scan.pose.theta, scan.angles, scan.ranges, scan.range_min,
-        scan.range_max, clear_range, res,
+        scan.pose.x, scan.pose.y, scan.pose.theta, scan.angles, _layout(scan.angles), scan.ranges,
+        scan.range_min, scan.range_max, clear_range, res,
     )  # fmt: skip
     return _trace_inputs(scan, rays, res, shift)
+
+
+def _layout(angles: np.ndarray) -> np.ndarray:
+    """The cached beam layout for bearings `angles` (made and kept when new)."""
+    if angles.size == 0:
+        return _NO_LAYOUT
+    key = (angles.size, float(angles[0]), float(angles[-1]))
+    layout = _layouts.get(key)
+    if layout is None:
+        if len(_layouts) >= MAX_LAYOUTS:
+            _layouts.clear()
+        layout = _layouts[key] = beam_layout(angles)
+    return layout
 
 
 def _trace_inputs(scan: Scan, rays: tuple, res: float, shift: int):

@@ -82,16 +82,33 @@ DENSE_WINDOW_CELLS = 1 << 23
 
 
 @njit(cache=True, nogil=True)
+def beam_layout(angles: np.ndarray) -> np.ndarray:
+    """A beam layout for `scan_rays`: rows `angles` (sensor-frame bearings), their cosines and their
+    sines (libm's)."""
+    layout = np.empty((3, angles.size))
+    for b in range(angles.size):
+        layout[0, b] = angles[b]
+        layout[1, b] = math.cos(angles[b])
+        layout[2, b] = math.sin(angles[b])
+    return layout
+
+
+@njit(cache=True, nogil=True)
 def scan_rays(
-    x: float, y: float, theta: float, angles: np.ndarray, ranges: np.ndarray, range_min: float,
-    range_max: float, clear_range: float, res: float,
+    x: float, y: float, theta: float, angles: np.ndarray, layout: np.ndarray, ranges: np.ndarray,
+    range_min: float, range_max: float, clear_range: float, res: float,
 ) -> tuple:  # fmt: skip
     """One pass over a scan's beams (sensor at (x, y, theta), bearings `angles`, metres), for every
     sensor model: each beam's map-frame direction, kind (as in `_beam`) and end point in CELL units
     (`res` metres per cell); the bounding box of the traced beams' end points with the sensor; how
     many beams are traced; and the longest usable return (`range_min <= r < range_max`, metres; 0
-    if none). The directions are libm's cosine and sine of `theta + angles[b]`, computed once per
-    scan for the ray trace and the TSDF band.
+    if none).
+
+    A beam's direction is its sensor-frame direction `(cos a, sin a)` (libm's) rotated by theta:
+    one cosine and sine per scan instead of one per beam. Robots send the same bearings in every
+    scan, so `layout` (`beam_layout`, of this scan or another) supplies `cos a` and `sin a` for
+    every beam whose bearing equals its own; others are computed here. The directions are
+    therefore the same whatever layout is given, and exactly `(cos a, sin a)` when theta is 0.
 
     Returns `(cos, sin, ex, ey, kinds, xmin, ymin, xmax, ymax, traced, longest)`."""
     ox = x / res
@@ -106,10 +123,18 @@ def scan_rays(
     ymin = ymax = oy
     traced = 0
     longest = 0.0
+    cos_t = math.cos(theta)
+    sin_t = math.sin(theta)
+    known = min(nb, layout.shape[1])
     for b in range(nb):
-        angle = theta + angles[b]
-        cos[b] = math.cos(angle)
-        sin[b] = math.sin(angle)
+        if b < known and layout[0, b] == angles[b]:
+            cos_a = layout[1, b]
+            sin_a = layout[2, b]
+        else:
+            cos_a = math.cos(angles[b])
+            sin_a = math.sin(angles[b])
+        cos[b] = cos_t * cos_a - sin_t * sin_a
+        sin[b] = sin_t * cos_a + cos_t * sin_a
         kind, r = _beam(b, ranges, range_min, range_max, clear_range)
         kinds[b] = kind
         ex[b] = ox + r / res * cos[b]
