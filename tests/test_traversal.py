@@ -345,17 +345,18 @@ def test_scan_rays_directions() -> None:
     other[10:20] += 1e-3  # the same cache key (size, first, last), other bearings in between
     layouts = [beam_layout(angles), beam_layout(other), beam_layout(angles[:7]), np.empty((3, 0))]
     for theta in (0.0, 0.7, -2.9, math.pi):
-        rays = [
+        beams = [
             scan_rays(1.0, -2.0, theta, angles, layout, ranges, 0.0, 30.0, 0.0, 0.05) for layout in layouts
         ]
-        for got in rays[1:]:
-            for k in range(5):  # cos, sin, ex, ey, kinds
-                assert np.array_equal(got[k], rays[0][k])
-        assert np.max(np.abs(rays[0][0] - np.cos(theta + angles))) < 1e-15
-        assert np.max(np.abs(rays[0][1] - np.sin(theta + angles))) < 1e-15
+        for got in beams[1:]:
+            assert np.array_equal(got[0], beams[0][0])  # rows cos, sin, ex, ey
+            assert np.array_equal(got[1], beams[0][1])  # kinds
+        cos, sin = beams[0][0][0], beams[0][0][1]
+        assert np.max(np.abs(cos - np.cos(theta + angles))) < 1e-15
+        assert np.max(np.abs(sin - np.sin(theta + angles))) < 1e-15
         if theta == 0.0:
-            assert rays[0][0].tolist() == [math.cos(a) for a in angles.tolist()]
-            assert rays[0][1].tolist() == [math.sin(a) for a in angles.tolist()]
+            assert cos.tolist() == [math.cos(a) for a in angles.tolist()]
+            assert sin.tolist() == [math.sin(a) for a in angles.tolist()]
 
 
 def test_plans_do_not_depend_on_the_cached_beam_layouts() -> None:

@@ -84,7 +84,7 @@ class GridMap:
             return IntegrationResult(0, 0, [], 0)
         cfg, store = self.config, self.store
         occ = cfg.occupancy
-        keys = list(zip(plan.tiles_i.tolist(), plan.tiles_j.tolist(), strict=True))
+        keys = list(zip(*plan.tiles.tolist(), strict=True))
         changed = np.zeros(len(keys), dtype=np.uint8)
         with self.lock:
             found = [store.slots.get(k) for k in keys]
@@ -96,10 +96,10 @@ class GridMap:
             log_odds, hits, misses, tsdf, tsdf_weight = store.kernel_pools()
             params = (occ.l_hit, occ.l_miss, occ.l_min, occ.l_max)
             updates = tsdf_updates = 0
-            if plan.cell.size or plan.run.size:
+            if plan.cell.size or plan.runs.shape[1]:
                 updates += apply_cells(
-                    plan.cell, plan.kind, plan.run, plan.run_len, slots, store.shift, log_odds, hits, misses,
-                    *params, changed,
+                    plan.cell, plan.kind, plan.runs, slots, store.shift, log_odds, hits, misses, *params,
+                    changed,
                 )  # fmt: skip
             if plan.occ_i.size:
                 updates += apply_entries(

@@ -33,6 +33,7 @@ from fleetmap.scan import Scan, ScanError
 _EMPTY_I = np.empty(0, dtype=np.int64)
 _EMPTY_KIND = np.empty(0, dtype=np.uint8)
 _NO_LAYOUT = np.empty((3, 0))
+_EMPTY_PAIRS = np.empty((2, 0), dtype=np.int64)
 
 #: A scan whose beams span more tiles than this (its bounding box, in tiles) is refused: it would
 #: be an absurd extent for one 2D scan (e.g. 10 km across at 5 cm) and its bookkeeping would be large.
@@ -59,17 +60,18 @@ class UpdatePlan(NamedTuple):
 
     Hits and misses for the occupancy and counts layers come either as per-scan updates (each cell
     once, a hit beating a miss: `cell`, `kind`, where cell n lies in tile `cell[n] >> 2*shift` of
-    `tiles_i/j`, at local position `cell[n] & (T*T - 1)`; and `run`, `run_len`, where run k is
-    `run_len[k]` misses on consecutive cells of one tile row from `run[k]`, keyed like `cell`) or as
-    ordered entries `occ_*` (per-ray updates, and the beam model). `tsdf_*` are truncated distance
-    samples for the TSDF layer. `tiles_i/j` lists every tile any of them touches, the per-scan
-    updates' tiles first; `occ_tile` and `tsdf_tile` give each ordered entry's tile in that list.
+    `tiles`, at local position `cell[n] & (T*T - 1)`; and `runs`, where run k is `runs[1, k]`
+    misses on consecutive cells of one tile row from `runs[0, k]`, keyed like `cell`) or as ordered
+    entries `occ_*` (per-ray updates, and the beam model). `tsdf_*` are truncated distance samples
+    for the TSDF layer. `tiles` (rows: tile i, tile j) lists every tile any of them touches, the
+    per-scan updates' tiles first; `occ_tile` and `tsdf_tile` give each ordered entry's tile in
+    that list. (Pairs of rows share one array: each array a kernel hands back costs a fraction of
+    a microsecond.)
     """
 
     cell: np.ndarray
     kind: np.ndarray
-    run: np.ndarray
-    run_len: np.ndarray
+    runs: np.ndarray
     occ_i: np.ndarray
     occ_j: np.ndarray
     occ_kind: np.ndarray
@@ -78,12 +80,29 @@ class UpdatePlan(NamedTuple):
     tsdf_j: np.ndarray
     tsdf_value: np.ndarray
     tsdf_tile: np.ndarray
-    tiles_i: np.ndarray
-    tiles_j: np.ndarray
+    tiles: np.ndarray
 
     @property
     def num_tiles(self) -> int:
-        return int(self.tiles_i.size)
+        return int(self.tiles.shape[1])
+
+    @property
+    def run(self) -> np.ndarray:
+        """First cell of each run."""
+        return self.runs[0]
+
+    @property
+    def run_len(self) -> np.ndarray:
+        """Length of each run."""
+        return self.runs[1]
+
+    @property
+    def tiles_i(self) -> np.ndarray:
+        return self.tiles[0]
+
+    @property
+    def tiles_j(self) -> np.ndarray:
+        return self.tiles[1]
 
 
 def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
@@ -92,42 +111,42 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     res = config.resolution
     pose = scan.pose
     ox, oy = pose.x / res, pose.y / res
-    rays = scan_rays(
+    beams = scan_rays(
         pose.x, pose.y, pose.theta, scan.angles, _layout(scan.angles), scan.ranges, scan.range_min,
         scan.range_max, config.no_return_range, res,
     )  # fmt: skip
-    cos, sin = rays[0], rays[1]
-    reach = _reach(scan, config, rays[-1]) / res
+    reach = _reach(scan, config, beams[-1]) / res
     if not (abs(ox) + reach < MAX_CELL_INDEX and abs(oy) + reach < MAX_CELL_INDEX):
         raise ScanError("the scan's pose or ranges lie beyond the map's coordinate range")
-    cell = run = run_len = occ_i = occ_j = _EMPTY_I
+    cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
-    tiles_i = tiles_j = _EMPTY_I
+    tiles = runs = _EMPTY_PAIRS
     if config.has("occupancy") or config.has("counts"):
         if config.sensor_model == "beam":
             occ_i, occ_j, occ_kind = _beam_model(scan, config, ox, oy)
         elif config.update == "per_ray":
             occ_i, occ_j, occ_kind = _ray_model_per_ray(scan, config, ox, oy)
         else:
-            tiles_i, tiles_j, cell, kind, run, run_len = _ray_model_per_scan(scan, config, shift, rays)
+            tiles, cell, kind, runs = _ray_model_per_scan(scan, config, shift, beams)
     tsdf_i = tsdf_j = _EMPTY_I
     tsdf_value = np.empty(0, dtype=np.float32)
     if config.has("tsdf"):
         returns = scan.returns_mask()
+        rays = beams[0]  # rows cos, sin, ex, ey
         tsdf_i, tsdf_j, tsdf_value = trace_tsdf(
-            ox, oy, cos[returns], sin[returns], scan.ranges[returns] / res, config.tsdf.truncation / res
-        )
+            ox, oy, rays[0, returns], rays[1, returns], scan.ranges[returns] / res,
+            config.tsdf.truncation / res,
+        )  # fmt: skip
     # The ordered entries' tiles go after the per-scan tiles, each tile once.
     occ_tile = tsdf_tile = _EMPTY_I
     if occ_i.size:
-        tiles_i, tiles_j, occ_tile = merge_tiles(tiles_i, tiles_j, occ_i, occ_j, shift)
+        tiles, occ_tile = merge_tiles(tiles, occ_i, occ_j, shift)
     if tsdf_i.size:
-        tiles_i, tiles_j, tsdf_tile = merge_tiles(tiles_i, tiles_j, tsdf_i, tsdf_j, shift)
+        tiles, tsdf_tile = merge_tiles(tiles, tsdf_i, tsdf_j, shift)
     return UpdatePlan(
         cell,
         kind,
-        run,
-        run_len,
+        runs,
         occ_i,
         occ_j,
         occ_kind,
@@ -136,8 +155,7 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
         tsdf_j,
         tsdf_value,
         tsdf_tile,
-        tiles_i,
-        tiles_j,
+        tiles,
     )
 
 
@@ -157,11 +175,15 @@ def ray_trace_inputs(
     cell in tiles of `1 << shift` cells, with no-return beams cleared to `clear_range` metres: the
     sensor `(ox, oy)`, end points `ex, ey` and kinds of the beams (CELL units), and the tile box
     `ti0, tj0, ti1, tj1` holding them; None when no beam is traced."""
-    rays = scan_rays(
+    beams = scan_rays(
         scan.pose.x, scan.pose.y, scan.pose.theta, scan.angles, _layout(scan.angles), scan.ranges,
         scan.range_min, scan.range_max, clear_range, res,
     )  # fmt: skip
-    return _trace_inputs(scan, rays, res, shift)
+    inputs = _trace_inputs(scan, beams, res, shift)
+    if inputs is None:
+        return None
+    ox, oy, rays, kinds, ti0, tj0, ti1, tj1 = inputs
+    return ox, oy, rays[2], rays[3], kinds, ti0, tj0, ti1, tj1
 
 
 def _layout(angles: np.ndarray) -> np.ndarray:
@@ -177,10 +199,10 @@ def _layout(angles: np.ndarray) -> np.ndarray:
     return layout
 
 
-def _trace_inputs(scan: Scan, rays: tuple, res: float, shift: int):
-    """`ray_trace_inputs` from the scan's `scan_rays` (computed with the same `res` and clearing
-    range)."""
-    _, _, ex, ey, kinds, xmin, ymin, xmax, ymax, traced, _ = rays
+def _trace_inputs(scan: Scan, beams: tuple, res: float, shift: int):
+    """`trace_scan`'s inputs `(ox, oy, rays, kinds, ti0, tj0, ti1, tj1)` from the scan's `scan_rays`
+    (computed with the same `res` and clearing range); None when no beam is traced."""
+    rays, kinds, xmin, ymin, xmax, ymax, traced, _ = beams
     if traced == 0:
         return None
     box = (
@@ -189,16 +211,16 @@ def _trace_inputs(scan: Scan, rays: tuple, res: float, shift: int):
         math.floor(xmax) >> shift,
         math.floor(ymax) >> shift,
     )
-    return (scan.pose.x / res, scan.pose.y / res, ex, ey, kinds, *box)
+    return (scan.pose.x / res, scan.pose.y / res, rays, kinds, *box)
 
 
-def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, rays: tuple):
+def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, beams: tuple):
     """The ray model with per-scan semantics, in one compiled pass (`kernels.ray_model.trace_scan`);
-    `rays` is the scan's `scan_rays` with the map's resolution and clearing range."""
-    inputs = _trace_inputs(scan, rays, config.resolution, shift)
+    `beams` is the scan's `scan_rays` with the map's resolution and clearing range."""
+    inputs = _trace_inputs(scan, beams, config.resolution, shift)
     if inputs is None:
-        return _EMPTY_I, _EMPTY_I, _EMPTY_I, _EMPTY_KIND, _EMPTY_I, _EMPTY_I
-    ox, oy, ex, ey, kinds, ti0, tj0, ti1, tj1 = inputs
+        return _EMPTY_PAIRS, _EMPTY_I, _EMPTY_KIND, _EMPTY_PAIRS
+    ox, oy, rays, kinds, ti0, tj0, ti1, tj1 = inputs
     if (ti1 - ti0 + 1) * (tj1 - tj0 + 1) > MAX_SCAN_TILE_WINDOW:
         raise ScanError("the scan spans too large an area for one scan; check its ranges and resolution")
     method = EXACT if config.traversal == "exact" else BRESENHAM
@@ -206,11 +228,11 @@ def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, rays: tuple):
         scratch = getattr(_scratch, "array", None)
         if scratch is None:
             scratch = _scratch.array = np.zeros(1 << (2 * shift), dtype=np.uint8)
-        tiles_i, tiles_j, cell, kind, run, run_len, needed = trace_scan(
-            ox, oy, ex, ey, kinds, method, shift, ti0, tj0, ti1, tj1, scratch
+        tiles, cell, kind, runs, needed = trace_scan(
+            ox, oy, rays, kinds, method, shift, ti0, tj0, ti1, tj1, scratch
         )
         if not needed:
-            return tiles_i, tiles_j, cell, kind, run, run_len
+            return tiles, cell, kind, runs
         _scratch.array = np.zeros(needed, dtype=np.uint8)
 
 

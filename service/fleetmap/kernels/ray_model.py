@@ -110,14 +110,16 @@ def scan_rays(
     every beam whose bearing equals its own; others are computed here. The directions are
     therefore the same whatever layout is given, and exactly `(cos a, sin a)` when theta is 0.
 
-    Returns `(cos, sin, ex, ey, kinds, xmin, ymin, xmax, ymax, traced, longest)`."""
+    Returns `(rays, kinds, xmin, ymin, xmax, ymax, traced, longest)`, `rays` holding the rows cos,
+    sin, ex, ey (one array: each array handed back to Python costs a fraction of a microsecond)."""
     ox = x / res
     oy = y / res
     nb = ranges.size
-    cos = np.empty(nb)
-    sin = np.empty(nb)
-    ex = np.empty(nb)
-    ey = np.empty(nb)
+    rays = np.empty((4, nb))
+    cos = rays[0]
+    sin = rays[1]
+    ex = rays[2]
+    ey = rays[3]
     kinds = np.empty(nb, dtype=np.uint8)
     xmin = xmax = ox
     ymin = ymax = oy
@@ -147,15 +149,14 @@ def scan_rays(
             xmax = max(xmax, ex[b])
             ymin = min(ymin, ey[b])
             ymax = max(ymax, ey[b])
-    return cos, sin, ex, ey, kinds, xmin, ymin, xmax, ymax, traced, longest
+    return rays, kinds, xmin, ymin, xmax, ymax, traced, longest
 
 
 @njit(cache=True, nogil=True)
 def trace_scan(
     ox: float,
     oy: float,
-    ex: np.ndarray,
-    ey: np.ndarray,
+    rays: np.ndarray,
     kinds: np.ndarray,
     method: int,
     shift: int,
@@ -164,7 +165,7 @@ def trace_scan(
     ti1: int,
     tj1: int,
     scratch: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Per-scan updates of the ray model: every cell any beam touches, once, a hit if any beam ends
     in it (a hit beats a miss).
 
@@ -174,19 +175,21 @@ def trace_scan(
     past `fan_rows`' limits) are walked beam by beam, skipping what neighbouring beams cover
     (`skip_spans`); Bresenham lines are walked whole. All give the union of the beams' walks.
 
-    Input is the sensor position and the beams' end points in CELL units with their kinds, as
-    `scan_rays` gives them. `[ti0, ti1] x [tj0, tj1]` must hold every traced cell. `scratch` is
+    Input is the sensor position in CELL units and the beams' `rays` (rows 2 and 3: end points in
+    CELL units) and kinds, as `scan_rays` gives them. `[ti0, ti1] x [tj0, tj1]` must hold every
+    traced cell. `scratch` is
     a zeroed flat uint8 array; it is zeroed again on return, so one scratch serves every scan of a
     thread. When it is too small, nothing is traced and the last value returned is the size it
     needs (else 0).
 
-    Returns `(tiles_i, tiles_j, cell, kind, run, run_len, scratch_needed)`: tile k is
-    `(tiles_i[k], tiles_j[k])`; updated cell n lies in tile `cell[n] >> 2*shift` at local position
-    `cell[n] & (T*T - 1)` (= `local_j * T + local_i`) and is a `CELL_HIT` if `kind[n] & CELL_HIT`,
-    else a miss. Run k is `run_len[k]` misses on consecutive cells of one tile row from the cell
-    `run[k]` (keyed like `cell`; the row trace writes them). Each cell comes once, in no particular
-    order.
+    Returns `(tiles, cell, kind, runs, scratch_needed)`: tile k is `(tiles[0, k], tiles[1, k])`;
+    updated cell n lies in tile `cell[n] >> 2*shift` at local position `cell[n] & (T*T - 1)`
+    (= `local_j * T + local_i`) and is a `CELL_HIT` if `kind[n] & CELL_HIT`, else a miss. Run k is
+    `runs[1, k]` misses on consecutive cells of one tile row from the cell `runs[0, k]` (keyed like
+    `cell`; the row trace writes them). Each cell comes once, in no particular order.
     """
+    ex = rays[2]
+    ey = rays[3]
     plane_shift = 2 * shift
     nj = tj1 - tj0 + 1
     ni = ti1 - ti0 + 1
@@ -202,8 +205,7 @@ def trace_scan(
         # Row by row near the sensor (`fan_rows`), in row order, and the far rows by walks in the
         # dense window (when the box fits one).
         if dense and scratch.size < nj << (shift + wshift):
-            none = np.empty(0, dtype=np.int64)
-            return none, none, none, np.empty(0, dtype=np.uint8), none, none, nj << (shift + wshift)
+            return _no_trace(nj << (shift + wshift))
         found = np.empty(visits, dtype=np.int64)
         kind_out = np.empty(visits, dtype=np.uint8)
         run_key = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
@@ -231,8 +233,7 @@ def trace_scan(
         index, m = _touched_tile_index(ox, oy, ex, ey, kinds, method, shift, ti0, tj0, ni, nj)
         needed = m << plane_shift
     if scratch.size < needed:
-        none = np.empty(0, dtype=np.int64)
-        return none, none, none, np.empty(0, dtype=np.uint8), none, none, needed  # the caller grows it
+        return _no_trace(needed)  # the caller grows it
     found = np.empty(visits, dtype=np.int64)  # each cell the first time a beam reaches it
     kind_out = np.empty(visits, dtype=np.uint8)
     planes = np.zeros(index.size, dtype=np.uint8)  # which planes hold a cell
@@ -253,7 +254,7 @@ def trace_scan(
 def _number_tiles(
     index: np.ndarray, planes: np.ndarray, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray,
     run_len: np.ndarray, plane_shift: int, ti0: int, tj0: int, dense: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # fmt: skip
     """`trace_scan`'s result from the plane keys of cells `found` and runs `run_key` (plane numbers
     from `index`, flagged in `planes` when they hold a cell): the planes that hold a cell renumbered
     0..m-1, and their tiles."""
@@ -270,15 +271,31 @@ def _number_tiles(
                 tiles_i[m] = c + ti0
                 tiles_j[m] = a + tj0
                 m += 1
+    tiles = np.empty((2, m), dtype=np.int64)
+    tiles[0] = tiles_i[:m]
+    tiles[1] = tiles_j[:m]
+    runs = np.empty((2, run_key.size), dtype=np.int64)
+    runs[1] = run_len
     if dense and m == index.size:
         # The dense window numbers planes row-major over the box; when every plane holds a cell,
         # that is the final numbering and the keys need no rewrite.
-        return tiles_i, tiles_j, found, kind_out, run_key, run_len, 0
+        runs[0] = run_key
+        return tiles, found, kind_out, runs, 0
     local = (1 << plane_shift) - 1
-    for keys in (found, run_key):
-        for k in range(keys.size):
-            keys[k] = (renum[keys[k] >> plane_shift] << plane_shift) | (keys[k] & local)
-    return tiles_i[:m], tiles_j[:m], found, kind_out, run_key, run_len, 0
+    for k in range(found.size):
+        found[k] = (renum[found[k] >> plane_shift] << plane_shift) | (found[k] & local)
+    for k in range(run_key.size):
+        runs[0, k] = (renum[run_key[k] >> plane_shift] << plane_shift) | (run_key[k] & local)
+    return tiles, found, kind_out, runs, 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _no_trace(needed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """`trace_scan`'s result when its scratch is too small: nothing, and the size it needs."""
+    return (
+        np.empty((2, 0), dtype=np.int64), np.empty(0, dtype=np.int64), np.empty(0, dtype=np.uint8),
+        np.empty((2, 0), dtype=np.int64), needed,
+    )  # fmt: skip
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -19,13 +19,15 @@ _U32_MAX = np.uint32(0xFFFFFFFF)
 
 @njit(cache=True, nogil=True)
 def merge_tiles(
-    tiles_i: np.ndarray, tiles_j: np.ndarray, ci: np.ndarray, cj: np.ndarray, shift: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Extend the tile list `(tiles_i, tiles_j)` with the tiles of the cells `(ci, cj)` not yet in it,
-    in the order the cells first reach them, and give each cell the number of its tile in the
-    extended list. Returns `(tiles_i, tiles_j, tile of each cell)`."""
+    tiles: np.ndarray, ci: np.ndarray, cj: np.ndarray, shift: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Extend the tile list `tiles` (rows: tile i, tile j) with the tiles of the cells `(ci, cj)` not
+    yet in it, in the order the cells first reach them, and give each cell the number of its tile
+    in the extended list. Returns `(tiles, tile of each cell)`."""
     if ci.size == 0:
-        return tiles_i, tiles_j, np.empty(0, dtype=np.int64)
+        return tiles, np.empty(0, dtype=np.int64)
+    tiles_i = tiles[0]
+    tiles_j = tiles[1]
     ti0 = ti1 = ci[0] >> shift
     tj0 = tj1 = cj[0] >> shift
     for k in range(ci.size):
@@ -53,7 +55,10 @@ def merge_tiles(
             out_j[m] = cj[k] >> shift
             m += 1
         tile[k] = number[a, b]
-    return out_i[:m], out_j[:m], tile
+    out = np.empty((2, m), dtype=np.int64)
+    out[0] = out_i[:m]
+    out[1] = out_j[:m]
+    return out, tile
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -102,8 +107,7 @@ def _apply_one(
 def apply_cells(
     cell: np.ndarray,
     kind: np.ndarray,
-    run: np.ndarray,
-    run_len: np.ndarray,
+    runs: np.ndarray,
     slots: np.ndarray,
     shift: int,
     log_odds: np.ndarray,
@@ -118,10 +122,12 @@ def apply_cells(
     """Apply per-scan updates (see `ray_model.trace_scan`) to the pools; return cells updated.
 
     Cell n is in tile `cell[n] >> 2*shift`, which is pool slot `slots[that]`, at local position
-    `cell[n] & (T*T - 1)`; run k is `run_len[k]` misses on the consecutive cells from `run[k]` (keyed
-    the same way, within one tile row). `changed[tile]` is set to 1 where a stored value changed.
+    `cell[n] & (T*T - 1)`; run k is `runs[1, k]` misses on the consecutive cells from `runs[0, k]`
+    (keyed the same way, within one tile row). `changed[tile]` is set to 1 where a stored value changed.
     Each enabled layer gets its own pass, so each inner loop is short and branch-light.
     """
+    run = runs[0]
+    run_len = runs[1]
     plane_shift = 2 * shift
     local_mask = (1 << plane_shift) - 1
     updates = cell.size
