@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fleetmap.config import LayerName
+from fleetmap.kernels.tile_index import index_insert, new_index
 
 TileKey = tuple[int, int]
 
@@ -59,6 +60,8 @@ class TileStore:
         self.pools: dict[str, np.ndarray] = {}
         self.slots: dict[TileKey, int] = {}
         self.keys: list[TileKey] = []
+        #: `slots` again, as kernels read it (`kernels.tile_index`): (keys, slots) arrays.
+        self.index = new_index(0)
         self.versions = np.zeros(0, dtype=np.int64)
         self._version_clock = 0
         self._grow(min(16, max_tiles))
@@ -104,6 +107,7 @@ class TileStore:
         needed = len(self.keys) + len(keys)
         if needed > self._capacity:
             self._grow(min(max(needed, 2 * self._capacity), self.max_tiles))
+        first = len(self.keys)
         for key in keys:
             slot = len(self.keys)
             self.slots[key] = slot
@@ -111,6 +115,14 @@ class TileStore:
             for a in self.arrays:
                 self.pools[a.name][slot] = a.unknown
             self.versions[slot] = self._tick()
+        if 2 * len(self.keys) > self.index[1].size:  # keep the table at most half full
+            self.index = new_index(len(self.keys))
+            keys, first = self.keys, 0
+        if keys:
+            pairs = np.array(keys, dtype=np.int64).reshape(-1, 2)
+            index_insert(
+                *self.index, np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1]), first
+            )
 
     def _grow(self, capacity: int) -> None:
         t = self.tile_size
