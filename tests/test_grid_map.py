@@ -6,18 +6,24 @@ availability, and that the compiled kernels release the GIL.
 from __future__ import annotations
 
 import importlib
+import itertools
 import math
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
 from numba.core.dispatcher import Dispatcher
 
 from fleetmap.config import MapConfig, OccupancyParams
+from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap, LayerUnavailableError
+from fleetmap.kernels import integrate_scan
+from fleetmap.kernels.tile_index import index_find
 from fleetmap.kernels.traversal import EXACT, segment_cells
-from fleetmap.scan import Scan
-from fleetmap.tiles import TileLimitError
+from fleetmap.scan import Scan, ScanError
+from fleetmap.sim import SimulatedRobot, generate_floorplan
+from fleetmap.tiles import TileLimitError, TileStore
 
 ALL_READ_LAYERS = ("log_odds", "hits", "misses", "tsdf", "tsdf_weight")
 
@@ -375,7 +381,7 @@ def test_kernels_release_the_gil() -> None:
     """Every compiled kernel of fleetmap.kernels is compiled with nogil=True, so integration of
     different maps can run on several threads at once."""
     found = 0
-    for name in ("traversal", "ray_model", "update", "tsdf", "beam_model"):
+    for name in ("traversal", "ray_model", "update", "tsdf", "beam_model", "tile_index", "integrate_scan"):
         module = importlib.import_module(f"fleetmap.kernels.{name}")
         for attr, value in vars(module).items():
             if isinstance(value, Dispatcher):
@@ -418,3 +424,114 @@ def test_two_threads_integrate_two_maps() -> None:
     # Counts commute, so the reversed order gives the same counts.
     for layer in ("hits", "misses"):
         np.testing.assert_array_equal(maps[1].region(layer, *window), ref.region(layer, *window))
+
+
+# -- integration in one compiled call ----------------------------------------------------------------
+
+
+def test_tile_index_finds_every_tile() -> None:
+    """The kernels' tile index (`TileStore.index`) holds exactly the store's tiles with their slots,
+    through batches of creations that regrow it, for negative and very distant tile keys."""
+    rng = np.random.default_rng(4)
+    store = TileStore(16, ["occupancy"], max_tiles=5000)
+    keys = {(int(i), int(j)) for i, j in rng.integers(-40, 40, (700, 2))}
+    keys |= {(int(i), int(j)) for i, j in rng.integers(-(2**35), 2**35, (300, 2))}
+    ordered = sorted(keys)
+    for lo in range(0, len(ordered), 97):
+        store.create(ordered[lo : lo + 97])
+    assert store.index[1].size >= 2 * len(store)  # at most half full
+    for key, slot in store.slots.items():
+        assert index_find(*store.index, *key) == slot
+    for key in [(41, 0), (-41, 5), (2**35, 2**35), (0, -(2**36))]:
+        assert key not in store.slots and index_find(*store.index, *key) == -1
+
+
+def _fleet_scans(n: int) -> list[Scan]:
+    """Scans of two simulated robots in a generated floor plan, plus a few with long no-return beams
+    (a box too large for the dense window, and a scratch that must grow)."""
+    plan = generate_floorplan(3)
+    robots = [SimulatedRobot(plan, seed, noise_std=0.01) for seed in (1, 2)]
+    scans = [robot.tick() for _ in range(n) for robot in robots]
+    fan = np.linspace(-2.0, 2.0, 90)
+    ranges = np.where(np.arange(fan.size) % 3 == 0, math.inf, 4.0)
+    for k in (5, 25, 45):
+        pose = scans[k].pose
+        scans.insert(k, Scan.from_angles((pose.x, pose.y, pose.theta), fan, ranges, 0.0, 30.0))
+    return scans
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        {},
+        {"layers": ["occupancy", "counts"]},
+        {"layers": ["counts"]},
+        {"traversal": "bresenham"},
+        {"no_return_range": 25.0},
+        {"no_return_range": 900.0, "occupancy": {"preset": "cartographer"}},
+        {"layers": ["occupancy", "counts", "tsdf"], "tsdf": {"truncation": 0.3, "max_weight": 5.0}},
+        {"layers": ["counts", "tsdf"]},
+    ],
+)
+def test_integrate_in_one_call_equals_plan_and_apply(
+    config: dict[str, object], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`integrate` (one compiled call when the scan's tiles exist) gives, scan by scan, the same
+    result as `apply(plan(scan))`, and the same map: every layer, tile, version and the clock. The
+    one-call path does most of the scans and hands the ones that need a new tile back."""
+    statuses: list[int] = []
+    kernel = integrate_scan.integrate_ray_scan
+
+    def counted(*args: object) -> tuple:
+        out = kernel(*args)
+        statuses.append(int(out[0]))
+        return out
+
+    monkeypatch.setattr(integrate_scan, "integrate_ray_scan", counted)
+    settings = {"resolution": 0.05, "tile_size": 64, "layers": ["occupancy"], **config}
+    one_call, planned = GridMap(MapConfig(**settings)), GridMap(MapConfig(**settings))  # type: ignore[arg-type]
+    for scan in _fleet_scans(30):
+        got = one_call.integrate(scan)
+        want = planned.apply(planned.plan(scan))
+        assert got == want
+    window = one_call.known_bounds()
+    assert window is not None and window == planned.known_bounds()
+    assert_same(snapshot(one_call, window), snapshot(planned, window))
+    integrated = statuses.count(integrate_scan.INTEGRATED)
+    assert integrated > len(statuses) // 2
+    assert statuses.count(integrate_scan.NEEDS_TILES) > 0
+    if config.get("no_return_range") == 900.0:
+        assert statuses.count(integrate_scan.NEEDS_SCRATCH) > 0
+
+
+def test_integrate_in_one_call_equals_plan_and_apply_on_the_intel_log(datasets_dir: Path) -> None:
+    """The same equivalence on real scans: the Intel Research Lab log's first 300."""
+    scans = list(itertools.islice(load_dataset(datasets_dir / "intel-corrected.log.gz"), 300))
+    one_call, planned = GridMap(MapConfig()), GridMap(MapConfig())
+    for scan in scans:
+        assert one_call.integrate(scan) == planned.apply(planned.plan(scan))
+    window = one_call.known_bounds()
+    assert window is not None
+    assert_same(snapshot(one_call, window), snapshot(planned, window))
+
+
+@pytest.mark.parametrize("config", [{}, {"layers": ["occupancy", "tsdf"]}])
+def test_scans_beyond_the_index_range_or_too_wide_are_refused(config: dict[str, object]) -> None:
+    """A pose or reach beyond +-2**40 cells, or a scan whose box spans more than 2**20 tiles, is
+    refused with a clear ScanError and changes nothing, on both integration paths (a map with
+    the TSDF layer plans and applies; one without integrates in one call)."""
+    m = make_map(resolution=0.05, tile_size=256, **config)
+    m.integrate(Scan.from_angles((0.0, 0.0, 0.0), [0.0, 1.0], [2.0, 3.0]))
+    window = (-100, -100, 100, 100)
+    before = snapshot(m, window)
+    far_pose = Scan.from_angles((6e10, 0.0, 0.0), [0.0], [1.0])
+    far_reach = Scan.from_angles((0.0, 0.0, 0.0), [0.0], [6e10], range_max=math.inf)
+    wide = Scan.from_angles((0.0, 0.0, 0.0), [0.0, math.pi / 2], [15_000.0, 15_000.0], range_max=math.inf)
+    for scan, message in (
+        (far_pose, "coordinate range"),
+        (far_reach, "coordinate range"),
+        (wide, "too large an area"),
+    ):
+        with pytest.raises(ScanError, match=message):
+            m.integrate(scan)
+        assert_same(snapshot(m, window), before)

@@ -3,7 +3,9 @@
 Writers and readers share one lock. Integration plans a scan without the lock (`plan_scan`), then
 creates the tiles it needs and applies every update inside the lock, so a reader sees each tile as it
 was before or after a scan, never half-way; a scan that would pass the tile cap is refused before
-anything changes.
+anything changes. `integrate` does the same in one compiled call under the lock when the map's
+configuration allows it and the scan needs no new tile (`kernels.integrate_scan`): the same result,
+without the plan's round trip through Python.
 """
 
 from __future__ import annotations
@@ -15,11 +17,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from fleetmap.config import MapConfig
+from fleetmap.kernels import integrate_scan
+from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import fuse_tsdf, zero_crossings
 from fleetmap.kernels.update import apply_cells, apply_entries
-from fleetmap.scan import Scan
+from fleetmap.scan import Scan, ScanError
 from fleetmap.tiles import TileKey, TileStore
-from fleetmap.update_plan import UpdatePlan, plan_scan
+from fleetmap.update_plan import (
+    MAX_CELL_INDEX,
+    MAX_SCAN_TILE_WINDOW,
+    OUT_OF_RANGE,
+    TOO_WIDE,
+    UpdatePlan,
+    beam_layout_of,
+    grow_trace_scratch,
+    plan_scan,
+    trace_scratch,
+)
 
 #: Layers a region can be read as: stored arrays plus the values derived from them.
 REGION_LAYERS = ("log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight")
@@ -61,6 +75,13 @@ class GridMap:
         self.config = config or MapConfig()
         self.store = TileStore(self.config.tile_size, self.config.layers, self.config.max_tiles)
         self.lock = threading.RLock()
+        cfg = self.config
+        #: Whether `integrate` may take the one-call path: the ray model with per-scan updates into
+        #: the occupancy or counts layer (the default configuration), with or without the TSDF.
+        self._in_place = (
+            cfg.sensor_model == "ray" and cfg.update == "per_scan"
+            and (cfg.has("occupancy") or cfg.has("counts"))
+        )  # fmt: skip
         #: Per tile: (version, local observed bounds or None), for known_bounds.
         self._tile_bounds: dict[TileKey, tuple[int, tuple[int, int, int, int] | None]] = {}
 
@@ -72,7 +93,42 @@ class GridMap:
 
     def integrate(self, scan: Scan) -> IntegrationResult:
         """Integrate one scan; raises `TileLimitError` (map unchanged) past the tile cap."""
+        if self._in_place:
+            result = self._integrate_in_place(scan)
+            if result is not None:
+                return result
         return self.apply(self.plan(scan))
+
+    def _integrate_in_place(self, scan: Scan) -> IntegrationResult | None:
+        """`apply(plan(scan))` in one compiled call under the lock; None, with nothing changed, when
+        the scan needs a tile that does not exist yet (then plan and apply create it)."""
+        cfg, store = self.config, self.store
+        occ, pose = cfg.occupancy, scan.pose
+        method = EXACT if cfg.traversal == "exact" else BRESENHAM
+        layout = beam_layout_of(scan.angles)
+        with self.lock:
+            log_odds, hits, misses, tsdf, tsdf_weight = store.kernel_pools()
+            while True:
+                status, updates, tsdf_updates, clock, changed, needed = integrate_scan.integrate_ray_scan(
+                    pose.x, pose.y, pose.theta, scan.angles, layout, scan.ranges, scan.range_min,
+                    scan.range_max, cfg.no_return_range, cfg.resolution, cfg.tsdf.truncation,
+                    cfg.beam.alpha, MAX_CELL_INDEX, MAX_SCAN_TILE_WINDOW, method, store.shift,
+                    trace_scratch(store.shift), *store.index, log_odds, hits, misses, occ.l_hit,
+                    occ.l_miss, occ.l_min, occ.l_max, tsdf, tsdf_weight, cfg.tsdf.max_weight,
+                    store.versions, store.clock,
+                )  # fmt: skip
+                if status != integrate_scan.NEEDS_SCRATCH:
+                    break
+                grow_trace_scratch(needed)
+            if status == integrate_scan.INTEGRATED:
+                store.restore_clock(clock)
+                changed_tiles = list(zip(*changed.tolist(), strict=True))
+                return IntegrationResult(int(updates), int(tsdf_updates), changed_tiles, 0)
+        if status == integrate_scan.OUT_OF_RANGE:
+            raise ScanError(OUT_OF_RANGE)
+        if status == integrate_scan.TOO_WIDE:
+            raise ScanError(TOO_WIDE)
+        return None  # NEEDS_TILES
 
     def plan(self, scan: Scan) -> UpdatePlan:
         """The updates `scan` implies; touches no map state, so it needs no lock."""

@@ -46,6 +46,10 @@ MAX_CELL_INDEX = float(2**40)
 #: Each planning thread keeps one zeroed scratch for `trace_scan` (it leaves it zeroed).
 _scratch = threading.local()
 
+#: `ScanError` messages of scans the engine refuses.
+OUT_OF_RANGE = "the scan's pose or ranges lie beyond the map's coordinate range"
+TOO_WIDE = "the scan spans too large an area for one scan; check its ranges and resolution"
+
 #: Beam layouts (`kernels.ray_model.beam_layout`) of recently seen scans, by (beams, first bearing,
 #: last bearing): a fleet's robots send a few layouts again and again. A scan given another
 #: layout under the same key still gets exact directions (`scan_rays` checks every bearing).
@@ -112,12 +116,12 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     pose = scan.pose
     ox, oy = pose.x / res, pose.y / res
     beams = scan_rays(
-        pose.x, pose.y, pose.theta, scan.angles, _layout(scan.angles), scan.ranges, scan.range_min,
+        pose.x, pose.y, pose.theta, scan.angles, beam_layout_of(scan.angles), scan.ranges, scan.range_min,
         scan.range_max, config.no_return_range, res,
     )  # fmt: skip
     reach = _reach(scan, config, beams[-1]) / res
     if not (abs(ox) + reach < MAX_CELL_INDEX and abs(oy) + reach < MAX_CELL_INDEX):
-        raise ScanError("the scan's pose or ranges lie beyond the map's coordinate range")
+        raise ScanError(OUT_OF_RANGE)
     cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
     tiles = runs = _EMPTY_PAIRS
@@ -176,7 +180,7 @@ def ray_trace_inputs(
     sensor `(ox, oy)`, end points `ex, ey` and kinds of the beams (CELL units), and the tile box
     `ti0, tj0, ti1, tj1` holding them; None when no beam is traced."""
     beams = scan_rays(
-        scan.pose.x, scan.pose.y, scan.pose.theta, scan.angles, _layout(scan.angles), scan.ranges,
+        scan.pose.x, scan.pose.y, scan.pose.theta, scan.angles, beam_layout_of(scan.angles), scan.ranges,
         scan.range_min, scan.range_max, clear_range, res,
     )  # fmt: skip
     inputs = _trace_inputs(scan, beams, res, shift)
@@ -186,7 +190,7 @@ def ray_trace_inputs(
     return ox, oy, rays[2], rays[3], kinds, ti0, tj0, ti1, tj1
 
 
-def _layout(angles: np.ndarray) -> np.ndarray:
+def beam_layout_of(angles: np.ndarray) -> np.ndarray:
     """The cached beam layout for bearings `angles` (made and kept when new)."""
     if angles.size == 0:
         return _NO_LAYOUT
@@ -222,18 +226,28 @@ def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, beams: tuple)
         return _EMPTY_PAIRS, _EMPTY_I, _EMPTY_KIND, _EMPTY_PAIRS
     ox, oy, rays, kinds, ti0, tj0, ti1, tj1 = inputs
     if (ti1 - ti0 + 1) * (tj1 - tj0 + 1) > MAX_SCAN_TILE_WINDOW:
-        raise ScanError("the scan spans too large an area for one scan; check its ranges and resolution")
+        raise ScanError(TOO_WIDE)
     method = EXACT if config.traversal == "exact" else BRESENHAM
     while True:
-        scratch = getattr(_scratch, "array", None)
-        if scratch is None:
-            scratch = _scratch.array = np.zeros(1 << (2 * shift), dtype=np.uint8)
         tiles, cell, kind, runs, needed = trace_scan(
-            ox, oy, rays, kinds, method, shift, ti0, tj0, ti1, tj1, scratch
+            ox, oy, rays, kinds, method, shift, ti0, tj0, ti1, tj1, trace_scratch(shift)
         )
         if not needed:
             return tiles, cell, kind, runs
-        _scratch.array = np.zeros(needed, dtype=np.uint8)
+        grow_trace_scratch(needed)
+
+
+def trace_scratch(shift: int) -> np.ndarray:
+    """This thread's zeroed scratch for `trace_scan` (one tile's worth to begin with)."""
+    scratch = getattr(_scratch, "array", None)
+    if scratch is None:
+        scratch = _scratch.array = np.zeros(1 << (2 * shift), dtype=np.uint8)
+    return scratch
+
+
+def grow_trace_scratch(needed: int) -> None:
+    """Replace this thread's scratch with one of `needed` bytes (`trace_scan` asked for it)."""
+    _scratch.array = np.zeros(needed, dtype=np.uint8)
 
 
 def _ray_model_per_ray(scan: Scan, config: MapConfig, ox: float, oy: float):

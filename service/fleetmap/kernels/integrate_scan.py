@@ -1,0 +1,124 @@
+"""A whole per-scan ray-model integration in one compiled call, when the scan needs no new tile.
+
+`update_plan.plan_scan` + `GridMap.apply` hand a scan's plan to Python and back: a few kernel calls,
+arrays boxed for Python on the way, a dictionary probe per tile and the version bump, about 6 us a
+scan whatever its size, 12 % of an Intel-dataset scan. `integrate_ray_scan` runs the same kernels
+(`scan_rays`, `trace_scan`, `trace_tsdf`, `merge_tiles`, `apply_cells`, `fuse_tsdf`) back to back,
+finds the tiles in `kernels.tile_index` and bumps their versions itself. Its result is the
+plan-and-apply result bit for bit; when a tile is missing it changes nothing, and the caller plans
+and applies (which creates tiles under the cap).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from fleetmap.kernels.ray_model import BEAM_HIT, scan_rays, trace_scan
+from fleetmap.kernels.tile_index import index_find
+from fleetmap.kernels.tsdf import fuse_tsdf, trace_tsdf
+from fleetmap.kernels.update import apply_cells, merge_tiles
+
+#: `integrate_ray_scan` statuses. Only INTEGRATED changed the map.
+INTEGRATED = 0
+NEEDS_TILES = 1  # a tile the scan touches does not exist yet
+NEEDS_SCRATCH = 2  # the scratch is too small (the last value returned is the size it needs)
+OUT_OF_RANGE = 3  # the pose or reach lies beyond `max_cell_index` (plan_scan's ScanError)
+TOO_WIDE = 4  # the scan's tile box holds more than `max_window` tiles (plan_scan's ScanError)
+
+
+@njit(cache=True, nogil=True)
+def integrate_ray_scan(
+    x: float, y: float, theta: float, angles: np.ndarray, layout: np.ndarray, ranges: np.ndarray,
+    range_min: float, range_max: float, clear_range: float, res: float, truncation: float, alpha: float,
+    max_cell_index: float, max_window: int, method: int, shift: int, scratch: np.ndarray,
+    index_keys: np.ndarray, index_slots: np.ndarray, log_odds: np.ndarray, hits: np.ndarray,
+    misses: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float, tsdf: np.ndarray,
+    tsdf_weight: np.ndarray, max_weight: float, versions: np.ndarray, clock: int,
+) -> tuple[int, int, int, int, np.ndarray, int]:  # fmt: skip
+    """Integrate one scan with the ray model's per-scan updates (and the TSDF band when `tsdf` is
+    not empty) into the pools, as `plan_scan` + `GridMap.apply` do with the same arguments (`alpha`
+    only enters the reach check, as there). Disabled layers are empty pools.
+
+    Returns `(status, cell updates, TSDF updates, version clock, changed tiles, scratch needed)`:
+    with INTEGRATED, the pools hold the scan, each changed tile (rows: tile i, tile j; in the
+    plan's tile order) got the next version from `clock`, and the clock returned is the newest
+    version. With any other status nothing changed."""
+    none = np.empty((2, 0), dtype=np.int64)
+    rays, kinds, xmin, ymin, xmax, ymax, traced, longest = scan_rays(
+        x, y, theta, angles, layout, ranges, range_min, range_max, clear_range, res
+    )
+    # The same checks, in the same order and arithmetic, as plan_scan.
+    ox = x / res
+    oy = y / res
+    far = longest
+    if clear_range > 0:
+        far = max(far, min(clear_range, range_max))
+    reach = (far + truncation + alpha) / res
+    if not (abs(ox) + reach < max_cell_index and abs(oy) + reach < max_cell_index):
+        return OUT_OF_RANGE, 0, 0, clock, none, 0
+    if traced == 0:
+        return INTEGRATED, 0, 0, clock, none, 0
+    ti0 = math.floor(xmin) >> shift
+    tj0 = math.floor(ymin) >> shift
+    ni = (math.floor(xmax) >> shift) - ti0 + 1
+    nj = (math.floor(ymax) >> shift) - tj0 + 1
+    if ni > max_window or nj > max_window or ni * nj > max_window:
+        return TOO_WIDE, 0, 0, clock, none, 0
+    tiles, cell, kind, runs, needed = trace_scan(
+        ox, oy, rays, kinds, method, shift, ti0, tj0, ti0 + ni - 1, tj0 + nj - 1, scratch
+    )
+    if needed:
+        return NEEDS_SCRATCH, 0, 0, clock, none, needed
+    # The TSDF band of the returns; its tiles go after the trace's, each once (as in plan_scan).
+    tsdf_i = tsdf_j = tsdf_tile = np.empty(0, dtype=np.int64)
+    tsdf_value = np.empty(0, dtype=np.float32)
+    if tsdf.size:
+        returns = 0
+        for b in range(kinds.size):
+            returns += kinds[b] == BEAM_HIT
+        cos = np.empty(returns)
+        sin = np.empty(returns)
+        z = np.empty(returns)
+        q = 0
+        for b in range(kinds.size):
+            if kinds[b] == BEAM_HIT:
+                cos[q] = rays[0, b]
+                sin[q] = rays[1, b]
+                z[q] = ranges[b] / res
+                q += 1
+        tsdf_i, tsdf_j, tsdf_value = trace_tsdf(ox, oy, cos, sin, z, truncation / res)
+        if tsdf_i.size:
+            tiles, tsdf_tile = merge_tiles(tiles, tsdf_i, tsdf_j, shift)
+    m = tiles.shape[1]
+    slots = np.empty(m, dtype=np.int64)
+    for k in range(m):
+        slots[k] = index_find(index_keys, index_slots, tiles[0, k], tiles[1, k])
+        if slots[k] < 0:
+            return NEEDS_TILES, 0, 0, clock, none, 0
+    changed = np.zeros(m, dtype=np.uint8)
+    updates = 0
+    if cell.size or runs.shape[1]:
+        updates = apply_cells(
+            cell, kind, runs, slots, shift, log_odds, hits, misses, l_hit, l_miss, l_min, l_max, changed
+        )
+    tsdf_updates = 0
+    if tsdf_i.size:
+        tsdf_updates = fuse_tsdf(
+            tsdf_i, tsdf_j, tsdf_value, tsdf_tile, slots, shift, tsdf, tsdf_weight, max_weight, changed
+        )
+    count = 0
+    for k in range(m):
+        count += changed[k]
+    out = np.empty((2, count), dtype=np.int64)
+    c = 0
+    for k in range(m):
+        if changed[k]:
+            clock += 1
+            versions[slots[k]] = clock
+            out[0, c] = tiles[0, k]
+            out[1, c] = tiles[1, k]
+            c += 1
+    return INTEGRATED, updates, tsdf_updates, clock, out, 0
