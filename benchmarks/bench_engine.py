@@ -6,8 +6,10 @@ docs/benchmarks.md for what is measured and why; in short:
 * Workloads: (a) simulated 1081-beam 30 m scans from robots driving a generated floor plan,
   (a') the same lidar in a large open hall so that most beams travel far, and (b) the Intel
   Research Lab log (910 scans of 180 beams), read from `../shared/datasets` beside the repository.
-* fleetmap: `GridMap.integrate` (plan + apply) at 0.05 m, per-scan updates, occupancy layer only
-  (the like-for-like comparison) and all three layers.
+* fleetmap: `GridMap.integrate` at 0.05 m, per-scan updates, occupancy layer only (the
+  like-for-like comparison) and all three layers. It integrates in one compiled call when the
+  scan's tiles exist, else plans and applies (creating tiles); the service's ingest plans and
+  applies every scan (its figures: `make bench-service`, and "where fleetmap's time goes" below).
 * OctoMap (PyPI `pyoctomap`): `OcTree.insertPointCloud` of the same beam end points (real returns
   only, z = 0) from the same sensor origin (z = 0) at the same resolution, with no range limit.
 * A cell update is one distinct cell changed by one scan (a hit beats a miss, each cell once per
