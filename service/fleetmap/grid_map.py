@@ -92,7 +92,11 @@ class GridMap:
     # -- writing ---------------------------------------------------------------------------------
 
     def integrate(self, scan: Scan) -> IntegrationResult:
-        """Integrate one scan; raises `TileLimitError` (map unchanged) past the tile cap."""
+        """Integrate one scan; raises `TileLimitError` (map unchanged) past the tile cap.
+
+        When it can, it traces and applies in one compiled call and holds the lock for the whole
+        scan. Callers that want readers and other writers to wait only for the apply (the service's
+        ingest) call `plan` without the lock and then `apply`: the same result."""
         if self._in_place:
             result = self._integrate_in_place(scan)
             if result is not None:
