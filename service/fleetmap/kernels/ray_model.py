@@ -177,10 +177,9 @@ def trace_scan(
 
     Input is the sensor position in CELL units and the beams' `rays` (rows 2 and 3: end points in
     CELL units) and kinds, as `scan_rays` gives them. `[ti0, ti1] x [tj0, tj1]` must hold every
-    traced cell. `scratch` is
-    a zeroed flat uint8 array; it is zeroed again on return, so one scratch serves every scan of a
-    thread. When it is too small, nothing is traced and the last value returned is the size it
-    needs (else 0).
+    traced cell. `scratch` is a zeroed flat uint8 array; it is zeroed again on return, so one
+    scratch serves every scan of a thread. When it is too small, nothing is traced and the last
+    value returned is the size it needs (else 0).
 
     Returns `(tiles, cell, kind, runs, scratch_needed)`: tile k is `(tiles[0, k], tiles[1, k])`;
     updated cell n lies in tile `cell[n] >> 2*shift` at local position `cell[n] & (T*T - 1)`
