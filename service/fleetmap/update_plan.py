@@ -20,7 +20,11 @@ from fleetmap.kernels.ray_model import (
     BEAM_CLEAR,
     BEAM_HIT,
     BEAM_SKIP,
+    EXTENT_OUT_OF_RANGE,
+    EXTENT_TOO_WIDE,
     beam_layout,
+    beam_returns,
+    scan_extent,
     scan_rays,
     trace_rays,
     trace_scan,
@@ -115,12 +119,8 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     res = config.resolution
     pose = scan.pose
     ox, oy = pose.x / res, pose.y / res
-    beams = scan_rays(
-        pose.x, pose.y, pose.theta, scan.angles, beam_layout_of(scan.angles), scan.ranges, scan.range_min,
-        scan.range_max, config.no_return_range, res,
-    )  # fmt: skip
-    reach = _reach(scan, config, beams[-1]) / res
-    if not (abs(ox) + reach < MAX_CELL_INDEX and abs(oy) + reach < MAX_CELL_INDEX):
+    beams, extent = _scan_beams(scan, config.no_return_range, res, shift, config)
+    if extent[0] == EXTENT_OUT_OF_RANGE:
         raise ScanError(OUT_OF_RANGE)
     cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
@@ -131,16 +131,12 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
         elif config.update == "per_ray":
             occ_i, occ_j, occ_kind = _ray_model_per_ray(scan, config, ox, oy)
         else:
-            tiles, cell, kind, runs = _ray_model_per_scan(scan, config, shift, beams)
+            tiles, cell, kind, runs = _ray_model_per_scan(scan, config, shift, beams, extent)
     tsdf_i = tsdf_j = _EMPTY_I
     tsdf_value = np.empty(0, dtype=np.float32)
     if config.has("tsdf"):
-        returns = scan.returns_mask()
-        rays = beams[0]  # rows cos, sin, ex, ey
-        tsdf_i, tsdf_j, tsdf_value = trace_tsdf(
-            ox, oy, rays[0, returns], rays[1, returns], scan.ranges[returns] / res,
-            config.tsdf.truncation / res,
-        )  # fmt: skip
+        cos, sin, z = beam_returns(beams[0], beams[1], scan.ranges, res)
+        tsdf_i, tsdf_j, tsdf_value = trace_tsdf(ox, oy, cos, sin, z, config.tsdf.truncation / res)
     # The ordered entries' tiles go after the per-scan tiles, each tile once.
     occ_tile = tsdf_tile = _EMPTY_I
     if occ_i.size:
@@ -163,31 +159,35 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     )
 
 
-def _reach(scan: Scan, config: MapConfig, longest_return: float) -> float:
-    """The farthest any beam of the scan can reach, in metres (for the index-range check), from its
-    longest usable return."""
-    far = longest_return
-    if config.no_return_range > 0:
-        far = max(far, min(config.no_return_range, scan.range_max))
-    return far + config.tsdf.truncation + config.beam.alpha
-
-
 def ray_trace_inputs(
     scan: Scan, clear_range: float, res: float, shift: int
 ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray, int, int, int, int] | None:
     """What the per-scan trace (`kernels.ray_model.trace_scan`) takes for `scan` at `res` metres per
     cell in tiles of `1 << shift` cells, with no-return beams cleared to `clear_range` metres: the
     sensor `(ox, oy)`, end points `ex, ey` and kinds of the beams (CELL units), and the tile box
-    `ti0, tj0, ti1, tj1` holding them; None when no beam is traced."""
-    beams = scan_rays(
-        scan.pose.x, scan.pose.y, scan.pose.theta, scan.angles, beam_layout_of(scan.angles), scan.ranges,
-        scan.range_min, scan.range_max, clear_range, res,
-    )  # fmt: skip
-    inputs = _trace_inputs(scan, beams, res, shift)
-    if inputs is None:
+    `ti0, tj0, ti1, tj1` holding them; None when no beam is traced. (For tests and tools.)"""
+    beams, (_, ti0, tj0, ti1, tj1) = _scan_beams(scan, clear_range, res, shift, None)
+    rays, kinds, traced = beams[0], beams[1], beams[6]
+    if traced == 0:
         return None
-    ox, oy, rays, kinds, ti0, tj0, ti1, tj1 = inputs
-    return ox, oy, rays[2], rays[3], kinds, ti0, tj0, ti1, tj1
+    return scan.pose.x / res, scan.pose.y / res, rays[2], rays[3], kinds, ti0, tj0, ti1, tj1
+
+
+def _scan_beams(scan: Scan, clear_range: float, res: float, shift: int, config: MapConfig | None):
+    """The scan's `scan_rays` and its `scan_extent` (with `config`'s TSDF and beam-model margins, or
+    none)."""
+    pose = scan.pose
+    beams = scan_rays(
+        pose.x, pose.y, pose.theta, scan.angles, beam_layout_of(scan.angles), scan.ranges, scan.range_min,
+        scan.range_max, clear_range, res,
+    )  # fmt: skip
+    _, _, xmin, ymin, xmax, ymax, _, longest = beams
+    truncation, alpha = (config.tsdf.truncation, config.beam.alpha) if config is not None else (0.0, 0.0)
+    extent = scan_extent(
+        pose.x, pose.y, res, longest, clear_range, scan.range_max, truncation, alpha, xmin, ymin, xmax, ymax,
+        shift, MAX_CELL_INDEX, MAX_SCAN_TILE_WINDOW,
+    )  # fmt: skip
+    return beams, extent
 
 
 def beam_layout_of(angles: np.ndarray) -> np.ndarray:
@@ -203,30 +203,16 @@ def beam_layout_of(angles: np.ndarray) -> np.ndarray:
     return layout
 
 
-def _trace_inputs(scan: Scan, beams: tuple, res: float, shift: int):
-    """`trace_scan`'s inputs `(ox, oy, rays, kinds, ti0, tj0, ti1, tj1)` from the scan's `scan_rays`
-    (computed with the same `res` and clearing range); None when no beam is traced."""
-    rays, kinds, xmin, ymin, xmax, ymax, traced, _ = beams
-    if traced == 0:
-        return None
-    box = (
-        math.floor(xmin) >> shift,
-        math.floor(ymin) >> shift,
-        math.floor(xmax) >> shift,
-        math.floor(ymax) >> shift,
-    )
-    return (scan.pose.x / res, scan.pose.y / res, rays, kinds, *box)
-
-
-def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, beams: tuple):
+def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, beams: tuple, extent: tuple):
     """The ray model with per-scan semantics, in one compiled pass (`kernels.ray_model.trace_scan`);
-    `beams` is the scan's `scan_rays` with the map's resolution and clearing range."""
-    inputs = _trace_inputs(scan, beams, config.resolution, shift)
-    if inputs is None:
+    `beams` and `extent` are the scan's `scan_rays` and `scan_extent` for the map."""
+    rays, kinds, traced = beams[0], beams[1], beams[6]
+    if traced == 0:
         return _EMPTY_PAIRS, _EMPTY_I, _EMPTY_KIND, _EMPTY_PAIRS
-    ox, oy, rays, kinds, ti0, tj0, ti1, tj1 = inputs
-    if (ti1 - ti0 + 1) * (tj1 - tj0 + 1) > MAX_SCAN_TILE_WINDOW:
+    verdict, ti0, tj0, ti1, tj1 = extent
+    if verdict == EXTENT_TOO_WIDE:
         raise ScanError(TOO_WIDE)
+    ox, oy = scan.pose.x / config.resolution, scan.pose.y / config.resolution
     method = EXACT if config.traversal == "exact" else BRESENHAM
     while True:
         tiles, cell, kind, runs, needed = trace_scan(

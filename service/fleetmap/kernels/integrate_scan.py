@@ -11,12 +11,17 @@ and applies (which creates tiles under the cap).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.ray_model import BEAM_HIT, scan_rays, trace_scan
+from fleetmap.kernels.ray_model import (
+    EXTENT_OUT_OF_RANGE,
+    EXTENT_TOO_WIDE,
+    beam_returns,
+    scan_extent,
+    scan_rays,
+    trace_scan,
+)
 from fleetmap.kernels.tile_index import index_find
 from fleetmap.kernels.tsdf import fuse_tsdf, trace_tsdf
 from fleetmap.kernels.update import apply_cells, merge_tiles
@@ -40,7 +45,7 @@ def integrate_ray_scan(
 ) -> tuple[int, int, int, int, np.ndarray, int]:  # fmt: skip
     """Integrate one scan with the ray model's per-scan updates (and the TSDF band when `tsdf` is
     not empty) into the pools, as `plan_scan` + `GridMap.apply` do with the same arguments (`alpha`
-    only enters the reach check, as there). Disabled layers are empty pools.
+    only enters `scan_extent`, as there). Disabled layers are empty pools.
 
     Returns `(status, cell updates, TSDF updates, version clock, changed tiles, scratch needed)`:
     with INTEGRATED, the pools hold the scan, each changed tile (rows: tile i, tile j; in the
@@ -50,25 +55,21 @@ def integrate_ray_scan(
     rays, kinds, xmin, ymin, xmax, ymax, traced, longest = scan_rays(
         x, y, theta, angles, layout, ranges, range_min, range_max, clear_range, res
     )
-    # The same checks, in the same order and arithmetic, as plan_scan.
-    ox = x / res
-    oy = y / res
-    far = longest
-    if clear_range > 0:
-        far = max(far, min(clear_range, range_max))
-    reach = (far + truncation + alpha) / res
-    if not (abs(ox) + reach < max_cell_index and abs(oy) + reach < max_cell_index):
+    # The same checks, in the same order, as plan_scan.
+    verdict, ti0, tj0, ti1, tj1 = scan_extent(
+        x, y, res, longest, clear_range, range_max, truncation, alpha, xmin, ymin, xmax, ymax, shift,
+        max_cell_index, max_window,
+    )  # fmt: skip
+    if verdict == EXTENT_OUT_OF_RANGE:
         return OUT_OF_RANGE, 0, 0, clock, none, 0
     if traced == 0:
         return INTEGRATED, 0, 0, clock, none, 0
-    ti0 = math.floor(xmin) >> shift
-    tj0 = math.floor(ymin) >> shift
-    ni = (math.floor(xmax) >> shift) - ti0 + 1
-    nj = (math.floor(ymax) >> shift) - tj0 + 1
-    if ni > max_window or nj > max_window or ni * nj > max_window:
+    if verdict == EXTENT_TOO_WIDE:
         return TOO_WIDE, 0, 0, clock, none, 0
+    ox = x / res
+    oy = y / res
     tiles, cell, kind, runs, needed = trace_scan(
-        ox, oy, rays, kinds, method, shift, ti0, tj0, ti0 + ni - 1, tj0 + nj - 1, scratch
+        ox, oy, rays, kinds, method, shift, ti0, tj0, ti1, tj1, scratch
     )
     if needed:
         return NEEDS_SCRATCH, 0, 0, clock, none, needed
@@ -76,19 +77,7 @@ def integrate_ray_scan(
     tsdf_i = tsdf_j = tsdf_tile = np.empty(0, dtype=np.int64)
     tsdf_value = np.empty(0, dtype=np.float32)
     if tsdf.size:
-        returns = 0
-        for b in range(kinds.size):
-            returns += kinds[b] == BEAM_HIT
-        cos = np.empty(returns)
-        sin = np.empty(returns)
-        z = np.empty(returns)
-        q = 0
-        for b in range(kinds.size):
-            if kinds[b] == BEAM_HIT:
-                cos[q] = rays[0, b]
-                sin[q] = rays[1, b]
-                z[q] = ranges[b] / res
-                q += 1
+        cos, sin, z = beam_returns(rays, kinds, ranges, res)
         tsdf_i, tsdf_j, tsdf_value = trace_tsdf(ox, oy, cos, sin, z, truncation / res)
         if tsdf_i.size:
             tiles, tsdf_tile = merge_tiles(tiles, tsdf_i, tsdf_j, shift)

@@ -152,6 +152,66 @@ def scan_rays(
     return rays, kinds, xmin, ymin, xmax, ymax, traced, longest
 
 
+#: `scan_extent` verdicts.
+EXTENT_OK = 0
+EXTENT_OUT_OF_RANGE = 1  # the pose or the reach lies beyond the index range
+EXTENT_TOO_WIDE = 2  # the traced beams' tile box holds too many tiles
+
+
+@njit(cache=True, nogil=True)
+def scan_extent(
+    x: float, y: float, res: float, longest: float, clear_range: float, range_max: float, truncation: float,
+    alpha: float, xmin: float, ymin: float, xmax: float, ymax: float, shift: int, max_cell_index: float,
+    max_window: int,
+) -> tuple[int, int, int, int, int]:  # fmt: skip
+    """Whether a scan from (x, y) (metres, `res` per cell) fits the map, and its tile box: the one
+    definition of both limits, for planning and for the one-call integration.
+
+    EXTENT_OUT_OF_RANGE when the sensor plus the scan's reach (its longest return, or its clearing
+    range when that is > 0 and farther, at most `range_max`, plus `truncation` and `alpha`: how far
+    the TSDF band and the beam model reach past a return; metres) is not within `max_cell_index`
+    cells of the origin on both axes. Otherwise the tile box `ti0, tj0, ti1, tj1` (tiles
+    of `1 << shift` cells) of the bounding box `xmin..ymax` (CELL units, from `scan_rays`), and
+    EXTENT_TOO_WIDE when it holds more than `max_window` tiles.
+
+    Returns `(verdict, ti0, tj0, ti1, tj1)` (the box is 0s when out of range)."""
+    far = longest
+    if clear_range > 0:
+        far = max(far, min(clear_range, range_max))
+    reach = (far + truncation + alpha) / res
+    if not (abs(x / res) + reach < max_cell_index and abs(y / res) + reach < max_cell_index):
+        return EXTENT_OUT_OF_RANGE, 0, 0, 0, 0
+    ti0 = math.floor(xmin) >> shift
+    tj0 = math.floor(ymin) >> shift
+    ti1 = math.floor(xmax) >> shift
+    tj1 = math.floor(ymax) >> shift
+    ni = ti1 - ti0 + 1
+    nj = tj1 - tj0 + 1
+    if ni > max_window or nj > max_window or ni * nj > max_window:  # each side first: no overflow
+        return EXTENT_TOO_WIDE, ti0, tj0, ti1, tj1
+    return EXTENT_OK, ti0, tj0, ti1, tj1
+
+
+@njit(cache=True, nogil=True)
+def beam_returns(rays: np.ndarray, kinds: np.ndarray, ranges: np.ndarray, res: float) -> tuple:
+    """The returns of a scan, for the TSDF band: the directions (cos, sin) and ranges in CELL units
+    of its `BEAM_HIT` beams, from `scan_rays`' `rays` and `kinds`."""
+    n = 0
+    for b in range(kinds.size):
+        n += kinds[b] == BEAM_HIT
+    cos = np.empty(n)
+    sin = np.empty(n)
+    z = np.empty(n)
+    q = 0
+    for b in range(kinds.size):
+        if kinds[b] == BEAM_HIT:
+            cos[q] = rays[0, b]
+            sin[q] = rays[1, b]
+            z[q] = ranges[b] / res
+            q += 1
+    return cos, sin, z
+
+
 @njit(cache=True, nogil=True)
 def trace_scan(
     ox: float,
