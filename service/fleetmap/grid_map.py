@@ -171,10 +171,9 @@ class GridMap:
                     plan.tsdf_i, plan.tsdf_j, plan.tsdf_value, plan.tsdf_tile, slots, store.shift,
                     tsdf, tsdf_weight, cfg.tsdf.max_weight, changed,
                 )  # fmt: skip
-            changed_idx = changed.nonzero()[0]
-            store.bump(slots[changed_idx])
+            store.bump(slots, changed)
         return IntegrationResult(
-            int(updates), int(tsdf_updates), [keys[k] for k in changed_idx.tolist()], len(new)
+            int(updates), int(tsdf_updates), [keys[k] for k in changed.nonzero()[0].tolist()], len(new)
         )
 
     # -- reading ---------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ import numpy as np
 
 from fleetmap.config import LayerName
 from fleetmap.kernels.tile_index import index_insert, new_index
+from fleetmap.kernels.update import bump_versions
 
 TileKey = tuple[int, int]
 
@@ -144,18 +145,18 @@ class TileStore:
         self._version_clock += 1
         return self._version_clock
 
-    def bump(self, slots: np.ndarray) -> None:
-        """Give each tile in `slots` (distinct) a new version (a store-wide clock, so versions never
-        repeat)."""
-        self.versions[slots] = np.arange(self._version_clock + 1, self._version_clock + 1 + len(slots))
-        self._version_clock += len(slots)
+    def bump(self, slots: np.ndarray, changed: np.ndarray) -> None:
+        """Give each tile `slots[k]` with `changed[k]` set a new version (`kernels.update.bump_versions`:
+        a store-wide clock, so versions never repeat)."""
+        self._version_clock = bump_versions(changed, slots, self.versions, self._version_clock)
 
     def version(self, key: TileKey) -> int | None:
         slot = self.slots.get(key)
         return None if slot is None else int(self.versions[slot])
 
     def restore_clock(self, clock: int) -> None:
-        """Continue the version clock from `clock` (a store restored from disk)."""
+        """Continue the version clock from `clock` (a store restored from disk, or versions a kernel
+        handed out with `bump_versions`)."""
         self._version_clock = max(self._version_clock, int(clock))
 
     @property

@@ -24,7 +24,7 @@ from fleetmap.kernels.ray_model import (
 )
 from fleetmap.kernels.tile_index import index_find
 from fleetmap.kernels.tsdf import fuse_tsdf, trace_tsdf
-from fleetmap.kernels.update import apply_cells, merge_tiles
+from fleetmap.kernels.update import apply_cells, bump_versions, merge_tiles
 
 #: `integrate_ray_scan` statuses. Only INTEGRATED changed the map.
 INTEGRATED = 0
@@ -98,6 +98,7 @@ def integrate_ray_scan(
         tsdf_updates = fuse_tsdf(
             tsdf_i, tsdf_j, tsdf_value, tsdf_tile, slots, shift, tsdf, tsdf_weight, max_weight, changed
         )
+    clock = bump_versions(changed, slots, versions, clock)
     count = 0
     for k in range(m):
         count += changed[k]
@@ -105,8 +106,6 @@ def integrate_ray_scan(
     c = 0
     for k in range(m):
         if changed[k]:
-            clock += 1
-            versions[slots[k]] = clock
             out[0, c] = tiles[0, k]
             out[1, c] = tiles[1, k]
             c += 1

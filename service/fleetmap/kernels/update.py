@@ -61,6 +61,18 @@ def merge_tiles(
     return out, tile
 
 
+@njit(cache=True, nogil=True)
+def bump_versions(changed: np.ndarray, slots: np.ndarray, versions: np.ndarray, clock: int) -> int:
+    """Give each tile k with `changed[k]` set (pool slot `slots[k]`) the next version after `clock`,
+    in tile order: the one rule for tile versions (a store-wide clock, so versions never repeat).
+    Returns the newest version handed out."""
+    for k in range(changed.size):
+        if changed[k]:
+            clock += 1
+            versions[slots[k]] = clock
+    return clock
+
+
 @njit(cache=True, nogil=True, inline="always")
 def updated_log_odds(old: float, hit: bool, l_hit: float, l_miss: float, l_min: float, l_max: float):
     """The log-odds update rule, the one place it is written: an unknown cell (NaN) starts at 0, a
