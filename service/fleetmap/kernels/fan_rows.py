@@ -92,6 +92,13 @@ def exit_column(i0: int, ie: int, step_i: int, base_x: float, scale_x: float, t:
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _key(ox: float, oy: float, x: float, y: float) -> float:
+    """dx/|dy| of the beam from (ox, oy) to (x, y): where it crosses a row line, per unit of distance
+    from the sensor (the module doc's `key`)."""
+    return (x - ox) / abs(y - oy)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _lowest_bit(word: np.uint64) -> int:
     """Index of the lowest set bit of a non-zero word."""
     low = word & (~word + np.uint64(1))
@@ -162,17 +169,41 @@ def trace_fan_rows(
     down_order = _direction_order(down, ox, oy, ex, ey)
     if up_order.size != n_up or down_order.size != n_down:
         return -1, 0, 0
-    # The sensor's row: every beam's run starts at the sensor's column, so their union is one span.
+    # The sensor's row: every beam's run starts at the sensor's column, so their union is one span,
+    # from the end cells of the beams ending in it and the columns where the others leave it.
     lo = hi = i0
     for b in range(nb):
-        if kinds[b] == _BEAM_SKIP:
+        if kinds[b] != _BEAM_SKIP and je[b] == j0:
+            lo = min(lo, ie[b])
+            hi = max(hi, ie[b])
+    fy = oy - j0
+    for g in range(2):  # up, then down
+        # A beam leaves the row at x = ox + d*key on its exit line, d from the sensor: monotonic in
+        # key, so the fan's two end beams bound the others, as the end beams of a chain do (module
+        # doc), with the same guards: beams within MIN_KEY_GAP of an end beam's key count as ends
+        # too, and every beam does when the line is within NEAR_LINE of the sensor.
+        order = up_order if g == 0 else down_order
+        n = order.size
+        if n == 0:
             continue
-        if je[b] == j0:
-            c = ie[b]
-        else:
+        head = tail = n  # the ends: the first `head` beams of the order and those from `tail` on
+        if (1.0 - fy if g == 0 else fy) >= NEAR_LINE:
+            first = _key(ox, oy, ex[order[0]], ey[order[0]])
+            head = 1
+            while head < n and abs(_key(ox, oy, ex[order[head]], ey[order[head]]) - first) < MIN_KEY_GAP:
+                head += 1
+            last = _key(ox, oy, ex[order[n - 1]], ey[order[n - 1]])
+            tail = n - 1
+            while (
+                tail > head
+                and abs(_key(ox, oy, ex[order[tail - 1]], ey[order[tail - 1]]) - last) < MIN_KEY_GAP
+            ):
+                tail -= 1
+        for q in range(head + n - tail):
+            b = order[q if q < head else tail + q - head]
             c = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], crossing(j0, base_y[b], scale_y[b]))
-        lo = min(lo, c)
-        hi = max(hi, c)
+            lo = min(lo, c)
+            hi = max(hi, c)
     # The counts (cells, beams handed back, runs) live in an array: passed as the literal 0, an int
     # argument would make numba compile each callee twice, once for the literal.
     counts = np.zeros(3, dtype=np.int64)
@@ -188,7 +219,6 @@ def trace_fan_rows(
         ti0, tj0, ni,
     ):  # fmt: skip
         return -1, 0, 0
-    fy = oy - j0
     for g in range(2):  # up, then down
         _trace_rows(
             up_order if g == 0 else down_order, 1 - 2 * g, fy if g == 0 else 1.0 - fy, counts, ox, oy, ex,
@@ -211,7 +241,7 @@ def _direction_order(members: np.ndarray, ox: float, oy: float, ex: np.ndarray, 
     key = np.empty(n)
     for p in range(n):
         b = members[p]
-        key[p] = (ex[b] - ox) / abs(ey[b] - oy)
+        key[p] = _key(ox, oy, ex[b], ey[b])
     for sign in (1.0, -1.0):  # try non-increasing, then non-decreasing
         rises = 0
         at = 0
@@ -341,7 +371,7 @@ def _trace_rows(
     key = np.empty(nu)
     for p in range(nu):
         b = order[p]
-        key[p] = (ex[b] - ox) / abs(ey[b] - oy)
+        key[p] = _key(ox, oy, ex[b], ey[b])
     # Beams ending in each row offset, by a counting sort.
     ends_at = np.zeros(rows + 2, dtype=np.int64)
     for p in range(nu):
