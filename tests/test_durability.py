@@ -25,7 +25,7 @@ from service_process import RobotProcess, ServiceProcess
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
-from fleetmap.persistence import DB_NAME, scan_from_blob, tile_from_blob, tile_to_blob
+from fleetmap.persistence import DB_NAME, scan_from_blob, snapshot_file, tile_from_blob, tile_to_blob
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING
 
@@ -204,6 +204,55 @@ def test_snapshot_download_and_restore_moves_a_map_between_servers(tmp_path: Pat
     try:
         np.testing.assert_array_equal(
             region(restarted.base_url, "dst", "log_odds", window), ref.region("log_odds", i0, j0, i1, j1)
+        )
+    finally:
+        restarted.stop()
+
+
+def test_map_changes_are_durable_when_answered(tmp_path: Path) -> None:
+    """PUT /maps/{id}, DELETE /maps/{id} and PUT /maps/{id}/snapshot answer only once the change is
+    committed: the database holds it at the answer (read from outside), and a kill -9 right after
+    loses nothing. The snapshot has many small tiles, so its rows take a while to write."""
+    scans = [as_received(s) for s in scans_for(sim=5, plan_seed=1, count=40)]
+    source = GridMap(MapConfig(tile_size=16))
+    for scan in scans:
+        source.integrate(scan)
+    assert len(source.store) > 150
+    data = tmp_path / "data"
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        url = svc.base_url
+
+        def stored() -> set[str]:
+            with sqlite3.connect(data / DB_NAME) as conn:
+                return {row[0] for row in conn.execute("SELECT id FROM maps")}
+
+        assert httpx.put(f"{url}/maps/custom", json={"resolution": 0.1}, timeout=30).status_code == 201
+        assert stored() == {"custom"}
+        assert httpx.put(f"{url}/maps/gone", timeout=30).status_code == 201
+        assert stored() == {"custom", "gone"}
+        assert httpx.delete(f"{url}/maps/gone", timeout=30).status_code == 204
+        assert stored() == {"custom"}
+        put = httpx.put(f"{url}/maps/restored/snapshot", content=snapshot_file("src", source), timeout=60)
+        assert put.status_code == 201, put.text
+        assert stored() == {"custom", "restored"}
+        with sqlite3.connect(data / DB_NAME) as conn:
+            tiles = conn.execute("SELECT COUNT(*) FROM tiles WHERE map_id = 'restored'").fetchone()[0]
+        assert tiles == len(source.store)
+        svc.proc.kill()  # SIGKILL at once: no snapshot, no goodbye
+        svc.proc.wait()
+    finally:
+        svc.stop()
+    restarted = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        url = restarted.base_url
+        assert httpx.get(f"{url}/maps/custom", timeout=10).json()["config"]["resolution"] == 0.1
+        assert httpx.get(f"{url}/maps/gone", timeout=10).status_code == 404
+        i0, j0, i1, j1 = source.known_bounds()
+        res = source.resolution
+        window = ((i0 + 0.5) * res, (j0 + 0.5) * res, (i1 + 0.5) * res, (j1 + 0.5) * res)
+        np.testing.assert_array_equal(
+            region(url, "restored", "log_odds", window), source.region("log_odds", i0, j0, i1, j1)
         )
     finally:
         restarted.stop()

@@ -625,6 +625,10 @@ def map_from_snapshot_file(data: bytes, max_tiles: int | None = None) -> GridMap
 # -- the durable store the registry uses ------------------------------------------------------------------
 
 
+#: One stored tile: its key (tile i, tile j), version and `tile_to_blob` blob.
+TileRow = tuple[tuple[int, int], int, bytes]
+
+
 class DurableStore:
     """Persistence for a `MapRegistry`: restore on start, journal while running, snapshot now and then.
 
@@ -732,16 +736,25 @@ class DurableStore:
 
     # -- hooks called by the registry -------------------------------------------------------------------
 
-    def map_created(self, map_id: str, gmap: GridMap) -> Future:
-        """Record a new map (or one restored from a snapshot file, with its tiles). Queued, not
-        waited for: called under the registry's lock, it is ordered before any of the map's scans.
+    @staticmethod
+    def tile_rows(gmap: GridMap) -> list[TileRow]:
+        """Every tile of `gmap` as `map_created` stores it. About 1.5 ms per 256-cell tile with every
+        layer, so a restored map's are encoded before `map_created` is called under the registry's
+        lock."""
+        layout = gmap.store.arrays
+        return [
+            (key, version, tile_to_blob(arrays, layout)) for key, version, arrays in changed_tiles(gmap, -1)
+        ]
+
+    def map_created(self, map_id: str, gmap: GridMap, tiles: list[TileRow] | None = None) -> Future:
+        """Record a new map (or one restored from a snapshot file, with its tiles: `tile_rows`, made
+        here when not given). Queued, not waited for: called under the registry's lock, it is
+        ordered before any of the map's scans. The future resolves once the map is committed.
 
         The map's journal starts after the journal's current sequence, so rows a deleted map of the
         same id left behind are never replayed into this one."""
-        layout = gmap.store.arrays
-        tiles = [
-            (key, version, tile_to_blob(arrays, layout)) for key, version, arrays in changed_tiles(gmap, -1)
-        ]
+        if tiles is None:
+            tiles = self.tile_rows(gmap)
         config_json, clock = gmap.config.model_dump_json(), gmap.store.clock
         gen = self._next_gen()
         created = time.time()
@@ -770,7 +783,8 @@ class DurableStore:
         return self.writer.submit(op)
 
     def map_deleted(self, map_id: str) -> Future:
-        """Forget a map. Queued after its journaled scans, not waited for."""
+        """Forget a map. Queued after its journaled scans, not waited for; the future resolves once
+        the deletion is committed."""
 
         def op(conn: sqlite3.Connection) -> None:
             self.writer.trim(map_id, None)  # the DELETE below removes them all

@@ -11,7 +11,9 @@ with Zenoh's blocking congestion control, and the service is sized to keep up.
 
 With a `DurableStore`, each applied scan is journaled under the map's lock (so the journal's order is
 the order of application) and counts as integrated (stats, REST answer) only once its journal row is
-committed. Viewers see its tiles change at once.
+committed. Viewers see its tiles change at once. Map changes (create, delete, replace) are queued
+on the same journal in order, and callers that answer a client (`wait=True`) return only once the
+change is committed.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ log = logging.getLogger("fleetmap.registry")
 
 #: Poses kept per robot for viewers' trails.
 TRAIL_LENGTH = 200
+#: Seconds a map change made with `wait=True` waits to be committed before `NotDurable` is raised.
+DURABLE_WAIT = 30.0
 
 
 class MapNotFound(KeyError):
@@ -52,6 +56,10 @@ class MapConflict(ValueError):
 
 class InvalidId(ValueError):
     pass
+
+
+class NotDurable(Exception):
+    """A map change took effect in memory but was not committed to storage (in time)."""
 
 
 @dataclass
@@ -228,11 +236,15 @@ class MapRegistry:
 
     # -- maps ------------------------------------------------------------------------------------
 
-    def create(self, map_id: str, config: MapConfig | None = None) -> tuple[MapEntry, bool]:
+    def create(
+        self, map_id: str, config: MapConfig | None = None, wait: bool = False
+    ) -> tuple[MapEntry, bool]:
         """Create a map, or return the existing one if its configuration is the same.
-        Returns (entry, created). Raises MapConflict for a different configuration."""
+        Returns (entry, created). Raises MapConflict for a different configuration. With `wait`, a
+        new map is committed to storage before this returns (else NotDurable)."""
         _check_id("map id", map_id)
         config = config or self.default_config
+        stored = None
         with self.lock:
             existing = self.maps.get(map_id)
             if existing is not None:
@@ -244,22 +256,31 @@ class MapRegistry:
             entry = MapEntry(map_id, GridMap(config), next(self._generations))
             self.maps[map_id] = entry
             if self.durable is not None:
-                self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
+                stored = self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
             log.info("created map %s", map_id)
-            return entry, True
+        if wait:
+            _wait_stored(stored, f"map {map_id!r} was created")
+        return entry, True
 
-    def replace(self, map_id: str, gmap: GridMap) -> MapEntry:
-        """Install `gmap` (a restored snapshot) as map `map_id`, replacing any map of that id."""
+    def replace(self, map_id: str, gmap: GridMap, wait: bool = False) -> MapEntry:
+        """Install `gmap` (a restored snapshot) as map `map_id`, replacing any map of that id. With
+        `wait`, it is committed to storage before this returns (else NotDurable)."""
         _check_id("map id", map_id)
+        # Its tiles are encoded here, before the lock: no one else sees `gmap` yet, and a big map
+        # takes seconds, during which scans and every other request need the lock.
+        tiles = self.durable.tile_rows(gmap) if self.durable is not None else []
+        stored = None
         with self.lock:
             old = self.maps.pop(map_id, None)
             entry = MapEntry(map_id, gmap, next(self._generations))
             self.maps[map_id] = entry
             if self.durable is not None:
-                self.durable.map_created(map_id, gmap)
+                stored = self.durable.map_created(map_id, gmap, tiles)
         if old is not None:
             self.queue.drop_source(lambda source: source[0] == map_id)
         log.info("installed map %s from a snapshot (%d tiles)", map_id, len(gmap.store))
+        if wait:
+            _wait_stored(stored, f"map {map_id!r} was installed")
         return entry
 
     def get(self, map_id: str) -> MapEntry:
@@ -269,14 +290,19 @@ class MapRegistry:
             raise MapNotFound(map_id)
         return entry
 
-    def delete(self, map_id: str) -> None:
+    def delete(self, map_id: str, wait: bool = False) -> None:
+        """Remove a map and its queued scans; raises MapNotFound. With `wait`, the deletion is
+        committed to storage before this returns (else NotDurable)."""
+        stored = None
         with self.lock:
             if self.maps.pop(map_id, None) is None:
                 raise MapNotFound(map_id)
             if self.durable is not None:
-                self.durable.map_deleted(map_id)
+                stored = self.durable.map_deleted(map_id)
         self.queue.drop_source(lambda source: source[0] == map_id)
         log.info("deleted map %s", map_id)
+        if wait:
+            _wait_stored(stored, f"map {map_id!r} was deleted")
 
     def list(self) -> list[MapEntry]:
         with self.lock:
@@ -458,6 +484,18 @@ class MapRegistry:
                 return True
             time.sleep(0.005)
         return False
+
+
+def _wait_stored(stored: Future | None, done: str) -> None:
+    """Wait for a map change's commit (None: no storage); `done` says what took effect in memory."""
+    if stored is None:
+        return
+    try:
+        stored.result(timeout=DURABLE_WAIT)
+    except TimeoutError:
+        raise NotDurable(f"{done}, but is not yet stored after {DURABLE_WAIT:g} s; it will be") from None
+    except Exception as exc:
+        raise NotDurable(f"{done}, but could not be stored: {exc}") from None
 
 
 def _check_id(what: str, value: str) -> None:

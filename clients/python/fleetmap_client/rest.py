@@ -146,7 +146,8 @@ class FleetmapClient:
     def create_map(self, map_id: str, config: MapConfig | Mapping[str, Any] | None = None) -> MapInfo:
         """`PUT /maps/{map_id}`: create a map with `config` (None: the server's default). Creating a
         map that exists with the same configuration is a no-op; with a different one it raises
-        `FleetmapError` 409. A bad configuration raises 422 with the server's reason."""
+        `FleetmapError` 409. A bad configuration raises 422 with the server's reason. Returns once
+        the server has stored the map (503: created, but the server could not store it)."""
         _check_id("map_id", map_id)
         if config is None:
             kwargs: dict[str, Any] = {}
@@ -162,7 +163,8 @@ class FleetmapClient:
         return MapInfo.model_validate_json(self._request("GET", f"/maps/{map_id}").content)
 
     def delete_map(self, map_id: str) -> None:
-        """`DELETE /maps/{map_id}`; `FleetmapError` 404 if there is no such map."""
+        """`DELETE /maps/{map_id}`, returning once the server has stored the deletion; `FleetmapError`
+        404 if there is no such map, 503 if it was removed but the server could not store that."""
         _check_id("map_id", map_id)
         self._request("DELETE", f"/maps/{map_id}")
 

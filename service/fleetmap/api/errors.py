@@ -22,7 +22,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from fleetmap.api_models import ErrorItem, ErrorResponse
 from fleetmap.codec import DecodeError
 from fleetmap.grid_map import LayerUnavailableError
-from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound
+from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
 from fleetmap.tile_render import TileError
 from fleetmap.tiles import TileLimitError
@@ -35,7 +35,7 @@ _DESCRIPTIONS = {
     409: "Conflicts with the map's state or configuration",
     413: "The request asks for too much at once",
     422: "Invalid request: bad parameter, body or id",
-    503: "The service is overloaded: retry later",
+    503: "The service is overloaded, or could not store a change: retry later",
 }
 
 
@@ -208,14 +208,16 @@ def install(app: FastAPI) -> None:
     async def _ingest_rejected(request: Request, exc: IngestRejected) -> JSONResponse:
         return _json(exc.status if exc.status >= 400 else 422, exc.reason)
 
-    def _client_error(status: int) -> Any:
+    def _answer(status: int) -> Any:
         async def handler(request: Request, exc: Exception) -> JSONResponse:
             return _json(status, str(exc))  # fleetmap's exceptions carry a sentence for the user
 
         return handler
 
     for exc_type, status in _CLIENT_ERRORS:
-        app.add_exception_handler(exc_type, _client_error(status))
+        app.add_exception_handler(exc_type, _answer(status))
+    # Storage, not the client: the change took effect but is not durable; the client may retry.
+    app.add_exception_handler(NotDurable, _answer(503))
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception) -> JSONResponse:

@@ -73,7 +73,7 @@ def list_maps(state: State) -> MapList:
     tags=["maps"],
     summary="Create a map",
     response_model=MapInfo,
-    responses={201: {"model": MapInfo, "description": "Created"}, **error_responses(409, 422)},
+    responses={201: {"model": MapInfo, "description": "Created"}, **error_responses(409, 422, 503)},
 )
 def put_map(
     map_id: MapId,
@@ -87,10 +87,11 @@ def put_map(
         ),
     ] = None,
 ) -> MapInfo:
-    """Creates the map (201). If it exists with the same configuration, nothing changes (200); with a
-    different one, 409: delete it first. Configurations compare after defaults and presets are
-    resolved, so `{}` equals the defaults written out."""
-    entry, created = state.registry.create(map_id, config)
+    """Creates the map (201), answering once it is stored (with durable storage). If it exists with
+    the same configuration, nothing changes (200); with a different one, 409: delete it first.
+    Configurations compare after defaults and presets are resolved, so `{}` equals the defaults
+    written out. 503: the map was created but could not be stored."""
+    entry, created = state.registry.create(map_id, config, wait=True)
     response.status_code = 201 if created else 200
     return map_info(entry, state.registry.lock)
 
@@ -115,11 +116,12 @@ def get_map(map_id: MapId, state: State) -> MapInfo:
     summary="Delete a map",
     status_code=204,
     response_class=Response,
-    responses=error_responses(404, 422),
+    responses=error_responses(404, 422, 503),
 )
 def delete_map(map_id: MapId, state: State) -> Response:
-    """Removes the map, its robots and its queued scans. Event streams of the map end."""
-    state.registry.delete(map_id)
+    """Removes the map, its robots and its queued scans, answering once that is stored (with durable
+    storage). Event streams of the map end. 503: removed, but the removal could not be stored."""
+    state.registry.delete(map_id, wait=True)
     state.tiles.drop_map(map_id)  # its tiles can never be served again (new maps get a new generation)
     return Response(status_code=204)
 

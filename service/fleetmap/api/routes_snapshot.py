@@ -50,17 +50,19 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
             "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
         }
     },
-    responses=error_responses(413, 422),
+    responses=error_responses(413, 422, 503),
 )
 async def put_snapshot(map_id: MapId, request: Request, state: State) -> MapInfo:
-    """Replace map `map_id` (or create it) with the map in the uploaded snapshot file, durably. Its
-    robots' statistics start afresh; scans queued for the old map are dropped. 422 if the body is not
-    a fleetmap snapshot."""
+    """Replace map `map_id` (or create it) with the map in the uploaded snapshot file, durably: the
+    answer comes once it is stored. Its robots' statistics start afresh; scans queued for the old map
+    are dropped. 422 if the body is not a fleetmap snapshot; 503 if the map was installed but could
+    not be stored."""
     body = await request.body()
     try:
         gmap = await asyncio.to_thread(map_from_snapshot_file, body)
     except ValueError as exc:
         raise ApiError(422, str(exc)) from None
-    entry = state.registry.replace(map_id, gmap)
+    # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
+    entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True)
     state.tiles.drop_map(map_id)
     return map_info(entry, state.registry.lock)
