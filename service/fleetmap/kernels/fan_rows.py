@@ -141,6 +141,8 @@ def trace_fan_rows(
     scale_x = np.empty(nb)
     base_y = np.empty(nb)
     scale_y = np.empty(nb)
+    up_all = np.empty(nb, dtype=np.int64)
+    down_all = np.empty(nb, dtype=np.int64)
     n_up = n_down = 0
     for b in range(nb):
         if kinds[b] == _BEAM_SKIP:
@@ -151,20 +153,13 @@ def trace_fan_rows(
             ox, oy, ex[b], ey[b]
         )
         if je[b] > j0:
+            up_all[n_up] = b
             n_up += 1
         elif je[b] < j0:
+            down_all[n_down] = b
             n_down += 1
-    up = np.empty(n_up, dtype=np.int64)
-    down = np.empty(n_down, dtype=np.int64)
-    n_up = n_down = 0
-    for b in range(nb):
-        if kinds[b] != _BEAM_SKIP:
-            if je[b] > j0:
-                up[n_up] = b
-                n_up += 1
-            elif je[b] < j0:
-                down[n_down] = b
-                n_down += 1
+    up = up_all[:n_up]
+    down = down_all[:n_down]
     up_order = _direction_order(up, ox, oy, ex, ey)
     down_order = _direction_order(down, ox, oy, ex, ey)
     if up_order.size != n_up or down_order.size != n_down:
@@ -172,10 +167,15 @@ def trace_fan_rows(
     # The sensor's row: every beam's run starts at the sensor's column, so their union is one span,
     # from the end cells of the beams ending in it and the columns where the others leave it.
     lo = hi = i0
+    hit_cols = np.empty(nb, dtype=np.int64)
+    nh = 0
     for b in range(nb):
         if kinds[b] != _BEAM_SKIP and je[b] == j0:
             lo = min(lo, ie[b])
             hi = max(hi, ie[b])
+            if kinds[b] == _BEAM_HIT:
+                hit_cols[nh] = ie[b]
+                nh += 1
     fy = oy - j0
     for g in range(2):  # up, then down
         # A beam leaves the row at x = ox + d*key on its exit line, d from the sensor: monotonic in
@@ -208,12 +208,6 @@ def trace_fan_rows(
     # argument would make numba compile each callee twice, once for the literal.
     counts = np.zeros(3, dtype=np.int64)
     span = np.array([lo, hi], dtype=np.int64)
-    hit_cols = np.empty(nb, dtype=np.int64)
-    nh = 0
-    for b in range(nb):
-        if kinds[b] == _BEAM_HIT and je[b] == j0:
-            hit_cols[nh] = ie[b]
-            nh += 1
     if not _emit_row(
         found, kind_out, run_key, run_len, planes, counts, j0, span[:1], span[1:], 1, hit_cols, nh, shift,
         ti0, tj0, ni,
@@ -365,23 +359,24 @@ def _trace_rows(
     nu = order.size
     if nu == 0:
         return
-    rows = abs(je[order[0]] - j0)
-    for p in range(1, nu):
-        rows = max(rows, abs(je[order[p]] - j0))
     key = np.empty(nu)
+    dist = np.empty(nu, dtype=np.int64)
+    rows = 0
     for p in range(nu):
         b = order[p]
         key[p] = _key(ox, oy, ex[b], ey[b])
+        dist[p] = abs(je[b] - j0)
+        rows = max(rows, dist[p])
     # Beams ending in each row offset, by a counting sort.
     ends_at = np.zeros(rows + 2, dtype=np.int64)
     for p in range(nu):
-        ends_at[abs(je[order[p]] - j0) + 1] += 1
+        ends_at[dist[p] + 1] += 1
     for m in range(rows + 1):
         ends_at[m + 1] += ends_at[m]
     ending = np.empty(nu, dtype=np.int64)
     fill = ends_at.copy()
     for p in range(nu):
-        m = abs(je[order[p]] - j0)
+        m = dist[p]
         ending[fill[m]] = p
         fill[m] += 1
     # The beams still going on, as a linked list in direction order; brk has bit p set when the
