@@ -213,11 +213,23 @@ def trace_fan_rows(
         ti0, tj0, ni,
     ):  # fmt: skip
         return -1, 0, 0
+    # The two halves' work arrays, allocated once for both (see `_trace_rows`).
+    most = max(n_up, n_down)
+    rows = 0
+    for b in range(nb):
+        if kinds[b] != _BEAM_SKIP:
+            rows = max(rows, abs(je[b] - j0))
+    work = np.empty(3 * (rows + 2) + 15 * most + 8, dtype=np.int64)
+    work_keys = np.empty(most)
+    work_brk = np.empty((most + 63) >> 6, dtype=np.uint64)
     for g in range(2):  # up, then down
+        # (Chosen before the call: with this many arguments, numba cannot take conditional ones.)
+        order = up_order if g == 0 else down_order
+        first_line = fy if g == 0 else 1.0 - fy  # the sensor's distance to the half's first row line
         _trace_rows(
-            up_order if g == 0 else down_order, 1 - 2 * g, fy if g == 0 else 1.0 - fy, counts, ox, oy, ex,
-            ey, kinds, i0, j0, ie, je, step_i, base_x, scale_x, base_y, scale_y, shift, ti0, tj0, ni, found,
-            kind_out, run_key, run_len, planes, far,
+            order, 1 - 2 * g, first_line, counts, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x,
+            scale_x, base_y, scale_y, shift, ti0, tj0, ni, found, kind_out, run_key, run_len, planes, far,
+            work, work_keys, work_brk,
         )  # fmt: skip
         if counts[0] < 0:
             return -1, 0, 0
@@ -343,46 +355,67 @@ def _break_row(ka: float, kb: float, c: float, rows: int) -> int:
     return math.floor(limit) + 1
 
 
-@njit(cache=True, nogil=True)
+# Allocates nothing (its work arrays are carved from `work`, `work_keys` and `work_brk`), so it is
+# compiled without reference counting: with it, its 30 array arguments and work arrays cost about
+# 80 atomic increments and decrements per call.
+@njit(cache=True, nogil=True, _nrt=False)
 def _trace_rows(
     order: np.ndarray, step_j: int, c: float, counts: np.ndarray, ox: float, oy: float, ex: np.ndarray,
     ey: np.ndarray, kinds: np.ndarray, i0: int, j0: int, ie: np.ndarray, je: np.ndarray, step_i: np.ndarray,
     base_x: np.ndarray, scale_x: np.ndarray, base_y: np.ndarray, scale_y: np.ndarray, shift: int, ti0: int,
     tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray, run_len: np.ndarray,
-    planes: np.ndarray, far: np.ndarray,
+    planes: np.ndarray, far: np.ndarray, work: np.ndarray, work_keys: np.ndarray, work_brk: np.ndarray,
 ) -> None:  # fmt: skip
     """The rows above (step_j = 1) or below (-1) the sensor's row, crossed by the beams `order`
     (sorted by direction). Row offset m is row j0 + step_j * m, whose entry line lies m - c from the
     sensor. Appends cells and runs (`_emit_row`) and hand-backs to `far` after the `counts` (cells,
-    hand-backs, runs) so far, and updates them; a cell count of -1 means the row trace gave up."""
+    hand-backs, runs) so far, and updates them; a cell count of -1 means the row trace gave up.
+
+    Work space, overwritten: `work` at least `3 * (rows + 2) + 15 * n + 8` integers, `work_keys` n
+    floats and `work_brk` `(n + 63) // 64` words, for n = `order.size` beams whose end rows lie at
+    most `rows` row offsets out."""
     h = counts[1]
     nu = order.size
     if nu == 0:
         return
-    key = np.empty(nu)
-    dist = np.empty(nu, dtype=np.int64)
+    key = work_keys[:nu]
+    dist = work[:nu]
     rows = 0
     for p in range(nu):
         b = order[p]
         key[p] = _key(ox, oy, ex[b], ey[b])
         dist[p] = abs(je[b] - j0)
         rows = max(rows, dist[p])
+    # The other work arrays, one after another in `work`.
+    o = nu
+    ends_at, o = work[o : o + rows + 2], o + rows + 2
+    fill, o = work[o : o + rows + 2], o + rows + 2
+    ev_head, o = work[o : o + rows + 2], o + rows + 2
+    ending, o = work[o : o + nu], o + nu
+    nxt, o = work[o : o + nu], o + nu
+    prv, o = work[o : o + nu], o + nu
+    hit_cols, o = work[o : o + nu], o + nu
+    ev_a, o = work[o : o + 2 * nu], o + 2 * nu
+    ev_b, o = work[o : o + 2 * nu], o + 2 * nu
+    ev_next, o = work[o : o + 2 * nu], o + 2 * nu
+    span_lo, o = work[o : o + nu + 2], o + nu + 2
+    span_hi, o = work[o : o + nu + 2], o + nu + 2
+    tmp_lo, o = work[o : o + nu + 2], o + nu + 2
+    tmp_hi = work[o : o + nu + 2]
     # Beams ending in each row offset, by a counting sort.
-    ends_at = np.zeros(rows + 2, dtype=np.int64)
+    ends_at[:] = 0
     for p in range(nu):
         ends_at[dist[p] + 1] += 1
     for m in range(rows + 1):
         ends_at[m + 1] += ends_at[m]
-    ending = np.empty(nu, dtype=np.int64)
-    fill = ends_at.copy()
+    for m in range(rows + 2):
+        fill[m] = ends_at[m]
     for p in range(nu):
         m = dist[p]
         ending[fill[m]] = p
         fill[m] += 1
     # The beams still going on, as a linked list in direction order; brk has bit p set when the
     # chain breaks between p and the next beam still going on.
-    nxt = np.empty(nu, dtype=np.int64)
-    prv = np.empty(nu, dtype=np.int64)
     for p in range(nu):
         nxt[p] = p + 1
         prv[p] = p - 1
@@ -390,13 +423,11 @@ def _trace_rows(
     head = 0
     tail = nu - 1
     words = (nu + 63) >> 6
-    brk = np.zeros(words, dtype=np.uint64)
+    brk = work_brk[:words]
+    brk[:] = 0
     # Pending breaks: pair (ev_a, ev_b) breaks at row offset m; a per-row linked list, checked when due
     # (the pair may no longer be neighbours by then).
-    ev_head = np.full(rows + 2, -1, dtype=np.int64)
-    ev_a = np.empty(2 * nu, dtype=np.int64)
-    ev_b = np.empty(2 * nu, dtype=np.int64)
-    ev_next = np.empty(2 * nu, dtype=np.int64)
+    ev_head[:] = -1
     events = 0
     for p in range(nu - 1):
         m = _break_row(key[p], key[p + 1], c, rows)
@@ -408,11 +439,6 @@ def _trace_rows(
             ev_next[events] = ev_head[m]
             ev_head[m] = events
             events += 1
-    span_lo = np.empty(nu + 2, dtype=np.int64)
-    span_hi = np.empty(nu + 2, dtype=np.int64)
-    tmp_lo = np.empty(nu + 2, dtype=np.int64)
-    tmp_hi = np.empty(nu + 2, dtype=np.int64)
-    hit_cols = np.empty(nu, dtype=np.int64)
     descending = key[0] >= key[nu - 1]  # the runs' columns fall along `order`
     going = nu
     handing_back = False
