@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -58,9 +58,9 @@ class LayerUnavailableError(ValueError):
     """A read asked for a layer the map does not keep or that does not exist."""
 
 
-@dataclass(frozen=True)
-class IntegrationResult:
-    """What one scan did: cell updates applied, and the tiles whose contents changed."""
+class IntegrationResult(NamedTuple):
+    """What one scan did: cell updates applied, and the tiles whose contents changed. (A named
+    tuple: a frozen dataclass took 0.36 us to make, about 1 % of an Intel-dataset scan.)"""
 
     cell_updates: int
     tsdf_updates: int
@@ -126,7 +126,7 @@ class GridMap:
                 grow_trace_scratch(needed)
             if status == integrate_scan.INTEGRATED:
                 store.restore_clock(clock)
-                changed_tiles = list(zip(*changed.tolist(), strict=True))
+                changed_tiles = list(map(tuple, changed.T.tolist()))  # (2, k) -> k (ti, tj)
                 return IntegrationResult(int(updates), int(tsdf_updates), changed_tiles, 0)
         if status == integrate_scan.OUT_OF_RANGE:
             raise ScanError(OUT_OF_RANGE)
