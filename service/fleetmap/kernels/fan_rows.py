@@ -481,7 +481,8 @@ def _trace_rows(
             if a >= 0:
                 bit = np.uint64(1) << np.uint64(a & 63)
                 brk[a >> 6] &= ~bit
-                if z >= 0:
+                # (When z ends in this row too, it is taken out next, and a pairs with its successor.)
+                if z >= 0 and dist[z] != m:
                     mb = _break_row(key[a], key[z], c, rows)
                     if mb <= m:
                         brk[a >> 6] |= bit
