@@ -144,6 +144,7 @@ def trace_fan_rows(
     up_all = np.empty(nb, dtype=np.int64)
     down_all = np.empty(nb, dtype=np.int64)
     n_up = n_down = 0
+    rows = 0  # the farthest end row from the sensor's, in rows
     for b in range(nb):
         if kinds[b] == _BEAM_SKIP:
             continue
@@ -152,6 +153,7 @@ def trace_fan_rows(
         _, _, ie[b], je[b], step_i[b], _, base_x[b], scale_x[b], base_y[b], scale_y[b] = exact_start(
             ox, oy, ex[b], ey[b]
         )
+        rows = max(rows, abs(je[b] - j0))
         if je[b] > j0:
             up_all[n_up] = b
             n_up += 1
@@ -201,9 +203,11 @@ def trace_fan_rows(
                 tail -= 1
         for q in range(head + n - tail):
             b = order[q if q < head else tail + q - head]
-            c = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], crossing(j0, base_y[b], scale_y[b]))
-            lo = min(lo, c)
-            hi = max(hi, c)
+            col = exit_column(
+                i0, ie[b], step_i[b], base_x[b], scale_x[b], crossing(j0, base_y[b], scale_y[b])
+            )
+            lo = min(lo, col)
+            hi = max(hi, col)
     # The counts (cells, beams handed back, runs) live in an array: passed as the literal 0, an int
     # argument would make numba compile each callee twice, once for the literal.
     counts = np.zeros(3, dtype=np.int64)
@@ -215,19 +219,15 @@ def trace_fan_rows(
         return -1, 0, 0
     # The two halves' work arrays, allocated once for both (see `_trace_rows`).
     most = max(n_up, n_down)
-    rows = 0
-    for b in range(nb):
-        if kinds[b] != _BEAM_SKIP:
-            rows = max(rows, abs(je[b] - j0))
     work = np.empty(3 * (rows + 2) + 15 * most + 8, dtype=np.int64)
     work_keys = np.empty(most)
     work_brk = np.empty((most + 63) >> 6, dtype=np.uint64)
     for g in range(2):  # up, then down
         # (Chosen before the call: with this many arguments, numba cannot take conditional ones.)
         order = up_order if g == 0 else down_order
-        first_line = fy if g == 0 else 1.0 - fy  # the sensor's distance to the half's first row line
+        c = fy if g == 0 else 1.0 - fy  # row offset m's entry line lies m - c from the sensor
         _trace_rows(
-            order, 1 - 2 * g, first_line, counts, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x,
+            order, 1 - 2 * g, c, counts, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x,
             scale_x, base_y, scale_y, shift, ti0, tj0, ni, found, kind_out, run_key, run_len, planes, far,
             work, work_keys, work_brk,
         )  # fmt: skip
@@ -481,7 +481,8 @@ def _trace_rows(
             if a >= 0:
                 bit = np.uint64(1) << np.uint64(a & 63)
                 brk[a >> 6] &= ~bit
-                # (When z ends in this row too, it is taken out next, and a pairs with its successor.)
+                # (When z ends in this row too, it is taken out later in this loop, and a is paired
+                # with the beam after it then.)
                 if z >= 0 and dist[z] != m:
                     mb = _break_row(key[a], key[z], c, rows)
                     if mb <= m:
