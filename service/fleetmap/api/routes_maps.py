@@ -121,8 +121,10 @@ def get_map(map_id: MapId, state: State) -> MapInfo:
 def delete_map(map_id: MapId, state: State) -> Response:
     """Removes the map, its robots and its queued scans, answering once that is stored (with durable
     storage). Event streams of the map end. 503: removed, but the removal could not be stored."""
-    state.registry.delete(map_id, wait=True)
-    state.tiles.drop_map(map_id)  # its tiles can never be served again (new maps get a new generation)
+    try:
+        state.registry.delete(map_id, wait=True)
+    finally:  # also when the removal could not be stored: the map is gone from memory all the same
+        state.tiles.drop_map(map_id)  # its tiles can never be served again (new maps get a new generation)
     return Response(status_code=204)
 
 

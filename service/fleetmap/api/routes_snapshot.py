@@ -63,6 +63,8 @@ async def put_snapshot(map_id: MapId, request: Request, state: State) -> MapInfo
     except ValueError as exc:
         raise ApiError(422, str(exc)) from None
     # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
-    entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True)
-    state.tiles.drop_map(map_id)
+    try:
+        entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True)
+    finally:  # also when it could not be stored: the old map's tiles are gone from memory all the same
+        state.tiles.drop_map(map_id)
     return map_info(entry, state.registry.lock)
