@@ -31,7 +31,7 @@ from fleetmap.kernels.ray_model import (
 )
 from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import trace_tsdf
-from fleetmap.kernels.update import merge_tiles
+from fleetmap.kernels.update import merge_tiles, merge_tiles_in_box
 from fleetmap.scan import Scan, ScanError
 
 _EMPTY_I = np.empty(0, dtype=np.int64)
@@ -134,15 +134,16 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
             tiles, cell, kind, runs = _ray_model_per_scan(scan, config, shift, beams, extent)
     tsdf_i = tsdf_j = _EMPTY_I
     tsdf_value = np.empty(0, dtype=np.float32)
+    tsdf_box = _EMPTY_I  # set with the band (used only when it has cells)
     if config.has("tsdf"):
         cos, sin, z = beam_returns(beams[0], beams[1], scan.ranges, res)
-        tsdf_i, tsdf_j, tsdf_value = trace_tsdf(ox, oy, cos, sin, z, config.tsdf.truncation / res)
+        tsdf_i, tsdf_j, tsdf_value, tsdf_box = trace_tsdf(ox, oy, cos, sin, z, config.tsdf.truncation / res)
     # The ordered entries' tiles go after the per-scan tiles, each tile once.
     occ_tile = tsdf_tile = _EMPTY_I
     if occ_i.size:
         tiles, occ_tile = merge_tiles(tiles, occ_i, occ_j, shift)
     if tsdf_i.size:
-        tiles, tsdf_tile = merge_tiles(tiles, tsdf_i, tsdf_j, shift)
+        tiles, tsdf_tile = merge_tiles_in_box(tiles, tsdf_i, tsdf_j, shift, tsdf_box)
     return UpdatePlan(
         cell,
         kind,

@@ -3,7 +3,7 @@
 `update_plan.plan_scan` + `GridMap.apply` hand a scan's plan to Python and back: a few kernel calls,
 arrays boxed for Python on the way, a dictionary probe per tile and the version bump, about 6 us a
 scan whatever its size, 12 % of an Intel-dataset scan. `integrate_ray_scan` runs the same kernels
-(`scan_rays`, `trace_scan`, `trace_tsdf`, `merge_tiles`, `apply_cells`, `fuse_tsdf`) back to back,
+(`scan_rays`, `trace_scan`, `trace_tsdf`, `merge_tiles_in_box`, `apply_cells`, `fuse_tsdf`) back to back,
 finds the tiles in `kernels.tile_index` and bumps their versions itself. Its result is the
 plan-and-apply result bit for bit; when a tile is missing it changes nothing, and the caller plans
 and applies (which creates tiles under the cap).
@@ -24,7 +24,7 @@ from fleetmap.kernels.ray_model import (
 )
 from fleetmap.kernels.tile_index import index_find
 from fleetmap.kernels.tsdf import fuse_tsdf, trace_tsdf
-from fleetmap.kernels.update import apply_cells, bump_versions, merge_tiles
+from fleetmap.kernels.update import apply_cells, bump_versions, merge_tiles_in_box
 
 #: `integrate_ray_scan` statuses. Only INTEGRATED changed the map.
 INTEGRATED = 0
@@ -78,9 +78,9 @@ def integrate_ray_scan(
     tsdf_value = np.empty(0, dtype=np.float32)
     if tsdf.size:
         cos, sin, z = beam_returns(rays, kinds, ranges, res)
-        tsdf_i, tsdf_j, tsdf_value = trace_tsdf(ox, oy, cos, sin, z, truncation / res)
+        tsdf_i, tsdf_j, tsdf_value, tsdf_box = trace_tsdf(ox, oy, cos, sin, z, truncation / res)
         if tsdf_i.size:
-            tiles, tsdf_tile = merge_tiles(tiles, tsdf_i, tsdf_j, shift)
+            tiles, tsdf_tile = merge_tiles_in_box(tiles, tsdf_i, tsdf_j, shift, tsdf_box)
     m = tiles.shape[1]
     slots = np.empty(m, dtype=np.int64)
     for k in range(m):

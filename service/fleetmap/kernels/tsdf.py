@@ -8,57 +8,119 @@ truncation band around the return) are updated, by the weighted running average
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.traversal import EXACT, cell_count, crossing, exact_start, exact_steps_i
+from fleetmap.kernels.traversal import exact_start
+
+#: sqrt(2): a band segment of length 2t crosses at most 2t*sqrt(2) + 3 cells (see `trace_tsdf`).
+_SQRT2 = 1.4142135623730951
+#: Up to this truncation (cells) `trace_tsdf` sizes its output from that bound; wider bands count.
+_BOUND_TRUNC = 32.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def band_walk_bound(trunc: float) -> int:
+    """At least the number of cells an exact walk of a segment of length 2*trunc (CELL units) visits:
+    `|di| + |dj| + 1 < |dx| + |dy| + 3 <= 2*trunc*sqrt(2) + 3`, plus room for rounding."""
+    return int(2.0 * _SQRT2 * trunc) + 5
 
 
 @njit(cache=True, nogil=True)
 def trace_tsdf(
     ox: float, oy: float, cos: np.ndarray, sin: np.ndarray, z: np.ndarray, trunc: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Band cells of every beam and their tsdf values, in CELL units (z and trunc too).
 
     Beam b starts at (ox, oy), points along `(cos[b], sin[b])` (map frame) and returned at range
-    `z[b]`. Returns `(ci, cj, value)`; a cell may appear once per beam that crosses it.
+    `z[b]`. Its band is the exact walk of its segment from `max(z - trunc, 0)` to `z + trunc`,
+    keeping the cells whose centre projects into the band (`|sdf| <= trunc`). Returns
+    `(ci, cj, value, box)`: the cells in beam order, each beam's in walk order (a cell may appear
+    once per beam that crosses it), and a box `i0, j0, i1, j1` (inclusive) holding them all, for
+    `update.merge_tiles_in_box`.
+
+    The walk is `exact_steps_i`'s with its end-of-axis tests taken out of the loop (while both axes
+    have steps left only the crossings decide, then the rest is straight), and every visited cell
+    is written and kept only if it is in the band (no branch on the band test). A segment of
+    length 2t visits `|di| + |dj| + 1 < 2t*sqrt(2) + 3` cells, so the output is sized from that
+    bound rather than by a counting pass over the beams.
     """
     nb = z.size
-    total = 0
-    for b in range(nb):
-        d0 = max(z[b] - trunc, 0.0)
-        d1 = z[b] + trunc
-        total += cell_count(ox + cos[b] * d0, oy + sin[b] * d0, ox + cos[b] * d1, oy + sin[b] * d1, EXACT)
-    ci = np.empty(total, dtype=np.int64)
-    cj = np.empty(total, dtype=np.int64)
-    value = np.empty(total, dtype=np.float32)
+    if trunc <= _BOUND_TRUNC:
+        cap = nb * band_walk_bound(trunc)
+    else:  # a wide band: count exactly rather than reserve the bound for every beam
+        cap = 0
+        for b in range(nb):
+            d0 = max(z[b] - trunc, 0.0)
+            d1 = z[b] + trunc
+            x0, y0, x1, y1 = ox + cos[b] * d0, oy + sin[b] * d0, ox + cos[b] * d1, oy + sin[b] * d1
+            cap += abs(math.floor(x1) - math.floor(x0)) + abs(math.floor(y1) - math.floor(y0)) + 1
+    ci = np.empty(cap, dtype=np.int64)
+    cj = np.empty(cap, dtype=np.int64)
+    value = np.empty(cap, dtype=np.float32)
     n = 0
+    box = np.zeros(4, dtype=np.int64)
+    i0 = j0 = np.iinfo(np.int64).max
+    i1 = j1 = np.iinfo(np.int64).min
     for b in range(nb):
         c = cos[b]
         s = sin[b]
-        d0 = max(z[b] - trunc, 0.0)
-        d1 = z[b] + trunc
-        # The exact walk of the band's segment (inlined `cells`), keeping the cells whose centre
-        # projects into the band.
+        zb = z[b]
+        d0 = max(zb - trunc, 0.0)
+        d1 = zb + trunc
         i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(
             ox + c * d0, oy + s * d0, ox + c * d1, oy + s * d1
         )
-        steps = abs(ie - i) + abs(je - j)
-        for k in range(steps + 1):
-            d = (i + 0.5 - ox) * c + (j + 0.5 - oy) * s
-            sdf = z[b] - d
-            if abs(sdf) <= trunc:
-                ci[n] = i
-                cj[n] = j
-                value[n] = min(1.0, max(-1.0, sdf / trunc))
-                n += 1
-            if k == steps:
+        i0 = min(i0, i, ie)
+        i1 = max(i1, i, ie)
+        j0 = min(j0, j, je)
+        j1 = max(j1, j, je)
+        left_i = abs(ie - i)
+        left_j = abs(je - j)
+        # The cell indices also as floats (exact), so that each crossing and centre is computed as
+        # `crossing(i, ...)` and `(i + 0.5 - ox)` are, bit for bit, without a conversion per step.
+        fi = float(i)
+        fj = float(j)
+        while True:
+            n = _band_cell(ci, cj, value, n, i, j, fi, fj, ox, oy, c, s, zb, trunc)
+            if left_i == 0 or left_j == 0:
                 break
-            if exact_steps_i(i, j, ie, je, crossing(i, base_x, scale_x), crossing(j, base_y, scale_y)):
+            if (fi + base_x) * scale_x < (fj + base_y) * scale_y:
                 i += step_i
+                fi += step_i
+                left_i -= 1
             else:
                 j += step_j
-    return ci[:n], cj[:n], value[:n]
+                fj += step_j
+                left_j -= 1
+        for _ in range(left_i):
+            i += step_i
+            fi += step_i
+            n = _band_cell(ci, cj, value, n, i, j, fi, fj, ox, oy, c, s, zb, trunc)
+        for _ in range(left_j):
+            j += step_j
+            fj += step_j
+            n = _band_cell(ci, cj, value, n, i, j, fi, fj, ox, oy, c, s, zb, trunc)
+    if nb:
+        box[0], box[1], box[2], box[3] = i0, j0, i1, j1
+    return ci[:n], cj[:n], value[:n], box
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _band_cell(
+    ci: np.ndarray, cj: np.ndarray, value: np.ndarray, n: int, i: int, j: int, fi: float, fj: float,
+    ox: float, oy: float, c: float, s: float, z: float, trunc: float,
+) -> int:  # fmt: skip
+    """Write cell (i, j) (also given as floats) and its tsdf value at position n, and return n + 1 if
+    its centre projects into the band, else n (the next cell overwrites it)."""
+    sdf = z - ((fi + 0.5 - ox) * c + (fj + 0.5 - oy) * s)
+    u = np.uint64(n)  # unsigned: no negative-index wraparound code
+    ci[u] = i
+    cj[u] = j
+    value[u] = min(1.0, max(-1.0, sdf / trunc))
+    return n + (abs(sdf) <= trunc)
 
 
 @njit(cache=True, nogil=True)
@@ -77,15 +139,23 @@ def fuse_tsdf(
     """Fuse each (cell, value) into the tsdf / weight pools, in order; return the updates made.
     Entry k lies in the plan's tile `tile[k]`, pool slot `slots[tile[k]]`."""
     mask = (1 << shift) - 1
+    plane_shift = 2 * shift
     flat_tsdf = tsdf.reshape(-1)  # one flat view of each pool, indexed unsigned (no wraparound code)
     flat_weight = weight.reshape(-1)
+    # Entries come beam by beam, so runs of them share a tile: its slot is looked up and its change
+    # flag set once per run (a store per entry made every iteration wait on the previous one's).
+    last = -1
+    start = 0
     for k in range(ci.size):
-        at = np.uint64((slots[tile[k]] << (2 * shift)) | ((cj[k] & mask) << shift) | (ci[k] & mask))
+        if tile[k] != last:
+            last = tile[k]
+            changed[last] = 1
+            start = slots[last] << plane_shift
+        at = np.uint64(start | ((cj[k] & mask) << shift) | (ci[k] & mask))
         w_old = float(flat_weight[at])
         d_old = float(flat_tsdf[at])
         flat_tsdf[at] = (w_old * d_old + value[k]) / (w_old + 1.0)
         flat_weight[at] = min(w_old + 1.0, max_weight)
-        changed[tile[k]] = 1
     return ci.size
 
 

@@ -26,16 +26,29 @@ def merge_tiles(
     in the extended list. Returns `(tiles, tile of each cell)`."""
     if ci.size == 0:
         return tiles, np.empty(0, dtype=np.int64)
+    i0 = i1 = ci[0]
+    j0 = j1 = cj[0]
+    for k in range(ci.size):  # scalars, not the box array: the compiler keeps them in registers
+        i0 = min(i0, ci[k])
+        j0 = min(j0, cj[k])
+        i1 = max(i1, ci[k])
+        j1 = max(j1, cj[k])
+    return merge_tiles_in_box(tiles, ci, cj, shift, np.array([i0, j0, i1, j1]))
+
+
+@njit(cache=True, nogil=True)
+def merge_tiles_in_box(
+    tiles: np.ndarray, ci: np.ndarray, cj: np.ndarray, shift: int, box: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """`merge_tiles` for cells known to lie in `box` (cells `i0, j0, i1, j1`, inclusive), which spares
+    it a pass over them."""
+    if ci.size == 0:
+        return tiles, np.empty(0, dtype=np.int64)
     tiles_i = tiles[0]
     tiles_j = tiles[1]
-    ti0 = ti1 = ci[0] >> shift
-    tj0 = tj1 = cj[0] >> shift
-    for k in range(ci.size):
-        ti0 = min(ti0, ci[k] >> shift)
-        ti1 = max(ti1, ci[k] >> shift)
-        tj0 = min(tj0, cj[k] >> shift)
-        tj1 = max(tj1, cj[k] >> shift)
-    number = np.full((tj1 - tj0 + 1, ti1 - ti0 + 1), -1, dtype=np.int64)
+    ti0, tj0, ti1, tj1 = box[0] >> shift, box[1] >> shift, box[2] >> shift, box[3] >> shift
+    ni = ti1 - ti0 + 1
+    number = np.full((tj1 - tj0 + 1) * ni, -1, dtype=np.int64)
     out_i = np.empty(tiles_i.size + ci.size, dtype=np.int64)
     out_j = np.empty(tiles_i.size + ci.size, dtype=np.int64)
     m = 0
@@ -43,18 +56,23 @@ def merge_tiles(
         out_i[m] = tiles_i[k]
         out_j[m] = tiles_j[k]
         if ti0 <= tiles_i[k] <= ti1 and tj0 <= tiles_j[k] <= tj1:
-            number[tiles_j[k] - tj0, tiles_i[k] - ti0] = m
+            number[(tiles_j[k] - tj0) * ni + tiles_i[k] - ti0] = m
         m += 1
     tile = np.empty(ci.size, dtype=np.int64)
+    # Neighbouring cells (a beam's band, a ray) mostly share a tile: look up only on a change.
+    last = -1
+    current = 0
     for k in range(ci.size):
-        a = (cj[k] >> shift) - tj0
-        b = (ci[k] >> shift) - ti0
-        if number[a, b] < 0:
-            number[a, b] = m
-            out_i[m] = ci[k] >> shift
-            out_j[m] = cj[k] >> shift
-            m += 1
-        tile[k] = number[a, b]
+        at = ((cj[k] >> shift) - tj0) * ni + (ci[k] >> shift) - ti0
+        if at != last:
+            last = at
+            current = number[at]
+            if current < 0:
+                current = number[at] = m
+                out_i[m] = ci[k] >> shift
+                out_j[m] = cj[k] >> shift
+                m += 1
+        tile[k] = current
     out = np.empty((2, m), dtype=np.int64)
     out[0] = out_i[:m]
     out[1] = out_j[:m]
