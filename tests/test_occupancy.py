@@ -485,3 +485,36 @@ def test_beam_model_matches_table_9_2() -> None:
         np.testing.assert_allclose(got, expected, atol=1e-6)
         marked += int((~np.isnan(got)).sum())
     assert marked > 1000
+
+
+def test_counts_saturate_instead_of_wrapping() -> None:
+    """The count model's apply, single cells and runs: a count at 2**32 - 1 stays there, the others
+    go up by one (hits for hit cells, misses for the rest), and every tile with a cell is flagged."""
+    from fleetmap.kernels.ray_model import CELL_HIT, CELL_MISS
+    from fleetmap.kernels.update import apply_cells
+
+    top = np.uint32(0xFFFFFFFF)
+    shift = 2  # 4 x 4 cells per tile; plane key = tile << 4 | local_j << 2 | local_i
+    hits = np.zeros((3, 4, 4), dtype=np.uint32)
+    misses = np.zeros((3, 4, 4), dtype=np.uint32)
+    hits[1, 0, 0] = top
+    misses[1, 0, 1] = top
+    misses[2, 3, 1] = top  # inside the run below
+    hits[2, 3, 2] = 7  # a run is misses only: its hits stay
+    cell = np.array([0 << 4 | 0, 0 << 4 | 1, 0 << 4 | 2, 1 << 4 | 5], dtype=np.int64)
+    kind = np.array([CELL_HIT, CELL_MISS, CELL_HIT | CELL_MISS, CELL_MISS], dtype=np.uint8)
+    runs = np.array([[2 << 4 | 3 << 2 | 0], [4]], dtype=np.int64)  # plan tile 2, row 3, cells 0..3
+    slots = np.array([1, 0, 2], dtype=np.int64)
+    changed = np.zeros(3, dtype=np.uint8)
+    none = np.empty((0, 0, 0), dtype=np.float32)
+    assert apply_cells(cell, kind, runs, slots, shift, none, hits, misses, 0, 0, 0, 0, changed) == 8
+    assert hits[1, 0, 0] == top and misses[1, 0, 0] == 0  # a hit at the top stays there
+    assert misses[1, 0, 1] == top and hits[1, 0, 1] == 0  # a miss at the top
+    assert hits[1, 0, 2] == 1 and misses[1, 0, 2] == 0  # a hit beats the miss
+    assert misses[0, 1, 1] == 1 and hits[0, 1, 1] == 0
+    assert misses[2, 3].tolist() == [1, top, 1, 1] and hits[2, 3].tolist() == [0, 0, 7, 0]
+    assert changed.tolist() == [1, 1, 1]
+    assert (
+        int(hits.sum(dtype=np.uint64)) == int(top) + 8
+        and int(misses.sum(dtype=np.uint64)) == 2 * int(top) + 4
+    )

@@ -201,21 +201,26 @@ def apply_cells(
     if hits.size:
         flat_hits = hits.reshape(-1)
         flat_misses = misses.reshape(-1)
+        tile = np.uint64(0xFFFFFFFFFFFFFFFF)
+        start = np.uint64(0)
         for n in range(cell.size):
-            tile = np.uint64(cell[n] >> plane_shift)
-            at = np.uint64((slots[tile] << plane_shift) | (cell[n] & local_mask))
+            t = np.uint64(cell[n] >> plane_shift)
+            if t != tile:  # the tile handled once per run of its cells, as in the log-odds pass
+                tile = t
+                changed[t] = 1
+                start = np.uint64(slots[t] << plane_shift)
+            at = start | np.uint64(cell[n] & local_mask)
             if kind[n] & CELL_HIT:
                 if flat_hits[at] != _U32_MAX:  # counts saturate rather than wrap
                     flat_hits[at] += 1
             elif flat_misses[at] != _U32_MAX:
                 flat_misses[at] += 1
-            changed[tile] = 1
         for k in range(run.size):
             tile = np.uint64(run[k] >> plane_shift)
             at = np.uint64((slots[tile] << plane_shift) | (run[k] & local_mask))
-            for x in range(np.uint64(run_len[k])):
-                if flat_misses[at + x] != _U32_MAX:
-                    flat_misses[at + x] += 1
+            for x in range(np.uint64(run_len[k])):  # branch-free, so that it vectorises
+                m = flat_misses[at + x]
+                flat_misses[at + x] = m + np.uint32(m != _U32_MAX)
             changed[tile] = 1
     return updates
 
