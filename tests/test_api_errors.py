@@ -72,6 +72,15 @@ CASES: list[tuple[str, str, dict[str, Any], int, str]] = [
     ("PUT", "/maps/new1", {"json": {"layers": "occupancy"}}, 422, "layers"),
     ("PUT", "/maps/new1", {"json": {"layers": ["volume"]}}, 422, "layers"),
     ("PUT", "/maps/new1", {"json": {"occupancy": {"preset": "nope"}}}, 422, "preset"),
+    ("PUT", "/maps/new1", {"json": {"tsdf": {"truncation": 1e9}}}, 422, "more than 256 cells"),
+    ("PUT", "/maps/new1", {"json": {"beam": {"alpha": 1e9}}}, 422, "more than 256 cells"),
+    (
+        "PUT",
+        "/maps/new1",
+        {"content": b'{"tsdf": {"truncation": Infinity}}', "headers": {"content-type": "application/json"}},
+        422,
+        "finite",
+    ),
     ("PUT", "/maps/new1", {"json": [1, 2]}, 422, "body"),
     (
         "PUT",

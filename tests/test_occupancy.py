@@ -146,6 +146,29 @@ def test_invalid_map_config_rejected() -> None:
             MapConfig(**kwargs)  # type: ignore[arg-type]
 
 
+def test_band_widths_are_finite_and_at_most_256_cells() -> None:
+    """`tsdf.truncation` and `beam.alpha` must be finite and at most MAX_BAND_CELLS cells: an infinite
+    one made every scan 'beyond the map's coordinate range', 10 km took 8 s for a 3-beam scan, and
+    1e9 m failed every scan with a MemoryError. The limit scales with the resolution. A stored
+    configuration (validated with the STORED_CONFIG context) still loads past it."""
+    from fleetmap.config import MAX_BAND_CELLS, STORED_CONFIG
+
+    assert MAX_BAND_CELLS == 256
+    MapConfig(resolution=0.01, tsdf={"truncation": 2.56}, beam={"alpha": 2.56})  # exactly the limit
+    MapConfig(resolution=1.0, tsdf={"truncation": 200.0}, beam={"alpha": 256.0})
+    for kwargs, message in (
+        ({"resolution": 0.01, "tsdf": {"truncation": 2.57}}, "tsdf.truncation 2.57 m is more than 256 cells"),
+        ({"tsdf": {"truncation": 1e9}}, "at most 12.8 m"),
+        ({"beam": {"alpha": 13.0}}, "beam.alpha 13 m is more than 256 cells at resolution 0.05 m"),
+        ({"tsdf": {"truncation": math.inf}}, "finite"),
+        ({"beam": {"alpha": math.nan}}, "finite"),
+    ):
+        with pytest.raises(ValidationError, match=message):
+            MapConfig.model_validate(kwargs)
+    stored = MapConfig.model_validate({"tsdf": {"truncation": 20.0}}, context={STORED_CONFIG: True})
+    assert stored.tsdf.truncation == 20.0
+
+
 # -- the ray sensor model ----------------------------------------------------------------------------
 
 

@@ -358,3 +358,30 @@ def test_corrupt_journal_rows_are_refused(cut: int) -> None:
     bad_flags[struct.calcsize("<Bdddddi")] |= 0x80
     with pytest.raises(StorageError, match="corrupt journal entry"):
         scan_from_blob(bytes(bad_flags))
+
+
+def test_a_stored_configuration_past_todays_limits_still_loads(tmp_path: Path) -> None:
+    """A map stored before `tsdf.truncation` was limited to MAX_BAND_CELLS cells keeps loading, with
+    its configuration and tiles as they were: an upgrade must not lose a map. (A new configuration
+    like it is refused: test_occupancy.test_band_widths_are_finite_and_at_most_256_cells.)"""
+    store = DurableStore(tmp_path)
+    gmap = GridMap(MapConfig(tsdf={"truncation": 0.3}))
+    store.map_created("m", gmap).result()
+    journal(store, gmap, [fan(0.0, n=61)])
+    store.snapshot("m", gmap, counters)
+    store.close()
+    with sqlite3.connect(tmp_path / DB_NAME) as conn:  # what an older version could store
+        (config,) = conn.execute("SELECT config FROM maps WHERE id = 'm'").fetchone()
+        conn.execute("UPDATE maps SET config = ? WHERE id = 'm'", (config.replace("0.3", "20.0"),))
+    with pytest.raises(ValueError, match="more than 256 cells"):
+        MapConfig.model_validate_json(config.replace("0.3", "20.0"))
+    again = DurableStore(tmp_path)
+    try:
+        [(map_id, restored, _counters, replay)] = again.load()
+        assert map_id == "m" and restored.config.tsdf.truncation == 20.0 and replay == []
+        window = gmap.known_bounds()
+        assert window is not None
+        for layer in ("log_odds", "tsdf", "tsdf_weight"):
+            np.testing.assert_array_equal(restored.region(layer, *window), gmap.region(layer, *window))
+    finally:
+        again.close()

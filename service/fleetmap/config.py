@@ -10,10 +10,19 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, model_validator
 
 LayerName = Literal["occupancy", "counts", "tsdf"]
 ALL_LAYERS: tuple[LayerName, ...] = ("occupancy", "counts", "tsdf")
+
+#: `tsdf.truncation` and `beam.alpha` are at most this many cells. Each beam updates about
+#: 2.8 cells per cell of truncation, so a wider band makes every scan slow for no mapping purpose
+#: (Voxblox truncates at a few voxels), and past about 10**8 cells a scan cannot be held in memory.
+MAX_BAND_CELLS = 256
+
+#: The `model_validate` context under which a configuration that was stored before a limit existed
+#: still loads (`{STORED_CONFIG: True}`): a map must survive an upgrade.
+STORED_CONFIG = "stored"
 
 
 def logit(p: float) -> float:
@@ -105,7 +114,9 @@ class BeamModelParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    alpha: float = Field(0.1, gt=0, description="obstacle thickness in metres")
+    alpha: float = Field(
+        0.1, gt=0, allow_inf_nan=False, description="obstacle thickness in metres; at most 256 cells"
+    )
     beta: float = Field(0.0175, gt=0, lt=math.pi, description="beam width in radians")
 
 
@@ -114,7 +125,9 @@ class TsdfParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    truncation: float = Field(0.2, gt=0, description="truncation distance t in metres")
+    truncation: float = Field(
+        0.2, gt=0, allow_inf_nan=False, description="truncation distance t in metres; at most 256 cells"
+    )
     max_weight: float = Field(1000.0, gt=0, description="cap on a cell's accumulated weight")
 
 
@@ -140,13 +153,21 @@ class MapConfig(BaseModel):
     tsdf: TsdfParams = Field(default_factory=TsdfParams)
 
     @model_validator(mode="after")
-    def _check(self) -> MapConfig:
+    def _check(self, info: ValidationInfo) -> MapConfig:
         if self.tile_size & (self.tile_size - 1):
             raise ValueError(f"tile_size must be a power of two, got {self.tile_size}")
         if not self.layers:
             raise ValueError("a map needs at least one layer")
         if len(set(self.layers)) != len(self.layers):
             raise ValueError("layers must not repeat")
+        if not (info.context or {}).get(STORED_CONFIG):
+            limit = MAX_BAND_CELLS * self.resolution
+            for name, value in (("tsdf.truncation", self.tsdf.truncation), ("beam.alpha", self.beam.alpha)):
+                if value > limit:
+                    raise ValueError(
+                        f"{name} {value:g} m is more than {MAX_BAND_CELLS} cells at resolution "
+                        f"{self.resolution:g} m (at most {limit:g} m)"
+                    )
         return self
 
     def has(self, layer: LayerName) -> bool:

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
-from fleetmap.config import MapConfig
+from fleetmap.config import STORED_CONFIG, MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
 from fleetmap.tiles import LayerArray
@@ -691,7 +691,8 @@ class DurableStore:
                 "SELECT id, config, snapshot_journal_id, snapshot_gen, clock, scans_integrated, "
                 "scans_rejected, created_at FROM maps"
             ).fetchall():
-                gmap = GridMap(MapConfig.model_validate_json(config_json))
+                # Stored before today's limits, perhaps: a map that was accepted keeps loading.
+                gmap = GridMap(MapConfig.model_validate_json(config_json, context={STORED_CONFIG: True}))
                 # Rows of a snapshot that never switched its generation (a crash mid-snapshot) are
                 # not part of the map; each tile is its newest committed generation.
                 conn.execute("DELETE FROM tiles WHERE map_id = ? AND gen > ?", (map_id, snap_gen))
