@@ -8,12 +8,10 @@ truncation band around the return) are updated, by the weighted running average
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.traversal import exact_start
+from fleetmap.kernels.traversal import EXACT, cell_count, exact_start
 
 #: sqrt(2): a band segment of length 2t crosses at most 2t*sqrt(2) + 3 cells (see `trace_tsdf`).
 _SQRT2 = 1.4142135623730951
@@ -55,8 +53,7 @@ def trace_tsdf(
         for b in range(nb):
             d0 = max(z[b] - trunc, 0.0)
             d1 = z[b] + trunc
-            x0, y0, x1, y1 = ox + cos[b] * d0, oy + sin[b] * d0, ox + cos[b] * d1, oy + sin[b] * d1
-            cap += abs(math.floor(x1) - math.floor(x0)) + abs(math.floor(y1) - math.floor(y0)) + 1
+            cap += cell_count(ox + cos[b] * d0, oy + sin[b] * d0, ox + cos[b] * d1, oy + sin[b] * d1, EXACT)
     ci = np.empty(cap, dtype=np.int64)
     cj = np.empty(cap, dtype=np.int64)
     value = np.empty(cap, dtype=np.float32)
