@@ -17,10 +17,11 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fleetmap.config import MAX_BAND_CELLS
 from fleetmap.datasets import load_dataset
 from fleetmap.kernels.ray_model import beam_returns, scan_rays
 from fleetmap.kernels.traversal import EXACT, cell_count, segment_cells
-from fleetmap.kernels.tsdf import _BOUND_TRUNC, band_walk_bound, fuse_tsdf, trace_tsdf
+from fleetmap.kernels.tsdf import band_walk_bound, fuse_tsdf, trace_tsdf
 from fleetmap.kernels.update import merge_tiles, merge_tiles_in_box
 from fleetmap.update_plan import beam_layout_of
 
@@ -63,7 +64,7 @@ def assert_band_exact(
 
 def test_band_equals_its_definition_on_the_intel_log(datasets_dir: Path) -> None:
     """Every 7th scan of the Intel log, at the default truncation (4 cells), a narrow one and one
-    wide enough to take the counting path."""
+    wide one (35.5 cells)."""
     scans = list(load_dataset(datasets_dir / "intel-corrected.log.gz"))[::7]
     assert len(scans) > 100
     cells = 0
@@ -74,7 +75,7 @@ def test_band_equals_its_definition_on_the_intel_log(datasets_dir: Path) -> None
             x, y, theta, scan.angles, layout, scan.ranges, scan.range_min, scan.range_max, 0.0, RES
         )
         cos, sin, z = beam_returns(rays, kinds, scan.ranges, RES)
-        for trunc in (4.0, 0.7, _BOUND_TRUNC + 3.5):
+        for trunc in (4.0, 0.7, 35.5):
             cells += assert_band_exact(x / RES, y / RES, cos, sin, z, trunc)
     assert cells > 100_000
 
@@ -92,14 +93,14 @@ def test_band_equals_its_definition_on_the_intel_log(datasets_dir: Path) -> None
         max_size=12,
     ),
     z=st.floats(0.0, 80.0),
-    trunc=st.one_of(st.floats(0.01, 40.0), st.sampled_from([0.5, 1.0, 4.0, _BOUND_TRUNC])),
+    trunc=st.one_of(st.floats(0.01, 40.0), st.sampled_from([0.5, 1.0, 4.0, 32.0])),
 )
 def test_band_equals_its_definition_on_any_fan(
     ox: float, oy: float, angles: list[float], z: float, trunc: float
 ) -> None:
     """Sensors on grid vertices and far out, beams along the axes and the diagonals (where a walk
     visits the most cells for its length), returns shorter than the truncation (the band starts at
-    the sensor), and truncations on both sides of the counting threshold."""
+    the sensor), and narrow and wide truncations."""
     a = np.array(angles)
     ranges = np.full(a.size, z) * np.linspace(0.5, 1.0, a.size)
     assert_band_exact(ox, oy, np.cos(a), np.sin(a), ranges, trunc)
@@ -125,7 +126,7 @@ def test_band_keeps_cells_exactly_at_its_edges() -> None:
     x0=st.floats(-1e4, 1e4),
     y0=st.floats(-1e4, 1e4),
     angle=st.floats(-math.pi, math.pi),
-    trunc=st.floats(0.0, _BOUND_TRUNC),
+    trunc=st.floats(0.0, float(MAX_BAND_CELLS)),
 )
 def test_band_walk_fits_the_bound(x0: float, y0: float, angle: float, trunc: float) -> None:
     """`trace_tsdf` reserves `band_walk_bound(t)` cells per beam without counting (numba does not

@@ -115,7 +115,10 @@ class BeamModelParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     alpha: float = Field(
-        0.1, gt=0, allow_inf_nan=False, description="obstacle thickness in metres; at most 256 cells"
+        0.1,
+        gt=0,
+        allow_inf_nan=False,
+        description=f"obstacle thickness in metres; at most {MAX_BAND_CELLS} cells",
     )
     beta: float = Field(0.0175, gt=0, lt=math.pi, description="beam width in radians")
 
@@ -126,7 +129,10 @@ class TsdfParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     truncation: float = Field(
-        0.2, gt=0, allow_inf_nan=False, description="truncation distance t in metres; at most 256 cells"
+        0.2,
+        gt=0,
+        allow_inf_nan=False,
+        description=f"truncation distance t in metres; at most {MAX_BAND_CELLS} cells",
     )
     max_weight: float = Field(1000.0, gt=0, description="cap on a cell's accumulated weight")
 

@@ -11,12 +11,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.traversal import EXACT, cell_count, exact_start
+from fleetmap.kernels.traversal import exact_start
 
 #: sqrt(2): a band segment of length 2t crosses at most 2t*sqrt(2) + 3 cells (see `trace_tsdf`).
 _SQRT2 = 1.4142135623730951
-#: Up to this truncation (cells) `trace_tsdf` sizes its output from that bound; wider bands count.
-_BOUND_TRUNC = 32.0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -43,22 +41,15 @@ def trace_tsdf(
     have steps left only the crossings decide, then the rest is straight), and every visited cell
     is written and kept only if it is in the band (no branch on the band test). A segment of
     length 2t visits `|di| + |dj| + 1 < 2t*sqrt(2) + 3` cells, so the output is sized from that
-    bound rather than by a counting pass over the beams.
+    bound rather than by a counting pass over the beams (about 1.1 times a count's size for returns
+    beyond the truncation; a map's truncation is at most `config.MAX_BAND_CELLS` cells).
     """
     nb = z.size
-    if trunc <= _BOUND_TRUNC:
-        cap = nb * band_walk_bound(trunc)
-    else:  # a wide band: count exactly rather than reserve the bound for every beam
-        cap = 0
-        for b in range(nb):
-            d0 = max(z[b] - trunc, 0.0)
-            d1 = z[b] + trunc
-            cap += cell_count(ox + cos[b] * d0, oy + sin[b] * d0, ox + cos[b] * d1, oy + sin[b] * d1, EXACT)
+    cap = nb * band_walk_bound(trunc)
     ci = np.empty(cap, dtype=np.int64)
     cj = np.empty(cap, dtype=np.int64)
     value = np.empty(cap, dtype=np.float32)
     n = 0
-    box = np.zeros(4, dtype=np.int64)
     i0 = j0 = np.iinfo(np.int64).max
     i1 = j1 = np.iinfo(np.int64).min
     for b in range(nb):
@@ -100,8 +91,7 @@ def trace_tsdf(
             j += step_j
             fj += step_j
             n = _band_cell(ci, cj, value, n, i, j, fi, fj, ox, oy, c, s, zb, trunc)
-    if nb:
-        box[0], box[1], box[2], box[3] = i0, j0, i1, j1
+    box = np.array([i0, j0, i1, j1]) if nb else np.zeros(4, dtype=np.int64)
     return ci[:n], cj[:n], value[:n], box
 
 
