@@ -4,6 +4,8 @@ is test_durability.py."""
 
 from __future__ import annotations
 
+import json
+import logging
 import sqlite3
 import struct
 import threading
@@ -385,3 +387,36 @@ def test_a_stored_configuration_past_todays_limits_still_loads(tmp_path: Path) -
             np.testing.assert_array_equal(restored.region(layer, *window), gmap.region(layer, *window))
     finally:
         again.close()
+
+
+def test_a_stored_infinite_band_width_loads_at_the_limit(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before band widths had to be finite, a map could be created with `tsdf.truncation` or
+    `beam.alpha` infinite, which the store wrote as JSON null. Such a map could never integrate a
+    scan (its reach was infinite), but its data directory must still load after an upgrade, or the
+    service would not start: the width loads as today's limit, with a warning."""
+    from fleetmap.config import MAX_BAND_CELLS
+
+    store = DurableStore(tmp_path)
+    store.map_created("m", GridMap(MapConfig(resolution=0.1))).result()
+    store.close()
+    with sqlite3.connect(tmp_path / DB_NAME) as conn:  # what an older version stored for infinity
+        (config,) = conn.execute("SELECT config FROM maps WHERE id = 'm'").fetchone()
+        stored = json.loads(config)
+        stored["tsdf"]["truncation"] = None
+        stored["beam"]["alpha"] = None
+        conn.execute("UPDATE maps SET config = ? WHERE id = 'm'", (json.dumps(stored),))
+    again = DurableStore(tmp_path)
+    try:
+        with caplog.at_level(logging.WARNING, logger="fleetmap.config"):
+            [(map_id, restored, _counters, _replay)] = again.load()
+        assert map_id == "m"
+        assert restored.config.tsdf.truncation == MAX_BAND_CELLS * 0.1
+        assert restored.config.beam.alpha == MAX_BAND_CELLS * 0.1
+        assert "tsdf.truncation" in caplog.text and "beam.alpha" in caplog.text
+        assert restored.integrate(fan(0.0, n=61)).cell_updates > 0  # and the map now works
+    finally:
+        again.close()
+    with pytest.raises(ValueError):  # outside a stored map, null is still refused
+        MapConfig.model_validate_json(json.dumps(stored))

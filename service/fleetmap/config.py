@@ -7,8 +7,9 @@ is optional; defaults are chosen to be right for a typical indoor 2D lidar.
 
 from __future__ import annotations
 
+import logging
 import math
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, model_validator
 
@@ -23,6 +24,8 @@ MAX_BAND_CELLS = 256
 #: The `model_validate` context under which a configuration that was stored before a limit existed
 #: still loads (`{STORED_CONFIG: True}`): a map must survive an upgrade.
 STORED_CONFIG = "stored"
+
+log = logging.getLogger("fleetmap.config")
 
 
 def logit(p: float) -> float:
@@ -157,6 +160,28 @@ class MapConfig(BaseModel):
     )
     beam: BeamModelParams = Field(default_factory=BeamModelParams)
     tsdf: TsdfParams = Field(default_factory=TsdfParams)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _stored_infinite_band(cls, data: Any, info: ValidationInfo) -> Any:
+        """A stored configuration from before band widths had to be finite may hold an infinite
+        `tsdf.truncation` or `beam.alpha`, which JSON stores as null. Such a map could not integrate
+        any scan (its reach was infinite), so it holds nothing a finite width would change: it loads
+        with the width at today's limit, and a warning says so."""
+        if not ((info.context or {}).get(STORED_CONFIG) and isinstance(data, dict)):
+            return data
+        data = dict(data)
+        resolution = data.get("resolution", cls.model_fields["resolution"].default)
+        for section, name in (("tsdf", "truncation"), ("beam", "alpha")):
+            params = data.get(section)
+            if isinstance(params, dict) and name in params and params[name] is None:
+                limit = MAX_BAND_CELLS * resolution
+                log.warning(
+                    "stored map configuration: %s.%s was infinite (stored as null); loaded as %g m, the "
+                    "limit of %d cells", section, name, limit, MAX_BAND_CELLS,
+                )  # fmt: skip
+                data[section] = {**params, name: limit}
+        return data
 
     @model_validator(mode="after")
     def _check(self, info: ValidationInfo) -> MapConfig:
