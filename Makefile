@@ -26,6 +26,7 @@ demo: $(STAMP)
 
 test: $(STAMP) system-deps
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
+	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
 	$(PY) -m pytest -q
 
 serve: $(STAMP)
@@ -39,6 +40,7 @@ bench-service: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
+	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
 
 format: $(STAMP)
 	$(VENV)/bin/ruff format service tests clients scripts benchmarks

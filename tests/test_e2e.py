@@ -49,9 +49,7 @@ def http(service: ServiceProcess) -> Iterator[httpx.Client]:
 # -- helpers ---------------------------------------------------------------------------------------
 
 
-def expected_map(
-    sources: list[dict[str, Any]], config: MapConfig | None = None
-) -> tuple[GridMap, int]:
+def expected_map(sources: list[dict[str, Any]], config: MapConfig | None = None) -> tuple[GridMap, int]:
     """The engine's map of what the robots described by `sources` (RobotProcess options) publish,
     each payload decoded as the service decodes it, robots one after the other, seq order. Returns
     the map and the number of scans."""

@@ -94,9 +94,13 @@ def test_seed002_fused_values_and_surface() -> None:
 
 
 def test_seed002_prints_surface_last() -> None:
-    out = subprocess.run(
-        [sys.executable, "-m", "fleetmap.examples.seed002"], check=True, capture_output=True, text=True
-    ).stdout.strip().splitlines()
+    out = (
+        subprocess.run(
+            [sys.executable, "-m", "fleetmap.examples.seed002"], check=True, capture_output=True, text=True
+        )
+        .stdout.strip()
+        .splitlines()
+    )
     assert len(out) == 6
     assert out[-1].startswith("surface ")
     assert float(out[-1].split()[1]) == pytest.approx(9.98298, abs=1e-5)

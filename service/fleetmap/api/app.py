@@ -49,6 +49,7 @@ def default_web_dir() -> Path:
             return candidate
     return DEFAULT_WEB_DIR
 
+
 DESCRIPTION = """\
 Shared occupancy, count and TSDF maps built from a fleet's 2D laser scans.
 
