@@ -91,6 +91,44 @@ def exit_column(i0: int, ie: int, step_i: int, base_x: float, scale_x: float, t:
     return k
 
 
+@njit(cache=True, nogil=True)
+def end_row_entries(
+    ox: float, ex: np.ndarray, kinds: np.ndarray, j0: int, ie: np.ndarray, je: np.ndarray, step_i: np.ndarray,
+    base_x: np.ndarray, scale_x: np.ndarray, base_y: np.ndarray, scale_y: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """The column where each traced beam enters its end row, for beams that end above or below
+    the sensor's row (`je != j0`; others get a meaningless value): `exit_column` at the crossing of
+    the row before, as `_trace_rows` needs it for every beam that ends in a row.
+
+    One pass over the beams with no branch per beam, so that it vectorises: the first column whose
+    crossing is not before t is the solution of `(k + base_x) * scale_x = t` rounded, checked against
+    its neighbours with the walk's own crossings. Beams whose estimate was off by more than a cell,
+    if any, get `exit_column` itself in a second pass."""
+    nb = ie.size
+    i0 = math.floor(ox)
+    entry = np.empty(nb, dtype=np.int64)
+    good = np.empty(nb, dtype=np.bool_)
+    for b in range(nb):
+        s = step_i[b]
+        lo = min(i0, ie[b])
+        hi = max(i0, ie[b])
+        t = (float(je[b] - (1 if je[b] > j0 else -1)) + base_y[b]) * scale_y[b]
+        x = t * (ex[b] - ox) - base_x[b]
+        # Not finite for a beam in the sensor's row (whose value is not used): any guess, so that
+        # the conversion to an integer is defined.
+        k0 = int(np.floor(x) if abs(x) < 4.5e15 else 0.0)
+        c1 = k0 - s
+        k = c1 + s * ((c1 + base_x[b]) * scale_x[b] < t) + s * ((k0 + base_x[b]) * scale_x[b] < t)
+        exact = ((k + base_x[b]) * scale_x[b] >= t) & ((k - s + base_x[b]) * scale_x[b] < t)
+        good[b] = exact | (lo == hi)
+        entry[b] = min(max(k, lo), hi)
+    for b in range(nb):
+        if not good[b] and je[b] != j0 and kinds[b] != _BEAM_SKIP:
+            t = crossing(je[b] - (1 if je[b] > j0 else -1), base_y[b], scale_y[b])
+            entry[b] = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], t)
+    return entry
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _key(ox: float, oy: float, x: float, y: float) -> float:
     """dx/|dy| of the beam from (ox, oy) to (x, y): where it crosses a row line, per unit of distance
@@ -166,6 +204,7 @@ def trace_fan_rows(
     down_order = _direction_order(down, ox, oy, ex, ey)
     if up_order.size != n_up or down_order.size != n_down:
         return -1, 0, 0
+    entry_end = end_row_entries(ox, ex, kinds, j0, ie, je, step_i, base_x, scale_x, base_y, scale_y)
     # The sensor's row: every beam's run starts at the sensor's column, so their union is one span,
     # from the end cells of the beams ending in it and the columns where the others leave it.
     lo = hi = i0
@@ -228,8 +267,8 @@ def trace_fan_rows(
         c = fy if g == 0 else 1.0 - fy  # row offset m's entry line lies m - c from the sensor
         _trace_rows(
             order, 1 - 2 * g, c, counts, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x,
-            scale_x, base_y, scale_y, shift, ti0, tj0, ni, found, kind_out, run_key, run_len, planes, far,
-            work, work_keys, work_brk,
+            scale_x, base_y, scale_y, entry_end, shift, ti0, tj0, ni, found, kind_out, run_key, run_len, planes,
+            far, work, work_keys, work_brk,
         )  # fmt: skip
         if counts[0] < 0:
             return -1, 0, 0
@@ -362,14 +401,16 @@ def _break_row(ka: float, kb: float, c: float, rows: int) -> int:
 def _trace_rows(
     order: np.ndarray, step_j: int, c: float, counts: np.ndarray, ox: float, oy: float, ex: np.ndarray,
     ey: np.ndarray, kinds: np.ndarray, i0: int, j0: int, ie: np.ndarray, je: np.ndarray, step_i: np.ndarray,
-    base_x: np.ndarray, scale_x: np.ndarray, base_y: np.ndarray, scale_y: np.ndarray, shift: int, ti0: int,
-    tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray, run_len: np.ndarray,
-    planes: np.ndarray, far: np.ndarray, work: np.ndarray, work_keys: np.ndarray, work_brk: np.ndarray,
+    base_x: np.ndarray, scale_x: np.ndarray, base_y: np.ndarray, scale_y: np.ndarray, entry_end: np.ndarray,
+    shift: int, ti0: int, tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray,
+    run_len: np.ndarray, planes: np.ndarray, far: np.ndarray, work: np.ndarray, work_keys: np.ndarray,
+    work_brk: np.ndarray,
 ) -> None:  # fmt: skip
     """The rows above (step_j = 1) or below (-1) the sensor's row, crossed by the beams `order`
     (sorted by direction). Row offset m is row j0 + step_j * m, whose entry line lies m - c from the
     sensor. Appends cells and runs (`_emit_row`) and hand-backs to `far` after the `counts` (cells,
     hand-backs, runs) so far, and updates them; a cell count of -1 means the row trace gave up.
+    `entry_end[b]` is the column where beam b enters its end row (`end_row_entries`).
 
     Work space, overwritten: `work` at least `3 * (rows + 2) + 15 * n + 8` integers, `work_keys` n
     floats and `work_brk` `(n + 63) // 64` words, for n = `order.size` beams whose end rows lie at
@@ -462,8 +503,7 @@ def _trace_rows(
         for q in range(ended):
             p = ending[ends_at[m] + q]
             b = order[p]
-            t_in = crossing(row - step_j, base_y[b], scale_y[b])
-            entry = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], t_in)
+            entry = entry_end[b]  # where b enters this row, its end row
             span_lo[q] = min(entry, ie[b])
             span_hi[q] = max(entry, ie[b])
             going -= 1
