@@ -66,6 +66,17 @@ _DE_BRUIJN_TABLE = np.array(
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _first_not_before(k: int, step: int, base: float, scale: float, t: float) -> tuple[int, bool]:
+    """The first index, going by `step`, whose crossing `(index + base) * scale` is not before t,
+    from an estimate k: k - step, k or k + step, picked without a branch. Returns it and whether it
+    is exact (its crossing is not before t and the one before it is), which it is whenever k was
+    within one of the answer."""
+    first = k - step + step * (((k - step) + base) * scale < t) + step * ((k + base) * scale < t)
+    exact = ((first + base) * scale >= t) & (((first - step) + base) * scale < t)
+    return first, exact
+
+
+@njit(cache=True, nogil=True, inline="always")
 def exit_column(i0: int, ie: int, step_i: int, base_x: float, scale_x: float, t: float) -> int:
     """The column in which an exact walk (first column `i0`, last `ie`, x crossings `crossing(i,
     base_x, scale_x)`) leaves a row whose exit boundary it crosses at segment parameter `t`: the
@@ -76,6 +87,9 @@ def exit_column(i0: int, ie: int, step_i: int, base_x: float, scale_x: float, t:
     if math.isinf(t):
         return ie
     k = math.floor(t / scale_x - base_x)  # the real solution of (k + base_x) * scale_x = t, +-1
+    first, exact = _first_not_before(k, step_i, base_x, scale_x, t)
+    if exact:  # almost always; else the loops below find it
+        return min(max(first, min(i0, ie)), max(i0, ie))
     if step_i > 0:
         k = min(max(k, i0), ie)
         while k > i0 and ((k - 1) + base_x) * scale_x >= t:
@@ -116,10 +130,9 @@ def end_row_entries(
         x = t * (ex[b] - ox) - base_x[b]
         # Not finite for a beam in the sensor's row (whose value is not used): any guess, so that
         # the conversion to an integer is defined.
-        k0 = int(np.floor(x) if abs(x) < 4.5e15 else 0.0)
-        c1 = k0 - s
-        k = c1 + s * ((c1 + base_x[b]) * scale_x[b] < t) + s * ((k0 + base_x[b]) * scale_x[b] < t)
-        exact = ((k + base_x[b]) * scale_x[b] >= t) & ((k - s + base_x[b]) * scale_x[b] < t)
+        k, exact = _first_not_before(
+            int(np.floor(x) if abs(x) < 4.5e15 else 0.0), s, base_x[b], scale_x[b], t
+        )
         good[b] = exact | (lo == hi)
         entry[b] = min(max(k, lo), hi)
     for b in range(nb):
@@ -267,8 +280,8 @@ def trace_fan_rows(
         c = fy if g == 0 else 1.0 - fy  # row offset m's entry line lies m - c from the sensor
         _trace_rows(
             order, 1 - 2 * g, c, counts, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x,
-            scale_x, base_y, scale_y, entry_end, shift, ti0, tj0, ni, found, kind_out, run_key, run_len, planes,
-            far, work, work_keys, work_brk,
+            scale_x, base_y, scale_y, entry_end, shift, ti0, tj0, ni, found, kind_out, run_key, run_len,
+            planes, far, work, work_keys, work_brk,
         )  # fmt: skip
         if counts[0] < 0:
             return -1, 0, 0
