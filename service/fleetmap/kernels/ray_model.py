@@ -587,17 +587,22 @@ def _collect_dense(
     """Read and re-zero the marks of `found[:n]` (window keys) into `kind_out`, turn the keys into
     plane keys (plane = tile row * ni + tile column in the window, then `local_j * T + local_i`), and
     flag in `planes` the planes that hold a cell."""
-    col_mask = (1 << wshift) - 1
-    t_mask = (1 << shift) - 1
-    for k in range(n):
-        key = found[k]
+    # Unsigned throughout (keys and planes are >= 0): numba's negative-index wraparound code would
+    # cost each of the four indexings below two instructions.
+    col_mask = np.uint64((1 << wshift) - 1)
+    t_mask = np.uint64((1 << shift) - 1)
+    w = np.uint64(wshift)
+    t = np.uint64(shift)
+    per_row = np.uint64(ni)
+    for k in range(np.uint64(n)):
+        key = np.uint64(found[k])
         kind_out[k] = scratch[key]
         scratch[key] = 0
         li = key & col_mask
-        lj = key >> wshift
-        plane = (lj >> shift) * ni + (li >> shift)
+        lj = key >> w
+        plane = (lj >> t) * per_row + (li >> t)
         planes[plane] = 1
-        found[k] = (((plane << shift) | (lj & t_mask)) << shift) | (li & t_mask)
+        found[k] = np.int64((((plane << t) | (lj & t_mask)) << t) | (li & t_mask))
 
 
 @njit(cache=True, nogil=True)
