@@ -18,33 +18,58 @@ _STAMP = "fleetmap-compiled-sources.sha256"
 
 
 def drop_stale_compiled_cache(package: Path = Path(__file__).parent.parent) -> bool:
-    """Delete numba's cached machine code (`__pycache__/*.nbi, *.nbc`) under `package` when the
-    sources with `@njit` in them changed since the cache was written; True if it did.
+    """Delete numba's cached machine code (`*.nbi`, `*.nbc`) of `package` when the sources with
+    `@njit` in them changed since the cache was written; True if it did.
 
     numba checks only the defining file of each cached function, so a cached kernel keeps the
     code it was compiled with of every kernel it calls in another module: after an edit or an
     upgrade that changes only the callee, the caller would run the old callee. Recompiling
-    everything once (about 10 s) is the safe price. A read-only install is left alone (numba
-    cannot cache there either)."""
+    everything once (about 15 s) is the safe price.
+
+    The cache is wherever numba keeps it for each source directory: `NUMBA_CACHE_DIR` when set,
+    else the directory's `__pycache__` when writable, else the user-wide cache directory. Each of
+    those directories holds its own stamp of the sources; one that cannot be written is left
+    alone (numba cannot cache there either)."""
     digest = hashlib.sha256()
+    directories: set[Path] = set()
     for source in sorted(package.rglob("*.py")):
         text = source.read_bytes()
         if b"@njit" in text:
             digest.update(str(source.relative_to(package)).encode() + b"\0" + text)
-    stamp = package / "__pycache__" / _STAMP
-    try:
-        if stamp.read_text() == digest.hexdigest():
-            return False
-    except OSError:
-        pass
-    try:
-        for cached in package.rglob("__pycache__/*.nb[ic]"):
-            cached.unlink(missing_ok=True)
-        stamp.parent.mkdir(exist_ok=True)
-        stamp.write_text(digest.hexdigest())
-    except OSError:
-        return False
-    return True
+            directories.add(_numba_cache_directory(source))
+    dropped = False
+    for directory in sorted(directories):
+        stamp = directory / _STAMP
+        try:
+            if stamp.read_text() == digest.hexdigest():
+                continue
+        except OSError:
+            pass
+        try:
+            for cached in directory.glob("*.nb[ic]"):
+                cached.unlink(missing_ok=True)
+            directory.mkdir(parents=True, exist_ok=True)
+            stamp.write_text(digest.hexdigest())
+        except OSError:
+            continue
+        dropped = True
+    return dropped
+
+
+def _probe() -> None:
+    """A function for numba's cache locators, which want one (they read only its first line)."""
+
+
+def _numba_cache_directory(source: Path) -> Path:
+    """The directory where numba caches the functions of `source`: the first of its locators, in
+    numba's order, that applies (numba's own choice; they create the directory if they can)."""
+    from numba.core.caching import InTreeCacheLocator, UserProvidedCacheLocator, UserWideCacheLocator
+
+    for locator_class in (UserProvidedCacheLocator, InTreeCacheLocator, UserWideCacheLocator):
+        locator = locator_class.from_function(_probe, str(source))
+        if locator is not None:
+            return Path(locator.get_cache_path())
+    return source.parent / "__pycache__"
 
 
 drop_stale_compiled_cache()
