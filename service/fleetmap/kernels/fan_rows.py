@@ -114,7 +114,7 @@ def end_row_entries(
     the sensor's row (`je != j0`; others get a meaningless value): `exit_column` at the crossing of
     the row before, as `_trace_rows` needs it for every beam that ends in a row.
 
-    One pass over the beams with no branch per beam, so that it vectorises: the first column whose
+    One pass over the beams with no branch per beam, which LLVM vectorises: the first column whose
     crossing is not before t is the solution of `(k + base_x) * scale_x = t` rounded, checked against
     its neighbours with the walk's own crossings. Beams whose estimate was off by more than a cell,
     if any, get `exit_column` itself in a second pass."""
