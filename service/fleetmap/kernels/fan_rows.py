@@ -607,9 +607,10 @@ def _trace_rows(
         last_end = ends_at[m + 1] - 1
         for q in range(first_end, last_end + 1):
             b = order[ending[last_end - (q - first_end) if descending else q]]
-            if kinds[b] == _BEAM_HIT:
-                hit_cols[nh] = ie[b]
-                nh += 1
+            # Written always, kept if a return ending in a column not just kept: beams ending in
+            # one cell come together, and `_emit_row` would skip each repeat one by one.
+            hit_cols[nh] = ie[b]
+            nh += (kinds[b] == _BEAM_HIT) & ((nh == 0) or (hit_cols[nh - 1] != ie[b]))
         if not _emit_row(
             found, kind_out, run_key, run_len, planes, counts, row, span_lo, span_hi, merged, hit_cols, nh,
             shift, ti0, tj0, ni,
