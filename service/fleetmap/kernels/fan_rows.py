@@ -513,12 +513,18 @@ def _trace_rows(
             break
         # Beams ending in this row: their own runs, then out of the chains.
         ended = ends_at[m + 1] - ends_at[m]
+        own = 0  # their runs so far, each joined to the one before when they touch (no branch)
         for q in range(ended):
             p = ending[ends_at[m] + q]
             b = order[p]
             entry = entry_end[b]  # where b enters this row, its end row
-            span_lo[q] = min(entry, ie[b])
-            span_hi[q] = max(entry, ie[b])
+            lo = min(entry, ie[b])
+            hi = max(entry, ie[b])
+            touch = (own > 0) & (lo <= span_hi[own - 1] + 1) & (hi + 1 >= span_lo[own - 1])
+            at = own - touch
+            span_lo[at] = min(span_lo[at], lo) if touch else lo
+            span_hi[at] = max(span_hi[at], hi) if touch else hi
+            own += 1 - touch
             going -= 1
             a = prv[p]
             z = nxt[p]
@@ -553,7 +559,7 @@ def _trace_rows(
                 brk[a >> 6] |= np.uint64(1) << np.uint64(a & 63)
             e = ev_next[e]
         # The chains of beams going on: each covers the span between its end beams' runs.
-        spans = ended
+        spans = own
         if head >= 0:
             if m - c < NEAR_LINE:
                 p = head
@@ -595,9 +601,9 @@ def _trace_rows(
                     if last == tail:
                         break
                     first = nxt[last]
-        if far.shape[0] and (spans - ended) * CHAIN_WALK_RATIO > going:
+        if far.shape[0] and (spans - own) * CHAIN_WALK_RATIO > going:
             handing_back = True  # from the next row on, most chains are single beams
-        merged = _union(span_lo, span_hi, ended, spans, descending, tmp_lo, tmp_hi)
+        merged = _union(span_lo, span_hi, own, spans, descending, tmp_lo, tmp_hi)
         # Hits: the end cells of returns ending in this row, in ascending columns but for rounding
         # (`ending` lists them in direction order; reversed when the columns fall), so that
         # `_emit_row`'s insertion sort costs one pass. A wall along the row ends dozens of beams in
@@ -629,9 +635,10 @@ def _union(
     """Replace the row's spans by their union as disjoint spans in ascending order; returns how many.
 
     The spans come as two runs, each in direction order: `[0, ended)` of the beams ending in the row
-    and `[ended, spans)` of the chains; `descending` says their columns fall. The runs are merged,
-    then an insertion pass puts right whatever rounding left out of order (it costs nothing on
-    sorted input), then touching spans are joined."""
+    (neighbours' runs that touch already joined) and `[ended, spans)` of the chains; `descending`
+    says their columns fall. The runs are merged, then an insertion pass puts right whatever
+    rounding or joining left out of order (it costs nothing on sorted input), then touching spans
+    are joined."""
     a, a_end, b, b_end, d = 0, ended, ended, spans, 1
     if descending:
         a, a_end, b, b_end, d = ended - 1, -1, spans - 1, ended - 1, -1
