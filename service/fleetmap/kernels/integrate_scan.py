@@ -38,14 +38,16 @@ TOO_WIDE = 4  # the scan's tile box holds more than `max_window` tiles (plan_sca
 def integrate_ray_scan(
     x: float, y: float, theta: float, angles: np.ndarray, layout: np.ndarray, ranges: np.ndarray,
     range_min: float, range_max: float, clear_range: float, res: float, truncation: float, alpha: float,
-    max_cell_index: float, max_window: int, method: int, shift: int, scratch: np.ndarray,
-    index_keys: np.ndarray, index_slots: np.ndarray, log_odds: np.ndarray, hits: np.ndarray,
-    misses: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float, tsdf: np.ndarray,
-    tsdf_weight: np.ndarray, max_weight: float, versions: np.ndarray, clock: int,
+    max_cell_index: float, max_window: int, method: int, shift: int, l_hit: float, l_miss: float,
+    l_min: float, l_max: float, max_weight: float, scratch: np.ndarray, index_keys: np.ndarray,
+    index_slots: np.ndarray, log_odds: np.ndarray, hits: np.ndarray, misses: np.ndarray, tsdf: np.ndarray,
+    tsdf_weight: np.ndarray, versions: np.ndarray, clock: int,
 ) -> tuple[int, int, int, int, np.ndarray, int]:  # fmt: skip
     """Integrate one scan with the ray model's per-scan updates (and the TSDF band when `tsdf` is
     not empty) into the pools, as `plan_scan` + `GridMap.apply` do with the same arguments (`alpha`
-    only enters `scan_extent`, as there). Disabled layers are empty pools.
+    only enters `scan_extent`, as there). Disabled layers are empty pools. The arguments come in
+    three groups: the scan's, the map's parameters (fixed for a map, from `clear_range` to
+    `max_weight`) and the map's arrays and clock.
 
     Returns `(status, cell updates, TSDF updates, version clock, changed tiles, scratch needed)`:
     with INTEGRATED, the pools hold the scan, each changed tile (rows: tile i, tile j; in the
