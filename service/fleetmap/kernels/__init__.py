@@ -62,13 +62,18 @@ def _probe() -> None:
 
 def _numba_cache_directory(source: Path) -> Path:
     """The directory where numba caches the functions of `source`: the first of its locators, in
-    numba's order, that applies (numba's own choice; they create the directory if they can)."""
-    from numba.core.caching import InTreeCacheLocator, UserProvidedCacheLocator, UserWideCacheLocator
+    numba's order, that applies (numba's own choice; they create the directory if they can). A
+    numba whose locators are not where they are today gets the in-tree `__pycache__`, as before
+    this looked further."""
+    try:
+        from numba.core.caching import InTreeCacheLocator, UserProvidedCacheLocator, UserWideCacheLocator
 
-    for locator_class in (UserProvidedCacheLocator, InTreeCacheLocator, UserWideCacheLocator):
-        locator = locator_class.from_function(_probe, str(source))
-        if locator is not None:
-            return Path(locator.get_cache_path())
+        for locator_class in (UserProvidedCacheLocator, InTreeCacheLocator, UserWideCacheLocator):
+            locator = locator_class.from_function(_probe, str(source))
+            if locator is not None:
+                return Path(locator.get_cache_path())
+    except (ImportError, AttributeError, TypeError):
+        pass
     return source.parent / "__pycache__"
 
 
