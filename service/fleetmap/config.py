@@ -27,6 +27,9 @@ STORED_CONFIG = "stored"
 
 log = logging.getLogger("fleetmap.config")
 
+#: The band widths limited to MAX_BAND_CELLS cells: (section, field).
+_BAND_WIDTHS = (("tsdf", "truncation"), ("beam", "alpha"))
+
 
 def logit(p: float) -> float:
     """Log-odds of probability `p`."""
@@ -172,7 +175,7 @@ class MapConfig(BaseModel):
             return data
         data = dict(data)
         resolution = data.get("resolution", cls.model_fields["resolution"].default)
-        for section, name in (("tsdf", "truncation"), ("beam", "alpha")):
+        for section, name in _BAND_WIDTHS:
             params = data.get(section)
             if isinstance(params, dict) and name in params and params[name] is None:
                 limit = MAX_BAND_CELLS * resolution
@@ -193,10 +196,11 @@ class MapConfig(BaseModel):
             raise ValueError("layers must not repeat")
         if not (info.context or {}).get(STORED_CONFIG):
             limit = MAX_BAND_CELLS * self.resolution
-            for name, value in (("tsdf.truncation", self.tsdf.truncation), ("beam.alpha", self.beam.alpha)):
+            for section, name in _BAND_WIDTHS:
+                value = getattr(getattr(self, section), name)
                 if value > limit:
                     raise ValueError(
-                        f"{name} {value:g} m is more than {MAX_BAND_CELLS} cells at resolution "
+                        f"{section}.{name} {value:g} m is more than {MAX_BAND_CELLS} cells at resolution "
                         f"{self.resolution:g} m (at most {limit:g} m)"
                     )
         return self

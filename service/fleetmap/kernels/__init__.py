@@ -31,14 +31,14 @@ def drop_stale_compiled_cache(package: Path = Path(__file__).parent.parent) -> b
     those directories holds its own stamp of the sources; one that cannot be written is left
     alone (numba cannot cache there either)."""
     digest = hashlib.sha256()
-    directories: set[Path] = set()
+    sources: dict[Path, Path] = {}  # a compiled source of each directory
     for source in sorted(package.rglob("*.py")):
         text = source.read_bytes()
         if b"@njit" in text:
             digest.update(str(source.relative_to(package)).encode() + b"\0" + text)
-            directories.add(_numba_cache_directory(source))
+            sources.setdefault(source.parent, source)  # numba's cache is per directory
     dropped = False
-    for directory in sorted(directories):
+    for directory in sorted({_numba_cache_directory(source) for source in sources.values()}):
         stamp = directory / _STAMP
         try:
             if stamp.read_text() == digest.hexdigest():

@@ -126,7 +126,7 @@ def end_row_entries(
         s = step_i[b]
         lo = min(i0, ie[b])
         hi = max(i0, ie[b])
-        t = (float(je[b] - (1 if je[b] > j0 else -1)) + base_y[b]) * scale_y[b]
+        t = _end_row_crossing(je[b], j0, base_y[b], scale_y[b])
         x = t * (ex[b] - ox) - base_x[b]
         # Not finite for a beam in the sensor's row (whose value is not used): any guess, so that
         # the conversion to an integer is defined.
@@ -137,9 +137,15 @@ def end_row_entries(
         entry[b] = min(max(k, lo), hi)
     for b in range(nb):
         if not good[b] and je[b] != j0 and kinds[b] != _BEAM_SKIP:
-            t = crossing(je[b] - (1 if je[b] > j0 else -1), base_y[b], scale_y[b])
+            t = _end_row_crossing(je[b], j0, base_y[b], scale_y[b])
             entry[b] = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], t)
     return entry
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _end_row_crossing(je: int, j0: int, base_y: float, scale_y: float) -> float:
+    """Segment parameter at which a walk ending in row je (not the sensor's row j0) enters it."""
+    return crossing(je - (1 if je > j0 else -1), base_y, scale_y)
 
 
 @njit(cache=True, nogil=True, inline="always")
