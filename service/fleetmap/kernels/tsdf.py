@@ -49,40 +49,66 @@ def trace_tsdf(
     ci = np.empty(cap, dtype=np.int64)
     cj = np.empty(cap, dtype=np.int64)
     value = np.empty(cap, dtype=np.float32)
-    n = 0
+    # First every beam's walk start and the box, in a pass of its own: it has no branch that
+    # depends on the data, so the compiler computes several beams' divisions and floors at once.
+    # A band is only a dozen cells, and done beam by beam inside the walk loop this start cost
+    # a quarter of trace_tsdf's time.
+    start = np.empty((6, nb), dtype=np.int64)  # i, j, ie, je, step_i, step_j
+    crossings = np.empty((4, nb))  # base_x, scale_x, base_y, scale_y
     i0 = j0 = np.iinfo(np.int64).max
     i1 = j1 = np.iinfo(np.int64).min
     for b in range(nb):
-        c = cos[b]
-        s = sin[b]
-        zb = z[b]
-        d0 = max(zb - trunc, 0.0)
-        d1 = zb + trunc
+        d0 = max(z[b] - trunc, 0.0)
+        d1 = z[b] + trunc
         i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(
-            ox + c * d0, oy + s * d0, ox + c * d1, oy + s * d1
+            ox + cos[b] * d0, oy + sin[b] * d0, ox + cos[b] * d1, oy + sin[b] * d1
         )
+        start[0, b] = i
+        start[1, b] = j
+        start[2, b] = ie
+        start[3, b] = je
+        start[4, b] = step_i
+        start[5, b] = step_j
+        crossings[0, b], crossings[1, b], crossings[2, b], crossings[3, b] = base_x, scale_x, base_y, scale_y
         i0 = min(i0, i, ie)
         i1 = max(i1, i, ie)
         j0 = min(j0, j, je)
         j1 = max(j1, j, je)
+    n = 0
+    for b in range(nb):
+        c = cos[b]
+        s = sin[b]
+        zb = z[b]
+        i, j, ie, je = start[0, b], start[1, b], start[2, b], start[3, b]
+        step_i, step_j = start[4, b], start[5, b]
+        base_x, scale_x, base_y, scale_y = crossings[0, b], crossings[1, b], crossings[2, b], crossings[3, b]
         left_i = abs(ie - i)
         left_j = abs(je - j)
         # The cell indices also as floats (exact), so that each crossing and centre is computed as
         # `crossing(i, ...)` and `(i + 0.5 - ox)` are, bit for bit, without a conversion per step.
         fi = float(i)
         fj = float(j)
-        while True:
-            n = _band_cell(ci, cj, value, n, i, j, fi, fj, ox, oy, c, s, zb, trunc)
-            if left_i == 0 or left_j == 0:
-                break
-            if (fi + base_x) * scale_x < (fj + base_y) * scale_y:
-                i += step_i
-                fi += step_i
-                left_i -= 1
-            else:
-                j += step_j
-                fj += step_j
-                left_j -= 1
+        n = _band_cell(ci, cj, value, n, i, j, fi, fj, ox, oy, c, s, zb, trunc)
+        if left_i > 0 and left_j > 0:
+            t_max_x = (fi + base_x) * scale_x
+            t_max_y = (fj + base_y) * scale_y
+            while True:  # while both axes have steps left, only the crossings decide
+                if t_max_x < t_max_y:
+                    i += step_i
+                    fi += step_i
+                    t_max_x = (fi + base_x) * scale_x
+                    n = _band_cell(ci, cj, value, n, i, j, fi, fj, ox, oy, c, s, zb, trunc)
+                    left_i -= 1
+                    if left_i == 0:
+                        break
+                else:
+                    j += step_j
+                    fj += step_j
+                    t_max_y = (fj + base_y) * scale_y
+                    n = _band_cell(ci, cj, value, n, i, j, fi, fj, ox, oy, c, s, zb, trunc)
+                    left_j -= 1
+                    if left_j == 0:
+                        break
         for _ in range(left_i):
             i += step_i
             fi += step_i
