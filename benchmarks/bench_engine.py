@@ -45,6 +45,7 @@ from fleetmap.config import LayerName, MapConfig, probability
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import GridMap
 from fleetmap.kernels.fan_rows import trace_fan_rows
+from fleetmap.kernels.traversal import exact_starts
 from fleetmap.scan import Scan
 from fleetmap.sim import FloorPlan, SimulatedRobot, generate_floorplan
 from fleetmap.update_plan import ray_trace_inputs
@@ -513,8 +514,9 @@ def traced_by_rows(scan: Scan) -> tuple[int, int, int]:
     found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(ni * nj, np.uint8)
     run_key, run_len = np.empty(size, np.int64), np.empty(size, np.int64)
     cells, runs, handed = trace_fan_rows(
-        ox, oy, ex, ey, kinds, 8, ti0, tj0, ni, found, kind, run_key, run_len, planes, far
-    )
+        ox, oy, ex, ey, kinds, *exact_starts(ox, oy, ex, ey), 8, ti0, tj0, ni, found, kind, run_key, run_len,
+        planes, far,
+    )  # fmt: skip
     if cells < 0:
         return size, 0, size
     rows = cells + int(run_len[:runs].sum())

@@ -19,7 +19,7 @@ from fleetmap import update_plan
 from fleetmap.config import MapConfig
 from fleetmap.kernels.fan_rows import trace_fan_rows
 from fleetmap.kernels.ray_model import beam_layout, scan_rays
-from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, segment_cells
+from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, exact_starts, segment_cells
 from fleetmap.scan import Scan
 from fleetmap.update_plan import plan_scan, ray_trace_inputs
 
@@ -517,6 +517,7 @@ def _row_trace(scan: Scan) -> int:
         ex,
         ey,
         kinds,
+        *exact_starts(ox, oy, ex, ey),
         8,
         ti0,
         tj0,

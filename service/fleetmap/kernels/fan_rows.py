@@ -34,7 +34,7 @@ import math
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.traversal import crossing, exact_start
+from fleetmap.kernels.traversal import crossing
 
 #: Neighbouring beams closer than this in dx/|dy| are never assumed contiguous (see module doc).
 MIN_KEY_GAP = 1e-7
@@ -164,11 +164,12 @@ def _lowest_bit(word: np.uint64) -> int:
 
 @njit(cache=True, nogil=True)
 def trace_fan_rows(
-    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, shift: int, ti0: int, tj0: int,
-    ni: int, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray, run_len: np.ndarray,
-    planes: np.ndarray, far: np.ndarray,
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, ends: np.ndarray,
+    crossings: np.ndarray, shift: int, ti0: int, tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray,
+    run_key: np.ndarray, run_len: np.ndarray, planes: np.ndarray, far: np.ndarray,
 ) -> tuple[int, int, int]:  # fmt: skip
     """Per-scan exact-traversal updates of every traced beam (`kinds` as in `ray_model`), row by row.
+    `ends` and `crossings` are the beams' walk states (`traversal.exact_starts`).
 
     Writes each touched cell once, as a plane key (plane = tile row * ni + tile column relative to
     tile (ti0, tj0), then `local_j * T + local_i`): runs of at least `MIN_RUN` misses on consecutive
@@ -191,13 +192,13 @@ def trace_fan_rows(
         return -1, 0, 0
     i0 = math.floor(ox)
     j0 = math.floor(oy)
-    ie = np.empty(nb, dtype=np.int64)
-    je = np.empty(nb, dtype=np.int64)
-    step_i = np.empty(nb, dtype=np.int64)
-    base_x = np.empty(nb)
-    scale_x = np.empty(nb)
-    base_y = np.empty(nb)
-    scale_y = np.empty(nb)
+    ie = ends[0]
+    je = ends[1]
+    step_i = ends[2]
+    base_x = crossings[0]
+    scale_x = crossings[1]
+    base_y = crossings[2]
+    scale_y = crossings[3]
     up_all = np.empty(nb, dtype=np.int64)
     down_all = np.empty(nb, dtype=np.int64)
     n_up = n_down = 0
@@ -207,9 +208,6 @@ def trace_fan_rows(
             continue
         if not (abs(ex[b] - ox) < MAX_EXTENT and abs(ey[b] - oy) < MAX_EXTENT):
             return -1, 0, 0
-        _, _, ie[b], je[b], step_i[b], _, base_x[b], scale_x[b], base_y[b], scale_y[b] = exact_start(
-            ox, oy, ex[b], ey[b]
-        )
         rows = max(rows, abs(je[b] - j0))
         if je[b] > j0:
             up_all[n_up] = b

@@ -16,6 +16,7 @@ from fleetmap.kernels.traversal import (
     cells,
     crossing,
     exact_start,
+    exact_starts,
     exact_steps_i,
     walk,
 )
@@ -271,13 +272,15 @@ def trace_scan(
         run_len = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
         planes = np.zeros(nj * ni, dtype=np.uint8)
         far = np.empty((ex.size if dense else 0, 3), dtype=np.int64)
+        ends, crossings = exact_starts(ox, oy, ex, ey)
         n, r, h = trace_fan_rows(
-            ox, oy, ex, ey, kinds, shift, ti0, tj0, ni, found, kind_out, run_key, run_len, planes, far
-        )
+            ox, oy, ex, ey, kinds, ends, crossings, shift, ti0, tj0, ni, found, kind_out, run_key, run_len,
+            planes, far,
+        )  # fmt: skip
         if n >= 0:
             if h:
                 n = _walk_far(
-                    ox, oy, ex, ey, kinds, far[:h], shift, wshift, ti0, tj0, ni, scratch, found, kind_out, n,
+                    kinds, ends, crossings, far[:h], shift, wshift, ti0, tj0, ni, scratch, found, kind_out, n,
                     planes,
                 )  # fmt: skip
             index = np.arange(nj * ni).reshape(nj, ni)
@@ -551,30 +554,30 @@ def _walk_dense(
 
 @njit(cache=True, nogil=True)
 def _walk_far(
-    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, far: np.ndarray, shift: int,
-    wshift: int, ti0: int, tj0: int, ni: int, scratch: np.ndarray, found: np.ndarray, kind_out: np.ndarray,
-    n: int, planes: np.ndarray,
+    kinds: np.ndarray, ends: np.ndarray, crossings: np.ndarray, far: np.ndarray, shift: int, wshift: int,
+    ti0: int, tj0: int, ni: int, scratch: np.ndarray, found: np.ndarray, kind_out: np.ndarray, n: int,
+    planes: np.ndarray,
 ) -> int:  # fmt: skip
     """Walk the rests `trace_fan_rows` handed back (`far[h] = (beam, column, row)` of each rest's
-    first cell) in the dense window, append their distinct cells from `found[n]` as plane keys with
-    their kinds, and return the new count. Those rows hold no other cells of the scan."""
+    first cell; the beams' walk states `ends` and `crossings` from `exact_starts`) in the dense
+    window, append their distinct cells from `found[n]` as plane keys with their kinds, and return
+    the new count. Those rows hold no other cells of the scan."""
     i0 = ti0 << shift
     j0 = tj0 << shift
     start = n
-    ends = np.empty(far.shape[0], dtype=np.int64)
+    hit_keys = np.empty(far.shape[0], dtype=np.int64)
     hits = 0
     for q in range(far.shape[0]):
         b = far[q, 0]
-        _, _, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(ox, oy, ex[b], ey[b])
         n, key = _walk_rest(
-            found, scratch, n, far[q, 1], far[q, 2], ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y,
-            i0, j0, wshift,
+            found, scratch, n, far[q, 1], far[q, 2], ends[0, b], ends[1, b], ends[2, b], ends[3, b],
+            crossings[0, b], crossings[1, b], crossings[2, b], crossings[3, b], i0, j0, wshift,
         )  # fmt: skip
         if kinds[b] == BEAM_HIT:
-            ends[hits] = key
+            hit_keys[hits] = key
             hits += 1
     for k in range(hits):
-        scratch[ends[k]] = CELL_MISS | CELL_HIT
+        scratch[hit_keys[k]] = CELL_MISS | CELL_HIT
     _collect_dense(found[start:], n - start, scratch, shift, wshift, ni, kind_out[start:], planes)
     return n
 
