@@ -59,22 +59,6 @@ def trace_rays(
     return ci, cj, kind
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _beam(
-    b: int, ranges: np.ndarray, range_min: float, range_max: float, clear_range: float
-) -> tuple[int, float]:
-    """Beam b's kind and the range (metres) it is traced to: a return to its range, a no-return
-    beam to `clear_range` when that is > 0, anything else skipped."""
-    r = ranges[b]
-    if math.isnan(r) or r < range_min:
-        return BEAM_SKIP, 0.0
-    if r >= range_max:
-        if clear_range > 0.0:
-            return BEAM_CLEAR, min(clear_range, range_max)
-        return BEAM_SKIP, 0.0
-    return BEAM_HIT, r
-
-
 #: `trace_scan` marks cells in a dense row-major window over the scan's whole tiles when it holds
 #: at most this many cells (8 MiB of scratch): steps are then a plain +-1 / +-W on one key. Larger
 #: boxes (very long clearing beams) use per-tile planes for the touched tiles only, so memory stays
@@ -100,10 +84,14 @@ def scan_rays(
     range_min: float, range_max: float, clear_range: float, res: float,
 ) -> tuple:  # fmt: skip
     """One pass over a scan's beams (sensor at (x, y, theta), bearings `angles`, metres), for every
-    sensor model: each beam's map-frame direction, kind (as in `_beam`) and end point in CELL units
+    sensor model: each beam's map-frame direction, kind and end point in CELL units
     (`res` metres per cell); the bounding box of the traced beams' end points with the sensor; how
     many beams are traced; and the longest usable return (`range_min <= r < range_max`, metres; 0
     if none).
+
+    A usable return is a BEAM_HIT traced to its range. A beam at or past `range_max` (no return,
+    inf) is a BEAM_CLEAR traced to `min(clear_range, range_max)` when `clear_range > 0`, else
+    skipped (BEAM_SKIP, end point at the sensor), as is one below `range_min` or NaN.
 
     A beam's direction is its sensor-frame direction `(cos a, sin a)` (libm's) rotated by theta:
     one cosine and sine per scan instead of one per beam. Robots send the same bearings in every
@@ -129,8 +117,15 @@ def scan_rays(
     cos_t = math.cos(theta)
     sin_t = math.sin(theta)
     known = min(nb, layout.shape[1])
+    # The directions, then the kinds and end points, in loops with no branch on the data, so that
+    # the compiler does several beams at once (the layout's cosines and sines are checked beam by
+    # beam only when some bearing differs); then the box and counts, a scalar reduction. In one
+    # loop with branches they cost the floor plan's 1081-beam scans 2.5 us more.
+    same = known == nb
+    for b in range(known):
+        same &= layout[0, b] == angles[b]
     for b in range(nb):
-        if b < known and layout[0, b] == angles[b]:
+        if same or (b < known and layout[0, b] == angles[b]):
             cos_a = layout[1, b]
             sin_a = layout[2, b]
         else:
@@ -138,18 +133,26 @@ def scan_rays(
             sin_a = math.sin(angles[b])
         cos[b] = cos_t * cos_a - sin_t * sin_a
         sin[b] = sin_t * cos_a + cos_t * sin_a
-        kind, r = _beam(b, ranges, range_min, range_max, clear_range)
-        kinds[b] = kind
+    clear_to = min(clear_range, range_max)
+    clears = clear_range > 0.0
+    for b in range(nb):
+        # Selects, no branch: NaN fails every comparison, so it is skipped.
+        r = ranges[b]
+        hit = (r >= range_min) & (r < range_max)
+        clear = (r >= range_min) & (r >= range_max) & clears
+        kinds[b] = BEAM_HIT if hit else (BEAM_CLEAR if clear else BEAM_SKIP)
+        r = r if hit else (clear_to if clear else 0.0)
         ex[b] = ox + r / res * cos[b]
         ey[b] = oy + r / res * sin[b]
-        if kind == BEAM_HIT:
-            longest = max(longest, r)
-        if kind != BEAM_SKIP:
-            traced += 1
-            xmin = min(xmin, ex[b])
-            xmax = max(xmax, ex[b])
-            ymin = min(ymin, ey[b])
-            ymax = max(ymax, ey[b])
+    for b in range(nb):
+        # A skipped beam's end point is the sensor, which the box holds anyway.
+        xmin = min(xmin, ex[b])
+        xmax = max(xmax, ex[b])
+        ymin = min(ymin, ey[b])
+        ymax = max(ymax, ey[b])
+        traced += kinds[b] != BEAM_SKIP
+        if kinds[b] == BEAM_HIT:
+            longest = max(longest, ranges[b])
     return rays, kinds, xmin, ymin, xmax, ymax, traced, longest
 
 
