@@ -149,13 +149,6 @@ def _end_row_crossing(je: int, j0: int, base_y: float, scale_y: float) -> float:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _key(ox: float, oy: float, x: float, y: float) -> float:
-    """dx/|dy| of the beam from (ox, oy) to (x, y): where it crosses a row line, per unit of distance
-    from the sensor (the module doc's `key`)."""
-    return (x - ox) / abs(y - oy)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _lowest_bit(word: np.uint64) -> int:
     """Index of the lowest set bit of a non-zero word."""
     low = word & (~word + np.uint64(1))
@@ -217,8 +210,15 @@ def trace_fan_rows(
             n_down += 1
     up = up_all[:n_up]
     down = down_all[:n_down]
-    up_order = _direction_order(up, ox, oy, ex, ey)
-    down_order = _direction_order(down, ox, oy, ex, ey)
+    # Each beam's key (the module doc's): dx/|dy|, where it crosses a row line per unit of distance
+    # from the sensor. In a pass of its own, which the compiler does several beams at a time; the
+    # beams in the sensor's row (dy may be 0) have no key and get a meaningless one.
+    keys = np.empty(nb)
+    for b in range(nb):
+        dy = abs(ey[b] - oy)
+        keys[b] = (ex[b] - ox) / (dy if dy > 0.0 else 1.0)
+    up_order = _direction_order(up, keys)
+    down_order = _direction_order(down, keys)
     if up_order.size != n_up or down_order.size != n_down:
         return -1, 0, 0
     entry_end = end_row_entries(ox, ex, kinds, j0, ie, je, step_i, base_x, scale_x, base_y, scale_y)
@@ -246,16 +246,13 @@ def trace_fan_rows(
             continue
         head = tail = n  # the ends: the first `head` beams of the order and those from `tail` on
         if (1.0 - fy if g == 0 else fy) >= NEAR_LINE:
-            first = _key(ox, oy, ex[order[0]], ey[order[0]])
+            first = keys[order[0]]
             head = 1
-            while head < n and abs(_key(ox, oy, ex[order[head]], ey[order[head]]) - first) < MIN_KEY_GAP:
+            while head < n and abs(keys[order[head]] - first) < MIN_KEY_GAP:
                 head += 1
-            last = _key(ox, oy, ex[order[n - 1]], ey[order[n - 1]])
+            last = keys[order[n - 1]]
             tail = n - 1
-            while (
-                tail > head
-                and abs(_key(ox, oy, ex[order[tail - 1]], ey[order[tail - 1]]) - last) < MIN_KEY_GAP
-            ):
+            while tail > head and abs(keys[order[tail - 1]] - last) < MIN_KEY_GAP:
                 tail -= 1
         for q in range(head + n - tail):
             b = order[q if q < head else tail + q - head]
@@ -283,9 +280,9 @@ def trace_fan_rows(
         order = up_order if g == 0 else down_order
         c = fy if g == 0 else 1.0 - fy  # row offset m's entry line lies m - c from the sensor
         _trace_rows(
-            order, 1 - 2 * g, c, counts, ox, oy, ex, ey, kinds, i0, j0, ie, je, step_i, base_x,
-            scale_x, base_y, scale_y, entry_end, shift, ti0, tj0, ni, found, kind_out, run_key, run_len,
-            planes, far, work, work_keys, work_brk,
+            order, 1 - 2 * g, c, counts, keys, kinds, i0, j0, ie, je, step_i, base_x, scale_x, base_y,
+            scale_y, entry_end, shift, ti0, tj0, ni, found, kind_out, run_key, run_len, planes, far, work,
+            work_keys, work_brk,
         )  # fmt: skip
         if counts[0] < 0:
             return -1, 0, 0
@@ -293,27 +290,23 @@ def trace_fan_rows(
 
 
 @njit(cache=True, nogil=True)
-def _direction_order(members: np.ndarray, ox: float, oy: float, ex: np.ndarray, ey: np.ndarray) -> np.ndarray:
-    """`members` (beam numbers, all going up or all going down) rotated so that dx/|dy| is monotonic,
-    which it is for beams in angle order over less than a full turn, up to one wrap-around. Returns an
-    empty array when no rotation makes it monotonic."""
+def _direction_order(members: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """`members` (beam numbers, all going up or all going down) rotated so that their `keys` (dx/|dy|,
+    indexed by beam) are monotonic, which they are for beams in angle order over less than a full
+    turn, up to one wrap-around. Returns an empty array when no rotation makes them monotonic."""
     n = members.size
     if n <= 2:
         return members.copy()
-    key = np.empty(n)
-    for p in range(n):
-        b = members[p]
-        key[p] = _key(ox, oy, ex[b], ey[b])
     for sign in (1.0, -1.0):  # try non-increasing, then non-decreasing
         rises = 0
         at = 0
         for p in range(n - 1):
-            if sign * (key[p + 1] - key[p]) > 0.0:
+            if sign * (keys[members[p + 1]] - keys[members[p]]) > 0.0:
                 rises += 1
                 at = p + 1
         if rises == 0:
             return members.copy()
-        if rises == 1 and sign * (key[0] - key[n - 1]) <= 0.0:
+        if rises == 1 and sign * (keys[members[0]] - keys[members[n - 1]]) <= 0.0:
             out = np.empty(n, dtype=np.int64)
             for p in range(n):
                 out[p] = members[(at + p) % n]
@@ -416,10 +409,10 @@ def _break_row(ka: float, kb: float, c: float, rows: int) -> int:
 # 80 atomic increments and decrements per call.
 @njit(cache=True, nogil=True, _nrt=False)
 def _trace_rows(
-    order: np.ndarray, step_j: int, c: float, counts: np.ndarray, ox: float, oy: float, ex: np.ndarray,
-    ey: np.ndarray, kinds: np.ndarray, i0: int, j0: int, ie: np.ndarray, je: np.ndarray, step_i: np.ndarray,
-    base_x: np.ndarray, scale_x: np.ndarray, base_y: np.ndarray, scale_y: np.ndarray, entry_end: np.ndarray,
-    shift: int, ti0: int, tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray,
+    order: np.ndarray, step_j: int, c: float, counts: np.ndarray, keys: np.ndarray, kinds: np.ndarray,
+    i0: int, j0: int, ie: np.ndarray, je: np.ndarray, step_i: np.ndarray, base_x: np.ndarray,
+    scale_x: np.ndarray, base_y: np.ndarray, scale_y: np.ndarray, entry_end: np.ndarray, shift: int,
+    ti0: int, tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray,
     run_len: np.ndarray, planes: np.ndarray, far: np.ndarray, work: np.ndarray, work_keys: np.ndarray,
     work_brk: np.ndarray,
 ) -> None:  # fmt: skip
@@ -427,7 +420,8 @@ def _trace_rows(
     (sorted by direction). Row offset m is row j0 + step_j * m, whose entry line lies m - c from the
     sensor. Appends cells and runs (`_emit_row`) and hand-backs to `far` after the `counts` (cells,
     hand-backs, runs) so far, and updates them; a cell count of -1 means the row trace gave up.
-    `entry_end[b]` is the column where beam b enters its end row (`end_row_entries`).
+    `entry_end[b]` is the column where beam b enters its end row (`end_row_entries`), `keys[b]`
+    its dx/|dy|.
 
     Work space, overwritten: `work` at least `3 * (rows + 2) + 15 * n + 8` integers, `work_keys` n
     floats and `work_brk` `(n + 63) // 64` words, for n = `order.size` beams whose end rows lie at
@@ -441,7 +435,7 @@ def _trace_rows(
     rows = 0
     for p in range(nu):
         b = order[p]
-        key[p] = _key(ox, oy, ex[b], ey[b])
+        key[p] = keys[b]
         dist[p] = abs(je[b] - j0)
         rows = max(rows, dist[p])
     # The other work arrays, one after another in `work`.
