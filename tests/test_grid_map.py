@@ -477,15 +477,19 @@ def _fleet_scans(n: int) -> list[Scan]:
 def test_integrate_in_one_call_equals_plan_and_apply(
     config: dict[str, object], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """`integrate` (one compiled call when the scan's tiles exist) gives, scan by scan, the same
-    result as `apply(plan(scan))`, and the same map: every layer, tile, version and the clock. The
-    one-call path does most of the scans and hands the ones that need a new tile back."""
+    """`integrate` (one compiled call, which creates the tiles it needs while the pools have room)
+    gives, scan by scan, the same result as `apply(plan(scan))`, and the same map: every layer,
+    tile, version and the clock. The one-call path does most of the scans, creates tiles in some,
+    and hands those that need a larger store back."""
     statuses: list[int] = []
+    created_in_kernel = 0
     kernel = integrate_scan.integrate_ray_scan
 
     def counted(*args: object) -> tuple:
+        nonlocal created_in_kernel
         out = kernel(*args)
         statuses.append(int(out[0]))
+        created_in_kernel += int(out[0] == integrate_scan.INTEGRATED and out[4][2].any())
         return out
 
     monkeypatch.setattr(integrate_scan, "integrate_ray_scan", counted)
@@ -503,6 +507,7 @@ def test_integrate_in_one_call_equals_plan_and_apply(
     assert_same(snapshot(one_call, window), snapshot(planned, window))
     integrated = statuses.count(integrate_scan.INTEGRATED)
     assert integrated > len(statuses) // 2
+    assert created_in_kernel > 0
     assert statuses.count(integrate_scan.NEEDS_TILES) > 0
     if config.get("no_return_range") == 900.0:
         assert statuses.count(integrate_scan.NEEDS_SCRATCH) > 0

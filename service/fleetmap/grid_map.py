@@ -112,8 +112,9 @@ class GridMap:
         return self.apply(self.plan(scan))
 
     def _integrate_in_place(self, scan: Scan) -> IntegrationResult | None:
-        """`apply(plan(scan))` in one compiled call under the lock; None, with nothing changed, when
-        the scan needs a tile that does not exist yet (then plan and apply create it)."""
+        """`apply(plan(scan))` in one compiled call under the lock, creating the tiles it needs when
+        the store has room; None, with nothing changed, when it has not (then plan and apply grow
+        the store, or refuse the scan past the cap)."""
         store, pose = self.store, scan.pose
         layout = beam_layout_of(scan.angles)
         with self.lock:
@@ -121,15 +122,18 @@ class GridMap:
                 status, updates, tsdf_updates, clock, changed, needed = integrate_scan.integrate_ray_scan(
                     pose.x, pose.y, pose.theta, scan.angles, layout, scan.ranges, scan.range_min,
                     scan.range_max, *self._kernel_params, trace_scratch(store.shift), *store.index,
-                    *store.kernel_pools(), store.versions, store.clock,
+                    *store.kernel_pools(), store.versions, store.clock, len(store), store.max_tiles,
                 )  # fmt: skip
                 if status != integrate_scan.NEEDS_SCRATCH:
                     break
                 grow_trace_scratch(needed)
             if status == integrate_scan.INTEGRATED:
                 store.restore_clock(clock)
-                changed_tiles = list(map(tuple, changed.T.tolist()))  # (2, k) -> k (ti, tj)
-                return IntegrationResult(int(updates), int(tsdf_updates), changed_tiles, 0)
+                ti, tj, new = changed.tolist()  # (3, k): tile i, tile j, created
+                changed_tiles = list(zip(ti, tj, strict=True))
+                created = [key for key, made in zip(changed_tiles, new, strict=True) if made]
+                store.adopt(created)
+                return IntegrationResult(int(updates), int(tsdf_updates), changed_tiles, len(created))
         if status == integrate_scan.OUT_OF_RANGE:
             raise ScanError(OUT_OF_RANGE)
         if status == integrate_scan.TOO_WIDE:

@@ -125,6 +125,13 @@ class TileStore:
                 *self.index, np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1]), first
             )
 
+    def adopt(self, keys: list[TileKey]) -> None:
+        """Record tiles a kernel created in the next free slots, in order (see
+        `kernels.integrate_scan`): it filled their arrays, gave them versions and indexed them."""
+        for key in keys:
+            self.slots[key] = len(self.keys)
+            self.keys.append(key)
+
     def _grow(self, capacity: int) -> None:
         t = self.tile_size
         for a in self.arrays:

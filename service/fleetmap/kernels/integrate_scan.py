@@ -1,12 +1,13 @@
-"""A whole per-scan ray-model integration in one compiled call, when the scan needs no new tile.
+"""A whole per-scan ray-model integration in one compiled call.
 
 `update_plan.plan_scan` + `GridMap.apply` hand a scan's plan to Python and back: a few kernel calls,
 arrays boxed for Python on the way, a dictionary probe per tile and the version bump, about 6 us a
 scan whatever its size, 12 % of an Intel-dataset scan. `integrate_ray_scan` runs the same kernels
 (`scan_rays`, `trace_scan`, `trace_tsdf`, `merge_tiles_in_box`, `apply_cells`, `fuse_tsdf`) back to back,
-finds the tiles in `kernels.tile_index` and bumps their versions itself. Its result is the
-plan-and-apply result bit for bit; when a tile is missing it changes nothing, and the caller plans
-and applies (which creates tiles under the cap).
+finds the tiles in `kernels.tile_index`, creates the missing ones when the pools and the index have
+room (as `TileStore.create` would), and bumps the versions itself. Its result is the plan-and-apply
+result bit for bit. When a tile is missing and there is no room, or the cap would be passed, it
+changes nothing, and the caller plans and applies (which grows the store, or refuses the scan).
 """
 
 from __future__ import annotations
@@ -22,13 +23,13 @@ from fleetmap.kernels.ray_model import (
     scan_rays,
     trace_scan,
 )
-from fleetmap.kernels.tile_index import index_find
+from fleetmap.kernels.tile_index import index_add, index_find
 from fleetmap.kernels.tsdf import fuse_tsdf, trace_tsdf
 from fleetmap.kernels.update import apply_cells, bump_versions, merge_tiles_in_box
 
 #: `integrate_ray_scan` statuses. Only INTEGRATED changed the map.
 INTEGRATED = 0
-NEEDS_TILES = 1  # a tile the scan touches does not exist yet
+NEEDS_TILES = 1  # a tile the scan touches does not exist, and the store has no room for it here
 NEEDS_SCRATCH = 2  # the scratch is too small (the last value returned is the size it needs)
 OUT_OF_RANGE = 3  # the pose or reach lies beyond `max_cell_index` (plan_scan's ScanError)
 TOO_WIDE = 4  # the scan's tile box holds more than `max_window` tiles (plan_scan's ScanError)
@@ -41,19 +42,25 @@ def integrate_ray_scan(
     max_cell_index: float, max_window: int, method: int, shift: int, l_hit: float, l_miss: float,
     l_min: float, l_max: float, max_weight: float, scratch: np.ndarray, index_keys: np.ndarray,
     index_slots: np.ndarray, log_odds: np.ndarray, hits: np.ndarray, misses: np.ndarray, tsdf: np.ndarray,
-    tsdf_weight: np.ndarray, versions: np.ndarray, clock: int,
+    tsdf_weight: np.ndarray, versions: np.ndarray, clock: int, count: int, max_tiles: int,
 ) -> tuple[int, int, int, int, np.ndarray, int]:  # fmt: skip
     """Integrate one scan with the ray model's per-scan updates (and the TSDF band when `tsdf` is
     not empty) into the pools, as `plan_scan` + `GridMap.apply` do with the same arguments (`alpha`
     only enters `scan_extent`, as there). Disabled layers are empty pools. The arguments come in
     three groups: the scan's, the map's parameters (fixed for a map, from `clear_range` to
-    `max_weight`) and the map's arrays and clock.
+    `max_weight`) and the map's arrays, clock and tile count (the pools have `versions.size`
+    slots, the first `count` in use) and the cap on its tiles.
+
+    Missing tiles are created as `TileStore.create` creates them, when `count` plus their number
+    fits the pools, the cap and a half-full index: in the plan's tile order, in the next slots,
+    each array at its unknown value (NaN for log-odds, else 0) and each with the next version.
 
     Returns `(status, cell updates, TSDF updates, version clock, changed tiles, scratch needed)`:
-    with INTEGRATED, the pools hold the scan, each changed tile (rows: tile i, tile j; in the
-    plan's tile order) got the next version from `clock`, and the clock returned is the newest
-    version. With any other status nothing changed."""
-    none = np.empty((2, 0), dtype=np.int64)
+    with INTEGRATED, the pools hold the scan, each changed tile (rows: tile i, tile j, 1 if
+    created here; in the plan's tile order, created tiles all among them) got the next version
+    from `clock`, and the clock returned is the newest version. With any other status nothing
+    changed."""
+    none = np.empty((3, 0), dtype=np.int64)
     rays, kinds, xmin, ymin, xmax, ymax, traced, longest = scan_rays(
         x, y, theta, angles, layout, ranges, range_min, range_max, clear_range, res
     )
@@ -85,10 +92,30 @@ def integrate_ray_scan(
             tiles, tsdf_tile = merge_tiles_in_box(tiles, tsdf_i, tsdf_j, shift, tsdf_box)
     m = tiles.shape[1]
     slots = np.empty(m, dtype=np.int64)
+    missing = 0
     for k in range(m):
         slots[k] = index_find(index_keys, index_slots, tiles[0, k], tiles[1, k])
-        if slots[k] < 0:
+        missing += slots[k] < 0
+    first_new = count  # tiles in slots from here on are created below
+    if missing:
+        total = count + missing
+        if total > max_tiles or total > versions.size or 2 * total > index_slots.size:
             return NEEDS_TILES, 0, 0, clock, none, 0
+        for k in range(m):
+            if slots[k] < 0:
+                slots[k] = count
+                if log_odds.size:  # a disabled layer's pool is empty
+                    log_odds[count] = np.nan
+                if hits.size:
+                    hits[count] = 0
+                    misses[count] = 0
+                if tsdf.size:
+                    tsdf[count] = 0.0
+                    tsdf_weight[count] = 0.0
+                clock += 1
+                versions[count] = clock
+                index_add(index_keys, index_slots, tiles[0, k], tiles[1, k], count)
+                count += 1
     changed = np.zeros(m, dtype=np.uint8)
     updates = 0
     if cell.size or runs.shape[1]:
@@ -101,14 +128,17 @@ def integrate_ray_scan(
             tsdf_i, tsdf_j, tsdf_value, tsdf_tile, slots, shift, tsdf, tsdf_weight, max_weight, changed
         )
     clock = bump_versions(changed, slots, versions, clock)
-    count = 0
+    # Every created tile has a cell of the scan, so it changed; listed whatever happens, so that the
+    # caller always learns of it.
+    n_out = 0
     for k in range(m):
-        count += changed[k]
-    out = np.empty((2, count), dtype=np.int64)
+        n_out += changed[k] | (slots[k] >= first_new)
+    out = np.empty((3, n_out), dtype=np.int64)
     c = 0
     for k in range(m):
-        if changed[k]:
+        if changed[k] or slots[k] >= first_new:
             out[0, c] = tiles[0, k]
             out[1, c] = tiles[1, k]
+            out[2, c] = slots[k] >= first_new
             c += 1
     return INTEGRATED, updates, tsdf_updates, clock, out, 0

@@ -42,17 +42,24 @@ def index_find(keys: np.ndarray, slots: np.ndarray, ti: int, tj: int) -> int:
     return -1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def index_add(keys: np.ndarray, slots: np.ndarray, ti: int, tj: int, slot: int) -> None:
+    """Add tile (ti, tj), not present, with pool slot `slot`. The caller keeps the table at most
+    half full (`new_index`)."""
+    mask = keys.shape[0] - 1
+    h = _home(keys, ti, tj)
+    while slots[h] >= 0:
+        h = (h + 1) & mask
+    keys[h, 0] = ti
+    keys[h, 1] = tj
+    slots[h] = slot
+
+
 @njit(cache=True, nogil=True)
 def index_insert(
     keys: np.ndarray, slots: np.ndarray, tiles_i: np.ndarray, tiles_j: np.ndarray, first: int
 ) -> None:
-    """Add tiles `(tiles_i[k], tiles_j[k])`, none of them present, with slots `first + k`. The
-    caller keeps the table at most half full (`new_index`)."""
-    mask = keys.shape[0] - 1
+    """Add tiles `(tiles_i[k], tiles_j[k])`, none of them present, with slots `first + k` (see
+    `index_add`)."""
     for k in range(tiles_i.size):
-        h = _home(keys, tiles_i[k], tiles_j[k])
-        while slots[h] >= 0:
-            h = (h + 1) & mask
-        keys[h, 0] = tiles_i[k]
-        keys[h, 1] = tiles_j[k]
-        slots[h] = first + k
+        index_add(keys, slots, tiles_i[k], tiles_j[k], first + k)
