@@ -489,7 +489,7 @@ def test_integrate_in_one_call_equals_plan_and_apply(
         nonlocal created_in_kernel
         out = kernel(*args)
         statuses.append(int(out[0]))
-        created_in_kernel += int(out[0] == integrate_scan.INTEGRATED and out[4][2].any())
+        created_in_kernel += int(out[0] == integrate_scan.INTEGRATED and out[5] > 0)
         return out
 
     monkeypatch.setattr(integrate_scan, "integrate_ray_scan", counted)

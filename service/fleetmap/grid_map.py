@@ -88,7 +88,7 @@ class GridMap:
         self._kernel_params = (
             cfg.no_return_range, cfg.resolution, cfg.tsdf.truncation, cfg.beam.alpha, MAX_CELL_INDEX,
             MAX_SCAN_TILE_WINDOW, EXACT if cfg.traversal == "exact" else BRESENHAM, self.store.shift,
-            occ.l_hit, occ.l_miss, occ.l_min, occ.l_max, cfg.tsdf.max_weight,
+            occ.l_hit, occ.l_miss, occ.l_min, occ.l_max, cfg.tsdf.max_weight, cfg.max_tiles,
         )  # fmt: skip
         #: Per tile: (version, local observed bounds or None), for known_bounds.
         self._tile_bounds: dict[TileKey, tuple[int, tuple[int, int, int, int] | None]] = {}
@@ -119,21 +119,21 @@ class GridMap:
         layout = beam_layout_of(scan.angles)
         with self.lock:
             while True:
-                status, updates, tsdf_updates, clock, changed, needed = integrate_scan.integrate_ray_scan(
+                status, updates, tsdf_updates, clock, tiles, extra = integrate_scan.integrate_ray_scan(
                     pose.x, pose.y, pose.theta, scan.angles, layout, scan.ranges, scan.range_min,
                     scan.range_max, *self._kernel_params, trace_scratch(store.shift), *store.index,
-                    *store.kernel_pools(), store.versions, store.clock, len(store), store.max_tiles,
+                    *store.kernel_pools(), store.versions, store.clock, len(store.keys),
                 )  # fmt: skip
                 if status != integrate_scan.NEEDS_SCRATCH:
                     break
-                grow_trace_scratch(needed)
+                grow_trace_scratch(extra)
             if status == integrate_scan.INTEGRATED:
                 store.restore_clock(clock)
-                ti, tj, new = changed.tolist()  # (3, k): tile i, tile j, created
-                changed_tiles = list(zip(ti, tj, strict=True))
-                created = [key for key, made in zip(changed_tiles, new, strict=True) if made]
-                store.adopt(created)
-                return IntegrationResult(int(updates), int(tsdf_updates), changed_tiles, len(created))
+                changed_tiles = list(map(tuple, tiles.T.tolist()))  # (2, k) -> k (ti, tj)
+                if extra:  # the last `extra` are tiles the kernel created
+                    store.adopt(changed_tiles[-extra:])
+                    del changed_tiles[-extra:]
+                return IntegrationResult(int(updates), int(tsdf_updates), changed_tiles, int(extra))
         if status == integrate_scan.OUT_OF_RANGE:
             raise ScanError(OUT_OF_RANGE)
         if status == integrate_scan.TOO_WIDE:

@@ -40,27 +40,28 @@ def integrate_ray_scan(
     x: float, y: float, theta: float, angles: np.ndarray, layout: np.ndarray, ranges: np.ndarray,
     range_min: float, range_max: float, clear_range: float, res: float, truncation: float, alpha: float,
     max_cell_index: float, max_window: int, method: int, shift: int, l_hit: float, l_miss: float,
-    l_min: float, l_max: float, max_weight: float, scratch: np.ndarray, index_keys: np.ndarray,
-    index_slots: np.ndarray, log_odds: np.ndarray, hits: np.ndarray, misses: np.ndarray, tsdf: np.ndarray,
-    tsdf_weight: np.ndarray, versions: np.ndarray, clock: int, count: int, max_tiles: int,
+    l_min: float, l_max: float, max_weight: float, max_tiles: int, scratch: np.ndarray,
+    index_keys: np.ndarray, index_slots: np.ndarray, log_odds: np.ndarray, hits: np.ndarray,
+    misses: np.ndarray, tsdf: np.ndarray, tsdf_weight: np.ndarray, versions: np.ndarray, clock: int,
+    count: int,
 ) -> tuple[int, int, int, int, np.ndarray, int]:  # fmt: skip
     """Integrate one scan with the ray model's per-scan updates (and the TSDF band when `tsdf` is
     not empty) into the pools, as `plan_scan` + `GridMap.apply` do with the same arguments (`alpha`
     only enters `scan_extent`, as there). Disabled layers are empty pools. The arguments come in
     three groups: the scan's, the map's parameters (fixed for a map, from `clear_range` to
-    `max_weight`) and the map's arrays, clock and tile count (the pools have `versions.size`
-    slots, the first `count` in use) and the cap on its tiles.
+    `max_tiles`, the cap on its tiles) and the map's arrays, clock and tile count (the pools have
+    `versions.size` slots, the first `count` in use).
 
     Missing tiles are created as `TileStore.create` creates them, when `count` plus their number
     fits the pools, the cap and a half-full index: in the plan's tile order, in the next slots,
     each array at its unknown value (NaN for log-odds, else 0) and each with the next version.
 
-    Returns `(status, cell updates, TSDF updates, version clock, changed tiles, scratch needed)`:
-    with INTEGRATED, the pools hold the scan, each changed tile (rows: tile i, tile j, 1 if
-    created here; in the plan's tile order, created tiles all among them) got the next version
-    from `clock`, and the clock returned is the newest version. With any other status nothing
-    changed."""
-    none = np.empty((3, 0), dtype=np.int64)
+    Returns `(status, cell updates, TSDF updates, version clock, tiles, extra)`: with INTEGRATED,
+    the pools hold the scan, each changed tile got the next version from `clock`, the clock
+    returned is the newest version, `tiles` (rows: tile i, tile j) lists the changed tiles in the
+    plan's tile order and then the `extra` tiles created here in slot order. With NEEDS_SCRATCH,
+    `extra` is the scratch size needed. With any other status nothing changed."""
+    none = np.empty((2, 0), dtype=np.int64)
     rays, kinds, xmin, ymin, xmax, ymax, traced, longest = scan_rays(
         x, y, theta, angles, layout, ranges, range_min, range_max, clear_range, res
     )
@@ -128,17 +129,21 @@ def integrate_ray_scan(
             tsdf_i, tsdf_j, tsdf_value, tsdf_tile, slots, shift, tsdf, tsdf_weight, max_weight, changed
         )
     clock = bump_versions(changed, slots, versions, clock)
-    # Every created tile has a cell of the scan, so it changed; listed whatever happens, so that the
-    # caller always learns of it.
-    n_out = 0
+    # The changed tiles in plan order, then the created ones in slot order. (Every created tile has a
+    # cell of the scan, so it is among the changed ones too.)
+    n_changed = 0
     for k in range(m):
-        n_out += changed[k] | (slots[k] >= first_new)
-    out = np.empty((3, n_out), dtype=np.int64)
+        n_changed += changed[k]
+    created = count - first_new
+    out = np.empty((2, n_changed + created), dtype=np.int64)
     c = 0
     for k in range(m):
-        if changed[k] or slots[k] >= first_new:
+        if changed[k]:
             out[0, c] = tiles[0, k]
             out[1, c] = tiles[1, k]
-            out[2, c] = slots[k] >= first_new
             c += 1
-    return INTEGRATED, updates, tsdf_updates, clock, out, 0
+    for k in range(m):
+        if slots[k] >= first_new:
+            out[0, n_changed + slots[k] - first_new] = tiles[0, k]
+            out[1, n_changed + slots[k] - first_new] = tiles[1, k]
+    return INTEGRATED, updates, tsdf_updates, clock, out, created
