@@ -585,7 +585,7 @@ def _walk_far(
     return n
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _collect_dense(
     found: np.ndarray, n: int, scratch: np.ndarray, shift: int, wshift: int, ni: int, kind_out: np.ndarray,
     planes: np.ndarray,

@@ -30,7 +30,7 @@ def _home(keys: np.ndarray, ti: int, tj: int) -> int:
     return np.int64((h ^ (h >> np.uint64(29))) & np.uint64(keys.shape[0] - 1))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def index_find(keys: np.ndarray, slots: np.ndarray, ti: int, tj: int) -> int:
     """The pool slot of tile (ti, tj), or -1 if the index does not hold it."""
     mask = keys.shape[0] - 1

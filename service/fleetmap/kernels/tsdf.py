@@ -136,7 +136,7 @@ def _band_cell(
     return n + (abs(sdf) <= trunc)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def fuse_tsdf(
     ci: np.ndarray,
     cj: np.ndarray,

@@ -79,7 +79,7 @@ def merge_tiles_in_box(
     return out, tile
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def bump_versions(changed: np.ndarray, slots: np.ndarray, versions: np.ndarray, clock: int) -> int:
     """Give each tile k with `changed[k]` set (pool slot `slots[k]`) the next version after `clock`,
     in tile order: the one rule for tile versions (a store-wide clock, so versions never repeat).
@@ -133,7 +133,7 @@ def _apply_one(
     return changed
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def apply_cells(
     cell: np.ndarray,
     kind: np.ndarray,
