@@ -513,10 +513,10 @@ def traced_by_rows(scan: Scan) -> tuple[int, int, int]:
     far = np.empty((ex.size, 3), dtype=np.int64)
     found, kind, planes = np.empty(size, np.int64), np.empty(size, np.uint8), np.zeros(ni * nj, np.uint8)
     run_key, run_len = np.empty(size, np.int64), np.empty(size, np.int64)
+    starts, crossings = exact_starts(np.full(ex.size, ox), np.full(ex.size, oy), ex, ey)
     cells, runs, handed = trace_fan_rows(
-        ox, oy, ex, ey, kinds, *exact_starts(ox, oy, ex, ey), 8, ti0, tj0, ni, found, kind, run_key, run_len,
-        planes, far,
-    )  # fmt: skip
+        ox, oy, ex, ey, kinds, starts, crossings, 8, ti0, tj0, ni, found, kind, run_key, run_len, planes, far
+    )
     if cells < 0:
         return size, 0, size
     rows = cells + int(run_len[:runs].sum())

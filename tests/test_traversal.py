@@ -517,7 +517,7 @@ def _row_trace(scan: Scan) -> int:
         ex,
         ey,
         kinds,
-        *exact_starts(ox, oy, ex, ey),
+        *exact_starts(np.full(ex.size, ox), np.full(ex.size, oy), ex, ey),
         8,
         ti0,
         tj0,

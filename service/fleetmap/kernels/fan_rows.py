@@ -157,12 +157,12 @@ def _lowest_bit(word: np.uint64) -> int:
 
 @njit(cache=True, nogil=True)
 def trace_fan_rows(
-    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, ends: np.ndarray,
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, starts: np.ndarray,
     crossings: np.ndarray, shift: int, ti0: int, tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray,
     run_key: np.ndarray, run_len: np.ndarray, planes: np.ndarray, far: np.ndarray,
 ) -> tuple[int, int, int]:  # fmt: skip
     """Per-scan exact-traversal updates of every traced beam (`kinds` as in `ray_model`), row by row.
-    `ends` and `crossings` are the beams' walk states (`traversal.exact_starts`).
+    `starts` and `crossings` are the beams' walk states (`traversal.exact_starts`).
 
     Writes each touched cell once, as a plane key (plane = tile row * ni + tile column relative to
     tile (ti0, tj0), then `local_j * T + local_i`): runs of at least `MIN_RUN` misses on consecutive
@@ -185,9 +185,9 @@ def trace_fan_rows(
         return -1, 0, 0
     i0 = math.floor(ox)
     j0 = math.floor(oy)
-    ie = ends[0]
-    je = ends[1]
-    step_i = ends[2]
+    ie = starts[2]
+    je = starts[3]
+    step_i = starts[4]
     base_x = crossings[0]
     scale_x = crossings[1]
     base_y = crossings[2]

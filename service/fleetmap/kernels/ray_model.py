@@ -275,16 +275,16 @@ def trace_scan(
         run_len = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
         planes = np.zeros(nj * ni, dtype=np.uint8)
         far = np.empty((ex.size if dense else 0, 3), dtype=np.int64)
-        ends, crossings = exact_starts(ox, oy, ex, ey)
+        starts, crossings = exact_starts(np.full(ex.size, ox), np.full(ex.size, oy), ex, ey)
         n, r, h = trace_fan_rows(
-            ox, oy, ex, ey, kinds, ends, crossings, shift, ti0, tj0, ni, found, kind_out, run_key, run_len,
+            ox, oy, ex, ey, kinds, starts, crossings, shift, ti0, tj0, ni, found, kind_out, run_key, run_len,
             planes, far,
         )  # fmt: skip
         if n >= 0:
             if h:
                 n = _walk_far(
-                    kinds, ends, crossings, far[:h], shift, wshift, ti0, tj0, ni, scratch, found, kind_out, n,
-                    planes,
+                    kinds, starts, crossings, far[:h], shift, wshift, ti0, tj0, ni, scratch, found, kind_out,
+                    n, planes,
                 )  # fmt: skip
             index = np.arange(nj * ni).reshape(nj, ni)
             return _number_tiles(
@@ -557,12 +557,12 @@ def _walk_dense(
 
 @njit(cache=True, nogil=True)
 def _walk_far(
-    kinds: np.ndarray, ends: np.ndarray, crossings: np.ndarray, far: np.ndarray, shift: int, wshift: int,
+    kinds: np.ndarray, starts: np.ndarray, crossings: np.ndarray, far: np.ndarray, shift: int, wshift: int,
     ti0: int, tj0: int, ni: int, scratch: np.ndarray, found: np.ndarray, kind_out: np.ndarray, n: int,
     planes: np.ndarray,
 ) -> int:  # fmt: skip
     """Walk the rests `trace_fan_rows` handed back (`far[h] = (beam, column, row)` of each rest's
-    first cell; the beams' walk states `ends` and `crossings` from `exact_starts`) in the dense
+    first cell; the beams' walk states `starts` and `crossings` from `exact_starts`) in the dense
     window, append their distinct cells from `found[n]` as plane keys with their kinds, and return
     the new count. Those rows hold no other cells of the scan."""
     i0 = ti0 << shift
@@ -573,7 +573,7 @@ def _walk_far(
     for q in range(far.shape[0]):
         b = far[q, 0]
         n, key = _walk_rest(
-            found, scratch, n, far[q, 1], far[q, 2], ends[0, b], ends[1, b], ends[2, b], ends[3, b],
+            found, scratch, n, far[q, 1], far[q, 2], starts[2, b], starts[3, b], starts[4, b], starts[5, b],
             crossings[0, b], crossings[1, b], crossings[2, b], crossings[3, b], i0, j0, wshift,
         )  # fmt: skip
         if kinds[b] == BEAM_HIT:

@@ -62,27 +62,32 @@ def exact_start(x0: float, y0: float, x1: float, y1: float):
 
 
 @njit(cache=True, nogil=True)
-def exact_starts(x0: float, y0: float, x1: np.ndarray, y1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`exact_start` of every segment from (x0, y0) to (x1[b], y1[b]): `(ends, crossings)`, rows
-    `ie, je, step_i, step_j` and `base_x, scale_x, base_y, scale_y` (the start cell, the same for
-    all, is `(floor(x0), floor(y0))`).
+def exact_starts(
+    x0: np.ndarray, y0: np.ndarray, x1: np.ndarray, y1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """`exact_start` of every segment (x0[b], y0[b]) -> (x1[b], y1[b]): `(cells, crossings)`, rows
+    `i, j, ie, je, step_i, step_j` and `base_x, scale_x, base_y, scale_y`.
 
     A pass of its own, with nothing but this in its loop, so that the compiler computes several
     segments' divisions and floors at once; the walks then read their state from it."""
     n = x1.size
-    ends = np.empty((4, n), dtype=np.int64)
+    cells = np.empty((6, n), dtype=np.int64)
     crossings = np.empty((4, n))
     for b in range(n):
-        _, _, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(x0, y0, x1[b], y1[b])
-        ends[0, b] = ie
-        ends[1, b] = je
-        ends[2, b] = step_i
-        ends[3, b] = step_j
+        i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(
+            x0[b], y0[b], x1[b], y1[b]
+        )
+        cells[0, b] = i
+        cells[1, b] = j
+        cells[2, b] = ie
+        cells[3, b] = je
+        cells[4, b] = step_i
+        cells[5, b] = step_j
         crossings[0, b] = base_x
         crossings[1, b] = scale_x
         crossings[2, b] = base_y
         crossings[3, b] = scale_y
-    return ends, crossings
+    return cells, crossings
 
 
 @njit(cache=True, nogil=True, inline="always")
