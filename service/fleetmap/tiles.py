@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from fleetmap.config import LayerName
-from fleetmap.kernels.tile_index import index_insert, new_index
-from fleetmap.kernels.update import bump_versions
+from fleetmap.kernels.tile_index import index_has_room, index_insert, new_index
+from fleetmap.kernels.update import UNKNOWN_COUNT, UNKNOWN_LOG_ODDS, UNKNOWN_TSDF, bump_versions, init_tile
 
 TileKey = tuple[int, int]
 
@@ -40,9 +40,12 @@ class LayerArray:
 #: The arrays each layer keeps per cell. Occupancy uses NaN as UNKNOWN (distinct from log-odds 0);
 #: counts start at zero; a TSDF cell is unknown while its weight is zero.
 LAYER_ARRAYS: dict[LayerName, tuple[LayerArray, ...]] = {
-    "occupancy": (LayerArray("log_odds", np.float32, np.nan),),
-    "counts": (LayerArray("hits", np.uint32, 0), LayerArray("misses", np.uint32, 0)),
-    "tsdf": (LayerArray("tsdf", np.float32, 0.0), LayerArray("tsdf_weight", np.float32, 0.0)),
+    "occupancy": (LayerArray("log_odds", np.float32, UNKNOWN_LOG_ODDS),),
+    "counts": (LayerArray("hits", np.uint32, UNKNOWN_COUNT), LayerArray("misses", np.uint32, UNKNOWN_COUNT)),
+    "tsdf": (
+        LayerArray("tsdf", np.float32, UNKNOWN_TSDF),
+        LayerArray("tsdf_weight", np.float32, UNKNOWN_TSDF),
+    ),
 }
 
 
@@ -113,10 +116,9 @@ class TileStore:
             slot = len(self.keys)
             self.slots[key] = slot
             self.keys.append(key)
-            for a in self.arrays:
-                self.pools[a.name][slot] = a.unknown
+            init_tile(slot, *self.kernel_pools())
             self.versions[slot] = self._tick()
-        if 2 * len(self.keys) > self.index[1].size:  # keep the table at most half full
+        if not index_has_room(self.index[1], len(self.keys)):
             self.index = new_index(len(self.keys))
             keys, first = self.keys, 0
         if keys:

@@ -23,9 +23,9 @@ from fleetmap.kernels.ray_model import (
     scan_rays,
     trace_scan,
 )
-from fleetmap.kernels.tile_index import index_add, index_find
+from fleetmap.kernels.tile_index import index_add, index_find, index_has_room
 from fleetmap.kernels.tsdf import fuse_tsdf, trace_tsdf
-from fleetmap.kernels.update import apply_cells, bump_versions, merge_tiles_in_box
+from fleetmap.kernels.update import apply_cells, bump_versions, init_tile, merge_tiles_in_box
 
 #: `integrate_ray_scan` statuses. Only INTEGRATED changed the map.
 INTEGRATED = 0
@@ -54,7 +54,7 @@ def integrate_ray_scan(
 
     Missing tiles are created as `TileStore.create` creates them, when `count` plus their number
     fits the pools, the cap and a half-full index: in the plan's tile order, in the next slots,
-    each array at its unknown value (NaN for log-odds, else 0) and each with the next version.
+    each array at its unknown value (`update.init_tile`) and each with the next version.
 
     Returns `(status, cell updates, TSDF updates, version clock, tiles, extra)`: with INTEGRATED,
     the pools hold the scan, each changed tile got the next version from `clock`, the clock
@@ -100,19 +100,12 @@ def integrate_ray_scan(
     first_new = count  # tiles in slots from here on are created below
     if missing:
         total = count + missing
-        if total > max_tiles or total > versions.size or 2 * total > index_slots.size:
+        if total > max_tiles or total > versions.size or not index_has_room(index_slots, total):
             return NEEDS_TILES, 0, 0, clock, none, 0
         for k in range(m):
             if slots[k] < 0:
                 slots[k] = count
-                if log_odds.size:  # a disabled layer's pool is empty
-                    log_odds[count] = np.nan
-                if hits.size:
-                    hits[count] = 0
-                    misses[count] = 0
-                if tsdf.size:
-                    tsdf[count] = 0.0
-                    tsdf_weight[count] = 0.0
+                init_tile(count, log_odds, hits, misses, tsdf, tsdf_weight)
                 clock += 1
                 versions[count] = clock
                 index_add(index_keys, index_slots, tiles[0, k], tiles[1, k], count)

@@ -43,6 +43,13 @@ def index_find(keys: np.ndarray, slots: np.ndarray, ti: int, tj: int) -> int:
 
 
 @njit(cache=True, nogil=True, inline="always")
+def index_has_room(slots: np.ndarray, tiles: int) -> bool:
+    """Whether an index of `slots.size` entries may hold `tiles` tiles: at most half full, so that a
+    probe ends at a free entry after a few steps."""
+    return 2 * tiles <= slots.size
+
+
+@njit(cache=True, nogil=True, inline="always")
 def index_add(keys: np.ndarray, slots: np.ndarray, ti: int, tj: int, slot: int) -> None:
     """Add tile (ti, tj), not present, with pool slot `slot`. The caller keeps the table at most
     half full (`new_index`)."""

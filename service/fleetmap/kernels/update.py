@@ -16,6 +16,30 @@ from fleetmap.kernels.ray_model import CELL_HIT
 
 _U32_MAX = np.uint32(0xFFFFFFFF)
 
+#: A never-observed cell's stored values: log-odds NaN (UNKNOWN, not 0), counts 0, TSDF value and
+#: weight 0 (unknown while the weight is 0). `tiles.LAYER_ARRAYS` and `init_tile` both use these.
+UNKNOWN_LOG_ODDS = np.nan
+UNKNOWN_COUNT = 0
+UNKNOWN_TSDF = 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def init_tile(
+    slot: int, log_odds: np.ndarray, hits: np.ndarray, misses: np.ndarray, tsdf: np.ndarray,
+    tsdf_weight: np.ndarray,
+) -> None:  # fmt: skip
+    """Set pool slot `slot` of every enabled layer (a disabled layer's pool is empty) to the values
+    of a never-observed cell: the one fill for a new tile, in `TileStore.create` and in the
+    one-call integration."""
+    if log_odds.size:
+        log_odds[slot] = UNKNOWN_LOG_ODDS
+    if hits.size:
+        hits[slot] = UNKNOWN_COUNT
+        misses[slot] = UNKNOWN_COUNT
+    if tsdf.size:
+        tsdf[slot] = UNKNOWN_TSDF
+        tsdf_weight[slot] = UNKNOWN_TSDF
+
 
 @njit(cache=True, nogil=True)
 def merge_tiles(
