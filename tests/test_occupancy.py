@@ -513,7 +513,7 @@ def test_beam_model_matches_table_9_2() -> None:
 def test_counts_saturate_instead_of_wrapping() -> None:
     """The count model's apply, single cells and runs: a count at 2**32 - 1 stays there, the others
     go up by one (hits for hit cells, misses for the rest), and every tile with a cell is flagged."""
-    from fleetmap.kernels.ray_model import CELL_HIT, CELL_MISS
+    from fleetmap.kernels.kinds import CELL_HIT, CELL_MISS
     from fleetmap.kernels.update import apply_cells
 
     top = np.uint32(0xFFFFFFFF)

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from fleetmap import update_plan
 from fleetmap.config import MapConfig
 from fleetmap.kernels.fan_rows import trace_fan_rows
-from fleetmap.kernels.ray_model import beam_layout, scan_rays
+from fleetmap.kernels.scan_geometry import beam_layout, scan_rays
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, cell_count, cells, exact_starts, segment_cells
 from fleetmap.scan import Scan
 from fleetmap.update_plan import plan_scan, ray_trace_inputs

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from fleetmap.config import MAX_BAND_CELLS
 from fleetmap.datasets import load_dataset
-from fleetmap.kernels.ray_model import beam_returns, scan_rays
+from fleetmap.kernels.scan_geometry import beam_returns, scan_rays
 from fleetmap.kernels.traversal import EXACT, cell_count, segment_cells
 from fleetmap.kernels.tsdf import band_walk_bound, fuse_tsdf, trace_tsdf
 from fleetmap.kernels.update import merge_tiles, merge_tiles_in_box

@@ -16,18 +16,15 @@ import numpy as np
 
 from fleetmap.config import MapConfig
 from fleetmap.kernels.beam_model import beam_model_cells
-from fleetmap.kernels.ray_model import (
-    BEAM_CLEAR,
-    BEAM_HIT,
-    BEAM_SKIP,
+from fleetmap.kernels.kinds import BEAM_CLEAR, BEAM_HIT, BEAM_SKIP
+from fleetmap.kernels.ray_model import trace_rays, trace_scan
+from fleetmap.kernels.scan_geometry import (
     EXTENT_OUT_OF_RANGE,
     EXTENT_TOO_WIDE,
     beam_layout,
     beam_returns,
     scan_extent,
     scan_rays,
-    trace_rays,
-    trace_scan,
 )
 from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import trace_tsdf
@@ -54,7 +51,7 @@ _scratch = threading.local()
 OUT_OF_RANGE = "the scan's pose or ranges lie beyond the map's coordinate range"
 TOO_WIDE = "the scan spans too large an area for one scan; check its ranges and resolution"
 
-#: Beam layouts (`kernels.ray_model.beam_layout`) of recently seen scans, by (beams, first bearing,
+#: Beam layouts (`kernels.scan_geometry.beam_layout`) of recently seen scans, by (beams, first bearing,
 #: last bearing): a fleet's robots send a few layouts again and again. A scan given another
 #: layout under the same key still gets exact directions (`scan_rays` checks every bearing).
 _layouts: dict[tuple[int, float, float], np.ndarray] = {}

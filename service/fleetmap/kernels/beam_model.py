@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.ray_model import CELL_HIT, CELL_MISS
+from fleetmap.kernels.kinds import CELL_HIT, CELL_MISS
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -34,6 +34,7 @@ import math
 import numpy as np
 from numba import njit
 
+from fleetmap.kernels.kinds import BEAM_HIT, BEAM_SKIP, CELL_HIT, CELL_MISS
 from fleetmap.kernels.traversal import crossing
 
 #: Neighbouring beams closer than this in dx/|dy| are never assumed contiguous (see module doc).
@@ -51,9 +52,6 @@ MIN_RUN = 4
 #: `trace_fan_rows`): a row costs a few crossing computations per chain, a walk about one per cell.
 CHAIN_WALK_RATIO = 8
 
-_BEAM_SKIP = 0  # as in ray_model (not imported: ray_model imports this module)
-_BEAM_HIT = 1
-_CELL_HIT_MISS = 3
 _DE_BRUIJN = np.uint64(0x03F79D71B4CB0A89)
 _DE_BRUIJN_TABLE = np.array(
     [
@@ -136,7 +134,7 @@ def end_row_entries(
         good[b] = exact | (lo == hi)
         entry[b] = min(max(k, lo), hi)
     for b in range(nb):
-        if not good[b] and je[b] != j0 and kinds[b] != _BEAM_SKIP:
+        if not good[b] and je[b] != j0 and kinds[b] != BEAM_SKIP:
             t = _end_row_crossing(je[b], j0, base_y[b], scale_y[b])
             entry[b] = exit_column(i0, ie[b], step_i[b], base_x[b], scale_x[b], t)
     return entry
@@ -197,7 +195,7 @@ def trace_fan_rows(
     n_up = n_down = 0
     rows = 0  # the farthest end row from the sensor's, in rows
     for b in range(nb):
-        if kinds[b] == _BEAM_SKIP:
+        if kinds[b] == BEAM_SKIP:
             continue
         if not (abs(ex[b] - ox) < MAX_EXTENT and abs(ey[b] - oy) < MAX_EXTENT):
             return -1, 0, 0
@@ -228,10 +226,10 @@ def trace_fan_rows(
     hit_cols = np.empty(nb, dtype=np.int64)
     nh = 0
     for b in range(nb):
-        if kinds[b] != _BEAM_SKIP and je[b] == j0:
+        if kinds[b] != BEAM_SKIP and je[b] == j0:
             lo = min(lo, ie[b])
             hi = max(hi, ie[b])
-            if kinds[b] == _BEAM_HIT:
+            if kinds[b] == BEAM_HIT:
                 hit_cols[nh] = ie[b]
                 nh += 1
     fy = oy - j0
@@ -377,7 +375,7 @@ def _emit_row(
                 plane = tile_row + (c >> shift) - ti0
                 planes[plane] = 1
                 found[n] = ((plane << (2 * shift)) | local_row) + (c & mask)
-                kind_out[n] = _CELL_HIT_MISS
+                kind_out[n] = CELL_HIT | CELL_MISS
                 n += 1
                 c += 1
                 while h < nh and hit_cols[h] < c:  # repeats of this hit column
@@ -614,7 +612,7 @@ def _trace_rows(
             # Written always, kept if a return ending in a column not just kept: beams ending in
             # one cell come together, and `_emit_row` would skip each repeat one by one.
             hit_cols[nh] = ie[b]
-            nh += (kinds[b] == _BEAM_HIT) & ((nh == 0) or (hit_cols[nh - 1] != ie[b]))
+            nh += (kinds[b] == BEAM_HIT) & ((nh == 0) or (hit_cols[nh - 1] != ie[b]))
         if not _emit_row(
             found, kind_out, run_key, run_len, planes, counts, row, span_lo, span_hi, merged, hit_cols, nh,
             shift, ti0, tj0, ni,

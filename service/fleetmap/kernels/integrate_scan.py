@@ -15,13 +15,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.ray_model import (
+from fleetmap.kernels.ray_model import trace_scan
+from fleetmap.kernels.scan_geometry import (
     EXTENT_OUT_OF_RANGE,
     EXTENT_TOO_WIDE,
     beam_returns,
     scan_extent,
     scan_rays,
-    trace_scan,
 )
 from fleetmap.kernels.tile_index import index_add, index_find, index_has_room
 from fleetmap.kernels.tsdf import fuse_tsdf, trace_tsdf

@@ -116,7 +116,7 @@ def exact_steps_i(i: int, j: int, ie: int, je: int, t_max_x: float, t_max_y: flo
 def cells(x0: float, y0: float, x1: float, y1: float, method: int):  # -> Iterator[tuple[int, int]]
     """Yield the cells `(i, j)` of the traversal of (x0, y0) -> (x1, y1), start cell to end cell.
 
-    A numba generator for kernels that are not the hottest; `ray_model` and `tsdf` inline the same
+    A numba generator for kernels that are not the hottest; `beam_walks` and `tsdf` inline the same
     `exact_start` / `crossing` / `exact_steps_i` steps by hand.
     """
     if method == EXACT:

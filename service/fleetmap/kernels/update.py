@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.ray_model import CELL_HIT
+from fleetmap.kernels.kinds import CELL_HIT
 
 _U32_MAX = np.uint32(0xFFFFFFFF)
 
