@@ -3,8 +3,8 @@
 The service is one Python process. Integration workers plan and apply scans in compiled code, but
 they need the GIL between those calls, and every HTTP request served needs it (and a core) too. Under
 heavy read load (thousands of cached tiles per second, large cell queries) the workers fell so far
-behind that the per-robot queues overflowed and scans were dropped (docs/benchmarks.md, "Why reads
-starved ingest, and what fixed it").
+behind that the per-robot queues overflowed and scans were dropped (docs/benchmark-history.md, "Why
+reads starved ingest, and what fixed it").
 
 `IngestPriority` is a pure ASGI middleware in front of the app. When a request arrives while the
 oldest scan waiting for integration has waited longer than `IngestGate.threshold` seconds, the
