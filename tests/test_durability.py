@@ -24,9 +24,10 @@ from service_process import RobotProcess, ServiceProcess
 
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
+from fleetmap.database import DB_NAME
 from fleetmap.grid_map import GridMap
-from fleetmap.persistence import DB_NAME, scan_from_blob, snapshot_file, tile_from_blob, tile_to_blob
 from fleetmap.scan import Scan
+from fleetmap.storage_format import scan_from_blob, snapshot_file, tile_from_blob, tile_to_blob
 from fleetmap.wire import BINARY_ENCODING
 
 SOLO_MAPS = {"solo-a": 11, "solo-b": 12}  # map -> the sim seed of its one robot

@@ -17,22 +17,12 @@ import numpy as np
 import pytest
 
 from fleetmap.config import MapConfig
+from fleetmap.database import DB_NAME, StorageError, open_database
 from fleetmap.grid_map import GridMap
-from fleetmap.persistence import (
-    DB_NAME,
-    TILE_MAGIC,
-    DurableStore,
-    JournalEntry,
-    JournalWriter,
-    StorageError,
-    changed_tiles,
-    decode_tile,
-    open_database,
-    scan_from_blob,
-    scan_to_blob,
-    tile_to_blob,
-)
+from fleetmap.journal import JournalEntry, JournalWriter
+from fleetmap.persistence import DurableStore, changed_tiles
 from fleetmap.scan import Scan
+from fleetmap.storage_format import TILE_MAGIC, decode_tile, scan_from_blob, scan_to_blob, tile_to_blob
 from fleetmap.tiles import LayerArray, TileStore
 
 

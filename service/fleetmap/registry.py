@@ -32,8 +32,9 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.fair_queue import FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult
-from fleetmap.persistence import DurableStore, scan_to_blob
+from fleetmap.persistence import DurableStore
 from fleetmap.scan import Pose2D, ScanError
+from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
 from fleetmap.wire import is_valid_id
 

@@ -39,8 +39,9 @@ from typing import Any
 from fleetmap.auth import AuthMiddleware, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, run_command
 from fleetmap.codec import InputLimits, configure_limits
+from fleetmap.database import StorageError
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
-from fleetmap.persistence import DurableStore, StorageError
+from fleetmap.persistence import DurableStore
 from fleetmap.scan import MAX_BEAMS
 
 log = logging.getLogger("fleetmap.server")

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Request, Response
 from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.state import MapId, State
 from fleetmap.api_models import MapInfo, map_info
-from fleetmap.persistence import SNAPSHOT_FORMAT, map_from_snapshot_file, snapshot_file
+from fleetmap.storage_format import SNAPSHOT_FORMAT, map_from_snapshot_file, snapshot_file
 
 router = APIRouter(tags=["maps"])
 

@@ -1,0 +1,236 @@
+"""The journal writer: the one thread that appends accepted scans to the journal, committing in groups
+(one transaction, one fsync, for every scan of the last few milliseconds); snapshots hand it their
+tile rows and the journal rows they supersede."""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import queue
+import sqlite3
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+
+from fleetmap.database import connect
+
+log = logging.getLogger("fleetmap.journal")
+
+
+@dataclass
+class JournalEntry:
+    """One accepted scan to append: `blob` is `storage_format.scan_to_blob` of it, and the writer calls
+    `on_durable(journal_id)` once its row is committed."""
+
+    map_id: str
+    robot_id: str
+    seq: int
+    stamp: float
+    blob: bytes
+    on_durable: Callable[[int], None]
+
+
+#: Queued by `JournalWriter.attach` to wake an idle writer.
+_WAKE = object()
+
+
+class JournalWriter:
+    """The one thread that appends to the journal, committing in groups. Its transactions also carry
+    the snapshots' tile rows (`attach`) and delete the journal rows snapshots have superseded, a few
+    at a time (`trim`)."""
+
+    #: Superseded rows deleted per transaction. A snapshot supersedes up to `snapshot_rows` rows of
+    #: 17 KB; deleting them at once held the journal's commits up for hundreds of ms. About 5 us a
+    #: row (with secure_delete=FAST), so a group commit carrying a share of them stays short.
+    TRIM_ROWS = 256
+    #: Seconds the writer waits idle before trimming in a transaction of its own.
+    TRIM_IDLE = 0.05
+    #: Seconds attached rows wait for a group commit to ride along with before they are committed
+    #: alone (a snapshot waits for them; under load a group comes every few ms anyway).
+    ATTACH_WAIT = 0.005
+    #: Bytes of attached rows one transaction carries at most (at least one row).
+    ATTACH_BYTES = 512 * 1024
+
+    def __init__(self, path: Path, on_error: Callable[[Exception], None] | None = None):
+        # The journal writer never checkpoints the WAL by itself (a checkpoint copies hundreds of MB);
+        # the snapshot thread does after each snapshot, leaving only a short tail to the writer.
+        self._conn = connect(path, autocheckpoint=False)
+        self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | object | None] = (
+            queue.Queue()
+        )
+        self._on_error = on_error
+        # map id -> the journal id up to which that map's rows are superseded by a snapshot and
+        # still to be deleted. Only the writer thread touches it (from `trim`, called in an op).
+        self._trim: dict[str, int] = {}
+        self._attached: collections.deque[tuple[str, tuple, Future]] = collections.deque()
+        self._attached_lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, name="fleetmap-journal", daemon=True)
+        self._thread.start()
+        self.commits = 0
+        self.rows = 0
+        self.trimmed = 0
+
+    def trim(self, map_id: str, upto: int | None) -> None:
+        """Delete `map_id`'s journal rows with id <= `upto` from now on, `TRIM_ROWS` per transaction
+        (riding along with group commits, or alone when the writer is idle); None cancels (a map
+        deleted or re-created). Call it ONLY on the writer thread, i.e. inside an op: the rows must
+        be superseded by a committed snapshot, because they are deleted whatever happens next.
+        Until then they are dead weight that `DurableStore.load` ignores (and deletes)."""
+        if upto is None:
+            self._trim.pop(map_id, None)
+        else:
+            self._trim[map_id] = max(upto, self._trim.get(map_id, 0))
+
+    def attach(self, sql: str, params: tuple) -> Future:
+        """Execute `sql` with `params` inside one of the writer's next transactions: the next group
+        commit, or one of its own once no scan has arrived for `ATTACH_WAIT`. The future is resolved
+        when that transaction commits (with the exception if it failed). Never blocks.
+
+        Bulk background writes (a snapshot's tile rows) go this way: written on a second connection
+        they compete for SQLite's one write lock, and a journal commit that finds it taken sleeps in
+        SQLite's busy handler (1, 2, 5, 10, ... ms); with a snapshot's 17 tile transactions that
+        made group commits take 20-60 ms."""
+        future: Future = Future()
+        with self._attached_lock:
+            self._attached.append((sql, params, future))
+        self._queue.put(_WAKE)
+        return future
+
+    def append(self, entry: JournalEntry) -> None:
+        self._queue.put(entry)
+
+    def submit(self, op: Callable[[sqlite3.Connection], object]) -> Future:
+        """Queue a database operation for the writer thread, in order with the journal entries
+        appended before it (whose rows are committed and acknowledged by then). Never blocks."""
+        future: Future = Future()
+
+        def wrapped(conn: sqlite3.Connection) -> None:
+            try:
+                future.set_result(op(conn))
+            except BaseException as exc:  # handed back to whoever waits on the future
+                future.set_exception(exc)
+
+        self._queue.put(wrapped)
+        return future
+
+    def run(self, op: Callable[[sqlite3.Connection], object]) -> object:
+        """`submit` and wait. Never call it while holding a lock a durability callback takes."""
+        return self.submit(op).result()
+
+    def flush(self) -> None:
+        """Return once everything appended before this call is committed and acknowledged."""
+        self.run(lambda conn: None)
+
+    def close(self) -> None:
+        """Commit what is queued and attached, delete every superseded row still left, and stop."""
+        self._queue.put(None)
+        self._thread.join()
+        self._conn.close()
+
+    def _run(self) -> None:
+        """Commit whatever has arrived, as soon as the writer is free: while one group's fsync runs,
+        the next group gathers, so batches grow with the load and an idle service commits a lone
+        scan at once. Operations (snapshots, map changes) run in queue order between groups."""
+        while True:
+            idle = self.ATTACH_WAIT if self._attached else self.TRIM_IDLE if self._trim else None
+            try:
+                item = self._queue.get(timeout=idle)
+            except queue.Empty:  # idle with rows to delete or attached: commit a share of them alone
+                self._commit([])
+                continue
+            batch: list[JournalEntry] = []
+            while True:
+                if isinstance(item, JournalEntry):
+                    batch.append(item)
+                elif item is _WAKE:  # attached rows wait for the next group, or for ATTACH_WAIT
+                    pass
+                else:
+                    if batch:  # (an empty one would commit background rows alone: an extra fsync)
+                        self._commit(batch)
+                    batch = []
+                    if item is None:  # shutting down: no hurry, all of them
+                        while (self._trim or self._attached) and self._commit([]):
+                            pass
+                        return
+                    assert callable(item)
+                    item(self._conn)
+                if len(batch) >= 512:
+                    break
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+            if batch:
+                self._commit(batch)
+
+    def _trim_some(self) -> tuple[str, bool] | None:
+        """Inside the open transaction, delete up to `TRIM_ROWS` superseded rows of one map; return
+        (map id, whether none of its superseded rows are left) or None if nothing was pending."""
+        if not self._trim:
+            return None
+        map_id, upto = next(iter(self._trim.items()))
+        cur = self._conn.execute(
+            "DELETE FROM journal WHERE id IN (SELECT id FROM journal WHERE map_id = ? AND id <= ? "
+            "ORDER BY id LIMIT ?)",
+            (map_id, upto, self.TRIM_ROWS),
+        )
+        self.trimmed += max(cur.rowcount, 0)
+        return map_id, cur.rowcount < self.TRIM_ROWS
+
+    def _take_attached(self) -> list[tuple[str, tuple, Future]]:
+        """The attached rows for one transaction: up to `ATTACH_BYTES`, at least one if any."""
+        taken: list[tuple[str, tuple, Future]] = []
+        size = 0
+        with self._attached_lock:
+            while self._attached and (not taken or size < self.ATTACH_BYTES):
+                taken.append(self._attached.popleft())
+                size += sum(len(p) for p in taken[-1][1] if isinstance(p, bytes))
+        return taken
+
+    def _commit(self, batch: list[JournalEntry]) -> bool:
+        """Commit `batch` (which may be empty), a share of the attached rows and of the superseded
+        rows in one transaction; False if there was nothing to do or the commit failed."""
+        if not batch and not self._trim and not self._attached:
+            return False
+        attached = self._take_attached()
+        try:
+            ids = []
+            self._conn.execute("BEGIN IMMEDIATE")
+            for e in batch:
+                cur = self._conn.execute(
+                    "INSERT INTO journal (map_id, robot_id, seq, stamp, scan) VALUES (?, ?, ?, ?, ?)",
+                    (e.map_id, e.robot_id, e.seq, e.stamp, e.blob),
+                )
+                ids.append(cur.lastrowid)
+            for sql, params, _future in attached:
+                self._conn.execute(sql, params)
+            trimmed = self._trim_some()
+            self._conn.execute("COMMIT")
+        except sqlite3.Error as exc:
+            # Nothing of this batch is durable: the scans stay applied in memory but are never
+            # counted, and the service reports the storage failure loudly.
+            log.error("journal commit failed (%d scans not durable): %s", len(batch), exc)
+            with contextlib.suppress(sqlite3.Error):
+                self._conn.execute("ROLLBACK")
+            for _sql, _params, future in attached:
+                future.set_exception(exc)
+            # Superseded rows are harmless (ignored and deleted at start); retrying their deletion
+            # on a failing disk would only repeat the error every TRIM_IDLE seconds.
+            self._trim.clear()
+            if self._on_error:
+                self._on_error(exc)
+            return False
+        for _sql, _params, future in attached:
+            future.set_result(None)
+        if trimmed is not None and trimmed[1]:
+            del self._trim[trimmed[0]]
+        if not batch:
+            return True
+        self.commits += 1
+        self.rows += len(batch)
+        for e, row_id in zip(batch, ids, strict=True):
+            e.on_durable(int(row_id))
+        return True
