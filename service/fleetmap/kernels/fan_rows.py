@@ -159,7 +159,7 @@ def trace_fan_rows(
     crossings: np.ndarray, shift: int, ti0: int, tj0: int, ni: int, found: np.ndarray, kind_out: np.ndarray,
     run_key: np.ndarray, run_len: np.ndarray, planes: np.ndarray, far: np.ndarray,
 ) -> tuple[int, int, int]:  # fmt: skip
-    """Per-scan exact-traversal updates of every traced beam (`kinds` as in `ray_model`), row by row.
+    """Per-scan exact-traversal updates of every traced beam (`kinds`: `kernels.kinds` codes), row by row.
     `starts` and `crossings` are the beams' walk states (`traversal.exact_starts`).
 
     Writes each touched cell once, as a plane key (plane = tile row * ni + tile column relative to
