@@ -275,15 +275,27 @@ def _url_host(host: str) -> str:
 
 
 def warm_up() -> None:
-    """Integrate one tiny scan into a throwaway map so the compiled kernels are loaded (or compiled)
-    before the first robot's scan: its latency should not include that."""
+    """Integrate tiny scans into throwaway maps so the compiled kernels are loaded (or compiled)
+    before the first robot's scan: its latency should not include that (loading them from numba's
+    cache takes about 50 ms, compiling them 10 s).
+
+    Both paths a scan can take: the service's ingest plans and applies (`GridMap.plan`,
+    `GridMap.apply`), into new tiles and then existing ones; journal replay and library users call
+    `GridMap.integrate`, whose one compiled call creates tiles itself and so never reaches the
+    planning kernels. A durable service also encodes every scan for its journal (`scan_to_blob`)."""
     from fleetmap.config import MapConfig
     from fleetmap.grid_map import GridMap
     from fleetmap.scan import Scan
+    from fleetmap.storage_format import scan_to_blob
 
+    scan = Scan.from_fan((0.0, 0.0, 0.0), -0.5, 0.1, [1.0] * 10 + [None], 0.0, 5.0)
+    scan_to_blob(scan)
     for sensor_model in ("ray", "beam"):
-        gmap = GridMap(MapConfig(sensor_model=sensor_model, tile_size=16, resolution=0.1))
-        gmap.integrate(Scan.from_fan((0.0, 0.0, 0.0), -0.5, 0.1, [1.0] * 10 + [None], 0.0, 5.0))
+        config = MapConfig(sensor_model=sensor_model, tile_size=16, resolution=0.1)
+        GridMap(config).integrate(scan)
+        gmap = GridMap(config)
+        for _ in range(2):
+            gmap.apply(gmap.plan(scan))
 
 
 def freeze_startup_objects() -> int:
