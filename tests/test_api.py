@@ -560,6 +560,30 @@ def test_metrics_count_per_robot(api: RunningApi) -> None:
     assert "range_min" in robot["last_error"] and robot["last_seq"] == 5
 
 
+def test_statistics_do_not_wait_for_the_map_lock(api: RunningApi) -> None:
+    """`/metrics` and `GET /maps` answer while a scan or a snapshot's copy holds the map's lock (a
+    Prometheus scrape must not stall behind them), with the tile count and pool bytes of the map."""
+    c = api.client
+    c.put("/maps/busy", json=CONFIG)
+    scan = fan_scan(0.0, 0.0, 0.0, [3.0] * 31)
+    assert post_scan(api, "busy", "r", scan, 0).json()["status"] == "integrated"
+    gmap = api.registry.get("busy").gmap
+    store = gmap.store
+    pool_bytes = sum(p.nbytes for p in store.pools.values()) + store.versions.nbytes
+    with gmap.lock:  # as the ingest worker or the snapshot writer would hold it
+        metrics = c.get("/metrics", timeout=5).text
+        listed = c.get("/maps", timeout=5).json()["maps"]
+    samples = {
+        (s.name, tuple(s.labels.values())): s.value
+        for family in text_string_to_metric_families(metrics)
+        for s in family.samples
+    }
+    assert samples[("fleetmap_map_tiles", ("busy",))] == len(store) > 0
+    assert samples[("fleetmap_map_memory_bytes", ("busy",))] == pool_bytes
+    summary = next(m for m in listed if m["id"] == "busy")
+    assert (summary["tiles"], summary["memory_bytes"]) == (len(store), pool_bytes)
+
+
 def test_web_dir_default(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from fleetmap.api.app import DEFAULT_WEB_DIR, default_web_dir
 

@@ -292,14 +292,12 @@ def robot_stats(state: RobotState) -> RobotStats:
 
 def map_info(entry: MapEntry, registry_lock: threading.RLock) -> MapInfo:
     """A map's configuration and statistics. Robot counters are read under `registry_lock` (the
-    registry's, which guards them), the tiles under the map's own lock."""
+    registry's, which guards them); the bounds under the map's own lock (`known_bounds`)."""
     gmap = entry.gmap
     cells = gmap.known_bounds()
     res = gmap.resolution
     bounds = None if cells is None else [cells[0] * res, cells[1] * res, cells[2] * res, cells[3] * res]
-    with gmap.lock:
-        tiles = len(gmap.store)
-        memory = gmap.memory_bytes()
+    tiles, memory = len(gmap.store), gmap.memory_bytes()  # no lock needed: see TileStore.memory_bytes
     with registry_lock:
         robots = {rid: robot_stats(state) for rid, state in sorted(entry.robots.items())}
         integrated, rejected = entry.scans_integrated, entry.scans_rejected
@@ -322,9 +320,7 @@ def map_info(entry: MapEntry, registry_lock: threading.RLock) -> MapInfo:
 
 def map_summary(entry: MapEntry, registry_lock: threading.RLock) -> MapSummary:
     """A map's line in `GET /maps` (cheap: no scan over the cells)."""
-    with entry.gmap.lock:
-        tiles = len(entry.gmap.store)
-        memory = entry.gmap.memory_bytes()
+    tiles, memory = len(entry.gmap.store), entry.gmap.memory_bytes()  # no lock needed, as in map_info
     with registry_lock:
         robots = len(entry.robots)
         online = sum(1 for state in entry.robots.values() if state.online)

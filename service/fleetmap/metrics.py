@@ -96,12 +96,9 @@ class RegistryCollector(Collector):
         integrated, rejected, lost, duplicates, dropped, online, tiles, memory, maps, depth, age = families
         entries = self.registry.list()
         for entry in entries:
-            # Tiles and memory under the map's lock, counters under the registry's, never both at once.
-            with entry.gmap.lock:
-                n_tiles = len(entry.gmap.store)
-                n_bytes = entry.gmap.memory_bytes()
-            tiles.add_metric([entry.id], n_tiles)
-            memory.add_metric([entry.id], n_bytes)
+            # Tiles and memory need no lock (see TileStore.memory_bytes); the counters need the registry's.
+            tiles.add_metric([entry.id], len(entry.gmap.store))
+            memory.add_metric([entry.id], entry.gmap.memory_bytes())
         with self.registry.lock:
             for entry in entries:
                 for robot_id, state in sorted(entry.robots.items()):

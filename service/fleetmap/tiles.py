@@ -7,7 +7,8 @@ too (arithmetic shift floors). Tiles of one layer are slots of one pooled array 
 plain arrays and a slot lookup instead of a dictionary of arrays. The pool doubles when full (an
 amortised copy; the cap bounds it).
 
-A `TileStore` is not thread-safe on its own: `GridMap` serialises writers and readers with its lock.
+A `TileStore` is not thread-safe on its own: `GridMap` serialises writers and readers with its lock
+(`len()` and `memory_bytes()` excepted: statistics read them without it).
 """
 
 from __future__ import annotations
@@ -204,8 +205,13 @@ class TileStore:
                 ]
 
     def memory_bytes(self) -> int:
-        """Bytes held by the pools (allocated capacity, not only tiles in use)."""
-        return int(sum(p.nbytes for p in self.pools.values()) + self.versions.nbytes)
+        """Bytes held by the pools and the versions (allocated capacity, not only tiles in use).
+
+        Like `len()`, it reads one int that growing replaces at once, so statistics (`/metrics`,
+        `GET /maps`) read both without the map's lock: a scrape never waits for a scan or for a
+        snapshot's copy of the tiles. It may lag a growth in progress by that growth."""
+        cells = self.tile_size * self.tile_size
+        return self._capacity * (cells * sum(np.dtype(a.dtype).itemsize for a in self.arrays) + 8)
 
     def tile_bounds(self) -> tuple[int, int, int, int] | None:
         """Cell-index bounds `(i0, j0, i1, j1)` (exclusive ends) of all tiles, or None if empty."""
