@@ -20,7 +20,7 @@ import httpx
 import numpy as np
 import pytest
 from robot_process import scans_for
-from service_process import RobotProcess, ServiceProcess
+from service_process import RobotProcess, ServiceProcess, wait_for
 
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
@@ -301,3 +301,85 @@ def test_a_snapshot_that_never_switched_is_ignored(tmp_path: Path) -> None:
     finally:
         again.close()
         reg.close()
+
+
+def test_a_failing_disk_is_reported_and_the_next_snapshot_saves_what_it_missed(tmp_path: Path) -> None:
+    """A disk that fails while the service runs: the scan whose journal commit fails is answered 503
+    and counted as not durable, /healthz and /metrics say storage is degraded, the service goes on,
+    and once the disk works the next snapshot saves that scan, so a kill -9 after it loses nothing.
+
+    The failing disk is the running service's RLIMIT_FSIZE lowered to 1 byte (`prlimit`): every write
+    to a file then fails with EFBIG, which SQLite reports as a disk I/O error, as it would a dying
+    disk. A really full filesystem would need a mount, which this test cannot make (no privileges)."""
+    resource = pytest.importorskip("resource")
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=1, count=3)]
+    data = tmp_path / "data"
+
+    def post(url: str, k: int) -> httpx.Response:
+        message = json.loads(encode_json(scans[k], k))
+        return httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, json=message, timeout=30)
+
+    def health(url: str) -> dict:
+        return httpx.get(f"{url}/healthz", timeout=10).json()
+
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data), "--snapshot-interval", "0.5"]).start()
+    try:
+        url = svc.base_url
+        assert post(url, 0).status_code == 200
+        # Scan 0 snapshotted: from here on the map has nothing journaled that a snapshot lacks.
+        wait_for(lambda: not sqlite3.connect(data / DB_NAME).execute("SELECT 1 FROM journal").fetchall(),
+                 what="scan 0 snapshotted and its journal row deleted")  # fmt: skip
+        assert health(url)["storage"] == {
+            "ok": True, "last_error": None, "last_error_at": None, "scans_not_durable": 0,
+            "maps_awaiting_snapshot": [],
+        }  # fmt: skip
+        soft, hard = resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE)
+        resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE, (1, hard))
+        try:
+            failed = post(url, 1)
+            assert failed.status_code == 503, failed.text
+            assert "could not be made durable" in failed.json()["detail"]
+            now = health(url)
+            assert now["status"] == "degraded" and not now["storage"]["ok"]
+            assert now["storage"]["scans_not_durable"] == 1 and now["storage"]["maps_awaiting_snapshot"] == [
+                "m"
+            ]
+            assert "journal commit failed" in now["storage"]["last_error"]
+            robot = stats(url, "m")["robots"]["r"]
+            assert (robot["scans_integrated"], robot["not_durable"]) == (1, 1)
+            assert "could not be made durable" in robot["last_error"]
+            metrics = httpx.get(f"{url}/metrics", timeout=10).text
+            assert 'fleetmap_scans_not_durable_total{map="m",robot="r"} 1.0' in metrics
+            assert "fleetmap_storage_ok 0.0" in metrics
+            # Snapshots fail too while the disk does, and say so.
+            wait_for(lambda: "snapshot of map 'm' failed" in (health(url)["storage"]["last_error"] or ""),
+                     what="a failed snapshot reported")  # fmt: skip
+        finally:
+            resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE, (soft, hard))
+        # Applied, so readers see it, and a retry is a duplicate rather than a second application.
+        again = post(url, 1)
+        assert again.status_code == 200 and again.json()["status"] == "duplicate"
+        healed = wait_for(lambda: (h := health(url))["status"] == "ok" and h, what="storage ok again")
+        assert (
+            healed["storage"]["scans_not_durable"] == 1 and healed["storage"]["maps_awaiting_snapshot"] == []
+        )
+        bounds = tuple(stats(url, "m")["bounds"])
+        served = region(url, "m", "log_odds", bounds)
+        svc.proc.kill()  # no shutdown snapshot: only what the healing snapshot wrote can bring scan 1 back
+        svc.proc.wait()
+    finally:
+        svc.stop()
+    reference = GridMap(MapConfig())
+    for scan in scans[:2]:
+        reference.integrate(scan)
+    restarted = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        restored = region(restarted.base_url, "m", "log_odds", bounds)
+        np.testing.assert_array_equal(restored, served)
+        i0, j0, i1, j1 = reference.known_bounds()
+        assert int(np.isfinite(restored).sum()) == int(
+            np.isfinite(reference.region("log_odds", i0, j0, i1, j1)).sum()
+        )
+        assert stats(restarted.base_url, "m")["robots"]["r"]["not_durable"] == 1
+    finally:
+        restarted.stop()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
 import sqlite3
 import struct
 import threading
@@ -47,7 +48,7 @@ def journal(store: DurableStore, gmap: GridMap, scans: list[Scan], start: int = 
     for k, scan in enumerate(scans):
         with gmap.lock:
             gmap.integrate(scan)
-            store.journal("m", "r", start + k, 0.0, scan_to_blob(scan), lambda _row: None)
+            store.journal("m", "r", start + k, 0.0, scan_to_blob(scan), lambda _row: None, lambda _exc: None)
     store.writer.flush()
 
 
@@ -120,18 +121,40 @@ def test_attached_rows_ride_along_with_the_next_group_commit(tmp_path: Path, mon
         time.sleep(0.1)
         assert not attached.done()  # waiting for a group to ride along with
         durable = threading.Event()
-        writer.append(JournalEntry("m", "r", 0, 0.0, b"scan", lambda _row: durable.set()))
+        writer.append(JournalEntry("m", "r", 0, 0.0, b"scan", lambda _row: durable.set(), lambda _exc: None))
         attached.result(timeout=5)
         assert durable.wait(5) and writer.commits == 1  # one transaction for both
+        # A failing attached row fails its whole transaction: the scan riding along is told so.
         failed = writer.attach("INSERT INTO no_such_table VALUES (?)", (1,))
-        writer.append(JournalEntry("m", "r", 1, 0.0, b"scan", lambda _row: None))
+        outcome: queue.Queue[object] = queue.Queue()
+        writer.append(JournalEntry("m", "r", 1, 0.0, b"scan", outcome.put, outcome.put))
         with pytest.raises(sqlite3.OperationalError):
             failed.result(timeout=5)
+        assert isinstance(outcome.get(timeout=5), sqlite3.OperationalError)
+        writer.flush()
+        assert outcome.empty() and writer.rows == 1  # told once, and never written
     finally:
         writer.close()
     db = sqlite3.connect(path)
     assert sorted(r[0] for r in db.execute("SELECT robot_id FROM robots")) == ["busy", "idle"]
     db.close()
+
+
+def test_a_failing_durability_callback_does_not_stop_the_writer(tmp_path: Path, caplog) -> None:
+    """A bug in one scan's callback is logged; the writer thread goes on committing later scans."""
+    writer = JournalWriter(open_database(tmp_path))
+
+    def broken(_row: int) -> None:
+        raise RuntimeError("a bug in a callback")
+
+    try:
+        writer.append(JournalEntry("m", "r", 0, 0.0, b"scan", broken, lambda _exc: None))
+        durable = threading.Event()
+        writer.append(JournalEntry("m", "r", 1, 0.0, b"scan", lambda _row: durable.set(), lambda _exc: None))
+        assert durable.wait(5) and writer.rows == 2
+    finally:
+        writer.close()
+    assert "a bug in a callback" in caplog.text
 
 
 def test_the_wal_starts_over_after_each_snapshot(tmp_path: Path) -> None:
@@ -145,7 +168,7 @@ def test_the_wal_starts_over_after_each_snapshot(tmp_path: Path) -> None:
     def robot() -> None:  # rows arrive all the time, also while the snapshot checkpoints
         seq = 0
         while not stop.is_set():
-            store.journal("m", "r", seq, 0.0, blob, lambda _row: None)
+            store.journal("m", "r", seq, 0.0, blob, lambda _row: None, lambda _exc: None)
             seq += 1
             time.sleep(0.0005)
 

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import STATE_NAMES, GridMap
+from fleetmap.persistence import StorageHealth
 from fleetmap.registry import MapEntry, RobotState
 from fleetmap.scan import Pose2D
 from fleetmap.tiles import TileKey
@@ -72,14 +73,42 @@ class ErrorResponse(_Model):
     errors: list[ErrorItem] | None = None
 
 
+class StorageStatus(_Model):
+    """The data directory's health (`DurableStore.health`)."""
+
+    ok: bool = Field(
+        description="false while the last journal commit or a map's last snapshot failed, and while a "
+        "map holds scans whose journal commit failed (its next snapshot makes them durable)"
+    )
+    last_error: str | None = Field(description="the latest storage failure, kept after recovery")
+    last_error_at: float | None = Field(description="when it happened, Unix time")
+    scans_not_durable: int = Field(description="scans applied whose journal commit failed, since start")
+    maps_awaiting_snapshot: list[str] = Field(
+        description="maps holding such scans, until their next snapshot"
+    )
+
+
 class Health(_Model):
     """`GET /healthz`."""
 
-    status: Literal["ok"] = "ok"
+    status: Literal["ok", "degraded"] = Field(
+        "ok", description="`degraded` while storage is not ok (see `storage`); the service still runs"
+    )
     maps: int = Field(description="maps held")
     robots_online: int = Field(description="robots with a live liveliness token, over all maps")
     queue_depth: int = Field(description="scans waiting for integration")
     zenoh: dict[str, Any] | None = Field(None, description="the Zenoh session's status, if any")
+    storage: StorageStatus | None = Field(None, description="durable storage's health; null with --in-memory")
+
+
+def storage_status(health: StorageHealth) -> StorageStatus:
+    return StorageStatus(
+        ok=health.ok,
+        last_error=health.last_error,
+        last_error_at=health.last_error_at,
+        scans_not_durable=health.scans_not_durable,
+        maps_awaiting_snapshot=list(health.maps_awaiting_snapshot),
+    )
 
 
 # -- maps -------------------------------------------------------------------------------------------
@@ -106,10 +135,15 @@ class RobotStats(_Model):
     last_stamp: float | None = Field(None, description="stamp of its last integrated scan")
     scans_integrated: int
     scans_rejected: int = Field(description="scans refused as invalid (see last_error)")
-    last_error: str | None = Field(description="why the last rejected scan was refused")
+    last_error: str | None = Field(
+        description="why the last scan refused (or applied but not made durable, see not_durable) was so"
+    )
     lost: int = Field(description="sequence numbers skipped (messages lost before reaching the service)")
     duplicates: int = Field(description="scans ignored because their seq was not new")
     dropped: int = Field(0, description="scans refused because the ingest queue was full")
+    not_durable: int = Field(
+        0, description="scans applied whose journal commit failed (storage error); a snapshot saves them"
+    )
 
 
 class MapStats(_Model):
@@ -287,6 +321,7 @@ def robot_stats(state: RobotState) -> RobotStats:
         lost=state.lost,
         duplicates=state.duplicates,
         dropped=state.dropped,
+        not_durable=state.not_durable,
     )
 
 
@@ -473,6 +508,7 @@ __all__ = [
     "ErrorItem",
     "ErrorResponse",
     "Health",
+    "StorageStatus",
     "MapInfo",
     "MapList",
     "MapStats",
@@ -489,6 +525,7 @@ __all__ = [
     "cells_json",
     "cells_response",
     "map_info",
+    "storage_status",
     "map_summary",
     "region_json",
     "robot_stats",

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from fleetmap.database import connect
 
@@ -22,8 +23,9 @@ log = logging.getLogger("fleetmap.journal")
 
 @dataclass
 class JournalEntry:
-    """One accepted scan to append: `blob` is `storage_format.scan_to_blob` of it, and the writer calls
-    `on_durable(journal_id)` once its row is committed."""
+    """One accepted scan to append: `blob` is `storage_format.scan_to_blob` of it. The writer calls
+    `on_durable(journal_id)` once its row is committed, or `on_failed(error)` if the transaction
+    meant to carry it failed (the row is then never written)."""
 
     map_id: str
     robot_id: str
@@ -31,6 +33,7 @@ class JournalEntry:
     stamp: float
     blob: bytes
     on_durable: Callable[[int], None]
+    on_failed: Callable[[Exception], None]
 
 
 #: Queued by `JournalWriter.attach` to wake an idle writer.
@@ -221,7 +224,9 @@ class JournalWriter:
             # on a failing disk would only repeat the error every TRIM_IDLE seconds.
             self._trim.clear()
             if self._on_error:
-                self._on_error(exc)
+                _tell(self._on_error, exc)
+            for e in batch:
+                _tell(e.on_failed, exc)
             return False
         for _sql, _params, future in attached:
             future.set_result(None)
@@ -232,5 +237,14 @@ class JournalWriter:
         self.commits += 1
         self.rows += len(batch)
         for e, row_id in zip(batch, ids, strict=True):
-            e.on_durable(int(row_id))
+            _tell(e.on_durable, int(row_id))
         return True
+
+
+def _tell(callback: Callable[[Any], None], value: object) -> None:
+    """Call a durability callback on the writer thread; a bug in one is logged, and must not stop
+    the thread every later scan waits on."""
+    try:
+        callback(value)
+    except Exception:
+        log.exception("journal callback %r failed", callback)

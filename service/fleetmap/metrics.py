@@ -93,7 +93,8 @@ class RegistryCollector(Collector):
 
     def collect(self) -> Iterator[Metric]:
         families = self._families()
-        integrated, rejected, lost, duplicates, dropped, online, tiles, memory, maps, depth, age = families
+        integrated, rejected, lost, duplicates, dropped, not_durable, online = families[:7]
+        tiles, memory, maps, depth, age, storage_ok = families[7:]
         entries = self.registry.list()
         for entry in entries:
             # Tiles and memory need no lock (see TileStore.memory_bytes); the counters need the registry's.
@@ -108,11 +109,14 @@ class RegistryCollector(Collector):
                     lost.add_metric(labels, state.lost)
                     duplicates.add_metric(labels, state.duplicates)
                     dropped.add_metric(labels, state.dropped)
+                    not_durable.add_metric(labels, state.not_durable)
                     online.add_metric(labels, 1.0 if state.online else 0.0)
         maps.add_metric([], len(entries))
         queued, oldest = self.registry.backlog()
         depth.add_metric([], queued)
         age.add_metric([], oldest)
+        if self.registry.durable is not None:
+            storage_ok.add_metric([], 1.0 if self.registry.durable.health().ok else 0.0)
         yield from families
 
     @staticmethod
@@ -132,6 +136,11 @@ class RegistryCollector(Collector):
             CounterMetricFamily(
                 "fleetmap_scans_dropped", "Scans refused because the ingest queue was full", labels=robot
             ),
+            CounterMetricFamily(
+                "fleetmap_scans_not_durable",
+                "Scans applied whose journal commit failed (a snapshot saves them once storage works)",
+                labels=robot,
+            ),
             GaugeMetricFamily(
                 "fleetmap_robot_online", "1 while the robot's liveliness token is alive", labels=robot
             ),
@@ -141,6 +150,9 @@ class RegistryCollector(Collector):
             GaugeMetricFamily("fleetmap_queue_depth", "Scans waiting for integration"),
             GaugeMetricFamily(
                 "fleetmap_ingest_backlog_seconds", "Seconds the oldest scan waiting for integration waited"
+            ),
+            GaugeMetricFamily(
+                "fleetmap_storage_ok", "1 while durable storage is healthy (GET /healthz: storage)"
             ),
         )
 

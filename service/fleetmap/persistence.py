@@ -31,6 +31,7 @@ import time
 import zlib
 from collections.abc import Callable
 from concurrent.futures import Future
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,10 @@ from fleetmap.scan import Scan
 from fleetmap.storage_format import scan_from_blob, tile_from_blob, tile_to_blob
 
 log = logging.getLogger("fleetmap.persistence")
+
+#: Default seconds between snapshots of a changed map, and journal rows that make one due sooner.
+SNAPSHOT_INTERVAL = 30.0
+SNAPSHOT_ROWS = 20000
 
 #: After a snapshot, passive checkpoints on the snapshot connection until one finds fewer than
 #: CHECKPOINT_TAIL_FRAMES new WAL frames (4 KiB each; at most CHECKPOINT_PASSES of them); the journal
@@ -69,6 +74,23 @@ def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int,
 TileRow = tuple[tuple[int, int], int, bytes]
 
 
+@dataclass(frozen=True)
+class StorageHealth:
+    """How the data directory is doing (`DurableStore.health`, reported by `GET /healthz`).
+
+    `ok` is False while the last journal commit or the last snapshot failed, and while a map holds
+    scans whose journal commit failed: they are applied in memory but only the map's next snapshot
+    makes them durable. `last_error` and `last_error_at` (Unix time) describe the latest failure and
+    stay after recovery; `scans_not_durable` counts, since start, the scans whose journal commit
+    failed."""
+
+    ok: bool
+    last_error: str | None
+    last_error_at: float | None
+    scans_not_durable: int
+    maps_awaiting_snapshot: tuple[str, ...]
+
+
 class DurableStore:
     """Persistence for a `MapRegistry`: restore on start, journal while running, snapshot now and then.
 
@@ -87,8 +109,8 @@ class DurableStore:
     def __init__(
         self,
         data_dir: Path,
-        snapshot_interval: float = 30.0,
-        snapshot_rows: int = 20000,
+        snapshot_interval: float = SNAPSHOT_INTERVAL,
+        snapshot_rows: int = SNAPSHOT_ROWS,
         snapshot_pace: float = 3.0,
     ) -> None:
         self.data_dir = Path(data_dir)
@@ -97,7 +119,14 @@ class DurableStore:
         self.snapshot_interval = snapshot_interval
         self.snapshot_rows = snapshot_rows
         self.snapshot_pace = snapshot_pace
-        self.failed: str | None = None  # the last storage failure, reported by /healthz
+        # Storage health (see `health`), written by the writer and snapshot threads.
+        self._health_lock = threading.Lock()
+        self._journal_error: str | None = None  # the last journal commit failed with this
+        self._snapshot_errors: dict[str, str] = {}  # map id -> why its last snapshot failed
+        self._last_error: tuple[str, float] | None = None
+        self._not_durable = 0
+        # map id -> failed journal commits of its scans not yet covered by a snapshot
+        self._awaiting: dict[str, int] = {}
         self._rows_since: dict[str, int] = {}
         self._last_journal_id: dict[str, int] = {}
         self._snapshot_clock: dict[str, int] = {}  # store clock of each map's last snapshot
@@ -203,6 +232,7 @@ class DurableStore:
 
         def op(conn: sqlite3.Connection) -> None:
             self.writer.trim(map_id, None)  # the DELETE below removes them all
+            self._forget_health(map_id)  # a previous map of this id, replaced whole, takes its own along
             conn.execute("BEGIN IMMEDIATE")
             for table, column in (("tiles", "map_id"), ("robots", "map_id"), ("journal", "map_id")):
                 conn.execute(f"DELETE FROM {table} WHERE {column} = ?", (map_id,))
@@ -229,6 +259,7 @@ class DurableStore:
 
         def op(conn: sqlite3.Connection) -> None:
             self.writer.trim(map_id, None)  # the DELETE below removes them all
+            self._forget_health(map_id)  # again: its last scans' commits may have failed since
             conn.execute("BEGIN IMMEDIATE")
             for table, column in (
                 ("maps", "id"),
@@ -241,25 +272,62 @@ class DurableStore:
 
         for d in (self._rows_since, self._snapshot_clock):
             d.pop(map_id, None)
+        self._forget_health(map_id)
         return self.writer.submit(op)
 
-    def journal(self, map_id: str, robot_id: str, seq: int, stamp: float, blob: bytes,
-                on_durable: Callable[[int], None]) -> None:  # fmt: skip
+    def _forget_health(self, map_id: str) -> None:
+        with self._health_lock:
+            self._awaiting.pop(map_id, None)
+            self._snapshot_errors.pop(map_id, None)
+
+    def journal(
+        self, map_id: str, robot_id: str, seq: int, stamp: float, blob: bytes,
+        on_durable: Callable[[int], None], on_failed: Callable[[Exception], None],
+    ) -> None:  # fmt: skip
         """Append an applied scan (its `scan_to_blob`, made before taking the lock); MUST be called
-        under the map's lock so the journal's order is the order scans were applied in."""
+        under the map's lock so the journal's order is the order scans were applied in.
+
+        `on_durable(journal_id)` follows once its row is committed. If that commit fails (a full or
+        failing disk), `on_failed(error)` follows instead: the scan stays applied in memory, and the
+        map's next snapshot (at most `snapshot_interval` later, once storage works) makes it
+        durable with the tiles it changed."""
 
         def durable(row_id: int) -> None:
             self._last_journal_id[map_id] = row_id
             self._rows_since[map_id] = self._rows_since.get(map_id, 0) + 1
+            self._journal_error = None
             on_durable(row_id)
 
-        self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable))
+        def failed(exc: Exception) -> None:
+            with self._health_lock:
+                self._not_durable += 1
+                self._awaiting[map_id] = self._awaiting.get(map_id, 0) + 1
+            on_failed(exc)
+
+        self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable, failed))
+
+    def health(self) -> StorageHealth:
+        with self._health_lock:
+            return StorageHealth(
+                ok=self._journal_error is None and not self._snapshot_errors and not self._awaiting,
+                last_error=None if self._last_error is None else self._last_error[0],
+                last_error_at=None if self._last_error is None else self._last_error[1],
+                scans_not_durable=self._not_durable,
+                maps_awaiting_snapshot=tuple(sorted(self._awaiting)),
+            )
+
+    def _failure(self, what: str, exc: BaseException) -> str:
+        message = f"{what}: {type(exc).__name__}: {exc}"
+        with self._health_lock:
+            self._last_error = (message, time.time())
+        return message
 
     # -- snapshots -------------------------------------------------------------------------------------
 
     def snapshot(self, map_id: str, gmap: GridMap, counters: Callable[[], dict]) -> int:
         """Write the tiles changed since the last snapshot and truncate the journal; returns the number
-        of tiles written.
+        of tiles written. A failure (an `sqlite3.Error` or `OSError`) is recorded for `health` and
+        raised; the next snapshot then writes every tile changed since the last one that succeeded.
 
         Under the map's lock the changed tiles are copied and a marker is queued behind every scan
         applied so far; the writer runs the marker after committing (and counting) exactly those
@@ -272,14 +340,32 @@ class DurableStore:
         afterwards by the writer, `JournalWriter.TRIM_ROWS` per transaction. A crash before the switch
         leaves the old generation and its journal intact (the new rows are ignored and removed at
         start). Nothing here waits on the writer while holding a lock."""
+        try:
+            return self._write_snapshot(map_id, gmap, counters)
+        except (sqlite3.Error, OSError) as exc:
+            message = self._failure(f"snapshot of map {map_id!r} failed", exc)
+            with self._health_lock:
+                self._snapshot_errors[map_id] = message
+            raise
+
+    def _write_snapshot(self, map_id: str, gmap: GridMap, counters: Callable[[], dict]) -> int:
         with self._snapshot_lock:
             with gmap.lock:
                 since = self._snapshot_clock.get(map_id, 0)
                 copies = changed_tiles(gmap, since)
                 clock = gmap.store.clock
                 created = self._created.get(map_id)
-                marker = self.writer.submit(lambda conn: (self._last_journal_id.get(map_id, 0), counters()))
-            last_id, saved = marker.result()
+                # On the writer, after the scans applied so far and before any later one: the
+                # journal id and counters of exactly the copied tiles, and how many of those scans'
+                # commits failed (the copy holds them, so this snapshot makes them durable).
+                marker = self.writer.submit(
+                    lambda conn: (
+                        self._last_journal_id.get(map_id, 0),
+                        counters(),
+                        self._awaiting.get(map_id),
+                    )
+                )
+            last_id, saved, awaiting = marker.result()
             gen = self._next_gen()
             layout = gmap.store.arrays
             written = []
@@ -329,6 +415,11 @@ class DurableStore:
             if self.writer.run(switch):
                 self._snapshot_clock[map_id] = clock
                 self._rows_since[map_id] = 0
+                with self._health_lock:
+                    self._journal_error = None  # the writer's transactions commit again
+                    self._snapshot_errors.pop(map_id, None)
+                    if awaiting is not None and self._awaiting.get(map_id) == awaiting:
+                        del self._awaiting[map_id]  # no later scan's commit failed meanwhile
             self._checkpoint()
             return len(copies)
 
@@ -354,7 +445,9 @@ class DurableStore:
             self.writer.run(lambda wconn: wconn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone())
 
     def needs_snapshot(self, map_id: str) -> bool:
-        return self._rows_since.get(map_id, 0) > 0
+        """Whether the map has scans a snapshot would make durable: journaled since the last one, or
+        applied while the journal failed."""
+        return self._rows_since.get(map_id, 0) > 0 or map_id in self._awaiting
 
     def overdue(self, map_id: str) -> bool:
         return self._rows_since.get(map_id, 0) >= self.snapshot_rows
@@ -396,4 +489,4 @@ class DurableStore:
         self._thread.start()
 
     def _storage_failed(self, exc: Exception) -> None:
-        self.failed = f"storage error: {exc}"
+        self._journal_error = self._failure("journal commit failed", exc)

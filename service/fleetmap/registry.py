@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import sqlite3
 import threading
 import time
 from collections import deque
@@ -77,10 +78,14 @@ class RobotState:
     lost: int = 0
     duplicates: int = 0
     dropped: int = 0
+    not_durable: int = 0  # applied, but the journal commit meant to make them durable failed
     trail: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))
 
     #: The counters that survive a restart.
-    SAVED = ("last_seq", "scans_integrated", "scans_rejected", "last_error", "lost", "duplicates", "dropped")
+    SAVED = (
+        "last_seq", "scans_integrated", "scans_rejected", "last_error", "lost", "duplicates", "dropped",
+        "not_durable",
+    )  # fmt: skip
 
     def saved(self) -> dict:
         out = {name: getattr(self, name) for name in self.SAVED}
@@ -220,12 +225,17 @@ class MapRegistry:
             )
 
     def snapshot_all(self, only_overdue: bool = False) -> None:
-        """Snapshot every map with journaled scans (only those past the row threshold if asked)."""
+        """Snapshot every map with journaled scans (only those past the row threshold if asked). A
+        map whose snapshot fails (a full or failing disk) is logged and reported by
+        `DurableStore.health`, and the others are still snapshotted."""
         if self.durable is None:
             return
         for entry in self.list():
             if self.durable.needs_snapshot(entry.id) and (not only_overdue or self.durable.overdue(entry.id)):
-                self.durable.snapshot(entry.id, entry.gmap, lambda e=entry: self._saved_counters(e))
+                try:
+                    self.durable.snapshot(entry.id, entry.gmap, lambda e=entry: self._saved_counters(e))
+                except (sqlite3.Error, OSError) as exc:
+                    log.error("snapshot of map %s failed (retried at the next one): %s", entry.id, exc)
 
     def _saved_counters(self, entry: MapEntry) -> dict:
         with self.lock:
@@ -430,6 +440,7 @@ class MapRegistry:
                     self.durable.journal(
                         job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
                         lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
+                        lambda exc: self._mark_not_durable(entry, job, exc),
                     )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
             self._finish_rejected(job, str(exc))
@@ -453,6 +464,22 @@ class MapRegistry:
             self._on_integrated(entry, job, result, elapsed)
         if job.future:
             job.future.set_result(result)
+
+    def _mark_not_durable(self, entry: MapEntry, job: Job, exc: Exception) -> None:
+        """The scan is applied but its journal commit failed: count it and answer its caller 503.
+        Readers already see it; the map's next snapshot makes it durable once storage works."""
+        reason = (
+            f"the scan was applied but could not be made durable (storage error: {exc}); the map's next "
+            "snapshot saves it once storage works again, and a retry with the same seq is ignored as a "
+            "duplicate; see GET /healthz"
+        )
+        with self.lock:
+            if entry.generation == job.generation:
+                robot = entry.robot(job.robot_id)
+                robot.not_durable += 1
+                robot.last_error = reason
+        if job.future and not job.future.done():
+            job.future.set_exception(IngestRejected(reason, 503))
 
     def _finish_rejected(self, job: Job, reason: str) -> None:
         with self.lock:

@@ -41,7 +41,7 @@ from fleetmap.cli import CliError, load_config, run_command
 from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.database import StorageError
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
-from fleetmap.persistence import DurableStore
+from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS, DurableStore
 from fleetmap.scan import MAX_BEAMS
 
 log = logging.getLogger("fleetmap.server")
@@ -112,6 +112,17 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         help=(
             f"durable map storage (SQLite, WAL): configurations, tile snapshots and the scan journal "
             f"(default {DEFAULT_DATA_DIR}). An unwritable or full directory stops the service at start"
+        ),
+    )
+    p.add_argument(
+        "--snapshot-interval",
+        type=_seconds_between(0.5, 86400.0),
+        default=SNAPSHOT_INTERVAL,
+        metavar="S",
+        help=(
+            f"snapshot every changed map this often, seconds (default {SNAPSHOT_INTERVAL:g}; also "
+            f"after {SNAPSHOT_ROWS} journaled scans, and at shutdown): shorter means a shorter journal to "
+            "replay at start and sooner recovery of scans a failing disk could not journal"
         ),
     )
     p.add_argument(
@@ -217,6 +228,21 @@ def _is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return host == "localhost"
+
+
+def _seconds_between(low: float, high: float) -> Callable[[str], float]:
+    """An argparse `type` accepting a number of seconds in [low, high]."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+        if not low <= value <= high:  # NaN fails too
+            raise argparse.ArgumentTypeError(f"must be between {low:g} and {high:g} seconds, got {text}")
+        return value
+
+    return parse
 
 
 def _int_between(low: int, high: int) -> Callable[[str], int]:
@@ -389,7 +415,7 @@ def run(args: argparse.Namespace) -> int:
         durable = None
         if not args.in_memory:
             try:
-                durable = DurableStore(Path(args.data_dir))
+                durable = DurableStore(Path(args.data_dir), snapshot_interval=args.snapshot_interval)
             except StorageError as exc:
                 sock.close()
                 raise CliError(str(exc)) from None

@@ -10,7 +10,16 @@ from fastapi import APIRouter, Body, Request, Response
 from fleetmap import codec
 from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.state import MapId, RobotId, State
-from fleetmap.api_models import Health, MapInfo, MapList, ScanResult, map_info, map_summary, tile_windows
+from fleetmap.api_models import (
+    Health,
+    MapInfo,
+    MapList,
+    ScanResult,
+    map_info,
+    map_summary,
+    storage_status,
+    tile_windows,
+)
 from fleetmap.config import MapConfig
 from fleetmap.metrics import CONTENT_TYPE
 from fleetmap.registry import IngestRejected
@@ -22,12 +31,24 @@ router = APIRouter()
 @router.get("/healthz", tags=["service"], summary="Liveness and a few numbers", response_model=Health)
 def healthz(state: State) -> Health:
     """Answers 200 while the service runs, with the number of maps, robots online, the ingest queue
-    depth and, when the service runs a Zenoh session, its status."""
+    depth, when the service runs a Zenoh session its status, and when it is durable its storage's
+    health. `status` is `degraded` while storage is not ok: a journal commit or a snapshot failed
+    (a full or failing disk), or a map holds scans whose journal commit failed until its next
+    snapshot. The service goes on integrating and serving meanwhile, and recovers by itself once
+    storage works."""
     registry = state.registry
     maps = registry.list()
     online = sum(1 for _, _, robot in registry.iter_robots() if robot.online)
     zenoh = state.settings.zenoh_status() if state.settings.zenoh_status else None
-    return Health(maps=len(maps), robots_online=online, queue_depth=registry.queue.depth(), zenoh=zenoh)
+    storage = storage_status(registry.durable.health()) if registry.durable is not None else None
+    return Health(
+        status="ok" if storage is None or storage.ok else "degraded",
+        maps=len(maps),
+        robots_online=online,
+        queue_depth=registry.queue.depth(),
+        zenoh=zenoh,
+        storage=storage,
+    )
 
 
 @router.get(
@@ -159,8 +180,9 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
 
     Errors: 404 unknown map when the server does not create maps on first use; 422 an invalid scan
     (counted on the robot as rejected, with the reason as its `last_error`); 503 the robot's ingest
-    queue is full, or the integration did not finish within the server's timeout (the scan is still
-    integrated)."""
+    queue is full, the integration did not finish within the server's timeout (the scan is still
+    integrated), or storage failed: the scan was applied but its journal commit failed (counted on
+    the robot as `not_durable`; the map's next snapshot saves it; see `GET /healthz`)."""
     registry = state.registry
     body = await request.body()
     try:
