@@ -71,7 +71,8 @@ class IntegrationMetrics:
         )
 
     def on_integrated(self, entry: MapEntry, job: Job, result: IntegrationResult, seconds: float) -> None:
-        """The registry's hook, called after each integration. Never raises into the worker."""
+        """The registry's `on_integrated` hook, called once a scan counts as integrated (on the
+        journal writer's thread with persistence, else on the worker's). Quick, and never raises."""
         self.integration_seconds.observe(seconds)
         # job.enqueued_at is time.monotonic() when the scan was queued: the service-side latency.
         self.ingest_latency_seconds.observe(max(0.0, time.monotonic() - job.enqueued_at))

@@ -169,7 +169,10 @@ class MapRegistry:
         self.lock = threading.RLock()  # guards `maps` and every RobotState / counter
         self.queue: FairQueue[Job] = FairQueue(queue_per_robot, queue_total)
         self._generations = itertools.count(1)
-        self._on_integrated = on_integrated
+        #: Called as `on_integrated(entry, job, result, seconds)` for each scan once it counts as
+        #: integrated (journaled, with persistence), on that thread; it must be quick and not raise.
+        #: The REST app's metrics set it when the registry was built without one.
+        self.on_integrated = on_integrated
         self.durable = durable
         # Scans create maps, so scans with made-up map ids could create them without end: past this
         # many maps, only PUT /maps/{id} creates one.
@@ -460,8 +463,8 @@ class MapRegistry:
                 robot.last_pose = pose
                 robot.last_stamp = job.wire.stamp
                 robot.trail.append((pose.x, pose.y, pose.theta))
-        if self._on_integrated is not None:
-            self._on_integrated(entry, job, result, elapsed)
+        if self.on_integrated is not None:
+            self.on_integrated(entry, job, result, elapsed)
         if job.future:
             job.future.set_result(result)
 

@@ -118,15 +118,14 @@ def _integration_metrics(registry: MapRegistry, given: IntegrationMetrics | None
     """The IntegrationMetrics fed by this registry's workers (see ApiSettings.metrics)."""
     if given is not None:
         return given
-    # MapRegistry has no public accessor for its hook; reading it here saves server.py from wiring
-    # the same object twice.
-    hook = getattr(registry, "_on_integrated", None)
+    # The registry's own hook, if it is an IntegrationMetrics': server.py need not wire it twice.
+    hook = registry.on_integrated
     owner = getattr(hook, "__self__", None)
     if isinstance(owner, IntegrationMetrics):
         return owner
     metrics = IntegrationMetrics()
     if hook is None:
-        registry._on_integrated = metrics.on_integrated  # noqa: SLF001 - see above
+        registry.on_integrated = metrics.on_integrated
     else:
         log.warning("the registry's on_integrated hook is not IntegrationMetrics: no latency histograms")
     return metrics
