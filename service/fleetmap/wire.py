@@ -2,8 +2,10 @@
 
 `ScanMessage` is the JSON scan robots publish over Zenoh (and POST over REST); the compact binary
 encoding of the same message is in `fleetmap.codec`. The REST API, the Python client, the docs and
-`openapi/openapi.json` all use these models. Conversion to the engine's `Scan` happens here, in
-`ScanMessage.to_scan`, and nowhere else.
+`openapi/openapi.json` all use these models. A JSON message becomes the engine's `Scan` here, in
+`ScanMessage.to_scan`; the binary decoder (`codec.decode_binary`) and the journal's format
+(`storage_format.scan_from_blob`) build theirs from the same fields, with the same checks
+(`Scan`'s own).
 """
 
 from __future__ import annotations
