@@ -95,7 +95,7 @@ class RegistryCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         families = self._families()
         integrated, rejected, lost, duplicates, dropped, not_durable, online = families[:7]
-        tiles, memory, maps, depth, age, storage_ok = families[7:]
+        tiles, memory, maps, depth, age, storage_ok, budget_used, budget_limit = families[7:]
         entries = self.registry.list()
         for entry in entries:
             # Tiles and memory need no lock (see TileStore.memory_bytes); the counters need the registry's.
@@ -118,6 +118,11 @@ class RegistryCollector(Collector):
         age.add_metric([], oldest)
         if self.registry.durable is not None:
             storage_ok.add_metric([], 1.0 if self.registry.durable.health().ok else 0.0)
+        budget = self.registry.memory_budget
+        if budget is not None:
+            budget_used.add_metric([], budget.used)
+            if budget.limit is not None:
+                budget_limit.add_metric([], budget.limit)
         yield from families
 
     @staticmethod
@@ -154,6 +159,10 @@ class RegistryCollector(Collector):
             ),
             GaugeMetricFamily(
                 "fleetmap_storage_ok", "1 while durable storage is healthy (GET /healthz: storage)"
+            ),
+            GaugeMetricFamily("fleetmap_memory_used_bytes", "Bytes all maps' tile pools hold (--max-memory)"),
+            GaugeMetricFamily(
+                "fleetmap_memory_limit_bytes", "Bytes all maps' tile pools may hold (--max-memory)"
             ),
         )
 

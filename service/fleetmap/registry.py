@@ -33,6 +33,7 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.fair_queue import FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult
+from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.persistence import DurableStore
 from fleetmap.scan import Pose2D, ScanError
 from fleetmap.storage_format import scan_to_blob
@@ -162,6 +163,7 @@ class MapRegistry:
         durable: DurableStore | None = None,
         max_auto_maps: int = 256,
         max_robots_per_map: int = 1024,
+        memory_budget: MemoryBudget | None = None,
     ) -> None:
         self.default_config = default_config or MapConfig()
         self.auto_create = auto_create
@@ -174,6 +176,8 @@ class MapRegistry:
         #: The REST app's metrics set it when the registry was built without one.
         self.on_integrated = on_integrated
         self.durable = durable
+        #: Every map's tiles are charged to it (`TileStore.charge`); None: no limit, nothing counted.
+        self.memory_budget = memory_budget
         # Scans create maps, so scans with made-up map ids could create them without end: past this
         # many maps, only PUT /maps/{id} creates one.
         self.max_auto_maps = max_auto_maps
@@ -222,10 +226,17 @@ class MapRegistry:
                 robot.last_seq, robot.last_stamp, robot.last_pose = seq, stamp, scan.pose
                 robot.trail.append((scan.pose.x, scan.pose.y, scan.pose.theta))
                 entry.scans_integrated += 1
+            # Charged after the replay, which the budget must never refuse: those scans were accepted.
+            self._charged(gmap)
             self.maps[map_id] = entry
             log.info(
                 "restored map %s: %d tiles, %d journal scans replayed", map_id, len(gmap.store), len(journal)
             )
+
+    def _charged(self, gmap: GridMap) -> GridMap:
+        if self.memory_budget is not None:
+            gmap.store.charge(self.memory_budget)
+        return gmap
 
     def snapshot_all(self, only_overdue: bool = False) -> None:
         """Snapshot every map with journaled scans (only those past the row threshold if asked). A
@@ -267,7 +278,7 @@ class MapRegistry:
                         f"map {map_id!r} exists with a different configuration; delete it first"
                     )
                 return existing, False
-            entry = MapEntry(map_id, GridMap(config), next(self._generations))
+            entry = MapEntry(map_id, self._charged(GridMap(config)), next(self._generations))
             self.maps[map_id] = entry
             if self.durable is not None:
                 stored = self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
@@ -286,7 +297,7 @@ class MapRegistry:
         stored = None
         with self.lock:
             old = self.maps.pop(map_id, None)
-            entry = MapEntry(map_id, gmap, next(self._generations))
+            entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
             self.maps[map_id] = entry
             if self.durable is not None:
                 stored = self.durable.map_created(map_id, gmap, tiles)
@@ -446,7 +457,8 @@ class MapRegistry:
                         lambda exc: self._mark_not_durable(entry, job, exc),
                     )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
-            self._finish_rejected(job, str(exc))
+            # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422.
+            self._finish_rejected(job, str(exc), 507 if isinstance(exc, MemoryBudgetError) else 422)
             return
         entry.changes.record(result.changed_tiles)  # viewers see the change now
         if self.durable is None:
@@ -484,7 +496,7 @@ class MapRegistry:
         if job.future and not job.future.done():
             job.future.set_exception(IngestRejected(reason, 503))
 
-    def _finish_rejected(self, job: Job, reason: str) -> None:
+    def _finish_rejected(self, job: Job, reason: str, status: int = 422) -> None:
         with self.lock:
             entry = self.maps.get(job.map_id)
             if entry is not None and entry.generation == job.generation:
@@ -493,7 +505,7 @@ class MapRegistry:
                 robot.last_error = reason
                 entry.scans_rejected += 1
         if job.future and not job.future.done():
-            job.future.set_exception(IngestRejected(reason, 422))
+            job.future.set_exception(IngestRejected(reason, status))
 
     def backlog(self) -> tuple[int, float]:
         """(scans waiting for integration, seconds the oldest of them has waited). Cheap: one short

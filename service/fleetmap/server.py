@@ -41,6 +41,7 @@ from fleetmap.cli import CliError, load_config, run_command
 from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.database import StorageError
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
+from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS, DurableStore
 from fleetmap.scan import MAX_BEAMS
 
@@ -123,6 +124,17 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
             f"snapshot every changed map this often, seconds (default {SNAPSHOT_INTERVAL:g}; also "
             f"after {SNAPSHOT_ROWS} journaled scans, and at shutdown): shorter means a shorter journal to "
             "replay at start and sooner recovery of scans a failing disk could not journal"
+        ),
+    )
+    p.add_argument(
+        "--max-memory",
+        type=_memory_budget,
+        default="auto",
+        metavar="SIZE",
+        help=(
+            "bytes all maps' tiles may hold together, e.g. 4GiB; scans that would need more are "
+            f"refused (507) and their maps unchanged. 'auto' (default): {DEFAULT_SHARE * 100:.0f}%% of the "
+            "memory this process may use (its cgroup's limit, else the machine's); 'none': no limit"
         ),
     )
     p.add_argument(
@@ -228,6 +240,14 @@ def _is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return host == "localhost"
+
+
+def _memory_budget(text: str) -> MemoryBudget:
+    """An argparse `type`: `--max-memory`'s budget (see `memory_budget.parse_size`)."""
+    try:
+        return MemoryBudget(parse_size(text))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _seconds_between(low: float, high: float) -> Callable[[str], float]:
@@ -426,6 +446,7 @@ def run(args: argparse.Namespace) -> int:
             workers=args.workers,
             on_integrated=_integration_hook(),
             durable=durable,
+            memory_budget=args.max_memory,
         )
         ingest = ZenohIngest(
             registry,
@@ -449,11 +470,14 @@ def run(args: argparse.Namespace) -> int:
             app = create_app(registry, settings=settings)
             if tokens is not None:
                 app.add_middleware(AuthMiddleware, tokens=tokens, require_read=args.require_read_token)
+            budget = args.max_memory
             log.info(
-                "API tokens: %s; maps: %s",
+                "API tokens: %s; maps: %s, their tiles within %s (%.0f MiB held)",
                 "required to write" + (" and read" if args.require_read_token else "") if tokens
                 else "NONE: anyone who can reach the API may change maps (loopback only unless --insecure)",
                 f"durable in {args.data_dir}" if durable else "in memory only (--in-memory)",
+                "no limit" if budget.limit is None else f"{budget.limit / 2**20:.0f} MiB (--max-memory)",
+                budget.used / 2**20,
             )  # fmt: skip
             # http="auto" parses HTTP with httptools (a dependency; C) rather than h11 (pure Python):
             # about a quarter less CPU, and GIL time the integration workers do not wait for, per

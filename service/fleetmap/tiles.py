@@ -13,14 +13,19 @@ A `TileStore` is not thread-safe on its own: `GridMap` serialises writers and re
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fleetmap.config import LayerName
 from fleetmap.kernels.tile_index import index_has_room, index_insert, new_index
 from fleetmap.kernels.update import UNKNOWN_COUNT, UNKNOWN_LOG_ODDS, UNKNOWN_TSDF, bump_versions, init_tile
+
+if TYPE_CHECKING:
+    from fleetmap.memory_budget import MemoryBudget
 
 TileKey = tuple[int, int]
 
@@ -69,6 +74,10 @@ class TileStore:
         self.index = new_index(0)
         self.versions = np.zeros(0, dtype=np.int64)
         self._version_clock = 0
+        #: The shared budget this store's pools are charged to (`charge`), and the bytes charged, in a
+        #: list that outlives the store so that its finalizer can hand them back.
+        self.budget: MemoryBudget | None = None
+        self._charged = [0]
         self._grow(min(16, max_tiles))
 
     # -- structure -------------------------------------------------------------------------------
@@ -111,7 +120,7 @@ class TileStore:
             )
         needed = len(self.keys) + len(keys)
         if needed > self._capacity:
-            self._grow(min(max(needed, 2 * self._capacity), self.max_tiles))
+            self._grow(min(max(needed, 2 * self._capacity), self.max_tiles), needed)
         first = len(self.keys)
         for key in keys:
             slot = len(self.keys)
@@ -135,7 +144,26 @@ class TileStore:
             self.slots[key] = len(self.keys)
             self.keys.append(key)
 
-    def _grow(self, capacity: int) -> None:
+    def charge(self, budget: MemoryBudget) -> None:
+        """Count this store's pools against `budget` from now on: what they hold already (even past
+        the budget's limit: that memory exists), and every growth before it allocates. A growth the
+        budget cannot cover stops short, at the tiles a scan needs; when even those do not fit,
+        `create` raises `MemoryBudgetError` and changes nothing. The bytes go back to the budget
+        when the store is freed."""
+        if self.budget is not None:
+            raise ValueError("this tile store is charged to a budget already")
+        self.budget = budget
+        self._charged[0] = self.memory_bytes()
+        budget.reserve_anyway(self._charged[0])
+        weakref.finalize(self, budget.release, self._charged)
+
+    def _grow(self, capacity: int, needed: int = 0) -> None:
+        """Make room for `capacity` tiles (at least `needed`, fewer when the budget runs short)."""
+        if self.budget is not None:
+            per_tile = self.memory_bytes() // self._capacity  # _capacity > 0: the store starts with room
+            extra = self.budget.reserve(capacity - self._capacity, needed - self._capacity, per_tile)
+            self._charged[0] += extra * per_tile
+            capacity = self._capacity + extra
         t = self.tile_size
         for a in self.arrays:
             new = np.empty((capacity, t, t), dtype=a.dtype)

@@ -22,6 +22,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from fleetmap.api_models import ErrorItem, ErrorResponse
 from fleetmap.codec import DecodeError
 from fleetmap.grid_map import LayerUnavailableError
+from fleetmap.memory_budget import MemoryBudgetError
 from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
 from fleetmap.tile_render import TileError
@@ -36,6 +37,7 @@ _DESCRIPTIONS = {
     413: "The request asks for too much at once",
     422: "Invalid request: bad parameter, body or id",
     503: "The service is overloaded, or could not store a change: retry later",
+    507: "The service's memory budget for map tiles (--max-memory) is used up",
 }
 
 
@@ -218,6 +220,8 @@ def install(app: FastAPI) -> None:
         app.add_exception_handler(exc_type, _answer(status))
     # Storage, not the client: the change took effect but is not durable; the client may retry.
     app.add_exception_handler(NotDurable, _answer(503))
+    # Nor is the service's memory budget (a TileLimitError, which is the client's map's own cap).
+    app.add_exception_handler(MemoryBudgetError, _answer(507))
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception) -> JSONResponse:

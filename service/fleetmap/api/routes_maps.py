@@ -170,7 +170,7 @@ _SCAN_BODY = {
     summary="Integrate one scan",
     response_model=ScanResult,
     openapi_extra=_SCAN_BODY,
-    responses=error_responses(404, 413, 422, 503),
+    responses=error_responses(404, 413, 422, 503, 507),
 )
 async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: State) -> ScanResult:
     """The scan a robot would publish over Zenoh, for clients without Zenoh. Answers once the scan is
@@ -182,7 +182,9 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
     (counted on the robot as rejected, with the reason as its `last_error`); 503 the robot's ingest
     queue is full, the integration did not finish within the server's timeout (the scan is still
     integrated), or storage failed: the scan was applied but its journal commit failed (counted on
-    the robot as `not_durable`; the map's next snapshot saves it; see `GET /healthz`)."""
+    the robot as `not_durable`; the map's next snapshot saves it; see `GET /healthz`); 507 the
+    scan needs new tiles that the service's memory budget for all maps (`--max-memory`) cannot
+    hold: it is refused whole, counted as rejected, and the map is unchanged."""
     registry = state.registry
     body = await request.body()
     try:

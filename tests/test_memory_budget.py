@@ -1,0 +1,180 @@
+"""The shared memory budget (`--max-memory`): maps' tiles stay within it, a scan that needs more is
+refused whole with its map unchanged, freed maps give their bytes back, and the real service
+answers such a scan 507 and goes on serving."""
+
+from __future__ import annotations
+
+import gc
+import json
+
+import httpx
+import numpy as np
+import pytest
+from service_process import ServiceProcess
+
+from fleetmap.codec import WireScan, encode_json
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
+from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, parse_size
+from fleetmap.persistence import DurableStore
+from fleetmap.registry import IngestRejected, MapRegistry
+from fleetmap.scan import Scan
+
+#: Small tiles (0.8 m) and one layer, so that a few scans need many tiles of 1032 bytes each.
+SMALL = MapConfig(tile_size=16, layers=("occupancy",))
+TILE_BYTES = 16 * 16 * 4 + 8
+
+
+def scan_at(x: float) -> Scan:
+    return Scan.from_fan((x, 0.0, 0.0), -1.5, 0.1, [2.0] * 31, 0.0, 30.0)
+
+
+def state(gmap: GridMap) -> tuple:
+    """Everything a refused scan must leave as it was."""
+    bounds = gmap.known_bounds()
+    cells = None if bounds is None else gmap.region("log_odds", *bounds).tobytes()
+    return len(gmap.store), gmap.store.clock, bounds, cells, gmap.memory_bytes()
+
+
+def test_parse_size() -> None:
+    assert parse_size("512MiB") == 512 * 2**20
+    assert parse_size("2G") == parse_size("2 gib") == parse_size("2GB") == 2 * 2**30
+    assert parse_size("1.5M") == 3 * 2**19
+    assert parse_size("none") is None
+    assert parse_size("auto") > 0  # type: ignore[operator]
+    for bad in ("12x", "-1G", "", "100"):
+        with pytest.raises(ValueError):
+            parse_size(bad)
+
+
+def test_maps_share_the_budget_and_a_refused_scan_changes_nothing() -> None:
+    a, b = GridMap(SMALL), GridMap(SMALL)
+    start = a.memory_bytes()  # 16 tiles of room from the start
+    budget = MemoryBudget(2 * start + 24 * TILE_BYTES)
+    a.store.charge(budget)
+    b.store.charge(budget)
+    assert budget.used == 2 * start
+    refused = None
+    for k in range(200):
+        before = state(a)
+        try:
+            a.integrate(scan_at(0.5 * k))
+        except MemoryBudgetError as exc:
+            refused = k
+            assert "memory budget" in str(exc) and "--max-memory" in str(exc)
+            assert state(a) == before  # the scan was refused whole
+            break
+        assert budget.used <= budget.limit  # type: ignore[operator]
+        assert budget.used == a.memory_bytes() + b.memory_bytes()
+    assert refused is not None and refused > 2
+    # The pools stopped growing short of doubling, at what the budget allowed.
+    assert a.memory_bytes() < 2 * 2 * start
+    # Another map can not grow either; freeing one gives its bytes back to the others.
+    with pytest.raises(MemoryBudgetError):
+        for k in range(40):
+            b.integrate(scan_at(-0.5 * k))
+    held_by_b = b.memory_bytes()
+    del b
+    gc.collect()
+    assert budget.used == a.memory_bytes()
+    a.integrate(scan_at(0.5 * refused))  # fits now
+    assert budget.used == a.memory_bytes() and a.memory_bytes() <= budget.limit + held_by_b  # type: ignore[operator]
+
+
+def test_the_registry_refuses_past_the_budget_with_507_and_counts_it() -> None:
+    start = GridMap(SMALL).memory_bytes()
+    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(start + 4 * TILE_BYTES))
+    registry.start()
+    try:
+        status = 200
+        for k in range(100):
+            future = registry.submit("m", "r", WireScan(k, 0.0, scan_at(0.5 * k)), wait=True)
+            assert future is not None
+            try:
+                future.result(10)
+            except IngestRejected as exc:
+                status = exc.status
+                assert "memory budget" in exc.reason
+                break
+        assert status == 507
+        robot = registry.get("m").robots["r"]
+        assert robot.scans_rejected == 1 and "memory budget" in (robot.last_error or "")
+    finally:
+        registry.close()
+
+
+def test_the_service_answers_507_past_max_memory_and_keeps_serving(tmp_path) -> None:
+    """A real service with a budget of 24 MiB: the default map (3 layers, 1.3 MiB a tile) starts with
+    16 tiles (21 MiB), so a robot roaming far needs more and is refused; the map and the service
+    stay as they were, and /metrics shows the budget."""
+    with ServiceProcess(tmp_path, ["--in-memory", "--max-memory", "24MiB"]) as svc:
+        url = svc.base_url
+        statuses = []
+        for k in range(12):
+            scan = Scan.from_fan((40.0 * k, 0.0, 0.0), -1.5, 0.1, [2.0] * 31, 0.0, 30.0)
+            r = httpx.post(
+                f"{url}/maps/far/scans",
+                params={"robot_id": "r"},
+                json=json.loads(encode_json(scan, k)),
+                timeout=30,
+            )
+            statuses.append(r.status_code)
+            if r.status_code != 200:
+                assert r.status_code == 507 and "memory budget" in r.json()["detail"], r.text
+                break
+        assert statuses[0] == 200 and statuses[-1] == 507
+        info = httpx.get(f"{url}/maps/far", timeout=10).json()["stats"]
+        assert info["scans_integrated"] == len(statuses) - 1 and info["scans_rejected"] == 1
+        metrics = httpx.get(f"{url}/metrics", timeout=10).text
+        samples = dict(
+            line.rsplit(" ", 1) for line in metrics.splitlines() if line.startswith("fleetmap_memory_")
+        )
+        assert float(samples["fleetmap_memory_limit_bytes"]) == 24 * 2**20
+        assert float(samples["fleetmap_memory_used_bytes"]) == info["memory_bytes"] <= 24 * 2**20
+        # Still serving: a scan near what is mapped needs no new tile and is integrated.
+        near = Scan.from_fan((0.0, 0.0, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0)
+        r = httpx.post(
+            f"{url}/maps/far/scans",
+            params={"robot_id": "r"},
+            json=json.loads(encode_json(near, 100)),
+            timeout=30,
+        )
+        assert r.status_code == 200 and r.json()["status"] == "integrated"
+        assert np.isfinite(
+            np.array(
+                httpx.get(f"{url}/maps/far/cell", params={"x": 0.5, "y": 0.0}, timeout=10).json()["log_odds"]
+            )
+        )
+
+
+def test_a_restart_restores_maps_past_the_budget_and_then_refuses_growth(tmp_path) -> None:
+    """The journal's scans were accepted: replaying them at start is never refused, even when the
+    restored maps hold more than the (new, smaller) budget; they are counted, and growth waits."""
+    scans = [scan_at(0.5 * k) for k in range(12)]
+    first = MapRegistry(SMALL, durable=DurableStore(tmp_path))
+    first.start()
+    try:
+        for k, scan in enumerate(scans):
+            future = first.submit("m", "r", WireScan(k, 0.0, scan), wait=True)
+            assert future is not None
+            future.result(10)
+        held, tiles = first.get("m").gmap.memory_bytes(), len(first.get("m").gmap.store)
+    finally:
+        # As a crash would leave it: every scan journaled, no snapshot, so the restart replays them.
+        first.queue.close()
+        first.durable.close()  # type: ignore[union-attr]
+    budget = MemoryBudget(held // 2)
+    again = MapRegistry(SMALL, durable=DurableStore(tmp_path), memory_budget=budget)
+    again.start()
+    try:
+        gmap = again.get("m").gmap
+        assert again.get("m").scans_integrated == len(scans)
+        assert len(gmap.store) == tiles
+        assert budget.used == gmap.memory_bytes() > budget.limit  # type: ignore[operator]
+        future = again.submit("m", "r", WireScan(100, 0.0, scan_at(-50.0)), wait=True)
+        assert future is not None
+        with pytest.raises(IngestRejected) as refused:
+            future.result(10)
+        assert refused.value.status == 507
+    finally:
+        again.close()
