@@ -24,7 +24,8 @@ from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 from test_api_support import RunningApi, fan_scan, room_scans, running_api
 
-from fleetmap.api import ApiSettings
+from fleetmap import codec as codec_module
+from fleetmap.api import ApiSettings, routes_maps
 from fleetmap.api_models import cells_json, cells_response
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
@@ -510,6 +511,46 @@ def test_events_tiles_robots_resume_and_delete(api: RunningApi) -> None:
         assert reader.next("tiles")[0] == {"version": 2, "reset": True}
     finally:
         reader.close()
+
+
+def test_a_large_scan_body_is_decoded_off_the_event_loop(
+    api: RunningApi, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Decoding a few MB of JSON takes tens of ms; other requests must not wait for it. The real
+    decoder is wrapped so that it holds on until the test has seen /healthz answered meanwhile."""
+    entered, release = threading.Event(), threading.Event()
+    real = codec_module.decode
+
+    def held(body: bytes, content_type: str) -> object:
+        if len(body) > routes_maps.DECODE_ON_LOOP_BYTES:
+            entered.set()
+            release.wait(10)
+        return real(body, content_type)
+
+    monkeypatch.setattr(codec_module, "decode", held)
+    scan = fan_scan(0.0, 0.0, 0.0, [1.0] * 16000)
+    body = encode_json(scan, 0).replace(b",", b",         ")  # the same scan, padded past the threshold
+    assert len(body) > routes_maps.DECODE_ON_LOOP_BYTES
+    answers: queue.Queue[httpx.Response] = queue.Queue()
+    poster = threading.Thread(
+        target=lambda: answers.put(
+            api.client.post(
+                "/maps/big/scans",
+                params={"robot_id": "r"},
+                content=body,
+                headers={"content-type": JSON_ENCODING},
+            )  # fmt: skip
+        )
+    )
+    poster.start()
+    try:
+        assert entered.wait(10)
+        assert api.client.get("/healthz", timeout=5).status_code == 200  # while the body decodes
+    finally:
+        release.set()
+        poster.join(30)
+    answer = answers.get(timeout=1)
+    assert answer.status_code == 200 and answer.json()["status"] == "integrated", answer.text
 
 
 # -- metrics ------------------------------------------------------------------------------------------
