@@ -102,13 +102,7 @@ class Health(_Model):
 
 
 def storage_status(health: StorageHealth) -> StorageStatus:
-    return StorageStatus(
-        ok=health.ok,
-        last_error=health.last_error,
-        last_error_at=health.last_error_at,
-        scans_not_durable=health.scans_not_durable,
-        maps_awaiting_snapshot=list(health.maps_awaiting_snapshot),
-    )
+    return StorageStatus.model_validate(health, from_attributes=True)
 
 
 # -- maps -------------------------------------------------------------------------------------------

@@ -454,7 +454,7 @@ class MapRegistry:
                     self.durable.journal(
                         job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
                         lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
-                        lambda exc: self._mark_not_durable(entry, job, exc),
+                        lambda exc: self._mark_not_durable(job, exc),
                     )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
             # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422.
@@ -480,7 +480,7 @@ class MapRegistry:
         if job.future:
             job.future.set_result(result)
 
-    def _mark_not_durable(self, entry: MapEntry, job: Job, exc: Exception) -> None:
+    def _mark_not_durable(self, job: Job, exc: Exception) -> None:
         """The scan is applied but its journal commit failed: count it and answer its caller 503.
         Readers already see it; the map's next snapshot makes it durable once storage works."""
         reason = (
@@ -488,22 +488,22 @@ class MapRegistry:
             "snapshot saves it once storage works again, and a retry with the same seq is ignored as a "
             "duplicate; see GET /healthz"
         )
-        with self.lock:
-            if entry.generation == job.generation:
-                robot = entry.robot(job.robot_id)
-                robot.not_durable += 1
-                robot.last_error = reason
-        if job.future and not job.future.done():
-            job.future.set_exception(IngestRejected(reason, 503))
+        self._finish_rejected(job, reason, 503, applied=True)
 
-    def _finish_rejected(self, job: Job, reason: str, status: int = 422) -> None:
+    def _finish_rejected(self, job: Job, reason: str, status: int = 422, applied: bool = False) -> None:
+        """A scan that does not count as integrated: count it on its robot (as `not_durable` if it
+        was `applied`, else as rejected) with `reason` as its last error, and answer its caller
+        `status`."""
         with self.lock:
             entry = self.maps.get(job.map_id)
             if entry is not None and entry.generation == job.generation:
                 robot = entry.robot(job.robot_id)
-                robot.scans_rejected += 1
                 robot.last_error = reason
-                entry.scans_rejected += 1
+                if applied:
+                    robot.not_durable += 1
+                else:
+                    robot.scans_rejected += 1
+                    entry.scans_rejected += 1
         if job.future and not job.future.done():
             job.future.set_exception(IngestRejected(reason, status))
 

@@ -34,7 +34,7 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from fleetmap.auth import AuthMiddleware, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, run_command
@@ -250,34 +250,30 @@ def _memory_budget(text: str) -> MemoryBudget:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def _seconds_between(low: float, high: float) -> Callable[[str], float]:
-    """An argparse `type` accepting a number of seconds in [low, high]."""
+N = TypeVar("N", int, float)
 
-    def parse(text: str) -> float:
+
+def _number_between(kind: Callable[[str], N], low: N, high: N, what: str) -> Callable[[str], N]:
+    """An argparse `type` accepting `kind(text)` (`what`, for the message) in [low, high]."""
+
+    def parse(text: str) -> N:
         try:
-            value = float(text)
+            value = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
         if not low <= value <= high:  # NaN fails too
-            raise argparse.ArgumentTypeError(f"must be between {low:g} and {high:g} seconds, got {text}")
+            raise argparse.ArgumentTypeError(f"must be between {low:g} and {high:g}, got {text}")
         return value
 
     return parse
+
+
+def _seconds_between(low: float, high: float) -> Callable[[str], float]:
+    return _number_between(float, low, high, "a number of seconds")
 
 
 def _int_between(low: int, high: int) -> Callable[[str], int]:
-    """An argparse `type` accepting whole numbers in [low, high]."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"must be between {low} and {high}, got {value}")
-        return value
-
-    return parse
+    return _number_between(int, low, high, "a whole number")
 
 
 def parse_http(text: str) -> tuple[str, int]:

@@ -22,7 +22,6 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from fleetmap.api_models import ErrorItem, ErrorResponse
 from fleetmap.codec import DecodeError
 from fleetmap.grid_map import LayerUnavailableError
-from fleetmap.memory_budget import MemoryBudgetError
 from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
 from fleetmap.tile_render import TileError
@@ -220,8 +219,6 @@ def install(app: FastAPI) -> None:
         app.add_exception_handler(exc_type, _answer(status))
     # Storage, not the client: the change took effect but is not durable; the client may retry.
     app.add_exception_handler(NotDurable, _answer(503))
-    # Nor is the service's memory budget (a TileLimitError, which is the client's map's own cap).
-    app.add_exception_handler(MemoryBudgetError, _answer(507))
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception) -> JSONResponse:
