@@ -254,7 +254,9 @@ def test_region_npy_json_png_match_engine(api: RunningApi, engine_map: GridMap) 
         r = api.client.get("/maps/eng/region", params={**bounds, "layer": layer, "format": "json"})
         body = r.json()
         assert body["window"] == [i0, j0, i1, j1] and body["shape"] == [j1 - j0, i1 - i0]
-        assert body["origin"] == [i0 * RES, j0 * RES] and body["layer"] == layer
+        # The corner as a decimal (-3.8, not the product's -3.8000000000000003).
+        assert body["origin"] == [float(f"{i0 * RES:.2f}"), float(f"{j0 * RES:.2f}")]
+        assert body["layer"] == layer
         flat = [v for row in body["values"] for v in row]
         if want.dtype.kind in "ui":  # counts and state codes are JSON integers
             assert all(type(v) is int for v in flat), layer
@@ -370,7 +372,7 @@ def test_export_ros_zip_and_png(api: RunningApi, engine_map: GridMap) -> None:
     i0, j0, i1, j1 = engine_map.known_bounds()  # type: ignore[misc]
     i0, j0, i1, j1 = i0 - 2, j0 - 2, i1 + 2, j1 + 2  # the default margin, as `fleetmap build`
     assert meta["image"] == "map.pgm" and meta["mode"] == "trinary" and meta["resolution"] == RES
-    assert meta["origin"] == [i0 * RES, j0 * RES, 0.0] and meta["negate"] == 0
+    assert meta["origin"] == [float(f"{i0 * RES:.2f}"), float(f"{j0 * RES:.2f}"), 0.0] and meta["negate"] == 0
     assert (meta["occupied_thresh"], meta["free_thresh"]) == (0.65, 0.196)
     magic, size, maxval, data = pgm.split(b"\n", 3)
     width, height = map(int, size.split())

@@ -24,7 +24,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from fleetmap.config import MapConfig
-from fleetmap.grid_map import STATE_NAMES, GridMap
+from fleetmap.grid_map import STATE_NAMES, GridMap, cell_edge
 from fleetmap.persistence import StorageHealth
 from fleetmap.registry import MapEntry, RobotState
 from fleetmap.scan import Pose2D
@@ -464,7 +464,7 @@ def region_json(layer: str, window: CellWindow, resolution: float, values: np.nd
         layer=layer,
         window=window,
         resolution=resolution,
-        origin=[i0 * resolution, j0 * resolution],
+        origin=[cell_edge(i0, resolution), cell_edge(j0, resolution)],
         shape=[int(values.shape[0]), int(values.shape[1])],
         values=rows,
     )

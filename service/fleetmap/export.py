@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap
+from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap, cell_edge
 
 #: map_server's trinary pixel values and the thresholds that read them back unchanged.
 PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN = 0, 254, 205
@@ -41,7 +41,7 @@ class Window:
 
     def origin(self, resolution: float) -> tuple[float, float]:
         """Map point of the window's lower-left corner."""
-        return self.i0 * resolution, self.j0 * resolution
+        return cell_edge(self.i0, resolution), cell_edge(self.j0, resolution)
 
 
 def known_window(gmap: GridMap, margin: int = 0) -> Window | None:

@@ -58,6 +58,13 @@ class LayerUnavailableError(ValueError):
     """A read asked for a layer the map does not keep or that does not exist."""
 
 
+def cell_edge(index: int, resolution: float) -> float:
+    """The map coordinate where cell `index` begins (`index * resolution`), rounded to the nanometre
+    so that exports say -20.2 rather than the product's -20.200000000000003. The rounding moves the
+    edge by far less than any resolution a map may have."""
+    return round(index * resolution, 9)
+
+
 class IntegrationResult(NamedTuple):
     """What one scan did: cell updates applied, and the tiles whose contents changed. (A named
     tuple: a frozen dataclass took 0.36 us to make, about 1 % of an Intel-dataset scan.)"""
