@@ -1,0 +1,267 @@
+"""`fleetmap build`, run as the installed command in a subprocess, as a user runs it.
+
+The expected maps come from the issue's definitions (cell boundaries, the octomap preset's
+log-odds, nav2's trinary thresholds and row order), not from the engine's own helpers; on the real
+Intel log the outputs are compared cell by cell with a map the library builds from the same file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+import yaml
+from PIL import Image
+
+from fleetmap.config import MapConfig
+from fleetmap.datasets import load_dataset
+from fleetmap.grid_map import GridMap
+
+RES = 0.05
+L_HIT, L_MISS = math.log(0.7 / 0.3), math.log(0.4 / 0.6)  # the default (octomap) preset
+
+# The test scene: a sensor at (X, Y) facing +y, with FLASER's two beams of a 2-beam scan at -90 deg
+# (so along +x, 1 m) and 0 deg (along +y, 2 m). X and Y are chosen so that the exported window's
+# corner, cell -404 x cell -469, is a product with rounding noise: -404 * 0.05 = -20.200000000000003.
+X, Y = -20.09, -23.34
+I_S, J_S = -402, -467  # the sensor's cell: floor(X / RES), floor(Y / RES)
+I_HIT, J_HIT = -382, -427  # floor((X + 1) / RES) and floor((Y + 2) / RES)
+SCANS = 4  # four misses take a cell below nav2's free threshold (p = 0.165 < 0.196)
+
+
+def flaser(ranges: list[float], x: float, y: float, theta: float) -> str:
+    """A FLASER line (the corrected pose twice, as in the real logs)."""
+    pose = f"{x!r} {y!r} {theta!r}"
+    return f"FLASER {len(ranges)} {' '.join(f'{r:g}' for r in ranges)} {pose} {pose} 1.0 testhost 1.0"
+
+
+def scene_log(path: Path, scans: int = SCANS, extra: tuple[str, ...] = ()) -> Path:
+    path.write_text("\n".join([flaser([1.0, 2.0], X, Y, math.pi / 2)] * scans + list(extra)) + "\n")
+    return path
+
+
+def fleetmap_command() -> list[str]:
+    """The console script `make` installs beside the interpreter, else the module."""
+    script = Path(sys.executable).with_name("fleetmap")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "fleetmap.cli"]
+
+
+def build(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*fleetmap_command(), "build", *map(str, args)],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONWARNINGS": "default"},
+    )  # fmt: skip
+
+
+def read_pgm(path: Path) -> np.ndarray:
+    magic, size, maxval, data = path.read_bytes().split(b"\n", 3)
+    width, height = map(int, size.split())
+    assert (magic, maxval) == (b"P5", b"255")
+    return np.frombuffer(data, dtype=np.uint8).reshape(height, width)
+
+
+def test_build_writes_the_nav2_map_image_layers_and_meta(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    done = build(scene_log(tmp_path / "scene.log"), "--out", out, "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert f"{SCANS} scans integrated (0 skipped)" in done.stdout
+    written = sorted(p.name for p in out.iterdir())
+    assert written == sorted(
+        ["map.yaml", "map.pgm", "map.png", "meta.json", "log_odds.npy", "hits.npy", "misses.npy",
+         "tsdf.npy", "tsdf_weight.npy"]
+    )  # fmt: skip
+    assert all(f"wrote {out / name}" in done.stdout for name in written)
+
+    # The window: every cell observed in any layer plus a margin of 2 cells. The TSDF band reaches
+    # past the returns (by its truncation, 0.2 m), so the far edges come from tsdf.npy.
+    info = json.loads((out / "meta.json").read_text())
+    i0, j0, i1, j1 = info["cell_window"]
+    tsdf_j, tsdf_i = np.nonzero(~np.isnan(np.load(out / "tsdf.npy")))
+    assert (i0, j0) == (I_S - 2, J_S - 2)
+    assert (i1, j1) == (i0 + tsdf_i.max() + 3, j0 + tsdf_j.max() + 3)
+    assert I_HIT + 3 < i1 <= I_HIT + 3 + 0.2 / RES + 1 and J_HIT + 3 < j1 <= J_HIT + 3 + 0.2 / RES + 1
+    ny, nx = j1 - j0, i1 - i0
+    occupied = {(I_HIT, J_S), (I_S, J_HIT)}
+    free = {(i, J_S) for i in range(I_S, I_HIT)} | {(I_S, j) for j in range(J_S, J_HIT)}
+
+    meta = yaml.safe_load((out / "map.yaml").read_text())
+    assert meta == {
+        "image": "map.pgm", "mode": "trinary", "resolution": RES, "origin": [-20.2, -23.45, 0.0],
+        "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.196,
+    }  # fmt: skip
+    assert "origin: [-20.2, -23.45, 0.0]" in (out / "map.yaml").read_text()  # no rounding noise
+    assert meta["origin"][:2] == pytest.approx([i0 * RES, j0 * RES], abs=1e-9)
+
+    # map.pgm: trinary, top row = highest y.
+    pgm = read_pgm(out / "map.pgm")
+    want = np.full((ny, nx), 205, dtype=np.uint8)
+    for cells, value in ((free, 254), (occupied, 0)):
+        for i, j in cells:
+            want[ny - 1 - (j - j0), i - i0] = value
+    np.testing.assert_array_equal(pgm, want)
+
+    # log_odds.npy: float32, (ny, nx), row 0 = lowest y, NaN where unknown.
+    log_odds = np.load(out / "log_odds.npy")
+    assert log_odds.dtype == np.float32 and log_odds.shape == (ny, nx)
+    expected = np.full((ny, nx), np.nan)
+    for cells, value in ((free, SCANS * L_MISS), (occupied, SCANS * L_HIT)):
+        for i, j in cells:
+            expected[j - j0, i - i0] = value
+    np.testing.assert_allclose(log_odds, expected, rtol=1e-6)
+
+    # The count layers, in the same window.
+    hits, misses = np.load(out / "hits.npy"), np.load(out / "misses.npy")
+    assert hits[J_S - j0, I_HIT - i0] == SCANS and misses[J_S - j0, I_HIT - i0] == 0
+    assert misses[J_S - j0, I_S - i0] == SCANS and hits.sum() == 2 * SCANS
+    assert np.load(out / "tsdf.npy").shape == (ny, nx)
+
+    # map.png: grayscale, darker = more likely occupied, top row = highest y, unknown mid-gray.
+    with Image.open(out / "map.png") as image:
+        assert image.mode == "L" and image.size == (nx, ny)
+        png = np.asarray(image)
+    hit_px = png[ny - 1 - (J_HIT - j0), I_S - i0]
+    free_px = png[ny - 1 - (J_S - j0), I_S + 5 - i0]
+    unknown_px = png[0, 0]
+    assert hit_px < unknown_px < free_px and unknown_px == 128
+
+    assert info["resolution"] == RES and info["origin"] == [-20.2, -23.45]
+    assert info["cell_window"] == [i0, j0, i1, j1] and info["shape"] == [ny, nx]
+    assert info["layers"] == ["log_odds", "hits", "misses", "tsdf", "tsdf_weight"]
+    assert MapConfig.model_validate(info["config"]) == MapConfig()
+
+
+def test_build_options_change_the_map(tmp_path: Path) -> None:
+    log = scene_log(tmp_path / "scene.log")
+    (tmp_path / "occ.json").write_text(json.dumps({"layers": ["occupancy"], "resolution": 0.2}))
+
+    # --config, with --resolution given on the command line winning over the file's.
+    config = tmp_path / "occ.json"
+    done = build(log, "--out", tmp_path / "a", "--config", config, "--resolution", "0.1", "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == [
+        "log_odds.npy", "map.pgm", "map.png", "map.yaml", "meta.json",
+    ]  # fmt: skip
+    info = json.loads((tmp_path / "a" / "meta.json").read_text())
+    assert info["resolution"] == 0.1 and info["layers"] == ["log_odds"]
+    # At 0.1 m the sensor is in cell (-201, -234); the beams end in column -191 and row -214.
+    assert info["cell_window"] == [-201 - 2, -234 - 2, -191 + 3, -214 + 3]
+
+    def known(out: Path) -> set[tuple[int, int]]:
+        info = json.loads((out / "meta.json").read_text())
+        i0, j0 = info["cell_window"][:2]
+        lo = np.load(out / "log_odds.npy")
+        return {(int(i) + i0, int(j) + j0) for j, i in zip(*np.nonzero(~np.isnan(lo)), strict=True)}
+
+    def hits(out: Path) -> set[tuple[int, int]]:
+        info = json.loads((out / "meta.json").read_text())
+        i0, j0 = info["cell_window"][:2]
+        lo = np.load(out / "log_odds.npy")
+        return {(int(i) + i0, int(j) + j0) for j, i in zip(*np.nonzero(lo > 0), strict=True)}
+
+    beam_x = {(i, J_S) for i in range(I_S, I_HIT + 1)}
+    beam_y = {(I_S, j) for j in range(J_S, J_HIT + 1)}
+
+    # --range-max 1.5: the 2 m beam is "no return", ignored by default.
+    done = build(log, "--out", tmp_path / "b", "--range-max", "1.5", "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert known(tmp_path / "b") == beam_x and hits(tmp_path / "b") == {(I_HIT, J_S)}
+
+    # ... and with --no-return-range 1: its first metre cleared, with no hit.
+    done = build(log, "--out", tmp_path / "c", "--range-max", "1.5", "--no-return-range", "1", "--quiet")
+    assert done.returncode == 0, done.stderr
+    first_metre = {(I_S, j) for j in range(J_S, math.floor((Y + 1.0) / RES) + 1)}
+    assert known(tmp_path / "c") == beam_x | first_metre and hits(tmp_path / "c") == {(I_HIT, J_S)}
+
+    # --range-min 1.5: the 1 m reading is ignored.
+    done = build(log, "--out", tmp_path / "d", "--range-min", "1.5", "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert known(tmp_path / "d") == beam_y and hits(tmp_path / "d") == {(I_S, J_HIT)}
+
+
+def test_build_reads_the_seed_matlab_convention(tmp_path: Path) -> None:
+    """The .mat of the course: robot at (1, 2) in its y-down frame, a 3 m beam at +90 degrees. Its
+    end point lies three metres "up" the image, at map point (1, 1) once y points up."""
+    path = tmp_path / "course.mat"
+    scipy.io.savemat(path, {"ranges": [[3.0]], "scanAngles": [[math.pi / 2]], "pose": [[1.0], [2.0], [0.0]]})
+    done = build(path, "--out", tmp_path / "out", "--quiet", "--range-max", "10")
+    assert done.returncode == 0, done.stderr
+    info = json.loads((tmp_path / "out" / "meta.json").read_text())
+    i0, j0 = info["cell_window"][:2]
+    lo = np.load(tmp_path / "out" / "log_odds.npy")
+    (j,), (i,) = np.nonzero(lo > 0)
+    assert (i + i0, j + j0) == (20, 20) and lo[j, i] == pytest.approx(L_HIT)
+    # The sensor's cell, (1, -2) in map coordinates, is a miss.
+    assert lo[-40 - j0, 20 - i0] == pytest.approx(L_MISS)
+
+
+def test_build_shows_progress_unless_quiet(tmp_path: Path) -> None:
+    log = scene_log(tmp_path / "long.log", scans=300)
+    loud = build(log, "--out", tmp_path / "a")
+    assert loud.returncode == 0 and "300/300" in loud.stderr and "scan" in loud.stderr
+    quiet = build(log, "--out", tmp_path / "b", "--quiet")
+    assert quiet.returncode == 0 and quiet.stderr == ""
+
+
+def test_build_skips_scans_it_cannot_integrate_and_says_so(tmp_path: Path) -> None:
+    far = flaser([1.0, 2.0], 1e13, 0.0, 0.0)  # beyond the map's cell index range
+    done = build(scene_log(tmp_path / "scene.log", extra=(far,)), "--out", tmp_path / "out", "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert f"{SCANS} scans integrated (1 skipped)" in done.stdout
+    assert "skipped a scan" in done.stderr
+
+
+@pytest.mark.parametrize(
+    ("make_args", "words"),
+    [
+        (lambda d: [d / "missing.log"], "missing.log"),
+        (lambda d: [scene_log(d / "s.log"), "--resolution", "0"], "resolution"),
+        (lambda d: [scene_log(d / "s.log"), "--config", d / "nope.json"], "cannot read config"),
+        (lambda d: [scene_log(d / "s.log"), "--range-min", "3", "--range-max", "2"], "range"),
+        # Every reading below range_min: no observed cell, nothing to export.
+        (lambda d: [scene_log(d / "s.log"), "--range-min", "5"], "no observed cell"),
+    ],
+    ids=["missing-dataset", "bad-resolution", "missing-config", "inverted-ranges", "nothing-observed"],
+)
+def test_build_errors_are_clear_and_write_nothing(
+    tmp_path: Path, make_args: Callable[[Path], list[str | Path]], words: str
+) -> None:
+    out = tmp_path / "out"
+    done = build(*make_args(tmp_path), "--out", out, "--quiet")
+    assert done.returncode == 2, done.stdout
+    assert done.stderr.startswith("fleetmap build: error:") and words in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
+    assert not out.exists()
+
+
+def test_build_of_the_intel_log_equals_the_library_map(datasets_dir: Path, tmp_path: Path) -> None:
+    log = datasets_dir / "intel-corrected.log.gz"
+    done = build(log, "--out", tmp_path, "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert "910 scans integrated (0 skipped)" in done.stdout
+
+    gmap = GridMap(MapConfig())
+    for scan in load_dataset(log):
+        gmap.integrate(scan)
+    info = json.loads((tmp_path / "meta.json").read_text())
+    i0, j0, i1, j1 = info["cell_window"]
+    b = gmap.known_bounds()
+    assert b is not None and (i0, j0, i1, j1) == (b[0] - 2, b[1] - 2, b[2] + 2, b[3] + 2)
+    log_odds = np.load(tmp_path / "log_odds.npy")
+    np.testing.assert_array_equal(log_odds, gmap.region("log_odds", i0, j0, i1, j1))
+    np.testing.assert_array_equal(np.load(tmp_path / "hits.npy"), gmap.region("hits", i0, j0, i1, j1))
+
+    # The nav2 image follows from the log-odds by the thresholds map.yaml states.
+    p = 1.0 - 1.0 / (1.0 + np.exp(log_odds.astype(np.float64)))
+    want = np.full(log_odds.shape, 205, dtype=np.uint8)
+    want[p < 0.196] = 254
+    want[p > 0.65] = 0
+    np.testing.assert_array_equal(read_pgm(tmp_path / "map.pgm"), want[::-1])
+    assert (want == 0).sum() > 10_000 and (want == 254).sum() > 100_000  # a real map, walls and floor
