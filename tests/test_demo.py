@@ -1,0 +1,86 @@
+"""`fleetmap demo`, the main job (`make demo` runs it), as a user runs it: the installed command in
+a subprocess, on free ports, stopped with Ctrl-C (SIGINT). It must print the viewer's address, map
+with its simulated robots over Zenoh, stop the robots and the service cleanly, and keep the map.
+"""
+
+from __future__ import annotations
+
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+from service_process import ServiceProcess, free_port
+
+
+def fleetmap_command() -> list[str]:
+    """The console script `make` installs beside the interpreter, else the module."""
+    script = Path(sys.executable).with_name("fleetmap")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "fleetmap.cli"]
+
+
+def port_is_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+        return True
+
+
+def test_demo_maps_until_ctrl_c_then_stops_everything_and_keeps_the_map(tmp_path: Path) -> None:
+    http, zenoh = free_port(), free_port()
+    data = tmp_path / "data"
+    log = open(tmp_path / "demo.log", "w+")  # noqa: SIM115 - read back below
+    demo = subprocess.Popen(
+        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+         "--data-dir", str(data), "--robots", "2", "--rate", "10"],
+        stdout=log, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+
+    def output() -> str:
+        log.seek(0)
+        return log.read()
+
+    try:
+        # It prints the viewer's address once the service answers, then the robots map.
+        deadline = time.monotonic() + 120
+        while f"open http://127.0.0.1:{http}/#map=demo" not in output():
+            assert demo.poll() is None and time.monotonic() < deadline, output()
+            time.sleep(0.2)
+        viewer = httpx.get(f"http://127.0.0.1:{http}/", timeout=5)
+        assert viewer.status_code == 200 and "leaflet" in viewer.text.lower()
+        integrated = 0
+        while integrated < 30:
+            assert demo.poll() is None and time.monotonic() < deadline, output()
+            r = httpx.get(f"http://127.0.0.1:{http}/maps/demo", timeout=5)
+            if r.status_code == 200:
+                integrated = sum(robot["scans_integrated"] for robot in r.json()["stats"]["robots"].values())
+            time.sleep(0.2)
+
+        demo.send_signal(signal.SIGINT)  # Ctrl-C
+        assert demo.wait(60) == 0, output()
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
+    text = output()
+    assert "Traceback" not in text, text
+    summary = re.search(r"fleetmap demo: 2 robots published (\d+) scans \((\d+) dropped\)", text)
+    assert summary is not None, text
+    published, dropped = int(summary[1]), int(summary[2])
+    assert published >= 30 and dropped == 0
+
+    # The service is gone: both of its ports are free again.
+    assert port_is_free(http) and port_is_free(zenoh)
+
+    # The map was kept: a service restarted on the demo's data directory holds every scan published.
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as service:
+        robots = httpx.get(f"{service.base_url}/maps/demo", timeout=5).json()["stats"]["robots"]
+        assert sum(robot["scans_integrated"] for robot in robots.values()) == published
+        assert len(robots) == 2
