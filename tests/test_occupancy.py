@@ -169,6 +169,36 @@ def test_band_widths_are_finite_and_at_most_256_cells() -> None:
     assert stored.tsdf.truncation == 20.0
 
 
+@pytest.mark.parametrize(
+    "config",
+    [
+        {"tsdf": {"max_weight": math.inf}},  # stored as null, which then failed to load: no restart
+        {"resolution": math.nan},
+        {"no_return_range": math.nan},
+        {"beam": {"beta": math.nan}},
+        {"occupancy": {"occupied_thresh": math.nan}},
+        {"occupancy": {"free_thresh": math.inf}},
+    ],
+)
+def test_every_number_in_a_configuration_is_finite(config: dict[str, object]) -> None:
+    """NaN and infinity are refused by name (before, NaN got "should be less than or equal to 100",
+    and an infinite weight cap was accepted, stored as null and then refused on restart)."""
+    with pytest.raises(ValidationError, match="finite number"):
+        MapConfig.model_validate(config)
+
+
+def test_log_odds_parameters_are_bounded_to_what_float32_cells_hold() -> None:
+    """l_hit = 1e300 made every hit cell +inf in the float32 pools: "known" with no log-odds."""
+    from fleetmap.config import MAX_LOG_ODDS, STORED_CONFIG
+
+    MapConfig(occupancy={"l_min": -MAX_LOG_ODDS, "l_max": MAX_LOG_ODDS})
+    for name, value in (("l_hit", 1e300), ("l_miss", -1e5), ("l_min", -1e39), ("l_max", 2e4)):
+        with pytest.raises(ValidationError, match="within"):
+            MapConfig(occupancy={name: value})
+    stored = MapConfig.model_validate({"occupancy": {"l_max": 1e300}}, context={STORED_CONFIG: True})
+    assert stored.occupancy.l_max == 1e300  # a map stored before the bound still loads
+
+
 # -- the ray sensor model ----------------------------------------------------------------------------
 
 

@@ -402,14 +402,14 @@ def test_a_stored_configuration_past_todays_limits_still_loads(tmp_path: Path) -
         again.close()
 
 
-def test_a_stored_infinite_band_width_loads_at_the_limit(
+def test_a_stored_infinite_band_width_or_weight_cap_loads_at_the_limit(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """Before band widths had to be finite, a map could be created with `tsdf.truncation` or
     `beam.alpha` infinite, which the store wrote as JSON null. Such a map could never integrate a
     scan (its reach was infinite), but its data directory must still load after an upgrade, or the
     service would not start: the width loads as today's limit, with a warning."""
-    from fleetmap.config import MAX_BAND_CELLS
+    from fleetmap.config import MAX_BAND_CELLS, MAX_TSDF_WEIGHT
 
     store = DurableStore(tmp_path)
     store.map_created("m", GridMap(MapConfig(resolution=0.1))).result()
@@ -419,6 +419,8 @@ def test_a_stored_infinite_band_width_loads_at_the_limit(
         stored = json.loads(config)
         stored["tsdf"]["truncation"] = None
         stored["beam"]["alpha"] = None
+        stored["tsdf"]["max_weight"] = None  # the REST API accepted Infinity here until it was refused
+        stored["occupancy"]["l_max"] = 1e300  # and log-odds far past float32, until they were bounded
         conn.execute("UPDATE maps SET config = ? WHERE id = 'm'", (json.dumps(stored),))
     again = DurableStore(tmp_path)
     try:
@@ -427,7 +429,8 @@ def test_a_stored_infinite_band_width_loads_at_the_limit(
         assert map_id == "m"
         assert restored.config.tsdf.truncation == MAX_BAND_CELLS * 0.1
         assert restored.config.beam.alpha == MAX_BAND_CELLS * 0.1
-        assert "tsdf.truncation" in caplog.text and "beam.alpha" in caplog.text
+        assert restored.config.tsdf.max_weight == MAX_TSDF_WEIGHT and restored.config.occupancy.l_max == 1e300
+        assert all(name in caplog.text for name in ("tsdf.truncation", "beam.alpha", "tsdf.max_weight"))
         assert restored.integrate(fan(0.0, n=61)).cell_updates > 0  # and the map now works
     finally:
         again.close()

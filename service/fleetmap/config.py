@@ -30,6 +30,12 @@ log = logging.getLogger("fleetmap.config")
 #: The band widths limited to MAX_BAND_CELLS cells: (section, field).
 _BAND_WIDTHS = (("tsdf", "truncation"), ("beam", "alpha"))
 
+#: Bound on every log-odds parameter's magnitude. Cells hold float32 log-odds, and a cell at 10**4
+#: is certain to any precision (p = 1 - 10**-4343), while 10**39 would store as infinity.
+MAX_LOG_ODDS = 1e4
+#: Bound on `tsdf.max_weight` (weights are float32; the default is 1000).
+MAX_TSDF_WEIGHT = 1e30
+
 
 def logit(p: float) -> float:
     """Log-odds of probability `p`."""
@@ -67,7 +73,7 @@ class OccupancyParams(BaseModel):
     probability (`p_hit`), not both. After validation the `l_*` fields always hold the values in use.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     preset: OccupancyPreset = "octomap"
     l_hit: float | None = Field(None, description="log-odds added for a hit (> 0)")
@@ -82,7 +88,7 @@ class OccupancyParams(BaseModel):
     free_thresh: float = Field(0.196, gt=0, lt=1, description="p below this is `free`")
 
     @model_validator(mode="after")
-    def _resolve(self) -> OccupancyParams:
+    def _resolve(self, info: ValidationInfo) -> OccupancyParams:
         hit, miss, lo, hi = OCCUPANCY_PRESETS[self.preset]
         resolved = []
         for name, default in (("hit", hit), ("miss", miss), ("min", lo), ("max", hi)):
@@ -96,6 +102,9 @@ class OccupancyParams(BaseModel):
         hit, miss, lo, hi = resolved
         if not all(math.isfinite(v) for v in resolved):
             raise ValueError("occupancy parameters must be finite")
+        # A map stored before the bound existed still loads (its cells are what they are).
+        if not (info.context or {}).get(STORED_CONFIG) and any(abs(v) > MAX_LOG_ODDS for v in resolved):
+            raise ValueError(f"occupancy log-odds must lie within +-{MAX_LOG_ODDS:g}")
         if hit <= 0:
             raise ValueError(f"l_hit must be positive (p_hit > 0.5), got {hit}")
         if miss >= 0:
@@ -118,7 +127,7 @@ class BeamModelParams(BaseModel):
     """The inverse range sensor model of Probabilistic Robotics (table 9.2), used when
     `sensor_model` is `beam`. Occupied and free cells get the occupancy layer's l_hit / l_miss."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     alpha: float = Field(
         0.1,
@@ -132,7 +141,7 @@ class BeamModelParams(BaseModel):
 class TsdfParams(BaseModel):
     """Truncated signed distance fusion along each beam."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     truncation: float = Field(
         0.2,
@@ -140,13 +149,15 @@ class TsdfParams(BaseModel):
         allow_inf_nan=False,
         description=f"truncation distance t in metres; at most {MAX_BAND_CELLS} cells",
     )
-    max_weight: float = Field(1000.0, gt=0, description="cap on a cell's accumulated weight")
+    max_weight: float = Field(
+        1000.0, gt=0, le=MAX_TSDF_WEIGHT, description="cap on a cell's accumulated weight"
+    )
 
 
 class MapConfig(BaseModel):
     """Everything that defines how a map stores and integrates scans."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     resolution: float = Field(0.05, gt=0.001, le=100.0, description="metres per cell")
     tile_size: int = Field(256, ge=16, le=4096, description="cells per tile side, a power of two")
@@ -167,21 +178,22 @@ class MapConfig(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _stored_infinite_band(cls, data: Any, info: ValidationInfo) -> Any:
-        """A stored configuration from before band widths had to be finite may hold an infinite
-        `tsdf.truncation` or `beam.alpha`, which JSON stores as null. Such a map could not integrate
-        any scan (its reach was infinite), so it holds nothing a finite width would change: it loads
-        with the width at today's limit, and a warning says so."""
+        """A stored configuration from before these fields had to be finite may hold an infinite
+        `tsdf.truncation`, `beam.alpha` or `tsdf.max_weight`, which JSON stores as null. A map with
+        an infinite band could not integrate any scan (its reach was infinite), so it holds nothing
+        a finite width would change: it loads with the width at today's limit. An infinite weight
+        cap loads as MAX_TSDF_WEIGHT, which no float32 weight reaches by fusing. A warning says so."""
         if not ((info.context or {}).get(STORED_CONFIG) and isinstance(data, dict)):
             return data
         data = dict(data)
         resolution = data.get("resolution", cls.model_fields["resolution"].default)
-        for section, name in _BAND_WIDTHS:
+        limits = [(section, name, MAX_BAND_CELLS * resolution) for section, name in _BAND_WIDTHS]
+        for section, name, limit in [*limits, ("tsdf", "max_weight", MAX_TSDF_WEIGHT)]:
             params = data.get(section)
             if isinstance(params, dict) and name in params and params[name] is None:
-                limit = MAX_BAND_CELLS * resolution
                 log.warning(
-                    "stored map configuration: %s.%s was infinite (stored as null); loaded as %g m, the "
-                    "limit of %d cells", section, name, limit, MAX_BAND_CELLS,
+                    "stored map configuration: %s.%s was infinite (stored as null); loaded as %g, "
+                    "today's limit", section, name, limit,
                 )  # fmt: skip
                 data[section] = {**params, name: limit}
         return data
