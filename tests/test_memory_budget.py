@@ -19,6 +19,7 @@ from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, parse_size
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import IngestRejected, MapRegistry
 from fleetmap.scan import Scan
+from fleetmap.tiles import FIRST_GROWTH_BYTES, FIRST_GROWTH_TILES
 
 #: Small tiles (0.8 m) and one layer, so that a few scans need many tiles of 1032 bytes each.
 SMALL = MapConfig(tile_size=16, layers=("occupancy",))
@@ -47,13 +48,39 @@ def test_parse_size() -> None:
             parse_size(bad)
 
 
+def test_empty_maps_hold_nothing_and_big_tiles_grow_one_at_a_time() -> None:
+    """Four empty maps of 4096-cell tiles were charged 16 tiles (5.4 GB) each, and every other map's
+    growth was then refused. Empty maps now hold no pool, and a first growth holds at most
+    FIRST_GROWTH_BYTES of tiles, or the one tile a scan needs."""
+    budget = MemoryBudget(100 << 20)
+    big = [GridMap(MapConfig(tile_size=4096, layers=("occupancy",))) for _ in range(4)]
+    for gmap in big:
+        gmap.store.charge(budget)
+    assert budget.used == 0
+    small = GridMap(SMALL)
+    small.store.charge(budget)
+    for k in range(8):
+        small.integrate(scan_at(0.5 * k))  # grows freely
+    assert budget.used == small.memory_bytes() >= FIRST_GROWTH_TILES * TILE_BYTES
+    inside_one_tile = Scan.from_fan((100.0, 100.0, 0.0), -1.5, 0.1, [2.0] * 31, 0.0, 30.0)
+    big[0].integrate(inside_one_tile)  # 64 MiB a tile: more than FIRST_GROWTH_BYTES, so one tile
+    assert len(big[0].store) == 1 and big[0].memory_bytes() == 4096 * 4096 * 4 + 8
+    assert FIRST_GROWTH_BYTES < 4096 * 4096 * 4
+    with pytest.raises(MemoryBudgetError):  # a second 64 MiB tile does not fit beside the first
+        big[1].integrate(inside_one_tile)
+    assert big[1].memory_bytes() == 0
+
+
 def test_maps_share_the_budget_and_a_refused_scan_changes_nothing() -> None:
     a, b = GridMap(SMALL), GridMap(SMALL)
-    start = a.memory_bytes()  # 16 tiles of room from the start
+    assert a.memory_bytes() == 0  # an empty map holds no pool
+    start = FIRST_GROWTH_TILES * TILE_BYTES  # the room a map's first tiles make
     budget = MemoryBudget(2 * start + 24 * TILE_BYTES)
     a.store.charge(budget)
     b.store.charge(budget)
-    assert budget.used == 2 * start
+    assert budget.used == 0
+    b.integrate(scan_at(-1.0))  # b's first tiles
+    assert budget.used == b.memory_bytes() >= start
     refused = None
     for k in range(200):
         before = state(a)

@@ -55,6 +55,14 @@ LAYER_ARRAYS: dict[LayerName, tuple[LayerArray, ...]] = {
 }
 
 
+#: A store's pools are empty until its first tile; then they grow to room for this many tiles, or
+#: as many as FIRST_GROWTH_BYTES hold (at least the tiles needed), and double from there. An empty
+#: map thus holds no capacity: the memory budget counts capacity, and four empty maps of 4096-cell
+#: tiles would otherwise have been charged 5.4 GB and refused every other map's growth.
+FIRST_GROWTH_TILES = 16
+FIRST_GROWTH_BYTES = 32 << 20
+
+
 class TileStore:
     """Pooled per-layer tile arrays, a tile-key -> slot index, and a version per tile."""
 
@@ -78,7 +86,7 @@ class TileStore:
         #: list that outlives the store so that its finalizer can hand them back.
         self.budget: MemoryBudget | None = None
         self._charged = [0]
-        self._grow(min(16, max_tiles))
+        self._grow(0)
 
     # -- structure -------------------------------------------------------------------------------
 
@@ -120,7 +128,9 @@ class TileStore:
             )
         needed = len(self.keys) + len(keys)
         if needed > self._capacity:
-            self._grow(min(max(needed, 2 * self._capacity), self.max_tiles), needed)
+            first = max(1, min(FIRST_GROWTH_TILES, FIRST_GROWTH_BYTES // self._tile_bytes()))
+            target = 2 * self._capacity if self._capacity else first
+            self._grow(min(max(needed, target), self.max_tiles), needed)
         first = len(self.keys)
         for key in keys:
             slot = len(self.keys)
@@ -160,7 +170,7 @@ class TileStore:
     def _grow(self, capacity: int, needed: int = 0) -> None:
         """Make room for `capacity` tiles (at least `needed`, fewer when the budget runs short)."""
         if self.budget is not None:
-            per_tile = self.memory_bytes() // self._capacity  # _capacity > 0: the store starts with room
+            per_tile = self._tile_bytes()
             extra = self.budget.reserve(capacity - self._capacity, needed - self._capacity, per_tile)
             self._charged[0] += extra * per_tile
             capacity = self._capacity + extra
@@ -238,8 +248,12 @@ class TileStore:
         Like `len()`, it reads one int that growing replaces at once, so statistics (`/metrics`,
         `GET /maps`) read both without the map's lock: a scrape never waits for a scan or for a
         snapshot's copy of the tiles. It may lag a growth in progress by that growth."""
+        return self._capacity * self._tile_bytes()
+
+    def _tile_bytes(self) -> int:
+        """Bytes one slot of capacity holds: a tile of every stored array, and its version."""
         cells = self.tile_size * self.tile_size
-        return self._capacity * (cells * sum(np.dtype(a.dtype).itemsize for a in self.arrays) + 8)
+        return cells * sum(np.dtype(a.dtype).itemsize for a in self.arrays) + 8
 
     def tile_bounds(self) -> tuple[int, int, int, int] | None:
         """Cell-index bounds `(i0, j0, i1, j1)` (exclusive ends) of all tiles, or None if empty."""
