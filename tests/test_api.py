@@ -129,6 +129,17 @@ def test_scan_creates_map_unless_auto_create_is_off(api: RunningApi) -> None:
         assert r.status_code == 200 and r.json()["cell_updates"] > 0
 
 
+def test_a_negative_reading_is_ignored_and_the_scan_integrated(api: RunningApi) -> None:
+    """Negative readings (error codes in some drivers) are below range_min: ignored, as NaN is,
+    while the scan's other beams are integrated. They used to make the whole scan a 422."""
+    body = {"seq": 1, "pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "angle_min": -0.2,
+            "angle_increment": 0.1, "range_min": 0.05, "range_max": 30.0}  # fmt: skip
+    with_negative = api.client.post("/maps/neg1/scans?robot_id=r", json={**body, "ranges": [1.0, -2.0, 1.5]})
+    without = api.client.post("/maps/neg2/scans?robot_id=r", json={**body, "ranges": [1.0, 0.0, 1.5]})
+    assert with_negative.status_code == without.status_code == 200, with_negative.text
+    assert with_negative.json()["cell_updates"] == without.json()["cell_updates"] > 0
+
+
 def test_healthz_and_static_files(api: RunningApi) -> None:
     c = api.client
     health = c.get("/healthz").json()

@@ -102,7 +102,6 @@ CASES: list[tuple[str, str, dict[str, Any], int, str]] = [
     ("POST", SCAN, {"json": {**good_scan(), "ranges": "far"}}, 422, "ranges"),
     ("POST", SCAN, {"json": {**good_scan(), "seq": -1}}, 422, "seq"),
     ("POST", SCAN, {"json": {**good_scan(), "pose": {"x": 0, "y": 0}}}, 422, "theta"),
-    ("POST", SCAN, {"json": {**good_scan(), "ranges": [1.0, -2.0, 1.0, 1.0, 1.0]}}, 422, "negative"),
     ("POST", SCAN, {"json": {**good_scan(), "angles": [0.0]}}, 422, "angles"),
     (
         "POST",

@@ -231,7 +231,7 @@ def test_gzip_and_plain_text_give_the_same_scans(tmp_path: Path) -> None:
 
 def test_negative_and_nan_readings_are_ignored(tmp_path: Path) -> None:
     scan = load_dataset(write_log(tmp_path / "neg.log", [flaser([-1.0, math.nan, 2.0, math.inf])]))[0]
-    assert np.isnan(scan.ranges[0])  # Scan would reject a negative range: it becomes NaN
+    assert scan.ranges[0] == -1.0  # kept as read: below range_min, so ignored like NaN
     np.testing.assert_array_equal(scan.returns_mask(), [False, False, True, False])
     np.testing.assert_array_equal(scan.no_return_mask(), [False, False, False, True])
 

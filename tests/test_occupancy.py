@@ -405,6 +405,43 @@ def test_nan_and_below_range_min_are_ignored() -> None:
     assert lo(at_min, 4, 0) > 0
 
 
+@pytest.mark.parametrize(
+    "model",
+    [
+        {},
+        {"update": "per_ray"},
+        {"traversal": "bresenham"},
+        {"sensor_model": "beam"},
+        {"no_return_range": 1.0},
+    ],
+    ids=["per-scan", "per-ray", "bresenham", "beam", "clearing"],
+)
+def test_negative_readings_are_ignored_and_the_other_beams_integrated(model: dict[str, object]) -> None:
+    """A negative reading is below range_min, so it is ignored like NaN (some drivers report errors
+    so); before, it made the whole scan an error and its good beams were lost."""
+    angles = [-0.7, -0.2, 0.4, 1.1]
+    layers = ["occupancy", "counts", "tsdf"]
+    negative, invalid = make_map(layers=layers, **model), make_map(layers=layers, **model)
+    negative.integrate(beams(angles, [2.0, -1.0, 1.5, -1e-9], range_max=5.0))
+    invalid.integrate(beams(angles, [2.0, math.nan, 1.5, math.nan], range_max=5.0))
+    bounds = invalid.known_bounds()
+    assert bounds is not None and negative.known_bounds() == bounds
+    for layer in ("log_odds", "hits", "misses", "tsdf", "tsdf_weight"):
+        np.testing.assert_array_equal(negative.region(layer, *bounds), invalid.region(layer, *bounds))
+
+
+def test_a_null_range_is_no_return_in_a_list_and_in_an_object_array() -> None:
+    """None is "no return" (as JSON null is); numpy alone turns it into NaN, an invalid reading, so
+    an object array used to clear nothing where the same list cleared its beam."""
+    as_list = make_map(no_return_range=1.0)
+    as_list.integrate(beams([0.3], [None]))
+    as_array = make_map(no_return_range=1.0)
+    as_array.integrate(beams([0.3], np.array([None], dtype=object)))  # type: ignore[arg-type]
+    bounds = as_list.known_bounds()
+    assert bounds is not None and as_array.known_bounds() == bounds
+    np.testing.assert_array_equal(as_array.region("misses", *bounds), as_list.region("misses", *bounds))
+
+
 def test_unknown_is_not_log_odds_zero() -> None:
     """With l_hit == -l_miss, a cell hit once and then missed once is KNOWN with log-odds 0 and
     p = 0.5, while a never-observed cell is unknown (NaN), also read as p = 0.5."""

@@ -40,7 +40,8 @@ class Scan:
 
     `angles[i]` is beam i's bearing relative to the sensor heading, in radians. `ranges[i]` is its
     measured range in metres, NaN for an invalid reading and +inf (or anything >= `range_max`) for
-    "no return". Readings below `range_min` or NaN are ignored by every sensor model.
+    "no return". Readings below `range_min` (negative ones included: some drivers report errors so)
+    or NaN are ignored by every sensor model, and the scan's other beams are integrated.
     """
 
     pose: Pose2D
@@ -68,8 +69,6 @@ class Scan:
             raise ScanError(f"range_min must be finite and >= 0, got {self.range_min}")
         if not self.range_max > self.range_min:  # inf is allowed: "no maximum"
             raise ScanError(f"range_max must be greater than range_min, got {self.range_max}")
-        if np.any(ranges < 0.0):
-            raise ScanError("ranges must not be negative")
 
     @classmethod
     def from_fan(
@@ -132,8 +131,9 @@ class Scan:
 
 
 def ranges_to_array(ranges: Sequence[float | None] | np.ndarray) -> np.ndarray:
-    """Ranges as float64; None (a JSON null) becomes +inf, i.e. "no return"."""
-    if isinstance(ranges, np.ndarray):
+    """Ranges as float64; None (a JSON null) becomes +inf, i.e. "no return", in a list and in an
+    object array alike (numpy alone would make it NaN, an invalid reading)."""
+    if isinstance(ranges, np.ndarray) and ranges.dtype != object:
         return ranges.astype(np.float64, copy=False)
     try:
         return np.array([math.inf if v is None else float(v) for v in ranges], dtype=np.float64)

@@ -97,10 +97,9 @@ class DatasetBuilder:
         lengths = np.fromiter((r.size for r in self._ranges), dtype=np.int64, count=n)
         offsets = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(lengths, out=offsets[1:])
+        # (Negative readings, error codes in some drivers, stay as they are: `Scan` ignores them, as
+        # it ignores every reading below range_min.)
         ranges = np.concatenate(self._ranges).astype(np.float64, copy=False) if n else np.zeros(0, np.float64)
-        # Negative readings are error codes in some drivers. `Scan` rejects negative ranges outright,
-        # while NaN means "invalid reading, ignore it", which is what such a reading is.
-        ranges[ranges < 0.0] = np.nan
         return Dataset(
             name=name,
             path=path,

@@ -20,7 +20,7 @@ turn_axis ts host logger_ts`
 
 Readings at or above `range_max` are kept as they are: `Scan` treats them as "no return".
 `range_min` is `DEFAULT_RANGE_MIN` (1 mm) rather than 0, so that zero readings, the laser's "no
-measurement" code, are ignored; negative readings become NaN (ignored too). `#` comments, `ODOM`,
+measurement" code, are ignored, as are negative readings. `#` comments, `ODOM`,
 `NEFF`, `SYNC`, `RLASER`, `TRUEPOS`, `ROBOTLASER2` (the rear laser) and every unknown message type
 are skipped; PARAM lines are skipped except for the two parameters above.
 
