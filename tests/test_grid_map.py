@@ -469,7 +469,7 @@ def _fleet_scans(n: int) -> list[Scan]:
         {"layers": ["counts"]},
         {"traversal": "bresenham"},
         {"no_return_range": 25.0},
-        {"no_return_range": 900.0, "occupancy": {"preset": "cartographer"}},
+        {"no_return_range": 40.0, "occupancy": {"preset": "cartographer"}},  # past the 30 m range_max
         {"layers": ["occupancy", "counts", "tsdf"], "tsdf": {"truncation": 0.3, "max_weight": 5.0}},
         {"layers": ["counts", "tsdf"]},
     ],
@@ -509,7 +509,7 @@ def test_integrate_in_one_call_equals_plan_and_apply(
     assert integrated > len(statuses) // 2
     assert created_in_kernel > 0
     assert statuses.count(integrate_scan.NEEDS_TILES) > 0
-    if config.get("no_return_range") == 900.0:
+    if config.get("no_return_range") == 40.0:
         assert statuses.count(integrate_scan.NEEDS_SCRATCH) > 0
 
 

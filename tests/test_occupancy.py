@@ -372,6 +372,22 @@ def test_no_return_range_clears_without_hit() -> None:
         assert m.region("hits", -8, -8, 8, 8).sum() == 0
 
 
+@pytest.mark.parametrize("model", [{}, {"update": "per_ray"}, {"traversal": "bresenham"}])
+def test_no_return_range_clears_its_metres_even_past_range_max(model: dict[str, object]) -> None:
+    """The first R metres of a no-return beam are cleared, whatever the sensor's range_max: a
+    configuration asking for 2 m with a 0.5 m sensor used to clear 0.5 m."""
+    for planned in (False, True):
+        m = make_map(no_return_range=2.0, occupancy={"preset": "coursera"}, **model)
+        scan = beams([0.0], [math.inf], range_max=0.5)
+        if planned:  # the service's path: plan, then apply
+            m.apply(m.plan(scan))
+        else:
+            m.integrate(scan)
+        # 2 m from x = 0.125 ends at x = 2.125, in cell 8: cells 0..8 cleared, none hit.
+        assert known_cells(m) == {(k, 0): -0.5 for k in range(9)}
+        assert m.region("hits", -8, -8, 16, 16).sum() == 0
+
+
 def test_return_just_below_range_max_is_a_hit() -> None:
     """A return at range_max - epsilon is a hit; at range_max it is a no-return and ignored."""
     m = make_map(occupancy={"preset": "coursera"})

@@ -321,7 +321,7 @@ def _union_of_walks(scan: Scan, config: MapConfig) -> list[tuple[tuple[int, int]
         if not hit:
             if config.no_return_range <= 0:
                 continue
-            r = min(config.no_return_range, scan.range_max)
+            r = config.no_return_range
         cos_a, sin_a = math.cos(a), math.sin(a)
         dx, dy = cos_t * cos_a - sin_t * sin_a, sin_t * cos_a + cos_t * sin_a
         x1, y1 = ox + r / res * dx, oy + r / res * dy

@@ -182,7 +182,7 @@ def _scan_beams(scan: Scan, clear_range: float, res: float, shift: int, config: 
     _, _, xmin, ymin, xmax, ymax, _, longest = beams
     truncation, alpha = (config.tsdf.truncation, config.beam.alpha) if config is not None else (0.0, 0.0)
     extent = scan_extent(
-        pose.x, pose.y, res, longest, clear_range, scan.range_max, truncation, alpha, xmin, ymin, xmax, ymax,
+        pose.x, pose.y, res, longest, clear_range, truncation, alpha, xmin, ymin, xmax, ymax,
         shift, MAX_CELL_INDEX, MAX_SCAN_TILE_WINDOW,
     )  # fmt: skip
     return beams, extent
@@ -236,7 +236,7 @@ def grow_trace_scratch(needed: int) -> None:
 
 def _ray_model_per_ray(scan: Scan, config: MapConfig, ox: float, oy: float):
     """Ordered entries: returns trace to their end cell (a hit); no-return beams clear
-    `no_return_range` (at most `range_max`) if set."""
+    `no_return_range` metres if set (as `scan_rays` does)."""
     res = config.resolution
     ranges = scan.ranges.copy()
     kind = np.full(ranges.size, BEAM_SKIP, dtype=np.uint8)
@@ -244,8 +244,7 @@ def _ray_model_per_ray(scan: Scan, config: MapConfig, ox: float, oy: float):
     if config.no_return_range > 0:
         clear = scan.no_return_mask()
         kind[clear] = BEAM_CLEAR
-        # Never clear past what the sensor can see (the beam model stops there too).
-        ranges[clear] = min(config.no_return_range, scan.range_max)
+        ranges[clear] = config.no_return_range
     ex, ey = scan.endpoints(np.where(kind == BEAM_SKIP, 0.0, ranges))
     method = EXACT if config.traversal == "exact" else BRESENHAM
     return trace_rays(ox, oy, ex / res, ey / res, kind, method)
@@ -257,7 +256,8 @@ def _beam_model(scan: Scan, config: MapConfig, ox: float, oy: float):
     has_return = scan.returns_mask()
     no_return = scan.no_return_mask() if config.no_return_range > 0 else np.zeros_like(has_return)
     use = has_return | no_return
-    # A no-return beam is free up to the clearing range, never beyond the sensor's maximum.
+    # A no-return beam is free up to the clearing range; the model itself gives no information past
+    # r_max ("none if r > min(r_max, z_k + alpha/2)"), so it clears no farther than that.
     r_max = scan.range_max if math.isfinite(scan.range_max) else math.inf
     z = np.where(has_return, scan.ranges, min(config.no_return_range, r_max))[use]
     phi = scan.angles[use]

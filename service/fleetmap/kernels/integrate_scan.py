@@ -67,7 +67,7 @@ def integrate_ray_scan(
     )
     # The same checks, in the same order, as plan_scan.
     verdict, ti0, tj0, ti1, tj1 = scan_extent(
-        x, y, res, longest, clear_range, range_max, truncation, alpha, xmin, ymin, xmax, ymax, shift,
+        x, y, res, longest, clear_range, truncation, alpha, xmin, ymin, xmax, ymax, shift,
         max_cell_index, max_window,
     )  # fmt: skip
     if verdict == EXTENT_OUT_OF_RANGE:

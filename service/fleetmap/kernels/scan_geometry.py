@@ -36,8 +36,9 @@ def scan_rays(
     if none).
 
     A usable return is a BEAM_HIT traced to its range. A beam at or past `range_max` (no return,
-    inf) is a BEAM_CLEAR traced to `min(clear_range, range_max)` when `clear_range > 0`, else
-    skipped (BEAM_SKIP, end point at the sensor), as is one below `range_min` or NaN.
+    inf) is a BEAM_CLEAR traced to `clear_range` when that is > 0 (the first `clear_range` metres
+    are cleared, even past `range_max`: the map's configuration says how far), else skipped
+    (BEAM_SKIP, end point at the sensor), as is one below `range_min` or NaN.
 
     A beam's direction is its sensor-frame direction `(cos a, sin a)` (libm's) rotated by theta:
     one cosine and sine per scan instead of one per beam. Robots send the same bearings in every
@@ -79,7 +80,7 @@ def scan_rays(
             sin_a = math.sin(angles[b])
         cos[b] = cos_t * cos_a - sin_t * sin_a
         sin[b] = sin_t * cos_a + cos_t * sin_a
-    clear_to = min(clear_range, range_max)
+    clear_to = clear_range
     clears = clear_range > 0.0
     for b in range(nb):
         # Selects, no branch: NaN fails every comparison, so it is skipped.
@@ -110,15 +111,14 @@ EXTENT_TOO_WIDE = 2  # the traced beams' tile box holds too many tiles
 
 @njit(cache=True, nogil=True)
 def scan_extent(
-    x: float, y: float, res: float, longest: float, clear_range: float, range_max: float, truncation: float,
-    alpha: float, xmin: float, ymin: float, xmax: float, ymax: float, shift: int, max_cell_index: float,
-    max_window: int,
+    x: float, y: float, res: float, longest: float, clear_range: float, truncation: float, alpha: float,
+    xmin: float, ymin: float, xmax: float, ymax: float, shift: int, max_cell_index: float, max_window: int,
 ) -> tuple[int, int, int, int, int]:  # fmt: skip
     """Whether a scan from (x, y) (metres, `res` per cell) fits the map, and its tile box: the one
     definition of both limits, for planning and for the one-call integration.
 
     EXTENT_OUT_OF_RANGE when the sensor plus the scan's reach (its longest return, or its clearing
-    range when that is > 0 and farther, at most `range_max`, plus `truncation` and `alpha`: how far
+    range when that is > 0 and farther, plus `truncation` and `alpha`: how far
     the TSDF band and the beam model reach past a return; metres) is not within `max_cell_index`
     cells of the origin on both axes. Otherwise the tile box `ti0, tj0, ti1, tj1` (tiles
     of `1 << shift` cells) of the bounding box `xmin..ymax` (CELL units, from `scan_rays`), and
@@ -127,7 +127,7 @@ def scan_extent(
     Returns `(verdict, ti0, tj0, ti1, tj1)` (the box is 0s when out of range)."""
     far = longest
     if clear_range > 0:
-        far = max(far, min(clear_range, range_max))
+        far = max(far, clear_range)
     reach = (far + truncation + alpha) / res
     if not (abs(x / res) + reach < max_cell_index and abs(y / res) + reach < max_cell_index):
         return EXTENT_OUT_OF_RANGE, 0, 0, 0, 0
