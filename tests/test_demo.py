@@ -5,6 +5,7 @@ with its simulated robots over Zenoh, stop the robots and the service cleanly, a
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import socket
@@ -84,3 +85,46 @@ def test_demo_maps_until_ctrl_c_then_stops_everything_and_keeps_the_map(tmp_path
         robots = httpx.get(f"{service.base_url}/maps/demo", timeout=5).json()["stats"]["robots"]
         assert sum(robot["scans_integrated"] for robot in robots.values()) == published
         assert len(robots) == 2
+
+
+def test_demo_refuses_addresses_another_service_holds(tmp_path: Path) -> None:
+    """With another service on its HTTP port, the demo's own service would die while the other one
+    answered its health checks, and the robots would map into that one: it refuses at once."""
+    http, zenoh = free_port(), free_port()
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as other:
+        other.bind(("127.0.0.1", http))
+        other.listen()
+        done = subprocess.run(
+            [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+             "--data-dir", str(tmp_path / "data"), "--seconds", "5"],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"127.0.0.1:{http} is in use" in done.stderr and "Traceback" not in done.stderr
+    assert "open http" not in done.stdout and not (tmp_path / "data").exists()
+    assert port_is_free(zenoh)
+
+
+def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:
+    http, zenoh = free_port(), free_port()
+    demo = subprocess.Popen(
+        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+         "--data-dir", str(tmp_path / "data"), "--robots", "1"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        assert demo.stdout is not None
+        for line in demo.stdout:
+            if "open http" in line:
+                break
+        service = subprocess.run(
+            ["pgrep", "-f", f"fleetmap.server --http 127.0.0.1:{http} "], capture_output=True, text=True
+        ).stdout.split()
+        assert len(service) == 1
+        os.kill(int(service[0]), signal.SIGKILL)
+        out, _ = demo.communicate(timeout=30)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
+    assert demo.returncode == 2 and "the service stopped unexpectedly" in out, out

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -35,6 +36,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from fleetmap_client.sim import run_sim
 
+    # Another service on these ports would answer /healthz for ours, which would die unseen, and
+    # the robots would map into that other service: refuse before starting anything.
+    for address in (args.http, args.zenoh.split("/", 1)[-1]):
+        _check_free(address)
     service = subprocess.Popen(
         [sys.executable, "-m", "fleetmap.server", "--http", args.http, "--zenoh-listen", args.zenoh,
          "--data-dir", args.data_dir],
@@ -50,12 +55,16 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"  (Ctrl-C stops the robots and the service; the map is kept in {args.data_dir})\n", flush=True
         )
+        watcher = threading.Thread(target=_watch, args=(service, stop), daemon=True)
+        watcher.start()
         result = run_sim(
             args.robots, map_id=args.map, seed=args.seed, rate=args.rate, seconds=args.seconds,
             connect=[args.zenoh], stop=stop,
         )  # fmt: skip
         sent, dropped = sum(result.published.values()), sum(result.dropped.values())
         print(f"fleetmap demo: {len(result.robots)} robots published {sent} scans ({dropped} dropped)")
+        if service.poll() is not None:
+            raise CliError(f"the service stopped unexpectedly (exit code {service.returncode}); see above")
         return 0
     finally:
         signal.signal(signal.SIGINT, previous)
@@ -64,6 +73,33 @@ def run(args: argparse.Namespace) -> int:
             service.wait(30)
         except subprocess.TimeoutExpired:
             service.kill()
+
+
+def _check_free(address: str) -> None:
+    """Raise CliError if nothing can listen on `address` (HOST:PORT) because something else does."""
+    host, _, port = address.rpartition(":")
+    host = host.strip("[]") or "127.0.0.1"
+    if not port.isdigit():
+        return  # the service reports an address it cannot parse itself
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, int(port)))
+        except OSError as exc:
+            raise CliError(
+                f"{address} is in use ({exc.strerror}): is another fleetmap service running? Stop it, "
+                "or give the demo other addresses (--http HOST:PORT, --zenoh tcp/HOST:PORT)"
+            ) from None
+
+
+def _watch(service: subprocess.Popen, stop: threading.Event) -> None:
+    """Stop the robots if the service exits while they run."""
+    while not stop.is_set():
+        if service.poll() is not None:
+            stop.set()
+            return
+        time.sleep(0.5)
 
 
 def _wait_for_service(
