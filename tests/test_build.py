@@ -186,6 +186,35 @@ def test_build_options_change_the_map(tmp_path: Path) -> None:
     assert known(tmp_path / "d") == beam_y and hits(tmp_path / "d") == {(I_S, J_HIT)}
 
 
+def test_a_counts_only_build_maps_the_count_models_occupancy(tmp_path: Path) -> None:
+    """Without the occupancy layer, map.pgm and map.png show hits / (hits + misses), the count
+    model's maximum-likelihood occupancy, by the same thresholds; meta.json says so."""
+    log = scene_log(tmp_path / "scene.log")
+    (tmp_path / "counts.json").write_text(json.dumps({"layers": ["counts"]}))
+    counts = build(log, "--out", tmp_path / "counts", "--config", tmp_path / "counts.json", "--quiet")
+    both = build(log, "--out", tmp_path / "both", "--quiet")
+    assert counts.returncode == both.returncode == 0, counts.stderr
+    assert sorted(p.name for p in (tmp_path / "counts").iterdir()) == [
+        "hits.npy", "map.pgm", "map.png", "map.yaml", "meta.json", "misses.npy",
+    ]  # fmt: skip
+    info = json.loads((tmp_path / "counts" / "meta.json").read_text())
+    assert info["map_source"] == "counts" and info["layers"] == ["hits", "misses"]
+    assert json.loads((tmp_path / "both" / "meta.json").read_text())["map_source"] == "occupancy"
+    # Each cell was hit 4 times or missed 4 times: p = 1 or 0, the same trinary map as the
+    # occupancy layer's, in the window of the cells the counts know (no TSDF band here).
+    i0, j0, i1, j1 = info["cell_window"]
+    assert (i0, j0, i1, j1) == (I_S - 2, J_S - 2, I_HIT + 3, J_HIT + 3)
+    pgm = read_pgm(tmp_path / "counts" / "map.pgm")
+    ny, nx = j1 - j0, i1 - i0
+    assert pgm.shape == (ny, nx)
+    assert pgm[ny - 1 - (J_HIT - j0), I_S - i0] == 0 and pgm[ny - 1 - (J_S - j0), I_S + 5 - i0] == 254
+    assert (pgm == 0).sum() == 2 and (pgm == 254).sum() == (I_HIT - I_S) + (J_HIT - J_S) - 1  # one shared
+    with Image.open(tmp_path / "counts" / "map.png") as image:
+        png = np.asarray(image)
+    assert png[ny - 1 - (J_HIT - j0), I_S - i0] == 0 and png[0, 0] == 128
+    assert png[ny - 1 - (J_S - j0), I_S + 5 - i0] == 255
+
+
 def test_build_reads_the_seed_matlab_convention(tmp_path: Path) -> None:
     """The .mat of the course: robot at (1, 2) in its y-down frame, a 3 m beam at +90 degrees. Its
     end point lies three metres "up" the image, at map point (1, 1) once y points up."""

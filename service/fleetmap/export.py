@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap, cell_edge
+from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap, cell_edge
 
 #: map_server's trinary pixel values and the thresholds that read them back unchanged.
 PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN = 0, 254, 205
@@ -81,10 +81,33 @@ def nav2_yaml(image: str, resolution: float, origin: tuple[float, float]) -> str
 
 
 def nav2_files(gmap: GridMap, window: Window, name: str = "map") -> dict[str, bytes]:
-    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format."""
+    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, from the occupancy layer."""
     state = gmap.region("state", window.i0, window.j0, window.i1, window.j1)
+    return _nav2_files(gmap, window, state, name)
+
+
+def _nav2_files(gmap: GridMap, window: Window, state: np.ndarray, name: str) -> dict[str, bytes]:
     yaml_text = nav2_yaml(f"{name}.pgm", gmap.resolution, window.origin(gmap.resolution))
     return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(state_to_pgm(state))}
+
+
+def count_probability(gmap: GridMap, window: Window) -> np.ndarray:
+    """The count model's maximum-likelihood occupancy `hits / (hits + misses)` over a window (row 0
+    = lowest y), NaN where a cell was never observed."""
+    hits = gmap.region("hits", window.i0, window.j0, window.i1, window.j1).astype(np.float64)
+    total = hits + gmap.region("misses", window.i0, window.j0, window.i1, window.j1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(total > 0, hits / total, np.nan)
+
+
+def probability_state(gmap: GridMap, probability: np.ndarray) -> np.ndarray:
+    """`state` codes of probabilities by the map's thresholds (as `GridMap.classify` for log-odds)."""
+    occ = gmap.config.occupancy
+    state = np.full(probability.shape, STATE_UNKNOWN, dtype=np.uint8)
+    with np.errstate(invalid="ignore"):
+        state[probability > occ.occupied_thresh] = STATE_OCCUPIED
+        state[probability < occ.free_thresh] = STATE_FREE
+    return state
 
 
 def nav2_zip(gmap: GridMap, window: Window, name: str = "map") -> bytes:
@@ -124,19 +147,28 @@ def npy_bytes(array: np.ndarray) -> bytes:
 
 def write_build_outputs(gmap: GridMap, out_dir: Path, margin: int = 2) -> list[Path]:
     """Everything `fleetmap build` writes: map.yaml, map.pgm, map.png, one .npy per stored layer,
-    and meta.json. Returns the paths written; raises ValueError for a map with no observed cell."""
+    and meta.json. The map files show the occupancy layer, or for a map that keeps only counts (and
+    maybe the TSDF) the count model's `hits / (hits + misses)`, which meta.json's `map_source`
+    names. Returns the paths written; raises ValueError for a map with no observed cell."""
     window = known_window(gmap, margin)
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")
     out_dir.mkdir(parents=True, exist_ok=True)
     files: dict[str, bytes] = {}
     layers: list[str] = []
+    source = None
     if gmap.config.has("occupancy"):
         files.update(nav2_files(gmap, window))
         files["map.png"] = map_png(gmap, window)
         layers.append("log_odds")
+        source = "occupancy"
     if gmap.config.has("counts"):
         layers += ["hits", "misses"]
+        if source is None:
+            p = count_probability(gmap, window)
+            files.update(_nav2_files(gmap, window, probability_state(gmap, p), "map"))
+            files["map.png"] = png_bytes(probability_to_gray(p))
+            source = "counts"
     if gmap.config.has("tsdf"):
         layers += ["tsdf", "tsdf_weight"]
     for layer in layers:
@@ -147,6 +179,7 @@ def write_build_outputs(gmap: GridMap, out_dir: Path, margin: int = 2) -> list[P
         "shape": list(window.shape),
         "cell_window": [window.i0, window.j0, window.i1, window.j1],
         "layers": layers,
+        "map_source": source,  # what map.pgm and map.png show (None: a TSDF-only map has none)
         "config": gmap.config.model_dump(mode="json"),
     }
     files["meta.json"] = (json.dumps(meta, indent=2) + "\n").encode()
