@@ -232,3 +232,52 @@ def test_a_restored_map_is_stored_outside_the_registry_lock(
         registry.close()
     assert len(lock_free) == len(gmap.store) and all(lock_free)
     assert stored == len(gmap.store)
+
+
+class StalledPlan:
+    """Holds the planning of one map's scans until `release` is set: the scan being planned is then
+    in flight (off the queue, no lock held), and the test arranges what happens meanwhile. `started`
+    is set once a scan is being planned."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, gmap: GridMap) -> None:
+        self.started = threading.Event()
+        self.release = threading.Event()
+        plan = gmap.plan
+
+        def stalled(scan: Scan) -> Any:
+            self.started.set()
+            assert self.release.wait(10), "the test never released the stalled plan"
+            return plan(scan)
+
+        monkeypatch.setattr(gmap, "plan", stalled)
+
+
+def test_scans_queued_for_a_deleted_or_replaced_map_are_answered_at_once(
+    registry: MapRegistry, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """DELETE (or a snapshot PUT) throws the map's queued scans away: their callers learn it at once
+    (404, or 409 when a map of that id exists again), instead of waiting out their timeout for a
+    scan that will never be integrated."""
+    for remove in ("delete", "replace"):
+        entry, _ = registry.create("m")
+        stall = StalledPlan(monkeypatch, entry.gmap)
+        first = registry.submit("m", "r", WireScan(0, 0.0, scan_at(0)), wait=True)
+        assert stall.started.wait(5)
+        queued = [registry.submit("m", rid, WireScan(1, 0.0, scan_at(0)), wait=True) for rid in ("r", "s")]
+        assert registry.backlog()[0] == 2
+        if remove == "delete":
+            registry.delete("m")
+        else:
+            registry.replace("m", GridMap(MapConfig()))
+        for future in queued:
+            with pytest.raises(IngestRejected) as gone:
+                future.result(2)
+            status, says = (404, "deleted before the scan") if remove == "delete" else (409, "replaced")
+            assert gone.value.status == status and says in gone.value.reason
+        assert registry.backlog()[0] == 0
+        stall.release.set()
+        first.exception(5)  # answered too (what it says: test_a_scan_in_flight_...)
+        assert registry.wait_idle()
+        if remove == "replace":
+            assert registry.get("m").robots == {}  # the new map never saw these scans
+            registry.delete("m")

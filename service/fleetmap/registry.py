@@ -297,12 +297,13 @@ class MapRegistry:
         stored = None
         with self.lock:
             old = self.maps.pop(map_id, None)
+            dropped = self._drop_queued(map_id) if old is not None else []
             entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
             self.maps[map_id] = entry
             if self.durable is not None:
                 stored = self.durable.map_created(map_id, gmap, tiles)
-        if old is not None:
-            self.queue.drop_source(lambda source: source[0] == map_id)
+        for job in dropped:
+            self._finish_gone(job)
         log.info("installed map %s from a snapshot (%d tiles)", map_id, len(gmap.store))
         if wait:
             _wait_stored(stored, f"map {map_id!r} was installed")
@@ -316,18 +317,29 @@ class MapRegistry:
         return entry
 
     def delete(self, map_id: str, wait: bool = False) -> None:
-        """Remove a map and its queued scans; raises MapNotFound. With `wait`, the deletion is
-        committed to storage before this returns (else NotDurable)."""
+        """Remove a map and its queued scans (their callers are answered at once: not integrated);
+        raises MapNotFound. With `wait`, the deletion is committed to storage before this returns
+        (else NotDurable)."""
         stored = None
         with self.lock:
             if self.maps.pop(map_id, None) is None:
                 raise MapNotFound(map_id)
+            dropped = self._drop_queued(map_id)
             if self.durable is not None:
                 stored = self.durable.map_deleted(map_id)
-        self.queue.drop_source(lambda source: source[0] == map_id)
+        for job in dropped:
+            self._finish_gone(job)
         log.info("deleted map %s", map_id)
         if wait:
             _wait_stored(stored, f"map {map_id!r} was deleted")
+
+    def _drop_queued(self, map_id: str) -> list[Job]:
+        """Take the queued scans of map `map_id` off the queue, for the caller to answer with
+        `_finish_gone` once it released the lock. Called under the registry's lock in the same hold
+        that removes the map: dropped later, the scans of a map created again under that id
+        meanwhile would go too; and until then every scan in the queue under this map id is of the
+        map being removed."""
+        return self.queue.drop_source(lambda source: source[0] == map_id)
 
     def list(self) -> list[MapEntry]:
         with self.lock:
@@ -436,8 +448,7 @@ class MapRegistry:
         with self.lock:
             entry = self.maps.get(job.map_id)
         if entry is None or entry.generation != job.generation:
-            if job.future:
-                job.future.set_exception(IngestRejected(f"map {job.map_id!r} was deleted", 404))
+            self._finish_gone(job)
             return
         started = time.perf_counter()
         scan = job.wire.scan
@@ -506,6 +517,23 @@ class MapRegistry:
                     entry.scans_rejected += 1
         if job.future and not job.future.done():
             job.future.set_exception(IngestRejected(reason, status))
+
+    def _finish_gone(self, job: Job) -> None:
+        """A scan whose map was deleted or replaced before the scan was applied: it is integrated into
+        no map. Nothing is counted (the map's counters went with it, and a new map of that id never
+        saw the scan); its caller gets 404, or 409 if a new map of that id exists by now."""
+        with self.lock:
+            replaced = job.map_id in self.maps
+        if job.future is None or job.future.done():
+            return
+        if replaced:
+            reason = (
+                f"map {job.map_id!r} was replaced (deleted and created again, or restored from a snapshot) "
+                "before the scan was integrated: it was not integrated, into the old map or the new one"
+            )
+        else:
+            reason = f"map {job.map_id!r} was deleted before the scan was integrated: it was not integrated"
+        job.future.set_exception(IngestRejected(reason, 409 if replaced else 404))
 
     def backlog(self) -> tuple[int, float]:
         """(scans waiting for integration, seconds the oldest of them has waited). Cheap: one short

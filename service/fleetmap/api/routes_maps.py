@@ -174,7 +174,7 @@ _SCAN_BODY = {
     summary="Integrate one scan",
     response_model=ScanResult,
     openapi_extra=_SCAN_BODY,
-    responses=error_responses(404, 413, 422, 503, 507),
+    responses=error_responses(404, 409, 413, 422, 503, 507),
 )
 async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: State) -> ScanResult:
     """The scan a robot would publish over Zenoh, for clients without Zenoh. Answers once the scan is
@@ -182,7 +182,9 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
     changed storage tiles; `{"status": "duplicate"}` (200) when `seq` is not above the robot's last
     (seq 0 restarts a robot's sequence). Scans of one robot are integrated in seq order.
 
-    Errors: 404 unknown map when the server does not create maps on first use; 422 an invalid scan
+    Errors: 404 unknown map when the server does not create maps on first use, or the map was
+    deleted before the scan was integrated; 409 the map was replaced (deleted and created again, or
+    restored from a snapshot) before the scan was integrated: it is in neither map; 422 an invalid scan
     (counted on the robot as rejected, with the reason as its `last_error`); 503 the robot's ingest
     queue is full, the integration did not finish within the server's timeout (the scan is still
     integrated), or storage failed: the scan was applied but its journal commit failed (counted on
