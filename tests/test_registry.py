@@ -281,3 +281,38 @@ def test_scans_queued_for_a_deleted_or_replaced_map_are_answered_at_once(
         if remove == "replace":
             assert registry.get("m").robots == {}  # the new map never saw these scans
             registry.delete("m")
+
+
+def test_a_scan_in_flight_when_its_map_is_replaced_reaches_neither_map(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scan being planned (no lock held) while its map is deleted and created again: it is applied
+    to neither map, leaves no journal row (which the new map would replay after a restart), and its
+    caller gets 409. `test_durability.py` checks the same through a kill -9 of the real service."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    try:
+        old, _ = registry.create("m", wait=True)
+        stall = StalledPlan(monkeypatch, old.gmap)
+        future = registry.submit("m", "old-robot", WireScan(0, 0.0, scan_at(0.0)), wait=True)
+        assert stall.started.wait(5)
+        registry.delete("m", wait=True)
+        new, _ = registry.create("m", MapConfig(resolution=0.1), wait=True)
+        stall.release.set()
+        with pytest.raises(IngestRejected) as gone:
+            future.result(5)
+        assert gone.value.status == 409 and "not integrated" in gone.value.reason
+        assert registry.wait_idle()
+        assert (new.robots, new.scans_integrated, len(new.gmap.store)) == ({}, 0, 0)
+        assert len(old.gmap.store) == 0  # not applied to the old one either
+        with sqlite3.connect(registry.durable.path) as conn:
+            assert conn.execute("SELECT COUNT(*) FROM journal").fetchone()[0] == 0
+    finally:
+        registry.close()
+    again = MapRegistry(durable=DurableStore(tmp_path))
+    again.start()
+    try:
+        restored = again.get("m")
+        assert (restored.config.resolution, restored.robots, len(restored.gmap.store)) == (0.1, {}, 0)
+    finally:
+        again.close()

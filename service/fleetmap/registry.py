@@ -13,11 +13,13 @@ With a `DurableStore`, each applied scan is journaled under the map's lock (so t
 the order of application) and counts as integrated (stats, REST answer) only once its journal row is
 committed. Viewers see its tiles change at once. Map changes (create, delete, replace) are queued
 on the same journal in order, and callers that answer a client (`wait=True`) return only once the
-change is committed.
+change is committed. A map is deleted or replaced under its lock and the registry's (`_removing`), so
+a scan whose map went while it was planned is applied and journaled nowhere, and its caller is told.
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import sqlite3
@@ -116,6 +118,9 @@ class MapEntry:
     scans_rejected: int = 0
     changes: ChangeFeed = field(default_factory=ChangeFeed)
     created_at: float = field(default_factory=time.time)
+    #: Set when the map is deleted or replaced, under its lock and the registry's (`_removing`): a
+    #: worker holding the map's lock that finds it set neither applies nor journals a scan to it.
+    retired: bool = False
 
     @property
     def config(self) -> MapConfig:
@@ -295,9 +300,8 @@ class MapRegistry:
         # takes seconds, during which scans and every other request need the lock.
         tiles = self.durable.tile_rows(gmap) if self.durable is not None else []
         stored = None
-        with self.lock:
-            old = self.maps.pop(map_id, None)
-            dropped = self._drop_queued(map_id) if old is not None else []
+        with self._removing(map_id) as old:
+            dropped = self._retire(old) if old is not None else []
             entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
             self.maps[map_id] = entry
             if self.durable is not None:
@@ -318,13 +322,14 @@ class MapRegistry:
 
     def delete(self, map_id: str, wait: bool = False) -> None:
         """Remove a map and its queued scans (their callers are answered at once: not integrated);
-        raises MapNotFound. With `wait`, the deletion is committed to storage before this returns
-        (else NotDurable)."""
+        raises MapNotFound. Waits for the map's lock, so a scan being applied finishes first (a scan
+        still being planned is then applied nowhere). With `wait`, the deletion is committed to
+        storage before this returns (else NotDurable)."""
         stored = None
-        with self.lock:
-            if self.maps.pop(map_id, None) is None:
+        with self._removing(map_id) as old:
+            if old is None:
                 raise MapNotFound(map_id)
-            dropped = self._drop_queued(map_id)
+            dropped = self._retire(old)
             if self.durable is not None:
                 stored = self.durable.map_deleted(map_id)
         for job in dropped:
@@ -333,13 +338,38 @@ class MapRegistry:
         if wait:
             _wait_stored(stored, f"map {map_id!r} was deleted")
 
-    def _drop_queued(self, map_id: str) -> list[Job]:
-        """Take the queued scans of map `map_id` off the queue, for the caller to answer with
-        `_finish_gone` once it released the lock. Called under the registry's lock in the same hold
-        that removes the map: dropped later, the scans of a map created again under that id
-        meanwhile would go too; and until then every scan in the queue under this map id is of the
-        map being removed."""
-        return self.queue.drop_source(lambda source: source[0] == map_id)
+    @contextlib.contextmanager
+    def _removing(self, map_id: str) -> Iterator[MapEntry | None]:
+        """Hold map `map_id`'s lock and then the registry's, and yield the map (None if there is none,
+        with only the registry's lock held), for the caller to `_retire` it.
+
+        A worker checks `retired` and journals a scan under one hold of the map's lock, and the
+        caller queues the map's removal on the journal (`map_deleted`, `map_created`) under both
+        locks: so a scan's journal row is either queued before the removal (which then deletes it)
+        or not written at all, and no row of a removed map lands after it, where a new map of the
+        same id would replay it. The map's lock comes first (the only place where the two nest): a
+        worker holds it for a scan's whole apply, and the registry's must not wait that long."""
+        while True:
+            with self.lock:
+                entry = self.maps.get(map_id)
+                if entry is None:
+                    yield None
+                    return
+            with entry.gmap.lock, self.lock:
+                if self.maps.get(map_id) is entry:
+                    yield entry
+                    return
+            # Replaced while this waited for its lock: try again with the map that is there now.
+
+    def _retire(self, entry: MapEntry) -> list[Job]:
+        """Take map `entry` out of the registry and its queued scans off the queue; return those, for
+        the caller to answer with `_finish_gone` once it released the locks. Call it inside
+        `_removing` (see there why). The scans are dropped in the same registry-lock hold that removes
+        the map: dropped later, the scans of a map created again under that id meanwhile would go
+        too; and until then every scan in the queue under this map id is of this map."""
+        del self.maps[entry.id]
+        entry.retired = True
+        return self.queue.drop_source(lambda source: source[0] == entry.id)
 
     def list(self) -> list[MapEntry]:
         with self.lock:
@@ -458,18 +488,27 @@ class MapRegistry:
         try:
             plan = entry.gmap.plan(scan)
             with entry.gmap.lock:
-                result = entry.gmap.apply(plan)
-                if self.durable is not None:
-                    # Under the map's lock: the journal's order is the order of application.
-                    elapsed = time.perf_counter() - started
-                    self.durable.journal(
-                        job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
-                        lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
-                        lambda exc: self._mark_not_durable(job, exc),
-                    )  # fmt: skip
+                # Checked, applied and journaled in one hold of the map's lock, under which a
+                # DELETE or replace retires the map (`_removing`): while it was planned, the map may
+                # have gone, and a new one of the same id would replay a row journaled now.
+                if entry.retired:
+                    result = None
+                else:
+                    result = entry.gmap.apply(plan)
+                    if self.durable is not None:
+                        # Under the map's lock: the journal's order is the order of application.
+                        elapsed = time.perf_counter() - started
+                        self.durable.journal(
+                            job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
+                            lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
+                            lambda exc: self._mark_not_durable(job, exc),
+                        )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
             # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422.
             self._finish_rejected(job, str(exc), 507 if isinstance(exc, MemoryBudgetError) else 422)
+            return
+        if result is None:
+            self._finish_gone(job)
             return
         entry.changes.record(result.changed_tiles)  # viewers see the change now
         if self.durable is None:
@@ -519,9 +558,10 @@ class MapRegistry:
             job.future.set_exception(IngestRejected(reason, status))
 
     def _finish_gone(self, job: Job) -> None:
-        """A scan whose map was deleted or replaced before the scan was applied: it is integrated into
-        no map. Nothing is counted (the map's counters went with it, and a new map of that id never
-        saw the scan); its caller gets 404, or 409 if a new map of that id exists by now."""
+        """A scan whose map was deleted or replaced before the scan was applied (queued, or while it
+        was planned): it is integrated into no map. Nothing is counted (the map's counters went with
+        it, and a new map of that id never saw the scan); its caller gets 404, or 409 if a new map of
+        that id exists by now."""
         with self.lock:
             replaced = job.map_id in self.maps
         if job.future is None or job.future.done():
