@@ -316,3 +316,45 @@ def test_a_scan_in_flight_when_its_map_is_replaced_reaches_neither_map(
         assert (restored.config.resolution, restored.robots, len(restored.gmap.store)) == (0.1, {}, 0)
     finally:
         again.close()
+
+
+def test_a_map_created_by_a_refused_scan_is_removed_again(tmp_path: Path) -> None:
+    """A scan to a new map id creates the map; when the scan is refused (here 422, past max_tiles),
+    the map, holding nothing, is removed again, from storage too: a refused message changes no map.
+    A map that another robot's scan reached meanwhile, or that a PUT or a liveliness token claimed,
+    stays. The workers start only once every scan is queued, so no interleaving decides the outcome."""
+    small = MapConfig(max_tiles=1, tile_size=16, resolution=0.1)
+    too_big = WireScan(0, 0.0, scan_at(0.0, r=20.0))
+    fits = WireScan(0, 0.0, Scan.from_fan((0.5, 0.8, 0.0), -0.5, 0.1, [0.5] * 10, 0.0, 30.0))
+    registry = MapRegistry(default_config=small, durable=DurableStore(tmp_path))
+    try:
+        alone = registry.submit("alone", "r", too_big, wait=True)
+        shared = registry.submit("shared", "a", too_big, wait=True)
+        registry.submit("shared", "b", fits)
+        registry.submit("put", "r", too_big)
+        registry.create("put", small)  # a PUT of the same configuration: asked for by name
+        registry.submit("token", "r", too_big)
+        registry.set_online("token", "r", True)  # the robot's liveliness token would create it anyway
+        registry.start()
+        for future in (alone, shared):
+            with pytest.raises(IngestRejected) as refused:
+                future.result(5)
+            assert refused.value.status == 422 and "max_tiles" in refused.value.reason
+        assert registry.wait_idle()
+        assert sorted(entry.id for entry in registry.list()) == ["put", "shared", "token"]
+        assert "removed again" in alone.exception().reason and "removed" not in shared.exception().reason
+        robots = registry.get("shared").robots
+        assert (robots["a"].scans_rejected, robots["b"].scans_integrated) == (1, 1)
+        with sqlite3.connect(registry.durable.path) as conn:
+            assert sorted(row[0] for row in conn.execute("SELECT id FROM maps")) == ["put", "shared", "token"]
+    finally:
+        registry.close()
+
+
+def test_a_map_created_by_a_scan_the_full_queue_refuses_is_removed_again() -> None:
+    reg = MapRegistry(queue_total=1)  # workers not started: the first scan fills the queue
+    reg.submit("first", "r", WireScan(0, 0.0, scan_at(0)))
+    with pytest.raises(IngestRejected) as full:
+        reg.submit("second", "r", WireScan(0, 0.0, scan_at(0)))
+    assert [entry.id for entry in reg.list()] == ["first"]
+    assert full.value.status == 503 and "removed again" in full.value.reason

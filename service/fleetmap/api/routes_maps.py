@@ -22,7 +22,7 @@ from fleetmap.api_models import (
 )
 from fleetmap.config import MapConfig
 from fleetmap.metrics import CONTENT_TYPE
-from fleetmap.registry import IngestRejected
+from fleetmap.registry import IngestRejected, MapNotFound
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
 
 router = APIRouter()
@@ -209,7 +209,10 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
             return ScanResult(seq=wire.seq, status="duplicate", detail=exc.reason)
         raise ApiError(exc.status, exc.reason) from None
     assert future is not None  # wait=True always returns one
-    tile_size = registry.get(map_id).config.tile_size
+    try:
+        tile_size = registry.get(map_id).config.tile_size
+    except MapNotFound:  # gone already: the scan was refused and the map it created removed, or deleted
+        tile_size = None  # (the future says which)
     timeout = state.settings.scan_timeout
     try:
         # shield: a timeout or a client that goes away must not cancel the registry's Future (the
@@ -221,6 +224,8 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
         ) from None
     except IngestRejected as exc:
         raise ApiError(exc.status, exc.reason) from None
+    if tile_size is None:  # integrated, then the map was deleted before it was looked up above
+        raise MapNotFound(map_id)
     return ScanResult(
         seq=wire.seq,
         status="integrated",
