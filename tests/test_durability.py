@@ -13,6 +13,7 @@ import io
 import json
 import random
 import sqlite3
+import threading
 import time
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME
 from fleetmap.grid_map import GridMap
-from fleetmap.scan import Scan
+from fleetmap.scan import Pose2D, Scan
 from fleetmap.storage_format import scan_from_blob, snapshot_file, tile_from_blob, tile_to_blob
 from fleetmap.wire import BINARY_ENCODING
 
@@ -383,3 +384,54 @@ def test_a_failing_disk_is_reported_and_the_next_snapshot_saves_what_it_missed(t
         assert stats(restarted.base_url, "m")["robots"]["r"]["not_durable"] == 1
     finally:
         restarted.stop()
+
+
+def test_a_scan_whose_map_is_replaced_while_it_integrates_is_not_replayed_into_the_new_map(
+    tmp_path: Path,
+) -> None:
+    """A heavy scan is being planned when its map is deleted and created again: it is answered 409
+    (integrated into no map), the new map stays empty, and it stays empty after a kill -9 and a
+    restart (before the fix, the old map's journal row came back in the new map, with its robot).
+
+    The scan's 16384 beams, 100 m long and in shuffled order, are walked one by one: about half a
+    second of planning, without any lock, in which the test deletes and re-creates the map. The test waits
+    until the scan is in flight (its robot is known and nothing is queued) before deleting it."""
+    data = tmp_path / "data"
+    n = 16384
+    angles = np.random.default_rng(7).permutation(np.linspace(-np.pi, np.pi, n, endpoint=False))
+    heavy = encode_binary(Scan(Pose2D(1.0, 2.0, 0.0), angles, np.full(n, 100.0), 0.0, np.inf), 0)
+    answer: list[httpx.Response] = []
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        url = svc.base_url
+        # Only the occupancy layer: before the fix the scan was applied, and it allocates ~220 tiles.
+        assert httpx.put(f"{url}/maps/X", json={"layers": ["occupancy"]}, timeout=30).status_code == 201
+        poster = threading.Thread(target=lambda: answer.append(httpx.post(
+            f"{url}/maps/X/scans", params={"robot_id": "old"}, content=heavy,
+            headers={"content-type": BINARY_ENCODING}, timeout=60)))  # fmt: skip
+        poster.start()
+
+        def in_flight() -> bool:
+            known = "old" in stats(url, "X")["robots"]
+            return known and "fleetmap_queue_depth 0.0" in httpx.get(f"{url}/metrics", timeout=10).text
+
+        wait_for(in_flight, interval=0.005, what="the heavy scan taken by a worker")
+        assert httpx.delete(f"{url}/maps/X", timeout=30).status_code == 204
+        assert httpx.put(f"{url}/maps/X", json={"resolution": 0.1}, timeout=30).status_code == 201
+        poster.join(30)
+        before_crash = stats(url, "X")
+        svc.proc.kill()  # SIGKILL: no snapshot, only the journal
+        svc.proc.wait()
+    finally:
+        svc.stop()
+    restarted = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        after = httpx.get(f"{restarted.base_url}/maps/X", timeout=10).json()
+    finally:
+        restarted.stop()
+    assert after["config"]["resolution"] == 0.1
+    got = (after["stats"]["scans_integrated"], after["stats"]["tiles"], after["stats"]["robots"])
+    assert got == (0, 0, {}), "the deleted map's scan came back in the new map"
+    assert (before_crash["scans_integrated"], before_crash["tiles"], before_crash["robots"]) == (0, 0, {})
+    assert answer[0].status_code == 409, answer[0].text
+    assert "not integrated" in answer[0].json()["detail"]

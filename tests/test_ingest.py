@@ -427,3 +427,28 @@ def test_rate_limited_log_holds_back_repeats(caplog: pytest.LogCaptureFixture) -
     assert results.count(True) == 1
     lines = [r.getMessage() for r in caplog.records]
     assert lines == ["message 0", "other category", "after the interval (99 similar messages suppressed)"]
+
+
+def test_a_map_created_by_a_refused_zenoh_scan_is_removed_again() -> None:
+    """Over Zenoh too, a scan that auto-creates its map and is then refused (past max_tiles) leaves
+    no map behind; a robot whose liveliness token is up keeps its map (the token creates it)."""
+    registry = MapRegistry(default_config=MapConfig(max_tiles=1, tile_size=16, resolution=0.1))
+    registry.start()
+    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{free_port()}"])
+    ingest.start()
+    session = client_session(ingest.listen[0])
+    try:
+        token = session.liveliness().declare_token(ALIVE_KEY.format(map_id="tokened", robot_id="r1"))
+        wait_for(lambda: "tokened" in registry.maps, what="the token's map")
+        too_big = codec.encode_binary(Scan.from_fan((0.0, 0.0, 0.0), -0.5, 0.05, [20.0] * 20, 0.0, 30.0), 0)
+        for map_id in ("fresh", "tokened"):
+            scan_publisher(session, map_id, "r1", BINARY_ENCODING).put(too_big)
+        wait_for(lambda: ingest.status()["scans_submitted"] == 2, what="both scans submitted")
+        assert registry.wait_idle()
+        assert list(registry.maps) == ["tokened"]
+        assert "max_tiles" in registry.get("tokened").robots["r1"].last_error
+        token.undeclare()
+    finally:
+        session.close()
+        ingest.close()
+        registry.close()

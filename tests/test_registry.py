@@ -232,3 +232,129 @@ def test_a_restored_map_is_stored_outside_the_registry_lock(
         registry.close()
     assert len(lock_free) == len(gmap.store) and all(lock_free)
     assert stored == len(gmap.store)
+
+
+class StalledPlan:
+    """Holds the planning of one map's scans until `release` is set: the scan being planned is then
+    in flight (off the queue, no lock held), and the test arranges what happens meanwhile. `started`
+    is set once a scan is being planned."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, gmap: GridMap) -> None:
+        self.started = threading.Event()
+        self.release = threading.Event()
+        plan = gmap.plan
+
+        def stalled(scan: Scan) -> Any:
+            self.started.set()
+            assert self.release.wait(10), "the test never released the stalled plan"
+            return plan(scan)
+
+        monkeypatch.setattr(gmap, "plan", stalled)
+
+
+def test_scans_queued_for_a_deleted_or_replaced_map_are_answered_at_once(
+    registry: MapRegistry, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """DELETE (or a snapshot PUT) throws the map's queued scans away: their callers learn it at once
+    (404, or 409 when a map of that id exists again), instead of waiting out their timeout for a
+    scan that will never be integrated."""
+    for remove in ("delete", "replace"):
+        entry, _ = registry.create("m")
+        stall = StalledPlan(monkeypatch, entry.gmap)
+        first = registry.submit("m", "r", WireScan(0, 0.0, scan_at(0)), wait=True)
+        assert stall.started.wait(5)
+        queued = [registry.submit("m", rid, WireScan(1, 0.0, scan_at(0)), wait=True) for rid in ("r", "s")]
+        assert registry.backlog()[0] == 2
+        if remove == "delete":
+            registry.delete("m")
+        else:
+            registry.replace("m", GridMap(MapConfig()))
+        for future in queued:
+            with pytest.raises(IngestRejected) as gone:
+                future.result(2)
+            status, says = (404, "deleted before the scan") if remove == "delete" else (409, "replaced")
+            assert gone.value.status == status and says in gone.value.reason
+        assert registry.backlog()[0] == 0
+        stall.release.set()
+        first.exception(5)  # answered too (what it says: test_a_scan_in_flight_...)
+        assert registry.wait_idle()
+        if remove == "replace":
+            assert registry.get("m").robots == {}  # the new map never saw these scans
+            registry.delete("m")
+
+
+def test_a_scan_in_flight_when_its_map_is_replaced_reaches_neither_map(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scan being planned (no lock held) while its map is deleted and created again: it is applied
+    to neither map, leaves no journal row (which the new map would replay after a restart), and its
+    caller gets 409. `test_durability.py` checks the same through a kill -9 of the real service."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    try:
+        old, _ = registry.create("m", wait=True)
+        stall = StalledPlan(monkeypatch, old.gmap)
+        future = registry.submit("m", "old-robot", WireScan(0, 0.0, scan_at(0.0)), wait=True)
+        assert stall.started.wait(5)
+        registry.delete("m", wait=True)
+        new, _ = registry.create("m", MapConfig(resolution=0.1), wait=True)
+        stall.release.set()
+        with pytest.raises(IngestRejected) as gone:
+            future.result(5)
+        assert gone.value.status == 409 and "not integrated" in gone.value.reason
+        assert registry.wait_idle()
+        assert (new.robots, new.scans_integrated, len(new.gmap.store)) == ({}, 0, 0)
+        assert len(old.gmap.store) == 0  # not applied to the old one either
+        with sqlite3.connect(registry.durable.path) as conn:
+            assert conn.execute("SELECT COUNT(*) FROM journal").fetchone()[0] == 0
+    finally:
+        registry.close()
+    again = MapRegistry(durable=DurableStore(tmp_path))
+    again.start()
+    try:
+        restored = again.get("m")
+        assert (restored.config.resolution, restored.robots, len(restored.gmap.store)) == (0.1, {}, 0)
+    finally:
+        again.close()
+
+
+def test_a_map_created_by_a_refused_scan_is_removed_again(tmp_path: Path) -> None:
+    """A scan to a new map id creates the map; when the scan is refused (here 422, past max_tiles),
+    the map, holding nothing, is removed again, from storage too: a refused message changes no map.
+    A map that another robot's scan reached meanwhile, or that a PUT or a liveliness token claimed,
+    stays. The workers start only once every scan is queued, so no interleaving decides the outcome."""
+    small = MapConfig(max_tiles=1, tile_size=16, resolution=0.1)
+    too_big = WireScan(0, 0.0, scan_at(0.0, r=20.0))
+    fits = WireScan(0, 0.0, Scan.from_fan((0.5, 0.8, 0.0), -0.5, 0.1, [0.5] * 10, 0.0, 30.0))
+    registry = MapRegistry(default_config=small, durable=DurableStore(tmp_path))
+    try:
+        alone = registry.submit("alone", "r", too_big, wait=True)
+        shared = registry.submit("shared", "a", too_big, wait=True)
+        registry.submit("shared", "b", fits)
+        registry.submit("put", "r", too_big)
+        registry.create("put", small)  # a PUT of the same configuration: asked for by name
+        registry.submit("token", "r", too_big)
+        registry.set_online("token", "r", True)  # the robot's liveliness token would create it anyway
+        registry.start()
+        for future in (alone, shared):
+            with pytest.raises(IngestRejected) as refused:
+                future.result(5)
+            assert refused.value.status == 422 and "max_tiles" in refused.value.reason
+        assert registry.wait_idle()
+        assert sorted(entry.id for entry in registry.list()) == ["put", "shared", "token"]
+        assert "removed again" in alone.exception().reason and "removed" not in shared.exception().reason
+        robots = registry.get("shared").robots
+        assert (robots["a"].scans_rejected, robots["b"].scans_integrated) == (1, 1)
+        with sqlite3.connect(registry.durable.path) as conn:
+            assert sorted(row[0] for row in conn.execute("SELECT id FROM maps")) == ["put", "shared", "token"]
+    finally:
+        registry.close()
+
+
+def test_a_map_created_by_a_scan_the_full_queue_refuses_is_removed_again() -> None:
+    reg = MapRegistry(queue_total=1)  # workers not started: the first scan fills the queue
+    reg.submit("first", "r", WireScan(0, 0.0, scan_at(0)))
+    with pytest.raises(IngestRejected) as full:
+        reg.submit("second", "r", WireScan(0, 0.0, scan_at(0)))
+    assert [entry.id for entry in reg.list()] == ["first"]
+    assert full.value.status == 503 and "removed again" in full.value.reason

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from collections.abc import Hashable
+from collections.abc import Callable, Hashable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -74,14 +74,19 @@ class FairQueue(Generic[T]):
             elif fifo is not None:
                 del self._fifos[source]
 
-    def drop_source(self, predicate) -> int:  # noqa: ANN001 - Callable[[Hashable], bool]
-        """Discard every queued item of the sources for which `predicate(source)` holds."""
+    def drop_source(self, predicate: Callable[[Hashable], bool]) -> list[T]:
+        """Discard every queued item of the sources for which `predicate(source)` holds and return
+        them, oldest first per source, so the caller can answer whoever waits for them (items in
+        flight are not affected)."""
         with self._cond:
-            dropped = 0
+            dropped: list[T] = []
             for source in [s for s in self._fifos if predicate(s)]:
-                dropped += len(self._fifos[source])
+                dropped += self._fifos[source]
                 self._size -= len(self._fifos[source])
-                self._fifos[source].clear()
+                if source in self._busy:  # `done` deletes it
+                    self._fifos[source].clear()
+                else:
+                    del self._fifos[source]
             self._ready = deque(s for s in self._ready if self._fifos.get(s))
             return dropped
 

@@ -222,7 +222,8 @@ class DurableStore:
         ordered before any of the map's scans. The future resolves once the map is committed.
 
         The map's journal starts after the journal's current sequence, so rows a deleted map of the
-        same id left behind are never replayed into this one."""
+        same id left behind are never replayed into this one. (The registry queues no row of a removed
+        map after its removal: see `MapRegistry._removing`.)"""
         if tiles is None:
             tiles = self.tile_rows(gmap)
         config_json, clock = gmap.config.model_dump_json(), gmap.store.clock

@@ -13,11 +13,13 @@ With a `DurableStore`, each applied scan is journaled under the map's lock (so t
 the order of application) and counts as integrated (stats, REST answer) only once its journal row is
 committed. Viewers see its tiles change at once. Map changes (create, delete, replace) are queued
 on the same journal in order, and callers that answer a client (`wait=True`) return only once the
-change is committed.
+change is committed. A map is deleted or replaced under its lock and the registry's (`_removing`), so
+a scan whose map went while it was planned is applied and journaled nowhere, and its caller is told.
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import sqlite3
@@ -116,6 +118,17 @@ class MapEntry:
     scans_rejected: int = 0
     changes: ChangeFeed = field(default_factory=ChangeFeed)
     created_at: float = field(default_factory=time.time)
+    #: Set when the map is deleted or replaced, under its lock and the registry's (`_removing`): a
+    #: worker holding the map's lock that finds it set neither applies nor journals a scan to it.
+    retired: bool = False
+    #: Created by a scan (auto-create) and claimed by nothing since: if every scan that reached it is
+    #: refused, it is removed again (`_remove_unclaimed`), so a refused scan creates no map. Cleared
+    #: once a scan of it is applied, and by `create` (PUT) or a robot's liveliness token
+    #: (`set_online`), either of which would have created the map anyway.
+    provisional: bool = False
+    #: Scans accepted for this map (`submit`) that are neither counted as integrated nor refused yet:
+    #: queued, in flight, or applied and waiting for their journal commit.
+    unsettled: int = 0
 
     @property
     def config(self) -> MapConfig:
@@ -277,6 +290,7 @@ class MapRegistry:
                     raise MapConflict(
                         f"map {map_id!r} exists with a different configuration; delete it first"
                     )
+                existing.provisional = False  # asked for by name: it stays even if its scans are refused
                 return existing, False
             entry = MapEntry(map_id, self._charged(GridMap(config)), next(self._generations))
             self.maps[map_id] = entry
@@ -295,14 +309,14 @@ class MapRegistry:
         # takes seconds, during which scans and every other request need the lock.
         tiles = self.durable.tile_rows(gmap) if self.durable is not None else []
         stored = None
-        with self.lock:
-            old = self.maps.pop(map_id, None)
+        with self._removing(map_id) as old:
+            dropped = self._retire(old) if old is not None else []
             entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
             self.maps[map_id] = entry
             if self.durable is not None:
                 stored = self.durable.map_created(map_id, gmap, tiles)
-        if old is not None:
-            self.queue.drop_source(lambda source: source[0] == map_id)
+        for job in dropped:
+            self._finish_gone(job)
         log.info("installed map %s from a snapshot (%d tiles)", map_id, len(gmap.store))
         if wait:
             _wait_stored(stored, f"map {map_id!r} was installed")
@@ -316,18 +330,74 @@ class MapRegistry:
         return entry
 
     def delete(self, map_id: str, wait: bool = False) -> None:
-        """Remove a map and its queued scans; raises MapNotFound. With `wait`, the deletion is
-        committed to storage before this returns (else NotDurable)."""
+        """Remove a map and its queued scans (their callers are answered at once: not integrated);
+        raises MapNotFound. Waits for the map's lock, so a scan being applied finishes first (a scan
+        still being planned is then applied nowhere). With `wait`, the deletion is committed to
+        storage before this returns (else NotDurable)."""
         stored = None
-        with self.lock:
-            if self.maps.pop(map_id, None) is None:
+        with self._removing(map_id) as old:
+            if old is None:
                 raise MapNotFound(map_id)
+            dropped = self._retire(old)
             if self.durable is not None:
                 stored = self.durable.map_deleted(map_id)
-        self.queue.drop_source(lambda source: source[0] == map_id)
+        for job in dropped:
+            self._finish_gone(job)
         log.info("deleted map %s", map_id)
         if wait:
             _wait_stored(stored, f"map {map_id!r} was deleted")
+
+    @contextlib.contextmanager
+    def _removing(self, map_id: str) -> Iterator[MapEntry | None]:
+        """Hold map `map_id`'s lock and then the registry's, and yield the map (None if there is none,
+        with only the registry's lock held), for the caller to `_retire` it.
+
+        A worker checks `retired` and journals a scan under one hold of the map's lock, and the
+        caller queues the map's removal on the journal (`map_deleted`, `map_created`) under both
+        locks: so a scan's journal row is either queued before the removal (which then deletes it)
+        or not written at all, and no row of a removed map lands after it, where a new map of the
+        same id would replay it. The map's lock comes first (the only place where the two nest): a
+        worker holds it for a scan's whole apply, and the registry's must not wait that long."""
+        while True:
+            with self.lock:
+                entry = self.maps.get(map_id)
+                if entry is None:
+                    yield None
+                    return
+            with entry.gmap.lock, self.lock:
+                if self.maps.get(map_id) is entry:
+                    yield entry
+                    return
+            # Replaced while this waited for its lock: try again with the map that is there now.
+
+    def _retire(self, entry: MapEntry) -> list[Job]:
+        """Take map `entry` out of the registry and its queued scans off the queue; return those, for
+        the caller to answer with `_finish_gone` once it released the locks. Call it inside
+        `_removing` (see there why), or as `_remove_unclaimed` does. The scans are dropped in the
+        same registry-lock hold that removes the map: dropped later, the scans of a map created
+        again under that id meanwhile would go too; and until then every scan in the queue under
+        this map id is of this map."""
+        del self.maps[entry.id]
+        entry.retired = True
+        return self.queue.drop_source(lambda source: source[0] == entry.id)
+
+    def _remove_unclaimed(self, entry: MapEntry) -> Future | None:
+        """Remove map `entry` if it is `provisional` with no scan unsettled: created by a scan, and
+        every scan that reached it refused. Call it under the registry's lock, right after counting a
+        refusal. Returns None if the map stays, else a Future resolved once the removal is stored
+        (at once without storage).
+
+        The map's lock, which `_removing` takes for a DELETE, is not needed: with no scan unsettled
+        (and new ones waiting for the registry's lock) no worker holds a scan of this map."""
+        if not entry.provisional or entry.unsettled:
+            return None
+        self._retire(entry)
+        log.info("removed map %s again: every scan that created it was refused", entry.id)
+        if self.durable is not None:
+            return self.durable.map_deleted(entry.id)
+        removed: Future = Future()
+        removed.set_result(None)
+        return removed
 
     def list(self) -> list[MapEntry]:
         with self.lock:
@@ -340,7 +410,8 @@ class MapRegistry:
 
         Returns a Future of the IntegrationResult when `wait`, else None. Raises IngestRejected for
         a duplicate (status 200: nothing to do), an unknown map without auto-create (404), or a full
-        queue (503). Every refusal is counted on the robot.
+        queue (503). Every refusal is counted on the robot. A map this creates is `provisional`: it is
+        removed again if the scan is refused here or later (and no other scan reached it meanwhile).
         """
         _check_id("map id", map_id)
         _check_id("robot id", robot_id)
@@ -356,6 +427,7 @@ class MapRegistry:
                         404,
                     )
                 entry, _ = self.create(map_id)
+                entry.provisional = True
             if robot_id not in entry.robots and len(entry.robots) >= self.max_robots_per_map:
                 raise IngestRejected(
                     f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have", 429
@@ -375,7 +447,11 @@ class MapRegistry:
                 job.future = Future()
             if not self.queue.put((map_id, robot_id), job):
                 robot.dropped += 1
-                raise IngestRejected("ingest queue full: scan dropped", 503)
+                reason = "ingest queue full: scan dropped"
+                if self._remove_unclaimed(entry) is not None:
+                    reason += f"; map {map_id!r}, created for it, was removed again"
+                raise IngestRejected(reason, 503)
+            entry.unsettled += 1
             return job.future
 
     def reject(self, map_id: str, robot_id: str, reason: str) -> None:
@@ -404,6 +480,8 @@ class MapRegistry:
                 if not (online and self.auto_create) or len(self.maps) >= self.max_auto_maps:
                     return
                 entry, _ = self.create(map_id)
+            elif online:
+                entry.provisional = False  # the token would have created the map: it stays
             if robot_id in entry.robots or len(entry.robots) < self.max_robots_per_map:
                 entry.robot(robot_id).online = online
 
@@ -436,8 +514,7 @@ class MapRegistry:
         with self.lock:
             entry = self.maps.get(job.map_id)
         if entry is None or entry.generation != job.generation:
-            if job.future:
-                job.future.set_exception(IngestRejected(f"map {job.map_id!r} was deleted", 404))
+            self._finish_gone(job)
             return
         started = time.perf_counter()
         scan = job.wire.scan
@@ -447,18 +524,27 @@ class MapRegistry:
         try:
             plan = entry.gmap.plan(scan)
             with entry.gmap.lock:
-                result = entry.gmap.apply(plan)
-                if self.durable is not None:
-                    # Under the map's lock: the journal's order is the order of application.
-                    elapsed = time.perf_counter() - started
-                    self.durable.journal(
-                        job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
-                        lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
-                        lambda exc: self._mark_not_durable(job, exc),
-                    )  # fmt: skip
+                # Checked, applied and journaled in one hold of the map's lock, under which a
+                # DELETE or replace retires the map (`_removing`): while it was planned, the map may
+                # have gone, and a new one of the same id would replay a row journaled now.
+                if entry.retired:
+                    result = None
+                else:
+                    result = entry.gmap.apply(plan)
+                    if self.durable is not None:
+                        # Under the map's lock: the journal's order is the order of application.
+                        elapsed = time.perf_counter() - started
+                        self.durable.journal(
+                            job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
+                            lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
+                            lambda exc: self._mark_not_durable(job, exc),
+                        )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
             # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422.
             self._finish_rejected(job, str(exc), 507 if isinstance(exc, MemoryBudgetError) else 422)
+            return
+        if result is None:
+            self._finish_gone(job)
             return
         entry.changes.record(result.changed_tiles)  # viewers see the change now
         if self.durable is None:
@@ -469,6 +555,8 @@ class MapRegistry:
         pose = job.wire.scan.pose
         with self.lock:
             if entry.generation == job.generation:
+                entry.unsettled -= 1
+                entry.provisional = False  # it holds a scan now
                 entry.scans_integrated += 1
                 robot = entry.robot(job.robot_id)
                 robot.scans_integrated += 1
@@ -493,19 +581,49 @@ class MapRegistry:
     def _finish_rejected(self, job: Job, reason: str, status: int = 422, applied: bool = False) -> None:
         """A scan that does not count as integrated: count it on its robot (as `not_durable` if it
         was `applied`, else as rejected) with `reason` as its last error, and answer its caller
-        `status`."""
+        `status`. A `provisional` map that this refusal leaves with no scan unsettled is removed
+        again (`_remove_unclaimed`), and the caller answered once that is stored."""
+        removed = None
         with self.lock:
             entry = self.maps.get(job.map_id)
             if entry is not None and entry.generation == job.generation:
+                entry.unsettled -= 1
                 robot = entry.robot(job.robot_id)
                 robot.last_error = reason
                 if applied:
                     robot.not_durable += 1
+                    entry.provisional = False  # it holds the scan, durable or not
                 else:
                     robot.scans_rejected += 1
                     entry.scans_rejected += 1
-        if job.future and not job.future.done():
-            job.future.set_exception(IngestRejected(reason, status))
+                    removed = self._remove_unclaimed(entry)
+        if job.future is None:
+            return
+        if removed is None:
+            _refuse(job.future, IngestRejected(reason, status))
+        else:
+            refusal = IngestRejected(
+                f"{reason}; map {job.map_id!r}, created for this scan, was removed again", status
+            )
+            removed.add_done_callback(lambda _stored: _refuse(job.future, refusal))
+
+    def _finish_gone(self, job: Job) -> None:
+        """A scan whose map was deleted or replaced before the scan was applied (queued, or while it
+        was planned): it is integrated into no map. Nothing is counted (the map's counters went with
+        it, and a new map of that id never saw the scan); its caller gets 404, or 409 if a new map of
+        that id exists by now."""
+        with self.lock:
+            replaced = job.map_id in self.maps
+        if job.future is None:
+            return
+        if replaced:
+            reason = (
+                f"map {job.map_id!r} was replaced (deleted and created again, or restored from a snapshot) "
+                "before the scan was integrated: it was not integrated, into the old map or the new one"
+            )
+        else:
+            reason = f"map {job.map_id!r} was deleted before the scan was integrated: it was not integrated"
+        _refuse(job.future, IngestRejected(reason, 409 if replaced else 404))
 
     def backlog(self) -> tuple[int, float]:
         """(scans waiting for integration, seconds the oldest of them has waited). Cheap: one short
@@ -527,6 +645,12 @@ class MapRegistry:
                 return True
             time.sleep(0.005)
         return False
+
+
+def _refuse(future: Future, refusal: IngestRejected) -> None:
+    """Fail a scan's future with `refusal` unless it is answered already."""
+    if not future.done():
+        future.set_exception(refusal)
 
 
 def _wait_stored(stored: Future | None, done: str) -> None:

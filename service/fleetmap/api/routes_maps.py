@@ -22,7 +22,7 @@ from fleetmap.api_models import (
 )
 from fleetmap.config import MapConfig
 from fleetmap.metrics import CONTENT_TYPE
-from fleetmap.registry import IngestRejected
+from fleetmap.registry import IngestRejected, MapNotFound
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
 
 router = APIRouter()
@@ -174,7 +174,7 @@ _SCAN_BODY = {
     summary="Integrate one scan",
     response_model=ScanResult,
     openapi_extra=_SCAN_BODY,
-    responses=error_responses(404, 413, 422, 503, 507),
+    responses=error_responses(404, 409, 413, 422, 503, 507),
 )
 async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: State) -> ScanResult:
     """The scan a robot would publish over Zenoh, for clients without Zenoh. Answers once the scan is
@@ -182,7 +182,9 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
     changed storage tiles; `{"status": "duplicate"}` (200) when `seq` is not above the robot's last
     (seq 0 restarts a robot's sequence). Scans of one robot are integrated in seq order.
 
-    Errors: 404 unknown map when the server does not create maps on first use; 422 an invalid scan
+    Errors: 404 unknown map when the server does not create maps on first use, or the map was
+    deleted before the scan was integrated; 409 the map was replaced (deleted and created again, or
+    restored from a snapshot) before the scan was integrated: it is in neither map; 422 an invalid scan
     (counted on the robot as rejected, with the reason as its `last_error`); 503 the robot's ingest
     queue is full, the integration did not finish within the server's timeout (the scan is still
     integrated), or storage failed: the scan was applied but its journal commit failed (counted on
@@ -207,7 +209,10 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
             return ScanResult(seq=wire.seq, status="duplicate", detail=exc.reason)
         raise ApiError(exc.status, exc.reason) from None
     assert future is not None  # wait=True always returns one
-    tile_size = registry.get(map_id).config.tile_size
+    try:
+        tile_size = registry.get(map_id).config.tile_size
+    except MapNotFound:  # gone already: the scan was refused and the map it created removed, or deleted
+        tile_size = None  # (the future says which)
     timeout = state.settings.scan_timeout
     try:
         # shield: a timeout or a client that goes away must not cancel the registry's Future (the
@@ -219,6 +224,8 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
         ) from None
     except IngestRejected as exc:
         raise ApiError(exc.status, exc.reason) from None
+    if tile_size is None:  # integrated, then the map was deleted before it was looked up above
+        raise MapNotFound(map_id)
     return ScanResult(
         seq=wire.seq,
         status="integrated",
