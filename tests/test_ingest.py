@@ -143,8 +143,7 @@ def test_bad_payloads_are_counted_per_robot_with_reasons_and_change_nothing(
     bad: list[tuple[bytes, str, str]] = [  # (payload, encoding, a word the reason must contain)
         (b"not json at all", JSON_ENCODING, "invalid JSON"),
         (json.dumps({k: v for k, v in valid_json.items() if k != "pose"}).encode(), JSON_ENCODING, "pose"),
-        (json.dumps({**valid_json, "ranges": [-1.0] * len(valid_json["ranges"])}).encode(),
-         JSON_ENCODING, "negative"),
+        (json.dumps({**valid_json, "range_min": -1.0}).encode(), JSON_ENCODING, "range_min"),
         (b"XXXX" + binary[4:], BINARY_ENCODING, "magic"),
         (binary[:-4], BINARY_ENCODING, "bytes"),
         (binary[:40], BINARY_ENCODING, "header"),

@@ -109,8 +109,7 @@ def test_maps_share_the_budget_and_a_refused_scan_changes_nothing() -> None:
 
 
 def test_the_registry_refuses_past_the_budget_with_507_and_counts_it() -> None:
-    start = GridMap(SMALL).memory_bytes()
-    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(start + 4 * TILE_BYTES))
+    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(40 * TILE_BYTES))  # the first scans fit
     registry.start()
     try:
         status = 200
@@ -131,9 +130,9 @@ def test_the_registry_refuses_past_the_budget_with_507_and_counts_it() -> None:
 
 
 def test_the_service_answers_507_past_max_memory_and_keeps_serving(tmp_path) -> None:
-    """A real service with a budget of 24 MiB: the default map (3 layers, 1.3 MiB a tile) starts with
-    16 tiles (21 MiB), so a robot roaming far needs more and is refused; the map and the service
-    stay as they were, and /metrics shows the budget."""
+    """A real service with a budget of 24 MiB: the default map (3 layers, 1.3 MiB a tile) makes room
+    for 16 tiles (21 MiB) on its first scan, so a robot roaming far needs more and is refused; the
+    map and the service stay as they were, and /metrics shows the budget."""
     with ServiceProcess(tmp_path, ["--in-memory", "--max-memory", "24MiB"]) as svc:
         url = svc.base_url
         statuses = []
