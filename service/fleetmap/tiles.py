@@ -55,6 +55,11 @@ LAYER_ARRAYS: dict[LayerName, tuple[LayerArray, ...]] = {
 }
 
 
+def layer_arrays(layers: Iterable[LayerName]) -> tuple[LayerArray, ...]:
+    """The arrays a store keeps for `layers`, in the order of its pools, `arrays` and stored tiles."""
+    return tuple(a for layer in layers for a in LAYER_ARRAYS[layer])
+
+
 class TileStore:
     """Pooled per-layer tile arrays, a tile-key -> slot index, and a version per tile."""
 
@@ -65,7 +70,7 @@ class TileStore:
         self.shift = tile_size.bit_length() - 1
         self.mask = tile_size - 1
         self.max_tiles = max_tiles
-        self.arrays: tuple[LayerArray, ...] = tuple(a for layer in layers for a in LAYER_ARRAYS[layer])
+        self.arrays = layer_arrays(layers)
         self._capacity = 0
         self.pools: dict[str, np.ndarray] = {}
         self.slots: dict[TileKey, int] = {}
@@ -110,9 +115,12 @@ class TileStore:
     def has_array(self, name: str) -> bool:
         return name in self.pools
 
-    def create(self, keys: list[TileKey]) -> None:
+    def create(self, keys: list[TileKey], fill: bool = True) -> None:
         """Create tiles for `keys` (none may exist yet), all or none: past the cap, raise
-        `TileLimitError` and create nothing."""
+        `TileLimitError` and create nothing. Their cells are never-observed, except with `fill`
+        False: then they hold whatever the memory held, for a caller that writes every cell of every
+        array before anyone reads them (a snapshot being restored), so that memory it never gets
+        to write (a snapshot file that ends early) is never touched either."""
         if len(self.keys) + len(keys) > self.max_tiles:
             raise TileLimitError(
                 f"the scan needs {len(keys)} new tile(s) but the map holds {len(self.keys)} of at most "
@@ -126,7 +134,8 @@ class TileStore:
             slot = len(self.keys)
             self.slots[key] = slot
             self.keys.append(key)
-            init_tile(slot, *self.kernel_pools())
+            if fill:
+                init_tile(slot, *self.kernel_pools())
             self.versions[slot] = self._tick()
         if not index_has_room(self.index[1], len(self.keys)):
             self.index = new_index(len(self.keys))
