@@ -8,6 +8,7 @@ from __future__ import annotations
 import io
 import json
 import string
+import zipfile
 from collections.abc import Iterator
 from typing import Any
 
@@ -16,10 +17,19 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_api_support import RunningApi, fan_scan, running_api
+from test_api_support import (
+    RunningApi,
+    declare_size,
+    fan_scan,
+    running_api,
+    small_snapshot_map,
+    snapshot_body,
+    snapshot_parts,
+)
 
 from fleetmap.api import ApiSettings
 from fleetmap.codec import encode_binary, encode_json
+from fleetmap.storage_format import MAX_SNAPSHOT_META_BYTES, snapshot_file
 from fleetmap.wire import BINARY_ENCODING
 
 LIMITS = ApiSettings(max_points=1000, max_region_cells=10_000, max_json_cells=1000, max_body_bytes=200_000)
@@ -50,6 +60,43 @@ def good_scan(seq: int = 1) -> dict[str, Any]:
 
 
 SCAN = "/maps/e/scans?robot_id=r"
+SNAP = "/maps/e/snapshot"  # a refused upload must leave map e as it was
+META, ARRAYS = snapshot_parts(snapshot_file("s", small_snapshot_map()))
+TILES = len(ARRAYS["keys"])
+
+
+def snap(meta: Any = None, **arrays: np.ndarray) -> dict[str, Any]:
+    """httpx arguments of a PUT of the small snapshot with `map.json` and arrays replaced."""
+    return {"content": snapshot_body(META if meta is None else meta, {**ARRAYS, **arrays})}
+
+
+def cells(name: str, value: float) -> np.ndarray:
+    """Array `name` of the small snapshot with its first cell set to `value`."""
+    out = ARRAYS[name].copy()
+    out[0, 0, 0] = value
+    return out
+
+
+def corrupt_deflate() -> bytes:
+    """The small snapshot, deflated, with bytes in the middle of the deflate data of tiles.npz flipped."""
+    body = bytearray(snapshot_body(META, ARRAYS, deflate=True))
+    start = body.index(b"tiles.npz") + 60
+    body[start : start + 30] = bytes(b ^ 0x55 for b in body[start : start + 30])
+    return bytes(body)
+
+
+def npz_member(name: str = "", data: bytes = b"") -> bytes:
+    """A tiles.npz of the small snapshot's arrays (stored, not compressed), with member `name`
+    replaced by `data` if given."""
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as zf:
+        for key, array in ARRAYS.items():
+            buf = io.BytesIO()
+            np.save(buf, array)
+            zf.writestr(f"{key}.npy", data if f"{key}.npy" == name else buf.getvalue())
+    return out.getvalue()
+
+
 TILE = "/maps/e/tiles"
 R = "/maps/e/region?xmin=0&ymin=0&xmax=1&ymax=1"
 
@@ -95,6 +142,57 @@ CASES: list[tuple[str, str, dict[str, Any], int, str]] = [
         {"content": b"x" * 300_000, "headers": {"content-type": "application/json"}},
         413,
         "",
+    ),
+    # snapshot uploads: what is not a snapshot, and what the service could not have written
+    ("PUT", SNAP, {"content": snapshot_body([1, 2], ARRAYS)}, 422, "map.json holds a JSON list"),
+    ("PUT", SNAP, {"content": snapshot_body('"x"', ARRAYS)}, 422, "map.json holds a JSON str"),
+    ("PUT", SNAP, {"content": snapshot_body(b"\xff\xfe{", ARRAYS)}, 422, "map.json is not valid JSON"),
+    ("PUT", SNAP, snap(keys=np.array([1, 2, 3])), 422, "keys.npy has shape (3,)"),
+    ("PUT", SNAP, snap(keys=np.array(5)), 422, "keys.npy has shape ()"),
+    ("PUT", SNAP, {"content": corrupt_deflate()}, 422, "corrupt"),
+    ("PUT", SNAP, snap(keys=ARRAYS["keys"] + 2**40), 422, "world bound"),
+    ("PUT", SNAP, snap(keys=ARRAYS["keys"] + 0.5), 422, "expected integers"),
+    ("PUT", SNAP, snap(keys=np.repeat(ARRAYS["keys"][:1], TILES, axis=0)), 422, "twice"),
+    ("PUT", SNAP, snap(log_odds=cells("log_odds", np.inf)), 422, "log_odds must be NaN (unknown) or within"),
+    ("PUT", SNAP, snap(log_odds=cells("log_odds", 50.0)), 422, "the map's clamp"),
+    ("PUT", SNAP, snap(tsdf_weight=cells("tsdf_weight", -5.0)), 422, "tsdf_weight must be finite and >= 0"),
+    ("PUT", SNAP, snap(tsdf_weight=cells("tsdf_weight", np.nan)), 422, "tsdf_weight must be"),
+    ("PUT", SNAP, snap(tsdf=cells("tsdf", 1.5)), 422, "tsdf must be within [-1, 1]"),
+    (
+        "PUT",
+        SNAP,
+        snap(hits=ARRAYS["hits"].astype(np.float64)),
+        422,
+        "hits.npy has dtype float64, expected uint32",
+    ),
+    (
+        "PUT",
+        SNAP,
+        snap(hits=ARRAYS["hits"][:1]),
+        422,
+        f"hits.npy has shape (1, 16, 16), expected ({TILES}, 16, 16)",
+    ),
+    ("PUT", SNAP, {"content": snapshot_body(META, npz=b"garbage")}, 422, "tiles.npz is not a valid .npz"),
+    (
+        "PUT",
+        SNAP,
+        {"content": snapshot_body(META, npz=npz_member("hits.npy", b"garbage"))},
+        422,
+        "not a valid .npy",
+    ),
+    (
+        "PUT",
+        SNAP,
+        {"content": snapshot_body(META, npz=declare_size(npz_member(), "tsdf.npy", 2**32 - 2))},
+        422,
+        "bytes of data, its shape and dtype need",
+    ),
+    (
+        "PUT",
+        SNAP,
+        {"content": snapshot_body(json.dumps(META) + " " * MAX_SNAPSHOT_META_BYTES, ARRAYS, deflate=True)},
+        413,
+        f"map.json is {len(json.dumps(META)) + MAX_SNAPSHOT_META_BYTES} bytes decompressed, more than",
     ),
     # scans
     ("POST", SCAN, {"content": b"{not json", "headers": {"content-type": "application/json"}}, 422, "JSON"),
@@ -235,6 +333,23 @@ def test_validation_errors_list_every_problem(api: RunningApi) -> None:
     body = r.json()
     assert r.status_code == 422 and "(and 2 more problems)" in body["detail"]
     assert [e["loc"] for e in body["errors"]] == [["query", "xmin"], ["query", "ymin"], ["query", "layer"]]
+
+
+def test_a_snapshot_with_an_invalid_configuration_lists_every_problem(api: RunningApi) -> None:
+    """As for PUT /maps: one line naming the first problem, and every problem in `errors` (not
+    pydantic's text, with its URLs), located in the file."""
+    meta = {**META, "config": {**META["config"], "resolution": -1, "max_tiles": 0}}
+    r = api.client.put(SNAP, content=snapshot_body(meta, ARRAYS))
+    body = r.json()
+    assert r.status_code == 422, body
+    assert body["detail"] == (
+        "snapshot map.json.config.resolution: Input should be greater than 0.001 (and 1 more problem)"
+    )
+    assert [e["loc"] for e in body["errors"]] == [
+        ["map.json", "config", "resolution"],
+        ["map.json", "config", "max_tiles"],
+    ]
+    assert api.client.get("/maps/e").json()["stats"]["robots"]  # map e is still the one it was
 
 
 def test_binary_scan_and_duplicates_over_http(api: RunningApi) -> None:

@@ -7,19 +7,26 @@ no tests itself.
 
 from __future__ import annotations
 
+import io
+import json
 import math
 import socket
+import struct
 import threading
 import time
+import zipfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any
 
 import httpx
 import numpy as np
 import uvicorn
 
 from fleetmap.api import ApiSettings, create_app
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
 from fleetmap.metrics import IntegrationMetrics
 from fleetmap.registry import MapRegistry
 from fleetmap.scan import Pose2D, Scan
@@ -96,3 +103,49 @@ def room_scans(count: int, seed: int = 0, beams: int = 181) -> list[Scan]:
         ranges = np.minimum(tx, ty)
         scans.append(Scan.from_angles(Pose2D(x, y, theta), angles, ranges, 0.0, 10.0))
     return scans
+
+
+# -- snapshot files, whole or altered ------------------------------------------------------------------
+
+
+def small_snapshot_map() -> GridMap:
+    """A map of 16-cell tiles with every layer and a few tiles observed: its snapshot file is small."""
+    gmap = GridMap(MapConfig(resolution=0.05, tile_size=16))
+    gmap.integrate(fan_scan(0.0, 0.0, 0.0, [1.0] * 61))
+    return gmap
+
+
+def snapshot_parts(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The `map.json` and the arrays of `tiles.npz` of a snapshot file."""
+    with zipfile.ZipFile(io.BytesIO(body)) as zf:
+        meta = json.loads(zf.read("map.json"))
+        with np.load(io.BytesIO(zf.read("tiles.npz"))) as npz:
+            return meta, {name: npz[name] for name in npz.files}
+
+
+def snapshot_body(
+    meta: Any, arrays: dict[str, np.ndarray] | None = None, npz: bytes | None = None, deflate: bool = False
+) -> bytes:
+    """A snapshot file of `map.json` = `meta` (JSON-encoded unless bytes or str) and `tiles.npz` =
+    `npz`, or those `arrays` compressed as `snapshot_file` does; the zip deflated if asked."""
+    if npz is None:
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **(arrays or {}))
+        npz = buf.getvalue()
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED if deflate else zipfile.ZIP_STORED) as zf:
+        zf.writestr("map.json", meta if isinstance(meta, (bytes, str)) else json.dumps(meta))
+        zf.writestr("tiles.npz", npz)
+    return out.getvalue()
+
+
+def declare_size(archive: bytes, name: str, size: int) -> bytes:
+    """`archive` (a zip) with member `name`'s uncompressed size in the central directory, which is
+    what `zipfile.ZipInfo.file_size` reads, set to `size` (< 4 GiB): a lying header."""
+    at = 0
+    while True:
+        at = archive.index(b"PK\x01\x02", at)  # a central directory entry
+        (length,) = struct.unpack_from("<H", archive, at + 28)
+        if archive[at + 46 : at + 46 + length] == name.encode():
+            return archive[: at + 24] + struct.pack("<I", size) + archive[at + 28 :]
+        at += 4

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_api_support import declare_size, small_snapshot_map, snapshot_body, snapshot_parts
 
 from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME, StorageError, open_database
@@ -23,7 +24,16 @@ from fleetmap.grid_map import GridMap
 from fleetmap.journal import JournalEntry, JournalWriter
 from fleetmap.persistence import DurableStore, changed_tiles
 from fleetmap.scan import Scan
-from fleetmap.storage_format import TILE_MAGIC, decode_tile, scan_from_blob, scan_to_blob, tile_to_blob
+from fleetmap.storage_format import (
+    MAX_SNAPSHOT_META_BYTES,
+    TILE_MAGIC,
+    decode_tile,
+    map_from_snapshot_file,
+    scan_from_blob,
+    scan_to_blob,
+    snapshot_file,
+    tile_to_blob,
+)
 from fleetmap.tiles import LayerArray, TileStore
 
 
@@ -436,3 +446,67 @@ def test_a_stored_infinite_band_width_or_weight_cap_loads_at_the_limit(
         again.close()
     with pytest.raises(ValueError):  # outside a stored map, null is still refused
         MapConfig.model_validate_json(json.dumps(stored))
+
+
+# -- snapshot files uploaded (PUT /maps/{id}/snapshot; test_api_errors.py checks the answers) ----------
+
+
+def test_an_uploaded_snapshot_is_checked_before_any_tile_is_allocated(monkeypatch) -> None:
+    """Keys and every layer's dtype and shape are checked before the map's pools are: the audit's
+    7 KB upload (300 tiles of 1024x1024 cells, empty layers) took 4 GB before its 422."""
+    real_create = TileStore.create
+    allowed = False
+
+    def create(self: TileStore, keys: list, fill: bool = True) -> None:
+        assert allowed, f"{len(keys)} tiles of {self.tile_size}x{self.tile_size} allocated before the check"
+        real_create(self, keys, fill)
+
+    monkeypatch.setattr(TileStore, "create", create)
+    meta, arrays = snapshot_parts(snapshot_file("s", small_snapshot_map()))
+    n = len(arrays["keys"])
+    for bad, reason in [
+        (
+            {"log_odds": arrays["log_odds"][:1]},
+            rf"log_odds.npy has shape \(1, 16, 16\), expected \({n}, 16, 16\)",
+        ),
+        ({"tsdf": arrays["tsdf"].astype(np.float64)}, "tsdf.npy has dtype float64, expected float32"),
+        ({"misses": np.zeros((n, 32, 32), np.uint32)}, "misses.npy has shape"),
+    ]:
+        with pytest.raises(ValueError, match=reason):
+            map_from_snapshot_file(snapshot_body(meta, {**arrays, **bad}))
+    big = {**meta, "config": {**meta["config"], "tile_size": 1024, "max_tiles": 1000}}
+    empty = {a: np.zeros(0, np.float32) for a in ("log_odds", "hits", "misses", "tsdf", "tsdf_weight")}
+    body = snapshot_body(big, {"keys": np.array([[k, 0] for k in range(300)]), **empty})
+    assert len(body) < 10_000
+    with pytest.raises(ValueError, match="300 tiles of 1024x1024 cells hold 6291456000 bytes") as refused:
+        map_from_snapshot_file(body)
+    assert refused.value.status == 413  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="has shape"):  # under a higher limit: still refused first
+        map_from_snapshot_file(body, max_bytes=2**40)
+    allowed = True  # the check is not in the way of a good file
+    assert len(map_from_snapshot_file(snapshot_body(meta, arrays)).store) == n
+
+
+def test_a_zip_bomb_is_refused_by_its_declared_size() -> None:
+    """Each member's size is checked in its ZipInfo before a byte is decompressed (a 4 MB file held a
+    4 GB map.json: 67 s and 8.9 GB), and read with that bound whatever its header says."""
+    meta, arrays = snapshot_parts(snapshot_file("s", small_snapshot_map()))
+    limit = MAX_SNAPSHOT_META_BYTES
+    padded = json.dumps(meta) + " " * limit  # valid JSON, just past the limit
+    with pytest.raises(
+        ValueError, match=f"map.json is {len(padded)} bytes decompressed, more than the limit of {limit}"
+    ):
+        map_from_snapshot_file(snapshot_body(padded, arrays, deflate=True))
+    started = time.monotonic()
+    bomb = declare_size(snapshot_body(meta, arrays, deflate=True), "map.json", 2**32 - 1)  # says 4 GB
+    with pytest.raises(ValueError, match="map.json is 4294967295 bytes decompressed") as refused:
+        map_from_snapshot_file(bomb)
+    assert refused.value.status == 413 and time.monotonic() - started < 1  # type: ignore[attr-defined]
+    with pytest.raises(
+        ValueError, match="tiles.npz is [0-9]+ bytes decompressed, more than the limit of 1000"
+    ):
+        map_from_snapshot_file(snapshot_body(meta, arrays), max_bytes=1000)
+    # A header that says less than the member holds: never more than it says is read, then the CRC fails.
+    liar = declare_size(snapshot_body(padded, arrays, deflate=True), "map.json", 100)
+    with pytest.raises(ValueError, match="map.json cannot be read"):
+        map_from_snapshot_file(liar)

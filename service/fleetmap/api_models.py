@@ -23,16 +23,12 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from fleetmap.config import MapConfig
+from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import STATE_NAMES, GridMap, cell_edge
 from fleetmap.persistence import StorageHealth
 from fleetmap.registry import MapEntry, RobotState
 from fleetmap.scan import Pose2D
 from fleetmap.tiles import TileKey
-
-#: Map coordinates accepted in queries, metres: far beyond any real map, and small enough that cell
-#: indices stay exact integers at any allowed resolution.
-MAX_COORDINATE = 1.0e7
 
 #: Points one `POST /maps/{map_id}/cells` request may ask for.
 MAX_POINTS = 100_000

@@ -21,6 +21,11 @@ ALL_LAYERS: tuple[LayerName, ...] = ("occupancy", "counts", "tsdf")
 #: (Voxblox truncates at a few voxels), and past about 10**8 cells a scan cannot be held in memory.
 MAX_BAND_CELLS = 256
 
+#: Map coordinates the service accepts, metres (`+-10 000 km`: queries, request bodies, the tiles of
+#: an uploaded snapshot): far beyond any real map, and small enough that cell indices stay exact
+#: integers at any allowed resolution.
+MAX_COORDINATE = 1.0e7
+
 #: The `model_validate` context under which a configuration that was stored before a limit existed
 #: still loads (`{STORED_CONFIG: True}`): a map must survive an upgrade.
 STORED_CONFIG = "stored"

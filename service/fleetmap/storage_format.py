@@ -11,15 +11,17 @@ import struct
 import zipfile
 import zlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+from pydantic import ValidationError
 
-from fleetmap.config import MapConfig
+from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.database import StorageError
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
-from fleetmap.tiles import LayerArray
+from fleetmap.tiles import LayerArray, TileKey, layer_arrays
 
 # -- encodings ---------------------------------------------------------------------------------------
 
@@ -238,32 +240,291 @@ def snapshot_file(map_id: str, gmap: GridMap) -> bytes:
     return buf.getvalue()
 
 
-def map_from_snapshot_file(data: bytes, max_tiles: int | None = None) -> GridMap:
-    """A map restored from `snapshot_file` bytes; raises ValueError with a reason if they are not one."""
+#: The most bytes an uploaded snapshot's `map.json` may hold (a configuration takes about 1 KB).
+MAX_SNAPSHOT_META_BYTES = 1 << 20
+#: The most bytes an uploaded snapshot's tiles may hold decompressed: `tiles.npz`, and all the arrays
+#: in it together. 4 GiB is about 3200 tiles of every layer at the default tile size, and with the
+#: request body limit it bounds what one upload makes the service allocate.
+MAX_SNAPSHOT_BYTES = 4 << 30
+#: The longest .npy header read (numpy's own default limit; these arrays' headers take 128 bytes).
+_NPY_HEADER_MAX = 10_000
+#: Bytes decompressed per read while filling a layer (a bound on the copy held besides the pools).
+_READ_CHUNK = 1 << 24
+#: What zipfile raises for a corrupt archive or member: a bad CRC or header (BadZipFile), corrupt
+#: deflate data (zlib.error), a compressed stream that ends early (EOFError), a compression method
+#: this Python lacks (NotImplementedError).
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError)
+
+
+class SnapshotError(ValueError):
+    """Why bytes are not a snapshot file this service can install; nothing was changed. `status` is
+    413 for a member past a size limit, else 422; `errors` holds the validation errors of an invalid
+    configuration (pydantic's, located from the top of the file: `("map.json", "config", ...)`)."""
+
+    def __init__(self, message: str, status: int = 422, errors: list[dict] | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+        self.errors = errors or []
+
+
+@dataclass(frozen=True)
+class _Npy:
+    """One array of `tiles.npz` whose header has been read (not its data)."""
+
+    info: zipfile.ZipInfo
+    path: str  # for messages: tiles.npz/<name>.npy
+    dtype: np.dtype
+    shape: tuple[int, ...]
+    fortran: bool
+    offset: int  # bytes of the member before the data
+
+
+def _member(zf: zipfile.ZipFile, name: str, path: str, limit: int | None = None) -> zipfile.ZipInfo:
+    """The entry `name` of `zf`, if it exists, is not encrypted and says it holds at most `limit`
+    bytes decompressed (413 if more: refused before anything is decompressed)."""
     try:
-        with zipfile.ZipFile(io.BytesIO(data)) as zf:
-            meta = json.loads(zf.read("map.json"))
-            if meta.get("format") != SNAPSHOT_FORMAT:
-                raise ValueError(f"not a {SNAPSHOT_FORMAT} file")
-            config = MapConfig.model_validate(meta["config"])
-            if max_tiles is not None and config.max_tiles > max_tiles:
-                config = config.model_copy(update={"max_tiles": max_tiles})
-            with np.load(io.BytesIO(zf.read("tiles.npz")), allow_pickle=False) as npz:
-                keys = [tuple(int(v) for v in k) for k in npz["keys"]]
-                gmap = GridMap(config)
-                if len(keys) > config.max_tiles:
-                    raise ValueError(
-                        f"the snapshot has {len(keys)} tiles, more than max_tiles {config.max_tiles}"
-                    )
-                gmap.store.create(keys)  # type: ignore[arg-type]
-                t = config.tile_size
-                for a in gmap.store.arrays:
-                    stacked = npz[a.name]
-                    if stacked.shape != (len(keys), t, t) or stacked.dtype != np.dtype(a.dtype):
-                        raise ValueError(
-                            f"layer {a.name} has shape {stacked.shape}, expected {(len(keys), t, t)}"
-                        )
-                    gmap.store.pools[a.name][: len(keys)] = stacked
-    except (KeyError, zipfile.BadZipFile, json.JSONDecodeError, OSError) as exc:
-        raise ValueError(f"not a fleetmap snapshot: {exc}") from None
+        info = zf.getinfo(name)
+    except KeyError:
+        raise SnapshotError(f"not a fleetmap snapshot: it has no {path}") from None
+    if limit is not None and info.file_size > limit:
+        raise SnapshotError(
+            f"snapshot member {path} is {info.file_size} bytes decompressed, more than the limit of {limit}",
+            413,
+        )
+    if info.flag_bits & 0x1:
+        raise SnapshotError(f"snapshot member {path} is encrypted")
+    return info
+
+
+def _read_member(zf: zipfile.ZipFile, name: str, limit: int) -> bytes:
+    """All of member `name`, refused (413) if its ZipInfo says it holds more than `limit` bytes, and
+    read with that bound whatever its header says (zipfile also stops at the declared size, then
+    checks the CRC)."""
+    info, path = _member(zf, name, name, limit), name
+    try:
+        with zf.open(info) as fp:
+            data = fp.read(limit + 1)
+    except _ZIP_ERRORS as exc:
+        raise SnapshotError(f"snapshot member {path} cannot be read (the file is corrupt): {exc}") from None
+    if len(data) > limit:
+        raise SnapshotError(f"snapshot member {path} holds more than the limit of {limit} bytes", 413)
+    return data
+
+
+def _snapshot_config(zf: zipfile.ZipFile, max_tiles: int | None) -> MapConfig:
+    """The configuration in `map.json`, its `max_tiles` lowered to `max_tiles` if given."""
+    raw = _read_member(zf, "map.json", MAX_SNAPSHOT_META_BYTES)
+    try:
+        meta = json.loads(raw)
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError; nesting
+        raise SnapshotError(f"not a fleetmap snapshot: map.json is not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise SnapshotError(
+            f"not a fleetmap snapshot: map.json holds a JSON {type(meta).__name__}, not an object"
+        )
+    if meta.get("format") != SNAPSHOT_FORMAT:
+        raise SnapshotError(f"not a {SNAPSHOT_FORMAT} file: map.json's format is {meta.get('format')!r}")
+    if "config" not in meta:
+        raise SnapshotError("snapshot map.json has no config")
+    try:
+        config = MapConfig.model_validate(meta["config"])
+    except ValidationError as exc:
+        errors = [{**e, "loc": ("map.json", "config", *e["loc"])} for e in exc.errors(include_url=False)]
+        raise SnapshotError(
+            f"snapshot map.json: the configuration is invalid ({exc.error_count()} problem(s))", errors=errors
+        ) from None
+    if max_tiles is not None and config.max_tiles > max_tiles:
+        config = config.model_copy(update={"max_tiles": max_tiles})
+    return config
+
+
+def _npy_header(npz: zipfile.ZipFile, name: str) -> _Npy:
+    """The header of array `name` of `tiles.npz`, reading no more than the header (at most
+    _NPY_HEADER_MAX bytes). `_check_npy` then bounds its data by what the header may say."""
+    path = f"tiles.npz/{name}.npy"
+    info = _member(npz, f"{name}.npy", path)
+    readers = {1: np.lib.format.read_array_header_1_0, 2: np.lib.format.read_array_header_2_0}
+    try:
+        with npz.open(info) as fp:
+            major, _minor = np.lib.format.read_magic(fp)
+            if major not in readers:
+                raise ValueError(f"unsupported .npy format version {major}")
+            shape, fortran, dtype = readers[major](fp, max_header_size=_NPY_HEADER_MAX)
+            offset = fp.tell()
+    except _ZIP_ERRORS as exc:
+        raise SnapshotError(f"snapshot member {path} cannot be read (the file is corrupt): {exc}") from None
+    except (ValueError, TypeError, SyntaxError) as exc:  # numpy's words for a header it cannot parse
+        raise SnapshotError(f"snapshot member {path} is not a valid .npy array ({exc})") from None
+    return _Npy(info, path, np.dtype(dtype), tuple(shape), bool(fortran), offset)
+
+
+def _check_npy(npy: _Npy, dtype: np.dtype | None, shape: tuple[int, ...], what: str) -> None:
+    """That `npy` is of `dtype` (None: any integer type; either byte order) and `shape` (-1: any
+    length >= 0), and that its member says it holds exactly that much data after the header (from
+    its ZipInfo: nothing is decompressed), so that what is read later is bounded by `shape`."""
+    native = npy.dtype.newbyteorder("=")
+    if dtype is None and npy.dtype.kind not in "iu":
+        raise SnapshotError(f"snapshot {npy.path} has dtype {npy.dtype}, expected integers")
+    if dtype is not None and native != dtype:
+        raise SnapshotError(f"snapshot {npy.path} has dtype {npy.dtype}, expected {dtype}")
+    if len(npy.shape) != len(shape) or any(
+        n < 0 or (m >= 0 and n != m) for n, m in zip(npy.shape, shape, strict=True)
+    ):
+        raise SnapshotError(f"snapshot {npy.path} has shape {npy.shape}, expected {what}")
+    size = math.prod(npy.shape) * npy.dtype.itemsize
+    if npy.info.file_size - npy.offset != size:
+        raise SnapshotError(
+            f"snapshot {npy.path} holds {npy.info.file_size - npy.offset} bytes of data, its shape and "
+            f"dtype need {size}"
+        )
+
+
+def _read_npy(npz: zipfile.ZipFile, npy: _Npy, out: np.ndarray | None = None) -> np.ndarray:
+    """The data of a checked array (`_check_npy`), streamed into `out` (C-contiguous, of its shape)
+    when given. Never reads more than its header declared; a member that ends early is refused."""
+    fits = out is not None and not npy.fortran and out.dtype == npy.dtype
+    buf = out if fits else np.empty(npy.shape[::-1] if npy.fortran else npy.shape, dtype=npy.dtype)
+    dest = memoryview(buf.reshape(-1).view(np.uint8))
+    try:
+        with npz.open(npy.info) as fp:
+            fp.read(npy.offset)
+            at = 0
+            while at < len(dest):
+                chunk = fp.read(min(_READ_CHUNK, len(dest) - at))
+                if not chunk:
+                    raise SnapshotError(f"snapshot member {npy.path} ends early")
+                dest[at : at + len(chunk)] = chunk
+                at += len(chunk)
+            fp.read(1)  # at the declared end: zipfile checks the CRC here
+    except _ZIP_ERRORS as exc:
+        raise SnapshotError(
+            f"snapshot member {npy.path} cannot be read (the file is corrupt): {exc}"
+        ) from None
+    values = buf.T if npy.fortran else buf
+    if out is not None and not fits:
+        out[...] = values
+    return values
+
+
+def _snapshot_keys(
+    npz: zipfile.ZipFile, config: MapConfig, layout: Sequence[LayerArray], max_bytes: int
+) -> list[TileKey]:
+    """The tile keys in `tiles.npz/keys.npy`: integers, no two alike, each a tile that meets the
+    world of +-MAX_COORDINATE metres, at most `config.max_tiles` of them and at most `max_bytes` of
+    layer arrays (413)."""
+    npy = _npy_header(npz, "keys")
+    _check_npy(npy, None, (-1, 2), "(tiles, 2)")
+    n, t = npy.shape[0], config.tile_size
+    if n > config.max_tiles:
+        raise SnapshotError(f"the snapshot has {n} tiles, more than max_tiles {config.max_tiles}")
+    size = n * t * t * sum(np.dtype(a.dtype).itemsize for a in layout)
+    if size > max_bytes:
+        raise SnapshotError(
+            f"the snapshot's {n} tiles of {t}x{t} cells hold {size} bytes of layer arrays, more than the "
+            f"limit of {max_bytes}",
+            413,
+        )
+    raw = _read_npy(npz, npy)
+    edge = t * config.resolution
+    lo, hi = math.floor(-MAX_COORDINATE / edge), math.floor(MAX_COORDINATE / edge)
+    keys = [(int(i), int(j)) for i, j in raw.tolist()]
+    seen: set[TileKey] = set()
+    for key in keys:
+        if not (lo <= key[0] <= hi and lo <= key[1] <= hi):
+            raise SnapshotError(
+                f"snapshot tile {key} lies beyond the world bound of +-{MAX_COORDINATE:g} m (tile keys "
+                f"from {lo} to {hi} at this tile size and resolution)"
+            )
+        if key in seen:
+            raise SnapshotError(f"snapshot tile {key} is there twice")
+        seen.add(key)
+    return keys
+
+
+def _value_range(a: LayerArray, config: MapConfig) -> tuple[float, float, bool, str] | None:
+    """The values the engine can store in array `a` of a map of `config`: (low, high, whether NaN
+    is allowed, in words), or None when every value of its dtype is. The bounds are float32, as
+    stored: the kernels round the clamped float64 value to float32 (`updated_log_odds`)."""
+    if a.name == "log_odds":  # NaN is unknown; every update clamps to [l_min, l_max]
+        occ = config.occupancy
+        lo, hi = float(np.float32(occ.l_min)), float(np.float32(occ.l_max))
+        return lo, hi, True, f"NaN (unknown) or within the map's clamp [{occ.l_min:g}, {occ.l_max:g}]"
+    if a.name == "tsdf":  # unknown is 0 (weight 0); a mean of values clamped to [-1, 1]
+        return -1.0, 1.0, False, "within [-1, 1]"
+    if a.name == "tsdf_weight":  # unknown is 0; one per beam, capped at max_weight
+        return 0.0, float(np.finfo(np.float32).max), False, "finite and >= 0"
+    return None  # hits, misses: any uint32
+
+
+@njit(cache=True, nogil=True)
+def _first_outside(values: np.ndarray, lo: float, hi: float, nan_ok: bool) -> int:
+    """The index of the first value not in [lo, hi] (NaN counts as in it only if `nan_ok`), or -1."""
+    for k in range(values.size):
+        v = values[k]
+        if not (lo <= v <= hi) and not (nan_ok and np.isnan(v)):
+            return k
+    return -1
+
+
+def _check_values(a: LayerArray, values: np.ndarray, keys: list[TileKey], config: MapConfig) -> None:
+    """That every cell of `values` (array `a` of tiles `keys`) holds a value the engine could have."""
+    allowed = _value_range(a, config)
+    if allowed is None or not values.size:
+        return
+    lo, hi, nan_ok, words = allowed
+    at = _first_outside(values.reshape(-1), lo, hi, nan_ok)
+    if at >= 0:
+        t = config.tile_size
+        slot, local = divmod(at, t * t)
+        lj, li = divmod(local, t)
+        ti, tj = keys[slot]
+        value = values.reshape(-1)[at]
+        raise SnapshotError(
+            f"snapshot tiles.npz/{a.name}.npy holds {value} at cell ({ti * t + li}, {tj * t + lj}); "
+            f"{a.name} must be {words}"
+        )
+
+
+def map_from_snapshot_file(
+    data: bytes, max_tiles: int | None = None, max_bytes: int = MAX_SNAPSHOT_BYTES
+) -> GridMap:
+    """A map restored from `snapshot_file` bytes; raises `SnapshotError` with a reason if they are
+    not one, or one this service refuses.
+
+    An upload is untrusted: every member's declared size is checked before it is decompressed
+    (`map.json` at most MAX_SNAPSHOT_META_BYTES, `tiles.npz` and its layer arrays together at most
+    `max_bytes`), and read with a bound whatever its header says. The keys and every layer's header
+    (dtype, shape, data size, from the keys and the tile size) are checked before the map's pools are
+    allocated, and the pools are then filled straight from the file, so the memory touched is the
+    data the file holds. Every cell is checked against what the engine can store, so a map that is
+    installed is one the service could have built."""
+    try:
+        outer = zipfile.ZipFile(io.BytesIO(data))
+    except (*_ZIP_ERRORS, ValueError) as exc:
+        raise SnapshotError(f"not a fleetmap snapshot: the body is not a zip file ({exc})") from None
+    with outer:
+        config = _snapshot_config(outer, max_tiles)
+        inner = _read_member(outer, "tiles.npz", max_bytes)
+        try:
+            npz = zipfile.ZipFile(io.BytesIO(inner))
+        except (*_ZIP_ERRORS, ValueError) as exc:
+            raise SnapshotError(f"snapshot member tiles.npz is not a valid .npz file ({exc})") from None
+    with npz:
+        layout = layer_arrays(config.layers)
+        keys = _snapshot_keys(npz, config, layout, max_bytes)
+        t = config.tile_size
+        arrays = []
+        for a in layout:
+            npy = _npy_header(npz, a.name)
+            _check_npy(
+                npy, np.dtype(a.dtype), (len(keys), t, t), f"{(len(keys), t, t)}: one {t}x{t} tile per key"
+            )
+            arrays.append(npy)
+        # Everything checked that can be without the data: only now allocate, and only what it holds.
+        gmap = GridMap(config)
+        gmap.store.create(keys, fill=False)
+        for a, npy in zip(layout, arrays, strict=True):
+            values = gmap.store.pools[a.name][: len(keys)]
+            _read_npy(npz, npy, values)
+            _check_values(a, values, keys, config)
     return gmap

@@ -55,6 +55,11 @@ LAYER_ARRAYS: dict[LayerName, tuple[LayerArray, ...]] = {
 }
 
 
+def layer_arrays(layers: Iterable[LayerName]) -> tuple[LayerArray, ...]:
+    """The arrays a store keeps for `layers`, in the order of its pools, `arrays` and stored tiles."""
+    return tuple(a for layer in layers for a in LAYER_ARRAYS[layer])
+
+
 #: A store's pools are empty until its first tile; then they grow to room for this many tiles, or
 #: as many as FIRST_GROWTH_BYTES hold (at least the tiles needed), and double from there. An empty
 #: map thus holds no capacity: the memory budget counts capacity, and four empty maps of 4096-cell
@@ -73,7 +78,7 @@ class TileStore:
         self.shift = tile_size.bit_length() - 1
         self.mask = tile_size - 1
         self.max_tiles = max_tiles
-        self.arrays: tuple[LayerArray, ...] = tuple(a for layer in layers for a in LAYER_ARRAYS[layer])
+        self.arrays = layer_arrays(layers)
         self._capacity = 0
         self.pools: dict[str, np.ndarray] = {}
         self.slots: dict[TileKey, int] = {}
@@ -118,9 +123,12 @@ class TileStore:
     def has_array(self, name: str) -> bool:
         return name in self.pools
 
-    def create(self, keys: list[TileKey]) -> None:
+    def create(self, keys: list[TileKey], fill: bool = True) -> None:
         """Create tiles for `keys` (none may exist yet), all or none: past the cap, raise
-        `TileLimitError` and create nothing."""
+        `TileLimitError` and create nothing. Their cells are never-observed, except with `fill`
+        False: then they hold whatever the memory held, for a caller that writes every cell of every
+        array before anyone reads them (a snapshot being restored), so that memory it never gets
+        to write (a snapshot file that ends early) is never touched either."""
         if len(self.keys) + len(keys) > self.max_tiles:
             raise TileLimitError(
                 f"the scan needs {len(keys)} new tile(s) but the map holds {len(self.keys)} of at most "
@@ -128,15 +136,16 @@ class TileStore:
             )
         needed = len(self.keys) + len(keys)
         if needed > self._capacity:
-            first = max(1, min(FIRST_GROWTH_TILES, FIRST_GROWTH_BYTES // self._tile_bytes()))
-            target = 2 * self._capacity if self._capacity else first
+            initial = max(1, min(FIRST_GROWTH_TILES, FIRST_GROWTH_BYTES // self._tile_bytes()))
+            target = 2 * self._capacity if self._capacity else initial
             self._grow(min(max(needed, target), self.max_tiles), needed)
         first = len(self.keys)
         for key in keys:
             slot = len(self.keys)
             self.slots[key] = slot
             self.keys.append(key)
-            init_tile(slot, *self.kernel_pools())
+            if fill:
+                init_tile(slot, *self.kernel_pools())
             self.versions[slot] = self._tick()
         if not index_has_room(self.index[1], len(self.keys)):
             self.index = new_index(len(self.keys))

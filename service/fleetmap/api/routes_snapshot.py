@@ -6,10 +6,10 @@ import asyncio
 
 from fastapi import APIRouter, Request, Response
 
-from fleetmap.api.errors import ApiError, error_responses
+from fleetmap.api.errors import ApiError, error_responses, validation_detail
 from fleetmap.api.state import MapId, State
 from fleetmap.api_models import MapInfo, map_info
-from fleetmap.storage_format import SNAPSHOT_FORMAT, map_from_snapshot_file, snapshot_file
+from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
 
 router = APIRouter(tags=["maps"])
 
@@ -55,13 +55,17 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
 async def put_snapshot(map_id: MapId, request: Request, state: State) -> MapInfo:
     """Replace map `map_id` (or create it) with the map in the uploaded snapshot file, durably: the
     answer comes once it is stored. Its robots' statistics start afresh; scans queued for the old map
-    are dropped. 422 if the body is not a fleetmap snapshot; 503 if the map was installed but could
-    not be stored."""
+    are dropped. 422 if the body is not a fleetmap snapshot, or holds a tile or a cell value the
+    service could not have made; 413 if a part of it decompresses to more than its limit (see the
+    docs); both change nothing. 503 if the map was installed but could not be stored."""
     body = await request.body()
     try:
         gmap = await asyncio.to_thread(map_from_snapshot_file, body)
-    except ValueError as exc:
-        raise ApiError(422, str(exc)) from None
+    except SnapshotError as exc:
+        if not exc.errors:
+            raise ApiError(exc.status, str(exc)) from None
+        detail, items = validation_detail(exc.errors)  # one line per problem, as for PUT /maps
+        raise ApiError(exc.status, f"snapshot {detail}", errors=items) from None
     # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
     try:
         entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True)
