@@ -454,6 +454,7 @@ def test_a_stored_infinite_band_width_or_weight_cap_loads_at_the_limit(
 def test_an_uploaded_snapshot_is_checked_before_any_tile_is_allocated(monkeypatch) -> None:
     """Keys and every layer's dtype and shape are checked before the map's pools are: the audit's
     7 KB upload (300 tiles of 1024x1024 cells, empty layers) took 4 GB before its 422."""
+    meta, arrays = snapshot_parts(snapshot_file("s", small_snapshot_map()))  # made before the patch
     real_create = TileStore.create
     allowed = False
 
@@ -462,7 +463,6 @@ def test_an_uploaded_snapshot_is_checked_before_any_tile_is_allocated(monkeypatc
         real_create(self, keys, fill)
 
     monkeypatch.setattr(TileStore, "create", create)
-    meta, arrays = snapshot_parts(snapshot_file("s", small_snapshot_map()))
     n = len(arrays["keys"])
     for bad, reason in [
         (
