@@ -100,7 +100,8 @@ class ApiSettings:
     max_region_cells: int = 16 * 1024 * 1024
     #: Cells per region as JSON (much bigger per cell than npy).
     max_json_cells: int = 1024 * 1024
-    #: Bytes of a request body (a scan of 100000 beams with angles is ~4 MB of JSON).
+    #: Bytes of a request body (413 past it). A scan's payload has its own, smaller limit, the same as
+    #: over Zenoh: `fleetmap.codec.InputLimits.max_payload_bytes` (4 MiB; also 413).
     max_body_bytes: int = 16 * 1024 * 1024
     #: Rendered tiles kept in memory.
     tile_cache_size: int = 4096

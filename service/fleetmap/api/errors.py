@@ -20,7 +20,7 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fleetmap.api_models import ErrorItem, ErrorResponse
-from fleetmap.codec import DecodeError
+from fleetmap.codec import DecodeError, PayloadTooLarge
 from fleetmap.grid_map import LayerUnavailableError
 from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
@@ -197,6 +197,7 @@ _CLIENT_ERRORS: tuple[tuple[type[Exception], int], ...] = (
     (MapConflict, 409),
     (InvalidId, 422),
     (LayerUnavailableError, 422),
+    (PayloadTooLarge, 413),  # a DecodeError: Starlette picks the handler of the closest class
     (DecodeError, 422),
     (ScanError, 422),
     (TileError, 422),
