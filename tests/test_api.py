@@ -522,6 +522,43 @@ def test_events_tiles_robots_resume_and_delete(api: RunningApi) -> None:
         reader.close()
 
 
+def test_events_follow_a_map_replaced_by_a_snapshot(api: RunningApi) -> None:
+    """`PUT /maps/{id}/snapshot` replaces the map under its id (200 on GET afterwards): the stream says
+    `replaced`, not `deleted`, with the new map's change version as its id, and goes on with the new
+    map's events. `PUT /maps/{id}` never replaces a map (the same configuration changes nothing,
+    another is 409), so it sends nothing."""
+    c = api.client
+    c.put("/maps/rep-src", json=CONFIG)
+    assert post_scan(api, "rep-src", "rS", fan_scan(3.0, 3.0, 0.0, [1.0] * 61), 0).status_code == 200
+    snapshot = c.get("/maps/rep-src/snapshot").content
+    c.put("/maps/rep", json=CONFIG)
+    assert post_scan(api, "rep", "rA", fan_scan(0.0, 0.0, 0.0, [1.2] * 61), 0).status_code == 200
+    reader = EventReader(f"{api.base_url}/maps/rep/events")
+    try:
+        robots, _ = reader.next("robots")
+        assert "rA" in robots["robots"]
+        assert c.put("/maps/rep", json=CONFIG).status_code == 200
+        assert c.put("/maps/rep", json={**CONFIG, "resolution": 0.1}).status_code == 409
+        r = c.put("/maps/rep/snapshot", content=snapshot, headers={"content-type": "application/zip"})
+        assert r.status_code == 201, r.text
+        data, event_id = reader.next("replaced")  # fails if the stream said `deleted` and ended
+        assert data == {"id": "rep", "version": 0} and event_id == "0"
+        assert reader.next("robots")[0] == {"robots": {}}  # the new map's robots start afresh
+        # The stream goes on with the new map: a scan's tiles arrive, with the new map's versions.
+        result = post_scan(api, "rep", "rB", fan_scan(0.5, 0.0, 0.0, [1.0] * 61), 0).json()
+        seen: list[list[int]] = []
+        while not all(covered(w, seen) for w in result["changed_tiles"]):
+            tiles, event_id = reader.next("tiles")
+            assert event_id == str(tiles["version"]) == "1"
+            seen += tiles["tiles"]
+        assert c.get("/maps/rep").status_code == 200
+        c.delete("/maps/rep")
+        assert reader.next("deleted")[0] == {"id": "rep"}
+        assert reader.ended()
+    finally:
+        reader.close()
+
+
 def test_a_large_scan_body_is_decoded_off_the_event_loop(
     api: RunningApi, monkeypatch: pytest.MonkeyPatch
 ) -> None:
