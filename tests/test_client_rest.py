@@ -293,6 +293,46 @@ def test_events_stream_tiles_robots_and_deletion(client: FleetmapClient, scans: 
     assert received[-1] == ("deleted", {"id": "ev"})
 
 
+def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, scans: list[Scan]) -> None:
+    """A map replaced by `PUT /maps/{id}/snapshot` still exists: `events` yields `replaced` and goes
+    on with the new map's events; only a deletion ends it."""
+    client.create_map("ev-src", CONFIG)
+    client.post_scan("ev-src", "rob", scans[0], seq=0)
+    snapshot = httpx.get(f"{client.base_url}/maps/ev-src/snapshot", timeout=30).content
+    client.create_map("ev-rep", CONFIG)
+    received: list[tuple[str, dict[str, Any]]] = []
+    finished = threading.Event()
+
+    def listen() -> None:
+        with FleetmapClient(client.base_url) as own:
+            for event in own.events("ev-rep"):
+                received.append(event)
+        finished.set()
+
+    threading.Thread(target=listen, daemon=True).start()
+    wait_for(lambda: any(e == "robots" for e, _ in received), 10, 0.02, "the initial robots event")
+    r = httpx.put(
+        f"{client.base_url}/maps/ev-rep/snapshot",
+        content=snapshot,
+        headers={"content-type": "application/zip"},
+        timeout=30,
+    )
+    assert r.status_code == 201, r.text
+    wait_for(lambda: ("replaced", {"id": "ev-rep", "version": 0}) in received, 10, 0.02, "replaced")
+    assert not finished.is_set() and ("deleted", {"id": "ev-rep"}) not in received
+    result = client.post_scan("ev-rep", "rob", scans[1], seq=0)  # the stream follows the new map
+    changed = {tuple(w) for w in result.changed_tiles}
+
+    def tiles_since_replaced() -> set[tuple[int, ...]]:
+        after = received[received.index(("replaced", {"id": "ev-rep", "version": 0})) :]
+        return {tuple(w) for e, d in after if e == "tiles" for w in d.get("tiles", [])}
+
+    wait_for(lambda: changed <= tiles_since_replaced(), 10, 0.02, "the new map's tiles event")
+    client.delete_map("ev-rep")
+    assert finished.wait(10), "the event stream did not end after the map was deleted"
+    assert received[-1] == ("deleted", {"id": "ev-rep"})
+
+
 def test_events_of_an_unknown_map(client: FleetmapClient) -> None:
     with pytest.raises(FleetmapError) as exc:
         next(client.events("nothing-here"))

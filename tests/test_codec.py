@@ -22,7 +22,7 @@ from fleetmap.codec import (
     encode_json,
 )
 from fleetmap.scan import Scan
-from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage
 
 finite = st.floats(-1e4, 1e4, allow_nan=False, allow_infinity=False)
 ranges = st.lists(
@@ -196,3 +196,22 @@ def test_rejection_reasons_cannot_inject_log_lines() -> None:
         decode_json(json.dumps(evil).encode())
     reason = str(refused.value)
     assert "\n" not in reason and len(reason) < 400
+
+
+def test_a_json_nan_range_is_an_invalid_reading_like_binary_nan() -> None:
+    """The non-standard JSON literal NaN in `ranges` is accepted and means what a binary NaN means,
+    an invalid reading the engine ignores; and the published schema says so (it used to call NaN
+    binary-only while the decoder accepted it)."""
+    body = b'{"seq": 3, "pose": {"x": 1, "y": 2, "theta": 0}, "angle_min": -0.25, "angle_increment": 0.25, '
+    body += b'"range_max": 30, "ranges": [1.0, NaN, 2.0]}'
+    got = decode(body, JSON_ENCODING)
+    binary = decode_binary(
+        encode_binary(Scan.from_fan((1.0, 2.0, 0.0), -0.25, 0.25, [1.0, math.nan, 2.0], 0, 30), 3)
+    )
+    assert np.isnan(got.scan.ranges[1]) and np.isnan(binary.scan.ranges[1])
+    np.testing.assert_array_equal(got.scan.ranges, binary.scan.ranges)
+    np.testing.assert_array_equal(got.scan.angles, binary.scan.angles)
+    schema = ScanMessage.model_json_schema()
+    described = (schema["description"] + schema["properties"]["ranges"].get("description", "")).lower()
+    assert "binary encoding only" not in described
+    assert "nan: an invalid reading, ignored" in described

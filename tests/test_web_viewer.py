@@ -7,7 +7,8 @@ service's own /vendor/leaflet (no internet). The assertions are on what the page
 for robots" before any map, the map selector, tile images (HTTP 200, not transparent), live tile
 refresh without a page reload, the robot in the list (online, then offline) and on the map at its
 pose with its heading and trail, a clicked cell's values (equal to the engine's own map of the same
-scans), the layer switch, a map keeping fewer layers, a deleted map, and the service going away.
+scans), the layer switch, a map keeping fewer layers, that map replaced by a snapshot (reloaded in
+place), a deleted map, and the service going away.
 
 Chromium comes from the Debian package `chromium` (`make system-deps` installs it); the test is
 skipped, with that reason, only when /usr/bin/chromium is missing. `playwright install` is never used.
@@ -405,6 +406,42 @@ def test_web_viewer_end_to_end(service: ServiceProcess) -> None:
                 what="its tiles",
             )
             assert page.inner_text("#robot-list") == "no robots"
+
+            # It is replaced by a snapshot of the first map (PUT /maps/{id}/snapshot): the page stays
+            # on it with the same event stream, says nothing is wrong, offers the layers the new map
+            # keeps (the wanted layer, hits, still) and reloads every tile, which now show cells.
+            snapshot = httpx.get(f"{base}/maps/{MAP_ID}/snapshot", timeout=30.0)
+            assert snapshot.status_code == 200, snapshot.text
+            page.evaluate("() => { window.__stream = window.fleetmapViewer.state.events; }")
+            before = page.evaluate(f"() => {_LOADED_TILES_JS}")
+            r = httpx.put(
+                f"{base}/maps/{other}/snapshot",
+                content=snapshot.content,
+                headers={"content-type": "application/zip"},
+                timeout=30.0,
+            )
+            assert r.status_code == 201, r.text
+            _wait(
+                page,
+                f"() => {_LAYER_OPTIONS_JS} === 'probability,state,log_odds,hits,misses,tsdf,tsdf_weight'",
+                what="the replacing map's layers",
+            )
+            _wait(
+                page,
+                f"(before) => {{ const s = {_LOADED_TILES_JS}; return s.length > 0"
+                f" && s.every((u) => !before.includes(u) && u.includes('/maps/{other}/tiles/')); }}",
+                before,
+                what="the replacing map's tiles",
+            )
+            _settled_tiles(page, tile_statuses)
+            replaced_tiles = page.evaluate(_TILE_PIXELS_JS)
+            assert sum(t["opaque"] for t in replaced_tiles) > 1000, replaced_tiles
+            assert page.eval_on_selector("#map-select", "el => el.value") == other
+            assert page.evaluate("() => location.hash") == f"#map={other}&layer=hits"
+            assert page.evaluate("() => window.fleetmapViewer.state.events === window.__stream")
+            assert page.get_attribute("#status", "data-state") == "connected"
+            assert page.is_hidden("#error"), page.inner_text("#error")
+            assert not page_errors, page_errors
 
             # It is deleted: the page says so and goes back to the map that is left.
             assert httpx.delete(f"{base}/maps/{other}", timeout=10.0).status_code in (200, 204)

@@ -10,6 +10,7 @@
  *                                    lng = cell x index i, lat = cell y index j, zoom 0 = one pixel per cell
  *   GET maps/{id}/events (SSE)    -> `tiles` {version, tiles: [[i0, j0, i1, j1], ...]} or {version, reset},
  *                                    `robots` {robots: {id: {online, pose, trail, scans_integrated}}},
+ *                                    `replaced` {id, version} (same map id, new content: reload it),
  *                                    `deleted` {id}
  *   GET maps/{id}/cell?x=&y=      -> the values of the clicked cell
  *
@@ -513,6 +514,9 @@
     };
     es.addEventListener('tiles', handle(queueTiles));
     es.addEventListener('robots', handle((d) => updateRobots(d.robots)));
+    // The map was replaced under its id (a snapshot upload): stay on it and reload it; the stream
+    // goes on with the new map's events.
+    es.addEventListener('replaced', handle(() => reloadMap()));
     // The map was deleted: the stream ends; the map list poll picks another map (or waits).
     es.addEventListener('deleted', handle(() => {
       deselectMap();
@@ -590,6 +594,22 @@
     }
     tiles.addTo(map);
     openEvents(mapId);
+  }
+
+  /**
+   * The selected map was replaced under its id: its configuration (layers, resolution), cells and
+   * robots are new. Forget what the page knew of the old one and load it again, as a selection does,
+   * but keep the event stream (it goes on with the new map) and the map selector as they are.
+   */
+  async function reloadMap() {
+    const token = state.selectToken;
+    clearRobots();
+    state.fitted = false; // the new map may lie elsewhere
+    cellInfo.innerHTML = '<p class="none">Click the map to query a cell.</p>';
+    if (cellMarker) { cellMarker.remove(); cellMarker = null; }
+    await refreshInfo(token, true);
+    // Every tile, after the layer selector knows the new map's layers (the layer may have changed).
+    if (token === state.selectToken) queueTiles({ reset: true });
   }
 
   /** GET maps/{id}: layers, resolution, bounds (fit once), robots. Returns false on failure. */

@@ -295,6 +295,16 @@ class RobotsEvent(_Model):
     robots: dict[str, RobotLive]
 
 
+class ReplacedEvent(_Model):
+    """`event: replaced` of `GET /maps/{map_id}/events`: the map was replaced under its id (`PUT
+    /maps/{map_id}/snapshot`): new configuration, cells, robots and change versions. Reload the map
+    (`GET /maps/{map_id}`) and every tile; the stream goes on with the new map's events, whose change
+    versions start at `version` (also the event's id)."""
+
+    id: str
+    version: int
+
+
 # -- conversions ------------------------------------------------------------------------------------
 
 
@@ -507,6 +517,7 @@ __all__ = [
     "RegionJson",
     "RobotLive",
     "RobotStats",
+    "ReplacedEvent",
     "RobotsEvent",
     "ScanResult",
     "Surface",

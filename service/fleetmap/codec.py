@@ -44,12 +44,18 @@ VERSION = 1
 FLAG_ANGLES = 1
 HEADER = struct.Struct("<4sBBHQddddffdfI")
 assert HEADER.size == 72, "the layout documented above and in docs/protocol.md"
-#: The largest payload accepted by default (about 16 K beams as JSON with explicit angles).
+#: The largest scan payload accepted by default, over Zenoh and REST alike (about 16 K beams as JSON
+#: with explicit angles). Over REST it is stricter than the HTTP body limit (`ApiSettings.max_body_bytes`).
 MAX_PAYLOAD_BYTES_DEFAULT = 4 * 1024 * 1024
 
 
 class DecodeError(ValueError):
     """A payload that is not a valid scan message. The message says why."""
+
+
+class PayloadTooLarge(DecodeError):
+    """A payload over `InputLimits.max_payload_bytes`, refused before decoding. Still a DecodeError,
+    so Zenoh ingest counts it as rejected like any bad payload; REST answers it 413, not 422."""
 
 
 @dataclass(frozen=True)
@@ -115,11 +121,11 @@ class WireScan:
 
 def decode(payload: bytes | bytearray | memoryview, encoding: str) -> WireScan:
     """Decode a payload by its encoding; an unknown or empty encoding is sniffed (JSON object or
-    binary magic). Raises `DecodeError`."""
+    binary magic). Raises `DecodeError` (`PayloadTooLarge` past the payload limit)."""
     data = bytes(payload)
     limit = _limits.max_payload_bytes
     if len(data) > limit:
-        raise DecodeError(f"payload of {len(data)} bytes exceeds the limit of {limit}")
+        raise PayloadTooLarge(f"payload of {len(data)} bytes exceeds the limit of {limit}")
     kind = encoding.split(";", 1)[0].strip()
     if kind in ("", "zenoh/bytes", "application/octet-stream"):
         kind = BINARY_ENCODING if data[:4] == MAGIC else JSON_ENCODING if data[:1] == b"{" else kind

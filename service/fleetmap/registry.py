@@ -129,6 +129,9 @@ class MapEntry:
     #: Scans accepted for this map (`submit`) that are neither counted as integrated nor refused yet:
     #: queued, in flight, or applied and waiting for their journal commit.
     unsettled: int = 0
+    #: The entry `replace` installed in this one's place (under `MapRegistry.lock`), so an event
+    #: stream can tell a map replaced under its id (it follows the new one) from a deleted one.
+    replaced_by: MapEntry | None = field(default=None, repr=False)
 
     @property
     def config(self) -> MapConfig:
@@ -302,8 +305,9 @@ class MapRegistry:
         return entry, True
 
     def replace(self, map_id: str, gmap: GridMap, wait: bool = False) -> MapEntry:
-        """Install `gmap` (a restored snapshot) as map `map_id`, replacing any map of that id. With
-        `wait`, it is committed to storage before this returns (else NotDurable)."""
+        """Install `gmap` (a restored snapshot) as map `map_id`, replacing any map of that id (whose
+        entry then points to the new one: `MapEntry.replaced_by`). With `wait`, it is committed to
+        storage before this returns (else NotDurable)."""
         _check_id("map id", map_id)
         # Its tiles are encoded here, before the lock: no one else sees `gmap` yet, and a big map
         # takes seconds, during which scans and every other request need the lock.
@@ -313,6 +317,8 @@ class MapRegistry:
             dropped = self._retire(old) if old is not None else []
             entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
             self.maps[map_id] = entry
+            if old is not None:
+                old.replaced_by = entry
             if self.durable is not None:
                 stored = self.durable.map_created(map_id, gmap, tiles)
         for job in dropped:

@@ -61,7 +61,9 @@ class ScanMessage(BaseModel):
 
     Beam i points at `angle_min + i * angle_increment` relative to the sensor heading, or at
     `angles[i]` when `angles` is given. `ranges[i]` is a number in metres or null; null, inf or a
-    value >= `range_max` means "no return", NaN (binary encoding only) an invalid reading.
+    value >= `range_max` means "no return", NaN an invalid reading, ignored: the same as a binary NaN
+    and the engine's NaN. (Strict JSON has no NaN, but the non-standard literal `NaN`, which Python's
+    `json` and many ROS bridges write, is accepted rather than refusing the whole scan.)
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -74,7 +76,10 @@ class ScanMessage(BaseModel):
     angles: list[Finite] | None = Field(None, max_length=MAX_BEAMS)
     range_min: Finite = Field(0.0, ge=0)
     range_max: float = Field(math.inf, gt=0, description="metres; may be omitted for 'no maximum'")
-    ranges: list[float | None] = Field(max_length=MAX_BEAMS)
+    ranges: list[float | None] = Field(
+        max_length=MAX_BEAMS,
+        description="metres; null, Infinity or >= range_max: no return; NaN: an invalid reading, ignored",
+    )
 
     @model_validator(mode="after")
     def _check_angles(self) -> ScanMessage:

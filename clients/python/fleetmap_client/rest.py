@@ -359,8 +359,10 @@ class FleetmapClient:
     def events(self, map_id: str, since: int | None = None) -> Iterator[tuple[str, dict[str, Any]]]:
         """`GET /maps/{map_id}/events`: the map's server-sent events as (event, data) pairs, e.g.
         ("tiles", {"version": 7, "tiles": [[i0, j0, i1, j1], ...]}) or ("tiles", {"version": 9,
-        "reset": True}), ("robots", {"robots": {...}}), ("deleted", {"id": ...}) after which the
-        stream ends. Keepalive comments are skipped. `since`: resume after that change version.
+        "reset": True}), ("robots", {"robots": {...}}), ("replaced", {"id": ..., "version": v}) when
+        the map was replaced by a snapshot upload (reload its metadata and tiles; the stream goes on
+        with the new map's events, its versions starting at v), ("deleted", {"id": ...}) after which
+        the stream ends. Keepalive comments are skipped. `since`: resume after that change version.
 
         The iterator is lazy: the request is made on the first `next()`. It ends when the server
         closes the stream; close it early with `.close()` on the generator (or by leaving a `for`

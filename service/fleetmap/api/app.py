@@ -25,7 +25,7 @@ from fleetmap.api import errors, routes_data, routes_maps, routes_snapshot, rout
 from fleetmap.api.events import router as events_router
 from fleetmap.api.priority import IngestGate, IngestPriority
 from fleetmap.api.state import ApiState
-from fleetmap.api_models import RegionJson, RobotsEvent, TilesEvent
+from fleetmap.api_models import MAX_POINTS, RegionJson, ReplacedEvent, RobotsEvent, TilesEvent
 from fleetmap.metrics import IntegrationMetrics, ServiceMetrics
 from fleetmap.registry import MapRegistry
 from fleetmap.wire import ScanMessage
@@ -93,13 +93,15 @@ class ApiSettings:
     metrics: IntegrationMetrics | None = None
     #: Seconds POST /scans waits for the integration before answering 503.
     scan_timeout: float = 10.0
-    #: Points per POST /cells request.
-    max_points: int = 100_000
+    #: Points per POST /cells request (413 past it). At most `MAX_POINTS`: the request model refuses
+    #: longer lists before validating them, with the same 413.
+    max_points: int = MAX_POINTS
     #: Cells per region / surface (npy, png) and per export window.
     max_region_cells: int = 16 * 1024 * 1024
     #: Cells per region as JSON (much bigger per cell than npy).
     max_json_cells: int = 1024 * 1024
-    #: Bytes of a request body (a scan of 100000 beams with angles is ~4 MB of JSON).
+    #: Bytes of a request body (413 past it). A scan's payload has its own, smaller limit, the same as
+    #: over Zenoh: `fleetmap.codec.InputLimits.max_payload_bytes` (4 MiB; also 413).
     max_body_bytes: int = 16 * 1024 * 1024
     #: Rendered tiles kept in memory.
     tile_cache_size: int = 4096
@@ -180,7 +182,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
 
 #: Models that routes send without FastAPI seeing them as response models (raw JSON bodies, event
 #: data) but that clients need in the spec.
-EXTRA_SCHEMAS: tuple[type[BaseModel], ...] = (ScanMessage, RegionJson, TilesEvent, RobotsEvent)
+EXTRA_SCHEMAS: tuple[type[BaseModel], ...] = (ScanMessage, RegionJson, TilesEvent, RobotsEvent, ReplacedEvent)
 
 
 def _install_openapi(app: FastAPI) -> None:

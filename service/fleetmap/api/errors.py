@@ -20,7 +20,7 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fleetmap.api_models import ErrorItem, ErrorResponse
-from fleetmap.codec import DecodeError
+from fleetmap.codec import DecodeError, PayloadTooLarge
 from fleetmap.grid_map import LayerUnavailableError
 from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
@@ -61,6 +61,32 @@ class ApiError(Exception):
         self.detail = detail
         self.headers = headers
         self.errors = errors
+
+
+def too_many(count: int | None, what: str, limit: int) -> ApiError:
+    """The 413 of a request asking for more `what` than `limit` at once (`count`, if known): one
+    wording, whether the route's own check or the request model's cap (`_SIZE_LIMITED_LISTS`)
+    caught it."""
+    many = f"{count} {what} is" if count is not None else f"asking for more {what} is"
+    return ApiError(413, f"{many} more than the limit of {limit} per request")
+
+
+#: Request-body lists whose `max_length` is a size limit rather than a shape: past it a request asks
+#: for too much at once (413, the status docs/api.md gives), it is not malformed (422). The cap stays
+#: in the model because pydantic then refuses a huge list at once, without validating every item on
+#: the event loop. Validation-error location -> what the list holds.
+_SIZE_LIMITED_LISTS: dict[tuple[str | int, ...], str] = {("body", "points"): "points"}
+
+
+def _size_limit_error(errors: Sequence[dict[str, Any]]) -> ApiError | None:
+    """The 413 for a validation failure that is a size-limited list over its cap, if there is one."""
+    for err in errors:
+        what = _SIZE_LIMITED_LISTS.get(tuple(err.get("loc", ())))
+        ctx = err.get("ctx") or {}
+        if what is not None and err.get("type") == "too_long" and "max_length" in ctx:
+            count = ctx.get("actual_length")
+            return too_many(count if isinstance(count, int) else None, what, int(ctx["max_length"]))
+    return None
 
 
 class BodyTooLarge(StarletteHTTPException):
@@ -179,6 +205,7 @@ _CLIENT_ERRORS: tuple[tuple[type[Exception], int], ...] = (
     (MapConflict, 409),
     (InvalidId, 422),
     (LayerUnavailableError, 422),
+    (PayloadTooLarge, 413),  # a DecodeError: Starlette picks the handler of the closest class
     (DecodeError, 422),
     (ScanError, 422),
     (TileError, 422),
@@ -210,6 +237,9 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        too_big = _size_limit_error(exc.errors())
+        if too_big is not None:
+            return _json(too_big.status, too_big.detail)
         detail, items = validation_detail(exc.errors())
         return _json(422, detail, items)
 

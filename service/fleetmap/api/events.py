@@ -24,7 +24,12 @@ Format (text/event-stream):
   reload everything. Its `id` is the map's change version: a reconnecting EventSource sends it back as
   `Last-Event-ID` (or pass `?since=`) and gets the changes it missed.
 - `robots`: every robot of the map, sent when anything in it changed (and once on connect).
-- `deleted`: the map was deleted; the stream ends.
+- `replaced`: `{"id": map_id, "version": v}`, with `id: v`: the map was replaced under its id by
+  `PUT /maps/{map_id}/snapshot` (new configuration, cells and robots; change versions start again).
+  Reload the map's metadata and every tile. The stream goes on with the new map's events (a
+  `robots` event follows at once), and `v` is its change version, so a reconnect resumes from it.
+- `deleted`: the map was deleted; the stream ends. (Also when it was deleted and created again
+  between two polls: it is another map, which a client must select anew.)
 - `: keepalive` comment lines every 15 s keep proxies from closing an idle stream.
 """
 
@@ -41,7 +46,7 @@ from fastapi.responses import StreamingResponse
 
 from fleetmap.api.errors import error_responses
 from fleetmap.api.state import ApiState, MapId, State
-from fleetmap.api_models import TilesEvent, robots_event, tile_windows
+from fleetmap.api_models import ReplacedEvent, TilesEvent, robots_event, tile_windows
 from fleetmap.registry import MapEntry
 
 router = APIRouter()
@@ -52,16 +57,28 @@ def _event(kind: str, data: str, event_id: int | None = None) -> str:
     return f"{head}event: {kind}\ndata: {data}\n\n"
 
 
+def _successor(maps: dict[str, MapEntry], entry: MapEntry) -> MapEntry | None:
+    """What became of `entry` (call under the registry lock): itself while it is the map; the map
+    that replaced it, however many replacements ago, while that is the map; None once it is gone
+    (deleted, or deleted and created again: a new map, not a replacement)."""
+    current = maps.get(entry.id)
+    follow: MapEntry | None = entry
+    while follow is not None and follow is not current:
+        follow = follow.replaced_by
+    return follow
+
+
 async def event_stream(state: ApiState, entry: MapEntry, since: int | None) -> AsyncIterator[str]:
     """The events of one client until it disconnects (Starlette then cancels this generator) or the
-    map is deleted."""
+    map is deleted. A map replaced under its id is followed: `replaced`, then the new map's events."""
     registry, settings = state.registry, state.settings
     feed = entry.changes
     tile_size = entry.config.tile_size
     yield "retry: 1000\n\n"  # EventSource reconnects after 1 s
     version = feed.version if since is None else since
     if since is not None and since > feed.version:
-        # A version this map never had (the id is from a deleted map of the same name): start over.
+        # A version this map never had (the id is from a deleted or replaced map of the same name):
+        # start over.
         yield _event(
             "tiles",
             TilesEvent(version=feed.version, reset=True).model_dump_json(exclude_none=True),
@@ -72,10 +89,18 @@ async def event_stream(state: ApiState, entry: MapEntry, since: int | None) -> A
     last_sent = time.monotonic()
     while True:
         with registry.lock:
-            alive = registry.maps.get(entry.id) is entry
-        if not alive:
+            successor = _successor(registry.maps, entry)
+        if successor is None:
             yield _event("deleted", json.dumps({"id": entry.id}))
             return
+        if successor is not entry:
+            # Replaced: the client reloads everything, so the new map's history is not news; its
+            # version becomes the event id, so a reconnecting EventSource resumes in the new feed.
+            entry, feed, tile_size = successor, successor.changes, successor.config.tile_size
+            version = feed.version
+            yield _event("replaced", ReplacedEvent(id=entry.id, version=version).model_dump_json(), version)
+            last_robots = ""  # the new map's robots, even if they look the same
+            last_sent = time.monotonic()
         batch = feed.since(version)
         if batch.version != version:
             if batch.reset:
@@ -123,6 +148,9 @@ async def get_events(
       tiles), or `{"version": int, "reset": true}`: reload everything;
     - `event: robots`, data `{"robots": {"<robot_id>": {"online", "pose": [x, y, theta] | null,
       "trail": [[x, y], ...], "scans_integrated"}}}`: sent on connect and whenever a robot changed;
+    - `event: replaced`, `id: <version>`, data `{"id": map_id, "version": int}`: the map was replaced
+      by `PUT /maps/{map_id}/snapshot`; reload its metadata and every tile. The stream goes on with
+      the new map's events (change versions start again at `version`);
     - `event: deleted`, data `{"id": map_id}`: the map was deleted, the stream ends;
     - `: keepalive` comments every 15 s.
 

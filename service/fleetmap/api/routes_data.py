@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 import numpy as np
 from fastapi import APIRouter, Query, Response
 
-from fleetmap.api.errors import ApiError, error_responses
+from fleetmap.api.errors import ApiError, error_responses, too_many
 from fleetmap.api.state import MapId, RegionLayer, State, coordinate
 from fleetmap.api_models import (
     CellsRequest,
@@ -116,10 +116,10 @@ def get_cell(
 def post_cells(map_id: MapId, state: State, body: CellsRequest) -> Response:
     """The fields of GET /maps/{map_id}/cell, each an array with one entry per point, in the order
     given: `{"count", "i": [...], "j": [...], "known": [...], "probability": [...], ...}`. An unknown
-    cell has `known` false and `probability` 0.5. At most 100000 points per request."""
+    cell has `known` false and `probability` 0.5. At most 100000 points per request: more is 413."""
     limit = state.settings.max_points
     if len(body.points) > limit:
-        raise ApiError(413, f"{len(body.points)} points is more than the limit of {limit} per request")
+        raise too_many(len(body.points), "points", limit)
     gmap = state.entry(map_id).gmap
     points = np.array(body.points, dtype=np.float64).reshape(-1, 2)
     return Response(cells_json(gmap, points), media_type="application/json")

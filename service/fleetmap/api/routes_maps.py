@@ -184,7 +184,8 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
 
     Errors: 404 unknown map when the server does not create maps on first use, or the map was
     deleted before the scan was integrated; 409 the map was replaced (deleted and created again, or
-    restored from a snapshot) before the scan was integrated: it is in neither map; 422 an invalid scan
+    restored from a snapshot) before the scan was integrated: it is in neither map; 413 a payload
+    over 4 MiB, the limit of every scan as over Zenoh (counted as rejected too); 422 an invalid scan
     (counted on the robot as rejected, with the reason as its `last_error`); 503 the robot's ingest
     queue is full, the integration did not finish within the server's timeout (the scan is still
     integrated), or storage failed: the scan was applied but its journal commit failed (counted on
@@ -200,8 +201,9 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
         else:  # parsing a few MB of JSON takes tens of ms: not on the loop every request waits on
             wire = await asyncio.to_thread(codec.decode, body, content_type)
     except codec.DecodeError as exc:
-        registry.reject(map_id, robot_id, str(exc))
-        raise ApiError(422, str(exc)) from None
+        registry.reject(map_id, robot_id, str(exc))  # counted as over Zenoh, too large or not
+        # A payload over the scan limit is "too much at once" (413), however far below the body limit.
+        raise ApiError(413 if isinstance(exc, codec.PayloadTooLarge) else 422, str(exc)) from None
     try:
         future = registry.submit(map_id, robot_id, wire, wait=True)
     except IngestRejected as exc:
