@@ -192,7 +192,8 @@ def test_log_odds_parameters_are_bounded_to_what_float32_cells_hold() -> None:
     from fleetmap.config import MAX_LOG_ODDS, STORED_CONFIG
 
     MapConfig(occupancy={"l_min": -MAX_LOG_ODDS, "l_max": MAX_LOG_ODDS})
-    for name, value in (("l_hit", 1e300), ("l_miss", -1e5), ("l_min", -1e39), ("l_max", 2e4)):
+    MapConfig(occupancy={"l_min": -1e6, "l_max": 1e6})  # "unclamped"
+    for name, value in (("l_hit", 1e300), ("l_miss", -1e31), ("l_min", -1e39), ("l_max", 2e30)):
         with pytest.raises(ValidationError, match="within"):
             MapConfig(occupancy={name: value})
     stored = MapConfig.model_validate({"occupancy": {"l_max": 1e300}}, context={STORED_CONFIG: True})

@@ -35,9 +35,10 @@ log = logging.getLogger("fleetmap.config")
 #: The band widths limited to MAX_BAND_CELLS cells: (section, field).
 _BAND_WIDTHS = (("tsdf", "truncation"), ("beam", "alpha"))
 
-#: Bound on every log-odds parameter's magnitude. Cells hold float32 log-odds, and a cell at 10**4
-#: is certain to any precision (p = 1 - 10**-4343), while 10**39 would store as infinity.
-MAX_LOG_ODDS = 1e4
+#: Bound on every log-odds parameter's magnitude. Cells hold float32 log-odds, which overflow to
+#: infinity past 3.4e38: with l_hit = 1e300 every hit cell read as "known" with no log-odds. Clamps
+#: far beyond any probability (1e6, "unclamped") stay possible.
+MAX_LOG_ODDS = 1e30
 #: Bound on `tsdf.max_weight` (weights are float32; the default is 1000).
 MAX_TSDF_WEIGHT = 1e30
 
