@@ -247,17 +247,35 @@ def test_build_skips_scans_it_cannot_integrate_and_says_so(tmp_path: Path) -> No
     assert "skipped a scan" in done.stderr
 
 
+def bad_config(directory: Path) -> Path:
+    path = directory / "bad.json"
+    path.write_text('{"resolution": 0, "tsdf": {"max_weight": Infinity}}')
+    return path
+
+
 @pytest.mark.parametrize(
     ("make_args", "words"),
     [
         (lambda d: [d / "missing.log"], "missing.log"),
         (lambda d: [scene_log(d / "s.log"), "--resolution", "0"], "resolution"),
         (lambda d: [scene_log(d / "s.log"), "--config", d / "nope.json"], "cannot read config"),
+        (
+            lambda d: [scene_log(d / "s.log"), "--config", bad_config(d)],
+            "invalid map configuration: resolution: Input should be greater than 0.001; "
+            "tsdf.max_weight: Input should be a finite number",
+        ),
         (lambda d: [scene_log(d / "s.log"), "--range-min", "3", "--range-max", "2"], "range"),
         # Every reading below range_min: no observed cell, nothing to export.
         (lambda d: [scene_log(d / "s.log"), "--range-min", "5"], "no observed cell"),
     ],
-    ids=["missing-dataset", "bad-resolution", "missing-config", "inverted-ranges", "nothing-observed"],
+    ids=[
+        "missing-dataset",
+        "bad-resolution",
+        "missing-config",
+        "bad-config",
+        "inverted-ranges",
+        "nothing-observed",
+    ],  # fmt: skip
 )
 def test_build_errors_are_clear_and_write_nothing(
     tmp_path: Path, make_args: Callable[[Path], list[str | Path]], words: str
@@ -266,7 +284,8 @@ def test_build_errors_are_clear_and_write_nothing(
     done = build(*make_args(tmp_path), "--out", out, "--quiet")
     assert done.returncode == 2, done.stdout
     assert done.stderr.startswith("fleetmap build: error:") and words in done.stderr, done.stderr
-    assert "Traceback" not in done.stderr
+    assert "Traceback" not in done.stderr and "pydantic.dev" not in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1  # one line, every problem in it
     assert not out.exists()
 
 

@@ -61,7 +61,8 @@ def load_config(path: str | None, **overrides: object) -> MapConfig:
     try:
         return MapConfig.model_validate(data)
     except ValidationError as exc:
-        raise CliError(f"invalid map configuration:\n{exc}") from None
+        problems = [f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors()]
+        raise CliError("invalid map configuration: " + "; ".join(problems)) from None
 
 
 # -- build -----------------------------------------------------------------------------------------

@@ -21,15 +21,21 @@ from fleetmap.cli import CliError
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="run the service with simulated robots and print the viewer's address")
+    p = sub.add_parser(
+        "demo",
+        help="run the service with simulated robots and print the viewer's address",
+        description="Start the service and simulated robots mapping a synthetic floor plan; open the "
+        "printed address to watch. Ctrl-C stops everything; the map is kept in --data-dir.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     p.add_argument("--http", default="127.0.0.1:8000", metavar="HOST:PORT", help="viewer and API address")
     p.add_argument("--zenoh", default="tcp/127.0.0.1:7447", metavar="ENDPOINT", help="where robots connect")
     p.add_argument("--data-dir", default="./fleetmap-data", help="the service's durable storage")
-    p.add_argument("--robots", type=int, default=3, help="simulated robots (default 3)")
+    p.add_argument("--robots", type=int, default=3, help="simulated robots")
     p.add_argument("--map", default="demo", help="map id the robots publish to")
     p.add_argument("--seed", type=int, default=1, help="floor plan and robots' seed")
     p.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
-    p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: Ctrl-C)")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long (None: at Ctrl-C)")
     p.set_defaults(run=run)
 
 

@@ -32,6 +32,7 @@ import signal
 import socket
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -435,7 +436,11 @@ def run(args: argparse.Namespace) -> int:
             except StorageError as exc:
                 sock.close()
                 raise CliError(str(exc)) from None
+        # The first start after an install compiles the kernels (10-30 s, silent otherwise).
+        log.info("loading the engine's compiled kernels (the first start after an install compiles them)")
+        started = time.perf_counter()
         warm_up()
+        log.info("engine ready in %.1f s", time.perf_counter() - started)
         registry = MapRegistry(
             default_config,
             auto_create=not args.no_auto_create,
