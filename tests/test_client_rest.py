@@ -184,6 +184,17 @@ def test_posted_scans_and_every_query_match_the_engine(client: FleetmapClient, s
         assert b"resolution: 0.1" in zf.read("map.yaml")
     assert Image.open(io.BytesIO(client.export("q", "png", margin=0))).size == (i1 - i0, j1 - j0)
 
+    # snapshot: downloaded, then restored under another id, every layer equal; a bad file changes nothing.
+    snapshot = client.download_snapshot("q")
+    restored = client.upload_snapshot("q-copy", snapshot)
+    assert restored.id == "q-copy" and restored.config == CONFIG and restored.stats.tiles == info.stats.tiles
+    for layer in ("log_odds", "hits", "tsdf"):
+        copy = client.region("q-copy", x0, y0, x1, y1, layer=layer)  # type: ignore[arg-type]
+        np.testing.assert_array_equal(copy, client.region("q", x0, y0, x1, y1, layer=layer))  # type: ignore[arg-type]
+    with pytest.raises(FleetmapError) as bad:
+        client.upload_snapshot("q-copy", snapshot[: len(snapshot) // 2])
+    assert bad.value.status == 422 and client.get_map("q-copy").stats.tiles == info.stats.tiles
+
 
 def test_tiles_with_etags(client: FleetmapClient, scans: list[Scan]) -> None:
     client.create_map("tiles", CONFIG)

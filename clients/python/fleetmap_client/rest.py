@@ -168,6 +168,22 @@ class FleetmapClient:
         _check_id("map_id", map_id)
         self._request("DELETE", f"/maps/{map_id}")
 
+    def download_snapshot(self, map_id: str) -> bytes:
+        """`GET /maps/{map_id}/snapshot`: the whole map (configuration and every tile of every layer)
+        as one zip file, taken between two scans; `upload_snapshot` restores it here or elsewhere."""
+        _check_id("map_id", map_id)
+        return self._request("GET", f"/maps/{map_id}/snapshot").content
+
+    def upload_snapshot(self, map_id: str, snapshot: bytes) -> MapInfo:
+        """`PUT /maps/{map_id}/snapshot`: install a `download_snapshot` file as map `map_id`, replacing
+        any map of that id, and return it once stored. `FleetmapError` 422 (or 413) for a file that
+        is not a valid snapshot, naming the part at fault; nothing changes then."""
+        _check_id("map_id", map_id)
+        response = self._request(
+            "PUT", f"/maps/{map_id}/snapshot", content=snapshot, headers={"content-type": "application/zip"}
+        )
+        return MapInfo.model_validate_json(response.content)
+
     # -- scans -------------------------------------------------------------------------------------
 
     def post_scan(
