@@ -171,6 +171,15 @@ def test_the_service_answers_507_past_max_memory_and_keeps_serving(tmp_path) -> 
                 httpx.get(f"{url}/maps/far/cell", params={"x": 0.5, "y": 0.0}, timeout=10).json()["log_odds"]
             )
         )
+        # A snapshot upload is held to the budget too, before anything is allocated: a copy of the
+        # map fits in its own place (its bytes go back), but not beside it.
+        snapshot = httpx.get(f"{url}/maps/far/snapshot", timeout=30).content
+        put = {"content": snapshot, "headers": {"content-type": "application/zip"}, "timeout": 30}
+        r = httpx.put(f"{url}/maps/copy/snapshot", **put)  # type: ignore[arg-type]
+        assert r.status_code == 507 and "memory budget" in r.json()["detail"], r.text
+        assert httpx.get(f"{url}/maps/copy", timeout=10).status_code == 404  # nothing installed
+        r = httpx.put(f"{url}/maps/far/snapshot", **put)  # type: ignore[arg-type]
+        assert r.status_code == 201, r.text
 
 
 def test_a_restart_restores_maps_past_the_budget_and_then_refuses_growth(tmp_path) -> None:

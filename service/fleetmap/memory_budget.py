@@ -49,6 +49,11 @@ class MemoryBudget:
             self.used += granted * unit
             return granted
 
+    def free(self) -> int | None:
+        """Bytes the limit leaves (None: no limit)."""
+        with self._lock:
+            return None if self.limit is None else max(0, self.limit - self.used)
+
     def reserve_anyway(self, size: int) -> None:
         """Count `size` bytes even past the limit: memory that exists already (a map restored at
         start or installed from a snapshot file) is counted, never refused."""

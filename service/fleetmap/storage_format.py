@@ -258,8 +258,9 @@ _ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplemented
 
 class SnapshotError(ValueError):
     """Why bytes are not a snapshot file this service can install; nothing was changed. `status` is
-    413 for a member past a size limit, else 422; `errors` holds the validation errors of an invalid
-    configuration (pydantic's, located from the top of the file: `("map.json", "config", ...)`)."""
+    413 for a member past a size limit, 507 for tiles the memory budget has no room for, else 422;
+    `errors` holds the validation errors of an invalid configuration (pydantic's, located from the
+    top of the file: `("map.json", "config", ...)`)."""
 
     def __init__(self, message: str, status: int = 422, errors: list[dict] | None = None) -> None:
         super().__init__(message)
@@ -407,11 +408,12 @@ def _read_npy(npz: zipfile.ZipFile, npy: _Npy, out: np.ndarray | None = None) ->
 
 
 def _snapshot_keys(
-    npz: zipfile.ZipFile, config: MapConfig, layout: Sequence[LayerArray], max_bytes: int
-) -> list[TileKey]:
+    npz: zipfile.ZipFile, config: MapConfig, layout: Sequence[LayerArray], max_bytes: int,
+    free_bytes: int | None,
+) -> list[TileKey]:  # fmt: skip
     """The tile keys in `tiles.npz/keys.npy`: integers, no two alike, each a tile that meets the
     world of +-MAX_COORDINATE metres, at most `config.max_tiles` of them and at most `max_bytes` of
-    layer arrays (413)."""
+    layer arrays (413), and at most `free_bytes` of them (507: the memory budget's room)."""
     npy = _npy_header(npz, "keys")
     _check_npy(npy, None, (-1, 2), "(tiles, 2)")
     n, t = npy.shape[0], config.tile_size
@@ -423,6 +425,12 @@ def _snapshot_keys(
             f"the snapshot's {n} tiles of {t}x{t} cells hold {size} bytes of layer arrays, more than the "
             f"limit of {max_bytes}",
             413,
+        )
+    if free_bytes is not None and size > free_bytes:
+        raise SnapshotError(
+            f"the snapshot's {n} tiles need {size / 2**20:.1f} MiB, and the service's memory budget for all "
+            f"maps' tiles has {free_bytes / 2**20:.1f} MiB free (`fleetmap serve --max-memory`)",
+            507,
         )
     raw = _read_npy(npz, npy)
     edge = t * config.resolution
@@ -486,8 +494,9 @@ def _check_values(a: LayerArray, values: np.ndarray, keys: list[TileKey], config
 
 
 def map_from_snapshot_file(
-    data: bytes, max_tiles: int | None = None, max_bytes: int = MAX_SNAPSHOT_BYTES
-) -> GridMap:
+    data: bytes, max_tiles: int | None = None, max_bytes: int = MAX_SNAPSHOT_BYTES,
+    free_bytes: int | None = None,
+) -> GridMap:  # fmt: skip
     """A map restored from `snapshot_file` bytes; raises `SnapshotError` with a reason if they are
     not one, or one this service refuses.
 
@@ -497,7 +506,8 @@ def map_from_snapshot_file(
     (dtype, shape, data size, from the keys and the tile size) are checked before the map's pools are
     allocated, and the pools are then filled straight from the file, so the memory touched is the
     data the file holds. Every cell is checked against what the engine can store, so a map that is
-    installed is one the service could have built."""
+    installed is one the service could have built. With `free_bytes`, tiles that need more are
+    refused (507) before anything is allocated: the room the memory budget leaves."""
     try:
         outer = zipfile.ZipFile(io.BytesIO(data))
     except (*_ZIP_ERRORS, ValueError) as exc:
@@ -511,7 +521,7 @@ def map_from_snapshot_file(
             raise SnapshotError(f"snapshot member tiles.npz is not a valid .npz file ({exc})") from None
     with npz:
         layout = layer_arrays(config.layers)
-        keys = _snapshot_keys(npz, config, layout, max_bytes)
+        keys = _snapshot_keys(npz, config, layout, max_bytes, free_bytes)
         t = config.tile_size
         arrays = []
         for a in layout:

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 
 from fastapi import APIRouter, Request, Response
 
 from fleetmap.api.errors import ApiError, error_responses, validation_detail
 from fleetmap.api.state import MapId, State
 from fleetmap.api_models import MapInfo, map_info
+from fleetmap.registry import MapNotFound
 from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
 
 router = APIRouter(tags=["maps"])
@@ -50,17 +52,24 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
             "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
         }
     },
-    responses=error_responses(413, 422, 503),
+    responses=error_responses(413, 422, 503, 507),
 )
 async def put_snapshot(map_id: MapId, request: Request, state: State) -> MapInfo:
     """Replace map `map_id` (or create it) with the map in the uploaded snapshot file, durably: the
     answer comes once it is stored. Its robots' statistics start afresh; scans queued for the old map
     are dropped. 422 if the body is not a fleetmap snapshot, or holds a tile or a cell value the
     service could not have made; 413 if a part of it decompresses to more than its limit (see the
-    docs); both change nothing. 503 if the map was installed but could not be stored."""
+    docs); 507 if its tiles need more memory than the budget (`--max-memory`) leaves; none changes
+    anything. 503 if the map was installed but could not be stored."""
     body = await request.body()
+    # The room the memory budget leaves, counting the map this replaces (its bytes go back).
+    budget = state.registry.memory_budget
+    free = None if budget is None else budget.free()
+    if free is not None:
+        with contextlib.suppress(MapNotFound):
+            free += state.registry.get(map_id).gmap.memory_bytes()
     try:
-        gmap = await asyncio.to_thread(map_from_snapshot_file, body)
+        gmap = await asyncio.to_thread(map_from_snapshot_file, body, free_bytes=free)
     except SnapshotError as exc:
         if not exc.errors:
             raise ApiError(exc.status, str(exc)) from None
