@@ -8,6 +8,9 @@ check exactly what goes over the wire; tests/test_client_rest.py drives the real
 from __future__ import annotations
 
 import math
+import signal
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -403,6 +406,33 @@ def test_sim_command_runs_and_reports(router: Router, capsys: pytest.CaptureFixt
     assert "sim: 2 robots published" in out
     keys = {k for k, _, _ in router.samples()}
     assert keys == {"fleetmap/simcli/sim-1/scan", "fleetmap/simcli/sim-2/scan"}
+
+
+def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_first(
+    router: Router, tmp_path: Path
+) -> None:
+    """Ctrl-C (SIGINT) stops the robots and the summary is still printed, even when the command
+    was started with SIGINT ignored (as `cmd &` from a script does); a bad map id is refused before
+    the banner claims robots on it."""
+    command = [sys.executable, "-m", "fleetmap_client.cli", "sim", "--robots", "1", "--rate", "20",
+               "--beams", "91", "--connect", router.endpoint, "--wait-timeout", "20"]  # fmt: skip
+    sim = subprocess.Popen(
+        [*command, "--map", "ctrlc"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )  # fmt: skip
+    try:
+        wait_for(lambda: any(k.startswith("fleetmap/ctrlc/") for k, _, _ in router.samples()), 30, 0.05,
+                 "the robot's first scans")  # fmt: skip
+        sim.send_signal(signal.SIGINT)
+        out, _ = sim.communicate(timeout=30)
+    finally:
+        if sim.poll() is None:
+            sim.kill()
+            sim.wait()
+    assert sim.returncode == 0 and "sim: 1 robots published" in out, out
+    bad = subprocess.run([*command, "--map", "bad id"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "map id 'bad id' must match" in bad.stderr
+    assert "robots on map" not in bad.stdout
 
 
 def test_sim_stops_on_request(router: Router) -> None:

@@ -150,11 +150,19 @@ def add_sim_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 def run_sim_command(args: argparse.Namespace) -> int:
+    import signal
     import threading
+
+    from fleetmap.wire import ID_PATTERN, is_valid_id
 
     from .sim import SimError, run_sim
 
+    if not is_valid_id(args.map_id):
+        raise CliError(f"map id {args.map_id!r} must match {ID_PATTERN}")
     stop = threading.Event()
+    # Ctrl-C (or SIGINT from a script that started us with SIGINT ignored) stops the robots, and the
+    # summary of what they published is still printed.
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     print(
         f"sim: {args.robots} robots on map {args.map_id!r} (floor plan seed {args.seed}), "
         f"{args.rate:g} scans/s each" + (f" for {args.seconds:g} s" if args.seconds is not None else ""),
@@ -178,10 +186,8 @@ def run_sim_command(args: argparse.Namespace) -> int:
         )
     except (ValueError, SimError) as exc:
         raise CliError(str(exc)) from None
-    except KeyboardInterrupt:
-        # run_sim's finally blocks stopped the robots and closed their sessions.
-        print("sim stopped", file=sys.stderr)
-        return 0
+    finally:
+        signal.signal(signal.SIGINT, previous)
     dropped = sum(result.dropped.values())
     print(
         f"sim: {len(result.robots)} robots published {result.total} scans in {result.seconds:.1f} s"
