@@ -12,13 +12,14 @@ can assert a clean shutdown.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import TypeVar
@@ -32,6 +33,24 @@ DATASETS_DIR = REPO_DIR.parent / "shared" / "datasets"
 ROBOT_SCRIPT = TESTS_DIR / "robot_process.py"
 
 T = TypeVar("T")
+
+
+def fleetmap_command() -> list[str]:
+    """The `fleetmap` console script `make` installs beside the interpreter (what users run), else
+    the module."""
+    script = Path(sys.executable).with_name("fleetmap")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "fleetmap.cli"]
+
+
+@contextlib.contextmanager
+def reaped(proc: subprocess.Popen[str]) -> Iterator[subprocess.Popen[str]]:
+    """Yield `proc`, and kill it on the way out if it still runs, so a failed test leaves no process."""
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 def free_port() -> int:

@@ -11,7 +11,6 @@ import json
 import math
 import os
 import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import pytest
 import scipy.io
 import yaml
 from PIL import Image
+from service_process import fleetmap_command
 
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
@@ -46,12 +46,6 @@ def flaser(ranges: list[float], x: float, y: float, theta: float) -> str:
 def scene_log(path: Path, scans: int = SCANS, extra: tuple[str, ...] = ()) -> Path:
     path.write_text("\n".join([flaser([1.0, 2.0], X, Y, math.pi / 2)] * scans + list(extra)) + "\n")
     return path
-
-
-def fleetmap_command() -> list[str]:
-    """The console script `make` installs beside the interpreter, else the module."""
-    script = Path(sys.executable).with_name("fleetmap")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "fleetmap.cli"]
 
 
 def build(*args: str | Path) -> subprocess.CompletedProcess[str]:

@@ -23,7 +23,7 @@ from fleetmap_client import cli
 from fleetmap_client.publisher import PublisherClosed, ScanPublisher, client_config
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
 from fleetmap_client.sim import robot_ids, run_sim
-from service_process import DATASETS_DIR, free_port, wait_for
+from service_process import DATASETS_DIR, free_port, reaped, wait_for
 
 from fleetmap.codec import WireScan, decode
 from fleetmap.datasets import load_dataset
@@ -420,15 +420,11 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
         [*command, "--map", "ctrlc"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
     )  # fmt: skip
-    try:
+    with reaped(sim):
         wait_for(lambda: any(k.startswith("fleetmap/ctrlc/") for k, _, _ in router.samples()), 30, 0.05,
                  "the robot's first scans")  # fmt: skip
         sim.send_signal(signal.SIGINT)
         out, _ = sim.communicate(timeout=30)
-    finally:
-        if sim.poll() is None:
-            sim.kill()
-            sim.wait()
     assert sim.returncode == 0 and "sim: 1 robots published" in out, out
     bad = subprocess.run([*command, "--map", "bad id"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "map id 'bad id' must match" in bad.stderr

@@ -10,18 +10,11 @@ import re
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import httpx
-from service_process import ServiceProcess, free_port
-
-
-def fleetmap_command() -> list[str]:
-    """The console script `make` installs beside the interpreter, else the module."""
-    script = Path(sys.executable).with_name("fleetmap")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "fleetmap.cli"]
+from service_process import ServiceProcess, fleetmap_command, free_port, reaped
 
 
 def port_is_free(port: int) -> bool:
@@ -48,7 +41,7 @@ def test_demo_maps_until_ctrl_c_then_stops_everything_and_keeps_the_map(tmp_path
         log.seek(0)
         return log.read()
 
-    try:
+    with reaped(demo):
         # It prints the viewer's address once the service answers, then the robots map.
         deadline = time.monotonic() + 120
         while f"open http://127.0.0.1:{http}/#map=demo" not in output():
@@ -66,10 +59,6 @@ def test_demo_maps_until_ctrl_c_then_stops_everything_and_keeps_the_map(tmp_path
 
         demo.send_signal(signal.SIGINT)  # Ctrl-C
         assert demo.wait(60) == 0, output()
-    finally:
-        if demo.poll() is None:
-            demo.kill()
-            demo.wait()
     text = output()
     assert "Traceback" not in text, text
     summary = re.search(r"fleetmap demo: 2 robots published (\d+) scans \((\d+) dropped\)", text)
@@ -112,7 +101,7 @@ def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:
          "--data-dir", str(tmp_path / "data"), "--robots", "1"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
-    try:
+    with reaped(demo):
         assert demo.stdout is not None
         for line in demo.stdout:
             if "open http" in line:
@@ -123,8 +112,4 @@ def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:
         assert len(service) == 1
         os.kill(int(service[0]), signal.SIGKILL)
         out, _ = demo.communicate(timeout=30)
-    finally:
-        if demo.poll() is None:
-            demo.kill()
-            demo.wait()
     assert demo.returncode == 2 and "the service stopped unexpectedly" in out, out
