@@ -4,7 +4,11 @@
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
+# The service and its commands (what `make demo` and `make serve` need), then the test and benchmark
+# tools on top (pytest, hypothesis, ruff, playwright, schemathesis, pyoctomap) for the targets that
+# use them: a first `make demo` does not wait for those.
 STAMP := $(VENV)/.installed
+DEV_STAMP := $(VENV)/.installed-test
 OUT ?= out
 # Debian packages the test suite uses: Chromium for the web viewer's end-to-end test.
 SYSTEM_PACKAGES ?= chromium
@@ -14,8 +18,12 @@ SYSTEM_PACKAGES ?= chromium
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e .
 	@touch $(STAMP)
+
+$(DEV_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e '.[test]'
+	@touch $(DEV_STAMP)
 
 # Debian packages the tests need (you are root on the test machines). Skipped when already there.
 system-deps:
@@ -24,7 +32,7 @@ system-deps:
 demo: $(STAMP)
 	$(VENV)/bin/fleetmap demo $(DEMO_ARGS)
 
-test: $(STAMP) system-deps
+test: $(DEV_STAMP) system-deps
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
 	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
 	$(PY) -m pytest -q
@@ -32,17 +40,17 @@ test: $(STAMP) system-deps
 serve: $(STAMP)
 	$(VENV)/bin/fleetmap serve $(SERVE_ARGS)
 
-bench: $(STAMP)
+bench: $(DEV_STAMP)
 	$(PY) benchmarks/bench_engine.py
 
-bench-service: $(STAMP)
+bench-service: $(DEV_STAMP)
 	$(PY) benchmarks/bench_service.py
 
-lint: $(STAMP)
+lint: $(DEV_STAMP)
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
 	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
 
-format: $(STAMP)
+format: $(DEV_STAMP)
 	$(VENV)/bin/ruff format service tests clients scripts benchmarks
 
 clean:
