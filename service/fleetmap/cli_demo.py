@@ -82,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _check_free(address: str) -> None:
-    """Raise CliError if nothing can listen on `address` (HOST:PORT) because something else does."""
+    """Raise CliError if nothing can listen on `address` (HOST:PORT): something else does, or the
+    host is not this machine's."""
     host, _, port = address.rpartition(":")
     host = host.strip("[]") or "127.0.0.1"
     if not port.isdigit():
@@ -94,8 +95,8 @@ def _check_free(address: str) -> None:
             probe.bind((host, int(port)))
         except OSError as exc:
             raise CliError(
-                f"{address} is in use ({exc.strerror}): is another fleetmap service running? Stop it, "
-                "or give the demo other addresses (--http HOST:PORT, --zenoh tcp/HOST:PORT)"
+                f"cannot listen on {address}: {exc.strerror} (is another fleetmap service running? Stop "
+                "it, or give the demo other addresses: --http HOST:PORT, --zenoh tcp/HOST:PORT)"
             ) from None
 
 
