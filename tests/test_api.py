@@ -468,6 +468,37 @@ class EventReader:
         self._client.close()
 
 
+def test_a_counts_only_map_exports_its_count_models_occupancy(api: RunningApi) -> None:
+    """As `fleetmap build` does: the nav2 map and the PNG show hits / (hits + misses) by the map's
+    thresholds when the map keeps no occupancy layer."""
+    assert api.client.put("/maps/cnt", json={"layers": ["counts"]}).status_code == 201
+    scans = [fan_scan(0.1, 0.1, 0.3 * k, [1.0 + 0.2 * k] * 31) for k in range(6)]
+    for seq, scan in enumerate(scans):
+        assert post_scan(api, "cnt", "r", scan, seq).status_code == 200
+    engine = GridMap(MapConfig(layers=["counts"]))
+    for scan in scans:
+        engine.integrate(scan)
+    bounds = engine.known_bounds()
+    assert bounds is not None
+    i0, j0, i1, j1 = bounds[0] - 2, bounds[1] - 2, bounds[2] + 2, bounds[3] + 2
+    hits = engine.region("hits", i0, j0, i1, j1).astype(np.float64)
+    total = hits + engine.region("misses", i0, j0, i1, j1)
+    with np.errstate(invalid="ignore"):
+        p = hits / total
+    want = np.full(p.shape, PGM_UNKNOWN, dtype=np.uint8)
+    want[(total > 0) & (p < 0.196)] = PGM_FREE
+    want[(total > 0) & (p > 0.65)] = PGM_OCCUPIED
+    r = api.client.get("/maps/cnt/export")
+    assert r.status_code == 200
+    with zipfile.ZipFile(io.BytesIO(r.content)) as zf:
+        _magic, _size, _maxval, data = zf.read("map.pgm").split(b"\n", 3)
+    pgm = np.frombuffer(data, dtype=np.uint8).reshape(want.shape)
+    np.testing.assert_array_equal(pgm, want[::-1])
+    assert (want == PGM_OCCUPIED).any() and (want == PGM_FREE).any()
+    png = np.asarray(Image.open(io.BytesIO(api.client.get("/maps/cnt/export?format=png").content)))
+    assert png.shape == want.shape and png[::-1][want == PGM_OCCUPIED].max() < 60
+
+
 def covered(window: list[int], windows: list[list[int]]) -> bool:
     return list(window) in [list(w) for w in windows]
 

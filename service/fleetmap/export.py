@@ -80,34 +80,44 @@ def nav2_yaml(image: str, resolution: float, origin: tuple[float, float]) -> str
     )
 
 
-def nav2_files(gmap: GridMap, window: Window, name: str = "map") -> dict[str, bytes]:
-    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, from the occupancy layer."""
-    state = gmap.region("state", window.i0, window.j0, window.i1, window.j1)
-    return _nav2_files(gmap, window, state, name)
+def map_source(gmap: GridMap) -> str | None:
+    """The layer a map's images (nav2 files, PNG) show: `occupancy`, or for a map without it
+    `counts` (their maximum-likelihood occupancy); None for a map that keeps only the TSDF."""
+    for layer in ("occupancy", "counts"):
+        if gmap.config.has(layer):  # type: ignore[arg-type]
+            return layer
+    return None
 
 
-def _nav2_files(gmap: GridMap, window: Window, state: np.ndarray, name: str) -> dict[str, bytes]:
-    yaml_text = nav2_yaml(f"{name}.pgm", gmap.resolution, window.origin(gmap.resolution))
-    return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(state_to_pgm(state))}
-
-
-def count_probability(gmap: GridMap, window: Window) -> np.ndarray:
-    """The count model's maximum-likelihood occupancy `hits / (hits + misses)` over a window (row 0
-    = lowest y), NaN where a cell was never observed."""
-    hits = gmap.region("hits", window.i0, window.j0, window.i1, window.j1).astype(np.float64)
-    total = hits + gmap.region("misses", window.i0, window.j0, window.i1, window.j1)
+def map_probability(gmap: GridMap, window: Window) -> np.ndarray:
+    """The occupancy probability its images show over a window (row 0 = lowest y), NaN where
+    unknown: from the log-odds, or the count model's `hits / (hits + misses)` (see `map_source`).
+    Raises LayerUnavailableError for a TSDF-only map."""
+    i0, j0, i1, j1 = window.i0, window.j0, window.i1, window.j1
+    if map_source(gmap) != "counts":
+        return gmap.region("probability", i0, j0, i1, j1)
+    hits = gmap.region("hits", i0, j0, i1, j1).astype(np.float64)
+    total = hits + gmap.region("misses", i0, j0, i1, j1)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(total > 0, hits / total, np.nan)
 
 
 def probability_state(gmap: GridMap, probability: np.ndarray) -> np.ndarray:
-    """`state` codes of probabilities by the map's thresholds (as `GridMap.classify` for log-odds)."""
+    """`state` codes of probabilities by the map's thresholds (as `GridMap.classify` for log-odds:
+    the same codes from the same probabilities)."""
     occ = gmap.config.occupancy
     state = np.full(probability.shape, STATE_UNKNOWN, dtype=np.uint8)
     with np.errstate(invalid="ignore"):
         state[probability > occ.occupied_thresh] = STATE_OCCUPIED
         state[probability < occ.free_thresh] = STATE_FREE
     return state
+
+
+def nav2_files(gmap: GridMap, window: Window, name: str = "map") -> dict[str, bytes]:
+    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, of `map_probability`."""
+    state = probability_state(gmap, map_probability(gmap, window))
+    yaml_text = nav2_yaml(f"{name}.pgm", gmap.resolution, window.origin(gmap.resolution))
+    return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(state_to_pgm(state))}
 
 
 def nav2_zip(gmap: GridMap, window: Window, name: str = "map") -> bytes:
@@ -134,9 +144,8 @@ def png_bytes(pixels: np.ndarray) -> bytes:
 
 
 def map_png(gmap: GridMap, window: Window) -> bytes:
-    """The occupancy probability of a window as a grayscale PNG."""
-    p = gmap.region("probability", window.i0, window.j0, window.i1, window.j1)
-    return png_bytes(probability_to_gray(p))
+    """`map_probability` of a window as a grayscale PNG."""
+    return png_bytes(probability_to_gray(map_probability(gmap, window)))
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
@@ -156,19 +165,14 @@ def write_build_outputs(gmap: GridMap, out_dir: Path, margin: int = 2) -> list[P
     out_dir.mkdir(parents=True, exist_ok=True)
     files: dict[str, bytes] = {}
     layers: list[str] = []
-    source = None
-    if gmap.config.has("occupancy"):
+    source = map_source(gmap)
+    if source is not None:
         files.update(nav2_files(gmap, window))
         files["map.png"] = map_png(gmap, window)
+    if gmap.config.has("occupancy"):
         layers.append("log_odds")
-        source = "occupancy"
     if gmap.config.has("counts"):
         layers += ["hits", "misses"]
-        if source is None:
-            p = count_probability(gmap, window)
-            files.update(_nav2_files(gmap, window, probability_state(gmap, p), "map"))
-            files["map.png"] = png_bytes(probability_to_gray(p))
-            source = "counts"
     if gmap.config.has("tsdf"):
         layers += ["tsdf", "tsdf_weight"]
     for layer in layers:

@@ -26,7 +26,7 @@ from fleetmap.api_models import (
     region_json,
     surface,
 )
-from fleetmap.export import Window, known_window, map_png, nav2_zip, npy_bytes, png_bytes
+from fleetmap.export import Window, known_window, map_png, map_source, nav2_zip, npy_bytes, png_bytes
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap
 
 router = APIRouter()
@@ -272,10 +272,12 @@ def get_export(
     """The observed extent of the map, grown by `margin` cells, exactly as `fleetmap build` writes it:
     `ros`: a zip of `map.yaml` + `map.pgm` (nav2 map_server, trinary: 0 occupied, 254 free, 205
     unknown, by the map's thresholds; origin = lower-left corner); `png`: grayscale, 255 (1 - p),
-    unknown 128. 409 for a map with no observed cell yet, 422 for a map without an occupancy layer."""
+    unknown 128. p is the occupancy layer's, or for a map keeping only counts (and the TSDF) the count
+    model's hits / (hits + misses). 409 for a map with no observed cell yet, 422 for a map keeping only
+    the TSDF."""
     gmap = state.entry(map_id).gmap
-    if not gmap.config.has("occupancy"):
-        raise ApiError(422, "this map keeps no 'occupancy' layer: nothing to export as an occupancy map")
+    if map_source(gmap) is None:
+        raise ApiError(422, "this map keeps neither an 'occupancy' nor a 'counts' layer: nothing to export")
     window = known_window(gmap, margin)
     if window is None:
         raise ApiError(409, "the map has no observed cell yet: nothing to export")
