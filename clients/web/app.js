@@ -340,70 +340,119 @@
           data: {},
           trail: L.polyline([], { color, weight: 2, opacity: 0.8, interactive: false }).addTo(robotLayer),
           marker: null,
+          row: null,
         };
         state.robots.set(id, robot);
       }
       Object.assign(robot.data, report);
-      const pose = normPose(robot.data.pose ?? robot.data.last_pose);
-      const online = !!robot.data.online;
-      if (pose) {
-        const icon = robotIcon(robot.color, pose[2], online);
-        if (!robot.marker) {
-          robot.marker = L.marker(toLatLng(pose[0], pose[1]), { icon, keyboard: false, title: id })
-            .addTo(robotLayer);
-        } else {
-          robot.marker.setLatLng(toLatLng(pose[0], pose[1]));
-          robot.marker.setIcon(icon);
-        }
-        const el = robot.marker.getElement();
-        if (el) {
-          el.dataset.robotId = id;
-          el.dataset.online = String(online);
-        }
-      }
-      if (Array.isArray(report.trail)) {
-        const points = report.trail.map((p) => normPose(p)).filter(Boolean).map((p) => toLatLng(p[0], p[1]));
-        if (pose) points.push(toLatLng(pose[0], pose[1]));
-        robot.trail.setLatLngs(points);
-      }
+      drawRobot(robot);
     }
     renderRobotList();
   }
 
+  /** What the page says of a robot: 'online' or 'offline', as the service reports it. */
+  function robotState(robot) {
+    return robot.data.online ? 'online' : 'offline';
+  }
+
+  /** Place a robot's marker and trail from its data (again after the resolution changed). */
+  function drawRobot(robot) {
+    const id = robot.id;
+    const pose = normPose(robot.data.pose ?? robot.data.last_pose);
+    const shown = robotState(robot);
+    if (pose) {
+      const icon = robotIcon(robot.color, pose[2], shown === 'online');
+      if (!robot.marker) {
+        robot.marker = L.marker(toLatLng(pose[0], pose[1]), { icon, keyboard: false, title: id })
+          .addTo(robotLayer);
+      } else {
+        robot.marker.setLatLng(toLatLng(pose[0], pose[1]));
+        robot.marker.setIcon(icon);
+      }
+      const el = robot.marker.getElement();
+      if (el) {
+        el.dataset.robotId = id;
+        el.dataset.online = shown === 'unknown' ? 'unknown' : String(shown === 'online');
+      }
+    }
+    if (Array.isArray(robot.data.trail)) {
+      const points = robot.data.trail.map((p) => normPose(p)).filter(Boolean).map((p) => toLatLng(p[0], p[1]));
+      if (pose) points.push(toLatLng(pose[0], pose[1]));
+      robot.trail.setLatLngs(points);
+    }
+  }
+
+  /** Redraw every robot (the connection state or the resolution changed). */
+  function redrawRobots() {
+    for (const robot of state.robots.values()) drawRobot(robot);
+    renderRobotList();
+  }
+
+  /** Centre the map on a robot (its row was clicked, or Enter / Space pressed on it). */
+  function centreOnRobot(id) {
+    const robot = state.robots.get(id);
+    if (robot && robot.marker) map.panTo(robot.marker.getLatLng());
+  }
+
+  // Robot ids in natural order: sim-2 before sim-10.
+  const naturalOrder = new Intl.Collator(undefined, { numeric: true, sensitivity: 'base' });
+
+  /** A robot's row: a button (focusable with Tab, Enter / Space centre the map on the robot). */
+  function robotRow(robot) {
+    const li = document.createElement('li');
+    li.dataset.robotId = robot.id;
+    const button = document.createElement('button');
+    button.type = 'button';
+    button.className = 'robot';
+    button.title = 'Centre the map on this robot';
+    const swatch = document.createElement('span');
+    swatch.className = 'swatch';
+    swatch.style.background = robot.color;
+    const name = document.createElement('span');
+    name.className = 'name';
+    name.textContent = robot.id;
+    const st = document.createElement('span');
+    st.className = 'online-state';
+    const scans = document.createElement('span');
+    scans.className = 'scans';
+    button.append(swatch, name, st, scans);
+    button.addEventListener('click', () => centreOnRobot(robot.id));
+    li.append(button);
+    return li;
+  }
+
+  /**
+   * The robot list. Rows are updated in place, keyed by robot id: robots events come several times
+   * a second, and a row rebuilt between the press and the release of a click would lose the click.
+   */
   function renderRobotList() {
-    robotList.replaceChildren();
     if (state.robots.size === 0) {
-      const li = document.createElement('li');
-      li.className = 'none';
-      li.textContent = 'no robots';
-      robotList.append(li);
+      if (!robotList.querySelector('li.none')) {
+        const li = document.createElement('li');
+        li.className = 'none';
+        li.textContent = 'no robots';
+        robotList.replaceChildren(li);
+      }
       return;
     }
-    const ids = [...state.robots.keys()].sort();
-    for (const id of ids) {
+    const ids = [...state.robots.keys()].sort(naturalOrder.compare);
+    const rows = ids.map((id) => {
       const robot = state.robots.get(id);
-      const online = !!robot.data.online;
-      const li = document.createElement('li');
-      li.dataset.robotId = id;
-      li.dataset.online = String(online);
-      li.title = 'Click to centre the map on this robot';
-      const swatch = document.createElement('span');
-      swatch.className = 'swatch';
-      swatch.style.background = robot.color;
-      const name = document.createElement('span');
-      name.className = 'name';
-      name.textContent = id;
-      const st = document.createElement('span');
-      st.className = 'online-state';
-      st.textContent = online ? 'online' : 'offline';
-      const scans = document.createElement('span');
-      scans.className = 'scans';
-      scans.textContent = `${robot.data.scans_integrated ?? 0} scans`;
-      li.append(swatch, name, st, scans);
-      li.addEventListener('click', () => {
-        if (robot.marker) map.panTo(robot.marker.getLatLng());
-      });
-      robotList.append(li);
+      if (!robot.row) robot.row = robotRow(robot);
+      const shown = robotState(robot);
+      const li = robot.row;
+      li.dataset.online = shown === 'unknown' ? 'unknown' : String(shown === 'online');
+      const st = li.querySelector('.online-state');
+      if (st.textContent !== shown) st.textContent = shown;
+      const scans = `${robot.data.scans_integrated ?? 0} scans`;
+      const scansEl = li.querySelector('.scans');
+      if (scansEl.textContent !== scans) scansEl.textContent = scans;
+      return li;
+    });
+    // Touch the DOM only when the rows or their order changed (a new robot, or a robot gone).
+    const current = [...robotList.children];
+    if (current.length !== rows.length || current.some((el, k) => el !== rows[k])) {
+      robotList.replaceChildren(...rows);
     }
   }
 
