@@ -530,9 +530,10 @@
     es.onopen = () => {
       if (es !== state.events) return;
       setConnection('connected');
-      // After a break: the service replays what we missed (EventSource sends Last-Event-ID), but a
-      // restarted service may not know our version; one full redraw is always right and rare.
-      if (state.eventsBroken) queueTiles({ reset: true });
+      // After a break the service may have restarted with another map under this id (restored from
+      // another backup: other resolution, other layers, other robots). Load it again as a `replaced`
+      // event does, then redraw every tile; rare, and always right.
+      if (state.eventsBroken) reloadMap(false);
       state.eventsBroken = false;
     };
     es.onerror = () => {
@@ -650,10 +651,12 @@
    * robots are new. Forget what the page knew of the old one and load it again, as a selection does,
    * but keep the event stream (it goes on with the new map) and the map selector as they are.
    */
-  async function reloadMap() {
+  async function reloadMap(refit = true) {
     const token = state.selectToken;
     clearRobots();
-    state.fitted = false; // the new map may lie elsewhere
+    // A replaced map may lie elsewhere; after a reconnect keep the user's view unless the
+    // resolution changed (refreshInfo refits then: the same cell indices are other places).
+    if (refit) state.fitted = false;
     cellInfo.innerHTML = '<p class="none">Click the map to query a cell.</p>';
     if (cellMarker) { cellMarker.remove(); cellMarker = null; }
     await refreshInfo(token, true);
@@ -675,7 +678,12 @@
     state.info = info;
     const config = info.config || {};
     if (first) {
-      state.res = Number(config.resolution) || 0.05;
+      const res = Number(config.resolution) || 0.05;
+      if (res !== state.res) {
+        state.fitted = false;
+        state.res = res;
+        redrawRobots(); // robot events may have come in since, placed with the old resolution
+      }
       setLayerOptions(config.layers);
       const stats = info.stats || {};
       if (stats.robots) {
