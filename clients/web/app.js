@@ -263,6 +263,10 @@
   });
   map.on('mouseout', () => { coordsEl.textContent = ''; });
 
+  // Leaflet measures its container only when told: whenever the map area changes size (window
+  // resized, toolbar wrapping to another line), tell it, so the view does not jump or leave gaps.
+  if (window.ResizeObserver) new ResizeObserver(() => map.invalidateSize({ pan: false })).observe($('map'));
+
   // ---- tile refresh ----------------------------------------------------------------------------
 
   /** The cell window [i0, j0, i1, j1) a tile covers (tile_render.tile_window without the step). */
