@@ -267,6 +267,16 @@
   // resized, toolbar wrapping to another line), tell it, so the view does not jump or leave gaps.
   if (window.ResizeObserver) new ResizeObserver(() => map.invalidateSize({ pan: false })).observe($('map'));
 
+  /** Forget the clicked cell (panel and outline) and the cursor position. */
+  function clearCell() {
+    state.cellToken += 1; // an answer still on its way is for a cell no longer shown
+    cellInfo.innerHTML = '<p class="none">Click the map to query a cell.</p>';
+    delete cellInfo.dataset.i;
+    delete cellInfo.dataset.j;
+    if (cellMarker) { cellMarker.remove(); cellMarker = null; }
+    coordsEl.textContent = '';
+  }
+
   // ---- tile refresh ----------------------------------------------------------------------------
 
   /** The cell window [i0, j0, i1, j1) a tile covers (tile_render.tile_window without the step). */
@@ -617,14 +627,18 @@
     selectMap(ids.includes(wanted) ? wanted : ids[0]);
   }
 
+  /** No map to show (the shown one was deleted): nothing of it stays on the page or in the URL. */
   function deselectMap() {
+    state.selectToken += 1; // answers still on their way are for a map no longer shown
     state.mapId = null;
     state.info = null;
     closeEvents();
     clearRobots();
+    clearCell();
     if (map.hasLayer(tiles)) tiles.remove();
     layerSelect.replaceChildren();
     layerSelect.disabled = true;
+    if (location.hash) history.replaceState(null, '', location.pathname + location.search);
   }
 
   /** Switch to a map: its layers, its tiles, its robots, its event stream. */
@@ -637,8 +651,7 @@
     state.fitted = false;
     state.eventsBroken = false;
     mapSelect.value = mapId;
-    cellInfo.innerHTML = '<p class="none">Click the map to query a cell.</p>';
-    if (cellMarker) { cellMarker.remove(); cellMarker = null; }
+    clearCell();
     if (map.hasLayer(tiles)) tiles.remove();
     const ok = await refreshInfo(token, true);
     if (token !== state.selectToken) return;
@@ -661,8 +674,7 @@
     // A replaced map may lie elsewhere; after a reconnect keep the user's view unless the
     // resolution changed (refreshInfo refits then: the same cell indices are other places).
     if (refit) state.fitted = false;
-    cellInfo.innerHTML = '<p class="none">Click the map to query a cell.</p>';
-    if (cellMarker) { cellMarker.remove(); cellMarker = null; }
+    clearCell();
     await refreshInfo(token, true);
     // Every tile, after the layer selector knows the new map's layers (the layer may have changed).
     if (token === state.selectToken) queueTiles({ reset: true });
