@@ -88,6 +88,7 @@
     lastFlush: 0,
     cellToken: 0,
     errorTimer: null,
+    notFound: null,       // the map a #map= link named that does not exist (said once)
   };
 
   // ---- small helpers ---------------------------------------------------------------------------
@@ -616,14 +617,20 @@
     if (ids.length === 0) {
       if (state.mapId) deselectMap();
       setConnection('waiting');
+      // A link to a map that does not exist (yet): say so once; it is shown as soon as it appears.
+      const wanted = readHash().map;
+      if (wanted && state.notFound !== wanted) showError(`map ${wanted} not found`);
+      state.notFound = wanted;
       return;
     }
     if (state.mapId && ids.includes(state.mapId)) {
       mapSelect.value = state.mapId;
       return;
     }
-    if (state.mapId) showError(`map ${state.mapId} was deleted`);
     const wanted = readHash().map;
+    if (state.mapId) showError(`map ${state.mapId} was deleted`);
+    else if (wanted && !ids.includes(wanted)) showError(`map ${wanted} not found`);
+    // The selection rewrites the hash: the URL names the map shown.
     selectMap(ids.includes(wanted) ? wanted : ids[0]);
   }
 
@@ -751,10 +758,18 @@
   });
 
   // Someone edited the hash (or followed a link): apply it.
-  window.addEventListener('hashchange', () => {
+  window.addEventListener('hashchange', async () => {
     const h = readHash();
-    if (h.map && h.map !== state.mapId && [...mapSelect.options].some((o) => o.value === h.map)) {
-      selectMap(h.map);
+    const known = () => [...mapSelect.options].some((o) => o.value === h.map);
+    if (h.map && h.map !== state.mapId) {
+      if (!known()) await refreshMaps(); // the map list is polled: it may be new
+      if (h.map !== readHash().map || h.map === state.mapId) return; // edited again meanwhile
+      if (known()) {
+        selectMap(h.map);
+      } else {
+        showError(`map ${h.map} not found`);
+        if (state.mapId) writeHash(); // back to the map shown
+      }
     } else if (h.layer && h.layer !== state.layer && [...layerSelect.options].some((o) => o.value === h.layer)) {
       layerSelect.value = h.layer;
       layerSelect.dispatchEvent(new Event('change'));
