@@ -101,7 +101,9 @@
     try {
       resp = await fetch(url, { headers: { Accept: 'application/json' }, cache: 'no-store' });
     } catch (err) {
-      throw new Error(`cannot reach the service (${err.message})`);
+      const e = new Error(`cannot reach the service (${err.message})`);
+      e.network = true;
+      throw e;
     }
     if (!resp.ok) {
       let detail = resp.statusText;
@@ -116,12 +118,24 @@
     return resp.json();
   }
 
-  /** Show an error in the side panel (never thrown at the user); it fades after a while. */
-  function showError(message) {
+  /**
+   * Show an error in the side panel (never thrown at the user); it fades after a while.
+   * `network`: the message is about the service being unreachable; a reconnect clears it.
+   */
+  function showError(message, network = false) {
     errorEl.textContent = `${new Date().toLocaleTimeString()}: ${message}`;
     errorEl.hidden = false;
+    errorEl.dataset.network = String(network);
     clearTimeout(state.errorTimer);
     state.errorTimer = setTimeout(() => { errorEl.hidden = true; }, ERROR_SHOW_MS);
+  }
+
+  /** The service answers again: a message saying it cannot be reached is no longer true. */
+  function clearNetworkError() {
+    if (!errorEl.hidden && errorEl.dataset.network === 'true') {
+      clearTimeout(state.errorTimer);
+      errorEl.hidden = true;
+    }
   }
 
   window.addEventListener('error', (e) => showError(e.message || String(e)));
@@ -129,8 +143,11 @@
 
   /** The status line: connection state of the event stream and the time of the last update. */
   function setConnection(conn) {
+    const was = state.connection;
     state.connection = conn;
     renderStatus();
+    // Robots are online or offline only as far as a connected stream tells; else 'unknown'.
+    if ((was === 'connected') !== (conn === 'connected')) redrawRobots();
   }
 
   function renderStatus() {
@@ -241,6 +258,8 @@
     minNativeZoom: MIN_ZOOM,
     noWrap: true,
     keepBuffer: 1,
+    // A failed tile: a transparent image (unknown cells look the same), never the broken-image icon.
+    errorTileUrl: 'data:image/gif;base64,R0lGODlhAQABAIAAAAAAAP///yH5BAEAAAAALAAAAAABAAEAAAIBRAA7',
   });
   // Keep our own list of tile elements on the map (public events, not Leaflet's private _tiles).
   tiles.on('tileloadstart', (e) => {
@@ -250,8 +269,11 @@
     state.shownTiles.delete(`${e.coords.x}:${e.coords.y}:${e.coords.z}`);
   });
   tiles.on('tileerror', (e) => {
-    // A tile that fails (e.g. the map was deleted) stays blank; say why once in a while.
-    if (state.mapId) showError(`tile ${e.coords.z}/${e.coords.x}/${e.coords.y} failed to load`);
+    // A tile that fails (e.g. the map was deleted, the service is down) shows the transparent
+    // errorTileUrl, not a broken image; say why, unless the status line already does (no stream).
+    if (state.mapId && state.connection === 'connected') {
+      showError(`tile ${e.coords.z}/${e.coords.x}/${e.coords.y} failed to load`);
+    }
   });
 
   const robotLayer = L.layerGroup().addTo(map);
@@ -365,8 +387,12 @@
     renderRobotList();
   }
 
-  /** What the page says of a robot: 'online' or 'offline', as the service reports it. */
+  /**
+   * What the page can say of a robot: 'online' / 'offline' as the service reports it, but 'unknown'
+   * while the event stream is down (the service may be gone, and the robot with it).
+   */
   function robotState(robot) {
+    if (state.connection !== 'connected') return 'unknown';
     return robot.data.online ? 'online' : 'offline';
   }
 
@@ -502,7 +528,7 @@
     } catch (err) {
       if (token !== state.cellToken) return;
       cellInfo.innerHTML = '<p class="none">no value</p>';
-      showError(`cell query: ${err.message}`);
+      showError(`cell query: ${err.message}`, !!err.network);
     }
   }
 
@@ -545,6 +571,7 @@
     es.onopen = () => {
       if (es !== state.events) return;
       setConnection('connected');
+      clearNetworkError();
       // After a break the service may have restarted with another map under this id (restored from
       // another backup: other resolution, other layers, other robots). Load it again as a `replaced`
       // event does, then redraw every tile; rare, and always right.
@@ -600,7 +627,7 @@
       const items = Array.isArray(body) ? body : (body.maps || []);
       ids = items.map((m) => (typeof m === 'string' ? m : m.id)).filter(Boolean).sort();
     } catch (err) {
-      showError(`map list: ${err.message}`);
+      showError(`map list: ${err.message}`, !!err.network);
       return;
     }
     const current = [...mapSelect.options].map((o) => o.value);
@@ -694,7 +721,7 @@
     try {
       info = await getJSON(`maps/${enc(mapId)}`);
     } catch (err) {
-      showError(`map ${mapId}: ${err.message}`);
+      showError(`map ${mapId}: ${err.message}`, !!err.network);
       return false;
     }
     if (token !== state.selectToken) return false;
