@@ -1,0 +1,264 @@
+"""The web viewer (clients/web) when things change under it, in headless Chromium against a real service.
+
+test_web_viewer.py walks through the normal life of a map; these tests cover what the viewer must
+survive: a link to a map that does not exist, robot rows clicked while robots events keep coming, the
+service restarting with another map under the same id, and the last map being deleted. Scans come
+through `POST /maps/{id}/scans` (no Zenoh needed here). Same Chromium and skip rule as
+test_web_viewer.py; one browser for the module, one page and one in-memory service per test.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import httpx
+import pytest
+from service_process import ServiceProcess
+from test_web_viewer import (
+    _ALL_TILES_OF_LAYER_JS,
+    _LAYER_OPTIONS_JS,
+    _MARKER_JS,
+    CHROMIUM,
+    CHROMIUM_ARGS,
+    SHOW_MS,
+    _wait,
+)
+
+pytestmark = pytest.mark.skipif(
+    not CHROMIUM.exists(),
+    reason="/usr/bin/chromium is missing: install Debian's chromium package (make system-deps)",
+)
+
+MAP_ID = "alpha"
+
+#: The map's centre in the viewer is at the given robot's marker (within a few pixels).
+_CENTRED_ON_JS = """
+(id) => {
+  const v = window.fleetmapViewer, r = v.state.robots.get(id);
+  if (!r || !r.marker) return false;
+  const m = v.map;
+  const a = m.latLngToContainerPoint(m.getCenter()), b = m.latLngToContainerPoint(r.marker.getLatLng());
+  return Math.hypot(a.x - b.x, a.y - b.y) < 5;
+}
+"""
+#: Every tile image on the map is a loaded 256-pixel tile (a failed one is the 1-pixel error tile).
+_TILES_LOADED_JS = """
+() => {
+  const imgs = [...document.querySelectorAll('#map img.leaflet-tile')];
+  return imgs.length > 0 && imgs.every((i) => i.complete && i.naturalWidth === 256);
+}
+"""
+_AWAY_JS = "() => window.fleetmapViewer.map.setView([-4000, -4000], 0, {animate: false})"
+#: The error panel is shown and says `text`.
+_ERROR_JS = (
+    "(text) => { const e = document.getElementById('error');"
+    " return !e.hidden && e.textContent.includes(text); }"
+)
+#: The row of a robot in the list.
+_ROW = '#robot-list li[data-robot-id="{}"]'
+
+
+def _scan(base: str, map_id: str, robot_id: str, seq: int, x: float, y: float, theta: float = 0.0) -> None:
+    """One JSON scan: a ring of walls 3 m around (x, y)."""
+    n = 180
+    body = {
+        "seq": seq,
+        "stamp": float(seq),
+        "pose": {"x": x, "y": y, "theta": theta},
+        "angle_min": -math.pi,
+        "angle_increment": 2 * math.pi / n,
+        "range_min": 0.05,
+        "range_max": 30.0,
+        "ranges": [3.0] * n,
+    }
+    r = httpx.post(f"{base}/maps/{map_id}/scans", params={"robot_id": robot_id}, json=body, timeout=30.0)
+    assert r.status_code == 200, r.text
+
+
+def _make_map(
+    base: str, robots: dict[str, tuple[float, float]], config: dict[str, Any] | None = None
+) -> None:
+    """PUT the map (with `config`), and one scan from each robot at its (x, y)."""
+    r = httpx.put(f"{base}/maps/{MAP_ID}", json=config or {}, timeout=10.0)
+    assert r.status_code in (200, 201), r.text
+    for robot_id, (x, y) in robots.items():
+        _scan(base, MAP_ID, robot_id, 1, x, y)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture
+def page(browser: Any) -> Iterator[Any]:
+    p = browser.new_page(viewport={"width": 1280, "height": 800})
+    p.page_errors = []
+    p.on("pageerror", lambda e: p.page_errors.append(str(e)))
+    try:
+        yield p
+    finally:
+        p.close()
+
+
+@pytest.fixture
+def svc(service_factory: Callable[..., ServiceProcess]) -> ServiceProcess:
+    return service_factory("--in-memory")
+
+
+def _open(page: Any, base: str, hash_: str) -> None:
+    page.goto(f"{base}/{hash_}")
+    _wait(page, "() => document.getElementById('status').dataset.state === 'connected'", what="connected")
+
+
+def test_link_to_a_missing_map(page: Any, svc: ServiceProcess) -> None:
+    """A #map= link (on load, or edited by hand) to a map that does not exist says so, and the URL
+    names the map that is shown instead."""
+    base = svc.base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    _open(page, base, "#map=ghost&layer=probability")
+    _wait(page, f"() => location.hash === '#map={MAP_ID}&layer=probability'", what="the shown map in the URL")
+    _wait(page, _ERROR_JS, "map ghost not found", what="'map ghost not found'")
+    assert page.eval_on_selector("#map-select", "el => el.value") == MAP_ID
+
+    page.evaluate("() => { location.hash = '#map=ghost2&layer=probability'; }")
+    _wait(page, _ERROR_JS, "map ghost2 not found", what="'map ghost2 not found'")
+    _wait(
+        page,
+        f"() => location.hash === '#map={MAP_ID}&layer=probability'",
+        what="the URL back on the shown map",
+    )
+    assert page.evaluate("() => window.fleetmapViewer.state.mapId") == MAP_ID
+    assert not page.page_errors, page.page_errors
+
+
+def test_robot_rows_are_stable_buttons(page: Any, svc: ServiceProcess) -> None:
+    """Robot rows are updated in place while robots events come (so a slow click is not lost), in
+    natural order, and are buttons: a click or Enter centres the map on the robot."""
+    base = svc.base_url
+    _make_map(base, {"sim-10": (6.0, 2.0), "sim-2": (2.0, 2.0)})
+    _open(page, base, f"#map={MAP_ID}")
+    page.wait_for_selector(_ROW.format("sim-10"), timeout=SHOW_MS)
+    ids = page.eval_on_selector_all("#robot-list li", "els => els.map((li) => li.dataset.robotId)")
+    assert ids == ["sim-2", "sim-10"], ids
+    assert page.eval_on_selector_all(
+        "#robot-list li",
+        "els => els.every((li) => li.querySelector('button') && li.querySelector('button').tabIndex === 0)",
+    )
+
+    # sim-2 keeps scanning (robots events several times a second) while its rows are clicked.
+    stop = threading.Event()
+
+    def feed() -> None:
+        seq = 2
+        while not stop.is_set():
+            _scan(base, MAP_ID, "sim-2", seq, 2.0, 2.0)
+            seq += 1
+            stop.wait(0.08)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        page.evaluate("(sel) => { window.__row = document.querySelector(sel); }", _ROW.format("sim-2"))
+        _wait(
+            page,
+            "(sel) => parseInt(document.querySelector(sel).textContent) >= 8",
+            f"{_ROW.format('sim-2')} .scans",
+            what="sim-2's scans counted",
+        )
+        assert page.evaluate("(sel) => window.__row === document.querySelector(sel)", _ROW.format("sim-2")), (
+            "the row was rebuilt instead of updated in place"
+        )
+
+        for robot_id in ("sim-2", "sim-10"):  # a slow click: press, 150 ms, release
+            page.evaluate(_AWAY_JS)
+            box = page.locator(_ROW.format(robot_id)).bounding_box()
+            assert box is not None
+            page.mouse.move(box["x"] + 30, box["y"] + box["height"] / 2)
+            page.mouse.down()
+            page.wait_for_timeout(150)
+            page.mouse.up()
+            _wait(page, _CENTRED_ON_JS, robot_id, what=f"the map centred on {robot_id} after a click")
+
+        page.evaluate(_AWAY_JS)
+        page.focus(f"{_ROW.format('sim-2')} button")
+        page.keyboard.press("Enter")
+        _wait(page, _CENTRED_ON_JS, "sim-2", what="the map centred on sim-2 after Enter")
+    finally:
+        stop.set()
+        feeder.join(10)
+    assert not page.page_errors, page.page_errors
+
+
+def test_restart_with_another_map(page: Any, service_factory: Callable[..., ServiceProcess]) -> None:
+    """The service restarts and the map comes back with another resolution and other layers (its data
+    directory restored from another backup): after the event stream reconnects the viewer shows the
+    new map's layers, tiles and robot positions, without a new selection by the map list poll. While
+    the service is down robots are not claimed online, and 'cannot reach' goes on reconnect."""
+    # The backup: a data directory whose map has another resolution and keeps only counts.
+    other = service_factory()
+    _make_map(other.base_url, {"sim-1": (4.0, 3.0)}, {"resolution": 0.2, "layers": ["counts"]})
+    other.stop()
+    svc = service_factory()
+    base = svc.base_url
+    _make_map(base, {"sim-1": (2.0, 2.0)})
+    _open(page, base, f"#map={MAP_ID}&layer=probability")
+    row = _ROW.format("sim-1")
+    page.wait_for_selector(row, timeout=SHOW_MS)
+    token = page.evaluate("() => window.fleetmapViewer.state.selectToken")
+
+    svc.stop()
+    _wait(page, "() => document.getElementById('status').dataset.state !== 'connected'", what="the loss")
+    page.wait_for_selector(f'{row}[data-online="unknown"]', timeout=SHOW_MS)
+    svc.args[svc.args.index("--data-dir") + 1] = other.args[other.args.index("--data-dir") + 1]
+    svc.start()
+
+    _wait(page, "() => document.getElementById('status').dataset.state === 'connected'", what="reconnected")
+    _wait(page, f"() => {_LAYER_OPTIONS_JS} === 'hits,misses'", what="the new map's layers")
+    _wait(page, "() => window.fleetmapViewer.state.res === 0.2", what="the new resolution")
+    _wait(page, f"() => location.hash === '#map={MAP_ID}&layer=hits'", what="the new layer in the URL")
+    _wait(page, _ALL_TILES_OF_LAYER_JS, "hits", what="tiles of the hits layer")
+    _wait(page, _TILES_LOADED_JS, what="every tile loaded (none failed)")
+    marker = _wait(page, _MARKER_JS, ["sim-1", 4.0, 3.0, 0.2], what="sim-1's marker")
+    assert math.dist(marker["expected"], marker["actual"]) < 3.0, marker
+    _wait(
+        page,
+        "() => document.getElementById('error').hidden"
+        " || !document.getElementById('error').textContent.includes('cannot reach')",
+        what="'cannot reach the service' gone",
+    )
+    assert page.evaluate("() => window.fleetmapViewer.state.selectToken") == token
+    assert not page.page_errors, page.page_errors
+
+
+def test_last_map_deleted(page: Any, svc: ServiceProcess) -> None:
+    """The shown map is deleted and none is left: no cell values, outline, cursor position or map
+    name stay on the page or in the URL."""
+    base = svc.base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    _open(page, base, f"#map={MAP_ID}")
+    box = page.locator("#map").bounding_box()
+    assert box is not None
+    page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    _wait(page, "() => document.getElementById('cell-info').dataset.i !== undefined", what="the clicked cell")
+    page.mouse.move(box["x"] + box["width"] / 2 + 10, box["y"] + box["height"] / 2)
+    _wait(page, "() => document.getElementById('coords').textContent !== ''", what="the cursor position")
+
+    assert httpx.delete(f"{base}/maps/{MAP_ID}", timeout=10.0).status_code in (200, 204)
+    _wait(page, "() => document.getElementById('map-select').disabled", what="no maps")
+    _wait(page, "() => location.hash === ''", what="an empty URL hash")
+    assert page.evaluate("() => document.getElementById('cell-info').dataset.i") is None
+    assert "Click the map" in page.inner_text("#cell-info")
+    assert page.eval_on_selector_all(".leaflet-overlay-pane path", "ps => ps.length") == 0
+    assert page.inner_text("#coords") == ""
+    assert not page.page_errors, page.page_errors
