@@ -15,6 +15,7 @@ from fleetmap.codec import (
     HEADER,
     MAGIC,
     DecodeError,
+    InputLimits,
     decode,
     decode_binary,
     decode_json,
@@ -215,3 +216,20 @@ def test_a_json_nan_range_is_an_invalid_reading_like_binary_nan() -> None:
     described = (schema["description"] + schema["properties"]["ranges"].get("description", "")).lower()
     assert "binary encoding only" not in described
     assert "nan: an invalid reading, ignored" in described
+
+
+def test_a_json_list_too_long_for_any_scan_is_refused_before_it_is_parsed() -> None:
+    """2 million ranges in 4 MB took 110-140 ms to parse before pydantic refused the list, on the
+    Zenoh thread all robots share; the items are counted first. The largest valid scan still
+    decodes."""
+    beams = InputLimits().max_beams
+
+    head = b'{"seq": 1, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": 0, "angle_increment": 1e-5, '
+    flood = head + b'"ranges": [' + b",".join([b"1"] * 2_000_000) + b"]}"
+    with pytest.raises(DecodeError, match=f"more items than {beams} beams can have"):
+        decode(flood, JSON_ENCODING)
+    largest = json.dumps(
+        {"seq": 1, "pose": {"x": 0, "y": 0, "theta": 0}, "angles": [k * 1e-4 for k in range(beams)],
+         "ranges": [1.0] * beams, "range_min": 0.0, "range_max": 30.0, "stamp": 1.0}
+    ).encode()  # fmt: skip
+    assert decode(largest, JSON_ENCODING).scan.num_beams == beams

@@ -91,6 +91,7 @@ DEDICATED = {
     "evil-nonfinite": r"finite",
     "evil-beams": (
         rf"beams is more than the limit of (4096|{MAX_BEAMS})|ranges: List should have at most {MAX_BEAMS}"
+        r"|more items than 4096 beams can have"
     ),
     "evil-turn": r"more than one turn",
     "evil-size": r"exceeds the limit of 4194304",
