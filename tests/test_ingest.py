@@ -428,6 +428,23 @@ def test_rate_limited_log_holds_back_repeats(caplog: pytest.LogCaptureFixture) -
     assert lines == ["message 0", "other category", "after the interval (99 similar messages suppressed)"]
 
 
+def test_rate_limited_log_bounds_lines_and_memory_across_categories(caplog: pytest.LogCaptureFixture) -> None:
+    """20,000 bad messages under 20,000 robot ids wrote 20,000 lines, and the held-back counts of
+    categories never logged again stayed in memory for good."""
+    limited = RateLimitedLog(logging.getLogger("test.ratelimit"), interval=60.0, max_lines=20)
+    with caplog.at_level(logging.WARNING, logger="test.ratelimit"):
+        for k in range(20_000):
+            limited.warning(f"decode:m/r{k}", f"message {k}")
+            limited.warning(f"decode:m/r{k}", f"again {k}")
+    assert len(caplog.records) == 20
+    assert len(limited._held) <= 10_001 and len(limited._last) <= 10_001
+    limited._window -= 61.0  # the next interval: the budget is back, and says what it held
+    assert limited.warning("decode:m/later", "later")
+    assert caplog.records[-1].getMessage().startswith("later (") and "other messages suppressed" in (
+        caplog.records[-1].getMessage()
+    )
+
+
 def test_a_map_created_by_a_refused_zenoh_scan_is_removed_again() -> None:
     """Over Zenoh too, a scan that auto-creates its map and is then refused (past max_tiles) leaves
     no map behind; a robot whose liveliness token is up keeps its map (the token creates it)."""
