@@ -193,7 +193,25 @@ def test_robot_ids_per_map_are_capped() -> None:
     reg.reject("m", "d", "garbage")
     reg.set_online("m", "e", True)
     entry = reg.get("m")
-    assert sorted(entry.robots) == ["a", "b"] and entry.scans_rejected == 1
+    assert sorted(entry.robots) == ["a", "b"] and entry.scans_rejected == 2  # the 429 and the garbage
+
+
+def test_robots_that_only_sent_garbage_give_their_place_to_real_ones() -> None:
+    """Undecodable messages under 1023 made-up robot ids filled a map's robot slots for good: a real
+    new robot was then refused (429). A robot with no accepted scan that is not online now makes
+    room; robots with accepted scans, or online, never do."""
+    reg = MapRegistry(max_robots_per_map=3)
+    reg.submit("m", "real", WireScan(0, 0.0, scan_at(0)))
+    reg.set_online("m", "alive", True)
+    reg.reject("m", "junk-1", "garbage")
+    reg.reject("m", "junk-2", "garbage")  # junk-1 makes room
+    entry = reg.get("m")
+    assert sorted(entry.robots) == ["alive", "junk-2", "real"] and entry.scans_rejected == 2
+    reg.submit("m", "new", WireScan(0, 0.0, scan_at(0)))  # junk-2 makes room
+    assert sorted(entry.robots) == ["alive", "new", "real"]
+    with pytest.raises(IngestRejected) as refused:  # nobody left who may make room
+        reg.submit("m", "another", WireScan(0, 0.0, scan_at(0)))
+    assert refused.value.status == 429 and entry.scans_rejected == 3
 
 
 def test_a_restored_map_is_stored_outside_the_registry_lock(

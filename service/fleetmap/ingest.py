@@ -70,6 +70,10 @@ class IngestStartError(RuntimeError):
     """The Zenoh session could not be opened; the message says why (no Rust source locations)."""
 
 
+#: `zenoh.rejected` counters in `status()`: the kind of each `MapRegistry.submit` refusal, by status.
+_REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
+
+
 class RateLimitedLog:
     """Logs at most one line per category per `interval` seconds, and at most `max_lines` lines in
     all per interval, and says how many it held back.
@@ -324,7 +328,7 @@ class ZenohIngest:
         try:
             self.registry.submit(map_id, robot_id, wire)
         except IngestRejected as exc:
-            kind = {200: "duplicate", 404: "no_map", 503: "queue_full"}.get(exc.status, "other")
+            kind = _REFUSAL_KINDS.get(exc.status, "other")
             with self._lock:
                 self.rejected[kind] += 1
             self._log.warning(

@@ -434,7 +434,8 @@ class MapRegistry:
                     )
                 entry, _ = self.create(map_id)
                 entry.provisional = True
-            if robot_id not in entry.robots and len(entry.robots) >= self.max_robots_per_map:
+            if not self._room_for(entry, robot_id):
+                entry.scans_rejected += 1  # counted on the map: the robot has no state to count it on
                 raise IngestRejected(
                     f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have", 429
                 )
@@ -468,13 +469,27 @@ class MapRegistry:
             entry = self.maps.get(map_id)
             if entry is None:
                 return
-            if robot_id not in entry.robots and len(entry.robots) >= self.max_robots_per_map:
+            if not self._room_for(entry, robot_id):
                 entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
                 return
             robot = entry.robot(robot_id)
             robot.scans_rejected += 1
             robot.last_error = reason
             entry.scans_rejected += 1
+
+    def _room_for(self, entry: MapEntry, robot_id: str) -> bool:
+        """Whether map `entry` may hold robot `robot_id` (call under the registry's lock): it does
+        already, or the map has fewer than `max_robots_per_map` robots, or one of them can make
+        room: a robot whose every message was refused (no scan accepted) and that is not online.
+        Such robots hold only their refusals, which the map's count keeps, and without this a sender
+        of garbage under changing robot ids would lock every new robot out of the map."""
+        if robot_id in entry.robots or len(entry.robots) < self.max_robots_per_map:
+            return True
+        for other, state in entry.robots.items():
+            if state.last_seq is None and not state.online:
+                del entry.robots[other]
+                return True
+        return False
 
     def set_online(self, map_id: str, robot_id: str, online: bool) -> None:
         """A robot's liveliness token appeared or went away."""
@@ -488,7 +503,7 @@ class MapRegistry:
                 entry, _ = self.create(map_id)
             elif online:
                 entry.provisional = False  # the token would have created the map: it stays
-            if robot_id in entry.robots or len(entry.robots) < self.max_robots_per_map:
+            if self._room_for(entry, robot_id):
                 entry.robot(robot_id).online = online
 
     def iter_robots(self) -> Iterator[tuple[str, str, RobotState]]:
