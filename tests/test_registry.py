@@ -376,3 +376,39 @@ def test_a_map_created_by_a_scan_the_full_queue_refuses_is_removed_again() -> No
         reg.submit("second", "r", WireScan(0, 0.0, scan_at(0)))
     assert [entry.id for entry in reg.list()] == ["first"]
     assert full.value.status == 503 and "removed again" in full.value.reason
+
+
+def test_robot_counters_survive_a_crash_and_a_shutdown_with_no_scan_since_the_snapshot(
+    tmp_path: Path,
+) -> None:
+    """After a crash the journal's replay counts a robot's seq gaps as lost again (they came back as
+    0); a clean shutdown snapshots a map even when only refused messages arrived since its last
+    snapshot (its duplicates and rejected counts went back to 0)."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    for seq in (0, 1, 5):  # 3 and 4 and 2 never arrive: 3 lost
+        registry.submit("m", "r", WireScan(seq, 0.0, scan_at(0.1 * seq)), wait=True).result(10)  # type: ignore[union-attr]
+    assert registry.get("m").robots["r"].lost == 3
+    registry.queue.close()  # a crash: no snapshot, only the journal
+    for t in registry._workers:
+        t.join(5)
+    registry.durable.close()  # type: ignore[union-attr]
+    crashed = MapRegistry(durable=DurableStore(tmp_path))
+    crashed.start()
+    robot = crashed.get("m").robots["r"]
+    assert (robot.scans_integrated, robot.last_seq, robot.lost) == (3, 5, 3)
+    crashed.close()  # snapshots: the counters are now in the snapshot
+
+    again = MapRegistry(durable=DurableStore(tmp_path))
+    again.start()
+    with pytest.raises(IngestRejected):
+        again.submit("m", "r", WireScan(4, 0.0, scan_at(0.0)))  # a duplicate: no journal row
+    again.reject("m", "r", "garbage")
+    again.close()
+    last = MapRegistry(durable=DurableStore(tmp_path))
+    last.start()
+    try:
+        robot = last.get("m").robots["r"]
+        assert (robot.duplicates, robot.scans_rejected, robot.lost, robot.last_error) == (1, 1, 3, "garbage")
+    finally:
+        last.close()

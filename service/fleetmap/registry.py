@@ -219,13 +219,15 @@ class MapRegistry:
             t.start()
 
     def close(self, timeout: float = 30.0) -> None:
-        """Stop taking scans, finish the queued ones, stop the workers, snapshot every map."""
+        """Stop taking scans, finish the queued ones, stop the workers, snapshot every map (also one
+        with no scan since its last snapshot: its robots' counters of refused messages may have
+        changed, and only a snapshot keeps them)."""
         self.queue.close()
         for t in self._workers:
             if t.is_alive():
                 t.join(timeout)
         if self.durable is not None:
-            self.snapshot_all(False)
+            self.snapshot_all(False, every_map=True)
             self.durable.close()
 
     def _restore(self) -> None:
@@ -239,6 +241,11 @@ class MapRegistry:
                 gmap.integrate(scan)  # the same engine, in journal order: the same map
                 robot = entry.robot(robot_id)
                 robot.scans_integrated += 1
+                # The journal holds integrated scans only, so a gap in a robot's seqs since the
+                # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
+                # the gap, whose counts died with the process, count as lost too).
+                if robot.last_seq is not None and seq > robot.last_seq + 1:
+                    robot.lost += seq - robot.last_seq - 1
                 robot.last_seq, robot.last_stamp, robot.last_pose = seq, stamp, scan.pose
                 robot.trail.append((scan.pose.x, scan.pose.y, scan.pose.theta))
                 entry.scans_integrated += 1
@@ -254,14 +261,15 @@ class MapRegistry:
             gmap.store.charge(self.memory_budget)
         return gmap
 
-    def snapshot_all(self, only_overdue: bool = False) -> None:
-        """Snapshot every map with journaled scans (only those past the row threshold if asked). A
-        map whose snapshot fails (a full or failing disk) is logged and reported by
-        `DurableStore.health`, and the others are still snapshotted."""
+    def snapshot_all(self, only_overdue: bool = False, every_map: bool = False) -> None:
+        """Snapshot every map with journaled scans (only those past the row threshold if asked; every
+        map with `every_map`). A map whose snapshot fails (a full or failing disk) is logged and
+        reported by `DurableStore.health`, and the others are still snapshotted."""
         if self.durable is None:
             return
         for entry in self.list():
-            if self.durable.needs_snapshot(entry.id) and (not only_overdue or self.durable.overdue(entry.id)):
+            needed = self.durable.needs_snapshot(entry.id)
+            if every_map or (needed and (not only_overdue or self.durable.overdue(entry.id))):
                 try:
                     self.durable.snapshot(entry.id, entry.gmap, lambda e=entry: self._saved_counters(e))
                 except (sqlite3.Error, OSError) as exc:
