@@ -55,6 +55,21 @@ def test_fair_queue_refuses_past_the_source_limit_without_blocking() -> None:
     assert q.put("b", 0) is True  # another source still gets in
 
 
+def test_fair_queue_keeps_room_for_other_groups() -> None:
+    """A sender under many robot ids of one map filled the whole queue, and another map's robot lost
+    a third of its scans: a group (a map) holds at most `per_group` items."""
+    q: FairQueue[int] = FairQueue(per_source=3, total=10, group=lambda source: source[0], per_group=5)
+    admitted = [q.put(("flood", k), k) for k in range(10)]
+    assert admitted == [True] * 5 + [False] * 5
+    assert q.put(("quiet", 0), 0) and q.depth() == 6
+    assert len(q._fifos) == 6  # a refused new source leaves no empty FIFO behind
+    source, _ = q.get(0.1)  # type: ignore[misc]
+    q.done(source)
+    assert q.put(("flood", 99), 99)  # its group has room again
+    q.drop_source(lambda s: s[0] == "flood")  # type: ignore[index]
+    assert all(q.put(("flood", k), k) for k in range(5))
+
+
 def test_each_robot_is_integrated_in_seq_order(registry: MapRegistry) -> None:
     """Per-robot order is kept across two workers: the map equals the engine fed in seq order.
     The octomap clamp makes the order matter, so a reordering would show."""

@@ -4,6 +4,9 @@ Each source (a robot on a map) has its own bounded FIFO. Consumers take from sou
 and never from a source that already has an item in flight, so one source's items are processed one
 at a time in arrival order while different sources proceed in parallel. A source that floods fills
 only its own FIFO: `put` refuses its surplus at once (the caller counts it) and never blocks.
+Sources may belong to groups (a map's robots), each of which holds at most `per_group` items, so
+many sources of one group (a sender under many robot ids) cannot fill the whole queue and starve
+the other groups.
 """
 
 from __future__ import annotations
@@ -21,9 +24,20 @@ class QueueClosed(Exception):
 
 
 class FairQueue(Generic[T]):
-    def __init__(self, per_source: int = 64, total: int = 4096) -> None:
+    def __init__(
+        self,
+        per_source: int = 64,
+        total: int = 4096,
+        group: Callable[[Hashable], Hashable] | None = None,
+        per_group: int | None = None,
+    ) -> None:
+        """`group(source)` names a source's group (default: none); `per_group` (default `total`)
+        bounds the items of one group."""
         self.per_source = per_source
         self.total = total
+        self._group = group
+        self.per_group = total if per_group is None else per_group
+        self._group_size: dict[Hashable, int] = {}
         self._fifos: dict[Hashable, deque[T]] = {}
         self._ready: deque[Hashable] = deque()  # sources with items and nothing in flight
         self._busy: set[Hashable] = set()
@@ -39,10 +53,15 @@ class FairQueue(Generic[T]):
             fifo = self._fifos.get(source)
             if fifo is None:
                 fifo = self._fifos[source] = deque()
-            if len(fifo) >= self.per_source or self._size >= self.total:
+            group = self._group(source) if self._group is not None else None
+            in_group = self._group_size.get(group, 0)
+            if len(fifo) >= self.per_source or self._size >= self.total or in_group >= self.per_group:
+                if not fifo and source not in self._busy:
+                    del self._fifos[source]
                 return False
             fifo.append(item)
             self._size += 1
+            self._group_size[group] = in_group + 1
             if len(fifo) == 1 and source not in self._busy:
                 self._ready.append(source)
                 self._cond.notify()
@@ -60,6 +79,7 @@ class FairQueue(Generic[T]):
             source = self._ready.popleft()
             item = self._fifos[source].popleft()
             self._size -= 1
+            self._leave_group(source, 1)
             self._busy.add(source)
             return source, item
 
@@ -83,12 +103,22 @@ class FairQueue(Generic[T]):
             for source in [s for s in self._fifos if predicate(s)]:
                 dropped += self._fifos[source]
                 self._size -= len(self._fifos[source])
+                self._leave_group(source, len(self._fifos[source]))
                 if source in self._busy:  # `done` deletes it
                     self._fifos[source].clear()
                 else:
                     del self._fifos[source]
             self._ready = deque(s for s in self._ready if self._fifos.get(s))
             return dropped
+
+    def _leave_group(self, source: Hashable, items: int) -> None:
+        """`items` of `source` left the queue (call under the lock)."""
+        group = self._group(source) if self._group is not None else None
+        left = self._group_size.get(group, 0) - items
+        if left > 0:
+            self._group_size[group] = left
+        else:
+            self._group_size.pop(group, None)
 
     def idle(self) -> bool:
         """Nothing queued and nothing in flight."""

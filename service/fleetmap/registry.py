@@ -185,7 +185,11 @@ class MapRegistry:
         self.auto_create = auto_create
         self.maps: dict[str, MapEntry] = {}
         self.lock = threading.RLock()  # guards `maps` and every RobotState / counter
-        self.queue: FairQueue[Job] = FairQueue(queue_per_robot, queue_total)
+        # Sources are (map, robot); one map holds at most half the queue, so a sender flooding it
+        # under many robot ids leaves room for every other map's robots.
+        self.queue: FairQueue[Job] = FairQueue(
+            queue_per_robot, queue_total, group=lambda source: source[0], per_group=max(1, queue_total // 2)
+        )
         self._generations = itertools.count(1)
         #: Called as `on_integrated(entry, job, result, seconds)` for each scan once it counts as
         #: integrated (journaled, with persistence), on that thread; it must be quick and not raise.
