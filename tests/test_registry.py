@@ -427,3 +427,17 @@ def test_robot_counters_survive_a_crash_and_a_shutdown_with_no_scan_since_the_sn
         assert (robot.duplicates, robot.scans_rejected, robot.lost, robot.last_error) == (1, 1, 3, "garbage")
     finally:
         last.close()
+
+
+def test_a_live_robot_shows_online_in_its_map_created_again() -> None:
+    """A robot whose liveliness token stayed up showed offline (and was missing) in its map deleted
+    and created again, until its next scan: the registry remembers the tokens present."""
+    reg = MapRegistry()
+    reg.set_online("m", "r", True)  # the token creates the map
+    assert reg.get("m").robots["r"].online
+    reg.delete("m")
+    created, _ = reg.create("m")
+    assert created.robots["r"].online
+    reg.set_online("m", "r", False)
+    reg.delete("m")
+    assert "r" not in reg.create("m")[0].robots  # a token gone is forgotten

@@ -203,6 +203,9 @@ class MapRegistry:
         self.max_auto_maps = max_auto_maps
         # Likewise for robot ids: a sender cycling through ids must not grow state (or logs) at will.
         self.max_robots_per_map = max_robots_per_map
+        #: (map id, robot id) of every liveliness token present (`set_online`), whether or not its map
+        #: exists: a map created or installed under that id later shows those robots online at once.
+        self._alive: set[tuple[str, str]] = set()
         self._workers = [
             threading.Thread(target=self._work, name=f"fleetmap-integrate-{k}", daemon=True)
             for k in range(workers)
@@ -255,7 +258,7 @@ class MapRegistry:
                 entry.scans_integrated += 1
             # Charged after the replay, which the budget must never refuse: those scans were accepted.
             self._charged(gmap)
-            self.maps[map_id] = entry
+            self._add(entry)
             log.info(
                 "restored map %s: %d tiles, %d journal scans replayed", map_id, len(gmap.store), len(journal)
             )
@@ -308,7 +311,7 @@ class MapRegistry:
                 existing.provisional = False  # asked for by name: it stays even if its scans are refused
                 return existing, False
             entry = MapEntry(map_id, self._charged(GridMap(config)), next(self._generations))
-            self.maps[map_id] = entry
+            self._add(entry)
             if self.durable is not None:
                 stored = self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
             log.info("created map %s", map_id)
@@ -328,7 +331,7 @@ class MapRegistry:
         with self._removing(map_id) as old:
             dropped = self._retire(old) if old is not None else []
             entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
-            self.maps[map_id] = entry
+            self._add(entry)
             if old is not None:
                 old.replaced_by = entry
             if self.durable is not None:
@@ -508,6 +511,10 @@ class MapRegistry:
         if not (is_valid_id(map_id) and is_valid_id(robot_id)):
             return
         with self.lock:
+            if online:
+                self._alive.add((map_id, robot_id))
+            else:
+                self._alive.discard((map_id, robot_id))
             entry = self.maps.get(map_id)
             if entry is None:
                 if not (online and self.auto_create) or len(self.maps) >= self.max_auto_maps:
@@ -517,6 +524,15 @@ class MapRegistry:
                 entry.provisional = False  # the token would have created the map: it stays
             if self._room_for(entry, robot_id):
                 entry.robot(robot_id).online = online
+
+    def _add(self, entry: MapEntry) -> None:
+        """Install a new map entry (under the registry's lock), its robots whose liveliness tokens
+        are present shown online: a map deleted and created again, or restored from a snapshot,
+        while its robots live, would otherwise show them offline until their next scan."""
+        self.maps[entry.id] = entry
+        for map_id, robot_id in self._alive:
+            if map_id == entry.id and self._room_for(entry, robot_id):
+                entry.robot(robot_id).online = True
 
     def iter_robots(self) -> Iterator[tuple[str, str, RobotState]]:
         with self.lock:
