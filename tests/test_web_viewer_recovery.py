@@ -262,3 +262,28 @@ def test_last_map_deleted(page: Any, svc: ServiceProcess) -> None:
     assert page.eval_on_selector_all(".leaflet-overlay-pane path", "ps => ps.length") == 0
     assert page.inner_text("#coords") == ""
     assert not page.page_errors, page.page_errors
+
+
+#: The fill colour of every robot marker's arrow, by robot id.
+_MARKER_COLOURS_JS = """
+() => Object.fromEntries([...window.fleetmapViewer.state.robots.values()]
+  .filter((r) => r.marker && r.marker.getElement())
+  .map((r) => [r.id, r.marker.getElement().querySelector('path').getAttribute('fill')]))
+"""
+
+
+def test_twelve_robots_have_twelve_colours(page: Any, svc: ServiceProcess) -> None:
+    """Colours came from a hash of the id into 10 colours: with 12 robots two pairs shared one, and
+    the map has no label to tell them apart. Each robot of a map now has its own, the same after a
+    reload."""
+    base = svc.base_url
+    _make_map(base, {f"sim-{k}": (3.0 * k, 0.0) for k in range(1, 13)})
+    _open(page, base, f"#map={MAP_ID}")
+    _wait(page, "() => window.fleetmapViewer.state.robots.size === 12", what="12 robots")
+    _wait(page, "() => document.querySelectorAll('.robot-marker').length === 12", what="12 markers")
+    colours = page.evaluate(_MARKER_COLOURS_JS)
+    assert len(colours) == 12 and len(set(colours.values())) == 12, colours
+    page.reload()
+    _wait(page, "() => document.querySelectorAll('.robot-marker').length === 12", what="12 markers again")
+    assert page.evaluate(_MARKER_COLOURS_JS) == colours
+    assert not page.page_errors

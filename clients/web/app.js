@@ -167,15 +167,21 @@
     statusEl.dataset.state = state.connection;
   }
 
+  // Robot ids in natural order: sim-2 before sim-10.
+  const naturalOrder = new Intl.Collator(undefined, { numeric: true, sensitivity: 'base' });
   // Robot colours: saturated and dark enough to stand out on the light grey of free space.
   const ROBOT_COLORS = ['#1f77b4', '#d62728', '#2ca02c', '#9467bd', '#e6550d',
     '#8c564b', '#d6339c', '#0f8b8d', '#4b4bb3', '#b8860b'];
 
-  /** A stable colour per robot id (from a string hash), so a robot keeps its colour across reloads. */
-  function robotColor(id) {
-    let h = 0;
-    for (let k = 0; k < id.length; k++) h = (h * 31 + id.charCodeAt(k)) >>> 0;
-    return ROBOT_COLORS[h % ROBOT_COLORS.length];
+  /**
+   * The colour of the map's k-th robot (in the natural order of the ids first reported, so the same
+   * robots get the same colours after a reload): the palette first, then hues a golden angle apart.
+   * A hash of the id made robots share colours (with 12 robots, two pairs did), with no label to
+   * tell them apart.
+   */
+  function robotColor(k) {
+    if (k < ROBOT_COLORS.length) return ROBOT_COLORS[k];
+    return `hsl(${Math.round(((k - ROBOT_COLORS.length) * 137.508 + 15) % 360)}, 70%, 38%)`;
   }
 
   /** Pose in any of the shapes the API may use ([x, y, theta] or {x, y, theta}) -> [x, y, theta] | null. */
@@ -367,10 +373,12 @@
 
   /** Merge robot reports ({id: {online, pose, trail, scans_integrated}}) and redraw them. */
   function updateRobots(reports) {
-    for (const [id, report] of Object.entries(reports || {})) {
+    const ids = Object.keys(reports || {}).sort(naturalOrder.compare);
+    for (const id of ids) {
+      const report = reports[id];
       let robot = state.robots.get(id);
       if (!robot) {
-        const color = robotColor(id);
+        const color = robotColor(state.robots.size);
         robot = {
           id,
           color,
@@ -434,9 +442,6 @@
     const robot = state.robots.get(id);
     if (robot && robot.marker) map.panTo(robot.marker.getLatLng());
   }
-
-  // Robot ids in natural order: sim-2 before sim-10.
-  const naturalOrder = new Intl.Collator(undefined, { numeric: true, sensitivity: 'base' });
 
   /** A robot's row: a button (focusable with Tab, Enter / Space centre the map on the robot). */
   function robotRow(robot) {
