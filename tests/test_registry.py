@@ -70,6 +70,29 @@ def test_fair_queue_keeps_room_for_other_groups() -> None:
     assert all(q.put(("flood", k), k) for k in range(5))
 
 
+def test_fair_queue_bounds_the_bytes_it_holds() -> None:
+    """Queued scans are held decoded: 8192 of 16,384 beams took 2.6 GB, outside the memory budget.
+    With `size_of`, the queue refuses what would pass `max_bytes`, and takes again once items left."""
+    q: FairQueue[int] = FairQueue(per_source=100, total=100, size_of=lambda item: item, max_bytes=100)
+    assert q.put("a", 60) and q.put("b", 30)
+    assert not q.put("c", 20)  # 110 bytes: refused, though the counts have room
+    assert q.put("c", 10)
+    source, _ = q.get(0.1)  # type: ignore[misc]
+    q.done(source)
+    assert q.put("c", 50)  # 60 went: room again
+    q.drop_source(lambda s: True)
+    assert q.put("d", 100) and not q.put("e", 1)
+
+
+def test_the_registry_queue_counts_a_scans_beams() -> None:
+    reg = MapRegistry(queue_bytes=2 * 30 * 16)  # two scans of 30 beams (bearings and ranges, 8 bytes)
+    for seq in range(2):
+        reg.submit("m", "r", WireScan(seq, 0.0, scan_at(0.0)))
+    with pytest.raises(IngestRejected) as full:
+        reg.submit("m", "r2", WireScan(0, 0.0, scan_at(0.0)))
+    assert full.value.status == 503 and reg.get("m").robots["r2"].dropped == 1
+
+
 def test_each_robot_is_integrated_in_seq_order(registry: MapRegistry) -> None:
     """Per-robot order is kept across two workers: the map equals the engine fed in seq order.
     The octomap clamp makes the order matter, so a reordering would show."""

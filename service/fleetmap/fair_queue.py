@@ -30,11 +30,17 @@ class FairQueue(Generic[T]):
         total: int = 4096,
         group: Callable[[Hashable], Hashable] | None = None,
         per_group: int | None = None,
+        size_of: Callable[[T], int] | None = None,
+        max_bytes: int | None = None,
     ) -> None:
         """`group(source)` names a source's group (default: none); `per_group` (default `total`)
-        bounds the items of one group."""
+        bounds the items of one group. With `size_of(item)` (bytes), the items queued hold at most
+        `max_bytes` together."""
         self.per_source = per_source
         self.total = total
+        self._size_of = size_of
+        self.max_bytes = max_bytes
+        self._bytes = 0
         self._group = group
         self.per_group = total if per_group is None else per_group
         self._group_size: dict[Hashable, int] = {}
@@ -55,12 +61,17 @@ class FairQueue(Generic[T]):
                 fifo = self._fifos[source] = deque()
             group = self._group(source) if self._group is not None else None
             in_group = self._group_size.get(group, 0)
-            if len(fifo) >= self.per_source or self._size >= self.total or in_group >= self.per_group:
+            weight = self._size_of(item) if self._size_of is not None else 0
+            if (
+                len(fifo) >= self.per_source or self._size >= self.total or in_group >= self.per_group
+                or (self.max_bytes is not None and self._bytes + weight > self.max_bytes)
+            ):  # fmt: skip
                 if not fifo and source not in self._busy:
                     del self._fifos[source]
                 return False
             fifo.append(item)
             self._size += 1
+            self._bytes += weight
             self._group_size[group] = in_group + 1
             if len(fifo) == 1 and source not in self._busy:
                 self._ready.append(source)
@@ -80,6 +91,7 @@ class FairQueue(Generic[T]):
             item = self._fifos[source].popleft()
             self._size -= 1
             self._leave_group(source, 1)
+            self._bytes -= self._size_of(item) if self._size_of is not None else 0
             self._busy.add(source)
             return source, item
 
@@ -104,6 +116,8 @@ class FairQueue(Generic[T]):
                 dropped += self._fifos[source]
                 self._size -= len(self._fifos[source])
                 self._leave_group(source, len(self._fifos[source]))
+                if self._size_of is not None:
+                    self._bytes -= sum(self._size_of(item) for item in self._fifos[source])
                 if source in self._busy:  # `done` deletes it
                     self._fifos[source].clear()
                 else:

@@ -46,6 +46,9 @@ log = logging.getLogger("fleetmap.registry")
 
 #: Poses kept per robot for viewers' trails.
 TRAIL_LENGTH = 200
+#: Bytes of decoded beams the ingest queue holds at most: 8192 scans of 1081 beams take 141 MB, but
+#: as many of 16,384 beams took 2.6 GB, which the memory budget does not see.
+QUEUE_BYTES = 256 << 20
 #: Seconds a map change made with `wait=True` waits to be committed before `NotDurable` is raised.
 DURABLE_WAIT = 30.0
 
@@ -175,6 +178,7 @@ class MapRegistry:
         workers: int = 2,
         queue_per_robot: int = 64,
         queue_total: int = 8192,
+        queue_bytes: int = QUEUE_BYTES,
         on_integrated: Callable[[MapEntry, Job, IntegrationResult, float], None] | None = None,
         durable: DurableStore | None = None,
         max_auto_maps: int = 256,
@@ -188,8 +192,9 @@ class MapRegistry:
         # Sources are (map, robot); one map holds at most half the queue, so a sender flooding it
         # under many robot ids leaves room for every other map's robots.
         self.queue: FairQueue[Job] = FairQueue(
-            queue_per_robot, queue_total, group=lambda source: source[0], per_group=max(1, queue_total // 2)
-        )
+            queue_per_robot, queue_total, group=lambda source: source[0], per_group=max(1, queue_total // 2),
+            size_of=_queued_bytes, max_bytes=queue_bytes,
+        )  # fmt: skip
         self._generations = itertools.count(1)
         #: Called as `on_integrated(entry, job, result, seconds)` for each scan once it counts as
         #: integrated (journaled, with persistence), on that thread; it must be quick and not raise.
@@ -694,6 +699,12 @@ class MapRegistry:
                 return True
             time.sleep(0.005)
         return False
+
+
+def _queued_bytes(job: Job) -> int:
+    """What a queued scan holds: its decoded beams (float64 bearings and ranges)."""
+    scan = job.wire.scan
+    return scan.ranges.nbytes + scan.angles.nbytes
 
 
 def _refuse(future: Future, refusal: IngestRejected) -> None:
