@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap, cell_edge
+from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap, cell_edge
 
 #: map_server's trinary pixel values and the thresholds that read them back unchanged.
 PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN = 0, 254, 205
@@ -102,20 +102,9 @@ def map_probability(gmap: GridMap, window: Window) -> np.ndarray:
         return np.where(total > 0, hits / total, np.nan)
 
 
-def probability_state(gmap: GridMap, probability: np.ndarray) -> np.ndarray:
-    """`state` codes of probabilities by the map's thresholds (as `GridMap.classify` for log-odds:
-    the same codes from the same probabilities)."""
-    occ = gmap.config.occupancy
-    state = np.full(probability.shape, STATE_UNKNOWN, dtype=np.uint8)
-    with np.errstate(invalid="ignore"):
-        state[probability > occ.occupied_thresh] = STATE_OCCUPIED
-        state[probability < occ.free_thresh] = STATE_FREE
-    return state
-
-
 def nav2_files(gmap: GridMap, window: Window, name: str = "map") -> dict[str, bytes]:
     """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, of `map_probability`."""
-    state = probability_state(gmap, map_probability(gmap, window))
+    state = gmap.classify_probability(map_probability(gmap, window))
     yaml_text = nav2_yaml(f"{name}.pgm", gmap.resolution, window.origin(gmap.resolution))
     return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(state_to_pgm(state))}
 

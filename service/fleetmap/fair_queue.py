@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Iterable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -90,8 +90,7 @@ class FairQueue(Generic[T]):
             source = self._ready.popleft()
             item = self._fifos[source].popleft()
             self._size -= 1
-            self._leave_group(source, 1)
-            self._bytes -= self._size_of(item) if self._size_of is not None else 0
+            self._left(source, [item])
             self._busy.add(source)
             return source, item
 
@@ -115,9 +114,7 @@ class FairQueue(Generic[T]):
             for source in [s for s in self._fifos if predicate(s)]:
                 dropped += self._fifos[source]
                 self._size -= len(self._fifos[source])
-                self._leave_group(source, len(self._fifos[source]))
-                if self._size_of is not None:
-                    self._bytes -= sum(self._size_of(item) for item in self._fifos[source])
+                self._left(source, self._fifos[source])
                 if source in self._busy:  # `done` deletes it
                     self._fifos[source].clear()
                 else:
@@ -125,10 +122,14 @@ class FairQueue(Generic[T]):
             self._ready = deque(s for s in self._ready if self._fifos.get(s))
             return dropped
 
-    def _leave_group(self, source: Hashable, items: int) -> None:
-        """`items` of `source` left the queue (call under the lock)."""
+    def _left(self, source: Hashable, items: Iterable[T]) -> None:
+        """`items` of `source` left the queue: its group and the bytes held shrink (call under the
+        lock; `_size` is the caller's)."""
+        items = list(items)
+        if self._size_of is not None:
+            self._bytes -= sum(self._size_of(item) for item in items)
         group = self._group(source) if self._group is not None else None
-        left = self._group_size.get(group, 0) - items
+        left = self._group_size.get(group, 0) - len(items)
         if left > 0:
             self._group_size[group] = left
         else:

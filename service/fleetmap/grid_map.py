@@ -219,9 +219,12 @@ class GridMap:
         return out
 
     def classify(self, log_odds: np.ndarray) -> np.ndarray:
-        """`state` codes from log-odds by the map's thresholds (nav2's rule: p > occupied_thresh is
-        occupied, p < free_thresh is free, otherwise and for unknown cells unknown)."""
-        p = log_odds_to_probability(log_odds)
+        """`state` codes from log-odds by the map's thresholds (`classify_probability`)."""
+        return self.classify_probability(log_odds_to_probability(log_odds))
+
+    def classify_probability(self, p: np.ndarray) -> np.ndarray:
+        """`state` codes of occupancy probabilities by the map's thresholds (nav2's rule: p >
+        occupied_thresh is occupied, p < free_thresh is free, otherwise and NaN (unknown) unknown)."""
         state = np.full(p.shape, STATE_UNKNOWN, dtype=np.uint8)
         with np.errstate(invalid="ignore"):
             state[p > self.config.occupancy.occupied_thresh] = STATE_OCCUPIED

@@ -21,7 +21,7 @@ from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.database import StorageError
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
-from fleetmap.tiles import LayerArray, TileKey, layer_arrays
+from fleetmap.tiles import LayerArray, TileKey, layer_arrays, tile_bytes
 
 # -- encodings ---------------------------------------------------------------------------------------
 
@@ -419,7 +419,7 @@ def _snapshot_keys(
     n, t = npy.shape[0], config.tile_size
     if n > config.max_tiles:
         raise SnapshotError(f"the snapshot has {n} tiles, more than max_tiles {config.max_tiles}")
-    size = n * t * t * sum(np.dtype(a.dtype).itemsize for a in layout)
+    size = n * tile_bytes(t, layout)
     if size > max_bytes:
         raise SnapshotError(
             f"the snapshot's {n} tiles of {t}x{t} cells hold {size} bytes of layer arrays, more than the "

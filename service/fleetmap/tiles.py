@@ -60,6 +60,11 @@ def layer_arrays(layers: Iterable[LayerName]) -> tuple[LayerArray, ...]:
     return tuple(a for layer in layers for a in LAYER_ARRAYS[layer])
 
 
+def tile_bytes(tile_size: int, arrays: Iterable[LayerArray]) -> int:
+    """Bytes one tile of `arrays` holds (every cell of each array)."""
+    return tile_size * tile_size * sum(np.dtype(a.dtype).itemsize for a in arrays)
+
+
 #: A store's pools are empty until its first tile; then they grow to room for this many tiles, or
 #: as many as FIRST_GROWTH_BYTES hold (at least the tiles needed), and double from there. An empty
 #: map thus holds no capacity: the memory budget counts capacity, and four empty maps of 4096-cell
@@ -261,8 +266,7 @@ class TileStore:
 
     def _tile_bytes(self) -> int:
         """Bytes one slot of capacity holds: a tile of every stored array, and its version."""
-        cells = self.tile_size * self.tile_size
-        return cells * sum(np.dtype(a.dtype).itemsize for a in self.arrays) + 8
+        return tile_bytes(self.tile_size, self.arrays) + 8
 
     def tile_bounds(self) -> tuple[int, int, int, int] | None:
         """Cell-index bounds `(i0, j0, i1, j1)` (exclusive ends) of all tiles, or None if empty."""

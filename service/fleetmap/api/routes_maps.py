@@ -202,8 +202,7 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
             wire = await asyncio.to_thread(codec.decode, body, content_type)
     except codec.DecodeError as exc:
         registry.reject(map_id, robot_id, str(exc))  # counted as over Zenoh, too large or not
-        # A payload over the scan limit is "too much at once" (413), however far below the body limit.
-        raise ApiError(413 if isinstance(exc, codec.PayloadTooLarge) else 422, str(exc)) from None
+        raise  # the app's handlers answer it: 413 past the payload limit (PayloadTooLarge), else 422
     try:
         future = registry.submit(map_id, robot_id, wire, wait=True)
     except IngestRejected as exc:
