@@ -1,0 +1,68 @@
+"""The engine as a library, as its documentation presents it: the public names of `fleetmap`, the
+README's example run as written, and clear errors for the wrong inputs a new user gives."""
+
+from __future__ import annotations
+
+import importlib
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import fleetmap
+from fleetmap.grid_map import GridMap
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+# -- the public import surface ---------------------------------------------------------------------
+
+
+def test_every_public_name_comes_from_its_module() -> None:
+    """`from fleetmap import X` gives the object its module defines, for every name in `__all__`."""
+    assert fleetmap.__all__ == sorted(fleetmap.__all__)
+    for name in fleetmap.__all__:
+        defining = importlib.import_module(fleetmap._EXPORTS[name])
+        assert getattr(fleetmap, name) is getattr(defining, name), name
+    with pytest.raises(AttributeError, match="no attribute 'Gridmap'"):
+        fleetmap.Gridmap  # noqa: B018
+
+
+def test_fleetmap_is_a_regular_typed_package() -> None:
+    """A package with an `__init__.py` and `py.typed` beside it, in both distributions' packages:
+    a namespace package's `py.typed` does not mark its modules typed (PEP 561)."""
+    import fleetmap_client
+
+    for package in (fleetmap, fleetmap_client):
+        assert package.__file__ is not None, f"{package.__name__} is a namespace package"
+        assert (Path(package.__file__).parent / "py.typed").is_file(), package.__name__
+
+
+def test_importing_the_wire_schema_loads_no_compiler() -> None:
+    """The names are lazy: a robot that imports `fleetmap.wire` and `fleetmap.codec` (through the
+    package's `__init__`) neither imports numba nor the engine's kernels."""
+    code = (
+        "import sys, fleetmap, fleetmap.wire, fleetmap.codec\n"
+        "from fleetmap import MapConfig, Scan\n"
+        "print(sorted(m for m in ('numba', 'fleetmap.grid_map', 'fleetmap.kernels') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_the_readme_library_example_runs_as_written() -> None:
+    """The README's "Use the engine as a library" block, with its free names (`ranges`, the window)
+    given values, runs and reads back what it integrated."""
+    readme = (REPO / "README.md").read_text()
+    section = readme.split("## Use the engine as a library", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S)
+    assert code is not None
+    namespace: dict[str, object] = {"ranges": np.full(1081, 3.0), "i0": 0, "j0": 0, "i1": 60, "j1": 80}
+    exec(compile(textwrap.dedent(code.group(1)), "README.md", "exec"), namespace)
+    gmap = namespace["gmap"]
+    assert isinstance(gmap, GridMap)
+    assert gmap.cells([[2.0, 2.5]])["known"].tolist() == [True]
