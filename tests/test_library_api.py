@@ -4,6 +4,7 @@ README's example run as written, and clear errors for the wrong inputs a new use
 from __future__ import annotations
 
 import importlib
+import math
 import re
 import subprocess
 import sys
@@ -15,6 +16,7 @@ import pytest
 
 import fleetmap
 from fleetmap.grid_map import GridMap
+from fleetmap.scan import Pose2D, Scan, ScanError
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -66,3 +68,42 @@ def test_the_readme_library_example_runs_as_written() -> None:
     gmap = namespace["gmap"]
     assert isinstance(gmap, GridMap)
     assert gmap.cells([[2.0, 2.5]])["known"].tolist() == [True]
+
+
+# -- Scan: one meaning for each input, clear errors ------------------------------------------------
+
+
+def test_scan_built_directly_means_what_from_angles_means() -> None:
+    """`Scan(...)` takes a pose tuple and lists as `from_angles` does, and None is "no return"
+    (+inf) in both: it was NaN, an invalid reading, when the constructor was called directly."""
+    direct = Scan((1, 2, 0.5), [0.0, 0.1], [1.0, None], 0, 10)  # type: ignore[arg-type]
+    built = Scan.from_angles((1, 2, 0.5), [0.0, 0.1], [1.0, None], 0, 10)
+    assert direct.pose == built.pose == Pose2D(1.0, 2.0, 0.5)
+    np.testing.assert_array_equal(direct.ranges, [1.0, math.inf])
+    np.testing.assert_array_equal(direct.ranges, built.ranges)
+    assert direct.ranges.dtype == direct.angles.dtype == np.float64
+    assert isinstance(direct.range_min, float) and isinstance(direct.range_max, float)
+    assert direct.no_return_mask().tolist() == [False, True]
+
+
+@pytest.mark.parametrize(
+    ("build", "message"),
+    [
+        (lambda: Scan.from_fan((0, 0), 0, 0.1, [1.0]), r"pose must be a Pose2D or an \(x, y, theta\)"),
+        (lambda: Scan.from_fan({"x": 0, "y": 0, "theta": 0}, 0, 0.1, [1.0]), "pose must be a Pose2D"),
+        (lambda: Scan.from_fan(("a", 0, 0), 0, 0.1, [1.0]), "pose must be a Pose2D"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, "123"), "ranges must be a sequence.*, got str"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, 3.0), "ranges must be a sequence.*, got float"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, np.array(["1", "x"])), "ranges must be numbers"),
+        (lambda: Scan.from_angles((0, 0, 0), ["a"], [1.0]), "angles must be numbers"),
+        (lambda: Scan.from_fan((0, 0, 0), "a", 0.1, [1.0]), "angle_min must be a number, got 'a'"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, [1.0], range_max=None), "range_max must be a number"),
+        (lambda: Scan(Pose2D(0, 0, 0), [0.0], [1.0], "x", 5.0), "range_min must be a number, got 'x'"),  # type: ignore[arg-type]
+        (lambda: Scan((0, 0), [0.0], [1.0], 0.0, 5.0), "pose must be a Pose2D"),  # type: ignore[arg-type]
+    ],
+)  # fmt: skip
+def test_scan_inputs_that_are_not_numbers_raise_scan_error(build: object, message: str) -> None:
+    """Each raised numpy's bare ValueError, a TypeError or an AttributeError ('tuple' object has no
+    attribute 'is_finite'), or, for a string of digits, built a scan of its characters."""
+    with pytest.raises(ScanError, match=message):
+        build()  # type: ignore[operator]
