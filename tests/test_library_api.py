@@ -13,12 +13,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 import fleetmap
+from fleetmap.export import write_build_outputs
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan, ScanError
 
 REPO = Path(__file__).resolve().parent.parent
+
+
+def _fan(pose: tuple[float, float, float] = (0.5, 0.5, 0.0), n: int = 90) -> Scan:
+    return Scan.from_fan(pose, -math.pi / 2, math.pi / n, np.full(n, 2.0), 0.05, 10.0)
 
 
 # -- the public import surface ---------------------------------------------------------------------
@@ -107,3 +113,56 @@ def test_scan_inputs_that_are_not_numbers_raise_scan_error(build: object, messag
     attribute 'is_finite'), or, for a string of digits, built a scan of its characters."""
     with pytest.raises(ScanError, match=message):
         build()  # type: ignore[operator]
+
+
+# -- GridMap: its inputs ---------------------------------------------------------------------------
+
+
+def test_grid_map_takes_a_configuration_dict_and_refuses_other_things() -> None:
+    assert GridMap({"resolution": 0.1, "layers": ["occupancy"]}).config.layers == ["occupancy"]  # type: ignore[arg-type]
+    with pytest.raises(ValidationError, match="tile_size must be a power of two"):
+        GridMap({"tile_size": 100})  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="config must be a MapConfig, .* not float"):
+        GridMap(0.05)  # type: ignore[arg-type]
+
+
+def test_integrate_refuses_what_is_not_a_scan() -> None:
+    gmap = GridMap()
+    for wrong in ([1.0, 2.0], {"pose": (0, 0, 0)}):
+        with pytest.raises(TypeError, match="expected a fleetmap Scan"):
+            gmap.integrate(wrong)  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match="expected a fleetmap Scan"):
+            gmap.plan(wrong)  # type: ignore[arg-type]
+    assert len(gmap.store) == 0
+
+
+def test_cells_reads_only_x_y_pairs() -> None:
+    """Two rows of (x, y, z) were read as three points, silently; now it is an error. One pair alone
+    is one point, and a point beyond any cell a map can hold reads as unknown, without a warning."""
+    gmap = GridMap()
+    gmap.integrate(_fan())
+    with pytest.raises(ValueError, match=r"shape \(n, 2\); got shape \(2, 3\)"):
+        gmap.cells([[1.0, 0.5, 0.0], [2.0, 0.5, 0.0]])
+    with pytest.raises(ValueError, match="finite"):
+        gmap.cells([[math.nan, 0.5]])
+    with pytest.raises(ValueError, match="pairs of numbers"):
+        gmap.cells([["a", 0.5]])
+    one = gmap.cells([2.51, 0.5])
+    assert one["known"].tolist() == [True] and one["hits"].tolist() == [1]
+    assert gmap.cells(np.zeros((0, 2)))["known"].shape == (0,)
+    with np.errstate(all="raise"):
+        far = gmap.cells([[1e300, -1e300], [2.51, 0.5]])
+    assert far["known"].tolist() == [False, True]
+
+
+def test_occupancy_clamp_error_names_the_probabilities_it_was_given_as() -> None:
+    with pytest.raises(ValidationError, match=r"p_min < 0.5 < p_max.*p_min 0.9, p_max 0.2"):
+        fleetmap.OccupancyParams(p_min=0.9, p_max=0.2)
+
+
+def test_write_build_outputs_takes_a_string_path(tmp_path: Path) -> None:
+    gmap = GridMap()
+    gmap.integrate(_fan())
+    written = write_build_outputs(gmap, str(tmp_path / "out"))
+    assert {p.name for p in written} >= {"map.yaml", "map.pgm", "map.png", "meta.json", "log_odds.npy"}
+    assert all(p.is_file() for p in written)
