@@ -228,4 +228,5 @@ class MapConfig(BaseModel):
         return self
 
     def has(self, layer: LayerName) -> bool:
+        """Whether the map keeps `layer` (`occupancy`, `counts` or `tsdf`)."""
         return layer in self.layers

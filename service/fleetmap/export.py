@@ -38,6 +38,7 @@ class Window:
 
     @property
     def shape(self) -> tuple[int, int]:
+        """(rows, columns) = (j1 - j0, i1 - i0), the shape of the window's arrays."""
         return self.j1 - self.j0, self.i1 - self.i0
 
     def origin(self, resolution: float) -> tuple[float, float]:

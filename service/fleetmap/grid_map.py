@@ -116,6 +116,7 @@ class GridMap:
 
     @property
     def resolution(self) -> float:
+        """Metres per cell side (the configuration's)."""
         return self.config.resolution
 
     # -- writing ---------------------------------------------------------------------------------
@@ -349,6 +350,7 @@ class GridMap:
         return np.stack([(xs + i0) * self.resolution, (ys + j0) * self.resolution], axis=1)
 
     def memory_bytes(self) -> int:
+        """Bytes the map's tiles hold: `TileStore.memory_bytes` (capacity, not only tiles in use)."""
         return self.store.memory_bytes()
 
     def _source(self, layer: str) -> str:

@@ -31,6 +31,7 @@ class Pose2D:
     theta: float
 
     def is_finite(self) -> bool:
+        """Whether x, y and theta are all finite (no NaN or infinity): `Scan` requires it."""
         return math.isfinite(self.x) and math.isfinite(self.y) and math.isfinite(self.theta)
 
 
@@ -123,6 +124,7 @@ class Scan:
 
     @property
     def num_beams(self) -> int:
+        """The number of beams (of angles, and of ranges)."""
         return int(self.ranges.size)
 
     def returns_mask(self) -> np.ndarray:
