@@ -9,9 +9,12 @@ same scans (decoded from the same payloads, so float32 wire rounding is the same
 from __future__ import annotations
 
 import io
+import json
 import threading
+import time
 import zipfile
 from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
@@ -116,6 +119,58 @@ def test_ids_are_checked_before_any_request(client: FleetmapClient) -> None:
         client.region("m", 0, 0, 1)
     with pytest.raises(ValueError, match="finite"):
         client.cell("m", float("nan"), 0)
+
+
+def test_bad_arguments_are_refused_before_any_request(client: FleetmapClient, scans: list[Scan]) -> None:
+    """Each of these went to the server before: (x, y, z) rows were sent as 3n/2 points, an unknown
+    encoding posted the scan as JSON, and a bad id of `events` waited for the first `next()`."""
+    client.create_map("args", CONFIG)
+    with pytest.raises(ValueError, match=r"shape \(n, 2\); got shape \(2, 3\)"):
+        client.cells("args", [[0.5, 0.5, 0.0], [1.0, 1.0, 0.0]])
+    with pytest.raises(ValueError, match="encoding must be 'json' or 'binary', got 'msgpack'"):
+        client.post_scan("args", "r1", scans[0], encoding="msgpack")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="map_id 'a/b' is invalid"):
+        client.events("a/b")
+    stats = client.get_map("args").stats
+    assert stats.scans_integrated == 0 and stats.robots == {}
+    assert client.cells("args", [0.5, 0.5])["known"].tolist() == [False]  # one pair: one point
+
+
+def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
+    """The service answers a scan once it is integrated, or 503 after its own wait (10 s by
+    default): a client whose timeout is not longer than that got httpx's bare ReadTimeout instead
+    of the 503 saying the scan will still be integrated. A real HTTP server answers here as the
+    service does, 1.5 s late; the client's timeout is 1 s, which still bounds other requests."""
+    detail = "the scan was not integrated within 1.5 s; it will be"
+
+    class SlowService(BaseHTTPRequestHandler):
+        def _answer_late(self) -> None:
+            self.rfile.read(int(self.headers.get("content-length") or 0))
+            time.sleep(1.5)
+            body = json.dumps({"detail": detail}).encode()
+            self.send_response(503)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        do_GET = do_POST = _answer_late
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), SlowService)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with FleetmapClient(f"http://127.0.0.1:{server.server_address[1]}", timeout=1.0) as slow:
+            with pytest.raises(FleetmapError) as exc:
+                slow.post_scan("late", "r1", scans[0])
+            assert exc.value.status == 503 and exc.value.detail == detail
+            with pytest.raises(httpx.ReadTimeout):
+                slow.health()
+    finally:
+        server.shutdown()
+        server.server_close()
 
 
 # -- scans and queries -----------------------------------------------------------------------------

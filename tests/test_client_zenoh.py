@@ -248,6 +248,36 @@ def test_publisher_rejects_bad_arguments_and_use_after_close(router: Router, sim
     assert pub.wait_connected(0.1) is False
 
 
+def test_a_refused_publish_leaves_no_gap_in_the_seqs(router: Router, sim_scans: list[Scan]) -> None:
+    """A call that raises publishes nothing and keeps the seq counter: it used to take a seq (a
+    dict failed while encoding, a float seq made the counter 3.5), which the service counts as a
+    lost scan."""
+    with ScanPublisher("m", "gapless", connect=[router.endpoint]) as pub:
+        assert pub.wait_connected(10)
+        assert pub.publish(sim_scans[0])
+        with pytest.raises(TypeError, match="publish takes a fleetmap Scan or ScanMessage, not dict"):
+            pub.publish({"pose": [0, 0, 0]})  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match="seq must be an integer, got 2.5"):
+            pub.publish(sim_scans[1], seq=2.5)  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match="stamp must be a number"):
+            pub.publish(sim_scans[1], stamp="now")  # type: ignore[arg-type]
+        assert (pub.last_seq, pub.next_seq, pub.published, pub.dropped) == (0, 1, 1, 0)
+        assert pub.publish(sim_scans[1])
+        got = router.wait_count(2, "fleetmap/m/gapless/scan")
+    assert [wire.seq for _, _, wire in got] == [0, 1]
+
+
+def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong() -> None:
+    """A string was read as a list of one-character endpoints; Zenoh's error carried the Rust
+    source path it was raised at."""
+    import json
+
+    assert json.loads(client_config("tcp/127.0.0.1:1").get_json("connect/endpoints")) == ["tcp/127.0.0.1:1"]
+    with pytest.raises(ValueError, match="must be of the form") as bad:
+        client_config(["nonsense"])
+    assert " at /" not in str(bad.value)
+
+
 def test_client_config_defaults_and_overrides() -> None:
     import json
 

@@ -116,7 +116,11 @@ class OccupancyParams(BaseModel):
         if miss >= 0:
             raise ValueError(f"l_miss must be negative (p_miss < 0.5), got {miss}")
         if not lo < 0 < hi:
-            raise ValueError(f"the clamp must satisfy l_min < 0 < l_max, got [{lo}, {hi}]")
+            # Said both ways: a clamp given as p_min / p_max is refused in the terms it was given in.
+            raise ValueError(
+                f"the clamp must satisfy l_min < 0 < l_max (p_min < 0.5 < p_max), got l_min {lo:g}, "
+                f"l_max {hi:g} (p_min {probability(lo):.6g}, p_max {probability(hi):.6g})"
+            )
         if self.free_thresh >= self.occupied_thresh:
             raise ValueError("free_thresh must be below occupied_thresh")
         # Store the resolved values; probabilities are derived, so drop them to keep one truth.
@@ -224,4 +228,5 @@ class MapConfig(BaseModel):
         return self
 
     def has(self, layer: LayerName) -> bool:
+        """Whether the map keeps `layer` (`occupancy`, `counts` or `tsdf`)."""
         return layer in self.layers

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,7 @@ class Window:
 
     @property
     def shape(self) -> tuple[int, int]:
+        """(rows, columns) = (j1 - j0, i1 - i0), the shape of the window's arrays."""
         return self.j1 - self.j0, self.i1 - self.i0
 
     def origin(self, resolution: float) -> tuple[float, float]:
@@ -138,16 +140,19 @@ def map_png(gmap: GridMap, window: Window) -> bytes:
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
+    """`array` in numpy's .npy format (no pickled objects), as `np.load` reads it back."""
     buf = io.BytesIO()
     np.save(buf, array, allow_pickle=False)
     return buf.getvalue()
 
 
-def write_build_outputs(gmap: GridMap, out_dir: Path, margin: int = 2) -> list[Path]:
-    """Everything `fleetmap build` writes: map.yaml, map.pgm, map.png, one .npy per stored layer,
-    and meta.json. The map files show the occupancy layer, or for a map that keeps only counts (and
-    maybe the TSDF) the count model's `hits / (hits + misses)`, which meta.json's `map_source`
+def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: int = 2) -> list[Path]:
+    """Everything `fleetmap build` writes into `out_dir` (created if missing): map.yaml, map.pgm,
+    map.png, one .npy per stored layer, and meta.json, over the observed cells plus `margin` unknown
+    cells around them. The map files show the occupancy layer, or for a map that keeps only counts
+    (and maybe the TSDF) the count model's `hits / (hits + misses)`, which meta.json's `map_source`
     names. Returns the paths written; raises ValueError for a map with no observed cell."""
+    out_dir = Path(out_dir)
     window = known_window(gmap, margin)
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 import threading
-from typing import NamedTuple
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -76,10 +77,23 @@ class IntegrationResult(NamedTuple):
 
 
 class GridMap:
-    """A sparse, unbounded 2D map with the layers its `MapConfig` switches on."""
+    """A sparse, unbounded 2D map with the layers its `MapConfig` switches on.
 
-    def __init__(self, config: MapConfig | None = None) -> None:
-        self.config = config or MapConfig()
+    `config` is a `MapConfig`, a dict of its fields (validated as `MapConfig.model_validate` does:
+    pydantic's `ValidationError`, a ValueError, for a bad one) or None for the defaults. Thread-safe:
+    writers and readers share `lock`.
+    """
+
+    def __init__(self, config: MapConfig | Mapping[str, Any] | None = None) -> None:
+        if config is None:
+            config = MapConfig()
+        elif isinstance(config, Mapping):
+            config = MapConfig.model_validate(config)
+        elif not isinstance(config, MapConfig):
+            raise TypeError(
+                f"config must be a MapConfig, a dict of its fields or None, not {type(config).__name__}"
+            )
+        self.config = config
         self.store = TileStore(self.config.tile_size, self.config.layers, self.config.max_tiles)
         self.lock = threading.RLock()
         cfg = self.config
@@ -102,6 +116,7 @@ class GridMap:
 
     @property
     def resolution(self) -> float:
+        """Metres per cell side (the configuration's)."""
         return self.config.resolution
 
     # -- writing ---------------------------------------------------------------------------------
@@ -111,7 +126,9 @@ class GridMap:
 
         When it can, it traces and applies in one compiled call and holds the lock for the whole
         scan. Callers that want readers and other writers to wait only for the apply (the service's
-        ingest) call `plan` without the lock and then `apply`: the same result."""
+        ingest) call `plan` without the lock and then `apply`: the same result. Raises `ScanError`
+        for a scan beyond the map's coordinate range, TypeError for anything but a `Scan`."""
+        _check_scan(scan)
         if self._in_place:
             result = self._integrate_in_place(scan)
             if result is not None:
@@ -149,6 +166,7 @@ class GridMap:
 
     def plan(self, scan: Scan) -> UpdatePlan:
         """The updates `scan` implies; touches no map state, so it needs no lock."""
+        _check_scan(scan)
         return plan_scan(scan, self.config, self.store.shift)
 
     def apply(self, plan: UpdatePlan) -> IntegrationResult:
@@ -231,11 +249,19 @@ class GridMap:
             state[p < self.config.occupancy.free_thresh] = STATE_FREE
         return state
 
-    def cells(self, points: np.ndarray) -> dict[str, np.ndarray]:
-        """Every kept layer's value at each map point (rows of (x, y)); unknown as in `region`."""
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        ci = np.floor(pts[:, 0] / self.resolution).astype(np.int64)
-        cj = np.floor(pts[:, 1] / self.resolution).astype(np.int64)
+    def cells(self, points: Sequence[Sequence[float]] | np.ndarray) -> dict[str, np.ndarray]:
+        """Every kept layer's value at each map point, one entry per point in order.
+
+        `points`: (x, y) pairs in metres, shape (n, 2) (one pair alone is one point); ValueError for
+        another shape or a non-finite coordinate. Returns numpy arrays keyed `known` (bool) and, for
+        the layers the map keeps, `log_odds` (float32, NaN if unknown), `probability` (float32, 0.5
+        if unknown), `state` (uint8 codes `STATE_UNKNOWN` / `STATE_FREE` / `STATE_OCCUPIED`), `hits`,
+        `misses` (uint32), `tsdf` (float32, NaN if unknown) and `tsdf_weight` (float32)."""
+        pts = as_points(points)
+        # Clipped before the cast: a point far beyond any cell a map can hold (1e300) is unknown,
+        # not an int64 overflow that numpy would turn into an arbitrary index with a warning.
+        ci = np.clip(np.floor(pts[:, 0] / self.resolution), -_FAR_CELL, _FAR_CELL).astype(np.int64)
+        cj = np.clip(np.floor(pts[:, 1] / self.resolution), -_FAR_CELL, _FAR_CELL).astype(np.int64)
         s, mask = self.store.shift, self.store.mask
         out: dict[str, np.ndarray] = {}
         names = [a.name for a in self.store.arrays]
@@ -324,6 +350,7 @@ class GridMap:
         return np.stack([(xs + i0) * self.resolution, (ys + j0) * self.resolution], axis=1)
 
     def memory_bytes(self) -> int:
+        """Bytes the map's tiles hold: `TileStore.memory_bytes` (capacity, not only tiles in use)."""
         return self.store.memory_bytes()
 
     def _source(self, layer: str) -> str:
@@ -335,6 +362,36 @@ class GridMap:
                 f"layer {layer!r} needs the {needs!r} layer, which this map does not keep"
             )
         return source
+
+
+#: A cell index beyond any a map can hold (scans reach at most MAX_CELL_INDEX = 2**40 cells).
+_FAR_CELL = 2.0**50
+
+
+def as_points(points: Sequence[Sequence[float]] | np.ndarray) -> np.ndarray:
+    """Map points as a float64 array of shape (n, 2); one (x, y) pair alone is one point, an empty
+    sequence none. Raises ValueError for any other shape (an (n, 3) array is not read as 3n/2
+    points), for values that are not numbers, and for a coordinate that is not finite."""
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"points must be (x, y) pairs of numbers: {exc}") from None
+    if pts.size == 0:
+        return pts.reshape(0, 2)
+    if pts.shape == (2,):
+        pts = pts.reshape(1, 2)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points must be (x, y) pairs, an array of shape (n, 2); got shape {pts.shape}")
+    if not np.isfinite(pts).all():
+        raise ValueError("points must be finite numbers")
+    return pts
+
+
+def _check_scan(scan: object) -> None:
+    if not isinstance(scan, Scan):
+        raise TypeError(
+            f"expected a fleetmap Scan (Scan.from_fan, Scan.from_angles), not {type(scan).__name__}"
+        )
 
 
 def _distinct_tiles(ti: np.ndarray, tj: np.ndarray) -> tuple[tuple[list[int], list[int]], np.ndarray]:

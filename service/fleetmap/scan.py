@@ -8,7 +8,7 @@ builds nothing.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +31,7 @@ class Pose2D:
     theta: float
 
     def is_finite(self) -> bool:
+        """Whether x, y and theta are all finite (no NaN or infinity): `Scan` requires it."""
         return math.isfinite(self.x) and math.isfinite(self.y) and math.isfinite(self.theta)
 
 
@@ -42,6 +43,12 @@ class Scan:
     measured range in metres, NaN for an invalid reading and +inf (or anything >= `range_max`) for
     "no return". Readings below `range_min` (negative ones included: some drivers report errors so)
     or NaN are ignored by every sensor model, and the scan's other beams are integrated.
+
+    Build one with `from_fan` (ROS LaserScan style) or `from_angles`, or directly, which takes the
+    same inputs: a `Pose2D` or an (x, y, theta) sequence, sequences or arrays of numbers (stored as
+    contiguous float64; None in `ranges` means "no return", as in JSON), and numbers for the range
+    window. Anything invalid (non-finite pose or angles, mismatched lengths, a range window that is
+    not `0 <= range_min < range_max`, inputs that are not numbers) raises `ScanError`, a ValueError.
     """
 
     pose: Pose2D
@@ -51,10 +58,22 @@ class Scan:
     range_max: float
 
     def __post_init__(self) -> None:
-        angles = np.ascontiguousarray(self.angles, dtype=np.float64)
-        ranges = np.ascontiguousarray(self.ranges, dtype=np.float64)
-        object.__setattr__(self, "angles", angles)
-        object.__setattr__(self, "ranges", ranges)
+        # The constructor takes what `from_fan` / `from_angles` take (a pose tuple, lists, None for
+        # "no return"), so that building a Scan directly means the same as through them.
+        # The checks of types already right are skipped: every decoded and replayed scan comes here.
+        if type(self.pose) is not Pose2D:
+            object.__setattr__(self, "pose", _as_pose(self.pose))
+        angles, ranges = self.angles, self.ranges
+        if type(angles) is not np.ndarray or angles.dtype != np.float64:
+            angles = _as_floats("angles", angles)
+        if type(ranges) is not np.ndarray or ranges.dtype != np.float64:
+            ranges = ranges_to_array(ranges)
+        object.__setattr__(self, "angles", np.ascontiguousarray(angles))
+        object.__setattr__(self, "ranges", np.ascontiguousarray(ranges))
+        if type(self.range_min) is not float:
+            object.__setattr__(self, "range_min", _as_number("range_min", self.range_min))
+        if type(self.range_max) is not float:
+            object.__setattr__(self, "range_max", _as_number("range_max", self.range_max))
         if not self.pose.is_finite():
             raise ScanError(f"pose must be finite, got {self.pose}")
         if angles.ndim != 1 or ranges.ndim != 1:
@@ -82,10 +101,12 @@ class Scan:
     ) -> Scan:
         """Build a scan whose beam i points at `angle_min + i * angle_increment` (ROS LaserScan style)."""
         r = ranges_to_array(ranges)
+        angle_min = _as_number("angle_min", angle_min)
+        angle_increment = _as_number("angle_increment", angle_increment)
         if not (math.isfinite(angle_min) and math.isfinite(angle_increment)):
             raise ScanError("angle_min and angle_increment must be finite")
         angles = angle_min + angle_increment * np.arange(r.size, dtype=np.float64)
-        return cls(_as_pose(pose), angles, r, float(range_min), float(range_max))
+        return cls(_as_pose(pose), angles, r, range_min, range_max)
 
     @classmethod
     def from_angles(
@@ -96,17 +117,14 @@ class Scan:
         range_min: float = 0.0,
         range_max: float = math.inf,
     ) -> Scan:
-        """Build a scan from an explicit list of beam bearings."""
-        return cls(
-            _as_pose(pose),
-            np.asarray(angles, dtype=np.float64),
-            ranges_to_array(ranges),
-            float(range_min),
-            float(range_max),
-        )
+        """Build a scan from an explicit list of beam bearings (radians, relative to the heading),
+        one per range."""
+        angles_array = _as_floats("angles", angles)
+        return cls(_as_pose(pose), angles_array, ranges_to_array(ranges), range_min, range_max)
 
     @property
     def num_beams(self) -> int:
+        """The number of beams (of angles, and of ranges)."""
         return int(self.ranges.size)
 
     def returns_mask(self) -> np.ndarray:
@@ -132,17 +150,43 @@ class Scan:
 
 def ranges_to_array(ranges: Sequence[float | None] | np.ndarray) -> np.ndarray:
     """Ranges as float64; None (a JSON null) becomes +inf, i.e. "no return", in a list and in an
-    object array alike (numpy alone would make it NaN, an invalid reading)."""
+    object array alike (numpy alone would make it NaN, an invalid reading). Raises `ScanError` for
+    anything that is not a sequence of numbers and None (a string is not one)."""
     if isinstance(ranges, np.ndarray) and ranges.dtype != object:
-        return ranges.astype(np.float64, copy=False)
+        return _as_floats("ranges", ranges)
+    if isinstance(ranges, str | bytes) or not isinstance(ranges, Iterable):
+        raise ScanError(f"ranges must be a sequence of numbers or None, got {type(ranges).__name__}")
     try:
         return np.array([math.inf if v is None else float(v) for v in ranges], dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise ScanError(f"ranges must be numbers or null: {exc}") from None
+        raise ScanError(f"ranges must be numbers or None: {exc}") from None
+
+
+def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
+    """`values` as a float64 array, or `ScanError` naming `name` (not numpy's bare ValueError)."""
+    if isinstance(values, str | bytes):
+        raise ScanError(f"{name} must be a sequence of numbers, got {type(values).__name__}")
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ScanError(f"{name} must be numbers: {exc}") from None
+
+
+def _as_number(name: str, value: float) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ScanError(f"{name} must be a number, got {value!r}") from None
 
 
 def _as_pose(pose: Pose2D | tuple[float, float, float]) -> Pose2D:
+    """A `Pose2D`, or one made of an (x, y, theta) sequence; `ScanError` for anything else."""
     if isinstance(pose, Pose2D):
         return pose
-    x, y, theta = pose
-    return Pose2D(float(x), float(y), float(theta))
+    try:
+        x, y, theta = (float(v) for v in pose)
+    except (TypeError, ValueError):
+        raise ScanError(
+            f"pose must be a Pose2D or an (x, y, theta) sequence of numbers, got {pose!r}"
+        ) from None
+    return Pose2D(x, y, theta)

@@ -34,6 +34,7 @@ BINARY_ENCODING = "application/x-fleetmap-scan"
 
 
 def is_valid_id(value: str) -> bool:
+    """Whether `value` is a valid map or robot id (`ID_PATTERN`: 1 to 64 of A-Z a-z 0-9 _ -)."""
     return bool(_ID_RE.match(value))
 
 

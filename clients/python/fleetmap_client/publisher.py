@@ -34,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import numbers
 import threading
 import time
 from collections.abc import Sequence
@@ -62,7 +63,7 @@ class PublisherClosed(RuntimeError):
 
 
 def client_config(
-    connect: Sequence[str] | None = None, zenoh_config: zenoh.Config | str | Path | None = None
+    connect: Sequence[str] | str | None = None, zenoh_config: zenoh.Config | str | Path | None = None
 ) -> zenoh.Config:
     """The Zenoh configuration of a robot's session.
 
@@ -85,18 +86,27 @@ def client_config(
     if _get(cfg, "mode") is None:
         cfg.insert_json5("mode", '"client"')
     if connect is not None or not _get(cfg, "connect/endpoints"):
-        endpoints = list(DEFAULT_CONNECT if connect is None else connect)
+        # One endpoint given as a string is that endpoint, not a list of its characters.
+        if isinstance(connect, str):
+            endpoints = [connect]
+        else:
+            endpoints = list(DEFAULT_CONNECT if connect is None else connect)
         if not endpoints or not all(isinstance(e, str) and e for e in endpoints):
             raise ValueError(f"connect must be a non-empty list of Zenoh endpoints, got {connect!r}")
         try:
             cfg.insert_json5("connect/endpoints", _json_list(endpoints))
         except zenoh.ZError as exc:
-            raise ValueError(f"invalid Zenoh endpoint in {endpoints}: {exc}") from None
+            raise ValueError(f"invalid Zenoh endpoint in {endpoints}: {_zenoh_message(exc)}") from None
     if _get(cfg, "connect/timeout_ms") is None:
         cfg.insert_json5("connect/timeout_ms", str(CONNECT_ATTEMPT_MS))
     if _get(cfg, "scouting/multicast/enabled") is None:
         cfg.insert_json5("scouting/multicast/enabled", "false")
     return cfg
+
+
+def _zenoh_message(exc: zenoh.ZError) -> str:
+    """A Zenoh error's sentence without the Rust source location zenoh appends (" at /root/...")."""
+    return str(exc).split(" at /", 1)[0]
 
 
 def _get(cfg: zenoh.Config, key: str) -> Any:
@@ -114,8 +124,8 @@ class ScanPublisher:
     Args:
         map_id, robot_id: ids matching `fleetmap.wire.ID_PATTERN` (`[A-Za-z0-9_-]{1,64}`); anything
             else raises ValueError at construction.
-        connect: Zenoh endpoints of the service (default: those of `zenoh_config`, else
-            `tcp/127.0.0.1:7447`, where `fleetmap serve` listens by default).
+        connect: Zenoh endpoints of the service, a list or one string (default: those of
+            `zenoh_config`, else `tcp/127.0.0.1:7447`, where `fleetmap serve` listens by default).
         encoding: "binary" (compact, for high rates) or "json".
         zenoh_config: a `zenoh.Config` or JSON5 file to start from (see `client_config`).
         block: True (default) publishes with `CongestionControl.BLOCK` (a full link blocks `publish`,
@@ -128,7 +138,7 @@ class ScanPublisher:
         self,
         map_id: str,
         robot_id: str,
-        connect: Sequence[str] | None = None,
+        connect: Sequence[str] | str | None = None,
         encoding: Encoding = "binary",
         zenoh_config: zenoh.Config | str | Path | None = None,
         block: bool = True,
@@ -177,7 +187,7 @@ class ScanPublisher:
             try:
                 session = zenoh.open(self._config)
             except zenoh.ZError as exc:
-                self.last_connect_error = str(exc).split(" at /", 1)[0]
+                self.last_connect_error = _zenoh_message(exc)
                 # An attempt that failed fast (e.g. connection refused with a zero timeout) must not spin.
                 self._closed.wait(max(0.0, 0.2 - (time.monotonic() - started)))
                 continue
@@ -251,15 +261,29 @@ class ScanPublisher:
 
         Returns True when the scan was handed to a connected session, False when it was dropped
         because no router is connected (counted in `dropped`). Raises `PublisherClosed` after
-        `close()`, ValueError for a negative or too large seq or a non-finite stamp, and
-        `fleetmap.scan.ScanError` for a `ScanMessage` the engine refuses.
+        `close()`, TypeError for a `scan` that is neither, a seq that is not an integer or a stamp
+        that is not a number, ValueError for a negative or too large seq or a non-finite stamp, and
+        `fleetmap.scan.ScanError` for a `ScanMessage` the engine refuses. A call that raises
+        publishes nothing and leaves the seq counter as it was (the service would count a skipped
+        seq as a lost scan).
         """
         if isinstance(scan, ScanMessage):
             seq = scan.seq if seq is None else seq
             stamp = scan.stamp if stamp is None else stamp
             scan = scan.to_scan()
+        elif not isinstance(scan, Scan):
+            raise TypeError(f"publish takes a fleetmap Scan or ScanMessage, not {type(scan).__name__}")
+        if seq is not None:
+            if isinstance(seq, bool) or not isinstance(seq, numbers.Integral):
+                raise TypeError(f"seq must be an integer, got {seq!r}")
+            seq = int(seq)
+            if not 0 <= seq < 2**63:
+                raise ValueError(f"seq must be in [0, 2**63), got {seq}")
         if stamp is None:
             stamp = time.time()
+        if isinstance(stamp, bool) or not isinstance(stamp, numbers.Real):
+            raise TypeError(f"stamp must be a number (seconds), got {stamp!r}")
+        stamp = float(stamp)
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite, got {stamp}")
         with self._lock:
@@ -267,12 +291,14 @@ class ScanPublisher:
                 raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
             if seq is None:
                 seq = self._next_seq
-            if not 0 <= seq < 2**63:
-                raise ValueError(f"seq must be in [0, 2**63), got {seq}")
+                if seq >= 2**63:
+                    raise ValueError("the automatic seq passed 2**63 - 1: publish with seq=0 to restart")
+            # Encoded before the counter moves, under the lock so that concurrent callers still get
+            # distinct seqs in order: a scan that cannot be encoded must not leave a gap.
+            payload = self._encode(scan, seq, stamp)
             self._next_seq = seq + 1
             self._last_seq = seq
             publisher = self._publisher
-        payload = self._encode(scan, seq, float(stamp))
         if publisher is None or not self.connected:
             with self._lock:
                 self.dropped += 1
@@ -313,6 +339,7 @@ class ScanPublisher:
 
     @property
     def closed(self) -> bool:
+        """True once `close()` was called: `publish` then raises `PublisherClosed`."""
         return self._closed.is_set()
 
     def __enter__(self) -> ScanPublisher:

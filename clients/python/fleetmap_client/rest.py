@@ -26,7 +26,7 @@ import io
 import json
 import math
 import os
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Generator, Iterator, Mapping, Sequence
 from types import TracebackType
 from typing import Any, Literal
 
@@ -47,13 +47,23 @@ from fleetmap.api_models import (
 )
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
+from fleetmap.grid_map import as_points
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
 
 #: The environment variable `FleetmapClient` reads its API token from when given none.
 TOKEN_ENV = "FLEETMAP_TOKEN"
 
+#: How long `post_scan` waits for the answer by default, seconds. The service holds a scan's answer
+#: until the scan is integrated and answers 503 itself after its own wait (10 s by default,
+#: `ApiSettings.scan_timeout`): the client must wait longer than that, or a slow integration would
+#: end in httpx's bare ReadTimeout instead of the server's 503 saying what happened.
+SCAN_TIMEOUT = 15.0
+
 Layer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
+#: What `FleetmapClient.events` returns: a generator (so `.close()` ends the stream early) of
+#: (event name, data) pairs.
+EventStream = Generator[tuple[str, dict[str, Any]], None, None]
 
 
 class FleetmapError(Exception):
@@ -88,18 +98,25 @@ def _bounds(
 class FleetmapClient:
     """A synchronous client of one fleetmap service at `base_url` (e.g. "http://127.0.0.1:8000").
 
-    `timeout` (seconds) applies to every request except the event stream's reads, which wait as long
-    as the stream lives (the server sends a keepalive every 15 s). `token`: an API token of the
+    `timeout` (seconds) applies to every request except two: `post_scan` waits for its answer up to
+    `scan_timeout` (default `SCAN_TIMEOUT`, 15 s, or `timeout` if longer), because the server
+    answers only once the scan is integrated, and the event stream's reads wait as long as the
+    stream lives (the server sends a keepalive every 15 s). `token`: an API token of the
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
     from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it).
     Thread-safe (one httpx.Client); use as a context manager or call `close()`.
     """
 
     def __init__(
-        self, base_url: str = "http://127.0.0.1:8000", timeout: float = 10.0, token: str | None = None
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        timeout: float = 10.0,
+        token: str | None = None,
+        scan_timeout: float = SCAN_TIMEOUT,
     ) -> None:
         self.base_url = base_url.rstrip("/")
         self.timeout = timeout
+        self.scan_timeout = max(scan_timeout, timeout)
         token = token if token is not None else os.environ.get(TOKEN_ENV) or None
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers)
@@ -114,6 +131,7 @@ class FleetmapClient:
         return response
 
     def close(self) -> None:
+        """Close the connection pool. Idempotent; a request afterwards raises RuntimeError."""
         self._http.close()
 
     def __enter__(self) -> FleetmapClient:
@@ -202,10 +220,14 @@ class FleetmapClient:
         (`seq` / `stamp`, when given, override theirs). `encoding` chooses the body for a `Scan`
         (JSON or the binary encoding of docs/protocol.md). Returns the `ScanResult` (status
         "integrated", or "duplicate" when the seq was not new). Raises `FleetmapError` 422 for an
-        invalid scan, 404 for an unknown map when the server does not create maps on first use.
+        invalid scan, 404 for an unknown map when the server does not create maps on first use,
+        503 when the server could not integrate it in time (it still will) or its queue is full.
+        Waits for the answer up to `scan_timeout` (see the class).
         """
         _check_id("map_id", map_id)
         _check_id("robot_id", robot_id)
+        if encoding not in ("json", "binary"):
+            raise ValueError(f"encoding must be 'json' or 'binary', got {encoding!r}")
         if isinstance(scan, Scan):
             if seq is None:
                 seq = self._next_seq.get((map_id, robot_id), 0)
@@ -230,6 +252,7 @@ class FleetmapClient:
         response = self._request(
             "POST", f"/maps/{map_id}/scans", params={"robot_id": robot_id}, content=body,
             headers={"content-type": content_type},
+            timeout=httpx.Timeout(self.timeout, read=self.scan_timeout),
         )  # fmt: skip
         if seq is not None:
             self._next_seq[(map_id, robot_id)] = seq + 1
@@ -246,16 +269,16 @@ class FleetmapClient:
     def cells(self, map_id: str, points: Sequence[Sequence[float]] | np.ndarray) -> dict[str, np.ndarray]:
         """`POST /maps/{map_id}/cells`: every layer at many map points at once.
 
-        `points` is (n, 2) x, y in metres. Returns one NumPy array per field, one entry per point in
-        order: `i`, `j` (int64 cell indices), `known` (bool), and for the layers the map keeps:
-        `log_odds` (float64, NaN if unknown), `probability` (float64, 0.5 if unknown), `state` (str:
-        "unknown" / "free" / "occupied"), `hits`, `misses` (int64), `tsdf` (float64, NaN if unknown),
-        `tsdf_weight` (float64). Fields of layers the map does not keep are absent.
+        `points` is (n, 2) x, y in metres (one pair alone is one point; ValueError for another shape
+        or a non-finite coordinate, before any request). Returns one NumPy array per field, one
+        entry per point in order: `i`, `j` (int64 cell indices), `known` (bool), and for the layers
+        the map keeps: `log_odds` (float64, NaN if unknown), `probability` (float64, 0.5 if
+        unknown), `state` (str: "unknown" / "free" / "occupied"), `hits`, `misses` (int64), `tsdf`
+        (float64, NaN if unknown), `tsdf_weight` (float64). Fields of layers the map does not keep
+        are absent.
         """
         _check_id("map_id", map_id)
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        if not np.isfinite(pts).all():
-            raise ValueError("points must be finite numbers")
+        pts = as_points(points)  # ValueError for another shape than (n, 2) or a non-finite value
         response = self._request("POST", f"/maps/{map_id}/cells", json={"points": pts.tolist()})
         parsed = CellsResponse.model_validate_json(response.content)
         out: dict[str, np.ndarray] = {
@@ -372,7 +395,7 @@ class FleetmapClient:
 
     # -- live events -------------------------------------------------------------------------------
 
-    def events(self, map_id: str, since: int | None = None) -> Iterator[tuple[str, dict[str, Any]]]:
+    def events(self, map_id: str, since: int | None = None) -> EventStream:
         """`GET /maps/{map_id}/events`: the map's server-sent events as (event, data) pairs, e.g.
         ("tiles", {"version": 7, "tiles": [[i0, j0, i1, j1], ...]}) or ("tiles", {"version": 9,
         "reset": True}), ("robots", {"robots": {...}}), ("replaced", {"id": ..., "version": v}) when
@@ -380,11 +403,15 @@ class FleetmapClient:
         with the new map's events, its versions starting at v), ("deleted", {"id": ...}) after which
         the stream ends. Keepalive comments are skipped. `since`: resume after that change version.
 
-        The iterator is lazy: the request is made on the first `next()`. It ends when the server
+        The generator is lazy: the request is made on the first `next()`. It ends when the server
         closes the stream; close it early with `.close()` on the generator (or by leaving a `for`
-        loop and dropping it). Raises `FleetmapError` (e.g. 404 unknown map) on the first `next()`.
+        loop and dropping it). Raises `FleetmapError` (e.g. 404 unknown map) on the first `next()`;
+        an invalid `map_id` raises ValueError here, at the call, as every other method does.
         """
         _check_id("map_id", map_id)
+        return self._events(map_id, since)
+
+    def _events(self, map_id: str, since: int | None) -> EventStream:
         params = {} if since is None else {"since": since}
         timeout = httpx.Timeout(self.timeout, read=None)  # the stream may be idle for a while
         with self._http.stream("GET", f"/maps/{map_id}/events", params=params, timeout=timeout) as response:
@@ -444,4 +471,12 @@ def _raise_for_error(response: httpx.Response) -> None:
     raise FleetmapError(response.status_code, detail, errors)
 
 
-__all__ = ["TOKEN_ENV", "FleetmapClient", "FleetmapError", "Layer", "parse_sse"]
+__all__ = [
+    "SCAN_TIMEOUT",
+    "TOKEN_ENV",
+    "EventStream",
+    "FleetmapClient",
+    "FleetmapError",
+    "Layer",
+    "parse_sse",
+]

@@ -1,0 +1,168 @@
+"""The engine as a library, as its documentation presents it: the public names of `fleetmap`, the
+README's example run as written, and clear errors for the wrong inputs a new user gives."""
+
+from __future__ import annotations
+
+import importlib
+import math
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+import fleetmap
+from fleetmap.export import write_build_outputs
+from fleetmap.grid_map import GridMap
+from fleetmap.scan import Pose2D, Scan, ScanError
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _fan(pose: tuple[float, float, float] = (0.5, 0.5, 0.0), n: int = 90) -> Scan:
+    return Scan.from_fan(pose, -math.pi / 2, math.pi / n, np.full(n, 2.0), 0.05, 10.0)
+
+
+# -- the public import surface ---------------------------------------------------------------------
+
+
+def test_every_public_name_comes_from_its_module() -> None:
+    """`from fleetmap import X` gives the object its module defines, for every name in `__all__`."""
+    assert fleetmap.__all__ == sorted(fleetmap.__all__)
+    for name in fleetmap.__all__:
+        defining = importlib.import_module(fleetmap._EXPORTS[name])
+        assert getattr(fleetmap, name) is getattr(defining, name), name
+    with pytest.raises(AttributeError, match="no attribute 'Gridmap'"):
+        fleetmap.Gridmap  # noqa: B018
+
+
+def test_fleetmap_is_a_regular_typed_package() -> None:
+    """A package with an `__init__.py` and `py.typed` beside it, in both distributions' packages:
+    a namespace package's `py.typed` does not mark its modules typed (PEP 561)."""
+    import fleetmap_client
+
+    for package in (fleetmap, fleetmap_client):
+        assert package.__file__ is not None, f"{package.__name__} is a namespace package"
+        assert (Path(package.__file__).parent / "py.typed").is_file(), package.__name__
+
+
+def test_importing_the_wire_schema_loads_no_compiler() -> None:
+    """The names are lazy: a robot that imports `fleetmap.wire` and `fleetmap.codec` (through the
+    package's `__init__`) neither imports numba nor the engine's kernels."""
+    code = (
+        "import sys, fleetmap, fleetmap.wire, fleetmap.codec\n"
+        "from fleetmap import MapConfig, Scan\n"
+        "print(sorted(m for m in ('numba', 'fleetmap.grid_map', 'fleetmap.kernels') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_the_readme_library_example_runs_as_written() -> None:
+    """The README's "Use the engine as a library" block, with its free names (`ranges`, the window)
+    given values, runs and reads back what it integrated."""
+    readme = (REPO / "README.md").read_text()
+    section = readme.split("## Use the engine as a library", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S)
+    assert code is not None
+    namespace: dict[str, object] = {"ranges": np.full(1081, 3.0), "i0": 0, "j0": 0, "i1": 60, "j1": 80}
+    exec(compile(textwrap.dedent(code.group(1)), "README.md", "exec"), namespace)
+    gmap = namespace["gmap"]
+    assert isinstance(gmap, GridMap)
+    assert gmap.cells([[2.0, 2.5]])["known"].tolist() == [True]
+
+
+# -- Scan: one meaning for each input, clear errors ------------------------------------------------
+
+
+def test_scan_built_directly_means_what_from_angles_means() -> None:
+    """`Scan(...)` takes a pose tuple and lists as `from_angles` does, and None is "no return"
+    (+inf) in both: it was NaN, an invalid reading, when the constructor was called directly."""
+    direct = Scan((1, 2, 0.5), [0.0, 0.1], [1.0, None], 0, 10)  # type: ignore[arg-type]
+    built = Scan.from_angles((1, 2, 0.5), [0.0, 0.1], [1.0, None], 0, 10)
+    assert direct.pose == built.pose == Pose2D(1.0, 2.0, 0.5)
+    np.testing.assert_array_equal(direct.ranges, [1.0, math.inf])
+    np.testing.assert_array_equal(direct.ranges, built.ranges)
+    assert direct.ranges.dtype == direct.angles.dtype == np.float64
+    assert isinstance(direct.range_min, float) and isinstance(direct.range_max, float)
+    assert direct.no_return_mask().tolist() == [False, True]
+
+
+@pytest.mark.parametrize(
+    ("build", "message"),
+    [
+        (lambda: Scan.from_fan((0, 0), 0, 0.1, [1.0]), r"pose must be a Pose2D or an \(x, y, theta\)"),
+        (lambda: Scan.from_fan({"x": 0, "y": 0, "theta": 0}, 0, 0.1, [1.0]), "pose must be a Pose2D"),
+        (lambda: Scan.from_fan(("a", 0, 0), 0, 0.1, [1.0]), "pose must be a Pose2D"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, "123"), "ranges must be a sequence.*, got str"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, 3.0), "ranges must be a sequence.*, got float"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, np.array(["1", "x"])), "ranges must be numbers"),
+        (lambda: Scan.from_angles((0, 0, 0), ["a"], [1.0]), "angles must be numbers"),
+        (lambda: Scan.from_fan((0, 0, 0), "a", 0.1, [1.0]), "angle_min must be a number, got 'a'"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, [1.0], range_max=None), "range_max must be a number"),
+        (lambda: Scan(Pose2D(0, 0, 0), [0.0], [1.0], "x", 5.0), "range_min must be a number, got 'x'"),  # type: ignore[arg-type]
+        (lambda: Scan((0, 0), [0.0], [1.0], 0.0, 5.0), "pose must be a Pose2D"),  # type: ignore[arg-type]
+    ],
+)  # fmt: skip
+def test_scan_inputs_that_are_not_numbers_raise_scan_error(build: object, message: str) -> None:
+    """Each raised numpy's bare ValueError, a TypeError or an AttributeError ('tuple' object has no
+    attribute 'is_finite'), or, for a string of digits, built a scan of its characters."""
+    with pytest.raises(ScanError, match=message):
+        build()  # type: ignore[operator]
+
+
+# -- GridMap: its inputs ---------------------------------------------------------------------------
+
+
+def test_grid_map_takes_a_configuration_dict_and_refuses_other_things() -> None:
+    assert GridMap({"resolution": 0.1, "layers": ["occupancy"]}).config.layers == ["occupancy"]  # type: ignore[arg-type]
+    with pytest.raises(ValidationError, match="tile_size must be a power of two"):
+        GridMap({"tile_size": 100})  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="config must be a MapConfig, .* not float"):
+        GridMap(0.05)  # type: ignore[arg-type]
+
+
+def test_integrate_refuses_what_is_not_a_scan() -> None:
+    gmap = GridMap()
+    for wrong in ([1.0, 2.0], {"pose": (0, 0, 0)}):
+        with pytest.raises(TypeError, match="expected a fleetmap Scan"):
+            gmap.integrate(wrong)  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match="expected a fleetmap Scan"):
+            gmap.plan(wrong)  # type: ignore[arg-type]
+    assert len(gmap.store) == 0
+
+
+def test_cells_reads_only_x_y_pairs() -> None:
+    """Two rows of (x, y, z) were read as three points, silently; now it is an error. One pair alone
+    is one point, and a point beyond any cell a map can hold reads as unknown, without a warning."""
+    gmap = GridMap()
+    gmap.integrate(_fan())
+    with pytest.raises(ValueError, match=r"shape \(n, 2\); got shape \(2, 3\)"):
+        gmap.cells([[1.0, 0.5, 0.0], [2.0, 0.5, 0.0]])
+    with pytest.raises(ValueError, match="finite"):
+        gmap.cells([[math.nan, 0.5]])
+    with pytest.raises(ValueError, match="pairs of numbers"):
+        gmap.cells([["a", 0.5]])
+    one = gmap.cells([2.51, 0.5])
+    assert one["known"].tolist() == [True] and one["hits"].tolist() == [1]
+    assert gmap.cells(np.zeros((0, 2)))["known"].shape == (0,)
+    with np.errstate(all="raise"):
+        far = gmap.cells([[1e300, -1e300], [2.51, 0.5]])
+    assert far["known"].tolist() == [False, True]
+
+
+def test_occupancy_clamp_error_names_the_probabilities_it_was_given_as() -> None:
+    with pytest.raises(ValidationError, match=r"p_min < 0.5 < p_max.*p_min 0.9, p_max 0.2"):
+        fleetmap.OccupancyParams(p_min=0.9, p_max=0.2)
+
+
+def test_write_build_outputs_takes_a_string_path(tmp_path: Path) -> None:
+    gmap = GridMap()
+    gmap.integrate(_fan())
+    written = write_build_outputs(gmap, str(tmp_path / "out"))
+    assert {p.name for p in written} >= {"map.yaml", "map.pgm", "map.png", "meta.json", "log_odds.npy"}
+    assert all(p.is_file() for p in written)
