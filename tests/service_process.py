@@ -39,7 +39,7 @@ def fleetmap_command() -> list[str]:
     """The `fleetmap` console script `make` installs beside the interpreter (what users run), else
     the module."""
     script = Path(sys.executable).with_name("fleetmap")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "fleetmap.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "fleetmap"]
 
 
 @contextlib.contextmanager

@@ -11,6 +11,7 @@ import json
 import math
 import os
 import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -307,3 +308,17 @@ def test_build_of_the_intel_log_equals_the_library_map(datasets_dir: Path, tmp_p
     want[p > 0.65] = 0
     np.testing.assert_array_equal(read_pgm(tmp_path / "map.pgm"), want[::-1])
     assert (want == 0).sum() > 10_000 and (want == 254).sum() > 100_000  # a real map, walls and floor
+
+
+@pytest.mark.parametrize("module", ["fleetmap", "fleetmap.cli"])
+def test_the_command_run_as_a_module_gives_the_same_clean_error(tmp_path: Path, module: str) -> None:
+    # `python -m fleetmap.cli` runs cli.py as `__main__`, a second copy of the module whose
+    # CliError the command modules do not raise: it printed a traceback instead of one line.
+    done = subprocess.run(
+        [sys.executable, "-m", module, "serve", "--http", "127.0.0.1:0", "--data-dir", str(tmp_path / "d"),
+         "--config", str(tmp_path / "missing.json")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.startswith("fleetmap serve: error: cannot read config"), done.stderr

@@ -119,4 +119,8 @@ def _build(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run as `python -m fleetmap.cli`, this file is `__main__`, and the command modules would raise
+    # `fleetmap.cli.CliError`, another class than this module's: go through the real module.
+    from fleetmap.cli import main as cli_main
+
+    sys.exit(cli_main())
