@@ -18,6 +18,7 @@ A screenshot of the page is saved to /tmp/viewer.png for a human to look at.
 from __future__ import annotations
 
 import math
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -371,7 +372,11 @@ def test_web_viewer_end_to_end(service: ServiceProcess) -> None:
                 what="tiles of the hits layer",
             )
             assert any("/tiles/" in url and "layer=hits" in url for url in requests)
-            assert page.evaluate("() => location.hash") == f"#map={MAP_ID}&layer=hits"
+            # The view was moved above (setView), so the URL also names it: the centre and the zoom.
+            assert re.fullmatch(
+                rf"#map={MAP_ID}&layer=hits&x=[-0-9.]+&y=[-0-9.]+&z=-?\d+",
+                page.evaluate("() => location.hash"),
+            )
             hits_tiles = page.evaluate(_TILE_PIXELS_JS)
             assert all(tile_statuses.get(t["src"]) == 200 for t in hits_tiles), hits_tiles
             assert sum(t["opaque"] for t in hits_tiles) > 1000, hits_tiles

@@ -14,7 +14,8 @@
  *                                    `deleted` {id}
  *   GET maps/{id}/cell?x=&y=      -> the values of the clicked cell
  *
- * The selected map and layer live in the URL hash: #map=<id>&layer=<layer>.
+ * The selected map and layer live in the URL hash: #map=<id>&layer=<layer>; once the user moves the
+ * map, the view too: &x=<metres>&y=<metres>&z=<zoom> (the centre), so a link shows the same place.
  *
  * Live refresh: the `v` query parameter of a tile URL is a counter this page bumps whenever tiles
  * change. A displayed tile whose cells intersect a changed window gets a new URL (so a new request,
@@ -58,10 +59,22 @@
   const mapSelect = $('map-select');
   const layerSelect = $('layer-select');
   const statusEl = $('status');
+  const statusTextEl = $('status-text');
+  const lastUpdateEl = $('last-update');
   const coordsEl = $('coords');
   const emptyEl = $('empty');
+  const noScansEl = $('no-scans');
+  const noScansKey = $('no-scans-key');
   const robotList = $('robot-list');
+  const robotCount = $('robot-count');
   const cellInfo = $('cell-info');
+  const cellForm = $('cell-form');
+  const cellX = $('cell-x');
+  const cellY = $('cell-y');
+  const cellFormError = $('cell-form-error');
+  const cellAnnounce = $('cell-announce');
+  const sideToggle = $('side-toggle');
+  const sideSummary = $('side-summary');
   const errorEl = $('error');
 
   // ---- state -----------------------------------------------------------------------------------
@@ -89,6 +102,10 @@
     cellToken: 0,
     errorTimer: null,
     notFound: null,       // the map a #map= link named that does not exist (said once)
+    viewChosen: false,    // the user moved the map (or a link named a view): the URL carries the view
+    quietMove: false,     // the page itself is moving the map (fit, restore): not the user's choice
+    pendingView: null,    // the view a link named for the map being selected ({x, y, z})
+    cellSummary: '',      // the last cell query, in one sentence
   };
 
   // ---- small helpers ---------------------------------------------------------------------------
@@ -159,11 +176,12 @@
       reconnecting: 'reconnecting to events…',
       error: 'event stream lost; retrying…',
     };
-    let text = texts[state.connection] || state.connection;
-    if (state.lastUpdate && state.connection !== 'waiting') {
-      text += ` · last update ${state.lastUpdate.toLocaleTimeString()}`;
-    }
-    statusEl.textContent = text;
+    // Two parts: the connection state is a live region (a screen reader says when it changes);
+    // the time of the last update, which changes with nearly every event, is not.
+    const text = texts[state.connection] || state.connection;
+    if (statusTextEl.textContent !== text) statusTextEl.textContent = text;
+    lastUpdateEl.textContent = state.lastUpdate && state.connection !== 'waiting'
+      ? ` · last update ${state.lastUpdate.toLocaleTimeString()}` : '';
     statusEl.dataset.state = state.connection;
   }
 
@@ -220,18 +238,51 @@
 
   // ---- URL hash --------------------------------------------------------------------------------
 
+  /** The hash's map, layer and view ({x, y, z}: centre in metres and zoom; null unless all three are
+   * numbers, a zoom within the viewer's range). */
   function readHash() {
     const p = new URLSearchParams(location.hash.replace(/^#/, ''));
-    return { map: p.get('map'), layer: p.get('layer') };
+    const num = (k) => (p.get(k) === null || p.get(k).trim() === '' ? NaN : Number(p.get(k)));
+    const [x, y, z] = [num('x'), num('y'), num('z')];
+    const view = Number.isFinite(x) && Number.isFinite(y) && Number.isInteger(z) && z >= MIN_ZOOM && z <= MAX_ZOOM
+      ? { x, y, z } : null;
+    return { map: p.get('map'), layer: p.get('layer'), view };
   }
 
-  /** Replace (not push) the hash: switching maps should not fill the back button's history. */
+  /** The view shown, as the hash writes it: centre in metres (to the centimetre) and zoom. */
+  function currentView() {
+    const c = map.getCenter();
+    return { x: +(c.lng * state.res).toFixed(2), y: +(c.lat * state.res).toFixed(2), z: map.getZoom() };
+  }
+
+  /** Replace (not push) the hash: switching maps or panning should not fill the back button's history. */
   function writeHash() {
     const p = new URLSearchParams();
     if (state.mapId) p.set('map', state.mapId);
     if (state.layer) p.set('layer', state.layer);
+    if (state.mapId && state.viewChosen) {
+      const v = currentView();
+      p.set('x', String(v.x));
+      p.set('y', String(v.y));
+      p.set('z', String(v.z));
+    }
     const hash = `#${p.toString()}`;
     if (location.hash !== hash) history.replaceState(null, '', hash);
+  }
+
+  /** Move the map without counting it as the user's choice of view (fitting, restoring a link). */
+  function moveQuietly(move) {
+    state.quietMove = true;
+    try {
+      move();
+    } finally {
+      state.quietMove = false;
+    }
+  }
+
+  /** Show the view a link named: centre (metres) and zoom. */
+  function showView(view) {
+    moveQuietly(() => map.setView([view.y / state.res, view.x / state.res], view.z, { animate: false }));
   }
 
   // ---- the Leaflet map -------------------------------------------------------------------------
@@ -292,18 +343,55 @@
   });
   map.on('mouseout', () => { coordsEl.textContent = ''; });
 
-  // Leaflet measures its container only when told: whenever the map area changes size (window
-  // resized, toolbar wrapping to another line), tell it, so the view does not jump or leave gaps.
-  if (window.ResizeObserver) new ResizeObserver(() => map.invalidateSize({ pan: false })).observe($('map'));
+  // A move the page did not make itself (a drag, the wheel, the keys, a robot row, a typed point) is
+  // the user's choice of view; from then on the URL carries the view shown, for a link to it.
+  map.on('movestart', () => { if (!state.quietMove && state.mapId) state.viewChosen = true; });
+  map.on('moveend', () => { if (state.viewChosen && state.mapId) writeHash(); });
 
-  /** Forget the clicked cell (panel and outline) and the cursor position. */
+  // Leaflet measures its container only when told: whenever the map area changes size (window
+  // resized, toolbar wrapping to another line, the folded panel opened under it), tell it, so the
+  // view does not leave gaps. The centre stays where it was: it is the keyboard's cell cursor.
+  if (window.ResizeObserver) {
+    new ResizeObserver(() => map.invalidateSize({ pan: true, animate: false })).observe($('map'));
+  }
+
+  /** Forget the clicked cell (panel, outline, what was announced) and the cursor position. */
   function clearCell() {
     state.cellToken += 1; // an answer still on its way is for a cell no longer shown
-    cellInfo.innerHTML = '<p class="none">Click the map to query a cell.</p>';
+    cellInfo.innerHTML = '<p class="none">Click the map, or type a point, to query a cell.</p>';
     delete cellInfo.dataset.i;
     delete cellInfo.dataset.j;
     if (cellMarker) { cellMarker.remove(); cellMarker = null; }
     coordsEl.textContent = '';
+    cellAnnounce.textContent = '';
+    state.cellSummary = '';
+    renderSideSummary();
+  }
+
+  /** The folded panel's one line (narrow screens): the last cell queried, else the robots. */
+  function renderSideSummary() {
+    let text = state.cellSummary || '';
+    if (!text && state.robots.size) {
+      const online = [...state.robots.values()].filter((r) => robotState(r) === 'online').length;
+      text = `${state.robots.size} robot${state.robots.size === 1 ? '' : 's'}, ${online} online`;
+    }
+    if (sideSummary.textContent !== text) sideSummary.textContent = text;
+  }
+
+  sideToggle.addEventListener('click', () => {
+    const open = sideToggle.getAttribute('aria-expanded') !== 'true';
+    sideToggle.setAttribute('aria-expanded', String(open));
+    $('side').dataset.open = String(open);
+  });
+
+  /** The hint over a map with no scans yet: what to publish, and where. */
+  function showNoScans(show) {
+    if (show && state.mapId) {
+      const v = document.createElement('var');
+      v.textContent = 'ROBOT';
+      noScansKey.replaceChildren(`fleetmap/${state.mapId}/`, v, '/scan');
+    }
+    noScansEl.hidden = !(show && state.mapId);
   }
 
   // ---- tile refresh ----------------------------------------------------------------------------
@@ -320,6 +408,8 @@
 
   /** Queue changed windows (or a reset) and schedule one throttled flush. */
   function queueTiles(msg) {
+    // Cells arrived: the map is no longer empty.
+    if (Array.isArray(msg.tiles) && msg.tiles.length) showNoScans(false);
     if (msg.reset) state.pendingReset = true;
     else if (Array.isArray(msg.tiles)) state.pendingWindows.push(...msg.tiles);
     if (state.flushTimer === null) {
@@ -472,6 +562,9 @@
    * a second, and a row rebuilt between the press and the release of a click would lose the click.
    */
   function renderRobotList() {
+    const count = state.robots.size ? `(${state.robots.size})` : '';
+    if (robotCount.textContent !== count) robotCount.textContent = count;
+    renderSideSummary();
     if (state.robots.size === 0) {
       if (!robotList.querySelector('li.none')) {
         const li = document.createElement('li');
@@ -508,33 +601,107 @@
     renderRobotList();
   }
 
-  // ---- cell query ------------------------------------------------------------------------------
+  // ---- cell query ----------------------------------------------------------------------------
 
   map.on('click', (e) => queryCell(Math.floor(e.latlng.lng), Math.floor(e.latlng.lat)));
 
-  /** Ask for cell (i, j) at its centre (no rounding doubts at cell edges) and show its values. */
-  async function queryCell(i, j) {
-    if (!state.mapId) return;
-    const token = ++state.cellToken;
-    const x = (i + 0.5) * state.res;
-    const y = (j + 0.5) * state.res;
+  // Without a mouse: with the map focused (Tab), arrow keys pan and + / - zoom (Leaflet's keyboard
+  // handler), and Enter queries the cell under the cross at the centre. Enter on a zoom button inside
+  // the map is that button's.
+  map.getContainer().addEventListener('keydown', (e) => {
+    if (e.key !== 'Enter' || e.target !== map.getContainer()) return;
+    e.preventDefault();
+    const c = map.getCenter();
+    queryCell(Math.floor(c.lng), Math.floor(c.lat));
+  });
+
+  /** A typed coordinate in metres, or null with the reason shown next to the form. */
+  function typedMetres(input, name) {
+    const text = input.value.trim();
+    const v = text === '' ? NaN : Number(text);
+    // A number input gives '' for text that is not a number: say what is wrong either way.
+    if (!Number.isFinite(v) || Math.abs(v) > 1e7 || (input.validity && input.validity.badInput)) {
+      input.setAttribute('aria-invalid', 'true');
+      cellFormError.textContent = `${name}: enter a number of metres between -10000000 and 10000000`;
+      cellFormError.hidden = false;
+      input.focus();
+      return null;
+    }
+    input.removeAttribute('aria-invalid');
+    return v;
+  }
+
+  // A typed point: the map moves there and its cell is queried, as a click there would.
+  cellForm.addEventListener('submit', (e) => {
+    e.preventDefault();
+    const x = typedMetres(cellX, 'x');
+    if (x === null) return;
+    const y = typedMetres(cellY, 'y');
+    if (y === null) return;
+    cellFormError.hidden = true;
+    if (!state.mapId) {
+      cellFormError.textContent = 'there is no map to query';
+      cellFormError.hidden = false;
+      return;
+    }
+    map.panTo([y / state.res, x / state.res]);
+    queryCell(Math.floor(x / state.res), Math.floor(y / state.res), [x, y]);
+  });
+
+  /** The outline of cell (i, j), and a ring of fixed screen size so it can be found at any zoom. */
+  function drawCellMarker(i, j) {
     if (cellMarker) cellMarker.remove();
-    // The cell's outline, and a ring of fixed screen size so it can be found at any zoom.
     cellMarker = L.featureGroup([
       L.rectangle([[j, i], [j + 1, i + 1]], { color: '#0969da', weight: 2, fill: false, interactive: false }),
       L.circleMarker([j + 0.5, i + 0.5], { radius: 9, color: '#0969da', weight: 2, fill: false, interactive: false }),
     ]).addTo(map);
+  }
+
+  /**
+   * Ask for cell (i, j) and show its values. `point`: the [x, y] in metres to ask at (a typed point);
+   * by default the cell's centre (no rounding doubts at cell edges).
+   */
+  async function queryCell(i, j, point = null) {
+    if (!state.mapId) return;
+    const token = ++state.cellToken;
+    const [x, y] = point || [(i + 0.5) * state.res, (j + 0.5) * state.res];
+    drawCellMarker(i, j);
     cellInfo.innerHTML = '<p class="none">querying…</p>';
     try {
       const cell = await getJSON(`maps/${enc(state.mapId)}/cell?x=${x}&y=${y}`);
       if (token !== state.cellToken) return;
       // The service says which cell it answered for (i, j); trust it over our own arithmetic.
-      renderCell(Number.isInteger(cell.i) ? cell.i : i, Number.isInteger(cell.j) ? cell.j : j, x, y, cell);
+      const ci = Number.isInteger(cell.i) ? cell.i : i;
+      const cj = Number.isInteger(cell.j) ? cell.j : j;
+      if (ci !== i || cj !== j) drawCellMarker(ci, cj);
+      renderCell(ci, cj, x, y, cell);
+      if (!point) {
+        cellX.value = String(+x.toFixed(3));
+        cellY.value = String(+y.toFixed(3));
+      }
     } catch (err) {
       if (token !== state.cellToken) return;
       cellInfo.innerHTML = '<p class="none">no value</p>';
+      announceCell(`cell query failed: ${err.message}`);
       showError(`cell query: ${err.message}`, !!err.network);
     }
+  }
+
+  /** One sentence for the live region and the folded panel's line. */
+  function announceCell(text) {
+    cellAnnounce.textContent = text;
+    state.cellSummary = text;
+    renderSideSummary();
+  }
+
+  /** What a cell holds, in words: its state and probability, its counts, its TSDF value. */
+  function cellSentence(i, j, x, y, cell) {
+    const parts = [];
+    if ('state' in cell) parts.push(String(cell.state));
+    if ('probability' in cell && cell.known) parts.push(`probability ${fmt(cell.probability, 'probability')}`);
+    if ('hits' in cell) parts.push(`${fmt(cell.hits, 'hits')} hits, ${fmt(cell.misses, 'misses')} misses`);
+    if (!('state' in cell) && 'tsdf' in cell) parts.push(`TSDF ${fmt(cell.tsdf, 'tsdf')}`);
+    return `Cell (${i}, ${j}) at x ${x.toFixed(2)} m, y ${y.toFixed(2)} m: ${parts.join(', ')}`;
   }
 
   function renderCell(i, j, x, y, cell) {
@@ -557,6 +724,7 @@
     cellInfo.replaceChildren(where, table);
     cellInfo.dataset.i = String(i);
     cellInfo.dataset.j = String(j);
+    announceCell(cellSentence(i, j, x, y, cell));
   }
 
   // ---- event stream ----------------------------------------------------------------------------
@@ -671,9 +839,11 @@
     state.selectToken += 1; // answers still on their way are for a map no longer shown
     state.mapId = null;
     state.info = null;
+    state.viewChosen = false;
     closeEvents();
     clearRobots();
     clearCell();
+    showNoScans(false);
     if (map.hasLayer(tiles)) tiles.remove();
     layerSelect.replaceChildren();
     layerSelect.disabled = true;
@@ -689,7 +859,12 @@
     state.info = null;
     state.fitted = false;
     state.eventsBroken = false;
+    // A link's view belongs to the map it names; another map is fitted to its bounds.
+    const linked = readHash();
+    state.pendingView = linked.map === mapId ? linked.view : null;
+    state.viewChosen = state.pendingView !== null;
     mapSelect.value = mapId;
+    showNoScans(false);
     clearCell();
     if (map.hasLayer(tiles)) tiles.remove();
     const ok = await refreshInfo(token, true);
@@ -750,12 +925,19 @@
       }
     }
     const b = normBounds(info.stats && info.stats.bounds);
-    if (b && !state.fitted) {
+    // No known cell yet: say what would fill the map (the tiles event of the first scan hides it).
+    showNoScans(!b);
+    if (first && state.pendingView) {
+      // A link named the view: show it, never fit over it.
+      showView(state.pendingView);
+      state.pendingView = null;
       state.fitted = true;
-      map.fitBounds([[b[1] / state.res, b[0] / state.res], [b[3] / state.res, b[2] / state.res]],
-        { padding: [20, 20], maxZoom: 2, animate: false });
-    } else if (first && !b) {
-      map.setView([0, 0], 0, { animate: false });
+    } else if (b && !state.fitted) {
+      state.fitted = true;
+      moveQuietly(() => map.fitBounds([[b[1] / state.res, b[0] / state.res], [b[3] / state.res, b[2] / state.res]],
+        { padding: [20, 20], maxZoom: 2, animate: false }));
+    } else if (first && !b && !state.viewChosen) {
+      moveQuietly(() => map.setView([0, 0], 0, { animate: false }));
     }
     return true;
   }
@@ -774,6 +956,10 @@
     const names = available.map((l) => l.name);
     const wanted = readHash().layer || state.layer;
     state.layer = names.includes(wanted) ? wanted : (names[0] || null);
+    // A link (or the layer shown before) named a layer this map does not keep: say which is shown.
+    if (wanted && state.layer && wanted !== state.layer) {
+      showError(`map ${state.mapId} has no ${wanted} layer (it keeps ${kept.join(', ')}): showing ${state.layer}`);
+    }
     if (state.layer) layerSelect.value = state.layer;
     writeHash();
   }
@@ -802,9 +988,22 @@
         showError(`map ${h.map} not found`);
         if (state.mapId) writeHash(); // back to the map shown
       }
-    } else if (h.layer && h.layer !== state.layer && [...layerSelect.options].some((o) => o.value === h.layer)) {
-      layerSelect.value = h.layer;
-      layerSelect.dispatchEvent(new Event('change'));
+      return;
+    }
+    if (!state.mapId) return;
+    if (h.layer && h.layer !== state.layer) {
+      if ([...layerSelect.options].some((o) => o.value === h.layer)) {
+        layerSelect.value = h.layer;
+        layerSelect.dispatchEvent(new Event('change'));
+      } else {
+        showError(`map ${state.mapId} has no ${h.layer} layer: showing ${state.layer}`);
+        writeHash(); // the URL names the layer shown
+      }
+    }
+    const v = currentView();
+    if (h.view && (h.view.x !== v.x || h.view.y !== v.y || h.view.z !== v.z)) {
+      state.viewChosen = true;
+      showView(h.view);
     }
   });
 

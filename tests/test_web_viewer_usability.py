@@ -1,0 +1,549 @@
+"""The web viewer (clients/web) as people use it, in headless Chromium against a real service.
+
+test_web_viewer.py walks through the life of a map and test_web_viewer_recovery.py what the viewer
+must survive; these tests check that it is usable: a hint where the map would be blank (no map, a
+map without scans), a phone-sized or half-width window, the keyboard and a screen reader (cell
+queries without a mouse, labelled controls, focus outlines, text contrast, a live region that speaks
+only when something happened), a fleet of 50 robots, and links that restore the view and the layer.
+Scans come through `POST /maps/{id}/scans`. Same Chromium and skip rule as test_web_viewer.py; one
+browser and one in-memory service for the module (each test on its own maps), one page per test.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import httpx
+import pytest
+from service_process import ServiceProcess
+from test_web_viewer import CHROMIUM, CHROMIUM_ARGS, SHOW_MS, _wait
+from test_web_viewer_recovery import _CENTRED_ON_JS, _scan
+
+pytestmark = pytest.mark.skipif(
+    not CHROMIUM.exists(),
+    reason="/usr/bin/chromium is missing: install Debian's chromium package (make system-deps)",
+)
+
+#: The service's default resolution (metres per cell): maps here are created with it.
+RES = 0.05
+
+_CONNECTED_JS = "() => document.getElementById('status').dataset.state === 'connected'"
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture(scope="module")
+def shared_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One in-memory service for the tests that each make their own maps."""
+    svc = ServiceProcess(tmp_path_factory.mktemp("viewer-usability"), ["--in-memory"]).start()
+    try:
+        yield svc
+    finally:
+        svc.stop()
+
+
+@pytest.fixture
+def new_page(browser: Any) -> Iterator[Callable[..., Any]]:
+    """Pages of a given viewport size; page errors are collected in `page.page_errors`."""
+    pages: list[Any] = []
+
+    def make(width: int = 1280, height: int = 800) -> Any:
+        p = browser.new_page(viewport={"width": width, "height": height})
+        p.page_errors = []
+        p.on("pageerror", lambda e: p.page_errors.append(str(e)))
+        pages.append(p)
+        return p
+
+    try:
+        yield make
+    finally:
+        for p in pages:
+            p.close()
+
+
+def _put_map(base: str, map_id: str, config: dict[str, Any] | None = None) -> None:
+    r = httpx.put(f"{base}/maps/{map_id}", json=config or {}, timeout=10.0)
+    assert r.status_code in (200, 201), r.text
+
+
+def _open(page: Any, base: str, hash_: str) -> None:
+    page.goto(f"{base}/{hash_}")
+    _wait(page, _CONNECTED_JS, what="connected")
+
+
+def _hash_params(page: Any) -> dict[str, str]:
+    return page.evaluate("() => Object.fromEntries(new URLSearchParams(location.hash.slice(1)))")
+
+
+# ---- hints where the map would be blank ---------------------------------------------------------------
+
+
+def test_hints_until_scans_arrive(
+    new_page: Callable[..., Any], service_factory: Callable[..., ServiceProcess]
+) -> None:
+    """A service with no map says how to make one; an empty map (created, no scans) says where robots
+    publish; each hint goes, live and without a reload, when what it waits for arrives. The blank
+    grey map said nothing."""
+    svc = service_factory("--in-memory")
+    base = svc.base_url
+    page = new_page()
+    page.goto(f"{base}/")
+    _wait(page, "() => !document.getElementById('empty').hidden", what="the no-maps hint")
+    hint = page.inner_text("#empty")
+    assert "fleetmap/MAP/ROBOT/scan" in hint and "PUT /maps/MAP" in hint, hint
+    page.evaluate("() => { window.__sameDocument = true; }")
+
+    _put_map(base, "fresh")
+    _wait(page, "() => document.getElementById('empty').hidden", what="the no-maps hint gone")
+    _wait(page, "() => !document.getElementById('no-scans').hidden", what="the no-scans hint")
+    assert page.get_by_text("No scans yet").is_visible()
+    assert "fleetmap/fresh/ROBOT/scan" in page.inner_text("#no-scans")
+    # The hint does not stand in the way: the map under it still answers a click.
+    box = page.locator("#map").bounding_box()
+    assert box is not None
+    page.mouse.click(box["x"] + 30, box["y"] + box["height"] - 30)
+    _wait(page, "() => document.getElementById('cell-info').dataset.i !== undefined", what="a clicked cell")
+
+    _scan(base, "fresh", "r1", 1, 1.0, 1.0)
+    _wait(page, "() => document.getElementById('no-scans').hidden", what="the no-scans hint gone")
+    assert page.evaluate("() => window.__sameDocument === true"), "the page was reloaded"
+    assert not page.page_errors, page.page_errors
+
+
+# ---- narrow screens -----------------------------------------------------------------------------------
+
+#: Every element whose box reaches past the right edge of the window, except the map's own panes
+#: (tiles and markers are clipped by the map's box).
+_OVERFLOWING_JS = """
+() => [...document.body.querySelectorAll('*')]
+  .filter((el) => !el.closest('.leaflet-pane') && el.getClientRects().length > 0)
+  .filter((el) => el.getBoundingClientRect().right > window.innerWidth + 0.5)
+  .map((el) => el.id || el.className || el.tagName)
+"""
+
+#: The map's centre, in Leaflet's pixel coordinates at the current zoom.
+_CENTRE_JS = "() => { const m = window.fleetmapViewer.map, p = m.project(m.getCenter()); return [p.x, p.y]; }"
+_BOX_JS = "(sel) => document.querySelector(sel).getBoundingClientRect().toJSON()"
+
+
+def _inside_window(box: dict[str, float], width: int, height: int) -> bool:
+    return (
+        box["width"] > 0
+        and box["x"] >= 0
+        and box["y"] >= 0
+        and box["right"] <= width
+        and box["bottom"] <= height
+    )
+
+
+@pytest.mark.parametrize(("width", "height"), [(390, 844), (600, 800)])
+def test_narrow_screens(
+    new_page: Callable[..., Any], shared_service: ServiceProcess, width: int, height: int
+) -> None:
+    """A phone (390 x 844) or a half-width window (600 x 800): the map takes the whole width and most of
+    the height, nothing scrolls sideways, every control is in the window, and the panel folds under the
+    map (the side panel took 275 pixels and left the map 115 pixels wide on a phone)."""
+    base = shared_service.base_url
+    map_id = f"narrow-{width}"
+    _put_map(base, map_id)
+    _scan(base, map_id, "r1", 1, 1.0, 1.0)
+    _scan(base, map_id, "r2", 1, 4.0, 1.0)
+    page = new_page(width, height)
+    _open(page, base, f"#map={map_id}")
+    page.wait_for_selector('#robot-list li[data-robot-id="r2"]', state="attached", timeout=SHOW_MS)
+
+    assert page.evaluate("() => document.documentElement.scrollWidth") <= width
+    assert page.evaluate(_OVERFLOWING_JS) == []
+    map_box = page.evaluate(_BOX_JS, "#map")
+    assert map_box["width"] >= width - 1, map_box
+    assert map_box["height"] >= 0.75 * height, map_box
+    for control in (
+        page.get_by_role("combobox", name="Map"),
+        page.get_by_role("combobox", name="Layer"),
+        page.get_by_role("button", name="Zoom in"),
+        page.get_by_role("button", name="Zoom out"),
+        page.get_by_role("button", name="Robots and cell"),
+    ):
+        box = control.evaluate("(el) => el.getBoundingClientRect().toJSON()")
+        assert _inside_window(box, width, height), (control, box)
+        assert control.is_visible()
+
+    # Opened, the panel shows the robots and the cell, still under a map that keeps half the window.
+    # The centre (the keyboard's cell cursor) stays on the same place of the map.
+    toggle = page.get_by_role("button", name="Robots and cell")
+    centre = page.evaluate(_CENTRE_JS)
+    toggle.click()
+    assert toggle.get_attribute("aria-expanded") == "true"
+    _wait(
+        page,
+        f"() => document.getElementById('map').getBoundingClientRect().height < {map_box['height'] - 50}",
+    )
+    page.wait_for_timeout(100)  # the ResizeObserver's turn
+    assert page.evaluate(_CENTRE_JS) == pytest.approx(centre, abs=1.0)
+    row = page.get_by_role("button", name="r2")
+    assert row.is_visible()
+    assert _inside_window(row.evaluate("(el) => el.getBoundingClientRect().toJSON()"), width, height)
+    assert page.evaluate(_BOX_JS, "#map")["height"] >= 0.5 * height
+    assert page.evaluate(_OVERFLOWING_JS) == []
+    # The values of a cell arriving in the open panel leave the map's size alone.
+    map_height = page.evaluate(_BOX_JS, "#map")["height"]
+    page.locator("#map").focus()
+    page.keyboard.press("Enter")
+    _wait(page, "() => document.querySelector('#cell-info table') !== null", what="the cell's values")
+    assert page.evaluate(_BOX_JS, "#map")["height"] == map_height
+    row.click()  # reachable, and it still centres the map
+    toggle.click()
+    assert page.is_hidden("#robot-list")
+    _wait(
+        page,
+        f"() => document.getElementById('map').getBoundingClientRect().height >= {0.75 * height}",
+        what="the map back",
+    )
+
+    # Folded, a tap on the map queries a cell, and the panel's one line says what it holds.
+    page.mouse.click(map_box["x"] + map_box["width"] / 2, map_box["y"] + map_box["height"] / 3)
+    _wait(
+        page,
+        "() => document.getElementById('side-summary').textContent.startsWith('Cell (')",
+        what="the summary",
+    )
+    assert page.get_by_role("button", name="Robots and cell").is_visible()
+    assert not page.page_errors, page.page_errors
+
+
+# ---- keyboard and screen readers ----------------------------------------------------------------------
+
+_CENTRE_CELL_JS = """
+() => { const c = window.fleetmapViewer.map.getCenter(); return [Math.floor(c.lng), Math.floor(c.lat)]; }
+"""
+_CELL_SHOWN_JS = (
+    "() => { const d = document.getElementById('cell-info').dataset;"
+    " return d.i === undefined ? null : [Number(d.i), Number(d.j)]; }"
+)
+
+
+def _tab_to(page: Any, element_id: str, presses: int = 40) -> None:
+    """Press Tab until the element has the focus (it must be reachable by Tab)."""
+    for _ in range(presses):
+        page.keyboard.press("Tab")
+        if page.evaluate("() => document.activeElement && document.activeElement.id") == element_id:
+            return
+    raise AssertionError(f"#{element_id} is not reachable with Tab")
+
+
+def test_cell_query_without_a_mouse(new_page: Callable[..., Any], shared_service: ServiceProcess) -> None:
+    """The map takes the focus with Tab, shows a cross at its centre, pans with the arrow keys and
+    queries the cell under the cross with Enter; a point can be typed instead; a live region says
+    what the cell holds. A typed point out of range is refused with a message and changes nothing.
+    (A cell could only be queried by a click.)"""
+    base = shared_service.base_url
+    map_id = "keys"
+    _put_map(base, map_id)
+    _scan(base, map_id, "r1", 1, 1.0, 1.0)
+    page = new_page()
+    _open(page, base, f"#map={map_id}")
+    assert page.get_by_role("application", name="Map").is_visible()
+
+    _tab_to(page, "map")
+    assert page.evaluate("() => getComputedStyle(document.getElementById('crosshair')).display") == "block"
+    i, j = page.evaluate(_CENTRE_CELL_JS)
+    page.keyboard.press("Enter")
+    _wait(page, f"() => JSON.stringify(({_CELL_SHOWN_JS})()) === '[{i},{j}]'", what="the centre cell queried")
+    live = page.locator("#cell-announce")
+    assert live.get_attribute("role") == "status"
+    _wait(
+        page,
+        f"() => document.getElementById('cell-announce').textContent.startsWith('Cell ({i}, {j})')",
+        what="the announcement",
+    )
+
+    page.keyboard.press("ArrowRight")  # Leaflet pans 80 pixels; at this zoom that is other cells
+    _wait(page, f"() => ({_CENTRE_CELL_JS})()[0] > {i}", what="the map panned by the key")
+    i2, j2 = page.evaluate(_CENTRE_CELL_JS)
+    page.keyboard.press("Enter")
+    _wait(page, f"() => JSON.stringify(({_CELL_SHOWN_JS})()) === '[{i2},{j2}]'", what="the new centre cell")
+
+    # A typed point, in the robot's own cell (known: its beams start there).
+    page.get_by_role("spinbutton", name="x in metres").fill("1.01")
+    page.get_by_role("spinbutton", name="y in metres").fill("1.01")
+    page.get_by_role("button", name="Query cell").click()
+    want = [math.floor(1.01 / RES), math.floor(1.01 / RES)]
+    _wait(
+        page,
+        f"() => JSON.stringify(({_CELL_SHOWN_JS})()) === '{want}'.replace(/ /g, '')",
+        what="the typed cell",
+    )
+    cell = httpx.get(f"{base}/maps/{map_id}/cell", params={"x": 1.01, "y": 1.01}, timeout=10.0).json()
+    said = f"probability {cell['probability']:.4f}, {cell['hits']} hits, {cell['misses']} misses"
+    _wait(page, "(s) => document.getElementById('cell-announce').textContent.endsWith(s)", said, what=said)
+
+    # Out of range: a message, the input marked invalid, the cell shown and no query sent.
+    queries: list[str] = []
+    page.on("request", lambda r: queries.append(r.url) if "/cell?" in r.url else None)
+    page.get_by_role("spinbutton", name="x in metres").fill("1e9")
+    page.get_by_role("button", name="Query cell").click()
+    assert page.is_visible("#cell-form-error")
+    assert "x: enter a number of metres" in page.inner_text("#cell-form-error")
+    assert page.get_attribute("#cell-x", "aria-invalid") == "true"
+    page.wait_for_timeout(300)
+    assert page.evaluate(_CELL_SHOWN_JS) == want
+    assert queries == []
+    assert not page.page_errors, page.page_errors
+
+
+#: Per piece of visible text in the toolbar, the side panel and the hints: its contrast ratio with
+#: the background behind it (WCAG's relative luminance; backgrounds composed up the ancestors) and
+#: the ratio it needs (4.5, or 3 for large text). Disabled controls are exempt, as WCAG allows.
+_CONTRAST_JS = """
+() => {
+  const parse = (c) => {
+    const p = c.match(/[\\d.]+/g).map(Number);
+    return [p[0], p[1], p[2], p.length > 3 ? p[3] : 1];
+  };
+  const over = (top, under) => [0, 1, 2].map((k) => top[k] * top[3] + under[k] * (1 - top[3])).concat([1]);
+  const lum = (c) => {
+    const f = (v) => { v /= 255; return v <= 0.03928 ? v / 12.92 : ((v + 0.055) / 1.055) ** 2.4; };
+    return 0.2126 * f(c[0]) + 0.7152 * f(c[1]) + 0.0722 * f(c[2]);
+  };
+  const background = (el) => {
+    const layers = [];
+    for (let e = el; e; e = e.parentElement) {
+      const c = parse(getComputedStyle(e).backgroundColor);
+      if (c[3] > 0) layers.push(c);
+      if (c[3] >= 1) break;
+    }
+    return layers.reverse().reduce((under, c) => over(c, under), [255, 255, 255, 1]);
+  };
+  const out = [];
+  for (const el of document.querySelectorAll('#toolbar *, #side *, .map-hint *')) {
+    if (el.getClientRects().length === 0 || el.closest('.visually-hidden, option')) continue;
+    if (![...el.childNodes].some((n) => n.nodeType === 3 && n.textContent.trim())) continue;
+    if (el.closest(':disabled')) continue;
+    const cs = getComputedStyle(el);
+    const bg = background(el);
+    const fg = over(parse(cs.color), bg);
+    const [a, b] = [lum(fg), lum(bg)].sort((x, y) => y - x);
+    const size = parseFloat(cs.fontSize);
+    const large = size >= 24 || (parseInt(cs.fontWeight, 10) >= 700 && size >= 18.66);
+    const ratio = (a + 0.05) / (b + 0.05);
+    out.push({text: el.textContent.trim().slice(0, 40), ratio, need: large ? 3 : 4.5});
+  }
+  return out;
+}
+"""
+
+#: What the element with the focus shows: its outline, and the background it is drawn over.
+_FOCUS_JS = """
+() => {
+  const el = document.activeElement;
+  if (!el || el === document.body) return null;
+  const cs = getComputedStyle(el);
+  return {
+    what: el.id || el.getAttribute('aria-label') || el.textContent.trim().slice(0, 30) || el.tagName,
+    style: cs.outlineStyle, width: parseFloat(cs.outlineWidth), color: cs.outlineColor,
+  };
+}
+"""
+
+#: Every change of text in a live region (role status / alert, aria-live), recorded as it happens.
+_WATCH_LIVE_JS = """
+() => {
+  window.__spoken = [];
+  for (const el of document.querySelectorAll('[role=status], [role=alert], [aria-live]')) {
+    let last = el.textContent;
+    new MutationObserver(() => {
+      if (el.textContent !== last) { last = el.textContent; window.__spoken.push(el.id + ': ' + last); }
+    }).observe(el, {subtree: true, childList: true, characterData: true});
+  }
+}
+"""
+
+
+def test_labels_focus_contrast_and_quiet_live_regions(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """Every control has a name (the map too), every Tab stop shows a focus outline of at least
+    2 pixels, text has WCAG AA contrast (grey hints and offline robots had 2.9:1), and while robots
+    keep scanning no live region speaks (the status line, a live region, changed its 'last update'
+    time with nearly every event)."""
+    base = shared_service.base_url
+    map_id = "a11y"
+    _put_map(base, map_id)
+    _scan(base, map_id, "offline-robot", 1, 1.0, 1.0)  # a robot posting over REST shows offline
+    page = new_page()
+    _open(page, base, f"#map={map_id}")
+    page.wait_for_selector(
+        '#robot-list li[data-robot-id="offline-robot"][data-online="false"]', timeout=SHOW_MS
+    )
+
+    # Names, by role.
+    for role, name in [
+        ("combobox", "Map"), ("combobox", "Layer"), ("application", "Map"), ("button", "Zoom in"),
+        ("button", "Zoom out"), ("spinbutton", "x in metres"), ("spinbutton", "y in metres"),
+        ("button", "Query cell"), ("button", "offline-robot"), ("list", "Robots"),
+    ]:  # fmt: skip
+        assert page.get_by_role(role, name=name).count() >= 1, (role, name)
+    snapshot = page.locator("body").aria_snapshot()
+    roles = ("button", "combobox", "spinbutton", "textbox", "link", "application")
+    unnamed = [
+        line for line in snapshot.splitlines() if line.strip().rstrip(":") in [f"- {r}" for r in roles]
+    ]
+    assert unnamed == [], snapshot
+
+    # Focus outlines at every Tab stop.
+    stops: list[dict[str, Any]] = []
+    for _ in range(30):
+        page.keyboard.press("Tab")
+        focus = page.evaluate(_FOCUS_JS)
+        if focus is None or (stops and focus["what"] == stops[0]["what"]):
+            break
+        stops.append(focus)
+    assert {"map-select", "layer-select", "map", "cell-x"} <= {s["what"] for s in stops}, stops
+    weak = [s for s in stops if s["style"] in ("none", "auto") or s["width"] < 2]
+    assert weak == [], weak
+
+    low = [c for c in page.evaluate(_CONTRAST_JS) if c["ratio"] < c["need"]]
+    assert low == [], low
+
+    # Robots keep scanning (events several times a second): the live regions stay quiet.
+    page.evaluate(_WATCH_LIVE_JS)
+    stop = threading.Event()
+
+    def feed() -> None:
+        seq = 2
+        while not stop.is_set():
+            _scan(base, map_id, "offline-robot", seq, 1.0 + 0.01 * seq, 1.0)
+            seq += 1
+            stop.wait(0.1)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        _wait(
+            page,
+            "() => parseInt(document.querySelector('#robot-list .scans').textContent) >= 15",
+            what="scans counted",
+        )
+    finally:
+        stop.set()
+        feeder.join(10)
+    assert page.evaluate("() => window.__spoken") == []
+    assert not page.page_errors, page.page_errors
+
+
+# ---- many robots --------------------------------------------------------------------------------------
+
+
+def test_fifty_robots(new_page: Callable[..., Any], shared_service: ServiceProcess) -> None:
+    """50 robots: their list scrolls in its own box, the cell panel stays in the window (it was pushed
+    1,300 pixels down, under the list), and the last robot can be reached and centred on."""
+    base = shared_service.base_url
+    map_id = "fleet"
+    _put_map(base, map_id)
+    for k in range(1, 51):
+        _scan(base, map_id, f"sim-{k}", 1, 2.0 * (k % 10), 2.0 * (k // 10))
+    page = new_page()
+    _open(page, base, f"#map={map_id}")
+    _wait(
+        page, "() => document.querySelectorAll('#robot-list li[data-robot-id]').length === 50", what="50 rows"
+    )
+    assert page.evaluate("() => document.documentElement.scrollHeight") <= 800
+    assert page.eval_on_selector("#robot-list", "el => el.scrollHeight > el.clientHeight + 100")
+
+    box = page.locator("#map").bounding_box()
+    assert box is not None
+    page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    _wait(page, "() => document.getElementById('cell-info').dataset.i !== undefined", what="a clicked cell")
+    table = page.evaluate(_BOX_JS, "#cell-info table")
+    assert table["height"] > 0 and table["bottom"] <= 800, table
+
+    last = page.get_by_role("button", name="sim-50")
+    last.scroll_into_view_if_needed()
+    last.click()
+    _wait(
+        page,
+        _CENTRED_ON_JS,
+        "sim-50",
+        what="the map centred on sim-50",
+    )
+    assert page.evaluate(_BOX_JS, "#cell-info table")["bottom"] <= 800
+    assert not page.page_errors, page.page_errors
+
+
+# ---- links --------------------------------------------------------------------------------------------
+
+
+def test_link_restores_view_and_names_missing_layers(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """The URL carries the view once the user moves the map (centre in metres, zoom), a link with it
+    opens there instead of fitting the map, and a reload keeps it. A link to a layer the map does not
+    keep says so and names the layer shown. (The view was never in the URL, and a missing layer was
+    replaced silently.)"""
+    base = shared_service.base_url
+    map_id = "linked"
+    _put_map(base, map_id, {"layers": ["counts"]})
+    _scan(base, map_id, "r1", 1, 1.0, 1.0)
+    page = new_page()
+    _open(page, base, f"#map={map_id}&layer=misses&x=12.5&y=-3.25&z=3")
+    view = page.evaluate(
+        "() => { const m = window.fleetmapViewer.map, c = m.getCenter(), r = window.fleetmapViewer.state.res;"
+        " return [c.lng * r, c.lat * r, m.getZoom()]; }"
+    )
+    assert view == pytest.approx([12.5, -3.25, 3], abs=1e-6)
+    assert _hash_params(page) == {"map": map_id, "layer": "misses", "x": "12.5", "y": "-3.25", "z": "3"}
+
+    # The user pans and zooms: the URL follows; a reload shows the same view.
+    page.locator("#map").focus()
+    page.keyboard.press("ArrowLeft")
+    page.keyboard.press("-")
+    _wait(
+        page, "() => new URLSearchParams(location.hash.slice(1)).get('z') === '2'", what="the zoom in the URL"
+    )
+    moved = _hash_params(page)
+    assert float(moved["x"]) < 12.5, moved
+    page.reload()
+    _wait(page, _CONNECTED_JS, what="connected again")
+    _wait(
+        page,
+        f"() => location.hash === '#{'&'.join(f'{k}={v}' for k, v in moved.items())}'",
+        what="the same URL",
+    )
+    centre = page.evaluate(
+        "() => { const m = window.fleetmapViewer.map, c = m.getCenter(), r = window.fleetmapViewer.state.res;"
+        " return [c.lng * r, c.lat * r, m.getZoom()]; }"
+    )
+    assert centre == pytest.approx([float(moved["x"]), float(moved["y"]), 2], abs=0.01)
+
+    # A layer this map does not keep, in a link and then in an edited hash.
+    page = new_page()
+    _open(page, base, f"#map={map_id}&layer=probability")
+    _wait(page, "() => !document.getElementById('error').hidden", what="the missing layer message")
+    assert "has no probability layer" in page.inner_text("#error")
+    assert _hash_params(page)["layer"] == "hits"
+    page.evaluate(f"() => {{ location.hash = '#map={map_id}&layer=tsdf'; }}")
+    _wait(
+        page,
+        "() => document.getElementById('error').textContent.includes('has no tsdf layer')",
+        what="the message",
+    )
+    _wait(
+        page,
+        "() => new URLSearchParams(location.hash.slice(1)).get('layer') === 'hits'",
+        what="the layer shown in the URL",
+    )
+    assert page.eval_on_selector("#layer-select", "el => el.value") == "hits"
+    assert not page.page_errors, page.page_errors
