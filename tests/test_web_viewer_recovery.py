@@ -22,7 +22,6 @@ from test_web_viewer import (
     _LAYER_OPTIONS_JS,
     _MARKER_JS,
     CHROMIUM,
-    CHROMIUM_ARGS,
     SHOW_MS,
     _wait,
 )
@@ -86,18 +85,6 @@ def _make_map(
     assert r.status_code in (200, 201), r.text
     for robot_id, (x, y) in robots.items():
         _scan(base, MAP_ID, robot_id, 1, x, y)
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        try:
-            yield b
-        finally:
-            b.close()
 
 
 @pytest.fixture

@@ -19,7 +19,7 @@ from typing import Any
 import httpx
 import pytest
 from service_process import ServiceProcess
-from test_web_viewer import CHROMIUM, CHROMIUM_ARGS, SHOW_MS, _wait
+from test_web_viewer import CHROMIUM, SHOW_MS, _wait
 from test_web_viewer_recovery import _CENTRED_ON_JS, _scan
 
 pytestmark = pytest.mark.skipif(
@@ -31,18 +31,6 @@ pytestmark = pytest.mark.skipif(
 RES = 0.05
 
 _CONNECTED_JS = "() => document.getElementById('status').dataset.state === 'connected'"
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        try:
-            yield b
-        finally:
-            b.close()
 
 
 @pytest.fixture(scope="module")
@@ -226,6 +214,11 @@ def test_narrow_screens(
 
 # ---- keyboard and screen readers ----------------------------------------------------------------------
 
+#: True once Leaflet's pan animation (arrow keys pan with one) has ended: the centre is final.
+_PAN_DONE_JS = (
+    "() => { const m = window.fleetmapViewer.map; return !(m._panAnim && m._panAnim._inProgress); }"
+)
+
 _CENTRE_CELL_JS = """
 () => { const c = window.fleetmapViewer.map.getCenter(); return [Math.floor(c.lng), Math.floor(c.lat)]; }
 """
@@ -272,6 +265,7 @@ def test_cell_query_without_a_mouse(new_page: Callable[..., Any], shared_service
 
     page.keyboard.press("ArrowRight")  # Leaflet pans 80 pixels; at this zoom that is other cells
     _wait(page, f"() => ({_CENTRE_CELL_JS})()[0] > {i}", what="the map panned by the key")
+    _wait(page, _PAN_DONE_JS, what="the pan's end")  # else the centre read here is a passing one
     i2, j2 = page.evaluate(_CENTRE_CELL_JS)
     page.keyboard.press("Enter")
     _wait(page, f"() => JSON.stringify(({_CELL_SHOWN_JS})()) === '[{i2},{j2}]'", what="the new centre cell")
@@ -509,6 +503,14 @@ def test_link_restores_view_and_names_missing_layers(
     # The user pans and zooms: the URL follows; a reload shows the same view.
     page.locator("#map").focus()
     page.keyboard.press("ArrowLeft")
+    # Leaflet pans by keyboard with an animation: the zoom waits for it to end, else the zoom can
+    # land first and the pan be lost under load (the centre then moves only by rounding).
+    _wait(
+        page,
+        "() => parseFloat(new URLSearchParams(location.hash.slice(1)).get('x')) < 12.4",
+        what="the pan in the URL",
+    )
+    _wait(page, _PAN_DONE_JS, what="the pan's end")
     page.keyboard.press("-")
     _wait(
         page, "() => new URLSearchParams(location.hash.slice(1)).get('z') === '2'", what="the zoom in the URL"
