@@ -191,6 +191,16 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         help="origins allowed to call the API from a browser (CORS); default none",
     )
     p.add_argument(
+        "--max-event-streams",
+        type=_int_between(1, 100_000),
+        default=256,
+        metavar="N",
+        help=(
+            "event streams (GET /maps/{id}/events, one per open viewer) open at once; past it new ones "
+            "are refused with 503 and retry by themselves (default 256): each holds memory and CPU"
+        ),
+    )
+    p.add_argument(
         "--config",
         metavar="FILE",
         help="map configuration (JSON, the schema of PUT /maps/{id}) for maps created automatically",
@@ -467,6 +477,7 @@ def run(args: argparse.Namespace) -> int:
                 cors_origins=args.cors_origin,
                 ingest_backlog=args.ingest_backlog_ms / 1000,
                 max_read_delay=args.max_read_delay_ms / 1000,
+                max_event_streams=args.max_event_streams,
             )
             app = create_app(registry, settings=settings)
             if tokens is not None:
