@@ -151,9 +151,8 @@ def test_kept_alive_connections_and_long_responses_are_not_cut_off(service: Serv
             assert client.get("/maps").status_code == 200
             time.sleep(HEAD_TIMEOUT + 0.5)  # within uvicorn's 5 s keep-alive
             assert client.post("/maps/m/cells", json={"points": [[0.0, 0.0]]}).status_code == 200
-        stream.settimeout(0.5)
-        with pytest.raises(TimeoutError):  # still open, nothing to say
-            assert stream.recv(4096) != b""
+        # Still open: it may send an event or nothing, but it is not closed.
+        assert seconds_until_closed(stream, 1.0) == 1.0
     finally:
         stream.close()
 
