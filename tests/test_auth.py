@@ -118,3 +118,36 @@ def test_token_files_are_checked_without_echoing_tokens(tmp_path: Path) -> None:
     assert required_role("POST", "/maps/a/scans", False) == "write"
     out = serve("--auth-tokens", str(tmp_path / "missing.txt"))
     assert out.returncode == 2 and "cannot read token file" in out.stderr
+
+
+def test_a_token_holding_a_hash_is_the_whole_token(tmp_path: Path) -> None:
+    """`#` starts a comment only at a line's start or after a space: a token with `#` in it was cut
+    there, so the configured token was refused and its first half alone let anyone in."""
+    token = "0123456789abcdef#ghijklmnopqrstuv"
+    path = tmp_path / "tokens.txt"
+    path.write_text(f"# the line below holds a '#'\nwrite {token} # and a comment\n")
+    with ServiceProcess(tmp_path, ["--auth-tokens", str(path)]) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/h", json={}, headers=bearer(token)).status_code == 201
+        prefix = token.split("#")[0]
+        assert httpx.delete(f"{svc.base_url}/maps/h", headers=bearer(prefix)).status_code == 401
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"write \xff\xfe0123456789abcdefgh\n", "tokens.txt:1: not UTF-8 text"),
+        (
+            "read 0123456789abcdefghij\nwrite caf\u00e9-0123456789abcdef\n".encode(),
+            "tokens.txt:2: tokens may hold only printable ASCII",
+        ),
+    ],
+)  # fmt: skip
+def test_token_files_no_client_could_use_are_refused_in_one_line(
+    tmp_path: Path, content: bytes, message: str
+) -> None:
+    path = tmp_path / "tokens.txt"
+    path.write_bytes(content)
+    out = serve("--auth-tokens", str(path), "--http", f"127.0.0.1:{free_port()}")
+    assert out.returncode == 2, out.stderr
+    assert f"fleetmap serve: error: {path.parent}/{message}" in out.stderr
+    assert "Traceback" not in out.stderr and "0123456789abcdef" not in out.stderr

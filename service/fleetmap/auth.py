@@ -1,8 +1,10 @@
 """API tokens and roles for the REST API.
 
 Tokens come from a file (`--auth-tokens FILE`) or the environment variable `FLEETMAP_TOKENS`, one
-token per line as `ROLE TOKEN` (ROLE is `read`, `write` or `admin`; `#` starts a comment). Clients send
-`Authorization: Bearer TOKEN`. `admin` may do everything `write` may, `write` everything `read` may.
+token per line as `ROLE TOKEN` (ROLE is `read`, `write` or `admin`; `#` at the start of a line or
+after a space starts a comment, so a token may hold `#`). A token is at least 16 printable ASCII
+characters (what an HTTP header carries as is). Clients send `Authorization: Bearer TOKEN`. `admin`
+may do everything `write` may, `write` everything `read` may.
 
 What needs which role:
 - writing (POST scans, PUT/DELETE maps, PUT snapshots): `write`;
@@ -30,6 +32,11 @@ TOKENS_ENV = "FLEETMAP_TOKENS"
 _READ_POSTS = re.compile(r"^/maps/[^/]+/cells$")
 #: Paths open to anyone, always.
 _OPEN_PATHS = {"/healthz"}
+#: A comment: `#` at the start of a line or after whitespace (a `#` inside a token is part of it).
+_COMMENT = re.compile(r"(^|\s)#.*$")
+#: What a token may hold: printable ASCII, no space. A header's bytes are read as Latin-1, so any
+#: other character could never match what a client sends.
+_TOKEN = re.compile(r"^[\x21-\x7e]+$")
 
 Scope = dict
 Receive = Callable[[], Awaitable[dict]]
@@ -51,7 +58,7 @@ class TokenSet:
     def parse(cls, text: str, source: str = "tokens") -> TokenSet:
         entries = []
         for lineno, raw in enumerate(text.splitlines(), 1):
-            line = raw.split("#", 1)[0].strip()
+            line = _COMMENT.sub("", raw).strip()
             if not line:
                 continue
             parts = line.split()
@@ -62,6 +69,11 @@ class TokenSet:
             role, token = parts
             if len(token) < 16:
                 raise TokenFileError(f"{source}:{lineno}: tokens must be at least 16 characters")
+            if not _TOKEN.match(token):
+                raise TokenFileError(
+                    f"{source}:{lineno}: tokens may hold only printable ASCII characters (no client "
+                    "could send any other in an Authorization header)"
+                )
             entries.append((_digest(token), role))
         if not entries:
             raise TokenFileError(f"{source}: no tokens")
@@ -73,9 +85,13 @@ class TokenSet:
         env = os.environ if environ is None else environ
         if path:
             try:
-                return cls.parse(Path(path).read_text(), path)
+                text = Path(path).read_bytes().decode("utf-8")
             except OSError as exc:
                 raise TokenFileError(f"cannot read token file {path}: {exc.strerror}") from None
+            except UnicodeDecodeError as exc:  # the message names the offset, never the bytes
+                line = exc.object[: exc.start].count(b"\n") + 1
+                raise TokenFileError(f"{path}:{line}: not UTF-8 text (byte {exc.start})") from None
+            return cls.parse(text, path)
         if env.get(TOKENS_ENV):
             return cls.parse(env[TOKENS_ENV].replace(";", "\n"), f"${TOKENS_ENV}")
         return None

@@ -33,6 +33,7 @@ from prometheus_client.registry import Collector
 
 if TYPE_CHECKING:
     from fleetmap.api.priority import IngestGate
+    from fleetmap.api.state import EventStreamSlots
     from fleetmap.grid_map import IntegrationResult
     from fleetmap.registry import Job, MapEntry, MapRegistry
     from fleetmap.tile_render import TileCache
@@ -201,6 +202,33 @@ class IngestGateCollector(Collector):
         )
 
 
+class EventStreamsCollector(Collector):
+    """Open event streams and those refused at the cap (`ApiSettings.max_event_streams`), read at
+    scrape."""
+
+    def __init__(self, slots: EventStreamSlots) -> None:
+        self.slots = slots
+
+    def describe(self) -> list[Metric]:
+        return list(self._families())
+
+    def collect(self) -> Iterator[Metric]:
+        open_streams, refused = self._families()
+        open_streams.add_metric([], self.slots.open)
+        refused.add_metric([], self.slots.refused)
+        yield from (open_streams, refused)
+
+    @staticmethod
+    def _families() -> tuple[Metric, ...]:
+        return (
+            GaugeMetricFamily("fleetmap_event_streams", "Event streams (GET /maps/{id}/events) open now"),
+            CounterMetricFamily(
+                "fleetmap_event_streams_refused",
+                "Event streams refused (503) because the limit of open streams was reached",
+            ),
+        )
+
+
 class TileCacheCollector(Collector):
     """The tile cache's own counters (requests served from the cache, tiles rendered), read at scrape."""
 
@@ -283,6 +311,9 @@ class ServiceMetrics:
     def watch_gate(self, gate: IngestGate) -> None:
         self.collector_registry.register(IngestGateCollector(gate))
 
+    def watch_event_streams(self, slots: EventStreamSlots) -> None:
+        self.collector_registry.register(EventStreamsCollector(slots))
+
     def render(self) -> bytes:
         """The Prometheus text exposition of every metric."""
         return generate_latest(self.collector_registry)
@@ -290,6 +321,7 @@ class ServiceMetrics:
 
 __all__ = [
     "CONTENT_TYPE",
+    "EventStreamsCollector",
     "IngestGateCollector",
     "IntegrationMetrics",
     "RegistryCollector",

@@ -24,6 +24,7 @@ bad config file) prints one line `fleetmap serve: error: ...` and exits 2, witho
 from __future__ import annotations
 
 import argparse
+import asyncio
 import errno
 import gc
 import ipaddress
@@ -41,6 +42,14 @@ from fleetmap.auth import AuthMiddleware, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, run_command
 from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.database import StorageError
+from fleetmap.http_limits import (
+    ACCEPT_BACKLOG,
+    RESERVED_DESCRIPTORS,
+    bounded_http_protocol,
+    connection_limit,
+    quiet_accept_errors,
+    raise_descriptor_limit,
+)
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
 from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS, DurableStore
@@ -191,6 +200,46 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         help="origins allowed to call the API from a browser (CORS); default none",
     )
     p.add_argument(
+        "--max-event-streams",
+        type=_int_between(1, 100_000),
+        default=256,
+        metavar="N",
+        help=(
+            "event streams (GET /maps/{id}/events, one per open viewer) open at once; past it new ones "
+            "are refused with 503 and retry by themselves (default 256): each holds memory and CPU"
+        ),
+    )
+    p.add_argument(
+        "--max-http-connections",
+        type=_int_between(16, 1_000_000),
+        default=1024,
+        metavar="N",
+        help=(
+            "HTTP connections open at once; past it a new one gets 503 and is closed (default 1024, "
+            f"lowered to leave {RESERVED_DESCRIPTORS} of the process's file descriptors to Zenoh and storage)"
+        ),
+    )
+    p.add_argument(
+        "--http-head-timeout",
+        type=_seconds_between(0.1, 3600.0),
+        default=10.0,
+        metavar="S",
+        help=(
+            "close a connection whose request line and headers have not all arrived this many seconds "
+            "after it opened (or after the request's first byte) (default 10)"
+        ),
+    )
+    p.add_argument(
+        "--http-body-timeout",
+        type=_seconds_between(0.1, 3600.0),
+        default=60.0,
+        metavar="S",
+        help=(
+            "close a connection whose request body has not all arrived this many seconds after its "
+            "headers (default 60: a 16 MiB body at 2.2 Mbit/s)"
+        ),
+    )
+    p.add_argument(
         "--config",
         metavar="FILE",
         help="map configuration (JSON, the schema of PUT /maps/{id}) for maps created automatically",
@@ -304,7 +353,7 @@ def bind_http(host: str, port: int) -> socket.socket:
         if family == socket.AF_INET6:
             sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
         sock.bind(address)
-        sock.listen(2048)
+        sock.listen(ACCEPT_BACKLOG)
     except OSError as exc:
         sock.close()
         reason = "address already in use" if exc.errno == errno.EADDRINUSE else exc.strerror or str(exc)
@@ -379,6 +428,7 @@ def _http_server_class() -> type:
         ready_line = ""
 
         async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+            quiet_accept_errors(asyncio.get_running_loop())
             await super().startup(sockets=sockets)
             if self.started and not self.should_exit:
                 print(self.ready_line, flush=True)
@@ -467,6 +517,7 @@ def run(args: argparse.Namespace) -> int:
                 cors_origins=args.cors_origin,
                 ingest_backlog=args.ingest_backlog_ms / 1000,
                 max_read_delay=args.max_read_delay_ms / 1000,
+                max_event_streams=args.max_event_streams,
             )
             app = create_app(registry, settings=settings)
             if tokens is not None:
@@ -480,16 +531,22 @@ def run(args: argparse.Namespace) -> int:
                 "no limit" if budget.limit is None else f"{budget.limit / 2**20:.0f} MiB (--max-memory)",
                 budget.used / 2**20,
             )  # fmt: skip
-            # http="auto" parses HTTP with httptools (a dependency; C) rather than h11 (pure Python):
-            # about a quarter less CPU, and GIL time the integration workers do not wait for, per
-            # cached tile.
+            max_connections = connection_limit(args.max_http_connections, raise_descriptor_limit())
+            log.info(
+                "HTTP: at most %d connections; request heads within %g s, bodies within %g s",
+                max_connections, args.http_head_timeout, args.http_body_timeout,
+            )  # fmt: skip
+            # httptools (a dependency; C) rather than h11 (pure Python) parses HTTP: about a quarter
+            # less CPU, and GIL time the integration workers do not wait for, per cached tile. Its
+            # protocol gets the connection limits of fleetmap.http_limits.
             config = uvicorn.Config(
                 app,
                 log_level="warning",
                 access_log=False,
                 timeout_graceful_shutdown=GRACEFUL_HTTP_SECONDS,
                 lifespan="auto",
-                http="auto",
+                http=bounded_http_protocol(max_connections, args.http_head_timeout, args.http_body_timeout),
+                backlog=ACCEPT_BACKLOG,
             )
             server = _http_server_class()(config)
             server.ready_line = (

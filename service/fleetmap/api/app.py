@@ -109,6 +109,9 @@ class ApiSettings:
     events_period: float = 0.1
     #: Seconds between `: keepalive` comments of an event stream.
     keepalive: float = 15.0
+    #: Event streams open at once (all maps, all clients); past it a new one is refused with 503.
+    #: Each holds memory and polls every `events_period`: thousands would starve ingest.
+    max_event_streams: int = 256
     #: Ingest before reads (`fleetmap.api.priority`): while the oldest scan waiting for integration
     #: has waited longer than this many seconds, new HTTP requests wait; 0 switches it off.
     ingest_backlog: float = 0.01

@@ -31,6 +31,12 @@ Format (text/event-stream):
 - `deleted`: the map was deleted; the stream ends. (Also when it was deleted and created again
   between two polls: it is another map, which a client must select anew.)
 - `: keepalive` comment lines every 15 s keep proxies from closing an idle stream.
+
+Streams are capped (`ApiSettings.max_event_streams`, 256 by default; `fleetmap serve
+--max-event-streams`): each open stream holds a task, its buffers and a poll every 100 ms, so without
+a cap anyone who can read could open thousands (9,000 held a whole core and 1 GB, and made ingest 30
+times slower). Past the cap a new stream is refused with 503 and `Retry-After`; an EventSource, and
+the web viewer, try again by themselves.
 """
 
 from __future__ import annotations
@@ -43,13 +49,33 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query
 from fastapi.responses import StreamingResponse
+from starlette.types import Receive, Scope, Send
 
-from fleetmap.api.errors import error_responses
-from fleetmap.api.state import ApiState, MapId, State
+from fleetmap.api.errors import ApiError, error_responses
+from fleetmap.api.state import ApiState, EventStreamSlots, MapId, State
 from fleetmap.api_models import ReplacedEvent, TilesEvent, robots_event, tile_windows
 from fleetmap.registry import MapEntry
 
 router = APIRouter()
+
+#: Seconds a client refused for the stream cap is told to wait (`Retry-After`).
+RETRY_AFTER_SECONDS = 5
+
+
+class _SlotStreamingResponse(StreamingResponse):
+    """A StreamingResponse that gives its stream's slot back when the response ends, however it ends
+    (the client went away, the map was deleted, the server shuts down). Released here rather than in
+    the generator: a generator cancelled before its first step never runs its `finally`."""
+
+    def __init__(self, slots: EventStreamSlots, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self._slots = slots
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self._slots.release()
 
 
 def _event(kind: str, data: str, event_id: int | None = None) -> str:
@@ -132,7 +158,7 @@ async def event_stream(state: ApiState, entry: MapEntry, since: int | None) -> A
             "content": {"text/event-stream": {"schema": {"type": "string"}}},
             "description": "An endless text/event-stream; see the description for the events",
         },
-        **error_responses(404, 422),
+        **error_responses(404, 422, 503),
     },
 )
 async def get_events(
@@ -155,11 +181,22 @@ async def get_events(
     - `: keepalive` comments every 15 s.
 
     A reconnecting EventSource sends `Last-Event-ID` (the last tiles version it got) and receives what
-    changed since; `?since=` does the same by hand."""
+    changed since; `?since=` does the same by hand.
+
+    503 (with `Retry-After`) when the server already holds its limit of open streams (256 by
+    default); an EventSource reconnects by itself."""
     entry = state.entry(map_id)
     if since is None and last_event_id is not None and last_event_id.strip().isdigit():
         since = int(last_event_id.strip())
-    return StreamingResponse(
+    slots = state.event_streams
+    if not slots.acquire():
+        raise ApiError(
+            503,
+            f"the server already holds its limit of {slots.limit} open event streams; retry later",
+            headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
+        )
+    return _SlotStreamingResponse(
+        slots,
         event_stream(state, entry, since),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},

@@ -21,6 +21,28 @@ if TYPE_CHECKING:
     from fleetmap.api.app import ApiSettings
 
 
+class EventStreamSlots:
+    """The open event streams, at most `limit` at once. Used on the event loop only (the route and
+    the responses run there), so it needs no lock."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.open = 0
+        #: Streams refused because `limit` were open (for /metrics).
+        self.refused = 0
+
+    def acquire(self) -> bool:
+        """Take a slot for a new stream; False (counted as refused) when all are taken."""
+        if self.open >= self.limit:
+            self.refused += 1
+            return False
+        self.open += 1
+        return True
+
+    def release(self) -> None:
+        self.open -= 1
+
+
 @dataclass
 class ApiState:
     registry: MapRegistry
@@ -29,11 +51,14 @@ class ApiState:
     web_dir: Path
     gate: IngestGate
     tiles: TileCache = field(init=False)
+    event_streams: EventStreamSlots = field(init=False)
 
     def __post_init__(self) -> None:
         self.tiles = TileCache(self.settings.tile_cache_size, on_render=self.metrics.observe_render)
+        self.event_streams = EventStreamSlots(self.settings.max_event_streams)
         self.metrics.watch_tile_cache(self.tiles)
         self.metrics.watch_gate(self.gate)
+        self.metrics.watch_event_streams(self.event_streams)
 
     def entry(self, map_id: str) -> MapEntry:
         """The map, or MapNotFound (answered 404)."""

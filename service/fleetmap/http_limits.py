@@ -1,0 +1,155 @@
+"""Connection limits of `fleetmap serve`'s HTTP server: how many connections, and how long a client
+may take to send a request.
+
+uvicorn on its own closes a connection only when it has been idle for 5 s after a response: a client
+that connects and sends nothing, or sends its request head or body a byte at a time ("slowloris"),
+holds its connection, and a file descriptor, for ever. About a thousand such connections used up a
+service's 1024 descriptors: robots could no longer connect over Zenoh, HTTP went unanswered, and
+asyncio logged every refused accept with a traceback (300 MB of log in a minute). Nobody needs a
+token to do that: a connection is only checked once its request head has arrived.
+
+`bounded_http_protocol` returns uvicorn's httptools protocol with three limits:
+
+- at most `max_connections` HTTP connections are open at once; the next one is answered with a
+  JSON 503 and closed at once, so HTTP alone can never use up the descriptors Zenoh, SQLite and the
+  snapshot files need;
+- a request's head (request line and headers) must arrive within `head_timeout` seconds of the
+  connection opening, or of the request's first byte on a kept-alive connection;
+- its body must then arrive within `body_timeout` seconds;
+- asyncio accepts at most ACCEPT_BACKLOG connections per turn of the event loop (uvicorn's default
+  of 2048 let one burst take 2048 descriptors before any could be refused), and its complaints when
+  descriptors do run out are rate-limited (`quiet_accept_errors`; Python 3.11 logs one traceback
+  per connection still waiting, 46,000 in 8 s).
+
+A connection past a deadline is closed. Nothing limits how long a response takes: an event stream,
+or a scan waiting for its integration, runs as long as it needs once its request has arrived.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import resource
+from typing import Any
+
+from fleetmap.ingest import RateLimitedLog
+
+log = logging.getLogger("fleetmap.http")
+
+#: Connections asyncio accepts per turn of its loop, and the listening socket's queue: each holds a
+#: descriptor until the next turn refuses it.
+ACCEPT_BACKLOG = 100
+#: Descriptors kept for everything but HTTP connections: Zenoh's links, SQLite, snapshot and log
+#: files, the event loop's own (about 60 in all), and two turns of accepted connections not yet
+#: refused or not yet closed (2 x ACCEPT_BACKLOG). `max_connections` is lowered to leave them.
+RESERVED_DESCRIPTORS = 384
+#: asyncio's message when accept() fails for want of descriptors or memory.
+ACCEPT_ERROR = "socket.accept() out of system resource"
+
+
+def _busy_response() -> bytes:
+    body = json.dumps({"detail": "the server holds too many HTTP connections; retry later"}).encode()
+    head = (
+        "HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/json\r\n"
+        f"content-length: {len(body)}\r\nretry-after: 5\r\nconnection: close\r\n\r\n"
+    )
+    return head.encode() + body
+
+
+BUSY_RESPONSE = _busy_response()
+
+
+def raise_descriptor_limit() -> int:
+    """Raise this process's soft limit of open files to its hard limit (as the Go runtime does: the
+    soft limit, often 1024, is a compatibility default for select()); returns the new soft limit."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or hard > soft:
+        target = hard if hard != resource.RLIM_INFINITY else max(soft, 1 << 20)
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            soft = target
+        except (ValueError, OSError):  # not allowed here: keep the soft limit
+            pass
+    return soft
+
+
+def connection_limit(requested: int, descriptors: int) -> int:
+    """`requested`, lowered so that HTTP connections leave RESERVED_DESCRIPTORS of `descriptors`
+    (at least 16 connections)."""
+    return max(16, min(requested, descriptors - RESERVED_DESCRIPTORS))
+
+
+def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeout: float) -> type:
+    """uvicorn's httptools protocol with the limits of the module's docstring (pass the class as
+    `uvicorn.Config(http=...)`)."""
+    # Imported here: `fleetmap --help` (which imports server.py, and so this module) need not load
+    # uvicorn.
+    from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+
+    class BoundedHttpToolsProtocol(HttpToolsProtocol):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self._deadline: asyncio.TimerHandle | None = None
+
+        def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+            super().connection_made(transport)
+            if len(self.connections) > max_connections:
+                # Refused before anything is read: the descriptor is given back at once.
+                transport.write(BUSY_RESPONSE)
+                transport.close()
+                return
+            self._arm(head_timeout)
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            self._disarm()
+            super().connection_lost(exc)
+
+        def on_message_begin(self) -> None:
+            super().on_message_begin()
+            if self._deadline is None:  # a kept-alive connection's next request
+                self._arm(head_timeout)
+
+        def on_headers_complete(self) -> None:
+            self._disarm()
+            self._arm(body_timeout)
+            super().on_headers_complete()
+
+        def on_message_complete(self) -> None:
+            self._disarm()  # the whole request is in: the response may take as long as it needs
+            super().on_message_complete()
+
+        def _arm(self, seconds: float) -> None:
+            self._deadline = self.loop.call_later(seconds, self._expire)
+
+        def _disarm(self) -> None:
+            if self._deadline is not None:
+                self._deadline.cancel()
+                self._deadline = None
+
+        def _expire(self) -> None:
+            self._deadline = None
+            if not self.transport.is_closing():
+                self.transport.close()
+
+    return BoundedHttpToolsProtocol
+
+
+def quiet_accept_errors(loop: asyncio.AbstractEventLoop, limited: RateLimitedLog | None = None) -> None:
+    """Log asyncio's failed accepts (out of descriptors) as one rate-limited warning instead of a
+    traceback each: every other exception still goes to the loop's handler."""
+    limited = limited or RateLimitedLog(log)
+    previous = loop.get_exception_handler()
+
+    def handler(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        if context.get("message") == ACCEPT_ERROR:
+            limited.warning(
+                "accept", f"cannot accept HTTP connections: {context.get('exception')} (retrying)"
+            )
+            return
+        if previous is not None:
+            previous(loop, context)
+        else:
+            loop.default_exception_handler(context)
+
+    loop.set_exception_handler(handler)

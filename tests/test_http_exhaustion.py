@@ -1,0 +1,235 @@
+"""Resource exhaustion over HTTP, on the real service process: a client (no token needed, reads are
+open by default) must not be able to pin the service's memory, CPU or connections without bound.
+
+The service here runs with small limits so they are cheap to reach.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+from service_process import RobotProcess, ServiceProcess, wait_for
+
+from fleetmap.http_limits import ACCEPT_ERROR, quiet_accept_errors
+
+MAX_STREAMS = 3
+MAX_CONNECTIONS = 16  # the smallest --max-http-connections allowed
+HEAD_TIMEOUT, BODY_TIMEOUT = 1.0, 2.0
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    log_dir = tmp_path_factory.mktemp("exhaustion")
+    args = [
+        "--in-memory", "--max-event-streams", str(MAX_STREAMS),
+        "--max-http-connections", str(MAX_CONNECTIONS),
+        "--http-head-timeout", str(HEAD_TIMEOUT), "--http-body-timeout", str(BODY_TIMEOUT),
+    ]  # fmt: skip
+    with ServiceProcess(log_dir, args) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/m", json={}).status_code == 201
+        yield svc
+
+
+def open_event_stream(svc: ServiceProcess, map_id: str = "m") -> socket.socket:
+    """A raw connection holding `GET /maps/{map_id}/events` open, once its first bytes arrived."""
+    sock = socket.create_connection(("127.0.0.1", svc.port), timeout=10)
+    sock.sendall(f"GET /maps/{map_id}/events HTTP/1.1\r\nHost: t\r\n\r\n".encode())
+    head = b""
+    while b"retry:" not in head:
+        chunk = sock.recv(4096)
+        assert chunk, f"the stream closed: {head!r}"
+        head += chunk
+    assert head.startswith(b"HTTP/1.1 200"), head
+    return sock
+
+
+def metric(svc: ServiceProcess, name: str) -> float:
+    for line in httpx.get(f"{svc.base_url}/metrics").text.splitlines():
+        if line.startswith(name + " "):
+            return float(line.split()[1])
+    raise AssertionError(f"no metric {name}")
+
+
+def test_event_streams_are_capped_and_slots_come_back(service: ServiceProcess) -> None:
+    url = f"{service.base_url}/maps/m/events"
+    streams = [open_event_stream(service) for _ in range(MAX_STREAMS)]
+    try:
+        refused = httpx.get(url, timeout=5)
+        assert refused.status_code == 503
+        assert f"limit of {MAX_STREAMS} open event streams" in refused.json()["detail"]
+        assert int(refused.headers["retry-after"]) > 0
+        assert metric(service, "fleetmap_event_streams") == MAX_STREAMS
+        assert metric(service, "fleetmap_event_streams_refused_total") >= 1
+        # A client that goes away gives its slot back (detected at once, not at the next keepalive).
+        streams.pop().close()
+        streams.append(wait_for(lambda: _try_open(service), timeout=5, what="a freed stream slot"))
+    finally:
+        for sock in streams:
+            sock.close()
+    # All of them come back: the next client gets a stream at once.
+    wait_for(lambda: metric(service, "fleetmap_event_streams") == 0, timeout=5, what="streams closed")
+    open_event_stream(service).close()
+
+
+def _try_open(svc: ServiceProcess) -> socket.socket | None:
+    try:
+        return open_event_stream(svc)
+    except AssertionError:
+        return None
+
+
+def test_an_event_stream_of_a_deleted_map_gives_its_slot_back(service: ServiceProcess) -> None:
+    assert httpx.put(f"{service.base_url}/maps/gone", json={}).status_code == 201
+    sock = open_event_stream(service, "gone")
+    try:
+        assert httpx.delete(f"{service.base_url}/maps/gone").status_code == 204
+        received = b""
+        while b"event: deleted" not in received:
+            chunk = sock.recv(4096)
+            if not chunk:
+                break
+            received += chunk
+        assert b"event: deleted" in received
+        wait_for(lambda: metric(service, "fleetmap_event_streams") == 0, timeout=5, what="slot back")
+    finally:
+        sock.close()
+
+
+def seconds_until_closed(sock: socket.socket, limit: float, dribble: bytes = b"") -> float:
+    """Seconds until the server closes `sock` (reads b""), sending `dribble` every 0.2 s meanwhile;
+    `limit` if it is still open then."""
+    started = time.monotonic()
+    sock.settimeout(0.2)
+    while time.monotonic() - started < limit:
+        try:
+            if sock.recv(4096) == b"":
+                return time.monotonic() - started
+        except TimeoutError:
+            pass
+        if dribble:
+            try:
+                sock.sendall(dribble)
+            except OSError:  # reset: closed by the server
+                return time.monotonic() - started
+    return limit
+
+
+def test_a_connection_that_sends_nothing_is_closed(service: ServiceProcess) -> None:
+    with socket.create_connection(("127.0.0.1", service.port)) as sock:
+        assert seconds_until_closed(sock, 10) < HEAD_TIMEOUT + 1.5
+
+
+def test_a_request_head_sent_a_byte_at_a_time_is_cut_off(service: ServiceProcess) -> None:
+    with socket.create_connection(("127.0.0.1", service.port)) as sock:
+        sock.sendall(b"GET /maps HTTP/1.1\r\nHost: t\r\n")
+        assert seconds_until_closed(sock, 10, dribble=b"X") < HEAD_TIMEOUT + 1.5
+
+
+def test_a_request_body_that_stalls_is_cut_off(service: ServiceProcess) -> None:
+    """A read route (open to anyone): the body it buffers would otherwise stay in memory for ever."""
+    with socket.create_connection(("127.0.0.1", service.port)) as sock:
+        head = b"POST /maps/m/cells HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+        sock.sendall(head + b"Content-Length: 1000000\r\n\r\n" + b" " * 100_000)
+        closed_after = seconds_until_closed(sock, 15, dribble=b" ")
+        assert BODY_TIMEOUT - 0.5 < closed_after < BODY_TIMEOUT + 1.5
+
+
+def test_kept_alive_connections_and_long_responses_are_not_cut_off(service: ServiceProcess) -> None:
+    """The deadlines are for receiving requests: an event stream outlives them, and a kept-alive
+    connection serves a request sent after a pause longer than the head timeout allows."""
+    stream = open_event_stream(service)
+    try:
+        with httpx.Client(base_url=service.base_url) as client:
+            assert client.get("/maps").status_code == 200
+            time.sleep(HEAD_TIMEOUT + 0.5)  # within uvicorn's 5 s keep-alive
+            assert client.post("/maps/m/cells", json={"points": [[0.0, 0.0]]}).status_code == 200
+        # Still open: it may send an event or nothing, but it is not closed.
+        assert seconds_until_closed(stream, 1.0) == 1.0
+    finally:
+        stream.close()
+
+
+def test_connections_past_the_limit_are_refused_and_the_service_recovers(service: ServiceProcess) -> None:
+    idle = [socket.create_connection(("127.0.0.1", service.port)) for _ in range(MAX_CONNECTIONS)]
+    try:
+        with socket.create_connection(("127.0.0.1", service.port), timeout=5) as extra:
+            answer = b""
+            while chunk := extra.recv(4096):
+                answer += chunk
+        assert answer.startswith(b"HTTP/1.1 503"), answer
+        assert b'"detail": "the server holds too many HTTP connections; retry later"' in answer
+    finally:
+        for sock in idle:
+            sock.close()
+    # The idle ones are gone (closed by their clients, or by the head timeout): served again.
+    wait_for(lambda: _healthz_ok(service), timeout=HEAD_TIMEOUT + 5, what="/healthz answering again")
+
+
+def _healthz_ok(svc: ServiceProcess) -> bool:
+    try:
+        return httpx.get(f"{svc.base_url}/healthz", timeout=2).status_code == 200
+    except httpx.TransportError:
+        return False
+
+
+def test_a_connection_flood_leaves_robots_and_the_log_alone(tmp_path: Path) -> None:
+    """With the 512 descriptors of a tight `ulimit -n`, hundreds of idle HTTP connections (no token
+    needed) must not use them all: robots still connect over Zenoh, HTTP refuses what it cannot hold
+    with a 503, and the log does not fill with a traceback per refused accept."""
+    svc = ServiceProcess(tmp_path, ["--in-memory"])
+    svc.args = ["sh", "-c", 'ulimit -n 512 && exec "$@"', "sh", *svc.args]
+    with svc:
+        flood = []
+        try:
+            # All at once, not one after another: the kernel completes the handshakes and queues them,
+            # and the service must not take more of them at a time than it has descriptors for.
+            for _ in range(700):
+                sock = socket.socket()
+                sock.setblocking(False)
+                sock.connect_ex(("127.0.0.1", svc.port))
+                flood.append(sock)
+            time.sleep(1.0)
+            robot = RobotProcess(svc.zenoh_endpoint, "flooded", "r1", sim=1, count=5, log_dir=tmp_path)
+            robot.start()
+            robot.wait(60)
+            with socket.create_connection(("127.0.0.1", svc.port), timeout=5) as extra:
+                extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: t\r\n\r\n")
+                assert extra.recv(4096).startswith(b"HTTP/1.1 503"), "refused with an answer, at once"
+        finally:
+            for sock in flood:
+                sock.close()
+        wait_for(lambda: _healthz_ok(svc), timeout=15, what="/healthz answering again")
+        stats = httpx.get(f"{svc.base_url}/maps/flooded").json()["stats"]
+        assert stats["robots"]["r1"]["scans_integrated"] == 5
+        logs = svc.logs()
+    assert "Too many open files" not in logs and "cannot accept" not in logs
+    assert len(logs) < 20_000, logs[-2000:]
+
+
+def test_failed_accepts_are_logged_once_not_once_each(caplog: pytest.LogCaptureFixture) -> None:
+    """Python 3.11's loop reports every connection it could not accept for want of descriptors with
+    a traceback (46,000 in 8 s of a flood); the service logs them as one rate-limited warning, and
+    other loop errors as before."""
+    loop = asyncio.new_event_loop()
+    try:
+        quiet_accept_errors(loop)
+        with caplog.at_level(logging.WARNING):
+            for _ in range(1000):
+                loop.call_exception_handler(
+                    {"message": ACCEPT_ERROR, "exception": OSError(errno.EMFILE, "Too many open files")}
+                )
+            loop.call_exception_handler({"message": "something else broke"})
+    finally:
+        loop.close()
+    accept_lines = [r for r in caplog.records if "accept" in r.getMessage()]
+    assert len(accept_lines) == 1, len(accept_lines)
+    assert accept_lines[0].name == "fleetmap.http" and "Too many open files" in accept_lines[0].getMessage()
+    assert any("something else broke" in r.getMessage() for r in caplog.records)
