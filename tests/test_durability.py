@@ -174,6 +174,32 @@ def test_unwritable_data_dir_is_a_clear_error_at_start(tmp_path: Path) -> None:
     assert svc.proc is not None and svc.proc.returncode == 2
 
 
+def test_a_second_service_on_the_same_data_directory_is_refused(tmp_path: Path) -> None:
+    """Two services on one data directory would journal and snapshot their own copies of the maps into
+    one database (before the fix the second started, and a DELETE there removed the first one's map
+    from disk while the first went on serving it). The second is refused with a clear error; once the
+    first is killed with SIGKILL the directory is free again (no stale lock)."""
+    data = tmp_path / "data"
+    first = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        assert httpx.put(f"{first.base_url}/maps/kept", timeout=30).status_code == 201
+        second = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+        with pytest.raises(RuntimeError) as refused:
+            second.start()
+        assert second.proc is not None and second.proc.returncode == 2
+        assert f"data directory {data} is in use by another fleetmap service (pid {first.proc.pid})" in str(
+            refused.value
+        )
+        assert "Traceback" not in str(refused.value)
+        assert httpx.get(f"{first.base_url}/maps/kept", timeout=10).status_code == 200
+        first.proc.kill()
+        first.proc.wait()
+    finally:
+        first.stop()
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as third:
+        assert httpx.get(f"{third.base_url}/maps/kept", timeout=10).status_code == 200
+
+
 def test_snapshot_download_and_restore_moves_a_map_between_servers(tmp_path: Path) -> None:
     """GET /snapshot from one service, PUT it into another: the maps are equal in every layer; a body
     that is not a snapshot is a 422 that changes nothing."""

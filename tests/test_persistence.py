@@ -121,7 +121,7 @@ def test_superseded_rows_left_by_a_crash_are_deleted_at_start(tmp_path: Path, mo
 def test_attached_rows_ride_along_with_the_next_group_commit(tmp_path: Path, monkeypatch) -> None:
     """A snapshot's tile rows are written in the journal's own transactions: with the next group
     commit while scans arrive, alone once none has come for ATTACH_WAIT."""
-    path = open_database(tmp_path)
+    path, _lock = open_database(tmp_path)
     insert = "INSERT INTO robots (map_id, robot_id, state) VALUES ('m', ?, '{}')"
     writer = JournalWriter(path)
     try:
@@ -152,7 +152,7 @@ def test_attached_rows_ride_along_with_the_next_group_commit(tmp_path: Path, mon
 
 def test_a_failing_durability_callback_does_not_stop_the_writer(tmp_path: Path, caplog) -> None:
     """A bug in one scan's callback is logged; the writer thread goes on committing later scans."""
-    writer = JournalWriter(open_database(tmp_path))
+    writer = JournalWriter(open_database(tmp_path)[0])
 
     def broken(_row: int) -> None:
         raise RuntimeError("a bug in a callback")

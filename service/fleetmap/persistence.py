@@ -114,7 +114,8 @@ class DurableStore:
         snapshot_pace: float = 3.0,
     ) -> None:
         self.data_dir = Path(data_dir)
-        self.path = open_database(self.data_dir)
+        # Held until `close`: no second service may use this directory meanwhile.
+        self.path, self._dir_lock = open_database(self.data_dir)
         self.writer = JournalWriter(self.path, on_error=self._storage_failed)
         self.snapshot_interval = snapshot_interval
         self.snapshot_rows = snapshot_rows
@@ -461,6 +462,7 @@ class DurableStore:
         with contextlib.suppress(sqlite3.Error):
             self._snapshot_conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         self._snapshot_conn.close()
+        self._dir_lock.release()
 
     def checkpoint_step(self) -> None:
         """One passive checkpoint: copy what the WAL gained since the last one into the database,
