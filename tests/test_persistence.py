@@ -371,6 +371,24 @@ def test_version_1_journal_rows_still_load() -> None:
     assert _same_scan(scan_from_blob(old), scan)
 
 
+def test_version_2_journal_rows_still_load() -> None:
+    """Rows written before the checksum (version 2: version 3 without its last 4 bytes) decode."""
+    scan = fan(0.2, n=7)
+    v2 = bytes([2]) + scan_to_blob(scan)[1:-4]
+    assert _same_scan(scan_from_blob(v2), scan)
+
+
+def test_a_journal_row_with_any_byte_changed_is_refused() -> None:
+    """Bit rot in a pose or a range used to decode as another valid scan, replayed silently into a
+    different map; the checksum refuses it."""
+    blob = scan_to_blob(fan(0.3, n=9))
+    for at in range(len(blob)):
+        damaged = bytearray(blob)
+        damaged[at] ^= 0x10
+        with pytest.raises(StorageError, match="corrupt journal entry"):
+            scan_from_blob(bytes(damaged))
+
+
 @pytest.mark.parametrize("cut", [0, 5, 40, 41, 60, -1])
 def test_corrupt_journal_rows_are_refused(cut: int) -> None:
     """Truncated rows, unknown versions or flags: a clear StorageError, never a wrong scan."""
