@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import json
 import random
+import shutil
 import sqlite3
 import threading
 import time
@@ -198,6 +199,49 @@ def test_a_second_service_on_the_same_data_directory_is_refused(tmp_path: Path) 
         first.stop()
     with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as third:
         assert httpx.get(f"{third.base_url}/maps/kept", timeout=10).status_code == 200
+
+
+def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_map(tmp_path: Path) -> None:
+    """A tile row or a journal row that no longer decodes (bit rot, a bad copy): the service refuses
+    to start with one line naming the database file and the map, exit code 2, and no traceback
+    (before the fix: a traceback ending in `corrupt tile: ...`, exit code 1)."""
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=1, count=6)]
+    data = tmp_path / "data"
+
+    def post(url: str, k: int) -> None:
+        message = json.loads(encode_json(scans[k], k))
+        r = httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, json=message, timeout=30)
+        assert r.status_code == 200, r.text
+
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        for k in range(3):
+            post(svc.base_url, k)
+    # Stopped cleanly: those 3 are in tile rows. 3 more, then SIGKILL: those are journal rows.
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        for k in range(3, 6):
+            post(svc.base_url, k)
+        svc.proc.kill()
+        svc.proc.wait()
+    finally:
+        svc.stop()
+    for table, column in (("tiles", "data"), ("journal", "scan")):
+        damaged = tmp_path / f"damaged-{table}"
+        shutil.copytree(data, damaged)
+        with sqlite3.connect(damaged / DB_NAME) as conn:
+            (rowid, blob) = conn.execute(f"SELECT rowid, {column} FROM {table} LIMIT 1").fetchone()
+            bad = blob[: len(blob) // 2] + bytes(b ^ 0x5A for b in blob[len(blob) // 2 :])
+            conn.execute(f"UPDATE {table} SET {column} = ? WHERE rowid = ?", (bad, rowid))
+        svc = ServiceProcess(tmp_path, ["--data-dir", str(damaged)])
+        with pytest.raises(RuntimeError) as refused:
+            svc.start()
+        assert svc.proc is not None and svc.proc.returncode == 2, table
+        output = str(refused.value)
+        assert "Traceback" not in output, output
+        assert f"cannot read the map database {damaged / DB_NAME} (map 'm'): corrupt" in output, output
+    # The undamaged directory still starts and holds all six scans.
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        assert stats(svc.base_url, "m")["scans_integrated"] == 6
 
 
 def test_snapshot_download_and_restore_moves_a_map_between_servers(tmp_path: Path) -> None:

@@ -153,8 +153,13 @@ class DurableStore:
     def load(self) -> list[tuple[str, GridMap, dict, list[tuple[str, int, float, Scan]]]]:
         """Every stored map: (id, map from its snapshot, saved counters, journal rows after it).
 
-        The caller (the registry) replays the journal rows in order through its own bookkeeping."""
+        The caller (the registry) replays the journal rows in order through its own bookkeeping.
+
+        Raises `StorageError` naming the database file (and the map, when one map's rows are the
+        problem) if it cannot be read: a corrupt file, tile, journal row or configuration. The
+        service then refuses to start rather than serve a map that is not what its robots made."""
         conn = connect(self.path)
+        map_id = None
         try:
             out = []
             for map_id, config_json, snap_id, snap_gen, clock, integrated, rejected, created in conn.execute(
@@ -185,12 +190,13 @@ class DurableStore:
                 gmap.store.restore_clock(max(clock, max((r[2] for r in rows), default=0)))
                 robots = {rid: json.loads(state) for rid, state in conn.execute(
                     "SELECT robot_id, state FROM robots WHERE map_id = ?", (map_id,))}  # fmt: skip
-                journal = [
-                    (robot_id, seq, stamp, scan_from_blob(blob))
-                    for _id, robot_id, seq, stamp, blob in conn.execute(
-                        "SELECT id, robot_id, seq, stamp, scan FROM journal WHERE map_id = ? AND id > ? "
-                        "ORDER BY id", (map_id, snap_id))
-                ]  # fmt: skip
+                # Fetched whole before any row is decoded: a cursor left open by a row that does not
+                # decode kept a read lock, and the TRUNCATE checkpoint of `close` then waited 30 s.
+                rows = conn.execute(
+                    "SELECT robot_id, seq, stamp, scan FROM journal WHERE map_id = ? AND id > ? ORDER BY id",
+                    (map_id, snap_id),
+                ).fetchall()
+                journal = [(robot, seq, stamp, scan_from_blob(blob)) for robot, seq, stamp, blob in rows]
                 last = conn.execute("SELECT MAX(id) FROM journal WHERE map_id = ?", (map_id,)).fetchone()[0]
                 self._last_journal_id[map_id] = int(last or snap_id)
                 self._rows_since[map_id] = len(journal)
@@ -200,8 +206,14 @@ class DurableStore:
                 counters = {"scans_integrated": integrated, "scans_rejected": rejected, "robots": robots}
                 out.append((map_id, gmap, counters, journal))
             return out
-        except (sqlite3.DatabaseError, zlib.error) as exc:
-            raise StorageError(f"cannot read the map database {self.path}: {exc}") from None
+        # ValueError: a stored configuration that does not validate (pydantic's ValidationError).
+        except (sqlite3.DatabaseError, zlib.error, StorageError, ValueError) as exc:
+            where = "" if map_id is None else f" (map {map_id!r})"
+            reason = " ".join(str(exc).split())  # one line, also for pydantic's multi-line messages
+            raise StorageError(
+                f"cannot read the map database {self.path}{where}: {reason}; the service does not start "
+                "on a damaged database: restore the data directory from a backup, or move it aside"
+            ) from None
         finally:
             conn.close()
 
