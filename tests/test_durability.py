@@ -402,7 +402,7 @@ def test_a_failing_disk_is_reported_and_the_next_snapshot_saves_what_it_missed(t
                  what="scan 0 snapshotted and its journal row deleted")  # fmt: skip
         assert health(url)["storage"] == {
             "ok": True, "last_error": None, "last_error_at": None, "scans_not_durable": 0,
-            "maps_awaiting_snapshot": [],
+            "maps_awaiting_snapshot": [], "map_changes_not_stored": [],
         }  # fmt: skip
         soft, hard = resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE)
         resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE, (1, hard))
@@ -454,6 +454,71 @@ def test_a_failing_disk_is_reported_and_the_next_snapshot_saves_what_it_missed(t
         assert stats(restarted.base_url, "m")["robots"]["r"]["not_durable"] == 1
     finally:
         restarted.stop()
+
+
+def test_map_changes_the_disk_refused_are_stored_once_it_works_before_any_of_their_scans(
+    tmp_path: Path,
+) -> None:
+    """A map created (PUT) and another deleted while the disk fails: both are answered 503, listed in
+    /healthz as not stored, and stored by the service once the disk works, before any of the new
+    map's scans. Before the fix, neither was ever stored: scans of the new map were then answered 200
+    and journaled, and a kill -9 lost the map with all of them, while the deleted map came back.
+
+    The failing disk is RLIMIT_FSIZE lowered to 1 byte, as in the test above."""
+    resource = pytest.importorskip("resource")
+    scans = [as_received(s) for s in scans_for(sim=4, plan_seed=1, count=3)]
+    data = tmp_path / "data"
+
+    def post(url: str, map_id: str, k: int) -> httpx.Response:
+        message = json.loads(encode_json(scans[k], k))
+        return httpx.post(f"{url}/maps/{map_id}/scans", params={"robot_id": "r"}, json=message, timeout=30)
+
+    def storage(url: str) -> dict:
+        return httpx.get(f"{url}/healthz", timeout=10).json()["storage"]
+
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data), "--snapshot-interval", "0.5"]).start()
+    try:
+        url = svc.base_url
+        assert post(url, "doomed", 0).status_code == 200
+        soft, hard = resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE)
+        resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE, (1, hard))
+        try:
+            created = httpx.put(f"{url}/maps/new", timeout=30)
+            assert created.status_code == 503 and "could not be stored" in created.json()["detail"]
+            deleted = httpx.delete(f"{url}/maps/doomed", timeout=30)
+            assert deleted.status_code == 503 and "could not be stored" in deleted.json()["detail"]
+            assert storage(url)["map_changes_not_stored"] == ["doomed", "new"]
+            assert post(url, "new", 0).status_code == 503  # applied, not durable: a snapshot saves it
+            again = httpx.put(f"{url}/maps/new", timeout=30)
+            assert again.status_code == 503 and "could not be stored" in again.json()["detail"]
+        finally:
+            resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE, (soft, hard))
+        answered = post(url, "new", 1)  # the map is stored first, then this scan's row
+        assert answered.status_code == 200, answered.text
+        wait_for(lambda: (h := storage(url))["ok"] and h, what="storage ok again")
+        assert storage(url)["map_changes_not_stored"] == []
+        assert httpx.put(f"{url}/maps/new", timeout=30).status_code == 200  # the same PUT: stored now
+        assert httpx.delete(f"{url}/maps/doomed", timeout=30).status_code == 404  # nothing left to do
+        bounds = tuple(stats(url, "new")["bounds"])
+        served = region(url, "new", "log_odds", bounds)
+        svc.proc.kill()  # SIGKILL: only what was stored counts
+        svc.proc.wait()
+    finally:
+        svc.stop()
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as restarted:
+        listed = httpx.get(f"{restarted.base_url}/maps", timeout=10).json()["maps"]
+        assert [m["id"] for m in listed] == ["new"], "a map lost, or a deleted map back"
+        robot = stats(restarted.base_url, "new")["robots"]["r"]
+        assert (robot["scans_integrated"], robot["not_durable"]) == (1, 1)
+        # Both scans: the one answered 200 from the journal, the one answered 503 from the snapshot.
+        np.testing.assert_array_equal(region(restarted.base_url, "new", "log_odds", bounds), served)
+        reference = GridMap(MapConfig())
+        for scan in scans[:2]:
+            reference.integrate(scan)
+        i0, j0, i1, j1 = reference.known_bounds()
+        assert int(np.isfinite(served).sum()) == int(
+            np.isfinite(reference.region("log_odds", i0, j0, i1, j1)).sum()
+        )
 
 
 def test_a_scan_whose_map_is_replaced_while_it_integrates_is_not_replayed_into_the_new_map(

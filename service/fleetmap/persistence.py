@@ -78,17 +78,19 @@ TileRow = tuple[tuple[int, int], int, bytes]
 class StorageHealth:
     """How the data directory is doing (`DurableStore.health`, reported by `GET /healthz`).
 
-    `ok` is False while the last journal commit or the last snapshot failed, and while a map holds
-    scans whose journal commit failed: they are applied in memory but only the map's next snapshot
-    makes them durable. `last_error` and `last_error_at` (Unix time) describe the latest failure and
-    stay after recovery; `scans_not_durable` counts, since start, the scans whose journal commit
-    failed."""
+    `ok` is False while the last journal commit or the last snapshot failed, while a map holds
+    scans whose journal commit failed (they are applied in memory but only the map's next snapshot
+    makes them durable), and while the creation, restore or deletion of a map is not stored
+    (`map_changes_not_stored`: retried until it is). `last_error` and `last_error_at` (Unix time)
+    describe the latest failure and stay after recovery; `scans_not_durable` counts, since start,
+    the scans whose journal commit failed."""
 
     ok: bool
     last_error: str | None
     last_error_at: float | None
     scans_not_durable: int
     maps_awaiting_snapshot: tuple[str, ...]
+    map_changes_not_stored: tuple[str, ...]
 
 
 class DurableStore:
@@ -162,10 +164,15 @@ class DurableStore:
         map_id = None
         try:
             out = []
-            for map_id, config_json, snap_id, snap_gen, clock, integrated, rejected, created in conn.execute(
+            stored_maps = conn.execute(
                 "SELECT id, config, snapshot_journal_id, snapshot_gen, clock, scans_integrated, "
                 "scans_rejected, created_at FROM maps"
-            ).fetchall():
+            ).fetchall()
+            # Rows of maps that are not stored: left by versions that wrote a map's scans although
+            # its creation had failed to commit. Nothing would ever read or delete them.
+            for table in ("tiles", "robots", "journal"):
+                conn.execute(f"DELETE FROM {table} WHERE map_id NOT IN (SELECT id FROM maps)")
+            for map_id, config_json, snap_id, snap_gen, clock, integrated, rejected, created in stored_maps:
                 # Stored before today's limits, perhaps: a map that was accepted keeps loading.
                 gmap = GridMap(MapConfig.model_validate_json(config_json, context={STORED_CONFIG: True}))
                 # Rows of a snapshot that never switched its generation (a crash mid-snapshot) are
@@ -244,9 +251,14 @@ class DurableStore:
         created = time.time()
         self._created[map_id] = created
 
+        first_attempt = True
+
         def op(conn: sqlite3.Connection) -> None:
+            nonlocal first_attempt
             self.writer.trim(map_id, None)  # the DELETE below removes them all
-            self._forget_health(map_id)  # a previous map of this id, replaced whole, takes its own along
+            if first_attempt:  # (a retry must keep what this map's own failed scans left to save)
+                self._forget_health(map_id)  # a previous map of this id, replaced whole, takes its own along
+                first_attempt = False
             conn.execute("BEGIN IMMEDIATE")
             for table, column in (("tiles", "map_id"), ("robots", "map_id"), ("journal", "map_id")):
                 conn.execute(f"DELETE FROM {table} WHERE {column} = ?", (map_id,))
@@ -265,7 +277,7 @@ class DurableStore:
 
         self._rows_since[map_id] = 0
         self._snapshot_clock[map_id] = clock
-        return self.writer.submit(op)
+        return self.writer.change_map(map_id, self._reporting(f"storing the new map {map_id!r} failed", op))
 
     def map_deleted(self, map_id: str) -> Future:
         """Forget a map. Queued after its journaled scans, not waited for; the future resolves once
@@ -287,7 +299,26 @@ class DurableStore:
         for d in (self._rows_since, self._snapshot_clock):
             d.pop(map_id, None)
         self._forget_health(map_id)
-        return self.writer.submit(op)
+        return self.writer.change_map(map_id, self._reporting(f"deleting map {map_id!r} failed", op))
+
+    def _reporting(
+        self, what: str, op: Callable[[sqlite3.Connection], None]
+    ) -> Callable[[sqlite3.Connection], None]:
+        """`op`, with its storage failures recorded for `health` as `what`."""
+
+        def reported(conn: sqlite3.Connection) -> None:
+            try:
+                op(conn)
+            except sqlite3.Error as exc:
+                self._failure(what, exc)
+                raise
+
+        return reported
+
+    def retry_map_change(self, map_id: str) -> Future | None:
+        """If the last change of map `map_id` is not stored (`map_changes_not_stored`), retry it: the
+        future resolves once it is stored, or fails with the error. None if nothing is pending."""
+        return self.writer.retry(map_id) if map_id in self.writer.unstored else None
 
     def _forget_health(self, map_id: str) -> None:
         with self._health_lock:
@@ -321,13 +352,18 @@ class DurableStore:
         self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable, failed))
 
     def health(self) -> StorageHealth:
+        unstored = self.writer.unstored
         with self._health_lock:
             return StorageHealth(
-                ok=self._journal_error is None and not self._snapshot_errors and not self._awaiting,
+                ok=self._journal_error is None
+                and not self._snapshot_errors
+                and not self._awaiting
+                and not unstored,
                 last_error=None if self._last_error is None else self._last_error[0],
                 last_error_at=None if self._last_error is None else self._last_error[1],
                 scans_not_durable=self._not_durable,
                 maps_awaiting_snapshot=tuple(sorted(self._awaiting)),
+                map_changes_not_stored=unstored,
             )
 
     def _failure(self, what: str, exc: BaseException) -> str:
@@ -356,7 +392,8 @@ class DurableStore:
         start). Nothing here waits on the writer while holding a lock."""
         try:
             return self._write_snapshot(map_id, gmap, counters)
-        except (sqlite3.Error, OSError) as exc:
+        # StorageError: its tile rows were held back, the map's own creation not being stored yet.
+        except (sqlite3.Error, OSError, StorageError) as exc:
             message = self._failure(f"snapshot of map {map_id!r} failed", exc)
             with self._health_lock:
                 self._snapshot_errors[map_id] = message
@@ -391,6 +428,7 @@ class DurableStore:
                         "INSERT OR REPLACE INTO tiles (map_id, ti, tj, gen, version, data) "
                         "VALUES (?, ?, ?, ?, ?, ?)",
                         (map_id, key[0], key[1], gen, version, blob),
+                        map_id=map_id,
                     )
                 )
                 # The machine's few cores also integrate scans: spread the encoding out rather
