@@ -421,7 +421,7 @@ def test_a_stored_configuration_past_todays_limits_still_loads(tmp_path: Path) -
     again = DurableStore(tmp_path)
     try:
         [(map_id, restored, _counters, replay)] = again.load()
-        assert map_id == "m" and restored.config.tsdf.truncation == 20.0 and replay == []
+        assert map_id == "m" and restored.config.tsdf.truncation == 20.0 and list(replay) == []
         window = gmap.known_bounds()
         assert window is not None
         for layer in ("log_odds", "tsdf", "tsdf_weight"):

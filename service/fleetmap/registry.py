@@ -52,6 +52,8 @@ TRAIL_LENGTH = 200
 QUEUE_BYTES = 256 << 20
 #: Seconds a map change made with `wait=True` waits to be committed before `NotDurable` is raised.
 DURABLE_WAIT = 30.0
+#: Seconds between progress lines while a map's journal is replayed at start.
+RESTORE_REPORT = 5.0
 
 
 class MapNotFound(KeyError):
@@ -250,7 +252,15 @@ class MapRegistry:
             entry.scans_integrated = counters["scans_integrated"]
             entry.scans_rejected = counters["scans_rejected"]
             entry.robots = {rid: RobotState.from_saved(data) for rid, data in counters["robots"].items()}
-            for robot_id, seq, stamp, scan in journal:
+            started = last_report = time.monotonic()
+            for replayed, (robot_id, seq, stamp, scan) in enumerate(journal):
+                if time.monotonic() - last_report >= RESTORE_REPORT:
+                    # 20,000 scans take 10-20 s: say the service is busy, not stuck.
+                    last_report = time.monotonic()
+                    log.info(
+                        "restoring map %s: %d of %d journal scans replayed (%.0f s)",
+                        map_id, replayed, len(journal), last_report - started,
+                    )  # fmt: skip
                 gmap.integrate(scan)  # the same engine, in journal order: the same map
                 robot = entry.robot(robot_id)
                 robot.scans_integrated += 1
