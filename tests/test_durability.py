@@ -201,6 +201,36 @@ def test_a_second_service_on_the_same_data_directory_is_refused(tmp_path: Path) 
         assert httpx.get(f"{third.base_url}/maps/kept", timeout=10).status_code == 200
 
 
+def test_a_data_directory_of_a_newer_schema_is_refused_at_start(tmp_path: Path) -> None:
+    """A database a newer fleetmap wrote (a higher `PRAGMA user_version`) may hold tables, tiles or
+    journal rows this one would misread or overwrite: the service refuses it, exit code 2, naming the
+    file and both versions, and changes nothing (before the fix it served the maps and wrote to it)."""
+    from fleetmap.database import SCHEMA_VERSION
+
+    data = tmp_path / "data"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/m", timeout=30).status_code == 201
+    with sqlite3.connect(data / DB_NAME) as conn:
+        assert conn.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+        conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+
+    def contents() -> tuple[int, list[str]]:
+        with sqlite3.connect(data / DB_NAME) as conn:
+            return conn.execute("PRAGMA user_version").fetchone()[0], list(conn.iterdump())
+
+    before = contents()
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+    with pytest.raises(RuntimeError) as refused:
+        svc.start()
+    assert svc.proc is not None and svc.proc.returncode == 2
+    assert (
+        f"the map database {data / DB_NAME} was written by a newer fleetmap (schema version "
+        f"{SCHEMA_VERSION + 1}; this one reads up to {SCHEMA_VERSION})"
+    ) in str(refused.value)
+    assert "Traceback" not in str(refused.value)
+    assert contents() == before
+
+
 def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_map(tmp_path: Path) -> None:
     """A tile row or a journal row that no longer decodes (bit rot, a bad copy): the service refuses
     to start with one line naming the database file and the map, exit code 2, and no traceback

@@ -12,6 +12,11 @@ from pathlib import Path
 DB_NAME = "fleetmap.db"
 #: Held locked (a POSIX record lock) by the service that uses the data directory.
 LOCK_NAME = "fleetmap.lock"
+#: The database's layout (`PRAGMA user_version`): its tables, tile format 2, journal rows up to
+#: version 3. A version that changes any of them in a way older ones cannot read raises it, so an
+#: older service refuses the directory instead of misreading it or writing what the newer one
+#: misreads. Directories written before it was recorded hold 0 and are this layout.
+SCHEMA_VERSION = 1
 #: Refuse to start with less free space than this in the data directory.
 MIN_FREE_BYTES = 64 * 1024 * 1024
 SCHEMA = """
@@ -132,8 +137,17 @@ def _check_and_create(data_dir: Path) -> Path:
     path = data_dir / DB_NAME
     try:
         conn = connect(path)
-        conn.executescript(SCHEMA)
-        conn.close()
+        try:
+            (version,) = conn.execute("PRAGMA user_version").fetchone()
+            if version > SCHEMA_VERSION:
+                raise StorageError(
+                    f"the map database {path} was written by a newer fleetmap (schema version {version}; "
+                    f"this one reads up to {SCHEMA_VERSION}): run that version, or move the directory aside"
+                )
+            conn.executescript(SCHEMA)
+            conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        finally:
+            conn.close()
     except sqlite3.DatabaseError as exc:
         raise StorageError(f"cannot open the map database {path}: {exc}") from None
     return path
