@@ -597,6 +597,35 @@ def test_map_changes_the_disk_refused_are_stored_once_it_works_before_any_of_the
         )
 
 
+def test_a_data_directory_deleted_while_the_service_runs_makes_nothing_durable_and_says_so(
+    tmp_path: Path,
+) -> None:
+    """SQLite goes on committing into a deleted database file through its open descriptor: before the
+    fix, after `rm -rf` of the data directory scans were answered 200 (integrated) and /healthz said
+    ok, and a restart found nothing. Now such a scan is answered 503 (applied, not durable), and
+    /healthz is degraded and says what happened and what to do."""
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=1, count=2)]
+    data = tmp_path / "data"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+
+        def post(k: int) -> httpx.Response:
+            message = json.loads(encode_json(scans[k], k))
+            return httpx.post(
+                f"{svc.base_url}/maps/m/scans", params={"robot_id": "r"}, json=message, timeout=30
+            )
+
+        assert post(0).status_code == 200
+        shutil.rmtree(data)
+        after = post(1)
+        assert after.status_code == 503, after.text
+        assert "deleted or replaced" in after.json()["detail"]
+        health = httpx.get(f"{svc.base_url}/healthz", timeout=10).json()
+        assert health["status"] == "degraded"
+        assert f"the map database {data / DB_NAME} was deleted or replaced" in health["storage"]["last_error"]
+        assert "GET /maps/{id}/snapshot" in health["storage"]["last_error"]
+        assert stats(svc.base_url, "m")["robots"]["r"]["not_durable"] == 1
+
+
 def test_a_scan_whose_map_is_replaced_while_it_integrates_is_not_replayed_into_the_new_map(
     tmp_path: Path,
 ) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
+import os
 import queue
 import sqlite3
 import threading
@@ -65,6 +66,9 @@ class JournalWriter:
         # The journal writer never checkpoints the WAL by itself (a checkpoint copies hundreds of MB);
         # the snapshot thread does after each snapshot, leaving only a short tail to the writer.
         self._conn = connect(path, autocheckpoint=False)
+        self._path = path
+        # Which file the connection writes to: see `_check_database_file`.
+        self._file_id = _file_id(path)
         self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | object | None] = (
             queue.Queue()
         )
@@ -160,9 +164,23 @@ class JournalWriter:
 
         return self.submit(again)
 
+    def _check_database_file(self) -> None:
+        """Raise `sqlite3.OperationalError` if the database file at the path is not the one the writer
+        opened: the data directory was deleted (or the file replaced) while the service ran. SQLite
+        goes on committing into the deleted file, through its open descriptor, without an error:
+        scans were counted as integrated and /healthz said ok, and a restart found an empty
+        directory."""
+        if _file_id(self._path) != self._file_id:
+            raise sqlite3.OperationalError(
+                f"the map database {self._path} was deleted or replaced while the service ran, so "
+                "nothing can be made durable any more; save each map with GET /maps/{id}/snapshot "
+                "before restarting the service"
+            )
+
     def _change(self, map_id: str, op: Callable[[sqlite3.Connection], object]) -> object:
         """Run a map change on the writer thread; keep it in `_unstored` if its transaction fails."""
         try:
+            self._check_database_file()
             result = op(self._conn)
         except BaseException as exc:
             # SQLite rolls some failed transactions back by itself, not all: left open, this one
@@ -321,6 +339,7 @@ class JournalWriter:
             for _map_id, sql, params, _future in attached:
                 self._conn.execute(sql, params)
             trimmed = self._trim_some()
+            self._check_database_file()  # (a stat: about 1 us per group commit)
             self._conn.execute("COMMIT")
         except sqlite3.Error as exc:
             # Nothing of this batch is durable: the scans stay applied in memory but are never
@@ -349,6 +368,15 @@ class JournalWriter:
         for e, row_id in zip(batch, ids, strict=True):
             _tell(e.on_durable, int(row_id))
         return True
+
+
+def _file_id(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the file at `path`, None if there is none (or it cannot be looked at)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
 
 
 def _tell(callback: Callable[[Any], None], value: object) -> None:
