@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import json
 import random
+import shutil
 import sqlite3
 import threading
 import time
@@ -28,7 +29,7 @@ from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
-from fleetmap.storage_format import scan_from_blob, snapshot_file, tile_from_blob, tile_to_blob
+from fleetmap.storage_format import scan_from_blob, scan_to_blob, snapshot_file, tile_from_blob, tile_to_blob
 from fleetmap.wire import BINARY_ENCODING
 
 SOLO_MAPS = {"solo-a": 11, "solo-b": 12}  # map -> the sim seed of its one robot
@@ -172,6 +173,151 @@ def test_unwritable_data_dir_is_a_clear_error_at_start(tmp_path: Path) -> None:
         svc.start()
     assert "data directory" in str(failed.value)
     assert svc.proc is not None and svc.proc.returncode == 2
+
+
+def test_a_second_service_on_the_same_data_directory_is_refused(tmp_path: Path) -> None:
+    """Two services on one data directory would journal and snapshot their own copies of the maps into
+    one database (before the fix the second started, and a DELETE there removed the first one's map
+    from disk while the first went on serving it). The second is refused with a clear error; once the
+    first is killed with SIGKILL the directory is free again (no stale lock)."""
+    data = tmp_path / "data"
+    first = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        assert httpx.put(f"{first.base_url}/maps/kept", timeout=30).status_code == 201
+        second = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+        with pytest.raises(RuntimeError) as refused:
+            second.start()
+        assert second.proc is not None and second.proc.returncode == 2
+        assert f"data directory {data} is in use by another fleetmap service (pid {first.proc.pid})" in str(
+            refused.value
+        )
+        assert "Traceback" not in str(refused.value)
+        assert httpx.get(f"{first.base_url}/maps/kept", timeout=10).status_code == 200
+        first.proc.kill()
+        first.proc.wait()
+    finally:
+        first.stop()
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as third:
+        assert httpx.get(f"{third.base_url}/maps/kept", timeout=10).status_code == 200
+
+
+def test_a_data_directory_of_a_newer_schema_is_refused_at_start(tmp_path: Path) -> None:
+    """A database a newer fleetmap wrote (a higher `PRAGMA user_version`) may hold tables, tiles or
+    journal rows this one would misread or overwrite: the service refuses it, exit code 2, naming the
+    file and both versions, and changes nothing (before the fix it served the maps and wrote to it)."""
+    from fleetmap.database import SCHEMA_VERSION
+
+    data = tmp_path / "data"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/m", timeout=30).status_code == 201
+    with sqlite3.connect(data / DB_NAME) as conn:
+        assert conn.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+        conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+
+    def contents() -> tuple[int, list[str]]:
+        with sqlite3.connect(data / DB_NAME) as conn:
+            return conn.execute("PRAGMA user_version").fetchone()[0], list(conn.iterdump())
+
+    before = contents()
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+    with pytest.raises(RuntimeError) as refused:
+        svc.start()
+    assert svc.proc is not None and svc.proc.returncode == 2
+    assert (
+        f"the map database {data / DB_NAME} was written by a newer fleetmap (schema version "
+        f"{SCHEMA_VERSION + 1}; this one reads up to {SCHEMA_VERSION})"
+    ) in str(refused.value)
+    assert "Traceback" not in str(refused.value)
+    assert contents() == before
+
+
+def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_map(tmp_path: Path) -> None:
+    """A tile row or a journal row that no longer decodes (bit rot, a bad copy): the service refuses
+    to start with one line naming the database file and the map, exit code 2, and no traceback
+    (before the fix: a traceback ending in `corrupt tile: ...`, exit code 1)."""
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=1, count=6)]
+    data = tmp_path / "data"
+
+    def post(url: str, k: int) -> None:
+        message = json.loads(encode_json(scans[k], k))
+        r = httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, json=message, timeout=30)
+        assert r.status_code == 200, r.text
+
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        for k in range(3):
+            post(svc.base_url, k)
+    # Stopped cleanly: those 3 are in tile rows. 3 more, then SIGKILL: those are journal rows.
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        for k in range(3, 6):
+            post(svc.base_url, k)
+        svc.proc.kill()
+        svc.proc.wait()
+    finally:
+        svc.stop()
+    for table, column in (("tiles", "data"), ("journal", "scan")):
+        damaged = tmp_path / f"damaged-{table}"
+        shutil.copytree(data, damaged)
+        with sqlite3.connect(damaged / DB_NAME) as conn:
+            (rowid, blob) = conn.execute(f"SELECT rowid, {column} FROM {table} LIMIT 1").fetchone()
+            bad = blob[: len(blob) // 2] + bytes(b ^ 0x5A for b in blob[len(blob) // 2 :])
+            conn.execute(f"UPDATE {table} SET {column} = ? WHERE rowid = ?", (bad, rowid))
+        svc = ServiceProcess(tmp_path, ["--data-dir", str(damaged)])
+        with pytest.raises(RuntimeError) as refused:
+            svc.start()
+        assert svc.proc is not None and svc.proc.returncode == 2, table
+        output = str(refused.value)
+        assert "Traceback" not in output, output
+        assert f"cannot read the map database {damaged / DB_NAME} (map 'm'): " in output, output
+        assert "corrupt" in output, output
+    # The undamaged directory still starts and holds all six scans.
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        assert stats(svc.base_url, "m")["scans_integrated"] == 6
+
+
+def peak_memory_mb(pid: int) -> float:
+    """The process's peak resident memory so far (VmHWM), in MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmHWM")
+
+
+def test_a_long_journal_is_replayed_without_holding_all_its_scans_in_memory(tmp_path: Path) -> None:
+    """A crash leaves up to 20,000 journal rows per map (and more with several maps) to replay.
+    They were all decoded before the replay began, 17 KB a scan of 1081 beams: 6000 scans took the
+    restarting service about 100 MB above the same service started empty, enough for a service that
+    ran well within a memory limit to fail to start again. They are now read in batches as they are
+    replayed, and every one is in the map."""
+    rng = np.random.default_rng(5)
+    count = 6000
+    data = tmp_path / "data"
+    from fleetmap.persistence import DurableStore
+
+    store = DurableStore(data)
+    store.map_created("m", GridMap(MapConfig())).result()
+    store.close()
+    rows = []
+    for seq in range(count):  # journal rows as a crash leaves them: no snapshot since
+        ranges = rng.uniform(0.5, 12.0, 1081).astype(np.float32).astype(np.float64)
+        pose = (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-3, 3))
+        scan = Scan.from_fan(
+            pose, float(np.float32(-2.35)), float(np.float32(4.7 / 1080)), ranges, 0.05, 30.0
+        )
+        rows.append(("m", "r", seq, 0.0, scan_to_blob(scan)))
+    with sqlite3.connect(data / DB_NAME) as conn:
+        conn.executemany(
+            "INSERT INTO journal (map_id, robot_id, seq, stamp, scan) VALUES (?, ?, ?, ?, ?)", rows
+        )
+    with ServiceProcess(tmp_path, ["--data-dir", str(tmp_path / "empty")]) as empty:
+        baseline = peak_memory_mb(empty.proc.pid)
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)], startup_timeout=120) as restarted:
+        replayed = peak_memory_mb(restarted.proc.pid)
+        assert stats(restarted.base_url, "m")["robots"]["r"]["scans_integrated"] == count
+    # The map's own tiles (at most 16 of 1.3 MB) and a batch of rows are all the replay should add.
+    assert replayed - baseline < 50, (
+        f"restart with {count} journal scans: {replayed:.0f} MB, empty: {baseline:.0f}"
+    )
 
 
 def test_snapshot_download_and_restore_moves_a_map_between_servers(tmp_path: Path) -> None:
@@ -332,7 +478,7 @@ def test_a_failing_disk_is_reported_and_the_next_snapshot_saves_what_it_missed(t
                  what="scan 0 snapshotted and its journal row deleted")  # fmt: skip
         assert health(url)["storage"] == {
             "ok": True, "last_error": None, "last_error_at": None, "scans_not_durable": 0,
-            "maps_awaiting_snapshot": [],
+            "maps_awaiting_snapshot": [], "map_changes_not_stored": [],
         }  # fmt: skip
         soft, hard = resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE)
         resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE, (1, hard))
@@ -384,6 +530,100 @@ def test_a_failing_disk_is_reported_and_the_next_snapshot_saves_what_it_missed(t
         assert stats(restarted.base_url, "m")["robots"]["r"]["not_durable"] == 1
     finally:
         restarted.stop()
+
+
+def test_map_changes_the_disk_refused_are_stored_once_it_works_before_any_of_their_scans(
+    tmp_path: Path,
+) -> None:
+    """A map created (PUT) and another deleted while the disk fails: both are answered 503, listed in
+    /healthz as not stored, and stored by the service once the disk works, before any of the new
+    map's scans. Before the fix, neither was ever stored: scans of the new map were then answered 200
+    and journaled, and a kill -9 lost the map with all of them, while the deleted map came back.
+
+    The failing disk is RLIMIT_FSIZE lowered to 1 byte, as in the test above."""
+    resource = pytest.importorskip("resource")
+    scans = [as_received(s) for s in scans_for(sim=4, plan_seed=1, count=3)]
+    data = tmp_path / "data"
+
+    def post(url: str, map_id: str, k: int) -> httpx.Response:
+        message = json.loads(encode_json(scans[k], k))
+        return httpx.post(f"{url}/maps/{map_id}/scans", params={"robot_id": "r"}, json=message, timeout=30)
+
+    def storage(url: str) -> dict:
+        return httpx.get(f"{url}/healthz", timeout=10).json()["storage"]
+
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data), "--snapshot-interval", "0.5"]).start()
+    try:
+        url = svc.base_url
+        assert post(url, "doomed", 0).status_code == 200
+        soft, hard = resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE)
+        resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE, (1, hard))
+        try:
+            created = httpx.put(f"{url}/maps/new", timeout=30)
+            assert created.status_code == 503 and "could not be stored" in created.json()["detail"]
+            deleted = httpx.delete(f"{url}/maps/doomed", timeout=30)
+            assert deleted.status_code == 503 and "could not be stored" in deleted.json()["detail"]
+            assert storage(url)["map_changes_not_stored"] == ["doomed", "new"]
+            assert post(url, "new", 0).status_code == 503  # applied, not durable: a snapshot saves it
+            again = httpx.put(f"{url}/maps/new", timeout=30)
+            assert again.status_code == 503 and "could not be stored" in again.json()["detail"]
+        finally:
+            resource.prlimit(svc.proc.pid, resource.RLIMIT_FSIZE, (soft, hard))
+        answered = post(url, "new", 1)  # the map is stored first, then this scan's row
+        assert answered.status_code == 200, answered.text
+        wait_for(lambda: (h := storage(url))["ok"] and h, what="storage ok again")
+        assert storage(url)["map_changes_not_stored"] == []
+        assert httpx.put(f"{url}/maps/new", timeout=30).status_code == 200  # the same PUT: stored now
+        assert httpx.delete(f"{url}/maps/doomed", timeout=30).status_code == 404  # nothing left to do
+        bounds = tuple(stats(url, "new")["bounds"])
+        served = region(url, "new", "log_odds", bounds)
+        svc.proc.kill()  # SIGKILL: only what was stored counts
+        svc.proc.wait()
+    finally:
+        svc.stop()
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as restarted:
+        listed = httpx.get(f"{restarted.base_url}/maps", timeout=10).json()["maps"]
+        assert [m["id"] for m in listed] == ["new"], "a map lost, or a deleted map back"
+        robot = stats(restarted.base_url, "new")["robots"]["r"]
+        assert (robot["scans_integrated"], robot["not_durable"]) == (1, 1)
+        # Both scans: the one answered 200 from the journal, the one answered 503 from the snapshot.
+        np.testing.assert_array_equal(region(restarted.base_url, "new", "log_odds", bounds), served)
+        reference = GridMap(MapConfig())
+        for scan in scans[:2]:
+            reference.integrate(scan)
+        i0, j0, i1, j1 = reference.known_bounds()
+        assert int(np.isfinite(served).sum()) == int(
+            np.isfinite(reference.region("log_odds", i0, j0, i1, j1)).sum()
+        )
+
+
+def test_a_data_directory_deleted_while_the_service_runs_makes_nothing_durable_and_says_so(
+    tmp_path: Path,
+) -> None:
+    """SQLite goes on committing into a deleted database file through its open descriptor: before the
+    fix, after `rm -rf` of the data directory scans were answered 200 (integrated) and /healthz said
+    ok, and a restart found nothing. Now such a scan is answered 503 (applied, not durable), and
+    /healthz is degraded and says what happened and what to do."""
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=1, count=2)]
+    data = tmp_path / "data"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+
+        def post(k: int) -> httpx.Response:
+            message = json.loads(encode_json(scans[k], k))
+            return httpx.post(
+                f"{svc.base_url}/maps/m/scans", params={"robot_id": "r"}, json=message, timeout=30
+            )
+
+        assert post(0).status_code == 200
+        shutil.rmtree(data)
+        after = post(1)
+        assert after.status_code == 503, after.text
+        assert "deleted or replaced" in after.json()["detail"]
+        health = httpx.get(f"{svc.base_url}/healthz", timeout=10).json()
+        assert health["status"] == "degraded"
+        assert f"the map database {data / DB_NAME} was deleted or replaced" in health["storage"]["last_error"]
+        assert "GET /maps/{id}/snapshot" in health["storage"]["last_error"]
+        assert stats(svc.base_url, "m")["robots"]["r"]["not_durable"] == 1
 
 
 def test_a_scan_whose_map_is_replaced_while_it_integrates_is_not_replayed_into_the_new_map(

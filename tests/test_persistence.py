@@ -121,7 +121,7 @@ def test_superseded_rows_left_by_a_crash_are_deleted_at_start(tmp_path: Path, mo
 def test_attached_rows_ride_along_with_the_next_group_commit(tmp_path: Path, monkeypatch) -> None:
     """A snapshot's tile rows are written in the journal's own transactions: with the next group
     commit while scans arrive, alone once none has come for ATTACH_WAIT."""
-    path = open_database(tmp_path)
+    path, _lock = open_database(tmp_path)
     insert = "INSERT INTO robots (map_id, robot_id, state) VALUES ('m', ?, '{}')"
     writer = JournalWriter(path)
     try:
@@ -152,7 +152,7 @@ def test_attached_rows_ride_along_with_the_next_group_commit(tmp_path: Path, mon
 
 def test_a_failing_durability_callback_does_not_stop_the_writer(tmp_path: Path, caplog) -> None:
     """A bug in one scan's callback is logged; the writer thread goes on committing later scans."""
-    writer = JournalWriter(open_database(tmp_path))
+    writer = JournalWriter(open_database(tmp_path)[0])
 
     def broken(_row: int) -> None:
         raise RuntimeError("a bug in a callback")
@@ -371,6 +371,24 @@ def test_version_1_journal_rows_still_load() -> None:
     assert _same_scan(scan_from_blob(old), scan)
 
 
+def test_version_2_journal_rows_still_load() -> None:
+    """Rows written before the checksum (version 2: version 3 without its last 4 bytes) decode."""
+    scan = fan(0.2, n=7)
+    v2 = bytes([2]) + scan_to_blob(scan)[1:-4]
+    assert _same_scan(scan_from_blob(v2), scan)
+
+
+def test_a_journal_row_with_any_byte_changed_is_refused() -> None:
+    """Bit rot in a pose or a range used to decode as another valid scan, replayed silently into a
+    different map; the checksum refuses it."""
+    blob = scan_to_blob(fan(0.3, n=9))
+    for at in range(len(blob)):
+        damaged = bytearray(blob)
+        damaged[at] ^= 0x10
+        with pytest.raises(StorageError, match="corrupt journal entry"):
+            scan_from_blob(bytes(damaged))
+
+
 @pytest.mark.parametrize("cut", [0, 5, 40, 41, 60, -1])
 def test_corrupt_journal_rows_are_refused(cut: int) -> None:
     """Truncated rows, unknown versions or flags: a clear StorageError, never a wrong scan."""
@@ -403,7 +421,7 @@ def test_a_stored_configuration_past_todays_limits_still_loads(tmp_path: Path) -
     again = DurableStore(tmp_path)
     try:
         [(map_id, restored, _counters, replay)] = again.load()
-        assert map_id == "m" and restored.config.tsdf.truncation == 20.0 and replay == []
+        assert map_id == "m" and restored.config.tsdf.truncation == 20.0 and list(replay) == []
         window = gmap.known_bounds()
         assert window is not None
         for layer in ("log_odds", "tsdf", "tsdf_weight"):

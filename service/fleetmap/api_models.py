@@ -73,14 +73,19 @@ class StorageStatus(_Model):
     """The data directory's health (`DurableStore.health`)."""
 
     ok: bool = Field(
-        description="false while the last journal commit or a map's last snapshot failed, and while a "
-        "map holds scans whose journal commit failed (its next snapshot makes them durable)"
+        description="false while the last journal commit or a map's last snapshot failed, while a "
+        "map holds scans whose journal commit failed (its next snapshot makes them durable), and while "
+        "a map's creation, restore or deletion is not stored"
     )
     last_error: str | None = Field(description="the latest storage failure, kept after recovery")
     last_error_at: float | None = Field(description="when it happened, Unix time")
     scans_not_durable: int = Field(description="scans applied whose journal commit failed, since start")
     maps_awaiting_snapshot: list[str] = Field(
         description="maps holding such scans, until their next snapshot"
+    )
+    map_changes_not_stored: list[str] = Field(
+        description="maps whose creation, restore or deletion could not be stored yet: retried until "
+        "it is, and meanwhile none of the map's scans is made durable"
     )
 
 

@@ -3,12 +3,20 @@ and how every connection to it is opened (WAL, full fsync on commit)."""
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import sqlite3
 from pathlib import Path
 
 DB_NAME = "fleetmap.db"
+#: Held locked (a POSIX record lock) by the service that uses the data directory.
+LOCK_NAME = "fleetmap.lock"
+#: The database's layout (`PRAGMA user_version`): its tables, tile format 2, journal rows up to
+#: version 3. A version that changes any of them in a way older ones cannot read raises it, so an
+#: older service refuses the directory instead of misreading it or writing what the newer one
+#: misreads. Directories written before it was recorded hold 0 and are this layout.
+SCHEMA_VERSION = 1
 #: Refuse to start with less free space than this in the data directory.
 MIN_FREE_BYTES = 64 * 1024 * 1024
 SCHEMA = """
@@ -50,18 +58,67 @@ CREATE INDEX IF NOT EXISTS journal_map ON journal (map_id, id);
 
 
 class StorageError(RuntimeError):
-    """The data directory cannot hold the maps (unwritable, full, corrupt). The message says why."""
+    """The data directory cannot hold the maps (unwritable, full, corrupt, in use). The message says
+    why."""
 
 
-def open_database(data_dir: Path) -> Path:
-    """Check the data directory can hold the maps and create the schema; return the database path.
+class DataDirLock:
+    """The data directory's lock: one service at a time. Two services on one directory would each
+    serve and journal their own copy of the maps into one database, snapshot over each other and
+    delete each other's maps and journal rows, so a restart would serve a mix of both.
 
-    Raises `StorageError` with a clear message when the directory cannot be created or written, or
-    the disk is (nearly) full, so the service never runs silently in memory only."""
+    It is a POSIX record lock (`fcntl.lockf`) on `fleetmap.lock`: the kernel drops it when the
+    process ends, however it ends (kill -9 included), so a crash never leaves a stale lock. Such
+    locks belong to a process, not to an open file: a second `DurableStore` in the same process
+    (what in-process tests do to play a restart after a crash) is not refused."""
+
+    def __init__(self, data_dir: Path) -> None:
+        path = data_dir / LOCK_NAME
+        try:
+            self._fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise StorageError(f"data directory {data_dir} is not writable: {exc.strerror}") from None
+        try:
+            fcntl.lockf(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(self._fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            os.close(self._fd)
+            raise StorageError(
+                f"data directory {data_dir} is in use by another fleetmap service (pid {holder}); "
+                "two services on one data directory would overwrite each other's maps: stop it, or "
+                "give this one another --data-dir"
+            ) from None
+        # Only a message for whoever is refused next: the lock itself is what counts.
+        pid = f"{os.getpid()}\n".encode()
+        os.ftruncate(self._fd, 0)
+        os.pwrite(self._fd, pid, 0)
+
+    def release(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)  # drops the lock
+            self._fd = -1
+
+
+def open_database(data_dir: Path) -> tuple[Path, DataDirLock]:
+    """Lock the data directory, check it can hold the maps and create the schema; return the
+    database path and the lock, which the caller holds as long as it uses the database.
+
+    Raises `StorageError` with a clear message when the directory cannot be created or written, the
+    disk is (nearly) full, or another service uses it, so the service never runs silently in memory
+    only, nor beside another one on the same maps."""
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise StorageError(f"cannot create data directory {data_dir}: {exc.strerror}") from None
+    lock = DataDirLock(data_dir)
+    try:
+        return _check_and_create(data_dir), lock
+    except BaseException:
+        lock.release()
+        raise
+
+
+def _check_and_create(data_dir: Path) -> Path:
     probe = data_dir / ".write-test"
     try:
         with open(probe, "wb") as f:
@@ -80,8 +137,17 @@ def open_database(data_dir: Path) -> Path:
     path = data_dir / DB_NAME
     try:
         conn = connect(path)
-        conn.executescript(SCHEMA)
-        conn.close()
+        try:
+            (version,) = conn.execute("PRAGMA user_version").fetchone()
+            if version > SCHEMA_VERSION:
+                raise StorageError(
+                    f"the map database {path} was written by a newer fleetmap (schema version {version}; "
+                    f"this one reads up to {SCHEMA_VERSION}): run that version, or move the directory aside"
+                )
+            conn.executescript(SCHEMA)
+            conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        finally:
+            conn.close()
     except sqlite3.DatabaseError as exc:
         raise StorageError(f"cannot open the map database {path}: {exc}") from None
     return path

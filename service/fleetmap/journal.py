@@ -7,16 +7,18 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
+import os
 import queue
 import sqlite3
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fleetmap.database import connect
+from fleetmap.database import StorageError, connect
 
 log = logging.getLogger("fleetmap.journal")
 
@@ -56,11 +58,17 @@ class JournalWriter:
     ATTACH_WAIT = 0.005
     #: Bytes of attached rows one transaction carries at most (at least one row).
     ATTACH_BYTES = 512 * 1024
+    #: Seconds between retries of a map change that failed to commit, unless a row of that map
+    #: waits for it (a restored map's change carries all its tiles: not one retry per group commit).
+    RETRY_IDLE = 1.0
 
     def __init__(self, path: Path, on_error: Callable[[Exception], None] | None = None):
         # The journal writer never checkpoints the WAL by itself (a checkpoint copies hundreds of MB);
         # the snapshot thread does after each snapshot, leaving only a short tail to the writer.
         self._conn = connect(path, autocheckpoint=False)
+        self._path = path
+        # Which file the connection writes to: see `_check_database_file`.
+        self._file_id = _file_id(path)
         self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | object | None] = (
             queue.Queue()
         )
@@ -68,7 +76,13 @@ class JournalWriter:
         # map id -> the journal id up to which that map's rows are superseded by a snapshot and
         # still to be deleted. Only the writer thread touches it (from `trim`, called in an op).
         self._trim: dict[str, int] = {}
-        self._attached: collections.deque[tuple[str, tuple, Future]] = collections.deque()
+        self._attached: collections.deque[tuple[str | None, str, tuple, Future]] = collections.deque()
+        # map id -> the latest change of that map (create, replace, delete) whose transaction failed,
+        # retried before every later transaction until it commits (`change_map`). Only the writer
+        # thread touches it; `unstored` is its keys for other threads, replaced whole.
+        self._unstored: dict[str, Callable[[sqlite3.Connection], object]] = {}
+        self.unstored: tuple[str, ...] = ()
+        self._last_retry = 0.0  # time.monotonic() of the last retry of every unstored change
         self._attached_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="fleetmap-journal", daemon=True)
         self._thread.start()
@@ -87,10 +101,11 @@ class JournalWriter:
         else:
             self._trim[map_id] = max(upto, self._trim.get(map_id, 0))
 
-    def attach(self, sql: str, params: tuple) -> Future:
+    def attach(self, sql: str, params: tuple, map_id: str | None = None) -> Future:
         """Execute `sql` with `params` inside one of the writer's next transactions: the next group
         commit, or one of its own once no scan has arrived for `ATTACH_WAIT`. The future is resolved
-        when that transaction commits (with the exception if it failed). Never blocks.
+        when that transaction commits (with the exception if it failed). Never blocks. A row of map
+        `map_id` fails, unwritten, while a change of that map is not stored (`change_map`).
 
         Bulk background writes (a snapshot's tile rows) go this way: written on a second connection
         they compete for SQLite's one write lock, and a journal commit that finds it taken sleeps in
@@ -98,7 +113,7 @@ class JournalWriter:
         made group commits take 20-60 ms."""
         future: Future = Future()
         with self._attached_lock:
-            self._attached.append((sql, params, future))
+            self._attached.append((map_id, sql, params, future))
         self._queue.put(_WAKE)
         return future
 
@@ -119,6 +134,82 @@ class JournalWriter:
         self._queue.put(wrapped)
         return future
 
+    def change_map(self, map_id: str, op: Callable[[sqlite3.Connection], object]) -> Future:
+        """Queue a change of map `map_id` (created, replaced or deleted): `op` is one transaction that
+        rewrites everything stored of the map, so running it again later has the same effect. The
+        future resolves once it commits, or fails with its error.
+
+        If it fails (a full or failing disk), what is stored of the map is not what the service
+        serves: a map the service holds would be missing after a restart (and with it every scan
+        journaled for it since), or a deleted one would come back. So `op` is kept and retried
+        before each of the writer's later transactions (and every `RETRY_IDLE` s while idle) until
+        it commits, and meanwhile no row of that map is written: its scans fail (`on_failed`: not
+        durable, for its next snapshot to save) and so do its attached rows. A later change of the
+        same map replaces it."""
+
+        def change(conn: sqlite3.Connection) -> object:
+            self._unstored.pop(map_id, None)  # this change rewrites the map whole: it supersedes it
+            return self._change(map_id, op)
+
+        return self.submit(change)
+
+    def retry(self, map_id: str) -> Future:
+        """Retry the change of map `map_id` that is not stored, if any, after everything queued so
+        far; the future fails with the error if it still does not commit."""
+
+        def again(conn: sqlite3.Connection) -> None:
+            op = self._unstored.get(map_id)
+            if op is not None:
+                self._change(map_id, op)
+
+        return self.submit(again)
+
+    def _check_database_file(self) -> None:
+        """Raise `sqlite3.OperationalError` if the database file at the path is not the one the writer
+        opened: the data directory was deleted (or the file replaced) while the service ran. SQLite
+        goes on committing into the deleted file, through its open descriptor, without an error:
+        scans were counted as integrated and /healthz said ok, and a restart found an empty
+        directory."""
+        if _file_id(self._path) != self._file_id:
+            raise sqlite3.OperationalError(
+                f"the map database {self._path} was deleted or replaced while the service ran, so "
+                "nothing can be made durable any more; save each map with GET /maps/{id}/snapshot "
+                "before restarting the service"
+            )
+
+    def _change(self, map_id: str, op: Callable[[sqlite3.Connection], object]) -> object:
+        """Run a map change on the writer thread; keep it in `_unstored` if its transaction fails."""
+        try:
+            self._check_database_file()
+            result = op(self._conn)
+        except BaseException as exc:
+            # SQLite rolls some failed transactions back by itself, not all: left open, this one
+            # would make every later BEGIN (every journal commit) fail.
+            with contextlib.suppress(sqlite3.Error):
+                if self._conn.in_transaction:
+                    self._conn.execute("ROLLBACK")
+            if isinstance(exc, sqlite3.Error):  # storage: retried; anything else is a bug, not retried
+                self._unstored[map_id] = op
+                self.unstored = tuple(sorted(self._unstored))
+            raise
+        if self._unstored.pop(map_id, None) is not None or map_id in self.unstored:
+            self.unstored = tuple(sorted(self._unstored))
+            log.info("the change of map %s is stored now", map_id)
+        return result
+
+    def _retry_unstored(self, needed: set[str | None] | None = None) -> None:
+        """Retry the map changes that are not stored (on the writer thread, between transactions):
+        those of the maps in `needed` (whose rows wait), and every one if `needed` is None or the
+        last retry of them all is `RETRY_IDLE` old."""
+        now = time.monotonic()
+        everyone = needed is None or now - self._last_retry >= self.RETRY_IDLE
+        if everyone:
+            self._last_retry = now
+        for map_id, op in list(self._unstored.items()):
+            if everyone or (needed is not None and map_id in needed):
+                with contextlib.suppress(sqlite3.Error):  # still failing: kept, its rows held back
+                    self._change(map_id, op)
+
     def run(self, op: Callable[[sqlite3.Connection], object]) -> object:
         """`submit` and wait. Never call it while holding a lock a durability callback takes."""
         return self.submit(op).result()
@@ -138,10 +229,16 @@ class JournalWriter:
         the next group gathers, so batches grow with the load and an idle service commits a lone
         scan at once. Operations (snapshots, map changes) run in queue order between groups."""
         while True:
-            idle = self.ATTACH_WAIT if self._attached else self.TRIM_IDLE if self._trim else None
+            idle = (
+                self.ATTACH_WAIT if self._attached
+                else self.TRIM_IDLE if self._trim
+                else self.RETRY_IDLE if self._unstored
+                else None
+            )  # fmt: skip
             try:
                 item = self._queue.get(timeout=idle)
             except queue.Empty:  # idle with rows to delete or attached: commit a share of them alone
+                self._retry_unstored()
                 self._commit([])
                 continue
             batch: list[JournalEntry] = []
@@ -157,6 +254,13 @@ class JournalWriter:
                     if item is None:  # shutting down: no hurry, all of them
                         while (self._trim or self._attached) and self._commit([]):
                             pass
+                        self._retry_unstored()
+                        for map_id in self._unstored:
+                            log.error(
+                                "the last change of map %s (created, replaced or deleted) could not be "
+                                "stored: the next start finds the map as it was before that change",
+                                map_id,
+                            )
                         return
                     assert callable(item)
                     item(self._conn)
@@ -183,15 +287,34 @@ class JournalWriter:
         self.trimmed += max(cur.rowcount, 0)
         return map_id, cur.rowcount < self.TRIM_ROWS
 
-    def _take_attached(self) -> list[tuple[str, tuple, Future]]:
+    def _take_attached(self) -> list[tuple[str | None, str, tuple, Future]]:
         """The attached rows for one transaction: up to `ATTACH_BYTES`, at least one if any."""
-        taken: list[tuple[str, tuple, Future]] = []
+        taken: list[tuple[str | None, str, tuple, Future]] = []
         size = 0
         with self._attached_lock:
             while self._attached and (not taken or size < self.ATTACH_BYTES):
                 taken.append(self._attached.popleft())
-                size += sum(len(p) for p in taken[-1][1] if isinstance(p, bytes))
+                size += sum(len(p) for p in taken[-1][2] if isinstance(p, bytes))
         return taken
+
+    def _hold_back(
+        self, batch: list[JournalEntry], attached: list[tuple[str | None, str, tuple, Future]]
+    ) -> tuple[list[JournalEntry], list[tuple[str | None, str, tuple, Future]]]:
+        """Fail the rows of maps whose change is not stored (see `change_map`); return the others."""
+        if not self._unstored:
+            return batch, attached
+        error = StorageError(
+            "its map's creation or deletion could not be stored yet (retried until it is; see GET /healthz)"
+        )
+        kept_batch = [e for e in batch if e.map_id not in self._unstored]
+        kept_attached = [a for a in attached if a[0] not in self._unstored]
+        for e in batch:
+            if e.map_id in self._unstored:
+                _tell(e.on_failed, error)
+        for map_id, _sql, _params, future in attached:
+            if map_id in self._unstored:
+                future.set_exception(error)
+        return kept_batch, kept_attached
 
     def _commit(self, batch: list[JournalEntry]) -> bool:
         """Commit `batch` (which may be empty), a share of the attached rows and of the superseded
@@ -199,6 +322,11 @@ class JournalWriter:
         if not batch and not self._trim and not self._attached:
             return False
         attached = self._take_attached()
+        if self._unstored:
+            self._retry_unstored({e.map_id for e in batch} | {a[0] for a in attached})
+        batch, attached = self._hold_back(batch, attached)
+        if not batch and not attached and not self._trim:
+            return False
         try:
             ids = []
             self._conn.execute("BEGIN IMMEDIATE")
@@ -208,9 +336,10 @@ class JournalWriter:
                     (e.map_id, e.robot_id, e.seq, e.stamp, e.blob),
                 )
                 ids.append(cur.lastrowid)
-            for sql, params, _future in attached:
+            for _map_id, sql, params, _future in attached:
                 self._conn.execute(sql, params)
             trimmed = self._trim_some()
+            self._check_database_file()  # (a stat: about 1 us per group commit)
             self._conn.execute("COMMIT")
         except sqlite3.Error as exc:
             # Nothing of this batch is durable: the scans stay applied in memory but are never
@@ -218,7 +347,7 @@ class JournalWriter:
             log.error("journal commit failed (%d scans not durable): %s", len(batch), exc)
             with contextlib.suppress(sqlite3.Error):
                 self._conn.execute("ROLLBACK")
-            for _sql, _params, future in attached:
+            for _map_id, _sql, _params, future in attached:
                 future.set_exception(exc)
             # Superseded rows are harmless (ignored and deleted at start); retrying their deletion
             # on a failing disk would only repeat the error every TRIM_IDLE seconds.
@@ -228,7 +357,7 @@ class JournalWriter:
             for e in batch:
                 _tell(e.on_failed, exc)
             return False
-        for _sql, _params, future in attached:
+        for _map_id, _sql, _params, future in attached:
             future.set_result(None)
         if trimmed is not None and trimmed[1]:
             del self._trim[trimmed[0]]
@@ -239,6 +368,15 @@ class JournalWriter:
         for e, row_id in zip(batch, ids, strict=True):
             _tell(e.on_durable, int(row_id))
         return True
+
+
+def _file_id(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the file at `path`, None if there is none (or it cannot be looked at)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
 
 
 def _tell(callback: Callable[[Any], None], value: object) -> None:

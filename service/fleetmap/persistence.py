@@ -29,7 +29,7 @@ import sqlite3
 import threading
 import time
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +67,60 @@ def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int,
     ]
 
 
+def unreadable(path: Path, map_id: str | None, exc: BaseException | str) -> StorageError:
+    """The error that stops the service at start when its database cannot be read."""
+    where = "" if map_id is None else f" (map {map_id!r})"
+    reason = " ".join(str(exc).split())  # one line, also for pydantic's multi-line messages
+    return StorageError(
+        f"cannot read the map database {path}{where}: {reason}; the service does not start on a damaged "
+        "database: restore the data directory from a backup, or move it aside"
+    )
+
+
+class StoredJournal:
+    """A map's journal rows after its snapshot, in order, read and decoded `BATCH` rows at a time
+    while they are replayed. Decoded all at once before the replay, they took 17 KB a scan of 1081
+    beams: a restart after 20,000 scans (the rows that make a snapshot due) took 590 MB for one map,
+    and as much again for each other map, so a service that ran well within its memory limit could
+    not start again after a crash. Iterating raises `StorageError` (`unreadable`) for a row that
+    does not decode."""
+
+    BATCH = 256
+
+    def __init__(self, path: Path, map_id: str, after: int, count: int) -> None:
+        self.path, self.map_id, self.after, self.count = path, map_id, after, count
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __iter__(self) -> Iterator[tuple[str, int, float, Scan]]:
+        """(robot id, seq, stamp, scan) of each row, in journal order."""
+        conn = connect(self.path)
+        try:
+            last = self.after
+            while True:
+                # A batch is fetched whole before any row is decoded: a cursor left open by a row
+                # that does not decode kept a read lock, and the shutdown's checkpoint waited 30 s.
+                rows = conn.execute(
+                    "SELECT id, robot_id, seq, stamp, scan FROM journal WHERE map_id = ? AND id > ? "
+                    "ORDER BY id LIMIT ?",
+                    (self.map_id, last, self.BATCH),
+                ).fetchall()
+                if not rows:
+                    return
+                for row_id, robot_id, seq, stamp, blob in rows:
+                    try:
+                        scan = scan_from_blob(blob)
+                    except StorageError as exc:
+                        raise unreadable(self.path, self.map_id, f"journal row {row_id}: {exc}") from None
+                    yield robot_id, seq, stamp, scan
+                last = rows[-1][0]
+        except sqlite3.DatabaseError as exc:
+            raise unreadable(self.path, self.map_id, exc) from None
+        finally:
+            conn.close()
+
+
 # -- the durable store the registry uses ------------------------------------------------------------------
 
 
@@ -78,17 +132,19 @@ TileRow = tuple[tuple[int, int], int, bytes]
 class StorageHealth:
     """How the data directory is doing (`DurableStore.health`, reported by `GET /healthz`).
 
-    `ok` is False while the last journal commit or the last snapshot failed, and while a map holds
-    scans whose journal commit failed: they are applied in memory but only the map's next snapshot
-    makes them durable. `last_error` and `last_error_at` (Unix time) describe the latest failure and
-    stay after recovery; `scans_not_durable` counts, since start, the scans whose journal commit
-    failed."""
+    `ok` is False while the last journal commit or the last snapshot failed, while a map holds
+    scans whose journal commit failed (they are applied in memory but only the map's next snapshot
+    makes them durable), and while the creation, restore or deletion of a map is not stored
+    (`map_changes_not_stored`: retried until it is). `last_error` and `last_error_at` (Unix time)
+    describe the latest failure and stay after recovery; `scans_not_durable` counts, since start,
+    the scans whose journal commit failed."""
 
     ok: bool
     last_error: str | None
     last_error_at: float | None
     scans_not_durable: int
     maps_awaiting_snapshot: tuple[str, ...]
+    map_changes_not_stored: tuple[str, ...]
 
 
 class DurableStore:
@@ -114,7 +170,8 @@ class DurableStore:
         snapshot_pace: float = 3.0,
     ) -> None:
         self.data_dir = Path(data_dir)
-        self.path = open_database(self.data_dir)
+        # Held until `close`: no second service may use this directory meanwhile.
+        self.path, self._dir_lock = open_database(self.data_dir)
         self.writer = JournalWriter(self.path, on_error=self._storage_failed)
         self.snapshot_interval = snapshot_interval
         self.snapshot_rows = snapshot_rows
@@ -149,17 +206,28 @@ class DurableStore:
 
     # -- start ---------------------------------------------------------------------------------------
 
-    def load(self) -> list[tuple[str, GridMap, dict, list[tuple[str, int, float, Scan]]]]:
+    def load(self) -> list[tuple[str, GridMap, dict, StoredJournal]]:
         """Every stored map: (id, map from its snapshot, saved counters, journal rows after it).
 
-        The caller (the registry) replays the journal rows in order through its own bookkeeping."""
+        The caller (the registry) replays the journal rows in order through its own bookkeeping;
+        they are read as it goes (`StoredJournal`).
+
+        Raises `StorageError` naming the database file (and the map, when one map's rows are the
+        problem) if it cannot be read: a corrupt file, tile, journal row or configuration. The
+        service then refuses to start rather than serve a map that is not what its robots made."""
         conn = connect(self.path)
+        map_id = None
         try:
             out = []
-            for map_id, config_json, snap_id, snap_gen, clock, integrated, rejected, created in conn.execute(
+            stored_maps = conn.execute(
                 "SELECT id, config, snapshot_journal_id, snapshot_gen, clock, scans_integrated, "
                 "scans_rejected, created_at FROM maps"
-            ).fetchall():
+            ).fetchall()
+            # Rows of maps that are not stored: left by versions that wrote a map's scans although
+            # its creation had failed to commit. Nothing would ever read or delete them.
+            for table in ("tiles", "robots", "journal"):
+                conn.execute(f"DELETE FROM {table} WHERE map_id NOT IN (SELECT id FROM maps)")
+            for map_id, config_json, snap_id, snap_gen, clock, integrated, rejected, created in stored_maps:
                 # Stored before today's limits, perhaps: a map that was accepted keeps loading.
                 gmap = GridMap(MapConfig.model_validate_json(config_json, context={STORED_CONFIG: True}))
                 # Rows of a snapshot that never switched its generation (a crash mid-snapshot) are
@@ -184,23 +252,21 @@ class DurableStore:
                 gmap.store.restore_clock(max(clock, max((r[2] for r in rows), default=0)))
                 robots = {rid: json.loads(state) for rid, state in conn.execute(
                     "SELECT robot_id, state FROM robots WHERE map_id = ?", (map_id,))}  # fmt: skip
-                journal = [
-                    (robot_id, seq, stamp, scan_from_blob(blob))
-                    for _id, robot_id, seq, stamp, blob in conn.execute(
-                        "SELECT id, robot_id, seq, stamp, scan FROM journal WHERE map_id = ? AND id > ? "
-                        "ORDER BY id", (map_id, snap_id))
-                ]  # fmt: skip
-                last = conn.execute("SELECT MAX(id) FROM journal WHERE map_id = ?", (map_id,)).fetchone()[0]
+                count, last = conn.execute(
+                    "SELECT COUNT(*), MAX(id) FROM journal WHERE map_id = ? AND id > ?", (map_id, snap_id)
+                ).fetchone()
+                journal = StoredJournal(self.path, map_id, snap_id, count)
                 self._last_journal_id[map_id] = int(last or snap_id)
-                self._rows_since[map_id] = len(journal)
+                self._rows_since[map_id] = count
                 # Tiles replayed from the journal are newer than the stored snapshot; restored tiles
                 # are not, so only versions above the restored clock count as changed.
                 self._snapshot_clock[map_id] = gmap.store.clock
                 counters = {"scans_integrated": integrated, "scans_rejected": rejected, "robots": robots}
                 out.append((map_id, gmap, counters, journal))
             return out
-        except (sqlite3.DatabaseError, zlib.error) as exc:
-            raise StorageError(f"cannot read the map database {self.path}: {exc}") from None
+        # ValueError: a stored configuration that does not validate (pydantic's ValidationError).
+        except (sqlite3.DatabaseError, zlib.error, StorageError, ValueError) as exc:
+            raise unreadable(self.path, map_id, exc) from None
         finally:
             conn.close()
 
@@ -231,9 +297,14 @@ class DurableStore:
         created = time.time()
         self._created[map_id] = created
 
+        first_attempt = True
+
         def op(conn: sqlite3.Connection) -> None:
+            nonlocal first_attempt
             self.writer.trim(map_id, None)  # the DELETE below removes them all
-            self._forget_health(map_id)  # a previous map of this id, replaced whole, takes its own along
+            if first_attempt:  # (a retry must keep what this map's own failed scans left to save)
+                self._forget_health(map_id)  # a previous map of this id, replaced whole, takes its own along
+                first_attempt = False
             conn.execute("BEGIN IMMEDIATE")
             for table, column in (("tiles", "map_id"), ("robots", "map_id"), ("journal", "map_id")):
                 conn.execute(f"DELETE FROM {table} WHERE {column} = ?", (map_id,))
@@ -252,7 +323,7 @@ class DurableStore:
 
         self._rows_since[map_id] = 0
         self._snapshot_clock[map_id] = clock
-        return self.writer.submit(op)
+        return self.writer.change_map(map_id, self._reporting(f"storing the new map {map_id!r} failed", op))
 
     def map_deleted(self, map_id: str) -> Future:
         """Forget a map. Queued after its journaled scans, not waited for; the future resolves once
@@ -274,7 +345,26 @@ class DurableStore:
         for d in (self._rows_since, self._snapshot_clock):
             d.pop(map_id, None)
         self._forget_health(map_id)
-        return self.writer.submit(op)
+        return self.writer.change_map(map_id, self._reporting(f"deleting map {map_id!r} failed", op))
+
+    def _reporting(
+        self, what: str, op: Callable[[sqlite3.Connection], None]
+    ) -> Callable[[sqlite3.Connection], None]:
+        """`op`, with its storage failures recorded for `health` as `what`."""
+
+        def reported(conn: sqlite3.Connection) -> None:
+            try:
+                op(conn)
+            except sqlite3.Error as exc:
+                self._failure(what, exc)
+                raise
+
+        return reported
+
+    def retry_map_change(self, map_id: str) -> Future | None:
+        """If the last change of map `map_id` is not stored (`map_changes_not_stored`), retry it: the
+        future resolves once it is stored, or fails with the error. None if nothing is pending."""
+        return self.writer.retry(map_id) if map_id in self.writer.unstored else None
 
     def _forget_health(self, map_id: str) -> None:
         with self._health_lock:
@@ -308,13 +398,18 @@ class DurableStore:
         self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable, failed))
 
     def health(self) -> StorageHealth:
+        unstored = self.writer.unstored
         with self._health_lock:
             return StorageHealth(
-                ok=self._journal_error is None and not self._snapshot_errors and not self._awaiting,
+                ok=self._journal_error is None
+                and not self._snapshot_errors
+                and not self._awaiting
+                and not unstored,
                 last_error=None if self._last_error is None else self._last_error[0],
                 last_error_at=None if self._last_error is None else self._last_error[1],
                 scans_not_durable=self._not_durable,
                 maps_awaiting_snapshot=tuple(sorted(self._awaiting)),
+                map_changes_not_stored=unstored,
             )
 
     def _failure(self, what: str, exc: BaseException) -> str:
@@ -343,7 +438,8 @@ class DurableStore:
         start). Nothing here waits on the writer while holding a lock."""
         try:
             return self._write_snapshot(map_id, gmap, counters)
-        except (sqlite3.Error, OSError) as exc:
+        # StorageError: its tile rows were held back, the map's own creation not being stored yet.
+        except (sqlite3.Error, OSError, StorageError) as exc:
             message = self._failure(f"snapshot of map {map_id!r} failed", exc)
             with self._health_lock:
                 self._snapshot_errors[map_id] = message
@@ -378,6 +474,7 @@ class DurableStore:
                         "INSERT OR REPLACE INTO tiles (map_id, ti, tj, gen, version, data) "
                         "VALUES (?, ?, ?, ?, ?, ?)",
                         (map_id, key[0], key[1], gen, version, blob),
+                        map_id=map_id,
                     )
                 )
                 # The machine's few cores also integrate scans: spread the encoding out rather
@@ -461,6 +558,7 @@ class DurableStore:
         with contextlib.suppress(sqlite3.Error):
             self._snapshot_conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         self._snapshot_conn.close()
+        self._dir_lock.release()
 
     def checkpoint_step(self) -> None:
         """One passive checkpoint: copy what the WAL gained since the last one into the database,

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from fleetmap.changes import ChangeFeed
 from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
+from fleetmap.database import StorageError
 from fleetmap.fair_queue import FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
@@ -51,6 +52,8 @@ TRAIL_LENGTH = 200
 QUEUE_BYTES = 256 << 20
 #: Seconds a map change made with `wait=True` waits to be committed before `NotDurable` is raised.
 DURABLE_WAIT = 30.0
+#: Seconds between progress lines while a map's journal is replayed at start.
+RESTORE_REPORT = 5.0
 
 
 class MapNotFound(KeyError):
@@ -249,7 +252,15 @@ class MapRegistry:
             entry.scans_integrated = counters["scans_integrated"]
             entry.scans_rejected = counters["scans_rejected"]
             entry.robots = {rid: RobotState.from_saved(data) for rid, data in counters["robots"].items()}
-            for robot_id, seq, stamp, scan in journal:
+            started = last_report = time.monotonic()
+            for replayed, (robot_id, seq, stamp, scan) in enumerate(journal):
+                if time.monotonic() - last_report >= RESTORE_REPORT:
+                    # 20,000 scans take 10-20 s: say the service is busy, not stuck.
+                    last_report = time.monotonic()
+                    log.info(
+                        "restoring map %s: %d of %d journal scans replayed (%.0f s)",
+                        map_id, replayed, len(journal), last_report - started,
+                    )  # fmt: skip
                 gmap.integrate(scan)  # the same engine, in journal order: the same map
                 robot = entry.robot(robot_id)
                 robot.scans_integrated += 1
@@ -284,7 +295,7 @@ class MapRegistry:
             if every_map or (needed and (not only_overdue or self.durable.overdue(entry.id))):
                 try:
                     self.durable.snapshot(entry.id, entry.gmap, lambda e=entry: self._saved_counters(e))
-                except (sqlite3.Error, OSError) as exc:
+                except (sqlite3.Error, OSError, StorageError) as exc:
                     log.error("snapshot of map %s failed (retried at the next one): %s", entry.id, exc)
 
     def _saved_counters(self, entry: MapEntry) -> dict:
@@ -314,15 +325,20 @@ class MapRegistry:
                         f"map {map_id!r} exists with a different configuration; delete it first"
                     )
                 existing.provisional = False  # asked for by name: it stays even if its scans are refused
-                return existing, False
-            entry = MapEntry(map_id, self._charged(GridMap(config)), next(self._generations))
-            self._add(entry)
-            if self.durable is not None:
-                stored = self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
-            log.info("created map %s", map_id)
+                if wait and self.durable is not None:
+                    # A client retrying after it was told the map was not stored: answered once it is.
+                    stored = self.durable.retry_map_change(map_id)
+                entry, created = existing, False
+            else:
+                entry = MapEntry(map_id, self._charged(GridMap(config)), next(self._generations))
+                self._add(entry)
+                if self.durable is not None:
+                    stored = self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
+                log.info("created map %s", map_id)
+                created = True
         if wait:
-            _wait_stored(stored, f"map {map_id!r} was created")
-        return entry, True
+            _wait_stored(stored, f"map {map_id!r} was created" if created else f"map {map_id!r} exists")
+        return entry, created
 
     def replace(self, map_id: str, gmap: GridMap, wait: bool = False) -> MapEntry:
         """Install `gmap` (a restored snapshot) as map `map_id`, replacing any map of that id (whose
@@ -363,10 +379,15 @@ class MapRegistry:
         stored = None
         with self._removing(map_id) as old:
             if old is None:
-                raise MapNotFound(map_id)
-            dropped = self._retire(old)
-            if self.durable is not None:
-                stored = self.durable.map_deleted(map_id)
+                # A client retrying a DELETE it was told was not stored: done once it is.
+                stored = self.durable.retry_map_change(map_id) if self.durable is not None else None
+                if stored is None:
+                    raise MapNotFound(map_id)
+                dropped = []
+            else:
+                dropped = self._retire(old)
+                if self.durable is not None:
+                    stored = self.durable.map_deleted(map_id)
         for job in dropped:
             self._finish_gone(job)
         log.info("deleted map %s", map_id)

@@ -506,7 +506,13 @@ def run(args: argparse.Namespace) -> int:
             config_file=args.zenoh_config,
             shared_memory=args.zenoh_shared_memory,
         )
-        registry.start()
+        try:
+            registry.start()  # restores the stored maps
+        except StorageError as exc:
+            sock.close()
+            assert durable is not None  # only a durable registry reads storage at start
+            durable.close()
+            raise CliError(str(exc)) from None
         try:
             try:
                 ingest.start()

@@ -33,6 +33,10 @@ _SCAN_HEADER = struct.Struct("<Bdddddi")  # version, x, y, theta, range_min, ran
 #: instead of 17 KB: the journal is most of the service's disk writes.
 _SCAN_FLAGS = struct.Struct("<B")
 _FAN, _RANGES_F32 = 1, 2
+#: Version 3 (what `scan_to_blob` writes): version 2 followed by the CRC-32 of everything before it.
+#: SQLite checks no page's contents, and a version 2 row with a flipped bit in its poses or ranges
+#: decoded as another valid scan, so a damaged journal replayed silently into a different map.
+_SCAN_CRC = struct.Struct("<I")
 
 
 @njit(cache=True, nogil=True)
@@ -70,7 +74,8 @@ def _fan_of(angles: np.ndarray) -> tuple[float, float] | None:
 
 
 def scan_to_blob(scan: Scan) -> bytes:
-    """An exact serialisation of an engine scan for the journal (version 2, compact when it can be)."""
+    """An exact serialisation of an engine scan for the journal (version 3: compact when it can be,
+    with a checksum)."""
     flags = 0
     parts = []
     fan = _fan_of(scan.angles)
@@ -85,13 +90,14 @@ def scan_to_blob(scan: Scan) -> bytes:
     else:
         parts.append(scan.ranges.astype("<f8").tobytes())
     head = _SCAN_HEADER.pack(
-        2, scan.pose.x, scan.pose.y, scan.pose.theta, scan.range_min, scan.range_max, scan.num_beams
+        3, scan.pose.x, scan.pose.y, scan.pose.theta, scan.range_min, scan.range_max, scan.num_beams
     )
-    return head + _SCAN_FLAGS.pack(flags) + b"".join(parts)
+    body = head + _SCAN_FLAGS.pack(flags) + b"".join(parts)
+    return body + _SCAN_CRC.pack(zlib.crc32(body))
 
 
 def scan_from_blob(blob: bytes) -> Scan:
-    """The scan `scan_to_blob` stored (versions 1 and 2); `StorageError` if the row is corrupt."""
+    """The scan `scan_to_blob` stored (versions 1, 2 and 3); `StorageError` if the row is corrupt."""
     try:
         version, x, y, theta, range_min, range_max, n = _SCAN_HEADER.unpack_from(blob)
         at = _SCAN_HEADER.size
@@ -100,7 +106,13 @@ def scan_from_blob(blob: bytes) -> Scan:
                 raise StorageError("corrupt journal entry")
             body = np.frombuffer(blob, dtype="<f8", offset=at)
             return Scan(Pose2D(x, y, theta), body[:n].copy(), body[n:].copy(), range_min, range_max)
-        if version != 2 or n < 0:
+        if version == 3:
+            blob, (crc,) = blob[: -_SCAN_CRC.size], _SCAN_CRC.unpack_from(blob, len(blob) - _SCAN_CRC.size)
+            if zlib.crc32(blob) != crc:
+                raise StorageError("corrupt journal entry: its checksum does not match its contents")
+        elif version != 2 or n < 0:
+            raise StorageError("corrupt journal entry")
+        if n < 0:
             raise StorageError("corrupt journal entry")
         (flags,) = _SCAN_FLAGS.unpack_from(blob, at)
         at += _SCAN_FLAGS.size

@@ -115,7 +115,8 @@ def put_map(
     """Creates the map (201), answering once it is stored (with durable storage). If it exists with
     the same configuration, nothing changes (200); with a different one, 409: delete it first.
     Configurations compare after defaults and presets are resolved, so `{}` equals the defaults
-    written out. 503: the map was created but could not be stored."""
+    written out. 503: the map was created but could not be stored; the service retries, and the same
+    PUT answers 200 once it is stored."""
     entry, created = state.registry.create(map_id, config, wait=True)
     response.status_code = 201 if created else 200
     return map_info(entry, state.registry.lock)
@@ -145,7 +146,8 @@ def get_map(map_id: MapId, state: State) -> MapInfo:
 )
 def delete_map(map_id: MapId, state: State) -> Response:
     """Removes the map, its robots and its queued scans, answering once that is stored (with durable
-    storage). Event streams of the map end. 503: removed, but the removal could not be stored."""
+    storage). Event streams of the map end. 503: removed, but the removal could not be stored; the
+    service retries, and the same DELETE answers 204 once it is stored."""
     try:
         state.registry.delete(map_id, wait=True)
     finally:  # also when the removal could not be stored: the map is gone from memory all the same
