@@ -151,3 +151,58 @@ def test_token_files_no_client_could_use_are_refused_in_one_line(
     assert out.returncode == 2, out.stderr
     assert f"fleetmap serve: error: {path.parent}/{message}" in out.stderr
     assert "Traceback" not in out.stderr and "0123456789abcdef" not in out.stderr
+
+
+PAGE = "https://viewer.example"  # an origin allowed by --cors-origin
+STRANGER = "https://elsewhere.example"
+
+
+def test_cors_is_off_by_default(tmp_path: Path) -> None:
+    with ServiceProcess(tmp_path) as svc:
+        r = httpx.get(f"{svc.base_url}/maps", headers={"Origin": PAGE})
+        assert r.status_code == 200 and "access-control-allow-origin" not in r.headers
+        r = httpx.options(
+            f"{svc.base_url}/maps/m",
+            headers={"Origin": PAGE, "Access-Control-Request-Method": "PUT"},
+        )
+        assert "access-control-allow-origin" not in r.headers
+
+
+def test_cors_allows_exactly_the_configured_origins_and_covers_auth_errors(
+    tmp_path: Path, token_file: Path
+) -> None:
+    """A page on an allowed origin may call the API, sees its own errors (a 401 or 403 without CORS
+    headers is an opaque network error to the page: the auth middleware answered outside CORS), and
+    reads the exposed headers; no other origin is let in or reflected."""
+    args = ["--auth-tokens", str(token_file), "--cors-origin", PAGE]
+    with ServiceProcess(tmp_path, args) as svc:
+        url = svc.base_url
+        preflight = {
+            "Origin": PAGE,
+            "Access-Control-Request-Method": "PUT",
+            "Access-Control-Request-Headers": "authorization, content-type",
+        }
+        r = httpx.options(f"{url}/maps/m", headers=preflight)
+        assert r.status_code == 200, r.text
+        assert r.headers["access-control-allow-origin"] == PAGE
+        assert "PUT" in r.headers["access-control-allow-methods"]
+        assert "authorization" in r.headers["access-control-allow-headers"].lower()
+        r = httpx.options(f"{url}/maps/m", headers={**preflight, "Origin": STRANGER})
+        assert r.status_code == 400 and "access-control-allow-origin" not in r.headers
+
+        # The page's own errors carry the CORS headers, so it can read their detail.
+        r = httpx.put(f"{url}/maps/m", json={}, headers={"Origin": PAGE})
+        assert r.status_code == 401 and r.headers.get("access-control-allow-origin") == PAGE, r.headers
+        r = httpx.put(f"{url}/maps/m", json={}, headers={"Origin": PAGE, **bearer(READ)})
+        assert r.status_code == 403 and r.headers.get("access-control-allow-origin") == PAGE
+        r = httpx.put(f"{url}/maps/m", json={}, headers={"Origin": PAGE, **bearer(WRITE)})
+        assert r.status_code == 201 and r.headers["access-control-allow-origin"] == PAGE
+        r = httpx.get(f"{url}/maps/m/tiles/0/0/0.png", headers={"Origin": PAGE})
+        assert "etag" in r.headers["access-control-expose-headers"].lower()
+
+        # Another origin gets no CORS header on any answer, success or error.
+        for r in (
+            httpx.get(f"{url}/maps/m", headers={"Origin": STRANGER}),
+            httpx.put(f"{url}/maps/m", json={}, headers={"Origin": STRANGER}),
+        ):
+            assert "access-control-allow-origin" not in r.headers

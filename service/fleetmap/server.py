@@ -38,7 +38,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
-from fleetmap.auth import AuthMiddleware, TokenFileError, TokenSet
+from fleetmap.auth import TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, run_command
 from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.database import StorageError
@@ -524,10 +524,10 @@ def run(args: argparse.Namespace) -> int:
                 ingest_backlog=args.ingest_backlog_ms / 1000,
                 max_read_delay=args.max_read_delay_ms / 1000,
                 max_event_streams=args.max_event_streams,
+                tokens=tokens,
+                require_read_token=args.require_read_token,
             )
             app = create_app(registry, settings=settings)
-            if tokens is not None:
-                app.add_middleware(AuthMiddleware, tokens=tokens, require_read=args.require_read_token)
             budget = args.max_memory
             log.info(
                 "API tokens: %s; maps: %s, their tiles within %s (%.0f MiB held)",

@@ -26,6 +26,7 @@ from fleetmap.api.events import router as events_router
 from fleetmap.api.priority import IngestGate, IngestPriority
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import MAX_POINTS, RegionJson, ReplacedEvent, RobotsEvent, TilesEvent
+from fleetmap.auth import AuthMiddleware, TokenSet
 from fleetmap.metrics import IntegrationMetrics, ServiceMetrics
 from fleetmap.registry import MapRegistry
 from fleetmap.wire import ScanMessage
@@ -86,6 +87,10 @@ class ApiSettings:
     web_dir: Path | None = None
     #: Origins allowed by CORS (e.g. ["http://localhost:5173"]); empty: no CORS headers.
     cors_origins: list[str] = field(default_factory=list)
+    #: API tokens (`--auth-tokens`); None: no token is asked for (the service binds to loopback).
+    tokens: TokenSet | None = None
+    #: With `tokens`: reading needs a `read` token too, not only writing.
+    require_read_token: bool = False
     #: Called by GET /healthz for the Zenoh session's status (server.py provides it).
     zenoh_status: Callable[[], dict[str, Any]] | None = None
     #: The registry's integration hook. None: the `IntegrationMetrics` whose `on_integrated` the
@@ -168,8 +173,15 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.include_router(routes_snapshot.router)
     app.include_router(events_router)
     static.install(app, app.state.fleetmap.web_dir)
+    # Middleware, innermost first (each `add_middleware` wraps what is there).
     app.add_middleware(errors.BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    # A request held back has not been read or run at all.
+    app.add_middleware(IngestPriority, gate=gate)
+    if settings.tokens is not None:
+        app.add_middleware(AuthMiddleware, tokens=settings.tokens, require_read=settings.require_read_token)
     if settings.cors_origins:
+        # Outermost, so that every answer to an allowed page carries the CORS headers, the auth
+        # middleware's 401 and 403 included: without them the page sees an opaque network error.
         app.add_middleware(
             CORSMiddleware,
             allow_origins=settings.cors_origins,
@@ -177,8 +189,6 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
             allow_headers=["*"],
             expose_headers=["ETag", "X-Fleetmap-Window", "X-Fleetmap-Origin", "X-Fleetmap-Resolution"],
         )
-    # Outermost of the app's own middleware: a request held back has not been read or run at all.
-    app.add_middleware(IngestPriority, gate=gate)
     _install_openapi(app)
     return app
 
