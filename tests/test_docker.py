@@ -4,6 +4,7 @@ compose file rely on exists in the project, so they cannot silently rot."""
 
 from __future__ import annotations
 
+import json
 import re
 import shlex
 import subprocess
@@ -43,15 +44,36 @@ def test_dockerfile_copies_paths_that_exist_and_runs_real_options() -> None:
         *sources, _dest = copy.split()
         for src in sources:
             assert (REPO / src).exists(), f"Dockerfile copies {src}, which does not exist"
-    entry = eval(ins["ENTRYPOINT"][0])  # a JSON-style list literal
+    entry = json.loads(ins["ENTRYPOINT"][0])  # exec form: a shell as PID 1 would not pass SIGTERM on
     assert entry[:2] == ["fleetmap", "serve"]
     serve_help = fleetmap_help("serve")
     for option in options_of(entry):
         assert option in serve_help, f"ENTRYPOINT uses {option}, which fleetmap serve does not have"
+    env = dockerfile_env(ins)
+    for name in env:
+        if name.startswith("FLEETMAP_"):
+            option = "--" + name.removeprefix("FLEETMAP_").lower().replace("_", "-")
+            assert option in serve_help, f"ENV {name} names {option}, which fleetmap serve does not have"
     ports = {int(p) for line in ins["EXPOSE"] for p in line.split()}
     assert {8000, 7447} <= ports
-    assert "0.0.0.0:8000" in entry and "tcp/0.0.0.0:7447" in entry
-    assert any("/healthz" in h for h in ins["HEALTHCHECK"])
+    assert env["FLEETMAP_HTTP"] == "0.0.0.0:8000" and env["FLEETMAP_ZENOH_LISTEN"] == "tcp/0.0.0.0:7447"
+    assert json.loads(ins["VOLUME"][0]) == [env["FLEETMAP_DATA_DIR"]], "the data directory must be the volume"
+    (health,) = ins["HEALTHCHECK"]
+    assert "/healthz" in health and "--start-period=" in health, "a journal replay at start is not unhealthy"
+
+
+def dockerfile_env(ins: dict[str, list[str]]) -> dict[str, str]:
+    """The Dockerfile's `ENV NAME=VALUE` lines."""
+    return dict(line.split("=", 1) for line in ins.get("ENV", []))
+
+
+def test_dockerfile_runs_as_non_root_and_stops_cleanly() -> None:
+    ins = dockerfile_instructions()
+    users = ins.get("USER", [])
+    assert users and users[-1] not in ("root", "0"), "the service must not run as root"
+    assert ins.get("STOPSIGNAL") == ["SIGTERM"], "fleetmap serve snapshots on SIGTERM"
+    grace = yaml.safe_load(COMPOSE.read_text())["services"]["fleetmap"].get("stop_grace_period", "10s")
+    assert grace.endswith("s") and int(grace[:-1]) >= 30, "docker's default 10 s can cut the final snapshot"
 
 
 def test_compose_services_use_real_commands_and_ports() -> None:

@@ -11,6 +11,7 @@ What needs which role:
 - reading (every GET, and POST /maps/{id}/cells, which only reads): `read`, unless reading is left open
   (`require_read=False`, the default), then anyone;
 - `/healthz` is always open (liveness probes carry no token).
+A token file is read again on SIGHUP (`TokenFile.reload`); tokens from the environment are fixed.
 Tokens are compared in constant time against every configured token, and never logged.
 """
 
@@ -115,10 +116,33 @@ def required_role(method: str, path: str, require_read: bool) -> str | None:
     return "write"
 
 
+class TokenFile:
+    """The tokens of a token file, read again by `reload` (`fleetmap serve` calls it on SIGHUP), so
+    tokens can be added or revoked without a restart. A file that cannot be used keeps the tokens in
+    force and raises `TokenFileError`: a typo must not lock every client out, or let anyone in."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        loaded = TokenSet.load(path)
+        assert loaded is not None  # a path is given
+        self.current = loaded
+
+    def reload(self) -> int:
+        """Read the file again and use its tokens from now on; returns how many. Raises
+        TokenFileError (the old tokens stay) if the file cannot be read or holds no valid tokens."""
+        loaded = TokenSet.load(self.path)
+        assert loaded is not None
+        self.current = loaded  # one reference assignment: requests see the old set or the new one
+        return len(loaded.digests)
+
+    def role_of(self, token: str) -> str | None:
+        return self.current.role_of(token)
+
+
 class AuthMiddleware:
     """ASGI middleware answering 401 (no or unknown token) or 403 (role too low) with a JSON detail."""
 
-    def __init__(self, app: ASGIApp, tokens: TokenSet, require_read: bool = False) -> None:
+    def __init__(self, app: ASGIApp, tokens: TokenSet | TokenFile, require_read: bool = False) -> None:
         self.app = app
         self.tokens = tokens
         self.require_read = require_read

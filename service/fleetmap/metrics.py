@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import gc
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from importlib import metadata
 from typing import TYPE_CHECKING
 
-from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, Counter, Histogram, ProcessCollector, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
@@ -168,6 +169,72 @@ class RegistryCollector(Collector):
         )
 
 
+class StorageCollector(Collector):
+    """The journal writer's own counters (commits and rows written since start), read at scrape:
+    a rate of commits that falls to 0 while scans arrive means the disk stalls."""
+
+    def __init__(self, registry: MapRegistry) -> None:
+        self.registry = registry
+
+    def describe(self) -> list[Metric]:
+        return list(self._families())
+
+    def collect(self) -> Iterator[Metric]:
+        commits, rows = self._families()
+        durable = self.registry.durable
+        if durable is None:
+            return
+        commits.add_metric([], durable.writer.commits)
+        rows.add_metric([], durable.writer.rows)
+        yield from (commits, rows)
+
+    @staticmethod
+    def _families() -> tuple[Metric, ...]:
+        return (
+            CounterMetricFamily("fleetmap_journal_commits", "Journal transactions committed (group commits)"),
+            CounterMetricFamily("fleetmap_journal_rows", "Journal rows (scans) committed"),
+        )
+
+
+class ServiceInfoCollector(Collector):
+    """`fleetmap_build_info{version}` (always 1: the version that runs, for upgrades) and, once the
+    HTTP server runs, its open connections and their limit (`--max-http-connections`)."""
+
+    def __init__(self) -> None:
+        try:
+            self.version = metadata.version("fleetmap")
+        except metadata.PackageNotFoundError:  # a source tree that was not installed
+            self.version = "0.0.0"
+        self.connections: Callable[[], int] | None = None
+        self.max_connections = 0
+
+    def describe(self) -> list[Metric]:
+        return list(self._families())
+
+    def collect(self) -> Iterator[Metric]:
+        info, connections, limit = self._families()
+        info.add_metric([self.version], 1)
+        yield info
+        if self.connections is not None:
+            connections.add_metric([], self.connections())
+            limit.add_metric([], self.max_connections)
+            yield from (connections, limit)
+
+    @staticmethod
+    def _families() -> tuple[Metric, ...]:
+        return (
+            GaugeMetricFamily(
+                "fleetmap_build_info", "The fleetmap version running (always 1)", labels=["version"]
+            ),
+            GaugeMetricFamily(
+                "fleetmap_http_connections", "HTTP connections open now (this scrape's included)"
+            ),
+            GaugeMetricFamily(
+                "fleetmap_http_connections_limit", "HTTP connections open at once past which new ones get 503"
+            ),
+        )
+
+
 class IngestGateCollector(Collector):
     """HTTP requests held back for ingest (`fleetmap.api.priority`), read at scrape."""
 
@@ -291,7 +358,13 @@ class ServiceMetrics:
         self.integration = integration
         self.collector_registry = CollectorRegistry()
         self.collector_registry.register(RegistryCollector(registry))
+        self.collector_registry.register(StorageCollector(registry))
+        self.service_info = ServiceInfoCollector()
+        self.collector_registry.register(self.service_info)
         self.collector_registry.register(RuntimeCollector())
+        # process_resident_memory_bytes, process_open_fds / process_max_fds, process_cpu_seconds_total,
+        # process_start_time_seconds (a restart), from /proc; nothing on systems without it.
+        ProcessCollector(registry=self.collector_registry)
         for collector in integration.collectors():
             self.collector_registry.register(collector)
         self.tile_render_seconds = Histogram(
@@ -311,6 +384,11 @@ class ServiceMetrics:
     def watch_gate(self, gate: IngestGate) -> None:
         self.collector_registry.register(IngestGateCollector(gate))
 
+    def watch_http_connections(self, count: Callable[[], int], limit: int) -> None:
+        """Report `count()` as the open HTTP connections, out of `limit` (server.py)."""
+        self.service_info.max_connections = limit
+        self.service_info.connections = count
+
     def watch_event_streams(self, slots: EventStreamSlots) -> None:
         self.collector_registry.register(EventStreamsCollector(slots))
 
@@ -326,6 +404,8 @@ __all__ = [
     "IntegrationMetrics",
     "RegistryCollector",
     "RuntimeCollector",
+    "ServiceInfoCollector",
     "ServiceMetrics",
+    "StorageCollector",
     "TileCacheCollector",
 ]

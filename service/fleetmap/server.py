@@ -15,6 +15,11 @@ serves. Only then is the ready line printed on stdout:
 
     fleetmap serving http://HOST:PORT  zenoh: ENDPOINTS
 
+Every option can also be given as an environment variable, `FLEETMAP_` and the option's name in
+capitals with `-` as `_` (`--data-dir` is `FLEETMAP_DATA_DIR`, `--insecure` is `FLEETMAP_INSECURE=1`,
+lists separated by spaces); the command line wins (`environment_defaults`).
+
+SIGHUP reads the `--auth-tokens` file again (a file that cannot be used keeps the tokens in force).
 SIGINT / SIGTERM shut down gracefully: uvicorn stops serving (open event streams get a few seconds),
 the Zenoh session closes (no more scans come in), the registry integrates every scan already queued
 and stops its workers, and the process exits 0. A configuration error (bad address, port in use,
@@ -29,6 +34,7 @@ import errno
 import gc
 import ipaddress
 import logging
+import os
 import signal
 import socket
 import sys
@@ -38,7 +44,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
-from fleetmap.auth import TokenFileError, TokenSet
+from fleetmap.auth import TokenFile, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, run_command
 from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.database import StorageError
@@ -59,6 +65,12 @@ log = logging.getLogger("fleetmap.server")
 
 DEFAULT_HTTP = "127.0.0.1:8000"
 DEFAULT_DATA_DIR = "./fleetmap-data"
+#: Prefix of the environment variables that give `serve` options (FLEETMAP_DATA_DIR, ...).
+ENV_PREFIX = "FLEETMAP_"
+#: What a FLEETMAP_* variable of an on/off option (--insecure, ...) may say.
+_ENV_TRUE = {"1", "true", "yes", "on"}
+_ENV_FALSE = {"0", "false", "no", "off", ""}
+LOG_LEVELS = ("debug", "info", "warning", "error")
 #: Seconds uvicorn waits for open connections (event streams never end by themselves) at shutdown.
 GRACEFUL_HTTP_SECONDS = 3.0
 
@@ -71,7 +83,10 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         description=(
             "Run the fleetmap service: robots publish scans over Zenoh (key fleetmap/<map>/<robot>/scan, "
             "see docs/protocol.md), maps are served over HTTP (REST API and web viewer). The service's "
-            "own Zenoh session is a router, so robots connect to it directly in client mode."
+            "own Zenoh session is a router, so robots connect to it directly in client mode. Every "
+            "option may also be set in the environment: FLEETMAP_ and the option's name in capitals, "
+            "- as _ (--data-dir DIR: FLEETMAP_DATA_DIR=DIR; --insecure: FLEETMAP_INSECURE=1; lists "
+            "separated by spaces); the command line wins. SIGHUP reads the --auth-tokens file again."
         ),
     )
     p.add_argument(
@@ -274,15 +289,130 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         metavar="MS",
         help="the longest an HTTP request waits for the ingest backlog; then it is served (default 1000)",
     )
-    p.set_defaults(run=run)
+    p.add_argument(
+        "--log-level",
+        choices=LOG_LEVELS,
+        default="info",
+        help="the least severe log messages written (default info: start-up, robots, maps, warnings)",
+    )
+    p.set_defaults(run=run, serve_actions=p._actions)
+    environment_defaults(p, os.environ)
+    p.error = _one_line_error(p)  # type: ignore[method-assign]
     return p
 
 
-def _load_tokens(path: str | None) -> TokenSet | None:
+def _one_line_error(parser: argparse.ArgumentParser) -> Callable[[str], Any]:
+    """`parser.error` that prints one line, not argparse's usage first (`serve` has 28 options: the
+    usage took 15 lines above the error, which a service manager's log shows out of order)."""
+
+    def error(message: str) -> None:
+        parser.exit(2, f"{parser.prog}: error: {message} (see {parser.prog} --help)\n")
+
+    return error
+
+
+def env_name(action: argparse.Action) -> str:
+    """The environment variable of an option: `--data-dir` -> `FLEETMAP_DATA_DIR`."""
+    return ENV_PREFIX + action.option_strings[-1].lstrip("-").replace("-", "_").upper()
+
+
+def environment_defaults(parser: argparse.ArgumentParser, environ: os._Environ[str] | dict[str, str]) -> None:
+    """Make `FLEETMAP_<OPTION>` variables the defaults of `parser`'s options, so a container or a
+    systemd unit can configure the service without a command line; options given on the command
+    line still win. Nothing is checked here (this runs whenever `fleetmap` builds its parser, for any
+    command): a value is checked by the option's own type when `serve` is parsed, and the error then
+    names the variable; an on/off option's value is checked by `run` (`_environment_flags`)."""
+    for action in parser._actions:
+        if not action.option_strings or action.dest in ("help",):
+            continue
+        text = environ.get(env_name(action))
+        if text is None:
+            continue
+        if action.nargs == 0:  # an on/off flag: _environment_flags reads it
+            continue
+        if action.nargs in ("+", "*"):
+            action.default = text.split()
+            continue
+        # argparse converts a string default with the option's type when the option is not on the
+        # command line; the wrapper names the variable when that fails.
+        action.default = text
+        action.type = _naming_variable(action.type, env_name(action), text)
+        if action.choices is not None and text not in action.choices:
+            reason = f"choose from {', '.join(map(str, action.choices))}"
+            action.default = _BadEnvironment(env_name(action), text, reason)
+
+
+class _BadEnvironment(str):
+    """An environment default refused before parsing (a value outside an option's choices); `run`
+    reports it (argparse does not check a default against the choices)."""
+
+    def __new__(cls, variable: str, text: str, reason: str) -> _BadEnvironment:
+        bad = super().__new__(cls, text)
+        bad.problem = f"${variable}={text!r}: {reason}"
+        return bad
+
+    problem: str
+
+
+def _naming_variable(kind: Any, variable: str, text: str) -> Callable[[str], Any]:
+    """`kind` (an option's argparse type, or None for text), whose errors on `text` itself, the
+    variable's value, name the variable. A command-line value is another string object."""
+
+    def parse(value: str) -> Any:
+        if kind is None:
+            return value
+        try:
+            return kind(value)
+        except (argparse.ArgumentTypeError, ValueError) as exc:
+            if value is not text:
+                raise
+            raise argparse.ArgumentTypeError(f"${variable}={text!r}: {exc}") from None
+
+    return parse
+
+
+def _environment_flags(parser_actions: Sequence[argparse.Action], args: argparse.Namespace,
+                       environ: os._Environ[str] | dict[str, str]) -> None:  # fmt: skip
+    """Apply `FLEETMAP_<FLAG>` to the on/off options not given on the command line, and report
+    environment values argparse could not check. Raises CliError naming the variable."""
+    for action in parser_actions:
+        if not action.option_strings or action.dest == "help":
+            continue
+        value = getattr(args, action.dest, None)
+        if isinstance(value, _BadEnvironment):
+            raise CliError(value.problem)
+        if action.nargs != 0 or value:
+            continue
+        text = environ.get(env_name(action))
+        if text is None:
+            continue
+        word = text.strip().lower()
+        if word not in _ENV_TRUE | _ENV_FALSE:
+            raise CliError(f"${env_name(action)}={text!r}: expected 1, true, yes, on or 0, false, no, off")
+        setattr(args, action.dest, word in _ENV_TRUE)
+
+
+def _load_tokens(path: str | None) -> TokenSet | TokenFile | None:
+    """The API tokens: a `TokenFile` (read again on SIGHUP) for `--auth-tokens`, else those of
+    $FLEETMAP_TOKENS, else None. Raises CliError."""
     try:
-        return TokenSet.load(path)
+        return TokenFile(path) if path else TokenSet.load(None)
     except TokenFileError as exc:
         raise CliError(str(exc)) from None
+
+
+def reload_tokens(tokens: TokenSet | TokenFile | None) -> None:
+    """SIGHUP: read the token file again and log the outcome (never a token)."""
+    if not isinstance(tokens, TokenFile):
+        where = "$FLEETMAP_TOKENS" if tokens is not None else "no --auth-tokens"
+        log.warning("SIGHUP: nothing to reload (tokens: %s; restart to change them)", where)
+        return
+    try:
+        count = tokens.reload()
+    except TokenFileError as exc:
+        log.error("SIGHUP: kept the tokens in force: %s", exc)
+        return
+    log.info("SIGHUP: %d API tokens read from %s", count, tokens.path)
 
 
 def _is_loopback(host: str) -> bool:
@@ -442,7 +572,11 @@ def run(args: argparse.Namespace) -> int:
 
     from fleetmap.registry import MapRegistry
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    _environment_flags(args.serve_actions, args, os.environ)
+    logging.basicConfig(
+        level=getattr(logging, str(args.log_level).upper()),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     # Zenoh's own log: refused TLS handshakes and wrong passwords show there (RUST_LOG=warn for more).
     import zenoh
 
@@ -461,7 +595,11 @@ def run(args: argparse.Namespace) -> int:
         if server is not None:
             server.should_exit = True
 
+    tokens: TokenSet | TokenFile | None = None
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    # SIGHUP's default action ends the process at once (no snapshot, no clean close): `kill -HUP` or
+    # systemd's ExecReload must reload the token file instead.
+    previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
     try:
         host, port = parse_http(args.http)
         default_config = load_config(args.config)
@@ -529,11 +667,17 @@ def run(args: argparse.Namespace) -> int:
             )
             app = create_app(registry, settings=settings)
             budget = args.max_memory
+            source = (
+                f"file {args.auth_tokens}, read again on SIGHUP" if args.auth_tokens else "$FLEETMAP_TOKENS"
+            )
             log.info(
-                "API tokens: %s; maps: %s, their tiles within %s (%.0f MiB held)",
-                "required to write" + (" and read" if args.require_read_token else "") if tokens
+                "API tokens: %s",
+                f"required to write{' and read' if args.require_read_token else ''} ({source})" if tokens
                 else "NONE: anyone who can reach the API may change maps (loopback only unless --insecure)",
-                f"durable in {args.data_dir}" if durable else "in memory only (--in-memory)",
+            )  # fmt: skip
+            log.info(
+                "maps: %s; their tiles within %s (%.0f MiB held)",
+                f"durable in {Path(args.data_dir).resolve()}" if durable else "in memory only (--in-memory)",
                 "no limit" if budget.limit is None else f"{budget.limit / 2**20:.0f} MiB (--max-memory)",
                 budget.used / 2**20,
             )  # fmt: skip
@@ -555,9 +699,12 @@ def run(args: argparse.Namespace) -> int:
                 backlog=ACCEPT_BACKLOG,
             )
             server = _http_server_class()(config)
+            connections = server.server_state.connections
+            app.state.fleetmap.metrics.watch_http_connections(lambda: len(connections), max_connections)
             server.ready_line = (
                 f"fleetmap serving http://{_url_host(host)}:{port}  zenoh: {' '.join(ingest.endpoints)}"
             )
+            log.info("HTTP (REST API, viewer, /metrics, /healthz) on http://%s:%d", _url_host(host), port)
             freeze_startup_objects()
             if not stop.is_set():
                 server.run(sockets=[sock])

@@ -26,7 +26,7 @@ from fleetmap.api.events import router as events_router
 from fleetmap.api.priority import IngestGate, IngestPriority
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import MAX_POINTS, RegionJson, ReplacedEvent, RobotsEvent, TilesEvent
-from fleetmap.auth import AuthMiddleware, TokenSet
+from fleetmap.auth import AuthMiddleware, TokenFile, TokenSet
 from fleetmap.metrics import IntegrationMetrics, ServiceMetrics
 from fleetmap.registry import MapRegistry
 from fleetmap.wire import ScanMessage
@@ -87,8 +87,9 @@ class ApiSettings:
     web_dir: Path | None = None
     #: Origins allowed by CORS (e.g. ["http://localhost:5173"]); empty: no CORS headers.
     cors_origins: list[str] = field(default_factory=list)
-    #: API tokens (`--auth-tokens`); None: no token is asked for (the service binds to loopback).
-    tokens: TokenSet | None = None
+    #: API tokens (`--auth-tokens`, a `TokenFile` read again on SIGHUP); None: no token is asked
+    #: for (the service then binds to loopback only).
+    tokens: TokenSet | TokenFile | None = None
     #: With `tokens`: reading needs a `read` token too, not only writing.
     require_read_token: bool = False
     #: Called by GET /healthz for the Zenoh session's status (server.py provides it).

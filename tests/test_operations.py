@@ -1,0 +1,275 @@
+"""What the operator of a production service relies on, checked on the real service as a process:
+`/metrics` is valid Prometheus text (read by prometheus_client's own parser) and shows what needs
+watching; SIGHUP reloads the token file instead of killing the service; every `serve` option can be
+given as a FLEETMAP_* environment variable, a bad one refused in one line; the start-up log says
+where the service listens, where its data is, its auth mode and memory limit; and a running
+service's data directory can be backed up (the documented SQLite online backup) and restored on
+another machine.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+import httpx
+from prometheus_client.parser import text_string_to_metric_families
+from service_process import ServiceProcess, free_port, reaped, wait_for
+
+from fleetmap.database import DB_NAME
+
+WRITE_A = "write-token-aaaaaaaaaaaaaaaa"
+WRITE_B = "write-token-bbbbbbbbbbbbbbbb"
+
+
+def scan_body(seq: int, x: float = 0.0) -> dict[str, object]:
+    return {
+        "seq": seq,
+        "stamp": float(seq),
+        "pose": {"x": x, "y": 0.5, "theta": 0.1 * seq},
+        "angle_min": -1.5,
+        "angle_increment": 0.05,
+        "ranges": [2.0 + 0.01 * i for i in range(61)],
+        "range_min": 0.1,
+        "range_max": 10.0,
+    }
+
+
+def post_scans(base: str, map_id: str, robot: str, seqs: range, token: str | None = None) -> None:
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    for seq in seqs:
+        r = httpx.post(
+            f"{base}/maps/{map_id}/scans", params={"robot_id": robot}, json=scan_body(seq), headers=headers
+        )
+        assert r.status_code == 200, r.text
+
+
+# -- /metrics ----------------------------------------------------------------------------------------
+
+
+def test_metrics_are_valid_prometheus_text_and_show_what_an_operator_watches(tmp_path: Path) -> None:
+    with ServiceProcess(tmp_path) as svc:
+        post_scans(svc.base_url, "warehouse", "robot-1", range(1, 4))
+        post_scans(svc.base_url, "yard_2", "r-2", range(1, 3))
+        post_scans(svc.base_url, "yard_2", "r-2", range(5, 6))  # seqs 3 and 4 lost
+        assert httpx.get(f"{svc.base_url}/maps/warehouse/tiles/0/0/0.png").status_code == 200
+        with httpx.Client() as held:  # a second connection, open during the scrape
+            held.get(f"{svc.base_url}/healthz")
+            r = httpx.get(f"{svc.base_url}/metrics")
+    assert r.status_code == 200
+    assert r.headers["content-type"].startswith("text/plain; version=0.0.4")
+    text = r.text
+    families = {f.name: f for f in text_string_to_metric_families(text)}  # raises on invalid text
+
+    # Strict exposition rules the parser lets through: one HELP and one TYPE per family, before its
+    # samples; counters end in _total; no series twice.
+    helps = Counter(line.split()[2] for line in text.splitlines() if line.startswith("# HELP "))
+    types = Counter(line.split()[2] for line in text.splitlines() if line.startswith("# TYPE "))
+    assert max(helps.values()) == 1 and max(types.values()) == 1
+    series = Counter((s.name, tuple(sorted(s.labels.items()))) for f in families.values() for s in f.samples)
+    assert [k for k, n in series.items() if n > 1] == []
+    for line in text.splitlines():
+        if line.startswith("# TYPE ") and line.endswith(" counter"):
+            assert line.split()[2].endswith("_total"), line
+    for family in families.values():
+        if family.type != "histogram":
+            continue
+        for labels in {
+            tuple(sorted((k, v) for k, v in s.labels.items() if k != "le")) for s in family.samples
+        }:
+            mine = [
+                s
+                for s in family.samples
+                if tuple(sorted((k, v) for k, v in s.labels.items() if k != "le")) == labels
+            ]
+            buckets = [s for s in mine if s.name.endswith("_bucket")]
+            assert buckets and buckets[-1].labels["le"] == "+Inf", family.name
+            assert [b.value for b in buckets] == sorted(b.value for b in buckets), family.name
+            count = next(s.value for s in mine if s.name.endswith("_count"))
+            assert buckets[-1].value == count and any(s.name.endswith("_sum") for s in mine)
+
+    def value(name: str, **labels: str) -> float:
+        for family in families.values():
+            for s in family.samples:
+                if s.name == name and all(s.labels.get(k) == v for k, v in labels.items()):
+                    return s.value
+        raise AssertionError(f"{name}{labels} is not in /metrics:\n{text}")
+
+    # Per map and robot.
+    assert value("fleetmap_scans_integrated_total", map="warehouse", robot="robot-1") == 3
+    assert value("fleetmap_scans_integrated_total", map="yard_2", robot="r-2") == 3
+    assert value("fleetmap_scans_lost_total", map="yard_2", robot="r-2") == 2
+    assert value("fleetmap_scans_rejected_total", map="warehouse", robot="robot-1") == 0
+    # Ingest, storage, memory, tiles, event streams.
+    assert value("fleetmap_queue_depth") == 0
+    assert value("fleetmap_storage_ok") == 1
+    assert value("fleetmap_memory_used_bytes") > 0 and value("fleetmap_memory_limit_bytes") > 0
+    assert value("fleetmap_tile_renders_total") >= 1
+    assert value("fleetmap_event_streams") == 0
+    assert value("fleetmap_ingest_latency_seconds_count") == 6
+    # The journal: 6 scans committed, in at most 6 transactions (plus the maps' creations).
+    assert value("fleetmap_journal_rows_total") == 6
+    assert value("fleetmap_journal_commits_total") >= 1
+    # HTTP connections: the scrape's and the one held open.
+    assert value("fleetmap_http_connections") >= 2
+    assert value("fleetmap_http_connections_limit") > 0
+    # The process: memory, file descriptors (a service out of them cannot accept robots), restarts.
+    assert value("process_resident_memory_bytes") > 0
+    assert 0 < value("process_open_fds") < value("process_max_fds")
+    assert math.isfinite(value("process_start_time_seconds"))
+    # The version running, for upgrades.
+    (build,) = families["fleetmap_build_info"].samples
+    assert build.value == 1 and build.labels["version"]
+
+
+# -- SIGHUP ----------------------------------------------------------------------------------------
+
+
+def test_sighup_reloads_the_token_file_and_keeps_serving(tmp_path: Path) -> None:
+    tokens = tmp_path / "tokens.txt"
+    tokens.write_text(f"write {WRITE_A}\n")
+    with ServiceProcess(tmp_path, ["--auth-tokens", str(tokens)]) as svc:
+        assert svc.proc is not None
+        post_scans(svc.base_url, "m", "r", range(1, 2), token=WRITE_A)
+
+        tokens.write_text(f"write {WRITE_B}\n")  # A revoked, B added
+        svc.proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: "SIGHUP: 1 API tokens read" in svc.logs(), 10, what="the reload's log line")
+        assert svc.alive(), svc.logs()
+        post_scans(svc.base_url, "m", "r", range(2, 3), token=WRITE_B)
+        refused = httpx.post(f"{svc.base_url}/maps/m/scans", params={"robot_id": "r"}, json=scan_body(3),
+                             headers={"Authorization": f"Bearer {WRITE_A}"})  # fmt: skip
+        assert refused.status_code == 401
+
+        tokens.write_text("write short\n")  # a broken file keeps the tokens in force
+        svc.proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: "SIGHUP: kept the tokens in force" in svc.logs(), 10, what="the refusal's log line")
+        assert svc.alive()
+        post_scans(svc.base_url, "m", "r", range(3, 4), token=WRITE_B)
+        assert "short" not in svc.logs()
+        assert svc.stop() == 0
+
+
+# -- environment, start-up log, one-line errors ----------------------------------------------------
+
+
+def test_every_option_can_come_from_the_environment(tmp_path: Path) -> None:
+    port, zport = free_port(), free_port()
+    data = tmp_path / "data"
+    env = {
+        **os.environ,
+        "PYTHONUNBUFFERED": "1",
+        "FLEETMAP_HTTP": f"127.0.0.1:{port}",
+        "FLEETMAP_ZENOH_LISTEN": f"tcp/127.0.0.1:{zport}",
+        "FLEETMAP_DATA_DIR": str(data),
+        "FLEETMAP_MAX_MEMORY": "32MiB",  # the command line wins: --max-memory 64MiB below
+        "FLEETMAP_NO_AUTO_CREATE": "yes",
+    }
+    log_path = tmp_path / "service.log"
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "fleetmap.server", "--max-memory", "64MiB"], env=env,
+                                stdout=log, stderr=subprocess.STDOUT)  # fmt: skip
+    with reaped(proc):
+        base = f"http://127.0.0.1:{port}"
+
+        def up() -> bool:
+            assert proc.poll() is None, log_path.read_text()
+            try:
+                return httpx.get(f"{base}/healthz").status_code == 200
+            except httpx.TransportError:
+                return False
+
+        wait_for(up, 60, what="the service on FLEETMAP_HTTP")
+        health = httpx.get(f"{base}/healthz").json()
+        assert health["zenoh"]["listen"] == [f"tcp/127.0.0.1:{zport}"]
+        assert (data / DB_NAME).exists()
+        assert (
+            httpx.post(f"{base}/maps/new/scans", params={"robot_id": "r"}, json=scan_body(1)).status_code
+            == 404
+        )
+        metrics = httpx.get(f"{base}/metrics").text
+        limit = next(
+            f for f in text_string_to_metric_families(metrics) if f.name == "fleetmap_memory_limit_bytes"
+        )
+        assert limit.samples[0].value == 64 * 2**20
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+    logs = log_path.read_text()
+    # One line each: where it listens, where its data is, the auth mode, the memory limit.
+    assert f"HTTP (REST API, viewer, /metrics, /healthz) on http://127.0.0.1:{port}" in logs
+    assert f"listening on tcp/127.0.0.1:{zport}" in logs
+    assert f"durable in {data.resolve()}" in logs and "64 MiB (--max-memory)" in logs
+    assert "API tokens: NONE" in logs
+
+
+def serve_error(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "fleetmap.server", *args], capture_output=True, text=True,
+                          env={**os.environ, **env}, timeout=60)  # fmt: skip
+
+
+def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> None:
+    cases = [
+        (("--workers", "0"), {}, "argument --workers: must be between 1 and 64, got 0"),
+        (("--max-memory", "lots"), {}, "argument --max-memory: expected a size"),
+        ((), {"FLEETMAP_WORKERS": "many"}, "$FLEETMAP_WORKERS='many': expected a whole number"),
+        ((), {"FLEETMAP_LOG_LEVEL": "loud"}, "$FLEETMAP_LOG_LEVEL='loud': choose from debug"),
+        ((), {"FLEETMAP_IN_MEMORY": "maybe"}, "$FLEETMAP_IN_MEMORY='maybe': expected 1, true"),
+    ]
+    for args, env, message in cases:
+        done = serve_error(*args, "--data-dir", str(tmp_path / "d"), **env)
+        assert done.returncode == 2, done
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("fleetmap serve: error: ") and message in lines[0], (
+            done.stderr
+        )
+        assert not (tmp_path / "d").exists()
+
+
+def test_log_level_warning_keeps_the_start_up_quiet(tmp_path: Path) -> None:
+    with ServiceProcess(tmp_path, ["--log-level", "warning", "--in-memory"]) as svc:
+        post_scans(svc.base_url, "m", "r", range(1, 3))
+        assert svc.stop() == 0
+    logs = svc.logs()
+    assert " INFO " not in logs, logs
+    assert "fleetmap serving http://" in logs  # the ready line is on stdout whatever the level
+
+
+# -- backup and restore ----------------------------------------------------------------------------
+
+
+def test_online_backup_of_a_running_service_restores_on_another_machine(tmp_path: Path) -> None:
+    """docs/durability.md's backup recipe: SQLite's online backup of the database while the service
+    runs and journals, then a service started on a copy in another directory serves the same map."""
+    data = tmp_path / "data"
+    backup = tmp_path / "backup"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data), "--snapshot-interval", "0.5"]) as svc:
+        post_scans(svc.base_url, "m", "r", range(1, 40))
+        # The documented command (python3 -c ...), run as the operator would, while scans go on.
+        backup.mkdir()
+        command = (
+            _documented_backup_command().replace("DATA_DIR", str(data)).replace("BACKUP_DIR", str(backup))
+        )
+        done = subprocess.run(["sh", "-c", command], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        points = [[0.05 * i, 0.05 * j] for i in range(-50, 50, 3) for j in range(-30, 40, 3)]
+        at_backup = httpx.post(f"{svc.base_url}/maps/m/cells", json={"points": points}).json()
+        post_scans(svc.base_url, "m", "r", range(40, 45))  # after the backup: not in it
+        assert svc.stop() == 0
+    assert sqlite3.connect(backup / DB_NAME).execute("PRAGMA integrity_check").fetchone() == ("ok",)
+    with ServiceProcess(tmp_path, ["--data-dir", str(backup)]) as restored:
+        stats = httpx.get(f"{restored.base_url}/maps/m").json()["stats"]
+        assert stats["scans_integrated"] == 39 and stats["robots"]["r"]["last_seq"] == 39, stats
+        assert httpx.post(f"{restored.base_url}/maps/m/cells", json={"points": points}).json() == at_backup
+
+
+def _documented_backup_command() -> str:
+    text = (Path(__file__).resolve().parents[1] / "docs" / "durability.md").read_text()
+    lines = [line.strip() for line in text.splitlines() if "DATA_DIR" in line and "python3" in line]
+    assert len(lines) == 1, "docs/durability.md should give one backup command with DATA_DIR and BACKUP_DIR"
+    return lines[0]
