@@ -76,7 +76,7 @@ def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int,
     ]
 
 
-def unreadable(path: Path, map_id: str | None, exc: BaseException | str) -> StorageError:
+def unreadable_database(path: Path, map_id: str | None, exc: BaseException | str) -> StorageError:
     """The error that stops the service at start when its database cannot be read."""
     where = "" if map_id is None else f" (map {map_id!r})"
     reason = " ".join(str(exc).split())  # one line, also for pydantic's multi-line messages
@@ -92,7 +92,7 @@ class StoredJournal:
     beams: a restart after 20,000 scans (the rows that make a snapshot due) peaked at 590 MB instead
     of 210 MB for one map, and as much again for each other map, so a service that ran well within
     its memory limit could not start again after a crash. Iterating raises `StorageError`
-    (`unreadable`) for a row that does not decode."""
+    (`unreadable_database`) for a row that does not decode."""
 
     BATCH = 256
 
@@ -121,11 +121,13 @@ class StoredJournal:
                     try:
                         scan = scan_from_blob(blob)
                     except StorageError as exc:
-                        raise unreadable(self.path, self.map_id, f"journal row {row_id}: {exc}") from None
+                        raise unreadable_database(
+                            self.path, self.map_id, f"journal row {row_id}: {exc}"
+                        ) from None
                     yield robot_id, seq, stamp, scan
                 last = rows[-1][0]
         except sqlite3.DatabaseError as exc:
-            raise unreadable(self.path, self.map_id, exc) from None
+            raise unreadable_database(self.path, self.map_id, exc) from None
         finally:
             conn.close()
 
@@ -276,7 +278,7 @@ class DurableStore:
             return out
         # ValueError: a stored configuration that does not validate (pydantic's ValidationError).
         except (sqlite3.DatabaseError, zlib.error, StorageError, ValueError) as exc:
-            raise unreadable(self.path, map_id, exc) from None
+            raise unreadable_database(self.path, map_id, exc) from None
         finally:
             conn.close()
 
