@@ -282,7 +282,7 @@
 
   /** Show the view a link named: centre (metres) and zoom. */
   function showView(view) {
-    moveQuietly(() => map.setView([view.y / state.res, view.x / state.res], view.z, { animate: false }));
+    moveQuietly(() => map.setView(toLatLng(view.x, view.y), view.z, { animate: false }));
   }
 
   // ---- the Leaflet map -------------------------------------------------------------------------
@@ -644,7 +644,7 @@
       cellFormError.hidden = false;
       return;
     }
-    map.panTo([y / state.res, x / state.res]);
+    map.panTo(toLatLng(x, y));
     queryCell(Math.floor(x / state.res), Math.floor(y / state.res), [x, y]);
   });
 
@@ -934,7 +934,7 @@
       state.fitted = true;
     } else if (b && !state.fitted) {
       state.fitted = true;
-      moveQuietly(() => map.fitBounds([[b[1] / state.res, b[0] / state.res], [b[3] / state.res, b[2] / state.res]],
+      moveQuietly(() => map.fitBounds([toLatLng(b[0], b[1]), toLatLng(b[2], b[3])],
         { padding: [20, 20], maxZoom: 2, animate: false }));
     } else if (first && !b && !state.viewChosen) {
       moveQuietly(() => map.setView([0, 0], 0, { animate: false }));

@@ -94,6 +94,7 @@ class DataDirLock:
         os.pwrite(self._fd, pid, 0)
 
     def release(self) -> None:
+        """Give the directory up (closing the file drops the lock); idempotent."""
         if self._fd >= 0:
             os.close(self._fd)  # drops the lock
             self._fd = -1
@@ -154,6 +155,10 @@ def _check_and_create(data_dir: Path) -> Path:
 
 
 def connect(path: Path, synchronous: str = "FULL", autocheckpoint: bool = True) -> sqlite3.Connection:
+    """A connection to the database at `path` as every part of the service opens one: WAL, autocommit
+    (transactions are explicit BEGIN / COMMIT), usable from any thread, waiting up to 30 s for a lock.
+    `synchronous` FULL makes a commit durable when it returns; `autocheckpoint=False` leaves WAL
+    checkpoints to the caller."""
     conn = sqlite3.connect(path, timeout=30.0, isolation_level=None, check_same_thread=False)
     conn.execute("PRAGMA journal_mode=WAL")
     conn.execute(f"PRAGMA synchronous={synchronous}")  # FULL: a commit is on disk when COMMIT returns

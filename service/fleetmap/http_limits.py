@@ -15,11 +15,12 @@ token to do that: a connection is only checked once its request head has arrived
   snapshot files need;
 - a request's head (request line and headers) must arrive within `head_timeout` seconds of the
   connection opening, or of the request's first byte on a kept-alive connection;
-- its body must then arrive within `body_timeout` seconds;
-- asyncio accepts at most ACCEPT_BACKLOG connections per turn of the event loop (uvicorn's default
-  of 2048 let one burst take 2048 descriptors before any could be refused), and its complaints when
-  descriptors do run out are rate-limited (`quiet_accept_errors`; Python 3.11 logs one traceback
-  per connection still waiting, 46,000 in 8 s).
+- its body must then arrive within `body_timeout` seconds.
+
+Besides, `fleetmap serve` has asyncio accept at most ACCEPT_BACKLOG connections per turn of the
+event loop (uvicorn's default of 2048 let one burst take 2048 descriptors before any could be
+refused), and rate-limits asyncio's complaints when descriptors do run out (`quiet_accept_errors`;
+Python 3.11 logs one traceback per connection still waiting, 46,000 in 8 s).
 
 A connection past a deadline is closed. Nothing limits how long a response takes: an event stream,
 or a scan waiting for its integration, runs as long as it needs once its request has arrived.
@@ -44,15 +45,18 @@ ACCEPT_BACKLOG = 100
 #: files, the event loop's own (about 60 in all), and two turns of accepted connections not yet
 #: refused or not yet closed (2 x ACCEPT_BACKLOG). `max_connections` is lowered to leave them.
 RESERVED_DESCRIPTORS = 384
+#: Seconds a connection refused for the limit is told to wait (`Retry-After`).
+RETRY_AFTER_SECONDS = 5
 #: asyncio's message when accept() fails for want of descriptors or memory.
 ACCEPT_ERROR = "socket.accept() out of system resource"
 
 
 def _busy_response() -> bytes:
+    """The whole HTTP answer to a connection past `max_connections`: a JSON 503, then close."""
     body = json.dumps({"detail": "the server holds too many HTTP connections; retry later"}).encode()
     head = (
         "HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/json\r\n"
-        f"content-length: {len(body)}\r\nretry-after: 5\r\nconnection: close\r\n\r\n"
+        f"content-length: {len(body)}\r\nretry-after: {RETRY_AFTER_SECONDS}\r\nconnection: close\r\n\r\n"
     )
     return head.encode() + body
 

@@ -1,6 +1,8 @@
 """The journal writer: the one thread that appends accepted scans to the journal, committing in groups
 (one transaction, one fsync, for every scan of the last few milliseconds); snapshots hand it their
-tile rows and the journal rows they supersede."""
+tile rows and the journal rows they supersede. It also stores map changes (created, replaced,
+deleted), retrying one whose transaction failed until it commits (`JournalWriter.change_map`), and
+checks before each commit that the database file is still the one it opened."""
 
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from fleetmap.database import StorageError, connect
 
@@ -38,6 +40,15 @@ class JournalEntry:
     on_failed: Callable[[Exception], None]
 
 
+class _AttachedRow(NamedTuple):
+    """A row `JournalWriter.attach` carries into one of its next transactions."""
+
+    map_id: str | None  # held back while this map's change is not stored (`change_map`)
+    sql: str
+    params: tuple
+    future: Future
+
+
 #: Queued by `JournalWriter.attach` to wake an idle writer.
 _WAKE = object()
 
@@ -45,7 +56,7 @@ _WAKE = object()
 class JournalWriter:
     """The one thread that appends to the journal, committing in groups. Its transactions also carry
     the snapshots' tile rows (`attach`) and delete the journal rows snapshots have superseded, a few
-    at a time (`trim`)."""
+    at a time (`trim`); between them it runs operations (`submit`) and map changes (`change_map`)."""
 
     #: Superseded rows deleted per transaction. A snapshot supersedes up to `snapshot_rows` rows of
     #: 17 KB; deleting them at once held the journal's commits up for hundreds of ms. About 5 us a
@@ -76,7 +87,7 @@ class JournalWriter:
         # map id -> the journal id up to which that map's rows are superseded by a snapshot and
         # still to be deleted. Only the writer thread touches it (from `trim`, called in an op).
         self._trim: dict[str, int] = {}
-        self._attached: collections.deque[tuple[str | None, str, tuple, Future]] = collections.deque()
+        self._attached: collections.deque[_AttachedRow] = collections.deque()
         # map id -> the latest change of that map (create, replace, delete) whose transaction failed,
         # retried before every later transaction until it commits (`change_map`). Only the writer
         # thread touches it; `unstored` is its keys for other threads, replaced whole.
@@ -113,7 +124,7 @@ class JournalWriter:
         made group commits take 20-60 ms."""
         future: Future = Future()
         with self._attached_lock:
-            self._attached.append((map_id, sql, params, future))
+            self._attached.append(_AttachedRow(map_id, sql, params, future))
         self._queue.put(_WAKE)
         return future
 
@@ -183,19 +194,28 @@ class JournalWriter:
             self._check_database_file()
             result = op(self._conn)
         except BaseException as exc:
-            # SQLite rolls some failed transactions back by itself, not all: left open, this one
-            # would make every later BEGIN (every journal commit) fail.
-            with contextlib.suppress(sqlite3.Error):
-                if self._conn.in_transaction:
-                    self._conn.execute("ROLLBACK")
+            self._roll_back()
             if isinstance(exc, sqlite3.Error):  # storage: retried; anything else is a bug, not retried
                 self._unstored[map_id] = op
-                self.unstored = tuple(sorted(self._unstored))
+                self._publish_unstored()
             raise
-        if self._unstored.pop(map_id, None) is not None or map_id in self.unstored:
-            self.unstored = tuple(sorted(self._unstored))
+        # (`unstored`, not `_unstored`: `change_map` has already dropped the op this one supersedes.)
+        if map_id in self.unstored:
+            self._unstored.pop(map_id, None)
+            self._publish_unstored()
             log.info("the change of map %s is stored now", map_id)
         return result
+
+    def _publish_unstored(self) -> None:
+        """Copy `_unstored`'s keys to `unstored`, which other threads read (replaced whole)."""
+        self.unstored = tuple(sorted(self._unstored))
+
+    def _roll_back(self) -> None:
+        """End the failed transaction, if one is open. SQLite rolls some failed transactions back by
+        itself, not all: left open, one would make every later BEGIN (every journal commit) fail."""
+        with contextlib.suppress(sqlite3.Error):
+            if self._conn.in_transaction:
+                self._conn.execute("ROLLBACK")
 
     def _retry_unstored(self, needed: set[str | None] | None = None) -> None:
         """Retry the map changes that are not stored (on the writer thread, between transactions):
@@ -237,7 +257,7 @@ class JournalWriter:
             )  # fmt: skip
             try:
                 item = self._queue.get(timeout=idle)
-            except queue.Empty:  # idle with rows to delete or attached: commit a share of them alone
+            except queue.Empty:  # idle with rows to delete or attached, or changes to retry
                 self._retry_unstored()
                 self._commit([])
                 continue
@@ -251,16 +271,8 @@ class JournalWriter:
                     if batch:  # (an empty one would commit background rows alone: an extra fsync)
                         self._commit(batch)
                     batch = []
-                    if item is None:  # shutting down: no hurry, all of them
-                        while (self._trim or self._attached) and self._commit([]):
-                            pass
-                        self._retry_unstored()
-                        for map_id in self._unstored:
-                            log.error(
-                                "the last change of map %s (created, replaced or deleted) could not be "
-                                "stored: the next start finds the map as it was before that change",
-                                map_id,
-                            )
+                    if item is None:
+                        self._finish()
                         return
                     assert callable(item)
                     item(self._conn)
@@ -272,6 +284,19 @@ class JournalWriter:
                     break
             if batch:
                 self._commit(batch)
+
+    def _finish(self) -> None:
+        """At shutdown, with no hurry: commit every attached and superseded row left, try the map
+        changes not stored once more, and log those that still are not."""
+        while (self._trim or self._attached) and self._commit([]):
+            pass
+        self._retry_unstored()
+        for map_id in self._unstored:
+            log.error(
+                "the last change of map %s (created, replaced or deleted) could not be stored: the "
+                "next start finds the map as it was before that change",
+                map_id,
+            )
 
     def _trim_some(self) -> tuple[str, bool] | None:
         """Inside the open transaction, delete up to `TRIM_ROWS` superseded rows of one map; return
@@ -287,33 +312,35 @@ class JournalWriter:
         self.trimmed += max(cur.rowcount, 0)
         return map_id, cur.rowcount < self.TRIM_ROWS
 
-    def _take_attached(self) -> list[tuple[str | None, str, tuple, Future]]:
+    def _take_attached(self) -> list[_AttachedRow]:
         """The attached rows for one transaction: up to `ATTACH_BYTES`, at least one if any."""
-        taken: list[tuple[str | None, str, tuple, Future]] = []
+        taken: list[_AttachedRow] = []
         size = 0
         with self._attached_lock:
             while self._attached and (not taken or size < self.ATTACH_BYTES):
-                taken.append(self._attached.popleft())
-                size += sum(len(p) for p in taken[-1][2] if isinstance(p, bytes))
+                row = self._attached.popleft()
+                taken.append(row)
+                size += sum(len(p) for p in row.params if isinstance(p, bytes))
         return taken
 
     def _hold_back(
-        self, batch: list[JournalEntry], attached: list[tuple[str | None, str, tuple, Future]]
-    ) -> tuple[list[JournalEntry], list[tuple[str | None, str, tuple, Future]]]:
+        self, batch: list[JournalEntry], attached: list[_AttachedRow]
+    ) -> tuple[list[JournalEntry], list[_AttachedRow]]:
         """Fail the rows of maps whose change is not stored (see `change_map`); return the others."""
         if not self._unstored:
             return batch, attached
         error = StorageError(
-            "its map's creation or deletion could not be stored yet (retried until it is; see GET /healthz)"
+            "its map's creation, restore or deletion could not be stored yet (retried until it is; see "
+            "GET /healthz)"
         )
         kept_batch = [e for e in batch if e.map_id not in self._unstored]
-        kept_attached = [a for a in attached if a[0] not in self._unstored]
+        kept_attached = [a for a in attached if a.map_id not in self._unstored]
         for e in batch:
             if e.map_id in self._unstored:
                 _tell(e.on_failed, error)
-        for map_id, _sql, _params, future in attached:
-            if map_id in self._unstored:
-                future.set_exception(error)
+        for a in attached:
+            if a.map_id in self._unstored:
+                a.future.set_exception(error)
         return kept_batch, kept_attached
 
     def _commit(self, batch: list[JournalEntry]) -> bool:
@@ -323,7 +350,7 @@ class JournalWriter:
             return False
         attached = self._take_attached()
         if self._unstored:
-            self._retry_unstored({e.map_id for e in batch} | {a[0] for a in attached})
+            self._retry_unstored({e.map_id for e in batch} | {a.map_id for a in attached})
         batch, attached = self._hold_back(batch, attached)
         if not batch and not attached and not self._trim:
             return False
@@ -336,8 +363,8 @@ class JournalWriter:
                     (e.map_id, e.robot_id, e.seq, e.stamp, e.blob),
                 )
                 ids.append(cur.lastrowid)
-            for _map_id, sql, params, _future in attached:
-                self._conn.execute(sql, params)
+            for a in attached:
+                self._conn.execute(a.sql, a.params)
             trimmed = self._trim_some()
             self._check_database_file()  # (a stat: about 1 us per group commit)
             self._conn.execute("COMMIT")
@@ -345,10 +372,9 @@ class JournalWriter:
             # Nothing of this batch is durable: the scans stay applied in memory but are never
             # counted, and the service reports the storage failure loudly.
             log.error("journal commit failed (%d scans not durable): %s", len(batch), exc)
-            with contextlib.suppress(sqlite3.Error):
-                self._conn.execute("ROLLBACK")
-            for _map_id, _sql, _params, future in attached:
-                future.set_exception(exc)
+            self._roll_back()
+            for a in attached:
+                a.future.set_exception(exc)
             # Superseded rows are harmless (ignored and deleted at start); retrying their deletion
             # on a failing disk would only repeat the error every TRIM_IDLE seconds.
             self._trim.clear()
@@ -357,8 +383,8 @@ class JournalWriter:
             for e in batch:
                 _tell(e.on_failed, exc)
             return False
-        for _map_id, _sql, _params, future in attached:
-            future.set_result(None)
+        for a in attached:
+            a.future.set_result(None)
         if trimmed is not None and trimmed[1]:
             del self._trim[trimmed[0]]
         if not batch:

@@ -55,6 +55,15 @@ SNAPSHOT_ROWS = 20000
 CHECKPOINT_PASSES = 4
 CHECKPOINT_TAIL_FRAMES = 256
 
+#: The tables whose rows belong to one map (column `map_id`), besides its own row in `maps`.
+MAP_TABLES = ("tiles", "robots", "journal")
+
+
+def _delete_map_rows(conn: sqlite3.Connection, map_id: str) -> None:
+    """Inside an open transaction, delete everything stored of map `map_id` but its row in `maps`."""
+    for table in MAP_TABLES:
+        conn.execute(f"DELETE FROM {table} WHERE map_id = ?", (map_id,))
+
 
 def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int, list[np.ndarray]]]:
     """Copies of the tiles whose version is above `since`: (key, version, arrays in store order).
@@ -67,7 +76,7 @@ def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int,
     ]
 
 
-def unreadable(path: Path, map_id: str | None, exc: BaseException | str) -> StorageError:
+def unreadable_database(path: Path, map_id: str | None, exc: BaseException | str) -> StorageError:
     """The error that stops the service at start when its database cannot be read."""
     where = "" if map_id is None else f" (map {map_id!r})"
     reason = " ".join(str(exc).split())  # one line, also for pydantic's multi-line messages
@@ -80,10 +89,10 @@ def unreadable(path: Path, map_id: str | None, exc: BaseException | str) -> Stor
 class StoredJournal:
     """A map's journal rows after its snapshot, in order, read and decoded `BATCH` rows at a time
     while they are replayed. Decoded all at once before the replay, they took 17 KB a scan of 1081
-    beams: a restart after 20,000 scans (the rows that make a snapshot due) took 590 MB for one map,
-    and as much again for each other map, so a service that ran well within its memory limit could
-    not start again after a crash. Iterating raises `StorageError` (`unreadable`) for a row that
-    does not decode."""
+    beams: a restart after 20,000 scans (the rows that make a snapshot due) peaked at 590 MB instead
+    of 210 MB for one map, and as much again for each other map, so a service that ran well within
+    its memory limit could not start again after a crash. Iterating raises `StorageError`
+    (`unreadable_database`) for a row that does not decode."""
 
     BATCH = 256
 
@@ -112,11 +121,13 @@ class StoredJournal:
                     try:
                         scan = scan_from_blob(blob)
                     except StorageError as exc:
-                        raise unreadable(self.path, self.map_id, f"journal row {row_id}: {exc}") from None
+                        raise unreadable_database(
+                            self.path, self.map_id, f"journal row {row_id}: {exc}"
+                        ) from None
                     yield robot_id, seq, stamp, scan
                 last = rows[-1][0]
         except sqlite3.DatabaseError as exc:
-            raise unreadable(self.path, self.map_id, exc) from None
+            raise unreadable_database(self.path, self.map_id, exc) from None
         finally:
             conn.close()
 
@@ -150,8 +161,9 @@ class StorageHealth:
 class DurableStore:
     """Persistence for a `MapRegistry`: restore on start, journal while running, snapshot now and then.
 
-    The registry calls `map_created`, `map_deleted` and, under a map's lock, `journal`; this class
-    calls back `on_durable(journal_id)` once a scan's row is committed.
+    The registry calls `map_created`, `map_deleted` (and `retry_map_change` when a client repeats
+    one that was not stored) and, under a map's lock, `journal`; this class calls back
+    `on_durable(journal_id)` once a scan's row is committed.
 
     Snapshot frequency trades restart time (journal rows to replay) against the work a snapshot
     does while scans arrive: it copies every changed tile (about 1.3 MB each with all layers) under
@@ -225,7 +237,7 @@ class DurableStore:
             ).fetchall()
             # Rows of maps that are not stored: left by versions that wrote a map's scans although
             # its creation had failed to commit. Nothing would ever read or delete them.
-            for table in ("tiles", "robots", "journal"):
+            for table in MAP_TABLES:
                 conn.execute(f"DELETE FROM {table} WHERE map_id NOT IN (SELECT id FROM maps)")
             for map_id, config_json, snap_id, snap_gen, clock, integrated, rejected, created in stored_maps:
                 # Stored before today's limits, perhaps: a map that was accepted keeps loading.
@@ -266,7 +278,7 @@ class DurableStore:
             return out
         # ValueError: a stored configuration that does not validate (pydantic's ValidationError).
         except (sqlite3.DatabaseError, zlib.error, StorageError, ValueError) as exc:
-            raise unreadable(self.path, map_id, exc) from None
+            raise unreadable_database(self.path, map_id, exc) from None
         finally:
             conn.close()
 
@@ -306,8 +318,7 @@ class DurableStore:
                 self._forget_health(map_id)  # a previous map of this id, replaced whole, takes its own along
                 first_attempt = False
             conn.execute("BEGIN IMMEDIATE")
-            for table, column in (("tiles", "map_id"), ("robots", "map_id"), ("journal", "map_id")):
-                conn.execute(f"DELETE FROM {table} WHERE {column} = ?", (map_id,))
+            _delete_map_rows(conn, map_id)
             conn.execute(
                 "INSERT OR REPLACE INTO maps (id, config, created_at, clock, snapshot_gen, "
                 "snapshot_journal_id) VALUES (?, ?, ?, ?, ?, "
@@ -333,13 +344,8 @@ class DurableStore:
             self.writer.trim(map_id, None)  # the DELETE below removes them all
             self._forget_health(map_id)  # again: its last scans' commits may have failed since
             conn.execute("BEGIN IMMEDIATE")
-            for table, column in (
-                ("maps", "id"),
-                ("tiles", "map_id"),
-                ("robots", "map_id"),
-                ("journal", "map_id"),
-            ):
-                conn.execute(f"DELETE FROM {table} WHERE {column} = ?", (map_id,))
+            conn.execute("DELETE FROM maps WHERE id = ?", (map_id,))
+            _delete_map_rows(conn, map_id)
             conn.execute("COMMIT")
 
         for d in (self._rows_since, self._snapshot_clock):
@@ -422,8 +428,9 @@ class DurableStore:
 
     def snapshot(self, map_id: str, gmap: GridMap, counters: Callable[[], dict]) -> int:
         """Write the tiles changed since the last snapshot and truncate the journal; returns the number
-        of tiles written. A failure (an `sqlite3.Error` or `OSError`) is recorded for `health` and
-        raised; the next snapshot then writes every tile changed since the last one that succeeded.
+        of tiles written. A failure (an `sqlite3.Error` or `OSError`, or a `StorageError` while the
+        map's own change is not stored) is recorded for `health` and raised; the next snapshot then
+        writes every tile changed since the last one that succeeded.
 
         Under the map's lock the changed tiles are copied and a marker is queued behind every scan
         applied so far; the writer runs the marker after committing (and counting) exactly those
@@ -432,10 +439,10 @@ class DurableStore:
         inside the writer's next group commits (`JournalWriter.attach`), so nothing competes with
         the journal for SQLite's write lock; one small transaction on the writer then switches the
         map to that generation, records the journal id the snapshot includes and drops the tile rows
-        it supersedes. The journal rows up to that id are deleted
-        afterwards by the writer, `JournalWriter.TRIM_ROWS` per transaction. A crash before the switch
-        leaves the old generation and its journal intact (the new rows are ignored and removed at
-        start). Nothing here waits on the writer while holding a lock."""
+        it supersedes. The journal rows up to that id are deleted afterwards by the writer,
+        `JournalWriter.TRIM_ROWS` per transaction. A crash before the switch leaves the old
+        generation and its journal intact (the new rows are ignored and removed at start). Nothing
+        here waits on the writer while holding a lock."""
         try:
             return self._write_snapshot(map_id, gmap, counters)
         # StorageError: its tile rows were held back, the map's own creation not being stored yet.

@@ -37,6 +37,8 @@ _FAN, _RANGES_F32 = 1, 2
 #: SQLite checks no page's contents, and a version 2 row with a flipped bit in its poses or ranges
 #: decoded as another valid scan, so a damaged journal replayed silently into a different map.
 _SCAN_CRC = struct.Struct("<I")
+#: The version `scan_to_blob` writes; `scan_from_blob` reads it and every earlier one.
+_SCAN_VERSION = 3
 
 
 @njit(cache=True, nogil=True)
@@ -74,8 +76,8 @@ def _fan_of(angles: np.ndarray) -> tuple[float, float] | None:
 
 
 def scan_to_blob(scan: Scan) -> bytes:
-    """An exact serialisation of an engine scan for the journal (version 3: compact when it can be,
-    with a checksum)."""
+    """An exact serialisation of an engine scan for the journal (`_SCAN_VERSION`: compact when it
+    can be, with a checksum)."""
     flags = 0
     parts = []
     fan = _fan_of(scan.angles)
@@ -89,8 +91,9 @@ def scan_to_blob(scan: Scan) -> bytes:
         parts.append(scan.ranges.astype("<f4").tobytes())
     else:
         parts.append(scan.ranges.astype("<f8").tobytes())
+    pose = scan.pose
     head = _SCAN_HEADER.pack(
-        3, scan.pose.x, scan.pose.y, scan.pose.theta, scan.range_min, scan.range_max, scan.num_beams
+        _SCAN_VERSION, pose.x, pose.y, pose.theta, scan.range_min, scan.range_max, scan.num_beams
     )
     body = head + _SCAN_FLAGS.pack(flags) + b"".join(parts)
     return body + _SCAN_CRC.pack(zlib.crc32(body))
@@ -106,11 +109,13 @@ def scan_from_blob(blob: bytes) -> Scan:
                 raise StorageError("corrupt journal entry")
             body = np.frombuffer(blob, dtype="<f8", offset=at)
             return Scan(Pose2D(x, y, theta), body[:n].copy(), body[n:].copy(), range_min, range_max)
-        if version == 3:
-            blob, (crc,) = blob[: -_SCAN_CRC.size], _SCAN_CRC.unpack_from(blob, len(blob) - _SCAN_CRC.size)
+        if version == 3:  # version 2 and its CRC-32: checked, then read as version 2 without it
+            body_size = len(blob) - _SCAN_CRC.size
+            (crc,) = _SCAN_CRC.unpack_from(blob, body_size)
+            blob = blob[:body_size]
             if zlib.crc32(blob) != crc:
                 raise StorageError("corrupt journal entry: its checksum does not match its contents")
-        elif version != 2 or n < 0:
+        elif version != 2:
             raise StorageError("corrupt journal entry")
         if n < 0:
             raise StorageError("corrupt journal entry")

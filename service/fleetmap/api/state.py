@@ -40,6 +40,7 @@ class EventStreamSlots:
         return True
 
     def release(self) -> None:
+        """Give back the slot of a stream that ended (once per successful `acquire`)."""
         self.open -= 1
 
 
