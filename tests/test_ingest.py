@@ -11,6 +11,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 import zenoh
+from fleetmap_client.publisher import ScanPublisher
 from service_process import free_port, wait_for
 
 from fleetmap import codec
@@ -255,6 +256,43 @@ def test_full_queue_refuses_the_newest_without_blocking_the_callback() -> None:
         assert_same_map(entry.gmap, engine_map([(p, BINARY_ENCODING) for p in payloads[:kept]]))
     finally:
         session.close()
+        ingest.close()
+        registry.close()
+
+
+def test_a_map_full_of_robots_that_left_makes_room_for_new_ones() -> None:
+    """Robots come and go over a map's life (replaced, renamed, a fleet of short missions). Once a
+    map had seen `max_robots_per_map` (1024) robot ids, every new robot was refused for good (429),
+    although the earlier ones had all left. Now the offline robot heard from least recently is
+    forgotten to make room; an online robot never is, however long ago it last sent a scan."""
+    registry = MapRegistry(max_robots_per_map=3)
+    registry.start()
+    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{free_port()}"])
+    ingest.start()
+    endpoint = ingest.listen[0]
+    scans = sim_scans(9, 2)
+
+    def online(robot_id: str) -> bool | None:
+        with registry.lock:
+            state = registry.get("m").robots.get(robot_id)
+            return None if state is None else state.online
+
+    try:
+        with ScanPublisher("m", "stays", connect=endpoint) as stays:
+            assert stays.wait_connected(10) and stays.publish(scans[0])
+            wait_for(lambda: integrated(registry, "m", "stays") == 1, timeout=10, what="its scan")
+            for robot_id in ("left-1", "left-2", "left-3", "left-4"):
+                with ScanPublisher("m", robot_id, connect=endpoint) as pub:
+                    assert pub.wait_connected(10)
+                    assert all(pub.publish(scan) for scan in scans)
+                    wait_for(lambda r=robot_id: integrated(registry, "m", r) == 2, timeout=5, what=robot_id)
+                wait_for(lambda r=robot_id: online(r) is False, timeout=10, what=f"{robot_id} offline")
+            entry = registry.get("m")
+            with registry.lock:
+                assert sorted(entry.robots) == ["left-3", "left-4", "stays"]
+            assert entry.scans_integrated == 9 and entry.scans_rejected == 0
+            assert ingest.status()["rejected"] == {}
+    finally:
         ingest.close()
         registry.close()
 

@@ -237,7 +237,8 @@ def test_robot_ids_per_map_are_capped() -> None:
 def test_robots_that_only_sent_garbage_give_their_place_to_real_ones() -> None:
     """Undecodable messages under 1023 made-up robot ids filled a map's robot slots for good: a real
     new robot was then refused (429). A robot with no accepted scan that is not online now makes
-    room; robots with accepted scans, or online, never do."""
+    room first; online robots, or robots with scans waiting, never do (a robot whose scans were
+    integrated makes room once it is offline: see test_ingest)."""
     reg = MapRegistry(max_robots_per_map=3)
     reg.submit("m", "real", WireScan(0, 0.0, scan_at(0)))
     reg.set_online("m", "alive", True)

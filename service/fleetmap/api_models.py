@@ -126,7 +126,7 @@ class RobotStats(_Model):
 
     online: bool = Field(description="its liveliness token is alive")
     last_pose: Pose | None = Field(description="pose of its last integrated scan")
-    last_seq: int | None = Field(description="highest sequence number accepted")
+    last_seq: int | None = Field(description="sequence number of the last scan accepted")
     last_stamp: float | None = Field(None, description="stamp of its last integrated scan")
     scans_integrated: int
     scans_rejected: int = Field(description="scans refused as invalid (see last_error)")
@@ -135,6 +135,11 @@ class RobotStats(_Model):
     )
     lost: int = Field(description="sequence numbers skipped (messages lost before reaching the service)")
     duplicates: int = Field(description="scans ignored because their seq was not new")
+    restarts: int = Field(
+        0,
+        description="times its seq started again (a restarted robot; a count that keeps growing means two "
+        "robots publish under this id)",
+    )
     dropped: int = Field(0, description="scans refused because the ingest queue was full")
     not_durable: int = Field(
         0, description="scans applied whose journal commit failed (storage error); a snapshot saves them"
@@ -325,6 +330,7 @@ def robot_stats(state: RobotState) -> RobotStats:
         last_error=state.last_error,
         lost=state.lost,
         duplicates=state.duplicates,
+        restarts=state.restarts,
         dropped=state.dropped,
         not_durable=state.not_durable,
     )

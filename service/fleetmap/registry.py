@@ -79,8 +79,11 @@ class RobotState:
 
     online: bool = False
     last_pose: Pose2D | None = None
-    last_seq: int | None = None  # highest seq accepted (enqueued)
+    last_seq: int | None = None  # seq of the last scan accepted (enqueued)
     last_stamp: float | None = None
+    #: Stamp of the last scan accepted (enqueued; `last_stamp` is the last integrated one's): a scan
+    #: whose seq is not new but whose stamp is later is a restarted robot's, not a duplicate.
+    accepted_stamp: float | None = None
     scans_integrated: int = 0
     scans_rejected: int = 0
     last_error: str | None = None
@@ -88,12 +91,18 @@ class RobotState:
     duplicates: int = 0
     dropped: int = 0
     not_durable: int = 0  # applied, but the journal commit meant to make them durable failed
+    restarts: int = 0  # times its seq started again (`is_restart`)
+    #: Wall-clock time of its last message or liveliness change: a map full of robots forgets the
+    #: offline robot heard from least recently to make room for a new one (`_room_for`).
+    last_heard: float = 0.0
+    #: Its scans accepted but not yet counted as integrated or refused: such a robot is not forgotten.
+    unsettled: int = 0
     trail: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))
 
     #: The counters that survive a restart.
     SAVED = (
-        "last_seq", "scans_integrated", "scans_rejected", "last_error", "lost", "duplicates", "dropped",
-        "not_durable",
+        "last_seq", "last_stamp", "scans_integrated", "scans_rejected", "last_error", "lost", "duplicates",
+        "dropped", "not_durable", "restarts", "last_heard",
     )  # fmt: skip
 
     def saved(self) -> dict:
@@ -109,7 +118,23 @@ class RobotState:
         if data.get("last_pose"):
             state.last_pose = Pose2D(*data["last_pose"])
             state.trail.append(tuple(data["last_pose"]))
+        state.accepted_stamp = state.last_stamp
         return state
+
+    def is_restart(self, seq: int, stamp: float) -> bool:
+        """Whether a scan whose `seq` is not above `last_seq` starts the robot's sequence again
+        (else it is a duplicate).
+
+        A robot process that restarts counts from 0 again, but its first scans can be lost (published
+        before its session reached the service) or it may count from 1; either way its scans must
+        not be ignored as duplicates until it passes its old seq. Its stamps go on, so a later stamp
+        than the last accepted scan's says "restarted". A repeated message (a retry, a copy) carries
+        its old stamp, a stale one an earlier stamp: both stay duplicates. Seq 0 is also a restart
+        with an equal or earlier stamp (robots without stamps send 0; a robot without a real-time
+        clock may boot in 1970), unless it repeats the last accepted scan, seq 0 with the same stamp."""
+        if self.accepted_stamp is not None and stamp > self.accepted_stamp:
+            return True
+        return seq == 0 and not (self.last_seq == 0 and stamp == self.accepted_stamp)
 
 
 @dataclass
@@ -266,10 +291,15 @@ class MapRegistry:
                 robot.scans_integrated += 1
                 # The journal holds integrated scans only, so a gap in a robot's seqs since the
                 # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
-                # the gap, whose counts died with the process, count as lost too).
-                if robot.last_seq is not None and seq > robot.last_seq + 1:
+                # the gap, whose counts died with the process, count as lost too), and a seq that
+                # is not new was a restart.
+                if robot.last_seq is not None and seq <= robot.last_seq:
+                    robot.restarts += 1
+                    robot.lost += seq
+                elif robot.last_seq is not None and seq > robot.last_seq + 1:
                     robot.lost += seq - robot.last_seq - 1
                 robot.last_seq, robot.last_stamp, robot.last_pose = seq, stamp, scan.pose
+                robot.accepted_stamp = stamp
                 robot.trail.append((scan.pose.x, scan.pose.y, scan.pose.theta))
                 entry.scans_integrated += 1
             # Charged after the replay, which the budget must never refuse: those scans were accepted.
@@ -481,15 +511,20 @@ class MapRegistry:
                     f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have", 429
                 )
             robot = entry.robot(robot_id)
-            seq = wire.seq
-            if robot.last_seq is not None and seq <= robot.last_seq and seq != 0:
-                robot.duplicates += 1
-                raise IngestRejected(f"duplicate seq {seq} (last accepted {robot.last_seq})", 200)
-            if robot.last_seq is not None and seq > robot.last_seq + 1:
+            robot.last_heard = time.time()
+            seq, stamp = wire.seq, wire.stamp
+            if robot.last_seq is not None and seq <= robot.last_seq:
+                if not robot.is_restart(seq, stamp):
+                    robot.duplicates += 1
+                    raise IngestRejected(f"duplicate seq {seq} (last accepted {robot.last_seq})", 200)
+                # A restarted robot: counting starts again from 0, and the seqs of its new run
+                # before this one never arrived.
+                robot.restarts += 1
+                robot.lost += seq
+            elif robot.last_seq is not None and seq > robot.last_seq + 1:
                 robot.lost += seq - robot.last_seq - 1
-            # seq 0 restarts the sequence (a robot that restarted): accept it and go on from it.
             # Recorded before the queue is tried so a dropped scan is not also counted as lost.
-            robot.last_seq = seq
+            robot.last_seq, robot.accepted_stamp = seq, stamp
             job = Job(map_id, robot_id, wire, entry.generation, time.monotonic())
             if wait:
                 job.future = Future()
@@ -500,6 +535,7 @@ class MapRegistry:
                     reason += f"; map {map_id!r}, created for it, was removed again"
                 raise IngestRejected(reason, 503)
             entry.unsettled += 1
+            robot.unsettled += 1
             return job.future
 
     def reject(self, map_id: str, robot_id: str, reason: str) -> None:
@@ -514,6 +550,7 @@ class MapRegistry:
                 entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
                 return
             robot = entry.robot(robot_id)
+            robot.last_heard = time.time()
             robot.scans_rejected += 1
             robot.last_error = reason
             entry.scans_rejected += 1
@@ -521,16 +558,20 @@ class MapRegistry:
     def _room_for(self, entry: MapEntry, robot_id: str) -> bool:
         """Whether map `entry` may hold robot `robot_id` (call under the registry's lock): it does
         already, or the map has fewer than `max_robots_per_map` robots, or one of them can make
-        room: a robot whose every message was refused (no scan accepted) and that is not online.
-        Such robots hold only their refusals, which the map's count keeps, and without this a sender
-        of garbage under changing robot ids would lock every new robot out of the map."""
+        room by being forgotten: a robot that is not online and has no scan waiting. Of those, one
+        whose every message was refused goes first (it holds only its refusals, which the map's
+        count keeps, so garbage under changing robot ids cannot lock real robots out), else the one
+        heard from least recently. Without the latter a map that had seen as many robots over its
+        life (robots come and go, get renamed, are replaced) refused every new robot for good.
+        A forgotten robot that comes back starts afresh: its first scan is accepted as a first."""
         if robot_id in entry.robots or len(entry.robots) < self.max_robots_per_map:
             return True
-        for other, state in entry.robots.items():
-            if state.last_seq is None and not state.online:
-                del entry.robots[other]
-                return True
-        return False
+        idle = [(rid, st) for rid, st in entry.robots.items() if not st.online and not st.unsettled]
+        if not idle:
+            return False
+        forgotten, _ = min(idle, key=lambda item: (item[1].last_seq is not None, item[1].last_heard))
+        del entry.robots[forgotten]
+        return True
 
     def set_online(self, map_id: str, robot_id: str, online: bool) -> None:
         """A robot's liveliness token appeared or went away."""
@@ -549,7 +590,9 @@ class MapRegistry:
             elif online:
                 entry.provisional = False  # the token would have created the map: it stays
             if self._room_for(entry, robot_id):
-                entry.robot(robot_id).online = online
+                robot = entry.robot(robot_id)
+                robot.online = online
+                robot.last_heard = time.time()
 
     def _add(self, entry: MapEntry) -> None:
         """Install a new map entry (under the registry's lock), its robots whose liveliness tokens
@@ -634,6 +677,7 @@ class MapRegistry:
                 entry.provisional = False  # it holds a scan now
                 entry.scans_integrated += 1
                 robot = entry.robot(job.robot_id)
+                robot.unsettled -= 1
                 robot.scans_integrated += 1
                 robot.last_pose = pose
                 robot.last_stamp = job.wire.stamp
@@ -664,6 +708,7 @@ class MapRegistry:
             if entry is not None and entry.generation == job.generation:
                 entry.unsettled -= 1
                 robot = entry.robot(job.robot_id)
+                robot.unsettled -= 1
                 robot.last_error = reason
                 if applied:
                     robot.not_durable += 1
