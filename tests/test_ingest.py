@@ -17,7 +17,8 @@ from service_process import free_port, wait_for
 from fleetmap import codec
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
-from fleetmap.ingest import IngestStartError, RateLimitedLog, ZenohIngest, parse_key
+from fleetmap.ingest import IngestStartError, ZenohIngest, parse_key
+from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import MapRegistry
 from fleetmap.scan import Scan
 from fleetmap.sim import SimulatedRobot, generate_floorplan

@@ -66,7 +66,7 @@ MIN_GARBAGE = 3000
 GARBAGE_RATE = 1500.0
 SEED = 20240611
 LAYERS = ("log_odds", "hits", "misses", "tsdf", "tsdf_weight")
-#: The log's rate limit: one line per category per this many seconds (fleetmap.ingest.LOG_INTERVAL).
+#: The log's rate limit: one line per category per this many seconds (fleetmap.rate_limited_log.LOG_INTERVAL).
 LOG_INTERVAL = 5.0
 
 #: Ids that are valid Zenoh key chunks but not valid fleetmap ids (the service must ignore them).

@@ -37,7 +37,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from fleetmap.scan import MAX_BEAMS, Pose2D, Scan, ScanError
-from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, SEQ_LIMIT, ScanMessage
 
 MAGIC = b"FMS1"
 VERSION = 1
@@ -180,7 +180,7 @@ def decode_binary(data: bytes) -> WireScan:
     expected = HEADER.size + 4 * n * arrays
     if len(data) != expected:
         raise DecodeError(f"binary scan of {n} beams must be {expected} bytes, got {len(data)}")
-    if seq >= 2**63:
+    if seq >= SEQ_LIMIT:
         raise DecodeError("seq must be below 2**63")
     for name, value in (("stamp", stamp), ("range_min", range_min), ("angle_min", angle_min),
                         ("angle_increment", angle_increment)):  # fmt: skip

@@ -34,7 +34,7 @@ import logging
 import resource
 from typing import Any
 
-from fleetmap.ingest import RateLimitedLog
+from fleetmap.rate_limited_log import RateLimitedLog
 
 log = logging.getLogger("fleetmap.http")
 

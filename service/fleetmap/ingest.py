@@ -41,10 +41,8 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import math
 import re
 import threading
-import time
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
@@ -53,6 +51,7 @@ from typing import Any
 import zenoh
 
 from fleetmap import codec
+from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
 from fleetmap.wire import ALIVE_KEY_WILDCARD, SCAN_KEY_WILDCARD, is_valid_id
 
@@ -62,8 +61,6 @@ log = logging.getLogger("fleetmap.ingest")
 DEFAULT_LISTEN: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
 #: Zenoh session modes.
 MODES = ("router", "peer", "client")
-#: At most one log line per category (e.g. "decode error on map/robot") this often, in seconds.
-LOG_INTERVAL = 5.0
 
 
 class IngestStartError(RuntimeError):
@@ -72,56 +69,6 @@ class IngestStartError(RuntimeError):
 
 #: `zenoh.rejected` counters in `status()`: the kind of each `MapRegistry.submit` refusal, by status.
 _REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
-
-
-class RateLimitedLog:
-    """Logs at most one line per category per `interval` seconds, and at most `max_lines` lines in
-    all per interval, and says how many it held back.
-
-    A misbehaving robot can send thousands of bad messages per second, each under another robot id
-    (so another category): the log must stay readable, the callback cheap and the memory bounded, so
-    repeated lines are counted instead of written."""
-
-    def __init__(self, logger: logging.Logger, interval: float = LOG_INTERVAL, max_lines: int = 20) -> None:
-        self.logger = logger
-        self.interval = interval
-        self.max_lines = max_lines
-        self._last: dict[str, float] = {}
-        self._held: Counter[str] = Counter()
-        self._window = -math.inf  # when the current interval of the overall line budget began
-        self._lines = 0  # lines written in it
-        self._other = 0  # lines held back by the overall budget, or of categories since forgotten
-        self._lock = threading.Lock()
-
-    def warning(self, category: str, message: str) -> bool:
-        """Log `message` unless `category` was logged less than `interval` ago, or `max_lines` lines
-        were logged in the current interval. Returns whether it was logged."""
-        now = time.monotonic()
-        with self._lock:
-            last = self._last.get(category)
-            if last is not None and now - last < self.interval:
-                self._held[category] += 1
-                return False
-            if now - self._window >= self.interval:
-                self._window, self._lines = now, 0
-            if self._lines >= self.max_lines:
-                self._other += 1
-                return False
-            self._lines += 1
-            self._last[category] = now
-            held = self._held.pop(category, 0)
-            other, self._other = self._other, 0
-            # Bound memory under a flood of distinct categories (e.g. random robot ids): forget the
-            # quiet ones, and count what they held back with the others.
-            if len(self._last) > 10_000:
-                self._last = {k: v for k, v in self._last.items() if now - v < self.interval}
-                for key in [k for k in self._held if k not in self._last]:
-                    self._other += self._held.pop(key)
-        suffix = f" ({held} similar messages suppressed)" if held else ""
-        if other:
-            suffix += f" ({other} other messages suppressed)"
-        self.logger.warning("%s%s", message, suffix)
-        return True
 
 
 def _clean_error(exc: BaseException) -> str:
@@ -414,4 +361,4 @@ class ZenohIngest:
             }
 
 
-__all__ = ["DEFAULT_LISTEN", "MODES", "IngestStartError", "RateLimitedLog", "ZenohIngest", "parse_key"]
+__all__ = ["DEFAULT_LISTEN", "MODES", "IngestStartError", "ZenohIngest", "parse_key"]

@@ -57,6 +57,10 @@ class PoseMessage(BaseModel):
     theta: Finite
 
 
+#: Sequence numbers are below this (they travel as a signed 64-bit integer in SQLite's journal).
+SEQ_LIMIT = 2**63
+
+
 class ScanMessage(BaseModel):
     """One laser scan with the sensor's pose.
 
@@ -69,7 +73,7 @@ class ScanMessage(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    seq: int = Field(ge=0, lt=2**63, description="per-robot sequence number, +1 per scan")
+    seq: int = Field(ge=0, lt=SEQ_LIMIT, description="per-robot sequence number, +1 per scan")
     stamp: Finite = Field(0.0, description="acquisition time, seconds (any epoch)")
     pose: PoseMessage
     angle_min: Finite | None = None

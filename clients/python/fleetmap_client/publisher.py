@@ -46,7 +46,15 @@ import zenoh
 
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.scan import Scan
-from fleetmap.wire import ALIVE_KEY, BINARY_ENCODING, JSON_ENCODING, SCAN_KEY, ScanMessage, is_valid_id
+from fleetmap.wire import (
+    ALIVE_KEY,
+    BINARY_ENCODING,
+    JSON_ENCODING,
+    SCAN_KEY,
+    SEQ_LIMIT,
+    ScanMessage,
+    is_valid_id,
+)
 
 #: Where `fleetmap serve` listens by default.
 DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
@@ -277,7 +285,7 @@ class ScanPublisher:
             if isinstance(seq, bool) or not isinstance(seq, numbers.Integral):
                 raise TypeError(f"seq must be an integer, got {seq!r}")
             seq = int(seq)
-            if not 0 <= seq < 2**63:
+            if not 0 <= seq < SEQ_LIMIT:
                 raise ValueError(f"seq must be in [0, 2**63), got {seq}")
         if stamp is None:
             stamp = time.time()
@@ -291,7 +299,7 @@ class ScanPublisher:
                 raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
             if seq is None:
                 seq = self._next_seq
-                if seq >= 2**63:
+                if seq >= SEQ_LIMIT:
                     raise ValueError("the automatic seq passed 2**63 - 1: publish with seq=0 to restart")
             # Encoded before the counter moves, under the lock so that concurrent callers still get
             # distinct seqs in order: a scan that cannot be encoded must not leave a gap.
