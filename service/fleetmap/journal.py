@@ -197,7 +197,9 @@ class JournalWriter:
             self._roll_back()
             if isinstance(exc, sqlite3.Error):  # storage: retried; anything else is a bug, not retried
                 self._unstored[map_id] = op
-                self._publish_unstored()
+            # Published either way: `change_map` may have dropped a failed change this one replaced,
+            # and /healthz must not go on listing a map whose rows are no longer held back.
+            self._publish_unstored()
             raise
         # (`unstored`, not `_unstored`: `change_map` has already dropped the op this one supersedes.)
         if map_id in self.unstored:
