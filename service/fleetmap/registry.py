@@ -121,6 +121,17 @@ class RobotState:
         state.accepted_stamp = state.last_stamp
         return state
 
+    def accept(self, seq: int, stamp: float) -> None:
+        """Record the scan `seq` as accepted (by `submit`, or replayed from the journal): the seqs
+        skipped since the last one count as lost, and a seq that is not new is a restart, whose new
+        run's seqs before this one never arrived. The caller has ruled out duplicates."""
+        if self.last_seq is not None and seq <= self.last_seq:
+            self.restarts += 1
+            self.lost += seq
+        elif self.last_seq is not None and seq > self.last_seq + 1:
+            self.lost += seq - self.last_seq - 1
+        self.last_seq, self.accepted_stamp = seq, stamp
+
     def is_restart(self, seq: int, stamp: float) -> bool:
         """Whether a scan whose `seq` is not above `last_seq` starts the robot's sequence again
         (else it is a duplicate).
@@ -293,13 +304,8 @@ class MapRegistry:
                 # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
                 # the gap, whose counts died with the process, count as lost too), and a seq that
                 # is not new was a restart.
-                if robot.last_seq is not None and seq <= robot.last_seq:
-                    robot.restarts += 1
-                    robot.lost += seq
-                elif robot.last_seq is not None and seq > robot.last_seq + 1:
-                    robot.lost += seq - robot.last_seq - 1
-                robot.last_seq, robot.last_stamp, robot.last_pose = seq, stamp, scan.pose
-                robot.accepted_stamp = stamp
+                robot.accept(seq, stamp)
+                robot.last_stamp, robot.last_pose = stamp, scan.pose
                 robot.trail.append((scan.pose.x, scan.pose.y, scan.pose.theta))
                 entry.scans_integrated += 1
             # Charged after the replay, which the budget must never refuse: those scans were accepted.
@@ -513,18 +519,11 @@ class MapRegistry:
             robot = entry.robot(robot_id)
             robot.last_heard = time.time()
             seq, stamp = wire.seq, wire.stamp
-            if robot.last_seq is not None and seq <= robot.last_seq:
-                if not robot.is_restart(seq, stamp):
-                    robot.duplicates += 1
-                    raise IngestRejected(f"duplicate seq {seq} (last accepted {robot.last_seq})", 200)
-                # A restarted robot: counting starts again from 0, and the seqs of its new run
-                # before this one never arrived.
-                robot.restarts += 1
-                robot.lost += seq
-            elif robot.last_seq is not None and seq > robot.last_seq + 1:
-                robot.lost += seq - robot.last_seq - 1
+            if robot.last_seq is not None and seq <= robot.last_seq and not robot.is_restart(seq, stamp):
+                robot.duplicates += 1
+                raise IngestRejected(f"duplicate seq {seq} (last accepted {robot.last_seq})", 200)
             # Recorded before the queue is tried so a dropped scan is not also counted as lost.
-            robot.last_seq, robot.accepted_stamp = seq, stamp
+            robot.accept(seq, stamp)
             job = Job(map_id, robot_id, wire, entry.generation, time.monotonic())
             if wait:
                 job.future = Future()
