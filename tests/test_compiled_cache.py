@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numba
 import pytest
 
-from fleetmap.kernels import drop_stale_compiled_cache
+import fleetmap
+from fleetmap.kernels import drop_stale_compiled_cache, ensure_compiled_cache_location
 
 
 def _cached(package: Path) -> set[str]:
@@ -126,3 +129,64 @@ def test_warm_up_loads_every_kernel_a_robots_first_scans_need() -> None:
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]", f"kernels loaded only by the first scans: {out.stdout.strip()}"
+
+
+def _package_numba_cannot_cache(tmp_path: Path) -> tuple[Path, dict[str, str]]:
+    """A copy of the fleetmap package where no numba cache locator applies, and the environment for
+    it: every `__pycache__` is a file, and the user cache directory lies under a file, as in a
+    container run under an arbitrary user id with the package installed read-only and HOME=/
+    (this test runs as root, for whom no directory is read-only, so files stand in for them)."""
+    root = tmp_path / "site"
+    shutil.copytree(
+        Path(fleetmap.__file__).parent, root / "fleetmap", ignore=shutil.ignore_patterns("__pycache__")
+    )
+    for directory in [root / "fleetmap", *(p for p in (root / "fleetmap").rglob("*") if p.is_dir())]:
+        (directory / "__pycache__").write_text("not a directory")
+    (tmp_path / "home").write_text("not a directory")
+    (tmp_path / "tmp").mkdir()
+    env = {key: value for key, value in os.environ.items() if key != "NUMBA_CACHE_DIR"}
+    env.update(
+        PYTHONPATH=str(root),
+        HOME=str(tmp_path / "home"),
+        XDG_CACHE_HOME=str(tmp_path / "home" / "cache"),
+        TMPDIR=str(tmp_path / "tmp"),
+        PYTHONDONTWRITEBYTECODE="1",
+    )
+    return root, env
+
+
+def test_kernels_load_where_numba_has_no_cache_directory_of_its_own(tmp_path: Path) -> None:
+    """Without the fallback numba refuses to define the kernels ("no locator available") and the
+    service cannot start; with it the compiled code is cached in a private temp directory."""
+    root, env = _package_numba_cannot_cache(tmp_path)
+    script = (
+        "import numba, fleetmap.grid_map, fleetmap.storage_format, fleetmap.sim\n"
+        "from fleetmap.kernels.traversal import cell_count\n"
+        "assert cell_count(0.5, 0.5, 3.5, 2.5, 0) > 0\n"
+        "print(numba.config.CACHE_DIR)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    fallback = tmp_path / "tmp" / f"fleetmap-numba-cache-{os.getuid()}"
+    assert out.stdout.strip() == str(fallback)
+    assert list(fallback.rglob("*.nbi")), "numba cached nothing in the fallback directory"
+    assert not list(root.rglob("*.nb[ic]"))
+
+
+def test_no_writable_directory_for_compiled_code_is_one_clear_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    root, env = _package_numba_cannot_cache(tmp_path)
+    for key in ("HOME", "XDG_CACHE_HOME"):
+        monkeypatch.setenv(key, env[key])
+    monkeypatch.setattr(numba.config, "CACHE_DIR", "")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "home" / "tmp"))  # under a file
+    with pytest.raises(RuntimeError, match="set NUMBA_CACHE_DIR"):
+        ensure_compiled_cache_location(root / "fleetmap")
+    assert numba.config.CACHE_DIR == ""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    assert (
+        ensure_compiled_cache_location(root / "fleetmap")
+        == tmp_path / "tmp" / f"fleetmap-numba-cache-{os.getuid()}"
+    )
+    assert ensure_compiled_cache_location(root / "fleetmap") is None  # numba now has a place

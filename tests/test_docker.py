@@ -31,7 +31,8 @@ def options_of(argv: list[str]) -> list[str]:
 
 def dockerfile_instructions() -> dict[str, list[str]]:
     found: dict[str, list[str]] = {}
-    for line in DOCKERFILE.read_text().splitlines():
+    text = re.sub(r"\\\n\s*", " ", DOCKERFILE.read_text())  # continuation lines joined
+    for line in text.splitlines():
         m = re.match(r"^([A-Z]+)\s+(.*)$", line)
         if m:
             found.setdefault(m.group(1), []).append(m.group(2))
@@ -72,6 +73,12 @@ def test_dockerfile_runs_as_non_root_and_stops_cleanly() -> None:
     users = ins.get("USER", [])
     assert users and users[-1] not in ("root", "0"), "the service must not run as root"
     assert ins.get("STOPSIGNAL") == ["SIGTERM"], "fleetmap serve snapshots on SIGTERM"
+    # Any user id (Kubernetes' runAsUser) finds the compiled code the build warmed, in one place.
+    cache = dockerfile_env(ins).get("NUMBA_CACHE_DIR")
+    assert cache and any(cache in run and "g+rwX" in run for run in ins["RUN"]), (
+        "a cache every user id can use"
+    )
+    assert any("warm_up()" in run for run in ins["RUN"]), "warm the kernels the service runs"
     grace = yaml.safe_load(COMPOSE.read_text())["services"]["fleetmap"].get("stop_grace_period", "10s")
     assert grace.endswith("s") and int(grace[:-1]) >= 30, "docker's default 10 s can cut the final snapshot"
 

@@ -4,13 +4,17 @@ Coordinates here are in CELL units (metres / resolution), so cell (i, j) is the 
 `[i, i+1) x [j, j+1)`. The Python modules around these kernels own the tile bookkeeping; the kernels
 own nothing and keep no state.
 
-Importing this package first drops numba's on-disk cache of the whole `fleetmap` package when any
-compiled source changed (`drop_stale_compiled_cache`).
+Importing this package first makes sure numba has somewhere to cache compiled code
+(`ensure_compiled_cache_location`), then drops numba's on-disk cache of the whole `fleetmap` package
+when any compiled source changed (`drop_stale_compiled_cache`). Every module with `@njit(cache=True)`
+imports this package before its kernels are defined.
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
+import tempfile
 from pathlib import Path
 
 #: Where the digest of the compiled sources is kept, next to numba's cache files.
@@ -56,25 +60,62 @@ def drop_stale_compiled_cache(package: Path = Path(__file__).parent.parent) -> b
     return dropped
 
 
+def ensure_compiled_cache_location(package: Path = Path(__file__).parent.parent) -> Path | None:
+    """Point numba's cache at a private directory in the temp directory when numba would find no
+    place of its own for the kernels of `package`; that directory, or None when numba has one.
+
+    numba refuses to define a `cache=True` kernel ("cannot cache function ...: no locator
+    available") when `NUMBA_CACHE_DIR` is unset, the source's `__pycache__` cannot be written and
+    neither can the user-wide cache directory: a container run under an arbitrary user id (as
+    OpenShift and many Kubernetes set-ups do) with the package installed read-only and `HOME=/`.
+    The service would not start. The fallback costs one compilation per container (about 15 s),
+    which `NUMBA_CACHE_DIR` on a writable volume avoids. Raises RuntimeError, with what to do,
+    when the temp directory cannot be written either."""
+    import numba
+
+    source = package / "kernels" / "traversal.py"
+    if numba.config.CACHE_DIR or _locator_directory(source) is not None:
+        return None
+    directory = Path(tempfile.gettempdir()) / f"fleetmap-numba-cache-{os.getuid()}"
+    try:
+        directory.mkdir(mode=0o700, exist_ok=True)
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as exc:
+        raise RuntimeError(
+            f"numba has no writable directory for fleetmap's compiled code (not {source.parent}/__pycache__, "
+            f"not the user cache directory, not {directory}: {exc.strerror}); set NUMBA_CACHE_DIR to one"
+        ) from exc
+    numba.config.CACHE_DIR = str(directory)
+    return directory
+
+
 def _probe() -> None:
     """A function for numba's cache locators, which want one (they read only its first line)."""
 
 
 def _numba_cache_directory(source: Path) -> Path:
-    """The directory where numba caches the functions of `source`: the first of its locators, in
-    numba's order, that applies (numba's own choice; they create the directory if they can). A
-    numba whose locators are not where they are today gets the in-tree `__pycache__`, as before
-    this looked further."""
+    """The directory where numba caches the functions of `source` (`_locator_directory`), or the
+    in-tree `__pycache__` when numba's locators cannot be asked."""
     try:
-        from numba.core.caching import InTreeCacheLocator, UserProvidedCacheLocator, UserWideCacheLocator
-
-        for locator_class in (UserProvidedCacheLocator, InTreeCacheLocator, UserWideCacheLocator):
-            locator = locator_class.from_function(_probe, str(source))
-            if locator is not None:
-                return Path(locator.get_cache_path())
+        found = _locator_directory(source)
     except (ImportError, AttributeError, TypeError):
-        pass
-    return source.parent / "__pycache__"
+        return source.parent / "__pycache__"
+    return source.parent / "__pycache__" if found is None else found
 
 
+def _locator_directory(source: Path) -> Path | None:
+    """The first of numba's cache locators, in numba's order, that applies to `source` (numba's own
+    choice; they create the directory if they can), or None when none does. Raises ImportError,
+    AttributeError or TypeError for a numba whose locators are not where they are today."""
+    from numba.core.caching import InTreeCacheLocator, UserProvidedCacheLocator, UserWideCacheLocator
+
+    for locator_class in (UserProvidedCacheLocator, InTreeCacheLocator, UserWideCacheLocator):
+        locator = locator_class.from_function(_probe, str(source))
+        if locator is not None:
+            return Path(locator.get_cache_path())
+    return None
+
+
+ensure_compiled_cache_location()
 drop_stale_compiled_cache()
