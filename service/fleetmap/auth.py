@@ -58,6 +58,7 @@ class TokenSet:
     @classmethod
     def parse(cls, text: str, source: str = "tokens") -> TokenSet:
         entries = []
+        listed: dict[bytes, tuple[str, int]] = {}  # digest -> (role, line)
         for lineno, raw in enumerate(text.splitlines(), 1):
             line = _COMMENT.sub("", raw).strip()
             if not line:
@@ -75,7 +76,19 @@ class TokenSet:
                     f"{source}:{lineno}: tokens may hold only printable ASCII characters (no client "
                     "could send any other in an Authorization header)"
                 )
-            entries.append((_digest(token), role))
+            digest = _digest(token)
+            if digest in listed:
+                # Say which lines, never the token. A token listed again with another role is most
+                # likely a demotion whose old line was left behind: neither role is safe to guess.
+                earlier_role, earlier_line = listed[digest]
+                if earlier_role != role:
+                    raise TokenFileError(
+                        f"{source}:{lineno}: this token is already listed on line {earlier_line} "
+                        f"with the role {earlier_role!r}; list each token once"
+                    )
+                continue
+            listed[digest] = (role, lineno)
+            entries.append((digest, role))
         if not entries:
             raise TokenFileError(f"{source}: no tokens")
         return cls(tuple(entries))
