@@ -239,48 +239,65 @@ class DurableStore:
             # its creation had failed to commit. Nothing would ever read or delete them.
             for table in MAP_TABLES:
                 conn.execute(f"DELETE FROM {table} WHERE map_id NOT IN (SELECT id FROM maps)")
-            for map_id, config_json, snap_id, snap_gen, clock, integrated, rejected, created in stored_maps:
-                # Stored before today's limits, perhaps: a map that was accepted keeps loading.
-                gmap = GridMap(MapConfig.model_validate_json(config_json, context={STORED_CONFIG: True}))
-                # Rows of a snapshot that never switched its generation (a crash mid-snapshot) are
-                # not part of the map; each tile is its newest committed generation.
-                conn.execute("DELETE FROM tiles WHERE map_id = ? AND gen > ?", (map_id, snap_gen))
-                # Journal rows the snapshot supersedes that the writer had not deleted yet.
-                conn.execute("DELETE FROM journal WHERE map_id = ? AND id <= ?", (map_id, snap_id))
-                rows = conn.execute(
-                    "SELECT ti, tj, version, data FROM tiles t WHERE map_id = ? AND gen = (SELECT MAX(gen) "
-                    "FROM tiles u WHERE u.map_id = t.map_id AND u.ti = t.ti AND u.tj = t.tj)",
-                    (map_id,),
-                ).fetchall()
-                self._created[map_id] = created
-                self._last_gen = max(self._last_gen, snap_gen)
-                if rows:
-                    gmap.store.create([(ti, tj) for ti, tj, _, _ in rows])
-                    for ti, tj, version, data in rows:
-                        slot = gmap.store.slots[(ti, tj)]
-                        for a, arr in zip(gmap.store.arrays, tile_from_blob(data, gmap), strict=True):
-                            gmap.store.pools[a.name][slot] = arr
-                        gmap.store.versions[slot] = version
-                gmap.store.restore_clock(max(clock, max((r[2] for r in rows), default=0)))
-                robots = {rid: json.loads(state) for rid, state in conn.execute(
-                    "SELECT robot_id, state FROM robots WHERE map_id = ?", (map_id,))}  # fmt: skip
-                count, last = conn.execute(
-                    "SELECT COUNT(*), MAX(id) FROM journal WHERE map_id = ? AND id > ?", (map_id, snap_id)
-                ).fetchone()
-                journal = StoredJournal(self.path, map_id, snap_id, count)
-                self._last_journal_id[map_id] = int(last or snap_id)
-                self._rows_since[map_id] = count
-                # Tiles replayed from the journal are newer than the stored snapshot; restored tiles
-                # are not, so only versions above the restored clock count as changed.
-                self._snapshot_clock[map_id] = gmap.store.clock
-                counters = {"scans_integrated": integrated, "scans_rejected": rejected, "robots": robots}
-                out.append((map_id, gmap, counters, journal))
+            for stored in stored_maps:
+                map_id = stored[0]
+                out.append(self._load_map(conn, *stored))
             return out
         # ValueError: a stored configuration that does not validate (pydantic's ValidationError).
         except (sqlite3.DatabaseError, zlib.error, StorageError, ValueError) as exc:
             raise unreadable_database(self.path, map_id, exc) from None
         finally:
             conn.close()
+
+    def _load_map(
+        self,
+        conn: sqlite3.Connection,
+        map_id: str,
+        config_json: str,
+        snap_id: int,
+        snap_gen: int,
+        clock: int,
+        integrated: int,
+        rejected: int,
+        created: float,
+    ) -> tuple[str, GridMap, dict, StoredJournal]:
+        """One stored map (a row of `maps`): its snapshot's tiles loaded, what the snapshot made
+        obsolete deleted, and its journal rows after the snapshot, to be read as they are replayed."""
+        # Stored before today's limits, perhaps: a map that was accepted keeps loading.
+        gmap = GridMap(MapConfig.model_validate_json(config_json, context={STORED_CONFIG: True}))
+        # Rows of a snapshot that never switched its generation (a crash mid-snapshot) are
+        # not part of the map; each tile is its newest committed generation.
+        conn.execute("DELETE FROM tiles WHERE map_id = ? AND gen > ?", (map_id, snap_gen))
+        # Journal rows the snapshot supersedes that the writer had not deleted yet.
+        conn.execute("DELETE FROM journal WHERE map_id = ? AND id <= ?", (map_id, snap_id))
+        rows = conn.execute(
+            "SELECT ti, tj, version, data FROM tiles t WHERE map_id = ? AND gen = (SELECT MAX(gen) "
+            "FROM tiles u WHERE u.map_id = t.map_id AND u.ti = t.ti AND u.tj = t.tj)",
+            (map_id,),
+        ).fetchall()
+        self._created[map_id] = created
+        self._last_gen = max(self._last_gen, snap_gen)
+        if rows:
+            gmap.store.create([(ti, tj) for ti, tj, _, _ in rows])
+            for ti, tj, version, data in rows:
+                slot = gmap.store.slots[(ti, tj)]
+                for a, arr in zip(gmap.store.arrays, tile_from_blob(data, gmap), strict=True):
+                    gmap.store.pools[a.name][slot] = arr
+                gmap.store.versions[slot] = version
+        gmap.store.restore_clock(max(clock, max((r[2] for r in rows), default=0)))
+        robots = {rid: json.loads(state) for rid, state in conn.execute(
+            "SELECT robot_id, state FROM robots WHERE map_id = ?", (map_id,))}  # fmt: skip
+        count, last = conn.execute(
+            "SELECT COUNT(*), MAX(id) FROM journal WHERE map_id = ? AND id > ?", (map_id, snap_id)
+        ).fetchone()
+        journal = StoredJournal(self.path, map_id, snap_id, count)
+        self._last_journal_id[map_id] = int(last or snap_id)
+        self._rows_since[map_id] = count
+        # Tiles replayed from the journal are newer than the stored snapshot; restored tiles
+        # are not, so only versions above the restored clock count as changed.
+        self._snapshot_clock[map_id] = gmap.store.clock
+        counters = {"scans_integrated": integrated, "scans_rejected": rejected, "robots": robots}
+        return map_id, gmap, counters, journal
 
     # -- hooks called by the registry -------------------------------------------------------------------
 
