@@ -194,8 +194,12 @@ class Job:
     robot_id: str
     wire: WireScan
     generation: int
+    #: time.monotonic() when the scan was queued, when it was applied to its map (readers see it
+    #: from then on), and whether it was handed to the journal then (its row committed later).
     enqueued_at: float
     future: Future[IntegrationResult] | None = None
+    applied_at: float | None = None
+    journaled: bool = False
 
 
 class IngestRejected(Exception):
@@ -660,7 +664,9 @@ class MapRegistry:
                     result = None
                 else:
                     result = entry.gmap.apply(plan)
+                    job.applied_at = time.monotonic()
                     if self.durable is not None:
+                        job.journaled = True
                         # Under the map's lock: the journal's order is the order of application.
                         elapsed = time.perf_counter() - started
                         self.durable.journal(
