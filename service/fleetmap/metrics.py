@@ -326,18 +326,21 @@ class EventStreamsCollector(Collector):
 class TileCacheCollector(Collector):
     """The tile cache's own counters (requests served from the cache, tiles rendered), read at scrape."""
 
-    def __init__(self, cache: TileCache) -> None:
+    def __init__(self, cache: TileCache, statuses: dict[int, int]) -> None:
         self.cache = cache
+        self.statuses = statuses
 
     def describe(self) -> list[Metric]:
         return list(self._families())
 
     def collect(self) -> Iterator[Metric]:
-        hits, renders, entries = self._families()
+        hits, renders, entries, requests = self._families()
         hits.add_metric([], self.cache.hits)
         renders.add_metric([], self.cache.renders)
         entries.add_metric([], len(self.cache))
-        yield from (hits, renders, entries)
+        for status, count in sorted(dict(self.statuses).items()):  # (a copy: see TileStatusCounter)
+            requests.add_metric([str(status)], count)
+        yield from (hits, renders, entries, requests)
 
     @staticmethod
     def _families() -> tuple[Metric, ...]:
@@ -345,6 +348,11 @@ class TileCacheCollector(Collector):
             CounterMetricFamily("fleetmap_tile_cache_hits", "Tile requests served from the cache"),
             CounterMetricFamily("fleetmap_tile_renders", "Tiles rendered (cache misses)"),
             GaugeMetricFamily("fleetmap_tile_cache_entries", "Rendered tiles held in the cache"),
+            CounterMetricFamily(
+                "fleetmap_tile_requests",
+                "Tile requests by the HTTP status answered (200 sent, 304 revalidated, 404, 422, ...)",
+                labels=["status"],
+            ),
         )
 
 
@@ -401,12 +409,14 @@ class ServiceMetrics:
             buckets=LATENCY_BUCKETS,
             registry=self.collector_registry,
         )
+        #: Tile requests by the status of their answer (`routes_tiles.TileStatusCounter`).
+        self.tile_statuses: dict[int, int] = {}
 
     def observe_render(self, layer: str, z: int, seconds: float) -> None:
         self.tile_render_seconds.labels(layer).observe(seconds)
 
     def watch_tile_cache(self, cache: TileCache) -> None:
-        self.collector_registry.register(TileCacheCollector(cache))
+        self.collector_registry.register(TileCacheCollector(cache, self.tile_statuses))
 
     def watch_gate(self, gate: IngestGate) -> None:
         self.collector_registry.register(IngestGateCollector(gate))
