@@ -214,6 +214,9 @@ def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: Serv
         got = raw_answer(service, request, piece)
         assert got[:2] == (status, "application/json"), (request[:40], piece, got)
         assert str(got[2]["detail"]).startswith(detail), got
+    # uvicorn's warning about it, in the log's text format (time, level, logger), not uvicorn's own.
+    assert " WARNING uvicorn.error: Invalid HTTP request received." in service.logs()
+    assert "WARNING:  Invalid HTTP request received." not in service.logs()
     # Within the limit: a long header, and a body far longer than the limit (not part of the head).
     assert httpx.get(f"{service.base_url}/healthz", headers={"X-Big": "b" * 60_000}).status_code == 200
     points = [[0.01 * i, 0.0] for i in range(10_000)]

@@ -15,10 +15,11 @@ Elasticsearch), with these keys:
 A line about a map or robot passes them as `extra={"map_id": ..., "robot_id": ...}` (`fields` of
 `RateLimitedLog.warning`); the text format leaves them out (they are in its message already).
 
-uvicorn's own lines (its errors and warnings, and the access log) go through the same handler in
-`json` (`uvicorn_log_config`), so stderr carries one format only; in `text` uvicorn logs as it always
-did. The ready line on stdout and the one-line error of a bad option (`plain_line`) are JSON objects too in
-`json`.
+uvicorn's own lines (its errors and warnings, and the access log) go through the same handler, in
+either format (`UVICORN_LOG_CONFIG`), so stderr carries one format only: uvicorn's own configuration
+wrote `WARNING:  message` lines without a time among fleetmap's, and its access log to stdout.
+The ready line on stdout and the one-line error of a bad option (`plain_line`) are JSON objects
+too in `json`.
 """
 
 from __future__ import annotations
@@ -111,20 +112,16 @@ def configure_logging(level: str, log_format: str) -> None:
     threading.excepthook = thread_hook
 
 
-def uvicorn_log_config(log_format: str) -> dict[str, Any]:
-    """`uvicorn.Config(log_config=...)` for `log_format`: uvicorn's own configuration in text;
-    in json, its loggers keep no handler of their own and hand their records to the process's
-    (`configure_logging`), so its errors and access lines are JSON objects on the same stream."""
-    from uvicorn.config import LOGGING_CONFIG
-
-    if log_format != "json":
-        return LOGGING_CONFIG
-    propagating = {"handlers": [], "propagate": True}
-    return {
-        "version": 1,
-        "disable_existing_loggers": False,
-        "loggers": {name: dict(propagating) for name in ("uvicorn", "uvicorn.error", "uvicorn.access")},
-    }
+#: `uvicorn.Config(log_config=...)`: uvicorn's loggers keep no handler of their own and hand their
+#: records to the process's (`configure_logging`), so its errors and access lines have the format
+#: of every other line, on the same stream. (No `root` key: dictConfig leaves the root's handler.)
+UVICORN_LOG_CONFIG: dict[str, Any] = {
+    "version": 1,
+    "disable_existing_loggers": False,
+    "loggers": {
+        name: {"handlers": [], "propagate": True} for name in ("uvicorn", "uvicorn.error", "uvicorn.access")
+    },
+}
 
 
 def plain_line(message: str, log_format: str, level: int = logging.INFO, **fields: Any) -> str:

@@ -58,7 +58,7 @@ from fleetmap.http_limits import (
     raise_descriptor_limit,
 )
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
-from fleetmap.log_format import LOG_FORMATS, configure_logging, plain_line, uvicorn_log_config
+from fleetmap.log_format import LOG_FORMATS, UVICORN_LOG_CONFIG, configure_logging, plain_line
 from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS, DurableStore
 from fleetmap.scan import MAX_BEAMS
@@ -705,7 +705,7 @@ def run(args: argparse.Namespace) -> int:
             # protocol gets the connection limits of fleetmap.http_limits.
             config = uvicorn.Config(
                 app,
-                log_config=uvicorn_log_config(args.log_format),
+                log_config=UVICORN_LOG_CONFIG,
                 log_level="warning",  # not uvicorn's start-up lines: fleetmap's say more
                 access_log=args.access_log,
                 timeout_graceful_shutdown=GRACEFUL_HTTP_SECONDS,
