@@ -16,6 +16,8 @@ serves. Only then is the ready line printed on stdout:
 
     fleetmap serving http://HOST:PORT  zenoh: ENDPOINTS
 
+(with `--log-format json`, a JSON log object whose message is that line: see fleetmap.log_format).
+
 Every option can also be given as an environment variable, `FLEETMAP_` and the option's name in
 capitals with `-` as `_` (`--data-dir` is `FLEETMAP_DATA_DIR`, `--insecure` is `FLEETMAP_INSECURE=1`,
 lists separated by spaces); the command line wins (`environment_defaults`).
