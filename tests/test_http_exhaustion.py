@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import json
 import logging
 import socket
 import time
@@ -18,7 +19,7 @@ import httpx
 import pytest
 from service_process import RobotProcess, ServiceProcess, wait_for
 
-from fleetmap.http_limits import ACCEPT_ERROR, quiet_accept_errors
+from fleetmap.http_limits import ACCEPT_ERROR, MAX_HEAD_BYTES, quiet_accept_errors
 
 MAX_STREAMS = 3
 MAX_CONNECTIONS = 16  # the smallest --max-http-connections allowed
@@ -171,6 +172,56 @@ def test_connections_past_the_limit_are_refused_and_the_service_recovers(service
             sock.close()
     # The idle ones are gone (closed by their clients, or by the head timeout): served again.
     wait_for(lambda: _healthz_ok(service), timeout=HEAD_TIMEOUT + 5, what="/healthz answering again")
+
+
+def raw_answer(svc: ServiceProcess, request: bytes, piece: int = 0) -> tuple[int, str, dict[str, object]]:
+    """(status, content type, JSON body) of the answer to `request`, sent whole or in pieces of
+    `piece` bytes (so the head arrives in many reads), read until the service closes."""
+    with socket.create_connection(("127.0.0.1", svc.port), timeout=10) as sock:
+        try:
+            for start in range(0, len(request), piece or len(request)):
+                sock.sendall(request[start : start + (piece or len(request))])
+                if piece:
+                    time.sleep(0.002)  # (not a timing condition: only so that the pieces arrive apart)
+        except OSError:  # refused before the whole head was sent: closed by the service
+            pass
+        answer = b""
+        while chunk := sock.recv(65536):
+            answer += chunk
+    head, _, body = answer.partition(b"\r\n\r\n")
+    lines = head.decode().split("\r\n")
+    headers = dict(line.lower().split(": ", 1) for line in lines[1:])
+    return int(lines[0].split()[1]), headers["content-type"], json.loads(body)
+
+
+def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: ServiceProcess) -> None:
+    """Every answer of the API is JSON {"detail": ...}, also those httptools' parser and the head limit
+    give before a request reaches the app; and a head over MAX_HEAD_BYTES is refused, not read into
+    memory (neither uvicorn nor httptools bounds it: a 10 MB header was answered 200)."""
+    long_url = b"GET /maps/" + b"a" * 100_000 + b" HTTP/1.1\r\nHost: t\r\n\r\n"
+    long_header = b"GET /healthz HTTP/1.1\r\nHost: t\r\nX-Big: " + b"b" * 100_000 + b"\r\n\r\n"
+    # In pieces and never ended: refused once past the limit, not read on until the head timeout.
+    url_detail = "the request line is longer than 65536 bytes"
+    head_detail = "the request's head (request line and headers) is longer than 65536 bytes"
+    cases = [
+        (long_url, 0, 414, url_detail),
+        (long_url[:-30], 8192, 414, url_detail),
+        (long_header, 0, 431, head_detail),
+        (long_header[:-4], 8192, 431, head_detail),
+        (b"NOT HTTP AT ALL\r\n\r\n", 0, 400, "invalid HTTP request"),
+    ]
+    for request, piece, status, detail in cases:
+        got = raw_answer(service, request, piece)
+        assert got[:2] == (status, "application/json"), (request[:40], piece, got)
+        assert str(got[2]["detail"]).startswith(detail), got
+    # uvicorn's warning about it, in the log's text format (time, level, logger), not uvicorn's own.
+    assert " WARNING uvicorn.error: Invalid HTTP request received." in service.logs()
+    assert "WARNING:  Invalid HTTP request received." not in service.logs()
+    # Within the limit: a long header, and a body far longer than the limit (not part of the head).
+    assert httpx.get(f"{service.base_url}/healthz", headers={"X-Big": "b" * 60_000}).status_code == 200
+    points = [[0.01 * i, 0.0] for i in range(10_000)]
+    assert len(json.dumps({"points": points})) > 2 * MAX_HEAD_BYTES
+    assert httpx.post(f"{service.base_url}/maps/m/cells", json={"points": points}).status_code == 200
 
 
 def _healthz_ok(svc: ServiceProcess) -> bool:

@@ -9,20 +9,25 @@ another machine.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
+import socket
 import sqlite3
 import subprocess
 import sys
 from collections import Counter
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import httpx
+import zenoh
 from prometheus_client.parser import text_string_to_metric_families
 from service_process import ServiceProcess, free_port, reaped, wait_for
 
 from fleetmap.database import DB_NAME
+from fleetmap.wire import BINARY_ENCODING
 
 WRITE_A = "write-token-aaaaaaaaaaaaaaaa"
 WRITE_B = "write-token-bbbbbbbbbbbbbbbb"
@@ -55,10 +60,18 @@ def post_scans(base: str, map_id: str, robot: str, seqs: range, token: str | Non
 
 def test_metrics_are_valid_prometheus_text_and_show_what_an_operator_watches(tmp_path: Path) -> None:
     with ServiceProcess(tmp_path) as svc:
+        scraped = httpx.get(f"{svc.base_url}/metrics").text
+        before = {f.name: f for f in text_string_to_metric_families(scraped)}
         post_scans(svc.base_url, "warehouse", "robot-1", range(1, 4))
         post_scans(svc.base_url, "yard_2", "r-2", range(1, 3))
         post_scans(svc.base_url, "yard_2", "r-2", range(5, 6))  # seqs 3 and 4 lost
-        assert httpx.get(f"{svc.base_url}/maps/warehouse/tiles/0/0/0.png").status_code == 200
+        tile = httpx.get(f"{svc.base_url}/maps/warehouse/tiles/0/0/0.png")
+        assert tile.status_code == 200
+        revalidated = httpx.get(
+            f"{svc.base_url}/maps/warehouse/tiles/0/0/0.png", headers={"If-None-Match": tile.headers["etag"]}
+        )
+        assert revalidated.status_code == 304
+        assert httpx.get(f"{svc.base_url}/maps/nowhere/tiles/0/0/0.png").status_code == 404
         with httpx.Client() as held:  # a second connection, open during the scrape
             held.get(f"{svc.base_url}/healthz")
             r = httpx.get(f"{svc.base_url}/metrics")
@@ -113,6 +126,17 @@ def test_metrics_are_valid_prometheus_text_and_show_what_an_operator_watches(tmp
     assert value("fleetmap_tile_renders_total") >= 1
     assert value("fleetmap_event_streams") == 0
     assert value("fleetmap_ingest_latency_seconds_count") == 6
+    # Latencies of durability and visibility, one observation per scan, none before the scans.
+    for histogram in ("fleetmap_journal_latency_seconds", "fleetmap_ingest_visible_latency_seconds"):
+        (count,) = [s.value for s in before[histogram].samples if s.name == f"{histogram}_count"]
+        assert count == 0
+        assert value(f"{histogram}_count") == 6
+        assert 0 < value(f"{histogram}_sum") < value("fleetmap_ingest_latency_seconds_sum")
+        assert value(f"{histogram}_bucket", le="+Inf") == 6
+    # Tile answers by status: the revalidation (304) and the unknown map (404) count too.
+    assert value("fleetmap_tile_requests_total", status="200") == 1
+    assert value("fleetmap_tile_requests_total", status="304") == 1
+    assert value("fleetmap_tile_requests_total", status="404") == 1
     # The journal: 6 scans committed, in at most 6 transactions (plus the maps' creations).
     assert value("fleetmap_journal_rows_total") == 6
     assert value("fleetmap_journal_commits_total") >= 1
@@ -238,6 +262,95 @@ def test_log_level_warning_keeps_the_start_up_quiet(tmp_path: Path) -> None:
     logs = svc.logs()
     assert " INFO " not in logs, logs
     assert "fleetmap serving http://" in logs  # the ready line is on stdout whatever the level
+
+
+# -- JSON logs ----------------------------------------------------------------------------------
+
+#: The service with a broken PNG encoder, so that a tile request meets an exception: the service has
+#: no bug to trigger on purpose, and an exception's log line is what this test must see. Everything
+#: else is the real `python -m fleetmap.server` with its real command line.
+BROKEN_TILES_SERVICE = (
+    "import runpy\n"
+    "import fleetmap.tile_render\n"
+    "def broken(rgba):\n"
+    "    raise RuntimeError('injected fault: the PNG encoder is broken')\n"
+    "fleetmap.tile_render.encode_png = broken\n"
+    "runpy.run_module('fleetmap.server', run_name='__main__', alter_sys=True)\n"
+)
+
+
+def zenoh_client_config(endpoint: str) -> zenoh.Config:
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return cfg
+
+
+def test_json_log_is_one_object_per_line_with_uvicorn_and_the_ready_line(tmp_path: Path) -> None:
+    svc = ServiceProcess(tmp_path, ["--log-format", "json", "--access-log"])
+    assert svc.args[1:3] == ["-m", "fleetmap.server"]
+    svc.args[1:3] = ["-c", BROKEN_TILES_SERVICE]
+    with svc:
+        assert svc.proc is not None
+        post_scans(svc.base_url, "m", "r", range(1, 3))  # access lines; "created map m"
+        assert httpx.get(f"{svc.base_url}/maps/m/tiles/0/0/0.png").status_code == 500  # the exception
+        with socket.create_connection(("127.0.0.1", svc.port), timeout=10) as raw:  # uvicorn's warning
+            raw.sendall(b"NOT HTTP\r\n\r\n")
+            assert raw.recv(4096).startswith(b"HTTP/1.1 400")
+        svc.proc.send_signal(signal.SIGHUP)  # fleetmap's own warning: no token file to reload
+        session = zenoh.open(zenoh_client_config(svc.zenoh_endpoint))
+        try:  # a robot's undecodable scan: a warning with its map and robot as fields
+            publisher = session.declare_publisher(
+                "fleetmap/m/robot-z/scan", encoding=zenoh.Encoding(BINARY_ENCODING)
+            )
+            wait_for(lambda: publisher.matching_status.matching, 10, what="the service's subscriber")
+            publisher.put(b"not a scan")
+            wait_for(lambda: "rejected a scan from m/robot-z" in svc.logs(), 10, what="the rejection")
+        finally:
+            session.close()
+        wait_for(lambda: "SIGHUP: nothing to reload" in svc.logs(), 10, what="the SIGHUP warning")
+        assert svc.stop() == 0
+    lines = svc.logs().splitlines()
+    assert lines
+    objects = [json.loads(line) for line in lines]  # every line, stdout's and stderr's, alone
+    for line in objects:
+        assert isinstance(line, dict) and {"time", "level", "logger", "message"} <= line.keys(), line
+        assert line["time"].endswith("Z") and datetime.fromisoformat(line["time"]).utcoffset() == timedelta(0)
+
+    def find(**fields: object) -> dict[str, object]:
+        found = [line for line in objects if all(line.get(k) == v for k, v in fields.items())]
+        assert found, f"no log line with {fields}:\n{svc.logs()}"
+        return found[0]
+
+    # Start-up: where HTTP listens, and the ready line (stdout) with its address as fields.
+    listening = f"HTTP (REST API, viewer, /metrics, /healthz) on {svc.base_url}"
+    assert find(logger="fleetmap.server", level="INFO", message=listening)
+    ready = find(url=svc.base_url)
+    assert ready["message"] == f"fleetmap serving {svc.base_url}  zenoh: {svc.zenoh_endpoint}"
+    assert ready["zenoh"] == [svc.zenoh_endpoint]
+    assert find(logger="fleetmap.registry", message="created map m")["map_id"] == "m"
+    # The access log, with the request as fields.
+    access = find(logger="uvicorn.access", method="POST", status=200)
+    assert str(access["path"]).startswith("/maps/m/scans") and access["client"]
+    # Warnings: uvicorn's, fleetmap's, and a robot's rejected scan with its ids.
+    assert find(logger="uvicorn.error", level="WARNING", message="Invalid HTTP request received.")
+    assert find(logger="fleetmap.server", level="WARNING")["message"].startswith("SIGHUP: nothing to reload")
+    assert find(logger="fleetmap.ingest", level="WARNING", map_id="m", robot_id="robot-z")
+    # The exception: its traceback in one field of one line.
+    failure = find(logger="fleetmap.api", level="ERROR", map_id="m")
+    assert failure["message"] == "internal error on GET /maps/m/tiles/0/0/0.png"
+    assert "Traceback" in failure["exception"] and "injected fault" in failure["exception"]
+    assert "injected fault" in find(logger="uvicorn.error", level="ERROR")["exception"]  # uvicorn's own
+
+
+def test_a_bad_option_is_one_json_line_with_json_logs() -> None:
+    done = serve_error("--log-format", "json", "--http", "nowhere")
+    assert done.returncode == 2
+    (line,) = done.stderr.strip().splitlines()
+    error = json.loads(line)
+    assert error["level"] == "ERROR"
+    assert error["message"].startswith("fleetmap serve: error: --http 'nowhere'")
 
 
 # -- backup and restore ----------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import logging
 import sys
 import time
 from collections.abc import Sequence
@@ -18,6 +19,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from fleetmap.config import MapConfig
+from fleetmap.log_format import plain_line
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -30,11 +32,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    """Run a parsed subcommand; a `CliError` is printed without a traceback, exit code 2."""
+    """Run a parsed subcommand; a `CliError` is printed without a traceback, exit code 2 (as a
+    JSON log object with `serve --log-format json`, whose log pipeline reads JSON only)."""
     try:
         return int(args.run(args) or 0)
     except CliError as exc:
-        print(f"fleetmap {args.command}: error: {exc}", file=sys.stderr)
+        line = f"fleetmap {args.command}: error: {exc}"
+        print(plain_line(line, getattr(args, "log_format", "text"), logging.ERROR), file=sys.stderr)
         return 2
 
 

@@ -15,7 +15,14 @@ token to do that: a connection is only checked once its request head has arrived
   snapshot files need;
 - a request's head (request line and headers) must arrive within `head_timeout` seconds of the
   connection opening, or of the request's first byte on a kept-alive connection;
-- its body must then arrive within `body_timeout` seconds.
+- its body must then arrive within `body_timeout` seconds;
+- its head may be at most MAX_HEAD_BYTES long: past it the answer is a JSON 414 (the request line
+  alone is that long) or 431 (headers), and the connection is closed. Neither httptools nor uvicorn
+  has such a limit: a 10 MB header was read whole (in memory) and answered 200.
+
+Requests httptools cannot parse (a URL over 64 KiB, which its URL parser cannot index, or no HTTP at
+all) get uvicorn's 400, but as JSON `{"detail": ...}` like every other error of the API rather than
+uvicorn's text/plain (`send_400_response`): the same bytes on the wire otherwise, and the same close.
 
 Besides, `fleetmap serve` has asyncio accept at most ACCEPT_BACKLOG connections per turn of the
 event loop (uvicorn's default of 2048 let one burst take 2048 descriptors before any could be
@@ -49,19 +56,36 @@ RESERVED_DESCRIPTORS = 384
 RETRY_AFTER_SECONDS = 5
 #: asyncio's message when accept() fails for want of descriptors or memory.
 ACCEPT_ERROR = "socket.accept() out of system resource"
+#: Bytes a request's head (request line and headers) may have. httptools' URL parser indexes a URL
+#: with 16 bits, so longer URLs failed anyway; browsers and proxies send far less (nginx: 8 KiB per
+#: header line by default).
+MAX_HEAD_BYTES = 64 * 1024
 
 
-def _busy_response() -> bytes:
-    """The whole HTTP answer to a connection past `max_connections`: a JSON 503, then close."""
-    body = json.dumps({"detail": "the server holds too many HTTP connections; retry later"}).encode()
+def error_response(status: int, reason: str, detail: str, headers: str = "") -> bytes:
+    """The whole HTTP answer the protocol sends itself, before any request reaches the app: the
+    API's JSON error shape `{"detail": ...}`, then close (`headers`: extra CRLF-ended lines)."""
+    body = json.dumps({"detail": detail}).encode()
     head = (
-        "HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/json\r\n"
-        f"content-length: {len(body)}\r\nretry-after: {RETRY_AFTER_SECONDS}\r\nconnection: close\r\n\r\n"
+        f"HTTP/1.1 {status} {reason}\r\ncontent-type: application/json\r\n"
+        f"content-length: {len(body)}\r\n{headers}connection: close\r\n\r\n"
     )
     return head.encode() + body
 
 
-BUSY_RESPONSE = _busy_response()
+#: The answer to a connection past `max_connections`.
+BUSY_RESPONSE = error_response(
+    503, "Service Unavailable", "the server holds too many HTTP connections; retry later",
+    f"retry-after: {RETRY_AFTER_SECONDS}\r\n",
+)  # fmt: skip
+INVALID_REQUEST = error_response(400, "Bad Request", "invalid HTTP request: it could not be parsed")
+URL_TOO_LONG = error_response(
+    414, "URI Too Long", f"the request line is longer than {MAX_HEAD_BYTES} bytes: send less in the URL"
+)
+HEAD_TOO_LARGE = error_response(
+    431, "Request Header Fields Too Large",
+    f"the request's head (request line and headers) is longer than {MAX_HEAD_BYTES} bytes",
+)  # fmt: skip
 
 
 def raise_descriptor_limit() -> int:
@@ -95,6 +119,30 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
             self._deadline: asyncio.TimerHandle | None = None
+            # Bytes received since the current head began (None: in a body, not in a head).
+            self._head_bytes: int | None = 0
+            # The answer to a head refused by `on_headers_complete` (sent by `send_400_response`).
+            self._refusal: bytes | None = None
+
+        def data_received(self, data: bytes) -> None:
+            in_head = self._head_bytes is not None
+            if in_head:
+                self._head_bytes = (self._head_bytes or 0) + len(data)
+            super().data_received(data)
+            # Still in the same head after all of `data`: every byte of it was head. (A head that
+            # arrived whole in this chunk, at most 256 KiB, is measured by `on_headers_complete`.)
+            if in_head and (self._head_bytes or 0) > MAX_HEAD_BYTES and not self.transport.is_closing():
+                # No header yet: the request line alone is too long.
+                self.transport.write(HEAD_TOO_LARGE if self.headers else URL_TOO_LONG)
+                self.transport.close()
+
+        def send_400_response(self, msg: str) -> None:
+            # uvicorn's answer to what httptools cannot parse, as JSON (its msg says nothing more
+            # than "Invalid HTTP request received."). A URL that arrived in one piece is only
+            # refused here, by the URL parser: the same 414 as one that arrives slowly.
+            too_long = len(getattr(self, "url", b"")) >= MAX_HEAD_BYTES
+            self.transport.write(self._refusal or (URL_TOO_LONG if too_long else INVALID_REQUEST))
+            self.transport.close()
 
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
@@ -115,11 +163,19 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
                 self._arm(head_timeout)
 
         def on_headers_complete(self) -> None:
+            self._head_bytes = None
+            size = len(self.url) + sum(len(name) + len(value) + 4 for name, value in self.headers)
+            if size > MAX_HEAD_BYTES:
+                # Raising stops the parser: httptools raises a parser error from `data_received`,
+                # whose handler (uvicorn's) answers with `send_400_response`, i.e. this refusal.
+                self._refusal = URL_TOO_LONG if len(self.url) >= MAX_HEAD_BYTES else HEAD_TOO_LARGE
+                raise ValueError(f"request head of {size} bytes")
             self._disarm()
             self._arm(body_timeout)
             super().on_headers_complete()
 
         def on_message_complete(self) -> None:
+            self._head_bytes = 0  # what follows is the next request's head
             self._disarm()  # the whole request is in: the response may take as long as it needs
             super().on_message_complete()
 

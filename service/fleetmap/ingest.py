@@ -269,8 +269,9 @@ class ZenohIngest:
                 self.decode_errors += 1
             self.registry.reject(map_id, robot_id, reason)
             self._log.warning(
-                f"decode:{map_id}/{robot_id}", f"rejected a scan from {map_id}/{robot_id}: {reason}"
-            )
+                f"decode:{map_id}/{robot_id}", f"rejected a scan from {map_id}/{robot_id}: {reason}",
+                map_id=map_id, robot_id=robot_id,
+            )  # fmt: skip
             return
         try:
             self.registry.submit(map_id, robot_id, wire)
@@ -279,8 +280,9 @@ class ZenohIngest:
             with self._lock:
                 self.rejected[kind] += 1
             self._log.warning(
-                f"{kind}:{map_id}/{robot_id}", f"scan seq {wire.seq} from {map_id}/{robot_id}: {exc.reason}"
-            )
+                f"{kind}:{map_id}/{robot_id}", f"scan seq {wire.seq} from {map_id}/{robot_id}: {exc.reason}",
+                map_id=map_id, robot_id=robot_id, seq=wire.seq,
+            )  # fmt: skip
             return
         except InvalidId:  # parse_key validated the ids; kept for safety
             with self._lock:
@@ -324,7 +326,10 @@ class ZenohIngest:
                 else:
                     self._alive.discard(ids)
                 self.registry.set_online(ids[0], ids[1], online)
-            log.info("robot %s/%s is %s", ids[0], ids[1], "online" if online else "offline")
+            log.info(
+                "robot %s/%s is %s", ids[0], ids[1], "online" if online else "offline",
+                extra={"map_id": ids[0], "robot_id": ids[1]},
+            )  # fmt: skip
         except Exception:
             log.exception("unexpected error handling a liveliness sample")
 

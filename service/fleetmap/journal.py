@@ -205,7 +205,7 @@ class JournalWriter:
         if map_id in self.unstored:
             self._unstored.pop(map_id, None)
             self._publish_unstored()
-            log.info("the change of map %s is stored now", map_id)
+            log.info("the change of map %s is stored now", map_id, extra={"map_id": map_id})
         return result
 
     def _publish_unstored(self) -> None:
@@ -298,6 +298,7 @@ class JournalWriter:
                 "the last change of map %s (created, replaced or deleted) could not be stored: the "
                 "next start finds the map as it was before that change",
                 map_id,
+                extra={"map_id": map_id},
             )
 
     def _trim_some(self) -> tuple[str, bool] | None:

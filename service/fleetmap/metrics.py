@@ -7,8 +7,9 @@ Two sources, so nothing is counted twice:
   per map) are read from the registry when Prometheus scrapes, by `RegistryCollector`. The registry
   stays the one truth. Likewise the tile cache's and the ingest gate's counters.
 - Latencies only exist as events, so they are observed as they happen: `IntegrationMetrics` is the
-  registry's `on_integrated` hook (integration time, and enqueue-to-integrated time from
-  `job.enqueued_at`); the tile cache reports render times to `ServiceMetrics.observe_render`.
+  registry's `on_integrated` hook (integration time; from the job's `enqueued_at` and `applied_at`:
+  arrival to integrated, arrival to visible, applied to journaled); the tile cache reports render
+  times to `ServiceMetrics.observe_render`.
 
 Each app gets its own `CollectorRegistry` (`ServiceMetrics`), so several services (or tests) in one
 process never share or clash over metric names.
@@ -62,7 +63,22 @@ class IntegrationMetrics:
         )
         self.ingest_latency_seconds = Histogram(
             "fleetmap_ingest_latency_seconds",
-            "Time from a scan's arrival in the service (enqueued) to its integration in the map",
+            "Time from a scan's arrival in the service (enqueued) to its integration in the map "
+            "(with durable storage: to its journal row committed)",
+            buckets=LATENCY_BUCKETS,
+            registry=None,
+        )
+        self.visible_latency_seconds = Histogram(
+            "fleetmap_ingest_visible_latency_seconds",
+            "Time from a scan's arrival in the service (enqueued) to its application to the map, "
+            "from when readers (cells, tiles, events) see it",
+            buckets=LATENCY_BUCKETS,
+            registry=None,
+        )
+        self.journal_latency_seconds = Histogram(
+            "fleetmap_journal_latency_seconds",
+            "Time from a scan's application to the map to its journal row committed to disk (fsync): "
+            "the time it could be lost in a crash; only with durable storage",
             buckets=LATENCY_BUCKETS,
             registry=None,
         )
@@ -77,11 +93,22 @@ class IntegrationMetrics:
         journal writer's thread with persistence, else on the worker's). Quick, and never raises."""
         self.integration_seconds.observe(seconds)
         # job.enqueued_at is time.monotonic() when the scan was queued: the service-side latency.
-        self.ingest_latency_seconds.observe(max(0.0, time.monotonic() - job.enqueued_at))
+        now = time.monotonic()
+        self.ingest_latency_seconds.observe(max(0.0, now - job.enqueued_at))
+        if job.applied_at is not None:
+            self.visible_latency_seconds.observe(max(0.0, job.applied_at - job.enqueued_at))
+            if job.journaled:  # called once its row is committed
+                self.journal_latency_seconds.observe(max(0.0, now - job.applied_at))
         self.cell_updates.inc(result.cell_updates + result.tsdf_updates)
 
     def collectors(self) -> Iterable[Collector]:
-        return (self.integration_seconds, self.ingest_latency_seconds, self.cell_updates)
+        return (
+            self.integration_seconds,
+            self.ingest_latency_seconds,
+            self.visible_latency_seconds,
+            self.journal_latency_seconds,
+            self.cell_updates,
+        )
 
 
 class RegistryCollector(Collector):
@@ -299,18 +326,21 @@ class EventStreamsCollector(Collector):
 class TileCacheCollector(Collector):
     """The tile cache's own counters (requests served from the cache, tiles rendered), read at scrape."""
 
-    def __init__(self, cache: TileCache) -> None:
+    def __init__(self, cache: TileCache, statuses: dict[int, int]) -> None:
         self.cache = cache
+        self.statuses = statuses
 
     def describe(self) -> list[Metric]:
         return list(self._families())
 
     def collect(self) -> Iterator[Metric]:
-        hits, renders, entries = self._families()
+        hits, renders, entries, requests = self._families()
         hits.add_metric([], self.cache.hits)
         renders.add_metric([], self.cache.renders)
         entries.add_metric([], len(self.cache))
-        yield from (hits, renders, entries)
+        for status, count in sorted(dict(self.statuses).items()):  # (a copy: see TileStatusCounter)
+            requests.add_metric([str(status)], count)
+        yield from (hits, renders, entries, requests)
 
     @staticmethod
     def _families() -> tuple[Metric, ...]:
@@ -318,6 +348,11 @@ class TileCacheCollector(Collector):
             CounterMetricFamily("fleetmap_tile_cache_hits", "Tile requests served from the cache"),
             CounterMetricFamily("fleetmap_tile_renders", "Tiles rendered (cache misses)"),
             GaugeMetricFamily("fleetmap_tile_cache_entries", "Rendered tiles held in the cache"),
+            CounterMetricFamily(
+                "fleetmap_tile_requests",
+                "Tile requests by the HTTP status answered (200 sent, 304 revalidated, 404, 422, ...)",
+                labels=["status"],
+            ),
         )
 
 
@@ -374,12 +409,14 @@ class ServiceMetrics:
             buckets=LATENCY_BUCKETS,
             registry=self.collector_registry,
         )
+        #: Tile requests by the status of their answer (`routes_tiles.TileStatusCounter`).
+        self.tile_statuses: dict[int, int] = {}
 
     def observe_render(self, layer: str, z: int, seconds: float) -> None:
         self.tile_render_seconds.labels(layer).observe(seconds)
 
     def watch_tile_cache(self, cache: TileCache) -> None:
-        self.collector_registry.register(TileCacheCollector(cache))
+        self.collector_registry.register(TileCacheCollector(cache, self.tile_statuses))
 
     def watch_gate(self, gate: IngestGate) -> None:
         self.collector_registry.register(IngestGateCollector(gate))

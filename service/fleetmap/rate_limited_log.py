@@ -35,9 +35,10 @@ class RateLimitedLog:
         self._other = 0  # lines held back by the overall budget, or of categories since forgotten
         self._lock = threading.Lock()
 
-    def warning(self, category: str, message: str) -> bool:
+    def warning(self, category: str, message: str, **fields: object) -> bool:
         """Log `message` unless `category` was logged less than `interval` ago, or `max_lines` lines
-        were logged in the current interval. Returns whether it was logged."""
+        were logged in the current interval. Returns whether it was logged. `fields` (map_id,
+        robot_id, ...) are the line's structured fields (`extra=`; see fleetmap.log_format)."""
         now = time.monotonic()
         with self._lock:
             last = self._last.get(category)
@@ -62,5 +63,5 @@ class RateLimitedLog:
         suffix = f" ({held} similar messages suppressed)" if held else ""
         if other:
             suffix += f" ({other} other messages suppressed)"
-        self.logger.warning("%s%s", message, suffix)
+        self.logger.warning("%s%s", message, suffix, extra=fields)
         return True

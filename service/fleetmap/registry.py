@@ -194,8 +194,12 @@ class Job:
     robot_id: str
     wire: WireScan
     generation: int
+    #: time.monotonic() when the scan was queued, when it was applied to its map (readers see it
+    #: from then on), and whether it was handed to the journal then (its row committed later).
     enqueued_at: float
     future: Future[IntegrationResult] | None = None
+    applied_at: float | None = None
+    journaled: bool = False
 
 
 class IngestRejected(Exception):
@@ -295,7 +299,7 @@ class MapRegistry:
                     last_report = time.monotonic()
                     log.info(
                         "restoring map %s: %d of %d journal scans replayed (%.0f s)",
-                        map_id, replayed, len(journal), last_report - started,
+                        map_id, replayed, len(journal), last_report - started, extra={"map_id": map_id},
                     )  # fmt: skip
                 gmap.integrate(scan)  # the same engine, in journal order: the same map
                 robot = entry.robot(robot_id)
@@ -312,8 +316,9 @@ class MapRegistry:
             self._charged(gmap)
             self._add(entry)
             log.info(
-                "restored map %s: %d tiles, %d journal scans replayed", map_id, len(gmap.store), len(journal)
-            )
+                "restored map %s: %d tiles, %d journal scans replayed", map_id, len(gmap.store), len(journal),
+                extra={"map_id": map_id},
+            )  # fmt: skip
 
     def _charged(self, gmap: GridMap) -> GridMap:
         if self.memory_budget is not None:
@@ -332,7 +337,10 @@ class MapRegistry:
                 try:
                     self.durable.snapshot(entry.id, entry.gmap, lambda e=entry: self._saved_counters(e))
                 except (sqlite3.Error, OSError, StorageError) as exc:
-                    log.error("snapshot of map %s failed (retried at the next one): %s", entry.id, exc)
+                    log.error(
+                        "snapshot of map %s failed (retried at the next one): %s", entry.id, exc,
+                        extra={"map_id": entry.id},
+                    )  # fmt: skip
 
     def _saved_counters(self, entry: MapEntry) -> dict:
         with self.lock:
@@ -370,7 +378,7 @@ class MapRegistry:
                 self._add(entry)
                 if self.durable is not None:
                     stored = self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
-                log.info("created map %s", map_id)
+                log.info("created map %s", map_id, extra={"map_id": map_id})
                 created = True
         if wait:
             _wait_stored(stored, f"map {map_id!r} was created" if created else f"map {map_id!r} exists")
@@ -395,7 +403,9 @@ class MapRegistry:
                 stored = self.durable.map_created(map_id, gmap, tiles)
         for job in dropped:
             self._finish_gone(job)
-        log.info("installed map %s from a snapshot (%d tiles)", map_id, len(gmap.store))
+        log.info(
+            "installed map %s from a snapshot (%d tiles)", map_id, len(gmap.store), extra={"map_id": map_id}
+        )
         if wait:
             _wait_stored(stored, f"map {map_id!r} was installed")
         return entry
@@ -426,7 +436,7 @@ class MapRegistry:
                     stored = self.durable.map_deleted(map_id)
         for job in dropped:
             self._finish_gone(job)
-        log.info("deleted map %s", map_id)
+        log.info("deleted map %s", map_id, extra={"map_id": map_id})
         if wait:
             _wait_stored(stored, f"map {map_id!r} was deleted")
 
@@ -475,7 +485,10 @@ class MapRegistry:
         if not entry.provisional or entry.unsettled:
             return None
         self._retire(entry)
-        log.info("removed map %s again: every scan that created it was refused", entry.id)
+        log.info(
+            "removed map %s again: every scan that created it was refused", entry.id,
+            extra={"map_id": entry.id},
+        )  # fmt: skip
         if self.durable is not None:
             return self.durable.map_deleted(entry.id)
         removed: Future = Future()
@@ -622,7 +635,10 @@ class MapRegistry:
             try:
                 self._integrate(job)
             except Exception as exc:  # a bug must not kill the worker; it is logged and counted
-                log.exception("integration of %s/%s seq %s failed", job.map_id, job.robot_id, job.wire.seq)
+                log.exception(
+                    "integration of %s/%s seq %s failed", job.map_id, job.robot_id, job.wire.seq,
+                    extra={"map_id": job.map_id, "robot_id": job.robot_id, "seq": job.wire.seq},
+                )  # fmt: skip
                 self._finish_rejected(job, f"internal error: {exc}")
             finally:
                 self.queue.done(source)
@@ -648,7 +664,9 @@ class MapRegistry:
                     result = None
                 else:
                     result = entry.gmap.apply(plan)
+                    job.applied_at = time.monotonic()
                     if self.durable is not None:
+                        job.journaled = True
                         # Under the map's lock: the journal's order is the order of application.
                         elapsed = time.perf_counter() - started
                         self.durable.journal(

@@ -3,6 +3,7 @@
     fleetmap serve [--http HOST:PORT] [--zenoh-listen EP ...] [--zenoh-connect EP ...]
                    [--zenoh-config FILE.json5] [--data-dir DIR] [--config FILE] [--no-auto-create]
                    [--workers N] [--ingest-backlog-ms MS] [--max-read-delay-ms MS]
+                   [--log-level LEVEL] [--log-format text|json] [--access-log]
 
 One process holds everything: a `MapRegistry` (maps, robots, integration worker threads), a
 `ZenohIngest` (the service's own Zenoh session: a router by default, so robots connect to it
@@ -14,6 +15,8 @@ the compiled kernels are warmed, the registry's workers start, the Zenoh session
 serves. Only then is the ready line printed on stdout:
 
     fleetmap serving http://HOST:PORT  zenoh: ENDPOINTS
+
+(with `--log-format json`, a JSON log object whose message is that line: see fleetmap.log_format).
 
 Every option can also be given as an environment variable, `FLEETMAP_` and the option's name in
 capitals with `-` as `_` (`--data-dir` is `FLEETMAP_DATA_DIR`, `--insecure` is `FLEETMAP_INSECURE=1`,
@@ -57,6 +60,7 @@ from fleetmap.http_limits import (
     raise_descriptor_limit,
 )
 from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
+from fleetmap.log_format import LOG_FORMATS, UVICORN_LOG_CONFIG, configure_logging, plain_line
 from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS, DurableStore
 from fleetmap.scan import MAX_BEAMS
@@ -294,6 +298,21 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         choices=LOG_LEVELS,
         default="info",
         help="the least severe log messages written (default info: start-up, robots, maps, warnings)",
+    )
+    p.add_argument(
+        "--log-format",
+        choices=LOG_FORMATS,
+        default="text",
+        help=(
+            "text (default): one line per message for people; json: one JSON object per line (time, "
+            "level, logger, message, exception, map_id, robot_id, ...) for a log pipeline, uvicorn's "
+            "lines and the ready line included (see docs/security.md, What is logged)"
+        ),
+    )
+    p.add_argument(
+        "--access-log",
+        action="store_true",
+        help="log every HTTP request (client, method, path, status) at info; off by default (cost)",
     )
     p.set_defaults(run=run, serve_actions=p._actions)
     environment_defaults(p, os.environ)
@@ -573,10 +592,7 @@ def run(args: argparse.Namespace) -> int:
     from fleetmap.registry import MapRegistry
 
     _environment_flags(args.serve_actions, args, os.environ)
-    logging.basicConfig(
-        level=getattr(logging, str(args.log_level).upper()),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    configure_logging(str(args.log_level), str(args.log_format))
     # Zenoh's own log: refused TLS handshakes and wrong passwords show there (RUST_LOG=warn for more).
     import zenoh
 
@@ -691,18 +707,25 @@ def run(args: argparse.Namespace) -> int:
             # protocol gets the connection limits of fleetmap.http_limits.
             config = uvicorn.Config(
                 app,
-                log_level="warning",
-                access_log=False,
+                log_config=UVICORN_LOG_CONFIG,
+                log_level="warning",  # not uvicorn's start-up lines: fleetmap's say more
+                access_log=args.access_log,
                 timeout_graceful_shutdown=GRACEFUL_HTTP_SECONDS,
                 lifespan="auto",
                 http=bounded_http_protocol(max_connections, args.http_head_timeout, args.http_body_timeout),
                 backlog=ACCEPT_BACKLOG,
             )
+            if args.access_log:  # (log_level above set its level too)
+                logging.getLogger("uvicorn.access").setLevel(logging.INFO)
             server = _http_server_class()(config)
             connections = server.server_state.connections
             app.state.fleetmap.metrics.watch_http_connections(lambda: len(connections), max_connections)
-            server.ready_line = (
-                f"fleetmap serving http://{_url_host(host)}:{port}  zenoh: {' '.join(ingest.endpoints)}"
+            url = f"http://{_url_host(host)}:{port}"
+            server.ready_line = plain_line(
+                f"fleetmap serving {url}  zenoh: {' '.join(ingest.endpoints)}",
+                args.log_format,
+                url=url,
+                zenoh=list(ingest.endpoints),
             )
             log.info("HTTP (REST API, viewer, /metrics, /healthz) on http://%s:%d", _url_host(host), port)
             freeze_startup_objects()

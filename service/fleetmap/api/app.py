@@ -180,6 +180,8 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.add_middleware(IngestPriority, gate=gate)
     if settings.tokens is not None:
         app.add_middleware(AuthMiddleware, tokens=settings.tokens, require_read=settings.require_read_token)
+    # Outside auth: a viewer whose tiles are refused (401, 403) shows in the counts too.
+    app.add_middleware(routes_tiles.TileStatusCounter, counts=app.state.fleetmap.metrics.tile_statuses)
     if settings.cors_origins:
         # Outermost, so that every answer to an allowed page carries the CORS headers, the auth
         # middleware's 401 and 403 included: without them the page sees an opaque network error.

@@ -262,5 +262,7 @@ def install(app: FastAPI) -> None:
     async def _bug(request: Request, exc: Exception) -> JSONResponse:
         # A bug, not bad input: keep it visible (Starlette re-raises it after this answer, so the
         # server logs it too) and tell the client nothing internal.
-        log.error("internal error on %s %s", request.method, request.url.path, exc_info=exc)
+        fields = {"method": request.method, "path": request.url.path}
+        fields.update({k: v for k, v in request.path_params.items() if k in ("map_id", "robot_id")})
+        log.error("internal error on %s %s", request.method, request.url.path, exc_info=exc, extra=fields)
         return _json(500, "internal server error (logged on the server)")
