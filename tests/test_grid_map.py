@@ -75,6 +75,10 @@ def test_cell_index_half_open_and_negative() -> None:
     assert m.cell_index(0.5, -0.5) == (2, -2)
     assert m.cell_index(-0.01, -0.26) == (-1, -2)
     assert m.cell_index(0.2499, 0.25) == (0, 1)
+    assert m.cell_index(-1e-12, 1e5) == (-1, 400_000)
+    # floor(x / res) in binary: the decimal edge 0.15 of cell 3 at 0.05 m is 2.9999999999999996
+    # cells, in cell 2 (the README says so).
+    assert make_map(resolution=0.05).cell_index(0.15, -0.15) == (2, -3)
 
 
 def test_negative_coordinates() -> None:
