@@ -9,6 +9,7 @@ import importlib
 import itertools
 import math
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,10 @@ def test_cell_index_half_open_and_negative() -> None:
     assert m.cell_index(0.5, -0.5) == (2, -2)
     assert m.cell_index(-0.01, -0.26) == (-1, -2)
     assert m.cell_index(0.2499, 0.25) == (0, 1)
+    assert m.cell_index(-1e-12, 1e5) == (-1, 400_000)
+    # floor(x / res) in binary: the decimal edge 0.15 of cell 3 at 0.05 m is 2.9999999999999996
+    # cells, in cell 2 (the README says so).
+    assert make_map(resolution=0.05).cell_index(0.15, -0.15) == (2, -3)
 
 
 def test_negative_coordinates() -> None:
@@ -389,6 +394,62 @@ def test_kernels_release_the_gil() -> None:
                 found += 1
                 assert value.targetoptions.get("nogil") is True, f"{name}.{attr} holds the GIL"
     assert found >= 10
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        # The TSDF band of 100 000 beams, 256 cells deep, makes the one-call path's scan long.
+        pytest.param(
+            {"resolution": 0.05, "layers": ["occupancy", "tsdf"], "tsdf": {"truncation": 12.8}}, id="one-call"
+        ),
+        pytest.param(
+            {"resolution": 0.02, "layers": ["occupancy"], "sensor_model": "beam", "beam": {"beta": 0.01}},
+            id="plan-and-apply",
+        ),
+    ],
+)
+def test_python_runs_on_another_thread_while_a_long_scan_integrates(config: dict[str, object]) -> None:
+    """The proof of "the integration releases the GIL" by behaviour, not by a compiler flag: while one
+    `integrate` call runs for a second or more, a Python loop on another thread keeps running. Held,
+    the GIL would stop that loop for the whole kernel call, so the loop's longest pause within the
+    call would be about as long as the call itself (most of it, on the planned path)."""
+    gmap = GridMap(MapConfig.model_validate({**config, "max_tiles": 100_000}))
+    fan = {"pose": (0.0, 0.0, 0.0), "angle_min": -math.pi, "range_min": 0.0, "range_max": 100.0}
+    beams, reach = (3_600, 30.0) if config.get("sensor_model") == "beam" else (40_000, 10.0)
+    scan = Scan.from_fan(**fan, angle_increment=2 * math.pi / beams, ranges=[reach] * beams)
+    # Once first: the kernels are compiled and the tiles exist, so that the timed call is one
+    # kernel call on the one-call path (a scan needing new tiles there is planned instead).
+    gmap.integrate(scan)
+    # The loop's pauses longer than a millisecond, as (start, end); no list of every tick, which
+    # would grow by millions a second.
+    pauses: list[tuple[float, float]] = []
+    running = threading.Event()
+    stop = threading.Event()
+
+    def python_loop() -> None:
+        last = time.perf_counter()
+        running.set()
+        while not stop.is_set():
+            now = time.perf_counter()
+            if now - last > 1e-3:
+                pauses.append((last, now))
+            last = now
+
+    looper = threading.Thread(target=python_loop)
+    looper.start()
+    try:
+        running.wait()
+        started = time.perf_counter()
+        gmap.integrate(scan)
+        ended = time.perf_counter()
+    finally:
+        stop.set()
+        looper.join()
+    took = ended - started
+    assert took > 0.3, f"the scan took {took:.2f} s: too short for the GIL to show"
+    longest = max((min(end, ended) - max(start, started) for start, end in pauses), default=0.0)
+    assert longest < 0.25 * took, f"a Python thread stopped for {longest:.2f} s of a {took:.2f} s integration"
 
 
 def test_two_threads_integrate_two_maps() -> None:

@@ -210,7 +210,9 @@ class GridMap:
     # -- reading ---------------------------------------------------------------------------------
 
     def cell_index(self, x: float, y: float) -> tuple[int, int]:
-        """The cell containing map point (x, y)."""
+        """The cell containing map point (x, y): `floor(x / res)`, `floor(y / res)` in double precision,
+        as the integration computes it. A point on a cell edge written in decimal (0.15 at 0.05) is
+        not exact in binary and may fall in either neighbouring cell."""
         return math.floor(x / self.resolution), math.floor(y / self.resolution)
 
     def region(self, layer: str, i0: int, j0: int, i1: int, j1: int) -> np.ndarray:

@@ -1,6 +1,7 @@
 """The beam (cone) inverse range sensor model of Probabilistic Robotics, table 9.2.
 
-For a cell at range r and relative bearing phi from the sensor, take the beam k closest in bearing:
+For a cell at range r and relative bearing phi from the sensor, take the beam k closest in bearing
+among the beams used (a beam the scan's sensor models ignore, such as a NaN reading, is not one):
 no information if `r > min(r_max, z_k + alpha/2)` or `|phi - phi_k| > beta/2`; occupied if
 `z_k < r_max` and `|r - z_k| < alpha/2`; free if `r < z_k`. Cells are evaluated at their centres.
 """
