@@ -447,7 +447,8 @@ def test_python_runs_on_another_thread_while_a_long_scan_integrates(config: dict
         stop.set()
         looper.join()
     took = ended - started
-    assert took > 0.3, f"the scan took {took:.2f} s: too short for the GIL to show"
+    # (0.43 s here; a faster machine still gives a pause bound well above a scheduler's time slice.)
+    assert took > 0.15, f"the scan took {took:.2f} s: too short for the GIL to show"
     longest = max((min(end, ended) - max(start, started) for start, end in pauses), default=0.0)
     assert longest < 0.25 * took, f"a Python thread stopped for {longest:.2f} s of a {took:.2f} s integration"
 
