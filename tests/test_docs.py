@@ -5,13 +5,15 @@
   `...` stands for anything, and whitespace is not compared, since the page wraps long JSON;
 - every `--option` given to a `fleetmap` command exists in that command's parser, and every other
   `--option` named exists in one of them (or is one of the few of other tools, listed here);
-- every `fleetmap_*` and `process_*` metric named is exported on the service's /metrics.
+- every `fleetmap_*` and `process_*` metric named is exported on the service's /metrics;
+- README.md's "Layout" table places every module of the service and the clients, and names no other.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import itertools
 import os
 import re
 import subprocess
@@ -130,3 +132,36 @@ def test_every_metric_the_docs_name_is_exported(service: ServiceProcess) -> None
             if not re.search(pattern, exported, re.M):
                 missing.append(f"{doc.name}: {name}")
     assert not missing, "not on /metrics:\n" + "\n".join(sorted(missing))
+
+
+def layout_paths() -> set[Path]:
+    """The paths of README.md's "Layout" table: a row's first cell names a path, then names beside it
+    (`service/fleetmap/scan.py`, `config.py`; `clients/web/`, `clients/python/fleetmap_client/`)."""
+    readme = (REPO_DIR / "README.md").read_text(encoding="utf-8")
+    section = readme.split("\n## Layout\n", 1)[1].splitlines()
+    start = next(k for k, line in enumerate(section) if line.startswith("| path"))
+    paths = set()
+    for row in itertools.takewhile(lambda line: line.startswith("|"), section[start + 2 :]):
+        folder = Path()
+        for name in re.findall(r"`([^`]+)`", row.split("|")[1]):
+            if "/" in name.rstrip("/"):
+                folder = Path(name).parent
+            paths.add(folder / name.removeprefix(f"{folder.as_posix()}/"))
+    return paths
+
+
+def test_the_readme_layout_places_every_module() -> None:
+    paths = layout_paths()
+    missing = sorted(p.as_posix() for p in paths if not (REPO_DIR / p).exists())
+    assert not missing, f"README.md's Layout table names {missing}, which do not exist"
+    package = REPO_DIR / "service" / "fleetmap"
+    modules = [p for p in package.iterdir() if p.suffix == ".py" or (p / "__init__.py").exists()]
+    modules += [REPO_DIR / "clients" / "web"] + [
+        p.parent for p in (REPO_DIR / "clients").glob("python/*/__init__.py")
+    ]
+    unplaced = [
+        p.relative_to(REPO_DIR).as_posix()
+        for p in modules
+        if not any(p.relative_to(REPO_DIR).is_relative_to(placed) for placed in paths)
+    ]
+    assert not unplaced, f"README.md's Layout table does not place {unplaced}"
