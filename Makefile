@@ -10,8 +10,9 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 DEV_STAMP := $(VENV)/.installed-test
 OUT ?= out
-# Debian packages the test suite uses: Chromium for the web viewer's end-to-end test.
-SYSTEM_PACKAGES ?= chromium
+# Debian packages the test suite uses: Chromium for the web viewer's end-to-end test; curl and
+# unzip for the examples of docs/api.md, which tests/test_docs.py runs as written.
+SYSTEM_PACKAGES ?= chromium curl unzip
 
 .PHONY: demo serve test bench bench-service lint format clean system-deps
 

@@ -30,7 +30,7 @@ from fleetmap.api_models import cells_json, cells_response
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.export import PGM_FREE, PGM_OCCUPIED, PGM_UNKNOWN, state_to_pgm
-from fleetmap.grid_map import REGION_LAYERS, STATE_NAMES, GridMap
+from fleetmap.grid_map import REGION_LAYERS, STATE_NAMES, GridMap, cell_edge
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
 
@@ -191,7 +191,7 @@ def engine_map(api: RunningApi) -> GridMap:
 def test_cells_match_engine_cell_by_cell(api: RunningApi, engine_map: GridMap) -> None:
     i0, j0, i1, j1 = engine_map.known_bounds()  # type: ignore[misc]
     info = api.client.get("/maps/eng").json()
-    assert info["stats"]["bounds"] == [i0 * RES, j0 * RES, i1 * RES, j1 * RES]
+    assert info["stats"]["bounds"] == [cell_edge(i, RES) for i in (i0, j0, i1, j1)]  # to the nanometre
     assert info["stats"]["scans_integrated"] == 11 and set(info["stats"]["robots"]) == {"r1", "r2"}
     # Every cell of the observed window and a margin of unknown cells, at cell centres.
     ii, jj = np.meshgrid(np.arange(i0 - 2, i1 + 2), np.arange(j0 - 2, j1 + 2))

@@ -342,7 +342,8 @@ def map_info(entry: MapEntry, registry_lock: threading.RLock) -> MapInfo:
     gmap = entry.gmap
     cells = gmap.known_bounds()
     res = gmap.resolution
-    bounds = None if cells is None else [cells[0] * res, cells[1] * res, cells[2] * res, cells[3] * res]
+    # To the nanometre, as region origins and exports: 2.05, not 2.0500000000000003.
+    bounds = None if cells is None else [cell_edge(index, res) for index in cells]
     tiles, memory = len(gmap.store), gmap.memory_bytes()  # no lock needed: see TileStore.memory_bytes
     with registry_lock:
         robots = {rid: robot_stats(state) for rid, state in sorted(entry.robots.items())}

@@ -1,0 +1,167 @@
+"""The user's documentation stays true to the program (README.md and docs/*.md but the benchmarks'):
+
+- the ```console examples of docs/api.md run as written (curl, python, unzip) against the real
+  service, in the page's order after the examples that make its map, and print what the page shows:
+  `...` stands for anything, and whitespace is not compared, since the page wraps long JSON;
+- every `--option` given to a `fleetmap` command exists in that command's parser, and every other
+  `--option` named exists in one of them (or is one of the few of other tools, listed here);
+- every `fleetmap_*` and `process_*` metric named is exported on the service's /metrics;
+- README.md's "Layout" table places every module of the service and the clients, and names no other.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import itertools
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+from service_process import REPO_DIR, ServiceProcess
+
+from fleetmap import cli
+
+USER_DOCS = [REPO_DIR / "README.md"] + [
+    path for path in sorted((REPO_DIR / "docs").glob("*.md")) if not path.name.startswith("benchmark")
+]
+API_DOC = REPO_DIR / "docs" / "api.md"
+#: The api.md examples that make the map the others read, run first: `PUT` the map, `POST` its scan.
+SETUP_COMMANDS = ("-X PUT $U/maps/warehouse ", "$U/maps/warehouse/scans?robot_id=robot1")
+#: Options the docs give to other programs than `fleetmap`.
+OTHER_TOOLS_OPTIONS = {"--build", "--data-binary", "--max-time", "--ros-args"}
+#: `fleetmap_*` names that are Python packages, not metrics.
+NOT_METRICS = {"fleetmap_client"}
+
+
+def console_steps(doc: Path) -> list[tuple[str, str]]:
+    """(command, expected output) of every `$ ` line of the doc's ```console blocks, in order. A
+    command goes on over lines ending in a backslash or inside an open single quote."""
+    steps = []
+    for block in re.findall(r"^```console\n(.*?)^```", doc.read_text(encoding="utf-8"), re.M | re.S):
+        lines = block.splitlines()
+        k = 0
+        while k < len(lines):
+            assert lines[k].startswith("$ "), (
+                f"{doc.name}: a console block line that is no command: {lines[k]}"
+            )
+            command = lines[k][2:]
+            while command.endswith("\\") or command.count("'") % 2:
+                k += 1
+                command += "\n" + lines[k]
+            k += 1
+            output = []
+            while k < len(lines) and not lines[k].startswith("$ "):
+                output.append(lines[k])
+                k += 1
+            steps.append((command, "\n".join(output)))
+    return steps
+
+
+def shows(expected: str, actual: str) -> bool:
+    """Whether `actual` is what the doc shows as `expected` (`...`: anything; whitespace ignored)."""
+    parts = [re.escape(re.sub(r"\s+", "", part)) for part in expected.split("...")]
+    return re.fullmatch(".*?".join(parts), re.sub(r"\s+", "", actual), re.S) is not None
+
+
+def test_api_examples_print_what_the_page_shows(service: ServiceProcess, tmp_path: Path) -> None:
+    """On a service of its own: the examples show its only map, `warehouse`."""
+    steps = console_steps(API_DOC)
+    setup = [step for step in steps if any(s in step[0] for s in SETUP_COMMANDS)]
+    assert len(setup) == len(SETUP_COMMANDS), f"docs/api.md should have one example each of {SETUP_COMMANDS}"
+    bin_dir = str(Path(sys.executable).parent)  # `python` is the tests' interpreter, with numpy
+    env = {**os.environ, "U": service.base_url, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+    for command, expected in setup + [step for step in steps if step not in setup]:
+        run = subprocess.run(
+            ["bash", "-c", command], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60
+        )
+        assert shows(expected, run.stdout), (
+            f"docs/api.md: `{command}` printed\n{run.stdout}{run.stderr}\nwhere the page shows\n{expected}"
+        )
+
+
+def fleetmap_parsers() -> dict[str, set[str]]:
+    """Each `fleetmap` command's options, from the real parsers."""
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    sub = parser.add_subparsers()
+    cli._add_build(sub)
+    for name in cli.COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    return {name: {o for a in p._actions for o in a.option_strings} for name, p in sub.choices.items()}
+
+
+def test_every_option_the_docs_name_exists() -> None:
+    parsers = fleetmap_parsers()
+    known = set().union(*parsers.values()) | OTHER_TOOLS_OPTIONS
+    wrong = []
+    for doc in USER_DOCS:
+        for n, line in enumerate(doc.read_text(encoding="utf-8").splitlines(), 1):
+            for option in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", line):
+                if option not in known:
+                    wrong.append(f"{doc.name}:{n}: {option} is no option of any fleetmap command")
+            # A command in a code span or a code line: `fleetmap sim --robots 4 ...`.
+            for command, rest in re.findall(r"fleetmap (build|demo|serve|replay|sim)\b([^`\n]*)", line):
+                for option in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", rest.split("#")[0]):
+                    if option not in parsers[command]:
+                        wrong.append(f"{doc.name}:{n}: `fleetmap {command}` has no {option}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_every_metric_the_docs_name_is_exported(service: ServiceProcess) -> None:
+    """On a durable service with the default options, as the docs describe: its storage metrics exist."""
+    # Per-map and per-robot series exist once a robot has sent a scan, tile renders once one is drawn.
+    url = f"{service.base_url}/maps/metrics-check"
+    scan = {"seq": 0, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": 0, "angle_increment": 0.1,
+            "ranges": [1.0]}  # fmt: skip
+    httpx.post(f"{url}/scans?robot_id=r1", json=scan).raise_for_status()
+    httpx.get(f"{url}/tiles/0/0/-1.png").raise_for_status()
+    exported = httpx.get(f"{service.base_url}/metrics").text
+    missing = []
+    for doc in USER_DOCS:
+        for name in (
+            set(re.findall(r"\b(?:fleetmap|process)_[a-z_]+\*?", doc.read_text(encoding="utf-8")))
+            - NOT_METRICS
+        ):
+            prefix = name.rstrip("*")  # `fleetmap_http_delay*`: every metric that starts so
+            pattern = (
+                rf"^{prefix}\w*[{{ ]" if name.endswith("*") else rf"^{prefix}(_bucket|_sum|_count)?[{{ ]"
+            )
+            if not re.search(pattern, exported, re.M):
+                missing.append(f"{doc.name}: {name}")
+    assert not missing, "not on /metrics:\n" + "\n".join(sorted(missing))
+
+
+def layout_paths() -> set[Path]:
+    """The paths of README.md's "Layout" table: a row's first cell names a path, then names beside it
+    (`service/fleetmap/scan.py`, `config.py`; `clients/web/`, `clients/python/fleetmap_client/`)."""
+    readme = (REPO_DIR / "README.md").read_text(encoding="utf-8")
+    section = readme.split("\n## Layout\n", 1)[1].splitlines()
+    start = next(k for k, line in enumerate(section) if line.startswith("| path"))
+    paths = set()
+    for row in itertools.takewhile(lambda line: line.startswith("|"), section[start + 2 :]):
+        folder = Path()
+        for name in re.findall(r"`([^`]+)`", row.split("|")[1]):
+            if "/" in name.rstrip("/"):
+                folder = Path(name).parent
+            paths.add(folder / name.removeprefix(f"{folder.as_posix()}/"))
+    return paths
+
+
+def test_the_readme_layout_places_every_module() -> None:
+    paths = layout_paths()
+    missing = sorted(p.as_posix() for p in paths if not (REPO_DIR / p).exists())
+    assert not missing, f"README.md's Layout table names {missing}, which do not exist"
+    package = REPO_DIR / "service" / "fleetmap"
+    modules = [p for p in package.iterdir() if p.suffix == ".py" or (p / "__init__.py").exists()]
+    modules += [REPO_DIR / "clients" / "web"] + [
+        p.parent for p in (REPO_DIR / "clients").glob("python/*/__init__.py")
+    ]
+    unplaced = [
+        p.relative_to(REPO_DIR).as_posix()
+        for p in modules
+        if not any(p.relative_to(REPO_DIR).is_relative_to(placed) for placed in paths)
+    ]
+    assert not unplaced, f"README.md's Layout table does not place {unplaced}"
