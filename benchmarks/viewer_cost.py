@@ -87,7 +87,11 @@ def main() -> int:
                     )
                 time.sleep(3)  # the first tiles of the fitted view
                 requests.clear()
-                page.evaluate("() => performance.clearResourceTimings()")
+                # The default buffer holds 250 entries: a minute of tiles is more than that.
+                page.evaluate(
+                    "() => { performance.setResourceTimingBufferSize(1e6);"
+                    " performance.clearResourceTimings(); }"
+                )
                 start = metrics(cdp)
                 t0 = time.monotonic()
                 samples = []

@@ -55,16 +55,14 @@ _STATUS_JS = "(s) => document.getElementById('status').dataset.state === s"
 
 
 @pytest.fixture
-def page(browser: Any) -> Iterator[Any]:
-    p = browser.new_page(viewport={"width": 1280, "height": 800})
-    p.page_errors = []
-    p.on("pageerror", lambda e: p.page_errors.append(str(e)))
-    p.tile_requests = Counter()  # tile path (no query) -> requests
-    p.on("request", lambda r: p.tile_requests.update([urlsplit(r.url).path]) if "/tiles/" in r.url else None)
-    try:
-        yield p
-    finally:
-        p.close()
+def counted_page(page: Any) -> Any:
+    """conftest's page, counting its tile requests: `page.tile_requests`, tile path
+    (no query) -> requests."""
+    page.tile_requests = Counter()
+    page.on(
+        "request", lambda r: page.tile_requests.update([urlsplit(r.url).path]) if "/tiles/" in r.url else None
+    )
+    return page
 
 
 @pytest.fixture
@@ -109,15 +107,21 @@ def _open_live(page: Any, base: str) -> None:
     _wait(page, "() => window.fleetmapViewer.state.fitted", what="the view fitted to the map")
 
 
-def test_robot_markers_are_moved_in_place(page: Any, svc: ServiceProcess, robots: Callable[..., Any]) -> None:
+def test_robot_markers_are_moved_in_place(
+    counted_page: Any, svc: ServiceProcess, robots: Callable[..., Any]
+) -> None:
     """Three robots moving and scanning: across many robots events each marker (its element and its
-    arrow) stays the same DOM object, tagged with a JS property before, and the page's element count
+    arrow) stays the same DOM object, tagged with a JS property before, and the counted_page's element count
     does not grow. The viewer used to rebuild every marker's icon on every event."""
     for k in range(3):
         robots(f"r{k + 1}", sim=k + 1, rate=10, count=400, beams=91)
-    _open_live(page, svc.base_url)
-    _wait(page, "() => document.querySelectorAll('.robot-marker svg').length === 3", what="three markers")
-    tagged = page.evaluate(
+    _open_live(counted_page, svc.base_url)
+    _wait(
+        counted_page,
+        "() => document.querySelectorAll('.robot-marker svg').length === 3",
+        what="three markers",
+    )
+    tagged = counted_page.evaluate(
         """() => {
           for (const el of document.querySelectorAll('.robot-marker')) {
             el.identity = el.dataset.robotId;
@@ -130,17 +134,17 @@ def test_robot_markers_are_moved_in_place(page: Any, svc: ServiceProcess, robots
           };
         }"""
     )
-    page.evaluate(_COUNT_EVENTS_JS)
+    counted_page.evaluate(_COUNT_EVENTS_JS)
     # Many robots events, and every robot moved since the tagging.
-    _wait(page, "() => window.eventsSeen.robots >= 15", what="15 robots events")
+    _wait(counted_page, "() => window.eventsSeen.robots >= 15", what="15 robots events")
     _wait(
-        page,
+        counted_page,
         """(at) => [...window.fleetmapViewer.state.robots].every(([id, r]) =>
              r.marker.getLatLng().toString() !== at[id])""",
         tagged["at"],
         what="every robot moved",
     )
-    after = page.evaluate(
+    after = counted_page.evaluate(
         """() => [...document.querySelectorAll('.robot-marker')].map((el) => ({
              id: el.dataset.robotId, el: el.identity, svg: el.querySelector('svg').identity}))"""
     )
@@ -148,53 +152,61 @@ def test_robot_markers_are_moved_in_place(page: Any, svc: ServiceProcess, robots
     for m in after:
         assert m["el"] == m["id"], f"robot {m['id']}'s marker element was replaced: {after}"
         assert m["svg"] == m["id"], f"robot {m['id']}'s arrow was rebuilt: {after}"
-    elements = page.evaluate("() => document.getElementsByTagName('*').length")
+    elements = counted_page.evaluate("() => document.getElementsByTagName('*').length")
     # Generous: nothing but tiles Leaflet may add at an edge; a marker per event would add dozens.
     assert elements <= tagged["elements"] + 10, (tagged["elements"], elements)
-    assert not page.page_errors, page.page_errors
+    assert not counted_page.page_errors, counted_page.page_errors
 
 
 def test_hot_tile_requested_at_refresh_rate(
-    page: Any, svc: ServiceProcess, robots: Callable[..., Any]
+    counted_page: Any, svc: ServiceProcess, robots: Callable[..., Any]
 ) -> None:
     """A robot scanning 40 times a second changes the tiles around it with every tiles event (up to
     10 a second). Each tile is requested at most once per TILE_REFRESH_S of the elapsed time, plus
     slack, however many events came, and the hottest tile is still refreshed. Counts, not timings:
     the bound grows with the elapsed time, so a slow machine only makes it looser."""
     robots("hot", sim=1, rate=40, count=4000, beams=181)
-    _open_live(page, svc.base_url)
-    page.evaluate(_COUNT_EVENTS_JS)
-    page.tile_requests.clear()
+    _open_live(counted_page, svc.base_url)
+    counted_page.evaluate(_COUNT_EVENTS_JS)
+    counted_page.tile_requests.clear()
     started = time.monotonic()
-    _wait(page, "() => window.eventsSeen.tiles >= 40", what="40 tiles events")
+    _wait(counted_page, "() => window.eventsSeen.tiles >= 40", what="40 tiles events")
     elapsed = time.monotonic() - started
-    events = page.evaluate("() => window.eventsSeen.tiles")
-    hottest, fetches = page.tile_requests.most_common(1)[0] if page.tile_requests else ("none", 0)
+    events = counted_page.evaluate("() => window.eventsSeen.tiles")
+    hottest, fetches = (
+        counted_page.tile_requests.most_common(1)[0] if counted_page.tile_requests else ("none", 0)
+    )
     bound = elapsed / TILE_REFRESH_S + 2
     assert fetches <= bound, (
         f"tile {hottest} was requested {fetches} times in {elapsed:.1f} s ({events} tiles events);"
-        f" at most {bound:.0f} expected: {page.tile_requests}"
+        f" at most {bound:.0f} expected: {counted_page.tile_requests}"
     )
-    assert fetches >= 2, f"the changing tiles were not refreshed: {page.tile_requests}"
-    assert not page.page_errors, page.page_errors
+    assert fetches >= 2, f"the changing tiles were not refreshed: {counted_page.tile_requests}"
+    assert not counted_page.page_errors, counted_page.page_errors
 
 
-def test_hidden_tab_fetches_nothing(page: Any, svc: ServiceProcess, robots: Callable[..., Any]) -> None:
-    """Hidden, the page closes its event stream and requests no tile while the map keeps changing;
+def test_hidden_tab_fetches_nothing(
+    counted_page: Any, svc: ServiceProcess, robots: Callable[..., Any]
+) -> None:
+    """Hidden, the counted_page closes its event stream and requests no tile while the map keeps changing;
     shown again, it reconnects and reloads its tiles."""
     robots("busy", sim=2, rate=20, count=4000, beams=181)
-    _open_live(page, svc.base_url)
-    page.evaluate(_SET_VISIBILITY_JS, True)
-    _wait(page, _STATUS_JS, "paused", what="the paused status")
-    assert page.evaluate("() => window.fleetmapViewer.state.events") is None
+    _open_live(counted_page, svc.base_url)
+    counted_page.evaluate(_SET_VISIBILITY_JS, True)
+    _wait(counted_page, _STATUS_JS, "paused", what="the paused status")
+    assert counted_page.evaluate("() => window.fleetmapViewer.state.events") is None
     # Let any request already under way finish, then watch the map change a good deal.
-    _wait(page, "() => [...document.querySelectorAll('#map img.leaflet-tile')].every((i) => i.complete)")
-    page.tile_requests.clear()
+    _wait(
+        counted_page, "() => [...document.querySelectorAll('#map img.leaflet-tile')].every((i) => i.complete)"
+    )
+    counted_page.tile_requests.clear()
     version = _map_version(svc.base_url)
     wait_for(lambda: _map_version(svc.base_url) >= version + 40, timeout=60, what="40 more map changes")
-    assert _tile_requests(page) == 0, f"a hidden page requested tiles: {page.tile_requests}"
+    assert _tile_requests(counted_page) == 0, (
+        f"a hidden counted_page requested tiles: {counted_page.tile_requests}"
+    )
 
-    page.evaluate(_SET_VISIBILITY_JS, False)
-    _wait(page, _STATUS_JS, "connected", what="connected again")
-    wait_for(lambda: _tile_requests(page) > 0, timeout=SHOW_MS / 1000, what="tiles reloaded")
-    assert not page.page_errors, page.page_errors
+    counted_page.evaluate(_SET_VISIBILITY_JS, False)
+    _wait(counted_page, _STATUS_JS, "connected", what="connected again")
+    wait_for(lambda: _tile_requests(counted_page) > 0, timeout=SHOW_MS / 1000, what="tiles reloaded")
+    assert not counted_page.page_errors, counted_page.page_errors
