@@ -68,3 +68,16 @@ def browser() -> Iterator[Any]:
             yield b
         finally:
             b.close()
+
+
+@pytest.fixture
+def page(browser: Any) -> Iterator[Any]:
+    """A 1280 x 800 page of the module's browser, closed after the test; `page.page_errors` collects
+    the page's uncaught JavaScript errors."""
+    p = browser.new_page(viewport={"width": 1280, "height": 800})
+    p.page_errors = []
+    p.on("pageerror", lambda e: p.page_errors.append(str(e)))
+    try:
+        yield p
+    finally:
+        p.close()

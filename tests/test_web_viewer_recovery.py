@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import httpx
@@ -85,17 +85,6 @@ def _make_map(
     assert r.status_code in (200, 201), r.text
     for robot_id, (x, y) in robots.items():
         _scan(base, MAP_ID, robot_id, 1, x, y)
-
-
-@pytest.fixture
-def page(browser: Any) -> Iterator[Any]:
-    p = browser.new_page(viewport={"width": 1280, "height": 800})
-    p.page_errors = []
-    p.on("pageerror", lambda e: p.page_errors.append(str(e)))
-    try:
-        yield p
-    finally:
-        p.close()
 
 
 @pytest.fixture

@@ -18,9 +18,16 @@
  * map, the view too: &x=<metres>&y=<metres>&z=<zoom> (the centre), so a link shows the same place.
  *
  * Live refresh: the `v` query parameter of a tile URL is a counter this page bumps whenever tiles
- * change. A displayed tile whose cells intersect a changed window gets a new URL (so a new request,
- * never a stale browser-cache hit); tiles created later use the newest counter. Redraws are
- * throttled to one per TILE_FLUSH_MS however fast events arrive.
+ * change. A displayed tile whose cells intersect a changed window is marked stale, and a stale tile
+ * gets a new URL (so a new request, never a stale browser-cache hit) only when (a) it is in view,
+ * (b) its previous request has finished, (c) TILE_REFRESH_MS have passed since that request began,
+ * and (d) the page is visible. So a tile that changes 50 times a second is fetched at most
+ * 1000 / TILE_REFRESH_MS times a second, a slow service is never asked for a tile it is still
+ * rendering, and a hidden tab fetches nothing (it also closes its event stream until shown again).
+ * Tiles created later use the newest counter.
+ *
+ * Robots are drawn incrementally: a robot's marker and trail are made once, then moved and turned in
+ * place, and only when its report changed; a robot the service no longer reports is removed.
  */
 (function () {
   'use strict';
@@ -31,8 +38,12 @@
   const MIN_ZOOM = -8;            // 256 cells per pixel
   const MAX_ZOOM = 4;             // 16 pixels per cell; the service renders zooms -8..4
   const MAPS_REFRESH_MS = 5000;   // how often the map list is polled
-  const TILE_FLUSH_MS = 100;      // at most one tile redraw per this many ms
+  const TILE_FLUSH_MS = 100;      // changed windows are applied to the tiles at most this often
+  const TILE_REFRESH_MS = 500;    // one tile is requested again at most this often (2 per second)
   const RECONNECT_MS = 3000;      // retry delay when the browser gives up on the event stream
+  // After a reconnect every tile is reloaded once; spread over this many ms, so that the viewers of a
+  // restarted service do not all ask it for their tiles in the same instant.
+  const RECONNECT_SPREAD_MS = 1000;
   const ERROR_SHOW_MS = 15000;    // how long an error message stays visible
 
   // Tile layers the service renders, and the map layer (config.layers) each one needs.
@@ -92,9 +103,13 @@
     reconnectTimer: null,
     connection: 'starting',
     lastUpdate: null,     // Date of the last event received
-    robots: new Map(),    // robot id -> {data, marker, trail, color}
+    robots: new Map(),    // robot id -> {id, color, data, marker, trail, row, drawn}
+    robotsSeen: 0,        // robots this map ever showed (the next robot's colour)
     tileCounter: 0,       // tile version counter (see the header comment)
-    shownTiles: new Map(), // Leaflet tile key -> {el, coords} for every tile element on the map
+    // Leaflet tile key -> {el, coords, loading, stale, reset, requestedAt} for every tile on the map
+    shownTiles: new Map(),
+    pumpTimer: null,      // the next look for stale tiles that have become due
+    pumpAt: Infinity,     // when pumpTimer fires (performance.now() time)
     pendingWindows: [],   // changed cell windows not yet redrawn
     pendingReset: false,  // redraw everything at the next flush
     flushTimer: null,
@@ -175,6 +190,7 @@
       connected: 'connected',
       reconnecting: 'reconnecting to events…',
       error: 'event stream lost; retrying…',
+      paused: 'paused while the tab is hidden',
     };
     // Two parts: the connection state is a live region (a screen reader says when it changes);
     // the time of the last update, which changes with nearly every event, is not.
@@ -318,9 +334,19 @@
     // A failed tile: a transparent image (unknown cells look the same), never the broken-image icon.
     errorTileUrl: 'data:image/gif;base64,R0lGODlhAQABAIAAAAAAAP///yH5BAEAAAAALAAAAAABAAEAAAIBRAA7',
   });
-  // Keep our own list of tile elements on the map (public events, not Leaflet's private _tiles).
+  // Keep our own list of tile elements on the map (public events, not Leaflet's private _tiles),
+  // with whether each one's request is still under way.
   tiles.on('tileloadstart', (e) => {
-    state.shownTiles.set(`${e.coords.x}:${e.coords.y}:${e.coords.z}`, { el: e.tile, coords: e.coords });
+    const tile = {
+      el: e.tile, coords: e.coords, loading: true, stale: false, reset: false, requestedAt: performance.now(),
+    };
+    state.shownTiles.set(`${e.coords.x}:${e.coords.y}:${e.coords.z}`, tile);
+    const done = () => {
+      tile.loading = false;
+      if (tile.stale) schedulePump(0);
+    };
+    e.tile.addEventListener('load', done);
+    e.tile.addEventListener('error', done);
   });
   tiles.on('tileunload', (e) => {
     state.shownTiles.delete(`${e.coords.x}:${e.coords.y}:${e.coords.z}`);
@@ -428,17 +454,11 @@
     state.pendingReset = false;
     if (!state.mapId || !map.hasLayer(tiles)) return;
     state.tileCounter += 1;
-    if (reset) {
-      tiles.redraw();
-      return;
+    for (const tile of state.shownTiles.values()) {
+      if (reset || windows.some((w) => intersects(tileCells(tile.coords), w))) tile.stale = true;
+      if (reset) tile.reset = true;
     }
-    for (const { el, coords } of state.shownTiles.values()) {
-      const cells = tileCells(coords);
-      if (windows.some((w) => intersects(cells, w))) {
-        // Setting src keeps the old image on screen until the new one has arrived: no blinking.
-        el.src = tiles.getTileUrl(coords);
-      }
-    }
+    schedulePump(0);
     // The first scans of a map: fit the view once the map has bounds.
     if (!state.fitted && !state.infoInFlight) {
       state.infoInFlight = true;
@@ -446,29 +466,93 @@
     }
   }
 
+  /** Look for due stale tiles in `delay` ms, unless a look is already planned sooner. */
+  function schedulePump(delay) {
+    const at = performance.now() + delay;
+    if (at >= state.pumpAt) return;
+    clearTimeout(state.pumpTimer);
+    state.pumpAt = at;
+    state.pumpTimer = setTimeout(pumpTiles, delay);
+  }
+
+  /**
+   * Whether a stale tile is worth a request: it is at the current zoom (not one Leaflet keeps until
+   * the new zoom's tiles have loaded) and in the view, or anywhere after a reset (a new map: no tile
+   * Leaflet keeps around the view may show the old one when it comes into view).
+   */
+  function tileWanted(tile) {
+    const coords = tile.coords;
+    if (coords.z !== map.getZoom()) return false;
+    if (tile.reset) return true;
+    const view = map.getPixelBounds();
+    const x0 = coords.x * TILE_PX;
+    const y0 = coords.y * TILE_PX;
+    return x0 < view.max.x && x0 + TILE_PX > view.min.x && y0 < view.max.y && y0 + TILE_PX > view.min.y;
+  }
+
+  /**
+   * Request the stale tiles that are due again (see the header comment), and plan the next look for
+   * the ones that are not due yet. Setting src keeps the old image on screen until the new one has
+   * arrived: no blinking.
+   */
+  function pumpTiles() {
+    state.pumpTimer = null;
+    state.pumpAt = Infinity;
+    if (document.visibilityState === 'hidden' || !state.mapId || !map.hasLayer(tiles)) return;
+    const now = performance.now();
+    let next = Infinity;
+    for (const tile of state.shownTiles.values()) {
+      if (!tile.stale || tile.loading || !tileWanted(tile)) continue;
+      const due = tile.requestedAt + TILE_REFRESH_MS;
+      if (due > now) {
+        next = Math.min(next, due);
+        continue;
+      }
+      tile.stale = false;
+      tile.reset = false;
+      tile.loading = true;
+      tile.requestedAt = now;
+      tile.el.src = tiles.getTileUrl(tile.coords);
+    }
+    if (next < Infinity) schedulePump(next - now);
+  }
+
+  // A stale tile that comes into view (pan, zoom) is due at once.
+  map.on('moveend', () => schedulePump(0));
+
   // ---- robots ----------------------------------------------------------------------------------
 
-  function robotIcon(color, theta, online) {
-    // An arrow pointing along +x; CSS rotates clockwise and the map's y axis points up, hence -theta.
-    const deg = (-theta * 180) / Math.PI;
+  /** A robot's marker icon, made once per robot: an arrow pointing along +x (drawRobot turns it). */
+  function robotIcon(color) {
     return L.divIcon({
-      className: `robot-marker${online ? '' : ' offline'}`,
+      className: 'robot-marker',
       iconSize: [26, 26],
       iconAnchor: [13, 13],
-      html: `<svg width="26" height="26" viewBox="-13 -13 26 26" style="transform: rotate(${deg}deg)">` +
+      html: '<svg width="26" height="26" viewBox="-13 -13 26 26">' +
         `<circle r="6" fill="${color}" fill-opacity="0.35"/>` +
         `<path d="M12 0 L-7 -7 L-3 0 L-7 7 Z" fill="${color}" stroke="white" stroke-width="1.5"/></svg>`,
     });
   }
 
-  /** Merge robot reports ({id: {online, pose, trail, scans_integrated}}) and redraw them. */
-  function updateRobots(reports) {
-    const ids = Object.keys(reports || {}).sort(naturalOrder.compare);
+  /**
+   * Merge robot reports ({id: {online, pose, trail, scans_integrated}}) and draw what changed.
+   * `complete`: the reports are every robot of the map (a `robots` event), so a robot missing from
+   * them was forgotten by the service (e.g. to make room on a full map) and is removed.
+   */
+  function updateRobots(reports, complete = false) {
+    reports = reports || {};
+    if (complete) {
+      for (const id of [...state.robots.keys()]) {
+        if (!(id in reports)) removeRobot(id);
+      }
+    }
+    const ids = Object.keys(reports).sort(naturalOrder.compare);
     for (const id of ids) {
       const report = reports[id];
       let robot = state.robots.get(id);
       if (!robot) {
-        const color = robotColor(state.robots.size);
+        const color = robotColor(state.robotsSeen);
+        state.robotsSeen += 1;
         robot = {
           id,
           color,
@@ -476,6 +560,7 @@
           trail: L.polyline([], { color, weight: 2, opacity: 0.8, interactive: false }).addTo(robotLayer),
           marker: null,
           row: null,
+          drawn: { marker: '', trail: '' }, // what marker and trail show now (see drawRobot)
         };
         state.robots.set(id, robot);
       }
@@ -483,6 +568,15 @@
       drawRobot(robot);
     }
     renderRobotList();
+  }
+
+  /** Take a robot off the map and out of the list. */
+  function removeRobot(id) {
+    const robot = state.robots.get(id);
+    if (!robot) return;
+    if (robot.marker) robot.marker.remove();
+    robot.trail.remove();
+    state.robots.delete(id);
   }
 
   /**
@@ -494,28 +588,40 @@
     return robot.data.online ? 'online' : 'offline';
   }
 
-  /** Place a robot's marker and trail from its data (again after the resolution changed). */
-  function drawRobot(robot) {
+  /**
+   * Place a robot's marker and trail from its data. The marker's element is made once and then moved
+   * and turned in place; neither is touched when what it shows did not change. `force`: draw again
+   * even so (the resolution changed: the same metres are other map units).
+   */
+  function drawRobot(robot, force = false) {
     const id = robot.id;
     const pose = normPose(robot.data.pose ?? robot.data.last_pose);
     const shown = robotState(robot);
-    if (pose) {
-      const icon = robotIcon(robot.color, pose[2], shown === 'online');
+    const markerKey = pose ? `${pose.join(',')}:${shown}` : '';
+    if (pose && (force || markerKey !== robot.drawn.marker)) {
+      robot.drawn.marker = markerKey;
+      const at = toLatLng(pose[0], pose[1]);
       if (!robot.marker) {
-        robot.marker = L.marker(toLatLng(pose[0], pose[1]), { icon, keyboard: false, title: id })
+        robot.marker = L.marker(at, { icon: robotIcon(robot.color), keyboard: false, title: id })
           .addTo(robotLayer);
       } else {
-        robot.marker.setLatLng(toLatLng(pose[0], pose[1]));
-        robot.marker.setIcon(icon);
+        robot.marker.setLatLng(at);
       }
       const el = robot.marker.getElement();
       if (el) {
+        // CSS rotates clockwise and the map's y axis points up, hence -theta.
+        el.firstElementChild.style.transform = `rotate(${(-pose[2] * 180) / Math.PI}deg)`;
+        el.classList.toggle('offline', shown !== 'online');
         el.dataset.robotId = id;
         el.dataset.online = shown === 'unknown' ? 'unknown' : String(shown === 'online');
       }
     }
-    if (Array.isArray(robot.data.trail)) {
-      const points = robot.data.trail.map((p) => normPose(p)).filter(Boolean).map((p) => toLatLng(p[0], p[1]));
+    const trail = Array.isArray(robot.data.trail) ? robot.data.trail : null;
+    // The trail is a window of the last positions: its length and its ends say whether it moved.
+    const trailKey = trail && `${trail.length}:${trail[0]}:${trail[trail.length - 1]}:${pose}`;
+    if (trail && (force || trailKey !== robot.drawn.trail)) {
+      robot.drawn.trail = trailKey;
+      const points = trail.map((p) => normPose(p)).filter(Boolean).map((p) => toLatLng(p[0], p[1]));
       if (pose) points.push(toLatLng(pose[0], pose[1]));
       robot.trail.setLatLngs(points);
     }
@@ -523,7 +629,7 @@
 
   /** Redraw every robot (the connection state or the resolution changed). */
   function redrawRobots() {
-    for (const robot of state.robots.values()) drawRobot(robot);
+    for (const robot of state.robots.values()) drawRobot(robot, true);
     renderRobotList();
   }
 
@@ -598,6 +704,7 @@
   function clearRobots() {
     robotLayer.clearLayers();
     state.robots.clear();
+    state.robotsSeen = 0;
     renderRobotList();
   }
 
@@ -738,6 +845,11 @@
 
   function openEvents(mapId) {
     closeEvents();
+    if (document.visibilityState === 'hidden') {
+      // Nobody looks: no stream until the tab is shown (see the visibilitychange listener).
+      setConnection('paused');
+      return;
+    }
     setConnection('connecting');
     const es = new EventSource(`maps/${enc(mapId)}/events`);
     state.events = es;
@@ -748,7 +860,7 @@
       // After a break the service may have restarted with another map under this id (restored from
       // another backup: other resolution, other layers, other robots). Load it again as a `replaced`
       // event does, then redraw every tile; rare, and always right.
-      if (state.eventsBroken) reloadMap(false);
+      if (state.eventsBroken) reloadMap(false, true);
       state.eventsBroken = false;
     };
     es.onerror = () => {
@@ -778,7 +890,7 @@
       fn(data);
     };
     es.addEventListener('tiles', handle(queueTiles));
-    es.addEventListener('robots', handle((d) => updateRobots(d.robots)));
+    es.addEventListener('robots', handle((d) => updateRobots(d.robots, true)));
     // The map was replaced under its id (a snapshot upload): stay on it and reload it; the stream
     // goes on with the new map's events.
     es.addEventListener('replaced', handle(() => reloadMap()));
@@ -789,6 +901,21 @@
       refreshMaps();
     }));
   }
+
+  // A hidden tab shows nothing, so it costs nothing: it closes its event stream (and pumpTiles
+  // requests no tile) until it is shown again, then catches up as after a reconnect: the map's
+  // metadata and robots again, and every tile once.
+  document.addEventListener('visibilitychange', () => {
+    if (!state.mapId) return;
+    if (document.visibilityState === 'hidden') {
+      if (state.connection === 'paused') return;
+      closeEvents();
+      state.eventsBroken = true;
+      setConnection('paused');
+    } else if (state.connection === 'paused') {
+      openEvents(state.mapId);
+    }
+  });
 
   // ---- maps and layers -------------------------------------------------------------------------
 
@@ -881,8 +1008,9 @@
    * The selected map was replaced under its id: its configuration (layers, resolution), cells and
    * robots are new. Forget what the page knew of the old one and load it again, as a selection does,
    * but keep the event stream (it goes on with the new map) and the map selector as they are.
+   * `spread`: reload the tiles after a random delay of up to RECONNECT_SPREAD_MS (after a reconnect).
    */
-  async function reloadMap(refit = true) {
+  async function reloadMap(refit = true, spread = false) {
     const token = state.selectToken;
     clearRobots();
     // A replaced map may lie elsewhere; after a reconnect keep the user's view unless the
@@ -891,7 +1019,9 @@
     clearCell();
     await refreshInfo(token, true);
     // Every tile, after the layer selector knows the new map's layers (the layer may have changed).
-    if (token === state.selectToken) queueTiles({ reset: true });
+    const reset = () => { if (token === state.selectToken) queueTiles({ reset: true }); };
+    if (spread) setTimeout(reset, Math.random() * RECONNECT_SPREAD_MS);
+    else reset();
   }
 
   /** GET maps/{id}: layers, resolution, bounds (fit once), robots. Returns false on failure. */

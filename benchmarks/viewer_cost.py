@@ -1,0 +1,147 @@
+"""What the web viewer costs a browser under a live fleet: tile fetches, bytes, main-thread time, DOM
+nodes and JS heap, measured in real headless Chromium against the real service.
+
+    PYTHONPATH=service:clients/python python benchmarks/viewer_cost.py hot      # ~200 scans/s, 4 robots
+    PYTHONPATH=service:clients/python python benchmarks/viewer_cost.py fleet    # 100 robots, 2 scans/s
+
+The service runs as a process (tests/service_process.py), the robots as one `fleetmap sim` process
+publishing through real Zenoh sessions, and the page is the viewer the service serves, driven by
+Playwright. Tile requests are counted with `page.on("request")`; main-thread time (`TaskDuration`,
+`ScriptDuration`), DOM nodes and JS heap come from CDP's `Performance.getMetrics`, sampled every
+`--sample` seconds. One JSON line per sample, then a summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+from urllib.parse import urlsplit
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "tests"))
+
+from service_process import ServiceProcess, wait_for  # noqa: E402
+
+SCENARIOS = {
+    # robots, scans per second per robot, beams
+    "hot": (4, 50.0, 361),
+    "fleet": (100, 2.0, 181),
+}
+MAP_ID = "viewer-cost"
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("scenario", choices=sorted(SCENARIOS))
+    p.add_argument("--robots", type=int, help="override the scenario's robot count")
+    p.add_argument("--rate", type=float, help="override the scans per second per robot")
+    p.add_argument("--seconds", type=float, default=60.0, help="measured time")
+    p.add_argument("--sample", type=float, default=10.0, help="seconds between samples")
+    p.add_argument("--hidden", action="store_true", help="measure with the page hidden (visibilityState)")
+    args = p.parse_args()
+    robots, rate, beams = SCENARIOS[args.scenario]
+    robots = args.robots or robots
+    rate = args.rate or rate
+
+    from playwright.sync_api import sync_playwright
+    from test_web_viewer import CHROMIUM, CHROMIUM_ARGS
+
+    with tempfile.TemporaryDirectory() as tmp, ServiceProcess(Path(tmp)) as svc:
+        sim = subprocess.Popen(
+            [sys.executable, "-m", "fleetmap", "sim", "--robots", str(robots), "--rate", str(rate),
+             "--beams", str(beams), "--map", MAP_ID, "--seconds", str(args.seconds + 60),
+             "--connect", svc.zenoh_endpoint],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        try:
+            import httpx
+
+            def robots_seen() -> int:
+                r = httpx.get(f"{svc.base_url}/maps/{MAP_ID}")
+                return len(r.json()["stats"]["robots"]) if r.status_code == 200 else 0
+
+            wait_for(lambda: robots_seen() >= robots, timeout=120, what="every robot on the map")
+            with sync_playwright() as pw:
+                browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+                page = browser.new_page(viewport={"width": 1280, "height": 800})
+                requests: Counter[str] = Counter()
+                page.on(
+                    "request",
+                    lambda r: requests.update([urlsplit(r.url).path]) if "/tiles/" in r.url else None,
+                )
+                cdp = page.context.new_cdp_session(page)
+                cdp.send("Performance.enable")
+                page.goto(f"{svc.base_url}/#map={MAP_ID}")
+                page.wait_for_function("() => document.querySelectorAll('.robot-marker').length > 0")
+                if args.hidden:
+                    page.evaluate(
+                        "() => { Object.defineProperty(document, 'visibilityState', {get: () => 'hidden'});"
+                        " Object.defineProperty(document, 'hidden', {get: () => true});"
+                        " document.dispatchEvent(new Event('visibilitychange')); }"
+                    )
+                time.sleep(3)  # the first tiles of the fitted view
+                requests.clear()
+                # The default buffer holds 250 entries: a minute of tiles is more than that.
+                page.evaluate(
+                    "() => { performance.setResourceTimingBufferSize(1e6);"
+                    " performance.clearResourceTimings(); }"
+                )
+                start = metrics(cdp)
+                t0 = time.monotonic()
+                samples = []
+                while time.monotonic() - t0 < args.seconds:
+                    time.sleep(args.sample)
+                    m = metrics(cdp)
+                    m["t"] = round(time.monotonic() - t0, 1)
+                    m["tile_requests"] = sum(requests.values())
+                    samples.append(m)
+                    print(json.dumps(m), flush=True)
+                elapsed = time.monotonic() - t0
+                end = samples[-1]
+                tile_bytes = page.evaluate(
+                    "() => performance.getEntriesByType('resource').filter(e => e.name.includes('/tiles/'))"
+                    ".reduce((s, e) => s + e.encodedBodySize, 0)"
+                )
+
+                def share(metric: str) -> float:
+                    """Percent of the measured time the main thread spent on `metric`."""
+                    return round(100 * (end[metric] - start[metric]) / elapsed, 1)
+
+                markers = page.evaluate("() => document.querySelectorAll('.robot-marker').length")
+                summary = {
+                    "scenario": args.scenario, "robots": robots, "rate": rate, "hidden": args.hidden,
+                    "seconds": round(elapsed, 1), "markers": markers,
+                    "tile_fetches_per_s": round(sum(requests.values()) / elapsed, 1),
+                    "tiles_fetched": len(requests),
+                    "hottest_tile_fetches_per_s": round(max(requests.values(), default=0) / elapsed, 2),
+                    "tile_kbytes_per_s": round(tile_bytes / 1024 / elapsed, 1),
+                    "main_thread_busy_pct": share("TaskDuration"),
+                    "script_pct": share("ScriptDuration"),
+                    "nodes": [start["Nodes"], *(s["Nodes"] for s in samples)],
+                    "heap_mb": [round(start["JSHeapUsedSize"] / 2**20, 1),
+                                *(round(s["JSHeapUsedSize"] / 2**20, 1) for s in samples)],
+                }  # fmt: skip
+                print("SUMMARY " + json.dumps(summary), flush=True)
+                browser.close()
+        finally:
+            sim.terminate()
+            sim.wait(30)
+    return 0
+
+
+def metrics(cdp: object) -> dict[str, float]:
+    """The CDP performance counters this script reports."""
+    wanted = {"TaskDuration", "ScriptDuration", "Nodes", "JSHeapUsedSize", "JSEventListeners", "LayoutCount"}
+    cdp.send("HeapProfiler.collectGarbage")  # type: ignore[attr-defined]  # the heap that stays, not garbage
+    got = cdp.send("Performance.getMetrics")["metrics"]  # type: ignore[attr-defined]
+    return {m["name"]: m["value"] for m in got if m["name"] in wanted}
+
+
+if __name__ == "__main__":
+    sys.exit(main())
