@@ -4,9 +4,10 @@ scans, two robots under one robot id, and the service restarting under robots th
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,32 @@ def wait_integrated(http: httpx.Client, map_id: str, robot_id: str, count: int) 
 def counters(stats: dict[str, Any]) -> tuple[int, int, int, int, int]:
     """(scans_integrated, last_seq, lost, duplicates, restarts)."""
     return tuple(stats[k] for k in ("scans_integrated", "last_seq", "lost", "duplicates", "restarts"))  # type: ignore[return-value]
+
+
+@contextlib.contextmanager
+def raw_publishers(
+    endpoint: str, map_id: str, robots: Sequence[str], encoding: str = BINARY_ENCODING
+) -> Iterator[dict[str, zenoh.Publisher]]:
+    """One Zenoh client session with a publisher of each robot's scans (matched by the service), for
+    tests that write each message's fields (seq, stamp, session) themselves."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    session = zenoh.open(cfg)
+    try:
+        pubs = {
+            robot: session.declare_publisher(
+                SCAN_KEY.format(map_id=map_id, robot_id=robot),
+                encoding=zenoh.Encoding(encoding),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            for robot in robots
+        }
+        for pub in pubs.values():
+            wait_for(lambda p=pub: p.matching_status.matching, timeout=10, interval=0.01, what="the service")
+        yield pubs
+    finally:
+        session.close()
 
 
 @pytest.fixture(scope="module")
@@ -91,21 +118,7 @@ def test_copies_and_stale_scans_are_duplicates_even_at_seq_0(
     scan whose seq is not new is a restart only with a later stamp, or at seq 0 when it is not the
     very scan last accepted: robots that send no stamp (0), or stamps of a clock that starts again
     with the robot, still restart at seq 0."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"client"')
-    cfg.insert_json5("connect/endpoints", json.dumps([service.zenoh_endpoint]))
-    session = zenoh.open(cfg)
-    try:
-        pubs = {
-            robot: session.declare_publisher(
-                SCAN_KEY.format(map_id="life-copies", robot_id=robot),
-                encoding=zenoh.Encoding(BINARY_ENCODING),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
-            for robot in ("stamped", "unstamped")
-        }
-        for pub in pubs.values():
-            wait_for(lambda p=pub: p.matching_status.matching, timeout=10, interval=0.01, what="the service")
+    with raw_publishers(service.zenoh_endpoint, "life-copies", ["stamped", "unstamped"]) as pubs:
         # (seq, stamp): a copy of seq 0 at once, and a stale copy of seq 1 after seq 2.
         for seq, stamp in [(0, 100.0), (0, 100.0), (1, 101.0), (2, 102.0), (1, 101.0), (3, 103.0)]:
             pubs["stamped"].put(codec.encode_binary(scan_at(float(seq)), seq, stamp))
@@ -117,8 +130,6 @@ def test_copies_and_stale_scans_are_duplicates_even_at_seq_0(
         assert counters(stamped) == (4, 3, 0, 2, 0)
         assert stamped["last_stamp"] == 103.0
         assert counters(wait_integrated(http, "life-copies", "unstamped", 5)) == (5, 1, 0, 0, 1)
-    finally:
-        session.close()
 
 
 def test_robots_outlive_a_service_restart_and_a_robot_restart_after_it(tmp_path: Path) -> None:
@@ -205,21 +216,7 @@ def test_a_robot_restarting_with_its_clock_and_seq_at_0_is_a_new_session_not_dup
     below the old ones, but rising). Its new session id says "restarted": nothing is dropped, one
     restart is counted. Copies within a session (also a late copy from before the restart) are
     still duplicates, and no id conflict."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"client"')
-    cfg.insert_json5("connect/endpoints", json.dumps([service.zenoh_endpoint]))
-    session = zenoh.open(cfg)
-    try:
-        pubs = {
-            robot: session.declare_publisher(
-                SCAN_KEY.format(map_id="life-sessions", robot_id=robot),
-                encoding=zenoh.Encoding(BINARY_ENCODING),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
-            for robot in ("unstamped", "clock")
-        }
-        for pub in pubs.values():
-            wait_for(lambda p=pub: p.matching_status.matching, timeout=10, interval=0.01, what="the service")
+    with raw_publishers(service.zenoh_endpoint, "life-sessions", ["unstamped", "clock"]) as pubs:
         before, after = new_session_id(), new_session_id()
         # (session, seq): stamp 0 throughout; a copy of seq 4, and a late copy of the old run's seq 3.
         for sid, seq in [(before, 0), (before, 1), (before, 2), (before, 3), (before, 4), (before, 4),
@@ -237,8 +234,6 @@ def test_a_robot_restarting_with_its_clock_and_seq_at_0_is_a_new_session_not_dup
         assert counters(clock) == (9, 3, 0, 0, 1)
         assert clock["last_stamp"] == pytest.approx(0.3)
         assert not unstamped["id_conflict"] and not clock["id_conflict"]
-    finally:
-        session.close()
 
 
 def test_a_service_restart_gives_the_session_bookkeeping_it_had(tmp_path: Path) -> None:
@@ -253,24 +248,11 @@ def test_a_service_restart_gives_the_session_bookkeeping_it_had(tmp_path: Path) 
     solo = [(s1, k) for k in range(4)] + [(s2, k) for k in range(3)]
     old = [(None, k) for k in (0, 1, 2, 0, 1)]
     try:
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"client"')
-        cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
-        session = zenoh.open(cfg)
-        try:
-            for robot, messages in (("twins", twins), ("solo", solo), ("old", old)):
-                pub = session.declare_publisher(
-                    SCAN_KEY.format(map_id="life-replay", robot_id=robot),
-                    encoding=zenoh.Encoding(JSON_ENCODING),
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                )
-                wait_for(
-                    lambda p=pub: p.matching_status.matching, timeout=10, interval=0.01, what="the service"
-                )
+        robots = {"twins": twins, "solo": solo, "old": old}
+        with raw_publishers(svc.zenoh_endpoint, "life-replay", list(robots), JSON_ENCODING) as pubs:
+            for robot, messages in robots.items():
                 for sid, seq in messages:
-                    pub.put(codec.encode_json(scan_at(0.1 * seq), seq, 0.0, session=sid))
-        finally:
-            session.close()
+                    pubs[robot].put(codec.encode_json(scan_at(0.1 * seq), seq, 0.0, session=sid))
         with httpx.Client(base_url=svc.base_url, timeout=10.0) as http:
             live = {robot: wait_integrated(http, "life-replay", robot, n) for robot, n in
                     (("twins", 12), ("solo", 7), ("old", 5))}  # fmt: skip
@@ -289,19 +271,10 @@ def test_a_service_restart_gives_the_session_bookkeeping_it_had(tmp_path: Path) 
                 if how == "journal":
                     assert svc.stop() == 0  # a clean stop: snapshotted
             # The snapshot kept each session's seqs: `c` and `a` go on, neither restarted nor lost.
-            more = zenoh.open(cfg)
-            try:
-                pub = more.declare_publisher(
-                    SCAN_KEY.format(map_id="life-replay", robot_id="twins"),
-                    encoding=zenoh.Encoding(BINARY_ENCODING),
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                )
-                wait_for(lambda: pub.matching_status.matching, timeout=10, interval=0.01, what="the service")
+            with raw_publishers(svc.zenoh_endpoint, "life-replay", ["twins"]) as pubs:
                 for sid, seq in [(c, 2), (a, 6)]:
-                    pub.put(codec.encode_binary(scan_at(0.1 * seq), seq, 0.0, session=sid))
+                    pubs["twins"].put(codec.encode_binary(scan_at(0.1 * seq), seq, 0.0, session=sid))
                 twins_now = wait_integrated(http, "life-replay", "twins", 14)
-            finally:
-                more.close()
             assert counters(twins_now) == (14, 6, 1, 0, 0)
             assert twins_now["id_conflicts"] == 2
     finally:
