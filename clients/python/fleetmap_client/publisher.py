@@ -17,7 +17,8 @@ What it does on the wire (the schema is `fleetmap.wire`, the byte layout docs/pr
   (`application/json`), RELIABLE, and by default with `CongestionControl.BLOCK` so that a busy link
   slows the robot down instead of dropping scans;
 * in every scan, the publisher's session id (`session_id`): a random number picked when the
-  publisher is made, and again whenever its seq starts again (an explicit seq not above the last).
+  publisher is made, and again whenever its seq starts again (an explicit seq below the last; the
+  last seq again is a resend, e.g. of a scan dropped while disconnected, and keeps the session).
   The service tells by it a restarted robot (a new session: nothing of it is ignored as a duplicate,
   whatever its seq and stamp) from two robots misconfigured with one robot id (two sessions
   interleaving: the scans of both are integrated and the conflict reported). `session=False` sends
@@ -268,7 +269,7 @@ class ScanPublisher:
     @property
     def session_id(self) -> int | None:
         """The session id its scans carry (None with `session=False`): picked at random when the
-        publisher is made, and again when an explicit seq is not above the last one."""
+        publisher is made, and again when an explicit seq is below the last one."""
         return self._session_id
 
     @property
@@ -281,8 +282,9 @@ class ScanPublisher:
 
         `scan` is an engine `Scan` (or a `ScanMessage`, converted with `to_scan`; its seq and stamp
         are the defaults then). `seq` defaults to an automatic counter starting at 0; an explicit
-        seq also moves the counter to seq + 1; one not above the last seq starts a new session
-        (`session_id`), so the service takes it for a restart, not a duplicate. A `ScanMessage`'s own
+        seq also moves the counter to seq + 1; one below the last seq starts a new session
+        (`session_id`), so the service takes it for a restart, not a duplicate (the last seq again
+        is a resend, in the same session: a duplicate if the first one arrived). A `ScanMessage`'s own
         session is not sent: the publisher's is. `stamp` defaults to the current time (seconds since
         the epoch). With `block=True` this may block while the link is congested.
 
@@ -321,7 +323,7 @@ class ScanPublisher:
                 seq = self._next_seq
                 if seq >= SEQ_LIMIT:
                     raise ValueError("the automatic seq passed 2**63 - 1: publish with seq=0 to restart")
-            elif session is not None and self._last_seq is not None and seq <= self._last_seq:
+            elif session is not None and self._last_seq is not None and seq < self._last_seq:
                 session = new_session_id()  # the seq starts again: under the old session, duplicates
             # Encoded before the counter moves, under the lock so that concurrent callers still get
             # distinct seqs in order: a scan that cannot be encoded must not leave a gap.
