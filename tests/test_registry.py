@@ -19,6 +19,7 @@ from fleetmap.fair_queue import FairQueue
 from fleetmap.grid_map import GridMap
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import (
+    CONFLICT_SHOWN,
     MAX_SESSIONS,
     IngestRejected,
     InvalidId,
@@ -534,3 +535,27 @@ def test_a_robots_sessions_stay_bounded_and_survive_its_saved_state() -> None:
     assert restored.sessions == robot.sessions and restored.saved() == robot.saved()
     assert restored.is_duplicate(0, 0.0, 1000 + 3 * MAX_SESSIONS - 1)
     assert not restored.in_conflict(1.0)
+
+
+def test_interleaved_sessions_are_a_conflict_shown_for_a_minute_and_a_late_copy_is_not() -> None:
+    """Two publishers under one id: each one's seqs counted apart (no duplicate, lost or restart
+    from switching), one conflict; a third joins: one more, its restart withdrawn too. The conflict
+    shows until CONFLICT_SHOWN after the last interleaved scan. A late copy of an ended session's
+    scan after a restart is a duplicate, not a conflict."""
+    robot = RobotState()
+    for seq, session in [(0, 1), (0, 2), (1, 1), (1, 2), (3, 1), (2, 2), (0, 3), (4, 1), (3, 2)]:
+        assert not robot.is_duplicate(seq, 0.0, session)
+        robot.accept(seq, 0.0, session, now=100.0)
+    assert (robot.lost, robot.restarts, robot.duplicates, robot.id_conflicts) == (1, 0, 0, 2)
+    assert robot.is_duplicate(3, 0.0, 1) and not robot.is_duplicate(5, 0.0, 1)
+    assert robot.in_conflict(100.0 + CONFLICT_SHOWN - 1) and not robot.in_conflict(100.0 + CONFLICT_SHOWN)
+
+    restarted = RobotState()
+    for k in range(3):
+        restarted.accept(k, 50.0 + k, 7, now=1.0)
+    assert not restarted.is_duplicate(0, 0.0, 8)  # a new session at seq 0, clock at 0: a restart
+    restarted.accept(0, 0.0, 8, now=2.0)
+    assert restarted.is_duplicate(2, 52.0, 7)  # a late copy of the old run's scan
+    # Within a session, stamps say nothing: a copy of seq 0, or with a later stamp, is a duplicate.
+    assert restarted.is_duplicate(0, 50.0, 7) and restarted.is_duplicate(1, 99.0, 7)
+    assert (restarted.restarts, restarted.id_conflicts, restarted.in_conflict(2.0)) == (1, 0, False)
