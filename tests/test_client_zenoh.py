@@ -174,6 +174,41 @@ def test_seq_auto_increments_and_follows_explicit_seq(router: Router, sim_scans:
     assert all(abs(s - time.time()) < 60 for s in stamps), "default stamps are the wall-clock time"
 
 
+@pytest.mark.parametrize("encoding", ["binary", "json"])
+def test_each_publisher_sends_its_own_session_id_and_a_new_one_when_its_seq_starts_again(
+    router: Router, sim_scans: list[Scan], encoding: str
+) -> None:
+    """Every scan carries the publisher's random session id; another publisher has another one;
+    an explicit seq below the last one starts a new session (under the old one the service would
+    ignore the scans as duplicates), while the last seq again is a resend (the replay command's, of
+    a scan dropped while disconnected) in the same session; `session=False` sends none."""
+    with (
+        ScanPublisher("lab", "s1", connect=[router.endpoint], encoding=encoding) as pub,  # type: ignore[arg-type]
+        ScanPublisher("lab", "s2", connect=[router.endpoint], encoding=encoding) as other,  # type: ignore[arg-type]
+        ScanPublisher("lab", "s3", connect=[router.endpoint], encoding=encoding, session=False) as none,  # type: ignore[arg-type]
+    ):
+        first = pub.session_id
+        assert first is not None and first != other.session_id and none.session_id is None
+        for p in (pub, other, none):
+            assert p.wait_connected(10)
+        pub.publish(sim_scans[0])
+        pub.publish(sim_scans[1], seq=5)  # forward: the same session
+        pub.publish(sim_scans[1], seq=5)  # a resend: the same session
+        assert pub.session_id == first
+        pub.publish(sim_scans[2], seq=4)  # below the last: the seq starts again
+        restarted = pub.session_id
+        pub.publish(sim_scans[3])
+        other.publish(sim_scans[0])
+        none.publish(sim_scans[0])
+        got = router.wait_count(5, "fleetmap/lab/s1/scan")
+        assert [(w.seq, w.session) for _, _, w in got] == [
+            (0, first), (5, first), (5, first), (4, restarted), (5, restarted),
+        ]  # fmt: skip
+        assert restarted not in (None, first)
+        assert router.wait_count(1, "fleetmap/lab/s2/scan")[0][2].session == other.session_id
+        assert router.wait_count(1, "fleetmap/lab/s3/scan")[0][2].session is None
+
+
 def test_liveliness_token_follows_the_publisher(router: Router) -> None:
     pub = ScanPublisher("lab", "robot-7", connect=[router.endpoint])
     assert pub.wait_connected(10)

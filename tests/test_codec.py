@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from fleetmap.codec import (
     HEADER,
+    HEADER_V2,
     MAGIC,
     DecodeError,
     InputLimits,
@@ -23,7 +24,7 @@ from fleetmap.codec import (
     encode_json,
 )
 from fleetmap.scan import Scan
-from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, SESSION_LIMIT, ScanMessage
 
 finite = st.floats(-1e4, 1e4, allow_nan=False, allow_infinity=False)
 ranges = st.lists(
@@ -78,7 +79,10 @@ def test_random_bytes_only_raise_decode_error(data: bytes, encoding: str) -> Non
 @given(st.data())
 def test_mutated_binary_is_valid_or_refused(data: st.DataObject) -> None:
     """Flip bytes of a valid binary scan: the result decodes to a valid scan or raises DecodeError."""
-    payload = bytearray(encode_binary(make_scan(1.0, 2.0, 0.3, [1.0, 2.0, math.inf], False), 3))
+    session = data.draw(st.sampled_from([None, 1, SESSION_LIMIT - 1]))
+    payload = bytearray(
+        encode_binary(make_scan(1.0, 2.0, 0.3, [1.0, 2.0, math.inf], False), 3, session=session)
+    )
     for _ in range(data.draw(st.integers(1, 6))):
         payload[data.draw(st.integers(0, len(payload) - 1))] = data.draw(st.integers(0, 255))
     cut = data.draw(st.integers(0, len(payload)))
@@ -88,6 +92,7 @@ def test_mutated_binary_is_valid_or_refused(data: st.DataObject) -> None:
         return
     assert math.isfinite(got.scan.pose.x) and math.isfinite(got.scan.pose.theta)
     assert got.scan.angles.shape == got.scan.ranges.shape
+    assert got.session is None or 1 <= got.session < SESSION_LIMIT
 
 
 json_values = st.recursive(
@@ -109,6 +114,7 @@ FIELDS = [
     "range_min",
     "range_max",
     "ranges",
+    "session",
     "x",
 ]
 
@@ -132,6 +138,9 @@ def test_json_of_any_shape_is_valid_or_refused(message: dict) -> None:
         ({"seq": -1}, "seq"),
         ({"angle_increment": None}, "required"),
         ({"extra": 1}, "extra"),
+        ({"session": 0}, "session"),
+        ({"session": 2**53}, "session"),
+        ({"session": "abc"}, "session"),
     ],
 )
 def test_json_errors_say_why(patch: dict, reason: str) -> None:
@@ -158,6 +167,33 @@ def test_binary_errors_say_why() -> None:
     with pytest.raises(DecodeError, match="finite"):
         decode_binary(bytes(nan_pose))
     assert good[:4] == MAGIC and HEADER.size == 72
+
+
+@pytest.mark.parametrize("encoding", ["binary", "json"])
+def test_the_session_id_round_trips_and_messages_without_one_decode_as_before(encoding: str) -> None:
+    """A session id is sent as binary version 2 (an 80-byte header) or a JSON field; without one the
+    message is exactly what it was before session ids (binary version 1), and decodes to None."""
+    scan = make_scan(1.0, 2.0, 0.3, [1.0, 2.0, math.inf], False)
+    encode, kind = (encode_binary, BINARY_ENCODING) if encoding == "binary" else (encode_json, JSON_ENCODING)
+    with_session = encode(scan, 3, 1.5, session=SESSION_LIMIT - 1)
+    without = encode(scan, 3, 1.5)
+    assert decode(with_session, kind).session == SESSION_LIMIT - 1
+    assert decode(without, kind).session is None
+    assert decode(with_session, kind).scan.ranges.tobytes() == decode(without, kind).scan.ranges.tobytes()
+    if encoding == "binary":
+        assert (without[4], len(without)) == (1, HEADER.size + 4 * 3)
+        assert (with_session[4], len(with_session)) == (2, HEADER_V2.size + 4 * 3)
+        assert (
+            with_session[:4] + with_session[5:72] == without[:4] + without[5:72]
+        )  # the same fields before it
+        zero = bytearray(with_session)
+        struct.pack_into("<Q", zero, 72, 0)
+        with pytest.raises(DecodeError, match="session"):
+            decode_binary(bytes(zero))
+        with pytest.raises(DecodeError, match="shorter"):
+            decode_binary(with_session[:76])
+    else:
+        assert b"session" not in without
 
 
 def test_unknown_encoding_is_refused_and_bytes_are_sniffed() -> None:

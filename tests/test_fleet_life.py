@@ -1,11 +1,13 @@
 """A fleet's life over time, with the real service as a process and robots as real Zenoh sessions:
-robots that restart (and lose their first scan doing so), copies and stale scans, and the service
-restarting under robots that keep publishing."""
+robots that restart (and lose their first scan doing so, or restart their clock), copies and stale
+scans, two robots under one robot id, and the service restarting under robots that keep publishing."""
 
 from __future__ import annotations
 
+import contextlib
 import json
-from collections.abc import Iterator
+import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,11 +16,12 @@ import numpy as np
 import pytest
 import zenoh
 from fleetmap_client.publisher import ScanPublisher
+from prometheus_client.parser import text_string_to_metric_families
 from service_process import ServiceProcess, wait_for
 
 from fleetmap import codec
 from fleetmap.scan import Scan
-from fleetmap.wire import BINARY_ENCODING, SCAN_KEY
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, SCAN_KEY, new_session_id
 
 
 def scan_at(x: float) -> Scan:
@@ -43,6 +46,32 @@ def wait_integrated(http: httpx.Client, map_id: str, robot_id: str, count: int) 
 def counters(stats: dict[str, Any]) -> tuple[int, int, int, int, int]:
     """(scans_integrated, last_seq, lost, duplicates, restarts)."""
     return tuple(stats[k] for k in ("scans_integrated", "last_seq", "lost", "duplicates", "restarts"))  # type: ignore[return-value]
+
+
+@contextlib.contextmanager
+def raw_publishers(
+    endpoint: str, map_id: str, robots: Sequence[str], encoding: str = BINARY_ENCODING
+) -> Iterator[dict[str, zenoh.Publisher]]:
+    """One Zenoh client session with a publisher of each robot's scans (matched by the service), for
+    tests that write each message's fields (seq, stamp, session) themselves."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    session = zenoh.open(cfg)
+    try:
+        pubs = {
+            robot: session.declare_publisher(
+                SCAN_KEY.format(map_id=map_id, robot_id=robot),
+                encoding=zenoh.Encoding(encoding),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            for robot in robots
+        }
+        for pub in pubs.values():
+            wait_for(lambda p=pub: p.matching_status.matching, timeout=10, interval=0.01, what="the service")
+        yield pubs
+    finally:
+        session.close()
 
 
 @pytest.fixture(scope="module")
@@ -89,21 +118,7 @@ def test_copies_and_stale_scans_are_duplicates_even_at_seq_0(
     scan whose seq is not new is a restart only with a later stamp, or at seq 0 when it is not the
     very scan last accepted: robots that send no stamp (0), or stamps of a clock that starts again
     with the robot, still restart at seq 0."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"client"')
-    cfg.insert_json5("connect/endpoints", json.dumps([service.zenoh_endpoint]))
-    session = zenoh.open(cfg)
-    try:
-        pubs = {
-            robot: session.declare_publisher(
-                SCAN_KEY.format(map_id="life-copies", robot_id=robot),
-                encoding=zenoh.Encoding(BINARY_ENCODING),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
-            for robot in ("stamped", "unstamped")
-        }
-        for pub in pubs.values():
-            wait_for(lambda p=pub: p.matching_status.matching, timeout=10, interval=0.01, what="the service")
+    with raw_publishers(service.zenoh_endpoint, "life-copies", ["stamped", "unstamped"]) as pubs:
         # (seq, stamp): a copy of seq 0 at once, and a stale copy of seq 1 after seq 2.
         for seq, stamp in [(0, 100.0), (0, 100.0), (1, 101.0), (2, 102.0), (1, 101.0), (3, 103.0)]:
             pubs["stamped"].put(codec.encode_binary(scan_at(float(seq)), seq, stamp))
@@ -115,8 +130,6 @@ def test_copies_and_stale_scans_are_duplicates_even_at_seq_0(
         assert counters(stamped) == (4, 3, 0, 2, 0)
         assert stamped["last_stamp"] == 103.0
         assert counters(wait_integrated(http, "life-copies", "unstamped", 5)) == (5, 1, 0, 0, 1)
-    finally:
-        session.close()
 
 
 def test_robots_outlive_a_service_restart_and_a_robot_restart_after_it(tmp_path: Path) -> None:
@@ -147,5 +160,122 @@ def test_robots_outlive_a_service_restart_and_a_robot_restart_after_it(tmp_path:
                 for k in range(1, 3):
                     assert restarted.publish(scan_at(1.0 + 0.1 * k), seq=k)
             assert counters(wait_integrated(http, "life-svc", "r", 7)) == (7, 2, 1, 0, 1)
+    finally:
+        svc.stop()
+
+
+# -- publisher sessions ---------------------------------------------------------------------------------
+
+
+def robot_metric(http: httpx.Client, name: str, map_id: str, robot_id: str) -> float | None:
+    """The value of the Prometheus sample `name{map=map_id, robot=robot_id}`, None if absent."""
+    for family in text_string_to_metric_families(http.get("/metrics").text):
+        for sample in family.samples:
+            if sample.name == name and sample.labels == {"map": map_id, "robot": robot_id}:
+                return sample.value
+    return None
+
+
+def test_two_robots_under_one_robot_id_are_both_integrated_and_the_conflict_reported(
+    service: ServiceProcess, http: httpx.Client
+) -> None:
+    """Two robots misconfigured with one robot id: their seqs interleave. Told apart by nothing but
+    stamps, the second one's seq 0 looked like a restart of the first, and then, its clock being
+    behind the other's, its scans were dropped as duplicates of the other's (and the counters said
+    restart after restart). Each publisher sends its own session id: the service keeps each one's
+    seqs apart, integrates every scan of both and reports the conflict (robot listing, metric, log)."""
+    with (
+        ScanPublisher("life-twins", "r", connect=service.zenoh_endpoint) as first,
+        ScanPublisher("life-twins", "r", connect=service.zenoh_endpoint, encoding="json") as second,
+    ):
+        assert first.session_id != second.session_id
+        assert first.wait_connected(15) and second.wait_connected(15)
+        for k in range(10):
+            assert first.publish(scan_at(0.1 * k))
+            wait_integrated(http, "life-twins", "r", 2 * k + 1)  # so that the two interleave
+            assert second.publish(scan_at(5.0 + 0.1 * k), stamp=time.time() - 1000.0)  # its clock is behind
+            stats = wait_integrated(http, "life-twins", "r", 2 * k + 2)
+    assert counters(stats) == (20, 9, 0, 0, 0)
+    assert stats["id_conflict"] is True and stats["id_conflicts"] == 1
+    assert robot_metric(http, "fleetmap_robot_id_conflicts_total", "life-twins", "r") == 1.0
+    wait_for(
+        lambda: "robot id conflict on map 'life-twins'" in service.logs() and "'r'" in service.logs(),
+        timeout=10, what="the conflict's log line",
+    )  # fmt: skip
+    lines = [line for line in service.logs().splitlines() if "robot id conflict on map 'life-twins'" in line]
+    assert len(lines) == 1  # one line for the ongoing conflict, not one per scan
+    # A robot alone under its id is in no conflict.
+    assert robot_stats(http, "life-restart", "r").get("id_conflict") in (False, None)
+
+
+def test_a_robot_restarting_with_its_clock_and_seq_at_0_is_a_new_session_not_duplicates(
+    service: ServiceProcess, http: httpx.Client
+) -> None:
+    """A robot whose clock starts again at 0 with it (or that sends stamp 0) and counts from 0 again:
+    by its stamps, its new scans were duplicates (stamp 0) or each one another restart (stamps
+    below the old ones, but rising). Its new session id says "restarted": nothing is dropped, one
+    restart is counted. Copies within a session (also a late copy from before the restart) are
+    still duplicates, and no id conflict."""
+    with raw_publishers(service.zenoh_endpoint, "life-sessions", ["unstamped", "clock"]) as pubs:
+        before, after = new_session_id(), new_session_id()
+        # (session, seq): stamp 0 throughout; a copy of seq 4, and a late copy of the old run's seq 3.
+        for sid, seq in [(before, 0), (before, 1), (before, 2), (before, 3), (before, 4), (before, 4),
+                         (after, 0), (after, 1), (before, 3), (after, 2)]:  # fmt: skip
+            pubs["unstamped"].put(codec.encode_binary(scan_at(float(seq)), seq, 0.0, session=sid))
+        # A clock at 500 s, then at 0 again after the restart.
+        for sid, seq, stamp in [
+            *((before, k, 500.0 + k) for k in range(5)),
+            *((after, k, 0.1 * k) for k in range(4)),
+        ]:
+            pubs["clock"].put(codec.encode_binary(scan_at(float(seq)), seq, stamp, session=sid))
+        unstamped = wait_integrated(http, "life-sessions", "unstamped", 8)
+        assert counters(unstamped) == (8, 2, 0, 2, 1)
+        clock = wait_integrated(http, "life-sessions", "clock", 9)
+        assert counters(clock) == (9, 3, 0, 0, 1)
+        assert clock["last_stamp"] == pytest.approx(0.3)
+        assert not unstamped["id_conflict"] and not clock["id_conflict"]
+
+
+def test_a_service_restart_gives_the_session_bookkeeping_it_had(tmp_path: Path) -> None:
+    """The journal keeps each scan's session id, the snapshot each robot's sessions: after a crash
+    (the journal replayed) and after a clean restart (the snapshot) a map's robots have the
+    counters they had: interleaved sessions (an id conflict, with a third session joining), a
+    restarted robot, and one of an old publisher that sends no session id."""
+    svc = ServiceProcess(tmp_path, ["--snapshot-interval", "3600"])
+    svc.start()
+    a, b, c, s1, s2 = (new_session_id() for _ in range(5))
+    twins = [(a, 0), (b, 0), (a, 1), (b, 1), (a, 2), (b, 2), (a, 4), (b, 3), (c, 0), (a, 5), (b, 4), (c, 1)]
+    solo = [(s1, k) for k in range(4)] + [(s2, k) for k in range(3)]
+    old = [(None, k) for k in (0, 1, 2, 0, 1)]
+    try:
+        robots = {"twins": twins, "solo": solo, "old": old}
+        with raw_publishers(svc.zenoh_endpoint, "life-replay", list(robots), JSON_ENCODING) as pubs:
+            for robot, messages in robots.items():
+                for sid, seq in messages:
+                    pubs[robot].put(codec.encode_json(scan_at(0.1 * seq), seq, 0.0, session=sid))
+        with httpx.Client(base_url=svc.base_url, timeout=10.0) as http:
+            live = {robot: wait_integrated(http, "life-replay", robot, n) for robot, n in
+                    (("twins", 12), ("solo", 7), ("old", 5))}  # fmt: skip
+            assert counters(live["twins"]) == (12, 1, 1, 0, 0)  # seq 3 of `a` lost; `c` no restart
+            assert (live["twins"]["id_conflict"], live["twins"]["id_conflicts"]) == (True, 2)
+            assert counters(live["solo"]) == (7, 2, 0, 0, 1)
+            assert counters(live["old"]) == (5, 1, 0, 0, 1)
+            svc.proc.kill()  # type: ignore[union-attr]  # SIGKILL: no snapshot, only the journal
+            svc.proc.wait(10)  # type: ignore[union-attr]
+            for how in ("journal", "snapshot"):
+                svc.start()
+                if how == "journal":  # (no snapshot was made before the kill: all 24 replayed)
+                    assert "24 journal scans replayed" in svc.logs()
+                again = {robot: robot_stats(http, "life-replay", robot) for robot in live}
+                assert again == live, how
+                if how == "journal":
+                    assert svc.stop() == 0  # a clean stop: snapshotted
+            # The snapshot kept each session's seqs: `c` and `a` go on, neither restarted nor lost.
+            with raw_publishers(svc.zenoh_endpoint, "life-replay", ["twins"]) as pubs:
+                for sid, seq in [(c, 2), (a, 6)]:
+                    pubs["twins"].put(codec.encode_binary(scan_at(0.1 * seq), seq, 0.0, session=sid))
+                twins_now = wait_integrated(http, "life-replay", "twins", 14)
+            assert counters(twins_now) == (14, 6, 1, 0, 0)
+            assert twins_now["id_conflicts"] == 2
     finally:
         svc.stop()

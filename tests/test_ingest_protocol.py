@@ -43,10 +43,12 @@ def test_json_example_decodes() -> None:
 def test_documented_header_offsets_match_the_codec() -> None:
     rows = re.findall(r"^\| (\d+) +\| (\d+) +\| (\w+) +\| ([\w ]+?) +\|", DOC.read_text(), re.M)
     fmt = {"bytes": "4s", "u8": "B", "u16": "H", "u64": "Q", "f64": "d", "f32": "f", "u32": "I"}
-    assert rows[0][3] == "magic" and rows[-1][3] == "n"
-    assert "<" + "".join(fmt[t] for _, _, t, _ in rows) == codec.HEADER.format
+    # Version 2's header is version 1's followed by the session id.
+    assert rows[0][3] == "magic" and rows[-2][3] == "n" and rows[-1][3] == "session"
+    assert "<" + "".join(fmt[t] for _, _, t, _ in rows) == codec.HEADER_V2.format
+    assert "<" + "".join(fmt[t] for _, _, t, _ in rows[:-1]) == codec.HEADER.format
     offset = 0
     for start, size, _, _ in rows:
         assert int(start) == offset
         offset += int(size)
-    assert offset == codec.HEADER.size == 72
+    assert offset == codec.HEADER_V2.size == 80 and int(rows[-1][0]) == codec.HEADER.size == 72

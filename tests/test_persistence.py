@@ -107,11 +107,11 @@ def test_superseded_rows_left_by_a_crash_are_deleted_at_start(tmp_path: Path, mo
     again = DurableStore(tmp_path)
     try:
         [(map_id, restored, _counters, replay)] = again.load()
-        assert map_id == "m" and [seq for _robot, seq, _stamp, _scan in replay] == [8, 9, 10, 11]
+        assert map_id == "m" and [seq for _robot, seq, _stamp, _session, _scan in replay] == [8, 9, 10, 11]
         assert len(journal_rows(tmp_path)) == 4
         window = gmap.known_bounds()
         assert window is not None
-        for scan in (s for _r, _q, _t, s in replay):
+        for scan in (s for _r, _q, _t, _session, s in replay):
             restored.integrate(scan)
         np.testing.assert_array_equal(restored.region("log_odds", *window), gmap.region("log_odds", *window))
     finally:

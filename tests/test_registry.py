@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sqlite3
 import threading
 import time
@@ -17,7 +18,16 @@ from fleetmap.config import MapConfig
 from fleetmap.fair_queue import FairQueue
 from fleetmap.grid_map import GridMap
 from fleetmap.persistence import DurableStore
-from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, MapRegistry
+from fleetmap.registry import (
+    CONFLICT_SHOWN,
+    MAX_SESSIONS,
+    IngestRejected,
+    InvalidId,
+    MapConflict,
+    MapNotFound,
+    MapRegistry,
+    RobotState,
+)
 from fleetmap.scan import Scan
 
 
@@ -465,3 +475,87 @@ def test_a_live_robot_shows_online_in_its_map_created_again() -> None:
     reg.set_online("m", "r", False)
     reg.delete("m")
     assert "r" not in reg.create("m")[0].robots  # a token gone is forgotten
+
+
+def _crash(registry: MapRegistry) -> None:
+    """Stop `registry` as a crash would: no snapshot, only the journal."""
+    registry.queue.close()
+    for t in registry._workers:
+        t.join(5)
+    registry.durable.close()  # type: ignore[union-attr]
+
+
+def test_a_database_and_snapshot_from_before_session_ids_still_load(tmp_path: Path) -> None:
+    """A data directory written before session ids: journal rows without the `session` column and
+    robots saved without `sessions`. It loads, the column is added, and the robot's scans (which
+    carried no session id) go on as before: a gap is lost, seq 0 with stamp 0 is a restart, a copy
+    of the last scan a duplicate."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    for seq in (0, 1, 2):
+        registry.submit("m", "r", WireScan(seq, 10.0 + seq, scan_at(0.1 * seq)), wait=True).result(10)  # type: ignore[union-attr]
+    registry.close()  # snapshotted
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    for seq in (3, 5):
+        registry.submit("m", "r", WireScan(seq, 10.0 + seq, scan_at(0.1 * seq)), wait=True).result(10)  # type: ignore[union-attr]
+    _crash(registry)
+    with sqlite3.connect(registry.durable.path) as conn:  # type: ignore[union-attr]
+        conn.execute("ALTER TABLE journal DROP COLUMN session")
+        for robot_id, state in conn.execute("SELECT robot_id, state FROM robots").fetchall():
+            old = {
+                k: v for k, v in json.loads(state).items() if k not in RobotState.SAVED[-3:] + ("sessions",)
+            }
+            conn.execute("UPDATE robots SET state = ? WHERE robot_id = ?", (json.dumps(old), robot_id))
+    again = MapRegistry(durable=DurableStore(tmp_path))
+    again.start()
+    try:
+        robot = again.get("m").robots["r"]
+        assert (robot.scans_integrated, robot.last_seq, robot.lost, robot.restarts) == (5, 5, 1, 0)
+        with pytest.raises(IngestRejected, match="duplicate"):
+            again.submit("m", "r", WireScan(5, 15.0, scan_at(0.0)))
+        again.submit("m", "r", WireScan(0, 0.0, scan_at(0.0)), wait=True).result(10)  # type: ignore[union-attr]
+        assert (robot.duplicates, robot.restarts, robot.last_seq) == (1, 1, 0)
+        with sqlite3.connect(again.durable.path) as conn:  # type: ignore[union-attr]
+            assert "session" in {row[1] for row in conn.execute("PRAGMA table_info(journal)")}
+    finally:
+        again.close()
+
+
+def test_a_robots_sessions_stay_bounded_and_survive_its_saved_state() -> None:
+    """A sender that makes up a session id per scan holds at most MAX_SESSIONS of them; the saved
+    state (JSON, as in the snapshot) gives back the same bookkeeping."""
+    robot = RobotState()
+    for k in range(3 * MAX_SESSIONS):
+        assert not robot.is_duplicate(0, 0.0, 1000 + k)
+        robot.accept(0, 0.0, 1000 + k, now=1.0)
+    assert len(robot.sessions) == MAX_SESSIONS
+    assert (robot.restarts, robot.id_conflicts) == (3 * MAX_SESSIONS - 1, 0)
+    restored = RobotState.from_saved(json.loads(json.dumps(robot.saved())))
+    assert restored.sessions == robot.sessions and restored.saved() == robot.saved()
+    assert restored.is_duplicate(0, 0.0, 1000 + 3 * MAX_SESSIONS - 1)
+    assert not restored.in_conflict(1.0)
+
+
+def test_interleaved_sessions_are_a_conflict_shown_for_a_minute_and_a_late_copy_is_not() -> None:
+    """Two publishers under one id: each one's seqs counted apart (no duplicate, lost or restart
+    from switching), one conflict; a third joins: one more, its restart withdrawn too. The conflict
+    shows until CONFLICT_SHOWN after the last interleaved scan. A late copy of an ended session's
+    scan after a restart is a duplicate, not a conflict."""
+    robot = RobotState()
+    for seq, session in [(0, 1), (0, 2), (1, 1), (1, 2), (3, 1), (2, 2), (0, 3), (4, 1), (3, 2)]:
+        assert not robot.is_duplicate(seq, 0.0, session)
+        robot.accept(seq, 0.0, session, now=100.0)
+    assert (robot.lost, robot.restarts, robot.duplicates, robot.id_conflicts) == (1, 0, 0, 2)
+    assert robot.is_duplicate(3, 0.0, 1) and not robot.is_duplicate(5, 0.0, 1)
+    assert robot.in_conflict(100.0 + CONFLICT_SHOWN - 1) and not robot.in_conflict(100.0 + CONFLICT_SHOWN)
+
+    restarted = RobotState()
+    for k in range(3):
+        restarted.accept(k, 50.0 + k, 7, now=1.0)
+    assert not restarted.is_duplicate(0, 0.0, 8)  # a new session at seq 0, clock at 0: a restart
+    restarted.accept(0, 0.0, 8, now=2.0)
+    assert restarted.is_duplicate(2, 52.0, 7)  # a late copy of the old run's scan
+    # Within a session, stamps say nothing: a copy of seq 0, or with a later stamp, is a duplicate.
+    assert restarted.is_duplicate(0, 50.0, 7) and restarted.is_duplicate(1, 99.0, 7)
+    assert (restarted.restarts, restarted.id_conflicts, restarted.in_conflict(2.0)) == (1, 0, False)

@@ -18,6 +18,7 @@ Conventions:
 from __future__ import annotations
 
 import threading
+import time
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -143,6 +144,16 @@ class RobotStats(_Model):
     dropped: int = Field(0, description="scans refused because the ingest queue was full")
     not_durable: int = Field(
         0, description="scans applied whose journal commit failed (storage error); a snapshot saves them"
+    )
+    id_conflict: bool = Field(
+        False,
+        description="scans of two or more publisher sessions interleaved in the last minute: more than one "
+        "robot publishes under this id (the scans of each are integrated; give each robot its own id)",
+    )
+    id_conflicts: int = Field(
+        0,
+        description="times a publisher session was found publishing at the same time as another one under "
+        "this id (two robots: 1)",
     )
 
 
@@ -333,6 +344,8 @@ def robot_stats(state: RobotState) -> RobotStats:
         restarts=state.restarts,
         dropped=state.dropped,
         not_durable=state.not_durable,
+        id_conflict=state.in_conflict(time.time()),
+        id_conflicts=state.id_conflicts,
     )
 
 

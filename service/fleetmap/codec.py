@@ -1,15 +1,16 @@
-"""Scan payload codecs: bytes on the wire <-> `WireScan` (a sequence number, a stamp and an engine
-`Scan`).
+"""Scan payload codecs: bytes on the wire <-> `WireScan` (a sequence number, a stamp, the publisher's
+session id if it sends one, and an engine `Scan`).
 
 Two encodings, chosen by the Zenoh sample's encoding (`fleetmap.wire`): JSON (`ScanMessage`) and
 the compact little-endian binary layout below, documented byte by byte in docs/protocol.md. Every
 decode either returns a fully valid `WireScan` or raises `DecodeError` with a reason.
 
-Binary layout (little-endian), header of `HEADER.size` = 72 bytes, then the arrays:
+Binary layout (little-endian), header of `HEADER.size` = 72 bytes (version 1) or
+`HEADER_V2.size` = 80 bytes (version 2), then the arrays:
 
     offset size type    field
     0      4    bytes   magic b"FMS1"
-    4      1    u8      version (1)
+    4      1    u8      version (1: no session id; 2: with one)
     5      1    u8      flags: bit 0 = explicit angles follow (else angle_min/increment are used)
     6      2    u16     reserved, 0
     8      8    u64     seq
@@ -22,8 +23,11 @@ Binary layout (little-endian), header of `HEADER.size` = 72 bytes, then the arra
     56     8    f64     angle_min (rad; ignored with flag bit 0)
     64     4    f32     angle_increment (rad; ignored with flag bit 0)
     68     4    u32     n, the number of beams
-    72     4*n  f32     angles (only with flag bit 0)
+    72     8    u64     session id, in [1, 2**53) (version 2 only)
+    72/80  4*n  f32     angles (only with flag bit 0)
     ...    4*n  f32     ranges (NaN = invalid, +inf or >= range_max = no return)
+
+A scan without a session id is encoded as version 1, which services before version 2 read too.
 """
 
 from __future__ import annotations
@@ -37,13 +41,15 @@ import numpy as np
 from pydantic import ValidationError
 
 from fleetmap.scan import MAX_BEAMS, Pose2D, Scan, ScanError
-from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, SEQ_LIMIT, ScanMessage
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, SEQ_LIMIT, SESSION_LIMIT, ScanMessage
 
 MAGIC = b"FMS1"
-VERSION = 1
+#: The header without a session id (version 1) and with one (version 2, the session id after it).
+VERSION, VERSION_SESSION = 1, 2
 FLAG_ANGLES = 1
 HEADER = struct.Struct("<4sBBHQddddffdfI")
-assert HEADER.size == 72, "the layout documented above and in docs/protocol.md"
+HEADER_V2 = struct.Struct("<4sBBHQddddffdfIQ")
+assert HEADER.size == 72 and HEADER_V2.size == 80, "the layout documented above and in docs/protocol.md"
 #: The largest scan payload accepted by default, over Zenoh and REST alike (about 16 K beams as JSON
 #: with explicit angles). Over REST it is stricter than the HTTP body limit (`ApiSettings.max_body_bytes`).
 MAX_PAYLOAD_BYTES_DEFAULT = 4 * 1024 * 1024
@@ -93,7 +99,7 @@ class InputLimits:
                     f"range_min {scan.range_min:g} m is beyond the limit of {self.max_range:g} m"
                 )
             capped = Scan(pose, scan.angles, scan.ranges, scan.range_min, self.max_range)
-            return WireScan(wire.seq, wire.stamp, capped)
+            return WireScan(wire.seq, wire.stamp, capped, wire.session)
         return wire
 
 
@@ -112,11 +118,13 @@ def current_limits() -> InputLimits:
 
 @dataclass(frozen=True)
 class WireScan:
-    """A decoded scan message: what the service integrates."""
+    """A decoded scan message: what the service integrates. `session` is the publisher's session id
+    (`ScanMessage.session`), None from a publisher that sends none."""
 
     seq: int
     stamp: float
     scan: Scan
+    session: int | None = None
 
 
 def decode(payload: bytes | bytearray | memoryview, encoding: str) -> WireScan:
@@ -158,7 +166,7 @@ def from_message(message: ScanMessage) -> WireScan:
     """A validated `ScanMessage` as a `WireScan` within the input limits; raises `DecodeError` if
     the engine or the limits refuse it."""
     try:
-        return _limits.check(WireScan(message.seq, message.stamp, message.to_scan()))
+        return _limits.check(WireScan(message.seq, message.stamp, message.to_scan(), message.session))
     except ScanError as exc:
         raise DecodeError(str(exc)) from None
 
@@ -170,14 +178,24 @@ def decode_binary(data: bytes) -> WireScan:
      angle_increment, n) = HEADER.unpack_from(data)  # fmt: skip
     if magic != MAGIC:
         raise DecodeError(f"bad magic {magic!r}, expected {MAGIC!r}")
-    if version != VERSION:
+    if version not in (VERSION, VERSION_SESSION):
         raise DecodeError(f"unsupported binary scan version {version}")
+    header = HEADER if version == VERSION else HEADER_V2
+    session = None
+    if version == VERSION_SESSION:
+        if len(data) < header.size:
+            raise DecodeError(
+                f"binary scan of {len(data)} bytes is shorter than its {header.size}-byte header"
+            )
+        session = header.unpack_from(data)[-1]
+        if not 1 <= session < SESSION_LIMIT:
+            raise DecodeError("session must be in [1, 2**53)")
     if flags & ~FLAG_ANGLES:
         raise DecodeError(f"unknown flags {flags:#x}")
     if n > MAX_BEAMS:
         raise DecodeError(f"{n} beams is more than the limit of {MAX_BEAMS}")
     arrays = 2 if flags & FLAG_ANGLES else 1
-    expected = HEADER.size + 4 * n * arrays
+    expected = header.size + 4 * n * arrays
     if len(data) != expected:
         raise DecodeError(f"binary scan of {n} beams must be {expected} bytes, got {len(data)}")
     if seq >= SEQ_LIMIT:
@@ -186,7 +204,7 @@ def decode_binary(data: bytes) -> WireScan:
                         ("angle_increment", angle_increment)):  # fmt: skip
         if not math.isfinite(value):
             raise DecodeError(f"{name} must be finite")
-    body = np.frombuffer(data, dtype="<f4", offset=HEADER.size)
+    body = np.frombuffer(data, dtype="<f4", offset=header.size)
     # Any 32-bit pattern may arrive, signalling NaNs included: widening them is fine (they stay NaN,
     # an invalid reading), so numpy's warning about it is noise.
     with np.errstate(invalid="ignore"):
@@ -200,22 +218,29 @@ def decode_binary(data: bytes) -> WireScan:
         scan = Scan(Pose2D(x, y, theta), angles, ranges, float(range_min), float(range_max))
     except ScanError as exc:
         raise DecodeError(str(exc)) from None
-    return _limits.check(WireScan(int(seq), float(stamp), scan))
+    return _limits.check(WireScan(int(seq), float(stamp), scan, session))
 
 
-def encode_binary(scan: Scan, seq: int, stamp: float = 0.0, explicit_angles: bool | None = None) -> bytes:
-    """The binary encoding of a scan. Evenly spaced beams are sent as angle_min + increment unless
-    `explicit_angles` is True; other beams always with explicit angles."""
+def encode_binary(
+    scan: Scan, seq: int, stamp: float = 0.0, explicit_angles: bool | None = None, session: int | None = None
+) -> bytes:
+    """The binary encoding of a scan: version 2 with a `session` id, else version 1. Evenly spaced
+    beams are sent as angle_min + increment unless `explicit_angles` is True; other beams always
+    with explicit angles."""
     n = scan.num_beams
     angles = scan.angles
     even = n < 2 or bool(np.allclose(np.diff(angles), angles[1] - angles[0], rtol=0, atol=1e-9))
     explicit = (not even) if explicit_angles is None else explicit_angles
     angle_min = float(angles[0]) if n else 0.0
     increment = float(angles[1] - angles[0]) if n > 1 else 0.0
-    header = HEADER.pack(
-        MAGIC, VERSION, FLAG_ANGLES if explicit else 0, 0, seq, stamp, scan.pose.x, scan.pose.y,
+    fields = (
+        FLAG_ANGLES if explicit else 0, 0, seq, stamp, scan.pose.x, scan.pose.y,
         scan.pose.theta, scan.range_min, scan.range_max, angle_min, increment, n,
     )  # fmt: skip
+    if session is None:
+        header = HEADER.pack(MAGIC, VERSION, *fields)
+    else:
+        header = HEADER_V2.pack(MAGIC, VERSION_SESSION, *fields, session)
     parts = [header]
     if explicit:
         parts.append(angles.astype("<f4").tobytes())
@@ -223,7 +248,7 @@ def encode_binary(scan: Scan, seq: int, stamp: float = 0.0, explicit_angles: boo
     return b"".join(parts)
 
 
-def encode_json(scan: Scan, seq: int, stamp: float = 0.0) -> bytes:
+def encode_json(scan: Scan, seq: int, stamp: float = 0.0, session: int | None = None) -> bytes:
     """The JSON encoding of a scan, exact: inf (no return) becomes null; beams with an invalid
     reading (NaN, which JSON cannot hold) are left out, since every sensor model ignores them; the
     compact angle_min + increment form is used only when it decodes to these angles bit for bit."""
@@ -234,6 +259,7 @@ def encode_json(scan: Scan, seq: int, stamp: float = 0.0) -> bytes:
     message: dict[str, object] = {
         "seq": seq,
         "stamp": stamp,
+        **({} if session is None else {"session": session}),
         "pose": {"x": scan.pose.x, "y": scan.pose.y, "theta": scan.pose.theta},
         "range_min": scan.range_min,
         "ranges": [None if math.isinf(r) else r for r in ranges.tolist()],

@@ -15,7 +15,9 @@ LOCK_NAME = "fleetmap.lock"
 #: The database's layout (`PRAGMA user_version`): its tables, tile format 2, journal rows up to
 #: version 3. A version that changes any of them in a way older ones cannot read raises it, so an
 #: older service refuses the directory instead of misreading it or writing what the newer one
-#: misreads. Directories written before it was recorded hold 0 and are this layout.
+#: misreads. Directories written before it was recorded hold 0 and are this layout. (The journal's
+#: `session` column came later within version 1: added to a database without it at start (`_migrate`),
+#: and an older service, which names the columns it reads and writes, works on it as before.)
 SCHEMA_VERSION = 1
 #: Refuse to start with less free space than this in the data directory.
 MIN_FREE_BYTES = 64 * 1024 * 1024
@@ -51,7 +53,8 @@ CREATE TABLE IF NOT EXISTS journal (
     robot_id TEXT NOT NULL,
     seq INTEGER NOT NULL,
     stamp REAL NOT NULL,
-    scan BLOB NOT NULL
+    scan BLOB NOT NULL,
+    session INTEGER  -- the publisher's session id (`ScanMessage.session`); NULL: it sent none
 );
 CREATE INDEX IF NOT EXISTS journal_map ON journal (map_id, id);
 """
@@ -146,12 +149,22 @@ def _check_and_create(data_dir: Path) -> Path:
                     f"this one reads up to {SCHEMA_VERSION}): run that version, or move the directory aside"
                 )
             conn.executescript(SCHEMA)
+            _migrate(conn)
             conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
         finally:
             conn.close()
     except sqlite3.DatabaseError as exc:
         raise StorageError(f"cannot open the map database {path}: {exc}") from None
     return path
+
+
+def _migrate(conn: sqlite3.Connection) -> None:
+    """Bring a database written before the journal had its `session` column up to date: its rows
+    keep NULL there (no session: their restarts are told by their stamps, as when they were
+    written)."""
+    columns = {row[1] for row in conn.execute("PRAGMA table_info(journal)")}
+    if "session" not in columns:
+        conn.execute("ALTER TABLE journal ADD COLUMN session INTEGER")
 
 
 def connect(path: Path, synchronous: str = "FULL", autocheckpoint: bool = True) -> sqlite3.Connection:

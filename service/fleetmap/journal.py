@@ -27,7 +27,8 @@ log = logging.getLogger("fleetmap.journal")
 
 @dataclass
 class JournalEntry:
-    """One accepted scan to append: `blob` is `storage_format.scan_to_blob` of it. The writer calls
+    """One accepted scan to append: `blob` is `storage_format.scan_to_blob` of it, `session` its
+    publisher's session id (None: it sent none). The writer calls
     `on_durable(journal_id)` once its row is committed, or `on_failed(error)` if the transaction
     meant to carry it failed (the row is then never written)."""
 
@@ -38,6 +39,7 @@ class JournalEntry:
     blob: bytes
     on_durable: Callable[[int], None]
     on_failed: Callable[[Exception], None]
+    session: int | None = None
 
 
 class _AttachedRow(NamedTuple):
@@ -362,8 +364,9 @@ class JournalWriter:
             self._conn.execute("BEGIN IMMEDIATE")
             for e in batch:
                 cur = self._conn.execute(
-                    "INSERT INTO journal (map_id, robot_id, seq, stamp, scan) VALUES (?, ?, ?, ?, ?)",
-                    (e.map_id, e.robot_id, e.seq, e.stamp, e.blob),
+                    "INSERT INTO journal (map_id, robot_id, seq, stamp, scan, session) "
+                    "VALUES (?, ?, ?, ?, ?, ?)",
+                    (e.map_id, e.robot_id, e.seq, e.stamp, e.blob, e.session),
                 )
                 ids.append(cur.lastrowid)
             for a in attached:

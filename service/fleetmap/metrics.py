@@ -2,10 +2,11 @@
 
 Two sources, so nothing is counted twice:
 
-- Counters the registry already keeps (scans integrated / rejected / lost / duplicates / dropped per
-  map and robot, robots online, queue depth and the age of the oldest queued scan, tiles and memory
-  per map) are read from the registry when Prometheus scrapes, by `RegistryCollector`. The registry
-  stays the one truth. Likewise the tile cache's and the ingest gate's counters.
+- Counters the registry already keeps (scans integrated / rejected / lost / duplicates / dropped and
+  id conflicts per map and robot, robots online, queue depth and the age of the oldest queued scan,
+  tiles and memory per map) are read from the registry when Prometheus scrapes, by
+  `RegistryCollector`. The registry stays the one truth. Likewise the tile cache's and the ingest
+  gate's counters.
 - Latencies only exist as events, so they are observed as they happen: `IntegrationMetrics` is the
   registry's `on_integrated` hook (integration time; from the job's `enqueued_at` and `applied_at`:
   arrival to integrated, arrival to visible, applied to journaled); the tile cache reports render
@@ -123,8 +124,8 @@ class RegistryCollector(Collector):
 
     def collect(self) -> Iterator[Metric]:
         families = self._families()
-        integrated, rejected, lost, duplicates, dropped, not_durable, online = families[:7]
-        tiles, memory, maps, depth, age, storage_ok, budget_used, budget_limit = families[7:]
+        integrated, rejected, lost, duplicates, dropped, not_durable, online, conflicts = families[:8]
+        tiles, memory, maps, depth, age, storage_ok, budget_used, budget_limit = families[8:]
         entries = self.registry.list()
         for entry in entries:
             # Tiles and memory need no lock (see TileStore.memory_bytes); the counters need the registry's.
@@ -141,6 +142,7 @@ class RegistryCollector(Collector):
                     dropped.add_metric(labels, state.dropped)
                     not_durable.add_metric(labels, state.not_durable)
                     online.add_metric(labels, 1.0 if state.online else 0.0)
+                    conflicts.add_metric(labels, state.id_conflicts)
         maps.add_metric([], len(entries))
         queued, oldest = self.registry.backlog()
         depth.add_metric([], queued)
@@ -178,6 +180,12 @@ class RegistryCollector(Collector):
             ),
             GaugeMetricFamily(
                 "fleetmap_robot_online", "1 while the robot's liveliness token is alive", labels=robot
+            ),
+            CounterMetricFamily(
+                "fleetmap_robot_id_conflicts",
+                "Publisher sessions found publishing at once under the robot's id (more than one robot "
+                "under one id; see id_conflict in GET /maps/{map_id})",
+                labels=robot,
             ),
             GaugeMetricFamily("fleetmap_map_tiles", "Storage tiles allocated", labels=["map"]),
             GaugeMetricFamily("fleetmap_map_memory_bytes", "Bytes in the map's tile pools", labels=["map"]),

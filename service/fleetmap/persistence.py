@@ -102,8 +102,8 @@ class StoredJournal:
     def __len__(self) -> int:
         return self.count
 
-    def __iter__(self) -> Iterator[tuple[str, int, float, Scan]]:
-        """(robot id, seq, stamp, scan) of each row, in journal order."""
+    def __iter__(self) -> Iterator[tuple[str, int, float, int | None, Scan]]:
+        """(robot id, seq, stamp, session id or None, scan) of each row, in journal order."""
         conn = connect(self.path)
         try:
             last = self.after
@@ -111,20 +111,20 @@ class StoredJournal:
                 # A batch is fetched whole before any row is decoded: a cursor left open by a row
                 # that does not decode kept a read lock, and the shutdown's checkpoint waited 30 s.
                 rows = conn.execute(
-                    "SELECT id, robot_id, seq, stamp, scan FROM journal WHERE map_id = ? AND id > ? "
+                    "SELECT id, robot_id, seq, stamp, session, scan FROM journal WHERE map_id = ? AND id > ? "
                     "ORDER BY id LIMIT ?",
                     (self.map_id, last, self.BATCH),
                 ).fetchall()
                 if not rows:
                     return
-                for row_id, robot_id, seq, stamp, blob in rows:
+                for row_id, robot_id, seq, stamp, session, blob in rows:
                     try:
                         scan = scan_from_blob(blob)
                     except StorageError as exc:
                         raise unreadable_database(
                             self.path, self.map_id, f"journal row {row_id}: {exc}"
                         ) from None
-                    yield robot_id, seq, stamp, scan
+                    yield robot_id, seq, stamp, session, scan
                 last = rows[-1][0]
         except sqlite3.DatabaseError as exc:
             raise unreadable_database(self.path, self.map_id, exc) from None
@@ -397,6 +397,7 @@ class DurableStore:
     def journal(
         self, map_id: str, robot_id: str, seq: int, stamp: float, blob: bytes,
         on_durable: Callable[[int], None], on_failed: Callable[[Exception], None],
+        session: int | None = None,
     ) -> None:  # fmt: skip
         """Append an applied scan (its `scan_to_blob`, made before taking the lock); MUST be called
         under the map's lock so the journal's order is the order scans were applied in.
@@ -418,7 +419,7 @@ class DurableStore:
                 self._awaiting[map_id] = self._awaiting.get(map_id, 0) + 1
             on_failed(exc)
 
-        self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable, failed))
+        self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable, failed, session))
 
     def health(self) -> StorageHealth:
         unstored = self.writer.unstored

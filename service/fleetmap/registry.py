@@ -38,6 +38,7 @@ from fleetmap.fair_queue import FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.persistence import DurableStore
+from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.scan import Pose2D, ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
@@ -73,6 +74,51 @@ class NotDurable(Exception):
     """A map change took effect in memory but was not committed to storage (in time)."""
 
 
+#: Publisher sessions a robot's bookkeeping remembers, the most recently heard: enough for a few
+#: robots that share one id, and bounded whatever session ids a sender makes up.
+MAX_SESSIONS = 8
+#: Seconds a robot is shown in an id conflict (`RobotState.in_conflict`) after its last scan that
+#: interleaved with another session's.
+CONFLICT_SHOWN = 60.0
+#: The session key of scans that carry no session id (publishers that send none).
+NO_SESSION = 0
+
+
+@dataclass
+class SessionSeqs:
+    """The seq bookkeeping of one publisher session of a robot (`ScanMessage.session`): each session
+    counts its own seqs, so scans of two publishers under one robot id are neither duplicates nor
+    restarts of each other."""
+
+    last_seq: int  # seq of its last accepted scan
+    stamp: float | None  # stamp of its last accepted scan (None: unknown, in an old snapshot)
+    first: int  # the robot's `accepted` count at its first scan ...
+    last: int  # ... and at its last: which sessions were heard since which
+    #: What its first scan added to `lost` when it was counted as a restart (None: it was not, or no
+    #: longer is): withdrawn if it turns out to have run beside the session it seemed to restart.
+    start_lost: int | None = None
+    conflict: bool = False  # found running beside another session of the robot
+
+    def saved(self) -> list:
+        return [self.last_seq, self.stamp, self.first, self.last, self.start_lost, self.conflict]
+
+    def is_restart(self, seq: int, stamp: float) -> bool:
+        """For scans WITHOUT a session id: whether a scan whose `seq` is not above `last_seq` starts
+        the robot's sequence again (else it is a duplicate).
+
+        A robot process that restarts counts from 0 again, but its first scans can be lost (published
+        before its session reached the service) or it may count from 1; either way its scans must
+        not be ignored as duplicates until it passes its old seq. Its stamps go on, so a later stamp
+        than the last accepted scan's says "restarted". A repeated message (a retry, a copy) carries
+        its old stamp, a stale one an earlier stamp: both stay duplicates. Seq 0 is also a restart
+        with an equal or earlier stamp (robots without stamps send 0; a robot without a real-time
+        clock may boot in 1970), unless it repeats the last accepted scan, seq 0 with the same stamp.
+        A publisher that sends a session id needs none of this: a new session is a restart."""
+        if self.stamp is not None and stamp > self.stamp:
+            return True
+        return seq == 0 and not (self.last_seq == 0 and stamp == self.stamp)
+
+
 @dataclass
 class RobotState:
     """What the service knows of one robot on one map."""
@@ -81,9 +127,6 @@ class RobotState:
     last_pose: Pose2D | None = None
     last_seq: int | None = None  # seq of the last scan accepted (enqueued)
     last_stamp: float | None = None
-    #: Stamp of the last scan accepted (enqueued; `last_stamp` is the last integrated one's): a scan
-    #: whose seq is not new but whose stamp is later is a restarted robot's, not a duplicate.
-    accepted_stamp: float | None = None
     scans_integrated: int = 0
     scans_rejected: int = 0
     last_error: str | None = None
@@ -91,18 +134,26 @@ class RobotState:
     duplicates: int = 0
     dropped: int = 0
     not_durable: int = 0  # applied, but the journal commit meant to make them durable failed
-    restarts: int = 0  # times its seq started again (`is_restart`)
+    restarts: int = 0  # times its seq started again (`accept`)
     #: Wall-clock time of its last message or liveliness change: a map full of robots forgets the
     #: offline robot heard from least recently to make room for a new one (`_room_for`).
     last_heard: float = 0.0
     #: Its scans accepted but not yet counted as integrated or refused: such a robot is not forgotten.
     unsettled: int = 0
     trail: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))
+    #: Its recent publisher sessions (key NO_SESSION: scans without a session id), least recently
+    #: heard first: the last one is the current one (`last_seq` is its last seq).
+    sessions: dict[int, SessionSeqs] = field(default_factory=dict)
+    accepted: int = 0  # scans accepted (orders the sessions' `first` and `last`)
+    #: Times scans of a session were found interleaved with another session's not yet known to
+    #: interleave with (two robots publishing under one id: 1; a third, or one of them restarted: +1).
+    id_conflicts: int = 0
+    conflict_at: float | None = None  # wall-clock time of the last interleaved scan
 
-    #: The counters that survive a restart.
+    #: The counters that survive a restart (and `sessions`, saved as lists).
     SAVED = (
         "last_seq", "last_stamp", "scans_integrated", "scans_rejected", "last_error", "lost", "duplicates",
-        "dropped", "not_durable", "restarts", "last_heard",
+        "dropped", "not_durable", "restarts", "last_heard", "accepted", "id_conflicts", "conflict_at",
     )  # fmt: skip
 
     def saved(self) -> dict:
@@ -110,6 +161,8 @@ class RobotState:
         out["last_pose"] = (
             None if self.last_pose is None else [self.last_pose.x, self.last_pose.y, self.last_pose.theta]
         )
+        # JSON objects have only string keys: a list keeps the ids integers and the order.
+        out["sessions"] = [[key, *rec.saved()] for key, rec in self.sessions.items()]
         return out
 
     @classmethod
@@ -118,34 +171,81 @@ class RobotState:
         if data.get("last_pose"):
             state.last_pose = Pose2D(*data["last_pose"])
             state.trail.append(tuple(data["last_pose"]))
-        state.accepted_stamp = state.last_stamp
+        if "sessions" in data:
+            state.sessions = {int(row[0]): SessionSeqs(*row[1:]) for row in data["sessions"]}
+        elif state.last_seq is not None:
+            # Saved before sessions existed: every scan so far came without one.
+            state.sessions = {NO_SESSION: SessionSeqs(state.last_seq, state.last_stamp, 0, 0)}
         return state
 
-    def accept(self, seq: int, stamp: float) -> None:
-        """Record the scan `seq` as accepted (by `submit`, or replayed from the journal): the seqs
-        skipped since the last one count as lost, and a seq that is not new is a restart, whose new
-        run's seqs before this one never arrived. The caller has ruled out duplicates."""
-        if self.last_seq is not None and seq <= self.last_seq:
-            self.restarts += 1
-            self.lost += seq
-        elif self.last_seq is not None and seq > self.last_seq + 1:
-            self.lost += seq - self.last_seq - 1
-        self.last_seq, self.accepted_stamp = seq, stamp
+    def is_duplicate(self, seq: int, stamp: float, session: int | None) -> bool:
+        """Whether the scan `seq` of publisher session `session` (None: it sent none) is not new:
+        its session's seq is past it (a copy, a retry, a stale message). A session not heard
+        before is never a duplicate: its publisher (re)started, or another robot shares this id.
+        Without a session, a seq not new is a restart if its stamp says so (`SessionSeqs.is_restart`)."""
+        rec = self.sessions.get(NO_SESSION if session is None else session)
+        if rec is None or seq > rec.last_seq:
+            return False
+        return session is not None or not rec.is_restart(seq, stamp)
 
-    def is_restart(self, seq: int, stamp: float) -> bool:
-        """Whether a scan whose `seq` is not above `last_seq` starts the robot's sequence again
-        (else it is a duplicate).
+    def accept(self, seq: int, stamp: float, session: int | None = None, now: float = 0.0) -> bool:
+        """Record the scan `seq` of publisher session `session` as accepted (by `submit`, or replayed
+        from the journal; the caller has ruled out duplicates). Per session: the seqs skipped since its
+        last scan count as lost, and without a session id a seq not new is a restart whose new run's
+        seqs before this one never arrived. A new session of a known robot is a restart too (its
+        seqs before this one count as lost). A session that comes back after another one was heard
+        is an id conflict (two publishers under one robot id): `conflict_at` becomes `now`
+        (wall-clock), `id_conflicts` counts it if a session among them was not known to be in one,
+        and a restart counted when the other one started is withdrawn (it ran beside this one).
+        Returns whether this scan interleaved with another session's so."""
+        key = NO_SESSION if session is None else session
+        self.accepted += 1
+        rec = self.sessions.pop(key, None)
+        beside: list[SessionSeqs] = []
+        if rec is None:
+            rec = SessionSeqs(seq, stamp, self.accepted, self.accepted)
+            if self.last_seq is not None:
+                self.restarts += 1
+                self.lost += seq
+                rec.start_lost = seq
+        else:
+            if seq <= rec.last_seq:
+                # With a session, only a replayed row that the snapshot's counters already hold.
+                if session is None:
+                    self.restarts += 1
+                    self.lost += seq
+            elif seq > rec.last_seq + 1:
+                self.lost += seq - rec.last_seq - 1
+            beside = [other for other in self.sessions.values() if other.last > rec.last]
+            if beside:
+                self._conflict(rec, beside, now)
+            if session is None or seq > rec.last_seq:
+                rec.last_seq, rec.stamp = seq, stamp
+            rec.last = self.accepted
+        self.sessions[key] = rec
+        while len(self.sessions) > MAX_SESSIONS:
+            del self.sessions[next(iter(self.sessions))]
+        self.last_seq = rec.last_seq
+        return bool(beside)
 
-        A robot process that restarts counts from 0 again, but its first scans can be lost (published
-        before its session reached the service) or it may count from 1; either way its scans must
-        not be ignored as duplicates until it passes its old seq. Its stamps go on, so a later stamp
-        than the last accepted scan's says "restarted". A repeated message (a retry, a copy) carries
-        its old stamp, a stale one an earlier stamp: both stay duplicates. Seq 0 is also a restart
-        with an equal or earlier stamp (robots without stamps send 0; a robot without a real-time
-        clock may boot in 1970), unless it repeats the last accepted scan, seq 0 with the same stamp."""
-        if self.accepted_stamp is not None and stamp > self.accepted_stamp:
-            return True
-        return seq == 0 and not (self.last_seq == 0 and stamp == self.accepted_stamp)
+    def _conflict(self, back: SessionSeqs, beside: list[SessionSeqs], now: float) -> None:
+        """Session `back` came back after the sessions `beside` were heard: they ran at once."""
+        self.conflict_at = now
+        for other in beside:
+            if other.start_lost is not None and other.first > back.last:
+                # It started while `back` still ran: not a restart of it.
+                self.restarts -= 1
+                self.lost -= other.start_lost
+                other.start_lost = None
+        newly = [rec for rec in (back, *beside) if not rec.conflict]
+        for rec in newly:
+            rec.conflict = True
+        if newly:
+            self.id_conflicts += 1
+
+    def in_conflict(self, now: float) -> bool:
+        """Whether scans of two sessions interleaved within the last CONFLICT_SHOWN seconds."""
+        return self.conflict_at is not None and now - self.conflict_at < CONFLICT_SHOWN
 
 
 @dataclass
@@ -254,6 +354,8 @@ class MapRegistry:
         #: (map id, robot id) of every liveliness token present (`set_online`), whether or not its map
         #: exists: a map created or installed under that id later shows those robots online at once.
         self._alive: set[tuple[str, str]] = set()
+        # One line per robot per CONFLICT_SHOWN while its id conflict goes on (a scan of each says so).
+        self._conflict_log = RateLimitedLog(log, interval=CONFLICT_SHOWN)
         self._workers = [
             threading.Thread(target=self._work, name=f"fleetmap-integrate-{k}", daemon=True)
             for k in range(workers)
@@ -293,7 +395,7 @@ class MapRegistry:
             entry.scans_rejected = counters["scans_rejected"]
             entry.robots = {rid: RobotState.from_saved(data) for rid, data in counters["robots"].items()}
             started = last_report = time.monotonic()
-            for replayed, (robot_id, seq, stamp, scan) in enumerate(journal):
+            for replayed, (robot_id, seq, stamp, session, scan) in enumerate(journal):
                 if time.monotonic() - last_report >= RESTORE_REPORT:
                     # 20,000 scans take 10-20 s: say the service is busy, not stuck.
                     last_report = time.monotonic()
@@ -307,8 +409,8 @@ class MapRegistry:
                 # The journal holds integrated scans only, so a gap in a robot's seqs since the
                 # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
                 # the gap, whose counts died with the process, count as lost too), and a seq that
-                # is not new was a restart.
-                robot.accept(seq, stamp)
+                # is not new was a restart; sessions interleaving were an id conflict, seen now.
+                robot.accept(seq, stamp, session, time.time())
                 robot.last_stamp, robot.last_pose = stamp, scan.pose
                 robot.trail.append((scan.pose.x, scan.pose.y, scan.pose.theta))
                 entry.scans_integrated += 1
@@ -530,13 +632,20 @@ class MapRegistry:
                     f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have", 429
                 )
             robot = entry.robot(robot_id)
-            robot.last_heard = time.time()
-            seq, stamp = wire.seq, wire.stamp
-            if robot.last_seq is not None and seq <= robot.last_seq and not robot.is_restart(seq, stamp):
+            robot.last_heard = now = time.time()
+            seq, stamp, session = wire.seq, wire.stamp, wire.session
+            if robot.is_duplicate(seq, stamp, session):
                 robot.duplicates += 1
-                raise IngestRejected(f"duplicate seq {seq} (last accepted {robot.last_seq})", 200)
+                last = robot.sessions[NO_SESSION if session is None else session].last_seq
+                raise IngestRejected(f"duplicate seq {seq} (last accepted {last})", 200)
             # Recorded before the queue is tried so a dropped scan is not also counted as lost.
-            robot.accept(seq, stamp)
+            if robot.accept(seq, stamp, session, now):
+                self._conflict_log.warning(
+                    f"id conflict {map_id}/{robot_id}",
+                    f"robot id conflict on map {map_id!r}: scans of {robot_id!r} come from more than one "
+                    "publisher session at once (two robots publishing under one id?); the scans of each "
+                    "are integrated, see id_conflict in GET /maps/{map_id}",
+                )
             job = Job(map_id, robot_id, wire, entry.generation, time.monotonic())
             if wait:
                 job.future = Future()
@@ -672,7 +781,7 @@ class MapRegistry:
                         self.durable.journal(
                             job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
                             lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
-                            lambda exc: self._mark_not_durable(job, exc),
+                            lambda exc: self._mark_not_durable(job, exc), job.wire.session,
                         )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
             # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422.

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import re
+import secrets
 from typing import Annotated
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
@@ -59,6 +60,15 @@ class PoseMessage(BaseModel):
 
 #: Sequence numbers are below this (they travel as a signed 64-bit integer in SQLite's journal).
 SEQ_LIMIT = 2**63
+#: Session ids are in [1, SESSION_LIMIT): 53 bits, so that every JSON parser (JavaScript's numbers
+#: included) reads them exactly, and two publishers that pick one at random share it with a chance of
+#: about 1 in 9e15. (0 is "no session" in the binary encoding and the journal.)
+SESSION_LIMIT = 2**53
+
+
+def new_session_id() -> int:
+    """A random session id for a publisher that starts (or starts its seq again)."""
+    return secrets.randbelow(SESSION_LIMIT - 1) + 1
 
 
 class ScanMessage(BaseModel):
@@ -75,6 +85,14 @@ class ScanMessage(BaseModel):
 
     seq: int = Field(ge=0, lt=SEQ_LIMIT, description="per-robot sequence number, +1 per scan")
     stamp: Finite = Field(0.0, description="acquisition time, seconds (any epoch)")
+    session: int | None = Field(
+        None,
+        ge=1,
+        lt=SESSION_LIMIT,
+        description="the publisher's session id: picked at random when it starts (or starts its seq "
+        "again), the same in each of its scans; tells a restarted robot and robots sharing one id apart "
+        "(docs/protocol.md, Sessions). Without it, restarts are recognised by the stamps",
+    )
     pose: PoseMessage
     angle_min: Finite | None = None
     angle_increment: Finite | None = None
@@ -112,11 +130,12 @@ class ScanMessage(BaseModel):
         )
 
     @classmethod
-    def from_scan(cls, scan: Scan, seq: int, stamp: float = 0.0) -> ScanMessage:
+    def from_scan(cls, scan: Scan, seq: int, stamp: float = 0.0, session: int | None = None) -> ScanMessage:
         """The message for an engine scan (explicit angles; inf ranges become null)."""
         return cls(
             seq=seq,
             stamp=stamp,
+            session=session,
             pose=PoseMessage(x=scan.pose.x, y=scan.pose.y, theta=scan.pose.theta),
             angles=scan.angles.tolist(),
             range_min=scan.range_min,
@@ -133,8 +152,10 @@ __all__ = [
     "JSON_ENCODING",
     "SCAN_KEY",
     "SCAN_KEY_WILDCARD",
+    "SESSION_LIMIT",
     "PoseMessage",
     "ScanError",
     "ScanMessage",
     "is_valid_id",
+    "new_session_id",
 ]

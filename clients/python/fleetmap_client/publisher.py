@@ -15,7 +15,14 @@ What it does on the wire (the schema is `fleetmap.wire`, the byte layout docs/pr
   while the session lives;
 * scans on `fleetmap/<map_id>/<robot_id>/scan`, binary (`application/x-fleetmap-scan`) or JSON
   (`application/json`), RELIABLE, and by default with `CongestionControl.BLOCK` so that a busy link
-  slows the robot down instead of dropping scans.
+  slows the robot down instead of dropping scans;
+* in every scan, the publisher's session id (`session_id`): a random number picked when the
+  publisher is made, and again whenever its seq starts again (an explicit seq below the last; the
+  last seq again is a resend, e.g. of a scan dropped while disconnected, and keeps the session).
+  The service tells by it a restarted robot (a new session: nothing of it is ignored as a duplicate,
+  whatever its seq and stamp) from two robots misconfigured with one robot id (two sessions
+  interleaving: the scans of both are integrated and the conflict reported). `session=False` sends
+  none, for a service older than session ids (which refuses scans that carry one).
 
 Connection behaviour. The constructor returns at once; the session is opened by a background thread
 that keeps trying until the service answers (Zenoh's own `zenoh.open` in client mode either fails
@@ -54,6 +61,7 @@ from fleetmap.wire import (
     SEQ_LIMIT,
     ScanMessage,
     is_valid_id,
+    new_session_id,
 )
 
 #: Where `fleetmap serve` listens by default.
@@ -138,6 +146,8 @@ class ScanPublisher:
         zenoh_config: a `zenoh.Config` or JSON5 file to start from (see `client_config`).
         block: True (default) publishes with `CongestionControl.BLOCK` (a full link blocks `publish`,
             no scan is dropped); False uses `DROP` (best effort: never blocks, may drop under load).
+        session: True (default) sends a random session id in every scan (see the module docstring);
+            False sends none (then the service recognises restarts by the stamps only).
 
     The session opens in the background (see the module docstring): use `wait_connected`.
     """
@@ -150,6 +160,7 @@ class ScanPublisher:
         encoding: Encoding = "binary",
         zenoh_config: zenoh.Config | str | Path | None = None,
         block: bool = True,
+        session: bool = True,
     ) -> None:
         for name, value in (("map_id", map_id), ("robot_id", robot_id)):
             if not isinstance(value, str) or not is_valid_id(value):
@@ -175,6 +186,7 @@ class ScanPublisher:
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
         self._last_seq: int | None = None
+        self._session_id = new_session_id() if session else None
         #: Scans handed to Zenoh while a router (or peer) was connected.
         self.published = 0
         #: Scans dropped because no router was connected (see the module docstring).
@@ -255,6 +267,12 @@ class ScanPublisher:
         return self._last_seq
 
     @property
+    def session_id(self) -> int | None:
+        """The session id its scans carry (None with `session=False`): picked at random when the
+        publisher is made, and again when an explicit seq is below the last one."""
+        return self._session_id
+
+    @property
     def next_seq(self) -> int:
         """The seq the next `publish` without an explicit seq will use."""
         return self._next_seq
@@ -264,7 +282,10 @@ class ScanPublisher:
 
         `scan` is an engine `Scan` (or a `ScanMessage`, converted with `to_scan`; its seq and stamp
         are the defaults then). `seq` defaults to an automatic counter starting at 0; an explicit
-        seq also moves the counter to seq + 1. `stamp` defaults to the current time (seconds since
+        seq also moves the counter to seq + 1; one below the last seq starts a new session
+        (`session_id`), so the service takes it for a restart, not a duplicate (the last seq again
+        is a resend, in the same session: a duplicate if the first one arrived). A `ScanMessage`'s own
+        session is not sent: the publisher's is. `stamp` defaults to the current time (seconds since
         the epoch). With `block=True` this may block while the link is congested.
 
         Returns True when the scan was handed to a connected session, False when it was dropped
@@ -297,13 +318,17 @@ class ScanPublisher:
         with self._lock:
             if self._closed.is_set():
                 raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
+            session = self._session_id
             if seq is None:
                 seq = self._next_seq
                 if seq >= SEQ_LIMIT:
                     raise ValueError("the automatic seq passed 2**63 - 1: publish with seq=0 to restart")
+            elif session is not None and self._last_seq is not None and seq < self._last_seq:
+                session = new_session_id()  # the seq starts again: under the old session, duplicates
             # Encoded before the counter moves, under the lock so that concurrent callers still get
             # distinct seqs in order: a scan that cannot be encoded must not leave a gap.
-            payload = self._encode(scan, seq, stamp)
+            payload = self._encode(scan, seq, stamp, session=session)
+            self._session_id = session
             self._next_seq = seq + 1
             self._last_seq = seq
             publisher = self._publisher
