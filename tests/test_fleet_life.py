@@ -203,6 +203,7 @@ def test_two_robots_under_one_robot_id_are_both_integrated_and_the_conflict_repo
         timeout=10, what="the conflict's log line",
     )  # fmt: skip
     lines = [line for line in service.logs().splitlines() if "robot id conflict on map 'life-twins'" in line]
+    assert all("GET /maps/life-twins" in line for line in lines), lines
     assert len(lines) == 1  # one line for the ongoing conflict, not one per scan
     # A robot alone under its id is in no conflict.
     assert robot_stats(http, "life-restart", "r").get("id_conflict") in (False, None)

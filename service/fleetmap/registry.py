@@ -644,7 +644,9 @@ class MapRegistry:
                     f"id conflict {map_id}/{robot_id}",
                     f"robot id conflict on map {map_id!r}: scans of {robot_id!r} come from more than one "
                     "publisher session at once (two robots publishing under one id?); the scans of each "
-                    "are integrated, see id_conflict in GET /maps/{map_id}",
+                    f"are integrated, see id_conflict in GET /maps/{map_id}",
+                    map_id=map_id,
+                    robot_id=robot_id,
                 )
             job = Job(map_id, robot_id, wire, entry.generation, time.monotonic())
             if wait:
