@@ -559,3 +559,40 @@ def test_interleaved_sessions_are_a_conflict_shown_for_a_minute_and_a_late_copy_
     # Within a session, stamps say nothing: a copy of seq 0, or with a later stamp, is a duplicate.
     assert restarted.is_duplicate(0, 50.0, 7) and restarted.is_duplicate(1, 99.0, 7)
     assert (restarted.restarts, restarted.id_conflicts, restarted.in_conflict(2.0)) == (1, 0, False)
+
+
+@pytest.mark.parametrize("session", [None, 7])
+def test_a_crash_replays_scans_queued_at_the_snapshot_without_a_restart(
+    tmp_path: Path, session: int | None
+) -> None:
+    """Scans accepted before a snapshot but applied after it are in the snapshot's counters (their
+    seqs accepted) and in the journal after it. Replaying them after a crash must not count them
+    again: it counted a restart and their seq as lost for a robot that sends no session id.
+
+    In-process rather than through the service: the test holds the map's lock so that the scans
+    wait in the queue while the snapshot is taken, which a process cannot be made to do."""
+    registry = MapRegistry(workers=1, durable=DurableStore(tmp_path))
+    registry.start()
+    for seq in (0, 1):
+        registry.submit("m", "r", WireScan(seq, 10.0 + seq, scan_at(0.1 * seq), session), wait=True).result(
+            10
+        )  # type: ignore[union-attr]
+    entry = registry.get("m")
+    with entry.gmap.lock:  # the worker waits for it to apply 2 and 3
+        queued = [
+            registry.submit("m", "r", WireScan(seq, 10.0 + seq, scan_at(0.1 * seq), session), wait=True)
+            for seq in (2, 3)
+        ]
+        registry.snapshot_all(every_map=True)  # counters with seq 3 accepted, journal up to seq 1
+    for future in queued:
+        future.result(10)  # type: ignore[union-attr]
+    _crash(registry)
+    again = MapRegistry(durable=DurableStore(tmp_path))
+    again.start()
+    try:
+        robot = again.get("m").robots["r"]
+        assert (robot.scans_integrated, robot.last_seq, robot.lost, robot.restarts) == (4, 3, 0, 0)
+        with pytest.raises(IngestRejected, match="duplicate"):
+            again.submit("m", "r", WireScan(3, 13.0, scan_at(0.0), session))
+    finally:
+        again.close()

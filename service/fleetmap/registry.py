@@ -190,14 +190,16 @@ class RobotState:
 
     def accept(self, seq: int, stamp: float, session: int | None = None, now: float = 0.0) -> bool:
         """Record the scan `seq` of publisher session `session` as accepted (by `submit`, or replayed
-        from the journal; the caller has ruled out duplicates). Per session: the seqs skipped since its
-        last scan count as lost, and without a session id a seq not new is a restart whose new run's
-        seqs before this one never arrived. A new session of a known robot is a restart too (its
-        seqs before this one count as lost). A session that comes back after another one was heard
-        is an id conflict (two publishers under one robot id): `conflict_at` becomes `now`
-        (wall-clock), `id_conflicts` counts it if a session among them was not known to be in one,
-        and a restart counted when the other one started is withdrawn (it ran beside this one).
-        Returns whether this scan interleaved with another session's so."""
+        from the journal); the caller has ruled out duplicates (`is_duplicate`).
+
+        Per session: the seqs skipped since its last scan count as lost, and without a session id a
+        seq not new is a restart whose new run's seqs before this one never arrived. A new session
+        of a known robot is a restart too (its seqs before this one count as lost). A session that
+        comes back after another one was heard is an id conflict (two publishers under one robot
+        id): `conflict_at` becomes `now` (wall-clock), `id_conflicts` counts it if a session among
+        them was not known to be in one, and a restart counted when the other one started is
+        withdrawn (it ran beside this one). Returns whether this scan interleaved with another
+        session's so."""
         key = NO_SESSION if session is None else session
         self.accepted += 1
         rec = self.sessions.pop(key, None)
@@ -209,19 +211,15 @@ class RobotState:
                 self.lost += seq
                 rec.start_lost = seq
         else:
-            if seq <= rec.last_seq:
-                # With a session, only a replayed row that the snapshot's counters already hold.
-                if session is None:
-                    self.restarts += 1
-                    self.lost += seq
+            if seq <= rec.last_seq:  # without a session id (`is_duplicate` ruled out the rest): a restart
+                self.restarts += 1
+                self.lost += seq
             elif seq > rec.last_seq + 1:
                 self.lost += seq - rec.last_seq - 1
             beside = [other for other in self.sessions.values() if other.last > rec.last]
             if beside:
                 self._conflict(rec, beside, now)
-            if session is None or seq > rec.last_seq:
-                rec.last_seq, rec.stamp = seq, stamp
-            rec.last = self.accepted
+            rec.last_seq, rec.stamp, rec.last = seq, stamp, self.accepted
         self.sessions[key] = rec
         while len(self.sessions) > MAX_SESSIONS:
             del self.sessions[next(iter(self.sessions))]
@@ -410,7 +408,10 @@ class MapRegistry:
                 # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
                 # the gap, whose counts died with the process, count as lost too), and a seq that
                 # is not new was a restart; sessions interleaving were an id conflict, seen now.
-                robot.accept(seq, stamp, session, time.time())
+                # A row the robot's saved bookkeeping already holds (accepted before the snapshot,
+                # applied after it) is a duplicate to it: counted once, when it was accepted.
+                if not robot.is_duplicate(seq, stamp, session):
+                    robot.accept(seq, stamp, session, time.time())
                 robot.last_stamp, robot.last_pose = stamp, scan.pose
                 robot.trail.append((scan.pose.x, scan.pose.y, scan.pose.theta))
                 entry.scans_integrated += 1
