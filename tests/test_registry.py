@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -485,6 +487,17 @@ def _crash(registry: MapRegistry) -> None:
     registry.durable.close()  # type: ignore[union-attr]
 
 
+@contextlib.contextmanager
+def _restarted(data_dir: Path) -> Iterator[MapRegistry]:
+    """A registry started again on `data_dir` (its maps restored), closed after the block."""
+    registry = MapRegistry(durable=DurableStore(data_dir))
+    registry.start()
+    try:
+        yield registry
+    finally:
+        registry.close()
+
+
 def test_a_database_and_snapshot_from_before_session_ids_still_load(tmp_path: Path) -> None:
     """A data directory written before session ids: journal rows without the `session` column and
     robots saved without `sessions`. It loads, the column is added, and the robot's scans (which
@@ -507,9 +520,7 @@ def test_a_database_and_snapshot_from_before_session_ids_still_load(tmp_path: Pa
                 k: v for k, v in json.loads(state).items() if k not in RobotState.SAVED[-3:] + ("sessions",)
             }
             conn.execute("UPDATE robots SET state = ? WHERE robot_id = ?", (json.dumps(old), robot_id))
-    again = MapRegistry(durable=DurableStore(tmp_path))
-    again.start()
-    try:
+    with _restarted(tmp_path) as again:
         robot = again.get("m").robots["r"]
         assert (robot.scans_integrated, robot.last_seq, robot.lost, robot.restarts) == (5, 5, 1, 0)
         with pytest.raises(IngestRejected, match="duplicate"):
@@ -518,8 +529,6 @@ def test_a_database_and_snapshot_from_before_session_ids_still_load(tmp_path: Pa
         assert (robot.duplicates, robot.restarts, robot.last_seq) == (1, 1, 0)
         with sqlite3.connect(again.durable.path) as conn:  # type: ignore[union-attr]
             assert "session" in {row[1] for row in conn.execute("PRAGMA table_info(journal)")}
-    finally:
-        again.close()
 
 
 def test_a_robots_sessions_stay_bounded_and_survive_its_saved_state() -> None:
@@ -587,12 +596,8 @@ def test_a_crash_replays_scans_queued_at_the_snapshot_without_a_restart(
     for future in queued:
         future.result(10)  # type: ignore[union-attr]
     _crash(registry)
-    again = MapRegistry(durable=DurableStore(tmp_path))
-    again.start()
-    try:
+    with _restarted(tmp_path) as again:
         robot = again.get("m").robots["r"]
         assert (robot.scans_integrated, robot.last_seq, robot.lost, robot.restarts) == (4, 3, 0, 0)
         with pytest.raises(IngestRejected, match="duplicate"):
             again.submit("m", "r", WireScan(3, 13.0, scan_at(0.0), session))
-    finally:
-        again.close()
