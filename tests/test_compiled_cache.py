@@ -190,3 +190,27 @@ def test_no_writable_directory_for_compiled_code_is_one_clear_error(
         == tmp_path / "tmp" / f"fleetmap-numba-cache-{os.getuid()}"
     )
     assert ensure_compiled_cache_location(root / "fleetmap") is None  # numba now has a place
+
+
+@pytest.mark.parametrize("owner", ["another user", "this user, writable by all"])
+def test_the_fallback_never_uses_a_cache_directory_others_can_write(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, owner: str
+) -> None:
+    """numba loads its cache files with pickle: a fallback directory made beforehand in the shared
+    temp directory by someone else (or left writable to everyone) would run their code in the
+    service. Such a directory is left alone for a fresh private one."""
+    root, env = _package_numba_cannot_cache(tmp_path)
+    for key in ("HOME", "XDG_CACHE_HOME"):
+        monkeypatch.setenv(key, env[key])
+    monkeypatch.setattr(numba.config, "CACHE_DIR", "")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    planted = tmp_path / "tmp" / f"fleetmap-numba-cache-{os.getuid()}"
+    planted.mkdir()
+    planted.chmod(0o777)
+    if owner == "another user":
+        os.chown(planted, os.getuid() + 1, -1)  # (the tests run as root, who may give it away)
+    chosen = ensure_compiled_cache_location(root / "fleetmap")
+    assert chosen is not None and chosen != planted
+    status = chosen.stat()
+    assert (status.st_uid, status.st_mode & 0o077) == (os.getuid(), 0)
+    assert str(chosen) == numba.config.CACHE_DIR

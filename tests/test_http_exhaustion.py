@@ -208,6 +208,9 @@ def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: Serv
         (long_url[:-30], 8192, 414, url_detail),
         (long_header, 0, 431, head_detail),
         (long_header[:-4], 8192, 431, head_detail),
+        # The big header first: httptools hands a header over only once the next one begins, so
+        # no header was seen yet when the limit refused it; it is still not the request line.
+        (long_header.replace(b"Host: t\r\n", b"")[:-4], 8192, 431, head_detail),
         (b"NOT HTTP AT ALL\r\n\r\n", 0, 400, "invalid HTTP request"),
     ]
     for request, piece, status, detail in cases:

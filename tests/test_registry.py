@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -485,6 +487,17 @@ def _crash(registry: MapRegistry) -> None:
     registry.durable.close()  # type: ignore[union-attr]
 
 
+@contextlib.contextmanager
+def _restarted(data_dir: Path) -> Iterator[MapRegistry]:
+    """A registry started again on `data_dir` (its maps restored), closed after the block."""
+    registry = MapRegistry(durable=DurableStore(data_dir))
+    registry.start()
+    try:
+        yield registry
+    finally:
+        registry.close()
+
+
 def test_a_database_and_snapshot_from_before_session_ids_still_load(tmp_path: Path) -> None:
     """A data directory written before session ids: journal rows without the `session` column and
     robots saved without `sessions`. It loads, the column is added, and the robot's scans (which
@@ -507,9 +520,7 @@ def test_a_database_and_snapshot_from_before_session_ids_still_load(tmp_path: Pa
                 k: v for k, v in json.loads(state).items() if k not in RobotState.SAVED[-3:] + ("sessions",)
             }
             conn.execute("UPDATE robots SET state = ? WHERE robot_id = ?", (json.dumps(old), robot_id))
-    again = MapRegistry(durable=DurableStore(tmp_path))
-    again.start()
-    try:
+    with _restarted(tmp_path) as again:
         robot = again.get("m").robots["r"]
         assert (robot.scans_integrated, robot.last_seq, robot.lost, robot.restarts) == (5, 5, 1, 0)
         with pytest.raises(IngestRejected, match="duplicate"):
@@ -518,8 +529,6 @@ def test_a_database_and_snapshot_from_before_session_ids_still_load(tmp_path: Pa
         assert (robot.duplicates, robot.restarts, robot.last_seq) == (1, 1, 0)
         with sqlite3.connect(again.durable.path) as conn:  # type: ignore[union-attr]
             assert "session" in {row[1] for row in conn.execute("PRAGMA table_info(journal)")}
-    finally:
-        again.close()
 
 
 def test_a_robots_sessions_stay_bounded_and_survive_its_saved_state() -> None:
@@ -559,3 +568,36 @@ def test_interleaved_sessions_are_a_conflict_shown_for_a_minute_and_a_late_copy_
     # Within a session, stamps say nothing: a copy of seq 0, or with a later stamp, is a duplicate.
     assert restarted.is_duplicate(0, 50.0, 7) and restarted.is_duplicate(1, 99.0, 7)
     assert (restarted.restarts, restarted.id_conflicts, restarted.in_conflict(2.0)) == (1, 0, False)
+
+
+@pytest.mark.parametrize("session", [None, 7])
+def test_a_crash_replays_scans_queued_at_the_snapshot_without_a_restart(
+    tmp_path: Path, session: int | None
+) -> None:
+    """Scans accepted before a snapshot but applied after it are in the snapshot's counters (their
+    seqs accepted) and in the journal after it. Replaying them after a crash must not count them
+    again: it counted a restart and their seq as lost for a robot that sends no session id.
+
+    In-process rather than through the service: the test holds the map's lock so that the scans
+    wait in the queue while the snapshot is taken, which a process cannot be made to do."""
+    registry = MapRegistry(workers=1, durable=DurableStore(tmp_path))
+    registry.start()
+    for seq in (0, 1):
+        registry.submit("m", "r", WireScan(seq, 10.0 + seq, scan_at(0.1 * seq), session), wait=True).result(
+            10
+        )  # type: ignore[union-attr]
+    entry = registry.get("m")
+    with entry.gmap.lock:  # the worker waits for it to apply 2 and 3
+        queued = [
+            registry.submit("m", "r", WireScan(seq, 10.0 + seq, scan_at(0.1 * seq), session), wait=True)
+            for seq in (2, 3)
+        ]
+        registry.snapshot_all(every_map=True)  # counters with seq 3 accepted, journal up to seq 1
+    for future in queued:
+        future.result(10)  # type: ignore[union-attr]
+    _crash(registry)
+    with _restarted(tmp_path) as again:
+        robot = again.get("m").robots["r"]
+        assert (robot.scans_integrated, robot.last_seq, robot.lost, robot.restarts) == (4, 3, 0, 0)
+        with pytest.raises(IngestRejected, match="duplicate"):
+            again.submit("m", "r", WireScan(3, 13.0, scan_at(0.0), session))

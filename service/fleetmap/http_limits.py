@@ -121,6 +121,10 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
             self._deadline: asyncio.TimerHandle | None = None
             # Bytes received since the current head began (None: in a body, not in a head).
             self._head_bytes: int | None = 0
+            # Whether the current head's request line has ended (a line feed arrived): what is
+            # past the limit then is headers. (httptools hands a header over only when the next
+            # one begins, so the headers seen so far cannot tell.)
+            self._request_line_ended = False
             # The answer to a head refused by `on_headers_complete` (sent by `send_400_response`).
             self._refusal: bytes | None = None
 
@@ -128,12 +132,12 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
             in_head = self._head_bytes is not None
             if in_head:
                 self._head_bytes = (self._head_bytes or 0) + len(data)
+                self._request_line_ended = self._request_line_ended or b"\n" in data
             super().data_received(data)
             # Still in the same head after all of `data`: every byte of it was head. (A head that
             # arrived whole in this chunk, at most 256 KiB, is measured by `on_headers_complete`.)
             if in_head and (self._head_bytes or 0) > MAX_HEAD_BYTES and not self.transport.is_closing():
-                # No header yet: the request line alone is too long.
-                self.transport.write(HEAD_TOO_LARGE if self.headers else URL_TOO_LONG)
+                self.transport.write(HEAD_TOO_LARGE if self._request_line_ended else URL_TOO_LONG)
                 self.transport.close()
 
         def send_400_response(self, msg: str) -> None:
@@ -176,6 +180,7 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
 
         def on_message_complete(self) -> None:
             self._head_bytes = 0  # what follows is the next request's head
+            self._request_line_ended = False
             self._disarm()  # the whole request is in: the response may take as long as it needs
             super().on_message_complete()
 

@@ -239,9 +239,8 @@ class DurableStore:
             # its creation had failed to commit. Nothing would ever read or delete them.
             for table in MAP_TABLES:
                 conn.execute(f"DELETE FROM {table} WHERE map_id NOT IN (SELECT id FROM maps)")
-            for stored in stored_maps:
-                map_id = stored[0]
-                out.append(self._load_map(conn, *stored))
+            for map_id, *columns in stored_maps:  # (map_id: for the error, if this one's rows are bad)
+                out.append(self._load_map(conn, map_id, *columns))
             return out
         # ValueError: a stored configuration that does not validate (pydantic's ValidationError).
         except (sqlite3.DatabaseError, zlib.error, StorageError, ValueError) as exc:

@@ -28,7 +28,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import astuple, dataclass, field
 
 from fleetmap.changes import ChangeFeed
 from fleetmap.codec import WireScan
@@ -84,6 +84,11 @@ CONFLICT_SHOWN = 60.0
 NO_SESSION = 0
 
 
+def session_key(session: int | None) -> int:
+    """The key in `RobotState.sessions` of the scans of publisher session `session` (None: none sent)."""
+    return NO_SESSION if session is None else session
+
+
 @dataclass
 class SessionSeqs:
     """The seq bookkeeping of one publisher session of a robot (`ScanMessage.session`): each session
@@ -92,15 +97,18 @@ class SessionSeqs:
 
     last_seq: int  # seq of its last accepted scan
     stamp: float | None  # stamp of its last accepted scan (None: unknown, in an old snapshot)
-    first: int  # the robot's `accepted` count at its first scan ...
-    last: int  # ... and at its last: which sessions were heard since which
+    #: The robot's `accepted` count at its first scan and at its last: which sessions were heard
+    #: since which (a logical clock, not a time).
+    first_scan_no: int
+    last_scan_no: int
     #: What its first scan added to `lost` when it was counted as a restart (None: it was not, or no
     #: longer is): withdrawn if it turns out to have run beside the session it seemed to restart.
     start_lost: int | None = None
     conflict: bool = False  # found running beside another session of the robot
 
     def saved(self) -> list:
-        return [self.last_seq, self.stamp, self.first, self.last, self.start_lost, self.conflict]
+        """Its fields in order (`SessionSeqs(*saved)` gives it back)."""
+        return list(astuple(self))
 
     def is_restart(self, seq: int, stamp: float) -> bool:
         """For scans WITHOUT a session id: whether a scan whose `seq` is not above `last_seq` starts
@@ -125,7 +133,6 @@ class RobotState:
 
     online: bool = False
     last_pose: Pose2D | None = None
-    last_seq: int | None = None  # seq of the last scan accepted (enqueued)
     last_stamp: float | None = None
     scans_integrated: int = 0
     scans_rejected: int = 0
@@ -141,10 +148,10 @@ class RobotState:
     #: Its scans accepted but not yet counted as integrated or refused: such a robot is not forgotten.
     unsettled: int = 0
     trail: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))
-    #: Its recent publisher sessions (key NO_SESSION: scans without a session id), least recently
-    #: heard first: the last one is the current one (`last_seq` is its last seq).
+    #: Its recent publisher sessions (key `session_key`), least recently heard first: the last one
+    #: is the current one, whose last seq is the robot's (`last_seq`).
     sessions: dict[int, SessionSeqs] = field(default_factory=dict)
-    accepted: int = 0  # scans accepted (orders the sessions' `first` and `last`)
+    accepted: int = 0  # scans accepted (the clock of the sessions' `first_scan_no`, `last_scan_no`)
     #: Times scans of a session were found interleaved with another session's not yet known to
     #: interleave with (two robots publishing under one id: 1; a third, or one of them restarted: +1).
     id_conflicts: int = 0
@@ -152,12 +159,18 @@ class RobotState:
 
     #: The counters that survive a restart (and `sessions`, saved as lists).
     SAVED = (
-        "last_seq", "last_stamp", "scans_integrated", "scans_rejected", "last_error", "lost", "duplicates",
+        "last_stamp", "scans_integrated", "scans_rejected", "last_error", "lost", "duplicates",
         "dropped", "not_durable", "restarts", "last_heard", "accepted", "id_conflicts", "conflict_at",
     )  # fmt: skip
 
+    @property
+    def last_seq(self) -> int | None:
+        """The seq of the last scan accepted (enqueued), None before the first."""
+        return next(reversed(self.sessions.values())).last_seq if self.sessions else None
+
     def saved(self) -> dict:
-        out = {name: getattr(self, name) for name in self.SAVED}
+        # `last_seq` for a service from before sessions, which reads only that (same database layout).
+        out = {name: getattr(self, name) for name in self.SAVED} | {"last_seq": self.last_seq}
         out["last_pose"] = (
             None if self.last_pose is None else [self.last_pose.x, self.last_pose.y, self.last_pose.theta]
         )
@@ -173,9 +186,9 @@ class RobotState:
             state.trail.append(tuple(data["last_pose"]))
         if "sessions" in data:
             state.sessions = {int(row[0]): SessionSeqs(*row[1:]) for row in data["sessions"]}
-        elif state.last_seq is not None:
+        elif data.get("last_seq") is not None:
             # Saved before sessions existed: every scan so far came without one.
-            state.sessions = {NO_SESSION: SessionSeqs(state.last_seq, state.last_stamp, 0, 0)}
+            state.sessions = {NO_SESSION: SessionSeqs(data["last_seq"], state.last_stamp, 0, 0)}
         return state
 
     def is_duplicate(self, seq: int, stamp: float, session: int | None) -> bool:
@@ -183,56 +196,53 @@ class RobotState:
         its session's seq is past it (a copy, a retry, a stale message). A session not heard
         before is never a duplicate: its publisher (re)started, or another robot shares this id.
         Without a session, a seq not new is a restart if its stamp says so (`SessionSeqs.is_restart`)."""
-        rec = self.sessions.get(NO_SESSION if session is None else session)
+        rec = self.sessions.get(session_key(session))
         if rec is None or seq > rec.last_seq:
             return False
         return session is not None or not rec.is_restart(seq, stamp)
 
     def accept(self, seq: int, stamp: float, session: int | None = None, now: float = 0.0) -> bool:
         """Record the scan `seq` of publisher session `session` as accepted (by `submit`, or replayed
-        from the journal; the caller has ruled out duplicates). Per session: the seqs skipped since its
-        last scan count as lost, and without a session id a seq not new is a restart whose new run's
-        seqs before this one never arrived. A new session of a known robot is a restart too (its
-        seqs before this one count as lost). A session that comes back after another one was heard
-        is an id conflict (two publishers under one robot id): `conflict_at` becomes `now`
-        (wall-clock), `id_conflicts` counts it if a session among them was not known to be in one,
-        and a restart counted when the other one started is withdrawn (it ran beside this one).
-        Returns whether this scan interleaved with another session's so."""
-        key = NO_SESSION if session is None else session
+        from the journal); the caller has ruled out duplicates (`is_duplicate`).
+
+        Per session: the seqs skipped since its last scan count as lost, and without a session id a
+        seq not new is a restart whose new run's seqs before this one never arrived. A new session
+        of a known robot is a restart too (its seqs before this one count as lost). A session that
+        comes back after another one was heard is an id conflict (two publishers under one robot
+        id): `conflict_at` becomes `now` (wall-clock), `id_conflicts` counts it if a session among
+        them was not known to be in one, and a restart counted when the other one started is
+        withdrawn (it ran beside this one). Returns whether this scan interleaved with another
+        session's so."""
+        key = session_key(session)
         self.accepted += 1
         rec = self.sessions.pop(key, None)
         beside: list[SessionSeqs] = []
         if rec is None:
             rec = SessionSeqs(seq, stamp, self.accepted, self.accepted)
-            if self.last_seq is not None:
+            if self.sessions:
                 self.restarts += 1
                 self.lost += seq
                 rec.start_lost = seq
         else:
-            if seq <= rec.last_seq:
-                # With a session, only a replayed row that the snapshot's counters already hold.
-                if session is None:
-                    self.restarts += 1
-                    self.lost += seq
+            if seq <= rec.last_seq:  # without a session id (`is_duplicate` ruled out the rest): a restart
+                self.restarts += 1
+                self.lost += seq
             elif seq > rec.last_seq + 1:
                 self.lost += seq - rec.last_seq - 1
-            beside = [other for other in self.sessions.values() if other.last > rec.last]
+            beside = [other for other in self.sessions.values() if other.last_scan_no > rec.last_scan_no]
             if beside:
                 self._conflict(rec, beside, now)
-            if session is None or seq > rec.last_seq:
-                rec.last_seq, rec.stamp = seq, stamp
-            rec.last = self.accepted
+            rec.last_seq, rec.stamp, rec.last_scan_no = seq, stamp, self.accepted
         self.sessions[key] = rec
         while len(self.sessions) > MAX_SESSIONS:
             del self.sessions[next(iter(self.sessions))]
-        self.last_seq = rec.last_seq
         return bool(beside)
 
     def _conflict(self, back: SessionSeqs, beside: list[SessionSeqs], now: float) -> None:
         """Session `back` came back after the sessions `beside` were heard: they ran at once."""
         self.conflict_at = now
         for other in beside:
-            if other.start_lost is not None and other.first > back.last:
+            if other.start_lost is not None and other.first_scan_no > back.last_scan_no:
                 # It started while `back` still ran: not a restart of it.
                 self.restarts -= 1
                 self.lost -= other.start_lost
@@ -410,7 +420,10 @@ class MapRegistry:
                 # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
                 # the gap, whose counts died with the process, count as lost too), and a seq that
                 # is not new was a restart; sessions interleaving were an id conflict, seen now.
-                robot.accept(seq, stamp, session, time.time())
+                # A row the robot's saved bookkeeping already holds (accepted before the snapshot,
+                # applied after it) is a duplicate to it: counted once, when it was accepted.
+                if not robot.is_duplicate(seq, stamp, session):
+                    robot.accept(seq, stamp, session, time.time())
                 robot.last_stamp, robot.last_pose = stamp, scan.pose
                 robot.trail.append((scan.pose.x, scan.pose.y, scan.pose.theta))
                 entry.scans_integrated += 1
@@ -636,7 +649,7 @@ class MapRegistry:
             seq, stamp, session = wire.seq, wire.stamp, wire.session
             if robot.is_duplicate(seq, stamp, session):
                 robot.duplicates += 1
-                last = robot.sessions[NO_SESSION if session is None else session].last_seq
+                last = robot.sessions[session_key(session)].last_seq
                 raise IngestRejected(f"duplicate seq {seq} (last accepted {last})", 200)
             # Recorded before the queue is tried so a dropped scan is not also counted as lost.
             if robot.accept(seq, stamp, session, now):

@@ -45,11 +45,12 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 from fleetmap.auth import TokenFile, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, run_command
 from fleetmap.codec import InputLimits, configure_limits
+from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
 from fleetmap.http_limits import (
     ACCEPT_BACKLOG,
@@ -586,21 +587,15 @@ def _http_server_class() -> type:
 
 
 def run(args: argparse.Namespace) -> int:
-    """`fleetmap serve`: run until SIGINT / SIGTERM, then shut down cleanly and return 0."""
-    import uvicorn
+    """`fleetmap serve`: run until SIGINT / SIGTERM, then shut down cleanly and return 0.
 
+    In order: the process set up (`_configure_process`), the options checked (`_checked_options`),
+    the HTTP socket bound, storage opened (`_open_storage`), the engine warmed, the registry
+    restored and started, the Zenoh session opened, then the API served by uvicorn
+    (`_http_server`) until a signal; the Zenoh session and the registry close whatever happened."""
     from fleetmap.registry import MapRegistry
 
-    _environment_flags(args.serve_actions, args, os.environ)
-    configure_logging(str(args.log_level), str(args.log_format))
-    # Zenoh's own log: refused TLS handshakes and wrong passwords show there (RUST_LOG=warn for more).
-    import zenoh
-
-    zenoh.init_log_from_env_or("error")
-    # Integration workers hold the map lock while they apply a scan; under HTTP load they wait for
-    # the GIL to come back to them. A shorter switch interval hands it over sooner (about halved the
-    # scans dropped under read load in the service benchmark).
-    sys.setswitchinterval(0.0005)
+    _configure_process(args)
     stop = threading.Event()
     server: Any = None
 
@@ -617,36 +612,16 @@ def run(args: argparse.Namespace) -> int:
     # systemd's ExecReload must reload the token file instead.
     previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
     try:
-        host, port = parse_http(args.http)
-        default_config = load_config(args.config)
-        create_app, settings_cls = _load_api()
-        if not (args.world_bound > 0 and args.max_range > 0):
-            raise CliError("--world-bound and --max-range must be positive")
-        configure_limits(InputLimits(args.world_bound, args.max_beams, args.max_range))
-        tokens = _load_tokens(args.auth_tokens)
-        if tokens is None and not _is_loopback(host) and not args.insecure:
-            raise CliError(
-                f"refusing to serve {host} without API tokens: anyone on the network could change the "
-                "maps. Give --auth-tokens FILE (or $FLEETMAP_TOKENS), or --insecure to accept that"
-            )
+        options = _checked_options(args)
+        tokens = options.tokens
         # The HTTP socket first: a second instance on a busy port must fail before it opens the
         # (possibly shared) data directory.
-        sock = bind_http(host, port)
+        sock = bind_http(options.host, options.port)
         port = sock.getsockname()[1]
-        durable = None
-        if not args.in_memory:
-            try:
-                durable = DurableStore(Path(args.data_dir), snapshot_interval=args.snapshot_interval)
-            except StorageError as exc:
-                sock.close()
-                raise CliError(str(exc)) from None
-        # The first start after an install compiles the kernels (10-30 s, silent otherwise).
-        log.info("loading the engine's compiled kernels (the first start after an install compiles them)")
-        started = time.perf_counter()
-        warm_up()
-        log.info("engine ready in %.1f s", time.perf_counter() - started)
+        durable = _open_storage(args, sock)
+        _warm_engine()
         registry = MapRegistry(
-            default_config,
+            options.default_config,
             auto_create=not args.no_auto_create,
             workers=args.workers,
             on_integrated=_integration_hook(),
@@ -672,7 +647,7 @@ def run(args: argparse.Namespace) -> int:
                 ingest.start()
             except IngestStartError as exc:
                 raise CliError(str(exc)) from None
-            settings = settings_cls(
+            settings = options.settings_cls(
                 zenoh_status=ingest.status,
                 cors_origins=args.cors_origin,
                 ingest_backlog=args.ingest_backlog_ms / 1000,
@@ -681,53 +656,9 @@ def run(args: argparse.Namespace) -> int:
                 tokens=tokens,
                 require_read_token=args.require_read_token,
             )
-            app = create_app(registry, settings=settings)
-            budget = args.max_memory
-            source = (
-                f"file {args.auth_tokens}, read again on SIGHUP" if args.auth_tokens else "$FLEETMAP_TOKENS"
-            )
-            log.info(
-                "API tokens: %s",
-                f"required to write{' and read' if args.require_read_token else ''} ({source})" if tokens
-                else "NONE: anyone who can reach the API may change maps (loopback only unless --insecure)",
-            )  # fmt: skip
-            log.info(
-                "maps: %s; their tiles within %s (%.0f MiB held)",
-                f"durable in {Path(args.data_dir).resolve()}" if durable else "in memory only (--in-memory)",
-                "no limit" if budget.limit is None else f"{budget.limit / 2**20:.0f} MiB (--max-memory)",
-                budget.used / 2**20,
-            )  # fmt: skip
-            max_connections = connection_limit(args.max_http_connections, raise_descriptor_limit())
-            log.info(
-                "HTTP: at most %d connections; request heads within %g s, bodies within %g s",
-                max_connections, args.http_head_timeout, args.http_body_timeout,
-            )  # fmt: skip
-            # httptools (a dependency; C) rather than h11 (pure Python) parses HTTP: about a quarter
-            # less CPU, and GIL time the integration workers do not wait for, per cached tile. Its
-            # protocol gets the connection limits of fleetmap.http_limits.
-            config = uvicorn.Config(
-                app,
-                log_config=UVICORN_LOG_CONFIG,
-                log_level="warning",  # not uvicorn's start-up lines: fleetmap's say more
-                access_log=args.access_log,
-                timeout_graceful_shutdown=GRACEFUL_HTTP_SECONDS,
-                lifespan="auto",
-                http=bounded_http_protocol(max_connections, args.http_head_timeout, args.http_body_timeout),
-                backlog=ACCEPT_BACKLOG,
-            )
-            if args.access_log:  # (log_level above set its level too)
-                logging.getLogger("uvicorn.access").setLevel(logging.INFO)
-            server = _http_server_class()(config)
-            connections = server.server_state.connections
-            app.state.fleetmap.metrics.watch_http_connections(lambda: len(connections), max_connections)
-            url = f"http://{_url_host(host)}:{port}"
-            server.ready_line = plain_line(
-                f"fleetmap serving {url}  zenoh: {' '.join(ingest.endpoints)}",
-                args.log_format,
-                url=url,
-                zenoh=list(ingest.endpoints),
-            )
-            log.info("HTTP (REST API, viewer, /metrics, /healthz) on http://%s:%d", _url_host(host), port)
+            app = options.create_app(registry, settings=settings)
+            _log_protection(args, tokens, durable is not None)
+            server = _http_server(args, app, f"http://{_url_host(options.host)}:{port}", ingest.endpoints)
             freeze_startup_objects()
             if not stop.is_set():
                 server.run(sockets=[sock])
@@ -741,6 +672,127 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
     log.info("stopped")
     return 0
+
+
+def _configure_process(args: argparse.Namespace) -> None:
+    """What `serve` sets for the whole process before anything starts: the on/off options given in
+    the environment, the log, Zenoh's own log, the GIL's switch interval."""
+    _environment_flags(args.serve_actions, args, os.environ)
+    configure_logging(str(args.log_level), str(args.log_format))
+    # Zenoh's own log: refused TLS handshakes and wrong passwords show there (RUST_LOG=warn for more).
+    import zenoh
+
+    zenoh.init_log_from_env_or("error")
+    # Integration workers hold the map lock while they apply a scan; under HTTP load they wait for
+    # the GIL to come back to them. A shorter switch interval hands it over sooner (about halved the
+    # scans dropped under read load in the service benchmark).
+    sys.setswitchinterval(0.0005)
+
+
+class _StartOptions(NamedTuple):
+    """What `run` starts from, read from the options by `_checked_options`."""
+
+    host: str
+    port: int  # 0: any free port
+    default_config: MapConfig  # of maps created automatically (--config)
+    create_app: Any  # fleetmap.api.app's, and ...
+    settings_cls: Any  # ... its ApiSettings (`_load_api`)
+    tokens: TokenSet | TokenFile | None
+
+
+def _checked_options(args: argparse.Namespace) -> _StartOptions:
+    """What `run` starts from, after the checks of the options that need no socket or storage (the
+    input limits are set for the process here). Raises CliError."""
+    host, port = parse_http(args.http)
+    default_config = load_config(args.config)
+    create_app, settings_cls = _load_api()
+    if not (args.world_bound > 0 and args.max_range > 0):
+        raise CliError("--world-bound and --max-range must be positive")
+    configure_limits(InputLimits(args.world_bound, args.max_beams, args.max_range))
+    tokens = _load_tokens(args.auth_tokens)
+    if tokens is None and not _is_loopback(host) and not args.insecure:
+        raise CliError(
+            f"refusing to serve {host} without API tokens: anyone on the network could change the "
+            "maps. Give --auth-tokens FILE (or $FLEETMAP_TOKENS), or --insecure to accept that"
+        )
+    return _StartOptions(host, port, default_config, create_app, settings_cls, tokens)
+
+
+def _open_storage(args: argparse.Namespace, sock: socket.socket) -> DurableStore | None:
+    """The data directory's store (None with --in-memory). Raises CliError, `sock` closed, if it
+    cannot be used."""
+    if args.in_memory:
+        return None
+    try:
+        return DurableStore(Path(args.data_dir), snapshot_interval=args.snapshot_interval)
+    except StorageError as exc:
+        sock.close()
+        raise CliError(str(exc)) from None
+
+
+def _warm_engine() -> None:
+    """`warm_up`, said in the log: the first start after an install compiles the kernels (10-30 s,
+    silent otherwise)."""
+    log.info("loading the engine's compiled kernels (the first start after an install compiles them)")
+    started = time.perf_counter()
+    warm_up()
+    log.info("engine ready in %.1f s", time.perf_counter() - started)
+
+
+def _log_protection(args: argparse.Namespace, tokens: TokenSet | TokenFile | None, durable: bool) -> None:
+    """The start-up lines that say how the service is protected and bounded: API tokens, where
+    maps are kept and their memory budget."""
+    budget = args.max_memory
+    source = f"file {args.auth_tokens}, read again on SIGHUP" if args.auth_tokens else "$FLEETMAP_TOKENS"
+    log.info(
+        "API tokens: %s",
+        f"required to write{' and read' if args.require_read_token else ''} ({source})" if tokens
+        else "NONE: anyone who can reach the API may change maps (loopback only unless --insecure)",
+    )  # fmt: skip
+    log.info(
+        "maps: %s; their tiles within %s (%.0f MiB held)",
+        f"durable in {Path(args.data_dir).resolve()}" if durable else "in memory only (--in-memory)",
+        "no limit" if budget.limit is None else f"{budget.limit / 2**20:.0f} MiB (--max-memory)",
+        budget.used / 2**20,
+    )  # fmt: skip
+
+
+def _http_server(args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: Sequence[str]) -> Any:
+    """The uvicorn server of `app` with fleetmap's connection limits and log, its ready line set;
+    logs the HTTP limits and address."""
+    import uvicorn
+
+    max_connections = connection_limit(args.max_http_connections, raise_descriptor_limit())
+    log.info(
+        "HTTP: at most %d connections; request heads within %g s, bodies within %g s",
+        max_connections, args.http_head_timeout, args.http_body_timeout,
+    )  # fmt: skip
+    # httptools (a dependency; C) rather than h11 (pure Python) parses HTTP: about a quarter
+    # less CPU, and GIL time the integration workers do not wait for, per cached tile. Its
+    # protocol gets the connection limits of fleetmap.http_limits.
+    config = uvicorn.Config(
+        app,
+        log_config=UVICORN_LOG_CONFIG,
+        log_level="warning",  # not uvicorn's start-up lines: fleetmap's say more
+        access_log=args.access_log,
+        timeout_graceful_shutdown=GRACEFUL_HTTP_SECONDS,
+        lifespan="auto",
+        http=bounded_http_protocol(max_connections, args.http_head_timeout, args.http_body_timeout),
+        backlog=ACCEPT_BACKLOG,
+    )
+    if args.access_log:  # (log_level above set its level too)
+        logging.getLogger("uvicorn.access").setLevel(logging.INFO)
+    server = _http_server_class()(config)
+    connections = server.server_state.connections
+    app.state.fleetmap.metrics.watch_http_connections(lambda: len(connections), max_connections)
+    server.ready_line = plain_line(
+        f"fleetmap serving {url}  zenoh: {' '.join(zenoh_endpoints)}",
+        args.log_format,
+        url=url,
+        zenoh=list(zenoh_endpoints),
+    )
+    log.info("HTTP (REST API, viewer, /metrics, /healthz) on %s", url)
+    return server
 
 
 def main(argv: Sequence[str] | None = None) -> int:

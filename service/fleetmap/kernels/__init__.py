@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import stat
 import tempfile
 from pathlib import Path
 
@@ -69,8 +70,11 @@ def ensure_compiled_cache_location(package: Path = Path(__file__).parent.parent)
     neither can the user-wide cache directory: a container run under an arbitrary user id (as
     OpenShift and many Kubernetes set-ups do) with the package installed read-only and `HOME=/`.
     The service would not start. The fallback costs one compilation per container (about 15 s),
-    which `NUMBA_CACHE_DIR` on a writable volume avoids. Raises RuntimeError, with what to do,
-    when the temp directory cannot be written either."""
+    which `NUMBA_CACHE_DIR` on a writable volume avoids. The temp directory is shared: a
+    `fleetmap-numba-cache-<uid>` found there that another user owns or could write is not used (numba
+    unpickles its cache files, so theirs would run in the service) but a fresh one of
+    `tempfile.mkdtemp`, compiled anew at each start. Raises RuntimeError, with what to do, when the
+    temp directory cannot be written either."""
     import numba
 
     source = package / "kernels" / "traversal.py"
@@ -79,6 +83,8 @@ def ensure_compiled_cache_location(package: Path = Path(__file__).parent.parent)
     directory = Path(tempfile.gettempdir()) / f"fleetmap-numba-cache-{os.getuid()}"
     try:
         directory.mkdir(mode=0o700, exist_ok=True)
+        if not _is_private(directory):
+            directory = Path(tempfile.mkdtemp(prefix=f"{directory.name}-"))
         with tempfile.TemporaryFile(dir=directory):
             pass
     except OSError as exc:
@@ -88,6 +94,12 @@ def ensure_compiled_cache_location(package: Path = Path(__file__).parent.parent)
         ) from exc
     numba.config.CACHE_DIR = str(directory)
     return directory
+
+
+def _is_private(directory: Path) -> bool:
+    """Whether `directory` is a directory (not a link to one) of this user that no one else may write."""
+    status = directory.lstat()
+    return stat.S_ISDIR(status.st_mode) and status.st_uid == os.getuid() and not status.st_mode & 0o022
 
 
 def _probe() -> None:
