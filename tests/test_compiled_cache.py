@@ -192,7 +192,7 @@ def test_no_writable_directory_for_compiled_code_is_one_clear_error(
     assert ensure_compiled_cache_location(root / "fleetmap") is None  # numba now has a place
 
 
-@pytest.mark.parametrize("owner", ["another user", "this user, writable by all"])
+@pytest.mark.parametrize("owner", ["another user", "this user, writable by all", "a file in its place"])
 def test_the_fallback_never_uses_a_cache_directory_others_can_write(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, owner: str
 ) -> None:
@@ -205,10 +205,15 @@ def test_the_fallback_never_uses_a_cache_directory_others_can_write(
     monkeypatch.setattr(numba.config, "CACHE_DIR", "")
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
     planted = tmp_path / "tmp" / f"fleetmap-numba-cache-{os.getuid()}"
-    planted.mkdir()
-    planted.chmod(0o777)
+    if owner == "a file in its place":  # would stop the service from starting, were it not replaced
+        planted.write_text("")
+    else:
+        planted.mkdir()
+        planted.chmod(0o777)
     if owner == "another user":
-        os.chown(planted, os.getuid() + 1, -1)  # (the tests run as root, who may give it away)
+        if os.getuid() != 0:
+            pytest.skip("only root can give a directory to another user (CI runs the tests as root)")
+        os.chown(planted, os.getuid() + 1, -1)
     chosen = ensure_compiled_cache_location(root / "fleetmap")
     assert chosen is not None and chosen != planted
     status = chosen.stat()

@@ -12,6 +12,7 @@ imports this package before its kernels are defined.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import stat
@@ -82,7 +83,8 @@ def ensure_compiled_cache_location(package: Path = Path(__file__).parent.parent)
         return None
     directory = Path(tempfile.gettempdir()) / f"fleetmap-numba-cache-{os.getuid()}"
     try:
-        directory.mkdir(mode=0o700, exist_ok=True)
+        with contextlib.suppress(FileExistsError):  # ours from an earlier start, or not: checked next
+            directory.mkdir(mode=0o700)
         if not _is_private(directory):
             directory = Path(tempfile.mkdtemp(prefix=f"{directory.name}-"))
         with tempfile.TemporaryFile(dir=directory):
