@@ -82,18 +82,19 @@ def folded(events: list[tuple[str, dict[str, Any]]]) -> RobotsEvent:
     return view
 
 
-def current_robots(svc: ServiceProcess) -> RobotsEvent:
+def current_robots(svc: ServiceProcess, map_id: str = MAP) -> RobotsEvent:
     """The map's robots now: the first event of a new stream without deltas (a full one)."""
-    with httpx.stream("GET", f"{svc.base_url}/maps/{MAP}/events", timeout=10) as r:
+    with httpx.stream("GET", f"{svc.base_url}/maps/{map_id}/events", timeout=10) as r:
         for event, data in parse_sse(r.iter_lines()):
             if event == "robots":
                 return RobotsEvent.model_validate(data)  # leaving `with` closes the stream
     raise AssertionError("the stream ended before its robots event")
 
 
-def post(http: httpx.Client, robot: str, seq: int, x: float, y: float) -> None:
+def post(http: httpx.Client, robot: str, seq: int, x: float, y: float, map_id: str = MAP) -> None:
+    """Robot `robot`'s scan `seq`, taken at (x, y), over HTTP; returns once it is integrated."""
     r = http.post(
-        f"/maps/{MAP}/scans",
+        f"/maps/{map_id}/scans",
         params={"robot_id": robot},
         content=encode_json(scan_at(x, y), seq),
         headers={"content-type": "application/json"},
