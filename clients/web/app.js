@@ -33,7 +33,7 @@
  * Robots are drawn incrementally: a robot's marker and trail are made once, then moved and turned in
  * place, and only when its report changed; a robot the service no longer reports is removed. The
  * stream sends only the robots that changed and their new trail points (`robots_delta`), so 100
- * robots cost ~10 kB a second instead of ~1 MB.
+ * robots moving at 2 Hz cost ~30 kB a second instead of 0.5 to 1.5 MB.
  */
 (function () {
   'use strict';

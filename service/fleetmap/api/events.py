@@ -34,8 +34,8 @@ Format (text/event-stream):
   robots created or changed (all their fields as now, but in `trail` only the points appended
   since) and the ids of the robots forgotten (`removed`, applied first). Appended to the trail and
   cut to its last `trail_length` points, they give what a `robots` event would have said
-  (`RobotsEvent.apply`). 100 robots moving at 2 Hz make the full event ~100 kB ten times a second
-  per viewer; their deltas are ~10 kB.
+  (`RobotsEvent.apply`). 100 robots moving at 2 Hz with full trails make the full event ~150 kB,
+  ten times a second per viewer; their deltas are ~3 kB (docs/benchmarks.md, "Web viewer").
 
   Why opt-in, and why another event name: a client that does not know deltas (an older viewer, a
   script reading `robots`) must keep getting full events, and it does: without the parameter the

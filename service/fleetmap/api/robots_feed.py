@@ -1,6 +1,6 @@
 """What one event stream has sent of a map's robots, and what it has not sent yet.
 
-A `robots` event holds every robot with its trail: 100 robots x 100 points is ~100 kB of JSON, and
+A `robots` event holds every robot with its trail: 100 robots x 100 points is ~150 kB of JSON, and
 built 10 times a second per stream under the registry's lock, which ingest needs too. A
 `RobotsFeed` builds one only when the map's robots changed since (`MapEntry.live_version`), and
 `delta` copies only what changed: the robots whose `RobotState.changed` is newer than the last event,
