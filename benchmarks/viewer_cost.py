@@ -6,7 +6,9 @@ nodes and JS heap, measured in real headless Chromium against the real service.
 
 The service runs as a process (tests/service_process.py), the robots as one `fleetmap sim` process
 publishing through real Zenoh sessions, and the page is the viewer the service serves, driven by
-Playwright. Tile requests are counted with `page.on("request")`; main-thread time (`TaskDuration`,
+Playwright. Tile requests are counted with `page.on("request")`, the event stream's bytes (the `data`
+of each event the page handles, per event name) by a wrapper of `EventSource.addEventListener`
+installed before the page's script runs; main-thread time (`TaskDuration`,
 `ScriptDuration`), DOM nodes and JS heap come from CDP's `Performance.getMetrics`, sampled every
 `--sample` seconds. One JSON line per sample, then a summary.
 """
@@ -34,6 +36,20 @@ SCENARIOS = {
     "fleet": (100, 2.0, 181),
 }
 MAP_ID = "viewer-cost"
+
+#: Runs before the viewer's script: counts the characters of every event's data (JSON, so bytes) by
+#: event name in `window.__eventBytes`, whatever the stream's URL.
+COUNT_EVENTS_JS = """
+window.__eventBytes = {};
+const addListener = EventSource.prototype.addEventListener;
+EventSource.prototype.addEventListener = function (type, listener, options) {
+  const counted = function (e) {
+    window.__eventBytes[type] = (window.__eventBytes[type] || 0) + (e.data ? e.data.length : 0);
+    return listener.call(this, e);
+  };
+  return addListener.call(this, type, counted, options);
+};
+"""
 
 
 def main() -> int:
@@ -75,6 +91,7 @@ def main() -> int:
                     "request",
                     lambda r: requests.update([urlsplit(r.url).path]) if "/tiles/" in r.url else None,
                 )
+                page.add_init_script(COUNT_EVENTS_JS)
                 cdp = page.context.new_cdp_session(page)
                 cdp.send("Performance.enable")
                 page.goto(f"{svc.base_url}/#map={MAP_ID}")
@@ -90,7 +107,7 @@ def main() -> int:
                 # The default buffer holds 250 entries: a minute of tiles is more than that.
                 page.evaluate(
                     "() => { performance.setResourceTimingBufferSize(1e6);"
-                    " performance.clearResourceTimings(); }"
+                    " performance.clearResourceTimings(); window.__eventBytes = {}; }"
                 )
                 start = metrics(cdp)
                 t0 = time.monotonic()
@@ -113,6 +130,7 @@ def main() -> int:
                     """Percent of the measured time the main thread spent on `metric`."""
                     return round(100 * (end[metric] - start[metric]) / elapsed, 1)
 
+                event_bytes = page.evaluate("() => window.__eventBytes")
                 markers = page.evaluate("() => document.querySelectorAll('.robot-marker').length")
                 summary = {
                     "scenario": args.scenario, "robots": robots, "rate": rate, "hidden": args.hidden,
@@ -121,6 +139,10 @@ def main() -> int:
                     "tiles_fetched": len(requests),
                     "hottest_tile_fetches_per_s": round(max(requests.values(), default=0) / elapsed, 2),
                     "tile_kbytes_per_s": round(tile_bytes / 1024 / elapsed, 1),
+                    "event_kbytes_per_s": round(sum(event_bytes.values()) / 1024 / elapsed, 1),
+                    "event_kbytes_per_s_by_name": {
+                        name: round(n / 1024 / elapsed, 1) for name, n in sorted(event_bytes.items())
+                    },
                     "main_thread_busy_pct": share("TaskDuration"),
                     "script_pct": share("ScriptDuration"),
                     "nodes": [start["Nodes"], *(s["Nodes"] for s in samples)],

@@ -31,13 +31,17 @@ MAP_ID = "live"
 #: The viewer's TILE_REFRESH_MS (clients/web/app.js): one tile is requested at most this often.
 TILE_REFRESH_S = 0.5
 
-#: Counts the page's `tiles` and `robots` events from now on (window.eventsSeen), on the open stream.
+#: Counts the page's `tiles` and robots (full or delta) events from now on (window.eventsSeen), on
+#: the open stream.
 _COUNT_EVENTS_JS = """
 () => {
   window.eventsSeen = {tiles: 0, robots: 0};
   const es = window.fleetmapViewer.state.events;
   es.addEventListener('tiles', () => { window.eventsSeen.tiles += 1; });
-  es.addEventListener('robots', () => { window.eventsSeen.robots += 1; });
+  // The viewer asks for deltas: after the first full `robots` event, robots come as `robots_delta`.
+  for (const kind of ['robots', 'robots_delta']) {
+    es.addEventListener(kind, () => { window.eventsSeen.robots += 1; });
+  }
 }
 """
 #: Hide or show the page as a minimised window or a background tab would. Headless Chromium has no

@@ -8,8 +8,12 @@
  *   GET maps/{id}/tiles/{z}/{x}/{y}.png?layer=L&v=V
  *                                 -> the map itself on L.CRS.Simple: one map unit = one CELL,
  *                                    lng = cell x index i, lat = cell y index j, zoom 0 = one pixel per cell
- *   GET maps/{id}/events (SSE)    -> `tiles` {version, tiles: [[i0, j0, i1, j1], ...]} or {version, reset},
- *                                    `robots` {robots: {id: {online, pose, trail, scans_integrated}}},
+ *   GET maps/{id}/events?robots=delta (SSE)
+ *                                 -> `tiles` {version, tiles: [[i0, j0, i1, j1], ...]} or {version, reset},
+ *                                    `robots` {robots: {id: {online, pose, trail, scans_integrated}}}
+ *                                    (every robot: first, and after `replaced`), then
+ *                                    `robots_delta` {trail_length, robots: {id: {..., trail: the
+ *                                    points appended since}}, removed: [id, ...]} (what changed),
  *                                    `replaced` {id, version} (same map id, new content: reload it),
  *                                    `deleted` {id}
  *   GET maps/{id}/cell?x=&y=      -> the values of the clicked cell
@@ -27,7 +31,9 @@
  * Tiles created later use the newest counter.
  *
  * Robots are drawn incrementally: a robot's marker and trail are made once, then moved and turned in
- * place, and only when its report changed; a robot the service no longer reports is removed.
+ * place, and only when its report changed; a robot the service no longer reports is removed. The
+ * stream sends only the robots that changed and their new trail points (`robots_delta`), so 100
+ * robots moving at 2 Hz cost ~30 kB a second instead of 0.5 to 1.5 MB.
  */
 (function () {
   'use strict';
@@ -570,6 +576,23 @@
     renderRobotList();
   }
 
+  /**
+   * Apply a `robots_delta` event: the robots it removes go first (one forgotten and seen again under
+   * its id is in both), then each robot it names takes its new fields, and its trail the appended
+   * points, cut to the last `trail_length` (the service's RobotsEvent.apply does the same).
+   */
+  function applyRobotsDelta(delta) {
+    for (const id of delta.removed || []) removeRobot(id);
+    const reports = {};
+    for (const [id, change] of Object.entries(delta.robots || {})) {
+      const known = state.robots.get(id);
+      const before = known && Array.isArray(known.data.trail) ? known.data.trail : [];
+      const trail = before.concat(change.trail || []);
+      reports[id] = { ...change, trail: trail.slice(Math.max(0, trail.length - delta.trail_length)) };
+    }
+    updateRobots(reports);
+  }
+
   /** Take a robot off the map and out of the list. */
   function removeRobot(id) {
     const robot = state.robots.get(id);
@@ -851,7 +874,7 @@
       return;
     }
     setConnection('connecting');
-    const es = new EventSource(`maps/${enc(mapId)}/events`);
+    const es = new EventSource(`maps/${enc(mapId)}/events?robots=delta`);
     state.events = es;
     es.onopen = () => {
       if (es !== state.events) return;
@@ -891,6 +914,7 @@
     };
     es.addEventListener('tiles', handle(queueTiles));
     es.addEventListener('robots', handle((d) => updateRobots(d.robots, true)));
+    es.addEventListener('robots_delta', handle(applyRobotsDelta));
     // The map was replaced under its id (a snapshot upload): stay on it and reload it; the stream
     // goes on with the new map's events.
     es.addEventListener('replaced', handle(() => reloadMap()));
@@ -1047,8 +1071,11 @@
       setLayerOptions(config.layers);
       const stats = info.stats || {};
       if (stats.robots) {
+        // Only robots the stream has not shown yet: what it sent may be newer than this answer,
+        // and with deltas a robot that does not change again would keep a stale report.
         const reports = {};
         for (const [id, r] of Object.entries(stats.robots)) {
+          if (state.robots.has(id)) continue;
           reports[id] = { online: r.online, pose: r.last_pose, scans_integrated: r.scans_integrated };
         }
         updateRobots(reports);

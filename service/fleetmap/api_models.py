@@ -302,6 +302,8 @@ class TilesEvent(_Model):
 
 
 class RobotLive(_Model):
+    """A robot as a live viewer shows it."""
+
     online: bool
     pose: Annotated[list[float], Field(min_length=3, max_length=3)] | None = Field(
         description="[x, y, theta] of its last integrated scan"
@@ -310,10 +312,47 @@ class RobotLive(_Model):
     scans_integrated: int
 
 
+class RobotChange(RobotLive):
+    """A robot of a `robots_delta` event: its fields as they are now, except `trail`."""
+
+    trail: list[Point] = Field(
+        description="the positions [x, y] appended since the stream's previous robots event, oldest "
+        "first: append them to the robot's trail, then keep its last `trail_length`"
+    )
+
+
 class RobotsEvent(_Model):
     """`event: robots` of `GET /maps/{map_id}/events`: every robot of the map."""
 
     robots: dict[str, RobotLive]
+
+    def apply(self, delta: RobotsDeltaEvent) -> RobotsEvent:
+        """The robots after `delta`, the stream's next robots event: the `removed` robots go first
+        (a robot forgotten and created again under its id is in both), then each robot of
+        `delta.robots` takes its new fields, and its trail the appended points (a robot new to this
+        view starts with an empty one), cut to the last `trail_length`."""
+        robots = {rid: robot for rid, robot in self.robots.items() if rid not in set(delta.removed)}
+        for rid, change in delta.robots.items():
+            before = robots.get(rid)
+            trail = (before.trail if before is not None else []) + change.trail
+            robots[rid] = RobotLive(
+                online=change.online,
+                pose=change.pose,
+                trail=trail[len(trail) - delta.trail_length :] if len(trail) > delta.trail_length else trail,
+                scans_integrated=change.scans_integrated,
+            )
+        return RobotsEvent(robots=dict(sorted(robots.items())))
+
+
+class RobotsDeltaEvent(_Model):
+    """`event: robots_delta` of `GET /maps/{map_id}/events?robots=delta`: what changed of the map's
+    robots since the stream's previous `robots` or `robots_delta` event (`RobotsEvent.apply` says how
+    to apply it). A stream opened with `?robots=delta` sends a full `robots` event first (on connect,
+    and after `replaced`), then only these."""
+
+    trail_length: int = Field(ge=0, description="how many trail points the stream keeps per robot")
+    robots: dict[str, RobotChange] = Field(description="the robots created or changed since")
+    removed: list[str] = Field(description="the robots the service forgot since (apply first)")
 
 
 class ReplacedEvent(_Model):
@@ -506,21 +545,22 @@ def surface(window: CellWindow, points: np.ndarray) -> Surface:
     return Surface(window=window, count=len(pairs), points=pairs)
 
 
-def robots_event(entry: MapEntry, registry_lock: threading.RLock, trail_points: int = 100) -> RobotsEvent:
-    """Every robot of a map for a live viewer: at most `trail_points` recent positions each, rounded
-    to the millimetre (enough to draw; keeps the stream small)."""
-    with registry_lock:
-        robots = {}
-        for rid, state in sorted(entry.robots.items()):
-            trail = list(state.trail)[-trail_points:] if trail_points > 0 else []
-            pose = state.last_pose
-            robots[rid] = RobotLive(
-                online=state.online,
-                pose=None if pose is None else [pose.x, pose.y, pose.theta],
-                trail=[[round(x, 3), round(y, 3)] for x, y, _ in trail],
-                scans_integrated=state.scans_integrated,
-            )
-    return RobotsEvent(robots=robots)
+def robot_live(
+    online: bool,
+    pose: Pose2D | None,
+    trail: list[tuple[float, float, float]],
+    scans_integrated: int,
+    model: type[RobotLive] = RobotLive,
+) -> RobotLive:
+    """A robot for a live viewer (a `model`: RobotLive, or RobotChange with the new trail points),
+    from fields copied under the registry's lock: trail positions rounded to the millimetre (enough
+    to draw; keeps the stream small)."""
+    return model(
+        online=online,
+        pose=None if pose is None else [pose.x, pose.y, pose.theta],
+        trail=[[round(x, 3), round(y, 3)] for x, y, _ in trail],
+        scans_integrated=scans_integrated,
+    )
 
 
 __all__ = [
@@ -540,9 +580,11 @@ __all__ = [
     "MapSummary",
     "Pose",
     "RegionJson",
+    "RobotChange",
     "RobotLive",
     "RobotStats",
     "ReplacedEvent",
+    "RobotsDeltaEvent",
     "RobotsEvent",
     "ScanResult",
     "Surface",
@@ -554,8 +596,8 @@ __all__ = [
     "storage_status",
     "map_summary",
     "region_json",
+    "robot_live",
     "robot_stats",
-    "robots_event",
     "surface",
     "tile_windows",
 ]

@@ -148,6 +148,12 @@ class RobotState:
     #: Its scans accepted but not yet counted as integrated or refused: such a robot is not forgotten.
     unsettled: int = 0
     trail: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))
+    #: Poses ever appended to `trail` (`add_pose`), which keeps only the last TRAIL_LENGTH: an event
+    #: stream that sent the trail when this was n sends only the last `appended - n` points next.
+    appended: int = 0
+    #: `MapEntry.live_version` when a field a viewer shows (online, pose, trail, scans_integrated)
+    #: last changed, or the robot was created (`MapEntry.touch`).
+    changed: int = 0
     #: Its recent publisher sessions (key `session_key`), least recently heard first: the last one
     #: is the current one, whose last seq is the robot's (`last_seq`).
     sessions: dict[int, SessionSeqs] = field(default_factory=dict)
@@ -182,14 +188,19 @@ class RobotState:
     def from_saved(cls, data: dict) -> RobotState:
         state = cls(**{name: data.get(name, getattr(cls, name, None)) for name in cls.SAVED})
         if data.get("last_pose"):
-            state.last_pose = Pose2D(*data["last_pose"])
-            state.trail.append(tuple(data["last_pose"]))
+            state.add_pose(Pose2D(*data["last_pose"]))
         if "sessions" in data:
             state.sessions = {int(row[0]): SessionSeqs(*row[1:]) for row in data["sessions"]}
         elif data.get("last_seq") is not None:
             # Saved before sessions existed: every scan so far came without one.
             state.sessions = {NO_SESSION: SessionSeqs(data["last_seq"], state.last_stamp, 0, 0)}
         return state
+
+    def add_pose(self, pose: Pose2D) -> None:
+        """Its last integrated scan was taken at `pose`: its position now, and the trail's newest."""
+        self.last_pose = pose
+        self.trail.append((pose.x, pose.y, pose.theta))
+        self.appended += 1
 
     def is_duplicate(self, seq: int, stamp: float, session: int | None) -> bool:
         """Whether the scan `seq` of publisher session `session` (None: it sent none) is not new:
@@ -284,16 +295,32 @@ class MapEntry:
     #: The entry `replace` installed in this one's place (under `MapRegistry.lock`), so an event
     #: stream can tell a map replaced under its id (it follows the new one) from a deleted one.
     replaced_by: MapEntry | None = field(default=None, repr=False)
+    #: Bumped (under the registry's lock) whenever what a viewer shows of its robots changes: a robot
+    #: created, forgotten, or changed in a field of `RobotState.changed`. An event stream that saw
+    #: this version has nothing to send while it stays.
+    live_version: int = 0
 
     @property
     def config(self) -> MapConfig:
         return self.gmap.config
 
     def robot(self, robot_id: str) -> RobotState:
+        """Robot `robot_id`, created if the map has none of that id (call under the registry's lock)."""
         state = self.robots.get(robot_id)
         if state is None:
             state = self.robots[robot_id] = RobotState()
+            self.touch(state)
         return state
+
+    def touch(self, robot: RobotState) -> None:
+        """Record that a field of `robot` that viewers show changed (call under the registry's lock)."""
+        self.live_version += 1
+        robot.changed = self.live_version
+
+    def forget(self, robot_id: str) -> None:
+        """Remove robot `robot_id` and all the service knows of it (call under the registry's lock)."""
+        del self.robots[robot_id]
+        self.live_version += 1
 
 
 @dataclass
@@ -424,8 +451,8 @@ class MapRegistry:
                 # applied after it) is a duplicate to it: counted once, when it was accepted.
                 if not robot.is_duplicate(seq, stamp, session):
                     robot.accept(seq, stamp, session, time.time())
-                robot.last_stamp, robot.last_pose = stamp, scan.pose
-                robot.trail.append((scan.pose.x, scan.pose.y, scan.pose.theta))
+                robot.last_stamp = stamp
+                robot.add_pose(scan.pose)
                 entry.scans_integrated += 1
             # Charged after the replay, which the budget must never refuse: those scans were accepted.
             self._charged(gmap)
@@ -706,7 +733,7 @@ class MapRegistry:
         if not idle:
             return False
         forgotten, _ = min(idle, key=lambda item: (item[1].last_seq is not None, item[1].last_heard))
-        del entry.robots[forgotten]
+        entry.forget(forgotten)
         return True
 
     def set_online(self, map_id: str, robot_id: str, online: bool) -> None:
@@ -727,8 +754,10 @@ class MapRegistry:
                 entry.provisional = False  # the token would have created the map: it stays
             if self._room_for(entry, robot_id):
                 robot = entry.robot(robot_id)
-                robot.online = online
                 robot.last_heard = time.time()
+                if robot.online != online:
+                    robot.online = online
+                    entry.touch(robot)
 
     def _add(self, entry: MapEntry) -> None:
         """Install a new map entry (under the registry's lock), its robots whose liveliness tokens
@@ -737,7 +766,9 @@ class MapRegistry:
         self.maps[entry.id] = entry
         for map_id, robot_id in self._alive:
             if map_id == entry.id and self._room_for(entry, robot_id):
-                entry.robot(robot_id).online = True
+                robot = entry.robot(robot_id)
+                robot.online = True
+                entry.touch(robot)
 
     def iter_robots(self) -> Iterator[tuple[str, str, RobotState]]:
         with self.lock:
@@ -820,9 +851,9 @@ class MapRegistry:
                 robot = entry.robot(job.robot_id)
                 robot.unsettled -= 1
                 robot.scans_integrated += 1
-                robot.last_pose = pose
                 robot.last_stamp = job.wire.stamp
-                robot.trail.append((pose.x, pose.y, pose.theta))
+                robot.add_pose(pose)
+                entry.touch(robot)
         if self.on_integrated is not None:
             self.on_integrated(entry, job, result, elapsed)
         if job.future:

@@ -230,6 +230,16 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         ),
     )
     p.add_argument(
+        "--max-robots-per-map",
+        type=_int_between(1, 1_000_000),
+        default=1024,
+        metavar="N",
+        help=(
+            "robots one map keeps; a new robot on a full map makes room by forgetting the offline one "
+            "heard from least recently (default 1024)"
+        ),
+    )
+    p.add_argument(
         "--max-http-connections",
         type=_int_between(16, 1_000_000),
         default=1024,
@@ -627,6 +637,7 @@ def run(args: argparse.Namespace) -> int:
             on_integrated=_integration_hook(),
             durable=durable,
             memory_budget=args.max_memory,
+            max_robots_per_map=args.max_robots_per_map,
         )
         ingest = ZenohIngest(
             registry,

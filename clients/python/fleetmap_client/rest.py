@@ -42,6 +42,8 @@ from fleetmap.api_models import (
     MapInfo,
     MapList,
     MapSummary,
+    RobotsDeltaEvent,
+    RobotsEvent,
     ScanResult,
     Surface,
 )
@@ -395,7 +397,9 @@ class FleetmapClient:
 
     # -- live events -------------------------------------------------------------------------------
 
-    def events(self, map_id: str, since: int | None = None) -> EventStream:
+    def events(
+        self, map_id: str, since: int | None = None, robots: Literal["full", "delta"] = "full"
+    ) -> EventStream:
         """`GET /maps/{map_id}/events`: the map's server-sent events as (event, data) pairs, e.g.
         ("tiles", {"version": 7, "tiles": [[i0, j0, i1, j1], ...]}) or ("tiles", {"version": 9,
         "reset": True}), ("robots", {"robots": {...}}), ("replaced", {"id": ..., "version": v}) when
@@ -403,22 +407,53 @@ class FleetmapClient:
         with the new map's events, its versions starting at v), ("deleted", {"id": ...}) after which
         the stream ends. Keepalive comments are skipped. `since`: resume after that change version.
 
+        Robots: the stream is always asked for deltas (`?robots=delta`: only what changed travels).
+        With `robots="full"` (the default) they are folded here (`RobotsEvent.apply`), and every
+        ("robots", data) is every robot of the map with its trail, a `RobotsEvent` as a dict: what
+        a program drawing or checking robots wants, with no bookkeeping of its own. With
+        `robots="delta"` the events are yielded as sent: ("robots", ...) every robot, then
+        ("robots_delta", data) with what changed since the previous robots event, a
+        `RobotsDeltaEvent` as a dict (`RobotsDeltaEvent.model_validate(data)` types it), for a
+        program that keeps its own state of a big fleet and wants only the changes.
+
         The generator is lazy: the request is made on the first `next()`. It ends when the server
         closes the stream; close it early with `.close()` on the generator (or by leaving a `for`
         loop and dropping it). Raises `FleetmapError` (e.g. 404 unknown map) on the first `next()`;
         an invalid `map_id` raises ValueError here, at the call, as every other method does.
         """
         _check_id("map_id", map_id)
-        return self._events(map_id, since)
+        if robots not in ("full", "delta"):
+            raise ValueError(f"robots must be 'full' or 'delta', got {robots!r}")
+        stream = self._events(map_id, since)
+        return stream if robots == "delta" else fold_robots(stream)
 
     def _events(self, map_id: str, since: int | None) -> EventStream:
-        params = {} if since is None else {"since": since}
+        params: dict[str, Any] = {"robots": "delta"}
+        if since is not None:
+            params["since"] = since
         timeout = httpx.Timeout(self.timeout, read=None)  # the stream may be idle for a while
         with self._http.stream("GET", f"/maps/{map_id}/events", params=params, timeout=timeout) as response:
             if response.status_code >= 400:
                 response.read()
                 _raise_for_error(response)
             yield from parse_sse(response.iter_lines())
+
+
+def fold_robots(events: EventStream) -> EventStream:
+    """`events` with each `robots_delta` applied to the robots so far and yielded as the full
+    ("robots", data) it amounts to (a `RobotsEvent` as a dict); other events pass unchanged. Closing
+    the result closes `events`."""
+    view: RobotsEvent | None = None
+    try:
+        for event, data in events:
+            if event == "robots":
+                view = RobotsEvent.model_validate(data)
+            elif event == "robots_delta" and view is not None:
+                view = view.apply(RobotsDeltaEvent.model_validate(data))
+                event, data = "robots", view.model_dump()
+            yield event, data
+    finally:
+        events.close()
 
 
 def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
@@ -478,5 +513,6 @@ __all__ = [
     "FleetmapClient",
     "FleetmapError",
     "Layer",
+    "fold_robots",
     "parse_sse",
 ]

@@ -25,7 +25,14 @@ from fleetmap.api import errors, routes_data, routes_maps, routes_snapshot, rout
 from fleetmap.api.events import router as events_router
 from fleetmap.api.priority import IngestGate, IngestPriority
 from fleetmap.api.state import ApiState
-from fleetmap.api_models import MAX_POINTS, RegionJson, ReplacedEvent, RobotsEvent, TilesEvent
+from fleetmap.api_models import (
+    MAX_POINTS,
+    RegionJson,
+    ReplacedEvent,
+    RobotsDeltaEvent,
+    RobotsEvent,
+    TilesEvent,
+)
 from fleetmap.auth import AuthMiddleware, TokenFile, TokenSet
 from fleetmap.metrics import IntegrationMetrics, ServiceMetrics
 from fleetmap.registry import MapRegistry
@@ -198,7 +205,9 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
 
 #: Models that routes send without FastAPI seeing them as response models (raw JSON bodies, event
 #: data) but that clients need in the spec.
-EXTRA_SCHEMAS: tuple[type[BaseModel], ...] = (ScanMessage, RegionJson, TilesEvent, RobotsEvent, ReplacedEvent)
+EXTRA_SCHEMAS: tuple[type[BaseModel], ...] = (
+    ScanMessage, RegionJson, TilesEvent, RobotsEvent, RobotsDeltaEvent, ReplacedEvent,
+)  # fmt: skip
 
 
 def _install_openapi(app: FastAPI) -> None:

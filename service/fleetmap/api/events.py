@@ -17,13 +17,32 @@ Format (text/event-stream):
     data: {"robots": {"r1": {"online": true, "pose": [1.0, 2.0, 0.5], "trail": [[0.9, 2.0], ...],
            "scans_integrated": 17}}}
 
+    event: robots_delta                       (only with ?robots=delta)
+    data: {"trail_length": 100, "robots": {"r1": {"online": true, "pose": [1.1, 2.0, 0.5],
+           "trail": [[1.0, 2.0]], "scans_integrated": 18}}, "removed": ["r7"]}
+
     : keepalive
 
 - `tiles`: cell windows `[i0, j0, i1, j1]` of the storage tiles changed since the last event (refetch
   the web tiles that overlap them), or `{"version": v, "reset": true}`: too much changed to list,
   reload everything. Its `id` is the map's change version: a reconnecting EventSource sends it back as
   `Last-Event-ID` (or pass `?since=`) and gets the changes it missed.
-- `robots`: every robot of the map, sent when anything in it changed (and once on connect).
+- `robots`: every robot of the map with its last 100 trail points, sent when anything in it changed
+  (and once on connect).
+- `robots_delta`, only on a stream opened with `?robots=delta`: after that stream's first `robots`
+  event (on connect, and after each `replaced`), what changed since its previous robots event: the
+  robots created or changed (all their fields as now, but in `trail` only the points appended
+  since) and the ids of the robots forgotten (`removed`, applied first). Appended to the trail and
+  cut to its last `trail_length` points, they give what a `robots` event would have said
+  (`RobotsEvent.apply`). 100 robots moving at 2 Hz with full trails make the full event ~150 kB,
+  ten times a second per viewer; their deltas are ~3 kB (docs/benchmarks.md, "Web viewer").
+
+  Why opt-in, and why another event name: a client that does not know deltas (an older viewer, a
+  script reading `robots`) must keep getting full events, and it does: without the parameter the
+  stream is as it was. A new event name (sent to every stream besides the full `robots`) would keep
+  old clients right too, but then every stream would carry both, costing more, not less. And a
+  client that asked for deltas never mistakes one for the full list (which would remove every
+  robot it omits), because a delta is never called `robots`.
 - `replaced`: `{"id": map_id, "version": v}`, with `id: v`: the map was replaced under its id by
   `PUT /maps/{map_id}/snapshot` (new configuration, cells and robots; change versions start again).
   Reload the map's metadata and every tile. The stream goes on with the new map's events (a
@@ -45,15 +64,16 @@ import asyncio
 import json
 import time
 from collections.abc import AsyncIterator
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Header, Query
 from fastapi.responses import StreamingResponse
 from starlette.types import Receive, Scope, Send
 
 from fleetmap.api.errors import ApiError, error_responses
+from fleetmap.api.robots_feed import RobotsFeed
 from fleetmap.api.state import ApiState, EventStreamSlots, MapId, State
-from fleetmap.api_models import ReplacedEvent, TilesEvent, robots_event, tile_windows
+from fleetmap.api_models import ReplacedEvent, TilesEvent, tile_windows
 from fleetmap.registry import MapEntry
 
 router = APIRouter()
@@ -94,9 +114,12 @@ def _successor(maps: dict[str, MapEntry], entry: MapEntry) -> MapEntry | None:
     return follow
 
 
-async def event_stream(state: ApiState, entry: MapEntry, since: int | None) -> AsyncIterator[str]:
+async def event_stream(
+    state: ApiState, entry: MapEntry, since: int | None, robot_deltas: bool = False
+) -> AsyncIterator[str]:
     """The events of one client until it disconnects (Starlette then cancels this generator) or the
-    map is deleted. A map replaced under its id is followed: `replaced`, then the new map's events."""
+    map is deleted. A map replaced under its id is followed: `replaced`, then the new map's events.
+    `robot_deltas` (`?robots=delta`): after the first `robots` event of a map, `robots_delta` events."""
     registry, settings = state.registry, state.settings
     feed = entry.changes
     tile_size = entry.config.tile_size
@@ -111,7 +134,7 @@ async def event_stream(state: ApiState, entry: MapEntry, since: int | None) -> A
             feed.version,
         )
         version = feed.version
-    last_robots = ""
+    robots_feed = RobotsFeed(entry, registry.lock)
     last_sent = time.monotonic()
     while True:
         with registry.lock:
@@ -125,7 +148,7 @@ async def event_stream(state: ApiState, entry: MapEntry, since: int | None) -> A
             entry, feed, tile_size = successor, successor.changes, successor.config.tile_size
             version = feed.version
             yield _event("replaced", ReplacedEvent(id=entry.id, version=version).model_dump_json(), version)
-            last_robots = ""  # the new map's robots, even if they look the same
+            robots_feed = RobotsFeed(entry, registry.lock)  # all the new map's robots, at once
             last_sent = time.monotonic()
         batch = feed.since(version)
         if batch.version != version:
@@ -137,11 +160,17 @@ async def event_stream(state: ApiState, entry: MapEntry, since: int | None) -> A
                 yield _event("tiles", tiles.model_dump_json(exclude_none=True), batch.version)
                 last_sent = time.monotonic()
             version = batch.version
-        robots = robots_event(entry, registry.lock).model_dump_json()
-        if robots != last_robots:
-            yield _event("robots", robots)
-            last_robots = robots
-            last_sent = time.monotonic()
+        # A feed that sent nothing yet sends every robot: a delta needs a base.
+        if robot_deltas and robots_feed.version >= 0:
+            delta = robots_feed.delta()
+            if delta is not None:
+                yield _event("robots_delta", delta.model_dump_json())
+                last_sent = time.monotonic()
+        else:
+            robots = robots_feed.full()
+            if robots is not None:
+                yield _event("robots", robots.model_dump_json())
+                last_sent = time.monotonic()
         if time.monotonic() - last_sent >= settings.keepalive:
             yield ": keepalive\n\n"
             last_sent = time.monotonic()
@@ -166,6 +195,10 @@ async def get_events(
     state: State,
     since: Annotated[int | None, Query(ge=0, description="resume after this change version")] = None,
     last_event_id: Annotated[str | None, Header(description="set by a reconnecting EventSource")] = None,
+    robots: Annotated[
+        Literal["full", "delta"],
+        Query(description="`delta`: after a first full `robots` event, send what changed as `robots_delta`"),
+    ] = "full",
 ) -> StreamingResponse:
     """Server-sent events, at most one `tiles` and one `robots` event per 100 ms:
 
@@ -174,6 +207,10 @@ async def get_events(
       tiles), or `{"version": int, "reset": true}`: reload everything;
     - `event: robots`, data `{"robots": {"<robot_id>": {"online", "pose": [x, y, theta] | null,
       "trail": [[x, y], ...], "scans_integrated"}}}`: sent on connect and whenever a robot changed;
+    - with `?robots=delta`, after the first `robots` event (and the one after `replaced`):
+      `event: robots_delta`, data `{"trail_length": int, "robots": {"<robot_id>": {...}},
+      "removed": ["<robot_id>", ...]}`: the robots changed since the previous robots event, with only
+      the trail points appended since, and the robots forgotten (see `RobotsDeltaEvent`);
     - `event: replaced`, `id: <version>`, data `{"id": map_id, "version": int}`: the map was replaced
       by `PUT /maps/{map_id}/snapshot`; reload its metadata and every tile. The stream goes on with
       the new map's events (change versions start again at `version`);
@@ -181,7 +218,7 @@ async def get_events(
     - `: keepalive` comments every 15 s.
 
     A reconnecting EventSource sends `Last-Event-ID` (the last tiles version it got) and receives what
-    changed since; `?since=` does the same by hand.
+    changed since; `?since=` does the same by hand. Robots always start with a full `robots` event.
 
     503 (with `Retry-After`) when the server already holds its limit of open streams (256 by
     default); an EventSource reconnects by itself."""
@@ -197,7 +234,7 @@ async def get_events(
         )
     return _SlotStreamingResponse(
         slots,
-        event_stream(state, entry, since),
+        event_stream(state, entry, since, robot_deltas=robots == "delta"),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
     )
