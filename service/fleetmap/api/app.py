@@ -20,9 +20,11 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel
+from starlette.middleware.gzip import GZipMiddleware
 
 from fleetmap.api import errors, routes_data, routes_maps, routes_snapshot, routes_tiles, static
 from fleetmap.api.events import router as events_router
+from fleetmap.api.http_semantics import GZIP_LEVEL, GZIP_MINIMUM_BYTES, DefaultHeaders, HeadAsGet
 from fleetmap.api.priority import IngestGate, IngestPriority
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import MAX_POINTS, RegionJson, ReplacedEvent, RobotsEvent, TilesEvent
@@ -157,6 +159,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         version=_version(),
         description=DESCRIPTION,
         openapi_tags=TAGS,
+        redirect_slashes=False,  # `/maps/` is a 404 naming `/maps` (errors.py), not a redirect
     )
     integration = _integration_metrics(registry, settings.metrics)
     gate = IngestGate(lambda: registry.backlog()[1], settings.ingest_backlog, settings.max_read_delay)
@@ -175,6 +178,10 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.include_router(events_router)
     static.install(app, app.state.fleetmap.web_dir)
     # Middleware, innermost first (each `add_middleware` wraps what is there).
+    # gzip sees every answer as the route made it; the event stream and PNG / zip answers pass as is.
+    app.add_middleware(GZipMiddleware, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=GZIP_LEVEL)
+    # Outside gzip: a HEAD's headers (Content-Encoding, Content-Length) are those of the GET.
+    app.add_middleware(HeadAsGet)
     app.add_middleware(errors.BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     # A request held back has not been read or run at all.
     app.add_middleware(IngestPriority, gate=gate)
@@ -192,6 +199,9 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
             allow_headers=["*"],
             expose_headers=["ETag", "X-Fleetmap-Window", "X-Fleetmap-Origin", "X-Fleetmap-Resolution"],
         )
+    # Only adds headers (so every answer still carries CORS's, `Vary: Origin` included, which
+    # Starlette's CORS middleware puts on every answer, with or without an `Origin`).
+    app.add_middleware(DefaultHeaders)
     _install_openapi(app)
     return app
 

@@ -61,8 +61,9 @@ def _convention() -> str:
 TILE_DESCRIPTION = f"""\
 A 256 x 256 RGBA PNG of one layer. Unexplored space is transparent. `ETag` changes whenever a cell
 under the tile changes (and when the map is re-created); send it back as `If-None-Match` to get
-`304 Not Modified` while the tile is unchanged. `Cache-Control: no-cache`: clients revalidate, so a
-change is visible as soon as its scan is integrated. Leaflet:
+`304 Not Modified` while the tile is unchanged. `Cache-Control: no-cache` (`private, no-cache` when
+the server requires a read token): clients revalidate, so a change is visible as soon as its scan is
+integrated. HEAD answers the headers alone. Leaflet:
 `L.tileLayer('/maps/{{map_id}}/tiles/{{z}}/{{x}}/{{y}}.png?layer=probability', {{minZoom: -8, maxZoom: 4,
 maxNativeZoom: 4, minNativeZoom: -8}})` on a map with `crs: L.CRS.Simple`.
 
@@ -73,6 +74,13 @@ From fleetmap.tile_render:
 Errors: 422 for a zoom outside {MIN_ZOOM}..{MAX_ZOOM}, a tile beyond the cell range, or an unknown
 layer or one the map does not keep; 404 for an unknown map.
 """
+
+
+def tile_cache_control(private: bool) -> str:
+    """Tiles' Cache-Control: caches store a tile and revalidate it before every use (`no-cache`), so
+    a change shows as soon as its scan is integrated; `private` when reading needs a token, so that no
+    shared cache (a CDN, a proxy) keeps a tile for clients whose token it never saw."""
+    return "private, no-cache" if private else "no-cache"
 
 
 def etag_matches(if_none_match: str, etag: str) -> bool:
@@ -111,14 +119,16 @@ async def get_tile(
     # On the event loop: a revalidation or a cache hit takes microseconds, and a hop to the thread
     # pool would cost more than that (and another thread wanting the GIL). Only renders go there.
     entry = state.entry(map_id)
+    settings = state.settings
+    cache_control = tile_cache_control(settings.tokens is not None and settings.require_read_token)
     if if_none_match:
         # Answer a revalidation from the version alone: no render, no cache lookup.
         check_layer(entry.gmap, layer)
         etag = etag_for(entry.generation, layer, z, x, y, tile_version(entry.gmap, z, x, y))
         if etag_matches(if_none_match, etag):
-            return Response(status_code=304, headers={"ETag": etag, "Cache-Control": "no-cache"})
+            return Response(status_code=304, headers={"ETag": etag, "Cache-Control": cache_control})
     found = state.tiles.cached(entry, layer, z, x, y)
     if found is None:
         found = await run_in_threadpool(state.tiles.get_or_render, entry, layer, z, x, y)
     png, etag = found
-    return Response(png, media_type="image/png", headers={"ETag": etag, "Cache-Control": "no-cache"})
+    return Response(png, media_type="image/png", headers={"ETag": etag, "Cache-Control": cache_control})

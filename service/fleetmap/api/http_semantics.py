@@ -1,0 +1,87 @@
+"""HTTP conventions every answer follows, whatever route made it: HEAD, caching headers, compression.
+
+- `HEAD` is answered on every `GET` route but the event stream, as the `GET` would be (status and
+  headers, `Content-Length` and `ETag` included) without the body. FastAPI routes answer only the
+  methods they declare, and tile servers' clients and CDNs check tiles with HEAD. The event stream is
+  left out: its `GET` never ends, so a HEAD would hold one of the server's event-stream slots.
+- `Cache-Control: no-cache` on every answer that does not set its own: map data changes with every
+  scan, and a CDN in front would otherwise apply its default lifetime (an hour on some) to answers
+  without one and serve stale cells and regions. `no-cache` still lets caches store and revalidate.
+- gzip (Starlette's `GZipMiddleware`, as `create_app` installs it) for clients that accept it, for
+  answers of at least `GZIP_MINIMUM_BYTES`, except those already compressed (PNG, zip) and the event
+  stream (each event must reach the client when it is sent; Starlette's middleware leaves
+  `text/event-stream` alone). A gzip answer's strong `ETag` (a static file's) is made weak: the
+  compressed bytes are another representation, and a strong validator promises the same bytes
+  (RFC 9110, 8.8.1).
+"""
+
+from __future__ import annotations
+
+from starlette.datastructures import MutableHeaders
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+#: Answers smaller than this are sent as they are: a few hundred bytes gain nothing worth a
+#: Content-Encoding (and a tiny gzip body can be larger than the original).
+GZIP_MINIMUM_BYTES = 1024
+#: zlib level. On a 1 M-cell region JSON (7.5 MB) level 6 takes 21 ms for 111 KB, level 9
+#: (Starlette's default) 53 ms for 101 KB (docs/api.md, "Compression"): not worth 2.5 times the CPU.
+GZIP_LEVEL = 6
+#: What an answer says about caching when its route says nothing.
+DEFAULT_CACHE_CONTROL = "no-cache"
+
+
+def is_event_stream(path: str) -> bool:
+    """Whether `path` is a map's event stream, `/maps/{map_id}/events` (ids never hold a `/`)."""
+    return path.startswith("/maps/") and path.endswith("/events") and path.count("/") == 3
+
+
+def head_allowed(path: str) -> bool:
+    """Whether a HEAD at `path` is answered like the GET there (every path but the event stream)."""
+    return not is_event_stream(path)
+
+
+class HeadAsGet:
+    """ASGI middleware: a HEAD request runs as a GET, and its answer's body is dropped (headers kept,
+    so `Content-Length` is the GET's). Paths where `head_allowed` is false keep HEAD, so the app
+    answers 405 there."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "HEAD" or not head_allowed(scope["path"]):
+            await self.app(scope, receive, send)
+            return
+
+        async def without_body(message: Message) -> None:
+            if message["type"] == "http.response.body":
+                message = {**message, "body": b""}
+            await send(message)
+
+        # A copy: the server reads the method from its own scope to know it must send no body.
+        await self.app({**scope, "method": "GET"}, receive, without_body)
+
+
+class DefaultHeaders:
+    """ASGI middleware: `Cache-Control: no-cache` on answers without a Cache-Control, and a weak `ETag`
+    on gzip answers (see the module's docstring). Placed outside the gzip middleware, so that it sees
+    the `Content-Encoding`."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def with_defaults(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = MutableHeaders(scope=message)
+                headers.setdefault("Cache-Control", DEFAULT_CACHE_CONTROL)
+                etag = headers.get("ETag")
+                if etag is not None and headers.get("Content-Encoding") == "gzip" and etag.startswith('"'):
+                    headers["ETag"] = f"W/{etag}"
+            await send(message)
+
+        await self.app(scope, receive, with_defaults)
