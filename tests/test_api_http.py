@@ -164,3 +164,68 @@ def test_with_cors_every_answer_varies_by_origin(service_factory: Callable[..., 
             cross = client.get(path, headers={**IDENTITY, "Origin": PAGE})
             assert cross.headers["access-control-allow-origin"] == PAGE
             assert [v.strip() for v in cross.headers["vary"].split(",")].count("Origin") == 1, cross.headers
+
+
+JSON = {"content-type": "application/json"}
+
+
+def test_json_bodies_are_read_strictly_and_a_refused_one_changes_nothing(mapped: httpx.Client) -> None:
+    refused = [
+        # (body, headers, status, words of the detail)
+        (b'{"resolution": 0.05}', {"content-type": "text/plain"}, 415, "Content-Type: application/json"),
+        (b'{"resolution": 0.05}', {"content-type": "application/x-www-form-urlencoded"}, 415, "not 'app"),
+        (b'{"resolution": 0.05}', {}, 415, "none was given"),
+        (b'{"resolution": 0.05, "resolution": 0.1}', JSON, 422, "the key 'resolution' appears twice"),
+        (b'{"occupancy": {"l_hit": 1, "l_hit": 2}}', JSON, 422, "the key 'l_hit' appears twice"),
+        (b'\xef\xbb\xbf{"resolution": 0.05}', JSON, 422, "byte order mark"),
+        (b'{"resolution": ' + b"9" * 5000 + b"}", JSON, 422, "too many digits"),
+        (b"[" * 100_000 + b"]" * 100_000, JSON, 422, "nested too deeply"),
+        (b'{"resolution": 0.05', JSON, 422, "body is not valid JSON for this API: Expecting"),
+        (b'{"resolution": 0.05}\xff', JSON, 422, "not UTF-8"),
+    ]
+    for body, headers, status, words in refused:
+        r = mapped.put("/maps/refused", content=body, headers=headers)
+        where = f"{body[:40]!r} {headers}: {r.status_code} {r.text[:200]}"
+        assert r.status_code == status and r.headers["content-type"] == "application/json", where
+        assert words in r.json()["detail"], where
+    assert mapped.get("/maps/refused").status_code == 404  # none of them created it
+    # The same rules for POST /cells.
+    r = mapped.post("/maps/m/cells", content=b'{"points": [[0, 0]]}', headers={"content-type": "text/plain"})
+    assert r.status_code == 415
+    r = mapped.post("/maps/m/cells", content=b'{"points": [[0, 0]], "points": [[9, 9]]}', headers=JSON)
+    assert r.status_code == 422 and "'points' appears twice" in r.json()["detail"]
+    # What stays allowed: JSON with a charset, an empty body of any type (the default configuration).
+    assert (
+        mapped.put(
+            "/maps/a", content=b"{}", headers={"content-type": "application/json; charset=utf-8"}
+        ).status_code
+        == 201
+    )
+    assert mapped.put("/maps/b", content=b"", headers={"content-type": "text/plain"}).status_code == 201
+
+
+def test_query_parameters_once_each_unknown_ones_ignored(mapped: httpx.Client) -> None:
+    for path in ("/maps/m/cell?x=0&x=5&y=0", f"{TILE}?layer=hits&layer=probability",
+                 "/maps/m/region?xmin=0&xmin=1&ymin=0&xmax=1&ymax=1"):  # fmt: skip
+        r = mapped.get(path)
+        assert r.status_code == 422 and "is given more than once" in r.json()["detail"], (path, r.text)
+    plain = mapped.get("/maps/m/cell?x=0&y=0").json()
+    assert mapped.get("/maps/m/cell?x=0&y=0&_=1700000000&v=2&v=3").json() == plain
+    assert mapped.get(f"{TILE}?v=2").headers["etag"] == mapped.get(TILE).headers["etag"]
+    for value in ("nan", "inf", "-inf", "1e400"):
+        r = mapped.get(f"/maps/m/cell?x={value}&y=0")
+        assert r.status_code == 422 and "finite" in r.json()["detail"], (value, r.text)
+
+
+def test_a_put_that_creates_answers_201_with_its_location_then_200(mapped: httpx.Client) -> None:
+    created = mapped.put("/maps/p", json={"resolution": 0.1})
+    assert created.status_code == 201 and created.headers["location"] == "/maps/p"
+    again = mapped.put("/maps/p", json={"resolution": 0.1})
+    assert again.status_code == 200 and "location" not in again.headers
+    assert again.json()["config"] == created.json()["config"]
+    snapshot = mapped.get("/maps/m/snapshot").content
+    zipped = {"content-type": "application/zip"}
+    restored = mapped.put("/maps/copy/snapshot", content=snapshot, headers=zipped)
+    assert restored.status_code == 201 and restored.headers["location"] == "/maps/copy"
+    replaced = mapped.put("/maps/copy/snapshot", content=snapshot, headers=zipped)
+    assert replaced.status_code == 200 and "location" not in replaced.headers

@@ -13,11 +13,14 @@
   `text/event-stream` alone). A gzip answer's strong `ETag` (a static file's) is made weak: the
   compressed bytes are another representation, and a strong validator promises the same bytes
   (RFC 9110, 8.8.1).
+- A PUT that made its map answers 201 with the map's `Location`, one that replaced it or found it as
+  asked 200 (`created_status`).
 """
 
 from __future__ import annotations
 
 from starlette.datastructures import MutableHeaders
+from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 #: Answers smaller than this are sent as they are: a few hundred bytes gain nothing worth a
@@ -85,3 +88,12 @@ class DefaultHeaders:
             await send(message)
 
         await self.app(scope, receive, with_defaults)
+
+
+def created_status(response: Response, map_id: str, *, created: bool) -> None:
+    """A PUT's status: 201 with the map's `Location` when it made the map, else 200 (RFC 9110, 9.3.4)."""
+    if created:
+        response.status_code = 201
+        response.headers["Location"] = f"/maps/{map_id}"
+    else:
+        response.status_code = 200

@@ -12,9 +12,10 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from fleetmap import tile_render
 from fleetmap.api.errors import error_responses
 from fleetmap.api.state import MapId, RegionLayer, State
+from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.tile_render import MAX_ZOOM, MIN_ZOOM, check_layer, etag_for, tile_version
 
-router = APIRouter()
+router = APIRouter(route_class=StrictRoute)
 
 
 def is_tile_path(path: str) -> bool:
