@@ -229,3 +229,26 @@ def test_a_put_that_creates_answers_201_with_its_location_then_200(mapped: httpx
     assert restored.status_code == 201 and restored.headers["location"] == "/maps/copy"
     replaced = mapped.put("/maps/copy/snapshot", content=snapshot, headers=zipped)
     assert replaced.status_code == 200 and "location" not in replaced.headers
+
+
+def test_small_json_answers_carry_an_etag_and_revalidate_to_304(mapped: httpx.Client) -> None:
+    """A viewer polling the map list downloads it only when it changed."""
+    first = mapped.get("/maps")
+    etag = first.headers["etag"]
+    assert etag.startswith('W/"'), etag  # weak: the gzip form shares it
+    same = mapped.get("/maps", headers={"If-None-Match": etag})
+    assert same.status_code == 304 and same.content == b"" and same.headers["etag"] == etag
+    assert same.headers["cache-control"] == "no-cache" and "content-type" not in same.headers
+    assert mapped.get("/maps", headers={**GZIP, "If-None-Match": f'"other", {etag}'}).status_code == 304
+    assert mapped.head("/maps", headers={"If-None-Match": etag}).status_code == 304
+    assert mapped.put("/maps/another", json={}).status_code == 201
+    changed = mapped.get("/maps", headers={"If-None-Match": etag})
+    assert changed.status_code == 200 and changed.headers["etag"] != etag
+    assert "another" in changed.text
+    # Answers with their own validators keep them; errors and large answers get none.
+    assert mapped.get(TILE).headers["etag"].startswith('"')
+    assert "etag" not in mapped.get("/maps/nope").headers
+    big = mapped.get(
+        "/maps/m/region", params={"format": "json", "xmin": -25, "ymin": -25, "xmax": 25, "ymax": 25}
+    )
+    assert big.status_code == 200 and len(big.content) > 1024 * 1024 and "etag" not in big.headers

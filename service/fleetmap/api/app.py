@@ -24,7 +24,7 @@ from starlette.middleware.gzip import GZipMiddleware
 
 from fleetmap.api import errors, routes_data, routes_maps, routes_snapshot, routes_tiles, static
 from fleetmap.api.events import router as events_router
-from fleetmap.api.http_semantics import GZIP_LEVEL, GZIP_MINIMUM_BYTES, DefaultHeaders, HeadAsGet
+from fleetmap.api.http_semantics import GZIP_LEVEL, GZIP_MINIMUM_BYTES, DefaultHeaders, HeadAsGet, JsonETags
 from fleetmap.api.priority import IngestGate, IngestPriority
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import MAX_POINTS, RegionJson, ReplacedEvent, RobotsEvent, TilesEvent
@@ -178,6 +178,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.include_router(events_router)
     static.install(app, app.state.fleetmap.web_dir)
     # Middleware, innermost first (each `add_middleware` wraps what is there).
+    app.add_middleware(JsonETags)
     # gzip sees every answer as the route made it; the event stream and PNG / zip answers pass as is.
     app.add_middleware(GZipMiddleware, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=GZIP_LEVEL)
     # Outside gzip: a HEAD's headers (Content-Encoding, Content-Length) are those of the GET.

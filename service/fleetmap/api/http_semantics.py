@@ -13,13 +13,20 @@
   `text/event-stream` alone). A gzip answer's strong `ETag` (a static file's) is made weak: the
   compressed bytes are another representation, and a strong validator promises the same bytes
   (RFC 9110, 8.8.1).
+- JSON answers to GET of at most `JSON_ETAG_MAX_BYTES` (map lists, map info, cells, health) carry a
+  weak `ETag`, a hash of the body, and a request whose `If-None-Match` holds it gets 304 without the
+  body: a viewer polling `/maps` downloads the list only when it changed (browsers revalidate by
+  themselves). Larger answers (regions) are not hashed: it would cost milliseconds per request, on the
+  event loop, for answers rarely asked twice unchanged.
 - A PUT that made its map answers 201 with the map's `Location`, one that replaced it or found it as
   asked 200 (`created_status`).
 """
 
 from __future__ import annotations
 
-from starlette.datastructures import MutableHeaders
+import hashlib
+
+from starlette.datastructures import Headers, MutableHeaders
 from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -29,6 +36,8 @@ GZIP_MINIMUM_BYTES = 1024
 #: zlib level. On a 1 M-cell region JSON (7.5 MB) level 6 takes 21 ms for 111 KB, level 9
 #: (Starlette's default) 53 ms for 101 KB (docs/api.md, "Compression"): not worth 2.5 times the CPU.
 GZIP_LEVEL = 6
+#: JSON answers up to this size get an ETag (hashing 1 MiB takes about a millisecond).
+JSON_ETAG_MAX_BYTES = 1024 * 1024
 #: What an answer says about caching when its route says nothing.
 DEFAULT_CACHE_CONTROL = "no-cache"
 
@@ -97,3 +106,62 @@ def created_status(response: Response, map_id: str, *, created: bool) -> None:
         response.headers["Location"] = f"/maps/{map_id}"
     else:
         response.status_code = 200
+
+
+def etag_matches(if_none_match: str, etag: str) -> bool:
+    """RFC 9110 If-None-Match: a list of (possibly weak) entity tags, or `*`."""
+    for candidate in if_none_match.split(","):
+        candidate = candidate.strip()
+        if candidate == "*" or candidate.removeprefix("W/") == etag.removeprefix("W/"):
+            return True
+    return False
+
+
+def json_etag(body: bytes) -> str:
+    """The weak ETag of a JSON answer: its content's hash (weak, as its gzip form shares it)."""
+    return f'W/"{hashlib.blake2b(body, digest_size=12).hexdigest()}"'
+
+
+class JsonETags:
+    """ASGI middleware: a weak ETag on JSON answers to GET of at most `JSON_ETAG_MAX_BYTES` that have
+    none, and 304 for a request whose `If-None-Match` holds it (see the module's docstring). Inside
+    the gzip middleware, so that it hashes the JSON itself."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "GET":
+            await self.app(scope, receive, send)
+            return
+        if_none_match = Headers(scope=scope).get("if-none-match")
+        start: Message | None = None
+
+        async def tagging_send(message: Message) -> None:
+            nonlocal start
+            if message["type"] == "http.response.start":
+                headers = Headers(raw=message.get("headers", []))
+                taggable = message["status"] == 200 and "etag" not in headers
+                if taggable and headers.get("content-type", "").startswith("application/json"):
+                    start = message  # held until the body shows whether it is small and whole
+                    return
+            elif start is not None and message["type"] == "http.response.body":
+                held, start = start, None
+                body = message.get("body", b"")
+                if not message.get("more_body", False) and len(body) <= JSON_ETAG_MAX_BYTES:
+                    etag = json_etag(body)
+                    if if_none_match and etag_matches(if_none_match, etag):
+                        await send(_not_modified(held, etag))
+                        await send({"type": "http.response.body", "body": b""})
+                        return
+                    MutableHeaders(scope=held).append("ETag", etag)
+                await send(held)
+            await send(message)
+
+        await self.app(scope, receive, tagging_send)
+
+
+def _not_modified(start: Message, etag: str) -> Message:
+    """The 304 for a 200's start message: its caching headers, no body headers (RFC 9110, 15.4.5)."""
+    kept = [(k, v) for k, v in start.get("headers", []) if k.lower() in (b"cache-control", b"vary")]
+    return {"type": "http.response.start", "status": 304, "headers": [*kept, (b"etag", etag.encode())]}

@@ -11,6 +11,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fleetmap import tile_render
 from fleetmap.api.errors import error_responses
+from fleetmap.api.http_semantics import etag_matches
 from fleetmap.api.state import MapId, RegionLayer, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.tile_render import MAX_ZOOM, MIN_ZOOM, check_layer, etag_for, tile_version
@@ -82,15 +83,6 @@ def tile_cache_control(private: bool) -> str:
     a change shows as soon as its scan is integrated; `private` when reading needs a token, so that no
     shared cache (a CDN, a proxy) keeps a tile for clients whose token it never saw."""
     return "private, no-cache" if private else "no-cache"
-
-
-def etag_matches(if_none_match: str, etag: str) -> bool:
-    """RFC 9110 If-None-Match: a list of (possibly weak) entity tags, or `*`."""
-    for candidate in if_none_match.split(","):
-        candidate = candidate.strip()
-        if candidate == "*" or candidate.removeprefix("W/") == etag.removeprefix("W/"):
-            return True
-    return False
 
 
 @router.get(
