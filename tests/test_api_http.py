@@ -163,6 +163,9 @@ def test_with_cors_every_answer_varies_by_origin(service_factory: Callable[..., 
             assert "origin" in plain.headers.get("vary", "").lower(), (path, plain.headers)
             cross = client.get(path, headers={**IDENTITY, "Origin": PAGE})
             assert cross.headers["access-control-allow-origin"] == PAGE
+            # A page may read where a PUT put its map and when to retry a 503.
+            exposed = cross.headers["access-control-expose-headers"].lower().replace(" ", "").split(",")
+            assert {"etag", "location", "retry-after"} <= set(exposed), exposed
             assert [v.strip() for v in cross.headers["vary"].split(",")].count("Origin") == 1, cross.headers
 
 

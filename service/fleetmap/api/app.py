@@ -191,17 +191,25 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     # Outside auth: a viewer whose tiles are refused (401, 403) shows in the counts too.
     app.add_middleware(routes_tiles.TileStatusCounter, counts=app.state.fleetmap.metrics.tile_statuses)
     if settings.cors_origins:
-        # Outermost, so that every answer to an allowed page carries the CORS headers, the auth
-        # middleware's 401 and 403 included: without them the page sees an opaque network error.
+        # Outside every middleware that answers by itself, so that every answer to an allowed page
+        # carries the CORS headers, the auth middleware's 401 and 403 included: without them the
+        # page sees an opaque network error.
         app.add_middleware(
             CORSMiddleware,
             allow_origins=settings.cors_origins,
             allow_methods=["GET", "PUT", "POST", "DELETE"],
             allow_headers=["*"],
-            expose_headers=["ETag", "X-Fleetmap-Window", "X-Fleetmap-Origin", "X-Fleetmap-Resolution"],
+            expose_headers=[
+                "ETag",
+                "Location",
+                "Retry-After",
+                "X-Fleetmap-Window",
+                "X-Fleetmap-Origin",
+                "X-Fleetmap-Resolution",
+            ],  # fmt: skip
         )
-    # Only adds headers (so every answer still carries CORS's, `Vary: Origin` included, which
-    # Starlette's CORS middleware puts on every answer, with or without an `Origin`).
+    # Outermost, as it only adds headers: every answer still carries CORS's (`Vary: Origin`
+    # included, which Starlette's CORS middleware puts on every answer, with or without an `Origin`).
     app.add_middleware(DefaultHeaders)
     _install_openapi(app)
     return app
