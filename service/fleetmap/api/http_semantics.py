@@ -34,7 +34,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 #: Content-Encoding (and a tiny gzip body can be larger than the original).
 GZIP_MINIMUM_BYTES = 1024
 #: zlib level. On a 1 M-cell region JSON (7.5 MB) level 6 takes 21 ms for 111 KB, level 9
-#: (Starlette's default) 53 ms for 101 KB (docs/api.md, "Compression"): not worth 2.5 times the CPU.
+#: (Starlette's default) 53 ms for 101 KB (docs/api.md, "HTTP conventions"): not worth 2.5 times the CPU.
 GZIP_LEVEL = 6
 #: JSON answers up to this size get an ETag (hashing 1 MiB takes about a millisecond).
 JSON_ETAG_MAX_BYTES = 1024 * 1024
