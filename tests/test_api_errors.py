@@ -290,7 +290,7 @@ CASES: list[tuple[str, str, dict[str, Any], int, str]] = [
     ("GET", "/nowhere", {}, 404, "/nowhere"),
     ("POST", "/healthz", {}, 405, "method POST is not allowed on /healthz"),
     ("DELETE", "/maps", {}, 405, ""),
-    ("OPTIONS", "/maps/e", {}, 405, "allowed: DELETE, GET, PUT"),
+    ("OPTIONS", "/maps/e", {}, 405, "allowed: DELETE, GET, HEAD, PUT"),
 ]
 
 
@@ -382,6 +382,8 @@ def test_full_queue_is_503() -> None:
                 headers={"content-type": "application/json"},
             )
             assert second.status_code == 503 and "queue full" in second.json()["detail"]
+            # Every 503 says when to retry, as proxies and HTTP clients (urllib3's Retry) read it.
+            assert first.headers["retry-after"] == second.headers["retry-after"] == "1"
         robot = api.client.get("/maps/q").json()["stats"]["robots"]["r"]
         assert robot["dropped"] == 1 and robot["scans_integrated"] == 0
 

@@ -20,9 +20,11 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel
+from starlette.middleware.gzip import GZipMiddleware
 
 from fleetmap.api import errors, routes_data, routes_maps, routes_snapshot, routes_tiles, static
 from fleetmap.api.events import router as events_router
+from fleetmap.api.http_semantics import GZIP_LEVEL, GZIP_MINIMUM_BYTES, DefaultHeaders, HeadAsGet, JsonETags
 from fleetmap.api.priority import IngestGate, IngestPriority
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import (
@@ -164,6 +166,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         version=_version(),
         description=DESCRIPTION,
         openapi_tags=TAGS,
+        redirect_slashes=False,  # `/maps/` is a 404 naming `/maps` (errors.py), not a redirect
     )
     integration = _integration_metrics(registry, settings.metrics)
     gate = IngestGate(lambda: registry.backlog()[1], settings.ingest_backlog, settings.max_read_delay)
@@ -182,6 +185,11 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.include_router(events_router)
     static.install(app, app.state.fleetmap.web_dir)
     # Middleware, innermost first (each `add_middleware` wraps what is there).
+    app.add_middleware(JsonETags)
+    # gzip sees every answer as the route made it; the event stream and PNG / zip answers pass as is.
+    app.add_middleware(GZipMiddleware, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=GZIP_LEVEL)
+    # Outside gzip: a HEAD's headers (Content-Encoding, Content-Length) are those of the GET.
+    app.add_middleware(HeadAsGet)
     app.add_middleware(errors.BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     # A request held back has not been read or run at all.
     app.add_middleware(IngestPriority, gate=gate)
@@ -190,15 +198,26 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     # Outside auth: a viewer whose tiles are refused (401, 403) shows in the counts too.
     app.add_middleware(routes_tiles.TileStatusCounter, counts=app.state.fleetmap.metrics.tile_statuses)
     if settings.cors_origins:
-        # Outermost, so that every answer to an allowed page carries the CORS headers, the auth
-        # middleware's 401 and 403 included: without them the page sees an opaque network error.
+        # Outside every middleware that answers by itself, so that every answer to an allowed page
+        # carries the CORS headers, the auth middleware's 401 and 403 included: without them the
+        # page sees an opaque network error.
         app.add_middleware(
             CORSMiddleware,
             allow_origins=settings.cors_origins,
             allow_methods=["GET", "PUT", "POST", "DELETE"],
             allow_headers=["*"],
-            expose_headers=["ETag", "X-Fleetmap-Window", "X-Fleetmap-Origin", "X-Fleetmap-Resolution"],
+            expose_headers=[
+                "ETag",
+                "Location",
+                "Retry-After",
+                "X-Fleetmap-Window",
+                "X-Fleetmap-Origin",
+                "X-Fleetmap-Resolution",
+            ],  # fmt: skip
         )
+    # Outermost, as it only adds headers: every answer still carries CORS's (`Vary: Origin`
+    # included, which Starlette's CORS middleware puts on every answer, with or without an `Origin`).
+    app.add_middleware(DefaultHeaders)
     _install_openapi(app)
     return app
 

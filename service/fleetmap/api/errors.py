@@ -19,6 +19,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from fleetmap.api.http_semantics import head_allowed
 from fleetmap.api_models import ErrorItem, ErrorResponse
 from fleetmap.codec import DecodeError, PayloadTooLarge
 from fleetmap.grid_map import LayerUnavailableError
@@ -34,10 +35,15 @@ _DESCRIPTIONS = {
     404: "Unknown map (or robot, or path)",
     409: "Conflicts with the map's state or configuration",
     413: "The request asks for too much at once",
+    415: "The body is not sent as JSON (Content-Type: application/json)",
     422: "Invalid request: bad parameter, body or id",
     503: "The service is overloaded, or could not store a change: retry later",
     507: "The service's memory budget for map tiles (--max-memory) is used up",
 }
+
+
+#: Seconds a 503 tells the client to wait before it retries (`Retry-After`), unless the route says.
+RETRY_AFTER_SECONDS = 1
 
 
 def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
@@ -133,6 +139,9 @@ def _json(
     status: int, detail: str, errors: list[ErrorItem] | None = None, headers: dict[str, str] | None = None
 ) -> JSONResponse:
     body = ErrorResponse(detail=detail, errors=errors).model_dump(mode="json", exclude_none=True)
+    if status == 503 and not any(name.lower() == "retry-after" for name in headers or {}):
+        # Every 503 is "retry later" (see _DESCRIPTIONS): say when, as proxies and HTTP clients read it.
+        headers = {**(headers or {}), "Retry-After": str(RETRY_AFTER_SECONDS)}
     return JSONResponse(body, status_code=status, headers=headers)
 
 
@@ -196,7 +205,22 @@ def _allowed_methods(app: FastAPI, scope: Scope) -> str:
         probe = {**scope, "method": method}
         if any(route.matches(probe)[0] == Match.FULL for route in app.router.routes):
             allowed.append(method)
+    if "GET" in allowed and head_allowed(scope["path"]):
+        allowed.append("HEAD")  # answered by `HeadAsGet`, in front of the routes
     return ", ".join(sorted(allowed))
+
+
+def _slash_hint(app: FastAPI, scope: Scope) -> str:
+    """For a path with a trailing slash that names a resource without it, the hint to drop the slash.
+    (The app does not redirect: one URL per resource, and a redirect's `Location` built from the
+    request is wrong behind a TLS-terminating proxy.)"""
+    path = scope["path"]
+    if not path.endswith("/") or path == "/":
+        return ""
+    bare = {**scope, "path": path.rstrip("/") or "/", "method": "GET"}
+    if any(route.matches(bare)[0] != Match.NONE for route in app.router.routes):
+        return f" (did you mean {bare['path']}?)"
+    return ""
 
 
 #: fleetmap exceptions that are the client's fault, and their statuses.
@@ -224,7 +248,7 @@ def install(app: FastAPI) -> None:
     async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
         if exc.status_code == 404 and detail == "Not Found":
-            detail = f"no such resource: {request.url.path}"
+            detail = f"no such resource: {request.url.path}{_slash_hint(app, request.scope)}"
         elif exc.status_code == 405 and detail == "Method Not Allowed":
             # Starlette's Allow lists the first matching route's methods only; list every route's.
             allowed = _allowed_methods(app, request.scope)

@@ -73,10 +73,11 @@ from starlette.types import Receive, Scope, Send
 from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.robots_feed import RobotsFeed
 from fleetmap.api.state import ApiState, EventStreamSlots, MapId, State
+from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import ReplacedEvent, TilesEvent, tile_windows
 from fleetmap.registry import MapEntry
 
-router = APIRouter()
+router = APIRouter(route_class=StrictRoute)
 
 #: Seconds a client refused for the stream cap is told to wait (`Retry-After`).
 RETRY_AFTER_SECONDS = 5

@@ -15,6 +15,7 @@ from fastapi import APIRouter, Query, Response
 
 from fleetmap.api.errors import ApiError, error_responses, too_many
 from fleetmap.api.state import MapId, RegionLayer, State, coordinate
+from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import (
     CellsRequest,
     CellsResponse,
@@ -29,7 +30,7 @@ from fleetmap.api_models import (
 from fleetmap.export import Window, known_window, map_png, map_source, nav2_zip, npy_bytes, png_bytes
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap
 
-router = APIRouter()
+router = APIRouter(route_class=StrictRoute)
 
 OptCoordinate = Annotated[float | None, coordinate("metres; give all four bounds or none")]
 
@@ -111,7 +112,7 @@ def get_cell(
     tags=["queries"],
     summary="Every layer's value at many points",
     response_model=CellsResponse,
-    responses=error_responses(404, 413, 422),
+    responses=error_responses(404, 413, 415, 422),
 )
 def post_cells(map_id: MapId, state: State, body: CellsRequest) -> Response:
     """The fields of GET /maps/{map_id}/cell, each an array with one entry per point, in the order

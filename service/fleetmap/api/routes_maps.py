@@ -9,7 +9,9 @@ from fastapi import APIRouter, Body, Request, Response
 
 from fleetmap import codec
 from fleetmap.api.errors import ApiError, error_responses
+from fleetmap.api.http_semantics import created_status
 from fleetmap.api.state import MapId, RobotId, State
+from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import (
     Health,
     MapInfo,
@@ -25,7 +27,7 @@ from fleetmap.metrics import CONTENT_TYPE
 from fleetmap.registry import IngestRejected, MapNotFound
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
 
-router = APIRouter()
+router = APIRouter(route_class=StrictRoute)
 
 #: Scan bodies up to this size are decoded on the event loop (a 1081-beam JSON scan is about 10 KB and
 #: decodes in well under a millisecond: a thread hop would cost more); larger ones in a thread.
@@ -98,7 +100,7 @@ def list_maps(state: State) -> MapList:
     tags=["maps"],
     summary="Create a map",
     response_model=MapInfo,
-    responses={201: {"model": MapInfo, "description": "Created"}, **error_responses(409, 422, 503)},
+    responses={201: {"model": MapInfo, "description": "Created"}, **error_responses(409, 415, 422, 503)},
 )
 def put_map(
     map_id: MapId,
@@ -112,13 +114,14 @@ def put_map(
         ),
     ] = None,
 ) -> MapInfo:
-    """Creates the map (201), answering once it is stored (with durable storage). If it exists with
-    the same configuration, nothing changes (200); with a different one, 409: delete it first.
+    """Creates the map (201, with its `Location`), answering once it is stored (with durable
+    storage). If it exists with the same configuration, nothing changes (200); with a different one,
+    409: delete it first.
     Configurations compare after defaults and presets are resolved, so `{}` equals the defaults
     written out. 503: the map was created but could not be stored; the service retries, and the same
     PUT answers 200 once it is stored."""
     entry, created = state.registry.create(map_id, config, wait=True)
-    response.status_code = 201 if created else 200
+    created_status(response, map_id, created=created)
     return map_info(entry, state.registry.lock)
 
 

@@ -8,12 +8,14 @@ import contextlib
 from fastapi import APIRouter, Request, Response
 
 from fleetmap.api.errors import ApiError, error_responses, validation_detail
+from fleetmap.api.http_semantics import created_status
 from fleetmap.api.state import MapId, State
+from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo, map_info
-from fleetmap.registry import MapNotFound
+from fleetmap.registry import MapEntry, MapNotFound
 from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
 
-router = APIRouter(tags=["maps"])
+router = APIRouter(tags=["maps"], route_class=StrictRoute)
 
 MEDIA_TYPE = "application/zip"
 
@@ -52,22 +54,28 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
             "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
         }
     },
-    responses=error_responses(413, 422, 503, 507),
+    responses={
+        200: {"model": MapInfo, "description": "Replaced the map that had this id"},
+        **error_responses(413, 422, 503, 507),
+    },
 )
-async def put_snapshot(map_id: MapId, request: Request, state: State) -> MapInfo:
-    """Replace map `map_id` (or create it) with the map in the uploaded snapshot file, durably: the
-    answer comes once it is stored. Its robots' statistics start afresh; scans queued for the old map
-    are dropped. 422 if the body is not a fleetmap snapshot, or holds a tile or a cell value the
-    service could not have made; 413 if a part of it decompresses to more than its limit (see the
-    docs); 507 if its tiles need more memory than the budget (`--max-memory`) leaves; none changes
-    anything. 503 if the map was installed but could not be stored."""
+async def put_snapshot(map_id: MapId, request: Request, response: Response, state: State) -> MapInfo:
+    """Replace map `map_id` (201 with its `Location` when it did not exist, else 200) with the map in
+    the uploaded snapshot file, durably: the answer comes once it is stored. Its robots' statistics
+    start afresh; scans queued for the old map are dropped. 422 if the body is not a fleetmap
+    snapshot, or holds a tile or a cell value the service could not have made; 413 if a part of it
+    decompresses to more than its limit (see the docs); 507 if its tiles need more memory than the
+    budget (`--max-memory`) leaves; none changes anything. 503 if the map was installed but could not
+    be stored."""
     body = await request.body()
+    replaced: MapEntry | None = None
+    with contextlib.suppress(MapNotFound):
+        replaced = state.registry.get(map_id)
     # The room the memory budget leaves, counting the map this replaces (its bytes go back).
     budget = state.registry.memory_budget
     free = None if budget is None else budget.free()
-    if free is not None:
-        with contextlib.suppress(MapNotFound):
-            free += state.registry.get(map_id).gmap.memory_bytes()
+    if free is not None and replaced is not None:
+        free += replaced.gmap.memory_bytes()
     try:
         gmap = await asyncio.to_thread(map_from_snapshot_file, body, free_bytes=free)
     except SnapshotError as exc:
@@ -80,4 +88,5 @@ async def put_snapshot(map_id: MapId, request: Request, state: State) -> MapInfo
         entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True)
     finally:  # also when it could not be stored: the old map's tiles are gone from memory all the same
         state.tiles.drop_map(map_id)
+    created_status(response, map_id, created=replaced is None)
     return map_info(entry, state.registry.lock)

@@ -11,10 +11,12 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fleetmap import tile_render
 from fleetmap.api.errors import error_responses
+from fleetmap.api.http_semantics import etag_matches
 from fleetmap.api.state import MapId, RegionLayer, State
+from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.tile_render import MAX_ZOOM, MIN_ZOOM, check_layer, etag_for, tile_version
 
-router = APIRouter()
+router = APIRouter(route_class=StrictRoute)
 
 
 def is_tile_path(path: str) -> bool:
@@ -61,8 +63,9 @@ def _convention() -> str:
 TILE_DESCRIPTION = f"""\
 A 256 x 256 RGBA PNG of one layer. Unexplored space is transparent. `ETag` changes whenever a cell
 under the tile changes (and when the map is re-created); send it back as `If-None-Match` to get
-`304 Not Modified` while the tile is unchanged. `Cache-Control: no-cache`: clients revalidate, so a
-change is visible as soon as its scan is integrated. Leaflet:
+`304 Not Modified` while the tile is unchanged. `Cache-Control: no-cache` (`private, no-cache` when
+the server requires a read token): clients revalidate, so a change is visible as soon as its scan is
+integrated. HEAD answers the headers alone. Leaflet:
 `L.tileLayer('/maps/{{map_id}}/tiles/{{z}}/{{x}}/{{y}}.png?layer=probability', {{minZoom: -8, maxZoom: 4,
 maxNativeZoom: 4, minNativeZoom: -8}})` on a map with `crs: L.CRS.Simple`.
 
@@ -75,13 +78,11 @@ layer or one the map does not keep; 404 for an unknown map.
 """
 
 
-def etag_matches(if_none_match: str, etag: str) -> bool:
-    """RFC 9110 If-None-Match: a list of (possibly weak) entity tags, or `*`."""
-    for candidate in if_none_match.split(","):
-        candidate = candidate.strip()
-        if candidate == "*" or candidate.removeprefix("W/") == etag.removeprefix("W/"):
-            return True
-    return False
+def tile_cache_control(private: bool) -> str:
+    """Tiles' Cache-Control: caches store a tile and revalidate it before every use (`no-cache`), so
+    a change shows as soon as its scan is integrated; `private` when reading needs a token, so that no
+    shared cache (a CDN, a proxy) keeps a tile for clients whose token it never saw."""
+    return "private, no-cache" if private else "no-cache"
 
 
 @router.get(
@@ -111,14 +112,16 @@ async def get_tile(
     # On the event loop: a revalidation or a cache hit takes microseconds, and a hop to the thread
     # pool would cost more than that (and another thread wanting the GIL). Only renders go there.
     entry = state.entry(map_id)
+    settings = state.settings
+    cache_control = tile_cache_control(settings.tokens is not None and settings.require_read_token)
     if if_none_match:
         # Answer a revalidation from the version alone: no render, no cache lookup.
         check_layer(entry.gmap, layer)
         etag = etag_for(entry.generation, layer, z, x, y, tile_version(entry.gmap, z, x, y))
         if etag_matches(if_none_match, etag):
-            return Response(status_code=304, headers={"ETag": etag, "Cache-Control": "no-cache"})
+            return Response(status_code=304, headers={"ETag": etag, "Cache-Control": cache_control})
     found = state.tiles.cached(entry, layer, z, x, y)
     if found is None:
         found = await run_in_threadpool(state.tiles.get_or_render, entry, layer, z, x, y)
     png, etag = found
-    return Response(png, media_type="image/png", headers={"ETag": etag, "Cache-Control": "no-cache"})
+    return Response(png, media_type="image/png", headers={"ETag": etag, "Cache-Control": cache_control})

@@ -1,0 +1,167 @@
+"""HTTP conventions every answer follows, whatever route made it: HEAD, caching headers, compression.
+
+- `HEAD` is answered on every `GET` route but the event stream, as the `GET` would be (status and
+  headers, `Content-Length` and `ETag` included) without the body. FastAPI routes answer only the
+  methods they declare, and tile servers' clients and CDNs check tiles with HEAD. The event stream is
+  left out: its `GET` never ends, so a HEAD would hold one of the server's event-stream slots.
+- `Cache-Control: no-cache` on every answer that does not set its own: map data changes with every
+  scan, and a CDN in front would otherwise apply its default lifetime (an hour on some) to answers
+  without one and serve stale cells and regions. `no-cache` still lets caches store and revalidate.
+- gzip (Starlette's `GZipMiddleware`, as `create_app` installs it) for clients that accept it, for
+  answers of at least `GZIP_MINIMUM_BYTES`, except those already compressed (PNG, zip) and the event
+  stream (each event must reach the client when it is sent; Starlette's middleware leaves
+  `text/event-stream` alone). A gzip answer's strong `ETag` (a static file's) is made weak: the
+  compressed bytes are another representation, and a strong validator promises the same bytes
+  (RFC 9110, 8.8.1).
+- JSON answers to GET of at most `JSON_ETAG_MAX_BYTES` (map lists, map info, cells, health) carry a
+  weak `ETag`, a hash of the body, and a request whose `If-None-Match` holds it gets 304 without the
+  body: a viewer polling `/maps` downloads the list only when it changed (browsers revalidate by
+  themselves). Larger answers (regions) are not hashed: it would cost milliseconds per request, on the
+  event loop, for answers rarely asked twice unchanged.
+- A PUT that made its map answers 201 with the map's `Location`, one that replaced it or found it as
+  asked 200 (`created_status`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+from starlette.datastructures import Headers, MutableHeaders
+from starlette.responses import Response
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+#: Answers smaller than this are sent as they are: a few hundred bytes gain nothing worth a
+#: Content-Encoding (and a tiny gzip body can be larger than the original).
+GZIP_MINIMUM_BYTES = 1024
+#: zlib level. On a 1 M-cell region JSON (7.5 MB) level 6 takes 21 ms for 111 KB, level 9
+#: (Starlette's default) 53 ms for 101 KB (docs/api.md, "HTTP conventions"): not worth 2.5 times the CPU.
+GZIP_LEVEL = 6
+#: JSON answers up to this size get an ETag (hashing 1 MiB takes about a millisecond).
+JSON_ETAG_MAX_BYTES = 1024 * 1024
+#: What an answer says about caching when its route says nothing.
+DEFAULT_CACHE_CONTROL = "no-cache"
+
+
+def is_event_stream(path: str) -> bool:
+    """Whether `path` is a map's event stream, `/maps/{map_id}/events` (ids never hold a `/`)."""
+    return path.startswith("/maps/") and path.endswith("/events") and path.count("/") == 3
+
+
+def head_allowed(path: str) -> bool:
+    """Whether a HEAD at `path` is answered like the GET there (every path but the event stream)."""
+    return not is_event_stream(path)
+
+
+class HeadAsGet:
+    """ASGI middleware: a HEAD request runs as a GET, and its answer's body is dropped (headers kept,
+    so `Content-Length` is the GET's). Paths where `head_allowed` is false keep HEAD, so the app
+    answers 405 there."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "HEAD" or not head_allowed(scope["path"]):
+            await self.app(scope, receive, send)
+            return
+
+        async def without_body(message: Message) -> None:
+            if message["type"] == "http.response.body":
+                message = {**message, "body": b""}
+            await send(message)
+
+        # A copy: the server reads the method from its own scope to know it must send no body.
+        await self.app({**scope, "method": "GET"}, receive, without_body)
+
+
+class DefaultHeaders:
+    """ASGI middleware: `Cache-Control: no-cache` on answers without a Cache-Control, and a weak `ETag`
+    on gzip answers (see the module's docstring). Placed outside the gzip middleware, so that it sees
+    the `Content-Encoding`."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def with_defaults(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = MutableHeaders(scope=message)
+                headers.setdefault("Cache-Control", DEFAULT_CACHE_CONTROL)
+                etag = headers.get("ETag")
+                if etag is not None and headers.get("Content-Encoding") == "gzip" and etag.startswith('"'):
+                    headers["ETag"] = f"W/{etag}"
+            await send(message)
+
+        await self.app(scope, receive, with_defaults)
+
+
+def created_status(response: Response, map_id: str, *, created: bool) -> None:
+    """A PUT's status: 201 with the map's `Location` when it made the map, else 200 (RFC 9110, 9.3.4)."""
+    if created:
+        response.status_code = 201
+        response.headers["Location"] = f"/maps/{map_id}"
+    else:
+        response.status_code = 200
+
+
+def etag_matches(if_none_match: str, etag: str) -> bool:
+    """RFC 9110 If-None-Match: a list of (possibly weak) entity tags, or `*`."""
+    for candidate in if_none_match.split(","):
+        candidate = candidate.strip()
+        if candidate == "*" or candidate.removeprefix("W/") == etag.removeprefix("W/"):
+            return True
+    return False
+
+
+def json_etag(body: bytes) -> str:
+    """The weak ETag of a JSON answer: its content's hash (weak, as its gzip form shares it)."""
+    return f'W/"{hashlib.blake2b(body, digest_size=12).hexdigest()}"'
+
+
+class JsonETags:
+    """ASGI middleware: a weak ETag on JSON answers to GET of at most `JSON_ETAG_MAX_BYTES` that have
+    none, and 304 for a request whose `If-None-Match` holds it (see the module's docstring). Inside
+    the gzip middleware, so that it hashes the JSON itself."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "GET":
+            await self.app(scope, receive, send)
+            return
+        if_none_match = Headers(scope=scope).get("if-none-match")
+        start: Message | None = None
+
+        async def tagging_send(message: Message) -> None:
+            nonlocal start
+            if message["type"] == "http.response.start":
+                headers = Headers(raw=message.get("headers", []))
+                taggable = message["status"] == 200 and "etag" not in headers
+                if taggable and headers.get("content-type", "").startswith("application/json"):
+                    start = message  # held until the body shows whether it is small and whole
+                    return
+            elif start is not None and message["type"] == "http.response.body":
+                held, start = start, None
+                body = message.get("body", b"")
+                if not message.get("more_body", False) and len(body) <= JSON_ETAG_MAX_BYTES:
+                    etag = json_etag(body)
+                    if if_none_match and etag_matches(if_none_match, etag):
+                        await send(_not_modified(held, etag))
+                        await send({"type": "http.response.body", "body": b""})
+                        return
+                    MutableHeaders(scope=held).append("ETag", etag)
+                await send(held)
+            await send(message)
+
+        await self.app(scope, receive, tagging_send)
+
+
+def _not_modified(start: Message, etag: str) -> Message:
+    """The 304 for a 200's start message: its caching headers, no body headers (RFC 9110, 15.4.5)."""
+    kept = [(k, v) for k, v in start.get("headers", []) if k.lower() in (b"cache-control", b"vary")]
+    return {"type": "http.response.start", "status": 304, "headers": [*kept, (b"etag", etag.encode())]}

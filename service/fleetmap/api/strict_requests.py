@@ -1,0 +1,121 @@
+"""How the routes read what FastAPI parses for them: JSON bodies and query parameters, strictly.
+
+`StrictRoute` (every router's `route_class`) answers, before the route runs:
+
+- 415 for a JSON body sent with another Content-Type (a `curl -d` sends form encoding), or none:
+  FastAPI would pass the bytes on as they are and answer a puzzling "Input should be a valid
+  dictionary";
+- 422 for a JSON body that holds a key twice (`{"resolution": 0.05, "resolution": 0.1}`): the JSON
+  parser would keep the last one silently, and which one the client meant is a guess;
+- 422 for a JSON body starting with a byte order mark, as `POST /scans` (whose codec is also that of
+  Zenoh messages) refuses it: one rule for every body (RFC 8259 forbids sending one);
+- 422 naming the reason for any other body that is not JSON (e.g. an integer of more digits than
+  Python converts), where FastAPI said "could not be decoded";
+- 422 for a query parameter of the route given twice (`?x=0&x=5`): FastAPI would take the last.
+
+Query parameters a route does not take are ignored, as caches and tile clients add their own
+(`?v=2`, `?_=<time>`) to bust caches.
+"""
+
+from __future__ import annotations
+
+import email.message
+import json
+from collections.abc import Callable, Coroutine
+from typing import Any
+
+from fastapi import Request, Response
+from fastapi.dependencies.models import Dependant
+from fastapi.routing import APIRoute
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+UTF8_BOM = b"\xef\xbb\xbf"
+
+
+class RequestRefused(StarletteHTTPException):
+    """A body or query FastAPI would misread. An HTTPException, so FastAPI's body parsing passes it on
+    as is (it turns other exceptions raised while parsing into a 400)."""
+
+
+def is_json_media_type(content_type: str) -> bool:
+    """Whether `content_type` is JSON (`application/json`, or `application/<x>+json`), with any
+    parameters (charset)."""
+    message = email.message.Message()
+    message["content-type"] = content_type
+    subtype = message.get_content_subtype()
+    json_subtype = subtype == "json" or subtype.endswith("+json")
+    return message.get_content_maintype() == "application" and json_subtype
+
+
+def _not_json(reason: str) -> RequestRefused:
+    return RequestRefused(422, f"body is not valid JSON for this API: {reason}")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    seen: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in seen:
+            raise _not_json(f"the key {key!r} appears twice in an object")
+        seen[key] = value
+    return seen
+
+
+def parse_json_body(body: bytes) -> Any:
+    """The JSON value of a request body; RequestRefused (422) saying why if it is not one."""
+    if body.startswith(UTF8_BOM):
+        raise _not_json("it starts with a byte order mark; send UTF-8 without one")
+    try:
+        return json.loads(body.decode("utf-8"), object_pairs_hook=_unique_keys)
+    except UnicodeDecodeError as exc:
+        raise _not_json(f"it is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except json.JSONDecodeError as exc:
+        raise _not_json(f"{exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    except ValueError:  # not a syntax error: an integer of more digits than int() converts
+        raise _not_json("a number in it has too many digits") from None
+    except RecursionError:
+        raise _not_json("it is nested too deeply") from None
+
+
+class StrictRequest(Request):
+    """A request whose `json()` is `parse_json_body`'s (what FastAPI calls for JSON bodies)."""
+
+    async def json(self) -> Any:
+        if not hasattr(self, "_json"):
+            self._json = parse_json_body(await self.body())
+        return self._json
+
+
+def _query_names(dependant: Dependant) -> set[str]:
+    """The query parameters a route takes, its dependencies' included."""
+    names = {param.alias for param in dependant.query_params}
+    for sub in dependant.dependencies:
+        names |= _query_names(sub)
+    return names
+
+
+class StrictRoute(APIRoute):
+    """An APIRoute reading its JSON body and query parameters strictly (see the module's docstring)."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+        takes_body = self.body_field is not None
+        query_names = _query_names(self.dependant)
+
+        async def strict_handler(request: Request) -> Response:
+            repeated = sorted({key for key in query_names if len(request.query_params.getlist(key)) > 1})
+            if repeated:
+                raise RequestRefused(
+                    422, f"query parameter {repeated[0]!r} is given more than once; give it once"
+                )
+            request = StrictRequest(request.scope, request.receive)
+            content_type = request.headers.get("content-type")
+            # An empty body is no body, whatever its type (PUT /maps/{id} then takes the defaults).
+            wrong_type = takes_body and not (content_type and is_json_media_type(content_type))
+            if wrong_type and await request.body():
+                sent = f"not {content_type!r}" if content_type else "none was given"
+                raise RequestRefused(
+                    415, f"the body must be JSON, with Content-Type: application/json ({sent})"
+                )
+            return await handler(request)
+
+        return strict_handler

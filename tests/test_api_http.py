@@ -1,0 +1,273 @@
+"""HTTP semantics of the real service as a client author, a tile client and a CDN in front see them:
+HEAD on every GET route, no redirects for trailing slashes, gzip (never on the event stream), and the
+caching headers (`Cache-Control`, `Vary`, weak ETags of compressed answers). See
+fleetmap.api.http_semantics and docs/api.md, "HTTP conventions"."""
+
+from __future__ import annotations
+
+import gzip
+import math
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from service_process import ServiceProcess, wait_for
+
+SCAN = {"seq": 1, "pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "angle_min": -math.pi,
+        "angle_increment": math.pi / 180, "range_max": 10.0,
+        "ranges": [3.0 + 0.5 * math.sin(k / 10) for k in range(361)]}  # fmt: skip
+TILE = "/maps/m/tiles/0/0/-1.png"
+IDENTITY = {"Accept-Encoding": "identity"}
+GZIP = {"Accept-Encoding": "gzip"}
+
+
+def integrate(client: httpx.Client, scan: dict[str, Any], headers: dict[str, str] | None = None) -> None:
+    """POST `scan` to map `m` as robot `r` and wait until it is integrated. A 503 "not integrated
+    within 10 s" (a loaded machine) still integrates it: wait for the count then."""
+    r = client.post("/maps/m/scans", params={"robot_id": "r"}, json=scan, headers=headers)
+    assert r.status_code in (200, 503), r.text
+    seq = scan["seq"]  # the map's scans are seq 1, 2, ...: seq is also the count integrated
+    wait_for(
+        lambda: client.get("/maps/m", headers=headers).json()["stats"]["scans_integrated"] >= seq,
+        what=f"scan {seq} integrated",
+    )
+
+
+@pytest.fixture
+def mapped(service_factory: Callable[..., ServiceProcess]) -> Iterator[httpx.Client]:
+    """A client of a service (in memory: no test here is about storage) holding map `m` with one
+    scan."""
+    service = service_factory("--in-memory")
+    with httpx.Client(base_url=service.base_url, timeout=30) as client:
+        assert client.put("/maps/m", json={"resolution": 0.05}).status_code == 201
+        integrate(client, SCAN)
+        yield client
+
+
+def test_head_answers_every_get_route_with_its_headers_and_no_body(mapped: httpx.Client) -> None:
+    paths = [TILE, "/maps", "/maps/m", "/healthz", "/metrics", "/maps/m/region?format=json",
+             "/maps/m/cell?x=0&y=0", "/maps/m/export", "/maps/m/snapshot", "/", "/openapi.json"]  # fmt: skip
+    for path in paths:
+        got = mapped.get(path, headers=IDENTITY)
+        head = mapped.head(path, headers=IDENTITY)
+        assert head.status_code == got.status_code == 200, (path, head.status_code, head.text)
+        assert head.content == b"", path
+        assert head.headers["content-type"] == got.headers["content-type"], path
+        if path not in ("/metrics", "/healthz"):  # those two change between requests
+            assert head.headers["content-length"] == got.headers["content-length"], path
+    tile = mapped.get(TILE)
+    assert mapped.head(TILE).headers["etag"] == tile.headers["etag"]
+    # A tile revalidated by HEAD: 304 as for GET.
+    assert mapped.head(TILE, headers={"If-None-Match": tile.headers["etag"]}).status_code == 304
+    # Errors too: the status and headers of the GET.
+    missing = mapped.head("/maps/nope")
+    assert missing.status_code == 404 and missing.headers["content-type"] == "application/json"
+    # Where HEAD works, 405s say so; the event stream is the exception (its GET never ends).
+    r = mapped.post("/maps/m/region")
+    assert r.status_code == 405 and r.headers["allow"] == "GET, HEAD", r.headers
+    r = mapped.head("/maps/m/events")
+    assert r.status_code == 405 and r.headers["allow"] == "GET"
+
+
+def test_a_trailing_slash_is_a_json_404_naming_the_resource(mapped: httpx.Client) -> None:
+    for path, bare in (("/maps/", "/maps"), ("/maps/m/", "/maps/m"), ("/maps/m/scans/", "/maps/m/scans")):
+        r = mapped.get(path)
+        assert r.status_code == 404 and r.headers["content-type"] == "application/json", (path, r.headers)
+        assert "location" not in r.headers
+        assert r.json()["detail"] == f"no such resource: {path} (did you mean {bare}?)"
+    assert mapped.get("/nothing/").json()["detail"] == "no such resource: /nothing/"
+    r = mapped.put("/maps/new/", json={})
+    assert r.status_code == 404 and mapped.get("/maps/new").status_code == 404  # nothing created
+
+
+def test_large_answers_are_gzipped_for_clients_that_accept_it(mapped: httpx.Client) -> None:
+    plain = mapped.get("/maps/m/region?format=json", headers=IDENTITY)
+    assert "content-encoding" not in plain.headers
+    with httpx.stream("GET", f"{mapped.base_url}/maps/m/region?format=json", headers=GZIP) as r:
+        wire = b"".join(r.iter_raw())  # the bytes as sent, before httpx decodes them
+        encoded = r.headers
+    assert encoded["content-encoding"] == "gzip" and "accept-encoding" in encoded["vary"].lower()
+    assert int(encoded["content-length"]) == len(wire) < len(plain.content) / 10
+    assert gzip.decompress(wire) == plain.content
+    assert mapped.get("/openapi.json", headers=GZIP).headers["content-encoding"] == "gzip"
+    # Already compressed: sent as is.
+    for path in (TILE, "/maps/m/export", "/maps/m/region?format=png"):
+        assert "content-encoding" not in mapped.get(path, headers=GZIP).headers, path
+    # Small answers are not worth it.
+    assert "content-encoding" not in mapped.get("/maps/m/cell?x=0&y=0", headers=GZIP).headers
+    # A compressed static file is another representation than the file: its ETag is weak.
+    static = mapped.get("/static/app.js", headers=GZIP)
+    assert static.headers["content-encoding"] == "gzip" and static.headers["etag"].startswith('W/"')
+    assert not mapped.get("/static/app.js", headers=IDENTITY).headers["etag"].startswith("W/")
+    again = mapped.get("/static/app.js", headers={**GZIP, "If-None-Match": static.headers["etag"]})
+    assert again.status_code == 304
+
+
+def test_the_event_stream_is_never_compressed_and_each_event_arrives_at_once(mapped: httpx.Client) -> None:
+    """A client accepting gzip gets the stream uncompressed, and each event when it is sent. Small
+    events gain little from gzip, and a compressor that does not flush after every event (older
+    Starlette's did not; a proxy's may not) holds them back until its buffer fills."""
+    events: list[str] = []
+    started, seen = threading.Event(), threading.Event()
+    headers: dict[str, str] = {}
+
+    def listen() -> None:
+        with httpx.stream("GET", f"{mapped.base_url}/maps/m/events", headers=GZIP, timeout=30) as r:
+            headers.update(r.headers)
+            for line in r.iter_lines():
+                events.append(line)
+                if line.startswith("event: robots"):  # sent once the stream follows the map
+                    started.set()
+                if line.startswith("event: tiles"):
+                    seen.set()
+                    return
+
+    thread = threading.Thread(target=listen, daemon=True)
+    thread.start()
+    assert started.wait(20), f"the stream did not start within 20 s; got {events!r}"
+    second = {**SCAN, "seq": 2, "pose": {"x": 0.5, "y": 0.0, "theta": 0.0}}
+    integrate(mapped, second)
+    assert seen.wait(20), f"no tiles event within 20 s; got {events!r}"
+    thread.join(5)
+    assert "content-encoding" not in headers and headers["content-type"].startswith("text/event-stream")
+
+
+def test_every_answer_says_how_to_cache_it(mapped: httpx.Client) -> None:
+    for path in ("/maps", "/maps/m", "/maps/m/region?format=json", "/maps/m/cell?x=0&y=0", "/healthz",
+                 "/maps/nope"):  # fmt: skip
+        assert mapped.get(path).headers["cache-control"] == "no-cache", path
+    r = mapped.post("/maps/m/cells", json={"points": [[0.0, 0.0]]})
+    assert r.headers["cache-control"] == "no-cache"
+    assert mapped.get(TILE).headers["cache-control"] == "no-cache"  # public: a CDN may store it
+    assert "vary" not in mapped.get("/maps/m").headers  # no CORS: nothing varies by origin
+
+
+READ, WRITE = "read-token-0123456789", "write-token-0123456789"
+PAGE = "http://viewer.example"
+
+
+def test_tiles_are_private_when_reading_needs_a_token(
+    service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    """A CDN must not keep a tile that only token holders may read: `private` keeps it out of every
+    shared cache (the browser still stores and revalidates it)."""
+    tokens = tmp_path / "tokens.txt"
+    tokens.write_text(f"read {READ}\nwrite {WRITE}\n")
+    svc = service_factory("--auth-tokens", str(tokens), "--require-read-token")
+    write, read = ({"Authorization": f"Bearer {t}"} for t in (WRITE, READ))
+    with httpx.Client(base_url=svc.base_url, timeout=30) as client:
+        assert client.put("/maps/m", json={"resolution": 0.05}, headers=write).status_code == 201
+        integrate(client, SCAN, headers=write)
+        tile = client.get(TILE, headers=read)
+        assert tile.status_code == 200 and tile.headers["cache-control"] == "private, no-cache"
+        again = client.get(TILE, headers={**read, "If-None-Match": tile.headers["etag"]})
+        assert again.status_code == 304 and again.headers["cache-control"] == "private, no-cache"
+
+
+def test_with_cors_every_answer_varies_by_origin(service_factory: Callable[..., ServiceProcess]) -> None:
+    """Also the answers to requests without an `Origin` (Starlette's CORS middleware does it): else a
+    CDN would cache one and serve it, without CORS headers, to the viewer's page, which then cannot
+    read it."""
+    svc = service_factory("--cors-origin", PAGE)
+    with httpx.Client(base_url=svc.base_url, timeout=30) as client:
+        assert client.put("/maps/m", json={}).status_code == 201
+        for path in ("/maps/m", "/maps/m/tiles/0/0/-1.png", "/maps/nope"):
+            plain = client.get(path, headers=IDENTITY)
+            assert "origin" in plain.headers.get("vary", "").lower(), (path, plain.headers)
+            cross = client.get(path, headers={**IDENTITY, "Origin": PAGE})
+            assert cross.headers["access-control-allow-origin"] == PAGE
+            # A page may read where a PUT put its map and when to retry a 503.
+            exposed = cross.headers["access-control-expose-headers"].lower().replace(" ", "").split(",")
+            assert {"etag", "location", "retry-after"} <= set(exposed), exposed
+            assert [v.strip() for v in cross.headers["vary"].split(",")].count("Origin") == 1, cross.headers
+
+
+JSON = {"content-type": "application/json"}
+
+
+def test_json_bodies_are_read_strictly_and_a_refused_one_changes_nothing(mapped: httpx.Client) -> None:
+    refused = [
+        # (body, headers, status, words of the detail)
+        (b'{"resolution": 0.05}', {"content-type": "text/plain"}, 415, "Content-Type: application/json"),
+        (b'{"resolution": 0.05}', {"content-type": "application/x-www-form-urlencoded"}, 415, "not 'app"),
+        (b'{"resolution": 0.05}', {}, 415, "none was given"),
+        (b'{"resolution": 0.05, "resolution": 0.1}', JSON, 422, "the key 'resolution' appears twice"),
+        (b'{"occupancy": {"l_hit": 1, "l_hit": 2}}', JSON, 422, "the key 'l_hit' appears twice"),
+        (b'\xef\xbb\xbf{"resolution": 0.05}', JSON, 422, "byte order mark"),
+        (b'{"resolution": ' + b"9" * 5000 + b"}", JSON, 422, "too many digits"),
+        (b"[" * 100_000 + b"]" * 100_000, JSON, 422, "nested too deeply"),
+        (b'{"resolution": 0.05', JSON, 422, "body is not valid JSON for this API: Expecting"),
+        (b'{"resolution": 0.05}\xff', JSON, 422, "not UTF-8"),
+    ]
+    for body, headers, status, words in refused:
+        r = mapped.put("/maps/refused", content=body, headers=headers)
+        where = f"{body[:40]!r} {headers}: {r.status_code} {r.text[:200]}"
+        assert r.status_code == status and r.headers["content-type"] == "application/json", where
+        assert words in r.json()["detail"], where
+    assert mapped.get("/maps/refused").status_code == 404  # none of them created it
+    # The same rules for POST /cells.
+    r = mapped.post("/maps/m/cells", content=b'{"points": [[0, 0]]}', headers={"content-type": "text/plain"})
+    assert r.status_code == 415
+    r = mapped.post("/maps/m/cells", content=b'{"points": [[0, 0]], "points": [[9, 9]]}', headers=JSON)
+    assert r.status_code == 422 and "'points' appears twice" in r.json()["detail"]
+    # What stays allowed: JSON with a charset, an empty body of any type (the default configuration).
+    assert (
+        mapped.put(
+            "/maps/a", content=b"{}", headers={"content-type": "application/json; charset=utf-8"}
+        ).status_code
+        == 201
+    )
+    assert mapped.put("/maps/b", content=b"", headers={"content-type": "text/plain"}).status_code == 201
+
+
+def test_query_parameters_once_each_unknown_ones_ignored(mapped: httpx.Client) -> None:
+    for path in ("/maps/m/cell?x=0&x=5&y=0", f"{TILE}?layer=hits&layer=probability",
+                 "/maps/m/region?xmin=0&xmin=1&ymin=0&xmax=1&ymax=1"):  # fmt: skip
+        r = mapped.get(path)
+        assert r.status_code == 422 and "is given more than once" in r.json()["detail"], (path, r.text)
+    plain = mapped.get("/maps/m/cell?x=0&y=0").json()
+    assert mapped.get("/maps/m/cell?x=0&y=0&_=1700000000&v=2&v=3").json() == plain
+    assert mapped.get(f"{TILE}?v=2").headers["etag"] == mapped.get(TILE).headers["etag"]
+    for value in ("nan", "inf", "-inf", "1e400"):
+        r = mapped.get(f"/maps/m/cell?x={value}&y=0")
+        assert r.status_code == 422 and "finite" in r.json()["detail"], (value, r.text)
+
+
+def test_a_put_that_creates_answers_201_with_its_location_then_200(mapped: httpx.Client) -> None:
+    created = mapped.put("/maps/p", json={"resolution": 0.1})
+    assert created.status_code == 201 and created.headers["location"] == "/maps/p"
+    again = mapped.put("/maps/p", json={"resolution": 0.1})
+    assert again.status_code == 200 and "location" not in again.headers
+    assert again.json()["config"] == created.json()["config"]
+    snapshot = mapped.get("/maps/m/snapshot").content
+    zipped = {"content-type": "application/zip"}
+    restored = mapped.put("/maps/copy/snapshot", content=snapshot, headers=zipped)
+    assert restored.status_code == 201 and restored.headers["location"] == "/maps/copy"
+    replaced = mapped.put("/maps/copy/snapshot", content=snapshot, headers=zipped)
+    assert replaced.status_code == 200 and "location" not in replaced.headers
+
+
+def test_small_json_answers_carry_an_etag_and_revalidate_to_304(mapped: httpx.Client) -> None:
+    """A viewer polling the map list downloads it only when it changed."""
+    first = mapped.get("/maps")
+    etag = first.headers["etag"]
+    assert etag.startswith('W/"'), etag  # weak: the gzip form shares it
+    same = mapped.get("/maps", headers={"If-None-Match": etag})
+    assert same.status_code == 304 and same.content == b"" and same.headers["etag"] == etag
+    assert same.headers["cache-control"] == "no-cache" and "content-type" not in same.headers
+    assert mapped.get("/maps", headers={**GZIP, "If-None-Match": f'"other", {etag}'}).status_code == 304
+    assert mapped.head("/maps", headers={"If-None-Match": etag}).status_code == 304
+    assert mapped.put("/maps/another", json={}).status_code == 201
+    changed = mapped.get("/maps", headers={"If-None-Match": etag})
+    assert changed.status_code == 200 and changed.headers["etag"] != etag
+    assert "another" in changed.text
+    # Answers with their own validators keep them; errors and large answers get none.
+    assert mapped.get(TILE).headers["etag"].startswith('"')
+    assert "etag" not in mapped.get("/maps/nope").headers
+    big = mapped.get(
+        "/maps/m/region", params={"format": "json", "xmin": -25, "ymin": -25, "xmax": 25, "ymax": 25}
+    )
+    assert big.status_code == 200 and len(big.content) > 1024 * 1024 and "etag" not in big.headers
