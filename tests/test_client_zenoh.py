@@ -181,11 +181,13 @@ def test_each_publisher_sends_its_own_session_id_and_a_new_one_when_its_seq_star
     """Every scan carries the publisher's random session id; another publisher has another one;
     an explicit seq below the last one starts a new session (under the old one the service would
     ignore the scans as duplicates), while the last seq again is a resend (the replay command's, of
-    a scan dropped while disconnected) in the same session; `session=False` sends none."""
+    a scan dropped while disconnected) in the same session; `send_session_id=False` sends none."""
     with (
         ScanPublisher("lab", "s1", connect=[router.endpoint], encoding=encoding) as pub,  # type: ignore[arg-type]
         ScanPublisher("lab", "s2", connect=[router.endpoint], encoding=encoding) as other,  # type: ignore[arg-type]
-        ScanPublisher("lab", "s3", connect=[router.endpoint], encoding=encoding, session=False) as none,  # type: ignore[arg-type]
+        ScanPublisher(
+            "lab", "s3", connect=[router.endpoint], encoding=encoding, send_session_id=False
+        ) as none,  # type: ignore[arg-type]
     ):
         first = pub.session_id
         assert first is not None and first != other.session_id and none.session_id is None

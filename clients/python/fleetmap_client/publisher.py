@@ -21,7 +21,7 @@ What it does on the wire (the schema is `fleetmap.wire`, the byte layout docs/pr
   last seq again is a resend, e.g. of a scan dropped while disconnected, and keeps the session).
   The service tells by it a restarted robot (a new session: nothing of it is ignored as a duplicate,
   whatever its seq and stamp) from two robots misconfigured with one robot id (two sessions
-  interleaving: the scans of both are integrated and the conflict reported). `session=False` sends
+  interleaving: the scans of both are integrated and the conflict reported). `send_session_id=False` sends
   none, for a service older than session ids (which refuses scans that carry one).
 
 Connection behaviour. The constructor returns at once; the session is opened by a background thread
@@ -146,7 +146,7 @@ class ScanPublisher:
         zenoh_config: a `zenoh.Config` or JSON5 file to start from (see `client_config`).
         block: True (default) publishes with `CongestionControl.BLOCK` (a full link blocks `publish`,
             no scan is dropped); False uses `DROP` (best effort: never blocks, may drop under load).
-        session: True (default) sends a random session id in every scan (see the module docstring);
+        send_session_id: True (default) sends a random session id in every scan (see the module docstring);
             False sends none (then the service recognises restarts by the stamps only).
 
     The session opens in the background (see the module docstring): use `wait_connected`.
@@ -160,7 +160,7 @@ class ScanPublisher:
         encoding: Encoding = "binary",
         zenoh_config: zenoh.Config | str | Path | None = None,
         block: bool = True,
-        session: bool = True,
+        send_session_id: bool = True,
     ) -> None:
         for name, value in (("map_id", map_id), ("robot_id", robot_id)):
             if not isinstance(value, str) or not is_valid_id(value):
@@ -186,7 +186,7 @@ class ScanPublisher:
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
         self._last_seq: int | None = None
-        self._session_id = new_session_id() if session else None
+        self._session_id = new_session_id() if send_session_id else None
         #: Scans handed to Zenoh while a router (or peer) was connected.
         self.published = 0
         #: Scans dropped because no router was connected (see the module docstring).
@@ -268,7 +268,7 @@ class ScanPublisher:
 
     @property
     def session_id(self) -> int | None:
-        """The session id its scans carry (None with `session=False`): picked at random when the
+        """The session id its scans carry (None with `send_session_id=False`): picked at random when the
         publisher is made, and again when an explicit seq is below the last one."""
         return self._session_id
 
