@@ -33,9 +33,10 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 #: Answers smaller than this are sent as they are: a few hundred bytes gain nothing worth a
 #: Content-Encoding (and a tiny gzip body can be larger than the original).
 GZIP_MINIMUM_BYTES = 1024
-#: zlib level. On a 1 M-cell region JSON (7.5 MB) level 6 takes 21 ms for 111 KB, level 9
-#: (Starlette's default) 53 ms for 101 KB (docs/api.md, "HTTP conventions"): not worth 2.5 times the CPU.
-GZIP_LEVEL = 6
+#: zlib level. Starlette compresses on the event loop, which also serves ingest: the fastest level.
+#: A 10,000-point `/cells` answer (610 KiB): level 1 99 KiB for 2-4 ms more a request, level 6 73 KiB
+#: for 12.5 ms more, which halved the cell queries of `make bench-service` (docs/api.md).
+GZIP_LEVEL = 1
 #: JSON answers up to this size get an ETag (hashing 1 MiB takes about a millisecond).
 JSON_ETAG_MAX_BYTES = 1024 * 1024
 #: What an answer says about caching when its route says nothing.
