@@ -35,7 +35,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 GZIP_MINIMUM_BYTES = 1024
 #: zlib level. Starlette compresses on the event loop, which also serves ingest: the fastest level.
 #: A 10,000-point `/cells` answer (610 KiB): level 1 99 KiB for 2-4 ms more a request, level 6 73 KiB
-#: for 12.5 ms more, which halved the cell queries of `make bench-service` (docs/api.md).
+#: for 12.5 ms more (docs/api.md, "HTTP conventions").
 GZIP_LEVEL = 1
 #: JSON answers up to this size get an ETag (hashing 1 MiB takes about a millisecond).
 JSON_ETAG_MAX_BYTES = 1024 * 1024
