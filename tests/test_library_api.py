@@ -9,6 +9,7 @@ import re
 import subprocess
 import sys
 import textwrap
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -113,6 +114,15 @@ def test_scan_inputs_that_are_not_numbers_raise_scan_error(build: object, messag
     attribute 'is_finite'), or, for a string of digits, built a scan of its characters."""
     with pytest.raises(ScanError, match=message):
         build()  # type: ignore[operator]
+
+
+def test_a_fan_whose_angles_overflow_is_refused_without_a_numpy_warning() -> None:
+    """A finite increment can still make infinite angles (1e308 x 2): refused as such, quietly (the
+    schema fuzzer found numpy's overflow warning on the REST path)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ScanError, match="beam angles must be finite"):
+            Scan.from_fan((0, 0, 0), 1.0, 1e308, [1.0, 2.0, 3.0], 0.0, 10.0)
 
 
 # -- GridMap: its inputs ---------------------------------------------------------------------------

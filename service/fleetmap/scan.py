@@ -105,7 +105,8 @@ class Scan:
         angle_increment = _as_number("angle_increment", angle_increment)
         if not (math.isfinite(angle_min) and math.isfinite(angle_increment)):
             raise ScanError("angle_min and angle_increment must be finite")
-        angles = angle_min + angle_increment * np.arange(r.size, dtype=np.float64)
+        with np.errstate(over="ignore"):  # an overflow makes an infinite angle, which Scan refuses
+            angles = angle_min + angle_increment * np.arange(r.size, dtype=np.float64)
         return cls(_as_pose(pose), angles, r, range_min, range_max)
 
     @classmethod
