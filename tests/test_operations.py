@@ -242,7 +242,7 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
         (("--workers", "0"), {}, "argument --workers: must be between 1 and 64, got 0"),
         (("--max-memory", "lots"), {}, "argument --max-memory: expected a size"),
         ((), {"FLEETMAP_WORKERS": "many"}, "$FLEETMAP_WORKERS='many': expected a whole number"),
-        ((), {"FLEETMAP_LOG_LEVEL": "loud"}, "$FLEETMAP_LOG_LEVEL='loud': choose from debug"),
+        ((), {"FLEETMAP_LOG_LEVEL": "loud"}, "$FLEETMAP_LOG_LEVEL='loud': invalid choice"),
         ((), {"FLEETMAP_IN_MEMORY": "maybe"}, "$FLEETMAP_IN_MEMORY='maybe': expected 1, true"),
     ]
     for args, env, message in cases:
