@@ -9,6 +9,7 @@ another machine.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -22,11 +23,14 @@ from datetime import datetime, timedelta
 from pathlib import Path
 
 import httpx
+import pytest
 import zenoh
 from prometheus_client.parser import text_string_to_metric_families
 from service_process import ServiceProcess, free_port, reaped, wait_for
 
+from fleetmap import server
 from fleetmap.database import DB_NAME
+from fleetmap.memory_budget import MemoryBudget
 from fleetmap.wire import BINARY_ENCODING
 
 WRITE_A = "write-token-aaaaaaaaaaaaaaaa"
@@ -242,7 +246,7 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
         (("--workers", "0"), {}, "argument --workers: must be between 1 and 64, got 0"),
         (("--max-memory", "lots"), {}, "argument --max-memory: expected a size"),
         ((), {"FLEETMAP_WORKERS": "many"}, "$FLEETMAP_WORKERS='many': expected a whole number"),
-        ((), {"FLEETMAP_LOG_LEVEL": "loud"}, "$FLEETMAP_LOG_LEVEL='loud': choose from debug"),
+        ((), {"FLEETMAP_LOG_LEVEL": "loud"}, "$FLEETMAP_LOG_LEVEL='loud': invalid choice"),
         ((), {"FLEETMAP_IN_MEMORY": "maybe"}, "$FLEETMAP_IN_MEMORY='maybe': expected 1, true"),
     ]
     for args, env, message in cases:
@@ -252,6 +256,92 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
         assert len(lines) == 1 and lines[0].startswith("fleetmap serve: error: ") and message in lines[0], (
             done.stderr
         )
+        assert not (tmp_path / "d").exists()
+
+
+def serve_options(
+    argv: list[str], environ: dict[str, str], monkeypatch: pytest.MonkeyPatch
+) -> dict[str, object]:
+    """The options `fleetmap serve ARGV` runs with in `environ` (only FLEETMAP_* variables of it), as
+    parsed by the real `serve` parser; a memory budget as its limit, to compare."""
+    for name in os.environ:
+        if name.startswith("FLEETMAP_"):
+            monkeypatch.delenv(name)
+    for name, value in environ.items():
+        monkeypatch.setenv(name, value)
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    server.add_parser(parser.add_subparsers(dest="command", required=True))
+    parsed = vars(parser.parse_args(["serve", *argv]))
+    return {k: v.limit if isinstance(v, MemoryBudget) else v for k, v in parsed.items()}
+
+
+def serve_option_actions() -> list[argparse.Action]:
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    serve = server.add_parser(parser.add_subparsers(dest="command"))
+    return [action for action in serve._actions if action.dest != "help"]
+
+
+def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every option, whatever its kind, has its variable, which means what the option says on the
+    command line (with a value other than its default, so that a variable ignored shows)."""
+    for action in serve_option_actions():
+        option = action.option_strings[-1]
+        if action.nargs == 0:
+            argv, text = [option], "1"
+        elif action.nargs == "+":
+            argv, text = [option, "tcp/a:1", "tcp/b:2"], "tcp/a:1  tcp/b:2"
+        elif action.choices:
+            argv, text = [option, action.choices[-1]], action.choices[-1]
+        elif isinstance(action.default, (int, float)):
+            argv, text = [option, str(action.default - 1)], str(action.default - 1)
+        else:  # text, or a size (--max-memory)
+            argv, text = [option, "1GiB"], "1GiB"
+        defaults = serve_options([], {}, monkeypatch)
+        from_variable = serve_options([], {server.env_name(action): text}, monkeypatch)
+        assert from_variable == serve_options(argv, {}, monkeypatch) != defaults, option
+
+
+def test_on_off_variables_take_the_documented_words_and_the_command_line_wins(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    for word in ["1", "true", "yes", "on", " TRUE ", "On"]:
+        assert serve_options([], {"FLEETMAP_INSECURE": word}, monkeypatch)["insecure"] is True, word
+    for word in ["0", "false", "no", "off", "", "OFF"]:
+        assert serve_options([], {"FLEETMAP_INSECURE": word}, monkeypatch)["insecure"] is False, word
+    # The command line wins over every kind of variable: a value, a list.
+    environ = {"FLEETMAP_WORKERS": "3", "FLEETMAP_CORS_ORIGIN": "http://a http://b"}
+    options = serve_options(["--workers", "5", "--cors-origin", "http://c"], environ, monkeypatch)
+    assert options["workers"] == 5 and options["cors_origin"] == ["http://c"]
+    # A value is the variable's whole text, even one that looks like an option.
+    assert serve_options([], {"FLEETMAP_DATA_DIR": "--in-memory"}, monkeypatch)["data_dir"] == "--in-memory"
+
+
+def test_a_bad_variable_is_one_json_line_with_json_logs(tmp_path: Path) -> None:
+    """With JSON logs asked for by the command line or the environment, a bad variable of any kind
+    (on/off, a choice, a number) is refused in one JSON object naming the variable."""
+    cases = [
+        (
+            ("--log-format", "json"),
+            {"FLEETMAP_IN_MEMORY": "maybe"},
+            "$FLEETMAP_IN_MEMORY='maybe': expected 1",
+        ),
+        (
+            (),
+            {"FLEETMAP_LOG_FORMAT": "json", "FLEETMAP_WORKERS": "many"},
+            "$FLEETMAP_WORKERS='many': expected",
+        ),
+        (
+            (),
+            {"FLEETMAP_LOG_FORMAT": "json", "FLEETMAP_LOG_LEVEL": "loud"},
+            "$FLEETMAP_LOG_LEVEL='loud': invalid",
+        ),
+    ]
+    for args, env, message in cases:
+        done = serve_error(*args, "--data-dir", str(tmp_path / "d"), **env)
+        assert done.returncode == 2, done
+        (line,) = done.stderr.strip().splitlines()
+        error = json.loads(line)
+        assert error["level"] == "ERROR" and error["message"].startswith(f"fleetmap serve: error: {message}")
         assert not (tmp_path / "d").exists()
 
 

@@ -20,7 +20,7 @@ serves. Only then is the ready line printed on stdout:
 
 Every option can also be given as an environment variable, `FLEETMAP_` and the option's name in
 capitals with `-` as `_` (`--data-dir` is `FLEETMAP_DATA_DIR`, `--insecure` is `FLEETMAP_INSECURE=1`,
-lists separated by spaces); the command line wins (`environment_defaults`).
+lists separated by spaces); the command line wins (`_environment_first`).
 
 SIGHUP reads the `--auth-tokens` file again (a file that cannot be used keeps the tokens in force).
 SIGINT / SIGTERM shut down gracefully: uvicorn stops serving (open event streams get a few seconds),
@@ -85,6 +85,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "serve",
         help="run the service: Zenoh ingest from robots, REST API and web viewer",
+        exit_on_error=False,  # _environment_first reports errors, naming a variable at fault
         description=(
             "Run the fleetmap service: robots publish scans over Zenoh (key fleetmap/<map>/<robot>/scan, "
             "see docs/protocol.md), maps are served over HTTP (REST API and web viewer). The service's "
@@ -325,9 +326,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         action="store_true",
         help="log every HTTP request (client, method, path, status) at info; off by default (cost)",
     )
-    p.set_defaults(run=run, serve_actions=p._actions)
-    environment_defaults(p, os.environ)
+    p.set_defaults(run=run)
     p.error = _one_line_error(p)  # type: ignore[method-assign]
+    p.parse_known_args = _environment_first(p)  # type: ignore[method-assign]
     return p
 
 
@@ -346,80 +347,48 @@ def env_name(action: argparse.Action) -> str:
     return ENV_PREFIX + action.option_strings[-1].lstrip("-").replace("-", "_").upper()
 
 
-def environment_defaults(parser: argparse.ArgumentParser, environ: os._Environ[str] | dict[str, str]) -> None:
-    """Make `FLEETMAP_<OPTION>` variables the defaults of `parser`'s options, so a container or a
-    systemd unit can configure the service without a command line; options given on the command
-    line still win. Nothing is checked here (this runs whenever `fleetmap` builds its parser, for any
-    command): a value is checked by the option's own type when `serve` is parsed, and the error then
-    names the variable; an on/off option's value is checked by `run` (`_environment_flags`)."""
-    for action in parser._actions:
-        if not action.option_strings or action.dest in ("help",):
-            continue
-        text = environ.get(env_name(action))
-        if text is None:
-            continue
-        if action.nargs == 0:  # an on/off flag: _environment_flags reads it
-            continue
-        if action.nargs in ("+", "*"):
-            action.default = text.split()
-            continue
-        # argparse converts a string default with the option's type when the option is not on the
-        # command line; the wrapper names the variable when that fails.
-        action.default = text
-        action.type = _naming_variable(action.type, env_name(action), text)
-        if action.choices is not None and text not in action.choices:
-            reason = f"choose from {', '.join(map(str, action.choices))}"
-            action.default = _BadEnvironment(env_name(action), text, reason)
+def _environment_first(parser: argparse.ArgumentParser) -> Callable[..., Any]:
+    """`parser.parse_known_args` that parses the `FLEETMAP_<OPTION>` variables set (when it runs:
+    the environment counts for `serve` only) as their options on a command line before the real
+    one, which therefore wins. A bad variable stops with one line naming it, after the command line
+    is parsed (so `--log-format json` makes that line JSON); `parser` must not exit on errors."""
+    parse = parser.parse_known_args
 
-
-class _BadEnvironment(str):
-    """An environment default refused before parsing (a value outside an option's choices); `run`
-    reports it (argparse does not check a default against the choices)."""
-
-    def __new__(cls, variable: str, text: str, reason: str) -> _BadEnvironment:
-        bad = super().__new__(cls, text)
-        bad.problem = f"${variable}={text!r}: {reason}"
-        return bad
-
-    problem: str
-
-
-def _naming_variable(kind: Any, variable: str, text: str) -> Callable[[str], Any]:
-    """`kind` (an option's argparse type, or None for text), whose errors on `text` itself, the
-    variable's value, name the variable. A command-line value is another string object."""
-
-    def parse(value: str) -> Any:
-        if kind is None:
-            return value
+    def parse_known_args(args: Sequence[str] | None = None, namespace: Any = None) -> Any:
+        problem = None
+        for action in parser._actions:
+            variable = env_name(action)
+            text = os.environ.get(variable)
+            if text is None or action.dest == "help":
+                continue
+            try:
+                namespace = parse(_as_arguments(action, text), namespace)[0]
+            except argparse.ArgumentError as exc:
+                problem = problem or f"${variable}={text!r}: {exc.message}"
         try:
-            return kind(value)
-        except (argparse.ArgumentTypeError, ValueError) as exc:
-            if value is not text:
-                raise
-            raise argparse.ArgumentTypeError(f"${variable}={text!r}: {exc}") from None
+            namespace, extras = parse(args, namespace)
+        except argparse.ArgumentError as exc:
+            parser.error(str(exc))
+        if problem:
+            line = plain_line(f"{parser.prog}: error: {problem}", namespace.log_format, logging.ERROR)
+            parser.exit(2, line + "\n")
+        return namespace, extras
 
-    return parse
+    return parse_known_args
 
 
-def _environment_flags(parser_actions: Sequence[argparse.Action], args: argparse.Namespace,
-                       environ: os._Environ[str] | dict[str, str]) -> None:  # fmt: skip
-    """Apply `FLEETMAP_<FLAG>` to the on/off options not given on the command line, and report
-    environment values argparse could not check. Raises CliError naming the variable."""
-    for action in parser_actions:
-        if not action.option_strings or action.dest == "help":
-            continue
-        value = getattr(args, action.dest, None)
-        if isinstance(value, _BadEnvironment):
-            raise CliError(value.problem)
-        if action.nargs != 0 or value:
-            continue
-        text = environ.get(env_name(action))
-        if text is None:
-            continue
+def _as_arguments(action: argparse.Action, text: str) -> list[str]:
+    """The command-line arguments a variable's `text` stands for: an on/off option's flag (or none),
+    a list option's words (none: no list), else `--option=TEXT`. Raises ArgumentError."""
+    option = action.option_strings[-1]
+    if action.nargs == 0:
         word = text.strip().lower()
         if word not in _ENV_TRUE | _ENV_FALSE:
-            raise CliError(f"${env_name(action)}={text!r}: expected 1, true, yes, on or 0, false, no, off")
-        setattr(args, action.dest, word in _ENV_TRUE)
+            raise argparse.ArgumentError(action, "expected 1, true, yes, on or 0, false, no, off")
+        return [option] if word in _ENV_TRUE else []
+    if action.nargs == "+":
+        return [option, *text.split()] if text.split() else []
+    return [f"{option}={text}"]
 
 
 def _load_tokens(path: str | None) -> TokenSet | TokenFile | None:
@@ -686,9 +655,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _configure_process(args: argparse.Namespace) -> None:
-    """What `serve` sets for the whole process before anything starts: the on/off options given in
-    the environment, the log, Zenoh's own log, the GIL's switch interval."""
-    _environment_flags(args.serve_actions, args, os.environ)
+    """What `serve` sets for the whole process before anything starts: the log, Zenoh's own log,
+    the GIL's switch interval."""
     configure_logging(str(args.log_level), str(args.log_format))
     # Zenoh's own log: refused TLS handshakes and wrong passwords show there (RUST_LOG=warn for more).
     import zenoh
