@@ -2,8 +2,8 @@
 counts and identities from the page's `window.__fleetmapViewerStats`, never timings.
 
 - A `robots_delta` that appends one point to a drawn trail extends that trail: the same polyline on
-  the same canvas takes the new point (101 drawn points after 100), no trail is drawn whole again,
-  no SVG path appears, and the robot's list row is the same element. One more point past the 100 a
+  the same SVG path takes the new point (101 drawn points after 100), no trail is drawn whole again,
+  and the robot's list row is the same element. One more point past the 100 a
   stream keeps drops the oldest, and the drawn trail is still exactly the service's.
 - Several events arriving before the next animation frame are drawn once, in that frame.
 
@@ -41,12 +41,12 @@ _DRAWN_JS = """
                                            Math.round(ll.lat * v.state.res * 1000) / 1000]);
 }
 """
-#: Tag what draws robot t1 (its polyline, the trails' canvas, its list row) with a JS property.
+#: Tag what draws robot t1 (its polyline, the polyline's SVG path, its list row) with a JS property.
 _TAG_JS = """
 () => {
   const r = window.fleetmapViewer.state.robots.get('t1');
   r.trail.tagged = true;
-  r.trail.options.renderer._container.tagged = true;
+  r.trail.getElement().tagged = true;
   document.querySelector('#robot-list li[data-robot-id="t1"]').tagged = true;
   return {...window.__fleetmapViewerStats};
 }
@@ -57,10 +57,9 @@ _TAGGED_JS = """
   const r = window.fleetmapViewer.state.robots.get('t1');
   return {
     polyline: r.trail.tagged === true,
-    canvas: r.trail.options.renderer._container.tagged === true
-      && r.trail.options.renderer._container.isConnected,
+    path: r.trail.getElement().tagged === true && r.trail.getElement().isConnected,
     row: document.querySelector('#robot-list li[data-robot-id="t1"]').tagged === true,
-    svgPaths: document.querySelectorAll('.leaflet-overlay-pane path').length,
+    paths: document.querySelectorAll('.leaflet-overlay-pane path').length,
     stats: {...window.__fleetmapViewerStats},
   };
 }
@@ -108,8 +107,8 @@ def test_delta_extends_the_drawn_trail(page: Any, service_factory: Callable[...,
         page, f"(want) => JSON.stringify(({_DRAWN_JS})()) === JSON.stringify(want)", want, what="101 points"
     )
     now = page.evaluate(_TAGGED_JS)
-    assert now["polyline"] and now["canvas"] and now["row"], f"redrawn from scratch: {now}"
-    assert now["svgPaths"] == 0, "trails are drawn on the canvas, not as SVG paths"
+    assert now["polyline"] and now["path"] and now["row"], f"redrawn from scratch: {now}"
+    assert now["paths"] == 1, f"one robot, one trail path: {now}"
     assert now["stats"]["trailsBuilt"] == before["trailsBuilt"], (before, now)
     assert now["stats"]["trailsExtended"] > before["trailsExtended"], (before, now)
     assert now["stats"]["rowsBuilt"] == before["rowsBuilt"], (before, now)
@@ -125,7 +124,7 @@ def test_delta_extends_the_drawn_trail(page: Any, service_factory: Callable[...,
         what="the cut trail",
     )
     final = page.evaluate(_TAGGED_JS)
-    assert final["polyline"] and final["canvas"] and final["row"], final
+    assert final["polyline"] and final["path"] and final["row"], final
     assert final["stats"]["trailsBuilt"] == before["trailsBuilt"], (before, final)
     assert not page.page_errors, page.page_errors
     http.close()

@@ -388,10 +388,10 @@
     }
   });
 
+  // Trails stay SVG paths: one canvas for all of them (L.canvas) was measured dearer, since the whole
+  // canvas bitmap (twice the view with Leaflet's padding) is handed to the compositor on every redraw
+  // (docs/benchmarks.md, "Web viewer").
   const robotLayer = L.layerGroup().addTo(map);
-  // Every trail on one canvas: a moved trail is a few canvas strokes in the next frame, not an SVG
-  // path whose geometry the browser parses, lays out and paints again (one <path> per robot).
-  const trailRenderer = L.canvas({ padding: 0.5 });
   let cellMarker = null;
 
   map.on('mousemove', (e) => {
@@ -591,9 +591,7 @@
           id,
           color,
           data: {},
-          trail: L.polyline([], {
-            color, weight: 2, opacity: 0.8, interactive: false, renderer: trailRenderer,
-          }).addTo(robotLayer),
+          trail: L.polyline([], { color, weight: 2, opacity: 0.8, interactive: false }).addTo(robotLayer),
           marker: null,
           row: null,
           drawn: { marker: '', trail: '' }, // what marker and trail show now (see drawRobot)
@@ -715,7 +713,7 @@
   /**
    * A robot's trail: its trail points, then its pose. A trail drawn before takes only its edit (the
    * points appended, the oldest dropped) in the polyline's own point array: old points are not
-   * converted again, and the polyline stays the same object on the same canvas.
+   * converted again, and the polyline and its SVG path stay the same objects.
    */
   function drawTrail(robot, pose, force) {
     const trail = Array.isArray(robot.data.trail) ? robot.data.trail : null;
