@@ -60,6 +60,7 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=60.0, help="measured time")
     p.add_argument("--sample", type=float, default=10.0, help="seconds between samples")
     p.add_argument("--hidden", action="store_true", help="measure with the page hidden (visibilityState)")
+    p.add_argument("--trace", type=Path, help="also record a Chrome trace of the measured time to this file")
     args = p.parse_args()
     robots, rate, beams = SCENARIOS[args.scenario]
     robots = args.robots or robots
@@ -109,6 +110,8 @@ def main() -> int:
                     "() => { performance.setResourceTimingBufferSize(1e6);"
                     " performance.clearResourceTimings(); window.__eventBytes = {}; }"
                 )
+                if args.trace:
+                    browser.start_tracing(page=page, categories=TRACE_CATEGORIES)
                 start = metrics(cdp)
                 t0 = time.monotonic()
                 samples = []
@@ -121,6 +124,8 @@ def main() -> int:
                     print(json.dumps(m), flush=True)
                 elapsed = time.monotonic() - t0
                 end = samples[-1]
+                if args.trace:
+                    args.trace.write_bytes(browser.stop_tracing())
                 tile_bytes = page.evaluate(
                     "() => performance.getEntriesByType('resource').filter(e => e.name.includes('/tiles/'))"
                     ".reduce((s, e) => s + e.encodedBodySize, 0)"
@@ -145,10 +150,14 @@ def main() -> int:
                     },
                     "main_thread_busy_pct": share("TaskDuration"),
                     "script_pct": share("ScriptDuration"),
+                    "layout_pct": share("LayoutDuration"),
+                    "style_pct": share("RecalcStyleDuration"),
                     "nodes": [start["Nodes"], *(s["Nodes"] for s in samples)],
                     "heap_mb": [round(start["JSHeapUsedSize"] / 2**20, 1),
                                 *(round(s["JSHeapUsedSize"] / 2**20, 1) for s in samples)],
                 }  # fmt: skip
+                if args.trace:
+                    summary["main_thread_ms_per_s_by_event"] = main_thread_time(args.trace, elapsed)
                 print("SUMMARY " + json.dumps(summary), flush=True)
                 browser.close()
         finally:
@@ -159,10 +168,36 @@ def main() -> int:
 
 def metrics(cdp: object) -> dict[str, float]:
     """The CDP performance counters this script reports."""
-    wanted = {"TaskDuration", "ScriptDuration", "Nodes", "JSHeapUsedSize", "JSEventListeners", "LayoutCount"}
+    wanted = {"TaskDuration", "ScriptDuration", "LayoutDuration", "RecalcStyleDuration", "Nodes",
+              "JSHeapUsedSize", "JSEventListeners", "LayoutCount"}  # fmt: skip
     cdp.send("HeapProfiler.collectGarbage")  # type: ignore[attr-defined]  # the heap that stays, not garbage
     got = cdp.send("Performance.getMetrics")["metrics"]  # type: ignore[attr-defined]
     return {m["name"]: m["value"] for m in got if m["name"] in wanted}
+
+
+#: What a trace records: the renderer's tasks with what they ran (script, style, layout, paint, image
+#: decoding); no JS sampling (it would cost the page time itself).
+TRACE_CATEGORIES = ["devtools.timeline", "disabled-by-default-devtools.timeline", "blink", "cc"]
+
+#: Trace events worth naming in the summary (they nest: RunTask holds the others).
+TRACE_EVENTS = {
+    "RunTask", "FunctionCall", "EventDispatch", "TimerFire", "FireAnimationFrame", "V8.Execute",
+    "UpdateLayoutTree", "Layout", "PrePaint", "Paint", "Layerize", "UpdateLayer", "Commit",
+    "Decode Image", "ImageDecodeTask", "Decode LazyPixelRef", "ParseHTML", "HitTest", "ResourceReceivedData",
+}  # fmt: skip
+
+
+def main_thread_time(trace: Path, seconds: float) -> dict[str, float]:
+    """Milliseconds per second the renderer's main thread spent in each of TRACE_EVENTS (complete
+    events with a duration; nested events are counted in their parents too), largest first."""
+    events = json.loads(trace.read_text())["traceEvents"]
+    main = {(e["pid"], e["tid"]) for e in events if e.get("name") == "thread_name"
+            and e.get("args", {}).get("name") == "CrRendererMain"}  # fmt: skip
+    total: Counter[str] = Counter()
+    for e in events:
+        if e.get("ph") == "X" and (e["pid"], e["tid"]) in main and e.get("name") in TRACE_EVENTS:
+            total[e["name"]] += e.get("dur", 0) / 1000
+    return {name: round(ms / seconds, 1) for name, ms in total.most_common()}
 
 
 if __name__ == "__main__":

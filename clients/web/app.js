@@ -109,7 +109,10 @@
     reconnectTimer: null,
     connection: 'starting',
     lastUpdate: null,     // Date of the last event received
-    robots: new Map(),    // robot id -> {id, color, data, marker, trail, row, drawn}
+    robots: new Map(),    // robot id -> {id, color, data, marker, trail, row, drawn, trailEdit}
+    dirtyRobots: new Set(), // robots whose data changed since the last drawn frame
+    listChanged: false,   // robots came or went since the last drawn frame: the list's rows change
+    drawFrame: null,      // the requestAnimationFrame that draws what changed, if one is planned
     robotsSeen: 0,        // robots this map ever showed (the next robot's colour)
     tileCounter: 0,       // tile version counter (see the header comment)
     // Leaflet tile key -> {el, coords, loading, stale, reset, requestedAt} for every tile on the map
@@ -202,9 +205,11 @@
     // the time of the last update, which changes with nearly every event, is not.
     const text = texts[state.connection] || state.connection;
     if (statusTextEl.textContent !== text) statusTextEl.textContent = text;
-    lastUpdateEl.textContent = state.lastUpdate && state.connection !== 'waiting'
+    const last = state.lastUpdate && state.connection !== 'waiting'
       ? ` · last update ${state.lastUpdate.toLocaleTimeString()}` : '';
-    statusEl.dataset.state = state.connection;
+    // Equal text written again would still replace the text node and lay the toolbar out again.
+    if (lastUpdateEl.textContent !== last) lastUpdateEl.textContent = last;
+    if (statusEl.dataset.state !== state.connection) statusEl.dataset.state = state.connection;
   }
 
   // Robot ids in natural order: sim-2 before sim-10.
@@ -307,6 +312,18 @@
     moveQuietly(() => map.setView(toLatLng(view.x, view.y), view.z, { animate: false }));
   }
 
+  /**
+   * What the viewer has drawn since the page loaded, for tests and for the console: counts, never
+   * timings. `frames`: animation frames that drew robots; `robotsDrawn`: robots drawn in them;
+   * `trailsBuilt`: trails drawn from the whole trail (a new robot, a full `robots` event, a new
+   * resolution); `trailsExtended`: trails that took only their new points; `rowsBuilt` / `rowsUpdated`:
+   * robot-list rows made / rows whose text was rewritten.
+   */
+  const stats = {
+    frames: 0, robotsDrawn: 0, trailsBuilt: 0, trailsExtended: 0, rowsBuilt: 0, rowsUpdated: 0,
+  };
+  window.__fleetmapViewerStats = stats;
+
   // ---- the Leaflet map -------------------------------------------------------------------------
 
   const map = L.map('map', {
@@ -323,6 +340,12 @@
 
   /** The tile layer: its URL carries the map, the layer and the version counter. */
   const FleetTiles = L.TileLayer.extend({
+    createTile(coords, done) {
+      const img = L.TileLayer.prototype.createTile.call(this, coords, done);
+      // Decode the PNG off the main thread; the tile shows its last image until the new one is ready.
+      img.decoding = 'async';
+      return img;
+    },
     getTileUrl(coords) {
       const v = `${PAGE_STAMP}-${state.tileCounter}`;
       return `maps/${enc(state.mapId)}/tiles/${coords.z}/${coords.x}/${coords.y}.png` +
@@ -365,6 +388,9 @@
     }
   });
 
+  // Trails stay SVG paths: one canvas for all of them (L.canvas) was measured dearer, since the whole
+  // canvas bitmap (twice the view with Leaflet's padding) is handed to the compositor on every redraw
+  // (docs/benchmarks.md, "Web viewer").
   const robotLayer = L.layerGroup().addTo(map);
   let cellMarker = null;
 
@@ -543,9 +569,11 @@
   /**
    * Merge robot reports ({id: {online, pose, trail, scans_integrated}}) and draw what changed.
    * `complete`: the reports are every robot of the map (a `robots` event), so a robot missing from
-   * them was forgotten by the service (e.g. to make room on a full map) and is removed.
+   * them was forgotten by the service (e.g. to make room on a full map) and is removed. `edits`: the
+   * ids whose trail in `reports` is their known trail plus appended points (robots_delta), noted
+   * in robot.trailEdit; any other trail is drawn whole. Drawing waits for the next frame.
    */
-  function updateRobots(reports, complete = false) {
+  function updateRobots(reports, complete = false, edits = null) {
     reports = reports || {};
     if (complete) {
       for (const id of [...state.robots.keys()]) {
@@ -567,13 +595,40 @@
           marker: null,
           row: null,
           drawn: { marker: '', trail: '' }, // what marker and trail show now (see drawRobot)
+          // Trail points appended and dropped since the trail was drawn ({add, drop}: robots_delta
+          // events), false: draw it whole (other reports came), null: nothing yet (see drawTrail).
+          trailEdit: false,
         };
         state.robots.set(id, robot);
+        state.listChanged = true;
       }
+      if (!edits || !edits.has(id)) robot.trailEdit = false; // drawn whole in the next frame
       Object.assign(robot.data, report);
-      drawRobot(robot);
+      state.dirtyRobots.add(robot);
     }
-    renderRobotList();
+    scheduleDraw();
+  }
+
+  /**
+   * Draw what changed in the next animation frame, once however many events came in before it: a
+   * robot that moved three times is drawn once, the list laid out once.
+   */
+  function scheduleDraw() {
+    if (state.drawFrame === null) state.drawFrame = requestAnimationFrame(drawChanged);
+  }
+
+  function drawChanged() {
+    state.drawFrame = null;
+    if (!state.dirtyRobots.size && !state.listChanged) return;
+    stats.frames += 1;
+    const dirty = state.dirtyRobots;
+    state.dirtyRobots = new Set();
+    for (const robot of dirty) {
+      if (state.robots.get(robot.id) !== robot) continue; // removed since
+      drawRobot(robot);
+      stats.robotsDrawn += 1;
+    }
+    renderRobotList(dirty);
   }
 
   /**
@@ -584,13 +639,24 @@
   function applyRobotsDelta(delta) {
     for (const id of delta.removed || []) removeRobot(id);
     const reports = {};
+    const edits = new Set();
     for (const [id, change] of Object.entries(delta.robots || {})) {
       const known = state.robots.get(id);
       const before = known && Array.isArray(known.data.trail) ? known.data.trail : [];
-      const trail = before.concat(change.trail || []);
-      reports[id] = { ...change, trail: trail.slice(Math.max(0, trail.length - delta.trail_length)) };
+      const added = Array.isArray(change.trail) ? change.trail : [];
+      const trail = before.concat(added);
+      const drop = Math.max(0, trail.length - delta.trail_length);
+      reports[id] = { ...change, trail: trail.slice(drop) };
+      if (known && known.drawn.trail && known.trailEdit !== false) {
+        // Its drawn trail can take the new points: edits add up until the next frame draws them.
+        const edit = known.trailEdit || { add: [], drop: 0 };
+        edit.add.push(...added);
+        edit.drop += drop;
+        known.trailEdit = edit;
+        edits.add(id);
+      }
     }
-    updateRobots(reports);
+    updateRobots(reports, false, edits);
   }
 
   /** Take a robot off the map and out of the list. */
@@ -600,6 +666,8 @@
     if (robot.marker) robot.marker.remove();
     robot.trail.remove();
     state.robots.delete(id);
+    state.listChanged = true;
+    scheduleDraw();
   }
 
   /**
@@ -639,21 +707,46 @@
         el.dataset.online = shown === 'unknown' ? 'unknown' : String(shown === 'online');
       }
     }
+    drawTrail(robot, pose, force);
+  }
+
+  /**
+   * A robot's trail: its trail points, then its pose. A trail drawn before takes only its edit (the
+   * points appended, the oldest dropped) in the polyline's own point array: old points are not
+   * converted again, and the polyline and its SVG path stay the same objects.
+   */
+  function drawTrail(robot, pose, force) {
     const trail = Array.isArray(robot.data.trail) ? robot.data.trail : null;
+    const edit = robot.trailEdit;
+    robot.trailEdit = null;
     // The trail is a window of the last positions: its length and its ends say whether it moved.
     const trailKey = trail && `${trail.length}:${trail[0]}:${trail[trail.length - 1]}:${pose}`;
-    if (trail && (force || trailKey !== robot.drawn.trail)) {
-      robot.drawn.trail = trailKey;
-      const points = trail.map((p) => normPose(p)).filter(Boolean).map((p) => toLatLng(p[0], p[1]));
+    if (!trail || (!force && trailKey === robot.drawn.trail)) return;
+    const wasDrawn = robot.drawn.trail;
+    robot.drawn.trail = trailKey;
+    const added = edit && edit.add.map((p) => normPose(p));
+    if (!force && edit && wasDrawn && added.every(Boolean)) {
+      const points = robot.trail.getLatLngs();
+      if (robot.drawn.posePoint) points.pop();
+      for (const p of added) points.push(toLatLng(p[0], p[1]));
+      points.splice(0, Math.min(edit.drop, points.length));
       if (pose) points.push(toLatLng(pose[0], pose[1]));
-      robot.trail.setLatLngs(points);
+      robot.drawn.posePoint = !!pose;
+      robot.trail.setLatLngs(points); // the same LatLng objects: only their bounds are gathered again
+      stats.trailsExtended += 1;
+      return;
     }
+    const points = trail.map((p) => normPose(p)).filter(Boolean).map((p) => toLatLng(p[0], p[1]));
+    if (pose) points.push(toLatLng(pose[0], pose[1]));
+    robot.drawn.posePoint = !!pose;
+    robot.trail.setLatLngs(points);
+    stats.trailsBuilt += 1;
   }
 
   /** Redraw every robot (the connection state or the resolution changed). */
   function redrawRobots() {
     for (const robot of state.robots.values()) drawRobot(robot, true);
-    renderRobotList();
+    renderRobotList(state.robots.values());
   }
 
   /** Centre the map on a robot (its row was clicked, or Enter / Space pressed on it). */
@@ -690,7 +783,7 @@
    * The robot list. Rows are updated in place, keyed by robot id: robots events come several times
    * a second, and a row rebuilt between the press and the release of a click would lose the click.
    */
-  function renderRobotList() {
+  function renderRobotList(changed) {
     const count = state.robots.size ? `(${state.robots.size})` : '';
     if (robotCount.textContent !== count) robotCount.textContent = count;
     renderSideSummary();
@@ -703,32 +796,47 @@
       }
       return;
     }
+    for (const robot of changed) {
+      if (state.robots.get(robot.id) !== robot) continue; // removed since
+      if (!robot.row) {
+        robot.row = robotRow(robot);
+        stats.rowsBuilt += 1;
+      }
+      if (renderRow(robot)) stats.rowsUpdated += 1;
+    }
+    if (!state.listChanged && robotList.children.length === state.robots.size) return;
+    state.listChanged = false;
+    // Rows join or leave the list only when robots come or go, in their order.
     const ids = [...state.robots.keys()].sort(naturalOrder.compare);
-    const rows = ids.map((id) => {
-      const robot = state.robots.get(id);
-      if (!robot.row) robot.row = robotRow(robot);
-      const shown = robotState(robot);
-      const li = robot.row;
-      li.dataset.online = shown === 'unknown' ? 'unknown' : String(shown === 'online');
-      const st = li.querySelector('.online-state');
-      if (st.textContent !== shown) st.textContent = shown;
-      const scans = `${robot.data.scans_integrated ?? 0} scans`;
-      const scansEl = li.querySelector('.scans');
-      if (scansEl.textContent !== scans) scansEl.textContent = scans;
-      return li;
-    });
-    // Touch the DOM only when the rows or their order changed (a new robot, or a robot gone).
+    const rows = ids.map((id) => state.robots.get(id).row).filter(Boolean);
     const current = [...robotList.children];
     if (current.length !== rows.length || current.some((el, k) => el !== rows[k])) {
       robotList.replaceChildren(...rows);
     }
   }
 
+  /** Write a robot's state and scan count into its row, where they changed; true if any did. */
+  function renderRow(robot) {
+    const shown = robotState(robot);
+    const li = robot.row;
+    const online = shown === 'unknown' ? 'unknown' : String(shown === 'online');
+    const scans = `${robot.data.scans_integrated ?? 0} scans`;
+    const st = li.children[0].children[2]; // button > .online-state (see robotRow)
+    const scansEl = li.children[0].children[3]; // button > .scans
+    if (li.dataset.online === online && st.textContent === shown && scansEl.textContent === scans) return false;
+    li.dataset.online = online;
+    if (st.textContent !== shown) st.textContent = shown;
+    if (scansEl.textContent !== scans) scansEl.textContent = scans;
+    return true;
+  }
+
   function clearRobots() {
     robotLayer.clearLayers();
     state.robots.clear();
+    state.dirtyRobots.clear();
     state.robotsSeen = 0;
-    renderRobotList();
+    state.listChanged = true;
+    renderRobotList([]);
   }
 
   // ---- cell query ----------------------------------------------------------------------------
