@@ -375,7 +375,13 @@ class MapRegistry:
             queue_per_robot, queue_total, group=lambda source: source[0], per_group=max(1, queue_total // 2),
             size_of=_queued_bytes, max_bytes=queue_bytes,
         )  # fmt: skip
-        self._generations = itertools.count(1)
+        # Generations name a map's incarnation beyond this process: a tile's ETag holds it, and a
+        # browser revalidates a tile cached before a restart. Counting from 1 again, a map deleted and
+        # created again before the restart came back with the old map's generation (and, changed as
+        # often, its tile versions): the old map's cached tile got 304. Starting at the microseconds
+        # since the epoch, a process's generations are above every earlier one's, unless it made
+        # more than a million maps a second.
+        self._generations = itertools.count(time.time_ns() // 1000)
         #: Called as `on_integrated(entry, job, result, seconds)` for each scan once it counts as
         #: integrated (journaled, with persistence), on that thread; it must be quick and not raise.
         #: The REST app's metrics set it when the registry was built without one.
