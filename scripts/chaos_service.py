@@ -44,6 +44,9 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "tests"))
 from service_process import ServiceProcess, wait_for  # noqa: E402
 
+from fleetmap import codec  # noqa: E402
+from fleetmap.scan import Pose2D, Scan  # noqa: E402
+
 STABLE_MAPS = ("stable-a", "stable-b")
 CHURN_MAP = "churn"
 REPLACED_MAP = "replaced"
@@ -251,6 +254,14 @@ class Chaos:
                         content=b'{"seq": 1, "seq": 2}',
                         headers={"content-type": "application/json"})  # fmt: skip
         self.check(r, "bad scan")
+        # A whole scan but for a key given twice: refused, not integrated with the last value.
+        good = codec.encode_json(Scan.from_fan(Pose2D(0.5, 0.5, 0.0), -1.0, 0.5, [1.0] * 5, 0.0, 5.0), 1)
+        r = client.post(f"{base}/maps/{STABLE_MAPS[1]}/scans", params={"robot_id": "bad"},
+                        content=good.replace(b'"seq":1', b'"seq":1,"seq":2', 1),
+                        headers={"content-type": "application/json"})  # fmt: skip
+        self.check(r, "scan with a repeated key")
+        if r.status_code < 400:
+            self.v.add("bad accepted", f"a scan with a repeated key -> {r.status_code}")
         self.stats["bad scans posted"] += 1
         host, port = "127.0.0.1", self.svc.svc.port
         for raw in (
