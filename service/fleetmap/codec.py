@@ -36,6 +36,7 @@ import json
 import math
 import struct
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
@@ -163,10 +164,20 @@ def decode_json(data: bytes) -> WireScan:
     return from_message(message)
 
 
-def _unique_pairs(pairs: list[tuple[str, object]]) -> dict[str, object]:
-    keys = [key for key, _ in pairs]
-    if len(set(keys)) != len(keys):
-        repeated = next(key for key in keys if keys.count(key) > 1)
+def repeated_key(pairs: list[tuple[str, Any]]) -> str | None:
+    """The first key given twice among one JSON object's `pairs` (`json.loads`' `object_pairs_hook`
+    gets them), None when each is there once."""
+    seen: set[str] = set()
+    for key, _ in pairs:
+        if key in seen:
+            return key
+        seen.add(key)
+    return None
+
+
+def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    repeated = repeated_key(pairs)
+    if repeated is not None:
         raise DecodeError(f"invalid JSON scan: the key {repeated!r} appears twice in an object")
     return dict(pairs)
 
