@@ -77,7 +77,9 @@ def test_map_lifecycle(api: RunningApi) -> None:
     assert info["id"] == "life" and info["resolution"] == 0.1 and info["config"]["layers"] == ["occupancy"]
     stats = info["stats"]
     assert (stats["scans_integrated"], stats["scans_rejected"], stats["robots"]) == (0, 0, {})
-    assert (stats["bounds"], stats["tiles"], stats["version"], stats["memory_bytes"]) == (None, 0, 0, 0)
+    assert (stats["bounds"], stats["tiles"], stats["memory_bytes"]) == (None, 0, 0)
+    # Change versions start above any an earlier map of this id, or an earlier process, gave out.
+    assert stats["version"] > 10**15
     # Same configuration, written out differently (a preset named, defaults explicit): 200, unchanged.
     r = c.put(
         "/maps/life", json={"resolution": 0.1, "layers": ["occupancy"], "occupancy": {"preset": "octomap"}}
@@ -543,25 +545,27 @@ def test_events_tiles_robots_resume_and_delete(api: RunningApi) -> None:
 
     # Resuming: changes after `since` (or Last-Event-ID) are sent at once.
     c.put("/maps/ev2", json=CONFIG)
+    start = c.get("/maps/ev2").json()["stats"]["version"]
     windows = []
     for seq, x in enumerate([0.5, 5.0]):
         windows += post_scan(api, "ev2", "rB", fan_scan(x, 0.0, 0.0, [1.0] * 61), seq).json()["changed_tiles"]
     for url, headers in [
-        (f"{api.base_url}/maps/ev2/events?since=0", None),
-        (f"{api.base_url}/maps/ev2/events", {"Last-Event-ID": "0"}),
+        (f"{api.base_url}/maps/ev2/events?since={start}", None),
+        (f"{api.base_url}/maps/ev2/events", {"Last-Event-ID": str(start)}),
     ]:
         reader = EventReader(url, headers)
         try:
             data, _ = reader.next("tiles")
-            assert data["version"] == 2 and all(covered(w, data["tiles"]) for w in windows)
+            assert data["version"] == start + 2 and all(covered(w, data["tiles"]) for w in windows)
         finally:
             reader.close()
-    # An id from before the map was re-created (newer than anything this map had): reset.
-    reader = EventReader(f"{api.base_url}/maps/ev2/events?since=99")
-    try:
-        assert reader.next("tiles")[0] == {"version": 2, "reset": True}
-    finally:
-        reader.close()
+    # An id from before the map was re-created (newer, or older, than anything this map had): reset.
+    for since in (start + 99, start - 1):
+        reader = EventReader(f"{api.base_url}/maps/ev2/events?since={since}")
+        try:
+            assert reader.next("tiles")[0] == {"version": start + 2, "reset": True}
+        finally:
+            reader.close()
 
 
 def test_events_follow_a_map_replaced_by_a_snapshot(api: RunningApi) -> None:
@@ -584,14 +588,15 @@ def test_events_follow_a_map_replaced_by_a_snapshot(api: RunningApi) -> None:
         r = c.put("/maps/rep/snapshot", content=snapshot, headers={"content-type": "application/zip"})
         assert r.status_code == 200, r.text  # replaced, not created
         data, event_id = reader.next("replaced")  # fails if the stream said `deleted` and ended
-        assert data == {"id": "rep", "version": 0} and event_id == "0"
+        start = c.get("/maps/rep").json()["stats"]["version"]  # the new map's first version
+        assert data == {"id": "rep", "version": start} and event_id == str(start)
         assert reader.next("robots")[0] == {"robots": {}}  # the new map's robots start afresh
         # The stream goes on with the new map: a scan's tiles arrive, with the new map's versions.
         result = post_scan(api, "rep", "rB", fan_scan(0.5, 0.0, 0.0, [1.0] * 61), 0).json()
         seen: list[list[int]] = []
         while not all(covered(w, seen) for w in result["changed_tiles"]):
             tiles, event_id = reader.next("tiles")
-            assert event_id == str(tiles["version"]) == "1"
+            assert event_id == str(tiles["version"]) == str(start + 1)
             seen += tiles["tiles"]
         assert c.get("/maps/rep").status_code == 200
         c.delete("/maps/rep")

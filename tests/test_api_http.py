@@ -6,6 +6,7 @@ fleetmap.api.http_semantics and docs/api.md, "HTTP conventions"."""
 from __future__ import annotations
 
 import gzip
+import json
 import math
 import threading
 from collections.abc import Callable, Iterator
@@ -213,6 +214,14 @@ def test_json_bodies_are_read_strictly_and_a_refused_one_changes_nothing(mapped:
     assert r.status_code == 415
     r = mapped.post("/maps/m/cells", content=b'{"points": [[0, 0]], "points": [[9, 9]]}', headers=JSON)
     assert r.status_code == 422 and "'points' appears twice" in r.json()["detail"]
+    # And for a scan, whose JSON is that of Zenoh messages too (its codec used to keep the last seq).
+    before = mapped.get("/maps/m").json()["stats"]
+    body = json.dumps({**SCAN, "seq": 2}).replace('"seq": 2', '"seq": 2, "seq": 9')
+    r = mapped.post("/maps/m/scans", params={"robot_id": "r"}, content=body, headers=JSON)
+    assert r.status_code == 422 and "the key 'seq' appears twice" in r.json()["detail"], r.text
+    after = mapped.get("/maps/m").json()["stats"]
+    assert after["scans_integrated"] == before["scans_integrated"] and after["version"] == before["version"]
+    assert after["robots"]["r"]["scans_rejected"] == before["robots"]["r"]["scans_rejected"] + 1
     # What stays allowed: JSON with a charset, an empty body of any type (the default configuration).
     assert (
         mapped.put(

@@ -384,13 +384,15 @@ def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, sca
         timeout=30,
     )
     assert r.status_code == 200, r.text  # replaced, not created
-    wait_for(lambda: ("replaced", {"id": "ev-rep", "version": 0}) in received, 10, 0.02, "replaced")
+    start = httpx.get(f"{client.base_url}/maps/ev-rep", timeout=10).json()["stats"]["version"]
+    replaced = ("replaced", {"id": "ev-rep", "version": start})
+    wait_for(lambda: replaced in received, 10, 0.02, "replaced")
     assert not finished.is_set() and ("deleted", {"id": "ev-rep"}) not in received
     result = client.post_scan("ev-rep", "rob", scans[1], seq=0)  # the stream follows the new map
     changed = {tuple(w) for w in result.changed_tiles}
 
     def tiles_since_replaced() -> set[tuple[int, ...]]:
-        after = received[received.index(("replaced", {"id": "ev-rep", "version": 0})) :]
+        after = received[received.index(replaced) :]
         return {tuple(w) for e, d in after if e == "tiles" for w in d.get("tiles", [])}
 
     wait_for(lambda: changed <= tiles_since_replaced(), 10, 0.02, "the new map's tiles event")

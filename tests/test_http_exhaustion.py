@@ -20,6 +20,7 @@ import pytest
 from service_process import RobotProcess, ServiceProcess, wait_for
 
 from fleetmap.http_limits import ACCEPT_ERROR, MAX_HEAD_BYTES, quiet_accept_errors
+from fleetmap.rate_limited_log import LOG_INTERVAL
 
 MAX_STREAMS = 3
 MAX_CONNECTIONS = 16  # the smallest --max-http-connections allowed
@@ -225,6 +226,21 @@ def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: Serv
     points = [[0.01 * i, 0.0] for i in range(10_000)]
     assert len(json.dumps({"points": points})) > 2 * MAX_HEAD_BYTES
     assert httpx.post(f"{service.base_url}/maps/m/cells", json={"points": points}).status_code == 200
+
+
+def test_refused_request_heads_are_logged_once_not_once_each(service: ServiceProcess) -> None:
+    """uvicorn warns about every request it refuses before the app (400, and the 414 and 431 of a
+    head that arrived whole), and anyone can send them: a client looping on bad heads wrote 10
+    warnings a second. They are rate-limited: the sentence at most once per LOG_INTERVAL."""
+    already = len(service.logs())
+    started = time.monotonic()
+    for k in range(60):
+        request = b"NOT HTTP AT ALL\r\n\r\n" if k % 2 else b"GET /healthz HTTP/1.1\r\nX: " + b"b" * 70_000
+        assert raw_answer(service, request)[0] in (400, 431)
+    elapsed = time.monotonic() - started
+    assert httpx.get(f"{service.base_url}/healthz").status_code == 200  # its log line is written
+    warnings = service.logs()[already:].count("Invalid HTTP request received.")
+    assert warnings <= 1 + elapsed / LOG_INTERVAL, (warnings, elapsed)
 
 
 def _healthz_ok(svc: ServiceProcess) -> bool:

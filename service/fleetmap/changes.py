@@ -24,9 +24,15 @@ class ChangeBatch:
 
 
 class ChangeFeed:
-    def __init__(self, capacity: int = 4096) -> None:
+    """The change log of one map. Its versions count from `start`: a feed made later (by a later
+    process, or for a later map of the same id) starts above every version an earlier one gave, so
+    a version below `start` (an event stream resumed with an id from before) is told apart from one
+    of this feed and answered with a reset."""
+
+    def __init__(self, capacity: int = 4096, start: int = 0) -> None:
         self._log: deque[tuple[int, tuple[TileKey, ...]]] = deque(maxlen=capacity)
-        self._version = 0
+        self._start = start
+        self._version = start
         self._lock = threading.Lock()
 
     @property
@@ -42,11 +48,14 @@ class ChangeFeed:
             return self._version
 
     def since(self, version: int) -> ChangeBatch:
-        """Everything after `version`. A version older than the log reaches gives `reset`."""
+        """Everything after `version`. A version older than the log reaches, or from before this
+        feed began, gives `reset`."""
         with self._lock:
             current = self._version
             if version >= current:
                 return ChangeBatch(current)
+            if version < self._start:
+                return ChangeBatch(current, reset=True)
             if self._log and self._log[0][0] > version + 1 and len(self._log) == self._log.maxlen:
                 return ChangeBatch(current, reset=True)
             tiles: set[TileKey] = set()

@@ -24,6 +24,12 @@ Requests httptools cannot parse (a URL over 64 KiB, which its URL parser cannot 
 all) get uvicorn's 400, but as JSON `{"detail": ...}` like every other error of the API rather than
 uvicorn's text/plain (`send_400_response`): the same bytes on the wire otherwise, and the same close.
 
+uvicorn logs a warning for each request it refuses so ("Invalid HTTP request received.", also for
+the 414 and 431 of a head that arrived whole, and "Unsupported upgrade request."): anyone can send
+them, and a client looping on bad heads wrote 10 lines a second of one sentence. The protocol's
+warnings go through a `RateLimitedLog`: each sentence at most once per LOG_INTERVAL, with the count
+of those held back.
+
 Besides, `fleetmap serve` has asyncio accept at most ACCEPT_BACKLOG connections per turn of the
 event loop (uvicorn's default of 2048 let one burst take 2048 descriptors before any could be
 refused), and rate-limits asyncio's complaints when descriptors do run out (`quiet_accept_errors`;
@@ -108,6 +114,23 @@ def connection_limit(requested: int, descriptors: int) -> int:
     return max(16, min(requested, descriptors - RESERVED_DESCRIPTORS))
 
 
+class RateLimitedWarnings:
+    """uvicorn's protocol logger (`logging.getLogger("uvicorn.error")`) with its warnings rate-limited
+    by `limited`, one category per sentence; errors and everything else pass through. Its warnings
+    are about requests it refused before the app saw them, one line per request for anyone to cause."""
+
+    def __init__(self, logger: logging.Logger, limited: RateLimitedLog) -> None:
+        self._logger = logger
+        self._limited = limited
+
+    def warning(self, msg: str, *args: object, **kwargs: Any) -> None:
+        message = msg % args if args else msg
+        self._limited.warning(message, message)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._logger, name)
+
+
 def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeout: float) -> type:
     """uvicorn's httptools protocol with the limits of the module's docstring (pass the class as
     `uvicorn.Config(http=...)`)."""
@@ -115,9 +138,13 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
     # uvicorn.
     from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+    # One for all connections: a flood comes over many.
+    refusal_log = RateLimitedLog(logging.getLogger("uvicorn.error"))
+
     class BoundedHttpToolsProtocol(HttpToolsProtocol):
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
+            self.logger = RateLimitedWarnings(self.logger, refusal_log)
             self._deadline: asyncio.TimerHandle | None = None
             # Bytes received since the current head began (None: in a body, not in a head).
             self._head_bytes: int | None = 0

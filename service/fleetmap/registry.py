@@ -279,7 +279,9 @@ class MapEntry:
     robots: dict[str, RobotState] = field(default_factory=dict)
     scans_integrated: int = 0
     scans_rejected: int = 0
-    changes: ChangeFeed = field(default_factory=ChangeFeed)
+    #: Its change versions start at `generation` (see `MapRegistry._generations`): an event id from
+    #: an earlier map of this id, or from before a restart, is below them.
+    changes: ChangeFeed = field(init=False)
     created_at: float = field(default_factory=time.time)
     #: Set when the map is deleted or replaced, under its lock and the registry's (`_removing`): a
     #: worker holding the map's lock that finds it set neither applies nor journals a scan to it.
@@ -299,6 +301,9 @@ class MapEntry:
     #: created, forgotten, or changed in a field of `RobotState.changed`. An event stream that saw
     #: this version has nothing to send while it stays.
     live_version: int = 0
+
+    def __post_init__(self) -> None:
+        self.changes = ChangeFeed(start=self.generation)
 
     @property
     def config(self) -> MapConfig:
@@ -375,7 +380,15 @@ class MapRegistry:
             queue_per_robot, queue_total, group=lambda source: source[0], per_group=max(1, queue_total // 2),
             size_of=_queued_bytes, max_bytes=queue_bytes,
         )  # fmt: skip
-        self._generations = itertools.count(1)
+        # Generations name a map's incarnation beyond this process: a tile's ETag holds it, and a
+        # browser revalidates a tile cached before a restart. Counting from 1 again, a map deleted and
+        # created again before the restart came back with the old map's generation (and, changed as
+        # often, its tile versions): the old map's cached tile got 304. Starting at the microseconds
+        # since the epoch, a process's generations are above every earlier one's, unless it made
+        # more than a million maps a second. A map's change versions start at its generation too,
+        # for the event ids a reconnecting client sends back (`ChangeFeed`): no map integrates a
+        # million scans a second either.
+        self._generations = itertools.count(time.time_ns() // 1000)
         #: Called as `on_integrated(entry, job, result, seconds)` for each scan once it counts as
         #: integrated (journaled, with persistence), on that thread; it must be quick and not raise.
         #: The REST app's metrics set it when the registry was built without one.

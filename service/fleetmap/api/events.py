@@ -26,7 +26,8 @@ Format (text/event-stream):
 - `tiles`: cell windows `[i0, j0, i1, j1]` of the storage tiles changed since the last event (refetch
   the web tiles that overlap them), or `{"version": v, "reset": true}`: too much changed to list,
   reload everything. Its `id` is the map's change version: a reconnecting EventSource sends it back as
-  `Last-Event-ID` (or pass `?since=`) and gets the changes it missed.
+  `Last-Event-ID` (or pass `?since=`) and gets the changes it missed. An id from an earlier map of
+  the id, or from before the service restarted, is outside the map's versions (`ChangeFeed`): reset.
 - `robots`: every robot of the map with its last 100 trail points, sent when anything in it changed
   (and once on connect).
 - `robots_delta`, only on a stream opened with `?robots=delta`: after that stream's first `robots`

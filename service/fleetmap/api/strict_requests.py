@@ -29,6 +29,8 @@ from fastapi.dependencies.models import Dependant
 from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from fleetmap.codec import repeated_key
+
 UTF8_BOM = b"\xef\xbb\xbf"
 
 
@@ -52,12 +54,10 @@ def _not_json(reason: str) -> RequestRefused:
 
 
 def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    seen: dict[str, Any] = {}
-    for key, value in pairs:
-        if key in seen:
-            raise _not_json(f"the key {key!r} appears twice in an object")
-        seen[key] = value
-    return seen
+    repeated = repeated_key(pairs)
+    if repeated is not None:
+        raise _not_json(f"the key {repeated!r} appears twice in an object")
+    return dict(pairs)
 
 
 def parse_json_body(body: bytes) -> Any:
