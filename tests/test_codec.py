@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -269,3 +270,22 @@ def test_a_json_list_too_long_for_any_scan_is_refused_before_it_is_parsed() -> N
          "ranges": [1.0] * beams, "range_min": 0.0, "range_max": 30.0, "stamp": 1.0}
     ).encode()  # fmt: skip
     assert decode(largest, JSON_ENCODING).scan.num_beams == beams
+
+
+@pytest.mark.parametrize(
+    "repeat",
+    [
+        lambda text: text.replace("{", '{"seq": 1, ', 1),
+        lambda text: text.replace("{", '{"\\u0073eq": 1, ', 1),  # the same key, spelled otherwise
+        lambda text: text.replace('"x"', '"x": 7, "x"', 1),  # in the pose
+        lambda text: text.replace("{", '{"angles": null, "angles": null, ', 1),  # even with equal values
+    ],
+)
+def test_a_json_scan_holding_a_key_twice_is_refused(repeat: Callable[[str], str]) -> None:
+    """The JSON parser keeps a repeated key's last value silently; which one the robot meant is a
+    guess. The quick test that spares valid scans a second parse must not let any form through."""
+    scan = Scan.from_fan((1.0, 2.0, 0.3), -1.0, 0.01, [1.0] * 200, 0.05, 30.0)
+    text = encode_json(scan, 5).decode()
+    assert decode_json(text.encode()).seq == 5
+    with pytest.raises(DecodeError, match="appears twice in an object"):
+        decode_json(repeat(text).encode())

@@ -160,7 +160,7 @@ def decode_json(data: bytes) -> WireScan:
         message = ScanMessage.model_validate_json(data)
     except ValidationError as exc:
         raise DecodeError(f"invalid JSON scan: {_first_error(exc)}") from None
-    _refuse_repeated_keys(data)
+    _refuse_repeated_keys(data, message)
     return from_message(message)
 
 
@@ -182,12 +182,17 @@ def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return dict(pairs)
 
 
-def _refuse_repeated_keys(data: bytes) -> None:
+def _refuse_repeated_keys(data: bytes, message: ScanMessage) -> None:
     """Refuse a scan that holds a key twice (`{"seq": 1, "seq": 7}`): the parser above keeps the
     last silently, and which one the robot meant is a guess; the REST API's other JSON bodies are
-    refused so too (`api.strict_requests`). A second parse, of a scan already valid: 0.07 ms for 361
-    beams, 3 ms for 16,384 (JSON scans only; the binary encoding has no keys)."""
-    json.loads(data, object_pairs_hook=_unique_pairs)
+    refused so too (`api.strict_requests`). Called on a scan already valid, whose only strings are
+    its keys (`ScanMessage` and `PoseMessage` forbid other keys and hold no string values): with
+    each key once, the quotes are two per field it set. Counting them is one pass over the bytes
+    (about 10 µs a 1081-beam scan); the second parse, made only when the count is off, took 0.32 ms,
+    twice what decoding the scan takes."""
+    keys = len(message.model_fields_set) + len(message.pose.model_fields_set)
+    if data.count(b'"') != 2 * keys:
+        json.loads(data, object_pairs_hook=_unique_pairs)
 
 
 def from_message(message: ScanMessage) -> WireScan:
