@@ -331,14 +331,15 @@ class RobotsEvent(_Model):
         (a robot forgotten and created again under its id is in both), then each robot of
         `delta.robots` takes its new fields, and its trail the appended points (a robot new to this
         view starts with an empty one), cut to the last `trail_length`."""
-        robots = {rid: robot for rid, robot in self.robots.items() if rid not in set(delta.removed)}
+        removed = set(delta.removed)
+        robots = {rid: robot for rid, robot in self.robots.items() if rid not in removed}
         for rid, change in delta.robots.items():
             before = robots.get(rid)
             trail = (before.trail if before is not None else []) + change.trail
             robots[rid] = RobotLive(
                 online=change.online,
                 pose=change.pose,
-                trail=trail[len(trail) - delta.trail_length :] if len(trail) > delta.trail_length else trail,
+                trail=trail[max(0, len(trail) - delta.trail_length) :],
                 scans_integrated=change.scans_integrated,
             )
         return RobotsEvent(robots=dict(sorted(robots.items())))

@@ -79,7 +79,10 @@ def ensure_compiled_cache_location(package: Path = Path(__file__).parent.parent)
     import numba
 
     source = package / "kernels" / "traversal.py"
-    if numba.config.CACHE_DIR or _locator_directory(source) is not None:
+    try:
+        if numba.config.CACHE_DIR or _locator_directory(source) is not None:
+            return None
+    except (ImportError, AttributeError, TypeError):  # a numba whose locators moved: its own choice
         return None
     directory = Path(tempfile.gettempdir()) / f"fleetmap-numba-cache-{os.getuid()}"
     try:
