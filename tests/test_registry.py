@@ -20,16 +20,8 @@ from fleetmap.config import MapConfig
 from fleetmap.fair_queue import FairQueue
 from fleetmap.grid_map import GridMap
 from fleetmap.persistence import DurableStore
-from fleetmap.registry import (
-    CONFLICT_SHOWN,
-    MAX_SESSIONS,
-    IngestRejected,
-    InvalidId,
-    MapConflict,
-    MapNotFound,
-    MapRegistry,
-    RobotState,
-)
+from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, MapRegistry
+from fleetmap.robot_state import CONFLICT_SHOWN, MAX_SESSIONS, RobotState
 from fleetmap.scan import Scan
 
 

@@ -27,7 +27,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import STATE_NAMES, GridMap, cell_edge
 from fleetmap.persistence import StorageHealth
-from fleetmap.registry import MapEntry, RobotState
+from fleetmap.registry import MapEntry
+from fleetmap.robot_state import RobotState
 from fleetmap.scan import Pose2D
 from fleetmap.tiles import TileKey
 

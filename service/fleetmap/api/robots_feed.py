@@ -14,7 +14,8 @@ import threading
 from itertools import islice
 
 from fleetmap.api_models import RobotChange, RobotsDeltaEvent, RobotsEvent, robot_live
-from fleetmap.registry import MapEntry, RobotState
+from fleetmap.registry import MapEntry
+from fleetmap.robot_state import RobotState
 
 #: Trail points a stream sends per robot (the registry keeps TRAIL_LENGTH).
 TRAIL_POINTS = 100

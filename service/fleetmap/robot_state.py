@@ -1,0 +1,207 @@
+"""What the service knows of one robot on one map (`RobotState`): its counters, its pose and trail
+for viewers, and the seq bookkeeping of its publisher sessions (`SessionSeqs`) that tells new scans
+from duplicates, restarts and two robots misconfigured with one id. Plain data, no locks: the
+registry holds its lock around every use."""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import astuple, dataclass, field
+
+from fleetmap.scan import Pose2D
+
+#: Poses kept per robot for viewers' trails.
+TRAIL_LENGTH = 200
+#: Publisher sessions a robot's bookkeeping remembers, the most recently heard: enough for a few
+#: robots that share one id, and bounded whatever session ids a sender makes up.
+MAX_SESSIONS = 8
+#: Seconds a robot is shown in an id conflict (`RobotState.in_conflict`) after its last scan that
+#: interleaved with another session's.
+CONFLICT_SHOWN = 60.0
+#: The session key of scans that carry no session id (publishers that send none).
+NO_SESSION = 0
+
+
+def session_key(session: int | None) -> int:
+    """The key in `RobotState.sessions` of the scans of publisher session `session` (None: none sent)."""
+    return NO_SESSION if session is None else session
+
+
+@dataclass
+class SessionSeqs:
+    """The seq bookkeeping of one publisher session of a robot (`ScanMessage.session`): each session
+    counts its own seqs, so scans of two publishers under one robot id are neither duplicates nor
+    restarts of each other."""
+
+    last_seq: int  # seq of its last accepted scan
+    stamp: float | None  # stamp of its last accepted scan (None: unknown, in an old snapshot)
+    #: The robot's `accepted` count at its first scan and at its last: which sessions were heard
+    #: since which (a logical clock, not a time).
+    first_scan_no: int
+    last_scan_no: int
+    #: What its first scan added to `lost` when it was counted as a restart (None: it was not, or no
+    #: longer is): withdrawn if it turns out to have run beside the session it seemed to restart.
+    start_lost: int | None = None
+    conflict: bool = False  # found running beside another session of the robot
+
+    def saved(self) -> list:
+        """Its fields in order (`SessionSeqs(*saved)` gives it back)."""
+        return list(astuple(self))
+
+    def is_restart(self, seq: int, stamp: float) -> bool:
+        """For scans WITHOUT a session id: whether a scan whose `seq` is not above `last_seq` starts
+        the robot's sequence again (else it is a duplicate).
+
+        A robot process that restarts counts from 0 again, but its first scans can be lost (published
+        before its session reached the service) or it may count from 1; either way its scans must
+        not be ignored as duplicates until it passes its old seq. Its stamps go on, so a later stamp
+        than the last accepted scan's says "restarted". A repeated message (a retry, a copy) carries
+        its old stamp, a stale one an earlier stamp: both stay duplicates. Seq 0 is also a restart
+        with an equal or earlier stamp (robots without stamps send 0; a robot without a real-time
+        clock may boot in 1970), unless it repeats the last accepted scan, seq 0 with the same stamp.
+        A publisher that sends a session id needs none of this: a new session is a restart."""
+        if self.stamp is not None and stamp > self.stamp:
+            return True
+        return seq == 0 and not (self.last_seq == 0 and stamp == self.stamp)
+
+
+@dataclass
+class RobotState:
+    """What the service knows of one robot on one map."""
+
+    online: bool = False
+    last_pose: Pose2D | None = None
+    last_stamp: float | None = None
+    scans_integrated: int = 0
+    scans_rejected: int = 0
+    last_error: str | None = None
+    lost: int = 0
+    duplicates: int = 0
+    dropped: int = 0
+    not_durable: int = 0  # applied, but the journal commit meant to make them durable failed
+    restarts: int = 0  # times its seq started again (`accept`)
+    #: Wall-clock time of its last message or liveliness change: a map full of robots forgets the
+    #: offline robot heard from least recently to make room for a new one (`_room_for`).
+    last_heard: float = 0.0
+    #: Its scans accepted but not yet counted as integrated or refused: such a robot is not forgotten.
+    unsettled: int = 0
+    trail: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))
+    #: Poses ever appended to `trail` (`add_pose`), which keeps only the last TRAIL_LENGTH: an event
+    #: stream that sent the trail when this was n sends only the last `appended - n` points next.
+    appended: int = 0
+    #: `MapEntry.live_version` when a field a viewer shows (online, pose, trail, scans_integrated)
+    #: last changed, or the robot was created (`MapEntry.touch`).
+    changed: int = 0
+    #: Its recent publisher sessions (key `session_key`), least recently heard first: the last one
+    #: is the current one, whose last seq is the robot's (`last_seq`).
+    sessions: dict[int, SessionSeqs] = field(default_factory=dict)
+    accepted: int = 0  # scans accepted (the clock of the sessions' `first_scan_no`, `last_scan_no`)
+    #: Times scans of a session were found interleaved with another session's not yet known to
+    #: interleave with (two robots publishing under one id: 1; a third, or one of them restarted: +1).
+    id_conflicts: int = 0
+    conflict_at: float | None = None  # wall-clock time of the last interleaved scan
+
+    #: The counters that survive a restart (and `sessions`, saved as lists).
+    SAVED = (
+        "last_stamp", "scans_integrated", "scans_rejected", "last_error", "lost", "duplicates",
+        "dropped", "not_durable", "restarts", "last_heard", "accepted", "id_conflicts", "conflict_at",
+    )  # fmt: skip
+
+    @property
+    def last_seq(self) -> int | None:
+        """The seq of the last scan accepted (enqueued), None before the first."""
+        return next(reversed(self.sessions.values())).last_seq if self.sessions else None
+
+    def saved(self) -> dict:
+        # `last_seq` for a service from before sessions, which reads only that (same database layout).
+        out = {name: getattr(self, name) for name in self.SAVED} | {"last_seq": self.last_seq}
+        out["last_pose"] = (
+            None if self.last_pose is None else [self.last_pose.x, self.last_pose.y, self.last_pose.theta]
+        )
+        # JSON objects have only string keys: a list keeps the ids integers and the order.
+        out["sessions"] = [[key, *rec.saved()] for key, rec in self.sessions.items()]
+        return out
+
+    @classmethod
+    def from_saved(cls, data: dict) -> RobotState:
+        state = cls(**{name: data.get(name, getattr(cls, name, None)) for name in cls.SAVED})
+        if data.get("last_pose"):
+            state.add_pose(Pose2D(*data["last_pose"]))
+        if "sessions" in data:
+            state.sessions = {int(row[0]): SessionSeqs(*row[1:]) for row in data["sessions"]}
+        elif data.get("last_seq") is not None:
+            # Saved before sessions existed: every scan so far came without one.
+            state.sessions = {NO_SESSION: SessionSeqs(data["last_seq"], state.last_stamp, 0, 0)}
+        return state
+
+    def add_pose(self, pose: Pose2D) -> None:
+        """Its last integrated scan was taken at `pose`: its position now, and the trail's newest."""
+        self.last_pose = pose
+        self.trail.append((pose.x, pose.y, pose.theta))
+        self.appended += 1
+
+    def is_duplicate(self, seq: int, stamp: float, session: int | None) -> bool:
+        """Whether the scan `seq` of publisher session `session` (None: it sent none) is not new:
+        its session's seq is past it (a copy, a retry, a stale message). A session not heard
+        before is never a duplicate: its publisher (re)started, or another robot shares this id.
+        Without a session, a seq not new is a restart if its stamp says so (`SessionSeqs.is_restart`)."""
+        rec = self.sessions.get(session_key(session))
+        if rec is None or seq > rec.last_seq:
+            return False
+        return session is not None or not rec.is_restart(seq, stamp)
+
+    def accept(self, seq: int, stamp: float, session: int | None = None, now: float = 0.0) -> bool:
+        """Record the scan `seq` of publisher session `session` as accepted (by `submit`, or replayed
+        from the journal); the caller has ruled out duplicates (`is_duplicate`).
+
+        Per session: the seqs skipped since its last scan count as lost, and without a session id a
+        seq not new is a restart whose new run's seqs before this one never arrived. A new session
+        of a known robot is a restart too (its seqs before this one count as lost). A session that
+        comes back after another one was heard is an id conflict (two publishers under one robot
+        id): `conflict_at` becomes `now` (wall-clock), `id_conflicts` counts it if a session among
+        them was not known to be in one, and a restart counted when the other one started is
+        withdrawn (it ran beside this one). Returns whether this scan interleaved with another
+        session's so."""
+        key = session_key(session)
+        self.accepted += 1
+        rec = self.sessions.pop(key, None)
+        beside: list[SessionSeqs] = []
+        if rec is None:
+            rec = SessionSeqs(seq, stamp, self.accepted, self.accepted)
+            if self.sessions:
+                self.restarts += 1
+                self.lost += seq
+                rec.start_lost = seq
+        else:
+            if seq <= rec.last_seq:  # without a session id (`is_duplicate` ruled out the rest): a restart
+                self.restarts += 1
+                self.lost += seq
+            elif seq > rec.last_seq + 1:
+                self.lost += seq - rec.last_seq - 1
+            beside = [other for other in self.sessions.values() if other.last_scan_no > rec.last_scan_no]
+            if beside:
+                self._conflict(rec, beside, now)
+            rec.last_seq, rec.stamp, rec.last_scan_no = seq, stamp, self.accepted
+        self.sessions[key] = rec
+        while len(self.sessions) > MAX_SESSIONS:
+            del self.sessions[next(iter(self.sessions))]
+        return bool(beside)
+
+    def _conflict(self, back: SessionSeqs, beside: list[SessionSeqs], now: float) -> None:
+        """Session `back` came back after the sessions `beside` were heard: they ran at once."""
+        self.conflict_at = now
+        for other in beside:
+            if other.start_lost is not None and other.first_scan_no > back.last_scan_no:
+                # It started while `back` still ran: not a restart of it.
+                self.restarts -= 1
+                self.lost -= other.start_lost
+                other.start_lost = None
+        newly = [rec for rec in (back, *beside) if not rec.conflict]
+        for rec in newly:
+            rec.conflict = True
+        if newly:
+            self.id_conflicts += 1
+
+    def in_conflict(self, now: float) -> bool:
+        """Whether scans of two sessions interleaved within the last CONFLICT_SHOWN seconds."""
+        return self.conflict_at is not None and now - self.conflict_at < CONFLICT_SHOWN
