@@ -103,7 +103,7 @@ def merge_tiles_in_box(
     return out, tile
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def bump_versions(changed: np.ndarray, slots: np.ndarray, versions: np.ndarray, clock: int) -> int:
     """Give each tile k with `changed[k]` set (pool slot `slots[k]`) the next version after `clock`,
     in tile order: the one rule for tile versions (a store-wide clock, so versions never repeat).
@@ -157,7 +157,7 @@ def _apply_one(
     return changed
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def apply_cells(
     cell: np.ndarray,
     kind: np.ndarray,
