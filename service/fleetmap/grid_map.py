@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from fleetmap.config import MapConfig
+from fleetmap.config import LayerName, MapConfig
 from fleetmap.kernels import integrate_scan
 from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import fuse_tsdf, zero_crossings
@@ -44,7 +44,7 @@ STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED = 0, 1, 2
 STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
 
 #: The stored array each derived layer is read from, and the layer it needs.
-_SOURCE = {
+_SOURCE: dict[str, tuple[str, LayerName]] = {
     "log_odds": ("log_odds", "occupancy"),
     "probability": ("log_odds", "occupancy"),
     "state": ("log_odds", "occupancy"),
@@ -359,7 +359,7 @@ class GridMap:
         if layer not in _SOURCE:
             raise LayerUnavailableError(f"unknown layer {layer!r}; one of {', '.join(REGION_LAYERS)}")
         source, needs = _SOURCE[layer]
-        if not self.config.has(needs):  # type: ignore[arg-type]
+        if not self.config.has(needs):
             raise LayerUnavailableError(
                 f"layer {layer!r} needs the {needs!r} layer, which this map does not keep"
             )
