@@ -109,7 +109,7 @@ class GridMap:
         self._kernel_params = (
             cfg.no_return_range, cfg.resolution, cfg.tsdf.truncation, cfg.beam.alpha, MAX_CELL_INDEX,
             MAX_SCAN_TILE_WINDOW, EXACT if cfg.traversal == "exact" else BRESENHAM, self.store.shift,
-            occ.l_hit, occ.l_miss, occ.l_min, occ.l_max, cfg.tsdf.max_weight, cfg.max_tiles,
+            *occ.resolved(), cfg.tsdf.max_weight, cfg.max_tiles,
         )  # fmt: skip
         #: Per tile: (version, local observed bounds or None), for known_bounds.
         self._tile_bounds: dict[TileKey, tuple[int, tuple[int, int, int, int] | None]] = {}
@@ -185,7 +185,7 @@ class GridMap:
                 found = [store.slots[k] for k in keys]
             slots = np.array(found, dtype=np.int64)
             log_odds, hits, misses, tsdf, tsdf_weight = store.kernel_pools()
-            params = (occ.l_hit, occ.l_miss, occ.l_min, occ.l_max)
+            params = occ.resolved()
             updates = tsdf_updates = 0
             if plan.cell.size or plan.runs.shape[1]:
                 updates += apply_cells(

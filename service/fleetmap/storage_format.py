@@ -474,9 +474,9 @@ def _value_range(a: LayerArray, config: MapConfig) -> tuple[float, float, bool, 
     is allowed, in words), or None when every value of its dtype is. The bounds are float32, as
     stored: the kernels round the clamped float64 value to float32 (`updated_log_odds`)."""
     if a.name == "log_odds":  # NaN is unknown; every update clamps to [l_min, l_max]
-        occ = config.occupancy
-        lo, hi = float(np.float32(occ.l_min)), float(np.float32(occ.l_max))
-        return lo, hi, True, f"NaN (unknown) or within the map's clamp [{occ.l_min:g}, {occ.l_max:g}]"
+        _, _, l_min, l_max = config.occupancy.resolved()
+        lo, hi = float(np.float32(l_min)), float(np.float32(l_max))
+        return lo, hi, True, f"NaN (unknown) or within the map's clamp [{l_min:g}, {l_max:g}]"
     if a.name == "tsdf":  # unknown is 0 (weight 0); a mean of values clamped to [-1, 1]
         return -1.0, 1.0, False, "within [-1, 1]"
     if a.name == "tsdf_weight":  # unknown is 0; one per beam, capped at max_weight
