@@ -116,7 +116,9 @@ def bump_versions(changed: np.ndarray, slots: np.ndarray, versions: np.ndarray, 
 
 
 @njit(cache=True, nogil=True, inline="always")
-def updated_log_odds(old: float, hit: bool, l_hit: float, l_miss: float, l_min: float, l_max: float):
+def updated_log_odds(
+    old: float, hit: bool, l_hit: float, l_miss: float, l_min: float, l_max: float
+) -> np.float32:
     """The log-odds update rule, the one place it is written: an unknown cell (NaN) starts at 0, a
     hit adds l_hit, a miss l_miss, and the result is clamped after every update, as OctoMap does, so a
     cell can always be changed back quickly. Returns float32, as stored."""
