@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 # The service and its commands (what `make demo` and `make serve` need), then the test and benchmark
-# tools on top (pytest, hypothesis, ruff, playwright, schemathesis, pyoctomap) for the targets that
+# tools on top (pytest, hypothesis, ruff, mypy, playwright, schemathesis, pyoctomap) for the targets that
 # use them: a first `make demo` does not wait for those.
 STAMP := $(VENV)/.installed
 DEV_STAMP := $(VENV)/.installed-test
@@ -36,6 +36,7 @@ demo: $(STAMP)
 test: $(DEV_STAMP) system-deps
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
 	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
+	$(VENV)/bin/mypy
 	$(PY) -m pytest -q
 
 serve: $(STAMP)
@@ -50,9 +51,10 @@ bench-service: $(DEV_STAMP)
 lint: $(DEV_STAMP)
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
 	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
+	$(VENV)/bin/mypy
 
 format: $(DEV_STAMP)
 	$(VENV)/bin/ruff format service tests clients scripts benchmarks
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache .mypy_cache

@@ -38,7 +38,7 @@ def registry():
 
 
 def test_fair_queue_round_robin_and_one_in_flight_per_source() -> None:
-    q: FairQueue[int] = FairQueue(per_source=100)
+    q: FairQueue[str, int] = FairQueue(per_source=100)
     for k in range(5):
         q.put("flood", k)
     q.put("quiet", 100)
@@ -51,7 +51,7 @@ def test_fair_queue_round_robin_and_one_in_flight_per_source() -> None:
 
 
 def test_fair_queue_refuses_past_the_source_limit_without_blocking() -> None:
-    q: FairQueue[int] = FairQueue(per_source=3, total=100)
+    q: FairQueue[str, int] = FairQueue(per_source=3, total=100)
     assert all(q.put("a", k) for k in range(3))
     started = time.monotonic()
     assert q.put("a", 3) is False
@@ -62,7 +62,9 @@ def test_fair_queue_refuses_past_the_source_limit_without_blocking() -> None:
 def test_fair_queue_keeps_room_for_other_groups() -> None:
     """A sender under many robot ids of one map filled the whole queue, and another map's robot lost
     a third of its scans: a group (a map) holds at most `per_group` items."""
-    q: FairQueue[int] = FairQueue(per_source=3, total=10, group=lambda source: source[0], per_group=5)
+    q: FairQueue[tuple[str, int], int] = FairQueue(
+        per_source=3, total=10, group=lambda source: source[0], per_group=5
+    )
     admitted = [q.put(("flood", k), k) for k in range(10)]
     assert admitted == [True] * 5 + [False] * 5
     assert q.put(("quiet", 0), 0) and q.depth() == 6
@@ -70,14 +72,14 @@ def test_fair_queue_keeps_room_for_other_groups() -> None:
     source, _ = q.get(0.1)  # type: ignore[misc]
     q.done(source)
     assert q.put(("flood", 99), 99)  # its group has room again
-    q.drop_source(lambda s: s[0] == "flood")  # type: ignore[index]
+    q.drop_source(lambda s: s[0] == "flood")
     assert all(q.put(("flood", k), k) for k in range(5))
 
 
 def test_fair_queue_bounds_the_bytes_it_holds() -> None:
     """Queued scans are held decoded: 8192 of 16,384 beams took 2.6 GB, outside the memory budget.
     With `size_of`, the queue refuses what would pass `max_bytes`, and takes again once items left."""
-    q: FairQueue[int] = FairQueue(per_source=100, total=100, size_of=lambda item: item, max_bytes=100)
+    q: FairQueue[str, int] = FairQueue(per_source=100, total=100, size_of=lambda item: item, max_bytes=100)
     assert q.put("a", 60) and q.put("b", 30)
     assert not q.put("c", 20)  # 110 bytes: refused, though the counts have room
     assert q.put("c", 10)

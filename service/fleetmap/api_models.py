@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar, overload
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -488,9 +488,7 @@ def cells_response(gmap: GridMap, points: np.ndarray) -> CellsResponse:
     for name in ("log_odds", "tsdf"):
         if fields[name] is not None:
             fields[name] = _floats(fields[name])
-    return CellsResponse(
-        **{k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in fields.items()}  # type: ignore[arg-type]
-    )
+    return CellsResponse(**{k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in fields.items()})
 
 
 def cells_json(gmap: GridMap, points: np.ndarray) -> bytes:
@@ -529,7 +527,7 @@ def region_json(layer: str, window: CellWindow, resolution: float, values: np.nd
     """A dense window (`GridMap.region`'s array, row 0 = lowest y) as JSON."""
     i0, j0, _, _ = window
     if values.dtype.kind == "f":
-        rows: list[list[int | float | None]] = [_floats(row) for row in values]  # type: ignore[misc]
+        rows: list[list[int | float | None]] = [_floats(row) for row in values]
     else:
         rows = values.tolist()
     return RegionJson(
@@ -547,6 +545,21 @@ def surface(window: CellWindow, points: np.ndarray) -> Surface:
     return Surface(window=window, count=len(pairs), points=pairs)
 
 
+_Robot = TypeVar("_Robot", bound=RobotLive)
+
+
+@overload
+def robot_live(
+    online: bool, pose: Pose2D | None, trail: list[tuple[float, float, float]], scans_integrated: int
+) -> RobotLive: ...
+@overload
+def robot_live(
+    online: bool,
+    pose: Pose2D | None,
+    trail: list[tuple[float, float, float]],
+    scans_integrated: int,
+    model: type[_Robot],
+) -> _Robot: ...
 def robot_live(
     online: bool,
     pose: Pose2D | None,

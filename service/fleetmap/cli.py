@@ -72,7 +72,7 @@ def load_config(path: str | None, **overrides: object) -> MapConfig:
 # -- build -----------------------------------------------------------------------------------------
 
 
-def _add_build(sub: argparse._SubParsersAction) -> None:
+def _add_build(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("build", help="build a map from a recorded dataset (CARMEN log or .mat)")
     p.add_argument("dataset", help="CARMEN log (plain or .gz) or MATLAB .mat file")
     p.add_argument("--out", required=True, help="directory for map.yaml, map.pgm, map.png, *.npy, meta.json")

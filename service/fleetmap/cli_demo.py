@@ -20,7 +20,7 @@ import httpx
 from fleetmap.cli import CliError
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "demo",
         help="run the service with simulated robots and print the viewer's address",

@@ -132,6 +132,13 @@ class OccupancyParams(BaseModel):
             object.__setattr__(self, name, None)
         return self
 
+    def resolved(self) -> tuple[float, float, float, float]:
+        """(l_hit, l_miss, l_min, l_max) in use: validation resolved all four (never None after it)."""
+        hit, miss, lo, hi = self.l_hit, self.l_miss, self.l_min, self.l_max
+        if hit is None or miss is None or lo is None or hi is None:  # made by model_construct
+            raise ValueError("occupancy parameters that were not validated have no log-odds")
+        return hit, miss, lo, hi
+
 
 class BeamModelParams(BaseModel):
     """The inverse range sensor model of Probabilistic Robotics (table 9.2), used when

@@ -86,7 +86,7 @@ def map_source(gmap: GridMap) -> str | None:
     """The layer a map's images (nav2 files, PNG) show: `occupancy`, or for a map without it
     `counts` (their maximum-likelihood occupancy); None for a map that keeps only the TSDF."""
     for layer in ("occupancy", "counts"):
-        if gmap.config.has(layer):  # type: ignore[arg-type]
+        if gmap.config.has(layer):
             return layer
     return None
 

@@ -17,18 +17,20 @@ from collections.abc import Callable, Hashable, Iterable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
+#: A source: a robot on a map, (map_id, robot_id), for the registry.
+S = TypeVar("S", bound=Hashable)
 
 
 class QueueClosed(Exception):
     """`get` on a closed, drained queue."""
 
 
-class FairQueue(Generic[T]):
+class FairQueue(Generic[S, T]):
     def __init__(
         self,
         per_source: int = 64,
         total: int = 4096,
-        group: Callable[[Hashable], Hashable] | None = None,
+        group: Callable[[S], Hashable] | None = None,
         per_group: int | None = None,
         size_of: Callable[[T], int] | None = None,
         max_bytes: int | None = None,
@@ -44,14 +46,14 @@ class FairQueue(Generic[T]):
         self._group = group
         self.per_group = total if per_group is None else per_group
         self._group_size: dict[Hashable, int] = {}
-        self._fifos: dict[Hashable, deque[T]] = {}
-        self._ready: deque[Hashable] = deque()  # sources with items and nothing in flight
-        self._busy: set[Hashable] = set()
+        self._fifos: dict[S, deque[T]] = {}
+        self._ready: deque[S] = deque()  # sources with items and nothing in flight
+        self._busy: set[S] = set()
         self._size = 0
         self._closed = False
         self._cond = threading.Condition()
 
-    def put(self, source: Hashable, item: T) -> bool:
+    def put(self, source: S, item: T) -> bool:
         """Enqueue without blocking; False if the source's FIFO or the whole queue is full."""
         with self._cond:
             if self._closed:
@@ -78,7 +80,7 @@ class FairQueue(Generic[T]):
                 self._cond.notify()
             return True
 
-    def get(self, timeout: float | None = None) -> tuple[Hashable, T] | None:
+    def get(self, timeout: float | None = None) -> tuple[S, T] | None:
         """The next item of the next ready source, marking that source busy until `done(source)`.
         Returns None on timeout; raises QueueClosed once closed and drained."""
         with self._cond:
@@ -94,7 +96,7 @@ class FairQueue(Generic[T]):
             self._busy.add(source)
             return source, item
 
-    def done(self, source: Hashable) -> None:
+    def done(self, source: S) -> None:
         """The consumer finished the item it took from `source`."""
         with self._cond:
             self._busy.discard(source)
@@ -105,7 +107,7 @@ class FairQueue(Generic[T]):
             elif fifo is not None:
                 del self._fifos[source]
 
-    def drop_source(self, predicate: Callable[[Hashable], bool]) -> list[T]:
+    def drop_source(self, predicate: Callable[[S], bool]) -> list[T]:
         """Discard every queued item of the sources for which `predicate(source)` holds and return
         them, oldest first per source, so the caller can answer whoever waits for them (items in
         flight are not affected)."""
@@ -122,7 +124,7 @@ class FairQueue(Generic[T]):
             self._ready = deque(s for s in self._ready if self._fifos.get(s))
             return dropped
 
-    def _left(self, source: Hashable, items: Iterable[T]) -> None:
+    def _left(self, source: S, items: Iterable[T]) -> None:
         """`items` of `source` left the queue: its group and the bytes held shrink (call under the
         lock; `_size` is the caller's)."""
         items = list(items)

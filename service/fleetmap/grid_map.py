@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from fleetmap.config import MapConfig
+from fleetmap.config import LayerName, MapConfig
 from fleetmap.kernels import integrate_scan
 from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import fuse_tsdf, zero_crossings
@@ -44,7 +44,7 @@ STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED = 0, 1, 2
 STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
 
 #: The stored array each derived layer is read from, and the layer it needs.
-_SOURCE = {
+_SOURCE: dict[str, tuple[str, LayerName]] = {
     "log_odds": ("log_odds", "occupancy"),
     "probability": ("log_odds", "occupancy"),
     "state": ("log_odds", "occupancy"),
@@ -109,7 +109,7 @@ class GridMap:
         self._kernel_params = (
             cfg.no_return_range, cfg.resolution, cfg.tsdf.truncation, cfg.beam.alpha, MAX_CELL_INDEX,
             MAX_SCAN_TILE_WINDOW, EXACT if cfg.traversal == "exact" else BRESENHAM, self.store.shift,
-            occ.l_hit, occ.l_miss, occ.l_min, occ.l_max, cfg.tsdf.max_weight, cfg.max_tiles,
+            *occ.resolved(), cfg.tsdf.max_weight, cfg.max_tiles,
         )  # fmt: skip
         #: Per tile: (version, local observed bounds or None), for known_bounds.
         self._tile_bounds: dict[TileKey, tuple[int, tuple[int, int, int, int] | None]] = {}
@@ -185,7 +185,7 @@ class GridMap:
                 found = [store.slots[k] for k in keys]
             slots = np.array(found, dtype=np.int64)
             log_odds, hits, misses, tsdf, tsdf_weight = store.kernel_pools()
-            params = (occ.l_hit, occ.l_miss, occ.l_min, occ.l_max)
+            params = occ.resolved()
             updates = tsdf_updates = 0
             if plan.cell.size or plan.runs.shape[1]:
                 updates += apply_cells(
@@ -359,7 +359,7 @@ class GridMap:
         if layer not in _SOURCE:
             raise LayerUnavailableError(f"unknown layer {layer!r}; one of {', '.join(REGION_LAYERS)}")
         source, needs = _SOURCE[layer]
-        if not self.config.has(needs):  # type: ignore[arg-type]
+        if not self.config.has(needs):
             raise LayerUnavailableError(
                 f"layer {layer!r} needs the {needs!r} layer, which this map does not keep"
             )

@@ -45,7 +45,7 @@ import asyncio
 import json
 import logging
 import resource
-from typing import Any
+from typing import Any, cast
 
 from fleetmap.rate_limited_log import RateLimitedLog
 
@@ -144,7 +144,8 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
     class BoundedHttpToolsProtocol(HttpToolsProtocol):
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
-            self.logger = RateLimitedWarnings(self.logger, refusal_log)
+            # uvicorn types it a Logger; the wrapper passes everything but warnings to the one it wraps.
+            self.logger = cast(logging.Logger, RateLimitedWarnings(self.logger, refusal_log))
             self._deadline: asyncio.TimerHandle | None = None
             # Bytes received since the current head began (None: in a body, not in a head).
             self._head_bytes: int | None = 0
@@ -175,6 +176,8 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
             self.transport.write(self._refusal or (URL_TOO_LONG if too_long else INVALID_REQUEST))
             self.transport.close()
 
+        # Narrower than asyncio's BaseTransport, as uvicorn's own override is: a TCP server's
+        # protocol is always handed a Transport.
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
             if len(self.connections) > max_connections:

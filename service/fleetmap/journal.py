@@ -355,12 +355,13 @@ class JournalWriter:
             return False
         attached = self._take_attached()
         if self._unstored:
-            self._retry_unstored({e.map_id for e in batch} | {a.map_id for a in attached})
+            needed: set[str | None] = {e.map_id for e in batch}
+            self._retry_unstored(needed | {a.map_id for a in attached})
         batch, attached = self._hold_back(batch, attached)
         if not batch and not attached and not self._trim:
             return False
         try:
-            ids = []
+            ids: list[int] = []
             self._conn.execute("BEGIN IMMEDIATE")
             for e in batch:
                 cur = self._conn.execute(
@@ -368,6 +369,7 @@ class JournalWriter:
                     "VALUES (?, ?, ?, ?, ?, ?)",
                     (e.map_id, e.robot_id, e.seq, e.stamp, e.blob, e.session),
                 )
+                assert cur.lastrowid is not None  # set by every INSERT
                 ids.append(cur.lastrowid)
             for a in attached:
                 self._conn.execute(a.sql, a.params)

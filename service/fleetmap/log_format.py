@@ -106,6 +106,8 @@ def configure_logging(level: str, log_format: str) -> None:
             return
         name = args.thread.name if args.thread else "?"
         exc_info = (args.exc_type, args.exc_value, args.exc_traceback)
+        # exc_value may be None (threading's documentation), which logging formats as well; its
+        # stubs take only a complete exception triple.
         crash_log.error("uncaught exception in thread %s", name, exc_info=exc_info)  # type: ignore[arg-type]
 
     sys.excepthook = main_thread_hook

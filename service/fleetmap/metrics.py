@@ -112,6 +112,10 @@ class IntegrationMetrics:
         )
 
 
+#: The metric families the collectors fill at scrape time (both have `add_metric(labels, value)`).
+_Family = CounterMetricFamily | GaugeMetricFamily
+
+
 class RegistryCollector(Collector):
     """Reads the registry's counters at scrape time (no double bookkeeping)."""
 
@@ -157,7 +161,7 @@ class RegistryCollector(Collector):
         yield from families
 
     @staticmethod
-    def _families() -> tuple[Metric, ...]:
+    def _families() -> tuple[_Family, ...]:
         robot = ["map", "robot"]
         return (
             CounterMetricFamily("fleetmap_scans_integrated", "Scans integrated into the map", labels=robot),
@@ -224,7 +228,7 @@ class StorageCollector(Collector):
         yield from (commits, rows)
 
     @staticmethod
-    def _families() -> tuple[Metric, ...]:
+    def _families() -> tuple[_Family, ...]:
         return (
             CounterMetricFamily("fleetmap_journal_commits", "Journal transactions committed (group commits)"),
             CounterMetricFamily("fleetmap_journal_rows", "Journal rows (scans) committed"),
@@ -256,7 +260,7 @@ class ServiceInfoCollector(Collector):
             yield from (connections, limit)
 
     @staticmethod
-    def _families() -> tuple[Metric, ...]:
+    def _families() -> tuple[_Family, ...]:
         return (
             GaugeMetricFamily(
                 "fleetmap_build_info", "The fleetmap version running (always 1)", labels=["version"]
@@ -288,7 +292,7 @@ class IngestGateCollector(Collector):
         yield from (delayed, seconds, timeouts, waiting)
 
     @staticmethod
-    def _families() -> tuple[Metric, ...]:
+    def _families() -> tuple[_Family, ...]:
         return (
             CounterMetricFamily(
                 "fleetmap_http_delayed_requests", "HTTP requests that waited for the ingest backlog to clear"
@@ -321,7 +325,7 @@ class EventStreamsCollector(Collector):
         yield from (open_streams, refused)
 
     @staticmethod
-    def _families() -> tuple[Metric, ...]:
+    def _families() -> tuple[_Family, ...]:
         return (
             GaugeMetricFamily("fleetmap_event_streams", "Event streams (GET /maps/{id}/events) open now"),
             CounterMetricFamily(
@@ -351,7 +355,7 @@ class TileCacheCollector(Collector):
         yield from (hits, renders, entries, requests)
 
     @staticmethod
-    def _families() -> tuple[Metric, ...]:
+    def _families() -> tuple[_Family, ...]:
         return (
             CounterMetricFamily("fleetmap_tile_cache_hits", "Tile requests served from the cache"),
             CounterMetricFamily("fleetmap_tile_renders", "Tiles rendered (cache misses)"),
@@ -379,7 +383,7 @@ class RuntimeCollector(Collector):
         yield from (collections, frozen)
 
     @staticmethod
-    def _families() -> tuple[Metric, ...]:
+    def _families() -> tuple[_Family, ...]:
         return (
             CounterMetricFamily(
                 "fleetmap_gc_collections",

@@ -20,6 +20,7 @@ a scan whose map went while it was planned is applied and journaled nowhere, and
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 import logging
 import sqlite3
@@ -179,7 +180,7 @@ class MapRegistry:
         self.lock = threading.RLock()  # guards `maps` and every RobotState / counter
         # Sources are (map, robot); one map holds at most half the queue, so a sender flooding it
         # under many robot ids leaves room for every other map's robots.
-        self.queue: FairQueue[Job] = FairQueue(
+        self.queue: FairQueue[tuple[str, str], Job] = FairQueue(
             queue_per_robot, queue_total, group=lambda source: source[0], per_group=max(1, queue_total // 2),
             size_of=_queued_bytes, max_bytes=queue_bytes,
         )  # fmt: skip
@@ -292,8 +293,9 @@ class MapRegistry:
         for entry in self.list():
             needed = self.durable.needs_snapshot(entry.id)
             if every_map or (needed and (not only_overdue or self.durable.overdue(entry.id))):
+                counters = functools.partial(self._saved_counters, entry)
                 try:
-                    self.durable.snapshot(entry.id, entry.gmap, lambda e=entry: self._saved_counters(e))
+                    self.durable.snapshot(entry.id, entry.gmap, counters)
                 except (sqlite3.Error, OSError, StorageError) as exc:
                     log.error(
                         "snapshot of map %s failed (retried at the next one): %s", entry.id, exc,
@@ -642,7 +644,7 @@ class MapRegistry:
                         elapsed = time.perf_counter() - started
                         self.durable.journal(
                             job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
-                            lambda _row, r=result, t=elapsed: self._mark_integrated(entry, job, r, t),
+                            lambda _row: self._mark_integrated(entry, job, result, elapsed),
                             lambda exc: self._mark_not_durable(job, exc), job.wire.session,
                         )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
@@ -705,15 +707,16 @@ class MapRegistry:
                     robot.scans_rejected += 1
                     entry.scans_rejected += 1
                     removed = self._remove_unclaimed(entry)
-        if job.future is None:
+        future = job.future
+        if future is None:
             return
         if removed is None:
-            _refuse(job.future, IngestRejected(reason, status))
+            _refuse(future, IngestRejected(reason, status))
         else:
             refusal = IngestRejected(
                 f"{reason}; map {job.map_id!r}, created for this scan, was removed again", status
             )
-            removed.add_done_callback(lambda _stored: _refuse(job.future, refusal))
+            removed.add_done_callback(lambda _stored: _refuse(future, refusal))
 
     def _finish_gone(self, job: Job) -> None:
         """A scan whose map was deleted or replaced before the scan was applied (queued, or while it

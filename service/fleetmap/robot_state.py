@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import astuple, dataclass, field
+from typing import Any
 
 from fleetmap.scan import Pose2D
 
@@ -124,7 +125,8 @@ class RobotState:
 
     @classmethod
     def from_saved(cls, data: dict) -> RobotState:
-        state = cls(**{name: data.get(name, getattr(cls, name, None)) for name in cls.SAVED})
+        saved: dict[str, Any] = {name: data.get(name, getattr(cls, name, None)) for name in cls.SAVED}
+        state = cls(**saved)
         if data.get("last_pose"):
             state.add_pose(Pose2D(*data["last_pose"]))
         if "sessions" in data:

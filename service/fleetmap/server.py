@@ -45,7 +45,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple, TypeVar
+from typing import Any, NamedTuple, NoReturn, TypeVar
 
 from fleetmap.auth import TokenFile, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, run_command
@@ -77,10 +77,10 @@ _ENV_TRUE = {"1", "true", "yes", "on"}
 _ENV_FALSE = {"0", "false", "no", "off", ""}
 LOG_LEVELS = ("debug", "info", "warning", "error")
 #: Seconds uvicorn waits for open connections (event streams never end by themselves) at shutdown.
-GRACEFUL_HTTP_SECONDS = 3.0
+GRACEFUL_HTTP_SECONDS = 3  # uvicorn takes whole seconds (int)
 
 
-def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
     """Add the `serve` subcommand to the `fleetmap` command line."""
     p = sub.add_parser(
         "serve",
@@ -327,16 +327,18 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         help="log every HTTP request (client, method, path, status) at info; off by default (cost)",
     )
     p.set_defaults(run=run)
-    p.error = _one_line_error(p)  # type: ignore[method-assign]
+    # Replaced on this one parser instance. mypy refuses assigning to a method, and compares the
+    # function to the method unbound (with its self).
+    p.error = _one_line_error(p)  # type: ignore[method-assign,assignment]
     p.parse_known_args = _environment_first(p)  # type: ignore[method-assign]
     return p
 
 
-def _one_line_error(parser: argparse.ArgumentParser) -> Callable[[str], Any]:
+def _one_line_error(parser: argparse.ArgumentParser) -> Callable[[str], NoReturn]:
     """`parser.error` that prints one line, not argparse's usage first (`serve` has 28 options: the
     usage took 15 lines above the error, which a service manager's log shows out of order)."""
 
-    def error(message: str) -> None:
+    def error(message: str) -> NoReturn:
         parser.exit(2, f"{parser.prog}: error: {message} (see {parser.prog} --help)\n")
 
     return error

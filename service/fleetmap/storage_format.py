@@ -243,13 +243,15 @@ SNAPSHOT_FORMAT = "fleetmap-snapshot-1"
 def snapshot_file(map_id: str, gmap: GridMap) -> bytes:
     """One map as a single file: a zip of `map.json` (format, id, config) and `tiles.npz`."""
     with gmap.lock:
-        keys = list(gmap.store.keys)
-        arrays = {a.name: np.stack([gmap.store.tile_array(a.name, k) for k in keys]) if keys else
-                  np.zeros((0, gmap.store.tile_size, gmap.store.tile_size), dtype=a.dtype)
-                  for a in gmap.store.arrays}  # fmt: skip
+        store = gmap.store
+        keys = list(store.keys)
+        arrays = {a.name: np.stack([store.pools[a.name][store.slots[k]] for k in keys]) if keys else
+                  np.zeros((0, store.tile_size, store.tile_size), dtype=a.dtype)
+                  for a in store.arrays}  # fmt: skip
     buf = io.BytesIO()
     npz = io.BytesIO()
-    np.savez_compressed(npz, keys=np.array(keys, dtype=np.int64).reshape(-1, 2), **arrays)
+    # mypy fears that a key of `arrays` is savez's allow_pickle; they are layer array names.
+    np.savez_compressed(npz, keys=np.array(keys, dtype=np.int64).reshape(-1, 2), **arrays)  # type: ignore[arg-type]
     meta = {"format": SNAPSHOT_FORMAT, "id": map_id, "config": gmap.config.model_dump(mode="json")}
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
         zf.writestr("map.json", json.dumps(meta, indent=2))
@@ -401,8 +403,9 @@ def _read_npy(npz: zipfile.ZipFile, npy: _Npy, out: np.ndarray | None = None) ->
     """The data of a checked array (`_check_npy`), streamed into `out` (C-contiguous, of its shape)
     when given. Never reads more than its header declared; a member that ends early is refused."""
     fits = out is not None and not npy.fortran and out.dtype == npy.dtype
-    buf = out if fits else np.empty(npy.shape[::-1] if npy.fortran else npy.shape, dtype=npy.dtype)
-    dest = memoryview(buf.reshape(-1).view(np.uint8))
+    stored_shape = npy.shape[::-1] if npy.fortran else npy.shape
+    buf = out if out is not None and fits else np.empty(stored_shape, dtype=npy.dtype)
+    dest = buf.reshape(-1).view(np.uint8).data  # its memoryview
     try:
         with npz.open(npy.info) as fp:
             fp.read(npy.offset)
@@ -471,9 +474,9 @@ def _value_range(a: LayerArray, config: MapConfig) -> tuple[float, float, bool, 
     is allowed, in words), or None when every value of its dtype is. The bounds are float32, as
     stored: the kernels round the clamped float64 value to float32 (`updated_log_odds`)."""
     if a.name == "log_odds":  # NaN is unknown; every update clamps to [l_min, l_max]
-        occ = config.occupancy
-        lo, hi = float(np.float32(occ.l_min)), float(np.float32(occ.l_max))
-        return lo, hi, True, f"NaN (unknown) or within the map's clamp [{occ.l_min:g}, {occ.l_max:g}]"
+        _, _, l_min, l_max = config.occupancy.resolved()
+        lo, hi = float(np.float32(l_min)), float(np.float32(l_max))
+        return lo, hi, True, f"NaN (unknown) or within the map's clamp [{l_min:g}, {l_max:g}]"
     if a.name == "tsdf":  # unknown is 0 (weight 0); a mean of values clamped to [-1, 1]
         return -1.0, 1.0, False, "within [-1, 1]"
     if a.name == "tsdf_weight":  # unknown is 0; one per beam, capped at max_weight

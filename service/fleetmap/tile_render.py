@@ -55,13 +55,14 @@ import time
 import weakref
 import zlib
 from collections import OrderedDict
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
+from fleetmap.config import LayerName
 from fleetmap.grid_map import REGION_LAYERS, STATE_FREE, STATE_OCCUPIED, GridMap
 from fleetmap.tiles import TileStore
 
@@ -81,7 +82,7 @@ COUNT_SCALE = 1000
 MAX_CELL_INDEX = 2**52
 
 #: Which map layer (config `layers`) each tile layer needs, and the stored array it is drawn from.
-_NEEDS = {
+_NEEDS: dict[str, LayerName] = {
     "log_odds": "occupancy",
     "probability": "occupancy",
     "state": "occupancy",
@@ -144,7 +145,7 @@ def check_layer(gmap: GridMap, layer: str) -> None:
     needs = _NEEDS.get(layer)
     if needs is None:
         raise TileError(f"unknown layer {layer!r}; one of {', '.join(REGION_LAYERS)}")
-    if not gmap.config.has(needs):  # type: ignore[arg-type]
+    if not gmap.config.has(needs):
         raise TileError(f"layer {layer!r} needs the {needs!r} layer, which this map does not keep")
 
 
@@ -289,7 +290,7 @@ def _score(values: np.ndarray, source: str) -> np.ndarray:
     return score
 
 
-def _unknown_value(source: str) -> tuple[type, float]:
+def _unknown_value(source: str) -> tuple[type[np.generic], float]:
     if source in ("hits", "misses"):
         return np.uint32, 0
     if source == "tsdf_weight":
@@ -322,7 +323,7 @@ class ReducedCache:
             self._items.move_to_end(key)
             return item[1]
 
-    def get_many(self, keys: list[Hashable], versions: list[int]) -> list[np.ndarray | None]:
+    def get_many(self, keys: Sequence[Hashable], versions: list[int]) -> list[np.ndarray | None]:
         """`get` for many keys under one acquisition of the lock."""
         out: list[np.ndarray | None] = []
         with self._lock:
@@ -378,7 +379,9 @@ def _snapshot(
     piece = min(t, size)
     whole_tiles = t <= size  # else the window lies inside one storage tile
     li0, lj0 = (0, 0) if whole_tiles else (i0 & store.mask, j0 & store.mask)
-    token = _store_token(store) if reduced is not None and factor > 1 else 0
+    # Only reductions are cached (a block of factor 1 is a plain copy of the store's cells).
+    cache = reduced if factor > 1 else None
+    token = _store_token(store) if cache is not None else 0
     stored = ("tsdf", "tsdf_weight") if source == "tsdf" else (source,)
     with gmap.lock:
         ti, tj, slots = _tiles_under(store, *_storage_range(store, i0, j0, i0 + size, j0 + size))
@@ -386,12 +389,12 @@ def _snapshot(
             return _Snapshot(0, [], ti, tj)
         versions = store.versions[slots].copy()
         blocks: list[np.ndarray | None] = [None] * slots.size
-        if token:
+        if cache is not None:
             keys = [
                 (token, source, a, b, li0, lj0, piece, factor)
                 for a, b in zip(ti.tolist(), tj.tolist(), strict=True)
             ]
-            blocks = reduced.get_many(keys, versions.tolist())  # type: ignore[union-attr]
+            blocks = cache.get_many(keys, versions.tolist())
         todo = np.array([k for k in range(slots.size) if blocks[k] is None], dtype=np.int64)
         copies: dict[str, np.ndarray] = {}
         if todo.size:
@@ -409,15 +412,16 @@ def _snapshot(
         values = _reduce(values, source, factor)
         for n, k in enumerate(todo.tolist()):
             blocks[k] = values[n]
-            if token:
+            if cache is not None:
                 key = (token, source, int(ti[k]), int(tj[k]), li0, lj0, piece, factor)
                 # A copy: a view would keep the whole stack alive and be under-counted.
-                reduced.put(key, int(versions[k]), values[n].copy())  # type: ignore[union-attr]
+                cache.put(key, int(versions[k]), values[n].copy())
     if whole_tiles:
         pos_i, pos_j = ti - (i0 >> store.shift), tj - (j0 >> store.shift)
     else:
         pos_i = pos_j = np.zeros(1, dtype=np.int64)
-    return _Snapshot(int(versions.max()), blocks, pos_i, pos_j)  # type: ignore[arg-type]
+    # Every block is filled now: those the cache did not have are the `todo` ones, filled above.
+    return _Snapshot(int(versions.max()), cast(list[np.ndarray], blocks), pos_i, pos_j)
 
 
 def _assemble(snap: _Snapshot, source: str, grid_side: int, piece: int, cells_per_px: int) -> np.ndarray:

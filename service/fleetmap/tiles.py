@@ -28,6 +28,8 @@ if TYPE_CHECKING:
     from fleetmap.memory_budget import MemoryBudget
 
 TileKey = tuple[int, int]
+#: The pools of log_odds, hits, misses, tsdf and tsdf_weight, in the update kernels' order.
+KernelPools = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 class TileLimitError(RuntimeError):
@@ -39,7 +41,7 @@ class LayerArray:
     """One stored array of a layer: its name, dtype and the value of a never-observed cell."""
 
     name: str
-    dtype: type
+    dtype: type[np.generic]
     unknown: float
 
 
@@ -96,6 +98,7 @@ class TileStore:
         #: list that outlives the store so that its finalizer can hand them back.
         self.budget: MemoryBudget | None = None
         self._charged = [0]
+        self._kernel_pools: KernelPools | None = None
         self._grow(0)
 
     # -- structure -------------------------------------------------------------------------------
@@ -117,13 +120,16 @@ class TileStore:
             return np.zeros((0, 0, 0), dtype=dtype)
         return found
 
-    def kernel_pools(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def kernel_pools(self) -> KernelPools:
         """`pool()` of log_odds, hits, misses, tsdf and tsdf_weight, as the update kernels take them
         (cached; growing the store renews them)."""
-        if self._kernel_pools is None:
-            names = ("log_odds", "hits", "misses", "tsdf", "tsdf_weight")
-            self._kernel_pools = tuple(self.pool(n) for n in names)
-        return self._kernel_pools
+        pools = self._kernel_pools
+        if pools is None:
+            pools = self._kernel_pools = (
+                self.pool("log_odds"), self.pool("hits"), self.pool("misses"), self.pool("tsdf"),
+                self.pool("tsdf_weight"),
+            )  # fmt: skip
+        return pools
 
     def has_array(self, name: str) -> bool:
         return name in self.pools

@@ -171,7 +171,9 @@ def ray_trace_inputs(
     return scan.pose.x / res, scan.pose.y / res, rays[2], rays[3], kinds, ti0, tj0, ti1, tj1
 
 
-def _scan_beams(scan: Scan, clear_range: float, res: float, shift: int, config: MapConfig | None):
+def _scan_beams(
+    scan: Scan, clear_range: float, res: float, shift: int, config: MapConfig | None
+) -> tuple[tuple, tuple]:
     """The scan's `scan_rays` and its `scan_extent` (with `config`'s TSDF and beam-model margins, or
     none)."""
     pose = scan.pose
@@ -201,7 +203,9 @@ def beam_layout_of(angles: np.ndarray) -> np.ndarray:
     return layout
 
 
-def _ray_model_per_scan(scan: Scan, config: MapConfig, shift: int, beams: tuple, extent: tuple):
+def _ray_model_per_scan(
+    scan: Scan, config: MapConfig, shift: int, beams: tuple, extent: tuple
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The ray model with per-scan semantics, in one compiled pass (`kernels.ray_model.trace_scan`);
     `beams` and `extent` are the scan's `scan_rays` and `scan_extent` for the map."""
     rays, kinds, traced = beams[0], beams[1], beams[6]
@@ -234,7 +238,9 @@ def grow_trace_scratch(needed: int) -> None:
     _scratch.array = np.zeros(needed, dtype=np.uint8)
 
 
-def _ray_model_per_ray(scan: Scan, config: MapConfig, ox: float, oy: float):
+def _ray_model_per_ray(
+    scan: Scan, config: MapConfig, ox: float, oy: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ordered entries: returns trace to their end cell (a hit); no-return beams clear
     `no_return_range` metres if set (as `scan_rays` does)."""
     res = config.resolution
@@ -250,7 +256,9 @@ def _ray_model_per_ray(scan: Scan, config: MapConfig, ox: float, oy: float):
     return trace_rays(ox, oy, ex / res, ey / res, kind, method)
 
 
-def _beam_model(scan: Scan, config: MapConfig, ox: float, oy: float):
+def _beam_model(
+    scan: Scan, config: MapConfig, ox: float, oy: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The cone model over the cells around the sensor (see `kernels.beam_model`)."""
     res = config.resolution
     has_return = scan.returns_mask()

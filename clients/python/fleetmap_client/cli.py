@@ -20,7 +20,7 @@ from fleetmap.cli import CliError, run_command
 from .publisher import DEFAULT_CONNECT, ScanPublisher
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `replay` and `sim` to a `fleetmap` subcommand parser."""
     add_replay_parser(sub)
     add_sim_parser(sub)
@@ -61,7 +61,7 @@ def _waiting(pub: ScanPublisher) -> None:
 # -- replay ----------------------------------------------------------------------------------------
 
 
-def add_replay_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "replay",
         help="publish a recorded dataset to the service over Zenoh, as one robot",
@@ -125,7 +125,7 @@ def run_replay(args: argparse.Namespace) -> int:
 # -- sim -------------------------------------------------------------------------------------------
 
 
-def add_sim_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "sim",
         help="simulated robots exploring a synthetic floor plan, publishing to the service",

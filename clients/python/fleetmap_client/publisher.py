@@ -241,7 +241,10 @@ class ScanPublisher:
     def subscribed(self) -> bool:
         """True when Zenoh knows a subscriber for this robot's scan key (the service is listening)."""
         pub = self._publisher
-        return pub is not None and not self._closed.is_set() and bool(pub.matching_status.matching)
+        if pub is None or self._closed.is_set():
+            return False
+        # zenoh's stub types matching_status a bool; it is a MatchingStatus (zenoh 1.x).
+        return bool(pub.matching_status.matching)  # type: ignore[attr-defined]
 
     def wait_connected(self, timeout: float | None = None, *, require_subscriber: bool = True) -> bool:
         """Wait until the session is connected and, with `require_subscriber` (default), until a

@@ -89,12 +89,11 @@ def _bounds(
     xmin: float | None, ymin: float | None, xmax: float | None, ymax: float | None
 ) -> dict[str, float]:
     """Query parameters of a window: all four bounds, or none (the map's observed extent)."""
-    given = [b is not None for b in (xmin, ymin, xmax, ymax)]
-    if not any(given):
+    if xmin is None or ymin is None or xmax is None or ymax is None:
+        if any(b is not None for b in (xmin, ymin, xmax, ymax)):
+            raise ValueError("give all of xmin, ymin, xmax and ymax, or none of them (the observed extent)")
         return {}
-    if not all(given):
-        raise ValueError("give all of xmin, ymin, xmax and ymax, or none of them (the observed extent)")
-    return {"xmin": float(xmin), "ymin": float(ymin), "xmax": float(xmax), "ymax": float(ymax)}  # type: ignore[arg-type]
+    return {"xmin": float(xmin), "ymin": float(ymin), "xmax": float(xmax), "ymax": float(ymax)}
 
 
 class FleetmapClient:
@@ -461,7 +460,8 @@ def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
     HTML server-sent events rules: `event:` names the event (default "message"), `data:` lines are
     joined by newlines and parsed as JSON (a non-JSON data becomes {"data": text}), a blank line
     dispatches, lines starting with ":" are comments; `id:` and `retry:` are ignored."""
-    event, data = "", []
+    event = ""
+    data: list[str] = []
     for line in lines:
         if line == "":
             if data:

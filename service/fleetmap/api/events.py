@@ -65,7 +65,7 @@ import asyncio
 import json
 import time
 from collections.abc import AsyncIterator
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query
 from fastapi.responses import StreamingResponse
@@ -89,8 +89,8 @@ class _SlotStreamingResponse(StreamingResponse):
     (the client went away, the map was deleted, the server shuts down). Released here rather than in
     the generator: a generator cancelled before its first step never runs its `finally`."""
 
-    def __init__(self, slots: EventStreamSlots, *args: object, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+    def __init__(self, slots: EventStreamSlots, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
         self._slots = slots
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:

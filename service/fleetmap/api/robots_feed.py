@@ -16,6 +16,10 @@ from itertools import islice
 from fleetmap.api_models import RobotChange, RobotsDeltaEvent, RobotsEvent, robot_live
 from fleetmap.registry import MapEntry
 from fleetmap.robot_state import RobotState
+from fleetmap.scan import Pose2D
+
+#: What `RobotsFeed._copy` takes of a robot under the lock: its id, and `robot_live`'s arguments.
+_Copy = tuple[str, tuple[bool, Pose2D | None, list[tuple[float, float, float]], int]]
 
 #: Trail points a stream sends per robot (the registry keeps TRAIL_LENGTH).
 TRAIL_POINTS = 100
@@ -45,13 +49,13 @@ class RobotsFeed:
             self.version = self.entry.live_version
             self.sent = {rid: (state, state.appended) for rid, state in robots.items()}
             copies = [self._copy(rid, state, state.appended) for rid, state in robots.items()]
-        return RobotsEvent(robots={rid: robot_live(*fields) for rid, *fields in sorted(copies)})
+        return RobotsEvent(robots={rid: robot_live(*fields) for rid, fields in sorted(copies)})
 
     def delta(self) -> RobotsDeltaEvent | None:
         """What changed since this feed's last event (`RobotsEvent.apply` applies it), or None when
         nothing did. Call `full` first: a delta is relative to what this feed sent."""
         removed: list[str] = []
-        copies: list[tuple] = []
+        copies: list[_Copy] = []
         with self.lock:
             entry = self.entry
             if entry.live_version == self.version:
@@ -78,12 +82,12 @@ class RobotsFeed:
             self.version = entry.live_version
         if not copies and not removed:
             return None
-        robots = {rid: robot_live(*fields, model=RobotChange) for rid, *fields in sorted(copies)}
+        robots = {rid: robot_live(*fields, model=RobotChange) for rid, fields in sorted(copies)}
         return RobotsDeltaEvent(trail_length=self.trail_points, robots=robots, removed=sorted(removed))
 
-    def _copy(self, rid: str, state: RobotState, new_points: int) -> tuple:
+    def _copy(self, rid: str, state: RobotState, new_points: int) -> _Copy:
         """What a robot event needs of `state` (under the lock): its live fields and the last
         `new_points` of its trail (at most `trail_points`)."""
         count = min(new_points, self.trail_points, len(state.trail))
         trail = list(islice(reversed(state.trail), count))[::-1]
-        return rid, state.online, state.last_pose, trail, state.scans_integrated
+        return rid, (state.online, state.last_pose, trail, state.scans_integrated)

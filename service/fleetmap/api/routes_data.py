@@ -47,15 +47,15 @@ def _window(
     """The cells `[floor(xmin/res), floor(xmax/res)) x [floor(ymin/res), floor(ymax/res))`, or the
     observed extent when no bound is given. 422 for a partial or empty window, 409 for no bounds on an
     empty map, 413 past `limit` cells."""
-    given = [b is not None for b in bounds]
-    if not any(given):
+    xmin, ymin, xmax, ymax = bounds
+    if xmin is None and ymin is None and xmax is None and ymax is None:
         window = known_window(gmap)
         if window is None:
             raise ApiError(409, "the map has no observed cell yet; give xmin, ymin, xmax and ymax")
-    elif not all(given):
+    elif xmin is None or ymin is None or xmax is None or ymax is None:
         raise ApiError(422, "give all of xmin, ymin, xmax and ymax, or none of them (the observed extent)")
     else:
-        xmin, ymin, xmax, ymax = (float(b) for b in bounds)  # type: ignore[arg-type]
+        xmin, ymin, xmax, ymax = float(xmin), float(ymin), float(xmax), float(ymax)
         res = gmap.resolution
         window = Window(
             math.floor(xmin / res), math.floor(ymin / res), math.floor(xmax / res), math.floor(ymax / res)

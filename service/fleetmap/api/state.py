@@ -68,7 +68,7 @@ class ApiState:
 
 async def get_state(request: Request) -> ApiState:
     # async: a plain function here would cost a thread-pool hop on every request.
-    return request.app.state.fleetmap  # type: ignore[no-any-return]
+    return request.app.state.fleetmap
 
 
 State = Annotated[ApiState, Depends(get_state)]

@@ -80,7 +80,8 @@ def ensure_compiled_cache_location(package: Path = Path(__file__).parent.parent)
 
     source = package / "kernels" / "traversal.py"
     try:
-        if numba.config.CACHE_DIR or _locator_directory(source) is not None:
+        # numba.config sets its options from the environment at import (globals()): no stub has them.
+        if numba.config.CACHE_DIR or _locator_directory(source) is not None:  # type: ignore[attr-defined]
             return None
     except (ImportError, AttributeError, TypeError):  # a numba whose locators moved: its own choice
         return None
@@ -97,7 +98,7 @@ def ensure_compiled_cache_location(package: Path = Path(__file__).parent.parent)
             f"numba has no writable directory for fleetmap's compiled code (not {source.parent}/__pycache__, "
             f"not the user cache directory, not {directory}: {exc.strerror}); set NUMBA_CACHE_DIR to one"
         ) from exc
-    numba.config.CACHE_DIR = str(directory)
+    numba.config.CACHE_DIR = str(directory)  # type: ignore[attr-defined]  # (see above)
     return directory
 
 

@@ -74,7 +74,7 @@ def beam_model_cells(
             # Nearest beam in bearing: binary search in the sorted bearings, then the neighbours,
             # including across the +-pi seam for scanners that see all around.
             lo = np.searchsorted(phi, p)
-            best = -1
+            best: int | np.integer = -1  # a bearing index: cand is numpy's (searchsorted)
             best_d = math.inf
             for cand in (lo - 1, lo, 0, nb - 1):
                 if 0 <= cand < nb:

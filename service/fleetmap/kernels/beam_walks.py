@@ -237,7 +237,7 @@ def walk_far(
     return n
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def collect_dense(
     found: np.ndarray, n: int, scratch: np.ndarray, shift: int, wshift: int, ni: int, kind_out: np.ndarray,
     planes: np.ndarray,

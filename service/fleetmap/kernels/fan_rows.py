@@ -315,7 +315,7 @@ def _direction_order(members: np.ndarray, keys: np.ndarray) -> np.ndarray:
 # Called once per row with arrays: compiled without numba's reference counting (`_nrt=False`; it
 # allocates nothing), which otherwise costs an atomic increment and decrement per array argument on
 # every call, about 90 of this function's 140 ns per row.
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def _emit_row(
     found: np.ndarray, kind_out: np.ndarray, run_key: np.ndarray, run_len: np.ndarray, planes: np.ndarray,
     counts: np.ndarray, row: int, span_lo: np.ndarray, span_hi: np.ndarray, spans: int, hit_cols: np.ndarray,
@@ -405,7 +405,7 @@ def _break_row(ka: float, kb: float, c: float, rows: int) -> int:
 # Allocates nothing (its work arrays are carved from `work`, `work_keys` and `work_brk`), so it is
 # compiled without reference counting: with it, its 30 array arguments and work arrays cost about
 # 80 atomic increments and decrements per call.
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def _trace_rows(
     order: np.ndarray, step_j: int, c: float, counts: np.ndarray, keys: np.ndarray, kinds: np.ndarray,
     i0: int, j0: int, ie: np.ndarray, je: np.ndarray, step_i: np.ndarray, base_x: np.ndarray,
@@ -623,7 +623,7 @@ def _trace_rows(
 
 
 # Once per row with arrays, allocates nothing: no reference counting (see `_emit_row`).
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def _union(
     span_lo: np.ndarray, span_hi: np.ndarray, ended: int, spans: int, descending: bool, tmp_lo: np.ndarray,
     tmp_hi: np.ndarray,

@@ -24,13 +24,13 @@ def new_index(tiles: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _home(keys: np.ndarray, ti: int, tj: int) -> int:
+def _home(keys: np.ndarray, ti: int, tj: int) -> np.int64:
     """The entry where the probe for (ti, tj) starts."""
     h = np.uint64(ti) * _MIX_I ^ np.uint64(tj) * _MIX_J
     return np.int64((h ^ (h >> np.uint64(29))) & np.uint64(keys.shape[0] - 1))
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def index_find(keys: np.ndarray, slots: np.ndarray, ti: int, tj: int) -> int:
     """The pool slot of tile (ti, tj), or -1 if the index does not hold it."""
     mask = keys.shape[0] - 1

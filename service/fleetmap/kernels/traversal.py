@@ -10,6 +10,7 @@ end cells, `max(|di|, |dj|) + 1` cells.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 from numba import njit
@@ -52,7 +53,9 @@ def crossing(k: int, base: float, scale: float) -> float:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def exact_start(x0: float, y0: float, x1: float, y1: float):
+def exact_start(
+    x0: float, y0: float, x1: float, y1: float
+) -> tuple[int, int, int, int, int, int, float, float, float, float]:
     """State of an exact walk at its start cell: `(i, j, ie, je, step_i, step_j, base_x, scale_x,
     base_y, scale_y)`; the next vertical / horizontal boundary crossing is at segment parameter
     `crossing(i, base_x, scale_x)` / `crossing(j, base_y, scale_y)`."""
@@ -113,7 +116,7 @@ def exact_steps_i(i: int, j: int, ie: int, je: int, t_max_x: float, t_max_y: flo
 # Not cached: numba cannot hand a cache-loaded generator to a newly compiled caller (KeyError in
 # get_generator_impl). Its callers are cached and carry its code with them.
 @njit(cache=False, nogil=True)
-def cells(x0: float, y0: float, x1: float, y1: float, method: int):  # -> Iterator[tuple[int, int]]
+def cells(x0: float, y0: float, x1: float, y1: float, method: int) -> Iterator[tuple[int, int]]:
     """Yield the cells `(i, j)` of the traversal of (x0, y0) -> (x1, y1), start cell to end cell.
 
     A numba generator for kernels that are not the hottest; `beam_walks` and `tsdf` inline the same

@@ -131,7 +131,7 @@ def _band_cell(
     return n + (abs(sdf) <= trunc)
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def fuse_tsdf(
     ci: np.ndarray,
     cj: np.ndarray,

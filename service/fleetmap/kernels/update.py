@@ -103,7 +103,7 @@ def merge_tiles_in_box(
     return out, tile
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def bump_versions(changed: np.ndarray, slots: np.ndarray, versions: np.ndarray, clock: int) -> int:
     """Give each tile k with `changed[k]` set (pool slot `slots[k]`) the next version after `clock`,
     in tile order: the one rule for tile versions (a store-wide clock, so versions never repeat).
@@ -116,7 +116,9 @@ def bump_versions(changed: np.ndarray, slots: np.ndarray, versions: np.ndarray, 
 
 
 @njit(cache=True, nogil=True, inline="always")
-def updated_log_odds(old: float, hit: bool, l_hit: float, l_miss: float, l_min: float, l_max: float):
+def updated_log_odds(
+    old: float, hit: bool, l_hit: float, l_miss: float, l_min: float, l_max: float
+) -> np.float32:
     """The log-odds update rule, the one place it is written: an unknown cell (NaN) starts at 0, a
     hit adds l_hit, a miss l_miss, and the result is clamped after every update, as OctoMap does, so a
     cell can always be changed back quickly. Returns float32, as stored."""
@@ -157,7 +159,7 @@ def _apply_one(
     return changed
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
 def apply_cells(
     cell: np.ndarray,
     kind: np.ndarray,

@@ -60,7 +60,7 @@ class FloorPlan:
     @property
     def shape(self) -> tuple[int, int]:
         """(ny, nx) of the grid."""
-        return self.occupied.shape  # type: ignore[return-value]
+        return self.occupied.shape
 
     def world_bounds(self) -> tuple[float, float, float, float]:
         """(x_min, y_min, x_max, y_max) of the area the grid covers, in metres."""
