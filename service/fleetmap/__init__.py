@@ -33,6 +33,12 @@ if TYPE_CHECKING:  # what type checkers and IDEs see; at run time `__getattr__` 
     from fleetmap.datasets import Dataset, DatasetError, load_dataset
     from fleetmap.export import Window, known_window, write_build_outputs
     from fleetmap.grid_map import (
+        MAX_RAY_CELLS,
+        MAX_RAYS,
+        RAY_MAX_RANGE,
+        RAY_OCCUPIED,
+        RAY_STATUS_NAMES,
+        RAY_UNKNOWN,
         REGION_LAYERS,
         STATE_FREE,
         STATE_NAMES,
@@ -41,6 +47,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see; at run time `__getattr__` 
         GridMap,
         IntegrationResult,
         LayerUnavailableError,
+        RaycastResult,
     )
     from fleetmap.scan import Pose2D, Scan, ScanError
     from fleetmap.tiles import TileLimitError
@@ -66,6 +73,13 @@ _EXPORTS = {
     "STATE_FREE": "fleetmap.grid_map",
     "STATE_OCCUPIED": "fleetmap.grid_map",
     "STATE_NAMES": "fleetmap.grid_map",
+    "MAX_RAYS": "fleetmap.grid_map",
+    "MAX_RAY_CELLS": "fleetmap.grid_map",
+    "RAY_MAX_RANGE": "fleetmap.grid_map",
+    "RAY_OCCUPIED": "fleetmap.grid_map",
+    "RAY_STATUS_NAMES": "fleetmap.grid_map",
+    "RAY_UNKNOWN": "fleetmap.grid_map",
+    "RaycastResult": "fleetmap.grid_map",
     "TileLimitError": "fleetmap.tiles",
     "Window": "fleetmap.export",
     "known_window": "fleetmap.export",
@@ -83,11 +97,18 @@ __all__ = [
     "IntegrationResult",
     "LayerName",
     "LayerUnavailableError",
+    "MAX_RAYS",
+    "MAX_RAY_CELLS",
     "MapConfig",
     "OCCUPANCY_PRESETS",
     "OccupancyParams",
     "Pose2D",
+    "RAY_MAX_RANGE",
+    "RAY_OCCUPIED",
+    "RAY_STATUS_NAMES",
+    "RAY_UNKNOWN",
     "REGION_LAYERS",
+    "RaycastResult",
     "STATE_FREE",
     "STATE_NAMES",
     "STATE_OCCUPIED",
