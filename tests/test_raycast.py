@@ -22,6 +22,7 @@ from fleetmap import GridMap, MapConfig
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import (
     MAX_RAY_CELLS,
+    MAX_RAY_WALK,
     MAX_RAYS,
     RAY_MAX_RANGE,
     RAY_OCCUPIED,
@@ -29,6 +30,7 @@ from fleetmap.grid_map import (
     STATE_OCCUPIED,
     LayerUnavailableError,
     RaycastResult,
+    RayLimitError,
 )
 from fleetmap.kernels.traversal import EXACT, segment_cells
 
@@ -215,18 +217,25 @@ def test_bad_arguments_are_refused() -> None:
         gmap.cast_rays((0, 0), [0.0, math.nan], 1.0)
     with pytest.raises(ValueError, match="one-dimensional"):
         gmap.cast_rays((0, 0), [[0.0, 1.0]], 1.0)
-    with pytest.raises(ValueError, match=f"limit of {MAX_RAYS}"):
-        gmap.cast_rays((0, 0), np.zeros(MAX_RAYS + 1), 1.0)
+    with pytest.raises(RayLimitError, match=f"limit of {MAX_RAYS} per call"):
+        gmap.cast_rays((0, 0), np.zeros(MAX_RAYS + 1), 0.05)
     for bad in (0.0, -1.0, math.inf, math.nan):
         with pytest.raises(ValueError, match="max_range must be a positive"):
             gmap.cast_rays((0, 0), [0.0], bad)
-    with pytest.raises(ValueError, match=f"limit of {MAX_RAY_CELLS} cells"):
+    with pytest.raises(RayLimitError, match=f"limit of {MAX_RAY_CELLS} cells"):
         gmap.cast_rays((0, 0), [0.0], MAX_RAY_CELLS * 0.05 * 1.001)
+    rays = MAX_RAY_WALK // MAX_RAY_CELLS
+    with pytest.raises(RayLimitError, match=f"{rays + 1} rays of 20000 cells .* limit of {MAX_RAY_WALK}"):
+        gmap.cast_rays((0, 0), np.zeros(rays + 1), MAX_RAY_CELLS * 0.05)
     with pytest.raises(ValueError, match="'stop' or 'pass'"):
         gmap.cast_rays((0, 0), [0.0], 1.0, unknown="ignore")  # type: ignore[arg-type]
     # At the limits it works, and no ray at all is no answer.
-    r = gmap.cast_rays((0, 0), np.zeros(MAX_RAYS), MAX_RAY_CELLS * 0.05, unknown="pass")
+    r = gmap.cast_rays((0, 0), np.zeros(rays), MAX_RAY_CELLS * 0.05, unknown="pass")
     assert (r.status == RAY_MAX_RANGE).all() and (r.i == MAX_RAY_CELLS).all()
+    r = gmap.cast_rays(
+        (0, 0), np.full(MAX_RAYS, math.pi / 2), MAX_RAY_WALK // MAX_RAYS * 0.05, unknown="pass"
+    )
+    assert (r.status == RAY_MAX_RANGE).all() and (r.j == MAX_RAY_WALK // MAX_RAYS).all()
     assert all(len(a) == 0 for a in gmap.cast_rays((0, 0), [], 1.0))
 
 

@@ -34,6 +34,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see; at run time `__getattr__` 
     from fleetmap.export import Window, known_window, write_build_outputs
     from fleetmap.grid_map import (
         MAX_RAY_CELLS,
+        MAX_RAY_WALK,
         MAX_RAYS,
         RAY_MAX_RANGE,
         RAY_OCCUPIED,
@@ -48,6 +49,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see; at run time `__getattr__` 
         IntegrationResult,
         LayerUnavailableError,
         RaycastResult,
+        RayLimitError,
     )
     from fleetmap.scan import Pose2D, Scan, ScanError
     from fleetmap.tiles import TileLimitError
@@ -75,11 +77,13 @@ _EXPORTS = {
     "STATE_NAMES": "fleetmap.grid_map",
     "MAX_RAYS": "fleetmap.grid_map",
     "MAX_RAY_CELLS": "fleetmap.grid_map",
+    "MAX_RAY_WALK": "fleetmap.grid_map",
     "RAY_MAX_RANGE": "fleetmap.grid_map",
     "RAY_OCCUPIED": "fleetmap.grid_map",
     "RAY_STATUS_NAMES": "fleetmap.grid_map",
     "RAY_UNKNOWN": "fleetmap.grid_map",
     "RaycastResult": "fleetmap.grid_map",
+    "RayLimitError": "fleetmap.grid_map",
     "TileLimitError": "fleetmap.tiles",
     "Window": "fleetmap.export",
     "known_window": "fleetmap.export",
@@ -99,6 +103,7 @@ __all__ = [
     "LayerUnavailableError",
     "MAX_RAYS",
     "MAX_RAY_CELLS",
+    "MAX_RAY_WALK",
     "MapConfig",
     "OCCUPANCY_PRESETS",
     "OccupancyParams",
@@ -108,6 +113,7 @@ __all__ = [
     "RAY_STATUS_NAMES",
     "RAY_UNKNOWN",
     "REGION_LAYERS",
+    "RayLimitError",
     "RaycastResult",
     "STATE_FREE",
     "STATE_NAMES",

@@ -58,11 +58,20 @@ _SOURCE: dict[str, tuple[str, LayerName]] = {
 
 #: Codes of a ray's `RaycastResult.status`, and their names (as the REST API answers them).
 RAY_STATUS_NAMES = {RAY_OCCUPIED: "occupied", RAY_UNKNOWN: "unknown", RAY_MAX_RANGE: "max_range"}
-#: Rays one `GridMap.cast_rays` call may cast, and the longest ray in cells (`max_range / resolution`):
-#: the call holds the map's lock, which integration needs, for the whole walk. 10,000 rays of 20,000
-#: cells each walk at most 2.9e8 cells (a few tenths of a second where nothing stops them early).
+#: Bounds of one `GridMap.cast_rays` call, which holds the map's lock (integration needs it) for its
+#: whole walk: rays, the longest ray in cells (`max_range / resolution`), and rays x that length. The
+#: walk takes about 2 ns a cell (1.4 cells per cell of length on a diagonal), so 2**24 cells, as many
+#: as a region read copies, hold the lock for at most about 50 ms; 10,000 rays of 20,000 cells each
+#: held it 0.5 s where nothing stopped them early. A scan of 360 rays may still look 20,000 cells
+#: (1 km at 0.05 m) far, and 10,000 rays 1,677 cells (84 m).
 MAX_RAYS = 10_000
 MAX_RAY_CELLS = 20_000
+MAX_RAY_WALK = 2**24
+
+
+class RayLimitError(ValueError):
+    """A `cast_rays` call asked for more rays, or longer ones, than one call may walk (`MAX_RAYS`,
+    `MAX_RAY_CELLS`, `MAX_RAY_WALK`)."""
 
 
 class RaycastResult(NamedTuple):
@@ -405,26 +414,34 @@ class GridMap:
         A ray that stops nowhere ends at its end cell (`RAY_MAX_RANGE`); a cell the ray enters
         before `max_range` counts even when the end point lies inside it. See `RaycastResult` for
         the answer. Raises ValueError for a non-finite origin or one beyond ±1e7 m, non-finite
-        angles, more than `MAX_RAYS` of them, a `max_range` that is not positive or longer than
-        `MAX_RAY_CELLS` cells, or another `unknown`; `LayerUnavailableError` for a map that keeps
-        neither the occupancy nor the counts layer. Reads under the map's lock, from the tiles
-        themselves (no copy)."""
+        angles, a `max_range` that is not positive, or another `unknown`; `RayLimitError` (a
+        ValueError) for more than `MAX_RAYS` rays, a `max_range` longer than `MAX_RAY_CELLS` cells,
+        or rays x `max_range` in cells over `MAX_RAY_WALK`; `LayerUnavailableError` for a map
+        that keeps neither the occupancy nor the counts layer. Reads under the map's lock, from the
+        tiles themselves (no copy)."""
         ox, oy = _ray_origin(origin)
         a = np.asarray(angles, dtype=np.float64) if not isinstance(angles, np.ndarray) else angles
         if a.ndim > 1:
             raise ValueError(f"angles must be a number or a one-dimensional sequence; got shape {a.shape}")
         a = a.astype(np.float64).reshape(-1)
         if a.size > MAX_RAYS:
-            raise ValueError(f"{a.size} rays is more than the limit of {MAX_RAYS} per call")
+            raise RayLimitError(f"{a.size} rays is more than the limit of {MAX_RAYS} per call")
         if not np.isfinite(a).all():
             raise ValueError("angles must be finite numbers (radians)")
         max_range = float(max_range)
         if not (math.isfinite(max_range) and max_range > 0):
             raise ValueError(f"max_range must be a positive finite number of metres, got {max_range}")
-        if max_range / self.resolution > MAX_RAY_CELLS:
-            raise ValueError(
-                f"max_range {max_range} m is {max_range / self.resolution:.0f} cells at resolution "
-                f"{self.resolution} m, more than the limit of {MAX_RAY_CELLS} cells"
+        cells = max_range / self.resolution
+        if cells > MAX_RAY_CELLS:
+            raise RayLimitError(
+                f"max_range {max_range} m is {cells:.0f} cells at resolution {self.resolution} m, more "
+                f"than the limit of {MAX_RAY_CELLS} cells"
+            )
+        if a.size * cells > MAX_RAY_WALK:
+            raise RayLimitError(
+                f"{a.size} rays of {cells:.0f} cells (max_range {max_range} m at resolution "
+                f"{self.resolution} m) is more than the limit of {MAX_RAY_WALK} cells per call: cast "
+                "fewer or shorter rays"
             )
         if unknown not in ("stop", "pass"):
             raise ValueError(f"unknown must be 'stop' or 'pass', not {unknown!r}")
