@@ -158,6 +158,16 @@ def test_unknown_cells_stop_or_pass() -> None:
     assert (int(r.i[0]), int(r.j[0])) == (math.floor(r.x[0] / 0.05), math.floor(r.y[0] / 0.05))
 
 
+def test_an_origin_on_a_cell_edge_walking_back_enters_the_next_cell_at_zero() -> None:
+    """x = 1.0 is cell 10's left edge at 0.1 m: a ray going -x enters cell 9 at once, at +0.0."""
+    gmap = walled_map()
+    paint(gmap, {(9, 5): WALL})
+    r = gmap.cast_rays((1.0, 0.55), [math.pi, 0.0], 5.0)
+    assert r.status.tolist() == [RAY_OCCUPIED, RAY_OCCUPIED] and r.i.tolist() == [9, 25]
+    assert r.range[0] == 0.0 and math.copysign(1.0, r.range[0]) == 1.0
+    assert (r.x[0], r.y[0]) == (1.0, 0.55)
+
+
 def test_a_cell_entered_before_max_range_counts() -> None:
     gmap = walled_map()
     # The wall column covers x in [2.5, 2.6): a ray ending at 2.55 enters it, one ending at 2.49 not.

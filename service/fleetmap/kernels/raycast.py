@@ -101,7 +101,8 @@ def cast_rays(
             if cls == _OCCUPIED or (cls == _UNKNOWN and stop_at_unknown):
                 status[r] = RAY_OCCUPIED if cls == _OCCUPIED else RAY_UNKNOWN
                 # Rounding can put a crossing a hair outside the segment; the entry point stays on it.
-                t_stop[r] = min(max(t, 0.0), 1.0)
+                # An origin on a cell edge, walking back across it, enters at t = -0.0: answer 0.
+                t_stop[r] = 0.0 if t <= 0.0 else min(t, 1.0)
                 break
             if k == steps:
                 status[r] = RAY_MAX_RANGE
