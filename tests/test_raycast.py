@@ -1,4 +1,4 @@
-"""Ray casting (`GridMap.cast_rays`, `POST /maps/{map_id}/raycast`, `FleetmapClient.raycast`).
+"""Ray casting (`GridMap.cast_rays`, `POST /maps/{map_id}/raycast`).
 
 The kernel is compared with a slow reference written here from the engine's public pieces only: the
 cells of `segment_cells(..., EXACT)` in order, each classified by `GridMap.cells` (its `state`, or the
@@ -11,14 +11,19 @@ answers for the same scans.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from service_process import ServiceProcess
+from test_api_support import room_scans
 
 from fleetmap import GridMap, MapConfig
+from fleetmap.codec import decode, encode_json
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import (
     MAX_RAY_CELLS,
@@ -26,6 +31,7 @@ from fleetmap.grid_map import (
     MAX_RAYS,
     RAY_MAX_RANGE,
     RAY_OCCUPIED,
+    RAY_STATUS_NAMES,
     RAY_UNKNOWN,
     STATE_OCCUPIED,
     LayerUnavailableError,
@@ -33,6 +39,7 @@ from fleetmap.grid_map import (
     RayLimitError,
 )
 from fleetmap.kernels.traversal import EXACT, segment_cells
+from fleetmap.wire import JSON_ENCODING
 
 # -- the reference ---------------------------------------------------------------------------------
 
@@ -319,3 +326,121 @@ def test_a_ray_from_inside_a_wall_of_the_intel_map(intel_map: GridMap) -> None:
     inside = intel_map.cast_rays(((i + 0.5) * res, (j + 0.5) * res), [0.0, 1.0, -2.0], 5.0)
     assert inside.status.tolist() == [RAY_OCCUPIED] * 3 and inside.range.tolist() == [0.0] * 3
     assert (inside.i.tolist(), inside.j.tolist()) == ([i] * 3, [j] * 3)
+
+
+# -- the endpoint and the client, on the real service --------------------------------------------------
+
+ROOM = {"resolution": 0.05, "tile_size": 16}
+#: Origins in the box room of `room_scans` (walls at x = +-3, y = +-2), on a wall, and outside it.
+ORIGINS = [(0.0, 0.0), (-1.23, 0.77), (2.9, -1.9), (3.0, 0.4), (-5.0, 5.0)]
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One real service for the module's HTTP tests (each test uses its own map ids)."""
+    with ServiceProcess(tmp_path_factory.mktemp("raycast"), ["--in-memory"]) as svc:
+        yield svc
+
+
+def room_maps(url: str, map_id: str, config: dict[str, object]) -> GridMap:
+    """Make map `map_id` on the service from 12 room scans over HTTP; return the engine's map of the
+    same scans as the service decoded them."""
+    assert httpx.put(f"{url}/maps/{map_id}", json=config).status_code == 201
+    gmap = GridMap(MapConfig.model_validate(config))
+    for seq, scan in enumerate(room_scans(12, seed=5)):
+        payload = encode_json(scan, seq)
+        r = httpx.post(
+            f"{url}/maps/{map_id}/scans",
+            params={"robot_id": "r1"},
+            content=payload,
+            headers={"content-type": JSON_ENCODING},
+        )
+        assert r.status_code == 200 and r.json()["status"] == "integrated", r.text
+        gmap.integrate(decode(payload, JSON_ENCODING).scan)
+    return gmap
+
+
+def raycast(url: str, map_id: str, body: dict[str, object]) -> httpx.Response:
+    return httpx.post(f"{url}/maps/{map_id}/raycast", json=body, timeout=30)
+
+
+def assert_same_answer(answer: dict[str, object], result: RaycastResult) -> None:
+    """The JSON answer is the library's result, number for number."""
+    assert answer == {
+        "count": len(result.status),
+        "status": [RAY_STATUS_NAMES[int(c)] for c in result.status],
+        "range": result.range.tolist(),
+        "x": result.x.tolist(),
+        "y": result.y.tolist(),
+        "i": result.i.tolist(),
+        "j": result.j.tolist(),
+    }
+
+
+@pytest.mark.parametrize("layers", [["occupancy", "counts", "tsdf"], ["counts"]], ids=["occupancy", "counts"])
+def test_the_endpoint_answers_what_the_library_answers(service: ServiceProcess, layers: list[str]) -> None:
+    map_id = f"room-{len(layers)}"
+    gmap = room_maps(service.base_url, map_id, {**ROOM, "layers": layers})
+    angles = np.linspace(-math.pi, math.pi, 181).tolist()
+    statuses = set()
+    for origin in ORIGINS:
+        for unknown in ("stop", "pass"):
+            body = {"origin": list(origin), "angles": angles, "max_range": 6.5, "unknown": unknown}
+            r = raycast(service.base_url, map_id, body)
+            assert r.status_code == 200, r.text
+            expected = gmap.cast_rays(origin, angles, 6.5, unknown)  # type: ignore[arg-type]
+            assert_same_answer(r.json(), expected)
+            statuses |= set(r.json()["status"])
+    assert statuses == {"occupied", "unknown", "max_range"}
+    # `unknown` defaults to "stop"; integers are numbers.
+    r = raycast(service.base_url, map_id, {"origin": [0, 0], "angles": [0, 1], "max_range": 10})
+    assert_same_answer(r.json(), gmap.cast_rays((0.0, 0.0), [0.0, 1.0], 10.0))
+    assert r.json()["status"] == ["occupied", "occupied"]
+
+
+def test_bad_requests_are_refused_as_the_api_does(service: ServiceProcess) -> None:
+    url = service.base_url
+    room_maps(url, "bad", ROOM)
+    ok = {"origin": [0.0, 0.0], "angles": [0.0], "max_range": 5.0}
+    assert raycast(url, "bad", ok).status_code == 200
+    r = raycast(url, "no-such-map", ok)
+    assert r.status_code == 404 and r.json()["detail"] == "no map 'no-such-map'"
+    for change, where in [
+        ({"origin": [0.0]}, "origin"),
+        ({"origin": [0.0, 0.0, 0.0]}, "origin"),
+        ({"origin": [0.0, 2e7]}, "origin"),
+        ({"origin": ["0", 0.0]}, "origin"),
+        ({"angles": []}, "angles"),
+        ({"angles": [0.0, "1"]}, "angles"),
+        ({"angles": 0.0}, "angles"),
+        ({"max_range": 0}, "max_range"),
+        ({"max_range": -1.0}, "max_range"),
+        ({"max_range": "5"}, "max_range"),
+        ({"unknown": "ignore"}, "unknown"),
+        ({"ignore_unknown": True}, "ignore_unknown"),
+    ]:
+        r = raycast(url, "bad", {**ok, **change})
+        assert r.status_code == 422, (change, r.text)
+        assert where in r.json()["detail"], (change, r.json())
+    for missing in ok:
+        r = raycast(url, "bad", {k: v for k, v in ok.items() if k != missing})
+        assert r.status_code == 422 and missing in r.json()["detail"]
+    r = httpx.post(f"{url}/maps/bad/raycast", content=b'{"origin": [0, 0], "angles": [NaN], "max_range": 1}',
+                   headers={"content-type": "application/json"})  # fmt: skip
+    assert r.status_code == 422
+    r = httpx.post(f"{url}/maps/bad/raycast", content=b'{"origin": [0, 0], "angles": [0], "max_range": 1}')
+    assert r.status_code == 415
+    # Too much at once: 413, as for too many points.
+    r = raycast(url, "bad", {**ok, "angles": [0.0] * (MAX_RAYS + 1)})
+    assert r.status_code == 413 and r.json()["detail"] == (
+        f"{MAX_RAYS + 1} rays is more than the limit of {MAX_RAYS} per request"
+    )
+    r = raycast(url, "bad", {**ok, "max_range": MAX_RAY_CELLS * 0.05 + 1})
+    assert r.status_code == 413 and f"more than the limit of {MAX_RAY_CELLS} cells" in r.json()["detail"]
+    r = raycast(url, "bad", {**ok, "angles": [0.0] * 1000, "max_range": 900.0})
+    assert r.status_code == 413 and f"limit of {MAX_RAY_WALK} cells per call" in r.json()["detail"]
+    assert raycast(url, "bad", {**ok, "angles": [0.0] * 838, "max_range": 1000.0}).status_code == 200
+    # A map keeping only the TSDF has nothing to cast against: 422, as a layer the map does not keep.
+    assert httpx.put(f"{url}/maps/tsdf-only", json={"layers": ["tsdf"]}).status_code == 201
+    r = raycast(url, "tsdf-only", ok)
+    assert r.status_code == 422 and "'occupancy' or the 'counts' layer" in r.json()["detail"]
