@@ -1,4 +1,4 @@
-"""Ray casting (`GridMap.cast_rays`, `POST /maps/{map_id}/raycast`).
+"""Ray casting (`GridMap.cast_rays`, `POST /maps/{map_id}/raycast`, `FleetmapClient.raycast`).
 
 The kernel is compared with a slow reference written here from the engine's public pieces only: the
 cells of `segment_cells(..., EXACT)` in order, each classified by `GridMap.cells` (its `state`, or the
@@ -17,6 +17,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from fleetmap_client.rest import FleetmapClient, FleetmapError
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from service_process import ServiceProcess
@@ -444,3 +445,33 @@ def test_bad_requests_are_refused_as_the_api_does(service: ServiceProcess) -> No
     assert httpx.put(f"{url}/maps/tsdf-only", json={"layers": ["tsdf"]}).status_code == 201
     r = raycast(url, "tsdf-only", ok)
     assert r.status_code == 422 and "'occupancy' or the 'counts' layer" in r.json()["detail"]
+
+
+def test_the_client_casts_rays(service: ServiceProcess) -> None:
+    gmap = room_maps(service.base_url, "client", ROOM)
+    angles = np.linspace(0, 2 * math.pi, 90)
+    with FleetmapClient(service.base_url) as fm:
+        got = fm.raycast("client", (0.4, -0.3), angles, 8.0)
+        passed = fm.raycast("client", [-4.0, 0.1], 0.0, 8.0, unknown="pass")
+        expected = gmap.cast_rays((0.4, -0.3), angles, 8.0)
+        assert got["status"].tolist() == [RAY_STATUS_NAMES[int(c)] for c in expected.status]
+        for name in ("range", "x", "y", "i", "j"):
+            assert got[name].dtype == getattr(expected, name).dtype
+            np.testing.assert_array_equal(got[name], getattr(expected, name))
+        # From outside the room through the unknown to its wall at x = -3 (the cell of -3.0 or the one
+        # before: where the beams ended, rounded).
+        wall = gmap.cast_rays((-4.0, 0.1), [0.0], 8.0, unknown="pass")
+        assert passed["status"].tolist() == ["occupied"] and passed["i"].tolist() in ([-60], [-61])
+        assert passed["range"].tolist() == wall.range.tolist() and 0.9 <= passed["range"][0] <= 1.0
+        with pytest.raises(ValueError, match="finite"):
+            fm.raycast("client", (math.nan, 0.0), [0.0], 1.0)
+        with pytest.raises(ValueError, match="angles must be finite"):
+            fm.raycast("client", (0.0, 0.0), [math.inf], 1.0)
+        with pytest.raises(ValueError, match="pair"):
+            fm.raycast("client", (0.0, 0.0, 0.0), [0.0], 1.0)
+        with pytest.raises(FleetmapError) as err:
+            fm.raycast("client", (0.0, 0.0), np.zeros(MAX_RAYS + 1), 1.0)
+        assert err.value.status == 413 and "rays" in err.value.detail
+        with pytest.raises(FleetmapError) as err:
+            fm.raycast("nothing-here", (0.0, 0.0), [0.0], 1.0)
+        assert err.value.status == 404
