@@ -1,8 +1,9 @@
-"""Reading maps: one cell, many cells, dense regions, TSDF surfaces, exports.
+"""Reading maps: one cell, many cells, rays cast through them, dense regions, TSDF surfaces, exports.
 
-Reads take the map's lock only inside the engine's read calls (`GridMap.cells`, `region`, ...), which
-copy what they need, so a read sees every tile before or after any scan, never half-way. The routes
-are plain functions: FastAPI runs them on its thread pool, so a large read never stalls the event loop.
+Reads take the map's lock only inside the engine's read calls (`GridMap.cells`, `region`,
+`cast_rays`, ...), which copy what they need (rays read the tiles in place), so a read sees every
+tile before or after any scan, never half-way. The routes are plain functions: FastAPI runs them on
+its thread pool, so a large read never stalls the event loop.
 """
 
 from __future__ import annotations
