@@ -11,6 +11,7 @@ answers for the same scans.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from fleetmap.grid_map import (
     RAY_STATUS_NAMES,
     RAY_UNKNOWN,
     STATE_OCCUPIED,
+    STATE_UNKNOWN,
     LayerUnavailableError,
     RaycastResult,
     RayLimitError,
@@ -190,11 +192,11 @@ def test_uncertain_cells_are_walked_through() -> None:
     """Only p > occupied_thresh stops a ray: a known cell between the thresholds does not."""
     gmap = walled_map()
     paint(gmap, {(10, 0): 0.0, (11, 0): 0.6, (12, 0): 0.62})  # p 0.5, 0.646, 0.650
-    threshold = gmap.config.occupancy.occupied_thresh
     state = gmap.cells([[1.05, 0.05], [1.15, 0.05], [1.25, 0.05]])["state"]
+    assert gmap.config.occupancy.occupied_thresh == 0.65
+    assert state.tolist() == [STATE_UNKNOWN, STATE_UNKNOWN, STATE_OCCUPIED]
     r = gmap.cast_rays((0.05, 0.05), 0.0, 10.0)
-    stops_at = 12 if state[2] == STATE_OCCUPIED else 25
-    assert threshold == 0.65 and int(r.i[0]) == stops_at
+    assert (int(r.status[0]), int(r.i[0])) == (RAY_OCCUPIED, 12)
     assert_matches_reference(gmap, (0.05, 0.05), np.array([0.0]), 10.0, "stop")
 
 
@@ -226,6 +228,19 @@ def test_the_occupied_log_odds_edge_is_classify_s_own() -> None:
         assert int(r.i[0]) == 4
 
 
+def test_rays_read_under_the_map_lock() -> None:
+    """A ray query waits while another thread holds the map's lock (a scan being applied)."""
+    gmap = walled_map()
+    answers: list[RaycastResult] = []
+    reader = threading.Thread(target=lambda: answers.append(gmap.cast_rays((0.05, 0.05), [0.0], 5.0)))
+    with gmap.lock:
+        reader.start()
+        reader.join(0.3)
+        assert reader.is_alive() and not answers
+    reader.join(10)
+    assert [a.i.tolist() for a in answers] == [[25]]
+
+
 def test_bad_arguments_are_refused() -> None:
     gmap = GridMap(MapConfig(resolution=0.05))
     for origin in [(math.nan, 0.0), (0.0, math.inf), (2e7, 0.0), (1.0,), "ab"]:
@@ -233,6 +248,8 @@ def test_bad_arguments_are_refused() -> None:
             gmap.cast_rays(origin, [0.0], 1.0)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="angles must be finite"):
         gmap.cast_rays((0, 0), [0.0, math.nan], 1.0)
+    with pytest.raises(ValueError, match="angles must be numbers"):
+        gmap.cast_rays((0, 0), ["north"], 1.0)  # type: ignore[list-item]
     with pytest.raises(ValueError, match="one-dimensional"):
         gmap.cast_rays((0, 0), [[0.0, 1.0]], 1.0)
     with pytest.raises(RayLimitError, match=f"limit of {MAX_RAYS} per call"):

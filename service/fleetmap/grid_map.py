@@ -420,10 +420,13 @@ class GridMap:
         that keeps neither the occupancy nor the counts layer. Reads under the map's lock, from the
         tiles themselves (no copy)."""
         ox, oy = _ray_origin(origin)
-        a = np.asarray(angles, dtype=np.float64) if not isinstance(angles, np.ndarray) else angles
+        try:
+            a = np.asarray(angles, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"angles must be numbers (radians), not {angles!r}") from None
         if a.ndim > 1:
             raise ValueError(f"angles must be a number or a one-dimensional sequence; got shape {a.shape}")
-        a = a.astype(np.float64).reshape(-1)
+        a = a.reshape(-1)
         if a.size > MAX_RAYS:
             raise RayLimitError(f"{a.size} rays is more than the limit of {MAX_RAYS} per call")
         if not np.isfinite(a).all():
