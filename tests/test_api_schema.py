@@ -56,7 +56,7 @@ def test_spec_has_every_operation() -> None:
     reads += [f"/maps/{{map_id}}/{name}" for name in ("cell", "region", "surface", "export", "events")]
     assert {("GET", path) for path in reads} <= paths
     writes = [("PUT", "/maps/{map_id}"), ("DELETE", "/maps/{map_id}"), ("POST", "/maps/{map_id}/scans")]
-    assert {*writes, ("POST", "/maps/{map_id}/cells")} <= paths
+    assert {*writes, ("POST", "/maps/{map_id}/cells"), ("POST", "/maps/{map_id}/raycast")} <= paths
 
 
 def _has_inputs(op: schemathesis.APIOperation) -> bool:

@@ -49,6 +49,8 @@ def test_roles_on_the_real_service(tmp_path: Path, token_file: Path) -> None:
         # Reading is open by default, including the read-only POST /cells.
         assert httpx.get(f"{url}/maps/m").status_code == 200
         assert httpx.post(f"{url}/maps/m/cells", json={"points": [[2.0, 0.0]]}).status_code == 200
+        ray = {"origin": [0.0, 0.0], "angles": [0.0], "max_range": 5.0}
+        assert httpx.post(f"{url}/maps/m/raycast", json=ray).status_code == 200
         assert httpx.delete(f"{url}/maps/m", headers=bearer(READ)).status_code == 403
         assert httpx.delete(f"{url}/maps/m", headers=bearer(ADMIN)).status_code == 204
         assert httpx.get(f"{url}/healthz").status_code == 200
@@ -62,6 +64,10 @@ def test_reads_can_require_a_token(tmp_path: Path, token_file: Path) -> None:
         assert httpx.get(f"{svc.base_url}/maps").status_code == 401
         assert httpx.get(f"{svc.base_url}/maps", headers=bearer(READ)).status_code == 200
         assert httpx.post(f"{svc.base_url}/maps/x/cells", json={"points": []}).status_code == 401
+        ray = {"origin": [0.0, 0.0], "angles": [0.0], "max_range": 5.0}
+        assert httpx.post(f"{svc.base_url}/maps/x/raycast", json=ray).status_code == 401
+        r = httpx.post(f"{svc.base_url}/maps/x/raycast", json=ray, headers=bearer(READ))
+        assert r.status_code == 404 and r.json()["detail"] == "no map 'x'"  # a read token gets through
         assert httpx.get(f"{svc.base_url}/healthz").status_code == 200  # probes carry no token
 
 
@@ -122,6 +128,9 @@ def test_token_files_are_checked_without_echoing_tokens(tmp_path: Path) -> None:
     assert tokens.role_of(READ + "x") is None
     assert required_role("OPTIONS", "/maps", True) is None
     assert required_role("POST", "/maps/a/cells", False) is None
+    assert required_role("POST", "/maps/a/raycast", False) is None
+    assert required_role("POST", "/maps/a/raycast", True) == "read"
+    assert required_role("POST", "/maps/a/raycast/x", False) == "write"
     assert required_role("POST", "/maps/a/scans", False) == "write"
     out = serve("--auth-tokens", str(tmp_path / "missing.txt"))
     assert out.returncode == 2 and "cannot read token file" in out.stderr

@@ -8,8 +8,8 @@ may do everything `write` may, `write` everything `read` may.
 
 What needs which role:
 - writing (POST scans, PUT/DELETE maps, PUT snapshots): `write`;
-- reading (every GET, and POST /maps/{id}/cells, which only reads): `read`, unless reading is left open
-  (`require_read=False`, the default), then anyone;
+- reading (every GET, and POST /maps/{id}/cells and /raycast, which only read): `read`, unless
+  reading is left open (`require_read=False`, the default), then anyone;
 - `/healthz` is always open (liveness probes carry no token).
 A token file is read again on SIGHUP (`TokenFile.reload`); tokens from the environment are fixed.
 Tokens are compared in constant time against every configured token, and never logged.
@@ -30,7 +30,7 @@ ROLES = ("read", "write", "admin")
 _RANK = {role: rank for rank, role in enumerate(ROLES)}
 TOKENS_ENV = "FLEETMAP_TOKENS"
 #: Read-only requests that use POST.
-_READ_POSTS = re.compile(r"^/maps/[^/]+/cells$")
+_READ_POSTS = re.compile(r"^/maps/[^/]+/(cells|raycast)$")
 #: Paths open to anyone, always.
 _OPEN_PATHS = {"/healthz"}
 #: A comment: `#` at the start of a line or after whitespace (a `#` inside a token is part of it).

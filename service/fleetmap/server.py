@@ -505,7 +505,8 @@ def warm_up() -> None:
     Both paths a scan can take: the service's ingest plans and applies (`GridMap.plan`,
     `GridMap.apply`), into new tiles and then existing ones; journal replay and library users call
     `GridMap.integrate`, whose one compiled call creates tiles itself and so never reaches the
-    planning kernels. A durable service also encodes every scan for its journal (`scan_to_blob`)."""
+    planning kernels. A durable service also encodes every scan for its journal (`scan_to_blob`).
+    The ray caster (`GridMap.cast_rays`) is loaded too, so a first ray query does not compile it."""
     from fleetmap.config import MapConfig
     from fleetmap.grid_map import GridMap
     from fleetmap.scan import Scan
@@ -519,6 +520,7 @@ def warm_up() -> None:
         gmap = GridMap(config)
         for _ in range(2):
             gmap.apply(gmap.plan(scan))
+    gmap.cast_rays((0.0, 0.0), [0.0, 1.0], 2.0)
 
 
 def freeze_startup_objects() -> int:

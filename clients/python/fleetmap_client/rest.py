@@ -7,6 +7,7 @@
         fm.post_scan("warehouse", "robot-7", scan, seq=0)   # a Scan, ScanMessage or dict
         p = fm.cell("warehouse", 1.0, 2.0).probability
         probs = fm.cells("warehouse", [[1.0, 2.0], [3.0, 4.0]])["probability"]   # numpy arrays
+        hits = fm.raycast("warehouse", (1.0, 2.0), angles, max_range=10.0)["range"]  # first obstacles
         grid = fm.region("warehouse", 0, 0, 10, 10, layer="probability")      # (ny, nx), row 0 = lowest y
         for event, data in fm.events("warehouse"):                             # live changes
             ...
@@ -42,6 +43,7 @@ from fleetmap.api_models import (
     MapInfo,
     MapList,
     MapSummary,
+    RaycastResponse,
     RobotsDeltaEvent,
     RobotsEvent,
     ScanResult,
@@ -298,6 +300,50 @@ class FleetmapClient:
         if parsed.state is not None:
             out["state"] = np.array(parsed.state, dtype=str)
         return out
+
+    def raycast(
+        self,
+        map_id: str,
+        origin: Sequence[float],
+        angles: float | Sequence[float] | np.ndarray,
+        max_range: float,
+        unknown: Literal["stop", "pass"] = "stop",
+    ) -> dict[str, np.ndarray]:
+        """`POST /maps/{map_id}/raycast`: where rays from `origin` first meet an obstacle (OctoMap's
+        castRay; the server runs `GridMap.cast_rays`).
+
+        `origin` is (x, y) in metres, `angles` the rays' map-frame directions in radians (one number
+        alone is one ray), `max_range` metres. A ray stops at the first occupied cell, or with
+        `unknown="stop"` (the default) at the first never-observed one. Returns one NumPy array per
+        field, one entry per angle in order: `status` (str: "occupied", "unknown", "max_range"),
+        `range` (float64, metres to where the ray enters that cell: 0 for the origin's own cell,
+        `max_range` when nothing stopped it), `x`, `y` (float64, that point), `i`, `j` (int64, the
+        cell). ValueError for a non-finite or malformed argument before any request; the server's
+        limits (at most 10000 rays, 20000 cells of `max_range`, 2**24 cells in all) answer 413,
+        raised as `FleetmapError`.
+        """
+        _check_id("map_id", map_id)
+        if len(origin) != 2:
+            raise ValueError(f"origin must be an (x, y) pair, not {origin!r}")
+        rays = np.asarray(angles, dtype=np.float64).reshape(-1)
+        if not np.isfinite(rays).all():
+            raise ValueError("angles must be finite numbers (radians)")
+        body = {
+            "origin": [_finite(origin[0]), _finite(origin[1])],
+            "angles": rays.tolist(),
+            "max_range": _finite(max_range),
+            "unknown": unknown,
+        }
+        response = self._request("POST", f"/maps/{map_id}/raycast", json=body)
+        parsed = RaycastResponse.model_validate_json(response.content)
+        return {
+            "status": np.array(parsed.status, dtype=str),
+            "range": np.array(parsed.range, dtype=np.float64),
+            "x": np.array(parsed.x, dtype=np.float64),
+            "y": np.array(parsed.y, dtype=np.float64),
+            "i": np.array(parsed.i, dtype=np.int64),
+            "j": np.array(parsed.j, dtype=np.int64),
+        }
 
     def region(
         self,

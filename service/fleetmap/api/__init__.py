@@ -1,8 +1,8 @@
 """fleetmap's REST API (FastAPI): `create_app(registry, settings=ApiSettings(...))`.
 
 Modules: `app` (the app and its settings), `state` (what routes share), `errors` (every error is
-`{"detail": ...}` JSON), `routes_maps` (health, metrics, maps, scans), `routes_data` (cells, regions,
-surfaces, exports), `routes_tiles` (PNG tiles), `events` (server-sent events), `static` (web viewer
+`{"detail": ...}` JSON), `routes_maps` (health, metrics, maps, scans), `routes_data` (cells, rays,
+regions, surfaces, exports), `routes_tiles` (PNG tiles), `events` (server-sent events), `static` (web viewer
 and Leaflet). Request and response models are in `fleetmap.api_models`; docs/api.md describes it all.
 """
 

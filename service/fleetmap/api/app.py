@@ -64,10 +64,10 @@ DESCRIPTION = """\
 Shared occupancy, count and TSDF maps built from a fleet's 2D laser scans.
 
 Robots publish scans over Zenoh (see docs/protocol.md) or `POST /maps/{map_id}/scans`; clients read
-cells, regions, tiles, TSDF surfaces and exports, and follow changes live with
-`GET /maps/{map_id}/events`. Coordinates are metres in the map frame; cell `(i, j)` of a map with
-resolution `res` covers `[i*res, (i+1)*res) x [j*res, (j+1)*res)`. Every error is JSON
-`{"detail": "..."}`. See docs/api.md.
+cells, rays (where they first meet an obstacle), regions, tiles, TSDF surfaces and exports, and
+follow changes live with `GET /maps/{map_id}/events`. Coordinates are metres in the map frame;
+cell `(i, j)` of a map with resolution `res` covers `[i*res, (i+1)*res) x [j*res, (j+1)*res)`.
+Every error is JSON `{"detail": "..."}`. See docs/api.md.
 
 Authentication: when the server runs with API tokens (`fleetmap serve --auth-tokens FILE`), requests
 send `Authorization: Bearer <token>`. Writing (POST scans, PUT and DELETE maps, PUT snapshots) needs a
@@ -80,7 +80,7 @@ TAGS = [
     {"name": "service", "description": "Health and metrics."},
     {"name": "maps", "description": "Create, inspect and delete maps."},
     {"name": "ingest", "description": "Scans over HTTP, for clients without Zenoh."},
-    {"name": "queries", "description": "Cells, regions and surfaces of a map."},
+    {"name": "queries", "description": "Cells, rays, regions and surfaces of a map."},
     {"name": "tiles", "description": "PNG tiles for Leaflet (CRS.Simple)."},
     {"name": "export", "description": "Whole-map exports."},
     {"name": "events", "description": "Server-sent events for live clients."},

@@ -22,7 +22,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from fleetmap.api.http_semantics import head_allowed
 from fleetmap.api_models import ErrorItem, ErrorResponse
 from fleetmap.codec import DecodeError, PayloadTooLarge
-from fleetmap.grid_map import LayerUnavailableError
+from fleetmap.grid_map import LayerUnavailableError, RayLimitError
 from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
 from fleetmap.tile_render import TileError
@@ -81,7 +81,10 @@ def too_many(count: int | None, what: str, limit: int) -> ApiError:
 #: for too much at once (413, the status docs/api.md gives), it is not malformed (422). The cap stays
 #: in the model because pydantic then refuses a huge list at once, without validating every item on
 #: the event loop. Validation-error location -> what the list holds.
-_SIZE_LIMITED_LISTS: dict[tuple[str | int, ...], str] = {("body", "points"): "points"}
+_SIZE_LIMITED_LISTS: dict[tuple[str | int, ...], str] = {
+    ("body", "points"): "points",
+    ("body", "angles"): "rays",
+}
 
 
 def _size_limit_error(errors: Sequence[dict[str, Any]]) -> ApiError | None:
@@ -229,6 +232,7 @@ _CLIENT_ERRORS: tuple[tuple[type[Exception], int], ...] = (
     (MapConflict, 409),
     (InvalidId, 422),
     (LayerUnavailableError, 422),
+    (RayLimitError, 413),  # a ValueError that asks for too much at once, not a malformed one
     (PayloadTooLarge, 413),  # a DecodeError: Starlette picks the handler of the closest class
     (DecodeError, 422),
     (ScanError, 422),

@@ -1,8 +1,9 @@
-"""Reading maps: one cell, many cells, dense regions, TSDF surfaces, exports.
+"""Reading maps: one cell, many cells, rays cast through them, dense regions, TSDF surfaces, exports.
 
-Reads take the map's lock only inside the engine's read calls (`GridMap.cells`, `region`, ...), which
-copy what they need, so a read sees every tile before or after any scan, never half-way. The routes
-are plain functions: FastAPI runs them on its thread pool, so a large read never stalls the event loop.
+Reads take the map's lock only inside the engine's read calls (`GridMap.cells`, `region`,
+`cast_rays`, ...), which copy what they need (rays read the tiles in place), so a read sees every
+tile before or after any scan, never half-way. The routes are plain functions: FastAPI runs them on
+its thread pool, so a large read never stalls the event loop.
 """
 
 from __future__ import annotations
@@ -20,10 +21,13 @@ from fleetmap.api_models import (
     CellsRequest,
     CellsResponse,
     CellValue,
+    RaycastRequest,
+    RaycastResponse,
     RegionJson,
     Surface,
     cell_value,
     cells_json,
+    raycast_json,
     region_json,
     surface,
 )
@@ -124,6 +128,27 @@ def post_cells(map_id: MapId, state: State, body: CellsRequest) -> Response:
     gmap = state.entry(map_id).gmap
     points = np.array(body.points, dtype=np.float64).reshape(-1, 2)
     return Response(cells_json(gmap, points), media_type="application/json")
+
+
+@router.post(
+    "/maps/{map_id}/raycast",
+    tags=["queries"],
+    summary="Where rays from a point first meet an obstacle",
+    response_model=RaycastResponse,
+    responses=error_responses(404, 413, 415, 422),
+)
+def post_raycast(map_id: MapId, state: State, body: RaycastRequest) -> Response:
+    """OctoMap's castRay for many rays: each ray starts at `origin` and goes at map-frame `angle` for
+    at most `max_range` metres through the cells of the exact traversal, the origin's cell first. It
+    stops at the first occupied cell (p > occupied_thresh, the `state` of /cell; a map without the
+    occupancy layer uses its counts, p = hits / (hits + misses)), or with `unknown` "stop" (the
+    default) at the first never-observed cell. Answers, one entry per angle in order: `status`
+    (`occupied`, `unknown` or `max_range`), `range` (metres to where the ray enters that cell, 0 for
+    the origin's own cell, max_range if nothing stopped it), `x`, `y` (that point) and `i`, `j` (the
+    cell; for `max_range` the last one visited). 413 past 10000 rays, 20000 cells of `max_range`, or
+    2**24 cells of rays x `max_range`; 422 for a map keeping neither occupancy nor counts."""
+    result = state.entry(map_id).gmap.cast_rays(body.origin, body.angles, body.max_range, body.unknown)
+    return Response(raycast_json(result), media_type="application/json")
 
 
 # -- regions ----------------------------------------------------------------------------------------
