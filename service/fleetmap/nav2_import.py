@@ -89,7 +89,8 @@ _ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplemented
 
 class Nav2ImportError(ValueError):
     """Why a nav2 map cannot be imported; nothing was created. `status` is 413 for a file or an
-    image past a size limit, 507 for tiles the memory budget has no room for, else 422."""
+    image past a size limit, 415 for bytes that are not a zip at all, 507 for tiles the memory
+    budget has no room for, else 422."""
 
     def __init__(self, message: str, status: int = 422) -> None:
         super().__init__(message)
@@ -369,7 +370,7 @@ def map_from_nav2_zip(
     try:
         zf = zipfile.ZipFile(io.BytesIO(data))
     except (*_ZIP_ERRORS, ValueError) as exc:
-        raise Nav2ImportError(f"the body is not a zip file ({exc})") from None
+        raise Nav2ImportError(f"the body is not a zip file ({exc})", 415) from None
     with zf:
         infos = [i for i in zf.infolist() if not i.is_dir()]
         yamls = [i for i in infos if i.filename.lower().endswith((".yaml", ".yml"))]
