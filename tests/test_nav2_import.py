@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import math
 import zipfile
+import zlib
 from pathlib import Path
 
 import httpx
@@ -295,6 +296,23 @@ def test_images_that_are_not_8_bit_grey_or_too_big_are_refused(
     with pytest.raises(Nav2ImportError) as caught:
         map_from_nav2(nav2_yaml(), image, CONFIG)
     assert message in str(caught.value) and caught.value.status == status
+
+
+def png_claiming(width: int, height: int) -> bytes:
+    """A 1 x 1 grey PNG whose header (IHDR, with a valid CRC) says `width` x `height`."""
+    data = bytearray(png(np.zeros((1, 1), np.uint8)))
+    at = data.index(b"IHDR")
+    data[at + 4 : at + 12] = width.to_bytes(4, "big") + height.to_bytes(4, "big")
+    data[at + 17 : at + 21] = zlib.crc32(bytes(data[at : at + 17])).to_bytes(4, "big")
+    return bytes(data)
+
+
+def test_an_image_past_the_pixel_bound_is_refused_from_its_header() -> None:
+    """8193 x 8193 is within the side bound but past 2**26 pixels: refused before any pixel is
+    decoded (the file holds one)."""
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2(nav2_yaml("map.png"), png_claiming(8193, 8193), CONFIG)
+    assert "is 8193 x 8193 pixels" in str(caught.value) and caught.value.status == 413
 
 
 def test_palette_and_bilevel_images_are_refused_saying_what_they_are() -> None:

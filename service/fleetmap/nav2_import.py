@@ -46,7 +46,6 @@ from __future__ import annotations
 import io
 import math
 import posixpath
-import warnings
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -61,9 +60,11 @@ from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.tiles import TileKey, layer_arrays, tile_bytes
 
-#: Bounds of an imported image: its sides, and its pixels in all (128 Mi: 2048 tiles of 256 x 256).
+#: Bounds of an imported image: its sides, and its pixels in all (64 Mi: 1024 tiles of 256 x 256).
+#: The total stays under Pillow's own decompression-bomb bound (89 Mi pixels), past which it warns:
+#: silencing that warning would change the process's warning filters from a worker thread.
 MAX_IMAGE_SIDE = 16384
-MAX_IMAGE_PIXELS = 1 << 27
+MAX_IMAGE_PIXELS = 1 << 26
 #: The most bytes the YAML file and the image file may hold (decompressed, in a zip).
 MAX_YAML_BYTES = 64 * 1024
 MAX_IMAGE_FILE_BYTES = MAX_IMAGE_PIXELS * 4 + (1 << 20)
@@ -202,10 +203,7 @@ def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.nda
     """The grey values (uint8, row 0 = the image's top) and the alpha channel (None without one) of
     a PGM or PNG image; `Nav2ImportError` saying what it is when it is not 8-bit grey, or too big."""
     try:
-        with warnings.catch_warnings():
-            # Past MAX_IMAGE_PIXELS is refused below; Pillow's own bound is higher and only warns.
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            im = Image.open(io.BytesIO(data), formats=["PNG", "PPM"])
+        im = Image.open(io.BytesIO(data), formats=["PNG", "PPM"])  # reads the header only
     except Image.DecompressionBombError as exc:
         raise Nav2ImportError(f"{name} is too large: {exc}", 413) from None
     except (OSError, ValueError, SyntaxError) as exc:  # Pillow's UnidentifiedImageError is an OSError
