@@ -3,20 +3,17 @@ map_server `map.yaml` zipped with its image. It installs as a snapshot upload do
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import email.message
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
 from fleetmap.api.errors import ApiError, error_responses
-from fleetmap.api.http_semantics import created_status
+from fleetmap.api.routes_snapshot import install_upload
 from fleetmap.api.state import MapId, State
 from fleetmap.api.strict_requests import StrictRoute
-from fleetmap.api_models import MapInfo, map_info
+from fleetmap.api_models import MapInfo
 from fleetmap.nav2_import import Nav2ImportError, map_from_nav2_zip
-from fleetmap.registry import MapEntry, MapNotFound
 
 router = APIRouter(tags=["maps"], route_class=StrictRoute)
 
@@ -70,23 +67,11 @@ async def put_import(
         sent = f"not {content_type!r}" if content_type else "none was given"
         raise ApiError(415, f"the body must be a zip file, with Content-Type: {MEDIA_TYPE} ({sent})")
     body = await request.body()
-    replaced: MapEntry | None = None
-    with contextlib.suppress(MapNotFound):
-        replaced = state.registry.get(map_id)
-    budget = state.registry.memory_budget
-    free = None if budget is None else budget.free()
-    if free is not None and replaced is not None:
-        free += replaced.gmap.memory_bytes()  # the map this replaces gives its bytes back
-    config = replaced.gmap.config if replaced is not None else None
+    defaults = state.registry.default_config
     try:
-        gmap = await asyncio.to_thread(
-            map_from_nav2_zip, body, config, state.registry.default_config, free_bytes=free
-        )
+        return await install_upload(
+            state, map_id, response,
+            lambda config, free: map_from_nav2_zip(body, config, defaults, free_bytes=free),
+        )  # fmt: skip
     except Nav2ImportError as exc:
         raise ApiError(exc.status, f"nav2 map: {exc}") from None
-    try:  # on a worker thread, as a snapshot's: storing a big map's tiles takes seconds
-        entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True)
-    finally:  # also when it could not be stored: the old map's tiles are gone from memory all the same
-        state.tiles.drop_map(map_id)
-    created_status(response, map_id, created=replaced is None)
-    return map_info(entry, state.registry.lock)
