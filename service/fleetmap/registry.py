@@ -345,9 +345,9 @@ class MapRegistry:
         return entry, created
 
     def replace(self, map_id: str, gmap: GridMap, wait: bool = False) -> MapEntry:
-        """Install `gmap` (a restored snapshot) as map `map_id`, replacing any map of that id (whose
-        entry then points to the new one: `MapEntry.replaced_by`). With `wait`, it is committed to
-        storage before this returns (else NotDurable)."""
+        """Install `gmap` (an uploaded snapshot or nav2 map) as map `map_id`, replacing any map of
+        that id (whose entry then points to the new one: `MapEntry.replaced_by`). With `wait`, it is
+        committed to storage before this returns (else NotDurable)."""
         _check_id("map id", map_id)
         # Its tiles are encoded here, before the lock: no one else sees `gmap` yet, and a big map
         # takes seconds, during which scans and every other request need the lock.
@@ -364,7 +364,7 @@ class MapRegistry:
         for job in dropped:
             self._finish_gone(job)
         log.info(
-            "installed map %s from a snapshot (%d tiles)", map_id, len(gmap.store), extra={"map_id": map_id}
+            "installed map %s from an upload (%d tiles)", map_id, len(gmap.store), extra={"map_id": map_id}
         )
         if wait:
             _wait_stored(stored, f"map {map_id!r} was installed")
@@ -729,7 +729,7 @@ class MapRegistry:
             return
         if replaced:
             reason = (
-                f"map {job.map_id!r} was replaced (deleted and created again, or restored from a snapshot) "
+                f"map {job.map_id!r} was replaced (deleted and created again, or replaced by an upload) "
                 "before the scan was integrated: it was not integrated, into the old map or the new one"
             )
         else:

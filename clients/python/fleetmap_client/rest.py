@@ -27,12 +27,15 @@ import io
 import json
 import math
 import os
+import zipfile
 from collections.abc import Generator, Iterator, Mapping, Sequence
+from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
 import httpx
 import numpy as np
+import yaml
 from pydantic import ValidationError
 
 from fleetmap.api_models import (
@@ -54,6 +57,29 @@ from fleetmap.config import MapConfig
 from fleetmap.grid_map import as_points
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
+
+
+def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
+    """A zip of a nav2 map_server `map.yaml` and the image it names (relative to the YAML's folder
+    unless absolute), as `PUT /maps/{id}/import` reads it: the image beside the YAML under its own
+    file name, the YAML's `image` rewritten to that name when it named a folder too. ValueError for
+    a YAML without an `image` file name; OSError if a file cannot be read."""
+    yaml_path = Path(yaml_path)
+    text = yaml_path.read_bytes()
+    doc = yaml.safe_load(text)
+    image = doc.get("image") if isinstance(doc, dict) else None
+    if not isinstance(image, str) or not image:
+        raise ValueError(f"{yaml_path} names no image file ('image')")
+    image_path = yaml_path.parent / image  # an absolute `image` stays itself
+    name = image_path.name
+    if name != image:  # the server reads only an image beside the YAML in the zip
+        text = yaml.safe_dump({**doc, "image": name}, sort_keys=False).encode()
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr(yaml_path.name if yaml_path.suffix in (".yaml", ".yml") else "map.yaml", text)
+        zf.writestr(name, image_path.read_bytes())
+    return buf.getvalue()
+
 
 #: The environment variable `FleetmapClient` reads its API token from when given none.
 TOKEN_ENV = "FLEETMAP_TOKEN"
@@ -203,6 +229,23 @@ class FleetmapClient:
         response = self._request(
             "PUT", f"/maps/{map_id}/snapshot", content=snapshot, headers={"content-type": "application/zip"}
         )
+        return MapInfo.model_validate_json(response.content)
+
+    def import_nav2(self, map_id: str, source: str | os.PathLike[str] | bytes) -> MapInfo:
+        """`PUT /maps/{map_id}/import?format=ros`: install a ROS nav2 map_server map as map `map_id`,
+        replacing any map of that id (keeping its configuration), and return it once stored.
+
+        `source`: the path of a `map.yaml` (it is zipped here with the image it names, which is
+        read relative to the YAML's folder as map_server does), or the bytes of a zip holding one
+        YAML file and its image (what `GET /maps/{id}/export?format=ros` gives). `FleetmapError` 422
+        naming the field or image at fault (a rotated map, an origin off the cell grid, a colour
+        image, ...), 413 past a size limit; nothing changes then. OSError if a file cannot be read."""
+        _check_id("map_id", map_id)
+        body = source if isinstance(source, bytes) else nav2_files_zip(source)
+        response = self._request(
+            "PUT", f"/maps/{map_id}/import", params={"format": "ros"}, content=body,
+            headers={"content-type": "application/zip"},
+        )  # fmt: skip
         return MapInfo.model_validate_json(response.content)
 
     # -- scans -------------------------------------------------------------------------------------

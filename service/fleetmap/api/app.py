@@ -22,7 +22,15 @@ from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel
 from starlette.middleware.gzip import GZipMiddleware
 
-from fleetmap.api import errors, routes_data, routes_maps, routes_snapshot, routes_tiles, static
+from fleetmap.api import (
+    errors,
+    routes_data,
+    routes_import,
+    routes_maps,
+    routes_snapshot,
+    routes_tiles,
+    static,
+)
 from fleetmap.api.events import router as events_router
 from fleetmap.api.http_semantics import GZIP_LEVEL, GZIP_MINIMUM_BYTES, DefaultHeaders, HeadAsGet, JsonETags
 from fleetmap.api.priority import IngestGate, IngestPriority
@@ -70,10 +78,11 @@ cell `(i, j)` of a map with resolution `res` covers `[i*res, (i+1)*res) x [j*res
 Every error is JSON `{"detail": "..."}`. See docs/api.md.
 
 Authentication: when the server runs with API tokens (`fleetmap serve --auth-tokens FILE`), requests
-send `Authorization: Bearer <token>`. Writing (POST scans, PUT and DELETE maps, PUT snapshots) needs a
-token with the `write` or `admin` role; reading is open unless the server requires a `read` token
-(`--require-read-token`); `/healthz` is always open. A missing or unknown token is a 401, a token whose
-role is too low a 403. Without tokens the server only listens on loopback. See docs/security.md.
+send `Authorization: Bearer <token>`. Writing (POST scans, PUT and DELETE maps, PUT snapshots and
+imports) needs a token with the `write` or `admin` role; reading is open unless the server requires
+a `read` token (`--require-read-token`); `/healthz` is always open. A missing or unknown token is a
+401, a token whose role is too low a 403. Without tokens the server only listens on loopback. See
+docs/security.md.
 """
 
 TAGS = [
@@ -182,6 +191,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.include_router(routes_data.router)
     app.include_router(routes_tiles.router)
     app.include_router(routes_snapshot.router)
+    app.include_router(routes_import.router)
     app.include_router(events_router)
     static.install(app, app.state.fleetmap.web_dir)
     # Middleware, innermost first (each `add_middleware` wraps what is there).

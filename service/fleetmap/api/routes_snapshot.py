@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import Callable
 
 from fastapi import APIRouter, Request, Response
 
@@ -12,6 +13,8 @@ from fleetmap.api.http_semantics import created_status
 from fleetmap.api.state import MapId, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo, map_info
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
 from fleetmap.registry import MapEntry, MapNotFound
 from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
 
@@ -68,6 +71,26 @@ async def put_snapshot(map_id: MapId, request: Request, response: Response, stat
     budget (`--max-memory`) leaves; none changes anything. 503 if the map was installed but could not
     be stored."""
     body = await request.body()
+    try:
+        return await install_upload(
+            state, map_id, response, lambda _config, free: map_from_snapshot_file(body, free_bytes=free)
+        )
+    except SnapshotError as exc:
+        if not exc.errors:
+            raise ApiError(exc.status, str(exc)) from None
+        detail, items = validation_detail(exc.errors)  # one line per problem, as for PUT /maps
+        raise ApiError(exc.status, f"snapshot {detail}", errors=items) from None
+
+
+async def install_upload(
+    state: State, map_id: str, response: Response, read: Callable[[MapConfig | None, int | None], GridMap]
+) -> MapInfo:
+    """Install the map an upload holds as map `map_id`, replacing any map of that id, durably: what
+    `PUT .../snapshot` and `PUT .../import` share. `read(config, free_bytes)` makes the map on a
+    worker thread from the configuration of the map it replaces (None for a new id) and the bytes
+    the memory budget leaves counting the replaced map's (None without a budget); whatever it raises
+    for a bad upload propagates with nothing changed. Sets 201 (with `Location`) for a new map, else
+    200; NotDurable (503) if the map was installed but could not be stored."""
     replaced: MapEntry | None = None
     with contextlib.suppress(MapNotFound):
         replaced = state.registry.get(map_id)
@@ -76,13 +99,8 @@ async def put_snapshot(map_id: MapId, request: Request, response: Response, stat
     free = None if budget is None else budget.free()
     if free is not None and replaced is not None:
         free += replaced.gmap.memory_bytes()
-    try:
-        gmap = await asyncio.to_thread(map_from_snapshot_file, body, free_bytes=free)
-    except SnapshotError as exc:
-        if not exc.errors:
-            raise ApiError(exc.status, str(exc)) from None
-        detail, items = validation_detail(exc.errors)  # one line per problem, as for PUT /maps
-        raise ApiError(exc.status, f"snapshot {detail}", errors=items) from None
+    config = None if replaced is None else replaced.gmap.config
+    gmap = await asyncio.to_thread(read, config, free)
     # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
     try:
         entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True)

@@ -1,0 +1,77 @@
+"""Start a map from a ROS nav2 map: upload the zip `GET /maps/{id}/export?format=ros` gives, or any
+map_server `map.yaml` zipped with its image. It installs as a snapshot upload does."""
+
+from __future__ import annotations
+
+import email.message
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, Request, Response
+
+from fleetmap.api.errors import ApiError, error_responses
+from fleetmap.api.routes_snapshot import install_upload
+from fleetmap.api.state import MapId, State
+from fleetmap.api.strict_requests import StrictRoute
+from fleetmap.api_models import MapInfo
+from fleetmap.nav2_import import Nav2ImportError, map_from_nav2_zip
+
+router = APIRouter(tags=["maps"], route_class=StrictRoute)
+
+MEDIA_TYPE = "application/zip"
+
+
+def _is_zip_media_type(content_type: str | None) -> bool:
+    message = email.message.Message()
+    message["content-type"] = content_type or ""
+    return message.get_content_type() == MEDIA_TYPE
+
+
+@router.put(
+    "/maps/{map_id}/import",
+    summary="Start a map from a ROS nav2 map (map.yaml and its image, zipped)",
+    response_model=MapInfo,
+    status_code=201,
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
+        }
+    },
+    responses={
+        200: {"model": MapInfo, "description": "Replaced the map that had this id"},
+        **error_responses(413, 415, 422, 503, 507),
+    },
+)
+async def put_import(
+    map_id: MapId,
+    request: Request,
+    response: Response,
+    state: State,
+    format: Annotated[
+        Literal["ros"], Query(description="ros: a zip of a nav2 map_server map.yaml and its image")
+    ] = "ros",
+) -> MapInfo:
+    """Replace map `map_id` (201 with its `Location` when it did not exist, else 200) with a map whose
+    occupancy layer holds the uploaded nav2 map, read as map_server reads it, durably: the answer
+    comes once it is stored. The new map's configuration is that of the map it replaces, else the
+    server's default with the YAML's resolution; its other layers start unknown, its robots afresh,
+    and scans queued for the old map are dropped. 415 unless the body is a zip sent as
+    `application/zip`; 422 naming the field or the image at fault (a rotated map, an origin off the
+    cell grid, another resolution than the replaced map's, an image that is not 8-bit grey, more
+    tiles than `max_tiles`); 413 for an image or a file past its limit; 507 if its tiles need more
+    memory than the budget leaves; none changes anything. 503 if it was installed but could not be
+    stored."""
+    del format  # one format for now: the parameter names it, as GET .../export's does
+    content_type = request.headers.get("content-type")
+    if not _is_zip_media_type(content_type):
+        sent = f"not {content_type!r}" if content_type else "none was given"
+        raise ApiError(415, f"the body must be a zip file, with Content-Type: {MEDIA_TYPE} ({sent})")
+    body = await request.body()
+    defaults = state.registry.default_config
+    try:
+        return await install_upload(
+            state, map_id, response,
+            lambda config, free: map_from_nav2_zip(body, config, defaults, free_bytes=free),
+        )  # fmt: skip
+    except Nav2ImportError as exc:
+        raise ApiError(exc.status, f"nav2 map: {exc}") from None

@@ -1,0 +1,393 @@
+"""Seed a map from a ROS nav2 map: `map.yaml` and its image, as map_server loads them.
+
+The inverse of `export.nav2_files`: a fleet moving to fleetmap starts its shared map from the map
+it navigates with, and robots' scans then refine it. Every pixel gets the value nav2's map_server
+would publish for it in its `nav_msgs/OccupancyGrid`, and that value becomes the cell's log-odds.
+
+What map_server does (navigation2, nav2_map_server/src/map_io.cpp, `loadMapYaml` and
+`loadMapFromFile`; the mode names from map_mode.cpp's `map_mode_from_string`):
+
+- The YAML needs `image`, `resolution`, `origin` (three numbers: x, y, yaw of the image's lower-left
+  pixel corner), `occupied_thresh`, `free_thresh` and `negate` (an integer, non-zero is true, or a
+  boolean); `mode` is `trinary` (the default when absent), `scale` or `raw`, in any case.
+- Row 0 of the image is its top: pixel `(x, y)` is written to `data[width * (height - y - 1) + x]`,
+  so the top row is the highest y.
+- A pixel's `shade` is the mean of its red, green and blue channels on a 0..1 scale (for a grey
+  pixel of value v, v / 255); in trinary mode, an image with an alpha channel also averages in its
+  alpha (255 opaque), "to preserve existing behaviour": shade = (3 v + alpha) / 1020.
+  `occ = shade` if negate, else `1.0 - shade` (computed so, in double: not `(255 - v) / 255`,
+  which rounds differently exactly at a threshold such as 0.2 for v = 204).
+- trinary: `occupied_thresh < occ` is occupied (100), else `occ < free_thresh` is free (0), else
+  unknown (-1). Both comparisons are strict: a pixel exactly at a threshold is unknown.
+- scale: a pixel that is not fully opaque is unknown; else occupied and free as in trinary, and in
+  between `rint((occ - free_thresh) / (occupied_thresh - free_thresh) * 100)`. There is no special
+  grey value: 205, trinary's unknown, is a value like any other (0 with the usual thresholds).
+- raw: `round(shade * 255)`, the pixel value itself, if it is 0..100, else unknown; negate and the
+  thresholds are read but not used.
+
+The published value m (0..100, or unknown) is an occupancy probability in percent
+(`nav_msgs/OccupancyGrid`): the cell's log-odds is `logit(m / 100)` clamped to the map's
+`[l_min, l_max]`, so occupied (100) is `l_max`, free (0) `l_min`, and unknown stays unknown (NaN).
+In trinary mode that is all there is; in scale mode it is the published percentage, not the
+pixel's own `occ`, that becomes the probability: the map robots navigated with is what is seeded.
+
+Limits (`Nav2ImportError` names what is wrong; nothing is created): a yaw other than 0 (a rotated
+image is not on the map's axis-aligned cells), an origin that is not on the map's cell grid (within
+1e-6 of a cell edge), a resolution other than the configuration's, images that are not 8-bit grey
+(grey with alpha, and RGB / RGBA whose channels are equal everywhere, as map_saver writes scale
+maps, are grey), images over MAX_IMAGE_SIDE on a side or MAX_IMAGE_PIXELS in all, more tiles than
+the map's `max_tiles`. Tiles are created only where a cell is known; every layer but occupancy
+stays unknown. Pixel values are mapped through a table of their 256 (or 256 x 256 with alpha)
+possible values, and each tile is written with one numpy gather.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import posixpath
+import zipfile
+import zlib
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+from PIL import Image
+from pydantic import ValidationError
+
+from fleetmap.config import MAX_COORDINATE, MapConfig
+from fleetmap.grid_map import GridMap
+from fleetmap.tiles import TileKey, layer_arrays, tile_bytes
+
+#: Bounds of an imported image: its sides, and its pixels in all (64 Mi: 1024 tiles of 256 x 256).
+#: The total stays under Pillow's own decompression-bomb bound (89 Mi pixels), past which it warns:
+#: silencing that warning would change the process's warning filters from a worker thread.
+MAX_IMAGE_SIDE = 16384
+MAX_IMAGE_PIXELS = 1 << 26
+#: The most bytes the YAML file and the image file may hold (decompressed, in a zip).
+MAX_YAML_BYTES = 64 * 1024
+MAX_IMAGE_FILE_BYTES = MAX_IMAGE_PIXELS * 4 + (1 << 20)
+#: How far `origin / resolution` may be from an integer and still be on the cell grid, in cells.
+GRID_TOLERANCE = 1e-6
+#: How far the YAML's resolution may be from the configuration's, relative.
+RESOLUTION_TOLERANCE = 1e-9
+
+Nav2Mode = Literal["trinary", "scale", "raw"]
+NAV2_MODES: tuple[Nav2Mode, ...] = ("trinary", "scale", "raw")
+#: map_server's OccupancyGrid values (nav2_util/occ_grid_values.hpp).
+OCC_GRID_UNKNOWN, OCC_GRID_FREE, OCC_GRID_OCCUPIED = -1, 0, 100
+
+#: Pillow's image modes that are not 8-bit grey, in words.
+_MODE_WORDS = {
+    "1": "a 1-bit black and white", "P": "a palette (indexed colour)", "PA": "a palette with alpha",
+    "I;16": "a 16-bit grey", "I;16B": "a 16-bit grey", "I": "a 32-bit integer", "F": "a floating-point",
+    "CMYK": "a CMYK", "LAB": "a Lab colour",
+}  # fmt: skip
+
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError)
+
+
+class Nav2ImportError(ValueError):
+    """Why a nav2 map cannot be imported; nothing was created. `status` is 413 for a file or an
+    image past a size limit, 415 for bytes that are not a zip at all, 507 for tiles the memory
+    budget has no room for, else 422."""
+
+    def __init__(self, message: str, status: int = 422) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass(frozen=True)
+class Nav2Meta:
+    """The fields of a map_server YAML file that a load uses (see the module's docstring)."""
+
+    image: str
+    resolution: float
+    origin: tuple[float, float, float]
+    occupied_thresh: float
+    free_thresh: float
+    negate: bool
+    mode: Nav2Mode
+
+
+def _number(doc: dict[str, Any], key: str) -> float:
+    if key not in doc:
+        raise Nav2ImportError(f"map.yaml has no {key!r}")
+    value = doc[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise Nav2ImportError(f"map.yaml {key!r} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
+    """The fields of a map_server YAML file, checked; `Nav2ImportError` naming the field at fault."""
+    if len(text) > MAX_YAML_BYTES:
+        raise Nav2ImportError(f"map.yaml is {len(text)} bytes, more than the limit of {MAX_YAML_BYTES}", 413)
+    try:
+        doc = yaml.safe_load(text)
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        raise Nav2ImportError(f"map.yaml is not valid YAML: {exc}") from None
+    if not isinstance(doc, dict):
+        raise Nav2ImportError(f"map.yaml must hold a mapping of fields, not a {type(doc).__name__}")
+    image = doc.get("image")
+    if not isinstance(image, str) or not image:
+        raise Nav2ImportError(f"map.yaml 'image' must name the image file, got {image!r}")
+    resolution = _number(doc, "resolution")
+    if resolution <= 0:
+        raise Nav2ImportError(f"map.yaml 'resolution' must be positive, got {resolution!r}")
+    origin = doc.get("origin")
+    if not isinstance(origin, list) or len(origin) != 3:
+        raise Nav2ImportError(f"map.yaml 'origin' must be a list of 3 numbers [x, y, yaw], got {origin!r}")
+    x, y, yaw = (_number({"origin": v}, "origin") for v in origin)
+    occupied, free = _number(doc, "occupied_thresh"), _number(doc, "free_thresh")
+    # map_server reads any thresholds; map_saver refuses these (checkSaveParameters), and scale
+    # mode divides by their difference.
+    if not 0.0 <= free < occupied <= 1.0:
+        raise Nav2ImportError(
+            f"map.yaml thresholds must satisfy 0 <= free_thresh < occupied_thresh <= 1, got free_thresh "
+            f"{free!r}, occupied_thresh {occupied!r}"
+        )
+    if "negate" not in doc:
+        raise Nav2ImportError("map.yaml has no 'negate'")
+    negate = doc["negate"]
+    if not isinstance(negate, (bool, int)):
+        raise Nav2ImportError(f"map.yaml 'negate' must be an integer or a boolean, got {negate!r}")
+    mode = doc.get("mode", "trinary")
+    if not isinstance(mode, str) or mode.lower() not in NAV2_MODES:
+        raise Nav2ImportError(f"map.yaml 'mode' must be trinary, scale or raw, got {mode!r}")
+    lowered = NAV2_MODES[NAV2_MODES.index(mode.lower())]
+    return Nav2Meta(image, resolution, (x, y, yaw), occupied, free, bool(negate), lowered)
+
+
+def occupancy_grid_values(meta: Nav2Meta, with_alpha: bool) -> np.ndarray:
+    """map_server's OccupancyGrid value (int8: -1 unknown, else 0..100) of every pixel: indexed
+    `[value]`, or `[value, alpha]` for an image with an alpha channel (`with_alpha`)."""
+    levels = np.arange(256, dtype=np.float64)
+    v, alpha = np.meshgrid(levels, levels if with_alpha else [255.0], indexing="ij")
+    if not with_alpha:
+        v, alpha = v[:, 0], alpha[:, 0]
+    # The mean of r, g, b (and in trinary mode alpha) as a fraction of 255: 3 v + alpha over 4 x 255.
+    shade = (3.0 * v + alpha) / 1020.0 if meta.mode == "trinary" and with_alpha else v / 255.0
+    occ = shade if meta.negate else 1.0 - shade
+    out = np.full(v.shape, OCC_GRID_UNKNOWN, dtype=np.int8)
+    if meta.mode == "raw":
+        percent = np.round(shade * 255.0)
+        in_range = (percent >= OCC_GRID_FREE) & (percent <= OCC_GRID_OCCUPIED)
+        out[in_range] = percent[in_range].astype(np.int8)
+        return out
+    occupied = meta.occupied_thresh < occ
+    free = ~occupied & (occ < meta.free_thresh)
+    out[occupied] = OCC_GRID_OCCUPIED
+    out[free] = OCC_GRID_FREE
+    if meta.mode == "scale":
+        between = ~occupied & ~free
+        scaled = np.rint((occ - meta.free_thresh) / (meta.occupied_thresh - meta.free_thresh) * 100.0)
+        out[between] = scaled[between].astype(np.int8)
+        out[alpha != 255.0] = OCC_GRID_UNKNOWN
+    return out
+
+
+def log_odds_of_values(values: np.ndarray, l_min: float, l_max: float) -> np.ndarray:
+    """float32 log-odds of OccupancyGrid values: `logit(m / 100)` clamped to `[l_min, l_max]`, NaN
+    for unknown (-1)."""
+    p = np.clip(values, OCC_GRID_FREE, OCC_GRID_OCCUPIED).astype(np.float64) / 100.0  # unknown: below
+    with np.errstate(divide="ignore"):
+        lo = np.log(p) - np.log1p(-p)  # -inf at 0, +inf at 1: the clamp makes them l_min, l_max
+    lo = np.clip(lo, l_min, l_max)
+    lo[values == OCC_GRID_UNKNOWN] = np.nan
+    return lo.astype(np.float32)
+
+
+def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.ndarray | None]:
+    """The grey values (uint8, row 0 = the image's top) and the alpha channel (None without one) of
+    a PGM or PNG image; `Nav2ImportError` saying what it is when it is not 8-bit grey, or too big."""
+    try:
+        im = Image.open(io.BytesIO(data), formats=["PNG", "PPM"])  # reads the header only
+    except Image.DecompressionBombError as exc:
+        raise Nav2ImportError(f"{name} is too large: {exc}", 413) from None
+    except (OSError, ValueError, SyntaxError) as exc:  # Pillow's UnidentifiedImageError is an OSError
+        raise Nav2ImportError(f"{name} is not a PGM or PNG image ({exc})") from None
+    with im:
+        w, h = im.size
+        if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE or w * h > MAX_IMAGE_PIXELS:
+            raise Nav2ImportError(
+                f"{name} is {w} x {h} pixels: at most {MAX_IMAGE_SIDE} on a side and {MAX_IMAGE_PIXELS} "
+                "in all are imported", 413,
+            )  # fmt: skip
+        if w == 0 or h == 0:
+            raise Nav2ImportError(f"{name} is empty ({w} x {h} pixels)")
+        if im.mode not in ("L", "LA", "RGB", "RGBA"):
+            kind = _MODE_WORDS.get(im.mode, "an unsupported")
+            raise Nav2ImportError(f"{name} is {kind} image (mode {im.mode}): only 8-bit grey images are read")
+        if "transparency" in im.info:
+            raise Nav2ImportError(
+                f"{name} marks a transparent colour (a tRNS chunk): save it with an alpha channel instead"
+            )
+        try:
+            pixels = np.asarray(im)
+        except (OSError, ValueError, SyntaxError, zlib.error) as exc:
+            raise Nav2ImportError(f"{name} cannot be decoded (the file is corrupt): {exc}") from None
+    if im.mode == "L":
+        return pixels, None
+    if im.mode == "LA":
+        return np.ascontiguousarray(pixels[:, :, 0]), np.ascontiguousarray(pixels[:, :, 1])
+    grey = pixels[:, :, 0]
+    colour = (pixels[:, :, 1] != grey) | (pixels[:, :, 2] != grey)
+    if colour.any():
+        y, x = (int(k) for k in np.argwhere(colour)[0])
+        channels = tuple(int(c) for c in pixels[y, x])
+        raise Nav2ImportError(
+            f"{name} is a colour image (mode {im.mode}): pixel ({x}, {y}) is {channels}; only 8-bit grey "
+            "images are read"
+        )
+    alpha = np.ascontiguousarray(pixels[:, :, 3]) if im.mode == "RGBA" else None
+    return np.ascontiguousarray(grey), alpha
+
+
+def _grid_index(value: float, resolution: float, what: str) -> int:
+    cells = value / resolution
+    nearest = round(cells)
+    if abs(cells - nearest) > GRID_TOLERANCE:
+        raise Nav2ImportError(
+            f"map.yaml origin {what} {value!r} is not on the map's cell grid: it is {cells:.9g} cells of "
+            f"{resolution!r} m from 0, {abs(cells - nearest):.3g} cells off the nearest cell edge "
+            f"({nearest * resolution:.9g} m); only maps whose origin is on the grid are imported"
+        )
+    return int(nearest)
+
+
+def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | None) -> MapConfig:
+    if config is not None:
+        if not math.isclose(meta.resolution, config.resolution, rel_tol=RESOLUTION_TOLERANCE):
+            raise Nav2ImportError(
+                f"map.yaml resolution {meta.resolution!r} m differs from the map configuration's "
+                f"{config.resolution!r} m"
+            )
+    else:
+        base = (defaults or MapConfig()).model_dump()
+        try:
+            config = MapConfig.model_validate({**base, "resolution": meta.resolution})
+        except ValidationError as exc:
+            problems = "; ".join(e["msg"] for e in exc.errors(include_url=False))
+            raise Nav2ImportError(f"map.yaml resolution {meta.resolution!r}: {problems}") from None
+    if not config.has("occupancy"):
+        raise Nav2ImportError(
+            f"the map configuration keeps no occupancy layer (layers {config.layers}): a nav2 map seeds it"
+        )
+    return config
+
+
+def map_from_nav2(
+    yaml_text: str | bytes, image: bytes, config: MapConfig | None = None, defaults: MapConfig | None = None,
+    free_bytes: int | None = None, image_name: str | None = None,
+) -> GridMap:  # fmt: skip
+    """A new map holding a nav2 map_server map (the YAML text and the image file's bytes), read
+    as map_server reads it (see the module's docstring).
+
+    `config`: the new map's configuration, whose resolution must be the YAML's; without it,
+    `defaults` (or the default configuration) with the YAML's resolution. The occupancy layer gets
+    the map; the configuration's other layers stay unknown. With `free_bytes`, tiles needing more
+    memory are refused (507) before anything is allocated. Raises `Nav2ImportError`."""
+    meta = parse_nav2_yaml(yaml_text)
+    ox, oy, yaw = meta.origin
+    if yaw != 0.0:
+        raise Nav2ImportError(
+            f"map.yaml origin yaw is {yaw!r} rad: only maps with yaw 0 (an image aligned with the map's "
+            "axes) are imported"
+        )
+    config = _map_config(meta, config, defaults)
+    res = config.resolution
+    i0, j0 = _grid_index(ox, res, "x"), _grid_index(oy, res, "y")
+    grey, alpha = read_image(image, image_name or meta.image)
+    h, w = grey.shape
+    if max(abs(i0), abs(i0 + w), abs(j0), abs(j0 + h)) * res > MAX_COORDINATE:
+        raise Nav2ImportError(
+            f"the map reaches beyond the +-{MAX_COORDINATE:g} m the service accepts (origin {ox!r}, {oy!r})"
+        )
+    values = occupancy_grid_values(meta, alpha is not None)
+    _, _, l_min, l_max = config.occupancy.resolved()
+    lut = log_odds_of_values(values, l_min, l_max)
+    known_lut = values != OCC_GRID_UNKNOWN
+    # Row 0 of the image is its top (the highest y): flipped, row 0 is j0, as the map's arrays are.
+    index: tuple[np.ndarray, ...] = (grey[::-1],) if alpha is None else (grey[::-1], alpha[::-1])
+    t, s = config.tile_size, config.tile_size.bit_length() - 1
+    windows: list[tuple[TileKey, slice, slice, slice, slice]] = []
+    for tj in range(j0 >> s, ((j0 + h - 1) >> s) + 1):
+        gj0, gj1 = max(j0, tj * t), min(j0 + h, (tj + 1) * t)
+        rows = slice(gj0 - j0, gj1 - j0)
+        for ti in range(i0 >> s, ((i0 + w - 1) >> s) + 1):
+            gi0, gi1 = max(i0, ti * t), min(i0 + w, (ti + 1) * t)
+            cols = slice(gi0 - i0, gi1 - i0)
+            if known_lut[tuple(a[rows, cols] for a in index)].any():  # a tile only where a cell is known
+                local = (slice(gj0 - tj * t, gj1 - tj * t), slice(gi0 - ti * t, gi1 - ti * t))
+                windows.append(((ti, tj), rows, cols, *local))
+    if len(windows) > config.max_tiles:
+        raise Nav2ImportError(
+            f"the map needs {len(windows)} tiles of {t} x {t} cells, more than the configuration's "
+            f"max_tiles {config.max_tiles}"
+        )
+    needed = len(windows) * (tile_bytes(t, layer_arrays(config.layers)) + 8)  # and each tile's version
+    if free_bytes is not None and needed > free_bytes:
+        raise Nav2ImportError(
+            f"the map's {len(windows)} tiles need {needed} bytes, more than the {max(free_bytes, 0)} the "
+            "memory budget (--max-memory) leaves", 507,
+        )  # fmt: skip
+    gmap = GridMap(config)
+    gmap.store.create([key for key, *_ in windows])  # every cell of every layer unknown, versioned
+    pool = gmap.store.pools["log_odds"]
+    for key, rows, cols, local_rows, local_cols in windows:
+        pool[gmap.store.slots[key], local_rows, local_cols] = lut[tuple(a[rows, cols] for a in index)]
+    return gmap
+
+
+def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> bytes:
+    if info.file_size > limit:
+        raise Nav2ImportError(
+            f"{info.filename} is {info.file_size} bytes decompressed, more than the limit of {limit}", 413
+        )
+    if info.flag_bits & 0x1:
+        raise Nav2ImportError(f"{info.filename} in the zip is encrypted")
+    try:
+        with zf.open(info) as fp:
+            data = fp.read(limit + 1)
+    except _ZIP_ERRORS as exc:
+        raise Nav2ImportError(f"{info.filename} cannot be read from the zip (it is corrupt): {exc}") from None
+    if len(data) > limit:
+        raise Nav2ImportError(f"{info.filename} holds more than the limit of {limit} bytes", 413)
+    return data
+
+
+def map_from_nav2_zip(
+    data: bytes, config: MapConfig | None = None, defaults: MapConfig | None = None,
+    free_bytes: int | None = None,
+) -> GridMap:  # fmt: skip
+    """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and the image it
+    names, which must be a plain file name beside it in the zip (no folder, no `..`, no absolute
+    path): what `GET /maps/{id}/export?format=ros` gives. Raises `Nav2ImportError`."""
+    try:
+        zf = zipfile.ZipFile(io.BytesIO(data))
+    except (*_ZIP_ERRORS, ValueError) as exc:
+        raise Nav2ImportError(f"the body is not a zip file ({exc})", 415) from None
+    with zf:
+        infos = [i for i in zf.infolist() if not i.is_dir()]
+        yamls = [i for i in infos if i.filename.lower().endswith((".yaml", ".yml"))]
+        if len(yamls) != 1:
+            named = ", ".join(i.filename for i in yamls) or "none"
+            raise Nav2ImportError(
+                f"the zip must hold exactly one .yaml file, it holds {len(yamls)} ({named})"
+            )
+        meta = parse_nav2_yaml(_zip_member(zf, yamls[0], MAX_YAML_BYTES))
+        name = meta.image
+        if name in (".", "..") or "/" in name or "\\" in name or "\0" in name:
+            raise Nav2ImportError(
+                f"map.yaml 'image' {name!r} is not a plain file name: the image must lie beside the YAML "
+                "file in the zip"
+            )
+        path = posixpath.join(posixpath.dirname(yamls[0].filename), name)
+        found = [i for i in infos if i.filename == path]
+        if not found:
+            raise Nav2ImportError(f"map.yaml names the image {name!r}, which is not in the zip")
+        image = _zip_member(zf, found[0], MAX_IMAGE_FILE_BYTES)
+        yaml_text = _zip_member(zf, yamls[0], MAX_YAML_BYTES)
+    return map_from_nav2(yaml_text, image, config, defaults, free_bytes, image_name=name)

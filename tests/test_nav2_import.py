@@ -1,0 +1,519 @@
+"""Seeding a map from a ROS nav2 map (`fleetmap.nav2_import`, `PUT /maps/{id}/import`): map_server's
+pixel rules per value and mode, the geometry, every refusal, and the REST route on the real service
+(status codes, cells, auth, a restart) and the Python client."""
+
+from __future__ import annotations
+
+import io
+import math
+import zipfile
+import zlib
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from fleetmap_client.rest import FleetmapClient, FleetmapError
+from PIL import Image
+from service_process import ServiceProcess
+
+from fleetmap.config import MapConfig
+from fleetmap.datasets import load_dataset
+from fleetmap.export import known_window, nav2_files, pgm_bytes
+from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap
+from fleetmap.nav2_import import (
+    MAX_IMAGE_SIDE,
+    Nav2ImportError,
+    map_from_nav2,
+    map_from_nav2_zip,
+)
+
+CONFIG = MapConfig(resolution=0.05)
+L_MIN, L_MAX = (float(np.float32(v)) for v in CONFIG.occupancy.resolved()[2:])
+READ, WRITE = "read-token-0123456789", "write-token-0123456789"
+
+
+def nav2_yaml(image: str = "map.pgm", **fields: object) -> str:
+    """A map_server YAML: map_server's usual fields, overridden (or dropped, with None) by `fields`."""
+    values: dict[str, object] = {
+        "image": image, "mode": "trinary", "resolution": 0.05, "origin": "[0.0, 0.0, 0.0]", "negate": 0,
+        "occupied_thresh": 0.65, "free_thresh": 0.196,
+    }  # fmt: skip
+    values.update(fields)
+    return "".join(f"{key}: {value}\n" for key, value in values.items() if value is not None)
+
+
+def png(pixels: np.ndarray) -> bytes:
+    """A PNG of `pixels`, in the mode its shape and dtype say (uint16: 16-bit grey; 2 channels: LA)."""
+    buf = io.BytesIO()
+    Image.fromarray(pixels).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def nav2_zip(yaml_text: str, files: dict[str, bytes], yaml_name: str = "map.yaml") -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        zf.writestr(yaml_name, yaml_text)
+        for name, data in files.items():
+            zf.writestr(name, data)
+    return buf.getvalue()
+
+
+def row_map(values: list[int], **fields: object) -> GridMap:
+    """A map of one image row of `values` (cells (0, 0), (1, 0), ...), as a PGM."""
+    return map_from_nav2(nav2_yaml(**fields), pgm_bytes(np.array([values], dtype=np.uint8)), CONFIG)
+
+
+def log_odds_row(gmap: GridMap, n: int) -> np.ndarray:
+    return gmap.region("log_odds", 0, 0, n, 1)[0]
+
+
+def logit_clamped(percent: float) -> float:
+    p = percent / 100.0
+    value = -math.inf if p == 0 else math.inf if p == 1 else math.log(p / (1 - p))
+    return float(np.float32(min(max(value, L_MIN), L_MAX)))
+
+
+# -- map_server's pixel rules ------------------------------------------------------------------------
+
+
+def test_trinary_pixels_by_value_with_strict_thresholds_as_map_server_computes_them() -> None:
+    """occ = 1.0 - v / 255 in double, occupied if occ > occupied_thresh, free if occ < free_thresh.
+    0.6 and 0.2 are thresholds some pixels hit exactly: v = 102 gives occ == 0.6 (not occupied:
+    strict), and v = 204 gives 1.0 - 0.8 = 0.19999999999999996 < 0.2, free (where (255 - v) / 255
+    would say 0.2, unknown: map_server's arithmetic decides)."""
+    values = [0, 101, 102, 150, 203, 204, 205, 254, 255]
+    gmap = row_map(values, occupied_thresh=0.6, free_thresh=0.2)
+    got = log_odds_row(gmap, len(values))
+    nan = math.nan
+    want = [L_MAX, L_MAX, nan, nan, nan, L_MIN, L_MIN, L_MIN, L_MIN]
+    np.testing.assert_array_equal(got, np.array(want, dtype=np.float32))
+    # With map_server's usual thresholds, 205 (map_saver's unknown) is unknown, 254 free, 0 occupied.
+    usual = log_odds_row(row_map([0, 205, 254]), 3)
+    np.testing.assert_array_equal(usual, np.array([L_MAX, nan, L_MIN], dtype=np.float32))
+    state = gmap.region("state", 0, 0, len(values), 1)[0]
+    assert list(state[:3]) == [STATE_OCCUPIED, STATE_OCCUPIED, STATE_UNKNOWN]
+    assert state[-1] == STATE_FREE
+
+
+def test_negate_reads_dark_pixels_as_free() -> None:
+    got = log_odds_row(row_map([0, 205, 255, 100], negate=1), 4)
+    # occ = v / 255: 0 free, 205 (0.80) and 255 occupied, 100 (0.39) in between: unknown.
+    np.testing.assert_array_equal(got, np.array([L_MIN, L_MAX, L_MAX, math.nan], dtype=np.float32))
+    assert np.array_equal(
+        log_odds_row(row_map([0, 255], negate="true"), 2), log_odds_row(row_map([0, 255], negate=1), 2)
+    )
+
+
+def test_scale_mode_publishes_the_rescaled_percentage_and_has_no_unknown_grey() -> None:
+    """Between the thresholds, map_server publishes rint((occ - free) / (occ_t - free) * 100) percent;
+    that probability, clamped, is the cell. 205 is a grey like any other (0 % here: free)."""
+    values = [0, 80, 150, 180, 205, 254]
+    got = log_odds_row(row_map(values, mode="scale"), len(values))
+    want = []
+    for v in values:
+        occ = 1.0 - v / 255.0
+        if occ > 0.65:
+            want.append(L_MAX)
+        elif occ < 0.196:
+            want.append(L_MIN)
+        else:
+            want.append(logit_clamped(float(np.rint((occ - 0.196) / (0.65 - 0.196) * 100.0))))
+    np.testing.assert_array_equal(got, np.array(want, dtype=np.float32))
+    assert L_MIN < got[2] < L_MAX and got[2] != 0.0  # 150 is 48 %: a known cell in between
+    assert got[4] == L_MIN  # 205 is 0 %: map_server publishes free
+    assert log_odds_row(row_map([205], mode="SCALE"), 1)[0] == L_MIN  # mode names in any case
+
+
+def test_scale_mode_reads_transparent_pixels_as_unknown() -> None:
+    grey = np.array([[0, 0, 254, 128]], dtype=np.uint8)
+    alpha = np.array([[255, 0, 254, 255]], dtype=np.uint8)
+    image = png(np.dstack([grey, alpha]))
+    gmap = map_from_nav2(nav2_yaml("map.png", mode="scale"), image, CONFIG)
+    got = log_odds_row(gmap, 4)
+    assert got[0] == L_MAX and math.isnan(got[1]) and math.isnan(got[2])
+    assert got[3] == logit_clamped(float(np.rint(((1 - 128 / 255) - 0.196) / (0.65 - 0.196) * 100)))
+
+
+def test_trinary_mode_averages_alpha_in_as_map_server_does() -> None:
+    """With an alpha channel, trinary's shade is (r + g + b + alpha) / 4: an opaque 205 is free."""
+    grey = np.array([[0, 205, 205, 254]], dtype=np.uint8)
+    alpha = np.array([[255, 255, 0, 255]], dtype=np.uint8)
+    for image in (png(np.dstack([grey, alpha])), png(np.dstack([grey, grey, grey, alpha]))):
+        got = log_odds_row(map_from_nav2(nav2_yaml("map.png"), image, CONFIG), 4)
+        # occ: 1 - (0 + 255) / 1020 = 0.75; 1 - 870 / 1020 = 0.147; 1 - 615 / 1020 = 0.397; 0.004.
+        np.testing.assert_array_equal(got, np.array([L_MAX, L_MIN, math.nan, L_MIN], dtype=np.float32))
+
+
+def test_raw_mode_takes_the_pixel_value_as_percent() -> None:
+    got = log_odds_row(row_map([0, 50, 100, 101, 255], mode="raw", negate=1), 5)
+    np.testing.assert_array_equal(got[:3], np.array([L_MIN, 0.0, L_MAX], dtype=np.float32))
+    assert np.isnan(got[3:]).all()  # past 100: unknown; negate is ignored in raw mode
+
+
+def test_geometry_row_order_negative_origin_png_and_pgm() -> None:
+    """Row 0 of the image is the top (highest y); the origin is the lower-left corner of the
+    bottom-left pixel, here on the grid at negative coordinates; PNG and PGM read alike."""
+    pixels = np.full((3, 4), 205, dtype=np.uint8)
+    pixels[0, 0] = 0  # top-left: occupied
+    pixels[2, 3] = 254  # bottom-right: free
+    yaml_text = nav2_yaml("map.png", origin="[-1.5, -0.75, 0.0]")
+    from_png = map_from_nav2(yaml_text, png(pixels), CONFIG)
+    from_pgm = map_from_nav2(yaml_text.replace("map.png", "map.pgm"), pgm_bytes(pixels), CONFIG)
+    for gmap in (from_png, from_pgm):
+        # Bottom-left cell is (-30, -15); the image spans i -30..-27, j -15..-13.
+        assert gmap.known_bounds() == (-30, -15, -26, -12)
+        cells = gmap.cells([[-1.5 + 0.025, -0.75 + 2 * 0.05 + 0.025], [-1.5 + 3 * 0.05 + 0.025, -0.725]])
+        assert list(cells["state"]) == [STATE_OCCUPIED, STATE_FREE]
+        assert int(np.isfinite(gmap.region("log_odds", -30, -15, -26, -12)).sum()) == 2
+    assert np.array_equal(
+        from_png.region("log_odds", -40, -20, 0, 0),
+        from_pgm.region("log_odds", -40, -20, 0, 0),
+        equal_nan=True,
+    )
+
+
+def test_tiles_only_where_a_cell_is_known_with_versions_and_other_layers_unknown() -> None:
+    pixels = np.full((300, 600), 205, dtype=np.uint8)  # three tiles wide, two high at 256 cells
+    pixels[-1, 0] = 0  # bottom-left: tile (0, 0)
+    pixels[0, 599] = 254  # top-right: tile (2, 1)
+    gmap = map_from_nav2(nav2_yaml(), pgm_bytes(pixels), CONFIG)
+    assert sorted(gmap.store.keys) == [(0, 0), (2, 1)]
+    versions = [gmap.store.version(key) for key in gmap.store.keys]
+    assert all(v is not None and v > 0 for v in versions) and len(set(versions)) == 2
+    for layer in ("hits", "misses", "tsdf_weight"):  # the configuration's other layers: unknown
+        assert not gmap.region(layer, 0, 0, 600, 300).any()
+    empty = map_from_nav2(nav2_yaml(), pgm_bytes(np.full((10, 10), 205, dtype=np.uint8)), CONFIG)
+    assert len(empty.store) == 0
+
+
+def test_without_a_configuration_the_default_takes_the_yaml_resolution() -> None:
+    gmap = map_from_nav2(
+        nav2_yaml(resolution=0.1, origin="[0.3, -0.2, 0]"), pgm_bytes(np.zeros((2, 2), np.uint8))
+    )
+    assert gmap.resolution == 0.1 and gmap.known_bounds() == (3, -2, 5, 0)
+    base = MapConfig(layers=["occupancy"], max_tiles=7)
+    gmap = map_from_nav2(nav2_yaml(resolution=0.1), pgm_bytes(np.zeros((2, 2), np.uint8)), defaults=base)
+    assert gmap.config.layers == ["occupancy"] and gmap.config.max_tiles == 7 and gmap.resolution == 0.1
+
+
+# -- the round trip of fleetmap's own export ---------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def intel_map() -> GridMap:
+    from service_process import DATASETS_DIR
+
+    path = DATASETS_DIR / "intel-corrected.log.gz"
+    if not path.is_file():
+        pytest.skip(f"shared datasets not found: {path} is missing")
+    gmap = GridMap(MapConfig(resolution=0.05, layers=["occupancy", "counts"]))
+    for scan in load_dataset(path, range_max=8.0):
+        gmap.integrate(scan)
+    return gmap
+
+
+def test_the_intel_map_exported_and_imported_has_the_same_state_cell_for_cell(intel_map: GridMap) -> None:
+    window = known_window(intel_map, margin=2)
+    assert window is not None
+    files = nav2_files(intel_map, window)
+    imported = map_from_nav2(files["map.yaml"], files["map.pgm"], intel_map.config)
+    i0, j0, i1, j1 = window.i0, window.j0, window.i1, window.j1
+    want = intel_map.region("state", i0, j0, i1, j1)
+    got = imported.region("state", i0, j0, i1, j1)
+    assert (want == STATE_OCCUPIED).sum() > 10_000 and (want == STATE_FREE).sum() > 100_000
+    np.testing.assert_array_equal(got, want)
+    # The same origin and extent: exported again, the files are the same bytes.
+    assert nav2_files(imported, window) == files
+    bounds = imported.known_bounds()
+    assert bounds is not None and window.i0 <= bounds[0] and bounds[2] <= window.i1
+    assert window.j0 <= bounds[1] and bounds[3] <= window.j1
+
+
+# -- refusals ------------------------------------------------------------------------------------------
+
+PIXELS = pgm_bytes(np.zeros((2, 2), dtype=np.uint8))
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "message"),
+    [
+        (nav2_yaml(resolution=None), "map.yaml has no 'resolution'"),
+        (nav2_yaml(resolution="fine"), "'resolution' must be a finite number, got 'fine'"),
+        (nav2_yaml(resolution=-0.05), "'resolution' must be positive"),
+        (nav2_yaml(origin="[0.0, 0.0]"), "'origin' must be a list of 3 numbers"),
+        (nav2_yaml(origin="[0.0, .nan, 0.0]"), "'origin' must be a finite number"),
+        (nav2_yaml(origin="[0.0, 0.0, 0.1]"), "origin yaw is 0.1 rad: only maps with yaw 0"),
+        (
+            nav2_yaml(origin="[0.01, 0.0, 0.0]"),
+            "origin x 0.01 is not on the map's cell grid: it is 0.2 cells",
+        ),
+        (nav2_yaml(origin="[0.0, -0.0726, 0.0]"), "origin y -0.0726 is not on the map's cell grid"),
+        (nav2_yaml(occupied_thresh=0.1), "0 <= free_thresh < occupied_thresh <= 1"),
+        (nav2_yaml(free_thresh=None), "map.yaml has no 'free_thresh'"),
+        (nav2_yaml(negate=None), "map.yaml has no 'negate'"),
+        (nav2_yaml(negate="maybe"), "'negate' must be an integer or a boolean"),
+        (nav2_yaml(mode="fancy"), "'mode' must be trinary, scale or raw, got 'fancy'"),
+        (nav2_yaml(image=None), "'image' must name the image file"),
+        (nav2_yaml(resolution=0.1), "resolution 0.1 m differs from the map configuration's 0.05 m"),
+        ("[1, 2]", "map.yaml must hold a mapping of fields, not a list"),
+        ("image: [unclosed", "map.yaml is not valid YAML"),
+    ],
+)
+def test_a_bad_yaml_is_refused_naming_the_field(yaml_text: str, message: str) -> None:
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2(yaml_text, PIXELS, CONFIG)
+    assert message in str(caught.value) and caught.value.status == 422
+
+
+def test_the_off_grid_message_says_by_how_much() -> None:
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2(nav2_yaml(origin="[0.0, 1.001, 0.0]"), PIXELS, CONFIG)
+    assert "20.02 cells of 0.05 m from 0, 0.02 cells off the nearest cell edge (1 m)" in str(caught.value)
+    # Within 1e-6 cells of an edge is on it: a float's rounding.
+    assert map_from_nav2(
+        nav2_yaml(origin="[-20.200000000000003, 0.1, 0]"), PIXELS, CONFIG
+    ).known_bounds() == (-404, 2, -402, 4)
+
+
+@pytest.mark.parametrize(
+    ("image", "message", "status"),
+    [
+        (png(np.zeros((2, 2), np.uint16)), "is a 16-bit grey image (mode I;16)", 422),
+        (
+            png(np.array([[[0, 0, 0], [10, 20, 10]]], np.uint8)),
+            "colour image (mode RGB): pixel (1, 0) is (10, 20, 10)",
+            422,
+        ),
+        (b"P6\n1 1\n255\n\x00\x10\x00", "colour image (mode RGB): pixel (0, 0) is (0, 16, 0)", 422),
+        (b"GIF89a not an image", "is not a PGM or PNG image", 422),
+        (png(np.zeros((1, MAX_IMAGE_SIDE + 1), np.uint8)), f"is {MAX_IMAGE_SIDE + 1} x 1 pixels", 413),
+    ],
+)
+def test_images_that_are_not_8_bit_grey_or_too_big_are_refused(
+    image: bytes, message: str, status: int
+) -> None:
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2(nav2_yaml(), image, CONFIG)
+    assert message in str(caught.value) and caught.value.status == status
+
+
+def png_claiming(width: int, height: int) -> bytes:
+    """A 1 x 1 grey PNG whose header (IHDR, with a valid CRC) says `width` x `height`."""
+    data = bytearray(png(np.zeros((1, 1), np.uint8)))
+    at = data.index(b"IHDR")
+    data[at + 4 : at + 12] = width.to_bytes(4, "big") + height.to_bytes(4, "big")
+    data[at + 17 : at + 21] = zlib.crc32(bytes(data[at : at + 17])).to_bytes(4, "big")
+    return bytes(data)
+
+
+def test_an_image_past_the_pixel_bound_is_refused_from_its_header() -> None:
+    """8193 x 8193 is within the side bound but past 2**26 pixels: refused before any pixel is
+    decoded (the file holds one)."""
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2(nav2_yaml("map.png"), png_claiming(8193, 8193), CONFIG)
+    assert "is 8193 x 8193 pixels" in str(caught.value) and caught.value.status == 413
+
+
+def test_palette_and_bilevel_images_are_refused_saying_what_they_are() -> None:
+    palette = Image.new("P", (2, 2))
+    bilevel = Image.new("1", (2, 2))
+    for im, words in (
+        (palette, "a palette (indexed colour) image (mode P)"),
+        (bilevel, "1-bit black and white"),
+    ):
+        buf = io.BytesIO()
+        im.save(buf, format="PNG")
+        with pytest.raises(Nav2ImportError, match=r"only 8-bit grey images are read") as caught:
+            map_from_nav2(nav2_yaml(), buf.getvalue(), CONFIG)
+        assert words in str(caught.value)
+
+
+def test_more_tiles_than_max_tiles_or_than_the_memory_budget_is_refused_before_allocating() -> None:
+    pixels = pgm_bytes(np.zeros((1, 300), dtype=np.uint8))  # two tiles of 256
+    with pytest.raises(
+        Nav2ImportError, match="needs 2 tiles of 256 x 256 cells, more than the configuration's max_tiles 1"
+    ):
+        map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, max_tiles=1))
+    with pytest.raises(Nav2ImportError, match="more than the 1000 the memory budget") as caught:
+        map_from_nav2(nav2_yaml(), pixels, CONFIG, free_bytes=1000)
+    assert caught.value.status == 507
+    with pytest.raises(Nav2ImportError, match="keeps no occupancy layer"):
+        map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, layers=["counts"]))
+
+
+@pytest.mark.parametrize(
+    ("body", "message", "status"),
+    [
+        (b"not a zip", "the body is not a zip file", 415),
+        (
+            nav2_zip(nav2_yaml(), {"map.pgm": PIXELS, "other.yaml": b"image: x"}),
+            "exactly one .yaml file, it holds 2",
+            422,
+        ),
+        (nav2_zip(nav2_yaml(), {}, yaml_name="map.txt"), "exactly one .yaml file, it holds 0 (none)", 422),
+        (
+            nav2_zip(nav2_yaml("../map.pgm"), {"map.pgm": PIXELS}),
+            "'image' '../map.pgm' is not a plain file name",
+            422,
+        ),
+        (
+            nav2_zip(nav2_yaml("/etc/map.pgm"), {"map.pgm": PIXELS}),
+            "'/etc/map.pgm' is not a plain file name",
+            422,
+        ),
+        (nav2_zip(nav2_yaml("sub/map.pgm"), {"sub/map.pgm": PIXELS}), "is not a plain file name", 422),
+        (nav2_zip(nav2_yaml(".."), {}), "'..' is not a plain file name", 422),
+        (
+            nav2_zip(nav2_yaml("floor.pgm"), {"map.pgm": PIXELS}),
+            "names the image 'floor.pgm', which is not in the zip",
+            422,
+        ),
+    ],
+)
+def test_a_bad_zip_is_refused(body: bytes, message: str, status: int) -> None:
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2_zip(body, CONFIG)
+    assert message in str(caught.value) and caught.value.status == status
+
+
+def test_a_zip_with_the_yaml_in_a_folder_reads_the_image_beside_it() -> None:
+    body = nav2_zip(
+        nav2_yaml("map.pgm"), {"maps/map.pgm": PIXELS, "map.pgm": b"decoy"}, yaml_name="maps/site.yml"
+    )
+    assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
+
+
+# -- over HTTP ---------------------------------------------------------------------------------------
+
+
+def put_import(url: str, body: bytes, headers: dict[str, str] | None = None) -> httpx.Response:
+    return httpx.put(
+        f"{url}/import", params={"format": "ros"}, content=body,
+        headers={"content-type": "application/zip", **(headers or {})}, timeout=60,
+    )  # fmt: skip
+
+
+def cell_states(url: str, points: list[tuple[float, float]]) -> list[tuple[str, float | None]]:
+    out = []
+    for x, y in points:
+        r = httpx.get(f"{url}/cell", params={"x": x, "y": y}, timeout=10)
+        assert r.status_code == 200, r.text
+        out.append((r.json()["state"], r.json()["log_odds"]))
+    return out
+
+
+def test_import_over_http_creates_replaces_refuses_and_survives_a_restart(tmp_path: Path) -> None:
+    pixels = np.full((40, 30), 205, dtype=np.uint8)
+    pixels[5:10, 3:20] = 0
+    pixels[20:35, 2:28] = 254
+    pixels[12, 12] = 150
+    body = nav2_zip(
+        nav2_yaml("map.pgm", origin="[-0.5, -1.0, 0]", mode="scale"), {"map.pgm": pgm_bytes(pixels)}
+    )
+    engine = map_from_nav2_zip(body, defaults=MapConfig())
+    points = [
+        (-0.5 + (i + 0.5) * 0.05, -1.0 + (j + 0.5) * 0.05) for i in range(0, 30, 3) for j in range(0, 40, 3)
+    ]
+    points.append((-0.5 + 12.5 * 0.05, -1.0 + (40 - 12 - 0.5) * 0.05))  # the 48 % pixel
+    want = engine.cells(points)
+    svc = ServiceProcess(tmp_path).start()
+    data_dir = tmp_path / f"data-{svc.port}"
+    try:
+        url = f"{svc.base_url}/maps/site"
+        r = put_import(url, body)
+        assert r.status_code == 201, r.text
+        assert r.headers["location"] == "/maps/site" and r.json()["id"] == "site"
+        assert r.json()["stats"]["tiles"] == len(engine.store)
+        got = cell_states(url, points)
+        names = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
+        assert [s for s, _ in got] == [names[int(s)] for s in want["state"]]
+        for (_, log_odds), expected in zip(got, want["log_odds"], strict=True):
+            assert (log_odds is None and np.isnan(expected)) or log_odds == pytest.approx(
+                float(expected), abs=1e-6
+            )
+        assert {"occupied", "free", "unknown"} <= {s for s, _ in got}
+        assert put_import(url, body).status_code == 200  # replaced
+        # Refusals change nothing and create nothing.
+        r = put_import(
+            f"{svc.base_url}/maps/bad", nav2_zip(nav2_yaml(origin="[0, 0, 1.57]"), {"map.pgm": PIXELS})
+        )
+        assert r.status_code == 422 and "origin yaw is 1.57 rad" in r.json()["detail"], r.text
+        r = put_import(f"{svc.base_url}/maps/bad", b"not a zip")
+        assert r.status_code == 415 and "not a zip file" in r.json()["detail"]
+        r = httpx.put(f"{svc.base_url}/maps/bad/import", content=body, headers={"content-type": "text/plain"})
+        assert r.status_code == 415 and "Content-Type: application/zip" in r.json()["detail"]
+        r = put_import(f"{svc.base_url}/maps/bad", b"\0" * (17 << 20))
+        assert r.status_code == 413
+        r = httpx.put(
+            f"{svc.base_url}/maps/bad/import?format=png",
+            content=body,
+            headers={"content-type": "application/zip"},
+        )
+        assert r.status_code == 422
+        assert httpx.get(f"{svc.base_url}/maps/bad").status_code == 404
+        # A map replaced keeps its configuration: another resolution is refused, the map unchanged.
+        assert (
+            httpx.put(
+                f"{svc.base_url}/maps/fine", json={"resolution": 0.1, "layers": ["occupancy"]}
+            ).status_code
+            == 201
+        )
+        r = put_import(f"{svc.base_url}/maps/fine", body)
+        assert (
+            r.status_code == 422 and "resolution 0.05 m differs from the map configuration's 0.1 m" in r.text
+        )
+        r = put_import(f"{svc.base_url}/maps/fine", nav2_zip(nav2_yaml(resolution=0.1), {"map.pgm": PIXELS}))
+        assert r.status_code == 200 and r.json()["config"]["layers"] == ["occupancy"]
+        # fleetmap's own export goes back in as it came out.
+        exported = httpx.get(f"{url}/export", params={"format": "ros", "margin": 0}, timeout=30)
+        assert exported.status_code == 200
+        assert put_import(f"{svc.base_url}/maps/copy", exported.content).status_code == 201
+        again = httpx.get(
+            f"{svc.base_url}/maps/copy/export", params={"format": "ros", "margin": 0}, timeout=30
+        )
+        with (
+            zipfile.ZipFile(io.BytesIO(exported.content)) as a,
+            zipfile.ZipFile(io.BytesIO(again.content)) as b,
+        ):
+            assert {n: a.read(n) for n in a.namelist()} == {n: b.read(n) for n in b.namelist()}
+    finally:
+        assert svc.stop() == 0
+    restarted = ServiceProcess(tmp_path, ["--data-dir", str(data_dir)]).start()
+    try:
+        assert cell_states(f"{restarted.base_url}/maps/site", points) == got
+    finally:
+        restarted.stop()
+
+
+def test_import_needs_the_write_role(tmp_path: Path) -> None:
+    tokens = tmp_path / "tokens.txt"
+    tokens.write_text(f"read {READ}\nwrite {WRITE}\n")
+    body = nav2_zip(nav2_yaml(), {"map.pgm": PIXELS})
+    with ServiceProcess(tmp_path, ["--auth-tokens", str(tokens)]) as svc:
+        url = f"{svc.base_url}/maps/m"
+        assert put_import(url, body).status_code == 401
+        r = put_import(url, body, {"Authorization": f"Bearer {READ}"})
+        assert r.status_code == 403 and "'write'" in r.json()["detail"]
+        assert httpx.get(url).status_code == 404
+        assert put_import(url, body, {"Authorization": f"Bearer {WRITE}"}).status_code == 201
+
+
+def test_the_client_uploads_a_yaml_path_with_its_image_or_zip_bytes(tmp_path: Path) -> None:
+    (tmp_path / "maps" / "img").mkdir(parents=True)
+    pixels = np.full((4, 6), 254, dtype=np.uint8)
+    pixels[0, :] = 0
+    (tmp_path / "maps" / "img" / "floor.png").write_bytes(png(pixels))
+    yaml_path = tmp_path / "maps" / "floor.yaml"
+    yaml_path.write_text(nav2_yaml("img/floor.png", origin="[1.0, 2.0, 0.0]"))
+    with ServiceProcess(tmp_path) as svc, FleetmapClient(svc.base_url) as fm:
+        info = fm.import_nav2("floor", yaml_path)
+        assert info.id == "floor" and info.stats.tiles == 1
+        assert fm.cell("floor", 1.0 + 0.025, 2.0 + 3 * 0.05 + 0.025).state == "occupied"  # the top row
+        assert fm.cell("floor", 1.0 + 0.025, 2.0 + 0.025).state == "free"
+        assert fm.import_nav2("floor", str(yaml_path)).id == "floor"  # replaced
+        info = fm.import_nav2("zipped", nav2_zip(nav2_yaml(), {"map.pgm": PIXELS}))
+        assert info.stats.bounds == [0.0, 0.0, 0.1, 0.1]
+        with pytest.raises(FleetmapError) as caught:
+            fm.import_nav2("bad", nav2_zip(nav2_yaml(origin="[0.01, 0, 0]"), {"map.pgm": PIXELS}))
+        assert caught.value.status == 422 and "not on the map's cell grid" in str(caught.value)
