@@ -12,6 +12,10 @@ docs/benchmarks.md for what is measured and why; in short:
   applies every scan (its figures: `make bench-service`, and "where fleetmap's time goes" below).
 * OctoMap (PyPI `pyoctomap`): `OcTree.insertPointCloud` of the same beam end points (real returns
   only, z = 0) from the same sensor origin (z = 0) at the same resolution, with no range limit.
+* Ray casting (Intel): on the last timed maps of both engines, 360 rays of 10 m from every pose of
+  the log, fleetmap's `GridMap.cast_rays` (one call per pose) against OctoMap's `castRay` (one call
+  per ray, from Python) with the same occupancy threshold and unknown handling; rays/s of both, the
+  ratio, OctoMap's per-call floor, and per ray whether both stopped for the same reason in the same cell.
 * A cell update is one distinct cell changed by one scan (a hit beats a miss, each cell once per
   scan): fleetmap's `IntegrationResult.cell_updates`, and for OctoMap the leaves of a fresh tree
   holding only that scan (the size of the union of its free and occupied KeySets).
@@ -43,8 +47,9 @@ import numpy as np
 
 from fleetmap.config import LayerName, MapConfig, probability
 from fleetmap.datasets import load_dataset
-from fleetmap.grid_map import GridMap
+from fleetmap.grid_map import RAY_STATUS_NAMES, STATE_OCCUPIED, GridMap
 from fleetmap.kernels.fan_rows import trace_fan_rows
+from fleetmap.kernels.raycast import RAY_MAX_RANGE, RAY_OCCUPIED, RAY_UNKNOWN
 from fleetmap.kernels.traversal import exact_starts
 from fleetmap.scan import Scan
 from fleetmap.sim import FloorPlan, SimulatedRobot, generate_floorplan
@@ -497,6 +502,237 @@ def equivalence(gmap: GridMap, tree: object, rng_seed: int = 0) -> list[str]:
 
 
 # ----------------------------------------------------------------------------------------------
+# Ray casting (Intel)
+# ----------------------------------------------------------------------------------------------
+
+#: The rays cast from every pose of the Intel log: 360, one a degree, of 10 m.
+RAY_ANGLES = np.radians(np.arange(360.0))
+RAY_RANGE = 10.0
+#: z of OctoMap's ray origins: the centre of the z = 0 layer [0, res) that the scans' voxels lie in.
+RAY_Z = 0.5 * RES
+
+
+def ray_origins(scans: Sequence[Scan]) -> np.ndarray:
+    """The rays' origins: every pose of the log, (n, 2) metres."""
+    return np.array([(s.pose.x, s.pose.y) for s in scans], dtype=np.float64)
+
+
+def run_fleetmap_rays(gmap: GridMap, origins: np.ndarray, unknown: str) -> Run:
+    """One `GridMap.cast_rays` call of the `RAY_ANGLES` per origin; the answers kept."""
+
+    def go() -> tuple[int, int, object]:
+        out = [gmap.cast_rays(o, RAY_ANGLES, RAY_RANGE, unknown) for o in origins]
+        return len(out) * RAY_ANGLES.size, 0, out
+
+    return timed(go)
+
+
+def run_octomap_rays(tree: object, origins: np.ndarray, ignore_unknown: bool, max_range: float) -> Run:
+    """One `castRay(origin, direction, end, ignoreUnknownCells, maxRange)` call per ray, from Python.
+
+    The call returns whether the ray met an occupied voxel, and only then writes that voxel's centre
+    into `end`. Origins at z = `RAY_Z`, directions (cos a, sin a, 0): both built outside the timed
+    region, as are the `end` arrays; each origin's 360 end points are copied out once (the answers
+    kept: hit flags and centres)."""
+    dirs = [np.array([math.cos(a), math.sin(a), 0.0]) for a in RAY_ANGLES]
+    starts = [np.array([x, y, RAY_Z]) for x, y in origins]
+    buf = np.full((RAY_ANGLES.size, 3), np.nan)
+    ends = list(buf)  # row views: castRay writes into buf
+    cast = tree.castRay
+
+    def go() -> tuple[int, int, object]:
+        out = []
+        for start in starts:
+            hits = [cast(start, d, e, ignore_unknown, max_range) for d, e in zip(dirs, ends, strict=True)]
+            out.append((hits, buf.copy()))
+        return len(out) * RAY_ANGLES.size, 0, out
+
+    return timed(go)
+
+
+def ray_agreement(
+    gmap: GridMap,
+    tree: object,
+    origins: np.ndarray,
+    f_out: Sequence[object],
+    o_out: Sequence[object],
+    stop: bool,
+) -> list[str]:
+    """Per ray: did both engines stop for the same reason in the same cell? With the disagreements
+    classified (see docs/benchmarks.md, "Ray casting")."""
+    f_status = np.stack([r.status for r in f_out])
+    f_i = np.stack([r.i for r in f_out])
+    f_j = np.stack([r.j for r in f_out])
+    o_hit = np.array([h for h, _ in o_out], dtype=bool)
+    o_end = np.stack([e for _, e in o_out])
+    o_i = np.floor(np.nan_to_num(o_end[..., 0]) / RES).astype(np.int64)
+    o_j = np.floor(np.nan_to_num(o_end[..., 1]) / RES).astype(np.int64)
+    f_occ = f_status == RAY_OCCUPIED
+    same_hit = f_occ & o_hit & (f_i == o_i) & (f_j == o_j)
+    no_hit = ~f_occ & ~o_hit
+    agree = same_hit | no_hit
+    n = agree.size
+    lines = [
+        f"agreement: {int(agree.sum()):,d}/{n:,d} rays ({agree.mean():.4%}) stop for the same reason in "
+        f"the same cell: occupied, same cell {int(same_hit.sum()):,d}; no occupied cell in either "
+        f"{int(no_hit.sum()):,d}"
+    ]
+    if stop:
+        # pyoctomap gives no end point for a ray that met no occupied voxel, so where fleetmap stopped
+        # at an unknown cell the check is that OctoMap holds no node there either.
+        p, r = np.nonzero(no_hit & (f_status == RAY_UNKNOWN))
+        unknown_both = sum(
+            tree.search([(f_i[a, b] + 0.5) * RES, (f_j[a, b] + 0.5) * RES, RAY_Z]) is None
+            for a, b in zip(p, r, strict=True)
+        )
+        lines[0] += (
+            f" (fleetmap: max_range {int((no_hit & (f_status == RAY_MAX_RANGE)).sum()):,d}, unknown "
+            f"{p.size:,d}, of which OctoMap holds no node in that cell either: {unknown_both:,d})"
+        )
+    classes: dict[str, int] = {}
+    examples: list[str] = []  # the first ray of each class
+    for a, b in zip(*np.nonzero(~agree), strict=True):
+        why = ray_disagreement(gmap, tree, origins[a], float(RAY_ANGLES[b]), stop, o_hit[a, b], o_end[a, b])
+        if why not in classes:
+            f_cell = (int(f_i[a, b]), int(f_j[a, b]))
+            o_cell = (int(o_i[a, b]), int(o_j[a, b])) if o_hit[a, b] else None
+            examples.append(
+                f"pose {a}, {math.degrees(RAY_ANGLES[b]):.0f} deg: fleetmap "
+                f"{RAY_STATUS_NAMES[int(f_status[a, b])]} {f_cell}, OctoMap "
+                f"{'hit ' + str(o_cell) if o_cell else 'no hit'}: {why}"
+            )
+        classes[why] = classes.get(why, 0) + 1
+    if classes:
+        lines.append(
+            f"rays that differ: {int((~agree).sum())}: "
+            + "; ".join(f"{k}: {v}" for k, v in sorted(classes.items()))
+        )
+        lines += ["  e.g. " + e for e in examples]
+    return lines
+
+
+def ray_disagreement(
+    gmap: GridMap, tree: object, origin: np.ndarray, angle: float, stop: bool, o_hit: bool, o_end: np.ndarray
+) -> str:
+    """Why one ray's answers differ, tested in this order:
+
+    * 'float32 input': fleetmap, given the float32 origin and direction OctoMap computes with (its
+      point3d is float), gives OctoMap's answer: the ray passes within float32 rounding of a cell
+      corner, or the origin lies on a cell edge;
+    * 'range edge, entered within' / 'range edge, centre within': the occupied cell one engine stops
+      in is within `RAY_RANGE` by one engine's rule and not by the other's (OctoMap stops when a
+      voxel centre is farther than maxRange; fleetmap counts a cell the ray enters before
+      `RAY_RANGE`);
+    * 'cell state': the two maps classify that cell differently;
+    * 'other'."""
+    unknown = "stop" if stop else "pass"
+    o32 = origin.astype(np.float32).astype(np.float64)
+    c32, s32 = np.float32(math.cos(angle)), np.float32(math.sin(angle))
+    a32 = math.atan2(float(s32), float(c32))
+    r32 = gmap.cast_rays(o32, [a32], RAY_RANGE, unknown)
+    o_cell = (math.floor(o_end[0] / RES), math.floor(o_end[1] / RES)) if o_hit else (0, 0)
+    f32_hit = int(r32.status[0]) == RAY_OCCUPIED
+    if f32_hit == o_hit and (not o_hit or (int(r32.i[0]), int(r32.j[0])) == o_cell):
+        return "float32 input"
+    r = gmap.cast_rays(origin, [angle], RAY_RANGE, unknown)
+    cells = []
+    if int(r.status[0]) == RAY_OCCUPIED:
+        cells.append((int(r.i[0]), int(r.j[0])))
+    if o_hit:
+        cells.append(o_cell)
+    for i, j in cells:
+        cx, cy = (i + 0.5) * RES, (j + 0.5) * RES
+        centre_in = math.hypot(cx - origin[0], cy - origin[1]) <= RAY_RANGE
+        if centre_in != (ray_entry(origin, angle, i, j) < RAY_RANGE):
+            return "range edge, centre within" if centre_in else "range edge, entered within"
+        node = tree.search([cx, cy, RAY_Z])
+        o_occ = node is not None and tree.isNodeOccupied(node)
+        f_occ = int(gmap.cells([(cx, cy)])["state"][0]) == STATE_OCCUPIED
+        if o_occ != f_occ:
+            return "cell state"
+    return "other"
+
+
+def ray_entry(origin: np.ndarray, angle: float, i: int, j: int) -> float:
+    """Metres from `origin` along the ray at `angle` to where it enters cell (i, j) (slab method; the
+    cell is one the ray passes through)."""
+    t = 0.0
+    for o, d, k in ((float(origin[0]), math.cos(angle), i), (float(origin[1]), math.sin(angle), j)):
+        if d != 0.0:
+            t = max(t, ((k if d > 0 else k + 1) * RES - o) / d)
+    return t
+
+
+def print_rays(w: Workload, gmap: GridMap, tree: object, reps: int) -> None:
+    """Ray casting on the last timed Intel maps: fleetmap's `cast_rays` against OctoMap's `castRay`,
+    the same rays, repetitions interleaved; OctoMap's per-call floor; whether the answers agree."""
+    thresh = gmap.config.occupancy.occupied_thresh
+    tree.setOccupancyThres(thresh)
+    origins = ray_origins(w.scans)
+    n_rays = origins.shape[0] * RAY_ANGLES.size
+    print(
+        f"\nray casting on Intel (the last timed maps): {RAY_ANGLES.size} rays of {RAY_RANGE:.0f} m (one a "
+        f"degree) from each of the {origins.shape[0]} poses of the log = {n_rays:,d} rays; fleetmap one "
+        "cast_rays call per pose, OctoMap one castRay call per ray from Python"
+    )
+    print(
+        f"  occupied: fleetmap p > occupied_thresh {thresh}; OctoMap setOccupancyThres({thresh}), "
+        f"isNodeOccupied = log-odds >= {tree.getOccupancyThresLog():.6f}; OctoMap origins at z = {RAY_Z}"
+    )
+    # fleetmap's unknown= and the matching ignoreUnknownCells.
+    modes = [("stop", False), ("pass", True)]
+    settings: list[tuple[str, Callable[[], Run]]] = []
+    for unknown, ignore in modes:
+        settings += [
+            (f"fleetmap unknown={unknown}", lambda u=unknown: run_fleetmap_rays(gmap, origins, u)),
+            (
+                f"OctoMap ignoreUnknown={ignore}",
+                lambda i=ignore: run_octomap_rays(tree, origins, i, RAY_RANGE),
+            ),
+        ]
+    # Warm-up: load the ray kernel, touch castRay.
+    run_fleetmap_rays(gmap, origins[:4], "stop")
+    run_octomap_rays(tree, origins[:4], False, RAY_RANGE)
+    runs: dict[str, list[Run]] = {label: [] for label, _ in settings}
+    answers: dict[str, object] = {}
+    for _ in range(reps):
+        for label, fn in settings:
+            run = fn()
+            runs[label].append(run)
+            answers[label] = run.result
+            run.result = None
+    floor_s = run_octomap_rays(tree, origins, False, 1e-9).seconds
+    ms = {label: Measured(label, runs[label], n_rays) for label, _ in settings}
+    head = (
+        f"  {'engine / setting':27s} {'best s':>7s} {'median s':>8s} {'M rays/s best':>13s} "
+        f"{'M rays/s med':>12s} {'us/ray best':>11s} {'xOctoMap best':>13s} {'xOctoMap med':>12s} "
+        f"{'cpu/wall':>9s}"
+    )
+    print(head)
+    print("  " + "-" * (len(head) - 2))
+    for unknown, ignore in modes:
+        ref = ms[f"OctoMap ignoreUnknown={ignore}"]
+        for m in (ms[f"fleetmap unknown={unknown}"], ref):
+            lo, hi = m.cpu_wall
+            print(
+                f"  {m.label:27s} {m.best:7.3f} {m.median:8.3f} {fmt_rate(n_rays / m.best):>13s} "
+                f"{fmt_rate(n_rays / m.median):>12s} {m.best / n_rays * 1e6:11.3f} {ref.best / m.best:13.2f} "
+                f"{ref.median / m.median:12.2f} {lo:4.2f}-{hi:4.2f}"
+            )
+    ref = ms["OctoMap ignoreUnknown=False"]
+    print(
+        f"  OctoMap per-call floor (the same castRay calls with maxRange 1 nm: the wrapper, the call and "
+        f"one step, no walk): {floor_s:.3f} s = {floor_s / n_rays * 1e6:.3f} us a ray = "
+        f"{floor_s / ref.best:.1%} of OctoMap's best time (ignoreUnknown=False)"
+    )
+    for unknown, ignore in modes:
+        print(f"  agreement, unknown={unknown} / ignoreUnknown={ignore}:")
+        f_out, o_out = answers[f"fleetmap unknown={unknown}"], answers[f"OctoMap ignoreUnknown={ignore}"]
+        for line in ray_agreement(gmap, tree, origins, f_out, o_out, unknown == "stop"):
+            print("    " + line)
+
+
+# ----------------------------------------------------------------------------------------------
 # Where fleetmap's time goes
 # ----------------------------------------------------------------------------------------------
 
@@ -726,6 +962,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"  memory: fleetmap {gmap.memory_bytes() / 2**20:.1f} MiB (allocated tile pools), "
             f"OctoMap {tree.memoryUsage() / 2**20:.1f} MiB (memoryUsage())"
         )
+
+    if intel is not None and pyoctomap is not None:
+        print_rays(intel, kept[("intel", "fleetmap occupancy")], kept[("intel", "OctoMap lazy+final")], reps)
+    else:
+        print("\nskipped: ray casting against OctoMap's castRay (needs the Intel dataset and pyoctomap)")
 
     print(f"\ntotal benchmark time {time.perf_counter() - t_start:.0f} s. Figures vary on shared machines;")
     print("compare settings within one run, not across runs.")
