@@ -266,6 +266,53 @@ def test_a_bad_yaml_is_refused_naming_the_field(yaml_text: str, message: str) ->
     assert message in str(caught.value) and caught.value.status == 422
 
 
+#: Six levels of ten aliases: a list of 10**6 strings in 250 bytes (nine levels, 10**9, took the
+#: service's 18 GB; six fail fast without the fix).
+LAUGHS = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"{name}: &{name} [{', '.join([f'*{prev}'] * 10)}]\n" for prev, name in zip("abcde", "bcdef", strict=True)
+)
+
+
+@pytest.mark.parametrize("field", ["image", "resolution", "origin", "negate", "mode", "free_thresh"])
+def test_aliases_of_lists_are_refused_before_anything_walks_them(field: str) -> None:
+    """A billion laughs in any field: before, the error message's repr walked 10**9 strings (18 GB
+    of the service's memory, then the OOM killer)."""
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2(LAUGHS + nav2_yaml(**{field: "*f"}), PIXELS, CONFIG)
+    assert "an alias (*a) of a list or a mapping is not read" in str(caught.value)
+    assert caught.value.status == 422 and len(str(caught.value)) < 1000
+    # An alias of a scalar is read as its value.
+    gmap = map_from_nav2("r: &r 0.05\n" + nav2_yaml(resolution="*r"), PIXELS, CONFIG)
+    assert gmap.resolution == 0.05
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "message"),
+    [
+        (nav2_yaml(resolution="1" + "0" * 5000), "map.yaml holds a number Python does not read"),
+        (nav2_yaml(origin=f"[1{'0' * 400}, 0, 0]"), f"'origin' must be a finite number, got 1{'0' * 76}..."),
+        (
+            nav2_yaml(image="0x" + "f" * 5000),
+            "'image' must name the image file, got an integer of more",
+        ),
+        (nav2_yaml(origin="[1e999, 0, 0]"), "'origin' must be a finite number, got '1e999'"),
+    ],
+)
+def test_huge_numbers_are_refused_as_such_not_as_a_crash(yaml_text: str, message: str) -> None:
+    """Before: PyYAML's int() of 5000 digits (a ValueError), float() of a 400-digit integer (an
+    OverflowError) and the repr of a 6000-digit hex image name (a ValueError) were HTTP 500s."""
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2(yaml_text, PIXELS, CONFIG)
+    assert message in str(caught.value) and caught.value.status == 422
+
+
+def test_numbers_are_read_as_yaml_cpp_reads_them() -> None:
+    """map_server's yaml-cpp reads `1e-05` (as it writes a small origin) and `2.0e1` as numbers;
+    PyYAML's YAML 1.1 resolver leaves both strings, which were refused."""
+    gmap = map_from_nav2(nav2_yaml(resolution="5e-2", origin="[2.0e1, -1e-12, 0e0]"), PIXELS, CONFIG)
+    assert gmap.resolution == 0.05 and gmap.known_bounds() == (400, 0, 402, 2)
+
+
 def test_the_off_grid_message_says_by_how_much() -> None:
     with pytest.raises(Nav2ImportError) as caught:
         map_from_nav2(nav2_yaml(origin="[0.0, 1.001, 0.0]"), PIXELS, CONFIG)

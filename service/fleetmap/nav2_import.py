@@ -43,9 +43,12 @@ possible values, and each tile is written with one numpy gather.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import posixpath
+import re
+import sys
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -111,13 +114,58 @@ class Nav2Meta:
     mode: Nav2Mode
 
 
+class _MapYamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing an alias (`*name`) of a list or a mapping. PyYAML shares the
+    aliased object, so nested aliases ("billion laughs") build in a few bytes a structure whose
+    every walk (a `repr` in an error message, a comparison) visits 10**9 elements: it took a 600-byte
+    map.yaml and 18 GB of the service's memory. An alias of a scalar costs nothing; map_server's
+    files have no aliases at all."""
+
+    def compose_node(self, parent: yaml.Node | None, index: int) -> yaml.Node | None:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            aliased = self.anchors.get(event.anchor)
+            if aliased is not None and not isinstance(aliased, yaml.ScalarNode):
+                raise yaml.composer.ComposerError(
+                    None,
+                    None,
+                    f"an alias (*{event.anchor}) of a list or a mapping is not read",
+                    event.start_mark,
+                )
+        return super().compose_node(parent, index)
+
+
+#: A number as yaml-cpp's `as<double>()` (map_server's reader) reads it where PyYAML's YAML 1.1
+#: resolver leaves a string: an exponent without a dot or a sign, as in `1e-05`, which yaml-cpp
+#: itself writes for a small origin.
+_NUMBER_TEXT = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
+#: The most characters of a YAML value an error message quotes.
+_SHOWN_CHARS = 80
+
+
+def _shown(value: object) -> str:
+    """`repr(value)` for an error message, cut to `_SHOWN_CHARS` (an integer past Python's 4300
+    digits has no repr at all)."""
+    try:
+        text = repr(value)
+    except ValueError:
+        return f"an integer of more than {sys.get_int_max_str_digits()} digits"
+    return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 3] + "..."
+
+
 def _number(doc: dict[str, Any], key: str) -> float:
     if key not in doc:
         raise Nav2ImportError(f"map.yaml has no {key!r}")
     value = doc[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise Nav2ImportError(f"map.yaml {key!r} must be a finite number, got {value!r}")
-    return float(value)
+    number = math.nan
+    if isinstance(value, str) and _NUMBER_TEXT.fullmatch(value):
+        number = float(value)
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        with contextlib.suppress(OverflowError):  # an integer past a double's range
+            number = float(value)
+    if not math.isfinite(number):
+        raise Nav2ImportError(f"map.yaml {key!r} must be a finite number, got {_shown(value)}")
+    return number
 
 
 def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
@@ -125,20 +173,24 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     if len(text) > MAX_YAML_BYTES:
         raise Nav2ImportError(f"map.yaml is {len(text)} bytes, more than the limit of {MAX_YAML_BYTES}", 413)
     try:
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=_MapYamlLoader)  # a SafeLoader: no Python objects
     except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
         raise Nav2ImportError(f"map.yaml is not valid YAML: {exc}") from None
+    except ValueError as exc:  # PyYAML's int() of more than 4300 digits
+        raise Nav2ImportError(f"map.yaml holds a number Python does not read: {exc}") from None
     if not isinstance(doc, dict):
         raise Nav2ImportError(f"map.yaml must hold a mapping of fields, not a {type(doc).__name__}")
     image = doc.get("image")
     if not isinstance(image, str) or not image:
-        raise Nav2ImportError(f"map.yaml 'image' must name the image file, got {image!r}")
+        raise Nav2ImportError(f"map.yaml 'image' must name the image file, got {_shown(image)}")
     resolution = _number(doc, "resolution")
     if resolution <= 0:
         raise Nav2ImportError(f"map.yaml 'resolution' must be positive, got {resolution!r}")
     origin = doc.get("origin")
     if not isinstance(origin, list) or len(origin) != 3:
-        raise Nav2ImportError(f"map.yaml 'origin' must be a list of 3 numbers [x, y, yaw], got {origin!r}")
+        raise Nav2ImportError(
+            f"map.yaml 'origin' must be a list of 3 numbers [x, y, yaw], got {_shown(origin)}"
+        )
     x, y, yaw = (_number({"origin": v}, "origin") for v in origin)
     occupied, free = _number(doc, "occupied_thresh"), _number(doc, "free_thresh")
     # map_server reads any thresholds; map_saver refuses these (checkSaveParameters), and scale
@@ -152,10 +204,10 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
         raise Nav2ImportError("map.yaml has no 'negate'")
     negate = doc["negate"]
     if not isinstance(negate, (bool, int)):
-        raise Nav2ImportError(f"map.yaml 'negate' must be an integer or a boolean, got {negate!r}")
+        raise Nav2ImportError(f"map.yaml 'negate' must be an integer or a boolean, got {_shown(negate)}")
     mode = doc.get("mode", "trinary")
     if not isinstance(mode, str) or mode.lower() not in NAV2_MODES:
-        raise Nav2ImportError(f"map.yaml 'mode' must be trinary, scale or raw, got {mode!r}")
+        raise Nav2ImportError(f"map.yaml 'mode' must be trinary, scale or raw, got {_shown(mode)}")
     lowered = NAV2_MODES[NAV2_MODES.index(mode.lower())]
     return Nav2Meta(image, resolution, (x, y, yaw), occupied, free, bool(negate), lowered)
 

@@ -9,15 +9,13 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 
 from fleetmap.api.errors import ApiError, error_responses
-from fleetmap.api.routes_snapshot import install_upload
+from fleetmap.api.routes_snapshot import MEDIA_TYPE, REPLACED, ZIP_UPLOAD, install_upload
 from fleetmap.api.state import MapId, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo
 from fleetmap.nav2_import import Nav2ImportError, map_from_nav2_zip
 
 router = APIRouter(tags=["maps"], route_class=StrictRoute)
-
-MEDIA_TYPE = "application/zip"
 
 
 def _is_zip_media_type(content_type: str | None) -> bool:
@@ -31,16 +29,8 @@ def _is_zip_media_type(content_type: str | None) -> bool:
     summary="Start a map from a ROS nav2 map (map.yaml and its image, zipped)",
     response_model=MapInfo,
     status_code=201,
-    openapi_extra={
-        "requestBody": {
-            "required": True,
-            "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
-        }
-    },
-    responses={
-        200: {"model": MapInfo, "description": "Replaced the map that had this id"},
-        **error_responses(413, 415, 422, 503, 507),
-    },
+    openapi_extra=ZIP_UPLOAD,
+    responses={**REPLACED, **error_responses(413, 415, 422, 503, 507)},
 )
 async def put_import(
     map_id: MapId,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Callable
+from typing import Any
 
 from fastapi import APIRouter, Request, Response
 
@@ -21,6 +22,19 @@ from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_sna
 router = APIRouter(tags=["maps"], route_class=StrictRoute)
 
 MEDIA_TYPE = "application/zip"
+
+
+#: The request body of an upload of a zip file (OpenAPI), and the answer of an upload that replaced a
+#: map: `PUT .../snapshot` and `PUT .../import`.
+ZIP_UPLOAD = {
+    "requestBody": {
+        "required": True,
+        "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
+    }
+}
+REPLACED: dict[int | str, dict[str, Any]] = {
+    200: {"model": MapInfo, "description": "Replaced the map that had this id"}
+}
 
 
 @router.get(
@@ -51,16 +65,8 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
     summary="Restore a map from a snapshot file",
     response_model=MapInfo,
     status_code=201,
-    openapi_extra={
-        "requestBody": {
-            "required": True,
-            "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
-        }
-    },
-    responses={
-        200: {"model": MapInfo, "description": "Replaced the map that had this id"},
-        **error_responses(413, 422, 503, 507),
-    },
+    openapi_extra=ZIP_UPLOAD,
+    responses={**REPLACED, **error_responses(413, 422, 503, 507)},
 )
 async def put_snapshot(map_id: MapId, request: Request, response: Response, state: State) -> MapInfo:
     """Replace map `map_id` (201 with its `Location` when it did not exist, else 200) with the map in
