@@ -345,6 +345,18 @@ def test_images_that_are_not_8_bit_grey_or_too_big_are_refused(
     assert message in str(caught.value) and caught.value.status == status
 
 
+def test_refusals_of_unreadable_images_say_what_the_file_is_and_nothing_of_the_process() -> None:
+    """A 16-bit PGM (maxval 65535) opens as Pillow's mode I: the message says a 16-bit PGM reads so.
+    Bytes Pillow cannot identify are refused without Pillow's own message, which names the
+    in-memory buffer object and its address."""
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2(nav2_yaml(), b"P5\n1 1\n65535\n\x01\x00", CONFIG)
+    assert "16- or 32-bit integer (a 16-bit PGM reads so) image (mode I" in str(caught.value)
+    with pytest.raises(Nav2ImportError) as caught:
+        map_from_nav2(nav2_yaml(), b"GIF89a not an image", CONFIG)
+    assert str(caught.value) == "map.pgm is not a PGM or PNG image"
+
+
 def png_claiming(width: int, height: int) -> bytes:
     """A 1 x 1 grey PNG whose header (IHDR, with a valid CRC) says `width` x `height`."""
     data = bytearray(png(np.zeros((1, 1), np.uint8)))

@@ -56,7 +56,7 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 from pydantic import ValidationError
 
 from fleetmap.config import MAX_COORDINATE, MapConfig
@@ -84,8 +84,8 @@ OCC_GRID_UNKNOWN, OCC_GRID_FREE, OCC_GRID_OCCUPIED = -1, 0, 100
 #: Pillow's image modes that are not 8-bit grey, in words.
 _MODE_WORDS = {
     "1": "a 1-bit black and white", "P": "a palette (indexed colour)", "PA": "a palette with alpha",
-    "I;16": "a 16-bit grey", "I;16B": "a 16-bit grey", "I": "a 32-bit integer", "F": "a floating-point",
-    "CMYK": "a CMYK", "LAB": "a Lab colour",
+    "I;16": "a 16-bit grey", "I;16B": "a 16-bit grey", "F": "a floating-point",
+    "I": "a 16- or 32-bit integer (a 16-bit PGM reads so)", "CMYK": "a CMYK", "LAB": "a Lab colour",
 }  # fmt: skip
 
 _ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError)
@@ -258,7 +258,9 @@ def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.nda
         im = Image.open(io.BytesIO(data), formats=["PNG", "PPM"])  # reads the header only
     except Image.DecompressionBombError as exc:
         raise Nav2ImportError(f"{name} is too large: {exc}", 413) from None
-    except (OSError, ValueError, SyntaxError) as exc:  # Pillow's UnidentifiedImageError is an OSError
+    except UnidentifiedImageError:  # its message names the in-memory buffer object, not the file
+        raise Nav2ImportError(f"{name} is not a PGM or PNG image") from None
+    except (OSError, ValueError, SyntaxError) as exc:
         raise Nav2ImportError(f"{name} is not a PGM or PNG image ({exc})") from None
     with im:
         w, h = im.size
