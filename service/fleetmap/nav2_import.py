@@ -343,7 +343,14 @@ def map_from_nav2(
     `defaults` (or the default configuration) with the YAML's resolution. The occupancy layer gets
     the map; the configuration's other layers stay unknown. With `free_bytes`, tiles needing more
     memory are refused (507) before anything is allocated. Raises `Nav2ImportError`."""
-    meta = parse_nav2_yaml(yaml_text)
+    return _map_from_meta(parse_nav2_yaml(yaml_text), image, config, defaults, free_bytes, image_name)
+
+
+def _map_from_meta(
+    meta: Nav2Meta, image: bytes, config: MapConfig | None, defaults: MapConfig | None,
+    free_bytes: int | None, image_name: str | None,
+) -> GridMap:  # fmt: skip
+    """`map_from_nav2` of a parsed map.yaml."""
     ox, oy, yaw = meta.origin
     if yaw != 0.0:
         raise Nav2ImportError(
@@ -443,5 +450,4 @@ def map_from_nav2_zip(
         if not found:
             raise Nav2ImportError(f"map.yaml names the image {name!r}, which is not in the zip")
         image = _zip_member(zf, found[0], MAX_IMAGE_FILE_BYTES)
-        yaml_text = _zip_member(zf, yamls[0], MAX_YAML_BYTES)
-    return map_from_nav2(yaml_text, image, config, defaults, free_bytes, image_name=name)
+    return _map_from_meta(meta, image, config, defaults, free_bytes, name)
