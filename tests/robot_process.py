@@ -13,7 +13,8 @@ twice (the service ignores the second copy).
 The robot declares its liveliness token `fleetmap/<map>/<robot>/alive`, waits (up to 20 s) until the
 service's subscriber matches its publisher, publishes with `CongestionControl.BLOCK` (nothing is
 dropped under load), prints `published N` and then lingers: `--linger S` seconds (default 0.5, so
-the session flushes before it closes), or until stdin closes or SIGTERM arrives when S < 0.
+the session flushes before it closes), or until stdin closes or SIGTERM arrives when S < 0. Either
+of those also stops a robot that is still publishing (a test that ends before its robots do).
 Exit codes: 0 done, 3 no matching subscriber in time, 2 bad arguments.
 """
 
@@ -91,6 +92,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if args.linger < 0:  # online until the parent closes our stdin (or sends SIGTERM)
+        threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
     scans = scans_for(
         sim=args.sim, plan_seed=args.plan_seed, beams=args.beams, dataset=args.dataset,
         start=args.start, count=args.count,
@@ -133,13 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 next_at += period
                 time.sleep(max(0.0, next_at - time.monotonic()))
         print(f"published {published}", flush=True)
-        if args.linger >= 0:
-            stop.wait(args.linger)
-        else:
-            # Until the parent closes our stdin or sends SIGTERM.
-            reader = threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True)
-            reader.start()
-            stop.wait()
+        stop.wait(args.linger if args.linger >= 0 else None)
         pub.undeclare()
         token.undeclare()
     finally:

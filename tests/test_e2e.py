@@ -10,6 +10,7 @@ import math
 import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -337,6 +338,43 @@ def test_serve_options_config_and_no_auto_create(service_factory, tmp_path: Path
     strict.proc.send_signal(signal.SIGINT)  # Ctrl-C shuts down as cleanly as SIGTERM
     assert strict.proc.wait(20) == 0, strict.logs()
     assert "Traceback" not in strict.logs()
+
+
+def test_open_event_streams_end_cleanly_at_shutdown(service_factory, tmp_path: Path) -> None:  # noqa: ANN001
+    """SIGTERM with viewers connected: each event stream ends with a last comment and a clean end of
+    the body, and the service stops without waiting out its graceful-shutdown timeout (which would
+    cancel the streams and log an error with a traceback for each)."""
+    svc = service_factory("--in-memory")
+    with httpx.Client(base_url=svc.base_url, timeout=20.0) as http:
+        assert http.put("/maps/m", json={}).status_code == 201
+    received: list[list[str]] = [[], []]
+    ended: list[BaseException | None] = [None, None]
+    opened = [threading.Event(), threading.Event()]
+
+    def read(k: int) -> None:
+        try:
+            with httpx.stream("GET", f"{svc.base_url}/maps/m/events", timeout=30) as r:
+                for line in r.iter_lines():
+                    received[k].append(line)
+                    if line.startswith("data:"):
+                        opened[k].set()
+        except BaseException as exc:  # noqa: BLE001 - reported by the assertions below
+            ended[k] = exc
+
+    readers = [threading.Thread(target=read, args=(k,), daemon=True) for k in range(2)]
+    for reader in readers:
+        reader.start()
+    assert all(event.wait(20) for event in opened), received
+    assert svc.stop() == 0, svc.logs()
+    for reader in readers:
+        reader.join(10)
+        assert not reader.is_alive()
+    for k in range(2):
+        assert ended[k] is None, f"stream {k} did not end cleanly: {ended[k]!r}"
+        assert received[k][-2:] == [": the server is shutting down", ""], received[k]
+    logs = svc.logs()
+    assert "timeout graceful shutdown exceeded" not in logs and "Traceback" not in logs, logs
+    assert " ERROR " not in logs, logs
 
 
 def test_serve_errors_exit_2_without_a_traceback(service: ServiceProcess, tmp_path: Path) -> None:

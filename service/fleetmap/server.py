@@ -23,10 +23,11 @@ capitals with `-` as `_` (`--data-dir` is `FLEETMAP_DATA_DIR`, `--insecure` is `
 lists separated by spaces); the command line wins (`_environment_first`).
 
 SIGHUP reads the `--auth-tokens` file again (a file that cannot be used keeps the tokens in force).
-SIGINT / SIGTERM shut down gracefully: uvicorn stops serving (open event streams get a few seconds),
-the Zenoh session closes (no more scans come in), the registry integrates every scan already queued
-and stops its workers, and the process exits 0. A configuration error (bad address, port in use,
-bad config file) prints one line `fleetmap serve: error: ...` and exits 2, without a traceback.
+SIGINT / SIGTERM shut down gracefully: uvicorn stops serving (open event streams end at once, other
+requests in flight get a few seconds), the Zenoh session closes (no more scans come in), the
+registry integrates every scan already queued and stops its workers, and the process exits 0. A
+configuration error (bad address, port in use, bad config file) prints one line
+`fleetmap serve: error: ...` and exits 2, without a traceback.
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ ENV_PREFIX = "FLEETMAP_"
 _ENV_TRUE = {"1", "true", "yes", "on"}
 _ENV_FALSE = {"0", "false", "no", "off", ""}
 LOG_LEVELS = ("debug", "info", "warning", "error")
-#: Seconds uvicorn waits for open connections (event streams never end by themselves) at shutdown.
+#: Seconds uvicorn waits at shutdown for the requests in flight (event streams end at once).
 GRACEFUL_HTTP_SECONDS = 3  # uvicorn takes whole seconds (int)
 
 
@@ -556,15 +557,22 @@ def _http_server_class() -> type:
     import uvicorn
 
     class ReadyServer(uvicorn.Server):
-        """uvicorn's server, printing the ready line once it accepts connections."""
+        """uvicorn's server, printing the ready line once it accepts connections and calling
+        `before_shutdown` when it starts to shut down."""
 
         ready_line = ""
+        before_shutdown: Callable[[], None] | None = None
 
         async def startup(self, sockets: list[socket.socket] | None = None) -> None:
             quiet_accept_errors(asyncio.get_running_loop())
             await super().startup(sockets=sockets)
             if self.started and not self.should_exit:
                 print(self.ready_line, flush=True)
+
+        async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+            if self.before_shutdown is not None:
+                self.before_shutdown()
+            await super().shutdown(sockets=sockets)
 
     return ReadyServer
 
@@ -766,6 +774,9 @@ def _http_server(args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: 
     if args.access_log:  # (log_level above set its level too)
         logging.getLogger("uvicorn.access").setLevel(logging.INFO)
     server = _http_server_class()(config)
+    # Event streams never end by themselves: end them first, so that the graceful shutdown waits
+    # only for the requests that do.
+    server.before_shutdown = app.state.fleetmap.event_streams.close_all
     connections = server.server_state.connections
     app.state.fleetmap.metrics.watch_http_connections(lambda: len(connections), max_connections)
     server.ready_line = plain_line(

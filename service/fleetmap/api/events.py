@@ -51,6 +51,8 @@ Format (text/event-stream):
 - `deleted`: the map was deleted; the stream ends. (Also when it was deleted and created again
   between two polls: it is another map, which a client must select anew.)
 - `: keepalive` comment lines every 15 s keep proxies from closing an idle stream.
+- `: the server is shutting down`, the last line of every open stream when the service stops
+  (`EventStreamSlots.close_all`); the response then ends cleanly.
 
 Streams are capped (`ApiSettings.max_event_streams`, 256 by default; `fleetmap serve
 --max-event-streams`): each open stream holds a task, its buffers and a poll every 100 ms, so without
@@ -138,7 +140,7 @@ async def event_stream(
         version = feed.version
     robots_feed = RobotsFeed(entry, registry.lock)
     last_sent = time.monotonic()
-    while True:
+    while not state.event_streams.closing:
         with registry.lock:
             successor = _successor(registry.maps, entry)
         if successor is None:
@@ -177,6 +179,9 @@ async def event_stream(
             yield ": keepalive\n\n"
             last_sent = time.monotonic()
         await asyncio.sleep(settings.events_period)
+    # The server is shutting down (`EventStreamSlots.close_all`): end the stream, so that the
+    # server need not wait for it. An EventSource reconnects by itself once the server is back.
+    yield ": the server is shutting down\n\n"
 
 
 @router.get(
@@ -217,17 +222,22 @@ async def get_events(
       by `PUT /maps/{map_id}/snapshot`; reload its metadata and every tile. The stream goes on with
       the new map's events (change versions start again at `version`);
     - `event: deleted`, data `{"id": map_id}`: the map was deleted, the stream ends;
-    - `: keepalive` comments every 15 s.
+    - `: keepalive` comments every 15 s;
+    - `: the server is shutting down`: the service is stopping; the stream ends cleanly after it.
 
     A reconnecting EventSource sends `Last-Event-ID` (the last tiles version it got) and receives what
     changed since; `?since=` does the same by hand. Robots always start with a full `robots` event.
 
     503 (with `Retry-After`) when the server already holds its limit of open streams (256 by
-    default); an EventSource reconnects by itself."""
+    default) or is shutting down; an EventSource reconnects by itself."""
     entry = state.entry(map_id)
     if since is None and last_event_id is not None and last_event_id.strip().isdigit():
         since = int(last_event_id.strip())
     slots = state.event_streams
+    if slots.closing:
+        raise ApiError(
+            503, "the server is shutting down; retry later", headers={"Retry-After": str(RETRY_AFTER_SECONDS)}
+        )
     if not slots.acquire():
         raise ApiError(
             503,

@@ -30,6 +30,8 @@ class EventStreamSlots:
         self.open = 0
         #: Streams refused because `limit` were open (for /metrics).
         self.refused = 0
+        #: Set by `close_all` when the server shuts down.
+        self.closing = False
 
     def acquire(self) -> bool:
         """Take a slot for a new stream; False (counted as refused) when all are taken."""
@@ -42,6 +44,13 @@ class EventStreamSlots:
     def release(self) -> None:
         """Give back the slot of a stream that ended (once per successful `acquire`)."""
         self.open -= 1
+
+    def close_all(self) -> None:
+        """The server is shutting down: every open stream ends at its next poll (within one events
+        period) and a new one is refused. Streams never end by themselves, so without this the
+        server's graceful shutdown would wait its whole timeout for them and then cancel them,
+        logging an error with a traceback for each."""
+        self.closing = True
 
 
 @dataclass
