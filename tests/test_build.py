@@ -284,6 +284,20 @@ def test_build_errors_are_clear_and_write_nothing(
     assert not out.exists()
 
 
+@pytest.mark.parametrize("where", ["under-a-file", "is-a-file"])
+def test_build_to_an_output_path_that_is_not_a_directory_is_a_clear_error(tmp_path: Path, where: str) -> None:
+    """An `--out` that cannot be a directory (a file, or a path under one) is refused in one line
+    before any scan is integrated; it was found only after the whole build, with a traceback."""
+    log = scene_log(tmp_path / "s.log")
+    out = log / "out" if where == "under-a-file" else log
+    done = build(log, "--out", out, "--quiet")
+    assert done.returncode == 2, done.stdout
+    assert done.stderr.startswith(f"fleetmap build: error: cannot write the outputs to {out}: "), done.stderr
+    assert f"{log} is not a directory" in done.stderr
+    assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert "integrated" not in done.stdout
+
+
 def test_build_of_the_intel_log_equals_the_library_map(datasets_dir: Path, tmp_path: Path) -> None:
     log = datasets_dir / "intel-corrected.log.gz"
     done = build(log, "--out", tmp_path, "--quiet")

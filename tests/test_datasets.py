@@ -268,6 +268,28 @@ def test_malformed_line_names_file_and_line(tmp_path: Path, bad: str, words: str
     assert isinstance(info.value, ValueError)
 
 
+@pytest.mark.parametrize(
+    ("lines", "words"),
+    [
+        # start_angle + 2 * angular_res overflows: every field is finite, the third bearing is not.
+        ([robotlaser1([1.0, 2.0, 3.0], (0.0, 0.0, 0.0), res=1e308)], "ROBOTLASER1 beam angles"),
+        # x and the offset are finite, the sensor's x (x + offset * cos(theta)) is not.
+        (["PARAM robot_frontlaser_offset 1e308 0 h 0", flaser([1.0, 2.0], x=1.7e308)], "FLASER sensor pose"),
+    ],
+    ids=["robotlaser1-angles", "flaser-sensor-pose"],
+)
+def test_a_line_whose_scan_would_not_be_finite_is_malformed_at_load(
+    tmp_path: Path, lines: list[str], words: str
+) -> None:
+    """Finite fields that make an infinite bearing or sensor pose are refused by `load_dataset`,
+    naming the line: they were loaded, and building that scan raised ScanError mid-iteration,
+    which stopped `fleetmap build` with a traceback."""
+    path = write_log(tmp_path / "overflow.log", [flaser([1.0, 2.0]), *lines])
+    with pytest.raises(DatasetError, match=words) as info:
+        load_dataset(path)
+    assert f"{path}:{1 + len(lines)}:" in str(info.value)
+
+
 def test_malformed_line_in_gzip_file_has_line_number(tmp_path: Path) -> None:
     lines = [flaser([1.0])] * 6 + ["FLASER 1 x 0 0 0 0 0 0 0 h 0"]
     with pytest.raises(DatasetError, match=r"bad\.log\.gz:7: FLASER range 0"):

@@ -10,6 +10,7 @@ import itertools
 import math
 import threading
 import time
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -248,6 +249,36 @@ def test_tile_cap_rejects_whole_scan() -> None:
     with pytest.raises(TileLimitError):
         m.integrate(one_beam((-0.5, 0.5, 0.0), 0.0, 0.1))  # tile (-1, 0)
     assert set(m.store.keys) == {(0, 0), (1, 0)}
+
+
+@pytest.mark.parametrize("path", ["integrate", "plan-and-apply"])
+def test_a_scan_touching_more_tiles_than_the_cap_allocates_no_trace_scratch(
+    path: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scan that touches more tiles than `max_tiles` can never be integrated, so it is refused
+    (TileLimitError, map unchanged) before the per-scan trace allocates a plane of scratch for each
+    of those tiles: one 100 km beam at 5 cm (7813 tiles of 256 x 256) made a map of at most 4
+    tiles allocate 512 MB, which its thread then kept for every later scan."""
+    # A fresh per-thread scratch: one grown by an earlier test would hide the allocation.
+    monkeypatch.setattr(update_plan, "_scratch", threading.local())
+    m = GridMap(MapConfig(resolution=0.05, tile_size=256, max_tiles=4, layers=["occupancy"]))
+    m.integrate(one_beam((0.5, 0.5, 0.0), 0.0, 2.0))
+    window = (-10, -10, 60, 30)
+    before = snapshot(m, window)
+    far = Scan.from_angles((0.5, 0.5, 0.0), [0.0], [1e5], range_max=math.inf)
+    tracemalloc.start()
+    try:
+        with pytest.raises(TileLimitError, match="max_tiles"):
+            if path == "integrate":
+                m.integrate(far)
+            else:
+                m.apply(m.plan(far))
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 << 20, f"{peak / 2**20:.0f} MiB allocated for a scan the map cannot hold"
+    assert update_plan.trace_scratch(m.store.shift).nbytes < 64 << 20
+    assert_same(snapshot(m, window), before)
 
 
 # -- reads of unknown cells and unavailable layers ---------------------------------------------------

@@ -11,6 +11,7 @@ import argparse
 import importlib
 import json
 import logging
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -95,6 +96,8 @@ def _build(args: argparse.Namespace) -> int:
     from fleetmap.tiles import TileLimitError
 
     config = load_config(args.config, resolution=args.resolution, no_return_range=args.no_return_range)
+    out_dir = Path(args.out)
+    _check_out_dir(out_dir)  # before the build, which can take minutes, is done for nothing
     try:
         dataset = load_dataset(args.dataset, range_min=args.range_min, range_max=args.range_max)
     except (DatasetError, OSError) as exc:
@@ -110,9 +113,11 @@ def _build(args: argparse.Namespace) -> int:
             tqdm.write(f"skipped a scan: {exc}", file=sys.stderr)
     elapsed = time.perf_counter() - started
     try:
-        written = write_build_outputs(gmap, Path(args.out))
+        written = write_build_outputs(gmap, out_dir)
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    except OSError as exc:  # a full disk, or a directory made unwritable during the build
+        raise CliError(f"cannot write the outputs to {out_dir}: {exc}") from None
     print(
         f"{len(dataset) - skipped} scans integrated ({skipped} skipped) in {elapsed:.2f} s, "
         f"{updates / max(elapsed, 1e-9) / 1e6:.1f} M cell updates/s, {len(gmap.store)} tiles"
@@ -120,6 +125,19 @@ def _build(args: argparse.Namespace) -> int:
     for path in written:
         print(f"wrote {path}")
     return 0
+
+
+def _check_out_dir(out_dir: Path) -> None:
+    """Raise `CliError` unless `out_dir` is a directory, or can be made one, that can be written to:
+    its nearest existing ancestor must be a writable directory. Creates nothing, so that a build
+    that fails later (no observed cell) leaves no empty directory behind."""
+    existing = out_dir
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise CliError(f"cannot write the outputs to {out_dir}: {existing} is not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise CliError(f"cannot write the outputs to {out_dir}: {existing} is not writable")
 
 
 if __name__ == "__main__":

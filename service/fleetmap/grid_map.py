@@ -189,7 +189,7 @@ class GridMap:
                 )  # fmt: skip
                 if status != integrate_scan.NEEDS_SCRATCH:
                     break
-                grow_trace_scratch(extra)
+                grow_trace_scratch(extra, store.shift, store.max_tiles)
             if status == integrate_scan.INTEGRATED:
                 store.restore_clock(clock)
                 changed_tiles = list(map(tuple, tiles.T.tolist()))  # (2, k) -> k (ti, tj)

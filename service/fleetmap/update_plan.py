@@ -17,7 +17,7 @@ import numpy as np
 from fleetmap.config import MapConfig
 from fleetmap.kernels.beam_model import beam_model_cells
 from fleetmap.kernels.kinds import BEAM_CLEAR, BEAM_HIT, BEAM_SKIP
-from fleetmap.kernels.ray_model import trace_rays, trace_scan
+from fleetmap.kernels.ray_model import DENSE_WINDOW_CELLS, trace_rays, trace_scan
 from fleetmap.kernels.scan_geometry import (
     EXTENT_OUT_OF_RANGE,
     EXTENT_TOO_WIDE,
@@ -30,6 +30,7 @@ from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import trace_tsdf
 from fleetmap.kernels.update import merge_tiles, merge_tiles_in_box
 from fleetmap.scan import Scan, ScanError
+from fleetmap.tiles import TileLimitError
 
 _EMPTY_I = np.empty(0, dtype=np.int64)
 _EMPTY_KIND = np.empty(0, dtype=np.uint8)
@@ -222,7 +223,7 @@ def _ray_model_per_scan(
         )
         if not needed:
             return tiles, cell, kind, runs
-        grow_trace_scratch(needed)
+        grow_trace_scratch(needed, shift, config.max_tiles)
 
 
 def trace_scratch(shift: int) -> np.ndarray:
@@ -233,8 +234,21 @@ def trace_scratch(shift: int) -> np.ndarray:
     return scratch
 
 
-def grow_trace_scratch(needed: int) -> None:
-    """Replace this thread's scratch with one of `needed` bytes (`trace_scan` asked for it)."""
+def grow_trace_scratch(needed: int, shift: int, max_tiles: int) -> None:
+    """Replace this thread's scratch with one of `needed` bytes (`trace_scan` asked for it), for a
+    map of tiles of `1 << shift` cells and at most `max_tiles` tiles.
+
+    Raises `TileLimitError`, allocating nothing, when the scratch asked for is one plane per tile the
+    scan touches and those tiles are more than `max_tiles`: the map could never hold them all, so
+    the scan is refused anyway, and a single long beam (100 km at 5 cm) would otherwise have this
+    thread allocate, and keep for every later scan, half a gigabyte or more first."""
+    # A dense window is at most DENSE_WINDOW_CELLS bytes; anything larger is per-tile planes, one
+    # tile of cells per touched tile, so `needed` says exactly how many tiles the scan touches.
+    if needed > DENSE_WINDOW_CELLS and needed >> (2 * shift) > max_tiles:
+        raise TileLimitError(
+            f"the scan touches {needed >> (2 * shift)} tiles but the map holds at most {max_tiles} "
+            "(max_tiles); the scan was not integrated"
+        )
     _scratch.array = np.zeros(needed, dtype=np.uint8)
 
 

@@ -180,6 +180,8 @@ def _parse_flaser(
     x, y, theta = (_number(tokens, 2 + n + k, f"FLASER pose {f}") for k, f in enumerate(("x", "y", "theta")))
     off = state.frontlaser_offset
     pose = (x + off * math.cos(theta), y + off * math.sin(theta), theta)
+    if not (math.isfinite(pose[0]) and math.isfinite(pose[1])):  # finite parts, an infinite sum
+        raise _LineError(f"FLASER sensor pose {pose} (robot pose plus robot_frontlaser_offset) is not finite")
     rmax = _scan_range_max(rmax_override, state.front_laser_max, rmin, "PARAM robot_front_laser_max")
     builder.add(pose, state.angles((n,), lambda: flaser_angles(n)), ranges, rmax)
 
@@ -201,9 +203,21 @@ def _parse_robotlaser1(
     x, y, theta = (
         _number(tokens, base + j, f"ROBOTLASER1 laser pose {f}") for j, f in enumerate(("x", "y", "theta"))
     )
-    angles = state.angles((n, start, step), lambda: start + step * np.arange(n, dtype=np.float64))
+    angles = state.angles((n, start, step), lambda: _robotlaser1_angles(n, start, step))
     rmax = _scan_range_max(rmax_override, max_range, rmin, "ROBOTLASER1 max_range")
     builder.add((x, y, theta), angles, ranges, rmax)
+
+
+def _robotlaser1_angles(n: int, start: float, step: float) -> np.ndarray:
+    """Beam i's bearing `start + i*step`; `_LineError` when one is not finite. Both numbers are
+    finite, but their sum can overflow (a step of 1e308), and a `Scan` refuses infinite bearings:
+    it is the line that is malformed, and it must be reported when the file is loaded, not when the
+    scan is built mid-iteration (which stopped `fleetmap build` with a traceback)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        angles = start + step * np.arange(n, dtype=np.float64)
+    if not np.all(np.isfinite(angles)):
+        raise _LineError(f"ROBOTLASER1 beam angles start_angle {start} + i * angular_res {step} overflow")
+    return angles
 
 
 def _scan_range_max(override: float | None, from_log: float, rmin: float, what: str) -> float:
