@@ -25,9 +25,10 @@ lists separated by spaces); the command line wins (`_environment_first`).
 SIGHUP reads the `--auth-tokens` file again (a file that cannot be used keeps the tokens in force).
 SIGINT / SIGTERM shut down gracefully: uvicorn stops serving (open event streams end at once, other
 requests in flight get a few seconds), the Zenoh session closes (no more scans come in), the
-registry integrates every scan already queued and stops its workers, and the process exits 0. A
-configuration error (bad address, port in use, bad config file) prints one line
-`fleetmap serve: error: ...` and exits 2, without a traceback.
+registry integrates every scan already queued and stops its workers, and the process exits 0 (a
+second signal changes nothing: it does not cut the shutdown short). A configuration error (bad
+address, port in use, bad config file) prints one line `fleetmap serve: error: ...` and exits 2,
+without a traceback.
 """
 
 from __future__ import annotations
@@ -573,6 +574,16 @@ def _http_server_class() -> type:
             if self.before_shutdown is not None:
                 self.before_shutdown()
             await super().shutdown(sockets=sockets)
+
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            """Start the shutdown on the first SIGINT / SIGTERM; ignore those that follow. uvicorn
+            takes a second SIGINT (a double Ctrl-C, or Ctrl-C after SIGTERM) as "force quit": it
+            stopped waiting for the requests in flight and skipped the ASGI lifespan's shutdown,
+            whose task the closing event loop then cancelled, logging an ERROR with a traceback.
+            The wait is bounded by GRACEFUL_HTTP_SECONDS anyway, and what follows it (integrating
+            the queued scans, the final snapshot) does not stop for a signal either."""
+            if not self.should_exit:
+                super().handle_exit(sig, frame)
 
     return ReadyServer
 
