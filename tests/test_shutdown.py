@@ -70,3 +70,31 @@ def test_a_second_ctrl_c_does_not_cut_the_shutdown_short(tmp_path: Path) -> None
                 robot.stop()
             svc.stop()
         assert_kept(tmp_path, data_dir, before)
+
+
+def test_signals_arriving_while_the_service_stops_do_not_kill_it(tmp_path: Path) -> None:
+    """SIGTERM, then SIGTERM or SIGHUP again and again until the process is gone (a user's repeated
+    `kill`, systemd's SendSIGHUP=, a log rotation's HUP): each must be harmless to the end. `run`
+    restored the default handlers once it had stopped, and a signal in the ~50 ms before the process
+    exited killed it (exit -15 / -1 instead of 0)."""
+    data_dir = tmp_path / "data"
+    for late in (signal.SIGTERM, signal.SIGHUP):
+        svc, robots = publishing_service(tmp_path, data_dir)
+        try:
+            before = integrated(svc.base_url, "m")
+            assert svc.proc is not None
+            svc.proc.send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + 20
+            while svc.proc.poll() is None and time.monotonic() < deadline:
+                try:
+                    svc.proc.send_signal(late)
+                except ProcessLookupError:  # exited between poll and kill
+                    break
+                time.sleep(0.005)
+            assert svc.proc.wait(10) == 0, (late, svc.logs())
+            assert_clean_log(svc)
+        finally:
+            for robot in robots:
+                robot.stop()
+            svc.stop()
+        assert_kept(tmp_path, data_dir, before)

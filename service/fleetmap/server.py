@@ -594,7 +594,8 @@ def run(args: argparse.Namespace) -> int:
     In order: the process set up (`_configure_process`), the options checked (`_checked_options`),
     the HTTP socket bound, storage opened (`_open_storage`), the engine warmed, the registry
     restored and started, the Zenoh session opened, then the API served by uvicorn
-    (`_http_server`) until a signal; the Zenoh session and the registry close whatever happened."""
+    (`_http_server`) until a signal; the Zenoh session and the registry close whatever happened.
+    SIGINT, SIGTERM and SIGHUP are left ignored when it returns: the process is to exit then."""
     from fleetmap.registry import MapRegistry
 
     _configure_process(args)
@@ -609,10 +610,11 @@ def run(args: argparse.Namespace) -> int:
             server.should_exit = True
 
     tokens: TokenSet | TokenFile | None = None
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
     # SIGHUP's default action ends the process at once (no snapshot, no clean close): `kill -HUP` or
     # systemd's ExecReload must reload the token file instead.
-    previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
+    signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
     try:
         options = _checked_options(args)
         tokens = options.tokens
@@ -671,8 +673,12 @@ def run(args: argparse.Namespace) -> int:
             ingest.close()
             registry.close()
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        # Ignored, not given back their default action: the process ends once `run` returns, and a
+        # signal in that last moment (the interpreter's exit takes ~50 ms) killed it, exit -15 / -1
+        # instead of 0, after a clean stop: a repeated `kill`, a Ctrl-C pressed twice, systemd's
+        # SendSIGHUP=.
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_IGN)
     log.info("stopped")
     return 0
 
