@@ -144,6 +144,21 @@ def test_a_request_body_that_stalls_is_cut_off(service: ServiceProcess) -> None:
         assert BODY_TIMEOUT - 0.5 < closed_after < BODY_TIMEOUT + 1.5
 
 
+def test_an_upload_cut_off_mid_body_is_not_logged_as_a_bug(service: ServiceProcess) -> None:
+    """A body cut off (its deadline, or a client that goes away mid-upload) is the client's doing:
+    Starlette's ClientDisconnect from `request.body()` was answered as an internal error, logged at
+    ERROR with two tracebacks (fleetmap's and uvicorn's) for each such request."""
+    with socket.create_connection(("127.0.0.1", service.port)) as sock:
+        head = b"PUT /maps/cut-off/snapshot HTTP/1.1\r\nHost: t\r\nContent-Type: application/zip\r\n"
+        sock.sendall(head + b"Content-Length: 100000\r\n\r\n" + b"x" * 1000)
+        assert seconds_until_closed(sock, 10) < BODY_TIMEOUT + 1.5
+    with socket.create_connection(("127.0.0.1", service.port)) as sock:  # gone before the deadline
+        sock.sendall(head + b"Content-Length: 100000\r\n\r\n" + b"x" * 1000)
+    time.sleep(0.5)
+    logs = service.logs()
+    assert "ClientDisconnect" not in logs and "/maps/cut-off/snapshot" not in logs, logs
+
+
 def test_kept_alive_connections_and_long_responses_are_not_cut_off(service: ServiceProcess) -> None:
     """The deadlines are for receiving requests: an event stream outlives them, and a kept-alive
     connection serves a request sent after a pause longer than the head timeout allows."""

@@ -25,9 +25,10 @@ lists separated by spaces); the command line wins (`_environment_first`).
 SIGHUP reads the `--auth-tokens` file again (a file that cannot be used keeps the tokens in force).
 SIGINT / SIGTERM shut down gracefully: uvicorn stops serving (open event streams end at once, other
 requests in flight get a few seconds), the Zenoh session closes (no more scans come in), the
-registry integrates every scan already queued and stops its workers, and the process exits 0. A
-configuration error (bad address, port in use, bad config file) prints one line
-`fleetmap serve: error: ...` and exits 2, without a traceback.
+registry integrates every scan already queued and stops its workers, and the process exits 0 (a
+second signal changes nothing: it does not cut the shutdown short). A configuration error (bad
+address, port in use, bad config file) prints one line `fleetmap serve: error: ...` and exits 2,
+without a traceback.
 """
 
 from __future__ import annotations
@@ -574,6 +575,16 @@ def _http_server_class() -> type:
                 self.before_shutdown()
             await super().shutdown(sockets=sockets)
 
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            """Start the shutdown on the first SIGINT / SIGTERM; ignore those that follow. uvicorn
+            takes a second SIGINT (a double Ctrl-C, or Ctrl-C after SIGTERM) as "force quit": it
+            stopped waiting for the requests in flight and skipped the ASGI lifespan's shutdown,
+            whose task the closing event loop then cancelled, logging an ERROR with a traceback.
+            The wait is bounded by GRACEFUL_HTTP_SECONDS anyway, and what follows it (integrating
+            the queued scans, the final snapshot) does not stop for a signal either."""
+            if not self.should_exit:
+                super().handle_exit(sig, frame)
+
     return ReadyServer
 
 
@@ -583,7 +594,8 @@ def run(args: argparse.Namespace) -> int:
     In order: the process set up (`_configure_process`), the options checked (`_checked_options`),
     the HTTP socket bound, storage opened (`_open_storage`), the engine warmed, the registry
     restored and started, the Zenoh session opened, then the API served by uvicorn
-    (`_http_server`) until a signal; the Zenoh session and the registry close whatever happened."""
+    (`_http_server`) until a signal; the Zenoh session and the registry close whatever happened.
+    SIGINT, SIGTERM and SIGHUP are left ignored when it returns: the process is to exit then."""
     from fleetmap.registry import MapRegistry
 
     _configure_process(args)
@@ -598,10 +610,11 @@ def run(args: argparse.Namespace) -> int:
             server.should_exit = True
 
     tokens: TokenSet | TokenFile | None = None
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
     # SIGHUP's default action ends the process at once (no snapshot, no clean close): `kill -HUP` or
     # systemd's ExecReload must reload the token file instead.
-    previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
+    signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
     try:
         options = _checked_options(args)
         tokens = options.tokens
@@ -660,8 +673,12 @@ def run(args: argparse.Namespace) -> int:
             ingest.close()
             registry.close()
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        # Ignored, not given back their default action: the process ends once `run` returns, and a
+        # signal in that last moment (the interpreter's exit takes ~50 ms) killed it, exit -15 / -1
+        # instead of 0, after a clean stop: a repeated `kill`, a Ctrl-C pressed twice, systemd's
+        # SendSIGHUP=.
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_IGN)
     log.info("stopped")
     return 0
 

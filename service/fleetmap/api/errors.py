@@ -16,6 +16,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -285,6 +286,13 @@ def install(app: FastAPI) -> None:
         app.add_exception_handler(exc_type, _answer(status))
     # Storage, not the client: the change took effect but is not durable; the client may retry.
     app.add_exception_handler(NotDurable, _answer(503))
+
+    @app.exception_handler(ClientDisconnect)
+    async def _client_gone(request: Request, exc: ClientDisconnect) -> JSONResponse:
+        # The connection closed before the body arrived whole: the client went away, or its body
+        # missed its deadline (--http-body-timeout). Not a bug to log with a traceback (it was, at
+        # ERROR, twice per request); the answer goes nowhere (uvicorn drops it: disconnected).
+        return _json(400, "the request body was cut off before it arrived whole")
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception) -> JSONResponse:
