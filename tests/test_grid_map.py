@@ -617,6 +617,70 @@ def test_integrate_in_one_call_equals_plan_and_apply_on_the_intel_log(datasets_d
     assert_same(snapshot(one_call, window), snapshot(planned, window))
 
 
+def _parallel_beams(count: int, cells: int, resolution: float) -> Scan:
+    """`count` beams along +x from a cell's centre, each ending `cells` cells away (walks of
+    `cells + 3` cells each by `scan_rays`' count)."""
+    r, centre = cells * resolution, resolution / 2
+    return Scan.from_angles((centre, centre, 0.0), [0.0] * count, [r] * count, range_max=2 * r)
+
+
+@pytest.mark.parametrize(
+    ("config", "path"),
+    [({}, "integrate"), ({}, "plan"), ({"layers": ["occupancy", "tsdf"]}, "integrate"),
+     ({"layers": ["counts"], "update": "per_ray"}, "integrate")],
+)  # fmt: skip
+def test_a_scan_whose_beams_walk_too_many_cells_is_refused_before_it_is_traced(
+    monkeypatch: pytest.MonkeyPatch, config: dict[str, object], path: str
+) -> None:
+    """The ray model's trace allocates for every cell its beams walk (before de-duplication), so
+    their total is bounded (`update_plan.MAX_SCAN_CELLS`): a scan past it is a ScanError that
+    changes nothing, at the limit it is integrated. The limit is lowered here to 4,096 cells so
+    that the scans stay small; the real one refuses, at once, a scan the service's input limits
+    allow and that took 13 s and 2.8 GB before (the next test)."""
+    monkeypatch.setattr(update_plan, "MAX_SCAN_CELLS", 4096)
+    m = make_map(resolution=0.05, tile_size=256, **config)
+    m.integrate(Scan.from_angles((0.0, 0.0, 0.0), [0.0, 1.0], [2.0, 3.0]))
+    window = (-300, -300, 1300, 300)
+    before = snapshot(m, window)
+    run = m.integrate if path == "integrate" else lambda scan: m.apply(m.plan(scan))
+    with pytest.raises(ScanError, match="cross more than 4,096 cells in all"):
+        run(_parallel_beams(5, 1020, 0.05))  # 5 x 1,023 cells
+    assert_same(snapshot(m, window), before)
+    result = run(_parallel_beams(4, 1020, 0.05))  # 4 x 1,023 = 4,092 cells: within
+    assert result.cell_updates == (4 if config.get("update") == "per_ray" else 1) * 1021
+
+
+def test_the_scan_cell_limit_refuses_what_the_service_allows_and_fits_real_lidars() -> None:
+    """At the real limit: 16,384 beams of 300 m at 5 cm (within the service's default input limits)
+    are refused; a 1,081-beam lidar's 30 m scan, and a TSDF-only map's long beams (the band is a
+    few cells a return), are not."""
+    angles = np.linspace(-math.pi, math.pi, 16_384, endpoint=False)
+    m = make_map(resolution=0.05)
+    with pytest.raises(ScanError, match="cells in all"):
+        m.integrate(Scan.from_angles((0.0, 0.0, 0.0), angles, np.full(angles.size, 300.0), range_max=400.0))
+    assert len(m.store.keys) == 0
+    lidar = np.linspace(-3 * math.pi / 4, 3 * math.pi / 4, 1081)
+    assert m.integrate(Scan.from_angles((0.0, 0.0, 0.0), lidar, np.full(lidar.size, 30.0))).cell_updates > 0
+    band = make_map(resolution=0.05, layers=["tsdf"])
+    assert band.integrate(Scan.from_angles((0.0, 0.0, 0.0), angles, np.full(angles.size, 300.0),
+                                           range_max=400.0)).tsdf_updates > 0  # fmt: skip
+
+
+def test_a_beam_model_scan_whose_window_is_too_large_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The beam model evaluates every cell of a square around the sensor reaching its longest beam:
+    past `MAX_SCAN_CELLS` cells (lowered here) the scan is a ScanError that changes nothing (a
+    1,000 m beam at 5 cm asked for 27 GB and failed with numba's bare MemoryError)."""
+    monkeypatch.setattr(update_plan, "MAX_SCAN_CELLS", 100 * 100)
+    m = make_map(resolution=0.05, sensor_model="beam")
+    m.integrate(Scan.from_angles((0.0, 0.0, 0.0), [0.0, 0.5], [1.0, 1.0]))
+    window = (-100, -100, 100, 100)
+    before = snapshot(m, window)
+    with pytest.raises(ScanError, match="beam model would evaluate more than 10,000 cells"):
+        m.integrate(Scan.from_angles((0.0, 0.0, 0.0), [0.0, 0.5], [1.0, 2.5]))  # (2 * 50 + 4)**2 cells
+    assert_same(snapshot(m, window), before)
+    assert m.integrate(Scan.from_angles((0.0, 0.0, 0.0), [0.0, 0.5], [1.0, 2.3])).cell_updates > 0
+
+
 @pytest.mark.parametrize("config", [{}, {"layers": ["occupancy", "tsdf"]}])
 def test_scans_beyond_the_index_range_or_too_wide_are_refused(config: dict[str, object]) -> None:
     """A pose or reach beyond +-2**40 cells, or a scan whose box spans more than 2**20 tiles, is

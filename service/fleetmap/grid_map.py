@@ -33,7 +33,9 @@ from fleetmap.update_plan import (
     UpdatePlan,
     beam_layout_of,
     grow_trace_scratch,
+    max_scan_walk,
     plan_scan,
+    too_long,
     trace_scratch,
 )
 
@@ -145,7 +147,8 @@ class GridMap:
         #: wrapper of a few microseconds a scan is worth trimming: about 5 % of an Intel scan).
         self._kernel_params = (
             cfg.no_return_range, cfg.resolution, cfg.tsdf.truncation, cfg.beam.alpha, MAX_CELL_INDEX,
-            MAX_SCAN_TILE_WINDOW, EXACT if cfg.traversal == "exact" else BRESENHAM, self.store.shift,
+            MAX_SCAN_TILE_WINDOW, max_scan_walk(cfg), EXACT if cfg.traversal == "exact" else BRESENHAM,
+            self.store.shift,
             *self._log_odds, cfg.tsdf.max_weight, cfg.max_tiles,
         )  # fmt: skip
         #: (occupied_thresh, the smallest occupied float32 log-odds) for the ray kernel, once computed.
@@ -201,6 +204,8 @@ class GridMap:
             raise ScanError(OUT_OF_RANGE)
         if status == integrate_scan.TOO_WIDE:
             raise ScanError(TOO_WIDE)
+        if status == integrate_scan.TOO_LONG:
+            raise ScanError(too_long())
         return None  # NEEDS_TILES
 
     def plan(self, scan: Scan) -> UpdatePlan:

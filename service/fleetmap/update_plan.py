@@ -20,6 +20,7 @@ from fleetmap.kernels.kinds import BEAM_CLEAR, BEAM_HIT, BEAM_SKIP
 from fleetmap.kernels.ray_model import DENSE_WINDOW_CELLS, trace_rays, trace_scan
 from fleetmap.kernels.scan_geometry import (
     EXTENT_OUT_OF_RANGE,
+    EXTENT_TOO_LONG,
     EXTENT_TOO_WIDE,
     beam_layout,
     beam_returns,
@@ -41,6 +42,14 @@ _EMPTY_PAIRS = np.empty((2, 0), dtype=np.int64)
 #: be an absurd extent for one 2D scan (e.g. 10 km across at 5 cm) and its bookkeeping would be large.
 MAX_SCAN_TILE_WINDOW = 1 << 20
 
+#: At most this many cells may one scan's ray-model walks visit in all (counted before dedup, as
+#: the trace allocates for them: about 13 bytes each, some 440 MB at the limit), and the beam model
+#: evaluate around the sensor (about 17 bytes each). A scan past it is refused before anything is
+#: allocated: within the service's input limits (16,384 beams of up to 1,000 m) one scan at 5 cm
+#: walks up to 420 million cells, and 16,384 beams of 300 m held 2.8 GB for 13 s. A 1,081-beam
+#: lidar at 1,000 m (27.5 million cells at 5 cm) fits; coarser maps fit proportionally longer beams.
+MAX_SCAN_CELLS = 1 << 25
+
 #: Cell indices must stay well inside int64 and exact in float64 (2**52): a scan reaching beyond
 #: +-2**40 cells (55 billion km at 5 cm) is refused rather than overflowing in the kernels.
 MAX_CELL_INDEX = float(2**40)
@@ -51,6 +60,23 @@ _scratch = threading.local()
 #: `ScanError` messages of scans the engine refuses.
 OUT_OF_RANGE = "the scan's pose or ranges lie beyond the map's coordinate range"
 TOO_WIDE = "the scan spans too large an area for one scan; check its ranges and resolution"
+
+
+def too_long() -> str:
+    """The `ScanError` message of a scan past `MAX_SCAN_CELLS` (the ray model's walks)."""
+    return (
+        f"the scan's beams cross more than {MAX_SCAN_CELLS:,} cells in all, more than one scan may; "
+        "check its ranges, or use a coarser resolution for such long beams"
+    )
+
+
+def beam_too_wide() -> str:
+    """The `ScanError` message of a beam-model scan past `MAX_SCAN_CELLS`."""
+    return (
+        f"the beam model would evaluate more than {MAX_SCAN_CELLS:,} cells around the sensor for this "
+        "scan; check its ranges, or use a coarser resolution for such long beams"
+    )
+
 
 #: Beam layouts (`kernels.scan_geometry.beam_layout`) of recently seen scans, by (beams, first bearing,
 #: last bearing): a fleet's robots send a few layouts again and again. A scan given another
@@ -120,6 +146,8 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     beams, extent = _scan_beams(scan, config.no_return_range, res, shift, config)
     if extent[0] == EXTENT_OUT_OF_RANGE:
         raise ScanError(OUT_OF_RANGE)
+    if extent[0] == EXTENT_TOO_LONG:
+        raise ScanError(too_long())
     cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
     tiles = runs = _EMPTY_PAIRS
@@ -176,19 +204,30 @@ def _scan_beams(
     scan: Scan, clear_range: float, res: float, shift: int, config: MapConfig | None
 ) -> tuple[tuple, tuple]:
     """The scan's `scan_rays` and its `scan_extent` (with `config`'s TSDF and beam-model margins, or
-    none)."""
+    none). The beams' walks are bounded (`MAX_SCAN_CELLS`) when `config` traces them: the ray
+    model's hits and misses (or no `config`)."""
     pose = scan.pose
     beams = scan_rays(
         pose.x, pose.y, pose.theta, scan.angles, beam_layout_of(scan.angles), scan.ranges, scan.range_min,
         scan.range_max, clear_range, res,
     )  # fmt: skip
-    _, _, xmin, ymin, xmax, ymax, _, longest = beams
+    _, _, xmin, ymin, xmax, ymax, _, longest, walk = beams
     truncation, alpha = (config.tsdf.truncation, config.beam.alpha) if config is not None else (0.0, 0.0)
     extent = scan_extent(
         pose.x, pose.y, res, longest, clear_range, truncation, alpha, xmin, ymin, xmax, ymax,
-        shift, MAX_CELL_INDEX, MAX_SCAN_TILE_WINDOW,
+        shift, MAX_CELL_INDEX, MAX_SCAN_TILE_WINDOW, walk, max_scan_walk(config),
     )  # fmt: skip
     return beams, extent
+
+
+def max_scan_walk(config: MapConfig | None) -> float:
+    """`scan_extent`'s `max_walk` for maps of `config`: `MAX_SCAN_CELLS` when the ray model traces
+    hits and misses (and with no `config`), else unbounded (the beam model has its own bound, and
+    the TSDF band is a few cells a return)."""
+    if config is None:
+        return float(MAX_SCAN_CELLS)
+    traced = config.sensor_model == "ray" and (config.has("occupancy") or config.has("counts"))
+    return float(MAX_SCAN_CELLS) if traced else math.inf
 
 
 def beam_layout_of(angles: np.ndarray) -> np.ndarray:
@@ -289,6 +328,11 @@ def _beam_model(
     order = np.argsort(phi, kind="stable")
     if phi.size == 0:
         return _EMPTY_I, _EMPTY_I, _EMPTY_KIND
+    # The kernel evaluates every cell of the square reaching `reach` cells around the sensor (and
+    # one more on each side): refuse, before it allocates, a square past the scan limit.
+    reach = float(np.max(np.minimum(r_max, z + config.beam.alpha / 2))) / res
+    if (2 * reach + 4) ** 2 > MAX_SCAN_CELLS:
+        raise ScanError(beam_too_wide())
     return beam_model_cells(
         ox,
         oy,

@@ -18,6 +18,7 @@ from numba import njit
 from fleetmap.kernels.ray_model import trace_scan
 from fleetmap.kernels.scan_geometry import (
     EXTENT_OUT_OF_RANGE,
+    EXTENT_TOO_LONG,
     EXTENT_TOO_WIDE,
     beam_returns,
     scan_extent,
@@ -33,14 +34,15 @@ NEEDS_TILES = 1  # a tile the scan touches does not exist, and the store has no 
 NEEDS_SCRATCH = 2  # the scratch is too small (the last value returned is the size it needs)
 OUT_OF_RANGE = 3  # the pose or reach lies beyond `max_cell_index` (plan_scan's ScanError)
 TOO_WIDE = 4  # the scan's tile box holds more than `max_window` tiles (plan_scan's ScanError)
+TOO_LONG = 5  # the scan's beams visit more than `max_walk` cells in all (plan_scan's ScanError)
 
 
 @njit(cache=True, nogil=True)
 def integrate_ray_scan(
     x: float, y: float, theta: float, angles: np.ndarray, layout: np.ndarray, ranges: np.ndarray,
     range_min: float, range_max: float, clear_range: float, res: float, truncation: float, alpha: float,
-    max_cell_index: float, max_window: int, method: int, shift: int, l_hit: float, l_miss: float,
-    l_min: float, l_max: float, max_weight: float, max_tiles: int, scratch: np.ndarray,
+    max_cell_index: float, max_window: int, max_walk: float, method: int, shift: int, l_hit: float,
+    l_miss: float, l_min: float, l_max: float, max_weight: float, max_tiles: int, scratch: np.ndarray,
     index_keys: np.ndarray, index_slots: np.ndarray, log_odds: np.ndarray, hits: np.ndarray,
     misses: np.ndarray, tsdf: np.ndarray, tsdf_weight: np.ndarray, versions: np.ndarray, clock: int,
     count: int,
@@ -62,16 +64,18 @@ def integrate_ray_scan(
     plan's tile order and then the `extra` tiles created here in slot order. With NEEDS_SCRATCH,
     `extra` is the scratch size needed. With any other status nothing changed."""
     none = np.empty((2, 0), dtype=np.int64)
-    rays, kinds, xmin, ymin, xmax, ymax, traced, longest = scan_rays(
+    rays, kinds, xmin, ymin, xmax, ymax, traced, longest, walk = scan_rays(
         x, y, theta, angles, layout, ranges, range_min, range_max, clear_range, res
     )
     # The same checks, in the same order, as plan_scan.
     verdict, ti0, tj0, ti1, tj1 = scan_extent(
         x, y, res, longest, clear_range, truncation, alpha, xmin, ymin, xmax, ymax, shift,
-        max_cell_index, max_window,
+        max_cell_index, max_window, walk, max_walk,
     )  # fmt: skip
     if verdict == EXTENT_OUT_OF_RANGE:
         return OUT_OF_RANGE, 0, 0, clock, none, 0
+    if verdict == EXTENT_TOO_LONG:
+        return TOO_LONG, 0, 0, clock, none, 0
     if traced == 0:
         return INTEGRATED, 0, 0, clock, none, 0
     if verdict == EXTENT_TOO_WIDE:

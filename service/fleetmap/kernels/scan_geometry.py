@@ -46,8 +46,11 @@ def scan_rays(
     every beam whose bearing equals its own; others are computed here. The directions are
     therefore the same whatever layout is given, and exactly `(cos a, sin a)` when theta is 0.
 
-    Returns `(rays, kinds, xmin, ymin, xmax, ymax, traced, longest)`, `rays` holding the rows cos,
-    sin, ex, ey (one array: each array handed back to Python costs a fraction of a microsecond)."""
+    Returns `(rays, kinds, xmin, ymin, xmax, ymax, traced, longest, walk)`, `rays` holding the rows
+    cos, sin, ex, ey (one array: each array handed back to Python costs a fraction of a
+    microsecond), and `walk` at least the number of cells the traced beams' walks visit in all
+    (`|dx| + |dy| + 3` cells a beam): what the ray model's trace allocates for, which
+    `scan_extent` bounds."""
     ox = x / res
     oy = y / res
     nb = ranges.size
@@ -61,6 +64,7 @@ def scan_rays(
     ymin = ymax = oy
     traced = 0
     longest = 0.0
+    walk = 0.0
     cos_t = math.cos(theta)
     sin_t = math.sin(theta)
     known = min(nb, layout.shape[1])
@@ -98,21 +102,26 @@ def scan_rays(
         ymin = min(ymin, ey[b])
         ymax = max(ymax, ey[b])
         traced += kinds[b] != BEAM_SKIP
+        walk += abs(ex[b] - ox) + abs(ey[b] - oy)  # 0 for a skipped beam
         if kinds[b] == BEAM_HIT:
             longest = max(longest, ranges[b])
-    return rays, kinds, xmin, ymin, xmax, ymax, traced, longest
+    # An exact walk from cell to cell visits |di| + |dj| + 1 cells, and |di| <= |dx| + 1.
+    walk += 3.0 * traced
+    return rays, kinds, xmin, ymin, xmax, ymax, traced, longest, walk
 
 
 #: `scan_extent` verdicts.
 EXTENT_OK = 0
 EXTENT_OUT_OF_RANGE = 1  # the pose or the reach lies beyond the index range
 EXTENT_TOO_WIDE = 2  # the traced beams' tile box holds too many tiles
+EXTENT_TOO_LONG = 3  # the traced beams' walks visit too many cells in all
 
 
 @njit(cache=True, nogil=True)
 def scan_extent(
     x: float, y: float, res: float, longest: float, clear_range: float, truncation: float, alpha: float,
     xmin: float, ymin: float, xmax: float, ymax: float, shift: int, max_cell_index: float, max_window: int,
+    walk: float, max_walk: float,
 ) -> tuple[int, int, int, int, int]:  # fmt: skip
     """Whether a scan from (x, y) (metres, `res` per cell) fits the map, and its tile box: the one
     definition of both limits, for planning and for the one-call integration.
@@ -120,17 +129,20 @@ def scan_extent(
     EXTENT_OUT_OF_RANGE when the sensor plus the scan's reach (its longest return, or its clearing
     range when that is > 0 and farther, plus `truncation` and `alpha`: how far
     the TSDF band and the beam model reach past a return; metres) is not within `max_cell_index`
-    cells of the origin on both axes. Otherwise the tile box `ti0, tj0, ti1, tj1` (tiles
-    of `1 << shift` cells) of the bounding box `xmin..ymax` (CELL units, from `scan_rays`), and
-    EXTENT_TOO_WIDE when it holds more than `max_window` tiles.
+    cells of the origin on both axes. EXTENT_TOO_LONG when the beams' walks visit more than
+    `max_walk` cells in all (`walk`, from `scan_rays`). Otherwise the tile box `ti0, tj0, ti1, tj1`
+    (tiles of `1 << shift` cells) of the bounding box `xmin..ymax` (CELL units, from `scan_rays`),
+    and EXTENT_TOO_WIDE when it holds more than `max_window` tiles.
 
-    Returns `(verdict, ti0, tj0, ti1, tj1)` (the box is 0s when out of range)."""
+    Returns `(verdict, ti0, tj0, ti1, tj1)` (the box is 0s when out of range or too long)."""
     far = longest
     if clear_range > 0:
         far = max(far, clear_range)
     reach = (far + truncation + alpha) / res
     if not (abs(x / res) + reach < max_cell_index and abs(y / res) + reach < max_cell_index):
         return EXTENT_OUT_OF_RANGE, 0, 0, 0, 0
+    if walk > max_walk:
+        return EXTENT_TOO_LONG, 0, 0, 0, 0
     ti0 = math.floor(xmin) >> shift
     tj0 = math.floor(ymin) >> shift
     ti1 = math.floor(xmax) >> shift
