@@ -681,11 +681,21 @@ def test_a_beam_model_scan_whose_window_is_too_large_is_refused(monkeypatch: pyt
     assert m.integrate(Scan.from_angles((0.0, 0.0, 0.0), [0.0, 0.5], [1.0, 2.3])).cell_updates > 0
 
 
-@pytest.mark.parametrize("config", [{}, {"layers": ["occupancy", "tsdf"]}])
+@pytest.mark.parametrize(
+    "config",
+    [
+        {},
+        {"layers": ["occupancy", "tsdf"]},
+        {"layers": ["tsdf"]},
+        {"update": "per_ray"},
+        {"sensor_model": "beam"},
+    ],
+)
 def test_scans_beyond_the_index_range_or_too_wide_are_refused(config: dict[str, object]) -> None:
     """A pose or reach beyond +-2**40 cells, or a scan whose box spans more than 2**20 tiles, is
-    refused with a clear ScanError and changes nothing, on both integration paths (a map with
-    the TSDF layer plans and applies; one without integrates in one call)."""
+    refused with a clear ScanError and changes nothing, on every integration path (one call, plan
+    and apply, per-ray entries, the beam model, the TSDF band alone: each numbers its tiles in a
+    table over the box, which for per-ray updates asked for 13 GB before)."""
     m = make_map(resolution=0.05, tile_size=256, **config)
     m.integrate(Scan.from_angles((0.0, 0.0, 0.0), [0.0, 1.0], [2.0, 3.0]))
     window = (-100, -100, 100, 100)

@@ -148,6 +148,11 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
         raise ScanError(OUT_OF_RANGE)
     if extent[0] == EXTENT_TOO_LONG:
         raise ScanError(too_long())
+    # Every model's tiles are numbered in a table over the scan's tile box (`merge_tiles`, the trace):
+    # a box past MAX_SCAN_TILE_WINDOW tiles is refused for all of them (one 1,000 km per-ray beam
+    # asked for a 13 GB table).
+    if extent[0] == EXTENT_TOO_WIDE and beams[6] > 0:  # beams[6]: the beams traced
+        raise ScanError(TOO_WIDE)
     cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
     tiles = runs = _EMPTY_PAIRS
@@ -251,9 +256,7 @@ def _ray_model_per_scan(
     rays, kinds, traced = beams[0], beams[1], beams[6]
     if traced == 0:
         return _EMPTY_PAIRS, _EMPTY_I, _EMPTY_KIND, _EMPTY_PAIRS
-    verdict, ti0, tj0, ti1, tj1 = extent
-    if verdict == EXTENT_TOO_WIDE:
-        raise ScanError(TOO_WIDE)
+    _, ti0, tj0, ti1, tj1 = extent  # not too wide (plan_scan refused that)
     ox, oy = scan.pose.x / config.resolution, scan.pose.y / config.resolution
     method = EXACT if config.traversal == "exact" else BRESENHAM
     while True:
