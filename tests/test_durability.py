@@ -633,18 +633,19 @@ def test_a_scan_whose_map_is_replaced_while_it_integrates_is_not_replayed_into_t
     (integrated into no map), the new map stays empty, and it stays empty after a kill -9 and a
     restart (before the fix, the old map's journal row came back in the new map, with its robot).
 
-    The scan's 16384 beams, 100 m long and in shuffled order, are walked one by one: about half a
-    second of planning, without any lock, in which the test deletes and re-creates the map. The test waits
-    until the scan is in flight (its robot is known and nothing is queued) before deleting it."""
+    The scan's 16384 beams, 78 m long (just within `update_plan.MAX_SCAN_CELLS`) and in shuffled
+    order, are walked one by one: about half a second of planning, without any lock, in which the
+    test deletes and re-creates the map. The test waits until the scan is in flight (its robot is
+    known and nothing is queued) before deleting it."""
     data = tmp_path / "data"
     n = 16384
     angles = np.random.default_rng(7).permutation(np.linspace(-np.pi, np.pi, n, endpoint=False))
-    heavy = encode_binary(Scan(Pose2D(1.0, 2.0, 0.0), angles, np.full(n, 100.0), 0.0, np.inf), 0)
+    heavy = encode_binary(Scan(Pose2D(1.0, 2.0, 0.0), angles, np.full(n, 78.0), 0.0, np.inf), 0)
     answer: list[httpx.Response] = []
     svc = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
     try:
         url = svc.base_url
-        # Only the occupancy layer: before the fix the scan was applied, and it allocates ~220 tiles.
+        # Only the occupancy layer: before the fix the scan was applied, and it allocates ~140 tiles.
         assert httpx.put(f"{url}/maps/X", json={"layers": ["occupancy"]}, timeout=30).status_code == 201
         poster = threading.Thread(target=lambda: answer.append(httpx.post(
             f"{url}/maps/X/scans", params={"robot_id": "old"}, content=heavy,
