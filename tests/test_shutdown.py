@@ -6,7 +6,9 @@ directory finds."""
 from __future__ import annotations
 
 import signal
+import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -49,27 +51,36 @@ def assert_kept(tmp_path: Path, data_dir: Path, before: dict[str, int]) -> None:
         assert restarted.stop() == 0
 
 
+def stop_and_check(tmp_path: Path, data_dir: Path, send: Callable[[subprocess.Popen[bytes]], None]) -> None:
+    """Start a service with robots publishing, `send` it its signals, and check that it exited 0
+    with a clean log and that a restart holds every scan reported integrated before."""
+    svc, robots = publishing_service(tmp_path, data_dir)
+    try:
+        before = integrated(svc.base_url, "m")
+        assert svc.proc is not None
+        send(svc.proc)
+        assert svc.proc.wait(20) == 0, svc.logs()
+        assert_clean_log(svc)
+    finally:
+        for robot in robots:
+            robot.stop()
+        svc.stop()
+    assert_kept(tmp_path, data_dir, before)
+
+
 def test_a_second_ctrl_c_does_not_cut_the_shutdown_short(tmp_path: Path) -> None:
     """Ctrl-C twice (and SIGTERM then Ctrl-C): uvicorn takes a second SIGINT during its shutdown as
     "force quit", which skipped the ASGI lifespan shutdown and had the event loop cancel it, logging
     an ERROR with a CancelledError traceback. The graceful shutdown is bounded (3 s) anyway: the
     second signal must change nothing, and the process exits 0 with nothing lost."""
-    data_dir = tmp_path / "data"
     for first in (signal.SIGINT, signal.SIGTERM):
-        svc, robots = publishing_service(tmp_path, data_dir)
-        try:
-            before = integrated(svc.base_url, "m")
-            assert svc.proc is not None
-            svc.proc.send_signal(first)
+
+        def twice(proc: subprocess.Popen[bytes], first: signal.Signals = first) -> None:
+            proc.send_signal(first)
             time.sleep(0.05)
-            svc.proc.send_signal(signal.SIGINT)
-            assert svc.proc.wait(20) == 0, svc.logs()
-            assert_clean_log(svc)
-        finally:
-            for robot in robots:
-                robot.stop()
-            svc.stop()
-        assert_kept(tmp_path, data_dir, before)
+            proc.send_signal(signal.SIGINT)
+
+        stop_and_check(tmp_path, tmp_path / "data", twice)
 
 
 def test_signals_arriving_while_the_service_stops_do_not_kill_it(tmp_path: Path) -> None:
@@ -77,24 +88,16 @@ def test_signals_arriving_while_the_service_stops_do_not_kill_it(tmp_path: Path)
     `kill`, systemd's SendSIGHUP=, a log rotation's HUP): each must be harmless to the end. `run`
     restored the default handlers once it had stopped, and a signal in the ~50 ms before the process
     exited killed it (exit -15 / -1 instead of 0)."""
-    data_dir = tmp_path / "data"
     for late in (signal.SIGTERM, signal.SIGHUP):
-        svc, robots = publishing_service(tmp_path, data_dir)
-        try:
-            before = integrated(svc.base_url, "m")
-            assert svc.proc is not None
-            svc.proc.send_signal(signal.SIGTERM)
+
+        def repeatedly(proc: subprocess.Popen[bytes], late: signal.Signals = late) -> None:
+            proc.send_signal(signal.SIGTERM)
             deadline = time.monotonic() + 20
-            while svc.proc.poll() is None and time.monotonic() < deadline:
+            while proc.poll() is None and time.monotonic() < deadline:
                 try:
-                    svc.proc.send_signal(late)
+                    proc.send_signal(late)
                 except ProcessLookupError:  # exited between poll and kill
                     break
                 time.sleep(0.005)
-            assert svc.proc.wait(10) == 0, (late, svc.logs())
-            assert_clean_log(svc)
-        finally:
-            for robot in robots:
-                robot.stop()
-            svc.stop()
-        assert_kept(tmp_path, data_dir, before)
+
+        stop_and_check(tmp_path, tmp_path / "data", repeatedly)

@@ -234,15 +234,14 @@ async def get_events(
     if since is None and last_event_id is not None and last_event_id.strip().isdigit():
         since = int(last_event_id.strip())
     slots = state.event_streams
-    if slots.closing:
-        raise ApiError(
-            503, "the server is shutting down; retry later", headers={"Retry-After": str(RETRY_AFTER_SECONDS)}
+    if slots.closing or not slots.acquire():  # (no slot is taken while closing)
+        why = (
+            "is shutting down"
+            if slots.closing
+            else f"already holds its limit of {slots.limit} open event streams"
         )
-    if not slots.acquire():
         raise ApiError(
-            503,
-            f"the server already holds its limit of {slots.limit} open event streams; retry later",
-            headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
+            503, f"the server {why}; retry later", headers={"Retry-After": str(RETRY_AFTER_SECONDS)}
         )
     return _SlotStreamingResponse(
         slots,
