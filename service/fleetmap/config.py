@@ -237,3 +237,10 @@ class MapConfig(BaseModel):
     def has(self, layer: LayerName) -> bool:
         """Whether the map keeps `layer` (`occupancy`, `counts` or `tsdf`)."""
         return layer in self.layers
+
+    @property
+    def traces_rays(self) -> bool:
+        """Whether scans are traced beam by beam into hits and misses: the ray model with the
+        occupancy or counts layer. (The TSDF band and the beam model visit only a few cells around
+        each return.)"""
+        return self.sensor_model == "ray" and (self.has("occupancy") or self.has("counts"))

@@ -137,10 +137,7 @@ class GridMap:
         cfg = self.config
         #: Whether `integrate` may take the one-call path: the ray model with per-scan updates into
         #: the occupancy or counts layer (the default configuration), with or without the TSDF.
-        self._in_place = (
-            cfg.sensor_model == "ray" and cfg.update == "per_scan"
-            and (cfg.has("occupancy") or cfg.has("counts"))
-        )  # fmt: skip
+        self._in_place = cfg.traces_rays and cfg.update == "per_scan"
         #: (l_hit, l_miss, l_min, l_max), resolved once: `apply` hands them to the kernels every scan.
         self._log_odds = cfg.occupancy.resolved()
         #: The one-call kernel's arguments that are fixed for this map, in its order (a Python

@@ -231,8 +231,7 @@ def max_scan_walk(config: MapConfig | None) -> float:
     the TSDF band is a few cells a return)."""
     if config is None:
         return float(MAX_SCAN_CELLS)
-    traced = config.sensor_model == "ray" and (config.has("occupancy") or config.has("counts"))
-    return float(MAX_SCAN_CELLS) if traced else math.inf
+    return float(MAX_SCAN_CELLS) if config.traces_rays else math.inf
 
 
 def beam_layout_of(angles: np.ndarray) -> np.ndarray:
