@@ -14,6 +14,7 @@ import io
 import json
 import os
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -104,11 +105,28 @@ def map_probability(gmap: GridMap, window: Window) -> np.ndarray:
         return np.where(total > 0, hits / total, np.nan)
 
 
+#: Rows of a window turned into image pixels at a time: the probabilities are float64 with a few
+#: temporaries, so a whole window at once took several times the finished image's memory (1 GB for
+#: the Freiburg campus map, whose 8-bit image is 37 MB).
+IMAGE_STRIP_ROWS = 256
+
+
+def map_image(gmap: GridMap, window: Window, pixels: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """An 8-bit image of a window (top row = highest y): `pixels` of `map_probability` over strips
+    of `IMAGE_STRIP_ROWS` rows (row 0 = lowest y), each the same shape as its input."""
+    ny, nx = window.shape
+    image = np.empty((max(ny, 0), max(nx, 0)), dtype=np.uint8)
+    for j in range(window.j0, window.j1, IMAGE_STRIP_ROWS):
+        strip = Window(window.i0, j, window.i1, min(j + IMAGE_STRIP_ROWS, window.j1))
+        image[j - window.j0 : strip.j1 - window.j0] = pixels(map_probability(gmap, strip))
+    return image[::-1]
+
+
 def nav2_files(gmap: GridMap, window: Window, name: str = "map") -> dict[str, bytes]:
     """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, of `map_probability`."""
-    state = gmap.classify_probability(map_probability(gmap, window))
+    image = map_image(gmap, window, lambda p: state_to_pgm(gmap.classify_probability(p))[::-1])
     yaml_text = nav2_yaml(f"{name}.pgm", gmap.resolution, window.origin(gmap.resolution))
-    return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(state_to_pgm(state))}
+    return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(image)}
 
 
 def nav2_zip(gmap: GridMap, window: Window, name: str = "map") -> bytes:
@@ -136,7 +154,7 @@ def png_bytes(pixels: np.ndarray) -> bytes:
 
 def map_png(gmap: GridMap, window: Window) -> bytes:
     """`map_probability` of a window as a grayscale PNG."""
-    return png_bytes(probability_to_gray(map_probability(gmap, window)))
+    return png_bytes(map_image(gmap, window, lambda p: probability_to_gray(p)[::-1]))
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
@@ -157,12 +175,24 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")
     out_dir.mkdir(parents=True, exist_ok=True)
-    files: dict[str, bytes] = {}
-    layers: list[str] = []
+    written: list[Path] = []
+
+    def write(filename: str, data: bytes | np.ndarray) -> None:
+        # Each file as soon as it is made, the layers one at a time: a dense window spans the whole
+        # map, and holding every file at once took several times the tiles' memory.
+        path = out_dir / filename
+        if isinstance(data, np.ndarray):
+            np.save(path, data, allow_pickle=False)
+        else:
+            path.write_bytes(data)
+        written.append(path)
+
     source = map_source(gmap)
     if source is not None:
-        files.update(nav2_files(gmap, window))
-        files["map.png"] = map_png(gmap, window)
+        for filename, data in nav2_files(gmap, window).items():
+            write(filename, data)
+        write("map.png", map_png(gmap, window))
+    layers: list[str] = []
     if gmap.config.has("occupancy"):
         layers.append("log_odds")
     if gmap.config.has("counts"):
@@ -170,7 +200,7 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
     if gmap.config.has("tsdf"):
         layers += ["tsdf", "tsdf_weight"]
     for layer in layers:
-        files[f"{layer}.npy"] = npy_bytes(gmap.region(layer, window.i0, window.j0, window.i1, window.j1))
+        write(f"{layer}.npy", gmap.region(layer, window.i0, window.j0, window.i1, window.j1))
     meta = {
         "resolution": gmap.resolution,
         "origin": list(window.origin(gmap.resolution)),
@@ -180,10 +210,5 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
         "map_source": source,  # what map.pgm and map.png show (None: a TSDF-only map has none)
         "config": gmap.config.model_dump(mode="json"),
     }
-    files["meta.json"] = (json.dumps(meta, indent=2) + "\n").encode()
-    written = []
-    for filename, data in files.items():
-        path = out_dir / filename
-        path.write_bytes(data)
-        written.append(path)
+    write("meta.json", (json.dumps(meta, indent=2) + "\n").encode())
     return written
