@@ -1,18 +1,25 @@
 """Stopping the real service while work is in flight: signals that come twice or late, uploads cut
-off by the stop. Each test starts `python -m fleetmap.server` as a process (durable storage), stops
-it with real signals, and checks the exit code, the log and what a restart on the same data
-directory finds."""
+off by the stop, requests still running when the graceful wait ends. Each test starts `python -m
+fleetmap.server` as a process, stops it with real signals, and checks the exit code and the log (and,
+with durable storage, what a restart on the same data directory finds)."""
 
 from __future__ import annotations
 
+import asyncio
+import json
+import logging
 import signal
+import socket
 import subprocess
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import httpx
 from service_process import RobotProcess, ServiceProcess, wait_for
+
+from fleetmap.log_format import ShutdownCutoffLog
 
 
 def integrated(base_url: str, map_id: str) -> dict[str, int]:
@@ -101,3 +108,63 @@ def test_signals_arriving_while_the_service_stops_do_not_kill_it(tmp_path: Path)
                 time.sleep(0.005)
 
         stop_and_check(tmp_path, tmp_path / "data", repeatedly)
+
+
+def test_a_request_still_running_when_the_graceful_wait_ends_gets_503(tmp_path: Path) -> None:
+    """An upload still trickling in when uvicorn's graceful shutdown runs out (3 s) is cancelled.
+    uvicorn answered it 500 "Internal Server Error" in plain text and logged an ERROR with a
+    CancelledError traceback, as for a bug, on a routine restart. It gets 503 JSON with Retry-After
+    (retry it on the restarted service), and the log one WARNING line naming the request."""
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        sock = socket.create_connection(("127.0.0.1", svc.port), timeout=20)
+        head = (
+            b"PUT /maps/m/snapshot HTTP/1.1\r\nHost: x\r\nContent-Type: application/octet-stream\r\n"
+            b"Content-Length: 100000\r\n\r\n"
+        )
+        sock.sendall(head + b"x" * 1000)
+        answered = threading.Event()
+
+        def trickle() -> None:  # a slow client: 50 bytes a second, never the whole body
+            while not answered.wait(0.2):
+                try:
+                    sock.sendall(b"x" * 10)
+                except OSError:
+                    return
+
+        threading.Thread(target=trickle, daemon=True).start()
+        time.sleep(0.5)
+        assert svc.proc is not None
+        svc.proc.send_signal(signal.SIGTERM)
+        answer = b""
+        while chunk := sock.recv(65536):
+            answer += chunk
+        answered.set()
+        sock.close()
+        assert svc.proc.wait(20) == 0, svc.logs()
+    head_part, _, body = answer.partition(b"\r\n\r\n")
+    assert head_part.startswith(b"HTTP/1.1 503 "), answer
+    assert b"\r\nretry-after: 1" in head_part.lower(), answer
+    assert "shutting down" in json.loads(body)["detail"]
+    line = "WARNING fleetmap.api: shutdown: PUT /maps/m/snapshot was still running; answered 503"
+    assert line in svc.logs()
+    assert_clean_log(svc)
+
+
+def test_uvicorns_lines_about_cancelled_requests_fit_a_routine_restart() -> None:
+    """The lines uvicorn logs when its graceful shutdown runs out: its count of cancelled requests
+    (an ERROR, even with none: a slow client still reading a finished answer) is a WARNING; its
+    traceback of a request's cancellation is dropped (`ShutdownCutoff` logged the request); any other
+    exception it logs is kept as it is."""
+    cutoff = ShutdownCutoffLog()
+
+    def record(msg: str, args: tuple[object, ...], exc: BaseException | None) -> logging.LogRecord:
+        info = (type(exc), exc, None) if exc is not None else None
+        return logging.LogRecord("uvicorn.error", logging.ERROR, __file__, 0, msg, args, info)
+
+    count = record("Cancel %s running task(s), timeout graceful shutdown exceeded", (2,), None)
+    assert cutoff.filter(count) and count.levelno == logging.WARNING and count.levelname == "WARNING"
+    assert count.getMessage() == "shutdown: the HTTP connections still open are closed (2 request(s) cut off)"
+    cancelled = record("Exception in ASGI application\n", (), asyncio.CancelledError("graceful shutdown"))
+    assert not cutoff.filter(cancelled)
+    bug = record("Exception in ASGI application\n", (), RuntimeError("a real bug"))
+    assert cutoff.filter(bug) and bug.levelno == logging.ERROR

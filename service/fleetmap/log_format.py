@@ -24,6 +24,7 @@ too in `json`.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import sys
@@ -114,14 +115,33 @@ def configure_logging(level: str, log_format: str) -> None:
     threading.excepthook = thread_hook
 
 
+class ShutdownCutoffLog(logging.Filter):
+    """uvicorn's lines about the requests it cancels when its graceful shutdown runs out, made fit
+    for a routine restart: "Cancel N running task(s), timeout graceful shutdown exceeded", an ERROR
+    even when N is 0 (a slow client still reading a finished answer), becomes a WARNING that says
+    what happens; "Exception in ASGI application" with the cancellation's traceback, an ERROR per
+    request, is dropped: `api.errors.ShutdownCutoff` logged that request as a WARNING line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str) and record.msg.startswith("Cancel %s running task(s)"):
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+            record.msg = "shutdown: the HTTP connections still open are closed (%s request(s) cut off)"
+            return True
+        exc = record.exc_info[1] if record.exc_info else None
+        return not isinstance(exc, asyncio.CancelledError)
+
+
 #: `uvicorn.Config(log_config=...)`: uvicorn's loggers keep no handler of their own and hand their
 #: records to the process's (`configure_logging`), so its errors and access lines have the format
 #: of every other line, on the same stream. (No `root` key: dictConfig leaves the root's handler.)
 UVICORN_LOG_CONFIG: dict[str, Any] = {
     "version": 1,
     "disable_existing_loggers": False,
+    "filters": {"shutdown_cutoff": {"()": ShutdownCutoffLog}},
     "loggers": {
-        name: {"handlers": [], "propagate": True} for name in ("uvicorn", "uvicorn.error", "uvicorn.access")
+        "uvicorn": {"handlers": [], "propagate": True},
+        "uvicorn.error": {"handlers": [], "propagate": True, "filters": ["shutdown_cutoff"]},
+        "uvicorn.access": {"handlers": [], "propagate": True},
     },
 }
 

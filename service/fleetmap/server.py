@@ -24,7 +24,8 @@ lists separated by spaces); the command line wins (`_environment_first`).
 
 SIGHUP reads the `--auth-tokens` file again (a file that cannot be used keeps the tokens in force).
 SIGINT / SIGTERM shut down gracefully: uvicorn stops serving (open event streams end at once, other
-requests in flight get a few seconds), the Zenoh session closes (no more scans come in), the
+requests in flight get `GRACEFUL_HTTP_SECONDS`, then are answered 503 or cut off: `ShutdownCutoff`
+in api/errors.py), the Zenoh session closes (no more scans come in), the
 registry integrates every scan already queued and stops its workers, and the process exits 0 (a
 second signal changes nothing: it does not cut the shutdown short). A configuration error (bad
 address, port in use, bad config file) prints one line `fleetmap serve: error: ...` and exits 2,

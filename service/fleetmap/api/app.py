@@ -207,6 +207,9 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         app.add_middleware(AuthMiddleware, tokens=settings.tokens, require_read=settings.require_read_token)
     # Outside auth: a viewer whose tiles are refused (401, 403) shows in the counts too.
     app.add_middleware(routes_tiles.TileStatusCounter, counts=app.state.fleetmap.metrics.tile_statuses)
+    # Outside every middleware that waits (the ingest gate, a body being read): a request cancelled
+    # at shutdown anywhere in them gets its 503 here, with the CORS and default headers put on it.
+    app.add_middleware(errors.ShutdownCutoff)
     if settings.cors_origins:
         # Outside every middleware that answers by itself, so that every answer to an allowed page
         # carries the CORS headers, the auth middleware's 401 and 403 included: without them the

@@ -8,6 +8,7 @@ here, and anything else is a bug: logged with its traceback and answered 500 wit
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import Sequence
 from typing import Any
@@ -137,6 +138,42 @@ class BodyLimitMiddleware:
             return message
 
         await self.app(scope, limited, send)
+
+
+class ShutdownCutoff:
+    """A request still running when the server's graceful shutdown runs out (a body trickling in, a
+    slow client reading a large answer) is cancelled by uvicorn, which answered it 500 "Internal
+    Server Error" in plain text and logged an ERROR with a traceback, as for a bug. Here such a
+    request gets 503 JSON with Retry-After instead, when its answer has not started (the client
+    retries it on the restarted service: every change is idempotent, a scan by its seq), and one
+    WARNING line; an answer already under way is cut off (its connection closes), with the same
+    line. (uvicorn cancels a request's task only then, when its graceful shutdown times out.)"""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracked(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracked)
+        except asyncio.CancelledError:
+            method, path = scope.get("method", "?"), scope.get("path", "?")
+            fields = {"method": method, "path": path}
+            if started:
+                log.warning("shutdown: %s %s was cut off mid-answer", method, path, extra=fields)
+                raise  # uvicorn closes the connection (log_format.ShutdownCutoffLog drops its traceback)
+            log.warning("shutdown: %s %s was still running; answered 503", method, path, extra=fields)
+            detail = "the server is shutting down and this request did not finish in time; retry it"
+            await _json(503, detail, headers={"Connection": "close"})(scope, receive, send)
 
 
 def _json(
