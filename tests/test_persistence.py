@@ -118,6 +118,34 @@ def test_superseded_rows_left_by_a_crash_are_deleted_at_start(tmp_path: Path, mo
         again.close()
 
 
+def test_failing_commits_are_logged_once_an_interval_and_their_end_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A full disk fails every journal commit, hundreds a second: an ERROR line each flooded the log
+    (often on that same disk). The first failure is logged, the others within `LOG_INTERVAL` are
+    counted, and one line says when commits succeed again and how many failed."""
+    path, _lock = open_database(tmp_path)
+    writer = JournalWriter(path)
+    outcomes: queue.Queue[object] = queue.Queue()
+
+    def scan(k: int) -> object:
+        writer.append(JournalEntry("m", "r", k, 0.0, b"scan", outcomes.put, outcomes.put))
+        return outcomes.get(timeout=10)
+
+    try:
+        with caplog.at_level(logging.INFO, logger="fleetmap.journal"):
+            path.rename(tmp_path / "moved")  # not the writer's file at its path: every commit fails
+            assert all(isinstance(scan(k), sqlite3.Error) for k in range(20))  # one commit each
+            (tmp_path / "moved").rename(path)
+            assert isinstance(scan(20), int)
+    finally:
+        writer.close()
+    lines = [r.getMessage() for r in caplog.records if r.name == "fleetmap.journal"]
+    assert len(lines) == 2, lines
+    assert lines[0].startswith("journal commit failed (1 scans not durable): the map database")
+    assert lines[1].startswith("journal commits succeed again, after 20 failed (20 scans not durable")
+
+
 def test_attached_rows_ride_along_with_the_next_group_commit(tmp_path: Path, monkeypatch) -> None:
     """A snapshot's tile rows are written in the journal's own transactions: with the next group
     commit while scans arrive, alone once none has come for ATTACH_WAIT."""

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from fleetmap.database import StorageError, connect
+from fleetmap.rate_limited_log import RateLimitedLog
 
 log = logging.getLogger("fleetmap.journal")
 
@@ -86,6 +87,11 @@ class JournalWriter:
             queue.Queue()
         )
         self._on_error = on_error
+        # A full disk fails every commit, hundreds a second: one line per `LOG_INTERVAL`, counting
+        # the others, and one when commits succeed again.
+        self._failure_log = RateLimitedLog(log)
+        self._failed_commits = 0  # since the last commit that succeeded
+        self._failed_scans = 0
         # map id -> the journal id up to which that map's rows are superseded by a snapshot and
         # still to be deleted. Only the writer thread touches it (from `trim`, called in an op).
         self._trim: dict[str, int] = {}
@@ -379,7 +385,10 @@ class JournalWriter:
         except sqlite3.Error as exc:
             # Nothing of this batch is durable: the scans stay applied in memory but are never
             # counted, and the service reports the storage failure loudly.
-            log.error("journal commit failed (%d scans not durable): %s", len(batch), exc)
+            self._failed_commits += 1
+            self._failed_scans += len(batch)
+            what = f"journal commit failed ({len(batch)} scans not durable): {exc}"
+            self._failure_log.error("commit", what)
             self._roll_back()
             for a in attached:
                 a.future.set_exception(exc)
@@ -391,6 +400,12 @@ class JournalWriter:
             for e in batch:
                 _tell(e.on_failed, exc)
             return False
+        if self._failed_commits:
+            log.info(
+                "journal commits succeed again, after %d failed (%d scans not durable until their "
+                "maps' next snapshots)", self._failed_commits, self._failed_scans,
+            )  # fmt: skip
+            self._failed_commits = self._failed_scans = 0
         for a in attached:
             a.future.set_result(None)
         if trimmed is not None and trimmed[1]:

@@ -1,7 +1,8 @@
 """A log that stays readable under a flood: `RateLimitedLog`.
 
 Used where strangers can make the service log: Zenoh messages refused by the ingest (one robot can
-send thousands a second) and HTTP connections refused when the process is out of descriptors.
+send thousands a second) and HTTP connections refused when the process is out of descriptors; and
+where a failing disk would: every journal commit fails while it is full, hundreds a second.
 """
 
 from __future__ import annotations
@@ -36,9 +37,18 @@ class RateLimitedLog:
         self._lock = threading.Lock()
 
     def warning(self, category: str, message: str, **fields: object) -> bool:
-        """Log `message` unless `category` was logged less than `interval` ago, or `max_lines` lines
-        were logged in the current interval. Returns whether it was logged. `fields` (map_id,
-        robot_id, ...) are the line's structured fields (`extra=`; see fleetmap.log_format)."""
+        """`log` at WARNING."""
+        return self.log(logging.WARNING, category, message, **fields)
+
+    def error(self, category: str, message: str, **fields: object) -> bool:
+        """`log` at ERROR."""
+        return self.log(logging.ERROR, category, message, **fields)
+
+    def log(self, level: int, category: str, message: str, **fields: object) -> bool:
+        """Log `message` at `level` unless `category` was logged less than `interval` ago, or
+        `max_lines` lines were logged in the current interval. Returns whether it was logged.
+        `fields` (map_id, robot_id, ...) are the line's structured fields (`extra=`; see
+        fleetmap.log_format)."""
         now = time.monotonic()
         with self._lock:
             last = self._last.get(category)
@@ -63,5 +73,5 @@ class RateLimitedLog:
         suffix = f" ({held} similar messages suppressed)" if held else ""
         if other:
             suffix += f" ({other} other messages suppressed)"
-        self.logger.warning("%s%s", message, suffix, extra=fields)
+        self.logger.log(level, "%s%s", message, suffix, extra=fields)
         return True
