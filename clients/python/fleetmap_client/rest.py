@@ -292,7 +292,10 @@ class FleetmapClient:
                 message["seq"] = seq
             if stamp is not None:
                 message["stamp"] = stamp
-            body = json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+            # NaN and infinities as the literals NaN, Infinity and -Infinity, which the service reads
+            # as a JSON scan's invalid reading, no return, and no maximum (docs/protocol.md): a
+            # ScanMessage's range_max is infinite unless given, and its NaN ranges stay invalid.
+            body = json.dumps(message, separators=(",", ":")).encode()
             content_type = JSON_ENCODING
             seq = message.get("seq") if isinstance(message.get("seq"), int) else None
         response = self._request(
