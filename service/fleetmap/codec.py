@@ -51,6 +51,9 @@ FLAG_ANGLES = 1
 HEADER = struct.Struct("<4sBBHQddddffdfI")
 HEADER_V2 = struct.Struct("<4sBBHQddddffdfIQ")
 assert HEADER.size == 72 and HEADER_V2.size == 80, "the layout documented above and in docs/protocol.md"
+#: The largest finite float32, the binary encoding's type for ranges, range_min, range_max, the angle
+#: increment and explicit angles.
+F32_MAX = float(np.finfo(np.float32).max)
 #: The largest scan payload accepted by default, over Zenoh and REST alike (about 16 K beams as JSON
 #: with explicit angles). Over REST it is stricter than the HTTP body limit (`ApiSettings.max_body_bytes`).
 MAX_PAYLOAD_BYTES_DEFAULT = 4 * 1024 * 1024
@@ -259,16 +262,28 @@ def encode_binary(
 ) -> bytes:
     """The binary encoding of a scan: version 2 with a `session` id, else version 1. Evenly spaced
     beams are sent as angle_min + increment unless `explicit_angles` is True; other beams always
-    with explicit angles."""
+    with explicit angles.
+
+    Its float32 fields hold what a float32 can: a range_max beyond it is sent as +inf (no maximum,
+    what it means at that length: the service caps it at its trusted range anyway) and readings
+    beyond it as +inf (no return, likewise). A range_min, angle increment or explicit angle beyond
+    it (a scan the service refuses anyway) raises `ScanError`, not struct's OverflowError."""
     n = scan.num_beams
     angles = scan.angles
     even = n < 2 or bool(np.allclose(np.diff(angles), angles[1] - angles[0], rtol=0, atol=1e-9))
     explicit = (not even) if explicit_angles is None else explicit_angles
     angle_min = float(angles[0]) if n else 0.0
     increment = float(angles[1] - angles[0]) if n > 1 else 0.0
+    range_max = scan.range_max if scan.range_max <= F32_MAX else math.inf
+    widest = max(scan.range_min, abs(increment), float(np.abs(angles).max()) if explicit and n else 0.0)
+    if widest > F32_MAX:
+        raise ScanError(
+            f"{widest:g} does not fit the binary encoding's float32 (range_min, the angle increment, "
+            "explicit angles); send the scan as JSON"
+        )
     fields = (
         FLAG_ANGLES if explicit else 0, 0, seq, stamp, scan.pose.x, scan.pose.y,
-        scan.pose.theta, scan.range_min, scan.range_max, angle_min, increment, n,
+        scan.pose.theta, scan.range_min, range_max, angle_min, increment, n,
     )  # fmt: skip
     if session is None:
         header = HEADER.pack(MAGIC, VERSION, *fields)
@@ -277,7 +292,8 @@ def encode_binary(
     parts = [header]
     if explicit:
         parts.append(angles.astype("<f4").tobytes())
-    parts.append(scan.ranges.astype("<f4").tobytes())
+    with np.errstate(over="ignore"):  # readings beyond float32 become +inf: no return (above)
+        parts.append(scan.ranges.astype("<f4").tobytes())
     return b"".join(parts)
 
 
