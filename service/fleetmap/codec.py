@@ -139,8 +139,8 @@ def decode(payload: bytes | bytearray | memoryview, encoding: str) -> WireScan:
     if len(data) > limit:
         raise PayloadTooLarge(f"payload of {len(data)} bytes exceeds the limit of {limit}")
     kind = encoding.split(";", 1)[0].strip()
-    if kind in ("", "zenoh/bytes", "application/octet-stream"):
-        kind = BINARY_ENCODING if data[:4] == MAGIC else JSON_ENCODING if data[:1] == b"{" else kind
+    if kind in SNIFFED_ENCODINGS:
+        kind = _sniff(data)
     if kind == JSON_ENCODING or kind == "text/json":
         return decode_json(data)
     if kind == BINARY_ENCODING:
@@ -148,11 +148,34 @@ def decode(payload: bytes | bytearray | memoryview, encoding: str) -> WireScan:
     raise DecodeError(f"unknown encoding {encoding!r}; use {JSON_ENCODING} or {BINARY_ENCODING}")
 
 
+#: Encodings that say nothing of the payload (Zenoh's default among them): it is told by its start.
+SNIFFED_ENCODINGS = ("", "zenoh/bytes", "application/octet-stream")
+#: What some Windows tools write before UTF-8 text; JSON forbids it (RFC 8259, 8.1).
+UTF8_BOM = b"\xef\xbb\xbf"
+
+
+def _sniff(data: bytes) -> str:
+    """The encoding of a payload labelled with one of SNIFFED_ENCODINGS: binary if it starts
+    with the magic, JSON if with `{` (after a byte order mark too, which `decode_json` then refuses by
+    name). Anything else raises a DecodeError that says so: "unknown encoding 'zenoh/bytes'" told the
+    sender that an encoding docs/protocol.md accepts was not known."""
+    if data[:4] == MAGIC:
+        return BINARY_ENCODING
+    if data[:1] == b"{" or data[:4] == UTF8_BOM + b"{":
+        return JSON_ENCODING
+    raise DecodeError(
+        f"a payload starting {data[:8]!r} is neither a binary scan (magic {MAGIC!r}) nor a JSON object "
+        f"('{{'); label it {JSON_ENCODING} or {BINARY_ENCODING}"
+    )
+
+
 #: Items a JSON scan holds besides its two lists (`angles`, `ranges`).
 JSON_SCAN_FIELDS = 64
 
 
 def decode_json(data: bytes) -> WireScan:
+    if data.startswith(UTF8_BOM):  # the parser's "expected value at line 1 column 1" did not say why
+        raise DecodeError("invalid JSON scan: it starts with a byte order mark; send UTF-8 without one")
     # A JSON scan's only lists are `angles` and `ranges`, at most `max_beams` items each, and JSON
     # separates items by commas: a payload with more cannot be a scan within the limits. Counting
     # them (at C speed, about 1 ms for 4 MB) refuses it unparsed: a 4 MB list of 2 million numbers
