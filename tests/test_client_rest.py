@@ -130,6 +130,9 @@ def test_bad_arguments_are_refused_before_any_request(client: FleetmapClient, sc
         client.cells("args", [[0.5, 0.5, 0.0], [1.0, 1.0, 0.0]])
     with pytest.raises(ValueError, match="encoding must be 'json' or 'binary', got 'msgpack'"):
         client.post_scan("args", "r1", scans[0], encoding="msgpack")  # type: ignore[arg-type]
+    for wrong in ("scan.json", b"FMS1", 5):  # said "dictionary update sequence element #0 ..."
+        with pytest.raises(TypeError, match=f"post_scan takes .* not {type(wrong).__name__}"):
+            client.post_scan("args", "r1", wrong)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="map_id 'a/b' is invalid"):
         client.events("a/b")
     stats = client.get_map("args").stats
