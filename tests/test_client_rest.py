@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import threading
 import time
 import zipfile
@@ -33,7 +34,7 @@ from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import STATE_NAMES, GridMap
 from fleetmap.scan import Scan
 from fleetmap.sim import SimulatedRobot, generate_floorplan
-from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage
+from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, PoseMessage, ScanMessage
 
 CONFIG = MapConfig(resolution=0.1, tile_size=64)
 
@@ -129,6 +130,9 @@ def test_bad_arguments_are_refused_before_any_request(client: FleetmapClient, sc
         client.cells("args", [[0.5, 0.5, 0.0], [1.0, 1.0, 0.0]])
     with pytest.raises(ValueError, match="encoding must be 'json' or 'binary', got 'msgpack'"):
         client.post_scan("args", "r1", scans[0], encoding="msgpack")  # type: ignore[arg-type]
+    for wrong in ("scan.json", b"FMS1", 5):  # said "dictionary update sequence element #0 ..."
+        with pytest.raises(TypeError, match=f"post_scan takes .* not {type(wrong).__name__}"):
+            client.post_scan("args", "r1", wrong)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="map_id 'a/b' is invalid"):
         client.events("a/b")
     stats = client.get_map("args").stats
@@ -249,6 +253,21 @@ def test_posted_scans_and_every_query_match_the_engine(client: FleetmapClient, s
     with pytest.raises(FleetmapError) as bad:
         client.upload_snapshot("q-copy", snapshot[: len(snapshot) // 2])
     assert bad.value.status == 422 and client.get_map("q-copy").stats.tiles == info.stats.tiles
+
+
+def test_post_scan_sends_nan_and_infinities_as_the_protocol_reads_them(client: FleetmapClient) -> None:
+    """A ScanMessage without range_max (no maximum: infinite) or with a NaN range (an invalid
+    reading), and a dict in the JSON scan format holding NaN or infinities, all legal scans of
+    docs/protocol.md, raised ValueError ("Out of range float values are not JSON compliant")."""
+    pose = PoseMessage(x=0.5, y=0.5, theta=0.0)
+    message = ScanMessage(seq=0, pose=pose, angle_min=-0.2, angle_increment=0.1, ranges=[1.0, None, math.nan])
+    assert math.isinf(message.range_max)
+    as_dict = {**message.model_dump(), "seq": 1, "ranges": [2.0, math.inf, math.nan, -math.inf]}
+    results = [client.post_scan("non-finite", "r1", scan) for scan in (message, as_dict)]
+    assert [(r.seq, r.status) for r in results] == [(0, "integrated"), (1, "integrated")]
+    assert all(r.cell_updates > 0 for r in results)
+    robot = client.get_map("non-finite").stats.robots["r1"]
+    assert (robot.scans_integrated, robot.scans_rejected) == (2, 0)
 
 
 def test_tiles_with_etags(client: FleetmapClient, scans: list[Scan]) -> None:

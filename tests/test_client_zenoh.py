@@ -25,9 +25,9 @@ from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
 from fleetmap_client.sim import robot_ids, run_sim
 from service_process import DATASETS_DIR, free_port, reaped, wait_for
 
-from fleetmap.codec import WireScan, decode
+from fleetmap.codec import WireScan, decode, encode_json
 from fleetmap.datasets import load_dataset
-from fleetmap.scan import Scan
+from fleetmap.scan import Scan, ScanError
 from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap.wire import ALIVE_KEY_WILDCARD, BINARY_ENCODING, JSON_ENCODING, SCAN_KEY_WILDCARD, ScanMessage
 
@@ -302,6 +302,26 @@ def test_a_refused_publish_leaves_no_gap_in_the_seqs(router: Router, sim_scans: 
         assert pub.publish(sim_scans[1])
         got = router.wait_count(2, "fleetmap/m/gapless/scan")
     assert [wire.seq for _, _, wire in got] == [0, 1]
+
+
+def test_binary_publishes_a_range_max_beyond_float32_as_no_maximum(router: Router) -> None:
+    """A legal scan whose range_max is beyond float32 (sys.float_info.max, a common "no maximum")
+    made `publish` raise struct's OverflowError in the binary encoding, which JSON sends as is. It
+    now travels as +inf (no maximum), as readings beyond float32 travel as +inf (no return); a
+    range_min beyond float32 (a scan the service refuses anyway) is a ScanError that sends nothing."""
+    huge = Scan.from_fan((1.0, 2.0, 0.0), 0.0, 0.1, [1.5, 1e39, math.inf], 0.0, sys.float_info.max)
+    with ScanPublisher("m", "wide", connect=[router.endpoint]) as pub:
+        assert pub.wait_connected(10)
+        assert pub.publish(huge, stamp=1.0)
+        with pytest.raises(ScanError, match="does not fit the binary encoding's float32"):
+            pub.publish(Scan.from_fan((0.0, 0.0, 0.0), 0.0, 0.1, [1.0], 1e39), stamp=2.0)
+        assert pub.publish(huge, stamp=3.0)
+        got = router.wait_count(2, "fleetmap/m/wide/scan")
+    as_json = decode(encode_json(huge, 0, 1.0), JSON_ENCODING).scan  # the service's range_max: its cap
+    assert [wire.seq for _, _, wire in got] == [0, 1]
+    for _, _, wire in got:
+        assert wire.scan.range_max == as_json.range_max
+        np.testing.assert_array_equal(wire.scan.ranges, [1.5, math.inf, math.inf])
 
 
 def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong() -> None:

@@ -174,6 +174,12 @@ def test_bad_payloads_are_counted_per_robot_with_reasons_and_change_nothing(
         (b'{"seq": 1, "pose": {"x": 0, "y": 0, "theta": 0}, "ranges": [1.0]}', JSON_ENCODING, "angle_min"),
         (b"FMS1" + bytes(68), BINARY_ENCODING, "version"),
         (b"", BINARY_ENCODING, "header"),
+        # Payloads whose start is wrong were refused as "unknown encoding 'zenoh/bytes'" (an encoding
+        # docs/protocol.md accepts) or "expected value at line 1 column 1" (a byte order mark).
+        (b"", "zenoh/bytes", "neither a binary scan (magic b'FMS1') nor a JSON object"),
+        (b'\n{"seq": 1}', "application/octet-stream", "payload starting b'\\n{\"seq\":'"),
+        (b'\xef\xbb\xbf{"seq": 1}', JSON_ENCODING, "starts with a byte order mark"),
+        (b'\xef\xbb\xbf{"seq": 1}', "zenoh/bytes", "starts with a byte order mark"),
     ],
 )
 def test_each_decode_error_reason_reaches_the_robot(

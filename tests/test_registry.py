@@ -140,6 +140,32 @@ def test_queue_full_refuses_newest_and_counts_it() -> None:
     reg.submit("m", "other", WireScan(0, 0.0, scan_at(0)))  # other robots are not affected
 
 
+def test_a_scan_the_full_queue_refused_is_integrated_when_sent_again() -> None:
+    """A REST client answered 503 (queue full) is told to retry later. The refused scan's seq was
+    recorded (so that it is not also counted as lost), and its retry was ignored as a duplicate of
+    itself: a scan the service never integrated, lost although its sender did as told."""
+    reg = MapRegistry(queue_bytes=30 * 16)  # one scan of 30 beams: others' scans fill the queue
+    reg.submit("m", "other", WireScan(0, 0.0, scan_at(0.0)))
+    for session in (None, 77):
+        with pytest.raises(IngestRejected) as full:
+            reg.submit("m", f"r{session}", WireScan(4, 1.0, scan_at(1.0), session), wait=True)
+        assert full.value.status == 503
+    reg.start()
+    try:
+        assert reg.wait_idle()
+        for session in (None, 77):
+            retry = reg.submit("m", f"r{session}", WireScan(4, 1.0, scan_at(1.0), session), wait=True)
+            assert retry is not None and retry.result(10).cell_updates > 0
+            with pytest.raises(IngestRejected) as again:  # integrated once: a copy is a duplicate
+                reg.submit("m", f"r{session}", WireScan(4, 1.0, scan_at(1.0), session))
+            assert again.value.status == 200
+            robot = reg.get("m").robots[f"r{session}"]
+            counts = (robot.scans_integrated, robot.dropped, robot.duplicates, robot.lost, robot.restarts)
+            assert counts == (1, 1, 1, 0, 0) and robot.last_seq == 4
+    finally:
+        reg.close()
+
+
 def test_tile_cap_rejects_the_scan_and_counts_it(registry: MapRegistry) -> None:
     registry.create("small", MapConfig(max_tiles=1, tile_size=16, resolution=0.1))
     fut = registry.submit("small", "r", WireScan(0, 0.0, scan_at(0.0, r=20.0)), wait=True)

@@ -51,6 +51,9 @@ FLAG_ANGLES = 1
 HEADER = struct.Struct("<4sBBHQddddffdfI")
 HEADER_V2 = struct.Struct("<4sBBHQddddffdfIQ")
 assert HEADER.size == 72 and HEADER_V2.size == 80, "the layout documented above and in docs/protocol.md"
+#: The largest finite float32, the binary encoding's type for ranges, range_min, range_max, the angle
+#: increment and explicit angles.
+F32_MAX = float(np.finfo(np.float32).max)
 #: The largest scan payload accepted by default, over Zenoh and REST alike (about 16 K beams as JSON
 #: with explicit angles). Over REST it is stricter than the HTTP body limit (`ApiSettings.max_body_bytes`).
 MAX_PAYLOAD_BYTES_DEFAULT = 4 * 1024 * 1024
@@ -136,8 +139,8 @@ def decode(payload: bytes | bytearray | memoryview, encoding: str) -> WireScan:
     if len(data) > limit:
         raise PayloadTooLarge(f"payload of {len(data)} bytes exceeds the limit of {limit}")
     kind = encoding.split(";", 1)[0].strip()
-    if kind in ("", "zenoh/bytes", "application/octet-stream"):
-        kind = BINARY_ENCODING if data[:4] == MAGIC else JSON_ENCODING if data[:1] == b"{" else kind
+    if kind in SNIFFED_ENCODINGS:
+        kind = _sniff(data)
     if kind == JSON_ENCODING or kind == "text/json":
         return decode_json(data)
     if kind == BINARY_ENCODING:
@@ -145,11 +148,34 @@ def decode(payload: bytes | bytearray | memoryview, encoding: str) -> WireScan:
     raise DecodeError(f"unknown encoding {encoding!r}; use {JSON_ENCODING} or {BINARY_ENCODING}")
 
 
+#: Encodings that say nothing of the payload (Zenoh's default among them): it is told by its start.
+SNIFFED_ENCODINGS = ("", "zenoh/bytes", "application/octet-stream")
+#: What some Windows tools write before UTF-8 text; JSON forbids it (RFC 8259, 8.1).
+UTF8_BOM = b"\xef\xbb\xbf"
+
+
+def _sniff(data: bytes) -> str:
+    """The encoding of a payload labelled with one of SNIFFED_ENCODINGS: binary if it starts
+    with the magic, JSON if with `{` (after a byte order mark too, which `decode_json` then refuses by
+    name). Anything else raises a DecodeError that says so: "unknown encoding 'zenoh/bytes'" told the
+    sender that an encoding docs/protocol.md accepts was not known."""
+    if data[:4] == MAGIC:
+        return BINARY_ENCODING
+    if data[:1] == b"{" or data[:4] == UTF8_BOM + b"{":
+        return JSON_ENCODING
+    raise DecodeError(
+        f"a payload starting {data[:8]!r} is neither a binary scan (magic {MAGIC!r}) nor a JSON object "
+        f"('{{'); label it {JSON_ENCODING} or {BINARY_ENCODING}"
+    )
+
+
 #: Items a JSON scan holds besides its two lists (`angles`, `ranges`).
 JSON_SCAN_FIELDS = 64
 
 
 def decode_json(data: bytes) -> WireScan:
+    if data.startswith(UTF8_BOM):  # the parser's "expected value at line 1 column 1" did not say why
+        raise DecodeError("invalid JSON scan: it starts with a byte order mark; send UTF-8 without one")
     # A JSON scan's only lists are `angles` and `ranges`, at most `max_beams` items each, and JSON
     # separates items by commas: a payload with more cannot be a scan within the limits. Counting
     # them (at C speed, about 1 ms for 4 MB) refuses it unparsed: a 4 MB list of 2 million numbers
@@ -259,16 +285,28 @@ def encode_binary(
 ) -> bytes:
     """The binary encoding of a scan: version 2 with a `session` id, else version 1. Evenly spaced
     beams are sent as angle_min + increment unless `explicit_angles` is True; other beams always
-    with explicit angles."""
+    with explicit angles.
+
+    Its float32 fields hold what a float32 can: a range_max beyond it is sent as +inf (no maximum,
+    what it means at that length: the service caps it at its trusted range anyway) and readings
+    beyond it as +inf (no return, likewise). A range_min, angle increment or explicit angle beyond
+    it (a scan the service refuses anyway) raises `ScanError`, not struct's OverflowError."""
     n = scan.num_beams
     angles = scan.angles
     even = n < 2 or bool(np.allclose(np.diff(angles), angles[1] - angles[0], rtol=0, atol=1e-9))
     explicit = (not even) if explicit_angles is None else explicit_angles
     angle_min = float(angles[0]) if n else 0.0
     increment = float(angles[1] - angles[0]) if n > 1 else 0.0
+    range_max = scan.range_max if scan.range_max <= F32_MAX else math.inf
+    widest = max(scan.range_min, abs(increment), float(np.abs(angles).max()) if explicit and n else 0.0)
+    if widest > F32_MAX:
+        raise ScanError(
+            f"{widest:g} does not fit the binary encoding's float32 (range_min, the angle increment, "
+            "explicit angles); send the scan as JSON"
+        )
     fields = (
         FLAG_ANGLES if explicit else 0, 0, seq, stamp, scan.pose.x, scan.pose.y,
-        scan.pose.theta, scan.range_min, scan.range_max, angle_min, increment, n,
+        scan.pose.theta, scan.range_min, range_max, angle_min, increment, n,
     )  # fmt: skip
     if session is None:
         header = HEADER.pack(MAGIC, VERSION, *fields)
@@ -277,7 +315,8 @@ def encode_binary(
     parts = [header]
     if explicit:
         parts.append(angles.astype("<f4").tobytes())
-    parts.append(scan.ranges.astype("<f4").tobytes())
+    with np.errstate(over="ignore"):  # readings beyond float32 become +inf: no return (above)
+        parts.append(scan.ranges.astype("<f4").tobytes())
     return b"".join(parts)
 
 

@@ -511,6 +511,7 @@ class MapRegistry:
                 job.future = Future()
             if not self.queue.put((map_id, robot_id), job):
                 robot.dropped += 1
+                robot.refused = (session_key(session), seq)  # a retry of it is not a duplicate
                 reason = "ingest queue full: scan dropped"
                 if self._remove_unclaimed(entry) is not None:
                     reason += f"; map {map_id!r}, created for it, was removed again"

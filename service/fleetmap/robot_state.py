@@ -101,6 +101,11 @@ class RobotState:
     #: interleave with (two robots publishing under one id: 1; a third, or one of them restarted: +1).
     id_conflicts: int = 0
     conflict_at: float | None = None  # wall-clock time of the last interleaved scan
+    #: (session key, seq) of its last scan that the full ingest queue refused (counted in `dropped`),
+    #: until another of its scans is accepted. Its seq was recorded (so it is not also counted as
+    #: lost), yet it was never integrated: a re-send of it, which a REST client answered 503 is told
+    #: to make, is accepted rather than ignored as a duplicate. Not saved: it is about the last moments.
+    refused: tuple[int, int] | None = None
 
     #: The counters that survive a restart (and `sessions`, saved as lists).
     SAVED = (
@@ -146,7 +151,10 @@ class RobotState:
         """Whether the scan `seq` of publisher session `session` (None: it sent none) is not new:
         its session's seq is past it (a copy, a retry, a stale message). A session not heard
         before is never a duplicate: its publisher (re)started, or another robot shares this id.
-        Without a session, a seq not new is a restart if its stamp says so (`SessionSeqs.is_restart`)."""
+        Without a session, a seq not new is a restart if its stamp says so (`SessionSeqs.is_restart`).
+        A re-send of the scan the full queue refused (`refused`) is new: it was never integrated."""
+        if self.refused == (session_key(session), seq):
+            return False  # a re-send of the scan the full queue refused
         rec = self.sessions.get(session_key(session))
         if rec is None or seq > rec.last_seq:
             return False
@@ -162,9 +170,13 @@ class RobotState:
         comes back after another one was heard is an id conflict (two publishers under one robot
         id): `conflict_at` becomes `now` (wall-clock), `id_conflicts` counts it if a session among
         them was not known to be in one, and a restart counted when the other one started is
-        withdrawn (it ran beside this one). Returns whether this scan interleaved with another
-        session's so."""
+        withdrawn (it ran beside this one). A re-send of the scan the full queue refused
+        (`refused`) changes none of this: its seq was recorded when it first came. Returns whether
+        this scan interleaved with another session's so."""
         key = session_key(session)
+        refused, self.refused = self.refused, None
+        if refused == (key, seq):
+            return False  # a re-send of the scan the full queue refused: its seq is recorded already
         self.accepted += 1
         rec = self.sessions.pop(key, None)
         beside: list[SessionSeqs] = []

@@ -295,7 +295,8 @@ class ScanPublisher:
         because no router is connected (counted in `dropped`). Raises `PublisherClosed` after
         `close()`, TypeError for a `scan` that is neither, a seq that is not an integer or a stamp
         that is not a number, ValueError for a negative or too large seq or a non-finite stamp, and
-        `fleetmap.scan.ScanError` for a `ScanMessage` the engine refuses. A call that raises
+        `fleetmap.scan.ScanError` for a `ScanMessage` the engine refuses or, in binary, a scan whose
+        range_min or angles float32 cannot hold (`codec.encode_binary`). A call that raises
         publishes nothing and leaves the seq counter as it was (the service would count a skipped
         seq as a lost scan).
         """

@@ -265,15 +265,20 @@ class FleetmapClient:
         this client, and `stamp`, default 0), a `ScanMessage`, or a dict in the JSON scan format
         (`seq` / `stamp`, when given, override theirs). `encoding` chooses the body for a `Scan`
         (JSON or the binary encoding of docs/protocol.md). Returns the `ScanResult` (status
-        "integrated", or "duplicate" when the seq was not new). Raises `FleetmapError` 422 for an
-        invalid scan, 404 for an unknown map when the server does not create maps on first use,
-        503 when the server could not integrate it in time (it still will) or its queue is full.
+        "integrated", or "duplicate" when the seq was not new). Raises TypeError before any request
+        for a `scan` of another type, `FleetmapError` 422 for an invalid scan, 404 for an unknown
+        map when the server does not create maps on first use, 503 when the server could not
+        integrate it in time (it still will) or its queue is full.
         Waits for the answer up to `scan_timeout` (see the class).
         """
         _check_id("map_id", map_id)
         _check_id("robot_id", robot_id)
         if encoding not in ("json", "binary"):
             raise ValueError(f"encoding must be 'json' or 'binary', got {encoding!r}")
+        if not isinstance(scan, Scan | ScanMessage | Mapping):  # dict("text") said "update sequence element"
+            raise TypeError(
+                f"post_scan takes a fleetmap Scan, a ScanMessage or a dict, not {type(scan).__name__}"
+            )
         if isinstance(scan, Scan):
             if seq is None:
                 seq = self._next_seq.get((map_id, robot_id), 0)
@@ -292,7 +297,10 @@ class FleetmapClient:
                 message["seq"] = seq
             if stamp is not None:
                 message["stamp"] = stamp
-            body = json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+            # NaN and infinities as the literals NaN, Infinity and -Infinity, which the service reads
+            # as a JSON scan's invalid reading, no return, and no maximum (docs/protocol.md): a
+            # ScanMessage's range_max is infinite unless given, and its NaN ranges stay invalid.
+            body = json.dumps(message, separators=(",", ":")).encode()
             content_type = JSON_ENCODING
             seq = message.get("seq") if isinstance(message.get("seq"), int) else None
         response = self._request(
