@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import gc
 import json
+from typing import Any
 
 import httpx
 import numpy as np
@@ -109,22 +110,38 @@ def test_maps_share_the_budget_and_a_refused_scan_changes_nothing() -> None:
 
 
 def test_the_registry_refuses_past_the_budget_with_507_and_counts_it() -> None:
-    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(40 * TILE_BYTES))  # the first scans fit
+    """...and the refused scan, sent again with its seq once memory is freed, is integrated: its seq
+    was recorded when it was accepted into the queue, so the retry was a "duplicate", never
+    integrated, though 507 is the service's state and not the scan's fault."""
+    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(60 * TILE_BYTES))
     registry.start()
-    try:
-        status = 200
-        for k in range(100):
-            future = registry.submit("m", "r", WireScan(k, 0.0, scan_at(0.5 * k)), wait=True)
+
+    def send(map_id: str, k: int) -> Any:
+        """The scan's IntegrationResult, or the IngestRejected that refused it (a duplicate: 200)."""
+        try:
+            future = registry.submit(map_id, "r", WireScan(k, 0.0, scan_at(0.5 * k)), wait=True)
             assert future is not None
-            try:
-                future.result(10)
-            except IngestRejected as exc:
-                status = exc.status
-                assert "memory budget" in exc.reason
+            return future.result(10)
+        except IngestRejected as exc:
+            return exc
+
+    try:
+        assert not isinstance(send("other", 0), IngestRejected)  # holds the budget's first tiles
+        for k in range(100):
+            refused = send("m", k)
+            if isinstance(refused, IngestRejected):
                 break
-        assert status == 507
+        assert isinstance(refused, IngestRejected) and refused.status == 507, refused
+        assert "memory budget" in refused.reason
         robot = registry.get("m").robots["r"]
         assert robot.scans_rejected == 1 and "memory budget" in (robot.last_error or "")
+        integrated = robot.scans_integrated
+        registry.delete("other", wait=True)  # its tiles' bytes go back to the budget
+        again = send("m", k)
+        assert not isinstance(again, IngestRejected) and again.cell_updates > 0, again
+        assert robot.scans_integrated == integrated + 1 and robot.lost == 0
+        stale = send("m", k - 1)  # an older seq is still a duplicate
+        assert isinstance(stale, IngestRejected) and stale.status == 200 and "duplicate" in stale.reason
     finally:
         registry.close()
 

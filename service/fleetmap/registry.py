@@ -649,8 +649,10 @@ class MapRegistry:
                             lambda exc: self._mark_not_durable(job, exc), job.wire.session,
                         )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
-            # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422.
-            self._finish_rejected(job, str(exc), 507 if isinstance(exc, MemoryBudgetError) else 422)
+            # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422, and
+            # a retry once memory is freed is integrated, not taken for a duplicate (`RobotState.refused`).
+            budget = isinstance(exc, MemoryBudgetError)
+            self._finish_rejected(job, str(exc), 507 if budget else 422, retriable=budget)
             return
         if result is None:
             self._finish_gone(job)
@@ -688,11 +690,15 @@ class MapRegistry:
         )
         self._finish_rejected(job, reason, 503, applied=True)
 
-    def _finish_rejected(self, job: Job, reason: str, status: int = 422, applied: bool = False) -> None:
+    def _finish_rejected(
+        self, job: Job, reason: str, status: int = 422, applied: bool = False, retriable: bool = False
+    ) -> None:
         """A scan that does not count as integrated: count it on its robot (as `not_durable` if it
         was `applied`, else as rejected) with `reason` as its last error, and answer its caller
-        `status`. A `provisional` map that this refusal leaves with no scan unsettled is removed
-        again (`_remove_unclaimed`), and the caller answered once that is stored."""
+        `status`. A `retriable` scan (refused for the service's sake, not its own) may be sent again
+        with its seq (`RobotState.refused`). A `provisional` map that this refusal leaves with no
+        scan unsettled is removed again (`_remove_unclaimed`), and the caller answered once that is
+        stored."""
         removed = None
         with self.lock:
             entry = self.maps.get(job.map_id)
@@ -701,6 +707,8 @@ class MapRegistry:
                 robot = entry.robot(job.robot_id)
                 robot.unsettled -= 1
                 robot.last_error = reason
+                if retriable:
+                    robot.refused = (session_key(job.wire.session), job.wire.seq)
                 if applied:
                     robot.not_durable += 1
                     entry.provisional = False  # it holds the scan, durable or not

@@ -101,10 +101,11 @@ class RobotState:
     #: interleave with (two robots publishing under one id: 1; a third, or one of them restarted: +1).
     id_conflicts: int = 0
     conflict_at: float | None = None  # wall-clock time of the last interleaved scan
-    #: (session key, seq) of its last scan that the full ingest queue refused (counted in `dropped`),
-    #: until another of its scans is accepted. Its seq was recorded (so it is not also counted as
-    #: lost), yet it was never integrated: a re-send of it, which a REST client answered 503 is told
-    #: to make, is accepted rather than ignored as a duplicate. Not saved: it is about the last moments.
+    #: (session key, seq) of its last scan refused for the service's sake: the full ingest queue's
+    #: (counted in `dropped`, answered 503) or the memory budget's (answered 507), until another of
+    #: its scans is accepted. Its seq was recorded (so it is not also counted as lost), yet it was
+    #: never integrated: a re-send of it, which a REST client answered 503 or 507 is told to make, is
+    #: accepted rather than ignored as a duplicate. Not saved: it is about the last moments.
     refused: tuple[int, int] | None = None
 
     #: The counters that survive a restart (and `sessions`, saved as lists).
