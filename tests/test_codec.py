@@ -142,6 +142,13 @@ def test_json_of_any_shape_is_valid_or_refused(message: dict) -> None:
         ({"session": 0}, "session"),
         ({"session": 2**53}, "session"),
         ({"session": "abc"}, "session"),
+        # Typed strictly: lax parsing read true as seq 1 and "5" as 5, guessing at a sender's mistake.
+        ({"seq": True}, "seq.*valid integer"),
+        ({"seq": "5"}, "seq.*valid integer"),
+        ({"seq": 5.0}, "seq.*valid integer"),
+        ({"pose": {"x": "1.5", "y": 0, "theta": 0}}, "pose.x.*valid number"),
+        ({"ranges": [1.0, "2.0"]}, r"ranges\.1.*valid number"),
+        ({"range_max": False}, "range_max.*valid number"),
     ],
 )
 def test_json_errors_say_why(patch: dict, reason: str) -> None:

@@ -183,7 +183,9 @@ def decode_json(data: bytes) -> WireScan:
     if data.count(b",") > 2 * _limits.max_beams + JSON_SCAN_FIELDS:
         raise DecodeError(f"invalid JSON scan: more items than {_limits.max_beams} beams can have")
     try:
-        message = ScanMessage.model_validate_json(data)
+        # Strict: "5" or true for a number, or 5.0 for the seq, is a sender's mistake to name, not to
+        # guess at (lax mode read true as seq 1).
+        message = ScanMessage.model_validate_json(data, strict=True)
     except ValidationError as exc:
         raise DecodeError(f"invalid JSON scan: {_first_error(exc)}") from None
     _refuse_repeated_keys(data, message)
