@@ -192,11 +192,13 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
     restored from a snapshot) before the scan was integrated: it is in neither map; 413 a payload
     over 4 MiB, the limit of every scan as over Zenoh (counted as rejected too); 422 an invalid scan
     (counted on the robot as rejected, with the reason as its `last_error`); 503 the robot's ingest
-    queue is full, the integration did not finish within the server's timeout (the scan is still
+    queue is full (retry later with the same seq: it is then integrated, not taken for a
+    duplicate), the integration did not finish within the server's timeout (the scan is still
     integrated), or storage failed: the scan was applied but its journal commit failed (counted on
-    the robot as `not_durable`; the map's next snapshot saves it; see `GET /healthz`); 507 the
-    scan needs new tiles that the service's memory budget for all maps (`--max-memory`) cannot
-    hold: it is refused whole, counted as rejected, and the map is unchanged."""
+    the robot as `not_durable`; the map's next snapshot saves it, and a retry is a duplicate; see
+    `GET /healthz`); 507 the scan needs new tiles that the service's memory budget for all maps
+    (`--max-memory`) cannot hold: it is refused whole, counted as rejected, and the map is unchanged
+    (sent again with the same seq once memory is freed, it is integrated)."""
     registry = state.registry
     body = await request.body()
     content_type = request.headers.get("content-type", "")
