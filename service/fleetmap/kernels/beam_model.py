@@ -4,6 +4,12 @@ For a cell at range r and relative bearing phi from the sensor, take the beam k 
 among the beams used (a beam the scan's sensor models ignore, such as a NaN reading, is not one):
 no information if `r > min(r_max, z_k + alpha/2)` or `|phi - phi_k| > beta/2`; occupied if
 `z_k < r_max` and `|r - z_k| < alpha/2`; free if `r < z_k`. Cells are evaluated at their centres.
+
+Most cells of the square around the sensor get no information: an indoor scan's longest beam sets
+the square, its other beams end a few metres out (on the Intel log, 8,400 of 200,000 cells in the
+disk have information). `_reach_by_bearing` bounds, per bearing bin, the range at which any beam
+could give a cell information, and a cell beyond it is skipped before its exact bearing and nearest
+beam are computed: the same cells, in the same order, 1.3 ms an Intel scan instead of 8.5.
 """
 
 from __future__ import annotations
@@ -32,6 +38,50 @@ def _angle_diff(a: float, b: float) -> float:
     return abs(d)
 
 
+#: Bearing bins of `_reach_by_bearing`: each spans at most 4 / BEARING_BINS pseudo-angle units
+#: (`_pseudo_angle`), between 0.0015 and 0.003 rad.
+BEARING_BINS = 4096
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pseudo_angle(dx: float, dy: float) -> float:
+    """A number in [0, 4) that grows with the bearing `atan2(dy, dx)` taken in [0, 2 pi) (0 along +x,
+    1 along +y, 2 along -x, 3 along -y), at the cost of one division: a bin for a bearing without
+    `atan2`. (dx, dy) must not be (0, 0)."""
+    if dy >= 0.0:
+        if dx > 0.0:
+            return dy / (dx + dy)
+        return 1.0 + (-dx) / (dy - dx)
+    if dx < 0.0:
+        return 2.0 + (-dy) / (-dx - dy)
+    return 3.0 + dx / (dx - dy)
+
+
+@njit(cache=True, nogil=True)
+def _reach_by_bearing(theta: float, phi: np.ndarray, reach_k: np.ndarray, half_beta: float) -> np.ndarray:
+    """Per bin of `_pseudo_angle` (BEARING_BINS, around the sensor in the map frame), the largest
+    `reach_k` of a beam whose cone (bearing `theta + phi[k]`, half-width `half_beta` < pi/2) reaches
+    into the bin or a neighbouring bin. A cell with information lies within its nearest beam's cone
+    and reach, so its range is at most its bin's value: the neighbours absorb the rounding between
+    this bin's bearings (cos, sin of the cone's edges) and the cell's (atan2 of its offset), under
+    1e-15 rad against a bin of at least 1e-3."""
+    bins = BEARING_BINS
+    reach = np.zeros(bins)
+    for k in range(phi.size):
+        a = theta + phi[k]
+        lo = int(_pseudo_angle(math.cos(a - half_beta), math.sin(a - half_beta)) * (bins / 4.0))
+        hi = int(_pseudo_angle(math.cos(a + half_beta), math.sin(a + half_beta)) * (bins / 4.0))
+        lo = min(lo, bins - 1)
+        hi = min(hi, bins - 1)
+        count = (hi - lo) % bins + 1  # the cone is narrower than pi: it wraps past 0 at most once
+        for b in range(lo, lo + count):
+            reach[b % bins] = max(reach[b % bins], reach_k[k])
+    out = np.empty(bins)
+    for b in range(bins):
+        out[b] = max(reach[(b - 1) % bins], reach[b], reach[(b + 1) % bins])
+    return out
+
+
 @njit(cache=True, nogil=True)
 def beam_model_cells(
     ox: float,
@@ -51,9 +101,12 @@ def beam_model_cells(
     of beam k (for a beam with no return, the range it clears up to, never beyond r_max).
     """
     nb = phi.size
-    reach = 0.0
+    reach_k = np.empty(nb)
     for k in range(nb):
-        reach = max(reach, min(r_max, z[k] + alpha / 2.0))
+        reach_k[k] = min(r_max, z[k] + alpha / 2.0)
+    reach = reach_k.max() if nb else 0.0
+    by_bearing = _reach_by_bearing(theta, phi, reach_k, beta / 2.0)
+    scale = BEARING_BINS / 4.0
     i0 = math.floor(ox - reach) - 1
     i1 = math.floor(ox + reach) + 1
     j0 = math.floor(oy - reach) - 1
@@ -70,6 +123,8 @@ def beam_model_cells(
             r = math.sqrt(dx * dx + dy * dy)
             if r > reach:
                 continue
+            if r > 0.0 and r > by_bearing[min(int(_pseudo_angle(dx, dy) * scale), BEARING_BINS - 1)]:
+                continue  # beyond every cone that reaches this bearing
             p = _wrap(math.atan2(dy, dx) - theta)
             # Nearest beam in bearing: binary search in the sorted bearings, then the neighbours,
             # including across the +-pi seam for scanners that see all around.
