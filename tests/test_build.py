@@ -147,6 +147,12 @@ def test_build_options_change_the_map(tmp_path: Path) -> None:
     ]  # fmt: skip
     info = json.loads((tmp_path / "a" / "meta.json").read_text())
     assert info["resolution"] == 0.1 and info["layers"] == ["log_odds"]
+    assert "M cell updates/s" in done.stdout and "TSDF" not in done.stdout
+    # A TSDF-only map says how fast its TSDF was fused (it said "0.0 M cell updates/s").
+    (tmp_path / "tsdf.json").write_text(json.dumps({"layers": ["tsdf"]}))
+    tsdf = build(log, "--out", tmp_path / "t", "--config", tmp_path / "tsdf.json", "--quiet")
+    assert tsdf.returncode == 0 and "M TSDF updates/s" in tsdf.stdout, tsdf.stdout + tsdf.stderr
+    assert "cell updates" not in tsdf.stdout
     # At 0.1 m the sensor is in cell (-201, -234); the beams end in column -191 and row -214.
     assert info["cell_window"] == [-201 - 2, -234 - 2, -191 + 3, -214 + 3]
 

@@ -111,10 +111,12 @@ def _build(args: argparse.Namespace) -> int:
     if len(dataset):
         _load_kernels(config, dataset[0], quiet=args.quiet)
     started = time.perf_counter()
-    updates = skipped = 0
+    updates = tsdf_updates = skipped = 0
     for scan in tqdm(dataset, total=len(dataset), unit="scan", disable=args.quiet, file=sys.stderr):
         try:
-            updates += gmap.integrate(scan).cell_updates
+            result = gmap.integrate(scan)
+            updates += result.cell_updates
+            tsdf_updates += result.tsdf_updates
         except (ScanError, TileLimitError) as exc:
             skipped += 1
             tqdm.write(f"skipped a scan: {exc}", file=sys.stderr)
@@ -125,9 +127,13 @@ def _build(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     except OSError as exc:  # a full disk, or a directory made unwritable during the build
         raise CliError(f"cannot write the outputs to {out_dir}: {exc}") from None
+    cells = config.has("occupancy") or config.has("counts")
+    rates = [f"{updates / max(elapsed, 1e-9) / 1e6:.1f} M cell updates/s"] if cells else []
+    if config.has("tsdf"):  # a TSDF-only map said "0.0 M cell updates/s"
+        rates.append(f"{tsdf_updates / max(elapsed, 1e-9) / 1e6:.1f} M TSDF updates/s")
     print(
         f"{len(dataset) - skipped} scans integrated ({skipped} skipped) in {elapsed:.2f} s, "
-        f"{updates / max(elapsed, 1e-9) / 1e6:.1f} M cell updates/s, {len(gmap.store)} tiles"
+        f"{', '.join(rates)}, {len(gmap.store)} tiles"
     )
     for path in written:
         print(f"wrote {path}")
