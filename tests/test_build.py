@@ -21,6 +21,7 @@ import scipy.io
 import yaml
 from PIL import Image
 from service_process import fleetmap_command
+from test_compiled_cache import LOADED_KERNELS
 
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
@@ -351,21 +352,14 @@ def test_the_command_run_as_a_module_gives_the_same_clean_error(tmp_path: Path, 
     assert done.stderr.startswith("fleetmap serve: error: cannot read config"), done.stderr
 
 
-_BUILD_AFTER_LOADING_KERNELS = """
-import sys
+_BUILD_AFTER_LOADING_KERNELS = (
+    LOADED_KERNELS
+    + """
 import numpy as np
-from numba.core.registry import CPUDispatcher
 from fleetmap.cli import _load_kernels
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Scan
-
-def loaded():
-    return {
-        f"{name}.{attr}": len(obj.overloads)
-        for name, module in list(sys.modules.items()) if name.startswith("fleetmap")
-        for attr, obj in vars(module).items() if isinstance(obj, CPUDispatcher)
-    }
 
 rng = np.random.default_rng(0)
 late = {}
@@ -388,6 +382,7 @@ for overrides in ({}, {"sensor_model": "beam"}, {"update": "per_ray"}, {"travers
         late[str(overrides)] = new
 print(late)
 """
+)
 
 
 def test_the_build_loads_its_kernels_before_it_times_the_scans() -> None:

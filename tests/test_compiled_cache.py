@@ -86,15 +86,11 @@ def test_cache_under_numba_cache_dir_is_dropped_too(tmp_path: Path, monkeypatch:
 #: service run (plan and apply into a new map, then into its existing tiles, for both sensor models,
 #: with the default configuration; the journal's encoding). Prints the compiled kernels that only
 #: the scans loaded.
-_FIRST_SCANS_AFTER_WARM_UP = """
+#: `loaded()`, for scripts run in a fresh interpreter: every compiled kernel a loaded fleetmap module
+#: names, with the number of signatures it has loaded (or compiled).
+LOADED_KERNELS = """
 import sys
-import numpy as np
 from numba.core.registry import CPUDispatcher
-from fleetmap.server import warm_up
-from fleetmap.config import MapConfig
-from fleetmap.grid_map import GridMap
-from fleetmap.scan import Scan
-from fleetmap.storage_format import scan_to_blob
 
 def loaded():
     return {
@@ -102,6 +98,17 @@ def loaded():
         for name, module in list(sys.modules.items()) if name.startswith("fleetmap")
         for attr, obj in vars(module).items() if isinstance(obj, CPUDispatcher)
     }
+"""
+
+_FIRST_SCANS_AFTER_WARM_UP = (
+    LOADED_KERNELS
+    + """
+import numpy as np
+from fleetmap.server import warm_up
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
+from fleetmap.scan import Scan
+from fleetmap.storage_format import scan_to_blob
 
 warm_up()
 before = loaded()
@@ -117,6 +124,7 @@ for sensor_model in ("ray", "beam"):
 after = loaded()
 print(sorted(k for k, n in after.items() if n > before.get(k, 0)))
 """
+)
 
 
 def test_warm_up_loads_every_kernel_a_robots_first_scans_need() -> None:
