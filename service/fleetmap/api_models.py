@@ -235,7 +235,10 @@ class CellValue(_Model):
     state: StateName | None = Field(description="by the map's occupied_thresh / free_thresh")
     hits: int | None = Field(description="null if the map keeps no counts layer")
     misses: int | None
-    tsdf: float | None = Field(description="signed distance, metres; null if unknown or no TSDF layer")
+    tsdf: float | None = Field(
+        description="signed distance over the truncation distance, in [-1, 1] (negative behind the "
+        "surface); null if unknown or no TSDF layer"
+    )
     tsdf_weight: float | None
 
 
