@@ -107,6 +107,33 @@ def test_large_answers_are_gzipped_for_clients_that_accept_it(mapped: httpx.Clie
     assert again.status_code == 304
 
 
+def test_the_spec_declares_the_headers_that_locate_and_validate_reads(mapped: httpx.Client) -> None:
+    """A region's npy or png answer says where it lies only in its `X-Fleetmap-*` headers (and
+    without bounds the client cannot know), a tile's validator is its `ETag`: the committed spec
+    declares each such header the service sends, so a client generated from it can read them."""
+    spec = json.loads((Path(__file__).resolve().parents[1] / "openapi" / "openapi.json").read_text())
+    region = spec["paths"]["/maps/{map_id}/region"]["get"]["responses"]
+    tile = spec["paths"]["/maps/{map_id}/tiles/{z}/{x}/{y}.png"]["get"]["responses"]
+    got = mapped.get(TILE)
+    answers = [
+        *(
+            (region["200"], mapped.get("/maps/m/region", params={"format": f}))
+            for f in ("npy", "json", "png")
+        ),
+        (tile["200"], got),
+        (tile["304"], mapped.get(TILE, headers={"If-None-Match": got.headers["etag"]})),
+    ]
+    for documented, r in answers:
+        meant = (
+            {"x-fleetmap-window", "x-fleetmap-origin", "x-fleetmap-resolution"}
+            if "region" in r.url.path
+            else {"etag"}
+        )
+        assert meant <= set(r.headers), (r.url, r.status_code)
+        declared = {name.lower() for name in documented.get("headers", {})}
+        assert meant <= declared, (r.url, r.status_code, meant - declared)
+
+
 def test_a_client_refusing_gzip_gets_no_gzip(mapped: httpx.Client) -> None:
     """`Accept-Encoding` is read by its weights (RFC 9110, 12.5.3): `gzip;q=0` means "not
     acceptable", so the answer is sent as it is, however large; `*` accepts gzip unless gzip is

@@ -163,13 +163,32 @@ _REGION_CONTENT = {
 }
 
 
+#: The headers saying where a region lies (`_window_headers`), as the spec declares them: an npy or
+#: png answer carries its window nowhere else, and without bounds the client does not know it.
+_WINDOW_HEADER_SPEC = {
+    "X-Fleetmap-Window": {
+        "description": "the cell window `i0,j0,i1,j1` of the answer (cells i0 <= i < i1, j0 <= j < j1)",
+        "schema": {"type": "string", "examples": ["-402,-467,379,259"]},
+    },
+    "X-Fleetmap-Origin": {
+        "description": "`x,y`: the map point of the window's lower-left corner, metres",
+        "schema": {"type": "string", "examples": ["-20.1,-23.35"]},
+    },
+    "X-Fleetmap-Resolution": {"description": "metres per cell", "schema": {"type": "string"}},
+}
+
+
 @router.get(
     "/maps/{map_id}/region",
     tags=["queries"],
     summary="A dense window of one layer (npy, json or png)",
     response_class=Response,
     responses={
-        200: {"content": _REGION_CONTENT, "description": "The window; see the headers"},
+        200: {
+            "content": _REGION_CONTENT,
+            "description": "The window; see the headers",
+            "headers": _WINDOW_HEADER_SPEC,
+        },
         **error_responses(404, 409, 413, 422),
     },
 )
