@@ -285,6 +285,9 @@ def test_region_npy_json_png_match_engine(api: RunningApi, engine_map: GridMap) 
         assert known.any() and (~known).any()
         if layer == "probability":
             assert np.array_equal(pixels[..., 0][known], np.round(255 * (1 - want[known])).astype(np.uint8))
+        if layer == "tsdf":  # the layer is in [-1, 1] already: -1 black, 0 mid-grey, 1 white
+            grey = np.round(127.5 * (1 + want[known].astype(np.float64))).astype(np.uint8)
+            assert np.array_equal(pixels[..., 0][known], grey)
 
     # No bounds: the observed extent.
     r = api.client.get("/maps/eng/region", params={"layer": "hits"})

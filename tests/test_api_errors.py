@@ -438,3 +438,19 @@ def test_fuzzed_queries_never_500(api: RunningApi, endpoint: str, values: list[s
         assert isinstance(r.json()["detail"], str)
     elif endpoint == "region" and r.headers["content-type"] == "application/octet-stream":
         assert np.load(io.BytesIO(r.content)).ndim == 2
+
+
+def test_a_last_event_id_that_int_refuses_opens_the_stream(api: RunningApi) -> None:
+    """`Last-Event-ID` is whatever the client sends: a superscript digit (latin-1 byte 0xB2, which
+    `str.isdigit` takes and `int` refuses) is no id this service sent, so the stream starts from now
+    (its first event is `robots`); a number of 5000 digits (past `int`'s 4300) is beyond every
+    version, so the stream starts with a reset. Neither is a 500."""
+    version = api.client.get("/maps/e").json()["stats"]["version"]
+    for header, first in [(b"\xb2", "robots"), (b"9" * 5000, "tiles")]:
+        with api.client.stream("GET", "/maps/e/events", headers={"Last-Event-ID": header}) as r:
+            assert r.status_code == 200, r.read()
+            lines = r.iter_lines()
+            event = next(line for line in lines if line.startswith("event:"))
+            assert event == f"event: {first}"
+            if first == "tiles":
+                assert json.loads(next(lines).removeprefix("data: ")) == {"version": version, "reset": True}

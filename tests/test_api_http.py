@@ -107,6 +107,56 @@ def test_large_answers_are_gzipped_for_clients_that_accept_it(mapped: httpx.Clie
     assert again.status_code == 304
 
 
+def test_the_spec_declares_the_headers_that_locate_and_validate_reads(mapped: httpx.Client) -> None:
+    """A region's npy or png answer says where it lies only in its `X-Fleetmap-*` headers (and
+    without bounds the client cannot know), a tile's validator is its `ETag`: the committed spec
+    declares each such header the service sends, so a client generated from it can read them."""
+    spec = json.loads((Path(__file__).resolve().parents[1] / "openapi" / "openapi.json").read_text())
+    region = spec["paths"]["/maps/{map_id}/region"]["get"]["responses"]
+    tile = spec["paths"]["/maps/{map_id}/tiles/{z}/{x}/{y}.png"]["get"]["responses"]
+    got = mapped.get(TILE)
+    answers = [
+        *(
+            (region["200"], mapped.get("/maps/m/region", params={"format": f}))
+            for f in ("npy", "json", "png")
+        ),
+        (tile["200"], got),
+        (tile["304"], mapped.get(TILE, headers={"If-None-Match": got.headers["etag"]})),
+    ]
+    for documented, r in answers:
+        meant = (
+            {"x-fleetmap-window", "x-fleetmap-origin", "x-fleetmap-resolution"}
+            if "region" in r.url.path
+            else {"etag"}
+        )
+        assert meant <= set(r.headers), (r.url, r.status_code)
+        declared = {name.lower() for name in documented.get("headers", {})}
+        assert meant <= declared, (r.url, r.status_code, meant - declared)
+
+
+def test_a_client_refusing_gzip_gets_no_gzip(mapped: httpx.Client) -> None:
+    """`Accept-Encoding` is read by its weights (RFC 9110, 12.5.3): `gzip;q=0` means "not
+    acceptable", so the answer is sent as it is, however large; `*` accepts gzip unless gzip is
+    named with a weight of 0."""
+    path = f"{mapped.base_url}/maps/m/region?format=json"
+    plain = mapped.get(path, headers=IDENTITY).content
+    assert len(plain) > 10_000
+    for offered, gzipped in [
+        ("gzip;q=0", False),
+        ("identity, gzip; q=0", False),
+        ("br, GZIP;Q=0.0", False),
+        ("*;q=1, gzip;q=0", False),
+        ("gzip;q=0.5", True),
+        ("*", True),
+        ("deflate, x-gzip", True),
+    ]:
+        with httpx.stream("GET", path, headers={"Accept-Encoding": offered}) as r:
+            wire = b"".join(r.iter_raw())  # the bytes as sent, before httpx decodes them
+            assert (r.headers.get("content-encoding") == "gzip") is gzipped, offered
+            assert "accept-encoding" in r.headers["vary"].lower(), offered  # caches keep both apart
+        assert (gzip.decompress(wire) if gzipped else wire) == plain, offered
+
+
 def test_the_event_stream_is_never_compressed_and_each_event_arrives_at_once(mapped: httpx.Client) -> None:
     """A client accepting gzip gets the stream uncompressed, and each event when it is sent. Small
     events gain little from gzip, and a compressor that does not flush after every event (older

@@ -229,13 +229,19 @@ class CellValue(_Model):
     y: float
     i: int = Field(description="cell index floor(x / resolution)")
     j: int = Field(description="cell index floor(y / resolution)")
-    known: bool = Field(description="the cell was observed")
+    known: bool = Field(
+        description="the cell's occupancy was observed (a map without the occupancy layer: its counts; "
+        "a TSDF-only map: its TSDF); the TSDF band also reaches cells behind walls where it is false"
+    )
     log_odds: float | None = Field(description="null if unknown or the map keeps no occupancy layer")
     probability: float | None = Field(description="occupancy probability; 0.5 if unknown")
     state: StateName | None = Field(description="by the map's occupied_thresh / free_thresh")
     hits: int | None = Field(description="null if the map keeps no counts layer")
     misses: int | None
-    tsdf: float | None = Field(description="signed distance, metres; null if unknown or no TSDF layer")
+    tsdf: float | None = Field(
+        description="signed distance over the truncation distance, in [-1, 1] (negative behind the "
+        "surface); null if unknown or no TSDF layer"
+    )
     tsdf_weight: float | None
 
 

@@ -20,7 +20,6 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel
-from starlette.middleware.gzip import GZipMiddleware
 
 from fleetmap.api import (
     errors,
@@ -32,7 +31,14 @@ from fleetmap.api import (
     static,
 )
 from fleetmap.api.events import router as events_router
-from fleetmap.api.http_semantics import GZIP_LEVEL, GZIP_MINIMUM_BYTES, DefaultHeaders, HeadAsGet, JsonETags
+from fleetmap.api.http_semantics import (
+    GZIP_LEVEL,
+    GZIP_MINIMUM_BYTES,
+    DefaultHeaders,
+    HeadAsGet,
+    JsonETags,
+    NegotiatedGZip,
+)
 from fleetmap.api.priority import IngestGate, IngestPriority
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import (
@@ -197,7 +203,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     # Middleware, innermost first (each `add_middleware` wraps what is there).
     app.add_middleware(JsonETags)
     # gzip sees every answer as the route made it; the event stream and PNG / zip answers pass as is.
-    app.add_middleware(GZipMiddleware, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=GZIP_LEVEL)
+    app.add_middleware(NegotiatedGZip, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=GZIP_LEVEL)
     # Outside gzip: a HEAD's headers (Content-Encoding, Content-Length) are those of the GET.
     app.add_middleware(HeadAsGet)
     app.add_middleware(errors.BodyLimitMiddleware, max_bytes=settings.max_body_bytes)

@@ -184,6 +184,24 @@ async def event_stream(
     yield ": the server is shutting down\n\n"
 
 
+#: Digits of the longest change version (an int64: microseconds since 1970, counted up).
+_VERSION_DIGITS = 19
+
+
+def last_event_version(header: str) -> int | None:
+    """The change version a reconnecting EventSource sends back as `Last-Event-ID`, or None for a
+    header that is no number (not an id this service sent: the stream starts from now).
+
+    Only ASCII digits count: `str.isdigit` also accepts `²` (latin-1 byte 0xB2 of a header), which
+    `int` refuses. A number longer than any version (`int` refuses more than 4300 digits) stands
+    for one past them all, so the stream starts with a reset, as for any version the map never had.
+    """
+    text = header.strip()
+    if not (text.isascii() and text.isdigit()):
+        return None
+    return int(text) if len(text) <= _VERSION_DIGITS else 10**_VERSION_DIGITS
+
+
 @router.get(
     "/maps/{map_id}/events",
     tags=["events"],
@@ -231,8 +249,8 @@ async def get_events(
     503 (with `Retry-After`) when the server already holds its limit of open streams (256 by
     default) or is shutting down; an EventSource reconnects by itself."""
     entry = state.entry(map_id)
-    if since is None and last_event_id is not None and last_event_id.strip().isdigit():
-        since = int(last_event_id.strip())
+    if since is None and last_event_id is not None:
+        since = last_event_version(last_event_id)
     slots = state.event_streams
     if slots.closing or not slots.acquire():  # (no slot is taken while closing)
         why = (

@@ -7,7 +7,8 @@
 - `Cache-Control: no-cache` on every answer that does not set its own: map data changes with every
   scan, and a CDN in front would otherwise apply its default lifetime (an hour on some) to answers
   without one and serve stale cells and regions. `no-cache` still lets caches store and revalidate.
-- gzip (Starlette's `GZipMiddleware`, as `create_app` installs it) for clients that accept it, for
+- gzip (Starlette's `GZipMiddleware`, as `create_app` installs it, through `NegotiatedGZip`) for
+  clients that accept it (`Accept-Encoding` read as RFC 9110 12.5.3 says: `gzip;q=0` refuses it), for
   answers of at least `GZIP_MINIMUM_BYTES`, except those already compressed (PNG, zip) and the event
   stream (each event must reach the client when it is sent; Starlette's middleware leaves
   `text/event-stream` alone). A gzip answer's strong `ETag` (a static file's) is made weak: the
@@ -27,6 +28,7 @@ from __future__ import annotations
 import hashlib
 
 from starlette.datastructures import Headers, MutableHeaders
+from starlette.middleware.gzip import GZipMiddleware
 from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -98,6 +100,46 @@ class DefaultHeaders:
             await send(message)
 
         await self.app(scope, receive, with_defaults)
+
+
+def accepts_gzip(accept_encoding: str) -> bool:
+    """Whether an `Accept-Encoding` value accepts gzip (RFC 9110, 12.5.3): `gzip` (or `x-gzip`) with
+    a weight above 0, or, when it names neither, `*` with a weight above 0. A weight of 0 means "not
+    acceptable"; a weight that is no number makes its coding count as unnamed."""
+    weights: dict[str, float] = {}
+    for item in accept_encoding.split(","):
+        coding, *params = (part.strip() for part in item.split(";"))
+        weight = 1.0
+        for param in params:
+            name, _, value = param.partition("=")
+            if name.strip().lower() == "q":
+                try:
+                    weight = float(value)
+                except ValueError:
+                    weight = -1.0
+        if coding and weight >= 0:
+            weights.setdefault(coding.lower(), weight)
+    for coding in ("gzip", "x-gzip", "*"):
+        if coding in weights:
+            return weights[coding] > 0
+    return False
+
+
+class NegotiatedGZip(GZipMiddleware):
+    """Starlette's `GZipMiddleware`, deciding from the client's `Accept-Encoding` as `accepts_gzip`
+    does. Starlette compresses whenever the header holds the text `gzip`, so a client refusing gzip
+    (`gzip;q=0`, as some proxies and tools send) got gzip all the same, bytes it had said it cannot
+    read. The middleware sees `Accept-Encoding: gzip` when gzip is acceptable, none otherwise (the
+    routes read no `Accept-Encoding`, so they are unaffected)."""
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            offered = ", ".join(Headers(scope=scope).getlist("accept-encoding"))
+            headers = [(k, v) for k, v in scope["headers"] if k.lower() != b"accept-encoding"]
+            if accepts_gzip(offered):
+                headers.append((b"accept-encoding", b"gzip"))
+            scope = {**scope, "headers": headers}
+        await super().__call__(scope, receive, send)
 
 
 def created_status(response: Response, map_id: str, *, created: bool) -> None:

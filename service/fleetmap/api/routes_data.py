@@ -163,13 +163,32 @@ _REGION_CONTENT = {
 }
 
 
+#: The headers saying where a region lies (`_window_headers`), as the spec declares them: an npy or
+#: png answer carries its window nowhere else, and without bounds the client does not know it.
+_WINDOW_HEADER_SPEC = {
+    "X-Fleetmap-Window": {
+        "description": "the cell window `i0,j0,i1,j1` of the answer (cells i0 <= i < i1, j0 <= j < j1)",
+        "schema": {"type": "string", "examples": ["-402,-467,379,259"]},
+    },
+    "X-Fleetmap-Origin": {
+        "description": "`x,y`: the map point of the window's lower-left corner, metres",
+        "schema": {"type": "string", "examples": ["-20.1,-23.35"]},
+    },
+    "X-Fleetmap-Resolution": {"description": "metres per cell", "schema": {"type": "string"}},
+}
+
+
 @router.get(
     "/maps/{map_id}/region",
     tags=["queries"],
     summary="A dense window of one layer (npy, json or png)",
     response_class=Response,
     responses={
-        200: {"content": _REGION_CONTENT, "description": "The window; see the headers"},
+        200: {
+            "content": _REGION_CONTENT,
+            "description": "The window; see the headers",
+            "headers": _WINDOW_HEADER_SPEC,
+        },
         **error_responses(404, 409, 413, 422),
     },
 )
@@ -193,7 +212,7 @@ def get_region(
     - `png`: a grayscale + alpha image, TOP row = highest y, unknown transparent; darker = more
       occupied (`probability`, `log_odds`: 255 (1 - p); `state`: 0 occupied, 254 free), more hits
       (`hits`, `misses`, `tsdf_weight`: scaled to the window's maximum), or more negative distance
-      (`tsdf`: 127.5 (1 + tsdf / truncation)).
+      (`tsdf`, the signed distance over the truncation, in [-1, 1]: 127.5 (1 + tsdf)).
 
     Headers: `X-Fleetmap-Window: i0,j0,i1,j1`, `X-Fleetmap-Origin: x,y` (lower-left corner, metres),
     `X-Fleetmap-Resolution`. 422 if the map does not keep the layer; 413 past 16777216 cells."""
@@ -227,9 +246,9 @@ def region_pixels(gmap: GridMap, layer: str, values: np.ndarray) -> np.ndarray:
         known = values != 0
         gray = np.where(values == STATE_OCCUPIED, 0.0, np.where(values == STATE_FREE, 254.0, 205.0))
     elif layer == "tsdf":
+        # The layer holds the signed distance over the truncation, already in [-1, 1] (not metres).
         known = ~np.isnan(values)
-        t = gmap.config.tsdf.truncation
-        gray = 127.5 * (1.0 + np.clip(np.nan_to_num(values) / t, -1.0, 1.0))
+        gray = 127.5 * (1.0 + np.clip(np.nan_to_num(values.astype(np.float64)), -1.0, 1.0))
     else:  # hits, misses, tsdf_weight: counts, 0 = never seen
         v = np.nan_to_num(values.astype(np.float64))
         known = v > 0

@@ -85,6 +85,19 @@ def tile_cache_control(private: bool) -> str:
     return "private, no-cache" if private else "no-cache"
 
 
+#: The caching headers of a tile answer (200 and 304), as the spec declares them.
+_TILE_HEADER_SPEC = {
+    "ETag": {
+        "description": "changes whenever a cell under the tile changes; send it back as If-None-Match",
+        "schema": {"type": "string"},
+    },
+    "Cache-Control": {
+        "description": "`no-cache` (`private, no-cache` when reading needs a token): revalidate",
+        "schema": {"type": "string"},
+    },
+}
+
+
 @router.get(
     "/maps/{map_id}/tiles/{z}/{x}/{y}.png",
     tags=["tiles"],
@@ -95,8 +108,12 @@ def tile_cache_control(private: bool) -> str:
         200: {
             "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
             "description": "The tile, with its ETag",
+            "headers": _TILE_HEADER_SPEC,
         },
-        304: {"description": "Not modified: the tile's ETag matches If-None-Match"},
+        304: {
+            "description": "Not modified: the tile's ETag matches If-None-Match",
+            "headers": _TILE_HEADER_SPEC,
+        },
         **error_responses(404, 422),
     },
 )
