@@ -282,6 +282,27 @@ def test_json_bodies_are_read_strictly_and_a_refused_one_changes_nothing(mapped:
     assert mapped.put("/maps/b", content=b"", headers={"content-type": "text/plain"}).status_code == 201
 
 
+def test_a_compressed_request_body_is_refused_saying_so(mapped: httpx.Client) -> None:
+    """No route decodes a Content-Encoding: a gzipped JSON body was refused as "not UTF-8 text" and
+    a gzipped snapshot as "not a zip file". 415 with Accept-Encoding: identity (RFC 9110, 15.5.16)
+    says what to change, and changes nothing."""
+    body = gzip.compress(json.dumps({"points": [[0.0, 0.0]]}).encode())
+    for method, path, headers in [
+        ("POST", "/maps/m/cells", JSON),
+        ("PUT", "/maps/zipped", JSON),
+        ("PUT", "/maps/zipped/snapshot", {"content-type": "application/zip"}),
+        ("POST", "/maps/m/scans?robot_id=r", JSON),
+    ]:
+        r = mapped.request(method, path, content=body, headers={**headers, "content-encoding": "gzip"})
+        assert r.status_code == 415 and r.headers["accept-encoding"] == "identity", (path, r.text)
+        assert "Content-Encoding 'gzip'" in r.json()["detail"] and "uncompressed" in r.json()["detail"]
+    assert mapped.get("/maps/zipped").status_code == 404
+    # identity is no encoding at all.
+    plain = json.dumps({"points": [[0.0, 0.0]]}).encode()
+    r = mapped.post("/maps/m/cells", content=plain, headers={**JSON, "content-encoding": "identity"})
+    assert r.status_code == 200, r.text
+
+
 def test_query_parameters_once_each_unknown_ones_ignored(mapped: httpx.Client) -> None:
     for path in ("/maps/m/cell?x=0&x=5&y=0", f"{TILE}?layer=hits&layer=probability",
                  "/maps/m/region?xmin=0&xmin=1&ymin=0&xmax=1&ymax=1"):  # fmt: skip

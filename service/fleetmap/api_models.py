@@ -332,7 +332,8 @@ class RegionJson(_Model):
     shape: Annotated[list[int], Field(min_length=2, max_length=2)] = Field(description="[ny, nx]")
     values: list[list[int | float | None]] = Field(
         description="values[row][col] is cell (i0 + col, j0 + row): row 0 is the LOWEST y. Unknown is "
-        "null for float layers, 0 for counts, 0 (unknown) for state (0 unknown, 1 free, 2 occupied)"
+        "null for log_odds, probability and tsdf, 0 for tsdf_weight and the counts, 0 (unknown) for state "
+        "(0 unknown, 1 free, 2 occupied)"
     )
 
 

@@ -110,7 +110,10 @@ class BodyTooLarge(StarletteHTTPException):
 
 class BodyLimitMiddleware:
     """Refuse request bodies over `max_bytes` with a JSON 413: at once when Content-Length says so,
-    else as soon as the streamed body passes the limit. (Starlette's own limit answers in plain text.)"""
+    else as soon as the streamed body passes the limit. (Starlette's own limit answers in plain text.)
+    And refuse a body sent with a `Content-Encoding` (gzip, say) with 415 and `Accept-Encoding:
+    identity` (RFC 9110, 15.5.16): no route decodes one, and a gzipped JSON body was refused as "not
+    UTF-8 text", a gzipped snapshot as "not a zip file", which did not say what to change."""
 
     def __init__(self, app: ASGIApp, max_bytes: int) -> None:
         self.app = app
@@ -125,6 +128,11 @@ class BodyLimitMiddleware:
             if name == b"content-length" and value.isdigit() and int(value) > limit:
                 exc = BodyTooLarge(limit)
                 await _json(exc.status_code, exc.detail)(scope, receive, send)
+                return
+            if name == b"content-encoding" and value.strip().lower() not in (b"", b"identity"):
+                coding = value.decode("latin-1")[:40]
+                detail = f"a body with Content-Encoding {coding!r} is not read here: send it uncompressed"
+                await _json(415, detail, headers={"Accept-Encoding": "identity"})(scope, receive, send)
                 return
         received = 0
 
