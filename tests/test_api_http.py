@@ -109,12 +109,15 @@ def test_large_answers_are_gzipped_for_clients_that_accept_it(mapped: httpx.Clie
 
 def test_the_spec_declares_the_headers_that_locate_and_validate_reads(mapped: httpx.Client) -> None:
     """A region's npy or png answer says where it lies only in its `X-Fleetmap-*` headers (and
-    without bounds the client cannot know), a tile's validator is its `ETag`: the committed spec
-    declares each such header the service sends, so a client generated from it can read them."""
+    without bounds the client cannot know), a tile's and a JSON answer's validator is its `ETag`:
+    the committed spec declares each such header the service sends, and the 304 of a JSON GET, so
+    a client generated from it can read and revalidate them."""
     spec = json.loads((Path(__file__).resolve().parents[1] / "openapi" / "openapi.json").read_text())
     region = spec["paths"]["/maps/{map_id}/region"]["get"]["responses"]
     tile = spec["paths"]["/maps/{map_id}/tiles/{z}/{x}/{y}.png"]["get"]["responses"]
+    info = spec["paths"]["/maps/{map_id}"]["get"]["responses"]
     got = mapped.get(TILE)
+    listed = mapped.get("/maps/m")
     answers = [
         *(
             (region["200"], mapped.get("/maps/m/region", params={"format": f}))
@@ -122,7 +125,10 @@ def test_the_spec_declares_the_headers_that_locate_and_validate_reads(mapped: ht
         ),
         (tile["200"], got),
         (tile["304"], mapped.get(TILE, headers={"If-None-Match": got.headers["etag"]})),
+        (info["200"], listed),
     ]
+    revalidated = mapped.get("/maps/m", headers={"If-None-Match": listed.headers["etag"]})
+    assert revalidated.status_code == 304 and "304" in info
     for documented, r in answers:
         meant = (
             {"x-fleetmap-window", "x-fleetmap-origin", "x-fleetmap-resolution"}

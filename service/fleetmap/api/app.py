@@ -34,6 +34,7 @@ from fleetmap.api.events import router as events_router
 from fleetmap.api.http_semantics import (
     GZIP_LEVEL,
     GZIP_MINIMUM_BYTES,
+    JSON_ETAG_MAX_BYTES,
     DefaultHeaders,
     HeadAsGet,
     JsonETags,
@@ -273,10 +274,29 @@ def _install_openapi(app: FastAPI) -> None:
                 extra = model.model_json_schema(ref_template="#/components/schemas/{model}")
                 schemas.update(extra.pop("$defs", {}))
                 schemas[model.__name__] = extra
+            _declare_json_revalidation(schema)
             app.openapi_schema = _finite(schema)
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to extend the schema
+
+
+def _declare_json_revalidation(schema: dict[str, Any]) -> None:
+    """Declare, on every GET that answers JSON, the weak `ETag` its answers carry (`JsonETags`, up to
+    JSON_ETAG_MAX_BYTES) and the 304 it gives for a matching `If-None-Match`: the service did both,
+    and the spec said neither, so a generated client could not revalidate."""
+    etag = {
+        "description": f"a weak validator of the answer, on answers up to {JSON_ETAG_MAX_BYTES} bytes: "
+        "send it back in If-None-Match to get 304 while the answer is unchanged",
+        "schema": {"type": "string"},
+    }
+    for operations in schema.get("paths", {}).values():
+        responses = operations.get("get", {}).get("responses", {})
+        ok = responses.get("200", {})
+        if "application/json" not in ok.get("content", {}):
+            continue
+        ok.setdefault("headers", {}).setdefault("ETag", etag)
+        responses.setdefault("304", {"description": "Not modified: If-None-Match matches the answer's ETag"})
 
 
 def _finite(node: Any) -> Any:
