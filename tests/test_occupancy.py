@@ -542,11 +542,13 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
-def test_beam_model_matches_table_9_2() -> None:
+@pytest.mark.parametrize("heading", [0.0, 1e15])
+def test_beam_model_matches_table_9_2(heading: float) -> None:
     """Random scans (partial and 360-degree fans, no-returns, finite and infinite range_max, with and
     without no-return clearing): the cells the beam model marks, and how, equal a direct evaluation
     of Probabilistic Robotics' table 9.2 at every cell centre of the window (the sensor's own cell,
-    whose bearing is undefined, left out)."""
+    whose bearing is undefined, left out). Also with headings of 1e15 rad, legal but rounded to
+    0.125 rad, where the model's cull by bearing would no longer be exact."""
     rng = np.random.default_rng(21)
     res, w = 0.1, 40
     jj, ii = np.mgrid[-w:w, -w:w]
@@ -561,7 +563,7 @@ def test_beam_model_matches_table_9_2() -> None:
         alpha, beta = float(rng.uniform(0.05, 0.5)), float(rng.uniform(0.01, 0.6))
         clear = float(rng.choice([0.0, 1.0]))
         r_max = float(rng.choice([math.inf, 2.0]))
-        pose = (float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), float(rng.uniform(-4, 4)))
+        pose = (float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), heading + float(rng.uniform(-4, 4)))
         m = make_map(
             resolution=res, sensor_model="beam", layers=["occupancy"],
             beam={"alpha": alpha, "beta": beta}, no_return_range=clear,

@@ -38,9 +38,12 @@ def _angle_diff(a: float, b: float) -> float:
     return abs(d)
 
 
-#: Bearing bins of `_reach_by_bearing`: each spans at most 4 / BEARING_BINS pseudo-angle units
-#: (`_pseudo_angle`), between 0.0015 and 0.003 rad.
+#: Bearing bins of `_reach_by_bearing`: each spans 4 / BEARING_BINS pseudo-angle units
+#: (`_pseudo_angle`), between 0.001 and 0.002 rad.
 BEARING_BINS = 4096
+#: Headings beyond this many radians are not culled by bearing: the cell's bearing relative to the
+#: heading is then rounded by more than a small part of a bin (about |theta| * 2e-16 rad).
+CULL_MAX_HEADING = 1e9
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -63,9 +66,11 @@ def _reach_by_bearing(theta: float, phi: np.ndarray, reach_k: np.ndarray, half_b
     `reach_k` of a beam whose cone (bearing `theta + phi[k]`, half-width `half_beta` < pi/2) reaches
     into the bin or a neighbouring bin. A cell with information lies within its nearest beam's cone
     and reach, so its range is at most its bin's value: the neighbours absorb the rounding between
-    this bin's bearings (cos, sin of the cone's edges) and the cell's (atan2 of its offset), under
-    1e-15 rad against a bin of at least 1e-3."""
+    this bin's bearings (cos, sin of the cone's edges) and the cell's (atan2 of its offset, less the
+    heading), under 1e-6 rad against a bin of at least 1e-3 (no bound past CULL_MAX_HEADING)."""
     bins = BEARING_BINS
+    if abs(theta) > CULL_MAX_HEADING:
+        return np.full(bins, np.inf)
     reach = np.zeros(bins)
     for k in range(phi.size):
         a = theta + phi[k]
