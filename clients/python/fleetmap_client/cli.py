@@ -67,8 +67,9 @@ def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
         help="publish a recorded dataset to the service over Zenoh, as one robot",
         description=(
             "Publish a recorded laser log (CARMEN log, plain or .gz, or .mat) to a running fleetmap "
-            "service over Zenoh as one robot: scan k gets seq k. The logs carry no usable timestamps, "
-            "so --rate X publishes 10*X scans per second (0: as fast as possible, nothing dropped). "
+            "service over Zenoh as one robot: scan k gets seq k. Scans go out at a nominal 10 per "
+            "second, not at the log's timestamps (some logs have none: the Freiburg campus log's are "
+            "all 0): --rate X publishes 10*X scans per second (0: as fast as possible, nothing dropped). "
             "Waits for the service first; after a lost connection it waits and re-sends."
         ),
     )
