@@ -31,7 +31,7 @@ from fleetmap.scan import Scan
 
 from .publisher import Encoding, ScanPublisher
 
-#: Scans per second of a replay at rate 1 (the datasets carry no usable timestamps; see above).
+#: Scans per second of a replay at rate 1 (the dataset readers expose no timestamps; see above).
 NOMINAL_SCAN_RATE = 10.0
 
 
