@@ -242,7 +242,10 @@ def serve_error(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> None:
+    not_text = tmp_path / "map-config.json"
+    not_text.write_bytes(b'{"resolution": 0.1\xff}')  # not text: was a traceback and exit 1
     cases = [
+        (("--config", str(not_text)), {}, f"cannot read config {not_text}: not UTF-8 text (byte 18)"),
         (("--workers", "0"), {}, "argument --workers: must be between 1 and 64, got 0"),
         (("--max-memory", "lots"), {}, "argument --max-memory: expected a size"),
         ((), {"FLEETMAP_WORKERS": "many"}, "$FLEETMAP_WORKERS='many': expected a whole number"),
