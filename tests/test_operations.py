@@ -247,6 +247,8 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
     cases = [
         (("--config", str(not_text)), {}, f"cannot read config {not_text}: not UTF-8 text (byte 18)"),
         (("--workers", "0"), {}, "argument --workers: must be between 1 and 64, got 0"),
+        # With no token to check, reads were silently open to anyone.
+        (("--require-read-token",), {}, "--require-read-token needs API tokens"),
         (("--max-memory", "lots"), {}, "argument --max-memory: expected a size"),
         ((), {"FLEETMAP_WORKERS": "many"}, "$FLEETMAP_WORKERS='many': expected a whole number"),
         ((), {"FLEETMAP_LOG_LEVEL": "loud"}, "$FLEETMAP_LOG_LEVEL='loud': invalid choice"),

@@ -187,7 +187,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     p.add_argument(
         "--require-read-token",
         action="store_true",
-        help="reading also needs a token (read, write or admin); by default reading is open",
+        help=(
+            "reading also needs a token (read, write or admin; so tokens must be given); by default "
+            "reading is open"
+        ),
     )
     p.add_argument(
         "--insecure",
@@ -719,6 +722,12 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
         raise CliError("--world-bound and --max-range must be positive")
     configure_limits(InputLimits(args.world_bound, args.max_beams, args.max_range))
     tokens = _load_tokens(args.auth_tokens)
+    if tokens is None and args.require_read_token:
+        # Without tokens there is nothing to check: reads were served to anyone, silently.
+        raise CliError(
+            "--require-read-token needs API tokens, or reading stays open to anyone: give "
+            "--auth-tokens FILE (or $FLEETMAP_TOKENS)"
+        )
     if tokens is None and not _is_loopback(host) and not args.insecure:
         raise CliError(
             f"refusing to serve {host} without API tokens: anyone on the network could change the "
