@@ -113,10 +113,15 @@ def test_compose_services_use_real_commands_and_ports() -> None:
         assert option in sim_help, f"compose runs fleetmap sim {option}, which does not exist"
     connect = robots[robots.index("--connect") + 1]
     assert connect == "tcp/fleetmap:7447", "robots must reach the service by its compose name and Zenoh port"
-    for service in services.values():
+    for name, service in services.items():
         build = service.get("build")
         if build:
             assert (COMPOSE.parent / build["context"] / build["dockerfile"]).resolve() == DOCKERFILE
+            # The image's HEALTHCHECK polls /healthz on 127.0.0.1:8000: only `fleetmap serve` answers.
+            if service.get("entrypoint", ["fleetmap", "serve"])[:2] != ["fleetmap", "serve"]:
+                assert service.get("healthcheck", {}).get("disable") is True, (
+                    f"compose service {name} runs no service, so the image's health check calls it unhealthy"
+                )
 
 
 def test_readme_documents_the_docker_commands() -> None:
