@@ -253,6 +253,9 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
         ((), {"FLEETMAP_WORKERS": "many"}, "$FLEETMAP_WORKERS='many': expected a whole number"),
         ((), {"FLEETMAP_LOG_LEVEL": "loud"}, "$FLEETMAP_LOG_LEVEL='loud': invalid choice"),
         ((), {"FLEETMAP_IN_MEMORY": "maybe"}, "$FLEETMAP_IN_MEMORY='maybe': expected 1, true"),
+        # An unset variable in a template: the maps went to the working directory, silently.
+        ((), {"FLEETMAP_DATA_DIR": ""}, "$FLEETMAP_DATA_DIR='': expected a path, got an empty value"),
+        (("--config", ""), {}, "argument --config: expected a path, got an empty value"),
     ]
     for args, env, message in cases:
         done = serve_error(*args, "--data-dir", str(tmp_path / "d"), **env)

@@ -125,6 +125,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     )
     p.add_argument(
         "--zenoh-config",
+        type=_path,
         metavar="FILE.json5",
         help=(
             "Zenoh configuration file, loaded first; the --zenoh-* options apply on top of it. Its "
@@ -142,6 +143,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     )
     p.add_argument(
         "--data-dir",
+        type=_path,
         default=DEFAULT_DATA_DIR,
         metavar="DIR",
         help=(
@@ -178,6 +180,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     )
     p.add_argument(
         "--auth-tokens",
+        type=_path,
         metavar="FILE",
         help=(
             "API tokens, one 'ROLE TOKEN' per line (ROLE: read, write or admin); also read from "
@@ -278,6 +281,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     )
     p.add_argument(
         "--config",
+        type=_path,
         metavar="FILE",
         help="map configuration (JSON, the schema of PUT /maps/{id}) for maps created automatically",
     )
@@ -435,6 +439,15 @@ def _memory_budget(text: str) -> MemoryBudget:
         return MemoryBudget(parse_size(text))
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _path(text: str) -> str:
+    """An argparse `type` for a file or directory option: any path but an empty one. An empty
+    FLEETMAP_DATA_DIR (a template's unset variable) kept the maps in the working directory, and an
+    empty FLEETMAP_CONFIG or FLEETMAP_AUTH_TOKENS was taken as no option at all, all silently."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a path, got an empty value")
+    return text
 
 
 N = TypeVar("N", int, float)
