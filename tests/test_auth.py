@@ -148,6 +148,16 @@ def test_a_token_holding_a_hash_is_the_whole_token(tmp_path: Path) -> None:
         assert httpx.delete(f"{svc.base_url}/maps/h", headers=bearer(prefix)).status_code == 401
 
 
+def test_a_token_file_saved_with_a_byte_order_mark_is_read(tmp_path: Path) -> None:
+    """Notepad's UTF-8 starts with a byte order mark, and Windows ends lines with CRLF: the mark was
+    read as part of the first role, so the file was refused at start with "expected 'ROLE TOKEN'"."""
+    path = tmp_path / "tokens.txt"
+    path.write_bytes(f"write {WRITE}\r\nread {READ}\r\n".encode("utf-8-sig"))
+    with ServiceProcess(tmp_path, ["--auth-tokens", str(path)]) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/b", json={}, headers=bearer(WRITE)).status_code == 201
+        assert httpx.delete(f"{svc.base_url}/maps/b", headers=bearer(READ)).status_code == 403
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [

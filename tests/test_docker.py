@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import yaml
+import zenoh
 
 REPO = Path(__file__).resolve().parents[1]
 DOCKERFILE = REPO / "docker" / "Dockerfile"
@@ -57,7 +58,13 @@ def test_dockerfile_copies_paths_that_exist_and_runs_real_options() -> None:
             assert option in serve_help, f"ENV {name} names {option}, which fleetmap serve does not have"
     ports = {int(p) for line in ins["EXPOSE"] for p in line.split()}
     assert {8000, 7447} <= ports
-    assert env["FLEETMAP_HTTP"] == "0.0.0.0:8000" and env["FLEETMAP_ZENOH_LISTEN"] == "tcp/0.0.0.0:7447"
+    assert env["FLEETMAP_HTTP"] == "0.0.0.0:8000"
+    # Zenoh on all interfaces through the image's own configuration file, which an operator's
+    # --zenoh-config replaces whole; FLEETMAP_ZENOH_LISTEN would replace that file's endpoints
+    # (tests/test_zenoh_security.py runs the image's settings with a TLS file).
+    assert "FLEETMAP_ZENOH_LISTEN" not in env and "FLEETMAP_ZENOH_CONNECT" not in env
+    zenoh_config = zenoh.Config.from_file(str(image_file(ins, env["FLEETMAP_ZENOH_CONFIG"])))
+    assert json.loads(zenoh_config.get_json("listen/endpoints")) == ["tcp/0.0.0.0:7447"]
     assert json.loads(ins["VOLUME"][0]) == [env["FLEETMAP_DATA_DIR"]], "the data directory must be the volume"
     (health,) = ins["HEALTHCHECK"]
     assert "/healthz" in health and "--start-period=" in health, "a journal replay at start is not unhealthy"
@@ -66,6 +73,15 @@ def test_dockerfile_copies_paths_that_exist_and_runs_real_options() -> None:
 def dockerfile_env(ins: dict[str, list[str]]) -> dict[str, str]:
     """The Dockerfile's `ENV NAME=VALUE` lines."""
     return dict(line.split("=", 1) for line in ins.get("ENV", []))
+
+
+def image_file(ins: dict[str, list[str]], path: str) -> Path:
+    """The repository file a `COPY SOURCE DEST` line puts at `path` in the image (DEST a file)."""
+    for copy in ins["COPY"]:
+        *sources, dest = copy.split()
+        if dest == path and len(sources) == 1:
+            return REPO / sources[0]
+    raise AssertionError(f"the Dockerfile copies nothing to {path}")
 
 
 def test_dockerfile_runs_as_non_root_and_stops_cleanly() -> None:
@@ -97,10 +113,15 @@ def test_compose_services_use_real_commands_and_ports() -> None:
         assert option in sim_help, f"compose runs fleetmap sim {option}, which does not exist"
     connect = robots[robots.index("--connect") + 1]
     assert connect == "tcp/fleetmap:7447", "robots must reach the service by its compose name and Zenoh port"
-    for service in services.values():
+    for name, service in services.items():
         build = service.get("build")
         if build:
             assert (COMPOSE.parent / build["context"] / build["dockerfile"]).resolve() == DOCKERFILE
+            # The image's HEALTHCHECK polls /healthz on 127.0.0.1:8000: only `fleetmap serve` answers.
+            if service.get("entrypoint", ["fleetmap", "serve"])[:2] != ["fleetmap", "serve"]:
+                assert service.get("healthcheck", {}).get("disable") is True, (
+                    f"compose service {name} runs no service, so the image's health check calls it unhealthy"
+                )
 
 
 def test_readme_documents_the_docker_commands() -> None:

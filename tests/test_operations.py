@@ -242,12 +242,20 @@ def serve_error(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> None:
+    not_text = tmp_path / "map-config.json"
+    not_text.write_bytes(b'{"resolution": 0.1\xff}')  # not text: was a traceback and exit 1
     cases = [
+        (("--config", str(not_text)), {}, f"cannot read config {not_text}: not UTF-8 text (byte 18)"),
         (("--workers", "0"), {}, "argument --workers: must be between 1 and 64, got 0"),
+        # With no token to check, reads were silently open to anyone.
+        (("--require-read-token",), {}, "--require-read-token needs API tokens"),
         (("--max-memory", "lots"), {}, "argument --max-memory: expected a size"),
         ((), {"FLEETMAP_WORKERS": "many"}, "$FLEETMAP_WORKERS='many': expected a whole number"),
         ((), {"FLEETMAP_LOG_LEVEL": "loud"}, "$FLEETMAP_LOG_LEVEL='loud': invalid choice"),
         ((), {"FLEETMAP_IN_MEMORY": "maybe"}, "$FLEETMAP_IN_MEMORY='maybe': expected 1, true"),
+        # An unset variable in a template: the maps went to the working directory, silently.
+        ((), {"FLEETMAP_DATA_DIR": ""}, "$FLEETMAP_DATA_DIR='': expected a path, got an empty value"),
+        (("--config", ""), {}, "argument --config: expected a path, got an empty value"),
     ]
     for args, env, message in cases:
         done = serve_error(*args, "--data-dir", str(tmp_path / "d"), **env)

@@ -35,6 +35,7 @@ import zenoh
 from fleetmap_client.publisher import ScanPublisher
 from robot_process import scans_for
 from service_process import REPO_DIR, ServiceProcess, free_port, wait_for
+from test_docker import dockerfile_env, dockerfile_instructions, image_file
 
 from fleetmap.scan import Scan
 
@@ -162,13 +163,13 @@ def modified(path: Path, **changes: Any) -> zenoh.Config:
 # -- the service and robots ----------------------------------------------------------------------------
 
 
-def start_service(log_dir: Path, config: Path, port: int) -> ServiceProcess:
-    """The real service with `--zenoh-config config` and NO --zenoh-listen, so that it listens on what
-    the file says (as in `fleetmap serve --zenoh-config service-tls.json5`)."""
-    svc = ServiceProcess(log_dir, ["--in-memory", "--zenoh-config", str(config)])
+def start_service(log_dir: Path, config: Path | None, port: int) -> ServiceProcess:
+    """The real service with `--zenoh-config config` (None: no such option) and NO --zenoh-listen, so
+    that it listens on what the file says (as in `fleetmap serve --zenoh-config service-tls.json5`)."""
+    svc = ServiceProcess(log_dir, ["--in-memory", *(["--zenoh-config", str(config)] if config else [])])
     at = svc.args.index("--zenoh-listen")
     del svc.args[at : at + 2]  # ServiceProcess always adds a plain tcp endpoint; this test must not
-    svc.zenoh_endpoint = f"tls/127.0.0.1:{port}"
+    svc.zenoh_endpoint = f"{'tls' if config else 'tcp'}/127.0.0.1:{port}"
     return svc.start()
 
 
@@ -388,3 +389,52 @@ def test_user_password_refuses_wrong_or_missing_credentials(
 
     svc = run_scenario(services, tmp_path, service_cfg, robot_cfg, port, intruders)
     assert DOC_ROBOT_PASSWORD not in svc.logs()
+
+
+def image_environment(tmp_path: Path, zenoh_port: int) -> dict[str, str]:
+    """The Docker image's FLEETMAP_* variables (docker/Dockerfile) that shape its Zenoh session,
+    runnable here: a file the image copies in is read from the repository, and the image's
+    `0.0.0.0:7447` becomes 127.0.0.1:`zenoh_port` (in the values and in such files)."""
+    ins = dockerfile_instructions()
+    image_listen, local_listen = "0.0.0.0:7447", f"127.0.0.1:{zenoh_port}"
+    found = {}
+    for name, value in dockerfile_env(ins).items():
+        if not name.startswith("FLEETMAP_ZENOH_"):
+            continue  # the HTTP address and data directory are ServiceProcess's
+        if value.startswith("/"):
+            local = tmp_path / Path(value).name
+            local.write_text(image_file(ins, value).read_text().replace(image_listen, local_listen))
+            value = str(local)
+        found[name] = value.replace(image_listen, local_listen)
+    return found
+
+
+def test_the_docker_image_listens_where_an_operators_tls_file_says(
+    pki: Pki, tmp_path: Path, services: list[ServiceProcess], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The image's settings listen on Zenoh's port on all interfaces, and `docker run fleetmap
+    --zenoh-config service-tls.json5` listens where that file says, with TLS only. The image set
+    FLEETMAP_ZENOH_LISTEN=tcp/0.0.0.0:7447, which replaced the file's endpoints: plain TCP, open to
+    any publisher, and nothing on the TLS endpoint the robots were given."""
+    image_port, port = free_port(), free_port()
+    for name, value in image_environment(tmp_path, image_port).items():
+        monkeypatch.setenv(name, value)
+    default = start_service(tmp_path, None, image_port)
+    services.append(default)
+    assert httpx.get(f"{default.base_url}/healthz").json()["zenoh"]["listen"] == [
+        f"tcp/127.0.0.1:{image_port}"
+    ]
+    assert default.stop() == 0
+
+    service_cfg = doc_config("service-tls.json5", pki, port, tmp_path)
+    robot_cfg = doc_config("robot-tls.json5", pki, port, tmp_path)
+
+    def intruders() -> dict[str, zenoh.Config]:
+        return {
+            "plain tcp, the image's port": modified(
+                robot_cfg, connect__endpoints=[f"tcp/127.0.0.1:{image_port}"]
+            ),
+            "plain tcp, the file's port": modified(robot_cfg, connect__endpoints=[f"tcp/127.0.0.1:{port}"]),
+        }
+
+    run_scenario(services, tmp_path, service_cfg, robot_cfg, port, intruders)

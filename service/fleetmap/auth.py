@@ -17,6 +17,7 @@ Tokens are compared in constant time against every configured token, and never l
 
 from __future__ import annotations
 
+import codecs
 import hashlib
 import hmac
 import json
@@ -99,12 +100,18 @@ class TokenSet:
         env = os.environ if environ is None else environ
         if path:
             try:
-                text = Path(path).read_bytes().decode("utf-8")
+                raw = Path(path).read_bytes()
             except OSError as exc:
                 raise TokenFileError(f"cannot read token file {path}: {exc.strerror}") from None
+            # Windows editors (Notepad) start UTF-8 files with a byte order mark: it was read as part
+            # of the first role, and a file that looked right was refused ("expected 'ROLE TOKEN'").
+            body = raw.removeprefix(codecs.BOM_UTF8)
+            try:
+                text = body.decode("utf-8")
             except UnicodeDecodeError as exc:  # the message names the offset, never the bytes
-                line = exc.object[: exc.start].count(b"\n") + 1
-                raise TokenFileError(f"{path}:{line}: not UTF-8 text (byte {exc.start})") from None
+                start = exc.start + len(raw) - len(body)
+                line = raw[:start].count(b"\n") + 1
+                raise TokenFileError(f"{path}:{line}: not UTF-8 text (byte {start})") from None
             return cls.parse(text, path)
         if env.get(TOKENS_ENV):
             return cls.parse(env[TOKENS_ENV].replace(";", "\n"), f"${TOKENS_ENV}")

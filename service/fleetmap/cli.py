@@ -58,13 +58,17 @@ class CliError(Exception):
 
 
 def load_config(path: str | None, **overrides: object) -> MapConfig:
-    """A map configuration from a JSON file (or defaults), with command-line overrides applied."""
+    """A map configuration from a JSON file (or defaults), with command-line overrides applied.
+    Raises `CliError` if the file cannot be read, is not JSON text (UTF-8, or the UTF-16 / 32 that
+    JSON allows) or does not validate."""
     data: dict[str, object] = {}
     if path:
         try:
-            data = json.loads(Path(path).read_text())
+            data = json.loads(Path(path).read_bytes())
         except (OSError, json.JSONDecodeError) as exc:
             raise CliError(f"cannot read config {path}: {exc}") from None
+        except UnicodeDecodeError as exc:  # not text: a traceback and exit 1 said nothing of the file
+            raise CliError(f"cannot read config {path}: not UTF-8 text (byte {exc.start})") from None
         if not isinstance(data, dict):
             raise CliError(f"config {path} must hold a JSON object")
     data.update({k: v for k, v in overrides.items() if v is not None})

@@ -125,6 +125,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     )
     p.add_argument(
         "--zenoh-config",
+        type=_path,
         metavar="FILE.json5",
         help=(
             "Zenoh configuration file, loaded first; the --zenoh-* options apply on top of it. Its "
@@ -142,6 +143,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     )
     p.add_argument(
         "--data-dir",
+        type=_path,
         default=DEFAULT_DATA_DIR,
         metavar="DIR",
         help=(
@@ -178,6 +180,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     )
     p.add_argument(
         "--auth-tokens",
+        type=_path,
         metavar="FILE",
         help=(
             "API tokens, one 'ROLE TOKEN' per line (ROLE: read, write or admin); also read from "
@@ -187,7 +190,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     p.add_argument(
         "--require-read-token",
         action="store_true",
-        help="reading also needs a token (read, write or admin); by default reading is open",
+        help=(
+            "reading also needs a token (read, write or admin; so tokens must be given); by default "
+            "reading is open"
+        ),
     )
     p.add_argument(
         "--insecure",
@@ -275,6 +281,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     )
     p.add_argument(
         "--config",
+        type=_path,
         metavar="FILE",
         help="map configuration (JSON, the schema of PUT /maps/{id}) for maps created automatically",
     )
@@ -432,6 +439,15 @@ def _memory_budget(text: str) -> MemoryBudget:
         return MemoryBudget(parse_size(text))
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _path(text: str) -> str:
+    """An argparse `type` for a file or directory option: any path but an empty one. An empty
+    FLEETMAP_DATA_DIR (a template's unset variable) kept the maps in the working directory, and an
+    empty FLEETMAP_CONFIG or FLEETMAP_AUTH_TOKENS was taken as no option at all, all silently."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a path, got an empty value")
+    return text
 
 
 N = TypeVar("N", int, float)
@@ -719,6 +735,12 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
         raise CliError("--world-bound and --max-range must be positive")
     configure_limits(InputLimits(args.world_bound, args.max_beams, args.max_range))
     tokens = _load_tokens(args.auth_tokens)
+    if tokens is None and args.require_read_token:
+        # Without tokens there is nothing to check: reads were served to anyone, silently.
+        raise CliError(
+            "--require-read-token needs API tokens, or reading stays open to anyone: give "
+            "--auth-tokens FILE (or $FLEETMAP_TOKENS)"
+        )
     if tokens is None and not _is_loopback(host) and not args.insecure:
         raise CliError(
             f"refusing to serve {host} without API tokens: anyone on the network could change the "
