@@ -232,6 +232,27 @@ def test_a_data_directory_of_a_newer_schema_is_refused_at_start(tmp_path: Path) 
     assert contents() == before
 
 
+def test_another_programs_database_is_refused_at_start_and_left_unchanged(tmp_path: Path) -> None:
+    """A `fleetmap.db` that is some other program's SQLite file (no `maps` table): the service got it
+    into WAL mode and added its tables to it before refusing it as damaged. It is refused, exit code
+    2, naming the file and its tables, and left byte for byte as it was."""
+    data = tmp_path / "data"
+    data.mkdir()
+    with sqlite3.connect(data / DB_NAME) as conn:
+        conn.execute("CREATE TABLE invoices (id INTEGER PRIMARY KEY, total REAL)")
+        conn.execute("INSERT INTO invoices (total) VALUES (12.5)")
+    conn.close()
+    before = (data / DB_NAME).read_bytes()
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+    with pytest.raises(RuntimeError) as refused:
+        svc.start()
+    assert svc.proc is not None and svc.proc.returncode == 2
+    assert f"{data / DB_NAME} is not a fleetmap map database (its tables: invoices)" in str(refused.value)
+    assert "Traceback" not in str(refused.value)
+    assert (data / DB_NAME).read_bytes() == before
+    assert sorted(p.name for p in data.iterdir()) == [DB_NAME, "fleetmap.lock"]
+
+
 def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_map(tmp_path: Path) -> None:
     """A tile row or a journal row that no longer decodes (bit rot, a bad copy): the service refuses
     to start with one line naming the database file and the map, exit code 2, and no traceback

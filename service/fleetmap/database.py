@@ -3,6 +3,7 @@ and how every connection to it is opened (WAL, full fsync on commit)."""
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import shutil
@@ -129,9 +130,11 @@ def _check_and_create(data_dir: Path) -> Path:
             f.write(b"\0" * 65536)
             f.flush()
             os.fsync(f.fileno())
-        probe.unlink()
     except OSError as exc:
         raise StorageError(f"data directory {data_dir} is not writable: {exc.strerror}") from None
+    finally:
+        with contextlib.suppress(OSError):  # (a full disk failed the write, and left the file)
+            probe.unlink()
     free = shutil.disk_usage(data_dir).free
     if free < MIN_FREE_BYTES:
         raise StorageError(
@@ -140,14 +143,9 @@ def _check_and_create(data_dir: Path) -> Path:
         )
     path = data_dir / DB_NAME
     try:
+        _refuse_unknown_layout(path)
         conn = connect(path)
         try:
-            (version,) = conn.execute("PRAGMA user_version").fetchone()
-            if version > SCHEMA_VERSION:
-                raise StorageError(
-                    f"the map database {path} was written by a newer fleetmap (schema version {version}; "
-                    f"this one reads up to {SCHEMA_VERSION}): run that version, or move the directory aside"
-                )
             conn.executescript(SCHEMA)
             _migrate(conn)
             conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
@@ -156,6 +154,33 @@ def _check_and_create(data_dir: Path) -> Path:
     except sqlite3.DatabaseError as exc:
         raise StorageError(f"cannot open the map database {path}: {exc}") from None
     return path
+
+
+def _refuse_unknown_layout(path: Path) -> None:
+    """Raise `StorageError` for a database at `path` that this fleetmap must not write to: one a
+    newer fleetmap wrote (a higher `user_version`), or one that is not a map database at all (tables,
+    none of them fleetmap's `maps`: another program's file under this name). Looks without changing
+    anything: `connect` would have turned the file to WAL mode and the schema added fleetmap's tables
+    to it before it was refused as damaged."""
+    if not path.exists():
+        return
+    conn = sqlite3.connect(path)  # reads only: no journal mode, no schema
+    try:
+        (version,) = conn.execute("PRAGMA user_version").fetchone()
+        tables = {row[0] for row in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    finally:
+        conn.close()
+    if version > SCHEMA_VERSION:
+        raise StorageError(
+            f"the map database {path} was written by a newer fleetmap (schema version {version}; "
+            f"this one reads up to {SCHEMA_VERSION}): run that version, or move the directory aside"
+        )
+    if tables and "maps" not in tables:
+        listed = ", ".join(sorted(tables)[:5]) + (", ..." if len(tables) > 5 else "")
+        raise StorageError(
+            f"{path} is not a fleetmap map database (its tables: {listed}): move it aside, or give "
+            "--data-dir a directory of fleetmap's own"
+        )
 
 
 def _migrate(conn: sqlite3.Connection) -> None:

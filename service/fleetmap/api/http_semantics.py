@@ -130,16 +130,26 @@ class NegotiatedGZip(GZipMiddleware):
     does. Starlette compresses whenever the header holds the text `gzip`, so a client refusing gzip
     (`gzip;q=0`, as some proxies and tools send) got gzip all the same, bytes it had said it cannot
     read. The middleware sees `Accept-Encoding: gzip` when gzip is acceptable, none otherwise (the
-    routes read no `Accept-Encoding`, so they are unaffected)."""
+    routes read no `Accept-Encoding`, so they are unaffected).
+
+    The scope's headers are swapped in place, and given back after, rather than the scope copied:
+    the router records the route's path parameters in the scope it gets, and the error handler,
+    outside every middleware, reads them from the outer one (a bug's log line names its map)."""
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http":
-            offered = ", ".join(Headers(scope=scope).getlist("accept-encoding"))
-            headers = [(k, v) for k, v in scope["headers"] if k.lower() != b"accept-encoding"]
-            if accepts_gzip(offered):
-                headers.append((b"accept-encoding", b"gzip"))
-            scope = {**scope, "headers": headers}
-        await super().__call__(scope, receive, send)
+        if scope["type"] != "http":
+            await super().__call__(scope, receive, send)
+            return
+        original = scope["headers"]
+        offered = ", ".join(Headers(scope=scope).getlist("accept-encoding"))
+        headers = [(k, v) for k, v in original if k.lower() != b"accept-encoding"]
+        if accepts_gzip(offered):
+            headers.append((b"accept-encoding", b"gzip"))
+        scope["headers"] = headers
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            scope["headers"] = original
 
 
 def created_status(response: Response, map_id: str, *, created: bool) -> None:
