@@ -129,3 +129,24 @@ def test_readme_documents_the_docker_commands() -> None:
     assert "docker compose -f docker/compose.yaml up" in readme
     first = shlex.split("docker build -f docker/Dockerfile -t fleetmap .")
     assert " ".join(first) in readme
+
+
+def test_the_image_health_check_follows_the_api_port(tmp_path: Path) -> None:
+    """The image's HEALTHCHECK command, run as Docker runs it: it passes against a real service on the
+    port FLEETMAP_HTTP names, and fails where nothing answers. It polled 127.0.0.1:8000 whatever
+    FLEETMAP_HTTP said, so an operator who moved the API had a container unhealthy for good."""
+    from service_process import ServiceProcess, free_port
+
+    (health,) = dockerfile_instructions()["HEALTHCHECK"]
+    command = shlex.split(health.split(" CMD ", 1)[1])
+    assert command[:2] == ["python", "-c"]
+
+    def check(http: str) -> int:
+        env = {"PATH": "/usr/bin:/bin", "FLEETMAP_HTTP": http}
+        done = subprocess.run([sys.executable, "-c", command[2]], env=env, capture_output=True, timeout=30)
+        return done.returncode
+
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        assert check(f"0.0.0.0:{svc.port}") == 0
+        assert check(f"127.0.0.1:{svc.port}") == 0
+    assert check(f"0.0.0.0:{free_port()}") != 0
