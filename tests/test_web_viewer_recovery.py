@@ -263,3 +263,32 @@ def test_twelve_robots_have_twelve_colours(page: Any, svc: ServiceProcess) -> No
     _wait(page, "() => document.querySelectorAll('.robot-marker').length === 12", what="12 markers again")
     assert page.evaluate(_MARKER_COLOURS_JS) == colours
     assert not page.page_errors
+
+
+#: How many tile images on the map failed (Leaflet shows its 1-pixel error tile instead).
+_FAILED_TILES_JS = (
+    "() => [...document.querySelectorAll('#map img.leaflet-tile')]"
+    ".filter((i) => i.complete && i.naturalWidth !== 256).length"
+)
+
+
+def test_tiles_that_failed_are_asked_again(page: Any, svc: ServiceProcess) -> None:
+    """The network drops tile requests for a moment while the map changes, and the event stream stays
+    up. The tiles that failed showed nothing (a hole in the map, the robot's trail running over
+    unknown space) until their cells changed again, which on a finished map is never: each one is
+    now asked for again, and the map is whole again without a reload or a pan."""
+    base = svc.base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    _open(page, base, f"#map={MAP_ID}&layer=probability")
+    _wait(page, _TILES_LOADED_JS, what="every tile loaded")
+
+    page.route("**/tiles/**", lambda route: route.abort("internetdisconnected"))
+    _scan(base, MAP_ID, "r1", 2, 2.5, 2.0)  # changes the tiles in view: the page asks for them again
+    _wait(page, f"() => ({_FAILED_TILES_JS})() > 0", what="tiles failing while the network drops them")
+    page.unroute("**/tiles/**")
+
+    # No scan comes any more: nothing but the viewer itself may ask for the failed tiles again.
+    _wait(page, _TILES_LOADED_JS, what="every tile loaded again (no hole left)")
+    assert page.evaluate(_FAILED_TILES_JS) == 0
+    assert page.evaluate("() => document.getElementById('status').dataset.state") == "connected"
+    assert not page.page_errors, page.page_errors

@@ -28,7 +28,8 @@
  * and (d) the page is visible. So a tile that changes 50 times a second is fetched at most
  * 1000 / TILE_REFRESH_MS times a second, a slow service is never asked for a tile it is still
  * rendering, and a hidden tab fetches nothing (it also closes its event stream until shown again).
- * Tiles created later use the newest counter.
+ * Tiles created later use the newest counter. A tile that failed to load is stale again, due
+ * TILE_RETRY_MS later (while the event stream is connected; a reconnect reloads every tile anyway).
  *
  * Robots are drawn incrementally: a robot's marker and trail are made once, then moved and turned in
  * place, and only when its report changed; a robot the service no longer reports is removed. The
@@ -46,6 +47,7 @@
   const MAPS_REFRESH_MS = 5000;   // how often the map list is polled
   const TILE_FLUSH_MS = 100;      // changed windows are applied to the tiles at most this often
   const TILE_REFRESH_MS = 500;    // one tile is requested again at most this often (2 per second)
+  const TILE_RETRY_MS = 3000;     // a tile that failed to load is asked for again after this long
   const RECONNECT_MS = 3000;      // retry delay when the browser gives up on the event stream
   // After a reconnect every tile is reloaded once; spread over this many ms, so that the viewers of a
   // restarted service do not all ask it for their tiles in the same instant.
@@ -115,7 +117,7 @@
     drawFrame: null,      // the requestAnimationFrame that draws what changed, if one is planned
     robotsSeen: 0,        // robots this map ever showed (the next robot's colour)
     tileCounter: 0,       // tile version counter (see the header comment)
-    // Leaflet tile key -> {el, coords, loading, stale, reset, requestedAt} for every tile on the map
+    // Leaflet tile key -> {el, coords, loading, stale, reset, requestedAt, retryAt} for every tile on the map
     shownTiles: new Map(),
     pumpTimer: null,      // the next look for stale tiles that have become due
     pumpAt: Infinity,     // when pumpTimer fires (performance.now() time)
@@ -368,6 +370,7 @@
   tiles.on('tileloadstart', (e) => {
     const tile = {
       el: e.tile, coords: e.coords, loading: true, stale: false, reset: false, requestedAt: performance.now(),
+      retryAt: 0,
     };
     state.shownTiles.set(`${e.coords.x}:${e.coords.y}:${e.coords.z}`, tile);
     const done = () => {
@@ -375,7 +378,14 @@
       if (tile.stale) schedulePump(0);
     };
     e.tile.addEventListener('load', done);
-    e.tile.addEventListener('error', done);
+    // A failed tile shows nothing (errorTileUrl), and nothing else would ask for it again until its
+    // cells change, on a finished map never: a network blip left holes in the map. Ask again after
+    // TILE_RETRY_MS, while the stream is connected (a reconnect reloads every tile anyway).
+    e.tile.addEventListener('error', () => {
+      tile.stale = true;
+      tile.retryAt = performance.now() + TILE_RETRY_MS;
+      done();
+    });
   });
   tiles.on('tileunload', (e) => {
     state.shownTiles.delete(`${e.coords.x}:${e.coords.y}:${e.coords.z}`);
@@ -535,7 +545,8 @@
     let next = Infinity;
     for (const tile of state.shownTiles.values()) {
       if (!tile.stale || tile.loading || !tileWanted(tile)) continue;
-      const due = tile.requestedAt + TILE_REFRESH_MS;
+      if (tile.retryAt && state.connection !== 'connected') continue;
+      const due = Math.max(tile.requestedAt + TILE_REFRESH_MS, tile.retryAt);
       if (due > now) {
         next = Math.min(next, due);
         continue;
@@ -544,6 +555,7 @@
       tile.reset = false;
       tile.loading = true;
       tile.requestedAt = now;
+      tile.retryAt = 0;
       tile.el.src = tiles.getTileUrl(tile.coords);
     }
     if (next < Infinity) schedulePump(next - now);
