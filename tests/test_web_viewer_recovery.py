@@ -292,3 +292,21 @@ def test_tiles_that_failed_are_asked_again(page: Any, svc: ServiceProcess) -> No
     assert page.evaluate(_FAILED_TILES_JS) == 0
     assert page.evaluate("() => document.getElementById('status').dataset.state") == "connected"
     assert not page.page_errors, page.page_errors
+
+
+def test_missing_map_that_appears_is_no_longer_not_found(page: Any, svc: ServiceProcess) -> None:
+    """A link names a map that does not exist yet: the page says so and waits. When the map appears
+    it is shown, and 'map NAME not found' goes with it (it stayed beside the map for up to 15 s)."""
+    base = svc.base_url
+    page.goto(f"{base}/#map={MAP_ID}")
+    _wait(page, _ERROR_JS, f"map {MAP_ID} not found", what=f"'map {MAP_ID} not found'")
+    _make_map(base, {"r1": (2.0, 2.0)})
+    _wait(
+        page,
+        f"() => window.fleetmapViewer.state.mapId === '{MAP_ID}'"
+        " && document.getElementById('status').dataset.state === 'connected'",
+        what="the map, once it exists",
+    )
+    error = page.eval_on_selector("#error", "e => e.hidden ? '' : e.textContent")
+    assert "not found" not in error, error
+    assert not page.page_errors, page.page_errors

@@ -181,6 +181,14 @@
     }
   }
 
+  /** An error the page said that is no longer true (e.g. the map a link named has appeared): hide it. */
+  function clearError(message) {
+    if (!errorEl.hidden && errorEl.textContent.endsWith(`: ${message}`)) {
+      clearTimeout(state.errorTimer);
+      errorEl.hidden = true;
+    }
+  }
+
   window.addEventListener('error', (e) => showError(e.message || String(e)));
   window.addEventListener('unhandledrejection', (e) => showError(String(e.reason && e.reason.message || e.reason)));
 
@@ -1135,6 +1143,7 @@
     state.pendingView = linked.map === mapId ? linked.view : null;
     state.viewChosen = state.pendingView !== null;
     mapSelect.value = mapId;
+    clearError(`map ${mapId} not found`); // said while a link waited for it
     showNoScans(false);
     clearCell();
     if (map.hasLayer(tiles)) tiles.remove();
