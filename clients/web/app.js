@@ -44,6 +44,10 @@
   const TILE_PX = 256;            // tile size in pixels (the service's tile_render.TILE_PX)
   const MIN_ZOOM = -8;            // 256 cells per pixel
   const MAX_ZOOM = 4;             // 16 pixels per cell; the service renders zooms -8..4
+  // The farthest point (metres from the origin, on x and on y) a typed point or a link's view may
+  // name. Farther, Leaflet's pixel arithmetic fails: 1e308 m is an infinite number of cells (it
+  // threw, and the map was never shown), 1e16 m at zoom 4 asked for so many tiles that the tab died.
+  const MAX_METRES = 1e7;
   const MAPS_REFRESH_MS = 5000;   // how often the map list is polled
   const TILE_FLUSH_MS = 100;      // changed windows are applied to the tiles at most this often
   const TILE_REFRESH_MS = 500;    // one tile is requested again at most this often (2 per second)
@@ -276,13 +280,13 @@
   // ---- URL hash --------------------------------------------------------------------------------
 
   /** The hash's map, layer and view ({x, y, z}: centre in metres and zoom; null unless all three are
-   * numbers, a zoom within the viewer's range). */
+   * numbers, the centre within MAX_METRES, the zoom within the viewer's range). */
   function readHash() {
     const p = new URLSearchParams(location.hash.replace(/^#/, ''));
     const num = (k) => (p.get(k) === null || p.get(k).trim() === '' ? NaN : Number(p.get(k)));
     const [x, y, z] = [num('x'), num('y'), num('z')];
-    const view = Number.isFinite(x) && Number.isFinite(y) && Number.isInteger(z) && z >= MIN_ZOOM && z <= MAX_ZOOM
-      ? { x, y, z } : null;
+    const view = Math.abs(x) <= MAX_METRES && Math.abs(y) <= MAX_METRES
+      && Number.isInteger(z) && z >= MIN_ZOOM && z <= MAX_ZOOM ? { x, y, z } : null;
     return { map: p.get('map'), layer: p.get('layer'), view };
   }
 
@@ -878,9 +882,9 @@
     const text = input.value.trim();
     const v = text === '' ? NaN : Number(text);
     // A number input gives '' for text that is not a number: say what is wrong either way.
-    if (!Number.isFinite(v) || Math.abs(v) > 1e7 || (input.validity && input.validity.badInput)) {
+    if (!(Math.abs(v) <= MAX_METRES) || (input.validity && input.validity.badInput)) {
       input.setAttribute('aria-invalid', 'true');
-      cellFormError.textContent = `${name}: enter a number of metres between -10000000 and 10000000`;
+      cellFormError.textContent = `${name}: enter a number of metres between -${MAX_METRES} and ${MAX_METRES}`;
       cellFormError.hidden = false;
       input.focus();
       return null;
