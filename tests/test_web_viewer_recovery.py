@@ -310,3 +310,29 @@ def test_missing_map_that_appears_is_no_longer_not_found(page: Any, svc: Service
     error = page.eval_on_selector("#error", "e => e.hidden ? '' : e.textContent")
     assert "not found" not in error, error
     assert not page.page_errors, page.page_errors
+
+
+def test_refused_event_stream_says_why(browser: Any, service_factory: Callable[..., ServiceProcess]) -> None:
+    """The service holds its limit of open event streams (here 1: another viewer has it) and answers
+    503. The browser's EventSource gives up without saying why, and the page said only 'event
+    stream lost; retrying…', for as long as the other viewer stayed. It now shows the service's
+    reason, and once the stream opens the message goes."""
+    base = service_factory("--in-memory", "--max-event-streams", "1").base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    first = browser.new_page()
+    second = browser.new_page()
+    second.page_errors = []
+    second.on("pageerror", lambda e: second.page_errors.append(str(e)))
+    try:
+        _open(first, base, f"#map={MAP_ID}")
+        second.goto(f"{base}/#map={MAP_ID}")
+        _wait(second, _ERROR_JS, "limit of 1 open event streams", what="why the stream is refused")
+        assert second.evaluate("() => document.getElementById('status').dataset.state") == "error"
+        first.close()
+        _wait(second, "() => document.getElementById('status').dataset.state === 'connected'", what="open")
+        _wait(second, "() => document.getElementById('error').hidden", what="the message gone")
+        assert not second.page_errors, second.page_errors
+    finally:
+        second.close()
+        if not first.is_closed():
+            first.close()

@@ -1024,6 +1024,7 @@
       if (es.readyState === EventSource.CLOSED) {
         // The browser gave up (e.g. an HTTP error): try again ourselves after a pause.
         setConnection('error');
+        explainStreamError(es.url, mapId);
         state.reconnectTimer = setTimeout(() => {
           if (state.mapId === mapId) openEvents(mapId);
         }, RECONNECT_MS);
@@ -1056,6 +1057,30 @@
       showError(`map ${mapId} was deleted`);
       refreshMaps();
     }));
+  }
+
+  /**
+   * An EventSource that the browser gave up on says nothing of why: ask the service the same URL and
+   * show its answer (e.g. 503: it holds its limit of open event streams), else the page would only
+   * say 'retrying' forever. A 200 is a stream that works again: closed at once, the retry opens it.
+   * The message goes when the stream opens (clearNetworkError).
+   */
+  async function explainStreamError(url, mapId) {
+    const ctl = new AbortController();
+    try {
+      const resp = await fetch(url, { cache: 'no-store', signal: ctl.signal });
+      if (resp.ok || state.mapId !== mapId || state.connection !== 'error') return;
+      let detail = resp.statusText;
+      try {
+        const body = await resp.json();
+        if (typeof body.detail === 'string') detail = body.detail;
+      } catch (_) { /* not JSON: keep the status text */ }
+      showError(`event stream: ${resp.status} ${detail}`, true);
+    } catch (_) {
+      // Unreachable: the map list poll says so.
+    } finally {
+      ctl.abort();
+    }
   }
 
   // A hidden tab shows nothing, so it costs nothing: it closes its event stream (and pumpTiles
