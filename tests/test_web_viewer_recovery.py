@@ -263,3 +263,76 @@ def test_twelve_robots_have_twelve_colours(page: Any, svc: ServiceProcess) -> No
     _wait(page, "() => document.querySelectorAll('.robot-marker').length === 12", what="12 markers again")
     assert page.evaluate(_MARKER_COLOURS_JS) == colours
     assert not page.page_errors
+
+
+#: How many tile images on the map failed (Leaflet shows its 1-pixel error tile instead).
+_FAILED_TILES_JS = (
+    "() => [...document.querySelectorAll('#map img.leaflet-tile')]"
+    ".filter((i) => i.complete && i.naturalWidth !== 256).length"
+)
+
+
+def test_tiles_that_failed_are_asked_again(page: Any, svc: ServiceProcess) -> None:
+    """The network drops tile requests for a moment while the map changes, and the event stream stays
+    up. The tiles that failed showed nothing (a hole in the map, the robot's trail running over
+    unknown space) until their cells changed again, which on a finished map is never: each one is
+    now asked for again, and the map is whole again without a reload or a pan."""
+    base = svc.base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    _open(page, base, f"#map={MAP_ID}&layer=probability")
+    _wait(page, _TILES_LOADED_JS, what="every tile loaded")
+
+    page.route("**/tiles/**", lambda route: route.abort("internetdisconnected"))
+    _scan(base, MAP_ID, "r1", 2, 2.5, 2.0)  # changes the tiles in view: the page asks for them again
+    _wait(page, f"() => ({_FAILED_TILES_JS})() > 0", what="tiles failing while the network drops them")
+    page.unroute("**/tiles/**")
+
+    # No scan comes any more: nothing but the viewer itself may ask for the failed tiles again.
+    _wait(page, _TILES_LOADED_JS, what="every tile loaded again (no hole left)")
+    assert page.evaluate(_FAILED_TILES_JS) == 0
+    assert page.evaluate("() => document.getElementById('status').dataset.state") == "connected"
+    assert not page.page_errors, page.page_errors
+
+
+def test_missing_map_that_appears_is_no_longer_not_found(page: Any, svc: ServiceProcess) -> None:
+    """A link names a map that does not exist yet: the page says so and waits. When the map appears
+    it is shown, and 'map NAME not found' goes with it (it stayed beside the map for up to 15 s)."""
+    base = svc.base_url
+    page.goto(f"{base}/#map={MAP_ID}")
+    _wait(page, _ERROR_JS, f"map {MAP_ID} not found", what=f"'map {MAP_ID} not found'")
+    _make_map(base, {"r1": (2.0, 2.0)})
+    _wait(
+        page,
+        f"() => window.fleetmapViewer.state.mapId === '{MAP_ID}'"
+        " && document.getElementById('status').dataset.state === 'connected'",
+        what="the map, once it exists",
+    )
+    error = page.eval_on_selector("#error", "e => e.hidden ? '' : e.textContent")
+    assert "not found" not in error, error
+    assert not page.page_errors, page.page_errors
+
+
+def test_refused_event_stream_says_why(browser: Any, service_factory: Callable[..., ServiceProcess]) -> None:
+    """The service holds its limit of open event streams (here 1: another viewer has it) and answers
+    503. The browser's EventSource gives up without saying why, and the page said only 'event
+    stream lost; retrying…', for as long as the other viewer stayed. It now shows the service's
+    reason, and once the stream opens the message goes."""
+    base = service_factory("--in-memory", "--max-event-streams", "1").base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    first = browser.new_page()
+    second = browser.new_page()
+    second.page_errors = []
+    second.on("pageerror", lambda e: second.page_errors.append(str(e)))
+    try:
+        _open(first, base, f"#map={MAP_ID}")
+        second.goto(f"{base}/#map={MAP_ID}")
+        _wait(second, _ERROR_JS, "limit of 1 open event streams", what="why the stream is refused")
+        assert second.evaluate("() => document.getElementById('status').dataset.state") == "error"
+        first.close()
+        _wait(second, "() => document.getElementById('status').dataset.state === 'connected'", what="open")
+        _wait(second, "() => document.getElementById('error').hidden", what="the message gone")
+        assert not second.page_errors, second.page_errors
+    finally:
+        second.close()
+        if not first.is_closed():
+            first.close()

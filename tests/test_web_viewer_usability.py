@@ -549,3 +549,28 @@ def test_link_restores_view_and_names_missing_layers(
     )
     assert page.eval_on_selector("#layer-select", "el => el.value") == "hits"
     assert not page.page_errors, page.page_errors
+
+
+def test_link_with_a_view_out_of_range(new_page: Callable[..., Any], shared_service: ServiceProcess) -> None:
+    """A link whose view lies beyond any map (x=1e308 metres: an infinite number of cells) threw in
+    Leaflet while the map was being selected: the page stayed 'starting…' with no tiles, no robots
+    and no event stream, and (1e16 m at zoom 4) could crash the tab. Such a view is ignored, as a
+    zoom out of range is: the map is shown, fitted to its bounds, and the URL names no such view."""
+    base = shared_service.base_url
+    map_id = "far-link"
+    _put_map(base, map_id)
+    _scan(base, map_id, "r1", 1, 1.0, 1.0)
+    page = new_page()
+    _open(page, base, f"#map={map_id}&x=1e308&y=0&z=0")
+    _wait(
+        page,
+        "() => [...document.querySelectorAll('#map img.leaflet-tile')].some((i) => i.naturalWidth === 256)",
+        what="tiles",
+    )
+    assert _hash_params(page) == {"map": map_id, "layer": "probability"}
+    centre = page.evaluate(
+        "() => { const c = window.fleetmapViewer.map.getCenter(), r = window.fleetmapViewer.state.res;"
+        " return [c.lng * r, c.lat * r]; }"
+    )
+    assert math.dist(centre, (1.0, 1.0)) < 5.0, centre  # fitted to the scan's 3 m ring of walls
+    assert not page.page_errors, page.page_errors

@@ -28,7 +28,8 @@
  * and (d) the page is visible. So a tile that changes 50 times a second is fetched at most
  * 1000 / TILE_REFRESH_MS times a second, a slow service is never asked for a tile it is still
  * rendering, and a hidden tab fetches nothing (it also closes its event stream until shown again).
- * Tiles created later use the newest counter.
+ * Tiles created later use the newest counter. A tile that failed to load is stale again, due
+ * TILE_RETRY_MS later (while the event stream is connected; a reconnect reloads every tile anyway).
  *
  * Robots are drawn incrementally: a robot's marker and trail are made once, then moved and turned in
  * place, and only when its report changed; a robot the service no longer reports is removed. The
@@ -43,9 +44,14 @@
   const TILE_PX = 256;            // tile size in pixels (the service's tile_render.TILE_PX)
   const MIN_ZOOM = -8;            // 256 cells per pixel
   const MAX_ZOOM = 4;             // 16 pixels per cell; the service renders zooms -8..4
+  // The farthest point (metres from the origin, on x and on y) a typed point or a link's view may
+  // name. Farther, Leaflet's pixel arithmetic fails: 1e308 m is an infinite number of cells (it
+  // threw, and the map was never shown), 1e16 m at zoom 4 asked for so many tiles that the tab died.
+  const MAX_METRES = 1e7;
   const MAPS_REFRESH_MS = 5000;   // how often the map list is polled
   const TILE_FLUSH_MS = 100;      // changed windows are applied to the tiles at most this often
   const TILE_REFRESH_MS = 500;    // one tile is requested again at most this often (2 per second)
+  const TILE_RETRY_MS = 3000;     // a tile that failed to load is asked for again after this long
   const RECONNECT_MS = 3000;      // retry delay when the browser gives up on the event stream
   // After a reconnect every tile is reloaded once; spread over this many ms, so that the viewers of a
   // restarted service do not all ask it for their tiles in the same instant.
@@ -115,7 +121,7 @@
     drawFrame: null,      // the requestAnimationFrame that draws what changed, if one is planned
     robotsSeen: 0,        // robots this map ever showed (the next robot's colour)
     tileCounter: 0,       // tile version counter (see the header comment)
-    // Leaflet tile key -> {el, coords, loading, stale, reset, requestedAt} for every tile on the map
+    // Leaflet tile key -> {el, coords, loading, stale, reset, requestedAt, retryAt} for every tile on the map
     shownTiles: new Map(),
     pumpTimer: null,      // the next look for stale tiles that have become due
     pumpAt: Infinity,     // when pumpTimer fires (performance.now() time)
@@ -174,6 +180,14 @@
   /** The service answers again: a message saying it cannot be reached is no longer true. */
   function clearNetworkError() {
     if (!errorEl.hidden && errorEl.dataset.network === 'true') {
+      clearTimeout(state.errorTimer);
+      errorEl.hidden = true;
+    }
+  }
+
+  /** An error the page said that is no longer true (e.g. the map a link named has appeared): hide it. */
+  function clearError(message) {
+    if (!errorEl.hidden && errorEl.textContent.endsWith(`: ${message}`)) {
       clearTimeout(state.errorTimer);
       errorEl.hidden = true;
     }
@@ -266,13 +280,13 @@
   // ---- URL hash --------------------------------------------------------------------------------
 
   /** The hash's map, layer and view ({x, y, z}: centre in metres and zoom; null unless all three are
-   * numbers, a zoom within the viewer's range). */
+   * numbers, the centre within MAX_METRES, the zoom within the viewer's range). */
   function readHash() {
     const p = new URLSearchParams(location.hash.replace(/^#/, ''));
     const num = (k) => (p.get(k) === null || p.get(k).trim() === '' ? NaN : Number(p.get(k)));
     const [x, y, z] = [num('x'), num('y'), num('z')];
-    const view = Number.isFinite(x) && Number.isFinite(y) && Number.isInteger(z) && z >= MIN_ZOOM && z <= MAX_ZOOM
-      ? { x, y, z } : null;
+    const view = Math.abs(x) <= MAX_METRES && Math.abs(y) <= MAX_METRES
+      && Number.isInteger(z) && z >= MIN_ZOOM && z <= MAX_ZOOM ? { x, y, z } : null;
     return { map: p.get('map'), layer: p.get('layer'), view };
   }
 
@@ -368,6 +382,7 @@
   tiles.on('tileloadstart', (e) => {
     const tile = {
       el: e.tile, coords: e.coords, loading: true, stale: false, reset: false, requestedAt: performance.now(),
+      retryAt: 0,
     };
     state.shownTiles.set(`${e.coords.x}:${e.coords.y}:${e.coords.z}`, tile);
     const done = () => {
@@ -375,7 +390,14 @@
       if (tile.stale) schedulePump(0);
     };
     e.tile.addEventListener('load', done);
-    e.tile.addEventListener('error', done);
+    // A failed tile shows nothing (errorTileUrl), and nothing else would ask for it again until its
+    // cells change, on a finished map never: a network blip left holes in the map. Ask again after
+    // TILE_RETRY_MS, while the stream is connected (a reconnect reloads every tile anyway).
+    e.tile.addEventListener('error', () => {
+      tile.stale = true;
+      tile.retryAt = performance.now() + TILE_RETRY_MS;
+      done();
+    });
   });
   tiles.on('tileunload', (e) => {
     state.shownTiles.delete(`${e.coords.x}:${e.coords.y}:${e.coords.z}`);
@@ -535,7 +557,8 @@
     let next = Infinity;
     for (const tile of state.shownTiles.values()) {
       if (!tile.stale || tile.loading || !tileWanted(tile)) continue;
-      const due = tile.requestedAt + TILE_REFRESH_MS;
+      if (tile.retryAt && state.connection !== 'connected') continue;
+      const due = Math.max(tile.requestedAt + TILE_REFRESH_MS, tile.retryAt);
       if (due > now) {
         next = Math.min(next, due);
         continue;
@@ -544,6 +567,7 @@
       tile.reset = false;
       tile.loading = true;
       tile.requestedAt = now;
+      tile.retryAt = 0;
       tile.el.src = tiles.getTileUrl(tile.coords);
     }
     if (next < Infinity) schedulePump(next - now);
@@ -858,9 +882,9 @@
     const text = input.value.trim();
     const v = text === '' ? NaN : Number(text);
     // A number input gives '' for text that is not a number: say what is wrong either way.
-    if (!Number.isFinite(v) || Math.abs(v) > 1e7 || (input.validity && input.validity.badInput)) {
+    if (!(Math.abs(v) <= MAX_METRES) || (input.validity && input.validity.badInput)) {
       input.setAttribute('aria-invalid', 'true');
-      cellFormError.textContent = `${name}: enter a number of metres between -10000000 and 10000000`;
+      cellFormError.textContent = `${name}: enter a number of metres between -${MAX_METRES} and ${MAX_METRES}`;
       cellFormError.hidden = false;
       input.focus();
       return null;
@@ -1000,6 +1024,7 @@
       if (es.readyState === EventSource.CLOSED) {
         // The browser gave up (e.g. an HTTP error): try again ourselves after a pause.
         setConnection('error');
+        explainStreamError(es.url, mapId);
         state.reconnectTimer = setTimeout(() => {
           if (state.mapId === mapId) openEvents(mapId);
         }, RECONNECT_MS);
@@ -1032,6 +1057,30 @@
       showError(`map ${mapId} was deleted`);
       refreshMaps();
     }));
+  }
+
+  /**
+   * An EventSource that the browser gave up on says nothing of why: ask the service the same URL and
+   * show its answer (e.g. 503: it holds its limit of open event streams), else the page would only
+   * say 'retrying' forever. A 200 is a stream that works again: closed at once, the retry opens it.
+   * The message goes when the stream opens (clearNetworkError).
+   */
+  async function explainStreamError(url, mapId) {
+    const ctl = new AbortController();
+    try {
+      const resp = await fetch(url, { cache: 'no-store', signal: ctl.signal });
+      if (resp.ok || state.mapId !== mapId || state.connection !== 'error') return;
+      let detail = resp.statusText;
+      try {
+        const body = await resp.json();
+        if (typeof body.detail === 'string') detail = body.detail;
+      } catch (_) { /* not JSON: keep the status text */ }
+      showError(`event stream: ${resp.status} ${detail}`, true);
+    } catch (_) {
+      // Unreachable: the map list poll says so.
+    } finally {
+      ctl.abort();
+    }
   }
 
   // A hidden tab shows nothing, so it costs nothing: it closes its event stream (and pumpTiles
@@ -1123,6 +1172,7 @@
     state.pendingView = linked.map === mapId ? linked.view : null;
     state.viewChosen = state.pendingView !== null;
     mapSelect.value = mapId;
+    clearError(`map ${mapId} not found`); // said while a link waited for it
     showNoScans(false);
     clearCell();
     if (map.hasLayer(tiles)) tiles.remove();
