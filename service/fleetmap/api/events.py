@@ -57,8 +57,9 @@ Format (text/event-stream):
 Streams are capped (`ApiSettings.max_event_streams`, 256 by default; `fleetmap serve
 --max-event-streams`): each open stream holds a task, its buffers and a poll every 100 ms, so without
 a cap anyone who can read could open thousands (9,000 held a whole core and 1 GB, and made ingest 30
-times slower). Past the cap a new stream is refused with 503 and `Retry-After`; an EventSource, and
-the web viewer, try again by themselves.
+times slower). Past the cap a new stream is refused with 503 and `Retry-After`. The web viewer tries
+again by itself; a plain EventSource does not (a browser closes it for good on an answer other than
+200): reopen it after `Retry-After`.
 """
 
 from __future__ import annotations
@@ -247,7 +248,8 @@ async def get_events(
     changed since; `?since=` does the same by hand. Robots always start with a full `robots` event.
 
     503 (with `Retry-After`) when the server already holds its limit of open streams (256 by
-    default) or is shutting down; an EventSource reconnects by itself."""
+    default) or is shutting down. A browser's EventSource closes for good on a 503 (it reconnects by
+    itself only after a stream that ended): reopen it after `Retry-After`, as the web viewer does."""
     entry = state.entry(map_id)
     if since is None and last_event_id is not None:
         since = last_event_version(last_event_id)
