@@ -21,16 +21,22 @@ Precisely, the reference's cells of a segment are
 
 End points are computed as the engine documents them (sensor pose plus range along the beam,
 divided by the resolution), with numpy, so both start from the same floating-point numbers.
+
+Besides the ray model with that traversal, the module has references for the map's other options:
+
+* `bresenham_cells`, the `bresenham` traversal, for `ReferenceMap(traversal=bresenham_cells)`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
 Cell = tuple[int, int]
+#: A traversal: the cells of the segment (x0, y0) -> (x1, y1), in CELL units.
+Traversal = Callable[[float, float, float, float], set[Cell]]
 
 
 def segment_cells(x0: float, y0: float, x1: float, y1: float) -> set[Cell]:
@@ -100,8 +106,31 @@ def _vertex_cells(
         yield (i_before, j_after)
 
 
+def bresenham_cells(x0: float, y0: float, x1: float, y1: float) -> set[Cell]:
+    """Cells of the Bresenham line from the cell of (x0, y0) to the cell of (x1, y1), CELL units.
+
+    With (di, dj) the end cell's indices less the start cell's and n = max(|di|, |dj|), cell k
+    (k = 0..n) is the point k/n of the way from the start cell's indices to the end cell's, each
+    coordinate rounded to the nearest integer, a half rounded away from the start. In integers, so
+    nothing is lost to rounding: the classic 8-connected line of n + 1 cells, one step along the
+    major axis each time."""
+    i0, j0, i1, j1 = math.floor(x0), math.floor(y0), math.floor(x1), math.floor(y1)
+    di, dj = i1 - i0, j1 - j0
+    n = max(abs(di), abs(dj))
+    if n == 0:
+        return {(i0, j0)}
+
+    def nearest(k: int, d: int) -> int:
+        """k * d / n rounded to the nearest integer, a half away from 0: floor(k|d|/n + 1/2)."""
+        magnitude = (2 * k * abs(d) + n) // (2 * n)
+        return magnitude if d >= 0 else -magnitude
+
+    return {(i0 + nearest(k, di), j0 + nearest(k, dj)) for k in range(n + 1)}
+
+
 class ReferenceMap:
-    """Occupancy log-odds and hit / miss counts in dicts, updated by the ray sensor model."""
+    """Occupancy log-odds and hit / miss counts in dicts, updated by the ray sensor model; a ray's
+    cells are `traversal`'s (by default `segment_cells`, the engine's `exact`)."""
 
     def __init__(
         self,
@@ -113,11 +142,13 @@ class ReferenceMap:
         *,
         no_return_range: float = 0.0,
         per_ray: bool = False,
+        traversal: Traversal = segment_cells,
     ) -> None:
         self.resolution = resolution
         self.l_hit, self.l_miss, self.l_min, self.l_max = l_hit, l_miss, l_min, l_max
         self.no_return_range = no_return_range
         self.per_ray = per_ray
+        self.traversal = traversal
         self.log_odds: dict[Cell, float] = {}
         self.hits: dict[Cell, int] = {}
         self.misses: dict[Cell, int] = {}
@@ -155,7 +186,7 @@ class ReferenceMap:
         scan_hits: set[Cell] = set()
         scan_misses: set[Cell] = set()
         for (_, is_hit), x1, y1 in zip(rays, ex.tolist(), ey.tolist(), strict=True):
-            cells = segment_cells(ox, oy, x1, y1)
+            cells = self.traversal(ox, oy, x1, y1)
             end = (math.floor(x1), math.floor(y1))
             assert end in cells
             if self.per_ray:
