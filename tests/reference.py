@@ -24,7 +24,9 @@ divided by the resolution), with numpy, so both start from the same floating-poi
 
 Besides the ray model with that traversal, the module has references for the map's other options:
 
-* `bresenham_cells`, the `bresenham` traversal, for `ReferenceMap(traversal=bresenham_cells)`.
+* `bresenham_cells`, the `bresenham` traversal, for `ReferenceMap(traversal=bresenham_cells)`;
+* `BeamReferenceMap`, the beam (cone) sensor model of Probabilistic Robotics' table 9.2, evaluated
+  at every cell around the sensor against every beam.
 """
 
 from __future__ import annotations
@@ -213,3 +215,84 @@ class ReferenceMap:
         ii = [c[0] for c in self.log_odds]
         jj = [c[1] for c in self.log_odds]
         return min(ii), min(jj), max(ii) + 1, max(jj) + 1
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    """Angles to [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+class BeamReferenceMap(ReferenceMap):
+    """Occupancy log-odds and hit / miss counts updated by the beam (cone) inverse range sensor
+    model of Probabilistic Robotics, table 9.2, evaluated by brute force.
+
+    The beams of a scan are its returns (range_min <= r < range_max, at range z = r) and, when
+    `no_return_range` > 0, its no-returns (r >= range_max), which clear up to z =
+    min(no_return_range, range_max) and have no obstacle. Every cell of a square around the sensor
+    holding all cells within the beams' reach is taken at its centre, at range r and bearing phi
+    from the sensor (relative to its heading), and compared with every beam k (bearing phi_k):
+    its beam is the one nearest in bearing, |wrap(phi - phi_k)| least (the first on a tie), so
+    bearings wrap around +-pi. The cell then gets
+
+    * no information if r > min(r_max, z_k + alpha/2) or |wrap(phi - phi_k)| > beta/2;
+    * a hit if beam k has a return, z_k < r_max and |r - z_k| < alpha/2;
+    * a miss if r < z_k;
+
+    and no information otherwise. Lengths are in CELL units (cell centres at i + 0.5, the sensor at
+    pose / resolution), as the engine documents its kernel; each cell is updated once a scan."""
+
+    def __init__(
+        self,
+        resolution: float,
+        l_hit: float,
+        l_miss: float,
+        l_min: float,
+        l_max: float,
+        *,
+        alpha: float,
+        beta: float,
+        no_return_range: float = 0.0,
+    ) -> None:
+        super().__init__(resolution, l_hit, l_miss, l_min, l_max, no_return_range=no_return_range)
+        self.alpha, self.beta = alpha, beta
+
+    def integrate(
+        self,
+        pose: tuple[float, float, float],
+        angles: np.ndarray,
+        ranges: np.ndarray,
+        range_min: float,
+        range_max: float,
+    ) -> None:
+        """One scan: every cell with information gets one hit or one miss (see the class doc)."""
+        res = self.resolution
+        with np.errstate(invalid="ignore"):  # NaN readings are neither returns nor no-returns
+            has_return = (ranges >= range_min) & (ranges < range_max)
+            no_return = ranges >= range_max
+        if self.no_return_range <= 0:
+            no_return = np.zeros_like(no_return)
+        use = has_return | no_return
+        if not use.any():
+            return
+        z = np.where(has_return, ranges, min(self.no_return_range, range_max))[use] / res
+        phi_k = angles[use]
+        returned = has_return[use]
+        r_max, half_alpha, half_beta = range_max / res, self.alpha / res / 2, self.beta / 2
+        ox, oy, theta = pose[0] / res, pose[1] / res, pose[2]
+        reach = float(np.max(np.minimum(r_max, z + half_alpha)))
+        ii = np.arange(math.floor(ox - reach) - 1, math.floor(ox + reach) + 2)
+        for j in range(math.floor(oy - reach) - 1, math.floor(oy + reach) + 2):
+            # One row of cells at a time, each against every beam.
+            dx, dy = ii + 0.5 - ox, j + 0.5 - oy
+            r = np.hypot(dx, dy)
+            phi = _wrap(np.arctan2(dy, dx) - theta)
+            diff = np.abs(_wrap(phi[:, None] - phi_k[None, :]))
+            k = np.argmin(diff, axis=1)
+            d_k, z_k, ret_k = diff[np.arange(k.size), k], z[k], returned[k]
+            info = (r <= np.minimum(r_max, z_k + half_alpha)) & (d_k <= half_beta)
+            hit = info & ret_k & (z_k < r_max) & (np.abs(r - z_k) < half_alpha)
+            miss = info & ~hit & (r < z_k)
+            for i in ii[hit].tolist():
+                self._update((i, j), True)
+            for i in ii[miss].tolist():
+                self._update((i, j), False)
