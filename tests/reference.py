@@ -26,7 +26,9 @@ Besides the ray model with that traversal, the module has references for the map
 
 * `bresenham_cells`, the `bresenham` traversal, for `ReferenceMap(traversal=bresenham_cells)`;
 * `BeamReferenceMap`, the beam (cone) sensor model of Probabilistic Robotics' table 9.2, evaluated
-  at every cell around the sensor against every beam.
+  at every cell around the sensor against every beam;
+* `ReferenceTsdf`, the TSDF layer: each return's truncation band walked by `segment_cells`, its
+  samples fused into a float32 running average.
 """
 
 from __future__ import annotations
@@ -296,3 +298,60 @@ class BeamReferenceMap(ReferenceMap):
                 self._update((i, j), True)
             for i in ii[miss].tolist():
                 self._update((i, j), False)
+
+
+class ReferenceTsdf:
+    """A truncated signed distance layer in dicts: tsdf values and weights per cell.
+
+    For each return of a scan (range_min <= r < range_max), in beam order: with lengths in CELL
+    units, the sensor at s = pose / resolution, the beam's direction u = (cos a, sin a) for
+    a = theta + bearing, its range z and the truncation t, the band is the segment from s +
+    max(z - t, 0) u to s + (z + t) u, and its cells are `segment_cells`'. A band cell whose centre c
+    projects onto the beam at d = (c - s) . u with |z - d| <= t gets the sample
+    v = clamp((z - d) / t, -1, 1) (the clamp never binds given the band test; it is the definition),
+    fused into the cell's weighted running average with weight 1:
+    D <- (W D + v) / (W + 1), W <- min(W + 1, max_weight), both kept as float32 after each sample.
+    No-returns and ignored readings add nothing."""
+
+    def __init__(self, resolution: float, truncation: float, max_weight: float) -> None:
+        self.resolution = resolution
+        self.truncation = truncation
+        self.max_weight = max_weight
+        self.tsdf: dict[Cell, float] = {}
+        self.weight: dict[Cell, float] = {}
+        #: Samples fused into each cell: its weight before the cap.
+        self.samples: dict[Cell, int] = {}
+
+    def integrate(
+        self,
+        pose: tuple[float, float, float],
+        angles: np.ndarray,
+        ranges: np.ndarray,
+        range_min: float,
+        range_max: float,
+    ) -> None:
+        """Fuse one scan's returns (see the class doc)."""
+        res, t = self.resolution, self.truncation / self.resolution
+        ox, oy = pose[0] / res, pose[1] / res
+        for a, r in zip((pose[2] + angles).tolist(), ranges.tolist(), strict=True):
+            if not range_min <= r < range_max:  # also False for NaN
+                continue
+            c, s, z = math.cos(a), math.sin(a), r / res
+            d0, d1 = max(z - t, 0.0), z + t
+            for i, j in segment_cells(ox + c * d0, oy + s * d0, ox + c * d1, oy + s * d1):
+                sdf = z - ((i + 0.5 - ox) * c + (j + 0.5 - oy) * s)
+                if abs(sdf) <= t:
+                    self._fuse((i, j), min(1.0, max(-1.0, sdf / t)))
+
+    def _fuse(self, cell: Cell, value: float) -> None:
+        w = self.weight.get(cell, 0.0)
+        d = self.tsdf.get(cell, 0.0)
+        self.tsdf[cell] = float(np.float32((w * d + value) / (w + 1.0)))
+        self.weight[cell] = float(np.float32(min(w + 1.0, self.max_weight)))
+        self.samples[cell] = self.samples.get(cell, 0) + 1
+
+    def bounds(self) -> tuple[int, int, int, int]:
+        """Exclusive cell bounds (i0, j0, i1, j1) of the observed cells."""
+        ii = [c[0] for c in self.tsdf]
+        jj = [c[1] for c in self.tsdf]
+        return min(ii), min(jj), max(ii) + 1, max(jj) + 1

@@ -4,10 +4,11 @@ maps of the real laser logs in ../shared/datasets.
 The reference finds each ray's cells by column clipping instead of the engine's boundary stepping
 and keeps its map in dicts; on real data the two must agree cell by cell: the same set of known
 cells, log-odds equal to 1e-5 (exactly for presets whose steps float32 adds exactly), and identical
-hit / miss counts, also with the Bresenham traversal, with every occupancy preset and explicit
-parameters, and with the beam sensor model (against a brute-force table 9.2). To keep the
-pure-Python references to a few seconds per case, the maps use a subset of the scans, a 5 to 25 cm
-grid and a shorter range_max (longer readings become no-returns).
+hit / miss counts. The same holds for the Bresenham traversal, every occupancy preset and explicit
+parameters, the beam sensor model (against a brute-force table 9.2), and the TSDF layer (values to
+TSDF_ATOL, weights exactly). To keep the pure-Python references to a few seconds per case, the maps
+use a subset of the scans, a 5 to 25 cm grid and a shorter range_max (longer readings become
+no-returns).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 import pytest
-from reference import BeamReferenceMap, ReferenceMap, bresenham_cells
+from reference import BeamReferenceMap, ReferenceMap, ReferenceTsdf, bresenham_cells
 from reference import segment_cells as reference_cells
 
 from fleetmap.config import MapConfig
@@ -171,6 +172,32 @@ def assert_occupancy_matches(
     np.testing.assert_allclose(got[known], expected[known], rtol=0, atol=atol)
     np.testing.assert_array_equal(m.region("hits", *bounds), dense(ref.hits, bounds, 0, np.int64))
     np.testing.assert_array_equal(m.region("misses", *bounds), dense(ref.misses, bounds, 0, np.int64))
+    return expected
+
+
+#: How far an engine TSDF value may be from the reference's. Both keep the running average as
+#: float32 after every sample (a float32 step is 6e-8 just below 1), but the engine rounds each
+#: sample to float32 before fusing it and finds a beam's direction by rotating (cos, sin) of its
+#: bearing by the heading rather than as cos(heading + bearing): a last-bit difference in a sample
+#: can move the stored average to a neighbouring float32 now and then, and each later fusion shrinks
+#: an earlier difference by W / (W + 1) rather than adding to it. On the cases below the largest
+#: difference is 2.4e-7 (a few float32 steps; a fifth to a third of the cells differ at all); 1e-6 leaves
+#: room for that, and is far below any real fault in the fusion (a sample (z - d) / t moves by
+#: 2.5e-2 per millimetre at the narrowest truncation here, 4 cm, and by 1e-3 at the widest, 1 m).
+TSDF_ATOL = 1e-6
+
+
+def assert_tsdf_matches(m: GridMap, ref: ReferenceTsdf, bounds: tuple[int, int, int, int]) -> np.ndarray:
+    """The engine's TSDF over `bounds` equals the reference's: the same observed cells, weights
+    exactly, values within TSDF_ATOL. Returns the reference's values (NaN unobserved)."""
+    expected = dense(ref.tsdf, bounds, np.nan, np.float64)
+    got = m.region("tsdf", *bounds).astype(np.float64)
+    assert_known_cells_equal(got, expected, bounds)
+    np.testing.assert_array_equal(
+        m.region("tsdf_weight", *bounds), dense(ref.weight, bounds, 0.0, np.float32)
+    )
+    known = ~np.isnan(expected)
+    np.testing.assert_allclose(got[known], expected[known], rtol=0, atol=TSDF_ATOL)
     return expected
 
 
@@ -394,3 +421,52 @@ def test_beam_model_real_log_matches_reference(case: BeamCase) -> None:
         for scan in scans:
             ref_returns.integrate(*scan_args(scan))
         assert len(ref.log_odds.keys() - ref_returns.log_odds.keys()) > 100
+
+
+# -- the TSDF layer ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TsdfCase:
+    file: str
+    every: int
+    resolution: float
+    truncation: float
+    range_max: float | None = None  # the log's own (80 m): its max-range readings are no-returns
+    max_weight: float = 1000.0
+
+
+TSDF_CASES = [
+    TsdfCase("intel-corrected.log.gz", every=10, resolution=0.05, truncation=0.2),
+    # A band narrower than a cell.
+    TsdfCase("csail-robotlaser.log.gz", every=3, resolution=0.1, truncation=0.04),
+    # A wide band whose weights reach a low cap.
+    TsdfCase("freiburg-campus-corrected.log.gz", every=25, resolution=0.2, truncation=1.0, max_weight=5.0),
+]
+
+
+@pytest.mark.parametrize("case", TSDF_CASES, ids=lambda c: c.file.split(".")[0])
+def test_tsdf_real_log_matches_reference(case: TsdfCase) -> None:
+    """The TSDF layer of a real log equals the reference's band-by-band fusion: the same observed
+    cells, weights exactly (with the cap), values within TSDF_ATOL; no-returns add nothing."""
+    scans = load(case.file, case.range_max)[:: case.every]
+    config = MapConfig(
+        resolution=case.resolution, layers=["tsdf"],
+        tsdf={"truncation": case.truncation, "max_weight": case.max_weight},
+    )  # fmt: skip
+    ref = ReferenceTsdf(case.resolution, case.truncation, case.max_weight)
+    m = GridMap(config)
+    for scan in scans:
+        ref.integrate(*scan_args(scan))
+        m.integrate(scan)
+    assert len(scans) >= 50 and sum(int(s.no_return_mask().sum()) for s in scans) > 0
+
+    bounds = ref.bounds()
+    assert m.known_bounds() == bounds
+    expected = assert_tsdf_matches(m, ref, bounds)
+    values = expected[~np.isnan(expected)]
+    assert values.size > 10_000 and (values > 0.5).sum() > 1000 and (values < -0.5).sum() > 1000
+    samples = np.array(list(ref.samples.values()))
+    assert (samples > 1).sum() > 1000  # cells fused from several samples
+    if case.max_weight < 1000:
+        assert (samples > case.max_weight).sum() > 1000  # the cap binds
