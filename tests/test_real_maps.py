@@ -6,9 +6,10 @@ and keeps its map in dicts; on real data the two must agree cell by cell: the sa
 cells, log-odds equal to 1e-5 (exactly for presets whose steps float32 adds exactly), and identical
 hit / miss counts. The same holds for the Bresenham traversal, every occupancy preset and explicit
 parameters, the beam sensor model (against a brute-force table 9.2), and the TSDF layer (values to
-TSDF_ATOL, weights exactly). To keep the pure-Python references to a few seconds per case, the maps
-use a subset of the scans, a 5 to 25 cm grid and a shorter range_max (longer readings become
-no-returns).
+TSDF_ATOL, weights exactly); and the service's plan-then-apply path builds the very map, tile
+versions and per-scan results of the one-call `GridMap.integrate`. To keep the pure-Python
+references to a few seconds per case, the maps use a subset of the scans, a 5 to 25 cm grid and a
+shorter range_max (longer readings become no-returns).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from reference import segment_cells as reference_cells
 
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
-from fleetmap.grid_map import GridMap
+from fleetmap.grid_map import GridMap, IntegrationResult
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, segment_cells
 from fleetmap.scan import Scan
 
@@ -470,3 +471,82 @@ def test_tsdf_real_log_matches_reference(case: TsdfCase) -> None:
     assert (samples > 1).sum() > 1000  # cells fused from several samples
     if case.max_weight < 1000:
         assert (samples > case.max_weight).sum() > 1000  # the cap binds
+
+
+# -- plan then apply against the one-call integration --------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PlanCase:
+    file: str
+    every: int
+    resolution: float
+    range_max: float
+    tile_size: int
+    no_return_range: float = 0.0
+    truncation: float = 0.2
+
+
+PLAN_CASES = [
+    PlanCase("intel-corrected.log.gz", every=8, resolution=0.05, range_max=8.0, tile_size=16),
+    PlanCase(
+        "csail-robotlaser.log.gz",
+        every=10,
+        resolution=0.1,
+        range_max=10.0,
+        tile_size=32,
+        no_return_range=2.0,
+        truncation=0.3,
+    ),
+]
+
+
+@pytest.mark.parametrize("case", PLAN_CASES, ids=lambda c: c.file.split(".")[0])
+def test_plan_then_apply_matches_integrate_on_real_log(case: PlanCase) -> None:
+    """`GridMap.plan` + `GridMap.apply` (the service's path) and the one-call `GridMap.integrate`
+    build the same map of a real log with every layer: the same IntegrationResult for each scan
+    (updates, changed tiles in order, tiles created), the same tiles with the same versions and
+    version clock, identical cells in every layer, and both equal to the references. Small tiles
+    make scans create tiles, in the one-call kernel and, when the store must grow, by its fallback
+    to plan and apply."""
+    scans = load(case.file, case.range_max)[:: case.every]
+    config = MapConfig(
+        resolution=case.resolution, tile_size=case.tile_size, max_tiles=100_000,
+        no_return_range=case.no_return_range, tsdf={"truncation": case.truncation},
+    )  # fmt: skip
+    one_call, planned = GridMap(config), GridMap(config)
+    in_place = 0  # scans the one-call kernel integrated itself
+    integrate_in_place = one_call._integrate_in_place
+
+    def counting(scan: Scan) -> IntegrationResult | None:
+        nonlocal in_place
+        result = integrate_in_place(scan)
+        in_place += result is not None
+        return result
+
+    one_call._integrate_in_place = counting  # type: ignore[method-assign]
+    occ = ReferenceMap(case.resolution, *OCTOMAP, no_return_range=case.no_return_range)
+    tsdf = ReferenceTsdf(case.resolution, case.truncation, 1000.0)
+    created = 0
+    for k, scan in enumerate(scans):
+        expected = one_call.integrate(scan)
+        assert planned.apply(planned.plan(scan)) == expected, f"scan {k}"
+        created += expected.tiles_created
+        occ.integrate(*scan_args(scan))
+        tsdf.integrate(*scan_args(scan))
+    assert len(scans) >= 50 and created > 100
+    assert len(scans) // 2 < in_place < len(scans)  # both ways of creating tiles were taken
+
+    store_a, store_b = one_call.store, planned.store
+    assert store_a.keys == store_b.keys
+    assert store_a.clock == store_b.clock
+    assert [store_a.version(k) for k in store_a.keys] == [store_b.version(k) for k in store_b.keys]
+    bounds = one_call.known_bounds()
+    assert bounds is not None and bounds == planned.known_bounds()
+    for layer in ("log_odds", "hits", "misses", "tsdf", "tsdf_weight"):
+        np.testing.assert_array_equal(one_call.region(layer, *bounds), planned.region(layer, *bounds))
+    # The union of the occupancy and the TSDF layers' cells.
+    (a0, b0, a1, b1), (c0, d0, c1, d1) = occ.bounds(), tsdf.bounds()
+    assert bounds == (min(a0, c0), min(b0, d0), max(a1, c1), max(b1, d1))
+    assert_occupancy_matches(one_call, occ, bounds, 1e-5)
+    assert_tsdf_matches(one_call, tsdf, bounds)
