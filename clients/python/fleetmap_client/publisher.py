@@ -70,6 +70,9 @@ DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
 #: How long one connection attempt of the background opener may take. Zenoh retries within an
 #: attempt; between attempts the opener checks whether the publisher was closed.
 CONNECT_ATTEMPT_MS = 1000
+#: How long `close` waits for the opener's attempt in progress to end (one attempt and a margin; a
+#: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running).
+CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
 
 Encoding = Literal["binary", "json"]
 
@@ -356,7 +359,8 @@ class ScanPublisher:
     def close(self) -> None:
         """Withdraw the liveliness token, undeclare the publisher and close the session. Idempotent.
 
-        Scans already handed to Zenoh are flushed by the session close (reliable channel)."""
+        Scans already handed to Zenoh are flushed by the session close (reliable channel). While no
+        connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`)."""
         with self._lock:
             if self._closed.is_set():
                 return
@@ -371,8 +375,10 @@ class ScanPublisher:
         if session is not None:
             with contextlib.suppress(zenoh.ZError):
                 session.close()
-        # The opener exits after its current attempt; it is a daemon, so don't wait for it long.
-        self._opener.join(timeout=0.1)
+        # The opener exits after its current attempt: wait for it. A thread still inside `zenoh.open`
+        # when the program exits comes back into a finalizing interpreter, and the process dies
+        # with "FATAL: exception not rethrown" (SIGABRT, exit 134) instead of exiting normally.
+        self._opener.join(timeout=CLOSE_WAIT_S)
 
     @property
     def closed(self) -> bool:
@@ -395,4 +401,7 @@ class ScanPublisher:
         )
 
 
-__all__ = ["CONNECT_ATTEMPT_MS", "DEFAULT_CONNECT", "PublisherClosed", "ScanPublisher", "client_config"]
+__all__ = [
+    "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_CONNECT", "PublisherClosed", "ScanPublisher",
+    "client_config",
+]  # fmt: skip
