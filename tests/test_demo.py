@@ -90,6 +90,8 @@ def test_demo_refuses_addresses_another_service_holds(tmp_path: Path) -> None:
         )  # fmt: skip
     assert done.returncode == 2, done.stdout + done.stderr
     assert f"cannot listen on 127.0.0.1:{http}: Address already in use" in done.stderr
+    # The README starts the demo with `make demo`, which takes the options in DEMO_ARGS.
+    assert 'make demo DEMO_ARGS="--http 127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448"' in done.stderr
     assert "Traceback" not in done.stderr
     assert "open http" not in done.stdout and not (tmp_path / "data").exists()
     assert port_is_free(zenoh)
