@@ -17,12 +17,14 @@ SYSTEM_PACKAGES ?= chromium curl unzip
 .PHONY: demo serve test bench bench-service lint format clean system-deps
 
 $(STAMP): pyproject.toml
+	@echo "fleetmap: installing fleetmap and its dependencies into $(VENV)/ (from PyPI: a few minutes, the first time)"
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e .
 	@touch $(STAMP)
 
 $(DEV_STAMP): $(STAMP)
+	@echo "fleetmap: adding the test and benchmark tools to $(VENV)/ (a few minutes, the first time)"
 	$(PY) -m pip install --quiet -e '.[test]'
 	@touch $(DEV_STAMP)
 

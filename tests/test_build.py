@@ -20,7 +20,7 @@ import pytest
 import scipy.io
 import yaml
 from PIL import Image
-from service_process import fleetmap_command
+from service_process import REPO_DIR, fleetmap_command
 from test_compiled_cache import LOADED_KERNELS
 
 from fleetmap.config import MapConfig
@@ -290,6 +290,25 @@ def test_build_errors_are_clear_and_write_nothing(
     assert "Traceback" not in done.stderr and "pydantic.dev" not in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1  # one line, every problem in it
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["build", "replay"])
+def test_a_missing_dataset_says_what_to_give_and_where_to_find_one(tmp_path: Path, command: str) -> None:
+    """The README's examples name `../shared/datasets/...`, which a fresh clone does not have: the
+    error says what the command reads and where the README says to find a log, not a bare errno."""
+    missing = "../shared/datasets/intel-corrected.log.gz"
+    extra = ["--out", str(tmp_path / "out")] if command == "build" else ["--map", "m", "--robot", "r"]
+    done = subprocess.run(
+        [*fleetmap_command(), command, missing, *extra, "--quiet"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.startswith(f"fleetmap {command}: error: no such file: {missing} "), done.stderr
+    assert "CARMEN" in done.stderr and 'README.md, "Build a map from a recorded dataset"' in done.stderr
+    assert "Errno" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    readme = (REPO_DIR / "README.md").read_text(encoding="utf-8")
+    section = readme.split("\n## Build a map from a recorded dataset\n", 1)[1].split("\n## ", 1)[0]
+    assert "a fresh\nclone has no such folder" in section
 
 
 @pytest.mark.parametrize("where", ["under-a-file", "is-a-file"])

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -14,7 +15,7 @@ import time
 from pathlib import Path
 
 import httpx
-from service_process import ServiceProcess, fleetmap_command, free_port, reaped
+from service_process import REPO_DIR, ServiceProcess, fleetmap_command, free_port, reaped
 
 
 def port_is_free(port: int) -> bool:
@@ -61,6 +62,8 @@ def test_demo_maps_until_ctrl_c_then_stops_everything_and_keeps_the_map(tmp_path
         assert demo.wait(60) == 0, output()
     text = output()
     assert "Traceback" not in text, text
+    # Before the address, the first start after an install compiles for up to minutes: it says how long.
+    assert "the first start after an install compiles them: about 15 s, a minute or two" in text, text
     summary = re.search(r"fleetmap demo: 2 robots published (\d+) scans \((\d+) dropped\)", text)
     assert summary is not None, text
     published, dropped = int(summary[1]), int(summary[2])
@@ -90,6 +93,8 @@ def test_demo_refuses_addresses_another_service_holds(tmp_path: Path) -> None:
         )  # fmt: skip
     assert done.returncode == 2, done.stdout + done.stderr
     assert f"cannot listen on 127.0.0.1:{http}: Address already in use" in done.stderr
+    # The README starts the demo with `make demo`, which takes the options in DEMO_ARGS.
+    assert 'make demo DEMO_ARGS="--http 127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448"' in done.stderr
     assert "Traceback" not in done.stderr
     assert "open http" not in done.stdout and not (tmp_path / "data").exists()
     assert port_is_free(zenoh)
@@ -114,3 +119,25 @@ def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:
         os.kill(int(service[0]), signal.SIGKILL)
         out, _ = demo.communicate(timeout=30)
     assert demo.returncode == 2 and "the service stopped unexpectedly" in out, out
+
+
+def test_make_demo_on_a_fresh_clone_says_what_it_installs_and_how_long_it_takes(tmp_path: Path) -> None:
+    """A fresh clone's first `make demo` installs from PyPI for minutes with pip quiet: it says so
+    first, rather than leaving a newcomer before a silent `pip install --quiet -e .`. (`make -n`
+    shows what it would run, without running it.)"""
+    for name in ("Makefile", "pyproject.toml"):
+        shutil.copy(REPO_DIR / name, tmp_path / name)
+    for target, says, install in (
+        ("demo", "fleetmap: installing fleetmap and its dependencies into .venv/ (from PyPI: a few minutes",
+         "pip install --quiet -e ."),
+        ("lint", "fleetmap: adding the test and benchmark tools to .venv/ (a few minutes",
+         "pip install --quiet -e '.[test]'"),
+    ):  # fmt: skip
+        plan = subprocess.run(
+            ["make", "-n", target], cwd=tmp_path, capture_output=True, text=True, timeout=30
+        )
+        assert plan.returncode == 0, plan.stderr
+        lines = plan.stdout.splitlines()
+        said = next(k for k, line in enumerate(lines) if says in line)
+        installs = next(k for k, line in enumerate(lines) if line.endswith(install))
+        assert said < installs, plan.stdout  # said before pip starts

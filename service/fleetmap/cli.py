@@ -57,6 +57,19 @@ class CliError(Exception):
     """An error the user can fix; printed without a traceback."""
 
 
+def dataset_error(path: str, exc: Exception) -> CliError:
+    """The `CliError` for a dataset `load_dataset` could not read. A missing one gets a hint: the
+    README's examples name `../shared/datasets/...`, which a fresh clone does not have, and a bare
+    `[Errno 2] No such file or directory` left a newcomer with no idea where to find a log."""
+    if isinstance(exc, FileNotFoundError):
+        return CliError(
+            f"no such file: {path} (a recorded laser log: CARMEN, plain or .gz, or MATLAB .mat; a "
+            'clone of fleetmap has none: README.md, "Build a map from a recorded dataset", says '
+            "where to find one)"
+        )
+    return CliError(str(exc))
+
+
 def load_config(path: str | None, **overrides: object) -> MapConfig:
     """A map configuration from a JSON file (or defaults), with command-line overrides applied.
     Raises `CliError` if the file cannot be read, is not JSON text (UTF-8, or the UTF-16 / 32 that
@@ -110,7 +123,7 @@ def _build(args: argparse.Namespace) -> int:
     try:
         dataset = load_dataset(args.dataset, range_min=args.range_min, range_max=args.range_max)
     except (DatasetError, OSError) as exc:
-        raise CliError(str(exc)) from None
+        raise dataset_error(args.dataset, exc) from None
     gmap = GridMap(config)
     if len(dataset):
         _load_kernels(config, dataset[0], quiet=args.quiet)

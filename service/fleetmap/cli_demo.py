@@ -94,9 +94,12 @@ def _check_free(address: str) -> None:
         try:
             probe.bind((host, int(port)))
         except OSError as exc:
+            # `make demo` is how the README starts it, and `make demo --http ...` is make's own
+            # option error: say how make passes them on.
             raise CliError(
                 f"cannot listen on {address}: {exc.strerror} (is another fleetmap service running? Stop "
-                "it, or give the demo other addresses: --http HOST:PORT, --zenoh tcp/HOST:PORT)"
+                "it, or give the demo other addresses: --http HOST:PORT, --zenoh tcp/HOST:PORT; with "
+                'make: make demo DEMO_ARGS="--http 127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448")'
             ) from None
 
 

@@ -764,7 +764,10 @@ def _open_storage(args: argparse.Namespace, sock: socket.socket) -> DurableStore
 def _warm_engine() -> None:
     """`warm_up`, said in the log: the first start after an install compiles the kernels (10-30 s,
     silent otherwise)."""
-    log.info("loading the engine's compiled kernels (the first start after an install compiles them)")
+    log.info(
+        "loading the engine's compiled kernels (the first start after an install compiles them: about "
+        "15 s, a minute or two on a busy machine; later starts load them from disk)"
+    )
     started = time.perf_counter()
     warm_up()
     log.info("engine ready in %.1f s", time.perf_counter() - started)

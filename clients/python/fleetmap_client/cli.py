@@ -15,7 +15,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from fleetmap.cli import CliError, run_command
+from fleetmap.cli import CliError, dataset_error, run_command
 
 from .publisher import DEFAULT_CONNECT, ScanPublisher
 
@@ -95,7 +95,7 @@ def run_replay(args: argparse.Namespace) -> int:
     try:
         dataset = load_dataset(args.dataset)
     except (DatasetError, OSError) as exc:
-        raise CliError(str(exc)) from None
+        raise dataset_error(args.dataset, exc) from None
     try:
         result = replay(
             dataset,
