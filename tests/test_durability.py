@@ -221,8 +221,11 @@ def test_a_data_directory_of_a_newer_schema_is_refused_at_start(tmp_path: Path) 
 
     before = contents()
     svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
-    with pytest.raises(RuntimeError) as refused:
-        svc.start()
+    try:
+        with pytest.raises(RuntimeError) as refused:
+            svc.start()
+    finally:
+        svc.stop()  # (a service that started after all must not outlive the test)
     assert svc.proc is not None and svc.proc.returncode == 2
     assert (
         f"the map database {data / DB_NAME} was written by a newer fleetmap (schema version "
@@ -244,8 +247,11 @@ def test_another_programs_database_is_refused_at_start_and_left_unchanged(tmp_pa
     conn.close()
     before = (data / DB_NAME).read_bytes()
     svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
-    with pytest.raises(RuntimeError) as refused:
-        svc.start()
+    try:
+        with pytest.raises(RuntimeError) as refused:
+            svc.start()
+    finally:
+        svc.stop()  # (before the fix it started, and outlived the test)
     assert svc.proc is not None and svc.proc.returncode == 2
     assert f"{data / DB_NAME} is not a fleetmap map database (its tables: invoices)" in str(refused.value)
     assert "Traceback" not in str(refused.value)
