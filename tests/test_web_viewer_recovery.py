@@ -336,3 +336,48 @@ def test_refused_event_stream_says_why(browser: Any, service_factory: Callable[.
         second.close()
         if not first.is_closed():
             first.close()
+
+
+#: Whether the view shows the whole of the map's bounds [xmin, ymin, xmax, ymax] (metres), as the
+#: service reports them: CRS.Simple, one map unit a cell (lat = y / res, lng = x / res).
+_SHOWS_BOUNDS_JS = """
+(b) => {
+  const v = window.fleetmapViewer;
+  const res = v.state.res;
+  return v.map.getBounds().contains(L.latLngBounds([b[1] / res, b[0] / res], [b[3] / res, b[2] / res]));
+}
+"""
+
+
+def _bounds(base: str) -> list[float]:
+    return httpx.get(f"{base}/maps/{MAP_ID}", timeout=10.0).json()["stats"]["bounds"]
+
+
+def test_the_view_follows_a_growing_map_until_the_user_moves_it(page: Any, svc: ServiceProcess) -> None:
+    """The view was fitted to the map once, at the first scans: as a demo's robots explored on, the
+    new rooms ran off screen and a newcomer had to zoom out to see them. Until the user moves the
+    map, the view now follows it as it grows; once the user has moved it, it stays put."""
+    base = svc.base_url
+    _make_map(base, {"r1": (0.0, 0.0)})
+    _open(page, base, f"#map={MAP_ID}")
+    _wait(page, _SHOWS_BOUNDS_JS, _bounds(base), what="the first fit")
+    for seq, x in enumerate((40.0, 80.0), start=2):  # far beyond the first fit, on that zoom
+        _scan(base, MAP_ID, "r1", seq, x, 0.0)
+        _wait(page, _SHOWS_BOUNDS_JS, _bounds(base), what=f"the view following the map to x = {x} m")
+    assert page.evaluate("() => window.fleetmapViewer.state.viewChosen") is False
+
+    # The user pans: from now on the view is theirs.
+    box = page.locator("#map").bounding_box()
+    assert box is not None
+    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(box["x"] + box["width"] / 2 + 80, box["y"] + box["height"] / 2 + 40, steps=5)
+    page.mouse.up()
+    _wait(page, "() => window.fleetmapViewer.state.viewChosen", what="the user's pan noticed")
+    page.wait_for_timeout(1500)  # the drag's inertia runs out
+    chosen = page.evaluate("() => window.fleetmapViewer.map.getCenter()")
+    _scan(base, MAP_ID, "r1", 4, -120.0, 0.0)  # answered once integrated: its tiles event is on its way
+    page.wait_for_timeout(5000)  # past two follow periods: a follow would have refitted by now
+    assert page.evaluate("() => window.fleetmapViewer.map.getCenter()") == chosen
+    assert not page.evaluate(_SHOWS_BOUNDS_JS, _bounds(base))
+    assert not page.page_errors, page.page_errors

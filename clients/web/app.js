@@ -53,6 +53,9 @@
   const TILE_REFRESH_MS = 500;    // one tile is requested again at most this often (2 per second)
   const TILE_RETRY_MS = 3000;     // a tile that failed to load is asked for again after this long
   const RECONNECT_MS = 3000;      // retry delay when the browser gives up on the event stream
+  // Until the user moves the map, the view follows the map as it grows (a demo's robots explore
+  // beyond the first fit): its bounds are looked up at most this often while tiles change.
+  const FOLLOW_MS = 2000;
   // After a reconnect every tile is reloaded once; spread over this many ms, so that the viewers of a
   // restarted service do not all ask it for their tiles in the same instant.
   const RECONNECT_SPREAD_MS = 1000;
@@ -107,7 +110,9 @@
     layer: null,          // selected tile layer name
     info: null,           // last GET maps/{id} answer
     res: 0.05,            // metres per cell of the selected map
-    fitted: false,        // view fitted to the map's bounds once (never again: the user may have moved)
+    fitted: false,        // view fitted to the map's bounds (again as it grows, until the user moves it)
+    followedAt: -Infinity, // when the bounds were last looked up to follow the growing map
+    followTimer: null,    // the next such look, if one is planned (followSoon)
     infoInFlight: false,  // a GET maps/{id} for fitting is under way
     selectToken: 0,       // bumped on each map selection; late answers for an older one are ignored
     events: null,         // the EventSource of the selected map
@@ -486,6 +491,16 @@
     return a[0] < b[2] && b[0] < a[2] && a[1] < b[3] && b[1] < a[3];
   }
 
+  /** Whether the view shows the whole of a cell window [i0, j0, i1, j1]. */
+  function windowInView(w) {
+    return map.getBounds().contains(L.latLngBounds([w[1], w[0]], [w[3], w[2]]));
+  }
+
+  /** Whether the view shows the whole of the map's bounds [xmin, ymin, xmax, ymax] (metres). */
+  function boundsInView(b) {
+    return map.getBounds().contains(L.latLngBounds(toLatLng(b[0], b[1]), toLatLng(b[2], b[3])));
+  }
+
   /** Queue changed windows (or a reset) and schedule one throttled flush. */
   function queueTiles(msg) {
     // Cells arrived: the map is no longer empty.
@@ -517,7 +532,30 @@
     if (!state.fitted && !state.infoInFlight) {
       state.infoInFlight = true;
       refreshInfo(state.selectToken, false).finally(() => { state.infoInFlight = false; });
+    } else if (state.fitted && !state.viewChosen && windows.some((w) => !windowInView(w))) {
+      followSoon(); // cells changed out of view: the map may have outgrown the fitted view
     }
+  }
+
+  /**
+   * Until the user moves the map, the view follows it as it grows: look its bounds up again
+   * (refreshInfo refits the view when they no longer fit), at most once per FOLLOW_MS, and after
+   * the last change too (a throttled look that were simply dropped would miss the robots' last room).
+   */
+  function followSoon() {
+    if (state.followTimer !== null) return;
+    const wait = Math.max(0, state.followedAt + FOLLOW_MS - performance.now());
+    state.followTimer = setTimeout(() => {
+      state.followTimer = null;
+      if (state.viewChosen || !state.mapId) return;
+      if (state.infoInFlight) {
+        followSoon();
+        return;
+      }
+      state.followedAt = performance.now();
+      state.infoInFlight = true;
+      refreshInfo(state.selectToken, false).finally(() => { state.infoInFlight = false; });
+    }, wait);
   }
 
   /** Look for due stale tiles in `delay` ms, unless a look is already planned sooner. */
@@ -1206,7 +1244,8 @@
     else reset();
   }
 
-  /** GET maps/{id}: layers, resolution, bounds (fit once), robots. Returns false on failure. */
+  /** GET maps/{id}: layers, resolution, bounds (fitted, and again as the map grows until the user
+   * moves it), robots. Returns false on failure. */
   async function refreshInfo(token, first) {
     const mapId = state.mapId;
     let info;
@@ -1247,7 +1286,7 @@
       showView(state.pendingView);
       state.pendingView = null;
       state.fitted = true;
-    } else if (b && !state.fitted) {
+    } else if (b && (!state.fitted || (!state.viewChosen && !boundsInView(b)))) {
       state.fitted = true;
       moveQuietly(() => map.fitBounds([toLatLng(b[0], b[1]), toLatLng(b[2], b[3])],
         { padding: [20, 20], maxZoom: 2, animate: false }));
