@@ -240,6 +240,20 @@ def test_with_cors_every_answer_varies_by_origin(service_factory: Callable[..., 
             exposed = cross.headers["access-control-expose-headers"].lower().replace(" ", "").split(",")
             assert {"etag", "location", "retry-after"} <= set(exposed), exposed
             assert [v.strip() for v in cross.headers["vary"].split(",")].count("Origin") == 1, cross.headers
+        # Another origin is not allowed, and gets no CORS headers.
+        other = client.get("/maps/m", headers={**IDENTITY, "Origin": "https://elsewhere.example"})
+        assert "access-control-allow-origin" not in other.headers
+
+
+def test_cors_origin_star_allows_every_origin_as_the_docs_say(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    """`--cors-origin '*'` (docs/security.md): every origin, answered `*`, never the origin itself."""
+    svc = service_factory("--cors-origin", "*")
+    with httpx.Client(base_url=svc.base_url, timeout=30) as client:
+        for origin in (PAGE, "https://elsewhere.example"):
+            r = client.get("/maps", headers={**IDENTITY, "Origin": origin})
+            assert r.status_code == 200 and r.headers["access-control-allow-origin"] == "*", r.headers
 
 
 JSON = {"content-type": "application/json"}

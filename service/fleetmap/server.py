@@ -227,7 +227,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         nargs="+",
         default=[],
         metavar="ORIGIN",
-        help="origins allowed to call the API from a browser (CORS); default none",
+        help="origins allowed to call the API from a browser (CORS), matched exactly ('*': any); "
+        "default none",
     )
     p.add_argument(
         "--max-event-streams",
