@@ -9,7 +9,7 @@ if [ ${#needed[@]} -eq 0 ]; then
   exit 0
 fi
 if [ "$(id -u)" -ne 0 ]; then
-  echo "system-deps: need root to install: ${needed[*]}" >&2
+  echo "system-deps: need root to install: ${needed[*]}; run: sudo make system-deps (or sudo apt-get install -y ${needed[*]})" >&2
   exit 1
 fi
 echo "system-deps: installing ${needed[*]}"

@@ -93,6 +93,19 @@ def fleetmap_parsers() -> dict[str, set[str]]:
     return {name: {o for a in p._actions for o in a.option_strings} for name, p in sub.choices.items()}
 
 
+def test_no_command_help_shows_a_default_of_none() -> None:
+    """`fleetmap demo --help` said "--seconds ... (default: None)": each command's help, as a user
+    reads it, shows only defaults a user can read."""
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    sub = parser.add_subparsers()
+    cli._add_build(sub)
+    for name in cli.COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    for command, p in sub.choices.items():
+        text = p.format_help()
+        assert "default: None" not in text and "(None" not in text, f"fleetmap {command} --help:\n{text}"
+
+
 def test_every_option_the_docs_name_exists() -> None:
     parsers = fleetmap_parsers()
     known = set().union(*parsers.values()) | OTHER_TOOLS_OPTIONS

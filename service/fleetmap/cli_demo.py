@@ -20,13 +20,21 @@ import httpx
 from fleetmap.cli import CliError
 
 
+class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
+    """Each option's default in its help, except a None default, which the help itself describes
+    (`--seconds` printed "(default: None)")."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        return action.help if action.default is None else super()._get_help_string(action)
+
+
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "demo",
         help="run the service with simulated robots and print the viewer's address",
         description="Start the service and simulated robots mapping a synthetic floor plan; open the "
         "printed address to watch. Ctrl-C stops everything; the map is kept in --data-dir.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=_DefaultsShown,
     )
     p.add_argument("--http", default="127.0.0.1:8000", metavar="HOST:PORT", help="viewer and API address")
     p.add_argument("--zenoh", default="tcp/127.0.0.1:7447", metavar="ENDPOINT", help="where robots connect")
@@ -35,7 +43,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--map", default="demo", help="map id the robots publish to")
     p.add_argument("--seed", type=int, default=1, help="floor plan and robots' seed")
     p.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
-    p.add_argument("--seconds", type=float, default=None, help="stop after this long (None: at Ctrl-C)")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this many s (default: at Ctrl-C)")
     p.set_defaults(run=run)
 
 

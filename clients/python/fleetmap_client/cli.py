@@ -139,7 +139,9 @@ def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
     p.add_argument("--robots", type=int, default=3, metavar="N", help="number of robots (default 3)")
     p.add_argument("--map", default="sim", dest="map_id", help="map id (default sim)")
     p.add_argument("--seed", type=int, default=1, help="floor plan and robots seed (default 1)")
-    p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="scans per second per robot")
+    p.add_argument(
+        "--rate", type=float, default=10.0, metavar="HZ", help="scans per second per robot (default 10)"
+    )
     p.add_argument(
         "--seconds", type=float, default=None, metavar="T", help="stop after T s (default: Ctrl-C)"
     )
