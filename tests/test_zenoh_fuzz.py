@@ -582,3 +582,38 @@ def test_every_dedicated_kind_is_refused_by_the_decoder(local_limits: None) -> N
         assert codec.decode(payload, BINARY_ENCODING).scan.num_beams == 361
         assert codec.decode(payload, "zenoh/bytes").seq >= 0
     assert struct.unpack_from("<4s", valid[0])[0] == codec.MAGIC
+
+
+def test_liveliness_token_flood_writes_a_bounded_log(tmp_path: Path) -> None:
+    """Any Zenoh peer can declare and drop liveliness tokens as fast as it likes, each under another
+    robot id: the service logs robots coming online and going offline, and wrote one line per token
+    event (13000 lines a second, unbounded). Now those lines are rate-limited like refusals: a few
+    per robot and state, at most 100 per interval in all, the rest counted as suppressed."""
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", '"client"')
+        cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        session = zenoh.open(cfg)
+        try:
+            first = session.liveliness().declare_token("fleetmap/flood/first/alive")
+            wait_for(lambda: "robot flood/first is online" in svc.logs(), timeout=20, what="the first token")
+            first.undeclare()
+            declared = 0
+            started = time.monotonic()
+            while time.monotonic() - started < 2.0:  # well within one LOG_INTERVAL
+                token = session.liveliness().declare_token(f"fleetmap/flood/r{declared}/alive")
+                token.undeclare()
+                declared += 1
+
+            def events() -> int:
+                return int(httpx.get(f"{svc.base_url}/healthz").json()["zenoh"]["liveliness_events"])
+
+            wait_for(lambda: events() >= 2 * declared, timeout=30, what="every token event handled")
+        finally:
+            session.close()
+        assert declared >= 1000, f"only {declared} tokens declared: no flood"
+        alive_line = re.compile(r"robot flood/\S+ is (online|offline)")
+        lines = [line for line in svc.logs().splitlines() if alive_line.search(line)]
+        # The first token's lines, then at most 100 per interval (the flood spans one or two).
+        assert len(lines) <= 2 + 2 * 100, f"{len(lines)} lines for {2 * declared} token events"
