@@ -582,3 +582,84 @@ def test_every_dedicated_kind_is_refused_by_the_decoder(local_limits: None) -> N
         assert codec.decode(payload, BINARY_ENCODING).scan.num_beams == 361
         assert codec.decode(payload, "zenoh/bytes").seq >= 0
     assert struct.unpack_from("<4s", valid[0])[0] == codec.MAGIC
+
+
+def test_liveliness_token_flood_writes_a_bounded_log(tmp_path: Path) -> None:
+    """Any Zenoh peer can declare and drop liveliness tokens as fast as it likes, each under another
+    robot id: the service logs robots coming online and going offline, and wrote one line per token
+    event (13000 lines a second, unbounded). Now those lines are rate-limited like refusals: a few
+    per robot and state, at most 100 per interval in all, the rest counted as suppressed."""
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", '"client"')
+        cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        session = zenoh.open(cfg)
+        try:
+            first = session.liveliness().declare_token("fleetmap/flood/first/alive")
+            wait_for(lambda: "robot flood/first is online" in svc.logs(), timeout=20, what="the first token")
+            first.undeclare()
+            declared = 0
+            started = time.monotonic()
+            while time.monotonic() - started < 2.0:  # well within one LOG_INTERVAL
+                token = session.liveliness().declare_token(f"fleetmap/flood/r{declared}/alive")
+                token.undeclare()
+                declared += 1
+
+            def events() -> int:
+                return int(httpx.get(f"{svc.base_url}/healthz").json()["zenoh"]["liveliness_events"])
+
+            wait_for(lambda: events() >= 2 * declared, timeout=30, what="every token event handled")
+        finally:
+            session.close()
+        assert declared >= 1000, f"only {declared} tokens declared: no flood"
+        alive_line = re.compile(r"robot flood/\S+ is (online|offline)")
+        lines = [line for line in svc.logs().splitlines() if alive_line.search(line)]
+        # The first token's lines, then at most 100 per interval (the flood spans one or two).
+        assert len(lines) <= 2 + 2 * 100, f"{len(lines)} lines for {2 * declared} token events"
+
+
+def test_scans_creating_maps_they_lose_again_write_a_bounded_log(tmp_path: Path) -> None:
+    """A valid scan to a new map id creates the map, and when the scan is refused later (here: it
+    needs more tiles than `max_tiles`) the map is removed again. Both were logged, two lines a scan:
+    any Zenoh peer could write hundreds of lines a second with 1 KB scans under made-up map ids. Now
+    those lines are rate-limited, and no map stays."""
+    beams = 64  # 999 m in every direction: about 78 tiles a beam, over the 4096 a map may hold
+    scan = {
+        "seq": 0, "pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "angle_min": -math.pi,
+        "angle_increment": 2 * math.pi / beams, "range_max": 999.5, "ranges": [999.0] * beams,
+    }  # fmt: skip
+    payload = json.dumps(scan).encode()
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", '"client"')
+        cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        session = zenoh.open(cfg)
+        try:
+            probe = session.declare_publisher("fleetmap/probe/r/scan")
+            wait_for(lambda: probe.matching_status.matching, timeout=20, what="the service's subscriber")
+            probe.undeclare()
+            sent = 0
+            started = time.monotonic()
+            while time.monotonic() - started < 2.0:
+                session.put(f"fleetmap/made-up-{sent}/r/scan", payload, encoding=JSON_ENCODING)
+                sent += 1
+                time.sleep(0.002)
+
+            def settled() -> bool:
+                health = httpx.get(f"{svc.base_url}/healthz").json()
+                return bool(health["zenoh"]["messages_received"] >= sent and health["queue_depth"] == 0)
+
+            wait_for(settled, timeout=60, what="every scan handled")
+            wait_for(
+                lambda: httpx.get(f"{svc.base_url}/maps").json()["maps"] == [], timeout=30, what="no map"
+            )
+        finally:
+            session.close()
+        assert sent >= 200, f"only {sent} scans sent: no flood"
+        map_line = re.compile(r"(created|removed) map made-up-")
+        lines = [line for line in svc.logs().splitlines() if map_line.search(line)]
+        assert lines, "no map was created and removed: the scans did not reach the case tested"
+        # At most 20 lines per 5 s interval; the flood and its integration span a few.
+        assert len(lines) <= 80, f"{len(lines)} lines for {sent} scans"

@@ -135,6 +135,11 @@ class ZenohIngest:
         self.rejected: Counter[str] = Counter()  # submit refusals by kind: duplicate, queue_full, ...
         self.liveliness_events = 0
         self._log = RateLimitedLog(log)
+        # Robots coming online and going offline: any Zenoh peer can declare and drop liveliness
+        # tokens thousands of times a second (13000 lines a second were written, unbounded), so these
+        # lines are rate-limited too, apart from the refusals' (a token flood must not hide them):
+        # one line per robot and state per interval, and at most 100 in all per interval.
+        self._alive_log = RateLimitedLog(log, max_lines=100)
 
     # -- lifecycle -------------------------------------------------------------------------------
 
@@ -326,9 +331,10 @@ class ZenohIngest:
                 else:
                     self._alive.discard(ids)
                 self.registry.set_online(ids[0], ids[1], online)
-            log.info(
-                "robot %s/%s is %s", ids[0], ids[1], "online" if online else "offline",
-                extra={"map_id": ids[0], "robot_id": ids[1]},
+            state = "online" if online else "offline"
+            self._alive_log.log(
+                logging.INFO, f"{state}:{ids[0]}/{ids[1]}", f"robot {ids[0]}/{ids[1]} is {state}",
+                map_id=ids[0], robot_id=ids[1],
             )  # fmt: skip
         except Exception:
             log.exception("unexpected error handling a liveliness sample")

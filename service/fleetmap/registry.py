@@ -210,6 +210,10 @@ class MapRegistry:
         self._alive: set[tuple[str, str]] = set()
         # One line per robot per CONFLICT_SHOWN while its id conflict goes on (a scan of each says so).
         self._conflict_log = RateLimitedLog(log, interval=CONFLICT_SHOWN)
+        # Maps created by a scan and removed again when it is refused: anyone who can publish (a Zenoh
+        # peer) can do that with every scan under a new map id, two lines a scan, hundreds a second;
+        # now at most 20 lines per LOG_INTERVAL in all.
+        self._auto_map_log = RateLimitedLog(log)
         self._workers = [
             threading.Thread(target=self._work, name=f"fleetmap-integrate-{k}", daemon=True)
             for k in range(workers)
@@ -313,11 +317,12 @@ class MapRegistry:
     # -- maps ------------------------------------------------------------------------------------
 
     def create(
-        self, map_id: str, config: MapConfig | None = None, wait: bool = False
+        self, map_id: str, config: MapConfig | None = None, wait: bool = False, by_scan: bool = False
     ) -> tuple[MapEntry, bool]:
         """Create a map, or return the existing one if its configuration is the same.
         Returns (entry, created). Raises MapConflict for a different configuration. With `wait`, a
-        new map is committed to storage before this returns (else NotDurable)."""
+        new map is committed to storage before this returns (else NotDurable). `by_scan`: created
+        for a scan (auto-create), its log line rate-limited."""
         _check_id("map id", map_id)
         config = config or self.default_config
         stored = None
@@ -338,7 +343,12 @@ class MapRegistry:
                 self._add(entry)
                 if self.durable is not None:
                     stored = self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
-                log.info("created map %s", map_id, extra={"map_id": map_id})
+                if by_scan:
+                    self._auto_map_log.log(
+                        logging.INFO, f"created:{map_id}", f"created map {map_id}", map_id=map_id
+                    )
+                else:
+                    log.info("created map %s", map_id, extra={"map_id": map_id})
                 created = True
         if wait:
             _wait_stored(stored, f"map {map_id!r} was created" if created else f"map {map_id!r} exists")
@@ -445,9 +455,9 @@ class MapRegistry:
         if not entry.provisional or entry.unsettled:
             return None
         self._retire(entry)
-        log.info(
-            "removed map %s again: every scan that created it was refused", entry.id,
-            extra={"map_id": entry.id},
+        self._auto_map_log.log(
+            logging.INFO, f"removed:{entry.id}",
+            f"removed map {entry.id} again: every scan that created it was refused", map_id=entry.id,
         )  # fmt: skip
         if self.durable is not None:
             return self.durable.map_deleted(entry.id)
@@ -482,7 +492,7 @@ class MapRegistry:
                         "scans may create; create it with PUT /maps/{id}",
                         404,
                     )
-                entry, _ = self.create(map_id)
+                entry, _ = self.create(map_id, by_scan=True)
                 entry.provisional = True
             if not self._room_for(entry, robot_id):
                 entry.scans_rejected += 1  # counted on the map: the robot has no state to count it on
