@@ -307,14 +307,16 @@ def test_a_compressed_request_body_is_refused_saying_so(mapped: httpx.Client) ->
     a gzipped snapshot as "not a zip file". 415 with Accept-Encoding: identity (RFC 9110, 15.5.16)
     says what to change, and changes nothing."""
     body = gzip.compress(json.dumps({"points": [[0.0, 0.0]]}).encode())
-    for method, path, headers in [
-        ("POST", "/maps/m/cells", JSON),
-        ("PUT", "/maps/zipped", JSON),
-        ("PUT", "/maps/zipped/snapshot", {"content-type": "application/zip"}),
-        ("POST", "/maps/m/scans?robot_id=r", JSON),
+    spec = json.loads((Path(__file__).resolve().parents[1] / "openapi" / "openapi.json").read_text())
+    for method, path, route, headers in [
+        ("POST", "/maps/m/cells", "/maps/{map_id}/cells", JSON),
+        ("PUT", "/maps/zipped", "/maps/{map_id}", JSON),
+        ("PUT", "/maps/zipped/snapshot", "/maps/{map_id}/snapshot", {"content-type": "application/zip"}),
+        ("POST", "/maps/m/scans?robot_id=r", "/maps/{map_id}/scans", JSON),
     ]:
         r = mapped.request(method, path, content=body, headers={**headers, "content-encoding": "gzip"})
         assert r.status_code == 415 and r.headers["accept-encoding"] == "identity", (path, r.text)
+        assert "415" in spec["paths"][route][method.lower()]["responses"], f"{method} {route}: 415 undeclared"
         assert "Content-Encoding 'gzip'" in r.json()["detail"] and "uncompressed" in r.json()["detail"]
     assert mapped.get("/maps/zipped").status_code == 404
     # identity is no encoding at all.

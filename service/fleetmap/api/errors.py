@@ -37,7 +37,8 @@ _DESCRIPTIONS = {
     404: "Unknown map (or robot, or path)",
     409: "Conflicts with the map's state or configuration",
     413: "The request asks for too much at once",
-    415: "The body is not sent as the route reads it (JSON: application/json; a zip: application/zip)",
+    415: "The body is not sent as the route reads it (JSON: application/json; a zip: application/zip; "
+    "never with a Content-Encoding)",
     422: "Invalid request: bad parameter, body or id",
     503: "The service is overloaded, or could not store a change: retry later",
     507: "The service's memory budget for map tiles (--max-memory) is used up",

@@ -179,7 +179,7 @@ _SCAN_BODY = {
     summary="Integrate one scan",
     response_model=ScanResult,
     openapi_extra=_SCAN_BODY,
-    responses=error_responses(404, 409, 413, 422, 503, 507),
+    responses=error_responses(404, 409, 413, 415, 422, 503, 507),
 )
 async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: State) -> ScanResult:
     """The scan a robot would publish over Zenoh, for clients without Zenoh. Answers once the scan is

@@ -66,7 +66,7 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
     response_model=MapInfo,
     status_code=201,
     openapi_extra=ZIP_UPLOAD,
-    responses={**REPLACED, **error_responses(413, 422, 503, 507)},
+    responses={**REPLACED, **error_responses(413, 415, 422, 503, 507)},
 )
 async def put_snapshot(map_id: MapId, request: Request, response: Response, state: State) -> MapInfo:
     """Replace map `map_id` (201 with its `Location` when it did not exist, else 200) with the map in
