@@ -144,8 +144,7 @@ def _build(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     except OSError as exc:  # a full disk, or a directory made unwritable during the build
         raise CliError(f"cannot write the outputs to {out_dir}: {exc}") from None
-    cells = config.has("occupancy") or config.has("counts")
-    rates = [f"{updates / max(elapsed, 1e-9) / 1e6:.1f} M cell updates/s"] if cells else []
+    rates = [f"{updates / max(elapsed, 1e-9) / 1e6:.1f} M cell updates/s"] if config.has_cell_layers else []
     if config.has("tsdf"):  # a TSDF-only map said "0.0 M cell updates/s"
         rates.append(f"{tsdf_updates / max(elapsed, 1e-9) / 1e6:.1f} M TSDF updates/s")
     print(

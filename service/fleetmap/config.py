@@ -239,8 +239,13 @@ class MapConfig(BaseModel):
         return layer in self.layers
 
     @property
+    def has_cell_layers(self) -> bool:
+        """Whether the map keeps a layer that scans update with hits and misses (occupancy or
+        counts), as opposed to the TSDF alone."""
+        return self.has("occupancy") or self.has("counts")
+
+    @property
     def traces_rays(self) -> bool:
-        """Whether scans are traced beam by beam into hits and misses: the ray model with the
-        occupancy or counts layer. (The TSDF band and the beam model visit only a few cells around
-        each return.)"""
-        return self.sensor_model == "ray" and (self.has("occupancy") or self.has("counts"))
+        """Whether scans are traced beam by beam into hits and misses: the ray model with a cell
+        layer. (The TSDF band and the beam model visit only a few cells around each return.)"""
+        return self.sensor_model == "ray" and self.has_cell_layers

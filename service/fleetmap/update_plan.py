@@ -156,7 +156,7 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
     tiles = runs = _EMPTY_PAIRS
-    if config.has("occupancy") or config.has("counts"):
+    if config.has_cell_layers:
         if config.sensor_model == "beam":
             occ_i, occ_j, occ_kind = _beam_model(scan, config, ox, oy)
         elif config.update == "per_ray":
