@@ -47,6 +47,7 @@ import pytest
 import zenoh
 from robot_process import encode, scans_for
 from service_process import RobotProcess, ServiceProcess, wait_for
+from test_ingest import client_session
 
 from fleetmap import codec
 from fleetmap.config import MapConfig
@@ -447,11 +448,7 @@ def test_garbage_flood_leaves_the_real_robots_map_exact(tmp_path: Path, local_li
         response = http.put(f"/maps/{MAP_ID}", json=MapConfig().model_dump(mode="json"))
         assert response.status_code in (200, 201), response.text
 
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"client"')
-        cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        session = zenoh.open(cfg)
+        session = client_session(svc.zenoh_endpoint)
         # Wait until the service's subscriber is known here, so nothing is sent into the void.
         probe = session.declare_publisher(f"fleetmap/{MAP_ID}/evil-mix0/scan")
         wait_for(lambda: probe.matching_status.matching, timeout=20, what="the service's subscriber")
@@ -590,11 +587,7 @@ def test_liveliness_token_flood_writes_a_bounded_log(tmp_path: Path) -> None:
     event (13000 lines a second, unbounded). Now those lines are rate-limited like refusals: a few
     per robot and state, at most 100 per interval in all, the rest counted as suppressed."""
     with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"client"')
-        cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        session = zenoh.open(cfg)
+        session = client_session(svc.zenoh_endpoint)
         try:
             first = session.liveliness().declare_token("fleetmap/flood/first/alive")
             wait_for(lambda: "robot flood/first is online" in svc.logs(), timeout=20, what="the first token")
@@ -631,11 +624,7 @@ def test_scans_creating_maps_they_lose_again_write_a_bounded_log(tmp_path: Path)
     }  # fmt: skip
     payload = json.dumps(scan).encode()
     with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"client"')
-        cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        session = zenoh.open(cfg)
+        session = client_session(svc.zenoh_endpoint)
         try:
             probe = session.declare_publisher("fleetmap/probe/r/scan")
             wait_for(lambda: probe.matching_status.matching, timeout=20, what="the service's subscriber")
