@@ -411,20 +411,24 @@ def test_a_map_created_by_a_refused_scan_is_removed_again(tmp_path: Path) -> Non
     """A scan to a new map id creates the map; when the scan is refused (here 422, past max_tiles),
     the map, holding nothing, is removed again, from storage too: a refused message changes no map.
     A map that another robot's scan reached meanwhile, or that a PUT or a liveliness token claimed,
-    stays. The workers start only once every scan is queued, so no interleaving decides the outcome."""
+    stays. Every scan is queued while this test holds the registry's lock, which a worker needs
+    before it looks at a scan, so no interleaving decides the outcome. (Queuing them before
+    `start` instead raced with its restore: a map the journal writer had stored meanwhile came back
+    as a new map, and its scan was answered 409, "replaced".)"""
     small = MapConfig(max_tiles=1, tile_size=16, resolution=0.1)
     too_big = WireScan(0, 0.0, scan_at(0.0, r=20.0))
     fits = WireScan(0, 0.0, Scan.from_fan((0.5, 0.8, 0.0), -0.5, 0.1, [0.5] * 10, 0.0, 30.0))
     registry = MapRegistry(default_config=small, durable=DurableStore(tmp_path))
+    registry.start()
     try:
-        alone = registry.submit("alone", "r", too_big, wait=True)
-        shared = registry.submit("shared", "a", too_big, wait=True)
-        registry.submit("shared", "b", fits)
-        registry.submit("put", "r", too_big)
-        registry.create("put", small)  # a PUT of the same configuration: asked for by name
-        registry.submit("token", "r", too_big)
-        registry.set_online("token", "r", True)  # the robot's liveliness token would create it anyway
-        registry.start()
+        with registry.lock:
+            alone = registry.submit("alone", "r", too_big, wait=True)
+            shared = registry.submit("shared", "a", too_big, wait=True)
+            registry.submit("shared", "b", fits)
+            registry.submit("put", "r", too_big)
+            registry.create("put", small)  # a PUT of the same configuration: asked for by name
+            registry.submit("token", "r", too_big)
+            registry.set_online("token", "r", True)  # the robot's liveliness token would create it anyway
         for future in (alone, shared):
             with pytest.raises(IngestRejected) as refused:
                 future.result(5)
