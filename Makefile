@@ -13,6 +13,9 @@ OUT ?= out
 # Debian packages the test suite uses: Chromium for the web viewer's end-to-end test; curl and
 # unzip for the examples of docs/api.md, which tests/test_docs.py runs as written.
 SYSTEM_PACKAGES ?= chromium curl unzip
+# Test processes (pytest-xdist): most tests wait on a real service they started, so two share a
+# 2-core machine well. `make test TEST_WORKERS=0` runs them in one process, in file order.
+TEST_WORKERS ?= 2
 
 .PHONY: demo serve test bench bench-service lint format clean system-deps
 
@@ -39,7 +42,7 @@ test: $(DEV_STAMP) system-deps
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
 	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
 	$(VENV)/bin/mypy
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS)
 
 serve: $(STAMP)
 	$(VENV)/bin/fleetmap serve $(SERVE_ARGS)
