@@ -1,7 +1,8 @@
 """Browser sessions on the real service (`POST /session`, `DELETE /session`): with
 `--require-read-token` the web viewer's files are open, a valid token buys a session cookie that
-unlocks reads (the map list, tiles, the event stream) and never a write, and revoking the token
-ends it. See fleetmap.auth and docs/security.md, "REST API"."""
+unlocks reads (the map list, tiles, the event stream) and never a write, revoking the token ends it,
+and every answer a cookie could unlock is kept out of shared caches. See fleetmap.auth and
+docs/security.md, "REST API"."""
 
 from __future__ import annotations
 
@@ -193,6 +194,29 @@ def test_a_session_cookie_never_authorises_a_write(secured: ServiceProcess) -> N
     r = httpx.get(f"{url}/maps/m", headers=bearer(READ)).json()
     assert r["stats"]["scans_integrated"] == 1  # unchanged: still there, no scan added
     assert httpx.get(f"{url}/maps/m2", headers=bearer(READ)).status_code == 404
+
+
+def test_every_answer_is_private_when_reads_need_a_token(secured: ServiceProcess) -> None:
+    """A shared cache stores no answer to a request with `Authorization` (RFC 9111, 3.5), but it
+    would store one a cookie unlocked, and serve it to anyone: every answer is `private` here."""
+    url = secured.base_url
+    session = cookie(session_of(READ))
+    paths = ["/maps", "/maps/m", "/maps/m/cell?x=0&y=0", "/maps/m/region?format=json", TILE, "/healthz",
+             "/maps/nope", *VIEWER_FILES]  # fmt: skip
+    revalidated = []
+    for path in paths:
+        r = httpx.get(f"{url}{path}", headers=session)
+        assert r.headers["cache-control"] == "private, no-cache", (path, r.headers["cache-control"])
+        if "etag" in r.headers:  # a revalidation's answer too
+            again = httpx.get(f"{url}{path}", headers={**session, "If-None-Match": r.headers["etag"]})
+            assert again.headers["cache-control"] == "private, no-cache", path
+            revalidated += [path] if again.status_code == 304 else []
+    assert {"/maps", "/maps/m", TILE} <= set(revalidated)
+    r = httpx.post(f"{url}/maps/m/cells", json={"points": [[0.0, 0.0]]}, headers=session)
+    assert r.headers["cache-control"] == "private, no-cache"
+    with httpx.stream("GET", f"{url}/maps/m/events", headers=session, timeout=10) as events:
+        assert events.headers["cache-control"] == "private, no-cache"
+    assert httpx.get(f"{url}/maps").headers["cache-control"] == "private, no-cache"  # the 401 too
 
 
 def test_signing_out_clears_the_cookie_without_a_token(secured: ServiceProcess) -> None:

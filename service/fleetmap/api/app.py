@@ -242,7 +242,9 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         )
     # Outermost, as it only adds headers: every answer still carries CORS's (`Vary: Origin`
     # included, which Starlette's CORS middleware puts on every answer, with or without an `Origin`).
-    app.add_middleware(DefaultHeaders)
+    # With a read token required, every answer is `private`: shared caches do not store answers to
+    # requests carrying `Authorization`, but they would store those a session cookie unlocked.
+    app.add_middleware(DefaultHeaders, private=settings.tokens is not None and settings.require_read_token)
     _install_openapi(app)
     return app
 
