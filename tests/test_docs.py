@@ -33,8 +33,8 @@ API_DOC = REPO_DIR / "docs" / "api.md"
 SETUP_COMMANDS = ("-X PUT $U/maps/warehouse ", "$U/maps/warehouse/scans?robot_id=robot1")
 #: Options the docs give to other programs than `fleetmap`.
 OTHER_TOOLS_OPTIONS = {"--build", "--data-binary", "--max-time", "--ros-args"}
-#: `fleetmap_*` names that are Python packages, not metrics.
-NOT_METRICS = {"fleetmap_client"}
+#: `fleetmap_*` names that are not metrics: a Python package, the browser session's cookie.
+NOT_METRICS = {"fleetmap_client", "fleetmap_session"}
 
 
 def console_steps(doc: Path) -> list[tuple[str, str]]:

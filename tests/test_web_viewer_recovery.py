@@ -60,8 +60,17 @@ _ERROR_JS = (
 _ROW = '#robot-list li[data-robot-id="{}"]'
 
 
-def _scan(base: str, map_id: str, robot_id: str, seq: int, x: float, y: float, theta: float = 0.0) -> None:
-    """One JSON scan: a ring of walls 3 m around (x, y)."""
+def _scan(
+    base: str,
+    map_id: str,
+    robot_id: str,
+    seq: int,
+    x: float,
+    y: float,
+    theta: float = 0.0,
+    headers: dict[str, str] | None = None,
+) -> None:
+    """One JSON scan: a ring of walls 3 m around (x, y) (`headers`: e.g. a write token's)."""
     n = 180
     body = {
         "seq": seq,
@@ -73,7 +82,9 @@ def _scan(base: str, map_id: str, robot_id: str, seq: int, x: float, y: float, t
         "range_max": 30.0,
         "ranges": [3.0] * n,
     }
-    r = httpx.post(f"{base}/maps/{map_id}/scans", params={"robot_id": robot_id}, json=body, timeout=30.0)
+    r = httpx.post(
+        f"{base}/maps/{map_id}/scans", params={"robot_id": robot_id}, json=body, headers=headers, timeout=30.0
+    )
     assert r.status_code == 200, r.text
 
 

@@ -17,6 +17,7 @@
  *                                    `replaced` {id, version} (same map id, new content: reload it),
  *                                    `deleted` {id}
  *   GET maps/{id}/cell?x=&y=      -> the values of the clicked cell
+ *   POST session, DELETE session  -> sign in and out, where the service needs a token to read (below)
  *
  * The selected map and layer live in the URL hash: #map=<id>&layer=<layer>; once the user moves the
  * map, the view too: &x=<metres>&y=<metres>&z=<zoom> (the centre), so a link shows the same place.
@@ -30,6 +31,13 @@
  * rendering, and a hidden tab fetches nothing (it also closes its event stream until shown again).
  * Tiles created later use the newest counter. A tile that failed to load is stale again, due
  * TILE_RETRY_MS later (while the event stream is connected; a reconnect reloads every tile anyway).
+ *
+ * Signing in: a service run with --require-read-token answers every read 401 without a token, and
+ * neither an <img> tile nor an EventSource can send one. A 401 shows a form (over the map) whose token
+ * is posted once to `session` in an Authorization header; the service answers with a session cookie
+ * (HttpOnly: this page never sees it) that the browser then sends with every request, tiles and the
+ * event stream included. The page keeps no token. A 401 later (the token was revoked) shows the form
+ * again; with reads open no request is ever refused, and the page never shows it.
  *
  * Robots are drawn incrementally: a robot's marker and trail are made once, then moved and turned in
  * place, and only when its report changed; a robot the service no longer reports is removed. The
@@ -60,6 +68,11 @@
   // restarted service do not all ask it for their tiles in the same instant.
   const RECONNECT_SPREAD_MS = 1000;
   const ERROR_SHOW_MS = 15000;    // how long an error message stays visible
+  // localStorage key set while this browser holds a session (so a reloaded page offers "Sign out":
+  // the cookie itself is HttpOnly, out of the page's reach).
+  const SIGNED_IN_KEY = 'fleetmap.signedIn';
+  // What a token may hold (fleetmap.auth): printable ASCII, no space.
+  const TOKEN_CHARS = /^[\x21-\x7e]+$/;
 
   // Tile layers the service renders, and the map layer (config.layers) each one needs.
   const LAYERS = [
@@ -102,6 +115,11 @@
   const sideToggle = $('side-toggle');
   const sideSummary = $('side-summary');
   const errorEl = $('error');
+  const signInEl = $('sign-in');
+  const signInForm = $('sign-in-form');
+  const signInToken = $('sign-in-token');
+  const signInError = $('sign-in-error');
+  const signOutButton = $('sign-out');
 
   // ---- state -----------------------------------------------------------------------------------
 
@@ -147,7 +165,10 @@
 
   const enc = encodeURIComponent;
 
-  /** Fetch JSON; throws an Error whose message is the service's error message when there is one. */
+  /**
+   * Fetch JSON; throws an Error whose message is the service's error message when there is one. A 401
+   * (the service needs a token to read, or the session's token was revoked) shows the sign-in form.
+   */
   async function getJSON(url) {
     let resp;
     try {
@@ -158,16 +179,22 @@
       throw e;
     }
     if (!resp.ok) {
-      let detail = resp.statusText;
-      try {
-        const body = await resp.json();
-        detail = typeof body.detail === 'string' ? body.detail : JSON.stringify(body.detail ?? body);
-      } catch (_) { /* not JSON: keep the status text */ }
-      const err = new Error(`${url}: ${resp.status} ${detail}`);
+      if (resp.status === 401) needSignIn();
+      const err = new Error(`${url}: ${resp.status} ${await errorDetail(resp)}`);
       err.status = resp.status;
       throw err;
     }
     return resp.json();
+  }
+
+  /** The service's reason for an error answer (its JSON `detail`), else the status text. */
+  async function errorDetail(resp) {
+    try {
+      const body = await resp.json();
+      return typeof body.detail === 'string' ? body.detail : JSON.stringify(body.detail ?? body);
+    } catch (_) {
+      return resp.statusText; // not JSON
+    }
   }
 
   /**
@@ -175,6 +202,8 @@
    * `network`: the message is about the service being unreachable; a reconnect clears it.
    */
   function showError(message, network = false) {
+    // While the page asks for a token, what failed for want of one is no news (the form says it).
+    if (!signInEl.hidden) return;
     errorEl.textContent = `${new Date().toLocaleTimeString()}: ${message}`;
     errorEl.hidden = false;
     errorEl.dataset.network = String(network);
@@ -219,6 +248,7 @@
       reconnecting: 'reconnecting to events…',
       error: 'event stream lost; retrying…',
       paused: 'paused while the tab is hidden',
+      signin: 'sign in to see the maps',
     };
     // Two parts: the connection state is a live region (a screen reader says when it changes);
     // the time of the last update, which changes with nearly every event, is not.
@@ -1108,12 +1138,11 @@
     try {
       const resp = await fetch(url, { cache: 'no-store', signal: ctl.signal });
       if (resp.ok || state.mapId !== mapId || state.connection !== 'error') return;
-      let detail = resp.statusText;
-      try {
-        const body = await resp.json();
-        if (typeof body.detail === 'string') detail = body.detail;
-      } catch (_) { /* not JSON: keep the status text */ }
-      showError(`event stream: ${resp.status} ${detail}`, true);
+      if (resp.status === 401) {
+        needSignIn(); // the session's token was revoked
+        return;
+      }
+      showError(`event stream: ${resp.status} ${await errorDetail(resp)}`, true);
     } catch (_) {
       // Unreachable: the map list poll says so.
     } finally {
@@ -1140,6 +1169,7 @@
 
   /** Poll the map list; keep the selection, pick one when there is none. */
   async function refreshMaps() {
+    if (!signInEl.hidden) return; // refused until the user signs in (the form asks again then)
     let ids;
     try {
       const body = await getJSON('maps');
@@ -1150,14 +1180,7 @@
       return;
     }
     const current = [...mapSelect.options].map((o) => o.value);
-    if (ids.join('\n') !== current.join('\n')) {
-      mapSelect.replaceChildren(...(ids.length ? ids : ['']).map((id) => {
-        const o = document.createElement('option');
-        o.value = id;
-        o.textContent = id || '(no maps)';
-        return o;
-      }));
-    }
+    if (ids.join('\n') !== current.join('\n')) setMapOptions(ids);
     mapSelect.disabled = ids.length === 0;
     emptyEl.hidden = ids.length > 0;
     if (ids.length === 0) {
@@ -1180,8 +1203,21 @@
     selectMap(ids.includes(wanted) ? wanted : ids[0]);
   }
 
-  /** No map to show (the shown one was deleted): nothing of it stays on the page or in the URL. */
-  function deselectMap() {
+  /** The map selector's options: the ids, or '(no maps)'. */
+  function setMapOptions(ids) {
+    mapSelect.replaceChildren(...(ids.length ? ids : ['']).map((id) => {
+      const o = document.createElement('option');
+      o.value = id;
+      o.textContent = id || '(no maps)';
+      return o;
+    }));
+  }
+
+  /**
+   * No map to show (the shown one was deleted): nothing of it stays on the page or in the URL.
+   * `keepHash`: the URL keeps naming the map and view, to show them again (after signing in again).
+   */
+  function deselectMap(keepHash = false) {
     state.selectToken += 1; // answers still on their way are for a map no longer shown
     state.mapId = null;
     state.info = null;
@@ -1193,7 +1229,7 @@
     if (map.hasLayer(tiles)) tiles.remove();
     layerSelect.replaceChildren();
     layerSelect.disabled = true;
-    if (location.hash) history.replaceState(null, '', location.pathname + location.search);
+    if (location.hash && !keepHash) history.replaceState(null, '', location.pathname + location.search);
   }
 
   /** Switch to a map: its layers, its tiles, its robots, its event stream. */
@@ -1361,9 +1397,101 @@
     }
   });
 
+  // ---- signing in -------------------------------------------------------------------------------
+
+  /**
+   * A read was refused for want of a valid token: nothing of the maps stays on the page (its user
+   * may no longer see them; the URL keeps the map and view, shown again after signing in), and the
+   * sign-in form takes the map's place.
+   */
+  function needSignIn() {
+    if (!signInEl.hidden) return;
+    deselectMap(true);
+    setMapOptions([]);
+    mapSelect.disabled = true;
+    emptyEl.hidden = true;
+    clearTimeout(state.errorTimer);
+    errorEl.hidden = true;
+    rememberSignedIn(false);
+    signInError.hidden = true;
+    signInEl.hidden = false;
+    setConnection('signin');
+    signInToken.focus();
+  }
+
+  /** Say why signing in failed, under the form's button (an alert: a screen reader says it). */
+  function signInFailed(message) {
+    signInError.textContent = message;
+    signInError.hidden = false;
+    signInToken.setAttribute('aria-invalid', 'true');
+    signInToken.focus();
+  }
+
+  /** Whether this browser holds a session: shows "Sign out" (kept over reloads, see SIGNED_IN_KEY). */
+  function rememberSignedIn(signedIn) {
+    signOutButton.hidden = !signedIn;
+    try {
+      if (signedIn) localStorage.setItem(SIGNED_IN_KEY, '1');
+      else localStorage.removeItem(SIGNED_IN_KEY);
+    } catch (_) { /* storage blocked: "Sign out" shows until the page is reloaded */ }
+  }
+
+  // The token goes to the service once, in a header; the page forgets it as soon as it is sent.
+  signInForm.addEventListener('submit', async (e) => {
+    e.preventDefault();
+    const token = signInToken.value.trim();
+    if (!TOKEN_CHARS.test(token)) {
+      signInFailed(token ? 'a token holds printable ASCII characters only, no spaces' : 'enter your API token');
+      return;
+    }
+    let resp;
+    try {
+      resp = await fetch('session', {
+        method: 'POST',
+        headers: { Authorization: `Bearer ${token}`, Accept: 'application/json' },
+        cache: 'no-store',
+      });
+    } catch (err) {
+      signInFailed(`cannot reach the service (${err.message})`);
+      return;
+    }
+    if (!resp.ok) {
+      signInFailed(resp.status === 401 ? 'unknown token: check it and try again'
+        : `cannot sign in: ${resp.status} ${await errorDetail(resp)}`);
+      return;
+    }
+    signInToken.value = '';
+    signInToken.removeAttribute('aria-invalid');
+    signInError.hidden = true;
+    signInEl.hidden = true;
+    rememberSignedIn(true);
+    setConnection('starting');
+    refreshMaps();
+  });
+
+  // Signing out clears the cookie; the next request then shows the form (or, if reads are open after
+  // all, the page goes on as it is).
+  signOutButton.addEventListener('click', async () => {
+    rememberSignedIn(false);
+    try {
+      await fetch('session', { method: 'DELETE', cache: 'no-store' });
+    } catch (err) {
+      showError(`cannot sign out: cannot reach the service (${err.message})`, true);
+      return;
+    }
+    refreshMaps();
+  });
+
+  // Clicks, drags and the wheel over the form are the form's, not the map's under it.
+  L.DomEvent.disableClickPropagation(signInEl);
+  L.DomEvent.disableScrollPropagation(signInEl);
+
   // ---- start -----------------------------------------------------------------------------------
 
   renderStatus();
+  try {
+    signOutButton.hidden = localStorage.getItem(SIGNED_IN_KEY) !== '1';
+  } catch (_) { /* storage blocked: no "Sign out" until the user signs in on this page */ }
   refreshMaps();
   setInterval(refreshMaps, MAPS_REFRESH_MS);
 

@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal, TypeVar, overload
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from fleetmap.auth import Role
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import MAX_RAYS, RAY_STATUS_NAMES, STATE_NAMES, GridMap, RaycastResult, cell_edge
 from fleetmap.persistence import StorageHealth
@@ -108,6 +109,15 @@ class Health(_Model):
 
 def storage_status(health: StorageHealth) -> StorageStatus:
     return StorageStatus.model_validate(health, from_attributes=True)
+
+
+class Session(_Model):
+    """`POST /session`: the browser is signed in; its session cookie stands for the token on reads."""
+
+    role: Role = Field(
+        description="the token's role; the session cookie unlocks reads only, whatever the role (writes "
+        "need the token itself in an Authorization header)"
+    )
 
 
 # -- maps -------------------------------------------------------------------------------------------

@@ -10,9 +10,20 @@ What needs which role:
 - writing (POST scans, PUT/DELETE maps, PUT snapshots and nav2 imports): `write`;
 - reading (every GET, and POST /maps/{id}/cells and /raycast, which only read): `read`, unless
   reading is left open (`require_read=False`, the default), then anyone;
-- `/healthz` is always open (liveness probes carry no token).
+- signing a browser in (`POST /session`): a token of any role, whether reading is open or not;
+- always open: `/healthz` (liveness probes carry no token), the web viewer's files (`GET /`,
+  `/static/...`, `/vendor/leaflet/...`: they hold no map data, and the page must load to ask for a
+  token), signing out (`DELETE /session`) and CORS preflights.
 A token file is read again on SIGHUP (`TokenFile.reload`); tokens from the environment are fixed.
 Tokens are compared in constant time against every configured token, and never logged.
+
+Browser sessions: neither a browser's `<img>` tiles nor its `EventSource` can send an
+`Authorization` header, so `POST /session` trades a token for the cookie `SESSION_COOKIE`, whose
+value is the token's hex SHA-256 digest (`session_value`): a stolen cookie does not reveal the token,
+and the cookie is matched against the configured digests on every request, so revoking the token
+(token file, SIGHUP) ends the session at once. The cookie stands for its token on read requests only
+(`is_read_request`), never on writes, so a page that gets a browser to send a request with it
+(CSRF) can change no map; an `Authorization` header, when sent, wins over the cookie.
 """
 
 from __future__ import annotations
@@ -26,14 +37,29 @@ import re
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal, get_args
 
-ROLES = ("read", "write", "admin")
+#: A token's role; each may do everything the roles before it may.
+Role = Literal["read", "write", "admin"]
+ROLES: tuple[str, ...] = get_args(Role)
 _RANK = {role: rank for rank, role in enumerate(ROLES)}
 TOKENS_ENV = "FLEETMAP_TOKENS"
 #: Read-only requests that use POST.
 _READ_POSTS = re.compile(r"^/maps/[^/]+/(cells|raycast)$")
 #: Paths open to anyone, always.
 _OPEN_PATHS = {"/healthz"}
+#: The web viewer's files (`fleetmap.api.static`), open to GET and HEAD: they hold no map data, and
+#: the page must load before it can ask its user for a token.
+_VIEWER_PAGE = "/"
+_VIEWER_FILE_PREFIXES = ("/static/", "/vendor/leaflet/")
+#: Where a browser signs in (POST) and out (DELETE): `fleetmap.api.routes_session`.
+SESSION_PATH = "/session"
+#: The session cookie's name; its value is `session_value(token)`.
+SESSION_COOKIE = "fleetmap_session"
+#: A session cookie's value: a SHA-256 digest in lower-case hex.
+_SESSION_VALUE = re.compile(r"^[0-9a-f]{64}$")
+#: The 401's detail for a session cookie that stands for no configured token: an unknown token's.
+UNKNOWN_SESSION = "unknown token (the session cookie's token is unknown or was revoked: sign in again)"
 #: A comment: `#` at the start of a line or after whitespace (a `#` inside a token is part of it).
 _COMMENT = re.compile(r"(^|\s)#.*$")
 #: What a token may hold: printable ASCII, no space. A header's bytes are read as Latin-1, so any
@@ -119,7 +145,19 @@ class TokenSet:
 
     def role_of(self, token: str) -> str | None:
         """The role of `token`, comparing against every configured token in constant time."""
-        digest = _digest(token)
+        return self._role_of_digest(_digest(token))
+
+    def role_of_session(self, value: str) -> str | None:
+        """The role of the token whose session cookie holds `value` (`session_value(token)`), compared
+        as `role_of` compares tokens; None for a value that is no configured token's (unknown,
+        revoked, or not a digest at all)."""
+        if not _SESSION_VALUE.match(value):
+            return None
+        return self._role_of_digest(bytes.fromhex(value))
+
+    def _role_of_digest(self, digest: bytes) -> str | None:
+        """The highest role listed for `digest`, compared against every configured digest in
+        constant time (no early exit: how long it takes says nothing of which one matched)."""
         found = None
         for known, role in self.digests:
             if hmac.compare_digest(known, digest) and (found is None or _RANK[role] > _RANK[found]):
@@ -127,11 +165,47 @@ class TokenSet:
         return found
 
 
+def session_value(token: str) -> str:
+    """The session cookie's value for `token`: its SHA-256 digest in hex, the form `TokenSet` keeps
+    it in, so the cookie never holds the token itself."""
+    return _digest(token).hex()
+
+
+def session_cookie(value: str, *, secure: bool) -> str:
+    """The `Set-Cookie` value that signs a browser in with `value` (`session_value`). `HttpOnly`: the
+    page's scripts cannot read it; `SameSite=Strict`: another site's page never makes the browser
+    send it; `Path=/`: every request of the viewer carries it; `Secure` when the request came over
+    https; no `Max-Age`: it ends when the browser closes (or at once when its token is revoked)."""
+    return _with_cookie_attributes(f"{SESSION_COOKIE}={value}", secure)
+
+
+def cleared_session_cookie(*, secure: bool) -> str:
+    """The `Set-Cookie` value that signs a browser out: the session cookie, empty and expired (with
+    the same attributes, or the browser would keep the cookie it has)."""
+    return _with_cookie_attributes(f"{SESSION_COOKIE}=; Max-Age=0", secure)
+
+
+def _with_cookie_attributes(cookie: str, secure: bool) -> str:
+    return f"{cookie}; HttpOnly; SameSite=Strict; Path=/" + ("; Secure" if secure else "")
+
+
+def is_read_request(method: str, path: str) -> bool:
+    """Whether a request only reads: every GET and HEAD, and POST /maps/{id}/cells and /raycast."""
+    return method in ("GET", "HEAD") or (method == "POST" and _READ_POSTS.match(path) is not None)
+
+
 def required_role(method: str, path: str, require_read: bool) -> str | None:
     """The role a request needs, or None if it is open."""
     if path in _OPEN_PATHS or method == "OPTIONS":  # CORS preflights carry no credentials
         return None
-    if method in ("GET", "HEAD") or (method == "POST" and _READ_POSTS.match(path)):
+    if method in ("GET", "HEAD") and (path == _VIEWER_PAGE or path.startswith(_VIEWER_FILE_PREFIXES)):
+        return None
+    if path == SESSION_PATH:
+        # Signing in takes a valid token of any role even where reads are open (it is what the
+        # route checks); signing out only clears the browser's cookie, and must work once the
+        # token is revoked too.
+        return "read" if method == "POST" else None
+    if is_read_request(method, path):
         return "read" if require_read else None
     return "write"
 
@@ -158,9 +232,16 @@ class TokenFile:
     def role_of(self, token: str) -> str | None:
         return self.current.role_of(token)
 
+    def role_of_session(self, value: str) -> str | None:
+        return self.current.role_of_session(value)
+
 
 class AuthMiddleware:
-    """ASGI middleware answering 401 (no or unknown token) or 403 (role too low) with a JSON detail."""
+    """ASGI middleware answering 401 (no or unknown token) or 403 (role too low) with a JSON detail.
+
+    The token is the `Authorization: Bearer` header's; without one, a read request
+    (`is_read_request`) may carry a session cookie instead (see the module's docstring). An unknown or
+    revoked session is the same 401 as an unknown token."""
 
     def __init__(self, app: ASGIApp, tokens: TokenSet | TokenFile, require_read: bool = False) -> None:
         self.app = app
@@ -175,14 +256,21 @@ class AuthMiddleware:
         if needed is None:
             await self.app(scope, receive, send)
             return
-        token = _bearer(scope.get("headers", []))
-        if token is None:
+        headers = scope.get("headers", [])
+        token = bearer_token(headers)
+        # The cookie counts only where no header is sent, and only for reads (never a write: CSRF).
+        reads = is_read_request(scope["method"], scope["path"])
+        session = _session(headers) if token is None and reads else None
+        if token is not None:
+            role = self.tokens.role_of(token)
+        elif session is not None:
+            role = self.tokens.role_of_session(session)
+        else:
             await _deny(send, 401, f"this request needs a token with the {needed!r} role: "
                         "send 'Authorization: Bearer <token>'")  # fmt: skip
             return
-        role = self.tokens.role_of(token)
         if role is None:
-            await _deny(send, 401, "unknown token")
+            await _deny(send, 401, "unknown token" if token is not None else UNKNOWN_SESSION)
             return
         if _RANK[role] < _RANK[needed]:
             await _deny(send, 403, f"this request needs the {needed!r} role; the token has {role!r}")
@@ -190,12 +278,24 @@ class AuthMiddleware:
         await self.app(scope, receive, send)
 
 
-def _bearer(headers: Iterable[tuple[bytes, bytes]]) -> str | None:
+def bearer_token(headers: Iterable[tuple[bytes, bytes]]) -> str | None:
+    """The token of an ASGI request's `Authorization: Bearer <token>` header, or None."""
     for name, value in headers:
         if name.lower() == b"authorization":
             scheme, _, token = value.decode("latin-1").partition(" ")
             if scheme.lower() == "bearer" and token.strip():
                 return token.strip()
+    return None
+
+
+def _session(headers: Iterable[tuple[bytes, bytes]]) -> str | None:
+    """The value of an ASGI request's session cookie (`SESSION_COOKIE`), or None."""
+    for name, value in headers:
+        if name.lower() == b"cookie":  # `name=value; name=value` (RFC 6265, 4.2.1)
+            for pair in value.decode("latin-1").split(";"):
+                key, equals, found = pair.partition("=")
+                if equals and key.strip() == SESSION_COOKIE and found.strip():
+                    return found.strip()
     return None
 
 

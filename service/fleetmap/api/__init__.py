@@ -2,8 +2,9 @@
 
 Modules: `app` (the app and its settings), `state` (what routes share), `errors` (every error is
 `{"detail": ...}` JSON), `routes_maps` (health, metrics, maps, scans), `routes_data` (cells, rays,
-regions, surfaces, exports), `routes_tiles` (PNG tiles), `events` (server-sent events), `static` (web viewer
-and Leaflet). Request and response models are in `fleetmap.api_models`; docs/api.md describes it all.
+regions, surfaces, exports), `routes_tiles` (PNG tiles), `events` (server-sent events),
+`routes_session` (a browser's sign-in), `static` (web viewer and Leaflet). Request and response models
+are in `fleetmap.api_models`; docs/api.md describes it all.
 """
 
 from fleetmap.api.app import ApiSettings, create_app

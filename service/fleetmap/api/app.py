@@ -26,6 +26,7 @@ from fleetmap.api import (
     routes_data,
     routes_import,
     routes_maps,
+    routes_session,
     routes_snapshot,
     routes_tiles,
     static,
@@ -50,7 +51,7 @@ from fleetmap.api_models import (
     RobotsEvent,
     TilesEvent,
 )
-from fleetmap.auth import AuthMiddleware, TokenFile, TokenSet
+from fleetmap.auth import SESSION_COOKIE, AuthMiddleware, TokenFile, TokenSet
 from fleetmap.metrics import IntegrationMetrics, ServiceMetrics
 from fleetmap.registry import MapRegistry
 from fleetmap.wire import ScanMessage
@@ -87,8 +88,10 @@ Every error is JSON `{"detail": "..."}`. See docs/api.md.
 Authentication: when the server runs with API tokens (`fleetmap serve --auth-tokens FILE`), requests
 send `Authorization: Bearer <token>`. Writing (POST scans, PUT and DELETE maps, PUT snapshots and
 imports) needs a token with the `write` or `admin` role; reading is open unless the server requires
-a `read` token (`--require-read-token`); `/healthz` is always open. A missing or unknown token is a
-401, a token whose role is too low a 403. Without tokens the server only listens on loopback. See
+a `read` token (`--require-read-token`); `/healthz` and the web viewer's files are always open. A
+missing or unknown token is a 401, a token whose role is too low a 403. Without tokens the server
+only listens on loopback. A browser, whose tiles and event streams cannot send a header, signs in
+with `POST /session`: its session cookie then stands for the token on reads (never on writes). See
 docs/security.md.
 """
 
@@ -100,6 +103,7 @@ TAGS = [
     {"name": "tiles", "description": "PNG tiles for Leaflet (CRS.Simple)."},
     {"name": "export", "description": "Whole-map exports."},
     {"name": "events", "description": "Server-sent events for live clients."},
+    {"name": "session", "description": "Browser sign-in: a cookie standing for an API token on reads."},
 ]
 
 
@@ -200,6 +204,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.include_router(routes_snapshot.router)
     app.include_router(routes_import.router)
     app.include_router(events_router)
+    app.include_router(routes_session.router)
     static.install(app, app.state.fleetmap.web_dir)
     # Middleware, innermost first (each `add_middleware` wraps what is there).
     app.add_middleware(JsonETags)
@@ -237,7 +242,9 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         )
     # Outermost, as it only adds headers: every answer still carries CORS's (`Vary: Origin`
     # included, which Starlette's CORS middleware puts on every answer, with or without an `Origin`).
-    app.add_middleware(DefaultHeaders)
+    # With a read token required, every answer is `private`: shared caches do not store answers to
+    # requests carrying `Authorization`, but they would store those a session cookie unlocked.
+    app.add_middleware(DefaultHeaders, private=settings.tokens is not None and settings.require_read_token)
     _install_openapi(app)
     return app
 
@@ -267,7 +274,17 @@ def _install_openapi(app: FastAPI) -> None:
             # Documented, not required per operation: whether tokens are needed depends on how the
             # server runs (see DESCRIPTION), and clients of a tokenless server send none.
             components["securitySchemes"] = {
-                "bearerToken": {"type": "http", "scheme": "bearer", "description": "an API token (see above)"}
+                "bearerToken": {
+                    "type": "http",
+                    "scheme": "bearer",
+                    "description": "an API token (see above)",
+                },
+                "sessionCookie": {
+                    "type": "apiKey",
+                    "in": "cookie",
+                    "name": SESSION_COOKIE,
+                    "description": "a browser's session (POST /session): stands for its token on reads only",
+                },
             }
             schemas = components.setdefault("schemas", {})
             for model in EXTRA_SCHEMAS:

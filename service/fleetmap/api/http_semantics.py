@@ -7,6 +7,10 @@
 - `Cache-Control: no-cache` on every answer that does not set its own: map data changes with every
   scan, and a CDN in front would otherwise apply its default lifetime (an hour on some) to answers
   without one and serve stale cells and regions. `no-cache` still lets caches store and revalidate.
+  When reading needs a token, every answer is also `private`: a shared cache (a CDN, a proxy) must
+  not keep what it would then serve to clients it never saw a token from. It stores no answer to a
+  request carrying `Authorization` anyway (RFC 9111, 3.5), but it would store one that a browser's
+  session cookie unlocked.
 - gzip (Starlette's `GZipMiddleware`, as `create_app` installs it, through `NegotiatedGZip`) for
   clients that accept it (`Accept-Encoding` read as RFC 9110 12.5.3 says: `gzip;q=0` refuses it), for
   answers of at least `GZIP_MINIMUM_BYTES`, except those already compressed (PNG, zip) and the event
@@ -43,6 +47,8 @@ GZIP_LEVEL = 1
 JSON_ETAG_MAX_BYTES = 1024 * 1024
 #: What an answer says about caching when its route says nothing.
 DEFAULT_CACHE_CONTROL = "no-cache"
+#: Directives that keep an answer out of shared caches already.
+_PRIVATE_DIRECTIVES = {"private", "no-store"}
 
 
 def is_event_stream(path: str) -> bool:
@@ -78,12 +84,14 @@ class HeadAsGet:
 
 
 class DefaultHeaders:
-    """ASGI middleware: `Cache-Control: no-cache` on answers without a Cache-Control, and a weak `ETag`
-    on gzip answers (see the module's docstring). Placed outside the gzip middleware, so that it sees
-    the `Content-Encoding`."""
+    """ASGI middleware: `Cache-Control: no-cache` on answers without a Cache-Control, `private` added
+    to every answer's when `private` (reading needs a token), and a weak `ETag` on gzip answers (see
+    the module's docstring). Placed outside the gzip middleware, so that it sees the
+    `Content-Encoding`, and outside the auth middleware, so that it covers its answers too."""
 
-    def __init__(self, app: ASGIApp) -> None:
+    def __init__(self, app: ASGIApp, private: bool = False) -> None:
         self.app = app
+        self.private = private
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -93,13 +101,21 @@ class DefaultHeaders:
         async def with_defaults(message: Message) -> None:
             if message["type"] == "http.response.start":
                 headers = MutableHeaders(scope=message)
-                headers.setdefault("Cache-Control", DEFAULT_CACHE_CONTROL)
+                cache_control = headers.setdefault("Cache-Control", DEFAULT_CACHE_CONTROL)
+                if self.private and not _keeps_out_of_shared_caches(cache_control):
+                    headers["Cache-Control"] = f"private, {cache_control}"
                 etag = headers.get("ETag")
                 if etag is not None and headers.get("Content-Encoding") == "gzip" and etag.startswith('"'):
                     headers["ETag"] = f"W/{etag}"
             await send(message)
 
         await self.app(scope, receive, with_defaults)
+
+
+def _keeps_out_of_shared_caches(cache_control: str) -> bool:
+    """Whether a `Cache-Control` value already keeps shared caches from storing the answer."""
+    directives = {part.split("=")[0].strip().lower() for part in cache_control.split(",")}
+    return bool(directives & _PRIVATE_DIRECTIVES)
 
 
 def accepts_gzip(accept_encoding: str) -> bool:

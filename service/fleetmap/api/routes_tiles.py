@@ -78,12 +78,9 @@ layer or one the map does not keep; 404 for an unknown map.
 """
 
 
-def tile_cache_control(private: bool) -> str:
-    """Tiles' Cache-Control: caches store a tile and revalidate it before every use (`no-cache`), so
-    a change shows as soon as its scan is integrated; `private` when reading needs a token, so that no
-    shared cache (a CDN, a proxy) keeps a tile for clients whose token it never saw."""
-    return "private, no-cache" if private else "no-cache"
-
+#: Caches store a tile and revalidate it before every use, so a change shows as soon as its scan is
+#: integrated. (`DefaultHeaders` adds `private` when reading needs a token, as to every answer.)
+TILE_CACHE_CONTROL = "no-cache"
 
 #: The caching headers of a tile answer (200 and 304), as the spec declares them.
 _TILE_HEADER_SPEC = {
@@ -129,16 +126,14 @@ async def get_tile(
     # On the event loop: a revalidation or a cache hit takes microseconds, and a hop to the thread
     # pool would cost more than that (and another thread wanting the GIL). Only renders go there.
     entry = state.entry(map_id)
-    settings = state.settings
-    cache_control = tile_cache_control(settings.tokens is not None and settings.require_read_token)
     if if_none_match:
         # Answer a revalidation from the version alone: no render, no cache lookup.
         check_layer(entry.gmap, layer)
         etag = etag_for(entry.generation, layer, z, x, y, tile_version(entry.gmap, z, x, y))
         if etag_matches(if_none_match, etag):
-            return Response(status_code=304, headers={"ETag": etag, "Cache-Control": cache_control})
+            return Response(status_code=304, headers={"ETag": etag, "Cache-Control": TILE_CACHE_CONTROL})
     found = state.tiles.cached(entry, layer, z, x, y)
     if found is None:
         found = await run_in_threadpool(state.tiles.get_or_render, entry, layer, z, x, y)
     png, etag = found
-    return Response(png, media_type="image/png", headers={"ETag": etag, "Cache-Control": cache_control})
+    return Response(png, media_type="image/png", headers={"ETag": etag, "Cache-Control": TILE_CACHE_CONTROL})

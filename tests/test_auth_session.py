@@ -1,0 +1,279 @@
+"""Browser sessions on the real service (`POST /session`, `DELETE /session`): with
+`--require-read-token` the web viewer's files are open, a valid token buys a session cookie that
+unlocks reads (the map list, tiles, the event stream) and never a write, revoking the token ends it,
+and every answer a cookie could unlock is kept out of shared caches. See fleetmap.auth and
+docs/security.md, "REST API"."""
+
+from __future__ import annotations
+
+import hashlib
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from service_process import ServiceProcess, wait_for
+from test_auth import ADMIN, READ, SCAN, WRITE, bearer
+
+from fleetmap.auth import SESSION_COOKIE, is_read_request, required_role
+
+TILE = "/maps/m/tiles/0/0/-1.png"
+UNKNOWN = "unknown-token-0123456789"
+#: The viewer's files, as its page asks for them.
+VIEWER_FILES = ["/", "/static/app.js", "/static/style.css", "/vendor/leaflet/leaflet.js",
+                "/vendor/leaflet/leaflet.css"]  # fmt: skip
+#: What a request that needs `write` answers without a token, cookie or not.
+WRITE_401 = "this request needs a token with the 'write' role: send 'Authorization: Bearer <token>'"
+
+
+def session_of(token: str) -> str:
+    """The session cookie's value for `token`, as docs/security.md describes it."""
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def cookie(value: str) -> dict[str, str]:
+    """A request header carrying the session cookie `value` (and another cookie, as browsers send)."""
+    return {"Cookie": f"theme=dark; {SESSION_COOKIE}={value}"}
+
+
+def set_cookie(response: httpx.Response) -> tuple[str, set[str]]:
+    """The session cookie a response sets: its value, and its attributes (`HttpOnly`, `Path=/`,
+    ..., names as sent)."""
+    (header,) = response.headers.get_list("set-cookie")
+    pair, *attributes = (part.strip() for part in header.split(";"))
+    name, _, value = pair.partition("=")
+    assert name == SESSION_COOKIE, header
+    return value, set(attributes)
+
+
+def write_tokens(path: Path, *lines: str) -> Path:
+    path.write_text("".join(f"{line}\n" for line in lines))
+    return path
+
+
+@pytest.fixture(scope="module")
+def secured(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """A service requiring a read token, holding map `m` with one scan (posted with the write token)."""
+    tmp = tmp_path_factory.mktemp("secured")
+    tokens = write_tokens(tmp / "tokens.txt", f"read {READ}", f"write {WRITE}", f"admin {ADMIN}")
+    with ServiceProcess(tmp, ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token"]) as svc:
+        url = svc.base_url
+        assert httpx.put(f"{url}/maps/m", json={}, headers=bearer(WRITE)).status_code == 201
+        r = httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, json=SCAN, headers=bearer(WRITE))
+        assert r.status_code == 200, r.text
+        yield svc
+
+
+def test_which_requests_a_session_may_stand_for() -> None:
+    for path in ("/", "/static/app.js", "/vendor/leaflet/images/marker-icon.png"):
+        assert required_role("GET", path, True) is None, path
+        assert required_role("HEAD", path, True) is None, path
+    assert required_role("GET", "/static", True) == "read"  # not a file of the viewer
+    assert required_role("GET", "/staticx/app.js", True) == "read"
+    assert required_role("PUT", "/static/app.js", True) == "write"  # only reading them is open
+    assert required_role("POST", "/session", False) == "read"  # any valid token, reads open or not
+    assert required_role("DELETE", "/session", True) is None
+    assert is_read_request("GET", "/maps") and is_read_request("HEAD", "/maps/m/events")
+    assert is_read_request("POST", "/maps/m/cells") and is_read_request("POST", "/maps/m/raycast")
+    writes = [("POST", "/maps/m/scans"), ("PUT", "/maps/m"), ("DELETE", "/maps/m"),
+              ("PUT", "/maps/m/snapshot"), ("PUT", "/maps/m/import"), ("POST", "/session")]  # fmt: skip
+    for method, path in writes:
+        assert not is_read_request(method, path), (method, path)
+
+
+def test_the_viewer_files_are_open_when_reads_need_a_token(secured: ServiceProcess) -> None:
+    url = secured.base_url
+    for path in VIEWER_FILES:
+        r = httpx.get(f"{url}{path}")
+        assert r.status_code == 200 and r.content, (path, r.status_code, r.text)
+        assert httpx.head(f"{url}{path}").status_code == 200, path
+    # Everything else keeps its rule: map data, the spec, a file outside the viewer's folders.
+    for path in ("/maps", "/maps/m", TILE, "/openapi.json", "/static", "/docs"):
+        assert httpx.get(f"{url}{path}").status_code == 401, path
+
+
+def test_signing_in_sets_a_cookie_that_holds_no_token(secured: ServiceProcess) -> None:
+    url = secured.base_url
+    for token, role in ((READ, "read"), (WRITE, "write"), (ADMIN, "admin")):
+        r = httpx.post(f"{url}/session", headers=bearer(token))
+        assert r.status_code == 200 and r.json() == {"role": role}, r.text
+        value, attributes = set_cookie(r)
+        assert value == session_of(token) and token not in r.headers["set-cookie"]
+        assert attributes == {"HttpOnly", "SameSite=Strict", "Path=/"}  # not Secure: plain http
+        assert r.headers["cache-control"] == "no-store"
+    # Behind a TLS proxy on the same machine (uvicorn trusts loopback's X-Forwarded-Proto): Secure.
+    r = httpx.post(f"{url}/session", headers={**bearer(READ), "X-Forwarded-Proto": "https"})
+    assert r.status_code == 200 and set_cookie(r)[1] == {"HttpOnly", "SameSite=Strict", "Path=/", "Secure"}
+
+
+def test_signing_in_needs_a_valid_token_in_the_header(secured: ServiceProcess) -> None:
+    url = secured.base_url
+    for headers in ({}, bearer(UNKNOWN), cookie(session_of(READ)), {"Authorization": f"Basic {READ}"}):
+        r = httpx.post(f"{url}/session", headers=headers)
+        assert r.status_code == 401, (headers, r.text)
+        assert r.headers["www-authenticate"].startswith("Bearer")
+        assert "set-cookie" not in r.headers, headers
+    assert httpx.post(f"{url}/session", headers=bearer(UNKNOWN)).json()["detail"] == "unknown token"
+
+
+def test_a_session_cookie_unlocks_reads(secured: ServiceProcess) -> None:
+    url = secured.base_url
+    session = cookie(session_of(READ))
+    maps = httpx.get(f"{url}/maps", headers=session)
+    assert maps.status_code == 200 and [m["id"] for m in maps.json()["maps"]] == ["m"]
+    assert httpx.get(f"{url}/maps/m", headers=session).json()["stats"]["scans_integrated"] == 1
+    tile = httpx.get(f"{url}{TILE}", headers=session)
+    assert tile.status_code == 200 and tile.headers["content-type"] == "image/png"
+    assert httpx.get(f"{url}/maps/m/cell", params={"x": 0, "y": 0}, headers=session).status_code == 200
+    assert (
+        httpx.post(f"{url}/maps/m/cells", json={"points": [[2.0, 0.0]]}, headers=session).status_code == 200
+    )
+    ray = {"origin": [0.0, 0.0], "angles": [0.0], "max_range": 5.0}
+    assert httpx.post(f"{url}/maps/m/raycast", json=ray, headers=session).status_code == 200
+    with httpx.stream("GET", f"{url}/maps/m/events", headers=session, timeout=10) as events:
+        assert events.status_code == 200 and events.headers["content-type"].startswith("text/event-stream")
+        assert "event: robots" in next(line for line in events.iter_lines() if line.startswith("event:"))
+    # A session of a higher role unlocks reads as well; an Authorization header wins over the cookie.
+    assert httpx.get(f"{url}/maps", headers=cookie(session_of(ADMIN))).status_code == 200
+    r = httpx.get(f"{url}/maps", headers={**session, **bearer(UNKNOWN)})
+    assert r.status_code == 401 and r.json()["detail"] == "unknown token"
+    assert httpx.get(f"{url}/maps", headers={**cookie("0" * 64), **bearer(READ)}).status_code == 200
+
+    # As a browser does it: the cookie a sign-in set goes with every request after.
+    with httpx.Client(base_url=url, timeout=10) as browser:
+        assert browser.get("/maps").status_code == 401
+        assert browser.post("/session", headers=bearer(READ)).status_code == 200
+        assert browser.get("/maps").status_code == 200 and browser.get(TILE).status_code == 200
+        signed_out = browser.delete("/session")
+        assert signed_out.status_code == 204
+        assert browser.get("/maps").status_code == 401
+
+
+def test_an_unknown_session_is_an_unknown_token(secured: ServiceProcess) -> None:
+    url = secured.base_url
+    for value in (session_of(UNKNOWN), "0" * 64, session_of(READ).upper(), "not-a-digest", READ):
+        r = httpx.get(f"{url}/maps", headers=cookie(value))
+        assert r.status_code == 401, value
+        assert r.json()["detail"].startswith("unknown token") and "sign in again" in r.json()["detail"]
+        assert r.headers["www-authenticate"].startswith("Bearer")
+        assert READ not in r.text
+
+
+def test_a_session_cookie_never_authorises_a_write(secured: ServiceProcess) -> None:
+    """Even an admin's session: a page that gets the browser to send a request with its cookie (CSRF)
+    can change no map. Every write answers as it would without the cookie."""
+    url = secured.base_url
+    scan = {**SCAN, "seq": 1}
+    zipped = {"content": b"PK", "headers": {"content-type": "application/zip"}}
+    writes: list[tuple[str, str, dict[str, Any]]] = [
+        ("POST", "/maps/m/scans?robot_id=r", {"json": scan}),
+        ("PUT", "/maps/m2", {"json": {}}),
+        ("DELETE", "/maps/m", {}),
+        ("PUT", "/maps/m/snapshot", zipped),
+        ("PUT", "/maps/m/import?format=ros", zipped),
+    ]
+    for token in (READ, WRITE, ADMIN):
+        session = cookie(session_of(token))
+        for method, path, request in writes:
+            body = {k: v for k, v in request.items() if k != "headers"}
+            headers = request.get("headers", {})
+            plain = httpx.request(method, f"{url}{path}", headers=headers, **body)
+            with_cookie = httpx.request(method, f"{url}{path}", headers={**headers, **session}, **body)
+            assert with_cookie.status_code == plain.status_code == 401, (
+                token,
+                method,
+                path,
+                with_cookie.text,
+            )
+            assert with_cookie.json() == plain.json() == {"detail": WRITE_401}
+        # With a read token in the header the answer is the header's 403, whatever the cookie.
+        r = httpx.delete(f"{url}/maps/m", headers={**session, **bearer(READ)})
+        assert r.status_code == 403, r.text
+    r = httpx.get(f"{url}/maps/m", headers=bearer(READ)).json()
+    assert r["stats"]["scans_integrated"] == 1  # unchanged: still there, no scan added
+    assert httpx.get(f"{url}/maps/m2", headers=bearer(READ)).status_code == 404
+
+
+def test_every_answer_is_private_when_reads_need_a_token(secured: ServiceProcess) -> None:
+    """A shared cache stores no answer to a request with `Authorization` (RFC 9111, 3.5), but it
+    would store one a cookie unlocked, and serve it to anyone: every answer is `private` here."""
+    url = secured.base_url
+    session = cookie(session_of(READ))
+    paths = ["/maps", "/maps/m", "/maps/m/cell?x=0&y=0", "/maps/m/region?format=json", TILE, "/healthz",
+             "/maps/nope", *VIEWER_FILES]  # fmt: skip
+    revalidated = []
+    for path in paths:
+        r = httpx.get(f"{url}{path}", headers=session)
+        assert r.headers["cache-control"] == "private, no-cache", (path, r.headers["cache-control"])
+        if "etag" in r.headers:  # a revalidation's answer too
+            again = httpx.get(f"{url}{path}", headers={**session, "If-None-Match": r.headers["etag"]})
+            assert again.headers["cache-control"] == "private, no-cache", path
+            revalidated += [path] if again.status_code == 304 else []
+    assert {"/maps", "/maps/m", TILE} <= set(revalidated)
+    r = httpx.post(f"{url}/maps/m/cells", json={"points": [[0.0, 0.0]]}, headers=session)
+    assert r.headers["cache-control"] == "private, no-cache"
+    with httpx.stream("GET", f"{url}/maps/m/events", headers=session, timeout=10) as events:
+        assert events.headers["cache-control"] == "private, no-cache"
+    assert httpx.get(f"{url}/maps").headers["cache-control"] == "private, no-cache"  # the 401 too
+
+
+def test_signing_out_clears_the_cookie_without_a_token(secured: ServiceProcess) -> None:
+    r = httpx.delete(f"{secured.base_url}/session")
+    assert r.status_code == 204 and r.content == b""
+    value, attributes = set_cookie(r)
+    assert value == "" and attributes == {"Max-Age=0", "HttpOnly", "SameSite=Strict", "Path=/"}
+    assert r.headers["cache-control"] == "no-store"
+
+
+def test_revoking_the_token_ends_its_sessions(tmp_path: Path) -> None:
+    """The cookie is matched against the tokens in force on every request: rewriting the token file
+    and SIGHUP end the session at once, with no session store to clear."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    with ServiceProcess(
+        tmp_path, ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token"]
+    ) as svc:
+        assert svc.proc is not None
+        url = svc.base_url
+        session = cookie(set_cookie(httpx.post(f"{url}/session", headers=bearer(READ)))[0])
+        kept = cookie(set_cookie(httpx.post(f"{url}/session", headers=bearer(WRITE)))[0])
+        assert httpx.get(f"{url}/maps", headers=session).status_code == 200
+
+        write_tokens(tokens, f"write {WRITE}")  # the read token revoked
+        svc.proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: "SIGHUP: 1 API tokens read" in svc.logs(), 10, what="the reload's log line")
+        r = httpx.get(f"{url}/maps", headers=session)
+        assert r.status_code == 401 and r.json()["detail"].startswith("unknown token")
+        assert httpx.get(f"{url}/maps/m/events", headers=session).status_code == 401
+        assert httpx.post(f"{url}/session", headers=bearer(READ)).status_code == 401
+        assert httpx.get(f"{url}/maps", headers=kept).status_code == 200  # other sessions go on
+        # Given back, the token's old cookie works again: it stands for the token, nothing else.
+        write_tokens(tokens, f"read {READ}", f"write {WRITE}")
+        svc.proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: "SIGHUP: 2 API tokens read" in svc.logs(), 10, what="the second reload")
+        assert httpx.get(f"{url}/maps", headers=session).status_code == 200
+        logs = svc.logs()
+    for secret in (READ, WRITE, session_of(READ), session_of(WRITE)):
+        assert secret not in logs
+
+
+def test_signing_in_where_reads_are_open(tmp_path: Path) -> None:
+    """Without --require-read-token signing in still needs a valid token (the cookie then unlocks
+    nothing that is not open), and answers stay shareable by caches as before."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}")
+    with ServiceProcess(tmp_path, ["--in-memory", "--auth-tokens", str(tokens)]) as svc:
+        url = svc.base_url
+        assert httpx.post(f"{url}/session").status_code == 401
+        assert httpx.post(f"{url}/session", headers=bearer(UNKNOWN)).status_code == 401
+        r = httpx.post(f"{url}/session", headers=bearer(READ))
+        assert r.status_code == 200 and set_cookie(r)[0] == session_of(READ)
+        assert httpx.get(f"{url}/maps").headers["cache-control"] == "no-cache"
+
+
+def test_without_tokens_there_is_nothing_to_sign_in_to(tmp_path: Path) -> None:
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        r = httpx.post(f"{svc.base_url}/session", headers=bearer(READ))
+        assert r.status_code == 404 and "set-cookie" not in r.headers
+        assert "without API tokens" in r.json()["detail"] and "nothing to sign in to" in r.json()["detail"]
+        assert httpx.delete(f"{svc.base_url}/session").status_code == 204  # signing out is harmless

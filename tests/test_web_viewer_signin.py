@@ -1,0 +1,156 @@
+"""The web viewer on a service that needs a token to read (`--require-read-token`), in headless
+Chromium: the page loads, asks for a token, says when it is wrong, and with a read token shows the
+map (tiles drawn, the robot, the live event stream) through the session cookie `POST /session` set;
+a revoked token brings the form back, and signing out clears the cookie. With reads open the page
+never asks. Same Chromium and skip rule as test_web_viewer.py; one in-memory service per test.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import signal
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from service_process import ServiceProcess, wait_for
+from test_auth import READ, WRITE, bearer
+from test_web_viewer import _LOADED_TILES_JS, _TILE_PIXELS_JS, CHROMIUM, SHOW_MS, _settled_tiles, _wait
+from test_web_viewer_recovery import _scan
+from test_web_viewer_usability import _CONTRAST_JS, _FOCUS_JS
+
+from fleetmap.auth import SESSION_COOKIE
+
+pytestmark = pytest.mark.skipif(
+    not CHROMIUM.exists(),
+    reason="/usr/bin/chromium is missing: install Debian's chromium package (make system-deps)",
+)
+
+MAP_ID = "secured"
+ROBOT_ID = "r1"
+UNKNOWN = "unknown-token-0123456789"
+_SIGN_IN_SHOWN_JS = "() => !document.getElementById('sign-in').hidden"
+_SIGN_IN_GONE_JS = "() => document.getElementById('sign-in').hidden"
+_CONNECTED_JS = "() => document.getElementById('status').dataset.state === 'connected'"
+_ROW = f'#robot-list li[data-robot-id="{ROBOT_ID}"]'
+
+
+def _tokens(path: Path, *lines: str) -> Path:
+    path.write_text("".join(f"{line}\n" for line in lines))
+    return path
+
+
+def _map_with_a_robot(base: str) -> None:
+    """Map MAP_ID with a scan of ROBOT_ID (a ring of walls around (2, 2)), written with the write token."""
+    r = httpx.put(f"{base}/maps/{MAP_ID}", json={}, headers=bearer(WRITE), timeout=10.0)
+    assert r.status_code == 201, r.text
+    _scan(base, MAP_ID, ROBOT_ID, 1, 2.0, 2.0, headers=bearer(WRITE))
+
+
+def _sign_in(page: Any, token: str) -> None:
+    page.fill("#sign-in-token", token)
+    page.press("#sign-in-token", "Enter")
+
+
+def _session_cookies(page: Any) -> list[dict[str, Any]]:
+    return [c for c in page.context.cookies() if c["name"] == SESSION_COOKIE]
+
+
+def test_the_viewer_signs_in_with_a_read_token(
+    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
+    assert svc.proc is not None
+    base = svc.base_url
+    _map_with_a_robot(base)
+    tile_statuses: dict[str, int] = {}
+    page.on("response", lambda r: tile_statuses.__setitem__(r.url, r.status) if "/tiles/" in r.url else None)
+
+    # The page itself loads (its files are open); its first read is refused, and it asks for a token.
+    page.goto(f"{base}/#map={MAP_ID}&layer=probability")
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form")
+    assert page.inner_text("#status-text") == "sign in to see the maps"
+    assert page.evaluate("() => document.activeElement.id") == "sign-in-token"
+    assert page.get_attribute("#sign-in-token", "type") == "password"
+    assert page.is_hidden("#sign-out") and page.is_hidden("#error")  # a 401 is no error to report
+    assert page.eval_on_selector("#map-select", "el => el.disabled")
+    assert page.get_by_label("API token").count() == 1
+    low = [c for c in page.evaluate(_CONTRAST_JS) if c["ratio"] < c["need"]]
+    assert low == [], low
+    for _ in range(2):  # the token field, then the button: each shows a focus outline
+        focus = page.evaluate(_FOCUS_JS)
+        assert focus["style"] not in ("none", "auto") and focus["width"] >= 2, focus
+        page.keyboard.press("Tab")
+
+    # A wrong token: said under the form, no cookie, the form stays.
+    _sign_in(page, UNKNOWN)
+    _wait(
+        page,
+        "() => { const e = document.getElementById('sign-in-error');"
+        " return !e.hidden && e.textContent.includes('unknown token'); }",
+        what="'unknown token' under the form",
+    )
+    assert page.is_visible("#sign-in") and _session_cookies(page) == []
+
+    # The read token: the map, its tiles drawn, its robot, the live stream, all through the cookie.
+    _sign_in(page, READ)
+    _wait(page, _SIGN_IN_GONE_JS, what="the form gone")
+    _wait(page, _CONNECTED_JS, what="the event stream connected")
+    (cookie,) = _session_cookies(page)
+    assert cookie["value"] == hashlib.sha256(READ.encode()).hexdigest()
+    assert cookie["httpOnly"] and cookie["sameSite"] == "Strict" and cookie["path"] == "/"
+    assert page.evaluate("() => document.cookie") == ""  # out of the page's scripts' reach
+    assert page.input_value("#sign-in-token") == ""  # the page keeps no token
+    assert page.eval_on_selector("#map-select", "el => el.value") == MAP_ID
+    assert page.evaluate("() => location.hash") == f"#map={MAP_ID}&layer=probability"
+    _wait(page, f"() => {_LOADED_TILES_JS}.length > 0", what="loaded tiles")
+    _settled_tiles(page, tile_statuses)
+    drawn = page.evaluate(_TILE_PIXELS_JS)
+    assert sum(t["opaque"] for t in drawn) > 1000, drawn  # the ring of walls and the free space in it
+    page.wait_for_selector(_ROW, timeout=SHOW_MS)
+    assert page.is_visible("#sign-out")
+
+    # Live: a new scan reaches the page over the event stream (the robot's count goes up).
+    _scan(base, MAP_ID, ROBOT_ID, 2, 2.5, 2.0, headers=bearer(WRITE))
+    _wait(page, f"() => document.querySelector('{_ROW} .scans')?.textContent === '2 scans'", what="2 scans")
+    assert page.is_hidden("#error"), page.inner_text("#error")
+
+    # The token is revoked: the next map-list poll is refused, and the form is back, the map gone.
+    _tokens(tokens, f"write {WRITE}")
+    svc.proc.send_signal(signal.SIGHUP)
+    wait_for(lambda: "SIGHUP: 1 API tokens read" in svc.logs(), 10, what="the reload's log line")
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form again after the token was revoked")
+    assert page.evaluate("() => document.querySelectorAll('#map img.leaflet-tile').length") == 0
+    assert page.evaluate("() => document.querySelectorAll('#robot-list li[data-robot-id]').length") == 0
+    assert page.evaluate(
+        "() => [...document.querySelectorAll('#map-select option')].map((o) => o.value)"
+    ) == [""]
+    assert page.is_hidden("#sign-out")
+
+    # Another token signs in again, back on the map the URL still names; signing out clears the cookie.
+    _sign_in(page, WRITE)
+    _wait(page, _CONNECTED_JS, what="connected again")
+    assert page.eval_on_selector("#map-select", "el => el.value") == MAP_ID
+    page.click("#sign-out")
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form after signing out")
+    assert _session_cookies(page) == []
+    assert not page.page_errors, page.page_errors
+
+
+def test_with_reads_open_the_viewer_never_asks(
+    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    """Tokens for writing only: the page shows the map as it always has, with no form and no
+    'Sign out'."""
+    tokens = _tokens(tmp_path / "tokens.txt", f"write {WRITE}")
+    base = service_factory("--in-memory", "--auth-tokens", str(tokens)).base_url
+    _map_with_a_robot(base)
+    page.goto(f"{base}/#map={MAP_ID}")
+    _wait(page, _CONNECTED_JS, what="connected")
+    page.wait_for_selector(_ROW, timeout=SHOW_MS)
+    assert page.is_hidden("#sign-in") and page.is_hidden("#sign-out")
+    assert _session_cookies(page) == []
+    assert not page.page_errors, page.page_errors
