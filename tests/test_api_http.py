@@ -330,6 +330,11 @@ def test_query_parameters_once_each_unknown_ones_ignored(mapped: httpx.Client) -
                  "/maps/m/region?xmin=0&xmin=1&ymin=0&xmax=1&ymax=1"):  # fmt: skip
         r = mapped.get(path)
         assert r.status_code == 422 and "is given more than once" in r.json()["detail"], (path, r.text)
+        (item,) = r.json()["errors"]  # listed as a validation failure lists its problems
+        assert item["loc"][0] == "query" and item["type"] == "repeated", r.text
+    r = mapped.get("/maps/m/region?xmin=0&xmin=1&ymin=0&ymin=2&xmax=1&ymax=1")
+    assert [e["loc"] for e in r.json()["errors"]] == [["query", "xmin"], ["query", "ymin"]], r.text
+    assert "(and 1 more)" in r.json()["detail"], r.text
     plain = mapped.get("/maps/m/cell?x=0&y=0").json()
     assert mapped.get("/maps/m/cell?x=0&y=0&_=1700000000&v=2&v=3").json() == plain
     assert mapped.get(f"{TILE}?v=2").headers["etag"] == mapped.get(TILE).headers["etag"]

@@ -29,6 +29,8 @@ from fastapi.dependencies.models import Dependant
 from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from fleetmap.api.errors import ApiError
+from fleetmap.api_models import ErrorItem
 from fleetmap.codec import repeated_key
 
 UTF8_BOM = b"\xef\xbb\xbf"
@@ -104,8 +106,16 @@ class StrictRoute(APIRoute):
         async def strict_handler(request: Request) -> Response:
             repeated = sorted({key for key in query_names if len(request.query_params.getlist(key)) > 1})
             if repeated:
-                raise RequestRefused(
-                    422, f"query parameter {repeated[0]!r} is given more than once; give it once"
+                # One problem per parameter in `errors`, as a validation failure lists them.
+                problems = [
+                    ErrorItem(loc=["query", key], msg="given more than once; give it once", type="repeated")
+                    for key in repeated
+                ]
+                more = f" (and {len(repeated) - 1} more)" if len(repeated) > 1 else ""
+                raise ApiError(
+                    422,
+                    f"query parameter {repeated[0]!r} is given more than once; give it once{more}",
+                    errors=problems,
                 )
             request = StrictRequest(request.scope, request.receive)
             content_type = request.headers.get("content-type")
