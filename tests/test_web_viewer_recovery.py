@@ -9,6 +9,7 @@ test_web_viewer.py; one browser for the module, one page and one in-memory servi
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 from collections.abc import Callable
@@ -392,3 +393,46 @@ def test_the_view_follows_a_growing_map_until_the_user_moves_it(page: Any, svc: 
     assert page.evaluate("() => window.fleetmapViewer.map.getCenter()") == chosen
     assert not page.evaluate(_SHOWS_BOUNDS_JS, _bounds(base))
     assert not page.page_errors, page.page_errors
+
+
+#: Tiles the viewer keeps (to refresh them) whose image is no longer on the page.
+_DETACHED_TILES_JS = """
+() => [...window.fleetmapViewer.state.shownTiles.values()].filter((t) => !t.el.isConnected).length
+"""
+
+
+def test_tiles_aborted_by_a_zoom_are_forgotten(page: Any, svc: ServiceProcess) -> None:
+    """Tiles still loading when the user zooms again (an animated zoom, as the buttons and the wheel
+    do) are aborted: Leaflet takes them off the map and fires 'tileabort', not 'tileunload'. The
+    viewer kept them in its list of shown tiles, and every reset after (a reconnect, a replaced map)
+    asked the service for each of them again, for nothing. Tile answers are held back here so that
+    the second zoom catches the first one's tiles loading."""
+    base = svc.base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    _open(page, base, f"#map={MAP_ID}&layer=probability")
+    _wait(page, _TILES_LOADED_JS, what="every tile loaded")
+    page.evaluate(
+        "() => { const v = window.fleetmapViewer; v.aborted = 0; v.tiles.on('tileabort', () => v.aborted++);"
+        " v.zooms = 0; v.map.on('zoomend', () => v.zooms++); }"
+    )
+    held: list[Any] = []
+    page.route("**/tiles/**", lambda route: held.append(route))  # no answer: they stay under way
+    try:
+        zoom = page.evaluate("() => window.fleetmapViewer.map.getZoom()")
+        page.evaluate("(z) => window.fleetmapViewer.map.setZoom(z)", zoom + 1)
+        _wait(page, "() => window.fleetmapViewer.zooms === 1", what="the first zoom done")
+        for _ in range(50):  # the new level's requests reach the route
+            if held:
+                break
+            page.wait_for_timeout(20)
+        assert held, "no tile request was held back"
+        page.evaluate("(z) => window.fleetmapViewer.map.setZoom(z)", zoom + 2)
+        _wait(page, "() => window.fleetmapViewer.zooms === 2", what="the second zoom done")
+        assert page.evaluate("() => window.fleetmapViewer.aborted") > 0, "no tile was aborted"
+        assert page.evaluate(_DETACHED_TILES_JS) == 0
+        assert not page.page_errors, page.page_errors
+    finally:
+        page.unroute("**/tiles/**")
+        for route in held:
+            with contextlib.suppress(Exception):  # one the browser cancelled itself is handled
+                route.abort()

@@ -434,9 +434,14 @@
       done();
     });
   });
-  tiles.on('tileunload', (e) => {
-    state.shownTiles.delete(`${e.coords.x}:${e.coords.y}:${e.coords.z}`);
-  });
+  // A tile still loading when the zoom changes is aborted: Leaflet takes it off the map and says
+  // 'tileabort', not 'tileunload'. Kept here, a reset (reconnect, replaced map) asked for it again.
+  const forgetTile = (e) => {
+    const key = `${e.coords.x}:${e.coords.y}:${e.coords.z}`;
+    if (state.shownTiles.get(key)?.el === e.tile) state.shownTiles.delete(key);
+  };
+  tiles.on('tileunload', forgetTile);
+  tiles.on('tileabort', forgetTile);
   tiles.on('tileerror', (e) => {
     // A tile that fails (e.g. the map was deleted, the service is down) shows the transparent
     // errorTileUrl, not a broken image; say why, unless the status line already does (no stream).
