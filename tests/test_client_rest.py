@@ -255,6 +255,34 @@ def test_posted_scans_and_every_query_match_the_engine(client: FleetmapClient, s
     assert bad.value.status == 422 and client.get_map("q-copy").stats.tiles == info.stats.tiles
 
 
+def test_threads_posting_one_robots_scans_lose_none(client: FleetmapClient, scans: list[Scan]) -> None:
+    """The client is thread-safe, but threads posting one robot's scans with automatic seqs read
+    the counter before any answer moved it: 4 threads posting 40 scans sent most seqs twice (or a
+    higher one first), and the service ignored 30 of them as duplicates."""
+    client.create_map("threads", CONFIG)
+    threads, each = 4, 10
+    start = threading.Barrier(threads)
+    failures: list[BaseException] = []
+
+    def post_some(k: int) -> None:
+        start.wait()
+        try:
+            for n in range(each):
+                assert client.post_scan("threads", "r1", scans[(k + n) % len(scans)]).status == "integrated"
+        except BaseException as exc:  # reported below: an assert in a thread fails no test
+            failures.append(exc)
+
+    workers = [threading.Thread(target=post_some, args=(k,)) for k in range(threads)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    assert not failures, failures
+    robot = client.get_map("threads").stats.robots["r1"]
+    assert (robot.scans_integrated, robot.duplicates, robot.lost) == (threads * each, 0, 0)
+    assert robot.last_seq == threads * each - 1
+
+
 def test_post_scan_sends_nan_and_infinities_as_the_protocol_reads_them(client: FleetmapClient) -> None:
     """A ScanMessage without range_max (no maximum: infinite) or with a NaN range (an invalid
     reading), and a dict in the JSON scan format holding NaN or infinities, all legal scans of

@@ -27,6 +27,7 @@ import io
 import json
 import math
 import os
+import threading
 import zipfile
 from collections.abc import Generator, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -133,7 +134,9 @@ class FleetmapClient:
     stream lives (the server sends a keepalive every 15 s). `token`: an API token of the
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
     from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it).
-    Thread-safe (one httpx.Client); use as a context manager or call `close()`.
+    Thread-safe (one httpx.Client; `post_scan` sends one robot's scans one at a time, in call
+    order, so threads sharing a robot's automatic seqs lose none); use as a context manager or call
+    `close()`.
     """
 
     def __init__(
@@ -151,6 +154,9 @@ class FleetmapClient:
         self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers)
         #: Next automatic seq per (map_id, robot_id) for `post_scan` of a `Scan` without a seq.
         self._next_seq: dict[tuple[str, str], int] = {}
+        #: Per (map_id, robot_id): held by `post_scan` while it sends one of that robot's scans.
+        self._robot_locks: dict[tuple[str, str], threading.Lock] = {}
+        self._robot_locks_lock = threading.Lock()
 
     # -- plumbing ----------------------------------------------------------------------------------
 
@@ -279,38 +285,27 @@ class FleetmapClient:
             raise TypeError(
                 f"post_scan takes a fleetmap Scan, a ScanMessage or a dict, not {type(scan).__name__}"
             )
-        if isinstance(scan, Scan):
-            if seq is None:
-                seq = self._next_seq.get((map_id, robot_id), 0)
-            stamp = 0.0 if stamp is None else float(stamp)
-            if encoding == "binary":
-                body, content_type = encode_binary(scan, seq, stamp), BINARY_ENCODING
-            else:
-                body, content_type = encode_json(scan, seq, stamp), JSON_ENCODING
-        else:
-            message: dict[str, Any] = (
-                scan.model_dump(mode="json", exclude_none=True)
-                if isinstance(scan, ScanMessage)
-                else dict(scan)
-            )
-            if seq is not None:
-                message["seq"] = seq
-            if stamp is not None:
-                message["stamp"] = stamp
-            # NaN and infinities as the literals NaN, Infinity and -Infinity, which the service reads
-            # as a JSON scan's invalid reading, no return, and no maximum (docs/protocol.md): a
-            # ScanMessage's range_max is infinite unless given, and its NaN ranges stay invalid.
-            body = json.dumps(message, separators=(",", ":")).encode()
-            content_type = JSON_ENCODING
-            seq = message.get("seq") if isinstance(message.get("seq"), int) else None
-        response = self._request(
-            "POST", f"/maps/{map_id}/scans", params={"robot_id": robot_id}, content=body,
-            headers={"content-type": content_type},
-            timeout=httpx.Timeout(self.timeout, read=self.scan_timeout),
-        )  # fmt: skip
-        if seq is not None:
-            self._next_seq[(map_id, robot_id)] = seq + 1
+        key = (map_id, robot_id)
+        # One robot's scans are sent one at a time, in call order, each with its seq: two threads
+        # that took seqs 0 and 1 could otherwise both take 0 (one ignored as a duplicate), or send 1
+        # first (then 0 is a duplicate). The service integrates one robot's scans in order anyway.
+        with self._robot_lock(key):
+            if isinstance(scan, Scan) and seq is None:
+                seq = self._next_seq.get(key, 0)
+            body, content_type, sent_seq = _scan_body(scan, seq, stamp, encoding)
+            response = self._request(
+                "POST", f"/maps/{map_id}/scans", params={"robot_id": robot_id}, content=body,
+                headers={"content-type": content_type},
+                timeout=httpx.Timeout(self.timeout, read=self.scan_timeout),
+            )  # fmt: skip
+            if sent_seq is not None:
+                self._next_seq[key] = sent_seq + 1
         return ScanResult.model_validate_json(response.content)
+
+    def _robot_lock(self, key: tuple[str, str]) -> threading.Lock:
+        """The lock `post_scan` holds while it sends a scan of robot `key` (map_id, robot_id)."""
+        with self._robot_locks_lock:
+            return self._robot_locks.setdefault(key, threading.Lock())
 
     # -- queries -----------------------------------------------------------------------------------
 
@@ -578,6 +573,32 @@ def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
             event = value
         elif field == "data":
             data.append(value)
+
+
+def _scan_body(
+    scan: Scan | ScanMessage | Mapping[str, Any], seq: int | None, stamp: float | None, encoding: str
+) -> tuple[bytes, str, int | None]:
+    """`post_scan`'s request body for `scan`, its content type, and the seq it carries (None when a
+    dict carries none, or not an integer: the server refuses it). `seq` is required for a `Scan`."""
+    if isinstance(scan, Scan):
+        assert seq is not None
+        stamp = 0.0 if stamp is None else float(stamp)
+        if encoding == "binary":
+            return encode_binary(scan, seq, stamp), BINARY_ENCODING, seq
+        return encode_json(scan, seq, stamp), JSON_ENCODING, seq
+    message: dict[str, Any] = (
+        scan.model_dump(mode="json", exclude_none=True) if isinstance(scan, ScanMessage) else dict(scan)
+    )
+    if seq is not None:
+        message["seq"] = seq
+    if stamp is not None:
+        message["stamp"] = stamp
+    # NaN and infinities as the literals NaN, Infinity and -Infinity, which the service reads as a
+    # JSON scan's invalid reading, no return, and no maximum (docs/protocol.md): a ScanMessage's
+    # range_max is infinite unless given, and its NaN ranges stay invalid.
+    body = json.dumps(message, separators=(",", ":")).encode()
+    sent = message.get("seq")
+    return body, JSON_ENCODING, sent if isinstance(sent, int) else None
 
 
 def _finite(value: float) -> float:
