@@ -177,6 +177,58 @@ def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
         server.server_close()
 
 
+def test_automatic_seq_moves_past_a_scan_the_service_may_still_integrate(scans: list[Scan]) -> None:
+    """After a 503 "not integrated within 10 s; it will be integrated" (or an answer lost to a read
+    timeout) the scan is, or will be, in the map; the client kept its seq, so the next automatic
+    scan went out under it and the service ignored it as a duplicate. A refused scan (422) leaves
+    its seq free. A real HTTP server answers as the service does, in turn, and records the seqs."""
+    answers: list[tuple[int, dict[str, Any], float]] = [
+        (503, {"detail": "the scan was queued but not integrated within 10 s; it will be integrated"}, 0),
+        (422, {"detail": "scan: pose.x must be a finite number"}, 0),
+        (200, {"seq": 1, "status": "integrated"}, 0),
+        (200, {"seq": 2, "status": "integrated"}, 1.5),  # later than the client waits: ReadTimeout
+        (200, {"seq": 3, "status": "integrated"}, 0),
+    ]
+    seqs: list[int] = []
+
+    class Service(BaseHTTPRequestHandler):
+        def do_POST(self) -> None:
+            seqs.append(json.loads(self.rfile.read(int(self.headers["content-length"])))["seq"])
+            status, answer, delay = answers[len(seqs) - 1]
+            time.sleep(delay)
+            body = json.dumps(answer).encode()
+            self.send_response(status)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Service)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}"
+        with FleetmapClient(url, timeout=1.0, scan_timeout=1.0) as fm:
+            with pytest.raises(FleetmapError, match="it will be integrated"):
+                fm.post_scan("m", "r1", scans[0])
+            with pytest.raises(FleetmapError, match="pose.x"):
+                fm.post_scan("m", "r1", scans[1])
+            assert fm.post_scan("m", "r1", scans[1]).seq == 1
+            with pytest.raises(httpx.ReadTimeout):
+                fm.post_scan("m", "r1", scans[2])
+            assert fm.post_scan("m", "r1", scans[3]).status == "integrated"
+        with FleetmapClient(f"http://127.0.0.1:{free_port()}", timeout=2.0) as nowhere:
+            with pytest.raises(httpx.ConnectError):
+                nowhere.post_scan("m", "r1", scans[0])
+            assert nowhere._next_seq.get(("m", "r1"), 0) == 0  # nothing left: seq 0 is still free
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert seqs == [0, 1, 1, 2, 3]
+
+
 # -- scans and queries -----------------------------------------------------------------------------
 
 

@@ -276,6 +276,11 @@ class FleetmapClient:
         map when the server does not create maps on first use, 503 when the server could not
         integrate it in time (it still will) or its queue is full.
         Waits for the answer up to `scan_timeout` (see the class).
+
+        The automatic counter moves past every seq sent that the map may hold: after an answer,
+        and after a 503 or a lost answer (the scan may still be integrated: under its seq the next
+        scan would be a duplicate; the service counts the skipped seq as `lost` if it was not). It
+        stays after a refusal (4xx, 507) or a request that never left, whose seq is still free.
         """
         _check_id("map_id", map_id)
         _check_id("robot_id", robot_id)
@@ -293,11 +298,19 @@ class FleetmapClient:
             if isinstance(scan, Scan) and seq is None:
                 seq = self._next_seq.get(key, 0)
             body, content_type, sent_seq = _scan_body(scan, seq, stamp, encoding)
-            response = self._request(
-                "POST", f"/maps/{map_id}/scans", params={"robot_id": robot_id}, content=body,
-                headers={"content-type": content_type},
-                timeout=httpx.Timeout(self.timeout, read=self.scan_timeout),
-            )  # fmt: skip
+            try:
+                response = self._request(
+                    "POST", f"/maps/{map_id}/scans", params={"robot_id": robot_id}, content=body,
+                    headers={"content-type": content_type},
+                    timeout=httpx.Timeout(self.timeout, read=self.scan_timeout),
+                )  # fmt: skip
+            except BaseException as exc:
+                # A scan the service may still integrate (a 503 "not integrated within 10 s, it will
+                # be", an answer lost on the way) has used its seq: the next automatic scan under it
+                # would be ignored as a duplicate. Skipping a seq costs only a `lost` count.
+                if sent_seq is not None and not _scan_not_taken(exc):
+                    self._next_seq[key] = sent_seq + 1
+                raise
             if sent_seq is not None:
                 self._next_seq[key] = sent_seq + 1
         return ScanResult.model_validate_json(response.content)
@@ -599,6 +612,16 @@ def _scan_body(
     body = json.dumps(message, separators=(",", ":")).encode()
     sent = message.get("seq")
     return body, JSON_ENCODING, sent if isinstance(sent, int) else None
+
+
+def _scan_not_taken(exc: BaseException) -> bool:
+    """Whether a `post_scan` request that raised `exc` certainly left its scan out of the map, so
+    that its seq is still free: the service refused it (a 4xx, or 507 for memory), or the request
+    never left (no connection, or the client was closed). Otherwise (a 503, a read timeout, a
+    dropped connection) the scan may be integrated."""
+    if isinstance(exc, FleetmapError):
+        return exc.status < 500 or exc.status == 507
+    return isinstance(exc, httpx.ConnectError | httpx.ConnectTimeout | httpx.PoolTimeout | RuntimeError)
 
 
 def _finite(value: float) -> float:
