@@ -335,6 +335,21 @@ def test_threads_posting_one_robots_scans_lose_none(client: FleetmapClient, scan
     assert robot.last_seq == threads * each - 1
 
 
+def test_cells_past_the_services_limit_per_request(client: FleetmapClient, scans: list[Scan]) -> None:
+    """The service answers at most 100 000 points a request; the client sent any number in one, and
+    a planner asking for 250 000 got a 413. It now splits them and joins the answers in order."""
+    client.create_map("many-cells", CONFIG)
+    client.post_scan("many-cells", "r1", scans[0])
+    pose = scans[0].pose
+    some = np.random.default_rng(1).uniform([pose.x - 6, pose.y - 6], [pose.x + 6, pose.y + 6], (1000, 2))
+    few = client.cells("many-cells", some)
+    assert few["known"].any() and not few["known"].all()
+    many = client.cells("many-cells", np.tile(some, (250, 1)))  # 250 000 points: three requests
+    assert many.keys() == few.keys()
+    for name, values in few.items():
+        np.testing.assert_array_equal(many[name], np.tile(values, 250), err_msg=name)
+
+
 def test_post_scan_sends_nan_and_infinities_as_the_protocol_reads_them(client: FleetmapClient) -> None:
     """A ScanMessage without range_max (no maximum: infinite) or with a NaN range (an invalid
     reading), and a dict in the JSON scan format holding NaN or infinities, all legal scans of

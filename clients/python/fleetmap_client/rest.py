@@ -40,6 +40,7 @@ import yaml
 from pydantic import ValidationError
 
 from fleetmap.api_models import (
+    MAX_POINTS,
     CellsResponse,
     CellValue,
     ErrorResponse,
@@ -338,9 +339,26 @@ class FleetmapClient:
         unknown), `state` (str: "unknown" / "free" / "occupied"), `hits`, `misses` (int64), `tsdf`
         (float64, NaN if unknown), `tsdf_weight` (float64). Fields of layers the map does not keep
         are absent.
+
+        Any number of points: past the service's limit of `MAX_POINTS` (100 000) a request, they
+        are asked for in several requests, each read at its own moment (scans may land between
+        them); `FleetmapError` 409 if the map was replaced meanwhile by one keeping other layers.
         """
         _check_id("map_id", map_id)
         pts = as_points(points)  # ValueError for another shape than (n, 2) or a non-finite value
+        # The service answers at most MAX_POINTS points a request (413 past it): more go in several.
+        chunks = [pts[k : k + MAX_POINTS] for k in range(0, len(pts), MAX_POINTS)] or [pts]
+        parts = [self._cells(map_id, chunk) for chunk in chunks]
+        if len(parts) == 1:
+            return parts[0]
+        if any(part.keys() != parts[0].keys() for part in parts):  # replaced by a map of other layers
+            raise FleetmapError(
+                409, f"map {map_id!r} changed its layers while its {len(pts)} points were read in parts"
+            )
+        return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
+
+    def _cells(self, map_id: str, pts: np.ndarray) -> dict[str, np.ndarray]:
+        """One `POST /maps/{map_id}/cells` of at most MAX_POINTS checked points, as `cells` answers."""
         response = self._request("POST", f"/maps/{map_id}/cells", json={"points": pts.tolist()})
         parsed = CellsResponse.model_validate_json(response.content)
         out: dict[str, np.ndarray] = {
