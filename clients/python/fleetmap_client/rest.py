@@ -56,7 +56,7 @@ from fleetmap.api_models import (
 )
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
-from fleetmap.grid_map import as_points
+from fleetmap.grid_map import Points, as_points
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
 
@@ -329,7 +329,7 @@ class FleetmapClient:
         response = self._request("GET", f"/maps/{map_id}/cell", params={"x": _finite(x), "y": _finite(y)})
         return CellValue.model_validate_json(response.content)
 
-    def cells(self, map_id: str, points: Sequence[Sequence[float]] | np.ndarray) -> dict[str, np.ndarray]:
+    def cells(self, map_id: str, points: Points) -> dict[str, np.ndarray]:
         """`POST /maps/{map_id}/cells`: every layer at many map points at once.
 
         `points` is (n, 2) x, y in metres (one pair alone is one point; ValueError for another shape
@@ -381,7 +381,7 @@ class FleetmapClient:
     def raycast(
         self,
         map_id: str,
-        origin: Sequence[float],
+        origin: Sequence[float] | np.ndarray,
         angles: float | Sequence[float] | np.ndarray,
         max_range: float,
         unknown: Literal["stop", "pass"] = "stop",
