@@ -515,6 +515,40 @@ def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, sca
     assert received[-1] == ("deleted", {"id": "ev-rep"})
 
 
+def test_events_resume_after_the_service_restarts(tmp_path: Path, scans: list[Scan]) -> None:
+    """A dashboard following a map: the service restarts (SIGTERM ends every stream cleanly with
+    ": the server is shutting down"). `events` took that end for the end of the map's events and
+    stopped, where an EventSource reconnects with Last-Event-ID; it now waits for the service, says
+    ("reconnected", ...), and goes on with the changes made since."""
+    received: list[tuple[str, dict[str, Any]]] = []
+    finished = threading.Event()
+    with ServiceProcess(tmp_path) as svc, FleetmapClient(svc.base_url, timeout=20.0) as fm:
+        fm.create_map("follow", CONFIG)
+        fm.post_scan("follow", "r1", scans[0])
+
+        def listen() -> None:
+            with FleetmapClient(svc.base_url) as own:
+                received.extend(own.events("follow"))
+            finished.set()
+
+        threading.Thread(target=listen, daemon=True).start()
+        wait_for(lambda: any(e == "robots" for e, _ in received), 10, 0.02, "the initial robots event")
+        assert svc.stop() == 0
+        svc.start()  # the same ports and data directory: the map is restored
+        wait_for(lambda: any(e == "reconnected" for e, _ in received), 30, 0.05, "the stream resumed")
+        assert not finished.is_set()
+        changed = {tuple(w) for w in fm.post_scan("follow", "r1", scans[1]).changed_tiles}
+
+        def tiles_since_resumed() -> set[tuple[int, ...]]:
+            after = received[[e for e, _ in received].index("reconnected") :]
+            return {tuple(w) for e, d in after if e == "tiles" for w in d.get("tiles", [])}
+
+        wait_for(lambda: changed <= tiles_since_resumed(), 10, 0.02, "the tiles changed after the restart")
+        fm.delete_map("follow")
+        assert finished.wait(10), "the event stream did not end after the map was deleted"
+    assert received[-1] == ("deleted", {"id": "follow"})
+
+
 def test_events_of_an_unknown_map(client: FleetmapClient) -> None:
     with pytest.raises(FleetmapError) as exc:
         next(client.events("nothing-here"))

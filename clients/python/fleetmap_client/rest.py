@@ -28,6 +28,7 @@ import json
 import math
 import os
 import threading
+import time
 import zipfile
 from collections.abc import Generator, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -82,6 +83,10 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
         zf.writestr(name, image_path.read_bytes())
     return buf.getvalue()
 
+
+#: Seconds `events` waits before it resumes a lost stream (the server's `retry:`, 1000 ms), unless a
+#: 503's Retry-After says otherwise.
+RECONNECT_DELAY = 1.0
 
 #: The environment variable `FleetmapClient` reads its API token from when given none.
 TOKEN_ENV = "FLEETMAP_TOKEN"
@@ -538,10 +543,19 @@ class FleetmapClient:
         `RobotsDeltaEvent` as a dict (`RobotsDeltaEvent.model_validate(data)` types it), for a
         program that keeps its own state of a big fleet and wants only the changes.
 
-        The generator is lazy: the request is made on the first `next()`. It ends when the server
-        closes the stream; close it early with `.close()` on the generator (or by leaving a `for`
-        loop and dropping it). Raises `FleetmapError` (e.g. 404 unknown map) on the first `next()`;
-        an invalid `map_id` raises ValueError here, at the call, as every other method does.
+        The generator is lazy: the request is made on the first `next()`. It ends after `deleted`;
+        close it early with `.close()` on the generator (or by leaving a `for` loop and dropping
+        it). Raises `FleetmapError` (e.g. 404 unknown map) or httpx's `ConnectError` on the first
+        `next()`; an invalid `map_id` raises ValueError here, at the call, as every other method
+        does.
+
+        Once a stream was open, it is followed as an EventSource follows it: when the server stops
+        (a restart) or the connection is lost, `next()` waits for the service (`RECONNECT_DELAY`
+        between attempts, a 503's Retry-After) and resumes with `Last-Event-ID`, so the tiles
+        changed meanwhile come in the next `tiles` event (or a reset). It then yields
+        ("reconnected", {"last_event_id": ...}) first: a restarted service may hold another map
+        under the id, so reload `get_map` as after `replaced`. A 404 then (the map was deleted
+        meanwhile) or 401 / 403 raises `FleetmapError`.
         """
         _check_id("map_id", map_id)
         if robots not in ("full", "delta"):
@@ -550,15 +564,42 @@ class FleetmapClient:
         return stream if robots == "delta" else fold_robots(stream)
 
     def _events(self, map_id: str, since: int | None) -> EventStream:
-        params: dict[str, Any] = {"robots": "delta"}
-        if since is not None:
-            params["since"] = since
+        """The stream, resumed after a lost connection or a server restart (see `events`)."""
+        params = {"robots": "delta"}
         timeout = httpx.Timeout(self.timeout, read=None)  # the stream may be idle for a while
-        with self._http.stream("GET", f"/maps/{map_id}/events", params=params, timeout=timeout) as response:
-            if response.status_code >= 400:
-                response.read()
-                _raise_for_error(response)
-            yield from parse_sse(response.iter_lines())
+        # The last `id:` the server sent, as an EventSource keeps it; `since` is sent the same way
+        # (the server reads `Last-Event-ID` as `?since=`, which would win over it on a resume).
+        last_id = None if since is None else str(since)
+        followed = False  # a stream was opened: from then on a lost one is resumed
+        while True:
+            # Resume where the last stream stopped, as an EventSource does: the server sends the
+            # changes after `Last-Event-ID` (or a reset when it does not know that version).
+            headers = {} if last_id is None else {"Last-Event-ID": last_id}
+            delay = RECONNECT_DELAY
+            try:
+                with self._http.stream(
+                    "GET", f"/maps/{map_id}/events", params=params, headers=headers, timeout=timeout
+                ) as response:
+                    if response.status_code >= 400:
+                        response.read()
+                        if not (followed and response.status_code == 503):
+                            _raise_for_error(response)  # 404: the map is gone; 401 / 403: no access
+                        delay = _retry_after(response, delay)  # the server is stopping or full
+                    else:
+                        if followed:
+                            yield "reconnected", {"last_event_id": last_id}
+                        followed = True
+                        for event_id, event, data in _parse_sse_ids(response.iter_lines()):
+                            last_id = event_id or last_id
+                            yield event, data
+                            if event == "deleted":
+                                return
+            except httpx.TransportError:
+                if not followed:
+                    raise  # nothing listens at all: say so, as every other method does
+            # The stream ended without `deleted` (the server stopped: "the server is shutting
+            # down") or the connection was lost: wait for the service and go on.
+            time.sleep(delay)
 
 
 def fold_robots(events: EventStream) -> EventStream:
@@ -583,7 +624,15 @@ def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
     HTML server-sent events rules: `event:` names the event (default "message"), `data:` lines are
     joined by newlines and parsed as JSON (a non-JSON data becomes {"data": text}), a blank line
     dispatches, lines starting with ":" are comments; `id:` and `retry:` are ignored."""
+    for _, event, data in _parse_sse_ids(lines):
+        yield event, data
+
+
+def _parse_sse_ids(lines: Iterator[str]) -> Iterator[tuple[str | None, str, dict[str, Any]]]:
+    """`parse_sse`, each event with the stream's last event id when it was dispatched (an `id:`
+    line sets it for this event and the following ones, as an EventSource's `lastEventId`)."""
     event = ""
+    last_id: str | None = None
     data: list[str] = []
     for line in lines:
         if line == "":
@@ -593,7 +642,7 @@ def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
                     parsed = json.loads(text)
                 except json.JSONDecodeError:
                     parsed = {"data": text}
-                yield event or "message", parsed if isinstance(parsed, dict) else {"data": parsed}
+                yield last_id, event or "message", parsed if isinstance(parsed, dict) else {"data": parsed}
             event, data = "", []
             continue
         if line.startswith(":"):
@@ -604,6 +653,16 @@ def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
             event = value
         elif field == "data":
             data.append(value)
+        elif field == "id" and "\0" not in value:
+            last_id = value
+
+
+def _retry_after(response: httpx.Response, default: float) -> float:
+    """The seconds a 503's `Retry-After` asks a client to wait (`default` without a number)."""
+    try:
+        return max(0.0, float(response.headers.get("Retry-After", "")))
+    except ValueError:
+        return default
 
 
 def _scan_body(
@@ -666,6 +725,7 @@ def _raise_for_error(response: httpx.Response) -> None:
 
 
 __all__ = [
+    "RECONNECT_DELAY",
     "SCAN_TIMEOUT",
     "TOKEN_ENV",
     "EventStream",
