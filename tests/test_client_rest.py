@@ -177,6 +177,58 @@ def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
         server.server_close()
 
 
+def test_automatic_seq_moves_past_a_scan_the_service_may_still_integrate(scans: list[Scan]) -> None:
+    """After a 503 "not integrated within 10 s; it will be integrated" (or an answer lost to a read
+    timeout) the scan is, or will be, in the map; the client kept its seq, so the next automatic
+    scan went out under it and the service ignored it as a duplicate. A refused scan (422) leaves
+    its seq free. A real HTTP server answers as the service does, in turn, and records the seqs."""
+    answers: list[tuple[int, dict[str, Any], float]] = [
+        (503, {"detail": "the scan was queued but not integrated within 10 s; it will be integrated"}, 0),
+        (422, {"detail": "scan: pose.x must be a finite number"}, 0),
+        (200, {"seq": 1, "status": "integrated"}, 0),
+        (200, {"seq": 2, "status": "integrated"}, 1.5),  # later than the client waits: ReadTimeout
+        (200, {"seq": 3, "status": "integrated"}, 0),
+    ]
+    seqs: list[int] = []
+
+    class Service(BaseHTTPRequestHandler):
+        def do_POST(self) -> None:
+            seqs.append(json.loads(self.rfile.read(int(self.headers["content-length"])))["seq"])
+            status, answer, delay = answers[len(seqs) - 1]
+            time.sleep(delay)
+            body = json.dumps(answer).encode()
+            self.send_response(status)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Service)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}"
+        with FleetmapClient(url, timeout=1.0, scan_timeout=1.0) as fm:
+            with pytest.raises(FleetmapError, match="it will be integrated"):
+                fm.post_scan("m", "r1", scans[0])
+            with pytest.raises(FleetmapError, match="pose.x"):
+                fm.post_scan("m", "r1", scans[1])
+            assert fm.post_scan("m", "r1", scans[1]).seq == 1
+            with pytest.raises(httpx.ReadTimeout):
+                fm.post_scan("m", "r1", scans[2])
+            assert fm.post_scan("m", "r1", scans[3]).status == "integrated"
+        with FleetmapClient(f"http://127.0.0.1:{free_port()}", timeout=2.0) as nowhere:
+            with pytest.raises(httpx.ConnectError):
+                nowhere.post_scan("m", "r1", scans[0])
+            assert nowhere._next_seq.get(("m", "r1"), 0) == 0  # nothing left: seq 0 is still free
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert seqs == [0, 1, 1, 2, 3]
+
+
 # -- scans and queries -----------------------------------------------------------------------------
 
 
@@ -253,6 +305,49 @@ def test_posted_scans_and_every_query_match_the_engine(client: FleetmapClient, s
     with pytest.raises(FleetmapError) as bad:
         client.upload_snapshot("q-copy", snapshot[: len(snapshot) // 2])
     assert bad.value.status == 422 and client.get_map("q-copy").stats.tiles == info.stats.tiles
+
+
+def test_threads_posting_one_robots_scans_lose_none(client: FleetmapClient, scans: list[Scan]) -> None:
+    """The client is thread-safe, but threads posting one robot's scans with automatic seqs read
+    the counter before any answer moved it: 4 threads posting 40 scans sent most seqs twice (or a
+    higher one first), and the service ignored 30 of them as duplicates."""
+    client.create_map("threads", CONFIG)
+    threads, each = 4, 10
+    start = threading.Barrier(threads)
+    failures: list[BaseException] = []
+
+    def post_some(k: int) -> None:
+        start.wait()
+        try:
+            for n in range(each):
+                assert client.post_scan("threads", "r1", scans[(k + n) % len(scans)]).status == "integrated"
+        except BaseException as exc:  # reported below: an assert in a thread fails no test
+            failures.append(exc)
+
+    workers = [threading.Thread(target=post_some, args=(k,)) for k in range(threads)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    assert not failures, failures
+    robot = client.get_map("threads").stats.robots["r1"]
+    assert (robot.scans_integrated, robot.duplicates, robot.lost) == (threads * each, 0, 0)
+    assert robot.last_seq == threads * each - 1
+
+
+def test_cells_past_the_services_limit_per_request(client: FleetmapClient, scans: list[Scan]) -> None:
+    """The service answers at most 100 000 points a request; the client sent any number in one, and
+    a planner asking for 250 000 got a 413. It now splits them and joins the answers in order."""
+    client.create_map("many-cells", CONFIG)
+    client.post_scan("many-cells", "r1", scans[0])
+    pose = scans[0].pose
+    some = np.random.default_rng(1).uniform([pose.x - 6, pose.y - 6], [pose.x + 6, pose.y + 6], (1000, 2))
+    few = client.cells("many-cells", some)
+    assert few["known"].any() and not few["known"].all()
+    many = client.cells("many-cells", np.tile(some, (250, 1)))  # 250 000 points: three requests
+    assert many.keys() == few.keys()
+    for name, values in few.items():
+        np.testing.assert_array_equal(many[name], np.tile(values, 250), err_msg=name)
 
 
 def test_post_scan_sends_nan_and_infinities_as_the_protocol_reads_them(client: FleetmapClient) -> None:
@@ -418,6 +513,40 @@ def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, sca
     client.delete_map("ev-rep")
     assert finished.wait(10), "the event stream did not end after the map was deleted"
     assert received[-1] == ("deleted", {"id": "ev-rep"})
+
+
+def test_events_resume_after_the_service_restarts(tmp_path: Path, scans: list[Scan]) -> None:
+    """A dashboard following a map: the service restarts (SIGTERM ends every stream cleanly with
+    ": the server is shutting down"). `events` took that end for the end of the map's events and
+    stopped, where an EventSource reconnects with Last-Event-ID; it now waits for the service, says
+    ("reconnected", ...), and goes on with the changes made since."""
+    received: list[tuple[str, dict[str, Any]]] = []
+    finished = threading.Event()
+    with ServiceProcess(tmp_path) as svc, FleetmapClient(svc.base_url, timeout=20.0) as fm:
+        fm.create_map("follow", CONFIG)
+        fm.post_scan("follow", "r1", scans[0])
+
+        def listen() -> None:
+            with FleetmapClient(svc.base_url) as own:
+                received.extend(own.events("follow"))
+            finished.set()
+
+        threading.Thread(target=listen, daemon=True).start()
+        wait_for(lambda: any(e == "robots" for e, _ in received), 10, 0.02, "the initial robots event")
+        assert svc.stop() == 0
+        svc.start()  # the same ports and data directory: the map is restored
+        wait_for(lambda: any(e == "reconnected" for e, _ in received), 30, 0.05, "the stream resumed")
+        assert not finished.is_set()
+        changed = {tuple(w) for w in fm.post_scan("follow", "r1", scans[1]).changed_tiles}
+
+        def tiles_since_resumed() -> set[tuple[int, ...]]:
+            after = received[[e for e, _ in received].index("reconnected") :]
+            return {tuple(w) for e, d in after if e == "tiles" for w in d.get("tiles", [])}
+
+        wait_for(lambda: changed <= tiles_since_resumed(), 10, 0.02, "the tiles changed after the restart")
+        fm.delete_map("follow")
+        assert finished.wait(10), "the event stream did not end after the map was deleted"
+    assert received[-1] == ("deleted", {"id": "follow"})
 
 
 def test_events_of_an_unknown_map(client: FleetmapClient) -> None:

@@ -285,6 +285,30 @@ def test_publisher_rejects_bad_arguments_and_use_after_close(router: Router, sim
     assert pub.wait_connected(0.1) is False
 
 
+def test_concurrent_publishes_leave_in_seq_order(router: Router, sim_scans: list[Scan]) -> None:
+    """ScanPublisher is thread-safe, and threads of one robot publishing at once took distinct
+    seqs but handed their scans to Zenoh after letting go of the lock: a later seq could leave
+    first, and the service then took the earlier one for a duplicate and ignored it (seen against
+    the real service: 4 to 10 of 120 scans from 8 threads counted as duplicates, as many as lost)."""
+    threads, each = 8, 40
+    with ScanPublisher("m", "threads", connect=[router.endpoint]) as pub:
+        assert pub.wait_connected(10)
+        start = threading.Barrier(threads)
+
+        def publish_some() -> None:
+            start.wait()
+            for k in range(each):
+                assert pub.publish(sim_scans[k % len(sim_scans)])
+
+        workers = [threading.Thread(target=publish_some) for _ in range(threads)]
+        for worker in workers:
+            worker.start()
+        for worker in workers:
+            worker.join()
+        got = router.wait_count(threads * each, "fleetmap/m/threads/scan")
+    assert [wire.seq for _, _, wire in got] == list(range(threads * each))
+
+
 def test_a_refused_publish_leaves_no_gap_in_the_seqs(router: Router, sim_scans: list[Scan]) -> None:
     """A call that raises publishes nothing and keeps the seq counter: it used to take a seq (a
     dict failed while encoding, a float seq made the counter 3.5), which the service counts as a

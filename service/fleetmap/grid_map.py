@@ -39,6 +39,10 @@ from fleetmap.update_plan import (
     trace_scratch,
 )
 
+#: Map points as `GridMap.cells` (and the REST client's `cells`) take them: (x, y) pairs, shape
+#: (n, 2), or one pair alone (one point).
+Points = Sequence[Sequence[float]] | Sequence[float] | np.ndarray
+
 #: Layers a region can be read as: stored arrays plus the values derived from them.
 REGION_LAYERS = ("log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight")
 
@@ -291,7 +295,7 @@ class GridMap:
             state[p < self.config.occupancy.free_thresh] = STATE_FREE
         return state
 
-    def cells(self, points: Sequence[Sequence[float]] | np.ndarray) -> dict[str, np.ndarray]:
+    def cells(self, points: Points) -> dict[str, np.ndarray]:
         """Every kept layer's value at each map point, one entry per point in order.
 
         `points`: (x, y) pairs in metres, shape (n, 2) (one pair alone is one point); ValueError for
@@ -556,7 +560,7 @@ def _ray_origin(origin: Sequence[float] | np.ndarray) -> tuple[float, float]:
     return float(o[0]), float(o[1])
 
 
-def as_points(points: Sequence[Sequence[float]] | np.ndarray) -> np.ndarray:
+def as_points(points: Points) -> np.ndarray:
     """Map points as a float64 array of shape (n, 2); one (x, y) pair alone is one point, an empty
     sequence none. Raises ValueError for any other shape (an (n, 3) array is not read as 3n/2
     points), for values that are not numbers, and for a coordinate that is not finite."""

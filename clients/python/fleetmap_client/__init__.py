@@ -11,7 +11,11 @@ program that only reads maps does not start Zenoh.
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # what type checkers and IDEs see; at run time `__getattr__` imports on demand
+    from fleetmap_client.publisher import PublisherClosed, ScanPublisher
+    from fleetmap_client.rest import FleetmapClient, FleetmapError
 
 _EXPORTS = {
     "ScanPublisher": "fleetmap_client.publisher",
@@ -20,7 +24,8 @@ _EXPORTS = {
     "FleetmapError": "fleetmap_client.rest",
 }
 
-__all__ = sorted(_EXPORTS)
+__all__ = ["FleetmapClient", "FleetmapError", "PublisherClosed", "ScanPublisher"]
+assert set(__all__) == set(_EXPORTS), "one list of public names"
 
 
 def __getattr__(name: str) -> Any:

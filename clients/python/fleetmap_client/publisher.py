@@ -138,7 +138,8 @@ def _json_list(items: Sequence[str]) -> str:
 
 
 class ScanPublisher:
-    """Publishes one robot's scans to one map over Zenoh. Thread-safe.
+    """Publishes one robot's scans to one map over Zenoh. Thread-safe: concurrent `publish` calls
+    take distinct seqs and their scans leave in seq order (one at a time).
 
     Args:
         map_id, robot_id: ids matching `fleetmap.wire.ID_PATTERN` (`[A-Za-z0-9_-]{1,64}`); anything
@@ -182,6 +183,10 @@ class ScanPublisher:
         self._zenoh_encoding = zenoh.Encoding(BINARY_ENCODING if encoding == "binary" else JSON_ENCODING)
         # _lock guards the session objects and the counters; the opener thread sets them.
         self._lock = threading.Lock()
+        # _send_lock is held by `publish` from taking a seq to handing the scan to Zenoh, so that
+        # scans leave in seq order: the service takes a scan whose seq arrives after a higher one for
+        # a duplicate and ignores it. Not `_lock`, which `close` and the counters need meanwhile.
+        self._send_lock = threading.Lock()
         self._opened = threading.Event()
         self._closed = threading.Event()
         self._session: zenoh.Session | None = None
@@ -322,34 +327,34 @@ class ScanPublisher:
         stamp = float(stamp)
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite, got {stamp}")
-        with self._lock:
-            if self._closed.is_set():
-                raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
-            session = self._session_id
-            if seq is None:
-                seq = self._next_seq
-                if seq >= SEQ_LIMIT:
-                    raise ValueError("the automatic seq passed 2**63 - 1: publish with seq=0 to restart")
-            elif session is not None and self._last_seq is not None and seq < self._last_seq:
-                session = new_session_id()  # the seq starts again: under the old session, duplicates
-            # Encoded before the counter moves, under the lock so that concurrent callers still get
-            # distinct seqs in order: a scan that cannot be encoded must not leave a gap.
-            payload = self._encode(scan, seq, stamp, session=session)
-            self._session_id = session
-            self._next_seq = seq + 1
-            self._last_seq = seq
-            publisher = self._publisher
-        if publisher is None or not self.connected:
+        with self._send_lock:
             with self._lock:
-                self.dropped += 1
-            return False
-        try:
-            publisher.put(payload)
-        except zenoh.ZError:
-            # Only possible when close() raced with this call: report it like a disconnection.
-            with self._lock:
-                self.dropped += 1
-            return False
+                if self._closed.is_set():
+                    raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
+                session = self._session_id
+                if seq is None:
+                    seq = self._next_seq
+                    if seq >= SEQ_LIMIT:
+                        raise ValueError("the automatic seq passed 2**63 - 1: publish with seq=0 to restart")
+                elif session is not None and self._last_seq is not None and seq < self._last_seq:
+                    session = new_session_id()  # the seq starts again: under the old session, duplicates
+                # Encoded before the counter moves, so that a scan that cannot be encoded leaves no gap.
+                payload = self._encode(scan, seq, stamp, session=session)
+                self._session_id = session
+                self._next_seq = seq + 1
+                self._last_seq = seq
+                publisher = self._publisher
+            if publisher is None or not self.connected:
+                with self._lock:
+                    self.dropped += 1
+                return False
+            try:
+                publisher.put(payload)
+            except zenoh.ZError:
+                # Only possible when close() raced with this call: report it like a disconnection.
+                with self._lock:
+                    self.dropped += 1
+                return False
         with self._lock:
             self.published += 1
         return True

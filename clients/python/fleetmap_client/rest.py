@@ -27,6 +27,8 @@ import io
 import json
 import math
 import os
+import threading
+import time
 import zipfile
 from collections.abc import Generator, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -39,6 +41,7 @@ import yaml
 from pydantic import ValidationError
 
 from fleetmap.api_models import (
+    MAX_POINTS,
     CellsResponse,
     CellValue,
     ErrorResponse,
@@ -54,7 +57,7 @@ from fleetmap.api_models import (
 )
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
-from fleetmap.grid_map import as_points
+from fleetmap.grid_map import Points, as_points
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
 
@@ -80,6 +83,10 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
         zf.writestr(name, image_path.read_bytes())
     return buf.getvalue()
 
+
+#: Seconds `events` waits before it resumes a lost stream (the server's `retry:`, 1000 ms), unless a
+#: 503's Retry-After says otherwise.
+RECONNECT_DELAY = 1.0
 
 #: The environment variable `FleetmapClient` reads its API token from when given none.
 TOKEN_ENV = "FLEETMAP_TOKEN"
@@ -133,7 +140,9 @@ class FleetmapClient:
     stream lives (the server sends a keepalive every 15 s). `token`: an API token of the
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
     from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it).
-    Thread-safe (one httpx.Client); use as a context manager or call `close()`.
+    Thread-safe (one httpx.Client; `post_scan` sends one robot's scans one at a time, in call
+    order, so threads sharing a robot's automatic seqs lose none); use as a context manager or call
+    `close()`.
     """
 
     def __init__(
@@ -151,6 +160,9 @@ class FleetmapClient:
         self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers)
         #: Next automatic seq per (map_id, robot_id) for `post_scan` of a `Scan` without a seq.
         self._next_seq: dict[tuple[str, str], int] = {}
+        #: Per (map_id, robot_id): held by `post_scan` while it sends one of that robot's scans.
+        self._robot_locks: dict[tuple[str, str], threading.Lock] = {}
+        self._robot_locks_lock = threading.Lock()
 
     # -- plumbing ----------------------------------------------------------------------------------
 
@@ -270,6 +282,11 @@ class FleetmapClient:
         map when the server does not create maps on first use, 503 when the server could not
         integrate it in time (it still will) or its queue is full.
         Waits for the answer up to `scan_timeout` (see the class).
+
+        The automatic counter moves past every seq sent that the map may hold: after an answer,
+        and after a 503 or a lost answer (the scan may still be integrated: under its seq the next
+        scan would be a duplicate; the service counts the skipped seq as `lost` if it was not). It
+        stays after a refusal (4xx, 507) or a request that never left, whose seq is still free.
         """
         _check_id("map_id", map_id)
         _check_id("robot_id", robot_id)
@@ -279,38 +296,35 @@ class FleetmapClient:
             raise TypeError(
                 f"post_scan takes a fleetmap Scan, a ScanMessage or a dict, not {type(scan).__name__}"
             )
-        if isinstance(scan, Scan):
-            if seq is None:
-                seq = self._next_seq.get((map_id, robot_id), 0)
-            stamp = 0.0 if stamp is None else float(stamp)
-            if encoding == "binary":
-                body, content_type = encode_binary(scan, seq, stamp), BINARY_ENCODING
-            else:
-                body, content_type = encode_json(scan, seq, stamp), JSON_ENCODING
-        else:
-            message: dict[str, Any] = (
-                scan.model_dump(mode="json", exclude_none=True)
-                if isinstance(scan, ScanMessage)
-                else dict(scan)
-            )
-            if seq is not None:
-                message["seq"] = seq
-            if stamp is not None:
-                message["stamp"] = stamp
-            # NaN and infinities as the literals NaN, Infinity and -Infinity, which the service reads
-            # as a JSON scan's invalid reading, no return, and no maximum (docs/protocol.md): a
-            # ScanMessage's range_max is infinite unless given, and its NaN ranges stay invalid.
-            body = json.dumps(message, separators=(",", ":")).encode()
-            content_type = JSON_ENCODING
-            seq = message.get("seq") if isinstance(message.get("seq"), int) else None
-        response = self._request(
-            "POST", f"/maps/{map_id}/scans", params={"robot_id": robot_id}, content=body,
-            headers={"content-type": content_type},
-            timeout=httpx.Timeout(self.timeout, read=self.scan_timeout),
-        )  # fmt: skip
-        if seq is not None:
-            self._next_seq[(map_id, robot_id)] = seq + 1
+        key = (map_id, robot_id)
+        # One robot's scans are sent one at a time, in call order, each with its seq: two threads
+        # that took seqs 0 and 1 could otherwise both take 0 (one ignored as a duplicate), or send 1
+        # first (then 0 is a duplicate). The service integrates one robot's scans in order anyway.
+        with self._robot_lock(key):
+            if isinstance(scan, Scan) and seq is None:
+                seq = self._next_seq.get(key, 0)
+            body, content_type, sent_seq = _scan_body(scan, seq, stamp, encoding)
+            try:
+                response = self._request(
+                    "POST", f"/maps/{map_id}/scans", params={"robot_id": robot_id}, content=body,
+                    headers={"content-type": content_type},
+                    timeout=httpx.Timeout(self.timeout, read=self.scan_timeout),
+                )  # fmt: skip
+            except BaseException as exc:
+                # A scan the service may still integrate (a 503 "not integrated within 10 s, it will
+                # be", an answer lost on the way) has used its seq: the next automatic scan under it
+                # would be ignored as a duplicate. Skipping a seq costs only a `lost` count.
+                if sent_seq is not None and not _scan_not_taken(exc):
+                    self._next_seq[key] = sent_seq + 1
+                raise
+            if sent_seq is not None:
+                self._next_seq[key] = sent_seq + 1
         return ScanResult.model_validate_json(response.content)
+
+    def _robot_lock(self, key: tuple[str, str]) -> threading.Lock:
+        """The lock `post_scan` holds while it sends a scan of robot `key` (map_id, robot_id)."""
+        with self._robot_locks_lock:
+            return self._robot_locks.setdefault(key, threading.Lock())
 
     # -- queries -----------------------------------------------------------------------------------
 
@@ -320,7 +334,7 @@ class FleetmapClient:
         response = self._request("GET", f"/maps/{map_id}/cell", params={"x": _finite(x), "y": _finite(y)})
         return CellValue.model_validate_json(response.content)
 
-    def cells(self, map_id: str, points: Sequence[Sequence[float]] | np.ndarray) -> dict[str, np.ndarray]:
+    def cells(self, map_id: str, points: Points) -> dict[str, np.ndarray]:
         """`POST /maps/{map_id}/cells`: every layer at many map points at once.
 
         `points` is (n, 2) x, y in metres (one pair alone is one point; ValueError for another shape
@@ -330,9 +344,26 @@ class FleetmapClient:
         unknown), `state` (str: "unknown" / "free" / "occupied"), `hits`, `misses` (int64), `tsdf`
         (float64, NaN if unknown), `tsdf_weight` (float64). Fields of layers the map does not keep
         are absent.
+
+        Any number of points: past the service's limit of `MAX_POINTS` (100 000) a request, they
+        are asked for in several requests, each read at its own moment (scans may land between
+        them); `FleetmapError` 409 if the map was replaced meanwhile by one keeping other layers.
         """
         _check_id("map_id", map_id)
         pts = as_points(points)  # ValueError for another shape than (n, 2) or a non-finite value
+        # The service answers at most MAX_POINTS points a request (413 past it): more go in several.
+        chunks = [pts[k : k + MAX_POINTS] for k in range(0, len(pts), MAX_POINTS)] or [pts]
+        parts = [self._cells(map_id, chunk) for chunk in chunks]
+        if len(parts) == 1:
+            return parts[0]
+        if any(part.keys() != parts[0].keys() for part in parts):  # replaced by a map of other layers
+            raise FleetmapError(
+                409, f"map {map_id!r} changed its layers while its {len(pts)} points were read in parts"
+            )
+        return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
+
+    def _cells(self, map_id: str, pts: np.ndarray) -> dict[str, np.ndarray]:
+        """One `POST /maps/{map_id}/cells` of at most MAX_POINTS checked points, as `cells` answers."""
         response = self._request("POST", f"/maps/{map_id}/cells", json={"points": pts.tolist()})
         parsed = CellsResponse.model_validate_json(response.content)
         out: dict[str, np.ndarray] = {
@@ -355,7 +386,7 @@ class FleetmapClient:
     def raycast(
         self,
         map_id: str,
-        origin: Sequence[float],
+        origin: Sequence[float] | np.ndarray,
         angles: float | Sequence[float] | np.ndarray,
         max_range: float,
         unknown: Literal["stop", "pass"] = "stop",
@@ -512,10 +543,19 @@ class FleetmapClient:
         `RobotsDeltaEvent` as a dict (`RobotsDeltaEvent.model_validate(data)` types it), for a
         program that keeps its own state of a big fleet and wants only the changes.
 
-        The generator is lazy: the request is made on the first `next()`. It ends when the server
-        closes the stream; close it early with `.close()` on the generator (or by leaving a `for`
-        loop and dropping it). Raises `FleetmapError` (e.g. 404 unknown map) on the first `next()`;
-        an invalid `map_id` raises ValueError here, at the call, as every other method does.
+        The generator is lazy: the request is made on the first `next()`. It ends after `deleted`;
+        close it early with `.close()` on the generator (or by leaving a `for` loop and dropping
+        it). Raises `FleetmapError` (e.g. 404 unknown map) or httpx's `ConnectError` on the first
+        `next()`; an invalid `map_id` raises ValueError here, at the call, as every other method
+        does.
+
+        Once a stream was open, it is followed as an EventSource follows it: when the server stops
+        (a restart) or the connection is lost, `next()` waits for the service (`RECONNECT_DELAY`
+        between attempts, a 503's Retry-After) and resumes with `Last-Event-ID`, so the tiles
+        changed meanwhile come in the next `tiles` event (or a reset). It then yields
+        ("reconnected", {"last_event_id": ...}) first: a restarted service may hold another map
+        under the id, so reload `get_map` as after `replaced`. A 404 then (the map was deleted
+        meanwhile) or 401 / 403 raises `FleetmapError`.
         """
         _check_id("map_id", map_id)
         if robots not in ("full", "delta"):
@@ -524,15 +564,42 @@ class FleetmapClient:
         return stream if robots == "delta" else fold_robots(stream)
 
     def _events(self, map_id: str, since: int | None) -> EventStream:
-        params: dict[str, Any] = {"robots": "delta"}
-        if since is not None:
-            params["since"] = since
+        """The stream, resumed after a lost connection or a server restart (see `events`)."""
+        params = {"robots": "delta"}
         timeout = httpx.Timeout(self.timeout, read=None)  # the stream may be idle for a while
-        with self._http.stream("GET", f"/maps/{map_id}/events", params=params, timeout=timeout) as response:
-            if response.status_code >= 400:
-                response.read()
-                _raise_for_error(response)
-            yield from parse_sse(response.iter_lines())
+        # The last `id:` the server sent, as an EventSource keeps it; `since` is sent the same way
+        # (the server reads `Last-Event-ID` as `?since=`, which would win over it on a resume).
+        last_id = None if since is None else str(since)
+        followed = False  # a stream was opened: from then on a lost one is resumed
+        while True:
+            # Resume where the last stream stopped, as an EventSource does: the server sends the
+            # changes after `Last-Event-ID` (or a reset when it does not know that version).
+            headers = {} if last_id is None else {"Last-Event-ID": last_id}
+            delay = RECONNECT_DELAY
+            try:
+                with self._http.stream(
+                    "GET", f"/maps/{map_id}/events", params=params, headers=headers, timeout=timeout
+                ) as response:
+                    if response.status_code >= 400:
+                        response.read()
+                        if not (followed and response.status_code == 503):
+                            _raise_for_error(response)  # 404: the map is gone; 401 / 403: no access
+                        delay = _retry_after(response, delay)  # the server is stopping or full
+                    else:
+                        if followed:
+                            yield "reconnected", {"last_event_id": last_id}
+                        followed = True
+                        for event_id, event, data in _parse_sse_ids(response.iter_lines()):
+                            last_id = event_id or last_id
+                            yield event, data
+                            if event == "deleted":
+                                return
+            except httpx.TransportError:
+                if not followed:
+                    raise  # nothing listens at all: say so, as every other method does
+            # The stream ended without `deleted` (the server stopped: "the server is shutting
+            # down") or the connection was lost: wait for the service and go on.
+            time.sleep(delay)
 
 
 def fold_robots(events: EventStream) -> EventStream:
@@ -557,7 +624,15 @@ def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
     HTML server-sent events rules: `event:` names the event (default "message"), `data:` lines are
     joined by newlines and parsed as JSON (a non-JSON data becomes {"data": text}), a blank line
     dispatches, lines starting with ":" are comments; `id:` and `retry:` are ignored."""
+    for _, event, data in _parse_sse_ids(lines):
+        yield event, data
+
+
+def _parse_sse_ids(lines: Iterator[str]) -> Iterator[tuple[str | None, str, dict[str, Any]]]:
+    """`parse_sse`, each event with the stream's last event id when it was dispatched (an `id:`
+    line sets it for this event and the following ones, as an EventSource's `lastEventId`)."""
     event = ""
+    last_id: str | None = None
     data: list[str] = []
     for line in lines:
         if line == "":
@@ -567,7 +642,7 @@ def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
                     parsed = json.loads(text)
                 except json.JSONDecodeError:
                     parsed = {"data": text}
-                yield event or "message", parsed if isinstance(parsed, dict) else {"data": parsed}
+                yield last_id, event or "message", parsed if isinstance(parsed, dict) else {"data": parsed}
             event, data = "", []
             continue
         if line.startswith(":"):
@@ -578,6 +653,52 @@ def parse_sse(lines: Iterator[str]) -> Iterator[tuple[str, dict[str, Any]]]:
             event = value
         elif field == "data":
             data.append(value)
+        elif field == "id" and "\0" not in value:
+            last_id = value
+
+
+def _retry_after(response: httpx.Response, default: float) -> float:
+    """The seconds a 503's `Retry-After` asks a client to wait (`default` without a number)."""
+    try:
+        return max(0.0, float(response.headers.get("Retry-After", "")))
+    except ValueError:
+        return default
+
+
+def _scan_body(
+    scan: Scan | ScanMessage | Mapping[str, Any], seq: int | None, stamp: float | None, encoding: str
+) -> tuple[bytes, str, int | None]:
+    """`post_scan`'s request body for `scan`, its content type, and the seq it carries (None when a
+    dict carries none, or not an integer: the server refuses it). `seq` is required for a `Scan`."""
+    if isinstance(scan, Scan):
+        assert seq is not None
+        stamp = 0.0 if stamp is None else float(stamp)
+        if encoding == "binary":
+            return encode_binary(scan, seq, stamp), BINARY_ENCODING, seq
+        return encode_json(scan, seq, stamp), JSON_ENCODING, seq
+    message: dict[str, Any] = (
+        scan.model_dump(mode="json", exclude_none=True) if isinstance(scan, ScanMessage) else dict(scan)
+    )
+    if seq is not None:
+        message["seq"] = seq
+    if stamp is not None:
+        message["stamp"] = stamp
+    # NaN and infinities as the literals NaN, Infinity and -Infinity, which the service reads as a
+    # JSON scan's invalid reading, no return, and no maximum (docs/protocol.md): a ScanMessage's
+    # range_max is infinite unless given, and its NaN ranges stay invalid.
+    body = json.dumps(message, separators=(",", ":")).encode()
+    sent = message.get("seq")
+    return body, JSON_ENCODING, sent if isinstance(sent, int) else None
+
+
+def _scan_not_taken(exc: BaseException) -> bool:
+    """Whether a `post_scan` request that raised `exc` certainly left its scan out of the map, so
+    that its seq is still free: the service refused it (a 4xx, or 507 for memory), or the request
+    never left (no connection, or the client was closed). Otherwise (a 503, a read timeout, a
+    dropped connection) the scan may be integrated."""
+    if isinstance(exc, FleetmapError):
+        return exc.status < 500 or exc.status == 507
+    return isinstance(exc, httpx.ConnectError | httpx.ConnectTimeout | httpx.PoolTimeout | RuntimeError)
 
 
 def _finite(value: float) -> float:
@@ -604,6 +725,7 @@ def _raise_for_error(response: httpx.Response) -> None:
 
 
 __all__ = [
+    "RECONNECT_DELAY",
     "SCAN_TIMEOUT",
     "TOKEN_ENV",
     "EventStream",
