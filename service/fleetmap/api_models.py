@@ -98,13 +98,15 @@ class Health(_Model):
     """`GET /healthz`."""
 
     status: Literal["ok", "degraded"] = Field(
-        "ok", description="`degraded` while storage is not ok (see `storage`); the service still runs"
+        default="ok", description="`degraded` while storage is not ok (see `storage`); the service still runs"
     )
     maps: int = Field(description="maps held")
     robots_online: int = Field(description="robots with a live liveliness token, over all maps")
     queue_depth: int = Field(description="scans waiting for integration")
-    zenoh: dict[str, Any] | None = Field(None, description="the Zenoh session's status, if any")
-    storage: StorageStatus | None = Field(None, description="durable storage's health; null with --in-memory")
+    zenoh: dict[str, Any] | None = Field(default=None, description="the Zenoh session's status, if any")
+    storage: StorageStatus | None = Field(
+        default=None, description="durable storage's health; null with --in-memory"
+    )
 
 
 def storage_status(health: StorageHealth) -> StorageStatus:
@@ -141,7 +143,7 @@ class RobotStats(_Model):
     online: bool = Field(description="its liveliness token is alive")
     last_pose: Pose | None = Field(description="pose of its last integrated scan")
     last_seq: int | None = Field(description="sequence number of the last scan accepted")
-    last_stamp: float | None = Field(None, description="stamp of its last integrated scan")
+    last_stamp: float | None = Field(default=None, description="stamp of its last integrated scan")
     scans_integrated: int
     scans_rejected: int = Field(description="scans refused as invalid (see last_error)")
     last_error: str | None = Field(
@@ -150,21 +152,22 @@ class RobotStats(_Model):
     lost: int = Field(description="sequence numbers skipped (messages lost before reaching the service)")
     duplicates: int = Field(description="scans ignored because their seq was not new")
     restarts: int = Field(
-        0,
+        default=0,
         description="times its seq started again (a restarted robot; a count that keeps growing means two "
         "robots publish under this id)",
     )
-    dropped: int = Field(0, description="scans refused because the ingest queue was full")
+    dropped: int = Field(default=0, description="scans refused because the ingest queue was full")
     not_durable: int = Field(
-        0, description="scans applied whose journal commit failed (storage error); a snapshot saves them"
+        default=0,
+        description="scans applied whose journal commit failed (storage error); a snapshot saves them",
     )
     id_conflict: bool = Field(
-        False,
+        default=False,
         description="scans of two or more publisher sessions interleaved in the last minute: more than one "
         "robot publishes under this id (the scans of each are integrated; give each robot its own id)",
     )
     id_conflicts: int = Field(
-        0,
+        default=0,
         description="times a publisher session was found publishing at the same time as another one under "
         "this id (two robots: 1)",
     )
@@ -179,7 +182,7 @@ class MapStats(_Model):
     )
     tiles: int = Field(description="storage tiles allocated")
     memory_bytes: int = Field(description="bytes held by the map's tile pools")
-    version: int = Field(0, description="the map's change version (as in the events stream)")
+    version: int = Field(default=0, description="the map's change version (as in the events stream)")
 
 
 class MapInfo(_Model):
@@ -221,12 +224,12 @@ class ScanResult(_Model):
     status: Literal["integrated", "duplicate"] = Field(
         description="integrated: the map now includes it; duplicate: its seq was not new, nothing done"
     )
-    cell_updates: int = Field(0, description="occupancy / count cell updates applied")
-    tsdf_updates: int = Field(0, description="TSDF cell updates applied")
+    cell_updates: int = Field(default=0, description="occupancy / count cell updates applied")
+    tsdf_updates: int = Field(default=0, description="TSDF cell updates applied")
     changed_tiles: list[CellWindow] = Field(
         default_factory=list, description="cell windows [i0, j0, i1, j1] of the storage tiles that changed"
     )
-    detail: str | None = Field(None, description="for a duplicate: why")
+    detail: str | None = Field(default=None, description="for a duplicate: why")
 
 
 # -- cells ------------------------------------------------------------------------------------------
@@ -305,7 +308,7 @@ class RaycastRequest(BaseModel):
         description="metres a ray goes at most; at most 20000 cells, and rays x cells at most 2**24",
     )
     unknown: Literal["stop", "pass"] = Field(
-        "stop",
+        default="stop",
         description="stop: a ray stops at its first never-observed cell (status unknown); pass: it "
         "walks through unknown cells",
     )

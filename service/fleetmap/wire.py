@@ -84,9 +84,9 @@ class ScanMessage(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     seq: int = Field(ge=0, lt=SEQ_LIMIT, description="per-robot sequence number, +1 per scan")
-    stamp: Finite = Field(0.0, description="acquisition time, seconds (any epoch)")
+    stamp: Finite = Field(default=0.0, description="acquisition time, seconds (any epoch)")
     session: int | None = Field(
-        None,
+        default=None,
         ge=1,
         lt=SESSION_LIMIT,
         description="the publisher's session id: picked at random when it starts (or starts its seq "
@@ -96,9 +96,9 @@ class ScanMessage(BaseModel):
     pose: PoseMessage
     angle_min: Finite | None = None
     angle_increment: Finite | None = None
-    angles: list[Finite] | None = Field(None, max_length=MAX_BEAMS)
-    range_min: Finite = Field(0.0, ge=0)
-    range_max: float = Field(math.inf, gt=0, description="metres; may be omitted for 'no maximum'")
+    angles: list[Finite] | None = Field(default=None, max_length=MAX_BEAMS)
+    range_min: Finite = Field(default=0.0, ge=0)
+    range_max: float = Field(default=math.inf, gt=0, description="metres; may be omitted for 'no maximum'")
     ranges: list[float | None] = Field(
         max_length=MAX_BEAMS,
         description="metres; null, Infinity or >= range_max: no return; NaN: an invalid reading, ignored",
