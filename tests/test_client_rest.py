@@ -14,7 +14,7 @@ import math
 import threading
 import time
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
@@ -175,6 +175,72 @@ def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_whole_map_transfers_wait_longer_than_other_requests() -> None:
+    """A big map takes the service seconds to store (an upload) or to pack (a download, an export):
+    with the general 10 s timeout a client got httpx's bare ReadTimeout, not knowing whether its
+    upload took effect. A real HTTP server answers each transfer 1.5 s late here; the client's
+    timeout is 1 s, its `transfer_timeout` the default, then 1 s too."""
+
+    class SlowService(BaseHTTPRequestHandler):
+        def _answer_late(self) -> None:
+            self.rfile.read(int(self.headers.get("content-length") or 0))
+            time.sleep(1.5)
+            body = json.dumps({"detail": "not a snapshot"}).encode()
+            self.send_response(422)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        do_GET = do_PUT = _answer_late
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), SlowService)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{server.server_address[1]}"
+    transfers: list[Callable[[FleetmapClient], object]] = [
+        lambda c: c.upload_snapshot("big", b"PK"),
+        lambda c: c.download_snapshot("big"),
+        lambda c: c.import_nav2("big", b"PK"),
+        lambda c: c.export("big"),
+    ]
+    try:
+        with FleetmapClient(base, timeout=1.0) as patient:
+            for transfer in transfers:
+                with pytest.raises(FleetmapError) as exc:
+                    transfer(patient)
+                assert exc.value.status == 422 and exc.value.detail == "not a snapshot"
+        hasty = FleetmapClient(base, timeout=1.0, transfer_timeout=1.0)
+        with hasty, pytest.raises(httpx.ReadTimeout):
+            hasty.upload_snapshot("big", b"PK")
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_errors_say_how_long_the_service_asks_to_wait(tmp_path: Path) -> None:
+    """A 503's `Retry-After` (here the service's limit of open event streams, reached) is the
+    error's `retry_after`; an answer without one has None. The client dropped the header, so a
+    program could not back off as the service asked."""
+    with (
+        ServiceProcess(tmp_path, extra_args=["--max-event-streams", "1"]) as svc,
+        FleetmapClient(svc.base_url, timeout=20.0) as fm,
+    ):
+        fm.create_map("waits", CONFIG)
+        first = fm.events("waits")
+        assert next(first)[0] == "robots"
+        with pytest.raises(FleetmapError) as full:
+            next(fm.events("waits"))
+        assert full.value.status == 503 and full.value.retry_after is not None
+        assert full.value.retry_after > 0
+        first.close()
+        with pytest.raises(FleetmapError) as missing:
+            fm.get_map("no-such-map")
+        assert missing.value.status == 404 and missing.value.retry_after is None
 
 
 def test_automatic_seq_moves_past_a_scan_the_service_may_still_integrate(scans: list[Scan]) -> None:

@@ -97,6 +97,12 @@ TOKEN_ENV = "FLEETMAP_TOKEN"
 #: end in httpx's bare ReadTimeout instead of the server's 503 saying what happened.
 SCAN_TIMEOUT = 15.0
 
+#: How long the whole-map transfers (`download_snapshot`, `upload_snapshot`, `import_nav2`,
+#: `export`) wait for their answer by default, seconds: the service reads, checks and stores, or
+#: packs, every tile of the map first, seconds for a big one, and a bare ReadTimeout would leave
+#: the caller guessing whether an upload took effect.
+TRANSFER_TIMEOUT = 300.0
+
 Layer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
 #: What `FleetmapClient.events` returns: a generator (so `.close()` ends the stream early) of
 #: (event name, data) pairs.
@@ -105,13 +111,22 @@ EventStream = Generator[tuple[str, dict[str, Any]], None, None]
 
 class FleetmapError(Exception):
     """An error answer of the service: `status` (HTTP status code), `detail` (the server's sentence
-    saying what is wrong), `errors` (the individual validation problems, when the server listed them)."""
+    saying what is wrong), `errors` (the individual validation problems, when the server listed
+    them), `retry_after` (the seconds its `Retry-After` header asks a client to wait before trying
+    again, on a 503 or 429; None when it sent none)."""
 
-    def __init__(self, status: int, detail: str, errors: list[dict[str, Any]] | None = None) -> None:
+    def __init__(
+        self,
+        status: int,
+        detail: str,
+        errors: list[dict[str, Any]] | None = None,
+        retry_after: float | None = None,
+    ) -> None:
         super().__init__(f"{status}: {detail}")
         self.status = status
         self.detail = detail
         self.errors = errors or []
+        self.retry_after = retry_after
 
 
 def _check_id(name: str, value: str) -> str:
@@ -134,10 +149,13 @@ def _bounds(
 class FleetmapClient:
     """A synchronous client of one fleetmap service at `base_url` (e.g. "http://127.0.0.1:8000").
 
-    `timeout` (seconds) applies to every request except two: `post_scan` waits for its answer up to
-    `scan_timeout` (default `SCAN_TIMEOUT`, 15 s, or `timeout` if longer), because the server
-    answers only once the scan is integrated, and the event stream's reads wait as long as the
-    stream lives (the server sends a keepalive every 15 s). `token`: an API token of the
+    `timeout` (seconds) applies to every request except these: `post_scan` waits for its answer up
+    to `scan_timeout` (default `SCAN_TIMEOUT`, 15 s, or `timeout` if longer), because the server
+    answers only once the scan is integrated; the whole-map transfers (`download_snapshot`,
+    `upload_snapshot`, `import_nav2`, `export`) up to `transfer_timeout` (default
+    `TRANSFER_TIMEOUT`, 300 s, or `timeout` if longer), since a big map takes the service seconds
+    to store or pack; and the event stream's reads wait as long as the stream lives (the server
+    sends a keepalive every 15 s). `token`: an API token of the
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
     from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it).
     Thread-safe (one httpx.Client; `post_scan` sends one robot's scans one at a time, in call
@@ -151,10 +169,12 @@ class FleetmapClient:
         timeout: float = 10.0,
         token: str | None = None,
         scan_timeout: float = SCAN_TIMEOUT,
+        transfer_timeout: float = TRANSFER_TIMEOUT,
     ) -> None:
         self.base_url = base_url.rstrip("/")
         self.timeout = timeout
         self.scan_timeout = max(scan_timeout, timeout)
+        self.transfer_timeout = max(transfer_timeout, timeout)
         token = token if token is not None else os.environ.get(TOKEN_ENV) or None
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers)
@@ -170,6 +190,11 @@ class FleetmapClient:
         response = self._http.request(method, url, **kwargs)
         _raise_for_error(response)
         return response
+
+    def _transfer(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
+        """`_request` for a whole-map transfer: its answer may take up to `transfer_timeout`."""
+        timeout = httpx.Timeout(self.timeout, read=self.transfer_timeout)
+        return self._request(method, url, timeout=timeout, **kwargs)
 
     def close(self) -> None:
         """Close the connection pool. Idempotent; a request afterwards raises RuntimeError."""
@@ -231,14 +256,14 @@ class FleetmapClient:
         """`GET /maps/{map_id}/snapshot`: the whole map (configuration and every tile of every layer)
         as one zip file, taken between two scans; `upload_snapshot` restores it here or elsewhere."""
         _check_id("map_id", map_id)
-        return self._request("GET", f"/maps/{map_id}/snapshot").content
+        return self._transfer("GET", f"/maps/{map_id}/snapshot").content
 
     def upload_snapshot(self, map_id: str, snapshot: bytes) -> MapInfo:
         """`PUT /maps/{map_id}/snapshot`: install a `download_snapshot` file as map `map_id`, replacing
         any map of that id, and return it once stored. `FleetmapError` 422 (or 413) for a file that
         is not a valid snapshot, naming the part at fault; nothing changes then."""
         _check_id("map_id", map_id)
-        response = self._request(
+        response = self._transfer(
             "PUT", f"/maps/{map_id}/snapshot", content=snapshot, headers={"content-type": "application/zip"}
         )
         return MapInfo.model_validate_json(response.content)
@@ -254,7 +279,7 @@ class FleetmapClient:
         image, ...), 413 past a size limit; nothing changes then. OSError if a file cannot be read."""
         _check_id("map_id", map_id)
         body = source if isinstance(source, bytes) else nav2_files_zip(source)
-        response = self._request(
+        response = self._transfer(
             "PUT", f"/maps/{map_id}/import", params={"format": "ros"}, content=body,
             headers={"content-type": "application/zip"},
         )  # fmt: skip
@@ -520,7 +545,7 @@ class FleetmapClient:
         params: dict[str, Any] = {"format": format}
         if margin is not None:
             params["margin"] = margin
-        return self._request("GET", f"/maps/{map_id}/export", params=params).content
+        return self._transfer("GET", f"/maps/{map_id}/export", params=params).content
 
     # -- live events -------------------------------------------------------------------------------
 
@@ -659,10 +684,17 @@ def _parse_sse_ids(lines: Iterator[str]) -> Iterator[tuple[str | None, str, dict
 
 def _retry_after(response: httpx.Response, default: float) -> float:
     """The seconds a 503's `Retry-After` asks a client to wait (`default` without a number)."""
+    seconds = _retry_after_seconds(response)
+    return default if seconds is None else seconds
+
+
+def _retry_after_seconds(response: httpx.Response) -> float | None:
+    """The seconds an answer's `Retry-After` asks a client to wait; None without one in seconds (the
+    service sends seconds; an HTTP date is not read)."""
     try:
         return max(0.0, float(response.headers.get("Retry-After", "")))
     except ValueError:
-        return default
+        return None
 
 
 def _scan_body(
@@ -721,13 +753,14 @@ def _raise_for_error(response: httpx.Response) -> None:
     else:
         detail = parsed.detail
         errors = [e.model_dump() for e in parsed.errors or []]
-    raise FleetmapError(response.status_code, detail, errors)
+    raise FleetmapError(response.status_code, detail, errors, _retry_after_seconds(response))
 
 
 __all__ = [
     "RECONNECT_DELAY",
     "SCAN_TIMEOUT",
     "TOKEN_ENV",
+    "TRANSFER_TIMEOUT",
     "EventStream",
     "FleetmapClient",
     "FleetmapError",
