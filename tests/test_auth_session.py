@@ -108,6 +108,19 @@ def test_signing_in_sets_a_cookie_that_holds_no_token(secured: ServiceProcess) -
     assert r.status_code == 200 and set_cookie(r)[1] == {"HttpOnly", "SameSite=Strict", "Path=/", "Secure"}
 
 
+def test_the_trusted_proxies_are_an_option(tmp_path: Path) -> None:
+    """`--forwarded-allow-ips` names the proxies whose X-Forwarded-Proto is believed: naming another
+    address than this test's 127.0.0.1, its `https` no longer makes the cookie Secure (before, only
+    uvicorn's own environment variable could say which proxies to trust, not an option of `fleetmap
+    serve` as every other setting is)."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}")
+    forwarded = {**bearer(READ), "X-Forwarded-Proto": "https"}
+    args = ["--in-memory", "--auth-tokens", str(tokens), "--forwarded-allow-ips", "10.1.2.3"]
+    with ServiceProcess(tmp_path, args) as svc:
+        r = httpx.post(f"{svc.base_url}/session", headers=forwarded)
+        assert r.status_code == 200 and "Secure" not in set_cookie(r)[1], r.headers
+
+
 def test_signing_in_needs_a_valid_token_in_the_header(secured: ServiceProcess) -> None:
     url = secured.base_url
     for headers in ({}, bearer(UNKNOWN), cookie(session_of(READ)), {"Authorization": f"Basic {READ}"}):

@@ -231,6 +231,15 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         "default none",
     )
     p.add_argument(
+        "--forwarded-allow-ips",
+        nargs="+",
+        default=None,
+        metavar="IP",
+        help="addresses of the reverse proxies whose X-Forwarded-Proto / -For headers are trusted "
+        "(the session cookie's Secure, the access log's client); '*': any; default 127.0.0.1, or "
+        "uvicorn's $FORWARDED_ALLOW_IPS",
+    )
+    p.add_argument(
         "--max-event-streams",
         type=_int_between(1, 100_000),
         default=256,
@@ -814,6 +823,8 @@ def _http_server(args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: 
         lifespan="auto",
         http=bounded_http_protocol(max_connections, args.http_head_timeout, args.http_body_timeout),
         backlog=ACCEPT_BACKLOG,
+        # None: uvicorn's own default ($FORWARDED_ALLOW_IPS, else 127.0.0.1).
+        forwarded_allow_ips=args.forwarded_allow_ips,
     )
     if args.access_log:  # (log_level above set its level too)
         logging.getLogger("uvicorn.access").setLevel(logging.INFO)
