@@ -8,6 +8,7 @@ same scans (decoded from the same payloads, so float32 wire rounding is the same
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
@@ -140,41 +141,48 @@ def test_bad_arguments_are_refused_before_any_request(client: FleetmapClient, sc
     assert client.cells("args", [0.5, 0.5])["known"].tolist() == [False]  # one pair: one point
 
 
+@contextlib.contextmanager
+def _late_service(status: int, detail: str, delay: float = 1.5) -> Iterator[str]:
+    """A real HTTP server on a free port that answers every GET, POST and PUT `delay` seconds late
+    with `status` and `{"detail": detail}`, as the service answers its slow requests; yields its URL."""
+
+    class LateService(BaseHTTPRequestHandler):
+        def _answer_late(self) -> None:
+            self.rfile.read(int(self.headers.get("content-length") or 0))
+            time.sleep(delay)
+            body = json.dumps({"detail": detail}).encode()
+            self.send_response(status)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        do_GET = do_POST = do_PUT = _answer_late
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), LateService)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
 def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
     """The service answers a scan once it is integrated, or 503 after its own wait (10 s by
     default): a client whose timeout is not longer than that got httpx's bare ReadTimeout instead
     of the 503 saying the scan will still be integrated. A real HTTP server answers here as the
     service does, 1.5 s late; the client's timeout is 1 s, which still bounds other requests."""
     detail = "the scan was not integrated within 1.5 s; it will be"
-
-    class SlowService(BaseHTTPRequestHandler):
-        def _answer_late(self) -> None:
-            self.rfile.read(int(self.headers.get("content-length") or 0))
-            time.sleep(1.5)
-            body = json.dumps({"detail": detail}).encode()
-            self.send_response(503)
-            self.send_header("content-type", "application/json")
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        do_GET = do_POST = _answer_late
-
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
-
-    server = ThreadingHTTPServer(("127.0.0.1", 0), SlowService)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        with FleetmapClient(f"http://127.0.0.1:{server.server_address[1]}", timeout=1.0) as slow:
-            with pytest.raises(FleetmapError) as exc:
-                slow.post_scan("late", "r1", scans[0])
-            assert exc.value.status == 503 and exc.value.detail == detail
-            with pytest.raises(httpx.ReadTimeout):
-                slow.health()
-    finally:
-        server.shutdown()
-        server.server_close()
+    with _late_service(503, detail) as base, FleetmapClient(base, timeout=1.0) as slow:
+        with pytest.raises(FleetmapError) as exc:
+            slow.post_scan("late", "r1", scans[0])
+        assert exc.value.status == 503 and exc.value.detail == detail
+        with pytest.raises(httpx.ReadTimeout):
+            slow.health()
 
 
 def test_whole_map_transfers_wait_longer_than_other_requests() -> None:
@@ -182,33 +190,13 @@ def test_whole_map_transfers_wait_longer_than_other_requests() -> None:
     with the general 10 s timeout a client got httpx's bare ReadTimeout, not knowing whether its
     upload took effect. A real HTTP server answers each transfer 1.5 s late here; the client's
     timeout is 1 s, its `transfer_timeout` the default, then 1 s too."""
-
-    class SlowService(BaseHTTPRequestHandler):
-        def _answer_late(self) -> None:
-            self.rfile.read(int(self.headers.get("content-length") or 0))
-            time.sleep(1.5)
-            body = json.dumps({"detail": "not a snapshot"}).encode()
-            self.send_response(422)
-            self.send_header("content-type", "application/json")
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        do_GET = do_PUT = _answer_late
-
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
-
-    server = ThreadingHTTPServer(("127.0.0.1", 0), SlowService)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    base = f"http://127.0.0.1:{server.server_address[1]}"
     transfers: list[Callable[[FleetmapClient], object]] = [
         lambda c: c.upload_snapshot("big", b"PK"),
         lambda c: c.download_snapshot("big"),
         lambda c: c.import_nav2("big", b"PK"),
         lambda c: c.export("big"),
     ]
-    try:
+    with _late_service(422, "not a snapshot") as base:
         with FleetmapClient(base, timeout=1.0) as patient:
             for transfer in transfers:
                 with pytest.raises(FleetmapError) as exc:
@@ -217,9 +205,6 @@ def test_whole_map_transfers_wait_longer_than_other_requests() -> None:
         hasty = FleetmapClient(base, timeout=1.0, transfer_timeout=1.0)
         with hasty, pytest.raises(httpx.ReadTimeout):
             hasty.upload_snapshot("big", b"PK")
-    finally:
-        server.shutdown()
-        server.server_close()
 
 
 def test_errors_say_how_long_the_service_asks_to_wait(tmp_path: Path) -> None:
