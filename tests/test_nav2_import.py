@@ -313,6 +313,22 @@ def test_numbers_are_read_as_yaml_cpp_reads_them() -> None:
     assert gmap.resolution == 0.05 and gmap.known_bounds() == (400, 0, 402, 2)
 
 
+def test_a_float32_resolution_printed_in_full_is_the_map_s_resolution() -> None:
+    """map_server publishes its resolution as a float32, and a map.yaml written from a published
+    0.05 m map (rclpy, `ros2 topic echo /map`) says 0.05000000074505806: that map is a 0.05 m map.
+    It was refused against a 0.05 m configuration, and a new map made at 0.05000000074505806 put
+    the origin -10.0 2.98e-06 cells off its grid."""
+    full = float(np.float32(0.05))
+    assert repr(full) == "0.05000000074505806"
+    yaml_text = nav2_yaml(resolution=repr(full), origin="[-10.0, -10.0, 0]")
+    for config in (CONFIG, None):
+        gmap = map_from_nav2(yaml_text, PIXELS, config)
+        assert gmap.resolution == 0.05 and gmap.known_bounds() == (-200, -200, -198, -198)
+    # A value that is not exactly a float32 is the YAML's own, even within a float32's rounding.
+    assert map_from_nav2(nav2_yaml(resolution="0.0500000001"), PIXELS).resolution == 0.0500000001
+    assert map_from_nav2(nav2_yaml(resolution="0.03125"), PIXELS).resolution == 0.03125
+
+
 def test_the_off_grid_message_says_by_how_much() -> None:
     with pytest.raises(Nav2ImportError) as caught:
         map_from_nav2(nav2_yaml(origin="[0.0, 1.001, 0.0]"), PIXELS, CONFIG)

@@ -10,6 +10,9 @@ What map_server does (navigation2, nav2_map_server/src/map_io.cpp, `loadMapYaml`
 - The YAML needs `image`, `resolution`, `origin` (three numbers: x, y, yaw of the image's lower-left
   pixel corner), `occupied_thresh`, `free_thresh` and `negate` (an integer, non-zero is true, or a
   boolean); `mode` is `trinary` (the default when absent), `scale` or `raw`, in any case.
+- The resolution is published as a float32 (`nav_msgs/MapMetaData`): a YAML resolution that is
+  exactly a float32, as a file written from a published map holds it, is read as that float32's
+  shortest decimal (0.05000000074505806 is 0.05).
 - Row 0 of the image is its top: pixel `(x, y)` is written to `data[width * (height - y - 1) + x]`,
   so the top row is the highest y.
 - A pixel's `shade` is the mean of its red, green and blue channels on a 0..1 scale (for a grey
@@ -168,6 +171,24 @@ def _number(doc: dict[str, Any], key: str) -> float:
     return number
 
 
+def _published_resolution(value: float) -> float:
+    """The YAML's resolution as the map it describes has it: a value that is exactly a float32 is
+    the shortest decimal of that float32 (0.05000000074505806 is 0.05), any other value is itself.
+
+    Why: `nav_msgs/MapMetaData.resolution` is a float32, so map_server publishes float32(resolution)
+    and every ROS consumer (AMCL, costmaps) uses that; a map.yaml written from a published map by
+    rclpy (or from `ros2 topic echo /map`) holds that float32 printed in full, 0.05000000074505806
+    for a 0.05 m map. Taken as is, it differed from a 0.05 m map's configuration, and a new map made
+    at it put an origin such as -10.0 2.98e-06 cells off its grid: both refused. A resolution
+    written by hand is exactly a float32 only as a short binary fraction (0.5, 0.03125), which is its
+    own shortest decimal: those, and every other value, are unchanged."""
+    with np.errstate(over="ignore", under="ignore"):
+        single = np.float32(value)
+    if float(single) != value:
+        return value
+    return float(str(single))  # numpy prints a float32 as its shortest round-tripping decimal
+
+
 def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     """The fields of a map_server YAML file, checked; `Nav2ImportError` naming the field at fault."""
     if len(text) > MAX_YAML_BYTES:
@@ -183,7 +204,7 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     image = doc.get("image")
     if not isinstance(image, str) or not image:
         raise Nav2ImportError(f"map.yaml 'image' must name the image file, got {_shown(image)}")
-    resolution = _number(doc, "resolution")
+    resolution = _published_resolution(_number(doc, "resolution"))
     if resolution <= 0:
         raise Nav2ImportError(f"map.yaml 'resolution' must be positive, got {resolution!r}")
     origin = doc.get("origin")
