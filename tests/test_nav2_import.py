@@ -459,6 +459,17 @@ def test_a_zip_with_the_yaml_in_a_folder_reads_the_image_beside_it() -> None:
     assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
 
 
+def test_an_image_written_dot_slash_name_is_the_file_beside_the_yaml() -> None:
+    """`image: ./map.pgm`, as hand-written map.yaml files often say, is map.pgm beside the YAML to
+    map_server (the YAML's folder + '/' + the name): it was refused as not a plain file name."""
+    for image in ("./map.pgm", "././map.pgm"):
+        body = nav2_zip(nav2_yaml(image), {"maps/map.pgm": PIXELS}, yaml_name="maps/site.yaml")
+        assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
+    for image, shown in (("./sub/map.pgm", "'./sub/map.pgm'"), ("./", "'./'"), ("./..", "'./..'")):
+        with pytest.raises(Nav2ImportError, match=f"'image' {shown} is not a plain file name"):
+            map_from_nav2_zip(nav2_zip(nav2_yaml(image), {"sub/map.pgm": PIXELS}), CONFIG)
+
+
 # -- over HTTP ---------------------------------------------------------------------------------------
 
 

@@ -445,8 +445,9 @@ def map_from_nav2_zip(
     free_bytes: int | None = None,
 ) -> GridMap:  # fmt: skip
     """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and the image it
-    names, which must be a plain file name beside it in the zip (no folder, no `..`, no absolute
-    path): what `GET /maps/{id}/export?format=ros` gives. Raises `Nav2ImportError`."""
+    names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
+    no `..`, no absolute path): what `GET /maps/{id}/export?format=ros` gives. Raises
+    `Nav2ImportError`."""
     try:
         zf = zipfile.ZipFile(io.BytesIO(data))
     except (*_ZIP_ERRORS, ValueError) as exc:
@@ -461,10 +462,14 @@ def map_from_nav2_zip(
             )
         meta = parse_nav2_yaml(_zip_member(zf, yamls[0], MAX_YAML_BYTES))
         name = meta.image
-        if name in (".", "..") or "/" in name or "\\" in name or "\0" in name:
+        # `./map.pgm` is map.pgm beside the YAML to map_server too (it joins the YAML's folder and
+        # the name), and hand-written map.yaml files often say so.
+        while name.startswith("./"):
+            name = name[2:]
+        if name in ("", ".", "..") or "/" in name or "\\" in name or "\0" in name:
             raise Nav2ImportError(
-                f"map.yaml 'image' {name!r} is not a plain file name: the image must lie beside the YAML "
-                "file in the zip"
+                f"map.yaml 'image' {meta.image!r} is not a plain file name: the image must lie beside the "
+                "YAML file in the zip"
             )
         path = posixpath.join(posixpath.dirname(yamls[0].filename), name)
         found = [i for i in infos if i.filename == path]
