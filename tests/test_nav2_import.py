@@ -373,6 +373,20 @@ def test_refusals_of_unreadable_images_say_what_the_file_is_and_nothing_of_the_p
     assert str(caught.value) == "map.pgm is not a PGM or PNG image"
 
 
+def test_a_pgm_whose_maxval_is_not_255_is_refused() -> None:
+    """Pillow rounds a maxval-100 PGM's 50 to 128 (0.502), where map_server has 0.5: in scale mode
+    (thresholds 0.65 / 0.196) 39 of 100 was published as 92 % instead of 91 %, and at a threshold a
+    pixel changed class. Such a PGM (binary or plain, grey or colour) is refused, as a 16-bit one
+    is; maxval 255 is read, plain (P2) as binary (P5)."""
+    for image in (b"P5\n3 1\n100\n\x00\x27\x64", b"P2\n3 1\n100\n0 39 100\n"):
+        with pytest.raises(Nav2ImportError, match="map.pgm is a PGM whose maxval is 100, not 255"):
+            map_from_nav2(nav2_yaml(mode="scale"), image, CONFIG)
+    with pytest.raises(Nav2ImportError, match="is a PPM whose maxval is 15, not 255"):
+        map_from_nav2(nav2_yaml(), b"P6 1 1 15 \x00\x00\x00", CONFIG)
+    plain = map_from_nav2(nav2_yaml(), b"P2\n# hand-made\n3 1\n255\n0 205 254\n", CONFIG)
+    np.testing.assert_array_equal(log_odds_row(plain, 3), log_odds_row(row_map([0, 205, 254]), 3))
+
+
 def png_claiming(width: int, height: int) -> bytes:
     """A 1 x 1 grey PNG whose header (IHDR, with a valid CRC) says `width` x `height`."""
     data = bytearray(png(np.zeros((1, 1), np.uint8)))

@@ -38,10 +38,10 @@ Limits (`Nav2ImportError` names what is wrong; nothing is created): a yaw other 
 image is not on the map's axis-aligned cells), an origin that is not on the map's cell grid (within
 1e-6 of a cell edge), a resolution other than the configuration's, images that are not 8-bit grey
 (grey with alpha, and RGB / RGBA whose channels are equal everywhere, as map_saver writes scale
-maps, are grey), images over MAX_IMAGE_SIDE on a side or MAX_IMAGE_PIXELS in all, more tiles than
-the map's `max_tiles`. Tiles are created only where a cell is known; every layer but occupancy
-stays unknown. Pixel values are mapped through a table of their 256 (or 256 x 256 with alpha)
-possible values, and each tile is written with one numpy gather.
+maps, are grey; a PGM's maxval must be 255), images over MAX_IMAGE_SIDE on a side or
+MAX_IMAGE_PIXELS in all, more tiles than the map's `max_tiles`. Tiles are created only where a cell
+is known; every layer but occupancy stays unknown. Pixel values are mapped through a table of their
+256 (or 256 x 256 with alpha) possible values, and each tile is written with one numpy gather.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageFile, UnidentifiedImageError
 from pydantic import ValidationError
 
 from fleetmap.config import MAX_COORDINATE, MapConfig
@@ -295,6 +295,13 @@ def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.nda
         if im.mode not in ("L", "LA", "RGB", "RGBA"):
             kind = _MODE_WORDS.get(im.mode, "an unsupported")
             raise Nav2ImportError(f"{name} is {kind} image (mode {im.mode}): only 8-bit grey images are read")
+        maxval = _pnm_maxval(im)
+        if maxval != 255:
+            raise Nav2ImportError(
+                f"{name} is a {'PGM' if im.mode == 'L' else 'PPM'} whose maxval is {maxval}, not 255: its "
+                f"grey levels are value / {maxval}, which map_server reads at 16 bits and 8 bits do not "
+                "hold; only 8-bit grey images (maxval 255) are read"
+            )
         if "transparency" in im.info:
             raise Nav2ImportError(
                 f"{name} marks a transparent colour (a tRNS chunk): save it with an alpha channel instead"
@@ -318,6 +325,18 @@ def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.nda
         )
     alpha = np.ascontiguousarray(pixels[:, :, 3]) if im.mode == "RGBA" else None
     return np.ascontiguousarray(grey), alpha
+
+
+def _pnm_maxval(im: ImageFile.ImageFile) -> int:
+    """The maxval of a PGM / PPM header (its white), 255 for any other image. Pillow decodes a maxval
+    other than 255 rounded onto 0..255 (50 of 100 becomes 128, 0.502 where map_server's 16-bit
+    GraphicsMagick has 0.5): a scale map's percentages and pixels at a threshold came out otherwise
+    than map_server publishes them. Pillow keeps the maxval as the last argument of the image's
+    decoder ("ppm" and "ppm_plain"; the raw decoder it uses for 255 and 65535 has none)."""
+    if im.format != "PPM" or not im.tile:
+        return 255
+    args = im.tile[0].args
+    return args[-1] if isinstance(args, tuple) and isinstance(args[-1], int) else 255
 
 
 def _grid_index(value: float, resolution: float, what: str) -> int:
