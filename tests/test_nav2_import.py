@@ -484,6 +484,18 @@ def test_an_image_written_dot_slash_name_is_the_file_beside_the_yaml() -> None:
             map_from_nav2_zip(nav2_zip(nav2_yaml(image), {"sub/map.pgm": PIXELS}), CONFIG)
 
 
+def test_the_apple_double_files_of_a_zip_made_by_macos_are_not_read() -> None:
+    """macOS's Finder zips a folder `maps` with `__MACOSX/maps/._site.yaml` beside `maps/site.yaml`
+    (AppleDouble attributes, not YAML): the zip was refused as holding two .yaml files."""
+    apple_double = b"\x00\x05\x16\x07\x00\x02\x00\x00Mac OS X        "
+    body = nav2_zip(
+        nav2_yaml("map.pgm"),
+        {"maps/map.pgm": PIXELS, "__MACOSX/maps/._site.yaml": apple_double, "__MACOSX/maps/._map.pgm": b""},
+        yaml_name="maps/site.yaml",
+    )
+    assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
+
+
 # -- over HTTP ---------------------------------------------------------------------------------------
 
 

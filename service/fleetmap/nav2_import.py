@@ -465,14 +465,16 @@ def map_from_nav2_zip(
 ) -> GridMap:  # fmt: skip
     """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and the image it
     names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
-    no `..`, no absolute path): what `GET /maps/{id}/export?format=ros` gives. Raises
-    `Nav2ImportError`."""
+    no `..`, no absolute path): what `GET /maps/{id}/export?format=ros` gives. Entries under
+    `__MACOSX/` are not read. Raises `Nav2ImportError`."""
     try:
         zf = zipfile.ZipFile(io.BytesIO(data))
     except (*_ZIP_ERRORS, ValueError) as exc:
         raise Nav2ImportError(f"the body is not a zip file ({exc})", 415) from None
     with zf:
-        infos = [i for i in zf.infolist() if not i.is_dir()]
+        # macOS's Finder (Compress) adds, for a file with extended attributes, an AppleDouble
+        # `__MACOSX/<folder>/._<name>`: `._map.yaml` is no second YAML file.
+        infos = [i for i in zf.infolist() if not i.is_dir() and not i.filename.startswith("__MACOSX/")]
         yamls = [i for i in infos if i.filename.lower().endswith((".yaml", ".yml"))]
         if len(yamls) != 1:
             named = ", ".join(i.filename for i in yamls) or "none"
