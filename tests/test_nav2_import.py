@@ -313,6 +313,22 @@ def test_numbers_are_read_as_yaml_cpp_reads_them() -> None:
     assert gmap.resolution == 0.05 and gmap.known_bounds() == (400, 0, 402, 2)
 
 
+def test_a_float32_resolution_printed_in_full_is_the_map_s_resolution() -> None:
+    """map_server publishes its resolution as a float32, and a map.yaml written from a published
+    0.05 m map (rclpy, `ros2 topic echo /map`) says 0.05000000074505806: that map is a 0.05 m map.
+    It was refused against a 0.05 m configuration, and a new map made at 0.05000000074505806 put
+    the origin -10.0 2.98e-06 cells off its grid."""
+    full = float(np.float32(0.05))
+    assert repr(full) == "0.05000000074505806"
+    yaml_text = nav2_yaml(resolution=repr(full), origin="[-10.0, -10.0, 0]")
+    for config in (CONFIG, None):
+        gmap = map_from_nav2(yaml_text, PIXELS, config)
+        assert gmap.resolution == 0.05 and gmap.known_bounds() == (-200, -200, -198, -198)
+    # A value that is not exactly a float32 is the YAML's own, even within a float32's rounding.
+    assert map_from_nav2(nav2_yaml(resolution="0.0500000001"), PIXELS).resolution == 0.0500000001
+    assert map_from_nav2(nav2_yaml(resolution="0.03125"), PIXELS).resolution == 0.03125
+
+
 def test_the_off_grid_message_says_by_how_much() -> None:
     with pytest.raises(Nav2ImportError) as caught:
         map_from_nav2(nav2_yaml(origin="[0.0, 1.001, 0.0]"), PIXELS, CONFIG)
@@ -355,6 +371,20 @@ def test_refusals_of_unreadable_images_say_what_the_file_is_and_nothing_of_the_p
     with pytest.raises(Nav2ImportError) as caught:
         map_from_nav2(nav2_yaml(), b"GIF89a not an image", CONFIG)
     assert str(caught.value) == "map.pgm is not a PGM or PNG image"
+
+
+def test_a_pgm_whose_maxval_is_not_255_is_refused() -> None:
+    """Pillow rounds a maxval-100 PGM's 50 to 128 (0.502), where map_server has 0.5: in scale mode
+    (thresholds 0.65 / 0.196) 39 of 100 was published as 92 % instead of 91 %, and at a threshold a
+    pixel changed class. Such a PGM (binary or plain, grey or colour) is refused, as a 16-bit one
+    is; maxval 255 is read, plain (P2) as binary (P5)."""
+    for image in (b"P5\n3 1\n100\n\x00\x27\x64", b"P2\n3 1\n100\n0 39 100\n"):
+        with pytest.raises(Nav2ImportError, match="map.pgm is a PGM whose maxval is 100, not 255"):
+            map_from_nav2(nav2_yaml(mode="scale"), image, CONFIG)
+    with pytest.raises(Nav2ImportError, match="is a PPM whose maxval is 15, not 255"):
+        map_from_nav2(nav2_yaml(), b"P6 1 1 15 \x00\x00\x00", CONFIG)
+    plain = map_from_nav2(nav2_yaml(), b"P2\n# hand-made\n3 1\n255\n0 205 254\n", CONFIG)
+    np.testing.assert_array_equal(log_odds_row(plain, 3), log_odds_row(row_map([0, 205, 254]), 3))
 
 
 def png_claiming(width: int, height: int) -> bytes:
@@ -439,6 +469,29 @@ def test_a_bad_zip_is_refused(body: bytes, message: str, status: int) -> None:
 def test_a_zip_with_the_yaml_in_a_folder_reads_the_image_beside_it() -> None:
     body = nav2_zip(
         nav2_yaml("map.pgm"), {"maps/map.pgm": PIXELS, "map.pgm": b"decoy"}, yaml_name="maps/site.yml"
+    )
+    assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
+
+
+def test_an_image_written_dot_slash_name_is_the_file_beside_the_yaml() -> None:
+    """`image: ./map.pgm`, as hand-written map.yaml files often say, is map.pgm beside the YAML to
+    map_server (the YAML's folder + '/' + the name): it was refused as not a plain file name."""
+    for image in ("./map.pgm", "././map.pgm"):
+        body = nav2_zip(nav2_yaml(image), {"maps/map.pgm": PIXELS}, yaml_name="maps/site.yaml")
+        assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
+    for image, shown in (("./sub/map.pgm", "'./sub/map.pgm'"), ("./", "'./'"), ("./..", "'./..'")):
+        with pytest.raises(Nav2ImportError, match=f"'image' {shown} is not a plain file name"):
+            map_from_nav2_zip(nav2_zip(nav2_yaml(image), {"sub/map.pgm": PIXELS}), CONFIG)
+
+
+def test_the_apple_double_files_of_a_zip_made_by_macos_are_not_read() -> None:
+    """macOS's Finder zips a folder `maps` with `__MACOSX/maps/._site.yaml` beside `maps/site.yaml`
+    (AppleDouble attributes, not YAML): the zip was refused as holding two .yaml files."""
+    apple_double = b"\x00\x05\x16\x07\x00\x02\x00\x00Mac OS X        "
+    body = nav2_zip(
+        nav2_yaml("map.pgm"),
+        {"maps/map.pgm": PIXELS, "__MACOSX/maps/._site.yaml": apple_double, "__MACOSX/maps/._map.pgm": b""},
+        yaml_name="maps/site.yaml",
     )
     assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
 

@@ -10,6 +10,9 @@ What map_server does (navigation2, nav2_map_server/src/map_io.cpp, `loadMapYaml`
 - The YAML needs `image`, `resolution`, `origin` (three numbers: x, y, yaw of the image's lower-left
   pixel corner), `occupied_thresh`, `free_thresh` and `negate` (an integer, non-zero is true, or a
   boolean); `mode` is `trinary` (the default when absent), `scale` or `raw`, in any case.
+- The resolution is published as a float32 (`nav_msgs/MapMetaData`): a YAML resolution that is
+  exactly a float32, as a file written from a published map holds it, is read as that float32's
+  shortest decimal (0.05000000074505806 is 0.05).
 - Row 0 of the image is its top: pixel `(x, y)` is written to `data[width * (height - y - 1) + x]`,
   so the top row is the highest y.
 - A pixel's `shade` is the mean of its red, green and blue channels on a 0..1 scale (for a grey
@@ -35,10 +38,10 @@ Limits (`Nav2ImportError` names what is wrong; nothing is created): a yaw other 
 image is not on the map's axis-aligned cells), an origin that is not on the map's cell grid (within
 1e-6 of a cell edge), a resolution other than the configuration's, images that are not 8-bit grey
 (grey with alpha, and RGB / RGBA whose channels are equal everywhere, as map_saver writes scale
-maps, are grey), images over MAX_IMAGE_SIDE on a side or MAX_IMAGE_PIXELS in all, more tiles than
-the map's `max_tiles`. Tiles are created only where a cell is known; every layer but occupancy
-stays unknown. Pixel values are mapped through a table of their 256 (or 256 x 256 with alpha)
-possible values, and each tile is written with one numpy gather.
+maps, are grey; a PGM's maxval must be 255), images over MAX_IMAGE_SIDE on a side or
+MAX_IMAGE_PIXELS in all, more tiles than the map's `max_tiles`. Tiles are created only where a cell
+is known; every layer but occupancy stays unknown. Pixel values are mapped through a table of their
+256 (or 256 x 256 with alpha) possible values, and each tile is written with one numpy gather.
 """
 
 from __future__ import annotations
@@ -56,7 +59,7 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageFile, UnidentifiedImageError
 from pydantic import ValidationError
 
 from fleetmap.config import MAX_COORDINATE, MapConfig
@@ -168,6 +171,24 @@ def _number(doc: dict[str, Any], key: str) -> float:
     return number
 
 
+def _published_resolution(value: float) -> float:
+    """The YAML's resolution as the map it describes has it: a value that is exactly a float32 is
+    the shortest decimal of that float32 (0.05000000074505806 is 0.05), any other value is itself.
+
+    Why: `nav_msgs/MapMetaData.resolution` is a float32, so map_server publishes float32(resolution)
+    and every ROS consumer (AMCL, costmaps) uses that; a map.yaml written from a published map by
+    rclpy (or from `ros2 topic echo /map`) holds that float32 printed in full, 0.05000000074505806
+    for a 0.05 m map. Taken as is, it differed from a 0.05 m map's configuration, and a new map made
+    at it put an origin such as -10.0 2.98e-06 cells off its grid: both refused. A resolution
+    written by hand is exactly a float32 only as a short binary fraction (0.5, 0.03125), which is its
+    own shortest decimal: those, and every other value, are unchanged."""
+    with np.errstate(over="ignore", under="ignore"):
+        single = np.float32(value)
+    if float(single) != value:
+        return value
+    return float(str(single))  # numpy prints a float32 as its shortest round-tripping decimal
+
+
 def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     """The fields of a map_server YAML file, checked; `Nav2ImportError` naming the field at fault."""
     if len(text) > MAX_YAML_BYTES:
@@ -183,7 +204,7 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     image = doc.get("image")
     if not isinstance(image, str) or not image:
         raise Nav2ImportError(f"map.yaml 'image' must name the image file, got {_shown(image)}")
-    resolution = _number(doc, "resolution")
+    resolution = _published_resolution(_number(doc, "resolution"))
     if resolution <= 0:
         raise Nav2ImportError(f"map.yaml 'resolution' must be positive, got {resolution!r}")
     origin = doc.get("origin")
@@ -274,6 +295,13 @@ def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.nda
         if im.mode not in ("L", "LA", "RGB", "RGBA"):
             kind = _MODE_WORDS.get(im.mode, "an unsupported")
             raise Nav2ImportError(f"{name} is {kind} image (mode {im.mode}): only 8-bit grey images are read")
+        maxval = _pnm_maxval(im)
+        if maxval != 255:
+            raise Nav2ImportError(
+                f"{name} is a {'PGM' if im.mode == 'L' else 'PPM'} whose maxval is {maxval}, not 255: its "
+                f"grey levels are value / {maxval}, which map_server reads at 16 bits and 8 bits do not "
+                "hold; only 8-bit grey images (maxval 255) are read"
+            )
         if "transparency" in im.info:
             raise Nav2ImportError(
                 f"{name} marks a transparent colour (a tRNS chunk): save it with an alpha channel instead"
@@ -297,6 +325,18 @@ def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.nda
         )
     alpha = np.ascontiguousarray(pixels[:, :, 3]) if im.mode == "RGBA" else None
     return np.ascontiguousarray(grey), alpha
+
+
+def _pnm_maxval(im: ImageFile.ImageFile) -> int:
+    """The maxval of a PGM / PPM header (its white), 255 for any other image. Pillow decodes a maxval
+    other than 255 rounded onto 0..255 (50 of 100 becomes 128, 0.502 where map_server's 16-bit
+    GraphicsMagick has 0.5): a scale map's percentages and pixels at a threshold came out otherwise
+    than map_server publishes them. Pillow keeps the maxval as the last argument of the image's
+    decoder ("ppm" and "ppm_plain"; the raw decoder it uses for 255 and 65535 has none)."""
+    if im.format != "PPM" or not im.tile:
+        return 255
+    args = im.tile[0].args
+    return args[-1] if isinstance(args, tuple) and isinstance(args[-1], int) else 255
 
 
 def _grid_index(value: float, resolution: float, what: str) -> int:
@@ -424,14 +464,17 @@ def map_from_nav2_zip(
     free_bytes: int | None = None,
 ) -> GridMap:  # fmt: skip
     """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and the image it
-    names, which must be a plain file name beside it in the zip (no folder, no `..`, no absolute
-    path): what `GET /maps/{id}/export?format=ros` gives. Raises `Nav2ImportError`."""
+    names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
+    no `..`, no absolute path): what `GET /maps/{id}/export?format=ros` gives. Entries under
+    `__MACOSX/` are not read. Raises `Nav2ImportError`."""
     try:
         zf = zipfile.ZipFile(io.BytesIO(data))
     except (*_ZIP_ERRORS, ValueError) as exc:
         raise Nav2ImportError(f"the body is not a zip file ({exc})", 415) from None
     with zf:
-        infos = [i for i in zf.infolist() if not i.is_dir()]
+        # macOS's Finder (Compress) adds, for a file with extended attributes, an AppleDouble
+        # `__MACOSX/<folder>/._<name>`: `._map.yaml` is no second YAML file.
+        infos = [i for i in zf.infolist() if not i.is_dir() and not i.filename.startswith("__MACOSX/")]
         yamls = [i for i in infos if i.filename.lower().endswith((".yaml", ".yml"))]
         if len(yamls) != 1:
             named = ", ".join(i.filename for i in yamls) or "none"
@@ -440,10 +483,14 @@ def map_from_nav2_zip(
             )
         meta = parse_nav2_yaml(_zip_member(zf, yamls[0], MAX_YAML_BYTES))
         name = meta.image
-        if name in (".", "..") or "/" in name or "\\" in name or "\0" in name:
+        # `./map.pgm` is map.pgm beside the YAML to map_server too (it joins the YAML's folder and
+        # the name), and hand-written map.yaml files often say so.
+        while name.startswith("./"):
+            name = name[2:]
+        if name in ("", ".", "..") or "/" in name or "\\" in name or "\0" in name:
             raise Nav2ImportError(
-                f"map.yaml 'image' {name!r} is not a plain file name: the image must lie beside the YAML "
-                "file in the zip"
+                f"map.yaml 'image' {meta.image!r} is not a plain file name: the image must lie beside the "
+                "YAML file in the zip"
             )
         path = posixpath.join(posixpath.dirname(yamls[0].filename), name)
         found = [i for i in infos if i.filename == path]
