@@ -339,6 +339,29 @@ def test_the_off_grid_message_says_by_how_much() -> None:
     ).known_bounds() == (-404, 2, -402, 4)
 
 
+def test_an_origin_off_the_grid_is_moved_to_the_nearest_cell_edge_when_asked() -> None:
+    """SLAM tools put a map's origin anywhere (gmapping half a cell off: -51.225 at 0.05 m), and
+    map_saver writes it to 3 significant digits (-4.81): such a map was always refused. With
+    `snap_origin` it moves to the nearest cell edge, at most half a cell on each axis (half a cell
+    off: the edge above), each pixel keeping its place in the image."""
+    pixels = np.full((3, 4), 205, dtype=np.uint8)
+    pixels[0, 0] = 0  # top-left: occupied
+    pixels[2, 3] = 254  # bottom-right: free
+    yaml_text = nav2_yaml("map.png", origin="[-51.225, -4.81, 0.0]")
+    with pytest.raises(Nav2ImportError, match="unless snap_origin moves it"):
+        map_from_nav2(yaml_text, png(pixels), CONFIG)
+    gmap = map_from_nav2(yaml_text, png(pixels), CONFIG, snap_origin=True)
+    # -1024.5 cells -> -1024 (half a cell: the edge above); -96.2 cells -> -96.
+    assert gmap.known_bounds() == (-1024, -96, -1020, -93)
+    top_left = (-1024 * 0.05 + 0.025, (-96 + 2) * 0.05 + 0.025)
+    bottom_right = ((-1024 + 3) * 0.05 + 0.025, -96 * 0.05 + 0.025)
+    assert list(gmap.cells([top_left, bottom_right])["state"]) == [STATE_OCCUPIED, STATE_FREE]
+    # An origin on the grid is not moved, snapped or not.
+    on_grid = nav2_yaml("map.png", origin="[-1.5, -0.75, 0.0]")
+    unmoved = map_from_nav2(on_grid, png(pixels), CONFIG, snap_origin=True)
+    assert unmoved.known_bounds() == (-30, -15, -26, -12)
+
+
 @pytest.mark.parametrize(
     ("image", "message", "status"),
     [
@@ -626,6 +649,9 @@ def test_the_client_uploads_a_yaml_path_with_its_image_or_zip_bytes(tmp_path: Pa
         assert fm.import_nav2("floor", str(yaml_path)).id == "floor"  # replaced
         info = fm.import_nav2("zipped", nav2_zip(nav2_yaml(), {"map.pgm": PIXELS}))
         assert info.stats.bounds == [0.0, 0.0, 0.1, 0.1]
+        off_grid = nav2_zip(nav2_yaml(origin="[0.01, 0, 0]"), {"map.pgm": PIXELS})
         with pytest.raises(FleetmapError) as caught:
-            fm.import_nav2("bad", nav2_zip(nav2_yaml(origin="[0.01, 0, 0]"), {"map.pgm": PIXELS}))
+            fm.import_nav2("bad", off_grid)
         assert caught.value.status == 422 and "not on the map's cell grid" in str(caught.value)
+        # Asked to, the service moves it to the nearest cell edge (0.01 m: 0.2 cells, to 0).
+        assert fm.import_nav2("snapped", off_grid, snap_origin=True).stats.bounds == [0.0, 0.0, 0.1, 0.1]

@@ -36,7 +36,9 @@ pixel's own `occ`, that becomes the probability: the map robots navigated with i
 
 Limits (`Nav2ImportError` names what is wrong; nothing is created): a yaw other than 0 (a rotated
 image is not on the map's axis-aligned cells), an origin that is not on the map's cell grid (within
-1e-6 of a cell edge), a resolution other than the configuration's, images that are not 8-bit grey
+1e-6 of a cell edge; with `snap_origin` it is moved to the nearest one instead, by at most half a
+cell: SLAM tools put the origin anywhere, and map_saver writes it rounded), a resolution other
+than the configuration's, images that are not 8-bit grey
 (grey with alpha, and RGB / RGBA whose channels are equal everywhere, as map_saver writes scale
 maps, are grey; a PGM's maxval must be 255), images over MAX_IMAGE_SIDE on a side or
 MAX_IMAGE_PIXELS in all, more tiles than the map's `max_tiles`. Tiles are created only where a cell
@@ -339,14 +341,17 @@ def _pnm_maxval(im: ImageFile.ImageFile) -> int:
     return args[-1] if isinstance(args, tuple) and isinstance(args[-1], int) else 255
 
 
-def _grid_index(value: float, resolution: float, what: str) -> int:
+def _grid_index(value: float, resolution: float, what: str, snap: bool = False) -> int:
+    """The cell edge index of origin coordinate `value`: the edge it lies on (within GRID_TOLERANCE
+    cells), or with `snap` the nearest one (half a cell off: the one above)."""
     cells = value / resolution
-    nearest = round(cells)
-    if abs(cells - nearest) > GRID_TOLERANCE:
+    nearest = math.floor(cells + 0.5)
+    if abs(cells - nearest) > GRID_TOLERANCE and not snap:
         raise Nav2ImportError(
             f"map.yaml origin {what} {value!r} is not on the map's cell grid: it is {cells:.9g} cells of "
             f"{resolution!r} m from 0, {abs(cells - nearest):.3g} cells off the nearest cell edge "
-            f"({nearest * resolution:.9g} m); only maps whose origin is on the grid are imported"
+            f"({nearest * resolution:.9g} m); only maps whose origin is on the grid are imported, unless "
+            "snap_origin moves it to the nearest edge"
         )
     return int(nearest)
 
@@ -374,7 +379,7 @@ def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | 
 
 def map_from_nav2(
     yaml_text: str | bytes, image: bytes, config: MapConfig | None = None, defaults: MapConfig | None = None,
-    free_bytes: int | None = None, image_name: str | None = None,
+    free_bytes: int | None = None, image_name: str | None = None, snap_origin: bool = False,
 ) -> GridMap:  # fmt: skip
     """A new map holding a nav2 map_server map (the YAML text and the image file's bytes), read
     as map_server reads it (see the module's docstring).
@@ -382,13 +387,16 @@ def map_from_nav2(
     `config`: the new map's configuration, whose resolution must be the YAML's; without it,
     `defaults` (or the default configuration) with the YAML's resolution. The occupancy layer gets
     the map; the configuration's other layers stay unknown. With `free_bytes`, tiles needing more
-    memory are refused (507) before anything is allocated. Raises `Nav2ImportError`."""
-    return _map_from_meta(parse_nav2_yaml(yaml_text), image, config, defaults, free_bytes, image_name)
+    memory are refused (507) before anything is allocated. An origin off the map's cell grid is
+    refused, or with `snap_origin` moved to the nearest cell edge (by at most half a cell on each
+    axis). Raises `Nav2ImportError`."""
+    meta = parse_nav2_yaml(yaml_text)
+    return _map_from_meta(meta, image, config, defaults, free_bytes, image_name, snap_origin)
 
 
 def _map_from_meta(
     meta: Nav2Meta, image: bytes, config: MapConfig | None, defaults: MapConfig | None,
-    free_bytes: int | None, image_name: str | None,
+    free_bytes: int | None, image_name: str | None, snap_origin: bool,
 ) -> GridMap:  # fmt: skip
     """`map_from_nav2` of a parsed map.yaml."""
     ox, oy, yaw = meta.origin
@@ -399,7 +407,7 @@ def _map_from_meta(
         )
     config = _map_config(meta, config, defaults)
     res = config.resolution
-    i0, j0 = _grid_index(ox, res, "x"), _grid_index(oy, res, "y")
+    i0, j0 = _grid_index(ox, res, "x", snap_origin), _grid_index(oy, res, "y", snap_origin)
     grey, alpha = read_image(image, image_name or meta.image)
     h, w = grey.shape
     if max(abs(i0), abs(i0 + w), abs(j0), abs(j0 + h)) * res > MAX_COORDINATE:
@@ -461,7 +469,7 @@ def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> bytes
 
 def map_from_nav2_zip(
     data: bytes, config: MapConfig | None = None, defaults: MapConfig | None = None,
-    free_bytes: int | None = None,
+    free_bytes: int | None = None, snap_origin: bool = False,
 ) -> GridMap:  # fmt: skip
     """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and the image it
     names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
@@ -497,4 +505,4 @@ def map_from_nav2_zip(
         if not found:
             raise Nav2ImportError(f"map.yaml names the image {name!r}, which is not in the zip")
         image = _zip_member(zf, found[0], MAX_IMAGE_FILE_BYTES)
-    return _map_from_meta(meta, image, config, defaults, free_bytes, name)
+    return _map_from_meta(meta, image, config, defaults, free_bytes, name, snap_origin)

@@ -268,7 +268,9 @@ class FleetmapClient:
         )
         return MapInfo.model_validate_json(response.content)
 
-    def import_nav2(self, map_id: str, source: str | os.PathLike[str] | bytes) -> MapInfo:
+    def import_nav2(
+        self, map_id: str, source: str | os.PathLike[str] | bytes, snap_origin: bool = False
+    ) -> MapInfo:
         """`PUT /maps/{map_id}/import?format=ros`: install a ROS nav2 map_server map as map `map_id`,
         replacing any map of that id (keeping its configuration), and return it once stored.
 
@@ -276,11 +278,14 @@ class FleetmapClient:
         read relative to the YAML's folder as map_server does), or the bytes of a zip holding one
         YAML file and its image (what `GET /maps/{id}/export?format=ros` gives). `FleetmapError` 422
         naming the field or image at fault (a rotated map, an origin off the cell grid, a colour
-        image, ...), 413 past a size limit; nothing changes then. OSError if a file cannot be read."""
+        image, ...), 413 past a size limit; nothing changes then. OSError if a file cannot be read.
+        `snap_origin`: an origin off the map's cell grid (as SLAM tools and map_saver write them) is
+        moved to the nearest cell edge, by at most half a cell, instead of refused."""
         _check_id("map_id", map_id)
         body = source if isinstance(source, bytes) else nav2_files_zip(source)
         response = self._transfer(
-            "PUT", f"/maps/{map_id}/import", params={"format": "ros"}, content=body,
+            "PUT", f"/maps/{map_id}/import", params={"format": "ros", "snap_origin": snap_origin},
+            content=body,
             headers={"content-type": "application/zip"},
         )  # fmt: skip
         return MapInfo.model_validate_json(response.content)

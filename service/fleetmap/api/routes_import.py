@@ -40,6 +40,14 @@ async def put_import(
     format: Annotated[
         Literal["ros"], Query(description="ros: a zip of a nav2 map_server map.yaml and its image")
     ] = "ros",
+    snap_origin: Annotated[
+        bool,
+        Query(
+            description="move an origin off the map's cell grid to the nearest cell edge (by at most "
+            "half a cell on each axis) instead of refusing the map: SLAM tools put the origin anywhere, "
+            "and map_saver writes it rounded"
+        ),
+    ] = False,
 ) -> MapInfo:
     """Replace map `map_id` (201 with its `Location` when it did not exist, else 200) with a map whose
     occupancy layer holds the uploaded nav2 map, read as map_server reads it, durably: the answer
@@ -48,7 +56,8 @@ async def put_import(
     and scans queued for the old map are dropped. 415 unless the body is a zip sent as
     `application/zip`; 422 naming the field or the image at fault (a rotated map, an origin off the
     cell grid, another resolution than the replaced map's, an image that is not 8-bit grey, more
-    tiles than `max_tiles`); 413 for an image or a file past its limit; 507 if its tiles need more
+    tiles than `max_tiles`; with `snap_origin`, an origin off the grid is moved to the nearest cell
+    edge instead); 413 for an image or a file past its limit; 507 if its tiles need more
     memory than the budget leaves; none changes anything. 503 if it was installed but could not be
     stored."""
     del format  # one format for now: the parameter names it, as GET .../export's does
@@ -61,7 +70,9 @@ async def put_import(
     try:
         return await install_upload(
             state, map_id, response,
-            lambda config, free: map_from_nav2_zip(body, config, defaults, free_bytes=free),
+            lambda config, free: map_from_nav2_zip(
+                body, config, defaults, free_bytes=free, snap_origin=snap_origin
+            ),
         )  # fmt: skip
     except Nav2ImportError as exc:
         raise ApiError(exc.status, f"nav2 map: {exc}") from None
