@@ -519,8 +519,13 @@ class DurableStore:
                     "clock = ?, scans_integrated = ?, scans_rejected = ? WHERE id = ?",
                     (gen, last_id, clock, saved["scans_integrated"], saved["scans_rejected"], map_id),
                 )
+                # The counters hold every robot the map holds: a robot it forgot to make room for
+                # a new one (`MapRegistry._room_for`) goes from storage too. Kept, rows of every
+                # robot id the map ever saw piled up, and a restart brought them all back, past
+                # `--max-robots-per-map`, into GET /maps/{id}, /metrics and every robots event.
+                conn.execute("DELETE FROM robots WHERE map_id = ?", (map_id,))
                 conn.executemany(
-                    "INSERT OR REPLACE INTO robots (map_id, robot_id, state) VALUES (?, ?, ?)",
+                    "INSERT INTO robots (map_id, robot_id, state) VALUES (?, ?, ?)",
                     [(map_id, rid, json.dumps(state)) for rid, state in saved["robots"].items()],
                 )
                 conn.execute(
