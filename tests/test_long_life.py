@@ -4,7 +4,9 @@ after a restart."""
 
 from __future__ import annotations
 
+import re
 import sqlite3
+import time
 from pathlib import Path
 
 import httpx
@@ -66,3 +68,30 @@ def test_robots_a_full_map_forgot_are_not_stored_nor_back_after_a_restart(tmp_pa
     with ServiceProcess(tmp_path, args) as svc:
         # Replayed after the snapshot's robots, c0 and c1 were heard most recently; of the rest, b2.
         assert _robots(svc) == {"b2", "c0", "c1"}
+
+
+def _memory_used(svc: ServiceProcess) -> float:
+    metrics = httpx.get(f"{svc.base_url}/metrics", timeout=10).text
+    found = re.search(r"^fleetmap_memory_used_bytes (\S+)$", metrics, re.MULTILINE)
+    assert found is not None, metrics
+    return float(found.group(1))
+
+
+def test_a_map_deleted_after_a_viewer_showed_it_gives_its_memory_back(tmp_path: Path) -> None:
+    """An event stream that ends because its client went away is cancelled, and the cancellation's
+    traceback kept the stream's frame, with the map in its locals, in a reference cycle that only a
+    full garbage collection frees; an idle service ran none within minutes. So a map deleted after
+    a viewer had shown it kept its tiles in memory and charged to --max-memory (whose scans then got
+    507), as long as no collection happened to come."""
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        _post_robots(svc, ["r"])
+        assert _memory_used(svc) > 0
+        with httpx.stream("GET", f"{svc.base_url}/maps/m/events", timeout=10) as stream:
+            for line in stream.iter_lines():
+                if line.startswith("event: robots"):
+                    break
+        time.sleep(0.5)  # the service sees the client go and ends the stream
+        assert httpx.delete(f"{svc.base_url}/maps/m", timeout=10).status_code == 204
+        # Looked at once: every scrape allocates, and enough of them bring on the collection.
+        time.sleep(1.0)
+        assert _memory_used(svc) == 0
