@@ -19,11 +19,13 @@ import numpy as np
 import pytest
 from test_api_support import declare_size, small_snapshot_map, snapshot_body, snapshot_parts
 
+from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME, StorageError, open_database
 from fleetmap.grid_map import GridMap
 from fleetmap.journal import JournalEntry, JournalWriter
 from fleetmap.persistence import DurableStore, changed_tiles
+from fleetmap.registry import MapRegistry
 from fleetmap.scan import Scan
 from fleetmap.storage_format import (
     MAX_SNAPSHOT_META_BYTES,
@@ -571,3 +573,29 @@ def test_a_zip_bomb_is_refused_by_its_declared_size() -> None:
     liar = declare_size(snapshot_body(padded, arrays, deflate=True), "map.json", 100)
     with pytest.raises(ValueError, match="map.json cannot be read"):
         map_from_snapshot_file(liar)
+
+
+def test_a_deleted_map_leaves_nothing_behind_in_the_store(tmp_path: Path) -> None:
+    """Maps are created and deleted under new ids for the service's whole life (and a scan refused
+    for a map it created removes that map again): the store's bookkeeping per map id kept the
+    creation time and last journal id of every map ever deleted, and the callbacks of a deleted map's
+    last scans, committed after its removal was asked for, put its row count back."""
+    registry = MapRegistry(MapConfig(tile_size=16), durable=DurableStore(tmp_path))
+    registry.start()
+    try:
+        for k in range(20):
+            map_id = f"gone-{k}"
+            registry.create(map_id, wait=True)
+            future = registry.submit(map_id, "r", WireScan(0, 0.0, fan(0.0, 11), None), wait=True)
+            assert future is not None
+            future.result(timeout=10)
+            registry.submit(map_id, "r", WireScan(1, 0.0, fan(0.0, 11), None))  # maybe still queued
+            registry.delete(map_id, wait=True)
+        registry.create("kept", wait=True)
+        registry.wait_idle()
+        store = registry.durable
+        assert store is not None
+        for kept in (store._created, store._last_journal_id, store._rows_since, store._snapshot_clock):
+            assert set(kept) <= {"kept"}, kept
+    finally:
+        registry.close()

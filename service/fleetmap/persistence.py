@@ -364,7 +364,11 @@ class DurableStore:
             _delete_map_rows(conn, map_id)
             conn.execute("COMMIT")
 
-        for d in (self._rows_since, self._snapshot_clock):
+        # Everything kept per map id goes with it: maps are created and deleted under new ids for
+        # the service's whole life (and a scan refused for a map it created removes that map again),
+        # so entries kept for every id ever seen would grow without end. `journal`'s callbacks of
+        # its last scans, committed after this, leave them alone (see there).
+        for d in (self._rows_since, self._snapshot_clock, self._created, self._last_journal_id):
             d.pop(map_id, None)
         self._forget_health(map_id)
         return self.writer.change_map(map_id, self._reporting(f"deleting map {map_id!r} failed", op))
@@ -406,9 +410,14 @@ class DurableStore:
         map's next snapshot (at most `snapshot_interval` later, once storage works) makes it
         durable with the tiles it changed."""
 
+        incarnation = self._created.get(map_id)
+
         def durable(row_id: int) -> None:
-            self._last_journal_id[map_id] = row_id
-            self._rows_since[map_id] = self._rows_since.get(map_id, 0) + 1
+            # Committed after its map was deleted (its removal queued behind it), or deleted and
+            # created again: its row is gone with the old map, and nothing of it is counted.
+            if self._created.get(map_id) == incarnation:
+                self._last_journal_id[map_id] = row_id
+                self._rows_since[map_id] = self._rows_since.get(map_id, 0) + 1
             self._journal_error = None
             on_durable(row_id)
 
@@ -519,8 +528,13 @@ class DurableStore:
                     "clock = ?, scans_integrated = ?, scans_rejected = ? WHERE id = ?",
                     (gen, last_id, clock, saved["scans_integrated"], saved["scans_rejected"], map_id),
                 )
+                # The counters hold every robot the map holds: a robot it forgot to make room for
+                # a new one (`MapRegistry._room_for`) goes from storage too. Kept, rows of every
+                # robot id the map ever saw piled up, and a restart brought them all back, past
+                # `--max-robots-per-map`, into GET /maps/{id}, /metrics and every robots event.
+                conn.execute("DELETE FROM robots WHERE map_id = ?", (map_id,))
                 conn.executemany(
-                    "INSERT OR REPLACE INTO robots (map_id, robot_id, state) VALUES (?, ?, ?)",
+                    "INSERT INTO robots (map_id, robot_id, state) VALUES (?, ?, ?)",
                     [(map_id, rid, json.dumps(state)) for rid, state in saved["robots"].items()],
                 )
                 conn.execute(

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import heapq
 import itertools
 import logging
 import sqlite3
@@ -274,7 +275,14 @@ class MapRegistry:
                     robot.accept(seq, stamp, session, time.time())
                 robot.last_stamp = stamp
                 robot.add_pose(scan.pose)
+                # Heard after the snapshot (whose counters hold every older `last_heard`), in journal
+                # order: the robots that go first below are the ones heard from least recently.
+                robot.last_heard = time.time()
                 entry.scans_integrated += 1
+            # A database written before forgotten robots were deleted from it holds every robot the
+            # map ever saw, and robots first heard since the snapshot add to its robots: the map
+            # holds at most `max_robots_per_map`, as `_room_for` keeps it while the service runs.
+            self._forget_idle(entry, len(entry.robots) - self.max_robots_per_map)
             # Charged after the replay, which the budget must never refuse: those scans were accepted.
             self._charged(gmap)
             self._add(entry)
@@ -558,12 +566,20 @@ class MapRegistry:
         A forgotten robot that comes back starts afresh: its first scan is accepted as a first."""
         if robot_id in entry.robots or len(entry.robots) < self.max_robots_per_map:
             return True
+        return self._forget_idle(entry, 1) == 1
+
+    @staticmethod
+    def _forget_idle(entry: MapEntry, count: int) -> int:
+        """Forget up to `count` robots of map `entry` that are not online and have no scan waiting,
+        in `_room_for`'s order (those whose every message was refused first, then the ones heard
+        from least recently); return how many (call under the registry's lock)."""
+        if count <= 0:
+            return 0
         idle = [(rid, st) for rid, st in entry.robots.items() if not st.online and not st.unsettled]
-        if not idle:
-            return False
-        forgotten, _ = min(idle, key=lambda item: (item[1].last_seq is not None, item[1].last_heard))
-        entry.forget(forgotten)
-        return True
+        chosen = heapq.nsmallest(count, idle, key=_forgetting_order)
+        for rid, _ in chosen:
+            entry.forget(rid)
+        return len(chosen)
 
     def set_online(self, map_id: str, robot_id: str, online: bool) -> None:
         """A robot's liveliness token appeared or went away."""
@@ -775,6 +791,12 @@ class MapRegistry:
                 return True
             time.sleep(0.005)
         return False
+
+
+def _forgetting_order(item: tuple[str, RobotState]) -> tuple[bool, float]:
+    """Which robot a full map forgets first (`MapRegistry._forget_idle`): one whose every message
+    was refused (it has no seq), then the one heard from least recently."""
+    return item[1].last_seq is not None, item[1].last_heard
 
 
 def _queued_bytes(job: Job) -> int:

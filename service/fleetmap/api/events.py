@@ -128,61 +128,72 @@ async def event_stream(
     registry, settings = state.registry, state.settings
     feed = entry.changes
     tile_size = entry.config.tile_size
-    yield "retry: 1000\n\n"  # EventSource reconnects after 1 s
-    version = feed.version if since is None else since
-    if since is not None and since > feed.version:
-        # A version this map never had (the id is from a deleted or replaced map of the same name):
-        # start over.
-        yield _event(
-            "tiles",
-            TilesEvent(version=feed.version, reset=True).model_dump_json(exclude_none=True),
-            feed.version,
-        )
-        version = feed.version
     robots_feed = RobotsFeed(entry, registry.lock)
-    last_sent = time.monotonic()
-    while not state.event_streams.closing:
-        with registry.lock:
-            successor = _successor(registry.maps, entry)
-        if successor is None:
-            yield _event("deleted", json.dumps({"id": entry.id}))
-            return
-        if successor is not entry:
-            # Replaced: the client reloads everything, so the new map's history is not news; its
-            # version becomes the event id, so a reconnecting EventSource resumes in the new feed.
-            entry, feed, tile_size = successor, successor.changes, successor.config.tile_size
+    successor: MapEntry | None = entry
+    try:
+        yield "retry: 1000\n\n"  # EventSource reconnects after 1 s
+        version = feed.version if since is None else since
+        if since is not None and since > feed.version:
+            # A version this map never had (the id is from a deleted or replaced map of the same name):
+            # start over.
+            yield _event(
+                "tiles",
+                TilesEvent(version=feed.version, reset=True).model_dump_json(exclude_none=True),
+                feed.version,
+            )
             version = feed.version
-            yield _event("replaced", ReplacedEvent(id=entry.id, version=version).model_dump_json(), version)
-            robots_feed = RobotsFeed(entry, registry.lock)  # all the new map's robots, at once
-            last_sent = time.monotonic()
-        batch = feed.since(version)
-        if batch.version != version:
-            if batch.reset:
-                tiles = TilesEvent(version=batch.version, reset=True)
+        last_sent = time.monotonic()
+        while not state.event_streams.closing:
+            with registry.lock:
+                successor = _successor(registry.maps, entry)
+            if successor is None:
+                yield _event("deleted", json.dumps({"id": entry.id}))
+                return
+            if successor is not entry:
+                # Replaced: the client reloads everything, so the new map's history is not news; its
+                # version becomes the event id, so a reconnecting EventSource resumes in the new feed.
+                entry, feed, tile_size = successor, successor.changes, successor.config.tile_size
+                version = feed.version
+                yield _event(
+                    "replaced", ReplacedEvent(id=entry.id, version=version).model_dump_json(), version
+                )
+                robots_feed = RobotsFeed(entry, registry.lock)  # all the new map's robots, at once
+                last_sent = time.monotonic()
+            batch = feed.since(version)
+            if batch.version != version:
+                if batch.reset:
+                    tiles = TilesEvent(version=batch.version, reset=True)
+                else:
+                    tiles = TilesEvent(version=batch.version, tiles=tile_windows(batch.tiles, tile_size))
+                if batch.reset or batch.tiles:  # a version bump that changed no tile is not news
+                    yield _event("tiles", tiles.model_dump_json(exclude_none=True), batch.version)
+                    last_sent = time.monotonic()
+                version = batch.version
+            # A feed that sent nothing yet sends every robot: a delta needs a base.
+            if robot_deltas and robots_feed.version >= 0:
+                delta = robots_feed.delta()
+                if delta is not None:
+                    yield _event("robots_delta", delta.model_dump_json())
+                    last_sent = time.monotonic()
             else:
-                tiles = TilesEvent(version=batch.version, tiles=tile_windows(batch.tiles, tile_size))
-            if batch.reset or batch.tiles:  # a version bump that changed no tile is not news
-                yield _event("tiles", tiles.model_dump_json(exclude_none=True), batch.version)
+                robots = robots_feed.full()
+                if robots is not None:
+                    yield _event("robots", robots.model_dump_json())
+                    last_sent = time.monotonic()
+            if time.monotonic() - last_sent >= settings.keepalive:
+                yield ": keepalive\n\n"
                 last_sent = time.monotonic()
-            version = batch.version
-        # A feed that sent nothing yet sends every robot: a delta needs a base.
-        if robot_deltas and robots_feed.version >= 0:
-            delta = robots_feed.delta()
-            if delta is not None:
-                yield _event("robots_delta", delta.model_dump_json())
-                last_sent = time.monotonic()
-        else:
-            robots = robots_feed.full()
-            if robots is not None:
-                yield _event("robots", robots.model_dump_json())
-                last_sent = time.monotonic()
-        if time.monotonic() - last_sent >= settings.keepalive:
-            yield ": keepalive\n\n"
-            last_sent = time.monotonic()
-        await asyncio.sleep(settings.events_period)
-    # The server is shutting down (`EventStreamSlots.close_all`): end the stream, so that the
-    # server need not wait for it. An EventSource reconnects by itself once the server is back.
-    yield ": the server is shutting down\n\n"
+            await asyncio.sleep(settings.events_period)
+        # The server is shutting down (`EventStreamSlots.close_all`): end the stream, so that the
+        # server need not wait for it. An EventSource reconnects by itself once the server is back.
+        yield ": the server is shutting down\n\n"
+    finally:
+        # A stream that ends because its client went away is cancelled, and the CancelledError's
+        # traceback keeps this generator's frame, locals included, in a reference cycle that only a
+        # full garbage collection frees: of an idle service, none came within minutes. A deleted
+        # map's tiles (its memory, and its share of --max-memory) stayed held while a viewer had
+        # shown it. Unbound here, before the frame ends, they go with the map.
+        del entry, feed, robots_feed, successor
 
 
 #: Digits of the longest change version (an int64: microseconds since 1970, counted up).
