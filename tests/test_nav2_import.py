@@ -103,6 +103,10 @@ def test_negate_reads_dark_pixels_as_free() -> None:
     assert np.array_equal(
         log_odds_row(row_map([0, 255], negate="true"), 2), log_odds_row(row_map([0, 255], negate=1), 2)
     )
+    # Quoted, as yaml-cpp (map_server's parser) reads it: refused before ("must be an integer").
+    for quoted, plain in (('"1"', 1), ("'0'", 0)):
+        got = log_odds_row(row_map([0, 255], negate=quoted), 2)
+        assert np.array_equal(got, log_odds_row(row_map([0, 255], negate=plain), 2))
 
 
 def test_scale_mode_publishes_the_rescaled_percentage_and_has_no_unknown_grey() -> None:

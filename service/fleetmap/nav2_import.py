@@ -8,8 +8,9 @@ What map_server does (navigation2, nav2_map_server/src/map_io.cpp, `loadMapYaml`
 `loadMapFromFile`; the mode names from map_mode.cpp's `map_mode_from_string`):
 
 - The YAML needs `image`, `resolution`, `origin` (three numbers: x, y, yaw of the image's lower-left
-  pixel corner), `occupied_thresh`, `free_thresh` and `negate` (an integer, non-zero is true, or a
-  boolean); `mode` is `trinary` (the default when absent), `scale` or `raw`, in any case.
+  pixel corner), `occupied_thresh`, `free_thresh` and `negate` (an integer, quoted or not,
+  non-zero is true, or a boolean); `mode` is `trinary` (the default when absent), `scale` or
+  `raw`, in any case.
 - The resolution is published as a float32 (`nav_msgs/MapMetaData`): a YAML resolution that is
   exactly a float32, as a file written from a published map holds it, is read as that float32's
   shortest decimal (0.05000000074505806 is 0.05).
@@ -144,6 +145,8 @@ class _MapYamlLoader(yaml.SafeLoader):
 #: resolver leaves a string: an exponent without a dot or a sign, as in `1e-05`, which yaml-cpp
 #: itself writes for a small origin.
 _NUMBER_TEXT = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
+#: A quoted integer, which yaml-cpp's `as<int>()` reads as that integer (PyYAML: a string).
+_INTEGER_TEXT = re.compile(r"[+-]?[0-9]+")
 #: The most characters of a YAML value an error message quotes.
 _SHOWN_CHARS = 80
 
@@ -226,6 +229,9 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     if "negate" not in doc:
         raise Nav2ImportError("map.yaml has no 'negate'")
     negate = doc["negate"]
+    if isinstance(negate, str) and _INTEGER_TEXT.fullmatch(negate):
+        # yaml-cpp, map_server's parser, reads a quoted integer as that integer (`negate: "0"`).
+        negate = int(negate)
     if not isinstance(negate, (bool, int)):
         raise Nav2ImportError(f"map.yaml 'negate' must be an integer or a boolean, got {_shown(negate)}")
     mode = doc.get("mode", "trinary")
