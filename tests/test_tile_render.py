@@ -8,6 +8,7 @@ is computed here from the documented convention, independently of the module's c
 
 from __future__ import annotations
 
+import gc
 import io
 import math
 import threading
@@ -417,6 +418,25 @@ def test_zoomed_out_cache_follows_changes() -> None:
         if scan is not None:
             gmap.integrate(scan)
     assert cache.reduced.nbytes > 0
+
+
+def test_zoomed_out_blocks_of_a_deleted_map_are_dropped() -> None:
+    """A deleted map's reduced blocks stayed in the cache, up to its 128 MB, until newer renders
+    evicted them: memory a map no longer held. They go once the map's store is freed; a live map's
+    stay."""
+    kept = MapEntry("kept", make_map(*scattered_scans(3, n=6), tile_size=16, max_tiles=100_000), 1)
+    gone = MapEntry("gone", make_map(*scattered_scans(5, n=6), tile_size=16, max_tiles=100_000), 2)
+    cache = TileCache()
+    cache.get_or_render(kept, "probability", -3, -1, -1)
+    alone = cache.reduced.nbytes
+    cache.get_or_render(gone, "probability", -3, -1, -1)
+    assert cache.reduced.nbytes > alone > 0
+    cache.drop_map("gone")  # as DELETE /maps/gone does, and the registry lets the map go
+    del gone
+    gc.collect()
+    assert cache.reduced.nbytes == alone
+    png, _ = cache.get_or_render(kept, "probability", -3, 0, 0)  # the live map's blocks still serve
+    assert png == render_tile(kept.gmap, "probability", -3, 0, 0)
 
 
 def test_concurrent_requests_render_once_and_stay_consistent() -> None:

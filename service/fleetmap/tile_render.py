@@ -303,19 +303,44 @@ def _unknown_value(source: str) -> tuple[type[np.generic], float]:
 
 class ReducedCache:
     """Thread-safe LRU of reduced storage-tile blocks `key -> (version, array)`, bounded in bytes.
+    A key is a tuple whose first item is the token of the store the block comes from
+    (`_store_token`).
 
     A zoomed-out web tile spans many storage tiles; re-reducing all of them whenever any one changes
     would copy the whole window under the map lock. With this cache a render copies and reduces only
-    the storage tiles whose version moved since they were last reduced.
+    the storage tiles whose version moved since they were last reduced. The blocks of a store go
+    when the store does (`follow`): a deleted map's held up to `max_bytes` until evicted.
     """
 
     def __init__(self, max_bytes: int = 128 << 20) -> None:
         self.max_bytes = max_bytes
-        self._items: OrderedDict[Hashable, tuple[int, np.ndarray]] = OrderedDict()
+        self._items: OrderedDict[tuple[Hashable, ...], tuple[int, np.ndarray]] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
+        self._followed: set[int] = set()  # tokens of the live stores whose blocks this may hold
+        # Tokens of stores freed since: appended by a finalizer, which may run inside any
+        # allocation (a garbage collection), this cache's own under its lock included, so it only
+        # appends (atomic), and the next `put` or `nbytes` drops their blocks under the lock.
+        self._freed: list[int] = []
 
-    def get(self, key: Hashable, version: int) -> np.ndarray | None:
+    def follow(self, store: TileStore, token: int) -> None:
+        """Drop the blocks of `store` (whose token is `token`) once the store is freed: a deleted or
+        replaced map's, which no render can ask for again."""
+        with self._lock:
+            if token in self._followed:
+                return
+            self._followed.add(token)
+        weakref.finalize(store, self._freed.append, token)
+
+    def _drop_freed(self) -> None:
+        """Drop the blocks of the stores freed since the last call (call under the lock)."""
+        while self._freed:
+            token = self._freed.pop()
+            self._followed.discard(token)
+            for key in [k for k in self._items if k[0] == token]:
+                self._bytes -= self._items.pop(key)[1].nbytes
+
+    def get(self, key: tuple[Hashable, ...], version: int) -> np.ndarray | None:
         with self._lock:
             item = self._items.get(key)
             if item is None or item[0] != version:
@@ -323,7 +348,7 @@ class ReducedCache:
             self._items.move_to_end(key)
             return item[1]
 
-    def get_many(self, keys: Sequence[Hashable], versions: list[int]) -> list[np.ndarray | None]:
+    def get_many(self, keys: Sequence[tuple[Hashable, ...]], versions: list[int]) -> list[np.ndarray | None]:
         """`get` for many keys under one acquisition of the lock."""
         out: list[np.ndarray | None] = []
         with self._lock:
@@ -336,8 +361,9 @@ class ReducedCache:
                     out.append(item[1])
         return out
 
-    def put(self, key: Hashable, version: int, array: np.ndarray) -> None:
+    def put(self, key: tuple[Hashable, ...], version: int, array: np.ndarray) -> None:
         with self._lock:
+            self._drop_freed()
             old = self._items.pop(key, None)
             if old is not None:
                 self._bytes -= old[1].nbytes
@@ -353,7 +379,9 @@ class ReducedCache:
 
     @property
     def nbytes(self) -> int:
-        return self._bytes
+        with self._lock:
+            self._drop_freed()
+            return self._bytes
 
 
 # -- rendering -----------------------------------------------------------------------------------------
@@ -382,6 +410,8 @@ def _snapshot(
     # Only reductions are cached (a block of factor 1 is a plain copy of the store's cells).
     cache = reduced if factor > 1 else None
     token = _store_token(store) if cache is not None else 0
+    if cache is not None:
+        cache.follow(store, token)
     stored = ("tsdf", "tsdf_weight") if source == "tsdf" else (source,)
     with gmap.lock:
         ti, tj, slots = _tiles_under(store, *_storage_range(store, i0, j0, i0 + size, j0 + size))
