@@ -17,7 +17,13 @@ import pytest
 from service_process import ServiceProcess, wait_for
 from test_auth import ADMIN, READ, SCAN, WRITE, bearer
 
-from fleetmap.auth import SESSION_COOKIE, is_read_request, required_role
+from fleetmap.auth import (
+    MAX_SESSION_VALUES,
+    SESSION_COOKIE,
+    UNKNOWN_SESSION,
+    is_read_request,
+    required_role,
+)
 
 TILE = "/maps/m/tiles/0/0/-1.png"
 UNKNOWN = "unknown-token-0123456789"
@@ -172,6 +178,34 @@ def test_an_unknown_session_is_an_unknown_token(secured: ServiceProcess) -> None
         assert r.json()["detail"].startswith("unknown token") and "sign in again" in r.json()["detail"]
         assert r.headers["www-authenticate"].startswith("Bearer")
         assert READ not in r.text
+
+
+def test_another_session_cookie_does_not_hide_the_viewers_own(secured: ServiceProcess) -> None:
+    """A browser sends every `fleetmap_session` it holds for the host and path, longest path first
+    (RFC 6265, 5.4): one set by another page of the site (another service on the host, any port; a
+    sibling subdomain, for the parent domain) came first, and only the first was read, so every read
+    was a 401 and signing in again did not help. Found by sending two values, the unknown one first."""
+    url = secured.base_url
+    mine = session_of(READ)
+    for other in (session_of(UNKNOWN), "not-a-digest", mine.upper()):
+        one_header = {"Cookie": f"{SESSION_COOKIE}={other}; theme=dark; {SESSION_COOKIE}={mine}"}
+        r = httpx.get(f"{url}/maps", headers=one_header)
+        assert r.status_code == 200, (other, r.text)
+        # Two Cookie headers (what an HTTP/2 proxy may forward as it got them).
+        two_headers = [("Cookie", f"{SESSION_COOKIE}={other}"), ("Cookie", f"{SESSION_COOKIE}={mine}")]
+        assert httpx.get(f"{url}{TILE}", headers=two_headers).status_code == 200, other
+    # None known: the unknown token's 401, as for one.
+    r = httpx.get(f"{url}/maps", headers={"Cookie": f"{SESSION_COOKIE}=0; {SESSION_COOKIE}={'0' * 64}"})
+    assert r.status_code == 401 and r.json()["detail"] == UNKNOWN_SESSION
+    # At most MAX_SESSION_VALUES are looked up: a header of them costs the service a bounded time.
+    unknown = "; ".join(f"{SESSION_COOKIE}={n:064x}" for n in range(MAX_SESSION_VALUES))
+    r = httpx.get(f"{url}/maps", headers={"Cookie": f"{unknown}; {SESSION_COOKIE}={mine}"})
+    assert r.status_code == 401 and r.json()["detail"] == UNKNOWN_SESSION
+    # The cookies are still no use for a write, whichever comes first.
+    r = httpx.put(
+        f"{url}/maps/m3", json={}, headers={"Cookie": f"{SESSION_COOKIE}=0; {SESSION_COOKIE}={mine}"}
+    )
+    assert r.status_code == 401 and r.json() == {"detail": WRITE_401}
 
 
 def test_a_session_cookie_never_authorises_a_write(secured: ServiceProcess) -> None:
