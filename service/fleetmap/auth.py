@@ -23,7 +23,8 @@ value is the token's hex SHA-256 digest (`session_value`): a stolen cookie does 
 and the cookie is matched against the configured digests on every request, so revoking the token
 (token file, SIGHUP) ends the session at once. The cookie stands for its token on read requests only
 (`is_read_request`), never on writes, so a page that gets a browser to send a request with it
-(CSRF) can change no map; an `Authorization` header, when sent, wins over the cookie.
+(CSRF) can change no map; a bearer token (`Authorization: Bearer`), when sent, wins over the cookie
+(another scheme, such as a proxy's `Basic`, does not: the cookie still counts).
 """
 
 from __future__ import annotations
