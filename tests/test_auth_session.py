@@ -7,7 +7,10 @@ docs/security.md, "REST API"."""
 from __future__ import annotations
 
 import hashlib
+import os
 import signal
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -125,6 +128,42 @@ def test_the_trusted_proxies_are_an_option(tmp_path: Path) -> None:
     with ServiceProcess(tmp_path, args) as svc:
         r = httpx.post(f"{svc.base_url}/session", headers=forwarded)
         assert r.status_code == 200 and "Secure" not in set_cookie(r)[1], r.headers
+
+
+def test_trusted_proxies_that_uvicorn_would_never_match_are_refused(tmp_path: Path) -> None:
+    """uvicorn takes an entry of `--forwarded-allow-ips` that is no address, network or `*` as a name
+    that no connection's address equals: `10.1.2.3,127.0.0.1` (uvicorn's own variable's separator),
+    `127.0.0.1,` (a variable's list split at spaces), a host name. The proxy was silently not trusted,
+    and the cookie set behind it lacked `Secure`: found by giving the loopback proxy with a comma."""
+    cases = [
+        (
+            ["--forwarded-allow-ips", "10.1.2.3,127.0.0.1"],
+            {},
+            "'10.1.2.3,127.0.0.1' (separate addresses with spaces",
+        ),
+        (["--forwarded-allow-ips", "proxy.internal"], {}, "'proxy.internal' (host names are not looked up)"),
+        (
+            ["--forwarded-allow-ips", "127.0.0.300"],
+            {},
+            "expected an IP address, a network (10.0.0.0/8) or '*'",
+        ),
+        ([], {"FLEETMAP_FORWARDED_ALLOW_IPS": "127.0.0.1, 10.1.2.3"}, "$FLEETMAP_FORWARDED_ALLOW_IPS="),
+    ]
+    for args, env, message in cases:
+        done = subprocess.run(
+            [sys.executable, "-m", "fleetmap.server", "--in-memory", *args],
+            capture_output=True, text=True, env={**os.environ, **env}, timeout=60,
+        )  # fmt: skip
+        assert done.returncode == 2 and message in done.stderr, (args, env, done.stderr)
+    # What is accepted is what uvicorn matches: a network holding 127.0.0.1 (host bits cleared), and
+    # `*` among other addresses (uvicorn trusts all only for `*` alone: in a list it was ignored).
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}")
+    forwarded = {**bearer(READ), "X-Forwarded-Proto": "https"}
+    for trusted in (["127.0.0.5/8"], ["10.1.2.3", "*"]):
+        args = ["--in-memory", "--auth-tokens", str(tokens), "--forwarded-allow-ips", *trusted]
+        with ServiceProcess(tmp_path, args) as svc:
+            r = httpx.post(f"{svc.base_url}/session", headers=forwarded)
+            assert r.status_code == 200 and "Secure" in set_cookie(r)[1], (trusted, r.headers)
 
 
 def test_signing_in_needs_a_valid_token_in_the_header(secured: ServiceProcess) -> None:
