@@ -7,7 +7,10 @@ docs/security.md, "REST API"."""
 from __future__ import annotations
 
 import hashlib
+import os
 import signal
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -17,7 +20,13 @@ import pytest
 from service_process import ServiceProcess, wait_for
 from test_auth import ADMIN, READ, SCAN, WRITE, bearer
 
-from fleetmap.auth import SESSION_COOKIE, is_read_request, required_role
+from fleetmap.auth import (
+    MAX_SESSION_VALUES,
+    SESSION_COOKIE,
+    UNKNOWN_SESSION,
+    is_read_request,
+    required_role,
+)
 
 TILE = "/maps/m/tiles/0/0/-1.png"
 UNKNOWN = "unknown-token-0123456789"
@@ -121,6 +130,42 @@ def test_the_trusted_proxies_are_an_option(tmp_path: Path) -> None:
         assert r.status_code == 200 and "Secure" not in set_cookie(r)[1], r.headers
 
 
+def test_trusted_proxies_that_uvicorn_would_never_match_are_refused(tmp_path: Path) -> None:
+    """uvicorn takes an entry of `--forwarded-allow-ips` that is no address, network or `*` as a name
+    that no connection's address equals: `10.1.2.3,127.0.0.1` (uvicorn's own variable's separator),
+    `127.0.0.1,` (a variable's list split at spaces), a host name. The proxy was silently not trusted,
+    and the cookie set behind it lacked `Secure`: found by giving the loopback proxy with a comma."""
+    cases = [
+        (
+            ["--forwarded-allow-ips", "10.1.2.3,127.0.0.1"],
+            {},
+            "'10.1.2.3,127.0.0.1' (separate addresses with spaces",
+        ),
+        (["--forwarded-allow-ips", "proxy.internal"], {}, "'proxy.internal' (host names are not looked up)"),
+        (
+            ["--forwarded-allow-ips", "127.0.0.300"],
+            {},
+            "expected an IP address, a network (10.0.0.0/8) or '*'",
+        ),
+        ([], {"FLEETMAP_FORWARDED_ALLOW_IPS": "127.0.0.1, 10.1.2.3"}, "$FLEETMAP_FORWARDED_ALLOW_IPS="),
+    ]
+    for args, env, message in cases:
+        done = subprocess.run(
+            [sys.executable, "-m", "fleetmap.server", "--in-memory", *args],
+            capture_output=True, text=True, env={**os.environ, **env}, timeout=60,
+        )  # fmt: skip
+        assert done.returncode == 2 and message in done.stderr, (args, env, done.stderr)
+    # What is accepted is what uvicorn matches: a network holding 127.0.0.1 (host bits cleared), and
+    # `*` among other addresses (uvicorn trusts all only for `*` alone: in a list it was ignored).
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}")
+    forwarded = {**bearer(READ), "X-Forwarded-Proto": "https"}
+    for trusted in (["127.0.0.5/8"], ["10.1.2.3", "*"]):
+        args = ["--in-memory", "--auth-tokens", str(tokens), "--forwarded-allow-ips", *trusted]
+        with ServiceProcess(tmp_path, args) as svc:
+            r = httpx.post(f"{svc.base_url}/session", headers=forwarded)
+            assert r.status_code == 200 and "Secure" in set_cookie(r)[1], (trusted, r.headers)
+
+
 def test_signing_in_needs_a_valid_token_in_the_header(secured: ServiceProcess) -> None:
     url = secured.base_url
     for headers in ({}, bearer(UNKNOWN), cookie(session_of(READ)), {"Authorization": f"Basic {READ}"}):
@@ -172,6 +217,34 @@ def test_an_unknown_session_is_an_unknown_token(secured: ServiceProcess) -> None
         assert r.json()["detail"].startswith("unknown token") and "sign in again" in r.json()["detail"]
         assert r.headers["www-authenticate"].startswith("Bearer")
         assert READ not in r.text
+
+
+def test_another_session_cookie_does_not_hide_the_viewers_own(secured: ServiceProcess) -> None:
+    """A browser sends every `fleetmap_session` it holds for the host and path, longest path first
+    (RFC 6265, 5.4): one set by another page of the site (another service on the host, any port; a
+    sibling subdomain, for the parent domain) came first, and only the first was read, so every read
+    was a 401 and signing in again did not help. Found by sending two values, the unknown one first."""
+    url = secured.base_url
+    mine = session_of(READ)
+    for other in (session_of(UNKNOWN), "not-a-digest", mine.upper()):
+        one_header = {"Cookie": f"{SESSION_COOKIE}={other}; theme=dark; {SESSION_COOKIE}={mine}"}
+        r = httpx.get(f"{url}/maps", headers=one_header)
+        assert r.status_code == 200, (other, r.text)
+        # Two Cookie headers (what an HTTP/2 proxy may forward as it got them).
+        two_headers = [("Cookie", f"{SESSION_COOKIE}={other}"), ("Cookie", f"{SESSION_COOKIE}={mine}")]
+        assert httpx.get(f"{url}{TILE}", headers=two_headers).status_code == 200, other
+    # None known: the unknown token's 401, as for one.
+    r = httpx.get(f"{url}/maps", headers={"Cookie": f"{SESSION_COOKIE}=0; {SESSION_COOKIE}={'0' * 64}"})
+    assert r.status_code == 401 and r.json()["detail"] == UNKNOWN_SESSION
+    # At most MAX_SESSION_VALUES are looked up: a header of them costs the service a bounded time.
+    unknown = "; ".join(f"{SESSION_COOKIE}={n:064x}" for n in range(MAX_SESSION_VALUES))
+    r = httpx.get(f"{url}/maps", headers={"Cookie": f"{unknown}; {SESSION_COOKIE}={mine}"})
+    assert r.status_code == 401 and r.json()["detail"] == UNKNOWN_SESSION
+    # The cookies are still no use for a write, whichever comes first.
+    r = httpx.put(
+        f"{url}/maps/m3", json={}, headers={"Cookie": f"{SESSION_COOKIE}=0; {SESSION_COOKIE}={mine}"}
+    )
+    assert r.status_code == 401 and r.json() == {"detail": WRITE_401}
 
 
 def test_a_session_cookie_never_authorises_a_write(secured: ServiceProcess) -> None:

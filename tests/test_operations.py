@@ -297,7 +297,9 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
         if action.nargs == 0:
             argv, text = [option], "1"
         elif action.nargs == "+":
-            argv, text = [option, "tcp/a:1", "tcp/b:2"], "tcp/a:1  tcp/b:2"
+            # Lists of anything but addresses (Zenoh endpoints, origins) take any text.
+            items = ["10.0.0.1", "10.0.0.2"] if option == "--forwarded-allow-ips" else ["tcp/a:1", "tcp/b:2"]
+            argv, text = [option, *items], "  ".join(items)
         elif action.choices:
             argv, text = [option, action.choices[-1]], action.choices[-1]
         elif isinstance(action.default, (int, float)):

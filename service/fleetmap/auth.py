@@ -23,7 +23,8 @@ value is the token's hex SHA-256 digest (`session_value`): a stolen cookie does 
 and the cookie is matched against the configured digests on every request, so revoking the token
 (token file, SIGHUP) ends the session at once. The cookie stands for its token on read requests only
 (`is_read_request`), never on writes, so a page that gets a browser to send a request with it
-(CSRF) can change no map; an `Authorization` header, when sent, wins over the cookie.
+(CSRF) can change no map; a bearer token (`Authorization: Bearer`), when sent, wins over the cookie
+(another scheme, such as a proxy's `Basic`, does not: the cookie still counts).
 """
 
 from __future__ import annotations
@@ -58,6 +59,10 @@ SESSION_PATH = "/session"
 SESSION_COOKIE = "fleetmap_session"
 #: A session cookie's value: a SHA-256 digest in lower-case hex.
 _SESSION_VALUE = re.compile(r"^[0-9a-f]{64}$")
+#: The most session cookies of one request that are looked up (each costs a comparison with every
+#: configured token). A browser sends one per path and domain it holds one for: a few, or, with
+#: cookies another page of the site set, up to its limit of cookies per domain (Chrome: 180).
+MAX_SESSION_VALUES = 200
 #: The 401's detail for a session cookie that stands for no configured token: an unknown token's.
 UNKNOWN_SESSION = "unknown token (the session cookie's token is unknown or was revoked: sign in again)"
 #: A comment: `#` at the start of a line or after whitespace (a `#` inside a token is part of it).
@@ -240,8 +245,9 @@ class AuthMiddleware:
     """ASGI middleware answering 401 (no or unknown token) or 403 (role too low) with a JSON detail.
 
     The token is the `Authorization: Bearer` header's; without one, a read request
-    (`is_read_request`) may carry a session cookie instead (see the module's docstring). An unknown or
-    revoked session is the same 401 as an unknown token."""
+    (`is_read_request`) may carry a session cookie instead (see the module's docstring; of several,
+    the first that stands for a configured token counts: `_sessions`). An unknown or revoked session
+    is the same 401 as an unknown token."""
 
     def __init__(self, app: ASGIApp, tokens: TokenSet | TokenFile, require_read: bool = False) -> None:
         self.app = app
@@ -260,11 +266,14 @@ class AuthMiddleware:
         token = bearer_token(headers)
         # The cookie counts only where no header is sent, and only for reads (never a write: CSRF).
         reads = is_read_request(scope["method"], scope["path"])
-        session = _session(headers) if token is None and reads else None
+        sessions = _sessions(headers) if token is None and reads else []
         if token is not None:
             role = self.tokens.role_of(token)
-        elif session is not None:
-            role = self.tokens.role_of_session(session)
+        elif sessions:
+            # The first that stands for a configured token: a browser sends every session cookie it
+            # holds for the request's host and path, another page's first (a longer Path, or set
+            # earlier; RFC 6265, 5.4), and one it cannot read must not hide the viewer's own.
+            role = next(filter(None, map(self.tokens.role_of_session, sessions)), None)
         else:
             await _deny(send, 401, f"this request needs a token with the {needed!r} role: "
                         "send 'Authorization: Bearer <token>'")  # fmt: skip
@@ -288,15 +297,26 @@ def bearer_token(headers: Iterable[tuple[bytes, bytes]]) -> str | None:
     return None
 
 
-def _session(headers: Iterable[tuple[bytes, bytes]]) -> str | None:
-    """The value of an ASGI request's session cookie (`SESSION_COOKIE`), or None."""
+def _sessions(headers: Iterable[tuple[bytes, bytes]]) -> list[str]:
+    """The values of an ASGI request's session cookies (`SESSION_COOKIE`), in the order sent, each
+    once, at most `MAX_SESSION_VALUES`; empty without one.
+
+    All of them, not only the first: a browser holds one cookie per name, domain and path, and sends
+    every one that applies, longest path first. A `fleetmap_session` another page of the site set
+    (another service on the same host, any port; a sibling subdomain, for the parent domain; with
+    `Path=/maps`) came before the viewer's own, and taking only the first locked the viewer out for
+    good: every read 401, and signing in again set the cookie that stays behind the other."""
+    found: dict[str, None] = {}  # an ordered set
     for name, value in headers:
-        if name.lower() == b"cookie":  # `name=value; name=value` (RFC 6265, 4.2.1)
-            for pair in value.decode("latin-1").split(";"):
-                key, equals, found = pair.partition("=")
-                if equals and key.strip() == SESSION_COOKIE and found.strip():
-                    return found.strip()
-    return None
+        if name.lower() != b"cookie":  # `name=value; name=value` (RFC 6265, 4.2.1)
+            continue
+        for pair in value.decode("latin-1").split(";"):
+            key, equals, session = pair.partition("=")
+            if equals and key.strip() == SESSION_COOKIE and session.strip():
+                found[session.strip()] = None
+                if len(found) == MAX_SESSION_VALUES:
+                    return list(found)
+    return list(found)
 
 
 async def _deny(send: Send, status: int, detail: str) -> None:

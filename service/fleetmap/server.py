@@ -233,11 +233,12 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     p.add_argument(
         "--forwarded-allow-ips",
         nargs="+",
+        type=_proxy_address,
         default=None,
         metavar="IP",
-        help="addresses of the reverse proxies whose X-Forwarded-Proto / -For headers are trusted "
-        "(the session cookie's Secure, the access log's client); '*': any; default 127.0.0.1, or "
-        "uvicorn's $FORWARDED_ALLOW_IPS",
+        help="addresses (or networks, 10.0.0.0/8) of the reverse proxies whose X-Forwarded-Proto / "
+        "-For headers are trusted (the session cookie's Secure, the access log's client), separated "
+        "by spaces; '*': any; default 127.0.0.1, or uvicorn's $FORWARDED_ALLOW_IPS",
     )
     p.add_argument(
         "--max-event-streams",
@@ -458,6 +459,27 @@ def _path(text: str) -> str:
     if not text.strip():
         raise argparse.ArgumentTypeError("expected a path, got an empty value")
     return text
+
+
+def _proxy_address(text: str) -> str:
+    """An argparse `type` for `--forwarded-allow-ips`: `*`, an IP address or a network (`10.0.0.0/8`;
+    host bits set are cleared), as uvicorn compares them with a connection's address. uvicorn takes
+    anything else as a name that no address ever equals: `10.0.0.1,10.0.0.2` (its own variable's
+    separator), `10.0.0.1,` (a list of a variable split at spaces), a host name, a typo. The proxy
+    was then silently not trusted: its `https` ignored, the session cookie set without `Secure`."""
+    text = text.strip()
+    if text == "*":
+        return text
+    try:
+        return str(ipaddress.ip_network(text, strict=False) if "/" in text else ipaddress.ip_address(text))
+    except ValueError:
+        pass
+    message = f"expected an IP address, a network (10.0.0.0/8) or '*', got {text!r}"
+    if "," in text:
+        message += " (separate addresses with spaces, not commas)"
+    elif ":" not in text and any(c.isalpha() for c in text):  # a name, not a mistyped IPv6 address
+        message += " (host names are not looked up)"
+    raise argparse.ArgumentTypeError(message)
 
 
 N = TypeVar("N", int, float)
@@ -801,6 +823,15 @@ def _log_protection(args: argparse.Namespace, tokens: TokenSet | TokenFile | Non
     )  # fmt: skip
 
 
+def _trusted_proxies(addresses: list[str] | None) -> list[str] | str | None:
+    """uvicorn's `forwarded_allow_ips` for `--forwarded-allow-ips ADDRESS ...` (`_proxy_address`):
+    None, uvicorn's own default ($FORWARDED_ALLOW_IPS, else 127.0.0.1), when not given; `*` when one
+    of them is `*` (uvicorn trusts every client only for `*` alone: in a list, `*` was ignored)."""
+    if addresses is not None and "*" in addresses:
+        return "*"
+    return addresses
+
+
 def _http_server(args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: Sequence[str]) -> Any:
     """The uvicorn server of `app` with fleetmap's connection limits and log, its ready line set;
     logs the HTTP limits and address."""
@@ -823,8 +854,7 @@ def _http_server(args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: 
         lifespan="auto",
         http=bounded_http_protocol(max_connections, args.http_head_timeout, args.http_body_timeout),
         backlog=ACCEPT_BACKLOG,
-        # None: uvicorn's own default ($FORWARDED_ALLOW_IPS, else 127.0.0.1).
-        forwarded_allow_ips=args.forwarded_allow_ips,
+        forwarded_allow_ips=_trusted_proxies(args.forwarded_allow_ips),
     )
     if args.access_log:  # (log_level above set its level too)
         logging.getLogger("uvicorn.access").setLevel(logging.INFO)

@@ -65,7 +65,7 @@ async def sign_in(request: Request, response: Response, state: State) -> Session
     """Send `Authorization: Bearer <token>` (a token of any role, whether reading needs one or not);
     the answer sets the session cookie `fleetmap_session`, which the browser then sends with every
     request. It stands for the token on reads only (every GET, `POST .../cells` and `.../raycast`),
-    never on writes, and an `Authorization` header, when sent, wins over it. It holds the token's
+    never on writes, and an `Authorization: Bearer` header, when sent, wins over it. It holds the token's
     SHA-256 digest, not the token, and ends when its token is revoked (token file and SIGHUP), or
     when the browser closes. This is how the web viewer reads from a service that requires a read
     token (`--require-read-token`): its `<img>` tiles and `EventSource` cannot send a header.
