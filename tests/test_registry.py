@@ -228,9 +228,14 @@ def test_readers_never_see_half_a_scan() -> None:
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
     try:
-        for k in range(1, 200):
-            registry.submit("m", "r", WireScan(k, 0.0, s))
-        assert registry.wait_idle(30)
+        # Batches of scans until the reader has read often enough: on a busy machine (two test
+        # processes on two cores) 200 scans were integrated before it had read ten times.
+        seq, deadline = 1, time.monotonic() + 30
+        while (seq < 200 or len(seen) <= 10) and time.monotonic() < deadline:
+            for _ in range(100):
+                registry.submit("m", "r", WireScan(seq, 0.0, s))
+                seq += 1
+            assert registry.wait_idle(30)
     finally:
         stop.set()
         reader.join(5)
