@@ -228,6 +228,35 @@ def test_the_occupied_log_odds_edge_is_classify_s_own() -> None:
         assert int(r.i[0]) == 4
 
 
+def test_rays_from_many_origins_are_each_origin_s_own_rays() -> None:
+    """`origin` of shape (n, 2): ray r starts at origin[r], and answers what a call from that origin
+    alone answers (and the reference), in order; one origin of shape (1, 2) serves every ray."""
+    gmap = walled_map()
+    rng = np.random.default_rng(7)
+    origins = np.concatenate([rng.uniform(-4.5, 4.5, (200, 2)), [[0.0, 0.0], [1.0, 0.55], [2.53, 0.77]]])
+    angles = rng.uniform(-math.pi, math.pi, origins.shape[0])
+    for unknown in ("stop", "pass"):
+        many = gmap.cast_rays(origins, angles, 7.3, unknown)  # type: ignore[arg-type]
+        expected = {RAY_OCCUPIED, RAY_MAX_RANGE} | ({RAY_UNKNOWN} if unknown == "stop" else set())
+        assert {int(c) for c in many.status} == expected
+        for r in range(origins.shape[0]):
+            alone = gmap.cast_rays(origins[r], [angles[r]], 7.3, unknown)  # type: ignore[arg-type]
+            assert [float(v[r]) for v in many] == [float(v[0]) for v in alone], (r, unknown)
+        for r in range(0, origins.shape[0], 20):
+            origin = (float(origins[r, 0]), float(origins[r, 1]))
+            status, distance, i, j = reference_ray(gmap, origin, float(angles[r]), 7.3, unknown)
+            assert (int(many.status[r]), int(many.i[r]), int(many.j[r])) == (status, i, j)
+            assert many.range[r] == pytest.approx(distance, abs=1e-9 * 7.3)
+    shared = gmap.cast_rays([[0.05, 0.05]], [0.0, -math.pi / 2], 10.0)
+    assert shared.i.tolist() == [25, 0] and shared.j.tolist() == [0, -30]
+    with pytest.raises(ValueError, match="3 origins for 2 angles"):
+        gmap.cast_rays(np.zeros((3, 2)), [0.0, 1.0], 1.0)
+    with pytest.raises(ValueError, match="one per ray"):
+        gmap.cast_rays(np.zeros((2, 3)), [0.0, 1.0], 1.0)
+    with pytest.raises(ValueError, match=r"finite.*got \[100000000.0, 0.0\]"):
+        gmap.cast_rays([[0.0, 0.0], [1e8, 0.0]], [0.0, 1.0], 1.0)
+
+
 def test_rays_read_under_the_map_lock() -> None:
     """A ray query waits while another thread holds the map's lock (a scan being applied)."""
     gmap = walled_map()
@@ -414,6 +443,36 @@ def test_the_endpoint_answers_what_the_library_answers(service: ServiceProcess, 
     r = raycast(service.base_url, map_id, {"origin": [0, 0], "angles": [0, 1], "max_range": 10})
     assert_same_answer(r.json(), gmap.cast_rays((0.0, 0.0), [0.0, 1.0], 10.0))
     assert r.json()["status"] == ["occupied", "occupied"]
+
+
+def test_the_endpoint_casts_rays_from_many_origins(service: ServiceProcess) -> None:
+    map_id = "room-origins"
+    gmap = room_maps(service.base_url, map_id, ROOM)
+    origins = [list(o) for o in ORIGINS for _ in range(37)]
+    angles = np.linspace(-math.pi, math.pi, len(origins)).tolist()
+    r = raycast(service.base_url, map_id, {"origins": origins, "angles": angles, "max_range": 6.5})
+    assert r.status_code == 200, r.text
+    assert_same_answer(r.json(), gmap.cast_rays(origins, angles, 6.5))
+    assert set(r.json()["status"]) == {"occupied", "unknown"}
+    # Each ray from its own origin, not all from the first one.
+    first = gmap.cast_rays(origins[0], angles, 6.5)
+    assert r.json()["range"] != first.range.tolist()
+    url = service.base_url
+    ok = {"origins": [[0.0, 0.0], [1.0, 1.0]], "angles": [0.0, 1.0], "max_range": 5.0}
+    for change, words in [
+        ({"origin": [0.0, 0.0]}, "not both"),
+        ({"origins": None}, "give origin"),
+        ({"origins": [[0.0, 0.0]]}, "1 origins for 2 angles"),
+        ({"origins": [[0.0, 0.0], [0.0]]}, "origins"),
+        ({"origins": [[0.0, 0.0], [0.0, 2e7]]}, "origins"),
+        ({"origins": [[0.0, 0.0], "x"]}, "origins"),
+    ]:
+        r = raycast(url, map_id, {k: v for k, v in {**ok, **change}.items() if v is not None})
+        assert r.status_code == 422, (change, r.text)
+        assert words in r.json()["detail"], (change, r.json())
+    many = MAX_RAYS + 1
+    r = raycast(url, map_id, {**ok, "origins": [[0.0, 0.0]] * many, "angles": [0.0] * many})
+    assert r.status_code == 413 and r.json()["detail"].startswith(f"{many} rays is more than the limit")
 
 
 def test_bad_requests_are_refused_as_the_api_does(service: ServiceProcess) -> None:

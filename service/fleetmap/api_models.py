@@ -22,7 +22,7 @@ import time
 from typing import Annotated, Any, Literal, TypeVar, overload
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from fleetmap.auth import Role
 from fleetmap.config import MAX_COORDINATE, MapConfig
@@ -288,13 +288,24 @@ class CellsResponse(_Model):
 # -- rays -------------------------------------------------------------------------------------------
 
 
+#: `[x, y]`, metres, within the coordinates a map may have.
+MapPoint = Annotated[list[Coordinate], Field(min_length=2, max_length=2)]
+
+
 class RaycastRequest(BaseModel):
-    """`POST /maps/{map_id}/raycast`: rays from one point (`GridMap.cast_rays`)."""
+    """`POST /maps/{map_id}/raycast`: rays from one point, or each from its own (`GridMap.cast_rays`).
+    Exactly one of `origin` and `origins` is given."""
 
     model_config = ConfigDict(extra="forbid")
 
-    origin: Annotated[list[Coordinate], Field(min_length=2, max_length=2)] = Field(
-        description="[x, y], metres, map frame: where every ray starts"
+    origin: MapPoint | None = Field(
+        default=None, description="[x, y], metres, map frame: where every ray starts (or give origins)"
+    )
+    origins: list[MapPoint] | None = Field(
+        default=None,
+        max_length=MAX_RAYS,
+        description="[[x, y], ...]: where each ray starts, one per angle (rays from many poses in one "
+        "request, as a particle filter casts them); instead of origin",
     )
     angles: list[Annotated[float, Field(strict=True, allow_inf_nan=False)]] = Field(
         min_length=1,
@@ -312,6 +323,23 @@ class RaycastRequest(BaseModel):
         description="stop: a ray stops at its first never-observed cell (status unknown); pass: it "
         "walks through unknown cells",
     )
+
+    @model_validator(mode="after")
+    def _one_origin_or_one_per_ray(self) -> RaycastRequest:
+        if self.origin is None and self.origins is None:
+            raise ValueError("give origin (where every ray starts) or origins (one per angle)")
+        if self.origin is not None and self.origins is not None:
+            raise ValueError("give origin (where every ray starts) or origins (one per angle), not both")
+        if self.origins is not None and len(self.origins) != len(self.angles):
+            raise ValueError(f"{len(self.origins)} origins for {len(self.angles)} angles: give one per angle")
+        return self
+
+    def ray_origins(self) -> list[float] | list[list[float]]:
+        """The origin the rays share, or every ray's: what `GridMap.cast_rays` takes."""
+        if self.origins is not None:
+            return self.origins
+        assert self.origin is not None  # the validator saw to it
+        return self.origin
 
 
 class RaycastResponse(_Model):

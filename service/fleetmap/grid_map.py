@@ -397,15 +397,17 @@ class GridMap:
 
     def cast_rays(
         self,
-        origin: Sequence[float] | np.ndarray,
+        origin: Sequence[float] | Sequence[Sequence[float]] | np.ndarray,
         angles: float | Sequence[float] | np.ndarray,
         max_range: float,
         unknown: Literal["stop", "pass"] = "stop",
     ) -> RaycastResult:
-        """Where rays from `origin` first meet an obstacle (OctoMap's `castRay`, one call for many rays).
+        """Where rays first meet an obstacle (OctoMap's `castRay`, one call for many rays).
 
-        Ray r starts at `origin` (x, y in metres, map frame) and goes at map-frame angle `angles[r]`
-        (radians; one number alone is one ray) for at most `max_range` metres. It visits the cells
+        Ray r starts at `origin` (x, y in metres, map frame), or at `origin[r]` when `origin` holds
+        one (x, y) pair per ray (shape (n, 2) for n angles: rays from many poses in one call, as a
+        particle filter casts them), and goes at map-frame angle `angles[r]` (radians; one number
+        alone is one ray) for at most `max_range` metres. It visits the cells
         of the segment from the origin to the point at `max_range` in the order of the exact
         traversal (`kernels.traversal.segment_cells(..., EXACT)` in cell units), the origin's cell
         first, and stops at the first cell that is:
@@ -419,13 +421,12 @@ class GridMap:
 
         A ray that stops nowhere ends at its end cell (`RAY_MAX_RANGE`); a cell the ray enters
         before `max_range` counts even when the end point lies inside it. See `RaycastResult` for
-        the answer. Raises ValueError for a non-finite origin or one beyond ±1e7 m, non-finite
-        angles, a `max_range` that is not positive, or another `unknown`; `RayLimitError` (a
-        ValueError) for more than `MAX_RAYS` rays, a `max_range` longer than `MAX_RAY_CELLS` cells,
-        or rays x `max_range` in cells over `MAX_RAY_WALK`; `LayerUnavailableError` for a map
-        that keeps neither the occupancy nor the counts layer. Reads under the map's lock, from the
-        tiles themselves (no copy)."""
-        ox, oy = _ray_origin(origin)
+        the answer. Raises ValueError for a non-finite origin or one beyond ±1e7 m, origins whose
+        number is not the number of angles, non-finite angles, a `max_range` that is not positive,
+        or another `unknown`; `RayLimitError` (a ValueError) for more than `MAX_RAYS` rays, a
+        `max_range` longer than `MAX_RAY_CELLS` cells, or rays x `max_range` in cells over
+        `MAX_RAY_WALK`; `LayerUnavailableError` for a map that keeps neither the occupancy nor the
+        counts layer. Reads under the map's lock, from the tiles themselves (no copy)."""
         try:
             a = np.asarray(angles, dtype=np.float64)
         except (TypeError, ValueError):
@@ -435,6 +436,7 @@ class GridMap:
         a = a.reshape(-1)
         if a.size > MAX_RAYS:
             raise RayLimitError(f"{a.size} rays is more than the limit of {MAX_RAYS} per call")
+        ox, oy = _ray_origins(origin, a.size)
         if not np.isfinite(a).all():
             raise ValueError("angles must be finite numbers (radians)")
         max_range = float(max_range)
@@ -466,12 +468,15 @@ class GridMap:
         t = np.empty(n, dtype=np.float64)
         ci = np.empty(n, dtype=np.int64)
         cj = np.empty(n, dtype=np.int64)
+        # The kernel takes one origin per ray: a shared one is repeated.
+        x0 = np.ascontiguousarray(np.broadcast_to(ox / res, n))
+        y0 = np.ascontiguousarray(np.broadcast_to(oy / res, n))
         store = self.store
         with self.lock:
             log_odds, hits, misses, _, _ = store.kernel_pools()
             cast_rays(
-                ox / res, oy / res, x1, y1, unknown == "stop", use_counts, log_odds_occupied,
-                occupied_thresh, *store.index, store.shift, log_odds, hits, misses, status, t, ci, cj,
+                x0, y0, x1, y1, unknown == "stop", use_counts, log_odds_occupied, occupied_thresh,
+                *store.index, store.shift, log_odds, hits, misses, status, t, ci, cj,
             )  # fmt: skip
         distance = t * max_range
         return RaycastResult(status, distance, ox + distance * cos, oy + distance * sin, ci, cj)
@@ -547,17 +552,26 @@ def _float32_of_order(order: int) -> np.ndarray:
     return np.array([bits], dtype=np.int32).view(np.float32)
 
 
-def _ray_origin(origin: Sequence[float] | np.ndarray) -> tuple[float, float]:
-    """A ray origin as two floats; ValueError unless it is two finite numbers within +-1e7 m."""
+def _ray_origins(
+    origin: Sequence[float] | Sequence[Sequence[float]] | np.ndarray, rays: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The rays' origins as x and y arrays (one element when one origin serves every ray, else one
+    per ray). ValueError unless `origin` is one (x, y) pair or `rays` of them (shape (rays, 2)),
+    each two finite numbers within +-1e7 m."""
     try:
         o = np.asarray(origin, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"origin must be an (x, y) pair of numbers, not {origin!r}") from None
-    if o.shape != (2,):
-        raise ValueError(f"origin must be an (x, y) pair of numbers; got shape {o.shape}")
-    if not (np.isfinite(o).all() and (np.abs(o) <= MAX_COORDINATE).all()):
-        raise ValueError(f"origin must be finite, within +-{MAX_COORDINATE:g} m; got {o.tolist()}")
-    return float(o[0]), float(o[1])
+        raise ValueError(f"origin must be an (x, y) pair of numbers or one per ray, not {origin!r}") from None
+    if o.shape != (2,) and not (o.ndim == 2 and o.shape[1] == 2):
+        raise ValueError(f"origin must be an (x, y) pair of numbers or one per ray; got shape {o.shape}")
+    o = o.reshape(-1, 2)
+    if o.shape[0] != 1 and o.shape[0] != rays:
+        raise ValueError(f"{o.shape[0]} origins for {rays} angles: give one origin, or one per angle")
+    good = np.isfinite(o).all(axis=1) & (np.abs(o) <= MAX_COORDINATE).all(axis=1)
+    if not good.all():
+        bad = o[np.argmin(good)].tolist()
+        raise ValueError(f"origin must be finite, within +-{MAX_COORDINATE:g} m; got {bad}")
+    return o[:, 0].copy(), o[:, 1].copy()
 
 
 def as_points(points: Points) -> np.ndarray:

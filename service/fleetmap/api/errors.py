@@ -87,6 +87,7 @@ def too_many(count: int | None, what: str, limit: int) -> ApiError:
 _SIZE_LIMITED_LISTS: dict[tuple[str | int, ...], str] = {
     ("body", "points"): "points",
     ("body", "angles"): "rays",
+    ("body", "origins"): "rays",
 }
 
 

@@ -133,13 +133,14 @@ def post_cells(map_id: MapId, state: State, body: CellsRequest) -> Response:
 @router.post(
     "/maps/{map_id}/raycast",
     tags=["queries"],
-    summary="Where rays from a point first meet an obstacle",
+    summary="Where rays from a point, or from many, first meet an obstacle",
     response_model=RaycastResponse,
     responses=error_responses(404, 413, 415, 422),
 )
 def post_raycast(map_id: MapId, state: State, body: RaycastRequest) -> Response:
-    """OctoMap's castRay for many rays: each ray starts at `origin` and goes at map-frame `angle` for
-    at most `max_range` metres through the cells of the exact traversal, the origin's cell first. It
+    """OctoMap's castRay for many rays: each ray starts at `origin` (or, with `origins`, ray r at
+    `origins[r]`: rays from many poses in one request) and goes at map-frame `angle` for at most
+    `max_range` metres through the cells of the exact traversal, the origin's cell first. It
     stops at the first occupied cell (p > occupied_thresh, the `state` of /cell; a map without the
     occupancy layer uses its counts, p = hits / (hits + misses)), or with `unknown` "stop" (the
     default) at the first never-observed cell. Answers, one entry per angle in order: `status`
@@ -147,7 +148,8 @@ def post_raycast(map_id: MapId, state: State, body: RaycastRequest) -> Response:
     the origin's own cell, max_range if nothing stopped it), `x`, `y` (that point) and `i`, `j` (the
     cell; for `max_range` the last one visited). 413 past 10000 rays, 20000 cells of `max_range`, or
     2**24 cells of rays x `max_range`; 422 for a map keeping neither occupancy nor counts."""
-    result = state.entry(map_id).gmap.cast_rays(body.origin, body.angles, body.max_range, body.unknown)
+    gmap = state.entry(map_id).gmap
+    result = gmap.cast_rays(body.ray_origins(), body.angles, body.max_range, body.unknown)
     return Response(raycast_json(result), media_type="application/json")
 
 

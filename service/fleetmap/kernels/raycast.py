@@ -1,6 +1,6 @@
 """Ray casting through a map's tiles: where each ray first meets an occupied (or unknown) cell.
 
-A ray is the segment from the origin to its end point, both in cell units, walked with the exact
+A ray is the segment from its origin to its end point, both in cell units, walked with the exact
 traversal of `traversal` (its `exact_start` / `crossing` / `exact_steps_i` steps, so the same cells
 in the same order as `segment_cells(..., EXACT)`). Each cell is read from the tile pools through the
 kernel tile index, with no dense copy of the map: the walk looks up a tile's slot again only when it
@@ -59,8 +59,8 @@ def _cell_class(
 
 @njit(cache=True, nogil=True)
 def cast_rays(
-    x0: float,
-    y0: float,
+    x0: np.ndarray,
+    y0: np.ndarray,
     x1: np.ndarray,
     y1: np.ndarray,
     stop_at_unknown: bool,
@@ -78,7 +78,7 @@ def cast_rays(
     stop_i: np.ndarray,
     stop_j: np.ndarray,
 ) -> None:
-    """Walk ray r from (x0, y0) to (x1[r], y1[r]) (cell units) and write where it stopped.
+    """Walk ray r from (x0[r], y0[r]) to (x1[r], y1[r]) (cell units) and write where it stopped.
 
     A ray stops at its first cell that is occupied (`RAY_OCCUPIED`), or never observed when
     `stop_at_unknown` (`RAY_UNKNOWN`), the start cell included; else at its end cell
@@ -86,7 +86,8 @@ def cast_rays(
     stopped in (0 for the start cell, 1 for `RAY_MAX_RANGE`), `stop_i/stop_j[r]` that cell."""
     mask = (1 << shift) - 1
     for r in range(x1.size):
-        i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(x0, y0, x1[r], y1[r])
+        ox, oy = x0[r], y0[r]
+        i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(ox, oy, x1[r], y1[r])
         ti = i >> shift
         tj = j >> shift
         slot = index_find(index_keys, index_slots, ti, tj)
