@@ -199,11 +199,18 @@ def is_read_request(method: str, path: str) -> bool:
     return method in ("GET", "HEAD") or (method == "POST" and _READ_POSTS.match(path) is not None)
 
 
+def is_viewer_file(path: str) -> bool:
+    """Whether `path` is one of the web viewer's files: its page `/`, or under `/static/` or
+    `/vendor/leaflet/` (open to GET and HEAD; `fleetmap.api.security_headers` gives them their
+    policy)."""
+    return path == _VIEWER_PAGE or path.startswith(_VIEWER_FILE_PREFIXES)
+
+
 def required_role(method: str, path: str, require_read: bool) -> str | None:
     """The role a request needs, or None if it is open."""
     if path in _OPEN_PATHS or method == "OPTIONS":  # CORS preflights carry no credentials
         return None
-    if method in ("GET", "HEAD") and (path == _VIEWER_PAGE or path.startswith(_VIEWER_FILE_PREFIXES)):
+    if method in ("GET", "HEAD") and is_viewer_file(path):
         return None
     if path == SESSION_PATH:
         # Signing in takes a valid token of any role even where reads are open (it is what the

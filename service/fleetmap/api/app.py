@@ -42,6 +42,7 @@ from fleetmap.api.http_semantics import (
     NegotiatedGZip,
 )
 from fleetmap.api.priority import IngestGate, IngestPriority
+from fleetmap.api.security_headers import SecurityHeaders
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import (
     MAX_POINTS,
@@ -245,6 +246,8 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     # With a read token required, every answer is `private`: shared caches do not store answers to
     # requests carrying `Authorization`, but they would store those a session cookie unlocked.
     app.add_middleware(DefaultHeaders, private=settings.tokens is not None and settings.require_read_token)
+    # Outermost too, for the same reason: every answer, whatever made it, carries them.
+    app.add_middleware(SecurityHeaders)
     _install_openapi(app)
     return app
 
