@@ -11,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -342,6 +343,72 @@ def test_revoking_the_token_ends_its_sessions(tmp_path: Path) -> None:
         logs = svc.logs()
     for secret in (READ, WRITE, session_of(READ), session_of(WRITE)):
         assert secret not in logs
+
+
+class StreamReader:
+    """An event stream read on a thread: its lines as they come, and whether the server ended it."""
+
+    def __init__(self, url: str, headers: dict[str, str]) -> None:
+        self.lines: list[str] = []
+        self.status: int | None = None
+        self.ended = threading.Event()
+        self._thread = threading.Thread(target=self._read, args=(url, headers), daemon=True)
+        self._thread.start()
+
+    def _read(self, url: str, headers: dict[str, str]) -> None:
+        try:
+            with httpx.stream("GET", url, headers=headers, timeout=httpx.Timeout(10, read=None)) as r:
+                self.status = r.status_code
+                for line in r.iter_lines():
+                    self.lines.append(line)
+        except httpx.HTTPError as exc:
+            self.lines.append(f"(client: {exc!r})")
+        finally:
+            self.ended.set()
+
+    def saw(self, text: str) -> bool:
+        return any(text in line for line in self.lines)
+
+
+def test_revoking_a_token_ends_its_event_streams(tmp_path: Path) -> None:
+    """An event stream lasts hours: one opened with a token, or with a session cookie standing for
+    it, ends within a poll once the token is revoked (token file and SIGHUP), saying why; before, it
+    went on streaming the map to a client that could no longer open it. Streams of a token that
+    stays valid go on (and get the next change)."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    with ServiceProcess(
+        tmp_path, ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token"]
+    ) as svc:
+        assert svc.proc is not None
+        url = svc.base_url
+        assert httpx.put(f"{url}/maps/m", json={}, headers=bearer(WRITE)).status_code == 201
+        events = f"{url}/maps/m/events"
+        read_session = cookie(set_cookie(httpx.post(f"{url}/session", headers=bearer(READ)))[0])
+        write_session = cookie(set_cookie(httpx.post(f"{url}/session", headers=bearer(WRITE)))[0])
+        revoked = [StreamReader(events, bearer(READ)), StreamReader(events, read_session)]
+        kept = [StreamReader(events, bearer(WRITE)), StreamReader(events, write_session)]
+        streams = revoked + kept
+        # Every stream is open: each got its first robots event.
+        wait_for(lambda: all(s.saw("event: robots") for s in streams), 10, what="every stream open")
+        assert [s.status for s in streams] == [200] * 4
+
+        write_tokens(tokens, f"write {WRITE}")  # the read token revoked
+        svc.proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: "SIGHUP: 1 API tokens read" in svc.logs(), 10, what="the reload's log line")
+        for stream in revoked:
+            assert stream.ended.wait(5), f"a revoked token's stream still runs: {stream.lines}"
+            assert stream.lines[-2:] == [": the token of this stream was revoked", ""], stream.lines
+        # The others go on, and stream the next change.
+        assert not any(s.ended.is_set() for s in kept), [s.lines for s in kept]
+        r = httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, json=SCAN, headers=bearer(WRITE))
+        assert r.status_code == 200, r.text
+        wait_for(
+            lambda: all(s.saw("event: tiles") for s in kept), 10, what="the scan's tiles on kept streams"
+        )
+        assert not any(s.ended.is_set() for s in kept), [s.lines for s in kept]
+        assert not any(s.saw("revoked") for s in kept)
+    for stream in kept:  # the service stopped: they end as every stream does then
+        assert stream.ended.wait(10) and stream.saw(": the server is shutting down"), stream.lines
 
 
 def test_signing_in_where_reads_are_open(tmp_path: Path) -> None:
