@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -409,6 +410,48 @@ def test_revoking_a_token_ends_its_event_streams(tmp_path: Path) -> None:
         assert not any(s.saw("revoked") for s in kept)
     for stream in kept:  # the service stopped: they end as every stream does then
         assert stream.ended.wait(10) and stream.saw(": the server is shutting down"), stream.lines
+
+
+def test_failed_sign_ins_are_limited_per_client_address(tmp_path: Path) -> None:
+    """After --max-failed-sign-ins failures from one address within --failed-sign-in-window, every
+    sign-in from it is a 429 with Retry-After, a right token's too (else 200 against 429 would say
+    which guess was right), until the window has passed. Successful sign-ins never count. Other
+    addresses (uvicorn believes loopback's X-Forwarded-For, as a proxy's) keep their own count, an
+    IPv6 client by its /64. Before, a client could try tokens as fast as it could send them."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}")
+    args = ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token",
+            "--max-failed-sign-ins", "3", "--failed-sign-in-window", "3"]  # fmt: skip
+    with ServiceProcess(tmp_path, args) as svc, httpx.Client(base_url=svc.base_url) as client:
+
+        def sign_in(token: str | None, address: str = "10.0.0.1") -> httpx.Response:
+            headers = {"X-Forwarded-For": address, **(bearer(token) if token else {})}
+            return client.post("/session", headers=headers)
+
+        assert [sign_in(UNKNOWN).status_code for _ in range(2)] == [401, 401]
+        # Right tokens in between are not penalised: they neither count nor get refused.
+        assert [sign_in(READ).status_code for _ in range(5)] == [200] * 5
+        assert sign_in(None).status_code == 401  # the third failure (no token is a failure too)
+        started = time.monotonic()
+        for token in (UNKNOWN, READ):  # refused without looking at the token
+            r = sign_in(token)
+            assert r.status_code == 429 and "set-cookie" not in r.headers, r.text
+            assert 1 <= int(r.headers["retry-after"]) <= 3, r.headers
+            assert list(r.json()) == ["detail"] and r.json()["detail"].startswith(
+                "too many failed sign-ins from this address (3 within 3 s): try again in "
+            ), r.text
+            assert r.headers["content-type"] == "application/json"
+        # Only signing in is refused: the address's reads with a token go on.
+        r = client.get("/maps", headers={"X-Forwarded-For": "10.0.0.1", **bearer(READ)})
+        assert r.status_code == 200
+        # Other addresses have their own count; an IPv6 host counts by its /64.
+        assert sign_in(UNKNOWN, "10.0.0.2").status_code == 401
+        assert [sign_in(UNKNOWN, "2001:db8::1").status_code for _ in range(3)] == [401] * 3
+        assert sign_in(READ, "2001:db8::2:5").status_code == 429  # same /64
+        assert sign_in(READ, "2001:db8:0:1::1").status_code == 200  # another /64
+        # Once the window has passed, the address starts again.
+        time.sleep(max(0.0, started + 3.2 - time.monotonic()))
+        assert sign_in(UNKNOWN).status_code == 401
+        assert sign_in(READ).status_code == 200
 
 
 def test_signing_in_where_reads_are_open(tmp_path: Path) -> None:
