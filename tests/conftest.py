@@ -70,14 +70,36 @@ def browser() -> Iterator[Any]:
             b.close()
 
 
+#: Records, in `window.cspViolations`, what the page's Content-Security-Policy blocked (the
+#: `securitypolicyviolation` events); added before any of the page's own scripts runs.
+CSP_RECORDER_JS = """
+window.cspViolations = [];
+document.addEventListener('securitypolicyviolation', (e) => {
+  window.cspViolations.push(`${e.effectiveDirective} blocked ${e.blockedURI || '(inline)'}`);
+});
+"""
+
+
+def is_csp_report(text: str) -> bool:
+    """Whether a console message is Chromium's report of something a Content-Security-Policy blocked."""
+    return "Content Security Policy" in text
+
+
 @pytest.fixture
 def page(browser: Any) -> Iterator[Any]:
     """A 1280 x 800 page of the module's browser, closed after the test; `page.page_errors` collects
-    the page's uncaught JavaScript errors."""
+    the page's uncaught JavaScript errors, `page.csp_reports` what the service's Content-Security-
+    Policy blocked (Chromium's console reports). A test fails if the policy blocked anything: the
+    viewer would be broken in a way its own checks may not see."""
     p = browser.new_page(viewport={"width": 1280, "height": 800})
     p.page_errors = []
+    p.csp_reports = []
     p.on("pageerror", lambda e: p.page_errors.append(str(e)))
+    p.on("console", lambda m: p.csp_reports.append(m.text) if is_csp_report(m.text) else None)
+    p.add_init_script(CSP_RECORDER_JS)
     try:
         yield p
+        blocked = p.csp_reports
+        assert blocked == [], f"the Content-Security-Policy blocked what the viewer needs: {blocked}"
     finally:
         p.close()

@@ -11,6 +11,8 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -342,6 +344,114 @@ def test_revoking_the_token_ends_its_sessions(tmp_path: Path) -> None:
         logs = svc.logs()
     for secret in (READ, WRITE, session_of(READ), session_of(WRITE)):
         assert secret not in logs
+
+
+class StreamReader:
+    """An event stream read on a thread: its lines as they come, and whether the server ended it."""
+
+    def __init__(self, url: str, headers: dict[str, str]) -> None:
+        self.lines: list[str] = []
+        self.status: int | None = None
+        self.ended = threading.Event()
+        self._thread = threading.Thread(target=self._read, args=(url, headers), daemon=True)
+        self._thread.start()
+
+    def _read(self, url: str, headers: dict[str, str]) -> None:
+        try:
+            with httpx.stream("GET", url, headers=headers, timeout=httpx.Timeout(10, read=None)) as r:
+                self.status = r.status_code
+                for line in r.iter_lines():
+                    self.lines.append(line)
+        except httpx.HTTPError as exc:
+            self.lines.append(f"(client: {exc!r})")
+        finally:
+            self.ended.set()
+
+    def saw(self, text: str) -> bool:
+        return any(text in line for line in self.lines)
+
+
+def test_revoking_a_token_ends_its_event_streams(tmp_path: Path) -> None:
+    """An event stream lasts hours: one opened with a token, or with a session cookie standing for
+    it, ends within a poll once the token is revoked (token file and SIGHUP), saying why; before, it
+    went on streaming the map to a client that could no longer open it. Streams of a token that
+    stays valid go on (and get the next change)."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    with ServiceProcess(
+        tmp_path, ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token"]
+    ) as svc:
+        assert svc.proc is not None
+        url = svc.base_url
+        assert httpx.put(f"{url}/maps/m", json={}, headers=bearer(WRITE)).status_code == 201
+        events = f"{url}/maps/m/events"
+        read_session = cookie(set_cookie(httpx.post(f"{url}/session", headers=bearer(READ)))[0])
+        write_session = cookie(set_cookie(httpx.post(f"{url}/session", headers=bearer(WRITE)))[0])
+        revoked = [StreamReader(events, bearer(READ)), StreamReader(events, read_session)]
+        kept = [StreamReader(events, bearer(WRITE)), StreamReader(events, write_session)]
+        streams = revoked + kept
+        # Every stream is open: each got its first robots event.
+        wait_for(lambda: all(s.saw("event: robots") for s in streams), 10, what="every stream open")
+        assert [s.status for s in streams] == [200] * 4
+
+        write_tokens(tokens, f"write {WRITE}")  # the read token revoked
+        svc.proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: "SIGHUP: 1 API tokens read" in svc.logs(), 10, what="the reload's log line")
+        for stream in revoked:
+            assert stream.ended.wait(5), f"a revoked token's stream still runs: {stream.lines}"
+            assert stream.lines[-2:] == [": the token of this stream was revoked", ""], stream.lines
+        # The others go on, and stream the next change.
+        assert not any(s.ended.is_set() for s in kept), [s.lines for s in kept]
+        r = httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, json=SCAN, headers=bearer(WRITE))
+        assert r.status_code == 200, r.text
+        wait_for(
+            lambda: all(s.saw("event: tiles") for s in kept), 10, what="the scan's tiles on kept streams"
+        )
+        assert not any(s.ended.is_set() for s in kept), [s.lines for s in kept]
+        assert not any(s.saw("revoked") for s in kept)
+    for stream in kept:  # the service stopped: they end as every stream does then
+        assert stream.ended.wait(10) and stream.saw(": the server is shutting down"), stream.lines
+
+
+def test_failed_sign_ins_are_limited_per_client_address(tmp_path: Path) -> None:
+    """After --max-failed-sign-ins failures from one address within --failed-sign-in-window, every
+    sign-in from it is a 429 with Retry-After, a right token's too (else 200 against 429 would say
+    which guess was right), until the window has passed. Successful sign-ins never count. Other
+    addresses (uvicorn believes loopback's X-Forwarded-For, as a proxy's) keep their own count, an
+    IPv6 client by its /64. Before, a client could try tokens as fast as it could send them."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}")
+    args = ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token",
+            "--max-failed-sign-ins", "3", "--failed-sign-in-window", "3"]  # fmt: skip
+    with ServiceProcess(tmp_path, args) as svc, httpx.Client(base_url=svc.base_url) as client:
+
+        def sign_in(token: str | None, address: str = "10.0.0.1") -> httpx.Response:
+            headers = {"X-Forwarded-For": address, **(bearer(token) if token else {})}
+            return client.post("/session", headers=headers)
+
+        assert [sign_in(UNKNOWN).status_code for _ in range(2)] == [401, 401]
+        # Right tokens in between are not penalised: they neither count nor get refused.
+        assert [sign_in(READ).status_code for _ in range(5)] == [200] * 5
+        assert sign_in(None).status_code == 401  # the third failure (no token is a failure too)
+        started = time.monotonic()
+        for token in (UNKNOWN, READ):  # refused without looking at the token
+            r = sign_in(token)
+            assert r.status_code == 429 and "set-cookie" not in r.headers, r.text
+            assert 1 <= int(r.headers["retry-after"]) <= 3, r.headers
+            assert list(r.json()) == ["detail"] and r.json()["detail"].startswith(
+                "too many failed sign-ins from this address (3 within 3 s): try again in "
+            ), r.text
+            assert r.headers["content-type"] == "application/json"
+        # Only signing in is refused: the address's reads with a token go on.
+        r = client.get("/maps", headers={"X-Forwarded-For": "10.0.0.1", **bearer(READ)})
+        assert r.status_code == 200
+        # Other addresses have their own count; an IPv6 host counts by its /64.
+        assert sign_in(UNKNOWN, "10.0.0.2").status_code == 401
+        assert [sign_in(UNKNOWN, "2001:db8::1").status_code for _ in range(3)] == [401] * 3
+        assert sign_in(READ, "2001:db8::2:5").status_code == 429  # same /64
+        assert sign_in(READ, "2001:db8:0:1::1").status_code == 200  # another /64
+        # Once the window has passed, the address starts again.
+        time.sleep(max(0.0, started + 3.2 - time.monotonic()))
+        assert sign_in(UNKNOWN).status_code == 401
+        assert sign_in(READ).status_code == 200
 
 
 def test_signing_in_where_reads_are_open(tmp_path: Path) -> None:

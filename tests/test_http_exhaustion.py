@@ -183,6 +183,10 @@ def test_connections_past_the_limit_are_refused_and_the_service_recovers(service
                 answer += chunk
         assert answer.startswith(b"HTTP/1.1 503"), answer
         assert b'"detail": "the server holds too many HTTP connections; retry later"' in answer
+        assert (
+            b"\r\ncache-control: no-cache\r\n" in answer
+            and b"\r\nx-content-type-options: nosniff\r\n" in answer
+        )
     finally:
         for sock in idle:
             sock.close()
@@ -193,6 +197,14 @@ def test_connections_past_the_limit_are_refused_and_the_service_recovers(service
 def raw_answer(svc: ServiceProcess, request: bytes, piece: int = 0) -> tuple[int, str, dict[str, object]]:
     """(status, content type, JSON body) of the answer to `request`, sent whole or in pieces of
     `piece` bytes (so the head arrives in many reads), read until the service closes."""
+    status, headers, body = raw_answer_with_headers(svc, request, piece)
+    return status, headers["content-type"], body
+
+
+def raw_answer_with_headers(
+    svc: ServiceProcess, request: bytes, piece: int = 0
+) -> tuple[int, dict[str, str], dict[str, object]]:
+    """`raw_answer`, with every header (names in lower case) instead of the content type."""
     with socket.create_connection(("127.0.0.1", svc.port), timeout=10) as sock:
         try:
             for start in range(0, len(request), piece or len(request)):
@@ -206,8 +218,8 @@ def raw_answer(svc: ServiceProcess, request: bytes, piece: int = 0) -> tuple[int
             answer += chunk
     head, _, body = answer.partition(b"\r\n\r\n")
     lines = head.decode().split("\r\n")
-    headers = dict(line.lower().split(": ", 1) for line in lines[1:])
-    return int(lines[0].split()[1]), headers["content-type"], json.loads(body)
+    headers = {name.lower(): value for name, _, value in (line.partition(": ") for line in lines[1:])}
+    return int(lines[0].split()[1]), headers, json.loads(body)
 
 
 def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: ServiceProcess) -> None:
@@ -241,6 +253,28 @@ def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: Serv
     points = [[0.01 * i, 0.0] for i in range(10_000)]
     assert len(json.dumps({"points": points})) > 2 * MAX_HEAD_BYTES
     assert httpx.post(f"{service.base_url}/maps/m/cells", json={"points": points}).status_code == 200
+
+
+#: Headers every answer of the app carries (without tokens), whatever made it.
+COMMON = ("cache-control", "x-content-type-options", "x-frame-options", "referrer-policy")
+
+
+def test_answers_given_before_the_app_carry_the_apps_common_headers(service: ServiceProcess) -> None:
+    """The 400, 414 and 431 the HTTP protocol gives by itself carry the Cache-Control and security
+    headers every answer of the app does (here an error handler's 404). They carried neither: a
+    cache in front could keep a 414 for its URL (cacheable by default, RFC 9110 15.5.15)."""
+    app_error = httpx.get(f"{service.base_url}/nothing")
+    assert app_error.status_code == 404
+    expected = {name: app_error.headers[name] for name in COMMON}
+    assert expected["cache-control"] == "no-cache" and expected["x-content-type-options"] == "nosniff"
+    requests = {
+        400: b"NOT HTTP AT ALL\r\n\r\n",
+        414: b"GET /maps/" + b"a" * 100_000 + b" HTTP/1.1\r\nHost: t\r\n\r\n",
+        431: b"GET /healthz HTTP/1.1\r\nHost: t\r\nX-Big: " + b"b" * 100_000 + b"\r\n\r\n",
+    }
+    for status, request in requests.items():
+        got, headers, _ = raw_answer_with_headers(service, request)
+        assert got == status and {name: headers.get(name) for name in COMMON} == expected, (status, headers)
 
 
 def test_refused_request_heads_are_logged_once_not_once_each(service: ServiceProcess) -> None:

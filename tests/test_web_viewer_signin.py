@@ -154,3 +154,27 @@ def test_with_reads_open_the_viewer_never_asks(
     assert page.is_hidden("#sign-in") and page.is_hidden("#sign-out")
     assert _session_cookies(page) == []
     assert not page.page_errors, page.page_errors
+
+
+def test_the_viewer_says_when_sign_ins_are_refused_for_a_while(
+    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    """Past the failed sign-ins allowed (here one), the form says why it cannot sign in and when to
+    try again (the 429's detail), rather than calling the right token unknown."""
+    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}")
+    svc = service_factory(
+        "--in-memory", "--auth-tokens", str(tokens), "--require-read-token", "--max-failed-sign-ins", "1"
+    )
+    page.goto(f"{svc.base_url}/")
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form")
+    _sign_in(page, UNKNOWN)
+    _wait(page, "() => document.getElementById('sign-in-error').textContent.includes('unknown token')")
+    _sign_in(page, READ)
+    _wait(
+        page,
+        "() => document.getElementById('sign-in-error').textContent.includes('too many failed sign-ins')",
+        what="the 429's detail under the form",
+    )
+    assert "try again in" in page.inner_text("#sign-in-error")
+    assert page.is_visible("#sign-in") and _session_cookies(page) == []
+    assert not page.page_errors, page.page_errors

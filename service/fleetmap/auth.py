@@ -25,6 +25,11 @@ and the cookie is matched against the configured digests on every request, so re
 (`is_read_request`), never on writes, so a page that gets a browser to send a request with it
 (CSRF) can change no map; a bearer token (`Authorization: Bearer`), when sent, wins over the cookie
 (another scheme, such as a proxy's `Basic`, does not: the cookie still counts).
+
+Long requests: a request is let in by the tokens in force when it arrives, but an event stream runs
+for hours. `AuthMiddleware` leaves the `Grant` it let a request in with in the ASGI scope
+(`GRANT_SCOPE_KEY`), and the event stream checks it on every poll (`Grant.still_valid`): a token
+revoked, or demoted below the role the request needed, ends its streams, as it ends its sessions.
 """
 
 from __future__ import annotations
@@ -63,6 +68,8 @@ _SESSION_VALUE = re.compile(r"^[0-9a-f]{64}$")
 #: configured token). A browser sends one per path and domain it holds one for: a few, or, with
 #: cookies another page of the site set, up to its limit of cookies per domain (Chrome: 180).
 MAX_SESSION_VALUES = 200
+#: The ASGI scope key under which `AuthMiddleware` leaves the `Grant` it let a request in with.
+GRANT_SCOPE_KEY = "fleetmap.grant"
 #: The 401's detail for a session cookie that stands for no configured token: an unknown token's.
 UNKNOWN_SESSION = "unknown token (the session cookie's token is unknown or was revoked: sign in again)"
 #: A comment: `#` at the start of a line or after whitespace (a `#` inside a token is part of it).
@@ -150,7 +157,7 @@ class TokenSet:
 
     def role_of(self, token: str) -> str | None:
         """The role of `token`, comparing against every configured token in constant time."""
-        return self._role_of_digest(_digest(token))
+        return self.role_of_digest(_digest(token))
 
     def role_of_session(self, value: str) -> str | None:
         """The role of the token whose session cookie holds `value` (`session_value(token)`), compared
@@ -158,9 +165,9 @@ class TokenSet:
         revoked, or not a digest at all)."""
         if not _SESSION_VALUE.match(value):
             return None
-        return self._role_of_digest(bytes.fromhex(value))
+        return self.role_of_digest(bytes.fromhex(value))
 
-    def _role_of_digest(self, digest: bytes) -> str | None:
+    def role_of_digest(self, digest: bytes) -> str | None:
         """The highest role listed for `digest`, compared against every configured digest in
         constant time (no early exit: how long it takes says nothing of which one matched)."""
         found = None
@@ -199,11 +206,18 @@ def is_read_request(method: str, path: str) -> bool:
     return method in ("GET", "HEAD") or (method == "POST" and _READ_POSTS.match(path) is not None)
 
 
+def is_viewer_file(path: str) -> bool:
+    """Whether `path` is one of the web viewer's files: its page `/`, or under `/static/` or
+    `/vendor/leaflet/` (open to GET and HEAD; `fleetmap.api.security_headers` gives them their
+    policy)."""
+    return path == _VIEWER_PAGE or path.startswith(_VIEWER_FILE_PREFIXES)
+
+
 def required_role(method: str, path: str, require_read: bool) -> str | None:
     """The role a request needs, or None if it is open."""
     if path in _OPEN_PATHS or method == "OPTIONS":  # CORS preflights carry no credentials
         return None
-    if method in ("GET", "HEAD") and (path == _VIEWER_PAGE or path.startswith(_VIEWER_FILE_PREFIXES)):
+    if method in ("GET", "HEAD") and is_viewer_file(path):
         return None
     if path == SESSION_PATH:
         # Signing in takes a valid token of any role even where reads are open (it is what the
@@ -240,6 +254,34 @@ class TokenFile:
     def role_of_session(self, value: str) -> str | None:
         return self.current.role_of_session(value)
 
+    def role_of_digest(self, digest: bytes) -> str | None:
+        return self.current.role_of_digest(digest)
+
+
+class Grant:
+    """What let a request in: a configured token (its digest: the bearer token's, or the one a
+    session cookie holds) and the role the request needed. `AuthMiddleware` leaves it in the scope
+    (`GRANT_SCOPE_KEY`) for requests that outlive the moment they were let in (event streams)."""
+
+    def __init__(self, tokens: TokenSet | TokenFile, digest: bytes, needed: str) -> None:
+        self.tokens = tokens
+        self.digest = digest
+        self.needed = needed
+        #: The token set last checked against, and what it said: a stream asks ten times a second,
+        #: and the tokens change only on SIGHUP, so the comparisons run once per reload.
+        self._checked: TokenSet | None = None
+        self._valid = True
+
+    def still_valid(self) -> bool:
+        """Whether the tokens in force now (the token file as last read, on SIGHUP) would let the
+        request in: its token is still configured, with at least the role it needed."""
+        current = self.tokens.current if isinstance(self.tokens, TokenFile) else self.tokens
+        if current is not self._checked:
+            role = current.role_of_digest(self.digest)
+            self._valid = role is not None and _RANK[role] >= _RANK[self.needed]
+            self._checked = current
+        return self._valid
+
 
 class AuthMiddleware:
     """ASGI middleware answering 401 (no or unknown token) or 403 (role too low) with a JSON detail.
@@ -247,7 +289,8 @@ class AuthMiddleware:
     The token is the `Authorization: Bearer` header's; without one, a read request
     (`is_read_request`) may carry a session cookie instead (see the module's docstring; of several,
     the first that stands for a configured token counts: `_sessions`). An unknown or revoked session
-    is the same 401 as an unknown token."""
+    is the same 401 as an unknown token. A request let in carries its `Grant` in its scope
+    (`GRANT_SCOPE_KEY`)."""
 
     def __init__(self, app: ASGIApp, tokens: TokenSet | TokenFile, require_read: bool = False) -> None:
         self.app = app
@@ -267,13 +310,19 @@ class AuthMiddleware:
         # The cookie counts only where no header is sent, and only for reads (never a write: CSRF).
         reads = is_read_request(scope["method"], scope["path"])
         sessions = _sessions(headers) if token is None and reads else []
+        role: str | None = None
         if token is not None:
-            role = self.tokens.role_of(token)
+            digest = _digest(token)
+            role = self.tokens.role_of_digest(digest)
         elif sessions:
             # The first that stands for a configured token: a browser sends every session cookie it
             # holds for the request's host and path, another page's first (a longer Path, or set
             # earlier; RFC 6265, 5.4), and one it cannot read must not hide the viewer's own.
-            role = next(filter(None, map(self.tokens.role_of_session, sessions)), None)
+            for value in sessions:
+                role = self.tokens.role_of_session(value)
+                if role is not None:
+                    digest = bytes.fromhex(value)
+                    break
         else:
             await _deny(send, 401, f"this request needs a token with the {needed!r} role: "
                         "send 'Authorization: Bearer <token>'")  # fmt: skip
@@ -284,6 +333,7 @@ class AuthMiddleware:
         if _RANK[role] < _RANK[needed]:
             await _deny(send, 403, f"this request needs the {needed!r} role; the token has {role!r}")
             return
+        scope[GRANT_SCOPE_KEY] = Grant(self.tokens, digest, needed)
         await self.app(scope, receive, send)
 
 

@@ -23,6 +23,8 @@ token to do that: a connection is only checked once its request head has arrived
 Requests httptools cannot parse (a URL over 64 KiB, which its URL parser cannot index, or no HTTP at
 all) get uvicorn's 400, but as JSON `{"detail": ...}` like every other error of the API rather than
 uvicorn's text/plain (`send_400_response`): the same bytes on the wire otherwise, and the same close.
+Like every answer of the app, these answers carry `Cache-Control: no-cache` and the security headers
+(`COMMON_HEADERS`).
 
 uvicorn logs a warning for each request it refuses so ("Invalid HTTP request received.", also for
 the 414 and 431 of a head that arrived whole, and "Unsupported upgrade request."): anyone can send
@@ -68,13 +70,25 @@ ACCEPT_ERROR = "socket.accept() out of system resource"
 MAX_HEAD_BYTES = 64 * 1024
 
 
+#: What every answer of the app carries whatever made it, and so these too: the default
+#: `Cache-Control` (`fleetmap.api.http_semantics.DEFAULT_CACHE_CONTROL`; a 414 may be stored and
+#: served again by a cache unless told otherwise, RFC 9110 15.5.15) and the security headers
+#: (`fleetmap.api.security_headers.EVERY_ANSWER`). Spelled out, not imported: `fleetmap serve` loads
+#: this module before, and without, the REST API; tests/test_http_exhaustion.py checks they match.
+COMMON_HEADERS = (
+    "cache-control: no-cache\r\nx-content-type-options: nosniff\r\nx-frame-options: DENY\r\n"
+    "referrer-policy: no-referrer\r\n"
+)
+
+
 def error_response(status: int, reason: str, detail: str, headers: str = "") -> bytes:
     """The whole HTTP answer the protocol sends itself, before any request reaches the app: the
-    API's JSON error shape `{"detail": ...}`, then close (`headers`: extra CRLF-ended lines)."""
+    API's JSON error shape `{"detail": ...}` and `COMMON_HEADERS`, then close (`headers`: extra
+    CRLF-ended lines)."""
     body = json.dumps({"detail": detail}).encode()
     head = (
         f"HTTP/1.1 {status} {reason}\r\ncontent-type: application/json\r\n"
-        f"content-length: {len(body)}\r\n{headers}connection: close\r\n\r\n"
+        f"content-length: {len(body)}\r\n{COMMON_HEADERS}{headers}connection: close\r\n\r\n"
     )
     return head.encode() + body
 

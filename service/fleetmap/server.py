@@ -55,6 +55,7 @@ from fleetmap.cli import CliError, load_config, run_command
 from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
+from fleetmap.failed_signins import DEFAULT_MAX_FAILURES, DEFAULT_WINDOW
 from fleetmap.http_limits import (
     ACCEPT_BACKLOG,
     RESERVED_DESCRIPTORS,
@@ -193,6 +194,27 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         help=(
             "reading also needs a token (read, write or admin; so tokens must be given); by default "
             "reading is open"
+        ),
+    )
+    p.add_argument(
+        "--max-failed-sign-ins",
+        type=_int_between(1, 1_000_000),
+        default=DEFAULT_MAX_FAILURES,
+        metavar="N",
+        help=(
+            "failed sign-ins (POST /session with a wrong token) from one client address within "
+            "--failed-sign-in-window before its sign-ins are refused with 429 "
+            f"(default {DEFAULT_MAX_FAILURES})"
+        ),
+    )
+    p.add_argument(
+        "--failed-sign-in-window",
+        type=_seconds_between(1.0, 86400.0),
+        default=DEFAULT_WINDOW,
+        metavar="S",
+        help=(
+            "seconds from an address's first failed sign-in within which its failures count, and "
+            f"the longest it is refused (default {DEFAULT_WINDOW:g})"
         ),
     )
     p.add_argument(
@@ -709,6 +731,8 @@ def run(args: argparse.Namespace) -> int:
                 max_event_streams=args.max_event_streams,
                 tokens=tokens,
                 require_read_token=args.require_read_token,
+                signin_max_failures=args.max_failed_sign_ins,
+                signin_window=args.failed_sign_in_window,
             )
             app = options.create_app(registry, settings=settings)
             _log_protection(args, tokens, durable is not None)

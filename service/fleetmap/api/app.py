@@ -42,6 +42,8 @@ from fleetmap.api.http_semantics import (
     NegotiatedGZip,
 )
 from fleetmap.api.priority import IngestGate, IngestPriority
+from fleetmap.api.security_headers import SecurityHeaders
+from fleetmap.api.signin_limit import SignInLimit
 from fleetmap.api.state import ApiState
 from fleetmap.api_models import (
     MAX_POINTS,
@@ -52,6 +54,12 @@ from fleetmap.api_models import (
     TilesEvent,
 )
 from fleetmap.auth import SESSION_COOKIE, AuthMiddleware, TokenFile, TokenSet
+from fleetmap.failed_signins import (
+    DEFAULT_MAX_CLIENTS,
+    DEFAULT_MAX_FAILURES,
+    DEFAULT_WINDOW,
+    SignInLimiter,
+)
 from fleetmap.metrics import IntegrationMetrics, ServiceMetrics
 from fleetmap.registry import MapRegistry
 from fleetmap.wire import ScanMessage
@@ -121,6 +129,12 @@ class ApiSettings:
     tokens: TokenSet | TokenFile | None = None
     #: With `tokens`: reading needs a `read` token too, not only writing.
     require_read_token: bool = False
+    #: With `tokens`: failed sign-ins (`POST /session` answered 401) from one client address within
+    #: `signin_window` seconds before its sign-ins are answered 429 until the window has passed
+    #: (`fleetmap.api.signin_limit`), and how many addresses are tracked at most.
+    signin_max_failures: int = DEFAULT_MAX_FAILURES
+    signin_window: float = DEFAULT_WINDOW
+    signin_max_clients: int = DEFAULT_MAX_CLIENTS
     #: Called by GET /healthz for the Zenoh session's status (server.py provides it).
     zenoh_status: Callable[[], dict[str, Any]] | None = None
     #: The registry's integration hook. None: the `IntegrationMetrics` whose `on_integrated` the
@@ -217,6 +231,12 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.add_middleware(IngestPriority, gate=gate)
     if settings.tokens is not None:
         app.add_middleware(AuthMiddleware, tokens=settings.tokens, require_read=settings.require_read_token)
+        # Outside auth: most failed sign-ins are its 401s, and a refused one must not reach the
+        # token check at all.
+        limiter = SignInLimiter(
+            settings.signin_max_failures, settings.signin_window, settings.signin_max_clients
+        )
+        app.add_middleware(SignInLimit, limiter=limiter)
     # Outside auth: a viewer whose tiles are refused (401, 403) shows in the counts too.
     app.add_middleware(routes_tiles.TileStatusCounter, counts=app.state.fleetmap.metrics.tile_statuses)
     # Outside every middleware that waits (the ingest gate, a body being read): a request cancelled
@@ -245,6 +265,8 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     # With a read token required, every answer is `private`: shared caches do not store answers to
     # requests carrying `Authorization`, but they would store those a session cookie unlocked.
     app.add_middleware(DefaultHeaders, private=settings.tokens is not None and settings.require_read_token)
+    # Outermost too, for the same reason: every answer, whatever made it, carries them.
+    app.add_middleware(SecurityHeaders)
     _install_openapi(app)
     return app
 

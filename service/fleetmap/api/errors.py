@@ -40,6 +40,7 @@ _DESCRIPTIONS = {
     415: "The body is not sent as the route reads it (JSON: application/json; a zip: application/zip; "
     "never with a Content-Encoding)",
     422: "Invalid request: bad parameter, body or id",
+    429: "Too many failed attempts from this client address: try again after Retry-After",
     503: "The service is overloaded, or could not store a change: retry later",
     507: "The service's memory budget for map tiles (--max-memory) is used up",
 }
@@ -184,6 +185,12 @@ class ShutdownCutoff:
             log.warning("shutdown: %s %s was still running; answered 503", method, path, extra=fields)
             detail = "the server is shutting down and this request did not finish in time; retry it"
             await _json(503, detail, headers={"Connection": "close"})(scope, receive, send)
+
+
+def error_answer(status: int, detail: str, headers: dict[str, str] | None = None) -> JSONResponse:
+    """The JSON error answer `{"detail": detail}` with `status`, as every error handler makes it, for
+    middleware that answers by itself (it runs outside the handlers)."""
+    return _json(status, detail, headers=headers)
 
 
 def _json(

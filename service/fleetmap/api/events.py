@@ -53,6 +53,12 @@ Format (text/event-stream):
 - `: keepalive` comment lines every 15 s keep proxies from closing an idle stream.
 - `: the server is shutting down`, the last line of every open stream when the service stops
   (`EventStreamSlots.close_all`); the response then ends cleanly.
+- `: the token of this stream was revoked`, the last line of a stream opened with a token (its
+  `Authorization: Bearer` header, or a browser's session cookie standing for it) once that token is
+  revoked, or demoted below the role reading needs (token file and SIGHUP): the stream ends within
+  one poll, as a new request with the token would be refused (`fleetmap.auth.Grant`). An EventSource
+  then reconnects, gets 401, and the web viewer asks for a token again. Only streams a token let in
+  end: where reading is open (no `--require-read-token`), no token is checked, and none is revoked.
 
 Streams are capped (`ApiSettings.max_event_streams`, 256 by default; `fleetmap serve
 --max-event-streams`): each open stream holds a task, its buffers and a poll every 100 ms, so without
@@ -70,7 +76,7 @@ import time
 from collections.abc import AsyncIterator
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Header, Query
+from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import StreamingResponse
 from starlette.types import Receive, Scope, Send
 
@@ -79,6 +85,7 @@ from fleetmap.api.robots_feed import RobotsFeed
 from fleetmap.api.state import ApiState, EventStreamSlots, MapId, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import ReplacedEvent, TilesEvent, tile_windows
+from fleetmap.auth import GRANT_SCOPE_KEY, Grant
 from fleetmap.registry import MapEntry
 
 router = APIRouter(route_class=StrictRoute)
@@ -119,11 +126,20 @@ def _successor(maps: dict[str, MapEntry], entry: MapEntry) -> MapEntry | None:
     return follow
 
 
+#: The last line of a stream whose token was revoked.
+REVOKED = ": the token of this stream was revoked\n\n"
+
+
 async def event_stream(
-    state: ApiState, entry: MapEntry, since: int | None, robot_deltas: bool = False
+    state: ApiState,
+    entry: MapEntry,
+    since: int | None,
+    robot_deltas: bool = False,
+    grant: Grant | None = None,
 ) -> AsyncIterator[str]:
-    """The events of one client until it disconnects (Starlette then cancels this generator) or the
-    map is deleted. A map replaced under its id is followed: `replaced`, then the new map's events.
+    """The events of one client until it disconnects (Starlette then cancels this generator), the
+    map is deleted, or the token that let the stream in (`grant`; None: no token was needed) is no
+    longer valid. A map replaced under its id is followed: `replaced`, then the new map's events.
     `robot_deltas` (`?robots=delta`): after the first `robots` event of a map, `robots_delta` events."""
     registry, settings = state.registry, state.settings
     feed = entry.changes
@@ -144,6 +160,11 @@ async def event_stream(
             version = feed.version
         last_sent = time.monotonic()
         while not state.event_streams.closing:
+            if grant is not None and not grant.still_valid():
+                # Revoked (token file and SIGHUP): the client could not open this stream now, so it
+                # may not keep it either. Its reconnection gets the 401 that says why.
+                yield REVOKED
+                return
             with registry.lock:
                 successor = _successor(registry.maps, entry)
             if successor is None:
@@ -228,6 +249,7 @@ def last_event_version(header: str) -> int | None:
     },
 )
 async def get_events(
+    request: Request,
     map_id: MapId,
     state: State,
     since: Annotated[int | None, Query(ge=0, description="resume after this change version")] = None,
@@ -253,7 +275,9 @@ async def get_events(
       the new map's events (change versions start again at `version`);
     - `event: deleted`, data `{"id": map_id}`: the map was deleted, the stream ends;
     - `: keepalive` comments every 15 s;
-    - `: the server is shutting down`: the service is stopping; the stream ends cleanly after it.
+    - `: the server is shutting down`: the service is stopping; the stream ends cleanly after it;
+    - `: the token of this stream was revoked`: the token (bearer or session cookie) that opened the
+      stream was revoked, or demoted below the role reading needs; the stream ends after it.
 
     A reconnecting EventSource sends `Last-Event-ID` (the last tiles version it got) and receives what
     changed since; `?since=` does the same by hand. Robots always start with a full `robots` event.
@@ -276,7 +300,10 @@ async def get_events(
         )
     return _SlotStreamingResponse(
         slots,
-        event_stream(state, entry, since, robot_deltas=robots == "delta"),
+        # The token that let the stream in, if one had to (the auth middleware left it here).
+        event_stream(
+            state, entry, since, robot_deltas=robots == "delta", grant=request.scope.get(GRANT_SCOPE_KEY)
+        ),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
     )

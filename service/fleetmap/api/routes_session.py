@@ -58,6 +58,11 @@ def _over_https(request: Request) -> bool:
         },
         401: {"model": ErrorResponse, "description": "No token, or an unknown one"},
         404: {"model": ErrorResponse, "description": "The service runs without API tokens: no sign-in"},
+        429: {
+            "model": ErrorResponse,
+            "description": "Too many failed sign-ins from this client address: try again after Retry-After",
+            "headers": {"Retry-After": {"description": "seconds to wait", "schema": {"type": "integer"}}},
+        },
     },
     openapi_extra={"security": [{"bearerToken": []}]},
 )
@@ -71,7 +76,10 @@ async def sign_in(request: Request, response: Response, state: State) -> Session
     token (`--require-read-token`): its `<img>` tiles and `EventSource` cannot send a header.
 
     401 without a token or with an unknown one (and no cookie is set); 404 when the service runs
-    without API tokens, as there is nothing to sign in to."""
+    without API tokens, as there is nothing to sign in to. 429, with `Retry-After`, after too many
+    failed sign-ins from the client's address (10 within 60 s by default, from the first of them:
+    `--max-failed-sign-ins`, `--failed-sign-in-window`), for every sign-in from it, a right token's
+    too, until that window has passed; a successful sign-in is never counted."""
     tokens = state.settings.tokens
     if tokens is None:
         raise ApiError(

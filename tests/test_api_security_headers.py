@@ -1,0 +1,102 @@
+"""Security headers on the real service: every answer is `nosniff`, unframeable and sends no
+referrer, whatever made it (a route, an error handler, the auth middleware, the body limit), and the
+web viewer's files carry a Content-Security-Policy allowing only what the viewer loads. See
+fleetmap.api.security_headers and docs/security.md, "Browsers"; test_web_viewer_csp.py checks in a
+real browser that the policy blocks nothing the viewer needs."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import httpx
+from service_process import ServiceProcess
+from test_auth import READ, WRITE, bearer
+
+#: The viewer's files, as its page asks for them, and a Leaflet image its style sheet names.
+VIEWER_FILES = ["/", "/static/app.js", "/static/style.css", "/vendor/leaflet/leaflet.js",
+                "/vendor/leaflet/leaflet.css", "/vendor/leaflet/images/layers.png"]  # fmt: skip
+EVERY_ANSWER = {
+    "x-content-type-options": "nosniff",
+    "x-frame-options": "DENY",
+    "referrer-policy": "no-referrer",
+}
+#: The policy's directives, as a browser reads them (order does not matter).
+VIEWER_POLICY = {
+    "default-src": "'none'",
+    "script-src": "'self'",
+    "style-src": "'self'",
+    "img-src": "'self' data:",
+    "connect-src": "'self'",
+    "base-uri": "'none'",
+    "form-action": "'none'",
+    "frame-ancestors": "'none'",
+}
+
+
+def policy(response: httpx.Response) -> dict[str, str]:
+    """The answer's Content-Security-Policy, directive -> sources."""
+    header = response.headers["content-security-policy"]
+    directives = (part.strip().partition(" ") for part in header.split(";"))
+    return {name: sources.strip() for name, _, sources in directives}
+
+
+def assert_every_answer_headers(response: httpx.Response, what: str) -> None:
+    for name, value in EVERY_ANSWER.items():
+        assert response.headers.get(name) == value, (what, response.status_code, name, response.headers)
+
+
+def test_the_viewer_files_carry_a_policy_allowing_only_what_the_viewer_loads(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    url = service_factory("--in-memory").base_url
+    for path in VIEWER_FILES:
+        for r in (httpx.get(f"{url}{path}"), httpx.head(f"{url}{path}")):
+            assert r.status_code == 200, (path, r.status_code)
+            assert policy(r) == VIEWER_POLICY, (path, r.headers)
+            assert_every_answer_headers(r, path)
+    # A file the viewer does not have is still under the viewer's folder: same headers on its 404.
+    r = httpx.get(f"{url}/static/nothing.js")
+    assert r.status_code == 404 and policy(r) == VIEWER_POLICY
+
+
+def test_every_answer_is_nosniff_unframeable_and_sends_no_referrer(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    url = service_factory("--in-memory").base_url
+    assert httpx.put(f"{url}/maps/m", json={}).status_code == 201
+    answers = {
+        "map list": httpx.get(f"{url}/maps"),
+        "tile": httpx.get(f"{url}/maps/m/tiles/0/0/-1.png"),
+        "spec": httpx.get(f"{url}/openapi.json"),
+        "metrics": httpx.get(f"{url}/metrics"),
+        "404 of the error handler": httpx.get(f"{url}/maps/nothing"),
+        "422 of validation": httpx.get(f"{url}/maps/m/cell", params={"x": "nan", "y": 0}),
+        "405": httpx.delete(f"{url}/healthz"),
+        "413 of the body limit": httpx.put(f"{url}/maps/m", content=b"x" * (17 * 1024 * 1024)),
+    }
+    with httpx.stream("GET", f"{url}/maps/m/events", timeout=10) as events:
+        answers["event stream"] = events
+    for what, r in answers.items():
+        assert_every_answer_headers(r, what)
+        # The policy is the viewer's: JSON, images and the API's own pages (Swagger UI) get none.
+        assert "content-security-policy" not in r.headers, what
+    assert answers["404 of the error handler"].status_code == 404
+    assert answers["413 of the body limit"].status_code == 413
+
+
+def test_the_auth_middlewares_answers_carry_them_too(
+    service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    tokens = tmp_path / "tokens.txt"
+    tokens.write_text(f"read {READ}\nwrite {WRITE}\n")
+    url = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token").base_url
+    answers = {
+        "401": httpx.get(f"{url}/maps"),
+        "403": httpx.put(f"{url}/maps/m", json={}, headers=bearer(READ)),
+        "sign-in": httpx.post(f"{url}/session", headers=bearer(READ)),
+    }
+    assert [r.status_code for r in answers.values()] == [401, 403, 200]
+    for what, r in answers.items():
+        assert_every_answer_headers(r, what)
+    assert policy(httpx.get(f"{url}/")) == VIEWER_POLICY  # the page is open, and has its policy
