@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from fleetmap_client import cli
 from fleetmap_client.publisher import ScanPublisher
-from fleetmap_client.rest import FleetmapClient, FleetmapError, parse_sse
+from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged, parse_sse
 from PIL import Image
 from service_process import ServiceProcess, free_port, wait_for
 
@@ -399,6 +399,44 @@ def test_cells_past_the_services_limit_per_request(client: FleetmapClient, scans
     assert many.keys() == few.keys()
     for name, values in few.items():
         np.testing.assert_array_equal(many[name], np.tile(values, 250), err_msg=name)
+
+
+def test_conditional_writes_refuse_a_map_that_changed(client: FleetmapClient, scans: list[Scan]) -> None:
+    """`if_match=` (the tag `get_map_and_etag` read) and `create_only=` make a write happen only on
+    the map the caller read, or only when there is none; otherwise `MapChanged` (a 412
+    `FleetmapError`) with the map's current tag, and nothing changed."""
+    with contextlib.suppress(FleetmapError):
+        client.delete_map("cond")
+    client.create_map("cond", CONFIG, create_only=True)
+    with pytest.raises(MapChanged) as exists:
+        client.create_map("cond", CONFIG, create_only=True)  # same configuration: still not created
+    info, etag = client.get_map_and_etag("cond")
+    assert exists.value.status == 412 and exists.value.etag == etag and info.id == "cond"
+    client.post_scan("cond", "r1", scans[0], seq=0)
+    assert client.get_map_and_etag("cond")[1] == etag  # scans do not change the map's tag
+    snapshot = client.download_snapshot("cond")
+    replaced = client.upload_snapshot("cond", snapshot, if_match=etag)
+    new_etag = client.get_map_and_etag("cond")[1]
+    assert new_etag != etag and replaced.stats.tiles > 0
+    # The tag read before the replacement: every write refuses it, and the map stays.
+    writes: list[Callable[[], object]] = [
+        lambda: client.delete_map("cond", if_match=etag),
+        lambda: client.upload_snapshot("cond", snapshot, if_match=etag),
+        lambda: client.import_nav2("cond", client.export("cond", "ros"), if_match=etag),
+        lambda: client.create_map("cond", CONFIG, if_match=etag),
+        lambda: client.upload_snapshot("cond", snapshot, create_only=True),
+    ]
+    for write in writes:
+        with pytest.raises(MapChanged) as changed:
+            write()
+        assert changed.value.etag == new_etag and "cond" in changed.value.detail
+    assert client.get_map_and_etag("cond")[1] == new_etag
+    client.delete_map("cond", if_match=new_etag)
+    with pytest.raises(MapChanged) as gone:
+        client.delete_map("cond", if_match=new_etag)
+    assert gone.value.etag is None
+    with pytest.raises(ValueError, match="if_match"):
+        client.delete_map("cond", if_match="")
 
 
 def test_post_scan_sends_nan_and_infinities_as_the_protocol_reads_them(client: FleetmapClient) -> None:

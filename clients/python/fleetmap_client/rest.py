@@ -129,6 +129,37 @@ class FleetmapError(Exception):
         self.retry_after = retry_after
 
 
+class MapChanged(FleetmapError):
+    """A conditional write (`if_match=`, `create_only=`) refused with 412: the map is not the one the
+    caller read (replaced, deleted and made again, or deleted; or, with `create_only`, it exists).
+    Nothing changed. `etag` is the map's current ETag (None when there is no map): read the map
+    again (`get_map_and_etag`), decide again, and write with the new tag."""
+
+    def __init__(
+        self,
+        status: int,
+        detail: str,
+        errors: list[dict[str, Any]] | None = None,
+        retry_after: float | None = None,
+        etag: str | None = None,
+    ) -> None:
+        super().__init__(status, detail, errors, retry_after)
+        self.etag = etag
+
+
+def _conditions(if_match: str | None, create_only: bool = False) -> dict[str, str]:
+    """The headers of a conditional write: `If-Match` (the map's ETag as read: only if the map is
+    still that one), `If-None-Match: *` (`create_only`: only if there is no map of the id)."""
+    headers: dict[str, str] = {}
+    if if_match is not None:
+        if not isinstance(if_match, str) or not if_match.strip():
+            raise ValueError(f"if_match must be an ETag as the service sent it, not {if_match!r}")
+        headers["If-Match"] = if_match
+    if create_only:
+        headers["If-None-Match"] = "*"
+    return headers
+
+
 def _check_id(name: str, value: str) -> str:
     if not isinstance(value, str) or not is_valid_id(value):
         raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
@@ -227,30 +258,55 @@ class FleetmapClient:
         """`GET /maps`: every map with its resolution, layers and counters, sorted by id."""
         return MapList.model_validate_json(self._request("GET", "/maps").content).maps
 
-    def create_map(self, map_id: str, config: MapConfig | Mapping[str, Any] | None = None) -> MapInfo:
+    def create_map(
+        self,
+        map_id: str,
+        config: MapConfig | Mapping[str, Any] | None = None,
+        *,
+        create_only: bool = False,
+        if_match: str | None = None,
+    ) -> MapInfo:
         """`PUT /maps/{map_id}`: create a map with `config` (None: the server's default). Creating a
         map that exists with the same configuration is a no-op; with a different one it raises
         `FleetmapError` 409. A bad configuration raises 422 with the server's reason. Returns once
-        the server has stored the map (503: created, but the server could not store it)."""
+        the server has stored the map (503: created, but the server could not store it).
+        `create_only`: raise `MapChanged` (412) if the map exists at all, even with this
+        configuration (`If-None-Match: *`); `if_match`: only if the map exists with that ETag
+        (`get_map_and_etag`), else `MapChanged`."""
         _check_id("map_id", map_id)
+        headers = _conditions(if_match, create_only)
         if config is None:
             kwargs: dict[str, Any] = {}
         elif isinstance(config, MapConfig):
-            kwargs = {"content": config.model_dump_json(), "headers": {"content-type": JSON_ENCODING}}
+            kwargs = {"content": config.model_dump_json()}
+            headers["content-type"] = JSON_ENCODING
         else:
             kwargs = {"json": dict(config)}
-        return MapInfo.model_validate_json(self._request("PUT", f"/maps/{map_id}", **kwargs).content)
+        response = self._request("PUT", f"/maps/{map_id}", headers=headers, **kwargs)
+        return MapInfo.model_validate_json(response.content)
 
     def get_map(self, map_id: str) -> MapInfo:
         """`GET /maps/{map_id}`: configuration and statistics (per-robot counters, bounds, tiles)."""
-        _check_id("map_id", map_id)
-        return MapInfo.model_validate_json(self._request("GET", f"/maps/{map_id}").content)
+        return self.get_map_and_etag(map_id)[0]
 
-    def delete_map(self, map_id: str) -> None:
-        """`DELETE /maps/{map_id}`, returning once the server has stored the deletion; `FleetmapError`
-        404 if there is no such map, 503 if it was removed but the server could not store that."""
+    def get_map_and_etag(self, map_id: str) -> tuple[MapInfo, str]:
+        """`get_map`, and the map's ETag: pass it as `if_match=` to `delete_map`, `upload_snapshot`,
+        `import_nav2` or `create_map` to have the write refused (`MapChanged`, nothing changed) if
+        the map was replaced, or deleted and made again, since it was read. The tag names the map's
+        incarnation and configuration, not its cells: scans do not change it (nor does a restart
+        keep it: after one, read it again)."""
         _check_id("map_id", map_id)
-        self._request("DELETE", f"/maps/{map_id}")
+        response = self._request("GET", f"/maps/{map_id}")
+        return MapInfo.model_validate_json(response.content), response.headers["ETag"]
+
+    def delete_map(self, map_id: str, *, if_match: str | None = None) -> None:
+        """`DELETE /maps/{map_id}`, returning once the server has stored the deletion; `FleetmapError`
+        404 if there is no such map, 503 if it was removed but the server could not store that.
+        `if_match`: delete only the map of that ETag (`get_map_and_etag`); `MapChanged` (412, the
+        map untouched) if the map is another one by now, or gone (also when a retry of a 503 finds
+        it gone: the first attempt removed it)."""
+        _check_id("map_id", map_id)
+        self._request("DELETE", f"/maps/{map_id}", headers=_conditions(if_match))
 
     def download_snapshot(self, map_id: str) -> bytes:
         """`GET /maps/{map_id}/snapshot`: the whole map (configuration and every tile of every layer)
@@ -258,18 +314,27 @@ class FleetmapClient:
         _check_id("map_id", map_id)
         return self._transfer("GET", f"/maps/{map_id}/snapshot").content
 
-    def upload_snapshot(self, map_id: str, snapshot: bytes) -> MapInfo:
+    def upload_snapshot(
+        self, map_id: str, snapshot: bytes, *, if_match: str | None = None, create_only: bool = False
+    ) -> MapInfo:
         """`PUT /maps/{map_id}/snapshot`: install a `download_snapshot` file as map `map_id`, replacing
         any map of that id, and return it once stored. `FleetmapError` 422 (or 413) for a file that
-        is not a valid snapshot, naming the part at fault; nothing changes then."""
+        is not a valid snapshot, naming the part at fault; nothing changes then. `if_match`: replace
+        only the map of that ETag (`get_map_and_etag`), `create_only`: only if there is no map of
+        the id; else `MapChanged` (412), nothing changed."""
         _check_id("map_id", map_id)
-        response = self._transfer(
-            "PUT", f"/maps/{map_id}/snapshot", content=snapshot, headers={"content-type": "application/zip"}
-        )
+        headers = {"content-type": "application/zip", **_conditions(if_match, create_only)}
+        response = self._transfer("PUT", f"/maps/{map_id}/snapshot", content=snapshot, headers=headers)
         return MapInfo.model_validate_json(response.content)
 
     def import_nav2(
-        self, map_id: str, source: str | os.PathLike[str] | bytes, snap_origin: bool = False
+        self,
+        map_id: str,
+        source: str | os.PathLike[str] | bytes,
+        snap_origin: bool = False,
+        *,
+        if_match: str | None = None,
+        create_only: bool = False,
     ) -> MapInfo:
         """`PUT /maps/{map_id}/import?format=ros`: install a ROS nav2 map_server map as map `map_id`,
         replacing any map of that id (keeping its configuration), and return it once stored.
@@ -280,13 +345,15 @@ class FleetmapClient:
         naming the field or image at fault (a rotated map, an origin off the cell grid, a colour
         image, ...), 413 past a size limit; nothing changes then. OSError if a file cannot be read.
         `snap_origin`: an origin off the map's cell grid (as SLAM tools and map_saver write them) is
-        moved to the nearest cell edge, by at most half a cell, instead of refused."""
+        moved to the nearest cell edge, by at most half a cell, instead of refused. `if_match` /
+        `create_only` as for `upload_snapshot`."""
         _check_id("map_id", map_id)
+        headers = {"content-type": "application/zip", **_conditions(if_match, create_only)}
         body = source if isinstance(source, bytes) else nav2_files_zip(source)
         response = self._transfer(
             "PUT", f"/maps/{map_id}/import", params={"format": "ros", "snap_origin": snap_origin},
             content=body,
-            headers={"content-type": "application/zip"},
+            headers=headers,
         )  # fmt: skip
         return MapInfo.model_validate_json(response.content)
 
@@ -758,6 +825,8 @@ def _raise_for_error(response: httpx.Response) -> None:
     else:
         detail = parsed.detail
         errors = [e.model_dump() for e in parsed.errors or []]
+    if response.status_code == 412:  # a conditional write found another map (or none)
+        raise MapChanged(412, detail, errors, _retry_after_seconds(response), response.headers.get("ETag"))
     raise FleetmapError(response.status_code, detail, errors, _retry_after_seconds(response))
 
 
@@ -770,6 +839,7 @@ __all__ = [
     "FleetmapClient",
     "FleetmapError",
     "Layer",
+    "MapChanged",
     "fold_robots",
     "parse_sse",
 ]

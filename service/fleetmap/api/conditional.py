@@ -156,8 +156,8 @@ async def preconditions(
     if_none_match: Annotated[
         str | None,
         Header(
-            description="`*`: only if there is no map of this id (create, never replace); else 412 "
-            "and nothing changes"
+            description="`*`: only if there is no map of this id (create, never replace); a list of "
+            "ETags: only if the map's is none of them (weak comparison); else 412 and nothing changes"
         ),
     ] = None,
 ) -> Preconditions:
