@@ -30,7 +30,7 @@ import os
 import threading
 import time
 import zipfile
-from collections.abc import Generator, Iterator, Mapping, Sequence
+from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -57,7 +57,7 @@ from fleetmap.api_models import (
 )
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
-from fleetmap.grid_map import Points, as_points
+from fleetmap.grid_map import MAX_RAY_WALK, MAX_RAYS, Points, as_points
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
 
@@ -449,15 +449,7 @@ class FleetmapClient:
         _check_id("map_id", map_id)
         pts = as_points(points)  # ValueError for another shape than (n, 2) or a non-finite value
         # The service answers at most MAX_POINTS points a request (413 past it): more go in several.
-        chunks = [pts[k : k + MAX_POINTS] for k in range(0, len(pts), MAX_POINTS)] or [pts]
-        parts = [self._cells(map_id, chunk) for chunk in chunks]
-        if len(parts) == 1:
-            return parts[0]
-        if any(part.keys() != parts[0].keys() for part in parts):  # replaced by a map of other layers
-            raise FleetmapError(
-                409, f"map {map_id!r} changed its layers while its {len(pts)} points were read in parts"
-            )
-        return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
+        return _in_parts(pts, MAX_POINTS, lambda chunk: self._cells(map_id, chunk), map_id, "points")
 
     def _cells(self, map_id: str, pts: np.ndarray) -> dict[str, np.ndarray]:
         """One `POST /maps/{map_id}/cells` of at most MAX_POINTS checked points, as `cells` answers."""
@@ -497,9 +489,14 @@ class FleetmapClient:
         field, one entry per angle in order: `status` (str: "occupied", "unknown", "max_range"),
         `range` (float64, metres to where the ray enters that cell: 0 for the origin's own cell,
         `max_range` when nothing stopped it), `x`, `y` (float64, that point), `i`, `j` (int64, the
-        cell). ValueError for a non-finite or malformed argument before any request; the server's
-        limits (at most 10000 rays, 20000 cells of `max_range`, 2**24 cells in all) answer 413,
-        raised as `FleetmapError`.
+        cell). ValueError for a non-finite or malformed argument before any request.
+
+        Any number of rays: past what the service casts in one request (`MAX_RAYS`, 10 000 rays,
+        and `MAX_RAY_WALK`, 2**24 cells of rays x `max_range`), they are cast in several requests,
+        in order, each at its own moment (scans may land between them); for the second limit the
+        client reads the map's resolution first (one `GET /maps/{map_id}`), only when the rays
+        might pass it. A `max_range` over 20 000 cells, a limit of each ray, answers 413 as
+        `FleetmapError`: cast shorter rays.
         """
         _check_id("map_id", map_id)
         if len(origin) != 2:
@@ -507,12 +504,26 @@ class FleetmapClient:
         rays = np.asarray(angles, dtype=np.float64).reshape(-1)
         if not np.isfinite(rays).all():
             raise ValueError("angles must be finite numbers (radians)")
-        body = {
-            "origin": [_finite(origin[0]), _finite(origin[1])],
-            "angles": rays.tolist(),
-            "max_range": _finite(max_range),
-            "unknown": unknown,
-        }
+        start = [_finite(origin[0]), _finite(origin[1])]
+        max_range = _finite(max_range)
+        if unknown not in ("stop", "pass"):
+            raise ValueError(f"unknown must be 'stop' or 'pass', not {unknown!r}")
+        per_request = MAX_RAYS
+        # The service walks at most MAX_RAY_WALK cells a request, rays x max_range in cells, and the
+        # client knows the cells only from the map's resolution: read it only when the rays could
+        # pass the limit at the finest resolution a map may have (a 360-ray scan of 10 m never does).
+        if len(rays) * max_range / _MIN_RESOLUTION > MAX_RAY_WALK:
+            cells = max_range / self.get_map(map_id).resolution
+            per_request = max(1, min(MAX_RAYS, math.floor(MAX_RAY_WALK / cells)))
+
+        def cast(chunk: np.ndarray) -> dict[str, np.ndarray]:
+            body = {"origin": start, "angles": chunk.tolist(), "max_range": max_range, "unknown": unknown}
+            return self._raycast(map_id, body)
+
+        return _in_parts(rays, per_request, cast, map_id, "rays")
+
+    def _raycast(self, map_id: str, body: dict[str, Any]) -> dict[str, np.ndarray]:
+        """One `POST /maps/{map_id}/raycast` of `body`, as `raycast` answers."""
         response = self._request("POST", f"/maps/{map_id}/raycast", json=body)
         parsed = RaycastResponse.model_validate_json(response.content)
         return {
@@ -697,6 +708,35 @@ class FleetmapClient:
             # The stream ended without `deleted` (the server stopped: "the server is shutting
             # down") or the connection was lost: wait for the service and go on.
             time.sleep(delay)
+
+
+#: The finest resolution a map may have (`MapConfig.resolution` is above it): with it, `raycast`
+#: tells whether rays might pass the service's walk limit without asking the map's own.
+_MIN_RESOLUTION: float = next(
+    float(m.gt) for m in MapConfig.model_fields["resolution"].metadata if getattr(m, "gt", None) is not None
+)
+
+
+def _in_parts(
+    items: np.ndarray,
+    size: int,
+    ask: Callable[[np.ndarray], dict[str, np.ndarray]],
+    map_id: str,
+    what: str,
+) -> dict[str, np.ndarray]:
+    """`ask(part)` for each run of at most `size` of `items`, in order (one call for an empty
+    `items`), and the answers' arrays joined in that order: what `cells` and `raycast` do past the
+    service's limit per request. `FleetmapError` 409 if the parts came back with different fields
+    (the map was replaced meanwhile by one keeping other layers)."""
+    chunks = [items[k : k + size] for k in range(0, len(items), size)] or [items]
+    parts = [ask(chunk) for chunk in chunks]
+    if len(parts) == 1:
+        return parts[0]
+    if any(part.keys() != parts[0].keys() for part in parts):  # replaced by a map of other layers
+        raise FleetmapError(
+            409, f"map {map_id!r} changed its layers while its {len(items)} {what} were read in parts"
+        )
+    return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
 
 
 def fold_robots(events: EventStream) -> EventStream:
