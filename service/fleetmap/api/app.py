@@ -142,7 +142,9 @@ class ApiSettings:
     tile_cache_size: int = 4096
     #: Seconds between two polls of an event stream (and so the most often an event is sent).
     events_period: float = 0.1
-    #: Seconds between `: keepalive` comments of an event stream.
+    #: Seconds of silence after which an event stream sends a `: keepalive` comment (`serve
+    #: --events-keepalive`): a stream never stays silent much longer, so clients can take a longer
+    #: silence for a dead connection (the Python client's `EVENTS_READ_TIMEOUT` is three of these).
     keepalive: float = 15.0
     #: Event streams open at once (all maps, all clients); past it a new one is refused with 503.
     #: Each holds memory and polls every `events_period`: thousands would starve ingest.
