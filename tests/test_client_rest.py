@@ -12,6 +12,7 @@ import contextlib
 import io
 import json
 import math
+import socket
 import threading
 import time
 import zipfile
@@ -636,6 +637,118 @@ def test_events_resume_after_the_service_restarts(tmp_path: Path, scans: list[Sc
         fm.delete_map("follow")
         assert finished.wait(10), "the event stream did not end after the map was deleted"
     assert received[-1] == ("deleted", {"id": "follow"})
+
+
+class FreezableProxy:
+    """A TCP proxy on a free loopback port to `target_port`, each connection forwarded by two
+    threads. `freeze()` stops forwarding on every connection open now, both ways, while leaving its
+    sockets open: to the client the connection is alive (no FIN, no RST) and silent, as a half-open
+    connection is after a peer's power cut or a NAT or proxy dropped its state. Connections made
+    later are forwarded."""
+
+    def __init__(self, target_port: int) -> None:
+        self.target_port = target_port
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.connections: list[tuple[socket.socket, socket.socket, threading.Event]] = []
+        self.lock = threading.Lock()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:  # closed
+                return
+            upstream = socket.create_connection(("127.0.0.1", self.target_port))
+            frozen = threading.Event()
+            with self.lock:
+                self.connections.append((client, upstream, frozen))
+            for source, sink in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(source, sink, frozen), daemon=True).start()
+
+    @staticmethod
+    def _pump(source: socket.socket, sink: socket.socket, frozen: threading.Event) -> None:
+        source.settimeout(0.05)
+        while not frozen.is_set():
+            try:
+                data = source.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not data or frozen.is_set():  # frozen: what arrives now is dropped, never forwarded
+                if not data:
+                    with contextlib.suppress(OSError):
+                        sink.shutdown(socket.SHUT_WR)
+                    return
+                continue
+            try:
+                sink.sendall(data)
+            except OSError:
+                return
+
+    def freeze(self) -> int:
+        """Stop forwarding on every connection open now; returns how many."""
+        with self.lock:
+            for _, _, frozen in self.connections:
+                frozen.set()
+            return len(self.connections)
+
+    def close(self) -> None:
+        self.listener.close()
+        with self.lock:
+            for client, upstream, frozen in self.connections:
+                frozen.set()
+                client.close()
+                upstream.close()
+
+
+def test_events_resume_a_stream_that_went_silent(tmp_path: Path, scans: list[Scan]) -> None:
+    """A connection that dies without a FIN or RST (half-open TCP) sent nothing more, and `events`,
+    which read without a timeout, waited for ever. The service breaks every silence with a keepalive
+    (here every 0.3 s, `--events-keepalive`), so a stream silent for a few of them is dead: the client
+    gives it up after `events_read_timeout` and resumes, saying ("reconnected", ...), with the
+    changes made since. An idle stream that gets its keepalives is kept."""
+    received: list[tuple[str, dict[str, Any]]] = []
+    finished = threading.Event()
+    with ServiceProcess(tmp_path, ["--in-memory", "--events-keepalive", "0.3"]) as svc:
+        proxy = FreezableProxy(svc.port)
+        try:
+            with FleetmapClient(svc.base_url, timeout=20.0) as fm:
+                fm.create_map("silent", CONFIG)
+                fm.post_scan("silent", "r1", scans[0])
+
+                def listen() -> None:
+                    url = f"http://127.0.0.1:{proxy.port}"
+                    with FleetmapClient(url, events_read_timeout=1.5) as own:
+                        received.extend(own.events("silent"))
+                    finished.set()
+
+                threading.Thread(target=listen, daemon=True).start()
+                wait_for(
+                    lambda: any(e == "robots" for e, _ in received), 10, 0.02, "the initial robots event"
+                )
+                time.sleep(3.0)  # idle for twice the read timeout: the keepalives hold the stream
+                assert [e for e, _ in received if e == "reconnected"] == [], received
+                assert proxy.freeze() == 1  # the stream's connection: silent from now on
+                wait_for(lambda: any(e == "reconnected" for e, _ in received), 15, 0.05, "the stream resumed")
+                changed = {tuple(w) for w in fm.post_scan("silent", "r1", scans[1]).changed_tiles}
+
+                def tiles_since_resumed() -> set[tuple[int, ...]]:
+                    after = received[[e for e, _ in received].index("reconnected") :]
+                    return {tuple(w) for e, d in after if e == "tiles" for w in d.get("tiles", [])}
+
+                wait_for(
+                    lambda: changed <= tiles_since_resumed(), 10, 0.02, "the tiles changed after the resume"
+                )
+                fm.delete_map("silent")
+                assert finished.wait(10), "the event stream did not end after the map was deleted"
+        finally:
+            proxy.close()
+    assert received[-1] == ("deleted", {"id": "silent"})
+    with pytest.raises(ValueError, match="events_read_timeout"):
+        FleetmapClient(svc.base_url, events_read_timeout=0)
 
 
 def test_events_of_an_unknown_map(client: FleetmapClient) -> None:

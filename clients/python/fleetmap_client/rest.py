@@ -88,6 +88,13 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
 #: 503's Retry-After says otherwise.
 RECONNECT_DELAY = 1.0
 
+#: Seconds `events` waits for anything from an open stream before it takes the connection for dead
+#: and resumes the stream: three of the service's keepalive periods (`: keepalive` after 15 s of
+#: silence, `fleetmap serve --events-keepalive`). A connection that dies without a FIN or RST (a
+#: peer's power cut, a NAT or a proxy dropping state: half-open TCP) otherwise blocks the reader
+#: for ever, as nothing ever arrives and the OS never tells.
+EVENTS_READ_TIMEOUT = 45.0
+
 #: The environment variable `FleetmapClient` reads its API token from when given none.
 TOKEN_ENV = "FLEETMAP_TOKEN"
 
@@ -185,8 +192,10 @@ class FleetmapClient:
     answers only once the scan is integrated; the whole-map transfers (`download_snapshot`,
     `upload_snapshot`, `import_nav2`, `export`) up to `transfer_timeout` (default
     `TRANSFER_TIMEOUT`, 300 s, or `timeout` if longer), since a big map takes the service seconds
-    to store or pack; and the event stream's reads wait as long as the stream lives (the server
-    sends a keepalive every 15 s). `token`: an API token of the
+    to store or pack; and the event stream's reads wait up to `events_read_timeout` (default
+    `EVENTS_READ_TIMEOUT`, 45 s: three of the service's keepalive periods) for anything from the
+    server before the stream is taken for dead and resumed (`events`); give a server run with a
+    longer `--events-keepalive` a longer one (None: wait for ever). `token`: an API token of the
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
     from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it).
     Thread-safe (one httpx.Client; `post_scan` sends one robot's scans one at a time, in call
@@ -201,7 +210,14 @@ class FleetmapClient:
         token: str | None = None,
         scan_timeout: float = SCAN_TIMEOUT,
         transfer_timeout: float = TRANSFER_TIMEOUT,
+        events_read_timeout: float | None = EVENTS_READ_TIMEOUT,
     ) -> None:
+        read = events_read_timeout
+        if read is not None and not (isinstance(read, int | float) and math.isfinite(read) and read > 0):
+            raise ValueError(
+                f"events_read_timeout must be a positive number of seconds or None, not {read!r}"
+            )
+        self.events_read_timeout = read
         self.base_url = base_url.rstrip("/")
         self.timeout = timeout
         self.scan_timeout = max(scan_timeout, timeout)
@@ -658,7 +674,9 @@ class FleetmapClient:
         does.
 
         Once a stream was open, it is followed as an EventSource follows it: when the server stops
-        (a restart) or the connection is lost, `next()` waits for the service (`RECONNECT_DELAY`
+        (a restart) or the connection is lost, or nothing at all (not even the server's keepalive)
+        arrives for `events_read_timeout` seconds (a half-open connection, a frozen server), `next()`
+        waits for the service (`RECONNECT_DELAY`
         between attempts, a 503's Retry-After) and resumes with `Last-Event-ID`, so the tiles
         changed meanwhile come in the next `tiles` event (or a reset). It then yields
         ("reconnected", {"last_event_id": ...}) first: a restarted service may hold another map
@@ -674,7 +692,9 @@ class FleetmapClient:
     def _events(self, map_id: str, since: int | None) -> EventStream:
         """The stream, resumed after a lost connection or a server restart (see `events`)."""
         params = {"robots": "delta"}
-        timeout = httpx.Timeout(self.timeout, read=None)  # the stream may be idle for a while
+        # The stream may be idle for long, but the server's keepalives break every silence: one
+        # longer than a few of them is a dead connection (httpx.ReadTimeout), resumed below.
+        timeout = httpx.Timeout(self.timeout, read=self.events_read_timeout)
         # The last `id:` the server sent, as an EventSource keeps it; `since` is sent the same way
         # (the server reads `Last-Event-ID` as `?since=`, which would win over it on a resume).
         last_id = None if since is None else str(since)
@@ -706,7 +726,8 @@ class FleetmapClient:
                 if not followed:
                     raise  # nothing listens at all: say so, as every other method does
             # The stream ended without `deleted` (the server stopped: "the server is shutting
-            # down") or the connection was lost: wait for the service and go on.
+            # down"), the connection was lost, or it stayed silent past the read timeout (a
+            # ReadTimeout: leaving the `with` closed that connection): wait for the service, go on.
             time.sleep(delay)
 
 
@@ -875,6 +896,7 @@ __all__ = [
     "SCAN_TIMEOUT",
     "TOKEN_ENV",
     "TRANSFER_TIMEOUT",
+    "EVENTS_READ_TIMEOUT",
     "EventStream",
     "FleetmapClient",
     "FleetmapError",
