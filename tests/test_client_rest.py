@@ -433,9 +433,12 @@ def test_conditional_writes_refuse_a_map_that_changed(client: FleetmapClient, sc
         assert changed.value.etag == new_etag and "cond" in changed.value.detail
     assert client.get_map_and_etag("cond")[1] == new_etag
     client.delete_map("cond", if_match=new_etag)
-    with pytest.raises(MapChanged) as gone:
-        client.delete_map("cond", if_match=new_etag)
+    with pytest.raises(MapChanged) as gone:  # a PUT that would need the map finds none
+        client.create_map("cond", CONFIG, if_match=new_etag)
     assert gone.value.etag is None
+    with pytest.raises(FleetmapError) as missing:
+        client.delete_map("cond", if_match=new_etag)
+    assert missing.value.status == 404 and not isinstance(missing.value, MapChanged)
     with pytest.raises(ValueError, match="if_match"):
         client.delete_map("cond", if_match="")
 

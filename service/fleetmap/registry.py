@@ -419,18 +419,23 @@ class MapRegistry:
         raises MapNotFound. Waits for the map's lock, so a scan being applied finishes first (a scan
         still being planned is then applied nowhere). With `wait`, the deletion is committed to
         storage before this returns (else NotDurable). `expect` as for `create`, called with the map
-        (None if none) under its lock and the registry's."""
+        under its lock and the registry's; with None when the map is gone but its deletion is still
+        being stored (no map at all: MapNotFound, not `expect`)."""
         stored = None
         with self._removing(map_id) as old:
-            if expect is not None:
-                expect(old)
             if old is None:
                 # A client retrying a DELETE it was told was not stored: done once it is.
                 stored = self.durable.retry_map_change(map_id) if self.durable is not None else None
                 if stored is None:
+                    # No map: that answer comes first, whatever the request's conditions (RFC 9110,
+                    # 13.2.1: a failure found before the method is processed takes precedence).
                     raise MapNotFound(map_id)
+                if expect is not None:
+                    expect(None)  # the map this retry removed cannot be compared any more
                 dropped = []
             else:
+                if expect is not None:
+                    expect(old)
                 dropped = self._retire(old)
                 if self.durable is not None:
                     stored = self.durable.map_deleted(map_id)

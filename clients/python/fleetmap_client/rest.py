@@ -319,8 +319,9 @@ class FleetmapClient:
         """`DELETE /maps/{map_id}`, returning once the server has stored the deletion; `FleetmapError`
         404 if there is no such map, 503 if it was removed but the server could not store that.
         `if_match`: delete only the map of that ETag (`get_map_and_etag`); `MapChanged` (412, the
-        map untouched) if the map is another one by now, or gone (also when a retry of a 503 finds
-        it gone: the first attempt removed it)."""
+        map untouched) if the map is another one by now (no map at all is still the 404; a retry of
+        a 503 whose deletion is still being stored is a `MapChanged`: the first attempt removed
+        it)."""
         _check_id("map_id", map_id)
         self._request("DELETE", f"/maps/{map_id}", headers=_conditions(if_match))
 

@@ -162,7 +162,8 @@ def delete_map(map_id: MapId, state: State, conditions: Conditions) -> Response:
     """Removes the map, its robots and its queued scans, answering once that is stored (with durable
     storage). Event streams of the map end. 503: removed, but the removal could not be stored; the
     service retries, and the same DELETE answers 204 once it is stored. `If-Match`: only if the map
-    has that `ETag` (412 otherwise, the map untouched; also when there is no map any more)."""
+    has that `ETag` (412 otherwise, the map untouched); no map is a 404 as without it (a 412 when
+    its deletion is still being stored)."""
     try:
         state.registry.delete(map_id, wait=True, expect=conditions.expectation(map_id))
     except ApiError:  # a precondition failed: nothing was removed
