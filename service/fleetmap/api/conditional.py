@@ -119,7 +119,7 @@ class Preconditions:
             raise ApiError(412, f"If-Match: * but there is no map {map_id!r}", headers=headers)
         if self.if_match is not None:
             if current is None:
-                raise ApiError(412, f"If-Match: there is no map {map_id!r} any more", headers=headers)
+                raise ApiError(412, f"If-Match: there is no map {map_id!r}", headers=headers)
             if not any(strong_match(tag, current) for tag in self.if_match):
                 weak = (
                     ' (a weak tag W/"..." never matches If-Match)'
