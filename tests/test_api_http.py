@@ -193,9 +193,12 @@ def test_the_event_stream_is_never_compressed_and_each_event_arrives_at_once(map
 
 
 def test_every_answer_says_how_to_cache_it(mapped: httpx.Client) -> None:
-    for path in ("/maps", "/maps/m", "/maps/m/region?format=json", "/maps/m/cell?x=0&y=0", "/healthz",
+    for path in ("/maps", "/maps/m/region?format=json", "/maps/m/cell?x=0&y=0", "/healthz",
                  "/maps/nope"):  # fmt: skip
         assert mapped.get(path).headers["cache-control"] == "no-cache", path
+    # A map's answer carries the map's own ETag, which stays while its statistics change: no cache
+    # may keep it and revalidate with that tag (docs/api.md, "Conditional writes").
+    assert mapped.get("/maps/m").headers["cache-control"] == "no-store"
     r = mapped.post("/maps/m/cells", json={"points": [[0.0, 0.0]]})
     assert r.headers["cache-control"] == "no-cache"
     assert mapped.get(TILE).headers["cache-control"] == "no-cache"  # public: a CDN may store it

@@ -12,6 +12,7 @@ import contextlib
 import io
 import json
 import math
+import socket
 import threading
 import time
 import zipfile
@@ -25,7 +26,7 @@ import numpy as np
 import pytest
 from fleetmap_client import cli
 from fleetmap_client.publisher import ScanPublisher
-from fleetmap_client.rest import FleetmapClient, FleetmapError, parse_sse
+from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged, parse_sse
 from PIL import Image
 from service_process import ServiceProcess, free_port, wait_for
 
@@ -401,6 +402,47 @@ def test_cells_past_the_services_limit_per_request(client: FleetmapClient, scans
         np.testing.assert_array_equal(many[name], np.tile(values, 250), err_msg=name)
 
 
+def test_conditional_writes_refuse_a_map_that_changed(client: FleetmapClient, scans: list[Scan]) -> None:
+    """`if_match=` (the tag `get_map_and_etag` read) and `create_only=` make a write happen only on
+    the map the caller read, or only when there is none; otherwise `MapChanged` (a 412
+    `FleetmapError`) with the map's current tag, and nothing changed."""
+    with contextlib.suppress(FleetmapError):
+        client.delete_map("cond")
+    client.create_map("cond", CONFIG, create_only=True)
+    with pytest.raises(MapChanged) as exists:
+        client.create_map("cond", CONFIG, create_only=True)  # same configuration: still not created
+    info, etag = client.get_map_and_etag("cond")
+    assert exists.value.status == 412 and exists.value.etag == etag and info.id == "cond"
+    client.post_scan("cond", "r1", scans[0], seq=0)
+    assert client.get_map_and_etag("cond")[1] == etag  # scans do not change the map's tag
+    snapshot = client.download_snapshot("cond")
+    replaced = client.upload_snapshot("cond", snapshot, if_match=etag)
+    new_etag = client.get_map_and_etag("cond")[1]
+    assert new_etag != etag and replaced.stats.tiles > 0
+    # The tag read before the replacement: every write refuses it, and the map stays.
+    writes: list[Callable[[], object]] = [
+        lambda: client.delete_map("cond", if_match=etag),
+        lambda: client.upload_snapshot("cond", snapshot, if_match=etag),
+        lambda: client.import_nav2("cond", client.export("cond", "ros"), if_match=etag),
+        lambda: client.create_map("cond", CONFIG, if_match=etag),
+        lambda: client.upload_snapshot("cond", snapshot, create_only=True),
+    ]
+    for write in writes:
+        with pytest.raises(MapChanged) as changed:
+            write()
+        assert changed.value.etag == new_etag and "cond" in changed.value.detail
+    assert client.get_map_and_etag("cond")[1] == new_etag
+    client.delete_map("cond", if_match=new_etag)
+    with pytest.raises(MapChanged) as gone:  # a PUT that would need the map finds none
+        client.create_map("cond", CONFIG, if_match=new_etag)
+    assert gone.value.etag is None
+    with pytest.raises(FleetmapError) as missing:
+        client.delete_map("cond", if_match=new_etag)
+    assert missing.value.status == 404 and not isinstance(missing.value, MapChanged)
+    with pytest.raises(ValueError, match="if_match"):
+        client.delete_map("cond", if_match="")
+
+
 def test_post_scan_sends_nan_and_infinities_as_the_protocol_reads_them(client: FleetmapClient) -> None:
     """A ScanMessage without range_max (no maximum: infinite) or with a NaN range (an invalid
     reading), and a dict in the JSON scan format holding NaN or infinities, all legal scans of
@@ -598,6 +640,118 @@ def test_events_resume_after_the_service_restarts(tmp_path: Path, scans: list[Sc
         fm.delete_map("follow")
         assert finished.wait(10), "the event stream did not end after the map was deleted"
     assert received[-1] == ("deleted", {"id": "follow"})
+
+
+class FreezableProxy:
+    """A TCP proxy on a free loopback port to `target_port`, each connection forwarded by two
+    threads. `freeze()` stops forwarding on every connection open now, both ways, while leaving its
+    sockets open: to the client the connection is alive (no FIN, no RST) and silent, as a half-open
+    connection is after a peer's power cut or a NAT or proxy dropped its state. Connections made
+    later are forwarded."""
+
+    def __init__(self, target_port: int) -> None:
+        self.target_port = target_port
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.connections: list[tuple[socket.socket, socket.socket, threading.Event]] = []
+        self.lock = threading.Lock()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:  # closed
+                return
+            upstream = socket.create_connection(("127.0.0.1", self.target_port))
+            frozen = threading.Event()
+            with self.lock:
+                self.connections.append((client, upstream, frozen))
+            for source, sink in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(source, sink, frozen), daemon=True).start()
+
+    @staticmethod
+    def _pump(source: socket.socket, sink: socket.socket, frozen: threading.Event) -> None:
+        source.settimeout(0.05)
+        while not frozen.is_set():
+            try:
+                data = source.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not data or frozen.is_set():  # frozen: what arrives now is dropped, never forwarded
+                if not data:
+                    with contextlib.suppress(OSError):
+                        sink.shutdown(socket.SHUT_WR)
+                    return
+                continue
+            try:
+                sink.sendall(data)
+            except OSError:
+                return
+
+    def freeze(self) -> int:
+        """Stop forwarding on every connection open now; returns how many."""
+        with self.lock:
+            for _, _, frozen in self.connections:
+                frozen.set()
+            return len(self.connections)
+
+    def close(self) -> None:
+        self.listener.close()
+        with self.lock:
+            for client, upstream, frozen in self.connections:
+                frozen.set()
+                client.close()
+                upstream.close()
+
+
+def test_events_resume_a_stream_that_went_silent(tmp_path: Path, scans: list[Scan]) -> None:
+    """A connection that dies without a FIN or RST (half-open TCP) sent nothing more, and `events`,
+    which read without a timeout, waited for ever. The service breaks every silence with a keepalive
+    (here every 0.3 s, `--events-keepalive`), so a stream silent for a few of them is dead: the client
+    gives it up after `events_read_timeout` and resumes, saying ("reconnected", ...), with the
+    changes made since. An idle stream that gets its keepalives is kept."""
+    received: list[tuple[str, dict[str, Any]]] = []
+    finished = threading.Event()
+    with ServiceProcess(tmp_path, ["--in-memory", "--events-keepalive", "0.3"]) as svc:
+        proxy = FreezableProxy(svc.port)
+        try:
+            with FleetmapClient(svc.base_url, timeout=20.0) as fm:
+                fm.create_map("silent", CONFIG)
+                fm.post_scan("silent", "r1", scans[0])
+
+                def listen() -> None:
+                    url = f"http://127.0.0.1:{proxy.port}"
+                    with FleetmapClient(url, events_read_timeout=1.5) as own:
+                        received.extend(own.events("silent"))
+                    finished.set()
+
+                threading.Thread(target=listen, daemon=True).start()
+                wait_for(
+                    lambda: any(e == "robots" for e, _ in received), 10, 0.02, "the initial robots event"
+                )
+                time.sleep(3.0)  # idle for twice the read timeout: the keepalives hold the stream
+                assert [e for e, _ in received if e == "reconnected"] == [], received
+                assert proxy.freeze() == 1  # the stream's connection: silent from now on
+                wait_for(lambda: any(e == "reconnected" for e, _ in received), 15, 0.05, "the stream resumed")
+                changed = {tuple(w) for w in fm.post_scan("silent", "r1", scans[1]).changed_tiles}
+
+                def tiles_since_resumed() -> set[tuple[int, ...]]:
+                    after = received[[e for e, _ in received].index("reconnected") :]
+                    return {tuple(w) for e, d in after if e == "tiles" for w in d.get("tiles", [])}
+
+                wait_for(
+                    lambda: changed <= tiles_since_resumed(), 10, 0.02, "the tiles changed after the resume"
+                )
+                fm.delete_map("silent")
+                assert finished.wait(10), "the event stream did not end after the map was deleted"
+        finally:
+            proxy.close()
+    assert received[-1] == ("deleted", {"id": "silent"})
+    with pytest.raises(ValueError, match="events_read_timeout"):
+        FleetmapClient(svc.base_url, events_read_timeout=0)
 
 
 def test_events_of_an_unknown_map(client: FleetmapClient) -> None:

@@ -546,8 +546,41 @@ def test_the_client_casts_rays(service: ServiceProcess) -> None:
         with pytest.raises(ValueError, match="pair"):
             fm.raycast("client", (0.0, 0.0, 0.0), [0.0], 1.0)
         with pytest.raises(FleetmapError) as err:
-            fm.raycast("client", (0.0, 0.0), np.zeros(MAX_RAYS + 1), 1.0)
-        assert err.value.status == 413 and "rays" in err.value.detail
-        with pytest.raises(FleetmapError) as err:
             fm.raycast("nothing-here", (0.0, 0.0), [0.0], 1.0)
         assert err.value.status == 404
+
+
+def engine_rays(gmap: GridMap, origin: tuple[float, float], angles: np.ndarray, max_range: float,
+                unknown: str = "stop") -> dict[str, list[object]]:  # fmt: skip
+    """The engine's answer for any number of rays, cast 1000 at a time (its own limits are the
+    service's), as lists per field: each ray's answer depends on that ray alone."""
+    out: dict[str, list[object]] = {name: [] for name in ("status", "range", "x", "y", "i", "j")}
+    for k in range(0, len(angles), 1000):
+        part = gmap.cast_rays(origin, angles[k : k + 1000], max_range, unknown)  # type: ignore[arg-type]
+        out["status"] += [RAY_STATUS_NAMES[int(c)] for c in part.status]
+        for name in ("range", "x", "y", "i", "j"):
+            out[name] += getattr(part, name).tolist()
+    return out
+
+
+def test_the_client_splits_rays_past_the_services_limits(service: ServiceProcess) -> None:
+    """The service casts at most MAX_RAYS rays, and MAX_RAY_WALK cells of rays x max_range, a
+    request (413 past either); the client passed the 413 on, as `cells` once did for points. It now
+    casts them in several requests and joins the answers in the order of the angles. A ray longer
+    than MAX_RAY_CELLS cannot be split: still a 413."""
+    gmap = room_maps(service.base_url, "split", ROOM)
+    rng = np.random.default_rng(3)
+    many = rng.uniform(-math.pi, math.pi, 2 * MAX_RAYS + 7)  # three requests by count
+    cells_long = 2000  # 9000 rays x 2000 cells is over MAX_RAY_WALK: two requests by the walk
+    long_range = cells_long * gmap.resolution
+    long = rng.uniform(-math.pi, math.pi, 9000)
+    assert len(long) * cells_long > MAX_RAY_WALK and len(long) <= MAX_RAYS
+    with FleetmapClient(service.base_url) as fm:
+        for angles, max_range, unknown in ((many, 8.0, "stop"), (long, long_range, "pass")):
+            got = fm.raycast("split", (0.4, -0.3), angles, max_range, unknown=unknown)  # type: ignore[arg-type]
+            expected = engine_rays(gmap, (0.4, -0.3), angles, max_range, unknown)
+            assert {name: values.tolist() for name, values in got.items()} == expected
+            assert len(set(expected["range"])) > 100  # the rays differ: a mixed-up order would show
+        with pytest.raises(FleetmapError) as err:
+            fm.raycast("split", (0.0, 0.0), [0.0, 1.0], (MAX_RAY_CELLS + 10) * gmap.resolution)
+        assert err.value.status == 413 and "cells" in err.value.detail

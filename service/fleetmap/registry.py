@@ -133,6 +133,11 @@ class MapEntry:
         self.live_version += 1
 
 
+#: A check a map change runs on the map it would change (None: no map of that id) under the registry's
+#: lock, before it changes anything; it raises to refuse the change (the REST API's If-Match).
+Expectation = Callable[[MapEntry | None], None]
+
+
 @dataclass
 class Job:
     """A scan waiting for integration, and who waits for its outcome (REST)."""
@@ -325,17 +330,26 @@ class MapRegistry:
     # -- maps ------------------------------------------------------------------------------------
 
     def create(
-        self, map_id: str, config: MapConfig | None = None, wait: bool = False, by_scan: bool = False
+        self,
+        map_id: str,
+        config: MapConfig | None = None,
+        wait: bool = False,
+        by_scan: bool = False,
+        expect: Expectation | None = None,
     ) -> tuple[MapEntry, bool]:
         """Create a map, or return the existing one if its configuration is the same.
         Returns (entry, created). Raises MapConflict for a different configuration. With `wait`, a
         new map is committed to storage before this returns (else NotDurable). `by_scan`: created
-        for a scan (auto-create), its log line rate-limited."""
+        for a scan (auto-create), its log line rate-limited. `expect(existing)` is called with the
+        map of that id (None if none) under the registry's lock before anything changes: whatever it
+        raises propagates with nothing changed (a conditional write's precondition)."""
         _check_id("map id", map_id)
         config = config or self.default_config
         stored = None
         with self.lock:
             existing = self.maps.get(map_id)
+            if expect is not None:
+                expect(existing)
             if existing is not None:
                 if existing.config != config:
                     raise MapConflict(
@@ -362,16 +376,21 @@ class MapRegistry:
             _wait_stored(stored, f"map {map_id!r} was created" if created else f"map {map_id!r} exists")
         return entry, created
 
-    def replace(self, map_id: str, gmap: GridMap, wait: bool = False) -> MapEntry:
+    def replace(
+        self, map_id: str, gmap: GridMap, wait: bool = False, expect: Expectation | None = None
+    ) -> MapEntry:
         """Install `gmap` (an uploaded snapshot or nav2 map) as map `map_id`, replacing any map of
         that id (whose entry then points to the new one: `MapEntry.replaced_by`). With `wait`, it is
-        committed to storage before this returns (else NotDurable)."""
+        committed to storage before this returns (else NotDurable). `expect` as for `create`, called
+        with the map being replaced (None if none) under its lock and the registry's."""
         _check_id("map id", map_id)
         # Its tiles are encoded here, before the lock: no one else sees `gmap` yet, and a big map
         # takes seconds, during which scans and every other request need the lock.
         tiles = self.durable.tile_rows(gmap) if self.durable is not None else []
         stored = None
         with self._removing(map_id) as old:
+            if expect is not None:
+                expect(old)
             dropped = self._retire(old) if old is not None else []
             entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
             self._add(entry)
@@ -395,20 +414,28 @@ class MapRegistry:
             raise MapNotFound(map_id)
         return entry
 
-    def delete(self, map_id: str, wait: bool = False) -> None:
+    def delete(self, map_id: str, wait: bool = False, expect: Expectation | None = None) -> None:
         """Remove a map and its queued scans (their callers are answered at once: not integrated);
         raises MapNotFound. Waits for the map's lock, so a scan being applied finishes first (a scan
         still being planned is then applied nowhere). With `wait`, the deletion is committed to
-        storage before this returns (else NotDurable)."""
+        storage before this returns (else NotDurable). `expect` as for `create`, called with the map
+        under its lock and the registry's; with None when the map is gone but its deletion is still
+        being stored (no map at all: MapNotFound, not `expect`)."""
         stored = None
         with self._removing(map_id) as old:
             if old is None:
                 # A client retrying a DELETE it was told was not stored: done once it is.
                 stored = self.durable.retry_map_change(map_id) if self.durable is not None else None
                 if stored is None:
+                    # No map: that answer comes first, whatever the request's conditions (RFC 9110,
+                    # 13.2.1: a failure found before the method is processed takes precedence).
                     raise MapNotFound(map_id)
+                if expect is not None:
+                    expect(None)  # the map this retry removed cannot be compared any more
                 dropped = []
             else:
+                if expect is not None:
+                    expect(old)
                 dropped = self._retire(old)
                 if self.durable is not None:
                     stored = self.durable.map_deleted(map_id)

@@ -273,6 +273,17 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         ),
     )
     p.add_argument(
+        "--events-keepalive",
+        type=_seconds_between(0.1, 3600.0),
+        default=15.0,
+        metavar="S",
+        help=(
+            "seconds of silence after which an event stream sends a ': keepalive' comment (default "
+            "15): shorter than the idle timeout of any proxy in front; clients take a stream silent "
+            "for a few of these as broken (the Python client: 45 s) and resume it"
+        ),
+    )
+    p.add_argument(
         "--max-robots-per-map",
         type=_int_between(1, 1_000_000),
         default=1024,
@@ -729,6 +740,7 @@ def run(args: argparse.Namespace) -> int:
                 ingest_backlog=args.ingest_backlog_ms / 1000,
                 max_read_delay=args.max_read_delay_ms / 1000,
                 max_event_streams=args.max_event_streams,
+                keepalive=args.events_keepalive,
                 tokens=tokens,
                 require_read_token=args.require_read_token,
                 signin_max_failures=args.max_failed_sign_ins,

@@ -15,16 +15,17 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # what type checkers and IDEs see; at run time `__getattr__` imports on demand
     from fleetmap_client.publisher import PublisherClosed, ScanPublisher
-    from fleetmap_client.rest import FleetmapClient, FleetmapError
+    from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged
 
 _EXPORTS = {
     "ScanPublisher": "fleetmap_client.publisher",
     "PublisherClosed": "fleetmap_client.publisher",
     "FleetmapClient": "fleetmap_client.rest",
     "FleetmapError": "fleetmap_client.rest",
+    "MapChanged": "fleetmap_client.rest",
 }
 
-__all__ = ["FleetmapClient", "FleetmapError", "PublisherClosed", "ScanPublisher"]
+__all__ = ["FleetmapClient", "FleetmapError", "MapChanged", "PublisherClosed", "ScanPublisher"]
 assert set(__all__) == set(_EXPORTS), "one list of public names"
 
 

@@ -30,7 +30,7 @@ import os
 import threading
 import time
 import zipfile
-from collections.abc import Generator, Iterator, Mapping, Sequence
+from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -57,7 +57,7 @@ from fleetmap.api_models import (
 )
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
-from fleetmap.grid_map import Points, as_points
+from fleetmap.grid_map import MAX_RAY_WALK, MAX_RAYS, Points, as_points
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
 
@@ -87,6 +87,13 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
 #: Seconds `events` waits before it resumes a lost stream (the server's `retry:`, 1000 ms), unless a
 #: 503's Retry-After says otherwise.
 RECONNECT_DELAY = 1.0
+
+#: Seconds `events` waits for anything from an open stream before it takes the connection for dead
+#: and resumes the stream: three of the service's keepalive periods (`: keepalive` after 15 s of
+#: silence, `fleetmap serve --events-keepalive`). A connection that dies without a FIN or RST (a
+#: peer's power cut, a NAT or a proxy dropping state: half-open TCP) otherwise blocks the reader
+#: for ever, as nothing ever arrives and the OS never tells.
+EVENTS_READ_TIMEOUT = 45.0
 
 #: The environment variable `FleetmapClient` reads its API token from when given none.
 TOKEN_ENV = "FLEETMAP_TOKEN"
@@ -129,6 +136,37 @@ class FleetmapError(Exception):
         self.retry_after = retry_after
 
 
+class MapChanged(FleetmapError):
+    """A conditional write (`if_match=`, `create_only=`) refused with 412: the map is not the one the
+    caller read (replaced, deleted and made again, or deleted; or, with `create_only`, it exists).
+    Nothing changed. `etag` is the map's current ETag (None when there is no map): read the map
+    again (`get_map_and_etag`), decide again, and write with the new tag."""
+
+    def __init__(
+        self,
+        status: int,
+        detail: str,
+        errors: list[dict[str, Any]] | None = None,
+        retry_after: float | None = None,
+        etag: str | None = None,
+    ) -> None:
+        super().__init__(status, detail, errors, retry_after)
+        self.etag = etag
+
+
+def _conditions(if_match: str | None, create_only: bool = False) -> dict[str, str]:
+    """The headers of a conditional write: `If-Match` (the map's ETag as read: only if the map is
+    still that one), `If-None-Match: *` (`create_only`: only if there is no map of the id)."""
+    headers: dict[str, str] = {}
+    if if_match is not None:
+        if not isinstance(if_match, str) or not if_match.strip():
+            raise ValueError(f"if_match must be an ETag as the service sent it, not {if_match!r}")
+        headers["If-Match"] = if_match
+    if create_only:
+        headers["If-None-Match"] = "*"
+    return headers
+
+
 def _check_id(name: str, value: str) -> str:
     if not isinstance(value, str) or not is_valid_id(value):
         raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
@@ -154,8 +192,10 @@ class FleetmapClient:
     answers only once the scan is integrated; the whole-map transfers (`download_snapshot`,
     `upload_snapshot`, `import_nav2`, `export`) up to `transfer_timeout` (default
     `TRANSFER_TIMEOUT`, 300 s, or `timeout` if longer), since a big map takes the service seconds
-    to store or pack; and the event stream's reads wait as long as the stream lives (the server
-    sends a keepalive every 15 s). `token`: an API token of the
+    to store or pack; and the event stream's reads wait up to `events_read_timeout` (default
+    `EVENTS_READ_TIMEOUT`, 45 s: three of the service's keepalive periods) for anything from the
+    server before the stream is taken for dead and resumed (`events`); give a server run with a
+    longer `--events-keepalive` a longer one (None: wait for ever). `token`: an API token of the
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
     from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it).
     Thread-safe (one httpx.Client; `post_scan` sends one robot's scans one at a time, in call
@@ -170,7 +210,14 @@ class FleetmapClient:
         token: str | None = None,
         scan_timeout: float = SCAN_TIMEOUT,
         transfer_timeout: float = TRANSFER_TIMEOUT,
+        events_read_timeout: float | None = EVENTS_READ_TIMEOUT,
     ) -> None:
+        read = events_read_timeout
+        if read is not None and not (isinstance(read, int | float) and math.isfinite(read) and read > 0):
+            raise ValueError(
+                f"events_read_timeout must be a positive number of seconds or None, not {read!r}"
+            )
+        self.events_read_timeout = read
         self.base_url = base_url.rstrip("/")
         self.timeout = timeout
         self.scan_timeout = max(scan_timeout, timeout)
@@ -227,30 +274,56 @@ class FleetmapClient:
         """`GET /maps`: every map with its resolution, layers and counters, sorted by id."""
         return MapList.model_validate_json(self._request("GET", "/maps").content).maps
 
-    def create_map(self, map_id: str, config: MapConfig | Mapping[str, Any] | None = None) -> MapInfo:
+    def create_map(
+        self,
+        map_id: str,
+        config: MapConfig | Mapping[str, Any] | None = None,
+        *,
+        create_only: bool = False,
+        if_match: str | None = None,
+    ) -> MapInfo:
         """`PUT /maps/{map_id}`: create a map with `config` (None: the server's default). Creating a
         map that exists with the same configuration is a no-op; with a different one it raises
         `FleetmapError` 409. A bad configuration raises 422 with the server's reason. Returns once
-        the server has stored the map (503: created, but the server could not store it)."""
+        the server has stored the map (503: created, but the server could not store it).
+        `create_only`: raise `MapChanged` (412) if the map exists at all, even with this
+        configuration (`If-None-Match: *`); `if_match`: only if the map exists with that ETag
+        (`get_map_and_etag`), else `MapChanged`."""
         _check_id("map_id", map_id)
+        headers = _conditions(if_match, create_only)
         if config is None:
             kwargs: dict[str, Any] = {}
         elif isinstance(config, MapConfig):
-            kwargs = {"content": config.model_dump_json(), "headers": {"content-type": JSON_ENCODING}}
+            kwargs = {"content": config.model_dump_json()}
+            headers["content-type"] = JSON_ENCODING
         else:
             kwargs = {"json": dict(config)}
-        return MapInfo.model_validate_json(self._request("PUT", f"/maps/{map_id}", **kwargs).content)
+        response = self._request("PUT", f"/maps/{map_id}", headers=headers, **kwargs)
+        return MapInfo.model_validate_json(response.content)
 
     def get_map(self, map_id: str) -> MapInfo:
         """`GET /maps/{map_id}`: configuration and statistics (per-robot counters, bounds, tiles)."""
-        _check_id("map_id", map_id)
-        return MapInfo.model_validate_json(self._request("GET", f"/maps/{map_id}").content)
+        return self.get_map_and_etag(map_id)[0]
 
-    def delete_map(self, map_id: str) -> None:
-        """`DELETE /maps/{map_id}`, returning once the server has stored the deletion; `FleetmapError`
-        404 if there is no such map, 503 if it was removed but the server could not store that."""
+    def get_map_and_etag(self, map_id: str) -> tuple[MapInfo, str]:
+        """`get_map`, and the map's ETag: pass it as `if_match=` to `delete_map`, `upload_snapshot`,
+        `import_nav2` or `create_map` to have the write refused (`MapChanged`, nothing changed) if
+        the map was replaced, or deleted and made again, since it was read. The tag names the map's
+        incarnation and configuration, not its cells: scans do not change it (nor does a restart
+        keep it: after one, read it again)."""
         _check_id("map_id", map_id)
-        self._request("DELETE", f"/maps/{map_id}")
+        response = self._request("GET", f"/maps/{map_id}")
+        return MapInfo.model_validate_json(response.content), response.headers["ETag"]
+
+    def delete_map(self, map_id: str, *, if_match: str | None = None) -> None:
+        """`DELETE /maps/{map_id}`, returning once the server has stored the deletion; `FleetmapError`
+        404 if there is no such map, 503 if it was removed but the server could not store that.
+        `if_match`: delete only the map of that ETag (`get_map_and_etag`); `MapChanged` (412, the
+        map untouched) if the map is another one by now (no map at all is still the 404; a retry of
+        a 503 whose deletion is still being stored is a `MapChanged`: the first attempt removed
+        it)."""
+        _check_id("map_id", map_id)
+        self._request("DELETE", f"/maps/{map_id}", headers=_conditions(if_match))
 
     def download_snapshot(self, map_id: str) -> bytes:
         """`GET /maps/{map_id}/snapshot`: the whole map (configuration and every tile of every layer)
@@ -258,18 +331,27 @@ class FleetmapClient:
         _check_id("map_id", map_id)
         return self._transfer("GET", f"/maps/{map_id}/snapshot").content
 
-    def upload_snapshot(self, map_id: str, snapshot: bytes) -> MapInfo:
+    def upload_snapshot(
+        self, map_id: str, snapshot: bytes, *, if_match: str | None = None, create_only: bool = False
+    ) -> MapInfo:
         """`PUT /maps/{map_id}/snapshot`: install a `download_snapshot` file as map `map_id`, replacing
         any map of that id, and return it once stored. `FleetmapError` 422 (or 413) for a file that
-        is not a valid snapshot, naming the part at fault; nothing changes then."""
+        is not a valid snapshot, naming the part at fault; nothing changes then. `if_match`: replace
+        only the map of that ETag (`get_map_and_etag`), `create_only`: only if there is no map of
+        the id; else `MapChanged` (412), nothing changed."""
         _check_id("map_id", map_id)
-        response = self._transfer(
-            "PUT", f"/maps/{map_id}/snapshot", content=snapshot, headers={"content-type": "application/zip"}
-        )
+        headers = {"content-type": "application/zip", **_conditions(if_match, create_only)}
+        response = self._transfer("PUT", f"/maps/{map_id}/snapshot", content=snapshot, headers=headers)
         return MapInfo.model_validate_json(response.content)
 
     def import_nav2(
-        self, map_id: str, source: str | os.PathLike[str] | bytes, snap_origin: bool = False
+        self,
+        map_id: str,
+        source: str | os.PathLike[str] | bytes,
+        snap_origin: bool = False,
+        *,
+        if_match: str | None = None,
+        create_only: bool = False,
     ) -> MapInfo:
         """`PUT /maps/{map_id}/import?format=ros`: install a ROS nav2 map_server map as map `map_id`,
         replacing any map of that id (keeping its configuration), and return it once stored.
@@ -280,13 +362,15 @@ class FleetmapClient:
         naming the field or image at fault (a rotated map, an origin off the cell grid, a colour
         image, ...), 413 past a size limit; nothing changes then. OSError if a file cannot be read.
         `snap_origin`: an origin off the map's cell grid (as SLAM tools and map_saver write them) is
-        moved to the nearest cell edge, by at most half a cell, instead of refused."""
+        moved to the nearest cell edge, by at most half a cell, instead of refused. `if_match` /
+        `create_only` as for `upload_snapshot`."""
         _check_id("map_id", map_id)
+        headers = {"content-type": "application/zip", **_conditions(if_match, create_only)}
         body = source if isinstance(source, bytes) else nav2_files_zip(source)
         response = self._transfer(
             "PUT", f"/maps/{map_id}/import", params={"format": "ros", "snap_origin": snap_origin},
             content=body,
-            headers={"content-type": "application/zip"},
+            headers=headers,
         )  # fmt: skip
         return MapInfo.model_validate_json(response.content)
 
@@ -382,15 +466,7 @@ class FleetmapClient:
         _check_id("map_id", map_id)
         pts = as_points(points)  # ValueError for another shape than (n, 2) or a non-finite value
         # The service answers at most MAX_POINTS points a request (413 past it): more go in several.
-        chunks = [pts[k : k + MAX_POINTS] for k in range(0, len(pts), MAX_POINTS)] or [pts]
-        parts = [self._cells(map_id, chunk) for chunk in chunks]
-        if len(parts) == 1:
-            return parts[0]
-        if any(part.keys() != parts[0].keys() for part in parts):  # replaced by a map of other layers
-            raise FleetmapError(
-                409, f"map {map_id!r} changed its layers while its {len(pts)} points were read in parts"
-            )
-        return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
+        return _in_parts(pts, MAX_POINTS, lambda chunk: self._cells(map_id, chunk), map_id, "points")
 
     def _cells(self, map_id: str, pts: np.ndarray) -> dict[str, np.ndarray]:
         """One `POST /maps/{map_id}/cells` of at most MAX_POINTS checked points, as `cells` answers."""
@@ -430,9 +506,14 @@ class FleetmapClient:
         field, one entry per angle in order: `status` (str: "occupied", "unknown", "max_range"),
         `range` (float64, metres to where the ray enters that cell: 0 for the origin's own cell,
         `max_range` when nothing stopped it), `x`, `y` (float64, that point), `i`, `j` (int64, the
-        cell). ValueError for a non-finite or malformed argument before any request; the server's
-        limits (at most 10000 rays, 20000 cells of `max_range`, 2**24 cells in all) answer 413,
-        raised as `FleetmapError`.
+        cell). ValueError for a non-finite or malformed argument before any request.
+
+        Any number of rays: past what the service casts in one request (`MAX_RAYS`, 10 000 rays,
+        and `MAX_RAY_WALK`, 2**24 cells of rays x `max_range`), they are cast in several requests,
+        in order, each at its own moment (scans may land between them); for the second limit the
+        client reads the map's resolution first (one `GET /maps/{map_id}`), only when the rays
+        might pass it. A `max_range` over 20 000 cells, a limit of each ray, answers 413 as
+        `FleetmapError`: cast shorter rays.
         """
         _check_id("map_id", map_id)
         if len(origin) != 2:
@@ -440,12 +521,26 @@ class FleetmapClient:
         rays = np.asarray(angles, dtype=np.float64).reshape(-1)
         if not np.isfinite(rays).all():
             raise ValueError("angles must be finite numbers (radians)")
-        body = {
-            "origin": [_finite(origin[0]), _finite(origin[1])],
-            "angles": rays.tolist(),
-            "max_range": _finite(max_range),
-            "unknown": unknown,
-        }
+        start = [_finite(origin[0]), _finite(origin[1])]
+        max_range = _finite(max_range)
+        if unknown not in ("stop", "pass"):
+            raise ValueError(f"unknown must be 'stop' or 'pass', not {unknown!r}")
+        per_request = MAX_RAYS
+        # The service walks at most MAX_RAY_WALK cells a request, rays x max_range in cells, and the
+        # client knows the cells only from the map's resolution: read it only when the rays could
+        # pass the limit at the finest resolution a map may have (a 360-ray scan of 10 m never does).
+        if len(rays) * max_range / _MIN_RESOLUTION > MAX_RAY_WALK:
+            cells = max_range / self.get_map(map_id).resolution
+            per_request = max(1, min(MAX_RAYS, math.floor(MAX_RAY_WALK / cells)))
+
+        def cast(chunk: np.ndarray) -> dict[str, np.ndarray]:
+            body = {"origin": start, "angles": chunk.tolist(), "max_range": max_range, "unknown": unknown}
+            return self._raycast(map_id, body)
+
+        return _in_parts(rays, per_request, cast, map_id, "rays")
+
+    def _raycast(self, map_id: str, body: dict[str, Any]) -> dict[str, np.ndarray]:
+        """One `POST /maps/{map_id}/raycast` of `body`, as `raycast` answers."""
         response = self._request("POST", f"/maps/{map_id}/raycast", json=body)
         parsed = RaycastResponse.model_validate_json(response.content)
         return {
@@ -580,7 +675,9 @@ class FleetmapClient:
         does.
 
         Once a stream was open, it is followed as an EventSource follows it: when the server stops
-        (a restart) or the connection is lost, `next()` waits for the service (`RECONNECT_DELAY`
+        (a restart) or the connection is lost, or nothing at all (not even the server's keepalive)
+        arrives for `events_read_timeout` seconds (a half-open connection, a frozen server), `next()`
+        waits for the service (`RECONNECT_DELAY`
         between attempts, a 503's Retry-After) and resumes with `Last-Event-ID`, so the tiles
         changed meanwhile come in the next `tiles` event (or a reset). It then yields
         ("reconnected", {"last_event_id": ...}) first: a restarted service may hold another map
@@ -596,7 +693,9 @@ class FleetmapClient:
     def _events(self, map_id: str, since: int | None) -> EventStream:
         """The stream, resumed after a lost connection or a server restart (see `events`)."""
         params = {"robots": "delta"}
-        timeout = httpx.Timeout(self.timeout, read=None)  # the stream may be idle for a while
+        # The stream may be idle for long, but the server's keepalives break every silence: one
+        # longer than a few of them is a dead connection (httpx.ReadTimeout), resumed below.
+        timeout = httpx.Timeout(self.timeout, read=self.events_read_timeout)
         # The last `id:` the server sent, as an EventSource keeps it; `since` is sent the same way
         # (the server reads `Last-Event-ID` as `?since=`, which would win over it on a resume).
         last_id = None if since is None else str(since)
@@ -628,8 +727,38 @@ class FleetmapClient:
                 if not followed:
                     raise  # nothing listens at all: say so, as every other method does
             # The stream ended without `deleted` (the server stopped: "the server is shutting
-            # down") or the connection was lost: wait for the service and go on.
+            # down"), the connection was lost, or it stayed silent past the read timeout (a
+            # ReadTimeout: leaving the `with` closed that connection): wait for the service, go on.
             time.sleep(delay)
+
+
+#: The finest resolution a map may have (`MapConfig.resolution` is above it): with it, `raycast`
+#: tells whether rays might pass the service's walk limit without asking the map's own.
+_MIN_RESOLUTION: float = next(
+    float(m.gt) for m in MapConfig.model_fields["resolution"].metadata if getattr(m, "gt", None) is not None
+)
+
+
+def _in_parts(
+    items: np.ndarray,
+    size: int,
+    ask: Callable[[np.ndarray], dict[str, np.ndarray]],
+    map_id: str,
+    what: str,
+) -> dict[str, np.ndarray]:
+    """`ask(part)` for each run of at most `size` of `items`, in order (one call for an empty
+    `items`), and the answers' arrays joined in that order: what `cells` and `raycast` do past the
+    service's limit per request. `FleetmapError` 409 if the parts came back with different fields
+    (the map was replaced meanwhile by one keeping other layers)."""
+    chunks = [items[k : k + size] for k in range(0, len(items), size)] or [items]
+    parts = [ask(chunk) for chunk in chunks]
+    if len(parts) == 1:
+        return parts[0]
+    if any(part.keys() != parts[0].keys() for part in parts):  # replaced by a map of other layers
+        raise FleetmapError(
+            409, f"map {map_id!r} changed its layers while its {len(items)} {what} were read in parts"
+        )
+    return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
 
 
 def fold_robots(events: EventStream) -> EventStream:
@@ -758,6 +887,8 @@ def _raise_for_error(response: httpx.Response) -> None:
     else:
         detail = parsed.detail
         errors = [e.model_dump() for e in parsed.errors or []]
+    if response.status_code == 412:  # a conditional write found another map (or none)
+        raise MapChanged(412, detail, errors, _retry_after_seconds(response), response.headers.get("ETag"))
     raise FleetmapError(response.status_code, detail, errors, _retry_after_seconds(response))
 
 
@@ -766,10 +897,12 @@ __all__ = [
     "SCAN_TIMEOUT",
     "TOKEN_ENV",
     "TRANSFER_TIMEOUT",
+    "EVENTS_READ_TIMEOUT",
     "EventStream",
     "FleetmapClient",
     "FleetmapError",
     "Layer",
+    "MapChanged",
     "fold_robots",
     "parse_sse",
 ]

@@ -156,7 +156,9 @@ class ApiSettings:
     tile_cache_size: int = 4096
     #: Seconds between two polls of an event stream (and so the most often an event is sent).
     events_period: float = 0.1
-    #: Seconds between `: keepalive` comments of an event stream.
+    #: Seconds of silence after which an event stream sends a `: keepalive` comment (`serve
+    #: --events-keepalive`): a stream never stays silent much longer, so clients can take a longer
+    #: silence for a dead connection (the Python client's `EVENTS_READ_TIMEOUT` is three of these).
     keepalive: float = 15.0
     #: Event streams open at once (all maps, all clients); past it a new one is refused with 503.
     #: Each holds memory and polls every `events_period`: thousands would starve ingest.
@@ -314,6 +316,7 @@ def _install_openapi(app: FastAPI) -> None:
                 schemas.update(extra.pop("$defs", {}))
                 schemas[model.__name__] = extra
             _declare_json_revalidation(schema)
+            _declare_map_etags(schema)
             app.openapi_schema = _finite(schema)
         return app.openapi_schema
 
@@ -336,6 +339,36 @@ def _declare_json_revalidation(schema: dict[str, Any]) -> None:
             continue
         ok.setdefault("headers", {}).setdefault("ETag", etag)
         responses.setdefault("304", {"description": "Not modified: If-None-Match matches the answer's ETag"})
+
+
+#: The operations whose answers carry a map's own strong `ETag` (`fleetmap.api.conditional`), and
+#: their statuses that do.
+_MAP_ETAG_ANSWERS = {
+    ("/maps/{map_id}", "get"): ("200",),
+    ("/maps/{map_id}", "put"): ("200", "201"),
+    ("/maps/{map_id}/snapshot", "put"): ("200", "201"),
+    ("/maps/{map_id}/import", "put"): ("200", "201"),
+}
+
+
+def _declare_map_etags(schema: dict[str, Any]) -> None:
+    """Declare the map's strong `ETag` on the answers that carry it (in place of the weak hash that
+    `_declare_json_revalidation` declares on JSON GETs): a generated client reads it there to send
+    it back as `If-Match`."""
+    etag = {
+        "description": "the map's strong entity tag: it changes when the map is created, replaced or "
+        "loaded again (a restart), not with scans. Send it as If-Match with PUT or DELETE of the map, "
+        "or an upload, to have the write refused with 412 if the map changed meanwhile",
+        "schema": {"type": "string"},
+    }
+    paths = schema.get("paths", {})
+    for (path, method), statuses in _MAP_ETAG_ANSWERS.items():
+        responses = paths[path][method]["responses"]
+        for status in statuses:
+            responses[status].setdefault("headers", {})["ETag"] = etag
+    paths["/maps/{map_id}"]["get"]["responses"]["304"] = {
+        "description": "Not modified: If-None-Match holds the map's ETag (the same map, configuration)"
+    }
 
 
 def _finite(node: Any) -> Any:

@@ -36,6 +36,8 @@ _DESCRIPTIONS = {
     304: "Not modified: the tile's ETag matches If-None-Match",
     404: "Unknown map (or robot, or path)",
     409: "Conflicts with the map's state or configuration",
+    412: "Precondition failed: the map's ETag does not match If-Match (it changed, or is gone), or "
+    "If-None-Match: * and the map exists; nothing changed",
     413: "The request asks for too much at once",
     415: "The body is not sent as the route reads it (JSON: application/json; a zip: application/zip; "
     "never with a Content-Encoding)",

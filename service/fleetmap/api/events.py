@@ -50,7 +50,10 @@ Format (text/event-stream):
   `robots` event follows at once), and `v` is its change version, so a reconnect resumes from it.
 - `deleted`: the map was deleted; the stream ends. (Also when it was deleted and created again
   between two polls: it is another map, which a client must select anew.)
-- `: keepalive` comment lines every 15 s keep proxies from closing an idle stream.
+- `: keepalive` comment lines after 15 s without anything sent (`ApiSettings.keepalive`, `fleetmap
+  serve --events-keepalive`) keep proxies from closing an idle stream, and tell a client that a
+  stream silent for several such periods is dead (a half-open connection): the Python client
+  resumes it after 45 s of silence.
 - `: the server is shutting down`, the last line of every open stream when the service stops
   (`EventStreamSlots.close_all`); the response then ends cleanly.
 - `: the token of this stream was revoked`, the last line of a stream opened with a token (its
@@ -274,7 +277,7 @@ async def get_events(
       by `PUT /maps/{map_id}/snapshot`; reload its metadata and every tile. The stream goes on with
       the new map's events (change versions start again at `version`);
     - `event: deleted`, data `{"id": map_id}`: the map was deleted, the stream ends;
-    - `: keepalive` comments every 15 s;
+    - `: keepalive` comments after 15 s without anything sent (`ApiSettings.keepalive`);
     - `: the server is shutting down`: the service is stopping; the stream ends cleanly after it;
     - `: the token of this stream was revoked`: the token (bearer or session cookie) that opened the
       stream was revoked, or demoted below the role reading needs; the stream ends after it.

@@ -23,6 +23,11 @@
   body: a viewer polling `/maps` downloads the list only when it changed (browsers revalidate by
   themselves). Larger answers (regions) are not hashed: it would cost milliseconds per request, on the
   event loop, for answers rarely asked twice unchanged.
+- A map's own `ETag` (`map_etag`: `GET /maps/{id}`, and the writes that made or found the map) is
+  strong and names the map, not the bytes (docs/api.md, "Conditional writes"; `conditional`): it
+  stays strong when the answer is gzipped, so that a client can send it back as `If-Match`, which
+  compares strongly, whatever encoding it accepted. Its answers are `no-store`, and a GET whose
+  `If-None-Match` holds it gets 304 as for the hashed ETags.
 - A PUT that made its map answers 201 with the map's `Location`, one that replaced it or found it as
   asked 200 (`created_status`).
 """
@@ -105,7 +110,8 @@ class DefaultHeaders:
                 if self.private and not _keeps_out_of_shared_caches(cache_control):
                     headers["Cache-Control"] = f"private, {cache_control}"
                 etag = headers.get("ETag")
-                if etag is not None and headers.get("Content-Encoding") == "gzip" and etag.startswith('"'):
+                gzipped = headers.get("Content-Encoding") == "gzip"
+                if etag is not None and gzipped and etag.startswith('"') and not is_map_etag(etag):
                     headers["ETag"] = f"W/{etag}"
             await send(message)
 
@@ -177,6 +183,32 @@ def created_status(response: Response, map_id: str, *, created: bool) -> None:
         response.status_code = 200
 
 
+#: How every map's `ETag` starts (`map_etag`).
+_MAP_ETAG_PREFIX = '"map-'
+
+
+def map_etag(generation: int) -> str:
+    """The strong entity tag of the map of `generation` (`MapEntry.generation`, which no other map of
+    the service, nor of the service before a restart, had): it changes when the map is created,
+    replaced, or loaded again, never with a scan."""
+    return f'{_MAP_ETAG_PREFIX}{generation}"'
+
+
+def is_map_etag(etag: str) -> bool:
+    """Whether `etag` is a map's (`map_etag`): a validator of the map, not of an answer's bytes."""
+    return etag.startswith(_MAP_ETAG_PREFIX)
+
+
+def strong_match(tag: str, etag: str) -> bool:
+    """RFC 9110 strong comparison (8.8.3.2), as If-Match needs: neither tag is weak and they are equal."""
+    return not tag.startswith("W/") and not etag.startswith("W/") and tag == etag
+
+
+def weak_match(tag: str, etag: str) -> bool:
+    """RFC 9110 weak comparison (8.8.3.2), as If-None-Match needs: equal but for a `W/`."""
+    return tag.removeprefix("W/") == etag.removeprefix("W/")
+
+
 def etag_matches(if_none_match: str, etag: str) -> bool:
     """RFC 9110 If-None-Match: a list of (possibly weak) entity tags, or `*`."""
     for candidate in if_none_match.split(","):
@@ -193,8 +225,9 @@ def json_etag(body: bytes) -> str:
 
 class JsonETags:
     """ASGI middleware: a weak ETag on JSON answers to GET of at most `JSON_ETAG_MAX_BYTES` that have
-    none, and 304 for a request whose `If-None-Match` holds it (see the module's docstring). Inside
-    the gzip middleware, so that it hashes the JSON itself."""
+    none, and 304 for a request whose `If-None-Match` holds it (see the module's docstring); a JSON
+    answer that carries its route's own ETag (a map's) gets the 304 the same way. Inside the gzip
+    middleware, so that it hashes the JSON itself."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
@@ -205,13 +238,23 @@ class JsonETags:
             return
         if_none_match = Headers(scope=scope).get("if-none-match")
         start: Message | None = None
+        not_modified = False  # a 304 was sent for the route's own ETag: its body goes nowhere
 
         async def tagging_send(message: Message) -> None:
-            nonlocal start
+            nonlocal start, not_modified
+            if not_modified:
+                return
             if message["type"] == "http.response.start":
                 headers = Headers(raw=message.get("headers", []))
-                taggable = message["status"] == 200 and "etag" not in headers
-                if taggable and headers.get("content-type", "").startswith("application/json"):
+                content_type = headers.get("content-type", "")
+                json = message["status"] == 200 and content_type.startswith("application/json")
+                own = headers.get("etag")
+                if json and own is not None and if_none_match and etag_matches(if_none_match, own):
+                    not_modified = True
+                    await send(_not_modified(message, own))
+                    await send({"type": "http.response.body", "body": b""})
+                    return
+                if json and own is None:
                     start = message  # held until the body shows whether it is small and whole
                     return
             elif start is not None and message["type"] == "http.response.body":

@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
+from fleetmap.api.conditional import Conditions
 from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.routes_snapshot import MEDIA_TYPE, REPLACED, ZIP_UPLOAD, install_upload
 from fleetmap.api.state import MapId, State
@@ -30,13 +31,14 @@ def _is_zip_media_type(content_type: str | None) -> bool:
     response_model=MapInfo,
     status_code=201,
     openapi_extra=ZIP_UPLOAD,
-    responses={**REPLACED, **error_responses(413, 415, 422, 503, 507)},
+    responses={**REPLACED, **error_responses(412, 413, 415, 422, 503, 507)},
 )
 async def put_import(
     map_id: MapId,
     request: Request,
     response: Response,
     state: State,
+    conditions: Conditions,
     format: Annotated[
         Literal["ros"], Query(description="ros: a zip of a nav2 map_server map.yaml and its image")
     ] = "ros",
@@ -59,7 +61,7 @@ async def put_import(
     tiles than `max_tiles`; with `snap_origin`, an origin off the grid is moved to the nearest cell
     edge instead); 413 for an image or a file past its limit; 507 if its tiles need more
     memory than the budget leaves; none changes anything. 503 if it was installed but could not be
-    stored."""
+    stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing changed)."""
     del format  # one format for now: the parameter names it, as GET .../export's does
     content_type = request.headers.get("content-type")
     if not _is_zip_media_type(content_type):
@@ -73,6 +75,7 @@ async def put_import(
             lambda config, free: map_from_nav2_zip(
                 body, config, defaults, free_bytes=free, snap_origin=snap_origin
             ),
+            conditions,
         )  # fmt: skip
     except Nav2ImportError as exc:
         raise ApiError(exc.status, f"nav2 map: {exc}") from None

@@ -8,6 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Body, Request, Response
 
 from fleetmap import codec
+from fleetmap.api.conditional import Conditions, tag_map
 from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.http_semantics import created_status
 from fleetmap.api.state import MapId, RobotId, State
@@ -100,12 +101,13 @@ def list_maps(state: State) -> MapList:
     tags=["maps"],
     summary="Create a map",
     response_model=MapInfo,
-    responses={201: {"model": MapInfo, "description": "Created"}, **error_responses(409, 415, 422, 503)},
+    responses={201: {"model": MapInfo, "description": "Created"}, **error_responses(409, 412, 415, 422, 503)},
 )
 def put_map(
     map_id: MapId,
     state: State,
     response: Response,
+    conditions: Conditions,
     config: Annotated[
         MapConfig | None,
         Body(
@@ -119,9 +121,12 @@ def put_map(
     409: delete it first.
     Configurations compare after defaults and presets are resolved, so `{}` equals the defaults
     written out. 503: the map was created but could not be stored; the service retries, and the same
-    PUT answers 200 once it is stored."""
-    entry, created = state.registry.create(map_id, config, wait=True)
+    PUT answers 200 once it is stored. `If-None-Match: *`: create only (412 if the map exists, even
+    with the same configuration); `If-Match`: only if the map exists with that `ETag` (412
+    otherwise, before the configurations are compared). The answer carries the map's `ETag`."""
+    entry, created = state.registry.create(map_id, config, wait=True, expect=conditions.expectation(map_id))
     created_status(response, map_id, created=created)
+    tag_map(response, entry)
     return map_info(entry, state.registry.lock)
 
 
@@ -132,11 +137,17 @@ def put_map(
     response_model=MapInfo,
     responses=error_responses(404, 422),
 )
-def get_map(map_id: MapId, state: State) -> MapInfo:
+def get_map(map_id: MapId, state: State, response: Response) -> MapInfo:
     """`{"id", "config", "resolution", "tile_size", "stats": {"scans_integrated", "scans_rejected",
     "robots": {robot_id: {...}}, "bounds", "tiles", "memory_bytes", "version"}}`. `bounds` is
-    `[xmin, ymin, xmax, ymax]` in metres of the observed cells, or null for an empty map."""
-    return map_info(state.entry(map_id), state.registry.lock)
+    `[xmin, ymin, xmax, ymax]` in metres of the observed cells, or null for an empty map. The
+    `ETag` is the map's (strong; it changes when the map is created, replaced or restarted, not with
+    scans): send it as `If-Match` with a write to make the write fail (412) if the map changed
+    meanwhile. With `If-None-Match` holding it the answer is a 304 (same map, same configuration);
+    the answer is `no-store`, since its statistics change while the tag stays."""
+    entry = state.entry(map_id)
+    tag_map(response, entry)
+    return map_info(entry, state.registry.lock)
 
 
 @router.delete(
@@ -145,16 +156,22 @@ def get_map(map_id: MapId, state: State) -> MapInfo:
     summary="Delete a map",
     status_code=204,
     response_class=Response,
-    responses=error_responses(404, 422, 503),
+    responses=error_responses(404, 412, 422, 503),
 )
-def delete_map(map_id: MapId, state: State) -> Response:
+def delete_map(map_id: MapId, state: State, conditions: Conditions) -> Response:
     """Removes the map, its robots and its queued scans, answering once that is stored (with durable
     storage). Event streams of the map end. 503: removed, but the removal could not be stored; the
-    service retries, and the same DELETE answers 204 once it is stored."""
+    service retries, and the same DELETE answers 204 once it is stored. `If-Match`: only if the map
+    has that `ETag` (412 otherwise, the map untouched); no map is a 404 as without it (a 412 when
+    its deletion is still being stored)."""
     try:
-        state.registry.delete(map_id, wait=True)
-    finally:  # also when the removal could not be stored: the map is gone from memory all the same
+        state.registry.delete(map_id, wait=True, expect=conditions.expectation(map_id))
+    except ApiError:  # a precondition failed: nothing was removed
+        raise
+    except BaseException:  # also when the removal could not be stored: the map is gone from memory
         state.tiles.drop_map(map_id)  # its tiles can never be served again (new maps get a new generation)
+        raise
+    state.tiles.drop_map(map_id)
     return Response(status_code=204)
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 from fastapi import APIRouter, Request, Response
 
+from fleetmap.api.conditional import Conditions, Preconditions, tag_map
 from fleetmap.api.errors import ApiError, error_responses, validation_detail
 from fleetmap.api.http_semantics import created_status
 from fleetmap.api.state import MapId, State
@@ -66,21 +67,24 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
     response_model=MapInfo,
     status_code=201,
     openapi_extra=ZIP_UPLOAD,
-    responses={**REPLACED, **error_responses(413, 415, 422, 503, 507)},
+    responses={**REPLACED, **error_responses(412, 413, 415, 422, 503, 507)},
 )
-async def put_snapshot(map_id: MapId, request: Request, response: Response, state: State) -> MapInfo:
+async def put_snapshot(
+    map_id: MapId, request: Request, response: Response, state: State, conditions: Conditions
+) -> MapInfo:
     """Replace map `map_id` (201 with its `Location` when it did not exist, else 200) with the map in
     the uploaded snapshot file, durably: the answer comes once it is stored. Its robots' statistics
     start afresh; scans queued for the old map are dropped. 422 if the body is not a fleetmap
     snapshot, or holds a tile or a cell value the service could not have made; 413 if a part of it
     decompresses to more than its limit (see the docs); 507 if its tiles need more memory than the
     budget (`--max-memory`) leaves; none changes anything. 503 if the map was installed but could not
-    be stored."""
+    be stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing changed)."""
     body = await request.body()
     try:
         return await install_upload(
-            state, map_id, response, lambda _config, free: map_from_snapshot_file(body, free_bytes=free)
-        )
+            state, map_id, response, lambda _config, free: map_from_snapshot_file(body, free_bytes=free),
+            conditions,
+        )  # fmt: skip
     except SnapshotError as exc:
         if not exc.errors:
             raise ApiError(exc.status, str(exc)) from None
@@ -89,17 +93,25 @@ async def put_snapshot(map_id: MapId, request: Request, response: Response, stat
 
 
 async def install_upload(
-    state: State, map_id: str, response: Response, read: Callable[[MapConfig | None, int | None], GridMap]
+    state: State,
+    map_id: str,
+    response: Response,
+    read: Callable[[MapConfig | None, int | None], GridMap],
+    conditions: Preconditions,
 ) -> MapInfo:
     """Install the map an upload holds as map `map_id`, replacing any map of that id, durably: what
     `PUT .../snapshot` and `PUT .../import` share. `read(config, free_bytes)` makes the map on a
     worker thread from the configuration of the map it replaces (None for a new id) and the bytes
     the memory budget leaves counting the replaced map's (None without a budget); whatever it raises
     for a bad upload propagates with nothing changed. Sets 201 (with `Location`) for a new map, else
-    200; NotDurable (503) if the map was installed but could not be stored."""
+    200; NotDurable (503) if the map was installed but could not be stored. `conditions` (the
+    request's If-Match / If-None-Match) are checked before the upload is read, sparing a doomed
+    upload's seconds of work, and again where the map is installed, under the registry's lock, so
+    that of two uploads sent with the same ETag one is installed and the other gets 412."""
     replaced: MapEntry | None = None
     with contextlib.suppress(MapNotFound):
         replaced = state.registry.get(map_id)
+    conditions.check(map_id, replaced)
     # The room the memory budget leaves, counting the map this replaces (its bytes go back).
     budget = state.registry.memory_budget
     free = None if budget is None else budget.free()
@@ -109,8 +121,15 @@ async def install_upload(
     gmap = await asyncio.to_thread(read, config, free)
     # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
     try:
-        entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True)
-    finally:  # also when it could not be stored: the old map's tiles are gone from memory all the same
+        entry = await asyncio.to_thread(
+            state.registry.replace, map_id, gmap, wait=True, expect=conditions.expectation(map_id)
+        )
+    except ApiError:  # a precondition failed: the old map is untouched, its tiles still good
+        raise
+    except BaseException:  # also when it could not be stored: the old map's tiles are gone all the same
         state.tiles.drop_map(map_id)
+        raise
+    state.tiles.drop_map(map_id)
     created_status(response, map_id, created=replaced is None)
+    tag_map(response, entry)
     return map_info(entry, state.registry.lock)
