@@ -584,3 +584,26 @@ def test_the_client_splits_rays_past_the_services_limits(service: ServiceProcess
         with pytest.raises(FleetmapError) as err:
             fm.raycast("split", (0.0, 0.0), [0.0, 1.0], (MAX_RAY_CELLS + 10) * gmap.resolution)
         assert err.value.status == 413 and "cells" in err.value.detail
+
+
+def test_the_client_casts_rays_from_many_origins(service: ServiceProcess) -> None:
+    """An origin per ray, sent as `origins`, split past the service's limits with the origins kept
+    beside their angles."""
+    gmap = room_maps(service.base_url, "client-origins", ROOM)
+    rng = np.random.default_rng(11)
+    origins = rng.uniform(-2.8, 2.8, (MAX_RAYS + 50, 2))  # two requests
+    angles = rng.uniform(-math.pi, math.pi, len(origins))
+    with FleetmapClient(service.base_url) as fm:
+        got = fm.raycast("client-origins", origins, angles, 6.0)
+        half = len(origins) // 2  # the engine's own limit is the service's
+        parts = [gmap.cast_rays(origins[k : k + half], angles[k : k + half], 6.0) for k in (0, half)]
+        for name in ("status", "range", "x", "y", "i", "j"):
+            expected = np.concatenate([getattr(part, name) for part in parts])
+            if name == "status":
+                expected = np.array([RAY_STATUS_NAMES[int(c)] for c in expected])
+            np.testing.assert_array_equal(got[name], expected)
+        assert len(set(got["range"].tolist())) > 1000  # each ray from its own origin
+        with pytest.raises(ValueError, match="3 origins for 2 angles"):
+            fm.raycast("client-origins", np.zeros((3, 2)), [0.0, 1.0], 1.0)
+        with pytest.raises(ValueError, match="finite"):
+            fm.raycast("client-origins", [[0.0, 0.0], [math.nan, 0.0]], [0.0, 1.0], 1.0)

@@ -492,7 +492,7 @@ class FleetmapClient:
     def raycast(
         self,
         map_id: str,
-        origin: Sequence[float] | np.ndarray,
+        origin: Sequence[float] | Sequence[Sequence[float]] | np.ndarray,
         angles: float | Sequence[float] | np.ndarray,
         max_range: float,
         unknown: Literal["stop", "pass"] = "stop",
@@ -500,13 +500,14 @@ class FleetmapClient:
         """`POST /maps/{map_id}/raycast`: where rays from `origin` first meet an obstacle (OctoMap's
         castRay; the server runs `GridMap.cast_rays`).
 
-        `origin` is (x, y) in metres, `angles` the rays' map-frame directions in radians (one number
-        alone is one ray), `max_range` metres. A ray stops at the first occupied cell, or with
-        `unknown="stop"` (the default) at the first never-observed one. Returns one NumPy array per
-        field, one entry per angle in order: `status` (str: "occupied", "unknown", "max_range"),
-        `range` (float64, metres to where the ray enters that cell: 0 for the origin's own cell,
-        `max_range` when nothing stopped it), `x`, `y` (float64, that point), `i`, `j` (int64, the
-        cell). ValueError for a non-finite or malformed argument before any request.
+        `origin` is (x, y) in metres, where every ray starts, or one (x, y) per ray (shape (n, 2)
+        for n angles: rays from many poses at once, sent as `origins`), `angles` the rays' map-frame
+        directions in radians (one number alone is one ray), `max_range` metres. A ray stops at the
+        first occupied cell, or with `unknown="stop"` (the default) at the first never-observed one.
+        Returns one NumPy array per field, one entry per angle in order: `status` (str: "occupied",
+        "unknown", "max_range"), `range` (float64, metres to where the ray enters that cell: 0 for
+        the origin's own cell, `max_range` when nothing stopped it), `x`, `y` (float64, that point),
+        `i`, `j` (int64, the cell). ValueError for a non-finite or malformed argument before any request.
 
         Any number of rays: past what the service casts in one request (`MAX_RAYS`, 10 000 rays,
         and `MAX_RAY_WALK`, 2**24 cells of rays x `max_range`), they are cast in several requests,
@@ -516,12 +517,16 @@ class FleetmapClient:
         `FleetmapError`: cast shorter rays.
         """
         _check_id("map_id", map_id)
-        if len(origin) != 2:
-            raise ValueError(f"origin must be an (x, y) pair, not {origin!r}")
+        starts = np.asarray(origin, dtype=np.float64)
+        if starts.shape != (2,) and not (starts.ndim == 2 and starts.shape[1] == 2):
+            raise ValueError(f"origin must be an (x, y) pair, or one per angle, not {origin!r}")
         rays = np.asarray(angles, dtype=np.float64).reshape(-1)
         if not np.isfinite(rays).all():
             raise ValueError("angles must be finite numbers (radians)")
-        start = [_finite(origin[0]), _finite(origin[1])]
+        if starts.ndim == 2 and len(starts) != len(rays):
+            raise ValueError(f"{len(starts)} origins for {len(rays)} angles: give one, or one per angle")
+        if not np.isfinite(starts).all():
+            raise ValueError(f"coordinates must be finite, got origin {origin!r}")
         max_range = _finite(max_range)
         if unknown not in ("stop", "pass"):
             raise ValueError(f"unknown must be 'stop' or 'pass', not {unknown!r}")
@@ -533,11 +538,12 @@ class FleetmapClient:
             cells = max_range / self.get_map(map_id).resolution
             per_request = max(1, min(MAX_RAYS, math.floor(MAX_RAY_WALK / cells)))
 
-        def cast(chunk: np.ndarray) -> dict[str, np.ndarray]:
-            body = {"origin": start, "angles": chunk.tolist(), "max_range": max_range, "unknown": unknown}
+        def cast(part: np.ndarray) -> dict[str, np.ndarray]:
+            where = {"origin": starts.tolist()} if starts.ndim == 1 else {"origins": starts[part].tolist()}
+            body = {**where, "angles": rays[part].tolist(), "max_range": max_range, "unknown": unknown}
             return self._raycast(map_id, body)
 
-        return _in_parts(rays, per_request, cast, map_id, "rays")
+        return _in_parts(np.arange(len(rays)), per_request, cast, map_id, "rays")
 
     def _raycast(self, map_id: str, body: dict[str, Any]) -> dict[str, np.ndarray]:
         """One `POST /maps/{map_id}/raycast` of `body`, as `raycast` answers."""
