@@ -267,6 +267,28 @@ def test_per_ray_clamps_after_every_update() -> None:
     assert lo(m2, 0, 0) == pytest.approx(occ.l_max + occ.l_miss, abs=1e-6)
 
 
+@pytest.mark.parametrize("heading", [-math.pi / 4, math.pi / 4, 3 * math.pi / 4])
+def test_per_ray_and_per_scan_trace_the_same_cells_of_a_beam(heading: float) -> None:
+    """A scan of one beam updates the same cells per ray as per scan: both walk the beam's end
+    point as `scan_rays` computes it. The per-ray plan computed its own end points
+    (`pose + r * cos(theta + a)`), an ulp off the per-scan ones, which moved the side cells of
+    diagonal beams through cell corners (and end points on cell edges) to the other side."""
+    differ = []
+    for origin in [(0.0, 0.0), (1.0, 0.5), (-3.75, 2.75), (0.25, -1.0)]:
+        for k in range(1, 12):
+            # A beam at map bearing pi/4 ending on a cell corner, through every corner on the way.
+            scan = beams([math.pi / 4 - heading], [k * RES * math.sqrt(2)], pose=(*origin, heading))
+            per_scan, per_ray = (
+                make_map(layers=["occupancy"]),
+                make_map(layers=["occupancy"], update="per_ray"),
+            )
+            per_scan.integrate(scan)
+            per_ray.integrate(scan)
+            if known_cells(per_scan) != known_cells(per_ray):
+                differ.append((origin, k))
+    assert differ == []
+
+
 def test_clamping_across_scans() -> None:
     """per_scan clamps after every scan's update: 30 scans of misses sit at l_min, and one hit
     afterwards lands exactly at l_min + l_hit; the int8 preset saturates at 127 and -128."""
