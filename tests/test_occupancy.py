@@ -560,6 +560,29 @@ def test_beam_model_nearest_beam_decides() -> None:
     assert math.isnan(lo(m, -2, 0))  # behind the sensor
 
 
+@pytest.mark.parametrize("ranges", [[0.5, 2.0], [2.0, 0.5]])
+@pytest.mark.parametrize("bearing", [0.0, math.pi])
+def test_beam_model_beams_at_one_bearing_the_first_decides(ranges: list[float], bearing: float) -> None:
+    """Two beams at one bearing (an explicit angle list may repeat one; pi and -pi are one too) tie
+    for every cell of their cone: the first in the scan decides, on both sides of the bearing. The
+    nearest-beam search took the last of them for cells on the higher-bearing side, so the cone was
+    split down its middle between the two ranges."""
+    m = make_map(sensor_model="beam", layers=["occupancy"], beam={"beta": 0.6, "alpha": 0.25})
+    second = -math.pi if bearing == math.pi else bearing
+    m.integrate(beams([bearing, second], ranges))
+    # Cells at 1.25 m and bearings -0.15 / +0.15 rad (centres in cell units: 5 * (cos, sin) off the
+    # sensor cell's centre): free with the long beam first, beyond the short beam's reach (unknown)
+    # with the short one first.
+    for side in (-0.15, 0.15):
+        a = bearing + side
+        i, j = round(5 * math.cos(a)), round(5 * math.sin(a))
+        got = lo(m, i, j)
+        if ranges[0] == 2.0:
+            assert got == pytest.approx(OccupancyParams().l_miss), (side, i, j)
+        else:
+            assert math.isnan(got), (side, i, j)
+
+
 def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
