@@ -267,6 +267,28 @@ def test_per_ray_clamps_after_every_update() -> None:
     assert lo(m2, 0, 0) == pytest.approx(occ.l_max + occ.l_miss, abs=1e-6)
 
 
+@pytest.mark.parametrize("heading", [-math.pi / 4, math.pi / 4, 3 * math.pi / 4])
+def test_per_ray_and_per_scan_trace_the_same_cells_of_a_beam(heading: float) -> None:
+    """A scan of one beam updates the same cells per ray as per scan: both walk the beam's end
+    point as `scan_rays` computes it. The per-ray plan computed its own end points
+    (`pose + r * cos(theta + a)`), an ulp off the per-scan ones, which moved the side cells of
+    diagonal beams through cell corners (and end points on cell edges) to the other side."""
+    differ = []
+    for origin in [(0.0, 0.0), (1.0, 0.5), (-3.75, 2.75), (0.25, -1.0)]:
+        for k in range(1, 12):
+            # A beam at map bearing pi/4 ending on a cell corner, through every corner on the way.
+            scan = beams([math.pi / 4 - heading], [k * RES * math.sqrt(2)], pose=(*origin, heading))
+            per_scan, per_ray = (
+                make_map(layers=["occupancy"]),
+                make_map(layers=["occupancy"], update="per_ray"),
+            )
+            per_scan.integrate(scan)
+            per_ray.integrate(scan)
+            if known_cells(per_scan) != known_cells(per_ray):
+                differ.append((origin, k))
+    assert differ == []
+
+
 def test_clamping_across_scans() -> None:
     """per_scan clamps after every scan's update: 30 scans of misses sit at l_min, and one hit
     afterwards lands exactly at l_min + l_hit; the int8 preset saturates at 127 and -128."""
@@ -536,6 +558,29 @@ def test_beam_model_nearest_beam_decides() -> None:
     assert lo(m, 1, 0) == pytest.approx(occ.l_miss)
     assert math.isnan(lo(m, 1, 3))  # bearing 1.25 rad: outside both cones
     assert math.isnan(lo(m, -2, 0))  # behind the sensor
+
+
+@pytest.mark.parametrize("ranges", [[0.5, 2.0], [2.0, 0.5]])
+@pytest.mark.parametrize("bearing", [0.0, math.pi])
+def test_beam_model_beams_at_one_bearing_the_first_decides(ranges: list[float], bearing: float) -> None:
+    """Two beams at one bearing (an explicit angle list may repeat one; pi and -pi are one too) tie
+    for every cell of their cone: the first in the scan decides, on both sides of the bearing. The
+    nearest-beam search took the last of them for cells on the higher-bearing side, so the cone was
+    split down its middle between the two ranges."""
+    m = make_map(sensor_model="beam", layers=["occupancy"], beam={"beta": 0.6, "alpha": 0.25})
+    second = -math.pi if bearing == math.pi else bearing
+    m.integrate(beams([bearing, second], ranges))
+    # Cells at 1.25 m and bearings -0.15 / +0.15 rad (centres in cell units: 5 * (cos, sin) off the
+    # sensor cell's centre): free with the long beam first, beyond the short beam's reach (unknown)
+    # with the short one first.
+    for side in (-0.15, 0.15):
+        a = bearing + side
+        i, j = round(5 * math.cos(a)), round(5 * math.sin(a))
+        got = lo(m, i, j)
+        if ranges[0] == 2.0:
+            assert got == pytest.approx(OccupancyParams().l_miss), (side, i, j)
+        else:
+            assert math.isnan(got), (side, i, j)
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:

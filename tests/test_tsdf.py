@@ -107,6 +107,27 @@ def test_max_weight_caps_the_weight() -> None:
     assert got[(6, 0)] == (1.0, 2.0)  # two samples of 1 from z = 8: weight 2
 
 
+@pytest.mark.parametrize("layers", [["tsdf"], ["occupancy", "tsdf"]])
+def test_a_scan_that_changes_no_cell_changes_no_tile_version(layers: list[str]) -> None:
+    """Cells at their weight cap fused with the values they hold do not change, so a scan that
+    changes nothing else (the occupancy layer clamped) leaves every tile's version as it was and
+    reports no changed tile, as a tile's version promises. The fusion flagged every tile it wrote,
+    so a parked robot's map changed versions at every scan (with the TSDF alone, by plan and apply,
+    and with the occupancy layer, in the one-call integration)."""
+    m = GridMap(
+        MapConfig(resolution=RES, layers=layers, tsdf={"truncation": 0.5, "max_weight": 1.0})  # type: ignore[arg-type]
+    )
+    scan = Scan.from_angles((*SENSOR, 0.0), [0.0, 0.3, -0.4], [2.25, 1.7, 3.1])
+    for _ in range(12):  # octomap's clamp takes 5 hits and 5 misses; a weight cap of 1, one scan
+        m.integrate(scan)
+    versions = {key: m.store.version(key) for key in m.store.slots}
+    before = observed(m)
+    result = m.integrate(scan)
+    assert observed(m) == before
+    assert result.changed_tiles == []
+    assert {key: m.store.version(key) for key in m.store.slots} == versions
+
+
 def test_each_beam_is_one_sample() -> None:
     """Two identical beams in one scan are two samples (w = 1 each); no-return, NaN and below
     range_min beams add none."""

@@ -16,7 +16,6 @@ import numpy as np
 
 from fleetmap.config import MapConfig
 from fleetmap.kernels.beam_model import beam_model_cells
-from fleetmap.kernels.kinds import BEAM_CLEAR, BEAM_HIT, BEAM_SKIP
 from fleetmap.kernels.ray_model import DENSE_WINDOW_CELLS, trace_rays, trace_scan
 from fleetmap.kernels.scan_geometry import (
     EXTENT_OUT_OF_RANGE,
@@ -160,7 +159,7 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
         if config.sensor_model == "beam":
             occ_i, occ_j, occ_kind = _beam_model(scan, config, ox, oy)
         elif config.update == "per_ray":
-            occ_i, occ_j, occ_kind = _ray_model_per_ray(scan, config, ox, oy)
+            occ_i, occ_j, occ_kind = _ray_model_per_ray(config, ox, oy, beams)
         else:
             tiles, cell, kind, runs = _ray_model_per_scan(scan, config, shift, beams, extent)
     tsdf_i = tsdf_j = _EMPTY_I
@@ -294,21 +293,17 @@ def grow_trace_scratch(needed: int, shift: int, max_tiles: int) -> None:
 
 
 def _ray_model_per_ray(
-    scan: Scan, config: MapConfig, ox: float, oy: float
+    config: MapConfig, ox: float, oy: float, beams: tuple
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ordered entries: returns trace to their end cell (a hit); no-return beams clear
-    `no_return_range` metres if set (as `scan_rays` does)."""
-    res = config.resolution
-    ranges = scan.ranges.copy()
-    kind = np.full(ranges.size, BEAM_SKIP, dtype=np.uint8)
-    kind[scan.returns_mask()] = BEAM_HIT
-    if config.no_return_range > 0:
-        clear = scan.no_return_mask()
-        kind[clear] = BEAM_CLEAR
-        ranges[clear] = config.no_return_range
-    ex, ey = scan.endpoints(np.where(kind == BEAM_SKIP, 0.0, ranges))
+    `no_return_range` metres if set. `beams` is the scan's `scan_rays`, whose end points and kinds
+    the per-scan trace walks too: a beam must cross the same cells whichever update rule the map
+    uses (end points computed here again as `pose + r * (cos, sin)(theta + a)` differed from
+    `scan_rays`' rotated directions by an ulp, enough to pick the other side cell where a
+    diagonal beam passes a cell corner, and to move an end point lying on a cell edge)."""
+    rays, kinds = beams[0], beams[1]
     method = EXACT if config.traversal == "exact" else BRESENHAM
-    return trace_rays(ox, oy, ex / res, ey / res, kind, method)
+    return trace_rays(ox, oy, rays[2], rays[3], kinds, method)
 
 
 def _beam_model(

@@ -1,7 +1,8 @@
 """The beam (cone) inverse range sensor model of Probabilistic Robotics, table 9.2.
 
 For a cell at range r and relative bearing phi from the sensor, take the beam k closest in bearing
-among the beams used (a beam the scan's sensor models ignore, such as a NaN reading, is not one):
+among the beams used (a beam the scan's sensor models ignore, such as a NaN reading, is not one; of
+several beams at the same bearing, the first in the scan):
 no information if `r > min(r_max, z_k + alpha/2)` or `|phi - phi_k| > beta/2`; occupied if
 `z_k < r_max` and `|r - z_k| < alpha/2`; free if `r < z_k`. Cells are evaluated at their centres.
 
@@ -103,7 +104,8 @@ def beam_model_cells(
 
     All lengths in CELL units. `phi` are the beam bearings relative to the sensor heading, wrapped to
     [-pi, pi) and sorted ascending, with `z` and `has_return` in the same order. `z[k]` is the range
-    of beam k (for a beam with no return, the range it clears up to, never beyond r_max).
+    of beam k (for a beam with no return, the range it clears up to, never beyond r_max). Beams at
+    the same bearing must keep their scan order (a stable sort): the first of them is a cell's beam.
     """
     nb = phi.size
     reach_k = np.empty(nb)
@@ -142,6 +144,12 @@ def beam_model_cells(
                     if d < best_d:
                         best_d = d
                         best = cand
+            # Beams at the same bearing tie for every cell of their cone: the first of them in the
+            # scan decides (the stable sort keeps them in scan order). The search alone took the
+            # last of them for cells on the higher-bearing side and the first on the other, so
+            # one cone followed two beams, split down its middle.
+            while best > 0 and phi[best - 1] == phi[best]:
+                best -= 1
             zk = z[best]
             if r > min(r_max, zk + alpha / 2.0) or best_d > beta / 2.0:
                 continue

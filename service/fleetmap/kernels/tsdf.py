@@ -145,25 +145,36 @@ def fuse_tsdf(
     changed: np.ndarray,
 ) -> int:
     """Fuse each (cell, value) into the tsdf / weight pools, in order; return the updates made.
-    Entry k lies in the plan's tile `tile[k]`, pool slot `slots[tile[k]]`."""
+    Entry k lies in the plan's tile `tile[k]`, pool slot `slots[tile[k]]`; `changed[tile]` is set
+    to 1 where a stored value changed (a cell at its weight cap fused with the value it holds does
+    not change, and its tile keeps its version, as a clamped log-odds cell's does)."""
     mask = (1 << shift) - 1
     plane_shift = 2 * shift
     flat_tsdf = tsdf.reshape(-1)  # one flat view of each pool, indexed unsigned (no wraparound code)
     flat_weight = weight.reshape(-1)
     # Entries come beam by beam, so runs of them share a tile: its slot is looked up and its change
-    # flag set once per run (a store per entry made every iteration wait on the previous one's).
+    # flag kept in a register per run (a store per entry made every iteration wait on the previous
+    # one's).
     last = -1
     start = 0
+    diff = False
     for k in range(ci.size):
         if tile[k] != last:
+            if diff:
+                changed[last] = 1
+            diff = False
             last = tile[k]
-            changed[last] = 1
             start = slots[last] << plane_shift
         at = np.uint64(start | ((cj[k] & mask) << shift) | (ci[k] & mask))
-        w_old = float(flat_weight[at])
-        d_old = float(flat_tsdf[at])
-        flat_tsdf[at] = (w_old * d_old + value[k]) / (w_old + 1.0)
-        flat_weight[at] = min(w_old + 1.0, max_weight)
+        w_old = flat_weight[at]
+        d_old = flat_tsdf[at]
+        d_new = np.float32((float(w_old) * float(d_old) + value[k]) / (float(w_old) + 1.0))
+        w_new = np.float32(min(float(w_old) + 1.0, max_weight))
+        flat_tsdf[at] = d_new
+        flat_weight[at] = w_new
+        diff |= (d_new != d_old) | (w_new != w_old)
+    if diff:
+        changed[last] = 1
     return ci.size
 
 
