@@ -468,9 +468,8 @@ class GridMap:
         t = np.empty(n, dtype=np.float64)
         ci = np.empty(n, dtype=np.int64)
         cj = np.empty(n, dtype=np.int64)
-        # The kernel takes one origin per ray: a shared one is repeated.
-        x0 = np.ascontiguousarray(np.broadcast_to(ox / res, n))
-        y0 = np.ascontiguousarray(np.broadcast_to(oy / res, n))
+        x0 = ox / res
+        y0 = oy / res
         store = self.store
         with self.lock:
             log_odds, hits, misses, _, _ = store.kernel_pools()
@@ -564,14 +563,14 @@ def _ray_origins(
         raise ValueError(f"origin must be an (x, y) pair of numbers or one per ray, not {origin!r}") from None
     if o.shape != (2,) and not (o.ndim == 2 and o.shape[1] == 2):
         raise ValueError(f"origin must be an (x, y) pair of numbers or one per ray; got shape {o.shape}")
-    o = o.reshape(-1, 2)
-    if o.shape[0] != 1 and o.shape[0] != rays:
+    if o.ndim == 2 and o.shape[0] != 1 and o.shape[0] != rays:
         raise ValueError(f"{o.shape[0]} origins for {rays} angles: give one origin, or one per angle")
-    good = np.isfinite(o).all(axis=1) & (np.abs(o) <= MAX_COORDINATE).all(axis=1)
-    if not good.all():
-        bad = o[np.argmin(good)].tolist()
-        raise ValueError(f"origin must be finite, within +-{MAX_COORDINATE:g} m; got {bad}")
-    return o[:, 0].copy(), o[:, 1].copy()
+    if not (np.isfinite(o).all() and (np.abs(o) <= MAX_COORDINATE).all()):
+        o = o.reshape(-1, 2)
+        bad = o[np.argmin(np.isfinite(o).all(axis=1) & (np.abs(o) <= MAX_COORDINATE).all(axis=1))]
+        raise ValueError(f"origin must be finite, within +-{MAX_COORDINATE:g} m; got {bad.tolist()}")
+    xy = o.reshape(-1, 2).T.copy()  # rows x and y, each contiguous
+    return xy[0], xy[1]
 
 
 def as_points(points: Points) -> np.ndarray:

@@ -78,15 +78,17 @@ def cast_rays(
     stop_i: np.ndarray,
     stop_j: np.ndarray,
 ) -> None:
-    """Walk ray r from (x0[r], y0[r]) to (x1[r], y1[r]) (cell units) and write where it stopped.
+    """Walk ray r from (x0[r], y0[r]) to (x1[r], y1[r]) (cell units) and write where it stopped;
+    `x0` and `y0` of one element are every ray's origin.
 
     A ray stops at its first cell that is occupied (`RAY_OCCUPIED`), or never observed when
     `stop_at_unknown` (`RAY_UNKNOWN`), the start cell included; else at its end cell
     (`RAY_MAX_RANGE`). `t_stop[r]` is the segment parameter (0..1) where the ray enters the cell it
     stopped in (0 for the start cell, 1 for `RAY_MAX_RANGE`), `stop_i/stop_j[r]` that cell."""
     mask = (1 << shift) - 1
+    per_ray = 1 if x0.size > 1 else 0  # an origin per ray, or one for all
     for r in range(x1.size):
-        ox, oy = x0[r], y0[r]
+        ox, oy = x0[r * per_ray], y0[r * per_ray]
         i, j, ie, je, step_i, step_j, base_x, scale_x, base_y, scale_y = exact_start(ox, oy, x1[r], y1[r])
         ti = i >> shift
         tj = j >> shift
