@@ -17,6 +17,8 @@ from pathlib import Path
 import httpx
 from service_process import REPO_DIR, ServiceProcess, fleetmap_command, free_port, reaped
 
+from fleetmap.database import DataDirLock
+
 
 def port_is_free(port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -93,11 +95,39 @@ def test_demo_refuses_addresses_another_service_holds(tmp_path: Path) -> None:
         )  # fmt: skip
     assert done.returncode == 2, done.stdout + done.stderr
     assert f"cannot listen on 127.0.0.1:{http}: Address already in use" in done.stderr
-    # The README starts the demo with `make demo`, which takes the options in DEMO_ARGS.
-    assert 'make demo DEMO_ARGS="--http 127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448"' in done.stderr
+    # The README starts the demo with `make demo`, which takes the options in DEMO_ARGS. The other
+    # service is most likely a demo or `fleetmap serve` started in the same folder, which holds
+    # ./fleetmap-data: the advice names another data directory too, or following it failed in turn.
+    assert (
+        'make demo DEMO_ARGS="--http 127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448 --data-dir ./fleetmap-data-2"'
+        in done.stderr
+    )
     assert "Traceback" not in done.stderr
     assert "open http" not in done.stdout and not (tmp_path / "data").exists()
     assert port_is_free(zenoh)
+
+
+def test_demo_whose_service_cannot_start_says_so_without_blaming_the_ports(tmp_path: Path) -> None:
+    """Free ports, but the data directory held by another service (a `fleetmap serve` started in the
+    same folder): the service says so, and the demo's own line said "is http://... or the Zenoh port
+    in use?", which sent the user after the wrong cause."""
+    http, zenoh = free_port(), free_port()
+    data = tmp_path / "data"
+    data.mkdir()
+    held = DataDirLock(data)  # another process's lock, as the demo's service sees it
+    try:
+        done = subprocess.run(
+            [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+             "--data-dir", str(data), "--seconds", "5"],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    finally:
+        held.release()
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"data directory {data} is in use by another fleetmap service" in done.stderr, done.stderr
+    assert "fleetmap demo: error: the service exited with code 2 before it was ready" in done.stderr
+    assert "port in use" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert "open http" not in done.stdout
 
 
 def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:

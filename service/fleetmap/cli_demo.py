@@ -104,10 +104,13 @@ def _check_free(address: str) -> None:
         except OSError as exc:
             # `make demo` is how the README starts it, and `make demo --http ...` is make's own
             # option error: say how make passes them on.
+            # Another demo or `fleetmap serve` started in this folder also holds ./fleetmap-data,
+            # which one service at a time may use: other addresses alone were refused in turn.
             raise CliError(
                 f"cannot listen on {address}: {exc.strerror} (is another fleetmap service running? Stop "
-                "it, or give the demo other addresses: --http HOST:PORT, --zenoh tcp/HOST:PORT; with "
-                'make: make demo DEMO_ARGS="--http 127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448")'
+                "it, or give the demo other addresses and its own data directory: --http HOST:PORT, "
+                '--zenoh tcp/HOST:PORT, --data-dir DIR; with make: make demo DEMO_ARGS="--http '
+                '127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448 --data-dir ./fleetmap-data-2")'
             ) from None
 
 
@@ -126,8 +129,10 @@ def _wait_for_service(
     deadline = time.monotonic() + timeout
     while not stop.is_set():
         if service.poll() is not None:
+            # Its ports were free a moment ago (`_check_free`): the service said why on the line
+            # above (its data directory in use, say), which a guess at the ports contradicted.
             raise CliError(
-                f"the service exited with code {service.returncode} (is {url} or the Zenoh port in use?)"
+                f"the service exited with code {service.returncode} before it was ready (see its error above)"
             )
         try:
             if httpx.get(url + "healthz", timeout=1.0).status_code == 200:
