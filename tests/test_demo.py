@@ -70,6 +70,8 @@ def test_demo_maps_until_ctrl_c_then_stops_everything_and_keeps_the_map(tmp_path
     assert summary is not None, text
     published, dropped = int(summary[1]), int(summary[2])
     assert published >= 30 and dropped == 0
+    # Its last line, below the service's own shutdown lines, says where the map is kept.
+    assert text.rstrip().splitlines()[-1] == f"fleetmap demo: stopped; the map is kept in {data}", text
 
     # The service is gone: both of its ports are free again.
     assert port_is_free(http) and port_is_free(zenoh)

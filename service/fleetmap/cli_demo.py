@@ -60,11 +60,13 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    ready = False
     try:
         url = f"http://{args.http}/"
         _wait_for_service(service, url, stop)
         if stop.is_set():
             return 0
+        ready = True
         print(f"\nfleetmap demo: open {url}#map={args.map} to watch {args.robots} robots map a floor plan")
         print(
             f"  (Ctrl-C stops the robots and the service; the map is kept in {args.data_dir})\n", flush=True
@@ -87,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
             service.wait(30)
         except subprocess.TimeoutExpired:
             service.kill()
+        # The last words after Ctrl-C, below the service's own: where the map went (it was said
+        # at the start, scrolled away since).
+        if ready and service.returncode == 0:
+            print(f"fleetmap demo: stopped; the map is kept in {args.data_dir}", flush=True)
 
 
 def _check_free(address: str) -> None:
