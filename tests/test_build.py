@@ -23,6 +23,7 @@ from PIL import Image
 from service_process import REPO_DIR, fleetmap_command
 from test_compiled_cache import LOADED_KERNELS
 
+from fleetmap import cli, server
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
 from fleetmap.export import IMAGE_STRIP_ROWS
@@ -355,6 +356,37 @@ def test_build_of_the_intel_log_equals_the_library_map(datasets_dir: Path, tmp_p
     with Image.open(tmp_path / "map.png") as image:
         np.testing.assert_array_equal(np.asarray(image), gray[::-1])
     assert log_odds.shape[0] > 2 * IMAGE_STRIP_ROWS and log_odds.shape[0] % IMAGE_STRIP_ROWS
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["serve", "--data_dir", "x"],
+         "fleetmap serve: error: unrecognized arguments: --data_dir x (--data_dir: did you mean "
+         "--data-dir?) (see fleetmap serve --help)"),
+        (["build", "log", "--out", "o", "--resolutoin", "0.1"],
+         "fleetmap build: error: unrecognized arguments: --resolutoin 0.1 (--resolutoin: did you mean "
+         "--resolution?)"),
+        (["demo", "--htp=127.0.0.1:8001"],
+         "fleetmap demo: error: unrecognized arguments: --htp=127.0.0.1:8001 (--htp: did you mean --http?)"),
+        (["replay", "log", "--map", "m", "--robot", "r", "--bogus"],
+         "fleetmap replay: error: unrecognized arguments: --bogus"),
+    ],
+)  # fmt: skip
+def test_an_unknown_option_is_refused_by_its_command_naming_the_one_meant(
+    argv: list[str], says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`fleetmap serve --data_dir x` said `fleetmap: error: unrecognized arguments: --data_dir x` under
+    the usage `fleetmap [-h] COMMAND ...`: neither the command nor its options. The command's own
+    parser refuses it now (`serve`'s in one line), with the option a mistyped one resembles."""
+    runs = [cli.main] + ([server.main] if argv[0] == "serve" else [])
+    for main in runs:
+        with pytest.raises(SystemExit) as stopped:
+            main(argv if main is cli.main else argv[1:])
+        assert stopped.value.code == 2
+        err = capsys.readouterr().err
+        assert err.rstrip().splitlines()[-1] == says, err
+        assert "usage: fleetmap [-h] COMMAND" not in err and "Traceback" not in err, err
 
 
 @pytest.mark.parametrize("module", ["fleetmap", "fleetmap.cli"])
