@@ -312,6 +312,25 @@ def test_a_missing_dataset_says_what_to_give_and_where_to_find_one(tmp_path: Pat
     assert "a fresh\nclone has no such folder" in section
 
 
+@pytest.mark.parametrize("command", ["build", "replay"])
+def test_a_folder_given_as_the_dataset_is_one_clear_line(tmp_path: Path, command: str) -> None:
+    """`fleetmap build logs/ --out o` said `fleetmap build: error: [Errno 21] Is a directory: 'logs/'`."""
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    extra = ["--out", str(tmp_path / "out")] if command == "build" else ["--map", "m", "--robot", "r"]
+    done = subprocess.run(
+        [*fleetmap_command(), command, str(logs), *extra, "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr == (
+        f"fleetmap {command}: error: cannot read {logs}: Is a directory (give a recorded laser log: "
+        "CARMEN, plain or .gz, or .mat)\n"
+    )
+
+
 @pytest.mark.parametrize("where", ["under-a-file", "is-a-file"])
 def test_build_to_an_output_path_that_is_not_a_directory_is_a_clear_error(tmp_path: Path, where: str) -> None:
     """An `--out` that cannot be a directory (a file, or a path under one) is refused in one line

@@ -99,6 +99,11 @@ def dataset_error(path: str, exc: Exception) -> CliError:
             'clone of fleetmap has none: README.md, "Build a map from a recorded dataset", says '
             "where to find one)"
         )
+    if isinstance(exc, OSError) and exc.strerror:
+        # A folder given for the log said "[Errno 21] Is a directory: 'logs'".
+        return CliError(
+            f"cannot read {path}: {exc.strerror} (give a recorded laser log: CARMEN, plain or .gz, or .mat)"
+        )
     return CliError(str(exc))
 
 
