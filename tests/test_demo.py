@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import httpx
+import pytest
 from service_process import REPO_DIR, ServiceProcess, fleetmap_command, free_port, reaped
 
 from fleetmap.database import DataDirLock
@@ -130,6 +131,31 @@ def test_demo_whose_service_cannot_start_says_so_without_blaming_the_ports(tmp_p
     assert "fleetmap demo: error: the service exited with code 2 before it was ready" in done.stderr
     assert "port in use" not in done.stderr and "Traceback" not in done.stderr, done.stderr
     assert "open http" not in done.stdout
+
+
+@pytest.mark.parametrize(
+    ("option", "says"),
+    [
+        (["--robots", "0"], "--robots must be at least 1, got 0"),
+        (["--rate", "0"], "--rate must be a number of scans per second above 0, got 0"),
+        (["--seconds", "-1"], "--seconds must be 0 or more (or left out: until Ctrl-C), got -1"),
+        (["--map", "bad/id"], "--map 'bad/id' is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -"),
+    ],
+)
+def test_demo_refuses_a_fleet_it_cannot_run_before_starting_anything(
+    tmp_path: Path, option: list[str], says: str
+) -> None:
+    """`fleetmap demo --robots 0` (or a rate of 0, a bad map id) started the service, waited for it,
+    then ended in a ValueError traceback from the simulation."""
+    http, zenoh = free_port(), free_port()
+    done = subprocess.run(
+        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+         "--data-dir", str(tmp_path / "data"), *option],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr == f"fleetmap demo: error: {says}\n"
+    assert done.stdout == "" and not (tmp_path / "data").exists()
 
 
 def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ in this process and publish over Zenoh in client mode, as real robots would.
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import socket
 import subprocess
@@ -18,6 +19,7 @@ import time
 import httpx
 
 from fleetmap.cli import CliError
+from fleetmap.wire import is_valid_id
 
 
 class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
@@ -50,6 +52,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 def run(args: argparse.Namespace) -> int:
     from fleetmap_client.sim import run_sim
 
+    _check_fleet(args)
     # Another service on these ports would answer /healthz for ours, which would die unseen, and
     # the robots would map into that other service: refuse before starting anything.
     for address in (args.http, args.zenoh.split("/", 1)[-1]):
@@ -93,6 +96,19 @@ def run(args: argparse.Namespace) -> int:
         # at the start, scrolled away since).
         if ready and service.returncode == 0:
             print(f"fleetmap demo: stopped; the map is kept in {args.data_dir}", flush=True)
+
+
+def _check_fleet(args: argparse.Namespace) -> None:
+    """Raise CliError for options the robots cannot run with, before the service starts: `--robots
+    0` started the service, waited for it, then ended in a traceback from `run_sim`."""
+    if args.robots < 1:
+        raise CliError(f"--robots must be at least 1, got {args.robots}")
+    if not (0.0 < args.rate < math.inf):
+        raise CliError(f"--rate must be a number of scans per second above 0, got {args.rate:g}")
+    if args.seconds is not None and not args.seconds >= 0.0:
+        raise CliError(f"--seconds must be 0 or more (or left out: until Ctrl-C), got {args.seconds:g}")
+    if not is_valid_id(args.map):
+        raise CliError(f"--map {args.map!r} is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -")
 
 
 def _check_free(address: str) -> None:
