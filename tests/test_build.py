@@ -23,6 +23,7 @@ from PIL import Image
 from service_process import REPO_DIR, fleetmap_command
 from test_compiled_cache import LOADED_KERNELS
 
+from fleetmap import cli, server
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
 from fleetmap.export import IMAGE_STRIP_ROWS
@@ -311,6 +312,25 @@ def test_a_missing_dataset_says_what_to_give_and_where_to_find_one(tmp_path: Pat
     assert "a fresh\nclone has no such folder" in section
 
 
+@pytest.mark.parametrize("command", ["build", "replay"])
+def test_a_folder_given_as_the_dataset_is_one_clear_line(tmp_path: Path, command: str) -> None:
+    """`fleetmap build logs/ --out o` said `fleetmap build: error: [Errno 21] Is a directory: 'logs/'`."""
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    extra = ["--out", str(tmp_path / "out")] if command == "build" else ["--map", "m", "--robot", "r"]
+    done = subprocess.run(
+        [*fleetmap_command(), command, str(logs), *extra, "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr == (
+        f"fleetmap {command}: error: cannot read {logs}: Is a directory (give a recorded laser log: "
+        "CARMEN, plain or .gz, or .mat)\n"
+    )
+
+
 @pytest.mark.parametrize("where", ["under-a-file", "is-a-file"])
 def test_build_to_an_output_path_that_is_not_a_directory_is_a_clear_error(tmp_path: Path, where: str) -> None:
     """An `--out` that cannot be a directory (a file, or a path under one) is refused in one line
@@ -355,6 +375,37 @@ def test_build_of_the_intel_log_equals_the_library_map(datasets_dir: Path, tmp_p
     with Image.open(tmp_path / "map.png") as image:
         np.testing.assert_array_equal(np.asarray(image), gray[::-1])
     assert log_odds.shape[0] > 2 * IMAGE_STRIP_ROWS and log_odds.shape[0] % IMAGE_STRIP_ROWS
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["serve", "--data_dir", "x"],
+         "fleetmap serve: error: unrecognized arguments: --data_dir x (--data_dir: did you mean "
+         "--data-dir?) (see fleetmap serve --help)"),
+        (["build", "log", "--out", "o", "--resolutoin", "0.1"],
+         "fleetmap build: error: unrecognized arguments: --resolutoin 0.1 (--resolutoin: did you mean "
+         "--resolution?)"),
+        (["demo", "--htp=127.0.0.1:8001"],
+         "fleetmap demo: error: unrecognized arguments: --htp=127.0.0.1:8001 (--htp: did you mean --http?)"),
+        (["replay", "log", "--map", "m", "--robot", "r", "--bogus"],
+         "fleetmap replay: error: unrecognized arguments: --bogus"),
+    ],
+)  # fmt: skip
+def test_an_unknown_option_is_refused_by_its_command_naming_the_one_meant(
+    argv: list[str], says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`fleetmap serve --data_dir x` said `fleetmap: error: unrecognized arguments: --data_dir x` under
+    the usage `fleetmap [-h] COMMAND ...`: neither the command nor its options. The command's own
+    parser refuses it now (`serve`'s in one line), with the option a mistyped one resembles."""
+    runs = [cli.main] + ([server.main] if argv[0] == "serve" else [])
+    for main in runs:
+        with pytest.raises(SystemExit) as stopped:
+            main(argv if main is cli.main else argv[1:])
+        assert stopped.value.code == 2
+        err = capsys.readouterr().err
+        assert err.rstrip().splitlines()[-1] == says, err
+        assert "usage: fleetmap [-h] COMMAND" not in err and "Traceback" not in err, err
 
 
 @pytest.mark.parametrize("module", ["fleetmap", "fleetmap.cli"])

@@ -15,7 +15,10 @@ import time
 from pathlib import Path
 
 import httpx
+import pytest
 from service_process import REPO_DIR, ServiceProcess, fleetmap_command, free_port, reaped
+
+from fleetmap.database import DataDirLock
 
 
 def port_is_free(port: int) -> bool:
@@ -68,6 +71,8 @@ def test_demo_maps_until_ctrl_c_then_stops_everything_and_keeps_the_map(tmp_path
     assert summary is not None, text
     published, dropped = int(summary[1]), int(summary[2])
     assert published >= 30 and dropped == 0
+    # Its last line, below the service's own shutdown lines, says where the map is kept.
+    assert text.rstrip().splitlines()[-1] == f"fleetmap demo: stopped; the map is kept in {data}", text
 
     # The service is gone: both of its ports are free again.
     assert port_is_free(http) and port_is_free(zenoh)
@@ -93,11 +98,64 @@ def test_demo_refuses_addresses_another_service_holds(tmp_path: Path) -> None:
         )  # fmt: skip
     assert done.returncode == 2, done.stdout + done.stderr
     assert f"cannot listen on 127.0.0.1:{http}: Address already in use" in done.stderr
-    # The README starts the demo with `make demo`, which takes the options in DEMO_ARGS.
-    assert 'make demo DEMO_ARGS="--http 127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448"' in done.stderr
+    # The README starts the demo with `make demo`, which takes the options in DEMO_ARGS. The other
+    # service is most likely a demo or `fleetmap serve` started in the same folder, which holds
+    # ./fleetmap-data: the advice names another data directory too, or following it failed in turn.
+    assert (
+        'make demo DEMO_ARGS="--http 127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448 --data-dir ./fleetmap-data-2"'
+        in done.stderr
+    )
     assert "Traceback" not in done.stderr
     assert "open http" not in done.stdout and not (tmp_path / "data").exists()
     assert port_is_free(zenoh)
+
+
+def test_demo_whose_service_cannot_start_says_so_without_blaming_the_ports(tmp_path: Path) -> None:
+    """Free ports, but the data directory held by another service (a `fleetmap serve` started in the
+    same folder): the service says so, and the demo's own line said "is http://... or the Zenoh port
+    in use?", which sent the user after the wrong cause."""
+    http, zenoh = free_port(), free_port()
+    data = tmp_path / "data"
+    data.mkdir()
+    held = DataDirLock(data)  # another process's lock, as the demo's service sees it
+    try:
+        done = subprocess.run(
+            [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+             "--data-dir", str(data), "--seconds", "5"],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    finally:
+        held.release()
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"data directory {data} is in use by another fleetmap service" in done.stderr, done.stderr
+    assert "fleetmap demo: error: the service exited with code 2 before it was ready" in done.stderr
+    assert "port in use" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert "open http" not in done.stdout
+
+
+@pytest.mark.parametrize(
+    ("option", "says"),
+    [
+        (["--robots", "0"], "--robots must be at least 1, got 0"),
+        (["--rate", "0"], "--rate must be a number of scans per second above 0, got 0"),
+        (["--seconds", "-1"], "--seconds must be 0 or more (or left out: until Ctrl-C), got -1"),
+        (["--map", "bad/id"], "--map 'bad/id' is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -"),
+    ],
+)
+def test_demo_refuses_a_fleet_it_cannot_run_before_starting_anything(
+    tmp_path: Path, option: list[str], says: str
+) -> None:
+    """`fleetmap demo --robots 0` (or a rate of 0, a bad map id) started the service, waited for it,
+    then ended in a ValueError traceback from the simulation."""
+    http, zenoh = free_port(), free_port()
+    done = subprocess.run(
+        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+         "--data-dir", str(tmp_path / "data"), *option],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr == f"fleetmap demo: error: {says}\n"
+    assert done.stdout == "" and not (tmp_path / "data").exists()
 
 
 def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:

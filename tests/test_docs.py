@@ -123,6 +123,19 @@ def test_every_option_the_docs_name_exists() -> None:
     assert not wrong, "\n".join(wrong)
 
 
+def test_the_command_synopses_of_clients_md_list_every_option() -> None:
+    """docs/clients.md shows `fleetmap replay` and `fleetmap sim` as a usage block; both lacked
+    `--zenoh-config` (TLS robots), which `--help` lists."""
+    parsers = fleetmap_parsers()
+    text = (REPO_DIR / "docs" / "clients.md").read_text(encoding="utf-8")
+    for command in ("replay", "sim"):
+        blocks = re.findall(rf"^```\n(fleetmap {command} .*?)^```", text, re.M | re.S)
+        assert len(blocks) == 1, f"docs/clients.md: one usage block of fleetmap {command}"
+        shown = set(re.findall(r"--[a-z][a-z0-9-]*", blocks[0]))
+        missing = sorted(parsers[command] - shown - {"-h", "--help"})
+        assert not missing, f"docs/clients.md: the usage of fleetmap {command} lacks {missing}"
+
+
 def test_every_metric_the_docs_name_is_exported(service: ServiceProcess) -> None:
     """On a durable service with the default options, as the docs describe: its storage metrics exist."""
     # Per-map and per-robot series exist once a robot has sent a scan, tile renders once one is drawn.

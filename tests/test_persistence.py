@@ -599,3 +599,19 @@ def test_a_deleted_map_leaves_nothing_behind_in_the_store(tmp_path: Path) -> Non
             assert set(kept) <= {"kept"}, kept
     finally:
         registry.close()
+
+
+def test_a_data_directory_that_is_a_file_is_refused_saying_so(tmp_path: Path) -> None:
+    """`--data-dir BACKUP/fleetmap.db` (the database, where its directory was meant) said "cannot
+    create data directory .../fleetmap.db: File exists"."""
+    database = tmp_path / DB_NAME
+    database.write_bytes(b"")
+    with pytest.raises(StorageError) as refused:
+        open_database(database)
+    assert str(refused.value) == (
+        f"data directory {database} is a file, not a directory (give the directory that holds {DB_NAME})"
+    )
+    other = tmp_path / "notes.txt"
+    other.write_text("x")
+    with pytest.raises(StorageError, match=r"notes\.txt is a file, not a directory$"):
+        open_database(other)

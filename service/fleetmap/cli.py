@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import importlib
 import json
 import logging
@@ -34,7 +35,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     _add_build(sub)
     for name in COMMAND_MODULES:
         importlib.import_module(name).add_parser(sub)
-    return run_command(parser.parse_args(argv))
+    return run_command(parse_command_line(parser, sub, argv))
+
+
+def parse_command_line(
+    parser: argparse.ArgumentParser,
+    sub: argparse._SubParsersAction[argparse.ArgumentParser],
+    argv: Sequence[str] | None,
+) -> argparse.Namespace:
+    """`parser.parse_args(argv)`, but an argument no option takes is refused by its command's parser:
+    argparse's top level said `fleetmap: error: unrecognized arguments: --data_dir x` under the usage
+    `fleetmap [-h] COMMAND ...`, which names neither the command nor its options. Now the command's
+    own error (`fleetmap serve: error: ...`, with `serve`'s one-line form), naming the option a
+    mistyped one looks like."""
+    args, extras = parser.parse_known_args(argv)
+    if extras:
+        command = sub.choices[args.command]
+        command.error(unrecognized_arguments(command, extras))
+    return args
+
+
+def unrecognized_arguments(parser: argparse.ArgumentParser, extras: Sequence[str]) -> str:
+    """The error for `extras`, with the option each one that looks like an option may stand for
+    (`--data_dir`: `--data-dir`)."""
+    options = [option for action in parser._actions for option in action.option_strings]
+    hints = []
+    for word in extras:
+        if word.startswith("--"):
+            name = word.split("=", 1)[0]
+            close = difflib.get_close_matches(name.replace("_", "-").lower(), options, n=1, cutoff=0.75)
+            if close:
+                hints.append(f"{name}: did you mean {close[0]}?")
+    return f"unrecognized arguments: {' '.join(extras)}" + (f" ({'; '.join(hints)})" if hints else "")
 
 
 def run_command(args: argparse.Namespace) -> int:
@@ -66,6 +98,11 @@ def dataset_error(path: str, exc: Exception) -> CliError:
             f"no such file: {path} (a recorded laser log: CARMEN, plain or .gz, or MATLAB .mat; a "
             'clone of fleetmap has none: README.md, "Build a map from a recorded dataset", says '
             "where to find one)"
+        )
+    if isinstance(exc, OSError) and exc.strerror:
+        # A folder given for the log said "[Errno 21] Is a directory: 'logs'".
+        return CliError(
+            f"cannot read {path}: {exc.strerror} (give a recorded laser log: CARMEN, plain or .gz, or .mat)"
         )
     return CliError(str(exc))
 

@@ -8,6 +8,7 @@ in this process and publish over Zenoh in client mode, as real robots would.
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import socket
 import subprocess
@@ -18,6 +19,7 @@ import time
 import httpx
 
 from fleetmap.cli import CliError
+from fleetmap.wire import is_valid_id
 
 
 class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
@@ -50,6 +52,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 def run(args: argparse.Namespace) -> int:
     from fleetmap_client.sim import run_sim
 
+    _check_fleet(args)
     # Another service on these ports would answer /healthz for ours, which would die unseen, and
     # the robots would map into that other service: refuse before starting anything.
     for address in (args.http, args.zenoh.split("/", 1)[-1]):
@@ -60,11 +63,13 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    ready = False
     try:
         url = f"http://{args.http}/"
         _wait_for_service(service, url, stop)
         if stop.is_set():
             return 0
+        ready = True
         print(f"\nfleetmap demo: open {url}#map={args.map} to watch {args.robots} robots map a floor plan")
         print(
             f"  (Ctrl-C stops the robots and the service; the map is kept in {args.data_dir})\n", flush=True
@@ -87,6 +92,23 @@ def run(args: argparse.Namespace) -> int:
             service.wait(30)
         except subprocess.TimeoutExpired:
             service.kill()
+        # The last words after Ctrl-C, below the service's own: where the map went (it was said
+        # at the start, scrolled away since).
+        if ready and service.returncode == 0:
+            print(f"fleetmap demo: stopped; the map is kept in {args.data_dir}", flush=True)
+
+
+def _check_fleet(args: argparse.Namespace) -> None:
+    """Raise CliError for options the robots cannot run with, before the service starts: `--robots
+    0` started the service, waited for it, then ended in a traceback from `run_sim`."""
+    if args.robots < 1:
+        raise CliError(f"--robots must be at least 1, got {args.robots}")
+    if not (0.0 < args.rate < math.inf):
+        raise CliError(f"--rate must be a number of scans per second above 0, got {args.rate:g}")
+    if args.seconds is not None and not args.seconds >= 0.0:
+        raise CliError(f"--seconds must be 0 or more (or left out: until Ctrl-C), got {args.seconds:g}")
+    if not is_valid_id(args.map):
+        raise CliError(f"--map {args.map!r} is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -")
 
 
 def _check_free(address: str) -> None:
@@ -104,10 +126,13 @@ def _check_free(address: str) -> None:
         except OSError as exc:
             # `make demo` is how the README starts it, and `make demo --http ...` is make's own
             # option error: say how make passes them on.
+            # Another demo or `fleetmap serve` started in this folder also holds ./fleetmap-data,
+            # which one service at a time may use: other addresses alone were refused in turn.
             raise CliError(
                 f"cannot listen on {address}: {exc.strerror} (is another fleetmap service running? Stop "
-                "it, or give the demo other addresses: --http HOST:PORT, --zenoh tcp/HOST:PORT; with "
-                'make: make demo DEMO_ARGS="--http 127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448")'
+                "it, or give the demo other addresses and its own data directory: --http HOST:PORT, "
+                '--zenoh tcp/HOST:PORT, --data-dir DIR; with make: make demo DEMO_ARGS="--http '
+                '127.0.0.1:8001 --zenoh tcp/127.0.0.1:7448 --data-dir ./fleetmap-data-2")'
             ) from None
 
 
@@ -126,8 +151,10 @@ def _wait_for_service(
     deadline = time.monotonic() + timeout
     while not stop.is_set():
         if service.poll() is not None:
+            # Its ports were free a moment ago (`_check_free`): the service said why on the line
+            # above (its data directory in use, say), which a guess at the ports contradicted.
             raise CliError(
-                f"the service exited with code {service.returncode} (is {url} or the Zenoh port in use?)"
+                f"the service exited with code {service.returncode} before it was ready (see its error above)"
             )
         try:
             if httpx.get(url + "healthz", timeout=1.0).status_code == 200:

@@ -113,6 +113,11 @@ def open_database(data_dir: Path) -> tuple[Path, DataDirLock]:
     only, nor beside another one on the same maps."""
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        # `--data-dir BACKUP/fleetmap.db`, the database rather than its directory, said "cannot
+        # create data directory BACKUP/fleetmap.db: File exists".
+        hint = f" (give the directory that holds {DB_NAME})" if data_dir.name == DB_NAME else ""
+        raise StorageError(f"data directory {data_dir} is a file, not a directory{hint}") from None
     except OSError as exc:
         raise StorageError(f"cannot create data directory {data_dir}: {exc.strerror}") from None
     lock = DataDirLock(data_dir)

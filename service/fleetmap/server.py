@@ -51,7 +51,7 @@ from pathlib import Path
 from typing import Any, NamedTuple, NoReturn, TypeVar
 
 from fleetmap.auth import TokenFile, TokenFileError, TokenSet
-from fleetmap.cli import CliError, load_config, run_command
+from fleetmap.cli import CliError, load_config, parse_command_line, run_command
 from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
@@ -915,7 +915,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fleetmap")
     sub = parser.add_subparsers(dest="command", required=True)
     add_parser(sub)
-    args = parser.parse_args(["serve", *(sys.argv[1:] if argv is None else argv)])
+    args = parse_command_line(parser, sub, ["serve", *(sys.argv[1:] if argv is None else argv)])
     return run_command(args)
 
 

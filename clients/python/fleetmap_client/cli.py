@@ -69,8 +69,10 @@ def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
             "Publish a recorded laser log (CARMEN log, plain or .gz, or .mat) to a running fleetmap "
             "service over Zenoh as one robot: scan k gets seq k. Scans go out at a nominal 10 per "
             "second, not at the log's timestamps (some logs have none: the Freiburg campus log's are "
-            "all 0): --rate X publishes 10*X scans per second (0: as fast as possible, nothing dropped). "
-            "Waits for the service first; after a lost connection it waits and re-sends."
+            "all 0): --rate X publishes 10*X scans per second (0: as fast as Zenoh takes them, and the "
+            "service drops, counting them as dropped on the robot, the scans its ingest queue of 64 per "
+            "robot cannot hold: use a finite rate for a lossless replay). Waits for the service "
+            "first; after a lost connection it waits and re-sends."
         ),
     )
     p.add_argument("dataset", help="CARMEN log (plain or .gz) or MATLAB .mat file")
@@ -78,7 +80,8 @@ def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
     p.add_argument("--robot", required=True, dest="robot_id", help="robot id ([A-Za-z0-9_-]{1,64})")
     p.add_argument(
         "--rate", type=float, default=1.0, metavar="X",
-        help="speed: X times the nominal 10 scans/s (default 1; 0 = as fast as possible)",
+        help="speed: X times the nominal 10 scans/s (default 1; 0 = as fast as possible, and the service "
+        "drops what it cannot integrate in time)",
     )  # fmt: skip
     p.add_argument("--limit", type=int, default=None, metavar="N", help="publish only the first N scans")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

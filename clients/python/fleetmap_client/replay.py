@@ -8,8 +8,10 @@ or gzip, and Coursera .mat files); scan k is published with seq k through a `Sca
 Pacing. The dataset readers expose poses and scans but no timestamps (and the freiburg log's are all
 0), so a replay runs at a nominal `NOMINAL_SCAN_RATE` = 10 scans per second of "real time": `rate`
 X publishes 10 * X scans per second (X = 1: 10 scans/s, X = 0.5: 5 scans/s); `rate` 0 publishes as
-fast as the link takes them (congestion control BLOCK: nothing is dropped). Each scan's stamp is the
-wall-clock time it was published.
+fast as the link takes them (congestion control BLOCK: nothing is lost on the way), but the service's
+ingest queue holds 64 scans per robot and drops the scans it cannot hold (counted as `dropped` on the
+robot: 2695 of a 3000-scan log of 1081 beams, replayed at rate 0 over loopback). Use a finite rate
+for a lossless replay. Each scan's stamp is the wall-clock time it was published.
 
 Delivery. The replay first waits until the service is reachable and its subscriber matches (see
 `ScanPublisher.wait_connected`), so no scan is published into the void. If the connection is lost
