@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -53,11 +54,26 @@ def reaped(proc: subprocess.Popen[str]) -> Iterator[subprocess.Popen[str]]:
             proc.wait()
 
 
+#: Where `free_port` picks: below Linux's ephemeral range (32768-60999 by default), from which every
+#: outgoing connection takes its local port. A port the OS handed out from that range (`bind` to 0)
+#: could be taken by some test's client connection before the service bound it: CI saw a service
+#: fail to start with "Address already in use" while two test processes ran.
+_PORTS = (20000, 32000)
+
+
 def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now (the OS picks it; tiny race until the child binds)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A TCP port free on 127.0.0.1 right now, outside the ephemeral range (a small race remains
+    until the child binds it, with other tests picking from the same range at random)."""
+    rng = random.Random()  # seeded from the OS: the xdist workers pick independently
+    for _ in range(1000):
+        port = rng.randrange(*_PORTS)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"no free TCP port in {_PORTS[0]}-{_PORTS[1]} on 127.0.0.1")
 
 
 def _child_env() -> dict[str, str]:

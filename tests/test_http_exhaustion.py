@@ -255,6 +255,23 @@ def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: Serv
     assert httpx.post(f"{service.base_url}/maps/m/cells", json={"points": points}).status_code == 200
 
 
+def test_a_refused_head_s_answer_is_not_lost_to_a_reset(service: ServiceProcess) -> None:
+    """A head refused while its client is still sending (a 100 kB URL followed by 4 MB more): the
+    service read only the start of it. Closing at once, with the rest unread, made the kernel reset
+    the connection, and the reset could destroy the 414 before the client read it (CI saw
+    "connection reset by peer" under load). The service now half-closes after its answer and drops
+    what still arrives, so the client reads the answer, then the end of the stream."""
+    request = b"GET /maps/" + b"a" * 100_000 + b" HTTP/1.1\r\nHost: t\r\n\r\n" + b"x" * 4_000_000
+    for _ in range(5):
+        with socket.create_connection(("127.0.0.1", service.port), timeout=10) as sock:
+            sock.sendall(request)  # all of it: the service reads and drops what follows its answer
+            answer = b""
+            while chunk := sock.recv(65536):
+                answer += chunk
+        assert answer.startswith(b"HTTP/1.1 414 "), answer[:100]
+        assert b"the request line is longer than 65536 bytes" in answer
+
+
 #: Headers every answer of the app carries (without tokens), whatever made it.
 COMMON = ("cache-control", "x-content-type-options", "x-frame-options", "referrer-policy")
 

@@ -17,8 +17,10 @@ token to do that: a connection is only checked once its request head has arrived
   connection opening, or of the request's first byte on a kept-alive connection;
 - its body must then arrive within `body_timeout` seconds;
 - its head may be at most MAX_HEAD_BYTES long: past it the answer is a JSON 414 (the request line
-  alone is that long) or 431 (headers), and the connection is closed. Neither httptools nor uvicorn
-  has such a limit: a 10 MB header was read whole (in memory) and answered 200.
+  alone is that long) or 431 (headers), and the connection is closed (after LINGER seconds at most
+  of reading and dropping what the client still sends, so that it reads the answer, not a reset).
+  Neither httptools nor uvicorn has such a limit: a 10 MB header was read whole (in memory) and
+  answered 200.
 
 Requests httptools cannot parse (a URL over 64 KiB, which its URL parser cannot index, or no HTTP at
 all) get uvicorn's 400, but as JSON `{"detail": ...}` like every other error of the API rather than
@@ -53,6 +55,9 @@ from fleetmap.rate_limited_log import RateLimitedLog
 
 log = logging.getLogger("fleetmap.http")
 
+#: Seconds a refused request's connection is kept to read and drop what its client still sends
+#: (`_refuse`), so that the client can read the refusal instead of a reset.
+LINGER = 2.0
 #: Connections asyncio accepts per turn of its loop, and the listening socket's queue: each holds a
 #: descriptor until the next turn refuses it.
 ACCEPT_BACKLOG = 100
@@ -169,8 +174,12 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
             self._request_line_ended = False
             # The answer to a head refused by `on_headers_complete` (sent by `send_400_response`).
             self._refusal: bytes | None = None
+            # A refusal was sent: what the client still sends is read and dropped (`_refuse`).
+            self._lingering = False
 
         def data_received(self, data: bytes) -> None:
+            if self._lingering:
+                return
             in_head = self._head_bytes is not None
             if in_head:
                 self._head_bytes = (self._head_bytes or 0) + len(data)
@@ -179,16 +188,29 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
             # Still in the same head after all of `data`: every byte of it was head. (A head that
             # arrived whole in this chunk, at most 256 KiB, is measured by `on_headers_complete`.)
             if in_head and (self._head_bytes or 0) > MAX_HEAD_BYTES and not self.transport.is_closing():
-                self.transport.write(HEAD_TOO_LARGE if self._request_line_ended else URL_TOO_LONG)
-                self.transport.close()
+                self._refuse(HEAD_TOO_LARGE if self._request_line_ended else URL_TOO_LONG)
 
         def send_400_response(self, msg: str) -> None:
             # uvicorn's answer to what httptools cannot parse, as JSON (its msg says nothing more
             # than "Invalid HTTP request received."). A URL that arrived in one piece is only
             # refused here, by the URL parser: the same 414 as one that arrives slowly.
             too_long = len(getattr(self, "url", b"")) >= MAX_HEAD_BYTES
-            self.transport.write(self._refusal or (URL_TOO_LONG if too_long else INVALID_REQUEST))
-            self.transport.close()
+            self._refuse(self._refusal or (URL_TOO_LONG if too_long else INVALID_REQUEST))
+
+        def _refuse(self, answer: bytes) -> None:
+            """Send `answer` and end the connection, so that the client can read it. Closing at once,
+            with the rest of the client's request unread, makes the kernel reset the connection,
+            and a reset can destroy the answer before the client has read it (the client sees
+            "connection reset" instead of the 414 of its 100 kB URL). So, as web servers do
+            ("lingering close"), the answer goes out, then the end of the stream, and what the
+            client still sends is read and dropped until it closes its side, at most LINGER
+            seconds."""
+            self.transport.write(answer)
+            self._lingering = True
+            if self.transport.can_write_eof():
+                self.transport.write_eof()
+            self._disarm()
+            self._deadline = self.loop.call_later(LINGER, self._expire)
 
         # Narrower than asyncio's BaseTransport, as uvicorn's own override is: a TCP server's
         # protocol is always handed a Transport.
