@@ -20,8 +20,8 @@ Binary layout (little-endian), header of `HEADER.size` = 72 bytes (version 1) or
     40     8    f64     pose theta (rad)
     48     4    f32     range_min (m)
     52     4    f32     range_max (m; +inf = no maximum)
-    56     8    f64     angle_min (rad; ignored with flag bit 0)
-    64     4    f32     angle_increment (rad; ignored with flag bit 0)
+    56     8    f64     angle_min (rad; ignored, not checked, with flag bit 0)
+    64     4    f32     angle_increment (rad; ignored, not checked, with flag bit 0)
     68     4    u32     n, the number of beams
     72     8    u64     session id, in [1, 2**53) (version 2 only)
     72/80  4*n  f32     angles (only with flag bit 0)
