@@ -296,3 +296,45 @@ def test_a_json_scan_holding_a_key_twice_is_refused(repeat: Callable[[str], str]
     assert decode_json(text.encode()).seq == 5
     with pytest.raises(DecodeError, match="appears twice in an object"):
         decode_json(repeat(text).encode())
+
+
+def test_angle_min_and_increment_are_ignored_with_explicit_angles() -> None:
+    """docs/protocol.md: angle_min and angle_increment are "ignored with flag bit 0". They were
+    still required to be finite, so a robot that wrote NaN there ("not given") had every scan refused
+    with `angle_min must be finite`. Without the flag they are the beams' bearings and still checked."""
+    scan = Scan.from_angles((0.5, 0.25, 0.3), [-0.5, 0.0, 0.75], [1.0, 2.0, 3.0], 0.05, 30.0)
+    good = encode_binary(scan, 7, 1.5, explicit_angles=True)
+    assert good[5] == 1  # flag bit 0: explicit angles
+    for angle_min, increment in ((math.nan, math.nan), (math.inf, -math.inf), (math.nan, 0.25)):
+        header = bytearray(good)
+        struct.pack_into("<d", header, 56, angle_min)
+        struct.pack_into("<f", header, 64, increment)
+        got = decode_binary(bytes(header))
+        np.testing.assert_array_equal(got.scan.angles, decode_binary(good).scan.angles)
+        np.testing.assert_array_equal(got.scan.ranges, scan.ranges)
+    fan = bytearray(encode_binary(Scan.from_fan((0, 0, 0), -0.5, 0.25, [1.0, 2.0], 0.05, 30.0), 7))
+    assert fan[5] == 0
+    struct.pack_into("<d", fan, 56, math.nan)
+    with pytest.raises(DecodeError, match="angle_min must be finite"):
+        decode_binary(bytes(fan))
+
+
+def test_a_binary_header_over_the_beam_limit_names_the_limit_in_force() -> None:
+    """A header whose n is over `--max-beams` (16384 by default) is refused before its length is
+    checked. The reason named the engine's ceiling (100000) instead, so a robot sending 20000 beams
+    read 'more than the limit of 100000' for one past 16384, or a length error."""
+    from fleetmap.codec import configure_limits, current_limits
+
+    header = bytearray(encode_binary(make_scan(0, 0, 0, [1.0], False), 1))
+    for n in (16_385, 200_000):
+        struct.pack_into("<I", header, 68, n)
+        with pytest.raises(DecodeError, match=f"^{n} beams is more than the limit of 16384$"):
+            decode_binary(bytes(header))
+    saved = current_limits()
+    configure_limits(InputLimits(max_beams=10))
+    try:
+        struct.pack_into("<I", header, 68, 11)
+        with pytest.raises(DecodeError, match="^11 beams is more than the limit of 10$"):
+            decode_binary(bytes(header))
+    finally:
+        configure_limits(saved)

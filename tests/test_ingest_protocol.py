@@ -52,3 +52,36 @@ def test_documented_header_offsets_match_the_codec() -> None:
         assert int(start) == offset
         offset += int(size)
     assert offset == codec.HEADER_V2.size == 80 and int(rows[-1][0]) == codec.HEADER.size == 72
+
+
+def test_the_refusal_reasons_the_doc_quotes_are_the_decoders() -> None:
+    """A robot implemented from the doc matches the reasons it quotes. The doc quoted
+    `extra: Extra inputs are not permitted` for any unknown field, while the reason names the field,
+    and did not say that a range_min at or beyond the trusted range is refused."""
+    text = " ".join(DOC.read_text().split())
+    good = {"seq": 1, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": 0.0, "angle_increment": 0.1,
+            "ranges": [1.0]}  # fmt: skip
+    scan = Scan.from_fan((0, 0, 0), 0.0, 0.1, [1.0], 1500.0, math.inf)
+    quoted = {
+        "sesion: Extra inputs are not permitted": (
+            json.dumps({**good, "sesion": 1}).encode(),
+            "application/json",
+        ),
+        "range_min 1500 m is beyond the limit of 1000 m": (
+            codec.encode_binary(scan, 1),
+            codec.BINARY_ENCODING,
+        ),
+        "binary scan of 3 beams must be 84 bytes, got 80": (
+            codec.encode_binary(Scan.from_fan((0, 0, 0), 0.0, 0.1, [1.0] * 3), 1)[:80],
+            codec.BINARY_ENCODING,
+        ),
+    }
+    for reason, (payload, encoding) in quoted.items():
+        assert f"`{reason}`" in text, reason
+        try:
+            codec.decode(payload, encoding)
+        except codec.DecodeError as exc:
+            assert reason in str(exc), (reason, str(exc))
+        else:
+            raise AssertionError(f"{reason}: decoded")
+    assert "`extra: Extra inputs are not permitted`" not in text  # no field is named extra

@@ -128,6 +128,20 @@ def test_seq_duplicates_gaps_and_restart(registry: MapRegistry) -> None:
     assert (robot.duplicates, robot.lost, robot.scans_integrated, robot.last_seq) == (1, 3, 4, 1)
 
 
+def test_a_late_copy_of_seq_0_restarts_a_robot_without_session_ids_only(registry: MapRegistry) -> None:
+    """docs/protocol.md, Sequence numbers: a copy of seq 0 (its original stamp) that arrives after
+    later scans does not repeat the LAST accepted scan, so without a session id it is a restart and
+    integrated again; within a session it is a duplicate. The doc said every copy stays a duplicate."""
+    for seq, stamp in ((0, 5.0), (1, 6.0), (0, 5.0)):
+        registry.submit("m", "plain", WireScan(seq, stamp, scan_at(0)))
+        with contextlib.suppress(IngestRejected):
+            registry.submit("m", "session", WireScan(seq, stamp, scan_at(0), session=7))
+    assert registry.wait_idle()
+    plain, session = registry.get("m").robots["plain"], registry.get("m").robots["session"]
+    assert (plain.scans_integrated, plain.restarts, plain.duplicates, plain.last_seq) == (3, 1, 0, 0)
+    assert (session.scans_integrated, session.restarts, session.duplicates, session.last_seq) == (2, 0, 1, 1)
+
+
 def test_queue_full_refuses_newest_and_counts_it() -> None:
     reg = MapRegistry(workers=1, queue_per_robot=2)  # workers not started: nothing drains
     reg.submit("m", "r", WireScan(0, 0.0, scan_at(0)))

@@ -20,8 +20,8 @@ Binary layout (little-endian), header of `HEADER.size` = 72 bytes (version 1) or
     40     8    f64     pose theta (rad)
     48     4    f32     range_min (m)
     52     4    f32     range_max (m; +inf = no maximum)
-    56     8    f64     angle_min (rad; ignored with flag bit 0)
-    64     4    f32     angle_increment (rad; ignored with flag bit 0)
+    56     8    f64     angle_min (rad; ignored, not checked, with flag bit 0)
+    64     4    f32     angle_increment (rad; ignored, not checked, with flag bit 0)
     68     4    u32     n, the number of beams
     72     8    u64     session id, in [1, 2**53) (version 2 only)
     72/80  4*n  f32     angles (only with flag bit 0)
@@ -253,16 +253,24 @@ def decode_binary(data: bytes) -> WireScan:
             raise DecodeError("session must be in [1, 2**53)")
     if flags & ~FLAG_ANGLES:
         raise DecodeError(f"unknown flags {flags:#x}")
-    if n > MAX_BEAMS:
-        raise DecodeError(f"{n} beams is more than the limit of {MAX_BEAMS}")
+    # Refused before the length is checked or anything allocated, against the limit in force
+    # (`--max-beams`, 16384 by default) rather than the engine's MAX_BEAMS, so the reason names the
+    # limit the robot broke, as `InputLimits.check` does for a scan of the right length.
+    beam_limit = min(_limits.max_beams, MAX_BEAMS)
+    if n > beam_limit:
+        raise DecodeError(f"{n} beams is more than the limit of {beam_limit}")
     arrays = 2 if flags & FLAG_ANGLES else 1
     expected = header.size + 4 * n * arrays
     if len(data) != expected:
         raise DecodeError(f"binary scan of {n} beams must be {expected} bytes, got {len(data)}")
     if seq >= SEQ_LIMIT:
         raise DecodeError("seq must be below 2**63")
-    for name, value in (("stamp", stamp), ("range_min", range_min), ("angle_min", angle_min),
-                        ("angle_increment", angle_increment)):  # fmt: skip
+    # With explicit angles (flag bit 0) angle_min and angle_increment are not used, so not checked:
+    # docs/protocol.md says they are ignored, and a robot may leave them NaN there ("not given").
+    checked = [("stamp", stamp), ("range_min", range_min)]
+    if not flags & FLAG_ANGLES:
+        checked += [("angle_min", angle_min), ("angle_increment", angle_increment)]
+    for name, value in checked:
         if not math.isfinite(value):
             raise DecodeError(f"{name} must be finite")
     body = np.frombuffer(data, dtype="<f4", offset=header.size)
