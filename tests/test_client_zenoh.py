@@ -553,6 +553,12 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
     bad = subprocess.run([*command, "--map", "bad id"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "map id 'bad id' must match" in bad.stderr
     assert "robots on map" not in bad.stdout
+    # So is a fleet that cannot run (it announced "0 robots on map ..." first).
+    for option, value, words in [("--robots", "0", "robots must be >= 1"), ("--rate", "0", "rate must be")]:
+        args = [*command, "--map", "m", option, value]
+        bad = subprocess.run(args, capture_output=True, text=True, timeout=60)
+        assert bad.returncode == 2 and words in bad.stderr, bad.stderr
+        assert "robots on map" not in bad.stdout, bad.stdout
 
 
 def test_sim_stops_on_request(router: Router) -> None:

@@ -161,10 +161,14 @@ def run_sim_command(args: argparse.Namespace) -> int:
 
     from fleetmap.wire import ID_PATTERN, is_valid_id
 
-    from .sim import SimError, run_sim
+    from .sim import SimError, check_fleet, run_sim
 
     if not is_valid_id(args.map_id):
         raise CliError(f"map id {args.map_id!r} must match {ID_PATTERN}")
+    try:  # before the line announcing the robots
+        check_fleet(args.robots, args.rate, args.seconds)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     stop = threading.Event()
     # Ctrl-C (or SIGINT from a script that started us with SIGINT ignored) stops the robots, and the
     # summary of what they published is still printed.

@@ -48,6 +48,17 @@ def robot_ids(count: int, prefix: str = "sim") -> list[str]:
     return [f"{prefix}-{k + 1}" for k in range(count)]
 
 
+def check_fleet(robots: int, rate: float, seconds: float | None) -> None:
+    """ValueError unless `run_sim` can run `robots` robots at `rate` scans/s for `seconds` (None: no
+    limit): at least one robot, a finite rate above 0, seconds not negative."""
+    if robots < 1:
+        raise ValueError(f"robots must be >= 1, got {robots}")
+    if not (rate > 0.0 and rate != float("inf")):
+        raise ValueError(f"rate must be a finite number > 0, got {rate}")
+    if seconds is not None and not seconds >= 0.0:
+        raise ValueError(f"seconds must be >= 0, got {seconds}")
+
+
 def run_sim(
     robots: int,
     *,
@@ -76,12 +87,7 @@ def run_sim(
     `SimError` when it passes); `on_waiting(publisher)` is called once if that takes over a second.
     Raises ValueError for bad arguments (e.g. a robot id that `prefix` makes invalid).
     """
-    if robots < 1:
-        raise ValueError(f"robots must be >= 1, got {robots}")
-    if not (rate > 0.0 and rate != float("inf")):
-        raise ValueError(f"rate must be a finite number > 0, got {rate}")
-    if seconds is not None and not seconds >= 0.0:
-        raise ValueError(f"seconds must be >= 0, got {seconds}")
+    check_fleet(robots, rate, seconds)
     stop = stop or threading.Event()
     ids = robot_ids(robots, prefix)
     floor = plan if plan is not None else generate_floorplan(seed)
