@@ -142,6 +142,19 @@ def test_a_negative_reading_is_ignored_and_the_scan_integrated(api: RunningApi) 
     assert with_negative.json()["cell_updates"] == without.json()["cell_updates"] > 0
 
 
+def test_a_scan_without_beams_sets_the_robot_s_pose_and_changes_no_cell(api: RunningApi) -> None:
+    """docs/protocol.md: a scan of no beams is valid in both encodings, integrated, and moves the
+    robot (a pose report from a robot whose laser is off)."""
+    for seq, binary in enumerate([False, True]):
+        scan = Scan.from_fan((1.5, -2.0 - seq, 0.25), 0.0, 0.01, [], 0.05, 30.0)
+        r = post_scan(api, "nobeams", "r", scan, seq, binary=binary)
+        assert r.status_code == 200 and r.json()["status"] == "integrated", r.text
+        assert r.json()["cell_updates"] == 0 and r.json()["changed_tiles"] == []
+        robot = api.client.get("/maps/nobeams").json()["stats"]["robots"]["r"]
+        assert robot["last_pose"] == {"x": 1.5, "y": -2.0 - seq, "theta": 0.25}
+        assert (robot["last_seq"], robot["scans_integrated"]) == (seq, seq + 1)
+
+
 def test_healthz_and_static_files(api: RunningApi) -> None:
     c = api.client
     health = c.get("/healthz").json()
