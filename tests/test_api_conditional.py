@@ -10,12 +10,14 @@ import math
 import threading
 import zipfile
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 from PIL import Image
 from service_process import ServiceProcess
+from test_auth import READ, WRITE, bearer
 
 SCAN = {"pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "angle_min": -math.pi,
         "angle_increment": math.pi / 180, "range_max": 10.0,
@@ -79,6 +81,9 @@ def test_the_map_etag_is_strong_stays_through_scans_and_gzip_and_changes_with_th
     revalidated = client.get("/maps/tagged", headers={"If-None-Match": etag})
     assert revalidated.status_code == 304 and revalidated.headers["etag"] == etag
     assert client.get("/maps/tagged", headers={"If-None-Match": '"other"'}).status_code == 200
+    # Several field lines are one list (RFC 9110, 5.3), as for the writes: the tag on the second counts.
+    lines = [("If-None-Match", '"other"'), ("If-None-Match", etag)]
+    assert client.get("/maps/tagged", headers=lines).status_code == 304
     # The same id made again is another map: another tag.
     assert client.delete("/maps/tagged").status_code == 204
     again = client.put("/maps/tagged", json={"resolution": 0.05})
@@ -249,3 +254,28 @@ def test_writes_without_conditions_are_as_before(client: httpx.Client) -> None:
     assert client.put("/maps/plain", json={}).headers["etag"] != etag
     assert client.delete("/maps/plain").status_code == 204
     assert client.delete("/maps/plain").status_code == 404
+
+
+def test_authentication_comes_before_the_conditions(tmp_path: Path) -> None:
+    """401 and 403 come before anything about the conditions (a malformed one's 422, a failed one's
+    412): a client without the right token learns nothing of the map, not even whether it exists
+    or what its tag is (a 412 carries the map's ETag)."""
+    tokens = tmp_path / "tokens.txt"
+    tokens.write_text(f"read {READ}\nwrite {WRITE}\n")
+    args = ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token"]
+    with ServiceProcess(tmp_path, args) as svc, httpx.Client(base_url=svc.base_url) as c:
+        assert c.put("/maps/m", json={}, headers=bearer(WRITE)).status_code == 201
+        upload = {"content": b"PK", "headers": {"content-type": "application/zip"}}
+        writes = [("PUT", "/maps/m", {"json": {}}), ("DELETE", "/maps/m", {}),
+                  ("PUT", "/maps/m/snapshot", upload), ("PUT", "/maps/m/import", upload)]  # fmt: skip
+        for method, path, kwargs in writes:
+            for condition in ({"If-Match": '"map-1"'}, {"If-None-Match": "*"}, {"If-Match": "map-1"}):
+                for token, status in ((None, 401), ("wrong-token-0123456789", 401), (READ, 403)):
+                    headers = {**kwargs.get("headers", {}), **condition, **(bearer(token) if token else {})}
+                    r = c.request(method, path, **{**kwargs, "headers": headers})
+                    assert_refused(r, status)
+                    assert "etag" not in r.headers, (method, path, condition, r.headers)
+        # With the write token the conditions are checked: the map is still there, untouched.
+        r = c.delete("/maps/m", headers={"If-Match": '"map-1"', **bearer(WRITE)})
+        assert_refused(r, 412)
+        assert r.headers["etag"] == c.get("/maps/m", headers=bearer(READ)).headers["etag"]

@@ -12,6 +12,7 @@ from pathlib import Path
 import httpx
 from service_process import ServiceProcess
 from test_auth import READ, WRITE, bearer
+from test_operations import BROKEN_TILES_SERVICE, post_scans
 
 #: The viewer's files, as its page asks for them, and a Leaflet image its style sheet names.
 VIEWER_FILES = ["/", "/static/app.js", "/static/style.css", "/vendor/leaflet/leaflet.js",
@@ -100,3 +101,18 @@ def test_the_auth_middlewares_answers_carry_them_too(
     for what, r in answers.items():
         assert_every_answer_headers(r, what)
     assert policy(httpx.get(f"{url}/")) == VIEWER_POLICY  # the page is open, and has its policy
+
+
+def test_a_bugs_500_carries_them_too(tmp_path: Path) -> None:
+    """An exception no handler expected is answered 500 by Starlette's `ServerErrorMiddleware`, which
+    Starlette puts outside every middleware of the app: the 500 carried none of the headers (nor
+    `Cache-Control`). The service is the real one, with a fault injected in the PNG encoder
+    (test_operations.py's `BROKEN_TILES_SERVICE`): there is no bug to trigger on purpose."""
+    svc = ServiceProcess(tmp_path, ["--in-memory"])
+    svc.args[1:3] = ["-c", BROKEN_TILES_SERVICE]
+    with svc:
+        post_scans(svc.base_url, "m", "r", range(1, 3))  # cells to draw: the encoder is called
+        r = httpx.get(f"{svc.base_url}/maps/m/tiles/0/0/0.png")
+        assert r.status_code == 500 and r.json() == {"detail": "internal server error (logged on the server)"}
+        assert_every_answer_headers(r, "500 of a bug")
+        assert r.headers.get("cache-control") == "no-cache", r.headers

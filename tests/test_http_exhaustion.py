@@ -19,7 +19,7 @@ import httpx
 import pytest
 from service_process import RobotProcess, ServiceProcess, wait_for
 
-from fleetmap.http_limits import ACCEPT_ERROR, MAX_HEAD_BYTES, quiet_accept_errors
+from fleetmap.http_limits import ACCEPT_ERROR, LINGER, MAX_HEAD_BYTES, quiet_accept_errors
 from fleetmap.rate_limited_log import LOG_INTERVAL
 
 MAX_STREAMS = 3
@@ -369,3 +369,26 @@ def test_failed_accepts_are_logged_once_not_once_each(caplog: pytest.LogCaptureF
     assert len(accept_lines) == 1, len(accept_lines)
     assert accept_lines[0].name == "fleetmap.http" and "Too many open files" in accept_lines[0].getMessage()
     assert any("something else broke" in r.getMessage() for r in caplog.records)
+
+
+def test_a_refused_head_behind_an_event_stream_ends_the_stream_not_as_a_bug(tmp_path: Path) -> None:
+    """Garbage pipelined behind an open event stream: its refusal half-closes the connection, and
+    the stream's next write (a keepalive, here every 0.1 s) came after the end of the stream, where
+    the transport raises: logged as an internal error with two tracebacks (fleetmap's and
+    uvicorn's), for any client's bytes, and the 400 was written into the middle of the stream. The
+    stream now ends as if its client had gone, its slot comes back, and nothing is logged as a bug."""
+    with ServiceProcess(tmp_path, ["--in-memory", "--events-keepalive", "0.1"]) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/m", json={}).status_code == 201
+        with open_event_stream(svc) as sock:
+            sock.sendall(b"NOT HTTP\r\n\r\n")  # the next request of the connection
+            received = b""
+            started = time.monotonic()
+            while chunk := sock.recv(65536):  # until the service ends its side
+                received += chunk
+            assert time.monotonic() - started < LINGER + 1
+            time.sleep(1.0)  # this side stays open (the service lingers): the keepalives are due
+        wait_for(lambda: metric(svc, "fleetmap_event_streams") == 0, timeout=5, what="the slot back")
+        time.sleep(0.3)  # the stream's task has seen it
+        logs = svc.logs()
+        assert "Traceback" not in logs and "internal error" not in logs, logs
+        assert b"HTTP/1.1 400" not in received, received  # not inside the stream's bytes

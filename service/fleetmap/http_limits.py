@@ -204,8 +204,22 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
             "connection reset" instead of the 414 of its 100 kB URL). So, as web servers do
             ("lingering close"), the answer goes out, then the end of the stream, and what the
             client still sends is read and dropped until it closes its side, at most LINGER
-            seconds."""
-            self.transport.write(answer)
+            seconds.
+
+            A head refused behind an answer still being made on the same connection (an event
+            stream, a download: the client pipelined its next request) ends that answer too, as if
+            the client had gone: its app's later writes would come after the end of the stream,
+            where the transport raises (an internal error, logged with two tracebacks, for
+            anyone's malformed bytes), and the refusal is not written into the middle of its bytes,
+            where the client would read it as part of the other answer."""
+            cycle = self.cycle
+            if cycle is not None and not cycle.response_complete:
+                # What uvicorn does when the connection is lost: `send` drops what the app writes,
+                # and the app's `receive` says the client went away (an event stream ends).
+                cycle.disconnected = True
+                cycle.message_event.set()
+            if cycle is None or cycle.response_complete or not cycle.response_started:
+                self.transport.write(answer)
             self._lingering = True
             if self.transport.can_write_eof():
                 self.transport.write_eof()

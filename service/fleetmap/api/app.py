@@ -244,6 +244,9 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     # Outside every middleware that waits (the ingest gate, a body being read): a request cancelled
     # at shutdown anywhere in them gets its 503 here, with the CORS and default headers put on it.
     app.add_middleware(errors.ShutdownCutoff)
+    # Inside every middleware that puts headers on all answers (below), so that a bug's 500 carries
+    # them too: Starlette's own 500 comes from outside them all.
+    app.add_middleware(errors.BugAnswer)
     if settings.cors_origins:
         # Outside every middleware that answers by itself, so that every answer to an allowed page
         # carries the CORS headers, the auth middleware's 401 and 403 included: without them the

@@ -189,6 +189,54 @@ class ShutdownCutoff:
             await _json(503, detail, headers={"Connection": "close"})(scope, receive, send)
 
 
+#: The detail of the 500 that answers a bug: nothing internal (the log has it).
+BUG_DETAIL = "internal server error (logged on the server)"
+#: Scope key: `BugAnswer` logged this request's exception (and answered it, if it could).
+_BUG_ANSWERED = "fleetmap.bug_answered"
+
+
+def _log_bug(scope: Scope, exc: BaseException) -> None:
+    method, path = scope.get("method", "?"), scope.get("path", "?")
+    fields = {"method": method, "path": path}
+    params = scope.get("path_params") or {}
+    fields.update({k: v for k, v in params.items() if k in ("map_id", "robot_id")})
+    log.error("internal error on %s %s", method, path, exc_info=exc, extra=fields)
+
+
+class BugAnswer:
+    """ASGI middleware: an exception no handler expected (a bug, not bad input) is logged and
+    answered 500 `{"detail": BUG_DETAIL}` here, inside the middleware that puts headers on every
+    answer (CORS, `DefaultHeaders`, `SecurityHeaders`). Starlette answers it in its
+    `ServerErrorMiddleware`, which it always puts outside every middleware of the app: that 500
+    carried none of their headers (no `nosniff`, no `Cache-Control`, no CORS). The exception is
+    raised on after the answer, so that the server logs it too (as Starlette does); Starlette's
+    handler (`_bug`) then sees the answer started and sends nothing. An answer already under way is
+    cut off, as before."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracked(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracked)
+        except Exception as exc:
+            _log_bug(scope, exc)
+            scope[_BUG_ANSWERED] = True
+            if not started:
+                await _json(500, BUG_DETAIL)(scope, receive, send)
+            raise
+
+
 def error_answer(status: int, detail: str, headers: dict[str, str] | None = None) -> JSONResponse:
     """The JSON error answer `{"detail": detail}` with `status`, as every error handler makes it, for
     middleware that answers by itself (it runs outside the handlers)."""
@@ -352,9 +400,8 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception) -> JSONResponse:
-        # A bug, not bad input: keep it visible (Starlette re-raises it after this answer, so the
-        # server logs it too) and tell the client nothing internal.
-        fields = {"method": request.method, "path": request.url.path}
-        fields.update({k: v for k, v in request.path_params.items() if k in ("map_id", "robot_id")})
-        log.error("internal error on %s %s", request.method, request.url.path, exc_info=exc, extra=fields)
-        return _json(500, "internal server error (logged on the server)")
+        # A bug in the middleware outside `BugAnswer` (which answers and logs every other): Starlette
+        # calls this from its outermost middleware, and sends the answer only if none started.
+        if not request.scope.get(_BUG_ANSWERED):
+            _log_bug(request.scope, exc)
+        return _json(500, BUG_DETAIL)

@@ -236,7 +236,9 @@ class JsonETags:
         if scope["type"] != "http" or scope["method"] != "GET":
             await self.app(scope, receive, send)
             return
-        if_none_match = Headers(scope=scope).get("if-none-match")
+        # Every field line, joined as one list (RFC 9110, 5.3), as the writes' conditions read them:
+        # the first alone missed a tag sent on a second `If-None-Match` line.
+        if_none_match = ", ".join(Headers(scope=scope).getlist("if-none-match")) or None
         start: Message | None = None
         not_modified = False  # a 304 was sent for the route's own ETag: its body goes nowhere
 

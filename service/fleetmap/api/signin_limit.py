@@ -11,7 +11,10 @@ it to keep guessing another (an admin's, say).
 
 The client address is the connection's, or, behind a reverse proxy the service trusts
 (`--forwarded-allow-ips`), the one the proxy names in `X-Forwarded-For` (uvicorn applies it). Behind
-a proxy that is not trusted, every client has the proxy's address and shares one count. An IPv6
+a proxy that is not trusted, every client has the proxy's address and shares one count. With
+`--forwarded-allow-ips '*'` uvicorn takes the first address of `X-Forwarded-For`, which a client
+behind a proxy that appends to it writes itself: a fresh count per guess (docs/security.md says to
+name the proxies instead). An IPv6
 client counts by its /64 network: one host commonly holds a whole /64, and would otherwise have a
 fresh count for each of its addresses.
 
