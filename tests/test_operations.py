@@ -486,3 +486,44 @@ def _documented_backup_command() -> str:
     lines = [line.strip() for line in text.splitlines() if "DATA_DIR" in line and "python3" in line]
     assert len(lines) == 1, "docs/durability.md should give one backup command with DATA_DIR and BACKUP_DIR"
     return lines[0]
+
+
+# -- what to alert on --------------------------------------------------------------------------------
+
+
+def test_a_scrape_holds_the_registry_lock_only_to_copy_the_counters() -> None:
+    """Every scan's submit and integration take the registry's lock. A scrape built its 8 samples a
+    robot under one hold of it: at 45,000 robots (40 maps of 1024) that held it for a second, and
+    every scan waited that long (a scan's answer took 990 ms during a scrape, 6-14 ms otherwise).
+    Now the counters are copied one map at a time and the samples built with the lock free."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+    from fleetmap.metrics import RegistryCollector
+    from fleetmap.registry import MapRegistry
+
+    registry = MapRegistry()
+    for map_id in ("a", "b"):
+        entry, _ = registry.create(map_id)
+        for k in range(3):
+            entry.robot(f"r{k}")
+    held_while_building = []
+    collector = RegistryCollector(registry)
+    original = {cls: cls.add_metric for cls in (CounterMetricFamily, GaugeMetricFamily)}
+
+    def watching(cls: type) -> object:
+        def add_metric(self: object, labels: list[str], value: float, *args: object, **kw: object) -> None:
+            if registry.lock._is_owned():  # type: ignore[attr-defined]
+                held_while_building.append(labels)
+            original[cls](self, labels, value, *args, **kw)  # type: ignore[arg-type]
+
+        return add_metric
+
+    with pytest.MonkeyPatch.context() as patch:
+        for cls in original:
+            patch.setattr(cls, "add_metric", watching(cls))
+        families = {f.name: f for f in collector.collect()}
+    assert held_while_building == []
+    online = families["fleetmap_robot_online"].samples
+    assert [(s.labels["map"], s.labels["robot"]) for s in online] == [
+        (m, f"r{k}") for m in ("a", "b") for k in range(3)
+    ]
