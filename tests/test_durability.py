@@ -540,6 +540,13 @@ def test_a_failing_disk_is_reported_and_the_next_snapshot_saves_what_it_missed(t
         assert (
             healed["storage"]["scans_not_durable"] == 2 and healed["storage"]["maps_awaiting_snapshot"] == []
         )
+        # Recovered, yet /metrics still tells the failures a scrape between two others missed.
+        metrics = httpx.get(f"{url}/metrics", timeout=10).text
+        assert "fleetmap_storage_ok 1.0" in metrics
+        pattern = r'^fleetmap_storage_failures_total\{operation="(\w+)"\} (\S+)$'
+        failures = dict(re.findall(pattern, metrics, re.M))
+        assert float(failures["journal_commit"]) >= 1 and float(failures["snapshot"]) >= 1, failures
+        assert float(failures["map_change"]) == 0
         # The log file is on the failing "disk" too, so what the service logged meanwhile is lost;
         # the line saying that commits succeed again says what happened.
         logs = svc.logs()
