@@ -667,6 +667,38 @@ def test_a_data_directory_deleted_while_the_service_runs_makes_nothing_durable_a
         assert stats(svc.base_url, "m")["robots"]["r"]["not_durable"] == 1
 
 
+def test_failing_snapshots_of_many_maps_log_a_few_lines_not_one_per_map_per_interval(tmp_path: Path) -> None:
+    """A failing disk fails every map's snapshot at every interval. Each failure was a log line of
+    its own: 30 maps at a 0.5 s interval wrote 128 lines in 5 s (200 maps at the default 30 s, 400
+    a minute), while the journal's failures were one line per 5 s. Now the snapshots' failures are
+    one line per 5 s too, naming a map and counting the others; /healthz still lists every map.
+
+    The disk fails as in the test above, the data directory deleted (the log is beside it)."""
+    data = tmp_path / "data"
+    maps = [f"m{k}" for k in range(30)]
+    with ServiceProcess(tmp_path, ["--data-dir", str(data), "--snapshot-interval", "0.5"]) as svc:
+
+        def post(map_id: str, seq: int) -> int:
+            scan = {"seq": seq, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": 0,
+                    "angle_increment": 0.1, "ranges": [1.0]}  # fmt: skip
+            url = f"{svc.base_url}/maps/{map_id}/scans"
+            return httpx.post(url, params={"robot_id": "r"}, json=scan, timeout=30).status_code
+
+        assert {post(m, 0) for m in maps} == {200}
+        shutil.rmtree(data)
+        assert {post(m, 1) for m in maps} == {503}  # every map now holds a scan that is not durable
+        wait_for(
+            lambda: (
+                len(httpx.get(f"{svc.base_url}/healthz").json()["storage"]["maps_awaiting_snapshot"]) == 30
+            ),
+            what="every map awaiting its snapshot",
+        )
+        time.sleep(4)  # 8 snapshot intervals, each failing for 30 maps
+        failed = [line for line in svc.logs().splitlines() if "snapshot of map" in line]
+    assert 1 <= len(failed) <= 2, "\n".join(failed)
+    assert re.search(r"\(\d+ similar messages suppressed\)", failed[-1]) or len(failed) == 1
+
+
 def test_a_scan_whose_map_is_replaced_while_it_integrates_is_not_replayed_into_the_new_map(
     tmp_path: Path,
 ) -> None:
