@@ -531,6 +531,7 @@ def test_metrics_count_every_http_answer_by_status_and_show_the_zenoh_session(tm
         finally:
             session.close()
     assert seen[("fleetmap_http_responses_total", (("code", "500"),))] == 1
+    assert seen[("fleetmap_http_responses_total", (("code", "503"),))] == 0  # there before the first
     assert seen[("fleetmap_http_responses_total", (("code", "404"),))] == 1
     assert seen[("fleetmap_http_responses_total", (("code", "200"),))] >= 2  # the scans, the scrapes
     assert seen[("fleetmap_zenoh_up", ())] == 1

@@ -529,7 +529,9 @@ class HttpResponsesCollector(Collector):
 
     def collect(self) -> Iterator[Metric]:
         (responses,) = self._families()
-        for status, count in sorted(dict(self.counts).items()):  # (a copy: see ResponseStatusCounter)
+        # 500 and 503 from the start, at 0: an alert on `increase()` of 5xx sees the first one.
+        counts = {500: 0, 503: 0} | dict(self.counts)  # (a copy: see ResponseStatusCounter)
+        for status, count in sorted(counts.items()):
             responses.add_metric([str(status)], count)
         yield responses
 
