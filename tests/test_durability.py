@@ -540,6 +540,13 @@ def test_a_failing_disk_is_reported_and_the_next_snapshot_saves_what_it_missed(t
         assert (
             healed["storage"]["scans_not_durable"] == 2 and healed["storage"]["maps_awaiting_snapshot"] == []
         )
+        # Recovered, yet /metrics still tells the failures a scrape between two others missed.
+        metrics = httpx.get(f"{url}/metrics", timeout=10).text
+        assert "fleetmap_storage_ok 1.0" in metrics
+        pattern = r'^fleetmap_storage_failures_total\{operation="(\w+)"\} (\S+)$'
+        failures = dict(re.findall(pattern, metrics, re.M))
+        assert float(failures["journal_commit"]) >= 1 and float(failures["snapshot"]) >= 1, failures
+        assert float(failures["map_change"]) == 0
         # The log file is on the failing "disk" too, so what the service logged meanwhile is lost;
         # the line saying that commits succeed again says what happened.
         logs = svc.logs()
@@ -658,6 +665,38 @@ def test_a_data_directory_deleted_while_the_service_runs_makes_nothing_durable_a
         assert f"the map database {data / DB_NAME} was deleted or replaced" in health["storage"]["last_error"]
         assert "GET /maps/{id}/snapshot" in health["storage"]["last_error"]
         assert stats(svc.base_url, "m")["robots"]["r"]["not_durable"] == 1
+
+
+def test_failing_snapshots_of_many_maps_log_a_few_lines_not_one_per_map_per_interval(tmp_path: Path) -> None:
+    """A failing disk fails every map's snapshot at every interval. Each failure was a log line of
+    its own: 30 maps at a 0.5 s interval wrote 128 lines in 5 s (200 maps at the default 30 s, 400
+    a minute), while the journal's failures were one line per 5 s. Now the snapshots' failures are
+    one line per 5 s too, naming a map and counting the others; /healthz still lists every map.
+
+    The disk fails as in the test above, the data directory deleted (the log is beside it)."""
+    data = tmp_path / "data"
+    maps = [f"m{k}" for k in range(30)]
+    with ServiceProcess(tmp_path, ["--data-dir", str(data), "--snapshot-interval", "0.5"]) as svc:
+
+        def post(map_id: str, seq: int) -> int:
+            scan = {"seq": seq, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": 0,
+                    "angle_increment": 0.1, "ranges": [1.0]}  # fmt: skip
+            url = f"{svc.base_url}/maps/{map_id}/scans"
+            return httpx.post(url, params={"robot_id": "r"}, json=scan, timeout=30).status_code
+
+        assert {post(m, 0) for m in maps} == {200}
+        shutil.rmtree(data)
+        assert {post(m, 1) for m in maps} == {503}  # every map now holds a scan that is not durable
+        wait_for(
+            lambda: (
+                len(httpx.get(f"{svc.base_url}/healthz").json()["storage"]["maps_awaiting_snapshot"]) == 30
+            ),
+            what="every map awaiting its snapshot",
+        )
+        time.sleep(4)  # 8 snapshot intervals, each failing for 30 maps
+        failed = [line for line in svc.logs().splitlines() if "snapshot of map" in line]
+    assert 1 <= len(failed) <= 2, "\n".join(failed)
+    assert re.search(r"\(\d+ similar messages suppressed\)", failed[-1]) or len(failed) == 1
 
 
 def test_a_scan_whose_map_is_replaced_while_it_integrates_is_not_replayed_into_the_new_map(

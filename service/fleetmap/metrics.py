@@ -28,7 +28,7 @@ import gc
 import time
 from collections.abc import Callable, Iterable, Iterator
 from importlib import metadata
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, ProcessCollector, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -43,6 +43,12 @@ if TYPE_CHECKING:
 
 #: Prometheus' text exposition format.
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+
+#: `fleetmap_storage_failures_total{operation}`: what `DurableStore.failures` counts.
+STORAGE_OPERATIONS = ("journal_commit", "snapshot", "map_change")
+
+#: `fleetmap_zenoh_scans_refused_total{reason}`: the kinds of `ZenohIngest`'s refusals (`_REFUSAL_KINDS`).
+ZENOH_REFUSALS = ("duplicate", "no_map", "too_many_robots", "queue_full")
 
 #: Latency buckets in seconds: sub-millisecond integrations up to multi-second backlogs.
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
@@ -129,27 +135,39 @@ class RegistryCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         families = self._families()
         integrated, rejected, lost, duplicates, dropped, not_durable, online, conflicts = families[:8]
-        tiles, memory, maps, depth, age, storage_ok, budget_used, budget_limit = families[8:]
+        tiles, memory, maps, depth, age, storage_ok, budget_used, budget_limit, queue_limit = families[8:]
         entries = self.registry.list()
         for entry in entries:
             # Tiles and memory need no lock (see TileStore.memory_bytes); the counters need the registry's.
             tiles.add_metric([entry.id], len(entry.gmap.store))
             memory.add_metric([entry.id], entry.gmap.memory_bytes())
-        with self.registry.lock:
-            for entry in entries:
-                for robot_id, state in sorted(entry.robots.items()):
-                    labels = [entry.id, robot_id]
-                    integrated.add_metric(labels, state.scans_integrated)
-                    rejected.add_metric(labels, state.scans_rejected)
-                    lost.add_metric(labels, state.lost)
-                    duplicates.add_metric(labels, state.duplicates)
-                    dropped.add_metric(labels, state.dropped)
-                    not_durable.add_metric(labels, state.not_durable)
-                    online.add_metric(labels, 1.0 if state.online else 0.0)
-                    conflicts.add_metric(labels, state.id_conflicts)
+        # Only the copy holds the registry's lock, which every scan's submit and integration also
+        # take, and one map's at a time (at most `max_robots_per_map` robots): building the
+        # families under one hold of it (8 samples a robot) held it for about a second a scrape at
+        # 45,000 robots, and every scan waited that long. Maps need not be read at one instant.
+        rows: list[tuple[str, str, int, int, int, int, int, int, bool, int]] = []
+        for entry in entries:
+            with self.registry.lock:
+                rows.extend(
+                    (entry.id, robot_id, state.scans_integrated, state.scans_rejected, state.lost,
+                     state.duplicates, state.dropped, state.not_durable, state.online, state.id_conflicts)
+                    for robot_id, state in entry.robots.items()
+                )  # fmt: skip
+        rows.sort(key=lambda row: (row[0], row[1]))
+        for map_id, robot_id, ok, bad, gaps, dups, full, lost_commits, is_online, clashes in rows:
+            labels = [map_id, robot_id]
+            integrated.add_metric(labels, ok)
+            rejected.add_metric(labels, bad)
+            lost.add_metric(labels, gaps)
+            duplicates.add_metric(labels, dups)
+            dropped.add_metric(labels, full)
+            not_durable.add_metric(labels, lost_commits)
+            online.add_metric(labels, 1.0 if is_online else 0.0)
+            conflicts.add_metric(labels, clashes)
         maps.add_metric([], len(entries))
         queued, oldest = self.registry.backlog()
         depth.add_metric([], queued)
+        queue_limit.add_metric([], self.registry.queue.total)
         age.add_metric([], oldest)
         if self.registry.durable is not None:
             storage_ok.add_metric([], 1.0 if self.registry.durable.health().ok else 0.0)
@@ -205,6 +223,10 @@ class RegistryCollector(Collector):
             GaugeMetricFamily(
                 "fleetmap_memory_limit_bytes", "Bytes all maps' tile pools may hold (--max-memory)"
             ),
+            GaugeMetricFamily(
+                "fleetmap_queue_limit",
+                "Scans the ingest queue holds at most (all robots); past it new scans are dropped",
+            ),
         )
 
 
@@ -219,19 +241,30 @@ class StorageCollector(Collector):
         return list(self._families())
 
     def collect(self) -> Iterator[Metric]:
-        commits, rows = self._families()
+        commits, rows, failures = self._families()
         durable = self.registry.durable
         if durable is None:
             return
         commits.add_metric([], durable.writer.commits)
         rows.add_metric([], durable.writer.rows)
-        yield from (commits, rows)
+        counted = dict(durable.failures)  # a copy: the writer and snapshot threads add to it
+        # Every operation from the start, at 0 until it fails: `increase()` over a series that
+        # appears with its first failure misses that failure.
+        for operation in STORAGE_OPERATIONS:
+            failures.add_metric([operation], counted.get(operation, 0))
+        yield from (commits, rows, failures)
 
     @staticmethod
     def _families() -> tuple[_Family, ...]:
         return (
             CounterMetricFamily("fleetmap_journal_commits", "Journal transactions committed (group commits)"),
             CounterMetricFamily("fleetmap_journal_rows", "Journal rows (scans) committed"),
+            CounterMetricFamily(
+                "fleetmap_storage_failures",
+                "Storage operations that failed (a full or failing disk): journal commits, snapshots, "
+                "map creations / deletions",
+                labels=["operation"],
+            ),
         )
 
 
@@ -396,6 +429,123 @@ class RuntimeCollector(Collector):
         )
 
 
+class ZenohCollector(Collector):
+    """The service's Zenoh session, from the ingest's `status()` (what `GET /healthz` shows under
+    `zenoh`), read at scrape: whether it runs, the routers and peers it is connected to, the robots
+    whose liveliness tokens it sees, and its message counters."""
+
+    def __init__(self, status: Callable[[], dict[str, Any]]) -> None:
+        self.status = status
+
+    def describe(self) -> list[Metric]:
+        return list(self._families())
+
+    def collect(self) -> Iterator[Metric]:
+        up, routers, peers, alive, received, submitted, invalid, undecodable, refused = self._families()
+        status = self.status()
+        up.add_metric([], 1.0 if status.get("running") else 0.0)
+        routers.add_metric([], status.get("routers", 0))
+        peers.add_metric([], status.get("peers", 0))
+        alive.add_metric([], status.get("robots_alive", 0))
+        received.add_metric([], status.get("messages_received", 0))
+        submitted.add_metric([], status.get("scans_submitted", 0))
+        invalid.add_metric([], status.get("invalid_keys", 0))
+        undecodable.add_metric([], status.get("decode_errors", 0))
+        # The usual reasons from the start, at 0 (see StorageCollector), and any other as it comes.
+        counts = dict.fromkeys(ZENOH_REFUSALS, 0) | status.get("rejected", {})
+        for reason, count in sorted(counts.items()):
+            refused.add_metric([reason], count)
+        yield from (up, routers, peers, alive, received, submitted, invalid, undecodable, refused)
+
+    @staticmethod
+    def _families() -> tuple[_Family, ...]:
+        return (
+            GaugeMetricFamily("fleetmap_zenoh_up", "1 while the service's Zenoh session runs"),
+            GaugeMetricFamily(
+                "fleetmap_zenoh_routers",
+                "Zenoh routers the session is connected to (0 in client mode: the router is unreachable)",
+            ),
+            GaugeMetricFamily("fleetmap_zenoh_peers", "Zenoh peers the session is connected to"),
+            GaugeMetricFamily(
+                "fleetmap_zenoh_robots_alive", "Robot liveliness tokens the session sees (every map)"
+            ),
+            CounterMetricFamily("fleetmap_zenoh_messages_received", "Scan messages received over Zenoh"),
+            CounterMetricFamily(
+                "fleetmap_zenoh_scans_submitted", "Scans received over Zenoh and queued for integration"
+            ),
+            CounterMetricFamily(
+                "fleetmap_zenoh_invalid_keys", "Zenoh messages ignored: an invalid map or robot id in the key"
+            ),
+            CounterMetricFamily("fleetmap_zenoh_decode_errors", "Zenoh scan messages not decoded"),
+            CounterMetricFamily(
+                "fleetmap_zenoh_scans_refused",
+                "Scans received over Zenoh that the registry refused, by reason (queue_full, duplicate, ...)",
+                labels=["reason"],
+            ),
+        )
+
+
+class ResponseStatusCounter:
+    """ASGI middleware counting every HTTP answer of the app by status in `counts`, for
+    `fleetmap_http_responses_total{code}` (alert on 5xx). The status is read from the answer itself;
+    a request whose app raised before answering counts as 500. Runs on the event loop only, so
+    `counts` needs no lock; a scrape copies it. Answers refused before the app (the connection
+    limit, a bad request head) are not the app's and are not counted."""
+
+    def __init__(self, app: Any, counts: dict[int, int]) -> None:
+        self.app = app
+        self.counts = counts
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def counting_send(message: Any) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+                status = message["status"]
+                self.counts[status] = self.counts.get(status, 0) + 1
+            await send(message)
+
+        try:
+            await self.app(scope, receive, counting_send)
+        except BaseException:
+            if not started:
+                self.counts[500] = self.counts.get(500, 0) + 1
+            raise
+
+
+class HttpResponsesCollector(Collector):
+    """`fleetmap_http_responses_total{code}` from a `ResponseStatusCounter`'s counts, read at scrape."""
+
+    def __init__(self, counts: dict[int, int]) -> None:
+        self.counts = counts
+
+    def describe(self) -> list[Metric]:
+        return list(self._families())
+
+    def collect(self) -> Iterator[Metric]:
+        (responses,) = self._families()
+        # 500 and 503 from the start, at 0: an alert on `increase()` of 5xx sees the first one.
+        counts = {500: 0, 503: 0} | dict(self.counts)  # (a copy: see ResponseStatusCounter)
+        for status, count in sorted(counts.items()):
+            responses.add_metric([str(status)], count)
+        yield responses
+
+    @staticmethod
+    def _families() -> tuple[_Family, ...]:
+        return (
+            CounterMetricFamily(
+                "fleetmap_http_responses",
+                "HTTP answers of the app by status code (every route; 5xx: the service failed)",
+                labels=["code"],
+            ),
+        )
+
+
 class ServiceMetrics:
     """One app's metrics: its own CollectorRegistry with the registry's counters, the integration
     latencies, the tile cache's counters and the tile render latency (`observe_render` is the tile
@@ -423,6 +573,9 @@ class ServiceMetrics:
         )
         #: Tile requests by the status of their answer (`routes_tiles.TileStatusCounter`).
         self.tile_statuses: dict[int, int] = {}
+        #: Every HTTP answer by its status (`ResponseStatusCounter`).
+        self.http_statuses: dict[int, int] = {}
+        self.collector_registry.register(HttpResponsesCollector(self.http_statuses))
 
     def observe_render(self, layer: str, z: int, seconds: float) -> None:
         self.tile_render_seconds.labels(layer).observe(seconds)
@@ -438,6 +591,10 @@ class ServiceMetrics:
         self.service_info.max_connections = limit
         self.service_info.connections = count
 
+    def watch_zenoh(self, status: Callable[[], dict[str, Any]]) -> None:
+        """Export the Zenoh session's `status()` (`ZenohIngest.status`) as `fleetmap_zenoh_*`."""
+        self.collector_registry.register(ZenohCollector(status))
+
     def watch_event_streams(self, slots: EventStreamSlots) -> None:
         self.collector_registry.register(EventStreamsCollector(slots))
 
@@ -448,13 +605,17 @@ class ServiceMetrics:
 
 __all__ = [
     "CONTENT_TYPE",
+    "STORAGE_OPERATIONS",
     "EventStreamsCollector",
+    "HttpResponsesCollector",
     "IngestGateCollector",
     "IntegrationMetrics",
     "RegistryCollector",
+    "ResponseStatusCounter",
     "RuntimeCollector",
     "ServiceInfoCollector",
     "ServiceMetrics",
     "StorageCollector",
     "TileCacheCollector",
+    "ZenohCollector",
 ]

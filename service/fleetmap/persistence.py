@@ -194,6 +194,10 @@ class DurableStore:
         self._snapshot_errors: dict[str, str] = {}  # map id -> why its last snapshot failed
         self._last_error: tuple[str, float] | None = None
         self._not_durable = 0
+        #: Storage failures since start by operation (`journal_commit`, `snapshot`, `map_change`),
+        #: for `fleetmap_storage_failures_total`: `health` says whether storage fails now, these
+        #: that it failed between two scrapes even if it has recovered since.
+        self.failures: dict[str, int] = {}
         # map id -> failed journal commits of its scans not yet covered by a snapshot
         self._awaiting: dict[str, int] = {}
         self._rows_since: dict[str, int] = {}
@@ -382,7 +386,7 @@ class DurableStore:
             try:
                 op(conn)
             except sqlite3.Error as exc:
-                self._failure(what, exc)
+                self._failure(what, exc, "map_change")
                 raise
 
         return reported
@@ -444,10 +448,12 @@ class DurableStore:
                 map_changes_not_stored=unstored,
             )
 
-    def _failure(self, what: str, exc: BaseException) -> str:
+    def _failure(self, what: str, exc: BaseException, operation: str) -> str:
+        """Record a storage failure for `health` (`what` failed) and count it under `operation`."""
         message = f"{what}: {type(exc).__name__}: {exc}"
         with self._health_lock:
             self._last_error = (message, time.time())
+            self.failures[operation] = self.failures.get(operation, 0) + 1
         return message
 
     # -- snapshots -------------------------------------------------------------------------------------
@@ -473,7 +479,7 @@ class DurableStore:
             return self._write_snapshot(map_id, gmap, counters)
         # StorageError: its tile rows were held back, the map's own creation not being stored yet.
         except (sqlite3.Error, OSError, StorageError) as exc:
-            message = self._failure(f"snapshot of map {map_id!r} failed", exc)
+            message = self._failure(f"snapshot of map {map_id!r} failed", exc, "snapshot")
             with self._health_lock:
                 self._snapshot_errors[map_id] = message
             raise
@@ -626,4 +632,4 @@ class DurableStore:
         self._thread.start()
 
     def _storage_failed(self, exc: Exception) -> None:
-        self._journal_error = self._failure("journal commit failed", exc)
+        self._journal_error = self._failure("journal commit failed", exc, "journal_commit")

@@ -60,7 +60,7 @@ from fleetmap.failed_signins import (
     DEFAULT_WINDOW,
     SignInLimiter,
 )
-from fleetmap.metrics import IntegrationMetrics, ServiceMetrics
+from fleetmap.metrics import IntegrationMetrics, ResponseStatusCounter, ServiceMetrics
 from fleetmap.registry import MapRegistry
 from fleetmap.wire import ScanMessage
 
@@ -213,6 +213,8 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         web_dir=settings.web_dir if settings.web_dir is not None else default_web_dir(),
         gate=gate,
     )
+    if settings.zenoh_status is not None:
+        app.state.fleetmap.metrics.watch_zenoh(settings.zenoh_status)
     errors.install(app)
     app.include_router(routes_maps.router)
     app.include_router(routes_data.router)
@@ -272,6 +274,8 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.add_middleware(DefaultHeaders, private=settings.tokens is not None and settings.require_read_token)
     # Outermost too, for the same reason: every answer, whatever made it, carries them.
     app.add_middleware(SecurityHeaders)
+    # Outside everything: every answer the app makes is counted, whichever middleware made it.
+    app.add_middleware(ResponseStatusCounter, counts=app.state.fleetmap.metrics.http_statuses)
     _install_openapi(app)
     return app
 
