@@ -153,6 +153,19 @@ class BodyLimitMiddleware:
         await self.app(scope, limited, send)
 
 
+class StartTracker:
+    """An ASGI `send` that passes every message on and remembers whether the answer has started
+    (`started`): a middleware that answers an exception itself may do so only before that."""
+
+    def __init__(self, send: Send) -> None:
+        self._send = send
+        self.started = False
+
+    async def __call__(self, message: Message) -> None:
+        self.started = self.started or message["type"] == "http.response.start"
+        await self._send(message)
+
+
 class ShutdownCutoff:
     """A request still running when the server's graceful shutdown runs out (a body trickling in, a
     slow client reading a large answer) is cancelled by uvicorn, which answered it 500 "Internal
@@ -169,19 +182,13 @@ class ShutdownCutoff:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        started = False
-
-        async def tracked(message: Message) -> None:
-            nonlocal started
-            started = started or message["type"] == "http.response.start"
-            await send(message)
-
+        tracked = StartTracker(send)
         try:
             await self.app(scope, receive, tracked)
         except asyncio.CancelledError:
             method, path = scope.get("method", "?"), scope.get("path", "?")
             fields = {"method": method, "path": path}
-            if started:
+            if tracked.started:
                 log.warning("shutdown: %s %s was cut off mid-answer", method, path, extra=fields)
                 raise  # uvicorn closes the connection (log_format.ShutdownCutoffLog drops its traceback)
             log.warning("shutdown: %s %s was still running; answered 503", method, path, extra=fields)
@@ -220,19 +227,13 @@ class BugAnswer:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        started = False
-
-        async def tracked(message: Message) -> None:
-            nonlocal started
-            started = started or message["type"] == "http.response.start"
-            await send(message)
-
+        tracked = StartTracker(send)
         try:
             await self.app(scope, receive, tracked)
         except Exception as exc:
             _log_bug(scope, exc)
             scope[_BUG_ANSWERED] = True
-            if not started:
+            if not tracked.started:
                 await _json(500, BUG_DETAIL)(scope, receive, send)
             raise
 
