@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import sqlite3
 import threading
 import time
@@ -644,3 +645,28 @@ def test_a_crash_replays_scans_queued_at_the_snapshot_without_a_restart(
         assert (robot.scans_integrated, robot.last_seq, robot.lost, robot.restarts) == (4, 3, 0, 0)
         with pytest.raises(IngestRejected, match="duplicate"):
             again.submit("m", "r", WireScan(3, 13.0, scan_at(0.0), session))
+
+
+def test_an_integration_bug_is_counted_every_time_and_its_traceback_logged_rate_limited(
+    registry: MapRegistry, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A bug that makes every scan's integration raise (here the engine's `plan`, replaced) must not
+    kill the workers, and each scan is refused and counted; but its traceback used to be logged for
+    every scan, hundreds a second under a fleet. It is logged once per kind and place per 5 s, with
+    the count of those held back on the next line."""
+
+    def broken(self: GridMap, scan: Scan) -> None:
+        raise KeyError("a bug")
+
+    registry.create("m", MapConfig())  # not one its first scan makes: that one goes with the refusal
+    monkeypatch.setattr(GridMap, "plan", broken)
+    caplog.set_level(logging.ERROR, logger="fleetmap.registry")
+    for seq in range(40):
+        registry.submit("m", "r", WireScan(seq, 0.0, scan_at(0.0)))
+    assert registry.wait_idle()
+    robot = registry.get("m").robots["r"]
+    assert robot.scans_rejected == 40 and robot.scans_integrated == 0
+    assert "internal error: 'a bug'" in (robot.last_error or "")
+    bugs = [r for r in caplog.records if "integration of m/r seq" in r.getMessage()]
+    assert len(bugs) == 1, [r.getMessage() for r in bugs]
+    assert bugs[0].exc_info is not None and "KeyError" in bugs[0].getMessage()

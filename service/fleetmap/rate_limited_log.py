@@ -2,7 +2,8 @@
 
 Used where strangers can make the service log: Zenoh messages refused by the ingest (one robot can
 send thousands a second) and HTTP connections refused when the process is out of descriptors; and
-where a failing disk would: every journal commit fails while it is full, hundreds a second.
+where a failing disk would: every journal commit fails while it is full, hundreds a second; and
+where a bug would: an integration that raises for every scan would write a traceback per scan.
 """
 
 from __future__ import annotations
@@ -38,16 +39,21 @@ class RateLimitedLog:
 
     def warning(self, category: str, message: str, **fields: object) -> bool:
         """`log` at WARNING."""
-        return self.log(logging.WARNING, category, message, **fields)
+        return self.log(logging.WARNING, category, message, None, **fields)
 
-    def error(self, category: str, message: str, **fields: object) -> bool:
+    def error(
+        self, category: str, message: str, exc_info: BaseException | None = None, **fields: object
+    ) -> bool:
         """`log` at ERROR."""
-        return self.log(logging.ERROR, category, message, **fields)
+        return self.log(logging.ERROR, category, message, exc_info, **fields)
 
-    def log(self, level: int, category: str, message: str, **fields: object) -> bool:
+    def log(
+        self, level: int, category: str, message: str, exc_info: BaseException | None = None, **fields: object
+    ) -> bool:
         """Log `message` at `level` unless `category` was logged less than `interval` ago, or
         `max_lines` lines were logged in the current interval. Returns whether it was logged.
-        `fields` (map_id, robot_id, ...) are the line's structured fields (`extra=`; see
+        `exc_info`: an exception whose traceback the line carries (when it is logged). `fields`
+        (map_id, robot_id, ...) are the line's structured fields (`extra=`; see
         fleetmap.log_format)."""
         now = time.monotonic()
         with self._lock:
@@ -73,5 +79,5 @@ class RateLimitedLog:
         suffix = f" ({held} similar messages suppressed)" if held else ""
         if other:
             suffix += f" ({other} other messages suppressed)"
-        self.logger.log(level, "%s%s", message, suffix, extra=fields)
+        self.logger.log(level, "%s%s", message, suffix, exc_info=exc_info, extra=fields)
         return True

@@ -163,6 +163,17 @@ class IngestRejected(Exception):
         self.status = status
 
 
+def _failure_site(exc: BaseException) -> str:
+    """An exception's kind and where it was raised (`KeyError@/path/file.py:123`): what tells one
+    bug from another, for rate-limiting their tracebacks."""
+    where = exc.__traceback__
+    while where is not None and where.tb_next is not None:
+        where = where.tb_next
+    if where is None:
+        return type(exc).__name__
+    return f"{type(exc).__name__}@{where.tb_frame.f_code.co_filename}:{where.tb_lineno}"
+
+
 class MapRegistry:
     """All maps, their robots and the integration workers."""
 
@@ -225,6 +236,8 @@ class MapRegistry:
         # failures were already one line per LOG_INTERVAL. One category for all maps: one line per
         # LOG_INTERVAL names a map and counts the others; /healthz lists them all.
         self._snapshot_log = RateLimitedLog(log)
+        # Integrations that raised (bugs): one traceback per kind and place every 5 s.
+        self._bug_log = RateLimitedLog(log)
         self._workers = [
             threading.Thread(target=self._work, name=f"fleetmap-integrate-{k}", daemon=True)
             for k in range(workers)
@@ -667,10 +680,11 @@ class MapRegistry:
             try:
                 self._integrate(job)
             except Exception as exc:  # a bug must not kill the worker; it is logged and counted
-                log.exception(
-                    "integration of %s/%s seq %s failed", job.map_id, job.robot_id, job.wire.seq,
-                    extra={"map_id": job.map_id, "robot_id": job.robot_id, "seq": job.wire.seq},
-                )  # fmt: skip
+                # With its traceback, but rate-limited per kind of failure: a bug that hits every
+                # scan would otherwise write hundreds of tracebacks a second.
+                what = f"integration of {job.map_id}/{job.robot_id} seq {job.wire.seq} failed: {exc!r}"
+                fields = {"map_id": job.map_id, "robot_id": job.robot_id, "seq": job.wire.seq}
+                self._bug_log.error(_failure_site(exc), what, exc, **fields)
                 self._finish_rejected(job, f"internal error: {exc}")
             finally:
                 self.queue.done(source)
