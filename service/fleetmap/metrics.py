@@ -383,7 +383,7 @@ class TileCacheCollector(Collector):
         hits.add_metric([], self.cache.hits)
         renders.add_metric([], self.cache.renders)
         entries.add_metric([], len(self.cache))
-        for status, count in sorted(dict(self.statuses).items()):  # (a copy: see TileStatusCounter)
+        for status, count in sorted(dict(self.statuses).items()):  # (a copy: see StatusCounter)
             requests.add_metric([str(status)], count)
         yield from (hits, renders, entries, requests)
 
@@ -485,19 +485,22 @@ class ZenohCollector(Collector):
         )
 
 
-class ResponseStatusCounter:
-    """ASGI middleware counting every HTTP answer of the app by status in `counts`, for
-    `fleetmap_http_responses_total{code}` (alert on 5xx). The status is read from the answer itself;
-    a request whose app raised before answering counts as 500. Runs on the event loop only, so
-    `counts` needs no lock; a scrape copies it. Answers refused before the app (the connection
-    limit, a bad request head) are not the app's and are not counted."""
+class StatusCounter:
+    """ASGI middleware counting HTTP answers by status in `counts`: every answer of the app
+    (`fleetmap_http_responses_total{code}`, to alert on 5xx) or, with `only`, those to the paths it
+    accepts (tiles: `fleetmap_tile_requests_total{status}`). The status is read from the answer
+    itself, so errors raised anywhere (validation, exception handlers) count too; a request whose
+    app raised before answering counts as 500. Runs on the event loop only, so `counts` needs no
+    lock; a scrape copies it (`dict(counts)`, one C call under the GIL). Answers refused before the
+    app (the connection limit, a bad request head) are not the app's and are not counted."""
 
-    def __init__(self, app: Any, counts: dict[int, int]) -> None:
+    def __init__(self, app: Any, counts: dict[int, int], only: Callable[[str], bool] | None = None) -> None:
         self.app = app
         self.counts = counts
+        self.only = only
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
-        if scope["type"] != "http":
+        if scope["type"] != "http" or (self.only is not None and not self.only(scope["path"])):
             await self.app(scope, receive, send)
             return
         started = False
@@ -519,7 +522,7 @@ class ResponseStatusCounter:
 
 
 class HttpResponsesCollector(Collector):
-    """`fleetmap_http_responses_total{code}` from a `ResponseStatusCounter`'s counts, read at scrape."""
+    """`fleetmap_http_responses_total{code}` from a `StatusCounter`'s counts, read at scrape."""
 
     def __init__(self, counts: dict[int, int]) -> None:
         self.counts = counts
@@ -530,7 +533,7 @@ class HttpResponsesCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         (responses,) = self._families()
         # 500 and 503 from the start, at 0: an alert on `increase()` of 5xx sees the first one.
-        counts = {500: 0, 503: 0} | dict(self.counts)  # (a copy: see ResponseStatusCounter)
+        counts = {500: 0, 503: 0} | dict(self.counts)  # (a copy: see StatusCounter)
         for status, count in sorted(counts.items()):
             responses.add_metric([str(status)], count)
         yield responses
@@ -571,9 +574,9 @@ class ServiceMetrics:
             buckets=LATENCY_BUCKETS,
             registry=self.collector_registry,
         )
-        #: Tile requests by the status of their answer (`routes_tiles.TileStatusCounter`).
+        #: Tile requests by the status of their answer (`StatusCounter` on the tile paths).
         self.tile_statuses: dict[int, int] = {}
-        #: Every HTTP answer by its status (`ResponseStatusCounter`).
+        #: Every HTTP answer by its status (`StatusCounter`).
         self.http_statuses: dict[int, int] = {}
         self.collector_registry.register(HttpResponsesCollector(self.http_statuses))
 
@@ -611,7 +614,7 @@ __all__ = [
     "IngestGateCollector",
     "IntegrationMetrics",
     "RegistryCollector",
-    "ResponseStatusCounter",
+    "StatusCounter",
     "RuntimeCollector",
     "ServiceInfoCollector",
     "ServiceMetrics",

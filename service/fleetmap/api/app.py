@@ -60,7 +60,7 @@ from fleetmap.failed_signins import (
     DEFAULT_WINDOW,
     SignInLimiter,
 )
-from fleetmap.metrics import IntegrationMetrics, ResponseStatusCounter, ServiceMetrics
+from fleetmap.metrics import IntegrationMetrics, ServiceMetrics, StatusCounter
 from fleetmap.registry import MapRegistry
 from fleetmap.wire import ScanMessage
 
@@ -242,7 +242,8 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         )
         app.add_middleware(SignInLimit, limiter=limiter)
     # Outside auth: a viewer whose tiles are refused (401, 403) shows in the counts too.
-    app.add_middleware(routes_tiles.TileStatusCounter, counts=app.state.fleetmap.metrics.tile_statuses)
+    metrics = app.state.fleetmap.metrics
+    app.add_middleware(StatusCounter, counts=metrics.tile_statuses, only=routes_tiles.is_tile_path)
     # Outside every middleware that waits (the ingest gate, a body being read): a request cancelled
     # at shutdown anywhere in them gets its 503 here, with the CORS and default headers put on it.
     app.add_middleware(errors.ShutdownCutoff)
@@ -275,7 +276,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     # Outermost too, for the same reason: every answer, whatever made it, carries them.
     app.add_middleware(SecurityHeaders)
     # Outside everything: every answer the app makes is counted, whichever middleware made it.
-    app.add_middleware(ResponseStatusCounter, counts=app.state.fleetmap.metrics.http_statuses)
+    app.add_middleware(StatusCounter, counts=metrics.http_statuses)
     _install_openapi(app)
     return app
 

@@ -7,7 +7,6 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Response
 from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fleetmap import tile_render
 from fleetmap.api.errors import error_responses
@@ -23,33 +22,6 @@ def is_tile_path(path: str) -> bool:
     """Whether `path` is one of `get_tile`'s, `/maps/{map_id}/tiles/{z}/{x}/{y}.png` (ids never
     hold a `/`, and no other route has `/tiles/` and `.png`)."""
     return path.startswith("/maps/") and path.endswith(".png") and "/tiles/" in path
-
-
-class TileStatusCounter:
-    """ASGI middleware counting the answers to tile requests by HTTP status in `counts` (200, 304
-    revalidations, 404 unknown map, 422 bad address or layer, 401/403 when placed outside the
-    auth middleware), for `fleetmap_tile_requests_total{status}`. The status is read from the
-    answer itself, so errors raised anywhere (validation, exception handlers) count too.
-
-    Runs on the event loop only, so `counts` needs no lock; a scrape copies it (`dict(counts)`,
-    one C call under the GIL)."""
-
-    def __init__(self, app: ASGIApp, counts: dict[int, int]) -> None:
-        self.app = app
-        self.counts = counts
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or not is_tile_path(scope["path"]):
-            await self.app(scope, receive, send)
-            return
-
-        async def counting_send(message: Message) -> None:
-            if message["type"] == "http.response.start":
-                status = message["status"]
-                self.counts[status] = self.counts.get(status, 0) + 1
-            await send(message)
-
-        await self.app(scope, receive, counting_send)
 
 
 def _convention() -> str:
