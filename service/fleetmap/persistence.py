@@ -458,11 +458,19 @@ class DurableStore:
 
     # -- snapshots -------------------------------------------------------------------------------------
 
-    def snapshot(self, map_id: str, gmap: GridMap, counters: Callable[[], dict]) -> int:
+    def snapshot(
+        self,
+        map_id: str,
+        gmap: GridMap,
+        counters: Callable[[], dict],
+        current: Callable[[], bool] | None = None,
+    ) -> int:
         """Write the tiles changed since the last snapshot and truncate the journal; returns the number
-        of tiles written. A failure (an `sqlite3.Error` or `OSError`, or a `StorageError` while the
-        map's own change is not stored) is recorded for `health` and raised; the next snapshot then
-        writes every tile changed since the last one that succeeded.
+        of tiles written. `current()`, called under the map's lock, says whether `gmap` is still map
+        `map_id` (None: it is); if not (deleted or replaced since the caller looked it up), nothing
+        is written and 0 returned. A failure (an `sqlite3.Error` or `OSError`, or a `StorageError`
+        while the map's own change is not stored) is recorded for `health` and raised; the next
+        snapshot then writes every tile changed since the last one that succeeded.
 
         Under the map's lock the changed tiles are copied and a marker is queued behind every scan
         applied so far; the writer runs the marker after committing (and counting) exactly those
@@ -476,7 +484,7 @@ class DurableStore:
         generation and its journal intact (the new rows are ignored and removed at start). Nothing
         here waits on the writer while holding a lock."""
         try:
-            return self._write_snapshot(map_id, gmap, counters)
+            return self._write_snapshot(map_id, gmap, counters, current)
         # StorageError: its tile rows were held back, the map's own creation not being stored yet.
         except (sqlite3.Error, OSError, StorageError) as exc:
             message = self._failure(f"snapshot of map {map_id!r} failed", exc, "snapshot")
@@ -484,13 +492,22 @@ class DurableStore:
                 self._snapshot_errors[map_id] = message
             raise
 
-    def _write_snapshot(self, map_id: str, gmap: GridMap, counters: Callable[[], dict]) -> int:
+    def _write_snapshot(
+        self, map_id: str, gmap: GridMap, counters: Callable[[], dict], current: Callable[[], bool] | None
+    ) -> int:
         with self._snapshot_lock:
             with gmap.lock:
                 since = self._snapshot_clock.get(map_id, 0)
+                created = self._created.get(map_id)
+                # Both were read per map id: once `gmap` is no longer the map of that id, they are
+                # another map's, and the switch would store this old map's tiles and counters as the
+                # new map's snapshot (and its clock, so that the new map's own tiles were skipped by
+                # its later snapshots). Checked after reading them: a map current now was current
+                # then (a map never comes back), so they are its own.
+                if current is not None and not current():
+                    return 0
                 copies = changed_tiles(gmap, since)
                 clock = gmap.store.clock
-                created = self._created.get(map_id)
                 # On the writer, after the scans applied so far and before any later one: the
                 # journal id and counters of exactly the copied tiles, and how many of those scans'
                 # commits failed (the copy holds them, so this snapshot makes them durable).

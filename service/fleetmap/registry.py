@@ -329,13 +329,22 @@ class MapRegistry:
             needed = self.durable.needs_snapshot(entry.id)
             if every_map or (needed and (not only_overdue or self.durable.overdue(entry.id))):
                 counters = functools.partial(self._saved_counters, entry)
+                # Listed above, perhaps seconds ago (each snapshot takes its time): the map may have
+                # been deleted or replaced since, and a new map of its id must not get its snapshot.
+                current = functools.partial(self._is_current, entry)
                 try:
-                    self.durable.snapshot(entry.id, entry.gmap, counters)
+                    self.durable.snapshot(entry.id, entry.gmap, counters, current)
                 except (sqlite3.Error, OSError, StorageError) as exc:
                     self._snapshot_log.error(
                         "snapshot", f"snapshot of map {entry.id} failed (retried at the next one): {exc}",
                         map_id=entry.id,
                     )  # fmt: skip
+
+    def _is_current(self, entry: MapEntry) -> bool:
+        """Whether `entry` is still the map of its id (not deleted or replaced). Called under the
+        map's lock (`DurableStore.snapshot`): the registry's comes second, the one order they nest in."""
+        with self.lock:
+            return self.maps.get(entry.id) is entry
 
     def _saved_counters(self, entry: MapEntry) -> dict:
         with self.lock:
