@@ -731,3 +731,49 @@ def _tiles(gmap: GridMap) -> dict[tuple[int, int], dict[str, np.ndarray]]:
             key: {a.name: store.pools[a.name][slot].copy() for a in store.arrays}
             for key, slot in store.slots.items()
         }
+
+
+def test_a_map_created_again_right_after_a_snapshot_switch_keeps_its_own_snapshot_state(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The snapshot thread records what a snapshot stored (the map's clock, its journal rows counted
+    from zero) once the writer has committed the switch. A map deleted and created again in between
+    got the OLD map's clock recorded as its own: its next snapshots skipped every tile of its own
+    whose version was below it, while the journal rows those tiles came from were trimmed, so a
+    restart lost them."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    durable = registry.durable
+    assert durable is not None
+    try:
+        registry.create("m", wait=True)
+        for seq in range(3):  # the old map's clock: above the new map's first versions
+            registry.submit("m", "r", WireScan(seq, 0.0, scan_at(0.1 * seq)), wait=True).result(5)
+        run = durable.writer.run
+        recreated: list[bool] = []
+
+        def run_then_recreate(op: Any) -> Any:
+            result = run(op)
+            if getattr(op, "__name__", "") == "switch" and not recreated:
+                # Committed; the snapshot thread has not recorded it yet.
+                recreated.append(True)
+                registry.delete("m", wait=True)
+                registry.create("m", wait=True)
+            return result
+
+        monkeypatch.setattr(durable.writer, "run", run_then_recreate)
+        registry.snapshot_all()
+        monkeypatch.undo()
+        assert recreated
+        registry.submit("m", "s", WireScan(0, 0.0, scan_at(-100.0)), wait=True).result(5)
+        registry.snapshot_all()  # stores the new map's tile, and trims its journal row
+        want = _tiles(registry.get("m").gmap)
+        assert want
+    finally:
+        _crash(registry)
+    with _restarted(tmp_path) as again:
+        got = _tiles(again.get("m").gmap)
+        assert set(got) == set(want)
+        for key, arrays in want.items():
+            for name, array in arrays.items():
+                np.testing.assert_array_equal(got[key][name], array)

@@ -212,6 +212,11 @@ class DurableStore:
         self._last_gen = 0
         self._gen_lock = threading.Lock()
         self._created: dict[str, float] = {}
+        # Guards what a map's incarnation owns of the dicts above when a thread other than the one
+        # that (re)created or deleted the map writes them: the writer's scan callbacks and the
+        # snapshot thread check `_created` and write in one hold, so a map deleted and created again
+        # in between does not get the old map's snapshot clock or journal id (see `_write_snapshot`).
+        self._maps_lock = threading.Lock()
         # Only checkpoints: a checkpoint takes no write lock, so it runs beside the journal's commits.
         self._snapshot_conn = connect(self.path, synchronous="NORMAL", autocheckpoint=False)
 
@@ -327,7 +332,10 @@ class DurableStore:
         config_json, clock = gmap.config.model_dump_json(), gmap.store.clock
         gen = self._next_gen()
         created = time.time()
-        self._created[map_id] = created
+        with self._maps_lock:
+            self._created[map_id] = created
+            self._rows_since[map_id] = 0
+            self._snapshot_clock[map_id] = clock
 
         first_attempt = True
 
@@ -352,8 +360,6 @@ class DurableStore:
             conn.execute("COMMIT")
             self._last_journal_id[map_id] = 0
 
-        self._rows_since[map_id] = 0
-        self._snapshot_clock[map_id] = clock
         return self.writer.change_map(map_id, self._reporting(f"storing the new map {map_id!r} failed", op))
 
     def map_deleted(self, map_id: str) -> Future:
@@ -372,8 +378,9 @@ class DurableStore:
         # the service's whole life (and a scan refused for a map it created removes that map again),
         # so entries kept for every id ever seen would grow without end. `journal`'s callbacks of
         # its last scans, committed after this, leave them alone (see there).
-        for d in (self._rows_since, self._snapshot_clock, self._created, self._last_journal_id):
-            d.pop(map_id, None)
+        with self._maps_lock:
+            for d in (self._rows_since, self._snapshot_clock, self._created, self._last_journal_id):
+                d.pop(map_id, None)
         self._forget_health(map_id)
         return self.writer.change_map(map_id, self._reporting(f"deleting map {map_id!r} failed", op))
 
@@ -419,9 +426,10 @@ class DurableStore:
         def durable(row_id: int) -> None:
             # Committed after its map was deleted (its removal queued behind it), or deleted and
             # created again: its row is gone with the old map, and nothing of it is counted.
-            if self._created.get(map_id) == incarnation:
-                self._last_journal_id[map_id] = row_id
-                self._rows_since[map_id] = self._rows_since.get(map_id, 0) + 1
+            with self._maps_lock:
+                if self._created.get(map_id) == incarnation:
+                    self._last_journal_id[map_id] = row_id
+                    self._rows_since[map_id] = self._rows_since.get(map_id, 0) + 1
             self._journal_error = None
             on_durable(row_id)
 
@@ -572,8 +580,12 @@ class DurableStore:
                 return True
 
             if self.writer.run(switch):
-                self._snapshot_clock[map_id] = clock
-                self._rows_since[map_id] = 0
+                with self._maps_lock:
+                    # Not if the map was deleted (and created again) since the switch committed:
+                    # a new map's clock set to the old one's made its next snapshots skip its tiles.
+                    if self._created.get(map_id) == created:
+                        self._snapshot_clock[map_id] = clock
+                        self._rows_since[map_id] = 0
                 with self._health_lock:
                     self._journal_error = None  # the writer's transactions commit again
                     self._snapshot_errors.pop(map_id, None)
