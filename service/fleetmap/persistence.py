@@ -533,11 +533,15 @@ class DurableStore:
             for key, version, arrays in copies:
                 started = time.perf_counter()
                 blob = tile_to_blob(arrays, layout)
+                # Only while the map is the incarnation copied: a map deleted and created again
+                # meanwhile has no row of this generation, and the switch would drop these rows,
+                # but a crash before it left them, the newest of their tiles, in the new map.
                 written.append(
                     self.writer.attach(
                         "INSERT OR REPLACE INTO tiles (map_id, ti, tj, gen, version, data) "
-                        "VALUES (?, ?, ?, ?, ?, ?)",
-                        (map_id, key[0], key[1], gen, version, blob),
+                        "SELECT ?, ?, ?, ?, ?, ? WHERE EXISTS "
+                        "(SELECT 1 FROM maps WHERE id = ? AND created_at = ?)",
+                        (map_id, key[0], key[1], gen, version, blob, map_id, created),
                         map_id=map_id,
                     )
                 )
