@@ -777,3 +777,40 @@ def test_a_map_created_again_right_after_a_snapshot_switch_keeps_its_own_snapsho
         for key, arrays in want.items():
             for name, array in arrays.items():
                 np.testing.assert_array_equal(got[key][name], array)
+
+
+def test_a_put_that_finds_the_map_answers_once_the_maps_creation_is_stored(tmp_path: Path) -> None:
+    """Two PUT /maps/{id} at once (or a PUT right after a robot's first scan created the map): the
+    one that finds the map created answers 200 "exists". It answered at once, while the creation
+    still waited for the journal writer, so a crash right after that answer lost the map the client
+    was told exists. Now it answers once the creation is committed, as the creating PUT does."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    durable = registry.durable
+    assert durable is not None
+    held, go = threading.Event(), threading.Event()
+    try:
+
+        def busy(_conn: sqlite3.Connection) -> None:
+            held.set()
+            assert go.wait(10)
+
+        durable.writer.submit(busy)  # the writer is busy: the creation waits behind this
+        assert held.wait(5)
+        first: list[bool] = []
+        creating = threading.Thread(target=lambda: first.append(registry.create("m", wait=True)[1]))
+        creating.start()
+        while "m" not in registry.maps:
+            time.sleep(0.001)
+        second: list[bool] = []
+        finding = threading.Thread(target=lambda: second.append(registry.create("m", wait=True)[1]))
+        finding.start()
+        finding.join(0.3)
+        assert finding.is_alive() and not second  # not answered while the map is not stored
+        go.set()
+        creating.join(5)
+        finding.join(5)
+        assert (first, second) == ([True], [False])
+    finally:
+        go.set()
+        registry.close()

@@ -398,6 +398,12 @@ class DurableStore:
 
         return reported
 
+    def map_stored(self, map_id: str) -> Future:
+        """A future resolved once every change of map `map_id` queued so far is stored (its creation
+        may still be queued), retrying the last one if it failed; it fails with the error if that
+        still does not commit."""
+        return self.writer.retry(map_id)
+
     def retry_map_change(self, map_id: str) -> Future | None:
         """If the last change of map `map_id` is not stored (`map_changes_not_stored`), retry it: the
         future resolves once it is stored, or fails with the error. None if nothing is pending."""

@@ -365,8 +365,8 @@ class MapRegistry:
         expect: Expectation | None = None,
     ) -> tuple[MapEntry, bool]:
         """Create a map, or return the existing one if its configuration is the same.
-        Returns (entry, created). Raises MapConflict for a different configuration. With `wait`, a
-        new map is committed to storage before this returns (else NotDurable). `by_scan`: created
+        Returns (entry, created). Raises MapConflict for a different configuration. With `wait`, the
+        map, new or found, is committed to storage before this returns (else NotDurable). `by_scan`: created
         for a scan (auto-create), its log line rate-limited. `expect(existing)` is called with the
         map of that id (None if none) under the registry's lock before anything changes: whatever it
         raises propagates with nothing changed (a conditional write's precondition)."""
@@ -384,8 +384,10 @@ class MapRegistry:
                     )
                 existing.provisional = False  # asked for by name: it stays even if its scans are refused
                 if wait and self.durable is not None:
-                    # A client retrying after it was told the map was not stored: answered once it is.
-                    stored = self.durable.retry_map_change(map_id)
+                    # Answered once the map is stored, as the PUT that created it is: its creation may
+                    # still wait for the journal writer (a concurrent PUT's, a robot's first scan's),
+                    # or have failed (a client retrying after a 503: retried now).
+                    stored = self.durable.map_stored(map_id)
                 entry, created = existing, False
             else:
                 entry = MapEntry(map_id, self._charged(GridMap(config)), next(self._generations))
