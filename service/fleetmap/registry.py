@@ -506,6 +506,10 @@ class MapRegistry:
         this map id is of this map."""
         del self.maps[entry.id]
         entry.retired = True
+        # Its bytes go back to the budget now, not once the last reader lets go of the map: a scan
+        # sent again after the DELETE that made room was refused 507 while a viewer's event stream
+        # still held the map. Retired, it never grows again (no scan is applied to it).
+        entry.gmap.store.uncharge()
         return self.queue.drop_source(lambda source: source[0] == entry.id)
 
     def _remove_unclaimed(self, entry: MapEntry) -> Future | None:
