@@ -760,3 +760,36 @@ def test_web_dir_default(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
     assert default_web_dir() == checkout  # the viewer is in this checkout
     monkeypatch.setenv("FLEETMAP_WEB_DIR", str(tmp_path))
     assert default_web_dir() == tmp_path
+
+
+def test_an_upload_says_whether_it_replaced_a_map_as_of_when_it_installed_it(
+    api: RunningApi, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`PUT .../snapshot` answers 201 (and `Location`) when it created the map, 200 when it replaced
+    one. It looked the map up before reading the upload (seconds, for a big file): a map another
+    writer created or deleted meanwhile made the answer wrong, 201 Created for an upload that had
+    replaced that writer's map. Here the other writer acts while the upload is read."""
+    from fleetmap.api import routes_snapshot
+    from fleetmap.storage_format import snapshot_file
+
+    body = snapshot_file("src", GridMap(MapConfig()))
+    read = routes_snapshot.map_from_snapshot_file
+    meanwhile: list[str] = []
+
+    def read_while_another_writer_acts(data: bytes, **kwargs: object) -> GridMap:
+        action = meanwhile.pop()
+        if action == "create":
+            api.registry.create("racing-upload")
+        else:
+            api.registry.delete("racing-upload")
+        return read(data, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(routes_snapshot, "map_from_snapshot_file", read_while_another_writer_acts)
+    zipped = {"content-type": "application/zip"}
+    meanwhile.append("create")  # no map when the upload came, one when it was installed: replaced
+    r = api.client.put("/maps/racing-upload/snapshot", content=body, headers=zipped)
+    assert r.status_code == 200 and "location" not in r.headers, (r.status_code, r.headers)
+    meanwhile.append("delete")  # a map when the upload came, none when it was installed: created
+    r = api.client.put("/maps/racing-upload/snapshot", content=body, headers=zipped)
+    assert r.status_code == 201 and r.headers["location"].endswith("/maps/racing-upload"), r.text
+    api.registry.delete("racing-upload")

@@ -230,3 +230,45 @@ def test_a_restart_restores_maps_past_the_budget_and_then_refuses_growth(tmp_pat
         assert refused.value.status == 507
     finally:
         again.close()
+
+
+def test_a_deleted_maps_bytes_go_back_to_the_budget_at_once_though_a_reader_still_holds_it() -> None:
+    """A map deleted (or replaced) gives its bytes back when its DELETE is answered, not when the
+    last reader lets go of it: an event stream holds its map until its next poll, a snapshot
+    download or a region read until it ends, and meanwhile a scan retried after the 204 that freed
+    the room was refused 507 again. A map that is gone never grows again, so its bytes are free as
+    soon as those readers finish."""
+    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(60 * TILE_BYTES))
+    registry.start()
+
+    def send(map_id: str, k: int) -> Any:
+        try:
+            future = registry.submit(map_id, "r", WireScan(k, 0.0, scan_at(0.5 * k)), wait=True)
+            assert future is not None
+            return future.result(10)
+        except IngestRejected as exc:
+            return exc
+
+    try:
+        for remove in ("delete", "replace"):
+            assert not isinstance(send("other", 0), IngestRejected)
+            reader = registry.get("other")  # what an event stream or a download holds
+            for k in range(100):
+                refused = send("m", k)
+                if isinstance(refused, IngestRejected):
+                    break
+            assert isinstance(refused, IngestRejected) and refused.status == 507, refused
+            if remove == "delete":
+                registry.delete("other", wait=True)
+            else:
+                registry.replace("other", GridMap(SMALL), wait=True)
+            again = send("m", k)
+            assert not isinstance(again, IngestRejected), (remove, again)
+            assert reader.gmap.memory_bytes() > 0  # still held: the reader goes on reading it
+            del reader
+            registry.delete("m", wait=True)
+            if remove == "replace":
+                registry.delete("other", wait=True)
+            assert registry.memory_budget is not None and registry.memory_budget.used == 0
+    finally:
+        registry.close()

@@ -615,3 +615,56 @@ def test_a_data_directory_that_is_a_file_is_refused_saying_so(tmp_path: Path) ->
     other.write_text("x")
     with pytest.raises(StorageError, match=r"notes\.txt is a file, not a directory$"):
         open_database(other)
+
+
+def test_a_snapshots_tile_rows_never_reach_a_map_created_again_meanwhile(tmp_path: Path, monkeypatch) -> None:
+    """A snapshot's tile rows are written one by one, then a switch makes them the map's. A map
+    deleted and created again while they are written must not get them: the switch finds the map's
+    incarnation changed and drops them, but a crash before it left the rows committed after the new
+    map's creation, newest for their tiles, so a restart loaded the deleted map's tiles into the new
+    map. Each row is now written only while its map is the incarnation the snapshot copied."""
+    from fleetmap import persistence
+
+    encode = persistence.tile_to_blob
+    calls = 0
+    first_started, first_go, second_started, second_go = (threading.Event() for _ in range(4))
+
+    def held(arrays, layout):  # holds the first two tiles' encoding until the test lets them go
+        nonlocal calls
+        calls += 1
+        if calls == 1:
+            first_started.set()
+            assert first_go.wait(10)
+        elif calls == 2:
+            second_started.set()
+            assert second_go.wait(10)
+        return encode(arrays, layout)
+
+    store = DurableStore(tmp_path, snapshot_pace=0.0)
+    again = None
+    snapshot = threading.Thread(target=lambda: None)
+    try:
+        gmap = GridMap(MapConfig())
+        store.map_created("m", gmap).result(5)
+        journal(store, gmap, [fan(0.0, n=61), fan(100.0, n=61)])
+        assert len(gmap.store) >= 2
+        monkeypatch.setattr(persistence, "tile_to_blob", held)
+        snapshot = threading.Thread(target=store.snapshot, args=("m", gmap, counters), daemon=True)
+        snapshot.start()
+        assert first_started.wait(10)  # tiles copied; the first is being encoded
+        store.map_deleted("m").result(5)
+        store.map_created("m", GridMap(MapConfig())).result(5)  # the new map: no tile
+        first_go.set()
+        assert second_started.wait(10)  # the first row is attached to the writer by now
+        store.writer.attach("SELECT 1", ()).result(5)  # committed behind it
+        # The crash, before the switch: a new store on the same directory.
+        again = DurableStore(tmp_path)
+        [(map_id, restored, _counters, replay)] = again.load()
+        assert (map_id, len(restored.store), len(replay)) == ("m", 0, 0)
+    finally:
+        first_go.set()
+        second_go.set()
+        if again is not None:
+            again.close()
+        snapshot.join(10)
+        store.close()

@@ -670,3 +670,147 @@ def test_an_integration_bug_is_counted_every_time_and_its_traceback_logged_rate_
     bugs = [r for r in caplog.records if "integration of m/r seq" in r.getMessage()]
     assert len(bugs) == 1, [r.getMessage() for r in bugs]
     assert bugs[0].exc_info is not None and "KeyError" in bugs[0].getMessage()
+
+
+def test_a_snapshot_pass_never_stores_a_map_replaced_after_it_listed_the_maps(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`snapshot_all` lists the maps, then snapshots them one after the other (seconds, for big
+    maps). A map deleted and created again (or replaced by an upload) meanwhile must not be stored
+    from the old map's entry: that snapshot passed the incarnation check (the id's current creation
+    time was read from the old entry's turn), so the new map's stored snapshot got the old map's
+    tiles and counters, and its snapshot clock, so that later snapshots skipped the new map's own
+    tiles. After a restart the new map held the deleted map's cells and lost its own."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    try:
+        registry.create("a", wait=True)
+        old, _ = registry.create("m", wait=True)
+        for map_id, x in (("a", 0.0), ("m", 0.0)):
+            registry.submit(map_id, "r", WireScan(0, 0.0, scan_at(x)), wait=True).result(5)
+        old.gmap.integrate(scan_at(200.0))  # (more of the old map's tiles; journaled or not is no matter)
+        snapshot = registry.durable.snapshot  # type: ignore[union-attr]
+        replaced: list[str] = []
+
+        def snapshot_then_replace(map_id: str, *args: Any, **kwargs: Any) -> int:
+            # The pass listed both maps; while it stores "a", "m" is deleted and created again, and
+            # the new map takes a scan of its own far from the old one's.
+            if map_id == "a" and not replaced:
+                replaced.append(map_id)
+                registry.delete("m", wait=True)
+                registry.create("m", wait=True)
+                registry.submit("m", "s", WireScan(0, 0.0, scan_at(-100.0)), wait=True).result(5)
+            return snapshot(map_id, *args, **kwargs)
+
+        monkeypatch.setattr(registry.durable, "snapshot", snapshot_then_replace)
+        registry.snapshot_all()
+        assert replaced
+        monkeypatch.undo()
+        new = registry.get("m")
+        assert new is not old
+        registry.submit("m", "s", WireScan(1, 0.0, scan_at(-100.5)), wait=True).result(5)
+        want = _tiles(new.gmap)
+        want_robots = set(new.robots)
+    finally:
+        registry.close()  # its final snapshot stores the new map
+    with _restarted(tmp_path) as again:
+        restored = again.get("m")
+        got = _tiles(restored.gmap)
+        assert set(got) == set(want)  # none of the old map's tiles
+        for key, arrays in want.items():
+            for name, array in arrays.items():
+                np.testing.assert_array_equal(got[key][name], array)
+        assert set(restored.robots) == want_robots == {"s"}
+
+
+def _tiles(gmap: GridMap) -> dict[tuple[int, int], dict[str, np.ndarray]]:
+    """Copies of every tile of `gmap`: key -> array name -> cells."""
+    store = gmap.store
+    with gmap.lock:
+        return {
+            key: {a.name: store.pools[a.name][slot].copy() for a in store.arrays}
+            for key, slot in store.slots.items()
+        }
+
+
+def test_a_map_created_again_right_after_a_snapshot_switch_keeps_its_own_snapshot_state(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The snapshot thread records what a snapshot stored (the map's clock, its journal rows counted
+    from zero) once the writer has committed the switch. A map deleted and created again in between
+    got the OLD map's clock recorded as its own: its next snapshots skipped every tile of its own
+    whose version was below it, while the journal rows those tiles came from were trimmed, so a
+    restart lost them."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    durable = registry.durable
+    assert durable is not None
+    try:
+        registry.create("m", wait=True)
+        for seq in range(3):  # the old map's clock: above the new map's first versions
+            registry.submit("m", "r", WireScan(seq, 0.0, scan_at(0.1 * seq)), wait=True).result(5)
+        run = durable.writer.run
+        recreated: list[bool] = []
+
+        def run_then_recreate(op: Any) -> Any:
+            result = run(op)
+            if getattr(op, "__name__", "") == "switch" and not recreated:
+                # Committed; the snapshot thread has not recorded it yet.
+                recreated.append(True)
+                registry.delete("m", wait=True)
+                registry.create("m", wait=True)
+            return result
+
+        monkeypatch.setattr(durable.writer, "run", run_then_recreate)
+        registry.snapshot_all()
+        monkeypatch.undo()
+        assert recreated
+        registry.submit("m", "s", WireScan(0, 0.0, scan_at(-100.0)), wait=True).result(5)
+        registry.snapshot_all()  # stores the new map's tile, and trims its journal row
+        want = _tiles(registry.get("m").gmap)
+        assert want
+    finally:
+        _crash(registry)
+    with _restarted(tmp_path) as again:
+        got = _tiles(again.get("m").gmap)
+        assert set(got) == set(want)
+        for key, arrays in want.items():
+            for name, array in arrays.items():
+                np.testing.assert_array_equal(got[key][name], array)
+
+
+def test_a_put_that_finds_the_map_answers_once_the_maps_creation_is_stored(tmp_path: Path) -> None:
+    """Two PUT /maps/{id} at once (or a PUT right after a robot's first scan created the map): the
+    one that finds the map created answers 200 "exists". It answered at once, while the creation
+    still waited for the journal writer, so a crash right after that answer lost the map the client
+    was told exists. Now it answers once the creation is committed, as the creating PUT does."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    durable = registry.durable
+    assert durable is not None
+    held, go = threading.Event(), threading.Event()
+    try:
+
+        def busy(_conn: sqlite3.Connection) -> None:
+            held.set()
+            assert go.wait(10)
+
+        durable.writer.submit(busy)  # the writer is busy: the creation waits behind this
+        assert held.wait(5)
+        first: list[bool] = []
+        creating = threading.Thread(target=lambda: first.append(registry.create("m", wait=True)[1]))
+        creating.start()
+        while "m" not in registry.maps:
+            time.sleep(0.001)
+        second: list[bool] = []
+        finding = threading.Thread(target=lambda: second.append(registry.create("m", wait=True)[1]))
+        finding.start()
+        finding.join(0.3)
+        assert finding.is_alive() and not second  # not answered while the map is not stored
+        go.set()
+        creating.join(5)
+        finding.join(5)
+        assert (first, second) == ([True], [False])
+    finally:
+        go.set()
+        registry.close()

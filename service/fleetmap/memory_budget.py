@@ -4,8 +4,9 @@
 or robots mapping new ground make it grow until the operating system kills it. Each `TileStore`
 charged to a budget (`TileStore.charge`) reserves the bytes of every pool growth before it
 allocates; when the budget cannot cover the tiles a scan needs, the scan is refused whole with a
-`MemoryBudgetError` and its map is unchanged. A store's bytes return to the budget when the store is
-freed (a map deleted or replaced).
+`MemoryBudgetError` and its map is unchanged. A store's bytes return to the budget when its map is
+deleted or replaced (`TileStore.uncharge`, even while a reader still holds it), or else when the
+store is freed.
 """
 
 from __future__ import annotations

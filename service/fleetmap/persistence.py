@@ -212,6 +212,11 @@ class DurableStore:
         self._last_gen = 0
         self._gen_lock = threading.Lock()
         self._created: dict[str, float] = {}
+        # Guards what a map's incarnation owns of the dicts above when a thread other than the one
+        # that (re)created or deleted the map writes them: the writer's scan callbacks and the
+        # snapshot thread check `_created` and write in one hold, so a map deleted and created again
+        # in between does not get the old map's snapshot clock or journal id (see `_write_snapshot`).
+        self._maps_lock = threading.Lock()
         # Only checkpoints: a checkpoint takes no write lock, so it runs beside the journal's commits.
         self._snapshot_conn = connect(self.path, synchronous="NORMAL", autocheckpoint=False)
 
@@ -327,7 +332,10 @@ class DurableStore:
         config_json, clock = gmap.config.model_dump_json(), gmap.store.clock
         gen = self._next_gen()
         created = time.time()
-        self._created[map_id] = created
+        with self._maps_lock:
+            self._created[map_id] = created
+            self._rows_since[map_id] = 0
+            self._snapshot_clock[map_id] = clock
 
         first_attempt = True
 
@@ -352,8 +360,6 @@ class DurableStore:
             conn.execute("COMMIT")
             self._last_journal_id[map_id] = 0
 
-        self._rows_since[map_id] = 0
-        self._snapshot_clock[map_id] = clock
         return self.writer.change_map(map_id, self._reporting(f"storing the new map {map_id!r} failed", op))
 
     def map_deleted(self, map_id: str) -> Future:
@@ -372,8 +378,9 @@ class DurableStore:
         # the service's whole life (and a scan refused for a map it created removes that map again),
         # so entries kept for every id ever seen would grow without end. `journal`'s callbacks of
         # its last scans, committed after this, leave them alone (see there).
-        for d in (self._rows_since, self._snapshot_clock, self._created, self._last_journal_id):
-            d.pop(map_id, None)
+        with self._maps_lock:
+            for d in (self._rows_since, self._snapshot_clock, self._created, self._last_journal_id):
+                d.pop(map_id, None)
         self._forget_health(map_id)
         return self.writer.change_map(map_id, self._reporting(f"deleting map {map_id!r} failed", op))
 
@@ -390,6 +397,12 @@ class DurableStore:
                 raise
 
         return reported
+
+    def map_stored(self, map_id: str) -> Future:
+        """A future resolved once every change of map `map_id` queued so far is stored (its creation
+        may still be queued), retrying the last one if it failed; it fails with the error if that
+        still does not commit."""
+        return self.writer.retry(map_id)
 
     def retry_map_change(self, map_id: str) -> Future | None:
         """If the last change of map `map_id` is not stored (`map_changes_not_stored`), retry it: the
@@ -419,9 +432,10 @@ class DurableStore:
         def durable(row_id: int) -> None:
             # Committed after its map was deleted (its removal queued behind it), or deleted and
             # created again: its row is gone with the old map, and nothing of it is counted.
-            if self._created.get(map_id) == incarnation:
-                self._last_journal_id[map_id] = row_id
-                self._rows_since[map_id] = self._rows_since.get(map_id, 0) + 1
+            with self._maps_lock:
+                if self._created.get(map_id) == incarnation:
+                    self._last_journal_id[map_id] = row_id
+                    self._rows_since[map_id] = self._rows_since.get(map_id, 0) + 1
             self._journal_error = None
             on_durable(row_id)
 
@@ -458,11 +472,19 @@ class DurableStore:
 
     # -- snapshots -------------------------------------------------------------------------------------
 
-    def snapshot(self, map_id: str, gmap: GridMap, counters: Callable[[], dict]) -> int:
+    def snapshot(
+        self,
+        map_id: str,
+        gmap: GridMap,
+        counters: Callable[[], dict],
+        current: Callable[[], bool] | None = None,
+    ) -> int:
         """Write the tiles changed since the last snapshot and truncate the journal; returns the number
-        of tiles written. A failure (an `sqlite3.Error` or `OSError`, or a `StorageError` while the
-        map's own change is not stored) is recorded for `health` and raised; the next snapshot then
-        writes every tile changed since the last one that succeeded.
+        of tiles written. `current()`, called under the map's lock, says whether `gmap` is still map
+        `map_id` (None: it is); if not (deleted or replaced since the caller looked it up), nothing
+        is written and 0 returned. A failure (an `sqlite3.Error` or `OSError`, or a `StorageError`
+        while the map's own change is not stored) is recorded for `health` and raised; the next
+        snapshot then writes every tile changed since the last one that succeeded.
 
         Under the map's lock the changed tiles are copied and a marker is queued behind every scan
         applied so far; the writer runs the marker after committing (and counting) exactly those
@@ -476,7 +498,7 @@ class DurableStore:
         generation and its journal intact (the new rows are ignored and removed at start). Nothing
         here waits on the writer while holding a lock."""
         try:
-            return self._write_snapshot(map_id, gmap, counters)
+            return self._write_snapshot(map_id, gmap, counters, current)
         # StorageError: its tile rows were held back, the map's own creation not being stored yet.
         except (sqlite3.Error, OSError, StorageError) as exc:
             message = self._failure(f"snapshot of map {map_id!r} failed", exc, "snapshot")
@@ -484,13 +506,22 @@ class DurableStore:
                 self._snapshot_errors[map_id] = message
             raise
 
-    def _write_snapshot(self, map_id: str, gmap: GridMap, counters: Callable[[], dict]) -> int:
+    def _write_snapshot(
+        self, map_id: str, gmap: GridMap, counters: Callable[[], dict], current: Callable[[], bool] | None
+    ) -> int:
         with self._snapshot_lock:
             with gmap.lock:
                 since = self._snapshot_clock.get(map_id, 0)
+                created = self._created.get(map_id)
+                # Both were read per map id: once `gmap` is no longer the map of that id, they are
+                # another map's, and the switch would store this old map's tiles and counters as the
+                # new map's snapshot (and its clock, so that the new map's own tiles were skipped by
+                # its later snapshots). Checked after reading them: a map current now was current
+                # then (a map never comes back), so they are its own.
+                if current is not None and not current():
+                    return 0
                 copies = changed_tiles(gmap, since)
                 clock = gmap.store.clock
-                created = self._created.get(map_id)
                 # On the writer, after the scans applied so far and before any later one: the
                 # journal id and counters of exactly the copied tiles, and how many of those scans'
                 # commits failed (the copy holds them, so this snapshot makes them durable).
@@ -508,11 +539,15 @@ class DurableStore:
             for key, version, arrays in copies:
                 started = time.perf_counter()
                 blob = tile_to_blob(arrays, layout)
+                # Only while the map is the incarnation copied: a map deleted and created again
+                # meanwhile has no row of this generation, and the switch would drop these rows,
+                # but a crash before it left them, the newest of their tiles, in the new map.
                 written.append(
                     self.writer.attach(
                         "INSERT OR REPLACE INTO tiles (map_id, ti, tj, gen, version, data) "
-                        "VALUES (?, ?, ?, ?, ?, ?)",
-                        (map_id, key[0], key[1], gen, version, blob),
+                        "SELECT ?, ?, ?, ?, ?, ? WHERE EXISTS "
+                        "(SELECT 1 FROM maps WHERE id = ? AND created_at = ?)",
+                        (map_id, key[0], key[1], gen, version, blob, map_id, created),
                         map_id=map_id,
                     )
                 )
@@ -555,8 +590,12 @@ class DurableStore:
                 return True
 
             if self.writer.run(switch):
-                self._snapshot_clock[map_id] = clock
-                self._rows_since[map_id] = 0
+                with self._maps_lock:
+                    # Not if the map was deleted (and created again) since the switch committed:
+                    # a new map's clock set to the old one's made its next snapshots skip its tiles.
+                    if self._created.get(map_id) == created:
+                        self._snapshot_clock[map_id] = clock
+                        self._rows_since[map_id] = 0
                 with self._health_lock:
                     self._journal_error = None  # the writer's transactions commit again
                     self._snapshot_errors.pop(map_id, None)

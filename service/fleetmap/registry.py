@@ -329,13 +329,22 @@ class MapRegistry:
             needed = self.durable.needs_snapshot(entry.id)
             if every_map or (needed and (not only_overdue or self.durable.overdue(entry.id))):
                 counters = functools.partial(self._saved_counters, entry)
+                # Listed above, perhaps seconds ago (each snapshot takes its time): the map may have
+                # been deleted or replaced since, and a new map of its id must not get its snapshot.
+                current = functools.partial(self._is_current, entry)
                 try:
-                    self.durable.snapshot(entry.id, entry.gmap, counters)
+                    self.durable.snapshot(entry.id, entry.gmap, counters, current)
                 except (sqlite3.Error, OSError, StorageError) as exc:
                     self._snapshot_log.error(
                         "snapshot", f"snapshot of map {entry.id} failed (retried at the next one): {exc}",
                         map_id=entry.id,
                     )  # fmt: skip
+
+    def _is_current(self, entry: MapEntry) -> bool:
+        """Whether `entry` is still the map of its id (not deleted or replaced). Called under the
+        map's lock (`DurableStore.snapshot`): the registry's comes second, the one order they nest in."""
+        with self.lock:
+            return self.maps.get(entry.id) is entry
 
     def _saved_counters(self, entry: MapEntry) -> dict:
         with self.lock:
@@ -356,8 +365,8 @@ class MapRegistry:
         expect: Expectation | None = None,
     ) -> tuple[MapEntry, bool]:
         """Create a map, or return the existing one if its configuration is the same.
-        Returns (entry, created). Raises MapConflict for a different configuration. With `wait`, a
-        new map is committed to storage before this returns (else NotDurable). `by_scan`: created
+        Returns (entry, created). Raises MapConflict for a different configuration. With `wait`, the
+        map, new or found, is committed to storage before this returns (else NotDurable). `by_scan`: created
         for a scan (auto-create), its log line rate-limited. `expect(existing)` is called with the
         map of that id (None if none) under the registry's lock before anything changes: whatever it
         raises propagates with nothing changed (a conditional write's precondition)."""
@@ -375,8 +384,10 @@ class MapRegistry:
                     )
                 existing.provisional = False  # asked for by name: it stays even if its scans are refused
                 if wait and self.durable is not None:
-                    # A client retrying after it was told the map was not stored: answered once it is.
-                    stored = self.durable.retry_map_change(map_id)
+                    # Answered once the map is stored, as the PUT that created it is: its creation may
+                    # still wait for the journal writer (a concurrent PUT's, a robot's first scan's),
+                    # or have failed (a client retrying after a 503: retried now).
+                    stored = self.durable.map_stored(map_id)
                 entry, created = existing, False
             else:
                 entry = MapEntry(map_id, self._charged(GridMap(config)), next(self._generations))
@@ -495,6 +506,10 @@ class MapRegistry:
         this map id is of this map."""
         del self.maps[entry.id]
         entry.retired = True
+        # Its bytes go back to the budget now, not once the last reader lets go of the map: a scan
+        # sent again after the DELETE that made room was refused 507 while a viewer's event stream
+        # still held the map. Retired, it never grows again (no scan is applied to it).
+        entry.gmap.store.uncharge()
         return self.queue.drop_source(lambda source: source[0] == entry.id)
 
     def _remove_unclaimed(self, entry: MapEntry) -> Future | None:

@@ -187,6 +187,14 @@ class TileStore:
         budget.reserve_anyway(self._charged[0])
         weakref.finalize(self, budget.release, self._charged)
 
+    def uncharge(self) -> None:
+        """Hand the bytes this store holds back to its budget now, before the store is freed: for a
+        map that is gone (deleted or replaced) and never grows again, while readers that still hold
+        it (an event stream until its next poll, a download until it ends) finish. A growth after
+        this would be charged again, and handed back when the store is freed."""
+        if self.budget is not None:
+            self.budget.release(self._charged)
+
     def _grow(self, capacity: int, needed: int = 0) -> None:
         """Make room for `capacity` tiles (at least `needed`, fewer when the budget runs short)."""
         if self.budget is not None:

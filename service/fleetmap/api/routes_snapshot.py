@@ -119,17 +119,27 @@ async def install_upload(
         free += replaced.gmap.memory_bytes()
     config = None if replaced is None else replaced.gmap.config
     gmap = await asyncio.to_thread(read, config, free)
+    # Whether a map was replaced is known only where it is, under the registry's lock: the map
+    # looked up above, before the upload was read (seconds, for a big one), may have been created,
+    # deleted or replaced by another writer since, and a 201 Created for an upload that replaced
+    # another writer's map (or a 200 for one that found none) misinformed the client.
+    check = conditions.expectation(map_id)
+    found: list[MapEntry | None] = []
+
+    def expect(old: MapEntry | None) -> None:
+        if check is not None:
+            check(old)
+        found.append(old)
+
     # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
     try:
-        entry = await asyncio.to_thread(
-            state.registry.replace, map_id, gmap, wait=True, expect=conditions.expectation(map_id)
-        )
+        entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True, expect=expect)
     except ApiError:  # a precondition failed: the old map is untouched, its tiles still good
         raise
     except BaseException:  # also when it could not be stored: the old map's tiles are gone all the same
         state.tiles.drop_map(map_id)
         raise
     state.tiles.drop_map(map_id)
-    created_status(response, map_id, created=replaced is None)
+    created_status(response, map_id, created=found[-1] is None)
     tag_map(response, entry)
     return map_info(entry, state.registry.lock)
