@@ -122,9 +122,23 @@ def map_image(gmap: GridMap, window: Window, pixels: Callable[[np.ndarray], np.n
     return image[::-1]
 
 
+def map_state(gmap: GridMap, window: Window) -> np.ndarray:
+    """The trinary `state` codes (`STATE_UNKNOWN` / `STATE_FREE` / `STATE_OCCUPIED`, uint8, row 0 =
+    lowest y) of `map_probability` by the map's thresholds, the classification the nav2 files show:
+    made over strips of `IMAGE_STRIP_ROWS` rows, so only a strip's probabilities are ever held, and
+    the map's lock is held for one strip's copy at a time. Raises LayerUnavailableError for a
+    TSDF-only map."""
+    ny, nx = window.shape
+    state = np.empty((max(ny, 0), max(nx, 0)), dtype=np.uint8)
+    for j in range(window.j0, window.j1, IMAGE_STRIP_ROWS):
+        strip = Window(window.i0, j, window.i1, min(j + IMAGE_STRIP_ROWS, window.j1))
+        state[j - window.j0 : strip.j1 - window.j0] = gmap.classify_probability(map_probability(gmap, strip))
+    return state
+
+
 def nav2_files(gmap: GridMap, window: Window, name: str = "map") -> dict[str, bytes]:
-    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, of `map_probability`."""
-    image = map_image(gmap, window, lambda p: state_to_pgm(gmap.classify_probability(p))[::-1])
+    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, of `map_state`."""
+    image = state_to_pgm(map_state(gmap, window))
     yaml_text = nav2_yaml(f"{name}.pgm", gmap.resolution, window.origin(gmap.resolution))
     return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(image)}
 
