@@ -360,6 +360,52 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         help="the longest an HTTP request waits for the ingest backlog; then it is served (default 1000)",
     )
     p.add_argument(
+        "--ros-publish-map",
+        nargs="+",
+        action=_RepeatedOption,
+        type=_map_topic,
+        default=[],
+        metavar="MAP_ID[=TOPIC]",
+        help=(
+            "publish this map to ROS 2 (rmw_zenoh) as a nav_msgs/msg/OccupancyGrid on TOPIC (default "
+            "/map), as nav2's map_server does (TRANSIENT_LOCAL), whole, when it changed, on the service's "
+            "Zenoh session; repeatable (see docs/ros.md). Off by default"
+        ),
+    )
+    p.add_argument(
+        "--ros-domain",
+        type=_int_between(0, 232),
+        default=0,
+        metavar="N",
+        help="the ROS 2 domain id (ROS_DOMAIN_ID) of the ROS 2 topics (default 0)",
+    )
+    p.add_argument(
+        "--ros-map-frame",
+        type=_ros_frame,
+        default="map",
+        metavar="FRAME",
+        help="header.frame_id of the published maps (default map)",
+    )
+    p.add_argument(
+        "--ros-map-period",
+        type=_seconds_between(0.05, 3600.0),
+        default=1.0,
+        metavar="S",
+        help=(
+            "seconds between checks of the published maps: a map that changed is published again at "
+            "most this often, one that did not is not sent again (default 1)"
+        ),
+    )
+    p.add_argument(
+        "--ros-distro",
+        choices=("jazzy", "humble"),
+        default="jazzy",
+        help=(
+            "ROS 2 distribution of the subscribers, for the type hash in the topic's key: jazzy "
+            "(default; also Kilted and Rolling) or humble (rmw_zenoh's backport, without type hashes)"
+        ),
+    )
+    p.add_argument(
         "--log-level",
         choices=LOG_LEVELS,
         default="info",
@@ -421,6 +467,10 @@ def _environment_first(parser: argparse.ArgumentParser) -> Callable[..., Any]:
                 namespace = parse(_as_arguments(action, text), namespace)[0]
             except argparse.ArgumentError as exc:
                 problem = problem or f"${variable}={text!r}: {exc.message}"
+            else:
+                if isinstance(action, _RepeatedOption):
+                    values = getattr(namespace, action.dest)
+                    setattr(namespace, action.dest, _FromEnvironment(values))
         try:
             namespace, extras = parse(args, namespace)
         except argparse.ArgumentError as exc:
@@ -445,6 +495,43 @@ def _as_arguments(action: argparse.Action, text: str) -> list[str]:
     if action.nargs == "+":
         return [option, *text.split()] if text.split() else []
     return [f"{option}={text}"]
+
+
+class _FromEnvironment(list):
+    """The values a repeatable option got from its FLEETMAP_ variable (see `_RepeatedOption`)."""
+
+
+class _RepeatedOption(argparse.Action):
+    """An option that may be given several times, each with one or more values, all kept in order
+    (`--ros-publish-map a --ros-publish-map b c`: a, b, c). Its variable gives values separated by
+    spaces; the command line's first occurrence replaces those (the command line wins, as for every
+    option) rather than adding to them."""
+
+    def __call__(
+        self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any, option: Any = None
+    ) -> None:
+        current = getattr(namespace, self.dest, None)
+        kept = [] if current is None or isinstance(current, _FromEnvironment) else list(current)
+        setattr(namespace, self.dest, kept + list(values))
+
+
+def _map_topic(text: str) -> Any:
+    """An argparse `type` for `--ros-publish-map`: `MAP_ID[=TOPIC]` as a `MapTopic`."""
+    from fleetmap.ros.map_publisher import parse_map_topic
+
+    try:
+        return parse_map_topic(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _ros_frame(text: str) -> str:
+    """An argparse `type` for `--ros-map-frame`: a tf2 frame id (no spaces; tf2 takes it without a
+    leading /)."""
+    frame = text.strip()
+    if not frame or any(c.isspace() for c in frame) or frame.startswith("/"):
+        raise argparse.ArgumentTypeError(f"expected a frame id such as map, got {text!r}")
+    return frame
 
 
 def _load_tokens(path: str | None) -> TokenSet | TokenFile | None:
@@ -729,11 +816,13 @@ def run(args: argparse.Namespace) -> int:
             assert durable is not None  # only a durable registry reads storage at start
             durable.close()
             raise CliError(str(exc)) from None
+        ros_maps: Any = None
         try:
             try:
                 ingest.start()
             except IngestStartError as exc:
                 raise CliError(str(exc)) from None
+            ros_maps = _start_ros_maps(args, registry, ingest)
             settings = options.settings_cls(
                 zenoh_status=ingest.status,
                 cors_origins=args.cors_origin,
@@ -755,6 +844,8 @@ def run(args: argparse.Namespace) -> int:
         finally:
             sock.close()
             log.info("shutting down: closing the Zenoh session, integrating queued scans")
+            if ros_maps is not None:
+                ros_maps.close()  # before the session it publishes on
             ingest.close()
             registry.close()
     finally:
@@ -766,6 +857,26 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, signal.SIG_IGN)
     log.info("stopped")
     return 0
+
+
+def _start_ros_maps(args: argparse.Namespace, registry: Any, ingest: ZenohIngest) -> Any:
+    """The `RosMapPublisher` of the `--ros-publish-map` maps on the ingest's session, started; None
+    when no map is published to ROS 2."""
+    if not args.ros_publish_map:
+        return None
+    from fleetmap.ros.map_publisher import RosMapOptions, RosMapPublisher
+
+    assert ingest.session is not None  # started
+    options = RosMapOptions(
+        topics=tuple(args.ros_publish_map),
+        domain_id=args.ros_domain,
+        frame_id=args.ros_map_frame,
+        period=args.ros_map_period,
+        distro=args.ros_distro,
+    )
+    publisher = RosMapPublisher(registry, ingest.session, options)
+    publisher.start()
+    return publisher
 
 
 def _configure_process(args: argparse.Namespace) -> None:
@@ -802,6 +913,9 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
     if not (args.world_bound > 0 and args.max_range > 0):
         raise CliError("--world-bound and --max-range must be positive")
     configure_limits(InputLimits(args.world_bound, args.max_beams, args.max_range))
+    topics = [spec.topic for spec in args.ros_publish_map]
+    if len(set(topics)) < len(topics):
+        raise CliError("--ros-publish-map: two maps on one ROS topic; give each its own (MAP_ID=TOPIC)")
     tokens = _load_tokens(args.auth_tokens)
     if tokens is None and args.require_read_token:
         # Without tokens there is nothing to check: reads were served to anyone, silently.
