@@ -18,7 +18,7 @@ from PIL import Image
 from rosbags.typesys import Stores, get_typestore
 
 from fleetmap import GridMap, MapConfig, Scan
-from fleetmap.export import Window, known_window, nav2_files
+from fleetmap.export import Window, known_window, map_state, nav2_files, tile_blocks
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED
 from fleetmap.ros.graph import MAP_QOS, Qos, RosNode, entity_gid, mangle, qos_keyexpr
 from fleetmap.ros.map_publisher import MapTopic, parse_map_topic, type_hash
@@ -133,6 +133,47 @@ def test_a_counts_only_map_shows_its_count_model_as_the_export_does() -> None:
 def test_an_empty_window_is_an_empty_grid() -> None:
     msg = decode(occupancy_grid(GridMap(MapConfig()), Window(0, 0, 0, 0), "map", 0))
     assert (msg.info.width, msg.info.height) == (0, 0) and len(msg.data) == 0
+
+
+class CountingLock:
+    """A map's lock that counts its outermost acquisitions (each a hold integration may wait for)."""
+
+    def __init__(self, lock: object) -> None:
+        self.lock, self.holds, self.depth = lock, 0, 0
+
+    def __enter__(self) -> None:
+        self.lock.__enter__()  # type: ignore[attr-defined]
+        self.depth += 1
+        self.holds += self.depth == 1
+
+    def __exit__(self, *exc: object) -> None:
+        self.depth -= 1
+        self.lock.__exit__(*exc)  # type: ignore[attr-defined]
+
+
+def test_the_grid_is_read_one_storage_tile_per_hold_of_the_maps_lock() -> None:
+    """Publishing must not keep integration waiting: the window's bounds and its cells are read with
+    the map's lock held for one storage tile at a time (16-cell tiles here: the room spans many)."""
+    gmap = room_map(MapConfig(resolution=0.05, tile_size=16))
+    window = known_window(gmap)
+    assert window is not None
+    tiles = len(gmap.store.slots)
+    blocks = list(tile_blocks(window, 16))
+    assert all(b.i0 // 16 == (b.i1 - 1) // 16 and b.j0 // 16 == (b.j1 - 1) // 16 for b in blocks)
+    assert sum(b.shape[0] * b.shape[1] for b in blocks) == window.shape[0] * window.shape[1]
+    expected = map_state(gmap, window)
+
+    lock = gmap.lock = CountingLock(gmap.lock)  # type: ignore[assignment]
+    assert np.array_equal(map_state(gmap, window), expected)
+    assert lock.holds == len(blocks) > 50
+    # Bounds: one hold for the tile list, then one per tile changed since the last call.
+    gmap._tile_bounds.clear()
+    lock.holds = 0
+    assert known_window(gmap) == window
+    assert lock.holds == 1 + tiles
+    lock.holds = 0
+    assert known_window(gmap) == window
+    assert lock.holds == 1
 
 
 # -- graph tokens --------------------------------------------------------------------------------------
