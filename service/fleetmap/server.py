@@ -3,12 +3,15 @@
     fleetmap serve [--http HOST:PORT] [--zenoh-listen EP ...] [--zenoh-connect EP ...]
                    [--zenoh-config FILE.json5] [--data-dir DIR] [--config FILE] [--no-auto-create]
                    [--workers N] [--ingest-backlog-ms MS] [--max-read-delay-ms MS]
+                   [--ros-publish-map MAP_ID[=TOPIC] ...] [--ros-domain N] [--ros-map-frame FRAME]
+                   [--ros-map-period S] [--ros-distro jazzy|humble]
                    [--log-level LEVEL] [--log-format text|json] [--access-log]
 
 One process holds everything: a `MapRegistry` (maps, robots, integration worker threads), a
 `ZenohIngest` (the service's own Zenoh session: a router by default, so robots connect to it
 directly in client mode and nothing else needs installing) and the REST API (`fleetmap.api`) run by
-uvicorn in the main thread.
+uvicorn in the main thread; with `--ros-publish-map`, a `RosMapPublisher` (fleetmap.ros.map_publisher)
+publishes maps to ROS 2 on the same Zenoh session from a thread of its own.
 
 Start-up order: the HTTP socket is bound first (so a port in use fails before anything else starts),
 the compiled kernels are warmed, the registry's workers start, the Zenoh session opens, then uvicorn
