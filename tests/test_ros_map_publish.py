@@ -15,11 +15,13 @@ under `@ros2_lv/<domain>/**`.
 from __future__ import annotations
 
 import io
+import logging
 import threading
 import time
 import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -29,9 +31,12 @@ import zenoh
 import zenoh.ext
 from PIL import Image
 from rosbags.typesys import Stores, get_typestore
-from service_process import ServiceProcess, wait_for
+from service_process import ServiceProcess, free_port, wait_for
 
 from fleetmap.codec import JSON_ENCODING, encode_json
+from fleetmap.config import MapConfig
+from fleetmap.registry import MapRegistry
+from fleetmap.ros.map_publisher import MapTopic, RosMapOptions, RosMapPublisher
 from fleetmap.ros.rmw_zenoh import Attachment, decode_attachment
 from fleetmap.scan import Scan
 
@@ -210,6 +215,10 @@ def test_the_graph_shows_the_node_and_its_publisher_and_a_deleted_map_is_no_long
     )
     assert sub.tokens() == [node, publisher]
 
+    snapshot = robot.client.get("/maps/lab/snapshot")
+    assert snapshot.status_code == 200
+    before = grid_cells(sub.received()[-1].grid)
+
     # Deleted: the publisher and its token go (the node stays), nothing more is sent, and a
     # subscriber that joins now gets no stale map from a cache.
     assert robot.client.delete("/maps/lab").status_code == 204
@@ -219,15 +228,121 @@ def test_the_graph_shows_the_node_and_its_publisher_and_a_deleted_map_is_no_long
     time.sleep(4 * PERIOD)
     assert late.received() == [] and len(sub.received()) == count
 
-    # Created again by a scan: published again, to both.
-    robot.post(room_scan(3.0, 2.0))
+    # Created again by a scan (the same one: the new map's tile clock equals the old one's, so only
+    # its being another map tells it apart): published again, to both.
+    robot.post(room_scan(1.0, 1.0))
     wait_for(lambda: late.received() and len(sub.received()) > count, timeout=5, what="the new map")
     assert sub.tokens() == [node, publisher]
+
+    # Restored from the snapshot taken before the deletion (the same cells and clock again): that
+    # map is published again.
+    count = len(sub.received())
+    r = robot.client.put(
+        "/maps/lab/snapshot", content=snapshot.content, headers={"content-type": "application/zip"}
+    )
+    assert r.status_code == 200, r.text
+    restored = wait_for(lambda: sub.received()[count:], timeout=5, what="the restored map")[-1]
+    assert np.array_equal(grid_cells(restored.grid), before)
     sequence = [r.attachment.sequence_number for r in sub.received()]
     assert sequence == sorted(sequence) and len(set(sequence)) == len(sequence)
 
 
+def test_a_stored_map_is_published_at_start(
+    tmp_path: Path, subscribers: Callable[[str], RosSubscriber]
+) -> None:
+    data = tmp_path / "data"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        robot = Robot(svc)
+        for x, y in [(1.0, 1.0), (3.0, 2.0)]:
+            robot.post(room_scan(x, y))
+        cells, origin = export_cells(robot.client)
+    # Started again with the map published: it is there before any scan arrives.
+    args = ["--data-dir", str(data), "--ros-publish-map", "lab=/fleet/lab_map", "--ros-map-frame", "world"]
+    with ServiceProcess(tmp_path, args) as svc:
+        sub = RosSubscriber(svc.zenoh_endpoint, KEY.replace("/map/", "/fleet/lab_map/"))
+        try:
+            grid = wait_for(sub.received, timeout=10, what="the stored map")[0].grid
+        finally:
+            sub.close()
+    assert grid.header.frame_id == "world"
+    assert np.array_equal(grid_cells(grid), cells)
+    assert (grid.info.origin.position.x, grid.info.origin.position.y) == origin
+
+
+@dataclass
+class InProcess:
+    registry: MapRegistry
+    router: zenoh.Session
+    endpoint: str
+
+
+@pytest.fixture
+def in_process() -> Iterator[InProcess]:
+    """A registry (in memory) and a Zenoh router session, for a `RosMapPublisher` run in the test."""
+    registry = MapRegistry(MapConfig(resolution=0.05), workers=1)
+    registry.start()
+    port = free_port()
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"router"')
+    cfg.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    router = zenoh.open(cfg)
+    yield InProcess(registry, router, f"tcp/127.0.0.1:{port}")
+    router.close()
+    registry.close()
+
+
+def test_humble_subscribers_get_their_key_and_gid_and_unpublishable_maps_are_skipped(
+    in_process: InProcess, caplog: pytest.LogCaptureFixture
+) -> None:
+    """`--ros-distro humble` publishes on Humble's key (no type hash) with 24-byte gids; a TSDF-only
+    map and a map past the cell bound are not published, and the log says so."""
+    registry = in_process.registry
+    topics = (MapTopic("a", "/a"), MapTopic("tsdf", "/tsdf"), MapTopic("big", "/big"))
+    options = RosMapOptions(topics, domain_id=5, period=0.1, distro="humble", max_cells=1000)
+    publisher = RosMapPublisher(registry, in_process.router, options)
+    humble = "5/a/nav_msgs::msg::dds_::OccupancyGrid_/TypeHashNotSupported"
+    sub = RosSubscriber(in_process.endpoint, humble)
+    try:
+        assert publisher.topics[0].key == humble
+        for map_id, config in [
+            ("a", MapConfig(resolution=0.5)),
+            ("tsdf", MapConfig(resolution=0.5, layers=["tsdf"])),
+            ("big", MapConfig(resolution=0.05)),
+        ]:
+            registry.create(map_id, config)[0].gmap.integrate(room_scan(1.0, 1.0))
+        with caplog.at_level(logging.WARNING, logger="fleetmap.ros"):
+            publisher.start()
+            received = wait_for(sub.received, timeout=5, what="the grid on Humble's key")
+            time.sleep(0.5)
+        assert len(received[0].attachment.source_gid) == 24
+        assert [t.published for t in publisher.topics] == [1, 0, 0]
+        assert "keeps only the TSDF" in caplog.text and "more than the 1000 published" in caplog.text
+    finally:
+        sub.close()
+        publisher.close()
+
+
+def test_another_map_of_the_same_id_and_tile_clock_is_published(in_process: InProcess) -> None:
+    """A map deleted and made again between two checks, by the same scan, has the same tile clock:
+    it is told apart by being another map (its generation), and published."""
+    registry, scan = in_process.registry, room_scan(1.0, 1.0)
+    publisher = RosMapPublisher(registry, in_process.router, RosMapOptions((MapTopic("a"),), period=3600.0))
+    try:
+        first = registry.create("a", MapConfig(resolution=0.5))[0]
+        first.gmap.integrate(scan)
+        publisher.start()  # its first check publishes; the next would be an hour later
+        wait_for(lambda: publisher.topics[0].published == 1, timeout=5, what="the first grid")
+        assert publisher.publish_changed() == 0
+        registry.delete("a", wait=True)
+        second = registry.create("a", MapConfig(resolution=0.5))[0]
+        second.gmap.integrate(scan)
+        assert second.gmap.store.clock == first.gmap.store.clock
+        assert publisher.publish_changed() == 1
+    finally:
+        publisher.close()
+
+
 def svc_zid(client: httpx.Client) -> str:
     """The service's Zenoh session id, as its health answer reports it."""
-    body = client.get("/healthz").json()
-    return str(body["zenoh"]["zid"])
+    return str(client.get("/healthz").json()["zenoh"]["zid"])
