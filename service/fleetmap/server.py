@@ -48,7 +48,9 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple, NoReturn, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, NoReturn, TypeVar
+
+import zenoh
 
 from fleetmap.auth import TokenFile, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, parse_command_line, run_command
@@ -68,7 +70,13 @@ from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
 from fleetmap.log_format import LOG_FORMATS, UVICORN_LOG_CONFIG, configure_logging, plain_line
 from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS, DurableStore
+from fleetmap.ros.transforms import TfError, normalize_frame
 from fleetmap.scan import MAX_BEAMS
+from fleetmap.wire import is_valid_id
+
+if TYPE_CHECKING:
+    from fleetmap.registry import MapRegistry
+    from fleetmap.ros.ingest import RosScanIngest
 
 log = logging.getLogger("fleetmap.server")
 
@@ -141,6 +149,27 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
             "the config file says: it maps a 16 MiB pool per local robot and delayed each robot's "
             "first scans by up to 250 ms, while loopback TCP is fast enough)"
         ),
+    )
+    p.add_argument(
+        "--ros-scans",
+        type=_map_id,
+        metavar="MAP_ID",
+        help=(
+            "also integrate the sensor_msgs/LaserScan topics ROS 2 robots publish over rmw_zenoh into "
+            "map MAP_ID, posed by their TF (robot id: the topic's namespace; see docs/ros.md)"
+        ),
+    )
+    p.add_argument(
+        "--ros-domain",
+        type=_int_between(0, 2**32 - 1),
+        metavar="N",
+        help="the ROS domain id of --ros-scans (default $ROS_DOMAIN_ID, else 0)",
+    )
+    p.add_argument(
+        "--ros-fixed-frame",
+        type=_frame_id,
+        metavar="FRAME",
+        help="the TF frame --ros-scans' maps are built in (default map)",
     )
     p.add_argument(
         "--data-dir",
@@ -494,6 +523,42 @@ def _path(text: str) -> str:
     return text
 
 
+def _map_id(text: str) -> str:
+    """An argparse `type` for a map id: `[A-Za-z0-9_-]{1,64}`."""
+    if not is_valid_id(text):
+        raise argparse.ArgumentTypeError(f"expected a map id of 1 to 64 of A-Z a-z 0-9 _ -, got {text!r}")
+    return text
+
+
+def _frame_id(text: str) -> str:
+    """An argparse `type` for a TF frame id (tf2's form: a leading `/` dropped)."""
+    try:
+        return normalize_frame(text.strip())
+    except TfError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def ros_options(args: argparse.Namespace, environ: dict[str, str] | None = None) -> tuple[int, str] | None:
+    """(domain id, fixed frame) of `--ros-scans`, None without it. The domain: `--ros-domain`
+    (or FLEETMAP_ROS_DOMAIN), else ROS's own $ROS_DOMAIN_ID, else 0. Raises CliError for an
+    unusable $ROS_DOMAIN_ID, or --ros-domain / --ros-fixed-frame without --ros-scans."""
+    env = os.environ if environ is None else environ
+    if args.ros_scans is None:
+        if args.ros_domain is not None or args.ros_fixed_frame is not None:
+            raise CliError("--ros-domain and --ros-fixed-frame need --ros-scans MAP_ID")
+        return None
+    domain = args.ros_domain
+    if domain is None:
+        text = env.get("ROS_DOMAIN_ID", "").strip()
+        if text:
+            if not text.isdigit() or int(text) >= 2**32:
+                raise CliError(f"$ROS_DOMAIN_ID={text!r}: expected a whole number (or give --ros-domain N)")
+            domain = int(text)
+        else:
+            domain = 0
+    return domain, args.ros_fixed_frame or "map"
+
+
 def _proxy_address(text: str) -> str:
     """An argparse `type` for `--forwarded-allow-ips`: `*`, an IP address or a network (`10.0.0.0/8`;
     host bits set are cleared), as uvicorn compares them with a connection's address. uvicorn takes
@@ -697,6 +762,7 @@ def run(args: argparse.Namespace) -> int:
     # SIGHUP's default action ends the process at once (no snapshot, no clean close): `kill -HUP` or
     # systemd's ExecReload must reload the token file instead.
     signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
+    ros: RosScanIngest | None = None
     try:
         options = _checked_options(args)
         tokens = options.tokens
@@ -734,8 +800,11 @@ def run(args: argparse.Namespace) -> int:
                 ingest.start()
             except IngestStartError as exc:
                 raise CliError(str(exc)) from None
+            ros = _start_ros(args, options, registry, ingest)
             settings = options.settings_cls(
-                zenoh_status=ingest.status,
+                zenoh_status=ingest.status
+                if ros is None
+                else lambda: {**ingest.status(), "ros": ros.status()},
                 cors_origins=args.cors_origin,
                 ingest_backlog=args.ingest_backlog_ms / 1000,
                 max_read_delay=args.max_read_delay_ms / 1000,
@@ -755,6 +824,8 @@ def run(args: argparse.Namespace) -> int:
         finally:
             sock.close()
             log.info("shutting down: closing the Zenoh session, integrating queued scans")
+            if ros is not None:
+                ros.close()
             ingest.close()
             registry.close()
     finally:
@@ -782,6 +853,31 @@ def _configure_process(args: argparse.Namespace) -> None:
     sys.setswitchinterval(0.0005)
 
 
+def _zenoh_status(ingest: ZenohIngest, ros: RosScanIngest | None) -> Callable[[], dict[str, Any]]:
+    """`GET /healthz`'s `zenoh`: the session's status, with the ROS ingest's under `ros`."""
+    if ros is None:
+        return ingest.status
+    return lambda: {**ingest.status(), "ros": ros.status()}
+
+
+def _start_ros(
+    args: argparse.Namespace, options: _StartOptions, registry: MapRegistry, ingest: ZenohIngest
+) -> RosScanIngest | None:
+    """The ROS 2 scan ingest on the service's Zenoh session (`--ros-scans`), started; None without."""
+    if options.ros is None:
+        return None
+    from fleetmap.ros.ingest import RosScanIngest
+
+    assert ingest.session is not None  # started
+    domain, frame = options.ros
+    ros = RosScanIngest(registry, ingest.session, args.ros_scans, domain_id=domain, fixed_frame=frame)
+    try:
+        ros.start()
+    except zenoh.ZError as exc:
+        raise CliError(f"cannot subscribe to ROS 2 topics: {exc}") from None
+    return ros
+
+
 class _StartOptions(NamedTuple):
     """What `run` starts from, read from the options by `_checked_options`."""
 
@@ -791,6 +887,7 @@ class _StartOptions(NamedTuple):
     create_app: Any  # fleetmap.api.app's, and ...
     settings_cls: Any  # ... its ApiSettings (`_load_api`)
     tokens: TokenSet | TokenFile | None
+    ros: tuple[int, str] | None  # --ros-scans' (domain id, fixed frame)
 
 
 def _checked_options(args: argparse.Namespace) -> _StartOptions:
@@ -814,7 +911,8 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
             f"refusing to serve {host} without API tokens: anyone on the network could change the "
             "maps. Give --auth-tokens FILE (or $FLEETMAP_TOKENS), or --insecure to accept that"
         )
-    return _StartOptions(host, port, default_config, create_app, settings_cls, tokens)
+    ros = ros_options(args)
+    return _StartOptions(host, port, default_config, create_app, settings_cls, tokens, ros)
 
 
 def _open_storage(args: argparse.Namespace, sock: socket.socket) -> DurableStore | None:
