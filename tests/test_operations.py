@@ -296,6 +296,8 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
         option = action.option_strings[-1]
         if action.nargs == 0:
             argv, text = [option], "1"
+        elif option == "--ros-domain":  # a number without a default (it falls back to $ROS_DOMAIN_ID)
+            argv, text = [option, "5"], "5"
         elif action.nargs == "+":
             # Lists of anything but addresses (Zenoh endpoints, origins) take any text.
             items = ["10.0.0.1", "10.0.0.2"] if option == "--forwarded-allow-ips" else ["tcp/a:1", "tcp/b:2"]

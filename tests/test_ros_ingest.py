@@ -351,6 +351,14 @@ def test_ros_robots_build_the_same_map_as_the_engine(
             ros = healthz_ros(http)
             assert ros["refused"] == {"undecodable": 1, "no_tf": 1}, ros
             assert ros["scans_submitted"] == 13 and ros["scans_waiting"] == 0
+            metrics = http.get("/metrics").text
+            for line in (
+                'fleetmap_ros_scans_refused_total{reason="no_tf"} 1.0',
+                'fleetmap_ros_scans_refused_total{reason="undecodable"} 1.0',
+                "fleetmap_ros_scans_submitted_total 13.0",
+                'fleetmap_scans_rejected_total{map="lab",robot="robot1"} 2.0',
+            ):
+                assert line in metrics.splitlines(), line
             assert http.get("/healthz").status_code == 200
             info = http.get("/maps/lab").json()
             assert set(info["stats"]["robots"]) == {"robot1", "robot2"}

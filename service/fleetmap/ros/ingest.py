@@ -46,7 +46,7 @@ from fleetmap.ros.cdr import CdrError
 from fleetmap.ros.laser_scan import LaserScanMsg, decode_laser_scan
 from fleetmap.ros.rmw_zenoh import dds_type_name, decode_attachment, parse_topic_key
 from fleetmap.ros.tf_message import decode_tf_message
-from fleetmap.ros.transforms import TfBuffer, TfError, TfPending, sensor_pose_2d
+from fleetmap.ros.transforms import TfBuffer, TfError, TfPending, normalize_frame, sensor_pose_2d
 from fleetmap.scan import Scan, ScanError
 from fleetmap.wire import SESSION_LIMIT, is_valid_id
 
@@ -148,23 +148,29 @@ class RosScanIngest:
     # -- lifecycle -------------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Declare the subscribers, query old-style publication caches, start the thread."""
+        """Declare the subscribers, query old-style publication caches, start the thread. Raises
+        zenoh.ZError (nothing left declared) if the session refuses."""
         if self._thread is not None:
             return
+        try:
+            self._subscribers.append(self.session.declare_subscriber(self.scan_key, self._on_scan))
+            self._subscribers.append(
+                zenoh.ext.declare_advanced_subscriber(
+                    self.session,
+                    self.tf_key,
+                    self._on_tf,
+                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+                    subscriber_detection=True,
+                )
+            )
+            # rmw_zenoh before its AdvancedPublisher: a publication cache answering queries on the key.
+            self.session.get(self.tf_key, self._on_reply)
+        except zenoh.ZError:
+            self.close()
+            raise
+        # Scans the callbacks queued meanwhile wait for it; the first pass takes them.
         self._thread = threading.Thread(target=self._run, name="fleetmap-ros", daemon=True)
         self._thread.start()
-        self._subscribers.append(self.session.declare_subscriber(self.scan_key, self._on_scan))
-        self._subscribers.append(
-            zenoh.ext.declare_advanced_subscriber(
-                self.session,
-                self.tf_key,
-                self._on_tf,
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
-                subscriber_detection=True,
-            )
-        )
-        # rmw_zenoh before its AdvancedPublisher: a publication cache answering queries on the key.
-        self.session.get(self.tf_key, self._on_reply)
         log.info(
             "ROS 2 scans of domain %d go into map %s, posed in frame %s (keys %s, %s)",
             self.domain_id, self.map_id, self.fixed_frame, self.scan_key, self.tf_key,
@@ -229,15 +235,17 @@ class RosScanIngest:
         except CdrError as exc:
             self._refuse("undecodable", robot_id, f"undecodable LaserScan on {topic}: {exc}")
             return
+        try:
+            normalize_frame(msg.frame_id)
+        except TfError as exc:  # checked here so that no reason or log line carries a huge id
+            self._refuse("tf_error", robot_id, f"LaserScan on {topic}: {exc}")
+            return
         meta = decode_attachment(attachment) if attachment is not None else None
         namespace = topic.rsplit("/", 1)[0]
         with self._lock:
             robot = self._robots.get(robot_id)
-            if robot is None:
-                if len(self._robots) >= MAX_ROBOTS:
-                    robot = None
-                else:
-                    robot = self._robots[robot_id] = _Robot()
+            if robot is None and self._room_for_robot():
+                robot = self._robots[robot_id] = _Robot()
             if robot is not None:
                 if meta is not None and 0 <= meta.sequence_number < 2**63:
                     seq, session = meta.sequence_number, session_from_gid(meta.source_gid)
@@ -259,6 +267,18 @@ class RosScanIngest:
             self._refuse("pending_full", robot_id, reason)
             return
         self._wake.set()
+
+    def _room_for_robot(self) -> bool:
+        """Whether another robot may be tracked (caller holds `_lock`): below MAX_ROBOTS, or after
+        forgetting one with no scan waiting (all it holds is its seq counters for messages without
+        an attachment), so robots that came and went do not lock new ones out."""
+        if len(self._robots) < MAX_ROBOTS:
+            return True
+        idle = next((rid for rid, r in self._robots.items() if not r.pending), None)
+        if idle is None:
+            return False
+        del self._robots[idle]
+        return True
 
     def _on_reply(self, reply: zenoh.Reply) -> None:
         with contextlib.suppress(Exception):  # an error reply (no cache) is no TF
@@ -367,6 +387,13 @@ class RosScanIngest:
                 except (ScanError, codec.DecodeError) as exc:
                     self._pop(robot)
                     self._refuse("invalid_scan", robot_id, f"invalid LaserScan: {exc}")
+                    continue
+                except Exception as exc:  # a bug: drop the scan, or it would block its robot for good
+                    self._pop(robot)
+                    self._log.error(
+                        f"ros-bug:{type(exc).__name__}", "unexpected error posing a ROS scan", exc
+                    )
+                    self._refuse("invalid_scan", robot_id, f"not posed: internal error {type(exc).__name__}")
                     continue
                 self._pop(robot)
                 self._submit(robot_id, wire)
