@@ -296,6 +296,8 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
         option = action.option_strings[-1]
         if action.nargs == 0:
             argv, text = [option], "1"
+        elif option == "--ros-domain":  # a number without a default (it falls back to $ROS_DOMAIN_ID)
+            argv, text = [option, "5"], "5"
         elif action.nargs == "+":
             # Lists of anything but addresses (Zenoh endpoints, origins) take any text.
             items = {
@@ -306,8 +308,8 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
         elif action.choices:
             argv, text = [option, action.choices[-1]], action.choices[-1]
         elif isinstance(action.default, (int, float)):
-            # Up from a default at the bottom of its range (a domain id of 0), else down.
-            up = option in ("--ros-domain", "--ros-map-period")
+            # Up from a default at the bottom of its range, else down.
+            up = option == "--ros-map-period"
             value = action.default + 1 if up else action.default - 1
             argv, text = [option, str(value)], str(value)
         else:  # text, or a size (--max-memory)

@@ -240,11 +240,19 @@ def test_ros_options_repeat_come_from_the_environment_and_the_command_line_wins(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     defaults = serve_options([], {}, monkeypatch)
-    assert defaults.ros_publish_map == [] and defaults.ros_domain == 0
+    assert defaults.ros_publish_map == [] and defaults.ros_domain is None  # $ROS_DOMAIN_ID, else 0
     assert (defaults.ros_map_frame, defaults.ros_map_period, defaults.ros_distro) == ("map", 1.0, "jazzy")
     argv = ["--ros-publish-map", "lab", "--ros-publish-map", "wh=/wh/map", "b=/b"]
     expected = [MapTopic("lab"), MapTopic("wh", "/wh/map"), MapTopic("b", "/b")]
     assert serve_options(argv, {}, monkeypatch).ros_publish_map == expected
+    # The domain of both directions: --ros-domain, else ROS's own variable, else 0; it may be given
+    # with --ros-publish-map alone.
+    from fleetmap import server
+
+    options = serve_options([*argv, "--ros-domain", "4"], {}, monkeypatch)
+    assert server.ros_options(options) is None and server.ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 4
+    options = serve_options(argv, {}, monkeypatch)
+    assert server.ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 7 and server.ros_domain(options, {}) == 0
     env = {"FLEETMAP_ROS_PUBLISH_MAP": "lab wh=/wh/map b=/b", "FLEETMAP_ROS_DOMAIN": "3"}
     options = serve_options([], env, monkeypatch)
     assert options.ros_publish_map == expected and options.ros_domain == 3
@@ -256,7 +264,7 @@ def test_ros_options_repeat_come_from_the_environment_and_the_command_line_wins(
 def test_bad_ros_options_are_refused(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    for argv in (["--ros-publish-map", "lab=/a b"], ["--ros-domain", "-1"], ["--ros-map-frame", "/map"]):
+    for argv in (["--ros-publish-map", "lab=/a b"], ["--ros-domain", "-1"], ["--ros-map-frame", ""]):
         with pytest.raises(SystemExit):
             serve_options(argv, {}, monkeypatch)
         assert "error" in capsys.readouterr().err, argv

@@ -51,7 +51,9 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple, NoReturn, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, NoReturn, TypeVar
+
+import zenoh
 
 from fleetmap.auth import TokenFile, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, parse_command_line, run_command
@@ -71,7 +73,13 @@ from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
 from fleetmap.log_format import LOG_FORMATS, UVICORN_LOG_CONFIG, configure_logging, plain_line
 from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS, DurableStore
+from fleetmap.ros.transforms import TfError, normalize_frame
 from fleetmap.scan import MAX_BEAMS
+from fleetmap.wire import is_valid_id
+
+if TYPE_CHECKING:
+    from fleetmap.registry import MapRegistry
+    from fleetmap.ros.ingest import RosScanIngest
 
 log = logging.getLogger("fleetmap.server")
 
@@ -144,6 +152,27 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
             "the config file says: it maps a 16 MiB pool per local robot and delayed each robot's "
             "first scans by up to 250 ms, while loopback TCP is fast enough)"
         ),
+    )
+    p.add_argument(
+        "--ros-scans",
+        type=_map_id,
+        metavar="MAP_ID",
+        help=(
+            "also integrate the sensor_msgs/LaserScan topics ROS 2 robots publish over rmw_zenoh into "
+            "map MAP_ID, posed by their TF (robot id: the topic's namespace; see docs/ros.md)"
+        ),
+    )
+    p.add_argument(
+        "--ros-domain",
+        type=_int_between(0, 2**32 - 1),
+        metavar="N",
+        help="the ROS domain id of --ros-scans and --ros-publish-map (default $ROS_DOMAIN_ID, else 0)",
+    )
+    p.add_argument(
+        "--ros-fixed-frame",
+        type=_frame_id,
+        metavar="FRAME",
+        help="the TF frame --ros-scans' maps are built in (default map)",
     )
     p.add_argument(
         "--data-dir",
@@ -376,15 +405,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         ),
     )
     p.add_argument(
-        "--ros-domain",
-        type=_int_between(0, 232),
-        default=0,
-        metavar="N",
-        help="the ROS 2 domain id (ROS_DOMAIN_ID) of the ROS 2 topics (default 0)",
-    )
-    p.add_argument(
         "--ros-map-frame",
-        type=_ros_frame,
+        type=_frame_id,
         default="map",
         metavar="FRAME",
         help="header.frame_id of the published maps (default map)",
@@ -528,15 +550,6 @@ def _map_topic(text: str) -> Any:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def _ros_frame(text: str) -> str:
-    """An argparse `type` for `--ros-map-frame`: a tf2 frame id (no spaces; tf2 takes it without a
-    leading /)."""
-    frame = text.strip()
-    if not frame or any(c.isspace() for c in frame) or frame.startswith("/"):
-        raise argparse.ArgumentTypeError(f"expected a frame id such as map, got {text!r}")
-    return frame
-
-
 def _load_tokens(path: str | None) -> TokenSet | TokenFile | None:
     """The API tokens: a `TokenFile` (read again on SIGHUP) for `--auth-tokens`, else those of
     $FLEETMAP_TOKENS, else None. Raises CliError."""
@@ -582,6 +595,48 @@ def _path(text: str) -> str:
     if not text.strip():
         raise argparse.ArgumentTypeError("expected a path, got an empty value")
     return text
+
+
+def _map_id(text: str) -> str:
+    """An argparse `type` for a map id: `[A-Za-z0-9_-]{1,64}`."""
+    if not is_valid_id(text):
+        raise argparse.ArgumentTypeError(f"expected a map id of 1 to 64 of A-Z a-z 0-9 _ -, got {text!r}")
+    return text
+
+
+def _frame_id(text: str) -> str:
+    """An argparse `type` for a TF frame id (tf2's form: a leading `/` dropped)."""
+    try:
+        return normalize_frame(text.strip())
+    except TfError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def ros_domain(args: argparse.Namespace, environ: dict[str, str] | None = None) -> int:
+    """The ROS domain id of `--ros-scans` and `--ros-publish-map`: `--ros-domain` (or
+    FLEETMAP_ROS_DOMAIN), else ROS's own $ROS_DOMAIN_ID, else 0. Raises CliError for an unusable
+    $ROS_DOMAIN_ID."""
+    if args.ros_domain is not None:
+        return int(args.ros_domain)
+    text = (os.environ if environ is None else environ).get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return 0
+    if not text.isdigit() or int(text) >= 2**32:
+        raise CliError(f"$ROS_DOMAIN_ID={text!r}: expected a whole number (or give --ros-domain N)")
+    return int(text)
+
+
+def ros_options(args: argparse.Namespace, environ: dict[str, str] | None = None) -> tuple[int, str] | None:
+    """(domain id, fixed frame) of `--ros-scans`, None without it (`ros_domain`). Raises CliError
+    for an unusable $ROS_DOMAIN_ID, --ros-fixed-frame without --ros-scans, or --ros-domain with
+    neither --ros-scans nor --ros-publish-map."""
+    if args.ros_scans is None:
+        if args.ros_fixed_frame is not None:
+            raise CliError("--ros-fixed-frame needs --ros-scans MAP_ID")
+        if args.ros_domain is not None and not args.ros_publish_map:
+            raise CliError("--ros-domain needs --ros-scans MAP_ID or --ros-publish-map MAP_ID")
+        return None
+    return ros_domain(args, environ), args.ros_fixed_frame or "map"
 
 
 def _proxy_address(text: str) -> str:
@@ -787,6 +842,7 @@ def run(args: argparse.Namespace) -> int:
     # SIGHUP's default action ends the process at once (no snapshot, no clean close): `kill -HUP` or
     # systemd's ExecReload must reload the token file instead.
     signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
+    ros: RosScanIngest | None = None
     try:
         options = _checked_options(args)
         tokens = options.tokens
@@ -825,9 +881,12 @@ def run(args: argparse.Namespace) -> int:
                 ingest.start()
             except IngestStartError as exc:
                 raise CliError(str(exc)) from None
+            ros = _start_ros(args, options, registry, ingest)
             ros_maps = _start_ros_maps(args, registry, ingest)
             settings = options.settings_cls(
-                zenoh_status=ingest.status,
+                zenoh_status=ingest.status
+                if ros is None
+                else lambda: {**ingest.status(), "ros": ros.status()},
                 cors_origins=args.cors_origin,
                 ingest_backlog=args.ingest_backlog_ms / 1000,
                 max_read_delay=args.max_read_delay_ms / 1000,
@@ -849,6 +908,8 @@ def run(args: argparse.Namespace) -> int:
             log.info("shutting down: closing the Zenoh session, integrating queued scans")
             if ros_maps is not None:
                 ros_maps.close()  # before the session it publishes on
+            if ros is not None:
+                ros.close()
             ingest.close()
             registry.close()
     finally:
@@ -872,7 +933,7 @@ def _start_ros_maps(args: argparse.Namespace, registry: Any, ingest: ZenohIngest
     assert ingest.session is not None  # started
     options = RosMapOptions(
         topics=tuple(args.ros_publish_map),
-        domain_id=args.ros_domain,
+        domain_id=ros_domain(args),
         frame_id=args.ros_map_frame,
         period=args.ros_map_period,
         distro=args.ros_distro,
@@ -896,6 +957,31 @@ def _configure_process(args: argparse.Namespace) -> None:
     sys.setswitchinterval(0.0005)
 
 
+def _zenoh_status(ingest: ZenohIngest, ros: RosScanIngest | None) -> Callable[[], dict[str, Any]]:
+    """`GET /healthz`'s `zenoh`: the session's status, with the ROS ingest's under `ros`."""
+    if ros is None:
+        return ingest.status
+    return lambda: {**ingest.status(), "ros": ros.status()}
+
+
+def _start_ros(
+    args: argparse.Namespace, options: _StartOptions, registry: MapRegistry, ingest: ZenohIngest
+) -> RosScanIngest | None:
+    """The ROS 2 scan ingest on the service's Zenoh session (`--ros-scans`), started; None without."""
+    if options.ros is None:
+        return None
+    from fleetmap.ros.ingest import RosScanIngest
+
+    assert ingest.session is not None  # started
+    domain, frame = options.ros
+    ros = RosScanIngest(registry, ingest.session, args.ros_scans, domain_id=domain, fixed_frame=frame)
+    try:
+        ros.start()
+    except zenoh.ZError as exc:
+        raise CliError(f"cannot subscribe to ROS 2 topics: {exc}") from None
+    return ros
+
+
 class _StartOptions(NamedTuple):
     """What `run` starts from, read from the options by `_checked_options`."""
 
@@ -905,6 +991,7 @@ class _StartOptions(NamedTuple):
     create_app: Any  # fleetmap.api.app's, and ...
     settings_cls: Any  # ... its ApiSettings (`_load_api`)
     tokens: TokenSet | TokenFile | None
+    ros: tuple[int, str] | None  # --ros-scans' (domain id, fixed frame)
 
 
 def _checked_options(args: argparse.Namespace) -> _StartOptions:
@@ -919,6 +1006,8 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
     topics = [spec.topic for spec in args.ros_publish_map]
     if len(set(topics)) < len(topics):
         raise CliError("--ros-publish-map: two maps on one ROS topic; give each its own (MAP_ID=TOPIC)")
+    if topics:
+        ros_domain(args)  # a bad $ROS_DOMAIN_ID stops the start here, not once Zenoh runs
     tokens = _load_tokens(args.auth_tokens)
     if tokens is None and args.require_read_token:
         # Without tokens there is nothing to check: reads were served to anyone, silently.
@@ -931,7 +1020,8 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
             f"refusing to serve {host} without API tokens: anyone on the network could change the "
             "maps. Give --auth-tokens FILE (or $FLEETMAP_TOKENS), or --insecure to accept that"
         )
-    return _StartOptions(host, port, default_config, create_app, settings_cls, tokens)
+    ros = ros_options(args)
+    return _StartOptions(host, port, default_config, create_app, settings_cls, tokens, ros)
 
 
 def _open_storage(args: argparse.Namespace, sock: socket.socket) -> DurableStore | None:
