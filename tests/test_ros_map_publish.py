@@ -346,3 +346,46 @@ def test_another_map_of_the_same_id_and_tile_clock_is_published(in_process: InPr
 def svc_zid(client: httpx.Client) -> str:
     """The service's Zenoh session id, as its health answer reports it."""
     return str(client.get("/healthz").json()["zenoh"]["zid"])
+
+
+def test_ros_robots_scans_in_and_the_nav2_map_out_through_the_robots_router(
+    service_factory: Callable[..., ServiceProcess], subscribers: Callable[[str], RosSubscriber]
+) -> None:
+    """Both directions at once, as a ROS 2 fleet would use them: a robot's LaserScans and TF (as
+    rmw_zenoh puts them on Zenoh: tests/test_ros_ingest.py's emulated robot) reach the service
+    through the robots' router (standing in for rmw_zenohd), `--ros-scans` builds the map, and
+    `--ros-publish-map` sends it back to a ROS node on that router as the OccupancyGrid nav2 reads."""
+    from test_ros_ingest import PLAN, Fleet, RosRobot, healthz_ros, robot_stats, router_session, stamp_ns_of
+
+    from fleetmap.sim import SimulatedRobot
+
+    router = f"tcp/127.0.0.1:{free_port()}"
+    router_zenoh = router_session(router)
+    robot = RosRobot(router, "robot1")
+    try:
+        fleet = Fleet({"robot1": (robot, False)})
+        fleet.static("robot1")
+        svc = service_factory(
+            "--in-memory", "--zenoh-connect", router, "--ros-scans", "lab",
+            "--ros-publish-map", "lab", "--ros-map-period", str(PERIOD),
+        )  # fmt: skip
+        nav2 = subscribers(router)
+        http = Robot(svc).client
+        wait_for(lambda: healthz_ros(http)["tf_trees"].get("/robot1", {}).get("frames", 0) >= 2, timeout=20)
+        for pub in (robot.scan_pub, robot.tf_pub):
+            wait_for(lambda p=pub: p.matching_status.matching, timeout=20, what="the service's subscribers")
+        sim = SimulatedRobot(PLAN, 1, num_beams=361, range_max=12.0, scan_rate=5.0)
+        for k in range(8):
+            fleet.scan("robot1", stamp_ns_of(k), sim)
+        wait_for(lambda: robot_stats(http, "robot1").get("scans_integrated") == 8, timeout=30, what="8 scans")
+        cells, origin = export_cells(http)
+        latest = wait_for(
+            lambda: [r for r in nav2.received() if np.array_equal(grid_cells(r.grid), cells)],
+            timeout=10,
+            what="the grid of all 8 scans on the robots' router",
+        )[-1]
+        assert (latest.grid.info.origin.position.x, latest.grid.info.origin.position.y) == origin
+        assert set(np.unique(cells).tolist()) == {-1, 0, 100}
+    finally:
+        robot.close()
+        router_zenoh.close()
