@@ -52,6 +52,7 @@ class Received:
     grid: Any  # rosbags' nav_msgs/msg/OccupancyGrid
     attachment: Attachment
     at: float
+    size: int  # bytes of the payload
 
 
 class RosSubscriber:
@@ -81,10 +82,11 @@ class RosSubscriber:
                 self.without_attachment += 1
             return
         attachment = decode_attachment(sample.attachment.to_bytes())
-        grid = TYPESTORE.deserialize_cdr(sample.payload.to_bytes(), GRID)
+        payload = sample.payload.to_bytes()
+        grid = TYPESTORE.deserialize_cdr(payload, GRID)
         assert attachment is not None
         with self._lock:
-            self.samples.append(Received(grid, attachment, time.monotonic()))
+            self.samples.append(Received(grid, attachment, time.monotonic(), len(payload)))
 
     def received(self) -> list[Received]:
         with self._lock:
@@ -199,6 +201,15 @@ def test_a_late_ros_subscriber_gets_the_map_at_once_then_each_change_and_nothing
     time.sleep(4 * PERIOD)
     assert len(sub.received()) == 2
 
+    # GET /healthz says what went out.
+    status = robot.client.get("/healthz").json()["zenoh"]["ros_maps"]
+    assert (status["node"], status["domain_id"], status["distro"]) == ("/fleetmap", 0, "jazzy")
+    topic = status["topics"]["/map"]
+    assert (topic["map_id"], topic["key"], topic["declared"]) == ("lab", KEY, True)
+    # Some before the subscriber joined (it got only the last of those), and the changed one.
+    assert topic["grids_published"] >= 2
+    assert topic["last_grid"]["bytes"] == second.size
+
 
 def test_the_graph_shows_the_node_and_its_publisher_and_a_deleted_map_is_no_longer_published(
     service_factory: Callable[..., ServiceProcess], subscribers: Callable[[str], RosSubscriber]
@@ -223,6 +234,7 @@ def test_the_graph_shows_the_node_and_its_publisher_and_a_deleted_map_is_no_long
     # subscriber that joins now gets no stale map from a cache.
     assert robot.client.delete("/maps/lab").status_code == 204
     wait_for(lambda: sub.tokens() == [node], timeout=5, what="the publisher's token to go")
+    assert robot.client.get("/healthz").json()["zenoh"]["ros_maps"]["topics"]["/map"]["declared"] is False
     count = len(sub.received())
     late = subscribers(svc.zenoh_endpoint)
     time.sleep(4 * PERIOD)

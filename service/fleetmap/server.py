@@ -884,9 +884,7 @@ def run(args: argparse.Namespace) -> int:
             ros = _start_ros(args, options, registry, ingest)
             ros_maps = _start_ros_maps(args, registry, ingest)
             settings = options.settings_cls(
-                zenoh_status=ingest.status
-                if ros is None
-                else lambda: {**ingest.status(), "ros": ros.status()},
+                zenoh_status=_zenoh_status(ingest, ros, ros_maps),
                 cors_origins=args.cors_origin,
                 ingest_backlog=args.ingest_backlog_ms / 1000,
                 max_read_delay=args.max_read_delay_ms / 1000,
@@ -957,11 +955,23 @@ def _configure_process(args: argparse.Namespace) -> None:
     sys.setswitchinterval(0.0005)
 
 
-def _zenoh_status(ingest: ZenohIngest, ros: RosScanIngest | None) -> Callable[[], dict[str, Any]]:
-    """`GET /healthz`'s `zenoh`: the session's status, with the ROS ingest's under `ros`."""
-    if ros is None:
+def _zenoh_status(
+    ingest: ZenohIngest, ros: RosScanIngest | None, ros_maps: Any
+) -> Callable[[], dict[str, Any]]:
+    """`GET /healthz`'s `zenoh`: the session's status, with the ROS ingest's under `ros` and the ROS
+    map publisher's under `ros_maps`."""
+    if ros is None and ros_maps is None:
         return ingest.status
-    return lambda: {**ingest.status(), "ros": ros.status()}
+
+    def status() -> dict[str, Any]:
+        parts = ingest.status()
+        if ros is not None:
+            parts["ros"] = ros.status()
+        if ros_maps is not None:
+            parts["ros_maps"] = ros_maps.status()
+        return parts
+
+    return status
 
 
 def _start_ros(

@@ -137,7 +137,8 @@ class _Topic:
     #: (generation, tile clock) of the map as last published or found empty / unpublishable.
     seen: tuple[int, int] | None = None
     published: int = 0  # grids put
-    last_build: dict[str, float] = field(default_factory=dict)  # seconds and bytes of the last one
+    #: The last grid's `bytes`, `build_s` (window, cells, encoding) and `put_s`; replaced whole.
+    last_build: dict[str, float] = field(default_factory=dict)
 
 
 class RosMapPublisher:
@@ -192,6 +193,29 @@ class RosMapPublisher:
         if self._node_token is not None:
             token, self._node_token = self._node_token, None
             _undeclare_quietly(token)
+
+    def status(self) -> dict[str, Any]:
+        """A JSON-able summary for `GET /healthz` (`zenoh.ros_maps`): the node, and per topic its map,
+        key, whether its publisher is declared (its map exists), the grids put, and the last one's
+        size and times. Read without a lock: each field is one value the thread replaces whole."""
+        topics = {}
+        for topic in self.topics:
+            last = topic.last_build
+            topics[topic.spec.topic] = {
+                "map_id": topic.spec.map_id,
+                "key": topic.key,
+                "declared": topic.publisher is not None,
+                "grids_published": topic.published,
+                "last_grid": {"bytes": int(last["bytes"]), "build_ms": round(1000 * last["build_s"], 2),
+                              "put_ms": round(1000 * last["put_s"], 2)} if last else None,
+            }  # fmt: skip
+        return {
+            "node": f"/{self.options.node_name}",
+            "domain_id": self.options.domain_id,
+            "distro": self.options.distro,
+            "period": self.options.period,
+            "topics": topics,
+        }
 
     def _run(self) -> None:
         while True:
