@@ -369,6 +369,10 @@ def test_ros_robots_build_the_same_map_as_the_engine(
                 and info["stats"]["robots"]["robot1"]["last_seq"] == 7
             )
             assert map_stats(http, "lab")["scans_integrated"] == 13
+        assert service.stop() == 0
+        logs = service.logs()
+        assert "Traceback" not in logs and "unexpected error" not in logs, logs
+        assert "refused a ROS scan of lab/robot1: undecodable LaserScan on /robot1/scan" in logs
     finally:
         robot1.close()
         robot2.close()
@@ -416,6 +420,8 @@ def test_tilted_laser_and_bad_topics_are_refused_with_reasons(
                 lambda: healthz_ros(http)["refused"].get("invalid_topic") == 1, timeout=10, what="bad id"
             )
             assert set(http.get("/maps/lab").json()["stats"]["robots"]) == {"robot"}
+        assert service.stop() == 0
+        assert "Traceback" not in service.logs()
     finally:
         session.close()
 
