@@ -127,7 +127,7 @@ def test_seq_and_session_from_the_attachment_else_a_counter() -> None:
     ingest._handle_scan(scan_key("/b/scan"), laser(1.1), b"not an attachment")
     ingest._pass()
     got = [(r, w.seq, w.session) for _, r, w in registry.submitted]
-    assert got == [("a", 41, session_from_gid(gid)), ("b", 0, None), ("b", 1, None)]
+    assert got == [("a", 40, session_from_gid(gid)), ("b", 0, None), ("b", 1, None)]  # 41 counted from 1
 
 
 def test_refusals_are_counted_with_their_reasons() -> None:

@@ -256,8 +256,10 @@ class RosScanIngest:
             if robot is None and self._room_for_robot():
                 robot = self._robots[robot_id] = _Robot()
             if robot is not None:
-                if meta is not None and 0 <= meta.sequence_number < 2**63:
-                    seq, session = meta.sequence_number, session_from_gid(meta.source_gid)
+                if meta is not None and 1 <= meta.sequence_number < 2**63:
+                    # rmw_zenoh counts from 1, fleetmap from 0: a restarted node's first scan is then
+                    # not one "lost" scan (protocol.md, "Sequence numbers").
+                    seq, session = meta.sequence_number - 1, session_from_gid(meta.source_gid)
                 else:  # no rmw_zenoh attachment: count per topic; the stamps tell restarts
                     seq = robot.counters.get(topic, -1) + 1
                     if topic in robot.counters or len(robot.counters) < 16:
