@@ -8,7 +8,8 @@ hash>`, ros2/rmw_zenoh liveliness_utils.cpp), CDR payloads made by rosbags (an i
 serializer), rmw_zenoh's attachment (sequence number, timestamp, gid), and `/tf_static` through an
 AdvancedPublisher with a cache, as rmw_zenoh does for TRANSIENT_LOCAL (rmw_publisher_data.cpp).
 The robots join a Zenoh router started first (standing in for rmw_zenohd) and publish their static
-TF BEFORE the service starts: the service joins that router (`--zenoh-connect`) and must still get it.
+TF BEFORE the service starts: the service joins that router (`--zenoh-connect`) and must still get it,
+from the AdvancedPublishers' caches and from an older rmw_zenoh's publication cache (a queryable).
 
 The real service runs as a process; the map is read back over REST and compared cell by cell.
 """
@@ -285,18 +286,25 @@ def test_ros_robots_build_the_same_map_as_the_engine(
 ) -> None:
     robot1 = RosRobot(router, "robot1")
     robot2 = RosRobot(router, "robot2")
+    legacy = client_session(router)
     fleet = Fleet({"robot1": (robot1, False), "robot2": (robot2, True)})
     try:
         # Static TF first, before the service exists: only the publishers' caches hold it then.
         fleet.static("robot1")
         fleet.static("robot2")
+        # rmw_zenoh before its AdvancedPublisher: a publication cache, a queryable on the topic's key.
+        legacy_key = topic_key(0, "/legacy/tf_static", TF, TYPE_HASHES[TF])
+        legacy_tf = tf_payload(T0_NS, [("base_link", "laser", *LASER_UP)])
+        _cache = legacy.declare_queryable(  # kept: answers for the whole test
+            legacy_key, lambda query: query.reply(legacy_key, legacy_tf)
+        )
         time.sleep(0.3)
         service = service_factory("--ros-scans", "lab", "--zenoh-connect", router)
         with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
             wait_for(
                 lambda: all(
                     healthz_ros(http)["tf_trees"].get(f"/{ns}", {}).get("frames", 0) >= 2
-                    for ns in ("robot1", "robot2")
+                    for ns in ("robot1", "robot2", "legacy")
                 ),
                 timeout=20, what="the static TF published before the service started",
             )  # fmt: skip
@@ -360,16 +368,21 @@ def test_ros_robots_build_the_same_map_as_the_engine(
             ):
                 assert line in metrics.splitlines(), line
             assert http.get("/healthz").status_code == 200
-            info = http.get("/maps/lab").json()
-            assert set(info["stats"]["robots"]) == {"robot1", "robot2"}
-            assert info["stats"]["robots"]["robot2"]["scans_rejected"] == 0
-            # The sessions come from the rmw_zenoh gids: one per publisher, no id conflict.
-            assert (
-                not info["stats"]["robots"]["robot1"]["id_conflict"]
-                and info["stats"]["robots"]["robot1"]["last_seq"] == 7
-            )
+            robots = http.get("/maps/lab").json()["stats"]["robots"]
+            assert set(robots) == {"robot1", "robot2"}
+            assert robots["robot2"]["scans_rejected"] == 0
+            # Seqs from rmw_zenoh's sequence numbers (from 1) less 1, sessions from the gids: one per
+            # publisher, nothing lost, no id conflict.
+            assert (robots["robot1"]["last_seq"], robots["robot2"]["last_seq"]) == (6, 5)
+            for stats in robots.values():
+                assert (stats["lost"], stats["duplicates"], stats["id_conflict"]) == (0, 0, False), stats
             assert map_stats(http, "lab")["scans_integrated"] == 13
+        assert service.stop() == 0
+        logs = service.logs()
+        assert "Traceback" not in logs and "unexpected error" not in logs, logs
+        assert "refused a ROS scan of lab/robot1: undecodable LaserScan on /robot1/scan" in logs
     finally:
+        legacy.close()
         robot1.close()
         robot2.close()
 
@@ -416,6 +429,8 @@ def test_tilted_laser_and_bad_topics_are_refused_with_reasons(
                 lambda: healthz_ros(http)["refused"].get("invalid_topic") == 1, timeout=10, what="bad id"
             )
             assert set(http.get("/maps/lab").json()["stats"]["robots"]) == {"robot"}
+        assert service.stop() == 0
+        assert "Traceback" not in service.logs()
     finally:
         session.close()
 

@@ -127,7 +127,7 @@ def test_seq_and_session_from_the_attachment_else_a_counter() -> None:
     ingest._handle_scan(scan_key("/b/scan"), laser(1.1), b"not an attachment")
     ingest._pass()
     got = [(r, w.seq, w.session) for _, r, w in registry.submitted]
-    assert got == [("a", 41, session_from_gid(gid)), ("b", 0, None), ("b", 1, None)]
+    assert got == [("a", 40, session_from_gid(gid)), ("b", 0, None), ("b", 1, None)]  # 41 counted from 1
 
 
 def test_refusals_are_counted_with_their_reasons() -> None:
@@ -137,18 +137,21 @@ def test_refusals_are_counted_with_their_reasons() -> None:
     ingest._handle_scan(scan_key("/" + "x" * 65 + "/scan"), laser(1.0), None)
     ingest._handle_scan("fleetmap/lab/r/scan", laser(1.0), None)
     ingest._handle_scan(scan_key("/r/scan"), laser(1.0, frame="x" * 300), None)
+    ingest._handle_scan(scan_key("/r/scan"), laser(1.0, n=20000), None)  # refused before it waits
     for _ in range(3):  # "laser" is in no tree: they wait; the third does not fit
         ingest._handle_scan(scan_key("/r/scan"), laser(1.0), None)
     registry.refuse_next = IngestRejected("duplicate", 200)
     ingest._handle_tf(tf_key("/tf_static"), tf(0.0, ("base", "laser", 0.0)))
     ingest._pass()
     assert ingest.status()["refused"] == {
-        "undecodable": 1, "invalid_topic": 2, "tf_error": 1, "pending_full": 1, "duplicate": 1,
+        "undecodable": 1, "invalid_topic": 2, "tf_error": 1, "invalid_scan": 1, "pending_full": 1,
+        "duplicate": 1,
     }  # fmt: skip
     reasons = [reason for _, robot, reason in registry.rejected if robot == "r"]
     assert "undecodable LaserScan on /r/scan" in reasons[0]
     assert "invalid frame id" in reasons[1] and len(reasons[1]) < 300
-    assert "2 scans already wait for TF" in reasons[2]
+    assert "2 scans of the robot (2048 of all robots) already wait for TF" in reasons[3]
+    assert "20000 beams is more than the limit of 16384" in reasons[2]
     assert len(registry.submitted) == 1
 
 

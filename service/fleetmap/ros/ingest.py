@@ -56,6 +56,9 @@ log = logging.getLogger("fleetmap.ros")
 TF_TIMEOUT = 0.5
 #: Scans held per robot while they wait for TF (20 Hz for 0.5 s is 10).
 MAX_PENDING = 50
+#: Scans waiting for TF, all robots together: with the beam limit (16 384 by default, 64 KiB of
+#: ranges) this bounds what waiting scans hold, about 128 MiB at worst.
+MAX_WAITING = 2048
 #: Robots (namespaces with LaserScans) and TF trees (namespaces with TF) tracked at most.
 MAX_ROBOTS = 1024
 MAX_TREES = 64
@@ -134,6 +137,7 @@ class RosScanIngest:
         self._tf_lock = threading.Lock()  # guards _trees
         self._robots: dict[str, _Robot] = {}
         self._trees: dict[str, TfBuffer] = {}  # by namespace ('' for /tf)
+        self._waiting = 0  # scans in all robots' pending queues
         self._wake = threading.Event()
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -235,6 +239,11 @@ class RosScanIngest:
         except CdrError as exc:
             self._refuse("undecodable", robot_id, f"undecodable LaserScan on {topic}: {exc}")
             return
+        max_beams = codec.current_limits().max_beams
+        if len(msg.ranges) > max_beams:  # refused before it waits (and holds memory)
+            reason = f"LaserScan of {len(msg.ranges)} beams is more than the limit of {max_beams}"
+            self._refuse("invalid_scan", robot_id, reason)
+            return
         try:
             normalize_frame(msg.frame_id)
         except TfError as exc:  # checked here so that no reason or log line carries a huge id
@@ -247,23 +256,29 @@ class RosScanIngest:
             if robot is None and self._room_for_robot():
                 robot = self._robots[robot_id] = _Robot()
             if robot is not None:
-                if meta is not None and 0 <= meta.sequence_number < 2**63:
-                    seq, session = meta.sequence_number, session_from_gid(meta.source_gid)
+                if meta is not None and 1 <= meta.sequence_number < 2**63:
+                    # rmw_zenoh counts from 1, fleetmap from 0: a restarted node's first scan is then
+                    # not one "lost" scan (protocol.md, "Sequence numbers").
+                    seq, session = meta.sequence_number - 1, session_from_gid(meta.source_gid)
                 else:  # no rmw_zenoh attachment: count per topic; the stamps tell restarts
                     seq = robot.counters.get(topic, -1) + 1
                     if topic in robot.counters or len(robot.counters) < 16:
                         robot.counters[topic] = seq
                     session = None
                 assert session is None or 1 <= session < SESSION_LIMIT
-                full = len(robot.pending) >= self.max_pending
+                full = len(robot.pending) >= self.max_pending or self._waiting >= MAX_WAITING
                 if not full:
+                    self._waiting += 1
                     deadline = time.monotonic() + self.tf_timeout
                     robot.pending.append(_Pending(msg, namespace, seq, session, deadline))
         if robot is None:
             self._refuse("too_many_robots", None, f"already {MAX_ROBOTS} ROS robots; {robot_id!r} ignored")
             return
         if full:
-            reason = f"{self.max_pending} scans already wait for TF (is TF published for {msg.frame_id!r}?)"
+            reason = (
+                f"{self.max_pending} scans of the robot ({MAX_WAITING} of all robots) already wait for TF "
+                f"(is TF published for {msg.frame_id!r}?)"
+            )
             self._refuse("pending_full", robot_id, reason)
             return
         self._wake.set()
@@ -402,6 +417,7 @@ class RosScanIngest:
     def _pop(self, robot: _Robot) -> None:
         with self._lock:
             robot.pending.popleft()
+            self._waiting -= 1
 
     def _pose(self, item: _Pending) -> WireScan:
         """The scan as fleetmap integrates it, posed by TF; raises TfPending, TfError, ScanError,
@@ -456,7 +472,7 @@ class RosScanIngest:
                 "scans_received": self.scans_received,
                 "scans_submitted": self.scans_submitted,
                 "scans_waited_for_tf": self.scans_waited_for_tf,
-                "scans_waiting": sum(len(r.pending) for r in self._robots.values()),
+                "scans_waiting": self._waiting,
                 "refused": dict(self.refused),
                 "tf_messages": self.tf_messages,
                 "tf_refused": self.tf_refused,
