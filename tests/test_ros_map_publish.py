@@ -155,6 +155,23 @@ def export_cells(client: httpx.Client) -> tuple[np.ndarray, tuple[float, float]]
     return cells, (ox, oy)
 
 
+def grids_published(client: httpx.Client, topic: str = "/map") -> int:
+    """How many grids the service has put on `topic` (GET /healthz)."""
+    return int(client.get("/healthz").json()["zenoh"]["ros_maps"]["topics"][topic]["grids_published"])
+
+
+def settled(client: httpx.Client, timeout: float = 30.0) -> int:
+    """Wait until the service has published and then put no grid for 3 periods; the count."""
+    last, deadline = -1, time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        count = grids_published(client)
+        if count == last and count > 0:
+            return count
+        last = count
+        time.sleep(3 * PERIOD)
+    raise AssertionError(f"the service still publishes after {timeout} s ({last} grids)")
+
+
 def grid_cells(grid: Any) -> np.ndarray:
     return np.asarray(grid.data, dtype=np.int8).reshape(int(grid.info.height), int(grid.info.width))
 
@@ -166,7 +183,7 @@ def test_a_late_ros_subscriber_gets_the_map_at_once_then_each_change_and_nothing
     robot = Robot(svc)
     for x, y in [(1.0, 1.0), (3.0, 2.0), (4.5, 1.5)] * 3:
         robot.post(room_scan(x, y))
-    time.sleep(3 * PERIOD)  # published by now, before the subscriber exists
+    published = settled(robot.client)  # all of it published before the subscriber exists
 
     # A subscriber that joins after the map was published gets it at once, from the publisher's cache.
     joined = time.monotonic()
@@ -182,10 +199,11 @@ def test_a_late_ros_subscriber_gets_the_map_at_once_then_each_change_and_nothing
     assert (grid.info.origin.position.x, grid.info.origin.position.y) == origin
     assert set(np.unique(cells).tolist()) == {-1, 0, 100}
 
-    # An unchanged map is not sent again.
+    # An unchanged map is not sent again (nor put at all, as the service counts).
     time.sleep(5 * PERIOD)
     assert len(sub.received()) == 1
     assert sub.without_attachment == 0
+    assert grids_published(robot.client) == published
 
     # A scan that changes the map: a new grid within the period (and the map's time to integrate).
     robot.post(room_scan(5.5, 3.0, width=8.0))  # the room's east wall moved out: the map grows
