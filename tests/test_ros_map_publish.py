@@ -228,6 +228,11 @@ def test_a_late_ros_subscriber_gets_the_map_at_once_then_each_change_and_nothing
     assert topic["grids_published"] >= 2
     assert topic["last_grid"]["bytes"] == second.size
 
+    # The publisher stops with the service: a clean exit, nothing to report.
+    assert svc.stop() == 0
+    assert "Traceback" not in svc.logs() and "ERROR" not in svc.logs(), svc.logs()
+    assert "ROS 2: map 'lab' as nav_msgs/msg/OccupancyGrid on /map (domain 0" in svc.logs()
+
 
 def test_the_graph_shows_the_node_and_its_publisher_and_a_deleted_map_is_no_longer_published(
     service_factory: Callable[..., ServiceProcess], subscribers: Callable[[str], RosSubscriber]
