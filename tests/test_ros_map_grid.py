@@ -11,6 +11,8 @@ import argparse
 import io
 import math
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -268,3 +270,31 @@ def test_bad_ros_options_are_refused(
         with pytest.raises(SystemExit):
             serve_options(argv, {}, monkeypatch)
         assert "error" in capsys.readouterr().err, argv
+
+
+NEED_MAPS = "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map MAP_ID"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["--ros-map-period", "2"],
+            "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map",
+        ),
+        (
+            ["--ros-distro", "humble"],
+            "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map",
+        ),
+        (["--ros-publish-map", "a", "b=/map"], "--ros-publish-map: two maps on one ROS topic"),
+        (["--ros-publish-map", "a"], "$ROS_DOMAIN_ID='one': expected a whole number"),
+    ],
+)
+def test_ros_map_options_that_cannot_work_stop_the_start_with_one_line(argv: list[str], message: str) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETMAP_")} | {"ROS_DOMAIN_ID": "one"}
+    done = subprocess.run(
+        [sys.executable, "-m", "fleetmap.server", "--in-memory", "--http", "127.0.0.1:0", *argv],
+        capture_output=True, text=True, env=env, timeout=60,
+    )  # fmt: skip
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1 and message in lines[0], done.stderr

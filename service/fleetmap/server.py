@@ -91,6 +91,9 @@ ENV_PREFIX = "FLEETMAP_"
 _ENV_TRUE = {"1", "true", "yes", "on"}
 _ENV_FALSE = {"0", "false", "no", "off", ""}
 LOG_LEVELS = ("debug", "info", "warning", "error")
+#: The defaults of --ros-map-frame, --ros-map-period and --ros-distro (any other value needs
+#: --ros-publish-map).
+ROS_MAP_DEFAULTS = ("map", 1.0, "jazzy")
 #: Seconds uvicorn waits at shutdown for the requests in flight (event streams end at once).
 GRACEFUL_HTTP_SECONDS = 3  # uvicorn takes whole seconds (int)
 
@@ -407,14 +410,14 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     p.add_argument(
         "--ros-map-frame",
         type=_frame_id,
-        default="map",
+        default=ROS_MAP_DEFAULTS[0],
         metavar="FRAME",
-        help="header.frame_id of the published maps (default map)",
+        help=f"header.frame_id of the published maps (default {ROS_MAP_DEFAULTS[0]})",
     )
     p.add_argument(
         "--ros-map-period",
         type=_seconds_between(0.05, 3600.0),
-        default=1.0,
+        default=ROS_MAP_DEFAULTS[1],
         metavar="S",
         help=(
             "seconds between checks of the published maps: a map that changed is published again at "
@@ -424,7 +427,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     p.add_argument(
         "--ros-distro",
         choices=("jazzy", "humble"),
-        default="jazzy",
+        default=ROS_MAP_DEFAULTS[2],
         help=(
             "ROS 2 distribution of the subscribers, for the type hash in the topic's key: jazzy "
             "(default; also Kilted and Rolling) or humble (rmw_zenoh's backport, without type hashes)"
@@ -1018,6 +1021,9 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
         raise CliError("--ros-publish-map: two maps on one ROS topic; give each its own (MAP_ID=TOPIC)")
     if topics:
         ros_domain(args)  # a bad $ROS_DOMAIN_ID stops the start here, not once Zenoh runs
+    elif (args.ros_map_frame, args.ros_map_period, args.ros_distro) != ROS_MAP_DEFAULTS:
+        # Given for nothing: most likely --ros-publish-map was forgotten (or its variable unset).
+        raise CliError("--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map MAP_ID")
     tokens = _load_tokens(args.auth_tokens)
     if tokens is None and args.require_read_token:
         # Without tokens there is nothing to check: reads were served to anyone, silently.
