@@ -296,14 +296,22 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
         option = action.option_strings[-1]
         if action.nargs == 0:
             argv, text = [option], "1"
+        elif option == "--ros-domain":  # a number without a default (it falls back to $ROS_DOMAIN_ID)
+            argv, text = [option, "5"], "5"
         elif action.nargs == "+":
             # Lists of anything but addresses (Zenoh endpoints, origins) take any text.
-            items = ["10.0.0.1", "10.0.0.2"] if option == "--forwarded-allow-ips" else ["tcp/a:1", "tcp/b:2"]
+            items = {
+                "--forwarded-allow-ips": ["10.0.0.1", "10.0.0.2"],
+                "--ros-publish-map": ["lab", "wh=/wh/map"],
+            }.get(option, ["tcp/a:1", "tcp/b:2"])
             argv, text = [option, *items], "  ".join(items)
         elif action.choices:
             argv, text = [option, action.choices[-1]], action.choices[-1]
         elif isinstance(action.default, (int, float)):
-            argv, text = [option, str(action.default - 1)], str(action.default - 1)
+            # Up from a default at the bottom of its range, else down.
+            up = option == "--ros-map-period"
+            value = action.default + 1 if up else action.default - 1
+            argv, text = [option, str(value)], str(value)
         else:  # text, or a size (--max-memory)
             argv, text = [option, "1GiB"], "1GiB"
         defaults = serve_options([], {}, monkeypatch)

@@ -14,7 +14,7 @@ import io
 import json
 import os
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -122,9 +122,38 @@ def map_image(gmap: GridMap, window: Window, pixels: Callable[[np.ndarray], np.n
     return image[::-1]
 
 
+def tile_blocks(window: Window, tile_size: int) -> Iterator[Window]:
+    """The parts of `window` in each storage tile it meets (tiles of `tile_size` cells, aligned on
+    multiples of it), row of tiles by row of tiles from the lowest y."""
+    for jt in range(window.j0 // tile_size * tile_size, window.j1, tile_size):
+        for it in range(window.i0 // tile_size * tile_size, window.i1, tile_size):
+            yield Window(
+                max(window.i0, it),
+                max(window.j0, jt),
+                min(window.i1, it + tile_size),
+                min(window.j1, jt + tile_size),
+            )
+
+
+def map_state(gmap: GridMap, window: Window) -> np.ndarray:
+    """The trinary `state` codes (`STATE_UNKNOWN` / `STATE_FREE` / `STATE_OCCUPIED`, uint8, row 0 =
+    lowest y) of `map_probability` by the map's thresholds, the classification the nav2 files show.
+    Read one storage tile at a time (`tile_blocks`): the map's lock is held for one tile's copy at
+    a time, so integration never waits longer for it (a whole window in one read held it for
+    milliseconds), and only a tile's probabilities are held. Raises LayerUnavailableError for a
+    TSDF-only map."""
+    ny, nx = window.shape
+    state = np.empty((max(ny, 0), max(nx, 0)), dtype=np.uint8)
+    for block in tile_blocks(window, gmap.store.tile_size):
+        rows = slice(block.j0 - window.j0, block.j1 - window.j0)
+        cols = slice(block.i0 - window.i0, block.i1 - window.i0)
+        state[rows, cols] = gmap.classify_probability(map_probability(gmap, block))
+    return state
+
+
 def nav2_files(gmap: GridMap, window: Window, name: str = "map") -> dict[str, bytes]:
-    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, of `map_probability`."""
-    image = map_image(gmap, window, lambda p: state_to_pgm(gmap.classify_probability(p))[::-1])
+    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, of `map_state`."""
+    image = state_to_pgm(map_state(gmap, window))
     yaml_text = nav2_yaml(f"{name}.pgm", gmap.resolution, window.origin(gmap.resolution))
     return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(image)}
 

@@ -349,25 +349,32 @@ class GridMap:
     def known_bounds(self) -> tuple[int, int, int, int] | None:
         """Cell bounds `(i0, j0, i1, j1)`, exclusive ends, of every cell any kept layer has observed;
         None if none. Each tile's own bounds are cached by its version, so only tiles changed since the
-        last call are scanned (under the lock)."""
+        last call are scanned, each in a hold of the lock of its own: one scan may change a hundred
+        tiles of a big map, and scanning them in one hold kept integration waiting for milliseconds.
+        Tiles keep their slots and cells only ever become observed, so the bounds lie between those
+        before and after any scan applied meanwhile."""
         lo = [math.inf, math.inf]
         hi = [-math.inf, -math.inf]
         t = self.store.tile_size
         with self.lock:
-            for (ti, tj), slot in self.store.slots.items():
-                version = int(self.store.versions[slot])
-                cached = self._tile_bounds.get((ti, tj))
-                if cached is None or cached[0] != version:
-                    cached = (version, _local_bounds(self._observed(slot)))
-                    self._tile_bounds[(ti, tj)] = cached
-                local = cached[1]
-                if local is None:
-                    continue
-                c0, r0, c1, r1 = local
-                lo[0] = min(lo[0], ti * t + c0)
-                lo[1] = min(lo[1], tj * t + r0)
-                hi[0] = max(hi[0], ti * t + c1)
-                hi[1] = max(hi[1], tj * t + r1)
+            tiles = [(key, slot, int(self.store.versions[slot])) for key, slot in self.store.slots.items()]
+        for key, slot, version in tiles:
+            cached = self._tile_bounds.get(key)
+            if cached is None or cached[0] != version:
+                with self.lock:
+                    version = int(self.store.versions[slot])
+                    seen = self._observed(slot)
+                # A racing call may store an older entry after this one: the next call rescans it.
+                cached = self._tile_bounds[key] = (version, _local_bounds(seen))
+            local = cached[1]
+            if local is None:
+                continue
+            ti, tj = key
+            c0, r0, c1, r1 = local
+            lo[0] = min(lo[0], ti * t + c0)
+            lo[1] = min(lo[1], tj * t + r0)
+            hi[0] = max(hi[0], ti * t + c1)
+            hi[1] = max(hi[1], tj * t + r1)
         if lo[0] == math.inf:
             return None
         return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])

@@ -49,6 +49,8 @@ STORAGE_OPERATIONS = ("journal_commit", "snapshot", "map_change")
 
 #: `fleetmap_zenoh_scans_refused_total{reason}`: the kinds of `ZenohIngest`'s refusals (`_REFUSAL_KINDS`).
 ZENOH_REFUSALS = ("duplicate", "no_map", "too_many_robots", "queue_full")
+#: Why ROS 2 scans (`--ros-scans`) are refused, exported at 0 from the start (fleetmap.ros.ingest).
+ROS_REFUSALS = ("invalid_topic", "undecodable", "no_tf", "tf_error", "invalid_scan", "pending_full")
 
 #: Latency buckets in seconds: sub-millisecond integrations up to multi-second backlogs.
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
@@ -438,7 +440,7 @@ class ZenohCollector(Collector):
         self.status = status
 
     def describe(self) -> list[Metric]:
-        return list(self._families())
+        return [*self._families(), *self._ros_families()]
 
     def collect(self) -> Iterator[Metric]:
         up, routers, peers, alive, received, submitted, invalid, undecodable, refused = self._families()
@@ -456,6 +458,16 @@ class ZenohCollector(Collector):
         for reason, count in sorted(counts.items()):
             refused.add_metric([reason], count)
         yield from (up, routers, peers, alive, received, submitted, invalid, undecodable, refused)
+        # ROS 2 scans (--ros-scans): at 0 without it, so that alerts need no special case.
+        ros_received, ros_submitted, ros_waiting, ros_refused, tf_refused = self._ros_families()
+        ros = status.get("ros") or {}
+        ros_received.add_metric([], ros.get("scans_received", 0))
+        ros_submitted.add_metric([], ros.get("scans_submitted", 0))
+        ros_waiting.add_metric([], ros.get("scans_waiting", 0))
+        for reason, count in sorted((dict.fromkeys(ROS_REFUSALS, 0) | ros.get("refused", {})).items()):
+            ros_refused.add_metric([reason], count)
+        tf_refused.add_metric([], ros.get("tf_refused", 0))
+        yield from (ros_received, ros_submitted, ros_waiting, ros_refused, tf_refused)
 
     @staticmethod
     def _families() -> tuple[_Family, ...]:
@@ -481,6 +493,26 @@ class ZenohCollector(Collector):
                 "fleetmap_zenoh_scans_refused",
                 "Scans received over Zenoh that the registry refused, by reason (queue_full, duplicate, ...)",
                 labels=["reason"],
+            ),
+        )
+
+    @staticmethod
+    def _ros_families() -> tuple[_Family, ...]:
+        return (
+            CounterMetricFamily(
+                "fleetmap_ros_scans_received", "ROS 2 LaserScan messages received (--ros-scans)"
+            ),
+            CounterMetricFamily(
+                "fleetmap_ros_scans_submitted", "ROS 2 scans posed by TF and queued for integration"
+            ),
+            GaugeMetricFamily("fleetmap_ros_scans_waiting", "ROS 2 scans waiting for the TF that poses them"),
+            CounterMetricFamily(
+                "fleetmap_ros_scans_refused",
+                "ROS 2 scans refused, by reason (no_tf, undecodable, tf_error, ...; see docs/ros.md)",
+                labels=["reason"],
+            ),
+            CounterMetricFamily(
+                "fleetmap_ros_tf_refused", "ROS 2 TF transforms refused (undecodable, invalid, past a limit)"
             ),
         )
 

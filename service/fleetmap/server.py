@@ -3,12 +3,15 @@
     fleetmap serve [--http HOST:PORT] [--zenoh-listen EP ...] [--zenoh-connect EP ...]
                    [--zenoh-config FILE.json5] [--data-dir DIR] [--config FILE] [--no-auto-create]
                    [--workers N] [--ingest-backlog-ms MS] [--max-read-delay-ms MS]
+                   [--ros-publish-map MAP_ID[=TOPIC] ...] [--ros-domain N] [--ros-map-frame FRAME]
+                   [--ros-map-period S] [--ros-distro jazzy|humble]
                    [--log-level LEVEL] [--log-format text|json] [--access-log]
 
 One process holds everything: a `MapRegistry` (maps, robots, integration worker threads), a
 `ZenohIngest` (the service's own Zenoh session: a router by default, so robots connect to it
 directly in client mode and nothing else needs installing) and the REST API (`fleetmap.api`) run by
-uvicorn in the main thread.
+uvicorn in the main thread; with `--ros-publish-map`, a `RosMapPublisher` (fleetmap.ros.map_publisher)
+publishes maps to ROS 2 on the same Zenoh session from a thread of its own.
 
 Start-up order: the HTTP socket is bound first (so a port in use fails before anything else starts),
 the compiled kernels are warmed, the registry's workers start, the Zenoh session opens, then uvicorn
@@ -48,7 +51,9 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple, NoReturn, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, NoReturn, TypeVar
+
+import zenoh
 
 from fleetmap.auth import TokenFile, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, parse_command_line, run_command
@@ -68,7 +73,13 @@ from fleetmap.ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest
 from fleetmap.log_format import LOG_FORMATS, UVICORN_LOG_CONFIG, configure_logging, plain_line
 from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS, DurableStore
+from fleetmap.ros.transforms import TfError, normalize_frame
 from fleetmap.scan import MAX_BEAMS
+from fleetmap.wire import is_valid_id
+
+if TYPE_CHECKING:
+    from fleetmap.registry import MapRegistry
+    from fleetmap.ros.ingest import RosScanIngest
 
 log = logging.getLogger("fleetmap.server")
 
@@ -80,6 +91,9 @@ ENV_PREFIX = "FLEETMAP_"
 _ENV_TRUE = {"1", "true", "yes", "on"}
 _ENV_FALSE = {"0", "false", "no", "off", ""}
 LOG_LEVELS = ("debug", "info", "warning", "error")
+#: The defaults of --ros-map-frame, --ros-map-period and --ros-distro (any other value needs
+#: --ros-publish-map).
+ROS_MAP_DEFAULTS = ("map", 1.0, "jazzy")
 #: Seconds uvicorn waits at shutdown for the requests in flight (event streams end at once).
 GRACEFUL_HTTP_SECONDS = 3  # uvicorn takes whole seconds (int)
 
@@ -141,6 +155,27 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
             "the config file says: it maps a 16 MiB pool per local robot and delayed each robot's "
             "first scans by up to 250 ms, while loopback TCP is fast enough)"
         ),
+    )
+    p.add_argument(
+        "--ros-scans",
+        type=_map_id,
+        metavar="MAP_ID",
+        help=(
+            "also integrate the sensor_msgs/LaserScan topics ROS 2 robots publish over rmw_zenoh into "
+            "map MAP_ID, posed by their TF (robot id: the topic's namespace; see docs/ros.md)"
+        ),
+    )
+    p.add_argument(
+        "--ros-domain",
+        type=_int_between(0, 2**32 - 1),
+        metavar="N",
+        help="the ROS domain id of --ros-scans and --ros-publish-map (default $ROS_DOMAIN_ID, else 0)",
+    )
+    p.add_argument(
+        "--ros-fixed-frame",
+        type=_frame_id,
+        metavar="FRAME",
+        help="the TF frame --ros-scans' maps are built in (default map)",
     )
     p.add_argument(
         "--data-dir",
@@ -360,6 +395,45 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         help="the longest an HTTP request waits for the ingest backlog; then it is served (default 1000)",
     )
     p.add_argument(
+        "--ros-publish-map",
+        nargs="+",
+        action=_RepeatedOption,
+        type=_map_topic,
+        default=[],
+        metavar="MAP_ID[=TOPIC]",
+        help=(
+            "publish this map to ROS 2 (rmw_zenoh) as a nav_msgs/msg/OccupancyGrid on TOPIC (default "
+            "/map), as nav2's map_server does (TRANSIENT_LOCAL), whole, when it changed, on the service's "
+            "Zenoh session; repeatable (see docs/ros.md). Off by default"
+        ),
+    )
+    p.add_argument(
+        "--ros-map-frame",
+        type=_frame_id,
+        default=ROS_MAP_DEFAULTS[0],
+        metavar="FRAME",
+        help=f"header.frame_id of the published maps (default {ROS_MAP_DEFAULTS[0]})",
+    )
+    p.add_argument(
+        "--ros-map-period",
+        type=_seconds_between(0.05, 3600.0),
+        default=ROS_MAP_DEFAULTS[1],
+        metavar="S",
+        help=(
+            "seconds between checks of the published maps: a map that changed is published again at "
+            "most this often, one that did not is not sent again (default 1)"
+        ),
+    )
+    p.add_argument(
+        "--ros-distro",
+        choices=("jazzy", "humble"),
+        default=ROS_MAP_DEFAULTS[2],
+        help=(
+            "ROS 2 distribution of the subscribers, for the type hash in the topic's key: jazzy "
+            "(default; also Kilted and Rolling) or humble (rmw_zenoh's backport, without type hashes)"
+        ),
+    )
+    p.add_argument(
         "--log-level",
         choices=LOG_LEVELS,
         default="info",
@@ -421,6 +495,10 @@ def _environment_first(parser: argparse.ArgumentParser) -> Callable[..., Any]:
                 namespace = parse(_as_arguments(action, text), namespace)[0]
             except argparse.ArgumentError as exc:
                 problem = problem or f"${variable}={text!r}: {exc.message}"
+            else:
+                if isinstance(action, _RepeatedOption):
+                    values = getattr(namespace, action.dest)
+                    setattr(namespace, action.dest, _FromEnvironment(values))
         try:
             namespace, extras = parse(args, namespace)
         except argparse.ArgumentError as exc:
@@ -445,6 +523,34 @@ def _as_arguments(action: argparse.Action, text: str) -> list[str]:
     if action.nargs == "+":
         return [option, *text.split()] if text.split() else []
     return [f"{option}={text}"]
+
+
+class _FromEnvironment(list):
+    """The values a repeatable option got from its FLEETMAP_ variable (see `_RepeatedOption`)."""
+
+
+class _RepeatedOption(argparse.Action):
+    """An option that may be given several times, each with one or more values, all kept in order
+    (`--ros-publish-map a --ros-publish-map b c`: a, b, c). Its variable gives values separated by
+    spaces; the command line's first occurrence replaces those (the command line wins, as for every
+    option) rather than adding to them."""
+
+    def __call__(
+        self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any, option: Any = None
+    ) -> None:
+        current = getattr(namespace, self.dest, None)
+        kept = [] if current is None or isinstance(current, _FromEnvironment) else list(current)
+        setattr(namespace, self.dest, kept + list(values))
+
+
+def _map_topic(text: str) -> Any:
+    """An argparse `type` for `--ros-publish-map`: `MAP_ID[=TOPIC]` as a `MapTopic`."""
+    from fleetmap.ros.map_publisher import parse_map_topic
+
+    try:
+        return parse_map_topic(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _load_tokens(path: str | None) -> TokenSet | TokenFile | None:
@@ -492,6 +598,48 @@ def _path(text: str) -> str:
     if not text.strip():
         raise argparse.ArgumentTypeError("expected a path, got an empty value")
     return text
+
+
+def _map_id(text: str) -> str:
+    """An argparse `type` for a map id: `[A-Za-z0-9_-]{1,64}`."""
+    if not is_valid_id(text):
+        raise argparse.ArgumentTypeError(f"expected a map id of 1 to 64 of A-Z a-z 0-9 _ -, got {text!r}")
+    return text
+
+
+def _frame_id(text: str) -> str:
+    """An argparse `type` for a TF frame id (tf2's form: a leading `/` dropped)."""
+    try:
+        return normalize_frame(text.strip())
+    except TfError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def ros_domain(args: argparse.Namespace, environ: dict[str, str] | None = None) -> int:
+    """The ROS domain id of `--ros-scans` and `--ros-publish-map`: `--ros-domain` (or
+    FLEETMAP_ROS_DOMAIN), else ROS's own $ROS_DOMAIN_ID, else 0. Raises CliError for an unusable
+    $ROS_DOMAIN_ID."""
+    if args.ros_domain is not None:
+        return int(args.ros_domain)
+    text = (os.environ if environ is None else environ).get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return 0
+    if not text.isdigit() or int(text) >= 2**32:
+        raise CliError(f"$ROS_DOMAIN_ID={text!r}: expected a whole number (or give --ros-domain N)")
+    return int(text)
+
+
+def ros_options(args: argparse.Namespace, environ: dict[str, str] | None = None) -> tuple[int, str] | None:
+    """(domain id, fixed frame) of `--ros-scans`, None without it (`ros_domain`). Raises CliError
+    for an unusable $ROS_DOMAIN_ID, --ros-fixed-frame without --ros-scans, or --ros-domain with
+    neither --ros-scans nor --ros-publish-map."""
+    if args.ros_scans is None:
+        if args.ros_fixed_frame is not None:
+            raise CliError("--ros-fixed-frame needs --ros-scans MAP_ID")
+        if args.ros_domain is not None and not args.ros_publish_map:
+            raise CliError("--ros-domain needs --ros-scans MAP_ID or --ros-publish-map MAP_ID")
+        return None
+    return ros_domain(args, environ), args.ros_fixed_frame or "map"
 
 
 def _proxy_address(text: str) -> str:
@@ -697,6 +845,7 @@ def run(args: argparse.Namespace) -> int:
     # SIGHUP's default action ends the process at once (no snapshot, no clean close): `kill -HUP` or
     # systemd's ExecReload must reload the token file instead.
     signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
+    ros: RosScanIngest | None = None
     try:
         options = _checked_options(args)
         tokens = options.tokens
@@ -729,13 +878,16 @@ def run(args: argparse.Namespace) -> int:
             assert durable is not None  # only a durable registry reads storage at start
             durable.close()
             raise CliError(str(exc)) from None
+        ros_maps: Any = None
         try:
             try:
                 ingest.start()
             except IngestStartError as exc:
                 raise CliError(str(exc)) from None
+            ros = _start_ros(args, options, registry, ingest)
+            ros_maps = _start_ros_maps(args, registry, ingest)
             settings = options.settings_cls(
-                zenoh_status=ingest.status,
+                zenoh_status=_zenoh_status(ingest, ros, ros_maps),
                 cors_origins=args.cors_origin,
                 ingest_backlog=args.ingest_backlog_ms / 1000,
                 max_read_delay=args.max_read_delay_ms / 1000,
@@ -755,6 +907,10 @@ def run(args: argparse.Namespace) -> int:
         finally:
             sock.close()
             log.info("shutting down: closing the Zenoh session, integrating queued scans")
+            if ros_maps is not None:
+                ros_maps.close()  # before the session it publishes on
+            if ros is not None:
+                ros.close()
             ingest.close()
             registry.close()
     finally:
@@ -766,6 +922,26 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, signal.SIG_IGN)
     log.info("stopped")
     return 0
+
+
+def _start_ros_maps(args: argparse.Namespace, registry: Any, ingest: ZenohIngest) -> Any:
+    """The `RosMapPublisher` of the `--ros-publish-map` maps on the ingest's session, started; None
+    when no map is published to ROS 2."""
+    if not args.ros_publish_map:
+        return None
+    from fleetmap.ros.map_publisher import RosMapOptions, RosMapPublisher
+
+    assert ingest.session is not None  # started
+    options = RosMapOptions(
+        topics=tuple(args.ros_publish_map),
+        domain_id=ros_domain(args),
+        frame_id=args.ros_map_frame,
+        period=args.ros_map_period,
+        distro=args.ros_distro,
+    )
+    publisher = RosMapPublisher(registry, ingest.session, options)
+    publisher.start()
+    return publisher
 
 
 def _configure_process(args: argparse.Namespace) -> None:
@@ -782,6 +958,43 @@ def _configure_process(args: argparse.Namespace) -> None:
     sys.setswitchinterval(0.0005)
 
 
+def _zenoh_status(
+    ingest: ZenohIngest, ros: RosScanIngest | None, ros_maps: Any
+) -> Callable[[], dict[str, Any]]:
+    """`GET /healthz`'s `zenoh`: the session's status, with the ROS ingest's under `ros` and the ROS
+    map publisher's under `ros_maps`."""
+    if ros is None and ros_maps is None:
+        return ingest.status
+
+    def status() -> dict[str, Any]:
+        parts = ingest.status()
+        if ros is not None:
+            parts["ros"] = ros.status()
+        if ros_maps is not None:
+            parts["ros_maps"] = ros_maps.status()
+        return parts
+
+    return status
+
+
+def _start_ros(
+    args: argparse.Namespace, options: _StartOptions, registry: MapRegistry, ingest: ZenohIngest
+) -> RosScanIngest | None:
+    """The ROS 2 scan ingest on the service's Zenoh session (`--ros-scans`), started; None without."""
+    if options.ros is None:
+        return None
+    from fleetmap.ros.ingest import RosScanIngest
+
+    assert ingest.session is not None  # started
+    domain, frame = options.ros
+    ros = RosScanIngest(registry, ingest.session, args.ros_scans, domain_id=domain, fixed_frame=frame)
+    try:
+        ros.start()
+    except zenoh.ZError as exc:
+        raise CliError(f"cannot subscribe to ROS 2 topics: {exc}") from None
+    return ros
+
+
 class _StartOptions(NamedTuple):
     """What `run` starts from, read from the options by `_checked_options`."""
 
@@ -791,6 +1004,7 @@ class _StartOptions(NamedTuple):
     create_app: Any  # fleetmap.api.app's, and ...
     settings_cls: Any  # ... its ApiSettings (`_load_api`)
     tokens: TokenSet | TokenFile | None
+    ros: tuple[int, str] | None  # --ros-scans' (domain id, fixed frame)
 
 
 def _checked_options(args: argparse.Namespace) -> _StartOptions:
@@ -802,6 +1016,14 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
     if not (args.world_bound > 0 and args.max_range > 0):
         raise CliError("--world-bound and --max-range must be positive")
     configure_limits(InputLimits(args.world_bound, args.max_beams, args.max_range))
+    topics = [spec.topic for spec in args.ros_publish_map]
+    if len(set(topics)) < len(topics):
+        raise CliError("--ros-publish-map: two maps on one ROS topic; give each its own (MAP_ID=TOPIC)")
+    if topics:
+        ros_domain(args)  # a bad $ROS_DOMAIN_ID stops the start here, not once Zenoh runs
+    elif (args.ros_map_frame, args.ros_map_period, args.ros_distro) != ROS_MAP_DEFAULTS:
+        # Given for nothing: most likely --ros-publish-map was forgotten (or its variable unset).
+        raise CliError("--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map MAP_ID")
     tokens = _load_tokens(args.auth_tokens)
     if tokens is None and args.require_read_token:
         # Without tokens there is nothing to check: reads were served to anyone, silently.
@@ -814,7 +1036,8 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
             f"refusing to serve {host} without API tokens: anyone on the network could change the "
             "maps. Give --auth-tokens FILE (or $FLEETMAP_TOKENS), or --insecure to accept that"
         )
-    return _StartOptions(host, port, default_config, create_app, settings_cls, tokens)
+    ros = ros_options(args)
+    return _StartOptions(host, port, default_config, create_app, settings_cls, tokens, ros)
 
 
 def _open_storage(args: argparse.Namespace, sock: socket.socket) -> DurableStore | None:

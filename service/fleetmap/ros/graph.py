@@ -1,0 +1,115 @@
+"""rmw_zenoh's ROS graph: the liveliness tokens that make a node and its publishers visible.
+
+ROS 2 with rmw_zenoh keeps a graph cache per process from liveliness tokens under
+`@ros2_lv/<domain>/**`; `ros2 node list` and `ros2 topic list -v` read it. Data reaches a
+subscriber without any token (it subscribes to the topic's data key expression, and drops only
+samples without an attachment), so these tokens are what makes fleetmap *visible* as a node
+publishing its topics with their QoS, not what makes it heard.
+
+Token key expressions, as rmw_zenoh_cpp builds them (`Entity::Entity` in
+rmw_zenoh_cpp/src/detail/liveliness_utils.cpp; the ids in rmw_node_data.cpp and
+rmw_publisher_data.cpp):
+
+    @ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/<enclave>/<namespace>/<node>
+    @ros2_lv/<domain>/<zid>/<nid>/<eid>/MP/<enclave>/<namespace>/<node>/<topic>/<type>/<hash>/<qos>
+
+`<zid>` is the Zenoh session id as Zenoh prints it (`str(session.zid())`), `<nid>` the node's and
+`<eid>` the entity's id within the session (rmw_zenoh counts them per context), each name part
+mangled (`/` becomes `%`: the root namespace and enclave `/` are `%`, topic `/map` is `%map`), and
+`<qos>` the QoS profile written by `qos_keyexpr`. Pure string work: no Zenoh here.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+ADMIN_SPACE = "@ros2_lv"
+NODE = "NN"
+PUBLISHER = "MP"
+
+# rmw/types.h enum values, as the QoS part of a token writes them.
+RELIABILITY_RELIABLE, RELIABILITY_BEST_EFFORT = 1, 2
+DURABILITY_TRANSIENT_LOCAL, DURABILITY_VOLATILE = 1, 2
+HISTORY_KEEP_LAST, HISTORY_KEEP_ALL = 1, 2
+
+
+@dataclass(frozen=True)
+class Qos:
+    """The QoS policies a token states. Deadline, lifespan and liveliness are always rmw_zenoh's
+    defaults here (infinite, infinite, automatic with an infinite lease)."""
+
+    reliability: int = RELIABILITY_RELIABLE
+    durability: int = DURABILITY_VOLATILE
+    history: int = HISTORY_KEEP_LAST
+    depth: int = 42
+
+
+#: rmw_zenoh's default profile (`QoS::QoS` in rmw_zenoh_cpp/src/detail/qos.cpp): a policy equal to
+#: it is left empty in a token.
+RMW_ZENOH_DEFAULT_QOS = Qos()
+
+#: What nav2's map_server publishes `/map` with (`rclcpp::QoS(1).transient_local().reliable()`), and
+#: so what nav2's static layer and AMCL subscribe with.
+MAP_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_TRANSIENT_LOCAL, HISTORY_KEEP_LAST, 1)
+
+
+def mangle(name: str) -> str:
+    """A ROS name as one key expression chunk: every `/` becomes `%` (`/map` -> `%map`)."""
+    return name.replace("/", "%")
+
+
+def qos_keyexpr(qos: Qos) -> str:
+    """The QoS part of a token, `<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:
+    <lifespan s>,<ns>:<liveliness>,<lease s>,<ns>`, each value left empty when it is rmw_zenoh's
+    default (`qos_to_keyexpr`): `MAP_QOS` is `:1:,1:,:,:,,`."""
+    default = RMW_ZENOH_DEFAULT_QOS
+
+    def part(value: int, default_value: int) -> str:
+        return "" if value == default_value else str(value)
+
+    reliability = part(qos.reliability, default.reliability)
+    durability = part(qos.durability, default.durability)
+    history = f"{part(qos.history, default.history)},{part(qos.depth, default.depth)}"
+    # Deadline, lifespan (sec,nsec) and liveliness (kind,sec,nsec): all defaults, all empty.
+    return f"{reliability}:{durability}:{history}:,:,:,,"
+
+
+@dataclass(frozen=True)
+class RosNode:
+    """A ROS node on one Zenoh session: what every token of it starts with."""
+
+    domain_id: int
+    zid: str  # str(session.zid())
+    node_id: int
+    name: str = "fleetmap"
+    namespace: str = "/"
+    enclave: str = "/"
+
+    def _prefix(self, entity_id: int, kind: str) -> str:
+        return "/".join(
+            [
+                ADMIN_SPACE, str(self.domain_id), self.zid, str(self.node_id), str(entity_id), kind,
+                mangle(self.enclave), mangle(self.namespace), mangle(self.name),
+            ]
+        )  # fmt: skip
+
+    def node_token(self) -> str:
+        """The node's token (`NN`; its entity id is its node id, as in rmw_node_data.cpp)."""
+        return self._prefix(self.node_id, NODE)
+
+    def publisher_token(self, entity_id: int, topic: str, dds_type: str, type_hash: str, qos: Qos) -> str:
+        """The token of this node's publisher `entity_id` of `topic` (absolute, `/map`), whose type is
+        `dds_type` (`nav_msgs::msg::dds_::OccupancyGrid_`) with `type_hash`, published with `qos`."""
+        parts = [mangle(topic), mangle(dds_type), mangle(type_hash), qos_keyexpr(qos)]
+        return "/".join([self._prefix(entity_id, PUBLISHER), *parts])
+
+
+def entity_gid(token: str, size: int = 16) -> bytes:
+    """The gid (`size` bytes: 16 from Jazzy on, 24 in Humble) a publisher puts in each sample's
+    attachment (`source_gid`), derived from its token so that it is stable and unique. rmw_zenoh
+    hashes the token with XXH3-128; this uses BLAKE2b (hashlib: no dependency). A subscriber passes
+    it on to the application (`rmw_message_info_t.publisher_gid`), where rclcpp compares it only
+    with its own process's publishers (intra-process delivery), which a gid of fleetmap never
+    equals; the graph cache computes its own gids from the tokens."""
+    return hashlib.blake2b(token.encode(), digest_size=size).digest()

@@ -1,0 +1,483 @@
+"""ROS 2 scans over rmw_zenoh into one map: `RosScanIngest`.
+
+Opt-in (`fleetmap serve --ros-scans MAP_ID`, see docs/ros.md). On the service's own Zenoh session
+it subscribes to every `sensor_msgs/msg/LaserScan` and every `tf2_msgs/msg/TFMessage` of one ROS
+domain, on the key expressions rmw_zenoh publishes them on (`fleetmap.ros.rmw_zenoh`), whatever the
+type hash (Humble's `TypeHashNotSupported` too). TF goes into one `TfBuffer` per namespace: messages
+on `/<ns>/tf` and `/<ns>/tf_static` into the tree of `<ns>`, `/tf` and `/tf_static` into the root
+tree. A scan on `/<ns>/<name>` is posed in the tree of `<ns>` if that namespace has published TF,
+else in the root tree: the pose of its `header.frame_id` in the fixed frame at `header.stamp`,
+projected onto the map's plane (`sensor_pose_2d`). It is then handed to `MapRegistry.submit` as the
+robot `<ns>` (`/` -> `_`; `robot` without a namespace), exactly as a native scan.
+
+`/tf_static` is TRANSIENT_LOCAL: rmw_zenoh publishes it with an AdvancedPublisher holding a cache
+(rmw_publisher_data.cpp), which an AdvancedSubscriber with history and late-publisher detection
+queries, as rmw_zenoh's own subscriptions do (rmw_subscription_data.cpp): so the static TF of robots
+that started before the service arrives. Releases before the AdvancedPublisher kept a publication
+cache answering plain queries on the topic's key; one query at start covers those.
+
+Threads: the Zenoh callbacks decode and append, never wait. A scan goes on its robot's pending
+queue (bounded; the newest refused when full) and the `fleetmap-ros` thread poses it as soon as TF
+covers its stamp, in order per robot. A scan whose TF has not come `tf_timeout` seconds after it
+arrived is dropped (tf2's MessageFilter does the same), counted on the robot (`scans_rejected`,
+`last_error` saying why) and in `status()`. A scan that can never be posed (a tilted laser, a stamp
+older than the TF kept, a bad scan) is refused at once the same way.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+import zenoh.ext
+
+from fleetmap import codec
+from fleetmap.codec import WireScan
+from fleetmap.rate_limited_log import RateLimitedLog
+from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
+from fleetmap.ros import laser_scan, tf_message
+from fleetmap.ros.cdr import CdrError
+from fleetmap.ros.laser_scan import LaserScanMsg, decode_laser_scan
+from fleetmap.ros.rmw_zenoh import dds_type_name, decode_attachment, parse_topic_key
+from fleetmap.ros.tf_message import decode_tf_message
+from fleetmap.ros.transforms import TfBuffer, TfError, TfPending, normalize_frame, sensor_pose_2d
+from fleetmap.scan import Scan, ScanError
+from fleetmap.wire import SESSION_LIMIT, is_valid_id
+
+log = logging.getLogger("fleetmap.ros")
+
+#: Seconds a scan waits for the TF that poses it (tf2's MessageFilter's usual queue time).
+TF_TIMEOUT = 0.5
+#: Scans held per robot while they wait for TF (20 Hz for 0.5 s is 10).
+MAX_PENDING = 50
+#: Scans waiting for TF, all robots together: with the beam limit (16 384 by default, 64 KiB of
+#: ranges) this bounds what waiting scans hold, about 128 MiB at worst.
+MAX_WAITING = 2048
+#: Robots (namespaces with LaserScans) and TF trees (namespaces with TF) tracked at most.
+MAX_ROBOTS = 1024
+MAX_TREES = 64
+#: Robot id of a LaserScan topic without a namespace (`/scan`).
+ROOT_ROBOT_ID = "robot"
+#: `refused` counters in `status()` by IngestRejected status, as the native ingest counts them.
+_REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
+
+
+def robot_id_for(topic: str) -> str:
+    """The robot id of a LaserScan topic: its namespace, `/` turned into `_` (`/robot1/scan` ->
+    `robot1`, `/a/b/scan` -> `a_b`), or `robot` without one (`/scan`). May be an invalid fleetmap id
+    (the caller checks)."""
+    namespace = topic.rsplit("/", 1)[0].strip("/")
+    return namespace.replace("/", "_") if namespace else ROOT_ROBOT_ID
+
+
+def session_from_gid(gid: bytes) -> int:
+    """A fleetmap session id from an rmw_zenoh publisher gid: its first 6 bytes (the gid is a hash
+    of the publisher's liveliness token, which holds its Zenoh session id, so a restarted node gets
+    a new one), in [1, 2**48]."""
+    return int.from_bytes(gid[:6], "big") or 1
+
+
+@dataclass
+class _Pending:
+    msg: LaserScanMsg
+    namespace: str
+    seq: int
+    session: int | None
+    deadline: float  # time.monotonic() after which it is dropped if TF still does not cover it
+    waited: bool = False  # counted once in `scans_waited_for_tf`
+
+
+class _Robot:
+    __slots__ = ("counters", "pending")
+
+    def __init__(self) -> None:
+        self.pending: deque[_Pending] = deque()
+        self.counters: dict[str, int] = {}  # seq counter per topic, for messages without attachment
+
+
+class RosScanIngest:
+    """LaserScans and TF of one ROS domain, over an open Zenoh session, into map `map_id`.
+
+    Contract: after `start()`, every LaserScan sample of the domain is either submitted to the
+    registry with the sensor pose TF gives at its stamp, or counted (in `status()`, and on its robot
+    through `MapRegistry.reject` when the map exists) with a rate-limited log line saying why.
+    `close()` undeclares the subscribers and stops the thread (scans still waiting are dropped);
+    call it before closing the session. Both are idempotent."""
+
+    def __init__(
+        self,
+        registry: MapRegistry,
+        session: zenoh.Session,
+        map_id: str,
+        *,
+        domain_id: int = 0,
+        fixed_frame: str = "map",
+        tf_timeout: float = TF_TIMEOUT,
+        max_pending: int = MAX_PENDING,
+    ) -> None:
+        if not is_valid_id(map_id):
+            raise ValueError(f"map id must match [A-Za-z0-9_-]{{1,64}}, got {map_id!r}")
+        self.registry = registry
+        self.session = session
+        self.map_id = map_id
+        self.domain_id = domain_id
+        self.fixed_frame = fixed_frame
+        self.tf_timeout = tf_timeout
+        self.max_pending = max_pending
+        self.scan_key = f"{domain_id}/**/{dds_type_name(laser_scan.ROS_TYPE)}/*"
+        self.tf_key = f"{domain_id}/**/{dds_type_name(tf_message.ROS_TYPE)}/*"
+        self._subscribers: list[Any] = []
+        self._lock = threading.Lock()  # guards _robots, the counters
+        self._tf_lock = threading.Lock()  # guards _trees
+        self._robots: dict[str, _Robot] = {}
+        self._trees: dict[str, TfBuffer] = {}  # by namespace ('' for /tf)
+        self._waiting = 0  # scans in all robots' pending queues
+        self._wake = threading.Event()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._log = RateLimitedLog(log)
+        self.scans_received = 0
+        self.scans_submitted = 0
+        self.scans_waited_for_tf = 0
+        self.tf_messages = 0
+        self.tf_refused = 0  # transforms (not messages) refused: bad values, limits
+        self.refused: Counter[str] = Counter()  # scans refused, by kind
+
+    # -- lifecycle -------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Declare the subscribers, query old-style publication caches, start the thread. Raises
+        zenoh.ZError (nothing left declared) if the session refuses."""
+        if self._thread is not None:
+            return
+        try:
+            self._subscribers.append(self.session.declare_subscriber(self.scan_key, self._on_scan))
+            self._subscribers.append(
+                zenoh.ext.declare_advanced_subscriber(
+                    self.session,
+                    self.tf_key,
+                    self._on_tf,
+                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+                    subscriber_detection=True,
+                )
+            )
+            # rmw_zenoh before its AdvancedPublisher: a publication cache answering queries on the key.
+            self.session.get(self.tf_key, self._on_reply)
+        except zenoh.ZError:
+            self.close()
+            raise
+        # Scans the callbacks queued meanwhile wait for it; the first pass takes them.
+        self._thread = threading.Thread(target=self._run, name="fleetmap-ros", daemon=True)
+        self._thread.start()
+        log.info(
+            "ROS 2 scans of domain %d go into map %s, posed in frame %s (keys %s, %s)",
+            self.domain_id, self.map_id, self.fixed_frame, self.scan_key, self.tf_key,
+        )  # fmt: skip
+
+    def close(self) -> None:
+        """Undeclare the subscribers and stop the thread. Idempotent."""
+        subscribers, self._subscribers = self._subscribers, []
+        for sub in subscribers:
+            with contextlib.suppress(zenoh.ZError):
+                sub.undeclare()
+        self._stop = True
+        self._wake.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout=5)
+
+    # -- Zenoh callbacks (Zenoh threads: never block) --------------------------------------------
+
+    def _on_scan(self, sample: zenoh.Sample) -> None:
+        try:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+            self._handle_scan(str(sample.key_expr), sample.payload.to_bytes(), attachment)
+        except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
+            log.exception("unexpected error handling a ROS scan sample on %s", sample.key_expr)
+
+    def _refuse(self, kind: str, robot_id: str | None, reason: str) -> None:
+        """Count a refused scan (on its robot when there is one) and log it, rate-limited."""
+        with self._lock:
+            self.refused[kind] += 1
+        if robot_id is not None:
+            self.registry.reject(self.map_id, robot_id, reason)
+        who = f"{self.map_id}/{robot_id}" if robot_id else "ROS"
+        self._log.warning(
+            f"ros-{kind}:{robot_id}", f"refused a ROS scan of {who}: {reason}", map_id=self.map_id,
+            robot_id=robot_id,
+        )  # fmt: skip
+
+    def _handle_scan(self, key: str, payload: bytes, attachment: bytes | None) -> None:
+        with self._lock:
+            self.scans_received += 1
+        topic_key = parse_topic_key(key)
+        if topic_key is None or topic_key.ros_type != laser_scan.ROS_TYPE:
+            self._refuse("invalid_topic", None, f"not an rmw_zenoh LaserScan key: {key[:200]!r}")
+            return
+        topic = topic_key.topic
+        robot_id = robot_id_for(topic)
+        if not is_valid_id(robot_id):
+            reason = f"topic {topic[:200]!r} gives robot id {robot_id[:80]!r}, not [A-Za-z0-9_-]{{1,64}}"
+            self._refuse("invalid_topic", None, reason)
+            return
+        limit = codec.current_limits().max_payload_bytes
+        if len(payload) > limit:
+            self._refuse(
+                "undecodable", robot_id, f"LaserScan of {len(payload)} bytes exceeds the limit of {limit}"
+            )
+            return
+        try:
+            msg = decode_laser_scan(payload)
+        except CdrError as exc:
+            self._refuse("undecodable", robot_id, f"undecodable LaserScan on {topic}: {exc}")
+            return
+        max_beams = codec.current_limits().max_beams
+        if len(msg.ranges) > max_beams:  # refused before it waits (and holds memory)
+            reason = f"LaserScan of {len(msg.ranges)} beams is more than the limit of {max_beams}"
+            self._refuse("invalid_scan", robot_id, reason)
+            return
+        try:
+            normalize_frame(msg.frame_id)
+        except TfError as exc:  # checked here so that no reason or log line carries a huge id
+            self._refuse("tf_error", robot_id, f"LaserScan on {topic}: {exc}")
+            return
+        meta = decode_attachment(attachment) if attachment is not None else None
+        namespace = topic.rsplit("/", 1)[0]
+        with self._lock:
+            robot = self._robots.get(robot_id)
+            if robot is None and self._room_for_robot():
+                robot = self._robots[robot_id] = _Robot()
+            if robot is not None:
+                if meta is not None and 1 <= meta.sequence_number < 2**63:
+                    # rmw_zenoh counts from 1, fleetmap from 0: a restarted node's first scan is then
+                    # not one "lost" scan (protocol.md, "Sequence numbers").
+                    seq, session = meta.sequence_number - 1, session_from_gid(meta.source_gid)
+                else:  # no rmw_zenoh attachment: count per topic; the stamps tell restarts
+                    seq = robot.counters.get(topic, -1) + 1
+                    if topic in robot.counters or len(robot.counters) < 16:
+                        robot.counters[topic] = seq
+                    session = None
+                assert session is None or 1 <= session < SESSION_LIMIT
+                full = len(robot.pending) >= self.max_pending or self._waiting >= MAX_WAITING
+                if not full:
+                    self._waiting += 1
+                    deadline = time.monotonic() + self.tf_timeout
+                    robot.pending.append(_Pending(msg, namespace, seq, session, deadline))
+        if robot is None:
+            self._refuse("too_many_robots", None, f"already {MAX_ROBOTS} ROS robots; {robot_id!r} ignored")
+            return
+        if full:
+            reason = (
+                f"{self.max_pending} scans of the robot ({MAX_WAITING} of all robots) already wait for TF "
+                f"(is TF published for {msg.frame_id!r}?)"
+            )
+            self._refuse("pending_full", robot_id, reason)
+            return
+        self._wake.set()
+
+    def _room_for_robot(self) -> bool:
+        """Whether another robot may be tracked (caller holds `_lock`): below MAX_ROBOTS, or after
+        forgetting one with no scan waiting (all it holds is its seq counters for messages without
+        an attachment), so robots that came and went do not lock new ones out."""
+        if len(self._robots) < MAX_ROBOTS:
+            return True
+        idle = next((rid for rid, r in self._robots.items() if not r.pending), None)
+        if idle is None:
+            return False
+        del self._robots[idle]
+        return True
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        with contextlib.suppress(Exception):  # an error reply (no cache) is no TF
+            sample = reply.ok
+            if sample is not None:
+                self._on_tf(sample)
+
+    def _on_tf(self, sample: zenoh.Sample) -> None:
+        try:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            self._handle_tf(str(sample.key_expr), sample.payload.to_bytes())
+        except Exception:
+            log.exception("unexpected error handling a ROS TF sample on %s", sample.key_expr)
+
+    def _handle_tf(self, key: str, payload: bytes) -> None:
+        topic_key = parse_topic_key(key)
+        if topic_key is None or topic_key.ros_type != tf_message.ROS_TYPE:
+            return
+        namespace, _, name = topic_key.topic.rpartition("/")
+        if name not in ("tf", "tf_static"):
+            return  # a TFMessage on another topic is not TF
+        try:
+            transforms = decode_tf_message(payload)
+        except CdrError as exc:
+            with self._lock:
+                self.tf_refused += 1
+            self._log.warning(
+                f"ros-tf:{namespace}", f"undecodable TFMessage on {topic_key.topic[:200]}: {exc}"
+            )
+            return
+        refused: list[str] = []
+        with self._tf_lock:
+            tree = self._trees.get(namespace)
+            if tree is None:
+                if len(self._trees) >= MAX_TREES:
+                    refused.append(f"already {MAX_TREES} TF namespaces; {namespace[:80]!r} ignored")
+                else:
+                    tree = self._trees[namespace] = TfBuffer()
+            if tree is not None:
+                for t in transforms:
+                    try:
+                        tree.add(t, static=name == "tf_static")
+                    except TfError as exc:
+                        refused.append(str(exc))
+        with self._lock:
+            self.tf_messages += 1
+            self.tf_refused += len(refused) if tree is not None else len(transforms)
+        if refused:
+            self._log.warning(
+                f"ros-tf:{namespace}",
+                f"refused {len(refused)} transform(s) on {topic_key.topic}: {refused[0]}",
+            )
+        self._wake.set()
+
+    # -- the fleetmap-ros thread -----------------------------------------------------------------
+
+    def _run(self) -> None:
+        timeout: float | None = None
+        while True:
+            self._wake.wait(timeout)
+            self._wake.clear()  # before the pass: a wake-up during it makes another pass
+            if self._stop:
+                return
+            try:
+                timeout = self._pass()
+            except Exception:  # a bug must not end the thread: every later scan would wait forever
+                log.exception("unexpected error posing ROS scans")
+                timeout = 0.1
+
+    def _pass(self) -> float | None:
+        """Pose, submit or drop what each robot's queue holds, in order; the seconds until the
+        earliest deadline of a scan still waiting (None: nothing waits)."""
+        with self._lock:
+            robots = [(rid, r) for rid, r in self._robots.items() if r.pending]
+        next_deadline: float | None = None
+        for robot_id, robot in robots:
+            while True:
+                with self._lock:
+                    if not robot.pending:
+                        break
+                    item = robot.pending[0]
+                now = time.monotonic()
+                try:
+                    wire = self._pose(item)
+                except TfPending as exc:
+                    if now < item.deadline:
+                        if not item.waited:
+                            item.waited = True
+                            with self._lock:
+                                self.scans_waited_for_tf += 1
+                        if next_deadline is None or item.deadline < next_deadline:
+                            next_deadline = item.deadline
+                        break
+                    self._pop(robot)
+                    reason = (
+                        f"no TF for the scan at {item.msg.stamp:.3f} ({self.fixed_frame} -> "
+                        f"{item.msg.frame_id}) within {self.tf_timeout:g} s: {exc}"
+                    )
+                    self._refuse("no_tf", robot_id, reason)
+                    continue
+                except TfError as exc:
+                    self._pop(robot)
+                    self._refuse("tf_error", robot_id, f"scan at {item.msg.stamp:.3f} not posed: {exc}")
+                    continue
+                except (ScanError, codec.DecodeError) as exc:
+                    self._pop(robot)
+                    self._refuse("invalid_scan", robot_id, f"invalid LaserScan: {exc}")
+                    continue
+                except Exception as exc:  # a bug: drop the scan, or it would block its robot for good
+                    self._pop(robot)
+                    self._log.error(
+                        f"ros-bug:{type(exc).__name__}", "unexpected error posing a ROS scan", exc
+                    )
+                    self._refuse("invalid_scan", robot_id, f"not posed: internal error {type(exc).__name__}")
+                    continue
+                self._pop(robot)
+                self._submit(robot_id, wire)
+        return None if next_deadline is None else max(0.0, next_deadline - time.monotonic())
+
+    def _pop(self, robot: _Robot) -> None:
+        with self._lock:
+            robot.pending.popleft()
+            self._waiting -= 1
+
+    def _pose(self, item: _Pending) -> WireScan:
+        """The scan as fleetmap integrates it, posed by TF; raises TfPending, TfError, ScanError,
+        DecodeError."""
+        msg = item.msg
+        with self._tf_lock:
+            tree = self._trees.get(item.namespace) or self._trees.get("")
+            if tree is None:
+                where = f"{item.namespace}/tf" if item.namespace else "/tf"
+                raise TfPending(f"no TF received on {where} or /tf")
+            transform = tree.lookup(self.fixed_frame, msg.frame_id, msg.stamp)
+        pose = sensor_pose_2d(transform)
+        sign = -1.0 if pose.mirrored else 1.0  # upside down: beam i at -(angle_min + i * increment)
+        scan = Scan.from_fan(
+            (pose.x, pose.y, pose.theta),
+            sign * msg.angle_min,
+            sign * msg.angle_increment,
+            msg.ranges,
+            msg.range_min,
+            msg.range_max,
+        )
+        return codec.current_limits().check(WireScan(item.seq, msg.stamp, scan, item.session))
+
+    def _submit(self, robot_id: str, wire: WireScan) -> None:
+        try:
+            self.registry.submit(self.map_id, robot_id, wire)
+        except IngestRejected as exc:
+            kind = _REFUSAL_KINDS.get(exc.status, "other")
+            with self._lock:
+                self.refused[kind] += 1
+            message = f"ROS scan seq {wire.seq} of {self.map_id}/{robot_id}: {exc.reason}"
+            self._log.warning(
+                f"ros-{kind}:{robot_id}", message, map_id=self.map_id, robot_id=robot_id, seq=wire.seq
+            )
+            return
+        except InvalidId:  # robot_id_for's ids are checked; kept for safety
+            return
+        with self._lock:
+            self.scans_submitted += 1
+
+    # -- reporting -------------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        """A JSON-able summary for `GET /healthz` (`zenoh.ros`)."""
+        with self._tf_lock:
+            trees = {ns or "/": {"frames": t.frames, "samples": t.samples} for ns, t in self._trees.items()}
+        with self._lock:
+            return {
+                "map_id": self.map_id,
+                "domain_id": self.domain_id,
+                "fixed_frame": self.fixed_frame,
+                "scans_received": self.scans_received,
+                "scans_submitted": self.scans_submitted,
+                "scans_waited_for_tf": self.scans_waited_for_tf,
+                "scans_waiting": self._waiting,
+                "refused": dict(self.refused),
+                "tf_messages": self.tf_messages,
+                "tf_refused": self.tf_refused,
+                "tf_trees": dict(list(trees.items())[:MAX_TREES]),
+            }
+
+
+__all__ = ["MAX_PENDING", "TF_TIMEOUT", "RosScanIngest", "robot_id_for", "session_from_gid"]

@@ -1,0 +1,167 @@
+"""RosScanIngest's logic without Zenoh: its callbacks' handlers are called directly and its thread's
+pass run by hand, against a registry that records what it is given. The robot id and namespace
+rules, the wait for TF in order, the timeout, the bounded queue, seq and session from rmw_zenoh's
+attachment. (tests/test_ros_ingest.py runs the real service over real Zenoh.)"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+
+from fleetmap.codec import WireScan
+from fleetmap.registry import IngestRejected
+from fleetmap.ros.ingest import RosScanIngest, robot_id_for, session_from_gid
+from fleetmap.ros.laser_scan import LaserScanMsg, encode_laser_scan
+from fleetmap.ros.rmw_zenoh import TYPE_HASHES, Attachment, encode_attachment, topic_key
+from fleetmap.ros.tf_message import TransformStamped, encode_tf_message
+
+IDENTITY = (0.0, 0.0, 0.0, 1.0)
+
+
+class RecordingRegistry:
+    def __init__(self) -> None:
+        self.submitted: list[tuple[str, str, WireScan]] = []
+        self.rejected: list[tuple[str, str, str]] = []
+        self.refuse_next: IngestRejected | None = None
+
+    def submit(self, map_id: str, robot_id: str, wire: WireScan) -> None:
+        if self.refuse_next is not None:
+            exc, self.refuse_next = self.refuse_next, None
+            raise exc
+        self.submitted.append((map_id, robot_id, wire))
+
+    def reject(self, map_id: str, robot_id: str, reason: str) -> None:
+        self.rejected.append((map_id, robot_id, reason))
+
+
+def make(**kwargs: Any) -> tuple[RosScanIngest, RecordingRegistry]:
+    registry = RecordingRegistry()
+    return RosScanIngest(registry, None, "lab", **kwargs), registry  # type: ignore[arg-type]
+
+
+def scan_key(topic: str) -> str:
+    return topic_key(0, topic, "sensor_msgs/msg/LaserScan", TYPE_HASHES["sensor_msgs/msg/LaserScan"])
+
+
+def tf_key(topic: str) -> str:
+    return topic_key(0, topic, "tf2_msgs/msg/TFMessage", "TypeHashNotSupported")
+
+
+def laser(stamp: float, frame: str = "laser", n: int = 5) -> bytes:
+    sec = math.floor(stamp)
+    msg = LaserScanMsg(sec, round((stamp - sec) * 1e9), frame, -0.5, 0.5, 0.25, 0.0, 0.1, 0.1, 10.0,
+                       np.full(n, 2.0, np.float32))  # fmt: skip
+    return encode_laser_scan(msg)
+
+
+def tf(stamp: float, *edges: tuple[str, str, float]) -> bytes:
+    """Edges parent -> child translated by x along the parent's x axis."""
+    return encode_tf_message([TransformStamped(stamp, p, c, (x, 0.0, 0.0), IDENTITY) for p, c, x in edges])
+
+
+def test_robot_ids_and_sessions() -> None:
+    assert robot_id_for("/robot1/scan") == "robot1"
+    assert robot_id_for("/scan") == "robot"
+    assert robot_id_for("/fleet/a/front_scan") == "fleet_a"
+    gid = bytes(range(1, 17))
+    assert session_from_gid(gid) == int.from_bytes(gid[:6], "big") and session_from_gid(bytes(16)) == 1
+    assert session_from_gid(b"\xff" * 16) < 2**53
+
+
+def test_namespace_tf_first_else_the_root_tree() -> None:
+    ingest, registry = make()
+    # Root /tf holds robot3's frames, prefixed; robot3 publishes no TF of its own.
+    ingest._handle_tf(tf_key("/tf"), tf(1.0, ("map", "robot3/laser", 1.0)))
+    ingest._handle_tf(tf_key("/tf"), tf(3.0, ("map", "robot3/laser", 1.0)))
+    ingest._handle_scan(scan_key("/robot3/scan"), laser(2.0, "robot3/laser"), None)
+    ingest._pass()
+    assert [(r, w.scan.pose.x) for _, r, w in registry.submitted] == [("robot3", 1.0)]
+    # Once /robot3/tf speaks, robot3's scans are posed in its own tree (x = 5 there).
+    ingest._handle_tf(tf_key("/robot3/tf"), tf(1.0, ("map", "robot3/laser", 5.0)))
+    ingest._handle_tf(tf_key("/robot3/tf"), tf(3.0, ("map", "robot3/laser", 5.0)))
+    ingest._handle_scan(scan_key("/robot3/scan"), laser(2.5, "robot3/laser"), None)
+    ingest._pass()
+    assert registry.submitted[-1][2].scan.pose.x == 5.0
+    # A TFMessage on another topic is not TF.
+    ingest._handle_tf(tf_key("/robot3/not_tf"), tf(1.0, ("map", "other", 1.0)))
+    assert set(ingest.status()["tf_trees"]) == {"/", "/robot3"}
+
+
+def test_scans_wait_for_tf_in_order_and_are_dropped_after_the_timeout() -> None:
+    ingest, registry = make(tf_timeout=0.2)
+    ingest._handle_tf(tf_key("/r/tf"), tf(1.0, ("map", "laser", 0.0)))
+    ingest._handle_tf(tf_key("/r/tf"), tf(1.5, ("map", "laser", 1.0)))
+    for stamp in (1.25, 2.0, 1.4):  # the third is covered, but must not overtake the second
+        ingest._handle_scan(
+            scan_key("/r/scan"), laser(stamp), encode_attachment(Attachment(10, 0, b"g" * 16))
+        )
+    timeout = ingest._pass()
+    assert [w.stamp for _, _, w in registry.submitted] == [1.25]
+    assert registry.submitted[0][2].scan.pose.x == pytest.approx(0.5)  # interpolated
+    assert timeout is not None and 0 < timeout <= 0.2
+    ingest._handle_tf(tf_key("/r/tf"), tf(2.5, ("map", "laser", 2.0)))
+    ingest._pass()
+    assert [w.stamp for _, _, w in registry.submitted] == [1.25, 2.0, 1.4]
+    assert ingest.status()["scans_waited_for_tf"] == 1  # the third waited for order, not for its TF
+    # A scan TF never covers: dropped once its time is up, counted on the robot with the reason.
+    ingest._handle_scan(scan_key("/r/scan"), laser(9.0), None)
+    assert ingest._pass() is not None and not registry.rejected
+    time.sleep(0.25)
+    assert ingest._pass() is None
+    ((map_id, robot_id, reason),) = registry.rejected
+    assert (map_id, robot_id) == ("lab", "r") and "no TF for the scan at 9.000" in reason
+    assert "within 0.2 s" in reason and "map -> laser" in reason
+    assert ingest.status()["refused"] == {"no_tf": 1}
+
+
+def test_seq_and_session_from_the_attachment_else_a_counter() -> None:
+    ingest, registry = make()
+    ingest._handle_tf(tf_key("/tf_static"), tf(0.0, ("map", "laser", 0.0)))
+    gid = bytes(range(16))
+    ingest._handle_scan(scan_key("/a/scan"), laser(1.0), encode_attachment(Attachment(41, 5, gid)))
+    ingest._handle_scan(scan_key("/b/scan"), laser(1.0), None)
+    ingest._handle_scan(scan_key("/b/scan"), laser(1.1), b"not an attachment")
+    ingest._pass()
+    got = [(r, w.seq, w.session) for _, r, w in registry.submitted]
+    assert got == [("a", 40, session_from_gid(gid)), ("b", 0, None), ("b", 1, None)]  # 41 counted from 1
+
+
+def test_refusals_are_counted_with_their_reasons() -> None:
+    ingest, registry = make(max_pending=2)
+    ingest._handle_tf(tf_key("/tf_static"), tf(0.0, ("map", "base", 0.0)))
+    ingest._handle_scan(scan_key("/r/scan"), b"\x00\x01\x00\x00garbage", None)
+    ingest._handle_scan(scan_key("/" + "x" * 65 + "/scan"), laser(1.0), None)
+    ingest._handle_scan("fleetmap/lab/r/scan", laser(1.0), None)
+    ingest._handle_scan(scan_key("/r/scan"), laser(1.0, frame="x" * 300), None)
+    ingest._handle_scan(scan_key("/r/scan"), laser(1.0, n=20000), None)  # refused before it waits
+    for _ in range(3):  # "laser" is in no tree: they wait; the third does not fit
+        ingest._handle_scan(scan_key("/r/scan"), laser(1.0), None)
+    registry.refuse_next = IngestRejected("duplicate", 200)
+    ingest._handle_tf(tf_key("/tf_static"), tf(0.0, ("base", "laser", 0.0)))
+    ingest._pass()
+    assert ingest.status()["refused"] == {
+        "undecodable": 1, "invalid_topic": 2, "tf_error": 1, "invalid_scan": 1, "pending_full": 1,
+        "duplicate": 1,
+    }  # fmt: skip
+    reasons = [reason for _, robot, reason in registry.rejected if robot == "r"]
+    assert "undecodable LaserScan on /r/scan" in reasons[0]
+    assert "invalid frame id" in reasons[1] and len(reasons[1]) < 300
+    assert "2 scans of the robot (2048 of all robots) already wait for TF" in reasons[3]
+    assert "20000 beams is more than the limit of 16384" in reasons[2]
+    assert len(registry.submitted) == 1
+
+
+def test_tf_floods_and_bad_transforms_are_counted_not_kept() -> None:
+    ingest, _ = make()
+    bad = encode_tf_message([TransformStamped(0.0, "a", "b", (math.nan, 0.0, 0.0), IDENTITY)])
+    ingest._handle_tf(tf_key("/tf"), bad)
+    ingest._handle_tf(tf_key("/tf"), b"\x00\x01\x00\x00\xff\xff\xff\xff")
+    for i in range(300):  # more frames than a tree may hold
+        ingest._handle_tf(tf_key("/tf_static"), tf(0.0, ("map", f"f{i}", 0.0)))
+    status = ingest.status()
+    assert status["tf_trees"]["/"]["frames"] == 256
+    assert status["tf_refused"] == 1 + 1 + (300 - 255)

@@ -1,0 +1,300 @@
+"""A map as a ROS 2 nav_msgs/msg/OccupancyGrid (fleetmap.ros.occupancy_grid), the rmw_zenoh graph
+tokens that announce its publisher (fleetmap.ros.graph), and the `serve` options that ask for it.
+
+The grids are decoded by rosbags (an independent CDR implementation with ROS 2 Jazzy's message
+definitions), and their cells compared with the nav2 map_server files of fleetmap's own export.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+from rosbags.typesys import Stores, get_typestore
+
+from fleetmap import GridMap, MapConfig, Scan
+from fleetmap.export import Window, known_window, map_state, nav2_files, tile_blocks
+from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED
+from fleetmap.ros.graph import MAP_QOS, Qos, RosNode, entity_gid, mangle, qos_keyexpr
+from fleetmap.ros.map_publisher import MapTopic, parse_map_topic, type_hash
+from fleetmap.ros.occupancy_grid import GridInfo, encode_occupancy_grid, grid_cells, occupancy_grid
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+GRID = "nav_msgs/msg/OccupancyGrid"
+
+
+def decode(payload: bytes):  # noqa: ANN201 - rosbags' generated message class
+    return TYPESTORE.deserialize_cdr(payload, GRID)
+
+
+def room_map(config: MapConfig | None = None) -> GridMap:
+    """A map with occupied, free and unknown cells: scans from a few poses inside a 6 x 4 m room,
+    repeated so that free space passes the free threshold."""
+    gmap = GridMap(config or MapConfig(resolution=0.05))
+    angles = np.linspace(-math.pi, math.pi, 720, endpoint=False)
+    for x, y in [(1.0, 1.0), (3.0, 2.0), (4.5, 1.5)]:
+        # Distances to the walls x = 0, x = 6, y = 0, y = 4 along each beam.
+        c, s = np.cos(angles), np.sin(angles)
+        with np.errstate(divide="ignore"):
+            tx = np.where(c > 0, (6.0 - x) / c, np.where(c < 0, -x / c, np.inf))
+            ty = np.where(s > 0, (4.0 - y) / s, np.where(s < 0, -y / s, np.inf))
+        ranges = np.minimum(tx, ty)
+        for _ in range(4):
+            gmap.integrate(Scan.from_angles((x, y, 0.0), angles, ranges, 0.0, 20.0))
+    return gmap
+
+
+def pgm_pixels(pgm: bytes) -> np.ndarray:
+    return np.array(Image.open(io.BytesIO(pgm)))
+
+
+# -- the grid ------------------------------------------------------------------------------------------
+
+
+def test_the_grid_decodes_to_the_nav2_exports_cells_dimensions_origin_and_frame() -> None:
+    gmap = room_map()
+    window = known_window(gmap)
+    assert window is not None
+    payload = occupancy_grid(gmap, window, "map", 1_700_000_123_456_789_012)
+    assert payload[:4] == b"\x00\x01\x00\x00"  # CDR little-endian encapsulation
+    msg = decode(payload)
+
+    assert msg.header.frame_id == "map"
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1_700_000_123, 456_789_012)
+    assert (msg.info.map_load_time.sec, msg.info.map_load_time.nanosec) == (1_700_000_123, 456_789_012)
+    ny, nx = window.shape
+    assert (msg.info.width, msg.info.height) == (nx, ny)
+    assert msg.info.resolution == np.float32(0.05)
+    ox, oy = window.origin(0.05)
+    p, q = msg.info.origin.position, msg.info.origin.orientation
+    assert (p.x, p.y, p.z) == (ox, oy, 0.0)
+    assert (q.x, q.y, q.z, q.w) == (0.0, 0.0, 0.0, 1.0)
+
+    # The same cells as map_server gets from the nav2 export of the same window (trinary: 0
+    # occupied, 254 free, 205 unknown; the image's top row is the highest y).
+    files = nav2_files(gmap, window)
+    assert b"mode: trinary" in files["map.yaml"]
+    pixels = pgm_pixels(files["map.pgm"])[::-1]  # row 0 = lowest y, as OccupancyGrid's data
+    expected = np.select([pixels == 0, pixels == 254, pixels == 205], [100, 0, -1], 99).astype(np.int8)
+    data = np.asarray(msg.data, dtype=np.int8)
+    assert data.shape == (nx * ny,)
+    assert np.array_equal(data.reshape(ny, nx), expected)
+    assert set(np.unique(data).tolist()) == {-1, 0, 100}  # all three kinds are there to compare
+
+
+def test_cells_are_row_major_from_the_origin_cell() -> None:
+    """data[row * width + col] is the cell whose lower-left corner is origin + (col, row) * resolution:
+    each grid cell is checked against the map's own state at its centre."""
+    gmap = room_map()
+    window = known_window(gmap)
+    assert window is not None
+    msg = decode(occupancy_grid(gmap, window, "map", 0))
+    res, width = float(msg.info.resolution), int(msg.info.width)
+    data = np.asarray(msg.data)
+    for value, code in [(100, STATE_OCCUPIED), (0, STATE_FREE)]:
+        index = np.flatnonzero(data == value)
+        rows, cols = index // width, index % width
+        x = msg.info.origin.position.x + (cols + 0.5) * 0.05
+        y = msg.info.origin.position.y + (rows + 0.5) * 0.05
+        assert np.all(gmap.cells(np.stack([x, y], axis=1))["state"] == code), value
+    assert res == np.float32(0.05)
+    # Walls: the room's wall y = 0 is in the grid's first rows, y = 4 in its last.
+    occupied_rows = np.flatnonzero((data.reshape(-1, width) == 100).any(axis=1))
+    assert msg.info.origin.position.y + occupied_rows.min() * 0.05 == pytest.approx(0.0, abs=0.1)
+    assert msg.info.origin.position.y + (occupied_rows.max() + 1) * 0.05 == pytest.approx(4.0, abs=0.1)
+
+
+def test_encoding_puts_each_cell_where_occupancy_grid_says() -> None:
+    cells = np.full((3, 4), -1, dtype=np.int8)
+    cells[0, 1] = 100  # row 0 = lowest y
+    cells[2, 3] = 0
+    msg = decode(encode_occupancy_grid(cells, GridInfo("odom", 5, 0.25, (-1.5, 2.0))))
+    assert msg.header.frame_id == "odom"
+    assert (msg.info.width, msg.info.height) == (4, 3)
+    assert msg.info.origin.position.x == -1.5 and msg.info.origin.position.y == 2.0
+    assert np.asarray(msg.data).tolist() == [-1, 100, -1, -1] + [-1] * 4 + [-1, -1, -1, 0]
+
+
+def test_a_counts_only_map_shows_its_count_model_as_the_export_does() -> None:
+    gmap = room_map(MapConfig(resolution=0.05, layers=["counts"]))
+    window = known_window(gmap)
+    assert window is not None
+    pixels = pgm_pixels(nav2_files(gmap, window)["map.pgm"])[::-1]
+    cells = grid_cells(gmap, window)
+    assert np.array_equal(cells == 100, pixels == 0) and np.array_equal(cells == 0, pixels == 254)
+    assert (cells == 100).any() and (cells == 0).any()
+
+
+def test_an_empty_window_is_an_empty_grid() -> None:
+    msg = decode(occupancy_grid(GridMap(MapConfig()), Window(0, 0, 0, 0), "map", 0))
+    assert (msg.info.width, msg.info.height) == (0, 0) and len(msg.data) == 0
+
+
+class CountingLock:
+    """A map's lock that counts its outermost acquisitions (each a hold integration may wait for)."""
+
+    def __init__(self, lock: object) -> None:
+        self.lock, self.holds, self.depth = lock, 0, 0
+
+    def __enter__(self) -> None:
+        self.lock.__enter__()  # type: ignore[attr-defined]
+        self.depth += 1
+        self.holds += self.depth == 1
+
+    def __exit__(self, *exc: object) -> None:
+        self.depth -= 1
+        self.lock.__exit__(*exc)  # type: ignore[attr-defined]
+
+
+def test_the_grid_is_read_one_storage_tile_per_hold_of_the_maps_lock() -> None:
+    """Publishing must not keep integration waiting: the window's bounds and its cells are read with
+    the map's lock held for one storage tile at a time (16-cell tiles here: the room spans many)."""
+    gmap = room_map(MapConfig(resolution=0.05, tile_size=16))
+    window = known_window(gmap)
+    assert window is not None
+    tiles = len(gmap.store.slots)
+    blocks = list(tile_blocks(window, 16))
+    assert all(b.i0 // 16 == (b.i1 - 1) // 16 and b.j0 // 16 == (b.j1 - 1) // 16 for b in blocks)
+    assert sum(b.shape[0] * b.shape[1] for b in blocks) == window.shape[0] * window.shape[1]
+    expected = map_state(gmap, window)
+
+    lock = gmap.lock = CountingLock(gmap.lock)  # type: ignore[assignment]
+    assert np.array_equal(map_state(gmap, window), expected)
+    assert lock.holds == len(blocks) > 50
+    # Bounds: one hold for the tile list, then one per tile changed since the last call.
+    gmap._tile_bounds.clear()
+    lock.holds = 0
+    assert known_window(gmap) == window
+    assert lock.holds == 1 + tiles
+    lock.holds = 0
+    assert known_window(gmap) == window
+    assert lock.holds == 1
+
+
+# -- graph tokens --------------------------------------------------------------------------------------
+
+
+def test_qos_is_written_as_rmw_zenoh_writes_it_defaults_left_empty() -> None:
+    # nav2's map QoS: RELIABLE (the default), TRANSIENT_LOCAL (1), KEEP_LAST (the default), depth 1.
+    assert qos_keyexpr(MAP_QOS) == ":1:,1:,:,:,,"
+    assert qos_keyexpr(Qos()) == "::,:,:,:,,"
+    assert qos_keyexpr(Qos(reliability=2, durability=2, history=1, depth=10)) == "2::,10:,:,:,,"
+
+
+def test_node_and_publisher_tokens() -> None:
+    node = RosNode(7, "48de7eee5f15711b55ea5f4e4ac55fb1", node_id=0)
+    assert node.node_token() == "@ros2_lv/7/48de7eee5f15711b55ea5f4e4ac55fb1/0/0/NN/%/%/fleetmap"
+    token = node.publisher_token(
+        1, "/wh/map", "nav_msgs::msg::dds_::OccupancyGrid_", type_hash("jazzy"), MAP_QOS
+    )
+    assert token == (
+        "@ros2_lv/7/48de7eee5f15711b55ea5f4e4ac55fb1/0/1/MP/%/%/fleetmap/%wh%map/"
+        "nav_msgs::msg::dds_::OccupancyGrid_/"
+        "RIHS01_8d348150c12913a31ee0ec170fbf25089e4745d17035792a1ba94d6f0bc0cfc7/:1:,1:,:,:,,"
+    )
+    assert mangle("/") == "%"
+    assert len(entity_gid(token)) == 16 and entity_gid(token) == entity_gid(token) != entity_gid(token + "x")
+    assert len(entity_gid(token, 24)) == 24  # Humble's RMW_GID_STORAGE_SIZE
+
+
+def test_type_hash_per_distribution_matches_rosbags() -> None:
+    assert type_hash("jazzy") == TYPESTORE.hash_rihs01(GRID)
+    assert type_hash("humble") == "TypeHashNotSupported"
+    with pytest.raises(ValueError):
+        type_hash("foxy")
+
+
+# -- options -------------------------------------------------------------------------------------------
+
+
+def test_parse_map_topic() -> None:
+    assert parse_map_topic("lab") == MapTopic("lab", "/map")
+    assert parse_map_topic("lab=/lab/map") == MapTopic("lab", "/lab/map")
+    assert parse_map_topic("lab=floor_2") == MapTopic("lab", "/floor_2")
+    for bad in ["", "=x", "bad id", "lab=/", "lab=/a//b", "lab=/2map", "lab=/a b", "lab=/map/"]:
+        with pytest.raises(ValueError):
+            parse_map_topic(bad)
+
+
+def serve_options(
+    argv: list[str], environ: dict[str, str], monkeypatch: pytest.MonkeyPatch
+) -> argparse.Namespace:
+    from fleetmap import server
+
+    for name in os.environ:
+        if name.startswith("FLEETMAP_"):
+            monkeypatch.delenv(name)
+    for name, value in environ.items():
+        monkeypatch.setenv(name, value)
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    server.add_parser(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(["serve", *argv])
+
+
+def test_ros_options_repeat_come_from_the_environment_and_the_command_line_wins(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    defaults = serve_options([], {}, monkeypatch)
+    assert defaults.ros_publish_map == [] and defaults.ros_domain is None  # $ROS_DOMAIN_ID, else 0
+    assert (defaults.ros_map_frame, defaults.ros_map_period, defaults.ros_distro) == ("map", 1.0, "jazzy")
+    argv = ["--ros-publish-map", "lab", "--ros-publish-map", "wh=/wh/map", "b=/b"]
+    expected = [MapTopic("lab"), MapTopic("wh", "/wh/map"), MapTopic("b", "/b")]
+    assert serve_options(argv, {}, monkeypatch).ros_publish_map == expected
+    # The domain of both directions: --ros-domain, else ROS's own variable, else 0; it may be given
+    # with --ros-publish-map alone.
+    from fleetmap import server
+
+    options = serve_options([*argv, "--ros-domain", "4"], {}, monkeypatch)
+    assert server.ros_options(options) is None and server.ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 4
+    options = serve_options(argv, {}, monkeypatch)
+    assert server.ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 7 and server.ros_domain(options, {}) == 0
+    env = {"FLEETMAP_ROS_PUBLISH_MAP": "lab wh=/wh/map b=/b", "FLEETMAP_ROS_DOMAIN": "3"}
+    options = serve_options([], env, monkeypatch)
+    assert options.ros_publish_map == expected and options.ros_domain == 3
+    # The command line's maps replace the variable's, rather than adding to them.
+    options = serve_options(["--ros-publish-map", "x", "--ros-publish-map", "y=/y"], env, monkeypatch)
+    assert options.ros_publish_map == [MapTopic("x"), MapTopic("y", "/y")]
+
+
+def test_bad_ros_options_are_refused(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for argv in (["--ros-publish-map", "lab=/a b"], ["--ros-domain", "-1"], ["--ros-map-frame", ""]):
+        with pytest.raises(SystemExit):
+            serve_options(argv, {}, monkeypatch)
+        assert "error" in capsys.readouterr().err, argv
+
+
+NEED_MAPS = "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map MAP_ID"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["--ros-map-period", "2"],
+            "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map",
+        ),
+        (
+            ["--ros-distro", "humble"],
+            "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map",
+        ),
+        (["--ros-publish-map", "a", "b=/map"], "--ros-publish-map: two maps on one ROS topic"),
+        (["--ros-publish-map", "a"], "$ROS_DOMAIN_ID='one': expected a whole number"),
+    ],
+)
+def test_ros_map_options_that_cannot_work_stop_the_start_with_one_line(argv: list[str], message: str) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETMAP_")} | {"ROS_DOMAIN_ID": "one"}
+    done = subprocess.run(
+        [sys.executable, "-m", "fleetmap.server", "--in-memory", "--http", "127.0.0.1:0", *argv],
+        capture_output=True, text=True, env=env, timeout=60,
+    )  # fmt: skip
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1 and message in lines[0], done.stderr
