@@ -6,8 +6,9 @@ domain, on the key expressions rmw_zenoh publishes them on (`fleetmap.ros.rmw_ze
 type hash (Humble's `TypeHashNotSupported` too). TF goes into one `TfBuffer` per namespace: messages
 on `/<ns>/tf` and `/<ns>/tf_static` into the tree of `<ns>`, `/tf` and `/tf_static` into the root
 tree. A scan on `/<ns>/<name>` is posed in the tree of `<ns>` if that namespace has published TF,
-else in the root tree: the pose of its `header.frame_id` in the fixed frame at `header.stamp`,
-projected onto the map's plane (`sensor_pose_2d`). It is then handed to `MapRegistry.submit` as the
+else in that of its nearest parent namespace that has, else in the root tree: the pose of its
+`header.frame_id` in the fixed frame at `header.stamp`, projected onto the map's plane
+(`sensor_pose_2d`). It is then handed to `MapRegistry.submit` as the
 robot `<ns>` (`/` -> `_`; `robot` without a namespace), exactly as a native scan.
 
 `/tf_static` is TRANSIENT_LOCAL: rmw_zenoh publishes it with an AdvancedPublisher holding a cache
@@ -424,10 +425,10 @@ class RosScanIngest:
         DecodeError."""
         msg = item.msg
         with self._tf_lock:
-            tree = self._trees.get(item.namespace) or self._trees.get("")
+            tree = self._tree_for(item.namespace)
             if tree is None:
                 where = f"{item.namespace}/tf" if item.namespace else "/tf"
-                raise TfPending(f"no TF received on {where} or /tf")
+                raise TfPending(f"no TF received on {where}, a parent namespace's tf or /tf")
             transform = tree.lookup(self.fixed_frame, msg.frame_id, msg.stamp)
         pose = sensor_pose_2d(transform)
         sign = -1.0 if pose.mirrored else 1.0  # upside down: beam i at -(angle_min + i * increment)
@@ -440,6 +441,18 @@ class RosScanIngest:
             msg.range_max,
         )
         return codec.current_limits().check(WireScan(item.seq, msg.stamp, scan, item.session))
+
+    def _tree_for(self, namespace: str) -> TfBuffer | None:
+        """The TF tree a scan of `namespace` (`/robot1/front`, or '' for the root) is posed in
+        (caller holds `_tf_lock`): that of the namespace itself or, failing that, of its nearest
+        parent that published TF (`/robot1/front/scan` posed by `/robot1/tf`: a robot's lasers in
+        sub-namespaces share its tree), else the root tree (None: no TF at all yet)."""
+        while namespace:
+            tree = self._trees.get(namespace)
+            if tree is not None:
+                return tree
+            namespace = namespace.rpartition("/")[0]
+        return self._trees.get("")
 
     def _submit(self, robot_id: str, wire: WireScan) -> None:
         try:

@@ -1,0 +1,119 @@
+"""`fleetmap serve --ros-scans` against what real ROS 2 robots publish: lasers in sub-namespaces and
+several lasers per robot, and rmw_zenoh's graph tokens saying which LaserScan publishers exist.
+
+Why a Zenoh session stands in for a ROS 2 node: ROS 2 with rmw_zenoh cannot be installed on these
+machines (no ROS apt repository; only Debian, PyPI and npm are reachable). What fleetmap sees of a
+ROS 2 node is only what rmw_zenoh puts on Zenoh, so each emulated node here is a real Zenoh client
+session publishing exactly that: data on rmw_zenoh's key expressions (`<domain>/<topic>/<dds
+type>/<type hash>`), CDR payloads made by rosbags (`tests/test_ros_ingest.py`'s helpers), rmw_zenoh's
+attachment, and for each publisher the liveliness token rmw_zenoh declares for it
+(`@ros2_lv/<domain>/<zid>/<nid>/<eid>/MP/<enclave>/<namespace>/<node>/<topic>/<type>/<hash>/<qos>`,
+`Entity::Entity` in rmw_zenoh_cpp's liveliness_utils.cpp; `fleetmap.ros.graph` writes the same). The
+real service runs as a process and is read back over REST.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from typing import Any
+
+import httpx
+import numpy as np
+from scipy.spatial.transform import Rotation
+from service_process import ServiceProcess, wait_for
+from test_ros_ingest import LASER, TF, LaserData, client_session, healthz_ros, stamp_ns_of, tf_payload
+
+from fleetmap.ros.graph import Qos, RosNode
+from fleetmap.ros.rmw_zenoh import TYPE_HASHES, Attachment, dds_type_name, encode_attachment, topic_key
+
+LEVEL = Rotation.identity()
+#: A LaserScan publisher's QoS as most drivers declare it (SensorDataQoS: best effort, depth 5).
+SENSOR_QOS = Qos(reliability=2, depth=5)
+
+
+class RosNodeEmulation:
+    """One ROS 2 node on rmw_zenoh: a Zenoh client session, its publishers with rmw_zenoh's
+    attachment, and (with `tokens`) the node's and each publisher's liveliness token."""
+
+    def __init__(self, endpoint: str, name: str, namespace: str = "/", tokens: bool = False) -> None:
+        self.session = client_session(endpoint)
+        self.node = RosNode(0, str(self.session.zid()), node_id=0, name=name, namespace=namespace)
+        self.tokens: list[Any] = []
+        if tokens:
+            self.tokens.append(self.session.liveliness().declare_token(self.node.node_token()))
+        self._publishers: dict[str, tuple[Any, bytes]] = {}
+        self._seq: dict[str, int] = {}
+        self._with_tokens = tokens
+
+    def publisher(self, topic: str, kind: str) -> Any:
+        if topic not in self._publishers:
+            pub = self.session.declare_publisher(topic_key(0, topic, kind, TYPE_HASHES[kind]))
+            self._publishers[topic] = (pub, os.urandom(16))
+            if self._with_tokens:
+                eid = len(self._publishers)
+                dds_type = dds_type_name(kind)
+                key = self.node.publisher_token(eid, topic, dds_type, TYPE_HASHES[kind], SENSOR_QOS)
+                self.tokens.append(self.session.liveliness().declare_token(key))
+        return self._publishers[topic][0]
+
+    def put(self, topic: str, kind: str, payload: bytes) -> None:
+        pub = self.publisher(topic, kind)
+        self._seq[topic] = self._seq.get(topic, 0) + 1
+        gid = self._publishers[topic][1]
+        pub.put(payload, attachment=encode_attachment(Attachment(self._seq[topic], time.time_ns(), gid)))
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def robots(http: httpx.Client, map_id: str = "lab") -> dict[str, Any]:
+    response = http.get(f"/maps/{map_id}")
+    if response.status_code == 404:
+        return {}
+    got: dict[str, Any] = response.json()["stats"]["robots"]
+    return got
+
+
+def publish_robot_tf(node: RosNodeEmulation, ns: str, lasers: dict[str, Rotation], k: int) -> None:
+    """Static TF of base_link -> each laser frame on `<ns>/tf_static`, and map -> base_link around
+    scan k's stamp on `<ns>/tf`."""
+    node.put(f"{ns}/tf_static", TF, tf_payload(stamp_ns_of(0), [
+        ("base_link", frame, (0.2, 0.0, 0.3), rot) for frame, rot in lasers.items()
+    ]))  # fmt: skip
+    for dt in (-(10**7), 10**7):
+        edge = ("map", "base_link", (1.0, 2.0, 0.0), LEVEL)
+        node.put(f"{ns}/tf", TF, tf_payload(stamp_ns_of(k) + dt, [edge]))
+
+
+def laser(k: int, frame: str) -> bytes:
+    return LaserData(stamp_ns_of(k), -1.0, 0.02, np.full(100, 2.0, np.float32)).payload(frame)
+
+
+def test_a_laser_in_a_sub_namespace_is_posed_by_its_robots_tf(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    """A laser driver launched in a sub-namespace of its robot (`/robot1/front/scan`, the robot's TF
+    on `/robot1/tf`, as `ros2 launch ... namespace:=robot1` with the driver's own `front` namespace)
+    is posed in `/robot1`'s TF tree. Before, only `/robot1/front/tf` or the root `/tf` were looked
+    at: every scan waited 0.5 s and was dropped (`no_tf`)."""
+    service = service_factory("--ros-scans", "lab")
+    node = RosNodeEmulation(service.zenoh_endpoint, "robot")
+    try:
+        wait_for(
+            lambda: node.publisher("/robot1/front/scan", LASER).matching_status.matching,
+            timeout=20, what="the service's scan subscriber",
+        )  # fmt: skip
+        with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
+            for k in range(3):
+                publish_robot_tf(node, "/robot1", {"front_laser": LEVEL}, k)
+                node.put("/robot1/front/scan", LASER, laser(k, "front_laser"))
+            wait_for(
+                lambda: robots(http).get("robot1_front", {}).get("scans_integrated") == 3,
+                timeout=20, what="the three scans of /robot1/front/scan integrated",
+            )  # fmt: skip
+            assert healthz_ros(http)["refused"] == {}
+        assert service.stop() == 0
+    finally:
+        node.close()
