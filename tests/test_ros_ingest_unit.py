@@ -66,7 +66,11 @@ def tf(stamp: float, *edges: tuple[str, str, float]) -> bytes:
 def test_robot_ids_and_sessions() -> None:
     assert robot_id_for("/robot1/scan") == "robot1"
     assert robot_id_for("/scan") == "robot"
-    assert robot_id_for("/fleet/a/front_scan") == "fleet_a"
+    assert robot_id_for("/fleet/a/scan") == "fleet_a"
+    # A topic not named scan (a robot's second laser) is its own robot: no id conflict.
+    assert robot_id_for("/fleet/a/front_scan") == "fleet_a_front_scan"
+    assert robot_id_for("/robot1/front/scan") == "robot1_front"
+    assert robot_id_for("/scan_rear") == "robot_scan_rear"
     gid = bytes(range(1, 17))
     assert session_from_gid(gid) == int.from_bytes(gid[:6], "big") and session_from_gid(bytes(16)) == 1
     assert session_from_gid(b"\xff" * 16) < 2**53

@@ -117,3 +117,46 @@ def test_a_laser_in_a_sub_namespace_is_posed_by_its_robots_tf(
         assert service.stop() == 0
     finally:
         node.close()
+
+
+def test_a_robot_with_two_lasers_is_two_fleetmap_robots_without_an_id_conflict(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    """A robot with a front and a rear laser (`/robot1/scan_front`, `/robot1/scan_rear`, one TF
+    tree on `/robot1/tf`), each driver its own publisher: two fleetmap robots, one per laser, each
+    posed by its own frame. Before, both were robot `robot1`: two publisher sessions interleaving,
+    shown as `id_conflict` ("robot id conflict" in the log) and a pose jumping from laser to
+    laser."""
+    service = service_factory("--ros-scans", "lab")
+    front = RosNodeEmulation(service.zenoh_endpoint, "front_driver", "/robot1")
+    rear = RosNodeEmulation(service.zenoh_endpoint, "rear_driver", "/robot1")
+    tf = RosNodeEmulation(service.zenoh_endpoint, "robot_state_publisher", "/robot1")
+    lasers = {"front_laser": LEVEL, "rear_laser": Rotation.from_euler("z", 180, degrees=True)}
+    try:
+        for node, topic in ((front, "/robot1/scan_front"), (rear, "/robot1/scan_rear")):
+            wait_for(
+                lambda n=node, t=topic: n.publisher(t, LASER).matching_status.matching,
+                timeout=20, what="the service's scan subscriber",
+            )  # fmt: skip
+        with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
+            for k in range(4):
+                publish_robot_tf(tf, "/robot1", lasers, k)
+                front.put("/robot1/scan_front", LASER, laser(k, "front_laser"))
+                rear.put("/robot1/scan_rear", LASER, laser(k, "rear_laser"))
+            want = {"robot1_scan_front", "robot1_scan_rear"}
+            got = wait_for(
+                lambda: (r := robots(http)) and all(r.get(i, {}).get("scans_integrated") == 4 for i in want)
+                and r,
+                timeout=20, what="each laser's four scans integrated",
+            )  # fmt: skip
+            assert set(got) == want, got
+            for stats in got.values():
+                assert (stats["id_conflict"], stats["lost"], stats["duplicates"]) == (False, 0, 0), stats
+            # Each laser posed by its own frame: the rear one looks backwards.
+            theta = {rid: got[rid]["last_pose"]["theta"] for rid in want}
+            assert abs(abs(theta["robot1_scan_rear"] - theta["robot1_scan_front"]) - np.pi) < 1e-3, theta
+        assert service.stop() == 0
+        assert "robot id conflict" not in service.logs()
+    finally:
+        for node in (front, rear, tf):
+            node.close()

@@ -162,7 +162,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         metavar="MAP_ID",
         help=(
             "also integrate the sensor_msgs/LaserScan topics ROS 2 robots publish over rmw_zenoh into "
-            "map MAP_ID, posed by their TF (robot id: the topic's namespace; see docs/ros.md)"
+            "map MAP_ID, posed by their TF (robot id: the topic's namespace, and its name if not scan; "
+            "see docs/ros.md)"
         ),
     )
     p.add_argument(

@@ -8,8 +8,9 @@ on `/<ns>/tf` and `/<ns>/tf_static` into the tree of `<ns>`, `/tf` and `/tf_stat
 tree. A scan on `/<ns>/<name>` is posed in the tree of `<ns>` if that namespace has published TF,
 else in that of its nearest parent namespace that has, else in the root tree: the pose of its
 `header.frame_id` in the fixed frame at `header.stamp`, projected onto the map's plane
-(`sensor_pose_2d`). It is then handed to `MapRegistry.submit` as the
-robot `<ns>` (`/` -> `_`; `robot` without a namespace), exactly as a native scan.
+(`sensor_pose_2d`). It is then handed to `MapRegistry.submit` as the robot `<ns>` (`/` -> `_`;
+`robot` without a namespace; `<ns>_<name>` for a topic not named `scan`: `robot_id_for`), exactly
+as a native scan.
 
 `/tf_static` is TRANSIENT_LOCAL: rmw_zenoh publishes it with an AdvancedPublisher holding a cache
 (rmw_publisher_data.cpp), which an AdvancedSubscriber with history and late-publisher detection
@@ -65,16 +66,26 @@ MAX_ROBOTS = 1024
 MAX_TREES = 64
 #: Robot id of a LaserScan topic without a namespace (`/scan`).
 ROOT_ROBOT_ID = "robot"
+#: The usual name of a robot's LaserScan topic (nav2's default): the robot id is its namespace alone.
+SCAN_TOPIC_NAME = "scan"
 #: `refused` counters in `status()` by IngestRejected status, as the native ingest counts them.
 _REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
 
 
 def robot_id_for(topic: str) -> str:
     """The robot id of a LaserScan topic: its namespace, `/` turned into `_` (`/robot1/scan` ->
-    `robot1`, `/a/b/scan` -> `a_b`), or `robot` without one (`/scan`). May be an invalid fleetmap id
-    (the caller checks)."""
-    namespace = topic.rsplit("/", 1)[0].strip("/")
-    return namespace.replace("/", "_") if namespace else ROOT_ROBOT_ID
+    `robot1`, `/a/b/scan` -> `a_b`), or `robot` without one (`/scan`); then `_<name>` when the
+    topic's name is not `scan` (`/robot1/scan_front` -> `robot1_scan_front`, `/scan_rear` ->
+    `robot_scan_rear`). May be an invalid fleetmap id (the caller checks).
+
+    The name counts because a robot with two lasers publishes them on two topics of its namespace
+    (`scan_front`, `scan_rear`): as one robot id they would be two publisher sessions interleaving,
+    which the registry reports as an id conflict (two robots under one id), and its pose and trail
+    would jump from laser to laser."""
+    namespace, _, name = topic.rpartition("/")
+    namespace = namespace.strip("/")
+    robot_id = namespace.replace("/", "_") if namespace else ROOT_ROBOT_ID
+    return robot_id if name == SCAN_TOPIC_NAME else f"{robot_id}_{name}"
 
 
 def session_from_gid(gid: bytes) -> int:
