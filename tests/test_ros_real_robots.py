@@ -22,8 +22,17 @@ from typing import Any
 import httpx
 import numpy as np
 from scipy.spatial.transform import Rotation
-from service_process import ServiceProcess, wait_for
-from test_ros_ingest import LASER, TF, LaserData, client_session, healthz_ros, stamp_ns_of, tf_payload
+from service_process import ServiceProcess, free_port, wait_for
+from test_ros_ingest import (
+    LASER,
+    TF,
+    LaserData,
+    client_session,
+    healthz_ros,
+    router_session,
+    stamp_ns_of,
+    tf_payload,
+)
 
 from fleetmap.ros.graph import Qos, RosNode
 from fleetmap.ros.rmw_zenoh import TYPE_HASHES, Attachment, dds_type_name, encode_attachment, topic_key
@@ -160,3 +169,53 @@ def test_a_robot_with_two_lasers_is_two_fleetmap_robots_without_an_id_conflict(
     finally:
         for node in (front, rear, tf):
             node.close()
+
+
+def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    """A ROS robot is shown online in `GET /maps/{id}` (and so in the viewer) while rmw_zenoh's
+    graph token of its LaserScan publisher exists, offline once it goes (here its node's session
+    closes, as when the robot is switched off or its network lost), as native robots are by their
+    `alive` tokens. A publisher that existed before the service started counts (the liveliness
+    subscriber has history); other graph tokens (a node's, another type's publisher) do not. Before,
+    a ROS robot was never online."""
+    router = f"tcp/127.0.0.1:{free_port()}"
+    router_session_ = router_session(router)  # rmw_zenohd: the robot is up before the service
+    robot2 = RosNodeEmulation(router, "driver", "/robot2", tokens=True)
+    other = RosNodeEmulation(router, "camera", "/robot3", tokens=True)
+    try:
+        robot2.publisher("/robot2/scan", LASER)  # declared, its token with it; nothing published yet
+        other.publisher("/robot3/tf", TF)  # a graph token of another type: no robot
+        service = service_factory("--ros-scans", "lab", "--zenoh-connect", router)
+        with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
+            wait_for(
+                lambda: robots(http).get("robot2", {}).get("online") is True,
+                timeout=20, what="robot2 online from its LaserScan publisher's token",
+            )  # fmt: skip
+            for k in range(2):
+                publish_robot_tf(robot2, "/robot2", {"laser": LEVEL}, k)
+                robot2.put("/robot2/scan", LASER, laser(k, "laser"))
+            stats = wait_for(
+                lambda: (s := robots(http).get("robot2", {})).get("scans_integrated") == 2 and s,
+                timeout=20, what="robot2's scans",
+            )  # fmt: skip
+            assert stats["online"] is True
+            assert set(robots(http)) == {"robot2"}
+            ros = healthz_ros(http)
+            assert (ros["laser_publishers"], ros["robots_online"]) == (1, 1), ros
+            listed = http.get("/maps").json()
+            summary = next(m for m in listed.get("maps", listed) if m["id"] == "lab")
+            assert summary["robots_online"] == 1, summary
+            robot2.close()  # the robot goes: its session, and so its tokens
+            wait_for(
+                lambda: robots(http)["robot2"]["online"] is False,
+                timeout=20, what="robot2 offline once its publisher is gone",
+            )  # fmt: skip
+            assert healthz_ros(http)["robots_online"] == 0
+        assert service.stop() == 0
+        assert "Traceback" not in service.logs()
+    finally:
+        robot2.close()
+        other.close()
+        router_session_.close()

@@ -18,6 +18,12 @@ queries, as rmw_zenoh's own subscriptions do (rmw_subscription_data.cpp): so the
 that started before the service arrives. Releases before the AdvancedPublisher kept a publication
 cache answering plain queries on the topic's key; one query at start covers those.
 
+A robot is shown online (`MapRegistry.set_online`, as native robots by their liveliness tokens)
+while at least one of its LaserScan publishers exists: rmw_zenoh declares a graph token for each
+publisher (`@ros2_lv/<domain>/.../MP/.../<topic>/sensor_msgs::msg::dds_::LaserScan_/...`,
+`fleetmap.ros.graph`), which goes when the publisher is destroyed or its node's session is lost;
+a liveliness subscriber with history reports those present at start.
+
 Threads: the Zenoh callbacks decode and append, never wait. A scan goes on its robot's pending
 queue (bounded; the newest refused when full) and the `fleetmap-ros` thread poses it as soon as TF
 covers its stamp, in order per robot. A scan whose TF has not come `tf_timeout` seconds after it
@@ -45,6 +51,7 @@ from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
 from fleetmap.ros import laser_scan, tf_message
 from fleetmap.ros.cdr import CdrError
+from fleetmap.ros.graph import ADMIN_SPACE, PUBLISHER, publisher_of_token
 from fleetmap.ros.laser_scan import LaserScanMsg, decode_laser_scan
 from fleetmap.ros.rmw_zenoh import dds_type_name, decode_attachment, parse_topic_key
 from fleetmap.ros.tf_message import decode_tf_message
@@ -64,6 +71,8 @@ MAX_WAITING = 2048
 #: Robots (namespaces with LaserScans) and TF trees (namespaces with TF) tracked at most.
 MAX_ROBOTS = 1024
 MAX_TREES = 64
+#: rmw_zenoh graph tokens of LaserScan publishers kept at most (each says a robot is online).
+MAX_PUBLISHER_TOKENS = 4096
 #: Robot id of a LaserScan topic without a namespace (`/scan`).
 ROOT_ROBOT_ID = "robot"
 #: The usual name of a robot's LaserScan topic (nav2's default): the robot id is its namespace alone.
@@ -144,12 +153,18 @@ class RosScanIngest:
         self.max_pending = max_pending
         self.scan_key = f"{domain_id}/**/{dds_type_name(laser_scan.ROS_TYPE)}/*"
         self.tf_key = f"{domain_id}/**/{dds_type_name(tf_message.ROS_TYPE)}/*"
+        #: rmw_zenoh's graph tokens of the domain's LaserScan publishers (`fleetmap.ros.graph`).
+        self.token_key = (
+            f"{ADMIN_SPACE}/{domain_id}/*/*/*/{PUBLISHER}/*/*/*/*/{dds_type_name(laser_scan.ROS_TYPE)}/**"
+        )
         self._subscribers: list[Any] = []
         self._lock = threading.Lock()  # guards _robots, the counters
         self._tf_lock = threading.Lock()  # guards _trees
         self._robots: dict[str, _Robot] = {}
         self._trees: dict[str, TfBuffer] = {}  # by namespace ('' for /tf)
         self._waiting = 0  # scans in all robots' pending queues
+        self._publisher_tokens: dict[str, str] = {}  # token key -> robot id, LaserScan publishers alive
+        self._alive: Counter[str] = Counter()  # robot id -> its LaserScan publishers alive (> 0)
         self._wake = threading.Event()
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -181,6 +196,10 @@ class RosScanIngest:
             )
             # rmw_zenoh before its AdvancedPublisher: a publication cache answering queries on the key.
             self.session.get(self.tf_key, self._on_reply)
+            # With history: the publishers that exist already are reported at once.
+            self._subscribers.append(
+                self.session.liveliness().declare_subscriber(self.token_key, self._on_token, history=True)
+            )
         except zenoh.ZError:
             self.close()
             raise
@@ -306,6 +325,58 @@ class RosScanIngest:
             return False
         del self._robots[idle]
         return True
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        """A LaserScan publisher's graph token appeared (PUT) or went (DELETE: undeclared, or its
+        node's Zenoh session gone): its robot is online while it has one."""
+        try:
+            key = str(sample.key_expr)
+            parsed = publisher_of_token(key)
+            if parsed is None or parsed[0] != self.domain_id:
+                return
+            robot_id = robot_id_for(parsed[1])
+            if not is_valid_id(robot_id):
+                return  # its scans are refused as invalid_topic
+            present = sample.kind == zenoh.SampleKind.PUT
+            with self._lock:  # held across set_online: a robot's PUT and DELETE reach it in order
+                if present:
+                    if key in self._publisher_tokens or len(self._publisher_tokens) >= MAX_PUBLISHER_TOKENS:
+                        return
+                    self._publisher_tokens[key] = robot_id
+                    self._alive[robot_id] += 1
+                    changed = self._alive[robot_id] == 1
+                else:
+                    if self._publisher_tokens.pop(key, None) is None:
+                        return
+                    self._alive[robot_id] -= 1
+                    changed = self._alive[robot_id] == 0
+                    if changed:
+                        del self._alive[robot_id]
+                if changed:
+                    self.registry.set_online(self.map_id, robot_id, present)
+            log.info(
+                "ROS 2: LaserScan publisher of %s on %s %s", robot_id, parsed[1],
+                "appeared" if present else "gone", extra={"map_id": self.map_id, "robot_id": robot_id},
+            )  # fmt: skip
+        except Exception:
+            log.exception("unexpected error handling a ROS graph token %s", sample.key_expr)
+
+    def _mark_online(self, robot_id: str) -> None:
+        """After a scan of `robot_id` was submitted: if a publisher of it is alive, make sure the
+        robot shows online (its map, or its robot state, may have been created after the token
+        appeared, as the native ingest does)."""
+        with self._lock:
+            if robot_id not in self._alive:
+                return
+            try:
+                entry = self.registry.get(self.map_id)
+            except KeyError:
+                return
+            with self.registry.lock:
+                state = entry.robots.get(robot_id)
+                if state is not None and state.online:
+                    return
+            self.registry.set_online(self.map_id, robot_id, True)
 
     def _on_reply(self, reply: zenoh.Reply) -> None:
         with contextlib.suppress(Exception):  # an error reply (no cache) is no TF
@@ -481,6 +552,7 @@ class RosScanIngest:
             return
         with self._lock:
             self.scans_submitted += 1
+        self._mark_online(robot_id)
 
     # -- reporting -------------------------------------------------------------------------------
 
@@ -498,6 +570,8 @@ class RosScanIngest:
                 "scans_waited_for_tf": self.scans_waited_for_tf,
                 "scans_waiting": self._waiting,
                 "refused": dict(self.refused),
+                "laser_publishers": len(self._publisher_tokens),
+                "robots_online": len(self._alive),
                 "tf_messages": self.tf_messages,
                 "tf_refused": self.tf_refused,
                 "tf_trees": dict(list(trees.items())[:MAX_TREES]),
