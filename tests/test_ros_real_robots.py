@@ -85,19 +85,26 @@ def robots(http: httpx.Client, map_id: str = "lab") -> dict[str, Any]:
     return got
 
 
-def publish_robot_tf(node: RosNodeEmulation, ns: str, lasers: dict[str, Rotation], k: int) -> None:
+def stamp_ns(k: int, base_ns: int | None) -> int:
+    """Scan k's stamp: `stamp_ns_of(k)` (wall-clock-like), or k/10 s after `base_ns` (sim time)."""
+    return stamp_ns_of(k) if base_ns is None else base_ns + k * 100_000_000
+
+
+def publish_robot_tf(
+    node: RosNodeEmulation, ns: str, lasers: dict[str, Rotation], k: int, base_ns: int | None = None
+) -> None:
     """Static TF of base_link -> each laser frame on `<ns>/tf_static`, and map -> base_link around
     scan k's stamp on `<ns>/tf`."""
-    node.put(f"{ns}/tf_static", TF, tf_payload(stamp_ns_of(0), [
+    node.put(f"{ns}/tf_static", TF, tf_payload(stamp_ns(0, base_ns), [
         ("base_link", frame, (0.2, 0.0, 0.3), rot) for frame, rot in lasers.items()
     ]))  # fmt: skip
     for dt in (-(10**7), 10**7):
         edge = ("map", "base_link", (1.0, 2.0, 0.0), LEVEL)
-        node.put(f"{ns}/tf", TF, tf_payload(stamp_ns_of(k) + dt, [edge]))
+        node.put(f"{ns}/tf", TF, tf_payload(stamp_ns(k, base_ns) + dt, [edge]))
 
 
-def laser(k: int, frame: str) -> bytes:
-    return LaserData(stamp_ns_of(k), -1.0, 0.02, np.full(100, 2.0, np.float32)).payload(frame)
+def laser(k: int, frame: str, base_ns: int | None = None) -> bytes:
+    return LaserData(stamp_ns(k, base_ns), -1.0, 0.02, np.full(100, 2.0, np.float32)).payload(frame)
 
 
 def test_a_laser_in_a_sub_namespace_is_posed_by_its_robots_tf(
@@ -219,3 +226,50 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
         robot2.close()
         other.close()
         router_session_.close()
+
+
+def test_a_simulation_restarted_under_use_sim_time_is_posed_again(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    """A simulated robot (`use_sim_time`: stamps from Gazebo's `/clock`) maps for a while, then the
+    simulation is restarted: its clock starts again from 0, its nodes are new publishers. Its scans
+    and TF must be integrated again, as tf2 clears its buffer on a jump back in time (the same comes
+    of a bag replayed again, or a robot's clock stepped back). Before, every new TF sample was older
+    than the 10 s kept behind the tree's newest one and silently dropped: each later scan was refused
+    (`tf_error`, "older than the TF kept") until the service restarted."""
+    service = service_factory("--ros-scans", "lab")
+    first = RosNodeEmulation(service.zenoh_endpoint, "gazebo", "/sim1")
+    try:
+        wait_for(
+            lambda: first.publisher("/sim1/scan", LASER).matching_status.matching,
+            timeout=20, what="the service's scan subscriber",
+        )  # fmt: skip
+        with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
+            for k in range(3):  # sim time 300 s on: a run of five minutes
+                publish_robot_tf(first, "/sim1", {"laser": LEVEL}, k, base_ns=300 * 10**9)
+                first.put("/sim1/scan", LASER, laser(k, "laser", base_ns=300 * 10**9))
+            wait_for(
+                lambda: robots(http).get("sim1", {}).get("scans_integrated") == 3,
+                timeout=20, what="the first run's scans",
+            )  # fmt: skip
+            first.close()  # the simulation stops; restarted, its clock starts from 0 again
+            second = RosNodeEmulation(service.zenoh_endpoint, "gazebo", "/sim1")
+            try:
+                wait_for(
+                    lambda: second.publisher("/sim1/scan", LASER).matching_status.matching,
+                    timeout=20, what="the restarted robot's scan publisher matched",
+                )  # fmt: skip
+                for k in range(3):  # sim time 2 s on
+                    publish_robot_tf(second, "/sim1", {"laser": LEVEL}, k, base_ns=2 * 10**9)
+                    second.put("/sim1/scan", LASER, laser(k, "laser", base_ns=2 * 10**9))
+                stats = wait_for(
+                    lambda: (s := robots(http).get("sim1", {})).get("scans_integrated", 0)
+                    + s.get("scans_rejected", 0) >= 6 and s,
+                    timeout=20, what="the restarted run's scans handled",
+                )  # fmt: skip
+                assert (stats["scans_integrated"], stats["scans_rejected"]) == (6, 0), stats
+            finally:
+                second.close()
+        assert service.stop() == 0
+    finally:
+        first.close()

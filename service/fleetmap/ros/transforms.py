@@ -9,7 +9,8 @@ is `TfPending` (its TF may still come: the caller waits, as tf2's MessageFilter 
 its oldest kept sample is a `TfError` (it never will).
 
 Bounded against hostile input: frames per tree, samples per edge, samples per tree, and a history
-window per edge (older samples dropped as newer ones arrive). What does not fit is refused with a
+window per edge (older samples dropped as newer ones arrive; a sample older than the window means
+time went back, and the edge starts again from it). What does not fit is refused with a
 `TfError` whose message says which limit.
 """
 
@@ -193,7 +194,9 @@ class TfBuffer:
 
     def add(self, t: TransformStamped, static: bool) -> None:
         """Add one sample of the edge `t.parent -> t.child` (static: valid at all times, replacing
-        the edge's samples). A child given a new parent is re-parented, as tf2 does. Raises TfError
+        the edge's samples). A child given a new parent is re-parented, as tf2 does. A dynamic sample
+        older than the history kept before the edge's newest restarts the edge (time went back, see
+        the comment in the code). Raises TfError
         for a bad sample (non-finite, not a rotation, bad frame ids) or one past a limit."""
         parent, child = normalize_frame(t.parent), normalize_frame(t.child)
         if parent == child:
@@ -226,7 +229,14 @@ class TfBuffer:
             return
         stamps = edge.stamps
         if stamps and t.stamp < stamps[-1] - self.history:
-            return  # older than the history kept: of no use
+            # Time went back by more than the history kept: a simulation or a bag replay restarted
+            # (use_sim_time), a robot's clock stepped back. The edge's samples belong to a time that
+            # will not be asked for again, and kept they would make every new sample look too old
+            # to keep, leaving the robot without TF for good. tf2 clears its buffer on a jump back
+            # in time; this edge starts again from this sample.
+            self._samples -= len(stamps)
+            edge.stamps = stamps = array("d")
+            edge.values = array("d")
         i = bisect.bisect_left(stamps, t.stamp)
         if i < len(stamps) and stamps[i] == t.stamp:
             edge.values[7 * i : 7 * i + 7] = array("d", values)  # the same stamp again: the newer wins
