@@ -469,3 +469,24 @@ def test_one_map_on_each_robots_namespaced_map_topic(service_factory: Callable[.
             sub.close()
         robot.client.close()
     assert svc.stop() == 0
+
+
+def test_the_grid_is_in_the_frame_the_ros_scans_map_is_built_in(
+    service_factory: Callable[..., ServiceProcess], subscribers: Callable[[str], RosSubscriber]
+) -> None:
+    """`--ros-scans lab --ros-fixed-frame world --ros-publish-map lab`: the map is built in TF frame
+    `world`, so its grid says `world` (nav2 places a grid by its frame). Before, the grid said `map`
+    unless `--ros-map-frame world` was also given: a map built in one frame published as another."""
+    svc = service_factory(
+        "--in-memory", "--ros-scans", "lab", "--ros-fixed-frame", "world", "--ros-publish-map", "lab",
+        "--ros-map-period", str(PERIOD),
+    )  # fmt: skip
+    robot = Robot(svc)
+    try:
+        robot.post(room_scan(2.0, 2.0))
+        sub = subscribers(svc.zenoh_endpoint)
+        grid = wait_for(sub.received, timeout=10, what="the map")[-1].grid
+        assert grid.header.frame_id == "world"
+    finally:
+        robot.client.close()
+    assert svc.stop() == 0
