@@ -221,7 +221,10 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
             )  # fmt: skip
             assert healthz_ros(http)["robots_online"] == 0
         assert service.stop() == 0
-        assert "Traceback" not in service.logs()
+        logs = service.logs()
+        assert "Traceback" not in logs
+        assert "ROS robot lab/robot2 is online (LaserScan publisher on /robot2/scan)" in logs
+        assert "ROS robot lab/robot2 is offline" in logs and "robot3" not in logs
     finally:
         robot2.close()
         other.close()

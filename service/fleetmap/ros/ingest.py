@@ -169,6 +169,7 @@ class RosScanIngest:
         self._stop = False
         self._thread: threading.Thread | None = None
         self._log = RateLimitedLog(log)
+        self._alive_log = RateLimitedLog(log, max_lines=100)
         self.scans_received = 0
         self.scans_submitted = 0
         self.scans_waited_for_tf = 0
@@ -354,10 +355,13 @@ class RosScanIngest:
                         del self._alive[robot_id]
                 if changed:
                     self.registry.set_online(self.map_id, robot_id, present)
-            log.info(
-                "ROS 2: LaserScan publisher of %s on %s %s", robot_id, parsed[1],
-                "appeared" if present else "gone", extra={"map_id": self.map_id, "robot_id": robot_id},
-            )  # fmt: skip
+            if changed:  # any peer can declare tokens: rate-limited, as the native ingest's
+                state = "online" if present else "offline"
+                self._alive_log.log(
+                    logging.INFO, f"{state}:{robot_id}",
+                    f"ROS robot {self.map_id}/{robot_id} is {state} (LaserScan publisher on {parsed[1]})",
+                    map_id=self.map_id, robot_id=robot_id,
+                )  # fmt: skip
         except Exception:
             log.exception("unexpected error handling a ROS graph token %s", sample.key_expr)
 
