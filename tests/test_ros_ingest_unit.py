@@ -14,6 +14,7 @@ import pytest
 
 from fleetmap.codec import WireScan
 from fleetmap.registry import IngestRejected
+from fleetmap.ros.graph import Qos, RosNode, publisher_of_token
 from fleetmap.ros.ingest import RosScanIngest, robot_id_for, session_from_gid
 from fleetmap.ros.laser_scan import LaserScanMsg, encode_laser_scan
 from fleetmap.ros.rmw_zenoh import TYPE_HASHES, Attachment, encode_attachment, topic_key
@@ -66,7 +67,11 @@ def tf(stamp: float, *edges: tuple[str, str, float]) -> bytes:
 def test_robot_ids_and_sessions() -> None:
     assert robot_id_for("/robot1/scan") == "robot1"
     assert robot_id_for("/scan") == "robot"
-    assert robot_id_for("/fleet/a/front_scan") == "fleet_a"
+    assert robot_id_for("/fleet/a/scan") == "fleet_a"
+    # A topic not named scan (a robot's second laser) is its own robot: no id conflict.
+    assert robot_id_for("/fleet/a/front_scan") == "fleet_a_front_scan"
+    assert robot_id_for("/robot1/front/scan") == "robot1_front"
+    assert robot_id_for("/scan_rear") == "robot_scan_rear"
     gid = bytes(range(1, 17))
     assert session_from_gid(gid) == int.from_bytes(gid[:6], "big") and session_from_gid(bytes(16)) == 1
     assert session_from_gid(b"\xff" * 16) < 2**53
@@ -165,3 +170,16 @@ def test_tf_floods_and_bad_transforms_are_counted_not_kept() -> None:
     status = ingest.status()
     assert status["tf_trees"]["/"]["frames"] == 256
     assert status["tf_refused"] == 1 + 1 + (300 - 255)
+
+
+def test_laserscan_publisher_tokens_name_their_topic() -> None:
+    """rmw_zenoh's publisher token (as `fleetmap.ros.graph` writes one, the format of
+    liveliness_utils.cpp) gives back its domain, topic and type; other tokens give None."""
+    node = RosNode(3, "a1b2c3", node_id=0, name="driver", namespace="/robot1")
+    token = node.publisher_token(
+        2, "/robot1/scan_front", "sensor_msgs::msg::dds_::LaserScan_", "RIHS01_x", Qos()
+    )
+    assert publisher_of_token(token) == (3, "/robot1/scan_front", "sensor_msgs::msg::dds_::LaserScan_")
+    assert publisher_of_token(node.node_token()) is None
+    assert publisher_of_token(token.replace("/MP/", "/MS/")) is None  # a subscription
+    assert publisher_of_token("fleetmap/lab/r1/alive") is None

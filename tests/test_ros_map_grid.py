@@ -243,7 +243,14 @@ def test_ros_options_repeat_come_from_the_environment_and_the_command_line_wins(
 ) -> None:
     defaults = serve_options([], {}, monkeypatch)
     assert defaults.ros_publish_map == [] and defaults.ros_domain is None  # $ROS_DOMAIN_ID, else 0
-    assert (defaults.ros_map_frame, defaults.ros_map_period, defaults.ros_distro) == ("map", 1.0, "jazzy")
+    assert (defaults.ros_map_frame, defaults.ros_map_period, defaults.ros_distro) == (None, 1.0, "jazzy")
+    from fleetmap.server import ros_map_frame
+
+    # The grids' frame: --ros-map-frame, else the frame --ros-scans builds the map in, else map.
+    assert ros_map_frame(defaults) == "map"
+    scans_in_world = ["--ros-scans", "lab", "--ros-fixed-frame", "/world", "--ros-publish-map", "lab"]
+    assert ros_map_frame(serve_options(scans_in_world, {}, monkeypatch)) == "world"
+    assert ros_map_frame(serve_options([*scans_in_world, "--ros-map-frame", "map"], {}, monkeypatch)) == "map"
     argv = ["--ros-publish-map", "lab", "--ros-publish-map", "wh=/wh/map", "b=/b"]
     expected = [MapTopic("lab"), MapTopic("wh", "/wh/map"), MapTopic("b", "/b")]
     assert serve_options(argv, {}, monkeypatch).ros_publish_map == expected

@@ -424,3 +424,69 @@ def test_ros_robots_scans_in_and_the_nav2_map_out_through_the_robots_router(
     finally:
         robot.close()
         router_zenoh.close()
+
+
+def test_one_map_on_each_robots_namespaced_map_topic(service_factory: Callable[..., ServiceProcess]) -> None:
+    """Several robots' nav2 stacks, each in its namespace, read the map on their own relative `map`
+    topic (`/robot1/map`, `/robot2/map`): one fleetmap map is published on each, the same grid, and
+    the graph shows one publisher per topic."""
+    svc = service_factory(
+        "--in-memory",
+        "--ros-publish-map",
+        "lab=/robot1/map",
+        "lab=/robot2/map",
+        "--ros-map-period",
+        str(PERIOD),
+    )
+    robot = Robot(svc)
+    subs = [
+        RosSubscriber(svc.zenoh_endpoint, KEY.replace("0/map/", f"0/{ns}/map/"))
+        for ns in ("robot1", "robot2")
+    ]
+    try:
+        robot.post(room_scan(2.0, 2.0))
+        grids = [
+            wait_for(sub.received, timeout=10, what=f"the map on sub {n}")[-1] for n, sub in enumerate(subs)
+        ]
+        wait_for(
+            lambda: all(grids_published(robot.client, t) >= 1 for t in ("/robot1/map", "/robot2/map")),
+            timeout=10,
+        )
+        time.sleep(3 * PERIOD)
+        grids = [sub.received()[-1].grid for sub in subs]
+        cells, origin = export_cells(robot.client)
+        for grid in grids:
+            assert np.array_equal(grid_cells(grid), cells)
+            assert (grid.info.origin.position.x, grid.info.origin.position.y) == origin
+        tokens = subs[0].tokens()
+        for ns in ("robot1", "robot2"):
+            assert (
+                sum(f"/MP/%/%/fleetmap/%{ns}%map/nav_msgs::msg::dds_::OccupancyGrid_/" in t for t in tokens)
+                == 1
+            )
+    finally:
+        for sub in subs:
+            sub.close()
+        robot.client.close()
+    assert svc.stop() == 0
+
+
+def test_the_grid_is_in_the_frame_the_ros_scans_map_is_built_in(
+    service_factory: Callable[..., ServiceProcess], subscribers: Callable[[str], RosSubscriber]
+) -> None:
+    """`--ros-scans lab --ros-fixed-frame world --ros-publish-map lab`: the map is built in TF frame
+    `world`, so its grid says `world` (nav2 places a grid by its frame). Before, the grid said `map`
+    unless `--ros-map-frame world` was also given: a map built in one frame published as another."""
+    svc = service_factory(
+        "--in-memory", "--ros-scans", "lab", "--ros-fixed-frame", "world", "--ros-publish-map", "lab",
+        "--ros-map-period", str(PERIOD),
+    )  # fmt: skip
+    robot = Robot(svc)
+    try:
+        robot.post(room_scan(2.0, 2.0))
+        sub = subscribers(svc.zenoh_endpoint)
+        grid = wait_for(sub.received, timeout=10, what="the map")[-1].grid
+        assert grid.header.frame_id == "world"
+    finally:
+        robot.client.close()
+    assert svc.stop() == 0

@@ -205,3 +205,27 @@ def test_normalize_frame() -> None:
     for bad in ("", "/", "a\x00b", "x" * 300):
         with pytest.raises(TfError):
             normalize_frame(bad)
+
+
+def test_time_going_back_restarts_an_edge() -> None:
+    """A dynamic sample more than the history older than its edge's newest (a simulation restarted
+    under use_sim_time) restarts the edge: it is kept and looked up, not dropped as too old."""
+    buf = TfBuffer(history=10.0)
+    for stamp in (300.0, 300.1):
+        buf.add(TransformStamped(stamp, "map", "base", (1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)), static=False)
+    for stamp in (2.0, 2.1):
+        buf.add(TransformStamped(stamp, "map", "base", (5.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)), static=False)
+    assert buf.samples == 2
+    assert buf.lookup("map", "base", 2.05).translation == pytest.approx((5.0, 0.0, 0.0))
+    # Before the new time's TF came: a stamp more than the history before the newest waits (the TF
+    # of its time may come), one before the oldest but within the history never will.
+    again = TfBuffer(history=10.0)
+    for stamp in (300.0, 300.1):
+        again.add(TransformStamped(stamp, "map", "base", (1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)), static=False)
+    with pytest.raises(TfPending):
+        again.lookup("map", "base", 2.0)
+    with pytest.raises(TfError) as info:
+        again.lookup("map", "base", 299.0)
+    assert not isinstance(info.value, TfPending)
+    with pytest.raises(TfPending):
+        buf.lookup("map", "base", 300.05)  # the old time's samples are gone

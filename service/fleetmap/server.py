@@ -92,8 +92,8 @@ _ENV_TRUE = {"1", "true", "yes", "on"}
 _ENV_FALSE = {"0", "false", "no", "off", ""}
 LOG_LEVELS = ("debug", "info", "warning", "error")
 #: The defaults of --ros-map-frame, --ros-map-period and --ros-distro (any other value needs
-#: --ros-publish-map).
-ROS_MAP_DEFAULTS = ("map", 1.0, "jazzy")
+#: --ros-publish-map). The frame's None: --ros-fixed-frame's, else map (`ros_map_frame`).
+ROS_MAP_DEFAULTS = (None, 1.0, "jazzy")
 #: Seconds uvicorn waits at shutdown for the requests in flight (event streams end at once).
 GRACEFUL_HTTP_SECONDS = 3  # uvicorn takes whole seconds (int)
 
@@ -162,7 +162,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         metavar="MAP_ID",
         help=(
             "also integrate the sensor_msgs/LaserScan topics ROS 2 robots publish over rmw_zenoh into "
-            "map MAP_ID, posed by their TF (robot id: the topic's namespace; see docs/ros.md)"
+            "map MAP_ID, posed by their TF (robot id: the topic's namespace, and its name if not scan; "
+            "see docs/ros.md)"
         ),
     )
     p.add_argument(
@@ -412,7 +413,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         type=_frame_id,
         default=ROS_MAP_DEFAULTS[0],
         metavar="FRAME",
-        help=f"header.frame_id of the published maps (default {ROS_MAP_DEFAULTS[0]})",
+        help="header.frame_id of the published maps (default: --ros-fixed-frame's, else map)",
     )
     p.add_argument(
         "--ros-map-period",
@@ -613,6 +614,13 @@ def _frame_id(text: str) -> str:
         return normalize_frame(text.strip())
     except TfError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def ros_map_frame(args: argparse.Namespace) -> str:
+    """The frame id of the published grids: `--ros-map-frame`, else `--ros-fixed-frame` (the frame
+    `--ros-scans` builds its map in: a grid labelled `map` while its cells are in `world` would put
+    it in the wrong place for nav2), else `map`."""
+    return str(args.ros_map_frame or args.ros_fixed_frame or "map")
 
 
 def ros_domain(args: argparse.Namespace, environ: dict[str, str] | None = None) -> int:
@@ -935,7 +943,7 @@ def _start_ros_maps(args: argparse.Namespace, registry: Any, ingest: ZenohIngest
     options = RosMapOptions(
         topics=tuple(args.ros_publish_map),
         domain_id=ros_domain(args),
-        frame_id=args.ros_map_frame,
+        frame_id=ros_map_frame(args),
         period=args.ros_map_period,
         distro=args.ros_distro,
     )

@@ -59,6 +59,20 @@ def mangle(name: str) -> str:
     return name.replace("/", "%")
 
 
+def publisher_of_token(token: str) -> tuple[int, str, str] | None:
+    """(domain, topic, DDS type name) of a publisher's token (`MP`, see the module doc:
+    `@ros2_lv/0/<zid>/0/3/MP/%/%robot1/driver/%robot1%scan/sensor_msgs::msg::dds_::LaserScan_/...` ->
+    `(0, "/robot1/scan", "sensor_msgs::msg::dds_::LaserScan_")`); None for any other key (a node's,
+    a subscription's, a service's token, or not a token at all)."""
+    parts = token.split("/")
+    if len(parts) < 12 or parts[0] != ADMIN_SPACE or parts[5] != PUBLISHER or not parts[1].isdigit():
+        return None
+    topic = parts[9].replace("%", "/")
+    if not topic.startswith("/"):
+        return None
+    return int(parts[1]), topic, parts[10]
+
+
 def qos_keyexpr(qos: Qos) -> str:
     """The QoS part of a token, `<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:
     <lifespan s>,<ns>:<liveliness>,<lease s>,<ns>`, each value left empty when it is rmw_zenoh's

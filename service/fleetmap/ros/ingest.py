@@ -6,15 +6,23 @@ domain, on the key expressions rmw_zenoh publishes them on (`fleetmap.ros.rmw_ze
 type hash (Humble's `TypeHashNotSupported` too). TF goes into one `TfBuffer` per namespace: messages
 on `/<ns>/tf` and `/<ns>/tf_static` into the tree of `<ns>`, `/tf` and `/tf_static` into the root
 tree. A scan on `/<ns>/<name>` is posed in the tree of `<ns>` if that namespace has published TF,
-else in the root tree: the pose of its `header.frame_id` in the fixed frame at `header.stamp`,
-projected onto the map's plane (`sensor_pose_2d`). It is then handed to `MapRegistry.submit` as the
-robot `<ns>` (`/` -> `_`; `robot` without a namespace), exactly as a native scan.
+else in that of its nearest parent namespace that has, else in the root tree: the pose of its
+`header.frame_id` in the fixed frame at `header.stamp`, projected onto the map's plane
+(`sensor_pose_2d`). It is then handed to `MapRegistry.submit` as the robot `<ns>` (`/` -> `_`;
+`robot` without a namespace; `<ns>_<name>` for a topic not named `scan`: `robot_id_for`), exactly
+as a native scan.
 
 `/tf_static` is TRANSIENT_LOCAL: rmw_zenoh publishes it with an AdvancedPublisher holding a cache
 (rmw_publisher_data.cpp), which an AdvancedSubscriber with history and late-publisher detection
 queries, as rmw_zenoh's own subscriptions do (rmw_subscription_data.cpp): so the static TF of robots
 that started before the service arrives. Releases before the AdvancedPublisher kept a publication
 cache answering plain queries on the topic's key; one query at start covers those.
+
+A robot is shown online (`MapRegistry.set_online`, as native robots by their liveliness tokens)
+while at least one of its LaserScan publishers exists: rmw_zenoh declares a graph token for each
+publisher (`@ros2_lv/<domain>/.../MP/.../<topic>/sensor_msgs::msg::dds_::LaserScan_/...`,
+`fleetmap.ros.graph`), which goes when the publisher is destroyed or its node's session is lost;
+a liveliness subscriber with history reports those present at start.
 
 Threads: the Zenoh callbacks decode and append, never wait. A scan goes on its robot's pending
 queue (bounded; the newest refused when full) and the `fleetmap-ros` thread poses it as soon as TF
@@ -43,6 +51,7 @@ from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
 from fleetmap.ros import laser_scan, tf_message
 from fleetmap.ros.cdr import CdrError
+from fleetmap.ros.graph import ADMIN_SPACE, PUBLISHER, publisher_of_token
 from fleetmap.ros.laser_scan import LaserScanMsg, decode_laser_scan
 from fleetmap.ros.rmw_zenoh import dds_type_name, decode_attachment, parse_topic_key
 from fleetmap.ros.tf_message import decode_tf_message
@@ -62,18 +71,30 @@ MAX_WAITING = 2048
 #: Robots (namespaces with LaserScans) and TF trees (namespaces with TF) tracked at most.
 MAX_ROBOTS = 1024
 MAX_TREES = 64
+#: rmw_zenoh graph tokens of LaserScan publishers kept at most (each says a robot is online).
+MAX_PUBLISHER_TOKENS = 4096
 #: Robot id of a LaserScan topic without a namespace (`/scan`).
 ROOT_ROBOT_ID = "robot"
+#: The usual name of a robot's LaserScan topic (nav2's default): the robot id is its namespace alone.
+SCAN_TOPIC_NAME = "scan"
 #: `refused` counters in `status()` by IngestRejected status, as the native ingest counts them.
 _REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
 
 
 def robot_id_for(topic: str) -> str:
     """The robot id of a LaserScan topic: its namespace, `/` turned into `_` (`/robot1/scan` ->
-    `robot1`, `/a/b/scan` -> `a_b`), or `robot` without one (`/scan`). May be an invalid fleetmap id
-    (the caller checks)."""
-    namespace = topic.rsplit("/", 1)[0].strip("/")
-    return namespace.replace("/", "_") if namespace else ROOT_ROBOT_ID
+    `robot1`, `/a/b/scan` -> `a_b`), or `robot` without one (`/scan`); then `_<name>` when the
+    topic's name is not `scan` (`/robot1/scan_front` -> `robot1_scan_front`, `/scan_rear` ->
+    `robot_scan_rear`). May be an invalid fleetmap id (the caller checks).
+
+    The name counts because a robot with two lasers publishes them on two topics of its namespace
+    (`scan_front`, `scan_rear`): as one robot id they would be two publisher sessions interleaving,
+    which the registry reports as an id conflict (two robots under one id), and its pose and trail
+    would jump from laser to laser."""
+    namespace, _, name = topic.rpartition("/")
+    namespace = namespace.strip("/")
+    robot_id = namespace.replace("/", "_") if namespace else ROOT_ROBOT_ID
+    return robot_id if name == SCAN_TOPIC_NAME else f"{robot_id}_{name}"
 
 
 def session_from_gid(gid: bytes) -> int:
@@ -132,16 +153,23 @@ class RosScanIngest:
         self.max_pending = max_pending
         self.scan_key = f"{domain_id}/**/{dds_type_name(laser_scan.ROS_TYPE)}/*"
         self.tf_key = f"{domain_id}/**/{dds_type_name(tf_message.ROS_TYPE)}/*"
+        #: rmw_zenoh's graph tokens of the domain's LaserScan publishers (`fleetmap.ros.graph`).
+        self.token_key = (
+            f"{ADMIN_SPACE}/{domain_id}/*/*/*/{PUBLISHER}/*/*/*/*/{dds_type_name(laser_scan.ROS_TYPE)}/**"
+        )
         self._subscribers: list[Any] = []
         self._lock = threading.Lock()  # guards _robots, the counters
         self._tf_lock = threading.Lock()  # guards _trees
         self._robots: dict[str, _Robot] = {}
         self._trees: dict[str, TfBuffer] = {}  # by namespace ('' for /tf)
         self._waiting = 0  # scans in all robots' pending queues
+        self._publisher_tokens: dict[str, str] = {}  # token key -> robot id, LaserScan publishers alive
+        self._alive: Counter[str] = Counter()  # robot id -> its LaserScan publishers alive (> 0)
         self._wake = threading.Event()
         self._stop = False
         self._thread: threading.Thread | None = None
         self._log = RateLimitedLog(log)
+        self._alive_log = RateLimitedLog(log, max_lines=100)
         self.scans_received = 0
         self.scans_submitted = 0
         self.scans_waited_for_tf = 0
@@ -169,6 +197,10 @@ class RosScanIngest:
             )
             # rmw_zenoh before its AdvancedPublisher: a publication cache answering queries on the key.
             self.session.get(self.tf_key, self._on_reply)
+            # With history: the publishers that exist already are reported at once.
+            self._subscribers.append(
+                self.session.liveliness().declare_subscriber(self.token_key, self._on_token, history=True)
+            )
         except zenoh.ZError:
             self.close()
             raise
@@ -294,6 +326,61 @@ class RosScanIngest:
             return False
         del self._robots[idle]
         return True
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        """A LaserScan publisher's graph token appeared (PUT) or went (DELETE: undeclared, or its
+        node's Zenoh session gone): its robot is online while it has one."""
+        try:
+            key = str(sample.key_expr)
+            parsed = publisher_of_token(key)
+            if parsed is None or parsed[0] != self.domain_id:
+                return
+            robot_id = robot_id_for(parsed[1])
+            if not is_valid_id(robot_id):
+                return  # its scans are refused as invalid_topic
+            present = sample.kind == zenoh.SampleKind.PUT
+            with self._lock:  # held across set_online: a robot's PUT and DELETE reach it in order
+                if present:
+                    if key in self._publisher_tokens or len(self._publisher_tokens) >= MAX_PUBLISHER_TOKENS:
+                        return
+                    self._publisher_tokens[key] = robot_id
+                    self._alive[robot_id] += 1
+                    changed = self._alive[robot_id] == 1
+                else:
+                    if self._publisher_tokens.pop(key, None) is None:
+                        return
+                    self._alive[robot_id] -= 1
+                    changed = self._alive[robot_id] == 0
+                    if changed:
+                        del self._alive[robot_id]
+                if changed:
+                    self.registry.set_online(self.map_id, robot_id, present)
+            if changed:  # any peer can declare tokens: rate-limited, as the native ingest's
+                state = "online" if present else "offline"
+                self._alive_log.log(
+                    logging.INFO, f"{state}:{robot_id}",
+                    f"ROS robot {self.map_id}/{robot_id} is {state} (LaserScan publisher on {parsed[1]})",
+                    map_id=self.map_id, robot_id=robot_id,
+                )  # fmt: skip
+        except Exception:
+            log.exception("unexpected error handling a ROS graph token %s", sample.key_expr)
+
+    def _mark_online(self, robot_id: str) -> None:
+        """After a scan of `robot_id` was submitted: if a publisher of it is alive, make sure the
+        robot shows online (its map, or its robot state, may have been created after the token
+        appeared, as the native ingest does)."""
+        with self._lock:
+            if robot_id not in self._alive:
+                return
+            try:
+                entry = self.registry.get(self.map_id)
+            except KeyError:
+                return
+            with self.registry.lock:
+                state = entry.robots.get(robot_id)
+                if state is not None and state.online:
+                    return
+            self.registry.set_online(self.map_id, robot_id, True)
 
     def _on_reply(self, reply: zenoh.Reply) -> None:
         with contextlib.suppress(Exception):  # an error reply (no cache) is no TF
@@ -424,10 +511,10 @@ class RosScanIngest:
         DecodeError."""
         msg = item.msg
         with self._tf_lock:
-            tree = self._trees.get(item.namespace) or self._trees.get("")
+            tree = self._tree_for(item.namespace)
             if tree is None:
                 where = f"{item.namespace}/tf" if item.namespace else "/tf"
-                raise TfPending(f"no TF received on {where} or /tf")
+                raise TfPending(f"no TF received on {where}, a parent namespace's tf or /tf")
             transform = tree.lookup(self.fixed_frame, msg.frame_id, msg.stamp)
         pose = sensor_pose_2d(transform)
         sign = -1.0 if pose.mirrored else 1.0  # upside down: beam i at -(angle_min + i * increment)
@@ -440,6 +527,18 @@ class RosScanIngest:
             msg.range_max,
         )
         return codec.current_limits().check(WireScan(item.seq, msg.stamp, scan, item.session))
+
+    def _tree_for(self, namespace: str) -> TfBuffer | None:
+        """The TF tree a scan of `namespace` (`/robot1/front`, or '' for the root) is posed in
+        (caller holds `_tf_lock`): that of the namespace itself or, failing that, of its nearest
+        parent that published TF (`/robot1/front/scan` posed by `/robot1/tf`: a robot's lasers in
+        sub-namespaces share its tree), else the root tree (None: no TF at all yet)."""
+        while namespace:
+            tree = self._trees.get(namespace)
+            if tree is not None:
+                return tree
+            namespace = namespace.rpartition("/")[0]
+        return self._trees.get("")
 
     def _submit(self, robot_id: str, wire: WireScan) -> None:
         try:
@@ -457,6 +556,7 @@ class RosScanIngest:
             return
         with self._lock:
             self.scans_submitted += 1
+        self._mark_online(robot_id)
 
     # -- reporting -------------------------------------------------------------------------------
 
@@ -474,6 +574,8 @@ class RosScanIngest:
                 "scans_waited_for_tf": self.scans_waited_for_tf,
                 "scans_waiting": self._waiting,
                 "refused": dict(self.refused),
+                "laser_publishers": len(self._publisher_tokens),
+                "robots_online": len(self._alive),
                 "tf_messages": self.tf_messages,
                 "tf_refused": self.tf_refused,
                 "tf_trees": dict(list(trees.items())[:MAX_TREES]),

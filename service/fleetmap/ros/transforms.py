@@ -5,11 +5,13 @@ parent to child, as TF messages say them); a lookup walks from both frames up to
 ancestor and composes the edges on the way, in either direction. A static edge (from `/tf_static`)
 holds at all times; a dynamic one (from `/tf`) is interpolated between its two samples around the
 stamp: linearly in translation, by slerp in rotation. A stamp past a dynamic edge's newest sample
-is `TfPending` (its TF may still come: the caller waits, as tf2's MessageFilter does); one before
-its oldest kept sample is a `TfError` (it never will).
+is `TfPending` (its TF may still come: the caller waits, as tf2's MessageFilter does), and so is one
+more than the history window before it (time may have gone back, and that time's TF restart the
+edge); one before its oldest kept sample but within the window is a `TfError` (it never will).
 
 Bounded against hostile input: frames per tree, samples per edge, samples per tree, and a history
-window per edge (older samples dropped as newer ones arrive). What does not fit is refused with a
+window per edge (older samples dropped as newer ones arrive; a sample older than the window means
+time went back, and the edge starts again from it). What does not fit is refused with a
 `TfError` whose message says which limit.
 """
 
@@ -141,12 +143,20 @@ class _Edge:
         v = self.values[7 * i : 7 * i + 7]
         return Transform((v[0], v[1], v[2]), (v[3], v[4], v[5], v[6]))
 
-    def at(self, stamp: float, child: str) -> Transform:
+    def at(self, stamp: float, child: str, history: float) -> Transform:
+        """The edge's transform at `stamp`: TfPending past its newest sample, and more than `history`
+        before it (time went back: a restarted simulation's TF, which restarts the edge, may still
+        come); TfError between those and its oldest sample (never to be covered)."""
         if self.static:
             return self.sample(0)
         stamps = self.stamps
         if stamp > stamps[-1]:
             raise TfPending(f"no TF {self.parent} -> {child} at {stamp:.6f} yet (newest {stamps[-1]:.6f})")
+        if stamp < stamps[-1] - history:
+            raise TfPending(
+                f"no TF {self.parent} -> {child} at {stamp:.6f}, more than {history:g} s before its newest "
+                f"({stamps[-1]:.6f}): waiting in case time went back"
+            )
         if stamp < stamps[0]:
             raise TfError(
                 f"stamp {stamp:.6f} is older than the TF {self.parent} -> {child} kept (from {stamps[0]:.6f})"
@@ -193,7 +203,9 @@ class TfBuffer:
 
     def add(self, t: TransformStamped, static: bool) -> None:
         """Add one sample of the edge `t.parent -> t.child` (static: valid at all times, replacing
-        the edge's samples). A child given a new parent is re-parented, as tf2 does. Raises TfError
+        the edge's samples). A child given a new parent is re-parented, as tf2 does. A dynamic sample
+        older than the history kept before the edge's newest restarts the edge (time went back, see
+        the comment in the code). Raises TfError
         for a bad sample (non-finite, not a rotation, bad frame ids) or one past a limit."""
         parent, child = normalize_frame(t.parent), normalize_frame(t.child)
         if parent == child:
@@ -226,7 +238,14 @@ class TfBuffer:
             return
         stamps = edge.stamps
         if stamps and t.stamp < stamps[-1] - self.history:
-            return  # older than the history kept: of no use
+            # Time went back by more than the history kept: a simulation or a bag replay restarted
+            # (use_sim_time), a robot's clock stepped back. The edge's samples belong to a time that
+            # will not be asked for again, and kept they would make every new sample look too old
+            # to keep, leaving the robot without TF for good. tf2 clears its buffer on a jump back
+            # in time; this edge starts again from this sample.
+            self._samples -= len(stamps)
+            edge.stamps = stamps = array("d")
+            edge.values = array("d")
         i = bisect.bisect_left(stamps, t.stamp)
         if i < len(stamps) and stamps[i] == t.stamp:
             edge.values[7 * i : 7 * i + 7] = array("d", values)  # the same stamp again: the newer wins
@@ -281,7 +300,7 @@ class TfBuffer:
         for frame in chain:
             if frame == ancestor:
                 return result
-            result = self._edges[frame].at(stamp, frame) * result
+            result = self._edges[frame].at(stamp, frame, self.history) * result
         return result
 
 
