@@ -590,11 +590,13 @@ def warm_up() -> None:
     `GridMap.apply`), into new tiles and then existing ones; journal replay and library users call
     `GridMap.integrate`, whose one compiled call creates tiles itself and so never reaches the
     planning kernels. A durable service also encodes every scan for its journal (`scan_to_blob`).
-    The ray caster (`GridMap.cast_rays`) is loaded too, so a first ray query does not compile it."""
+    The ray caster (`GridMap.cast_rays`) and the zoomed-out tile reductions (`kernels.reduce`, one per
+    dtype) are loaded too, so a first ray query or zoomed-out tile does not compile them."""
     from fleetmap.config import MapConfig
     from fleetmap.grid_map import GridMap
     from fleetmap.scan import Scan
     from fleetmap.storage_format import scan_to_blob
+    from fleetmap.tile_render import render_tile
 
     scan = Scan.from_fan((0.0, 0.0, 0.0), -0.5, 0.1, [1.0] * 10 + [None], 0.0, 5.0)
     scan_to_blob(scan)
@@ -605,6 +607,8 @@ def warm_up() -> None:
         for _ in range(2):
             gmap.apply(gmap.plan(scan))
     gmap.cast_rays((0.0, 0.0), [0.0, 1.0], 2.0)
+    for layer in ("probability", "hits", "tsdf"):
+        render_tile(gmap, layer, -1, 0, -1)  # a tile over the map's cells: the kernels run
 
 
 def freeze_startup_objects() -> int:
