@@ -195,14 +195,14 @@ async def event_stream(
                 version = batch.version
             # A feed that sent nothing yet sends every robot: a delta needs a base.
             if robot_deltas and robots_feed.version >= 0:
-                delta = robots_feed.delta()
+                delta = robots_feed.delta_json()
                 if delta is not None:
-                    yield _event("robots_delta", delta.model_dump_json())
+                    yield _event("robots_delta", delta)
                     last_sent = time.monotonic()
             else:
-                robots = robots_feed.full()
+                robots = robots_feed.full_json()
                 if robots is not None:
-                    yield _event("robots", robots.model_dump_json())
+                    yield _event("robots", robots)
                     last_sent = time.monotonic()
             if time.monotonic() - last_sent >= settings.keepalive:
                 yield ": keepalive\n\n"
