@@ -154,8 +154,12 @@ class GridMap:
         )  # fmt: skip
         #: (occupied_thresh, the smallest occupied float32 log-odds) for the ray kernel, once computed.
         self._ray_threshold: tuple[float, float] | None = None
-        #: Per tile: (version, local observed bounds or None), for known_bounds.
-        self._tile_bounds: dict[TileKey, tuple[int, tuple[int, int, int, int] | None]] = {}
+        #: For known_bounds, per slot: the tile version its bounds are of (-1: none yet), and its
+        #: observed cells' bounds in map cells (i0, j0, i1, j1), or _NO_BOUNDS for none; and the
+        #: answer with the store's (clock, tiles) it is of.
+        self._bounds_version = np.zeros(0, dtype=np.int64)
+        self._bounds = np.zeros((0, 4), dtype=np.int64)
+        self._bounds_answer: tuple[tuple[int, int], tuple[int, int, int, int] | None] = ((-1, -1), None)
 
     @property
     def resolution(self) -> float:
@@ -348,29 +352,42 @@ class GridMap:
 
     def known_bounds(self) -> tuple[int, int, int, int] | None:
         """Cell bounds `(i0, j0, i1, j1)`, exclusive ends, of every cell any kept layer has observed;
-        None if none. Each tile's own bounds are cached by its version, so only tiles changed since the
-        last call are scanned (under the lock)."""
-        lo = [math.inf, math.inf]
-        hi = [-math.inf, -math.inf]
-        t = self.store.tile_size
+        None if none. Under the lock, it scans only the tiles changed since the last call (each
+        tile's bounds are kept by version) and combines the tiles' bounds in one vectorised pass, or
+        answers at once when nothing changed: `GET /maps/{id}` calls it, and every viewer asks again
+        as the map grows. A loop over every tile in Python took 3.6 ms of the lock a call on a 1 km
+        map of 6,400 tiles."""
         with self.lock:
-            for (ti, tj), slot in self.store.slots.items():
-                version = int(self.store.versions[slot])
-                cached = self._tile_bounds.get((ti, tj))
-                if cached is None or cached[0] != version:
-                    cached = (version, _local_bounds(self._observed(slot)))
-                    self._tile_bounds[(ti, tj)] = cached
-                local = cached[1]
+            store = self.store
+            n = len(store.keys)
+            at = (store.clock, n)
+            if self._bounds_answer[0] == at:
+                return self._bounds_answer[1]
+            if self._bounds_version.size < n:
+                grown = max(n, 2 * self._bounds_version.size)
+                version = np.full(grown, -1, dtype=np.int64)
+                version[: self._bounds_version.size] = self._bounds_version
+                bounds = np.empty((grown, 4), dtype=np.int64)
+                bounds[: self._bounds.shape[0]] = self._bounds
+                self._bounds_version, self._bounds = version, bounds
+            t = store.tile_size
+            for slot in np.flatnonzero(store.versions[:n] != self._bounds_version[:n]).tolist():
+                ti, tj = store.keys[slot]
+                local = _local_bounds(self._observed(slot))
                 if local is None:
-                    continue
-                c0, r0, c1, r1 = local
-                lo[0] = min(lo[0], ti * t + c0)
-                lo[1] = min(lo[1], tj * t + r0)
-                hi[0] = max(hi[0], ti * t + c1)
-                hi[1] = max(hi[1], tj * t + r1)
-        if lo[0] == math.inf:
-            return None
-        return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+                    self._bounds[slot] = _NO_BOUNDS
+                else:
+                    c0, r0, c1, r1 = local
+                    self._bounds[slot] = (ti * t + c0, tj * t + r0, ti * t + c1, tj * t + r1)
+                self._bounds_version[slot] = store.versions[slot]
+            answer: tuple[int, int, int, int] | None = None
+            if n:
+                lo = self._bounds[:n, :2].min(axis=0)
+                hi = self._bounds[:n, 2:].max(axis=0)
+                if lo[0] <= hi[0]:
+                    answer = (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+            self._bounds_answer = (at, answer)
+            return answer
 
     def _observed(self, slot: int) -> np.ndarray:
         """Cells of a tile that any kept layer has observed."""
@@ -611,6 +628,10 @@ def _distinct_tiles(ti: np.ndarray, tj: np.ndarray) -> tuple[tuple[list[int], li
         return ((keys // width + i0).tolist(), (keys % width + j0).tolist()), inverse.reshape(-1)
     pairs, inverse = np.unique(np.stack([ti, tj], axis=1), axis=0, return_inverse=True)
     return (pairs[:, 0].tolist(), pairs[:, 1].tolist()), inverse.reshape(-1)
+
+
+#: A tile's bounds in `GridMap._bounds` when it has no observed cell: neutral for min and max.
+_NO_BOUNDS = (np.iinfo(np.int64).max, np.iinfo(np.int64).max, np.iinfo(np.int64).min, np.iinfo(np.int64).min)
 
 
 def _local_bounds(seen: np.ndarray) -> tuple[int, int, int, int] | None:
