@@ -711,3 +711,66 @@ def test_scans_beyond_the_index_range_or_too_wide_are_refused(config: dict[str, 
         with pytest.raises(ScanError, match=message):
             m.integrate(scan)
         assert_same(snapshot(m, window), before)
+
+
+def test_known_bounds_rescans_only_changed_tiles_and_never_loops_over_all() -> None:
+    """`known_bounds` (every `GET /maps/{id}`, and viewers ask again as a map grows) looped over every
+    tile in Python under the map's lock: 3.6 ms a call on a 1 km map of 6,400 tiles, however little
+    changed. Now it rescans the tiles changed since its last call, combines the tiles' bounds in one
+    vectorised pass, and answers at once when nothing changed; never a walk of the tile dict."""
+    gmap = GridMap(MapConfig(resolution=0.1, tile_size=16, max_tiles=10_000))
+    rng = np.random.default_rng(11)
+
+    def scan_at(x: float, y: float) -> Scan:
+        return Scan.from_fan((x, y, 0.0), -1.0, 0.05, rng.uniform(0.5, 4.0, 40), 0.0, 10.0)
+
+    def brute_force() -> tuple[int, int, int, int] | None:
+        lo, hi = [math.inf, math.inf], [-math.inf, -math.inf]
+        t = gmap.store.tile_size
+        for (ti, tj), slot in gmap.store.slots.items():
+            seen = np.argwhere(gmap._observed(slot))
+            if seen.size:
+                lo = [min(lo[0], ti * t + seen[:, 1].min()), min(lo[1], tj * t + seen[:, 0].min())]
+                hi = [max(hi[0], ti * t + seen[:, 1].max() + 1), max(hi[1], tj * t + seen[:, 0].max() + 1)]
+        return None if lo[0] == math.inf else (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+
+    assert gmap.known_bounds() is None
+    gmap.store.create([(40, 40)])  # a tile with nothing observed counts for nothing
+    assert gmap.known_bounds() is None
+    scanned: list[int] = []
+    observed = gmap._observed
+
+    def counted(slot: int) -> np.ndarray:
+        scanned.append(slot)
+        return observed(slot)
+
+    gmap._observed = counted  # type: ignore[method-assign]
+    slots = gmap.store.slots
+    seen = {key: int(gmap.store.versions[slot]) for key, slot in slots.items()}  # as of the last call
+    for x, y in [(0.0, 0.0), (-3.0, 2.0), (5.0, -4.0), (5.0, -4.0)]:
+        gmap.store.slots = slots
+        gmap.integrate(scan_at(x, y))
+        expected = brute_force()
+        versions = {key: int(gmap.store.versions[slot]) for key, slot in slots.items()}
+        changed = {slots[key] for key, version in versions.items() if seen.get(key) != version}
+        seen = versions
+        scanned.clear()
+        gmap.store.slots = _NoWalk(slots)  # type: ignore[assignment]
+        assert gmap.known_bounds() == expected
+        assert sorted(scanned) == sorted(changed)
+        scanned.clear()
+        assert gmap.known_bounds() == expected and scanned == []  # nothing changed: no tile scanned
+    gmap.store.slots = slots
+
+
+class _NoWalk(dict):
+    """A tile dict that refuses to be walked whole."""
+
+    def items(self):  # type: ignore[no-untyped-def]
+        raise AssertionError("walked every tile")
+
+    def __iter__(self):  # type: ignore[no-untyped-def]
+        raise AssertionError("walked every tile")
+
+    def values(self):  # type: ignore[no-untyped-def]
+        raise AssertionError("walked every tile")

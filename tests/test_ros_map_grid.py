@@ -168,11 +168,13 @@ def test_the_grid_is_read_one_storage_tile_per_hold_of_the_maps_lock() -> None:
     lock = gmap.lock = CountingLock(gmap.lock)  # type: ignore[assignment]
     assert np.array_equal(map_state(gmap, window), expected)
     assert lock.holds == len(blocks) > 50
-    # Bounds: one hold for the tile list, then one per tile changed since the last call.
-    gmap._tile_bounds.clear()
+    # Bounds: one hold to find the tiles changed since the last call, one per such tile, one to
+    # combine them; then, with nothing changed, one hold that answers at once.
+    gmap._bounds_version[:] = -1
+    gmap._bounds_answer = ((-1, -1), None)
     lock.holds = 0
     assert known_window(gmap) == window
-    assert lock.holds == 1 + tiles
+    assert lock.holds == 2 + tiles
     lock.holds = 0
     assert known_window(gmap) == window
     assert lock.holds == 1

@@ -154,8 +154,12 @@ class GridMap:
         )  # fmt: skip
         #: (occupied_thresh, the smallest occupied float32 log-odds) for the ray kernel, once computed.
         self._ray_threshold: tuple[float, float] | None = None
-        #: Per tile: (version, local observed bounds or None), for known_bounds.
-        self._tile_bounds: dict[TileKey, tuple[int, tuple[int, int, int, int] | None]] = {}
+        #: For known_bounds, per slot: the tile version its bounds are of (-1: none yet), and its
+        #: observed cells' bounds in map cells (i0, j0, i1, j1), or _NO_BOUNDS for none; and the
+        #: answer with the store's (clock, tiles) it is of.
+        self._bounds_version = np.zeros(0, dtype=np.int64)
+        self._bounds = np.zeros((0, 4), dtype=np.int64)
+        self._bounds_answer: tuple[tuple[int, int], tuple[int, int, int, int] | None] = ((-1, -1), None)
 
     @property
     def resolution(self) -> float:
@@ -348,36 +352,55 @@ class GridMap:
 
     def known_bounds(self) -> tuple[int, int, int, int] | None:
         """Cell bounds `(i0, j0, i1, j1)`, exclusive ends, of every cell any kept layer has observed;
-        None if none. Each tile's own bounds are cached by its version, so only tiles changed since the
-        last call are scanned, each in a hold of the lock of its own: one scan may change a hundred
-        tiles of a big map, and scanning them in one hold kept integration waiting for milliseconds.
+        None if none. Each tile's bounds are kept by its version, so only the tiles changed since the
+        last call are rescanned, each in a hold of the lock of its own (one scan may change a hundred
+        tiles of a big map: rescanning them in one hold kept integration waiting for 5 ms); the
+        tiles' bounds are then combined in one vectorised pass, and a call when nothing changed
+        answers at once. `GET /maps/{id}` calls it, and every viewer asks again as the map grows: a
+        loop over every tile in Python took 3.6 ms of the lock a call on a 1 km map of 6,400 tiles.
         Tiles keep their slots and cells only ever become observed, so the bounds lie between those
         before and after any scan applied meanwhile."""
-        lo = [math.inf, math.inf]
-        hi = [-math.inf, -math.inf]
-        t = self.store.tile_size
         with self.lock:
-            tiles = [(key, slot, int(self.store.versions[slot])) for key, slot in self.store.slots.items()]
-        for key, slot, version in tiles:
-            cached = self._tile_bounds.get(key)
-            if cached is None or cached[0] != version:
-                with self.lock:
-                    version = int(self.store.versions[slot])
-                    seen = self._observed(slot)
-                # A racing call may store an older entry after this one: the next call rescans it.
-                cached = self._tile_bounds[key] = (version, _local_bounds(seen))
-            local = cached[1]
-            if local is None:
-                continue
-            ti, tj = key
-            c0, r0, c1, r1 = local
-            lo[0] = min(lo[0], ti * t + c0)
-            lo[1] = min(lo[1], tj * t + r0)
-            hi[0] = max(hi[0], ti * t + c1)
-            hi[1] = max(hi[1], tj * t + r1)
-        if lo[0] == math.inf:
-            return None
-        return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+            store = self.store
+            n = len(store.keys)
+            at = (store.clock, n)
+            if self._bounds_answer[0] == at:
+                return self._bounds_answer[1]
+            self._grow_bounds(n)
+            changed = np.flatnonzero(store.versions[:n] != self._bounds_version[:n]).tolist()
+        t = store.tile_size
+        for slot in changed:
+            with self.lock:
+                ti, tj = store.keys[slot]
+                version = store.versions[slot]
+                local = _local_bounds(self._observed(slot))
+                if local is None:
+                    self._bounds[slot] = _NO_BOUNDS
+                else:
+                    c0, r0, c1, r1 = local
+                    self._bounds[slot] = (ti * t + c0, tj * t + r0, ti * t + c1, tj * t + r1)
+                self._bounds_version[slot] = version
+        with self.lock:
+            answer: tuple[int, int, int, int] | None = None
+            if n:
+                lo = self._bounds[:n, :2].min(axis=0)
+                hi = self._bounds[:n, 2:].max(axis=0)
+                if lo[0] <= hi[0]:
+                    answer = (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+            # Keyed by the clock read first: a scan applied meanwhile may be in the answer or not,
+            # and the next call, seeing a newer clock, looks again.
+            self._bounds_answer = (at, answer)
+            return answer
+
+    def _grow_bounds(self, n: int) -> None:
+        """Make the per-slot bounds arrays hold `n` slots (called under the lock)."""
+        if self._bounds_version.size < n:
+            grown = max(n, 2 * self._bounds_version.size)
+            version = np.full(grown, -1, dtype=np.int64)
+            version[: self._bounds_version.size] = self._bounds_version
+            bounds = np.empty((grown, 4), dtype=np.int64)
+            bounds[: self._bounds.shape[0]] = self._bounds
+            self._bounds_version, self._bounds = version, bounds
 
     def _observed(self, slot: int) -> np.ndarray:
         """Cells of a tile that any kept layer has observed."""
@@ -618,6 +641,10 @@ def _distinct_tiles(ti: np.ndarray, tj: np.ndarray) -> tuple[tuple[list[int], li
         return ((keys // width + i0).tolist(), (keys % width + j0).tolist()), inverse.reshape(-1)
     pairs, inverse = np.unique(np.stack([ti, tj], axis=1), axis=0, return_inverse=True)
     return (pairs[:, 0].tolist(), pairs[:, 1].tolist()), inverse.reshape(-1)
+
+
+#: A tile's bounds in `GridMap._bounds` when it has no observed cell: neutral for min and max.
+_NO_BOUNDS = (np.iinfo(np.int64).max, np.iinfo(np.int64).max, np.iinfo(np.int64).min, np.iinfo(np.int64).min)
 
 
 def _local_bounds(seen: np.ndarray) -> tuple[int, int, int, int] | None:

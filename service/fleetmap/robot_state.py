@@ -107,6 +107,9 @@ class RobotState:
     #: never integrated: a re-send of it, which a REST client answered 503 or 507 is told to make, is
     #: accepted rather than ignored as a duplicate. Not saved: it is about the last moments.
     refused: tuple[int, int] | None = None
+    #: Its JSON in live viewers' robots events, made by the first event stream that sent it and sent
+    #: as is by the others (`api.robots_feed`): key (what the JSON shows) -> JSON. Not saved.
+    viewer_json: dict[tuple, str] = field(default_factory=dict, repr=False, compare=False)
 
     #: The counters that survive a restart (and `sessions`, saved as lists).
     SAVED = (

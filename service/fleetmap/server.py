@@ -746,9 +746,13 @@ def warm_up() -> None:
     `GridMap.apply`), into new tiles and then existing ones; journal replay and library users call
     `GridMap.integrate`, whose one compiled call creates tiles itself and so never reaches the
     planning kernels. A durable service also encodes every scan for its journal (`scan_to_blob`).
-    The ray caster (`GridMap.cast_rays`) is loaded too, so a first ray query does not compile it."""
+    The ray caster (`GridMap.cast_rays`) and the zoomed-out tile reductions (`kernels.reduce`, one per
+    dtype) are loaded too, so a first ray query or zoomed-out tile does not compile them."""
+    import numpy as np
+
     from fleetmap.config import MapConfig
     from fleetmap.grid_map import GridMap
+    from fleetmap.kernels.reduce import reduce_max_tiles, reduce_tsdf_tiles
     from fleetmap.scan import Scan
     from fleetmap.storage_format import scan_to_blob
 
@@ -761,6 +765,14 @@ def warm_up() -> None:
         for _ in range(2):
             gmap.apply(gmap.plan(scan))
     gmap.cast_rays((0.0, 0.0), [0.0, 1.0], 2.0)
+    # The reductions alone, of each pool dtype, not a whole render (a render's faults are the
+    # request's, not the start's).
+    slots = np.zeros(1, dtype=np.int64)
+    for dtype in (np.float32, np.uint32):
+        pool = np.zeros((1, 2, 2), dtype=dtype)
+        reduce_max_tiles(pool, slots, 0, 0, 2, 2, np.empty((1, 1, 1), dtype=dtype))
+    tsdf = np.zeros((1, 2, 2), dtype=np.float32)
+    reduce_tsdf_tiles(tsdf, tsdf, slots, 0, 0, 2, 2, np.empty((1, 1, 1), dtype=np.float32))
 
 
 def freeze_startup_objects() -> int:

@@ -242,12 +242,7 @@ SNAPSHOT_FORMAT = "fleetmap-snapshot-1"
 
 def snapshot_file(map_id: str, gmap: GridMap) -> bytes:
     """One map as a single file: a zip of `map.json` (format, id, config) and `tiles.npz`."""
-    with gmap.lock:
-        store = gmap.store
-        keys = list(store.keys)
-        arrays = {a.name: np.stack([store.pools[a.name][store.slots[k]] for k in keys]) if keys else
-                  np.zeros((0, store.tile_size, store.tile_size), dtype=a.dtype)
-                  for a in store.arrays}  # fmt: skip
+    keys, arrays = _copy_tiles(gmap)
     buf = io.BytesIO()
     npz = io.BytesIO()
     # mypy fears that a key of `arrays` is savez's allow_pickle; they are layer array names.
@@ -257,6 +252,31 @@ def snapshot_file(map_id: str, gmap: GridMap) -> bytes:
         zf.writestr("map.json", json.dumps(meta, indent=2))
         zf.writestr("tiles.npz", npz.getvalue())
     return buf.getvalue()
+
+
+def _copy_tiles(gmap: GridMap) -> tuple[list[TileKey], dict[str, np.ndarray]]:
+    """Every tile key of `gmap` and a copy of each stored array, `(n, tile_size, tile_size)` in the
+    keys' order, as of one moment (under the map's lock).
+
+    The copies are allocated, and their memory touched, before the lock is taken: a fresh array
+    is only mapped in as it is first written, and that took 4.2 s for the 1.7 GB of a 1 km map of
+    6,400 tiles, which integration of that map waited for. Under the lock only the bytes are copied
+    (0.2 s); the tiles are the first n slots of each pool, in the keys' order (`TileStore.keys`)."""
+    store = gmap.store
+    t = store.tile_size
+    for _ in range(3):
+        n = len(store.keys)
+        arrays = {a.name: np.empty((n, t, t), dtype=a.dtype) for a in store.arrays}
+        for array in arrays.values():
+            array.fill(0)
+        with gmap.lock:
+            if len(store.keys) == n:  # else tiles were created meanwhile: allocate again
+                for name, array in arrays.items():
+                    array[...] = store.pools[name][:n]
+                return list(store.keys), arrays
+    with gmap.lock:  # a map growing that fast: copy under the lock
+        n = len(store.keys)
+        return list(store.keys), {a.name: store.pools[a.name][:n].copy() for a in store.arrays}
 
 
 #: The most bytes an uploaded snapshot's `map.json` may hold (a configuration takes about 1 KB).

@@ -39,10 +39,12 @@ intersects (0 if none), so any change under a tile raises it and changes elsewhe
 reads that version and the cells in the same hold of the map's lock, so a cached PNG is always
 exactly the map as of its version: before or after any scan, never half-way.
 
-Locking: the map lock is held only to copy the storage tiles under the window (and their versions);
-reducing, colouring and PNG encoding happen outside it, so integration is blocked for a copy only.
-For zoomed-out tiles, each storage tile's reduced block is cached by version (`ReducedCache`, owned
-by `TileCache`), so only storage tiles that changed since the last render are copied and reduced.
+Locking: the map lock is held only to read the storage tiles under the window (and their versions):
+zoomed in, a copy of the cells; zoomed out, each storage tile reduced straight from its pool to its
+block of pixels (`kernels.reduce`, one pass over its cells, about as long as a copy), so a render
+never holds more than its blocks. Colouring and PNG encoding happen outside the lock. For zoomed-out
+tiles, each storage tile's reduced block is cached by version (`ReducedCache`, owned by `TileCache`),
+so only storage tiles that changed since the last render are read and reduced.
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ import numpy as np
 
 from fleetmap.config import LayerName
 from fleetmap.grid_map import REGION_LAYERS, STATE_FREE, STATE_OCCUPIED, GridMap
+from fleetmap.kernels.reduce import reduce_max_tiles, reduce_tsdf_tiles
 from fleetmap.tiles import TileStore
 
 if TYPE_CHECKING:
@@ -255,31 +258,6 @@ def etag_for(generation: int, layer: str, z: int, x: int, y: int, version: int) 
 # -- reduction (z < 0) -------------------------------------------------------------------------------
 
 
-def _halve(values: np.ndarray, source: str) -> np.ndarray:
-    """Reduce a stack (n, a, a) to (n, a/2, a/2), each value summarising a 2 x 2 block by the source's
-    rule. Repeated halving is ~50x faster than a reshape-reduce over small strided axes."""
-    for axis in (2, 1):
-        first = values[:, :, 0::2] if axis == 2 else values[:, 0::2, :]
-        second = values[:, :, 1::2] if axis == 2 else values[:, 1::2, :]
-        if source == "log_odds":
-            values = np.fmax(first, second)  # the most occupied known cell; NaN only if both unknown
-        elif source == "tsdf":
-            take_second = np.abs(second) < np.abs(first)  # nearest the surface ...
-            take_second |= np.isnan(first)  # ... among known cells (NaN = unobserved)
-            values = np.where(take_second, second, first)
-        else:  # hits, misses, tsdf_weight: the largest; 0 = unobserved loses to anything observed
-            values = np.maximum(first, second)
-    return values
-
-
-def _reduce(values: np.ndarray, source: str, factor: int) -> np.ndarray:
-    """Reduce a stack of blocks (n, P, P) by `factor` (a power of two) per side."""
-    while factor > 1:
-        values = _halve(values, source)
-        factor //= 2
-    return values
-
-
 def _score(values: np.ndarray, source: str) -> np.ndarray:
     """What the reduction maximises, as float64 (-inf = unknown), to combine values of several
     storage tiles that fall into one pixel."""
@@ -400,8 +378,10 @@ class _Snapshot:
 def _snapshot(
     gmap: GridMap, source: str, i0: int, j0: int, size: int, factor: int, reduced: ReducedCache | None
 ) -> _Snapshot:
-    """Copy (under the map lock) the cells of window `[i0, i0+size)^2` that lie in existing storage
-    tiles, as blocks of P = min(tile_size, size) cells, and reduce them by `factor` (outside it)."""
+    """The cells of window `[i0, i0+size)^2` that lie in existing storage tiles, as blocks of
+    P = min(tile_size, size) cells reduced by `factor`, read under the map lock: with `factor` 1
+    copies, else reduced from the pools there (`kernels.reduce`), so that a render holds only the
+    blocks it returns, never a copy of every tile under a zoomed-out window."""
     store = gmap.store
     t = store.tile_size
     piece = min(t, size)
@@ -426,20 +406,36 @@ def _snapshot(
             ]
             blocks = cache.get_many(keys, versions.tolist())
         todo = np.array([k for k in range(slots.size) if blocks[k] is None], dtype=np.int64)
-        copies: dict[str, np.ndarray] = {}
-        if todo.size:
-            for name in stored:
-                pool = store.pools[name]
-                if whole_tiles:
-                    copies[name] = pool[slots[todo]]  # fancy indexing copies: one pass over memory
-                else:
-                    copies[name] = pool[slots[todo], lj0 : lj0 + piece, li0 : li0 + piece]
+        values = np.zeros(0)
+        if todo.size and factor > 1:
+            # Reduced straight from the pools, a tile at a time: a copy of every tile under a
+            # zoomed-out window first held a whole layer of a big map twice (kernels/reduce.py).
+            side = piece // factor
+            dtype, _ = _unknown_value(source)
+            values = np.empty((todo.size, side, side), dtype=dtype)
+            if source == "tsdf":
+                reduce_tsdf_tiles(
+                    store.pools["tsdf"],
+                    store.pools["tsdf_weight"],
+                    slots[todo],
+                    li0,
+                    lj0,
+                    piece,
+                    factor,
+                    values,
+                )
+            else:
+                reduce_max_tiles(store.pools[source], slots[todo], li0, lj0, piece, factor, values)
+        elif todo.size:
+            copies = {
+                name: store.pools[name][slots[todo], lj0 : lj0 + piece, li0 : li0 + piece] for name in stored
+            }
     # The lock is released: everything below works on copies.
     if todo.size:
-        values = copies[source]
-        if source == "tsdf":
-            values[copies["tsdf_weight"] <= 0] = np.nan  # a TSDF cell with zero weight is unobserved
-        values = _reduce(values, source, factor)
+        if factor == 1:
+            values = copies[source]
+            if source == "tsdf":
+                values[copies["tsdf_weight"] <= 0] = np.nan  # a TSDF cell with zero weight is unobserved
         for n, k in enumerate(todo.tolist()):
             blocks[k] = values[n]
             if cache is not None:

@@ -24,10 +24,12 @@ Format (text/event-stream):
     : keepalive
 
 - `tiles`: cell windows `[i0, j0, i1, j1]` of the storage tiles changed since the last event (refetch
-  the web tiles that overlap them), or `{"version": v, "reset": true}`: too much changed to list,
-  reload everything. Its `id` is the map's change version: a reconnecting EventSource sends it back as
-  `Last-Event-ID` (or pass `?since=`) and gets the changes it missed. An id from an earlier map of
-  the id, or from before the service restarted, is outside the map's versions (`ChangeFeed`): reset.
+  the web tiles that overlap them; the streams of a map share their events, `tiles_event`, so one
+  may name a few tiles the previous one did too), or `{"version": v, "reset": true}`: too much
+  changed to list, reload everything. Its `id` is the map's change version: a reconnecting
+  EventSource sends it back as `Last-Event-ID` (or pass `?since=`) and gets the changes it missed.
+  An id from an earlier map of the id, or from before the service restarted, is outside the map's
+  versions (`ChangeFeed`): reset.
 - `robots`: every robot of the map with its last 100 trail points, sent when anything in it changed
   (and once on connect).
 - `robots_delta`, only on a stream opened with `?robots=delta`: after that stream's first `robots`
@@ -76,6 +78,7 @@ from __future__ import annotations
 import asyncio
 import json
 import time
+import weakref
 from collections.abc import AsyncIterator
 from typing import Annotated, Any, Literal
 
@@ -89,6 +92,7 @@ from fleetmap.api.state import ApiState, EventStreamSlots, MapId, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import ReplacedEvent, TilesEvent, tile_windows
 from fleetmap.auth import GRANT_SCOPE_KEY, Grant
+from fleetmap.changes import ChangeFeed
 from fleetmap.registry import MapEntry
 
 router = APIRouter(route_class=StrictRoute)
@@ -127,6 +131,39 @@ def _successor(maps: dict[str, MapEntry], entry: MapEntry) -> MapEntry | None:
     while follow is not None and follow is not current:
         follow = follow.replaced_by
     return follow
+
+
+#: Per change feed, the last `tiles` event a stream made of it: (from version, to version, its data).
+#: Only the event loop reads and writes it.
+_last_tiles: weakref.WeakKeyDictionary[ChangeFeed, tuple[int, int, str]] = weakref.WeakKeyDictionary()
+
+
+def tiles_event(feed: ChangeFeed, version: int, tile_size: int) -> tuple[int, str | None]:
+    """`(new version, the data of the tiles event to send or None)` for a stream of `feed` that has
+    sent everything up to `version`.
+
+    The streams of a map share their events: a stream whose version lies within the last event any
+    stream made (from `a` to `b`, a <= version < b) sends that one and goes on from `b`. It may name
+    tiles it was told of already (those changed in `(a, version]`): a viewer then asks for them again
+    and gets 304s. Each stream made its own before, the same work once per viewer: 100 streams of a
+    map that 200 robots change took 73 ms of the event loop per 100 ms poll. A stream behind or ahead
+    of that event makes its own, which the others then share: streams fall into step within a poll.
+    A version bump that changed no tile is not news (None)."""
+    last = _last_tiles.get(feed)
+    if last is not None and last[0] <= version < last[1]:
+        return last[1], last[2]
+    batch = feed.since(version)
+    if batch.version == version:
+        return version, None
+    if batch.reset:
+        return batch.version, TilesEvent(version=batch.version, reset=True).model_dump_json(exclude_none=True)
+    if not batch.tiles:
+        return batch.version, None
+    data = TilesEvent(version=batch.version, tiles=tile_windows(batch.tiles, tile_size)).model_dump_json(
+        exclude_none=True
+    )
+    _last_tiles[feed] = (version, batch.version, data)
+    return batch.version, data
 
 
 #: The last line of a stream whose token was revoked.
@@ -183,26 +220,20 @@ async def event_stream(
                 )
                 robots_feed = RobotsFeed(entry, registry.lock)  # all the new map's robots, at once
                 last_sent = time.monotonic()
-            batch = feed.since(version)
-            if batch.version != version:
-                if batch.reset:
-                    tiles = TilesEvent(version=batch.version, reset=True)
-                else:
-                    tiles = TilesEvent(version=batch.version, tiles=tile_windows(batch.tiles, tile_size))
-                if batch.reset or batch.tiles:  # a version bump that changed no tile is not news
-                    yield _event("tiles", tiles.model_dump_json(exclude_none=True), batch.version)
-                    last_sent = time.monotonic()
-                version = batch.version
+            version, tiles = tiles_event(feed, version, tile_size)
+            if tiles is not None:
+                yield _event("tiles", tiles, version)
+                last_sent = time.monotonic()
             # A feed that sent nothing yet sends every robot: a delta needs a base.
             if robot_deltas and robots_feed.version >= 0:
-                delta = robots_feed.delta()
+                delta = robots_feed.delta_json()
                 if delta is not None:
-                    yield _event("robots_delta", delta.model_dump_json())
+                    yield _event("robots_delta", delta)
                     last_sent = time.monotonic()
             else:
-                robots = robots_feed.full()
+                robots = robots_feed.full_json()
                 if robots is not None:
-                    yield _event("robots", robots.model_dump_json())
+                    yield _event("robots", robots)
                     last_sent = time.monotonic()
             if time.monotonic() - last_sent >= settings.keepalive:
                 yield ": keepalive\n\n"

@@ -5,28 +5,45 @@ built 10 times a second per stream under the registry's lock, which ingest needs
 `RobotsFeed` builds one only when the map's robots changed since (`MapEntry.live_version`), and
 `delta` copies only what changed: the robots whose `RobotState.changed` is newer than the last event,
 of their trails only the points appended since (`RobotState.appended`), and the ids of robots
-forgotten since. The copies are made under the lock, the models (and their JSON) after it.
+forgotten since. The copies are made under the lock, the models (and their JSON) after it, once for
+all the streams of a map (`RobotsFeed`).
 """
 
 from __future__ import annotations
 
+import json
 import threading
 from itertools import islice
 
-from fleetmap.api_models import RobotChange, RobotsDeltaEvent, RobotsEvent, robot_live
+from fleetmap.api_models import RobotChange, RobotLive, RobotsDeltaEvent, RobotsEvent, robot_live
 from fleetmap.registry import MapEntry
 from fleetmap.robot_state import RobotState
 from fleetmap.scan import Pose2D
 
-#: What `RobotsFeed._copy` takes of a robot under the lock: its id, and `robot_live`'s arguments.
-_Copy = tuple[str, tuple[bool, Pose2D | None, list[tuple[float, float, float]], int]]
-
 #: Trail points a stream sends per robot (the registry keeps TRAIL_LENGTH).
 TRAIL_POINTS = 100
+#: JSON fragments a robot keeps for the streams (`RobotState.viewer_json`); past it they start over.
+#: Streams in step with each other ask for one or two (a delta's points since the previous poll, and
+#: a full event's trail).
+FRAGMENTS_PER_ROBOT = 8
+
+#: What identifies a robot's JSON in an event: the model (a delta's `RobotChange` or a full event's
+#: `RobotLive`), the fields a viewer sees, its `appended` count and how many trail points it sends
+#: (the trail only grows, so the last `count` points as of `appended` never change).
+_Key = tuple[bool, bool, Pose2D | None, int, int, int]
+#: A robot of an event being built: its id, its state, its key, and its JSON if some stream made it,
+#: else the trail points it sends.
+_Part = tuple[str, RobotState, _Key, str | None, list[tuple[float, float, float]] | None]
 
 
 class RobotsFeed:
-    """The robots events of map `entry` for one stream. Not thread-safe: one stream's task uses it."""
+    """The robots events of map `entry` for one stream. Not thread-safe: one stream's task uses it.
+
+    Every stream of a map sends each robot's change as the same JSON (its fields, and the points
+    appended since the stream's previous event: one or two when the streams poll in step), so the
+    first stream to send it leaves it on the robot (`RobotState.viewer_json`) and the others send
+    that: building the events of 100 streams of a map with 200 robots moving took more than the
+    event loop's whole core, most of it spent making the same models again."""
 
     def __init__(
         self, entry: MapEntry, registry_lock: threading.RLock, trail_points: int = TRAIL_POINTS
@@ -41,21 +58,33 @@ class RobotsFeed:
         self.sent: dict[str, tuple[RobotState, int]] = {}
 
     def full(self) -> RobotsEvent | None:
-        """Every robot of the map, or None when nothing of them changed since this feed's last event."""
+        """`full_json` as a model."""
+        data = self.full_json()
+        return None if data is None else RobotsEvent.model_validate_json(data)
+
+    def delta(self) -> RobotsDeltaEvent | None:
+        """`delta_json` as a model."""
+        data = self.delta_json()
+        return None if data is None else RobotsDeltaEvent.model_validate_json(data)
+
+    def full_json(self) -> str | None:
+        """Every robot of the map (a `RobotsEvent`'s JSON), or None when nothing of them changed
+        since this feed's last event."""
         with self.lock:
             robots = self.entry.robots
             if self.entry.live_version == self.version:
                 return None
             self.version = self.entry.live_version
             self.sent = {rid: (state, state.appended) for rid, state in robots.items()}
-            copies = [self._copy(rid, state, state.appended) for rid, state in robots.items()]
-        return RobotsEvent(robots={rid: robot_live(*fields) for rid, fields in sorted(copies)})
+            parts = [self._part(rid, state, state.appended, False) for rid, state in robots.items()]
+        return '{"robots":' + self._robots_json(parts, False) + "}"
 
-    def delta(self) -> RobotsDeltaEvent | None:
-        """What changed since this feed's last event (`RobotsEvent.apply` applies it), or None when
-        nothing did. Call `full` first: a delta is relative to what this feed sent."""
+    def delta_json(self) -> str | None:
+        """What changed since this feed's last event (a `RobotsDeltaEvent`'s JSON; `RobotsEvent.apply`
+        applies it), or None when nothing did. Call `full_json` first: a delta is relative to what
+        this feed sent."""
         removed: list[str] = []
-        copies: list[_Copy] = []
+        parts: list[_Part] = []
         with self.lock:
             entry = self.entry
             if entry.live_version == self.version:
@@ -70,7 +99,7 @@ class RobotsFeed:
                     if sent is not None:  # forgotten, and created again under its id since
                         removed.append(rid)
                     new_points = state.appended
-                copies.append(self._copy(rid, state, new_points))
+                parts.append(self._part(rid, state, new_points, True))
                 self.sent[rid] = (state, state.appended)
             # Every robot of the map is in `sent` now (one unchanged since was sent before): more
             # ids there means robots were forgotten.
@@ -80,14 +109,36 @@ class RobotsFeed:
                     del self.sent[rid]
                 removed.extend(gone)
             self.version = entry.live_version
-        if not copies and not removed:
+        if not parts and not removed:
             return None
-        robots = {rid: robot_live(*fields, model=RobotChange) for rid, fields in sorted(copies)}
-        return RobotsDeltaEvent(trail_length=self.trail_points, robots=robots, removed=sorted(removed))
+        return (
+            f'{{"trail_length":{self.trail_points},"robots":{self._robots_json(parts, True)},'
+            f'"removed":{json.dumps(sorted(removed), separators=(",", ":"))}}}'
+        )
 
-    def _copy(self, rid: str, state: RobotState, new_points: int) -> _Copy:
-        """What a robot event needs of `state` (under the lock): its live fields and the last
-        `new_points` of its trail (at most `trail_points`)."""
+    def _part(self, rid: str, state: RobotState, new_points: int, change: bool) -> _Part:
+        """A robot of an event (under the lock): its key, and its JSON if a stream made it already,
+        else its last `count` trail points, copied here (the journal thread appends to the trail)."""
         count = min(new_points, self.trail_points, len(state.trail))
-        trail = list(islice(reversed(state.trail), count))[::-1]
-        return rid, (state.online, state.last_pose, trail, state.scans_integrated)
+        key = (change, state.online, state.last_pose, state.scans_integrated, state.appended, count)
+        made = state.viewer_json.get(key)
+        points = None if made is not None else list(islice(reversed(state.trail), count))[::-1]
+        return rid, state, key, made, points
+
+    @staticmethod
+    def _robots_json(parts: list[_Part], change: bool) -> str:
+        """The event's `robots` object, each robot's JSON made once for every stream (after the
+        lock: a key holds what its JSON shows, so what is left on the robot is right for any stream
+        that asks for that key)."""
+        model: type[RobotLive] = RobotChange if change else RobotLive
+        items = []
+        for rid, state, key, made, points in sorted(parts, key=lambda part: part[0]):
+            if made is None:
+                _, online, pose, scans, _, _ = key
+                made = robot_live(online, pose, points or [], scans, model=model).model_dump_json()
+                cache = state.viewer_json
+                if len(cache) >= FRAGMENTS_PER_ROBOT:
+                    cache.clear()
+                cache[key] = made
+            items.append(f"{json.dumps(rid)}:{made}")
+        return "{" + ",".join(items) + "}"
