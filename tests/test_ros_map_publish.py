@@ -402,6 +402,26 @@ def test_a_map_replaced_by_one_with_nothing_to_publish_leaves_no_stale_grid(in_p
         publisher.close()
 
 
+def test_each_map_is_published_in_its_own_frame(in_process: InProcess) -> None:
+    """`map_frames` labels a map's grids (the map `--ros-scans` builds in `world`); the others keep
+    `frame_id` (a native robots' map is not in that frame)."""
+    registry = in_process.registry
+    topics = (MapTopic("lab", "/lab/map"), MapTopic("wh", "/wh/map"))
+    options = RosMapOptions(topics, frame_id="map", map_frames=(("lab", "world"), ("wh", "map")), period=0.1)
+    publisher = RosMapPublisher(registry, in_process.router, options)
+    subs = [RosSubscriber(in_process.endpoint, topic.key) for topic in publisher.topics]
+    try:
+        for map_id in ("lab", "wh"):
+            registry.create(map_id, MapConfig(resolution=0.5))[0].gmap.integrate(room_scan(1.0, 1.0))
+        publisher.start()
+        frames = [wait_for(sub.received, timeout=5, what="a grid")[0].grid.header.frame_id for sub in subs]
+        assert frames == ["world", "map"]
+    finally:
+        for sub in subs:
+            sub.close()
+        publisher.close()
+
+
 def svc_zid(client: httpx.Client) -> str:
     """The service's Zenoh session id, as its health answer reports it."""
     return str(client.get("/healthz").json()["zenoh"]["zid"])

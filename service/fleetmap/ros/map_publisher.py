@@ -117,7 +117,10 @@ class RosMapOptions:
 
     topics: tuple[MapTopic, ...]
     domain_id: int = 0
-    frame_id: str = "map"
+    frame_id: str = "map"  # header.frame_id of the grids of a map not in `map_frames`
+    #: (map id, frame id): the frame of that map's grids, where it differs from `frame_id` (a map
+    #: `--ros-scans` builds in another fixed frame).
+    map_frames: tuple[tuple[str, str], ...] = ()
     period: float = 1.0  # seconds, at least, between two grids of one map
     distro: str = "jazzy"
     node_name: str = "fleetmap"
@@ -293,7 +296,8 @@ class RosMapPublisher:
                 map_id=spec.map_id,
             )
             return 0
-        payload = occupancy_grid(gmap, window, self.options.frame_id, time.time_ns())
+        frame_id = dict(self.options.map_frames).get(spec.map_id, self.options.frame_id)
+        payload = occupancy_grid(gmap, window, frame_id, time.time_ns())
         built = time.perf_counter()
         topic.sequence += 1
         attachment = encode_attachment(Attachment(topic.sequence, time.time_ns(), topic.gid))
