@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from fleetmap.codec import WireScan
-from fleetmap.registry import IngestRejected
+from fleetmap.registry import IngestRejected, MapRegistry
 from fleetmap.ros.graph import Qos, RosNode, publisher_of_token
 from fleetmap.ros.ingest import RosScanIngest, robot_id_for, session_from_gid
 from fleetmap.ros.laser_scan import LaserScanMsg, encode_laser_scan
@@ -183,3 +183,32 @@ def test_laserscan_publisher_tokens_name_their_topic() -> None:
     assert publisher_of_token(node.node_token()) is None
     assert publisher_of_token(token.replace("/MP/", "/MS/")) is None  # a subscription
     assert publisher_of_token("fleetmap/lab/r1/alive") is None
+
+
+def test_a_map_deleted_after_a_scan_is_not_made_again_by_showing_its_robot_online() -> None:
+    """After a submitted scan, a robot whose LaserScan publisher lives is shown online if its map
+    exists. It looked the map up (`registry.get`, which lets go of the registry's lock) and then
+    called `set_online`, which makes a map for a token: a DELETE landing in between made the
+    deleted map again, empty. The check and the update are now one hold of the registry's lock
+    (`MapRegistry.mark_online`, which the native ingest uses too) and never create a map."""
+    registry = MapRegistry(workers=1)
+    ingest = RosScanIngest(registry, None, "lab")  # type: ignore[arg-type]
+    entry, _ = registry.create("lab")
+    ingest._alive["robot1"] = 1  # its publisher's token is present
+    ingest._mark_online("robot1")
+    assert entry.robots["robot1"].online
+    entry.robots["robot1"].online = False
+    real_get = registry.get
+
+    def deleted_after_the_look_up(map_id: str) -> Any:
+        found = real_get(map_id)
+        registry.delete(map_id)  # the DELETE lands where the lock was let go
+        return found
+
+    registry.get = deleted_after_the_look_up  # type: ignore[method-assign]
+    ingest._mark_online("robot1")
+    assert registry.maps.get("lab") in (None, entry), "the deleted map was made again"
+    registry.get = real_get  # type: ignore[method-assign]
+    registry.delete("lab")
+    ingest._mark_online("robot1")  # its map gone: nothing to show, nothing made
+    assert "lab" not in registry.maps

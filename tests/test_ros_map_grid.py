@@ -248,11 +248,23 @@ def test_ros_options_repeat_come_from_the_environment_and_the_command_line_wins(
     assert (defaults.ros_map_frame, defaults.ros_map_period, defaults.ros_distro) == (None, 1.0, "jazzy")
     from fleetmap.server import ros_map_frame
 
-    # The grids' frame: --ros-map-frame, else the frame --ros-scans builds the map in, else map.
-    assert ros_map_frame(defaults) == "map"
-    scans_in_world = ["--ros-scans", "lab", "--ros-fixed-frame", "/world", "--ros-publish-map", "lab"]
-    assert ros_map_frame(serve_options(scans_in_world, {}, monkeypatch)) == "world"
-    assert ros_map_frame(serve_options([*scans_in_world, "--ros-map-frame", "map"], {}, monkeypatch)) == "map"
+    # The grids' frame: --ros-map-frame, else for the map --ros-scans builds the frame it builds it
+    # in, else map. Another map (native robots') is not in --ros-fixed-frame: before, it was
+    # labelled with it all the same, and nav2 placed it in a frame it is not in.
+    assert ros_map_frame(defaults, "lab") == "map"
+    scans_in_world = [
+        "--ros-scans",
+        "lab",
+        "--ros-fixed-frame",
+        "/world",
+        "--ros-publish-map",
+        "lab",
+        "wh=/wh/map",
+    ]
+    args = serve_options(scans_in_world, {}, monkeypatch)
+    assert (ros_map_frame(args, "lab"), ros_map_frame(args, "wh")) == ("world", "map")
+    args = serve_options([*scans_in_world, "--ros-map-frame", "odom"], {}, monkeypatch)
+    assert (ros_map_frame(args, "lab"), ros_map_frame(args, "wh")) == ("odom", "odom")
     argv = ["--ros-publish-map", "lab", "--ros-publish-map", "wh=/wh/map", "b=/b"]
     expected = [MapTopic("lab"), MapTopic("wh", "/wh/map"), MapTopic("b", "/b")]
     assert serve_options(argv, {}, monkeypatch).ros_publish_map == expected

@@ -378,6 +378,50 @@ def test_another_map_of_the_same_id_and_tile_clock_is_published(in_process: InPr
         publisher.close()
 
 
+def test_a_map_replaced_by_one_with_nothing_to_publish_leaves_no_stale_grid(in_process: InProcess) -> None:
+    """A map deleted and made again between two checks, the new one with no observed cell yet: the
+    old map's grid does not stay in the publisher's cache, where a ROS node starting later would get
+    a map that no longer exists (as after a deletion the publisher noticed)."""
+    registry = in_process.registry
+    publisher = RosMapPublisher(registry, in_process.router, RosMapOptions((MapTopic("a"),), period=3600.0))
+    try:
+        registry.create("a", MapConfig(resolution=0.5))[0].gmap.integrate(room_scan(1.0, 1.0))
+        publisher.start()  # its first check publishes; the next would be an hour later
+        wait_for(lambda: publisher.topics[0].published == 1, timeout=5, what="the first grid")
+        registry.delete("a", wait=True)
+        registry.create("a", MapConfig(resolution=0.5))
+        assert publisher.publish_changed() == 0  # nothing observed: nothing to publish
+        assert publisher.topics[0].publisher is not None  # the map exists: still declared
+        late = RosSubscriber(in_process.endpoint)
+        try:
+            time.sleep(1.5)  # the cache is queried at once, and the heartbeat comes every 0.5 s
+            assert late.received() == []
+        finally:
+            late.close()
+    finally:
+        publisher.close()
+
+
+def test_each_map_is_published_in_its_own_frame(in_process: InProcess) -> None:
+    """`map_frames` labels a map's grids (the map `--ros-scans` builds in `world`); the others keep
+    `frame_id` (a native robots' map is not in that frame)."""
+    registry = in_process.registry
+    topics = (MapTopic("lab", "/lab/map"), MapTopic("wh", "/wh/map"))
+    options = RosMapOptions(topics, frame_id="map", map_frames=(("lab", "world"), ("wh", "map")), period=0.1)
+    publisher = RosMapPublisher(registry, in_process.router, options)
+    subs = [RosSubscriber(in_process.endpoint, topic.key) for topic in publisher.topics]
+    try:
+        for map_id in ("lab", "wh"):
+            registry.create(map_id, MapConfig(resolution=0.5))[0].gmap.integrate(room_scan(1.0, 1.0))
+        publisher.start()
+        frames = [wait_for(sub.received, timeout=5, what="a grid")[0].grid.header.frame_id for sub in subs]
+        assert frames == ["world", "map"]
+    finally:
+        for sub in subs:
+            sub.close()
+        publisher.close()
+
+
 def svc_zid(client: httpx.Client) -> str:
     """The service's Zenoh session id, as its health answer reports it."""
     return str(client.get("/healthz").json()["zenoh"]["zid"])

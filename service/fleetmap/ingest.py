@@ -300,19 +300,7 @@ class ZenohIngest:
                 # The map may have been (re)created after the token appeared (auto-create, PUT
                 # after DELETE): make sure its robot shows as online. Under our lock so a token
                 # DELETE cannot slip in between.
-                self._mark_online(map_id, robot_id)
-
-    def _mark_online(self, map_id: str, robot_id: str) -> None:
-        """Set the robot online in the registry if it is not already (caller holds self._lock)."""
-        try:
-            entry = self.registry.get(map_id)
-        except KeyError:
-            return
-        with self.registry.lock:
-            state = entry.robots.get(robot_id)
-            if state is not None and state.online:
-                return
-        self.registry.set_online(map_id, robot_id, True)
+                self.registry.mark_online(map_id, robot_id)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:

@@ -668,6 +668,19 @@ class MapRegistry:
                     robot.online = online
                     entry.touch(robot)
 
+    def mark_online(self, map_id: str, robot_id: str) -> None:
+        """After a scan of `robot_id` was accepted while its liveliness (or ROS publisher) token
+        lives: show the robot online if its map exists (the map, or the robot's state, may have been
+        created after the token appeared). In one hold of the lock, and never creating a map: a map
+        deleted since the scan stays deleted, where a look-up then `set_online` made it again."""
+        with self.lock:
+            entry = self.maps.get(map_id)
+            if entry is None:
+                return
+            state = entry.robots.get(robot_id)
+            if state is None or not state.online:
+                self.set_online(map_id, robot_id, True)
+
     def _add(self, entry: MapEntry) -> None:
         """Install a new map entry (under the registry's lock), its robots whose liveliness tokens
         are present shown online: a map deleted and created again, or restored from a snapshot,

@@ -92,7 +92,8 @@ _ENV_TRUE = {"1", "true", "yes", "on"}
 _ENV_FALSE = {"0", "false", "no", "off", ""}
 LOG_LEVELS = ("debug", "info", "warning", "error")
 #: The defaults of --ros-map-frame, --ros-map-period and --ros-distro (any other value needs
-#: --ros-publish-map). The frame's None: --ros-fixed-frame's, else map (`ros_map_frame`).
+#: --ros-publish-map). The frame's None: --ros-fixed-frame's for the map of --ros-scans, else map
+#: (`ros_map_frame`).
 ROS_MAP_DEFAULTS = (None, 1.0, "jazzy")
 #: Seconds uvicorn waits at shutdown for the requests in flight (event streams end at once).
 GRACEFUL_HTTP_SECONDS = 3  # uvicorn takes whole seconds (int)
@@ -413,7 +414,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
         type=_frame_id,
         default=ROS_MAP_DEFAULTS[0],
         metavar="FRAME",
-        help="header.frame_id of the published maps (default: --ros-fixed-frame's, else map)",
+        help=(
+            "header.frame_id of the published maps (default: --ros-fixed-frame's for the map of "
+            "--ros-scans, else map)"
+        ),
     )
     p.add_argument(
         "--ros-map-period",
@@ -616,11 +620,16 @@ def _frame_id(text: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def ros_map_frame(args: argparse.Namespace) -> str:
-    """The frame id of the published grids: `--ros-map-frame`, else `--ros-fixed-frame` (the frame
-    `--ros-scans` builds its map in: a grid labelled `map` while its cells are in `world` would put
-    it in the wrong place for nav2), else `map`."""
-    return str(args.ros_map_frame or args.ros_fixed_frame or "map")
+def ros_map_frame(args: argparse.Namespace, map_id: str) -> str:
+    """The frame id of map `map_id`'s published grids: `--ros-map-frame`, else, for the map of
+    `--ros-scans`, `--ros-fixed-frame` (the frame it builds that map in: a grid labelled `map` while
+    its cells are in `world` would put it in the wrong place for nav2), else `map`. Another map
+    (native robots') is not in that frame, so it is not labelled with it."""
+    if args.ros_map_frame:
+        return str(args.ros_map_frame)
+    if map_id == args.ros_scans and args.ros_fixed_frame:
+        return str(args.ros_fixed_frame)
+    return "map"
 
 
 def ros_domain(args: argparse.Namespace, environ: dict[str, str] | None = None) -> int:
@@ -955,7 +964,8 @@ def _start_ros_maps(args: argparse.Namespace, registry: Any, ingest: ZenohIngest
     options = RosMapOptions(
         topics=tuple(args.ros_publish_map),
         domain_id=ros_domain(args),
-        frame_id=ros_map_frame(args),
+        frame_id=args.ros_map_frame or "map",
+        map_frames=tuple((spec.map_id, ros_map_frame(args, spec.map_id)) for spec in args.ros_publish_map),
         period=args.ros_map_period,
         distro=args.ros_distro,
     )

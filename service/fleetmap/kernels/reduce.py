@@ -8,7 +8,7 @@ temporaries, for one render (a 2.9 GB peak). These kernels read each tile from i
 the reduced block, through a scratch of a quarter tile, so a render holds what it returns.
 
 The result is exactly that of halving the block `log2(factor)` times, columns then rows (the order
-of `tile_render._halve`), which matters for the TSDF's ties: `reduce_max_tiles` keeps the largest
+of the NumPy halving these replaced), which matters for the TSDF's ties: `reduce_max_tiles` keeps the largest
 value of each block, a NaN only where every cell is NaN (NumPy's `fmax`; counts and weights hold no
 NaN), and `reduce_tsdf_tiles` the value nearest the surface (smallest |tsdf|) among observed cells
 (weight above 0), the first of a pair on a tie.

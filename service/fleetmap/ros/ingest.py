@@ -369,18 +369,9 @@ class RosScanIngest:
         """After a scan of `robot_id` was submitted: if a publisher of it is alive, make sure the
         robot shows online (its map, or its robot state, may have been created after the token
         appeared, as the native ingest does)."""
-        with self._lock:
-            if robot_id not in self._alive:
-                return
-            try:
-                entry = self.registry.get(self.map_id)
-            except KeyError:
-                return
-            with self.registry.lock:
-                state = entry.robots.get(robot_id)
-                if state is not None and state.online:
-                    return
-            self.registry.set_online(self.map_id, robot_id, True)
+        with self._lock:  # held: a token DELETE cannot slip in between
+            if robot_id in self._alive:
+                self.registry.mark_online(self.map_id, robot_id)
 
     def _on_reply(self, reply: zenoh.Reply) -> None:
         with contextlib.suppress(Exception):  # an error reply (no cache) is no TF

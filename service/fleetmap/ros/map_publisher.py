@@ -21,11 +21,13 @@ its map changed: one dictionary look-up under the registry's lock and the map's 
 (`TileStore.clock`, which every applied scan advances), compared with what it last published. A
 map that did not change costs only that. A changed map is published whole: the observed extent
 (`export.known_window`), classified as the nav2 export does (`occupancy_grid.grid_cells`, which
-reads the map in strips, each under the map's lock for its copy only), CDR-encoded and put. The
-clock is read before the cells, so a scan applied during the read is published at the next check.
+reads the map one storage tile at a time, each under the map's lock for its copy only), CDR-encoded
+and put. The clock is read before the cells, so a scan applied during the read is published at the
+next check.
 A map that is deleted is no longer published: its publisher and token are undeclared (a ROS node
 starting later gets no stale map from the cache); a map created again, or replaced from a snapshot,
-is published again.
+is published again, from a publisher declared anew (so the old map's grid is not in its cache even
+when the new map has nothing to publish yet).
 """
 
 from __future__ import annotations
@@ -115,7 +117,10 @@ class RosMapOptions:
 
     topics: tuple[MapTopic, ...]
     domain_id: int = 0
-    frame_id: str = "map"
+    frame_id: str = "map"  # header.frame_id of the grids of a map not in `map_frames`
+    #: (map id, frame id): the frame of that map's grids, where it differs from `frame_id` (a map
+    #: `--ros-scans` builds in another fixed frame).
+    map_frames: tuple[tuple[str, str], ...] = ()
     period: float = 1.0  # seconds, at least, between two grids of one map
     distro: str = "jazzy"
     node_name: str = "fleetmap"
@@ -253,6 +258,12 @@ class RosMapPublisher:
             self._undeclare(topic)
             topic.seen = None
             return 0
+        if topic.publisher is not None and topic.seen is not None and topic.seen[0] != entry.generation:
+            # Another map of the id since the last check (deleted and created again within a
+            # period, or replaced by an upload): the old map's grid leaves the publisher's cache
+            # now, even if the new map has nothing to publish (no observed cell yet, TSDF only, too
+            # big), or a ROS node starting later would get a map that no longer exists.
+            self._undeclare(topic)
         if topic.publisher is None:
             self._declare(topic)
         # Before the cells: a scan applied while they are read advances the clock past this, so the
@@ -285,7 +296,8 @@ class RosMapPublisher:
                 map_id=spec.map_id,
             )
             return 0
-        payload = occupancy_grid(gmap, window, self.options.frame_id, time.time_ns())
+        frame_id = dict(self.options.map_frames).get(spec.map_id, self.options.frame_id)
+        payload = occupancy_grid(gmap, window, frame_id, time.time_ns())
         built = time.perf_counter()
         topic.sequence += 1
         attachment = encode_attachment(Attachment(topic.sequence, time.time_ns(), topic.gid))

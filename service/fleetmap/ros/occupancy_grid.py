@@ -32,8 +32,9 @@ _STATE_TO_GRID[[STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED]] = [GRID_UNKNOWN, GRI
 
 def grid_cells(gmap: GridMap, window: Window) -> np.ndarray:
     """The OccupancyGrid cell values (int8, shape (ny, nx), row 0 = lowest y) of a window: the nav2
-    export's trinary classification (`map_state`) as 100 / 0 / -1. Reads the map in strips, each
-    under the map's lock for its copy only. Raises LayerUnavailableError for a TSDF-only map."""
+    export's trinary classification (`map_state`) as 100 / 0 / -1. Reads the map one storage tile
+    at a time, each under the map's lock for its copy only. Raises LayerUnavailableError for a
+    TSDF-only map."""
     return _STATE_TO_GRID[map_state(gmap, window)]
 
 
