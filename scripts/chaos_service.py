@@ -28,6 +28,7 @@ import contextlib
 import json
 import os
 import random
+import shutil
 import signal
 import socket
 import subprocess
@@ -419,6 +420,9 @@ def check_validators_after_restart(
 
 def chaos_main(args: argparse.Namespace) -> int:
     out = Path(args.out)
+    # A fresh data directory too: the service would restore an earlier run's maps and robots' counters,
+    # and every robot of the last round (the same ids each run) then counted twice its scans.
+    shutil.rmtree(out / "data", ignore_errors=True)
     out.mkdir(parents=True, exist_ok=True)
     for p in out.glob("*"):
         if p.is_file():
