@@ -305,6 +305,28 @@ def test_robots_that_only_sent_garbage_give_their_place_to_real_ones() -> None:
     assert refused.value.status == 429 and entry.scans_rejected == 3
 
 
+def test_a_token_going_away_for_a_robot_the_map_does_not_hold_changes_nothing() -> None:
+    """A liveliness token withdrawn for a robot the map does not hold (forgotten to make room, or
+    never seen: any Zenoh peer can declare and drop tokens) made room for it: an idle robot was
+    forgotten, its counters gone, and an offline robot with no scan took its place."""
+    reg = MapRegistry(max_robots_per_map=2)
+    reg.start()
+    try:
+        for robot in ("a", "b"):  # integrated, so idle: either could be forgotten to make room
+            future = reg.submit("m", robot, WireScan(0, 0.0, scan_at(0)), wait=True)
+            assert future is not None
+            future.result(timeout=30)
+        entry = reg.get("m")
+        reg.set_online("m", "stranger", False)
+        assert sorted(entry.robots) == ["a", "b"]
+        assert entry.robots["a"].scans_integrated == entry.robots["b"].scans_integrated == 1
+        reg.set_online("m", "a", True)
+        reg.set_online("m", "a", False)  # a robot the map holds still goes offline
+        assert not entry.robots["a"].online
+    finally:
+        reg.close()
+
+
 def test_a_restored_map_is_stored_outside_the_registry_lock(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

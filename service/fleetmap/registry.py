@@ -661,6 +661,10 @@ class MapRegistry:
                 entry, _ = self.create(map_id)
             elif online:
                 entry.provisional = False  # the token would have created the map: it stays
+            elif robot_id not in entry.robots:
+                # Nothing to show offline: making room for it would forget an idle robot (and any
+                # Zenoh peer can declare and drop tokens under made-up robot ids).
+                return
             if self._room_for(entry, robot_id):
                 robot = entry.robot(robot_id)
                 robot.last_heard = time.time()
