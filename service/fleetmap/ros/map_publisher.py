@@ -232,11 +232,13 @@ class RosMapPublisher:
         """One check of every topic: publish each map that changed since it was last published.
         Returns how many grids were put."""
         put = 0
+        # A map published on several topics (one per robot's nav2 namespace) is built once a check.
+        grids: dict[tuple[str, int, int], bytes] = {}
         for topic in self.topics:
             if self._stop.is_set():
                 break
             try:
-                put += self._check(topic)
+                put += self._check(topic, grids)
             except Exception as exc:  # noqa: BLE001 - the thread must go on; the next change retries
                 self._warnings.error(
                     f"grid {topic.spec.map_id}",
@@ -246,7 +248,7 @@ class RosMapPublisher:
                 )
         return put
 
-    def _check(self, topic: _Topic) -> int:
+    def _check(self, topic: _Topic, grids: dict[tuple[str, int, int], bytes]) -> int:
         with self.registry.lock:
             entry = self.registry.maps.get(topic.spec.map_id)
         if entry is None:
@@ -272,9 +274,11 @@ class RosMapPublisher:
         if seen == topic.seen:
             return 0
         topic.seen = seen
-        return self._publish(topic, entry)
+        return self._publish(topic, entry, grids)
 
-    def _publish(self, topic: _Topic, entry: MapEntry) -> int:
+    def _publish(self, topic: _Topic, entry: MapEntry, grids: dict[tuple[str, int, int], bytes]) -> int:
+        """Put `entry`'s grid on `topic`; `grids` holds those built in this check, by map id and
+        `topic.seen`, so that another topic of the same map state reuses the one built."""
         gmap, spec = entry.gmap, topic.spec
         if map_source(gmap) is None:
             self._warnings.warning(
@@ -297,7 +301,11 @@ class RosMapPublisher:
             )
             return 0
         frame_id = dict(self.options.map_frames).get(spec.map_id, self.options.frame_id)
-        payload = occupancy_grid(gmap, window, frame_id, time.time_ns())
+        assert topic.seen is not None
+        built_as = (spec.map_id, *topic.seen)
+        payload = grids.get(built_as)
+        if payload is None:
+            payload = grids[built_as] = occupancy_grid(gmap, window, frame_id, time.time_ns())
         built = time.perf_counter()
         topic.sequence += 1
         attachment = encode_attachment(Attachment(topic.sequence, time.time_ns(), topic.gid))
