@@ -267,11 +267,11 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
         assert not (tmp_path / "d").exists()
 
 
-def serve_options(
+def serve_namespace(
     argv: list[str], environ: dict[str, str], monkeypatch: pytest.MonkeyPatch
-) -> dict[str, object]:
+) -> argparse.Namespace:
     """The options `fleetmap serve ARGV` runs with in `environ` (only FLEETMAP_* variables of it), as
-    parsed by the real `serve` parser; a memory budget as its limit, to compare."""
+    parsed by the real `serve` parser."""
     for name in os.environ:
         if name.startswith("FLEETMAP_"):
             monkeypatch.delenv(name)
@@ -279,7 +279,14 @@ def serve_options(
         monkeypatch.setenv(name, value)
     parser = argparse.ArgumentParser(prog="fleetmap")
     server.add_parser(parser.add_subparsers(dest="command", required=True))
-    parsed = vars(parser.parse_args(["serve", *argv]))
+    return parser.parse_args(["serve", *argv])
+
+
+def serve_options(
+    argv: list[str], environ: dict[str, str], monkeypatch: pytest.MonkeyPatch
+) -> dict[str, object]:
+    """`serve_namespace` as a dict, a memory budget as its limit, to compare."""
+    parsed = vars(serve_namespace(argv, environ, monkeypatch))
     return {k: v.limit if isinstance(v, MemoryBudget) else v for k, v in parsed.items()}
 
 

@@ -7,7 +7,6 @@ definitions), and their cells compared with the nav2 map_server files of fleetma
 
 from __future__ import annotations
 
-import argparse
 import io
 import math
 import os
@@ -18,6 +17,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from rosbags.typesys import Stores, get_typestore
+from test_operations import serve_namespace
 
 from fleetmap import GridMap, MapConfig, Scan
 from fleetmap.export import Window, known_window, map_state, nav2_files, tile_blocks
@@ -225,25 +225,10 @@ def test_parse_map_topic() -> None:
             parse_map_topic(bad)
 
 
-def serve_options(
-    argv: list[str], environ: dict[str, str], monkeypatch: pytest.MonkeyPatch
-) -> argparse.Namespace:
-    from fleetmap import server
-
-    for name in os.environ:
-        if name.startswith("FLEETMAP_"):
-            monkeypatch.delenv(name)
-    for name, value in environ.items():
-        monkeypatch.setenv(name, value)
-    parser = argparse.ArgumentParser(prog="fleetmap")
-    server.add_parser(parser.add_subparsers(dest="command", required=True))
-    return parser.parse_args(["serve", *argv])
-
-
 def test_ros_options_repeat_come_from_the_environment_and_the_command_line_wins(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    defaults = serve_options([], {}, monkeypatch)
+    defaults = serve_namespace([], {}, monkeypatch)
     assert defaults.ros_publish_map == [] and defaults.ros_domain is None  # $ROS_DOMAIN_ID, else 0
     assert (defaults.ros_map_frame, defaults.ros_map_period, defaults.ros_distro) == (None, 1.0, "jazzy")
     from fleetmap.server import ros_map_frame
@@ -261,26 +246,26 @@ def test_ros_options_repeat_come_from_the_environment_and_the_command_line_wins(
         "lab",
         "wh=/wh/map",
     ]
-    args = serve_options(scans_in_world, {}, monkeypatch)
+    args = serve_namespace(scans_in_world, {}, monkeypatch)
     assert (ros_map_frame(args, "lab"), ros_map_frame(args, "wh")) == ("world", "map")
-    args = serve_options([*scans_in_world, "--ros-map-frame", "odom"], {}, monkeypatch)
+    args = serve_namespace([*scans_in_world, "--ros-map-frame", "odom"], {}, monkeypatch)
     assert (ros_map_frame(args, "lab"), ros_map_frame(args, "wh")) == ("odom", "odom")
     argv = ["--ros-publish-map", "lab", "--ros-publish-map", "wh=/wh/map", "b=/b"]
     expected = [MapTopic("lab"), MapTopic("wh", "/wh/map"), MapTopic("b", "/b")]
-    assert serve_options(argv, {}, monkeypatch).ros_publish_map == expected
+    assert serve_namespace(argv, {}, monkeypatch).ros_publish_map == expected
     # The domain of both directions: --ros-domain, else ROS's own variable, else 0; it may be given
     # with --ros-publish-map alone.
     from fleetmap import server
 
-    options = serve_options([*argv, "--ros-domain", "4"], {}, monkeypatch)
+    options = serve_namespace([*argv, "--ros-domain", "4"], {}, monkeypatch)
     assert server.ros_options(options) is None and server.ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 4
-    options = serve_options(argv, {}, monkeypatch)
+    options = serve_namespace(argv, {}, monkeypatch)
     assert server.ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 7 and server.ros_domain(options, {}) == 0
     env = {"FLEETMAP_ROS_PUBLISH_MAP": "lab wh=/wh/map b=/b", "FLEETMAP_ROS_DOMAIN": "3"}
-    options = serve_options([], env, monkeypatch)
+    options = serve_namespace([], env, monkeypatch)
     assert options.ros_publish_map == expected and options.ros_domain == 3
     # The command line's maps replace the variable's, rather than adding to them.
-    options = serve_options(["--ros-publish-map", "x", "--ros-publish-map", "y=/y"], env, monkeypatch)
+    options = serve_namespace(["--ros-publish-map", "x", "--ros-publish-map", "y=/y"], env, monkeypatch)
     assert options.ros_publish_map == [MapTopic("x"), MapTopic("y", "/y")]
 
 
@@ -289,7 +274,7 @@ def test_bad_ros_options_are_refused(
 ) -> None:
     for argv in (["--ros-publish-map", "lab=/a b"], ["--ros-domain", "-1"], ["--ros-map-frame", ""]):
         with pytest.raises(SystemExit):
-            serve_options(argv, {}, monkeypatch)
+            serve_namespace(argv, {}, monkeypatch)
         assert "error" in capsys.readouterr().err, argv
 
 
