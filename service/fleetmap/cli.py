@@ -149,7 +149,7 @@ def _build(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from fleetmap.datasets import DatasetError, load_dataset
-    from fleetmap.export import write_build_outputs
+    from fleetmap.export import BUILD_FILES, write_build_outputs
     from fleetmap.grid_map import GridMap
     from fleetmap.scan import ScanError
     from fleetmap.tiles import TileLimitError
@@ -175,6 +175,7 @@ def _build(args: argparse.Namespace) -> int:
             skipped += 1
             tqdm.write(f"skipped a scan: {exc}", file=sys.stderr)
     elapsed = time.perf_counter() - started
+    earlier = [out_dir / name for name in BUILD_FILES if (out_dir / name).is_file()]
     try:
         written = write_build_outputs(gmap, out_dir)
     except ValueError as exc:
@@ -190,6 +191,9 @@ def _build(args: argparse.Namespace) -> int:
     )
     for path in written:
         print(f"wrote {path}")
+    for path in earlier:
+        if path not in written:
+            print(f"removed {path}, an earlier build's: this map has no such layer")
     return 0
 
 
