@@ -302,27 +302,33 @@ def test_cells_of_unknown_points() -> None:
     assert got["probability"][2] == pytest.approx(0.4)
 
 
-def test_a_region_of_tsdf_weights_holds_the_window_about_once() -> None:
-    """region("tsdf_weight") over a large window (what `fleetmap build` writes as tsdf_weight.npy)
-    allocates about the answer's size: 0 where unknown from the start. It made a NaN window and then
-    a nan_to_num copy with masks, 3.2 times the answer (2.9 GB for the 0.9 GB weights of the
-    Freiburg campus at 2 cm, the build's peak). The values: the weights, 0 in unknown cells and
-    missing tiles."""
+@pytest.mark.parametrize("layer", ["tsdf_weight", "tsdf"])
+def test_a_region_of_the_tsdf_holds_the_window_about_once(layer: str) -> None:
+    """region("tsdf_weight") and region("tsdf") over a large window (what `fleetmap build` writes
+    as tsdf_weight.npy and tsdf.npy) allocate about the answer's size. The weights made a NaN window
+    and then a nan_to_num copy with masks, 3.3 times the answer (2.9 GB for the 0.9 GB weights of
+    the Freiburg campus at 2 cm, the build's peak); the values made a window of the weights too, and
+    a mask of it, 2.25 times. The values: the weights, 0 where unknown (in unknown cells and missing
+    tiles), and the TSDF, NaN exactly there."""
     m = make_map(layers=["tsdf"], resolution=0.05, tile_size=64)
     m.integrate(Scan.from_angles((0.01, 0.01, 0.0), np.linspace(-3, 3, 400), np.full(400, 3.0)))
     window = (-1000, -1000, 1000, 1000)  # 2000 x 2000 cells: 16 MB of float32
     tracemalloc.start()
     try:
         base, _ = tracemalloc.get_traced_memory()
-        weight = m.region("tsdf_weight", *window)
+        values = m.region(layer, *window)
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
-    assert weight.dtype == np.float32 and weight.shape == (2000, 2000)
-    assert peak - base < 1.2 * weight.nbytes, f"{(peak - base) / weight.nbytes:.1f} times the answer"
-    tsdf = m.region("tsdf", *window)
+    assert values.dtype == np.float32 and values.shape == (2000, 2000)
+    assert peak - base < 1.2 * values.nbytes, f"{(peak - base) / values.nbytes:.1f} times the answer"
+    weight, tsdf = m.region("tsdf_weight", *window), m.region("tsdf", *window)
     assert (weight > 0).sum() > 1000 and not np.isnan(weight).any()
     np.testing.assert_array_equal(weight > 0, ~np.isnan(tsdf))
+    assert np.nanmin(tsdf) < -0.5 < 0.5 < np.nanmax(tsdf)
+    stored = m.store.pools["tsdf"][m.store.slots[(0, 0)]]  # the tile holding (0, 0)
+    np.testing.assert_array_equal(tsdf[1000:1064, 1000:1064][weight[1000:1064, 1000:1064] > 0],
+                                  stored[weight[1000:1064, 1000:1064] > 0])  # fmt: skip
 
 
 @pytest.mark.parametrize(

@@ -276,14 +276,9 @@ class GridMap:
         unknown_zero = dtype == np.uint32 or source == "tsdf_weight"
         out = np.zeros((ny, nx), dtype=dtype) if unknown_zero else np.full((ny, nx), np.nan, dtype)
         with self.lock:
-            self.store.fill_window(source, i0, j0, out)
-            if layer == "tsdf":
-                # A TSDF cell with zero weight was never observed.
-                weight = np.zeros((ny, nx), dtype=np.float32)
-                self.store.fill_window("tsdf_weight", i0, j0, weight)
-        if layer == "tsdf":
-            out[weight <= 0] = np.nan
-        elif layer == "probability":
+            # A TSDF cell with zero weight was never observed.
+            self.store.fill_window(source, i0, j0, out, "tsdf_weight" if layer == "tsdf" else None)
+        if layer == "probability":
             out = log_odds_to_probability(out)
         elif layer == "state":
             out = self.classify(out)
