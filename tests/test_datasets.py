@@ -340,7 +340,7 @@ def test_range_overrides(tmp_path: Path) -> None:
         np.testing.assert_array_equal(scan.returns_mask(), [False, True, False])
     # Only range_min: the per-message range_max stays.
     assert [s.range_max for s in load_dataset(path, range_min=0.0)] == [DEFAULT_FLASER_RANGE_MAX, 30.0]
-    # inf means "no limit", stored as the largest range_max a Scan accepts.
+    # inf means "no limit", stored as the readers' UNBOUNDED_RANGE_MAX.
     assert load_dataset(path, range_max=math.inf).range_max == UNBOUNDED_RANGE_MAX
 
 
