@@ -294,6 +294,13 @@ def bad_config(directory: Path) -> Path:
         (lambda d: [scene_log(d / "s.log"), "--range-min", "3", "--range-max", "2"], "range"),
         # Every reading below range_min: no observed cell, nothing to export.
         (lambda d: [scene_log(d / "s.log"), "--range-min", "5"], "no observed cell"),
+        # One pose 2,000 km from the others: the sparse map holds it, its dense exports cannot (a
+        # uint8 image alone would be 1.4 PiB), which ended in numpy's MemoryError traceback.
+        (
+            lambda d: [scene_log(d / "s.log", extra=(flaser([1.0, 2.0], 2e6, 2e6, 0.0),))],
+            " cells (2.00002e+06 x 2.00002e+06 m at 0.05 m), too many for its images and arrays "
+            "(map.pgm alone would be 1,490,1",
+        ),
     ],
     ids=[
         "missing-dataset",
@@ -302,6 +309,7 @@ def bad_config(directory: Path) -> Path:
         "bad-config",
         "inverted-ranges",
         "nothing-observed",
+        "a-far-pose",
     ],  # fmt: skip
 )
 def test_build_errors_are_clear_and_write_nothing(

@@ -214,12 +214,13 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
     window = known_window(gmap, margin)
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")
-    out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
 
     def write(filename: str, data: bytes | np.ndarray) -> None:
         # Each file as soon as it is made, the layers one at a time: a dense window spans the whole
-        # map, and holding every file at once took several times the tiles' memory.
+        # map, and holding every file at once took several times the tiles' memory. The folder is
+        # made with the first file, so that a map too large to export leaves none behind.
+        out_dir.mkdir(parents=True, exist_ok=True)
         path = out_dir / filename
         if isinstance(data, np.ndarray):
             np.save(path, data, allow_pickle=False)
