@@ -219,6 +219,29 @@ def test_a_counts_only_build_maps_the_count_models_occupancy(tmp_path: Path) -> 
     assert png[ny - 1 - (J_S - j0), I_S + 5 - i0] == 255
 
 
+def test_a_build_into_an_earlier_builds_folder_leaves_none_of_its_files(tmp_path: Path) -> None:
+    """Building again into the same --out with other layers removes the earlier build's files this
+    map has none of, and says so: a TSDF-only build left the earlier map.yaml, map.pgm, map.png,
+    log_odds.npy, hits.npy and misses.npy beside its new meta.json, so nav2 loaded the earlier map
+    and a script loading hits.npy read another window (here another resolution) as this one. Other
+    files in the folder are left alone."""
+    log = scene_log(tmp_path / "scene.log")
+    out = tmp_path / "out"
+    first = build(log, "--out", out, "--resolution", "0.1", "--quiet")
+    assert first.returncode == 0, first.stderr
+    (out / "notes.txt").write_text("mine")
+    (tmp_path / "tsdf.json").write_text(json.dumps({"layers": ["tsdf"]}))
+    second = build(log, "--out", out, "--config", tmp_path / "tsdf.json", "--quiet")
+    assert second.returncode == 0, second.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["meta.json", "notes.txt", "tsdf.npy", "tsdf_weight.npy"]
+    for name in ("map.yaml", "map.pgm", "map.png", "log_odds.npy", "hits.npy", "misses.npy"):
+        assert f"removed {out / name}, an earlier build's: this map has no such layer" in second.stdout
+    assert "removed" not in first.stdout and second.stdout.count("removed") == 6
+    info = json.loads((out / "meta.json").read_text())
+    assert info["layers"] == ["tsdf", "tsdf_weight"] and info["resolution"] == RES
+    assert np.load(out / "tsdf.npy").shape == tuple(info["shape"])
+
+
 def test_build_reads_the_seed_matlab_convention(tmp_path: Path) -> None:
     """The .mat of the course: robot at (1, 2) in its y-down frame, a 3 m beam at +90 degrees. Its
     end point lies three metres "up" the image, at map point (1, 1) once y points up."""
@@ -271,6 +294,13 @@ def bad_config(directory: Path) -> Path:
         (lambda d: [scene_log(d / "s.log"), "--range-min", "3", "--range-max", "2"], "range"),
         # Every reading below range_min: no observed cell, nothing to export.
         (lambda d: [scene_log(d / "s.log"), "--range-min", "5"], "no observed cell"),
+        # One pose 2,000 km from the others: the sparse map holds it, its dense exports cannot (a
+        # uint8 image alone would be 1.4 PiB), which ended in numpy's MemoryError traceback.
+        (
+            lambda d: [scene_log(d / "s.log", extra=(flaser([1.0, 2.0], 2e6, 2e6, 0.0),))],
+            " cells (2.00002e+06 x 2.00002e+06 m at 0.05 m), too many for its images and arrays "
+            "(map.pgm alone would be 1,490,1",
+        ),
     ],
     ids=[
         "missing-dataset",
@@ -279,6 +309,7 @@ def bad_config(directory: Path) -> Path:
         "bad-config",
         "inverted-ranges",
         "nothing-observed",
+        "a-far-pose",
     ],  # fmt: skip
 )
 def test_build_errors_are_clear_and_write_nothing(

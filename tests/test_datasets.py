@@ -198,6 +198,23 @@ def test_front_laser_max_param_in_force(tmp_path: Path) -> None:
     assert ds.range_max == DEFAULT_FLASER_RANGE_MAX  # the largest of the two
 
 
+def test_a_range_min_past_the_logs_range_max_names_where_that_came_from(tmp_path: Path) -> None:
+    """`fleetmap build intel.log.gz --range-min 90` is refused (no reading could be a return), and
+    the error says where the range_max it compares with comes from. The Intel log has no PARAM
+    robot_front_laser_max, yet the error said 'PARAM robot_front_laser_max = 80.0 is not a usable
+    range_max', a line the user could not find in the log, and told them to 'pass range_max=', a
+    Python keyword, not the command's --range-max."""
+    lines = [flaser([1.0, 50.0]), "PARAM robot_front_laser_max 40.0 1.0 host 1.0", flaser([1.0, 50.0])]
+    path = write_log(tmp_path / "max.log", lines)
+    with pytest.raises(DatasetError) as default:
+        load_dataset(path, range_min=90.0)
+    message = str(default.value)
+    assert f"{path}:1: FLASER's default range_max (no PARAM robot_front_laser_max" in message
+    assert "= 80.0" in message and "--range-max" in message and "range_max=" not in message
+    with pytest.raises(DatasetError, match=r"max.log:3: PARAM robot_front_laser_max = 40.0 is not"):
+        load_dataset(path, range_min=50.0)
+
+
 def test_robotlaser1_uses_laser_pose_and_own_angles(tmp_path: Path) -> None:
     lines = [
         "ROBOTLASER2 this rear laser message and unknown types are skipped",
@@ -323,7 +340,7 @@ def test_range_overrides(tmp_path: Path) -> None:
         np.testing.assert_array_equal(scan.returns_mask(), [False, True, False])
     # Only range_min: the per-message range_max stays.
     assert [s.range_max for s in load_dataset(path, range_min=0.0)] == [DEFAULT_FLASER_RANGE_MAX, 30.0]
-    # inf means "no limit", stored as the largest range_max a Scan accepts.
+    # inf means "no limit", stored as the readers' UNBOUNDED_RANGE_MAX.
     assert load_dataset(path, range_max=math.inf).range_max == UNBOUNDED_RANGE_MAX
 
 

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from fleetmap.config import OCCUPANCY_PRESETS, MapConfig, OccupancyParams, logit, probability
+from fleetmap.config import OCCUPANCY_PRESETS, STORED_CONFIG, MapConfig, OccupancyParams, logit, probability
 from fleetmap.grid_map import GridMap
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, segment_cells
 from fleetmap.scan import Scan
@@ -137,6 +137,33 @@ def test_invalid_parameters_rejected(kwargs: dict[str, object]) -> None:
     """Invalid occupancy parameters raise pydantic's ValidationError."""
     with pytest.raises(ValidationError):
         OccupancyParams(**kwargs)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        ({"p_max": 0.6}, r"p_max 0\.6 .* not above occupied_thresh 0\.65: no cell could ever be occupied"),
+        ({"preset": "cartographer", "occupied_thresh": 0.9}, "no cell could ever be occupied"),
+        ({"l_max": 0.5}, r"p_max 0\.622459 \(l_max 0\.5\)"),
+        ({"p_min": 0.25}, r"p_min 0\.25 .* not below free_thresh 0\.196: no cell could ever be free"),
+        ({"preset": "cartographer", "free_thresh": 0.1}, "no cell could ever be free"),
+    ],
+)
+def test_a_clamp_that_makes_a_state_unreachable_is_refused(kwargs: dict[str, object], words: str) -> None:
+    """A clamp that keeps every cell's probability at or below occupied_thresh (or at or above
+    free_thresh) is refused, saying which state no cell could reach: with p_max 0.6 a build of the
+    Intel log exported a nav2 map with no wall at all, silently. The same clamp with thresholds
+    that it can cross is fine, and a stored map keeps its configuration."""
+    with pytest.raises(ValidationError, match=words):
+        OccupancyParams(**kwargs)  # type: ignore[arg-type]
+    with pytest.raises(ValidationError, match="could ever be"):
+        MapConfig.model_validate({"occupancy": kwargs})
+    stored = MapConfig.model_validate({"occupancy": kwargs}, context={STORED_CONFIG: True})
+    assert (
+        stored.occupancy.model_dump(exclude_none=True).items()
+        >= {k: v for k, v in kwargs.items() if not k.startswith("p_")}.items()
+    )
+    OccupancyParams(p_max=0.6, p_min=0.25, occupied_thresh=0.55, free_thresh=0.3)
 
 
 def test_invalid_map_config_rejected() -> None:

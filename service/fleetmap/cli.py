@@ -26,6 +26,7 @@ from fleetmap.config import MapConfig
 from fleetmap.log_format import plain_line
 
 if TYPE_CHECKING:
+    from fleetmap.grid_map import GridMap
     from fleetmap.scan import Scan
 
 
@@ -149,7 +150,7 @@ def _build(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from fleetmap.datasets import DatasetError, load_dataset
-    from fleetmap.export import write_build_outputs
+    from fleetmap.export import BUILD_FILES, write_build_outputs
     from fleetmap.grid_map import GridMap
     from fleetmap.scan import ScanError
     from fleetmap.tiles import TileLimitError
@@ -175,12 +176,15 @@ def _build(args: argparse.Namespace) -> int:
             skipped += 1
             tqdm.write(f"skipped a scan: {exc}", file=sys.stderr)
     elapsed = time.perf_counter() - started
+    earlier = [out_dir / name for name in BUILD_FILES if (out_dir / name).is_file()]
     try:
         written = write_build_outputs(gmap, out_dir)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     except OSError as exc:  # a full disk, or a directory made unwritable during the build
         raise CliError(f"cannot write the outputs to {out_dir}: {exc}") from None
+    except MemoryError:
+        raise CliError(_too_large(gmap)) from None
     rates = [f"{updates / max(elapsed, 1e-9) / 1e6:.1f} M cell updates/s"] if config.has_cell_layers else []
     if config.has("tsdf"):  # a TSDF-only map said "0.0 M cell updates/s"
         rates.append(f"{tsdf_updates / max(elapsed, 1e-9) / 1e6:.1f} M TSDF updates/s")
@@ -190,7 +194,28 @@ def _build(args: argparse.Namespace) -> int:
     )
     for path in written:
         print(f"wrote {path}")
+    for path in earlier:
+        if path not in written:
+            print(f"removed {path}, an earlier build's: this map has no such layer")
     return 0
+
+
+def _too_large(gmap: GridMap) -> str:
+    """The error for a map whose dense exports do not fit in memory. One pose kilometres from the
+    others (a log's glitch, or two sessions in one log) spans the map over all the space between:
+    the sparse tiles hold it, but its images and arrays cover the whole window, and the build
+    ended in numpy's traceback ('Unable to allocate 3.64 TiB')."""
+    from fleetmap.export import known_window
+
+    window = known_window(gmap)
+    assert window is not None  # the exports refuse an empty map before they allocate
+    ny, nx = window.shape
+    res = gmap.resolution
+    return (
+        f"the map spans {nx} x {ny} cells ({nx * res:.6g} x {ny * res:.6g} m at {res:g} m), too many "
+        f"for its images and arrays (map.pgm alone would be {nx * ny / 2**30:,.1f} GiB, each .npy four "
+        "times that); look for a pose far from the others in the log, or use a coarser --resolution"
+    )
 
 
 def _load_kernels(config: MapConfig, scan: Scan, quiet: bool) -> None:

@@ -123,6 +123,22 @@ class OccupancyParams(BaseModel):
             )
         if self.free_thresh >= self.occupied_thresh:
             raise ValueError("free_thresh must be below occupied_thresh")
+        # A clamp that keeps every cell on one side of a threshold makes that state unreachable: with
+        # p_max 0.6 and occupied_thresh 0.65 the nav2 export of a building had no wall, and nothing
+        # said why. A stored map keeps its configuration.
+        if not (info.context or {}).get(STORED_CONFIG):
+            if probability(hi) <= self.occupied_thresh:
+                raise ValueError(
+                    f"the clamp p_max {probability(hi):.6g} (l_max {hi:g}) is not above occupied_thresh "
+                    f"{self.occupied_thresh:g}: no cell could ever be occupied (raise the clamp or "
+                    "lower occupied_thresh)"
+                )
+            if probability(lo) >= self.free_thresh:
+                raise ValueError(
+                    f"the clamp p_min {probability(lo):.6g} (l_min {lo:g}) is not below free_thresh "
+                    f"{self.free_thresh:g}: no cell could ever be free (lower the clamp or raise "
+                    "free_thresh)"
+                )
         # Store the resolved values; probabilities are derived, so drop them to keep one truth.
         object.__setattr__(self, "l_hit", hit)
         object.__setattr__(self, "l_miss", miss)

@@ -193,22 +193,34 @@ def npy_bytes(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+#: Every file `write_build_outputs` may write: map.yaml, map.pgm and map.png (not for a TSDF-only
+#: map), one .npy per stored layer array, and meta.json.
+BUILD_FILES = (
+    "map.yaml", "map.pgm", "map.png", "log_odds.npy", "hits.npy", "misses.npy", "tsdf.npy",
+    "tsdf_weight.npy", "meta.json",
+)  # fmt: skip
+
+
 def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: int = 2) -> list[Path]:
     """Everything `fleetmap build` writes into `out_dir` (created if missing): map.yaml, map.pgm,
     map.png, one .npy per stored layer, and meta.json, over the observed cells plus `margin` unknown
     cells around them. The map files show the occupancy layer, or for a map that keeps only counts
     (and maybe the TSDF) the count model's `hits / (hits + misses)`, which meta.json's `map_source`
-    names. Returns the paths written; raises ValueError for a map with no observed cell."""
+    names. A file of `BUILD_FILES` this map has none of (an earlier build's, into the same folder,
+    of other layers) is removed: it described another map (another window, resolution or data), and
+    a reader of the folder, nav2 loading map.yaml or a script loading hits.npy, took it for this
+    one's. Returns the paths written; raises ValueError for a map with no observed cell."""
     out_dir = Path(out_dir)
     window = known_window(gmap, margin)
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")
-    out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
 
     def write(filename: str, data: bytes | np.ndarray) -> None:
         # Each file as soon as it is made, the layers one at a time: a dense window spans the whole
-        # map, and holding every file at once took several times the tiles' memory.
+        # map, and holding every file at once took several times the tiles' memory. The folder is
+        # made with the first file, so that a map too large to export leaves none behind.
+        out_dir.mkdir(parents=True, exist_ok=True)
         path = out_dir / filename
         if isinstance(data, np.ndarray):
             np.save(path, data, allow_pickle=False)
@@ -240,4 +252,7 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
         "config": gmap.config.model_dump(mode="json"),
     }
     write("meta.json", (json.dumps(meta, indent=2) + "\n").encode())
+    for name in BUILD_FILES:
+        if out_dir / name not in written:
+            (out_dir / name).unlink(missing_ok=True)
     return written

@@ -22,8 +22,9 @@ from ..scan import Pose2D, Scan
 #: engine ignores readings below `range_min`, and 1 mm is below anything a 2D lidar can measure.
 DEFAULT_RANGE_MIN = 1e-3
 
-#: The largest `range_max` a `Scan` accepts (`Scan` rejects +inf). Readers use it for "no limit":
-#: a caller's `range_max=math.inf` is stored as this value.
+#: The `range_max` readers give for "no limit" (a caller's `range_max=math.inf`, and every scan of a
+#: .mat file, which has none), and the largest they accept: a million metres, past any laser. (A
+#: `Scan` itself takes +inf as well.)
 UNBOUNDED_RANGE_MAX = 1e6
 
 

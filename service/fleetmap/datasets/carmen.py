@@ -141,6 +141,9 @@ class _ParseState:
     def __init__(self) -> None:
         self.frontlaser_offset = 0.0
         self.front_laser_max = DEFAULT_FLASER_RANGE_MAX
+        #: Where `front_laser_max` comes from, for errors: a log without the PARAM (the Intel log)
+        #: must not be told its PARAM is wrong.
+        self.front_laser_max_source = "FLASER's default range_max (no PARAM robot_front_laser_max before it)"
         # Angle arrays shared by every scan with the same layout (DatasetBuilder stores each once).
         self.angle_cache: dict[tuple[float, ...], np.ndarray] = {}
 
@@ -168,6 +171,7 @@ def _parse_line(
             state.frontlaser_offset = _number(tokens, 2, name)
         elif name == "robot_front_laser_max":
             state.front_laser_max = _number(tokens, 2, name)
+            state.front_laser_max_source = "PARAM robot_front_laser_max"
     # Anything else (comments, ODOM, NEFF, SYNC, RLASER, TRUEPOS, unknown types): not needed.
 
 
@@ -182,7 +186,7 @@ def _parse_flaser(
     pose = (x + off * math.cos(theta), y + off * math.sin(theta), theta)
     if not (math.isfinite(pose[0]) and math.isfinite(pose[1])):  # finite parts, an infinite sum
         raise _LineError(f"FLASER sensor pose {pose} (robot pose plus robot_frontlaser_offset) is not finite")
-    rmax = _scan_range_max(rmax_override, state.front_laser_max, rmin, "PARAM robot_front_laser_max")
+    rmax = _scan_range_max(rmax_override, state.front_laser_max, rmin, state.front_laser_max_source)
     builder.add(pose, state.angles((n,), lambda: flaser_angles(n)), ranges, rmax)
 
 
@@ -227,7 +231,7 @@ def _scan_range_max(override: float | None, from_log: float, rmin: float, what: 
     if not (rmax > rmin and rmax <= UNBOUNDED_RANGE_MAX):
         raise _LineError(
             f"{what} = {from_log} is not a usable range_max (must be > range_min {rmin} and <= "
-            f"{UNBOUNDED_RANGE_MAX:g}); pass range_max= to override it"
+            f"{UNBOUNDED_RANGE_MAX:g}); give a range_max (fleetmap build --range-max) to override it"
         )
     return rmax
 
