@@ -388,6 +388,21 @@ def test_full_queue_is_503() -> None:
         assert robot["dropped"] == 1 and robot["scans_integrated"] == 0
 
 
+def test_a_new_robot_on_a_full_map_is_429_and_the_spec_says_so() -> None:
+    """A map whose every robot is online has no room for a new one: its scan is refused with 429
+    (docs/protocol.md, "Sessions"). The spec of `POST /scans` listed no 429, and the only 429 it
+    described was a sign-in's ("too many failed attempts from this client address")."""
+    with running_api(max_robots_per_map=1) as api:
+        api.registry.set_online("full", "a", True)
+        url = "/maps/full/scans?robot_id=b"
+        r = api.client.post(url, content=encode_json(fan_scan(0.0, 0.0, 0.0, [1.0] * 5), 0))
+        assert r.status_code == 429 and "already has 1 robots" in r.json()["detail"]
+        spec = api.client.get("/openapi.json").json()
+        answers = spec["paths"]["/maps/{map_id}/scans"]["post"]["responses"]
+        assert "429" in answers and "robot" in answers["429"]["description"]
+        assert "sign-in" not in answers["429"]["description"]
+
+
 # -- fuzzing: whatever the query, never a 500 ---------------------------------------------------------
 
 _TEXT = st.text(alphabet=string.printable + "é∞", max_size=12)

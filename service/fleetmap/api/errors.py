@@ -52,9 +52,13 @@ _DESCRIPTIONS = {
 RETRY_AFTER_SECONDS = 1
 
 
-def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI `responses` entries for the error statuses a route may answer."""
-    return {s: {"model": ErrorResponse, "description": _DESCRIPTIONS[s]} for s in statuses}
+def error_responses(
+    *statuses: int, described: dict[int, str] | None = None
+) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` entries for the error statuses a route may answer; `described` gives the
+    route's own description of a status (and adds it), where the shared one would mislead."""
+    descriptions = {s: _DESCRIPTIONS[s] for s in statuses} | (described or {})
+    return {s: {"model": ErrorResponse, "description": text} for s, text in sorted(descriptions.items())}
 
 
 class ApiError(Exception):
