@@ -263,26 +263,3 @@ def test_write_build_outputs_takes_a_string_path(tmp_path: Path) -> None:
     written = write_build_outputs(gmap, str(tmp_path / "out"))
     assert {p.name for p in written} >= {"map.yaml", "map.pgm", "map.png", "meta.json", "log_odds.npy"}
     assert all(p.is_file() for p in written)
-
-
-def test_write_build_outputs_removes_what_an_earlier_build_left_that_this_map_does_not_make(
-    tmp_path: Path,
-) -> None:
-    """A build into the directory of an earlier one left the earlier map's files it did not write
-    itself: hits.npy of another map beside an occupancy-only map's meta.json, and a TSDF-only map's
-    build kept an older map.yaml, which nav2 would load as this map."""
-    out = tmp_path / "out"
-    full = GridMap()
-    full.integrate(_fan())
-    write_build_outputs(full, out)
-    (out / "notes.txt").write_text("mine")
-    occupancy = GridMap({"layers": ["occupancy"]})
-    occupancy.integrate(_fan())
-    write_build_outputs(occupancy, out)
-    names = {"map.yaml", "map.pgm", "map.png", "log_odds.npy", "meta.json", "notes.txt"}
-    assert {p.name for p in out.iterdir()} == names
-    tsdf = GridMap({"layers": ["tsdf"]})
-    tsdf.integrate(_fan())
-    written = write_build_outputs(tsdf, out)
-    assert {p.name for p in out.iterdir()} == {"tsdf.npy", "tsdf_weight.npy", "meta.json", "notes.txt"}
-    assert {p.name for p in written} == {"tsdf.npy", "tsdf_weight.npy", "meta.json"}

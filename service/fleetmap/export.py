@@ -193,30 +193,12 @@ def npy_bytes(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-#: The files `write_build_outputs` may write. Those of an earlier build into the same directory that
-#: this map does not make are removed: a map.yaml or hits.npy of another map, beside this one's
-#: meta.json, was read as this map's.
-BUILD_OUTPUT_FILES = (
-    "map.yaml",
-    "map.pgm",
-    "map.png",
-    "log_odds.npy",
-    "hits.npy",
-    "misses.npy",
-    "tsdf.npy",
-    "tsdf_weight.npy",
-    "meta.json",
-)
-
-
 def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: int = 2) -> list[Path]:
     """Everything `fleetmap build` writes into `out_dir` (created if missing): map.yaml, map.pgm,
     map.png, one .npy per stored layer, and meta.json, over the observed cells plus `margin` unknown
     cells around them. The map files show the occupancy layer, or for a map that keeps only counts
     (and maybe the TSDF) the count model's `hits / (hits + misses)`, which meta.json's `map_source`
-    names. A file of `BUILD_OUTPUT_FILES` already in `out_dir` that this map does not make (another
-    build's layer, or map files beside a TSDF-only map) is removed. Returns the paths written; raises
-    ValueError for a map with no observed cell."""
+    names. Returns the paths written; raises ValueError for a map with no observed cell."""
     out_dir = Path(out_dir)
     window = known_window(gmap, margin)
     if window is None:
@@ -248,10 +230,6 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
         layers += ["tsdf", "tsdf_weight"]
     for layer in layers:
         write(f"{layer}.npy", gmap.region(layer, window.i0, window.j0, window.i1, window.j1))
-    for filename in BUILD_OUTPUT_FILES:
-        stale = out_dir / filename
-        if stale not in written and filename != "meta.json" and stale.is_file():
-            stale.unlink()
     meta = {
         "resolution": gmap.resolution,
         "origin": list(window.origin(gmap.resolution)),
