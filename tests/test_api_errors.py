@@ -21,6 +21,7 @@ from test_api_support import (
     RunningApi,
     declare_size,
     fan_scan,
+    room_scans,
     running_api,
     small_snapshot_map,
     snapshot_body,
@@ -29,7 +30,9 @@ from test_api_support import (
 
 from fleetmap.api import ApiSettings
 from fleetmap.codec import encode_binary, encode_json
-from fleetmap.storage_format import MAX_SNAPSHOT_META_BYTES, snapshot_file
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
+from fleetmap.storage_format import MAX_SNAPSHOT_BYTES, MAX_SNAPSHOT_META_BYTES, snapshot_file
 from fleetmap.wire import BINARY_ENCODING
 
 LIMITS = ApiSettings(max_points=1000, max_region_cells=10_000, max_json_cells=1000, max_body_bytes=200_000)
@@ -386,6 +389,48 @@ def test_full_queue_is_503() -> None:
             assert first.headers["retry-after"] == second.headers["retry-after"] == "1"
         robot = api.client.get("/maps/q").json()["stats"]["robots"]["r"]
         assert robot["dropped"] == 1 and robot["scans_integrated"] == 0
+
+
+def test_a_new_robot_on_a_full_map_is_429_and_the_spec_says_so() -> None:
+    """A map whose every robot is online has no room for a new one: its scan is refused with 429
+    (docs/protocol.md, "Sessions"). The spec of `POST /scans` listed no 429, and the only 429 it
+    described was a sign-in's ("too many failed attempts from this client address")."""
+    with running_api(max_robots_per_map=1) as api:
+        api.registry.set_online("full", "a", True)
+        url = "/maps/full/scans?robot_id=b"
+        r = api.client.post(url, content=encode_json(fan_scan(0.0, 0.0, 0.0, [1.0] * 5), 0))
+        assert r.status_code == 429 and "already has 1 robots" in r.json()["detail"]
+        spec = api.client.get("/openapi.json").json()
+        answers = spec["paths"]["/maps/{map_id}/scans"]["post"]["responses"]
+        assert "429" in answers and "robot" in answers["429"]["description"]
+        assert "sign-in" not in answers["429"]["description"]
+
+
+def test_a_snapshot_upload_may_be_larger_than_other_bodies() -> None:
+    """The snapshot of a map of a few hundred tiles is over 16 MiB (the Freiburg campus log: 342
+    tiles, 17.8 MB): every body, snapshots included, was held to `max_body_bytes`, so the service
+    refused with 413 a file it had written itself, whose arrays were far under the upload's limit
+    of 4 GiB (docs/api.md). Snapshot uploads have their own limit; other bodies keep theirs."""
+    gmap = GridMap(MapConfig(resolution=0.05))
+    for scan in room_scans(5):
+        gmap.integrate(scan)
+    meta, arrays = snapshot_parts(snapshot_file("s", gmap))
+    stored = io.BytesIO()
+    np.savez(stored, **arrays)  # not compressed: a file bigger than max_body_bytes
+    body = snapshot_body(meta, npz=stored.getvalue())
+    settings = ApiSettings(max_body_bytes=200_000, max_snapshot_body_bytes=len(body) + 1000)
+    assert len(body) > settings.max_body_bytes
+    with running_api(settings) as api:
+        put = api.client.put("/maps/big/snapshot", content=body, headers={"content-type": "application/zip"})
+        assert put.status_code == 201, put.text
+        assert api.client.get("/maps/big").json()["stats"]["tiles"] == len(arrays["keys"])
+        over = body + b"\0" * 2000  # past the snapshot limit: refused before it is read
+        put = api.client.put("/maps/big/snapshot", content=over, headers={"content-type": "application/zip"})
+        assert put.status_code == 413 and str(len(body) + 1000) in put.json()["detail"]
+        # Another body as big as the snapshot is still held to max_body_bytes.
+        r = api.client.put("/maps/other", content=body, headers={"content-type": "application/json"})
+        assert r.status_code == 413 and "200000" in r.json()["detail"]
+    assert ApiSettings().max_snapshot_body_bytes > MAX_SNAPSHOT_BYTES
 
 
 # -- fuzzing: whatever the query, never a 500 ---------------------------------------------------------

@@ -7,6 +7,7 @@ Intel log the outputs are compared cell by cell with a map the library builds fr
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -496,3 +497,18 @@ def test_the_build_loads_its_kernels_before_it_times_the_scans() -> None:
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "{}", f"kernels loaded only by the timed scans: {out.stdout.strip()}"
+
+
+def test_the_build_help_says_what_each_option_is_when_not_given(tmp_path: Path) -> None:
+    """`--resolution` said "(default 0.05)", but a --config file's resolution is what a build
+    without the option uses; --range-min and --range-max said nothing of theirs."""
+    config = tmp_path / "config.json"
+    config.write_text('{"resolution": 0.1}')
+    assert cli.load_config(str(config), resolution=None).resolution == 0.1
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    sub = parser.add_subparsers()
+    cli._add_build(sub)
+    build = sub.choices["build"]
+    helps = {a.dest: " ".join((a.help or "").split()) for a in build._actions}
+    assert "the --config file's" in helps["resolution"]
+    assert "default 0.001" in helps["range_min"] and "the log's own" in helps["range_max"]

@@ -107,6 +107,26 @@ def test_no_command_help_shows_a_default_of_none() -> None:
         assert "default: None" not in text and "(None" not in text, f"fleetmap {command} --help:\n{text}"
 
 
+def test_every_option_with_a_default_says_it_in_its_help() -> None:
+    """`fleetmap replay --help` and `fleetmap sim --help` said "--encoding: payload encoding", not
+    which one they send when not told (binary, as docs/clients.md says). An option whose default
+    is a list, empty, or none, says nothing."""
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    sub = parser.add_subparsers()
+    cli._add_build(sub)
+    for name in cli.COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    silent = []
+    for command, p in sub.choices.items():
+        formatter = p.formatter_class(prog=p.prog)
+        for action in p._actions:
+            if action.default in (None, False, [], argparse.SUPPRESS):
+                continue
+            if "default" not in formatter._get_help_string(action):  # type: ignore[attr-defined]
+                silent.append(f"fleetmap {command} {'/'.join(action.option_strings)}")
+    assert not silent, f"options that do not say their default: {silent}"
+
+
 def test_every_option_the_docs_name_exists() -> None:
     parsers = fleetmap_parsers()
     known = set().union(*parsers.values()) | OTHER_TOOLS_OPTIONS

@@ -247,6 +247,9 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
     cases = [
         (("--config", str(not_text)), {}, f"cannot read config {not_text}: not UTF-8 text (byte 18)"),
         (("--workers", "0"), {}, "argument --workers: must be between 1 and 64, got 0"),
+        # Bounds were written as %g: "between 1 and 1e+06", "between 0 and 4.29497e+09".
+        (("--max-failed-sign-ins", "0"), {}, "must be between 1 and 1000000, got 0"),
+        (("--ros-domain", "4294967296"), {}, "must be between 0 and 4294967295, got 4294967296"),
         # With no token to check, reads were silently open to anyone.
         (("--require-read-token",), {}, "--require-read-token needs API tokens"),
         (("--max-memory", "lots"), {}, "argument --max-memory: expected a size"),

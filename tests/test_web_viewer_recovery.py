@@ -10,8 +10,10 @@ test_web_viewer.py; one browser for the module, one page and one in-memory servi
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -348,6 +350,35 @@ def test_refused_event_stream_says_why(browser: Any, service_factory: Callable[.
         second.close()
         if not first.is_closed():
             first.close()
+
+
+def test_a_refused_event_stream_is_retried_after_its_retry_after(
+    browser: Any, service_factory: Callable[..., ServiceProcess]
+) -> None:
+    """A stream refused for the limit of open streams is answered 503 with `Retry-After: 5`, and
+    docs/api.md says the viewer reopens it after that; it retried every 3 s whatever the service
+    asked. It now waits as long as the service's Retry-After says."""
+    base = service_factory("--in-memory", "--max-event-streams", "1").base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    first = browser.new_page()
+    second = browser.new_page()
+    opened: list[float] = []  # when the second page's EventSource asked for a stream
+    second.on(
+        "request",
+        lambda r: opened.append(time.monotonic()) if r.resource_type == "eventsource" else None,
+    )
+    try:
+        _open(first, base, f"#map={MAP_ID}")
+        second.goto(f"{base}/#map={MAP_ID}")
+        _wait(second, _ERROR_JS, "limit of 1 open event streams", what="why the stream is refused")
+        deadline = time.monotonic() + 20.0
+        while len(opened) < 4 and time.monotonic() < deadline:
+            second.wait_for_timeout(200)
+        gaps = [b - a for a, b in itertools.pairwise(opened)]
+        assert len(gaps) >= 2 and min(gaps) >= 4.5, f"the stream was asked for again after {gaps} s"
+    finally:
+        second.close()
+        first.close()
 
 
 #: Whether the view shows the whole of the map's bounds [xmin, ymin, xmax, ymax] (metres), as the

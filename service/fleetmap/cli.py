@@ -138,10 +138,26 @@ def _add_build(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("dataset", help="CARMEN log (plain or .gz) or MATLAB .mat file")
     p.add_argument("--out", required=True, help="directory for map.yaml, map.pgm, map.png, *.npy, meta.json")
     p.add_argument("--config", help="map configuration as a JSON file")
-    p.add_argument("--resolution", type=float, help="metres per cell (default 0.05)")
-    p.add_argument("--range-min", type=float, help="ignore readings below this (metres)")
-    p.add_argument("--range-max", type=float, help="readings at or above this are 'no return' (metres)")
-    p.add_argument("--no-return-range", type=float, help="clear this many metres of no-return beams")
+    # Each says what it is when not given: "--resolution (default 0.05)" was wrong with a --config
+    # file of another resolution, which is used.
+    p.add_argument(
+        "--resolution", type=float, help="metres per cell (default: the --config file's, else 0.05)"
+    )
+    p.add_argument(
+        "--range-min",
+        type=float,
+        help="ignore readings below this, metres (default 0.001: zeros are ignored)",
+    )
+    p.add_argument(
+        "--range-max",
+        type=float,
+        help="readings at or above this are 'no return', metres (default: the log's own, none for .mat)",
+    )
+    p.add_argument(
+        "--no-return-range",
+        type=float,
+        help="clear this many metres of no-return beams (default: the --config file's, else 0: ignore them)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(run=_build)
 

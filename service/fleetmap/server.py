@@ -692,7 +692,9 @@ def _number_between(kind: Callable[[str], N], low: N, high: N, what: str) -> Cal
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
         if not low <= value <= high:  # NaN fails too
-            raise argparse.ArgumentTypeError(f"must be between {low:g} and {high:g}, got {text}")
+            # Whole: %g wrote 1_000_000 as 1e+06 and 2**32 - 1 as 4.29497e+09.
+            bounds = (str(low), str(high)) if kind is int else (f"{low:g}", f"{high:g}")
+            raise argparse.ArgumentTypeError(f"must be between {bounds[0]} and {bounds[1]}, got {text}")
         return value
 
     return parse

@@ -62,6 +62,7 @@ from fleetmap.failed_signins import (
 )
 from fleetmap.metrics import IntegrationMetrics, ServiceMetrics, StatusCounter
 from fleetmap.registry import MapRegistry
+from fleetmap.storage_format import MAX_SNAPSHOT_BYTES, MAX_SNAPSHOT_META_BYTES
 from fleetmap.wire import ScanMessage
 
 log = logging.getLogger("fleetmap.api")
@@ -152,6 +153,12 @@ class ApiSettings:
     #: Bytes of a request body (413 past it). A scan's payload has its own, smaller limit, the same as
     #: over Zenoh: `fleetmap.codec.InputLimits.max_payload_bytes` (4 MiB; also 413).
     max_body_bytes: int = 16 * 1024 * 1024
+    #: Bytes of a snapshot upload's body (`PUT /maps/{id}/snapshot`; 413 past it): as much as the
+    #: file may hold decompressed (`MAX_SNAPSHOT_BYTES` of tiles, `MAX_SNAPSHOT_META_BYTES` of
+    #: map.json) and 1 MiB of zip structure, so that every map an upload may hold can be sent.
+    #: `max_body_bytes` refused the snapshot of a map of 342 tiles (17.8 MB) that the service had
+    #: itself written, though its arrays were 10 times under the upload's limit.
+    max_snapshot_body_bytes: int = MAX_SNAPSHOT_BYTES + MAX_SNAPSHOT_META_BYTES + (1 << 20)
     #: Rendered tiles kept in memory.
     tile_cache_size: int = 4096
     #: Seconds between two polls of an event stream (and so the most often an event is sent).
@@ -230,7 +237,11 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.add_middleware(NegotiatedGZip, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=GZIP_LEVEL)
     # Outside gzip: a HEAD's headers (Content-Encoding, Content-Length) are those of the GET.
     app.add_middleware(HeadAsGet)
-    app.add_middleware(errors.BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.add_middleware(
+        errors.BodyLimitMiddleware,
+        max_bytes=settings.max_body_bytes,
+        max_snapshot_bytes=settings.max_snapshot_body_bytes,
+    )
     # A request held back has not been read or run at all.
     app.add_middleware(IngestPriority, gate=gate)
     if settings.tokens is not None:

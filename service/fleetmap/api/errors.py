@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -52,9 +53,13 @@ _DESCRIPTIONS = {
 RETRY_AFTER_SECONDS = 1
 
 
-def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI `responses` entries for the error statuses a route may answer."""
-    return {s: {"model": ErrorResponse, "description": _DESCRIPTIONS[s]} for s in statuses}
+def error_responses(
+    *statuses: int, described: dict[int, str] | None = None
+) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` entries for the error statuses a route may answer; `described` gives the
+    route's own description of a status (and adds it), where the shared one would mislead."""
+    descriptions = {s: _DESCRIPTIONS[s] for s in statuses} | (described or {})
+    return {s: {"model": ErrorResponse, "description": text} for s, text in sorted(descriptions.items())}
 
 
 class ApiError(Exception):
@@ -113,6 +118,10 @@ class BodyTooLarge(StarletteHTTPException):
         super().__init__(413, f"the request body is larger than the limit of {limit} bytes")
 
 
+#: The path of a snapshot upload, `PUT /maps/{map_id}/snapshot` (an id is `[A-Za-z0-9_-]`).
+_SNAPSHOT_PATH = re.compile(r"/maps/[A-Za-z0-9_-]+/snapshot")
+
+
 class BodyLimitMiddleware:
     """Refuse request bodies over `max_bytes` with a JSON 413: at once when Content-Length says so,
     else as soon as the streamed body passes the limit. (Starlette's own limit answers in plain text.)
@@ -120,15 +129,20 @@ class BodyLimitMiddleware:
     identity` (RFC 9110, 15.5.16): no route decodes one, and a gzipped JSON body was refused as "not
     UTF-8 text", a gzipped snapshot as "not a zip file", which did not say what to change."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int, max_snapshot_bytes: int | None = None) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        #: The limit of `PUT /maps/{id}/snapshot` (None: `max_bytes`): a map's snapshot file, which
+        #: a map of a few hundred tiles makes bigger than any other request.
+        self.max_snapshot_bytes = max_bytes if max_snapshot_bytes is None else max_snapshot_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         limit = self.max_bytes
+        if scope["method"] == "PUT" and _SNAPSHOT_PATH.fullmatch(scope["path"]):
+            limit = self.max_snapshot_bytes
         for name, value in scope.get("headers", ()):
             if name == b"content-length" and value.isdigit() and int(value) > limit:
                 exc = BodyTooLarge(limit)

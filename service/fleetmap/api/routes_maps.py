@@ -196,7 +196,19 @@ _SCAN_BODY = {
     summary="Integrate one scan",
     response_model=ScanResult,
     openapi_extra=_SCAN_BODY,
-    responses=error_responses(404, 409, 413, 415, 422, 503, 507),
+    responses=error_responses(
+        404,
+        409,
+        413,
+        415,
+        422,
+        503,
+        507,
+        described={
+            429: "The map already holds its most robots (--max-robots-per-map), every one of them online "
+            "or with scans waiting: a new robot's scan is refused (and counted on the map)"
+        },
+    ),
 )
 async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: State) -> ScanResult:
     """The scan a robot would publish over Zenoh, for clients without Zenoh. Answers once the scan is
@@ -204,15 +216,17 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
     changed storage tiles; `{"status": "duplicate"}` (200) when `seq` is not above the robot's last
     (seq 0 restarts a robot's sequence). Scans of one robot are integrated in seq order.
 
-    Errors: 404 unknown map when the server does not create maps on first use, or the map was
-    deleted before the scan was integrated; 409 the map was replaced (deleted and created again, or
-    restored from a snapshot) before the scan was integrated: it is in neither map; 413 a payload
-    over 4 MiB, the limit of every scan as over Zenoh (counted as rejected too); 422 an invalid scan
-    (counted on the robot as rejected, with the reason as its `last_error`); 503 the robot's ingest
-    queue is full (retry later with the same seq: it is then integrated, not taken for a
-    duplicate), the integration did not finish within the server's timeout (the scan is still
-    integrated), or storage failed: the scan was applied but its journal commit failed (counted on
-    the robot as `not_durable`; the map's next snapshot saves it, and a retry is a duplicate; see
+    Errors: 404 unknown map when the server does not create maps on first use (or already holds
+    the most maps scans may create), or the map was deleted before the scan was integrated; 409 the
+    map was replaced (deleted and created again, or restored from a snapshot) before the scan was
+    integrated: it is in neither map; 413 a payload over 4 MiB, the limit of every scan as over
+    Zenoh (counted as rejected too); 422 an invalid scan (counted on the robot as rejected, with the
+    reason as its `last_error`); 429 a new robot on a map that holds its most robots
+    (`--max-robots-per-map`), all online or with scans waiting; 503 the robot's ingest queue is
+    full (retry later with the same seq: it is then integrated, not taken for a duplicate), the
+    integration did not finish within the server's timeout (the scan is still integrated), or
+    storage failed: the scan was applied but its journal commit failed (counted on the robot as
+    `not_durable`; the map's next snapshot saves it, and a retry is a duplicate; see
     `GET /healthz`); 507 the scan needs new tiles that the service's memory budget for all maps
     (`--max-memory`) cannot hold: it is refused whole, counted as rejected, and the map is unchanged
     (sent again with the same seq once memory is freed, it is integrated)."""
