@@ -76,8 +76,6 @@ if TYPE_CHECKING:
 TILE_PX = 256
 #: Allowed zooms: z = 0 is one pixel per cell; MAX_ZOOM magnifies 16x, MIN_ZOOM shrinks 256x.
 MIN_ZOOM, MAX_ZOOM = -8, 4
-#: Default layer of the tile endpoint.
-DEFAULT_LAYER = "probability"
 #: A hit / miss count at or above this is the top of the colour ramp (log scale below it).
 COUNT_SCALE = 1000
 #: Cell indices a tile may reach; beyond this float coordinates lose whole cells and int64 overflows
