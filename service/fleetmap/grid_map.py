@@ -4,8 +4,9 @@ Writers and readers share one lock. Integration plans a scan without the lock (`
 creates the tiles it needs and applies every update inside the lock, so a reader sees each tile as it
 was before or after a scan, never half-way; a scan that would pass the tile cap is refused before
 anything changes. `integrate` does the same in one compiled call under the lock when the map's
-configuration allows it and the scan needs no new tile (`kernels.integrate_scan`): the same result,
-without the plan's round trip through Python.
+configuration allows it (`kernels.integrate_scan`, which also creates the tiles the scan needs while
+the pools have room, and otherwise changes nothing and leaves the scan to plan and apply): the same
+result, without the plan's round trip through Python.
 """
 
 from __future__ import annotations
