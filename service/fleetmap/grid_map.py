@@ -44,15 +44,9 @@ from fleetmap.update_plan import (
 #: (n, 2), or one pair alone (one point).
 Points = Sequence[Sequence[float]] | Sequence[float] | np.ndarray
 
-#: Layers a region can be read as: stored arrays plus the values derived from them.
-REGION_LAYERS = ("log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight")
-
-#: Codes of the `state` layer.
-STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED = 0, 1, 2
-STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
-
-#: The stored array each derived layer is read from, and the layer it needs.
-_SOURCE: dict[str, tuple[str, LayerName]] = {
+#: For each layer a region (or a viewer's tile) can be read as, the stored array it is read from
+#: and the map layer (config `layers`) that keeps that array.
+LAYER_SOURCES: dict[str, tuple[str, LayerName]] = {
     "log_odds": ("log_odds", "occupancy"),
     "probability": ("log_odds", "occupancy"),
     "state": ("log_odds", "occupancy"),
@@ -61,6 +55,13 @@ _SOURCE: dict[str, tuple[str, LayerName]] = {
     "tsdf": ("tsdf", "tsdf"),
     "tsdf_weight": ("tsdf_weight", "tsdf"),
 }
+
+#: Layers a region can be read as: stored arrays plus the values derived from them.
+REGION_LAYERS = tuple(LAYER_SOURCES)
+
+#: Codes of the `state` layer.
+STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED = 0, 1, 2
+STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
 
 
 #: Codes of a ray's `RaycastResult.status`, and their names (as the REST API answers them).
@@ -554,9 +555,9 @@ class GridMap:
         return self.store.memory_bytes()
 
     def _source(self, layer: str) -> str:
-        if layer not in _SOURCE:
+        if layer not in LAYER_SOURCES:
             raise LayerUnavailableError(f"unknown layer {layer!r}; one of {', '.join(REGION_LAYERS)}")
-        source, needs = _SOURCE[layer]
+        source, needs = LAYER_SOURCES[layer]
         if not self.config.has(needs):
             raise LayerUnavailableError(
                 f"layer {layer!r} needs the {needs!r} layer, which this map does not keep"

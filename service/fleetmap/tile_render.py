@@ -64,8 +64,7 @@ from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from fleetmap.config import LayerName
-from fleetmap.grid_map import REGION_LAYERS, STATE_FREE, STATE_OCCUPIED, GridMap
+from fleetmap.grid_map import LAYER_SOURCES, REGION_LAYERS, STATE_FREE, STATE_OCCUPIED, GridMap
 from fleetmap.kernels.reduce import reduce_max_tiles, reduce_tsdf_tiles
 from fleetmap.tiles import TileStore
 
@@ -81,30 +80,6 @@ COUNT_SCALE = 1000
 #: Cell indices a tile may reach; beyond this float coordinates lose whole cells and int64 overflows
 #: are near, so such tiles are refused rather than rendered.
 MAX_CELL_INDEX = 2**52
-
-#: Which map layer (config `layers`) each tile layer needs, and the stored array it is drawn from.
-_NEEDS: dict[str, LayerName] = {
-    "log_odds": "occupancy",
-    "probability": "occupancy",
-    "state": "occupancy",
-    "hits": "counts",
-    "misses": "counts",
-    "tsdf": "tsdf",
-    "tsdf_weight": "tsdf",
-}
-#: The "value" a pixel is computed from: probability and state are derived from the log-odds
-#: reduced like the log_odds layer (so the three share reduced blocks); tsdf is tsdf with unobserved
-#: (weight 0) cells as NaN.
-_SOURCE = {
-    "log_odds": "log_odds",
-    "probability": "log_odds",
-    "state": "log_odds",
-    "hits": "hits",
-    "misses": "misses",
-    "tsdf": "tsdf",
-    "tsdf_weight": "tsdf_weight",
-}
-assert set(_NEEDS) == set(REGION_LAYERS)  # keep in step with the engine's layers
 
 
 class TileError(ValueError):
@@ -143,9 +118,9 @@ def _check_zoom(z: int) -> None:
 
 def check_layer(gmap: GridMap, layer: str) -> None:
     """Raise TileError unless `layer` is a tile layer that this map keeps."""
-    needs = _NEEDS.get(layer)
-    if needs is None:
+    if layer not in LAYER_SOURCES:
         raise TileError(f"unknown layer {layer!r}; one of {', '.join(REGION_LAYERS)}")
+    needs = LAYER_SOURCES[layer][1]
     if not gmap.config.has(needs):
         raise TileError(f"layer {layer!r} needs the {needs!r} layer, which this map does not keep")
 
@@ -544,7 +519,10 @@ def render_tile_versioned(
     lock). `reduced` caches reduced storage-tile blocks between renders (z < 0)."""
     i0, j0, i1, j1, cells_per_px = tile_window(z, x, y)
     check_layer(gmap, layer)
-    source = _SOURCE[layer]
+    # The stored array a pixel is computed from (`grid_map.LAYER_SOURCES`): probability and state
+    # are derived from the log-odds reduced like the log_odds layer (so the three share reduced
+    # blocks); tsdf is tsdf with unobserved (weight 0) cells as NaN.
+    source = LAYER_SOURCES[layer][0]
     size = i1 - i0
     piece = min(gmap.store.tile_size, size)
     factor = min(cells_per_px, piece)
