@@ -1,9 +1,10 @@
 """The `fleetmap replay` and `fleetmap sim` commands (robots for a running `fleetmap serve`).
 
-    fleetmap replay DATASET --map M --robot R [--rate X] [--connect EP ...] [--encoding binary|json]
-                    [--limit N] [--wait-timeout S] [--quiet]
-    fleetmap sim --robots N [--map M] [--seed S] [--rate HZ] [--seconds T] [--connect EP ...]
-                 [--encoding binary|json] [--beams B] [--wait-timeout S]
+    fleetmap replay DATASET --map M --robot R [--rate X] [--connect EP ...] [--zenoh-config FILE]
+                    [--encoding binary|json] [--limit N] [--wait-timeout S] [--quiet]
+    fleetmap sim [--robots N] [--map M] [--seed S] [--rate HZ] [--seconds T] [--connect EP ...]
+                 [--zenoh-config FILE] [--encoding binary|json] [--beams B] [--speed V]
+                 [--wait-timeout S]
 
 `add_parser(sub)` adds both to the `fleetmap` command line (listed in `fleetmap.cli.COMMAND_MODULES`);
 `python -m fleetmap_client.cli replay ...` runs them without it.
