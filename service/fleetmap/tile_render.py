@@ -77,9 +77,10 @@ TILE_PX = 256
 MIN_ZOOM, MAX_ZOOM = -8, 4
 #: A hit / miss count at or above this is the top of the colour ramp (log scale below it).
 COUNT_SCALE = 1000
-#: Cell indices a tile may reach; beyond this float coordinates lose whole cells and int64 overflows
-#: are near, so such tiles are refused rather than rendered.
-MAX_CELL_INDEX = 2**52
+#: Cell indices a web tile may reach; beyond this float coordinates lose whole cells and int64
+#: overflows are near, so such tiles are refused rather than rendered. (Far beyond any cell a scan
+#: can reach, `update_plan.MAX_CELL_INDEX`: such a tile is empty, but a valid address.)
+MAX_TILE_CELL_INDEX = 2**52
 
 
 class TileError(ValueError):
@@ -94,7 +95,7 @@ def tile_window(z: int, x: int, y: int) -> tuple[int, int, int, int, int]:
 
     `i1 - i0 == j1 - j0 == 256 / 2**z`; `step` is the number of cells per pixel side: `2**-z` for
     z <= 0, and 1 for z > 0 (where each cell is instead `2**z` pixels wide). Raises TileError for a
-    zoom outside [MIN_ZOOM, MAX_ZOOM] or a tile beyond MAX_CELL_INDEX.
+    zoom outside [MIN_ZOOM, MAX_ZOOM] or a tile beyond MAX_TILE_CELL_INDEX.
     """
     _check_zoom(z)
     for name, value in (("x", x), ("y", y)):
@@ -103,7 +104,7 @@ def tile_window(z: int, x: int, y: int) -> tuple[int, int, int, int, int]:
     size = TILE_PX >> z if z >= 0 else TILE_PX << -z
     i0, j0 = x * size, -(y + 1) * size
     i1, j1 = i0 + size, j0 + size
-    if max(abs(i0), abs(i1), abs(j0), abs(j1)) > MAX_CELL_INDEX:
+    if max(abs(i0), abs(i1), abs(j0), abs(j1)) > MAX_TILE_CELL_INDEX:
         raise TileError(f"tile ({z}, {x}, {y}) is outside the map's cell range (|index| <= 2**52)")
     return i0, j0, i1, j1, (1 << -z) if z < 0 else 1
 
