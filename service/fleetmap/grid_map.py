@@ -29,8 +29,8 @@ from fleetmap.tiles import TileKey, TileStore
 from fleetmap.update_plan import (
     MAX_CELL_INDEX,
     MAX_SCAN_TILE_WINDOW,
-    OUT_OF_RANGE,
-    TOO_WIDE,
+    OUT_OF_RANGE_MESSAGE,
+    TOO_WIDE_MESSAGE,
     UpdatePlan,
     beam_layout_of,
     grow_trace_scratch,
@@ -208,9 +208,9 @@ class GridMap:
                     del changed_tiles[-extra:]
                 return IntegrationResult(int(updates), int(tsdf_updates), changed_tiles, int(extra))
         if status == integrate_scan.OUT_OF_RANGE:
-            raise ScanError(OUT_OF_RANGE)
+            raise ScanError(OUT_OF_RANGE_MESSAGE)
         if status == integrate_scan.TOO_WIDE:
-            raise ScanError(TOO_WIDE)
+            raise ScanError(TOO_WIDE_MESSAGE)
         if status == integrate_scan.TOO_LONG:
             raise ScanError(too_long())
         return None  # NEEDS_TILES
