@@ -118,3 +118,19 @@ def test_importing_the_whole_engine_loads_no_service_module_and_no_transport() -
     service = sorted(m for m in loaded if m.split(".")[0] == "fleetmap" and not _is_engine(m))
     assert transports == []
     assert service == []
+
+
+def test_the_rest_client_loads_no_service_runtime() -> None:
+    """`fleetmap_client.rest` parses answers with `fleetmap.api_models`, whose conversions take the
+    registry's types: those are type-only imports, so a client program loads neither the registry,
+    its queue, journal and storage, nor Zenoh or the web stack."""
+    code = "import sys, fleetmap_client.rest\nprint('\\n'.join(sorted(sys.modules)))\n"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    loaded = result.stdout.split()
+    service_runtime = {
+        "fleetmap.registry", "fleetmap.fair_queue", "fleetmap.journal", "fleetmap.persistence",
+        "fleetmap.database", "fleetmap.ingest", "fleetmap.server", "fleetmap.api",
+    }  # fmt: skip
+    assert sorted(m for m in loaded if m.split(".")[0] in FORBIDDEN_TOP_LEVEL - {"httpx"}) == []
+    assert sorted(m for m in loaded if m in service_runtime) == []
