@@ -284,14 +284,8 @@ NEED_MAPS = "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publi
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (
-            ["--ros-map-period", "2"],
-            "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map",
-        ),
-        (
-            ["--ros-distro", "humble"],
-            "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publish-map",
-        ),
+        (["--ros-map-period", "2"], NEED_MAPS),
+        (["--ros-distro", "humble"], NEED_MAPS),
         (["--ros-publish-map", "a", "b=/map"], "--ros-publish-map: two maps on one ROS topic"),
         (["--ros-publish-map", "a"], "$ROS_DOMAIN_ID='one': expected a whole number"),
     ],

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Annotated, Any, Literal, TypeVar, overload
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, overload
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -27,11 +27,13 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from fleetmap.auth import Role
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import MAX_RAYS, RAY_STATUS_NAMES, STATE_NAMES, GridMap, RaycastResult, cell_edge
-from fleetmap.persistence import StorageHealth
-from fleetmap.registry import MapEntry
-from fleetmap.robot_state import RobotState
 from fleetmap.scan import Pose2D
 from fleetmap.tiles import TileKey
+
+if TYPE_CHECKING:  # the conversions' argument types only: a client parsing answers loads none of them
+    from fleetmap.persistence import StorageHealth
+    from fleetmap.registry import MapEntry
+    from fleetmap.robot_state import RobotState
 
 #: Points one `POST /maps/{map_id}/cells` request may ask for.
 MAX_POINTS = 100_000

@@ -1,4 +1,6 @@
-"""What changed in a map, for live viewers: a bounded log of changed tiles and the robots' poses.
+"""What changed in a map's cells, for live viewers: a bounded log of the storage tiles each scan
+changed. (Robots' poses and trails reach viewers another way: `MapEntry.live_version` and
+`api/robots_feed.py`.)
 
 Integration workers `record` the tiles each scan changed; event streams ask `since(version)` for
 everything newer than what they last sent. The log is bounded: a client too far behind is told to

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, model_validator
 
@@ -69,7 +69,9 @@ OCCUPANCY_PRESETS: dict[str, tuple[float, float, float, float]] = {
     "int8": (9.0, -9.0, -128.0, 127.0),
 }
 
+#: The preset names as a type (pydantic and the OpenAPI spec need a Literal): `OCCUPANCY_PRESETS`' keys.
 OccupancyPreset = Literal["octomap", "cartographer", "coursera", "int8"]
+assert set(get_args(OccupancyPreset)) == set(OCCUPANCY_PRESETS)  # a new preset goes in both
 
 
 class OccupancyParams(BaseModel):

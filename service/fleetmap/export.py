@@ -168,10 +168,10 @@ def nav2_zip(gmap: GridMap, window: Window, name: str = "map") -> bytes:
 
 
 def probability_to_gray(probability: np.ndarray) -> np.ndarray:
-    """Grayscale pixels, darker = more likely occupied (255 * (1 - p)); unknown as p = 0.5.
-    Top row = highest y."""
+    """Grayscale pixels, darker = more likely occupied (255 * (1 - p)); unknown as p = 0.5. Rows
+    stay in the order given (`map_image` turns the image top row = highest y)."""
     p = np.nan_to_num(probability, nan=0.5)
-    return np.round(255.0 * (1.0 - p)).astype(np.uint8)[::-1]
+    return np.round(255.0 * (1.0 - p)).astype(np.uint8)
 
 
 def png_bytes(pixels: np.ndarray) -> bytes:
@@ -183,7 +183,7 @@ def png_bytes(pixels: np.ndarray) -> bytes:
 
 def map_png(gmap: GridMap, window: Window) -> bytes:
     """`map_probability` of a window as a grayscale PNG."""
-    return png_bytes(map_image(gmap, window, lambda p: probability_to_gray(p)[::-1]))
+    return png_bytes(map_image(gmap, window, probability_to_gray))
 
 
 def npy_bytes(array: np.ndarray) -> bytes:

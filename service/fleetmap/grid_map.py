@@ -4,8 +4,9 @@ Writers and readers share one lock. Integration plans a scan without the lock (`
 creates the tiles it needs and applies every update inside the lock, so a reader sees each tile as it
 was before or after a scan, never half-way; a scan that would pass the tile cap is refused before
 anything changes. `integrate` does the same in one compiled call under the lock when the map's
-configuration allows it and the scan needs no new tile (`kernels.integrate_scan`): the same result,
-without the plan's round trip through Python.
+configuration allows it (`kernels.integrate_scan`, which also creates the tiles the scan needs while
+the pools have room, and otherwise changes nothing and leaves the scan to plan and apply): the same
+result, without the plan's round trip through Python.
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ from fleetmap.tiles import TileKey, TileStore
 from fleetmap.update_plan import (
     MAX_CELL_INDEX,
     MAX_SCAN_TILE_WINDOW,
-    OUT_OF_RANGE,
-    TOO_WIDE,
+    OUT_OF_RANGE_MESSAGE,
+    TOO_WIDE_MESSAGE,
     UpdatePlan,
     beam_layout_of,
     grow_trace_scratch,
@@ -43,15 +44,9 @@ from fleetmap.update_plan import (
 #: (n, 2), or one pair alone (one point).
 Points = Sequence[Sequence[float]] | Sequence[float] | np.ndarray
 
-#: Layers a region can be read as: stored arrays plus the values derived from them.
-REGION_LAYERS = ("log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight")
-
-#: Codes of the `state` layer.
-STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED = 0, 1, 2
-STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
-
-#: The stored array each derived layer is read from, and the layer it needs.
-_SOURCE: dict[str, tuple[str, LayerName]] = {
+#: For each layer a region (or a viewer's tile) can be read as, the stored array it is read from
+#: and the map layer (config `layers`) that keeps that array.
+LAYER_SOURCES: dict[str, tuple[str, LayerName]] = {
     "log_odds": ("log_odds", "occupancy"),
     "probability": ("log_odds", "occupancy"),
     "state": ("log_odds", "occupancy"),
@@ -60,6 +55,13 @@ _SOURCE: dict[str, tuple[str, LayerName]] = {
     "tsdf": ("tsdf", "tsdf"),
     "tsdf_weight": ("tsdf_weight", "tsdf"),
 }
+
+#: Layers a region can be read as: stored arrays plus the values derived from them.
+REGION_LAYERS = tuple(LAYER_SOURCES)
+
+#: Codes of the `state` layer.
+STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED = 0, 1, 2
+STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
 
 
 #: Codes of a ray's `RaycastResult.status`, and their names (as the REST API answers them).
@@ -206,9 +208,9 @@ class GridMap:
                     del changed_tiles[-extra:]
                 return IntegrationResult(int(updates), int(tsdf_updates), changed_tiles, int(extra))
         if status == integrate_scan.OUT_OF_RANGE:
-            raise ScanError(OUT_OF_RANGE)
+            raise ScanError(OUT_OF_RANGE_MESSAGE)
         if status == integrate_scan.TOO_WIDE:
-            raise ScanError(TOO_WIDE)
+            raise ScanError(TOO_WIDE_MESSAGE)
         if status == integrate_scan.TOO_LONG:
             raise ScanError(too_long())
         return None  # NEEDS_TILES
@@ -553,9 +555,9 @@ class GridMap:
         return self.store.memory_bytes()
 
     def _source(self, layer: str) -> str:
-        if layer not in _SOURCE:
+        if layer not in LAYER_SOURCES:
             raise LayerUnavailableError(f"unknown layer {layer!r}; one of {', '.join(REGION_LAYERS)}")
-        source, needs = _SOURCE[layer]
+        source, needs = LAYER_SOURCES[layer]
         if not self.config.has(needs):
             raise LayerUnavailableError(
                 f"layer {layer!r} needs the {needs!r} layer, which this map does not keep"

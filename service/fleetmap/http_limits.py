@@ -8,7 +8,7 @@ service's 1024 descriptors: robots could no longer connect over Zenoh, HTTP went
 asyncio logged every refused accept with a traceback (300 MB of log in a minute). Nobody needs a
 token to do that: a connection is only checked once its request head has arrived.
 
-`bounded_http_protocol` returns uvicorn's httptools protocol with three limits:
+`bounded_http_protocol` returns uvicorn's httptools protocol with four limits:
 
 - at most `max_connections` HTTP connections are open at once; the next one is answered with a
   JSON 503 and closed at once, so HTTP alone can never use up the descriptors Zenoh, SQLite and the

@@ -587,7 +587,6 @@ class ServiceMetrics:
     cache's `on_render` hook)."""
 
     def __init__(self, registry: MapRegistry, integration: IntegrationMetrics) -> None:
-        self.integration = integration
         self.collector_registry = CollectorRegistry()
         self.collector_registry.register(RegistryCollector(registry))
         self.collector_registry.register(StorageCollector(registry))

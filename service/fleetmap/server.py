@@ -798,11 +798,9 @@ def freeze_startup_objects() -> int:
 
 
 def _integration_hook() -> Any:
-    """The metrics' `on_integrated` hook, or None when fleetmap.metrics is not available."""
-    try:
-        from fleetmap.metrics import IntegrationMetrics
-    except ImportError:  # the metrics module is optional for the service to run
-        return None
+    """The registry's `on_integrated` hook: a new `IntegrationMetrics`' (the app finds it there)."""
+    from fleetmap.metrics import IntegrationMetrics
+
     return IntegrationMetrics().on_integrated
 
 

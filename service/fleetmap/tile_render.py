@@ -64,8 +64,7 @@ from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from fleetmap.config import LayerName
-from fleetmap.grid_map import REGION_LAYERS, STATE_FREE, STATE_OCCUPIED, GridMap
+from fleetmap.grid_map import LAYER_SOURCES, REGION_LAYERS, STATE_FREE, STATE_OCCUPIED, GridMap
 from fleetmap.kernels.reduce import reduce_max_tiles, reduce_tsdf_tiles
 from fleetmap.tiles import TileStore
 
@@ -76,37 +75,12 @@ if TYPE_CHECKING:
 TILE_PX = 256
 #: Allowed zooms: z = 0 is one pixel per cell; MAX_ZOOM magnifies 16x, MIN_ZOOM shrinks 256x.
 MIN_ZOOM, MAX_ZOOM = -8, 4
-#: Default layer of the tile endpoint.
-DEFAULT_LAYER = "probability"
 #: A hit / miss count at or above this is the top of the colour ramp (log scale below it).
 COUNT_SCALE = 1000
-#: Cell indices a tile may reach; beyond this float coordinates lose whole cells and int64 overflows
-#: are near, so such tiles are refused rather than rendered.
-MAX_CELL_INDEX = 2**52
-
-#: Which map layer (config `layers`) each tile layer needs, and the stored array it is drawn from.
-_NEEDS: dict[str, LayerName] = {
-    "log_odds": "occupancy",
-    "probability": "occupancy",
-    "state": "occupancy",
-    "hits": "counts",
-    "misses": "counts",
-    "tsdf": "tsdf",
-    "tsdf_weight": "tsdf",
-}
-#: The "value" a pixel is computed from: probability and state are derived from the log-odds
-#: reduced like the log_odds layer (so the three share reduced blocks); tsdf is tsdf with unobserved
-#: (weight 0) cells as NaN.
-_SOURCE = {
-    "log_odds": "log_odds",
-    "probability": "log_odds",
-    "state": "log_odds",
-    "hits": "hits",
-    "misses": "misses",
-    "tsdf": "tsdf",
-    "tsdf_weight": "tsdf_weight",
-}
-assert set(_NEEDS) == set(REGION_LAYERS)  # keep in step with the engine's layers
+#: Cell indices a web tile may reach; beyond this float coordinates lose whole cells and int64
+#: overflows are near, so such tiles are refused rather than rendered. (Far beyond any cell a scan
+#: can reach, `update_plan.MAX_CELL_INDEX`: such a tile is empty, but a valid address.)
+MAX_TILE_CELL_INDEX = 2**52
 
 
 class TileError(ValueError):
@@ -121,7 +95,7 @@ def tile_window(z: int, x: int, y: int) -> tuple[int, int, int, int, int]:
 
     `i1 - i0 == j1 - j0 == 256 / 2**z`; `step` is the number of cells per pixel side: `2**-z` for
     z <= 0, and 1 for z > 0 (where each cell is instead `2**z` pixels wide). Raises TileError for a
-    zoom outside [MIN_ZOOM, MAX_ZOOM] or a tile beyond MAX_CELL_INDEX.
+    zoom outside [MIN_ZOOM, MAX_ZOOM] or a tile beyond MAX_TILE_CELL_INDEX.
     """
     _check_zoom(z)
     for name, value in (("x", x), ("y", y)):
@@ -130,7 +104,7 @@ def tile_window(z: int, x: int, y: int) -> tuple[int, int, int, int, int]:
     size = TILE_PX >> z if z >= 0 else TILE_PX << -z
     i0, j0 = x * size, -(y + 1) * size
     i1, j1 = i0 + size, j0 + size
-    if max(abs(i0), abs(i1), abs(j0), abs(j1)) > MAX_CELL_INDEX:
+    if max(abs(i0), abs(i1), abs(j0), abs(j1)) > MAX_TILE_CELL_INDEX:
         raise TileError(f"tile ({z}, {x}, {y}) is outside the map's cell range (|index| <= 2**52)")
     return i0, j0, i1, j1, (1 << -z) if z < 0 else 1
 
@@ -145,9 +119,9 @@ def _check_zoom(z: int) -> None:
 
 def check_layer(gmap: GridMap, layer: str) -> None:
     """Raise TileError unless `layer` is a tile layer that this map keeps."""
-    needs = _NEEDS.get(layer)
-    if needs is None:
+    if layer not in LAYER_SOURCES:
         raise TileError(f"unknown layer {layer!r}; one of {', '.join(REGION_LAYERS)}")
+    needs = LAYER_SOURCES[layer][1]
     if not gmap.config.has(needs):
         raise TileError(f"layer {layer!r} needs the {needs!r} layer, which this map does not keep")
 
@@ -546,7 +520,10 @@ def render_tile_versioned(
     lock). `reduced` caches reduced storage-tile blocks between renders (z < 0)."""
     i0, j0, i1, j1, cells_per_px = tile_window(z, x, y)
     check_layer(gmap, layer)
-    source = _SOURCE[layer]
+    # The stored array a pixel is computed from (`grid_map.LAYER_SOURCES`): probability and state
+    # are derived from the log-odds reduced like the log_odds layer (so the three share reduced
+    # blocks); tsdf is tsdf with unobserved (weight 0) cells as NaN.
+    source = LAYER_SOURCES[layer][0]
     size = i1 - i0
     piece = min(gmap.store.tile_size, size)
     factor = min(cells_per_px, piece)

@@ -248,11 +248,6 @@ class TileStore:
 
     # -- reads -----------------------------------------------------------------------------------
 
-    def tile_array(self, name: str, key: TileKey) -> np.ndarray | None:
-        """A view of one tile of a stored array (`[local_j, local_i]`), or None if no such tile."""
-        slot = self.slots.get(key)
-        return None if slot is None else self.pools[name][slot]
-
     def fill_window(
         self, name: str, i0: int, j0: int, out: np.ndarray, unobserved_by: str | None = None
     ) -> None:
@@ -294,16 +289,3 @@ class TileStore:
     def _tile_bytes(self) -> int:
         """Bytes one slot of capacity holds: a tile of every stored array, and its version."""
         return tile_bytes(self.tile_size, self.arrays) + 8
-
-    def tile_bounds(self) -> tuple[int, int, int, int] | None:
-        """Cell-index bounds `(i0, j0, i1, j1)` (exclusive ends) of all tiles, or None if empty."""
-        if not self.keys:
-            return None
-        keys = np.array(self.keys, dtype=np.int64)
-        t = self.tile_size
-        return (
-            int(keys[:, 0].min()) * t,
-            int(keys[:, 1].min()) * t,
-            (int(keys[:, 0].max()) + 1) * t,
-            (int(keys[:, 1].max()) + 1) * t,
-        )

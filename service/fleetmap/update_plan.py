@@ -57,8 +57,8 @@ MAX_CELL_INDEX = float(2**40)
 _scratch = threading.local()
 
 #: `ScanError` messages of scans the engine refuses.
-OUT_OF_RANGE = "the scan's pose or ranges lie beyond the map's coordinate range"
-TOO_WIDE = "the scan spans too large an area for one scan; check its ranges and resolution"
+OUT_OF_RANGE_MESSAGE = "the scan's pose or ranges lie beyond the map's coordinate range"
+TOO_WIDE_MESSAGE = "the scan spans too large an area for one scan; check its ranges and resolution"
 
 
 def too_long() -> str:
@@ -144,14 +144,14 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     ox, oy = pose.x / res, pose.y / res
     beams, extent = _scan_beams(scan, config.no_return_range, res, shift, config)
     if extent[0] == EXTENT_OUT_OF_RANGE:
-        raise ScanError(OUT_OF_RANGE)
+        raise ScanError(OUT_OF_RANGE_MESSAGE)
     if extent[0] == EXTENT_TOO_LONG:
         raise ScanError(too_long())
     # Every model's tiles are numbered in a table over the scan's tile box (`merge_tiles`, the trace):
     # a box past MAX_SCAN_TILE_WINDOW tiles is refused for all of them (one 1,000 km per-ray beam
     # asked for a 13 GB table).
     if extent[0] == EXTENT_TOO_WIDE and beams[6] > 0:  # beams[6]: the beams traced
-        raise ScanError(TOO_WIDE)
+        raise ScanError(TOO_WIDE_MESSAGE)
     cell = occ_i = occ_j = _EMPTY_I
     kind = occ_kind = _EMPTY_KIND
     tiles = runs = _EMPTY_PAIRS

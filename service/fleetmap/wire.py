@@ -1,4 +1,5 @@
-"""The wire schema: one definition of what robots send and what the service answers.
+"""The wire schema: one definition of what robots send, the ids that name maps and robots, and the
+Zenoh key expressions. (What the REST API answers is in `fleetmap.api_models`.)
 
 `ScanMessage` is the JSON scan robots publish over Zenoh (and POST over REST); the compact binary
 encoding of the same message is in `fleetmap.codec`. The REST API, the Python client, the docs and

@@ -1,9 +1,10 @@
 """The `fleetmap replay` and `fleetmap sim` commands (robots for a running `fleetmap serve`).
 
-    fleetmap replay DATASET --map M --robot R [--rate X] [--connect EP ...] [--encoding binary|json]
-                    [--limit N] [--wait-timeout S] [--quiet]
-    fleetmap sim --robots N [--map M] [--seed S] [--rate HZ] [--seconds T] [--connect EP ...]
-                 [--encoding binary|json] [--beams B] [--wait-timeout S]
+    fleetmap replay DATASET --map M --robot R [--rate X] [--connect EP ...] [--zenoh-config FILE]
+                    [--encoding binary|json] [--limit N] [--wait-timeout S] [--quiet]
+    fleetmap sim [--robots N] [--map M] [--seed S] [--rate HZ] [--seconds T] [--connect EP ...]
+                 [--zenoh-config FILE] [--encoding binary|json] [--beams B] [--speed V]
+                 [--wait-timeout S]
 
 `add_parser(sub)` adds both to the `fleetmap` command line (listed in `fleetmap.cli.COMMAND_MODULES`);
 `python -m fleetmap_client.cli replay ...` runs them without it.
@@ -75,8 +76,8 @@ def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
             "service over Zenoh as one robot: scan k gets seq k. Scans go out at a nominal 10 per "
             "second, not at the log's timestamps (some logs have none: the Freiburg campus log's are "
             "all 0): --rate X publishes 10*X scans per second (0: as fast as Zenoh takes them, and the "
-            "service drops, counting them as dropped on the robot, the scans its ingest queue of 64 per "
-            "robot cannot hold: use a finite rate for a lossless replay). Waits for the service "
+            "service drops, counting them as dropped on the robot, the scans its per-robot ingest queue "
+            "cannot hold: use a finite rate for a lossless replay). Waits for the service "
             "first; after a lost connection it waits and re-sends."
         ),
     )

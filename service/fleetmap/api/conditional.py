@@ -29,8 +29,7 @@ from typing import Annotated
 from fastapi import Depends, Header, Request, Response
 
 from fleetmap.api.errors import ApiError
-from fleetmap.api.http_semantics import map_etag as generation_etag
-from fleetmap.api.http_semantics import strong_match, weak_match
+from fleetmap.api.http_semantics import generation_etag, strong_match, weak_match
 from fleetmap.registry import Expectation, MapEntry
 
 #: One entity tag of a list (RFC 9110, 8.8.3): optionally `W/`, then a quoted opaque tag (any

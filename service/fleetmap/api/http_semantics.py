@@ -183,11 +183,11 @@ def created_status(response: Response, map_id: str, *, created: bool) -> None:
         response.status_code = 200
 
 
-#: How every map's `ETag` starts (`map_etag`).
+#: How every map's `ETag` starts (`generation_etag`).
 _MAP_ETAG_PREFIX = '"map-'
 
 
-def map_etag(generation: int) -> str:
+def generation_etag(generation: int) -> str:
     """The strong entity tag of the map of `generation` (`MapEntry.generation`, which no other map of
     the service, nor of the service before a restart, had): it changes when the map is created,
     replaced, or loaded again, never with a scan."""
@@ -195,7 +195,7 @@ def map_etag(generation: int) -> str:
 
 
 def is_map_etag(etag: str) -> bool:
-    """Whether `etag` is a map's (`map_etag`): a validator of the map, not of an answer's bytes."""
+    """Whether `etag` is a map's (`generation_etag`): a validator of the map, not of an answer's bytes."""
     return etag.startswith(_MAP_ETAG_PREFIX)
 
 

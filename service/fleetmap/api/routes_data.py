@@ -231,15 +231,14 @@ def get_region(
             headers={**headers, "Content-Disposition": f'attachment; filename="{map_id}-{layer}.npy"'},
         )
     if format == "png":
-        pixels = region_pixels(gmap, layer, values)
+        pixels = region_pixels(layer, values)
         return Response(png_bytes(pixels), media_type="image/png", headers=headers)
     model = region_json(layer, [window.i0, window.j0, window.i1, window.j1], gmap.resolution, values)
     return Response(model.model_dump_json(), media_type="application/json", headers=headers)
 
 
-def region_pixels(gmap: GridMap, layer: str, values: np.ndarray) -> np.ndarray:
+def region_pixels(layer: str, values: np.ndarray) -> np.ndarray:
     """Gray + alpha pixels (h, w, 2) of a region (row 0 = lowest y in, top row = highest y out)."""
-    gray = np.zeros(values.shape, dtype=np.float64)
     if layer in ("probability", "log_odds"):
         known = ~np.isnan(values)
         p = values if layer == "probability" else 1.0 - 1.0 / (1.0 + np.exp(np.clip(values, -50, 50)))

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal, get_args
 
 from fastapi import Depends, Query, Request
 from fastapi import Path as PathParam
 
 from fleetmap.api.priority import IngestGate
 from fleetmap.api_models import MAX_COORDINATE
+from fleetmap.grid_map import REGION_LAYERS
 from fleetmap.metrics import ServiceMetrics
 from fleetmap.registry import MapEntry, MapRegistry
 from fleetmap.tile_render import TileCache
@@ -92,6 +93,7 @@ RobotId = Annotated[
 ]
 
 RegionLayer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
+assert get_args(RegionLayer) == REGION_LAYERS  # the layers a route takes are those the engine reads
 
 
 def coordinate(description: str) -> object:

@@ -31,9 +31,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from fleetmap.api.errors import ApiError
 from fleetmap.api_models import ErrorItem
-from fleetmap.codec import repeated_key
-
-UTF8_BOM = b"\xef\xbb\xbf"
+from fleetmap.codec import UTF8_BOM, repeated_key
 
 
 class RequestRefused(StarletteHTTPException):
