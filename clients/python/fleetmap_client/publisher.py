@@ -41,8 +41,14 @@ still hands the scan to Zenoh (counted in `backlogged`); it is delivered when th
 if fewer than `backlog` newer scans were published meanwhile (past that, the oldest are gone: the
 service counts them as unrecoverable, and as `lost` on the robot). Scans published before the
 session first opened (there is no Zenoh publisher yet) wait in a queue of at most `backlog` scans
-(the oldest pushed out, counted in `dropped`) and are sent, in order and before any newer scan, as
-soon as the session opens. `close()` gives up whatever was not delivered by then.
+(the oldest pushed out, counted in `dropped`) and are sent, in order and before any newer scan, once
+the session has opened. For `RECONNECT_HOLD_S` (0.5 s) after the session connects, and after every
+reconnection, scans wait in that queue too rather than going out live: zenoh-ext's advanced
+subscriber takes the first live sample of a publisher it does not know yet (a service that just
+restarted) for that publisher's first, and then drops as old what its history query fetches from
+the cache a moment later; held back, the cached scans reach the service first and the held ones
+follow, in order. `wait_connected()` returns once that hold is over. `close()` gives up whatever was
+not delivered by then.
 
 `backlog=0` publishes with a plain publisher, for a service older than this one (whose plain
 subscriber does not fetch anything): a scan published while no router is connected is then DROPPED
@@ -95,6 +101,15 @@ DEFAULT_BACKLOG = 1000
 #: Seconds between the advanced publisher's heartbeats: how soon after a reconnection the service
 #: learns of scans it missed in flight (scans published while disconnected are fetched at once).
 HEARTBEAT_S = 0.5
+#: Seconds after the session (re)connects during which `publish` keeps scans in the publisher's own
+#: queue instead of sending them live (see `ScanPublisher._hold`): zenoh-ext's advanced subscriber
+#: takes a live sample of a publisher it does not know yet (a service just restarted) for that
+#: publisher's first, and then drops as old the cached scans its history query brings a moment
+#: later. Held this long, the service has seen the publisher's liveliness token and fetched its
+#: cache first (milliseconds on a LAN), then the held scans follow, in order.
+RECONNECT_HOLD_S = 0.5
+#: Seconds between the link checks of the publisher's background thread (reconnections, the hold).
+WATCH_INTERVAL_S = 0.02
 
 Encoding = Literal["binary", "json"]
 
@@ -233,8 +248,13 @@ class ScanPublisher:
         # Only for `subscribed`: an advanced publisher has no matching status, a plain one on the same
         # key (never put to) has. With backlog 0 it is the publisher itself.
         self._matching: zenoh.Publisher | None = None
-        # Scans published before the session opened (payloads in seq order), sent when it opens.
+        # Scans published before the session opened, or during a reconnection's hold (payloads in
+        # seq order), sent when it opens or the hold ends.
         self._pending: deque[bytes] = deque()
+        # Whether the link was up at the last look (publish or the watcher): a change to up is a
+        # (re)connection, which starts a hold (monotonic time it ends in `_hold_until`).
+        self._link_up = False
+        self._hold_until: float | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
         self._last_seq: int | None = None
@@ -295,13 +315,51 @@ class ScanPublisher:
                     self._publisher = self._matching
                 self._session = session
                 self.last_connect_error = None
-                # Zenoh's cache keeps these too: delivered now, or when the service comes.
-                while self._pending:
-                    self._publisher.put(self._pending.popleft())
-                    self.backlogged -= 1
-                    self.published += 1
+                if not self.backlog:
+                    self._link_up = True
             self._opened.set()
+            self._watch()
             return
+
+    def _watch(self) -> None:
+        """Until `close()`: notice (re)connections and end their holds (`_check_link`)."""
+        while not self._closed.wait(WATCH_INTERVAL_S):
+            with self._send_lock:
+                if self._closed.is_set():
+                    return
+                self._check_link()
+
+    def _check_link(self) -> bool:
+        """With `_send_lock` held: start a hold when the link came up (the pre-open queue waits for
+        it too), send the queued scans when it is over. Returns whether scans are being held, so a
+        scan published now must wait in the queue behind them. With backlog 0 there is no hold."""
+        if not self.backlog:
+            return False
+        up = self.connected
+        now = time.monotonic()
+        with self._lock:
+            if up and not self._link_up:
+                self._hold_until = now + RECONNECT_HOLD_S
+            self._link_up = up
+            if self._hold_until is None:
+                return False
+            if now < self._hold_until:
+                return True
+            self._hold_until = None
+            held = list(self._pending)
+            self._pending.clear()
+            publisher = self._publisher
+        assert publisher is not None  # the link was up: the session opened
+        sent = 0
+        with contextlib.suppress(zenoh.ZError):  # close() raced: the rest are given up
+            for payload in held:
+                publisher.put(payload)  # Zenoh's cache keeps it too, should the link die again
+                sent += 1
+        with self._lock:
+            self.backlogged -= len(held)
+            self.published += sent
+            self.dropped += len(held) - sent
+        return False
 
     @property
     def connected(self) -> bool:
@@ -330,7 +388,8 @@ class ScanPublisher:
         """
         deadline = None if timeout is None else time.monotonic() + timeout
         while not self._closed.is_set():
-            if self.connected and (not require_subscriber or self.subscribed):
+            ready = self._hold_until is None and self._link_up
+            if ready and self.connected and (not require_subscriber or self.subscribed):
                 return True
             if deadline is not None and time.monotonic() >= deadline:
                 return False
@@ -418,17 +477,18 @@ class ScanPublisher:
                 self._next_seq = seq + 1
                 self._last_seq = seq
                 publisher = self._publisher
-                if publisher is None:  # the session has not opened yet
-                    if not self.backlog:
-                        self.dropped += 1
-                        return False
+                if publisher is None and not self.backlog:  # no session yet, nothing kept
+                    self.dropped += 1
+                    return False
+            if publisher is None or self._check_link():  # no session yet, or in a hold: queue it
+                with self._lock:
                     if len(self._pending) == self.backlog:
                         self._pending.popleft()  # the oldest gives way
                         self.backlogged -= 1
                         self.dropped += 1
                     self._pending.append(payload)
                     self.backlogged += 1
-                    return True
+                return True
             connected = self.connected
             if not connected and not self.backlog:
                 with self._lock:
