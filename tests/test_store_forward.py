@@ -6,6 +6,10 @@ What a robot publishes while its link is down, or while the service is away, is 
 publisher's backlog (zenoh-ext's advanced publisher) and fetched by the service's advanced
 subscriber when they meet again: integrated once, in order, so that the map equals the engine's map
 of every scan. Without a backlog (`backlog=0`, the old behaviour) those scans are lost.
+
+Plain publishers reaching the advanced subscriber are covered where they always were: the robots of
+tests/test_ingest.py (`scan_publisher`) and tests/robot_process.py (tests/test_e2e.py) publish with
+`session.declare_publisher`.
 """
 
 from __future__ import annotations

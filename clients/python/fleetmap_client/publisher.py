@@ -109,7 +109,7 @@ HEARTBEAT_S = 0.5
 #: cache first (milliseconds on a LAN), then the held scans follow, in order.
 RECONNECT_HOLD_S = 0.5
 #: Seconds between the link checks of the publisher's background thread (reconnections, the hold).
-WATCH_INTERVAL_S = 0.02
+WATCH_INTERVAL_S = 0.05
 
 Encoding = Literal["binary", "json"]
 
@@ -275,7 +275,8 @@ class ScanPublisher:
     # -- connection --------------------------------------------------------------------------------
 
     def _open_loop(self) -> None:
-        """Open the session, retrying until it works or the publisher is closed."""
+        """Open the session, retrying until it works or the publisher is closed; then watch the link
+        (`_watch`) until `close()`."""
         while not self._closed.is_set():
             started = time.monotonic()
             try:
