@@ -19,6 +19,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -243,6 +244,97 @@ class RobotProcess:
                     self.proc.kill()
                     self.proc.wait(10)
         return self.proc.returncode
+
+
+class FreezableProxy:
+    """A TCP proxy on a free loopback port to `target_port`, each connection forwarded by two
+    threads. `freeze()` stops forwarding on every connection open now, both ways, while leaving its
+    sockets open: to the client the connection is alive (no FIN, no RST) and silent, as a half-open
+    connection is after a peer's power cut or a NAT or proxy dropped its state. Connections made
+    later are forwarded. `cut()` closes every connection and refuses new ones (closed at once) until
+    `restore()`: a robot in a Wi-Fi dead zone. `target_port` may be changed at any time (a service
+    restarted on another port); a connection the target refuses is closed."""
+
+    def __init__(self, target_port: int) -> None:
+        self.target_port = target_port
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.connections: list[tuple[socket.socket, socket.socket, threading.Event]] = []
+        self.lock = threading.Lock()
+        self.refusing = False
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:  # closed
+                return
+            try:
+                if self.refusing:
+                    raise ConnectionRefusedError
+                upstream = socket.create_connection(("127.0.0.1", self.target_port))
+            except OSError:
+                client.close()
+                continue
+            frozen = threading.Event()
+            with self.lock:
+                self.connections.append((client, upstream, frozen))
+            for source, sink in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(source, sink, frozen), daemon=True).start()
+
+    @staticmethod
+    def _pump(source: socket.socket, sink: socket.socket, frozen: threading.Event) -> None:
+        source.settimeout(0.05)
+        while not frozen.is_set():
+            try:
+                data = source.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                with contextlib.suppress(OSError):
+                    sink.shutdown(socket.SHUT_RDWR)
+                return
+            if not data or frozen.is_set():  # frozen: what arrives now is dropped, never forwarded
+                if not data:
+                    with contextlib.suppress(OSError):
+                        sink.shutdown(socket.SHUT_WR)
+                    return
+                continue
+            try:
+                sink.sendall(data)
+            except OSError:
+                return
+
+    def freeze(self) -> int:
+        """Stop forwarding on every connection open now; returns how many."""
+        with self.lock:
+            for _, _, frozen in self.connections:
+                frozen.set()
+            return len(self.connections)
+
+    def cut(self) -> int:
+        """Close every connection open now, both ways, and refuse new ones until `restore()`;
+        returns how many were closed."""
+        self.refusing = True
+        with self.lock:
+            connections, self.connections = self.connections, []
+        for client, upstream, frozen in connections:
+            frozen.set()
+            for sock in (client, upstream):
+                with contextlib.suppress(OSError):
+                    sock.shutdown(socket.SHUT_RDWR)
+                sock.close()
+        return len(connections)
+
+    def restore(self) -> None:
+        """Forward new connections again (after `cut()`)."""
+        self.refusing = False
+
+    def close(self) -> None:
+        self.listener.close()
+        self.cut()
 
 
 def wait_for(

@@ -12,7 +12,6 @@ import contextlib
 import io
 import json
 import math
-import socket
 import threading
 import time
 import zipfile
@@ -28,7 +27,7 @@ from fleetmap_client import cli
 from fleetmap_client.publisher import ScanPublisher
 from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged, parse_sse
 from PIL import Image
-from service_process import ServiceProcess, free_port, wait_for
+from service_process import FreezableProxy, ServiceProcess, free_port, wait_for
 
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
@@ -640,71 +639,6 @@ def test_events_resume_after_the_service_restarts(tmp_path: Path, scans: list[Sc
         fm.delete_map("follow")
         assert finished.wait(10), "the event stream did not end after the map was deleted"
     assert received[-1] == ("deleted", {"id": "follow"})
-
-
-class FreezableProxy:
-    """A TCP proxy on a free loopback port to `target_port`, each connection forwarded by two
-    threads. `freeze()` stops forwarding on every connection open now, both ways, while leaving its
-    sockets open: to the client the connection is alive (no FIN, no RST) and silent, as a half-open
-    connection is after a peer's power cut or a NAT or proxy dropped its state. Connections made
-    later are forwarded."""
-
-    def __init__(self, target_port: int) -> None:
-        self.target_port = target_port
-        self.listener = socket.create_server(("127.0.0.1", 0))
-        self.port = self.listener.getsockname()[1]
-        self.connections: list[tuple[socket.socket, socket.socket, threading.Event]] = []
-        self.lock = threading.Lock()
-        threading.Thread(target=self._accept, daemon=True).start()
-
-    def _accept(self) -> None:
-        while True:
-            try:
-                client, _ = self.listener.accept()
-            except OSError:  # closed
-                return
-            upstream = socket.create_connection(("127.0.0.1", self.target_port))
-            frozen = threading.Event()
-            with self.lock:
-                self.connections.append((client, upstream, frozen))
-            for source, sink in ((client, upstream), (upstream, client)):
-                threading.Thread(target=self._pump, args=(source, sink, frozen), daemon=True).start()
-
-    @staticmethod
-    def _pump(source: socket.socket, sink: socket.socket, frozen: threading.Event) -> None:
-        source.settimeout(0.05)
-        while not frozen.is_set():
-            try:
-                data = source.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            if not data or frozen.is_set():  # frozen: what arrives now is dropped, never forwarded
-                if not data:
-                    with contextlib.suppress(OSError):
-                        sink.shutdown(socket.SHUT_WR)
-                    return
-                continue
-            try:
-                sink.sendall(data)
-            except OSError:
-                return
-
-    def freeze(self) -> int:
-        """Stop forwarding on every connection open now; returns how many."""
-        with self.lock:
-            for _, _, frozen in self.connections:
-                frozen.set()
-            return len(self.connections)
-
-    def close(self) -> None:
-        self.listener.close()
-        with self.lock:
-            for client, upstream, frozen in self.connections:
-                frozen.set()
-                client.close()
-                upstream.close()
 
 
 def test_events_resume_a_stream_that_went_silent(tmp_path: Path, scans: list[Scan]) -> None:

@@ -16,10 +16,12 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
+import zenoh.ext
 from fleetmap_client import cli
 from fleetmap_client.publisher import PublisherClosed, ScanPublisher, client_config
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
@@ -34,7 +36,9 @@ from fleetmap.wire import ALIVE_KEY_WILDCARD, BINARY_ENCODING, JSON_ENCODING, SC
 
 
 class Router:
-    """A Zenoh router session recording every scan sample and liveliness change it sees.
+    """A Zenoh router session recording every scan sample and liveliness change it sees. Its scan
+    subscriber is zenoh-ext's advanced subscriber with the service's settings (`ingest.ZenohIngest`),
+    so it fetches what advanced publishers kept for it (their backlog), as the service does.
 
     Callbacks only append raw samples (they run on Zenoh threads and must not block); decoding
     happens when a test reads them."""
@@ -44,6 +48,7 @@ class Router:
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self._lock = threading.Lock()
         self._samples: list[tuple[str, str, bytes]] = []
+        self.misses = 0  # samples zenoh-ext reported as unrecoverable
         self._alive: list[tuple[str, zenoh.SampleKind]] = []
         self.session: zenoh.Session | None = None
 
@@ -53,8 +58,17 @@ class Router:
         cfg.insert_json5("listen/endpoints", f'["{self.endpoint}"]')
         cfg.insert_json5("scouting/multicast/enabled", "false")
         self.session = zenoh.open(cfg)
-        self._subs = [
-            self.session.declare_subscriber(SCAN_KEY_WILDCARD, self._on_scan),
+        scans = zenoh.ext.declare_advanced_subscriber(
+            self.session,
+            SCAN_KEY_WILDCARD,
+            self._on_scan,
+            history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+            recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+            subscriber_detection=True,
+        )
+        self._subs: list[Any] = [
+            scans.sample_miss_listener(self._on_miss),
+            scans,
             self.session.liveliness().declare_subscriber(ALIVE_KEY_WILDCARD, self._on_alive, history=True),
         ]
         return self
@@ -69,6 +83,10 @@ class Router:
     def _on_scan(self, sample: zenoh.Sample) -> None:
         with self._lock:
             self._samples.append((str(sample.key_expr), str(sample.encoding), sample.payload.to_bytes()))
+
+    def _on_miss(self, miss: zenoh.ext.Miss) -> None:
+        with self._lock:
+            self.misses += miss.nb
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         with self._lock:
@@ -222,14 +240,41 @@ def test_liveliness_token_follows_the_publisher(router: Router) -> None:
     assert kinds == [zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE]
 
 
-def test_publisher_started_before_the_router_connects_when_it_appears(sim_scans: list[Scan]) -> None:
+def test_publisher_started_before_the_router_keeps_its_scans_and_sends_them_first(
+    sim_scans: list[Scan],
+) -> None:
+    """Scans published before the session opened wait in the pre-open queue (at most `backlog`: the
+    oldest give way, counted as dropped) and leave first, in seq order, once it opens."""
     router = Router()  # not started: nothing listens on its port yet
-    with ScanPublisher("lab", "early", connect=[router.endpoint]) as pub:
+    with ScanPublisher("lab", "early", connect=[router.endpoint], backlog=2) as pub:
         assert pub.wait_connected(0.5) is False
         assert not pub.connected
+        for seq in range(3):  # kept, not sent: the third pushes the first out
+            assert pub.publish(sim_scans[seq]) is True
+        assert (pub.pending, pub.backlogged, pub.dropped, pub.published) == (2, 2, 1, 0)
+        router.start()
+        try:
+            assert pub.wait_connected(15), f"no connection; last error {pub.last_connect_error}"
+            assert pub.connected and pub.subscribed
+            for scan in sim_scans[3:5]:
+                assert pub.publish(scan)
+            got = router.wait_count(4)
+            assert [w.seq for _, _, w in got] == [1, 2, 3, 4]  # seq 0 was pushed out
+            assert (pub.pending, pub.backlogged, pub.dropped, pub.published) == (0, 0, 1, 4)
+            wait_for(lambda: "fleetmap/lab/early/alive" in router.online(), 5, 0.02, "the token")
+        finally:
+            router.stop()
+
+
+def test_publisher_without_backlog_drops_what_it_publishes_before_the_router_appears(
+    sim_scans: list[Scan],
+) -> None:
+    router = Router()  # not started: nothing listens on its port yet
+    with ScanPublisher("lab", "early", connect=[router.endpoint], backlog=0) as pub:
+        assert pub.wait_connected(0.5) is False
         # Published while disconnected: dropped, and said so.
         assert pub.publish(sim_scans[0]) is False
-        assert pub.dropped == 1 and pub.published == 0
+        assert pub.dropped == 1 and pub.published == 0 and pub.pending == 0
         router.start()
         try:
             assert pub.wait_connected(15), f"no connection; last error {pub.last_connect_error}"
@@ -238,27 +283,31 @@ def test_publisher_started_before_the_router_connects_when_it_appears(sim_scans:
                 assert pub.publish(scan)
             got = router.wait_count(3)
             assert [w.seq for _, _, w in got] == [1, 2, 3]  # seq 0 was the dropped one
-            wait_for(lambda: "fleetmap/lab/early/alive" in router.online(), 5, 0.02, "the token")
         finally:
             router.stop()
 
 
-def test_publisher_reconnects_after_the_router_restarts(sim_scans: list[Scan]) -> None:
+@pytest.mark.parametrize("backlog", [1000, 0])
+def test_publisher_reconnects_after_the_router_restarts(sim_scans: list[Scan], backlog: int) -> None:
+    """With a backlog, the scan published while the service was away is delivered when it is back,
+    before the newer ones (with the rest of the backlog); without, it is dropped."""
     router = Router().start()
-    with ScanPublisher("lab", "rb", connect=[router.endpoint]) as pub:
+    with ScanPublisher("lab", "rb", connect=[router.endpoint], backlog=backlog) as pub:
         try:
             assert pub.wait_connected(10)
             assert pub.publish(sim_scans[0])
             router.wait_count(1)
             router.stop()
             wait_for(lambda: not pub.connected, 10, 0.02, "the publisher to notice the router left")
-            assert pub.publish(sim_scans[1]) is False  # dropped while the service is away
+            assert pub.publish(sim_scans[1]) is bool(backlog)  # kept, or dropped, while the service is away
+            assert (pub.backlogged, pub.dropped) == ((1, 0) if backlog else (0, 1))
             router = Router(router.port).start()  # the service comes back on the same endpoint
             assert pub.wait_connected(20), "Zenoh did not reconnect"
             for scan in sim_scans[2:5]:
                 assert pub.publish(scan)
-            got = router.wait_count(3)
-            assert [w.seq for _, _, w in got] == [2, 3, 4]
+            # The new router fetches the whole backlog, seq 0 too (the service ignores it as a duplicate).
+            got = router.wait_count(5 if backlog else 3)
+            assert [w.seq for _, _, w in got] == ([0, 1, 2, 3, 4] if backlog else [2, 3, 4])
             # The liveliness token is declared again to the new router.
             wait_for(
                 lambda: "fleetmap/lab/rb/alive" in router.online(), 5, 0.02, "the token after reconnecting"
@@ -398,7 +447,7 @@ def test_replay_of_a_carmen_log_arrives_complete_and_in_order(router: Router, tm
     _write_carmen(log, 40)
     ds = load_dataset(log)
     result = replay(log, "corr", "r1", rate=0, connect=[router.endpoint], progress=False, wait_timeout=20)
-    assert result.scans == 40 and result.resent == 0
+    assert result.scans == 40 and result.pauses == 0
     got = router.wait_count(40)
     assert [w.seq for _, _, w in got] == list(range(40))
     for (_, enc, wire), k in zip(got, range(40), strict=True):

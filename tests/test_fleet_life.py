@@ -135,8 +135,10 @@ def test_copies_and_stale_scans_are_duplicates_even_at_seq_0(
 def test_robots_outlive_a_service_restart_and_a_robot_restart_after_it(tmp_path: Path) -> None:
     """The service restarts (SIGTERM, durable storage) under a robot that keeps its session: the
     robot reconnects by itself, shows online again, continues its sequence with nothing counted as
-    lost or duplicate. Then the robot restarts without its seq 0: its scans are integrated, which
-    needs the last stamp to survive the service's restart (it was not kept in the snapshot)."""
+    lost; the restarted service fetches the robot's backlog (store and forward), whose 3 scans it had
+    integrated before the restart: those count as duplicates, not integrated twice. Then the robot
+    restarts without its seq 0: its scans are integrated, which needs the last stamp to survive the
+    service's restart (it was not kept in the snapshot)."""
     svc = ServiceProcess(tmp_path)
     svc.start()
     try:
@@ -152,14 +154,14 @@ def test_robots_outlive_a_service_restart_and_a_robot_restart_after_it(tmp_path:
                 wait_for(lambda: robot_stats(http, "life-svc", "r").get("online"), timeout=15, what="online")
                 for k in range(3, 5):
                     assert robot.publish(scan_at(0.1 * k))
-                assert counters(wait_integrated(http, "life-svc", "r", 5)) == (5, 4, 0, 0, 0)
+                assert counters(wait_integrated(http, "life-svc", "r", 5)) == (5, 4, 0, 3, 0)
             assert svc.stop() == 0
             svc.start()
             with ScanPublisher("life-svc", "r", connect=svc.zenoh_endpoint) as restarted:
                 assert restarted.wait_connected(15)
                 for k in range(1, 3):
                     assert restarted.publish(scan_at(1.0 + 0.1 * k), seq=k)
-            assert counters(wait_integrated(http, "life-svc", "r", 7)) == (7, 2, 1, 0, 1)
+            assert counters(wait_integrated(http, "life-svc", "r", 7)) == (7, 2, 1, 3, 1)
     finally:
         svc.stop()
 

@@ -31,6 +31,7 @@ from service_process import ServiceProcess, free_port, reaped, wait_for
 from fleetmap import server
 from fleetmap.database import DB_NAME
 from fleetmap.memory_budget import MemoryBudget
+from fleetmap.registry import QUEUE_TOTAL
 from fleetmap.wire import BINARY_ENCODING
 
 WRITE_A = "write-token-aaaaaaaaaaaaaaaa"
@@ -559,8 +560,9 @@ def test_metrics_count_every_http_answer_by_status_and_show_the_zenoh_session(tm
     assert seen[("fleetmap_zenoh_invalid_keys_total", ())] == 0
     # Refusals by reason from the start, at 0: `increase()` sees the first one.
     assert seen[("fleetmap_zenoh_scans_refused_total", (("reason", "queue_full"),))] == 0
+    assert seen[("fleetmap_zenoh_scans_unrecoverable_total", ())] == 0
     # How full the ingest queue may get, beside its depth.
-    assert seen[("fleetmap_queue_limit", ())] == 8192
+    assert seen[("fleetmap_queue_limit", ())] == QUEUE_TOTAL
     assert seen[("fleetmap_queue_depth", ())] == 0
     # Storage failures by operation, at 0 on a healthy disk (tests/test_durability.py fails one).
     for operation in ("journal_commit", "snapshot", "map_change"):

@@ -443,7 +443,8 @@ class ZenohCollector(Collector):
         return [*self._families(), *self._ros_families()]
 
     def collect(self) -> Iterator[Metric]:
-        up, routers, peers, alive, received, submitted, invalid, undecodable, refused = self._families()
+        families = self._families()
+        up, routers, peers, alive, received, submitted, invalid, undecodable, refused, missed = families
         status = self.status()
         up.add_metric([], 1.0 if status.get("running") else 0.0)
         routers.add_metric([], status.get("routers", 0))
@@ -457,7 +458,8 @@ class ZenohCollector(Collector):
         counts = dict.fromkeys(ZENOH_REFUSALS, 0) | status.get("rejected", {})
         for reason, count in sorted(counts.items()):
             refused.add_metric([reason], count)
-        yield from (up, routers, peers, alive, received, submitted, invalid, undecodable, refused)
+        missed.add_metric([], status.get("unrecoverable", 0))
+        yield from families
         # ROS 2 scans (--ros-scans): at 0 without it, so that alerts need no special case.
         ros_received, ros_submitted, ros_waiting, ros_refused, tf_refused = self._ros_families()
         ros = status.get("ros") or {}
@@ -493,6 +495,11 @@ class ZenohCollector(Collector):
                 "fleetmap_zenoh_scans_refused",
                 "Scans received over Zenoh that the registry refused, by reason (queue_full, duplicate, ...)",
                 labels=["reason"],
+            ),
+            CounterMetricFamily(
+                "fleetmap_zenoh_scans_unrecoverable",
+                "Scans of advanced publishers (a robot's backlog) that Zenoh could not recover: gone from "
+                "the robot's cache before the service could fetch them",
             ),
         )
 

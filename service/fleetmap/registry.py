@@ -48,8 +48,15 @@ from fleetmap.wire import is_valid_id
 
 log = logging.getLogger("fleetmap.registry")
 
-#: Bytes of decoded beams the ingest queue holds at most: 8192 scans of 1081 beams take 141 MB, but
-#: as many of 16,384 beams took 2.6 GB, which the memory budget does not see.
+#: Scans the ingest queue holds per robot: a whole `ScanPublisher` backlog (1000 by default), which a
+#: robot's recovered scans arrive as, at network speed, after a dead zone or a restart of the service.
+QUEUE_PER_ROBOT = 1024
+#: Scans the ingest queue holds in all; one map holds at most half (`FairQueue`'s `per_group`):
+#: eight robots of one map recovering a full backlog at once.
+QUEUE_TOTAL = 16384
+#: Bytes of decoded beams the ingest queue holds at most, whatever the counts allow: 16384 scans of
+#: 1081 beams would take 283 MB (17.3 KB each), so this bound comes first with them (some 15,500
+#: fit), and as many of 16,384 beams would take 4.3 GB, which the memory budget does not see.
 QUEUE_BYTES = 256 << 20
 #: Seconds a map change made with `wait=True` waits to be committed before `NotDurable` is raised.
 DURABLE_WAIT = 30.0
@@ -182,8 +189,8 @@ class MapRegistry:
         default_config: MapConfig | None = None,
         auto_create: bool = True,
         workers: int = 2,
-        queue_per_robot: int = 64,
-        queue_total: int = 8192,
+        queue_per_robot: int = QUEUE_PER_ROBOT,
+        queue_total: int = QUEUE_TOTAL,
         queue_bytes: int = QUEUE_BYTES,
         on_integrated: Callable[[MapEntry, Job, IntegrationResult, float], None] | None = None,
         durable: DurableStore | None = None,

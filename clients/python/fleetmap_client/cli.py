@@ -76,9 +76,10 @@ def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
             "service over Zenoh as one robot: scan k gets seq k. Scans go out at a nominal 10 per "
             "second, not at the log's timestamps (some logs have none: the Freiburg campus log's are "
             "all 0): --rate X publishes 10*X scans per second (0: as fast as Zenoh takes them, and the "
-            "service drops, counting them as dropped on the robot, the scans its per-robot ingest queue "
-            "cannot hold: use a finite rate for a lossless replay). Waits for the service "
-            "first; after a lost connection it waits and re-sends."
+            "service drops, counting them as dropped on the robot, the scans its ingest queue of 1024 "
+            "per robot cannot hold: use a finite rate for a lossless replay). Waits for the service "
+            "first; after a lost connection it pauses until the service is back, which then fetches "
+            "the scans in flight from the robot's backlog."
         ),
     )
     p.add_argument("dataset", help="CARMEN log (plain or .gz) or MATLAB .mat file")
@@ -124,10 +125,10 @@ def run_replay(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("replay interrupted", file=sys.stderr)
         return 130
-    resent = f", {result.resent} re-sent after a lost connection" if result.resent else ""
+    pauses = f", paused {result.pauses} times for a lost connection" if result.pauses else ""
     print(
         f"replayed {result.scans} scans of {dataset.name} to map {args.map_id!r} as robot "
-        f"{args.robot_id!r} in {result.seconds:.1f} s{resent}"
+        f"{args.robot_id!r} in {result.seconds:.1f} s{pauses}"
     )
     return 0
 
@@ -204,10 +205,11 @@ def run_sim_command(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     finally:
         signal.signal(signal.SIGINT, previous)
-    dropped = sum(result.dropped.values())
+    dropped, kept = sum(result.dropped.values()), sum(result.backlogged.values())
     print(
         f"sim: {len(result.robots)} robots published {result.total} scans in {result.seconds:.1f} s"
-        + (f" ({dropped} dropped while the service was unreachable)" if dropped else "")
+        + (f" ({kept} kept for re-delivery while the service was unreachable)" if kept else "")
+        + (f" ({dropped} dropped)" if dropped else "")
     )
     return 0
 

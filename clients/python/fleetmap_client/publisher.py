@@ -30,10 +30,30 @@ at once or, with `connect/timeout_ms: -1`, blocks the caller until a router list
 bounded attempts gives the same "wait for the service" behaviour while letting `close()` and Ctrl-C
 stop it). Once connected, Zenoh itself reconnects after the service restarts or the link drops.
 
-A scan published while no router is connected is DROPPED (Zenoh keeps no backlog for a missing
-route): `publish` then returns False and counts it in `dropped`. Call `wait_connected()` before
-publishing anything that must arrive (the replay command does; it also re-sends a scan that was
-dropped that way after waiting for the reconnection).
+Store and forward (`backlog`, default `DEFAULT_BACKLOG` = 1000 scans). Robots drive through Wi-Fi
+dead zones, and the service restarts; no scan should be lost to either. The publisher is zenoh-ext's
+ADVANCED publisher: it keeps its last `backlog` scans in a cache, announces its last sequence number
+by heartbeat (`HEARTBEAT_S`) and declares itself (publisher detection), and the service's advanced
+subscriber fetches from that cache what it did not receive: the scans published while the link was
+down or the service away, and those in flight when a link died. They arrive in order, before newer
+ones, without duplicates (docs/protocol.md, "Delivery guarantees"). So `publish` while disconnected
+still hands the scan to Zenoh (counted in `backlogged`); it is delivered when the connection is back,
+if fewer than `backlog` newer scans were published meanwhile (past that, the oldest are gone: the
+service counts them as unrecoverable, and as `lost` on the robot). Scans published before the
+session first opened (there is no Zenoh publisher yet) wait in a queue of at most `backlog` scans
+(the oldest pushed out, counted in `dropped`) and are sent, in order and before any newer scan, once
+the session has opened. For `RECONNECT_HOLD_S` (0.5 s) after the session connects, and after every
+reconnection, scans wait in that queue too rather than going out live: zenoh-ext's advanced
+subscriber takes the first live sample of a publisher it does not know yet (a service that just
+restarted) for that publisher's first, and then drops as old what its history query fetches from
+the cache a moment later; held back, the cached scans reach the service first and the held ones
+follow, in order. `wait_connected()` returns once that hold is over. `close()` gives up whatever was
+not delivered by then.
+
+`backlog=0` publishes with a plain publisher, for a service older than this one (whose plain
+subscriber does not fetch anything): a scan published while no router is connected is then DROPPED
+(Zenoh keeps nothing for a missing route), `publish` returns False and counts it in `dropped`. Call
+`wait_connected()` before publishing anything that must arrive.
 """
 
 from __future__ import annotations
@@ -44,12 +64,14 @@ import math
 import numbers
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
 import zenoh
+import zenoh.ext
 
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.scan import Scan
@@ -73,6 +95,21 @@ CONNECT_ATTEMPT_MS = 1000
 #: How long `close` waits for the opener's attempt in progress to end (one attempt and a margin; a
 #: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running).
 CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
+#: Scans a publisher keeps for re-delivery by default (`backlog`): at 10 scans/s, 100 s of dead zone,
+#: about 4.5 MB of binary 1081-beam scans. The service's ingest queue holds as many per robot.
+DEFAULT_BACKLOG = 1000
+#: Seconds between the advanced publisher's heartbeats: how soon after a reconnection the service
+#: learns of scans it missed in flight (scans published while disconnected are fetched at once).
+HEARTBEAT_S = 0.5
+#: Seconds after the session (re)connects during which `publish` keeps scans in the publisher's own
+#: queue instead of sending them live (see `ScanPublisher._hold`): zenoh-ext's advanced subscriber
+#: takes a live sample of a publisher it does not know yet (a service just restarted) for that
+#: publisher's first, and then drops as old the cached scans its history query brings a moment
+#: later. Held this long, the service has seen the publisher's liveliness token and fetched its
+#: cache first (milliseconds on a LAN), then the held scans follow, in order.
+RECONNECT_HOLD_S = 0.5
+#: Seconds between the link checks of the publisher's background thread (reconnections, the hold).
+WATCH_INTERVAL_S = 0.05
 
 Encoding = Literal["binary", "json"]
 
@@ -152,6 +189,19 @@ class ScanPublisher:
             no scan is dropped); False uses `DROP` (best effort: never blocks, may drop under load).
         send_session_id: True (default) sends a random session id in every scan (see the module docstring);
             False sends none (then the service recognises restarts by the stamps only).
+        backlog: scans kept for re-delivery after a lost connection (default `DEFAULT_BACKLOG`; see the
+            module docstring); 0: none, with a plain Zenoh publisher, for a service older than
+            store and forward (scans published while disconnected are then dropped).
+
+    Counters (each successful `publish` counts in exactly one of the first three):
+
+    * `published`: scans handed to Zenoh while a router (or peer) was connected, including those of
+      the pre-open queue when the session opened;
+    * `backlogged`: scans kept for re-delivery while disconnected: put in the advanced publisher's
+      cache, or waiting in the pre-open queue (`pending`). A dead zone that outlasts `backlog` scans
+      loses the oldest of them all the same; the service counts those (unrecoverable, lost);
+    * `dropped`: scans given up here: published while disconnected with `backlog=0`, pushed out of
+      the full pre-open queue (moved from `backlogged`), or refused by a session closing meanwhile.
 
     The session opens in the background (see the module docstring): use `wait_connected`.
     """
@@ -165,16 +215,20 @@ class ScanPublisher:
         zenoh_config: zenoh.Config | str | Path | None = None,
         block: bool = True,
         send_session_id: bool = True,
+        backlog: int = DEFAULT_BACKLOG,
     ) -> None:
         for name, value in (("map_id", map_id), ("robot_id", robot_id)):
             if not isinstance(value, str) or not is_valid_id(value):
                 raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
+        if isinstance(backlog, bool) or not isinstance(backlog, int) or backlog < 0:
+            raise ValueError(f"backlog must be an integer >= 0, got {backlog!r}")
         if encoding not in ("binary", "json"):
             raise ValueError(f"encoding must be 'binary' or 'json', got {encoding!r}")
         self.map_id = map_id
         self.robot_id = robot_id
         self.encoding: Encoding = encoding
         self.block = block
+        self.backlog = int(backlog)
         self.scan_key = SCAN_KEY.format(map_id=map_id, robot_id=robot_id)
         self.alive_key = ALIVE_KEY.format(map_id=map_id, robot_id=robot_id)
         self._config = client_config(connect, zenoh_config)
@@ -190,14 +244,26 @@ class ScanPublisher:
         self._opened = threading.Event()
         self._closed = threading.Event()
         self._session: zenoh.Session | None = None
-        self._publisher: zenoh.Publisher | None = None
+        self._publisher: zenoh.Publisher | zenoh.ext.AdvancedPublisher | None = None
+        # Only for `subscribed`: an advanced publisher has no matching status, a plain one on the same
+        # key (never put to) has. With backlog 0 it is the publisher itself.
+        self._matching: zenoh.Publisher | None = None
+        # Scans published before the session opened, or during a reconnection's hold (payloads in
+        # seq order), sent when it opens or the hold ends.
+        self._pending: deque[bytes] = deque()
+        # Whether the link was up at the last look (publish or the watcher): a change to up is a
+        # (re)connection, which starts a hold (monotonic time it ends in `_hold_until`).
+        self._link_up = False
+        self._hold_until: float | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
         self._last_seq: int | None = None
         self._session_id = new_session_id() if send_session_id else None
-        #: Scans handed to Zenoh while a router (or peer) was connected.
+        #: Scans handed to Zenoh while a router (or peer) was connected (see the class docstring).
         self.published = 0
-        #: Scans dropped because no router was connected (see the module docstring).
+        #: Scans kept for re-delivery while disconnected (see the class docstring).
+        self.backlogged = 0
+        #: Scans given up (see the class docstring).
         self.dropped = 0
         #: The last error of a connection attempt (e.g. "Unable to connect ..."), for diagnostics.
         self.last_connect_error: str | None = None
@@ -209,7 +275,8 @@ class ScanPublisher:
     # -- connection --------------------------------------------------------------------------------
 
     def _open_loop(self) -> None:
-        """Open the session, retrying until it works or the publisher is closed."""
+        """Open the session, retrying until it works or the publisher is closed; then watch the link
+        (`_watch`) until `close()`."""
         while not self._closed.is_set():
             started = time.monotonic()
             try:
@@ -220,21 +287,80 @@ class ScanPublisher:
                 self._closed.wait(max(0.0, 0.2 - (time.monotonic() - started)))
                 continue
             congestion = zenoh.CongestionControl.BLOCK if self.block else zenoh.CongestionControl.DROP
-            with self._lock:
+            # _send_lock first (as `publish` takes it): no scan may overtake the pre-open queue's.
+            with self._send_lock, self._lock:
                 if self._closed.is_set():
                     session.close()
                     return
                 self._token = session.liveliness().declare_token(self.alive_key)
-                self._publisher = session.declare_publisher(
+                self._matching = session.declare_publisher(
                     self.scan_key,
                     encoding=self._zenoh_encoding,
                     congestion_control=congestion,
                     reliability=zenoh.Reliability.RELIABLE,
                 )
+                if self.backlog:
+                    self._publisher = zenoh.ext.declare_advanced_publisher(
+                        session,
+                        self.scan_key,
+                        encoding=self._zenoh_encoding,
+                        congestion_control=congestion,
+                        reliability=zenoh.Reliability.RELIABLE,
+                        cache=zenoh.ext.CacheConfig(self.backlog),
+                        sample_miss_detection=zenoh.ext.MissDetectionConfig(
+                            heartbeat=HEARTBEAT_S, sporadic_heartbeat=None
+                        ),
+                        publisher_detection=True,
+                    )
+                else:
+                    self._publisher = self._matching
                 self._session = session
                 self.last_connect_error = None
+                if not self.backlog:
+                    self._link_up = True
             self._opened.set()
+            self._watch()
             return
+
+    def _watch(self) -> None:
+        """Until `close()`: notice (re)connections and end their holds (`_check_link`)."""
+        while not self._closed.wait(WATCH_INTERVAL_S):
+            with self._send_lock:
+                if self._closed.is_set():
+                    return
+                self._check_link()
+
+    def _check_link(self) -> bool:
+        """With `_send_lock` held: start a hold when the link came up (the pre-open queue waits for
+        it too), send the queued scans when it is over. Returns whether scans are being held, so a
+        scan published now must wait in the queue behind them. With backlog 0 there is no hold."""
+        if not self.backlog:
+            return False
+        up = self.connected
+        now = time.monotonic()
+        with self._lock:
+            if up and not self._link_up:
+                self._hold_until = now + RECONNECT_HOLD_S
+            self._link_up = up
+            if self._hold_until is None:
+                return False
+            if now < self._hold_until:
+                return True
+            self._hold_until = None
+            held = list(self._pending)
+            self._pending.clear()
+            publisher = self._publisher
+        assert publisher is not None  # the link was up: the session opened
+        sent = 0
+        with contextlib.suppress(zenoh.ZError):  # close() raced: the rest are given up
+            for payload in held:
+                publisher.put(payload)  # Zenoh's cache keeps it too, should the link die again
+                sent += 1
+        with self._lock:
+            self.backlogged -= len(held)
+            self.published += sent
+            self.dropped += len(held) - sent
+        return False
 
     @property
     def connected(self) -> bool:
@@ -248,7 +374,7 @@ class ScanPublisher:
     @property
     def subscribed(self) -> bool:
         """True when Zenoh knows a subscriber for this robot's scan key (the service is listening)."""
-        pub = self._publisher
+        pub = self._matching
         if pub is None or self._closed.is_set():
             return False
         # zenoh's stub types matching_status a bool; it is a MatchingStatus (zenoh 1.x).
@@ -263,7 +389,8 @@ class ScanPublisher:
         """
         deadline = None if timeout is None else time.monotonic() + timeout
         while not self._closed.is_set():
-            if self.connected and (not require_subscriber or self.subscribed):
+            ready = self._hold_until is None and self._link_up
+            if ready and self.connected and (not require_subscriber or self.subscribed):
                 return True
             if deadline is not None and time.monotonic() >= deadline:
                 return False
@@ -284,6 +411,11 @@ class ScanPublisher:
         return self._session_id
 
     @property
+    def pending(self) -> int:
+        """Scans published before the session opened, waiting to be sent when it opens."""
+        return len(self._pending)
+
+    @property
     def next_seq(self) -> int:
         """The seq the next `publish` without an explicit seq will use."""
         return self._next_seq
@@ -299,14 +431,16 @@ class ScanPublisher:
         session is not sent: the publisher's is. `stamp` defaults to the current time (seconds since
         the epoch). With `block=True` this may block while the link is congested.
 
-        Returns True when the scan was handed to a connected session, False when it was dropped
-        because no router is connected (counted in `dropped`). Raises `PublisherClosed` after
-        `close()`, TypeError for a `scan` that is neither, a seq that is not an integer or a stamp
-        that is not a number, ValueError for a negative or too large seq or a non-finite stamp, and
-        `fleetmap.scan.ScanError` for a `ScanMessage` the engine refuses or, in binary, a scan whose
-        range_min or angles float32 cannot hold (`codec.encode_binary`). A call that raises
-        publishes nothing and leaves the seq counter as it was (the service would count a skipped
-        seq as a lost scan).
+        Returns True when the scan was handed to a connected session (counted in `published`) or
+        kept for re-delivery while disconnected (`backlogged`: delivered when the connection is back,
+        unless more than `backlog` newer scans push it out first), False when it was dropped
+        (`dropped`: no router connected with `backlog=0`, or the publisher closing meanwhile).
+        Raises `PublisherClosed` after `close()`, TypeError for a `scan` that is neither, a seq that
+        is not an integer or a stamp that is not a number, ValueError for a negative or too large seq
+        or a non-finite stamp, and `fleetmap.scan.ScanError` for a `ScanMessage` the engine refuses
+        or, in binary, a scan whose range_min or angles float32 cannot hold (`codec.encode_binary`).
+        A call that raises publishes nothing and leaves the seq counter as it was (the service would
+        count a skipped seq as a lost scan).
         """
         if isinstance(scan, ScanMessage):
             seq = scan.seq if seq is None else seq
@@ -344,11 +478,25 @@ class ScanPublisher:
                 self._next_seq = seq + 1
                 self._last_seq = seq
                 publisher = self._publisher
-            if publisher is None or not self.connected:
+                if publisher is None and not self.backlog:  # no session yet, nothing kept
+                    self.dropped += 1
+                    return False
+            if publisher is None or self._check_link():  # no session yet, or in a hold: queue it
+                with self._lock:
+                    if len(self._pending) == self.backlog:
+                        self._pending.popleft()  # the oldest gives way
+                        self.backlogged -= 1
+                        self.dropped += 1
+                    self._pending.append(payload)
+                    self.backlogged += 1
+                return True
+            connected = self.connected
+            if not connected and not self.backlog:
                 with self._lock:
                     self.dropped += 1
                 return False
             try:
+                # Disconnected, the advanced publisher's cache keeps it for the service to fetch.
                 publisher.put(payload)
             except zenoh.ZError:
                 # Only possible when close() raced with this call: report it like a disconnection.
@@ -356,7 +504,10 @@ class ScanPublisher:
                     self.dropped += 1
                 return False
         with self._lock:
-            self.published += 1
+            if connected:
+                self.published += 1
+            else:
+                self.backlogged += 1
         return True
 
     # -- lifetime ----------------------------------------------------------------------------------
@@ -364,16 +515,19 @@ class ScanPublisher:
     def close(self) -> None:
         """Withdraw the liveliness token, undeclare the publisher and close the session. Idempotent.
 
-        Scans already handed to Zenoh are flushed by the session close (reliable channel). While no
-        connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`)."""
+        Scans already handed to Zenoh over a live link are flushed by the session close (reliable
+        channel); scans still waiting for re-delivery (`backlogged`, `pending`) are given up. While
+        no connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`)."""
         with self._lock:
             if self._closed.is_set():
                 return
             self._closed.set()
             session, self._session = self._session, None
             publisher, self._publisher = self._publisher, None
+            matching, self._matching = self._matching, None
             token, self._token = self._token, None
-        for thing in (token, publisher):
+            self._pending.clear()
+        for thing in (token, publisher, None if matching is publisher else matching):
             if thing is not None:
                 with contextlib.suppress(zenoh.ZError):
                     thing.undeclare()
@@ -407,6 +561,6 @@ class ScanPublisher:
 
 
 __all__ = [
-    "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_CONNECT", "PublisherClosed", "ScanPublisher",
-    "client_config",
+    "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT", "HEARTBEAT_S",
+    "PublisherClosed", "ScanPublisher", "client_config",
 ]  # fmt: skip

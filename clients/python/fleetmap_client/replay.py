@@ -9,15 +9,17 @@ Pacing. The dataset readers expose poses and scans but no timestamps (and the fr
 0), so a replay runs at a nominal `NOMINAL_SCAN_RATE` = 10 scans per second of "real time": `rate`
 X publishes 10 * X scans per second (X = 1: 10 scans/s, X = 0.5: 5 scans/s); `rate` 0 publishes as
 fast as the link takes them (congestion control BLOCK: nothing is lost on the way), but the service's
-ingest queue holds 64 scans per robot and drops the scans it cannot hold (counted as `dropped` on the
-robot: 2695 of a 3000-scan log of 1081 beams, replayed at rate 0 over loopback). Use a finite rate
-for a lossless replay. Each scan's stamp is the wall-clock time it was published.
+ingest queue holds 1024 scans per robot and drops the scans it cannot hold (counted as `dropped` on
+the robot; with a queue of 64, 2695 of a 3000-scan log of 1081 beams replayed at rate 0 over
+loopback were). Use a finite rate for a lossless replay. Each scan's stamp is the wall-clock time it
+was published.
 
 Delivery. The replay first waits until the service is reachable and its subscriber matches (see
-`ScanPublisher.wait_connected`), so no scan is published into the void. If the connection is lost
-midway, a scan that Zenoh would drop is not skipped: the replay waits for the reconnection and
-publishes it again, with the same seq. (Scans already handed to Zenoh when a link dies silently can
-still be lost; the service counts such gaps in seq as `lost`.)
+`ScanPublisher.wait_connected`), so no scan is published into the void. The publisher keeps its last
+scans for re-delivery (`ScanPublisher`'s `backlog`), so the scans in flight when a link dies reach the
+service once it is back. If the connection is lost midway, the replay pauses until it is back rather
+than publishing on into the backlog: a log replayed faster than real time would otherwise push the
+oldest scans out of it before the service could fetch them.
 """
 
 from __future__ import annotations
@@ -43,8 +45,8 @@ class ReplayError(RuntimeError):
 
 @dataclass
 class ReplayResult:
-    scans: int  # scans published (and acknowledged as handed to a connected session)
-    resent: int  # scans published again after a lost connection
+    scans: int  # scans published (handed to a connected session, or kept for re-delivery)
+    pauses: int  # times the replay paused for a lost connection to come back
     seconds: float  # from the first scan to the last
 
 
@@ -112,7 +114,7 @@ def _publish_all(
 ) -> ReplayResult:
     from tqdm import tqdm
 
-    resent = 0
+    pauses = 0
     started = time.monotonic()
     with tqdm(total=count, unit="scan", disable=not progress, file=sys.stderr, desc=pub.robot_id) as bar:
         for k, scan in enumerate(scans):
@@ -120,12 +122,12 @@ def _publish_all(
                 delay = started + k * period - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            while not pub.publish(scan, seq=k):
-                # Not connected: Zenoh would drop it. Wait for the service, then send it again.
-                resent += 1
+            if not pub.connected:
+                pauses += 1
                 _wait(pub, wait_timeout, None)
+            pub.publish(scan, seq=k)  # kept for re-delivery if the link dies meanwhile
             bar.update(1)
-    return ReplayResult(scans=count, resent=resent, seconds=time.monotonic() - started)
+    return ReplayResult(scans=count, pauses=pauses, seconds=time.monotonic() - started)
 
 
 __all__ = ["NOMINAL_SCAN_RATE", "ReplayError", "ReplayResult", "replay"]

@@ -10,8 +10,9 @@ ids `sim-1`, `sim-2`, ...) driven by its own thread: every 1/rate s it advances 
 that falls behind (a busy machine) does not burst to catch up: it resumes the schedule from now.
 
 The robots start once the service is reachable (they wait for it), run for `seconds` (None: until
-stopped) and leave when stopped; scans published while the service is unreachable are dropped and
-counted, as a real robot's would be, while the robots keep moving.
+stopped) and leave when stopped; scans published while the service is unreachable are kept in each
+publisher's backlog (`ScanPublisher`) and delivered when it is back, as a real robot's would be,
+while the robots keep moving.
 """
 
 from __future__ import annotations
@@ -35,12 +36,15 @@ class SimError(RuntimeError):
 class SimResult:
     robots: list[str]
     published: dict[str, int] = field(default_factory=dict)  # scans handed to a connected session
-    dropped: dict[str, int] = field(default_factory=dict)  # scans dropped while disconnected
+    #: Scans kept for re-delivery while disconnected (`ScanPublisher.backlogged`).
+    backlogged: dict[str, int] = field(default_factory=dict)
+    dropped: dict[str, int] = field(default_factory=dict)  # scans given up (`ScanPublisher.dropped`)
     seconds: float = 0.0
 
     @property
     def total(self) -> int:
-        return sum(self.published.values())
+        """Scans published: sent, or kept for re-delivery."""
+        return sum(self.published.values()) + sum(self.backlogged.values())
 
 
 def robot_ids(count: int, prefix: str = "sim") -> list[str]:
@@ -131,6 +135,7 @@ def run_sim(
     finally:
         for pub in publishers:
             result.published[pub.robot_id] = pub.published
+            result.backlogged[pub.robot_id] = pub.backlogged
             result.dropped[pub.robot_id] = pub.dropped
             pub.close()
     return result

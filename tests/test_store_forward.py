@@ -1,0 +1,229 @@
+"""Store and forward over real parts: the real service as a process, a robot's `ScanPublisher` (a real
+Zenoh client session) reaching it through a TCP proxy with real sockets (`FreezableProxy`), which a
+test cuts (a Wi-Fi dead zone) or points at a restarted service.
+
+What a robot publishes while its link is down, or while the service is away, is kept in its
+publisher's backlog (zenoh-ext's advanced publisher) and fetched by the service's advanced
+subscriber when they meet again: integrated once, in order, so that the map equals the engine's map
+of every scan. Without a backlog (`backlog=0`, the old behaviour) those scans are lost.
+
+Plain publishers reaching the advanced subscriber are covered where they always were: the robots of
+tests/test_ingest.py (`scan_publisher`) and tests/robot_process.py (tests/test_e2e.py) publish with
+`session.declare_publisher`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from fleetmap_client.publisher import ScanPublisher
+from prometheus_client.parser import text_string_to_metric_families
+from robot_process import scans_for
+from service_process import FreezableProxy, ServiceProcess, wait_for
+from test_e2e import assert_region_equal, map_stats, wait_integrated
+
+from fleetmap import codec
+from fleetmap.grid_map import GridMap
+from fleetmap.scan import Scan
+
+LAYERS = ("log_odds", "hits", "misses", "tsdf", "tsdf_weight")
+#: Scans published per second by the robots of these tests.
+RATE = 25.0
+
+
+@pytest.fixture
+def service(tmp_path: Path) -> Iterator[ServiceProcess]:
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        yield svc
+
+
+def engine_map(scans: list[Scan]) -> GridMap:
+    """The engine's map of `scans` in order, each as the service decodes it (binary: float32 ranges)."""
+    gmap = GridMap()
+    for seq, scan in enumerate(scans):
+        payload = codec.encode_binary(scan, seq, stamp=float(seq))
+        gmap.integrate(codec.decode(payload, codec.BINARY_ENCODING).scan)
+    return gmap
+
+
+def robot_stats(http: httpx.Client, map_id: str, robot_id: str) -> dict[str, Any]:
+    robot: dict[str, Any] = map_stats(http, map_id)["robots"][robot_id]
+    return robot
+
+
+def zenoh_counters(http: httpx.Client) -> tuple[int, float]:
+    """(`/healthz` zenoh.unrecoverable, `/metrics` fleetmap_zenoh_scans_unrecoverable_total)."""
+    healthz = http.get("/healthz").json()["zenoh"]["unrecoverable"]
+    metric = next(
+        sample.value
+        for family in text_string_to_metric_families(http.get("/metrics").text)
+        for sample in family.samples
+        if sample.name == "fleetmap_zenoh_scans_unrecoverable_total"
+    )
+    return healthz, metric
+
+
+class Robot:
+    """A robot publishing `scans` (seq k = scan k, stamp k) at `RATE` from a thread, through `proxy`."""
+
+    def __init__(self, proxy: FreezableProxy, map_id: str, scans: list[Scan], backlog: int) -> None:
+        self.scans = scans
+        self.pub = ScanPublisher(map_id, "r1", connect=[proxy.endpoint], backlog=backlog)
+        self.sent = 0  # scans published so far
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def start(self) -> Robot:
+        assert self.pub.wait_connected(20), self.pub.last_connect_error
+        self.thread.start()
+        return self
+
+    def _run(self) -> None:
+        started = time.monotonic()
+        for seq, scan in enumerate(self.scans):
+            time.sleep(max(0.0, started + seq / RATE - time.monotonic()))
+            self.pub.publish(scan, seq=seq, stamp=float(seq))
+            self.sent = seq + 1
+
+    def wait_sent(self, n: int) -> None:
+        wait_for(lambda: self.sent >= n, 30, 0.01, f"{n} scans published")
+
+    def finish(self) -> None:
+        self.thread.join(60)
+        assert not self.thread.is_alive()
+
+
+@pytest.mark.parametrize("backlog", [1000, 0])
+def test_a_dead_zone_loses_no_scan(service: ServiceProcess, backlog: int) -> None:
+    """The robot's link is cut for 2 s (new connections refused too) while it keeps publishing at
+    25 Hz: with its backlog, every scan is integrated once, none lost, and the map is the engine's
+    map of all of them. Without (`backlog=0`), the scans of the dead zone are gone: that is what the
+    backlog changes."""
+    scans = scans_for(sim=3, count=150)
+    proxy = FreezableProxy(service.zenoh_port)
+    robot = Robot(proxy, "dz", scans, backlog)
+    try:
+        robot.start()
+        robot.wait_sent(40)
+        assert proxy.cut() >= 1
+        time.sleep(2.0)  # 50 scans published into the dead zone, some 25 more until Zenoh reconnects
+        proxy.restore()
+        robot.finish()
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            if backlog:
+                wait_integrated(http, "dz", len(scans), timeout=30)
+                state = robot_stats(http, "dz", "r1")
+                assert (state["scans_integrated"], state["lost"], state["dropped"]) == (len(scans), 0, 0)
+                assert state["last_seq"] == len(scans) - 1 and state["restarts"] == 0
+                assert robot.pub.dropped == 0
+                assert_region_equal(http, "dz", engine_map(scans), LAYERS)
+                assert zenoh_counters(http) == (0, 0)
+            else:
+                wait_for(lambda: robot_stats(http, "dz", "r1")["last_seq"] == len(scans) - 1, 30, 0.05)
+                state = robot_stats(http, "dz", "r1")
+                assert robot.pub.dropped >= 40, robot.pub.dropped  # given up while disconnected
+                assert state["lost"] >= 40 and state["scans_integrated"] == len(scans) - state["lost"], state
+    finally:
+        robot.pub.close()
+        proxy.close()
+
+
+def test_the_service_killed_and_restarted_integrates_every_scan_once(tmp_path: Path) -> None:
+    """SIGKILL of a durable service while the robot publishes, a new service on the same data (the
+    robot reconnects to it through the proxy): the new service fetches the robot's backlog, which
+    holds scans the killed one had integrated and journaled (ignored as duplicates: the seq
+    bookkeeping is restored from the journal) and scans it never integrated or journaled, or that
+    were published while no service ran (integrated). Afterwards every scan is integrated exactly
+    once: the robot's counters say so and the map equals the engine's, cell by cell."""
+    data = ["--data-dir", str(tmp_path / "data")]
+    scans = scans_for(sim=4, count=200)
+    first = ServiceProcess(tmp_path, data).start()
+    proxy = FreezableProxy(first.zenoh_port)
+    robot = Robot(proxy, "restart", scans, 1000)
+    second: ServiceProcess | None = None
+    try:
+        robot.start()
+        robot.wait_sent(60)
+        assert first.proc is not None
+        first.proc.kill()  # no snapshot, no goodbye: what was not journaled is gone from the service
+        first.proc.wait(10)
+        second = ServiceProcess(tmp_path, data)
+        proxy.target_port = second.zenoh_port
+        second.start()  # the robot published on meanwhile: its backlog grew
+        robot.finish()
+        with httpx.Client(base_url=second.base_url, timeout=10) as http:
+            wait_integrated(http, "restart", len(scans), timeout=30)
+            time.sleep(0.5)  # nothing more may come (a double integration would show now)
+            state = robot_stats(http, "restart", "r1")
+            assert (state["scans_integrated"], state["lost"], state["dropped"]) == (len(scans), 0, 0), state
+            assert state["restarts"] == 0 and state["last_seq"] == len(scans) - 1
+            assert state["duplicates"] > 0  # the history fetch replayed what the first one had
+            assert map_stats(http, "restart")["scans_integrated"] == len(scans)
+            assert_region_equal(http, "restart", engine_map(scans), LAYERS)
+    finally:
+        robot.pub.close()
+        proxy.close()
+        first.stop()
+        if second is not None:
+            second.stop()
+
+
+def test_a_burst_of_1000_recovered_scans_fits_the_ingest_queue(service: ServiceProcess) -> None:
+    """1000 scans published into a dead zone (as fast as possible), then the link comes back: they
+    arrive as one burst at network speed, far faster than they integrate, and the robot's queue
+    (1024 scans by default; it was 64) holds them all: none dropped."""
+    scans = scans_for(sim=5, beams=181, count=1010)
+    proxy = FreezableProxy(service.zenoh_port)
+    pub = ScanPublisher("burst", "r1", connect=[proxy.endpoint], backlog=1000)
+    try:
+        assert pub.wait_connected(20)
+        for seq in range(10):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            wait_integrated(http, "burst", 10, timeout=20)
+            proxy.cut()
+            wait_for(lambda: not pub.connected, 15, 0.01, "the robot to notice the cut")
+            for seq in range(10, len(scans)):
+                assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            assert pub.backlogged == 1000 and pub.dropped == 0
+            proxy.restore()
+            wait_integrated(http, "burst", len(scans), timeout=60)
+            state = robot_stats(http, "burst", "r1")
+            assert (state["scans_integrated"], state["lost"], state["dropped"]) == (len(scans), 0, 0), state
+            assert http.get("/healthz").json()["zenoh"]["rejected"].get("queue_full", 0) == 0
+    finally:
+        pub.close()
+        proxy.close()
+
+
+def test_scans_past_the_backlog_are_counted_as_unrecoverable(service: ServiceProcess) -> None:
+    """A dead zone longer than the backlog: 50 scans published into it with a backlog of 10. The
+    last 10 arrive; the 40 before them were pushed out of the robot's cache: the service counts them
+    as unrecoverable (`/healthz` zenoh.unrecoverable, `/metrics`) and as lost on the robot."""
+    scans = scans_for(sim=6, beams=181, count=60)
+    proxy = FreezableProxy(service.zenoh_port)
+    pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10)
+    try:
+        assert pub.wait_connected(20)
+        for seq in range(10):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            wait_integrated(http, "miss", 10, timeout=20)
+            assert zenoh_counters(http) == (0, 0)
+            proxy.cut()
+            wait_for(lambda: not pub.connected, 15, 0.01, "the robot to notice the cut")
+            for seq in range(10, 60):
+                pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            proxy.restore()
+            wait_integrated(http, "miss", 20, timeout=30)
+            wait_for(lambda: zenoh_counters(http) == (40, 40), 10, 0.05, "40 unrecoverable scans")
+            state = robot_stats(http, "miss", "r1")
+            assert (state["scans_integrated"], state["lost"], state["last_seq"]) == (20, 40, 59), state
+    finally:
+        pub.close()
+        proxy.close()
