@@ -98,10 +98,6 @@ class IngestStartError(RuntimeError):
     """The Zenoh session could not be opened; the message says why (no Rust source locations)."""
 
 
-#: `zenoh.rejected` counters in `status()`: the kind of each `MapRegistry.submit` refusal, by status.
-_REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
-
-
 def _clean_error(exc: BaseException) -> str:
     """A Zenoh error without the Rust source location it carries (' at /root/.cargo/...rs:123.')."""
     text = str(exc).strip()
@@ -333,7 +329,7 @@ class ZenohIngest:
         try:
             self.registry.submit(map_id, robot_id, wire)
         except IngestRejected as exc:
-            kind = _REFUSAL_KINDS.get(exc.status, "other")
+            kind = exc.kind
             with self._lock:
                 self.rejected[kind] += 1
             self._log.warning(

@@ -161,6 +161,10 @@ class Job:
     journaled: bool = False
 
 
+#: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
+REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
+
+
 class IngestRejected(Exception):
     """A scan refused before integration: `reason` says why; `status` suggests an HTTP status."""
 
@@ -168,6 +172,11 @@ class IngestRejected(Exception):
         super().__init__(reason)
         self.reason = reason
         self.status = status
+
+    @property
+    def kind(self) -> str:
+        """The refusal's kind for counters (`REFUSAL_KINDS`; `other` for any other status)."""
+        return REFUSAL_KINDS.get(self.status, "other")
 
 
 def _failure_site(exc: BaseException) -> str:

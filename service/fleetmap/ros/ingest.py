@@ -77,8 +77,6 @@ MAX_PUBLISHER_TOKENS = 4096
 ROOT_ROBOT_ID = "robot"
 #: The usual name of a robot's LaserScan topic (nav2's default): the robot id is its namespace alone.
 SCAN_TOPIC_NAME = "scan"
-#: `refused` counters in `status()` by IngestRejected status, as the native ingest counts them.
-_REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
 
 
 def robot_id_for(topic: str) -> str:
@@ -535,7 +533,7 @@ class RosScanIngest:
         try:
             self.registry.submit(self.map_id, robot_id, wire)
         except IngestRejected as exc:
-            kind = _REFUSAL_KINDS.get(exc.status, "other")
+            kind = exc.kind
             with self._lock:
                 self.refused[kind] += 1
             message = f"ROS scan seq {wire.seq} of {self.map_id}/{robot_id}: {exc.reason}"
