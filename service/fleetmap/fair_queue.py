@@ -6,7 +6,7 @@ at a time in arrival order while different sources proceed in parallel. A source
 only its own FIFO: `put` refuses its surplus at once (the caller counts it) and never blocks.
 Sources may belong to groups (a map's robots), each of which holds at most `per_group` items, so
 many sources of one group (a sender under many robot ids) cannot fill the whole queue and starve
-the other groups.
+the other groups. With a size per item, the items queued also hold at most `max_bytes` together.
 """
 
 from __future__ import annotations
@@ -26,6 +26,10 @@ class QueueClosed(Exception):
 
 
 class FairQueue(Generic[S, T]):
+    """Bounded FIFOs per source, served round-robin, one item of a source in flight at a time (see
+    the module docstring). `put` never blocks; `get` blocks until an item is ready or the queue is
+    closed and drained. The registry's sizes are `registry.QUEUE_PER_ROBOT` and `QUEUE_TOTAL`."""
+
     def __init__(
         self,
         per_source: int = 64,
@@ -54,7 +58,9 @@ class FairQueue(Generic[S, T]):
         self._cond = threading.Condition()
 
     def put(self, source: S, item: T) -> bool:
-        """Enqueue without blocking; False if the source's FIFO or the whole queue is full."""
+        """Enqueue without blocking. False, and nothing queued, when the source's FIFO is full
+        (`per_source`), its group's share is (`per_group`), the whole queue is (`total`), the item
+        would pass `max_bytes`, or the queue is closed."""
         with self._cond:
             if self._closed:
                 return False
