@@ -331,9 +331,16 @@ class ScanPublisher:
                 self._check_link()
 
     def _check_link(self) -> bool:
-        """With `_send_lock` held: start a hold when the link came up (the pre-open queue waits for
-        it too), send the queued scans when it is over. Returns whether scans are being held, so a
-        scan published now must wait in the queue behind them. With backlog 0 there is no hold."""
+        """With `_send_lock` held, the session open: start a hold when the link came up (the
+        pre-open queue waits for it too), send the queued scans when it is over. Returns whether
+        scans are being held, so a scan published now must wait in the queue behind them. With
+        backlog 0 there is no hold.
+
+        Queued scans outside a hold are sent whatever the link's state: down, they go to the
+        advanced publisher's cache, before the scan being published (a session that opened without
+        a link, as a peer's does, or whose link died before the first look). Left queued, they
+        would follow the newer scans the service fetches from the cache, which it takes for
+        duplicates. Sent while down, they stay counted in `backlogged`."""
         if not self.backlog:
             return False
         up = self.connected
@@ -342,23 +349,25 @@ class ScanPublisher:
             if up and not self._link_up:
                 self._hold_until = now + RECONNECT_HOLD_S
             self._link_up = up
-            if self._hold_until is None:
+            if self._hold_until is not None:
+                if now < self._hold_until:
+                    return True
+                self._hold_until = None
+            if not self._pending:
                 return False
-            if now < self._hold_until:
-                return True
-            self._hold_until = None
             held = list(self._pending)
             self._pending.clear()
             publisher = self._publisher
-        assert publisher is not None  # the link was up: the session opened
+        assert publisher is not None  # the session opened
         sent = 0
         with contextlib.suppress(zenoh.ZError):  # close() raced: the rest are given up
             for payload in held:
                 publisher.put(payload)  # Zenoh's cache keeps it too, should the link die again
                 sent += 1
         with self._lock:
-            self.backlogged -= len(held)
-            self.published += sent
+            self.backlogged -= sent if up else 0
+            self.published += sent if up else 0
+            self.backlogged -= len(held) - sent
             self.dropped += len(held) - sent
         return False
 
