@@ -201,7 +201,8 @@ class ScanPublisher:
       cache, or waiting in the pre-open queue (`pending`). A dead zone that outlasts `backlog` scans
       loses the oldest of them all the same; the service counts those (unrecoverable, lost);
     * `dropped`: scans given up here: published while disconnected with `backlog=0`, pushed out of
-      the full pre-open queue (moved from `backlogged`), or refused by a session closing meanwhile.
+      the full pre-open queue (moved from `backlogged`), still in that queue at `close()` (moved too),
+      or refused by a session closing meanwhile.
 
     The session opens in the background (see the module docstring): use `wait_connected`.
     """
@@ -535,6 +536,9 @@ class ScanPublisher:
             publisher, self._publisher = self._publisher, None
             matching, self._matching = self._matching, None
             token, self._token = self._token, None
+            # Never sent now: given up (`dropped`), no longer kept for re-delivery (`backlogged`).
+            self.backlogged -= len(self._pending)
+            self.dropped += len(self._pending)
             self._pending.clear()
         for thing in (token, publisher, None if matching is publisher else matching):
             if thing is not None:
