@@ -422,7 +422,8 @@ class ScanPublisher:
 
     @property
     def pending(self) -> int:
-        """Scans published before the session opened, waiting to be sent when it opens."""
+        """Scans in the publisher's own queue: published before the session opened, or during the hold
+        after a (re)connection; sent when the hold ends (counted in `backlogged` meanwhile)."""
         return len(self._pending)
 
     @property
