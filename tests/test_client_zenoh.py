@@ -266,6 +266,19 @@ def test_publisher_started_before_the_router_keeps_its_scans_and_sends_them_firs
             router.stop()
 
 
+def test_closing_gives_up_the_queued_scans_and_counts_them_as_dropped(sim_scans: list[Scan]) -> None:
+    """Scans still in the publisher's queue when it is closed are never sent: `close()` moves them
+    from `backlogged` (kept for re-delivery) to `dropped` (given up), so that the counters still say
+    where every scan went."""
+    router = Router()  # not started: nothing listens on its port yet
+    pub = ScanPublisher("lab", "early", connect=[router.endpoint])
+    for scan in sim_scans[:3]:
+        assert pub.publish(scan) is True
+    assert (pub.pending, pub.backlogged, pub.dropped, pub.published) == (3, 3, 0, 0)
+    pub.close()
+    assert (pub.pending, pub.backlogged, pub.dropped, pub.published) == (0, 0, 3, 0)
+
+
 def test_publisher_without_backlog_drops_what_it_publishes_before_the_router_appears(
     sim_scans: list[Scan],
 ) -> None:
@@ -612,7 +625,9 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
 
 def test_sim_stops_on_request(router: Router) -> None:
     stop = threading.Event()
-    timer = threading.Timer(1.0, stop.set)
+    # The robot publishes once connected and past the 0.5 s hold after the connection: on a busy
+    # machine that took most of a 1 s timer, and the sim stopped before its first scan.
+    timer = threading.Timer(3.0, stop.set)
     timer.start()
     started = time.monotonic()
     result = run_sim(1, map_id="s", rate=20, seconds=None, connect=[router.endpoint], beams=91, stop=stop,

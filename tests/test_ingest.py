@@ -8,6 +8,7 @@ import logging
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -408,6 +409,44 @@ def test_config_file_is_loaded_first_and_arguments_apply_on_top(registry: MapReg
         session.close()
     finally:
         overridden.close()
+
+
+@pytest.mark.parametrize(
+    ("setting", "stamps", "warns"),
+    [("{ peer: false }", False, False), ("{ router: true }", True, True), ("true", True, True)],
+)
+def test_a_config_file_timestamps_only_when_it_says_so_for_the_services_mode(
+    registry: MapRegistry,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+    setting: str,
+    stamps: bool,
+    warns: bool,
+) -> None:
+    """`timestamping/enabled` set per mode for other modes than the service's (a router here) left
+    the service's own at Zenoh's default, which is on for a router: its session stamped every sample,
+    silently (no warning), and the advanced subscriber dropped plain publishers' scans. Unset for
+    the service's mode, it is switched off; set on for it, it stays on with a warning. Checked on a
+    real session: does a sample a client puts reach the service's session with a timestamp?"""
+    path = tmp_path / "zenoh.json5"
+    path.write_text(f"{{ timestamping: {{ enabled: {setting} }} }}\n")
+    ingest = ZenohIngest(registry, config_file=path, listen=[f"tcp/127.0.0.1:{free_port()}"])
+    with caplog.at_level(logging.WARNING, logger="fleetmap.ingest"):
+        session = zenoh.open(ingest.build_config())
+    assert ingest.mode == "router"
+    assert ("sets timestamping/enabled" in caplog.text) is warns
+    got: list[zenoh.Timestamp | None] = []
+    sub = session.declare_subscriber("ts/check", lambda sample: got.append(sample.timestamp))
+    client = client_session(ingest.listen[0])
+    try:
+        wait_for(lambda: client.info.routers_zid(), 10, 0.02, "the client to connect")
+        client.put("ts/check", b"x")
+        wait_for(lambda: got, 10, 0.02, "the sample")
+        assert (got[0] is not None) is stamps
+    finally:
+        client.close()
+        sub.undeclare()
+        session.close()
 
 
 def test_default_mode_is_a_router_on_the_default_endpoint(registry: MapRegistry) -> None:

@@ -22,10 +22,11 @@ from typing import Any
 
 import httpx
 import pytest
+import zenoh
 from fleetmap_client.publisher import ScanPublisher
 from prometheus_client.parser import text_string_to_metric_families
 from robot_process import scans_for
-from service_process import FreezableProxy, ServiceProcess, wait_for
+from service_process import FreezableProxy, ServiceProcess, free_port, wait_for
 from test_e2e import assert_region_equal, map_stats, wait_integrated
 
 from fleetmap import codec
@@ -227,3 +228,39 @@ def test_scans_past_the_backlog_are_counted_as_unrecoverable(service: ServicePro
     finally:
         pub.close()
         proxy.close()
+
+
+def test_a_peer_robot_sends_its_queued_scans_before_newer_ones(tmp_path: Path) -> None:
+    """A robot in peer mode: its session opens with nothing connected (a peer does not wait for its
+    endpoints). The scans published before it opened wait in the publisher's queue; those published
+    after it opened, still disconnected, go to the advanced publisher's cache. The queued ones must
+    go to the cache first: left queued until a (re)connection's hold ends, they reached the service
+    after the newer ones fetched from the cache, and the service took them for duplicates."""
+    scans = scans_for(sim=7, beams=181, count=10)
+    proxy = FreezableProxy(free_port())  # nothing listens there yet: every connection is closed
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    pub = ScanPublisher("peer", "r1", connect=[proxy.endpoint], zenoh_config=config)
+    service: ServiceProcess | None = None
+    try:
+        for seq in range(5):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        assert pub.pending == 5  # the peer's session is still trying its endpoint (about 1 s)
+        wait_for(pub._opened.is_set, 15, 0.01, "the peer session to open")
+        assert not pub.connected
+        for seq in range(5, 10):
+            assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        assert (pub.published, pub.backlogged, pub.dropped) == (0, 10, 0)
+        service = ServiceProcess(tmp_path, ["--in-memory"]).start()
+        proxy.target_port = service.zenoh_port
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            wait_for(lambda: map_stats(http, "peer").get("robots", {}).get("r1", {}).get("last_seq") == 9, 30)
+            time.sleep(1.0)  # the queued scans would follow the hold (0.5 s) and count as duplicates
+            state = robot_stats(http, "peer", "r1")
+            assert (state["scans_integrated"], state["lost"], state["duplicates"]) == (10, 0, 0), state
+            assert_region_equal(http, "peer", engine_map(scans), LAYERS)
+    finally:
+        pub.close()
+        proxy.close()
+        if service is not None:
+            service.stop()

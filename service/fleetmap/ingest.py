@@ -29,8 +29,9 @@ Session set-up (`start`):
    - `connect`: non-empty, it replaces the file's.
    - multicast scouting is switched off (robots find the service by its endpoint), unless the file
      sets `scouting/multicast/enabled` itself.
-   - timestamping is switched off, unless the file sets `timestamping/enabled` itself (then a
-     warning says why it should not; see below).
+   - timestamping is switched off, unless the file sets `timestamping/enabled` itself for the
+     session's mode (then a warning says why it should not; see below). Set per mode for other
+     modes only, it is switched off for this one (Zenoh's default would be on for a router).
 3. A scan subscriber on `fleetmap/*/*/scan` and a liveliness subscriber (with history, so robots
    already online are reported) on `fleetmap/*/*/alive` are declared.
 
@@ -216,6 +217,10 @@ class ZenohIngest:
             timestamping = json.loads(cfg.get_json("timestamping/enabled"))
             if timestamping is None:  # the file did not say
                 cfg.insert_json5("timestamping/enabled", "false")
+            elif isinstance(timestamping, dict) and timestamping.get(mode) is None:
+                # Said for other modes only: this mode's default (a router's: on) would apply.
+                modes = {k: v for k, v in timestamping.items() if v is not None} | {mode: False}
+                cfg.insert_json5("timestamping/enabled", json.dumps(modes))
             elif timestamping is True or (isinstance(timestamping, dict) and timestamping.get(mode)):
                 log.warning(
                     "the Zenoh configuration sets timestamping/enabled: with timestamps from this "

@@ -201,7 +201,8 @@ class ScanPublisher:
       cache, or waiting in the pre-open queue (`pending`). A dead zone that outlasts `backlog` scans
       loses the oldest of them all the same; the service counts those (unrecoverable, lost);
     * `dropped`: scans given up here: published while disconnected with `backlog=0`, pushed out of
-      the full pre-open queue (moved from `backlogged`), or refused by a session closing meanwhile.
+      the full pre-open queue (moved from `backlogged`), still in that queue at `close()` (moved too),
+      or refused by a session closing meanwhile.
 
     The session opens in the background (see the module docstring): use `wait_connected`.
     """
@@ -331,9 +332,16 @@ class ScanPublisher:
                 self._check_link()
 
     def _check_link(self) -> bool:
-        """With `_send_lock` held: start a hold when the link came up (the pre-open queue waits for
-        it too), send the queued scans when it is over. Returns whether scans are being held, so a
-        scan published now must wait in the queue behind them. With backlog 0 there is no hold."""
+        """With `_send_lock` held, the session open: start a hold when the link came up (the
+        pre-open queue waits for it too), send the queued scans when it is over. Returns whether
+        scans are being held, so a scan published now must wait in the queue behind them. With
+        backlog 0 there is no hold.
+
+        Queued scans outside a hold are sent whatever the link's state: down, they go to the
+        advanced publisher's cache, before the scan being published (a session that opened without
+        a link, as a peer's does, or whose link died before the first look). Left queued, they
+        would follow the newer scans the service fetches from the cache, which it takes for
+        duplicates. Sent while down, they stay counted in `backlogged`."""
         if not self.backlog:
             return False
         up = self.connected
@@ -342,23 +350,25 @@ class ScanPublisher:
             if up and not self._link_up:
                 self._hold_until = now + RECONNECT_HOLD_S
             self._link_up = up
-            if self._hold_until is None:
+            if self._hold_until is not None:
+                if now < self._hold_until:
+                    return True
+                self._hold_until = None
+            if not self._pending:
                 return False
-            if now < self._hold_until:
-                return True
-            self._hold_until = None
             held = list(self._pending)
             self._pending.clear()
             publisher = self._publisher
-        assert publisher is not None  # the link was up: the session opened
+        assert publisher is not None  # the session opened
         sent = 0
         with contextlib.suppress(zenoh.ZError):  # close() raced: the rest are given up
             for payload in held:
                 publisher.put(payload)  # Zenoh's cache keeps it too, should the link die again
                 sent += 1
         with self._lock:
-            self.backlogged -= len(held)
-            self.published += sent
+            self.backlogged -= sent if up else 0
+            self.published += sent if up else 0
+            self.backlogged -= len(held) - sent
             self.dropped += len(held) - sent
         return False
 
@@ -412,7 +422,8 @@ class ScanPublisher:
 
     @property
     def pending(self) -> int:
-        """Scans published before the session opened, waiting to be sent when it opens."""
+        """Scans in the publisher's own queue: published before the session opened, or during the hold
+        after a (re)connection; sent when the hold ends (counted in `backlogged` meanwhile)."""
         return len(self._pending)
 
     @property
@@ -526,6 +537,9 @@ class ScanPublisher:
             publisher, self._publisher = self._publisher, None
             matching, self._matching = self._matching, None
             token, self._token = self._token, None
+            # Never sent now: given up (`dropped`), no longer kept for re-delivery (`backlogged`).
+            self.backlogged -= len(self._pending)
+            self.dropped += len(self._pending)
             self._pending.clear()
         for thing in (token, publisher, None if matching is publisher else matching):
             if thing is not None:
