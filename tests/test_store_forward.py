@@ -70,6 +70,19 @@ def zenoh_counters(http: httpx.Client) -> tuple[int, float]:
     return healthz, metric
 
 
+def publish_then_cut(
+    pub: ScanPublisher, proxy: FreezableProxy, http: httpx.Client, map_id: str, scans: list[Scan], first: int
+) -> None:
+    """Publish scans 0 .. `first` - 1 over a live link, wait until the service integrated them, then
+    cut the link and wait until the robot notices: what it publishes next goes into the dead zone."""
+    assert pub.wait_connected(20)
+    for seq in range(first):
+        pub.publish(scans[seq], seq=seq, stamp=float(seq))
+    wait_integrated(http, map_id, first, timeout=20)
+    proxy.cut()
+    wait_for(lambda: not pub.connected, 15, 0.01, "the robot to notice the cut")
+
+
 class Robot:
     """A robot publishing `scans` (seq k = scan k, stamp k) at `RATE` from a thread, through `proxy`."""
 
@@ -182,13 +195,8 @@ def test_a_burst_of_1000_recovered_scans_fits_the_ingest_queue(service: ServiceP
     proxy = FreezableProxy(service.zenoh_port)
     pub = ScanPublisher("burst", "r1", connect=[proxy.endpoint], backlog=1000)
     try:
-        assert pub.wait_connected(20)
-        for seq in range(10):
-            pub.publish(scans[seq], seq=seq, stamp=float(seq))
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
-            wait_integrated(http, "burst", 10, timeout=20)
-            proxy.cut()
-            wait_for(lambda: not pub.connected, 15, 0.01, "the robot to notice the cut")
+            publish_then_cut(pub, proxy, http, "burst", scans, 10)
             for seq in range(10, len(scans)):
                 assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
             assert pub.backlogged == 1000 and pub.dropped == 0
@@ -210,14 +218,9 @@ def test_scans_past_the_backlog_are_counted_as_unrecoverable(service: ServicePro
     proxy = FreezableProxy(service.zenoh_port)
     pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10)
     try:
-        assert pub.wait_connected(20)
-        for seq in range(10):
-            pub.publish(scans[seq], seq=seq, stamp=float(seq))
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
-            wait_integrated(http, "miss", 10, timeout=20)
             assert zenoh_counters(http) == (0, 0)
-            proxy.cut()
-            wait_for(lambda: not pub.connected, 15, 0.01, "the robot to notice the cut")
+            publish_then_cut(pub, proxy, http, "miss", scans, 10)
             for seq in range(10, 60):
                 pub.publish(scans[seq], seq=seq, stamp=float(seq))
             proxy.restore()
