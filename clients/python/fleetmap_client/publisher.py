@@ -365,11 +365,12 @@ class ScanPublisher:
             for payload in held:
                 publisher.put(payload)  # Zenoh's cache keeps it too, should the link die again
                 sent += 1
+        delivered = sent if up else 0  # sent while down, they wait in the cache: still backlogged
+        given_up = len(held) - sent
         with self._lock:
-            self.backlogged -= sent if up else 0
-            self.published += sent if up else 0
-            self.backlogged -= len(held) - sent
-            self.dropped += len(held) - sent
+            self.backlogged -= delivered + given_up
+            self.published += delivered
+            self.dropped += given_up
         return False
 
     @property
