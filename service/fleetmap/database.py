@@ -18,7 +18,8 @@ LOCK_NAME = "fleetmap.lock"
 #: older service refuses the directory instead of misreading it or writing what the newer one
 #: misreads. Directories written before it was recorded hold 0 and are this layout. (The journal's
 #: `session` column came later within version 1: added to a database without it at start (`_migrate`),
-#: and an older service, which names the columns it reads and writes, works on it as before.)
+#: and an older service, which names the columns it reads and writes, works on it as before. So did
+#: the `tombstones` table, created at start where it is missing, which an older service ignores.)
 SCHEMA_VERSION = 1
 #: Refuse to start with less free space than this in the data directory.
 MIN_FREE_BYTES = 64 * 1024 * 1024
@@ -58,6 +59,13 @@ CREATE TABLE IF NOT EXISTS journal (
     session INTEGER  -- the publisher's session id (`ScanMessage.session`); NULL: it sent none
 );
 CREATE INDEX IF NOT EXISTS journal_map ON journal (map_id, id);
+CREATE TABLE IF NOT EXISTS tombstones (  -- robots of deleted and replaced maps (`tombstones.py`)
+    map_id TEXT NOT NULL,
+    robot_id TEXT NOT NULL,
+    deleted_at REAL NOT NULL,
+    sessions TEXT NOT NULL,  -- JSON: publisher session id -> the last seq the service had
+    PRIMARY KEY (map_id, robot_id)
+);
 """
 
 

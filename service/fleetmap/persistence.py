@@ -29,7 +29,7 @@ import sqlite3
 import threading
 import time
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +42,7 @@ from fleetmap.grid_map import GridMap
 from fleetmap.journal import JournalEntry, JournalWriter
 from fleetmap.scan import Scan
 from fleetmap.storage_format import scan_from_blob, tile_from_blob, tile_to_blob
+from fleetmap.tombstones import MAX_TOMBSTONES, Tombstone, forgotten_before
 
 log = logging.getLogger("fleetmap.persistence")
 
@@ -63,6 +64,18 @@ def _delete_map_rows(conn: sqlite3.Connection, map_id: str) -> None:
     """Inside an open transaction, delete everything stored of map `map_id` but its row in `maps`."""
     for table in MAP_TABLES:
         conn.execute(f"DELETE FROM {table} WHERE map_id = ?", (map_id,))
+
+
+def _bury(conn: sqlite3.Connection, buried: Sequence[Tombstone]) -> None:
+    """Inside an open transaction, store the tombstones `buried` (replacing a robot's earlier one:
+    `Tombstones.bury` merged them) and delete those past `TOMBSTONE_DAYS`."""
+    if not buried:
+        return
+    conn.executemany(
+        "INSERT OR REPLACE INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES (?, ?, ?, ?)",
+        [(t.map_id, t.robot_id, t.deleted_at, t.sessions_json()) for t in buried],
+    )
+    conn.execute("DELETE FROM tombstones WHERE deleted_at < ?", (forgotten_before(time.time()),))
 
 
 def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int, list[np.ndarray]]]:
@@ -257,6 +270,25 @@ class DurableStore:
         finally:
             conn.close()
 
+    def load_tombstones(self) -> list[Tombstone]:
+        """The robots of deleted and replaced maps still remembered (`tombstones.py`); those past
+        `TOMBSTONE_DAYS`, or the oldest past `MAX_TOMBSTONES`, are deleted from the database here."""
+        conn = connect(self.path)
+        try:
+            with conn:
+                conn.execute("DELETE FROM tombstones WHERE deleted_at < ?", (forgotten_before(time.time()),))
+                conn.execute(
+                    "DELETE FROM tombstones WHERE rowid IN (SELECT rowid FROM tombstones "
+                    "ORDER BY deleted_at DESC LIMIT -1 OFFSET ?)",
+                    (MAX_TOMBSTONES,),
+                )
+            rows = conn.execute("SELECT map_id, robot_id, deleted_at, sessions FROM tombstones").fetchall()
+            return [Tombstone.from_row(*row) for row in rows]
+        except (sqlite3.DatabaseError, ValueError) as exc:
+            raise unreadable_database(self.path, None, exc) from None
+        finally:
+            conn.close()
+
     def _load_map(
         self,
         conn: sqlite3.Connection,
@@ -328,10 +360,17 @@ class DurableStore:
             for key, slot in store.slots.items()
         ]
 
-    def map_created(self, map_id: str, gmap: GridMap, tiles: list[TileRow] | None = None) -> Future:
+    def map_created(
+        self,
+        map_id: str,
+        gmap: GridMap,
+        tiles: list[TileRow] | None = None,
+        buried: Sequence[Tombstone] = (),
+    ) -> Future:
         """Record a new map (or one restored from a snapshot file, with its tiles: `tile_rows`, made
-        here when not given). Queued, not waited for: called under the registry's lock, it is
-        ordered before any of the map's scans. The future resolves once the map is committed.
+        here when not given), and `buried`, the robots of the map it replaces (`Tombstones.bury`).
+        Queued, not waited for: called under the registry's lock, it is ordered before any of the
+        map's scans. The future resolves once the map is committed.
 
         The map's journal starts after the journal's current sequence, so rows a deleted map of the
         same id left behind are never replayed into this one. (The registry queues no row of a removed
@@ -366,14 +405,16 @@ class DurableStore:
                 "INSERT INTO tiles (map_id, ti, tj, gen, version, data) VALUES (?, ?, ?, ?, ?, ?)",
                 [(map_id, k[0], k[1], gen, v, b) for k, v, b in tiles],
             )
+            _bury(conn, buried)
             conn.execute("COMMIT")
             self._last_journal_id[map_id] = 0
 
         return self.writer.change_map(map_id, self._reporting(f"storing the new map {map_id!r} failed", op))
 
-    def map_deleted(self, map_id: str) -> Future:
-        """Forget a map. Queued after its journaled scans, not waited for; the future resolves once
-        the deletion is committed."""
+    def map_deleted(self, map_id: str, buried: Sequence[Tombstone] = ()) -> Future:
+        """Forget a map, and remember `buried`, its robots (`Tombstones.bury`), in the same
+        transaction. Queued after its journaled scans, not waited for; the future resolves once the
+        deletion is committed."""
 
         def op(conn: sqlite3.Connection) -> None:
             self.writer.trim(map_id, None)  # the DELETE below removes them all
@@ -381,6 +422,7 @@ class DurableStore:
             conn.execute("BEGIN IMMEDIATE")
             conn.execute("DELETE FROM maps WHERE id = ?", (map_id,))
             _delete_map_rows(conn, map_id)
+            _bury(conn, buried)
             conn.execute("COMMIT")
 
         # Everything kept per map id goes with it: maps are created and deleted under new ids for

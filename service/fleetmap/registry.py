@@ -44,6 +44,7 @@ from fleetmap.robot_state import CONFLICT_SHOWN, RobotState, session_key
 from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
+from fleetmap.tombstones import Tombstones
 from fleetmap.wire import is_valid_id
 
 log = logging.getLogger("fleetmap.registry")
@@ -241,6 +242,9 @@ class MapRegistry:
         #: (map id, robot id) of every liveliness token present (`set_online`), whether or not its map
         #: exists: a map created or installed under that id later shows those robots online at once.
         self._alive: set[tuple[str, str]] = set()
+        #: The robots of deleted and replaced maps, so that copies of their old scans (a robot's cache,
+        #: fetched after a restart) and their tokens do not bring those maps back.
+        self.tombstones = Tombstones()
         # One line per robot per CONFLICT_SHOWN while its id conflict goes on (a scan of each says so).
         self._conflict_log = RateLimitedLog(log, interval=CONFLICT_SHOWN)
         # Maps created by a scan and removed again when it is refused: anyone who can publish (a Zenoh
@@ -287,6 +291,7 @@ class MapRegistry:
 
     def _restore(self) -> None:
         assert self.durable is not None
+        self.tombstones = Tombstones(self.durable.load_tombstones(), now=time.time())
         for map_id, gmap, counters, journal in self.durable.load():
             entry = MapEntry(map_id, gmap, next(self._generations))
             entry.scans_integrated = counters["scans_integrated"]
@@ -441,12 +446,14 @@ class MapRegistry:
             if expect is not None:
                 expect(old)
             dropped = self._retire(old) if old is not None else []
+            # The old map's robots' cached scans must not go into the upload either.
+            buried = self.tombstones.bury(map_id, old.robots, time.time()) if old is not None else []
             entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
             self._add(entry)
             if old is not None:
                 old.replaced_by = entry
             if self.durable is not None:
-                stored = self.durable.map_created(map_id, gmap, tiles)
+                stored = self.durable.map_created(map_id, gmap, tiles, buried=buried)
         for job in dropped:
             self._finish_gone(job)
         log.info(
@@ -486,8 +493,9 @@ class MapRegistry:
                 if expect is not None:
                     expect(old)
                 dropped = self._retire(old)
+                buried = self.tombstones.bury(map_id, old.robots, time.time())
                 if self.durable is not None:
-                    stored = self.durable.map_deleted(map_id)
+                    stored = self.durable.map_deleted(map_id, buried)
         for job in dropped:
             self._finish_gone(job)
         log.info("deleted map %s", map_id, extra={"map_id": map_id})
@@ -571,6 +579,16 @@ class MapRegistry:
         _check_id("robot id", robot_id)
         with self.lock:
             entry = self.maps.get(map_id)
+            stone = self.tombstones.covers(map_id, robot_id, wire.session, wire.seq)
+            if stone is not None:
+                robot = entry.robots.get(robot_id) if entry is not None else None
+                if robot is not None:
+                    robot.duplicates += 1
+                raise IngestRejected(
+                    f"seq {wire.seq} is from before map {map_id!r} was deleted or replaced (the service "
+                    f"had seq {stone.sessions[session_key(wire.session)]} of this publisher then): ignored",
+                    200,
+                )
             if entry is None:
                 if not self.auto_create:
                     raise IngestRejected(f"no map {map_id!r} (auto-create is off)", 404)
@@ -674,6 +692,8 @@ class MapRegistry:
             if entry is None:
                 if not (online and self.auto_create) or len(self.maps) >= self.max_auto_maps:
                     return
+                if self.tombstones.buried(map_id, robot_id):
+                    return  # its map was deleted under it: a token seen again (a restart) is no new robot
                 entry, _ = self.create(map_id)
             elif online:
                 entry.provisional = False  # the token would have created the map: it stays

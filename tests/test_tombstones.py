@@ -1,0 +1,183 @@
+"""A deleted or replaced map stays so: the registry remembers its robots' publisher sessions
+(`Tombstones`), in memory and in the database, so that copies of their old scans (a robot's cache,
+fetched again after a restart) and their liveliness tokens do not bring it back.
+
+The registry runs in the test process here, on a real `DurableStore` (SQLite in a temporary data
+directory): "a restart" is a second registry on the same directory after the first closed.
+tests/test_store_forward.py runs the same story end to end (the real service, a robot's real cache).
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from robot_process import scans_for
+
+from fleetmap import tombstones
+from fleetmap.codec import WireScan
+from fleetmap.database import DB_NAME
+from fleetmap.persistence import DurableStore
+from fleetmap.registry import IngestRejected, MapRegistry
+from fleetmap.robot_state import RobotState
+from fleetmap.tombstones import Tombstone, Tombstones
+
+SESSION = 7_000_000_000_123  # a publisher session id (64-bit, as `ScanPublisher` makes them)
+SCANS = scans_for(sim=3, beams=61, count=12)
+
+
+def wire(seq: int, session: int | None = SESSION) -> WireScan:
+    return WireScan(seq, float(seq), SCANS[seq % len(SCANS)], session)
+
+
+@pytest.fixture
+def data(tmp_path: Path) -> Path:
+    return tmp_path / "data"
+
+
+def registry(data: Path) -> MapRegistry:
+    reg = MapRegistry(durable=DurableStore(data))
+    reg.start()
+    return reg
+
+
+@pytest.fixture
+def restarted(data: Path) -> Iterator[MapRegistry]:
+    """A registry that fed map `m` scans 0-4 of robot `r` (session `SESSION`) and `other`'s scan 0
+    without a session, deleted it, closed; then a new registry on the same data directory."""
+    first = registry(data)
+    for seq in range(5):
+        first.submit("m", "r", wire(seq))
+    first.submit("m", "other", wire(0, session=None))
+    assert first.wait_idle()
+    first.delete("m", wait=True)
+    first.close()
+    again = registry(data)
+    yield again
+    again.close()
+
+
+def refusal(reg: MapRegistry, map_id: str, robot_id: str, scan: WireScan) -> IngestRejected:
+    with pytest.raises(IngestRejected) as caught:
+        reg.submit(map_id, robot_id, scan)
+    return caught.value
+
+
+def test_old_scans_of_a_deleted_map_are_ignored_after_a_restart(restarted: MapRegistry) -> None:
+    for seq in range(5):
+        refused = refusal(restarted, "m", "r", wire(seq))
+        assert refused.status == 200 and refused.kind == "duplicate"
+        assert "from before map 'm' was deleted or replaced" in refused.reason
+        assert "had seq 4" in refused.reason
+    assert "m" not in restarted.maps  # no scan of them created the map again
+
+
+def test_a_new_scan_or_session_or_a_scan_without_session_makes_a_new_map(restarted: MapRegistry) -> None:
+    restarted.submit("m", "r", wire(5))  # newer than what the service had
+    assert restarted.wait_idle()
+    robot = restarted.get("m").robots["r"]
+    assert (robot.scans_integrated, robot.last_seq, robot.lost) == (1, 5, 0)
+    refused = refusal(restarted, "m", "r", wire(3))  # the old ones stay ignored beside the new map
+    assert refused.status == 200
+    assert restarted.get("m").robots["r"].duplicates == 1  # counted on the robot, which exists now
+    restarted.submit("m", "r", wire(0, session=SESSION + 1))  # the robot's process restarted
+    restarted.submit("m", "other", wire(0, session=None))  # never re-delivered: not covered
+    assert restarted.wait_idle()
+    assert restarted.get("m").scans_integrated == 3
+
+
+def test_a_token_of_a_buried_robot_creates_no_map_but_another_robots_does(restarted: MapRegistry) -> None:
+    restarted.set_online("m", "r", True)  # seen again: the service restarted, or its link came back
+    restarted.set_online("m", "other", True)  # buried too, though it sent no session id
+    assert "m" not in restarted.maps
+    restarted.set_online("m", "new", True)
+    assert restarted.get("m").robots["new"].online
+    restarted.submit("m", "r", wire(6))  # the buried robot is shown online once its map exists again
+    assert restarted.wait_idle()
+    assert restarted.get("m").robots["r"].scans_integrated == 1
+
+
+def test_the_robots_of_a_replaced_map_are_buried(data: Path) -> None:
+    reg = registry(data)
+    try:
+        for seq in range(3):
+            reg.submit("m", "r", wire(seq))
+        assert reg.wait_idle()
+        uploaded = reg.get("m").gmap  # (any map will do: the old one, installed again)
+        reg.replace("m", uploaded, wait=True)
+        assert refusal(reg, "m", "r", wire(2)).status == 200
+        assert "r" not in reg.get("m").robots
+    finally:
+        reg.close()
+    again = registry(data)
+    try:
+        assert refusal(again, "m", "r", wire(1)).status == 200
+        assert again.get("m").scans_integrated == 0
+    finally:
+        again.close()
+
+
+def test_a_map_deleted_twice_remembers_every_session_and_the_higher_seq(data: Path) -> None:
+    reg = registry(data)
+    try:
+        for seq in range(4):
+            reg.submit("m", "r", wire(seq))
+        assert reg.wait_idle()
+        reg.delete("m", wait=True)
+        reg.submit("m", "r", wire(8))  # the robot goes on: a new map
+        reg.submit("m", "r", wire(0, session=SESSION + 1))  # and another process of it
+        assert reg.wait_idle()
+        reg.delete("m", wait=True)
+        assert reg.tombstones.covers("m", "r", SESSION, 8) is not None
+        assert reg.tombstones.covers("m", "r", SESSION, 9) is None
+        assert reg.tombstones.covers("m", "r", SESSION + 1, 0) is not None
+    finally:
+        reg.close()
+    db = sqlite3.connect(data / DB_NAME)
+    rows = db.execute("SELECT map_id, robot_id, sessions FROM tombstones").fetchall()
+    db.close()
+    assert rows == [("m", "r", f'{{"{SESSION}": 8, "{SESSION + 1}": 0}}')]
+
+
+def test_tombstones_past_their_days_are_forgotten_at_start(data: Path) -> None:
+    DurableStore(data).close()  # the schema
+    now = time.time()
+    db = sqlite3.connect(data / DB_NAME)
+    db.executemany(
+        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES (?, ?, ?, ?)",
+        [
+            ("old", "r", now - (tombstones.TOMBSTONE_DAYS + 1) * 86400, f'{{"{SESSION}": 9}}'),
+            ("recent", "r", now - (tombstones.TOMBSTONE_DAYS - 1) * 86400, f'{{"{SESSION}": 9}}'),
+        ],
+    )
+    db.commit()
+    db.close()
+    reg = registry(data)
+    try:
+        assert reg.tombstones.covers("old", "r", SESSION, 9) is None
+        assert reg.tombstones.covers("recent", "r", SESSION, 9) is not None
+        reg.submit("old", "r", wire(9))  # its map comes back: a month is what the docs promise
+        assert reg.wait_idle()
+    finally:
+        reg.close()
+    db = sqlite3.connect(data / DB_NAME)
+    assert [r[0] for r in db.execute("SELECT map_id FROM tombstones")] == ["recent"]
+    db.close()
+
+
+def test_at_most_max_tombstones_are_kept_the_oldest_forgotten(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(tombstones, "MAX_TOMBSTONES", 3)
+    state = RobotState()
+    state.accept(4, 4.0, SESSION)
+    stones = Tombstones()
+    for k in range(5):
+        stones.bury(f"m{k}", {"r": state}, now=1000.0 + k)
+    assert len(stones) == 3
+    assert [stones.buried(f"m{k}", "r") for k in range(5)] == [False, False, True, True, True]
+    loaded = Tombstones(
+        [Tombstone(f"m{k}", "r", 1000.0 + k, {SESSION: 4}) for k in (4, 0, 2, 1, 3)], now=1005.0
+    )
+    assert [loaded.buried(f"m{k}", "r") for k in range(5)] == [False, False, True, True, True]
