@@ -267,3 +267,65 @@ def test_a_peer_robot_sends_its_queued_scans_before_newer_ones(tmp_path: Path) -
         proxy.close()
         if service is not None:
             service.stop()
+
+
+@pytest.mark.parametrize("how", ["deleted", "replaced"])
+def test_a_deleted_map_stays_deleted_when_the_restarted_service_fetches_the_robots_cache(
+    tmp_path: Path, how: str
+) -> None:
+    """A robot publishes 40 scans, which the service integrates; the map is deleted (or replaced by
+    an upload of an empty map), the robot's publisher stays open with those scans in its cache, and
+    the service restarts. The new service fetches the cache (history of a publisher it has not
+    heard): those 40 scans are from before the deletion and are ignored, and the robot's liveliness
+    token, seen again, creates nothing, so the map stays deleted (or as uploaded). Without the
+    tombstones the deleted map came back with its 40 old scans. The robot's next scans go through:
+    a new map of just those."""
+    data = ["--data-dir", str(tmp_path / "data")]
+    scans = scans_for(sim=8, beams=181, count=50)
+    first = ServiceProcess(tmp_path, data).start()
+    proxy = FreezableProxy(first.zenoh_port)
+    pub = ScanPublisher("gone", "r1", connect=[proxy.endpoint], backlog=1000)
+    second: ServiceProcess | None = None
+    try:
+        assert pub.wait_connected(20)
+        for seq in range(40):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        with httpx.Client(base_url=first.base_url, timeout=10) as http:
+            wait_integrated(http, "gone", 40, timeout=30)
+            if how == "deleted":
+                assert http.delete("/maps/gone").status_code == 204
+            else:  # the map replaced by an upload of itself: the same cells, its robots gone
+                snapshot = http.get("/maps/gone/snapshot").content
+                put = http.put("/maps/gone/snapshot", content=snapshot)
+                assert put.status_code == 200, put.text
+        assert first.stop() == 0
+        second = ServiceProcess(tmp_path, data)
+        proxy.target_port = second.zenoh_port
+        second.start()
+        with httpx.Client(base_url=second.base_url, timeout=10) as http:
+
+            def refused() -> int:
+                return int(http.get("/healthz").json()["zenoh"]["rejected"].get("duplicate", 0))
+
+            wait_for(lambda: refused() >= 40, 30, 0.05, "the 40 cached scans fetched and ignored")
+            time.sleep(0.5)  # (what the fetch brought in would be integrated by now)
+            if how == "deleted":
+                assert http.get("/maps/gone").status_code == 404, http.get("/maps").json()
+            else:
+                stats = map_stats(http, "gone")
+                # (the robot is shown, online by its token, with none of its old scans)
+                assert stats["scans_integrated"] == 0 and stats["robots"]["r1"]["last_seq"] is None, stats
+                assert_region_equal(http, "gone", engine_map(scans[:40]), LAYERS)
+            for seq in range(40, 50):
+                pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            wait_integrated(http, "gone", 10, timeout=30)
+            state = robot_stats(http, "gone", "r1")
+            assert (state["scans_integrated"], state["last_seq"]) == (10, 49), state
+            if how == "deleted":  # a new map of the 10 new scans only
+                assert_region_equal(http, "gone", engine_map(scans[40:]), LAYERS)
+    finally:
+        pub.close()
+        proxy.close()
+        first.stop()
+        if second is not None:
+            second.stop()
