@@ -131,6 +131,27 @@ def test_scan_creates_map_unless_auto_create_is_off(api: RunningApi) -> None:
         assert r.status_code == 200 and r.json()["cell_updates"] > 0
 
 
+def test_a_scan_from_before_its_map_was_deleted_is_a_duplicate_and_creates_no_map(api: RunningApi) -> None:
+    """A robot's scan sent again after its map was deleted (a retry, a copy from its cache) is from
+    before the deletion: 200 `duplicate`, no map made. Its next scan makes a new map."""
+    scan = fan_scan(0, 0, 0, [1.0] * 31)
+
+    def post(seq: int) -> httpx.Response:
+        return api.client.post(
+            "/maps/buried/scans", params={"robot_id": "r1"}, content=encode_binary(scan, seq, session=99),
+            headers={"content-type": BINARY_ENCODING},
+        )  # fmt: skip
+
+    assert [post(seq).json()["status"] for seq in range(3)] == ["integrated"] * 3
+    assert api.client.delete("/maps/buried").status_code == 204
+    r = post(2)
+    assert r.status_code == 200 and r.json()["status"] == "duplicate", r.text
+    assert "from before map 'buried' was deleted" in r.json()["detail"]
+    assert api.client.get("/maps/buried").status_code == 404
+    assert post(3).json()["status"] == "integrated"
+    assert api.client.get("/maps/buried").json()["stats"]["scans_integrated"] == 1
+
+
 def test_a_negative_reading_is_ignored_and_the_scan_integrated(api: RunningApi) -> None:
     """Negative readings (error codes in some drivers) are below range_min: ignored, as NaN is,
     while the scan's other beams are integrated. They used to make the whole scan a 422."""
