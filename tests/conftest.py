@@ -21,7 +21,7 @@ def compiled_kernels() -> None:
     A fresh clone has no cache, and the first integration compiles for about 10 s on the CI
     machine. Tests that time integration (queue and timeout tests, in-process APIs) would otherwise
     absorb that compile in whichever runs first. Service subprocesses load what this writes."""
-    from fleetmap.server import warm_up
+    from fleetmap.warm_up import warm_up
 
     warm_up()
 

@@ -507,9 +507,9 @@ def test_errors_carry_the_server_detail(client: FleetmapClient, scans: list[Scan
 
 
 def test_api_tokens(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import fleetmap.server
+    import fleetmap.serve_options
 
-    if "--auth-tokens" not in Path(fleetmap.server.__file__).read_text():
+    if "--auth-tokens" not in Path(fleetmap.serve_options.__file__).read_text():
         pytest.skip("this fleetmap serve has no --auth-tokens option")
     writer, reader = "w" * 8 + "-secret-token-1", "r" * 8 + "-secret-token-2"
     tokens = tmp_path / "tokens"

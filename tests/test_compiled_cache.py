@@ -104,7 +104,7 @@ _FIRST_SCANS_AFTER_WARM_UP = (
     LOADED_KERNELS
     + """
 import numpy as np
-from fleetmap.server import warm_up
+from fleetmap.warm_up import warm_up
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Scan

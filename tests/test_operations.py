@@ -28,7 +28,7 @@ import zenoh
 from prometheus_client.parser import text_string_to_metric_families
 from service_process import ServiceProcess, free_port, reaped, wait_for
 
-from fleetmap import server
+from fleetmap import serve_environment, server
 from fleetmap.database import DB_NAME
 from fleetmap.memory_budget import MemoryBudget
 from fleetmap.registry import QUEUE_TOTAL
@@ -326,7 +326,7 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
         else:  # text, or a size (--max-memory)
             argv, text = [option, "1GiB"], "1GiB"
         defaults = serve_options([], {}, monkeypatch)
-        from_variable = serve_options([], {server.env_name(action): text}, monkeypatch)
+        from_variable = serve_options([], {serve_environment.env_name(action): text}, monkeypatch)
         assert from_variable == serve_options(argv, {}, monkeypatch) != defaults, option
 
 

@@ -231,7 +231,7 @@ def test_ros_options_repeat_come_from_the_environment_and_the_command_line_wins(
     defaults = serve_namespace([], {}, monkeypatch)
     assert defaults.ros_publish_map == [] and defaults.ros_domain is None  # $ROS_DOMAIN_ID, else 0
     assert (defaults.ros_map_frame, defaults.ros_map_period, defaults.ros_distro) == (None, 1.0, "jazzy")
-    from fleetmap.server import ros_map_frame
+    from fleetmap.serve_ros import ros_map_frame
 
     # The grids' frame: --ros-map-frame, else for the map --ros-scans builds the frame it builds it
     # in, else map. Another map (native robots') is not in --ros-fixed-frame: before, it was
@@ -255,12 +255,12 @@ def test_ros_options_repeat_come_from_the_environment_and_the_command_line_wins(
     assert serve_namespace(argv, {}, monkeypatch).ros_publish_map == expected
     # The domain of both directions: --ros-domain, else ROS's own variable, else 0; it may be given
     # with --ros-publish-map alone.
-    from fleetmap import server
+    from fleetmap.serve_ros import ros_domain, ros_options
 
     options = serve_namespace([*argv, "--ros-domain", "4"], {}, monkeypatch)
-    assert server.ros_options(options) is None and server.ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 4
+    assert ros_options(options) is None and ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 4
     options = serve_namespace(argv, {}, monkeypatch)
-    assert server.ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 7 and server.ros_domain(options, {}) == 0
+    assert ros_domain(options, {"ROS_DOMAIN_ID": "7"}) == 7 and ros_domain(options, {}) == 0
     env = {"FLEETMAP_ROS_PUBLISH_MAP": "lab wh=/wh/map b=/b", "FLEETMAP_ROS_DOMAIN": "3"}
     options = serve_namespace([], env, monkeypatch)
     assert options.ros_publish_map == expected and options.ros_domain == 3

@@ -1,6 +1,7 @@
-"""Map tiles (fleetmap.tile_render): the Leaflet CRS.Simple tile convention, pixel placement at every
-zoom (negative cell and tile indices included), zoomed-out aggregation that keeps walls, colours of
-every layer, versions / ETags, and the rendered-tile cache.
+"""Map tiles (fleetmap.tile_render, with tile_reduce, tile_colours, png and tile_cache): the Leaflet
+CRS.Simple tile convention, pixel placement at every zoom (negative cell and tile indices included),
+zoomed-out aggregation that keeps walls, colours of every layer, versions / ETags, and the
+rendered-tile cache.
 
 Maps are real GridMaps fed real Scans; PNGs are decoded with Pillow. The pixel a cell should land on
 is computed here from the documented convention, independently of the module's code.
@@ -17,17 +18,17 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fleetmap import tile_render
+from fleetmap import tile_cache
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import REGION_LAYERS, STATE_OCCUPIED, GridMap
 from fleetmap.registry import MapEntry
 from fleetmap.scan import Scan
+from fleetmap.tile_cache import TileCache
 from fleetmap.tile_render import (
     EMPTY_PNG,
     MAX_ZOOM,
     MIN_ZOOM,
     TILE_PX,
-    TileCache,
     TileError,
     render_tile,
     tile_version,
@@ -332,13 +333,13 @@ def test_version_changes_only_for_tiles_under_a_change() -> None:
 def counted_renders(monkeypatch: pytest.MonkeyPatch) -> list[tuple]:
     """Records every real render the cache triggers (a spy around the real renderer, not a mock)."""
     calls: list[tuple] = []
-    real = tile_render.render_tile_versioned
+    real = tile_cache.render_tile_versioned
 
     def spy(*args: object, **kwargs: object) -> tuple[bytes, int]:
         calls.append(args[1:5])
         return real(*args, **kwargs)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(tile_render, "render_tile_versioned", spy)
+    monkeypatch.setattr(tile_cache, "render_tile_versioned", spy)
     return calls
 
 

@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from fleetmap.api.state import EventStreamSlots
     from fleetmap.grid_map import IntegrationResult
     from fleetmap.registry import Job, MapEntry, MapRegistry
-    from fleetmap.tile_render import TileCache
+    from fleetmap.tile_cache import TileCache
 
 #: Prometheus' text exposition format.
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"

@@ -1,4 +1,5 @@
-"""PNG map tiles for Leaflet, rendered and cached by `fleetmap.tile_render`, with ETags."""
+"""PNG map tiles for Leaflet, rendered by `fleetmap.tile_render` and cached by `fleetmap.tile_cache`,
+with ETags."""
 
 from __future__ import annotations
 

@@ -15,7 +15,7 @@ from fleetmap.api_models import MAX_COORDINATE
 from fleetmap.grid_map import REGION_LAYERS
 from fleetmap.metrics import ServiceMetrics
 from fleetmap.registry import MapEntry, MapRegistry
-from fleetmap.tile_render import TileCache
+from fleetmap.tile_cache import TileCache
 from fleetmap.wire import ID_PATTERN
 
 if TYPE_CHECKING:

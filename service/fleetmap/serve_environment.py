@@ -1,0 +1,91 @@
+"""`fleetmap serve`'s options as environment variables: `FLEETMAP_` and the option's name in
+capitals with `-` as `_` (`--data-dir` is `FLEETMAP_DATA_DIR`, `--insecure` is `FLEETMAP_INSECURE=1`,
+lists separated by spaces). The variables set are parsed as their options on a command line before
+the real one, which therefore wins (`environment_first`); the parser itself is `serve_options`."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from fleetmap.log_format import plain_line
+
+#: Prefix of the environment variables that give `serve` options (FLEETMAP_DATA_DIR, ...).
+ENV_PREFIX = "FLEETMAP_"
+#: What a FLEETMAP_* variable of an on/off option (--insecure, ...) may say.
+_ENV_TRUE = {"1", "true", "yes", "on"}
+_ENV_FALSE = {"0", "false", "no", "off", ""}
+
+
+def env_name(action: argparse.Action) -> str:
+    """The environment variable of an option: `--data-dir` -> `FLEETMAP_DATA_DIR`."""
+    return ENV_PREFIX + action.option_strings[-1].lstrip("-").replace("-", "_").upper()
+
+
+def environment_first(parser: argparse.ArgumentParser) -> Callable[..., Any]:
+    """`parser.parse_known_args` that parses the `FLEETMAP_<OPTION>` variables set (when it runs:
+    the environment counts for `serve` only) as their options on a command line before the real
+    one, which therefore wins. A bad variable stops with one line naming it, after the command line
+    is parsed (so `--log-format json` makes that line JSON); `parser` must not exit on errors."""
+    parse = parser.parse_known_args
+
+    def parse_known_args(args: Sequence[str] | None = None, namespace: Any = None) -> Any:
+        problem = None
+        for action in parser._actions:
+            variable = env_name(action)
+            text = os.environ.get(variable)
+            if text is None or action.dest == "help":
+                continue
+            try:
+                namespace = parse(_as_arguments(action, text), namespace)[0]
+            except argparse.ArgumentError as exc:
+                problem = problem or f"${variable}={text!r}: {exc.message}"
+            else:
+                if isinstance(action, RepeatedOption):
+                    values = getattr(namespace, action.dest)
+                    setattr(namespace, action.dest, _FromEnvironment(values))
+        try:
+            namespace, extras = parse(args, namespace)
+        except argparse.ArgumentError as exc:
+            parser.error(str(exc))
+        if problem:
+            line = plain_line(f"{parser.prog}: error: {problem}", namespace.log_format, logging.ERROR)
+            parser.exit(2, line + "\n")
+        return namespace, extras
+
+    return parse_known_args
+
+
+def _as_arguments(action: argparse.Action, text: str) -> list[str]:
+    """The command-line arguments a variable's `text` stands for: an on/off option's flag (or none),
+    a list option's words (none: no list), else `--option=TEXT`. Raises ArgumentError."""
+    option = action.option_strings[-1]
+    if action.nargs == 0:
+        word = text.strip().lower()
+        if word not in _ENV_TRUE | _ENV_FALSE:
+            raise argparse.ArgumentError(action, "expected 1, true, yes, on or 0, false, no, off")
+        return [option] if word in _ENV_TRUE else []
+    if action.nargs == "+":
+        return [option, *text.split()] if text.split() else []
+    return [f"{option}={text}"]
+
+
+class _FromEnvironment(list):
+    """The values a repeatable option got from its FLEETMAP_ variable (see `RepeatedOption`)."""
+
+
+class RepeatedOption(argparse.Action):
+    """An option that may be given several times, each with one or more values, all kept in order
+    (`--ros-publish-map a --ros-publish-map b c`: a, b, c). Its variable gives values separated by
+    spaces; the command line's first occurrence replaces those (the command line wins, as for every
+    option) rather than adding to them."""
+
+    def __call__(
+        self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any, option: Any = None
+    ) -> None:
+        current = getattr(namespace, self.dest, None)
+        kept = [] if current is None or isinstance(current, _FromEnvironment) else list(current)
+        setattr(namespace, self.dest, kept + list(values))

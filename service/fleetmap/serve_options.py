@@ -1,0 +1,515 @@
+"""`fleetmap serve`'s command line: the parser of its options (`add_serve_parser`), each option's
+default and help, and the argparse `type`s that check a value as it is parsed (`_path`, `_map_id`,
+`_int_between`, ... and `parse_http` for `--http`), so that a bad value stops the start with one line
+naming the option. Every option is also read from its FLEETMAP_ variable (`serve_environment`).
+What the options then start is `server.run`'s."""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+from collections.abc import Callable
+from typing import Any, NoReturn, TypeVar
+
+from fleetmap.cli import CliError
+from fleetmap.codec import InputLimits
+from fleetmap.failed_signins import DEFAULT_MAX_FAILURES, DEFAULT_WINDOW
+from fleetmap.http_limits import RESERVED_DESCRIPTORS
+from fleetmap.ingest import DEFAULT_LISTEN
+from fleetmap.log_format import LOG_FORMATS
+from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
+from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS
+from fleetmap.ros.transforms import TfError, normalize_frame
+from fleetmap.scan import MAX_BEAMS
+from fleetmap.serve_environment import RepeatedOption, environment_first
+from fleetmap.wire import is_valid_id
+
+DEFAULT_HTTP = "127.0.0.1:8000"
+DEFAULT_DATA_DIR = "./fleetmap-data"
+LOG_LEVELS = ("debug", "info", "warning", "error")
+#: The defaults of --ros-map-frame, --ros-map-period and --ros-distro (any other value needs
+#: --ros-publish-map). The frame's None: --ros-fixed-frame's for the map of --ros-scans, else map
+#: (`serve_ros.ros_map_frame`).
+ROS_MAP_DEFAULTS = (None, 1.0, "jazzy")
+
+
+def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
+    """Add the `serve` subcommand and its options to the `fleetmap` command line (what it runs is
+    set by `server.add_parser`)."""
+    p = sub.add_parser(
+        "serve",
+        help="run the service: Zenoh ingest from robots, REST API and web viewer",
+        exit_on_error=False,  # environment_first reports errors, naming a variable at fault
+        description=(
+            "Run the fleetmap service: robots publish scans over Zenoh (key fleetmap/<map>/<robot>/scan, "
+            "see docs/protocol.md), maps are served over HTTP (REST API and web viewer). The service's "
+            "own Zenoh session is a router, so robots connect to it directly in client mode. Every "
+            "option may also be set in the environment: FLEETMAP_ and the option's name in capitals, "
+            "- as _ (--data-dir DIR: FLEETMAP_DATA_DIR=DIR; --insecure: FLEETMAP_INSECURE=1; lists "
+            "separated by spaces); the command line wins. SIGHUP reads the --auth-tokens file again."
+        ),
+    )
+    p.add_argument(
+        "--http",
+        default=DEFAULT_HTTP,
+        metavar="HOST:PORT",
+        help=f"address of the REST API and web viewer (default {DEFAULT_HTTP}; port 0 picks a free port)",
+    )
+    p.add_argument(
+        "--zenoh-listen",
+        nargs="+",
+        metavar="ENDPOINT",
+        help=(
+            f"Zenoh endpoints robots connect to (default {' '.join(DEFAULT_LISTEN)}; with --zenoh-connect "
+            "the default is not to listen)"
+        ),
+    )
+    p.add_argument(
+        "--zenoh-connect",
+        nargs="+",
+        default=[],
+        metavar="ENDPOINT",
+        help=(
+            "join an existing Zenoh network through these endpoints (e.g. a zenohd router) instead of "
+            "being its own: the session is then a peer if it also listens, else a client"
+        ),
+    )
+    p.add_argument(
+        "--zenoh-config",
+        type=_path,
+        metavar="FILE.json5",
+        help=(
+            "Zenoh configuration file, loaded first; the --zenoh-* options apply on top of it. Its "
+            "'mode' is kept when set; multicast scouting stays off unless the file switches it on"
+        ),
+    )
+    p.add_argument(
+        "--zenoh-shared-memory",
+        action="store_true",
+        help=(
+            "use Zenoh's shared-memory transport with robots on this host (off by default, whatever "
+            "the config file says: it maps a 16 MiB pool per local robot and delayed each robot's "
+            "first scans by up to 250 ms, while loopback TCP is fast enough)"
+        ),
+    )
+    p.add_argument(
+        "--ros-scans",
+        type=_map_id,
+        metavar="MAP_ID",
+        help=(
+            "also integrate the sensor_msgs/LaserScan topics ROS 2 robots publish over rmw_zenoh into "
+            "map MAP_ID, posed by their TF (robot id: the topic's namespace, and its name if not scan; "
+            "see docs/ros.md)"
+        ),
+    )
+    p.add_argument(
+        "--ros-domain",
+        type=_int_between(0, 2**32 - 1),
+        metavar="N",
+        help="the ROS domain id of --ros-scans and --ros-publish-map (default $ROS_DOMAIN_ID, else 0)",
+    )
+    p.add_argument(
+        "--ros-fixed-frame",
+        type=_frame_id,
+        metavar="FRAME",
+        help="the TF frame --ros-scans' maps are built in (default map)",
+    )
+    p.add_argument(
+        "--data-dir",
+        type=_path,
+        default=DEFAULT_DATA_DIR,
+        metavar="DIR",
+        help=(
+            f"durable map storage (SQLite, WAL): configurations, tile snapshots and the scan journal "
+            f"(default {DEFAULT_DATA_DIR}). An unwritable or full directory stops the service at start"
+        ),
+    )
+    p.add_argument(
+        "--snapshot-interval",
+        type=_seconds_between(0.5, 86400.0),
+        default=SNAPSHOT_INTERVAL,
+        metavar="S",
+        help=(
+            f"snapshot every changed map this often, seconds (default {SNAPSHOT_INTERVAL:g}; also "
+            f"after {SNAPSHOT_ROWS} journaled scans, and at shutdown): shorter means a shorter journal to "
+            "replay at start and sooner recovery of scans a failing disk could not journal"
+        ),
+    )
+    p.add_argument(
+        "--max-memory",
+        type=_memory_budget,
+        default="auto",
+        metavar="SIZE",
+        help=(
+            "bytes all maps' tiles may hold together, e.g. 4GiB; scans that would need more are "
+            f"refused (507) and their maps unchanged. 'auto' (default): {DEFAULT_SHARE * 100:.0f}%% of the "
+            "memory this process may use (its cgroup's limit, else the machine's); 'none': no limit"
+        ),
+    )
+    p.add_argument(
+        "--in-memory",
+        action="store_true",
+        help="keep maps in memory only (lost when the service stops); for demos and tests",
+    )
+    p.add_argument(
+        "--auth-tokens",
+        type=_path,
+        metavar="FILE",
+        help=(
+            "API tokens, one 'ROLE TOKEN' per line (ROLE: read, write or admin); also read from "
+            "$FLEETMAP_TOKENS ('ROLE TOKEN; ROLE TOKEN'). Writing needs write or admin"
+        ),
+    )
+    p.add_argument(
+        "--require-read-token",
+        action="store_true",
+        help=(
+            "reading also needs a token (read, write or admin; so tokens must be given); by default "
+            "reading is open"
+        ),
+    )
+    p.add_argument(
+        "--max-failed-sign-ins",
+        type=_int_between(1, 1_000_000),
+        default=DEFAULT_MAX_FAILURES,
+        metavar="N",
+        help=(
+            "failed sign-ins (POST /session with a wrong token) from one client address within "
+            "--failed-sign-in-window before its sign-ins are refused with 429 "
+            f"(default {DEFAULT_MAX_FAILURES})"
+        ),
+    )
+    p.add_argument(
+        "--failed-sign-in-window",
+        type=_seconds_between(1.0, 86400.0),
+        default=DEFAULT_WINDOW,
+        metavar="S",
+        help=(
+            "seconds from an address's first failed sign-in within which its failures count, and "
+            f"the longest it is refused (default {DEFAULT_WINDOW:g})"
+        ),
+    )
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow binding HTTP to a non-loopback address without API tokens",
+    )
+    limits = InputLimits()
+    p.add_argument(
+        "--world-bound",
+        type=float,
+        default=limits.world_bound,
+        metavar="M",
+        help=f"refuse poses farther than this on x or y, metres (default {limits.world_bound:g})",
+    )
+    p.add_argument(
+        "--max-beams",
+        type=_int_between(1, MAX_BEAMS),
+        default=limits.max_beams,
+        metavar="N",
+        help=f"refuse scans with more beams (default {limits.max_beams})",
+    )
+    p.add_argument(
+        "--max-range",
+        type=float,
+        default=limits.max_range,
+        metavar="M",
+        help=f"readings at or beyond this (metres) are 'no return' (default {limits.max_range:g})",
+    )
+    p.add_argument(
+        "--cors-origin",
+        nargs="+",
+        default=[],
+        metavar="ORIGIN",
+        help="origins allowed to call the API from a browser (CORS), matched exactly ('*': any); "
+        "default none",
+    )
+    p.add_argument(
+        "--forwarded-allow-ips",
+        nargs="+",
+        type=_proxy_address,
+        default=None,
+        metavar="IP",
+        help="addresses (or networks, 10.0.0.0/8) of the reverse proxies whose X-Forwarded-Proto / "
+        "-For headers are trusted (the session cookie's Secure, the access log's client), separated "
+        "by spaces; '*': any; default 127.0.0.1, or uvicorn's $FORWARDED_ALLOW_IPS",
+    )
+    p.add_argument(
+        "--max-event-streams",
+        type=_int_between(1, 100_000),
+        default=256,
+        metavar="N",
+        help=(
+            "event streams (GET /maps/{id}/events, one per open viewer) open at once; past it new ones "
+            "are refused with 503 and retry by themselves (default 256): each holds memory and CPU"
+        ),
+    )
+    p.add_argument(
+        "--events-keepalive",
+        type=_seconds_between(0.1, 3600.0),
+        default=15.0,
+        metavar="S",
+        help=(
+            "seconds of silence after which an event stream sends a ': keepalive' comment (default "
+            "15): shorter than the idle timeout of any proxy in front; clients take a stream silent "
+            "for a few of these as broken (the Python client: 45 s) and resume it"
+        ),
+    )
+    p.add_argument(
+        "--max-robots-per-map",
+        type=_int_between(1, 1_000_000),
+        default=1024,
+        metavar="N",
+        help=(
+            "robots one map keeps; a new robot on a full map makes room by forgetting the offline one "
+            "heard from least recently (default 1024)"
+        ),
+    )
+    p.add_argument(
+        "--max-http-connections",
+        type=_int_between(16, 1_000_000),
+        default=1024,
+        metavar="N",
+        help=(
+            "HTTP connections open at once; past it a new one gets 503 and is closed (default 1024, "
+            f"lowered to leave {RESERVED_DESCRIPTORS} of the process's file descriptors to Zenoh and storage)"
+        ),
+    )
+    p.add_argument(
+        "--http-head-timeout",
+        type=_seconds_between(0.1, 3600.0),
+        default=10.0,
+        metavar="S",
+        help=(
+            "close a connection whose request line and headers have not all arrived this many seconds "
+            "after it opened (or after the request's first byte) (default 10)"
+        ),
+    )
+    p.add_argument(
+        "--http-body-timeout",
+        type=_seconds_between(0.1, 3600.0),
+        default=60.0,
+        metavar="S",
+        help=(
+            "close a connection whose request body has not all arrived this many seconds after its "
+            "headers (default 60: a 16 MiB body at 2.2 Mbit/s)"
+        ),
+    )
+    p.add_argument(
+        "--config",
+        type=_path,
+        metavar="FILE",
+        help="map configuration (JSON, the schema of PUT /maps/{id}) for maps created automatically",
+    )
+    p.add_argument(
+        "--no-auto-create",
+        action="store_true",
+        help="refuse scans for maps that do not exist (create maps with PUT /maps/{id}) instead of "
+        "creating them with the default configuration",
+    )
+    p.add_argument(
+        "--workers",
+        type=_int_between(1, 64),
+        default=2,
+        metavar="N",
+        help="integration worker threads (default 2)",
+    )
+    p.add_argument(
+        "--ingest-backlog-ms",
+        type=_int_between(0, 60_000),
+        default=10,
+        metavar="MS",
+        help=(
+            "ingest before reads: while the oldest scan waiting for integration has waited longer than "
+            "this, new HTTP requests wait (all but /healthz, /metrics and POST scans); 0: off (default 10)"
+        ),
+    )
+    p.add_argument(
+        "--max-read-delay-ms",
+        type=_int_between(0, 600_000),
+        default=1000,
+        metavar="MS",
+        help="the longest an HTTP request waits for the ingest backlog; then it is served (default 1000)",
+    )
+    p.add_argument(
+        "--ros-publish-map",
+        nargs="+",
+        action=RepeatedOption,
+        type=_map_topic,
+        default=[],
+        metavar="MAP_ID[=TOPIC]",
+        help=(
+            "publish this map to ROS 2 (rmw_zenoh) as a nav_msgs/msg/OccupancyGrid on TOPIC (default "
+            "/map), as nav2's map_server does (TRANSIENT_LOCAL), whole, when it changed, on the service's "
+            "Zenoh session; repeatable (see docs/ros.md). Off by default"
+        ),
+    )
+    p.add_argument(
+        "--ros-map-frame",
+        type=_frame_id,
+        default=ROS_MAP_DEFAULTS[0],
+        metavar="FRAME",
+        help=(
+            "header.frame_id of the published maps (default: --ros-fixed-frame's for the map of "
+            "--ros-scans, else map)"
+        ),
+    )
+    p.add_argument(
+        "--ros-map-period",
+        type=_seconds_between(0.05, 3600.0),
+        default=ROS_MAP_DEFAULTS[1],
+        metavar="S",
+        help=(
+            "seconds between checks of the published maps: a map that changed is published again at "
+            "most this often, one that did not is not sent again (default 1)"
+        ),
+    )
+    p.add_argument(
+        "--ros-distro",
+        choices=("jazzy", "humble"),
+        default=ROS_MAP_DEFAULTS[2],
+        help=(
+            "ROS 2 distribution of the subscribers, for the type hash in the topic's key: jazzy "
+            "(default; also Kilted and Rolling) or humble (rmw_zenoh's backport, without type hashes)"
+        ),
+    )
+    p.add_argument(
+        "--log-level",
+        choices=LOG_LEVELS,
+        default="info",
+        help="the least severe log messages written (default info: start-up, robots, maps, warnings)",
+    )
+    p.add_argument(
+        "--log-format",
+        choices=LOG_FORMATS,
+        default="text",
+        help=(
+            "text (default): one line per message for people; json: one JSON object per line (time, "
+            "level, logger, message, exception, map_id, robot_id, ...) for a log pipeline, uvicorn's "
+            "lines and the ready line included (see docs/security.md, What is logged)"
+        ),
+    )
+    p.add_argument(
+        "--access-log",
+        action="store_true",
+        help="log every HTTP request (client, method, path, status) at info; off by default (cost)",
+    )
+    # Replaced on this one parser instance. mypy refuses assigning to a method, and compares the
+    # function to the method unbound (with its self).
+    p.error = _one_line_error(p)  # type: ignore[method-assign,assignment]
+    p.parse_known_args = environment_first(p)  # type: ignore[method-assign]
+    return p
+
+
+def _one_line_error(parser: argparse.ArgumentParser) -> Callable[[str], NoReturn]:
+    """`parser.error` that prints one line, not argparse's usage first (`serve` has 28 options: the
+    usage took 15 lines above the error, which a service manager's log shows out of order)."""
+
+    def error(message: str) -> NoReturn:
+        parser.exit(2, f"{parser.prog}: error: {message} (see {parser.prog} --help)\n")
+
+    return error
+
+
+def _map_topic(text: str) -> Any:
+    """An argparse `type` for `--ros-publish-map`: `MAP_ID[=TOPIC]` as a `MapTopic`."""
+    from fleetmap.ros.map_publisher import parse_map_topic
+
+    try:
+        return parse_map_topic(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _memory_budget(text: str) -> MemoryBudget:
+    """An argparse `type`: `--max-memory`'s budget (see `memory_budget.parse_size`)."""
+    try:
+        return MemoryBudget(parse_size(text))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _path(text: str) -> str:
+    """An argparse `type` for a file or directory option: any path but an empty one. An empty
+    FLEETMAP_DATA_DIR (a template's unset variable) kept the maps in the working directory, and an
+    empty FLEETMAP_CONFIG or FLEETMAP_AUTH_TOKENS was taken as no option at all, all silently."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a path, got an empty value")
+    return text
+
+
+def _map_id(text: str) -> str:
+    """An argparse `type` for a map id: `[A-Za-z0-9_-]{1,64}`."""
+    if not is_valid_id(text):
+        raise argparse.ArgumentTypeError(f"expected a map id of 1 to 64 of A-Z a-z 0-9 _ -, got {text!r}")
+    return text
+
+
+def _frame_id(text: str) -> str:
+    """An argparse `type` for a TF frame id (tf2's form: a leading `/` dropped)."""
+    try:
+        return normalize_frame(text.strip())
+    except TfError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _proxy_address(text: str) -> str:
+    """An argparse `type` for `--forwarded-allow-ips`: `*`, an IP address or a network (`10.0.0.0/8`;
+    host bits set are cleared), as uvicorn compares them with a connection's address. uvicorn takes
+    anything else as a name that no address ever equals: `10.0.0.1,10.0.0.2` (its own variable's
+    separator), `10.0.0.1,` (a list of a variable split at spaces), a host name, a typo. The proxy
+    was then silently not trusted: its `https` ignored, the session cookie set without `Secure`."""
+    text = text.strip()
+    if text == "*":
+        return text
+    try:
+        return str(ipaddress.ip_network(text, strict=False) if "/" in text else ipaddress.ip_address(text))
+    except ValueError:
+        pass
+    message = f"expected an IP address, a network (10.0.0.0/8) or '*', got {text!r}"
+    if "," in text:
+        message += " (separate addresses with spaces, not commas)"
+    elif ":" not in text and any(c.isalpha() for c in text):  # a name, not a mistyped IPv6 address
+        message += " (host names are not looked up)"
+    raise argparse.ArgumentTypeError(message)
+
+
+N = TypeVar("N", int, float)
+
+
+def _number_between(kind: Callable[[str], N], low: N, high: N, what: str) -> Callable[[str], N]:
+    """An argparse `type` accepting `kind(text)` (`what`, for the message) in [low, high]."""
+
+    def parse(text: str) -> N:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        if not low <= value <= high:  # NaN fails too
+            # Whole: %g wrote 1_000_000 as 1e+06 and 2**32 - 1 as 4.29497e+09.
+            bounds = (str(low), str(high)) if kind is int else (f"{low:g}", f"{high:g}")
+            raise argparse.ArgumentTypeError(f"must be between {bounds[0]} and {bounds[1]}, got {text}")
+        return value
+
+    return parse
+
+
+def _seconds_between(low: float, high: float) -> Callable[[str], float]:
+    return _number_between(float, low, high, "a number of seconds")
+
+
+def _int_between(low: int, high: int) -> Callable[[str], int]:
+    return _number_between(int, low, high, "a whole number")
+
+
+def parse_http(text: str) -> tuple[str, int]:
+    """(host, port) of `HOST:PORT`, `[IPV6]:PORT` or `:PORT` (all interfaces). Raises CliError."""
+    host, sep, port_text = text.rpartition(":")
+    if not sep or not port_text.isdigit():
+        raise CliError(f"--http {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8000")
+    port = int(port_text)
+    if port > 65535:
+        raise CliError(f"--http {text!r}: port must be at most 65535")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    return host or "0.0.0.0", port
