@@ -26,8 +26,28 @@ from test_e2e import assert_region_equal, map_stats, wait_integrated
 from test_store_forward import LAYERS, engine_map, publish_then_cut
 
 from fleetmap import codec
+from fleetmap.robot_state import SessionLedger
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus
+
+
+def test_settled_passes_only_scans_settled_in_order() -> None:
+    """With durable storage a scan counts as integrated when its journal row commits, after a later
+    scan of the robot may have been refused: `settled` must not pass the earlier one meanwhile. A
+    re-send of a refused seq (a REST retry) is unsettled again until it is settled."""
+    ledger = SessionLedger()
+    first, second, third = ledger.open(0), ledger.open(1), ledger.open(2)
+    ledger.settle(second, integrated=False)  # refused while the first waits for its commit
+    assert (ledger.settled, ledger.integrated, ledger.refused) == (None, 0, 1)
+    ledger.settle(first, integrated=True)
+    assert ledger.settled == 1
+    ledger.settle(third, integrated=False)
+    ledger.settle(third, integrated=False)  # settled once
+    assert (ledger.settled, ledger.integrated, ledger.refused) == (2, 1, 2)
+    again = ledger.open(2)
+    assert ledger.settled is None
+    ledger.settle(again, integrated=True)
+    assert (ledger.settled, ledger.first_seq) == (2, 0)
 
 
 def query(session: zenoh.Session, key: str) -> DeliveryStatus | str:
