@@ -403,11 +403,10 @@ class ZenohIngest:
                     f"ask for one robot: fleetmap/<map_id>/<robot_id>/delivery, not {key!r}", encoding=error
                 )
                 return
-            session = _session_parameter(query.parameters.get(DELIVERY_SESSION_PARAMETER))
-            if session is False:
-                query.reply_err(
-                    f"{DELIVERY_SESSION_PARAMETER} must be an integer in [0, 2**53)", encoding=error
-                )
+            try:
+                session = _session_parameter(query.parameters.get(DELIVERY_SESSION_PARAMETER))
+            except ValueError as exc:
+                query.reply_err(str(exc), encoding=error)
                 return
             status = self.registry.delivery_status(ids[0], ids[1], session)
             query.reply(query.key_expr, status.model_dump_json(), encoding=zenoh.Encoding(JSON_ENCODING))
@@ -474,13 +473,13 @@ class ZenohIngest:
             }
 
 
-def _session_parameter(value: str | None) -> int | None | bool:
-    """A delivery query's `session` parameter: None when absent (every session), the session id
-    (0: scans without one), or False when it is not such a number."""
+def _session_parameter(value: str | None) -> int | None:
+    """A delivery query's `session` parameter: None when absent (every session), else the session
+    id (0: scans without one). Raises ValueError, saying what it must be, for anything else."""
     if value is None:
         return None
-    if not value.isdigit() or int(value) >= SESSION_LIMIT:
-        return False
+    if not (value.isascii() and value.isdigit() and len(value) <= 16 and int(value) < SESSION_LIMIT):
+        raise ValueError(f"{DELIVERY_SESSION_PARAMETER} must be an integer in [0, 2**53)")
     return int(value)
 
 
