@@ -202,7 +202,7 @@ class DeliveryReport:
             (self.lost, "lost"), (self.refused, "refused or dropped by the service"),
             (self.unsettled, "unconfirmed"),
         ) if count]  # fmt: skip
-        return f"{text}: {', '.join(parts)}"
+        return f"{text}: {', '.join(parts) or 'not settled'}"
 
 
 def client_config(
