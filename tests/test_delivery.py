@@ -9,6 +9,7 @@ confirmation")."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import threading
@@ -48,6 +49,17 @@ def test_settled_passes_only_scans_settled_in_order() -> None:
     assert ledger.settled is None
     ledger.settle(again, integrated=True)
     assert (ledger.settled, ledger.first_seq) == (2, 0)
+
+
+def test_the_reply_docs_protocol_md_shows_is_the_services_model() -> None:
+    """docs/protocol.md's example reply is a `DeliveryStatus` (the doc and `fleetmap.wire` agree)."""
+    text = (Path(__file__).resolve().parent.parent / "docs" / "protocol.md").read_text(encoding="utf-8")
+    section = text.split("### Delivery confirmation", 1)[1]
+    example = re.search(r"```text\n(.*?)```", section, re.S)
+    assert example, "no example reply in docs/protocol.md, Delivery confirmation"
+    status = DeliveryStatus.model_validate_json(example.group(1))
+    entry = status.session(4711)
+    assert entry is not None and entry.settled == 999
 
 
 def query(session: zenoh.Session, key: str) -> DeliveryStatus | str:
