@@ -123,7 +123,8 @@ RECONNECT_HOLD_S = 0.5
 WATCH_INTERVAL_S = 0.05
 #: Seconds between the delivery queries of `flush`.
 FLUSH_POLL_S = 0.1
-#: Seconds one delivery query may wait for its answer (a frozen link answers nothing).
+#: Seconds one delivery query may wait for its answer (a frozen link answers nothing), at most: less
+#: when the flush's timeout comes sooner.
 DELIVERY_QUERY_TIMEOUT_S = 2.0
 #: Seconds during which `flush` gets only empty answers to its delivery queries, while the service's
 #: scan subscriber is reachable, before it concludes that the service does not answer them (older
@@ -643,10 +644,13 @@ class ScanPublisher:
         unanswered_since: float | None = None  # since when the queries end at once without a reply
         while True:
             started = time.monotonic()
-            status = self._query_delivery(session)
+            # Within the flush's timeout: a query over a dead link waits for its own.
+            wait_at_most = DELIVERY_QUERY_TIMEOUT_S if deadline is None else deadline - started
+            wait_at_most = max(FLUSH_POLL_S, min(DELIVERY_QUERY_TIMEOUT_S, wait_at_most))
+            status = self._query_delivery(session, wait_at_most)
             now = time.monotonic()
             # Ended well before its timeout without a reply: no queryable matched (not a dead link).
-            unanswered = status is None and now - started < DELIVERY_QUERY_TIMEOUT_S / 2
+            unanswered = status is None and now - started < wait_at_most / 2
             if status is not None:
                 unanswered_since = None
                 report = _report(status, session, first, last)
@@ -668,9 +672,9 @@ class ScanPublisher:
             if self._closed.wait(max(0.0, wait)):
                 raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} was closed during flush")
 
-    def _query_delivery(self, session_id: int | None) -> DeliveryStatus | None:
+    def _query_delivery(self, session_id: int | None, timeout: float) -> DeliveryStatus | None:
         """One delivery query: the service's answer, None when none came (no session or link yet,
-        no queryable, or none answered in `DELIVERY_QUERY_TIMEOUT_S`). Raises RuntimeError for an error
+        no queryable, or none answered in `timeout` seconds). Raises RuntimeError for an error
         reply or an answer that is not a `DeliveryStatus` (not a fleetmap service answering)."""
         session = self._session
         if session is None:
@@ -678,7 +682,7 @@ class ScanPublisher:
         key = DELIVERY_KEY.format(map_id=self.map_id, robot_id=self.robot_id)
         selector = f"{key}?{DELIVERY_SESSION_PARAMETER}={0 if session_id is None else session_id}"
         try:
-            replies = session.get(selector, timeout=DELIVERY_QUERY_TIMEOUT_S)
+            replies = session.get(selector, timeout=timeout)
             for reply in replies:
                 if reply.ok is not None:
                     try:
