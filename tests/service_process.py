@@ -251,7 +251,9 @@ class FreezableProxy:
     threads. `freeze()` stops forwarding on every connection open now, both ways, while leaving its
     sockets open: to the client the connection is alive (no FIN, no RST) and silent, as a half-open
     connection is after a peer's power cut or a NAT or proxy dropped its state. Connections made
-    later are forwarded. `cut()` closes every connection and refuses new ones (closed at once) until
+    later are forwarded, unless `freeze(refuse_new=True)`: then they are closed at once until
+    `restore()`, and the frozen ones stay silent (a link that died without anyone noticing and never
+    comes back). `cut()` closes every connection and refuses new ones (closed at once) until
     `restore()`: a robot in a Wi-Fi dead zone. `target_port` may be changed at any time (a service
     restarted on another port); a connection the target refuses is closed."""
 
@@ -307,8 +309,11 @@ class FreezableProxy:
             except OSError:
                 return
 
-    def freeze(self) -> int:
-        """Stop forwarding on every connection open now; returns how many."""
+    def freeze(self, refuse_new: bool = False) -> int:
+        """Stop forwarding on every connection open now (and, with `refuse_new`, refuse new ones until
+        `restore()`); returns how many."""
+        if refuse_new:
+            self.refusing = True
         with self.lock:
             for _, _, frozen in self.connections:
                 frozen.set()
@@ -329,7 +334,7 @@ class FreezableProxy:
         return len(connections)
 
     def restore(self) -> None:
-        """Forward new connections again (after `cut()`)."""
+        """Forward new connections again (after `cut()` or `freeze(refuse_new=True)`)."""
         self.refusing = False
 
     def close(self) -> None:

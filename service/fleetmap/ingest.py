@@ -32,8 +32,11 @@ Session set-up (`start`):
    - timestamping is switched off, unless the file sets `timestamping/enabled` itself for the
      session's mode (then a warning says why it should not; see below). Set per mode for other
      modes only, it is switched off for this one (Zenoh's default would be on for a router).
-3. A scan subscriber on `fleetmap/*/*/scan` and a liveliness subscriber (with history, so robots
-   already online are reported) on `fleetmap/*/*/alive` are declared.
+3. A scan subscriber on `fleetmap/*/*/scan`, a liveliness subscriber (with history, so robots
+   already online are reported) on `fleetmap/*/*/alive` and a queryable on `fleetmap/*/*/delivery`
+   are declared. The queryable answers a robot what became of its scans (`MapRegistry.
+   delivery_status`, a `fleetmap.wire.DeliveryStatus` as JSON; docs/protocol.md, "Delivery
+   confirmation"): `ScanPublisher.flush` asks it whether every scan it published is in the map.
 
 The scan subscriber is zenoh-ext's ADVANCED subscriber, so that robots publishing with an advanced
 publisher (`ScanPublisher`'s `backlog`: a cache of its last scans and heartbeats) lose no scan to a
@@ -85,7 +88,16 @@ import zenoh.ext
 from fleetmap import codec
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
-from fleetmap.wire import ALIVE_KEY_WILDCARD, SCAN_KEY_WILDCARD, is_valid_id
+from fleetmap.wire import (
+    ALIVE_KEY_WILDCARD,
+    DELIVERY_ERROR_ENCODING,
+    DELIVERY_KEY_WILDCARD,
+    DELIVERY_SESSION_PARAMETER,
+    JSON_ENCODING,
+    SCAN_KEY_WILDCARD,
+    SESSION_LIMIT,
+    is_valid_id,
+)
 
 log = logging.getLogger("fleetmap.ingest")
 
@@ -165,6 +177,7 @@ class ZenohIngest:
         #: listener's `Miss.nb`, summed): gone from the publisher's cache before they could be fetched.
         self.unrecoverable = 0
         self.liveliness_events = 0
+        self.delivery_queries = 0  # delivery queries answered (errors included)
         self._log = RateLimitedLog(log)
         # Robots coming online and going offline: any Zenoh peer can declare and drop liveliness
         # tokens thousands of times a second (13000 lines a second were written, unbounded), so these
@@ -259,6 +272,9 @@ class ZenohIngest:
             # history=True: tokens declared before the service started are reported as PUTs too.
             self._subscribers.append(
                 session.liveliness().declare_subscriber(ALIVE_KEY_WILDCARD, self._on_alive, history=True)
+            )
+            self._subscribers.append(
+                session.declare_queryable(DELIVERY_KEY_WILDCARD, self._on_delivery_query)
             )
         except zenoh.ZError as exc:
             self.close()
@@ -371,6 +387,32 @@ class ZenohIngest:
         except Exception:
             log.exception("unexpected error handling a sample miss")
 
+    def _on_delivery_query(self, query: zenoh.Query) -> None:
+        """Answer a delivery query on `fleetmap/<map>/<robot>/delivery[?session=<id>]` with the
+        registry's `DeliveryStatus` as JSON (also when there is no such map or robot: its `status`
+        says so), or an error reply for a key with wildcards or invalid ids, or a bad session id.
+        Never blocks beyond the registry's lock, held briefly: this is a Zenoh thread."""
+        try:
+            key = str(query.key_expr)
+            with self._lock:
+                self.delivery_queries += 1
+            ids = parse_key(key, "delivery")
+            error = zenoh.Encoding(DELIVERY_ERROR_ENCODING)
+            if ids is None:
+                query.reply_err(
+                    f"ask for one robot: fleetmap/<map_id>/<robot_id>/delivery, not {key!r}", encoding=error
+                )
+                return
+            try:
+                session = _session_parameter(query.parameters.get(DELIVERY_SESSION_PARAMETER))
+            except ValueError as exc:
+                query.reply_err(str(exc), encoding=error)
+                return
+            status = self.registry.delivery_status(ids[0], ids[1], session)
+            query.reply(query.key_expr, status.model_dump_json(), encoding=zenoh.Encoding(JSON_ENCODING))
+        except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
+            log.exception("unexpected error answering a delivery query on %s", query.key_expr)
+
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
             key = str(sample.key_expr)
@@ -426,8 +468,19 @@ class ZenohIngest:
                 "rejected": dict(self.rejected),
                 "unrecoverable": self.unrecoverable,
                 "liveliness_events": self.liveliness_events,
+                "delivery_queries": self.delivery_queries,
                 "robots_alive": len(self._alive),
             }
+
+
+def _session_parameter(value: str | None) -> int | None:
+    """A delivery query's `session` parameter: None when absent (every session), else the session
+    id (0: scans without one). Raises ValueError, saying what it must be, for anything else."""
+    if value is None:
+        return None
+    if not (value.isascii() and value.isdigit() and len(value) <= 16 and int(value) < SESSION_LIMIT):
+        raise ValueError(f"{DELIVERY_SESSION_PARAMETER} must be an integer in [0, 2**53)")
+    return int(value)
 
 
 __all__ = ["DEFAULT_LISTEN", "MODES", "IngestStartError", "ZenohIngest", "parse_key"]

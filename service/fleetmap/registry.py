@@ -40,12 +40,12 @@ from fleetmap.grid_map import GridMap, IntegrationResult
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.persistence import DurableStore
 from fleetmap.rate_limited_log import RateLimitedLog
-from fleetmap.robot_state import CONFLICT_SHOWN, RobotState, session_key
+from fleetmap.robot_state import CONFLICT_SHOWN, Receipt, RobotState, SessionSeqs, session_key
 from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
 from fleetmap.tombstones import Tombstones
-from fleetmap.wire import is_valid_id
+from fleetmap.wire import DeliveryStatus, SessionDelivery, is_valid_id
 
 log = logging.getLogger("fleetmap.registry")
 
@@ -160,6 +160,8 @@ class Job:
     future: Future[IntegrationResult] | None = None
     applied_at: float | None = None
     journaled: bool = False
+    #: Its entry in its publisher session's ledger, settled with the scan (`MapRegistry._settle`).
+    receipt: Receipt | None = None
 
 
 #: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
@@ -317,6 +319,8 @@ class MapRegistry:
                 # applied after it) is a duplicate to it: counted once, when it was accepted.
                 if not robot.is_duplicate(seq, stamp, session):
                     robot.accept(seq, stamp, session, time.time())
+                    ledger = robot.sessions[session_key(session)].ledger
+                    ledger.settle(ledger.open(seq), integrated=True)
                 robot.last_stamp = stamp
                 robot.add_pose(scan.pose)
                 # Heard after the snapshot (whose counters hold every older `last_heard`), in journal
@@ -610,8 +614,9 @@ class MapRegistry:
             seq, stamp, session = wire.seq, wire.stamp, wire.session
             if robot.is_duplicate(seq, stamp, session):
                 robot.duplicates += 1
-                last = robot.sessions[session_key(session)].last_seq
-                raise IngestRejected(f"duplicate seq {seq} (last accepted {last})", 200)
+                seqs = robot.sessions[session_key(session)]
+                seqs.ledger.duplicates += 1
+                raise IngestRejected(f"duplicate seq {seq} (last accepted {seqs.last_seq})", 200)
             # Recorded before the queue is tried so a dropped scan is not also counted as lost.
             if robot.accept(seq, stamp, session, now):
                 self._conflict_log.warning(
@@ -623,9 +628,11 @@ class MapRegistry:
                     robot_id=robot_id,
                 )
             job = Job(map_id, robot_id, wire, entry.generation, time.monotonic())
+            job.receipt = robot.sessions[session_key(session)].ledger.open(seq)
             if wait:
                 job.future = Future()
             if not self.queue.put((map_id, robot_id), job):
+                self._settle(job, integrated=False)
                 robot.dropped += 1
                 robot.refused = (session_key(session), seq)  # a retry of it is not a duplicate
                 reason = "ingest queue full: scan dropped"
@@ -809,6 +816,7 @@ class MapRegistry:
         """The scan is applied (and durable, with persistence): count it and answer its caller."""
         pose = job.wire.scan.pose
         with self.lock:
+            self._settle(job, integrated=True)
             if entry.generation == job.generation:
                 entry.unsettled -= 1
                 entry.provisional = False  # it holds a scan now
@@ -845,6 +853,7 @@ class MapRegistry:
         stored."""
         removed = None
         with self.lock:
+            self._settle(job, integrated=False)
             entry = self.maps.get(job.map_id)
             if entry is not None and entry.generation == job.generation:
                 entry.unsettled -= 1
@@ -877,6 +886,7 @@ class MapRegistry:
         it, and a new map of that id never saw the scan); its caller gets 404, or 409 if a new map of
         that id exists by now."""
         with self.lock:
+            self._settle(job, integrated=False)  # its robot's ledger went with the map, or is a new map's
             replaced = job.map_id in self.maps
         if job.future is None:
             return
@@ -888,6 +898,34 @@ class MapRegistry:
         else:
             reason = f"map {job.map_id!r} was deleted before the scan was integrated: it was not integrated"
         _refuse(job.future, IngestRejected(reason, 409 if replaced else 404))
+
+    @staticmethod
+    def _settle(job: Job, integrated: bool) -> None:
+        """Settle `job`'s scan in its session's ledger (call under the registry's lock)."""
+        if job.receipt is not None:
+            job.receipt.ledger.settle(job.receipt, integrated)
+
+    def delivery_status(self, map_id: str, robot_id: str, session: int | None = None) -> DeliveryStatus:
+        """What became of robot `robot_id`'s scans on map `map_id` (the Zenoh delivery query's
+        answer): its counters and, per publisher session it remembers (only `session` if given:
+        its session id, 0 for scans without one), its ledger. Holds the registry's lock briefly."""
+        with self.lock:
+            entry = self.maps.get(map_id)
+            robot = None if entry is None else entry.robots.get(robot_id)
+            if robot is None:
+                return DeliveryStatus(
+                    map_id=map_id, robot_id=robot_id, status="no_map" if entry is None else "no_robot"
+                )
+            sessions = [
+                _session_delivery(key, seqs)
+                for key, seqs in robot.sessions.items()
+                if seqs.ledger.first_seq is not None and (session is None or key == session)
+            ]
+            return DeliveryStatus(
+                map_id=map_id, robot_id=robot_id, status="ok", unsettled=robot.unsettled,
+                scans_integrated=robot.scans_integrated, lost=robot.lost, dropped=robot.dropped,
+                duplicates=robot.duplicates, sessions=sessions,
+            )  # fmt: skip
 
     def backlog(self) -> tuple[int, float]:
         """(scans waiting for integration, seconds the oldest of them has waited). Cheap: one short
@@ -915,6 +953,16 @@ def _forgetting_order(item: tuple[str, RobotState]) -> tuple[bool, float]:
     """Which robot a full map forgets first (`MapRegistry._forget_idle`): one whose every message
     was refused (it has no seq), then the one heard from least recently."""
     return item[1].last_seq is not None, item[1].last_heard
+
+
+def _session_delivery(key: int, seqs: SessionSeqs) -> SessionDelivery:
+    """The delivery query's entry of the session `key` of a robot (one with a scan in its ledger)."""
+    ledger = seqs.ledger
+    assert ledger.first_seq is not None
+    return SessionDelivery(
+        session=key, first_seq=ledger.first_seq, last_accepted=seqs.last_seq, settled=ledger.settled,
+        integrated=ledger.integrated, refused=ledger.refused, lost=ledger.lost, duplicates=ledger.duplicates,
+    )  # fmt: skip
 
 
 def _queued_bytes(job: Job) -> int:

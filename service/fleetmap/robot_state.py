@@ -1,12 +1,13 @@
 """What the service knows of one robot on one map (`RobotState`): its counters, its pose and trail
-for viewers, and the seq bookkeeping of its publisher sessions (`SessionSeqs`) that tells new scans
-from duplicates, restarts and two robots misconfigured with one id. Plain data, no locks: the
-registry holds its lock around every use."""
+for viewers, the seq bookkeeping of its publisher sessions (`SessionSeqs`) that tells new scans
+from duplicates, restarts and two robots misconfigured with one id, and what became of each
+session's scans (`SessionLedger`) for delivery confirmation. Plain data, no locks: the registry
+holds its lock around every use."""
 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import astuple, dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from fleetmap.scan import Pose2D
@@ -28,6 +29,65 @@ def session_key(session: int | None) -> int:
     return NO_SESSION if session is None else session
 
 
+@dataclass(slots=True)
+class Receipt:
+    """One accepted scan of a session until it is settled (`SessionLedger.settle`)."""
+
+    ledger: SessionLedger
+    seq: int
+    settled: bool = False
+
+
+@dataclass
+class SessionLedger:
+    """What became of one publisher session's scans in this service process, for its delivery
+    confirmation (`fleetmap.wire.SessionDelivery`). Not saved: a restarted service counts afresh
+    from the session's next scan (`first_seq` says from which).
+
+    Each accepted scan gets a `Receipt` (`open`), in the order the robot's scans were accepted,
+    which is the order they are integrated in; `settle` ends it. `settled` moves only over a run of
+    settled receipts at the front: with durable storage a scan counts as integrated when its journal
+    row commits, and a later scan refused meanwhile must not let `settled` pass the earlier one."""
+
+    first_seq: int | None = None
+    settled: int | None = None
+    integrated: int = 0
+    refused: int = 0
+    lost: int = 0
+    duplicates: int = 0
+    open_receipts: deque[Receipt] = field(default_factory=deque, repr=False)
+
+    def open(self, seq: int) -> Receipt:
+        """A receipt for the scan `seq`, accepted now."""
+        if self.first_seq is None:
+            self.first_seq = seq
+        if self.settled is not None and seq <= self.settled:
+            # Its seq again (a re-send of a refused scan) or lower (a restart without session ids):
+            # `settled` no longer says "this and every earlier seq" until this one is settled.
+            self.settled = None
+        receipt = Receipt(self, seq)
+        self.open_receipts.append(receipt)
+        return receipt
+
+    def settle(self, receipt: Receipt, integrated: bool) -> None:
+        """The scan of `receipt` is integrated (`integrated`), or will never be. Idempotent."""
+        if receipt.settled:
+            return
+        receipt.settled = True
+        if integrated:
+            self.integrated += 1
+        else:
+            self.refused += 1
+        receipts = self.open_receipts
+        while receipts and receipts[0].settled:
+            self.settled = receipts.popleft().seq
+
+    def count_lost(self, count: int) -> None:
+        """`count` seqs of the session were skipped: lost, if after its first scan here."""
+        if self.first_seq is not None:
+            self.lost += count
+
+
 @dataclass
 class SessionSeqs:
     """The seq bookkeeping of one publisher session of a robot (`ScanMessage.session`): each session
@@ -44,10 +104,12 @@ class SessionSeqs:
     #: longer is): withdrawn if it turns out to have run beside the session it seemed to restart.
     start_lost: int | None = None
     conflict: bool = False  # found running beside another session of the robot
+    #: What became of its scans in this process: not saved, so not a constructor argument.
+    ledger: SessionLedger = field(default_factory=SessionLedger, init=False, compare=False)
 
     def saved(self) -> list:
-        """Its fields in order (`SessionSeqs(*saved)` gives it back)."""
-        return list(astuple(self))
+        """Its constructor's fields in order (`SessionSeqs(*saved)` gives it back): not the ledger."""
+        return [getattr(self, f.name) for f in fields(self) if f.init]
 
     def is_restart(self, seq: int, stamp: float) -> bool:
         """For scans WITHOUT a session id: whether a scan whose `seq` is not above `last_seq` starts
@@ -180,6 +242,8 @@ class RobotState:
         key = session_key(session)
         refused, self.refused = self.refused, None
         if refused == (key, seq):
+            if key in self.sessions:
+                self.sessions[key].ledger.refused -= 1  # settled as refused, now accepted after all
             return False  # a re-send of the scan the full queue refused: its seq is recorded already
         self.accepted += 1
         rec = self.sessions.pop(key, None)
@@ -194,8 +258,10 @@ class RobotState:
             if seq <= rec.last_seq:  # without a session id (`is_duplicate` ruled out the rest): a restart
                 self.restarts += 1
                 self.lost += seq
+                rec.ledger.count_lost(seq)
             elif seq > rec.last_seq + 1:
                 self.lost += seq - rec.last_seq - 1
+                rec.ledger.count_lost(seq - rec.last_seq - 1)
             beside = [other for other in self.sessions.values() if other.last_scan_no > rec.last_scan_no]
             if beside:
                 self._conflict(rec, beside, now)

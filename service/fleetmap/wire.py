@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import re
 import secrets
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
@@ -29,6 +29,14 @@ SCAN_KEY = "fleetmap/{map_id}/{robot_id}/scan"
 ALIVE_KEY = "fleetmap/{map_id}/{robot_id}/alive"
 SCAN_KEY_WILDCARD = "fleetmap/*/*/scan"
 ALIVE_KEY_WILDCARD = "fleetmap/*/*/alive"
+#: The service's queryable that answers what became of a robot's scans (`DeliveryStatus`); the query
+#: may name one publisher session (`?session=<id>`, `DELIVERY_SESSION_PARAMETER`).
+DELIVERY_KEY = "fleetmap/{map_id}/{robot_id}/delivery"
+DELIVERY_KEY_WILDCARD = "fleetmap/*/*/delivery"
+DELIVERY_SESSION_PARAMETER = "session"
+#: The encoding of the service's error replies to a delivery query (a sentence), which tells them
+#: from the errors Zenoh itself reports to the querier (a query's timeout).
+DELIVERY_ERROR_ENCODING = "text/plain;fleetmap-delivery"
 
 #: Zenoh encodings of the two payload formats.
 JSON_ENCODING = "application/json"
@@ -145,10 +153,63 @@ class ScanMessage(BaseModel):
         )
 
 
+class SessionDelivery(BaseModel):
+    """What became of the scans of one publisher session of a robot, as this service process counted
+    them (docs/protocol.md, "Delivery confirmation").
+
+    A scan is SETTLED once its fate is final: integrated into the map (with durable storage: its
+    journal row committed), or not integrated (refused, dropped by the full ingest queue, its map
+    deleted or replaced first). A robot's scans are settled in order, so `settled` is one seq: that
+    scan and every scan of the session accepted before it are settled."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    session: int = Field(description="the publisher's session id; 0: scans that carry none")
+    first_seq: int = Field(description="seq of its first scan this service process accepted")
+    last_accepted: int = Field(description="seq of its last scan accepted (queued for integration)")
+    settled: int | None = Field(
+        description="seq S: S and every scan accepted before it are settled; null: none yet"
+    )
+    integrated: int = Field(description="its scans integrated (durable, with storage)")
+    refused: int = Field(
+        description="its scans settled without being integrated (refused, dropped, map gone)"
+    )
+    lost: int = Field(description="seqs it skipped after first_seq: scans that never arrived")
+    duplicates: int = Field(description="its scans ignored because their seq was accepted already")
+
+
+class DeliveryStatus(BaseModel):
+    """The service's answer on `DELIVERY_KEY`: what it knows of one robot's scans. `status` says
+    whether there is such a map and robot; the counts are the robot's on the map (all its sessions,
+    as `GET /maps/{id}` shows them), `sessions` its recent publisher sessions (or the one asked for)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    map_id: str
+    robot_id: str
+    status: Literal["ok", "no_map", "no_robot"]
+    unsettled: int = Field(default=0, description="the robot's scans accepted and not settled yet")
+    scans_integrated: int = 0
+    lost: int = 0
+    dropped: int = 0
+    duplicates: int = 0
+    sessions: list[SessionDelivery] = Field(default_factory=list)
+
+    def session(self, session_id: int | None) -> SessionDelivery | None:
+        """The entry of publisher session `session_id` (None: scans without one), if listed."""
+        key = 0 if session_id is None else session_id
+        return next((entry for entry in self.sessions if entry.session == key), None)
+
+
 __all__ = [
     "ALIVE_KEY",
     "ALIVE_KEY_WILDCARD",
     "BINARY_ENCODING",
+    "DELIVERY_KEY",
+    "DELIVERY_ERROR_ENCODING",
+    "DELIVERY_KEY_WILDCARD",
+    "DELIVERY_SESSION_PARAMETER",
+    "DeliveryStatus",
     "ID_PATTERN",
     "JSON_ENCODING",
     "SCAN_KEY",
@@ -157,6 +218,7 @@ __all__ = [
     "PoseMessage",
     "ScanError",
     "ScanMessage",
+    "SessionDelivery",
     "is_valid_id",
     "new_session_id",
 ]

@@ -1,6 +1,7 @@
 """Python clients of the fleetmap service.
 
-* `fleetmap_client.publisher.ScanPublisher`: the robot side, publishing scans over Zenoh.
+* `fleetmap_client.publisher.ScanPublisher`: the robot side, publishing scans over Zenoh, and
+  confirming they are in the map (`flush`: a `DeliveryReport`).
 * `fleetmap_client.rest.FleetmapClient`: a typed client of the REST API, for programs.
 * `fleetmap_client.cli`: the `fleetmap replay` and `fleetmap sim` commands.
 
@@ -14,18 +15,28 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # what type checkers and IDEs see; at run time `__getattr__` imports on demand
-    from fleetmap_client.publisher import PublisherClosed, ScanPublisher
+    from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, PublisherClosed, ScanPublisher
     from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged
 
 _EXPORTS = {
     "ScanPublisher": "fleetmap_client.publisher",
+    "DeliveryReport": "fleetmap_client.publisher",
+    "DeliveryUnsupported": "fleetmap_client.publisher",
     "PublisherClosed": "fleetmap_client.publisher",
     "FleetmapClient": "fleetmap_client.rest",
     "FleetmapError": "fleetmap_client.rest",
     "MapChanged": "fleetmap_client.rest",
 }
 
-__all__ = ["FleetmapClient", "FleetmapError", "MapChanged", "PublisherClosed", "ScanPublisher"]
+__all__ = [
+    "DeliveryReport",
+    "DeliveryUnsupported",
+    "FleetmapClient",
+    "FleetmapError",
+    "MapChanged",
+    "PublisherClosed",
+    "ScanPublisher",
+]
 assert set(__all__) == set(_EXPORTS), "one list of public names"
 
 

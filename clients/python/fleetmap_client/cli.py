@@ -1,7 +1,8 @@
 """The `fleetmap replay` and `fleetmap sim` commands (robots for a running `fleetmap serve`).
 
     fleetmap replay DATASET --map M --robot R [--rate X] [--connect EP ...] [--zenoh-config FILE]
-                    [--encoding binary|json] [--limit N] [--wait-timeout S] [--quiet]
+                    [--encoding binary|json] [--limit N] [--wait-timeout S] [--confirm-timeout S]
+                    [--no-confirm] [--quiet]
     fleetmap sim [--robots N] [--map M] [--seed S] [--rate HZ] [--seconds T] [--connect EP ...]
                  [--zenoh-config FILE] [--encoding binary|json] [--beams B] [--speed V]
                  [--wait-timeout S]
@@ -79,7 +80,8 @@ def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
             "service drops, counting them as dropped on the robot, the scans its ingest queue of 1024 "
             "per robot cannot hold: use a finite rate for a lossless replay). Waits for the service "
             "first; after a lost connection it pauses until the service is back, which then fetches "
-            "the scans in flight from the robot's backlog."
+            "the scans in flight from the robot's backlog. After the last scan it asks the service "
+            "whether every scan is integrated and says so; it exits with 1 when some are not confirmed."
         ),
     )
     p.add_argument("dataset", help="CARMEN log (plain or .gz) or MATLAB .mat file")
@@ -92,6 +94,15 @@ def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
     )  # fmt: skip
     p.add_argument("--limit", type=int, default=None, metavar="N", help="publish only the first N scans")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--confirm-timeout", type=float, default=None, metavar="S",
+        help="after the last scan, wait at most S seconds for the service to confirm every scan "
+        "(default: --wait-timeout, else 60)",
+    )  # fmt: skip
+    p.add_argument(
+        "--no-confirm", action="store_true",
+        help="do not ask the service whether the scans are integrated (for a service older than that)",
+    )  # fmt: skip
     _add_connection(p)
     p.set_defaults(run=run_replay)
     return p
@@ -119,6 +130,8 @@ def run_replay(args: argparse.Namespace) -> int:
             wait_timeout=args.wait_timeout,
             progress=not args.quiet,
             on_waiting=_waiting,
+            confirm=not args.no_confirm,
+            confirm_timeout=args.confirm_timeout,
         )
     except (ValueError, ReplayError) as exc:
         raise CliError(str(exc)) from None
@@ -130,7 +143,16 @@ def run_replay(args: argparse.Namespace) -> int:
         f"replayed {result.scans} scans of {dataset.name} to map {args.map_id!r} as robot "
         f"{args.robot_id!r} in {result.seconds:.1f} s{pauses}"
     )
-    return 0
+    if result.unconfirmable is not None:  # an older service: what the replay always did, with a warning
+        print(f"fleetmap replay: warning: not confirmed: {result.unconfirmable}", file=sys.stderr)
+        return 0
+    if result.delivery is None:  # --no-confirm
+        return 0
+    if result.delivery.confirmed:
+        print(result.delivery.summary())
+        return 0
+    print(f"fleetmap replay: warning: {result.delivery.summary()}", file=sys.stderr)
+    return 1
 
 
 # -- sim -------------------------------------------------------------------------------------------

@@ -50,6 +50,12 @@ the cache a moment later; held back, the cached scans reach the service first an
 follow, in order. `wait_connected()` returns once that hold is over. `close()` gives up whatever was
 not delivered by then.
 
+Delivery confirmation (`flush`). Zenoh has no acknowledgement, so neither `publish` nor `close`
+can tell whether a scan reached the map. `flush(timeout)` asks the service (a Zenoh query on
+`fleetmap/<map_id>/<robot_id>/delivery`, docs/protocol.md, "Delivery confirmation") until it reports
+every scan of this publisher's session settled, and says how many were integrated: a robot ending
+its mission calls it before `close()`, and knows whether all its scans are in the map.
+
 `backlog=0` publishes with a plain publisher, for a service older than this one (whose plain
 subscriber does not fetch anything): a scan published while no router is connected is then DROPPED
 (Zenoh keeps nothing for a missing route), `publish` returns False and counts it in `dropped`. Call
@@ -66,6 +72,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -78,9 +85,13 @@ from fleetmap.scan import Scan
 from fleetmap.wire import (
     ALIVE_KEY,
     BINARY_ENCODING,
+    DELIVERY_ERROR_ENCODING,
+    DELIVERY_KEY,
+    DELIVERY_SESSION_PARAMETER,
     JSON_ENCODING,
     SCAN_KEY,
     SEQ_LIMIT,
+    DeliveryStatus,
     ScanMessage,
     is_valid_id,
     new_session_id,
@@ -110,12 +121,89 @@ HEARTBEAT_S = 0.5
 RECONNECT_HOLD_S = 0.5
 #: Seconds between the link checks of the publisher's background thread (reconnections, the hold).
 WATCH_INTERVAL_S = 0.05
+#: Seconds between the delivery queries of `flush`.
+FLUSH_POLL_S = 0.1
+#: Seconds one delivery query may wait for its answer (a frozen link answers nothing), at most: less
+#: when the flush's timeout comes sooner.
+DELIVERY_QUERY_TIMEOUT_S = 2.0
+#: Seconds during which `flush` gets only empty answers to its delivery queries, while the service's
+#: scan subscriber is reachable, before it concludes that the service does not answer them (older
+#: than delivery confirmation). Empty: the query ended at once without a reply, as Zenoh ends one
+#: that no queryable matches; a query over a link that died silently ends at its timeout instead
+#: (not yet). Not at the first: a service that just (re)started may declare its queryable a
+#: moment after its subscriber.
+NO_ANSWER_S = 3.0
 
 Encoding = Literal["binary", "json"]
 
 
 class PublisherClosed(RuntimeError):
     """`publish` on a publisher that was closed."""
+
+
+class DeliveryUnsupported(RuntimeError):
+    """`flush` got no answer to its delivery queries from a reachable service (its scan subscriber
+    matched for `NO_ANSWER_S`): the service is older than delivery confirmation, or a Zenoh access
+    control rule keeps the query from it (docs/security.md)."""
+
+
+@dataclass(frozen=True)
+class DeliveryReport:
+    """What `ScanPublisher.flush` learned of the scans of the publisher's session: seqs `first_seq`
+    to `last_seq` (`published` scans), as the service counted them. True (`confirmed`) when every
+    one of them is integrated into the map (with durable storage: committed to its journal).
+
+    `integrated`, `refused` (settled without being integrated: refused, dropped by the service's
+    full queue, the map deleted first) and `lost` (seqs that never reached the service) are the
+    service's counts of this session; `unsettled` the rest: in flight, waiting in the backlog, or
+    whose fate the service does not know (it restarted during the session and counts from the
+    first scan it accepted afterwards: `counted_from`). `settled`: the service settled every scan
+    through `last_seq`. `answered`: whether the service answered at all (False: it was unreachable
+    until the timeout)."""
+
+    published: int
+    first_seq: int | None = None
+    last_seq: int | None = None
+    integrated: int = 0
+    refused: int = 0
+    lost: int = 0
+    settled: bool = False
+    answered: bool = False
+    counted_from: int | None = None
+
+    @property
+    def unsettled(self) -> int:
+        """Scans neither integrated, refused nor lost as far as the service says."""
+        return max(0, self.published - self.integrated - self.refused - self.lost)
+
+    @property
+    def confirmed(self) -> bool:
+        """Whether every scan published is integrated: the service settled them all, counted them
+        from the first, and refused or lost none."""
+        if self.published == 0:
+            return True
+        counted = (
+            self.counted_from is not None
+            and self.first_seq is not None
+            and self.counted_from <= self.first_seq
+        )
+        return self.settled and counted and self.refused == 0 and self.lost == 0
+
+    def __bool__(self) -> bool:
+        return self.confirmed
+
+    def summary(self) -> str:
+        """One line: `N scans published, N integrated`, and what became of the others."""
+        text = f"{self.published} scans published, {self.integrated} integrated"
+        if self.confirmed:
+            return text
+        if not self.answered:
+            return f"{text}: the service did not answer, {self.published - self.integrated} unconfirmed"
+        parts = [f"{count} {what}" for count, what in (
+            (self.lost, "lost"), (self.refused, "refused or dropped by the service"),
+            (self.unsettled, "unconfirmed"),
+        ) if count]  # fmt: skip
+        return f"{text}: {', '.join(parts) or 'not settled'}"
 
 
 def client_config(
@@ -259,6 +347,8 @@ class ScanPublisher:
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
         self._last_seq: int | None = None
+        # The seq of the first scan of the current session (`session_id`): `flush` covers from it.
+        self._session_first_seq: int | None = None
         self._session_id = new_session_id() if send_session_id else None
         #: Scans handed to Zenoh while a router (or peer) was connected (see the class docstring).
         self.published = 0
@@ -486,6 +576,8 @@ class ScanPublisher:
                     session = new_session_id()  # the seq starts again: under the old session, duplicates
                 # Encoded before the counter moves, so that a scan that cannot be encoded leaves no gap.
                 payload = self._encode(scan, seq, stamp, session=session)
+                if self._session_first_seq is None or session != self._session_id:
+                    self._session_first_seq = seq
                 self._session_id = session
                 self._next_seq = seq + 1
                 self._last_seq = seq
@@ -521,6 +613,88 @@ class ScanPublisher:
             else:
                 self.backlogged += 1
         return True
+
+    # -- delivery confirmation ---------------------------------------------------------------------
+
+    def flush(self, timeout: float | None = None) -> DeliveryReport:
+        """Wait until the service reports every scan of this publisher's session (its scans since
+        the publisher was made, or since an explicit seq started its seq again) settled, and say
+        what became of them: a `DeliveryReport`, true when all of them are integrated.
+
+        Asks the service every `FLUSH_POLL_S` (a Zenoh query on `fleetmap/<map>/<robot>/delivery`)
+        until it reports the session settled through the last seq published when `flush` was called
+        (scans published meanwhile are not waited for), or until `timeout` seconds (None: no limit)
+        pass: then the report says what was known last (`unsettled` > 0, or `answered` False when the
+        service never answered). Waits through disconnections: the backlog re-delivers what the
+        service missed. A scan dropped here (`backlog=0` while disconnected) never arrives: it shows
+        as lost, or, the last one, as unsettled until the timeout. Returns at once with nothing
+        published. Raises `DeliveryUnsupported` when the service's scan subscriber is reachable but
+        no delivery query is answered for `NO_ANSWER_S` (an older service), RuntimeError for an error
+        reply or an answer that is not a fleetmap `DeliveryStatus`, `PublisherClosed` after `close()`
+        (which gives up what was not delivered: flush first) or when it is called meanwhile.
+        """
+        with self._lock:
+            if self._closed.is_set():
+                raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
+            first, last, session = self._session_first_seq, self._last_seq, self._session_id
+        if first is None or last is None:
+            return DeliveryReport(published=0, answered=True)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        report = DeliveryReport(published=last - first + 1, first_seq=first, last_seq=last)
+        unanswered_since: float | None = None  # since when the queries end at once without a reply
+        while True:
+            started = time.monotonic()
+            # Within the flush's timeout: a query over a dead link waits for its own.
+            wait_at_most = DELIVERY_QUERY_TIMEOUT_S if deadline is None else deadline - started
+            wait_at_most = max(FLUSH_POLL_S, min(DELIVERY_QUERY_TIMEOUT_S, wait_at_most))
+            status = self._query_delivery(session, wait_at_most)
+            now = time.monotonic()
+            # Ended well before its timeout without a reply: no queryable matched (not a dead link).
+            unanswered = status is None and now - started < wait_at_most / 2
+            if status is not None:
+                unanswered_since = None
+                report = _report(status, session, first, last)
+                if report.settled:
+                    return report
+            elif unanswered and self.connected and self.subscribed:
+                unanswered_since = now if unanswered_since is None else unanswered_since
+                if now - unanswered_since >= NO_ANSWER_S:
+                    raise DeliveryUnsupported(
+                        f"the fleetmap service at {', '.join(self.endpoints)} answers no delivery query "
+                        f"({DELIVERY_KEY.format(map_id=self.map_id, robot_id=self.robot_id)}): it is older "
+                        "than delivery confirmation, or access control keeps the query from it"
+                    )
+            else:
+                unanswered_since = None  # not reachable, or silent: not yet
+            if deadline is not None and now >= deadline:
+                return report
+            wait = FLUSH_POLL_S if deadline is None else min(FLUSH_POLL_S, deadline - now)
+            if self._closed.wait(max(0.0, wait)):
+                raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} was closed during flush")
+
+    def _query_delivery(self, session_id: int | None, timeout: float) -> DeliveryStatus | None:
+        """One delivery query: the service's answer, None when none came (no session or link yet,
+        no queryable, or none answered in `timeout` seconds). Raises RuntimeError for an error
+        reply or an answer that is not a `DeliveryStatus` (not a fleetmap service answering)."""
+        session = self._session
+        if session is None:
+            return None
+        key = DELIVERY_KEY.format(map_id=self.map_id, robot_id=self.robot_id)
+        selector = f"{key}?{DELIVERY_SESSION_PARAMETER}={0 if session_id is None else session_id}"
+        try:
+            replies = session.get(selector, timeout=timeout)
+            for reply in replies:
+                if reply.ok is not None:
+                    try:
+                        return DeliveryStatus.model_validate_json(reply.ok.payload.to_bytes())
+                    except ValueError as exc:
+                        raise RuntimeError(f"the delivery answer is not a fleetmap one: {exc}") from None
+                # Zenoh's own errors (the query's timeout: a silent link) are no answer; the service's are.
+                if reply.err is not None and reply.err.encoding == zenoh.Encoding(DELIVERY_ERROR_ENCODING):
+                    raise RuntimeError(f"the delivery query failed: {reply.err.payload.to_string()}")
+        except zenoh.ZError:  # closed meanwhile
+            return None
+        return None
 
     # -- lifetime ----------------------------------------------------------------------------------
 
@@ -575,7 +749,23 @@ class ScanPublisher:
         )
 
 
+def _report(status: DeliveryStatus, session_id: int | None, first: int, last: int) -> DeliveryReport:
+    """The `DeliveryReport` of the scans `first` .. `last` of session `session_id` from the service's
+    `status`."""
+    published = last - first + 1
+    entry = status.session(session_id) if status.status == "ok" else None
+    if entry is None:  # nothing of this session accepted yet (or its map is gone)
+        return DeliveryReport(published=published, first_seq=first, last_seq=last, answered=True)
+    # Counts of scans published after `flush` began may be in the service's: capped, they never
+    # make a report say more was integrated than it asked about.
+    return DeliveryReport(
+        published=published, first_seq=first, last_seq=last, integrated=min(entry.integrated, published),
+        refused=entry.refused, lost=entry.lost, settled=entry.settled is not None and entry.settled >= last,
+        answered=True, counted_from=entry.first_seq,
+    )  # fmt: skip
+
+
 __all__ = [
     "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT", "HEARTBEAT_S",
-    "PublisherClosed", "ScanPublisher", "client_config",
+    "DeliveryReport", "DeliveryUnsupported", "PublisherClosed", "ScanPublisher", "client_config",
 ]  # fmt: skip

@@ -20,6 +20,12 @@ scans for re-delivery (`ScanPublisher`'s `backlog`), so the scans in flight when
 service once it is back. If the connection is lost midway, the replay pauses until it is back rather
 than publishing on into the backlog: a log replayed faster than real time would otherwise push the
 oldest scans out of it before the service could fetch them.
+
+Confirmation. After the last scan the replay asks the service until it has settled every scan
+(`ScanPublisher.flush`, for at most `confirm_timeout`: by default the `wait_timeout`, else
+`DEFAULT_CONFIRM_TIMEOUT`) and reports what it confirmed (`ReplayResult.delivery`): a link that died
+silently near the end, which `close()` would give up with the scans it did not deliver, shows as
+scans unconfirmed rather than a replay that looks complete.
 """
 
 from __future__ import annotations
@@ -33,10 +39,13 @@ from pathlib import Path
 from fleetmap.datasets import Dataset, load_dataset
 from fleetmap.scan import Scan
 
-from .publisher import Encoding, ScanPublisher
+from .publisher import DeliveryReport, DeliveryUnsupported, Encoding, ScanPublisher
 
 #: Scans per second of a replay at rate 1 (the dataset readers expose no timestamps; see above).
 NOMINAL_SCAN_RATE = 10.0
+#: Seconds a replay waits for the service to confirm its scans when neither `confirm_timeout` nor
+#: `wait_timeout` says: a replay must end, and a whole backlog integrates in well under a second.
+DEFAULT_CONFIRM_TIMEOUT = 60.0
 
 
 class ReplayError(RuntimeError):
@@ -48,6 +57,15 @@ class ReplayResult:
     scans: int  # scans published (handed to a connected session, or kept for re-delivery)
     pauses: int  # times the replay paused for a lost connection to come back
     seconds: float  # from the first scan to the last
+    #: What the service confirmed of them (`ScanPublisher.flush`); None when not asked (`confirm`
+    #: False) or when the service does not answer delivery queries (`unconfirmable` says why).
+    delivery: DeliveryReport | None = None
+    unconfirmable: str | None = None
+
+    @property
+    def confirmed(self) -> bool:
+        """Whether the service confirmed every scan integrated."""
+        return self.delivery is not None and self.delivery.confirmed
 
 
 def replay(
@@ -63,6 +81,8 @@ def replay(
     wait_timeout: float | None = None,
     progress: bool = True,
     on_waiting: Callable[[ScanPublisher], None] | None = None,
+    confirm: bool = True,
+    confirm_timeout: float | None = None,
 ) -> ReplayResult:
     """Publish the first `limit` scans (all when None) of `dataset` as robot `robot_id` of `map_id`.
 
@@ -70,8 +90,10 @@ def replay(
     `wait_timeout`: seconds to wait for the service at the start and after a lost connection (None:
     forever); raises `ReplayError` when it passes. `on_waiting(publisher)` is called once when the
     service is not reachable within a second (the CLI prints a line). A tqdm progress bar goes to
-    stderr unless `progress` is False. Raises ValueError for bad arguments, `DatasetError` /
-    `OSError` for an unreadable dataset path.
+    stderr unless `progress` is False. With `confirm` (default), the replay then waits up to
+    `confirm_timeout` seconds (None: `wait_timeout`, else `DEFAULT_CONFIRM_TIMEOUT`) for the service
+    to settle every scan, and `ReplayResult.delivery` says what it confirmed. Raises ValueError for
+    bad arguments, `DatasetError` / `OSError` for an unreadable dataset path.
     """
     if not (rate >= 0.0 and rate != float("inf")):
         raise ValueError(f"rate must be a finite number >= 0, got {rate}")
@@ -84,7 +106,15 @@ def replay(
         map_id, robot_id, connect=connect, encoding=encoding, zenoh_config=zenoh_config
     ) as pub:
         _wait(pub, wait_timeout, on_waiting)
-        return _publish_all(pub, (ds[k] for k in range(count)), count, period, wait_timeout, progress)
+        result = _publish_all(pub, (ds[k] for k in range(count)), count, period, wait_timeout, progress)
+        if confirm:
+            if confirm_timeout is None:
+                confirm_timeout = DEFAULT_CONFIRM_TIMEOUT if wait_timeout is None else wait_timeout
+            try:
+                result.delivery = pub.flush(confirm_timeout)
+            except DeliveryUnsupported as exc:
+                result.unconfirmable = str(exc)
+        return result
 
 
 def _wait(
@@ -130,4 +160,4 @@ def _publish_all(
     return ReplayResult(scans=count, pauses=pauses, seconds=time.monotonic() - started)
 
 
-__all__ = ["NOMINAL_SCAN_RATE", "ReplayError", "ReplayResult", "replay"]
+__all__ = ["DEFAULT_CONFIRM_TIMEOUT", "NOMINAL_SCAN_RATE", "ReplayError", "ReplayResult", "replay"]

@@ -1,0 +1,245 @@
+"""Delivery confirmation over real parts: the real service as a process, robots' `ScanPublisher`s
+(real Zenoh client sessions), raw Zenoh queries, and `FreezableProxy` (real sockets) to cut or
+silently kill a robot's link.
+
+The service answers a query on `fleetmap/<map>/<robot>/delivery` with what became of the robot's
+scans (`fleetmap.wire.DeliveryStatus`); `ScanPublisher.flush` asks it until every scan of its
+session is settled, and `fleetmap replay` reports what was confirmed (docs/protocol.md, "Delivery
+confirmation")."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+import zenoh
+from fleetmap_client.publisher import DeliveryUnsupported, ScanPublisher
+from robot_process import scans_for
+from service_process import FreezableProxy, ServiceProcess, reaped
+from test_client_zenoh import Router, _write_carmen
+from test_e2e import assert_region_equal, map_stats, wait_integrated
+from test_store_forward import LAYERS, engine_map, publish_then_cut
+
+from fleetmap import codec
+from fleetmap.robot_state import SessionLedger
+from fleetmap.scan import Scan
+from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus
+
+
+def test_settled_passes_only_scans_settled_in_order() -> None:
+    """With durable storage a scan counts as integrated when its journal row commits, after a later
+    scan of the robot may have been refused: `settled` must not pass the earlier one meanwhile. A
+    re-send of a refused seq (a REST retry) is unsettled again until it is settled."""
+    ledger = SessionLedger()
+    first, second, third = ledger.open(0), ledger.open(1), ledger.open(2)
+    ledger.settle(second, integrated=False)  # refused while the first waits for its commit
+    assert (ledger.settled, ledger.integrated, ledger.refused) == (None, 0, 1)
+    ledger.settle(first, integrated=True)
+    assert ledger.settled == 1
+    ledger.settle(third, integrated=False)
+    ledger.settle(third, integrated=False)  # settled once
+    assert (ledger.settled, ledger.integrated, ledger.refused) == (2, 1, 2)
+    again = ledger.open(2)
+    assert ledger.settled is None
+    ledger.settle(again, integrated=True)
+    assert (ledger.settled, ledger.first_seq) == (2, 0)
+
+
+def test_the_reply_docs_protocol_md_shows_is_the_services_model() -> None:
+    """docs/protocol.md's example reply is a `DeliveryStatus` (the doc and `fleetmap.wire` agree)."""
+    text = (Path(__file__).resolve().parent.parent / "docs" / "protocol.md").read_text(encoding="utf-8")
+    section = text.split("### Delivery confirmation", 1)[1]
+    example = re.search(r"```text\n(.*?)```", section, re.S)
+    assert example, "no example reply in docs/protocol.md, Delivery confirmation"
+    status = DeliveryStatus.model_validate_json(example.group(1))
+    entry = status.session(4711)
+    assert entry is not None and entry.settled == 999
+
+
+def query(session: zenoh.Session, key: str) -> DeliveryStatus | str:
+    """The service's answer to a delivery query on `key` (a selector): the status, or an error
+    reply's text. AssertionError when nothing answers."""
+    for reply in session.get(key, timeout=5.0):
+        if reply.ok is not None:
+            return DeliveryStatus.model_validate_json(reply.ok.payload.to_bytes())
+        assert reply.err is not None
+        return reply.err.payload.to_string()
+    raise AssertionError(f"no answer to the delivery query {key}")
+
+
+def client_session(endpoint: str) -> zenoh.Session:
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("connect/endpoints", f'["{endpoint}"]')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
+
+
+def test_flush_confirms_scans_integrated_and_durable(tmp_path: Path) -> None:
+    """A robot publishes 40 scans and flushes: the service (durable: each scan counts once its
+    journal row is committed) reports all 40 integrated, and the map holds exactly them."""
+    scans = scans_for(sim=11, beams=181, count=40)
+    with (
+        ServiceProcess(tmp_path) as service,
+        ScanPublisher("fl", "r1", connect=[service.zenoh_endpoint]) as pub,
+    ):
+        assert pub.wait_connected(20), pub.last_connect_error
+        for seq, scan in enumerate(scans):
+            pub.publish(scan, seq=seq, stamp=float(seq))
+        report = pub.flush(30)
+        assert report.confirmed and report, report
+        assert (report.published, report.integrated, report.refused, report.lost) == (40, 40, 0, 0)
+        assert report.summary() == "40 scans published, 40 integrated"
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            # Confirmed means integrated already: no waiting for the map here.
+            assert map_stats(http, "fl")["scans_integrated"] == 40
+            assert_region_equal(http, "fl", engine_map(scans), LAYERS)
+
+
+def test_flush_waits_through_a_dead_zone(tmp_path: Path) -> None:
+    """Scans published into a dead zone (the link cut, new connections refused) are not confirmed
+    while it lasts; flush waits, the link comes back 1.5 s later, the backlog delivers them and
+    flush confirms all of them."""
+    scans = scans_for(sim=12, beams=181, count=30)
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        proxy = FreezableProxy(service.zenoh_port)
+        pub = ScanPublisher("dz", "r1", connect=[proxy.endpoint])
+        try:
+            with httpx.Client(base_url=service.base_url, timeout=10) as http:
+                publish_then_cut(pub, proxy, http, "dz", scans, 10)
+                for seq in range(10, len(scans)):
+                    assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
+                assert not pub.flush(0.5)  # in the dead zone: not confirmed (yet)
+                threading.Timer(1.5, proxy.restore).start()
+                started = time.monotonic()
+                report = pub.flush(30)
+                assert report.confirmed, report
+                assert time.monotonic() - started > 1.0  # it waited for the link
+                assert (report.published, report.integrated) == (30, 30)
+                assert map_stats(http, "dz")["scans_integrated"] == 30
+        finally:
+            pub.close()
+            proxy.close()
+
+
+def test_replay_whose_link_dies_silently_near_the_end_reports_unconfirmed_scans(tmp_path: Path) -> None:
+    """`fleetmap replay` of 40 scans, its link frozen after some 25 were integrated and never back
+    (new connections refused; to the robot the frozen one looks alive): the replay publishes the
+    rest into it, as it always did, but then says they are not confirmed and exits with 1 (it said
+    "replayed 40 scans" and exited 0)."""
+    log = tmp_path / "corridor.log"
+    _write_carmen(log, 40)
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        proxy = FreezableProxy(service.zenoh_port)
+        command = [
+            sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "rp", "--robot", "r1",
+            "--rate", "1", "--connect", proxy.endpoint, "--quiet", "--wait-timeout", "20",
+            "--confirm-timeout", "3",
+        ]  # fmt: skip
+        proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            with reaped(proc), httpx.Client(base_url=service.base_url, timeout=10) as http:
+                wait_integrated(http, "rp", 25, timeout=60)
+                proxy.freeze(refuse_new=True)
+                out, err = proc.communicate(timeout=60)
+                integrated = map_stats(http, "rp")["scans_integrated"]
+        finally:
+            proxy.close()
+    assert proc.returncode == 1, (proc.returncode, out, err)
+    assert "replayed 40 scans" in out, (out, err)
+    assert 25 <= integrated < 40
+    # Frozen before the replay's first delivery query: the service never answered it.
+    assert "40 scans published, 0 integrated: the service did not answer, 40 unconfirmed" in err, err
+
+
+def test_a_query_for_an_unknown_map_or_robot_says_so(tmp_path: Path) -> None:
+    """The service answers a query about a map it does not hold, or a robot the map does not know,
+    with a status that says so (not silence); one about several robots (a wildcard) or with a bad
+    session id gets an error reply. A known robot's answer lists its session."""
+    scans = scans_for(sim=13, beams=181, count=3)
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        session = client_session(service.zenoh_endpoint)
+        try:
+            answer = query(session, DELIVERY_KEY.format(map_id="nowhere", robot_id="r1"))
+            assert isinstance(answer, DeliveryStatus)
+            assert (answer.status, answer.map_id, answer.robot_id, answer.sessions) == (
+                "no_map",
+                "nowhere",
+                "r1",
+                [],
+            )
+            key = SCAN_KEY.format(map_id="qm", robot_id="r1")
+            for seq, scan in enumerate(scans):
+                payload = codec.encode_binary(scan, seq, stamp=float(seq), session=77)
+                session.put(key, payload, encoding=zenoh.Encoding(BINARY_ENCODING))
+            with httpx.Client(base_url=service.base_url, timeout=10) as http:
+                wait_integrated(http, "qm", 3, timeout=30)
+            answer = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r2"))
+            assert isinstance(answer, DeliveryStatus) and answer.status == "no_robot"
+            answer = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r1"))
+            assert isinstance(answer, DeliveryStatus) and answer.status == "ok"
+            entry = answer.session(77)
+            assert entry is not None and (entry.first_seq, entry.last_accepted, entry.settled) == (0, 2, 2)
+            assert (answer.scans_integrated, answer.unsettled, entry.integrated) == (3, 0, 3)
+            assert (
+                query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r1") + "?session=5").sessions == []
+            )  # type: ignore[union-attr]
+            wildcard = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="*"))
+            assert isinstance(wildcard, str) and "ask for one robot" in wildcard
+            bad = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r1") + "?session=x")
+            assert isinstance(bad, str) and "session must be an integer" in bad
+        finally:
+            session.close()
+
+
+def test_the_answer_counts_refused_and_duplicate_scans(tmp_path: Path) -> None:
+    """Scans the service does not integrate are settled all the same, and counted: a duplicate seq
+    (ignored) and a scan that needs more tiles than its map may have (refused at integration).
+    The session is settled through its last seq, and flush reports it settled but not confirmed."""
+    near = Scan.from_fan((5.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)  # inside one tile
+    far = Scan.from_fan((500.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)  # a tile more
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        httpx.put(f"{service.base_url}/maps/rf", json={"max_tiles": 1}, timeout=10).raise_for_status()
+        pub = ScanPublisher("rf", "r1", connect=[service.zenoh_endpoint], backlog=0)
+        try:
+            assert pub.wait_connected(20), pub.last_connect_error
+            for seq in range(3):
+                pub.publish(near, seq=seq, stamp=float(seq))
+            pub.publish(near, seq=2, stamp=2.0)  # the last seq again: a resend, a duplicate
+            pub.publish(far, seq=3, stamp=3.0)  # a second tile: refused
+            pub.publish(near, seq=4, stamp=4.0)
+            report = pub.flush(30)
+            assert report.settled and not report.confirmed, report
+            assert (report.published, report.integrated, report.refused, report.lost) == (5, 4, 1, 0)
+            assert report.summary() == "5 scans published, 4 integrated: 1 refused or dropped by the service"
+            assert pub._session is not None
+            answer = query(pub._session, DELIVERY_KEY.format(map_id="rf", robot_id="r1"))
+            assert isinstance(answer, DeliveryStatus)
+            entry = answer.session(pub.session_id)
+            assert entry is not None and (entry.duplicates, entry.refused, entry.settled) == (1, 1, 4)
+            assert answer.duplicates == 1 and answer.unsettled == 0
+        finally:
+            pub.close()
+
+
+def test_flush_against_a_service_without_delivery_queries_is_an_error_not_a_hang() -> None:
+    """A router that subscribes to scans as the service does but declares no delivery queryable
+    (a service older than delivery confirmation): flush raises `DeliveryUnsupported` within a few
+    seconds, whatever its timeout."""
+    router = Router().start()
+    try:
+        with ScanPublisher("old", "r1", connect=[router.endpoint]) as pub:
+            assert pub.wait_connected(20), pub.last_connect_error
+            pub.publish(scans_for(sim=15, beams=181, count=1)[0])
+            started = time.monotonic()
+            with pytest.raises(DeliveryUnsupported, match="answers no delivery query"):
+                pub.flush(60)
+            assert time.monotonic() - started < 15
+    finally:
+        router.stop()
