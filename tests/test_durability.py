@@ -749,3 +749,54 @@ def test_a_scan_whose_map_is_replaced_while_it_integrates_is_not_replayed_into_t
     assert (before_crash["scans_integrated"], before_crash["tiles"], before_crash["robots"]) == (0, 0, {})
     assert answer[0].status_code == 409, answer[0].text
     assert "not integrated" in answer[0].json()["detail"]
+
+
+def test_scans_queued_at_a_snapshot_and_lost_in_a_crash_are_taken_again_from_the_robots_cache(
+    tmp_path: Path,
+) -> None:
+    """A snapshot taken while scans 1-4 of a robot wait in the ingest queue (accepted, neither applied
+    nor journaled), then a crash: those scans are gone from the service, and the robot's cache (a
+    `ScanPublisher` backlog) sends them again to the new process. They must be integrated: the
+    snapshot's seq bookkeeping holds a session's seqs only as far as its scans are integrated.
+    Saved as accepted (seq 4), the re-sent scans were refused as duplicates and lost for good."""
+    from fleetmap.codec import WireScan
+    from fleetmap.persistence import DurableStore
+    from fleetmap.registry import MapRegistry
+
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=4, count=5)]
+    session = 4242
+    reg = MapRegistry(durable=DurableStore(tmp_path / "d"))
+    reg.start()
+    again: MapRegistry | None = None
+    gmap = None
+    try:
+        reg.submit("m", "r", WireScan(0, 0.0, scans[0], session))
+        assert reg.wait_idle()
+        gmap = reg.get("m").gmap
+        gmap.lock.acquire()  # the workers wait for the map: scans 1-4 stay accepted, not applied
+        for k in range(1, 5):
+            reg.submit("m", "r", WireScan(k, float(k), scans[k], session))
+        reg.snapshot_all(every_map=True)  # (the map's lock is re-entrant: this thread holds it)
+        # The crash: the queued scans die with the process. A new process on the same directory
+        # (the lock of a data directory is per process: see `DataDirLock`).
+        again = MapRegistry(durable=DurableStore(tmp_path / "d"))
+        again.start()
+        assert again.get("m").scans_integrated == 1
+        for k in range(1, 5):  # the robot's cache, fetched by the new process
+            again.submit("m", "r", WireScan(k, float(k), scans[k], session))
+        assert again.wait_idle()
+        robot = again.get("m").robots["r"]
+        assert (robot.scans_integrated, robot.duplicates, robot.lost, robot.last_seq) == (5, 0, 0, 4)
+        expected = GridMap()
+        for scan in scans:
+            expected.integrate(scan)
+        i0, j0, i1, j1 = expected.known_bounds()
+        np.testing.assert_array_equal(
+            again.get("m").gmap.region("log_odds", i0, j0, i1, j1), expected.region("log_odds", i0, j0, i1, j1)
+        )
+    finally:
+        if again is not None:
+            again.close()
+        if gmap is not None:
+            gmap.lock.release()
+        reg.close()

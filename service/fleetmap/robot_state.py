@@ -82,6 +82,10 @@ class SessionLedger:
         while receipts and receipts[0].settled:
             self.settled = receipts.popleft().seq
 
+    def first_unsettled(self) -> int | None:
+        """The seq of the first of its scans not settled yet, None if every one is."""
+        return self.open_receipts[0].seq if self.open_receipts else None
+
     def count_lost(self, count: int) -> None:
         """`count` seqs of the session were skipped: lost, if after its first scan here."""
         if self.first_seq is not None:
@@ -108,8 +112,23 @@ class SessionSeqs:
     ledger: SessionLedger = field(default_factory=SessionLedger, init=False, compare=False)
 
     def saved(self) -> list:
-        """Its constructor's fields in order (`SessionSeqs(*saved)` gives it back): not the ledger."""
-        return [getattr(self, f.name) for f in fields(self) if f.init]
+        """Its constructor's fields in order (`SessionSeqs(*saved)` gives it back), not the ledger,
+        and `last_seq` only as far as the session's scans are settled (`settled_seq`)."""
+        return [
+            self.settled_seq() if f.name == "last_seq" else getattr(self, f.name)
+            for f in fields(self)
+            if f.init
+        ]
+
+    def settled_seq(self) -> int:
+        """`last_seq`, or if a scan of the session is still unsettled (queued, or applied and its
+        journal row not committed yet) the seq before the first such scan: what a snapshot may
+        record as the service's. A snapshot (`MapRegistry._saved_counters`) is taken while scans
+        wait; had it saved them as accepted, a crash before their journal commit lost them for good,
+        since the new process refused the robot's cache re-sending them as duplicates. The scans it
+        integrates after the snapshot are replayed from the journal, which advances `last_seq`."""
+        pending = self.ledger.first_unsettled()
+        return self.last_seq if pending is None else min(self.last_seq, pending - 1)
 
     def is_restart(self, seq: int, stamp: float) -> bool:
         """For scans WITHOUT a session id: whether a scan whose `seq` is not above `last_seq` starts
@@ -186,7 +205,8 @@ class RobotState:
 
     def saved(self) -> dict:
         # `last_seq` for a service from before sessions, which reads only that (same database layout).
-        out = {name: getattr(self, name) for name in self.SAVED} | {"last_seq": self.last_seq}
+        last = next(reversed(self.sessions.values())).settled_seq() if self.sessions else None
+        out = {name: getattr(self, name) for name in self.SAVED} | {"last_seq": last}
         out["last_pose"] = (
             None if self.last_pose is None else [self.last_pose.x, self.last_pose.y, self.last_pose.theta]
         )
