@@ -11,17 +11,17 @@ from __future__ import annotations
 
 import sqlite3
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import pytest
 from robot_process import scans_for
 
-from fleetmap import tombstones
+from fleetmap import persistence, tombstones
 from fleetmap.codec import WireScan
 from fleetmap.database import DB_NAME
 from fleetmap.persistence import DurableStore
-from fleetmap.registry import IngestRejected, MapRegistry
+from fleetmap.registry import IngestRejected, MapRegistry, NotDurable
 from fleetmap.robot_state import RobotState
 from fleetmap.tombstones import Tombstone, Tombstones
 
@@ -181,3 +181,44 @@ def test_at_most_max_tombstones_are_kept_the_oldest_forgotten(monkeypatch: pytes
         [Tombstone(f"m{k}", "r", 1000.0 + k, {SESSION: 4}) for k in (4, 0, 2, 1, 3)], now=1005.0
     )
     assert [loaded.buried(f"m{k}", "r") for k in range(5)] == [False, False, True, True, True]
+
+
+@pytest.mark.parametrize("then", ["created by PUT", "created by another robot's scan"])
+def test_a_deletion_not_stored_keeps_its_tombstones_when_a_new_map_of_its_id_supersedes_it(
+    data: Path, monkeypatch: pytest.MonkeyPatch, then: str
+) -> None:
+    """A DELETE whose commit fails (a failing disk: 503) is retried by the journal writer, but a later
+    change of the same map id (the map created again) supersedes it, rewriting the map whole. The
+    tombstones that rode in the deletion's transaction must ride in that one: they were dropped
+    with it, and after a restart robot r's cached scans went into the new map."""
+    reg = registry(data)
+    try:
+        for seq in range(5):
+            reg.submit("m", "r", wire(seq))
+        assert reg.wait_idle(60)
+        failing = [True]
+        bury = persistence._bury
+
+        def failing_bury(conn: sqlite3.Connection, buried: Sequence[Tombstone]) -> None:
+            if failing[0]:
+                raise sqlite3.OperationalError("disk I/O error")
+            bury(conn, buried)
+
+        monkeypatch.setattr(persistence, "_bury", failing_bury)
+        with pytest.raises(NotDurable):
+            reg.delete("m", wait=True)
+        failing[0] = False  # the disk works again, before the retry
+        if then == "created by PUT":
+            reg.create("m", wait=True)
+        else:
+            reg.submit("m", "x", wire(0, session=SESSION + 9))
+            assert reg.wait_idle(60)
+        assert reg.durable is not None and reg.durable.writer.unstored == ()
+    finally:
+        reg.close()
+    again = registry(data)
+    try:
+        refused = refusal(again, "m", "r", wire(3))  # from robot r's cache
+        assert refused.status == 200 and "from before map 'm' was deleted" in refused.reason
+    finally:
+        again.close()
