@@ -19,7 +19,9 @@ from robot_process import scans_for
 
 from fleetmap import persistence, tombstones
 from fleetmap.codec import WireScan
+from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME
+from fleetmap.grid_map import GridMap
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import IngestRejected, MapRegistry, NotDurable
 from fleetmap.robot_state import RobotState
@@ -222,3 +224,29 @@ def test_a_deletion_not_stored_keeps_its_tombstones_when_a_new_map_of_its_id_sup
         assert refused.status == 200 and "from before map 'm' was deleted" in refused.reason
     finally:
         again.close()
+
+
+@pytest.mark.parametrize("how", ["deleted", "replaced"])
+def test_a_scan_the_full_queue_refused_before_its_map_went_is_integrated_when_sent_again(how: str) -> None:
+    """A REST client answered 503 (queue full) is told to retry the scan later with its seq, which is
+    then integrated (docs/api.md; `RobotState.refused`). Its map deleted or replaced meanwhile, the
+    retry was ignored as "from before the deletion", though the service never had that scan: lost
+    although its sender did as told. (The scan queued before it, which the service had, stays ignored.)"""
+    reg = MapRegistry(queue_per_robot=1)  # workers not started: nothing drains
+    try:
+        reg.submit("m", "r", wire(0))
+        with pytest.raises(IngestRejected) as full:
+            reg.submit("m", "r", wire(1))
+        assert full.value.status == 503
+        if how == "deleted":
+            reg.delete("m")
+        else:
+            reg.replace("m", GridMap(MapConfig()))
+        reg.start()
+        retried = reg.submit("m", "r", wire(1), wait=True)
+        assert retried is not None and retried.result(60).cell_updates > 0
+        assert refusal(reg, "m", "r", wire(1)).status == 200  # integrated once: a copy is a duplicate
+        assert refusal(reg, "m", "r", wire(0)).status == 200
+        assert reg.get("m").robots["r"].scans_integrated == 1
+    finally:
+        reg.close()

@@ -43,12 +43,19 @@ def forgotten_before(now: float) -> float:
 @dataclass(frozen=True)
 class Tombstone:
     """One robot of a deleted or replaced map: the last seq the service had of each of its publisher
-    sessions (session id -> seq; sessions without an id left out), and when it was buried."""
+    sessions (session id -> seq; sessions without an id left out), and when it was buried.
+
+    `refused` is the robot's `RobotState.refused` then, (session id, seq) of its last scan refused
+    for the service's sake (a full queue: 503; the memory budget: 507): its seq is recorded, yet the
+    service never had the scan, and its sender is told to send it again, which must be integrated,
+    not ignored as from before the deletion. Not stored, as `RobotState.refused` is not: after a
+    restart it is covered, as the map's own bookkeeping would have it."""
 
     map_id: str
     robot_id: str
     deleted_at: float
     sessions: Mapping[int, int]
+    refused: tuple[int, int] | None = None
 
     def sessions_json(self) -> str:
         """`sessions` as stored (a JSON object of decimal strings: session ids need 64 bits)."""
@@ -84,7 +91,8 @@ class Tombstones:
             for key, rec in state.sessions.items():
                 if key != NO_SESSION:
                     sessions[key] = max(rec.last_seq, sessions.get(key, rec.last_seq))
-            stone = Tombstone(map_id, robot_id, now, sessions)
+            refused = state.refused if state.refused is not None and state.refused[0] != NO_SESSION else None
+            stone = Tombstone(map_id, robot_id, now, sessions, refused)
             self._stones[map_id, robot_id] = stone
             made.append(stone)
         self.prune(now)
@@ -92,9 +100,10 @@ class Tombstones:
 
     def covers(self, map_id: str, robot_id: str, session: int | None, seq: int) -> Tombstone | None:
         """The tombstone that makes scan `seq` of publisher session `session` one from before its map
-        was deleted, or None: the scan is not known to be old."""
+        was deleted, or None: the scan is not known to be old (or is the one its robot was told to
+        send again: `Tombstone.refused`)."""
         stone = self._stones.get((map_id, robot_id))
-        if stone is None or session is None:
+        if stone is None or session is None or stone.refused == (session, seq):
             return None
         last = stone.sessions.get(session)
         return stone if last is not None and seq <= last else None
