@@ -24,7 +24,7 @@ from fleetmap.database import DB_NAME
 from fleetmap.grid_map import GridMap
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import IngestRejected, MapRegistry, NotDurable
-from fleetmap.robot_state import RobotState
+from fleetmap.robot_state import MAX_SESSIONS, RobotState
 from fleetmap.tombstones import Tombstone, Tombstones
 
 SESSION = 7_000_000_000_123  # a publisher session id (64-bit, as `ScanPublisher` makes them)
@@ -250,3 +250,24 @@ def test_a_scan_the_full_queue_refused_before_its_map_went_is_integrated_when_se
         assert reg.get("m").robots["r"].scans_integrated == 1
     finally:
         reg.close()
+
+
+def test_a_robot_buried_again_and_again_keeps_its_most_recent_sessions_only() -> None:
+    """A map deleted every day (a scratch map reset each night), its robot's process restarted every
+    day: each burial merged the robot's sessions into its tombstone, whose time each burial renews,
+    so the tombstone (memory, and its JSON in the database) grew by a session a day without end.
+    It keeps the `MAX_SESSIONS` heard most recently, as the live bookkeeping does."""
+    stones = Tombstones()
+    for day in range(3 * MAX_SESSIONS):
+        state = RobotState()
+        state.accept(100, 100.0, SESSION + day)
+        stones.bury("m", {"r": state}, now=1000.0 + day * 86400)
+    last = 3 * MAX_SESSIONS - 1
+    covered = [stones.covers("m", "r", SESSION + day, 100) is not None for day in range(last + 1)]
+    assert covered == [day > last - MAX_SESSIONS for day in range(last + 1)]
+    state = RobotState()  # one heard long ago, heard again: kept, as recent
+    state.accept(7, 7.0, SESSION + last - MAX_SESSIONS + 1)
+    state.accept(200, 200.0, SESSION + 1000)
+    stones.bury("m", {"r": state}, now=1000.0 + (last + 1) * 86400)
+    assert stones.covers("m", "r", SESSION + last - MAX_SESSIONS + 1, 100) is not None
+    assert stones.covers("m", "r", SESSION + last - MAX_SESSIONS + 2, 100) is None  # the oldest then

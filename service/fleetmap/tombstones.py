@@ -27,7 +27,7 @@ import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from fleetmap.robot_state import NO_SESSION, RobotState
+from fleetmap.robot_state import MAX_SESSIONS, NO_SESSION, RobotState
 
 #: Days a deleted map's robots are remembered.
 TOMBSTONE_DAYS = 30.0
@@ -83,14 +83,19 @@ class Tombstones:
     def bury(self, map_id: str, robots: Mapping[str, RobotState], now: float) -> list[Tombstone]:
         """Remember every robot of map `map_id`, being deleted or replaced at `now`; return the
         tombstones to store. A robot buried before (the map was deleted, made again and deleted)
-        keeps the sessions it had then, and each session the higher of its two seqs."""
+        keeps the sessions it had then, and each session the higher of its two seqs, up to the
+        `MAX_SESSIONS` heard most recently: each burial renews the tombstone's time, so without
+        that bound a map deleted every day grew its robots' tombstones by a session a day for good.
+        (The live bookkeeping keeps no more: an older session's scans were new to it too.)"""
         made = []
         for robot_id, state in robots.items():
             old = self._stones.pop((map_id, robot_id), None)
-            sessions = dict(old.sessions) if old is not None else {}
+            sessions = dict(old.sessions) if old is not None else {}  # least recently heard first
             for key, rec in state.sessions.items():
                 if key != NO_SESSION:
-                    sessions[key] = max(rec.last_seq, sessions.get(key, rec.last_seq))
+                    sessions[key] = max(rec.last_seq, sessions.pop(key, rec.last_seq))
+            while len(sessions) > MAX_SESSIONS:
+                del sessions[next(iter(sessions))]
             refused = state.refused if state.refused is not None and state.refused[0] != NO_SESSION else None
             stone = Tombstone(map_id, robot_id, now, sessions, refused)
             self._stones[map_id, robot_id] = stone
