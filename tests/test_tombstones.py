@@ -11,18 +11,20 @@ from __future__ import annotations
 
 import sqlite3
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import pytest
 from robot_process import scans_for
 
-from fleetmap import tombstones
+from fleetmap import persistence, tombstones
 from fleetmap.codec import WireScan
+from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME
+from fleetmap.grid_map import GridMap
 from fleetmap.persistence import DurableStore
-from fleetmap.registry import IngestRejected, MapRegistry
-from fleetmap.robot_state import RobotState
+from fleetmap.registry import IngestRejected, MapRegistry, NotDurable
+from fleetmap.robot_state import MAX_SESSIONS, RobotState
 from fleetmap.tombstones import Tombstone, Tombstones
 
 SESSION = 7_000_000_000_123  # a publisher session id (64-bit, as `ScanPublisher` makes them)
@@ -181,3 +183,91 @@ def test_at_most_max_tombstones_are_kept_the_oldest_forgotten(monkeypatch: pytes
         [Tombstone(f"m{k}", "r", 1000.0 + k, {SESSION: 4}) for k in (4, 0, 2, 1, 3)], now=1005.0
     )
     assert [loaded.buried(f"m{k}", "r") for k in range(5)] == [False, False, True, True, True]
+
+
+@pytest.mark.parametrize("then", ["created by PUT", "created by another robot's scan"])
+def test_a_deletion_not_stored_keeps_its_tombstones_when_a_new_map_of_its_id_supersedes_it(
+    data: Path, monkeypatch: pytest.MonkeyPatch, then: str
+) -> None:
+    """A DELETE whose commit fails (a failing disk: 503) is retried by the journal writer, but a later
+    change of the same map id (the map created again) supersedes it, rewriting the map whole. The
+    tombstones that rode in the deletion's transaction must ride in that one: they were dropped
+    with it, and after a restart robot r's cached scans went into the new map."""
+    reg = registry(data)
+    try:
+        for seq in range(5):
+            reg.submit("m", "r", wire(seq))
+        assert reg.wait_idle(60)
+        failing = [True]
+        bury = persistence._bury
+
+        def failing_bury(conn: sqlite3.Connection, buried: Sequence[Tombstone]) -> None:
+            if failing[0]:
+                raise sqlite3.OperationalError("disk I/O error")
+            bury(conn, buried)
+
+        monkeypatch.setattr(persistence, "_bury", failing_bury)
+        with pytest.raises(NotDurable):
+            reg.delete("m", wait=True)
+        failing[0] = False  # the disk works again, before the retry
+        if then == "created by PUT":
+            reg.create("m", wait=True)
+        else:
+            reg.submit("m", "x", wire(0, session=SESSION + 9))
+            assert reg.wait_idle(60)
+        assert reg.durable is not None and reg.durable.writer.unstored == ()
+    finally:
+        reg.close()
+    again = registry(data)
+    try:
+        refused = refusal(again, "m", "r", wire(3))  # from robot r's cache
+        assert refused.status == 200 and "from before map 'm' was deleted" in refused.reason
+    finally:
+        again.close()
+
+
+@pytest.mark.parametrize("how", ["deleted", "replaced"])
+def test_a_scan_the_full_queue_refused_before_its_map_went_is_integrated_when_sent_again(how: str) -> None:
+    """A REST client answered 503 (queue full) is told to retry the scan later with its seq, which is
+    then integrated (docs/api.md; `RobotState.refused`). Its map deleted or replaced meanwhile, the
+    retry was ignored as "from before the deletion", though the service never had that scan: lost
+    although its sender did as told. (The scan queued before it, which the service had, stays ignored.)"""
+    reg = MapRegistry(queue_per_robot=1)  # workers not started: nothing drains
+    try:
+        reg.submit("m", "r", wire(0))
+        with pytest.raises(IngestRejected) as full:
+            reg.submit("m", "r", wire(1))
+        assert full.value.status == 503
+        if how == "deleted":
+            reg.delete("m")
+        else:
+            reg.replace("m", GridMap(MapConfig()))
+        reg.start()
+        retried = reg.submit("m", "r", wire(1), wait=True)
+        assert retried is not None and retried.result(60).cell_updates > 0
+        assert refusal(reg, "m", "r", wire(1)).status == 200  # integrated once: a copy is a duplicate
+        assert refusal(reg, "m", "r", wire(0)).status == 200
+        assert reg.get("m").robots["r"].scans_integrated == 1
+    finally:
+        reg.close()
+
+
+def test_a_robot_buried_again_and_again_keeps_its_most_recent_sessions_only() -> None:
+    """A map deleted every day (a scratch map reset each night), its robot's process restarted every
+    day: each burial merged the robot's sessions into its tombstone, whose time each burial renews,
+    so the tombstone (memory, and its JSON in the database) grew by a session a day without end.
+    It keeps the `MAX_SESSIONS` heard most recently, as the live bookkeeping does."""
+    stones = Tombstones()
+    for day in range(3 * MAX_SESSIONS):
+        state = RobotState()
+        state.accept(100, 100.0, SESSION + day)
+        stones.bury("m", {"r": state}, now=1000.0 + day * 86400)
+    last = 3 * MAX_SESSIONS - 1
+    covered = [stones.covers("m", "r", SESSION + day, 100) is not None for day in range(last + 1)]
+    assert covered == [day > last - MAX_SESSIONS for day in range(last + 1)]
+    state = RobotState()  # one heard long ago, heard again: kept, as recent
+    state.accept(7, 7.0, SESSION + last - MAX_SESSIONS + 1)
+    state.accept(200, 200.0, SESSION + 1000)
+    stones.bury("m", {"r": state}, now=1000.0 + (last + 1) * 86400)
+    assert stones.covers("m", "r", SESSION + last - MAX_SESSIONS + 1, 100) is not None
+    assert stones.covers("m", "r", SESSION + last - MAX_SESSIONS + 2, 100) is None  # the oldest then

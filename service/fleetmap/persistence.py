@@ -225,6 +225,12 @@ class DurableStore:
         self._last_gen = 0
         self._gen_lock = threading.Lock()
         self._created: dict[str, float] = {}
+        # map id -> (robot id -> tombstone): those a change of the map buried whose transaction has
+        # not committed (a failing disk). The writer retries that change, but a later change of the
+        # same map id supersedes it (`JournalWriter.change_map`), and must store them instead: else
+        # a deletion answered 503, then the map created again, lost its tombstones, and a restart
+        # let the old map's robots' cached scans into the new map. Writer thread only (`_burying`).
+        self._unburied: dict[str, dict[str, Tombstone]] = {}
         # Guards what a map's incarnation owns of the dicts above when a thread other than the one
         # that (re)created or deleted the map writes them: the writer's scan callbacks and the
         # snapshot thread check `_created` and write in one hold, so a map deleted and created again
@@ -232,6 +238,19 @@ class DurableStore:
         self._maps_lock = threading.Lock()
         # Only checkpoints: a checkpoint takes no write lock, so it runs beside the journal's commits.
         self._snapshot_conn = connect(self.path, synchronous="NORMAL", autocheckpoint=False)
+
+    def _burying(self, map_id: str, buried: Sequence[Tombstone]) -> list[Tombstone]:
+        """On the writer thread, in a change of map `map_id` that buries `buried`: those and the
+        ones earlier changes of the map buried but never stored, for the change's transaction to
+        store (a robot's newer tombstone replaces its older one: `Tombstones.bury` merged them).
+        They stay pending until `_buried` says the transaction committed."""
+        pending = self._unburied.setdefault(map_id, {})
+        pending.update((stone.robot_id, stone) for stone in buried)
+        return list(pending.values())
+
+    def _buried(self, map_id: str) -> None:
+        """On the writer thread: the change of map `map_id` committed, with its pending tombstones."""
+        self._unburied.pop(map_id, None)
 
     def _next_gen(self) -> int:
         with self._gen_lock:
@@ -368,7 +387,8 @@ class DurableStore:
         buried: Sequence[Tombstone] = (),
     ) -> Future:
         """Record a new map (or one restored from a snapshot file, with its tiles: `tile_rows`, made
-        here when not given), and `buried`, the robots of the map it replaces (`Tombstones.bury`).
+        here when not given), and `buried`, the robots of the map it replaces (`Tombstones.bury`;
+        with those of an earlier change of the map id that never committed, see `_burying`).
         Queued, not waited for: called under the registry's lock, it is ordered before any of the
         map's scans. The future resolves once the map is committed.
 
@@ -389,6 +409,7 @@ class DurableStore:
 
         def op(conn: sqlite3.Connection) -> None:
             nonlocal first_attempt
+            stones = self._burying(map_id, buried)  # first: pending whatever in this op fails
             self.writer.trim(map_id, None)  # the DELETE below removes them all
             if first_attempt:  # (a retry must keep what this map's own failed scans left to save)
                 self._forget_health(map_id)  # a previous map of this id, replaced whole, takes its own along
@@ -405,25 +426,29 @@ class DurableStore:
                 "INSERT INTO tiles (map_id, ti, tj, gen, version, data) VALUES (?, ?, ?, ?, ?, ?)",
                 [(map_id, k[0], k[1], gen, v, b) for k, v, b in tiles],
             )
-            _bury(conn, buried)
+            _bury(conn, stones)
             conn.execute("COMMIT")
+            self._buried(map_id)
             self._last_journal_id[map_id] = 0
 
         return self.writer.change_map(map_id, self._reporting(f"storing the new map {map_id!r} failed", op))
 
     def map_deleted(self, map_id: str, buried: Sequence[Tombstone] = ()) -> Future:
         """Forget a map, and remember `buried`, its robots (`Tombstones.bury`), in the same
-        transaction. Queued after its journaled scans, not waited for; the future resolves once the
-        deletion is committed."""
+        transaction (with those of an earlier change of the map id that never committed: this one
+        supersedes it, see `_burying`). Queued after its journaled scans, not waited for; the
+        future resolves once the deletion is committed."""
 
         def op(conn: sqlite3.Connection) -> None:
+            stones = self._burying(map_id, buried)  # first: pending whatever in this op fails
             self.writer.trim(map_id, None)  # the DELETE below removes them all
             self._forget_health(map_id)  # again: its last scans' commits may have failed since
             conn.execute("BEGIN IMMEDIATE")
             conn.execute("DELETE FROM maps WHERE id = ?", (map_id,))
             _delete_map_rows(conn, map_id)
-            _bury(conn, buried)
+            _bury(conn, stones)
             conn.execute("COMMIT")
+            self._buried(map_id)
 
         # Everything kept per map id goes with it: maps are created and deleted under new ids for
         # the service's whole life (and a scan refused for a map it created removes that map again),

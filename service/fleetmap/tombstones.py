@@ -27,7 +27,7 @@ import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from fleetmap.robot_state import NO_SESSION, RobotState
+from fleetmap.robot_state import MAX_SESSIONS, NO_SESSION, RobotState
 
 #: Days a deleted map's robots are remembered.
 TOMBSTONE_DAYS = 30.0
@@ -43,12 +43,19 @@ def forgotten_before(now: float) -> float:
 @dataclass(frozen=True)
 class Tombstone:
     """One robot of a deleted or replaced map: the last seq the service had of each of its publisher
-    sessions (session id -> seq; sessions without an id left out), and when it was buried."""
+    sessions (session id -> seq; sessions without an id left out), and when it was buried.
+
+    `refused` is the robot's `RobotState.refused` then, (session id, seq) of its last scan refused
+    for the service's sake (a full queue: 503; the memory budget: 507): its seq is recorded, yet the
+    service never had the scan, and its sender is told to send it again, which must be integrated,
+    not ignored as from before the deletion. Not stored, as `RobotState.refused` is not: after a
+    restart it is covered, as the map's own bookkeeping would have it."""
 
     map_id: str
     robot_id: str
     deleted_at: float
     sessions: Mapping[int, int]
+    refused: tuple[int, int] | None = None
 
     def sessions_json(self) -> str:
         """`sessions` as stored (a JSON object of decimal strings: session ids need 64 bits)."""
@@ -76,15 +83,21 @@ class Tombstones:
     def bury(self, map_id: str, robots: Mapping[str, RobotState], now: float) -> list[Tombstone]:
         """Remember every robot of map `map_id`, being deleted or replaced at `now`; return the
         tombstones to store. A robot buried before (the map was deleted, made again and deleted)
-        keeps the sessions it had then, and each session the higher of its two seqs."""
+        keeps the sessions it had then, and each session the higher of its two seqs, up to the
+        `MAX_SESSIONS` heard most recently: each burial renews the tombstone's time, so without
+        that bound a map deleted every day grew its robots' tombstones by a session a day for good.
+        (The live bookkeeping keeps no more: an older session's scans were new to it too.)"""
         made = []
         for robot_id, state in robots.items():
             old = self._stones.pop((map_id, robot_id), None)
-            sessions = dict(old.sessions) if old is not None else {}
+            sessions = dict(old.sessions) if old is not None else {}  # least recently heard first
             for key, rec in state.sessions.items():
                 if key != NO_SESSION:
-                    sessions[key] = max(rec.last_seq, sessions.get(key, rec.last_seq))
-            stone = Tombstone(map_id, robot_id, now, sessions)
+                    sessions[key] = max(rec.last_seq, sessions.pop(key, rec.last_seq))
+            while len(sessions) > MAX_SESSIONS:
+                del sessions[next(iter(sessions))]
+            refused = state.refused if state.refused is not None and state.refused[0] != NO_SESSION else None
+            stone = Tombstone(map_id, robot_id, now, sessions, refused)
             self._stones[map_id, robot_id] = stone
             made.append(stone)
         self.prune(now)
@@ -92,9 +105,10 @@ class Tombstones:
 
     def covers(self, map_id: str, robot_id: str, session: int | None, seq: int) -> Tombstone | None:
         """The tombstone that makes scan `seq` of publisher session `session` one from before its map
-        was deleted, or None: the scan is not known to be old."""
+        was deleted, or None: the scan is not known to be old (or is the one its robot was told to
+        send again: `Tombstone.refused`)."""
         stone = self._stones.get((map_id, robot_id))
-        if stone is None or session is None:
+        if stone is None or session is None or stone.refused == (session, seq):
             return None
         last = stone.sessions.get(session)
         return stone if last is not None and seq <= last else None
