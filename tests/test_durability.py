@@ -790,10 +790,9 @@ def test_scans_queued_at_a_snapshot_and_lost_in_a_crash_are_taken_again_from_the
         expected = GridMap()
         for scan in scans:
             expected.integrate(scan)
-        i0, j0, i1, j1 = expected.known_bounds()
-        np.testing.assert_array_equal(
-            again.get("m").gmap.region("log_odds", i0, j0, i1, j1), expected.region("log_odds", i0, j0, i1, j1)
-        )
+        window = expected.known_bounds()
+        got = again.get("m").gmap.region("log_odds", *window)
+        np.testing.assert_array_equal(got, expected.region("log_odds", *window))
     finally:
         if again is not None:
             again.close()
