@@ -243,3 +243,45 @@ def test_flush_against_a_service_without_delivery_queries_is_an_error_not_a_hang
             assert time.monotonic() - started < 15
     finally:
         router.stop()
+
+
+@pytest.mark.parametrize("stop", ["sigterm", "sigkill"])
+def test_flush_confirms_scans_integrated_before_a_restart_of_the_service(tmp_path: Path, stop: str) -> None:
+    """A robot publishes 20 scans, the durable service stops (cleanly, or killed) and a new one starts
+    on the same data while the robot publishes 20 more into its backlog: flush confirms all 40. What
+    became of each session's scans is stored with the map (snapshots, then the journal's replay), so a
+    restart in the middle of a mission does not leave its first scans unconfirmable."""
+    data = ["--data-dir", str(tmp_path / "data")]
+    scans = scans_for(sim=14, beams=181, count=40)
+    first = ServiceProcess(tmp_path, data).start()
+    proxy = FreezableProxy(first.zenoh_port)
+    pub = ScanPublisher("rs", "r1", connect=[proxy.endpoint])
+    second: ServiceProcess | None = None
+    try:
+        assert pub.wait_connected(20), pub.last_connect_error
+        for seq in range(20):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        assert pub.flush(30)
+        if stop == "sigkill":
+            assert first.proc is not None
+            first.proc.kill()
+            first.proc.wait(10)
+        else:
+            assert first.stop() == 0
+        for seq in range(20, 40):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        second = ServiceProcess(tmp_path, data)
+        proxy.target_port = second.zenoh_port
+        second.start()
+        report = pub.flush(30)
+        assert report.confirmed, report
+        assert (report.published, report.integrated, report.refused, report.lost) == (40, 40, 0, 0)
+        with httpx.Client(base_url=second.base_url, timeout=10) as http:
+            assert map_stats(http, "rs")["scans_integrated"] == 40
+            assert_region_equal(http, "rs", engine_map(scans), LAYERS)
+    finally:
+        pub.close()
+        proxy.close()
+        first.stop()
+        if second is not None:
+            second.stop()

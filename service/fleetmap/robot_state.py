@@ -40,9 +40,12 @@ class Receipt:
 
 @dataclass
 class SessionLedger:
-    """What became of one publisher session's scans in this service process, for its delivery
-    confirmation (`fleetmap.wire.SessionDelivery`). Not saved: a restarted service counts afresh
-    from the session's next scan (`first_seq` says from which).
+    """What became of one publisher session's scans, for its delivery confirmation
+    (`fleetmap.wire.SessionDelivery`). A snapshot saves it (`saved`: what was settled then, as far as
+    `SessionSeqs.settled_seq`) and the journal's replay at start settles the scans integrated after
+    it, so a robot's flush after a restart of the service confirms its scans from before the
+    restart too. A session saved before ledgers were (or by an in-memory service) is counted afresh
+    from its next scan (`first_seq` says from which).
 
     Each accepted scan gets a `Receipt` (`open`), in the order the robot's scans were accepted,
     which is the order they are integrated in; `settle` ends it. `settled` moves only over a run of
@@ -81,6 +84,15 @@ class SessionLedger:
         receipts = self.open_receipts
         while receipts and receipts[0].settled:
             self.settled = receipts.popleft().seq
+
+    def saved(self) -> list:
+        """Its counts in order, without the open receipts (`SessionLedger.from_saved` reads them)."""
+        return [self.first_seq, self.settled, self.integrated, self.refused, self.lost, self.duplicates]
+
+    @classmethod
+    def from_saved(cls, row: list) -> SessionLedger:
+        first_seq, settled, integrated, refused, lost, duplicates = row
+        return cls(first_seq, settled, integrated, refused, lost, duplicates)
 
     def first_unsettled(self) -> int | None:
         """The seq of the first of its scans not settled yet, None if every one is."""
@@ -212,6 +224,9 @@ class RobotState:
         )
         # JSON objects have only string keys: a list keeps the ids integers and the order.
         out["sessions"] = [[key, *rec.saved()] for key, rec in self.sessions.items()]
+        # Apart from the sessions: a service from before ledgers reads each session row as
+        # `SessionSeqs` arguments, and ignores keys it does not know.
+        out["ledgers"] = [[key, *rec.ledger.saved()] for key, rec in self.sessions.items()]
         return out
 
     @classmethod
@@ -222,6 +237,9 @@ class RobotState:
             state.add_pose(Pose2D(*data["last_pose"]))
         if "sessions" in data:
             state.sessions = {int(row[0]): SessionSeqs(*row[1:]) for row in data["sessions"]}
+            for row in data.get("ledgers", ()):
+                if int(row[0]) in state.sessions:
+                    state.sessions[int(row[0])].ledger = SessionLedger.from_saved(row[1:])
         elif data.get("last_seq") is not None:
             # Saved before sessions existed: every scan so far came without one.
             state.sessions = {NO_SESSION: SessionSeqs(data["last_seq"], state.last_stamp, 0, 0)}
