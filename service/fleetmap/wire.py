@@ -154,8 +154,9 @@ class ScanMessage(BaseModel):
 
 
 class SessionDelivery(BaseModel):
-    """What became of the scans of one publisher session of a robot, as this service process counted
-    them (docs/protocol.md, "Delivery confirmation").
+    """What became of the scans of one publisher session of a robot, as the service counted them
+    (saved with the map: a durable service counts across its restarts; docs/protocol.md, "Delivery
+    confirmation").
 
     A scan is SETTLED once its fate is final: integrated into the map (with durable storage: its
     journal row committed), or not integrated (refused, dropped by the full ingest queue, its map
@@ -165,7 +166,7 @@ class SessionDelivery(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     session: int = Field(description="the publisher's session id; 0: scans that carry none")
-    first_seq: int = Field(description="seq of its first scan this service process accepted")
+    first_seq: int = Field(description="seq of its first scan the service counted")
     last_accepted: int = Field(description="seq of its last scan accepted (queued for integration)")
     settled: int | None = Field(
         description="seq S: S and every scan accepted before it are settled; null: none yet"
