@@ -141,7 +141,7 @@ def main() -> None:
 
     sub = zenoh.ext.declare_advanced_subscriber(
         client,
-        publisher.topics[0].key,
+        publisher.topics[0].grid.key,
         on_sample,
         history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
         recovery=zenoh.ext.RecoveryConfig(heartbeat=True),

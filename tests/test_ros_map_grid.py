@@ -23,19 +23,8 @@ from test_operations import serve_namespace
 from fleetmap import GridMap, MapConfig, Scan
 from fleetmap.export import Window, changed_window, known_window, map_state, nav2_files, tile_blocks
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED
-from fleetmap.ros.graph import (
-    MAP_QOS,
-    MAP_UPDATES_QOS,
-    SUBSCRIPTION,
-    Qos,
-    RosNode,
-    endpoints_key,
-    entity_gid,
-    mangle,
-    publisher_of_token,
-    qos_keyexpr,
-    subscription_of_token,
-)
+from fleetmap.ros import graph
+from fleetmap.ros.graph import MAP_QOS, Qos, RosNode, entity_gid, mangle, qos_keyexpr
 from fleetmap.ros.map_publisher import MapTopic, parse_map_topic, type_hash
 from fleetmap.ros.occupancy_grid import (
     GridInfo,
@@ -257,12 +246,12 @@ def test_node_and_publisher_tokens() -> None:
         3, "/wh/map", "nav_msgs::msg::dds_::OccupancyGrid_", type_hash("jazzy"), Qos(depth=5)
     )
     assert subscription == token.replace("/0/1/MP/", "/0/3/MS/").replace(":1:,1:,:,:,,", "::,5:,:,:,,")
-    assert subscription_of_token(subscription) == (7, "/wh/map", "nav_msgs::msg::dds_::OccupancyGrid_")
-    assert subscription_of_token(token) is None and publisher_of_token(subscription) is None
-    watched = endpoints_key(7, SUBSCRIPTION, "nav_msgs::msg::dds_::OccupancyGrid_")
+    assert graph.subscription_of_token(subscription) == (7, "/wh/map", "nav_msgs::msg::dds_::OccupancyGrid_")
+    assert graph.subscription_of_token(token) is None and graph.publisher_of_token(subscription) is None
+    watched = graph.endpoints_key(7, graph.SUBSCRIPTION, "nav_msgs::msg::dds_::OccupancyGrid_")
     assert zenoh.KeyExpr(watched).intersects(zenoh.KeyExpr(subscription))
     assert not zenoh.KeyExpr(watched).intersects(zenoh.KeyExpr(token))
-    assert qos_keyexpr(MAP_UPDATES_QOS) == "::,1:,:,:,,"  # RELIABLE, VOLATILE: the defaults, left empty
+    assert qos_keyexpr(graph.MAP_UPDATES_QOS) == "::,1:,:,:,,"  # RELIABLE, VOLATILE: the defaults, left empty
     assert len(entity_gid(token)) == 16 and entity_gid(token) == entity_gid(token) != entity_gid(token + "x")
     assert len(entity_gid(token, 24)) == 24  # Humble's RMW_GID_STORAGE_SIZE
 
