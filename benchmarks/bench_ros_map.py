@@ -16,7 +16,11 @@ of `--reps`, the steps one publication takes:
   put), measured on a real router session with an rmw_zenoh-style subscriber connected over
   loopback TCP, and the time until that subscriber has the whole sample;
 * lock: the longest single hold of the map's lock during one publication (the integration workers
-  wait at most that long).
+  wait at most that long);
+* update: the same after a scan that changes one storage tile (a pillar seen 1.5 m all round):
+  `publish_changed` then finds the tiles changed since the last publication and puts an
+  OccupancyGridUpdate of them on `<topic>_updates` instead of the grid; its bytes beside the grid's,
+  the time until a subscriber of the updates has it, and the longest lock hold.
 """
 
 from __future__ import annotations
@@ -126,7 +130,9 @@ def main() -> None:
     cfg.insert_json5("listen/endpoints", '["tcp/127.0.0.1:27499"]')
     cfg.insert_json5("scouting/multicast/enabled", "false")
     router = zenoh.open(cfg)
-    publisher = RosMapPublisher(registry, router, RosMapOptions((MapTopic("big"),), period=3600.0))
+    options = RosMapOptions((MapTopic("big"),), period=3600.0, full_grid_interval=3600.0)
+    publisher = RosMapPublisher(registry, router, options)
+    topic = publisher.topics[0]
     ccfg = zenoh.Config()
     ccfg.insert_json5("mode", '"client"')
     ccfg.insert_json5("connect/endpoints", '["tcp/127.0.0.1:27499"]')
@@ -141,50 +147,105 @@ def main() -> None:
 
     sub = zenoh.ext.declare_advanced_subscriber(
         client,
-        publisher.topics[0].grid.key,
+        topic.grid.key,
         on_sample,
         history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
         recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
     )
-    publisher.start()  # publishes once at start
-    got.wait(30)
-    time.sleep(1.0)
-    probe = LockProbe(gmap.lock)
-    gmap.lock = probe  # type: ignore[assignment]
-    checks, publishes, delivered, holds = [], [], [], []
-    for k in range(args.reps):
-        started = time.perf_counter()
-        publisher.publish_changed()  # unchanged: nothing to do
-        checks.append(time.perf_counter() - started)
-        gmap.integrate(room_scan(size / 2 + 0.01 * k, size / 2, size, beams=360))  # a change
-        got.clear()
-        probe.longest = 0.0
-        started = time.perf_counter()
-        assert publisher.publish_changed() == 1
-        publishes.append(time.perf_counter() - started)
-        holds.append(probe.longest)
-        assert got.wait(30)
-        delivered.append(arrived[-1] - started)
-    print(row.format("check", 1e3 * min(checks), 1e3 * statistics.median(checks), "   (map unchanged)"))
-    print(
-        row.format(
-            "publish",
-            1e3 * min(publishes),
-            1e3 * statistics.median(publishes),
-            "   (window+cells+encode+put)",
+    updates_sub = zenoh.ext.declare_advanced_subscriber(client, topic.updates.key, on_sample)
+    # Closed whatever happens: a Zenoh session left open keeps the interpreter from exiting.
+    try:
+        publisher.start()  # publishes once at start
+        got.wait(30)
+        time.sleep(1.0)
+        probe = LockProbe(gmap.lock)
+        gmap.lock = probe  # type: ignore[assignment]
+        checks, publishes, delivered, holds = [], [], [], []
+        for k in range(args.reps):
+            started = time.perf_counter()
+            publisher.publish_changed()  # unchanged: nothing to do
+            checks.append(time.perf_counter() - started)
+            gmap.integrate(room_scan(size / 2 + 0.01 * k, size / 2, size, beams=360))  # a change everywhere
+            got.clear()
+            probe.longest = 0.0
+            grids = topic.grid.published
+            started = time.perf_counter()
+            assert publisher.publish_changed() == 1
+            publishes.append(time.perf_counter() - started)
+            assert topic.grid.published == grids + 1  # the whole grid: the change covers it all
+            holds.append(probe.longest)
+            assert got.wait(30)
+            delivered.append(arrived[-1] - started)
+        print(row.format("check", 1e3 * min(checks), 1e3 * statistics.median(checks), "   (map unchanged)"))
+        print(
+            row.format(
+                "publish",
+                1e3 * min(publishes),
+                1e3 * statistics.median(publishes),
+                "   (window+cells+encode+put)",
+            )
         )
-    )
-    print(
-        row.format(
-            "received", 1e3 * min(delivered), 1e3 * statistics.median(delivered), "   (by the subscriber)"
+        print(
+            row.format(
+                "received", 1e3 * min(delivered), 1e3 * statistics.median(delivered), "   (by the subscriber)"
+            )
         )
-    )
-    print(row.format("lock", 1e3 * min(holds), 1e3 * statistics.median(holds), "   (longest map lock hold)"))
-    sub.undeclare()
-    publisher.close()
-    client.close()
-    router.close()
-    registry.close()
+        print(
+            row.format("lock", 1e3 * min(holds), 1e3 * statistics.median(holds), "   (longest map lock hold)")
+        )
+
+        # A scan that changes one storage tile: an update of that tile instead of the grid.
+        angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+        t = gmap.store.tile_size * res
+        whole_tiles = max(1, int(size // t))  # tiles of a row wholly inside the map
+        updates, update_delivered, update_holds = [], [], []
+        for k in range(args.reps):
+            # The centre of a tile inside the map (the window does not grow), 1.5 m from its edges at least.
+            pillar = (t * (0.5 + k % whole_tiles), t * 0.5, 0.0)
+            gmap.integrate(Scan.from_angles(pillar, angles, np.full(360, 1.5), 0.0, 20.0))
+            got.clear()
+            probe.longest = 0.0
+            sent = topic.updates.published
+            started = time.perf_counter()
+            assert publisher.publish_changed() == 1
+            updates.append(time.perf_counter() - started)
+            update_holds.append(probe.longest)
+            assert topic.updates.published == sent + 1  # an update, not the grid
+            assert got.wait(30)
+            update_delivered.append(arrived[-1] - started)
+        update_bytes, grid_bytes = int(topic.updates.last["bytes"]), int(topic.grid.last["bytes"])
+        print(
+            row.format(
+                "update",
+                1e3 * min(updates),
+                1e3 * statistics.median(updates),
+                f"   (changed tiles+cells+encode+put: {update_bytes / 2**10:.0f} KiB, "
+                f"{update_bytes / grid_bytes:.1%} of the grid's {grid_bytes / 2**20:.2f} MiB)",
+            )
+        )
+        print(
+            row.format(
+                "received",
+                1e3 * min(update_delivered),
+                1e3 * statistics.median(update_delivered),
+                "   (the update, by the subscriber)",
+            )
+        )
+        print(
+            row.format(
+                "lock",
+                1e3 * min(update_holds),
+                1e3 * statistics.median(update_holds),
+                "   (longest hold, update)",
+            )
+        )
+    finally:
+        updates_sub.undeclare()
+        sub.undeclare()
+        publisher.close()
+        client.close()
+        router.close()
+        registry.close()
 
 
 if __name__ == "__main__":
