@@ -69,6 +69,7 @@ from fleetmap.export import Window, changed_window, known_window, map_source
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import MapEntry, MapRegistry
 from fleetmap.ros.graph import (
+    DURABILITY_TRANSIENT_LOCAL,
     MAP_QOS,
     MAP_UPDATES_QOS,
     SUBSCRIPTION,
@@ -169,7 +170,9 @@ class RosMapOptions:
     #: (map id, frame id): the frame of that map's grids, where it differs from `frame_id` (a map
     #: `--ros-scans` builds in another fixed frame).
     map_frames: tuple[tuple[str, str], ...] = ()
-    period: float = 1.0  # seconds, at least, between two publications of one map
+    #: Seconds between two checks of the maps: a changed map is published at most this often (a
+    #: new subscriber's grid aside).
+    period: float = 1.0
     distro: str = "jazzy"
     node_name: str = "fleetmap"
     max_cells: int = MAX_GRID_CELLS
@@ -191,13 +194,14 @@ class _Publisher:
     sequence: int = 0  # the last sequence number sent (rmw_zenoh's first is 1)
     published: int = 0  # messages put
     bytes_total: int = 0  # their payloads' bytes
-    #: The last message's `bytes`, `build_s` (window, cells, encoding) and `put_s`; replaced whole.
+    #: The last message's `bytes`, `build_s` (window, changed tiles, cells, encoding) and `put_s`;
+    #: replaced whole.
     last: dict[str, float] = field(default_factory=dict)
 
     def declare(self, session: zenoh.Session) -> None:
         """The advanced publisher rmw_zenoh declares for `qos`, then the publisher's token (in that
         order, as rmw_zenoh: a node that sees the token can already get the cache)."""
-        transient_local = self.qos.durability == MAP_QOS.durability
+        transient_local = self.qos.durability == DURABILITY_TRANSIENT_LOCAL
         self.publisher = zenoh.ext.declare_advanced_publisher(
             session,
             self.key,
@@ -218,6 +222,7 @@ class _Publisher:
         self.token = session.liveliness().declare_token(self.token_key)
 
     def undeclare(self) -> None:
+        """Undeclare the token, then the publisher (and its cache). Idempotent."""
         token, publisher = self.token, self.publisher
         self.token = self.publisher = None
         for item in (token, publisher):
