@@ -31,6 +31,7 @@ import statistics
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -160,85 +161,57 @@ def main() -> None:
         time.sleep(1.0)
         probe = LockProbe(gmap.lock)
         gmap.lock = probe  # type: ignore[assignment]
-        checks, publishes, delivered, holds = [], [], [], []
+
+        def publication(scan: Scan, sent_by: Any) -> tuple[float, float, float]:
+            """Integrate `scan`, then one check, which must put one message by `sent_by` (the grid's
+            publisher or the updates'): (its time, the longest map lock hold, the time until the
+            subscriber has it)."""
+            gmap.integrate(scan)
+            got.clear()
+            probe.longest = 0.0
+            count = sent_by.published
+            started = time.perf_counter()
+            assert publisher.publish_changed() == 1
+            took = time.perf_counter() - started
+            assert sent_by.published == count + 1
+            assert got.wait(30)
+            return took, probe.longest, arrived[-1] - started
+
+        def report(name: str, times: list[float], note: str) -> None:
+            print(row.format(name, 1e3 * min(times), 1e3 * statistics.median(times), f"   ({note})"))
+
+        checks, grids = [], []
         for k in range(args.reps):
             started = time.perf_counter()
             publisher.publish_changed()  # unchanged: nothing to do
             checks.append(time.perf_counter() - started)
-            gmap.integrate(room_scan(size / 2 + 0.01 * k, size / 2, size, beams=360))  # a change everywhere
-            got.clear()
-            probe.longest = 0.0
-            grids = topic.grid.published
-            started = time.perf_counter()
-            assert publisher.publish_changed() == 1
-            publishes.append(time.perf_counter() - started)
-            assert topic.grid.published == grids + 1  # the whole grid: the change covers it all
-            holds.append(probe.longest)
-            assert got.wait(30)
-            delivered.append(arrived[-1] - started)
-        print(row.format("check", 1e3 * min(checks), 1e3 * statistics.median(checks), "   (map unchanged)"))
-        print(
-            row.format(
-                "publish",
-                1e3 * min(publishes),
-                1e3 * statistics.median(publishes),
-                "   (window+cells+encode+put)",
-            )
-        )
-        print(
-            row.format(
-                "received", 1e3 * min(delivered), 1e3 * statistics.median(delivered), "   (by the subscriber)"
-            )
-        )
-        print(
-            row.format("lock", 1e3 * min(holds), 1e3 * statistics.median(holds), "   (longest map lock hold)")
-        )
+            # A scan seen across the whole map: every tile changes, the whole grid goes.
+            grids.append(publication(room_scan(size / 2 + 0.01 * k, size / 2, size, beams=360), topic.grid))
+        report("check", checks, "map unchanged")
+        report("publish", [g[0] for g in grids], "window+cells+encode+put")
+        report("received", [g[2] for g in grids], "by the subscriber")
+        report("lock", [g[1] for g in grids], "longest map lock hold")
 
         # A scan that changes one storage tile: an update of that tile instead of the grid.
         angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
         t = gmap.store.tile_size * res
         whole_tiles = max(1, int(size // t))  # tiles of a row wholly inside the map
-        updates, update_delivered, update_holds = [], [], []
+        updates = []
         for k in range(args.reps):
             # The centre of a tile inside the map (the window does not grow), 1.5 m from its edges at least.
             pillar = (t * (0.5 + k % whole_tiles), t * 0.5, 0.0)
-            gmap.integrate(Scan.from_angles(pillar, angles, np.full(360, 1.5), 0.0, 20.0))
-            got.clear()
-            probe.longest = 0.0
-            sent = topic.updates.published
-            started = time.perf_counter()
-            assert publisher.publish_changed() == 1
-            updates.append(time.perf_counter() - started)
-            update_holds.append(probe.longest)
-            assert topic.updates.published == sent + 1  # an update, not the grid
-            assert got.wait(30)
-            update_delivered.append(arrived[-1] - started)
+            updates.append(
+                publication(Scan.from_angles(pillar, angles, np.full(360, 1.5), 0.0, 20.0), topic.updates)
+            )
         update_bytes, grid_bytes = int(topic.updates.last["bytes"]), int(topic.grid.last["bytes"])
-        print(
-            row.format(
-                "update",
-                1e3 * min(updates),
-                1e3 * statistics.median(updates),
-                f"   (changed tiles+cells+encode+put: {update_bytes / 2**10:.0f} KiB, "
-                f"{update_bytes / grid_bytes:.1%} of the grid's {grid_bytes / 2**20:.2f} MiB)",
-            )
+        report(
+            "update",
+            [u[0] for u in updates],
+            f"changed tiles+cells+encode+put: {update_bytes / 2**10:.0f} KiB, "
+            f"{update_bytes / grid_bytes:.1%} of the grid's {grid_bytes / 2**20:.2f} MiB",
         )
-        print(
-            row.format(
-                "received",
-                1e3 * min(update_delivered),
-                1e3 * statistics.median(update_delivered),
-                "   (the update, by the subscriber)",
-            )
-        )
-        print(
-            row.format(
-                "lock",
-                1e3 * min(update_holds),
-                1e3 * statistics.median(update_holds),
-                "   (longest hold, update)",
-            )
-        )
+        report("received", [u[2] for u in updates], "the update, by the subscriber")
+        report("lock", [u[1] for u in updates], "longest hold, update")
     finally:
         updates_sub.undeclare()
         sub.undeclare()
