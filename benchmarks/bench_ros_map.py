@@ -16,7 +16,11 @@ of `--reps`, the steps one publication takes:
   put), measured on a real router session with an rmw_zenoh-style subscriber connected over
   loopback TCP, and the time until that subscriber has the whole sample;
 * lock: the longest single hold of the map's lock during one publication (the integration workers
-  wait at most that long).
+  wait at most that long);
+* update: the same after a scan that changes one storage tile (a pillar seen 1.5 m all round):
+  `publish_changed` then finds the tiles changed since the last publication and puts an
+  OccupancyGridUpdate of them on `<topic>_updates` instead of the grid; its bytes beside the grid's,
+  the time until a subscriber of the updates has it, and the longest lock hold.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import statistics
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -126,7 +131,9 @@ def main() -> None:
     cfg.insert_json5("listen/endpoints", '["tcp/127.0.0.1:27499"]')
     cfg.insert_json5("scouting/multicast/enabled", "false")
     router = zenoh.open(cfg)
-    publisher = RosMapPublisher(registry, router, RosMapOptions((MapTopic("big"),), period=3600.0))
+    options = RosMapOptions((MapTopic("big"),), period=3600.0, full_grid_interval=3600.0)
+    publisher = RosMapPublisher(registry, router, options)
+    topic = publisher.topics[0]
     ccfg = zenoh.Config()
     ccfg.insert_json5("mode", '"client"')
     ccfg.insert_json5("connect/endpoints", '["tcp/127.0.0.1:27499"]')
@@ -141,50 +148,77 @@ def main() -> None:
 
     sub = zenoh.ext.declare_advanced_subscriber(
         client,
-        publisher.topics[0].key,
+        topic.grid.key,
         on_sample,
         history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
         recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
     )
-    publisher.start()  # publishes once at start
-    got.wait(30)
-    time.sleep(1.0)
-    probe = LockProbe(gmap.lock)
-    gmap.lock = probe  # type: ignore[assignment]
-    checks, publishes, delivered, holds = [], [], [], []
-    for k in range(args.reps):
-        started = time.perf_counter()
-        publisher.publish_changed()  # unchanged: nothing to do
-        checks.append(time.perf_counter() - started)
-        gmap.integrate(room_scan(size / 2 + 0.01 * k, size / 2, size, beams=360))  # a change
-        got.clear()
-        probe.longest = 0.0
-        started = time.perf_counter()
-        assert publisher.publish_changed() == 1
-        publishes.append(time.perf_counter() - started)
-        holds.append(probe.longest)
-        assert got.wait(30)
-        delivered.append(arrived[-1] - started)
-    print(row.format("check", 1e3 * min(checks), 1e3 * statistics.median(checks), "   (map unchanged)"))
-    print(
-        row.format(
-            "publish",
-            1e3 * min(publishes),
-            1e3 * statistics.median(publishes),
-            "   (window+cells+encode+put)",
+    updates_sub = zenoh.ext.declare_advanced_subscriber(client, topic.updates.key, on_sample)
+    # Closed whatever happens: a Zenoh session left open keeps the interpreter from exiting.
+    try:
+        publisher.start()  # publishes once at start
+        got.wait(30)
+        time.sleep(1.0)
+        probe = LockProbe(gmap.lock)
+        gmap.lock = probe  # type: ignore[assignment]
+
+        def publication(scan: Scan, sent_by: Any) -> tuple[float, float, float]:
+            """Integrate `scan`, then one check, which must put one message by `sent_by` (the grid's
+            publisher or the updates'): (its time, the longest map lock hold, the time until the
+            subscriber has it)."""
+            gmap.integrate(scan)
+            got.clear()
+            probe.longest = 0.0
+            count = sent_by.published
+            started = time.perf_counter()
+            assert publisher.publish_changed() == 1
+            took = time.perf_counter() - started
+            assert sent_by.published == count + 1
+            assert got.wait(30)
+            return took, probe.longest, arrived[-1] - started
+
+        def report(name: str, times: list[float], note: str) -> None:
+            print(row.format(name, 1e3 * min(times), 1e3 * statistics.median(times), f"   ({note})"))
+
+        checks, grids = [], []
+        for k in range(args.reps):
+            started = time.perf_counter()
+            publisher.publish_changed()  # unchanged: nothing to do
+            checks.append(time.perf_counter() - started)
+            # A scan seen across the whole map: every tile changes, the whole grid goes.
+            grids.append(publication(room_scan(size / 2 + 0.01 * k, size / 2, size, beams=360), topic.grid))
+        report("check", checks, "map unchanged")
+        report("publish", [g[0] for g in grids], "window+cells+encode+put")
+        report("received", [g[2] for g in grids], "by the subscriber")
+        report("lock", [g[1] for g in grids], "longest map lock hold")
+
+        # A scan that changes one storage tile: an update of that tile instead of the grid.
+        angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+        t = gmap.store.tile_size * res
+        whole_tiles = max(1, int(size // t))  # tiles of a row wholly inside the map
+        updates = []
+        for k in range(args.reps):
+            # The centre of a tile inside the map (the window does not grow), 1.5 m from its edges at least.
+            pillar = (t * (0.5 + k % whole_tiles), t * 0.5, 0.0)
+            updates.append(
+                publication(Scan.from_angles(pillar, angles, np.full(360, 1.5), 0.0, 20.0), topic.updates)
+            )
+        update_bytes, grid_bytes = int(topic.updates.last["bytes"]), int(topic.grid.last["bytes"])
+        report(
+            "update",
+            [u[0] for u in updates],
+            f"changed tiles+cells+encode+put: {update_bytes / 2**10:.0f} KiB, "
+            f"{update_bytes / grid_bytes:.1%} of the grid's {grid_bytes / 2**20:.2f} MiB",
         )
-    )
-    print(
-        row.format(
-            "received", 1e3 * min(delivered), 1e3 * statistics.median(delivered), "   (by the subscriber)"
-        )
-    )
-    print(row.format("lock", 1e3 * min(holds), 1e3 * statistics.median(holds), "   (longest map lock hold)"))
-    sub.undeclare()
-    publisher.close()
-    client.close()
-    router.close()
-    registry.close()
+        report("received", [u[2] for u in updates], "the update, by the subscriber")
+        report("lock", [u[1] for u in updates], "longest hold, update")
+    finally:
+        updates_sub.undeclare()
+        sub.undeclare()
+        publisher.close()
+        client.close()
+        router.close()
+        registry.close()
 
 
 if __name__ == "__main__":

@@ -15,19 +15,26 @@ import sys
 
 import numpy as np
 import pytest
+import zenoh
 from PIL import Image
-from rosbags.typesys import Stores, get_typestore
+from ros_types import GRID, TYPESTORE
 from test_operations import serve_namespace
 
 from fleetmap import GridMap, MapConfig, Scan
-from fleetmap.export import Window, known_window, map_state, nav2_files, tile_blocks
+from fleetmap.export import Window, changed_window, known_window, map_state, nav2_files, tile_blocks
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED
+from fleetmap.ros import graph
 from fleetmap.ros.graph import MAP_QOS, Qos, RosNode, entity_gid, mangle, qos_keyexpr
 from fleetmap.ros.map_publisher import MapTopic, parse_map_topic, type_hash
-from fleetmap.ros.occupancy_grid import GridInfo, encode_occupancy_grid, grid_cells, occupancy_grid
+from fleetmap.ros.occupancy_grid import (
+    GridInfo,
+    encode_occupancy_grid,
+    grid_cells,
+    occupancy_grid,
+    occupancy_grid_update,
+)
 
-TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-GRID = "nav_msgs/msg/OccupancyGrid"
+UPDATE = "map_msgs/msg/OccupancyGridUpdate"
 
 
 def decode(payload: bytes):  # noqa: ANN201 - rosbags' generated message class
@@ -137,6 +144,37 @@ def test_an_empty_window_is_an_empty_grid() -> None:
     assert (msg.info.width, msg.info.height) == (0, 0) and len(msg.data) == 0
 
 
+def test_an_update_carries_the_cells_of_its_part_at_their_offset_in_the_grid() -> None:
+    """Written over the grid of the window at (x, y), the update's cells make the grid of the map as
+    it is now: the same cells as a grid of the whole window (one classification)."""
+    gmap = room_map(MapConfig(resolution=0.05, tile_size=16))
+    window = known_window(gmap)
+    assert window is not None and (window.i0, window.j0) != (0, 0)  # offsets differ from cell indices
+    before = decode(occupancy_grid(gmap, window, "map", 0))
+    clock = gmap.store.clock
+    angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    gmap.integrate(Scan.from_angles((2.0, 2.0, 0.0), angles, np.full(90, 0.3), 0.0, 20.0))  # a pillar
+    part = changed_window(gmap, clock, window)
+    assert part is not None
+    # The tiles (16 cells) the pillar's 0.3 m touch: a few, not the window.
+    assert part.shape[0] * part.shape[1] <= 9 * 16 * 16 < window.shape[0] * window.shape[1] // 4
+    msg = TYPESTORE.deserialize_cdr(occupancy_grid_update(gmap, window, part, "odom", 5_000_000_123), UPDATE)
+    assert msg.header.frame_id == "odom" and (msg.header.stamp.sec, msg.header.stamp.nanosec) == (5, 123)
+    assert (msg.x, msg.y, msg.width, msg.height) == (
+        part.i0 - window.i0, part.j0 - window.j0, part.shape[1], part.shape[0]
+    )  # fmt: skip
+    cells = np.asarray(before.data, dtype=np.int8).reshape(window.shape).copy()
+    cells[msg.y : msg.y + msg.height, msg.x : msg.x + msg.width] = np.asarray(msg.data).reshape(part.shape)
+    after = np.asarray(decode(occupancy_grid(gmap, window, "map", 0)).data).reshape(window.shape)
+    assert np.array_equal(cells, after) and not np.array_equal(
+        cells, np.asarray(before.data).reshape(window.shape)
+    )
+    # Nothing changed since: no part; a part outside the window is refused.
+    assert changed_window(gmap, gmap.store.clock, window) is None
+    with pytest.raises(ValueError):
+        occupancy_grid_update(gmap, window, Window(window.i0 - 1, part.j0, part.i1, part.j1), "map", 0)
+
+
 class CountingLock:
     """A map's lock that counts its outermost acquisitions (each a hold integration may wait for)."""
 
@@ -202,6 +240,18 @@ def test_node_and_publisher_tokens() -> None:
         "RIHS01_8d348150c12913a31ee0ec170fbf25089e4745d17035792a1ba94d6f0bc0cfc7/:1:,1:,:,:,,"
     )
     assert mangle("/") == "%"
+    # A subscription's token, as rmw_zenoh declares one for RViz's Map display (KEEP_LAST 5,
+    # VOLATILE): what tells the publisher a node has joined.
+    subscription = node.subscription_token(
+        3, "/wh/map", "nav_msgs::msg::dds_::OccupancyGrid_", type_hash("jazzy"), Qos(depth=5)
+    )
+    assert subscription == token.replace("/0/1/MP/", "/0/3/MS/").replace(":1:,1:,:,:,,", "::,5:,:,:,,")
+    assert graph.subscription_of_token(subscription) == (7, "/wh/map", "nav_msgs::msg::dds_::OccupancyGrid_")
+    assert graph.subscription_of_token(token) is None and graph.publisher_of_token(subscription) is None
+    watched = graph.endpoints_key(7, graph.SUBSCRIPTION, "nav_msgs::msg::dds_::OccupancyGrid_")
+    assert zenoh.KeyExpr(watched).intersects(zenoh.KeyExpr(subscription))
+    assert not zenoh.KeyExpr(watched).intersects(zenoh.KeyExpr(token))
+    assert qos_keyexpr(graph.MAP_UPDATES_QOS) == "::,1:,:,:,,"  # RELIABLE, VOLATILE: the defaults, left empty
     assert len(entity_gid(token)) == 16 and entity_gid(token) == entity_gid(token) != entity_gid(token + "x")
     assert len(entity_gid(token, 24)) == 24  # Humble's RMW_GID_STORAGE_SIZE
 

@@ -44,6 +44,8 @@ TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 GRID = "nav_msgs/msg/OccupancyGrid"
 HASH = "RIHS01_8d348150c12913a31ee0ec170fbf25089e4745d17035792a1ba94d6f0bc0cfc7"  # Jazzy's
 KEY = f"0/map/nav_msgs::msg::dds_::OccupancyGrid_/{HASH}"
+UPDATE_HASH = "RIHS01_c4095b0be2e4363f8978a1570e0293ee093436f1e1c61d99b48502ac317025e8"  # Jazzy's
+UPDATES_KEY = f"0/map_updates/map_msgs::msg::dds_::OccupancyGridUpdate_/{UPDATE_HASH}"
 PERIOD = 0.3
 
 
@@ -55,15 +57,20 @@ class Received:
     size: int  # bytes of the payload
 
 
+def client_session(endpoint: str) -> zenoh.Session:
+    """A Zenoh client session connected to `endpoint` only (as a ROS node's to its router)."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", f'["{endpoint}"]')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(cfg)
+
+
 class RosSubscriber:
     """A TRANSIENT_LOCAL OccupancyGrid subscription as rmw_zenoh makes one, on a Zenoh client session."""
 
     def __init__(self, endpoint: str, key: str = KEY) -> None:
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"client"')
-        cfg.insert_json5("connect/endpoints", f'["{endpoint}"]')
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        self.session = zenoh.open(cfg)
+        self.session = client_session(endpoint)
         self.samples: list[Received] = []
         self.without_attachment = 0
         self._lock = threading.Lock()
@@ -114,14 +121,16 @@ def subscribers() -> Iterator[Callable[[str], RosSubscriber]]:
         sub.close()
 
 
-def room_scan(x: float, y: float, width: float = 6.0) -> Scan:
-    """A 360-degree scan from (x, y) inside a `width` x 4 m room."""
-    angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+def room_scan(
+    x: float, y: float, width: float = 6.0, height: float = 4.0, beams: int = 360, range_max: float = 20.0
+) -> Scan:
+    """A 360-degree scan from (x, y) inside a `width` x `height` m room."""
+    angles = np.linspace(-np.pi, np.pi, beams, endpoint=False)
     c, s = np.cos(angles), np.sin(angles)
     with np.errstate(divide="ignore"):
         tx = np.where(c > 0, (width - x) / c, np.where(c < 0, -x / c, np.inf))
-        ty = np.where(s > 0, (4.0 - y) / s, np.where(s < 0, -y / s, np.inf))
-    return Scan.from_angles((x, y, 0.0), angles, np.minimum(tx, ty), 0.0, 20.0)
+        ty = np.where(s > 0, (height - y) / s, np.where(s < 0, -y / s, np.inf))
+    return Scan.from_angles((x, y, 0.0), angles, np.minimum(tx, ty), 0.0, range_max)
 
 
 class Robot:
@@ -247,7 +256,12 @@ def test_the_graph_shows_the_node_and_its_publisher_and_a_deleted_map_is_no_long
     publisher = (
         f"@ros2_lv/0/{zid}/0/1/MP/%/%/fleetmap/%map/nav_msgs::msg::dds_::OccupancyGrid_/{HASH}/:1:,1:,:,:,,"
     )
-    assert sub.tokens() == [node, publisher]
+    # The updates' publisher: RELIABLE (the default, empty), VOLATILE (the default, empty), KEEP_LAST 1.
+    updates = (
+        f"@ros2_lv/0/{zid}/0/2/MP/%/%/fleetmap/%map_updates/map_msgs::msg::dds_::OccupancyGridUpdate_/"
+        f"{UPDATE_HASH}/::,1:,:,:,,"
+    )
+    assert sub.tokens() == [node, publisher, updates]
 
     snapshot = robot.client.get("/maps/lab/snapshot")
     assert snapshot.status_code == 200
@@ -256,7 +270,7 @@ def test_the_graph_shows_the_node_and_its_publisher_and_a_deleted_map_is_no_long
     # Deleted: the publisher and its token go (the node stays), nothing more is sent, and a
     # subscriber that joins now gets no stale map from a cache.
     assert robot.client.delete("/maps/lab").status_code == 204
-    wait_for(lambda: sub.tokens() == [node], timeout=5, what="the publisher's token to go")
+    wait_for(lambda: sub.tokens() == [node], timeout=5, what="the publishers' tokens to go")
     assert robot.client.get("/healthz").json()["zenoh"]["ros_maps"]["topics"]["/map"]["declared"] is False
     count = len(sub.received())
     late = subscribers(svc.zenoh_endpoint)
@@ -267,7 +281,7 @@ def test_the_graph_shows_the_node_and_its_publisher_and_a_deleted_map_is_no_long
     # its being another map tells it apart): published again, to both.
     robot.post(room_scan(1.0, 1.0))
     wait_for(lambda: late.received() and len(sub.received()) > count, timeout=5, what="the new map")
-    assert sub.tokens() == [node, publisher]
+    assert sub.tokens() == [node, publisher, updates]
 
     # Restored from the snapshot taken before the deletion (the same cells and clock again): that
     # map is published again.
@@ -339,7 +353,10 @@ def test_humble_subscribers_get_their_key_and_gid_and_unpublishable_maps_are_ski
     humble = "5/a/nav_msgs::msg::dds_::OccupancyGrid_/TypeHashNotSupported"
     sub = RosSubscriber(in_process.endpoint, humble)
     try:
-        assert publisher.topics[0].key == humble
+        assert publisher.topics[0].grid.key == humble
+        assert publisher.topics[0].updates.key == (
+            "5/a_updates/map_msgs::msg::dds_::OccupancyGridUpdate_/TypeHashNotSupported"
+        )
         for map_id, config in [
             ("a", MapConfig(resolution=0.5)),
             ("tsdf", MapConfig(resolution=0.5, layers=["tsdf"])),
@@ -351,7 +368,7 @@ def test_humble_subscribers_get_their_key_and_gid_and_unpublishable_maps_are_ski
             received = wait_for(sub.received, timeout=5, what="the grid on Humble's key")
             time.sleep(0.5)
         assert len(received[0].attachment.source_gid) == 24
-        assert [t.published for t in publisher.topics] == [1, 0, 0]
+        assert [t.grid.published for t in publisher.topics] == [1, 0, 0]
         assert "keeps only the TSDF" in caplog.text and "more than the 1000 published" in caplog.text
     finally:
         sub.close()
@@ -367,7 +384,7 @@ def test_another_map_of_the_same_id_and_tile_clock_is_published(in_process: InPr
         first = registry.create("a", MapConfig(resolution=0.5))[0]
         first.gmap.integrate(scan)
         publisher.start()  # its first check publishes; the next would be an hour later
-        wait_for(lambda: publisher.topics[0].published == 1, timeout=5, what="the first grid")
+        wait_for(lambda: publisher.topics[0].grid.published == 1, timeout=5, what="the first grid")
         assert publisher.publish_changed() == 0
         registry.delete("a", wait=True)
         second = registry.create("a", MapConfig(resolution=0.5))[0]
@@ -387,11 +404,11 @@ def test_a_map_replaced_by_one_with_nothing_to_publish_leaves_no_stale_grid(in_p
     try:
         registry.create("a", MapConfig(resolution=0.5))[0].gmap.integrate(room_scan(1.0, 1.0))
         publisher.start()  # its first check publishes; the next would be an hour later
-        wait_for(lambda: publisher.topics[0].published == 1, timeout=5, what="the first grid")
+        wait_for(lambda: publisher.topics[0].grid.published == 1, timeout=5, what="the first grid")
         registry.delete("a", wait=True)
         registry.create("a", MapConfig(resolution=0.5))
         assert publisher.publish_changed() == 0  # nothing observed: nothing to publish
-        assert publisher.topics[0].publisher is not None  # the map exists: still declared
+        assert publisher.topics[0].declared  # the map exists: still declared
         late = RosSubscriber(in_process.endpoint)
         try:
             time.sleep(1.5)  # the cache is queried at once, and the heartbeat comes every 0.5 s
@@ -409,7 +426,7 @@ def test_each_map_is_published_in_its_own_frame(in_process: InProcess) -> None:
     topics = (MapTopic("lab", "/lab/map"), MapTopic("wh", "/wh/map"))
     options = RosMapOptions(topics, frame_id="map", map_frames=(("lab", "world"), ("wh", "map")), period=0.1)
     publisher = RosMapPublisher(registry, in_process.router, options)
-    subs = [RosSubscriber(in_process.endpoint, topic.key) for topic in publisher.topics]
+    subs = [RosSubscriber(in_process.endpoint, topic.grid.key) for topic in publisher.topics]
     try:
         for map_id in ("lab", "wh"):
             registry.create(map_id, MapConfig(resolution=0.5))[0].gmap.integrate(room_scan(1.0, 1.0))
@@ -441,7 +458,7 @@ def test_a_map_on_several_topics_is_built_once_a_check(
     registry = in_process.registry
     topics = (MapTopic("lab", "/robot1/map"), MapTopic("lab", "/robot2/map"))
     publisher = RosMapPublisher(registry, in_process.router, RosMapOptions(topics, period=3600.0))
-    subs = [RosSubscriber(in_process.endpoint, topic.key) for topic in publisher.topics]
+    subs = [RosSubscriber(in_process.endpoint, topic.grid.key) for topic in publisher.topics]
     try:
         registry.create("lab", MapConfig(resolution=0.5))[0].gmap.integrate(room_scan(1.0, 1.0))
         assert publisher.publish_changed() == 2

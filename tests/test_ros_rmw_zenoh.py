@@ -10,7 +10,7 @@ import pytest
 import zenoh.ext
 from hypothesis import given
 from hypothesis import strategies as st
-from rosbags.typesys import Stores, get_typestore
+from ros_types import TYPESTORE
 
 from fleetmap.ros.rmw_zenoh import (
     TYPE_HASHES,
@@ -27,14 +27,16 @@ LASER_HASH = "RIHS01_64c191398013af96509d518dac71d5164f9382553fce5c1f8cca5be7924
 
 
 def test_type_hashes_are_rosbags_jazzy_hashes() -> None:
-    store = get_typestore(Stores.ROS2_JAZZY)
     assert set(TYPE_HASHES) == {
         "sensor_msgs/msg/LaserScan",
         "tf2_msgs/msg/TFMessage",
         "nav_msgs/msg/OccupancyGrid",
+        "map_msgs/msg/OccupancyGridUpdate",
     }
     for ros_type, type_hash in TYPE_HASHES.items():
-        assert store.hash_rihs01(ros_type) == type_hash
+        assert TYPESTORE.hash_rihs01(ros_type) == type_hash
+    # As `ros2 topic info -v` prints it for RViz's subscription of a costmap's `_updates` topic on Jazzy.
+    assert TYPE_HASHES["map_msgs/msg/OccupancyGridUpdate"].startswith("RIHS01_c4095b0be2e4363f")
 
 
 def test_dds_type_name() -> None:

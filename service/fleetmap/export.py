@@ -56,6 +56,30 @@ def known_window(gmap: GridMap, margin: int = 0) -> Window | None:
     return Window(i0 - margin, j0 - margin, i1 + margin, j1 + margin)
 
 
+def changed_window(gmap: GridMap, since: int, window: Window) -> Window | None:
+    """The part of `window` that may have changed after the map's tile clock (`TileStore.clock`) was
+    `since`: the smallest window holding every storage tile whose version is above `since`, clipped
+    to `window`; None when none of them meets `window`. A cell changes only with its tile's version,
+    so every cell of `window` outside the answer is as it was at `since`. One hold of the map's lock,
+    one pass over the tile versions (the keys of the changed tiles only are read)."""
+    store = gmap.store
+    with gmap.lock:
+        n = len(store.keys)
+        changed = np.flatnonzero(store.versions[:n] > since)
+        keys = np.array([store.keys[slot] for slot in changed.tolist()], dtype=np.int64).reshape(-1, 2)
+    if not len(keys):
+        return None
+    t = store.tile_size
+    (ti0, tj0), (ti1, tj1) = keys.min(axis=0), keys.max(axis=0) + 1
+    part = Window(
+        max(window.i0, int(ti0) * t),
+        max(window.j0, int(tj0) * t),
+        min(window.i1, int(ti1) * t),
+        min(window.j1, int(tj1) * t),
+    )
+    return part if part.i0 < part.i1 and part.j0 < part.j1 else None
+
+
 def state_to_pgm(state: np.ndarray) -> np.ndarray:
     """Trinary map_server pixels (top row = highest y) from `state` codes (row 0 = lowest y)."""
     pixels = np.full(state.shape, PGM_UNKNOWN, dtype=np.uint8)

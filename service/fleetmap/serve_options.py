@@ -340,8 +340,9 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         metavar="MAP_ID[=TOPIC]",
         help=(
             "publish this map to ROS 2 (rmw_zenoh) as a nav_msgs/msg/OccupancyGrid on TOPIC (default "
-            "/map), as nav2's map_server does (TRANSIENT_LOCAL), whole, when it changed, on the service's "
-            "Zenoh session; repeatable (see docs/ros.md). Off by default"
+            "/map), as nav2's map_server does (TRANSIENT_LOCAL), and its changes as "
+            "map_msgs/msg/OccupancyGridUpdate on TOPIC_updates (a whole grid when the map grew), on the "
+            "service's Zenoh session; repeatable (see docs/ros.md). Off by default"
         ),
     )
     p.add_argument(

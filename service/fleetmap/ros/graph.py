@@ -12,6 +12,9 @@ rmw_publisher_data.cpp):
 
     @ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/<enclave>/<namespace>/<node>
     @ros2_lv/<domain>/<zid>/<nid>/<eid>/MP/<enclave>/<namespace>/<node>/<topic>/<type>/<hash>/<qos>
+    @ros2_lv/<domain>/<zid>/<nid>/<eid>/MS/<enclave>/<namespace>/<node>/<topic>/<type>/<hash>/<qos>
+
+(`MP` a publisher, `MS` a subscription.)
 
 `<zid>` is the Zenoh session id as Zenoh prints it (`str(session.zid())`), `<nid>` the node's and
 `<eid>` the entity's id within the session (rmw_zenoh counts them per context), each name part
@@ -27,6 +30,7 @@ from dataclasses import dataclass
 ADMIN_SPACE = "@ros2_lv"
 NODE = "NN"
 PUBLISHER = "MP"
+SUBSCRIPTION = "MS"
 
 # rmw/types.h enum values, as the QoS part of a token writes them.
 RELIABILITY_RELIABLE, RELIABILITY_BEST_EFFORT = 1, 2
@@ -52,6 +56,13 @@ RMW_ZENOH_DEFAULT_QOS = Qos()
 #: What nav2's map_server publishes `/map` with (`rclcpp::QoS(1).transient_local().reliable()`), and
 #: so what nav2's static layer and AMCL subscribe with.
 MAP_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_TRANSIENT_LOCAL, HISTORY_KEEP_LAST, 1)
+#: What `<map topic>_updates` is published with: RELIABLE and VOLATILE, as its readers subscribe
+#: (RViz's Map display `rclcpp::QoS(5)`; nav2's static layer `SystemDefaultsQoS` in Humble and Jazzy,
+#: `StandardTopicQoS` (KEEP_LAST 10) later: all reliable and volatile). Not TRANSIENT_LOCAL as
+#: costmap_2d's: a node starting later would get the last update with the last grid and might apply
+#: it on a newer grid, turning cells back. Depth 1: a volatile rmw_zenoh publisher keeps no cache, so
+#: the depth only shows in the graph.
+MAP_UPDATES_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_VOLATILE, HISTORY_KEEP_LAST, 1)
 
 
 def mangle(name: str) -> str:
@@ -64,8 +75,26 @@ def publisher_of_token(token: str) -> tuple[int, str, str] | None:
     `@ros2_lv/0/<zid>/0/3/MP/%/%robot1/driver/%robot1%scan/sensor_msgs::msg::dds_::LaserScan_/...` ->
     `(0, "/robot1/scan", "sensor_msgs::msg::dds_::LaserScan_")`); None for any other key (a node's,
     a subscription's, a service's token, or not a token at all)."""
+    return _endpoint_of_token(token, PUBLISHER)
+
+
+def subscription_of_token(token: str) -> tuple[int, str, str] | None:
+    """(domain, topic, DDS type name) of a subscription's token (`MS`), as `publisher_of_token` reads
+    a publisher's; None for any other key."""
+    return _endpoint_of_token(token, SUBSCRIPTION)
+
+
+def endpoints_key(domain_id: int, kind: str, dds_type: str, topic: str | None = None) -> str:
+    """The key expression of the tokens of every `kind` (`PUBLISHER`, `SUBSCRIPTION`) of `dds_type`
+    in a domain, whatever their session, node and QoS: of `topic` only when given (absolute), else
+    of every topic."""
+    topic_chunk = "*" if topic is None else mangle(topic)
+    return f"{ADMIN_SPACE}/{domain_id}/*/*/*/{kind}/*/*/*/{topic_chunk}/{mangle(dds_type)}/**"
+
+
+def _endpoint_of_token(token: str, kind: str) -> tuple[int, str, str] | None:
     parts = token.split("/")
-    if len(parts) < 12 or parts[0] != ADMIN_SPACE or parts[5] != PUBLISHER or not parts[1].isdigit():
+    if len(parts) < 12 or parts[0] != ADMIN_SPACE or parts[5] != kind or not parts[1].isdigit():
         return None
     topic = parts[9].replace("%", "/")
     if not topic.startswith("/"):
@@ -115,8 +144,17 @@ class RosNode:
     def publisher_token(self, entity_id: int, topic: str, dds_type: str, type_hash: str, qos: Qos) -> str:
         """The token of this node's publisher `entity_id` of `topic` (absolute, `/map`), whose type is
         `dds_type` (`nav_msgs::msg::dds_::OccupancyGrid_`) with `type_hash`, published with `qos`."""
+        return self._endpoint_token(PUBLISHER, entity_id, topic, dds_type, type_hash, qos)
+
+    def subscription_token(self, entity_id: int, topic: str, dds_type: str, type_hash: str, qos: Qos) -> str:
+        """The token of this node's subscription `entity_id`, as `publisher_token` for a publisher."""
+        return self._endpoint_token(SUBSCRIPTION, entity_id, topic, dds_type, type_hash, qos)
+
+    def _endpoint_token(
+        self, kind: str, entity_id: int, topic: str, dds_type: str, type_hash: str, qos: Qos
+    ) -> str:
         parts = [mangle(topic), mangle(dds_type), mangle(type_hash), qos_keyexpr(qos)]
-        return "/".join([self._prefix(entity_id, PUBLISHER), *parts])
+        return "/".join([self._prefix(entity_id, kind), *parts])
 
 
 def entity_gid(token: str, size: int = 16) -> bytes:

@@ -1,16 +1,21 @@
 """Live maps to ROS 2 navigation stacks: each chosen map published as a `nav_msgs/msg/OccupancyGrid`
-over rmw_zenoh, as nav2's map_server publishes `/map`, on the service's own Zenoh session.
+over rmw_zenoh, as nav2's map_server publishes `/map`, and its changes between grids as
+`map_msgs/msg/OccupancyGridUpdate`s on `<topic>_updates`, as costmap_2d publishes a costmap's, on
+the service's own Zenoh session.
 
     fleetmap serve --ros-publish-map lab --ros-publish-map warehouse=/warehouse/map
 
 What a ROS 2 node with rmw_zenoh sees (the facts and their sources: docs/ros.md):
 
-- Data on `<domain>/<topic without its leading />/<dds type>/<type hash>`
+- Grids on `<domain>/<topic without its leading />/<dds type>/<type hash>`
   (`0/map/nav_msgs::msg::dds_::OccupancyGrid_/RIHS01_8d34...`), the exact key a subscription
   declares, from a Zenoh *advanced* publisher with a one-sample cache, publisher detection and
   sporadic heartbeats (sample miss detection), as rmw_zenoh's publisher for TRANSIENT_LOCAL +
   RELIABLE + KEEP_LAST 1 (`PublisherData::make`): a subscription that starts later asks the cache
-  and gets the current map at once, as from map_server.
+  and gets a grid at once, as from map_server.
+- Updates on `<domain>/<topic>_updates/map_msgs::msg::dds_::OccupancyGridUpdate_/<type hash>`, from
+  a plain advanced publisher (no cache), as rmw_zenoh's for RELIABLE + VOLATILE (`MAP_UPDATES_QOS`,
+  the QoS RViz's Map display and nav2's static layer subscribe to updates with).
 - Each sample carries rmw_zenoh's attachment (sequence number from 1, source timestamp, gid):
   subscriptions drop samples without one.
 - Liveliness tokens for the node (`/fleetmap`) and each publisher (`fleetmap.ros.graph`), so that
@@ -19,15 +24,32 @@ What a ROS 2 node with rmw_zenoh sees (the facts and their sources: docs/ros.md)
 Publishing: one thread (`fleetmap-ros-map`) checks every `period` seconds, for each topic, whether
 its map changed: one dictionary look-up under the registry's lock and the map's tile clock
 (`TileStore.clock`, which every applied scan advances), compared with what it last published. A
-map that did not change costs only that. A changed map is published whole: the observed extent
-(`export.known_window`), classified as the nav2 export does (`occupancy_grid.grid_cells`, which
-reads the map one storage tile at a time, each under the map's lock for its copy only), CDR-encoded
-and put. The clock is read before the cells, so a scan applied during the read is published at the
-next check.
-A map that is deleted is no longer published: its publisher and token are undeclared (a ROS node
+map that did not change costs only that. A changed map is published as:
+
+- a **full grid** on `<topic>` when there is none of this map yet, when its observed extent
+  (`export.known_window`, the grid's window) changed (the map grew: subscribers resize on a grid),
+  when the changed part would be more than half the window, or when the grid in the publisher's
+  cache is behind the map (updates went out since) and either `full_grid_interval` has passed
+  since it or a new subscription of `<topic>` appeared;
+- else an **update** on `<topic>_updates`: the part of the window in the storage tiles changed
+  since the last publication (their versions above the tile clock it was read at,
+  `export.changed_window`), the cells made by the same `occupancy_grid.grid_cells` as a grid's.
+
+The cells are read one storage tile at a time, each under the map's lock for its copy only. The
+clock is read before the cells, so a scan applied during the read is published at the next check.
+
+Late joiners: a node that subscribes gets the last grid from the cache at once, and updates from
+then on. The cached grid lacks the updates sent since it, so fleetmap watches the subscriptions'
+liveliness tokens (`@ros2_lv/<domain>/.../MS/.../<topic>/nav_msgs::msg::dds_::OccupancyGrid_/...`,
+which rmw_zenoh declares for every subscription) and, when one appears while the cache is behind,
+sends a current grid at once (the thread is woken; at most one such grid per update sent). Without
+a token (or before it arrives), the cache is never more than `full_grid_interval` behind the map:
+past that, a full grid goes out at the next check even if the map has not changed since.
+
+A map that is deleted is no longer published: its publishers and tokens are undeclared (a ROS node
 starting later gets no stale map from the cache); a map created again, or replaced from a snapshot,
-is published again, from a publisher declared anew (so the old map's grid is not in its cache even
-when the new map has nothing to publish yet).
+is published again, from publishers declared anew, starting with a full grid (so the old map's grid
+is not in the cache even when the new map has nothing to publish yet).
 """
 
 from __future__ import annotations
@@ -43,11 +65,21 @@ from typing import Any
 import zenoh
 import zenoh.ext
 
-from fleetmap.export import known_window, map_source
+from fleetmap.export import Window, changed_window, known_window, map_source
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import MapEntry, MapRegistry
-from fleetmap.ros.graph import MAP_QOS, RosNode, entity_gid
-from fleetmap.ros.occupancy_grid import ROS_TYPE, occupancy_grid
+from fleetmap.ros.graph import (
+    DURABILITY_TRANSIENT_LOCAL,
+    MAP_QOS,
+    MAP_UPDATES_QOS,
+    SUBSCRIPTION,
+    Qos,
+    RosNode,
+    endpoints_key,
+    entity_gid,
+    subscription_of_token,
+)
+from fleetmap.ros.occupancy_grid import ROS_TYPE, UPDATE_ROS_TYPE, occupancy_grid, occupancy_grid_update
 from fleetmap.ros.rmw_zenoh import (
     HUMBLE_TYPE_HASH,
     TYPE_HASHES,
@@ -61,6 +93,9 @@ from fleetmap.wire import is_valid_id
 log = logging.getLogger("fleetmap.ros")
 
 DEFAULT_TOPIC = "/map"
+#: What the updates' topic adds to a map's topic (`/map` -> `/map_updates`), as RViz's Map display
+#: and nav2's static layer (`map_topic + "_updates"`) expect it.
+UPDATES_SUFFIX = "_updates"
 #: The ROS 2 distributions whose subscribers can be served: Jazzy (and Kilted, Rolling) key topics
 #: by the message's RIHS01 hash and have 16-byte gids; Humble's rmw_zenoh (a backport) writes
 #: `HUMBLE_TYPE_HASH` in the hash's place and has 24-byte gids (RMW_GID_STORAGE_SIZE), which its
@@ -73,16 +108,25 @@ MAX_GRID_CELLS = 16 * 1024 * 1024
 #: rmw_zenoh's heartbeat period for sample miss detection of a RELIABLE + TRANSIENT_LOCAL publisher
 #: (SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD, 500 ms), in seconds.
 HEARTBEAT_PERIOD = 0.5
+#: Seconds, at most, that the grid in a topic's cache stays behind its map (updates sent since it)
+#: before a full grid replaces it: what a node that subscribes unnoticed (no token seen) may start
+#: from. A full grid of a 4 M-cell map is 3.85 MiB: every 10 s is a tenth of what a grid per second
+#: sent.
+FULL_GRID_INTERVAL = 10.0
+#: An update whose cells would be more than this share of the window's goes as a full grid: hardly
+#: bigger, and it also refreshes the cache.
+MAX_UPDATE_SHARE = 0.5
 
 _TOPIC_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 
 
-def type_hash(distro: str) -> str:
-    """The type hash string of an OccupancyGrid's key expression for a ROS 2 distribution."""
+def type_hash(distro: str, ros_type: str = ROS_TYPE) -> str:
+    """The type hash string of `ros_type`'s key expressions (an OccupancyGrid's by default) for a
+    ROS 2 distribution."""
     if distro == "humble":
         return HUMBLE_TYPE_HASH
     if distro == "jazzy":
-        return TYPE_HASHES[ROS_TYPE]
+        return TYPE_HASHES[ros_type]
     raise ValueError(f"unknown ROS 2 distribution {distro!r}: expected one of {', '.join(DISTROS)}")
 
 
@@ -92,6 +136,11 @@ class MapTopic:
 
     map_id: str
     topic: str = DEFAULT_TOPIC
+
+    @property
+    def updates_topic(self) -> str:
+        """The topic of its updates: `/map` -> `/map_updates`."""
+        return self.topic + UPDATES_SUFFIX
 
 
 def parse_map_topic(text: str) -> MapTopic:
@@ -121,29 +170,108 @@ class RosMapOptions:
     #: (map id, frame id): the frame of that map's grids, where it differs from `frame_id` (a map
     #: `--ros-scans` builds in another fixed frame).
     map_frames: tuple[tuple[str, str], ...] = ()
-    period: float = 1.0  # seconds, at least, between two grids of one map
+    #: Seconds between two checks of the maps: a changed map is published at most this often (a
+    #: new subscriber's grid aside).
+    period: float = 1.0
     distro: str = "jazzy"
     node_name: str = "fleetmap"
     max_cells: int = MAX_GRID_CELLS
+    full_grid_interval: float = FULL_GRID_INTERVAL
+
+
+@dataclass
+class _Publisher:
+    """One rmw_zenoh publisher of a topic: its data key, token and gid, the Zenoh publisher and token
+    while declared, and what it sent."""
+
+    topic: str
+    key: str
+    token_key: str
+    gid: bytes
+    qos: Qos
+    publisher: Any = None  # zenoh.ext.AdvancedPublisher while declared
+    token: Any = None  # zenoh.LivelinessToken while declared
+    sequence: int = 0  # the last sequence number sent (rmw_zenoh's first is 1)
+    published: int = 0  # messages put
+    bytes_total: int = 0  # their payloads' bytes
+    #: The last message's `bytes`, `build_s` (window, changed tiles, cells, encoding) and `put_s`;
+    #: replaced whole.
+    last: dict[str, float] = field(default_factory=dict)
+
+    def declare(self, session: zenoh.Session) -> None:
+        """The advanced publisher rmw_zenoh declares for `qos`, then the publisher's token (in that
+        order, as rmw_zenoh: a node that sees the token can already get the cache)."""
+        transient_local = self.qos.durability == DURABILITY_TRANSIENT_LOCAL
+        self.publisher = zenoh.ext.declare_advanced_publisher(
+            session,
+            self.key,
+            # TRANSIENT_LOCAL: a cache of `depth` samples, found by late subscribers through
+            # publisher detection, and sample miss detection (both RELIABLE here); VOLATILE: none.
+            cache=zenoh.ext.CacheConfig(self.qos.depth) if transient_local else None,
+            publisher_detection=transient_local,
+            sample_miss_detection=zenoh.ext.MissDetectionConfig(
+                heartbeat=None, sporadic_heartbeat=HEARTBEAT_PERIOD
+            )
+            if transient_local
+            else None,
+            reliability=zenoh.Reliability.RELIABLE,
+            # rmw_zenoh drops rather than blocks for KEEP_LAST; a subscriber that misses a grid
+            # recovers it from the cache by the heartbeat.
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
+        self.token = session.liveliness().declare_token(self.token_key)
+
+    def undeclare(self) -> None:
+        """Undeclare the token, then the publisher (and its cache). Idempotent."""
+        token, publisher = self.token, self.publisher
+        self.token = self.publisher = None
+        for item in (token, publisher):
+            if item is not None:
+                _undeclare_quietly(item)
+
+    def put(self, payload: bytes, build_s: float) -> None:
+        """Put `payload` with rmw_zenoh's attachment, and count it (`build_s`: what making it took)."""
+        started = time.perf_counter()
+        self.sequence += 1
+        attachment = encode_attachment(Attachment(self.sequence, time.time_ns(), self.gid))
+        self.publisher.put(payload, attachment=attachment)
+        self.published += 1
+        self.bytes_total += len(payload)
+        self.last = {"bytes": float(len(payload)), "build_s": build_s, "put_s": time.perf_counter() - started}
+
+    def last_status(self) -> dict[str, Any] | None:
+        last = self.last
+        if not last:
+            return None
+        return {"bytes": int(last["bytes"]), "build_ms": round(1000 * last["build_s"], 2),
+                "put_ms": round(1000 * last["put_s"], 2)}  # fmt: skip
 
 
 @dataclass
 class _Topic:
-    """One published map: its Zenoh publisher and token while the map exists, and what it sent."""
+    """One published map: its grid and updates publishers, and what their subscribers hold."""
 
     spec: MapTopic
-    key: str
-    entity_id: int
-    token_key: str
-    gid: bytes
-    publisher: Any = None  # zenoh.ext.AdvancedPublisher while declared
-    token: Any = None  # zenoh.LivelinessToken while declared
-    sequence: int = 0  # the last sequence number sent (rmw_zenoh's first is 1)
+    grid: _Publisher
+    updates: _Publisher
     #: (generation, tile clock) of the map as last published or found empty / unpublishable.
     seen: tuple[int, int] | None = None
-    published: int = 0  # grids put
-    #: The last grid's `bytes`, `build_s` (window, cells, encoding) and `put_s`; replaced whole.
-    last_build: dict[str, float] = field(default_factory=dict)
+    #: The window of the last full grid (None: no grid since the publishers were declared, or the
+    #: map could not be published since): updates are offsets in it.
+    window: Window | None = None
+    #: The tile clock read before the cells of the last grid or update: tiles with a newer version
+    #: may differ from what subscribers hold.
+    sent_clock: int = 0
+    grid_at: float = 0.0  # time.monotonic() of the last full grid
+    #: Updates went out since the last full grid: the grid in the cache is behind the map.
+    behind: bool = False
+    #: A subscription of the grid's topic appeared since the last full grid (set by Zenoh's thread).
+    new_subscriber: bool = False
+    subscribers_seen: int = 0  # subscription tokens seen appear
+
+    @property
+    def declared(self) -> bool:
+        return self.grid.publisher is not None
 
 
 class RosMapPublisher:
@@ -157,30 +285,44 @@ class RosMapPublisher:
         self.registry = registry
         self.session = session
         self.options = options
-        type_hash_text = type_hash(options.distro)
         self.node = RosNode(options.domain_id, str(session.zid()), node_id=0, name=options.node_name)
-        dds_type = dds_type_name(ROS_TYPE)
         self.topics: list[_Topic] = []
-        for n, spec in enumerate(options.topics, start=1):
-            token_key = self.node.publisher_token(n, spec.topic, dds_type, type_hash_text, MAP_QOS)
-            key = topic_key(options.domain_id, spec.topic, ROS_TYPE, type_hash_text)
-            gid = entity_gid(token_key, GID_SIZES[options.distro])
-            self.topics.append(_Topic(spec, key, n, token_key, gid))
+        for n, spec in enumerate(options.topics):
+            # Entity ids from 1 (the node's is 0), two a topic: its grid's publisher, then its updates'.
+            grid = self._publisher(2 * n + 1, spec.topic, ROS_TYPE, MAP_QOS)
+            updates = self._publisher(2 * n + 2, spec.updates_topic, UPDATE_ROS_TYPE, MAP_UPDATES_QOS)
+            self.topics.append(_Topic(spec, grid, updates))
         self._node_token: Any = None
+        self._subscriptions: Any = None  # the liveliness subscriber of the grids' subscriptions
         self._stop = threading.Event()
+        self._wake = threading.Event()  # set by a new subscription (and by close)
         self._thread: threading.Thread | None = None
         self._warnings = RateLimitedLog(log)
 
+    def _publisher(self, entity_id: int, topic: str, ros_type: str, qos: Qos) -> _Publisher:
+        hash_text = type_hash(self.options.distro, ros_type)
+        token_key = self.node.publisher_token(entity_id, topic, dds_type_name(ros_type), hash_text, qos)
+        key = topic_key(self.options.domain_id, topic, ros_type, hash_text)
+        return _Publisher(topic, key, token_key, entity_gid(token_key, GID_SIZES[self.options.distro]), qos)
+
     def start(self) -> None:
-        """Declare the node's token and start publishing (the first check runs at once)."""
+        """Declare the node's token, watch the grids' subscriptions, and start publishing (the first
+        check runs at once)."""
         if self._thread is not None:
             return
         self._node_token = self.session.liveliness().declare_token(self.node.node_token())
+        # Every OccupancyGrid subscription of the domain: one subscriber for all the topics. Only
+        # those that appear from now on matter (the first grid goes to those already there).
+        self._subscriptions = self.session.liveliness().declare_subscriber(
+            endpoints_key(self.options.domain_id, SUBSCRIPTION, dds_type_name(ROS_TYPE)),
+            self._on_subscription,
+        )
         for topic in self.topics:
             log.info(
-                "ROS 2: map %r as %s on %s (domain %d, node /%s, key %s), at most every %g s",
-                topic.spec.map_id, ROS_TYPE, topic.spec.topic, self.options.domain_id,
-                self.options.node_name, topic.key, self.options.period,
+                "ROS 2: map %r as %s on %s (domain %d, node /%s, key %s), its changes as %s on %s, at most "
+                "every %g s",
+                topic.spec.map_id, ROS_TYPE, topic.spec.topic, self.options.domain_id, self.options.node_name,
+                topic.grid.key, UPDATE_ROS_TYPE, topic.updates.topic, self.options.period,
                 extra={"map_id": topic.spec.map_id},
             )  # fmt: skip
         self._thread = threading.Thread(target=self._run, name="fleetmap-ros-map", daemon=True)
@@ -190,9 +332,13 @@ class RosMapPublisher:
         """Stop the thread (a grid being built is finished first), then undeclare the publishers and
         tokens. Idempotent."""
         self._stop.set()
+        self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
+        if self._subscriptions is not None:
+            subscriptions, self._subscriptions = self._subscriptions, None
+            _undeclare_quietly(subscriptions)
         for topic in self.topics:
             self._undeclare(topic)
         if self._node_token is not None:
@@ -201,45 +347,80 @@ class RosMapPublisher:
 
     def status(self) -> dict[str, Any]:
         """A JSON-able summary for `GET /healthz` (`zenoh.ros_maps`): the node, and per topic its map,
-        key, whether its publisher is declared (its map exists), the grids put, and the last one's
-        size and times. Read without a lock: each field is one value the thread replaces whole."""
+        keys, whether its publishers are declared (its map exists), the grids and updates put, their
+        bytes, and the last one's size and times. Read without a lock: each field is one value the
+        thread replaces whole."""
         topics = {}
         for topic in self.topics:
-            last = topic.last_build
+            grid, updates = topic.grid, topic.updates
             topics[topic.spec.topic] = {
                 "map_id": topic.spec.map_id,
-                "key": topic.key,
-                "declared": topic.publisher is not None,
-                "grids_published": topic.published,
-                "last_grid": {"bytes": int(last["bytes"]), "build_ms": round(1000 * last["build_s"], 2),
-                              "put_ms": round(1000 * last["put_s"], 2)} if last else None,
-            }  # fmt: skip
+                "key": grid.key,
+                "declared": topic.declared,
+                "grids_published": grid.published,
+                "grid_bytes": grid.bytes_total,
+                "last_grid": grid.last_status(),
+                "updates_topic": updates.topic,
+                "updates_key": updates.key,
+                "updates_published": updates.published,
+                "update_bytes": updates.bytes_total,
+                "last_update": updates.last_status(),
+                "new_subscribers": topic.subscribers_seen,
+            }
         return {
             "node": f"/{self.options.node_name}",
             "domain_id": self.options.domain_id,
             "distro": self.options.distro,
             "period": self.options.period,
+            "full_grid_interval": self.options.full_grid_interval,
             "topics": topics,
         }
 
-    def _run(self) -> None:
-        while True:
-            self.publish_changed()
-            if self._stop.wait(self.options.period):
-                return
+    def _on_subscription(self, sample: zenoh.Sample) -> None:
+        """Zenoh's callback for a subscription token: a new subscription of a published topic is
+        flagged, and the thread woken to send it a current grid (see `_check`)."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        parsed = subscription_of_token(str(sample.key_expr))
+        if parsed is None:
+            return
+        for topic in self.topics:
+            if topic.spec.topic == parsed[1]:
+                topic.subscribers_seen += 1
+                topic.new_subscriber = True
+                self._wake.set()
 
-    def publish_changed(self) -> int:
-        """One check of every topic: publish each map that changed since it was last published.
-        Returns how many grids were put."""
+    def _run(self) -> None:
+        next_check = time.monotonic()
+        while not self._stop.is_set():
+            # Cleared before the topics' flags are read: a subscription that appears during the
+            # check wakes the next wait at once.
+            self._wake.clear()
+            if time.monotonic() >= next_check:
+                self.publish_changed()
+                next_check = time.monotonic() + self.options.period
+            else:
+                # Woken by a new subscription between two checks: only the grids it needs.
+                self.publish_changed(new_subscribers_only=True)
+            self._wake.wait(max(0.0, next_check - time.monotonic()))
+
+    def publish_changed(self, new_subscribers_only: bool = False) -> int:
+        """One check of every topic: publish each map that changed since it was last published (a
+        grid or an update), and a grid where the cache's is due to be replaced. With
+        `new_subscribers_only`, only the grids new subscriptions need. Returns how many grids and
+        updates were put."""
         put = 0
         # A map published on several topics (one per robot's nav2 namespace) is built once a check.
-        grids: dict[tuple[str, int, int], bytes] = {}
+        built: dict[tuple[Any, ...], bytes] = {}
         for topic in self.topics:
             if self._stop.is_set():
                 break
+            if new_subscribers_only and not topic.new_subscriber:
+                continue
             try:
-                put += self._check(topic, grids)
+                put += self._check(topic, built, new_subscribers_only)
             except Exception as exc:  # noqa: BLE001 - the thread must go on; the next change retries
+                topic.window = None  # what subscribers hold is unknown: the next publication is whole
                 self._warnings.error(
                     f"grid {topic.spec.map_id}",
                     f"ROS 2: publishing map {topic.spec.map_id!r} on {topic.spec.topic} failed: {exc}",
@@ -248,11 +429,11 @@ class RosMapPublisher:
                 )
         return put
 
-    def _check(self, topic: _Topic, grids: dict[tuple[str, int, int], bytes]) -> int:
+    def _check(self, topic: _Topic, built: dict[tuple[Any, ...], bytes], new_subscribers_only: bool) -> int:
         with self.registry.lock:
             entry = self.registry.maps.get(topic.spec.map_id)
         if entry is None:
-            if topic.publisher is not None:
+            if topic.declared:
                 log.info(
                     "ROS 2: map %r is gone: no longer published on %s", topic.spec.map_id, topic.spec.topic,
                     extra={"map_id": topic.spec.map_id},
@@ -260,27 +441,39 @@ class RosMapPublisher:
             self._undeclare(topic)
             topic.seen = None
             return 0
-        if topic.publisher is not None and topic.seen is not None and topic.seen[0] != entry.generation:
+        if topic.declared and topic.seen is not None and topic.seen[0] != entry.generation:
             # Another map of the id since the last check (deleted and created again within a
             # period, or replaced by an upload): the old map's grid leaves the publisher's cache
             # now, even if the new map has nothing to publish (no observed cell yet, TSDF only, too
             # big), or a ROS node starting later would get a map that no longer exists.
             self._undeclare(topic)
-        if topic.publisher is None:
+        if not topic.declared:
             self._declare(topic)
+        if topic.new_subscriber and not topic.behind:
+            topic.new_subscriber = False  # the cache's grid is current: the new node has what it needs
+        # A grid is due when the cache's is behind the map and someone may start from it: a new
+        # subscription, or the cache's grid getting old.
+        since_grid = time.monotonic() - topic.grid_at
+        grid_due = topic.behind and (topic.new_subscriber or since_grid >= self.options.full_grid_interval)
+        if new_subscribers_only and not grid_due:
+            return 0
         # Before the cells: a scan applied while they are read advances the clock past this, so the
         # next check publishes again.
         seen = (entry.generation, entry.gmap.store.clock)
-        if seen == topic.seen:
+        if seen == topic.seen and not grid_due:
             return 0
         topic.seen = seen
-        return self._publish(topic, entry, grids)
+        return self._publish(topic, entry, built, grid_due)
 
-    def _publish(self, topic: _Topic, entry: MapEntry, grids: dict[tuple[str, int, int], bytes]) -> int:
-        """Put `entry`'s grid on `topic`; `grids` holds those built in this check, by map id and
-        `topic.seen`, so that another topic of the same map state reuses the one built."""
+    def _publish(
+        self, topic: _Topic, entry: MapEntry, built: dict[tuple[Any, ...], bytes], grid_due: bool
+    ) -> int:
+        """Put `entry`'s grid, or the update since the last publication, on `topic`; `built` holds the
+        messages made in this check, by what they show, so that another topic of the same map state
+        reuses the one made."""
         gmap, spec = entry.gmap, topic.spec
         if map_source(gmap) is None:
+            topic.window = None
             self._warnings.warning(
                 f"tsdf {spec.map_id}",
                 f"ROS 2: map {spec.map_id!r} keeps only the TSDF, which has no occupancy to publish",
@@ -293,6 +486,7 @@ class RosMapPublisher:
             return 0  # no observed cell yet: published once it has one
         ny, nx = window.shape
         if nx * ny > self.options.max_cells:
+            topic.window = None
             self._warnings.warning(
                 f"size {spec.map_id}",
                 f"ROS 2: map {spec.map_id!r} spans {nx} x {ny} cells, more than the {self.options.max_cells} "
@@ -302,49 +496,49 @@ class RosMapPublisher:
             return 0
         frame_id = dict(self.options.map_frames).get(spec.map_id, self.options.frame_id)
         assert topic.seen is not None
-        built_as = (spec.map_id, *topic.seen)
-        payload = grids.get(built_as)
-        if payload is None:
-            payload = grids[built_as] = occupancy_grid(gmap, window, frame_id, time.time_ns())
-        built = time.perf_counter()
-        topic.sequence += 1
-        attachment = encode_attachment(Attachment(topic.sequence, time.time_ns(), topic.gid))
-        topic.publisher.put(payload, attachment=attachment)
-        done = time.perf_counter()
-        topic.published += 1
-        topic.last_build = {"build_s": built - started, "put_s": done - built, "bytes": float(len(payload))}
+        generation, clock = topic.seen
+        part = None
+        if window == topic.window and not grid_due:
+            part = changed_window(gmap, topic.sent_clock, window)
+            if part is None:
+                topic.sent_clock = clock  # nothing the grid shows changed (a tile touched outside it)
+                return 0
+            if part.shape[0] * part.shape[1] > MAX_UPDATE_SHARE * nx * ny:
+                part = None
+        if part is None:
+            # Cleared before the cells are read: a subscription that appears meanwhile gets another.
+            topic.new_subscriber = False
+            key: tuple[Any, ...] = ("grid", spec.map_id, generation, clock)
+            payload = built.get(key)
+            if payload is None:
+                payload = built[key] = occupancy_grid(gmap, window, frame_id, time.time_ns())
+            topic.grid.put(payload, time.perf_counter() - started)
+            topic.window, topic.grid_at, topic.behind = window, time.monotonic(), False
+            kind, what = "grid", f"{nx} x {ny} cells"
+        else:
+            key = ("update", spec.map_id, generation, clock, window, part)
+            payload = built.get(key)
+            if payload is None:
+                payload = built[key] = occupancy_grid_update(gmap, window, part, frame_id, time.time_ns())
+            topic.updates.put(payload, time.perf_counter() - started)
+            topic.behind = True
+            kind, what = "update", f"{part.shape[1]} x {part.shape[0]} of {nx} x {ny} cells"
+        topic.sent_clock = clock
         log.debug(
-            "ROS 2: map %r published on %s: %d x %d cells, %d bytes, built in %.1f ms, put in %.1f ms",
-            spec.map_id, spec.topic, nx, ny, len(payload), 1000 * (built - started), 1000 * (done - built),
-            extra={"map_id": spec.map_id},
+            "ROS 2: map %r published on %s: a %s of %s, %d bytes",
+            spec.map_id, spec.topic, kind, what, len(payload), extra={"map_id": spec.map_id},
         )  # fmt: skip
         return 1
 
     def _declare(self, topic: _Topic) -> None:
-        """The advanced publisher rmw_zenoh declares for TRANSIENT_LOCAL + RELIABLE + KEEP_LAST 1,
-        then the publisher's token (in that order, as rmw_zenoh: a node that sees the token can
-        already get the cache)."""
-        topic.publisher = zenoh.ext.declare_advanced_publisher(
-            self.session,
-            topic.key,
-            cache=zenoh.ext.CacheConfig(MAP_QOS.depth),
-            publisher_detection=True,
-            sample_miss_detection=zenoh.ext.MissDetectionConfig(
-                heartbeat=None, sporadic_heartbeat=HEARTBEAT_PERIOD
-            ),
-            reliability=zenoh.Reliability.RELIABLE,
-            # rmw_zenoh drops rather than blocks for KEEP_LAST; a subscriber that misses the sample
-            # recovers it from the cache by the heartbeat.
-            congestion_control=zenoh.CongestionControl.DROP,
-        )
-        topic.token = self.session.liveliness().declare_token(topic.token_key)
+        topic.grid.declare(self.session)
+        topic.updates.declare(self.session)
 
     def _undeclare(self, topic: _Topic) -> None:
-        token, publisher = topic.token, topic.publisher
-        topic.token = topic.publisher = None
-        for item in (token, publisher):
-            if item is not None:
-                _undeclare_quietly(item)
+        topic.grid.undeclare()
+        topic.updates.undeclare()
+        # What the next publishers' subscribers will hold starts again from a full grid.
+        topic.window, topic.behind, topic.new_subscriber = None, False, False
 
 
 def _undeclare_quietly(item: Any) -> None:

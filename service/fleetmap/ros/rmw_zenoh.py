@@ -28,6 +28,9 @@ TYPE_HASHES: dict[str, str] = {
     "sensor_msgs/msg/LaserScan": "RIHS01_64c191398013af96509d518dac71d5164f9382553fce5c1f8cca5be7924bd828",
     "tf2_msgs/msg/TFMessage": "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
     "nav_msgs/msg/OccupancyGrid": "RIHS01_8d348150c12913a31ee0ec170fbf25089e4745d17035792a1ba94d6f0bc0cfc7",
+    "map_msgs/msg/OccupancyGridUpdate": (
+        "RIHS01_c4095b0be2e4363f8978a1570e0293ee093436f1e1c61d99b48502ac317025e8"
+    ),
 }
 #: What Humble's rmw_zenoh puts where the type hash goes.
 HUMBLE_TYPE_HASH = "TypeHashNotSupported"

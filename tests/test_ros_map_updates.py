@@ -1,0 +1,324 @@
+"""End to end: a published map's changes go out as `map_msgs/msg/OccupancyGridUpdate`s on
+`<topic>_updates`, and its full grid on `<topic>` only when it must (docs/ros.md, "What is
+published").
+
+The test acts as RViz's Map display or nav2's static layer with `subscribe_to_updates: true`: a
+TRANSIENT_LOCAL subscription of the grid (as tests/test_ros_map_publish.py's, rmw_zenoh's advanced
+subscriber with history) and a VOLATILE one of the updates, each update written over the last grid
+as both do (`MapDisplay::incomingUpdate`, `StaticLayer::incomingUpdate`), after the bounds check
+they make. Messages are decoded by rosbags (Jazzy's definitions, map_msgs added: tests/ros_types.py).
+A subscriber may declare its liveliness token as rmw_zenoh does for every subscription, which is
+what tells the service a node has joined.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+import zenoh
+import zenoh.ext
+from ros_types import GRID, GRID_UPDATE, TYPESTORE
+from service_process import ServiceProcess, wait_for
+from test_ros_map_publish import (
+    HASH,
+    KEY,
+    UPDATES_KEY,
+    InProcess,
+    Robot,
+    client_session,
+    export_cells,
+    grid_cells,
+    in_process,  # noqa: F401 - the fixture
+    room_scan,
+)
+
+from fleetmap.config import MapConfig
+from fleetmap.ros import occupancy_grid
+from fleetmap.ros.graph import MAP_QOS, RosNode
+from fleetmap.ros.map_publisher import MapTopic, RosMapOptions, RosMapPublisher
+from fleetmap.ros.rmw_zenoh import decode_attachment
+from fleetmap.scan import Scan
+
+PERIOD = 0.3
+#: The big map: a 40 x 40 m room at 0.05 m, 800 x 800 cells (and its walls), over 4 x 4 storage tiles
+#: of 256 cells (the default), so that a scan inside one tile changes about a tenth of it.
+SIDE = 40.0
+#: The centre of storage tile (0, 0) (12.8 m a side): a scan there with short ranges stays in it.
+TILE_CENTRE = (6.4, 6.4)
+
+
+@dataclass
+class Message:
+    kind: str  # "grid" or "update"
+    msg: Any  # rosbags' OccupancyGrid or OccupancyGridUpdate
+    size: int  # bytes of the payload
+    sequence: int  # the attachment's sequence number
+
+
+class MapReader:
+    """A ROS node reading a map and its updates over rmw_zenoh, as RViz's Map display does."""
+
+    def __init__(
+        self, endpoint: str, token: bool = False, key: str = KEY, updates_key: str = UPDATES_KEY
+    ) -> None:
+        self.session = client_session(endpoint)
+        self.messages: list[Message] = []
+        self._lock = threading.Lock()
+        self.subscribers = [
+            zenoh.ext.declare_advanced_subscriber(
+                self.session,
+                key,
+                lambda sample: self._on_sample("grid", GRID, sample),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
+                subscriber_detection=True,
+            ),
+            # VOLATILE: no history to ask for.
+            zenoh.ext.declare_advanced_subscriber(
+                self.session, updates_key, lambda sample: self._on_sample("update", GRID_UPDATE, sample)
+            ),
+        ]
+        self.token: Any = None
+        if token:  # after the subscriber, as rmw_zenoh's SubscriptionData::init
+            node = RosNode(0, str(self.session.zid()), node_id=0, name="rviz")
+            topic = "/" + key.split("/")[1]
+            token_key = node.subscription_token(
+                1, topic, "nav_msgs::msg::dds_::OccupancyGrid_", HASH, MAP_QOS
+            )
+            self.token = self.session.liveliness().declare_token(token_key)
+
+    def _on_sample(self, kind: str, ros_type: str, sample: zenoh.Sample) -> None:
+        assert sample.attachment is not None  # rmw_zenoh drops samples without one
+        attachment = decode_attachment(sample.attachment.to_bytes())
+        assert attachment is not None
+        payload = sample.payload.to_bytes()
+        msg = TYPESTORE.deserialize_cdr(payload, ros_type)
+        with self._lock:
+            self.messages.append(Message(kind, msg, len(payload), attachment.sequence_number))
+
+    def received(self, kind: str | None = None) -> list[Message]:
+        with self._lock:
+            return [m for m in self.messages if kind is None or m.kind == kind]
+
+    def map(self) -> np.ndarray | None:
+        """The map as RViz shows it: the last grid with every update since written over it (None
+        before the first grid: updates before it are dropped, as RViz and nav2 drop them)."""
+        cells: np.ndarray | None = None
+        frame = ""
+        for message in self.received():
+            msg = message.msg
+            if message.kind == "grid":
+                cells, frame = grid_cells(msg).copy(), msg.header.frame_id
+                continue
+            if cells is None:
+                continue
+            x, y, width, height = int(msg.x), int(msg.y), int(msg.width), int(msg.height)
+            # What both readers check before applying it (nav2 also the frame).
+            assert x >= 0 and y >= 0 and x + width <= cells.shape[1] and y + height <= cells.shape[0]
+            assert msg.header.frame_id == frame
+            cells[y : y + height, x : x + width] = np.asarray(msg.data, dtype=np.int8).reshape(height, width)
+        return cells
+
+    def close(self) -> None:
+        if self.token is not None:
+            self.token.undeclare()
+        for subscriber in self.subscribers:
+            subscriber.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def readers() -> Iterator[Callable[..., MapReader]]:
+    opened: list[MapReader] = []
+
+    def open_reader(endpoint: str, **kwargs: Any) -> MapReader:
+        opened.append(MapReader(endpoint, **kwargs))
+        return opened[-1]
+
+    yield open_reader
+    for reader in opened:
+        reader.close()
+
+
+def square_room_scan(x: float, y: float, side: float = SIDE) -> Scan:
+    """A 360-degree scan from (x, y) inside a `side` x `side` m room, a beam every 0.25 degree."""
+    return room_scan(x, y, side, side, beams=1440, range_max=2 * side)
+
+
+def pillar_scan(x: float, y: float, distance: float = 1.5) -> Scan:
+    """A scan from (x, y) seeing a ring of obstacles `distance` away all round: it changes the cells
+    within `distance` of (x, y) only."""
+    angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    return Scan.from_angles((x, y, 0.0), angles, np.full(360, distance), 0.0, 20.0)
+
+
+def ros_maps(client: httpx.Client, topic: str = "/map") -> dict[str, Any]:
+    return dict(client.get("/healthz").json()["zenoh"]["ros_maps"]["topics"][topic])
+
+
+def published(client: httpx.Client) -> tuple[int, int]:
+    """(grids, updates) the service has put on /map and /map_updates."""
+    status = ros_maps(client)
+    return int(status["grids_published"]), int(status["updates_published"])
+
+
+def quiet(client: httpx.Client, timeout: float = 30.0) -> tuple[int, int]:
+    """Wait until the service has published something and then nothing for 3 periods; the counts."""
+    last: tuple[int, int] = (-1, -1)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        counts = published(client)
+        if counts == last and counts[0] > 0:
+            return counts
+        last = counts
+        time.sleep(3 * PERIOD)
+    raise AssertionError(f"the service still publishes after {timeout} s ({last})")
+
+
+def big_map(svc: ServiceProcess) -> Robot:
+    """Map `lab` made a 40 x 40 m room, published, and the service quiet."""
+    robot = Robot(svc)
+    for x, y in [(10.0, 10.0), (30.0, 10.0), (10.0, 30.0), (30.0, 30.0), (20.0, 20.0)]:
+        robot.post(square_room_scan(x, y))
+    quiet(robot.client)
+    return robot
+
+
+def test_a_small_change_goes_as_an_update_that_brings_the_grid_up_to_date_and_a_grown_map_as_a_grid(
+    service_factory: Callable[..., ServiceProcess], readers: Callable[..., MapReader]
+) -> None:
+    svc = service_factory("--in-memory", "--ros-publish-map", "lab", "--ros-map-period", str(PERIOD))
+    robot = big_map(svc)
+    reader = readers(svc.zenoh_endpoint)
+    grid = wait_for(lambda: reader.received("grid"), timeout=5, what="the grid from the cache")[0]
+    assert np.array_equal(grid_cells(grid.msg), export_cells(robot.client)[0])
+    grids, updates = published(robot.client)
+
+    # Scans that change a small part of the map: updates, no grid, and what the reader makes of them
+    # is exactly the map the service would publish whole now (its nav2 export).
+    for k, (x, y) in enumerate([TILE_CENTRE, (TILE_CENTRE[0] + 2.0, TILE_CENTRE[1] + 1.0), (33.0, 20.0)]):
+        robot.post(pillar_scan(x, y))
+        wait_for(lambda k=k: len(reader.received("update")) > k, timeout=5, what=f"update {k}")
+    # (Read at once: a grid replaces the cached one after it has been behind for 10 s.)
+    assert published(robot.client)[0] == grids
+    assert quiet(robot.client)[1] == updates + 3
+    cells, _ = export_cells(robot.client)
+    assert not np.array_equal(grid_cells(grid.msg), cells)  # the updates changed something
+    current = reader.map()
+    assert current is not None and np.array_equal(current, cells)
+
+    # Each update is the storage tile the pillar is in, 256 x 256 cells: a tenth of the grid's bytes
+    # (the whole map sent each time before).
+    sent = reader.received("update")
+    assert [(int(m.msg.width), int(m.msg.height)) for m in sent] == [(256, 256)] * 3
+    assert all(m.size < grid.size / 9 for m in sent), ([m.size for m in sent], grid.size)
+    assert [m.sequence for m in sent] == [1, 2, 3]  # the updates' publisher counts from 1
+    status = ros_maps(robot.client)
+    assert status["updates_key"] == UPDATES_KEY and status["updates_topic"] == "/map_updates"
+    assert status["last_update"]["bytes"] == sent[-1].size
+    assert status["update_bytes"] == sum(m.size for m in sent)
+    assert status["grid_bytes"] >= grid.size and status["last_grid"]["bytes"] == grid.size
+
+    # The map grows (the room's east wall moves out): a full grid of the new window, which the
+    # reader takes whole.
+    robot.post(square_room_scan(35.0, 20.0, side=SIDE + 5.0))
+    grown = wait_for(lambda: reader.received("grid")[1:], timeout=5, what="the grown map's grid")[0]
+    assert int(grown.msg.info.width) > int(grid.msg.info.width)
+    quiet(robot.client)
+    current, (cells, origin) = reader.map(), export_cells(robot.client)
+    assert current is not None and np.array_equal(current, cells)
+    assert (grown.msg.info.origin.position.x, grown.msg.info.origin.position.y) == origin
+    assert svc.stop() == 0
+    assert "Traceback" not in svc.logs() and "ERROR" not in svc.logs(), svc.logs()
+
+
+def test_a_node_that_subscribes_after_updates_gets_a_current_grid_at_once(
+    service_factory: Callable[..., ServiceProcess], readers: Callable[..., MapReader]
+) -> None:
+    """The grid in the cache lacks the updates sent since it: a node that subscribes then would
+    start from an old map. Its subscription's token makes the service send a current grid at once."""
+    svc = service_factory("--in-memory", "--ros-publish-map", "lab", "--ros-map-period", str(PERIOD))
+    robot = big_map(svc)
+    robot.post(pillar_scan(*TILE_CENTRE))
+    wait_for(lambda: published(robot.client)[1] == 1, timeout=5, what="the update")
+    grids = quiet(robot.client)[0]
+    cells, _ = export_cells(robot.client)
+
+    joined = time.monotonic()
+    late = readers(svc.zenoh_endpoint, token=True)
+    # The cache's grid lacks the update; a current one follows it (or, should it overtake the
+    # cache's reply, takes its place).
+    wait_for(
+        lambda: [m for m in late.received("grid") if np.array_equal(grid_cells(m.msg), cells)],
+        timeout=5,
+        what="a current grid",
+    )
+    assert time.monotonic() - joined < 2.0
+    current = late.map()
+    assert current is not None and np.array_equal(current, cells)
+    status = ros_maps(robot.client)
+    assert status["grids_published"] == grids + 1 and status["new_subscribers"] == 1
+
+    # Another node joins: the cache is current now, so it gets that grid and nothing is sent again.
+    other = readers(svc.zenoh_endpoint, token=True)
+    wait_for(lambda: other.received("grid"), timeout=5, what="the cached grid")
+    time.sleep(4 * PERIOD)
+    assert np.array_equal(grid_cells(other.received("grid")[0].msg), cells)
+    assert published(robot.client)[0] == grids + 1 and len(other.received()) == 1
+    assert ros_maps(robot.client)["new_subscribers"] == 2
+
+
+def test_the_cached_grid_is_replaced_when_it_has_been_behind_the_map_for_full_grid_interval(
+    in_process: InProcess,  # noqa: F811 - the fixture
+    readers: Callable[..., MapReader],
+) -> None:
+    """A node whose subscription's token the service does not see (none, or not yet) starts from the
+    cache: the grid there is at most `full_grid_interval` behind the map, even when the map stopped
+    changing after an update."""
+    registry = in_process.registry
+    options = RosMapOptions((MapTopic("a"),), period=0.1, full_grid_interval=1.0)
+    publisher = RosMapPublisher(registry, in_process.router, options)
+    try:
+        registry.create("a", MapConfig(resolution=0.05))[0].gmap.integrate(square_room_scan(20.0, 20.0))
+        publisher.start()
+        topic = publisher.topics[0]
+        wait_for(lambda: topic.grid.published == 1, timeout=5, what="the first grid")
+        registry.get("a").gmap.integrate(pillar_scan(*TILE_CENTRE))
+        wait_for(lambda: topic.updates.published == 1, timeout=5, what="the update")
+        assert topic.grid.published == 1
+        wait_for(lambda: topic.grid.published == 2, timeout=3, what="the grid again after 1 s")
+        time.sleep(1.5)
+        assert (topic.grid.published, topic.updates.published) == (2, 1)  # behind no more: nothing
+        late = readers(in_process.endpoint)  # no token
+        cached = wait_for(lambda: late.received("grid"), timeout=5, what="the cached grid")[0]
+        assert topic.window is not None
+        expected = occupancy_grid.grid_cells(registry.get("a").gmap, topic.window)
+        assert np.array_equal(grid_cells(cached.msg), expected)
+    finally:
+        publisher.close()
+
+
+def test_a_change_over_half_the_window_goes_as_a_grid(in_process: InProcess) -> None:  # noqa: F811
+    """An update of most of the window would be hardly smaller than a grid: a grid goes instead."""
+    registry = in_process.registry
+    publisher = RosMapPublisher(registry, in_process.router, RosMapOptions((MapTopic("a"),), period=3600.0))
+    try:
+        gmap = registry.create("a", MapConfig(resolution=0.05))[0].gmap
+        gmap.integrate(square_room_scan(20.0, 20.0))
+        assert publisher.publish_changed() == 1  # declared on the way: the first grid
+        topic = publisher.topics[0]
+        gmap.integrate(pillar_scan(*TILE_CENTRE))
+        assert publisher.publish_changed() == 1 and topic.updates.published == 1
+        gmap.integrate(square_room_scan(19.0, 21.0))  # every tile of the room changes
+        assert publisher.publish_changed() == 1
+        assert (topic.grid.published, topic.updates.published) == (2, 1)
+        assert publisher.publish_changed() == 0
+    finally:
+        publisher.close()
