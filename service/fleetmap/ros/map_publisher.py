@@ -32,8 +32,12 @@ map that did not change costs only that. A changed map is published as:
   cache is behind the map (updates went out since) and either `full_grid_interval` has passed
   since it or a new subscription of `<topic>` appeared;
 - else an **update** on `<topic>_updates`: the part of the window in the storage tiles changed
-  since the last publication (their versions above the tile clock it was read at,
+  since the last full grid (their versions above the tile clock its cells were read at,
   `export.changed_window`), the cells made by the same `occupancy_grid.grid_cells` as a grid's.
+  Since the grid, not since the last update: whoever holds that grid is current after the next
+  update, also when an update before it was lost (a subscriber that dropped it, or nav2's static
+  layer, which loads a grid only at its costmap's next update and so writes over an update that
+  came in between).
 
 The cells are read one storage tile at a time, each under the map's lock for its copy only. The
 clock is read before the cells, so a scan applied during the read is published at the next check.
@@ -259,9 +263,9 @@ class _Topic:
     #: The window of the last full grid (None: no grid since the publishers were declared, or the
     #: map could not be published since): updates are offsets in it.
     window: Window | None = None
-    #: The tile clock read before the cells of the last grid or update: tiles with a newer version
-    #: may differ from what subscribers hold.
-    sent_clock: int = 0
+    #: The tile clock read before the cells of the last full grid: tiles with a newer version may
+    #: differ from it, and each update carries all of them (see the module doc).
+    grid_clock: int = 0
     grid_at: float = 0.0  # time.monotonic() of the last full grid
     #: Updates went out since the last full grid: the grid in the cache is behind the map.
     behind: bool = False
@@ -468,7 +472,7 @@ class RosMapPublisher:
     def _publish(
         self, topic: _Topic, entry: MapEntry, built: dict[tuple[Any, ...], bytes], grid_due: bool
     ) -> int:
-        """Put `entry`'s grid, or the update since the last publication, on `topic`; `built` holds the
+        """Put `entry`'s grid, or the update since the last grid, on `topic`; `built` holds the
         messages made in this check, by what they show, so that another topic of the same map state
         reuses the one made."""
         gmap, spec = entry.gmap, topic.spec
@@ -499,9 +503,9 @@ class RosMapPublisher:
         generation, clock = topic.seen
         part = None
         if window == topic.window and not grid_due:
-            part = changed_window(gmap, topic.sent_clock, window)
+            part = changed_window(gmap, topic.grid_clock, window)
             if part is None:
-                topic.sent_clock = clock  # nothing the grid shows changed (a tile touched outside it)
+                topic.grid_clock = clock  # nothing the grid shows changed (a tile touched outside it)
                 return 0
             if part.shape[0] * part.shape[1] > MAX_UPDATE_SHARE * nx * ny:
                 part = None
@@ -514,6 +518,7 @@ class RosMapPublisher:
                 payload = built[key] = occupancy_grid(gmap, window, frame_id, time.time_ns())
             topic.grid.put(payload, time.perf_counter() - started)
             topic.window, topic.grid_at, topic.behind = window, time.monotonic(), False
+            topic.grid_clock = clock
             kind, what = "grid", f"{nx} x {ny} cells"
         else:
             key = ("update", spec.map_id, generation, clock, window, part)
@@ -523,7 +528,6 @@ class RosMapPublisher:
             topic.updates.put(payload, time.perf_counter() - started)
             topic.behind = True
             kind, what = "update", f"{part.shape[1]} x {part.shape[0]} of {nx} x {ny} cells"
-        topic.sent_clock = clock
         log.debug(
             "ROS 2: map %r published on %s: a %s of %s, %d bytes",
             spec.map_id, spec.topic, kind, what, len(payload), extra={"map_id": spec.map_id},
