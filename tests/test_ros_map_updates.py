@@ -41,7 +41,7 @@ from test_ros_map_publish import (
 
 from fleetmap.config import MapConfig
 from fleetmap.ros import occupancy_grid
-from fleetmap.ros.graph import MAP_QOS, RosNode
+from fleetmap.ros.graph import DURABILITY_TRANSIENT_LOCAL, DURABILITY_VOLATILE, MAP_QOS, Qos, RosNode
 from fleetmap.ros.map_publisher import MapTopic, RosMapOptions, RosMapPublisher
 from fleetmap.ros.rmw_zenoh import decode_attachment
 from fleetmap.scan import Scan
@@ -66,19 +66,28 @@ class MapReader:
     """A ROS node reading a map and its updates over rmw_zenoh, as RViz's Map display does."""
 
     def __init__(
-        self, endpoint: str, token: bool = False, key: str = KEY, updates_key: str = UPDATES_KEY
+        self,
+        endpoint: str,
+        token: bool = False,
+        key: str = KEY,
+        updates_key: str = UPDATES_KEY,
+        grid_qos: Qos = MAP_QOS,
     ) -> None:
         self.session = client_session(endpoint)
         self.messages: list[Message] = []
         self._lock = threading.Lock()
+        transient_local = grid_qos.durability == DURABILITY_TRANSIENT_LOCAL
         self.subscribers = [
             zenoh.ext.declare_advanced_subscriber(
                 self.session,
                 key,
                 lambda sample: self._on_sample("grid", GRID, sample),
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
-                recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
-                subscriber_detection=True,
+                # TRANSIENT_LOCAL: the publishers' caches asked; VOLATILE: none.
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=grid_qos.depth)
+                if transient_local
+                else None,
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True) if transient_local else None,
+                subscriber_detection=transient_local,
             ),
             # VOLATILE: no history to ask for.
             zenoh.ext.declare_advanced_subscriber(
@@ -90,7 +99,7 @@ class MapReader:
             node = RosNode(0, str(self.session.zid()), node_id=0, name="rviz")
             topic = "/" + key.split("/")[1]
             token_key = node.subscription_token(
-                1, topic, "nav_msgs::msg::dds_::OccupancyGrid_", HASH, MAP_QOS
+                1, topic, "nav_msgs::msg::dds_::OccupancyGrid_", HASH, grid_qos
             )
             self.token = self.session.liveliness().declare_token(token_key)
 
@@ -395,5 +404,37 @@ def test_an_update_overwritten_by_a_grid_nav2_loads_late_is_made_good_by_the_nex
         assert topic.window is not None
         assert nav2.cells is not None
         assert np.array_equal(nav2.cells, occupancy_grid.grid_cells(gmap, topic.window))
+    finally:
+        publisher.close()
+
+
+def test_a_volatile_subscriber_such_as_rviz_by_default_gets_a_grid_at_once(
+    in_process: InProcess,  # noqa: F811 - the fixture
+    readers: Callable[..., MapReader],
+) -> None:
+    """RViz's Map display subscribes to the map with `rclcpp::QoS(5)` unless told otherwise
+    (`_RosTopicDisplay::qos_profile`, rviz_common/ros_topic_display.hpp): VOLATILE, so it asks no
+    cache and drops updates until it has a grid (`MapDisplay::incomingUpdate`). Its token says so;
+    the service sends it a grid at once, even though the cache is current."""
+    registry = in_process.registry
+    publisher = RosMapPublisher(registry, in_process.router, RosMapOptions((MapTopic("a"),), period=3600.0))
+    try:
+        registry.create("a", MapConfig(resolution=0.05))[0].gmap.integrate(square_room_scan(20.0, 20.0))
+        publisher.start()  # the first check at once, the next in an hour
+        topic = publisher.topics[0]
+        wait_for(lambda: topic.grid.published == 1, timeout=5, what="the first grid")
+        rviz = readers(in_process.endpoint, token=True, grid_qos=Qos(durability=DURABILITY_VOLATILE, depth=5))
+        grid = wait_for(lambda: rviz.received("grid"), timeout=5, what="a grid for the volatile subscriber")[
+            0
+        ]
+        assert topic.window is not None
+        assert np.array_equal(
+            grid_cells(grid.msg), occupancy_grid.grid_cells(registry.get("a").gmap, topic.window)
+        )
+        # A TRANSIENT_LOCAL subscriber then has the cache's grid, which is current: nothing more is sent.
+        nav2 = readers(in_process.endpoint, token=True)
+        wait_for(lambda: nav2.received("grid"), timeout=5, what="the cached grid")
+        time.sleep(1.0)
+        assert topic.grid.published == 2 and topic.subscribers_seen == 2
     finally:
         publisher.close()
