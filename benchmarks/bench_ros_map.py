@@ -18,7 +18,7 @@ of `--reps`, the steps one publication takes:
 * lock: the longest single hold of the map's lock during one publication (the integration workers
   wait at most that long);
 * update: the same after a scan that changes one storage tile (a pillar seen 1.5 m all round):
-  `publish_changed` then finds the tiles changed since the last publication and puts an
+  `publish_changed` then finds the tiles changed since the last grid and puts an
   OccupancyGridUpdate of them on `<topic>_updates` instead of the grid; its bytes beside the grid's,
   the time until a subscriber of the updates has it, and the longest lock hold.
 """
@@ -195,11 +195,12 @@ def main() -> None:
         # A scan that changes one storage tile: an update of that tile instead of the grid.
         angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
         t = gmap.store.tile_size * res
-        whole_tiles = max(1, int(size // t))  # tiles of a row wholly inside the map
         updates = []
         for k in range(args.reps):
-            # The centre of a tile inside the map (the window does not grow), 1.5 m from its edges at least.
-            pillar = (t * (0.5 + k % whole_tiles), t * 0.5, 0.0)
+            # Near the centre of one tile inside the map (the window does not grow), 1.5 m from its
+            # edges at least: an update carries every tile changed since the last grid, so the
+            # pillars stay in one tile.
+            pillar = (t * 0.5 + 0.01 * k, t * 0.5, 0.0)
             updates.append(
                 publication(Scan.from_angles(pillar, angles, np.full(360, 1.5), 0.0, 20.0), topic.updates)
             )

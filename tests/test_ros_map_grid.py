@@ -248,6 +248,9 @@ def test_node_and_publisher_tokens() -> None:
     assert subscription == token.replace("/0/1/MP/", "/0/3/MS/").replace(":1:,1:,:,:,,", "::,5:,:,:,,")
     assert graph.subscription_of_token(subscription) == (7, "/wh/map", "nav_msgs::msg::dds_::OccupancyGrid_")
     assert graph.subscription_of_token(token) is None and graph.publisher_of_token(subscription) is None
+    # Its durability (VOLATILE: no cache asked, so it needs a grid sent for it) and the publisher's.
+    assert graph.durability_of_token(subscription) == graph.DURABILITY_VOLATILE
+    assert graph.durability_of_token(token) == graph.DURABILITY_TRANSIENT_LOCAL
     watched = graph.endpoints_key(7, graph.SUBSCRIPTION, "nav_msgs::msg::dds_::OccupancyGrid_")
     assert zenoh.KeyExpr(watched).intersects(zenoh.KeyExpr(subscription))
     assert not zenoh.KeyExpr(watched).intersects(zenoh.KeyExpr(token))

@@ -41,7 +41,7 @@ from test_ros_map_publish import (
 
 from fleetmap.config import MapConfig
 from fleetmap.ros import occupancy_grid
-from fleetmap.ros.graph import MAP_QOS, RosNode
+from fleetmap.ros.graph import DURABILITY_TRANSIENT_LOCAL, DURABILITY_VOLATILE, MAP_QOS, Qos, RosNode
 from fleetmap.ros.map_publisher import MapTopic, RosMapOptions, RosMapPublisher
 from fleetmap.ros.rmw_zenoh import decode_attachment
 from fleetmap.scan import Scan
@@ -66,19 +66,28 @@ class MapReader:
     """A ROS node reading a map and its updates over rmw_zenoh, as RViz's Map display does."""
 
     def __init__(
-        self, endpoint: str, token: bool = False, key: str = KEY, updates_key: str = UPDATES_KEY
+        self,
+        endpoint: str,
+        token: bool = False,
+        key: str = KEY,
+        updates_key: str = UPDATES_KEY,
+        grid_qos: Qos = MAP_QOS,
     ) -> None:
         self.session = client_session(endpoint)
         self.messages: list[Message] = []
         self._lock = threading.Lock()
+        transient_local = grid_qos.durability == DURABILITY_TRANSIENT_LOCAL
         self.subscribers = [
             zenoh.ext.declare_advanced_subscriber(
                 self.session,
                 key,
                 lambda sample: self._on_sample("grid", GRID, sample),
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
-                recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
-                subscriber_detection=True,
+                # TRANSIENT_LOCAL: the publishers' caches asked; VOLATILE: none.
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=grid_qos.depth)
+                if transient_local
+                else None,
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True) if transient_local else None,
+                subscriber_detection=transient_local,
             ),
             # VOLATILE: no history to ask for.
             zenoh.ext.declare_advanced_subscriber(
@@ -90,7 +99,7 @@ class MapReader:
             node = RosNode(0, str(self.session.zid()), node_id=0, name="rviz")
             topic = "/" + key.split("/")[1]
             token_key = node.subscription_token(
-                1, topic, "nav_msgs::msg::dds_::OccupancyGrid_", HASH, MAP_QOS
+                1, topic, "nav_msgs::msg::dds_::OccupancyGrid_", HASH, grid_qos
             )
             self.token = self.session.liveliness().declare_token(token_key)
 
@@ -203,7 +212,8 @@ def test_a_small_change_goes_as_an_update_that_brings_the_grid_up_to_date_and_a_
 
     # Scans that change a small part of the map: updates, no grid, and what the reader makes of them
     # is exactly the map the service would publish whole now (its nav2 export).
-    for k, (x, y) in enumerate([TILE_CENTRE, (TILE_CENTRE[0] + 2.0, TILE_CENTRE[1] + 1.0), (33.0, 20.0)]):
+    east = (TILE_CENTRE[0] + 12.8, TILE_CENTRE[1])  # the centre of the next tile east
+    for k, (x, y) in enumerate([TILE_CENTRE, (TILE_CENTRE[0] + 2.0, TILE_CENTRE[1] + 1.0), east]):
         robot.post(pillar_scan(x, y))
         wait_for(lambda k=k: len(reader.received("update")) > k, timeout=5, what=f"update {k}")
     # (Read at once: a grid replaces the cached one after it has been behind for 10 s.)
@@ -214,11 +224,12 @@ def test_a_small_change_goes_as_an_update_that_brings_the_grid_up_to_date_and_a_
     current = reader.map()
     assert current is not None and np.array_equal(current, cells)
 
-    # Each update is the storage tile the pillar is in, 256 x 256 cells: a tenth of the grid's bytes
-    # (the whole map sent each time before).
+    # Each update is the storage tiles changed since the grid: the pillars' tile, 256 x 256 cells, a
+    # tenth of the grid's bytes (the whole map sent each time before), then that tile and the next.
     sent = reader.received("update")
-    assert [(int(m.msg.width), int(m.msg.height)) for m in sent] == [(256, 256)] * 3
-    assert all(m.size < grid.size / 9 for m in sent), ([m.size for m in sent], grid.size)
+    assert [(int(m.msg.width), int(m.msg.height)) for m in sent] == [(256, 256), (256, 256), (512, 256)]
+    assert [(int(m.msg.x), int(m.msg.y)) for m in sent] == [(sent[0].msg.x, sent[0].msg.y)] * 3
+    assert all(m.size < grid.size / 9 for m in sent[:2]) and sent[2].size < grid.size / 4
     assert [m.sequence for m in sent] == [1, 2, 3]  # the updates' publisher counts from 1
     status = ros_maps(robot.client)
     assert status["updates_key"] == UPDATES_KEY and status["updates_topic"] == "/map_updates"
@@ -320,5 +331,110 @@ def test_a_change_over_half_the_window_goes_as_a_grid(in_process: InProcess) -> 
         assert publisher.publish_changed() == 1
         assert (topic.grid.published, topic.updates.published) == (2, 1)
         assert publisher.publish_changed() == 0
+    finally:
+        publisher.close()
+
+
+class StaticLayer:
+    """nav2's static layer with `subscribe_to_updates` (`StaticLayer::incomingMap`, `incomingUpdate`,
+    `updateBounds` in nav2_costmap_2d/plugins/static_layer.cpp, Humble to Rolling): the first grid
+    is taken at once, a later one is only buffered (`map_buffer_`) until the costmap's next
+    `updateBounds` loads it whole; an update is written over the costmap at once."""
+
+    def __init__(self) -> None:
+        self.cells: np.ndarray | None = None
+        self.buffered: Any = None
+
+    def incoming(self, message: Message) -> None:
+        msg = message.msg
+        if message.kind == "grid":
+            if self.cells is None:
+                self.cells = grid_cells(msg).copy()
+            else:
+                self.buffered = msg
+            return
+        assert self.cells is not None
+        x, y, width, height = int(msg.x), int(msg.y), int(msg.width), int(msg.height)
+        assert x >= 0 and y >= 0 and x + width <= self.cells.shape[1] and y + height <= self.cells.shape[0]
+        self.cells[y : y + height, x : x + width] = np.asarray(msg.data, dtype=np.int8).reshape(height, width)
+
+    def update_bounds(self) -> None:
+        if self.buffered is not None:
+            self.cells, self.buffered = grid_cells(self.buffered).copy(), None
+
+
+def test_an_update_overwritten_by_a_grid_nav2_loads_late_is_made_good_by_the_next_update(
+    in_process: InProcess,  # noqa: F811 - the fixture
+    readers: Callable[..., MapReader],
+) -> None:
+    """nav2's static layer loads a grid after its first only at the costmap's next update (1 Hz for
+    nav2's global costmap) and writes an update at once: an update that arrives in between is
+    overwritten by that grid. The next update must bring the costmap up to date, so each update
+    carries everything changed since the last grid, not only since the last update."""
+    registry = in_process.registry
+    publisher = RosMapPublisher(registry, in_process.router, RosMapOptions((MapTopic("a"),), period=3600.0))
+    reader = readers(in_process.endpoint)
+    nav2 = StaticLayer()
+    taken = 0
+
+    def publish(kind: str) -> None:
+        nonlocal taken
+        assert publisher.publish_changed() == 1
+        wait_for(lambda: len(reader.received()) > taken, timeout=5, what=f"the {kind}")
+        message = reader.received()[taken]
+        assert message.kind == kind
+        nav2.incoming(message)
+        taken += 1
+
+    try:
+        gmap = registry.create("a", MapConfig(resolution=0.05))[0].gmap
+        gmap.integrate(square_room_scan(20.0, 20.0))
+        publish("grid")
+        topic = publisher.topics[0]
+        gmap.integrate(pillar_scan(*TILE_CENTRE))
+        publish("update")
+        topic.new_subscriber = True  # a node joins: every subscriber gets a current grid
+        publish("grid")
+        gmap.integrate(pillar_scan(TILE_CENTRE[0] + 12.8, TILE_CENTRE[1]))  # the next tile east
+        publish("update")  # before the costmap's next update: overwritten by the buffered grid
+        nav2.update_bounds()
+        gmap.integrate(pillar_scan(TILE_CENTRE[0], TILE_CENTRE[1] + 12.8))  # the next tile north
+        publish("update")
+        nav2.update_bounds()
+        assert topic.window is not None
+        assert nav2.cells is not None
+        assert np.array_equal(nav2.cells, occupancy_grid.grid_cells(gmap, topic.window))
+    finally:
+        publisher.close()
+
+
+def test_a_volatile_subscriber_such_as_rviz_by_default_gets_a_grid_at_once(
+    in_process: InProcess,  # noqa: F811 - the fixture
+    readers: Callable[..., MapReader],
+) -> None:
+    """RViz's Map display subscribes to the map with `rclcpp::QoS(5)` unless told otherwise
+    (`_RosTopicDisplay::qos_profile`, rviz_common/ros_topic_display.hpp): VOLATILE, so it asks no
+    cache and drops updates until it has a grid (`MapDisplay::incomingUpdate`). Its token says so;
+    the service sends it a grid at once, even though the cache is current."""
+    registry = in_process.registry
+    publisher = RosMapPublisher(registry, in_process.router, RosMapOptions((MapTopic("a"),), period=3600.0))
+    try:
+        registry.create("a", MapConfig(resolution=0.05))[0].gmap.integrate(square_room_scan(20.0, 20.0))
+        publisher.start()  # the first check at once, the next in an hour
+        topic = publisher.topics[0]
+        wait_for(lambda: topic.grid.published == 1, timeout=5, what="the first grid")
+        rviz = readers(in_process.endpoint, token=True, grid_qos=Qos(durability=DURABILITY_VOLATILE, depth=5))
+        grid = wait_for(lambda: rviz.received("grid"), timeout=5, what="a grid for the volatile subscriber")[
+            0
+        ]
+        assert topic.window is not None
+        assert np.array_equal(
+            grid_cells(grid.msg), occupancy_grid.grid_cells(registry.get("a").gmap, topic.window)
+        )
+        # A TRANSIENT_LOCAL subscriber then has the cache's grid, which is current: nothing more is sent.
+        nav2 = readers(in_process.endpoint, token=True)
+        wait_for(lambda: nav2.received("grid"), timeout=5, what="the cached grid")
+        time.sleep(1.0)
+        assert topic.grid.published == 2 and topic.subscribers_seen == 2
     finally:
         publisher.close()

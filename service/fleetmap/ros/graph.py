@@ -84,6 +84,18 @@ def subscription_of_token(token: str) -> tuple[int, str, str] | None:
     return _endpoint_of_token(token, SUBSCRIPTION)
 
 
+def durability_of_token(token: str) -> int:
+    """The durability a publisher's or subscription's token states (the second field of its QoS
+    part, see `qos_keyexpr`): `DURABILITY_TRANSIENT_LOCAL`, or `DURABILITY_VOLATILE` (rmw_zenoh's
+    default, written empty) for anything else."""
+    qos = token.split("/")[12:13]
+    fields = qos[0].split(":") if qos else []
+    durability = fields[1] if len(fields) > 1 else ""
+    return (
+        DURABILITY_TRANSIENT_LOCAL if durability == str(DURABILITY_TRANSIENT_LOCAL) else DURABILITY_VOLATILE
+    )
+
+
 def endpoints_key(domain_id: int, kind: str, dds_type: str, topic: str | None = None) -> str:
     """The key expression of the tokens of every `kind` (`PUBLISHER`, `SUBSCRIPTION`) of `dds_type`
     in a domain, whatever their session, node and QoS: of `topic` only when given (absolute), else

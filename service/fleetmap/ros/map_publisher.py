@@ -30,10 +30,15 @@ map that did not change costs only that. A changed map is published as:
   (`export.known_window`, the grid's window) changed (the map grew: subscribers resize on a grid),
   when the changed part would be more than half the window, or when the grid in the publisher's
   cache is behind the map (updates went out since) and either `full_grid_interval` has passed
-  since it or a new subscription of `<topic>` appeared;
+  since it or a new subscription of `<topic>` appeared, or when a new VOLATILE subscription
+  appeared (it asks no cache);
 - else an **update** on `<topic>_updates`: the part of the window in the storage tiles changed
-  since the last publication (their versions above the tile clock it was read at,
+  since the last full grid (their versions above the tile clock its cells were read at,
   `export.changed_window`), the cells made by the same `occupancy_grid.grid_cells` as a grid's.
+  Since the grid, not since the last update: whoever holds that grid is current after the next
+  update, also when an update before it was lost (a subscriber that dropped it, or nav2's static
+  layer, which loads a grid only at its costmap's next update and so writes over an update that
+  came in between).
 
 The cells are read one storage tile at a time, each under the map's lock for its copy only. The
 clock is read before the cells, so a scan applied during the read is published at the next check.
@@ -42,9 +47,11 @@ Late joiners: a node that subscribes gets the last grid from the cache at once, 
 then on. The cached grid lacks the updates sent since it, so fleetmap watches the subscriptions'
 liveliness tokens (`@ros2_lv/<domain>/.../MS/.../<topic>/nav_msgs::msg::dds_::OccupancyGrid_/...`,
 which rmw_zenoh declares for every subscription) and, when one appears while the cache is behind,
-sends a current grid at once (the thread is woken; at most one such grid per update sent). Without
-a token (or before it arrives), the cache is never more than `full_grid_interval` behind the map:
-past that, a full grid goes out at the next check even if the map has not changed since.
+sends a current grid at once (the thread is woken; at most one such grid per update sent). A
+VOLATILE subscription (RViz's Map display's default) gets nothing from the cache and drops updates
+until it has a grid: its token (whose QoS says so) sends a grid at once whatever the cache holds.
+Without a token (or before it arrives), the cache is never more than `full_grid_interval` behind
+the map: past that, a full grid goes out at the next check even if the map has not changed since.
 
 A map that is deleted is no longer published: its publishers and tokens are undeclared (a ROS node
 starting later gets no stale map from the cache); a map created again, or replaced from a snapshot,
@@ -70,11 +77,13 @@ from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import MapEntry, MapRegistry
 from fleetmap.ros.graph import (
     DURABILITY_TRANSIENT_LOCAL,
+    DURABILITY_VOLATILE,
     MAP_QOS,
     MAP_UPDATES_QOS,
     SUBSCRIPTION,
     Qos,
     RosNode,
+    durability_of_token,
     endpoints_key,
     entity_gid,
     subscription_of_token,
@@ -259,14 +268,16 @@ class _Topic:
     #: The window of the last full grid (None: no grid since the publishers were declared, or the
     #: map could not be published since): updates are offsets in it.
     window: Window | None = None
-    #: The tile clock read before the cells of the last grid or update: tiles with a newer version
-    #: may differ from what subscribers hold.
-    sent_clock: int = 0
+    #: The tile clock read before the cells of the last full grid: tiles with a newer version may
+    #: differ from it, and each update carries all of them (see the module doc).
+    grid_clock: int = 0
     grid_at: float = 0.0  # time.monotonic() of the last full grid
     #: Updates went out since the last full grid: the grid in the cache is behind the map.
     behind: bool = False
     #: A subscription of the grid's topic appeared since the last full grid (set by Zenoh's thread).
     new_subscriber: bool = False
+    #: One of them is VOLATILE: it asks no cache, so only a grid sent now reaches it.
+    new_volatile_subscriber: bool = False
     subscribers_seen: int = 0  # subscription tokens seen appear
 
     @property
@@ -378,15 +389,20 @@ class RosMapPublisher:
 
     def _on_subscription(self, sample: zenoh.Sample) -> None:
         """Zenoh's callback for a subscription token: a new subscription of a published topic is
-        flagged, and the thread woken to send it a current grid (see `_check`)."""
+        flagged (a VOLATILE one as such), and the thread woken to send it a current grid (see
+        `_check`)."""
         if sample.kind != zenoh.SampleKind.PUT:
             return
-        parsed = subscription_of_token(str(sample.key_expr))
+        token = str(sample.key_expr)
+        parsed = subscription_of_token(token)
         if parsed is None:
             return
+        volatile = durability_of_token(token) == DURABILITY_VOLATILE
         for topic in self.topics:
             if topic.spec.topic == parsed[1]:
                 topic.subscribers_seen += 1
+                if volatile:
+                    topic.new_volatile_subscriber = True
                 topic.new_subscriber = True
                 self._wake.set()
 
@@ -449,12 +465,16 @@ class RosMapPublisher:
             self._undeclare(topic)
         if not topic.declared:
             self._declare(topic)
-        if topic.new_subscriber and not topic.behind:
-            topic.new_subscriber = False  # the cache's grid is current: the new node has what it needs
-        # A grid is due when the cache's is behind the map and someone may start from it: a new
-        # subscription, or the cache's grid getting old.
+        if topic.new_subscriber and (
+            topic.window is None or not (topic.behind or topic.new_volatile_subscriber)
+        ):
+            # No grid sent yet (the first goes to it too), or the cache's grid is current and the new
+            # node asks for it: it has what it needs.
+            topic.new_subscriber = topic.new_volatile_subscriber = False
+        # A grid is due for a new subscription the cache does not serve (behind the map, or the
+        # subscription VOLATILE), and when the cache's grid has been behind the map for long.
         since_grid = time.monotonic() - topic.grid_at
-        grid_due = topic.behind and (topic.new_subscriber or since_grid >= self.options.full_grid_interval)
+        grid_due = topic.new_subscriber or (topic.behind and since_grid >= self.options.full_grid_interval)
         if new_subscribers_only and not grid_due:
             return 0
         # Before the cells: a scan applied while they are read advances the clock past this, so the
@@ -468,7 +488,7 @@ class RosMapPublisher:
     def _publish(
         self, topic: _Topic, entry: MapEntry, built: dict[tuple[Any, ...], bytes], grid_due: bool
     ) -> int:
-        """Put `entry`'s grid, or the update since the last publication, on `topic`; `built` holds the
+        """Put `entry`'s grid, or the update since the last grid, on `topic`; `built` holds the
         messages made in this check, by what they show, so that another topic of the same map state
         reuses the one made."""
         gmap, spec = entry.gmap, topic.spec
@@ -499,21 +519,22 @@ class RosMapPublisher:
         generation, clock = topic.seen
         part = None
         if window == topic.window and not grid_due:
-            part = changed_window(gmap, topic.sent_clock, window)
+            part = changed_window(gmap, topic.grid_clock, window)
             if part is None:
-                topic.sent_clock = clock  # nothing the grid shows changed (a tile touched outside it)
+                topic.grid_clock = clock  # nothing the grid shows changed (a tile touched outside it)
                 return 0
             if part.shape[0] * part.shape[1] > MAX_UPDATE_SHARE * nx * ny:
                 part = None
         if part is None:
             # Cleared before the cells are read: a subscription that appears meanwhile gets another.
-            topic.new_subscriber = False
+            topic.new_subscriber = topic.new_volatile_subscriber = False
             key: tuple[Any, ...] = ("grid", spec.map_id, generation, clock)
             payload = built.get(key)
             if payload is None:
                 payload = built[key] = occupancy_grid(gmap, window, frame_id, time.time_ns())
             topic.grid.put(payload, time.perf_counter() - started)
             topic.window, topic.grid_at, topic.behind = window, time.monotonic(), False
+            topic.grid_clock = clock
             kind, what = "grid", f"{nx} x {ny} cells"
         else:
             key = ("update", spec.map_id, generation, clock, window, part)
@@ -523,7 +544,6 @@ class RosMapPublisher:
             topic.updates.put(payload, time.perf_counter() - started)
             topic.behind = True
             kind, what = "update", f"{part.shape[1]} x {part.shape[0]} of {nx} x {ny} cells"
-        topic.sent_clock = clock
         log.debug(
             "ROS 2: map %r published on %s: a %s of %s, %d bytes",
             spec.map_id, spec.topic, kind, what, len(payload), extra={"map_id": spec.map_id},
@@ -538,7 +558,8 @@ class RosMapPublisher:
         topic.grid.undeclare()
         topic.updates.undeclare()
         # What the next publishers' subscribers will hold starts again from a full grid.
-        topic.window, topic.behind, topic.new_subscriber = None, False, False
+        topic.window, topic.behind = None, False
+        topic.new_subscriber = topic.new_volatile_subscriber = False
 
 
 def _undeclare_quietly(item: Any) -> None:
