@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -27,6 +28,8 @@ from test_e2e import assert_region_equal, map_stats, wait_integrated
 from test_store_forward import LAYERS, engine_map, publish_then_cut
 
 from fleetmap import codec
+from fleetmap.codec import WireScan
+from fleetmap.registry import IngestRejected, Job, MapRegistry
 from fleetmap.robot_state import SessionLedger
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus
@@ -49,6 +52,48 @@ def test_settled_passes_only_scans_settled_in_order() -> None:
     assert ledger.settled is None
     ledger.settle(again, integrated=True)
     assert (ledger.settled, ledger.first_seq) == (2, 0)
+
+
+@pytest.mark.parametrize("case", ["resent after the full queue refused it", "restart without session ids"])
+def test_settled_does_not_pass_a_seq_accepted_again_while_it_waits(case: str) -> None:
+    """A seq accepted again while the robot's earlier scans wait (the re-send of a scan the full
+    queue refused; a robot without session ids restarted, its seqs from 0 again) is behind them in
+    the ledger: once they are settled, `settled` must not say the seq is settled while it waits
+    (flush confirmed it; a crash then lost it with the publisher closed)."""
+    seen: list[DeliveryStatus] = []
+    session = 7 if case.startswith("resent") else None
+
+    def on_integrated(_entry: Any, job: Job, _result: Any, _elapsed: float) -> None:
+        if job.robot_id == "r" and job.wire.stamp == 2.0:  # the last of the earlier scans
+            seen.append(reg.delivery_status("m", "r", 7 if session else 0))
+
+    reg = MapRegistry(workers=1, queue_bytes=3 * 30 * 16, on_integrated=on_integrated)  # three scans
+    if session:
+        reg.submit("o", "other", WireScan(0, 0.0, _scan()))
+    reg.submit("m", "r", WireScan(0, 1.0, _scan(), session))
+    reg.submit("m", "r", WireScan(1, 2.0, _scan(), session))
+    if session:
+        with pytest.raises(IngestRejected, match="queue full"):
+            reg.submit("m", "r", WireScan(2, 3.0, _scan(), session))
+        reg.delete("o")  # room again: the robot sends seq 2 again (a REST retry, or a re-publish)
+        reg.submit("m", "r", WireScan(2, 3.0, _scan(), session))
+    else:
+        reg.submit("m", "r", WireScan(0, 10.0, _scan()))  # restarted: a later stamp
+    last = 2 if session else 0
+    reg.start()
+    try:
+        assert reg.wait_idle()
+        early = seen[0].sessions[0]
+        assert early.settled is None or early.settled < last, f"seq {last} waited, yet settled {early}"
+        final = reg.delivery_status("m", "r", 7 if session else 0).sessions[0]
+        assert final.settled == last and final.refused == 0 and final.integrated == 3
+    finally:
+        reg.close()
+
+
+def _scan() -> Scan:
+    """A scan of 30 beams (what the queue's byte limits above count)."""
+    return Scan.from_fan((0.0, 0.0, 0.0), -0.5, 1.0 / 30, [2.0] * 30, 0.0, 30.0)
 
 
 def test_the_reply_docs_protocol_md_shows_is_the_services_model() -> None:

@@ -59,16 +59,22 @@ class SessionLedger:
     lost: int = 0
     duplicates: int = 0
     open_receipts: deque[Receipt] = field(default_factory=deque, repr=False)
+    #: The open receipt of a seq accepted again (`open`): `settled` stays None until it is settled.
+    _reopened: Receipt | None = field(default=None, repr=False)
 
     def open(self, seq: int) -> Receipt:
         """A receipt for the scan `seq`, accepted now."""
         if self.first_seq is None:
             self.first_seq = seq
-        if self.settled is not None and seq <= self.settled:
-            # Its seq again (a re-send of a refused scan) or lower (a restart without session ids):
-            # `settled` no longer says "this and every earlier seq" until this one is settled.
-            self.settled = None
         receipt = Receipt(self, seq)
+        before = self.open_receipts[-1].seq if self.open_receipts else self.settled
+        if before is not None and seq <= before:
+            # Its seq again (a re-send of a refused scan) or lower (a restart without session ids):
+            # `settled` no longer says "this and every earlier seq" until this one is settled. Also
+            # when scans accepted before it still wait: settling them must not move `settled` to
+            # their seqs, at or past this one, while it waits (a flush took it for settled).
+            self.settled = None
+            self._reopened = receipt
         self.open_receipts.append(receipt)
         return receipt
 
@@ -83,7 +89,11 @@ class SessionLedger:
             self.refused += 1
         receipts = self.open_receipts
         while receipts and receipts[0].settled:
-            self.settled = receipts.popleft().seq
+            done = receipts.popleft()
+            if done is self._reopened:
+                self._reopened = None
+            if self._reopened is None:  # else a seq accepted again waits behind `done`
+                self.settled = done.seq
 
     def saved(self) -> list:
         """Its counts in order, without the open receipts (`SessionLedger.from_saved` reads them)."""
