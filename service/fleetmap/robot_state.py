@@ -130,7 +130,8 @@ class SessionSeqs:
     #: longer is): withdrawn if it turns out to have run beside the session it seemed to restart.
     start_lost: int | None = None
     conflict: bool = False  # found running beside another session of the robot
-    #: What became of its scans in this process: not saved, so not a constructor argument.
+    #: What became of its scans: saved apart (`RobotState.saved`'s `ledgers`, which an older service
+    #: ignores), so not a constructor argument.
     ledger: SessionLedger = field(default_factory=SessionLedger, init=False, compare=False)
 
     def saved(self) -> list:
