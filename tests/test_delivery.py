@@ -330,3 +330,31 @@ def test_flush_confirms_scans_integrated_before_a_restart_of_the_service(tmp_pat
         first.stop()
         if second is not None:
             second.stop()
+
+
+def test_replay_whose_delivery_answer_is_not_fleetmaps_says_so_and_exits_1(tmp_path: Path) -> None:
+    """A delivery query answered with something that is not a fleetmap `DeliveryStatus` (another
+    program's queryable on the key, a broken service) makes `flush` raise RuntimeError. `fleetmap
+    replay` let it escape as a traceback; it now says its scans are not confirmed, and why, and
+    exits with 1 like any replay whose scans are not confirmed."""
+    log = tmp_path / "corridor.log"
+    _write_carmen(log, 5)
+    router = Router().start()
+    assert router.session is not None
+    garbage = router.session.declare_queryable(
+        "fleetmap/*/*/delivery", lambda query: query.reply(query.key_expr, "not a delivery status")
+    )
+    try:
+        command = [
+            sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "rq", "--robot", "r1",
+            "--rate", "0", "--connect", router.endpoint, "--quiet", "--wait-timeout", "20",
+            "--confirm-timeout", "5",
+        ]  # fmt: skip
+        proc = subprocess.run(command, capture_output=True, text=True, timeout=60)
+    finally:
+        garbage.undeclare()
+        router.stop()
+    assert proc.returncode == 1, (proc.returncode, proc.stdout, proc.stderr)
+    assert "replayed 5 scans" in proc.stdout, (proc.stdout, proc.stderr)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert "fleetmap replay: warning: not confirmed: the delivery answer is not a fleetmap one" in proc.stderr
