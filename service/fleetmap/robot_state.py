@@ -50,7 +50,9 @@ class SessionLedger:
     Each accepted scan gets a `Receipt` (`open`), in the order the robot's scans were accepted,
     which is the order they are integrated in; `settle` ends it. `settled` moves only over a run of
     settled receipts at the front: with durable storage a scan counts as integrated when its journal
-    row commits, and a later scan refused meanwhile must not let `settled` pass the earlier one."""
+    row commits, and a later scan refused meanwhile must not let `settled` pass the earlier one. A
+    seq accepted again (a re-send, a restart without session ids) is not in seq order among them:
+    `settled` is None until it is settled, then the highest seq accepted before it."""
 
     first_seq: int | None = None
     settled: int | None = None
@@ -59,22 +61,27 @@ class SessionLedger:
     lost: int = 0
     duplicates: int = 0
     open_receipts: deque[Receipt] = field(default_factory=deque, repr=False)
-    #: The open receipt of a seq accepted again (`open`): `settled` stays None until it is settled.
+    #: The highest seq accepted (`open`) in this process; `settled` stands for it before the first.
+    _top: int | None = field(default=None, repr=False)
+    #: The last receipt of a seq accepted again (`open`), and the highest seq accepted before it:
+    #: `settled` stays None until that receipt is settled, and is then that seq.
     _reopened: Receipt | None = field(default=None, repr=False)
+    _reopened_top: int = field(default=0, repr=False)
 
     def open(self, seq: int) -> Receipt:
         """A receipt for the scan `seq`, accepted now."""
         if self.first_seq is None:
             self.first_seq = seq
         receipt = Receipt(self, seq)
-        before = self.open_receipts[-1].seq if self.open_receipts else self.settled
-        if before is not None and seq <= before:
+        top = self.settled if self._top is None else self._top
+        if top is not None and seq <= top:
             # Its seq again (a re-send of a refused scan) or lower (a restart without session ids):
             # `settled` no longer says "this and every earlier seq" until this one is settled. Also
             # when scans accepted before it still wait: settling them must not move `settled` to
             # their seqs, at or past this one, while it waits (a flush took it for settled).
             self.settled = None
-            self._reopened = receipt
+            self._reopened, self._reopened_top = receipt, top
+        self._top = seq if top is None else max(top, seq)
         self.open_receipts.append(receipt)
         return receipt
 
@@ -91,8 +98,11 @@ class SessionLedger:
         while receipts and receipts[0].settled:
             done = receipts.popleft()
             if done is self._reopened:
+                # Every scan accepted before it is settled too, the highest seq among them the last:
+                # `settled` is that one (its own seq, lower, left a flush waiting for it).
                 self._reopened = None
-            if self._reopened is None:  # else a seq accepted again waits behind `done`
+                self.settled = self._reopened_top
+            elif self._reopened is None:  # else a seq accepted again waits behind `done`
                 self.settled = done.seq
 
     def saved(self) -> list:
@@ -105,8 +115,11 @@ class SessionLedger:
         return cls(first_seq, settled, integrated, refused, lost, duplicates)
 
     def first_unsettled(self) -> int | None:
-        """The seq of the first of its scans not settled yet, None if every one is."""
-        return self.open_receipts[0].seq if self.open_receipts else None
+        """The lowest seq of its scans not settled yet, None if every one is. Not always the front
+        receipt's: a seq accepted again (`open`) waits behind scans with higher seqs."""
+        if self._reopened is None:  # seqs rise along the receipts: the front one's is the lowest
+            return self.open_receipts[0].seq if self.open_receipts else None
+        return min(receipt.seq for receipt in self.open_receipts if not receipt.settled)
 
     def count_lost(self, count: int) -> None:
         """`count` seqs of the session were skipped: lost, if after its first scan here."""
