@@ -9,6 +9,7 @@ confirmation")."""
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -31,7 +32,7 @@ from fleetmap import codec
 from fleetmap.codec import WireScan
 from fleetmap.memory_budget import MemoryBudgetError
 from fleetmap.registry import IngestRejected, Job, MapRegistry
-from fleetmap.robot_state import SessionLedger
+from fleetmap.robot_state import Receipt, RobotState, SessionLedger
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus
 
@@ -142,6 +143,39 @@ def test_a_snapshot_does_not_save_a_seq_accepted_again_as_the_services_while_it_
     finally:
         release.set()
         reg.close()
+
+
+@pytest.mark.parametrize("case", ["refused", "lost", "refused and sent again"])
+def test_a_snapshot_saves_the_counts_only_as_far_as_the_sessions_seqs(case: str) -> None:
+    """A snapshot saves a session's seqs only up to its first scan not settled (a scan waiting for
+    its journal commit: `SessionSeqs.settled_seq`), so after a crash the scans after it come again
+    (replayed from the journal, fetched again from the robot's cache) and are counted again. What
+    was counted of them before must not be saved too: a scan refused meanwhile made every later
+    flush of the wholly integrated session say "1 refused" (2 refusals of a scan refused again),
+    the gap before a scan not received yet "lost"; the refusal of a scan sent again and accepted
+    was taken off twice."""
+    state, receipts = RobotState(), []
+
+    def accept(robot: RobotState, seq: int) -> Receipt:
+        robot.accept(seq, float(seq), 7)
+        return robot.sessions[7].ledger.open(seq)
+
+    receipts.append(accept(state, 5))  # waits for its journal commit
+    if case == "lost":
+        receipts.append(accept(state, 7))  # seq 6 not received yet
+    else:
+        receipts.append(accept(state, 6))
+        state.sessions[7].ledger.settle(receipts[1], integrated=False)  # refused (the queue was full)
+        state.refused = (7, 6)
+        if case == "refused and sent again":
+            receipts.append(accept(state, 6))
+    restored = RobotState.from_saved(json.loads(json.dumps(state.saved())))  # a snapshot, then a crash
+    for seq in (5, 6, 7):  # replayed from the journal, or fetched again from the robot's cache
+        assert not restored.is_duplicate(seq, float(seq), 7)
+        restored.sessions[7].ledger.settle(accept(restored, seq), integrated=True)
+    ledger = restored.sessions[7].ledger
+    counts = (ledger.first_seq, ledger.settled, ledger.integrated, ledger.refused, ledger.lost)
+    assert counts == (5, 7, 3, 0, 0)
 
 
 def _scan(x: float = 0.0) -> Scan:

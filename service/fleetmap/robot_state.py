@@ -36,6 +36,9 @@ class Receipt:
     ledger: SessionLedger
     seq: int
     settled: bool = False
+    integrated: bool = False  # how it was settled
+    withdrawn: bool = False  # its refusal was taken back: the scan was sent again and accepted
+    lost: int = 0  # seqs its session skipped just before it (`SessionLedger.count_lost`)
 
 
 @dataclass
@@ -67,6 +70,7 @@ class SessionLedger:
     #: `settled` stays None until that receipt is settled, and is then that seq.
     _reopened: Receipt | None = field(default=None, repr=False)
     _reopened_top: int = field(default=0, repr=False)
+    _gap: int = field(default=0, repr=False)  # seqs lost before the scan `open` is called for next
 
     def open(self, seq: int) -> Receipt:
         """A receipt for the scan `seq`, accepted now."""
@@ -82,6 +86,7 @@ class SessionLedger:
             self.settled = None
             self._reopened, self._reopened_top = receipt, top
         self._top = seq if top is None else max(top, seq)
+        receipt.lost, self._gap = self._gap, 0
         self.open_receipts.append(receipt)
         return receipt
 
@@ -89,7 +94,7 @@ class SessionLedger:
         """The scan of `receipt` is integrated (`integrated`), or will never be. Idempotent."""
         if receipt.settled:
             return
-        receipt.settled = True
+        receipt.settled, receipt.integrated = True, integrated
         if integrated:
             self.integrated += 1
         else:
@@ -106,8 +111,17 @@ class SessionLedger:
                 self.settled = done.seq
 
     def saved(self) -> list:
-        """Its counts in order, without the open receipts (`SessionLedger.from_saved` reads them)."""
-        return [self.first_seq, self.settled, self.integrated, self.refused, self.lost, self.duplicates]
+        """Its counts in order (`SessionLedger.from_saved` reads them), without the open receipts
+        and what was counted of their scans: a snapshot saves the session's seqs only up to its
+        first scan not settled (`SessionSeqs.settled_seq`), so after a crash those scans come again
+        (from the journal, or the robot's cache) and are counted then."""
+        integrated, refused, lost = self.integrated, self.refused, self.lost
+        for receipt in self.open_receipts:
+            lost -= receipt.lost
+            if receipt.settled and not receipt.withdrawn:
+                integrated -= receipt.integrated
+                refused -= not receipt.integrated
+        return [self.first_seq, self.settled, integrated, refused, lost, self.duplicates]
 
     @classmethod
     def from_saved(cls, row: list) -> SessionLedger:
@@ -122,9 +136,19 @@ class SessionLedger:
         return min(receipt.seq for receipt in self.open_receipts if not receipt.settled)
 
     def count_lost(self, count: int) -> None:
-        """`count` seqs of the session were skipped: lost, if after its first scan here."""
+        """`count` seqs of the session were skipped (before the scan accepted now, whose receipt
+        keeps the count: `saved`): lost, if after its first scan here."""
         if self.first_seq is not None:
             self.lost += count
+            self._gap += count
+
+    def withdraw_refusal(self, seq: int) -> None:
+        """The scan `seq`, settled as refused, was sent again and accepted: not refused after all."""
+        self.refused -= 1
+        for receipt in reversed(self.open_receipts):  # not counted again by `saved` if still here
+            if receipt.seq == seq and receipt.settled and not receipt.integrated and not receipt.withdrawn:
+                receipt.withdrawn = True
+                break
 
 
 @dataclass
@@ -305,7 +329,7 @@ class RobotState:
         refused, self.refused = self.refused, None
         if refused == (key, seq):
             if key in self.sessions:
-                self.sessions[key].ledger.refused -= 1  # settled as refused, now accepted after all
+                self.sessions[key].ledger.withdraw_refusal(seq)  # settled as refused, now accepted after all
             return False  # a re-send of the scan the full queue refused: its seq is recorded already
         self.accepted += 1
         rec = self.sessions.pop(key, None)
