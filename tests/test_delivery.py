@@ -9,12 +9,14 @@ confirmation")."""
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -27,7 +29,10 @@ from test_e2e import assert_region_equal, map_stats, wait_integrated
 from test_store_forward import LAYERS, engine_map, publish_then_cut
 
 from fleetmap import codec
-from fleetmap.robot_state import SessionLedger
+from fleetmap.codec import WireScan
+from fleetmap.memory_budget import MemoryBudgetError
+from fleetmap.registry import IngestRejected, Job, MapRegistry
+from fleetmap.robot_state import Receipt, RobotState, SessionLedger
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus
 
@@ -49,6 +54,133 @@ def test_settled_passes_only_scans_settled_in_order() -> None:
     assert ledger.settled is None
     ledger.settle(again, integrated=True)
     assert (ledger.settled, ledger.first_seq) == (2, 0)
+
+
+@pytest.mark.parametrize("case", ["resent after the full queue refused it", "restart without session ids"])
+def test_settled_does_not_pass_a_seq_accepted_again_while_it_waits(case: str) -> None:
+    """A seq accepted again while the robot's earlier scans wait (the re-send of a scan the full
+    queue refused; a robot without session ids restarted, its seqs from 0 again) is behind them in
+    the ledger: once they are settled, `settled` must not say the seq is settled while it waits
+    (flush confirmed it; a crash then lost it with the publisher closed)."""
+    seen: list[DeliveryStatus] = []
+    session = 7 if case.startswith("resent") else None
+
+    def on_integrated(_entry: Any, job: Job, _result: Any, _elapsed: float) -> None:
+        if job.robot_id == "r" and job.wire.stamp == 2.0:  # the last of the earlier scans
+            seen.append(reg.delivery_status("m", "r", 7 if session else 0))
+
+    reg = MapRegistry(workers=1, queue_bytes=3 * 30 * 16, on_integrated=on_integrated)  # three scans
+    if session:
+        reg.submit("o", "other", WireScan(0, 0.0, _scan()))
+    reg.submit("m", "r", WireScan(0, 1.0, _scan(), session))
+    reg.submit("m", "r", WireScan(1, 2.0, _scan(), session))
+    if session:
+        with pytest.raises(IngestRejected, match="queue full"):
+            reg.submit("m", "r", WireScan(2, 3.0, _scan(), session))
+        reg.delete("o")  # room again: the robot sends seq 2 again (a REST retry, or a re-publish)
+        reg.submit("m", "r", WireScan(2, 3.0, _scan(), session))
+    else:
+        reg.submit("m", "r", WireScan(0, 10.0, _scan()))  # restarted: a later stamp
+    last = 2 if session else 0
+    reg.start()
+    try:
+        assert reg.wait_idle()
+        early = seen[0].sessions[0]
+        assert early.settled is None or early.settled < last, f"seq {last} waited, yet settled {early}"
+        final = reg.delivery_status("m", "r", 7 if session else 0).sessions[0]
+        # Every scan settled: the highest seq accepted (the earlier run's 1 after a restart).
+        assert (final.settled, final.refused, final.integrated) == (2 if session else 1, 0, 3)
+    finally:
+        reg.close()
+
+
+@pytest.mark.parametrize("case", ["resent after the memory budget refused it", "restart without session ids"])
+def test_a_snapshot_does_not_save_a_seq_accepted_again_as_the_services_while_it_waits(case: str) -> None:
+    """What a snapshot saves of a session (`SessionSeqs.saved`) stops before its first scan not
+    settled: a seq accepted again behind waiting scans (the re-send of a scan refused 507 while
+    later ones were queued; a restart without session ids) is that first one, though not at the
+    front. Saved as the service's, a crash before its journal commit lost it for good: the robot's
+    cache re-sending it was refused as a duplicate, and its flush confirmed the session."""
+    resend = case.startswith("resent")
+    session = 7 if resend else None
+    first = 5 if resend else 0  # the seq accepted again
+    reg = MapRegistry(workers=1)
+    entry, _ = reg.create("m")
+    waiting, release = threading.Event(), threading.Event()
+    plan, refused = entry.gmap.plan, []
+
+    def plan_slowly(scan: Scan) -> Any:
+        if scan.pose.x == 1.0 and not refused:  # the first time: refused for the memory budget
+            refused.append(scan)
+            raise MemoryBudgetError("the memory budget is full")
+        if scan.pose.x == 2.0:  # a later scan waits here while the robot sends again
+            waiting.set()
+            release.wait(10)
+        return plan(scan)
+
+    entry.gmap.plan = plan_slowly  # type: ignore[method-assign]
+    if resend:
+        for seq, x in ((5, 1.0), (6, 2.0), (7, 3.0)):
+            reg.submit("m", "r", WireScan(seq, float(seq), _scan(x), session))
+    else:
+        reg.submit("m", "r", WireScan(0, 1.0, _scan()))
+        reg.submit("m", "r", WireScan(1, 2.0, _scan(2.0)))
+    reg.start()
+    try:
+        assert waiting.wait(10)  # the scans before it are settled (one refused 507 if `resend`)
+        reg.submit("m", "r", WireScan(first, 10.0, _scan(), session))  # again (resend), or restarted
+        with reg.lock:
+            seqs = reg.get("m").robots["r"].sessions[7 if resend else 0]
+            saved = seqs.settled_seq()
+        assert saved < first, f"seq {first} waits, yet a snapshot would save seq {saved} as the service's"
+        release.set()
+        assert reg.wait_idle()
+        final = reg.delivery_status("m", "r", 7 if resend else 0).sessions[0]
+        # Every scan settled: the highest seq accepted (7, not the re-sent 5 settled last; the
+        # earlier run's 1), the 507 no longer counted as refused once its re-send was accepted.
+        expected = (7, 0, 3) if resend else (1, 0, 3)
+        assert (final.settled, final.refused, final.integrated) == expected
+    finally:
+        release.set()
+        reg.close()
+
+
+@pytest.mark.parametrize("case", ["refused", "lost", "refused and sent again"])
+def test_a_snapshot_saves_the_counts_only_as_far_as_the_sessions_seqs(case: str) -> None:
+    """A snapshot saves a session's seqs only up to its first scan not settled (a scan waiting for
+    its journal commit: `SessionSeqs.settled_seq`), so after a crash the scans after it come again
+    (replayed from the journal, fetched again from the robot's cache) and are counted again. What
+    was counted of them before must not be saved too: a scan refused meanwhile made every later
+    flush of the wholly integrated session say "1 refused" (2 refusals of a scan refused again),
+    the gap before a scan not received yet "lost"; the refusal of a scan sent again and accepted
+    was taken off twice."""
+    state, receipts = RobotState(), []
+
+    def accept(robot: RobotState, seq: int) -> Receipt:
+        robot.accept(seq, float(seq), 7)
+        return robot.sessions[7].ledger.open(seq)
+
+    receipts.append(accept(state, 5))  # waits for its journal commit
+    if case == "lost":
+        receipts.append(accept(state, 7))  # seq 6 not received yet
+    else:
+        receipts.append(accept(state, 6))
+        state.sessions[7].ledger.settle(receipts[1], integrated=False)  # refused (the queue was full)
+        state.refused = (7, 6)
+        if case == "refused and sent again":
+            receipts.append(accept(state, 6))
+    restored = RobotState.from_saved(json.loads(json.dumps(state.saved())))  # a snapshot, then a crash
+    for seq in (5, 6, 7):  # replayed from the journal, or fetched again from the robot's cache
+        assert not restored.is_duplicate(seq, float(seq), 7)
+        restored.sessions[7].ledger.settle(accept(restored, seq), integrated=True)
+    ledger = restored.sessions[7].ledger
+    counts = (ledger.first_seq, ledger.settled, ledger.integrated, ledger.refused, ledger.lost)
+    assert counts == (5, 7, 3, 0, 0)
+
+
+def _scan(x: float = 0.0) -> Scan:
+    """A scan of 30 beams (what the queue's byte limits above count) from (`x`, 0)."""
+    return Scan.from_fan((x, 0.0, 0.0), -0.5, 1.0 / 30, [2.0] * 30, 0.0, 30.0)
 
 
 def test_the_reply_docs_protocol_md_shows_is_the_services_model() -> None:
@@ -285,3 +417,31 @@ def test_flush_confirms_scans_integrated_before_a_restart_of_the_service(tmp_pat
         first.stop()
         if second is not None:
             second.stop()
+
+
+def test_replay_whose_delivery_answer_is_not_fleetmaps_says_so_and_exits_1(tmp_path: Path) -> None:
+    """A delivery query answered with something that is not a fleetmap `DeliveryStatus` (another
+    program's queryable on the key, a broken service) makes `flush` raise RuntimeError. `fleetmap
+    replay` let it escape as a traceback; it now says its scans are not confirmed, and why, and
+    exits with 1 like any replay whose scans are not confirmed."""
+    log = tmp_path / "corridor.log"
+    _write_carmen(log, 5)
+    router = Router().start()
+    assert router.session is not None
+    garbage = router.session.declare_queryable(
+        "fleetmap/*/*/delivery", lambda query: query.reply(query.key_expr, "not a delivery status")
+    )
+    try:
+        command = [
+            sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "rq", "--robot", "r1",
+            "--rate", "0", "--connect", router.endpoint, "--quiet", "--wait-timeout", "20",
+            "--confirm-timeout", "5",
+        ]  # fmt: skip
+        proc = subprocess.run(command, capture_output=True, text=True, timeout=60)
+    finally:
+        garbage.undeclare()
+        router.stop()
+    assert proc.returncode == 1, (proc.returncode, proc.stdout, proc.stderr)
+    assert "replayed 5 scans" in proc.stdout, (proc.stdout, proc.stderr)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert "fleetmap replay: warning: not confirmed: the delivery answer is not a fleetmap one" in proc.stderr

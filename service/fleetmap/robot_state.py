@@ -36,6 +36,9 @@ class Receipt:
     ledger: SessionLedger
     seq: int
     settled: bool = False
+    integrated: bool = False  # how it was settled
+    withdrawn: bool = False  # its refusal was taken back: the scan was sent again and accepted
+    lost: int = 0  # seqs its session skipped just before it (`SessionLedger.count_lost`)
 
 
 @dataclass
@@ -50,7 +53,9 @@ class SessionLedger:
     Each accepted scan gets a `Receipt` (`open`), in the order the robot's scans were accepted,
     which is the order they are integrated in; `settle` ends it. `settled` moves only over a run of
     settled receipts at the front: with durable storage a scan counts as integrated when its journal
-    row commits, and a later scan refused meanwhile must not let `settled` pass the earlier one."""
+    row commits, and a later scan refused meanwhile must not let `settled` pass the earlier one. A
+    seq accepted again (a re-send, a restart without session ids) is not in seq order among them:
+    `settled` is None until it is settled, then the highest seq accepted before it."""
 
     first_seq: int | None = None
     settled: int | None = None
@@ -59,16 +64,29 @@ class SessionLedger:
     lost: int = 0
     duplicates: int = 0
     open_receipts: deque[Receipt] = field(default_factory=deque, repr=False)
+    #: The highest seq accepted (`open`) in this process; `settled` stands for it before the first.
+    _top: int | None = field(default=None, repr=False)
+    #: The last receipt of a seq accepted again (`open`), and the highest seq accepted before it:
+    #: `settled` stays None until that receipt is settled, and is then that seq.
+    _reopened: Receipt | None = field(default=None, repr=False)
+    _reopened_top: int = field(default=0, repr=False)
+    _gap: int = field(default=0, repr=False)  # seqs lost before the scan `open` is called for next
 
     def open(self, seq: int) -> Receipt:
         """A receipt for the scan `seq`, accepted now."""
         if self.first_seq is None:
             self.first_seq = seq
-        if self.settled is not None and seq <= self.settled:
-            # Its seq again (a re-send of a refused scan) or lower (a restart without session ids):
-            # `settled` no longer says "this and every earlier seq" until this one is settled.
-            self.settled = None
         receipt = Receipt(self, seq)
+        top = self.settled if self._top is None else self._top
+        if top is not None and seq <= top:
+            # Its seq again (a re-send of a refused scan) or lower (a restart without session ids):
+            # `settled` no longer says "this and every earlier seq" until this one is settled. Also
+            # when scans accepted before it still wait: settling them must not move `settled` to
+            # their seqs, at or past this one, while it waits (a flush took it for settled).
+            self.settled = None
+            self._reopened, self._reopened_top = receipt, top
+        self._top = seq if top is None else max(top, seq)
+        receipt.lost, self._gap = self._gap, 0
         self.open_receipts.append(receipt)
         return receipt
 
@@ -76,18 +94,34 @@ class SessionLedger:
         """The scan of `receipt` is integrated (`integrated`), or will never be. Idempotent."""
         if receipt.settled:
             return
-        receipt.settled = True
+        receipt.settled, receipt.integrated = True, integrated
         if integrated:
             self.integrated += 1
         else:
             self.refused += 1
         receipts = self.open_receipts
         while receipts and receipts[0].settled:
-            self.settled = receipts.popleft().seq
+            done = receipts.popleft()
+            if done is self._reopened:
+                # Every scan accepted before it is settled too, the highest seq among them the last:
+                # `settled` is that one (its own seq, lower, left a flush waiting for it).
+                self._reopened = None
+                self.settled = self._reopened_top
+            elif self._reopened is None:  # else a seq accepted again waits behind `done`
+                self.settled = done.seq
 
     def saved(self) -> list:
-        """Its counts in order, without the open receipts (`SessionLedger.from_saved` reads them)."""
-        return [self.first_seq, self.settled, self.integrated, self.refused, self.lost, self.duplicates]
+        """Its counts in order (`SessionLedger.from_saved` reads them), without the open receipts
+        and what was counted of their scans: a snapshot saves the session's seqs only up to its
+        first scan not settled (`SessionSeqs.settled_seq`), so after a crash those scans come again
+        (from the journal, or the robot's cache) and are counted then."""
+        integrated, refused, lost = self.integrated, self.refused, self.lost
+        for receipt in self.open_receipts:
+            lost -= receipt.lost
+            if receipt.settled and not receipt.withdrawn:
+                integrated -= receipt.integrated
+                refused -= not receipt.integrated
+        return [self.first_seq, self.settled, integrated, refused, lost, self.duplicates]
 
     @classmethod
     def from_saved(cls, row: list) -> SessionLedger:
@@ -95,13 +129,26 @@ class SessionLedger:
         return cls(first_seq, settled, integrated, refused, lost, duplicates)
 
     def first_unsettled(self) -> int | None:
-        """The seq of the first of its scans not settled yet, None if every one is."""
-        return self.open_receipts[0].seq if self.open_receipts else None
+        """The lowest seq of its scans not settled yet, None if every one is. Not always the front
+        receipt's: a seq accepted again (`open`) waits behind scans with higher seqs."""
+        if self._reopened is None:  # seqs rise along the receipts: the front one's is the lowest
+            return self.open_receipts[0].seq if self.open_receipts else None
+        return min(receipt.seq for receipt in self.open_receipts if not receipt.settled)
 
     def count_lost(self, count: int) -> None:
-        """`count` seqs of the session were skipped: lost, if after its first scan here."""
+        """`count` seqs of the session were skipped (before the scan accepted now, whose receipt
+        keeps the count: `saved`): lost, if after its first scan here."""
         if self.first_seq is not None:
             self.lost += count
+            self._gap += count
+
+    def withdraw_refusal(self, seq: int) -> None:
+        """The scan `seq`, settled as refused, was sent again and accepted: not refused after all."""
+        self.refused -= 1
+        for receipt in reversed(self.open_receipts):  # not counted again by `saved` if still here
+            if receipt.seq == seq and receipt.settled and not receipt.integrated and not receipt.withdrawn:
+                receipt.withdrawn = True
+                break
 
 
 @dataclass
@@ -120,7 +167,8 @@ class SessionSeqs:
     #: longer is): withdrawn if it turns out to have run beside the session it seemed to restart.
     start_lost: int | None = None
     conflict: bool = False  # found running beside another session of the robot
-    #: What became of its scans in this process: not saved, so not a constructor argument.
+    #: What became of its scans: saved apart (`RobotState.saved`'s `ledgers`, which an older service
+    #: ignores), so not a constructor argument.
     ledger: SessionLedger = field(default_factory=SessionLedger, init=False, compare=False)
 
     def saved(self) -> list:
@@ -281,7 +329,7 @@ class RobotState:
         refused, self.refused = self.refused, None
         if refused == (key, seq):
             if key in self.sessions:
-                self.sessions[key].ledger.refused -= 1  # settled as refused, now accepted after all
+                self.sessions[key].ledger.withdraw_refusal(seq)  # settled as refused, now accepted after all
             return False  # a re-send of the scan the full queue refused: its seq is recorded already
         self.accepted += 1
         rec = self.sessions.pop(key, None)

@@ -146,6 +146,9 @@ def run_replay(args: argparse.Namespace) -> int:
     if result.unconfirmable is not None:  # an older service: what the replay always did, with a warning
         print(f"fleetmap replay: warning: not confirmed: {result.unconfirmable}", file=sys.stderr)
         return 0
+    if result.confirm_error is not None:  # the scans are not confirmed: as when some are not
+        print(f"fleetmap replay: warning: not confirmed: {result.confirm_error}", file=sys.stderr)
+        return 1
     if result.delivery is None:  # --no-confirm
         return 0
     if result.delivery.confirmed:

@@ -154,12 +154,12 @@ class DeliveryReport:
     one of them is integrated into the map (with durable storage: committed to its journal).
 
     `integrated`, `refused` (settled without being integrated: refused, dropped by the service's
-    full queue, the map deleted first) and `lost` (seqs that never reached the service) are the
-    service's counts of this session; `unsettled` the rest: in flight, waiting in the backlog, or
-    whose fate the service does not know (it restarted during the session and counts from the
-    first scan it accepted afterwards: `counted_from`). `settled`: the service settled every scan
-    through `last_seq`. `answered`: whether the service answered at all (False: it was unreachable
-    until the timeout)."""
+    full queue, applied but not made durable) and `lost` (seqs that never reached the service) are
+    the service's counts of this session; `unsettled` the rest: in flight, waiting in the backlog,
+    or whose fate the service does not know (it restarted during the session and counts from the
+    first scan it accepted afterwards: `counted_from`; or the map was deleted or replaced, which
+    takes the map's counts along). `settled`: the service settled every scan through `last_seq`.
+    `answered`: whether the service answered at all (False: it was unreachable until the timeout)."""
 
     published: int
     first_seq: int | None = None

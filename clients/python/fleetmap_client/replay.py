@@ -58,9 +58,11 @@ class ReplayResult:
     pauses: int  # times the replay paused for a lost connection to come back
     seconds: float  # from the first scan to the last
     #: What the service confirmed of them (`ScanPublisher.flush`); None when not asked (`confirm`
-    #: False) or when the service does not answer delivery queries (`unconfirmable` says why).
+    #: False), when the service does not answer delivery queries (`unconfirmable` says why), or
+    #: when its answer was an error or not a fleetmap one (`confirm_error` says which).
     delivery: DeliveryReport | None = None
     unconfirmable: str | None = None
+    confirm_error: str | None = None
 
     @property
     def confirmed(self) -> bool:
@@ -92,7 +94,8 @@ def replay(
     service is not reachable within a second (the CLI prints a line). A tqdm progress bar goes to
     stderr unless `progress` is False. With `confirm` (default), the replay then waits up to
     `confirm_timeout` seconds (None: `wait_timeout`, else `DEFAULT_CONFIRM_TIMEOUT`) for the service
-    to settle every scan, and `ReplayResult.delivery` says what it confirmed. Raises ValueError for
+    to settle every scan, and `ReplayResult.delivery` says what it confirmed (`confirm_error`: the
+    service's answer was an error, or not a fleetmap one). Raises ValueError for
     bad arguments, `DatasetError` / `OSError` for an unreadable dataset path.
     """
     if not (rate >= 0.0 and rate != float("inf")):
@@ -114,6 +117,8 @@ def replay(
                 result.delivery = pub.flush(confirm_timeout)
             except DeliveryUnsupported as exc:
                 result.unconfirmable = str(exc)
+            except RuntimeError as exc:  # an error reply, or an answer not fleetmap's: not confirmed
+                result.confirm_error = str(exc)
         return result
 
 
