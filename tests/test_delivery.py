@@ -21,7 +21,7 @@ from typing import Any
 import httpx
 import pytest
 import zenoh
-from fleetmap_client.publisher import DeliveryUnsupported, ScanPublisher
+from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, ScanPublisher
 from robot_process import scans_for
 from service_process import FreezableProxy, ServiceProcess, reaped
 from test_client_zenoh import Router, _write_carmen
@@ -445,3 +445,57 @@ def test_replay_whose_delivery_answer_is_not_fleetmaps_says_so_and_exits_1(tmp_p
     assert "replayed 5 scans" in proc.stdout, (proc.stdout, proc.stderr)
     assert "Traceback" not in proc.stderr, proc.stderr
     assert "fleetmap replay: warning: not confirmed: the delivery answer is not a fleetmap one" in proc.stderr
+
+
+@pytest.mark.parametrize("how", ["deleted", "replaced"])
+def test_flush_after_the_map_went_says_so_at_once(tmp_path: Path, how: str) -> None:
+    """A robot's 10 scans are integrated, then its map is deleted (or replaced by an upload) before it
+    flushes: flush without a timeout returns at once, unconfirmed, saying the map went with its
+    scans, where it waited forever for a session the service no longer counted. The service knows
+    it from the tombstones it keeps of the map's robots."""
+    scans = scans_for(sim=15, beams=181, count=10)
+    with (
+        ServiceProcess(tmp_path, ["--in-memory"]) as service,
+        ScanPublisher("went", "r1", connect=[service.zenoh_endpoint]) as pub,
+        httpx.Client(base_url=service.base_url, timeout=10) as http,
+    ):
+        assert pub.wait_connected(20), pub.last_connect_error
+        for seq, scan in enumerate(scans):
+            pub.publish(scan, seq=seq, stamp=float(seq))
+        wait_integrated(http, "went", 10, timeout=30)
+        if how == "deleted":
+            assert http.delete("/maps/went").status_code == 204
+        else:
+            snapshot = http.get("/maps/went/snapshot").content
+            assert http.put("/maps/went/snapshot", content=snapshot).status_code == 200
+        outcome: list[object] = []
+        flusher = threading.Thread(target=lambda: outcome.append(pub.flush()), daemon=True)
+        flusher.start()
+        flusher.join(10)
+        assert not flusher.is_alive(), "flush() still waits for scans of a map that is gone"
+        report = outcome[0]
+        assert isinstance(report, DeliveryReport) and not report.confirmed, report
+        assert (report.settled, report.integrated, report.gone, report.unsettled) == (True, 0, 10, 0), report
+        assert report.summary() == "10 scans published, 0 integrated: 10 went with a deleted or replaced map"
+
+
+def test_flush_after_the_map_went_midway_counts_both_parts(tmp_path: Path) -> None:
+    """The map is deleted after 10 of a robot's scans; it publishes 10 more, which make a new map of
+    that id: flush says 10 integrated and 10 gone with the deleted map, not confirmed."""
+    scans = scans_for(sim=16, beams=181, count=20)
+    with (
+        ServiceProcess(tmp_path, ["--in-memory"]) as service,
+        ScanPublisher("midway", "r1", connect=[service.zenoh_endpoint]) as pub,
+        httpx.Client(base_url=service.base_url, timeout=10) as http,
+    ):
+        assert pub.wait_connected(20), pub.last_connect_error
+        for seq in range(10):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        wait_integrated(http, "midway", 10, timeout=30)
+        assert http.delete("/maps/midway").status_code == 204
+        for seq in range(10, 20):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        report = pub.flush(20)
+        got = (report.settled, report.integrated, report.gone, report.counted_from, report.confirmed)
+        assert got == (True, 10, 10, 10, False), report
+        assert report.summary() == "20 scans published, 10 integrated: 10 went with a deleted or replaced map"

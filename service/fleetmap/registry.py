@@ -45,7 +45,7 @@ from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
 from fleetmap.tombstones import Tombstones
-from fleetmap.wire import DeliveryStatus, SessionDelivery, is_valid_id
+from fleetmap.wire import BuriedSession, DeliveryStatus, SessionDelivery, is_valid_id
 
 log = logging.getLogger("fleetmap.registry")
 
@@ -908,14 +908,27 @@ class MapRegistry:
     def delivery_status(self, map_id: str, robot_id: str, session: int | None = None) -> DeliveryStatus:
         """What became of robot `robot_id`'s scans on map `map_id` (the Zenoh delivery query's
         answer): its counters and, per publisher session it remembers (only `session` if given:
-        its session id, 0 for scans without one), its ledger. Holds the registry's lock briefly."""
+        its session id, 0 for scans without one), its ledger; and the sessions whose scans went with
+        a deleted or replaced map of this id (`Tombstones`), so that a robot stops waiting for them.
+        Holds the registry's lock briefly."""
         with self.lock:
             entry = self.maps.get(map_id)
             robot = None if entry is None else entry.robots.get(robot_id)
+            stone = self.tombstones.get(map_id, robot_id)
+            buried = (
+                []
+                if stone is None
+                else [
+                    BuriedSession(session=key, last_seq=seq, deleted_at=stone.deleted_at)
+                    for key, seq in stone.sessions.items()
+                    if session is None or key == session
+                ]
+            )
             if robot is None:
                 return DeliveryStatus(
-                    map_id=map_id, robot_id=robot_id, status="no_map" if entry is None else "no_robot"
-                )
+                    map_id=map_id, robot_id=robot_id, status="no_map" if entry is None else "no_robot",
+                    buried=buried,
+                )  # fmt: skip
             sessions = [
                 _session_delivery(key, seqs)
                 for key, seqs in robot.sessions.items()
@@ -924,7 +937,7 @@ class MapRegistry:
             return DeliveryStatus(
                 map_id=map_id, robot_id=robot_id, status="ok", unsettled=robot.unsettled,
                 scans_integrated=robot.scans_integrated, lost=robot.lost, dropped=robot.dropped,
-                duplicates=robot.duplicates, sessions=sessions,
+                duplicates=robot.duplicates, sessions=sessions, buried=buried,
             )  # fmt: skip
 
     def backlog(self) -> tuple[int, float]:

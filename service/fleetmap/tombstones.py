@@ -113,6 +113,10 @@ class Tombstones:
         last = stone.sessions.get(session)
         return stone if last is not None and seq <= last else None
 
+    def get(self, map_id: str, robot_id: str) -> Tombstone | None:
+        """The tombstone of robot `robot_id` of a deleted or replaced map `map_id`, if it has one."""
+        return self._stones.get((map_id, robot_id))
+
     def buried(self, map_id: str, robot_id: str) -> bool:
         """Whether robot `robot_id` was buried with map `map_id` (its token must not bring it back)."""
         return (map_id, robot_id) in self._stones

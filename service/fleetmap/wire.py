@@ -179,6 +179,18 @@ class SessionDelivery(BaseModel):
     duplicates: int = Field(description="its scans ignored because their seq was accepted already")
 
 
+class BuriedSession(BaseModel):
+    """A publisher session of the robot whose scans through `last_seq` went with a map of this id
+    that was deleted or replaced by an upload (the service's tombstones: docs/protocol.md,
+    "Delivery guarantees"): they are in no map now."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    session: int = Field(description="the publisher's session id")
+    last_seq: int = Field(description="the last seq the service had of it when the map went")
+    deleted_at: float = Field(description="when the map was deleted or replaced (Unix time)")
+
+
 class DeliveryStatus(BaseModel):
     """The service's answer on `DELIVERY_KEY`: what it knows of one robot's scans. `status` says
     whether there is such a map and robot; the counts are the robot's on the map (all its sessions,
@@ -195,17 +207,26 @@ class DeliveryStatus(BaseModel):
     dropped: int = 0
     duplicates: int = 0
     sessions: list[SessionDelivery] = Field(default_factory=list)
+    buried: list[BuriedSession] = Field(
+        default_factory=list,
+        description="its sessions whose scans went with a deleted or replaced map of this id",
+    )
 
     def session(self, session_id: int | None) -> SessionDelivery | None:
         """The entry of publisher session `session_id` (None: scans without one), if listed."""
         key = 0 if session_id is None else session_id
         return next((entry for entry in self.sessions if entry.session == key), None)
 
+    def buried_session(self, session_id: int | None) -> BuriedSession | None:
+        """The `buried` entry of publisher session `session_id`, if listed."""
+        return next((entry for entry in self.buried if entry.session == session_id), None)
+
 
 __all__ = [
     "ALIVE_KEY",
     "ALIVE_KEY_WILDCARD",
     "BINARY_ENCODING",
+    "BuriedSession",
     "DELIVERY_KEY",
     "DELIVERY_ERROR_ENCODING",
     "DELIVERY_KEY_WILDCARD",

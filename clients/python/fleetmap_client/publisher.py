@@ -157,8 +157,9 @@ class DeliveryReport:
     full queue, applied but not made durable) and `lost` (seqs that never reached the service) are
     the service's counts of this session; `unsettled` the rest: in flight, waiting in the backlog,
     or whose fate the service does not know (it restarted during the session and counts from the
-    first scan it accepted afterwards: `counted_from`; or the map was deleted or replaced, which
-    takes the map's counts along). `settled`: the service settled every scan through `last_seq`.
+    first scan it accepted afterwards: `counted_from`). `gone`: scans the service had when the map
+    was deleted or replaced by an upload (it remembers the map's robots: `DeliveryStatus.buried`),
+    which are in no map now. `settled`: the service settled every scan through `last_seq`.
     `answered`: whether the service answered at all (False: it was unreachable until the timeout)."""
 
     published: int
@@ -170,11 +171,12 @@ class DeliveryReport:
     settled: bool = False
     answered: bool = False
     counted_from: int | None = None
+    gone: int = 0
 
     @property
     def unsettled(self) -> int:
-        """Scans neither integrated, refused nor lost as far as the service says."""
-        return max(0, self.published - self.integrated - self.refused - self.lost)
+        """Scans neither integrated, refused, lost nor gone as far as the service says."""
+        return max(0, self.published - self.integrated - self.refused - self.lost - self.gone)
 
     @property
     def confirmed(self) -> bool:
@@ -187,7 +189,7 @@ class DeliveryReport:
             and self.first_seq is not None
             and self.counted_from <= self.first_seq
         )
-        return self.settled and counted and self.refused == 0 and self.lost == 0
+        return self.settled and counted and self.refused == 0 and self.lost == 0 and self.gone == 0
 
     def __bool__(self) -> bool:
         return self.confirmed
@@ -201,7 +203,7 @@ class DeliveryReport:
             return f"{text}: the service did not answer, {self.published - self.integrated} unconfirmed"
         parts = [f"{count} {what}" for count, what in (
             (self.lost, "lost"), (self.refused, "refused or dropped by the service"),
-            (self.unsettled, "unconfirmed"),
+            (self.gone, "went with a deleted or replaced map"), (self.unsettled, "unconfirmed"),
         ) if count]  # fmt: skip
         return f"{text}: {', '.join(parts) or 'not settled'}"
 
@@ -754,14 +756,24 @@ def _report(status: DeliveryStatus, session_id: int | None, first: int, last: in
     `status`."""
     published = last - first + 1
     entry = status.session(session_id) if status.status == "ok" else None
-    if entry is None:  # nothing of this session accepted yet (or its map is gone)
-        return DeliveryReport(published=published, first_seq=first, last_seq=last, answered=True)
+    # Scans `first` .. `gone_through` went with a deleted or replaced map, unless the counts of the
+    # map there now include them (a session the service counts from before the map went).
+    buried = status.buried_session(session_id) if session_id is not None else None
+    gone_through = first - 1 if buried is None else min(buried.last_seq, last)
+    if entry is not None and entry.first_seq <= gone_through:
+        gone_through = first - 1
+    gone = gone_through - first + 1
+    if entry is None:  # nothing of this session accepted (yet) by the map there is now
+        return DeliveryReport(
+            published=published, first_seq=first, last_seq=last, answered=True, gone=gone,
+            settled=gone == published,
+        )  # fmt: skip
     # Counts of scans published after `flush` began may be in the service's: capped, they never
     # make a report say more was integrated than it asked about.
     return DeliveryReport(
         published=published, first_seq=first, last_seq=last, integrated=min(entry.integrated, published),
         refused=entry.refused, lost=entry.lost, settled=entry.settled is not None and entry.settled >= last,
-        answered=True, counted_from=entry.first_seq,
+        answered=True, counted_from=entry.first_seq, gone=gone,
     )  # fmt: skip
 
 
