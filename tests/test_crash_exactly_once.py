@@ -34,7 +34,8 @@ Longer or different runs (the defaults take about 40 s):
 `FLEETMAP_SOAK_ROUNDS` (restarts, default 6), `FLEETMAP_SOAK_SEED` (the kill moments and down
 times; default random, printed in a failure), `FLEETMAP_SOAK_RATE` (scans/s per robot, default 30),
 `FLEETMAP_SOAK_DOWN` (the longest time no service runs, seconds, default 2; scans published then
-reach a new process as one burst, queued deep).
+reach a new process as one burst, queued deep), `FLEETMAP_SOAK_BEAMS` (beams per scan, default 91;
+more make integration slower, so scans wait longer in the queue while snapshots are taken).
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ ROUNDS = int(os.environ.get("FLEETMAP_SOAK_ROUNDS", "6"))
 SEED = int(os.environ.get("FLEETMAP_SOAK_SEED", str(random.randrange(1 << 30))))
 RATE = float(os.environ.get("FLEETMAP_SOAK_RATE", "30"))
 MAX_DOWN = float(os.environ.get("FLEETMAP_SOAK_DOWN", "2"))
+BEAMS = int(os.environ.get("FLEETMAP_SOAK_BEAMS", "91"))
 #: Robots with a map each (whose map must equal the engine's), and robots sharing one map.
 OWN_MAPS = 3
 SHARED = 2
@@ -149,9 +151,9 @@ def test_every_scan_is_integrated_exactly_once_across_kills_and_restarts(tmp_pat
     service = ServiceProcess(tmp_path, data).start()
     services = [service]
     proxy = FreezableProxy(service.zenoh_port)
-    robots = [Robot(proxy, f"own{k}", "r", scans_for(sim=20 + k, beams=91, count=SCANS_PER_ROBOT))
+    robots = [Robot(proxy, f"own{k}", "r", scans_for(sim=20 + k, beams=BEAMS, count=SCANS_PER_ROBOT))
               for k in range(OWN_MAPS)]  # fmt: skip
-    robots += [Robot(proxy, "shared", f"r{k}", scans_for(sim=30 + k, beams=91, count=SCANS_PER_ROBOT))
+    robots += [Robot(proxy, "shared", f"r{k}", scans_for(sim=30 + k, beams=BEAMS, count=SCANS_PER_ROBOT))
                for k in range(SHARED)]  # fmt: skip
     kills = []
     watch = LossWatch(robots)
