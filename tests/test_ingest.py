@@ -458,6 +458,30 @@ def test_default_mode_is_a_router_on_the_default_endpoint(registry: MapRegistry)
     assert json.loads(cfg.get_json("transport/shared_memory/enabled")) is False  # Zenoh's default: true
 
 
+def test_a_router_subscribes_as_soon_as_it_listens(registry: MapRegistry, tmp_path: Path) -> None:
+    """The service's router accepts robots from the moment it listens; `zenoh.open` then waited
+    Zenoh's `scouting/delay` (0.5 s) before the scan subscriber could be declared. Robots waiting for
+    a restarted service connected in that time, and the subscriber's history then fetched their
+    caches twice at once (its first query, and one per publisher it detects), which lost part of a
+    robot's cache: 6 to 450 scans, in about half of tests/test_crash_exactly_once.py's runs of 10
+    restarts. A router that connects to no one waits for nothing now; with connect endpoints, or
+    when its configuration file sets the delay, Zenoh's is kept."""
+    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{free_port()}"])
+    assert json.loads(ingest.build_config().get_json("scouting/delay")) == 0
+    started = time.monotonic()
+    ingest.start()
+    try:
+        assert time.monotonic() - started < 0.25  # was 0.5 s and more
+    finally:
+        ingest.close()
+    joined = ZenohIngest(registry, listen=[], connect=[f"tcp/127.0.0.1:{free_port()}"], mode="peer")
+    assert json.loads(joined.build_config().get_json("scouting/delay")) is None
+    path = tmp_path / "zenoh.json5"
+    path.write_text("{ scouting: { delay: 200 } }")
+    from_file = ZenohIngest(registry, config_file=path).build_config()
+    assert json.loads(from_file.get_json("scouting/delay")) == 200
+
+
 def test_shared_memory_only_when_asked(registry: MapRegistry, tmp_path) -> None:  # noqa: ANN001
     """Shared memory stays off even when a config file switches it on, unless the service is told
     (`--zenoh-shared-memory`)."""
