@@ -26,6 +26,7 @@ from robot_process import scans_for
 from service_process import FreezableProxy, ServiceProcess, reaped
 from test_client_zenoh import Router, _write_carmen
 from test_e2e import assert_region_equal, map_stats, wait_integrated
+from test_ingest import client_session
 from test_store_forward import LAYERS, engine_map, publish_then_cut
 
 from fleetmap import codec
@@ -203,14 +204,6 @@ def query(session: zenoh.Session, key: str) -> DeliveryStatus | str:
         assert reply.err is not None
         return reply.err.payload.to_string()
     raise AssertionError(f"no answer to the delivery query {key}")
-
-
-def client_session(endpoint: str) -> zenoh.Session:
-    config = zenoh.Config()
-    config.insert_json5("mode", '"client"')
-    config.insert_json5("connect/endpoints", f'["{endpoint}"]')
-    config.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(config)
 
 
 def test_flush_confirms_scans_integrated_and_durable(tmp_path: Path) -> None:

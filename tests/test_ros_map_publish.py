@@ -32,6 +32,7 @@ import zenoh.ext
 from PIL import Image
 from rosbags.typesys import Stores, get_typestore
 from service_process import ServiceProcess, free_port, wait_for
+from test_ingest import client_session
 
 from fleetmap.codec import JSON_ENCODING, encode_json
 from fleetmap.config import MapConfig
@@ -55,15 +56,6 @@ class Received:
     attachment: Attachment
     at: float
     size: int  # bytes of the payload
-
-
-def client_session(endpoint: str) -> zenoh.Session:
-    """A Zenoh client session connected to `endpoint` only (as a ROS node's to its router)."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"client"')
-    cfg.insert_json5("connect/endpoints", f'["{endpoint}"]')
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(cfg)
 
 
 class RosSubscriber:
