@@ -271,3 +271,23 @@ def test_a_robot_buried_again_and_again_keeps_its_most_recent_sessions_only() ->
     stones.bury("m", {"r": state}, now=1000.0 + (last + 1) * 86400)
     assert stones.covers("m", "r", SESSION + last - MAX_SESSIONS + 1, 100) is not None
     assert stones.covers("m", "r", SESSION + last - MAX_SESSIONS + 2, 100) is None  # the oldest then
+
+
+@pytest.mark.parametrize("sessions", ["[1, 2]", '{"x": 1}', '{"1": "two"}', "not json", "null"])
+def test_a_damaged_tombstone_is_a_clear_error_at_start(data: Path, sessions: str) -> None:
+    """A `tombstones` row whose sessions are not a JSON object of session ids and seqs (a damaged
+    or hand-edited database) stops the start with the database's clear error, naming the file, as
+    any other unreadable row does: not an AttributeError's traceback."""
+    from fleetmap.database import StorageError
+
+    DurableStore(data).close()  # the schema
+    db = sqlite3.connect(data / DB_NAME)
+    db.execute("INSERT INTO tombstones VALUES ('m', 'r', ?, ?)", (time.time(), sessions))
+    db.commit()
+    db.close()
+    store = DurableStore(data)
+    try:
+        with pytest.raises(StorageError, match=DB_NAME):
+            store.load_tombstones()
+    finally:
+        store.close()

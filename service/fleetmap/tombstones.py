@@ -63,8 +63,12 @@ class Tombstone:
 
     @classmethod
     def from_row(cls, map_id: str, robot_id: str, deleted_at: float, sessions_json: str) -> Tombstone:
-        sessions = {int(k): int(v) for k, v in json.loads(sessions_json).items()}
-        return cls(map_id, robot_id, deleted_at, sessions)
+        """The tombstone of a stored row; ValueError if its sessions are not a JSON object of
+        session ids and seqs (a damaged database)."""
+        stored = json.loads(sessions_json)
+        if not isinstance(stored, dict):
+            raise ValueError(f"tombstone of {map_id}/{robot_id}: sessions are not a JSON object")
+        return cls(map_id, robot_id, deleted_at, {int(k): int(v) for k, v in stored.items()})
 
 
 class Tombstones:
