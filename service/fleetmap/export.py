@@ -64,8 +64,7 @@ def changed_window(gmap: GridMap, since: int, window: Window) -> Window | None:
     one pass over the tile versions (the keys of the changed tiles only are read)."""
     store = gmap.store
     with gmap.lock:
-        n = len(store.keys)
-        changed = np.flatnonzero(store.versions[:n] > since)
+        changed = store.changed_since(since)
         keys = np.array([store.keys[slot] for slot in changed.tolist()], dtype=np.int64).reshape(-1, 2)
     if not len(keys):
         return None

@@ -82,10 +82,10 @@ def changed_tiles(gmap: GridMap, since: int) -> list[tuple[tuple[int, int], int,
     """Copies of the tiles whose version is above `since`: (key, version, arrays in store order).
     The caller holds the map's lock."""
     store = gmap.store
+    pools = [store.pools[a.name] for a in store.arrays]
     return [
-        (key, int(store.versions[slot]), [store.pools[a.name][slot].copy() for a in store.arrays])
-        for key, slot in store.slots.items()
-        if store.versions[slot] > since
+        (store.keys[slot], int(store.versions[slot]), [pool[slot].copy() for pool in pools])
+        for slot in store.changed_since(since).tolist()
     ]
 
 

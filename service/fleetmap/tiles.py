@@ -246,6 +246,11 @@ class TileStore:
         """The newest version handed out; it grows with every change to the store."""
         return self._version_clock
 
+    def changed_since(self, since: int) -> np.ndarray:
+        """The slots (ascending) of the tiles whose version is above `since`, a `clock` read earlier:
+        every tile changed since then. The caller holds the map's lock."""
+        return np.flatnonzero(self.versions[: len(self.keys)] > since)
+
     # -- reads -----------------------------------------------------------------------------------
 
     def fill_window(
