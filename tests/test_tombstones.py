@@ -542,3 +542,29 @@ def test_a_database_from_before_forgotten_robots_gets_the_column_at_start(data: 
         ]
     finally:
         store.close()
+
+
+def test_a_forgotten_robots_stone_whose_map_an_older_service_deleted_is_a_deleted_maps(data: Path) -> None:
+    """An older service, which knows no `forgotten` column, deletes a map and leaves its forgotten
+    robots' rows as they were: at start they are deleted maps' robots (their token creates no map,
+    the delivery query says their scans went with it). Those of a stored map stay forgotten."""
+    DurableStore(data).close()  # the schema
+    db = sqlite3.connect(data / DB_NAME)
+    db.executemany(
+        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions, forgotten) VALUES (?, 'r', ?, ?, 1)",
+        [(map_id, time.time(), f'{{"{SESSION}": 4}}') for map_id in ("gone", "live")],
+    )
+    db.execute(
+        "INSERT INTO maps (id, config, created_at) VALUES ('live', ?, ?)",
+        (MapConfig().model_dump_json(), 1.0),
+    )
+    db.commit()
+    db.close()
+    reg = registry(data)
+    try:
+        assert reg.tombstones.buried("gone", "r") and not reg.tombstones.buried("live", "r")
+        reg.set_online("gone", "r", True)
+        assert "gone" not in reg.maps
+        assert [b.last_seq for b in reg.delivery_status("gone", "r").buried] == [4]
+    finally:
+        reg.close()
