@@ -89,15 +89,14 @@ class Tombstone:
         return cls(map_id, robot_id, deleted_at, sessions, forgotten=bool(forgotten))
 
 
-def merged_sessions(old: Mapping[int, int], state: RobotState | None) -> dict[int, int]:
+def merged_sessions(old: Mapping[int, int], state: RobotState) -> dict[int, int]:
     """The sessions of a tombstone that had `old` (least recently heard first) and buries `state`
     now: each session the higher of its two seqs, sessions without an id left out, at most the
     `MAX_SESSIONS` heard most recently (`state`'s, in its order, count as heard last)."""
     sessions = dict(old)
-    if state is not None:
-        for key, rec in state.sessions.items():
-            if key != NO_SESSION:
-                sessions[key] = max(rec.last_seq, sessions.pop(key, rec.last_seq))
+    for key, rec in state.sessions.items():
+        if key != NO_SESSION:
+            sessions[key] = max(rec.last_seq, sessions.pop(key, rec.last_seq))
     while len(sessions) > MAX_SESSIONS:
         del sessions[next(iter(sessions))]
     return sessions
