@@ -568,3 +568,45 @@ def test_a_forgotten_robots_stone_whose_map_an_older_service_deleted_is_a_delete
         assert [b.last_seq for b in reg.delivery_status("gone", "r").buried] == [4]
     finally:
         reg.close()
+
+
+def test_forgotten_robots_churning_never_push_a_deleted_maps_robots_out(
+    data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Anyone who can publish scans under made-up robot ids into a full map makes the map forget
+    robot after robot, each with a tombstone. Evicted oldest first among all of them, those pushed
+    out every deleted map's robots past `MAX_TOMBSTONES` (100,000 scans: minutes), and their cached
+    scans brought the deleted maps back. Past the bound a forgotten robot's stone goes first, in
+    memory and in the cut at start: the merge that added them must not weaken what was promised."""
+    monkeypatch.setattr(tombstones, "MAX_TOMBSTONES", 3)
+    monkeypatch.setattr(persistence, "MAX_TOMBSTONES", 3)
+    reg = forgetting_registry(data)
+    try:
+        reg.submit("gone", "r", wire(0))
+        assert reg.wait_idle()
+        reg.delete("gone", wait=True)
+        for k in range(6):  # each new id makes live map `m` forget the previous one
+            reg.submit("m", f"a{k}", wire(0, session=SESSION + 100 + k))
+            assert reg.wait_idle()
+        assert len(reg.tombstones) == 3
+        assert reg.tombstones.buried("gone", "r")
+        assert [reg.tombstones.get("m", f"a{k}") is not None for k in range(5)] == [False] * 3 + [True] * 2
+        refused = refusal(reg, "gone", "r", wire(0))
+        assert refused.status == 200 and "gone" not in reg.maps
+    finally:
+        reg.close()
+    db = sqlite3.connect(data / DB_NAME)  # more rows than the bound: the cut at start
+    db.executemany(
+        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions, forgotten) VALUES ('m', ?, ?, ?, 1)",
+        [(f"b{k}", time.time() + k, f'{{"{SESSION}": 4}}') for k in range(3)],
+    )
+    db.commit()
+    db.close()
+    again = forgetting_registry(data)
+    try:
+        assert again.tombstones.buried("gone", "r")
+        kept = [robot for robot in ("b0", "b1", "b2") if again.tombstones.get("m", robot)]
+        assert kept == ["b1", "b2"]
+        assert refusal(again, "gone", "r", wire(0)).status == 200 and "gone" not in again.maps
+    finally:
+        again.close()
