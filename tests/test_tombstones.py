@@ -610,3 +610,43 @@ def test_forgotten_robots_churning_never_push_a_deleted_maps_robots_out(
         assert refusal(again, "gone", "r", wire(0)).status == 200 and "gone" not in again.maps
     finally:
         again.close()
+
+
+def test_a_snapshot_that_fails_storing_a_forgotten_robots_stone_is_retried_and_the_journal_goes_on(
+    data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The snapshot transaction that drops a forgotten robot's row and stores its tombstone fails
+    (a failing disk): nothing of it is stored (a crash now restores the robot itself), the stone
+    stays pending and the next snapshot stores it. The failed transaction was left open on the
+    journal writer's connection: the next group commit failed ("cannot start a transaction within a
+    transaction") and its scans were answered 503 as not durable, though storage worked again."""
+    reg = forgetting_registry(data)
+    crashed: list[MapRegistry] = []
+    try:
+        feed_then_forget(reg)
+        bury = persistence._bury
+
+        def failing_bury(conn: sqlite3.Connection, buried: Sequence[Tombstone]) -> None:
+            if buried:
+                raise sqlite3.OperationalError("disk I/O error")
+            bury(conn, buried)
+
+        monkeypatch.setattr(persistence, "_bury", failing_bury)
+        reg.snapshot_all(every_map=True)  # logged, retried at the next one
+        assert list(reg.get("m").unstored_stones) == ["r"]
+        monkeypatch.setattr(persistence, "_bury", bury)  # the disk works again
+        integrated = reg.submit("m", "x", wire(1, session=SESSION + 50), wait=True)
+        assert integrated is not None and integrated.result(60).cell_updates > 0
+        before = forgetting_registry(data, max_robots=2)  # a crash now: the robot's row is stored
+        crashed.append(before)
+        assert sorted(before.get("m").robots) == ["r", "x"]
+        reg.snapshot_all(every_map=True)
+        assert reg.get("m").unstored_stones == {}
+        after = forgetting_registry(data)  # a crash after the retry: its stone is
+        crashed.append(after)
+        assert sorted(after.get("m").robots) == ["x"]
+        assert_old_scans_ignored(after, integrated=7)
+    finally:
+        for other in crashed:
+            other.close()
+        reg.close()
