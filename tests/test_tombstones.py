@@ -650,3 +650,36 @@ def test_a_snapshot_that_fails_storing_a_forgotten_robots_stone_is_retried_and_t
         for other in crashed:
             other.close()
         reg.close()
+
+
+def test_forgotten_robots_stones_waiting_for_a_failing_disk_stay_within_the_bound(
+    data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """While the snapshots that store forgotten robots' stones fail (a failing disk), the map kept
+    every stone it was waiting to store, also those `Tombstones` had pruned: a sender cycling
+    through robot ids grew that without bound. It keeps the ones the service still remembers, and
+    stores those once the disk works."""
+    monkeypatch.setattr(tombstones, "MAX_TOMBSTONES", 3)
+    reg = forgetting_registry(data)
+    try:
+        bury = persistence._bury
+
+        def failing_bury(conn: sqlite3.Connection, buried: Sequence[Tombstone]) -> None:
+            if buried:
+                raise sqlite3.OperationalError("disk I/O error")
+            bury(conn, buried)
+
+        monkeypatch.setattr(persistence, "_bury", failing_bury)
+        for k in range(8):
+            reg.submit("m", f"a{k}", wire(0, session=SESSION + 100 + k))
+            assert reg.wait_idle()
+            reg.snapshot_all(every_map=True)
+        assert sorted(reg.get("m").unstored_stones) == ["a4", "a5", "a6"]
+        monkeypatch.setattr(persistence, "_bury", bury)
+        reg.snapshot_all(every_map=True)
+        assert reg.get("m").unstored_stones == {}
+    finally:
+        reg.close()
+    db = sqlite3.connect(data / DB_NAME)
+    assert sorted(row[0] for row in db.execute("SELECT robot_id FROM tombstones")) == ["a4", "a5", "a6"]
+    db.close()
