@@ -384,34 +384,45 @@ class StalledPlan:
 
 
 def test_scans_queued_for_a_deleted_or_replaced_map_are_answered_at_once(
-    registry: MapRegistry, monkeypatch: pytest.MonkeyPatch
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """DELETE (or a snapshot PUT) throws the map's queued scans away: their callers learn it at once
     (404, or 409 when a map of that id exists again), instead of waiting out their timeout for a
-    scan that will never be integrated."""
-    for remove in ("delete", "replace"):
-        entry, _ = registry.create("m")
-        stall = StalledPlan(monkeypatch, entry.gmap)
-        first = registry.submit("m", "r", WireScan(0, 0.0, scan_at(0)), wait=True)
-        assert stall.started.wait(5)
-        queued = [registry.submit("m", rid, WireScan(1, 0.0, scan_at(0)), wait=True) for rid in ("r", "s")]
-        assert registry.backlog()[0] == 2
-        if remove == "delete":
-            registry.delete("m")
-        else:
-            registry.replace("m", GridMap(MapConfig()))
-        for future in queued:
-            with pytest.raises(IngestRejected) as gone:
-                future.result(2)
-            status, says = (404, "deleted before the scan") if remove == "delete" else (409, "replaced")
-            assert gone.value.status == status and says in gone.value.reason
-        assert registry.backlog()[0] == 0
-        stall.release.set()
-        first.exception(5)  # answered too (what it says: test_a_scan_in_flight_...)
-        assert registry.wait_idle()
-        if remove == "replace":
-            assert registry.get("m").robots == {}  # the new map never saw these scans
-            registry.delete("m")
+    scan that will never be integrated. One worker, held by robot r's first scan: with a second one
+    (the `registry` fixture's), robot s's scan stayed queued only until that worker took it (and
+    stalled on it too), which it did before the DELETE whenever this thread lost the GIL in between:
+    the test failed whenever a garbage collection of the whole file's run fell there.
+    """
+    registry = MapRegistry(workers=1)
+    registry.start()
+    try:
+        for remove in ("delete", "replace"):
+            entry, _ = registry.create("m")
+            stall = StalledPlan(monkeypatch, entry.gmap)
+            first = registry.submit("m", "r", WireScan(0, 0.0, scan_at(0)), wait=True)
+            assert stall.started.wait(5)
+            queued = [
+                registry.submit("m", rid, WireScan(1, 0.0, scan_at(0)), wait=True) for rid in ("r", "s")
+            ]
+            assert registry.backlog()[0] == 2
+            if remove == "delete":
+                registry.delete("m")
+            else:
+                registry.replace("m", GridMap(MapConfig()))
+            for future in queued:
+                with pytest.raises(IngestRejected) as gone:
+                    future.result(2)
+                status, says = (404, "deleted before the scan") if remove == "delete" else (409, "replaced")
+                assert gone.value.status == status and says in gone.value.reason
+            assert registry.backlog()[0] == 0
+            stall.release.set()
+            first.exception(5)  # answered too (what it says: test_a_scan_in_flight_...)
+            assert registry.wait_idle()
+            if remove == "replace":
+                assert registry.get("m").robots == {}  # the new map never saw these scans
+                registry.delete("m")
+    finally:
+        registry.close()
 
 
 def test_a_scan_in_flight_when_its_map_is_replaced_reaches_neither_map(

@@ -568,3 +568,118 @@ def test_a_forgotten_robots_stone_whose_map_an_older_service_deleted_is_a_delete
         assert [b.last_seq for b in reg.delivery_status("gone", "r").buried] == [4]
     finally:
         reg.close()
+
+
+def test_forgotten_robots_churning_never_push_a_deleted_maps_robots_out(
+    data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Anyone who can publish scans under made-up robot ids into a full map makes the map forget
+    robot after robot, each with a tombstone. Evicted oldest first among all of them, those pushed
+    out every deleted map's robots past `MAX_TOMBSTONES` (100,000 scans: minutes), and their cached
+    scans brought the deleted maps back. Past the bound a forgotten robot's stone goes first, in
+    memory and in the cut at start: the merge that added them must not weaken what was promised."""
+    monkeypatch.setattr(tombstones, "MAX_TOMBSTONES", 3)
+    monkeypatch.setattr(persistence, "MAX_TOMBSTONES", 3)
+    reg = forgetting_registry(data)
+    try:
+        reg.submit("gone", "r", wire(0))
+        assert reg.wait_idle()
+        reg.delete("gone", wait=True)
+        for k in range(6):  # each new id makes live map `m` forget the previous one
+            reg.submit("m", f"a{k}", wire(0, session=SESSION + 100 + k))
+            assert reg.wait_idle()
+        assert len(reg.tombstones) == 3
+        assert reg.tombstones.buried("gone", "r")
+        assert [reg.tombstones.get("m", f"a{k}") is not None for k in range(5)] == [False] * 3 + [True] * 2
+        refused = refusal(reg, "gone", "r", wire(0))
+        assert refused.status == 200 and "gone" not in reg.maps
+    finally:
+        reg.close()
+    db = sqlite3.connect(data / DB_NAME)  # more rows than the bound: the cut at start
+    db.executemany(
+        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions, forgotten) VALUES ('m', ?, ?, ?, 1)",
+        [(f"b{k}", time.time() + k, f'{{"{SESSION}": 4}}') for k in range(3)],
+    )
+    db.commit()
+    db.close()
+    again = forgetting_registry(data)
+    try:
+        assert again.tombstones.buried("gone", "r")
+        kept = [robot for robot in ("b0", "b1", "b2") if again.tombstones.get("m", robot)]
+        assert kept == ["b1", "b2"]
+        assert refusal(again, "gone", "r", wire(0)).status == 200 and "gone" not in again.maps
+    finally:
+        again.close()
+
+
+def test_a_snapshot_that_fails_storing_a_forgotten_robots_stone_is_retried_and_the_journal_goes_on(
+    data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The snapshot transaction that drops a forgotten robot's row and stores its tombstone fails
+    (a failing disk): nothing of it is stored (a crash now restores the robot itself), the stone
+    stays pending and the next snapshot stores it. The failed transaction was left open on the
+    journal writer's connection: the next group commit failed ("cannot start a transaction within a
+    transaction") and its scans were answered 503 as not durable, though storage worked again."""
+    reg = forgetting_registry(data)
+    crashed: list[MapRegistry] = []
+    try:
+        feed_then_forget(reg)
+        bury = persistence._bury
+
+        def failing_bury(conn: sqlite3.Connection, buried: Sequence[Tombstone]) -> None:
+            if buried:
+                raise sqlite3.OperationalError("disk I/O error")
+            bury(conn, buried)
+
+        monkeypatch.setattr(persistence, "_bury", failing_bury)
+        reg.snapshot_all(every_map=True)  # logged, retried at the next one
+        assert list(reg.get("m").unstored_stones) == ["r"]
+        monkeypatch.setattr(persistence, "_bury", bury)  # the disk works again
+        integrated = reg.submit("m", "x", wire(1, session=SESSION + 50), wait=True)
+        assert integrated is not None and integrated.result(60).cell_updates > 0
+        before = forgetting_registry(data, max_robots=2)  # a crash now: the robot's row is stored
+        crashed.append(before)
+        assert sorted(before.get("m").robots) == ["r", "x"]
+        reg.snapshot_all(every_map=True)
+        assert reg.get("m").unstored_stones == {}
+        after = forgetting_registry(data)  # a crash after the retry: its stone is
+        crashed.append(after)
+        assert sorted(after.get("m").robots) == ["x"]
+        assert_old_scans_ignored(after, integrated=7)
+    finally:
+        for other in crashed:
+            other.close()
+        reg.close()
+
+
+def test_forgotten_robots_stones_waiting_for_a_failing_disk_stay_within_the_bound(
+    data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """While the snapshots that store forgotten robots' stones fail (a failing disk), the map kept
+    every stone it was waiting to store, also those `Tombstones` had pruned: a sender cycling
+    through robot ids grew that without bound. It keeps the ones the service still remembers, and
+    stores those once the disk works."""
+    monkeypatch.setattr(tombstones, "MAX_TOMBSTONES", 3)
+    reg = forgetting_registry(data)
+    try:
+        bury = persistence._bury
+
+        def failing_bury(conn: sqlite3.Connection, buried: Sequence[Tombstone]) -> None:
+            if buried:
+                raise sqlite3.OperationalError("disk I/O error")
+            bury(conn, buried)
+
+        monkeypatch.setattr(persistence, "_bury", failing_bury)
+        for k in range(8):
+            reg.submit("m", f"a{k}", wire(0, session=SESSION + 100 + k))
+            assert reg.wait_idle()
+            reg.snapshot_all(every_map=True)
+        assert sorted(reg.get("m").unstored_stones) == ["a4", "a5", "a6"]
+        monkeypatch.setattr(persistence, "_bury", bury)
+        reg.snapshot_all(every_map=True)
+        assert reg.get("m").unstored_stones == {}
+    finally:
+        reg.close()
+    db = sqlite3.connect(data / DB_NAME)
+    assert sorted(row[0] for row in db.execute("SELECT robot_id FROM tombstones")) == ["a4", "a5", "a6"]
+    db.close()

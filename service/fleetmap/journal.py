@@ -141,13 +141,18 @@ class JournalWriter:
 
     def submit(self, op: Callable[[sqlite3.Connection], object]) -> Future:
         """Queue a database operation for the writer thread, in order with the journal entries
-        appended before it (whose rows are committed and acknowledged by then). Never blocks."""
+        appended before it (whose rows are committed and acknowledged by then). Never blocks. If
+        `op` raises, a transaction it left open is rolled back."""
         future: Future = Future()
 
         def wrapped(conn: sqlite3.Connection) -> None:
             try:
                 future.set_result(op(conn))
             except BaseException as exc:  # handed back to whoever waits on the future
+                # Not left open: a snapshot's switch that failed inside its transaction made the
+                # next group commit fail ("cannot start a transaction within a transaction"), its
+                # scans answered 503 as not durable though storage worked again.
+                self._roll_back()
                 future.set_exception(exc)
 
         self._queue.put(wrapped)

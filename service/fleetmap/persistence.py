@@ -292,23 +292,24 @@ class DurableStore:
 
     def load_tombstones(self) -> list[Tombstone]:
         """The robots of deleted and replaced maps, and those forgotten by full maps, still
-        remembered (`tombstones.py`); those past `TOMBSTONE_DAYS`, or the oldest past
-        `MAX_TOMBSTONES`, are deleted from the database here, and a forgotten robot's whose map is
-        not stored made a deleted map's."""
+        remembered (`tombstones.py`); a forgotten robot's whose map is not stored is made a deleted
+        map's, and those past `TOMBSTONE_DAYS`, or the oldest past `MAX_TOMBSTONES` (forgotten
+        robots' first), are deleted from the database here."""
         conn = connect(self.path)
         try:
             with conn:
                 conn.execute("DELETE FROM tombstones WHERE deleted_at < ?", (forgotten_before(time.time()),))
-                conn.execute(
-                    "DELETE FROM tombstones WHERE rowid IN (SELECT rowid FROM tombstones "
-                    "ORDER BY deleted_at DESC LIMIT -1 OFFSET ?)",
-                    (MAX_TOMBSTONES,),
-                )
                 # A forgotten robot's stone whose map is not stored: an older service deleted the map
                 # (it writes no `forgotten`, so the row stayed so). The robot's scans went with it.
                 conn.execute(
                     "UPDATE tombstones SET forgotten = 0 "
                     "WHERE forgotten AND map_id NOT IN (SELECT id FROM maps)"
+                )
+                # Past the bound, live maps' forgotten robots go first, as `Tombstones.prune` has it.
+                conn.execute(
+                    "DELETE FROM tombstones WHERE rowid IN (SELECT rowid FROM tombstones "
+                    "ORDER BY forgotten, deleted_at DESC LIMIT -1 OFFSET ?)",
+                    (MAX_TOMBSTONES,),
                 )
             rows = conn.execute(
                 "SELECT map_id, robot_id, deleted_at, sessions, forgotten FROM tombstones"

@@ -383,8 +383,15 @@ class MapRegistry:
 
     def _saved_counters(self, entry: MapEntry, taken: list[dict]) -> dict:
         """What a snapshot of map `entry` stores of its robots (and appends to `taken`): their
-        counters, and the tombstones of the robots it forgot that storage does not hold yet."""
+        counters, and the tombstones of the robots it forgot that storage does not hold yet, those
+        `self.tombstones` still holds: the others were pruned (`MAX_TOMBSTONES`, `TOMBSTONE_DAYS`),
+        and kept here while snapshots failed (a failing disk), they piled up without bound, one per
+        robot id a sender cycled through into the full map."""
         with self.lock:
+            held = self.tombstones.get
+            entry.unstored_stones = {
+                rid: stone for rid, stone in entry.unstored_stones.items() if held(entry.id, rid) is stone
+            }
             saved = {
                 "scans_integrated": entry.scans_integrated,
                 "scans_rejected": entry.scans_rejected,

@@ -25,7 +25,9 @@ become ordinary ones (`bury`): their scans went with it.
 
 Scans without a session id (plain publishers) are never covered: they are not re-delivered, and
 their seqs may start again at any time. Tombstones are kept `TOMBSTONE_DAYS` and at most
-`MAX_TOMBSTONES` robots (the oldest go first), since maps are created and deleted under new ids for
+`MAX_TOMBSTONES` robots (the oldest go first, forgotten robots' before deleted maps': any peer that
+may publish can make a full map forget robot after robot under made-up ids, and must not push the
+deleted maps' robots out so), since maps are created and deleted under new ids for
 the service's whole life; a robot whose publisher stays open and idle longer than that, with the
 old scans in its cache, could still bring a deleted map back. The `DurableStore` keeps them across
 restarts (a forgotten robot's stone in the snapshot transaction that drops the robot's rows).
@@ -116,6 +118,9 @@ class Tombstones:
         #: map id -> the robots it forgot that have a (`forgotten`) stone: what `bury` turns into
         #: ordinary stones when the map goes, without a look at every stone.
         self._forgotten: dict[str, set[str]] = {}
+        #: The (map id, robot id) of every `forgotten` stone, oldest first: what `prune` lets go
+        #: first past `MAX_TOMBSTONES`.
+        self._forgotten_order: dict[tuple[str, str], None] = {}
         for stone in sorted(stones, key=lambda s: s.deleted_at):
             self._put(stone)
         if now is not None:
@@ -127,11 +132,13 @@ class Tombstones:
         self._stones[stone.map_id, stone.robot_id] = stone
         if stone.forgotten:
             self._forgotten.setdefault(stone.map_id, set()).add(stone.robot_id)
+            self._forgotten_order[stone.map_id, stone.robot_id] = None
 
     def _drop(self, map_id: str, robot_id: str) -> Tombstone | None:
         """Remove the robot's stone, if it has one, and return it."""
         stone = self._stones.pop((map_id, robot_id), None)
         if stone is not None and stone.forgotten:
+            del self._forgotten_order[map_id, robot_id]
             robots = self._forgotten[map_id]
             robots.discard(robot_id)
             if not robots:
@@ -207,10 +214,16 @@ class Tombstones:
 
     def prune(self, now: float) -> None:
         """Forget the robots buried more than `TOMBSTONE_DAYS` ago, and the oldest past
-        `MAX_TOMBSTONES`."""
+        `MAX_TOMBSTONES`: the robots live maps forgot first, then deleted maps' (as
+        `DurableStore.load_tombstones` cuts the table). Evicted oldest first among all, a sender
+        cycling through robot ids with valid scans into a full map pushed every deleted map's
+        robots out within minutes, and their cached scans brought the deleted maps back."""
         horizon = forgotten_before(now)
         while self._stones:
             oldest = next(iter(self._stones.values()))
-            if oldest.deleted_at >= horizon and len(self._stones) <= MAX_TOMBSTONES:
+            if oldest.deleted_at >= horizon:
                 break
             self._drop(oldest.map_id, oldest.robot_id)
+        while len(self._stones) > MAX_TOMBSTONES:
+            map_id, robot_id = next(iter(self._forgotten_order or self._stones))
+            self._drop(map_id, robot_id)
