@@ -23,7 +23,7 @@ import pytest
 import zenoh
 from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, ScanPublisher
 from robot_process import scans_for
-from service_process import FreezableProxy, ServiceProcess, reaped
+from service_process import FreezableProxy, ServiceProcess, reaped, wait_for
 from test_client_zenoh import Router, _write_carmen
 from test_e2e import assert_region_equal, map_stats, wait_integrated
 from test_ingest import client_session
@@ -351,6 +351,44 @@ def test_the_answer_counts_refused_and_duplicate_scans(tmp_path: Path) -> None:
             assert answer.duplicates == 1 and answer.unsettled == 0
         finally:
             pub.close()
+
+
+def test_scans_refused_at_the_input_limits_are_settled_as_refused_not_lost(tmp_path: Path) -> None:
+    """A robot's well-formed scans that break the service's input limits (a pose outside the world
+    bound: UTM eastings sent as map coordinates) are refused, and settled so: counted `refused` in
+    their session, not `lost` (they reached the service), and the last scan of the session refused
+    so no longer leaves it unsettled, where flush waited until its timeout (for ever without one).
+    A flush asks again after a restart of the durable service: the robot's cache, fetched again, is
+    counted as duplicates, and the answer is the same."""
+    near = Scan.from_fan((5.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    utm = Scan.from_fan((500_000.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    with (
+        ServiceProcess(tmp_path) as service,
+        ScanPublisher("lim", "r1", connect=[service.zenoh_endpoint]) as pub,
+    ):
+        assert pub.wait_connected(20), pub.last_connect_error
+        for seq in range(6):
+            pub.publish(utm if seq in (2, 5) else near, seq=seq, stamp=float(seq))
+        started = time.monotonic()
+        report = pub.flush(10)
+        assert time.monotonic() - started < 5, report  # the last scan's refusal settled it
+        assert report.settled and not report.confirmed, report
+        assert (report.published, report.integrated, report.refused, report.lost) == (6, 4, 2, 0)
+        assert report.summary() == "6 scans published, 4 integrated: 2 refused or dropped by the service"
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            robot = map_stats(http, "lim")["robots"]["r1"]
+        assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 2, 0), robot
+        assert robot["last_seq"] == 5, robot
+        assert "scan seq 5 refused: pose (500000, 5) is outside the world bound" in robot["last_error"]
+        service.stop()
+        service.start()  # same ports and data
+        assert pub.wait_connected(20), pub.last_connect_error
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            # The cache fetched again: each of its scans a duplicate, the refused ones too.
+            wait_for(lambda: map_stats(http, "lim")["robots"]["r1"]["duplicates"] == 6, 10, what="the cache")
+            robot = map_stats(http, "lim")["robots"]["r1"]
+        assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 2, 0), robot
+        assert pub.flush(10) == report
 
 
 def test_flush_against_a_service_without_delivery_queries_is_an_error_not_a_hang() -> None:

@@ -354,10 +354,13 @@ class ZenohIngest:
         try:
             wire = codec.decode(payload, encoding)
         except codec.DecodeError as exc:
-            reason = f"undecodable {encoding or 'unspecified'} payload: {exc}"
+            if exc.scan_id is None:
+                reason = f"undecodable {encoding or 'unspecified'} payload: {exc}"
+            else:  # well-formed, refused by the engine's checks or the input limits
+                reason = f"scan seq {exc.scan_id[0]} refused: {exc}"
             with self._lock:
                 self.decode_errors += 1
-            self.registry.reject(map_id, robot_id, reason)
+            self.registry.reject(map_id, robot_id, reason, exc.scan_id)
             self._log.warning(
                 f"decode:{map_id}/{robot_id}", f"rejected a scan from {map_id}/{robot_id}: {reason}",
                 map_id=map_id, robot_id=robot_id,

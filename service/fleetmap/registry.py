@@ -643,8 +643,18 @@ class MapRegistry:
             robot.unsettled += 1
             return job.future
 
-    def reject(self, map_id: str, robot_id: str, reason: str) -> None:
-        """Count a message that could not even be decoded, on its robot if the ids are valid."""
+    def reject(
+        self, map_id: str, robot_id: str, reason: str, scan_id: tuple[int, float, int | None] | None = None
+    ) -> None:
+        """Count a message that could not be decoded, or that broke the input limits, on its robot if
+        the ids are valid (and its map exists: a refused scan creates none).
+
+        `scan_id`, the (seq, stamp, session) of a message read that far (`codec.DecodeError.scan_id`),
+        settles that scan as refused in its session's ledger, its seq recorded as accepted, as a
+        scan the full queue drops is: otherwise the next seq counted it as lost ("never reached the
+        service"), and the last scan of a session was never settled, so a robot's `flush` waited
+        for it until its timeout (for ever without one). A copy of a scan already counted (its seq
+        not new: the cache fetched again after a restart) is a duplicate, as `submit` counts it."""
         if not (is_valid_id(map_id) and is_valid_id(robot_id)):
             return
         with self.lock:
@@ -655,7 +665,19 @@ class MapRegistry:
                 entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
                 return
             robot = entry.robot(robot_id)
-            robot.last_heard = time.time()
+            robot.last_heard = now = time.time()
+            if scan_id is not None:
+                seq, stamp, session = scan_id
+                if self.tombstones.covers(map_id, robot_id, session, seq) is not None:
+                    robot.duplicates += 1
+                    return
+                if robot.is_duplicate(seq, stamp, session):
+                    robot.duplicates += 1
+                    robot.sessions[session_key(session)].ledger.duplicates += 1
+                    return
+                robot.accept(seq, stamp, session, now)
+                ledger = robot.sessions[session_key(session)].ledger
+                ledger.settle(ledger.open(seq), integrated=False)
             robot.scans_rejected += 1
             robot.last_error = reason
             entry.scans_rejected += 1
