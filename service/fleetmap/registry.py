@@ -649,12 +649,15 @@ class MapRegistry:
         """Count a message that could not be decoded, or that broke the input limits, on its robot if
         the ids are valid (and its map exists: a refused scan creates none).
 
-        `scan_id`, the (seq, stamp, session) of a message read that far (`codec.DecodeError.scan_id`),
-        settles that scan as refused in its session's ledger, its seq recorded as accepted, as a
-        scan the full queue drops is: otherwise the next seq counted it as lost ("never reached the
-        service"), and the last scan of a session was never settled, so a robot's `flush` waited
-        for it until its timeout (for ever without one). A copy of a scan already counted (its seq
-        not new: the cache fetched again after a restart) is a duplicate, as `submit` counts it."""
+        `scan_id`, the (seq, stamp, session) of a message read that far (`codec.DecodeError.scan_id`)
+        with a session id, settles that scan as refused in its session's ledger, its seq recorded as
+        accepted, as a scan the full queue drops is: otherwise the next seq counted it as lost
+        ("never reached the service"), and the last scan of a session was never settled, so a
+        robot's `flush` waited for it until its timeout (for ever without one). A copy of a scan
+        already counted (its seq not new: the cache fetched again after a restart) is a duplicate,
+        as `submit` counts it. Scans without a session id keep to the rule of undecodable ones (their
+        seq is not recorded): their seq bookkeeping is one that every sender without a session id on
+        the robot's key shares, which a refused message (garbage, as likely as not) must not move."""
         if not (is_valid_id(map_id) and is_valid_id(robot_id)):
             return
         with self.lock:
@@ -666,7 +669,7 @@ class MapRegistry:
                 return
             robot = entry.robot(robot_id)
             robot.last_heard = now = time.time()
-            if scan_id is not None:
+            if scan_id is not None and scan_id[2] is not None:
                 seq, stamp, session = scan_id
                 if self.tombstones.covers(map_id, robot_id, session, seq) is not None:
                     robot.duplicates += 1
