@@ -35,7 +35,7 @@ from fleetmap.memory_budget import MemoryBudgetError
 from fleetmap.registry import IngestRejected, Job, MapRegistry
 from fleetmap.robot_state import Receipt, RobotState, SessionLedger
 from fleetmap.scan import Scan
-from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus
+from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
 
 
 def test_settled_passes_only_scans_settled_in_order() -> None:
@@ -193,6 +193,10 @@ def test_the_reply_docs_protocol_md_shows_is_the_services_model() -> None:
     status = DeliveryStatus.model_validate_json(example.group(1))
     entry = status.session(4711)
     assert entry is not None and entry.settled == 999
+    # The model ignores fields it does not know (a newer service's): the example must use its own.
+    shown = json.loads(example.group(1))
+    assert set(shown) == set(DeliveryStatus.model_fields), set(shown) ^ set(DeliveryStatus.model_fields)
+    assert set(shown["sessions"][0]) == set(SessionDelivery.model_fields)
 
 
 def query(session: zenoh.Session, key: str) -> DeliveryStatus | str:
@@ -342,7 +346,9 @@ def test_the_answer_counts_refused_and_duplicate_scans(tmp_path: Path) -> None:
             report = pub.flush(30)
             assert report.settled and not report.confirmed, report
             assert (report.published, report.integrated, report.refused, report.lost) == (5, 4, 1, 0)
-            assert report.summary() == "5 scans published, 4 integrated: 1 refused or dropped by the service"
+            assert report.last_error is not None and "max_tiles" in report.last_error, report
+            refused = f"1 refused or dropped by the service (the last: {report.last_error})"
+            assert report.summary() == f"5 scans published, 4 integrated: {refused}"
             assert pub._session is not None
             answer = query(pub._session, DELIVERY_KEY.format(map_id="rf", robot_id="r1"))
             assert isinstance(answer, DeliveryStatus)
@@ -374,7 +380,9 @@ def test_scans_refused_at_the_input_limits_are_settled_as_refused_not_lost(tmp_p
         assert time.monotonic() - started < 5, report  # the last scan's refusal settled it
         assert report.settled and not report.confirmed, report
         assert (report.published, report.integrated, report.refused, report.lost) == (6, 4, 2, 0)
-        assert report.summary() == "6 scans published, 4 integrated: 2 refused or dropped by the service"
+        assert report.last_error is not None and "scan seq 5 refused: pose (500000, 5)" in report.last_error
+        refused = f"2 refused or dropped by the service (the last: {report.last_error})"
+        assert report.summary() == f"6 scans published, 4 integrated: {refused}"
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
             robot = map_stats(http, "lim")["robots"]["r1"]
         assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 2, 0), robot
@@ -476,6 +484,35 @@ def test_replay_whose_delivery_answer_is_not_fleetmaps_says_so_and_exits_1(tmp_p
     assert "replayed 5 scans" in proc.stdout, (proc.stdout, proc.stderr)
     assert "Traceback" not in proc.stderr, proc.stderr
     assert "fleetmap replay: warning: not confirmed: the delivery answer is not a fleetmap one" in proc.stderr
+
+
+def test_flush_reads_an_answer_with_fields_it_does_not_know() -> None:
+    """A service newer than the robot's client may add fields to its delivery answer (and its
+    entries): flush reads what it knows and confirms. It raised "the delivery answer is not a
+    fleetmap one" for any field it did not know, so every robot in the field failed its flush
+    once the service was upgraded."""
+    router = Router().start()
+    assert router.session is not None
+
+    def answer(query: zenoh.Query) -> None:
+        session = int(query.parameters.get("session") or 0)
+        entry = {
+            "session": session, "first_seq": 0, "last_accepted": 0, "settled": 0, "integrated": 1,
+            "refused": 0, "lost": 0, "duplicates": 0, "a_later_field": [1, 2],
+        }  # fmt: skip
+        status = {"map_id": "nf", "robot_id": "r1", "status": "ok", "sessions": [entry], "later": {"x": 1}}
+        query.reply(query.key_expr, json.dumps(status))
+
+    queryable = router.session.declare_queryable("fleetmap/*/*/delivery", answer)
+    try:
+        with ScanPublisher("nf", "r1", connect=[router.endpoint]) as pub:
+            assert pub.wait_connected(20), pub.last_connect_error
+            pub.publish(_scan())
+            report = pub.flush(10)
+            assert report.confirmed, report
+    finally:
+        queryable.undeclare()
+        router.stop()
 
 
 @pytest.mark.parametrize("how", ["deleted", "replaced"])

@@ -636,6 +636,7 @@ class MapRegistry:
                 robot.dropped += 1
                 robot.refused = (session_key(session), seq)  # a retry of it is not a duplicate
                 reason = "ingest queue full: scan dropped"
+                robot.last_error = f"scan seq {seq}: {reason}"
                 if self._remove_unclaimed(entry) is not None:
                     reason += f"; map {map_id!r}, created for it, was removed again"
                 raise IngestRejected(reason, 503)
@@ -962,7 +963,7 @@ class MapRegistry:
             return DeliveryStatus(
                 map_id=map_id, robot_id=robot_id, status="ok", unsettled=robot.unsettled,
                 scans_integrated=robot.scans_integrated, lost=robot.lost, dropped=robot.dropped,
-                duplicates=robot.duplicates, sessions=sessions, buried=buried,
+                duplicates=robot.duplicates, sessions=sessions, buried=buried, last_error=robot.last_error,
             )  # fmt: skip
 
     def backlog(self) -> tuple[int, float]:

@@ -163,7 +163,7 @@ class SessionDelivery(BaseModel):
     deleted or replaced first). A robot's scans are settled in order, so `settled` is one seq: that
     scan and every scan of the session accepted before it are settled."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="ignore")  # a newer service may add fields: see DeliveryStatus
 
     session: int = Field(description="the publisher's session id; 0: scans that carry none")
     first_seq: int = Field(description="seq of its first scan the service counted")
@@ -184,7 +184,7 @@ class BuriedSession(BaseModel):
     that was deleted or replaced by an upload (the service's tombstones: docs/protocol.md,
     "Delivery guarantees"): they are in no map now."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="ignore")  # a newer service may add fields: see DeliveryStatus
 
     session: int = Field(description="the publisher's session id")
     last_seq: int = Field(description="the last seq the service had of it when the map went")
@@ -194,9 +194,13 @@ class BuriedSession(BaseModel):
 class DeliveryStatus(BaseModel):
     """The service's answer on `DELIVERY_KEY`: what it knows of one robot's scans. `status` says
     whether there is such a map and robot; the counts are the robot's on the map (all its sessions,
-    as `GET /maps/{id}` shows them), `sessions` its recent publisher sessions (or the one asked for)."""
+    as `GET /maps/{id}` shows them), `sessions` its recent publisher sessions (or the one asked for).
 
-    model_config = ConfigDict(extra="forbid")
+    Readers ignore fields they do not know (as the models of its entries do): robots run the client
+    they were built with for years, and a service that adds a field must not make every robot's
+    `flush` take its answer for something else than fleetmap's."""
+
+    model_config = ConfigDict(extra="ignore")  # a newer service may add fields: see DeliveryStatus
 
     map_id: str
     robot_id: str
@@ -210,6 +214,10 @@ class DeliveryStatus(BaseModel):
     buried: list[BuriedSession] = Field(
         default_factory=list,
         description="its sessions whose scans went with a deleted or replaced map of this id",
+    )
+    last_error: str | None = Field(
+        default=None,
+        description="why the robot's last scan refused or dropped was so (`last_error` in GET /maps/{id})",
     )
 
     def session(self, session_id: int | None) -> SessionDelivery | None:

@@ -160,7 +160,9 @@ class DeliveryReport:
     first scan it accepted afterwards: `counted_from`). `gone`: scans the service had when the map
     was deleted or replaced by an upload (it remembers the map's robots: `DeliveryStatus.buried`),
     which are in no map now. `settled`: the service settled every scan through `last_seq`.
-    `answered`: whether the service answered at all (False: it was unreachable until the timeout)."""
+    `answered`: whether the service answered at all (False: it was unreachable until the timeout).
+    `last_error`: when scans were refused, the service's reason for the robot's last refused (or
+    dropped) scan, as `GET /maps/{id}` shows it (None from a service older than this field)."""
 
     published: int
     first_seq: int | None = None
@@ -172,6 +174,7 @@ class DeliveryReport:
     answered: bool = False
     counted_from: int | None = None
     gone: int = 0
+    last_error: str | None = None
 
     @property
     def unsettled(self) -> int:
@@ -201,8 +204,11 @@ class DeliveryReport:
             return text
         if not self.answered:
             return f"{text}: the service did not answer, {self.published - self.integrated} unconfirmed"
+        refused = "refused or dropped by the service"
+        if self.last_error:
+            refused += f" (the last: {self.last_error})"
         parts = [f"{count} {what}" for count, what in (
-            (self.lost, "lost"), (self.refused, "refused or dropped by the service"),
+            (self.lost, "lost"), (self.refused, refused),
             (self.gone, "went with a deleted or replaced map"), (self.unsettled, "unconfirmed"),
         ) if count]  # fmt: skip
         return f"{text}: {', '.join(parts) or 'not settled'}"
@@ -774,6 +780,7 @@ def _report(status: DeliveryStatus, session_id: int | None, first: int, last: in
         published=published, first_seq=first, last_seq=last, integrated=min(entry.integrated, published),
         refused=entry.refused, lost=entry.lost, settled=entry.settled is not None and entry.settled >= last,
         answered=True, counted_from=entry.first_seq, gone=gone,
+        last_error=status.last_error if entry.refused else None,
     )  # fmt: skip
 
 
