@@ -567,3 +567,46 @@ def test_flush_after_the_map_went_midway_counts_both_parts(tmp_path: Path) -> No
         got = (report.settled, report.integrated, report.gone, report.counted_from, report.confirmed)
         assert got == (True, 10, 10, 10, False), report
         assert report.summary() == "20 scans published, 10 integrated: 10 went with a deleted or replaced map"
+
+
+def test_flush_of_scans_refused_for_want_of_their_map_returns_saying_so(tmp_path: Path) -> None:
+    """A service that creates no map from scans (`--no-auto-create`) refuses the scans of a robot
+    whose map does not exist (a map id mistyped in its configuration), and, after its map is deleted
+    midway, the scans it publishes on: flush without a timeout returns at once, the scans refused
+    and why, where it waited for ever (the service answered `no_map` and nothing of them)."""
+    scans = scans_for(sim=17, beams=181, count=10)
+
+    def flush_within(pub: ScanPublisher, seconds: float) -> DeliveryReport:
+        outcome: list[DeliveryReport] = []
+        flusher = threading.Thread(target=lambda: outcome.append(pub.flush()), daemon=True)
+        flusher.start()
+        flusher.join(seconds)
+        assert not flusher.is_alive(), "flush() still waits for scans the service refused"
+        return outcome[0]
+
+    with (
+        ServiceProcess(tmp_path, ["--in-memory", "--no-auto-create"]) as service,
+        httpx.Client(base_url=service.base_url, timeout=10) as http,
+    ):
+        with ScanPublisher("typo", "r1", connect=[service.zenoh_endpoint]) as pub:
+            assert pub.wait_connected(20), pub.last_connect_error
+            for seq, scan in enumerate(scans):
+                pub.publish(scan, seq=seq, stamp=float(seq))
+            report = flush_within(pub, 10)
+        assert (report.settled, report.integrated, report.refused, report.unsettled) == (True, 0, 10, 0), (
+            report
+        )
+        assert report.last_error is not None and "no map 'typo' (auto-create is off)" in report.last_error
+        assert "10 refused or dropped by the service (the last: " in report.summary()
+
+        assert http.put("/maps/went").status_code == 201
+        with ScanPublisher("went", "r1", connect=[service.zenoh_endpoint]) as pub:
+            assert pub.wait_connected(20), pub.last_connect_error
+            for seq in range(5):
+                pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            wait_integrated(http, "went", 5, timeout=30)
+            assert http.delete("/maps/went").status_code == 204
+            for seq in range(5, 10):
+                pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            report = flush_within(pub, 10)
+        assert (report.settled, report.integrated, report.gone, report.refused) == (True, 0, 5, 5), report

@@ -30,6 +30,7 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import NoReturn
 
 from fleetmap.changes import ChangeFeed
 from fleetmap.codec import WireScan
@@ -40,7 +41,7 @@ from fleetmap.grid_map import GridMap, IntegrationResult
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.persistence import DurableStore
 from fleetmap.rate_limited_log import RateLimitedLog
-from fleetmap.robot_state import CONFLICT_SHOWN, Receipt, RobotState, SessionSeqs, session_key
+from fleetmap.robot_state import CONFLICT_SHOWN, MAX_SESSIONS, Receipt, RobotState, SessionSeqs, session_key
 from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
@@ -165,6 +166,12 @@ class Job:
 
 
 #: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
+#: Robots (map id, robot id) whose scans were refused for want of their map that the delivery query
+#: remembers, the most recent: what became of those scans is final, and a robot's `flush` that was
+#: only told `no_map` waited for them for ever. Each holds at most MAX_SESSIONS sessions of 4 numbers
+#: and a reason: some 1 MB in all, whatever map ids senders make up (the oldest are forgotten).
+MAX_UNMAPPED_ROBOTS = 1024
+
 REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
 
 
@@ -247,6 +254,10 @@ class MapRegistry:
         #: The robots of deleted and replaced maps, so that copies of their old scans (a robot's cache,
         #: fetched after a restart) and their tokens do not bring those maps back.
         self.tombstones = Tombstones()
+        #: Scans refused for want of their map (`_refuse_unmapped`), for the delivery query: (map id,
+        #: robot id) -> session id -> [first seq, last seq, scans refused, reason]. Not saved: after
+        #: a restart the robots' caches, fetched again, are refused and counted again.
+        self._unmapped: dict[tuple[str, str], dict[int, list]] = {}
         # One line per robot per CONFLICT_SHOWN while its id conflict goes on (a scan of each says so).
         self._conflict_log = RateLimitedLog(log, interval=CONFLICT_SHOWN)
         # Maps created by a scan and removed again when it is refused: anyone who can publish (a Zenoh
@@ -595,13 +606,13 @@ class MapRegistry:
                 )
             if entry is None:
                 if not self.auto_create:
-                    raise IngestRejected(f"no map {map_id!r} (auto-create is off)", 404)
+                    self._refuse_unmapped(map_id, robot_id, wire, f"no map {map_id!r} (auto-create is off)")
                 if len(self.maps) >= self.max_auto_maps:
-                    raise IngestRejected(
+                    self._refuse_unmapped(
+                        map_id, robot_id, wire,
                         f"no map {map_id!r}, and the service already holds {len(self.maps)} maps, the most "
                         "scans may create; create it with PUT /maps/{id}",
-                        404,
-                    )
+                    )  # fmt: skip
                 entry, _ = self.create(map_id, by_scan=True)
                 entry.provisional = True
             if not self._room_for(entry, robot_id):
@@ -643,6 +654,25 @@ class MapRegistry:
             entry.unsettled += 1
             robot.unsettled += 1
             return job.future
+
+    def _refuse_unmapped(self, map_id: str, robot_id: str, wire: WireScan, reason: str) -> NoReturn:
+        """Refuse a scan for want of its map (404): remember it for the delivery query, if it has a
+        session id, as settled and refused (`_unmapped`), then raise IngestRejected. A seq not above
+        the session's last is a copy (the robot's cache fetched again): not counted twice. Call
+        under the registry's lock."""
+        if wire.session is not None:
+            key = (map_id, robot_id)
+            sessions = self._unmapped.pop(key, {})
+            self._unmapped[key] = sessions  # the most recent last
+            while len(self._unmapped) > MAX_UNMAPPED_ROBOTS:
+                del self._unmapped[next(iter(self._unmapped))]
+            counted = sessions.pop(wire.session, None) or [wire.seq, wire.seq - 1, 0, reason]
+            if wire.seq > counted[1]:
+                counted[1], counted[2], counted[3] = wire.seq, counted[2] + 1, reason
+            sessions[wire.session] = counted
+            while len(sessions) > MAX_SESSIONS:
+                del sessions[next(iter(sessions))]
+        raise IngestRejected(reason, 404)
 
     def reject(
         self, map_id: str, robot_id: str, reason: str, scan_id: tuple[int, float, int | None] | None = None
@@ -951,9 +981,20 @@ class MapRegistry:
                 ]
             )
             if robot is None:
+                # Without its map: the sessions whose scans were refused for want of it, if any.
+                unmapped = self._unmapped.get((map_id, robot_id), {}) if entry is None else {}
+                refused = [
+                    SessionDelivery(
+                        session=key, first_seq=first, last_accepted=last, settled=last, integrated=0,
+                        refused=count, lost=last - first + 1 - count, duplicates=0,
+                    )
+                    for key, (first, last, count, _) in unmapped.items()
+                    if session is None or key == session
+                ]  # fmt: skip
                 return DeliveryStatus(
                     map_id=map_id, robot_id=robot_id, status="no_map" if entry is None else "no_robot",
-                    buried=buried,
+                    buried=buried, sessions=refused,
+                    last_error=next(reversed(unmapped.values()))[3] if unmapped else None,
                 )  # fmt: skip
             sessions = [
                 _session_delivery(key, seqs)

@@ -761,7 +761,8 @@ def _report(status: DeliveryStatus, session_id: int | None, first: int, last: in
     """The `DeliveryReport` of the scans `first` .. `last` of session `session_id` from the service's
     `status`."""
     published = last - first + 1
-    entry = status.session(session_id) if status.status == "ok" else None
+    # Listed also without the map (`no_map`): the scans the service refused for want of it.
+    entry = status.session(session_id)
     # Scans `first` .. `gone_through` went with a deleted or replaced map, unless the counts of the
     # map there now include them (a session the service counts from before the map went).
     buried = status.buried_session(session_id) if session_id is not None else None
