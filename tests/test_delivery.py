@@ -610,3 +610,43 @@ def test_flush_of_scans_refused_for_want_of_their_map_returns_saying_so(tmp_path
                 pub.publish(scans[seq], seq=seq, stamp=float(seq))
             report = flush_within(pub, 10)
         assert (report.settled, report.integrated, report.gone, report.refused) == (True, 0, 5, 5), report
+
+
+def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_scans(tmp_path: Path) -> None:
+    """A robot publishes 10 scans, drives into a dead zone, publishes 10 more into its backlog, and
+    its process restarts there (the backlog goes with it). The new process's publisher confirms its
+    own 5 scans; `flush_ended` on the previous session, whose id and seqs the robot saved, says
+    without a timeout that 10 of its 20 are in the map and 10 lost: the robot knows to drive that
+    part again. `flush` alone confirmed the new session and said nothing of the old one."""
+    scans = scans_for(sim=18, beams=181, count=20)
+    with (
+        ServiceProcess(tmp_path) as service,
+        httpx.Client(base_url=service.base_url, timeout=10) as http,
+    ):
+        proxy = FreezableProxy(service.zenoh_port)
+        before = ScanPublisher("reboot", "r1", connect=[proxy.endpoint])
+        try:
+            publish_then_cut(before, proxy, http, "reboot", scans, 10)
+            for seq in range(10, 20):
+                assert before.publish(scans[seq], seq=seq, stamp=float(seq))
+            saved = (before.session_id, 0, before.last_seq)
+        finally:
+            before.close()  # the process died: its backlog with it
+            proxy.close()
+        assert saved[0] is not None and saved[2] == 19
+        with ScanPublisher("reboot", "r1", connect=[service.zenoh_endpoint]) as pub:
+            assert pub.wait_connected(20), pub.last_connect_error
+            for seq in range(5):
+                pub.publish(scans[seq], seq=seq, stamp=100.0 + seq)
+            assert pub.flush(10).confirmed
+            outcome: list[DeliveryReport] = []
+            asker = threading.Thread(target=lambda: outcome.append(pub.flush_ended(*saved)), daemon=True)
+            asker.start()
+            asker.join(10)
+            assert not asker.is_alive(), "flush_ended waits for scans that went with the old process"
+            report = outcome[0]
+            assert (report.published, report.integrated, report.lost, report.settled) == (20, 10, 10, True)
+            assert not report.confirmed and report.summary() == "20 scans published, 10 integrated: 10 lost"
+            # A session the service never heard of: nothing to wait for, nothing confirmed.
+            unknown = pub.flush_ended(12345, 0, 9, timeout=10)
+            assert (unknown.answered, unknown.settled, unknown.unsettled) == (True, False, 10), unknown

@@ -54,7 +54,8 @@ Delivery confirmation (`flush`). Zenoh has no acknowledgement, so neither `publi
 can tell whether a scan reached the map. `flush(timeout)` asks the service (a Zenoh query on
 `fleetmap/<map_id>/<robot_id>/delivery`, docs/protocol.md, "Delivery confirmation") until it reports
 every scan of this publisher's session settled, and says how many were integrated: a robot ending
-its mission calls it before `close()`, and knows whether all its scans are in the map.
+its mission calls it before `close()`, and knows whether all its scans are in the map. A robot whose
+process restarted mid-mission asks about the previous process's session with `flush_ended`.
 
 `backlog=0` publishes with a plain publisher, for a service older than this one (whose plain
 subscriber does not fetch anything): a scan published while no router is connected is then DROPPED
@@ -72,7 +73,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -647,6 +648,40 @@ class ScanPublisher:
             first, last, session = self._session_first_seq, self._last_seq, self._session_id
         if first is None or last is None:
             return DeliveryReport(published=0, answered=True)
+        return self._await_delivery(session, first, last, timeout, ended=False)
+
+    def flush_ended(
+        self, session_id: int, first_seq: int, last_seq: int, timeout: float | None = None
+    ) -> DeliveryReport:
+        """What became of the scans `first_seq` .. `last_seq` of an ENDED publisher session of this
+        robot: one whose publisher no longer runs, typically the robot's process before it restarted
+        mid-mission (`flush` covers only this publisher's own session). Save `session_id` and
+        `last_seq` as the robot publishes (and the first seq) to ask about them after a restart.
+
+        Its scans the service had not received went with that publisher's backlog, so the answer is
+        final once the service has settled every scan of the session it accepted: the seqs after
+        the last one it accepted count as `lost`, and the report is `settled`. It returns at once,
+        unsettled, when the service counts nothing of the session (none of its scans arrived, or the
+        service forgot it: an in-memory service restarted since, or the robot's 8 more recent
+        sessions), and on the timeout otherwise (None: no limit). Asks and raises as `flush` does.
+        Do not call it for a session whose publisher still runs (it may deliver more): `flush` that
+        one."""
+        for name, value in (("session_id", session_id), ("first_seq", first_seq), ("last_seq", last_seq)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
+                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+        if last_seq < first_seq:
+            raise ValueError(f"last_seq {last_seq} is below first_seq {first_seq}")
+        if self._closed.is_set():
+            raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
+        return self._await_delivery(
+            int(session_id) or None, int(first_seq), int(last_seq), timeout, ended=True
+        )
+
+    def _await_delivery(
+        self, session: int | None, first: int, last: int, timeout: float | None, ended: bool
+    ) -> DeliveryReport:
+        """Ask the service until the scans `first` .. `last` of `session` are settled (or, `ended`,
+        final: `_ended_report`), or `timeout` passes; `flush` and `flush_ended`."""
         deadline = None if timeout is None else time.monotonic() + timeout
         report = DeliveryReport(published=last - first + 1, first_seq=first, last_seq=last)
         unanswered_since: float | None = None  # since when the queries end at once without a reply
@@ -664,6 +699,10 @@ class ScanPublisher:
                 report = _report(status, session, first, last)
                 if report.settled:
                     return report
+                if ended:
+                    final = _ended_report(status, session, report)
+                    if final is not None:
+                        return final
             elif unanswered and self.connected and self.subscribed:
                 unanswered_since = now if unanswered_since is None else unanswered_since
                 if now - unanswered_since >= NO_ANSWER_S:
@@ -755,6 +794,22 @@ class ScanPublisher:
             f"ScanPublisher(map_id={self.map_id!r}, robot_id={self.robot_id!r}, encoding={self.encoding!r}, "
             f"{state}, endpoints={self.endpoints})"
         )
+
+
+def _ended_report(
+    status: DeliveryStatus, session_id: int | None, report: DeliveryReport
+) -> DeliveryReport | None:
+    """The final `report` of an ended session (`ScanPublisher.flush_ended`), None while the service
+    still has scans of it to settle: the seqs after the last it accepted are lost (they went with
+    the publisher's backlog). `report` as it is when the service counts nothing of the session."""
+    entry = status.session(session_id)
+    if entry is None:
+        return report
+    assert report.last_seq is not None
+    if entry.settled is None or entry.settled < entry.last_accepted:
+        return None
+    never = max(0, report.last_seq - entry.last_accepted)
+    return replace(report, lost=report.lost + never, settled=True)
 
 
 def _report(status: DeliveryStatus, session_id: int | None, first: int, last: int) -> DeliveryReport:
