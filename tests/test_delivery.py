@@ -287,6 +287,33 @@ def test_replay_whose_link_dies_silently_near_the_end_reports_unconfirmed_scans(
     assert "40 scans published, 0 integrated: the service did not answer, 40 unconfirmed" in err, err
 
 
+def test_replay_whose_service_goes_for_good_midway_says_so(tmp_path: Path) -> None:
+    """`fleetmap replay` whose service goes away after some scans and does not come back within
+    `--wait-timeout`: it exits with 2 saying it lost the service after publishing k of the scans,
+    where it said "no fleetmap service reachable", as if there had never been one."""
+    log = tmp_path / "corridor.log"
+    _write_carmen(log, 40)
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        proxy = FreezableProxy(service.zenoh_port)
+        command = [
+            sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "gone", "--robot", "r1",
+            "--rate", "1", "--connect", proxy.endpoint, "--quiet", "--wait-timeout", "2",
+        ]  # fmt: skip
+        proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            with reaped(proc), httpx.Client(base_url=service.base_url, timeout=10) as http:
+                wait_integrated(http, "gone", 10, timeout=60)
+                proxy.cut()
+                out, err = proc.communicate(timeout=60)
+        finally:
+            proxy.close()
+    assert proc.returncode == 2, (proc.returncode, out, err)
+    assert re.search(
+        r"lost the fleetmap service after publishing \d+ of 40 scans, and it did not come back", err
+    )
+    assert "Traceback" not in err, err
+
+
 def test_a_query_for_an_unknown_map_or_robot_says_so(tmp_path: Path) -> None:
     """The service answers a query about a map it does not hold, or a robot the map does not know,
     with a status that says so (not silence); one about several robots (a wildcard) or with a bad

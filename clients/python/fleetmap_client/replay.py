@@ -159,7 +159,15 @@ def _publish_all(
                     time.sleep(delay)
             if not pub.connected:
                 pauses += 1
-                _wait(pub, wait_timeout, None)
+                try:
+                    _wait(pub, wait_timeout, None)
+                except ReplayError as exc:
+                    # Midway, "no service reachable" alone read as if none had ever been.
+                    raise ReplayError(
+                        f"lost the fleetmap service after publishing {k} of {count} scans, and it did not "
+                        f"come back: {exc}; the scans not delivered were given up, the others are in the "
+                        "map or not as the service says (GET /maps/{id})"
+                    ) from None
             pub.publish(scan, seq=k)  # kept for re-delivery if the link dies meanwhile
             bar.update(1)
     return ReplayResult(scans=count, pauses=pauses, seconds=time.monotonic() - started)
