@@ -395,34 +395,36 @@ def test_scans_refused_at_the_input_limits_are_settled_as_refused_not_lost(tmp_p
     counted as duplicates, and the answer is the same."""
     near = Scan.from_fan((5.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
     utm = Scan.from_fan((500_000.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    # A lidar of more beams than the service takes (--max-beams, 16384), refused by the binary header.
+    dense = Scan.from_fan((5.0, 5.0, 0.0), -3.0, 6.0 / 20_000, [1.0] * 20_000, 0.05, 10.0)
     with (
         ServiceProcess(tmp_path) as service,
         ScanPublisher("lim", "r1", connect=[service.zenoh_endpoint]) as pub,
     ):
         assert pub.wait_connected(20), pub.last_connect_error
-        for seq in range(6):
-            pub.publish(utm if seq in (2, 5) else near, seq=seq, stamp=float(seq))
+        for seq in range(7):
+            pub.publish({2: utm, 3: dense, 6: utm}.get(seq, near), seq=seq, stamp=float(seq))
         started = time.monotonic()
         report = pub.flush(10)
         assert time.monotonic() - started < 5, report  # the last scan's refusal settled it
         assert report.settled and not report.confirmed, report
-        assert (report.published, report.integrated, report.refused, report.lost) == (6, 4, 2, 0)
-        assert report.last_error is not None and "scan seq 5 refused: pose (500000, 5)" in report.last_error
-        refused = f"2 refused or dropped by the service (the last: {report.last_error})"
-        assert report.summary() == f"6 scans published, 4 integrated: {refused}"
+        assert (report.published, report.integrated, report.refused, report.lost) == (7, 4, 3, 0)
+        assert report.last_error is not None and "scan seq 6 refused: pose (500000, 5)" in report.last_error
+        refused = f"3 refused or dropped by the service (the last: {report.last_error})"
+        assert report.summary() == f"7 scans published, 4 integrated: {refused}"
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
             robot = map_stats(http, "lim")["robots"]["r1"]
-        assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 2, 0), robot
-        assert robot["last_seq"] == 5, robot
-        assert "scan seq 5 refused: pose (500000, 5) is outside the world bound" in robot["last_error"]
+        assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 3, 0), robot
+        assert robot["last_seq"] == 6, robot
+        assert "scan seq 6 refused: pose (500000, 5) is outside the world bound" in robot["last_error"]
         service.stop()
         service.start()  # same ports and data
         assert pub.wait_connected(20), pub.last_connect_error
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
             # The cache fetched again: each of its scans a duplicate, the refused ones too.
-            wait_for(lambda: map_stats(http, "lim")["robots"]["r1"]["duplicates"] == 6, 10, what="the cache")
+            wait_for(lambda: map_stats(http, "lim")["robots"]["r1"]["duplicates"] == 7, 10, what="the cache")
             robot = map_stats(http, "lim")["robots"]["r1"]
-        assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 2, 0), robot
+        assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 3, 0), robot
         assert pub.flush(10) == report
 
 

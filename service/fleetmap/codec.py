@@ -269,7 +269,11 @@ def decode_binary(data: bytes) -> WireScan:
     # limit the robot broke, as `InputLimits.check` does for a scan of the right length.
     beam_limit = min(_limits.max_beams, MAX_BEAMS)
     if n > beam_limit:
-        raise DecodeError(f"{n} beams is more than the limit of {beam_limit}")
+        # A well-formed header: the scan is refused, as `InputLimits.check` refuses one (`scan_id`).
+        known = seq < SEQ_LIMIT and math.isfinite(stamp)
+        raise DecodeError(
+            f"{n} beams is more than the limit of {beam_limit}", (seq, stamp, session) if known else None
+        )
     arrays = 2 if flags & FLAG_ANGLES else 1
     expected = header.size + 4 * n * arrays
     if len(data) != expected:
