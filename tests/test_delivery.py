@@ -679,3 +679,28 @@ def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_sc
             # A session the service never heard of: nothing to wait for, nothing confirmed.
             unknown = pub.flush_ended(12345, 0, 9, timeout=10)
             assert (unknown.answered, unknown.settled, unknown.unsettled) == (True, False, 10), unknown
+
+
+def test_flush_and_wait_connected_refuse_a_timeout_that_is_not_a_number() -> None:
+    """A timeout of NaN (a robot's configuration read badly) made flush and wait_connected wait for
+    ever, as no time is ever past NaN: now a ValueError at once, and a string a TypeError naming the
+    timeout rather than Python's "unsupported operand type(s)"."""
+    with ScanPublisher("to", "r1", connect=["tcp/127.0.0.1:9"]) as pub:  # nothing listens there
+        pub.publish(_scan())
+        for call in (pub.flush, pub.wait_connected):
+            outcome: list[BaseException] = []
+
+            def run(call: Any = call, outcome: list[BaseException] = outcome) -> None:
+                try:
+                    call(float("nan"))
+                except ValueError as exc:
+                    outcome.append(exc)
+
+            waiter = threading.Thread(target=run, daemon=True)
+            waiter.start()
+            waiter.join(5)
+            assert not waiter.is_alive(), f"{call.__name__}(nan) still waits"
+            assert outcome and "NaN" in str(outcome[0]), outcome
+            with pytest.raises(TypeError, match="timeout must be a number of seconds or None"):
+                call("5")
+        assert not pub.flush(0.2).answered  # a number still works

@@ -497,7 +497,7 @@ class ScanPublisher:
         Returns True when that happened, False when `timeout` seconds (None: no limit) passed first
         or the publisher was closed. Polls every 10 ms, so Ctrl-C interrupts it.
         """
-        deadline = None if timeout is None else time.monotonic() + timeout
+        deadline = _deadline(timeout)
         while not self._closed.is_set():
             ready = self._hold_until is None and self._link_up
             if ready and self.connected and (not require_subscriber or self.subscribed):
@@ -640,8 +640,10 @@ class ScanPublisher:
         published. Raises `DeliveryUnsupported` when the service's scan subscriber is reachable but
         no delivery query is answered for `NO_ANSWER_S` (an older service), RuntimeError for an error
         reply or an answer that is not a fleetmap `DeliveryStatus`, `PublisherClosed` after `close()`
-        (which gives up what was not delivered: flush first) or when it is called meanwhile.
+        (which gives up what was not delivered: flush first) or when it is called meanwhile,
+        TypeError for a timeout that is not a number, ValueError for NaN (which never passed).
         """
+        _deadline(timeout)  # a bad timeout raises, whether or not there is anything to wait for
         with self._lock:
             if self._closed.is_set():
                 raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
@@ -682,7 +684,7 @@ class ScanPublisher:
     ) -> DeliveryReport:
         """Ask the service until the scans `first` .. `last` of `session` are settled (or, `ended`,
         final: `_ended_report`), or `timeout` passes; `flush` and `flush_ended`."""
-        deadline = None if timeout is None else time.monotonic() + timeout
+        deadline = _deadline(timeout)
         report = DeliveryReport(published=last - first + 1, first_seq=first, last_seq=last)
         unanswered_since: float | None = None  # since when the queries end at once without a reply
         while True:
@@ -794,6 +796,19 @@ class ScanPublisher:
             f"ScanPublisher(map_id={self.map_id!r}, robot_id={self.robot_id!r}, encoding={self.encoding!r}, "
             f"{state}, endpoints={self.endpoints})"
         )
+
+
+def _deadline(timeout: float | None) -> float | None:
+    """The monotonic time at which a wait of `timeout` seconds ends (None: no limit; a negative
+    timeout has ended already). Raises TypeError for a timeout that is not a number and ValueError
+    for NaN, which no time ever passed, so a wait for it never ended."""
+    if timeout is None:
+        return None
+    if isinstance(timeout, bool) or not isinstance(timeout, numbers.Real):
+        raise TypeError(f"timeout must be a number of seconds or None, got {timeout!r}")
+    if math.isnan(timeout):
+        raise ValueError("timeout must be a number of seconds or None, got NaN")
+    return time.monotonic() + float(timeout)
 
 
 def _ended_report(
