@@ -102,6 +102,10 @@ def replay(
         raise ValueError(f"rate must be a finite number >= 0, got {rate}")
     if limit is not None and limit < 0:
         raise ValueError(f"limit must be >= 0, got {limit}")
+    for name, value in (("wait_timeout", wait_timeout), ("confirm_timeout", confirm_timeout)):
+        # NaN passed every check downstream and was found out only after the whole replay.
+        if value is not None and not value >= 0.0:
+            raise ValueError(f"{name} must be a number of seconds >= 0, got {value}")
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     count = len(ds) if limit is None else min(limit, len(ds))
     period = 0.0 if rate == 0.0 else 1.0 / (NOMINAL_SCAN_RATE * rate)
