@@ -704,3 +704,43 @@ def test_flush_and_wait_connected_refuse_a_timeout_that_is_not_a_number() -> Non
             with pytest.raises(TypeError, match="timeout must be a number of seconds or None"):
                 call("5")
         assert not pub.flush(0.2).answered  # a number still works
+
+
+def test_flush_counts_the_scans_through_its_last_seq_only(tmp_path: Path) -> None:
+    """A robot flushes in a dead zone (its scans through seq 19 published, seq 15 one the service
+    refuses) and goes on publishing meanwhile (seq 25 refused too); the link comes back and the
+    backlog arrives at once, so the service's counts take in scans published after the flush began.
+    The report counts the scans through 19 only: 19 integrated, 1 refused. It said "20 scans
+    published, 20 integrated: 2 refused", more than were published and one integrated too many."""
+    scans = scans_for(sim=19, beams=181, count=30)
+    utm = Scan.from_fan((500_000.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    with (
+        ServiceProcess(tmp_path, ["--in-memory"]) as service,
+        httpx.Client(base_url=service.base_url, timeout=10) as http,
+    ):
+        proxy = FreezableProxy(service.zenoh_port)
+        pub = ScanPublisher("through", "r1", connect=[proxy.endpoint])
+        try:
+            publish_then_cut(pub, proxy, http, "through", scans, 10)
+            for seq in range(10, 20):
+                assert pub.publish(utm if seq == 15 else scans[seq], seq=seq, stamp=float(seq))
+            outcome: list[DeliveryReport] = []
+            flusher = threading.Thread(target=lambda: outcome.append(pub.flush(20)), daemon=True)
+            flusher.start()
+            time.sleep(0.3)  # flush asks about seqs 0 .. 19
+            for seq in range(20, 30):
+                assert pub.publish(utm if seq == 25 else scans[seq], seq=seq, stamp=float(seq))
+            proxy.restore()
+            flusher.join(25)
+            report = outcome[0]
+            assert (report.published, report.integrated, report.refused, report.lost) == (20, 19, 1, 0), (
+                report
+            )
+            assert report.settled and not report.confirmed
+            everything = pub.flush(20)
+            assert (everything.published, everything.integrated, everything.refused) == (30, 28, 2), (
+                everything
+            )
+        finally:
+            pub.close()
+            proxy.close()

@@ -177,6 +177,16 @@ class SessionDelivery(BaseModel):
     )
     lost: int = Field(description="seqs it skipped after first_seq: scans that never arrived")
     duplicates: int = Field(description="its scans ignored because their seq was accepted already")
+    refused_seqs: list[int] | None = Field(
+        default=None,
+        description="the seqs of its scans refused, one by one, so that a reader counts those through a "
+        "seq of its own; null: not known (counted before the service's last start, or more than 64)",
+    )
+    lost_gaps: list[tuple[int, int]] | None = Field(
+        default=None,
+        description="[seq, n]: the n seqs just before seq were lost (skipped), one gap each; null: not "
+        "known, as for refused_seqs",
+    )
 
 
 class BuriedSession(BaseModel):

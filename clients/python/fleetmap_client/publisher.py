@@ -845,13 +845,24 @@ def _report(status: DeliveryStatus, session_id: int | None, first: int, last: in
             published=published, first_seq=first, last_seq=last, answered=True, gone=gone,
             settled=gone == published,
         )  # fmt: skip
-    # Counts of scans published after `flush` began may be in the service's: capped, they never
-    # make a report say more was integrated than it asked about.
+    integrated, refused, lost = min(entry.integrated, published), entry.refused, entry.lost
+    if entry.last_accepted > last:
+        # The service's counts take in scans published after `flush` began (a robot that goes on
+        # publishing, or whose backlog came in all at once): only those through `last` are asked
+        # about. A scan refused after it made "10 scans published, 10 integrated: 1 refused".
+        if entry.refused_seqs is not None and entry.lost_gaps is not None:
+            refused = sum(1 for seq in entry.refused_seqs if seq <= last)
+            lost = sum(max(0, min(n, last - (seq - n) + 1)) for seq, n in entry.lost_gaps)
+            counted = last - max(first, entry.first_seq) + 1
+            integrated = min(integrated, max(0, counted - refused - lost))
+        else:  # counted, not listed (an older service, or too many): at most what was asked about
+            refused = min(refused, published)
+            lost = min(lost, published - refused)
+            integrated = min(integrated, published - refused - lost)
     return DeliveryReport(
-        published=published, first_seq=first, last_seq=last, integrated=min(entry.integrated, published),
-        refused=entry.refused, lost=entry.lost, settled=entry.settled is not None and entry.settled >= last,
-        answered=True, counted_from=entry.first_seq, gone=gone,
-        last_error=status.last_error if entry.refused else None,
+        published=published, first_seq=first, last_seq=last, integrated=integrated, refused=refused,
+        lost=lost, settled=entry.settled is not None and entry.settled >= last, answered=True,
+        counted_from=entry.first_seq, gone=gone, last_error=status.last_error if refused else None,
     )  # fmt: skip
 
 
