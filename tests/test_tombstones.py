@@ -282,7 +282,10 @@ def test_a_damaged_tombstone_is_a_clear_error_at_start(data: Path, sessions: str
 
     DurableStore(data).close()  # the schema
     db = sqlite3.connect(data / DB_NAME)
-    db.execute("INSERT INTO tombstones VALUES ('m', 'r', ?, ?)", (time.time(), sessions))
+    db.execute(
+        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES ('m', 'r', ?, ?)",
+        (time.time(), sessions),
+    )
     db.commit()
     db.close()
     store = DurableStore(data)
@@ -291,3 +294,277 @@ def test_a_damaged_tombstone_is_a_clear_error_at_start(data: Path, sessions: str
             store.load_tombstones()
     finally:
         store.close()
+
+
+# -- robots a full map forgot -------------------------------------------------------------------------
+
+
+def forgetting_registry(data: Path | None = None, max_robots: int = 1) -> MapRegistry:
+    """A started registry (durable on `data` if given) whose maps hold at most `max_robots` robots."""
+    durable = DurableStore(data) if data is not None else None
+    reg = MapRegistry(durable=durable, max_robots_per_map=max_robots)
+    reg.start()
+    return reg
+
+
+def feed_then_forget(reg: MapRegistry) -> None:
+    """Robot r's scans 0-4 (session `SESSION`) integrated into map `m`, then robot x's scan 0: the
+    map, which holds one robot, forgets r (offline, nothing waiting) to make room for x."""
+    for seq in range(5):
+        reg.submit("m", "r", wire(seq))
+    assert reg.wait_idle()
+    reg.submit("m", "x", wire(0, session=SESSION + 50))
+    assert reg.wait_idle()
+    assert sorted(reg.get("m").robots) == ["x"]
+
+
+def assert_old_scans_ignored(reg: MapRegistry, integrated: int) -> None:
+    """Robot r's scans 0-4, sent again from its cache, are duplicates (200); map `m` still holds
+    `integrated` scans."""
+    for seq in range(5):
+        refused = refusal(reg, "m", "r", wire(seq))
+        assert refused.status == 200 and refused.kind == "duplicate", refused.reason
+        assert "forgot robot 'r'" in refused.reason and "had seq 4" in refused.reason
+    assert reg.wait_idle()
+    assert reg.get("m").scans_integrated == integrated
+
+
+def test_a_forgotten_robots_cached_scans_are_not_integrated_twice() -> None:
+    """A full map forgets an idle robot to make room for a new one, and with it the seqs of its
+    sessions: its cache, fetched again (the service restarted, its link came back past the lease),
+    was integrated a second time into the map that held those scans. Now they are duplicates; its
+    newer scans, a new session of it, and scans without a session id go through as before."""
+    reg = forgetting_registry()
+    try:
+        feed_then_forget(reg)
+        assert_old_scans_ignored(reg, integrated=6)
+        assert "r" not in reg.get("m").robots  # an ignored scan brings it back no more than any refusal
+        reg.set_online("m", "x", True)  # (x online: r may not make room for a third robot)
+        reg.set_online("m", "x", False)
+        reg.submit("m", "r", wire(5))  # newer than what the map had: r starts afresh with it
+        assert reg.wait_idle()
+        robot = reg.get("m").robots["r"]
+        assert (robot.scans_integrated, robot.last_seq, robot.lost, robot.restarts) == (1, 5, 0, 0)
+        assert refusal(reg, "m", "r", wire(3)).status == 200
+        assert robot.duplicates == 1  # counted on the robot, which exists again
+        reg.submit("m", "r", wire(0, session=SESSION + 1))  # its process restarted: a new session
+        reg.submit("m", "r", wire(1, session=None))  # never re-delivered: never covered
+        assert reg.wait_idle()
+        assert reg.get("m").scans_integrated == 9
+    finally:
+        reg.close()
+
+
+def test_the_delivery_query_calls_a_forgotten_robots_scans_gone_only_once_its_map_went() -> None:
+    """The delivery query lists a deleted map's robots' sessions in `buried`, and the robot's flush
+    counts those scans as gone with the map. A robot merely forgotten by a live map must not be
+    listed: its scans are in the map. Its token brings it back as any robot's does; once the map is
+    deleted, its scans did go with it, and its stone is a deleted map's."""
+    reg = forgetting_registry()
+    try:
+        feed_then_forget(reg)
+        status = reg.delivery_status("m", "r", SESSION)
+        assert (status.status, status.buried) == ("no_robot", [])
+        assert reg.tombstones.covers("m", "r", SESSION, 4) is not None
+        reg.set_online("m", "r", True)  # its token on the live map: shown online (x makes room)
+        assert reg.get("m").robots["r"].online
+        assert reg.delivery_status("m", "r").buried == []
+        reg.set_online("m", "r", False)
+        reg.submit("m", "x", wire(1, session=SESSION + 50))  # r forgotten again (merged, still forgotten)
+        assert reg.wait_idle()
+        assert "r" not in reg.get("m").robots
+        reg.delete("m")
+        status = reg.delivery_status("m", "r", SESSION)
+        assert status.status == "no_map"
+        assert [(b.session, b.last_seq) for b in status.buried] == [(SESSION, 4)]
+        reg.set_online("m", "r", True)  # its map was deleted under it: its token creates none
+        assert "m" not in reg.maps
+        assert refusal(reg, "m", "r", wire(4)).reason.startswith("seq 4 is from before map 'm' was deleted")
+    finally:
+        reg.close()
+
+
+def test_a_robot_forgotten_while_running_stays_forgotten_after_a_restart(data: Path) -> None:
+    """The tombstone of a robot the map forgot is stored (by the map's next snapshot, here the one
+    at close, in the transaction that drops the robot's row), so that the cache a restarted service
+    fetches is not integrated twice."""
+    reg = forgetting_registry(data)
+    try:
+        feed_then_forget(reg)
+    finally:
+        reg.close()
+    db = sqlite3.connect(data / DB_NAME)
+    stored = db.execute("SELECT map_id, robot_id, sessions, forgotten FROM tombstones").fetchall()
+    robots = [row[0] for row in db.execute("SELECT robot_id FROM robots")]
+    db.close()
+    assert stored == [("m", "r", f'{{"{SESSION}": 4}}', 1)] and robots == ["x"]
+    again = forgetting_registry(data)
+    try:
+        stone = again.tombstones.get("m", "r")
+        assert stone is not None and stone.forgotten
+        assert_old_scans_ignored(again, integrated=6)
+        assert again.delivery_status("m", "r", SESSION).buried == []
+    finally:
+        again.close()
+
+
+def test_a_crash_leaves_a_forgotten_robots_seqs_or_its_tombstone_in_storage(data: Path) -> None:
+    """Storage stops holding a forgotten robot's seqs (its row) in the snapshot that stores its
+    tombstone: a crash before that snapshot restores the robot itself, one after it the tombstone.
+    Either way its cached scans are duplicates. (A crash: a second registry on the same directory,
+    the first never closed.)"""
+    reg = forgetting_registry(data)
+    crashed: list[MapRegistry] = []
+    try:
+        feed_then_forget(reg)
+        before = forgetting_registry(data, max_robots=2)  # crashed before any snapshot
+        crashed.append(before)
+        assert sorted(before.get("m").robots) == ["r", "x"]
+        for seq in range(5):
+            assert refusal(before, "m", "r", wire(seq)).status == 200
+        reg.snapshot_all(every_map=True)
+        after = forgetting_registry(data)  # crashed after it
+        crashed.append(after)
+        assert sorted(after.get("m").robots) == ["x"]
+        assert_old_scans_ignored(after, integrated=6)
+    finally:
+        for other in crashed:
+            other.close()
+        reg.close()
+
+
+def test_a_robot_forgotten_at_restore_is_remembered_across_restarts(data: Path) -> None:
+    """A map restored with more robots than it may hold (a lower --max-robots-per-map, or robots
+    first heard since the snapshot replayed from the journal) forgets the ones heard from least
+    recently: their old scans must not be integrated again either, in this process or the next."""
+    reg = forgetting_registry(data, max_robots=3)
+    try:
+        for seq in range(5):
+            reg.submit("m", "r", wire(seq))
+        assert reg.wait_idle()
+        for robot_id in ("a", "b"):
+            reg.submit("m", robot_id, wire(0, session=SESSION + 60))
+        assert reg.wait_idle()
+    finally:
+        reg.close()
+    for _restart in range(2):
+        again = forgetting_registry(data, max_robots=2)
+        try:
+            assert sorted(again.get("m").robots) == ["a", "b"]
+            assert_old_scans_ignored(again, integrated=7)
+        finally:
+            again.close()
+
+
+def test_forgotten_robots_stones_become_a_deleted_maps_only_with_their_own_map() -> None:
+    """`Tombstones.forget` keeps a robot of a live map (covered, not `buried`); `bury` of that map,
+    deleted or replaced, makes its forgotten robots' stones ordinary ones of that moment, and leaves
+    other maps' alone. A robot with no session id has nothing to remember."""
+    state = RobotState()
+    state.accept(4, 4.0, SESSION)
+    stones = Tombstones()
+    forgotten = stones.forget("m", "r", state, now=1000.0)
+    assert forgotten is not None and forgotten.forgotten and dict(forgotten.sessions) == {SESSION: 4}
+    assert stones.forget("other", "r", state, now=1001.0) is not None
+    no_session = RobotState()
+    no_session.accept(9, 9.0, None)
+    assert stones.forget("m", "plain", no_session, now=1002.0) is None
+    assert stones.covers("m", "r", SESSION, 4) is forgotten and not stones.buried("m", "r")
+    live = RobotState()
+    live.accept(2, 2.0, SESSION + 1)
+    made = stones.bury("m", {"live": live}, now=2000.0)
+    assert [(s.robot_id, s.deleted_at, s.forgotten) for s in made] == [
+        ("live", 2000.0, False), ("r", 2000.0, False),
+    ]  # fmt: skip
+    assert stones.buried("m", "r") and stones.covers("m", "r", SESSION, 4) is not None
+    other = stones.get("other", "r")
+    assert other is not None and other.forgotten and not stones.buried("other", "r")
+
+
+def test_a_forgotten_robot_keeps_what_an_earlier_deletion_buried_and_the_bounds_hold(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A robot buried with a deleted map that fed the new map of its id and was forgotten by it has
+    one stone covering both, a forgotten one (its newer scans are in the live map). Forgotten robots
+    count towards `MAX_TOMBSTONES` like the rest, the oldest going first."""
+    monkeypatch.setattr(tombstones, "MAX_TOMBSTONES", 2)
+    old, new = RobotState(), RobotState()
+    old.accept(4, 4.0, SESSION)
+    new.accept(9, 9.0, SESSION + 1)
+    stones = Tombstones()
+    stones.bury("m", {"r": old}, now=1000.0)
+    stone = stones.forget("m", "r", new, now=1001.0)
+    assert stone is not None and stone.forgotten
+    assert dict(stone.sessions) == {SESSION: 4, SESSION + 1: 9}
+    stones.forget("m", "s", new, now=1002.0)
+    stones.forget("m", "t", new, now=1003.0)
+    assert len(stones) == 2 and stones.get("m", "r") is None
+    assert [s.robot_id for s in stones.bury("m", {}, now=1004.0)] == ["s", "t"]
+
+
+def test_a_database_from_before_forgotten_robots_gets_the_column_at_start(data: Path) -> None:
+    """A data directory written before tombstones had their `forgotten` column gets it at start, its
+    rows deleted maps' robots; an older service, which names the four columns it writes, still
+    writes rows a newer one reads."""
+    from fleetmap.database import SCHEMA
+
+    data.mkdir()
+    old_schema = SCHEMA.replace(
+        "    forgotten INTEGER NOT NULL DEFAULT 0,  -- 1: forgotten by its map, which lives on\n", ""
+    )
+    assert old_schema != SCHEMA
+    db = sqlite3.connect(data / DB_NAME)
+    db.executescript(old_schema)
+    db.execute(
+        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES ('m', 'r', ?, ?)",
+        (time.time(), f'{{"{SESSION}": 4}}'),
+    )
+    db.commit()
+    db.close()
+    reg = registry(data)
+    try:
+        stone = reg.tombstones.get("m", "r")
+        assert stone is not None and not stone.forgotten and reg.tombstones.buried("m", "r")
+    finally:
+        reg.close()
+    db = sqlite3.connect(data / DB_NAME)
+    db.execute(  # as an older service writes one
+        "INSERT OR REPLACE INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES ('n', 'r', ?, ?)",
+        (time.time(), f'{{"{SESSION}": 4}}'),
+    )
+    db.commit()
+    db.close()
+    store = DurableStore(data)
+    try:
+        assert sorted((s.map_id, s.forgotten) for s in store.load_tombstones()) == [
+            ("m", False),
+            ("n", False),
+        ]
+    finally:
+        store.close()
+
+
+def test_a_forgotten_robots_stone_whose_map_an_older_service_deleted_is_a_deleted_maps(data: Path) -> None:
+    """An older service, which knows no `forgotten` column, deletes a map and leaves its forgotten
+    robots' rows as they were: at start they are deleted maps' robots (their token creates no map,
+    the delivery query says their scans went with it). Those of a stored map stay forgotten."""
+    DurableStore(data).close()  # the schema
+    db = sqlite3.connect(data / DB_NAME)
+    db.executemany(
+        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions, forgotten) VALUES (?, 'r', ?, ?, 1)",
+        [(map_id, time.time(), f'{{"{SESSION}": 4}}') for map_id in ("gone", "live")],
+    )
+    db.execute(
+        "INSERT INTO maps (id, config, created_at) VALUES ('live', ?, ?)",
+        (MapConfig().model_dump_json(), 1.0),
+    )
+    db.commit()
+    db.close()
+    reg = registry(data)
+    try:
+        assert reg.tombstones.buried("gone", "r") and not reg.tombstones.buried("live", "r")
+        reg.set_online("gone", "r", True)
+        assert "gone" not in reg.maps
+        assert [b.last_seq for b in reg.delivery_status("gone", "r").buried] == [4]
+    finally:
+        reg.close()

@@ -19,7 +19,10 @@ LOCK_NAME = "fleetmap.lock"
 #: misreads. Directories written before it was recorded hold 0 and are this layout. (The journal's
 #: `session` column came later within version 1: added to a database without it at start (`_migrate`),
 #: and an older service, which names the columns it reads and writes, works on it as before. So did
-#: the `tombstones` table, created at start where it is missing, which an older service ignores.)
+#: the `tombstones` table, created at start where it is missing, which an older service ignores,
+#: and its `forgotten` column, added at start where it is missing: an older service names the
+#: columns it reads and writes, its rows get 0 there, and it takes a forgotten robot's stone for a
+#: deleted map's, which ignores the same old scans.)
 SCHEMA_VERSION = 1
 #: Refuse to start with less free space than this in the data directory.
 MIN_FREE_BYTES = 64 * 1024 * 1024
@@ -64,6 +67,7 @@ CREATE TABLE IF NOT EXISTS tombstones (  -- robots of deleted and replaced maps 
     robot_id TEXT NOT NULL,
     deleted_at REAL NOT NULL,
     sessions TEXT NOT NULL,  -- JSON: publisher session id -> the last seq the service had
+    forgotten INTEGER NOT NULL DEFAULT 0,  -- 1: forgotten by its map, which lives on
     PRIMARY KEY (map_id, robot_id)
 );
 """
@@ -199,10 +203,14 @@ def _refuse_unknown_layout(path: Path) -> None:
 def _migrate(conn: sqlite3.Connection) -> None:
     """Bring a database written before the journal had its `session` column up to date: its rows
     keep NULL there (no session: their restarts are told by their stamps, as when they were
-    written)."""
+    written); and one written before tombstones had their `forgotten` column: its rows are all
+    deleted maps' robots (0)."""
     columns = {row[1] for row in conn.execute("PRAGMA table_info(journal)")}
     if "session" not in columns:
         conn.execute("ALTER TABLE journal ADD COLUMN session INTEGER")
+    columns = {row[1] for row in conn.execute("PRAGMA table_info(tombstones)")}
+    if "forgotten" not in columns:
+        conn.execute("ALTER TABLE tombstones ADD COLUMN forgotten INTEGER NOT NULL DEFAULT 0")
 
 
 def connect(path: Path, synchronous: str = "FULL", autocheckpoint: bool = True) -> sqlite3.Connection:

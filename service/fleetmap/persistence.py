@@ -68,12 +68,13 @@ def _delete_map_rows(conn: sqlite3.Connection, map_id: str) -> None:
 
 def _bury(conn: sqlite3.Connection, buried: Sequence[Tombstone]) -> None:
     """Inside an open transaction, store the tombstones `buried` (replacing a robot's earlier one:
-    `Tombstones.bury` merged them) and delete those past `TOMBSTONE_DAYS`."""
+    `Tombstones.bury` and `Tombstones.forget` merged them) and delete those past `TOMBSTONE_DAYS`."""
     if not buried:
         return
     conn.executemany(
-        "INSERT OR REPLACE INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES (?, ?, ?, ?)",
-        [(t.map_id, t.robot_id, t.deleted_at, t.sessions_json()) for t in buried],
+        "INSERT OR REPLACE INTO tombstones (map_id, robot_id, deleted_at, sessions, forgotten) "
+        "VALUES (?, ?, ?, ?, ?)",
+        [(t.map_id, t.robot_id, t.deleted_at, t.sessions_json(), int(t.forgotten)) for t in buried],
     )
     conn.execute("DELETE FROM tombstones WHERE deleted_at < ?", (forgotten_before(time.time()),))
 
@@ -290,8 +291,10 @@ class DurableStore:
             conn.close()
 
     def load_tombstones(self) -> list[Tombstone]:
-        """The robots of deleted and replaced maps still remembered (`tombstones.py`); those past
-        `TOMBSTONE_DAYS`, or the oldest past `MAX_TOMBSTONES`, are deleted from the database here."""
+        """The robots of deleted and replaced maps, and those forgotten by full maps, still
+        remembered (`tombstones.py`); those past `TOMBSTONE_DAYS`, or the oldest past
+        `MAX_TOMBSTONES`, are deleted from the database here, and a forgotten robot's whose map is
+        not stored made a deleted map's."""
         conn = connect(self.path)
         try:
             with conn:
@@ -301,7 +304,15 @@ class DurableStore:
                     "ORDER BY deleted_at DESC LIMIT -1 OFFSET ?)",
                     (MAX_TOMBSTONES,),
                 )
-            rows = conn.execute("SELECT map_id, robot_id, deleted_at, sessions FROM tombstones").fetchall()
+                # A forgotten robot's stone whose map is not stored: an older service deleted the map
+                # (it writes no `forgotten`, so the row stayed so). The robot's scans went with it.
+                conn.execute(
+                    "UPDATE tombstones SET forgotten = 0 "
+                    "WHERE forgotten AND map_id NOT IN (SELECT id FROM maps)"
+                )
+            rows = conn.execute(
+                "SELECT map_id, robot_id, deleted_at, sessions, forgotten FROM tombstones"
+            ).fetchall()
             return [Tombstone.from_row(*row) for row in rows]
         except (sqlite3.DatabaseError, ValueError) as exc:
             raise unreadable_database(self.path, None, exc) from None
@@ -654,6 +665,10 @@ class DurableStore:
                     "INSERT INTO robots (map_id, robot_id, state) VALUES (?, ?, ?)",
                     [(map_id, rid, json.dumps(state)) for rid, state in saved["robots"].items()],
                 )
+                # Their tombstones (`Tombstones.forget`) in the same transaction: the storage holds
+                # each forgotten robot's seqs (its row, or journal rows this switch makes dead)
+                # until it holds its tombstone, so its cached scans are never integrated twice.
+                _bury(conn, saved.get("forgotten", ()))
                 conn.execute(
                     "DELETE FROM tiles WHERE map_id = ? AND gen < ? AND EXISTS (SELECT 1 FROM tiles u WHERE "
                     "u.map_id = tiles.map_id AND u.ti = tiles.ti AND u.tj = tiles.tj AND u.gen = ?)",

@@ -45,7 +45,7 @@ from fleetmap.robot_state import CONFLICT_SHOWN, MAX_SESSIONS, Receipt, RobotSta
 from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
-from fleetmap.tombstones import Tombstones
+from fleetmap.tombstones import Tombstone, Tombstones
 from fleetmap.wire import BuriedSession, DeliveryStatus, SessionDelivery, is_valid_id
 
 log = logging.getLogger("fleetmap.registry")
@@ -115,6 +115,10 @@ class MapEntry:
     #: created, forgotten, or changed in a field of `RobotState.changed`. An event stream that saw
     #: this version has nothing to send while it stays.
     live_version: int = 0
+    #: The tombstones of robots it forgot (`Tombstones.forget`) that storage does not hold yet, by
+    #: robot id: its next snapshot stores them in the transaction that drops those robots' rows
+    #: (`MapRegistry.snapshot_all`). With a `DurableStore` only.
+    unstored_stones: dict[str, Tombstone] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.changes = ChangeFeed(start=self.generation)
@@ -367,12 +371,15 @@ class MapRegistry:
         for entry in self.list():
             needed = self.durable.needs_snapshot(entry.id)
             if every_map or (needed and (not only_overdue or self.durable.overdue(entry.id))):
-                counters = functools.partial(self._saved_counters, entry)
+                saved: list[dict] = []  # what the snapshot stores of the map's robots
+                counters = functools.partial(self._saved_counters, entry, saved)
                 # Listed above, perhaps seconds ago (each snapshot takes its time): the map may have
                 # been deleted or replaced since, and a new map of its id must not get its snapshot.
                 current = functools.partial(self._is_current, entry)
                 try:
                     self.durable.snapshot(entry.id, entry.gmap, counters, current)
+                    if saved:
+                        self._stones_stored(entry, saved[0]["forgotten"])
                 except (sqlite3.Error, OSError, StorageError) as exc:
                     self._snapshot_log.error(
                         "snapshot", f"snapshot of map {entry.id} failed (retried at the next one): {exc}",
@@ -385,13 +392,26 @@ class MapRegistry:
         with self.lock:
             return self.maps.get(entry.id) is entry
 
-    def _saved_counters(self, entry: MapEntry) -> dict:
+    def _saved_counters(self, entry: MapEntry, taken: list[dict]) -> dict:
+        """What a snapshot of map `entry` stores of its robots (and appends to `taken`): their
+        counters, and the tombstones of the robots it forgot that storage does not hold yet."""
         with self.lock:
-            return {
+            saved = {
                 "scans_integrated": entry.scans_integrated,
                 "scans_rejected": entry.scans_rejected,
                 "robots": {rid: state.saved() for rid, state in entry.robots.items()},
+                "forgotten": list(entry.unstored_stones.values()),
             }
+        taken.append(saved)
+        return saved
+
+    def _stones_stored(self, entry: MapEntry, stones: list[Tombstone]) -> None:
+        """A snapshot of map `entry` stored `stones` (its `_saved_counters`): not pending any more,
+        unless its robot was forgotten again since (a newer stone, stored by the next snapshot)."""
+        with self.lock:
+            for stone in stones:
+                if entry.unstored_stones.get(stone.robot_id) is stone:
+                    del entry.unstored_stones[stone.robot_id]
 
     # -- maps ------------------------------------------------------------------------------------
 
@@ -599,11 +619,7 @@ class MapRegistry:
                 robot = entry.robots.get(robot_id) if entry is not None else None
                 if robot is not None:
                     robot.duplicates += 1
-                raise IngestRejected(
-                    f"seq {wire.seq} is from before map {map_id!r} was deleted or replaced (the service "
-                    f"had seq {stone.sessions[session_key(wire.session)]} of this publisher then): ignored",
-                    200,
-                )
+                raise IngestRejected(_covered_reason(stone, wire), 200)
             if entry is None:
                 if not self.auto_create:
                     self._refuse_unmapped(map_id, robot_id, wire, f"no map {map_id!r} (auto-create is off)")
@@ -724,21 +740,29 @@ class MapRegistry:
         count keeps, so garbage under changing robot ids cannot lock real robots out), else the one
         heard from least recently. Without the latter a map that had seen as many robots over its
         life (robots come and go, get renamed, are replaced) refused every new robot for good.
-        A forgotten robot that comes back starts afresh: its first scan is accepted as a first."""
+        A forgotten robot that comes back starts afresh: its first new scan is accepted as a first.
+        But the map remembers the last seq of each of its publisher sessions (`Tombstones.forget`),
+        so its scans from before, sent again from its cache (after a restart of the service, or
+        its link's), are ignored as duplicates, not integrated twice."""
         if robot_id in entry.robots or len(entry.robots) < self.max_robots_per_map:
             return True
         return self._forget_idle(entry, 1) == 1
 
-    @staticmethod
-    def _forget_idle(entry: MapEntry, count: int) -> int:
+    def _forget_idle(self, entry: MapEntry, count: int) -> int:
         """Forget up to `count` robots of map `entry` that are not online and have no scan waiting,
         in `_room_for`'s order (those whose every message was refused first, then the ones heard
-        from least recently); return how many (call under the registry's lock)."""
+        from least recently), each remembered by a tombstone (`Tombstones.forget`), which the map's
+        next snapshot stores (`MapEntry.unstored_stones`); return how many (call under the
+        registry's lock)."""
         if count <= 0:
             return 0
         idle = [(rid, st) for rid, st in entry.robots.items() if not st.online and not st.unsettled]
         chosen = heapq.nsmallest(count, idle, key=_forgetting_order)
-        for rid, _ in chosen:
+        now = time.time()
+        for rid, state in chosen:
+            stone = self.tombstones.forget(entry.id, rid, state, now)
+            if stone is not None and self.durable is not None:
+                entry.unstored_stones[rid] = stone
             entry.forget(rid)
         return len(chosen)
 
@@ -966,6 +990,7 @@ class MapRegistry:
         answer): its counters and, per publisher session it remembers (only `session` if given:
         its session id, 0 for scans without one), its ledger; and the sessions whose scans went with
         a deleted or replaced map of this id (`Tombstones`), so that a robot stops waiting for them.
+        Not those of a robot the map merely forgot (`Tombstone.forgotten`): its scans are in the map.
         Holds the registry's lock briefly."""
         with self.lock:
             entry = self.maps.get(map_id)
@@ -973,7 +998,7 @@ class MapRegistry:
             stone = self.tombstones.get(map_id, robot_id)
             buried = (
                 []
-                if stone is None
+                if stone is None or stone.forgotten
                 else [
                     BuriedSession(session=key, last_seq=seq, deleted_at=stone.deleted_at)
                     for key, seq in stone.sessions.items()
@@ -1033,6 +1058,17 @@ def _forgetting_order(item: tuple[str, RobotState]) -> tuple[bool, float]:
     """Which robot a full map forgets first (`MapRegistry._forget_idle`): one whose every message
     was refused (it has no seq), then the one heard from least recently."""
     return item[1].last_seq is not None, item[1].last_heard
+
+
+def _covered_reason(stone: Tombstone, wire: WireScan) -> str:
+    """Why the scan `wire`, covered by `stone` (`Tombstones.covers`), is ignored (a 200 answer)."""
+    had = f"the service had seq {stone.sessions[session_key(wire.session)]} of this publisher then"
+    if stone.forgotten:
+        return (
+            f"seq {wire.seq} is from before map {stone.map_id!r} forgot robot {stone.robot_id!r} to make "
+            f"room for another robot ({had}; the scans it had are in the map): ignored"
+        )
+    return f"seq {wire.seq} is from before map {stone.map_id!r} was deleted or replaced ({had}): ignored"
 
 
 def _session_delivery(key: int, seqs: SessionSeqs) -> SessionDelivery:

@@ -1,4 +1,5 @@
-"""What the service remembers of a deleted (or replaced) map's robots, so that the map stays deleted.
+"""What the service remembers of a deleted (or replaced) map's robots, so that the map stays deleted,
+and of the robots a full map forgot, so that their old scans are not integrated twice.
 
 A robot's `ScanPublisher` keeps its last scans for re-delivery, and the service's advanced
 subscriber fetches them whenever it meets a publisher it has not heard: after every restart of the
@@ -13,12 +14,22 @@ that seq is from before the deletion and is ignored as a duplicate (`covers`); a
 robot creates no map (`buried`). A new scan, or a new session (a robot process that restarted),
 goes through as before and, with auto-create, makes a new map.
 
+A map full of robots forgets an idle one to make room for a new one (`MapRegistry._room_for`), and
+its seq bookkeeping goes with it: without a record, the same cache fetched again (the service
+restarted, the robot's link came back) was integrated a second time into the map that already held
+those scans. So a forgotten robot is buried too (`Tombstones.forget`), its stone marked `forgotten`:
+its old scans are ignored as duplicates the same way, but its scans are in the live map, not gone,
+so its token brings it back as before (`buried` is False) and the delivery query does not list its
+sessions as gone with a map. When that map is deleted or replaced, its forgotten robots' stones
+become ordinary ones (`bury`): their scans went with it.
+
 Scans without a session id (plain publishers) are never covered: they are not re-delivered, and
 their seqs may start again at any time. Tombstones are kept `TOMBSTONE_DAYS` and at most
 `MAX_TOMBSTONES` robots (the oldest go first), since maps are created and deleted under new ids for
 the service's whole life; a robot whose publisher stays open and idle longer than that, with the
 old scans in its cache, could still bring a deleted map back. The `DurableStore` keeps them across
-restarts. Plain data, no locks: the registry holds its lock around every use.
+restarts (a forgotten robot's stone in the snapshot transaction that drops the robot's rows).
+Plain data, no locks: the registry holds its lock around every use.
 """
 
 from __future__ import annotations
@@ -29,7 +40,7 @@ from dataclasses import dataclass
 
 from fleetmap.robot_state import MAX_SESSIONS, NO_SESSION, RobotState
 
-#: Days a deleted map's robots are remembered.
+#: Days a deleted map's robots (and a map's forgotten robots) are remembered.
 TOMBSTONE_DAYS = 30.0
 #: Buried robots remembered at most, the most recently buried.
 MAX_TOMBSTONES = 100_000
@@ -45,6 +56,9 @@ class Tombstone:
     """One robot of a deleted or replaced map: the last seq the service had of each of its publisher
     sessions (session id -> seq; sessions without an id left out), and when it was buried.
 
+    `forgotten`: the robot was forgotten by its map, which lives on (`Tombstones.forget`), and
+    `deleted_at` is when: its scans through those seqs are in that map, not gone with it.
+
     `refused` is the robot's `RobotState.refused` then, (session id, seq) of its last scan refused
     for the service's sake (a full queue: 503; the memory budget: 507): its seq is recorded, yet the
     service never had the scan, and its sender is told to send it again, which must be integrated,
@@ -56,19 +70,42 @@ class Tombstone:
     deleted_at: float
     sessions: Mapping[int, int]
     refused: tuple[int, int] | None = None
+    forgotten: bool = False
 
     def sessions_json(self) -> str:
         """`sessions` as stored (a JSON object of decimal strings: session ids need 64 bits)."""
         return json.dumps({str(k): v for k, v in self.sessions.items()})
 
     @classmethod
-    def from_row(cls, map_id: str, robot_id: str, deleted_at: float, sessions_json: str) -> Tombstone:
+    def from_row(
+        cls, map_id: str, robot_id: str, deleted_at: float, sessions_json: str, forgotten: int = 0
+    ) -> Tombstone:
         """The tombstone of a stored row; ValueError if its sessions are not a JSON object of
         session ids and seqs (a damaged database)."""
         stored = json.loads(sessions_json)
         if not isinstance(stored, dict):
             raise ValueError(f"tombstone of {map_id}/{robot_id}: sessions are not a JSON object")
-        return cls(map_id, robot_id, deleted_at, {int(k): int(v) for k, v in stored.items()})
+        sessions = {int(k): int(v) for k, v in stored.items()}
+        return cls(map_id, robot_id, deleted_at, sessions, forgotten=bool(forgotten))
+
+
+def merged_sessions(old: Mapping[int, int], state: RobotState) -> dict[int, int]:
+    """The sessions of a tombstone that had `old` (least recently heard first) and buries `state`
+    now: each session the higher of its two seqs, sessions without an id left out, at most the
+    `MAX_SESSIONS` heard most recently (`state`'s, in its order, count as heard last)."""
+    sessions = dict(old)
+    for key, rec in state.sessions.items():
+        if key != NO_SESSION:
+            sessions[key] = max(rec.last_seq, sessions.pop(key, rec.last_seq))
+    while len(sessions) > MAX_SESSIONS:
+        del sessions[next(iter(sessions))]
+    return sessions
+
+
+def refused_scan(state: RobotState) -> tuple[int, int] | None:
+    """`state.refused` if its scan carries a session id (only those are ever covered), else None."""
+    refused = state.refused
+    return refused if refused is not None and refused[0] != NO_SESSION else None
 
 
 class Tombstones:
@@ -76,10 +113,30 @@ class Tombstones:
 
     def __init__(self, stones: Iterable[Tombstone] = (), now: float | None = None) -> None:
         self._stones: dict[tuple[str, str], Tombstone] = {}
+        #: map id -> the robots it forgot that have a (`forgotten`) stone: what `bury` turns into
+        #: ordinary stones when the map goes, without a look at every stone.
+        self._forgotten: dict[str, set[str]] = {}
         for stone in sorted(stones, key=lambda s: s.deleted_at):
-            self._stones[stone.map_id, stone.robot_id] = stone
+            self._put(stone)
         if now is not None:
             self.prune(now)
+
+    def _put(self, stone: Tombstone) -> None:
+        """Keep `stone` as its robot's, the newest (replacing the robot's earlier one)."""
+        self._drop(stone.map_id, stone.robot_id)
+        self._stones[stone.map_id, stone.robot_id] = stone
+        if stone.forgotten:
+            self._forgotten.setdefault(stone.map_id, set()).add(stone.robot_id)
+
+    def _drop(self, map_id: str, robot_id: str) -> Tombstone | None:
+        """Remove the robot's stone, if it has one, and return it."""
+        stone = self._stones.pop((map_id, robot_id), None)
+        if stone is not None and stone.forgotten:
+            robots = self._forgotten[map_id]
+            robots.discard(robot_id)
+            if not robots:
+                del self._forgotten[map_id]
+        return stone
 
     def __len__(self) -> int:
         return len(self._stones)
@@ -90,27 +147,47 @@ class Tombstones:
         keeps the sessions it had then, and each session the higher of its two seqs, up to the
         `MAX_SESSIONS` heard most recently: each burial renews the tombstone's time, so without
         that bound a map deleted every day grew its robots' tombstones by a session a day for good.
-        (The live bookkeeping keeps no more: an older session's scans were new to it too.)"""
+        (The live bookkeeping keeps no more: an older session's scans were new to it too.)
+
+        The robots the map forgot (`forget`) are buried with it: their stones become ordinary ones
+        of this time, returned too (their scans went with the map)."""
         made = []
         for robot_id, state in robots.items():
-            old = self._stones.pop((map_id, robot_id), None)
-            sessions = dict(old.sessions) if old is not None else {}  # least recently heard first
-            for key, rec in state.sessions.items():
-                if key != NO_SESSION:
-                    sessions[key] = max(rec.last_seq, sessions.pop(key, rec.last_seq))
-            while len(sessions) > MAX_SESSIONS:
-                del sessions[next(iter(sessions))]
-            refused = state.refused if state.refused is not None and state.refused[0] != NO_SESSION else None
-            stone = Tombstone(map_id, robot_id, now, sessions, refused)
-            self._stones[map_id, robot_id] = stone
+            old = self._drop(map_id, robot_id)
+            sessions = merged_sessions({} if old is None else old.sessions, state)
+            stone = Tombstone(map_id, robot_id, now, sessions, refused_scan(state))
+            self._put(stone)
+            made.append(stone)
+        for robot_id in sorted(self._forgotten.get(map_id, ())):  # (a copy: `_put` changes it)
+            old = self._stones[map_id, robot_id]
+            stone = Tombstone(map_id, robot_id, now, old.sessions, old.refused)
+            self._put(stone)
             made.append(stone)
         self.prune(now)
         return made
 
+    def forget(self, map_id: str, robot_id: str, state: RobotState, now: float) -> Tombstone | None:
+        """Remember robot `robot_id`, forgotten at `now` by map `map_id`, which lives on: its
+        sessions' seqs, merged with its earlier stone as `bury` merges them, in a `forgotten` stone.
+        Returns it, to store, or None if there is nothing to remember (no session with an id): its
+        earlier stone, if any, then stays as it was. A robot that had an ordinary stone (its map was
+        deleted before, and the robot fed the new one) gets a forgotten one: its scans since are in
+        the live map, which the delivery query must not call gone; the older ones stay covered."""
+        if all(key == NO_SESSION for key in state.sessions):
+            return None
+        old = self._drop(map_id, robot_id)
+        stone = Tombstone(
+            map_id, robot_id, now, merged_sessions({} if old is None else old.sessions, state),
+            refused_scan(state), forgotten=True,
+        )  # fmt: skip
+        self._put(stone)
+        self.prune(now)
+        return stone
+
     def covers(self, map_id: str, robot_id: str, session: int | None, seq: int) -> Tombstone | None:
         """The tombstone that makes scan `seq` of publisher session `session` one from before its map
-        was deleted, or None: the scan is not known to be old (or is the one its robot was told to
-        send again: `Tombstone.refused`)."""
+        was deleted (or its robot forgotten by it: `Tombstone.forgotten`), or None: the scan is not
+        known to be old (or is the one its robot was told to send again: `Tombstone.refused`)."""
         stone = self._stones.get((map_id, robot_id))
         if stone is None or session is None or stone.refused == (session, seq):
             return None
@@ -118,19 +195,22 @@ class Tombstones:
         return stone if last is not None and seq <= last else None
 
     def get(self, map_id: str, robot_id: str) -> Tombstone | None:
-        """The tombstone of robot `robot_id` of a deleted or replaced map `map_id`, if it has one."""
+        """The tombstone of robot `robot_id` of a deleted or replaced map `map_id`, or of one map
+        `map_id` forgot (`Tombstone.forgotten`), if it has one."""
         return self._stones.get((map_id, robot_id))
 
     def buried(self, map_id: str, robot_id: str) -> bool:
-        """Whether robot `robot_id` was buried with map `map_id` (its token must not bring it back)."""
-        return (map_id, robot_id) in self._stones
+        """Whether robot `robot_id` was buried with map `map_id` (its token must not bring it back);
+        not for a robot the map merely forgot."""
+        stone = self._stones.get((map_id, robot_id))
+        return stone is not None and not stone.forgotten
 
     def prune(self, now: float) -> None:
         """Forget the robots buried more than `TOMBSTONE_DAYS` ago, and the oldest past
         `MAX_TOMBSTONES`."""
         horizon = forgotten_before(now)
         while self._stones:
-            key, oldest = next(iter(self._stones.items()))
+            oldest = next(iter(self._stones.values()))
             if oldest.deleted_at >= horizon and len(self._stones) <= MAX_TOMBSTONES:
                 break
-            del self._stones[key]
+            self._drop(oldest.map_id, oldest.robot_id)
