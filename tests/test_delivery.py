@@ -21,7 +21,7 @@ from typing import Any
 import httpx
 import pytest
 import zenoh
-from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, ScanPublisher
+from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, PublisherClosed, ScanPublisher
 from robot_process import scans_for
 from service_process import FreezableProxy, ServiceProcess, reaped, wait_for
 from test_client_zenoh import Router, _write_carmen
@@ -744,3 +744,15 @@ def test_flush_counts_the_scans_through_its_last_seq_only(tmp_path: Path) -> Non
         finally:
             pub.close()
             proxy.close()
+
+
+def test_flush_after_close_says_to_flush_first() -> None:
+    """A robot that closes its publisher (a `with` block ended) and then flushes learns that the
+    order was wrong, and why it matters, not only that the publisher is closed."""
+    pub = ScanPublisher("fc", "r1", connect=["tcp/127.0.0.1:9"])  # nothing listens there
+    pub.publish(_scan())
+    pub.close()
+    with pytest.raises(
+        PublisherClosed, match=r"flush before close\(\), which gives up the scans not delivered"
+    ):
+        pub.flush(1)

@@ -646,7 +646,10 @@ class ScanPublisher:
         _deadline(timeout)  # a bad timeout raises, whether or not there is anything to wait for
         with self._lock:
             if self._closed.is_set():
-                raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
+                raise PublisherClosed(
+                    f"publisher {self.map_id}/{self.robot_id} is closed: flush before close(), which gives "
+                    "up the scans not delivered yet"
+                )
             first, last, session = self._session_first_seq, self._last_seq, self._session_id
         if first is None or last is None:
             return DeliveryReport(published=0, answered=True)
