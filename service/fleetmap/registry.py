@@ -169,13 +169,14 @@ class Job:
     receipt: Receipt | None = None
 
 
-#: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
 #: Robots (map id, robot id) whose scans were refused for want of their map that the delivery query
 #: remembers, the most recent: what became of those scans is final, and a robot's `flush` that was
-#: only told `no_map` waited for them for ever. Each holds at most MAX_SESSIONS sessions of 4 numbers
-#: and a reason: some 1 MB in all, whatever map ids senders make up (the oldest are forgotten).
+#: only told `no_map` waited for them for ever. Each holds at most MAX_SESSIONS sessions of 3 numbers
+#: and a reason (some 300 bytes each): 2.5 MB at most, whatever map ids senders make up (the oldest
+#: are forgotten).
 MAX_UNMAPPED_ROBOTS = 1024
 
+#: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
 REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
 
 
