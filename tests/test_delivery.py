@@ -641,6 +641,36 @@ def test_flush_of_scans_refused_for_want_of_their_map_returns_saying_so(tmp_path
         assert (report.settled, report.integrated, report.gone, report.refused) == (True, 0, 5, 5), report
 
 
+def test_flush_of_scans_refused_for_want_of_room_for_the_robot_returns_saying_so(tmp_path: Path) -> None:
+    """A map holds as many robots as it may (`--max-robots-per-map 1`, its robot online): a second
+    robot's scans are refused (429), and its flush without a timeout returns at once saying so and
+    why, where it waited for ever (the service answered `no_robot` and nothing of them)."""
+    scans = scans_for(sim=20, beams=181, count=5)
+    with (
+        ServiceProcess(tmp_path, ["--in-memory", "--max-robots-per-map", "1"]) as service,
+        ScanPublisher("full", "r1", connect=[service.zenoh_endpoint]) as first,
+    ):
+        assert first.wait_connected(20), first.last_connect_error
+        first.publish(scans[0])
+        assert first.flush(10).confirmed  # the map's one robot, online
+        # Only now: its liveliness token would make it the map's robot, online, before the first.
+        second = ScanPublisher("full", "r2", connect=[service.zenoh_endpoint])
+        try:
+            assert second.wait_connected(20), second.last_connect_error
+            for scan in scans:
+                second.publish(scan)
+            outcome: list[DeliveryReport] = []
+            flusher = threading.Thread(target=lambda: outcome.append(second.flush()), daemon=True)
+            flusher.start()
+            flusher.join(10)
+            assert not flusher.is_alive(), "flush() still waits for scans the service refused"
+        finally:
+            second.close()
+        report = outcome[0]
+        assert (report.settled, report.integrated, report.refused) == (True, 0, 5), report
+        assert report.last_error is not None and "already has 1 robots, the most it" in report.last_error
+
+
 def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_scans(tmp_path: Path) -> None:
     """A robot publishes 10 scans, drives into a dead zone, publishes 10 more into its backlog, and
     its process restarts there (the backlog goes with it). The new process's publisher confirms its

@@ -169,11 +169,11 @@ class Job:
     receipt: Receipt | None = None
 
 
-#: Robots (map id, robot id) whose scans were refused for want of their map that the delivery query
-#: remembers, the most recent: what became of those scans is final, and a robot's `flush` that was
-#: only told `no_map` waited for them for ever. Each holds at most MAX_SESSIONS sessions of 3 numbers
-#: and a reason (some 300 bytes each): 2.5 MB at most, whatever map ids senders make up (the oldest
-#: are forgotten).
+#: Robots (map id, robot id) whose scans were refused for want of their map, or of room for them on
+#: it (`--max-robots-per-map`), that the delivery query remembers, the most recent: what became of
+#: those scans is final, and a robot's `flush` that was only told `no_map` or `no_robot` waited for
+#: them for ever. Each holds at most MAX_SESSIONS sessions of 3 numbers and a reason (some 300
+#: bytes each): 2.5 MB at most, whatever ids senders make up (the oldest are forgotten).
 MAX_UNMAPPED_ROBOTS = 1024
 
 #: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
@@ -634,9 +634,8 @@ class MapRegistry:
                 entry.provisional = True
             if not self._room_for(entry, robot_id):
                 entry.scans_rejected += 1  # counted on the map: the robot has no state to count it on
-                raise IngestRejected(
-                    f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have", 429
-                )
+                reason = f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have"
+                self._refuse_unmapped(map_id, robot_id, wire, reason, 429)
             robot = entry.robot(robot_id)
             robot.last_heard = now = time.time()
             seq, stamp, session = wire.seq, wire.stamp, wire.session
@@ -672,11 +671,13 @@ class MapRegistry:
             robot.unsettled += 1
             return job.future
 
-    def _refuse_unmapped(self, map_id: str, robot_id: str, wire: WireScan, reason: str) -> NoReturn:
-        """Refuse a scan for want of its map (404): remember it for the delivery query, if it has a
-        session id, as settled and refused (`_unmapped`), then raise IngestRejected. A seq not above
-        the session's last is a copy (the robot's cache fetched again): not counted twice. Call
-        under the registry's lock."""
+    def _refuse_unmapped(
+        self, map_id: str, robot_id: str, wire: WireScan, reason: str, status: int = 404
+    ) -> NoReturn:
+        """Refuse a scan for want of its map (404), or of room for its robot on it (429): remember
+        it for the delivery query, if it has a session id, as settled and refused (`_unmapped`),
+        then raise IngestRejected. A seq not above the session's last is a copy (the robot's cache
+        fetched again): not counted twice. Call under the registry's lock."""
         if wire.session is not None:
             key = (map_id, robot_id)
             sessions = self._unmapped.pop(key, {})
@@ -689,7 +690,7 @@ class MapRegistry:
             sessions[wire.session] = counted
             while len(sessions) > MAX_SESSIONS:
                 del sessions[next(iter(sessions))]
-        raise IngestRejected(reason, 404)
+        raise IngestRejected(reason, status)
 
     def reject(
         self, map_id: str, robot_id: str, reason: str, scan_id: tuple[int, float, int | None] | None = None
@@ -1007,8 +1008,8 @@ class MapRegistry:
                 ]
             )
             if robot is None:
-                # Without its map: the sessions whose scans were refused for want of it, if any.
-                unmapped = self._unmapped.get((map_id, robot_id), {}) if entry is None else {}
+                # Without its map, or room on it: the sessions whose scans were refused so, if any.
+                unmapped = self._unmapped.get((map_id, robot_id), {})
                 refused = [
                     SessionDelivery(
                         session=key, first_seq=first, last_accepted=last, settled=last, integrated=0,
