@@ -354,6 +354,43 @@ def test_a_query_for_an_unknown_map_or_robot_says_so(tmp_path: Path) -> None:
             session.close()
 
 
+def test_a_query_without_fields_2_gets_the_first_versions_reply(tmp_path: Path) -> None:
+    """Robots in the field run the client they were built with, which read the delivery reply
+    strictly: a field it did not know made its flush fail ("not a fleetmap one"). A query without
+    `fields=2` gets the reply's first fields only, which such a client reads; one with it (today's
+    `flush`) gets `last_error` and the sessions' `refused_seqs` and `lost_gaps` too."""
+
+    first_fields = set(DeliveryStatus.model_fields) - {"last_error"}
+    scan = scans_for(sim=21, beams=181, count=1)[0]
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        session = client_session(service.zenoh_endpoint)
+        try:
+            payload = codec.encode_binary(scan, 0, stamp=0.0, session=78)
+            session.put(
+                SCAN_KEY.format(map_id="fv", robot_id="r1"), payload, encoding=zenoh.Encoding(BINARY_ENCODING)
+            )
+            with httpx.Client(base_url=service.base_url, timeout=10) as http:
+                wait_integrated(http, "fv", 1, timeout=30)
+            key = DELIVERY_KEY.format(map_id="fv", robot_id="r1")
+            replies = {}
+            for selector in (key + "?session=78", key + "?session=78;fields=2"):
+                got = [
+                    r.ok.payload.to_string() for r in session.get(selector, timeout=5.0) if r.ok is not None
+                ]
+                assert len(got) == 1, (selector, got)
+                replies[selector] = json.loads(got[0])
+            first = replies[key + "?session=78"]
+            assert set(first) == first_fields, set(first) ^ first_fields
+            assert set(first["sessions"][0]) == set(SessionDelivery.model_fields) - {
+                "refused_seqs",
+                "lost_gaps",
+            }
+            newer = replies[key + "?session=78;fields=2"]
+            assert "last_error" in newer and newer["sessions"][0]["refused_seqs"] == []
+        finally:
+            session.close()
+
+
 def test_the_answer_counts_refused_and_duplicate_scans(tmp_path: Path) -> None:
     """Scans the service does not integrate are settled all the same, and counted: a duplicate seq
     (ignored) and a scan that needs more tiles than its map may have (refused at integration).

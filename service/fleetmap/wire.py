@@ -34,6 +34,14 @@ ALIVE_KEY_WILDCARD = "fleetmap/*/*/alive"
 DELIVERY_KEY = "fleetmap/{map_id}/{robot_id}/delivery"
 DELIVERY_KEY_WILDCARD = "fleetmap/*/*/delivery"
 DELIVERY_SESSION_PARAMETER = "session"
+#: `?fields=2` asks for the reply's fields added after its first version (`DeliveryStatus.
+#: last_error`, `SessionDelivery.refused_seqs` and `lost_gaps`). Without it the reply holds the
+#: first version's only: clients of that version read it strictly (a field they did not know made
+#: their flush fail), and robots are not all upgraded with the service.
+DELIVERY_FIELDS_PARAMETER = "fields"
+DELIVERY_FIELDS = 2
+#: What a reply of the first version leaves out (`DeliveryStatus.model_dump_json(exclude=...)`).
+DELIVERY_FIELDS_1_EXCLUDE: dict = {"last_error": True, "sessions": {"__all__": {"refused_seqs", "lost_gaps"}}}
 #: The encoding of the service's error replies to a delivery query (a sentence), which tells them
 #: from the errors Zenoh itself reports to the querier (a query's timeout).
 DELIVERY_ERROR_ENCODING = "text/plain;fleetmap-delivery"
@@ -248,6 +256,9 @@ __all__ = [
     "DELIVERY_KEY",
     "DELIVERY_ERROR_ENCODING",
     "DELIVERY_KEY_WILDCARD",
+    "DELIVERY_FIELDS",
+    "DELIVERY_FIELDS_1_EXCLUDE",
+    "DELIVERY_FIELDS_PARAMETER",
     "DELIVERY_SESSION_PARAMETER",
     "DeliveryStatus",
     "ID_PATTERN",

@@ -87,6 +87,8 @@ from fleetmap.wire import (
     ALIVE_KEY,
     BINARY_ENCODING,
     DELIVERY_ERROR_ENCODING,
+    DELIVERY_FIELDS,
+    DELIVERY_FIELDS_PARAMETER,
     DELIVERY_KEY,
     DELIVERY_SESSION_PARAMETER,
     JSON_ENCODING,
@@ -732,7 +734,10 @@ class ScanPublisher:
         if session is None:
             return None
         key = DELIVERY_KEY.format(map_id=self.map_id, robot_id=self.robot_id)
-        selector = f"{key}?{DELIVERY_SESSION_PARAMETER}={0 if session_id is None else session_id}"
+        selector = (
+            f"{key}?{DELIVERY_SESSION_PARAMETER}={0 if session_id is None else session_id}"
+            f";{DELIVERY_FIELDS_PARAMETER}={DELIVERY_FIELDS}"
+        )
         try:
             replies = session.get(selector, timeout=timeout)
             for reply in replies:
