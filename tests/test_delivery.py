@@ -552,6 +552,36 @@ def test_replay_whose_delivery_answer_is_not_fleetmaps_says_so_and_exits_1(tmp_p
     assert "fleetmap replay: warning: not confirmed: the delivery answer is not a fleetmap one" in proc.stderr
 
 
+def test_the_scans_of_a_robot_without_a_map_refused_at_the_limits_are_settled(tmp_path: Path) -> None:
+    """A robot that declares no liveliness token (one written in another language: docs/protocol.md
+    says it need not) and whose every scan breaks the input limits (UTM eastings as map
+    coordinates) makes no map: a refused scan creates none, so the service answered `no_map` and
+    nothing of them, and a flush waited for ever. The answer now lists them settled and refused,
+    and says why."""
+    utm = Scan.from_fan((500_000.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        session = client_session(service.zenoh_endpoint)
+        try:
+            key = SCAN_KEY.format(map_id="utm", robot_id="r1")
+            for seq in range(3):
+                payload = codec.encode_binary(utm, seq, stamp=float(seq), session=79)
+                session.put(key, payload, encoding=zenoh.Encoding(BINARY_ENCODING))
+            selector = DELIVERY_KEY.format(map_id="utm", robot_id="r1") + "?session=79;fields=2"
+
+            def listed() -> DeliveryStatus | None:
+                answer = query(session, selector)
+                return answer if isinstance(answer, DeliveryStatus) and answer.sessions else None
+
+            answer = wait_for(listed, 10, what="the refused scans listed")
+            assert isinstance(answer, DeliveryStatus) and answer.status == "no_map", answer
+            entry = answer.session(79)
+            assert entry is not None and (entry.settled, entry.refused, entry.integrated) == (2, 3, 0), entry
+            assert answer.last_error is not None and "outside the world bound" in answer.last_error
+            assert httpx.get(f"{service.base_url}/maps/utm", timeout=10).status_code == 404  # still no map
+        finally:
+            session.close()
+
+
 def test_flush_reads_an_answer_with_fields_it_does_not_know() -> None:
     """A service newer than the robot's client may add fields to its delivery answer (and its
     entries): flush reads what it knows and confirms. It raised "the delivery answer is not a

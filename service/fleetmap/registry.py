@@ -675,28 +675,38 @@ class MapRegistry:
         self, map_id: str, robot_id: str, wire: WireScan, reason: str, status: int = 404
     ) -> NoReturn:
         """Refuse a scan for want of its map (404), or of room for its robot on it (429): remember
-        it for the delivery query, if it has a session id, as settled and refused (`_unmapped`),
-        then raise IngestRejected. A seq not above the session's last is a copy (the robot's cache
-        fetched again): not counted twice. Call under the registry's lock."""
-        if wire.session is not None:
-            key = (map_id, robot_id)
-            sessions = self._unmapped.pop(key, {})
-            self._unmapped[key] = sessions  # the most recent last
-            while len(self._unmapped) > MAX_UNMAPPED_ROBOTS:
-                del self._unmapped[next(iter(self._unmapped))]
-            counted = sessions.pop(wire.session, None) or [wire.seq, wire.seq - 1, 0, reason]
-            if wire.seq > counted[1]:
-                counted[1], counted[2], counted[3] = wire.seq, counted[2] + 1, reason
-            sessions[wire.session] = counted
-            while len(sessions) > MAX_SESSIONS:
-                del sessions[next(iter(sessions))]
+        it for the delivery query (`_remember_unmapped`), then raise IngestRejected. Call under the
+        registry's lock."""
+        self._remember_unmapped(map_id, robot_id, wire.seq, wire.session, reason)
         raise IngestRejected(reason, status)
+
+    def _remember_unmapped(
+        self, map_id: str, robot_id: str, seq: int, session: int | None, reason: str
+    ) -> None:
+        """The scan `seq` of publisher session `session` of a robot without a map, or without room
+        on it, was refused: remember it for the delivery query, if it has a session id, as settled
+        and refused (`_unmapped`). A seq not above the session's last is a copy (the robot's cache
+        fetched again): not counted twice. Call under the registry's lock."""
+        if session is None:
+            return
+        key = (map_id, robot_id)
+        sessions = self._unmapped.pop(key, {})
+        self._unmapped[key] = sessions  # the most recent last
+        while len(self._unmapped) > MAX_UNMAPPED_ROBOTS:
+            del self._unmapped[next(iter(self._unmapped))]
+        counted = sessions.pop(session, None) or [seq, seq - 1, 0, reason]
+        if seq > counted[1]:
+            counted[1], counted[2], counted[3] = seq, counted[2] + 1, reason
+        sessions[session] = counted
+        while len(sessions) > MAX_SESSIONS:
+            del sessions[next(iter(sessions))]
 
     def reject(
         self, map_id: str, robot_id: str, reason: str, scan_id: tuple[int, float, int | None] | None = None
     ) -> None:
         """Count a message that could not be decoded, or that broke the input limits, on its robot if
-        the ids are valid (and its map exists: a refused scan creates none).
+        the ids are valid (and its map exists: a refused scan creates none; without its map, or room
+        on it, a scan with a `scan_id` and a session id is remembered for the delivery query).
 
         `scan_id`, the (seq, stamp, session) of a message read that far (`codec.DecodeError.scan_id`)
         with a session id, settles that scan as refused in its session's ledger, its seq recorded as
@@ -711,10 +721,11 @@ class MapRegistry:
             return
         with self.lock:
             entry = self.maps.get(map_id)
-            if entry is None:
-                return
-            if not self._room_for(entry, robot_id):
-                entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
+            if entry is None or not self._room_for(entry, robot_id):
+                if entry is not None:
+                    entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
+                if scan_id is not None:  # for the delivery query: its robot's flush would wait for ever
+                    self._remember_unmapped(map_id, robot_id, scan_id[0], scan_id[2], reason)
                 return
             robot = entry.robot(robot_id)
             robot.last_heard = now = time.time()
