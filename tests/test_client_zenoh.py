@@ -545,6 +545,15 @@ def test_replay_command_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert "map_id 'bad/id' is invalid" in capsys.readouterr().err
     with pytest.raises(ReplayError):
         replay(log, "m", "r", connect=[nobody], wait_timeout=0.5, progress=False)
+    # A timeout of NaN is refused before anything is published: --confirm-timeout nan made the
+    # replay publish every scan and then flush for ever (or fail then, with no word on the scans).
+    for options in (["--confirm-timeout", "nan", "--wait-timeout", "2"], ["--wait-timeout", "nan"]):
+        started = time.monotonic()
+        assert (
+            cli.main(["replay", str(log), "--map", "m", "--robot", "r", "--connect", nobody, *options]) == 2
+        )
+        assert time.monotonic() - started < 5
+        assert "must be a number of seconds >= 0, got nan" in capsys.readouterr().err
 
 
 def test_replay_help_says_that_rate_0_lets_the_service_drop_scans() -> None:

@@ -21,9 +21,9 @@ from typing import Any
 import httpx
 import pytest
 import zenoh
-from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, ScanPublisher
+from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, PublisherClosed, ScanPublisher
 from robot_process import scans_for
-from service_process import FreezableProxy, ServiceProcess, reaped
+from service_process import FreezableProxy, ServiceProcess, reaped, wait_for
 from test_client_zenoh import Router, _write_carmen
 from test_e2e import assert_region_equal, map_stats, wait_integrated
 from test_ingest import client_session
@@ -35,7 +35,7 @@ from fleetmap.memory_budget import MemoryBudgetError
 from fleetmap.registry import IngestRejected, Job, MapRegistry
 from fleetmap.robot_state import Receipt, RobotState, SessionLedger
 from fleetmap.scan import Scan
-from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus
+from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
 
 
 def test_settled_passes_only_scans_settled_in_order() -> None:
@@ -193,6 +193,10 @@ def test_the_reply_docs_protocol_md_shows_is_the_services_model() -> None:
     status = DeliveryStatus.model_validate_json(example.group(1))
     entry = status.session(4711)
     assert entry is not None and entry.settled == 999
+    # The model ignores fields it does not know (a newer service's): the example must use its own.
+    shown = json.loads(example.group(1))
+    assert set(shown) == set(DeliveryStatus.model_fields), set(shown) ^ set(DeliveryStatus.model_fields)
+    assert set(shown["sessions"][0]) == set(SessionDelivery.model_fields)
 
 
 def query(session: zenoh.Session, key: str) -> DeliveryStatus | str:
@@ -283,6 +287,33 @@ def test_replay_whose_link_dies_silently_near_the_end_reports_unconfirmed_scans(
     assert "40 scans published, 0 integrated: the service did not answer, 40 unconfirmed" in err, err
 
 
+def test_replay_whose_service_goes_for_good_midway_says_so(tmp_path: Path) -> None:
+    """`fleetmap replay` whose service goes away after some scans and does not come back within
+    `--wait-timeout`: it exits with 2 saying it lost the service after publishing k of the scans,
+    where it said "no fleetmap service reachable", as if there had never been one."""
+    log = tmp_path / "corridor.log"
+    _write_carmen(log, 40)
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        proxy = FreezableProxy(service.zenoh_port)
+        command = [
+            sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "gone", "--robot", "r1",
+            "--rate", "1", "--connect", proxy.endpoint, "--quiet", "--wait-timeout", "2",
+        ]  # fmt: skip
+        proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            with reaped(proc), httpx.Client(base_url=service.base_url, timeout=10) as http:
+                wait_integrated(http, "gone", 10, timeout=60)
+                proxy.cut()
+                out, err = proc.communicate(timeout=60)
+        finally:
+            proxy.close()
+    assert proc.returncode == 2, (proc.returncode, out, err)
+    assert re.search(
+        r"lost the fleetmap service after publishing \d+ of 40 scans, and it did not come back", err
+    )
+    assert "Traceback" not in err, err
+
+
 def test_a_query_for_an_unknown_map_or_robot_says_so(tmp_path: Path) -> None:
     """The service answers a query about a map it does not hold, or a robot the map does not know,
     with a status that says so (not silence); one about several robots (a wildcard) or with a bad
@@ -323,6 +354,43 @@ def test_a_query_for_an_unknown_map_or_robot_says_so(tmp_path: Path) -> None:
             session.close()
 
 
+def test_a_query_without_fields_2_gets_the_first_versions_reply(tmp_path: Path) -> None:
+    """Robots in the field run the client they were built with, which read the delivery reply
+    strictly: a field it did not know made its flush fail ("not a fleetmap one"). A query without
+    `fields=2` gets the reply's first fields only, which such a client reads; one with it (today's
+    `flush`) gets `last_error` and the sessions' `refused_seqs` and `lost_gaps` too."""
+
+    first_fields = set(DeliveryStatus.model_fields) - {"last_error"}
+    scan = scans_for(sim=21, beams=181, count=1)[0]
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        session = client_session(service.zenoh_endpoint)
+        try:
+            payload = codec.encode_binary(scan, 0, stamp=0.0, session=78)
+            session.put(
+                SCAN_KEY.format(map_id="fv", robot_id="r1"), payload, encoding=zenoh.Encoding(BINARY_ENCODING)
+            )
+            with httpx.Client(base_url=service.base_url, timeout=10) as http:
+                wait_integrated(http, "fv", 1, timeout=30)
+            key = DELIVERY_KEY.format(map_id="fv", robot_id="r1")
+            replies = {}
+            for selector in (key + "?session=78", key + "?session=78;fields=2"):
+                got = [
+                    r.ok.payload.to_string() for r in session.get(selector, timeout=5.0) if r.ok is not None
+                ]
+                assert len(got) == 1, (selector, got)
+                replies[selector] = json.loads(got[0])
+            first = replies[key + "?session=78"]
+            assert set(first) == first_fields, set(first) ^ first_fields
+            assert set(first["sessions"][0]) == set(SessionDelivery.model_fields) - {
+                "refused_seqs",
+                "lost_gaps",
+            }
+            newer = replies[key + "?session=78;fields=2"]
+            assert "last_error" in newer and newer["sessions"][0]["refused_seqs"] == []
+        finally:
+            session.close()
+
+
 def test_the_answer_counts_refused_and_duplicate_scans(tmp_path: Path) -> None:
     """Scans the service does not integrate are settled all the same, and counted: a duplicate seq
     (ignored) and a scan that needs more tiles than its map may have (refused at integration).
@@ -342,7 +410,9 @@ def test_the_answer_counts_refused_and_duplicate_scans(tmp_path: Path) -> None:
             report = pub.flush(30)
             assert report.settled and not report.confirmed, report
             assert (report.published, report.integrated, report.refused, report.lost) == (5, 4, 1, 0)
-            assert report.summary() == "5 scans published, 4 integrated: 1 refused or dropped by the service"
+            assert report.last_error is not None and "max_tiles" in report.last_error, report
+            refused = f"1 refused or dropped by the service (the last: {report.last_error})"
+            assert report.summary() == f"5 scans published, 4 integrated: {refused}"
             assert pub._session is not None
             answer = query(pub._session, DELIVERY_KEY.format(map_id="rf", robot_id="r1"))
             assert isinstance(answer, DeliveryStatus)
@@ -351,6 +421,48 @@ def test_the_answer_counts_refused_and_duplicate_scans(tmp_path: Path) -> None:
             assert answer.duplicates == 1 and answer.unsettled == 0
         finally:
             pub.close()
+
+
+def test_scans_refused_at_the_input_limits_are_settled_as_refused_not_lost(tmp_path: Path) -> None:
+    """A robot's well-formed scans that break the service's input limits (a pose outside the world
+    bound: UTM eastings sent as map coordinates) are refused, and settled so: counted `refused` in
+    their session, not `lost` (they reached the service), and the last scan of the session refused
+    so no longer leaves it unsettled, where flush waited until its timeout (for ever without one).
+    A flush asks again after a restart of the durable service: the robot's cache, fetched again, is
+    counted as duplicates, and the answer is the same."""
+    near = Scan.from_fan((5.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    utm = Scan.from_fan((500_000.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    # A lidar of more beams than the service takes (--max-beams, 16384), refused by the binary header.
+    dense = Scan.from_fan((5.0, 5.0, 0.0), -3.0, 6.0 / 20_000, [1.0] * 20_000, 0.05, 10.0)
+    with (
+        ServiceProcess(tmp_path) as service,
+        ScanPublisher("lim", "r1", connect=[service.zenoh_endpoint]) as pub,
+    ):
+        assert pub.wait_connected(20), pub.last_connect_error
+        for seq in range(7):
+            pub.publish({2: utm, 3: dense, 6: utm}.get(seq, near), seq=seq, stamp=float(seq))
+        started = time.monotonic()
+        report = pub.flush(10)
+        assert time.monotonic() - started < 5, report  # the last scan's refusal settled it
+        assert report.settled and not report.confirmed, report
+        assert (report.published, report.integrated, report.refused, report.lost) == (7, 4, 3, 0)
+        assert report.last_error is not None and "scan seq 6 refused: pose (500000, 5)" in report.last_error
+        refused = f"3 refused or dropped by the service (the last: {report.last_error})"
+        assert report.summary() == f"7 scans published, 4 integrated: {refused}"
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            robot = map_stats(http, "lim")["robots"]["r1"]
+        assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 3, 0), robot
+        assert robot["last_seq"] == 6, robot
+        assert "scan seq 6 refused: pose (500000, 5) is outside the world bound" in robot["last_error"]
+        service.stop()
+        service.start()  # same ports and data
+        assert pub.wait_connected(20), pub.last_connect_error
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            # The cache fetched again: each of its scans a duplicate, the refused ones too.
+            wait_for(lambda: map_stats(http, "lim")["robots"]["r1"]["duplicates"] == 7, 10, what="the cache")
+            robot = map_stats(http, "lim")["robots"]["r1"]
+        assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 3, 0), robot
+        assert pub.flush(10) == report
 
 
 def test_flush_against_a_service_without_delivery_queries_is_an_error_not_a_hang() -> None:
@@ -440,6 +552,65 @@ def test_replay_whose_delivery_answer_is_not_fleetmaps_says_so_and_exits_1(tmp_p
     assert "fleetmap replay: warning: not confirmed: the delivery answer is not a fleetmap one" in proc.stderr
 
 
+def test_the_scans_of_a_robot_without_a_map_refused_at_the_limits_are_settled(tmp_path: Path) -> None:
+    """A robot that declares no liveliness token (one written in another language: docs/protocol.md
+    says it need not) and whose every scan breaks the input limits (UTM eastings as map
+    coordinates) makes no map: a refused scan creates none, so the service answered `no_map` and
+    nothing of them, and a flush waited for ever. The answer now lists them settled and refused,
+    and says why."""
+    utm = Scan.from_fan((500_000.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        session = client_session(service.zenoh_endpoint)
+        try:
+            key = SCAN_KEY.format(map_id="utm", robot_id="r1")
+            for seq in range(3):
+                payload = codec.encode_binary(utm, seq, stamp=float(seq), session=79)
+                session.put(key, payload, encoding=zenoh.Encoding(BINARY_ENCODING))
+            selector = DELIVERY_KEY.format(map_id="utm", robot_id="r1") + "?session=79;fields=2"
+
+            def listed() -> DeliveryStatus | None:
+                answer = query(session, selector)
+                return answer if isinstance(answer, DeliveryStatus) and answer.sessions else None
+
+            answer = wait_for(listed, 10, what="the refused scans listed")
+            assert isinstance(answer, DeliveryStatus) and answer.status == "no_map", answer
+            entry = answer.session(79)
+            assert entry is not None and (entry.settled, entry.refused, entry.integrated) == (2, 3, 0), entry
+            assert answer.last_error is not None and "outside the world bound" in answer.last_error
+            assert httpx.get(f"{service.base_url}/maps/utm", timeout=10).status_code == 404  # still no map
+        finally:
+            session.close()
+
+
+def test_flush_reads_an_answer_with_fields_it_does_not_know() -> None:
+    """A service newer than the robot's client may add fields to its delivery answer (and its
+    entries): flush reads what it knows and confirms. It raised "the delivery answer is not a
+    fleetmap one" for any field it did not know, so every robot in the field failed its flush
+    once the service was upgraded."""
+    router = Router().start()
+    assert router.session is not None
+
+    def answer(query: zenoh.Query) -> None:
+        session = int(query.parameters.get("session") or 0)
+        entry = {
+            "session": session, "first_seq": 0, "last_accepted": 0, "settled": 0, "integrated": 1,
+            "refused": 0, "lost": 0, "duplicates": 0, "a_later_field": [1, 2],
+        }  # fmt: skip
+        status = {"map_id": "nf", "robot_id": "r1", "status": "ok", "sessions": [entry], "later": {"x": 1}}
+        query.reply(query.key_expr, json.dumps(status))
+
+    queryable = router.session.declare_queryable("fleetmap/*/*/delivery", answer)
+    try:
+        with ScanPublisher("nf", "r1", connect=[router.endpoint]) as pub:
+            assert pub.wait_connected(20), pub.last_connect_error
+            pub.publish(_scan())
+            report = pub.flush(10)
+            assert report.confirmed, report
+    finally:
+        queryable.undeclare()
+        router.stop()
+
+
 @pytest.mark.parametrize("how", ["deleted", "replaced"])
 def test_flush_after_the_map_went_says_so_at_once(tmp_path: Path, how: str) -> None:
     """A robot's 10 scans are integrated, then its map is deleted (or replaced by an upload) before it
@@ -492,3 +663,193 @@ def test_flush_after_the_map_went_midway_counts_both_parts(tmp_path: Path) -> No
         got = (report.settled, report.integrated, report.gone, report.counted_from, report.confirmed)
         assert got == (True, 10, 10, 10, False), report
         assert report.summary() == "20 scans published, 10 integrated: 10 went with a deleted or replaced map"
+
+
+def test_flush_of_scans_refused_for_want_of_their_map_returns_saying_so(tmp_path: Path) -> None:
+    """A service that creates no map from scans (`--no-auto-create`) refuses the scans of a robot
+    whose map does not exist (a map id mistyped in its configuration), and, after its map is deleted
+    midway, the scans it publishes on: flush without a timeout returns at once, the scans refused
+    and why, where it waited for ever (the service answered `no_map` and nothing of them)."""
+    scans = scans_for(sim=17, beams=181, count=10)
+
+    def flush_within(pub: ScanPublisher, seconds: float) -> DeliveryReport:
+        outcome: list[DeliveryReport] = []
+        flusher = threading.Thread(target=lambda: outcome.append(pub.flush()), daemon=True)
+        flusher.start()
+        flusher.join(seconds)
+        assert not flusher.is_alive(), "flush() still waits for scans the service refused"
+        return outcome[0]
+
+    with (
+        ServiceProcess(tmp_path, ["--in-memory", "--no-auto-create"]) as service,
+        httpx.Client(base_url=service.base_url, timeout=10) as http,
+    ):
+        with ScanPublisher("typo", "r1", connect=[service.zenoh_endpoint]) as pub:
+            assert pub.wait_connected(20), pub.last_connect_error
+            for seq, scan in enumerate(scans):
+                pub.publish(scan, seq=seq, stamp=float(seq))
+            report = flush_within(pub, 10)
+        assert (report.settled, report.integrated, report.refused, report.unsettled) == (True, 0, 10, 0), (
+            report
+        )
+        assert report.last_error is not None and "no map 'typo' (auto-create is off)" in report.last_error
+        assert "10 refused or dropped by the service (the last: " in report.summary()
+
+        assert http.put("/maps/went").status_code == 201
+        with ScanPublisher("went", "r1", connect=[service.zenoh_endpoint]) as pub:
+            assert pub.wait_connected(20), pub.last_connect_error
+            for seq in range(5):
+                pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            wait_integrated(http, "went", 5, timeout=30)
+            assert http.delete("/maps/went").status_code == 204
+            for seq in range(5, 10):
+                pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            report = flush_within(pub, 10)
+        assert (report.settled, report.integrated, report.gone, report.refused) == (True, 0, 5, 5), report
+
+
+def test_flush_of_scans_refused_for_want_of_room_for_the_robot_returns_saying_so(tmp_path: Path) -> None:
+    """A map holds as many robots as it may (`--max-robots-per-map 1`, its robot online): a second
+    robot's scans are refused (429), and its flush without a timeout returns at once saying so and
+    why, where it waited for ever (the service answered `no_robot` and nothing of them)."""
+    scans = scans_for(sim=20, beams=181, count=5)
+    with (
+        ServiceProcess(tmp_path, ["--in-memory", "--max-robots-per-map", "1"]) as service,
+        ScanPublisher("full", "r1", connect=[service.zenoh_endpoint]) as first,
+    ):
+        assert first.wait_connected(20), first.last_connect_error
+        first.publish(scans[0])
+        assert first.flush(10).confirmed  # the map's one robot, online
+        # Only now: its liveliness token would make it the map's robot, online, before the first.
+        second = ScanPublisher("full", "r2", connect=[service.zenoh_endpoint])
+        try:
+            assert second.wait_connected(20), second.last_connect_error
+            for scan in scans:
+                second.publish(scan)
+            outcome: list[DeliveryReport] = []
+            flusher = threading.Thread(target=lambda: outcome.append(second.flush()), daemon=True)
+            flusher.start()
+            flusher.join(10)
+            assert not flusher.is_alive(), "flush() still waits for scans the service refused"
+        finally:
+            second.close()
+        report = outcome[0]
+        assert (report.settled, report.integrated, report.refused) == (True, 0, 5), report
+        assert report.last_error is not None and "already has 1 robots, the most it" in report.last_error
+
+
+def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_scans(tmp_path: Path) -> None:
+    """A robot publishes 10 scans, drives into a dead zone, publishes 10 more into its backlog, and
+    its process restarts there (the backlog goes with it). The new process's publisher confirms its
+    own 5 scans; `flush_ended` on the previous session, whose id and seqs the robot saved, says
+    without a timeout that 10 of its 20 are in the map and 10 lost: the robot knows to drive that
+    part again. `flush` alone confirmed the new session and said nothing of the old one."""
+    scans = scans_for(sim=18, beams=181, count=20)
+    with (
+        ServiceProcess(tmp_path) as service,
+        httpx.Client(base_url=service.base_url, timeout=10) as http,
+    ):
+        proxy = FreezableProxy(service.zenoh_port)
+        before = ScanPublisher("reboot", "r1", connect=[proxy.endpoint])
+        try:
+            publish_then_cut(before, proxy, http, "reboot", scans, 10)
+            for seq in range(10, 20):
+                assert before.publish(scans[seq], seq=seq, stamp=float(seq))
+            saved = (before.session_id, 0, before.last_seq)
+        finally:
+            before.close()  # the process died: its backlog with it
+            proxy.close()
+        assert saved[0] is not None and saved[2] == 19
+        with ScanPublisher("reboot", "r1", connect=[service.zenoh_endpoint]) as pub:
+            assert pub.wait_connected(20), pub.last_connect_error
+            for seq in range(5):
+                pub.publish(scans[seq], seq=seq, stamp=100.0 + seq)
+            assert pub.flush(10).confirmed
+            outcome: list[DeliveryReport] = []
+            asker = threading.Thread(target=lambda: outcome.append(pub.flush_ended(*saved)), daemon=True)
+            asker.start()
+            asker.join(10)
+            assert not asker.is_alive(), "flush_ended waits for scans that went with the old process"
+            report = outcome[0]
+            assert (report.published, report.integrated, report.lost, report.settled) == (20, 10, 10, True)
+            assert not report.confirmed and report.summary() == "20 scans published, 10 integrated: 10 lost"
+            # A session the service never heard of: nothing to wait for, nothing confirmed.
+            unknown = pub.flush_ended(12345, 0, 9, timeout=10)
+            assert (unknown.answered, unknown.settled, unknown.unsettled) == (True, False, 10), unknown
+
+
+def test_flush_and_wait_connected_refuse_a_timeout_that_is_not_a_number() -> None:
+    """A timeout of NaN (a robot's configuration read badly) made flush and wait_connected wait for
+    ever, as no time is ever past NaN: now a ValueError at once, and a string a TypeError naming the
+    timeout rather than Python's "unsupported operand type(s)"."""
+    with ScanPublisher("to", "r1", connect=["tcp/127.0.0.1:9"]) as pub:  # nothing listens there
+        pub.publish(_scan())
+        for call in (pub.flush, pub.wait_connected):
+            outcome: list[BaseException] = []
+
+            def run(call: Any = call, outcome: list[BaseException] = outcome) -> None:
+                try:
+                    call(float("nan"))
+                except ValueError as exc:
+                    outcome.append(exc)
+
+            waiter = threading.Thread(target=run, daemon=True)
+            waiter.start()
+            waiter.join(5)
+            assert not waiter.is_alive(), f"{call.__name__}(nan) still waits"
+            assert outcome and "NaN" in str(outcome[0]), outcome
+            with pytest.raises(TypeError, match="timeout must be a number of seconds or None"):
+                call("5")
+        assert not pub.flush(0.2).answered  # a number still works
+
+
+def test_flush_counts_the_scans_through_its_last_seq_only(tmp_path: Path) -> None:
+    """A robot flushes in a dead zone (its scans through seq 19 published, seq 15 one the service
+    refuses) and goes on publishing meanwhile (seq 25 refused too); the link comes back and the
+    backlog arrives at once, so the service's counts take in scans published after the flush began.
+    The report counts the scans through 19 only: 19 integrated, 1 refused. It said "20 scans
+    published, 20 integrated: 2 refused", more than were published and one integrated too many."""
+    scans = scans_for(sim=19, beams=181, count=30)
+    utm = Scan.from_fan((500_000.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    with (
+        ServiceProcess(tmp_path, ["--in-memory"]) as service,
+        httpx.Client(base_url=service.base_url, timeout=10) as http,
+    ):
+        proxy = FreezableProxy(service.zenoh_port)
+        pub = ScanPublisher("through", "r1", connect=[proxy.endpoint])
+        try:
+            publish_then_cut(pub, proxy, http, "through", scans, 10)
+            for seq in range(10, 20):
+                assert pub.publish(utm if seq == 15 else scans[seq], seq=seq, stamp=float(seq))
+            outcome: list[DeliveryReport] = []
+            flusher = threading.Thread(target=lambda: outcome.append(pub.flush(20)), daemon=True)
+            flusher.start()
+            time.sleep(0.3)  # flush asks about seqs 0 .. 19
+            for seq in range(20, 30):
+                assert pub.publish(utm if seq == 25 else scans[seq], seq=seq, stamp=float(seq))
+            proxy.restore()
+            flusher.join(25)
+            report = outcome[0]
+            assert (report.published, report.integrated, report.refused, report.lost) == (20, 19, 1, 0), (
+                report
+            )
+            assert report.settled and not report.confirmed
+            everything = pub.flush(20)
+            assert (everything.published, everything.integrated, everything.refused) == (30, 28, 2), (
+                everything
+            )
+        finally:
+            pub.close()
+            proxy.close()
+
+
+def test_flush_after_close_says_to_flush_first() -> None:
+    """A robot that closes its publisher (a `with` block ended) and then flushes learns that the
+    order was wrong, and why it matters, not only that the publisher is closed."""
+    pub = ScanPublisher("fc", "r1", connect=["tcp/127.0.0.1:9"])  # nothing listens there
+    pub.publish(_scan())
+    pub.close()
+    with pytest.raises(
+        PublisherClosed, match=r"flush before close\(\), which gives up the scans not delivered"
+    ):
+        pub.flush(1)

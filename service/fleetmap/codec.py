@@ -60,7 +60,16 @@ MAX_PAYLOAD_BYTES_DEFAULT = 4 * 1024 * 1024
 
 
 class DecodeError(ValueError):
-    """A payload that is not a valid scan message. The message says why."""
+    """A payload that is not a valid scan message. The message says why.
+
+    `scan_id` is the message's (seq, stamp, session) when it was read that far: a well-formed scan
+    that the engine's checks or the input limits refuse (a pose outside the world bound, ...). The
+    service then settles that scan of its session as refused (`MapRegistry.reject`), rather than
+    count its seq as lost when the next one arrives, or never settle it when it was the last."""
+
+    def __init__(self, message: str, scan_id: tuple[int, float, int | None] | None = None) -> None:
+        super().__init__(message)
+        self.scan_id = scan_id
 
 
 class PayloadTooLarge(DecodeError):
@@ -89,18 +98,20 @@ class InputLimits:
         """`wire`, with range_max capped at max_range; raises DecodeError if it breaks a limit."""
         scan = wire.scan
         pose = scan.pose
+        scan_id = (wire.seq, wire.stamp, wire.session)
         if abs(pose.x) > self.world_bound or abs(pose.y) > self.world_bound:
             raise DecodeError(
-                f"pose ({pose.x:.6g}, {pose.y:.6g}) is outside the world bound of +-{self.world_bound:g} m"
+                f"pose ({pose.x:.6g}, {pose.y:.6g}) is outside the world bound of +-{self.world_bound:g} m",
+                scan_id,
             )
         if scan.num_beams > self.max_beams:
-            raise DecodeError(f"{scan.num_beams} beams is more than the limit of {self.max_beams}")
+            raise DecodeError(f"{scan.num_beams} beams is more than the limit of {self.max_beams}", scan_id)
         if scan.num_beams > 1 and float(np.ptp(scan.angles)) > 2 * math.pi + 1e-3:
-            raise DecodeError("beam angles span more than one turn")
+            raise DecodeError("beam angles span more than one turn", scan_id)
         if scan.range_max > self.max_range:
             if scan.range_min >= self.max_range:
                 raise DecodeError(
-                    f"range_min {scan.range_min:g} m is beyond the limit of {self.max_range:g} m"
+                    f"range_min {scan.range_min:g} m is beyond the limit of {self.max_range:g} m", scan_id
                 )
             capped = Scan(pose, scan.angles, scan.ranges, scan.range_min, self.max_range)
             return WireScan(wire.seq, wire.stamp, capped, wire.session)
@@ -229,7 +240,7 @@ def from_message(message: ScanMessage) -> WireScan:
     try:
         return _limits.check(WireScan(message.seq, message.stamp, message.to_scan(), message.session))
     except ScanError as exc:
-        raise DecodeError(str(exc)) from None
+        raise DecodeError(str(exc), (message.seq, message.stamp, message.session)) from None
 
 
 def decode_binary(data: bytes) -> WireScan:
@@ -258,7 +269,11 @@ def decode_binary(data: bytes) -> WireScan:
     # limit the robot broke, as `InputLimits.check` does for a scan of the right length.
     beam_limit = min(_limits.max_beams, MAX_BEAMS)
     if n > beam_limit:
-        raise DecodeError(f"{n} beams is more than the limit of {beam_limit}")
+        # A well-formed header: the scan is refused, as `InputLimits.check` refuses one (`scan_id`).
+        known = seq < SEQ_LIMIT and math.isfinite(stamp)
+        raise DecodeError(
+            f"{n} beams is more than the limit of {beam_limit}", (seq, stamp, session) if known else None
+        )
     arrays = 2 if flags & FLAG_ANGLES else 1
     expected = header.size + 4 * n * arrays
     if len(data) != expected:
@@ -286,7 +301,7 @@ def decode_binary(data: bytes) -> WireScan:
     try:
         scan = Scan(Pose2D(x, y, theta), angles, ranges, float(range_min), float(range_max))
     except ScanError as exc:
-        raise DecodeError(str(exc)) from None
+        raise DecodeError(str(exc), (int(seq), float(stamp), session)) from None
     return _limits.check(WireScan(int(seq), float(stamp), scan, session))
 
 

@@ -99,6 +99,8 @@ from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
 from fleetmap.wire import (
     ALIVE_KEY_WILDCARD,
     DELIVERY_ERROR_ENCODING,
+    DELIVERY_FIELDS_1_EXCLUDE,
+    DELIVERY_FIELDS_PARAMETER,
     DELIVERY_KEY_WILDCARD,
     DELIVERY_SESSION_PARAMETER,
     JSON_ENCODING,
@@ -354,10 +356,13 @@ class ZenohIngest:
         try:
             wire = codec.decode(payload, encoding)
         except codec.DecodeError as exc:
-            reason = f"undecodable {encoding or 'unspecified'} payload: {exc}"
+            if exc.scan_id is None:
+                reason = f"undecodable {encoding or 'unspecified'} payload: {exc}"
+            else:  # well-formed, refused by the engine's checks or the input limits
+                reason = f"scan seq {exc.scan_id[0]} refused: {exc}"
             with self._lock:
                 self.decode_errors += 1
-            self.registry.reject(map_id, robot_id, reason)
+            self.registry.reject(map_id, robot_id, reason, exc.scan_id)
             self._log.warning(
                 f"decode:{map_id}/{robot_id}", f"rejected a scan from {map_id}/{robot_id}: {reason}",
                 map_id=map_id, robot_id=robot_id,
@@ -425,7 +430,12 @@ class ZenohIngest:
                 query.reply_err(str(exc), encoding=error)
                 return
             status = self.registry.delivery_status(ids[0], ids[1], session)
-            query.reply(query.key_expr, status.model_dump_json(), encoding=zenoh.Encoding(JSON_ENCODING))
+            # The fields added since the first version only when asked for: a client of that
+            # version refuses a field it does not know (its flush failed: "not a fleetmap one").
+            newer = query.parameters.get(DELIVERY_FIELDS_PARAMETER) not in (None, "", "1")
+            exclude = None if newer else DELIVERY_FIELDS_1_EXCLUDE
+            reply = status.model_dump_json(exclude=exclude)
+            query.reply(query.key_expr, reply, encoding=zenoh.Encoding(JSON_ENCODING))
         except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
             log.exception("unexpected error answering a delivery query on %s", query.key_expr)
 

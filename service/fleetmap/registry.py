@@ -30,6 +30,7 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import NoReturn
 
 from fleetmap.changes import ChangeFeed
 from fleetmap.codec import WireScan
@@ -40,7 +41,7 @@ from fleetmap.grid_map import GridMap, IntegrationResult
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.persistence import DurableStore
 from fleetmap.rate_limited_log import RateLimitedLog
-from fleetmap.robot_state import CONFLICT_SHOWN, Receipt, RobotState, SessionSeqs, session_key
+from fleetmap.robot_state import CONFLICT_SHOWN, MAX_SESSIONS, Receipt, RobotState, SessionSeqs, session_key
 from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
@@ -168,6 +169,13 @@ class Job:
     receipt: Receipt | None = None
 
 
+#: Robots (map id, robot id) whose scans were refused for want of their map, or of room for them on
+#: it (`--max-robots-per-map`), that the delivery query remembers, the most recent: what became of
+#: those scans is final, and a robot's `flush` that was only told `no_map` or `no_robot` waited for
+#: them for ever. Each holds at most MAX_SESSIONS sessions of 3 numbers and a reason (some 300
+#: bytes each): 2.5 MB at most, whatever ids senders make up (the oldest are forgotten).
+MAX_UNMAPPED_ROBOTS = 1024
+
 #: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
 REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
 
@@ -251,6 +259,10 @@ class MapRegistry:
         #: The robots of deleted and replaced maps, so that copies of their old scans (a robot's cache,
         #: fetched after a restart) and their tokens do not bring those maps back.
         self.tombstones = Tombstones()
+        #: Scans refused for want of their map (`_refuse_unmapped`), for the delivery query: (map id,
+        #: robot id) -> session id -> [first seq, last seq, scans refused, reason]. Not saved: after
+        #: a restart the robots' caches, fetched again, are refused and counted again.
+        self._unmapped: dict[tuple[str, str], dict[int, list]] = {}
         # One line per robot per CONFLICT_SHOWN while its id conflict goes on (a scan of each says so).
         self._conflict_log = RateLimitedLog(log, interval=CONFLICT_SHOWN)
         # Maps created by a scan and removed again when it is refused: anyone who can publish (a Zenoh
@@ -618,20 +630,19 @@ class MapRegistry:
                 raise IngestRejected(_covered_reason(stone, wire), 200)
             if entry is None:
                 if not self.auto_create:
-                    raise IngestRejected(f"no map {map_id!r} (auto-create is off)", 404)
+                    self._refuse_unmapped(map_id, robot_id, wire, f"no map {map_id!r} (auto-create is off)")
                 if len(self.maps) >= self.max_auto_maps:
-                    raise IngestRejected(
+                    self._refuse_unmapped(
+                        map_id, robot_id, wire,
                         f"no map {map_id!r}, and the service already holds {len(self.maps)} maps, the most "
                         "scans may create; create it with PUT /maps/{id}",
-                        404,
-                    )
+                    )  # fmt: skip
                 entry, _ = self.create(map_id, by_scan=True)
                 entry.provisional = True
             if not self._room_for(entry, robot_id):
                 entry.scans_rejected += 1  # counted on the map: the robot has no state to count it on
-                raise IngestRejected(
-                    f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have", 429
-                )
+                reason = f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have"
+                self._refuse_unmapped(map_id, robot_id, wire, reason, 429)
             robot = entry.robot(robot_id)
             robot.last_heard = now = time.time()
             seq, stamp, session = wire.seq, wire.stamp, wire.session
@@ -659,6 +670,7 @@ class MapRegistry:
                 robot.dropped += 1
                 robot.refused = (session_key(session), seq)  # a retry of it is not a duplicate
                 reason = "ingest queue full: scan dropped"
+                robot.last_error = f"scan seq {seq}: {reason}"
                 if self._remove_unclaimed(entry) is not None:
                     reason += f"; map {map_id!r}, created for it, was removed again"
                 raise IngestRejected(reason, 503)
@@ -666,19 +678,76 @@ class MapRegistry:
             robot.unsettled += 1
             return job.future
 
-    def reject(self, map_id: str, robot_id: str, reason: str) -> None:
-        """Count a message that could not even be decoded, on its robot if the ids are valid."""
+    def _refuse_unmapped(
+        self, map_id: str, robot_id: str, wire: WireScan, reason: str, status: int = 404
+    ) -> NoReturn:
+        """Refuse a scan for want of its map (404), or of room for its robot on it (429): remember
+        it for the delivery query (`_remember_unmapped`), then raise IngestRejected. Call under the
+        registry's lock."""
+        self._remember_unmapped(map_id, robot_id, wire.seq, wire.session, reason)
+        raise IngestRejected(reason, status)
+
+    def _remember_unmapped(
+        self, map_id: str, robot_id: str, seq: int, session: int | None, reason: str
+    ) -> None:
+        """The scan `seq` of publisher session `session` of a robot without a map, or without room
+        on it, was refused: remember it for the delivery query, if it has a session id, as settled
+        and refused (`_unmapped`). A seq not above the session's last is a copy (the robot's cache
+        fetched again): not counted twice. Call under the registry's lock."""
+        if session is None:
+            return
+        key = (map_id, robot_id)
+        sessions = self._unmapped.pop(key, {})
+        self._unmapped[key] = sessions  # the most recent last
+        while len(self._unmapped) > MAX_UNMAPPED_ROBOTS:
+            del self._unmapped[next(iter(self._unmapped))]
+        counted = sessions.pop(session, None) or [seq, seq - 1, 0, reason]
+        if seq > counted[1]:
+            counted[1], counted[2], counted[3] = seq, counted[2] + 1, reason
+        sessions[session] = counted
+        while len(sessions) > MAX_SESSIONS:
+            del sessions[next(iter(sessions))]
+
+    def reject(
+        self, map_id: str, robot_id: str, reason: str, scan_id: tuple[int, float, int | None] | None = None
+    ) -> None:
+        """Count a message that could not be decoded, or that broke the input limits, on its robot if
+        the ids are valid (and its map exists: a refused scan creates none; without its map, or room
+        on it, a scan with a `scan_id` and a session id is remembered for the delivery query).
+
+        `scan_id`, the (seq, stamp, session) of a message read that far (`codec.DecodeError.scan_id`)
+        with a session id, settles that scan as refused in its session's ledger, its seq recorded as
+        accepted, as a scan the full queue drops is: otherwise the next seq counted it as lost
+        ("never reached the service"), and the last scan of a session was never settled, so a
+        robot's `flush` waited for it until its timeout (for ever without one). A copy of a scan
+        already counted (its seq not new: the cache fetched again after a restart) is a duplicate,
+        as `submit` counts it. Scans without a session id keep to the rule of undecodable ones (their
+        seq is not recorded): their seq bookkeeping is one that every sender without a session id on
+        the robot's key shares, which a refused message (garbage, as likely as not) must not move."""
         if not (is_valid_id(map_id) and is_valid_id(robot_id)):
             return
         with self.lock:
             entry = self.maps.get(map_id)
-            if entry is None:
-                return
-            if not self._room_for(entry, robot_id):
-                entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
+            if entry is None or not self._room_for(entry, robot_id):
+                if entry is not None:
+                    entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
+                if scan_id is not None:  # for the delivery query: its robot's flush would wait for ever
+                    self._remember_unmapped(map_id, robot_id, scan_id[0], scan_id[2], reason)
                 return
             robot = entry.robot(robot_id)
-            robot.last_heard = time.time()
+            robot.last_heard = now = time.time()
+            if scan_id is not None and scan_id[2] is not None:
+                seq, stamp, session = scan_id
+                if self.tombstones.covers(map_id, robot_id, session, seq) is not None:
+                    robot.duplicates += 1
+                    return
+                if robot.is_duplicate(seq, stamp, session):
+                    robot.duplicates += 1
+                    robot.sessions[session_key(session)].ledger.duplicates += 1
+                    return
+                robot.accept(seq, stamp, session, now)
+                ledger = robot.sessions[session_key(session)].ledger
+                ledger.settle(ledger.open(seq), integrated=False)
             robot.scans_rejected += 1
             robot.last_error = reason
             entry.scans_rejected += 1
@@ -957,9 +1026,20 @@ class MapRegistry:
                 ]
             )
             if robot is None:
+                # Without its map, or room on it: the sessions whose scans were refused so, if any.
+                unmapped = self._unmapped.get((map_id, robot_id), {})
+                refused = [
+                    SessionDelivery(
+                        session=key, first_seq=first, last_accepted=last, settled=last, integrated=0,
+                        refused=count, lost=last - first + 1 - count, duplicates=0,
+                    )
+                    for key, (first, last, count, _) in unmapped.items()
+                    if session is None or key == session
+                ]  # fmt: skip
                 return DeliveryStatus(
                     map_id=map_id, robot_id=robot_id, status="no_map" if entry is None else "no_robot",
-                    buried=buried,
+                    buried=buried, sessions=refused,
+                    last_error=next(reversed(unmapped.values()))[3] if unmapped else None,
                 )  # fmt: skip
             sessions = [
                 _session_delivery(key, seqs)
@@ -969,7 +1049,7 @@ class MapRegistry:
             return DeliveryStatus(
                 map_id=map_id, robot_id=robot_id, status="ok", unsettled=robot.unsettled,
                 scans_integrated=robot.scans_integrated, lost=robot.lost, dropped=robot.dropped,
-                duplicates=robot.duplicates, sessions=sessions, buried=buried,
+                duplicates=robot.duplicates, sessions=sessions, buried=buried, last_error=robot.last_error,
             )  # fmt: skip
 
     def backlog(self) -> tuple[int, float]:
@@ -1018,6 +1098,8 @@ def _session_delivery(key: int, seqs: SessionSeqs) -> SessionDelivery:
     return SessionDelivery(
         session=key, first_seq=ledger.first_seq, last_accepted=seqs.last_seq, settled=ledger.settled,
         integrated=ledger.integrated, refused=ledger.refused, lost=ledger.lost, duplicates=ledger.duplicates,
+        refused_seqs=None if ledger.refused_seqs is None else list(ledger.refused_seqs),
+        lost_gaps=None if ledger.lost_gaps is None else list(ledger.lost_gaps),
     )  # fmt: skip
 
 

@@ -22,6 +22,10 @@ MAX_SESSIONS = 8
 CONFLICT_SHOWN = 60.0
 #: The session key of scans that carry no session id (publishers that send none).
 NO_SESSION = 0
+#: Refused seqs, and gaps of lost seqs, a session's ledger lists one by one (`SessionLedger.
+#: refused_seqs`, `lost_gaps`), so that a flush counts the scans through its own last seq only;
+#: past as many it lists none (the counts alone remain).
+LEDGER_HISTORY = 64
 
 
 def session_key(session: int | None) -> int:
@@ -71,6 +75,13 @@ class SessionLedger:
     _reopened: Receipt | None = field(default=None, repr=False)
     _reopened_top: int = field(default=0, repr=False)
     _gap: int = field(default=0, repr=False)  # seqs lost before the scan `open` is called for next
+    #: The seqs of its scans settled as refused (less those whose refusal was withdrawn), and
+    #: (seq, n) for the n seqs lost just before seq, in this process: the delivery query lists them
+    #: so that a flush counts only the scans through its last seq, not those published after it
+    #: began (`fleetmap_client.publisher._report`). None when not known: a ledger restored from a
+    #: snapshot, or past LEDGER_HISTORY entries.
+    refused_seqs: list[int] | None = field(default_factory=list, repr=False)
+    lost_gaps: list[tuple[int, int]] | None = field(default_factory=list, repr=False)
 
     def open(self, seq: int) -> Receipt:
         """A receipt for the scan `seq`, accepted now."""
@@ -87,6 +98,10 @@ class SessionLedger:
             self._reopened, self._reopened_top = receipt, top
         self._top = seq if top is None else max(top, seq)
         receipt.lost, self._gap = self._gap, 0
+        if receipt.lost and self.lost_gaps is not None:
+            self.lost_gaps.append((seq, receipt.lost))
+            if len(self.lost_gaps) > LEDGER_HISTORY:
+                self.lost_gaps = None
         self.open_receipts.append(receipt)
         return receipt
 
@@ -99,6 +114,10 @@ class SessionLedger:
             self.integrated += 1
         else:
             self.refused += 1
+            if self.refused_seqs is not None:
+                self.refused_seqs.append(receipt.seq)
+                if len(self.refused_seqs) > LEDGER_HISTORY:
+                    self.refused_seqs = None
         receipts = self.open_receipts
         while receipts and receipts[0].settled:
             done = receipts.popleft()
@@ -126,7 +145,10 @@ class SessionLedger:
     @classmethod
     def from_saved(cls, row: list) -> SessionLedger:
         first_seq, settled, integrated, refused, lost, duplicates = row
-        return cls(first_seq, settled, integrated, refused, lost, duplicates)
+        # Its refusals and losses so far are counted, not listed: not known one by one.
+        return cls(
+            first_seq, settled, integrated, refused, lost, duplicates, refused_seqs=None, lost_gaps=None
+        )
 
     def first_unsettled(self) -> int | None:
         """The lowest seq of its scans not settled yet, None if every one is. Not always the front
@@ -145,6 +167,10 @@ class SessionLedger:
     def withdraw_refusal(self, seq: int) -> None:
         """The scan `seq`, settled as refused, was sent again and accepted: not refused after all."""
         self.refused -= 1
+        if self.refused_seqs is not None and seq in self.refused_seqs:
+            self.refused_seqs.reverse()
+            self.refused_seqs.remove(seq)  # its last refusal
+            self.refused_seqs.reverse()
         for receipt in reversed(self.open_receipts):  # not counted again by `saved` if still here
             if receipt.seq == seq and receipt.settled and not receipt.integrated and not receipt.withdrawn:
                 receipt.withdrawn = True

@@ -34,6 +34,14 @@ ALIVE_KEY_WILDCARD = "fleetmap/*/*/alive"
 DELIVERY_KEY = "fleetmap/{map_id}/{robot_id}/delivery"
 DELIVERY_KEY_WILDCARD = "fleetmap/*/*/delivery"
 DELIVERY_SESSION_PARAMETER = "session"
+#: `?fields=2` asks for the reply's fields added after its first version (`DeliveryStatus.
+#: last_error`, `SessionDelivery.refused_seqs` and `lost_gaps`). Without it the reply holds the
+#: first version's only: clients of that version read it strictly (a field they did not know made
+#: their flush fail), and robots are not all upgraded with the service.
+DELIVERY_FIELDS_PARAMETER = "fields"
+DELIVERY_FIELDS = 2
+#: What a reply of the first version leaves out (`DeliveryStatus.model_dump_json(exclude=...)`).
+DELIVERY_FIELDS_1_EXCLUDE: dict = {"last_error": True, "sessions": {"__all__": {"refused_seqs", "lost_gaps"}}}
 #: The encoding of the service's error replies to a delivery query (a sentence), which tells them
 #: from the errors Zenoh itself reports to the querier (a query's timeout).
 DELIVERY_ERROR_ENCODING = "text/plain;fleetmap-delivery"
@@ -163,7 +171,7 @@ class SessionDelivery(BaseModel):
     deleted or replaced first). A robot's scans are settled in order, so `settled` is one seq: that
     scan and every scan of the session accepted before it are settled."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="ignore")  # a newer service may add fields: see DeliveryStatus
 
     session: int = Field(description="the publisher's session id; 0: scans that carry none")
     first_seq: int = Field(description="seq of its first scan the service counted")
@@ -177,6 +185,16 @@ class SessionDelivery(BaseModel):
     )
     lost: int = Field(description="seqs it skipped after first_seq: scans that never arrived")
     duplicates: int = Field(description="its scans ignored because their seq was accepted already")
+    refused_seqs: list[int] | None = Field(
+        default=None,
+        description="the seqs of its scans refused, one by one, so that a reader counts those through a "
+        "seq of its own; null: not known (counted before the service's last start, or more than 64)",
+    )
+    lost_gaps: list[tuple[int, int]] | None = Field(
+        default=None,
+        description="[seq, n]: the n seqs just before seq were lost (skipped), one gap each; null: not "
+        "known, as for refused_seqs",
+    )
 
 
 class BuriedSession(BaseModel):
@@ -184,7 +202,7 @@ class BuriedSession(BaseModel):
     that was deleted or replaced by an upload (the service's tombstones: docs/protocol.md,
     "Delivery guarantees"): they are in no map now."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="ignore")  # a newer service may add fields: see DeliveryStatus
 
     session: int = Field(description="the publisher's session id")
     last_seq: int = Field(description="the last seq the service had of it when the map went")
@@ -194,9 +212,13 @@ class BuriedSession(BaseModel):
 class DeliveryStatus(BaseModel):
     """The service's answer on `DELIVERY_KEY`: what it knows of one robot's scans. `status` says
     whether there is such a map and robot; the counts are the robot's on the map (all its sessions,
-    as `GET /maps/{id}` shows them), `sessions` its recent publisher sessions (or the one asked for)."""
+    as `GET /maps/{id}` shows them), `sessions` its recent publisher sessions (or the one asked for).
 
-    model_config = ConfigDict(extra="forbid")
+    Readers ignore fields they do not know (as the models of its entries do): robots run the client
+    they were built with for years, and a service that adds a field must not make every robot's
+    `flush` take its answer for something else than fleetmap's."""
+
+    model_config = ConfigDict(extra="ignore")  # a newer service may add fields: see DeliveryStatus
 
     map_id: str
     robot_id: str
@@ -210,6 +232,10 @@ class DeliveryStatus(BaseModel):
     buried: list[BuriedSession] = Field(
         default_factory=list,
         description="its sessions whose scans went with a deleted or replaced map of this id",
+    )
+    last_error: str | None = Field(
+        default=None,
+        description="why the robot's last scan refused or dropped was so (`last_error` in GET /maps/{id})",
     )
 
     def session(self, session_id: int | None) -> SessionDelivery | None:
@@ -230,6 +256,9 @@ __all__ = [
     "DELIVERY_KEY",
     "DELIVERY_ERROR_ENCODING",
     "DELIVERY_KEY_WILDCARD",
+    "DELIVERY_FIELDS",
+    "DELIVERY_FIELDS_1_EXCLUDE",
+    "DELIVERY_FIELDS_PARAMETER",
     "DELIVERY_SESSION_PARAMETER",
     "DeliveryStatus",
     "ID_PATTERN",

@@ -54,7 +54,8 @@ Delivery confirmation (`flush`). Zenoh has no acknowledgement, so neither `publi
 can tell whether a scan reached the map. `flush(timeout)` asks the service (a Zenoh query on
 `fleetmap/<map_id>/<robot_id>/delivery`, docs/protocol.md, "Delivery confirmation") until it reports
 every scan of this publisher's session settled, and says how many were integrated: a robot ending
-its mission calls it before `close()`, and knows whether all its scans are in the map.
+its mission calls it before `close()`, and knows whether all its scans are in the map. A robot whose
+process restarted mid-mission asks about the previous process's session with `flush_ended`.
 
 `backlog=0` publishes with a plain publisher, for a service older than this one (whose plain
 subscriber does not fetch anything): a scan published while no router is connected is then DROPPED
@@ -72,7 +73,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -86,6 +87,8 @@ from fleetmap.wire import (
     ALIVE_KEY,
     BINARY_ENCODING,
     DELIVERY_ERROR_ENCODING,
+    DELIVERY_FIELDS,
+    DELIVERY_FIELDS_PARAMETER,
     DELIVERY_KEY,
     DELIVERY_SESSION_PARAMETER,
     JSON_ENCODING,
@@ -160,7 +163,9 @@ class DeliveryReport:
     first scan it accepted afterwards: `counted_from`). `gone`: scans the service had when the map
     was deleted or replaced by an upload (it remembers the map's robots: `DeliveryStatus.buried`),
     which are in no map now. `settled`: the service settled every scan through `last_seq`.
-    `answered`: whether the service answered at all (False: it was unreachable until the timeout)."""
+    `answered`: whether the service answered at all (False: it was unreachable until the timeout).
+    `last_error`: when scans were refused, the service's reason for the robot's last refused (or
+    dropped) scan, as `GET /maps/{id}` shows it (None from a service older than this field)."""
 
     published: int
     first_seq: int | None = None
@@ -172,6 +177,7 @@ class DeliveryReport:
     answered: bool = False
     counted_from: int | None = None
     gone: int = 0
+    last_error: str | None = None
 
     @property
     def unsettled(self) -> int:
@@ -201,8 +207,11 @@ class DeliveryReport:
             return text
         if not self.answered:
             return f"{text}: the service did not answer, {self.published - self.integrated} unconfirmed"
+        refused = "refused or dropped by the service"
+        if self.last_error:
+            refused += f" (the last: {self.last_error})"
         parts = [f"{count} {what}" for count, what in (
-            (self.lost, "lost"), (self.refused, "refused or dropped by the service"),
+            (self.lost, "lost"), (self.refused, refused),
             (self.gone, "went with a deleted or replaced map"), (self.unsettled, "unconfirmed"),
         ) if count]  # fmt: skip
         return f"{text}: {', '.join(parts) or 'not settled'}"
@@ -490,7 +499,7 @@ class ScanPublisher:
         Returns True when that happened, False when `timeout` seconds (None: no limit) passed first
         or the publisher was closed. Polls every 10 ms, so Ctrl-C interrupts it.
         """
-        deadline = None if timeout is None else time.monotonic() + timeout
+        deadline = _deadline(timeout)
         while not self._closed.is_set():
             ready = self._hold_until is None and self._link_up
             if ready and self.connected and (not require_subscriber or self.subscribed):
@@ -633,15 +642,54 @@ class ScanPublisher:
         published. Raises `DeliveryUnsupported` when the service's scan subscriber is reachable but
         no delivery query is answered for `NO_ANSWER_S` (an older service), RuntimeError for an error
         reply or an answer that is not a fleetmap `DeliveryStatus`, `PublisherClosed` after `close()`
-        (which gives up what was not delivered: flush first) or when it is called meanwhile.
+        (which gives up what was not delivered: flush first) or when it is called meanwhile,
+        TypeError for a timeout that is not a number, ValueError for NaN (which never passed).
         """
+        _deadline(timeout)  # a bad timeout raises, whether or not there is anything to wait for
         with self._lock:
             if self._closed.is_set():
-                raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
+                raise PublisherClosed(
+                    f"publisher {self.map_id}/{self.robot_id} is closed: flush before close(), which gives "
+                    "up the scans not delivered yet"
+                )
             first, last, session = self._session_first_seq, self._last_seq, self._session_id
         if first is None or last is None:
             return DeliveryReport(published=0, answered=True)
-        deadline = None if timeout is None else time.monotonic() + timeout
+        return self._await_delivery(session, first, last, timeout, ended=False)
+
+    def flush_ended(
+        self, session_id: int, first_seq: int, last_seq: int, timeout: float | None = None
+    ) -> DeliveryReport:
+        """What became of the scans `first_seq` .. `last_seq` of an ENDED publisher session of this
+        robot: one whose publisher no longer runs, typically the robot's process before it restarted
+        mid-mission (`flush` covers only this publisher's own session). Save `session_id` and
+        `last_seq` as the robot publishes (and the first seq) to ask about them after a restart.
+
+        Its scans the service had not received went with that publisher's backlog, so the answer is
+        final once the service has settled every scan of the session it accepted: the seqs after
+        the last one it accepted count as `lost`, and the report is `settled`. It returns at once,
+        unsettled, when the service counts nothing of the session (none of its scans arrived, or the
+        service forgot it: an in-memory service restarted since, or the robot's 8 more recent
+        sessions), and on the timeout otherwise (None: no limit). Asks and raises as `flush` does.
+        Do not call it for a session whose publisher still runs (it may deliver more): `flush` that
+        one."""
+        for name, value in (("session_id", session_id), ("first_seq", first_seq), ("last_seq", last_seq)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
+                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+        if last_seq < first_seq:
+            raise ValueError(f"last_seq {last_seq} is below first_seq {first_seq}")
+        if self._closed.is_set():
+            raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
+        return self._await_delivery(
+            int(session_id) or None, int(first_seq), int(last_seq), timeout, ended=True
+        )
+
+    def _await_delivery(
+        self, session: int | None, first: int, last: int, timeout: float | None, ended: bool
+    ) -> DeliveryReport:
+        """Ask the service until the scans `first` .. `last` of `session` are settled (or, `ended`,
+        final: `_ended_report`), or `timeout` passes; `flush` and `flush_ended`."""
+        deadline = _deadline(timeout)
         report = DeliveryReport(published=last - first + 1, first_seq=first, last_seq=last)
         unanswered_since: float | None = None  # since when the queries end at once without a reply
         while True:
@@ -658,6 +706,10 @@ class ScanPublisher:
                 report = _report(status, session, first, last)
                 if report.settled:
                     return report
+                if ended:
+                    final = _ended_report(status, session, report)
+                    if final is not None:
+                        return final
             elif unanswered and self.connected and self.subscribed:
                 unanswered_since = now if unanswered_since is None else unanswered_since
                 if now - unanswered_since >= NO_ANSWER_S:
@@ -682,7 +734,10 @@ class ScanPublisher:
         if session is None:
             return None
         key = DELIVERY_KEY.format(map_id=self.map_id, robot_id=self.robot_id)
-        selector = f"{key}?{DELIVERY_SESSION_PARAMETER}={0 if session_id is None else session_id}"
+        selector = (
+            f"{key}?{DELIVERY_SESSION_PARAMETER}={0 if session_id is None else session_id}"
+            f";{DELIVERY_FIELDS_PARAMETER}={DELIVERY_FIELDS}"
+        )
         try:
             replies = session.get(selector, timeout=timeout)
             for reply in replies:
@@ -751,11 +806,41 @@ class ScanPublisher:
         )
 
 
+def _deadline(timeout: float | None) -> float | None:
+    """The monotonic time at which a wait of `timeout` seconds ends (None: no limit; a negative
+    timeout has ended already). Raises TypeError for a timeout that is not a number and ValueError
+    for NaN, which no time ever passed, so a wait for it never ended."""
+    if timeout is None:
+        return None
+    if isinstance(timeout, bool) or not isinstance(timeout, numbers.Real):
+        raise TypeError(f"timeout must be a number of seconds or None, got {timeout!r}")
+    if math.isnan(timeout):
+        raise ValueError("timeout must be a number of seconds or None, got NaN")
+    return time.monotonic() + float(timeout)
+
+
+def _ended_report(
+    status: DeliveryStatus, session_id: int | None, report: DeliveryReport
+) -> DeliveryReport | None:
+    """The final `report` of an ended session (`ScanPublisher.flush_ended`), None while the service
+    still has scans of it to settle: the seqs after the last it accepted are lost (they went with
+    the publisher's backlog). `report` as it is when the service counts nothing of the session."""
+    entry = status.session(session_id)
+    if entry is None:
+        return report
+    assert report.last_seq is not None
+    if entry.settled is None or entry.settled < entry.last_accepted:
+        return None
+    never = max(0, report.last_seq - entry.last_accepted)
+    return replace(report, lost=report.lost + never, settled=True)
+
+
 def _report(status: DeliveryStatus, session_id: int | None, first: int, last: int) -> DeliveryReport:
     """The `DeliveryReport` of the scans `first` .. `last` of session `session_id` from the service's
     `status`."""
     published = last - first + 1
-    entry = status.session(session_id) if status.status == "ok" else None
+    # Listed also without the map (`no_map`): the scans the service refused for want of it.
+    entry = status.session(session_id)
     # Scans `first` .. `gone_through` went with a deleted or replaced map, unless the counts of the
     # map there now include them (a session the service counts from before the map went).
     buried = status.buried_session(session_id) if session_id is not None else None
@@ -768,12 +853,24 @@ def _report(status: DeliveryStatus, session_id: int | None, first: int, last: in
             published=published, first_seq=first, last_seq=last, answered=True, gone=gone,
             settled=gone == published,
         )  # fmt: skip
-    # Counts of scans published after `flush` began may be in the service's: capped, they never
-    # make a report say more was integrated than it asked about.
+    integrated, refused, lost = min(entry.integrated, published), entry.refused, entry.lost
+    if entry.last_accepted > last:
+        # The service's counts take in scans published after `flush` began (a robot that goes on
+        # publishing, or whose backlog came in all at once): only those through `last` are asked
+        # about. A scan refused after it made "10 scans published, 10 integrated: 1 refused".
+        if entry.refused_seqs is not None and entry.lost_gaps is not None:
+            refused = sum(1 for seq in entry.refused_seqs if seq <= last)
+            lost = sum(max(0, min(n, last - (seq - n) + 1)) for seq, n in entry.lost_gaps)
+            counted = last - max(first, entry.first_seq) + 1
+            integrated = min(integrated, max(0, counted - refused - lost))
+        else:  # counted, not listed (an older service, or too many): at most what was asked about
+            refused = min(refused, published)
+            lost = min(lost, published - refused)
+            integrated = min(integrated, published - refused - lost)
     return DeliveryReport(
-        published=published, first_seq=first, last_seq=last, integrated=min(entry.integrated, published),
-        refused=entry.refused, lost=entry.lost, settled=entry.settled is not None and entry.settled >= last,
-        answered=True, counted_from=entry.first_seq, gone=gone,
+        published=published, first_seq=first, last_seq=last, integrated=integrated, refused=refused,
+        lost=lost, settled=entry.settled is not None and entry.settled >= last, answered=True,
+        counted_from=entry.first_seq, gone=gone, last_error=status.last_error if refused else None,
     )  # fmt: skip
 
 

@@ -102,6 +102,10 @@ def replay(
         raise ValueError(f"rate must be a finite number >= 0, got {rate}")
     if limit is not None and limit < 0:
         raise ValueError(f"limit must be >= 0, got {limit}")
+    for name, value in (("wait_timeout", wait_timeout), ("confirm_timeout", confirm_timeout)):
+        # NaN passed every check downstream and was found out only after the whole replay.
+        if value is not None and not value >= 0.0:
+            raise ValueError(f"{name} must be a number of seconds >= 0, got {value}")
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     count = len(ds) if limit is None else min(limit, len(ds))
     period = 0.0 if rate == 0.0 else 1.0 / (NOMINAL_SCAN_RATE * rate)
@@ -159,7 +163,15 @@ def _publish_all(
                     time.sleep(delay)
             if not pub.connected:
                 pauses += 1
-                _wait(pub, wait_timeout, None)
+                try:
+                    _wait(pub, wait_timeout, None)
+                except ReplayError as exc:
+                    # Midway, "no service reachable" alone read as if none had ever been.
+                    raise ReplayError(
+                        f"lost the fleetmap service after publishing {k} of {count} scans, and it did not "
+                        f"come back: {exc}; the scans not delivered were given up, the others are in the "
+                        "map or not as the service says (GET /maps/{id})"
+                    ) from None
             pub.publish(scan, seq=k)  # kept for re-delivery if the link dies meanwhile
             bar.update(1)
     return ReplayResult(scans=count, pauses=pauses, seconds=time.monotonic() - started)
