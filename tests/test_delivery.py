@@ -21,7 +21,13 @@ from typing import Any
 import httpx
 import pytest
 import zenoh
-from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, PublisherClosed, ScanPublisher
+from fleetmap_client.publisher import (
+    DeliveryReport,
+    DeliveryUnsupported,
+    PublisherClosed,
+    ScanPublisher,
+    _report,
+)
 from robot_process import scans_for
 from service_process import FreezableProxy, ServiceProcess, reaped, wait_for
 from test_client_zenoh import Router, _write_carmen
@@ -857,3 +863,43 @@ def test_flush_after_close_says_to_flush_first() -> None:
         PublisherClosed, match=r"flush before close\(\), which gives up the scans not delivered"
     ):
         pub.flush(1)
+
+
+def test_refusals_from_before_a_robot_was_on_its_map_do_not_hold_up_its_flush_after_the_map_went() -> None:
+    """A robot's scans refused for want of its map (`--no-auto-create`; likewise of room on it),
+    then, once the map was created, 5 integrated, then the map deleted: the refusals the service
+    remembered from before the robot was on the map were its answer again (`no_map`), settled only
+    through seq 4, and covered up the tombstone's "in no map now" (`buried`) for seqs 0 to 9: a
+    flush of seqs 0 to 9 never settled, where it returned at once saying they went with the map."""
+    reg = MapRegistry(auto_create=False)  # workers not started: nothing is integrated, nor needs to be
+    for seq in range(5):
+        with pytest.raises(IngestRejected, match="no map"):
+            reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    reg.create("m")
+    for seq in range(5, 10):
+        reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    reg.delete("m")
+    status = reg.delivery_status("m", "r", 7)
+    assert [entry.last_seq for entry in status.buried] == [9], status
+    report = _report(status, 7, 0, 9)
+    assert (report.settled, report.gone, report.confirmed) == (True, 10, False), (report, status)
+    reg.close()
+
+
+def test_a_scan_of_a_deleted_maps_robot_refused_again_at_the_limits_does_not_hold_up_its_flush() -> None:
+    """A deleted map's robot's cache fetched again (after a restart of the service, or of its link):
+    its copies are ignored as from before the deletion (the tombstone), but a copy refused at the
+    input limits (a pose outside the world bound) was remembered as a refused scan of a robot
+    without a map, from that seq on: it covered up the tombstone's "in no map now" for the earlier
+    seqs, and a flush of the session never settled, where it returned at once saying they went."""
+    reg = MapRegistry()  # workers not started
+    for seq in range(10):
+        reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    reg.delete("m")
+    assert _report(reg.delivery_status("m", "r", 7), 7, 0, 9).gone == 10
+    reg.reject("m", "r", "scan seq 7 refused: pose (1e+06, 0) is outside the world bound", (7, 7.0, 7))
+    status = reg.delivery_status("m", "r", 7)
+    report = _report(status, 7, 0, 9)
+    assert (report.settled, report.gone, report.refused) == (True, 10, 0), (report, status)
+    assert status.sessions == [] and status.last_error is None, status
+    reg.close()

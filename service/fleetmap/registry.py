@@ -643,6 +643,7 @@ class MapRegistry:
                 entry.scans_rejected += 1  # counted on the map: the robot has no state to count it on
                 reason = f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have"
                 self._refuse_unmapped(map_id, robot_id, wire, reason, 429)
+            self._forget_unmapped(map_id, robot_id)
             robot = entry.robot(robot_id)
             robot.last_heard = now = time.time()
             seq, stamp, session = wire.seq, wire.stamp, wire.session
@@ -708,6 +709,16 @@ class MapRegistry:
         while len(sessions) > MAX_SESSIONS:
             del sessions[next(iter(sessions))]
 
+    def _forget_unmapped(self, map_id: str, robot_id: str) -> None:
+        """Robot `robot_id` has room on map `map_id` now: forget its scans refused before, for want
+        of the map or of room on it (`_unmapped`). The delivery query reads them only while the robot
+        has no state on the map; kept, they were its answer again once the map went (deleted or
+        replaced), older than the tombstone, and their session, settled only through its last
+        refused seq, hid the tombstone's "in no map now" of every scan after them: a flush of the
+        session never settled. Call under the registry's lock."""
+        if self._unmapped:
+            self._unmapped.pop((map_id, robot_id), None)
+
     def reject(
         self, map_id: str, robot_id: str, reason: str, scan_id: tuple[int, float, int | None] | None = None
     ) -> None:
@@ -731,9 +742,16 @@ class MapRegistry:
             if entry is None or not self._room_for(entry, robot_id):
                 if entry is not None:
                     entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
-                if scan_id is not None:  # for the delivery query: its robot's flush would wait for ever
+                # For the delivery query (its robot's flush would wait for ever), unless it is a copy
+                # of a scan from before its map went (as `submit` ignores one): remembered, it hid
+                # the tombstone's "in no map now" of the session's earlier scans from the query.
+                if (
+                    scan_id is not None
+                    and self.tombstones.covers(map_id, robot_id, scan_id[2], scan_id[0]) is None
+                ):
                     self._remember_unmapped(map_id, robot_id, scan_id[0], scan_id[2], reason)
                 return
+            self._forget_unmapped(map_id, robot_id)
             robot = entry.robot(robot_id)
             robot.last_heard = now = time.time()
             if scan_id is not None and scan_id[2] is not None:
