@@ -1094,8 +1094,11 @@ class MapRegistry:
 
 def _forgetting_order(item: tuple[str, RobotState]) -> tuple[bool, float]:
     """Which robot a full map forgets first (`MapRegistry._forget_idle`): one whose every message
-    was refused (it has no seq), then the one heard from least recently."""
-    return item[1].last_seq is not None, item[1].last_heard
+    was refused (none of its scans is in the map: `RobotState.in_map`), then the one heard from
+    least recently. Not "it has no seq": a scan refused at the input limits with a session id has
+    its seq recorded (`MapRegistry.reject`), and such scans under made-up robot ids pushed real
+    offline robots out first."""
+    return item[1].in_map, item[1].last_heard
 
 
 def _covered_reason(stone: Tombstone, wire: WireScan) -> str:
