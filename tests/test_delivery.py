@@ -945,3 +945,20 @@ def test_scans_refused_on_a_map_they_created_are_settled_once_the_map_is_removed
         assert report.last_error is not None and expected in report.last_error, report
     finally:
         reg.close()
+
+
+def test_a_copy_refused_at_the_limits_of_a_scan_from_before_its_map_went_changes_nothing() -> None:
+    """A deleted map's robot's cache, fetched again, holds a scan the input limits refuse: on the
+    map created again under that id it is ignored as `submit` ignores the other copies (the
+    tombstone), before anything else. It made the full map forget an idle robot to make room for
+    the old robot, whose new state held nothing but that copy."""
+    reg = MapRegistry(max_robots_per_map=1)  # workers not started
+    for seq in range(10):
+        reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    reg.delete("m")
+    reg.create("m")
+    reg.reject("m", "x", "undecodable")  # an idle robot on the new map, which is full
+    reg.reject("m", "r", "scan seq 7 refused: pose (1e+06, 0) is outside the world bound", (7, 7.0, 7))
+    entry = reg.get("m")
+    assert sorted(entry.robots) == ["x"] and entry.scans_rejected == 1
+    reg.close()

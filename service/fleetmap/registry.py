@@ -779,25 +779,28 @@ class MapRegistry:
             return
         with self.lock:
             entry = self.maps.get(map_id)
+            stone = (
+                None if scan_id is None else self.tombstones.covers(map_id, robot_id, scan_id[2], scan_id[0])
+            )
+            if stone is not None:
+                # A copy of a scan from before its map went (or its robot was forgotten): ignored as
+                # `submit` ignores one, first. Remembered as a robot's without a map, it hid the
+                # tombstone's "in no map now" of the session's other scans from the delivery query
+                # (a flush never settled); on a full map it made an idle robot be forgotten for it.
+                robot = entry.robots.get(robot_id) if entry is not None else None
+                if robot is not None:
+                    robot.duplicates += 1
+                return
             if entry is None or not self._room_for(entry, robot_id):
                 if entry is not None:
                     entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
-                # For the delivery query (its robot's flush would wait for ever), unless it is a copy
-                # of a scan from before its map went (as `submit` ignores one): remembered, it hid
-                # the tombstone's "in no map now" of the session's earlier scans from the query.
-                if (
-                    scan_id is not None
-                    and self.tombstones.covers(map_id, robot_id, scan_id[2], scan_id[0]) is None
-                ):
+                if scan_id is not None:  # for the delivery query: its robot's flush would wait for ever
                     self._remember_unmapped(map_id, robot_id, scan_id[0], scan_id[2], reason)
                 return
             robot = entry.robot(robot_id)
             robot.last_heard = now = time.time()
             if scan_id is not None and scan_id[2] is not None:
                 seq, stamp, session = scan_id
-                if self.tombstones.covers(map_id, robot_id, session, seq) is not None:
-                    robot.duplicates += 1
-                    return
                 if robot.is_duplicate(seq, stamp, session):
                     robot.duplicates += 1
                     robot.sessions[session_key(session)].ledger.duplicates += 1
