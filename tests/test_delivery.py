@@ -21,7 +21,13 @@ from typing import Any
 import httpx
 import pytest
 import zenoh
-from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, PublisherClosed, ScanPublisher
+from fleetmap_client.publisher import (
+    DeliveryReport,
+    DeliveryUnsupported,
+    PublisherClosed,
+    ScanPublisher,
+    _report,
+)
 from robot_process import scans_for
 from service_process import FreezableProxy, ServiceProcess, reaped, wait_for
 from test_client_zenoh import Router, _write_carmen
@@ -31,7 +37,9 @@ from test_store_forward import LAYERS, engine_map, publish_then_cut
 
 from fleetmap import codec
 from fleetmap.codec import WireScan
-from fleetmap.memory_budget import MemoryBudgetError
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
+from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.registry import IngestRejected, Job, MapRegistry
 from fleetmap.robot_state import Receipt, RobotState, SessionLedger
 from fleetmap.scan import Scan
@@ -857,3 +865,100 @@ def test_flush_after_close_says_to_flush_first() -> None:
         PublisherClosed, match=r"flush before close\(\), which gives up the scans not delivered"
     ):
         pub.flush(1)
+
+
+@pytest.mark.parametrize("how", ["deleted", "replaced"])
+def test_refusals_from_before_a_robot_was_on_its_map_do_not_hold_up_its_flush_after_the_map_went(
+    how: str,
+) -> None:
+    """A robot's scans refused for want of its map (`--no-auto-create`; likewise of room on it),
+    then, once the map was created, 5 integrated, then the map deleted (or replaced by an upload):
+    the refusals the service
+    remembered from before the robot was on the map were its answer again (`no_map`), settled only
+    through seq 4, and covered up the tombstone's "in no map now" (`buried`) for seqs 0 to 9: a
+    flush of seqs 0 to 9 never settled, where it returned at once saying they went with the map."""
+    reg = MapRegistry(auto_create=False)  # workers not started: nothing is integrated, nor needs to be
+    for seq in range(5):
+        with pytest.raises(IngestRejected, match="no map"):
+            reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    reg.create("m")
+    for seq in range(5, 10):
+        reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    if how == "deleted":
+        reg.delete("m")
+    else:
+        reg.replace("m", GridMap(MapConfig()))
+    status = reg.delivery_status("m", "r", 7)
+    assert [entry.last_seq for entry in status.buried] == [9], status
+    report = _report(status, 7, 0, 9)
+    assert (report.settled, report.gone, report.confirmed) == (True, 10, False), (report, status)
+    reg.close()
+
+
+def test_a_scan_of_a_deleted_maps_robot_refused_again_at_the_limits_does_not_hold_up_its_flush() -> None:
+    """A deleted map's robot's cache fetched again (after a restart of the service, or of its link):
+    its copies are ignored as from before the deletion (the tombstone), but a copy refused at the
+    input limits (a pose outside the world bound) was remembered as a refused scan of a robot
+    without a map, from that seq on: it covered up the tombstone's "in no map now" for the earlier
+    seqs, and a flush of the session never settled, where it returned at once saying they went."""
+    reg = MapRegistry()  # workers not started
+    for seq in range(10):
+        reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    reg.delete("m")
+    assert _report(reg.delivery_status("m", "r", 7), 7, 0, 9).gone == 10
+    reg.reject("m", "r", "scan seq 7 refused: pose (1e+06, 0) is outside the world bound", (7, 7.0, 7))
+    status = reg.delivery_status("m", "r", 7)
+    report = _report(status, 7, 0, 9)
+    assert (report.settled, report.gone, report.refused) == (True, 10, 0), (report, status)
+    assert status.sessions == [] and status.last_error is None, status
+    reg.close()
+
+
+@pytest.mark.parametrize("refusal", ["the memory budget is used up", "the queue is full"])
+def test_scans_refused_on_a_map_they_created_are_settled_once_the_map_is_removed_again(refusal: str) -> None:
+    """A map created by a robot's scans (auto-create) is removed again when every scan that reached
+    it was refused (the memory budget used up, 507; the full queue, 503): its robot's ledger went
+    with it, and the delivery query answered `no_map` and nothing of them, so the robot's flush
+    waited until its timeout, for ever without one, for scans the service had refused."""
+    budget = refusal.startswith("the memory")
+    if budget:
+        reg = MapRegistry(workers=1, memory_budget=MemoryBudget(1))
+        reg.start()
+    else:
+        reg = MapRegistry(queue_bytes=100)  # less than one scan of 30 beams
+    try:
+        futures = []
+        for seq in range(3):
+            try:
+                futures.append(reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7), wait=True))
+            except IngestRejected as exc:
+                assert exc.status == 503 and "removed again" in exc.reason, exc
+        for future in futures:
+            with pytest.raises(IngestRejected):
+                future.result(timeout=120)
+        assert reg.wait_idle(120)
+        status = reg.delivery_status("m", "r", 7)
+        assert status.status == "no_map", status
+        report = _report(status, 7, 0, 2)
+        assert (report.settled, report.refused, report.integrated) == (True, 3, 0), (report, status)
+        expected = "memory budget" if budget else "ingest queue full"
+        assert report.last_error is not None and expected in report.last_error, report
+    finally:
+        reg.close()
+
+
+def test_a_copy_refused_at_the_limits_of_a_scan_from_before_its_map_went_changes_nothing() -> None:
+    """A deleted map's robot's cache, fetched again, holds a scan the input limits refuse: on the
+    map created again under that id it is ignored as `submit` ignores the other copies (the
+    tombstone), before anything else. It made the full map forget an idle robot to make room for
+    the old robot, whose new state held nothing but that copy."""
+    reg = MapRegistry(max_robots_per_map=1)  # workers not started
+    for seq in range(10):
+        reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    reg.delete("m")
+    reg.create("m")
+    reg.reject("m", "x", "undecodable")  # an idle robot on the new map, which is full
+    reg.reject("m", "r", "scan seq 7 refused: pose (1e+06, 0) is outside the world bound", (7, 7.0, 7))
+    entry = reg.get("m")
+    assert sorted(entry.robots) == ["x"] and entry.scans_rejected == 1
+    reg.close()

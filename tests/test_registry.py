@@ -879,3 +879,26 @@ def test_a_restored_or_uploaded_maps_bounds_are_read_before_it_is_served(tmp_pat
         assert gmap.known_bounds() == expected and read == []
     finally:
         restarted.close()
+
+
+def test_robots_whose_every_scan_broke_the_input_limits_give_their_place_first() -> None:
+    """A well-formed scan that breaks the input limits (a pose outside the world bound), with a
+    session id, is settled as refused with its seq recorded (for the delivery query): a robot that
+    sent only such scans had a seq, so it no longer made room first, and scans under made-up robot
+    ids made a full map forget its real offline robots (their counters), as only valid scans could;
+    and each such robot forgotten took a tombstone (the database's, and pushing real forgotten
+    robots' out), though none of its scans is in the map to keep from being integrated twice."""
+    reg = MapRegistry(max_robots_per_map=2)
+    reg.start()
+    try:
+        future = reg.submit("m", "real", WireScan(0, 0.0, scan_at(0), 5), wait=True)
+        assert future is not None
+        future.result(timeout=120)
+        for k in range(1, 4):
+            reason = "scan seq 0 refused: pose (1e+06, 0) is outside the world bound of +-100000 m"
+            reg.reject("m", f"junk-{k}", reason, (0, 0.0, 1000 + k))
+        entry = reg.get("m")
+        assert sorted(entry.robots) == ["junk-3", "real"]
+        assert [reg.tombstones.get("m", f"junk-{k}") for k in (1, 2)] == [None, None]
+    finally:
+        reg.close()

@@ -459,15 +459,19 @@ def test_a_robot_forgotten_at_restore_is_remembered_across_restarts(data: Path) 
 def test_forgotten_robots_stones_become_a_deleted_maps_only_with_their_own_map() -> None:
     """`Tombstones.forget` keeps a robot of a live map (covered, not `buried`); `bury` of that map,
     deleted or replaced, makes its forgotten robots' stones ordinary ones of that moment, and leaves
-    other maps' alone. A robot with no session id has nothing to remember."""
+    other maps' alone. A robot with no session id has nothing to remember, nor one with none of
+    its scans in the map (every one refused)."""
     state = RobotState()
     state.accept(4, 4.0, SESSION)
     stones = Tombstones()
+    assert stones.forget("m", "r", state, now=999.0) is None  # its scan refused: nothing in the map
+    state.scans_integrated = 1
     forgotten = stones.forget("m", "r", state, now=1000.0)
     assert forgotten is not None and forgotten.forgotten and dict(forgotten.sessions) == {SESSION: 4}
     assert stones.forget("other", "r", state, now=1001.0) is not None
     no_session = RobotState()
     no_session.accept(9, 9.0, None)
+    no_session.scans_integrated = 1
     assert stones.forget("m", "plain", no_session, now=1002.0) is None
     assert stones.covers("m", "r", SESSION, 4) is forgotten and not stones.buried("m", "r")
     live = RobotState()
@@ -491,6 +495,7 @@ def test_a_forgotten_robot_keeps_what_an_earlier_deletion_buried_and_the_bounds_
     old, new = RobotState(), RobotState()
     old.accept(4, 4.0, SESSION)
     new.accept(9, 9.0, SESSION + 1)
+    new.scans_integrated = 1
     stones = Tombstones()
     stones.bury("m", {"r": old}, now=1000.0)
     stone = stones.forget("m", "r", new, now=1001.0)

@@ -27,7 +27,7 @@ import logging
 import sqlite3
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import NoReturn
@@ -41,7 +41,15 @@ from fleetmap.grid_map import GridMap, IntegrationResult
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.persistence import DurableStore
 from fleetmap.rate_limited_log import RateLimitedLog
-from fleetmap.robot_state import CONFLICT_SHOWN, MAX_SESSIONS, Receipt, RobotState, SessionSeqs, session_key
+from fleetmap.robot_state import (
+    CONFLICT_SHOWN,
+    MAX_SESSIONS,
+    NO_SESSION,
+    Receipt,
+    RobotState,
+    SessionSeqs,
+    session_key,
+)
 from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
@@ -170,10 +178,11 @@ class Job:
 
 
 #: Robots (map id, robot id) whose scans were refused for want of their map, or of room for them on
-#: it (`--max-robots-per-map`), that the delivery query remembers, the most recent: what became of
-#: those scans is final, and a robot's `flush` that was only told `no_map` or `no_robot` waited for
-#: them for ever. Each holds at most MAX_SESSIONS sessions of 3 numbers and a reason (some 300
-#: bytes each): 2.5 MB at most, whatever ids senders make up (the oldest are forgotten).
+#: it (`--max-robots-per-map`), or on a map they created that was removed again (`_remember_removed`),
+#: that the delivery query remembers, the most recent: what became of those scans is final, and a
+#: robot's `flush` that was only told `no_map` or `no_robot` waited for them for ever. Each holds at
+#: most MAX_SESSIONS sessions of 3 numbers and a reason (some 400 bytes each): 3.2 MB measured with
+#: 64-character ids, whatever ids senders make up (the oldest are forgotten).
 MAX_UNMAPPED_ROBOTS = 1024
 
 #: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
@@ -491,6 +500,8 @@ class MapRegistry:
             dropped = self._retire(old) if old is not None else []
             # The old map's robots' cached scans must not go into the upload either.
             buried = self.tombstones.bury(map_id, old.robots, time.time()) if old is not None else []
+            if old is not None:
+                self._forget_unmapped(map_id, old.robots)
             entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
             self._add(entry)
             if old is not None:
@@ -537,6 +548,7 @@ class MapRegistry:
                     expect(old)
                 dropped = self._retire(old)
                 buried = self.tombstones.bury(map_id, old.robots, time.time())
+                self._forget_unmapped(map_id, old.robots)
                 if self.durable is not None:
                     stored = self.durable.map_deleted(map_id, buried)
         for job in dropped:
@@ -593,6 +605,7 @@ class MapRegistry:
         (and new ones waiting for the registry's lock) no worker holds a scan of this map."""
         if not entry.provisional or entry.unsettled:
             return None
+        self._remember_removed(entry)
         self._retire(entry)
         self._auto_map_log.log(
             logging.INFO, f"removed:{entry.id}",
@@ -688,14 +701,24 @@ class MapRegistry:
         raise IngestRejected(reason, status)
 
     def _remember_unmapped(
-        self, map_id: str, robot_id: str, seq: int, session: int | None, reason: str
+        self,
+        map_id: str,
+        robot_id: str,
+        seq: int,
+        session: int | None,
+        reason: str,
+        last: int | None = None,
+        count: int = 1,
     ) -> None:
         """The scan `seq` of publisher session `session` of a robot without a map, or without room
         on it, was refused: remember it for the delivery query, if it has a session id, as settled
         and refused (`_unmapped`). A seq not above the session's last is a copy (the robot's cache
-        fetched again): not counted twice. Call under the registry's lock."""
+        fetched again): not counted twice. `last` and `count`: `count` scans of seqs `seq` to `last`
+        were (`_remember_removed`); overlapping what was counted, only its end is taken (the seqs
+        after it not refused then count as lost). Call under the registry's lock."""
         if session is None:
             return
+        last = seq if last is None else last
         key = (map_id, robot_id)
         sessions = self._unmapped.pop(key, {})
         self._unmapped[key] = sessions  # the most recent last
@@ -703,10 +726,38 @@ class MapRegistry:
             del self._unmapped[next(iter(self._unmapped))]
         counted = sessions.pop(session, None) or [seq, seq - 1, 0, reason]
         if seq > counted[1]:
-            counted[1], counted[2], counted[3] = seq, counted[2] + 1, reason
+            counted[1], counted[2], counted[3] = last, counted[2] + count, reason
+        elif last > counted[1]:
+            counted[1], counted[3] = last, reason
         sessions[session] = counted
         while len(sessions) > MAX_SESSIONS:
             del sessions[next(iter(sessions))]
+
+    def _forget_unmapped(self, map_id: str, robot_ids: Iterable[str]) -> None:
+        """Robots `robot_ids` of map `map_id` were buried with it (deleted or replaced) or forgotten
+        by it: forget their scans refused before, for want of the map or of room on it
+        (`_unmapped`); their tombstones say the rest. Kept, they were the robot's answer again,
+        older than its tombstone, and their session, settled only through its last refused seq, hid
+        the tombstone's "in no map now" of its later scans: a flush of it never settled. Call under
+        the registry's lock."""
+        if self._unmapped:
+            for robot_id in robot_ids:
+                self._unmapped.pop((map_id, robot_id), None)
+
+    def _remember_removed(self, entry: MapEntry) -> None:
+        """Map `entry`, created by scans that were all refused, is being removed again
+        (`_remove_unclaimed`): remember its robots' sessions for the delivery query, as scans
+        refused for want of a map are (`_unmapped`). Their ledgers go with the map, and the query
+        answered `no_map` and nothing of them: a flush waited for ever for scans the service had
+        refused (its memory budget used up, its queue full). Call under the registry's lock."""
+        for robot_id, robot in entry.robots.items():
+            for key, seqs in robot.sessions.items():
+                ledger = seqs.ledger
+                if key != NO_SESSION and ledger.first_seq is not None and ledger.refused:
+                    reason = robot.last_error or "refused"
+                    self._remember_unmapped(
+                        entry.id, robot_id, ledger.first_seq, key, reason, seqs.last_seq, ledger.refused
+                    )
 
     def reject(
         self, map_id: str, robot_id: str, reason: str, scan_id: tuple[int, float, int | None] | None = None
@@ -728,6 +779,18 @@ class MapRegistry:
             return
         with self.lock:
             entry = self.maps.get(map_id)
+            stone = (
+                None if scan_id is None else self.tombstones.covers(map_id, robot_id, scan_id[2], scan_id[0])
+            )
+            if stone is not None:
+                # A copy of a scan from before its map went (or its robot was forgotten): ignored as
+                # `submit` ignores one, first. Remembered as a robot's without a map, it hid the
+                # tombstone's "in no map now" of the session's other scans from the delivery query
+                # (a flush never settled); on a full map it made an idle robot be forgotten for it.
+                robot = entry.robots.get(robot_id) if entry is not None else None
+                if robot is not None:
+                    robot.duplicates += 1
+                return
             if entry is None or not self._room_for(entry, robot_id):
                 if entry is not None:
                     entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
@@ -738,9 +801,6 @@ class MapRegistry:
             robot.last_heard = now = time.time()
             if scan_id is not None and scan_id[2] is not None:
                 seq, stamp, session = scan_id
-                if self.tombstones.covers(map_id, robot_id, session, seq) is not None:
-                    robot.duplicates += 1
-                    return
                 if robot.is_duplicate(seq, stamp, session):
                     robot.duplicates += 1
                     robot.sessions[session_key(session)].ledger.duplicates += 1
@@ -784,6 +844,7 @@ class MapRegistry:
             if stone is not None and self.durable is not None:
                 entry.unstored_stones[rid] = stone
             entry.forget(rid)
+        self._forget_unmapped(entry.id, [rid for rid, _ in chosen])
         return len(chosen)
 
     def set_online(self, map_id: str, robot_id: str, online: bool) -> None:
@@ -1076,8 +1137,11 @@ class MapRegistry:
 
 def _forgetting_order(item: tuple[str, RobotState]) -> tuple[bool, float]:
     """Which robot a full map forgets first (`MapRegistry._forget_idle`): one whose every message
-    was refused (it has no seq), then the one heard from least recently."""
-    return item[1].last_seq is not None, item[1].last_heard
+    was refused (none of its scans is in the map: `RobotState.in_map`), then the one heard from
+    least recently. Not "it has no seq": a scan refused at the input limits with a session id has
+    its seq recorded (`MapRegistry.reject`), and such scans under made-up robot ids pushed real
+    offline robots out first."""
+    return item[1].in_map, item[1].last_heard
 
 
 def _covered_reason(stone: Tombstone, wire: WireScan) -> str:

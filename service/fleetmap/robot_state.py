@@ -285,6 +285,13 @@ class RobotState:
     )  # fmt: skip
 
     @property
+    def in_map(self) -> bool:
+        """Whether any of its scans is in the map: integrated (`scans_integrated`, durable with
+        durable storage), or applied though its journal commit failed (`not_durable`). A robot
+        whose every scan was refused holds only its refusals."""
+        return self.scans_integrated > 0 or self.not_durable > 0
+
+    @property
     def last_seq(self) -> int | None:
         """The seq of the last scan accepted (enqueued), None before the first."""
         return next(reversed(self.sessions.values())).last_seq if self.sessions else None

@@ -176,11 +176,13 @@ class Tombstones:
     def forget(self, map_id: str, robot_id: str, state: RobotState, now: float) -> Tombstone | None:
         """Remember robot `robot_id`, forgotten at `now` by map `map_id`, which lives on: its
         sessions' seqs, merged with its earlier stone as `bury` merges them, in a `forgotten` stone.
-        Returns it, to store, or None if there is nothing to remember (no session with an id): its
-        earlier stone, if any, then stays as it was. A robot that had an ordinary stone (its map was
+        Returns it, to store, or None if there is nothing to remember (no session with an id, or
+        none of its scans in the map, `RobotState.in_map`: nothing to integrate twice, and scans
+        refused at the input limits under made-up robot ids took stones): its earlier stone, if
+        any, then stays as it was. A robot that had an ordinary stone (its map was
         deleted before, and the robot fed the new one) gets a forgotten one: its scans since are in
         the live map, which the delivery query must not call gone; the older ones stay covered."""
-        if all(key == NO_SESSION for key in state.sessions):
+        if not state.in_map or all(key == NO_SESSION for key in state.sessions):
             return None
         old = self._drop(map_id, robot_id)
         stone = Tombstone(
