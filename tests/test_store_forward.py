@@ -187,6 +187,56 @@ def test_the_service_killed_and_restarted_integrates_every_scan_once(tmp_path: P
             second.stop()
 
 
+#: Seconds within which a robot must be connected again once a restarted service is reachable: its
+#: retry period is at most 0.5 s (`RECONNECT_PERIOD_MAX_MS`), the rest is margin for a loaded machine.
+#: Zenoh's own default retries every 4 s by then, and took 4.0 s here.
+RECONNECT_BOUND_S = 2.0
+
+
+def test_a_robot_meets_a_restarted_service_within_a_second_of_it_listening(tmp_path: Path) -> None:
+    """The durable service SIGKILLed, away for 6 s, started again: the robot's client session is
+    connected to it, and sees its scan subscriber, within `RECONNECT_BOUND_S` of the service becoming
+    reachable. The proxy refuses connections until just after one of the robot's attempts failed, so
+    the time measured is the robot's wait for its next attempt, whatever the service's start took.
+    With Zenoh's default `connect/retry` (1 s, growing to 4 s) it was about 4 s: a service that came
+    back for less than that was never met, and five such in a row kept the robots of
+    tests/test_crash_exactly_once.py away for 37 s, longer than their backlogs lasted."""
+    data = ["--data-dir", str(tmp_path / "data")]
+    first = ServiceProcess(tmp_path, data).start()
+    proxy = FreezableProxy(first.zenoh_port)
+    pub = ScanPublisher("back", "r1", connect=[proxy.endpoint])
+    second: ServiceProcess | None = None
+    try:
+        assert pub.wait_connected(20), pub.last_connect_error
+        assert first.proc is not None
+        first.proc.kill()
+        first.proc.wait(10)
+        proxy.cut()  # refused from now on, and counted: the robot's attempts
+        away = time.monotonic()
+        wait_for(lambda: not pub.connected, 15, 0.01, "the robot to notice the service left")
+        second = ServiceProcess(tmp_path, data)
+        proxy.target_port = second.zenoh_port
+        second.start()
+        # Past the backoff's first steps (Zenoh's default tries again 1, 3, 7, 11 s after the loss).
+        time.sleep(max(0.0, away + 6.0 - time.monotonic()))
+        attempts = len(proxy.refused)
+        wait_for(lambda: len(proxy.refused) > attempts, 10, 0.002, "a connection attempt of the robot")
+        proxy.restore()
+        reachable = time.monotonic()
+        wait_for(lambda: pub.connected and pub.subscribed, 20, 0.01, "the robot to meet the new service")
+        took = time.monotonic() - reachable
+        tries = [round(t - away, 2) for t in proxy.refused]
+        assert took < RECONNECT_BOUND_S, (
+            f"connected {took:.2f} s after the service was reachable; attempts at {tries}"
+        )
+    finally:
+        pub.close()
+        proxy.close()
+        first.stop()
+        if second is not None:
+            second.stop()
+
+
 def test_a_burst_of_1000_recovered_scans_fits_the_ingest_queue(service: ServiceProcess) -> None:
     """1000 scans published into a dead zone (as fast as possible), then the link comes back: they
     arrive as one burst at network speed, far faster than they integrate, and the robot's queue

@@ -28,7 +28,9 @@ Connection behaviour. The constructor returns at once; the session is opened by 
 that keeps trying until the service answers (Zenoh's own `zenoh.open` in client mode either fails
 at once or, with `connect/timeout_ms: -1`, blocks the caller until a router listens; a loop of
 bounded attempts gives the same "wait for the service" behaviour while letting `close()` and Ctrl-C
-stop it). Once connected, Zenoh itself reconnects after the service restarts or the link drops.
+stop it). Once connected, Zenoh itself reconnects after the service restarts or the link drops,
+trying again every 0.1 s, then 0.2, 0.4, and every 0.5 s from then on (`RECONNECT_PERIOD_MAX_MS`;
+Zenoh's own default backs off to 4 s, and robots missed services that came back only briefly).
 
 Store and forward (`backlog`, default `DEFAULT_BACKLOG` = 1000 scans). Robots drive through Wi-Fi
 dead zones, and the service restarts; no scan should be lost to either. The publisher is zenoh-ext's
@@ -103,6 +105,16 @@ DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
 #: How long one connection attempt of the background opener may take. Zenoh retries within an
 #: attempt; between attempts the opener checks whether the publisher was closed.
 CONNECT_ATTEMPT_MS = 1000
+#: The client session's connection retry (`connect/retry`, unless the configuration sets it): the first
+#: wait after a failed attempt, the longest, and the factor between. Zenoh's own (1000 ms, 4000 ms, 2)
+#: tries again 1, 3, 7, 11, 15 ... s after losing the service, so a robot met a service that came
+#: back up to 4 s after it listened, and none at all that lived less than that: while short-lived
+#: services came and went, robots of tests/test_crash_exactly_once.py stayed unconnected for 37 s,
+#: past what their caches held. Bounded at 0.5 s, a robot is connected again within about half a
+#: second of the service listening; an attempt costs one TCP connection.
+RECONNECT_PERIOD_INIT_MS = 100
+RECONNECT_PERIOD_MAX_MS = 500
+RECONNECT_PERIOD_FACTOR = 2.0
 #: How long `close` waits for the opener's attempt in progress to end (one attempt and a margin; a
 #: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running).
 CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
@@ -216,8 +228,11 @@ def client_config(
     Starts from `zenoh_config` (a `zenoh.Config`, or the path of a JSON5 configuration file) or an
     empty configuration, then fills in what it leaves unset: mode `client`, connect endpoints
     (`connect`, else `DEFAULT_CONNECT`; an explicit `connect` always wins), `connect/timeout_ms` of
-    one attempt (`CONNECT_ATTEMPT_MS`) and multicast scouting off. Raises ValueError for a bad file
-    or endpoint list.
+    one attempt (`CONNECT_ATTEMPT_MS`), `connect/retry` (`RECONNECT_PERIOD_INIT_MS` growing by
+    `RECONNECT_PERIOD_FACTOR` to at most `RECONNECT_PERIOD_MAX_MS` between attempts, also when Zenoh
+    reconnects a lost session; a configuration that sets any key of `connect/retry` keeps Zenoh's
+    defaults for the others) and multicast scouting off. Raises ValueError for a bad file or
+    endpoint list.
     """
     if zenoh_config is None:
         cfg = zenoh.Config()
@@ -245,6 +260,14 @@ def client_config(
             raise ValueError(f"invalid Zenoh endpoint in {endpoints}: {_zenoh_message(exc)}") from None
     if _get(cfg, "connect/timeout_ms") is None:
         cfg.insert_json5("connect/timeout_ms", str(CONNECT_ATTEMPT_MS))
+    if _get(cfg, "connect/retry") is None:
+        # Zenoh takes the block whole (its keys cannot be inserted one by one into an unset one).
+        retry = {
+            "period_init_ms": RECONNECT_PERIOD_INIT_MS,
+            "period_max_ms": RECONNECT_PERIOD_MAX_MS,
+            "period_increase_factor": RECONNECT_PERIOD_FACTOR,
+        }
+        cfg.insert_json5("connect/retry", json.dumps(retry))
     if _get(cfg, "scouting/multicast/enabled") is None:
         cfg.insert_json5("scouting/multicast/enabled", "false")
     return cfg
@@ -779,5 +802,6 @@ def _report(status: DeliveryStatus, session_id: int | None, first: int, last: in
 
 __all__ = [
     "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT", "HEARTBEAT_S",
+    "RECONNECT_PERIOD_FACTOR", "RECONNECT_PERIOD_INIT_MS", "RECONNECT_PERIOD_MAX_MS",
     "DeliveryReport", "DeliveryUnsupported", "PublisherClosed", "ScanPublisher", "client_config",
 ]  # fmt: skip
