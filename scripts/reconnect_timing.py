@@ -12,6 +12,11 @@ robot's session was connected (`pub.connected`) and saw the scan subscriber (`pu
 `--soak N` instead restarts it N times as the soak does: up for its start plus 0.05-4 s, down for
 0-4 s; it prints, for each service, whether the robot met it at all.
 
+`--via service-client` / `--via service-peer` measure the SERVICE's session instead: the service runs
+with `--zenoh-connect` to a Zenoh router (a separate process, as a zenohd would be), in client mode
+(no listening) or as a peer (listening too); the router is SIGKILLed and started again, and it
+prints how long after the router listened the service counted it again (`/healthz` zenoh.routers).
+
 `--retry INIT,MAX,FACTOR` sets the robot's `connect/retry` (ms, ms, factor) instead of the
 publisher's default, to compare; `--retry zenoh` leaves it unset in the configuration given to
 `ScanPublisher` (Zenoh's own default applies unless `client_config` fills one in).
@@ -25,11 +30,14 @@ import json
 import random
 import socket
 import statistics
+import subprocess
+import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
+import httpx
 import zenoh
 from fleetmap_client.publisher import ScanPublisher
 from service_process import FreezableProxy, ServiceProcess, free_port
@@ -157,6 +165,83 @@ def restarts(args: argparse.Namespace, tmp: Path) -> None:
         svc.stop()
 
 
+ROUTER_SCRIPT = """
+import sys, threading, zenoh
+cfg = zenoh.Config()
+cfg.insert_json5("mode", '"router"')
+cfg.insert_json5("listen/endpoints", '["tcp/127.0.0.1:%s"]' % sys.argv[1])
+cfg.insert_json5("scouting/multicast/enabled", "false")
+session = zenoh.open(cfg)
+threading.Event().wait()
+"""
+
+
+def service_side(args: argparse.Namespace, tmp: Path) -> None:
+    """The service's session connecting to a router that is killed and restarted (`--via service-*`)."""
+    router_port = free_port()
+    router_endpoint = f"tcp/127.0.0.1:{router_port}"
+
+    def router() -> subprocess.Popen[bytes]:
+        return subprocess.Popen([sys.executable, "-c", ROUTER_SCRIPT, str(router_port)])
+
+    def listening() -> bool:
+        with socket.socket() as s:
+            return s.connect_ex(("127.0.0.1", router_port)) == 0
+
+    proc = router()
+    while not listening():
+        time.sleep(0.01)
+    extra = ["--in-memory", "--zenoh-connect", router_endpoint]
+    svc = ServiceProcess(tmp, extra)
+    if args.via == "service-client":
+        at = svc.args.index("--zenoh-listen")
+        del svc.args[at : at + 2]
+    if args.retry:
+        config = tmp / "service-zenoh.json5"
+        init, most, factor = args.retry.split(",")
+        retry = {
+            "period_init_ms": int(init),
+            "period_max_ms": int(most),
+            "period_increase_factor": float(factor),
+        }
+        config.write_text(json.dumps({"connect": {"retry": retry}}))
+        svc.args += ["--zenoh-config", str(config)]
+    svc.start()
+
+    def routers() -> int:
+        try:
+            return int(httpx.get(f"{svc.base_url}/healthz", timeout=1).json()["zenoh"].get("routers", 0))
+        except (httpx.HTTPError, ValueError, KeyError):
+            return -1
+
+    rows: list[float] = []
+    try:
+        deadline = time.monotonic() + 30
+        while routers() < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        print(f"service ({args.via}) connected to the router: {routers()}", flush=True)
+        for down in [d for _ in range(args.repeat) for d in args.downs]:
+            time.sleep(1.0)
+            proc.kill()
+            proc.wait()
+            while routers() != 0:
+                time.sleep(0.01)
+            time.sleep(down)
+            proc = router()
+            while not listening():
+                time.sleep(0.005)
+            listened = time.monotonic()
+            while routers() < 1 and time.monotonic() - listened < 60:
+                time.sleep(0.01)
+            rows.append(time.monotonic() - listened)
+            print(f"down {down:4.1f} s: service connected again +{rows[-1]:5.2f} s after the router listened")
+        print(f"median {statistics.median(rows):.2f} s, max {max(rows):.2f} s")
+    finally:
+        svc.stop()
+        proc.kill()
+        proc.wait()
+
+
 def soak_like(args: argparse.Namespace, tmp: Path) -> None:
     rng = random.Random(args.seed)
     port = free_port()
@@ -210,13 +295,17 @@ def main() -> None:
     )
     parser.add_argument("--downs", type=float, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--via", choices=["proxy", "direct"], default="proxy")
+    parser.add_argument(
+        "--via", choices=["proxy", "direct", "service-client", "service-peer"], default="proxy"
+    )
     parser.add_argument("--retry", default=None)
     parser.add_argument("--soak", type=int, default=0)
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="reconnect-timing-") as tmp:
-        if args.soak:
+        if args.via.startswith("service-"):
+            service_side(args, Path(tmp))
+        elif args.soak:
             soak_like(args, Path(tmp))
         else:
             restarts(args, Path(tmp))
