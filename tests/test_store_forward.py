@@ -125,7 +125,7 @@ def test_a_dead_zone_loses_no_scan(service: ServiceProcess, backlog: int) -> Non
         robot.start()
         robot.wait_sent(40)
         assert proxy.cut() >= 1
-        time.sleep(2.0)  # 50 scans published into the dead zone, some 25 more until Zenoh reconnects
+        time.sleep(2.0)  # 50 scans published into the dead zone, some 5 more until Zenoh reconnects
         proxy.restore()
         robot.finish()
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
