@@ -260,21 +260,54 @@ def test_a_burst_of_1000_recovered_scans_fits_the_ingest_queue(service: ServiceP
         proxy.close()
 
 
-def test_scans_past_the_backlog_are_counted_as_unrecoverable(service: ServiceProcess) -> None:
-    """A dead zone longer than the backlog: 50 scans published into it with a backlog of 10. The
-    last 10 arrive; the 40 before them were pushed out of the robot's cache: the service counts them
-    as unrecoverable (`/healthz` zenoh.unrecoverable, `/metrics`) and as lost on the robot."""
+def test_scans_past_the_backlog_of_a_dead_zone_are_counted_as_lost(service: ServiceProcess) -> None:
+    """A dead zone longer than the backlog: 50 scans published into it with a backlog of 10. They
+    wait in the publisher's queue (nothing goes to Zenoh while it knows it is disconnected); the
+    last 10 arrive, the 40 before them were pushed out: given up by the robot (`dropped`) and counted
+    as lost by the service. Zenoh's cache had none of them, so zenoh-ext reports nothing missed."""
+    scans = scans_for(sim=6, beams=181, count=60)
+    proxy = FreezableProxy(service.zenoh_port)
+    pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10)
+    try:
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            publish_then_cut(pub, proxy, http, "miss", scans, 10)
+            for seq in range(10, 60):
+                assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            assert (pub.pending, pub.backlogged, pub.dropped) == (10, 10, 40)
+            proxy.restore()
+            wait_integrated(http, "miss", 20, timeout=30)
+            state = robot_stats(http, "miss", "r1")
+            assert (state["scans_integrated"], state["lost"], state["last_seq"]) == (20, 40, 59), state
+            assert zenoh_counters(http) == (0, 0)
+    finally:
+        pub.close()
+        proxy.close()
+
+
+def test_scans_past_the_cache_of_a_silently_dead_link_are_counted_as_unrecoverable(
+    service: ServiceProcess,
+) -> None:
+    """A link that dies without notice (frozen: to the robot it looks alive until Zenoh's lease runs
+    out): the 50 scans published into it go to Zenoh, and its cache keeps the last 10 (the backlog).
+    When the robot has reconnected, the service fetches those 10; the 40 before them were pushed out
+    of the cache: the service counts them as unrecoverable (`/healthz` zenoh.unrecoverable,
+    `/metrics`) and as lost on the robot."""
     scans = scans_for(sim=6, beams=181, count=60)
     proxy = FreezableProxy(service.zenoh_port)
     pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10)
     try:
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
             assert zenoh_counters(http) == (0, 0)
-            publish_then_cut(pub, proxy, http, "miss", scans, 10)
-            for seq in range(10, 60):
+            assert pub.wait_connected(20)
+            for seq in range(10):
                 pub.publish(scans[seq], seq=seq, stamp=float(seq))
-            proxy.restore()
-            wait_integrated(http, "miss", 20, timeout=30)
+            wait_integrated(http, "miss", 10, timeout=20)
+            assert proxy.freeze(refuse_new=True) >= 1
+            for seq in range(10, 60):
+                assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            assert pub.pending == 0  # handed to Zenoh: the robot did not know
+            proxy.restore()  # the frozen link stays silent until Zenoh gives up on it
+            wait_integrated(http, "miss", 20, timeout=60)
             wait_for(lambda: zenoh_counters(http) == (40, 40), 10, 0.05, "40 unrecoverable scans")
             state = robot_stats(http, "miss", "r1")
             assert (state["scans_integrated"], state["lost"], state["last_seq"]) == (20, 40, 59), state
@@ -285,10 +318,11 @@ def test_scans_past_the_backlog_are_counted_as_unrecoverable(service: ServicePro
 
 def test_a_peer_robot_sends_its_queued_scans_before_newer_ones(tmp_path: Path) -> None:
     """A robot in peer mode: its session opens with nothing connected (a peer does not wait for its
-    endpoints). The scans published before it opened wait in the publisher's queue; those published
-    after it opened, still disconnected, go to the advanced publisher's cache. The queued ones must
-    go to the cache first: left queued until a (re)connection's hold ends, they reached the service
-    after the newer ones fetched from the cache, and the service took them for duplicates."""
+    endpoints). The scans published before it opened wait in the publisher's queue, and so do those
+    published after it opened, still disconnected; all leave in order once it is connected. (When
+    the latter went to the advanced publisher's cache while the former stayed queued until the hold
+    ended, the older ones reached the service after the newer ones, which took them for
+    duplicates.)"""
     scans = scans_for(sim=7, beams=181, count=10)
     proxy = FreezableProxy(free_port())  # nothing listens there yet: every connection is closed
     config = zenoh.Config()
@@ -303,7 +337,7 @@ def test_a_peer_robot_sends_its_queued_scans_before_newer_ones(tmp_path: Path) -
         assert not pub.connected
         for seq in range(5, 10):
             assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
-        assert (pub.published, pub.backlogged, pub.dropped) == (0, 10, 0)
+        assert (pub.published, pub.backlogged, pub.dropped, pub.pending) == (0, 10, 0, 10)
         service = ServiceProcess(tmp_path, ["--in-memory"]).start()
         proxy.target_port = service.zenoh_port
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
