@@ -35,16 +35,16 @@ were of two kinds, both found and fixed on 2026-11-27 (docs/protocol.md, "Delive
 - one robot lost 70 to 600 scans: a scan it put while its session was reconnecting (between the
   publisher's look at the link and the put) reached the restarted service live, before the service
   had fetched the robot's cache; zenoh-ext took it for the robot's first and dropped the cache
-  before it as old. Traced by logging such puts: in each of the 3 instrumented runs with this loss,
-  the service's first scan of the robot was the one put while connecting (1623, 1681, 2399).
+  before it as old. Traced by logging such puts: in each of the 4 instrumented runs with this loss,
+  the service's first scan of the robot was the one put while connecting (1623, 1681, 2399, 841).
   `ScanPublisher` now hands Zenoh nothing while it knows it is disconnected (its own queue keeps
   those scans, sent after the reconnection's hold).
 
 Heavier runs on 2026-11-27 (12 restarts, 40 scans/s, up to 4 s down, same seeds for each version,
-run in turn so that each saw the same load on the shared 2-core machine): before both fixes 7 of 16
-runs lost scans (every robot in 3, one robot as above in 3, and two not traced: two robots at the
-live edge, and 21 scans in the middle of one robot's fetch); with the reconnect retry alone 3 of 16
-(all of the one-robot kind); with both, 0 of 10. A loss of cached scans still ends the test as xfail
+run in turn so that each saw the same load on the shared 2-core machine): before both fixes 9 of 18
+runs lost scans (every robot in 4, one robot as above in 4, and two not traced: two robots at the
+live edge, and 21 scans in the middle of one robot's fetch); with the reconnect retry alone 3 of 18
+(all of the one-robot kind); with both, 0 of 12. A loss of cached scans still ends the test as xfail
 (every other check holding), and anything else fails it.
 
 Longer or different runs (the defaults take about 40 s):
