@@ -255,7 +255,8 @@ class FreezableProxy:
     `restore()`, and the frozen ones stay silent (a link that died without anyone noticing and never
     comes back). `cut()` closes every connection and refuses new ones (closed at once) until
     `restore()`: a robot in a Wi-Fi dead zone. `target_port` may be changed at any time (a service
-    restarted on another port); a connection the target refuses is closed."""
+    restarted on another port); a connection the target refuses is closed. `refused` lists when
+    (`time.monotonic()`) each connection refused by a cut or freeze came: a client's attempts."""
 
     def __init__(self, target_port: int) -> None:
         self.target_port = target_port
@@ -265,6 +266,7 @@ class FreezableProxy:
         self.connections: list[tuple[socket.socket, socket.socket, threading.Event]] = []
         self.lock = threading.Lock()
         self.refusing = False
+        self.refused: list[float] = []
         threading.Thread(target=self._accept, daemon=True).start()
 
     def _accept(self) -> None:
@@ -275,6 +277,7 @@ class FreezableProxy:
                 return
             try:
                 if self.refusing:
+                    self.refused.append(time.monotonic())
                     raise ConnectionRefusedError
                 upstream = socket.create_connection(("127.0.0.1", self.target_port))
             except OSError:

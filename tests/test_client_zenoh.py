@@ -429,6 +429,14 @@ def test_client_config_defaults_and_overrides() -> None:
     assert json.loads(cfg.get_json("mode")) == "client"
     assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+    # Reconnection bounded at 0.5 s between attempts, unless the configuration says otherwise.
+    assert json.loads(cfg.get_json("connect/retry")) == {
+        "period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2.0
+    }  # fmt: skip
+    own = zenoh.Config.from_json5("{connect: {retry: {period_max_ms: 8000}}}")
+    assert json.loads(client_config(None, own).get_json("connect/retry")) == {
+        "period_init_ms": None, "period_max_ms": 8000, "period_increase_factor": None
+    }  # fmt: skip
     base = zenoh.Config()
     base.insert_json5("connect/endpoints", '["tcp/10.1.2.3:7447"]')
     assert json.loads(client_config(None, base).get_json("connect/endpoints")) == ["tcp/10.1.2.3:7447"]

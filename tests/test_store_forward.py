@@ -125,7 +125,7 @@ def test_a_dead_zone_loses_no_scan(service: ServiceProcess, backlog: int) -> Non
         robot.start()
         robot.wait_sent(40)
         assert proxy.cut() >= 1
-        time.sleep(2.0)  # 50 scans published into the dead zone, some 25 more until Zenoh reconnects
+        time.sleep(2.0)  # 50 scans published into the dead zone, some 5 more until Zenoh reconnects
         proxy.restore()
         robot.finish()
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
@@ -187,6 +187,56 @@ def test_the_service_killed_and_restarted_integrates_every_scan_once(tmp_path: P
             second.stop()
 
 
+#: Seconds within which a robot must be connected again once a restarted service is reachable: its
+#: retry period is at most 0.5 s (`RECONNECT_PERIOD_MAX_MS`), the rest is margin for a loaded machine.
+#: Zenoh's own default retries every 4 s by then, and took 4.0 s here.
+RECONNECT_BOUND_S = 2.0
+
+
+def test_a_robot_meets_a_restarted_service_within_a_second_of_it_listening(tmp_path: Path) -> None:
+    """The durable service SIGKILLed, away for 6 s, started again: the robot's client session is
+    connected to it, and sees its scan subscriber, within `RECONNECT_BOUND_S` of the service becoming
+    reachable. The proxy refuses connections until just after one of the robot's attempts failed, so
+    the time measured is the robot's wait for its next attempt, whatever the service's start took.
+    With Zenoh's default `connect/retry` (1 s, growing to 4 s) it was about 4 s: a service that came
+    back for less than that was never met, and five such in a row kept the robots of
+    tests/test_crash_exactly_once.py away for 37 s, longer than their backlogs lasted."""
+    data = ["--data-dir", str(tmp_path / "data")]
+    first = ServiceProcess(tmp_path, data).start()
+    proxy = FreezableProxy(first.zenoh_port)
+    pub = ScanPublisher("back", "r1", connect=[proxy.endpoint])
+    second: ServiceProcess | None = None
+    try:
+        assert pub.wait_connected(20), pub.last_connect_error
+        assert first.proc is not None
+        first.proc.kill()
+        first.proc.wait(10)
+        proxy.cut()  # refused from now on, and counted: the robot's attempts
+        away = time.monotonic()
+        wait_for(lambda: not pub.connected, 15, 0.01, "the robot to notice the service left")
+        second = ServiceProcess(tmp_path, data)
+        proxy.target_port = second.zenoh_port
+        second.start()
+        # Past the backoff's first steps (Zenoh's default tries again 1, 3, 7, 11 s after the loss).
+        time.sleep(max(0.0, away + 6.0 - time.monotonic()))
+        attempts = len(proxy.refused)
+        wait_for(lambda: len(proxy.refused) > attempts, 10, 0.002, "a connection attempt of the robot")
+        proxy.restore()
+        reachable = time.monotonic()
+        wait_for(lambda: pub.connected and pub.subscribed, 20, 0.01, "the robot to meet the new service")
+        took = time.monotonic() - reachable
+        tries = [round(t - away, 2) for t in proxy.refused]
+        assert took < RECONNECT_BOUND_S, (
+            f"connected {took:.2f} s after the service was reachable; attempts at {tries}"
+        )
+    finally:
+        pub.close()
+        proxy.close()
+        first.stop()
+        if second is not None:
+            second.stop()
+
+
 def test_a_burst_of_1000_recovered_scans_fits_the_ingest_queue(service: ServiceProcess) -> None:
     """1000 scans published into a dead zone (as fast as possible), then the link comes back: they
     arrive as one burst at network speed, far faster than they integrate, and the robot's queue
@@ -210,21 +260,54 @@ def test_a_burst_of_1000_recovered_scans_fits_the_ingest_queue(service: ServiceP
         proxy.close()
 
 
-def test_scans_past_the_backlog_are_counted_as_unrecoverable(service: ServiceProcess) -> None:
-    """A dead zone longer than the backlog: 50 scans published into it with a backlog of 10. The
-    last 10 arrive; the 40 before them were pushed out of the robot's cache: the service counts them
-    as unrecoverable (`/healthz` zenoh.unrecoverable, `/metrics`) and as lost on the robot."""
+def test_scans_past_the_backlog_of_a_dead_zone_are_counted_as_lost(service: ServiceProcess) -> None:
+    """A dead zone longer than the backlog: 50 scans published into it with a backlog of 10. They
+    wait in the publisher's queue (nothing goes to Zenoh while it knows it is disconnected); the
+    last 10 arrive, the 40 before them were pushed out: given up by the robot (`dropped`) and counted
+    as lost by the service. Zenoh's cache had none of them, so zenoh-ext reports nothing missed."""
+    scans = scans_for(sim=6, beams=181, count=60)
+    proxy = FreezableProxy(service.zenoh_port)
+    pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10)
+    try:
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            publish_then_cut(pub, proxy, http, "miss", scans, 10)
+            for seq in range(10, 60):
+                assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            assert (pub.pending, pub.backlogged, pub.dropped) == (10, 10, 40)
+            proxy.restore()
+            wait_integrated(http, "miss", 20, timeout=30)
+            state = robot_stats(http, "miss", "r1")
+            assert (state["scans_integrated"], state["lost"], state["last_seq"]) == (20, 40, 59), state
+            assert zenoh_counters(http) == (0, 0)
+    finally:
+        pub.close()
+        proxy.close()
+
+
+def test_scans_past_the_cache_of_a_silently_dead_link_are_counted_as_unrecoverable(
+    service: ServiceProcess,
+) -> None:
+    """A link that dies without notice (frozen: to the robot it looks alive until Zenoh's lease runs
+    out): the 50 scans published into it go to Zenoh, and its cache keeps the last 10 (the backlog).
+    When the robot has reconnected, the service fetches those 10; the 40 before them were pushed out
+    of the cache: the service counts them as unrecoverable (`/healthz` zenoh.unrecoverable,
+    `/metrics`) and as lost on the robot."""
     scans = scans_for(sim=6, beams=181, count=60)
     proxy = FreezableProxy(service.zenoh_port)
     pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10)
     try:
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
             assert zenoh_counters(http) == (0, 0)
-            publish_then_cut(pub, proxy, http, "miss", scans, 10)
-            for seq in range(10, 60):
+            assert pub.wait_connected(20)
+            for seq in range(10):
                 pub.publish(scans[seq], seq=seq, stamp=float(seq))
-            proxy.restore()
-            wait_integrated(http, "miss", 20, timeout=30)
+            wait_integrated(http, "miss", 10, timeout=20)
+            assert proxy.freeze(refuse_new=True) >= 1
+            for seq in range(10, 60):
+                assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            assert pub.pending == 0  # handed to Zenoh: the robot did not know
+            proxy.restore()  # the frozen link stays silent until Zenoh gives up on it
+            wait_integrated(http, "miss", 20, timeout=60)
             wait_for(lambda: zenoh_counters(http) == (40, 40), 10, 0.05, "40 unrecoverable scans")
             state = robot_stats(http, "miss", "r1")
             assert (state["scans_integrated"], state["lost"], state["last_seq"]) == (20, 40, 59), state
@@ -235,10 +318,11 @@ def test_scans_past_the_backlog_are_counted_as_unrecoverable(service: ServicePro
 
 def test_a_peer_robot_sends_its_queued_scans_before_newer_ones(tmp_path: Path) -> None:
     """A robot in peer mode: its session opens with nothing connected (a peer does not wait for its
-    endpoints). The scans published before it opened wait in the publisher's queue; those published
-    after it opened, still disconnected, go to the advanced publisher's cache. The queued ones must
-    go to the cache first: left queued until a (re)connection's hold ends, they reached the service
-    after the newer ones fetched from the cache, and the service took them for duplicates."""
+    endpoints). The scans published before it opened wait in the publisher's queue, and so do those
+    published after it opened, still disconnected; all leave in order once it is connected. (When
+    the latter went to the advanced publisher's cache while the former stayed queued until the hold
+    ended, the older ones reached the service after the newer ones, which took them for
+    duplicates.)"""
     scans = scans_for(sim=7, beams=181, count=10)
     proxy = FreezableProxy(free_port())  # nothing listens there yet: every connection is closed
     config = zenoh.Config()
@@ -253,7 +337,7 @@ def test_a_peer_robot_sends_its_queued_scans_before_newer_ones(tmp_path: Path) -
         assert not pub.connected
         for seq in range(5, 10):
             assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
-        assert (pub.published, pub.backlogged, pub.dropped) == (0, 10, 0)
+        assert (pub.published, pub.backlogged, pub.dropped, pub.pending) == (0, 10, 0, 10)
         service = ServiceProcess(tmp_path, ["--in-memory"]).start()
         proxy.target_port = service.zenoh_port
         with httpx.Client(base_url=service.base_url, timeout=10) as http:

@@ -28,27 +28,31 @@ Connection behaviour. The constructor returns at once; the session is opened by 
 that keeps trying until the service answers (Zenoh's own `zenoh.open` in client mode either fails
 at once or, with `connect/timeout_ms: -1`, blocks the caller until a router listens; a loop of
 bounded attempts gives the same "wait for the service" behaviour while letting `close()` and Ctrl-C
-stop it). Once connected, Zenoh itself reconnects after the service restarts or the link drops.
+stop it). Once connected, Zenoh itself reconnects after the service restarts or the link drops,
+trying again every 0.1 s, then 0.2, 0.4, and every 0.5 s from then on (`RECONNECT_PERIOD_MAX_MS`;
+Zenoh's own default backs off to 4 s, and robots missed services that came back only briefly).
 
 Store and forward (`backlog`, default `DEFAULT_BACKLOG` = 1000 scans). Robots drive through Wi-Fi
 dead zones, and the service restarts; no scan should be lost to either. The publisher is zenoh-ext's
 ADVANCED publisher: it keeps its last `backlog` scans in a cache, announces its last sequence number
 by heartbeat (`HEARTBEAT_S`) and declares itself (publisher detection), and the service's advanced
-subscriber fetches from that cache what it did not receive: the scans published while the link was
-down or the service away, and those in flight when a link died. They arrive in order, before newer
-ones, without duplicates (docs/protocol.md, "Delivery guarantees"). So `publish` while disconnected
-still hands the scan to Zenoh (counted in `backlogged`); it is delivered when the connection is back,
-if fewer than `backlog` newer scans were published meanwhile (past that, the oldest are gone: the
-service counts them as unrecoverable, and as `lost` on the robot). Scans published before the
-session first opened (there is no Zenoh publisher yet) wait in a queue of at most `backlog` scans
-(the oldest pushed out, counted in `dropped`) and are sent, in order and before any newer scan, once
-the session has opened. For `RECONNECT_HOLD_S` (0.5 s) after the session connects, and after every
-reconnection, scans wait in that queue too rather than going out live: zenoh-ext's advanced
-subscriber takes the first live sample of a publisher it does not know yet (a service that just
-restarted) for that publisher's first, and then drops as old what its history query fetches from
-the cache a moment later; held back, the cached scans reach the service first and the held ones
-follow, in order. `wait_connected()` returns once that hold is over. `close()` gives up whatever was
-not delivered by then.
+subscriber fetches from that cache what it did not receive: the scans in flight when a link died
+(the publisher cannot tell, until Zenoh notices, that they went nowhere), and those the service had
+not made durable when it was killed. They arrive in order, before newer ones, without duplicates
+(docs/protocol.md, "Delivery guarantees"). Scans published while the publisher KNOWS it is
+disconnected (no router or peer connected), and those published before the session first opened,
+wait in the publisher's own queue instead, of at most `backlog` scans (the oldest pushed out,
+counted in `dropped`; the service counts them as `lost`), so `publish` still returns True for them
+(counted in `backlogged`). For `RECONNECT_HOLD_S` (0.5 s) after the session connects, and after
+every reconnection, scans wait in that queue too; then the queue is sent, in order and before any
+newer scan. Why not hand them to Zenoh's cache while disconnected: zenoh-ext's advanced subscriber
+takes the first sample of a publisher it does not know yet (a service that just restarted) for that
+publisher's first, and drops as old what its history query fetches from the cache a moment later.
+A scan put while the link was coming back (between the publisher's look at the link and the put)
+went out live, was that first sample, and cost the service the whole cache before it (190 to 600
+scans of one robot in tests/test_crash_exactly_once.py). Held back, the cached scans reach the
+service first and the held ones follow, in order. `wait_connected()` returns once that hold is over.
+`close()` gives up whatever was not delivered by then.
 
 Delivery confirmation (`flush`). Zenoh has no acknowledgement, so neither `publish` nor `close`
 can tell whether a scan reached the map. `flush(timeout)` asks the service (a Zenoh query on
@@ -106,6 +110,16 @@ DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
 #: How long one connection attempt of the background opener may take. Zenoh retries within an
 #: attempt; between attempts the opener checks whether the publisher was closed.
 CONNECT_ATTEMPT_MS = 1000
+#: The client session's connection retry (`connect/retry`, unless the configuration sets it): the first
+#: wait after a failed attempt, the longest, and the factor between. Zenoh's own (1000 ms, 4000 ms, 2)
+#: tries again 1, 3, 7, 11, 15 ... s after losing the service, so a robot met a service that came
+#: back up to 4 s after it listened, and none at all that lived less than that: while short-lived
+#: services came and went, robots of tests/test_crash_exactly_once.py stayed unconnected for 37 s,
+#: past what their caches held. Bounded at 0.5 s, a robot is connected again within about half a
+#: second of the service listening; an attempt costs one TCP connection.
+RECONNECT_PERIOD_INIT_MS = 100
+RECONNECT_PERIOD_MAX_MS = 500
+RECONNECT_PERIOD_FACTOR = 2.0
 #: How long `close` waits for the opener's attempt in progress to end (one attempt and a margin; a
 #: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running).
 CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
@@ -225,8 +239,11 @@ def client_config(
     Starts from `zenoh_config` (a `zenoh.Config`, or the path of a JSON5 configuration file) or an
     empty configuration, then fills in what it leaves unset: mode `client`, connect endpoints
     (`connect`, else `DEFAULT_CONNECT`; an explicit `connect` always wins), `connect/timeout_ms` of
-    one attempt (`CONNECT_ATTEMPT_MS`) and multicast scouting off. Raises ValueError for a bad file
-    or endpoint list.
+    one attempt (`CONNECT_ATTEMPT_MS`), `connect/retry` (`RECONNECT_PERIOD_INIT_MS` growing by
+    `RECONNECT_PERIOD_FACTOR` to at most `RECONNECT_PERIOD_MAX_MS` between attempts, also when Zenoh
+    reconnects a lost session; a configuration that sets any key of `connect/retry` keeps Zenoh's
+    defaults for the others) and multicast scouting off. Raises ValueError for a bad file or
+    endpoint list.
     """
     if zenoh_config is None:
         cfg = zenoh.Config()
@@ -254,6 +271,14 @@ def client_config(
             raise ValueError(f"invalid Zenoh endpoint in {endpoints}: {_zenoh_message(exc)}") from None
     if _get(cfg, "connect/timeout_ms") is None:
         cfg.insert_json5("connect/timeout_ms", str(CONNECT_ATTEMPT_MS))
+    if _get(cfg, "connect/retry") is None:
+        # Zenoh takes the block whole (its keys cannot be inserted one by one into an unset one).
+        retry = {
+            "period_init_ms": RECONNECT_PERIOD_INIT_MS,
+            "period_max_ms": RECONNECT_PERIOD_MAX_MS,
+            "period_increase_factor": RECONNECT_PERIOD_FACTOR,
+        }
+        cfg.insert_json5("connect/retry", json.dumps(retry))
     if _get(cfg, "scouting/multicast/enabled") is None:
         cfg.insert_json5("scouting/multicast/enabled", "false")
     return cfg
@@ -295,13 +320,14 @@ class ScanPublisher:
     Counters (each successful `publish` counts in exactly one of the first three):
 
     * `published`: scans handed to Zenoh while a router (or peer) was connected, including those of
-      the pre-open queue when the session opened;
-    * `backlogged`: scans kept for re-delivery while disconnected: put in the advanced publisher's
-      cache, or waiting in the pre-open queue (`pending`). A dead zone that outlasts `backlog` scans
-      loses the oldest of them all the same; the service counts those (unrecoverable, lost);
+      the queue when the session opened or a hold ended;
+    * `backlogged`: scans kept for re-delivery: waiting in the queue (`pending`) while disconnected
+      or in a hold, or put in the advanced publisher's cache while the link was dying unnoticed. A
+      dead zone that outlasts `backlog` scans loses the oldest of them all the same (`dropped`; the
+      service counts them as lost);
     * `dropped`: scans given up here: published while disconnected with `backlog=0`, pushed out of
-      the full pre-open queue (moved from `backlogged`), still in that queue at `close()` (moved too),
-      or refused by a session closing meanwhile.
+      the full queue (moved from `backlogged`), still in that queue at `close()` (moved too), or
+      refused by a session closing meanwhile.
 
     The session opens in the background (see the module docstring): use `wait_connected`.
     """
@@ -433,16 +459,16 @@ class ScanPublisher:
                 self._check_link()
 
     def _check_link(self) -> bool:
-        """With `_send_lock` held, the session open: start a hold when the link came up (the
-        pre-open queue waits for it too), send the queued scans when it is over. Returns whether
-        scans are being held, so a scan published now must wait in the queue behind them. With
-        backlog 0 there is no hold.
+        """With `_send_lock` held, the session open: while the link is down, and during the hold
+        after it came up, scans wait in the queue; when the hold is over, send the queued scans.
+        Returns whether scans are being held, so a scan published now must wait in the queue behind
+        them. With backlog 0 there is no hold and no queue.
 
-        Queued scans outside a hold are sent whatever the link's state: down, they go to the
-        advanced publisher's cache, before the scan being published (a session that opened without
-        a link, as a peer's does, or whose link died before the first look). Left queued, they
-        would follow the newer scans the service fetches from the cache, which it takes for
-        duplicates. Sent while down, they stay counted in `backlogged`."""
+        Nothing goes to Zenoh while the link is down (see the module docstring): a put racing with
+        the link coming back could reach a restarted service live, ahead of the cache it had yet to
+        fetch, and zenoh-ext would then drop that cache as old. Queued, the scan can only leave after
+        the hold, when the service has fetched the cache. A session that opened without a link (a
+        peer's) keeps its scans queued until it has one."""
         if not self.backlog:
             return False
         up = self.connected
@@ -451,6 +477,8 @@ class ScanPublisher:
             if up and not self._link_up:
                 self._hold_until = now + RECONNECT_HOLD_S
             self._link_up = up
+            if not up:
+                return True
             if self._hold_until is not None:
                 if now < self._hold_until:
                     return True
@@ -466,11 +494,10 @@ class ScanPublisher:
             for payload in held:
                 publisher.put(payload)  # Zenoh's cache keeps it too, should the link die again
                 sent += 1
-        delivered = sent if up else 0  # sent while down, they wait in the cache: still backlogged
         given_up = len(held) - sent
         with self._lock:
-            self.backlogged -= delivered + given_up
-            self.published += delivered
+            self.backlogged -= sent + given_up
+            self.published += sent
             self.dropped += given_up
         return False
 
@@ -596,7 +623,7 @@ class ScanPublisher:
                 if publisher is None and not self.backlog:  # no session yet, nothing kept
                     self.dropped += 1
                     return False
-            if publisher is None or self._check_link():  # no session yet, or in a hold: queue it
+            if publisher is None or self._check_link():  # no session yet, no link, or a hold: queue it
                 with self._lock:
                     if len(self._pending) == self.backlog:
                         self._pending.popleft()  # the oldest gives way
@@ -611,7 +638,7 @@ class ScanPublisher:
                     self.dropped += 1
                 return False
             try:
-                # Disconnected, the advanced publisher's cache keeps it for the service to fetch.
+                # The link died since `_check_link` looked: the cache keeps it for the service to fetch.
                 publisher.put(payload)
             except zenoh.ZError:
                 # Only possible when close() raced with this call: report it like a disconnection.
@@ -876,5 +903,6 @@ def _report(status: DeliveryStatus, session_id: int | None, first: int, last: in
 
 __all__ = [
     "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT", "HEARTBEAT_S",
+    "RECONNECT_PERIOD_FACTOR", "RECONNECT_PERIOD_INIT_MS", "RECONNECT_PERIOD_MAX_MS",
     "DeliveryReport", "DeliveryUnsupported", "PublisherClosed", "ScanPublisher", "client_config",
 ]  # fmt: skip
