@@ -1163,7 +1163,7 @@ def _session_delivery(key: int, seqs: SessionSeqs) -> SessionDelivery:
         session=key, first_seq=ledger.first_seq, last_accepted=seqs.last_seq, settled=ledger.settled,
         integrated=ledger.integrated, refused=ledger.refused, lost=ledger.lost, duplicates=ledger.duplicates,
         refused_seqs=None if ledger.refused_seqs is None else list(ledger.refused_seqs),
-        lost_gaps=None if ledger.lost_gaps is None else list(ledger.lost_gaps),
+        lost_gaps=ledger.gaps(),
     )  # fmt: skip
 
 
