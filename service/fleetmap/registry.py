@@ -27,6 +27,7 @@ import logging
 import sqlite3
 import threading
 import time
+from array import array
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -48,6 +49,7 @@ from fleetmap.robot_state import (
     Receipt,
     RobotState,
     SessionSeqs,
+    pairs,
     session_key,
 )
 from fleetmap.scan import ScanError
@@ -1102,16 +1104,22 @@ class MapRegistry:
                     buried=buried, sessions=refused,
                     last_error=next(reversed(unmapped.values()))[3] if unmapped else None,
                 )  # fmt: skip
-            sessions = [
-                _session_delivery(key, seqs)
+            rows = [
+                _session_row(key, seqs)
                 for key, seqs in robot.sessions.items()
                 if seqs.ledger.first_seq is not None and (session is None or key == session)
             ]
-            return DeliveryStatus(
-                map_id=map_id, robot_id=robot_id, status="ok", unsettled=robot.unsettled,
-                scans_integrated=robot.scans_integrated, lost=robot.lost, dropped=robot.dropped,
-                duplicates=robot.duplicates, sessions=sessions, buried=buried, last_error=robot.last_error,
-            )  # fmt: skip
+            counters = (robot.unsettled, robot.scans_integrated, robot.lost, robot.dropped, robot.duplicates)
+            last_error = robot.last_error
+        # The reply is made after the lock from copies (`_session_row`): with 8 sessions' lists of
+        # refused seqs and gaps full, made under it the lock was held 45 µs, and 80 with the lists
+        # as arrays (boxing their ints); 2 µs now (the reply takes 80 µs).
+        unsettled, scans_integrated, lost, dropped, duplicates = counters
+        return DeliveryStatus(
+            map_id=map_id, robot_id=robot_id, status="ok", unsettled=unsettled,
+            scans_integrated=scans_integrated, lost=lost, dropped=dropped, duplicates=duplicates,
+            sessions=[_session_delivery(*row) for row in rows], buried=buried, last_error=last_error,
+        )  # fmt: skip
 
     def backlog(self) -> tuple[int, float]:
         """(scans waiting for integration, seconds the oldest of them has waited). Cheap: one short
@@ -1155,15 +1163,28 @@ def _covered_reason(stone: Tombstone, wire: WireScan) -> str:
     return f"seq {wire.seq} is from before map {stone.map_id!r} was deleted or replaced ({had}): ignored"
 
 
-def _session_delivery(key: int, seqs: SessionSeqs) -> SessionDelivery:
-    """The delivery query's entry of the session `key` of a robot (one with a scan in its ledger)."""
+def _session_row(key: int, seqs: SessionSeqs) -> tuple:
+    """What the delivery query answers of the session `key` of a robot (one with a scan in its
+    ledger), copied under the registry's lock for `_session_delivery` to read after it: its seqs
+    and counts, and its lists as they are (arrays: a copy is a memcpy)."""
     ledger = seqs.ledger
-    assert ledger.first_seq is not None
+    refused = None if ledger.refused_seqs is None else ledger.refused_seqs[:]
+    gaps = None if ledger.lost_gaps is None else ledger.lost_gaps[:]
+    return (
+        key, ledger.first_seq, seqs.last_seq, ledger.settled, ledger.integrated, ledger.refused,
+        ledger.lost, ledger.duplicates, refused, gaps,
+    )  # fmt: skip
+
+
+def _session_delivery(
+    key: int, first_seq: int, last_accepted: int, settled: int | None, integrated: int, refused: int,
+    lost: int, duplicates: int, refused_seqs: array[int] | None, lost_gaps: array[int] | None,
+) -> SessionDelivery:  # fmt: skip
+    """The delivery query's entry of a session from its copy (`_session_row`)."""
     return SessionDelivery(
-        session=key, first_seq=ledger.first_seq, last_accepted=seqs.last_seq, settled=ledger.settled,
-        integrated=ledger.integrated, refused=ledger.refused, lost=ledger.lost, duplicates=ledger.duplicates,
-        refused_seqs=None if ledger.refused_seqs is None else list(ledger.refused_seqs),
-        lost_gaps=ledger.gaps(),
+        session=key, first_seq=first_seq, last_accepted=last_accepted, settled=settled,
+        integrated=integrated, refused=refused, lost=lost, duplicates=duplicates,
+        refused_seqs=None if refused_seqs is None else list(refused_seqs), lost_gaps=pairs(lost_gaps),
     )  # fmt: skip
 
 

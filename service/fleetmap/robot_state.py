@@ -41,6 +41,14 @@ def session_key(session: int | None) -> int:
     return NO_SESSION if session is None else session
 
 
+def pairs(flat: array[int] | None) -> list[tuple[int, int]] | None:
+    """A flat array of pairs (`SessionLedger.lost_gaps`) as a list of pairs; None stays None."""
+    if flat is None:
+        return None
+    items = iter(flat)
+    return list(zip(items, items, strict=False))  # one iterator twice: no copies of the array
+
+
 @dataclass(slots=True)
 class Receipt:
     """One accepted scan of a session until it is settled (`SessionLedger.settle`)."""
@@ -160,8 +168,7 @@ class SessionLedger:
 
     def gaps(self) -> list[tuple[int, int]] | None:
         """`lost_gaps` as (seq, n) pairs: the n seqs just before seq were lost. None: not known."""
-        gaps = self.lost_gaps
-        return None if gaps is None else list(zip(gaps[::2], gaps[1::2], strict=True))
+        return pairs(self.lost_gaps)
 
     def first_unsettled(self) -> int | None:
         """The lowest seq of its scans not settled yet, None if every one is. Not always the front
