@@ -41,7 +41,7 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
-from fleetmap.registry import IngestRejected, Job, MapRegistry
+from fleetmap.registry import MAX_UNMAPPED_ROBOTS, IngestRejected, Job, MapRegistry
 from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
@@ -988,4 +988,28 @@ def test_a_copy_refused_at_the_limits_of_a_scan_from_before_its_map_went_changes
     reg.reject("m", "r", "scan seq 7 refused: pose (1e+06, 0) is outside the world bound", (7, 7.0, 7))
     entry = reg.get("m")
     assert sorted(entry.robots) == ["x"] and entry.scans_rejected == 1
+    reg.close()
+
+
+def test_refusals_under_made_up_ids_do_not_push_out_a_real_robots_refused_scans() -> None:
+    """A robot with a liveliness token (a real `ScanPublisher` declares one) whose scans were
+    refused for want of its map, then scans refused under more made-up map and robot ids than the
+    service remembers robots so (out-of-limits scans, which create no map, from any Zenoh peer):
+    the made-up ones without a token are forgotten first. The real robot's refusals were pushed
+    out, the query answered a bare `no_map`, and its flush waited until its timeout."""
+    reg = MapRegistry(auto_create=False)  # workers not started: nothing is integrated
+    reg.set_online("m", "r", True)
+    for seq in range(5):
+        with pytest.raises(IngestRejected, match="no map"):
+            reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    for k in range(MAX_UNMAPPED_ROBOTS + 10):
+        reg.reject(f"fake{k % 300}", f"x{k}", "scan seq 0 refused: 99999 beams", (0, 0.0, 1 + k))
+    status = reg.delivery_status("m", "r", 7)
+    report = _report(status, 7, 0, 4)
+    assert (status.status, report.settled, report.refused) == ("no_map", True, 5), (report, status)
+    assert status.last_error is not None and "no map" in status.last_error, status
+    # The made-up ones are forgotten oldest first; without tokens, a real robot's would be too.
+    assert reg.delivery_status("fake0", "x0").sessions == []
+    last = MAX_UNMAPPED_ROBOTS + 9
+    assert reg.delivery_status(f"fake{last % 300}", f"x{last}").sessions != []
     reg.close()

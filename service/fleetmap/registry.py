@@ -184,7 +184,8 @@ class Job:
 #: that the delivery query remembers, the most recent: what became of those scans is final, and a
 #: robot's `flush` that was only told `no_map` or `no_robot` waited for them for ever. Each holds at
 #: most MAX_SESSIONS sessions of 3 numbers and a reason (some 400 bytes each): 3.2 MB measured with
-#: 64-character ids, whatever ids senders make up (the oldest are forgotten).
+#: 64-character ids, whatever ids senders make up (the oldest without a liveliness token are
+#: forgotten first, then the oldest: `MapRegistry._unmapped_to_forget`).
 MAX_UNMAPPED_ROBOTS = 1024
 
 #: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
@@ -725,7 +726,7 @@ class MapRegistry:
         sessions = self._unmapped.pop(key, {})
         self._unmapped[key] = sessions  # the most recent last
         while len(self._unmapped) > MAX_UNMAPPED_ROBOTS:
-            del self._unmapped[next(iter(self._unmapped))]
+            del self._unmapped[self._unmapped_to_forget()]
         counted = sessions.pop(session, None) or [seq, seq - 1, 0, reason]
         if seq > counted[1]:
             counted[1], counted[2], counted[3] = last, counted[2] + count, reason
@@ -734,6 +735,16 @@ class MapRegistry:
         sessions[session] = counted
         while len(sessions) > MAX_SESSIONS:
             del sessions[next(iter(sessions))]
+
+    def _unmapped_to_forget(self) -> tuple[str, str]:
+        """The robot whose refused scans `_remember_unmapped` forgets past MAX_UNMAPPED_ROBOTS: the
+        least recently refused without a liveliness token (`_alive`), else the least recently
+        refused. Real publishers declare a token; refusals under made-up ids (any Zenoh peer, with
+        scans at the input limits or for made-up maps) pushed a real robot's out, and its flush,
+        then told only `no_map`, waited until its timeout (for ever without one). Call under the
+        registry's lock. Walks past the entries with a token only: at most MAX_UNMAPPED_ROBOTS."""
+        oldest = next(iter(self._unmapped))
+        return next((key for key in self._unmapped if key not in self._alive), oldest)
 
     def _forget_unmapped(self, map_id: str, robot_ids: Iterable[str]) -> None:
         """Robots `robot_ids` of map `map_id` were buried with it (deleted or replaced) or forgotten
