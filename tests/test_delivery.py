@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+from array import array
 from pathlib import Path
 from typing import Any
 
@@ -40,8 +41,8 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
-from fleetmap.registry import IngestRejected, Job, MapRegistry
-from fleetmap.robot_state import Receipt, RobotState, SessionLedger
+from fleetmap.registry import MAX_UNMAPPED_ROBOTS, IngestRejected, Job, MapRegistry
+from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
 
@@ -63,6 +64,32 @@ def test_settled_passes_only_scans_settled_in_order() -> None:
     assert ledger.settled is None
     ledger.settle(again, integrated=True)
     assert (ledger.settled, ledger.first_seq) == (2, 0)
+
+
+def test_refused_seqs_and_lost_gaps_are_listed_compactly_until_the_cap() -> None:
+    """A session's refused seqs and gaps of lost seqs are kept as machine integers (out-of-limits
+    scans under made-up robot ids fill them, and robot state is not charged to the memory budget),
+    read back as the delivery query lists them: seqs, and (seq, n) pairs; past LEDGER_HISTORY
+    entries each is not known (None), and a flush falls back to the counts."""
+    robot = RobotState()
+    seq = 2**40  # not a small int Python shares
+    for k in range(LEDGER_HISTORY):
+        seq += 3  # 2 seqs lost before each
+        robot.accept(seq, float(k), 7)
+        ledger = robot.sessions[7].ledger
+        ledger.settle(ledger.open(seq), integrated=k % 2 == 0)
+    assert isinstance(ledger.refused_seqs, array) and isinstance(ledger.lost_gaps, array)
+    assert list(ledger.refused_seqs) == [2**40 + 3 * k for k in range(2, LEDGER_HISTORY + 1, 2)]
+    gaps = ledger.gaps()
+    assert gaps is not None and len(gaps) == LEDGER_HISTORY - 1  # none before the session's first scan
+    assert gaps[0] == (2**40 + 6, 2) and gaps[-1] == (seq, 2)
+    ledger.withdraw_refusal(seq)  # the last refused scan sent again and accepted
+    assert ledger.refused_seqs[-1] == seq - 6 and ledger.refused == LEDGER_HISTORY // 2 - 1
+    for _ in range(LEDGER_HISTORY // 2 + 2):
+        seq += 3
+        robot.accept(seq, 0.0, 7)
+        ledger.settle(ledger.open(seq), integrated=False)
+    assert ledger.refused_seqs is None and ledger.lost_gaps is None and ledger.gaps() is None
 
 
 @pytest.mark.parametrize("case", ["resent after the full queue refused it", "restart without session ids"])
@@ -961,4 +988,28 @@ def test_a_copy_refused_at_the_limits_of_a_scan_from_before_its_map_went_changes
     reg.reject("m", "r", "scan seq 7 refused: pose (1e+06, 0) is outside the world bound", (7, 7.0, 7))
     entry = reg.get("m")
     assert sorted(entry.robots) == ["x"] and entry.scans_rejected == 1
+    reg.close()
+
+
+def test_refusals_under_made_up_ids_do_not_push_out_a_real_robots_refused_scans() -> None:
+    """A robot with a liveliness token (a real `ScanPublisher` declares one) whose scans were
+    refused for want of its map, then scans refused under more made-up map and robot ids than the
+    service remembers robots so (out-of-limits scans, which create no map, from any Zenoh peer):
+    the made-up ones without a token are forgotten first. The real robot's refusals were pushed
+    out, the query answered a bare `no_map`, and its flush waited until its timeout."""
+    reg = MapRegistry(auto_create=False)  # workers not started: nothing is integrated
+    reg.set_online("m", "r", True)
+    for seq in range(5):
+        with pytest.raises(IngestRejected, match="no map"):
+            reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+    for k in range(MAX_UNMAPPED_ROBOTS + 10):
+        reg.reject(f"fake{k % 300}", f"x{k}", "scan seq 0 refused: 99999 beams", (0, 0.0, 1 + k))
+    status = reg.delivery_status("m", "r", 7)
+    report = _report(status, 7, 0, 4)
+    assert (status.status, report.settled, report.refused) == ("no_map", True, 5), (report, status)
+    assert status.last_error is not None and "no map" in status.last_error, status
+    # The made-up ones are forgotten oldest first; without tokens, a real robot's would be too.
+    assert reg.delivery_status("fake0", "x0").sessions == []
+    last = MAX_UNMAPPED_ROBOTS + 9
+    assert reg.delivery_status(f"fake{last % 300}", f"x{last}").sessions != []
     reg.close()
