@@ -345,6 +345,47 @@ class FreezableProxy:
         self.cut()
 
 
+class RestartingService:
+    """A service that robots reach through a `FreezableProxy`, stopped or killed and started again
+    on the same arguments (its data directory): `restart()` starts the next process and points the
+    proxy at it, so robots connected to `proxy.endpoint` meet the new one. `service` is the one
+    started last; `close()` (or leaving a `with` block) closes the proxy and stops every process."""
+
+    def __init__(self, log_dir: Path, extra_args: Sequence[str]) -> None:
+        self.log_dir = log_dir
+        self.extra_args = list(extra_args)
+        self.service = ServiceProcess(log_dir, self.extra_args).start()
+        self.proxy = FreezableProxy(self.service.zenoh_port)
+        self._started = [self.service]
+
+    def kill(self) -> None:
+        """SIGKILL the current process (no snapshot, no goodbye) and wait for it to be gone."""
+        assert self.service.proc is not None
+        self.service.proc.kill()
+        self.service.proc.wait(10)
+
+    def restart(self) -> ServiceProcess:
+        """Start the next process (the current one must be stopped or killed) with the proxy pointed
+        at it before it listens, and return it."""
+        self.service = ServiceProcess(self.log_dir, self.extra_args)
+        self._started.append(self.service)
+        self.proxy.target_port = self.service.zenoh_port
+        return self.service.start()
+
+    def close(self) -> None:
+        """Close the proxy and stop every process started (idempotent)."""
+        self.proxy.close()
+        for service in self._started:
+            service.stop()
+
+    def __enter__(self) -> RestartingService:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:  # fmt: skip
+        self.close()
+
+
 def wait_for(
     predicate: Callable[[], T], timeout: float = 30.0, interval: float = 0.1, what: str = "condition"
 ) -> T:

@@ -30,7 +30,7 @@ from fleetmap_client.publisher import (
     _report,
 )
 from robot_process import scans_for
-from service_process import FreezableProxy, ServiceProcess, reaped, wait_for
+from service_process import FreezableProxy, RestartingService, ServiceProcess, reaped, wait_for
 from test_client_zenoh import Router, _write_carmen
 from test_e2e import assert_region_equal, map_stats, wait_integrated
 from test_ingest import client_session
@@ -525,26 +525,21 @@ def test_flush_confirms_scans_integrated_before_a_restart_of_the_service(tmp_pat
     restart in the middle of a mission does not leave its first scans unconfirmable."""
     data = ["--data-dir", str(tmp_path / "data")]
     scans = scans_for(sim=14, beams=181, count=40)
-    first = ServiceProcess(tmp_path, data).start()
-    proxy = FreezableProxy(first.zenoh_port)
+    services = RestartingService(tmp_path, data)
+    first, proxy = services.service, services.proxy
     pub = ScanPublisher("rs", "r1", connect=[proxy.endpoint])
-    second: ServiceProcess | None = None
     try:
         assert pub.wait_connected(20), pub.last_connect_error
         for seq in range(20):
             pub.publish(scans[seq], seq=seq, stamp=float(seq))
         assert pub.flush(30)
         if stop == "sigkill":
-            assert first.proc is not None
-            first.proc.kill()
-            first.proc.wait(10)
+            services.kill()
         else:
             assert first.stop() == 0
         for seq in range(20, 40):
             pub.publish(scans[seq], seq=seq, stamp=float(seq))
-        second = ServiceProcess(tmp_path, data)
-        proxy.target_port = second.zenoh_port
-        second.start()
+        second = services.restart()
         report = pub.flush(30)
         assert report.confirmed, report
         assert (report.published, report.integrated, report.refused, report.lost) == (40, 40, 0, 0)
@@ -553,10 +548,7 @@ def test_flush_confirms_scans_integrated_before_a_restart_of_the_service(tmp_pat
             assert_region_equal(http, "rs", engine_map(scans), LAYERS)
     finally:
         pub.close()
-        proxy.close()
-        first.stop()
-        if second is not None:
-            second.stop()
+        services.close()
 
 
 def test_replay_whose_delivery_answer_is_not_fleetmaps_says_so_and_exits_1(tmp_path: Path) -> None:

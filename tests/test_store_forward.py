@@ -26,7 +26,7 @@ import zenoh
 from fleetmap_client.publisher import ScanPublisher
 from prometheus_client.parser import text_string_to_metric_families
 from robot_process import scans_for
-from service_process import FreezableProxy, ServiceProcess, free_port, wait_for
+from service_process import FreezableProxy, RestartingService, ServiceProcess, free_port, wait_for
 from test_e2e import assert_region_equal, map_stats, wait_integrated
 
 from fleetmap import codec
@@ -156,19 +156,14 @@ def test_the_service_killed_and_restarted_integrates_every_scan_once(tmp_path: P
     once: the robot's counters say so and the map equals the engine's, cell by cell."""
     data = ["--data-dir", str(tmp_path / "data")]
     scans = scans_for(sim=4, count=200)
-    first = ServiceProcess(tmp_path, data).start()
-    proxy = FreezableProxy(first.zenoh_port)
+    services = RestartingService(tmp_path, data)
+    proxy = services.proxy
     robot = Robot(proxy, "restart", scans, 1000)
-    second: ServiceProcess | None = None
     try:
         robot.start()
         robot.wait_sent(60)
-        assert first.proc is not None
-        first.proc.kill()  # no snapshot, no goodbye: what was not journaled is gone from the service
-        first.proc.wait(10)
-        second = ServiceProcess(tmp_path, data)
-        proxy.target_port = second.zenoh_port
-        second.start()  # the robot published on meanwhile: its backlog grew
+        services.kill()  # no snapshot, no goodbye: what was not journaled is gone from the service
+        second = services.restart()  # the robot published on meanwhile: its backlog grew
         robot.finish()
         with httpx.Client(base_url=second.base_url, timeout=10) as http:
             wait_integrated(http, "restart", len(scans), timeout=30)
@@ -181,10 +176,7 @@ def test_the_service_killed_and_restarted_integrates_every_scan_once(tmp_path: P
             assert_region_equal(http, "restart", engine_map(scans), LAYERS)
     finally:
         robot.pub.close()
-        proxy.close()
-        first.stop()
-        if second is not None:
-            second.stop()
+        services.close()
 
 
 #: Seconds within which a robot must be connected again once a restarted service is reachable: its
@@ -202,21 +194,16 @@ def test_a_robot_meets_a_restarted_service_within_a_second_of_it_listening(tmp_p
     back for less than that was never met, and five such in a row kept the robots of
     tests/test_crash_exactly_once.py away for 37 s, longer than their backlogs lasted."""
     data = ["--data-dir", str(tmp_path / "data")]
-    first = ServiceProcess(tmp_path, data).start()
-    proxy = FreezableProxy(first.zenoh_port)
+    services = RestartingService(tmp_path, data)
+    proxy = services.proxy
     pub = ScanPublisher("back", "r1", connect=[proxy.endpoint])
-    second: ServiceProcess | None = None
     try:
         assert pub.wait_connected(20), pub.last_connect_error
-        assert first.proc is not None
-        first.proc.kill()
-        first.proc.wait(10)
+        services.kill()
         proxy.cut()  # refused from now on, and counted: the robot's attempts
         away = time.monotonic()
         wait_for(lambda: not pub.connected, 15, 0.01, "the robot to notice the service left")
-        second = ServiceProcess(tmp_path, data)
-        proxy.target_port = second.zenoh_port
-        second.start()
+        services.restart()
         # Past the backoff's first steps (Zenoh's default tries again 1, 3, 7, 11 s after the loss).
         time.sleep(max(0.0, away + 6.0 - time.monotonic()))
         attempts = len(proxy.refused)
@@ -231,10 +218,7 @@ def test_a_robot_meets_a_restarted_service_within_a_second_of_it_listening(tmp_p
         )
     finally:
         pub.close()
-        proxy.close()
-        first.stop()
-        if second is not None:
-            second.stop()
+        services.close()
 
 
 def test_a_burst_of_1000_recovered_scans_fits_the_ingest_queue(service: ServiceProcess) -> None:
@@ -366,10 +350,9 @@ def test_a_deleted_map_stays_deleted_when_the_restarted_service_fetches_the_robo
     a new map of just those."""
     data = ["--data-dir", str(tmp_path / "data")]
     scans = scans_for(sim=8, beams=181, count=50)
-    first = ServiceProcess(tmp_path, data).start()
-    proxy = FreezableProxy(first.zenoh_port)
+    services = RestartingService(tmp_path, data)
+    first, proxy = services.service, services.proxy
     pub = ScanPublisher("gone", "r1", connect=[proxy.endpoint], backlog=1000)
-    second: ServiceProcess | None = None
     try:
         assert pub.wait_connected(20)
         for seq in range(40):
@@ -383,9 +366,7 @@ def test_a_deleted_map_stays_deleted_when_the_restarted_service_fetches_the_robo
                 put = http.put("/maps/gone/snapshot", content=snapshot)
                 assert put.status_code == 200, put.text
         assert first.stop() == 0
-        second = ServiceProcess(tmp_path, data)
-        proxy.target_port = second.zenoh_port
-        second.start()
+        second = services.restart()
         with httpx.Client(base_url=second.base_url, timeout=10) as http:
 
             def refused() -> int:
@@ -409,10 +390,7 @@ def test_a_deleted_map_stays_deleted_when_the_restarted_service_fetches_the_robo
                 assert_region_equal(http, "gone", engine_map(scans[40:]), LAYERS)
     finally:
         pub.close()
-        proxy.close()
-        first.stop()
-        if second is not None:
-            second.stop()
+        services.close()
 
 
 def rest_scan(seq: int) -> dict[str, Any]:
@@ -433,10 +411,9 @@ def test_a_robot_a_full_map_forgot_is_not_integrated_twice_from_its_cache(tmp_pa
     ignored as duplicates, not integrated a second time as they were. r1's next scans go through."""
     data = ["--data-dir", str(tmp_path / "data"), "--max-robots-per-map", "2"]
     scans = scans_for(sim=9, beams=181, count=40)
-    first = ServiceProcess(tmp_path, data).start()
-    proxy = FreezableProxy(first.zenoh_port)
+    services = RestartingService(tmp_path, data)
+    first, proxy = services.service, services.proxy
     pub = ScanPublisher("full", "r1", connect=[proxy.endpoint], backlog=1000)
-    second: ServiceProcess | None = None
     try:
         with httpx.Client(base_url=first.base_url, timeout=10) as http:
             publish_then_cut(pub, proxy, http, "full", scans, 30)
@@ -447,14 +424,10 @@ def test_a_robot_a_full_map_forgot_is_not_integrated_twice_from_its_cache(tmp_pa
             stats = map_stats(http, "full")
             assert (sorted(stats["robots"]), stats["scans_integrated"]) == (["r2", "r3"], 32), stats
         if how == "killed":
-            assert first.proc is not None
-            first.proc.kill()
-            first.proc.wait(10)
+            services.kill()
         else:
             assert first.stop() == 0
-        second = ServiceProcess(tmp_path, data)
-        proxy.target_port = second.zenoh_port
-        second.start()
+        second = services.restart()
         proxy.restore()
         with httpx.Client(base_url=second.base_url, timeout=10) as http:
 
@@ -477,7 +450,4 @@ def test_a_robot_a_full_map_forgot_is_not_integrated_twice_from_its_cache(tmp_pa
             assert (state["scans_integrated"], state["last_seq"], state["lost"]) == (10, 39, 0), state
     finally:
         pub.close()
-        proxy.close()
-        first.stop()
-        if second is not None:
-            second.stop()
+        services.close()
