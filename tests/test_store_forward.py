@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import fleetmap_client.publisher as publisher_module
 import httpx
 import pytest
 import zenoh
@@ -183,6 +184,41 @@ def test_the_service_killed_and_restarted_integrates_every_scan_once(tmp_path: P
 #: retry period is at most 0.5 s (`RECONNECT_PERIOD_MAX_MS`), the rest is margin for a loaded machine.
 #: Zenoh's own default retries every 4 s by then, and took 4.0 s here.
 RECONNECT_BOUND_S = 2.0
+
+
+def test_a_service_restarted_between_two_looks_at_the_link_gets_the_cache_first(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A robot that never saw its link down (it publishes rarely, or its watcher thread was starved
+    while the service was killed and restarted) is connected to a new service process, with a new
+    Zenoh id. Its next scan must wait for the reconnection's hold, as after a link seen down, so that
+    the new service fetches the cache first: a live scan first would make zenoh-ext drop the cache
+    as old. Its watcher is slowed to a minute here so that it cannot look in between; the scan was
+    sent live (published, not held) before the publisher compared the routers' ids."""
+    data = ["--data-dir", str(tmp_path / "data")]
+    scans = scans_for(sim=5, beams=91, count=12)
+    with RestartingService(tmp_path, data) as services:
+        pub = ScanPublisher("between", "r1", connect=[services.proxy.endpoint], backlog=100)
+        try:
+            assert pub.wait_connected(20), pub.last_connect_error
+            for seq in range(10):
+                pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            monkeypatch.setattr(publisher_module, "WATCH_INTERVAL_S", 60.0)
+            time.sleep(0.3)  # the watcher's current 50 ms wait ends; its next one is a minute
+            services.kill()
+            second = services.restart()
+            wait_for(lambda: pub.connected and pub.subscribed, 20, 0.01, "the robot to meet the new service")
+            published, backlogged = pub.published, pub.backlogged
+            pub.publish(scans[10], seq=10, stamp=10.0)
+            assert (pub.published, pub.backlogged) == (published, backlogged + 1), "sent live, not held"
+            time.sleep(0.6)  # past the hold: the next publish sends the held scan first, then itself
+            pub.publish(scans[11], seq=11, stamp=11.0)
+            report = pub.flush(30)
+            assert report.confirmed and report.integrated == 12, report
+            with httpx.Client(base_url=second.base_url, timeout=10) as http:
+                assert map_stats(http, "between")["scans_integrated"] == 12
+        finally:
+            pub.close()
 
 
 def test_a_robot_meets_a_restarted_service_within_a_second_of_it_listening(tmp_path: Path) -> None:

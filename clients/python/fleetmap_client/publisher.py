@@ -377,9 +377,12 @@ class ScanPublisher:
         # Scans published before the session opened, or during a reconnection's hold (payloads in
         # seq order), sent when it opens or the hold ends.
         self._pending: deque[bytes] = deque()
-        # Whether the link was up at the last look (publish or the watcher): a change to up is a
-        # (re)connection, which starts a hold (monotonic time it ends in `_hold_until`).
+        # Whether the link was up at the last look (publish or the watcher), and the routers and
+        # peers it went to: a change to up, or a router or peer not there at the last look (a
+        # restarted service has a new Zenoh id), is a (re)connection, which starts a hold
+        # (monotonic time it ends in `_hold_until`).
         self._link_up = False
+        self._neighbours: frozenset[str] = frozenset()
         self._hold_until: float | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
@@ -471,12 +474,17 @@ class ScanPublisher:
         peer's) keeps its scans queued until it has one."""
         if not self.backlog:
             return False
-        up = self.connected
+        neighbours = self._connected_to()
+        up = bool(neighbours)
         now = time.monotonic()
         with self._lock:
-            if up and not self._link_up:
+            # A new router or peer too: a service killed and restarted between two looks (a robot
+            # publishing rarely, a starved watcher) was never seen down, and its new process must
+            # get the cache before any live scan all the same.
+            if up and (not self._link_up or not neighbours <= self._neighbours):
                 self._hold_until = now + RECONNECT_HOLD_S
             self._link_up = up
+            self._neighbours = neighbours
             if not up:
                 return True
             if self._hold_until is not None:
@@ -504,11 +512,15 @@ class ScanPublisher:
     @property
     def connected(self) -> bool:
         """True while the session is connected to at least one router or peer."""
+        return bool(self._connected_to())
+
+    def _connected_to(self) -> frozenset[str]:
+        """The Zenoh ids of the routers and peers the session is connected to (none: not connected)."""
         session = self._session
         if session is None or self._closed.is_set():
-            return False
+            return frozenset()
         info = session.info
-        return bool(info.routers_zid() or info.peers_zid())
+        return frozenset(str(zid) for zid in (*info.routers_zid(), *info.peers_zid()))
 
     @property
     def subscribed(self) -> bool:
