@@ -127,7 +127,8 @@ CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
 #: about 4.5 MB of binary 1081-beam scans. The service's ingest queue holds as many per robot.
 DEFAULT_BACKLOG = 1000
 #: Seconds between the advanced publisher's heartbeats: how soon after a reconnection the service
-#: learns of scans it missed in flight (scans published while disconnected are fetched at once).
+#: learns of scans it missed in flight (scans published while the publisher knew it was disconnected
+#: are not in Zenoh's cache: they wait in its own queue and are sent after `RECONNECT_HOLD_S`).
 HEARTBEAT_S = 0.5
 #: Seconds after the session (re)connects during which `publish` keeps scans in the publisher's own
 #: queue instead of sending them live (see `ScanPublisher._hold`): zenoh-ext's advanced subscriber
