@@ -24,14 +24,18 @@ sessions as gone with a map. When that map is deleted or replaced, its forgotten
 become ordinary ones (`bury`): their scans went with it.
 
 Scans without a session id (plain publishers) are never covered: they are not re-delivered, and
-their seqs may start again at any time. Tombstones are kept `TOMBSTONE_DAYS` and at most
-`MAX_TOMBSTONES` robots (the oldest go first, forgotten robots' before deleted maps': any peer that
-may publish can make a full map forget robot after robot under made-up ids, and must not push the
-deleted maps' robots out so), since maps are created and deleted under new ids for
-the service's whole life; a robot whose publisher stays open and idle longer than that, with the
-old scans in its cache, could still bring a deleted map back. The `DurableStore` keeps them across
-restarts (a forgotten robot's stone in the snapshot transaction that drops the robot's rows).
-Plain data, no locks: the registry holds its lock around every use.
+their seqs may start again at any time.
+
+Maps are created and deleted under new ids for the service's whole life, so tombstones are bounded:
+kept `TOMBSTONE_DAYS`, and for at most `MAX_TOMBSTONES` robots (`prune`). Past that many, forgotten
+robots' stones go first, the oldest first, and deleted maps' robots' only when none is left: any
+peer that may publish can make a full map forget robot after robot under made-up ids, and must not
+push the deleted maps' robots out so. A robot whose publisher stays open and idle longer than
+`TOMBSTONE_DAYS`, with the old scans in its cache, could still bring a deleted map back.
+
+The `DurableStore` keeps them across restarts (a forgotten robot's stone in the snapshot
+transaction that drops the robot's rows). Plain data, no locks: the registry holds its lock around
+every use.
 """
 
 from __future__ import annotations

@@ -49,7 +49,7 @@ newer scan. Why not hand them to Zenoh's cache while disconnected: zenoh-ext's a
 takes the first sample of a publisher it does not know yet (a service that just restarted) for that
 publisher's first, and drops as old what its history query fetches from the cache a moment later.
 A scan put while the link was coming back (between the publisher's look at the link and the put)
-went out live, was that first sample, and cost the service the whole cache before it (190 to 600
+went out live, was that first sample, and cost the service the whole cache before it (70 to 600
 scans of one robot in tests/test_crash_exactly_once.py). Held back, the cached scans reach the
 service first and the held ones follow, in order. `wait_connected()` returns once that hold is over.
 `close()` gives up whatever was not delivered by then.
@@ -127,7 +127,8 @@ CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
 #: about 4.5 MB of binary 1081-beam scans. The service's ingest queue holds as many per robot.
 DEFAULT_BACKLOG = 1000
 #: Seconds between the advanced publisher's heartbeats: how soon after a reconnection the service
-#: learns of scans it missed in flight (scans published while disconnected are fetched at once).
+#: learns of scans it missed in flight (scans published while the publisher knew it was disconnected
+#: are not in Zenoh's cache: they wait in its own queue and are sent after `RECONNECT_HOLD_S`).
 HEARTBEAT_S = 0.5
 #: Seconds after the session (re)connects during which `publish` keeps scans in the publisher's own
 #: queue instead of sending them live (see `ScanPublisher._hold`): zenoh-ext's advanced subscriber
@@ -320,11 +321,13 @@ class ScanPublisher:
     Counters (each successful `publish` counts in exactly one of the first three):
 
     * `published`: scans handed to Zenoh while a router (or peer) was connected, including those of
-      the queue when the session opened or a hold ended;
+      the queue when the session opened or a hold ended, and those put while a link was dying
+      unnoticed (Zenoh still counts it connected until its lease runs out; the service fetches them
+      from the advanced publisher's cache);
     * `backlogged`: scans kept for re-delivery: waiting in the queue (`pending`) while disconnected
-      or in a hold, or put in the advanced publisher's cache while the link was dying unnoticed. A
-      dead zone that outlasts `backlog` scans loses the oldest of them all the same (`dropped`; the
-      service counts them as lost);
+      or in a hold, or put in the advanced publisher's cache because Zenoh noticed the link down
+      between the publisher's look at it and the put. A dead zone that outlasts `backlog` scans
+      loses the oldest of them all the same (`dropped`; the service counts them as lost);
     * `dropped`: scans given up here: published while disconnected with `backlog=0`, pushed out of
       the full queue (moved from `backlogged`), still in that queue at `close()` (moved too), or
       refused by a session closing meanwhile.
@@ -563,8 +566,9 @@ class ScanPublisher:
 
     @property
     def pending(self) -> int:
-        """Scans in the publisher's own queue: published before the session opened, or during the hold
-        after a (re)connection; sent when the hold ends (counted in `backlogged` meanwhile)."""
+        """Scans in the publisher's own queue: published before the session opened, while it knew it
+        was disconnected, or during the hold after a (re)connection; sent when the hold ends (counted
+        in `backlogged` meanwhile)."""
         return len(self._pending)
 
     @property
