@@ -44,7 +44,7 @@ Heavier runs on 2026-11-27 (12 restarts, 40 scans/s, up to 4 s down, same seeds 
 run in turn so that each saw the same load on the shared 2-core machine): before both fixes 9 of 18
 runs lost scans (every robot in 4, one robot as above in 4, and two not traced: two robots at the
 live edge, and 21 scans in the middle of one robot's fetch); with the reconnect retry alone 3 of 18
-(all of the one-robot kind); with both, 0 of 12, and on the day's final code 1 of 7 further
+(all of the one-robot kind); with both, 0 of 12, and on the day's final code 1 of 13 further
 runs (its cause not captured). A loss of cached scans still ends the test as xfail
 (every other check holding), and anything else fails it.
 
