@@ -188,6 +188,19 @@ class Job:
 #: forgotten first, then the oldest: `MapRegistry._unmapped_to_forget`).
 MAX_UNMAPPED_ROBOTS = 1024
 
+
+@dataclass(slots=True)
+class UnmappedSession:
+    """A publisher session's scans refused for want of their map, or of room on it
+    (`MapRegistry._unmapped`): seqs `first_seq` to `last_seq` are settled, `refused` of them refused
+    (the rest never arrived: lost), the last refusal's `reason`."""
+
+    first_seq: int
+    last_seq: int
+    refused: int
+    reason: str
+
+
 #: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
 REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
 
@@ -272,9 +285,9 @@ class MapRegistry:
         #: fetched after a restart) and their tokens do not bring those maps back.
         self.tombstones = Tombstones()
         #: Scans refused for want of their map (`_refuse_unmapped`), for the delivery query: (map id,
-        #: robot id) -> session id -> [first seq, last seq, scans refused, reason]. Not saved: after
-        #: a restart the robots' caches, fetched again, are refused and counted again.
-        self._unmapped: dict[tuple[str, str], dict[int, list]] = {}
+        #: robot id) -> session id -> its refused scans. Not saved: after a restart the robots'
+        #: caches, fetched again, are refused and counted again.
+        self._unmapped: dict[tuple[str, str], dict[int, UnmappedSession]] = {}
         # One line per robot per CONFLICT_SHOWN while its id conflict goes on (a scan of each says so).
         self._conflict_log = RateLimitedLog(log, interval=CONFLICT_SHOWN)
         # Maps created by a scan and removed again when it is refused: anyone who can publish (a Zenoh
@@ -727,11 +740,11 @@ class MapRegistry:
         self._unmapped[key] = sessions  # the most recent last
         while len(self._unmapped) > MAX_UNMAPPED_ROBOTS:
             del self._unmapped[self._unmapped_to_forget()]
-        counted = sessions.pop(session, None) or [seq, seq - 1, 0, reason]
-        if seq > counted[1]:
-            counted[1], counted[2], counted[3] = last, counted[2] + count, reason
-        elif last > counted[1]:
-            counted[1], counted[3] = last, reason
+        counted = sessions.pop(session, None) or UnmappedSession(seq, seq - 1, 0, reason)
+        if seq > counted.last_seq:
+            counted.last_seq, counted.refused, counted.reason = last, counted.refused + count, reason
+        elif last > counted.last_seq:
+            counted.last_seq, counted.reason = last, reason
         sessions[session] = counted
         while len(sessions) > MAX_SESSIONS:
             del sessions[next(iter(sessions))]
@@ -1104,16 +1117,17 @@ class MapRegistry:
                 unmapped = self._unmapped.get((map_id, robot_id), {})
                 refused = [
                     SessionDelivery(
-                        session=key, first_seq=first, last_accepted=last, settled=last, integrated=0,
-                        refused=count, lost=last - first + 1 - count, duplicates=0,
+                        session=key, first_seq=u.first_seq, last_accepted=u.last_seq, settled=u.last_seq,
+                        integrated=0, refused=u.refused, lost=u.last_seq - u.first_seq + 1 - u.refused,
+                        duplicates=0,
                     )
-                    for key, (first, last, count, _) in unmapped.items()
+                    for key, u in unmapped.items()
                     if session is None or key == session
                 ]  # fmt: skip
                 return DeliveryStatus(
                     map_id=map_id, robot_id=robot_id, status="no_map" if entry is None else "no_robot",
                     buried=buried, sessions=refused,
-                    last_error=next(reversed(unmapped.values()))[3] if unmapped else None,
+                    last_error=next(reversed(unmapped.values())).reason if unmapped else None,
                 )  # fmt: skip
             rows = [
                 _session_row(key, seqs)
