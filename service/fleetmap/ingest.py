@@ -100,6 +100,7 @@ from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
 from fleetmap.wire import (
     ALIVE_KEY_WILDCARD,
+    CONNECT_RETRY,
     DELIVERY_ERROR_ENCODING,
     DELIVERY_FIELDS_1_EXCLUDE,
     DELIVERY_FIELDS_PARAMETER,
@@ -117,11 +118,6 @@ log = logging.getLogger("fleetmap.ingest")
 DEFAULT_LISTEN: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
 #: Zenoh session modes.
 MODES = ("router", "peer", "client")
-#: `connect/retry` of a session that connects to a router (`--zenoh-connect`), unless the file sets
-#: it: 0.1 s after a lost connection, then 0.2, 0.4 and every 0.5 s. Zenoh's default (1 s growing to
-#: 4 s) met a restarted router 1-3 s after it listened, up to 4 s, while the robots behind it
-#: (`fleetmap_client.publisher.client_config`, the same values) are back within half a second.
-CONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2.0}
 
 
 class IngestStartError(RuntimeError):

@@ -90,6 +90,7 @@ from fleetmap.scan import Scan
 from fleetmap.wire import (
     ALIVE_KEY,
     BINARY_ENCODING,
+    CONNECT_RETRY,
     DELIVERY_ERROR_ENCODING,
     DELIVERY_FIELDS,
     DELIVERY_FIELDS_PARAMETER,
@@ -110,16 +111,17 @@ DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
 #: How long one connection attempt of the background opener may take. Zenoh retries within an
 #: attempt; between attempts the opener checks whether the publisher was closed.
 CONNECT_ATTEMPT_MS = 1000
-#: The client session's connection retry (`connect/retry`, unless the configuration sets it): the first
-#: wait after a failed attempt, the longest, and the factor between. Zenoh's own (1000 ms, 4000 ms, 2)
+#: The client session's connection retry (`connect/retry`, unless the configuration sets it:
+#: `fleetmap.wire.CONNECT_RETRY`, the service's too): the first wait after a failed attempt, the
+#: longest, and the factor between. Zenoh's own (1000 ms, 4000 ms, 2)
 #: tries again 1, 3, 7, 11, 15 ... s after losing the service, so a robot met a service that came
 #: back up to 4 s after it listened, and none at all that lived less than that: while short-lived
 #: services came and went, robots of tests/test_crash_exactly_once.py stayed unconnected for 37 s,
 #: past what their caches held. Bounded at 0.5 s, a robot is connected again within about half a
 #: second of the service listening; an attempt costs one TCP connection.
-RECONNECT_PERIOD_INIT_MS = 100
-RECONNECT_PERIOD_MAX_MS = 500
-RECONNECT_PERIOD_FACTOR = 2.0
+RECONNECT_PERIOD_INIT_MS = int(CONNECT_RETRY["period_init_ms"])
+RECONNECT_PERIOD_MAX_MS = int(CONNECT_RETRY["period_max_ms"])
+RECONNECT_PERIOD_FACTOR = float(CONNECT_RETRY["period_increase_factor"])
 #: How long `close` waits for the opener's attempt in progress to end (one attempt and a margin; a
 #: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running).
 CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
@@ -274,12 +276,7 @@ def client_config(
         cfg.insert_json5("connect/timeout_ms", str(CONNECT_ATTEMPT_MS))
     if _get(cfg, "connect/retry") is None:
         # Zenoh takes the block whole (its keys cannot be inserted one by one into an unset one).
-        retry = {
-            "period_init_ms": RECONNECT_PERIOD_INIT_MS,
-            "period_max_ms": RECONNECT_PERIOD_MAX_MS,
-            "period_increase_factor": RECONNECT_PERIOD_FACTOR,
-        }
-        cfg.insert_json5("connect/retry", json.dumps(retry))
+        cfg.insert_json5("connect/retry", json.dumps(CONNECT_RETRY))
     if _get(cfg, "scouting/multicast/enabled") is None:
         cfg.insert_json5("scouting/multicast/enabled", "false")
     return cfg
