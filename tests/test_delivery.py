@@ -41,9 +41,10 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
-from fleetmap.registry import MAX_UNMAPPED_ROBOTS, IngestRejected, Job, MapRegistry
+from fleetmap.registry import IngestRejected, Job, MapRegistry
 from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger
 from fleetmap.scan import Scan
+from fleetmap.unmapped import MAX_UNMAPPED_ROBOTS
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
 
 
@@ -996,6 +997,7 @@ def test_refusals_under_made_up_ids_do_not_push_out_a_real_robots_refused_scans(
             reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
     for k in range(MAX_UNMAPPED_ROBOTS + 10):
         reg.reject(f"fake{k % 300}", f"x{k}", "scan seq 0 refused: 99999 beams", (0, 0.0, 1 + k))
+    assert len(reg.unmapped) == MAX_UNMAPPED_ROBOTS  # the bound holds
     status = reg.delivery_status("m", "r", 7)
     report = _report(status, 7, 0, 4)
     assert (status.status, report.settled, report.refused) == ("no_map", True, 5), (report, status)

@@ -28,7 +28,7 @@ import sqlite3
 import threading
 import time
 from array import array
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import NoReturn
@@ -44,7 +44,6 @@ from fleetmap.persistence import DurableStore
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.robot_state import (
     CONFLICT_SHOWN,
-    MAX_SESSIONS,
     NO_SESSION,
     Receipt,
     RobotState,
@@ -56,6 +55,7 @@ from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
 from fleetmap.tombstones import Tombstone, Tombstones
+from fleetmap.unmapped import UnmappedRefusals
 from fleetmap.wire import BuriedSession, DeliveryStatus, SessionDelivery, is_valid_id
 
 log = logging.getLogger("fleetmap.registry")
@@ -179,28 +179,6 @@ class Job:
     receipt: Receipt | None = None
 
 
-#: Robots (map id, robot id) whose scans were refused for want of their map, or of room for them on
-#: it (`--max-robots-per-map`), or on a map they created that was removed again (`_remember_removed`),
-#: that the delivery query remembers, the most recent: what became of those scans is final, and a
-#: robot's `flush` that was only told `no_map` or `no_robot` waited for them for ever. Each holds at
-#: most MAX_SESSIONS sessions of 3 numbers and a reason (some 400 bytes each): 3.2 MB measured with
-#: 64-character ids, whatever ids senders make up (the oldest without a liveliness token are
-#: forgotten first, then the oldest: `MapRegistry._unmapped_to_forget`).
-MAX_UNMAPPED_ROBOTS = 1024
-
-
-@dataclass(slots=True)
-class UnmappedSession:
-    """A publisher session's scans refused for want of their map, or of room on it
-    (`MapRegistry._unmapped`): seqs `first_seq` to `last_seq` are settled, `refused` of them refused
-    (the rest never arrived: lost), the last refusal's `reason`."""
-
-    first_seq: int
-    last_seq: int
-    refused: int
-    reason: str
-
-
 #: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
 REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
 
@@ -284,10 +262,9 @@ class MapRegistry:
         #: The robots of deleted and replaced maps, so that copies of their old scans (a robot's cache,
         #: fetched after a restart) and their tokens do not bring those maps back.
         self.tombstones = Tombstones()
-        #: Scans refused for want of their map (`_refuse_unmapped`), for the delivery query: (map id,
-        #: robot id) -> session id -> its refused scans. Not saved: after a restart the robots'
-        #: caches, fetched again, are refused and counted again.
-        self._unmapped: dict[tuple[str, str], dict[int, UnmappedSession]] = {}
+        #: Scans refused for want of their map, or of room on it (`_refuse_unmapped`), for the
+        #: delivery query.
+        self.unmapped = UnmappedRefusals(self._alive)
         # One line per robot per CONFLICT_SHOWN while its id conflict goes on (a scan of each says so).
         self._conflict_log = RateLimitedLog(log, interval=CONFLICT_SHOWN)
         # Maps created by a scan and removed again when it is refused: anyone who can publish (a Zenoh
@@ -517,7 +494,7 @@ class MapRegistry:
             # The old map's robots' cached scans must not go into the upload either.
             buried = self.tombstones.bury(map_id, old.robots, time.time()) if old is not None else []
             if old is not None:
-                self._forget_unmapped(map_id, old.robots)
+                self.unmapped.forget(map_id, old.robots)
             entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
             self._add(entry)
             if old is not None:
@@ -564,7 +541,7 @@ class MapRegistry:
                     expect(old)
                 dropped = self._retire(old)
                 buried = self.tombstones.bury(map_id, old.robots, time.time())
-                self._forget_unmapped(map_id, old.robots)
+                self.unmapped.forget(map_id, old.robots)
                 if self.durable is not None:
                     stored = self.durable.map_deleted(map_id, buried)
         for job in dropped:
@@ -711,69 +688,15 @@ class MapRegistry:
         self, map_id: str, robot_id: str, wire: WireScan, reason: str, status: int = 404
     ) -> NoReturn:
         """Refuse a scan for want of its map (404), or of room for its robot on it (429): remember
-        it for the delivery query (`_remember_unmapped`), then raise IngestRejected. Call under the
+        it for the delivery query (`UnmappedRefusals`), then raise IngestRejected. Call under the
         registry's lock."""
-        self._remember_unmapped(map_id, robot_id, wire.seq, wire.session, reason)
+        self.unmapped.remember(map_id, robot_id, wire.seq, wire.session, reason)
         raise IngestRejected(reason, status)
-
-    def _remember_unmapped(
-        self,
-        map_id: str,
-        robot_id: str,
-        seq: int,
-        session: int | None,
-        reason: str,
-        last: int | None = None,
-        count: int = 1,
-    ) -> None:
-        """The scan `seq` of publisher session `session` of a robot without a map, or without room
-        on it, was refused: remember it for the delivery query, if it has a session id, as settled
-        and refused (`_unmapped`). A seq not above the session's last is a copy (the robot's cache
-        fetched again): not counted twice. `last` and `count`: `count` scans of seqs `seq` to `last`
-        were (`_remember_removed`); overlapping what was counted, only its end is taken (the seqs
-        after it not refused then count as lost). Call under the registry's lock."""
-        if session is None:
-            return
-        last = seq if last is None else last
-        key = (map_id, robot_id)
-        sessions = self._unmapped.pop(key, {})
-        self._unmapped[key] = sessions  # the most recent last
-        while len(self._unmapped) > MAX_UNMAPPED_ROBOTS:
-            del self._unmapped[self._unmapped_to_forget()]
-        counted = sessions.pop(session, None) or UnmappedSession(seq, seq - 1, 0, reason)
-        if seq > counted.last_seq:
-            counted.last_seq, counted.refused, counted.reason = last, counted.refused + count, reason
-        elif last > counted.last_seq:
-            counted.last_seq, counted.reason = last, reason
-        sessions[session] = counted
-        while len(sessions) > MAX_SESSIONS:
-            del sessions[next(iter(sessions))]
-
-    def _unmapped_to_forget(self) -> tuple[str, str]:
-        """The robot whose refused scans `_remember_unmapped` forgets past MAX_UNMAPPED_ROBOTS: the
-        least recently refused without a liveliness token (`_alive`), else the least recently
-        refused. Real publishers declare a token; refusals under made-up ids (any Zenoh peer, with
-        scans at the input limits or for made-up maps) pushed a real robot's out, and its flush,
-        then told only `no_map`, waited until its timeout (for ever without one). Call under the
-        registry's lock. Walks past the entries with a token only: at most MAX_UNMAPPED_ROBOTS."""
-        oldest = next(iter(self._unmapped))
-        return next((key for key in self._unmapped if key not in self._alive), oldest)
-
-    def _forget_unmapped(self, map_id: str, robot_ids: Iterable[str]) -> None:
-        """Robots `robot_ids` of map `map_id` were buried with it (deleted or replaced) or forgotten
-        by it: forget their scans refused before, for want of the map or of room on it
-        (`_unmapped`); their tombstones say the rest. Kept, they were the robot's answer again,
-        older than its tombstone, and their session, settled only through its last refused seq, hid
-        the tombstone's "in no map now" of its later scans: a flush of it never settled. Call under
-        the registry's lock."""
-        if self._unmapped:
-            for robot_id in robot_ids:
-                self._unmapped.pop((map_id, robot_id), None)
 
     def _remember_removed(self, entry: MapEntry) -> None:
         """Map `entry`, created by scans that were all refused, is being removed again
         (`_remove_unclaimed`): remember its robots' sessions for the delivery query, as scans
-        refused for want of a map are (`_unmapped`). Their ledgers go with the map, and the query
+        refused for want of a map are (`UnmappedRefusals`). Their ledgers go with the map, and the query
         answered `no_map` and nothing of them: a flush waited for ever for scans the service had
         refused (its memory budget used up, its queue full). Call under the registry's lock."""
         for robot_id, robot in entry.robots.items():
@@ -781,7 +704,7 @@ class MapRegistry:
                 ledger = seqs.ledger
                 if key != NO_SESSION and ledger.first_seq is not None and ledger.refused:
                     reason = robot.last_error or "refused"
-                    self._remember_unmapped(
+                    self.unmapped.remember(
                         entry.id, robot_id, ledger.first_seq, key, reason, seqs.last_seq, ledger.refused
                     )
 
@@ -821,7 +744,7 @@ class MapRegistry:
                 if entry is not None:
                     entry.scans_rejected += 1  # counted on the map only: no new robot for garbage
                 if scan_id is not None:  # for the delivery query: its robot's flush would wait for ever
-                    self._remember_unmapped(map_id, robot_id, scan_id[0], scan_id[2], reason)
+                    self.unmapped.remember(map_id, robot_id, scan_id[0], scan_id[2], reason)
                 return
             robot = entry.robot(robot_id)
             robot.last_heard = now = time.time()
@@ -870,7 +793,7 @@ class MapRegistry:
             if stone is not None and self.durable is not None:
                 entry.unstored_stones[rid] = stone
             entry.forget(rid)
-        self._forget_unmapped(entry.id, [rid for rid, _ in chosen])
+        self.unmapped.forget(entry.id, [rid for rid, _ in chosen])
         return len(chosen)
 
     def set_online(self, map_id: str, robot_id: str, online: bool) -> None:
@@ -1114,20 +1037,10 @@ class MapRegistry:
             )
             if robot is None:
                 # Without its map, or room on it: the sessions whose scans were refused so, if any.
-                unmapped = self._unmapped.get((map_id, robot_id), {})
-                refused = [
-                    SessionDelivery(
-                        session=key, first_seq=u.first_seq, last_accepted=u.last_seq, settled=u.last_seq,
-                        integrated=0, refused=u.refused, lost=u.last_seq - u.first_seq + 1 - u.refused,
-                        duplicates=0,
-                    )
-                    for key, u in unmapped.items()
-                    if session is None or key == session
-                ]  # fmt: skip
+                refused, last_refusal = self.unmapped.deliveries(map_id, robot_id, session)
                 return DeliveryStatus(
                     map_id=map_id, robot_id=robot_id, status="no_map" if entry is None else "no_robot",
-                    buried=buried, sessions=refused,
-                    last_error=next(reversed(unmapped.values())).reason if unmapped else None,
+                    buried=buried, sessions=refused, last_error=last_refusal,
                 )  # fmt: skip
             rows = [
                 _session_row(key, seqs)
