@@ -15,7 +15,16 @@ PACKAGE = Path(__file__).resolve().parent.parent / "service" / "fleetmap"
 
 #: The engine, as docs/architecture.md's table lists it: these modules and every module of these
 #: packages (a new kernel, reader or example is checked without being added here).
-ENGINE_MODULES = ("scan", "config", "tiles", "update_plan", "grid_map", "export", "nav2_import")
+ENGINE_MODULES = (
+    "scan",
+    "config",
+    "cell_queries",
+    "tiles",
+    "update_plan",
+    "grid_map",
+    "export",
+    "nav2_import",
+)
 ENGINE_PACKAGES = ("kernels", "datasets", "sim", "examples")
 
 #: Third-party modules of the service's edges: the wire (zenoh), HTTP (the web stack) and storage.
