@@ -3,7 +3,9 @@
 One definition of every JSON body the API sends or takes: the FastAPI routes (`fleetmap.api`) use
 these as response models, so `openapi/openapi.json` describes them, and the Python client
 (`fleetmap_client.rest`) parses answers with them. This module imports no web framework, only
-pydantic and fleetmap's own modules, so a client can import it without FastAPI.
+pydantic and fleetmap's own modules, so a client can import it without FastAPI; and of the engine
+only modules that load no numba (`cell_queries`, `config`, `scan`: the engine's types are type-only
+imports), so a client does not load numba and the compiled kernels either.
 
 Conversions from registry and engine objects (`MapEntry`, `RobotState`, `GridMap.cells`, ...)
 live here and nowhere else, so the JSON shape is decided in one place.
