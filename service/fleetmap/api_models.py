@@ -3,7 +3,9 @@
 One definition of every JSON body the API sends or takes: the FastAPI routes (`fleetmap.api`) use
 these as response models, so `openapi/openapi.json` describes them, and the Python client
 (`fleetmap_client.rest`) parses answers with them. This module imports no web framework, only
-pydantic and fleetmap's own modules, so a client can import it without FastAPI.
+pydantic and fleetmap's own modules, so a client can import it without FastAPI; and of the engine
+only modules that load no numba (`cell_queries`, `config`, `scan`: the engine's types are type-only
+imports), so a client does not load numba and the compiled kernels either.
 
 Conversions from registry and engine objects (`MapEntry`, `RobotState`, `GridMap.cells`, ...)
 live here and nowhere else, so the JSON shape is decided in one place.
@@ -25,15 +27,18 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from fleetmap.auth import Role
+from fleetmap.cell_queries import MAX_RAYS, RAY_STATUS_NAMES, STATE_NAMES, cell_edge
 from fleetmap.config import MAX_COORDINATE, MapConfig
-from fleetmap.grid_map import MAX_RAYS, RAY_STATUS_NAMES, STATE_NAMES, GridMap, RaycastResult, cell_edge
 from fleetmap.scan import Pose2D
-from fleetmap.tiles import TileKey
 
 if TYPE_CHECKING:  # the conversions' argument types only: a client parsing answers loads none of them
+    # The engine's types too: `grid_map` and `tiles` load numba and compile the kernels. No model
+    # field has one of these types, so pydantic never needs them resolved.
+    from fleetmap.grid_map import GridMap, RaycastResult
     from fleetmap.persistence import StorageHealth
     from fleetmap.registry import MapEntry
     from fleetmap.robot_state import RobotState
+    from fleetmap.tiles import TileKey
 
 #: Points one `POST /maps/{map_id}/cells` request may ask for.
 MAX_POINTS = 100_000

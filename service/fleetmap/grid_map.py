@@ -18,9 +18,25 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
+# The cell-query vocabulary is defined in `cell_queries`, which loads no numba, so that the REST edge
+# can import it without the engine; these names stay importable from here ("X as X" marks a re-export).
+from fleetmap.cell_queries import MAX_RAY_CELLS as MAX_RAY_CELLS
+from fleetmap.cell_queries import MAX_RAY_WALK as MAX_RAY_WALK
+from fleetmap.cell_queries import MAX_RAYS as MAX_RAYS
+from fleetmap.cell_queries import RAY_MAX_RANGE as RAY_MAX_RANGE
+from fleetmap.cell_queries import RAY_OCCUPIED as RAY_OCCUPIED
+from fleetmap.cell_queries import RAY_STATUS_NAMES as RAY_STATUS_NAMES
+from fleetmap.cell_queries import RAY_UNKNOWN as RAY_UNKNOWN
+from fleetmap.cell_queries import STATE_FREE as STATE_FREE
+from fleetmap.cell_queries import STATE_NAMES as STATE_NAMES
+from fleetmap.cell_queries import STATE_OCCUPIED as STATE_OCCUPIED
+from fleetmap.cell_queries import STATE_UNKNOWN as STATE_UNKNOWN
+from fleetmap.cell_queries import Points as Points
+from fleetmap.cell_queries import as_points as as_points
+from fleetmap.cell_queries import cell_edge as cell_edge
 from fleetmap.config import MAX_COORDINATE, LayerName, MapConfig
 from fleetmap.kernels import integrate_scan
-from fleetmap.kernels.raycast import RAY_MAX_RANGE, RAY_OCCUPIED, RAY_UNKNOWN, cast_rays
+from fleetmap.kernels.raycast import cast_rays
 from fleetmap.kernels.traversal import BRESENHAM, EXACT
 from fleetmap.kernels.tsdf import fuse_tsdf, zero_crossings
 from fleetmap.kernels.update import apply_cells, apply_entries
@@ -40,10 +56,6 @@ from fleetmap.update_plan import (
     trace_scratch,
 )
 
-#: Map points as `GridMap.cells` (and the REST client's `cells`) take them: (x, y) pairs, shape
-#: (n, 2), or one pair alone (one point).
-Points = Sequence[Sequence[float]] | Sequence[float] | np.ndarray
-
 #: For each layer a region (or a viewer's tile) can be read as, the stored array it is read from
 #: and the map layer (config `layers`) that keeps that array.
 LAYER_SOURCES: dict[str, tuple[str, LayerName]] = {
@@ -58,23 +70,6 @@ LAYER_SOURCES: dict[str, tuple[str, LayerName]] = {
 
 #: Layers a region can be read as: stored arrays plus the values derived from them.
 REGION_LAYERS = tuple(LAYER_SOURCES)
-
-#: Codes of the `state` layer.
-STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED = 0, 1, 2
-STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
-
-
-#: Codes of a ray's `RaycastResult.status`, and their names (as the REST API answers them).
-RAY_STATUS_NAMES = {RAY_OCCUPIED: "occupied", RAY_UNKNOWN: "unknown", RAY_MAX_RANGE: "max_range"}
-#: Bounds of one `GridMap.cast_rays` call, which holds the map's lock (integration needs it) for its
-#: whole walk: rays, the longest ray in cells (`max_range / resolution`), and rays x that length. The
-#: walk takes about 2 ns a cell (1.4 cells per cell of length on a diagonal), so 2**24 cells, as many
-#: as a region read copies, hold the lock for at most about 50 ms; 10,000 rays of 20,000 cells each
-#: held it 0.5 s where nothing stopped them early. A scan of 360 rays may still look 20,000 cells
-#: (1 km at 0.05 m) far, and 10,000 rays 1,677 cells (84 m).
-MAX_RAYS = 10_000
-MAX_RAY_CELLS = 20_000
-MAX_RAY_WALK = 2**24
 
 
 class RayLimitError(ValueError):
@@ -101,13 +96,6 @@ class RaycastResult(NamedTuple):
 
 class LayerUnavailableError(ValueError):
     """A read asked for a layer the map does not keep or that does not exist."""
-
-
-def cell_edge(index: int, resolution: float) -> float:
-    """The map coordinate where cell `index` begins (`index * resolution`), rounded to the nanometre
-    so that exports say -20.2 rather than the product's -20.200000000000003. The rounding moves the
-    edge by far less than any resolution a map may have."""
-    return round(index * resolution, 9)
 
 
 class IntegrationResult(NamedTuple):
@@ -601,25 +589,6 @@ def _ray_origins(
         raise ValueError(f"origin must be finite, within +-{MAX_COORDINATE:g} m; got {bad.tolist()}")
     xy = o.reshape(-1, 2).T.copy()  # rows x and y, each contiguous
     return xy[0], xy[1]
-
-
-def as_points(points: Points) -> np.ndarray:
-    """Map points as a float64 array of shape (n, 2); one (x, y) pair alone is one point, an empty
-    sequence none. Raises ValueError for any other shape (an (n, 3) array is not read as 3n/2
-    points), for values that are not numbers, and for a coordinate that is not finite."""
-    try:
-        pts = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"points must be (x, y) pairs of numbers: {exc}") from None
-    if pts.size == 0:
-        return pts.reshape(0, 2)
-    if pts.shape == (2,):
-        pts = pts.reshape(1, 2)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise ValueError(f"points must be (x, y) pairs, an array of shape (n, 2); got shape {pts.shape}")
-    if not np.isfinite(pts).all():
-        raise ValueError("points must be finite numbers")
-    return pts
 
 
 def _check_scan(scan: object) -> None:

@@ -55,9 +55,9 @@ from fleetmap.api_models import (
     ScanResult,
     Surface,
 )
+from fleetmap.cell_queries import MAX_RAY_WALK, MAX_RAYS, Points, as_points
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
-from fleetmap.grid_map import MAX_RAY_WALK, MAX_RAYS, Points, as_points
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
 

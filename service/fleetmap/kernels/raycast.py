@@ -19,11 +19,9 @@ import math
 import numpy as np
 from numba import njit
 
+from fleetmap.cell_queries import RAY_MAX_RANGE, RAY_OCCUPIED, RAY_UNKNOWN
 from fleetmap.kernels.tile_index import index_find
 from fleetmap.kernels.traversal import crossing, exact_start, exact_steps_i
-
-#: Why a ray stopped (`cast_rays`' `status`).
-RAY_OCCUPIED, RAY_UNKNOWN, RAY_MAX_RANGE = 0, 1, 2
 
 #: A cell's class as the walk sees it.
 _FREE, _OCCUPIED, _UNKNOWN = 0, 1, 2

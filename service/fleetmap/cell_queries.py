@@ -1,0 +1,85 @@
+"""The vocabulary of a map's cell and ray queries, without the engine that answers them.
+
+What `GridMap.cells` and `GridMap.cast_rays` take (`Points`, `as_points`, the ray limits), what their
+answers' codes mean (`STATE_NAMES`, `RAY_STATUS_NAMES`), and where a cell begins (`cell_edge`).
+The REST edge needs these and not the engine: `fleetmap.api_models` writes answers with them and
+`fleetmap_client.rest` checks requests with them. So this module imports numpy only, never
+`fleetmap.kernels` (whose import loads numba) nor anything that does: importing the REST client
+must not load numba and the engine. `fleetmap.grid_map` imports every name here and re-exports it
+under the same name, so `from fleetmap.grid_map import MAX_RAYS` means what it always has.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+#: Map points as `GridMap.cells` (and the REST client's `cells`) take them: (x, y) pairs, shape
+#: (n, 2), or one pair alone (one point).
+Points = Sequence[Sequence[float]] | Sequence[float] | np.ndarray
+
+#: Codes of the `state` layer.
+STATE_UNKNOWN, STATE_FREE, STATE_OCCUPIED = 0, 1, 2
+STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "occupied"}
+
+#: Codes of a ray's `RaycastResult.status` (why it stopped), and their names (as the REST API
+#: answers them). `kernels.raycast` writes them: numba compiles them into its cached machine code as
+#: constants, and its cache notices edits of `@njit` files only, so a change here goes with an edit
+#: of `kernels/raycast.py` (which drops the cache).
+RAY_OCCUPIED, RAY_UNKNOWN, RAY_MAX_RANGE = 0, 1, 2
+RAY_STATUS_NAMES = {RAY_OCCUPIED: "occupied", RAY_UNKNOWN: "unknown", RAY_MAX_RANGE: "max_range"}
+
+#: Bounds of one `GridMap.cast_rays` call, which holds the map's lock (integration needs it) for its
+#: whole walk: rays, the longest ray in cells (`max_range / resolution`), and rays x that length. The
+#: walk takes about 2 ns a cell (1.4 cells per cell of length on a diagonal), so 2**24 cells, as many
+#: as a region read copies, hold the lock for at most about 50 ms; 10,000 rays of 20,000 cells each
+#: held it 0.5 s where nothing stopped them early. A scan of 360 rays may still look 20,000 cells
+#: (1 km at 0.05 m) far, and 10,000 rays 1,677 cells (84 m).
+MAX_RAYS = 10_000
+MAX_RAY_CELLS = 20_000
+MAX_RAY_WALK = 2**24
+
+
+def cell_edge(index: int, resolution: float) -> float:
+    """The map coordinate where cell `index` begins (`index * resolution`), rounded to the nanometre
+    so that exports say -20.2 rather than the product's -20.200000000000003. The rounding moves the
+    edge by far less than any resolution a map may have."""
+    return round(index * resolution, 9)
+
+
+def as_points(points: Points) -> np.ndarray:
+    """Map points as a float64 array of shape (n, 2); one (x, y) pair alone is one point, an empty
+    sequence none. Raises ValueError for any other shape (an (n, 3) array is not read as 3n/2
+    points), for values that are not numbers, and for a coordinate that is not finite."""
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"points must be (x, y) pairs of numbers: {exc}") from None
+    if pts.size == 0:
+        return pts.reshape(0, 2)
+    if pts.shape == (2,):
+        pts = pts.reshape(1, 2)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points must be (x, y) pairs, an array of shape (n, 2); got shape {pts.shape}")
+    if not np.isfinite(pts).all():
+        raise ValueError("points must be finite numbers")
+    return pts
+
+
+__all__ = [
+    "MAX_RAYS",
+    "MAX_RAY_CELLS",
+    "MAX_RAY_WALK",
+    "RAY_MAX_RANGE",
+    "RAY_OCCUPIED",
+    "RAY_STATUS_NAMES",
+    "RAY_UNKNOWN",
+    "STATE_FREE",
+    "STATE_NAMES",
+    "STATE_OCCUPIED",
+    "STATE_UNKNOWN",
+    "Points",
+    "as_points",
+    "cell_edge",
+]
