@@ -21,7 +21,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import TypeVar
@@ -77,17 +77,23 @@ def free_port() -> int:
     raise RuntimeError(f"no free TCP port in {_PORTS[0]}-{_PORTS[1]} on 127.0.0.1")
 
 
-def _child_env() -> dict[str, str]:
+def _child_env(extra: Mapping[str, str] | None = None) -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
+    env.update(extra or {})
     return env
 
 
 class ServiceProcess:
     """`python -m fleetmap.server` on free ports: HTTP on 127.0.0.1:<port>, Zenoh listening on
-    tcp/127.0.0.1:<zport>, plus `extra_args`. Output goes to `log_dir/service-<port>.log`."""
+    tcp/127.0.0.1:<zport>, plus `extra_args`. Output goes to `log_dir/service-<port>.log`. `env`
+    adds to (or overrides) the test's environment variables, `preexec_fn` runs in the child before
+    it starts (e.g. to set a resource limit), as `subprocess.Popen`'s."""
 
-    def __init__(self, log_dir: Path, extra_args: Sequence[str] = (), startup_timeout: float = 60.0) -> None:
+    def __init__(
+        self, log_dir: Path, extra_args: Sequence[str] = (), startup_timeout: float = 60.0,
+        env: Mapping[str, str] | None = None, preexec_fn: Callable[[], None] | None = None,
+    ) -> None:  # fmt: skip
         self.port = free_port()
         self.zenoh_port = free_port()
         self.base_url = f"http://127.0.0.1:{self.port}"
@@ -108,6 +114,7 @@ class ServiceProcess:
         ]  # fmt: skip
         self.log_path = Path(log_dir) / f"service-{self.port}.log"
         self.startup_timeout = startup_timeout
+        self.env, self.preexec_fn = env, preexec_fn
         self.proc: subprocess.Popen[bytes] | None = None
         self.returncode: int | None = None
 
@@ -116,8 +123,9 @@ class ServiceProcess:
         service's output) if it exits or does not answer within `startup_timeout`."""
         log = open(self.log_path, "wb")  # noqa: SIM115 - the child writes to it until stop()
         self.proc = subprocess.Popen(
-            self.args, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=_child_env()
-        )
+            self.args, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            env=_child_env(self.env), preexec_fn=self.preexec_fn,
+        )  # fmt: skip
         log.close()
         deadline = time.monotonic() + self.startup_timeout
         with httpx.Client(timeout=2.0) as client:

@@ -4,12 +4,14 @@ is test_durability.py."""
 
 from __future__ import annotations
 
+import io
 import itertools
 import json
 import logging
 import queue
 import sqlite3
 import struct
+import tempfile
 import threading
 import time
 import zlib
@@ -19,6 +21,7 @@ import numpy as np
 import pytest
 from test_api_support import declare_size, small_snapshot_map, snapshot_body, snapshot_parts
 
+from fleetmap import spool, storage_format
 from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME, StorageError, open_database
@@ -548,6 +551,60 @@ def test_an_uploaded_snapshot_is_checked_before_any_tile_is_allocated(monkeypatc
         map_from_snapshot_file(body, max_bytes=2**40)
     allowed = True  # the check is not in the way of a good file
     assert len(map_from_snapshot_file(snapshot_body(meta, arrays)).store) == n
+
+
+def random_tiles_map(n: int, tile_size: int = 128) -> GridMap:
+    """A map of `n` tiles of every layer holding random values the engine could store: its snapshot
+    barely compresses, so the file is about as big as the map."""
+    gmap = GridMap(MapConfig(resolution=0.05, tile_size=tile_size))
+    gmap.store.create([(i, 0) for i in range(n)], fill=True)
+    rng = np.random.default_rng(7)
+    _, _, l_min, l_max = gmap.config.occupancy.resolved()
+    for name, pool in gmap.store.pools.items():
+        values = pool[:n]
+        if name == "log_odds":
+            values[...] = rng.uniform(l_min, l_max, values.shape)
+        elif name == "tsdf":
+            values[...] = rng.uniform(-1, 1, values.shape)
+        else:  # hits, misses, tsdf_weight: any value >= 0
+            values[...] = rng.integers(0, 1 << 20, values.shape)
+    return gmap
+
+
+def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An upload is spooled to a file (`fleetmap.spool`) and read from it: `map_from_snapshot_file`
+    takes a file as well as bytes, and reads tiles.npz where it lies in the file (a stored member, as
+    `snapshot_file` writes it) or from a spool (a compressed one), never whole in memory. It read
+    tiles.npz into bytes, a second copy of an upload of up to 4 GiB beside the map it builds."""
+    import tracemalloc
+
+    # Small chunks and a small spool, so that a small file shows it; the spool in a directory of ours.
+    monkeypatch.setattr(storage_format, "_READ_CHUNK", 1 << 16)
+    monkeypatch.setattr(spool, "SPOOL_MEMORY_BYTES", 1 << 16)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    gmap = random_tiles_map(16)
+    data = snapshot_file("m", gmap)
+    meta, arrays = snapshot_parts(data)
+    path = tmp_path / "m.zip"
+    path.write_bytes(data)
+    n = len(gmap.store.keys)
+    for source in ("file", "bytes", "deflated"):
+        body = snapshot_body(meta, arrays, deflate=True) if source == "deflated" else data
+        with path.open("rb") if source == "file" else io.BytesIO(body) as fp:
+            tracemalloc.start()
+            try:
+                copy = map_from_snapshot_file(fp if source != "bytes" else body)
+                peak = tracemalloc.get_traced_memory()[1]
+            finally:
+                tracemalloc.stop()
+            assert not fp.closed  # the caller's file, left open
+        for a in gmap.store.arrays:
+            assert np.array_equal(copy.store.pools[a.name][:n], gmap.store.pools[a.name][:n], equal_nan=True)
+        # The map's pools, and little else: not the 4 MB of tiles.npz once more.
+        assert len(data) > 4_000_000 and peak - copy.memory_bytes() < len(data) // 10, (source, peak)
+    assert [p.name for p in tmp_path.iterdir()] == ["m.zip"]  # the spool of the deflated one is gone
 
 
 def test_a_zip_bomb_is_refused_by_its_declared_size() -> None:

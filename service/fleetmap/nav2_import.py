@@ -58,7 +58,7 @@ import sys
 import zipfile
 import zlib
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import IO, Any, Literal
 
 import numpy as np
 import yaml
@@ -67,6 +67,7 @@ from pydantic import ValidationError
 
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import GridMap
+from fleetmap.spool import as_file
 from fleetmap.tiles import TileKey, layer_arrays, tile_bytes
 
 #: Bounds of an imported image: its sides, and its pixels in all (64 Mi: 1024 tiles of 256 x 256).
@@ -474,15 +475,16 @@ def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> bytes
 
 
 def map_from_nav2_zip(
-    data: bytes, config: MapConfig | None = None, defaults: MapConfig | None = None,
+    data: bytes | IO[bytes], config: MapConfig | None = None, defaults: MapConfig | None = None,
     free_bytes: int | None = None, snap_origin: bool = False,
 ) -> GridMap:  # fmt: skip
     """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and the image it
     names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
     no `..`, no absolute path): what `GET /maps/{id}/export?format=ros` gives. Entries under
-    `__MACOSX/` are not read. Raises `Nav2ImportError`."""
+    `__MACOSX/` are not read. `data` is the zip's bytes, or a binary file open for reading that can
+    seek (an upload spooled to disk: `fleetmap.spool`), which is left open. Raises `Nav2ImportError`."""
     try:
-        zf = zipfile.ZipFile(io.BytesIO(data))
+        zf = zipfile.ZipFile(as_file(data))
     except (*_ZIP_ERRORS, ValueError) as exc:
         raise Nav2ImportError(f"the body is not a zip file ({exc})", 415) from None
     with zf:

@@ -4,6 +4,7 @@ the single-file snapshots of `GET /maps/{id}/snapshot`. Every format returns exa
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
@@ -12,6 +13,7 @@ import zipfile
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import IO
 
 import numpy as np
 from numba import njit
@@ -21,6 +23,7 @@ from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.database import StorageError
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
+from fleetmap.spool import as_file, close_spool, spool_write, spooled_file
 from fleetmap.tiles import LayerArray, TileKey, layer_arrays, tile_bytes
 
 # -- encodings ---------------------------------------------------------------------------------------
@@ -351,6 +354,85 @@ def _read_member(zf: zipfile.ZipFile, name: str, limit: int) -> bytes:
     return data
 
 
+class _Window(io.RawIOBase):
+    """Bytes `[start, start + length)` of `base` (a binary file that can seek) as a read-only file
+    of their own that can seek: a member the zip stores uncompressed, read where it lies. Not safe
+    to use beside another reader of `base` at once (each read seeks it)."""
+
+    def __init__(self, base: IO[bytes], start: int, length: int) -> None:
+        super().__init__()
+        self._base, self._start, self._length, self._pos = base, start, length, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        origin = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: self._length}[whence]
+        if origin + offset < 0:
+            raise ValueError(f"negative seek position {origin + offset}")
+        self._pos = origin + offset
+        return self._pos
+
+    def readinto(self, buffer: bytearray | memoryview) -> int:  # type: ignore[override]
+        n = max(0, min(len(buffer), self._length - self._pos))
+        if not n:
+            return 0
+        self._base.seek(self._start + self._pos)
+        data = self._base.read(n)
+        memoryview(buffer)[: len(data)] = data
+        self._pos += len(data)
+        return len(data)
+
+
+def _data_start(fp: IO[bytes], info: zipfile.ZipInfo) -> int:
+    """Where member `info`'s data starts in `fp`: after its local header, 30 bytes, then the name and
+    the extra field, whose lengths are at bytes 26 and 28 (PKWARE APPNOTE 4.3.7). The extra field may
+    differ from the central directory's, so it is read here; zipfile has checked the header already."""
+    fp.seek(info.header_offset)
+    header = fp.read(30)
+    if len(header) != 30 or header[:4] != b"PK\x03\x04":
+        raise zipfile.BadZipFile(f"bad local file header of {info.filename}")
+    name_length, extra_length = struct.unpack_from("<HH", header, 26)
+    return info.header_offset + 30 + name_length + extra_length
+
+
+def _tiles_npz(outer: zipfile.ZipFile, fp: IO[bytes], limit: int, stack: contextlib.ExitStack) -> IO[bytes]:
+    """Member `tiles.npz` of the snapshot `outer` (read from `fp`) as a file that can seek, checked as
+    `_read_member` checks a member (its declared size against `limit`, then read whole: the CRC) but
+    never held in memory whole: a stored member (what `snapshot_file` writes) is then read where it
+    lies in `fp`; a compressed one (a snapshot zipped again by some tool) is decompressed into a
+    spool (`stack` closes it) as it is checked. Raises `SpoolFailed` if the spool has no room."""
+    path = "tiles.npz"
+    info = _member(outer, path, path, limit)
+    stored = info.compress_type == zipfile.ZIP_STORED and info.compress_size == info.file_size
+    copy = None if stored else spooled_file()
+    if copy is not None:
+        stack.callback(close_spool, copy)
+    size = 0
+    try:
+        with outer.open(info) as member:
+            while chunk := member.read(_READ_CHUNK):
+                size += len(chunk)
+                if size > limit:
+                    raise SnapshotError(
+                        f"snapshot member {path} holds more than the limit of {limit} bytes", 413
+                    )
+                if copy is not None:
+                    spool_write(copy, chunk)  # its errors are not the file's: not in _ZIP_ERRORS
+        if copy is None:
+            return io.BufferedReader(_Window(fp, _data_start(fp, info), info.file_size))
+    except _ZIP_ERRORS as exc:
+        raise SnapshotError(f"snapshot member {path} cannot be read (the file is corrupt): {exc}") from None
+    copy.seek(0)
+    return copy
+
+
 def _snapshot_config(zf: zipfile.ZipFile, max_tiles: int | None) -> MapConfig:
     """The configuration in `map.json`, its `max_tiles` lowered to `max_tiles` if given."""
     raw = _read_member(zf, "map.json", MAX_SNAPSHOT_META_BYTES)
@@ -534,11 +616,13 @@ def _check_values(a: LayerArray, values: np.ndarray, keys: list[TileKey], config
 
 
 def map_from_snapshot_file(
-    data: bytes, max_tiles: int | None = None, max_bytes: int = MAX_SNAPSHOT_BYTES,
+    data: bytes | IO[bytes], max_tiles: int | None = None, max_bytes: int = MAX_SNAPSHOT_BYTES,
     free_bytes: int | None = None,
 ) -> GridMap:  # fmt: skip
-    """A map restored from `snapshot_file` bytes; raises `SnapshotError` with a reason if they are
-    not one, or one this service refuses.
+    """A map restored from a `snapshot_file`: its bytes, or a binary file open for reading that can
+    seek (an upload spooled to disk: `fleetmap.spool`), which is read in place, never held in memory
+    whole, and left open. Raises `SnapshotError` with a reason if it is not one, or one this service
+    refuses; `SpoolFailed` if a compressed tiles.npz has no room in the temporary directory.
 
     An upload is untrusted: every member's declared size is checked before it is decompressed
     (`map.json` at most MAX_SNAPSHOT_META_BYTES, `tiles.npz` and its layer arrays together at most
@@ -548,33 +632,38 @@ def map_from_snapshot_file(
     data the file holds. Every cell is checked against what the engine can store, so a map that is
     installed is one the service could have built. With `free_bytes`, tiles that need more are
     refused (507) before anything is allocated: the room the memory budget leaves."""
-    try:
-        outer = zipfile.ZipFile(io.BytesIO(data))
-    except (*_ZIP_ERRORS, ValueError) as exc:
-        raise SnapshotError(f"not a fleetmap snapshot: the body is not a zip file ({exc})") from None
-    with outer:
-        config = _snapshot_config(outer, max_tiles)
-        inner = _read_member(outer, "tiles.npz", max_bytes)
+    fp = as_file(data)
+    with contextlib.ExitStack() as stack:
         try:
-            npz = zipfile.ZipFile(io.BytesIO(inner))
+            outer = zipfile.ZipFile(fp)
+        except (*_ZIP_ERRORS, ValueError) as exc:
+            raise SnapshotError(f"not a fleetmap snapshot: the body is not a zip file ({exc})") from None
+        with outer:
+            config = _snapshot_config(outer, max_tiles)
+            inner = _tiles_npz(outer, fp, max_bytes, stack)
+        try:
+            npz = zipfile.ZipFile(inner)
         except (*_ZIP_ERRORS, ValueError) as exc:
             raise SnapshotError(f"snapshot member tiles.npz is not a valid .npz file ({exc})") from None
-    with npz:
-        layout = layer_arrays(config.layers)
-        keys = _snapshot_keys(npz, config, layout, max_bytes, free_bytes)
-        t = config.tile_size
-        arrays = []
-        for a in layout:
-            npy = _npy_header(npz, a.name)
-            _check_npy(
-                npy, np.dtype(a.dtype), (len(keys), t, t), f"{(len(keys), t, t)}: one {t}x{t} tile per key"
-            )
-            arrays.append(npy)
-        # Everything checked that can be without the data: only now allocate, and only what it holds.
-        gmap = GridMap(config)
-        gmap.store.create(keys, fill=False)
-        for a, npy in zip(layout, arrays, strict=True):
-            values = gmap.store.pools[a.name][: len(keys)]
-            _read_npy(npz, npy, values)
-            _check_values(a, values, keys, config)
+        with npz:
+            layout = layer_arrays(config.layers)
+            keys = _snapshot_keys(npz, config, layout, max_bytes, free_bytes)
+            t = config.tile_size
+            arrays = []
+            for a in layout:
+                npy = _npy_header(npz, a.name)
+                _check_npy(
+                    npy,
+                    np.dtype(a.dtype),
+                    (len(keys), t, t),
+                    f"{(len(keys), t, t)}: one {t}x{t} tile per key",
+                )
+                arrays.append(npy)
+            # Everything checked that can be without the data: only now allocate, and only what it holds.
+            gmap = GridMap(config)
+            gmap.store.create(keys, fill=False)
+            for a, npy in zip(layout, arrays, strict=True):
+                values = gmap.store.pools[a.name][: len(keys)]
+                _read_npy(npz, npy, values)
+                _check_values(a, values, keys, config)
     return gmap

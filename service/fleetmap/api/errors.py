@@ -28,6 +28,7 @@ from fleetmap.codec import DecodeError, PayloadTooLarge
 from fleetmap.grid_map import LayerUnavailableError, RayLimitError
 from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
+from fleetmap.spool import SpoolFailed
 from fleetmap.tile_render import TileError
 from fleetmap.tiles import TileLimitError
 
@@ -405,6 +406,11 @@ def install(app: FastAPI) -> None:
         app.add_exception_handler(exc_type, _answer(status))
     # Storage, not the client: the change took effect but is not durable; the client may retry.
     app.add_exception_handler(NotDurable, _answer(503))
+
+    @app.exception_handler(SpoolFailed)
+    async def _spool_failed(request: Request, exc: SpoolFailed) -> JSONResponse:
+        # The service's temporary directory, not the client: 507 when it has no room, else 503.
+        return _json(exc.status, str(exc))
 
     @app.exception_handler(ClientDisconnect)
     async def _client_gone(request: Request, exc: ClientDisconnect) -> JSONResponse:

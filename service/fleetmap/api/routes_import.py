@@ -9,8 +9,15 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 
 from fleetmap.api.conditional import Conditions
-from fleetmap.api.errors import ApiError, error_responses
-from fleetmap.api.routes_snapshot import MEDIA_TYPE, REPLACED, ZIP_UPLOAD, install_upload
+from fleetmap.api.errors import ApiError
+from fleetmap.api.routes_snapshot import (
+    MEDIA_TYPE,
+    REPLACED,
+    UPLOAD_ERRORS,
+    ZIP_UPLOAD,
+    install_upload,
+    spooled_body,
+)
 from fleetmap.api.state import MapId, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo
@@ -31,7 +38,7 @@ def _is_zip_media_type(content_type: str | None) -> bool:
     response_model=MapInfo,
     status_code=201,
     openapi_extra=ZIP_UPLOAD,
-    responses={**REPLACED, **error_responses(412, 413, 415, 422, 503, 507)},
+    responses={**REPLACED, **UPLOAD_ERRORS},
 )
 async def put_import(
     map_id: MapId,
@@ -60,22 +67,23 @@ async def put_import(
     cell grid, another resolution than the replaced map's, an image that is not 8-bit grey, more
     tiles than `max_tiles`; with `snap_origin`, an origin off the grid is moved to the nearest cell
     edge instead); 413 for an image or a file past its limit; 507 if its tiles need more
-    memory than the budget leaves; none changes anything. 503 if it was installed but could not be
+    memory than the budget leaves, or if the service's temporary directory has no room for the upload
+    (it is kept there, as a snapshot's); none changes anything. 503 if it was installed but could not be
     stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing changed)."""
     del format  # one format for now: the parameter names it, as GET .../export's does
     content_type = request.headers.get("content-type")
     if not _is_zip_media_type(content_type):
         sent = f"not {content_type!r}" if content_type else "none was given"
         raise ApiError(415, f"the body must be a zip file, with Content-Type: {MEDIA_TYPE} ({sent})")
-    body = await request.body()
     defaults = state.registry.default_config
-    try:
-        return await install_upload(
-            state, map_id, response,
-            lambda config, free: map_from_nav2_zip(
-                body, config, defaults, free_bytes=free, snap_origin=snap_origin
-            ),
-            conditions,
-        )  # fmt: skip
-    except Nav2ImportError as exc:
-        raise ApiError(exc.status, f"nav2 map: {exc}") from None
+    async with spooled_body(request) as body:  # not held in memory while it is read, as a snapshot's
+        try:
+            return await install_upload(
+                state, map_id, response,
+                lambda config, free: map_from_nav2_zip(
+                    body, config, defaults, free_bytes=free, snap_origin=snap_origin
+                ),
+                conditions,
+            )  # fmt: skip
+        except Nav2ImportError as exc:
+            raise ApiError(exc.status, f"nav2 map: {exc}") from None

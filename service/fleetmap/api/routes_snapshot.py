@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Callable
-from typing import Any
+from collections.abc import AsyncIterator, Callable
+from typing import IO, Any
 
 from fastapi import APIRouter, Request, Response
 
@@ -18,6 +18,7 @@ from fleetmap.api_models import MapInfo, map_info
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.registry import MapEntry, MapNotFound
+from fleetmap.spool import close_spool, spool_write, spooled_file
 from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
 
 router = APIRouter(tags=["maps"], route_class=StrictRoute)
@@ -36,6 +37,61 @@ ZIP_UPLOAD = {
 REPLACED: dict[int | str, dict[str, Any]] = {
     200: {"model": MapInfo, "description": "Replaced the map that had this id"}
 }
+#: The errors of an upload: those of `install_upload`, and a 507 that also says the temporary
+#: directory may have no room for the upload (`spooled_body`).
+UPLOAD_ERRORS = error_responses(
+    412, 413, 415, 422, 503, 507,
+    described={
+        507: "The service's memory budget for map tiles (--max-memory) is used up, or its temporary "
+        "directory (TMPDIR) has no room for the upload"
+    },
+)  # fmt: skip
+
+#: Bytes of body gathered before they are written to the spool in one call on a worker thread.
+_WRITE_BATCH = 1 << 20
+
+
+@contextlib.asynccontextmanager
+async def spooled_body(request: Request) -> AsyncIterator[IO[bytes]]:
+    """The request's body as a binary file (at its start; readable, seekable), which is not held in
+    memory: streamed to a spool (`fleetmap.spool`: in memory up to 16 MiB, then a file of the
+    temporary directory). On leaving, whatever happened (an answer, a refusal, the client gone, the
+    body's deadline, a cancelled task), the spool is closed and so its file removed. The body limit
+    (`BodyLimitMiddleware`) applies as the body arrives: it counts what `receive` hands over, so a
+    body past it raises `BodyTooLarge` (413) from here with no more of it read. `SpoolFailed` (507,
+    or 503) if the temporary directory cannot take the body.
+
+    The writes run on a worker thread, a megabyte at a time: a write goes to the page cache and is
+    quick, but once the disk falls behind (a 4 GiB upload from a fast network to a slow disk) the
+    kernel holds the writer until writeback catches up, for up to hundreds of milliseconds a call,
+    and on the event loop that would stall every other request and the ingest of scans meanwhile.
+    Batching keeps the thread hops few (4096 for 4 GiB) and the memory held at a megabyte."""
+    spool = spooled_file()
+    writing: asyncio.Future[None] | None = None
+    try:
+        pending: list[bytes] = []
+        held = 0
+        async for chunk in request.stream():
+            pending.append(chunk)
+            held += len(chunk)
+            if held >= _WRITE_BATCH:
+                writing = asyncio.ensure_future(asyncio.to_thread(spool_write, spool, b"".join(pending)))
+                # Shielded: a cancelled request must not close the spool under a write still running
+                # on its thread (the `finally` below waits for it instead).
+                await asyncio.shield(writing)
+                pending, held = [], 0
+        if pending:
+            writing = asyncio.ensure_future(asyncio.to_thread(spool_write, spool, b"".join(pending)))
+            await asyncio.shield(writing)
+        spool.seek(0)
+        yield spool
+    finally:
+        # A reader on a worker thread that outlives a cancelled request (the shutdown cutoff) finds
+        # the spool closed: its next read raises ValueError there, its result is dropped anyway.
+        if writing is not None and not writing.done():
+            writing.add_done_callback(lambda _: close_spool(spool))
+        else:
+            close_spool(spool)
 
 
 @router.get(
@@ -67,7 +123,7 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
     response_model=MapInfo,
     status_code=201,
     openapi_extra=ZIP_UPLOAD,
-    responses={**REPLACED, **error_responses(412, 413, 415, 422, 503, 507)},
+    responses={**REPLACED, **UPLOAD_ERRORS},
 )
 async def put_snapshot(
     map_id: MapId, request: Request, response: Response, state: State, conditions: Conditions
@@ -77,19 +133,21 @@ async def put_snapshot(
     start afresh; scans queued for the old map are dropped. 422 if the body is not a fleetmap
     snapshot, or holds a tile or a cell value the service could not have made; 413 if a part of it
     decompresses to more than its limit (see the docs); 507 if its tiles need more memory than the
-    budget (`--max-memory`) leaves; none changes anything. 503 if the map was installed but could not
-    be stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing changed)."""
-    body = await request.body()
-    try:
-        return await install_upload(
-            state, map_id, response, lambda _config, free: map_from_snapshot_file(body, free_bytes=free),
-            conditions,
-        )  # fmt: skip
-    except SnapshotError as exc:
-        if not exc.errors:
-            raise ApiError(exc.status, str(exc)) from None
-        detail, items = validation_detail(exc.errors)  # one line per problem, as for PUT /maps
-        raise ApiError(exc.status, f"snapshot {detail}", errors=items) from None
+    budget (`--max-memory`) leaves, or if the service's temporary directory has no room for the
+    upload (it is kept there, not in memory, while it is read); none changes anything. 503 if the map
+    was installed but could not be stored. `If-Match` / `If-None-Match: *` as for `PUT
+    /maps/{map_id}` (412, nothing changed)."""
+    async with spooled_body(request) as body:
+        try:
+            return await install_upload(
+                state, map_id, response, lambda _config, free: map_from_snapshot_file(body, free_bytes=free),
+                conditions,
+            )  # fmt: skip
+        except SnapshotError as exc:
+            if not exc.errors:
+                raise ApiError(exc.status, str(exc)) from None
+            detail, items = validation_detail(exc.errors)  # one line per problem, as for PUT /maps
+            raise ApiError(exc.status, f"snapshot {detail}", errors=items) from None
 
 
 async def install_upload(

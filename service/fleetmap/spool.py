@@ -1,0 +1,74 @@
+"""Uploads kept on disk rather than in memory: the body of a snapshot or nav2 upload (4 GiB at most
+for a snapshot) was held whole in memory while it was read, beside the map it builds and outside
+the memory budget (`--max-memory`). It is now written to a `SpooledTemporaryFile`: in memory up to
+SPOOL_MEMORY_BYTES, then in a file of the temporary directory (`tempfile.gettempdir()`: `TMPDIR`,
+else /tmp), unlinked as soon as it is made (so a crash leaves nothing behind) and closed, its room
+given back, when the upload is done with. The readers (`map_from_snapshot_file`,
+`map_from_nav2_zip`) take such a file as well as bytes (`as_file`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import io
+import tempfile
+from typing import IO
+
+#: Bytes of an upload kept in memory before it goes to a file: every upload the routes' tests and
+#: clients make of a small map stays in memory (no disk), and a big one costs no more than this.
+SPOOL_MEMORY_BYTES = 16 << 20
+
+#: The errors of a write that say the disk (or the user's quota of it) is full.
+_NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+class SpoolFailed(Exception):
+    """An upload could not be written to the temporary directory: `status` 507 (Insufficient Storage)
+    when it has no room, else 503 (unwritable, out of descriptors: retry later). Nothing was changed.
+    Not an OSError, so that the readers' handling of a corrupt zip (which includes OSError) never
+    takes it for the client's fault."""
+
+    def __init__(self, exc: OSError) -> None:
+        directory = tempfile.gettempdir()
+        reason = exc.strerror or str(exc)
+        if exc.errno in _NO_ROOM:
+            self.status = 507
+            message = (
+                f"the temporary directory {directory} has no room for the upload ({reason}): an upload "
+                "is kept there while it is read, and needs free disk of its size (set TMPDIR to move it)"
+            )
+        else:
+            self.status = 503
+            message = f"the upload could not be written to the temporary directory {directory} ({reason})"
+        super().__init__(message)
+
+
+def spooled_file() -> tempfile.SpooledTemporaryFile[bytes]:
+    """A new empty spool (binary, readable and seekable); close it when done (that removes its file)."""
+    return tempfile.SpooledTemporaryFile(max_size=SPOOL_MEMORY_BYTES, prefix="fleetmap-upload-")
+
+
+def close_spool(spool: IO[bytes]) -> None:
+    """Close `spool`, and so remove its file, never raising: closing flushes what its buffer still
+    holds, which fails as the write before it did when the disk is full, and that error (raised in a
+    `finally`) would replace the `SpoolFailed` being answered with a 500. The descriptor is closed
+    whether the flush fails or not."""
+    with contextlib.suppress(OSError):
+        spool.close()
+
+
+def spool_write(spool: IO[bytes], data: bytes) -> None:
+    """Append `data` to `spool`; raises `SpoolFailed` if the temporary directory cannot take it (the
+    spool's first write past SPOOL_MEMORY_BYTES makes its file and copies what it held there). May
+    block on the disk: call it off the event loop."""
+    try:
+        spool.write(data)
+    except OSError as exc:
+        raise SpoolFailed(exc) from None
+
+
+def as_file(data: bytes | IO[bytes]) -> IO[bytes]:
+    """An upload as a binary file open for reading that can seek, as `zipfile` reads it: `data` itself
+    if it is one (a spool), else the bytes in a `BytesIO` (no copy is made of them)."""
+    return io.BytesIO(data) if isinstance(data, (bytes, bytearray, memoryview)) else data

@@ -1,0 +1,295 @@
+"""Uploads (`PUT /maps/{id}/snapshot`, `PUT /maps/{id}/import`) are spooled to the temporary
+directory, not held in memory while they are read (`fleetmap.spool`, `routes_snapshot.spooled_body`),
+on the real service process with `TMPDIR` pointed at a directory of the test's.
+
+A spool's file is unlinked as it is made, so the directory shows nothing: the service's open
+descriptors into it (`/proc/<pid>/fd`) are what show a spool, and each test first sees one there
+mid-upload (bodies past SPOOL_MEMORY_BYTES), so that its "none left" can fail.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import socket
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from service_process import ServiceProcess, wait_for
+from test_api_support import running_api, snapshot_parts
+
+from fleetmap.api.app import ApiSettings
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
+from fleetmap.spool import SPOOL_MEMORY_BYTES
+from fleetmap.storage_format import snapshot_file
+
+BODY_TIMEOUT = 4.0
+#: A body's bytes sent before the test looks for its spool: past what the spool keeps in memory.
+FIRST_PART = SPOOL_MEMORY_BYTES + (4 << 20)
+
+
+@dataclass
+class Spooling:
+    service: ServiceProcess
+    tmpdir: Path  # the service's TMPDIR
+
+
+@pytest.fixture(scope="module")
+def spooling(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Spooling]:
+    tmpdir = tmp_path_factory.mktemp("spool")
+    args = ["--in-memory", "--http-body-timeout", str(BODY_TIMEOUT)]
+    with ServiceProcess(tmp_path_factory.mktemp("logs"), args, env={"TMPDIR": str(tmpdir)}) as svc:
+        yield Spooling(svc, tmpdir)
+
+
+@pytest.fixture(scope="module")
+def big_snapshot() -> bytes:
+    """The snapshot of a map of 24 tiles of every layer holding random values (they barely
+    compress): a file over FIRST_PART, so that its upload goes to a file of the spool."""
+    gmap = GridMap(MapConfig(resolution=0.05))
+    n = 24
+    gmap.store.create([(i % 5, i // 5) for i in range(n)], fill=True)
+    rng = np.random.default_rng(3)
+    _, _, l_min, l_max = gmap.config.occupancy.resolved()
+    for name, pool in gmap.store.pools.items():
+        values = pool[:n]
+        if name == "log_odds":
+            values[...] = rng.uniform(l_min, l_max, values.shape)
+        elif name == "tsdf":
+            values[...] = rng.uniform(-1, 1, values.shape)
+        else:
+            values[...] = rng.integers(0, 1 << 20, values.shape)
+    data = snapshot_file("big", gmap)
+    assert len(data) > FIRST_PART + (1 << 20)
+    return data
+
+
+def spool_files(pid: int, directory: Path) -> list[str]:
+    """The files of `directory` that process `pid` holds open (a spool's, unlinked: `... (deleted)`)."""
+    held = []
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except FileNotFoundError:  # closed meanwhile
+            continue
+        if target.startswith(f"{directory}/"):
+            held.append(target)
+    return held
+
+
+def start_upload(svc: ServiceProcess, path: str, length: int, headers: str = "") -> socket.socket:
+    """A raw connection that has sent the head of `PUT path` with a body of `length` bytes."""
+    sock = socket.create_connection(("127.0.0.1", svc.port), timeout=30)
+    head = (
+        f"PUT {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/zip\r\nContent-Length: {length}\r\n"
+        f"Connection: close\r\n{headers}\r\n"
+    )
+    sock.sendall(head.encode())
+    return sock
+
+
+def read_answer(sock: socket.socket) -> tuple[int, str]:
+    """The status and the body of the answer on `sock`, read until the server closes it."""
+    answer = b""
+    while chunk := sock.recv(65536):
+        answer += chunk
+    head, _, body = answer.partition(b"\r\n\r\n")
+    return int(head.split()[1]), body.decode()
+
+
+def upload_seen_spooled(spooling: Spooling, path: str, body: bytes, headers: str = "") -> tuple[int, str]:
+    """Upload `body` to `path`, checking mid-body that the service holds a spool file in its TMPDIR;
+    the answer's status and body."""
+    pid = spooling.service.proc.pid  # type: ignore[union-attr]
+    with start_upload(spooling.service, path, len(body), headers) as sock:
+        sock.sendall(body[:FIRST_PART])
+        wait_for(lambda: spool_files(pid, spooling.tmpdir), timeout=10, what="the upload's spool file")
+        sock.sendall(body[FIRST_PART:])
+        return read_answer(sock)
+
+
+def assert_no_spool(spooling: Spooling) -> None:
+    pid = spooling.service.proc.pid  # type: ignore[union-attr]
+    assert spool_files(pid, spooling.tmpdir) == []
+    assert list(spooling.tmpdir.iterdir()) == []
+
+
+def same_map(a: bytes, b: bytes) -> None:
+    meta_a, arrays_a = snapshot_parts(a)
+    meta_b, arrays_b = snapshot_parts(b)
+    assert meta_a["config"] == meta_b["config"] and arrays_a.keys() == arrays_b.keys()
+    for name, values in arrays_a.items():
+        assert np.array_equal(values, arrays_b[name], equal_nan=True), name
+
+
+def test_a_big_upload_goes_through_a_spool_file_and_round_trips(
+    spooling: Spooling, big_snapshot: bytes
+) -> None:
+    """Download -> upload -> the same map, the upload spooled to a file of TMPDIR on the way, and that
+    file closed (so removed) by the time the answer comes."""
+    status, answer = upload_seen_spooled(spooling, "/maps/round-trip/snapshot", big_snapshot)
+    assert status == 201, answer
+    assert_no_spool(spooling)
+    base = spooling.service.base_url
+    downloaded = httpx.get(f"{base}/maps/round-trip/snapshot", timeout=60).content
+    same_map(downloaded, big_snapshot)
+    # ... and that download uploaded again (to another id) is that map once more.
+    status, answer = upload_seen_spooled(spooling, "/maps/round-trip-2/snapshot", downloaded)
+    assert status == 201, answer
+    same_map(httpx.get(f"{base}/maps/round-trip-2/snapshot", timeout=60).content, big_snapshot)
+    assert_no_spool(spooling)
+
+
+@pytest.mark.parametrize("refusal", ["not a zip", "precondition"])
+def test_a_refused_upload_leaves_no_spool_and_changes_nothing(
+    spooling: Spooling, big_snapshot: bytes, refusal: str
+) -> None:
+    base = spooling.service.base_url
+    assert httpx.put(f"{base}/maps/kept", json={}).status_code in (200, 201)
+    etag = httpx.get(f"{base}/maps/kept").headers["etag"]
+    if refusal == "not a zip":
+        body, headers, expected = b"\x07" * len(big_snapshot), "", 422
+        detail = "not a fleetmap snapshot: the body is not a zip file"
+    else:  # a whole good snapshot, read into the spool before the precondition is checked
+        body, headers, expected = big_snapshot, "If-None-Match: *\r\n", 412
+        detail = "If-None-Match"
+    status, answer = upload_seen_spooled(spooling, "/maps/kept/snapshot", body, headers)
+    assert status == expected and detail in answer, answer
+    assert_no_spool(spooling)
+    assert httpx.get(f"{base}/maps/kept").headers["etag"] == etag
+
+
+@pytest.mark.parametrize("how", ["client gone", "body deadline"])
+def test_an_upload_cut_off_mid_body_leaves_no_spool(
+    spooling: Spooling, big_snapshot: bytes, how: str
+) -> None:
+    """A client that goes away mid-body, or whose body misses its deadline (--http-body-timeout):
+    the spool is closed, the service answers on, and no map was made."""
+    svc, pid = spooling.service, spooling.service.proc.pid  # type: ignore[union-attr]
+    with start_upload(svc, "/maps/cut/snapshot", len(big_snapshot)) as sock:
+        sock.sendall(big_snapshot[:FIRST_PART])
+        wait_for(lambda: spool_files(pid, spooling.tmpdir), timeout=10, what="the upload's spool file")
+        if how == "body deadline":  # the service closes the connection
+            sock.settimeout(BODY_TIMEOUT + 5)
+            assert sock.recv(65536) == b""
+    wait_for(lambda: not spool_files(pid, spooling.tmpdir), timeout=5, what="the spool closed")
+    assert_no_spool(spooling)
+    assert httpx.get(f"{svc.base_url}/healthz").status_code == 200
+    assert httpx.get(f"{svc.base_url}/maps/cut").status_code == 404
+    assert "Traceback" not in svc.logs(), svc.logs()
+
+
+def send_chunked(port: int, path: str, chunk: bytes, chunks: int) -> tuple[int, str, int]:
+    """`PUT path` with a chunked body (no Content-Length: the limit is met only as the body arrives)
+    of `chunks` copies of `chunk`, sent from a thread while the answer is read: (status, body, bytes
+    of the body sent when the server stopped reading or answered)."""
+    sent = 0
+    sock = socket.create_connection(("127.0.0.1", port), timeout=30)
+
+    def send() -> None:
+        nonlocal sent
+        head = f"PUT {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/zip\r\n"
+        head += "Transfer-Encoding: chunked\r\n\r\n"
+        try:
+            sock.sendall(head.encode())
+            for _ in range(chunks):
+                sock.sendall(f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n")
+                sent += len(chunk)
+            sock.sendall(b"0\r\n\r\n")
+        except OSError:  # the server answered and closed
+            pass
+
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
+    try:
+        answer = b""
+        while b"\r\n\r\n" not in answer or len(answer.partition(b"\r\n\r\n")[2]) < int(
+            answer.lower().partition(b"content-length: ")[2].split(b"\r\n")[0] or 0
+        ):
+            data = sock.recv(65536)
+            if not data:
+                break
+            answer += data
+        at = sent
+    finally:
+        sock.shutdown(socket.SHUT_RDWR)
+        sock.close()
+        sender.join(10)
+    head, _, body = answer.partition(b"\r\n\r\n")
+    return int(head.split()[1]), body.decode(), at
+
+
+def test_a_body_past_the_limit_is_refused_as_it_arrives_and_leaves_no_spool(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, big_snapshot: bytes
+) -> None:
+    """The body limit counts what the route streams as it does what it read whole: a snapshot body
+    past a (lowered) limit, sent without Content-Length, is answered 413 once the limit is passed,
+    not after the rest, and its spool (on disk by then) is gone; the map is as it was. (In-process,
+    for the lowered limit: the service has no option for it.)"""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    limit = FIRST_PART
+    with running_api(ApiSettings(max_snapshot_body_bytes=limit)) as api:
+        assert api.client.put("/maps/kept", json={}).status_code == 201
+        etag = api.client.get("/maps/kept").headers["etag"]
+        port = int(api.base_url.rsplit(":", 1)[1])
+        chunk = big_snapshot[: 1 << 20]
+        status, body, sent = send_chunked(port, "/maps/kept/snapshot", chunk, 4 * limit // len(chunk))
+        assert status == 413 and f"larger than the limit of {limit} bytes" in body, body
+        assert sent < 2 * limit  # answered as the limit was passed, not once all had been sent
+        wait_for(lambda: not spool_files(os.getpid(), tmp_path), timeout=5, what="the spool closed")
+        assert list(tmp_path.iterdir()) == []
+        assert api.client.get("/maps/kept").headers["etag"] == etag
+        # Under the limit, the same route takes a body (of a map's snapshot) as before.
+        small = snapshot_file("s", GridMap(MapConfig()))
+        assert api.client.put("/maps/kept/snapshot", content=small).status_code == 200
+
+
+def test_a_nav2_import_past_the_body_limit_is_refused(spooling: Spooling) -> None:
+    """`PUT .../import` streams its body through the same spool, and its limit (the 16 MiB of every
+    body but a snapshot's) still holds as the body arrives."""
+    svc = spooling.service
+    status, body, sent = send_chunked(svc.port, "/maps/imported/import", b"\0" * (1 << 20), 64)
+    assert status == 413 and "larger than the limit of 16777216 bytes" in body, body
+    assert sent < 48 << 20
+    wait_for(lambda: not spool_files(svc.proc.pid, spooling.tmpdir), timeout=5, what="no spool")  # type: ignore[union-attr]
+    assert httpx.get(f"{svc.base_url}/maps/imported").status_code == 404
+
+
+def _small_file_limit() -> None:
+    """In the service's child process: files it writes may hold at most SPOOL_MEMORY_BYTES + 2 MiB,
+    so a spool past that fails as on a full disk (EFBIG; Python ignores the SIGXFSZ it brings)."""
+    size = SPOOL_MEMORY_BYTES + (2 << 20)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
+
+
+def test_an_upload_the_temporary_directory_has_no_room_for_is_refused_with_507(
+    tmp_path: Path, big_snapshot: bytes
+) -> None:
+    """A spool that cannot be written (its disk full: here a file size limit on the service) is
+    answered 507 naming the temporary directory, never 500; nothing changes, nothing is left, and
+    an upload that fits is taken afterwards."""
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    args = ["--in-memory"]
+    env = {"TMPDIR": str(tmpdir)}
+    with ServiceProcess(tmp_path, args, env=env, preexec_fn=_small_file_limit) as svc:
+        spooling = Spooling(svc, tmpdir)
+        # Answered before the body is all sent: sent from a thread, the answer read meanwhile.
+        status, answer, _ = send_chunked(svc.port, "/maps/full/snapshot", big_snapshot[: 1 << 20], 32)
+        assert status == 507, answer
+        assert f"the temporary directory {tmpdir} has no room for the upload" in answer, answer
+        assert_no_spool(spooling)
+        assert httpx.get(f"{svc.base_url}/maps/full").status_code == 404
+        small = snapshot_file("s", GridMap(MapConfig()))
+        put = httpx.put(f"{svc.base_url}/maps/full/snapshot", content=small)
+        assert put.status_code == 201, put.text
+        time.sleep(0.2)
+        assert "Traceback" not in svc.logs(), svc.logs()
