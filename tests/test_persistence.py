@@ -14,12 +14,13 @@ import struct
 import tempfile
 import threading
 import time
+import zipfile
 import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_api_support import declare_size, small_snapshot_map, snapshot_body, snapshot_parts
+from test_api_support import declare_size, hostile_zip, small_snapshot_map, snapshot_body, snapshot_parts
 
 from fleetmap import spool, storage_format
 from fleetmap.codec import WireScan
@@ -33,6 +34,7 @@ from fleetmap.scan import Scan
 from fleetmap.storage_format import (
     MAX_SNAPSHOT_META_BYTES,
     TILE_MAGIC,
+    SnapshotError,
     decode_tile,
     map_from_snapshot_file,
     scan_from_blob,
@@ -605,6 +607,39 @@ def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
         # The map's pools, and little else: not the 4 MB of tiles.npz once more.
         assert len(data) > 4_000_000 and peak - copy.memory_bytes() < len(data) // 10, (source, peak)
     assert [p.name for p in tmp_path.iterdir()] == ["m.zip"]  # the spool of the deflated one is gone
+
+
+@pytest.mark.parametrize("how", ["utf-8 name", "before the start", "zip64 offset"])
+@pytest.mark.parametrize("member", ["map.json", "tiles.npz", "tiles.npz/keys.npy"])
+@pytest.mark.parametrize("source", ["bytes", "file"])
+def test_a_zip_whose_headers_zipfile_reads_only_when_opening_a_member_is_refused_not_a_500(
+    tmp_path: Path, how: str, member: str, source: str
+) -> None:
+    """zipfile checks a member's local header, and seeks to its offset, only when the member is
+    opened: a local name flagged UTF-8 that is not (UnicodeDecodeError), an offset before the file's
+    start (ValueError from a `BytesIO`, the in-memory spool of every upload under 16 MiB) or past
+    what a seek takes (OverflowError) escaped the reader's errors and were answered 500 with a
+    traceback. Each is a corrupt file (422), in the snapshot or in its tiles.npz, read from bytes or
+    from a file (a spool on disk)."""
+    data = snapshot_file("s", small_snapshot_map())
+    meta, arrays = snapshot_parts(data)
+    if member == "tiles.npz/keys.npy":
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            npz = zf.read("tiles.npz")
+        body = snapshot_body(meta, npz=hostile_zip(npz, "keys.npy", how))
+    else:
+        body = hostile_zip(data, member, how)
+    path = tmp_path / "s.zip"
+    path.write_bytes(body)
+    with (
+        path.open("rb") if source == "file" else io.BytesIO(body) as fp,
+        pytest.raises(ValueError) as refused,
+    ):
+        map_from_snapshot_file(fp if source == "file" else body)
+    assert isinstance(refused.value, SnapshotError) and refused.value.status == 422, repr(refused.value)
+    # The part at fault named: the whole file when every offset of it is shifted, else the member.
+    whole = how == "before the start" and member != "tiles.npz/keys.npy"
+    assert ("the body is not a zip file" if whole else member.split("/")[0]) in str(refused.value)
 
 
 def test_a_zip_bomb_is_refused_by_its_declared_size() -> None:

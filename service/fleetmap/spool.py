@@ -13,6 +13,7 @@ import contextlib
 import errno
 import io
 import tempfile
+import zipfile
 from typing import IO
 
 #: Bytes of an upload kept in memory before it goes to a file: every upload the routes' tests and
@@ -72,3 +73,26 @@ def as_file(data: bytes | IO[bytes]) -> IO[bytes]:
     """An upload as a binary file open for reading that can seek, as `zipfile` reads it: `data` itself
     if it is one (a spool), else the bytes in a `BytesIO` (no copy is made of them)."""
     return io.BytesIO(data) if isinstance(data, (bytes, bytearray, memoryview)) else data
+
+
+def upload_zip(data: bytes | IO[bytes]) -> zipfile.ZipFile:
+    """An upload (`as_file`) opened as a zip to read, whose every entry's local header lies within
+    the file: raises `zipfile.BadZipFile` otherwise, as for any other corrupt zip, and whatever
+    `zipfile.ZipFile` raises for one that is not a zip.
+
+    zipfile takes the offsets of the central directory as they are, shifted by the bytes found
+    before the archive (a self-extracting prefix; negative when the end record claims a directory
+    further on than it is), and only seeks to them when a member is opened: an offset before the
+    file's start (ValueError, or OSError from a real file) or past what a seek takes (zip64 gives 64
+    bits: OverflowError) escaped the readers' handling of a corrupt zip as a 500."""
+    fp = as_file(data)
+    zf = zipfile.ZipFile(fp)
+    size = fp.seek(0, io.SEEK_END)
+    for info in zf.infolist():
+        if not 0 <= info.header_offset < size:
+            zf.close()
+            raise zipfile.BadZipFile(
+                f"entry {info.filename!r} says its header is at byte {info.header_offset}, outside the "
+                f"file's {size} bytes"
+            )
+    return zf
