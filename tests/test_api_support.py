@@ -139,6 +139,24 @@ def snapshot_body(
     return out.getvalue()
 
 
+def random_tiles_map(n: int, tile_size: int = 256) -> GridMap:
+    """A map of `n` tiles of every layer holding random values the engine could store: its snapshot
+    barely compresses, so the file is about as big as the map (tests of big uploads)."""
+    gmap = GridMap(MapConfig(resolution=0.05, tile_size=tile_size))
+    gmap.store.create([(i, 0) for i in range(n)], fill=True)
+    rng = np.random.default_rng(7)
+    _, _, l_min, l_max = gmap.config.occupancy.resolved()
+    for name, pool in gmap.store.pools.items():
+        values = pool[:n]
+        if name == "log_odds":
+            values[...] = rng.uniform(l_min, l_max, values.shape)
+        elif name == "tsdf":
+            values[...] = rng.uniform(-1, 1, values.shape)
+        else:  # hits, misses, tsdf_weight: any value >= 0
+            values[...] = rng.integers(0, 1 << 20, values.shape)
+    return gmap
+
+
 def declare_size(archive: bytes, name: str, size: int) -> bytes:
     """`archive` (a zip) with member `name`'s uncompressed size in the central directory, which is
     what `zipfile.ZipInfo.file_size` reads, set to `size` (< 4 GiB): a lying header."""

@@ -20,7 +20,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_api_support import declare_size, hostile_zip, small_snapshot_map, snapshot_body, snapshot_parts
+from test_api_support import (
+    declare_size,
+    hostile_zip,
+    random_tiles_map,
+    small_snapshot_map,
+    snapshot_body,
+    snapshot_parts,
+)
 
 from fleetmap import spool, storage_format
 from fleetmap.codec import WireScan
@@ -555,24 +562,6 @@ def test_an_uploaded_snapshot_is_checked_before_any_tile_is_allocated(monkeypatc
     assert len(map_from_snapshot_file(snapshot_body(meta, arrays)).store) == n
 
 
-def random_tiles_map(n: int, tile_size: int = 128) -> GridMap:
-    """A map of `n` tiles of every layer holding random values the engine could store: its snapshot
-    barely compresses, so the file is about as big as the map."""
-    gmap = GridMap(MapConfig(resolution=0.05, tile_size=tile_size))
-    gmap.store.create([(i, 0) for i in range(n)], fill=True)
-    rng = np.random.default_rng(7)
-    _, _, l_min, l_max = gmap.config.occupancy.resolved()
-    for name, pool in gmap.store.pools.items():
-        values = pool[:n]
-        if name == "log_odds":
-            values[...] = rng.uniform(l_min, l_max, values.shape)
-        elif name == "tsdf":
-            values[...] = rng.uniform(-1, 1, values.shape)
-        else:  # hits, misses, tsdf_weight: any value >= 0
-            values[...] = rng.integers(0, 1 << 20, values.shape)
-    return gmap
-
-
 def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -586,7 +575,7 @@ def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
     monkeypatch.setattr(storage_format, "_READ_CHUNK", 1 << 16)
     monkeypatch.setattr(spool, "SPOOL_MEMORY_BYTES", 1 << 16)
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    gmap = random_tiles_map(16)
+    gmap = random_tiles_map(16, tile_size=128)
     data = snapshot_file("m", gmap)
     meta, arrays = snapshot_parts(data)
     path = tmp_path / "m.zip"

@@ -23,7 +23,7 @@ import httpx
 import numpy as np
 import pytest
 from service_process import ServiceProcess, wait_for
-from test_api_support import running_api, snapshot_parts
+from test_api_support import random_tiles_map, running_api, snapshot_parts
 
 from fleetmap.api.app import ApiSettings
 from fleetmap.config import MapConfig
@@ -55,19 +55,7 @@ def spooling(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Spooling]:
 def big_snapshot() -> bytes:
     """The snapshot of a map of 24 tiles of every layer holding random values (they barely
     compress): a file over FIRST_PART, so that its upload goes to a file of the spool."""
-    gmap = GridMap(MapConfig(resolution=0.05))
-    n = 24
-    gmap.store.create([(i % 5, i // 5) for i in range(n)], fill=True)
-    rng = np.random.default_rng(3)
-    _, _, l_min, l_max = gmap.config.occupancy.resolved()
-    for name, pool in gmap.store.pools.items():
-        values = pool[:n]
-        if name == "log_odds":
-            values[...] = rng.uniform(l_min, l_max, values.shape)
-        elif name == "tsdf":
-            values[...] = rng.uniform(-1, 1, values.shape)
-        else:
-            values[...] = rng.integers(0, 1 << 20, values.shape)
+    gmap = random_tiles_map(24)
     data = snapshot_file("big", gmap)
     assert len(data) > FIRST_PART + (1 << 20)
     return data
