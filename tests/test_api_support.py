@@ -169,6 +169,16 @@ def declare_size(archive: bytes, name: str, size: int) -> bytes:
         at += 4
 
 
+def padded_zip(archive: bytes, entries: int) -> bytes:
+    """`archive` (a zip) with `entries` more, empty, members: a central directory of about 52 bytes
+    each, which zipfile reads whole and makes an object of each when the zip is opened."""
+    out = io.BytesIO(archive)
+    with zipfile.ZipFile(out, "a") as zf:
+        for k in range(entries):
+            zf.writestr(f"x{k:05d}", b"")
+    return out.getvalue()
+
+
 def hostile_zip(archive: bytes, name: str, how: str) -> bytes:
     """`archive` (a zip, as zipfile writes it: no comment, no zip64) with member `name` made hostile
     in a way zipfile only notices when the member is opened, if at all:

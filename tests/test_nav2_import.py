@@ -16,7 +16,7 @@ import pytest
 from fleetmap_client.rest import FleetmapClient, FleetmapError
 from PIL import Image
 from service_process import ServiceProcess
-from test_api_support import hostile_zip
+from test_api_support import hostile_zip, padded_zip
 
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
@@ -507,6 +507,17 @@ def test_a_zip_whose_headers_zipfile_reads_only_when_opening_a_member_is_refused
         map_from_nav2_zip(body, CONFIG)
     assert isinstance(refused.value, Nav2ImportError), repr(refused.value)
     assert refused.value.status == (422 if how == "utf-8 name" else 415), refused.value
+
+
+def test_a_zip_of_too_many_entries_is_refused_before_zipfile_lists_them() -> None:
+    """A central directory over 1 MiB (zipfile makes an object of every entry when it opens a zip) is
+    refused as no zip this service reads; within it, entries beside the YAML and its image are not
+    read."""
+    body = nav2_zip(nav2_yaml(), {"map.pgm": PIXELS})
+    with pytest.raises(Nav2ImportError, match="its central directory is [0-9]+ bytes") as refused:
+        map_from_nav2_zip(padded_zip(body, 21_000), CONFIG)
+    assert refused.value.status == 415
+    assert map_from_nav2_zip(padded_zip(body, 100), CONFIG).known_bounds() == (0, 0, 2, 2)
 
 
 def test_a_zip_with_the_yaml_in_a_folder_reads_the_image_beside_it() -> None:
