@@ -139,6 +139,24 @@ def snapshot_body(
     return out.getvalue()
 
 
+def random_tiles_map(n: int, tile_size: int = 256) -> GridMap:
+    """A map of `n` tiles of every layer holding random values the engine could store: its snapshot
+    barely compresses, so the file is about as big as the map (tests of big uploads)."""
+    gmap = GridMap(MapConfig(resolution=0.05, tile_size=tile_size))
+    gmap.store.create([(i, 0) for i in range(n)], fill=True)
+    rng = np.random.default_rng(7)
+    _, _, l_min, l_max = gmap.config.occupancy.resolved()
+    for name, pool in gmap.store.pools.items():
+        values = pool[:n]
+        if name == "log_odds":
+            values[...] = rng.uniform(l_min, l_max, values.shape)
+        elif name == "tsdf":
+            values[...] = rng.uniform(-1, 1, values.shape)
+        else:  # hits, misses, tsdf_weight: any value >= 0
+            values[...] = rng.integers(0, 1 << 20, values.shape)
+    return gmap
+
+
 def declare_size(archive: bytes, name: str, size: int) -> bytes:
     """`archive` (a zip) with member `name`'s uncompressed size in the central directory, which is
     what `zipfile.ZipInfo.file_size` reads, set to `size` (< 4 GiB): a lying header."""
@@ -149,3 +167,52 @@ def declare_size(archive: bytes, name: str, size: int) -> bytes:
         if archive[at + 46 : at + 46 + length] == name.encode():
             return archive[: at + 24] + struct.pack("<I", size) + archive[at + 28 :]
         at += 4
+
+
+def padded_zip(archive: bytes, entries: int) -> bytes:
+    """`archive` (a zip) with `entries` more, empty, members: a central directory of about 52 bytes
+    each, which zipfile reads whole and makes an object of each when the zip is opened."""
+    out = io.BytesIO(archive)
+    with zipfile.ZipFile(out, "a") as zf:
+        for k in range(entries):
+            zf.writestr(f"x{k:05d}", b"")
+    return out.getvalue()
+
+
+def hostile_zip(archive: bytes, name: str, how: str) -> bytes:
+    """`archive` (a zip, as zipfile writes it: no comment, no zip64) with member `name` made hostile
+    in a way zipfile only notices when the member is opened, if at all:
+
+    - "utf-8 name": its local header's name flagged UTF-8 (bit 11) and not UTF-8 (its last byte 0xff);
+    - "before the start": the end record's directory offset raised by 64, so that zipfile, taking
+      the 64 bytes for a prefix's, shifts every member's offset 64 bytes before where it is, and
+      the first member's before the file's start;
+    - "zip64 offset": its directory entry's offset 0xffffffff with a zip64 extra field that gives
+      2**64 - 1, more than a seek takes."""
+    eocd = archive.rindex(b"PK\x05\x06")
+    cd_size, cd_offset = struct.unpack_from("<II", archive, eocd + 12)
+    if how == "before the start":
+        return archive[: eocd + 16] + struct.pack("<I", cd_offset + 64) + archive[eocd + 20 :]
+    entries, at = [], cd_offset
+    while at < cd_offset + cd_size:  # each central directory entry, to find `name`'s
+        name_length, extra_length, comment_length = struct.unpack_from("<HHH", archive, at + 28)
+        end = at + 46 + name_length + extra_length + comment_length
+        entries.append((at, archive[at + 46 : at + 46 + name_length], archive[at:end]))
+        at = end
+    ((at, _, entry),) = [e for e in entries if e[1] == name.encode()]
+    if how == "utf-8 name":
+        (local,) = struct.unpack_from("<I", entry, 42)
+        flags, name_length = struct.unpack_from("<H", archive, local + 6)[0], len(name)
+        head = archive[:local] + archive[local : local + 6] + struct.pack("<H", flags | 0x800)
+        head += archive[local + 8 : local + 30 + name_length - 1] + b"\xff"
+        return head + archive[local + 30 + name_length :]
+    assert how == "zip64 offset", how
+    name_length, extra_length = struct.unpack_from("<HH", entry, 28)
+    extra = struct.pack("<HHQ", 1, 8, 2**64 - 1)
+    hostile = (
+        entry[:30] + struct.pack("<H", extra_length + len(extra)) + entry[32:42] + b"\xff" * 4
+        + entry[46 : 46 + name_length + extra_length] + extra + entry[46 + name_length + extra_length :]
+    )  # fmt: skip
+    directory = b"".join(hostile if e[0] == at else e[2] for e in entries)
+    tail = archive[eocd : eocd + 12] + struct.pack("<II", len(directory), cd_offset) + archive[eocd + 20 :]
+    return archive[:cd_offset] + directory + tail

@@ -16,6 +16,7 @@ import pytest
 from fleetmap_client.rest import FleetmapClient, FleetmapError
 from PIL import Image
 from service_process import ServiceProcess
+from test_api_support import hostile_zip, padded_zip
 
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
@@ -491,6 +492,32 @@ def test_a_bad_zip_is_refused(body: bytes, message: str, status: int) -> None:
     with pytest.raises(Nav2ImportError) as caught:
         map_from_nav2_zip(body, CONFIG)
     assert message in str(caught.value) and caught.value.status == status
+
+
+@pytest.mark.parametrize("how", ["utf-8 name", "before the start", "zip64 offset"])
+@pytest.mark.parametrize("member", ["map.yaml", "map.pgm"])
+def test_a_zip_whose_headers_zipfile_reads_only_when_opening_a_member_is_refused_not_a_500(
+    how: str, member: str
+) -> None:
+    """A local name flagged UTF-8 that is not, an offset before the file's start or past what a seek
+    takes: zipfile raises UnicodeDecodeError, ValueError, OverflowError when the member is opened,
+    which were 500s. Refused as a corrupt member (422), or offsets as no zip at all (415)."""
+    body = hostile_zip(nav2_zip(nav2_yaml(), {"map.pgm": PIXELS}), member, how)
+    with pytest.raises(ValueError) as refused:
+        map_from_nav2_zip(body, CONFIG)
+    assert isinstance(refused.value, Nav2ImportError), repr(refused.value)
+    assert refused.value.status == (422 if how == "utf-8 name" else 415), refused.value
+
+
+def test_a_zip_of_too_many_entries_is_refused_before_zipfile_lists_them() -> None:
+    """A central directory over 1 MiB (zipfile makes an object of every entry when it opens a zip) is
+    refused as no zip this service reads; within it, entries beside the YAML and its image are not
+    read."""
+    body = nav2_zip(nav2_yaml(), {"map.pgm": PIXELS})
+    with pytest.raises(Nav2ImportError, match="its central directory is [0-9]+ bytes") as refused:
+        map_from_nav2_zip(padded_zip(body, 21_000), CONFIG)
+    assert refused.value.status == 415
+    assert map_from_nav2_zip(padded_zip(body, 100), CONFIG).known_bounds() == (0, 0, 2, 2)
 
 
 def test_a_zip_with_the_yaml_in_a_folder_reads_the_image_beside_it() -> None:

@@ -14,12 +14,21 @@ import struct
 import tempfile
 import threading
 import time
+import zipfile
 import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_api_support import declare_size, small_snapshot_map, snapshot_body, snapshot_parts
+from test_api_support import (
+    declare_size,
+    hostile_zip,
+    padded_zip,
+    random_tiles_map,
+    small_snapshot_map,
+    snapshot_body,
+    snapshot_parts,
+)
 
 from fleetmap import spool, storage_format
 from fleetmap.codec import WireScan
@@ -33,6 +42,7 @@ from fleetmap.scan import Scan
 from fleetmap.storage_format import (
     MAX_SNAPSHOT_META_BYTES,
     TILE_MAGIC,
+    SnapshotError,
     decode_tile,
     map_from_snapshot_file,
     scan_from_blob,
@@ -553,24 +563,6 @@ def test_an_uploaded_snapshot_is_checked_before_any_tile_is_allocated(monkeypatc
     assert len(map_from_snapshot_file(snapshot_body(meta, arrays)).store) == n
 
 
-def random_tiles_map(n: int, tile_size: int = 128) -> GridMap:
-    """A map of `n` tiles of every layer holding random values the engine could store: its snapshot
-    barely compresses, so the file is about as big as the map."""
-    gmap = GridMap(MapConfig(resolution=0.05, tile_size=tile_size))
-    gmap.store.create([(i, 0) for i in range(n)], fill=True)
-    rng = np.random.default_rng(7)
-    _, _, l_min, l_max = gmap.config.occupancy.resolved()
-    for name, pool in gmap.store.pools.items():
-        values = pool[:n]
-        if name == "log_odds":
-            values[...] = rng.uniform(l_min, l_max, values.shape)
-        elif name == "tsdf":
-            values[...] = rng.uniform(-1, 1, values.shape)
-        else:  # hits, misses, tsdf_weight: any value >= 0
-            values[...] = rng.integers(0, 1 << 20, values.shape)
-    return gmap
-
-
 def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -584,7 +576,7 @@ def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
     monkeypatch.setattr(storage_format, "_READ_CHUNK", 1 << 16)
     monkeypatch.setattr(spool, "SPOOL_MEMORY_BYTES", 1 << 16)
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    gmap = random_tiles_map(16)
+    gmap = random_tiles_map(16, tile_size=128)
     data = snapshot_file("m", gmap)
     meta, arrays = snapshot_parts(data)
     path = tmp_path / "m.zip"
@@ -605,6 +597,70 @@ def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
         # The map's pools, and little else: not the 4 MB of tiles.npz once more.
         assert len(data) > 4_000_000 and peak - copy.memory_bytes() < len(data) // 10, (source, peak)
     assert [p.name for p in tmp_path.iterdir()] == ["m.zip"]  # the spool of the deflated one is gone
+
+
+@pytest.mark.parametrize("how", ["utf-8 name", "before the start", "zip64 offset"])
+@pytest.mark.parametrize("member", ["map.json", "tiles.npz", "tiles.npz/keys.npy"])
+@pytest.mark.parametrize("source", ["bytes", "file"])
+def test_a_zip_whose_headers_zipfile_reads_only_when_opening_a_member_is_refused_not_a_500(
+    tmp_path: Path, how: str, member: str, source: str
+) -> None:
+    """zipfile checks a member's local header, and seeks to its offset, only when the member is
+    opened: a local name flagged UTF-8 that is not (UnicodeDecodeError), an offset before the file's
+    start (ValueError from a `BytesIO`, the in-memory spool of every upload under 16 MiB) or past
+    what a seek takes (OverflowError) escaped the reader's errors and were answered 500 with a
+    traceback. Each is a corrupt file (422), in the snapshot or in its tiles.npz, read from bytes or
+    from a file (a spool on disk)."""
+    data = snapshot_file("s", small_snapshot_map())
+    meta, arrays = snapshot_parts(data)
+    if member == "tiles.npz/keys.npy":
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            npz = zf.read("tiles.npz")
+        body = snapshot_body(meta, npz=hostile_zip(npz, "keys.npy", how))
+    else:
+        body = hostile_zip(data, member, how)
+    path = tmp_path / "s.zip"
+    path.write_bytes(body)
+    with (
+        path.open("rb") if source == "file" else io.BytesIO(body) as fp,
+        pytest.raises(ValueError) as refused,
+    ):
+        map_from_snapshot_file(fp if source == "file" else body)
+    assert isinstance(refused.value, SnapshotError) and refused.value.status == 422, repr(refused.value)
+    # The part at fault named: the whole file when every offset of it is shifted, else the member.
+    whole = how == "before the start" and member != "tiles.npz/keys.npy"
+    assert ("the body is not a zip file" if whole else member.split("/")[0]) in str(refused.value)
+
+
+def test_a_zip_of_too_many_entries_is_refused_before_zipfile_lists_them() -> None:
+    """zipfile reads an archive's central directory whole and makes an object of each entry before
+    anything can be checked (1 million entries, a 51 MiB body, took 434 MiB and 4.8 s: a snapshot
+    body's 4 GiB some 35 GiB), so a directory over MAX_ZIP_DIRECTORY_BYTES (1 MiB, some 20,000
+    entries) is refused from the end record, the snapshot's or its tiles.npz's. Such a snapshot was
+    installed, its extra entries ignored."""
+    import tracemalloc
+
+    data = snapshot_file("s", small_snapshot_map())
+    meta, arrays = snapshot_parts(data)
+    with zipfile.ZipFile(io.BytesIO(data)) as zf:
+        npz = zf.read("tiles.npz")
+    entries = spool.MAX_ZIP_DIRECTORY_BYTES // 52 + 1000
+    for body, where in [
+        (padded_zip(data, entries), "the body is not a zip file"),
+        (snapshot_body(meta, npz=padded_zip(npz, entries)), "tiles.npz is not a valid .npz file"),
+    ]:
+        tracemalloc.start()
+        try:
+            with pytest.raises(SnapshotError, match="its central directory is [0-9]+ bytes") as refused:
+                map_from_snapshot_file(body)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert refused.value.status == 422 and where in str(refused.value)
+        # The body read once more at most (tiles.npz's CRC), not an object per entry (6 times the body).
+        assert peak < 2 * len(body), (peak, len(body))
+    # Within the bound, extra entries are no harm: they are not read.
+    assert len(map_from_snapshot_file(padded_zip(data, 100)).store) == len(small_snapshot_map().store)
 
 
 def test_a_zip_bomb_is_refused_by_its_declared_size() -> None:

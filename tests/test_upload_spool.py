@@ -23,7 +23,7 @@ import httpx
 import numpy as np
 import pytest
 from service_process import ServiceProcess, wait_for
-from test_api_support import running_api, snapshot_parts
+from test_api_support import random_tiles_map, running_api, snapshot_parts
 
 from fleetmap.api.app import ApiSettings
 from fleetmap.config import MapConfig
@@ -34,6 +34,7 @@ from fleetmap.storage_format import snapshot_file
 BODY_TIMEOUT = 4.0
 #: A body's bytes sent before the test looks for its spool: past what the spool keeps in memory.
 FIRST_PART = SPOOL_MEMORY_BYTES + (4 << 20)
+MEDIA = "application/zip"
 
 
 @dataclass
@@ -54,19 +55,7 @@ def spooling(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Spooling]:
 def big_snapshot() -> bytes:
     """The snapshot of a map of 24 tiles of every layer holding random values (they barely
     compress): a file over FIRST_PART, so that its upload goes to a file of the spool."""
-    gmap = GridMap(MapConfig(resolution=0.05))
-    n = 24
-    gmap.store.create([(i % 5, i // 5) for i in range(n)], fill=True)
-    rng = np.random.default_rng(3)
-    _, _, l_min, l_max = gmap.config.occupancy.resolved()
-    for name, pool in gmap.store.pools.items():
-        values = pool[:n]
-        if name == "log_odds":
-            values[...] = rng.uniform(l_min, l_max, values.shape)
-        elif name == "tsdf":
-            values[...] = rng.uniform(-1, 1, values.shape)
-        else:
-            values[...] = rng.integers(0, 1 << 20, values.shape)
+    gmap = random_tiles_map(24)
     data = snapshot_file("big", gmap)
     assert len(data) > FIRST_PART + (1 << 20)
     return data
@@ -293,3 +282,58 @@ def test_an_upload_the_temporary_directory_has_no_room_for_is_refused_with_507(
         assert put.status_code == 201, put.text
         time.sleep(0.2)
         assert "Traceback" not in svc.logs(), svc.logs()
+
+
+def test_uploads_in_progress_are_limited_and_the_next_is_refused_before_its_body(
+    spooling: Spooling, big_snapshot: bytes
+) -> None:
+    """At most `ApiSettings.max_uploads` (4) uploads hold a spool at once: the next is answered 503
+    with `Retry-After` before its body is read, changing nothing, and a slot is given back as an
+    upload ends, answered or cut off. Without the limit as many uploads as HTTP connections (1024)
+    each held 16 MiB of memory (their spool before it goes to disk) or disk of their size: 16 slow
+    uploads of 16 MiB held 262 MiB for the whole body deadline."""
+    svc, pid = spooling.service, spooling.service.proc.pid  # type: ignore[union-attr]
+    limit = ApiSettings().max_uploads
+    small = snapshot_file("s", GridMap(MapConfig()))
+    stalled = []
+    try:
+        for k in range(limit):
+            sock = start_upload(svc, f"/maps/busy-{k}/snapshot", len(big_snapshot))
+            stalled.append(sock)
+            sock.sendall(big_snapshot[:FIRST_PART])
+            wait_for(lambda n=k + 1: len(spool_files(pid, spooling.tmpdir)) == n, timeout=10, what="a spool")
+        for path in ("/maps/busy-more/snapshot", "/maps/busy-more/import"):
+            refused = httpx.put(f"{svc.base_url}{path}", content=small, headers={"Content-Type": MEDIA})
+            assert refused.status_code == 503, refused.text
+            assert f"its limit of {limit} uploads in progress" in refused.json()["detail"]
+            assert refused.headers["retry-after"] == "5"
+        assert httpx.get(f"{svc.base_url}/maps/busy-more").status_code == 404
+        # One answered: its slot is free again.
+        stalled[0].sendall(big_snapshot[FIRST_PART:])
+        assert read_answer(stalled[0])[0] == 201
+        put = httpx.put(f"{svc.base_url}/maps/busy-more/snapshot", content=small)
+        assert put.status_code == 201, put.text
+    finally:
+        for sock in stalled:  # the others cut off: their slots too are given back
+            sock.close()
+    wait_for(lambda: not spool_files(pid, spooling.tmpdir), timeout=5, what="the spools closed")
+    # Every slot is free again: `limit` uploads are taken (a slot is held from the head on, before
+    # any of the body), and only the next is refused.
+    heads = [start_upload(svc, f"/maps/again-{k}/snapshot", len(small)) for k in range(limit)]
+    try:
+        for sock in heads:
+            sock.settimeout(0.5)
+            with pytest.raises(TimeoutError):
+                sock.recv(1)  # not answered: waiting for its body
+        refused = httpx.put(f"{svc.base_url}/maps/busy-more/snapshot", content=small)
+        assert refused.status_code == 503, refused.text
+    finally:
+        for sock in heads:
+            sock.close()
+    wait_for(
+        lambda: httpx.put(f"{svc.base_url}/maps/busy-more/snapshot", content=small).status_code == 200,
+        timeout=5,
+        what="a slot free",
+    )
+    assert_no_spool(spooling)
+    assert "Traceback" not in svc.logs(), svc.logs()

@@ -67,7 +67,7 @@ from pydantic import ValidationError
 
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import GridMap
-from fleetmap.spool import as_file
+from fleetmap.spool import upload_zip
 from fleetmap.tiles import TileKey, layer_arrays, tile_bytes
 
 #: Bounds of an imported image: its sides, and its pixels in all (64 Mi: 1024 tiles of 256 x 256).
@@ -95,7 +95,9 @@ _MODE_WORDS = {
     "I": "a 16- or 32-bit integer (a 16-bit PGM reads so)", "CMYK": "a CMYK", "LAB": "a Lab colour",
 }  # fmt: skip
 
-_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError)
+#: As storage_format's: a corrupt member's errors, and a local header's name that is not the UTF-8
+#: its flag says (UnicodeDecodeError, when the member is opened).
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, UnicodeDecodeError)
 
 
 class Nav2ImportError(ValueError):
@@ -484,7 +486,7 @@ def map_from_nav2_zip(
     `__MACOSX/` are not read. `data` is the zip's bytes, or a binary file open for reading that can
     seek (an upload spooled to disk: `fleetmap.spool`), which is left open. Raises `Nav2ImportError`."""
     try:
-        zf = zipfile.ZipFile(as_file(data))
+        zf = upload_zip(data)
     except (*_ZIP_ERRORS, ValueError) as exc:
         raise Nav2ImportError(f"the body is not a zip file ({exc})", 415) from None
     with zf:

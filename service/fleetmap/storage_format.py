@@ -23,7 +23,7 @@ from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.database import StorageError
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
-from fleetmap.spool import as_file, close_spool, spool_write, spooled_file
+from fleetmap.spool import as_file, close_spool, spool_write, spooled_file, upload_zip
 from fleetmap.tiles import LayerArray, TileKey, layer_arrays, tile_bytes
 
 # -- encodings ---------------------------------------------------------------------------------------
@@ -294,8 +294,10 @@ _NPY_HEADER_MAX = 10_000
 _READ_CHUNK = 1 << 24
 #: What zipfile raises for a corrupt archive or member: a bad CRC or header (BadZipFile), corrupt
 #: deflate data (zlib.error), a compressed stream that ends early (EOFError), a compression method
-#: this Python lacks (NotImplementedError).
-_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError)
+#: this Python lacks (NotImplementedError), a local header's name that is not the UTF-8 its flag
+#: says (UnicodeDecodeError: zipfile decodes it to compare it with the directory's when a member is
+#: opened; it was a 500). Offsets outside the file are refused when it is opened (`upload_zip`).
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, UnicodeDecodeError)
 
 
 class SnapshotError(ValueError):
@@ -635,14 +637,14 @@ def map_from_snapshot_file(
     fp = as_file(data)
     with contextlib.ExitStack() as stack:
         try:
-            outer = zipfile.ZipFile(fp)
+            outer = upload_zip(fp)
         except (*_ZIP_ERRORS, ValueError) as exc:
             raise SnapshotError(f"not a fleetmap snapshot: the body is not a zip file ({exc})") from None
         with outer:
             config = _snapshot_config(outer, max_tiles)
             inner = _tiles_npz(outer, fp, max_bytes, stack)
         try:
-            npz = zipfile.ZipFile(inner)
+            npz = upload_zip(inner)
         except (*_ZIP_ERRORS, ValueError) as exc:
             raise SnapshotError(f"snapshot member tiles.npz is not a valid .npz file ({exc})") from None
         with npz:

@@ -159,6 +159,15 @@ class ApiSettings:
     #: `max_body_bytes` refused the snapshot of a map of 342 tiles (17.8 MB) that the service had
     #: itself written, though its arrays were 10 times under the upload's limit.
     max_snapshot_body_bytes: int = MAX_SNAPSHOT_BYTES + MAX_SNAPSHOT_META_BYTES + (1 << 20)
+    #: Uploads (`PUT .../snapshot`, `PUT .../import`) in progress at once, from their head to their
+    #: answer (a slow body until its deadline); past it a new one is refused with 503 before its body
+    #: is read. Each
+    #: holds up to 17 MiB of memory for its body (`fleetmap.spool`), disk of its size in the
+    #: temporary directory (and of its tiles.npz decompressed, if that is compressed), and a worker
+    #: thread while it is read (asyncio's pool has 5 on one core). Without it they were bounded only
+    #: by the HTTP connections (1024): 16 GiB of memory from slow bodies, or a 1 MiB upload each
+    #: making the service write 4 GiB (a compressed tiles.npz of zeros), filling the disk.
+    max_uploads: int = 4
     #: Rendered tiles kept in memory.
     tile_cache_size: int = 4096
     #: Seconds between two polls of an event stream (and so the most often an event is sent).

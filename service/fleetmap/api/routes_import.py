@@ -67,16 +67,20 @@ async def put_import(
     cell grid, another resolution than the replaced map's, an image that is not 8-bit grey, more
     tiles than `max_tiles`; with `snap_origin`, an origin off the grid is moved to the nearest cell
     edge instead); 413 for an image or a file past its limit; 507 if its tiles need more
-    memory than the budget leaves, or if the service's temporary directory has no room for the upload
-    (it is kept there, as a snapshot's); none changes anything. 503 if it was installed but could not be
-    stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing changed)."""
+    memory than the budget leaves (its body, at most 16 MiB, is kept in memory: only a body limit
+    raised past that, `ApiSettings.max_body_bytes`, goes to the temporary directory as a snapshot's,
+    and may find no room there, 507 too); 503 (`Retry-After: 5`), before the body is read, if the
+    server already holds its limit of uploads in progress (snapshots and imports, 4 by default); none
+    changes anything. 503 if it was installed but could not be stored. `If-Match` / `If-None-Match: *`
+    as for `PUT /maps/{map_id}` (412, nothing changed)."""
     del format  # one format for now: the parameter names it, as GET .../export's does
     content_type = request.headers.get("content-type")
     if not _is_zip_media_type(content_type):
         sent = f"not {content_type!r}" if content_type else "none was given"
         raise ApiError(415, f"the body must be a zip file, with Content-Type: {MEDIA_TYPE} ({sent})")
     defaults = state.registry.default_config
-    async with spooled_body(request) as body:  # not held in memory while it is read, as a snapshot's
+    # Not held in memory while it is read, as a snapshot's; one of the uploads in progress.
+    async with spooled_body(request, state.uploads) as body:
         try:
             return await install_upload(
                 state, map_id, response,

@@ -12,7 +12,7 @@ from fastapi import APIRouter, Request, Response
 from fleetmap.api.conditional import Conditions, Preconditions, tag_map
 from fleetmap.api.errors import ApiError, error_responses, validation_detail
 from fleetmap.api.http_semantics import created_status
-from fleetmap.api.state import MapId, State
+from fleetmap.api.state import MapId, Slots, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo, map_info
 from fleetmap.config import MapConfig
@@ -49,10 +49,13 @@ UPLOAD_ERRORS = error_responses(
 
 #: Bytes of body gathered before they are written to the spool in one call on a worker thread.
 _WRITE_BATCH = 1 << 20
+#: Seconds an upload refused for the limit of uploads in progress is told to wait (`Retry-After`):
+#: uploads take seconds (a big one a minute), so the default second would only make clients resend.
+UPLOAD_RETRY_AFTER_SECONDS = 5
 
 
 @contextlib.asynccontextmanager
-async def spooled_body(request: Request) -> AsyncIterator[IO[bytes]]:
+async def spooled_body(request: Request, uploads: Slots) -> AsyncIterator[IO[bytes]]:
     """The request's body as a binary file (at its start; readable, seekable), which is not held in
     memory: streamed to a spool (`fleetmap.spool`: in memory up to 16 MiB, then a file of the
     temporary directory). On leaving, whatever happened (an answer, a refusal, the client gone, the
@@ -61,13 +64,30 @@ async def spooled_body(request: Request) -> AsyncIterator[IO[bytes]]:
     body past it raises `BodyTooLarge` (413) from here with no more of it read. `SpoolFailed` (507,
     or 503) if the temporary directory cannot take the body.
 
+    The upload takes one of `uploads` (`ApiSettings.max_uploads`) before a byte of its body is read,
+    and gives it back with its spool: with none free it is refused with 503 and `Retry-After`, its
+    body unread (a client that sent `Expect: 100-continue` has not sent it). The memory, disk and
+    worker threads that uploads hold are so bounded by that limit, not by the HTTP connections.
+
     The writes run on a worker thread, a megabyte at a time: a write goes to the page cache and is
     quick, but once the disk falls behind (a 4 GiB upload from a fast network to a slow disk) the
     kernel holds the writer until writeback catches up, for up to hundreds of milliseconds a call,
     and on the event loop that would stall every other request and the ingest of scans meanwhile.
     Batching keeps the thread hops few (4096 for 4 GiB) and the memory held at a megabyte."""
+    if not uploads.acquire():
+        raise ApiError(
+            503,
+            f"the server already holds its limit of {uploads.limit} uploads in progress (snapshots and "
+            "nav2 imports); retry later",
+            headers={"Retry-After": str(UPLOAD_RETRY_AFTER_SECONDS)},
+        )
     spool = spooled_file()
     writing: asyncio.Future[None] | None = None
+
+    def done() -> None:
+        close_spool(spool)
+        uploads.release()
+
     try:
         pending: list[bytes] = []
         held = 0
@@ -89,9 +109,9 @@ async def spooled_body(request: Request) -> AsyncIterator[IO[bytes]]:
         # A reader on a worker thread that outlives a cancelled request (the shutdown cutoff) finds
         # the spool closed: its next read raises ValueError there, its result is dropped anyway.
         if writing is not None and not writing.done():
-            writing.add_done_callback(lambda _: close_spool(spool))
+            writing.add_done_callback(lambda _: done())
         else:
-            close_spool(spool)
+            done()
 
 
 @router.get(
@@ -134,10 +154,11 @@ async def put_snapshot(
     snapshot, or holds a tile or a cell value the service could not have made; 413 if a part of it
     decompresses to more than its limit (see the docs); 507 if its tiles need more memory than the
     budget (`--max-memory`) leaves, or if the service's temporary directory has no room for the
-    upload (it is kept there, not in memory, while it is read); none changes anything. 503 if the map
-    was installed but could not be stored. `If-Match` / `If-None-Match: *` as for `PUT
-    /maps/{map_id}` (412, nothing changed)."""
-    async with spooled_body(request) as body:
+    upload (it is kept there, not in memory, while it is read); 503 (`Retry-After: 5`), before the
+    body is read, if the server already holds its limit of uploads in progress (4 by default); none
+    changes anything. 503 if the map was installed but could not be stored. `If-Match` /
+    `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing changed)."""
+    async with spooled_body(request, state.uploads) as body:
         try:
             return await install_upload(
                 state, map_id, response, lambda _config, free: map_from_snapshot_file(body, free_bytes=free),

@@ -22,20 +22,19 @@ if TYPE_CHECKING:
     from fleetmap.api.app import ApiSettings
 
 
-class EventStreamSlots:
-    """The open event streams, at most `limit` at once. Used on the event loop only (the route and
-    the responses run there), so it needs no lock."""
+class Slots:
+    """Requests of a kind in progress, at most `limit` at once. Used on the event loop only (the
+    routes, and the responses and callbacks that give the slots back, run there), so it needs no
+    lock."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
         self.open = 0
-        #: Streams refused because `limit` were open (for /metrics).
+        #: Requests refused because `limit` were in progress (for /metrics).
         self.refused = 0
-        #: Set by `close_all` when the server shuts down.
-        self.closing = False
 
     def acquire(self) -> bool:
-        """Take a slot for a new stream; False (counted as refused) when all are taken."""
+        """Take a slot for a new request; False (counted as refused) when all are taken."""
         if self.open >= self.limit:
             self.refused += 1
             return False
@@ -43,8 +42,17 @@ class EventStreamSlots:
         return True
 
     def release(self) -> None:
-        """Give back the slot of a stream that ended (once per successful `acquire`)."""
+        """Give back the slot of a request that ended (once per successful `acquire`)."""
         self.open -= 1
+
+
+class EventStreamSlots(Slots):
+    """The open event streams, at most `limit` at once."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(limit)
+        #: Set by `close_all` when the server shuts down.
+        self.closing = False
 
     def close_all(self) -> None:
         """The server is shutting down: every open stream ends at its next poll (within one events
@@ -63,10 +71,13 @@ class ApiState:
     gate: IngestGate
     tiles: TileCache = field(init=False)
     event_streams: EventStreamSlots = field(init=False)
+    #: The uploads in progress (`routes_snapshot.spooled_body`), at most `settings.max_uploads`.
+    uploads: Slots = field(init=False)
 
     def __post_init__(self) -> None:
         self.tiles = TileCache(self.settings.tile_cache_size, on_render=self.metrics.observe_render)
         self.event_streams = EventStreamSlots(self.settings.max_event_streams)
+        self.uploads = Slots(self.settings.max_uploads)
         self.metrics.watch_tile_cache(self.tiles)
         self.metrics.watch_gate(self.gate)
         self.metrics.watch_event_streams(self.event_streams)
