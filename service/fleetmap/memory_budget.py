@@ -7,6 +7,11 @@ allocates; when the budget cannot cover the tiles a scan needs, the scan is refu
 `MemoryBudgetError` and its map is unchanged. A store's bytes return to the budget when its map is
 deleted or replaced (`TileStore.uncharge`, even while a reader still holds it), or else when the
 store is freed.
+
+An upload's map (a snapshot, a nav2 import) is built beside the maps being served, for seconds, and
+up to 4 are built at once: each reserves its tiles' bytes (`UploadReservation`) before it allocates
+them, atomically, and holds them until the map is installed or the upload ends, so that uploads
+together, and scans meanwhile, cannot take the service past the limit.
 """
 
 from __future__ import annotations
