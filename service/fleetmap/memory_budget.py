@@ -39,7 +39,7 @@ class Charge:
     store's charge as it is (`UploadReservation`): so the bytes are never counted twice, nor, between
     the two, not at all. Its fields change under the budget's lock only."""
 
-    __slots__ = ("borrowed", "borrowers", "bytes", "source", "__weakref__")
+    __slots__ = ("borrowed", "borrowers", "bytes", "source")
 
     def __init__(self) -> None:
         self.bytes = 0
@@ -130,8 +130,9 @@ class MemoryBudget:
             return self._free()
 
     def _free(self) -> int | None:
-        # What is lent is counted in `used` twice (the old map's and the new map's bytes), and goes
-        # back when the loan ends: it is no one else's to take.
+        # `used` holds lent bytes twice, in the old map's charge and in the reservation that borrowed
+        # them, and the limit bounds the rest. A borrower took every free byte first, so a loan makes
+        # room for no one else; when it ends, the bytes that go back are what it no longer excuses.
         return None if self.limit is None else max(0, self.limit + self.lent - self.used)
 
     def reserve_anyway(self, size: int, charge: Charge | None = None) -> Charge:
