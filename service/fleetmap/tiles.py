@@ -193,8 +193,10 @@ class TileStore:
     def uncharge(self) -> None:
         """Hand the bytes this store holds back to its budget now, before the store is freed: for a
         map that is gone (deleted or replaced) and never grows again, while readers that still hold
-        it (an event stream until its next poll, a download until it ends) finish. A growth after
-        this would be charged again, and handed back when the store is freed."""
+        it (an event stream until its next poll, a download until it ends) finish, and for an
+        upload's map that was not installed (`UploadReservation.release`). Loans of its bytes to
+        uploads replacing it end with them (`MemoryBudget.release`). A growth after this would be
+        charged again, and handed back when the store is freed."""
         if self.budget is not None and self.charged is not None:
             self.budget.release(self.charged)
 
