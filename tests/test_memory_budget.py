@@ -16,7 +16,7 @@ from service_process import ServiceProcess
 from fleetmap.codec import WireScan, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
-from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, parse_size
+from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation, parse_size
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import IngestRejected, MapRegistry
 from fleetmap.scan import Scan
@@ -272,3 +272,68 @@ def test_a_deleted_maps_bytes_go_back_to_the_budget_at_once_though_a_reader_stil
             assert registry.memory_budget is not None and registry.memory_budget.used == 0
     finally:
         registry.close()
+
+
+def test_an_upload_reservation_becomes_its_maps_charge_or_goes_back() -> None:
+    """An upload's reservation (`MapRegistry.upload_reservation`) is taken before the map's tiles
+    are allocated, and the store's growth to them draws on it: counted once, before and after the
+    map is installed. An upload that ends otherwise gives it back as it ends, though its map is
+    still referenced (a traceback, a reader thread of a cancelled request), and cannot be installed."""
+    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(30 * TILE_BYTES))
+    budget = registry.memory_budget
+    assert budget is not None
+    keys = [(k, 0) for k in range(20)]
+    with registry.upload_reservation(None) as reservation:
+        assert reservation is not None
+        gmap = GridMap(SMALL)
+        reservation.charge(gmap.store, len(keys))
+        assert budget.used == 20 * TILE_BYTES and gmap.memory_bytes() == 0  # reserved, not yet allocated
+        gmap.store.create(keys, fill=False)
+        assert budget.used == gmap.memory_bytes() == 20 * TILE_BYTES  # drawn on, not counted again
+        registry.replace("m", gmap, reservation=reservation)
+        assert budget.used == 20 * TILE_BYTES
+    assert budget.used == 20 * TILE_BYTES  # installed: the map's own charge now
+    with pytest.raises(RuntimeError), registry.upload_reservation(None) as refused:
+        assert refused is not None
+        other = GridMap(SMALL)
+        with pytest.raises(MemoryBudgetError, match="memory budget .* has 0.0 MiB free"):
+            refused.charge(other.store, 20)  # does not fit beside "m": nothing reserved
+        assert budget.used == 20 * TILE_BYTES
+        refused.charge(other.store, 10)
+        other.store.create(keys[:10])
+        assert budget.used == 30 * TILE_BYTES
+        raise RuntimeError("the upload failed")
+    assert budget.used == 20 * TILE_BYTES and other.memory_bytes() == 10 * TILE_BYTES  # given back at once
+    with pytest.raises(MemoryBudgetError, match="ended"):
+        registry.replace("n", other, reservation=refused)
+    assert [entry.id for entry in registry.list()] == ["m"] and budget.used == 20 * TILE_BYTES
+
+
+def test_a_replaced_maps_bytes_are_lent_once_and_the_loan_ends_with_either_side() -> None:
+    """The bytes of a map being replaced count as free for the uploads replacing it, once: two
+    uploads at once share them, and a scan meanwhile gets none of them. The loan ends when the map
+    goes (deleted, or replaced by another upload): its bytes are then free for everyone, not twice."""
+    budget = MemoryBudget(30 * TILE_BYTES)
+    old = GridMap(SMALL)
+    old.store.charge(budget)
+    old.store.create([(k, 0) for k in range(20)])
+    assert budget.used == 20 * TILE_BYTES and budget.free() == 10 * TILE_BYTES
+    first, second = UploadReservation(budget, old.store), UploadReservation(budget, old.store)
+    new = [GridMap(SMALL) for _ in range(3)]
+    first.charge(new[0].store, 20)  # 10 free, 10 of the old map's
+    assert budget.used == 40 * TILE_BYTES and budget.lent == 10 * TILE_BYTES and budget.free() == 0
+    with pytest.raises(MemoryBudgetError, match="and 0.0 MiB of the map it replaces"):
+        second.charge(new[1].store, 11)  # the old map has 10 tiles' bytes left to lend
+    assert budget.used == 40 * TILE_BYTES
+    second.charge(new[1].store, 10)
+    assert budget.used == 50 * TILE_BYTES and budget.lent == 20 * TILE_BYTES and budget.free() == 0
+    with pytest.raises(MemoryBudgetError):  # a scan's growth: what is lent is no one else's
+        new[2].store.charge(budget)
+        new[2].store.create([(0, 0)])
+    old.store.uncharge()  # the old map is deleted: both loans end with it, and its bytes go back
+    assert budget.used == 30 * TILE_BYTES and budget.lent == 0 and budget.free() == 0
+    second.release()
+    assert budget.used == 20 * TILE_BYTES and budget.free() == 10 * TILE_BYTES
+    first.install(new[0].store)
+    first.release()  # installed: kept
+    assert budget.used == 20 * TILE_BYTES == new[0].store.charged.bytes  # type: ignore[union-attr]

@@ -22,6 +22,7 @@ from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
 from fleetmap.export import known_window, nav2_files, pgm_bytes
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap
+from fleetmap.memory_budget import MemoryBudget, UploadReservation
 from fleetmap.nav2_import import (
     MAX_IMAGE_SIDE,
     Nav2ImportError,
@@ -452,9 +453,12 @@ def test_more_tiles_than_max_tiles_or_than_the_memory_budget_is_refused_before_a
         Nav2ImportError, match="needs 2 tiles of 256 x 256 cells, more than the configuration's max_tiles 1"
     ):
         map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, max_tiles=1))
-    with pytest.raises(Nav2ImportError, match="more than the 1000 the memory budget") as caught:
-        map_from_nav2(nav2_yaml(), pixels, CONFIG, free_bytes=1000)
-    assert caught.value.status == 507
+    budget = MemoryBudget(1000)
+    with pytest.raises(
+        Nav2ImportError, match=r"the map's 2 tiles need .* memory budget .* has 0.0 MiB free"
+    ) as caught:
+        map_from_nav2(nav2_yaml(), pixels, CONFIG, reservation=UploadReservation(budget, None))
+    assert caught.value.status == 507 and budget.used == 0
     with pytest.raises(Nav2ImportError, match="keeps no occupancy layer"):
         map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, layers=["counts"]))
 

@@ -7,6 +7,11 @@ allocates; when the budget cannot cover the tiles a scan needs, the scan is refu
 `MemoryBudgetError` and its map is unchanged. A store's bytes return to the budget when its map is
 deleted or replaced (`TileStore.uncharge`, even while a reader still holds it), or else when the
 store is freed.
+
+An upload's map (a snapshot, a nav2 import) is built beside the maps being served, for seconds, and
+up to 4 are built at once: each reserves its tiles' bytes (`UploadReservation`) before it allocates
+them, atomically, and holds them until the map is installed or the upload ends, so that uploads
+together, and scans meanwhile, cannot take the service past the limit.
 """
 
 from __future__ import annotations
@@ -15,31 +20,62 @@ import os
 import re
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from fleetmap.tiles import TileLimitError
 
+if TYPE_CHECKING:
+    from fleetmap.tiles import TileStore
+
 
 class MemoryBudgetError(TileLimitError):
-    """The shared memory budget cannot hold the tiles a scan needs. The map was not changed."""
+    """The shared memory budget cannot hold the tiles a scan (or an upload) needs. The map was not
+    changed."""
+
+
+class Charge:
+    """The bytes counted against one `MemoryBudget` for one holder: a tile store's pools
+    (`TileStore.charge`), or an upload's reservation for the map it builds, which becomes that map's
+    store's charge as it is (`UploadReservation`): so the bytes are never counted twice, nor, between
+    the two, not at all. Its fields change under the budget's lock only."""
+
+    __slots__ = ("borrowed", "borrowers", "bytes", "source")
+
+    def __init__(self) -> None:
+        self.bytes = 0
+        #: Of a reservation for a map that replaces another: that map's charge, and how many of its
+        #: bytes the budget counts as free for this reservation (a loan; see `reserve_replacing`).
+        self.source: Charge | None = None
+        self.borrowed = 0
+        #: Of a map's charge: the reservations with a loan of its bytes.
+        self.borrowers: list[Charge] = []
 
 
 class MemoryBudget:
-    """Bytes reserved against a limit (None: no limit, only counted). Thread-safe."""
+    """Bytes reserved against a limit (None: no limit, only counted). Thread-safe.
+
+    `used` is every byte counted: stores' pools and uploads' reservations. It stays within `limit`,
+    except for memory that exists already (`reserve_anyway`: maps restored at start) and for
+    `lent`: the bytes of maps being replaced that uploads replacing them count as free
+    (`reserve_replacing`), which the old map and the new one both hold until the new one is
+    installed (the old one's bytes then go back) or given up. So `used <= limit + lent` holds
+    whenever every map counted was counted within the limit."""
 
     def __init__(self, limit: int | None) -> None:
         if limit is not None and limit <= 0:
             raise ValueError(f"a memory budget must be positive, got {limit}")
         self.limit = limit
         self.used = 0
+        self.lent = 0
         # Reentrant: a store's finalizer (`release`) may run from a garbage collection that an
         # allocation inside `reserve` set off, on the same thread.
         self._lock = threading.RLock()
 
-    def reserve(self, wanted: int, needed: int, unit: int) -> int:
-        """Reserve between `needed` and `wanted` units of `unit` bytes, as many as fit; return how
-        many. Raises `MemoryBudgetError` (reserving nothing) when even `needed` do not fit."""
+    def reserve(self, wanted: int, needed: int, unit: int, charge: Charge) -> int:
+        """Reserve for `charge` between `needed` and `wanted` units of `unit` bytes, as many as fit;
+        return how many. Raises `MemoryBudgetError` (reserving nothing) when even `needed` do not fit."""
         with self._lock:
-            free = None if self.limit is None else max(0, self.limit - self.used)
+            free = self._free()
             granted = wanted if free is None else min(wanted, free // unit)
             if granted < needed:
                 raise MemoryBudgetError(
@@ -48,24 +84,150 @@ class MemoryBudget:
                     "integrated (the budget is `fleetmap serve --max-memory`)"
                 )
             self.used += granted * unit
+            charge.bytes += granted * unit
             return granted
+
+    def reserve_replacing(self, size: int, charge: Charge, replacing: Charge | None) -> None:
+        """Reserve `size` bytes for `charge`, an upload's reservation for a map that replaces the map
+        charged `replacing` (None: a new map), counting that map's bytes as free: they go back when
+        the new map is installed. Raises `MemoryBudgetError` (reserving nothing) when they do not fit.
+
+        What is counted as free beyond the budget's free bytes is a loan of `replacing`'s bytes,
+        recorded on both charges and in `lent` until it ends (`repay`): when the reservation is
+        installed or released, or when `replacing` is released (its map deleted, or replaced by
+        another upload: its bytes are then free for everyone, and no longer this upload's to
+        borrow). A map's bytes are lent once: two uploads replacing the same map at once share them,
+        and the second is refused what the first borrowed, though each alone would fit (only one of
+        them can be installed in the old map's place; the other replaces the first). A scan growing
+        the old map meanwhile reserves its growth from the free bytes as any scan does; the loan is
+        of what the map held when it was taken. So the bytes counted past the limit are always
+        bytes about to go back, never more than the old map holds."""
+        with self._lock:
+            free = self._free()
+            borrowed = 0
+            if free is not None and size > free:
+                borrowed = size - free
+                lendable = (
+                    0 if replacing is None else replacing.bytes - sum(b.borrowed for b in replacing.borrowers)
+                )
+                if borrowed > lendable:
+                    beside = "" if replacing is None else f" (and {_mib(lendable)} of the map it replaces)"
+                    raise MemoryBudgetError(
+                        f"need {_mib(size)}, and the service's memory budget for all maps' tiles has "
+                        f"{_mib(free)} free{beside} (`fleetmap serve --max-memory`)"
+                    )
+            if borrowed:
+                assert replacing is not None
+                charge.source, charge.borrowed = replacing, borrowed
+                replacing.borrowers.append(charge)
+                self.lent += borrowed
+            self.used += size
+            charge.bytes += size
 
     def free(self) -> int | None:
         """Bytes the limit leaves (None: no limit)."""
         with self._lock:
-            return None if self.limit is None else max(0, self.limit - self.used)
+            return self._free()
 
-    def reserve_anyway(self, size: int) -> None:
-        """Count `size` bytes even past the limit: memory that exists already (a map restored at
-        start or installed from a snapshot file) is counted, never refused."""
+    def _free(self) -> int | None:
+        # `used` holds lent bytes twice, in the old map's charge and in the reservation that borrowed
+        # them, and the limit bounds the rest. A borrower took every free byte first, so a loan makes
+        # room for no one else; when it ends, the bytes that go back are what it no longer excuses.
+        return None if self.limit is None else max(0, self.limit + self.lent - self.used)
+
+    def reserve_anyway(self, size: int, charge: Charge | None = None) -> Charge:
+        """Count `size` bytes for `charge` (a new one if None, which is returned) even past the limit:
+        memory that exists already (a map restored at start, charged after its journal's scans were
+        replayed) is counted, never refused."""
+        charge = Charge() if charge is None else charge
         with self._lock:
             self.used += size
+            charge.bytes += size
+        return charge
 
-    def release(self, held: list[int]) -> None:
-        """Return the bytes `held[0]` of a store being freed (see `TileStore.charge`)."""
+    def repay(self, charge: Charge) -> None:
+        """End `charge`'s loan, if it has one (see `reserve_replacing`): its bytes stay counted."""
         with self._lock:
-            self.used -= held[0]
-            held[0] = 0
+            self._repay(charge)
+
+    def _repay(self, charge: Charge) -> None:
+        source = charge.source
+        if source is not None:
+            source.borrowers.remove(charge)
+            self.lent -= charge.borrowed
+            charge.source, charge.borrowed = None, 0
+
+    def release(self, charge: Charge) -> None:
+        """Return the bytes of `charge` (a store being freed or retired, a reservation given up), and
+        end its loan and the loans of its bytes (see `reserve_replacing`)."""
+        with self._lock:
+            self._repay(charge)
+            for borrower in list(charge.borrowers):
+                self._repay(borrower)
+            self.used -= charge.bytes
+            charge.bytes = 0
+
+
+class UploadReservation:
+    """The room an upload (`PUT /maps/{id}/snapshot`, `.../import`) holds in a budget for the map it
+    builds, so that uploads in progress together, and scans meanwhile, stay within the limit.
+
+    The reader takes it (`charge`) as soon as it knows the map's tiles, before it allocates them; it
+    is held while the map is read and stored, and then either becomes the installed map's own
+    charge (`install`, under the registry's lock) or goes back (`release`, whatever ended the
+    upload: a refusal, a failure, a cancelled request). `install` and `release` decide once, under
+    this reservation's lock: a request cancelled while its map was being installed on a worker
+    thread either releases first (and the install is refused) or finds it installed (and keeps it)."""
+
+    def __init__(self, budget: MemoryBudget, replacing: TileStore | None) -> None:
+        """`replacing`: the store of the map the upload replaces (None: a new map id), whose bytes
+        count as free for it (`MemoryBudget.reserve_replacing`)."""
+        self.budget = budget
+        self._replacing = None if replacing is None else replacing.charged
+        self._store: TileStore | None = None
+        self._state = "open"  # then "installed" or "released", for good
+        self._lock = threading.Lock()
+
+    def charge(self, store: TileStore, tiles: int) -> None:
+        """Reserve the bytes `tiles` tiles of `store` take (a new, empty store that is charged to no
+        budget) and charge `store` with them, so that its growth to those tiles takes nothing more
+        from the budget. Raises `MemoryBudgetError` (a `TileLimitError`; nothing reserved) if they do
+        not fit, or if the upload already ended."""
+        with self._lock:
+            if self._state != "open" or self._store is not None:
+                raise MemoryBudgetError(
+                    f"the upload's reservation is {self._state}, its map cannot be charged"
+                )
+            charge = Charge()
+            self.budget.reserve_replacing(store.bytes_for(tiles), charge, self._replacing)
+            store.charge(self.budget, charge)
+            self._store = store
+
+    def install(self, store: TileStore) -> None:
+        """`store`'s map is being installed (under the registry's lock): what it holds stays charged,
+        as its own (a store the reader did not `charge` is charged as any map is). The loan of the
+        replaced map's bytes ends here, before that map is retired: until then its bytes are counted
+        twice and free to no one. Raises `MemoryBudgetError` if the reservation was released (the
+        upload ended): nothing is then to be installed."""
+        with self._lock:
+            if self._state == "released":
+                raise MemoryBudgetError("the upload ended before its map was installed")
+            self._state = "installed"
+            if store.budget is None:
+                store.charge(self.budget)
+            assert store.charged is not None
+            self.budget.repay(store.charged)
+
+    def release(self) -> None:
+        """The upload ended: unless its map was installed, its bytes go back to the budget now, loan
+        and all. Idempotent. A reader still running on its worker thread after a cancelled request
+        charges what it still allocates to the budget as any growth, until its map is freed."""
+        with self._lock:
+            if self._state != "open":
+                return
+            self._state = "released"
+            if self._store is not None:
+                self._store.uncharge()
 
 
 def _mib(size: int | None) -> str:

@@ -58,7 +58,7 @@ import sys
 import zipfile
 import zlib
 from dataclasses import dataclass
-from typing import IO, Any, Literal
+from typing import IO, TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import yaml
@@ -68,7 +68,10 @@ from pydantic import ValidationError
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.spool import upload_zip
-from fleetmap.tiles import TileKey, layer_arrays, tile_bytes
+from fleetmap.tiles import TileKey, TileLimitError
+
+if TYPE_CHECKING:
+    from fleetmap.memory_budget import UploadReservation
 
 #: Bounds of an imported image: its sides, and its pixels in all (64 Mi: 1024 tiles of 256 x 256).
 #: The total stays under Pillow's own decompression-bomb bound (89 Mi pixels), past which it warns:
@@ -388,24 +391,25 @@ def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | 
 
 def map_from_nav2(
     yaml_text: str | bytes, image: bytes, config: MapConfig | None = None, defaults: MapConfig | None = None,
-    free_bytes: int | None = None, image_name: str | None = None, snap_origin: bool = False,
+    reservation: UploadReservation | None = None, image_name: str | None = None, snap_origin: bool = False,
 ) -> GridMap:  # fmt: skip
     """A new map holding a nav2 map_server map (the YAML text and the image file's bytes), read
     as map_server reads it (see the module's docstring).
 
     `config`: the new map's configuration, whose resolution must be the YAML's; without it,
     `defaults` (or the default configuration) with the YAML's resolution. The occupancy layer gets
-    the map; the configuration's other layers stay unknown. With `free_bytes`, tiles needing more
-    memory are refused (507) before anything is allocated. An origin off the map's cell grid is
+    the map; the configuration's other layers stay unknown. With `reservation` (an upload's room in
+    the memory budget), the map's tiles are reserved before anything is allocated, and refused (507)
+    if the budget has no room for them. An origin off the map's cell grid is
     refused, or with `snap_origin` moved to the nearest cell edge (by at most half a cell on each
     axis). Raises `Nav2ImportError`."""
     meta = parse_nav2_yaml(yaml_text)
-    return _map_from_meta(meta, image, config, defaults, free_bytes, image_name, snap_origin)
+    return _map_from_meta(meta, image, config, defaults, reservation, image_name, snap_origin)
 
 
 def _map_from_meta(
     meta: Nav2Meta, image: bytes, config: MapConfig | None, defaults: MapConfig | None,
-    free_bytes: int | None, image_name: str | None, snap_origin: bool,
+    reservation: UploadReservation | None, image_name: str | None, snap_origin: bool,
 ) -> GridMap:  # fmt: skip
     """`map_from_nav2` of a parsed map.yaml."""
     ox, oy, yaw = meta.origin
@@ -445,13 +449,12 @@ def _map_from_meta(
             f"the map needs {len(windows)} tiles of {t} x {t} cells, more than the configuration's "
             f"max_tiles {config.max_tiles}"
         )
-    needed = len(windows) * (tile_bytes(t, layer_arrays(config.layers)) + 8)  # and each tile's version
-    if free_bytes is not None and needed > free_bytes:
-        raise Nav2ImportError(
-            f"the map's {len(windows)} tiles need {needed} bytes, more than the {max(free_bytes, 0)} the "
-            "memory budget (--max-memory) leaves", 507,
-        )  # fmt: skip
     gmap = GridMap(config)
+    if reservation is not None:
+        try:
+            reservation.charge(gmap.store, len(windows))
+        except TileLimitError as exc:  # the budget's MemoryBudgetError
+            raise Nav2ImportError(f"the map's {len(windows)} tiles {exc}", 507) from None
     gmap.store.create([key for key, *_ in windows])  # every cell of every layer unknown, versioned
     pool = gmap.store.pools["log_odds"]
     for key, rows, cols, local_rows, local_cols in windows:
@@ -478,7 +481,7 @@ def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> bytes
 
 def map_from_nav2_zip(
     data: bytes | IO[bytes], config: MapConfig | None = None, defaults: MapConfig | None = None,
-    free_bytes: int | None = None, snap_origin: bool = False,
+    reservation: UploadReservation | None = None, snap_origin: bool = False,
 ) -> GridMap:  # fmt: skip
     """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and the image it
     names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
@@ -515,4 +518,4 @@ def map_from_nav2_zip(
         if not found:
             raise Nav2ImportError(f"map.yaml names the image {name!r}, which is not in the zip")
         image = _zip_member(zf, found[0], MAX_IMAGE_FILE_BYTES)
-    return _map_from_meta(meta, image, config, defaults, free_bytes, name, snap_origin)
+    return _map_from_meta(meta, image, config, defaults, reservation, name, snap_origin)

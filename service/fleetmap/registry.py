@@ -39,7 +39,7 @@ from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
 from fleetmap.fair_queue import FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult
-from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
+from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation
 from fleetmap.persistence import DurableStore
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.robot_state import (
@@ -361,9 +361,30 @@ class MapRegistry:
             )  # fmt: skip
 
     def _charged(self, gmap: GridMap) -> GridMap:
-        if self.memory_budget is not None:
+        """`gmap`, its store charged to the memory budget unless it is already (an upload's map,
+        charged with its reservation: `upload_reservation`)."""
+        if self.memory_budget is not None and gmap.store.budget is None:
             gmap.store.charge(self.memory_budget)
         return gmap
+
+    @contextlib.contextmanager
+    def upload_reservation(self, replacing: MapEntry | None) -> Iterator[UploadReservation | None]:
+        """The memory budget's room for an upload's map (None without a budget), for the reader to
+        `charge` its map's store with before it allocates the tiles, and for `replace` to install;
+        released on leaving, whatever ended the upload, unless it was installed. `replacing`: the
+        map the upload replaces as it was looked up (None: none), whose bytes count as free for
+        it (`MemoryBudget.reserve_replacing` says why that holds if it is replaced or grows
+        meanwhile)."""
+        if self.memory_budget is None:
+            yield None
+            return
+        reservation = UploadReservation(
+            self.memory_budget, None if replacing is None else replacing.gmap.store
+        )
+        try:
+            yield reservation
+        finally:
+            reservation.release()
 
     def snapshot_all(self, only_overdue: bool = False, every_map: bool = False) -> None:
         """Snapshot every map with journaled scans (only those past the row threshold if asked; every
@@ -475,12 +496,20 @@ class MapRegistry:
         return entry, created
 
     def replace(
-        self, map_id: str, gmap: GridMap, wait: bool = False, expect: Expectation | None = None
+        self,
+        map_id: str,
+        gmap: GridMap,
+        wait: bool = False,
+        expect: Expectation | None = None,
+        reservation: UploadReservation | None = None,
     ) -> MapEntry:
         """Install `gmap` (an uploaded snapshot or nav2 map) as map `map_id`, replacing any map of
         that id (whose entry then points to the new one: `MapEntry.replaced_by`). With `wait`, it is
         committed to storage before this returns (else NotDurable). `expect` as for `create`, called
-        with the map being replaced (None if none) under its lock and the registry's."""
+        with the map being replaced (None if none) under its lock and the registry's. `reservation`:
+        the upload's (`upload_reservation`), whose bytes become the map's charge; MemoryBudgetError,
+        nothing changed, if it was released meanwhile (the request was cancelled). Without one,
+        `gmap` is charged what it holds, even past the limit."""
         _check_id("map id", map_id)
         # Its tiles are encoded here, before the lock: no one else sees `gmap` yet, and a big map
         # takes seconds, during which scans and every other request need the lock.
@@ -490,6 +519,8 @@ class MapRegistry:
         with self._removing(map_id) as old:
             if expect is not None:
                 expect(old)
+            if reservation is not None:
+                reservation.install(gmap.store)  # the last step that may refuse: nothing changed yet
             dropped = self._retire(old) if old is not None else []
             # The old map's robots' cached scans must not go into the upload either.
             buried = self.tombstones.bury(map_id, old.robots, time.time()) if old is not None else []

@@ -13,7 +13,7 @@ import zipfile
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import IO
+from typing import IO, TYPE_CHECKING
 
 import numpy as np
 from numba import njit
@@ -24,7 +24,10 @@ from fleetmap.database import StorageError
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
 from fleetmap.spool import as_file, close_spool, spool_write, spooled_file, upload_zip
-from fleetmap.tiles import LayerArray, TileKey, layer_arrays, tile_bytes
+from fleetmap.tiles import LayerArray, TileKey, TileLimitError, layer_arrays, tile_bytes
+
+if TYPE_CHECKING:
+    from fleetmap.memory_budget import UploadReservation
 
 # -- encodings ---------------------------------------------------------------------------------------
 
@@ -532,12 +535,11 @@ def _read_npy(npz: zipfile.ZipFile, npy: _Npy, out: np.ndarray | None = None) ->
 
 
 def _snapshot_keys(
-    npz: zipfile.ZipFile, config: MapConfig, layout: Sequence[LayerArray], max_bytes: int,
-    free_bytes: int | None,
-) -> list[TileKey]:  # fmt: skip
+    npz: zipfile.ZipFile, config: MapConfig, layout: Sequence[LayerArray], max_bytes: int
+) -> list[TileKey]:
     """The tile keys in `tiles.npz/keys.npy`: integers, no two alike, each a tile that meets the
     world of +-MAX_COORDINATE metres, at most `config.max_tiles` of them and at most `max_bytes` of
-    layer arrays (413), and at most `free_bytes` of them (507: the memory budget's room)."""
+    layer arrays (413)."""
     npy = _npy_header(npz, "keys")
     _check_npy(npy, None, (-1, 2), "(tiles, 2)")
     n, t = npy.shape[0], config.tile_size
@@ -549,12 +551,6 @@ def _snapshot_keys(
             f"the snapshot's {n} tiles of {t}x{t} cells hold {size} bytes of layer arrays, more than the "
             f"limit of {max_bytes}",
             413,
-        )
-    if free_bytes is not None and size > free_bytes:
-        raise SnapshotError(
-            f"the snapshot's {n} tiles need {size / 2**20:.1f} MiB, and the service's memory budget for all "
-            f"maps' tiles has {free_bytes / 2**20:.1f} MiB free (`fleetmap serve --max-memory`)",
-            507,
         )
     raw = _read_npy(npz, npy)
     edge = t * config.resolution
@@ -619,7 +615,7 @@ def _check_values(a: LayerArray, values: np.ndarray, keys: list[TileKey], config
 
 def map_from_snapshot_file(
     data: bytes | IO[bytes], max_tiles: int | None = None, max_bytes: int = MAX_SNAPSHOT_BYTES,
-    free_bytes: int | None = None,
+    reservation: UploadReservation | None = None,
 ) -> GridMap:  # fmt: skip
     """A map restored from a `snapshot_file`: its bytes, or a binary file open for reading that can
     seek (an upload spooled to disk: `fleetmap.spool`), which is read in place, never held in memory
@@ -632,8 +628,10 @@ def map_from_snapshot_file(
     (dtype, shape, data size, from the keys and the tile size) are checked before the map's pools are
     allocated, and the pools are then filled straight from the file, so the memory touched is the
     data the file holds. Every cell is checked against what the engine can store, so a map that is
-    installed is one the service could have built. With `free_bytes`, tiles that need more are
-    refused (507) before anything is allocated: the room the memory budget leaves."""
+    installed is one the service could have built. With `reservation` (an upload's room in the
+    memory budget), the map's tiles are reserved once every header is checked, before anything is
+    allocated, and refused (507) if the budget has no room for them; the map returned is charged
+    with them."""
     fp = as_file(data)
     with contextlib.ExitStack() as stack:
         try:
@@ -649,7 +647,7 @@ def map_from_snapshot_file(
             raise SnapshotError(f"snapshot member tiles.npz is not a valid .npz file ({exc})") from None
         with npz:
             layout = layer_arrays(config.layers)
-            keys = _snapshot_keys(npz, config, layout, max_bytes, free_bytes)
+            keys = _snapshot_keys(npz, config, layout, max_bytes)
             t = config.tile_size
             arrays = []
             for a in layout:
@@ -663,6 +661,11 @@ def map_from_snapshot_file(
                 arrays.append(npy)
             # Everything checked that can be without the data: only now allocate, and only what it holds.
             gmap = GridMap(config)
+            if reservation is not None:
+                try:
+                    reservation.charge(gmap.store, len(keys))
+                except TileLimitError as exc:  # the budget's MemoryBudgetError
+                    raise SnapshotError(f"the snapshot's {len(keys)} tiles {exc}", 507) from None
             gmap.store.create(keys, fill=False)
             for a, npy in zip(layout, arrays, strict=True):
                 values = gmap.store.pools[a.name][: len(keys)]

@@ -25,7 +25,7 @@ from fleetmap.kernels.tile_index import index_has_room, index_insert, new_index
 from fleetmap.kernels.update import UNKNOWN_COUNT, UNKNOWN_LOG_ODDS, UNKNOWN_TSDF, bump_versions, init_tile
 
 if TYPE_CHECKING:
-    from fleetmap.memory_budget import MemoryBudget
+    from fleetmap.memory_budget import Charge, MemoryBudget
 
 TileKey = tuple[int, int]
 #: The pools of log_odds, hits, misses, tsdf and tsdf_weight, in the update kernels' order.
@@ -95,9 +95,9 @@ class TileStore:
         self.versions = np.zeros(0, dtype=np.int64)
         self._version_clock = 0
         #: The shared budget this store's pools are charged to (`charge`), and the bytes charged, in a
-        #: list that outlives the store so that its finalizer can hand them back.
+        #: `Charge` that outlives the store so that its finalizer can hand them back.
         self.budget: MemoryBudget | None = None
-        self._charged = [0]
+        self.charged: Charge | None = None
         self._kernel_pools: KernelPools | None = None
         self._grow(0)
 
@@ -174,34 +174,44 @@ class TileStore:
             self.slots[key] = len(self.keys)
             self.keys.append(key)
 
-    def charge(self, budget: MemoryBudget) -> None:
+    def charge(self, budget: MemoryBudget, reserved: Charge | None = None) -> None:
         """Count this store's pools against `budget` from now on: what they hold already (even past
         the budget's limit: that memory exists), and every growth before it allocates. A growth the
         budget cannot cover stops short, at the tiles a scan needs; when even those do not fit,
         `create` raises `MemoryBudgetError` and changes nothing. The bytes go back to the budget
-        when the store is freed."""
+        when the store is freed.
+
+        `reserved`: bytes reserved already for this store's coming tiles (an upload's reservation,
+        `UploadReservation.charge`), which become its charge as they are: its growth draws on them
+        before it reserves more."""
         if self.budget is not None:
             raise ValueError("this tile store is charged to a budget already")
         self.budget = budget
-        self._charged[0] = self.memory_bytes()
-        budget.reserve_anyway(self._charged[0])
-        weakref.finalize(self, budget.release, self._charged)
+        self.charged = budget.reserve_anyway(self.memory_bytes(), reserved)
+        weakref.finalize(self, budget.release, self.charged)
 
     def uncharge(self) -> None:
         """Hand the bytes this store holds back to its budget now, before the store is freed: for a
         map that is gone (deleted or replaced) and never grows again, while readers that still hold
-        it (an event stream until its next poll, a download until it ends) finish. A growth after
-        this would be charged again, and handed back when the store is freed."""
-        if self.budget is not None:
-            self.budget.release(self._charged)
+        it (an event stream until its next poll, a download until it ends) finish, and for an
+        upload's map that was not installed (`UploadReservation.release`). Loans of its bytes to
+        uploads replacing it end with them (`MemoryBudget.release`). A growth after this would be
+        charged again, and handed back when the store is freed."""
+        if self.budget is not None and self.charged is not None:
+            self.budget.release(self.charged)
 
     def _grow(self, capacity: int, needed: int = 0) -> None:
         """Make room for `capacity` tiles (at least `needed`, fewer when the budget runs short)."""
-        if self.budget is not None:
+        if self.budget is not None and self.charged is not None:
             per_tile = self._tile_bytes()
-            extra = self.budget.reserve(capacity - self._capacity, needed - self._capacity, per_tile)
-            self._charged[0] += extra * per_tile
-            capacity = self._capacity + extra
+            # Tiles charged ahead of the pools (an upload's reservation: `charge`) are drawn on first.
+            ahead = min(
+                capacity - self._capacity, max(0, self.charged.bytes - self.memory_bytes()) // per_tile
+            )
+            extra = self.budget.reserve(
+                capacity - self._capacity - ahead, needed - self._capacity - ahead, per_tile, self.charged
+            )
+            capacity = self._capacity + ahead + extra
         t = self.tile_size
         # One array at a time, each old pool let go before the next new one is made: with the
         # cached `kernel_pools` tuple holding every old pool to the end, a growth held all the old
@@ -290,6 +300,10 @@ class TileStore:
         `GET /maps`) read both without the map's lock: a scrape never waits for a scan or for a
         snapshot's copy of the tiles. It may lag a growth in progress by that growth."""
         return self._capacity * self._tile_bytes()
+
+    def bytes_for(self, tiles: int) -> int:
+        """Bytes `tiles` tiles take in this store's pools (what `memory_bytes` counts for them)."""
+        return tiles * self._tile_bytes()
 
     def _tile_bytes(self) -> int:
         """Bytes one slot of capacity holds: a tile of every stored array, and its version."""

@@ -84,8 +84,8 @@ async def put_import(
         try:
             return await install_upload(
                 state, map_id, response,
-                lambda config, free: map_from_nav2_zip(
-                    body, config, defaults, free_bytes=free, snap_origin=snap_origin
+                lambda config, reservation: map_from_nav2_zip(
+                    body, config, defaults, reservation=reservation, snap_origin=snap_origin
                 ),
                 conditions,
             )  # fmt: skip

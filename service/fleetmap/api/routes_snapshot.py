@@ -17,6 +17,7 @@ from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo, map_info
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
+from fleetmap.memory_budget import UploadReservation
 from fleetmap.registry import MapEntry, MapNotFound
 from fleetmap.spool import close_spool, spool_write, spooled_file
 from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
@@ -161,7 +162,8 @@ async def put_snapshot(
     async with spooled_body(request, state.uploads) as body:
         try:
             return await install_upload(
-                state, map_id, response, lambda _config, free: map_from_snapshot_file(body, free_bytes=free),
+                state, map_id, response,
+                lambda _config, reservation: map_from_snapshot_file(body, reservation=reservation),
                 conditions,
             )  # fmt: skip
         except SnapshotError as exc:
@@ -175,50 +177,53 @@ async def install_upload(
     state: State,
     map_id: str,
     response: Response,
-    read: Callable[[MapConfig | None, int | None], GridMap],
+    read: Callable[[MapConfig | None, UploadReservation | None], GridMap],
     conditions: Preconditions,
 ) -> MapInfo:
     """Install the map an upload holds as map `map_id`, replacing any map of that id, durably: what
-    `PUT .../snapshot` and `PUT .../import` share. `read(config, free_bytes)` makes the map on a
-    worker thread from the configuration of the map it replaces (None for a new id) and the bytes
-    the memory budget leaves counting the replaced map's (None without a budget); whatever it raises
-    for a bad upload propagates with nothing changed. Sets 201 (with `Location`) for a new map, else
-    200; NotDurable (503) if the map was installed but could not be stored. `conditions` (the
-    request's If-Match / If-None-Match) are checked before the upload is read, sparing a doomed
-    upload's seconds of work, and again where the map is installed, under the registry's lock, so
-    that of two uploads sent with the same ETag one is installed and the other gets 412."""
+    `PUT .../snapshot` and `PUT .../import` share. `read(config, reservation)` makes the map on a
+    worker thread from the configuration of the map it replaces (None for a new id), charging it
+    to the upload's room in the memory budget (`MapRegistry.upload_reservation`; None without a
+    budget) before it allocates the tiles; whatever it raises for a bad upload (a 507 when the
+    budget has no room) propagates with nothing changed, and the room is given back. Sets 201
+    (with `Location`) for a new map, else 200; NotDurable (503) if the map was installed but could
+    not be stored. `conditions` (the request's If-Match / If-None-Match) are checked before the
+    upload is read, sparing a doomed upload's seconds of work, and again where the map is
+    installed, under the registry's lock, so that of two uploads sent with the same ETag one is
+    installed and the other gets 412."""
     replaced: MapEntry | None = None
     with contextlib.suppress(MapNotFound):
         replaced = state.registry.get(map_id)
     conditions.check(map_id, replaced)
-    # The room the memory budget leaves, counting the map this replaces (its bytes go back).
-    budget = state.registry.memory_budget
-    free = None if budget is None else budget.free()
-    if free is not None and replaced is not None:
-        free += replaced.gmap.memory_bytes()
     config = None if replaced is None else replaced.gmap.config
-    gmap = await asyncio.to_thread(read, config, free)
-    # Whether a map was replaced is known only where it is, under the registry's lock: the map
-    # looked up above, before the upload was read (seconds, for a big one), may have been created,
-    # deleted or replaced by another writer since, and a 201 Created for an upload that replaced
-    # another writer's map (or a 200 for one that found none) misinformed the client.
-    check = conditions.expectation(map_id)
-    found: list[MapEntry | None] = []
+    # Held from the reader's check of the map's size until it is installed, so that uploads read
+    # together (and scans meanwhile) cannot each take the same free bytes; given back on every
+    # other way out, a cancelled request's too.
+    with state.registry.upload_reservation(replaced) as reservation:
+        gmap = await asyncio.to_thread(read, config, reservation)
+        # Whether a map was replaced is known only where it is, under the registry's lock: the map
+        # looked up above, before the upload was read (seconds, for a big one), may have been created,
+        # deleted or replaced by another writer since, and a 201 Created for an upload that replaced
+        # another writer's map (or a 200 for one that found none) misinformed the client.
+        check = conditions.expectation(map_id)
+        found: list[MapEntry | None] = []
 
-    def expect(old: MapEntry | None) -> None:
-        if check is not None:
-            check(old)
-        found.append(old)
+        def expect(old: MapEntry | None) -> None:
+            if check is not None:
+                check(old)
+            found.append(old)
 
-    # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
-    try:
-        entry = await asyncio.to_thread(state.registry.replace, map_id, gmap, wait=True, expect=expect)
-    except ApiError:  # a precondition failed: the old map is untouched, its tiles still good
-        raise
-    except BaseException:  # also when it could not be stored: the old map's tiles are gone all the same
+        # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
+        try:
+            entry = await asyncio.to_thread(
+                state.registry.replace, map_id, gmap, wait=True, expect=expect, reservation=reservation
+            )
+        except ApiError:  # a precondition failed: the old map is untouched, its tiles still good
+            raise
+        except BaseException:  # also when it could not be stored: the old map's tiles are gone all the same
+            state.tiles.drop_map(map_id)
+            raise
         state.tiles.drop_map(map_id)
-        raise
-    state.tiles.drop_map(map_id)
-    created_status(response, map_id, created=found[-1] is None)
-    tag_map(response, entry)
-    return map_info(entry, state.registry.lock)
+        created_status(response, map_id, created=found[-1] is None)
+        tag_map(response, entry)
+        return map_info(entry, state.registry.lock)
