@@ -23,6 +23,7 @@ ENGINE_MODULES = (
     "update_plan",
     "grid_map",
     "export",
+    "spool",
     "nav2_import",
 )
 ENGINE_PACKAGES = ("kernels", "datasets", "sim", "examples")
