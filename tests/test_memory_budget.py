@@ -4,8 +4,10 @@ answers such a scan 507 and goes on serving."""
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import json
+import random
 from typing import Any
 
 import httpx
@@ -337,3 +339,71 @@ def test_a_replaced_maps_bytes_are_lent_once_and_the_loan_ends_with_either_side(
     first.install(new[0].store)
     first.release()  # installed: kept
     assert budget.used == 20 * TILE_BYTES == new[0].store.charged.bytes  # type: ignore[union-attr]
+
+
+#: The steps of `test_any_sequence_of_scans_uploads_and_deletions_keeps_the_budget_exact`, drawn
+#: alike: scans thrice (they make the maps that uploads replace), uploads opened and charged twice.
+STEPS = ("scan",) * 3 + ("delete",) + ("open", "charge") * 2 + ("install", "release", "collect")
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_any_sequence_of_scans_uploads_and_deletions_keeps_the_budget_exact(seed: int) -> None:
+    """The budget's claims, after every step of a random sequence (seeded: the same each run) of
+    scans (growing the old map during an upload that borrows its bytes, and the new map right after
+    its install), uploads (reserved, allocated, installed or given up, interleaved: two replacing
+    one map, one replacing a map another then replaces or that is deleted meanwhile), deletions and
+    garbage collections on a real registry: `used` is exactly the live maps' pools plus the open
+    uploads' reservations (never a byte twice, nor none), `lent` exactly the open uploads' loans,
+    `used <= limit + lent`, and once no upload is open, `lent` is 0 and `used` the live maps' pools.
+    (A guard: it found nothing wrong when it was written.)"""
+    rng = random.Random(seed)
+    limit = rng.randint(16, 64) * TILE_BYTES
+    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(limit))
+    budget = registry.memory_budget
+    assert budget is not None
+    # Open uploads: each its reservation, the context that releases it, its map id, its map once charged.
+    uploads: list[tuple[UploadReservation, contextlib.ExitStack, str, list[GridMap]]] = []
+    with contextlib.ExitStack() as closing:
+        for step in range(80):
+            what, map_id = rng.choice(STEPS), rng.choice("ab")
+            entry = next((e for e in registry.list() if e.id == map_id), None)
+            with contextlib.suppress(MemoryBudgetError):
+                if what == "scan":  # as a worker applies one: to the map of that id, unless retired
+                    entry = entry or registry.create(map_id)[0]
+                    with entry.gmap.lock:
+                        if not entry.retired:
+                            entry.gmap.apply(entry.gmap.plan(scan_at(rng.uniform(-40.0, 40.0))))
+                elif what == "delete" and entry is not None:
+                    registry.delete(map_id)
+                elif what == "open":
+                    stack = closing.enter_context(contextlib.ExitStack())
+                    reservation = stack.enter_context(registry.upload_reservation(entry))
+                    assert reservation is not None
+                    uploads.append((reservation, stack, map_id, []))
+                elif uploads:
+                    upload = rng.choice(uploads)
+                    reservation, stack, upload_id, built = upload
+                    if what == "charge" and not built:  # as a reader does, and then allocates
+                        built.append(GridMap(SMALL))
+                        tiles = rng.randint(0, 48)
+                        reservation.charge(built[0].store, tiles)
+                        built[0].store.create([(k, 0) for k in range(tiles)], fill=False)
+                    elif what == "install" and built:
+                        uploads.remove(upload)
+                        with stack:
+                            registry.replace(upload_id, built[0], reservation=reservation)
+                    elif what == "release":
+                        uploads.remove(upload)
+                        stack.close()
+                elif what == "collect":
+                    gc.collect()
+            live = sum(e.gmap.memory_bytes() for e in registry.list())
+            charges = [c for _, _, _, built in uploads if built and (c := built[0].store.charged) is not None]
+            assert budget.used == live + sum(c.bytes for c in charges), (seed, step)
+            assert budget.lent == sum(c.borrowed for c in charges), (seed, step)
+            assert budget.used <= limit + budget.lent, (seed, step)
+            for e in registry.list():  # an installed map's reservation is its charge, drawn on whole
+                charged = e.gmap.store.charged
+                assert charged is not None and charged.bytes == e.gmap.memory_bytes(), (seed, step)
+    assert budget.lent == 0
+    assert budget.used == sum(e.gmap.memory_bytes() for e in registry.list())
