@@ -524,12 +524,9 @@ class ScanPublisher:
             if not up:
                 return True
             if self._hold_until is not None:
-                fetched = self._fetched_at
-                fetched_since = fetched is not None and fetched > self._hold_since
-                over = now >= self._hold_until or (
-                    fetched is not None and fetched_since and now >= fetched + FETCH_MARGIN_S
-                )
-                if not over:
+                fetched = self._fetched_at  # the last query for the cache, if it came since the link did
+                fetched = fetched if fetched is not None and fetched > self._hold_since else None
+                if now < self._hold_until and (fetched is None or now < fetched + FETCH_MARGIN_S):
                     return True
                 self._hold_until = None
             if not self._pending:
