@@ -254,6 +254,17 @@ class RobotProcess:
         return self.proc.returncode
 
 
+def _frames_end(data: bytes | bytearray, count: int) -> int | None:
+    """Where the first `count` length-prefixed Zenoh frames of a TCP stream's `data` end, None while
+    they are not all there."""
+    end = 0
+    for _ in range(count):
+        if end + 2 > len(data):
+            return None
+        end += 2 + int.from_bytes(data[end : end + 2], "little")
+    return end if end <= len(data) else None
+
+
 class FreezableProxy:
     """A TCP proxy on a free loopback port to `target_port`, each connection forwarded by two
     threads. `freeze()` stops forwarding on every connection open now, both ways, while leaving its
@@ -264,7 +275,9 @@ class FreezableProxy:
     comes back). `cut()` closes every connection and refuses new ones (closed at once) until
     `restore()`: a robot in a Wi-Fi dead zone. `target_port` may be changed at any time (a service
     restarted on another port); a connection the target refuses is closed. `refused` lists when
-    (`time.monotonic()`) each connection refused by a cut or freeze came: a client's attempts."""
+    (`time.monotonic()`) each connection refused by a cut or freeze came: a client's attempts.
+    `delay_after_handshake(s)`: the next connection's client's bytes after its Zenoh handshake reach
+    the target `s` seconds late (a service slow to take in a robot that just connected)."""
 
     def __init__(self, target_port: int) -> None:
         self.target_port = target_port
@@ -275,6 +288,7 @@ class FreezableProxy:
         self.lock = threading.Lock()
         self.refusing = False
         self.refused: list[float] = []
+        self._next_delay = 0.0
         threading.Thread(target=self._accept, daemon=True).start()
 
     def _accept(self) -> None:
@@ -294,12 +308,19 @@ class FreezableProxy:
             frozen = threading.Event()
             with self.lock:
                 self.connections.append((client, upstream, frozen))
-            for source, sink in ((client, upstream), (upstream, client)):
-                threading.Thread(target=self._pump, args=(source, sink, frozen), daemon=True).start()
+                delay, self._next_delay = self._next_delay, 0.0
+            for source, sink, wait in ((client, upstream, delay), (upstream, client, 0.0)):
+                threading.Thread(target=self._pump, args=(source, sink, frozen, wait), daemon=True).start()
 
     @staticmethod
-    def _pump(source: socket.socket, sink: socket.socket, frozen: threading.Event) -> None:
+    def _pump(
+        source: socket.socket, sink: socket.socket, frozen: threading.Event, delay: float = 0.0
+    ) -> None:
+        """Forward `source` to `sink` until either closes or `frozen` is set. With `delay`, what
+        follows the first two Zenoh frames (a client's InitSyn and OpenSyn, the handshake; over TCP
+        each batch is prefixed with its length, 2 bytes little-endian) is sent `delay` s late."""
         source.settimeout(0.05)
+        handshake: bytearray | None = bytearray() if delay else None  # the client's bytes so far
         while not frozen.is_set():
             try:
                 data = source.recv(65536)
@@ -315,6 +336,17 @@ class FreezableProxy:
                         sink.shutdown(socket.SHUT_WR)
                     return
                 continue
+            if handshake is not None:
+                handshake += data
+                end = _frames_end(handshake, 2)
+                if end is not None:
+                    beyond = len(handshake) - end  # the tail of `data` past the handshake
+                    try:
+                        sink.sendall(data[: len(data) - beyond])
+                    except OSError:
+                        return
+                    data, handshake = data[len(data) - beyond :], None
+                    time.sleep(delay)  # what the client sends meanwhile waits in the socket
             try:
                 sink.sendall(data)
             except OSError:
@@ -343,6 +375,13 @@ class FreezableProxy:
                     sock.shutdown(socket.SHUT_RDWR)
                 sock.close()
         return len(connections)
+
+    def delay_after_handshake(self, seconds: float) -> None:
+        """The next connection made: what its client sends after the Zenoh handshake reaches the
+        target `seconds` late (its liveliness tokens, its scans), while the target's replies flow:
+        the client's link is up at once, and the service hears of the robot only then."""
+        with self.lock:
+            self._next_delay = seconds
 
     def restore(self) -> None:
         """Forward new connections again (after `cut()` or `freeze(refuse_new=True)`)."""

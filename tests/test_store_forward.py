@@ -221,6 +221,50 @@ def test_a_service_restarted_between_two_looks_at_the_link_gets_the_cache_first(
             pub.close()
 
 
+def test_a_restarted_service_slow_to_fetch_the_cache_still_gets_it_before_the_held_scans(
+    tmp_path: Path,
+) -> None:
+    """A new service process that hears of a reconnected robot (its liveliness token) only 2 s after
+    the robot's link is up: the robot's queued scans must wait for the service's query for its cache,
+    not for a fixed time. zenoh-ext takes the first scan of a publisher it does not know for its
+    first (and drops as old what the fetch brings after it), so a held scan sent before the query
+    cost the cache: in a heavy run of tests/test_crash_exactly_once.py the restarted service took
+    0.6 s to query a robot's cache (its Zenoh thread waited while another robot's 1000 cached scans
+    went through the scan callback), and the robot had sent its held scans after 0.5 s. Here the
+    proxy delays what the robot sends to the new service by 2 s (`delay_after_handshake`); the new
+    service has its own data directory, so it must take seqs 0-9 from the cache, 10-19 held."""
+    scans = scans_for(sim=6, beams=91, count=20)
+    first = ServiceProcess(tmp_path).start()
+    proxy = FreezableProxy(first.zenoh_port)
+    second = ServiceProcess(tmp_path)
+    pub = ScanPublisher("slow", "r1", connect=[proxy.endpoint], backlog=100)
+    try:
+        assert pub.wait_connected(20), pub.last_connect_error
+        for seq in range(10):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        assert pub.flush(30).confirmed  # in the cache too
+        assert first.proc is not None
+        first.proc.kill()
+        first.proc.wait(10)
+        wait_for(lambda: not pub.connected, 20, 0.01, "the robot to see its link down")
+        for seq in range(10, 20):
+            pub.publish(scans[seq], seq=seq, stamp=float(seq))
+        assert pub.pending == 10
+        proxy.delay_after_handshake(2.0)
+        proxy.target_port = second.zenoh_port
+        second.start()
+        report = pub.flush(30)
+        with httpx.Client(base_url=second.base_url, timeout=10) as http:
+            state = robot_stats(http, "slow", "r1")
+        assert report.confirmed and report.integrated == 20, (report, state)
+        assert (state["scans_integrated"], state["lost"]) == (20, 0), state
+    finally:
+        pub.close()
+        proxy.close()
+        first.stop()
+        second.stop()
+
+
 def test_a_robot_meets_a_restarted_service_within_a_second_of_it_listening(tmp_path: Path) -> None:
     """The durable service SIGKILLed, away for 6 s, started again: the robot's client session is
     connected to it, and sees its scan subscriber, within `RECONNECT_BOUND_S` of the service becoming

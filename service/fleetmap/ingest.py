@@ -149,7 +149,10 @@ class ZenohIngest:
     Contract: after `start()`, every scan sample on `fleetmap/<map>/<robot>/scan` is either submitted
     to the registry or counted (globally in `status()`, and on the robot through the registry where
     the ids are valid) with a rate-limited log line saying why. `close()` undeclares the subscribers
-    and closes the session; no callback runs after it returns. Both are idempotent.
+    and closes the session. Both are idempotent. Zenoh may still run a scan callback for a moment
+    after the session closed (seen at a SIGTERM during a robot's cache fetch): what it submits then,
+    the closing registry refuses without recording it (`MapRegistry.submit`, `shutting_down`), so
+    the robot's cache sends it again to the next process.
     """
 
     def __init__(

@@ -49,7 +49,7 @@ STORAGE_OPERATIONS = ("journal_commit", "snapshot", "map_change")
 
 #: `fleetmap_zenoh_scans_refused_total{reason}`: the kinds of `ZenohIngest`'s refusals
 #: (`registry.REFUSAL_KINDS`).
-ZENOH_REFUSALS = ("duplicate", "no_map", "too_many_robots", "queue_full")
+ZENOH_REFUSALS = ("duplicate", "no_map", "too_many_robots", "queue_full", "shutting_down")
 #: Why ROS 2 scans (`--ros-scans`) are refused, exported at 0 from the start (fleetmap.ros.ingest).
 ROS_REFUSALS = ("invalid_topic", "undecodable", "no_tf", "tf_error", "invalid_scan", "pending_full")
 
