@@ -23,7 +23,7 @@ import pytest
 import zenoh
 import zenoh.ext
 from fleetmap_client import cli
-from fleetmap_client.publisher import PublisherClosed, ScanPublisher, client_config
+from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, ScanPublisher, client_config
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
 from fleetmap_client.sim import robot_ids, run_sim
 from service_process import DATASETS_DIR, free_port, reaped, wait_for
@@ -43,7 +43,10 @@ class Router:
     Callbacks only append raw samples (they run on Zenoh threads and must not block); decoding
     happens when a test reads them."""
 
-    def __init__(self, port: int | None = None) -> None:
+    def __init__(self, port: int | None = None, plain: bool = False) -> None:
+        #: `plain`: a plain subscriber instead, which never queries publishers' caches (a subscriber
+        #: that is not a fleetmap service, or a router with no service behind it yet).
+        self.plain = plain
         self.port = port or free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self._lock = threading.Lock()
@@ -58,6 +61,9 @@ class Router:
         cfg.insert_json5("listen/endpoints", f'["{self.endpoint}"]')
         cfg.insert_json5("scouting/multicast/enabled", "false")
         self.session = zenoh.open(cfg)
+        if self.plain:
+            self._subs = [self.session.declare_subscriber(SCAN_KEY_WILDCARD, self._on_scan)]
+            return self
         scans = zenoh.ext.declare_advanced_subscriber(
             self.session,
             SCAN_KEY_WILDCARD,
@@ -264,6 +270,25 @@ def test_publisher_started_before_the_router_keeps_its_scans_and_sends_them_firs
             wait_for(lambda: "fleetmap/lab/early/alive" in router.online(), 5, 0.02, "the token")
         finally:
             router.stop()
+
+
+def test_a_first_connection_holds_scans_briefly_where_no_one_fetches_the_cache(sim_scans: list[Scan]) -> None:
+    """A publisher's first connection, to a router whose subscriber never queries caches: its
+    queued scans leave after the short hold (`RECONNECT_HOLD_S`), not after the longest one, which
+    waits for a service's fetch. Zenoh's cache holds nothing yet, so no fetch can be lost to them;
+    waiting for one held the first scans 5 s, past `fleetmap replay`'s --wait-timeout of 2 s (seen
+    in CI, where the first query of a loaded service came late)."""
+    router = Router(plain=True).start()
+    try:
+        with ScanPublisher("lab", "first", connect=[router.endpoint]) as pub:
+            assert pub.publish(sim_scans[0])  # queued until the session connects and the hold ends
+            started = time.monotonic()
+            assert pub.wait_connected(15), f"no connection; last error {pub.last_connect_error}"
+            held = time.monotonic() - started
+            assert held < RECONNECT_HOLD_MAX_S - 1.0, f"the first connection held scans {held:.2f} s"
+            assert [w.seq for _, _, w in router.wait_count(1)] == [0]
+    finally:
+        router.stop()
 
 
 def test_closing_gives_up_the_queued_scans_and_counts_them_as_dropped(sim_scans: list[Scan]) -> None:

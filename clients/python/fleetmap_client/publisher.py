@@ -44,8 +44,9 @@ disconnected (no router or peer connected), and those published before the sessi
 wait in the publisher's own queue instead, of at most `backlog` scans (the oldest pushed out,
 counted in `dropped`; the service counts them as `lost`), so `publish` still returns True for them
 (counted in `backlogged`). After the session connects, and after every reconnection, scans wait in
-that queue too (the hold): at least `RECONNECT_HOLD_S` (0.5 s), and until the service's query for
-the cache reaches the publisher (and `FETCH_MARGIN_S` more), at most `RECONNECT_HOLD_MAX_S`; then
+that queue too (the hold): at least `RECONNECT_HOLD_S` (0.5 s), and, once Zenoh's cache holds a
+scan, until the service's query for the cache reaches the publisher (and `FETCH_MARGIN_S` more), at
+most `RECONNECT_HOLD_MAX_S`; then
 the queue is sent, in order and before any newer scan. Why not hand them to Zenoh's cache while
 disconnected: zenoh-ext's advanced subscriber takes the first sample of a publisher it does not know
 yet (a service that just restarted) for that publisher's first, and drops as old what its history
@@ -407,6 +408,9 @@ class ScanPublisher:
         self._hold_since = 0.0
         self._looked_at = 0.0
         self._fetched_at: float | None = None
+        # Whether a scan was ever handed to Zenoh (so its cache holds one): until then no service
+        # can lose cached scans to a live one, and a hold waits for no query (`_check_link`).
+        self._cached = False
         self._fetch_watch: zenoh.Queryable[None] | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
@@ -524,7 +528,11 @@ class ScanPublisher:
             # publishing rarely, a starved watcher) was never seen down, and its new process must
             # get the cache before any live scan all the same.
             if up and (not self._link_up or not neighbours <= self._neighbours):
-                self._hold_until = now + RECONNECT_HOLD_MAX_S
+                # With nothing in the cache yet (the first connection), there is no fetch to wait
+                # for: a router or peer that never queries (no fleetmap service behind it yet, a
+                # plain subscriber) held the first scans RECONNECT_HOLD_MAX_S, past `fleetmap
+                # replay`'s --wait-timeout of 2 s.
+                self._hold_until = now + (RECONNECT_HOLD_MAX_S if self._cached else RECONNECT_HOLD_S)
                 self._hold_least = now + RECONNECT_HOLD_S
                 self._hold_since = looked  # the link came up after that look
             self._link_up = up
@@ -547,6 +555,7 @@ class ScanPublisher:
         sent = 0
         with contextlib.suppress(zenoh.ZError):  # close() raced: the rest are given up
             for payload in held:
+                self._cached = True  # before the put: a put that raises may have reached the cache
                 publisher.put(payload)  # Zenoh's cache keeps it too, should the link die again
                 sent += 1
         given_up = len(held) - sent
@@ -699,6 +708,7 @@ class ScanPublisher:
                 return False
             try:
                 # The link died since `_check_link` looked: the cache keeps it for the service to fetch.
+                self._cached = True
                 publisher.put(payload)
             except zenoh.ZError:
                 # Only possible when close() raced with this call: report it like a disconnection.
