@@ -29,14 +29,14 @@ SCAN_KEY = "fleetmap/{map_id}/{robot_id}/scan"
 ALIVE_KEY = "fleetmap/{map_id}/{robot_id}/alive"
 SCAN_KEY_WILDCARD = "fleetmap/*/*/scan"
 ALIVE_KEY_WILDCARD = "fleetmap/*/*/alive"
-#: The service's queryable that answers what became of a robot's scans (`DeliveryStatus`); the query
-#: may name one publisher session (`?session=<id>`, `DELIVERY_SESSION_PARAMETER`).
 #: Zenoh's `connect/retry` of robots (`fleetmap_client.publisher.client_config`) and of the
 #: service's own session when it connects to a router (`--zenoh-connect`), unless their
 #: configuration sets it: 0.1 s after a lost connection, then 0.2, 0.4 and every 0.5 s. Zenoh's
 #: default (1 s growing to 4 s) met a restarted service up to 4 s after it listened, and never one
 #: that lived less than that (docs/protocol.md). Zenoh takes the block whole.
 CONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2.0}
+#: The service's queryable that answers what became of a robot's scans (`DeliveryStatus`); the query
+#: may name one publisher session (`?session=<id>`, `DELIVERY_SESSION_PARAMETER`).
 DELIVERY_KEY = "fleetmap/{map_id}/{robot_id}/delivery"
 DELIVERY_KEY_WILDCARD = "fleetmap/*/*/delivery"
 DELIVERY_SESSION_PARAMETER = "session"
