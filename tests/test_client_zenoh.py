@@ -291,6 +291,28 @@ def test_a_first_connection_holds_scans_briefly_where_no_one_fetches_the_cache(s
         router.stop()
 
 
+def test_a_publisher_starts_no_zenoh_callback_thread_that_nothing_joins(
+    router: Router, sim_scans: list[Scan]
+) -> None:
+    """zenoh-python runs a Python callback on a thread it starts, a daemon when the declaring thread
+    is one (the publisher's opener is). Nothing joins such a thread: one that wakes as its
+    declaration goes at exit comes back into a finalizing interpreter, and the process dies with
+    "FATAL: exception not rethrown" (SIGABRT). CI saw `fleetmap replay` die so, one run in about
+    thirty, after its last message. The publisher declares no callback: while it connects, fetches
+    and is closed, no such thread appears."""
+
+    def zenoh_daemon_threads() -> set[int | None]:
+        return {t.ident for t in threading.enumerate() if t.daemon and "pyo3-closure" in t.name}
+
+    before = zenoh_daemon_threads()
+    with ScanPublisher("lab", "threads", connect=[router.endpoint]) as pub:
+        assert pub.wait_connected(15), f"no connection; last error {pub.last_connect_error}"
+        for seq in range(3):
+            assert pub.publish(sim_scans[seq])
+        assert [w.seq for _, _, w in router.wait_count(3)] == [0, 1, 2]  # the router fetched the cache too
+        assert zenoh_daemon_threads() - before == set()
+
+
 def test_closing_gives_up_the_queued_scans_and_counts_them_as_dropped(sim_scans: list[Scan]) -> None:
     """Scans still in the publisher's queue when it is closed are never sent: `close()` moves them
     from `backlogged` (kept for re-delivery) to `dropped` (given up), so that the counters still say
