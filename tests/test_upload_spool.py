@@ -147,13 +147,54 @@ def test_a_refused_upload_leaves_no_spool_and_changes_nothing(
     if refusal == "not a zip":
         body, headers, expected = b"\x07" * len(big_snapshot), "", 422
         detail = "not a fleetmap snapshot: the body is not a zip file"
-    else:  # a whole good snapshot, read into the spool before the precondition is checked
-        body, headers, expected = big_snapshot, "If-None-Match: *\r\n", 412
-        detail = "If-None-Match"
-    status, answer = upload_seen_spooled(spooling, "/maps/kept/snapshot", body, headers)
+        status, answer = upload_seen_spooled(spooling, "/maps/kept/snapshot", body, headers)
+    else:
+        # A whole good snapshot for a map that did not exist when its head came: the map another
+        # writer made while the body was read into the spool fails it where it is installed.
+        pid = spooling.service.proc.pid  # type: ignore[union-attr]
+        with start_upload(
+            spooling.service, "/maps/late/snapshot", len(big_snapshot), "If-None-Match: *\r\n"
+        ) as sock:
+            sock.sendall(big_snapshot[:FIRST_PART])
+            wait_for(lambda: spool_files(pid, spooling.tmpdir), timeout=10, what="the upload's spool file")
+            assert httpx.put(f"{base}/maps/late", json={}).status_code == 201
+            etag = httpx.get(f"{base}/maps/late").headers["etag"]
+            sock.sendall(big_snapshot[FIRST_PART:])
+            status, answer = read_answer(sock)
+        expected, detail = 412, "If-None-Match"
     assert status == expected and detail in answer, answer
     assert_no_spool(spooling)
-    assert httpx.get(f"{base}/maps/kept").headers["etag"] == etag
+    assert httpx.get(f"{base}/maps/{'kept' if refusal == 'not a zip' else 'late'}").headers["etag"] == etag
+
+
+def test_an_upload_whose_precondition_fails_is_refused_before_its_body(
+    spooling: Spooling, big_snapshot: bytes
+) -> None:
+    """`If-Match` with another tag, or `If-None-Match: *` on a map that exists, is answered 412
+    from the request's head: the body (gigabytes, for a big map) is neither waited for nor
+    spooled, and the map is unchanged. Checked only once the body was in, a doomed upload was
+    sent whole and filled the temporary directory before its 412."""
+    svc, pid = spooling.service, spooling.service.proc.pid  # type: ignore[union-attr]
+    base = svc.base_url
+    small = snapshot_file("s", GridMap(MapConfig()))
+    assert httpx.put(f"{base}/maps/guarded/snapshot", content=small).status_code in (200, 201)
+    etag = httpx.get(f"{base}/maps/guarded").headers["etag"]
+    # (An import's body may hold 16 MiB at most: a longer Content-Length is refused first, 413.)
+    for path, length in (("/maps/guarded/snapshot", len(big_snapshot)), ("/maps/guarded/import", 1 << 20)):
+        for header in ('If-Match: "not-its-tag"', "If-None-Match: *"):
+            with start_upload(svc, path, length, f"{header}\r\n") as sock:
+                sock.settimeout(BODY_TIMEOUT / 2)  # sooner than the body's deadline would answer
+                status, answer = read_answer(sock)  # none of the body sent
+            assert status == 412, (path, header, answer)
+            assert spool_files(pid, spooling.tmpdir) == []
+    assert httpx.get(f"{base}/maps/guarded").headers["etag"] == etag
+    # The same head with the map's own tag is taken, body and all.
+    status, answer = upload_seen_spooled(
+        spooling, "/maps/guarded/snapshot", big_snapshot, f"If-Match: {etag}\r\n"
+    )
+    assert status == 200, answer
+    assert httpx.get(f"{base}/maps/guarded").headers["etag"] != etag
+    assert_no_spool(spooling)
 
 
 @pytest.mark.parametrize("how", ["client gone", "body deadline"])

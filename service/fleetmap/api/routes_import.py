@@ -4,7 +4,7 @@ map_server `map.yaml` zipped with its image. It installs as a snapshot upload do
 from __future__ import annotations
 
 import email.message
-from typing import Annotated, Literal
+from typing import IO, Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 
@@ -16,11 +16,13 @@ from fleetmap.api.routes_snapshot import (
     UPLOAD_ERRORS,
     ZIP_UPLOAD,
     install_upload,
-    spooled_body,
 )
 from fleetmap.api.state import MapId, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo
+from fleetmap.config import MapConfig
+from fleetmap.grid_map import GridMap
+from fleetmap.memory_budget import UploadReservation
 from fleetmap.nav2_import import Nav2ImportError, map_from_nav2_zip
 
 router = APIRouter(tags=["maps"], route_class=StrictRoute)
@@ -72,22 +74,19 @@ async def put_import(
     and may find no room there, 507 too); 503 (`Retry-After: 5`), before the body is read, if the
     server already holds its limit of uploads in progress (snapshots and imports, 4 by default); none
     changes anything. 503 if it was installed but could not be stored. `If-Match` / `If-None-Match: *`
-    as for `PUT /maps/{map_id}` (412, nothing changed)."""
+    as for `PUT /maps/{map_id}` (412, nothing changed; before the body is read)."""
     del format  # one format for now: the parameter names it, as GET .../export's does
     content_type = request.headers.get("content-type")
     if not _is_zip_media_type(content_type):
         sent = f"not {content_type!r}" if content_type else "none was given"
         raise ApiError(415, f"the body must be a zip file, with Content-Type: {MEDIA_TYPE} ({sent})")
     defaults = state.registry.default_config
-    # Not held in memory while it is read, as a snapshot's; one of the uploads in progress.
-    async with spooled_body(request, state.uploads) as body:
-        try:
-            return await install_upload(
-                state, map_id, response,
-                lambda config, reservation: map_from_nav2_zip(
-                    body, config, defaults, reservation=reservation, snap_origin=snap_origin
-                ),
-                conditions,
-            )  # fmt: skip
-        except Nav2ImportError as exc:
-            raise ApiError(exc.status, f"nav2 map: {exc}") from None
+
+    # Its body is not held in memory while it is read, as a snapshot's; one of the uploads in progress.
+    def read(body: IO[bytes], config: MapConfig | None, reservation: UploadReservation | None) -> GridMap:
+        return map_from_nav2_zip(body, config, defaults, reservation=reservation, snap_origin=snap_origin)
+
+    try:
+        return await install_upload(state, map_id, request, response, read, conditions)
+    except Nav2ImportError as exc:
+        raise ApiError(exc.status, f"nav2 map: {exc}") from None

@@ -158,39 +158,40 @@ async def put_snapshot(
     upload (it is kept there, not in memory, while it is read); 503 (`Retry-After: 5`), before the
     body is read, if the server already holds its limit of uploads in progress (4 by default); none
     changes anything. 503 if the map was installed but could not be stored. `If-Match` /
-    `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing changed)."""
-    async with spooled_body(request, state.uploads) as body:
-        try:
-            return await install_upload(
-                state, map_id, response,
-                lambda _config, reservation: map_from_snapshot_file(body, reservation=reservation),
-                conditions,
-            )  # fmt: skip
-        except SnapshotError as exc:
-            if not exc.errors:
-                raise ApiError(exc.status, str(exc)) from None
-            detail, items = validation_detail(exc.errors)  # one line per problem, as for PUT /maps
-            raise ApiError(exc.status, f"snapshot {detail}", errors=items) from None
+    `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing changed; before the body is read)."""
+
+    def read(body: IO[bytes], _config: MapConfig | None, reservation: UploadReservation | None) -> GridMap:
+        return map_from_snapshot_file(body, reservation=reservation)
+
+    try:
+        return await install_upload(state, map_id, request, response, read, conditions)
+    except SnapshotError as exc:
+        if not exc.errors:
+            raise ApiError(exc.status, str(exc)) from None
+        detail, items = validation_detail(exc.errors)  # one line per problem, as for PUT /maps
+        raise ApiError(exc.status, f"snapshot {detail}", errors=items) from None
 
 
 async def install_upload(
     state: State,
     map_id: str,
+    request: Request,
     response: Response,
-    read: Callable[[MapConfig | None, UploadReservation | None], GridMap],
+    read: Callable[[IO[bytes], MapConfig | None, UploadReservation | None], GridMap],
     conditions: Preconditions,
 ) -> MapInfo:
     """Install the map an upload holds as map `map_id`, replacing any map of that id, durably: what
-    `PUT .../snapshot` and `PUT .../import` share. `read(config, reservation)` makes the map on a
-    worker thread from the configuration of the map it replaces (None for a new id), charging it
-    to the upload's room in the memory budget (`MapRegistry.upload_reservation`; None without a
-    budget) before it allocates the tiles; whatever it raises for a bad upload (a 507 when the
-    budget has no room) propagates with nothing changed, and the room is given back. Sets 201
-    (with `Location`) for a new map, else 200; NotDurable (503) if the map was installed but could
-    not be stored. `conditions` (the request's If-Match / If-None-Match) are checked before the
-    upload is read, sparing a doomed upload's seconds of work, and again where the map is
-    installed, under the registry's lock, so that of two uploads sent with the same ETag one is
-    installed and the other gets 412."""
+    `PUT .../snapshot` and `PUT .../import` share. The request's body goes to a spool
+    (`spooled_body`, one of the uploads in progress); `read(body, config, reservation)` makes the
+    map from it on a worker thread, with the configuration of the map it replaces (None for a new
+    id), charging it to the upload's room in the memory budget (`MapRegistry.upload_reservation`;
+    None without a budget) before it allocates the tiles; whatever it raises for a bad upload (a
+    507 when the budget has no room) propagates with nothing changed, and the room is given back.
+    Sets 201 (with `Location`) for a new map, else 200; NotDurable (503) if the map was installed
+    but could not be stored. `conditions` (the request's If-Match / If-None-Match) are checked
+    before the body is read, sparing a doomed upload its transfer (gigabytes, for a big map) and
+    its spool, and again where the map is installed, under the registry's lock, so that of two
+    uploads sent with the same ETag one is installed and the other gets 412."""
     replaced: MapEntry | None = None
     with contextlib.suppress(MapNotFound):
         replaced = state.registry.get(map_id)
@@ -199,31 +200,44 @@ async def install_upload(
     # Held from the reader's check of the map's size until it is installed, so that uploads read
     # together (and scans meanwhile) cannot each take the same free bytes; given back on every
     # other way out, a cancelled request's too.
-    with state.registry.upload_reservation(replaced) as reservation:
-        gmap = await asyncio.to_thread(read, config, reservation)
-        # Whether a map was replaced is known only where it is, under the registry's lock: the map
-        # looked up above, before the upload was read (seconds, for a big one), may have been created,
-        # deleted or replaced by another writer since, and a 201 Created for an upload that replaced
-        # another writer's map (or a 200 for one that found none) misinformed the client.
-        check = conditions.expectation(map_id)
-        found: list[MapEntry | None] = []
+    async with spooled_body(request, state.uploads) as body:
+        with state.registry.upload_reservation(replaced) as reservation:
+            gmap = await asyncio.to_thread(read, body, config, reservation)
+            return await _install(state, map_id, response, gmap, conditions, reservation)
 
-        def expect(old: MapEntry | None) -> None:
-            if check is not None:
-                check(old)
-            found.append(old)
 
-        # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
-        try:
-            entry = await asyncio.to_thread(
-                state.registry.replace, map_id, gmap, wait=True, expect=expect, reservation=reservation
-            )
-        except ApiError:  # a precondition failed: the old map is untouched, its tiles still good
-            raise
-        except BaseException:  # also when it could not be stored: the old map's tiles are gone all the same
-            state.tiles.drop_map(map_id)
-            raise
+async def _install(
+    state: State,
+    map_id: str,
+    response: Response,
+    gmap: GridMap,
+    conditions: Preconditions,
+    reservation: UploadReservation | None,
+) -> MapInfo:
+    """`install_upload`'s last step: replace map `map_id` with the upload's map `gmap`, durably."""
+    # Whether a map was replaced is known only where it is, under the registry's lock: the map
+    # looked up before the upload was read (seconds, for a big one), may have been created,
+    # deleted or replaced by another writer since, and a 201 Created for an upload that replaced
+    # another writer's map (or a 200 for one that found none) misinformed the client.
+    check = conditions.expectation(map_id)
+    found: list[MapEntry | None] = []
+
+    def expect(old: MapEntry | None) -> None:
+        if check is not None:
+            check(old)
+        found.append(old)
+
+    # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
+    try:
+        entry = await asyncio.to_thread(
+            state.registry.replace, map_id, gmap, wait=True, expect=expect, reservation=reservation
+        )
+    except ApiError:  # a precondition failed: the old map is untouched, its tiles still good
+        raise
+    except BaseException:  # also when it could not be stored: the old map's tiles are gone all the same
         state.tiles.drop_map(map_id)
-        created_status(response, map_id, created=found[-1] is None)
-        tag_map(response, entry)
-        return map_info(entry, state.registry.lock)
+        raise
+    state.tiles.drop_map(map_id)
+    created_status(response, map_id, created=found[-1] is None)
+    tag_map(response, entry)
+    return map_info(entry, state.registry.lock)
