@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from service_process import ServiceProcess, wait_for
 from test_api_support import random_tiles_map, running_api, snapshot_parts
+from test_http_exhaustion import metric
 
 from fleetmap.api.app import ApiSettings
 from fleetmap.config import MapConfig
@@ -349,6 +350,8 @@ def test_uploads_in_progress_are_limited_and_the_next_is_refused_before_its_body
             assert f"its limit of {limit} uploads in progress" in refused.json()["detail"]
             assert refused.headers["retry-after"] == "5"
         assert httpx.get(f"{svc.base_url}/maps/busy-more").status_code == 404
+        assert metric(svc, "fleetmap_uploads") == limit
+        assert metric(svc, "fleetmap_uploads_refused_total") >= 2
         # One answered: its slot is free again.
         stalled[0].sendall(big_snapshot[FIRST_PART:])
         assert read_answer(stalled[0])[0] == 201
@@ -377,4 +380,5 @@ def test_uploads_in_progress_are_limited_and_the_next_is_refused_before_its_body
         what="a slot free",
     )
     assert_no_spool(spooling)
+    assert metric(svc, "fleetmap_uploads") == 0
     assert "Traceback" not in svc.logs(), svc.logs()

@@ -36,7 +36,7 @@ from prometheus_client.registry import Collector
 
 if TYPE_CHECKING:
     from fleetmap.api.priority import IngestGate
-    from fleetmap.api.state import EventStreamSlots
+    from fleetmap.api.state import Slots
     from fleetmap.grid_map import IntegrationResult
     from fleetmap.registry import Job, MapEntry, MapRegistry
     from fleetmap.tile_cache import TileCache
@@ -344,29 +344,29 @@ class IngestGateCollector(Collector):
         )
 
 
-class EventStreamsCollector(Collector):
-    """Open event streams and those refused at the cap (`ApiSettings.max_event_streams`), read at
-    scrape."""
+class SlotsCollector(Collector):
+    """Requests of a kind in progress (`api.state.Slots`) and those refused at its cap, read at
+    scrape: `fleetmap_<name>` and `fleetmap_<name>_refused_total`."""
 
-    def __init__(self, slots: EventStreamSlots) -> None:
-        self.slots = slots
+    def __init__(self, slots: Slots, name: str, what: str) -> None:
+        #: `what`: the requests, as the help texts name them ("Event streams (GET ...)").
+        self.slots, self.name, self.what = slots, name, what
 
     def describe(self) -> list[Metric]:
         return list(self._families())
 
     def collect(self) -> Iterator[Metric]:
-        open_streams, refused = self._families()
-        open_streams.add_metric([], self.slots.open)
+        in_progress, refused = self._families()
+        in_progress.add_metric([], self.slots.open)
         refused.add_metric([], self.slots.refused)
-        yield from (open_streams, refused)
+        yield from (in_progress, refused)
 
-    @staticmethod
-    def _families() -> tuple[_Family, ...]:
+    def _families(self) -> tuple[_Family, ...]:
         return (
-            GaugeMetricFamily("fleetmap_event_streams", "Event streams (GET /maps/{id}/events) open now"),
+            GaugeMetricFamily(f"fleetmap_{self.name}", f"{self.what} in progress now"),
             CounterMetricFamily(
-                "fleetmap_event_streams_refused",
-                "Event streams refused (503) because the limit of open streams was reached",
+                f"fleetmap_{self.name}_refused",
+                f"{self.what} refused (503) because the limit of those in progress was reached",
             ),
         )
 
@@ -637,8 +637,9 @@ class ServiceMetrics:
         """Export the Zenoh session's `status()` (`ZenohIngest.status`) as `fleetmap_zenoh_*`."""
         self.collector_registry.register(ZenohCollector(status))
 
-    def watch_event_streams(self, slots: EventStreamSlots) -> None:
-        self.collector_registry.register(EventStreamsCollector(slots))
+    def watch_slots(self, slots: Slots, name: str, what: str) -> None:
+        """Export the requests of a kind in progress and those refused (`SlotsCollector`)."""
+        self.collector_registry.register(SlotsCollector(slots, name, what))
 
     def render(self) -> bytes:
         """The Prometheus text exposition of every metric."""
@@ -648,7 +649,6 @@ class ServiceMetrics:
 __all__ = [
     "CONTENT_TYPE",
     "STORAGE_OPERATIONS",
-    "EventStreamsCollector",
     "HttpResponsesCollector",
     "IngestGateCollector",
     "IntegrationMetrics",
@@ -657,6 +657,7 @@ __all__ = [
     "RuntimeCollector",
     "ServiceInfoCollector",
     "ServiceMetrics",
+    "SlotsCollector",
     "StorageCollector",
     "TileCacheCollector",
     "ZenohCollector",

@@ -80,7 +80,10 @@ class ApiState:
         self.uploads = Slots(self.settings.max_uploads)
         self.metrics.watch_tile_cache(self.tiles)
         self.metrics.watch_gate(self.gate)
-        self.metrics.watch_event_streams(self.event_streams)
+        self.metrics.watch_slots(self.event_streams, "event_streams", "Event streams (GET /maps/{id}/events)")
+        self.metrics.watch_slots(
+            self.uploads, "uploads", "Uploads (PUT /maps/{id}/snapshot and /maps/{id}/import)"
+        )
 
     def entry(self, map_id: str) -> MapEntry:
         """The map, or MapNotFound (answered 404)."""
