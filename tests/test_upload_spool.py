@@ -151,7 +151,7 @@ def test_a_refused_upload_leaves_no_spool_and_changes_nothing(
         status, answer = upload_seen_spooled(spooling, "/maps/kept/snapshot", body, headers)
     else:
         # A whole good snapshot for a map that did not exist when its head came: the map another
-        # writer made while the body was read into the spool fails it where it is installed.
+        # writer made while the body was read into the spool fails it once the body is in.
         pid = spooling.service.proc.pid  # type: ignore[union-attr]
         with start_upload(
             spooling.service, "/maps/late/snapshot", len(big_snapshot), "If-None-Match: *\r\n"

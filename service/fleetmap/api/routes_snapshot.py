@@ -190,17 +190,24 @@ async def install_upload(
     Sets 201 (with `Location`) for a new map, else 200; NotDurable (503) if the map was installed
     but could not be stored. `conditions` (the request's If-Match / If-None-Match) are checked
     before the body is read, sparing a doomed upload its transfer (gigabytes, for a big map) and
-    its spool, and again where the map is installed, under the registry's lock, so that of two
-    uploads sent with the same ETag one is installed and the other gets 412."""
-    replaced: MapEntry | None = None
-    with contextlib.suppress(MapNotFound):
-        replaced = state.registry.get(map_id)
-    conditions.check(map_id, replaced)
-    config = None if replaced is None else replaced.gmap.config
-    # Held from the reader's check of the map's size until it is installed, so that uploads read
-    # together (and scans meanwhile) cannot each take the same free bytes; given back on every
-    # other way out, a cancelled request's too.
+    its spool, again once it is in, and last where the map is installed, under the registry's
+    lock, so that of two uploads sent with the same ETag one is installed and the other gets 412."""
+
+    def current() -> MapEntry | None:
+        with contextlib.suppress(MapNotFound):
+            return state.registry.get(map_id)
+        return None
+
+    conditions.check(map_id, current())
     async with spooled_body(request, state.uploads) as body:
+        # Again: the map may have changed while the body came (minutes, for a big one); the reader
+        # takes the configuration of the map there now, and its bytes are the ones lent.
+        replaced = current()
+        conditions.check(map_id, replaced)
+        config = None if replaced is None else replaced.gmap.config
+        # Held from the reader's check of the map's size until it is installed, so that uploads
+        # read together (and scans meanwhile) cannot each take the same free bytes; given back on
+        # every other way out, a cancelled request's too.
         with state.registry.upload_reservation(replaced) as reservation:
             gmap = await asyncio.to_thread(read, body, config, reservation)
             return await _install(state, map_id, response, gmap, conditions, reservation)
