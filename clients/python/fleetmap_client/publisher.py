@@ -156,13 +156,8 @@ RECONNECT_HOLD_S = 0.5
 #: 0.6 s after a robot connected in tests/test_crash_exactly_once.py, where 5 robots' caches of 1000
 #: scans each went through its scan callback at once.
 RECONNECT_HOLD_MAX_S = 5.0
-#: Seconds between the link checks of the publisher's background thread (reconnections, the hold,
-#: the queries for the cache that end it: each waits for that check to let it go, so a fetch ends
-#: at most this much later).
+#: Seconds between the link checks of the publisher's background thread (reconnections, the hold).
 WATCH_INTERVAL_S = 0.05
-#: Queries for the cache kept for the link check to see: only when the last came matters; a fuller
-#: channel lets the oldest go at once.
-FETCH_WATCH_DEPTH = 16
 #: Seconds between the delivery queries of `flush`.
 FLUSH_POLL_S = 0.1
 #: Seconds one delivery query may wait for its answer (a frozen link answers nothing), at most: less
@@ -405,7 +400,7 @@ class ScanPublisher:
         # (monotonic times it ends at the earliest in `_hold_least`, at the latest in `_hold_until`).
         # The link came up after the look
         # before (`_looked_at` then, kept in `_hold_since`): a query for the cache that reached the
-        # publisher since (`_fetched_at`, set by `_note_fetches`) is the new service's, and ends the hold.
+        # publisher since (`_fetched_at`, set by `_on_fetch`) is the new service's, and ends the hold.
         self._link_up = False
         self._neighbours: frozenset[str] = frozenset()
         self._hold_until: float | None = None
@@ -416,7 +411,7 @@ class ScanPublisher:
         # Whether a scan was ever handed to Zenoh (so its cache holds one): until then no service
         # can lose cached scans to a live one, and a hold waits for no query (`_check_link`).
         self._cached = False
-        self._fetch_watch: zenoh.Queryable[zenoh.Handler[zenoh.Query]] | None = None
+        self._fetch_watch: zenoh.Queryable[None] | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
         self._last_seq: int | None = None
@@ -478,16 +473,18 @@ class ScanPublisher:
                     )
                     # Every query for this publisher's cache (a subscriber's history fetch, a
                     # heartbeat's or a miss's recovery) reaches this queryable too: it answers
-                    # nothing, it only tells the hold that the service is fetching. A channel the
-                    # link check drains (`_note_fetches`), not a Python callback: zenoh-python runs
-                    # one on a thread of its own, a daemon when declared here (the opener is one),
-                    # which nothing joins. Waking as the queryable went at exit, it came back into
-                    # a finalizing interpreter and the process died with "FATAL: exception not
-                    # rethrown" (SIGABRT), as `fleetmap replay` did in CI after its last message.
+                    # nothing, it only tells the hold that the service is fetching. Its callback
+                    # runs on Zenoh's own thread (`indirect=False`): by default zenoh-python runs
+                    # a callback on a Python thread of its own, a daemon when declared here (the
+                    # opener is one), which nothing joins. Waking as the queryable went at exit, it
+                    # came back into a finalizing interpreter and the process died with "FATAL:
+                    # exception not rethrown" (SIGABRT), as `fleetmap replay` did in CI after its
+                    # last message. (A channel the link check drained instead saw a query only at
+                    # its next look: late, and the service's fetch ended no sooner.)
                     source = self._publisher.id
                     self._fetch_watch = session.declare_queryable(
                         f"{self.scan_key}/@adv/pub/{source.zid}/{source.eid}/**",
-                        zenoh.handlers.RingChannel(FETCH_WATCH_DEPTH),
+                        zenoh.handlers.Callback(self._on_fetch, indirect=False),
                     )
                 else:
                     self._publisher = self._matching
@@ -499,19 +496,13 @@ class ScanPublisher:
             self._watch()
             return
 
-    def _note_fetches(self) -> None:
-        """Take the queries for the advanced publisher's cache that reached the session since the
-        last look: note when the last was seen, for the hold (`_check_link`). Answers nothing: the
-        cache's own queryable does."""
-        watch = self._fetch_watch
-        if watch is None:
-            return
-        with contextlib.suppress(zenoh.ZError):  # close() raced
-            while (query := watch.try_recv()) is not None:
-                self._fetched_at = time.monotonic()
-                # Dropped at once, not when Python collects it: the querier's query ends only once
-                # every queryable it reached let go of it.
-                query.drop()
+    def _on_fetch(self, query: zenoh.Query) -> None:
+        """A query for the advanced publisher's cache reached the session (on a Zenoh thread): note
+        when, for the hold (`_check_link`). Answers nothing: the cache's own queryable does. It
+        keeps no reference, so the query is let go as the callback returns (the querier's query
+        ends only once every queryable it reached let go of it), and it calls nothing of Zenoh's."""
+        del query
+        self._fetched_at = time.monotonic()
 
     def _watch(self) -> None:
         """Until `close()`: notice (re)connections and end their holds (`_check_link`)."""
@@ -536,7 +527,6 @@ class ScanPublisher:
         session that opened without a link (a peer's) keeps its scans queued until it has one."""
         if not self.backlog:
             return False
-        self._note_fetches()
         neighbours = self._connected_to()
         up = bool(neighbours)
         now = time.monotonic()
