@@ -458,15 +458,28 @@ def test_binary_publishes_a_range_max_beyond_float32_as_no_maximum(router: Route
         np.testing.assert_array_equal(wire.scan.ranges, [1.5, math.inf, math.inf])
 
 
-def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong() -> None:
+def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong(tmp_path: Path) -> None:
     """A string was read as a list of one-character endpoints; Zenoh's error carried the Rust
-    source path it was raised at."""
+    source path it was raised at, and an endpoint without its protocol (`127.0.0.1:7447`, the
+    likeliest mistake) read `Json5Err(Message { msg: "Endpoints must be ...`, cut off mid-way."""
     import json
 
     assert json.loads(client_config("tcp/127.0.0.1:1").get_json("connect/endpoints")) == ["tcp/127.0.0.1:1"]
-    with pytest.raises(ValueError, match="must be of the form") as bad:
-        client_config(["nonsense"])
-    assert " at /" not in str(bad.value)
+    with pytest.raises(ValueError) as bad:
+        client_config("127.0.0.1:7447")
+    assert str(bad.value) == (
+        "invalid Zenoh endpoint in ['127.0.0.1:7447']: Endpoints must be of the form "
+        "<protocol>/<address>[?<metadata>][#<config>]: 127.0.0.1:7447"
+    )
+    config_file = tmp_path / "robot.json5"
+    config_file.write_text('{mode: "client", connect: {endpoints: ["127.0.0.1:7447"]}}')
+    with pytest.raises(ValueError) as bad:
+        client_config(None, str(config_file))
+    assert str(bad.value).startswith(f"cannot read Zenoh configuration {config_file}: ")
+    assert str(bad.value).endswith(
+        "Endpoints must be of the form <protocol>/<address>[?<metadata>][#<config>]: 127.0.0.1:7447"
+    )
+    assert " at /" not in str(bad.value) and "Message {" not in str(bad.value)
 
 
 def test_client_config_defaults_and_overrides() -> None:
