@@ -160,7 +160,9 @@ class ScanMessage(BaseModel):
         if math.isnan(self.range_max):
             raise ValueError("range_max must be a number")
         if self.range_max <= self.range_min:
-            raise ValueError("range_max must be greater than range_min")
+            raise ValueError(
+                f"range_max {self.range_max:g} must be greater than range_min {self.range_min:g}"
+            )
         return self
 
     def to_scan(self) -> Scan:
