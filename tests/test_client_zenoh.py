@@ -693,10 +693,19 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
     assert bad.returncode == 2 and "map id 'bad id' must match" in bad.stderr
     assert "robots on map" not in bad.stdout
     # So is a fleet that cannot run (it announced "0 robots on map ..." first).
-    for option, value, words in [("--robots", "0", "robots must be >= 1"), ("--rate", "0", "rate must be")]:
+    # --beams 0 (or past a scan's limit) let every robot's thread die with a traceback, then said
+    # "sim: 3 robots published 0 scans" and exited 0; --speed -1 came after the banner.
+    for option, value, words in [
+        ("--robots", "0", "robots must be >= 1"),
+        ("--rate", "0", "rate must be"),
+        ("--beams", "0", "beams must be 1 to 100000, got 0"),
+        ("--beams", "100001", "beams must be 1 to 100000, got 100001"),
+        ("--speed", "-1", "speed must be finite and >= 0, got -1.0"),
+    ]:
         args = [*command, "--map", "m", option, value]
         bad = subprocess.run(args, capture_output=True, text=True, timeout=60)
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
+        assert "Traceback" not in bad.stderr, bad.stderr
         assert "robots on map" not in bad.stdout, bad.stdout
 
 
