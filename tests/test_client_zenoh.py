@@ -627,7 +627,7 @@ def test_replay_command_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str
 def test_replay_help_says_that_rate_0_lets_the_service_drop_scans() -> None:
     """`fleetmap replay --help` said "--rate X ... (0: as fast as possible, nothing dropped)": a
     3000-scan log of 1081 beams replayed so over loopback had 2695 scans dropped by the service's
-    ingest queue (64 per robot), as docs/clients.md says. Zenoh's BLOCK loses nothing on the way;
+    ingest queue (then 64 per robot; 1024 now, as docs/clients.md says). Zenoh's BLOCK loses nothing;
     the queue does."""
     parser = argparse.ArgumentParser(prog="fleetmap")
     text = " ".join(cli.add_replay_parser(parser.add_subparsers()).format_help().split())
