@@ -458,15 +458,28 @@ def test_binary_publishes_a_range_max_beyond_float32_as_no_maximum(router: Route
         np.testing.assert_array_equal(wire.scan.ranges, [1.5, math.inf, math.inf])
 
 
-def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong() -> None:
+def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong(tmp_path: Path) -> None:
     """A string was read as a list of one-character endpoints; Zenoh's error carried the Rust
-    source path it was raised at."""
+    source path it was raised at, and an endpoint without its protocol (`127.0.0.1:7447`, the
+    likeliest mistake) read `Json5Err(Message { msg: "Endpoints must be ...`, cut off mid-way."""
     import json
 
     assert json.loads(client_config("tcp/127.0.0.1:1").get_json("connect/endpoints")) == ["tcp/127.0.0.1:1"]
-    with pytest.raises(ValueError, match="must be of the form") as bad:
-        client_config(["nonsense"])
-    assert " at /" not in str(bad.value)
+    with pytest.raises(ValueError) as bad:
+        client_config("127.0.0.1:7447")
+    assert str(bad.value) == (
+        "invalid Zenoh endpoint in ['127.0.0.1:7447']: Endpoints must be of the form "
+        "<protocol>/<address>[?<metadata>][#<config>]: 127.0.0.1:7447"
+    )
+    config_file = tmp_path / "robot.json5"
+    config_file.write_text('{mode: "client", connect: {endpoints: ["127.0.0.1:7447"]}}')
+    with pytest.raises(ValueError) as bad:
+        client_config(None, str(config_file))
+    assert str(bad.value).startswith(f"cannot read Zenoh configuration {config_file}: ")
+    assert str(bad.value).endswith(
+        "Endpoints must be of the form <protocol>/<address>[?<metadata>][#<config>]: 127.0.0.1:7447"
+    )
+    assert " at /" not in str(bad.value) and "Message {" not in str(bad.value)
 
 
 def test_client_config_defaults_and_overrides() -> None:
@@ -614,7 +627,7 @@ def test_replay_command_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str
 def test_replay_help_says_that_rate_0_lets_the_service_drop_scans() -> None:
     """`fleetmap replay --help` said "--rate X ... (0: as fast as possible, nothing dropped)": a
     3000-scan log of 1081 beams replayed so over loopback had 2695 scans dropped by the service's
-    ingest queue (64 per robot), as docs/clients.md says. Zenoh's BLOCK loses nothing on the way;
+    ingest queue (then 64 per robot; 1024 now, as docs/clients.md says). Zenoh's BLOCK loses nothing;
     the queue does."""
     parser = argparse.ArgumentParser(prog="fleetmap")
     text = " ".join(cli.add_replay_parser(parser.add_subparsers()).format_help().split())
@@ -680,10 +693,19 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
     assert bad.returncode == 2 and "map id 'bad id' must match" in bad.stderr
     assert "robots on map" not in bad.stdout
     # So is a fleet that cannot run (it announced "0 robots on map ..." first).
-    for option, value, words in [("--robots", "0", "robots must be >= 1"), ("--rate", "0", "rate must be")]:
+    # --beams 0 (or past a scan's limit) let every robot's thread die with a traceback, then said
+    # "sim: 3 robots published 0 scans" and exited 0; --speed -1 came after the banner.
+    for option, value, words in [
+        ("--robots", "0", "robots must be >= 1"),
+        ("--rate", "0", "rate must be"),
+        ("--beams", "0", "beams must be 1 to 100000, got 0"),
+        ("--beams", "100001", "beams must be 1 to 100000, got 100001"),
+        ("--speed", "-1", "speed must be finite and >= 0, got -1.0"),
+    ]:
         args = [*command, "--map", "m", option, value]
         bad = subprocess.run(args, capture_output=True, text=True, timeout=60)
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
+        assert "Traceback" not in bad.stderr, bad.stderr
         assert "robots on map" not in bad.stdout, bad.stdout
 
 

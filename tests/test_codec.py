@@ -162,6 +162,45 @@ def test_json_errors_say_why(patch: dict, reason: str) -> None:
         decode_json(json.dumps(base).encode())
 
 
+@pytest.mark.parametrize(
+    ("patch", "detail"),
+    [
+        ({"angles": [0.0, 0.1], "ranges": [1.0, 2.0, 3.0]}, "invalid JSON scan: 2 angles but 3 ranges"),
+        (
+            {"angles": [0.0, 0.1, 0.2]},
+            "invalid JSON scan: give either angles or angle_min + angle_increment, not both",
+        ),
+        (
+            {"range_min": 5.0, "range_max": 1.0},
+            "invalid JSON scan: range_max 1 must be greater than range_min 5",
+        ),
+        ({"pose": {"x": 0, "y": 0}}, "invalid JSON scan: pose.theta: Field required"),
+    ],
+)
+def test_a_json_refusal_is_one_sentence_without_pydantic_s_words(patch: dict, detail: str) -> None:
+    """A check of the whole message read `invalid JSON scan: message: Value error, 2 angles but 3
+    ranges`: pydantic's prefix, and a field name that no field has. Robots see this text in their
+    flush report, the service's log and `last_error`."""
+    base = {"seq": 1, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": -1.0, "angle_increment": 0.1,
+            "range_max": 30.0, "ranges": [1.0, None, 2.0]}  # fmt: skip
+    base.update(patch)
+    if "angle_min" not in patch and "angles" in patch and len(patch["angles"]) != len(base["ranges"]):
+        base.pop("angle_min")
+        base.pop("angle_increment")
+    with pytest.raises(DecodeError) as refused:
+        decode_json(json.dumps(base).encode())
+    assert str(refused.value) == detail
+
+
+def test_angles_in_degrees_are_refused_saying_that_angles_are_radians() -> None:
+    """A fan of 360 beams 1 "degree" apart spans 359 rad: the likeliest cause is degrees for radians."""
+    degrees = Scan.from_fan((0.0, 0.0, 0.0), -180.0, 1.0, [2.0] * 360, 0.05, 30.0)
+    for payload in (encode_binary(degrees, 1), encode_json(degrees, 1)):
+        with pytest.raises(DecodeError) as refused:
+            decode(payload, "")
+        assert str(refused.value) == "beam angles span more than one turn (359 rad; angles are in radians)"
+
+
 def test_binary_errors_say_why() -> None:
     good = encode_binary(make_scan(0, 0, 0, [1.0, 2.0], False), 1)
     with pytest.raises(DecodeError, match="magic"):

@@ -107,6 +107,18 @@ def test_no_command_help_shows_a_default_of_none() -> None:
         assert "default: None" not in text and "(None" not in text, f"fleetmap {command} --help:\n{text}"
 
 
+def test_every_command_help_says_what_the_command_does() -> None:
+    """`fleetmap build --help` was its usage and options alone, where every other command's says
+    what it does first."""
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    sub = parser.add_subparsers()
+    cli._add_build(sub)
+    for name in cli.COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    silent = [command for command, p in sub.choices.items() if not (p.description or "").strip()]
+    assert not silent, f"commands whose --help does not say what they do: {silent}"
+
+
 def test_every_option_with_a_default_says_it_in_its_help() -> None:
     """`fleetmap replay --help` and `fleetmap sim --help` said "--encoding: payload encoding", not
     which one they send when not told (binary, as docs/clients.md says). An option whose default

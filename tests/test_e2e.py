@@ -378,8 +378,8 @@ def test_open_event_streams_end_cleanly_at_shutdown(service_factory, tmp_path: P
 
 
 def test_serve_errors_exit_2_without_a_traceback(service: ServiceProcess, tmp_path: Path) -> None:
-    """An HTTP port in use, a Zenoh port in use, a bad --http and a bad --config: one clear line,
-    exit code 2."""
+    """An HTTP port in use, a Zenoh port in use, a bad --http, a bad --config and a Zenoh endpoint
+    without its protocol: one clear line, exit code 2."""
     bad_config = tmp_path / "bad.json"
     bad_config.write_text('{"resolution": -1}')
     http_in_use = ["--http", f"127.0.0.1:{service.port}", "--zenoh-listen", "tcp/127.0.0.1:0"]
@@ -388,6 +388,12 @@ def test_serve_errors_exit_2_without_a_traceback(service: ServiceProcess, tmp_pa
         (["--http", "127.0.0.1:0", "--zenoh-listen", service.zenoh_endpoint], "Address already in use"),
         (["--http", "nonsense"], "HOST:PORT"),
         (["--http", "127.0.0.1:0", "--config", str(bad_config)], "invalid map configuration"),
+        # Without its protocol: Zenoh's own words, not Rust's debug form of them (`Json5Err(Message {`).
+        (
+            ["--http", "127.0.0.1:0", "--zenoh-listen", "127.0.0.1:7447"],
+            "error: invalid Zenoh endpoint: Endpoints must be of the form "
+            "<protocol>/<address>[?<metadata>][#<config>]: 127.0.0.1:7447\n",
+        ),
     ]
     for args, message in cases:
         # --in-memory: these runs must not open (or create) ./fleetmap-data in the working directory.

@@ -286,6 +286,19 @@ REFUSALS = [
     ("bom", JSON, b"\xef\xbb\xbf" + example_json(), "it starts with a byte order mark"),
     ("seq-float", JSON, example_json(seq=5.0), "seq: Input should be a valid integer"),
     ("no-pose", JSON, example_json(drop="pose"), "invalid JSON scan: pose: Field required"),
+    # Checks of the whole message: the sentence alone (it read "message: Value error, 1 angles ...").
+    (
+        "lengths",
+        JSON,
+        example_json(drop="angle_min", angle_increment=None, angles=[0.0]),
+        "invalid JSON scan: 1 angles but 2 ranges",
+    ),
+    (
+        "degrees",
+        JSON,
+        example_json(angle_min=-180.0, angle_increment=1.0, ranges=[1.0] * 360),
+        "beam angles span more than one turn (359 rad; angles are in radians)",
+    ),
 ]
 
 

@@ -382,6 +382,9 @@ def test_robot_boxed_in_escapes_safely() -> None:
     assert robot.odometer > 50.0
     with pytest.raises(ValueError):
         SimulatedRobot(plan, 0, start=Pose2D(0.15, 1.5, 0.0))  # too close to the wall
+    for beams in (0, 100_001):  # no scan could be made: refused here, not at the first scan
+        with pytest.raises(ValueError, match=f"num_beams must be 1 to 100000, got {beams}"):
+            SimulatedRobot(plan, 0, num_beams=beams)
 
 
 def test_robot_deterministic_and_scans() -> None:

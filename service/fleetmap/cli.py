@@ -134,28 +134,46 @@ def load_config(path: str | None, **overrides: object) -> MapConfig:
 
 
 def _add_build(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = sub.add_parser("build", help="build a map from a recorded dataset (CARMEN log or .mat)")
+    p = sub.add_parser(
+        "build",
+        help="build a map from a recorded dataset (CARMEN log or .mat)",
+        # The other commands' --help say what they do; this one showed its usage and options only.
+        description="Build a map from a recorded laser log with the engine alone (no service, no "
+        "Zenoh), and write it into --out as a nav2 map_server map (map.yaml, map.pgm), a PNG, every "
+        "layer as .npy and meta.json (README.md, 'Build a map from a recorded dataset').",
+    )
     p.add_argument("dataset", help="CARMEN log (plain or .gz) or MATLAB .mat file")
-    p.add_argument("--out", required=True, help="directory for map.yaml, map.pgm, map.png, *.npy, meta.json")
-    p.add_argument("--config", help="map configuration as a JSON file")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="directory for map.yaml, map.pgm, map.png, *.npy, meta.json",
+    )
+    p.add_argument("--config", metavar="FILE.json", help="map configuration as a JSON file")
     # Each says what it is when not given: "--resolution (default 0.05)" was wrong with a --config
     # file of another resolution, which is used.
     p.add_argument(
-        "--resolution", type=float, help="metres per cell (default: the --config file's, else 0.05)"
+        "--resolution",
+        type=float,
+        metavar="R",
+        help="metres per cell (default: the --config file's, else 0.05)",
     )
     p.add_argument(
         "--range-min",
         type=float,
+        metavar="M",
         help="ignore readings below this, metres (default 0.001: zeros are ignored)",
     )
     p.add_argument(
         "--range-max",
         type=float,
+        metavar="M",
         help="readings at or above this are 'no return', metres (default: the log's own, none for .mat)",
     )
     p.add_argument(
         "--no-return-range",
         type=float,
+        metavar="M",
         help="clear this many metres of no-return beams (default: the --config file's, else 0: ignore them)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")

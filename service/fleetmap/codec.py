@@ -106,8 +106,11 @@ class InputLimits:
             )
         if scan.num_beams > self.max_beams:
             raise DecodeError(f"{scan.num_beams} beams is more than the limit of {self.max_beams}", scan_id)
-        if scan.num_beams > 1 and float(np.ptp(scan.angles)) > 2 * math.pi + 1e-3:
-            raise DecodeError("beam angles span more than one turn", scan_id)
+        if scan.num_beams > 1 and (span := float(np.ptp(scan.angles))) > 2 * math.pi + 1e-3:
+            # Most likely degrees where radians were meant (an increment of 1 for 1 degree): say so.
+            raise DecodeError(
+                f"beam angles span more than one turn ({span:.6g} rad; angles are in radians)", scan_id
+            )
         if scan.range_max > self.max_range:
             if scan.range_min >= self.max_range:
                 raise DecodeError(
@@ -376,9 +379,12 @@ def _first_error(exc: ValidationError) -> str:
     """The first validation error, safe to log and to show: field names come from the sender, so
     they are quoted (no newlines or control characters get through) and cut short."""
     err = exc.errors()[0]
-    where = ".".join(_safe_text(str(p), 40) for p in err.get("loc", ())) or "message"
+    where = ".".join(_safe_text(str(p), 40) for p in err.get("loc", ()))
+    # A check of the whole message (`ScanMessage._check_angles`) has no field to name, and pydantic
+    # puts "Value error, " before its sentence: "2 angles but 3 ranges" says it all.
+    what = _safe_text(str(err.get("msg")).removeprefix("Value error, "), 200)
     more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-    return f"{where}: {_safe_text(str(err.get('msg')), 200)}{more}"
+    return f"{where}: {what}{more}" if where else f"{what}{more}"
 
 
 def _safe_text(text: str, limit: int) -> str:

@@ -85,7 +85,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import re
 import threading
 from collections import Counter
 from collections.abc import Sequence
@@ -110,6 +109,7 @@ from fleetmap.wire import (
     SCAN_KEY_WILDCARD,
     SESSION_LIMIT,
     is_valid_id,
+    zenoh_error_text,
 )
 
 log = logging.getLogger("fleetmap.ingest")
@@ -122,13 +122,6 @@ MODES = ("router", "peer", "client")
 
 class IngestStartError(RuntimeError):
     """The Zenoh session could not be opened; the message says why (no Rust source locations)."""
-
-
-def _clean_error(exc: BaseException) -> str:
-    """A Zenoh error without the Rust source location it carries (' at /root/.cargo/...rs:123.')."""
-    text = str(exc).strip()
-    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", text)
-    return " ".join(text.split())
 
 
 def parse_key(key: str, suffix: str) -> tuple[str, str] | None:
@@ -209,7 +202,7 @@ class ZenohIngest:
         try:
             cfg = zenoh.Config.from_file(str(self.config_file)) if self.config_file else zenoh.Config()
         except zenoh.ZError as exc:
-            message = f"cannot load Zenoh config {self.config_file}: {_clean_error(exc)}"
+            message = f"cannot load Zenoh config {self.config_file}: {zenoh_error_text(exc)}"
             raise IngestStartError(message) from None
         file_mode = json.loads(cfg.get_json("mode"))
         file_listen = json.loads(cfg.get_json("listen/endpoints"))
@@ -267,7 +260,7 @@ class ZenohIngest:
                     "a backlog) that several robots publish at once; see docs/protocol.md"
                 )
         except (zenoh.ZError, ValueError) as exc:
-            raise IngestStartError(f"invalid Zenoh endpoint: {_clean_error(exc)}") from None
+            raise IngestStartError(f"invalid Zenoh endpoint: {zenoh_error_text(exc)}") from None
         self.mode, self.listen = mode, list(listen)
         return cfg
 
@@ -281,7 +274,7 @@ class ZenohIngest:
         try:
             session = zenoh.open(cfg)
         except zenoh.ZError as exc:
-            message = f"cannot open the Zenoh session ({self.mode}): {_clean_error(exc)}"
+            message = f"cannot open the Zenoh session ({self.mode}): {zenoh_error_text(exc)}"
             raise IngestStartError(message) from None
         self._session = session
         try:
@@ -304,7 +297,7 @@ class ZenohIngest:
             )
         except zenoh.ZError as exc:
             self.close()
-            raise IngestStartError(f"cannot subscribe: {_clean_error(exc)}") from None
+            raise IngestStartError(f"cannot subscribe: {zenoh_error_text(exc)}") from None
         log.info(
             "zenoh %s session %s listening on %s%s",
             self.mode,

@@ -87,7 +87,7 @@ class Scan:
         if not (math.isfinite(self.range_min) and self.range_min >= 0.0):
             raise ScanError(f"range_min must be finite and >= 0, got {self.range_min}")
         if not self.range_max > self.range_min:  # inf is allowed: "no maximum"
-            raise ScanError(f"range_max must be greater than range_min, got {self.range_max}")
+            raise ScanError(f"range_max {self.range_max:g} must be greater than range_min {self.range_min:g}")
 
     @classmethod
     def from_fan(

@@ -1,5 +1,6 @@
 """The wire schema: one definition of what robots send, the ids that name maps and robots, and the
-Zenoh key expressions. (What the REST API answers is in `fleetmap.api_models`.)
+Zenoh key expressions and settings robots and the service share (and how Zenoh's errors read for
+people). (What the REST API answers is in `fleetmap.api_models`.)
 
 `ScanMessage` is the JSON scan robots publish over Zenoh (and POST over REST); the compact binary
 encoding of the same message is in `fleetmap.codec`. The REST API, the Python client, the docs and
@@ -55,6 +56,26 @@ DELIVERY_ERROR_ENCODING = "text/plain;fleetmap-delivery"
 #: Zenoh encodings of the two payload formats.
 JSON_ENCODING = "application/json"
 BINARY_ENCODING = "application/x-fleetmap-scan"
+
+
+#: The Rust source location zenoh appends to its errors (" at /root/.cargo/.../endpoint.rs:615.").
+_ZENOH_SOURCE_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
+#: A configuration error zenoh reports in Rust's debug form of its JSON5 error, alone or after a
+#: prefix: `Json5Err(Message { msg: "<the sentence>", location: Some(Location { line: 1, column: 2 }) })`
+#: for an endpoint, `JSON error: Message { msg: ..., location: ... }` for a file.
+_ZENOH_JSON5_ERROR = re.compile(
+    r'(?:Json5Err\()?Message \{ msg: "(?P<msg>(?:[^"\\]|\\.)*)", '
+    r"location: (?:None|Some\(Location \{[^}]*\}\)) \}\)?"
+)
+
+
+def zenoh_error_text(exc: BaseException) -> str:
+    """A Zenoh error as one line for people: its sentence, without the Rust source locations and the
+    debug wrapper of configuration errors that zenoh adds (`Endpoints must be of the form
+    <protocol>/<address>...: 127.0.0.1:7447`, not `Json5Err(Message { msg: "Endpoints must ...`)."""
+    text = _ZENOH_SOURCE_LOCATION.sub("", str(exc))
+    text = _ZENOH_JSON5_ERROR.sub(lambda found: found["msg"].replace('\\"', '"'), text)
+    return " ".join(text.split())
 
 
 def is_valid_id(value: str) -> bool:
@@ -139,7 +160,9 @@ class ScanMessage(BaseModel):
         if math.isnan(self.range_max):
             raise ValueError("range_max must be a number")
         if self.range_max <= self.range_min:
-            raise ValueError("range_max must be greater than range_min")
+            raise ValueError(
+                f"range_max {self.range_max:g} must be greater than range_min {self.range_min:g}"
+            )
         return self
 
     def to_scan(self) -> Scan:

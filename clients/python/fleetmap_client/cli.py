@@ -198,7 +198,7 @@ def run_sim_command(args: argparse.Namespace) -> int:
     if not is_valid_id(args.map_id):
         raise CliError(f"map id {args.map_id!r} must match {ID_PATTERN}")
     try:  # before the line announcing the robots
-        check_fleet(args.robots, args.rate, args.seconds)
+        check_fleet(args.robots, args.rate, args.seconds, args.beams, args.speed)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     stop = threading.Event()

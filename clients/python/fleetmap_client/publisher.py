@@ -108,6 +108,7 @@ from fleetmap.wire import (
     ScanMessage,
     is_valid_id,
     new_session_id,
+    zenoh_error_text,
 )
 
 #: Where `fleetmap serve` listens by default.
@@ -274,7 +275,8 @@ def client_config(
         try:
             cfg = zenoh.Config.from_file(str(zenoh_config))
         except (zenoh.ZError, OSError) as exc:
-            raise ValueError(f"cannot read Zenoh configuration {zenoh_config}: {exc}") from None
+            message = zenoh_error_text(exc)
+            raise ValueError(f"cannot read Zenoh configuration {zenoh_config}: {message}") from None
     if _get(cfg, "mode") is None:
         cfg.insert_json5("mode", '"client"')
     if connect is not None or not _get(cfg, "connect/endpoints"):
@@ -288,7 +290,7 @@ def client_config(
         try:
             cfg.insert_json5("connect/endpoints", _json_list(endpoints))
         except zenoh.ZError as exc:
-            raise ValueError(f"invalid Zenoh endpoint in {endpoints}: {_zenoh_message(exc)}") from None
+            raise ValueError(f"invalid Zenoh endpoint in {endpoints}: {zenoh_error_text(exc)}") from None
     if _get(cfg, "connect/timeout_ms") is None:
         cfg.insert_json5("connect/timeout_ms", str(CONNECT_ATTEMPT_MS))
     if _get(cfg, "connect/retry") is None:
@@ -297,11 +299,6 @@ def client_config(
     if _get(cfg, "scouting/multicast/enabled") is None:
         cfg.insert_json5("scouting/multicast/enabled", "false")
     return cfg
-
-
-def _zenoh_message(exc: zenoh.ZError) -> str:
-    """A Zenoh error's sentence without the Rust source location zenoh appends (" at /root/...")."""
-    return str(exc).split(" at /", 1)[0]
 
 
 def _get(cfg: zenoh.Config, key: str) -> Any:
@@ -441,7 +438,7 @@ class ScanPublisher:
             try:
                 session = zenoh.open(self._config)
             except zenoh.ZError as exc:
-                self.last_connect_error = _zenoh_message(exc)
+                self.last_connect_error = zenoh_error_text(exc)
                 # An attempt that failed fast (e.g. connection refused with a zero timeout) must not spin.
                 self._closed.wait(max(0.0, 0.2 - (time.monotonic() - started)))
                 continue

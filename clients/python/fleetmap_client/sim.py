@@ -17,11 +17,13 @@ while the robots keep moving.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+from fleetmap.scan import MAX_BEAMS
 from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap.sim.floorplan import FloorPlan
 
@@ -52,15 +54,25 @@ def robot_ids(count: int, prefix: str = "sim") -> list[str]:
     return [f"{prefix}-{k + 1}" for k in range(count)]
 
 
-def check_fleet(robots: int, rate: float, seconds: float | None) -> None:
+def check_fleet(
+    robots: int, rate: float, seconds: float | None, beams: int = 1081, speed: float = 1.0
+) -> None:
     """ValueError unless `run_sim` can run `robots` robots at `rate` scans/s for `seconds` (None: no
-    limit): at least one robot, a finite rate above 0, seconds not negative."""
+    limit), with lidars of `beams` beams, at `speed` m/s: at least one robot, a finite rate above
+    0, seconds not negative, 1 to `MAX_BEAMS` beams (a scan holds no more), a finite speed not
+    negative."""
     if robots < 1:
         raise ValueError(f"robots must be >= 1, got {robots}")
     if not (rate > 0.0 and rate != float("inf")):
         raise ValueError(f"rate must be a finite number > 0, got {rate}")
     if seconds is not None and not seconds >= 0.0:
         raise ValueError(f"seconds must be >= 0, got {seconds}")
+    # Checked here, not at the first scan: --beams 0 let every robot thread die with a traceback,
+    # and the command still printed its summary ("published 0 scans") and exited 0.
+    if not 1 <= beams <= MAX_BEAMS:
+        raise ValueError(f"beams must be 1 to {MAX_BEAMS}, got {beams}")
+    if not (math.isfinite(speed) and speed >= 0.0):
+        raise ValueError(f"speed must be finite and >= 0, got {speed}")
 
 
 def run_sim(
@@ -91,7 +103,7 @@ def run_sim(
     `SimError` when it passes); `on_waiting(publisher)` is called once if that takes over a second.
     Raises ValueError for bad arguments (e.g. a robot id that `prefix` makes invalid).
     """
-    check_fleet(robots, rate, seconds)
+    check_fleet(robots, rate, seconds, beams, speed)
     stop = stop or threading.Event()
     ids = robot_ids(robots, prefix)
     floor = plan if plan is not None else generate_floorplan(seed)

@@ -19,7 +19,7 @@ import weakref
 import numpy as np
 from numba import njit
 
-from fleetmap.scan import Pose2D, Scan
+from fleetmap.scan import MAX_BEAMS, Pose2D, Scan
 
 from .floorplan import FloorPlan
 from .lidar import DEFAULT_FOV, DEFAULT_NUM_BEAMS, simulate_scan
@@ -140,6 +140,8 @@ class SimulatedRobot:
             raise ValueError(f"clearance must be finite and > 0, got {clearance}")
         if not (math.isfinite(turn_rate) and turn_rate > 0.0):
             raise ValueError(f"turn_rate must be finite and > 0, got {turn_rate}")
+        if not 1 <= num_beams <= MAX_BEAMS:  # else the first scan fails, in the caller's loop
+            raise ValueError(f"num_beams must be 1 to {MAX_BEAMS}, got {num_beams}")
         self.plan = plan
         self.speed = float(speed)
         self.scan_rate = float(scan_rate)
