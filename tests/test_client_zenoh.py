@@ -304,6 +304,9 @@ def test_a_publisher_starts_no_zenoh_callback_thread_that_nothing_joins(
     def zenoh_daemon_threads() -> set[int | None]:
         return {t.ident for t in threading.enumerate() if t.daemon and "pyo3-closure" in t.name}
 
+    def publisher_threads() -> list[threading.Thread]:
+        return [t for t in threading.enumerate() if t.name.endswith("-lab-threads")]
+
     before = zenoh_daemon_threads()
     with ScanPublisher("lab", "threads", connect=[router.endpoint]) as pub:
         assert pub.wait_connected(15), f"no connection; last error {pub.last_connect_error}"
@@ -311,6 +314,31 @@ def test_a_publisher_starts_no_zenoh_callback_thread_that_nothing_joins(
             assert pub.publish(sim_scans[seq])
         assert [w.seq for _, _, w in router.wait_count(3)] == [0, 1, 2]  # the router fetched the cache too
         assert zenoh_daemon_threads() - before == set()
+        assert len(publisher_threads()) == 2  # the opener (then link watcher) and the fetch watcher
+    assert publisher_threads() == []  # close() joined them
+
+
+def test_a_publisher_left_open_is_closed_at_exit(router: Router, tmp_path: Path) -> None:
+    """A program that ends without closing its publisher: the publisher is closed at exit, while the
+    interpreter still runs its threads (which wait in Zenoh's calls: coming back from one during
+    finalization aborts the process), and the program exits normally, its scan delivered."""
+    program = tmp_path / "left_open.py"
+    program.write_text(
+        "import atexit, threading\n"
+        "# Registered first, so it runs last: after the publisher module's own exit handler.\n"
+        "atexit.register(lambda: print('closed', PUB.closed, 'threads', sorted(\n"
+        "    t.name for t in threading.enumerate() if t.name.endswith('-lab-left'))))\n"
+        "from fleetmap.sim import SimulatedRobot, generate_floorplan\n"
+        "from fleetmap_client.publisher import ScanPublisher\n"
+        f"PUB = ScanPublisher('lab', 'left', connect=['{router.endpoint}'])\n"
+        "assert PUB.wait_connected(15), PUB.last_connect_error\n"
+        "robot = SimulatedRobot(generate_floorplan(1), num_beams=91, seed=1)\n"
+        "PUB.publish(robot.tick())\n"
+    )
+    done = subprocess.run([sys.executable, str(program)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, (done.returncode, done.stdout, done.stderr)
+    assert done.stdout.strip() == "closed True threads []", done.stdout
+    assert [w.seq for _, _, w in router.wait_count(1, "fleetmap/lab/left/scan")] == [0]
 
 
 def test_closing_gives_up_the_queued_scans_and_counts_them_as_dropped(sim_scans: list[Scan]) -> None:

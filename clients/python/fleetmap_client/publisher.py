@@ -74,12 +74,14 @@ subscriber does not fetch anything): a scan published while no router is connect
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import math
 import numbers
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -159,6 +161,10 @@ RECONNECT_HOLD_S = 0.5
 RECONNECT_HOLD_MAX_S = 5.0
 #: Seconds between the link checks of the publisher's background thread (reconnections, the hold).
 WATCH_INTERVAL_S = 0.05
+#: Queries for the cache the fetch watch's channel holds until its thread takes them (it takes each
+#: as it comes: more wait only while the GIL is busy). A fuller channel lets the oldest go, so that
+#: Zenoh's thread never waits for ours; only when the last came matters.
+FETCH_WATCH_DEPTH = 64
 #: Seconds between the delivery queries of `flush`.
 FLUSH_POLL_S = 0.1
 #: Seconds one delivery query may wait for its answer (a frozen link answers nothing), at most: less
@@ -310,6 +316,20 @@ def _json_list(items: Sequence[str]) -> str:
     return json.dumps(list(items))
 
 
+#: Publishers not closed yet, for `_close_open_publishers` (weakly: a publisher is no one's to keep).
+_OPEN_PUBLISHERS: weakref.WeakSet[ScanPublisher] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_open_publishers() -> None:
+    """At exit, close every publisher the program left open: their scans handed to Zenoh are
+    flushed, and their threads, waiting in Zenoh's calls, end while the interpreter still runs them
+    (atexit comes before finalization). Left to finalization, a thread coming back from Zenoh's
+    wait killed the process with "FATAL: exception not rethrown" (SIGABRT)."""
+    for publisher in list(_OPEN_PUBLISHERS):
+        publisher.close()
+
+
 class ScanPublisher:
     """Publishes one robot's scans to one map over Zenoh. Thread-safe: concurrent `publish` calls
     take distinct seqs and their scans leave in seq order (one at a time).
@@ -408,7 +428,8 @@ class ScanPublisher:
         # Whether a scan was ever handed to Zenoh (so its cache holds one): until then no service
         # can lose cached scans to a live one, and a hold waits for no query (`_check_link`).
         self._cached = False
-        self._fetch_watch: zenoh.Queryable[None] | None = None
+        self._fetch_watch: zenoh.Queryable[zenoh.Handler[zenoh.Query]] | None = None
+        self._fetch_thread: threading.Thread | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
         self._last_seq: int | None = None
@@ -427,6 +448,7 @@ class ScanPublisher:
             target=self._open_loop, name=f"fleetmap-publisher-{map_id}-{robot_id}", daemon=True
         )
         self._opener.start()
+        _OPEN_PUBLISHERS.add(self)
 
     # -- connection --------------------------------------------------------------------------------
 
@@ -470,19 +492,28 @@ class ScanPublisher:
                     )
                     # Every query for this publisher's cache (a subscriber's history fetch, a
                     # heartbeat's or a miss's recovery) reaches this queryable too: it answers
-                    # nothing, it only tells the hold that the service is fetching. Its callback
-                    # runs on Zenoh's own thread (`indirect=False`): by default zenoh-python runs
-                    # a callback on a Python thread of its own, a daemon when declared here (the
-                    # opener is one), which nothing joins. Waking as the queryable went at exit, it
-                    # came back into a finalizing interpreter and the process died with "FATAL:
-                    # exception not rethrown" (SIGABRT), as `fleetmap replay` did in CI after its
-                    # last message. (A channel the link check drained instead saw a query only at
-                    # its next look: late, and the service's fetch ended no sooner.)
+                    # nothing, it only tells the hold that the service is fetching. Its queries go
+                    # to a channel that a thread of ours waits on (`_watch_fetches`) and `close()`
+                    # joins. Not a Python callback: zenoh-python runs one on a thread of its own, a
+                    # daemon when declared here (the opener is one), which nothing joins; waking as
+                    # the queryable went at exit, it came back into a finalizing interpreter and the
+                    # process died with "FATAL: exception not rethrown" (SIGABRT), as `fleetmap
+                    # replay` did in CI after its last message. Nor a callback on Zenoh's own thread
+                    # (`indirect=False`): that thread would wait for the GIL, and the session's
+                    # traffic with it. Nor a channel the link check drains: it saw a query only at
+                    # its next look, late, and the service's fetch ended no sooner.
                     source = self._publisher.id
                     self._fetch_watch = session.declare_queryable(
                         f"{self.scan_key}/@adv/pub/{source.zid}/{source.eid}/**",
-                        zenoh.handlers.Callback(self._on_fetch, indirect=False),
+                        zenoh.handlers.RingChannel(FETCH_WATCH_DEPTH),
                     )
+                    self._fetch_thread = threading.Thread(
+                        target=self._watch_fetches,
+                        args=(self._fetch_watch.handler,),
+                        name=f"fleetmap-fetch-watch-{self.map_id}-{self.robot_id}",
+                        daemon=True,
+                    )
+                    self._fetch_thread.start()
                 else:
                     self._publisher = self._matching
                 self._session = session
@@ -493,13 +524,19 @@ class ScanPublisher:
             self._watch()
             return
 
-    def _on_fetch(self, query: zenoh.Query) -> None:
-        """A query for the advanced publisher's cache reached the session (on a Zenoh thread): note
-        when, for the hold (`_check_link`). Answers nothing: the cache's own queryable does. It
-        keeps no reference, so the query is let go as the callback returns (the querier's query
-        ends only once every queryable it reached let go of it), and it calls nothing of Zenoh's."""
-        del query
-        self._fetched_at = time.monotonic()
+    def _watch_fetches(self, queries: zenoh.Handler[zenoh.Query]) -> None:
+        """Until the fetch watch is undeclared (`close()`): note when each query for the advanced
+        publisher's cache reaches the session, for the hold (`_check_link`). Answers nothing: the
+        cache's own queryable does."""
+        while True:
+            try:
+                query = queries.recv()
+            except zenoh.ZError:  # undeclared: the channel is closed
+                return
+            self._fetched_at = time.monotonic()
+            # Dropped at once, not when Python collects it: the querier's query ends only once
+            # every queryable it reached let go of it.
+            query.drop()
 
     def _watch(self) -> None:
         """Until `close()`: notice (re)connections and end their holds (`_check_link`)."""
@@ -863,6 +900,7 @@ class ScanPublisher:
         Scans already handed to Zenoh over a live link are flushed by the session close (reliable
         channel); scans still waiting for re-delivery (`backlogged`, `pending`) are given up. While
         no connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`)."""
+        _OPEN_PUBLISHERS.discard(self)
         with self._lock:
             if self._closed.is_set():
                 return
@@ -883,10 +921,13 @@ class ScanPublisher:
         if session is not None:
             with contextlib.suppress(zenoh.ZError):
                 session.close()
-        # The opener exits after its current attempt: wait for it. A thread still inside `zenoh.open`
-        # when the program exits comes back into a finalizing interpreter, and the process dies
-        # with "FATAL: exception not rethrown" (SIGABRT, exit 134) instead of exiting normally.
+        # The opener exits after its current attempt, the fetch watcher with its undeclared channel:
+        # wait for them. A thread still inside `zenoh.open` or the channel's wait when the program
+        # exits comes back into a finalizing interpreter, and the process dies with "FATAL:
+        # exception not rethrown" (SIGABRT, exit 134) instead of exiting normally.
         self._opener.join(timeout=CLOSE_WAIT_S)
+        if self._fetch_thread is not None:
+            self._fetch_thread.join(timeout=CLOSE_WAIT_S)
 
     @property
     def closed(self) -> bool:
