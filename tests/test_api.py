@@ -507,6 +507,50 @@ class EventReader:
         self._client.close()
 
 
+def test_exports_have_their_own_limit_above_the_regions() -> None:
+    """A map too big for one region is exported whole up to `max_export_cells`, and refused past it
+    (413 naming the setting) with nothing allocated."""
+    scans = [fan_scan(0.0, 0.0, 0.0, [3.0] * 61)]
+    engine = GridMap(MapConfig())
+    engine.integrate(scans[0])
+    i0, j0, i1, j1 = engine.known_bounds()  # type: ignore[misc]
+    cells = (i1 - i0 + 4) * (j1 - j0 + 4)  # the export's default margin: 2 cells
+    for limit, status in ((cells, 200), (cells - 1, 413)):
+        settings = ApiSettings(max_region_cells=cells // 4, max_export_cells=limit)
+        with running_api(settings) as api:
+            assert post_scan(api, "big", "r", scans[0], 0).status_code == 200
+            region = api.client.get("/maps/big/region", params={"layer": "state", "format": "npy"})
+            assert region.status_code == 413, region.text
+            export = api.client.get("/maps/big/export")
+            assert export.status_code == status, export.text
+            if status == 413:
+                assert "max_export_cells" in export.json()["detail"]
+
+
+def test_the_freiburg_campus_map_exports_whole(datasets_dir: Path) -> None:
+    """The biggest recorded map here (6,039 x 6,059 cells at 0.05 m, over the region limit) is
+    exported whole by the service with the default settings, cell for cell the map's state."""
+    from fleetmap.datasets import load_dataset
+
+    ds = load_dataset(datasets_dir / "freiburg-campus-corrected.log.gz")
+    engine = GridMap(MapConfig())
+    for k in range(len(ds)):
+        engine.integrate(ds[k])
+    i0, j0, i1, j1 = engine.known_bounds()  # type: ignore[misc]
+    i0, j0, i1, j1 = i0 - 2, j0 - 2, i1 + 2, j1 + 2
+    assert (i1 - i0) * (j1 - j0) > ApiSettings().max_region_cells
+    with running_api() as api:
+        api.registry.replace("campus", engine, wait=True)
+        r = api.client.get("/maps/campus/export")
+        assert r.status_code == 200, r.text
+        with zipfile.ZipFile(io.BytesIO(r.content)) as zf:
+            magic, size, maxval, data = zf.read("map.pgm").split(b"\n", 3)
+    width, height = map(int, size.split())
+    assert (magic, maxval, width, height) == (b"P5", b"255", i1 - i0, j1 - j0)
+    pixels = np.frombuffer(data, dtype=np.uint8).reshape(height, width)
+    assert np.array_equal(pixels, state_to_pgm(engine.region("state", i0, j0, i1, j1)))
+
+
 def test_a_counts_only_map_exports_its_count_models_occupancy(api: RunningApi) -> None:
     """As `fleetmap build` does: the nav2 map and the PNG show hits / (hits + misses) by the map's
     thresholds when the map keeps no occupancy layer."""

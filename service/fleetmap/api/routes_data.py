@@ -328,12 +328,12 @@ def get_export(
     if window is None:
         raise ApiError(409, "the map has no observed cell yet: nothing to export")
     ny, nx = window.shape
-    if nx * ny > state.settings.max_region_cells:
-        limit = state.settings.max_region_cells
+    if nx * ny > state.settings.max_export_cells:
+        limit = state.settings.max_export_cells
         raise ApiError(
             413,
-            f"the map spans {nx} x {ny} cells, more than the export limit of {limit}; "
-            "read it by /region windows instead",
+            f"the map spans {nx} x {ny} cells, more than the export limit of {limit} "
+            "(`max_export_cells`); read it by /region windows instead",
         )
     if format == "ros":
         return Response(
