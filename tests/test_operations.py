@@ -199,6 +199,7 @@ def test_every_option_can_come_from_the_environment(tmp_path: Path) -> None:
         "FLEETMAP_DATA_DIR": str(data),
         "FLEETMAP_MAX_MEMORY": "32MiB",  # the command line wins: --max-memory 64MiB below
         "FLEETMAP_NO_AUTO_CREATE": "yes",
+        "FLEETMAP_DATADIR": str(tmp_path / "typo"),  # no option's: warned of, ignored
     }
     log_path = tmp_path / "service.log"
     with open(log_path, "wb") as log:
@@ -235,6 +236,11 @@ def test_every_option_can_come_from_the_environment(tmp_path: Path) -> None:
     assert f"listening on tcp/127.0.0.1:{zport}" in logs
     assert f"durable in {data.resolve()}" in logs and "64 MiB (--max-memory)" in logs
     assert "API tokens: NONE" in logs
+    assert (
+        "WARNING fleetmap.server: $FLEETMAP_DATADIR is not a variable of `fleetmap serve` (did you mean "
+        "$FLEETMAP_DATA_DIR?): ignored" in logs
+    ), logs
+    assert not (tmp_path / "typo").exists()
 
 
 def serve_error(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
@@ -298,6 +304,20 @@ def serve_option_actions() -> list[argparse.Action]:
     parser = argparse.ArgumentParser(prog="fleetmap")
     serve = server.add_parser(parser.add_subparsers(dest="command"))
     return [action for action in serve._actions if action.dest != "help"]
+
+
+def test_variables_that_name_no_option_are_warned_of(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A FLEETMAP_ variable of no option is ignored with a warning (the closest option's variable
+    named when one is close), and the variables fleetmap reads elsewhere are not warned of."""
+    for name in [v for v in os.environ if v.startswith("FLEETMAP_")]:
+        monkeypatch.delenv(name)
+    environ = {"FLEETMAP_DATADIR": "/x", "FLEETMAP_COLOUR": "red", "FLEETMAP_WEB_DIR": "/w"}
+    warnings = serve_namespace([], environ, monkeypatch).environment_warnings
+    assert warnings == [
+        "$FLEETMAP_COLOUR is not a variable of `fleetmap serve`: ignored",
+        "$FLEETMAP_DATADIR is not a variable of `fleetmap serve` (did you mean $FLEETMAP_DATA_DIR?): ignored",
+    ]
+    assert serve_namespace([], {"FLEETMAP_DATA_DIR": "/x"}, monkeypatch).environment_warnings == []
 
 
 def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -6,6 +6,7 @@ the real one, which therefore wins (`environment_first`); the parser itself is `
 from __future__ import annotations
 
 import argparse
+import difflib
 import logging
 import os
 from collections.abc import Callable, Sequence
@@ -15,6 +16,9 @@ from fleetmap.log_format import plain_line
 
 #: Prefix of the environment variables that give `serve` options (FLEETMAP_DATA_DIR, ...).
 ENV_PREFIX = "FLEETMAP_"
+#: FLEETMAP_ variables fleetmap reads that name no option: the tokens (`fleetmap.auth`) and the web
+#: viewer's folder (`fleetmap.api.app`).
+OTHER_VARIABLES = frozenset({"FLEETMAP_TOKENS", "FLEETMAP_WEB_DIR"})
 #: What a FLEETMAP_* variable of an on/off option (--insecure, ...) may say.
 _ENV_TRUE = {"1", "true", "yes", "on"}
 _ENV_FALSE = {"0", "false", "no", "off", ""}
@@ -54,9 +58,27 @@ def environment_first(parser: argparse.ArgumentParser) -> Callable[..., Any]:
         if problem:
             line = plain_line(f"{parser.prog}: error: {problem}", namespace.log_format, logging.ERROR)
             parser.exit(2, line + "\n")
+        namespace.environment_warnings = unknown_variables(parser)
         return namespace, extras
 
     return parse_known_args
+
+
+def unknown_variables(parser: argparse.ArgumentParser) -> list[str]:
+    """A warning for each FLEETMAP_ variable set that names no option of `parser` and nothing else
+    fleetmap reads (`OTHER_VARIABLES`), with the closest option's variable when one is close: such a
+    variable is ignored, and a typo in one (FLEETMAP_DATADIR) otherwise went unnoticed while the
+    maps went to the default folder. Warnings, not errors: other programs may have FLEETMAP_
+    variables of their own in the same environment."""
+    known = {env_name(action) for action in parser._actions if action.option_strings}
+    warnings = []
+    for variable in sorted(v for v in os.environ if v.startswith(ENV_PREFIX)):
+        if variable in known or variable in OTHER_VARIABLES:
+            continue
+        close = difflib.get_close_matches(variable, sorted(known | OTHER_VARIABLES), n=1, cutoff=0.8)
+        hint = f" (did you mean ${close[0]}?)" if close else ""
+        warnings.append(f"${variable} is not a variable of `{parser.prog}`{hint}: ignored")
+    return warnings
 
 
 def _as_arguments(action: argparse.Action, text: str) -> list[str]:

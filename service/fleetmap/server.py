@@ -193,6 +193,8 @@ def _configure_process(args: argparse.Namespace) -> None:
     """What `serve` sets for the whole process before anything starts: the log, Zenoh's own log,
     the GIL's switch interval."""
     configure_logging(str(args.log_level), str(args.log_format))
+    for warning in getattr(args, "environment_warnings", ()):
+        log.warning("%s", warning)
     # Zenoh's own log: refused TLS handshakes and wrong passwords show there (RUST_LOG=warn for more).
     import zenoh
 
