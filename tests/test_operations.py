@@ -306,6 +306,17 @@ def serve_option_actions() -> list[argparse.Action]:
     return [action for action in serve._actions if action.dest != "help"]
 
 
+def test_in_memory_with_a_data_dir_says_the_directory_is_not_used(tmp_path: Path) -> None:
+    """--in-memory with --data-dir (the Docker image sets $FLEETMAP_DATA_DIR): a warning at start
+    says the directory is not used, and nothing is written there."""
+    unused = tmp_path / "unused"
+    with ServiceProcess(tmp_path, ["--in-memory", "--data-dir", str(unused)]) as svc:
+        assert httpx.get(f"{svc.base_url}/healthz").status_code == 200
+        logs = svc.logs()
+    assert f"--in-memory: --data-dir {unused} is not used; the maps are lost when the service stops" in logs
+    assert not unused.exists()
+
+
 def test_variables_that_name_no_option_are_warned_of(monkeypatch: pytest.MonkeyPatch) -> None:
     """A FLEETMAP_ variable of no option is ignored with a warning (the closest option's variable
     named when one is close), and the variables fleetmap reads elsewhere are not warned of."""

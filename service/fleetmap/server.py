@@ -65,7 +65,7 @@ from fleetmap.http_server import bind_http, make_server, url_host
 from fleetmap.ingest import IngestStartError, ZenohIngest
 from fleetmap.log_format import configure_logging
 from fleetmap.persistence import DurableStore
-from fleetmap.serve_options import ROS_MAP_DEFAULTS, add_serve_parser, parse_http
+from fleetmap.serve_options import DEFAULT_DATA_DIR, ROS_MAP_DEFAULTS, add_serve_parser, parse_http
 from fleetmap.serve_ros import ros_domain, ros_options, start_ros_maps, start_ros_scans, zenoh_status
 from fleetmap.warm_up import warm_up
 
@@ -336,6 +336,13 @@ def _log_protection(args: argparse.Namespace, tokens: TokenSet | TokenFile | Non
         "no limit" if budget.limit is None else f"{budget.limit / 2**20:.0f} MiB (--max-memory)",
         budget.used / 2**20,
     )  # fmt: skip
+    if args.in_memory and args.data_dir != DEFAULT_DATA_DIR:
+        # Both given (the Docker image sets $FLEETMAP_DATA_DIR): the directory is not used, and a
+        # reader of the options alone expected the maps to be kept there.
+        log.warning(
+            "--in-memory: --data-dir %s is not used; the maps are lost when the service stops",
+            args.data_dir,
+        )
 
 
 def freeze_startup_objects() -> int:
