@@ -30,6 +30,7 @@ from service_process import ServiceProcess, free_port, reaped, wait_for
 
 from fleetmap import serve_environment, server
 from fleetmap.database import DB_NAME
+from fleetmap.ingest import unauthenticated_endpoints
 from fleetmap.memory_budget import MemoryBudget
 from fleetmap.registry import QUEUE_TOTAL
 from fleetmap.wire import BINARY_ENCODING
@@ -304,6 +305,29 @@ def serve_option_actions() -> list[argparse.Action]:
     parser = argparse.ArgumentParser(prog="fleetmap")
     serve = server.add_parser(parser.add_subparsers(dest="command"))
     return [action for action in serve._actions if action.dest != "help"]
+
+
+def test_zenoh_beyond_loopback_without_credentials_is_warned_of(tmp_path: Path) -> None:
+    """A plain Zenoh endpoint beyond loopback takes anyone's scans: a warning at start says so and
+    names it (the REST API refuses such an address without tokens; Zenoh has no check of its own).
+    Loopback, TLS and a user / password configuration are not warned of."""
+    endpoint = f"tcp/0.0.0.0:{free_port()}"
+    with ServiceProcess(tmp_path, ["--in-memory", "--zenoh-listen", endpoint]) as svc:
+        open_logs = svc.logs()
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        loopback_logs = svc.logs()
+    warning = (
+        "beyond loopback with neither TLS nor a user / password: anyone who reaches it can publish scans"
+    )
+    assert f"zenoh listens on {endpoint} {warning}" in open_logs, open_logs
+    assert warning not in loopback_logs
+    plain = zenoh.Config()
+    assert unauthenticated_endpoints(["tcp/0.0.0.0:1", "tcp/[::1]:2", "tls/0.0.0.0:3"], plain) == [
+        "tcp/0.0.0.0:1"
+    ]
+    users = zenoh.Config()
+    users.insert_json5("transport/auth/usrpwd/dictionary_file", '"/etc/fleetmap/users.txt"')
+    assert unauthenticated_endpoints(["tcp/0.0.0.0:1"], users) == []
 
 
 def test_in_memory_with_a_data_dir_says_the_directory_is_not_used(tmp_path: Path) -> None:

@@ -83,6 +83,7 @@ client with nothing to connect to) raise `IngestStartError` with a readable mess
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import json
 import logging
 import threading
@@ -122,6 +123,33 @@ MODES = ("router", "peer", "client")
 
 class IngestStartError(RuntimeError):
     """The Zenoh session could not be opened; the message says why (no Rust source locations)."""
+
+
+#: Zenoh link protocols whose endpoints authenticate the other side (certificates).
+_AUTHENTICATED_PROTOCOLS = frozenset({"tls", "quic"})
+
+
+def unauthenticated_endpoints(listen: Sequence[str], cfg: zenoh.Config) -> list[str]:
+    """The endpoints of `listen` that anyone beyond this host may connect to without credentials:
+    neither loopback nor TLS / QUIC, in a configuration without user / password authentication
+    (`transport/auth/usrpwd`)."""
+    usrpwd = json.loads(cfg.get_json("transport/auth/usrpwd"))
+    if isinstance(usrpwd, dict) and (usrpwd.get("dictionary_file") or usrpwd.get("user")):
+        return []
+    found = []
+    for endpoint in listen:
+        protocol, _, address = endpoint.partition("/")
+        host = address.split("#", 1)[0].rpartition(":")[0].strip("[]")
+        if protocol in _AUTHENTICATED_PROTOCOLS or protocol in ("unixsock-stream", "unixpipe"):
+            continue
+        try:
+            if ipaddress.ip_address(host).is_loopback:
+                continue
+        except ValueError:
+            if host == "localhost":
+                continue
+        found.append(endpoint)
+    return found
 
 
 def parse_key(key: str, suffix: str) -> tuple[str, str] | None:
@@ -305,6 +333,15 @@ class ZenohIngest:
             ", ".join(self.listen) or "nothing",
             f", connecting to {', '.join(self.connect)}" if self.connect else "",
         )
+        open_endpoints = unauthenticated_endpoints(self.listen, cfg)
+        if open_endpoints:
+            # The REST API refuses to serve beyond loopback without tokens; Zenoh has no such check
+            # of its own, and a plain endpoint took anyone's scans (and maps, with auto-create).
+            log.warning(
+                "zenoh listens on %s beyond loopback with neither TLS nor a user / password: anyone "
+                "who reaches it can publish scans (see docs/security.md)",
+                ", ".join(open_endpoints),
+            )
 
     def close(self) -> None:
         """Undeclare the subscribers and close the session. Idempotent."""
