@@ -25,7 +25,7 @@ import zenoh.ext
 from fleetmap_client import cli
 from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, ScanPublisher, client_config
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
-from fleetmap_client.sim import robot_ids, run_sim
+from fleetmap_client.sim import SimError, robot_ids, run_sim
 from service_process import DATASETS_DIR, free_port, reaped, wait_for
 
 from fleetmap.codec import WireScan, decode, encode_json
@@ -735,6 +735,30 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
         assert "Traceback" not in bad.stderr, bad.stderr
         assert "robots on map" not in bad.stdout, bad.stdout
+
+
+def test_a_sim_robot_that_fails_stops_the_sim_with_its_error(
+    router: Router, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A robot whose loop raises stops the whole simulation, which raises SimError naming the robot
+    and the error (the command exits 2 with it), where the thread printed a traceback and the sim
+    went on to report success. Its publishers are closed all the same."""
+    ticks: dict[int, int] = {}
+    real_tick = SimulatedRobot.tick
+
+    def tick(self: SimulatedRobot) -> Scan:
+        ticks[id(self)] = ticks.get(id(self), 0) + 1
+        if ticks[id(self)] == 3:  # a robot's third scan (whichever robot comes first)
+            raise RuntimeError("lidar unplugged")
+        return real_tick(self)
+
+    monkeypatch.setattr(SimulatedRobot, "tick", tick)
+    started = time.monotonic()
+    with pytest.raises(SimError, match=r"robot sim-[12] stopped: RuntimeError: lidar unplugged"):
+        run_sim(2, map_id="f", seed=0, rate=20, seconds=None, connect=[router.endpoint], beams=91,
+                wait_timeout=20, plan=generate_floorplan(4, width_m=20.0, height_m=15.0))  # fmt: skip
+    assert time.monotonic() - started < 15  # stopped, not left to run forever (seconds=None)
+    assert [t for t in threading.enumerate() if t.name.startswith("fleetmap-") and "-f-sim-" in t.name] == []
 
 
 def test_sim_stops_on_request(router: Router) -> None:

@@ -31,7 +31,8 @@ from .publisher import Encoding, ScanPublisher
 
 
 class SimError(RuntimeError):
-    """The simulation could not run: no service reachable in time."""
+    """The simulation could not run (no service reachable in time), or a robot of it stopped on an
+    error (the others were stopped with it)."""
 
 
 @dataclass
@@ -122,10 +123,11 @@ def run_sim(
         _wait_all(publishers, wait_timeout, stop, on_waiting)
         started = time.monotonic()
         deadline = None if seconds is None else started + seconds
+        failures: dict[str, BaseException] = {}
         threads = [
             threading.Thread(
-                target=_drive,
-                args=(sim, pub, rate, deadline, stop),
+                target=_drive_or_stop,
+                args=(sim, pub, rate, deadline, stop, failures),
                 name=f"fleetmap-{pub.robot_id}",
                 daemon=True,
             )
@@ -144,6 +146,11 @@ def run_sim(
             for t in threads:
                 t.join()
         result.seconds = time.monotonic() - started
+        if failures:
+            # A robot's thread that died printed its traceback, and the command then said "published
+            # N scans" and exited 0 as if all had gone well.
+            robot, exc = next(iter(failures.items()))
+            raise SimError(f"robot {robot} stopped: {type(exc).__name__}: {exc} (the others were stopped)")
     finally:
         for pub in publishers:
             result.published[pub.robot_id] = pub.published
@@ -174,6 +181,22 @@ def _wait_all(
                 reason = f" ({pub.last_connect_error})" if pub.last_connect_error else ""
                 where = ", ".join(pub.endpoints)
                 raise SimError(f"no fleetmap service reachable at {where} within {timeout:g} s{reason}")
+
+
+def _drive_or_stop(
+    robot: SimulatedRobot,
+    pub: ScanPublisher,
+    rate: float,
+    deadline: float | None,
+    stop: threading.Event,
+    failures: dict[str, BaseException],
+) -> None:
+    """`_drive`; an error ends the whole simulation (`stop`), recorded in `failures` by robot id."""
+    try:
+        _drive(robot, pub, rate, deadline, stop)
+    except Exception as exc:
+        failures.setdefault(pub.robot_id, exc)
+        stop.set()
 
 
 def _drive(
