@@ -234,7 +234,10 @@ class FleetmapClient:
     # -- plumbing ----------------------------------------------------------------------------------
 
     def _request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
-        response = self._http.request(method, url, **kwargs)
+        try:
+            response = self._http.request(method, url, **kwargs)
+        except httpx.TransportError as exc:
+            raise _naming_the_service(exc, self.base_url) from exc
         _raise_for_error(response)
         return response
 
@@ -729,9 +732,9 @@ class FleetmapClient:
                             yield event, data
                             if event == "deleted":
                                 return
-            except httpx.TransportError:
-                if not followed:
-                    raise  # nothing listens at all: say so, as every other method does
+            except httpx.TransportError as exc:
+                if not followed:  # nothing listens at all: say so, as every other method does
+                    raise _naming_the_service(exc, self.base_url) from exc
             # The stream ended without `deleted` (the server stopped: "the server is shutting
             # down"), the connection was lost, or it stayed silent past the read timeout (a
             # ReadTimeout: leaving the `with` closed that connection): wait for the service, go on.
@@ -861,6 +864,17 @@ def _scan_body(
     body = json.dumps(message, separators=(",", ":")).encode()
     sent = message.get("seq")
     return body, JSON_ENCODING, sent if isinstance(sent, int) else None
+
+
+def _naming_the_service(exc: httpx.TransportError, base_url: str) -> httpx.TransportError:
+    """`exc` again, of its own type, its sentence followed by the service's address: httpx's alone
+    ("All connection attempts failed", "[Errno 111] Connection refused") names none, and a wrong
+    host or port read as a mystery."""
+    try:
+        request: httpx.Request | None = exc.request
+    except RuntimeError:  # raised before a request was made
+        request = None
+    return type(exc)(f"{exc} (the fleetmap service at {base_url})", request=request)
 
 
 def _scan_not_taken(exc: BaseException) -> bool:
