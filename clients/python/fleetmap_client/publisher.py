@@ -28,9 +28,12 @@ Connection behaviour. The constructor returns at once; the session is opened by 
 that keeps trying until the service answers (Zenoh's own `zenoh.open` in client mode either fails
 at once or, with `connect/timeout_ms: -1`, blocks the caller until a router listens; a loop of
 bounded attempts gives the same "wait for the service" behaviour while letting `close()` and Ctrl-C
-stop it). Once connected, Zenoh itself reconnects after the service restarts or the link drops,
-trying again every 0.1 s, then 0.2, 0.4, and every 0.5 s from then on (`RECONNECT_PERIOD_MAX_MS`;
-Zenoh's own default backs off to 4 s, and robots missed services that came back only briefly).
+stop it). At the program's exit (atexit), publishers left open are closed and the attempts still
+in progress waited for: a thread that came back from Zenoh into a finalizing interpreter aborted
+the process (SIGABRT, "FATAL: exception not rethrown"). Once connected, Zenoh itself reconnects
+after the service restarts or the link drops, trying again every 0.1 s, then 0.2, 0.4, and every
+0.5 s from then on (`RECONNECT_PERIOD_MAX_MS`; Zenoh's own default backs off to 4 s, and robots
+missed services that came back only briefly).
 
 Store and forward (`backlog`, default `DEFAULT_BACKLOG` = 1000 scans). Robots drive through Wi-Fi
 dead zones, and the service restarts; no scan should be lost to either. The publisher is zenoh-ext's
@@ -74,6 +77,7 @@ subscriber does not fetch anything): a scan published while no router is connect
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import math
@@ -128,8 +132,13 @@ RECONNECT_PERIOD_INIT_MS = int(CONNECT_RETRY["period_init_ms"])
 RECONNECT_PERIOD_MAX_MS = int(CONNECT_RETRY["period_max_ms"])
 RECONNECT_PERIOD_FACTOR = float(CONNECT_RETRY["period_increase_factor"])
 #: How long `close` waits for the opener's attempt in progress to end (one attempt and a margin; a
-#: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running).
+#: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running: it is waited
+#: for again at the program's exit, `EXIT_WAIT_S`).
 CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
+#: How long, at the program's exit, each opener still inside a connection attempt is waited for
+#: (`_settle_at_exit`): one that comes back from `zenoh.open` while the interpreter finalizes
+#: aborts the process. A configuration whose `connect/timeout_ms` is longer (or -1) may outlast it.
+EXIT_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 10.0
 #: Scans a publisher keeps for re-delivery by default (`backlog`): at 10 scans/s, 100 s of dead zone,
 #: about 4.5 MB of binary 1081-beam scans. The service's ingest queue holds as many per robot.
 DEFAULT_BACKLOG = 1000
@@ -318,6 +327,39 @@ def _json_list(items: Sequence[str]) -> str:
     return json.dumps(list(items))
 
 
+#: Publishers not closed yet, and openers `close` stopped waiting for while they were still inside
+#: `zenoh.open`: `_settle_at_exit` closes the ones and waits for the others before the interpreter
+#: finalizes. Guarded by `_exit_lock`.
+_unclosed: set[ScanPublisher] = set()
+_openers_in_attempt: set[threading.Thread] = set()
+_exit_lock = threading.Lock()
+
+
+def _settle_at_exit() -> None:
+    """At the program's exit (atexit: after its non-daemon threads ended, before the interpreter
+    finalizes), leave no opener inside a Zenoh call: close the publishers the program left open,
+    then wait for the openers still in a connection attempt (up to `EXIT_WAIT_S` each).
+
+    The opener is a daemon thread (a program must be able to end without `close()`), which nothing
+    joins. One that came back from `zenoh.open`, or from any Zenoh call that lets the GIL go,
+    while the interpreter finalized was ended by Python inside Rust code, and the process died
+    with "FATAL: exception not rethrown" (SIGABRT) instead of exiting: after a `close()` that gave
+    up waiting for the attempt in progress (a `connect/timeout_ms` above `CLOSE_WAIT_S`, or a
+    starved machine), or with a publisher never closed."""
+    with _exit_lock:
+        unclosed = list(_unclosed)
+    for pub in unclosed:
+        pub.close()
+    with _exit_lock:
+        openers = list(_openers_in_attempt)
+        _openers_in_attempt.clear()
+    for opener in openers:
+        opener.join(EXIT_WAIT_S)
+
+
+atexit.register(_settle_at_exit)
+
+
 class ScanPublisher:
     """Publishes one robot's scans to one map over Zenoh. Thread-safe: concurrent `publish` calls
     take distinct seqs and their scans leave in seq order (one at a time).
@@ -434,6 +476,8 @@ class ScanPublisher:
         self._opener = threading.Thread(
             target=self._open_loop, name=f"fleetmap-publisher-{map_id}-{robot_id}", daemon=True
         )
+        with _exit_lock:
+            _unclosed.add(self)
         self._opener.start()
 
     # -- connection --------------------------------------------------------------------------------
@@ -875,7 +919,9 @@ class ScanPublisher:
 
         Scans already handed to Zenoh over a live link are flushed by the session close (reliable
         channel); scans still waiting for re-delivery (`backlogged`, `pending`) are given up. While
-        no connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`)."""
+        no connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`;
+        an attempt still running then is waited for at the program's exit, at most `EXIT_WAIT_S`).
+        A publisher the program leaves open is closed at its exit (atexit)."""
         with self._lock:
             if self._closed.is_set():
                 return
@@ -898,8 +944,13 @@ class ScanPublisher:
                 session.close()
         # The opener exits after its current attempt: wait for it. A thread still inside `zenoh.open`
         # when the program exits comes back into a finalizing interpreter, and the process dies
-        # with "FATAL: exception not rethrown" (SIGABRT, exit 134) instead of exiting normally.
+        # with "FATAL: exception not rethrown" (SIGABRT, exit 134) instead of exiting normally:
+        # one still in its attempt after CLOSE_WAIT_S is waited for at exit (`_settle_at_exit`).
         self._opener.join(timeout=CLOSE_WAIT_S)
+        with _exit_lock:
+            _unclosed.discard(self)
+            if self._opener.is_alive():
+                _openers_in_attempt.add(self._opener)
 
     @property
     def closed(self) -> bool:
@@ -991,8 +1042,8 @@ def _report(status: DeliveryStatus, session_id: int | None, first: int, last: in
 
 
 __all__ = [
-    "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT", "FETCH_MARGIN_S",
-    "HEARTBEAT_S", "RECONNECT_HOLD_MAX_S", "RECONNECT_HOLD_S", "RECONNECT_PERIOD_FACTOR",
+    "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT", "EXIT_WAIT_S",
+    "FETCH_MARGIN_S", "HEARTBEAT_S", "RECONNECT_HOLD_MAX_S", "RECONNECT_HOLD_S", "RECONNECT_PERIOD_FACTOR",
     "RECONNECT_PERIOD_INIT_MS", "RECONNECT_PERIOD_MAX_MS",
     "DeliveryReport", "DeliveryUnsupported", "PublisherClosed", "ScanPublisher", "client_config",
 ]  # fmt: skip
