@@ -476,9 +476,9 @@ class ScanPublisher:
         self._opener = threading.Thread(
             target=self._open_loop, name=f"fleetmap-publisher-{map_id}-{robot_id}", daemon=True
         )
-        with _exit_lock:
-            _unclosed.add(self)
         self._opener.start()
+        with _exit_lock:  # once there is an opener to stop
+            _unclosed.add(self)
 
     # -- connection --------------------------------------------------------------------------------
 
