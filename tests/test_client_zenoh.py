@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -339,6 +340,44 @@ def test_a_publisher_left_open_is_closed_at_exit(router: Router, tmp_path: Path)
     assert done.returncode == 0, (done.returncode, done.stdout, done.stderr)
     assert done.stdout.strip() == "closed True threads []", done.stdout
     assert [w.seq for _, _, w in router.wait_count(1, "fleetmap/lab/left/scan")] == [0]
+
+
+# A program that makes a publisher whose opener is inside a connection attempt when the program
+# ends (a silent endpoint: each attempt lasts `CONNECT_ATTEMPT_MS`), closed first with `close`
+# giving up on the attempt at once ("close"), or never closed ("open"). Its own atexit hook,
+# registered before fleetmap_client's and so run after it, says what was left running.
+_EXIT_PROGRAM = """
+import atexit, sys, time
+left = {}
+atexit.register(lambda: print(f"opener alive {left['opener'].is_alive()} closed {left['pub'].closed}"))
+from fleetmap_client import publisher
+publisher.CLOSE_WAIT_S = 0.05
+pub = publisher.ScanPublisher("lab", "exit", connect=[sys.argv[1]])
+left["pub"], left["opener"] = pub, pub._opener
+time.sleep(0.3)
+if sys.argv[2] == "close":
+    pub.close()
+    print(f"after close: opener alive {pub._opener.is_alive()}")
+"""
+
+
+@pytest.mark.parametrize("how", ["close", "open"])
+def test_a_program_ends_with_no_publisher_thread_left_inside_zenoh(how: str) -> None:
+    """The opener is a daemon thread, which nothing joins: one that came back from `zenoh.open` (or
+    any Zenoh call that lets the GIL go) while the interpreter finalized was ended inside Rust code,
+    and the process died with "FATAL: exception not rethrown" (SIGABRT) instead of exiting: here 9
+    runs in 16 whose attempt ended just after a `close()` that had given up waiting for it. At exit,
+    publishers left open are closed and openers still in an attempt waited for."""
+    silent = socket.create_server(("127.0.0.1", 0))  # accepts connections, never answers Zenoh's hello
+    with silent:
+        endpoint = f"tcp/127.0.0.1:{silent.getsockname()[1]}"
+        done = subprocess.run(
+            [sys.executable, "-c", _EXIT_PROGRAM, endpoint, how], capture_output=True, text=True, timeout=60
+        )
+    if how == "close":
+        assert "after close: opener alive True" in done.stdout, done.stdout  # close gave up on it
+    assert "opener alive False closed True" in done.stdout, done.stdout + done.stderr
+    assert done.returncode == 0, done.stderr
 
 
 def test_closing_gives_up_the_queued_scans_and_counts_them_as_dropped(sim_scans: list[Scan]) -> None:

@@ -657,3 +657,37 @@ def test_plain_publishers_publishing_at_once_lose_no_sample(registry: MapRegistr
         for s in sessions:
             s.close()
         ingest.close()
+
+
+def test_the_services_zenoh_callback_threads_are_waited_for_at_exit_and_end_with_close(
+    registry: MapRegistry,
+) -> None:
+    """zenoh-python runs each Python callback on a thread of its own ("pyo3-closure"), a daemon when
+    the declaring thread is one. `fleetmap serve` declares its callbacks (the scan ingest's, and
+    with `--ros-scans` and `--ros-publish-map` the ROS ones) from the main thread: their threads are
+    not daemons, so none is left running, unjoined, into the interpreter's finalization (a daemon
+    one coming back from Zenoh then aborts the process: "FATAL: exception not rethrown"). The
+    interpreter waits for such threads at exit: each ends when its declaration goes, in `close`,
+    or `fleetmap serve` would hang after it stopped."""
+    from fleetmap.ros.ingest import RosScanIngest
+    from fleetmap.ros.map_publisher import MapTopic, RosMapOptions, RosMapPublisher
+
+    def callback_threads() -> set[threading.Thread]:
+        return {t for t in threading.enumerate() if "pyo3-closure" in t.name}
+
+    before = callback_threads()
+    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{free_port()}"])
+    ingest.start()
+    assert ingest.session is not None
+    ros = RosScanIngest(registry, ingest.session, "lab")
+    ros.start()
+    ros_maps = RosMapPublisher(registry, ingest.session, RosMapOptions((MapTopic("lab"),), period=3600.0))
+    ros_maps.start()
+    started = callback_threads() - before
+    assert started and not any(t.daemon for t in started), started
+    ros_maps.close()  # in the order of `fleetmap serve`'s shutdown
+    ros.close()
+    ingest.close()
+    for thread in started:
+        thread.join(10)
+    assert not any(t.is_alive() for t in started), started

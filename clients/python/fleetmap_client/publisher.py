@@ -28,9 +28,12 @@ Connection behaviour. The constructor returns at once; the session is opened by 
 that keeps trying until the service answers (Zenoh's own `zenoh.open` in client mode either fails
 at once or, with `connect/timeout_ms: -1`, blocks the caller until a router listens; a loop of
 bounded attempts gives the same "wait for the service" behaviour while letting `close()` and Ctrl-C
-stop it). Once connected, Zenoh itself reconnects after the service restarts or the link drops,
-trying again every 0.1 s, then 0.2, 0.4, and every 0.5 s from then on (`RECONNECT_PERIOD_MAX_MS`;
-Zenoh's own default backs off to 4 s, and robots missed services that came back only briefly).
+stop it). At the program's exit (atexit), publishers left open are closed and the attempts still
+in progress waited for: a thread that came back from Zenoh into a finalizing interpreter aborted
+the process (SIGABRT, "FATAL: exception not rethrown"). Once connected, Zenoh itself reconnects
+after the service restarts or the link drops, trying again every 0.1 s, then 0.2, 0.4, and every
+0.5 s from then on (`RECONNECT_PERIOD_MAX_MS`; Zenoh's own default backs off to 4 s, and robots
+missed services that came back only briefly).
 
 Store and forward (`backlog`, default `DEFAULT_BACKLOG` = 1000 scans). Robots drive through Wi-Fi
 dead zones, and the service restarts; no scan should be lost to either. The publisher is zenoh-ext's
@@ -81,7 +84,6 @@ import math
 import numbers
 import threading
 import time
-import weakref
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -131,8 +133,13 @@ RECONNECT_PERIOD_INIT_MS = int(CONNECT_RETRY["period_init_ms"])
 RECONNECT_PERIOD_MAX_MS = int(CONNECT_RETRY["period_max_ms"])
 RECONNECT_PERIOD_FACTOR = float(CONNECT_RETRY["period_increase_factor"])
 #: How long `close` waits for the opener's attempt in progress to end (one attempt and a margin; a
-#: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running).
+#: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running: it is waited
+#: for again at the program's exit, `EXIT_WAIT_S`).
 CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
+#: How long, at the program's exit, each opener still inside a connection attempt is waited for
+#: (`_settle_at_exit`): one that comes back from `zenoh.open` while the interpreter finalizes
+#: aborts the process. A configuration whose `connect/timeout_ms` is longer (or -1) may outlast it.
+EXIT_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 10.0
 #: Scans a publisher keeps for re-delivery by default (`backlog`): at 10 scans/s, 100 s of dead zone,
 #: about 4.5 MB of binary 1081-beam scans. The service's ingest queue holds as many per robot.
 DEFAULT_BACKLOG = 1000
@@ -316,18 +323,37 @@ def _json_list(items: Sequence[str]) -> str:
     return json.dumps(list(items))
 
 
-#: Publishers not closed yet, for `_close_open_publishers` (weakly: a publisher is no one's to keep).
-_OPEN_PUBLISHERS: weakref.WeakSet[ScanPublisher] = weakref.WeakSet()
+#: Publishers not closed yet, and threads of closed ones (openers, fetch watchers) `close` stopped
+#: waiting for while they were still inside a Zenoh call: `_settle_at_exit` closes the ones and
+#: waits for the others before the interpreter finalizes. Guarded by `_exit_lock`.
+_unclosed: set[ScanPublisher] = set()
+_threads_in_zenoh: set[threading.Thread] = set()
+_exit_lock = threading.Lock()
 
 
-@atexit.register
-def _close_open_publishers() -> None:
-    """At exit, close every publisher the program left open: their scans handed to Zenoh are
-    flushed, and their threads, waiting in Zenoh's calls, end while the interpreter still runs them
-    (atexit comes before finalization). Left to finalization, a thread coming back from Zenoh's
-    wait killed the process with "FATAL: exception not rethrown" (SIGABRT)."""
-    for publisher in list(_OPEN_PUBLISHERS):
-        publisher.close()
+def _settle_at_exit() -> None:
+    """At the program's exit (atexit: after its non-daemon threads ended, before the interpreter
+    finalizes), leave no publisher's thread inside a Zenoh call: close the publishers the program
+    left open, then wait for the threads still in a Zenoh call (up to `EXIT_WAIT_S` each).
+
+    The opener and the fetch watcher are daemon threads (a program must be able to end without
+    `close()`), which nothing joins. One that came back from `zenoh.open`, or from any Zenoh call that lets the GIL go,
+    while the interpreter finalized was ended by Python inside Rust code, and the process died
+    with "FATAL: exception not rethrown" (SIGABRT) instead of exiting: after a `close()` that gave
+    up waiting for the attempt in progress (a `connect/timeout_ms` above `CLOSE_WAIT_S`, or a
+    starved machine), or with a publisher never closed."""
+    with _exit_lock:
+        unclosed = list(_unclosed)
+    for pub in unclosed:
+        pub.close()
+    with _exit_lock:
+        threads = list(_threads_in_zenoh)
+        _threads_in_zenoh.clear()
+    for thread in threads:
+        thread.join(EXIT_WAIT_S)
+
+
+atexit.register(_settle_at_exit)
 
 
 class ScanPublisher:
@@ -448,7 +474,8 @@ class ScanPublisher:
             target=self._open_loop, name=f"fleetmap-publisher-{map_id}-{robot_id}", daemon=True
         )
         self._opener.start()
-        _OPEN_PUBLISHERS.add(self)
+        with _exit_lock:  # once there is an opener to stop
+            _unclosed.add(self)
 
     # -- connection --------------------------------------------------------------------------------
 
@@ -899,8 +926,9 @@ class ScanPublisher:
 
         Scans already handed to Zenoh over a live link are flushed by the session close (reliable
         channel); scans still waiting for re-delivery (`backlogged`, `pending`) are given up. While
-        no connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`)."""
-        _OPEN_PUBLISHERS.discard(self)
+        no connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`;
+        an attempt still running then is waited for at the program's exit, at most `EXIT_WAIT_S`).
+        A publisher the program leaves open is closed at its exit (atexit)."""
         with self._lock:
             if self._closed.is_set():
                 return
@@ -924,10 +952,16 @@ class ScanPublisher:
         # The opener exits after its current attempt, the fetch watcher with its undeclared channel:
         # wait for them. A thread still inside `zenoh.open` or the channel's wait when the program
         # exits comes back into a finalizing interpreter, and the process dies with "FATAL:
-        # exception not rethrown" (SIGABRT, exit 134) instead of exiting normally.
+        # exception not rethrown" (SIGABRT, exit 134) instead of exiting normally: one still in a
+        # Zenoh call after CLOSE_WAIT_S is waited for at exit (`_settle_at_exit`).
         self._opener.join(timeout=CLOSE_WAIT_S)
         if self._fetch_thread is not None:
             self._fetch_thread.join(timeout=CLOSE_WAIT_S)
+        with _exit_lock:
+            _unclosed.discard(self)
+            _threads_in_zenoh.update(
+                t for t in (self._opener, self._fetch_thread) if t is not None and t.is_alive()
+            )
 
     @property
     def closed(self) -> bool:
@@ -1019,8 +1053,8 @@ def _report(status: DeliveryStatus, session_id: int | None, first: int, last: in
 
 
 __all__ = [
-    "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT", "FETCH_MARGIN_S",
-    "HEARTBEAT_S", "RECONNECT_HOLD_MAX_S", "RECONNECT_HOLD_S", "RECONNECT_PERIOD_FACTOR",
+    "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT", "EXIT_WAIT_S",
+    "FETCH_MARGIN_S", "HEARTBEAT_S", "RECONNECT_HOLD_MAX_S", "RECONNECT_HOLD_S", "RECONNECT_PERIOD_FACTOR",
     "RECONNECT_PERIOD_INIT_MS", "RECONNECT_PERIOD_MAX_MS",
     "DeliveryReport", "DeliveryUnsupported", "PublisherClosed", "ScanPublisher", "client_config",
 ]  # fmt: skip
