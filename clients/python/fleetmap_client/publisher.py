@@ -337,11 +337,11 @@ def _settle_at_exit() -> None:
     left open, then wait for the threads still in a Zenoh call (up to `EXIT_WAIT_S` each).
 
     The opener and the fetch watcher are daemon threads (a program must be able to end without
-    `close()`), which nothing joins. One that came back from `zenoh.open`, or from any Zenoh call that lets the GIL go,
-    while the interpreter finalized was ended by Python inside Rust code, and the process died
-    with "FATAL: exception not rethrown" (SIGABRT) instead of exiting: after a `close()` that gave
-    up waiting for the attempt in progress (a `connect/timeout_ms` above `CLOSE_WAIT_S`, or a
-    starved machine), or with a publisher never closed."""
+    `close()`), which nothing joins. One that came back from `zenoh.open`, or from any Zenoh call
+    that lets the GIL go, while the interpreter finalized was ended by Python inside Rust code, and
+    the process died with "FATAL: exception not rethrown" (SIGABRT) instead of exiting: after a
+    `close()` that gave up waiting for the attempt in progress (a `connect/timeout_ms` above
+    `CLOSE_WAIT_S`, or a starved machine), or with a publisher never closed."""
     with _exit_lock:
         unclosed = list(_unclosed)
     for pub in unclosed:
