@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import signal
 import socket
 import subprocess
@@ -27,7 +28,7 @@ from fleetmap_client import cli
 from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, ScanPublisher, client_config
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
 from fleetmap_client.sim import SimError, robot_ids, run_sim
-from service_process import DATASETS_DIR, free_port, reaped, wait_for
+from service_process import DATASETS_DIR, ServiceProcess, free_port, reaped, wait_for
 
 from fleetmap.codec import WireScan, decode, encode_json
 from fleetmap.datasets import load_dataset
@@ -732,8 +733,11 @@ def test_sim_command_runs_and_reports(router: Router, capsys: pytest.CaptureFixt
     args = ["--seconds", "1", "--rate", "5", "--beams", "91", "--connect", router.endpoint]
     code = cli.main(["sim", "--robots", "2", "--map", "simcli", "--wait-timeout", "20", *args])
     assert code == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     assert "sim: 2 robots published" in out
+    # This router is no fleetmap service: it answers no delivery query, so nothing is confirmed,
+    # said as a warning (as `fleetmap replay` does), not as a failure.
+    assert "fleetmap sim: warning: not confirmed:" in err and "confirmed integrated" not in out
     keys = {k for k, _, _ in router.samples()}
     assert keys == {"fleetmap/simcli/sim-1/scan", "fleetmap/simcli/sim-2/scan"}
 
@@ -745,7 +749,8 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
     was started with SIGINT ignored (as `cmd &` from a script does); a bad map id is refused before
     the banner claims robots on it."""
     command = [sys.executable, "-m", "fleetmap_client.cli", "sim", "--robots", "1", "--rate", "20",
-               "--beams", "91", "--connect", router.endpoint, "--wait-timeout", "20"]  # fmt: skip
+               "--beams", "91", "--connect", router.endpoint, "--wait-timeout", "20",
+               "--no-confirm"]  # fmt: skip
     sim = subprocess.Popen(
         [*command, "--map", "ctrlc"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
@@ -774,6 +779,32 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
         assert "Traceback" not in bad.stderr, bad.stderr
         assert "robots on map" not in bad.stdout, bad.stdout
+
+
+@pytest.mark.parametrize("max_beams", [None, 50])
+def test_sim_confirms_its_scans_with_the_service(tmp_path: Path, max_beams: int | None) -> None:
+    """Once its robots stop, `fleetmap sim` asks the service whether every scan is integrated (as
+    `fleetmap replay` does): it says so, or, for scans the service refused (more beams than its
+    --max-beams), warns with each robot's report and exits 1, where it said "published" alone."""
+    args = ["--in-memory"] if max_beams is None else ["--in-memory", "--max-beams", str(max_beams)]
+    with ServiceProcess(tmp_path, args) as service:
+        done = subprocess.run(
+            [sys.executable, "-m", "fleetmap_client.cli", "sim", "--robots", "2", "--rate", "10",
+             "--seconds", "1", "--beams", "91", "--map", "confirm", "--connect", service.zenoh_endpoint,
+             "--wait-timeout", "30"],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    if max_beams is None:
+        assert done.returncode == 0, (done.stdout, done.stderr)
+        integrated = re.search(r"sim: all (\d+) scans confirmed integrated", done.stdout)
+        assert integrated and int(integrated.group(1)) >= 2, done.stdout
+    else:
+        assert done.returncode == 1, (done.stdout, done.stderr)
+        for robot in ("sim-1", "sim-2"):
+            assert re.search(
+                rf"fleetmap sim: warning: {robot}: \d+ scans published, 0 integrated", done.stderr
+            )
+        assert "refused" in done.stderr and "confirmed integrated" not in done.stdout
 
 
 def test_a_sim_robot_that_fails_stops_the_sim_with_its_error(

@@ -5,7 +5,7 @@
                     [--no-confirm] [--quiet]
     fleetmap sim [--robots N] [--map M] [--seed S] [--rate HZ] [--seconds T] [--connect EP ...]
                  [--zenoh-config FILE] [--encoding binary|json] [--beams B] [--speed V]
-                 [--wait-timeout S]
+                 [--wait-timeout S] [--confirm-timeout S] [--no-confirm]
 
 `add_parser(sub)` adds both to the `fleetmap` command line (listed in `fleetmap.cli.COMMAND_MODULES`);
 `python -m fleetmap_client.cli replay ...` runs them without it.
@@ -160,6 +160,9 @@ def run_replay(args: argparse.Namespace) -> int:
 
 # -- sim -------------------------------------------------------------------------------------------
 
+#: Seconds `fleetmap sim` waits, once its robots stop, for the service to confirm their scans.
+SIM_CONFIRM_TIMEOUT = 10.0
+
 
 def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
     p = sub.add_parser(
@@ -182,6 +185,15 @@ def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
     )
     p.add_argument("--beams", type=int, default=1081, help="beams per scan over 270 degrees (default 1081)")
     p.add_argument("--speed", type=float, default=1.0, help="robot speed, m/s (default 1)")
+    p.add_argument(
+        "--confirm-timeout", type=float, default=SIM_CONFIRM_TIMEOUT, metavar="S",
+        help="once the robots stop, wait at most S seconds in all for the service to confirm every "
+        f"scan (default {SIM_CONFIRM_TIMEOUT:g}); exit 1 when some are not",
+    )  # fmt: skip
+    p.add_argument(
+        "--no-confirm", action="store_true",
+        help="do not ask the service whether the scans are integrated (for a service older than that)",
+    )  # fmt: skip
     _add_connection(p)
     p.set_defaults(run=run_sim_command)
     return p
@@ -201,10 +213,18 @@ def run_sim_command(args: argparse.Namespace) -> int:
         check_fleet(args.robots, args.rate, args.seconds, args.beams, args.speed)
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if not args.confirm_timeout >= 0.0:
+        raise CliError(f"--confirm-timeout must be a number of seconds >= 0, got {args.confirm_timeout}")
     stop = threading.Event()
+
     # Ctrl-C (or SIGINT from a script that started us with SIGINT ignored) stops the robots, and the
-    # summary of what they published is still printed.
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    # summary of what they published is still printed; a second one ends the wait for confirmation.
+    def interrupt(*_: object) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    previous = signal.signal(signal.SIGINT, interrupt)
     print(
         f"sim: {args.robots} robots on map {args.map_id!r} (floor plan seed {args.seed}), "
         f"{args.rate:g} scans/s each" + (f" for {args.seconds:g} s" if args.seconds is not None else ""),
@@ -225,9 +245,13 @@ def run_sim_command(args: argparse.Namespace) -> int:
             wait_timeout=args.wait_timeout,
             stop=stop,
             on_waiting=_waiting,
+            confirm_timeout=None if args.no_confirm else args.confirm_timeout,
         )
     except (ValueError, SimError) as exc:
         raise CliError(str(exc)) from None
+    except KeyboardInterrupt:
+        print("sim interrupted", file=sys.stderr)
+        return 130
     finally:
         signal.signal(signal.SIGINT, previous)
     dropped, kept = sum(result.dropped.values()), sum(result.backlogged.values())
@@ -236,6 +260,26 @@ def run_sim_command(args: argparse.Namespace) -> int:
         + (f" ({kept} kept for re-delivery while the service was unreachable)" if kept else "")
         + (f" ({dropped} dropped)" if dropped else "")
     )
+    if args.no_confirm:
+        return 0
+    if result.unconfirmable is not None:  # an older service: what sim always did, with a warning
+        print(f"fleetmap sim: warning: not confirmed: {result.unconfirmable}", file=sys.stderr)
+        return 0
+    # As `fleetmap replay`: a robot's scans refused by the service (more beams than its --max-beams,
+    # say) were reported as published, and the command said nothing more.
+    for robot in result.robots:
+        report = result.delivery.get(robot)
+        if report is None or not report.confirmed:
+            why = (
+                report.summary()
+                if report is not None
+                else f"not confirmed: {result.confirm_errors.get(robot)}"
+            )
+            print(f"fleetmap sim: warning: {robot}: {why}", file=sys.stderr)
+    if not result.confirmed:
+        return 1
+    integrated = sum(report.integrated for report in result.delivery.values())
+    print(f"sim: all {integrated} scans confirmed integrated")
     return 0
 
 

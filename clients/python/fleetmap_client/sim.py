@@ -27,7 +27,7 @@ from fleetmap.scan import MAX_BEAMS
 from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap.sim.floorplan import FloorPlan
 
-from .publisher import Encoding, ScanPublisher
+from .publisher import DeliveryReport, DeliveryUnsupported, Encoding, ScanPublisher
 
 
 class SimError(RuntimeError):
@@ -43,6 +43,18 @@ class SimResult:
     backlogged: dict[str, int] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=dict)  # scans given up (`ScanPublisher.dropped`)
     seconds: float = 0.0
+    #: With `confirm_timeout`: what each robot's `ScanPublisher.flush` learned; a robot whose flush
+    #: got an error answer is in `confirm_errors` instead, with it.
+    delivery: dict[str, DeliveryReport] = field(default_factory=dict)
+    confirm_errors: dict[str, str] = field(default_factory=dict)
+    #: Why nothing could be confirmed: the service answers no delivery query (older than that).
+    unconfirmable: str | None = None
+
+    @property
+    def confirmed(self) -> bool:
+        """Whether every robot's scans were confirmed integrated (False when none was asked)."""
+        reports = self.delivery.values()
+        return bool(reports) and not self.confirm_errors and all(report.confirmed for report in reports)
 
     @property
     def total(self) -> int:
@@ -94,6 +106,7 @@ def run_sim(
     stop: threading.Event | None = None,
     on_waiting: Callable[[ScanPublisher], None] | None = None,
     plan: FloorPlan | None = None,
+    confirm_timeout: float | None = None,
 ) -> SimResult:
     """Run `robots` simulated robots on `map_id` until `seconds` pass (from when they start moving;
     None: no limit) or `stop` is set. Blocks; returns what each robot published.
@@ -102,7 +115,10 @@ def run_sim(
     start poses and routes (robot k uses seed `seed * 1000 + k`). `rate` is scans per second per
     robot. `wait_timeout`: seconds to wait for the service before starting (None: forever; raises
     `SimError` when it passes); `on_waiting(publisher)` is called once if that takes over a second.
-    Raises ValueError for bad arguments (e.g. a robot id that `prefix` makes invalid).
+    `confirm_timeout`: once the robots stopped, wait at most that many seconds (the robots asked at
+    once) for the service to confirm their scans (`ScanPublisher.flush`, into `SimResult.delivery`);
+    None (default): ask nothing. Raises ValueError for bad arguments (e.g. a robot id that `prefix` makes
+    invalid).
     """
     check_fleet(robots, rate, seconds, beams, speed)
     stop = stop or threading.Event()
@@ -151,6 +167,8 @@ def run_sim(
             # N scans" and exited 0 as if all had gone well.
             robot, exc = next(iter(failures.items()))
             raise SimError(f"robot {robot} stopped: {type(exc).__name__}: {exc} (the others were stopped)")
+        if confirm_timeout is not None:
+            _confirm(publishers, confirm_timeout, result)
     finally:
         for pub in publishers:
             result.published[pub.robot_id] = pub.published
@@ -158,6 +176,25 @@ def run_sim(
             result.dropped[pub.robot_id] = pub.dropped
             pub.close()
     return result
+
+
+def _confirm(publishers: list[ScanPublisher], timeout: float, result: SimResult) -> None:
+    """Each robot's delivery report (`ScanPublisher.flush`), all robots asked at once, each for at
+    most `timeout` seconds."""
+
+    def ask(pub: ScanPublisher) -> None:
+        try:
+            result.delivery[pub.robot_id] = pub.flush(timeout)
+        except DeliveryUnsupported as exc:
+            result.unconfirmable = str(exc)
+        except RuntimeError as exc:  # an error answer, or one that is not fleetmap's
+            result.confirm_errors[pub.robot_id] = str(exc)
+
+    askers = [threading.Thread(target=ask, args=(pub,), daemon=True) for pub in publishers]
+    for asker in askers:
+        asker.start()
+    for asker in askers:
+        asker.join()
 
 
 def _wait_all(
