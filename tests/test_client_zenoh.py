@@ -781,6 +781,25 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
         assert "robots on map" not in bad.stdout, bad.stdout
 
 
+def test_a_second_ctrl_c_stops_the_sims_wait_for_confirmation(router: Router) -> None:
+    """The first Ctrl-C stops the robots and starts the wait for confirmation (this router answers
+    no delivery query: a few seconds); a second one ends it at once, exit 130, no traceback."""
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "fleetmap_client.cli", "sim", "--robots", "2", "--rate", "20", "--beams", "91",
+         "--map", "twice", "--connect", router.endpoint, "--wait-timeout", "20", "--confirm-timeout", "60"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    with reaped(sim):
+        wait_for(lambda: any(k.startswith("fleetmap/twice/") for k, _, _ in router.samples()), 30, 0.05,
+                 "the robots' first scans")  # fmt: skip
+        sim.send_signal(signal.SIGINT)
+        time.sleep(0.5)
+        sim.send_signal(signal.SIGINT)
+        out, err = sim.communicate(timeout=30)
+    assert sim.returncode == 130, (sim.returncode, out, err)
+    assert "sim interrupted" in err and "Traceback" not in err and "FATAL" not in err, err
+
+
 @pytest.mark.parametrize("max_beams", [None, 50])
 def test_sim_confirms_its_scans_with_the_service(tmp_path: Path, max_beams: int | None) -> None:
     """Once its robots stop, `fleetmap sim` asks the service whether every scan is integrated (as

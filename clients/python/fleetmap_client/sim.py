@@ -27,7 +27,7 @@ from fleetmap.scan import MAX_BEAMS
 from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap.sim.floorplan import FloorPlan
 
-from .publisher import DeliveryReport, DeliveryUnsupported, Encoding, ScanPublisher
+from .publisher import CLOSE_WAIT_S, DeliveryReport, DeliveryUnsupported, Encoding, ScanPublisher
 
 
 class SimError(RuntimeError):
@@ -117,8 +117,8 @@ def run_sim(
     `SimError` when it passes); `on_waiting(publisher)` is called once if that takes over a second.
     `confirm_timeout`: once the robots stopped, wait at most that many seconds (the robots asked at
     once) for the service to confirm their scans (`ScanPublisher.flush`, into `SimResult.delivery`);
-    None (default): ask nothing. Raises ValueError for bad arguments (e.g. a robot id that `prefix` makes
-    invalid).
+    None (default): ask nothing. Raises ValueError for bad arguments (e.g. a robot id that `prefix`
+    makes invalid).
     """
     check_fleet(robots, rate, seconds, beams, speed)
     stop = stop or threading.Event()
@@ -193,8 +193,16 @@ def _confirm(publishers: list[ScanPublisher], timeout: float, result: SimResult)
     askers = [threading.Thread(target=ask, args=(pub,), daemon=True) for pub in publishers]
     for asker in askers:
         asker.start()
-    for asker in askers:
-        asker.join()
+    try:
+        for asker in askers:
+            asker.join()
+    except BaseException:  # Ctrl-C: stop asking. Closed, a publisher's flush ends at once, and its
+        # thread must not be left inside a Zenoh call as the program exits (that aborts it).
+        for pub in publishers:
+            pub.close()
+        for asker in askers:
+            asker.join(CLOSE_WAIT_S)
+        raise
 
 
 def _wait_all(
