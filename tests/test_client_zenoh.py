@@ -760,7 +760,7 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
                  "the robot's first scans")  # fmt: skip
         sim.send_signal(signal.SIGINT)
         out, _ = sim.communicate(timeout=30)
-    assert sim.returncode == 0 and "sim: 1 robots published" in out, out
+    assert sim.returncode == 0 and "sim: 1 robot published" in out, out
     bad = subprocess.run([*command, "--map", "bad id"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "map id 'bad id' must match" in bad.stderr
     assert "robots on map" not in bad.stdout

@@ -226,7 +226,8 @@ def run_sim_command(args: argparse.Namespace) -> int:
 
     previous = signal.signal(signal.SIGINT, interrupt)
     print(
-        f"sim: {args.robots} robots on map {args.map_id!r} (floor plan seed {args.seed}), "
+        f"sim: {args.robots} robot{'' if args.robots == 1 else 's'} on map {args.map_id!r} "
+        f"(floor plan seed {args.seed}), "
         f"{args.rate:g} scans/s each" + (f" for {args.seconds:g} s" if args.seconds is not None else ""),
         flush=True,
     )
@@ -256,7 +257,8 @@ def run_sim_command(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGINT, previous)
     dropped, kept = sum(result.dropped.values()), sum(result.backlogged.values())
     print(
-        f"sim: {len(result.robots)} robots published {result.total} scans in {result.seconds:.1f} s"
+        f"sim: {len(result.robots)} robot{'' if len(result.robots) == 1 else 's'} published "
+        f"{result.total} scan{'' if result.total == 1 else 's'} in {result.seconds:.1f} s"
         + (f" ({kept} kept for re-delivery while the service was unreachable)" if kept else "")
         + (f" ({dropped} dropped)" if dropped else "")
     )

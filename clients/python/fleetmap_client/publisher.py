@@ -250,7 +250,8 @@ class DeliveryReport:
 
     def summary(self) -> str:
         """One line: `N scans published, N integrated`, and what became of the others."""
-        text = f"{self.published} scans published, {self.integrated} integrated"
+        scans = "scan" if self.published == 1 else "scans"
+        text = f"{self.published} {scans} published, {self.integrated} integrated"
         if self.confirmed:
             return text
         if not self.answered:
