@@ -62,18 +62,28 @@ def reaped(proc: subprocess.Popen[str]) -> Iterator[subprocess.Popen[str]]:
 _PORTS = (20000, 32000)
 
 
+#: Ports `free_port` gave out in this process: never given twice. Free again once released, a port
+#: came back to the next call (1 in 12,000) and a service got the same one for HTTP and Zenoh; its
+#: Zenoh listener then found its own HTTP socket there ("Address already in use", CI 2026-11-28).
+_given_ports: set[int] = set()
+
+
 def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now, outside the ephemeral range (a small race remains
-    until the child binds it, with other tests picking from the same range at random)."""
+    """A TCP port free on 127.0.0.1 right now, outside the ephemeral range, and not given out before
+    by this process (a small race remains until the child binds it, with other processes picking
+    from the same range at random)."""
     rng = random.Random()  # seeded from the OS: the xdist workers pick independently
     for _ in range(1000):
         port = rng.randrange(*_PORTS)
+        if port in _given_ports:
+            continue
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
             try:
                 s.bind(("127.0.0.1", port))
             except OSError:
                 continue
-            return port
+        _given_ports.add(port)
+        return port
     raise RuntimeError(f"no free TCP port in {_PORTS[0]}-{_PORTS[1]} on 127.0.0.1")
 
 

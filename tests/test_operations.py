@@ -307,6 +307,14 @@ def serve_option_actions() -> list[argparse.Action]:
     return [action for action in serve._actions if action.dest != "help"]
 
 
+def test_the_tests_free_ports_are_never_given_twice() -> None:
+    """The tests' `free_port` (service_process.py) gives no port twice in a process: a service once
+    got the same port for HTTP and Zenoh (1 chance in 12,000), and its Zenoh listener failed on its own
+    HTTP socket. 300 ports from 12,000 at random repeat one with a probability of 98 %."""
+    ports = [free_port() for _ in range(300)]
+    assert len(set(ports)) == len(ports)
+
+
 def test_zenoh_beyond_loopback_without_credentials_is_warned_of(tmp_path: Path) -> None:
     """A plain Zenoh endpoint beyond loopback takes anyone's scans: a warning at start says so and
     names it (the REST API refuses such an address without tokens; Zenoh has no check of its own).
