@@ -29,6 +29,8 @@ from prometheus_client.parser import text_string_to_metric_families
 from service_process import ServiceProcess, free_port, reaped, wait_for
 
 from fleetmap import serve_environment, server
+from fleetmap.api.app import WEB_DIR_ENV
+from fleetmap.auth import TOKENS_ENV
 from fleetmap.database import DB_NAME
 from fleetmap.ingest import unauthenticated_endpoints
 from fleetmap.memory_budget import MemoryBudget
@@ -361,6 +363,7 @@ def test_variables_that_name_no_option_are_warned_of(monkeypatch: pytest.MonkeyP
         "$FLEETMAP_DATADIR is not a variable of `fleetmap serve` (did you mean $FLEETMAP_DATA_DIR?): ignored",
     ]
     assert serve_namespace([], {"FLEETMAP_DATA_DIR": "/x"}, monkeypatch).environment_warnings == []
+    assert {TOKENS_ENV, WEB_DIR_ENV} == serve_environment.OTHER_VARIABLES
 
 
 def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -129,6 +129,15 @@ class IngestStartError(RuntimeError):
 _AUTHENTICATED_PROTOCOLS = frozenset({"tls", "quic"})
 
 
+def is_loopback_host(host: str) -> bool:
+    """Whether only this machine reaches `host`: a loopback address, or `localhost` (what the REST
+    API may bind without tokens, `fleetmap.server`, and a Zenoh endpoint is not warned of)."""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
+
+
 def unauthenticated_endpoints(listen: Sequence[str], cfg: zenoh.Config) -> list[str]:
     """The endpoints of `listen` that anyone beyond this host may connect to without credentials:
     neither loopback nor TLS / QUIC, in a configuration without user / password authentication
@@ -140,15 +149,9 @@ def unauthenticated_endpoints(listen: Sequence[str], cfg: zenoh.Config) -> list[
     for endpoint in listen:
         protocol, _, address = endpoint.partition("/")
         host = address.split("#", 1)[0].rpartition(":")[0].strip("[]")
-        if protocol in _AUTHENTICATED_PROTOCOLS or protocol in ("unixsock-stream", "unixpipe"):
-            continue
-        try:
-            if ipaddress.ip_address(host).is_loopback:
-                continue
-        except ValueError:
-            if host == "localhost":
-                continue
-        found.append(endpoint)
+        local = protocol in ("unixsock-stream", "unixpipe") or is_loopback_host(host)
+        if not (local or protocol in _AUTHENTICATED_PROTOCOLS):
+            found.append(endpoint)
     return found
 
 

@@ -12,13 +12,15 @@ import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from fleetmap.auth import TOKENS_ENV
 from fleetmap.log_format import plain_line
 
 #: Prefix of the environment variables that give `serve` options (FLEETMAP_DATA_DIR, ...).
 ENV_PREFIX = "FLEETMAP_"
 #: FLEETMAP_ variables fleetmap reads that name no option: the tokens (`fleetmap.auth`) and the web
-#: viewer's folder (`fleetmap.api.app`).
-OTHER_VARIABLES = frozenset({"FLEETMAP_TOKENS", "FLEETMAP_WEB_DIR"})
+#: viewer's folder (`fleetmap.api.app.WEB_DIR_ENV`, spelled out: importing it loads FastAPI for
+#: every command; tests/test_operations.py checks the two agree).
+OTHER_VARIABLES = frozenset({TOKENS_ENV, "FLEETMAP_WEB_DIR"})
 #: What a FLEETMAP_* variable of an on/off option (--insecure, ...) may say.
 _ENV_TRUE = {"1", "true", "yes", "on"}
 _ENV_FALSE = {"0", "false", "no", "off", ""}

@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import ipaddress
 import logging
 import signal
 import socket
@@ -62,7 +61,7 @@ from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
 from fleetmap.http_server import bind_http, make_server, url_host
-from fleetmap.ingest import IngestStartError, ZenohIngest
+from fleetmap.ingest import IngestStartError, ZenohIngest, is_loopback_host
 from fleetmap.log_format import configure_logging
 from fleetmap.persistence import DurableStore
 from fleetmap.serve_options import DEFAULT_DATA_DIR, ROS_MAP_DEFAULTS, add_serve_parser, parse_http
@@ -241,20 +240,13 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
             "--require-read-token needs API tokens, or reading stays open to anyone: give "
             "--auth-tokens FILE (or $FLEETMAP_TOKENS)"
         )
-    if tokens is None and not _is_loopback(host) and not args.insecure:
+    if tokens is None and not is_loopback_host(host) and not args.insecure:
         raise CliError(
             f"refusing to serve {host} without API tokens: anyone on the network could change the "
             "maps. Give --auth-tokens FILE (or $FLEETMAP_TOKENS), or --insecure to accept that"
         )
     ros = ros_options(args)
     return _StartOptions(host, port, default_config, create_app, settings_cls, tokens, ros)
-
-
-def _is_loopback(host: str) -> bool:
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return host == "localhost"
 
 
 def _load_tokens(path: str | None) -> TokenSet | TokenFile | None:

@@ -136,9 +136,10 @@ RECONNECT_PERIOD_FACTOR = float(CONNECT_RETRY["period_increase_factor"])
 #: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running: it is waited
 #: for again at the program's exit, `EXIT_WAIT_S`).
 CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
-#: How long, at the program's exit, each opener still inside a connection attempt is waited for
-#: (`_settle_at_exit`): one that comes back from `zenoh.open` while the interpreter finalizes
-#: aborts the process. A configuration whose `connect/timeout_ms` is longer (or -1) may outlast it.
+#: How long, at the program's exit, each publisher thread still inside a Zenoh call (an opener's
+#: connection attempt) is waited for (`_settle_at_exit`): one that comes back from Zenoh while the
+#: interpreter finalizes aborts the process. A `connect/timeout_ms` longer than this (or -1) may
+#: outlast it.
 EXIT_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 10.0
 #: Scans a publisher keeps for re-delivery by default (`backlog`): at 10 scans/s, 100 s of dead zone,
 #: about 4.5 MB of binary 1081-beam scans. The service's ingest queue holds as many per robot.
@@ -442,9 +443,9 @@ class ScanPublisher:
         # peers it went to: a change to up, or a router or peer not there at the last look (a
         # restarted service has a new Zenoh id), is a (re)connection, which starts a hold
         # (monotonic times it ends at the earliest in `_hold_least`, at the latest in `_hold_until`).
-        # The link came up after the look
-        # before (`_looked_at` then, kept in `_hold_since`): a query for the cache that reached the
-        # publisher since (`_fetched_at`, set by `_on_fetch`) is the new service's, and ends the hold.
+        # The link came up after the look before (`_looked_at` then, kept in `_hold_since`): a query
+        # for the cache that reached the publisher since (`_fetched_at`, set by `_watch_fetches`) is
+        # the new service's, and ends the hold.
         self._link_up = False
         self._neighbours: frozenset[str] = frozenset()
         self._hold_until: float | None = None
