@@ -599,6 +599,61 @@ def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
     assert [p.name for p in tmp_path.iterdir()] == ["m.zip"]  # the spool of the deflated one is gone
 
 
+class _CountingFile(io.RawIOBase):
+    """A file that can seek over `data`, counting the bytes read from it."""
+
+    def __init__(self, data: bytes) -> None:
+        super().__init__()
+        self._data, self.bytes_read = io.BytesIO(data), 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._data.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._data.tell()
+
+    def readinto(self, buffer: bytearray | memoryview) -> int:  # type: ignore[override]
+        n = self._data.readinto(buffer)
+        self.bytes_read += n
+        return n
+
+
+def test_a_stored_tiles_npz_is_read_once_and_still_checked_whole() -> None:
+    """tiles.npz, stored in the snapshot as `snapshot_file` writes it, was read whole for its CRC
+    and then once more for its arrays: twice the upload's bytes (up to 4 GiB) read from the spool.
+    Its CRC is now summed as the arrays are read; a changed byte is still refused as a corrupt
+    tiles.npz, whether the arrays would have shown it (a compressed array's data) or not (the date
+    in an array's local header, which zipfile does not check)."""
+    data = snapshot_file("m", random_tiles_map(6, tile_size=128))
+    body = _CountingFile(data)
+    gmap = map_from_snapshot_file(body)
+    assert len(gmap.store) == 6
+    assert body.bytes_read <= len(data) + (64 << 10), (body.bytes_read, len(data))  # twice, before
+    with zipfile.ZipFile(io.BytesIO(data)) as zf:
+        start = storage_format._data_start(io.BytesIO(data), zf.getinfo("tiles.npz"))
+        with zipfile.ZipFile(io.BytesIO(zf.read("tiles.npz"))) as npz:
+            log_odds = npz.getinfo("log_odds.npy")
+            keys_header = npz.getinfo("keys.npy").header_offset
+    for where, at in [
+        ("an array's data", start + log_odds.header_offset + 100 + log_odds.compress_size // 2),
+        ("a local header's date", start + keys_header + 10),  # PKWARE APPNOTE 4.3.7: mod time
+    ]:
+        bad = bytearray(data)
+        bad[at] ^= 0xFF
+        with pytest.raises(SnapshotError) as refused:
+            map_from_snapshot_file(bytes(bad))
+        assert str(refused.value) == (
+            "snapshot member tiles.npz cannot be read (the file is corrupt): Bad CRC-32 for file 'tiles.npz'"
+        ), where
+        assert refused.value.status == 422
+
+
 @pytest.mark.parametrize("how", ["utf-8 name", "before the start", "zip64 offset"])
 @pytest.mark.parametrize("member", ["map.json", "tiles.npz", "tiles.npz/keys.npy"])
 @pytest.mark.parametrize("source", ["bytes", "file"])

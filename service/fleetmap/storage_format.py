@@ -11,7 +11,7 @@ import math
 import struct
 import zipfile
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING
 
@@ -362,11 +362,20 @@ def _read_member(zf: zipfile.ZipFile, name: str, limit: int) -> bytes:
 class _Window(io.RawIOBase):
     """Bytes `[start, start + length)` of `base` (a binary file that can seek) as a read-only file
     of their own that can seek: a member the zip stores uncompressed, read where it lies. Not safe
-    to use beside another reader of `base` at once (each read seeks it)."""
+    to use beside another reader of `base` at once (each read seeks it).
 
-    def __init__(self, base: IO[bytes], start: int, length: int) -> None:
+    It checks the member as zipfile would have while it is read, not in a pass of its own: a read
+    that reaches past the bytes checked so far adds what it brings beyond them to their CRC-32, and
+    `verify` reads whatever was never read, once, and compares. The readers of `tiles.npz` go
+    mostly front to back (each array's data once, in order), so `verify` reads little more than the
+    inner zip's directory. (Checking the CRC first read all of tiles.npz once more before its
+    arrays: up to 4 GiB of spool read twice.)"""
+
+    def __init__(self, base: IO[bytes], start: int, length: int, crc: int, name: str) -> None:
         super().__init__()
         self._base, self._start, self._length, self._pos = base, start, length, 0
+        self._expected, self._name = crc, name
+        self._checked, self._crc = 0, 0  # bytes [0, _checked) are in _crc
 
     def readable(self) -> bool:
         return True
@@ -388,11 +397,29 @@ class _Window(io.RawIOBase):
         n = max(0, min(len(buffer), self._length - self._pos))
         if not n:
             return 0
-        self._base.seek(self._start + self._pos)
-        data = self._base.read(n)
+        data = self._read_at(self._pos, n)
         memoryview(buffer)[: len(data)] = data
         self._pos += len(data)
         return len(data)
+
+    def _read_at(self, at: int, n: int) -> bytes:
+        """At most `n` bytes from `at`, added to the CRC as far as they continue the bytes checked."""
+        self._base.seek(self._start + at)
+        data = self._base.read(n)
+        if at <= self._checked < at + len(data):
+            self._crc = zlib.crc32(memoryview(data)[self._checked - at :], self._crc)
+            self._checked = at + len(data)
+        return data
+
+    def verify(self) -> None:
+        """Read the bytes not read yet and check the CRC-32 of all of them against the one the zip
+        declares: raises `zipfile.BadZipFile` (in zipfile's words) if it differs, `EOFError` if the
+        file ends before the member does."""
+        while self._checked < self._length:
+            if not self._read_at(self._checked, min(_READ_CHUNK, self._length - self._checked)):
+                raise EOFError(f"the file ends {self._length - self._checked} bytes before {self._name} does")
+        if self._crc != self._expected:
+            raise zipfile.BadZipFile(f"Bad CRC-32 for file {self._name!r}")
 
 
 def _data_start(fp: IO[bytes], info: zipfile.ZipInfo) -> int:
@@ -407,18 +434,40 @@ def _data_start(fp: IO[bytes], info: zipfile.ZipInfo) -> int:
     return info.header_offset + 30 + name_length + extra_length
 
 
-def _tiles_npz(outer: zipfile.ZipFile, fp: IO[bytes], limit: int, stack: contextlib.ExitStack) -> IO[bytes]:
+def _tiles_npz(
+    outer: zipfile.ZipFile, fp: IO[bytes], limit: int, stack: contextlib.ExitStack
+) -> tuple[IO[bytes], Callable[[], None]]:
     """Member `tiles.npz` of the snapshot `outer` (read from `fp`) as a file that can seek, checked as
-    `_read_member` checks a member (its declared size against `limit`, then read whole: the CRC) but
-    never held in memory whole: a stored member (what `snapshot_file` writes) is then read where it
-    lies in `fp`; a compressed one (a snapshot zipped again by some tool) is decompressed into a
-    spool (`stack` closes it) as it is checked. Raises `SpoolFailed` if the spool has no room."""
+    `_read_member` checks a member (its declared size against `limit`, its local header, its CRC)
+    but never held in memory whole, and a function that completes the check. A stored member (what
+    `snapshot_file` writes) is read where it lies in `fp`, read once: its CRC is summed as its
+    arrays are read, and the function given back reads what they left and compares it. A compressed
+    one (a snapshot zipped again by some tool) is decompressed into a spool (`stack` closes it) and
+    checked whole as that is written; its function does nothing. Both raise `SnapshotError` for a
+    corrupt member. Raises `SpoolFailed` if the spool has no room."""
     path = "tiles.npz"
     info = _member(outer, path, path, limit)
-    stored = info.compress_type == zipfile.ZIP_STORED and info.compress_size == info.file_size
-    copy = None if stored else spooled_file()
-    if copy is not None:
-        stack.callback(close_spool, copy)
+
+    def corrupt(exc: BaseException) -> SnapshotError:
+        return SnapshotError(f"snapshot member {path} cannot be read (the file is corrupt): {exc}")
+
+    if info.compress_type == zipfile.ZIP_STORED and info.compress_size == info.file_size:
+        try:
+            with outer.open(info):  # zipfile checks the local header (its name, flags); no data read
+                pass
+            window = _Window(fp, _data_start(fp, info), info.file_size, info.CRC, path)
+        except _ZIP_ERRORS as exc:
+            raise corrupt(exc) from None
+
+        def verify() -> None:
+            try:
+                window.verify()
+            except _ZIP_ERRORS as exc:
+                raise corrupt(exc) from None
+
+        return io.BufferedReader(window), verify
+    copy = spooled_file()
+    stack.callback(close_spool, copy)
     size = 0
     try:
         with outer.open(info) as member:
@@ -428,14 +477,11 @@ def _tiles_npz(outer: zipfile.ZipFile, fp: IO[bytes], limit: int, stack: context
                     raise SnapshotError(
                         f"snapshot member {path} holds more than the limit of {limit} bytes", 413
                     )
-                if copy is not None:
-                    spool_write(copy, chunk)  # its errors are not the file's: not in _ZIP_ERRORS
-        if copy is None:
-            return io.BufferedReader(_Window(fp, _data_start(fp, info), info.file_size))
+                spool_write(copy, chunk)  # its errors are not the file's: not in _ZIP_ERRORS
     except _ZIP_ERRORS as exc:
-        raise SnapshotError(f"snapshot member {path} cannot be read (the file is corrupt): {exc}") from None
+        raise corrupt(exc) from None
     copy.seek(0)
-    return copy
+    return copy, lambda: None
 
 
 def _snapshot_config(zf: zipfile.ZipFile, max_tiles: int | None) -> MapConfig:
@@ -640,35 +686,42 @@ def map_from_snapshot_file(
             raise SnapshotError(f"not a fleetmap snapshot: the body is not a zip file ({exc})") from None
         with outer:
             config = _snapshot_config(outer, max_tiles)
-            inner = _tiles_npz(outer, fp, max_bytes, stack)
+            inner, verify_tiles = _tiles_npz(outer, fp, max_bytes, stack)
         try:
-            npz = upload_zip(inner)
-        except (*_ZIP_ERRORS, ValueError) as exc:
-            raise SnapshotError(f"snapshot member tiles.npz is not a valid .npz file ({exc})") from None
-        with npz:
-            layout = layer_arrays(config.layers)
-            keys = _snapshot_keys(npz, config, layout, max_bytes)
-            t = config.tile_size
-            arrays = []
-            for a in layout:
-                npy = _npy_header(npz, a.name)
-                _check_npy(
-                    npy,
-                    np.dtype(a.dtype),
-                    (len(keys), t, t),
-                    f"{(len(keys), t, t)}: one {t}x{t} tile per key",
-                )
-                arrays.append(npy)
-            # Everything checked that can be without the data: only now allocate, and only what it holds.
-            gmap = GridMap(config)
-            if reservation is not None:
-                try:
-                    reservation.charge(gmap.store, len(keys))
-                except TileLimitError as exc:  # the budget's MemoryBudgetError
-                    raise SnapshotError(f"the snapshot's {len(keys)} tiles {exc}", 507) from None
-            gmap.store.create(keys, fill=False)
-            for a, npy in zip(layout, arrays, strict=True):
-                values = gmap.store.pools[a.name][: len(keys)]
-                _read_npy(npz, npy, values)
-                _check_values(a, values, keys, config)
+            try:
+                npz = upload_zip(inner)
+            except (*_ZIP_ERRORS, ValueError) as exc:
+                raise SnapshotError(f"snapshot member tiles.npz is not a valid .npz file ({exc})") from None
+            with npz:
+                layout = layer_arrays(config.layers)
+                keys = _snapshot_keys(npz, config, layout, max_bytes)
+                t = config.tile_size
+                arrays = []
+                for a in layout:
+                    npy = _npy_header(npz, a.name)
+                    _check_npy(
+                        npy,
+                        np.dtype(a.dtype),
+                        (len(keys), t, t),
+                        f"{(len(keys), t, t)}: one {t}x{t} tile per key",
+                    )
+                    arrays.append(npy)
+                # Everything checked that can be without the data: only now allocate, and only what it holds.
+                gmap = GridMap(config)
+                if reservation is not None:
+                    try:
+                        reservation.charge(gmap.store, len(keys))
+                    except TileLimitError as exc:  # the budget's MemoryBudgetError
+                        raise SnapshotError(f"the snapshot's {len(keys)} tiles {exc}", 507) from None
+                gmap.store.create(keys, fill=False)
+                for a, npy in zip(layout, arrays, strict=True):
+                    values = gmap.store.pools[a.name][: len(keys)]
+                    _read_npy(npz, npy, values)
+                    _check_values(a, values, keys, config)
+        except SnapshotError:
+            # A corrupt tiles.npz is what to name, as when its CRC was checked before its arrays:
+            # a changed byte shows first as an array that does not parse or a value out of range.
+            verify_tiles()
+            raise
+        verify_tiles()  # the bytes the arrays did not cover (and the CRC of all)
     return gmap
