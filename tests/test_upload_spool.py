@@ -9,6 +9,9 @@ mid-upload (bodies past SPOOL_MEMORY_BYTES), so that its "none left" can fail.
 
 from __future__ import annotations
 
+import errno
+import io
+import logging
 import os
 import resource
 import socket
@@ -18,12 +21,13 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO, Any
 
 import httpx
 import numpy as np
 import pytest
 from service_process import ServiceProcess, wait_for
-from test_api_support import random_tiles_map, running_api, snapshot_parts
+from test_api_support import random_tiles_map, running_api, snapshot_body, snapshot_parts
 from test_http_exhaustion import metric
 
 from fleetmap.api.app import ApiSettings
@@ -382,3 +386,92 @@ def test_uploads_in_progress_are_limited_and_the_next_is_refused_before_its_body
     assert_no_spool(spooling)
     assert metric(svc, "fleetmap_uploads") == 0
     assert "Traceback" not in svc.logs(), svc.logs()
+
+
+class _FailingDisk(io.RawIOBase):
+    """A file of the temporary directory (`real`, unbuffered) whose disk fails: with `fail` "read",
+    every read raises EIO; with "write", every write once `after` bytes have been written."""
+
+    def __init__(self, real: IO[bytes], fail: str, after: int) -> None:
+        super().__init__()
+        self._real, self._fail, self._after, self._written = real, fail, after, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def fileno(self) -> int:
+        return self._real.fileno()
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._real.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._real.tell()
+
+    def readinto(self, buffer: Any) -> int:
+        if self._fail == "read":
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        return self._real.readinto(buffer)  # type: ignore[attr-defined]
+
+    def write(self, data: Any) -> int:
+        self._written += len(data)
+        if self._fail == "write" and self._written > self._after:
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        return self._real.write(data)
+
+    def close(self) -> None:
+        self._real.close()
+        super().close()
+
+
+@pytest.mark.parametrize("fail", ["read", "write"])
+@pytest.mark.parametrize("spool", ["body", "decompressed tiles.npz"])
+def test_an_io_error_of_the_temporary_directory_is_the_servers_503_not_the_uploads_422(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, big_snapshot: bytes,
+    fail: str, spool: str,
+) -> None:  # fmt: skip
+    """An EIO reading a spool back (the body's, or the copy of a compressed tiles.npz) was answered
+    422 "the body is not a zip file" / "tiles.npz is not a valid .npz file", the client blamed for
+    the server's disk. Any error of the spool's disk but no room is now 503 naming the directory,
+    logged as an ERROR; nothing changes and the spool is gone. (In-process, the failure injected at
+    the spool file's raw reads and writes, under Python's buffering: a real EIO needs a failing
+    device, dm-error or a FUSE file system, which a test cannot set up without privileges.)"""
+    real_temporary_file = tempfile.TemporaryFile
+
+    def failing_file(*args: Any, **kwargs: Any) -> io.BufferedRandom:
+        real = real_temporary_file(buffering=0, dir=kwargs.get("dir"), prefix=kwargs.get("prefix", "tmp"))
+        return io.BufferedRandom(_FailingDisk(real, fail, SPOOL_MEMORY_BYTES + (4 << 20)))
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(tempfile, "TemporaryFile", failing_file)  # what SpooledTemporaryFile rolls to
+    if spool == "body":  # past what the spool keeps in memory
+        body = big_snapshot
+    else:  # a small body (kept in memory) whose tiles.npz, deflated, holds 31 MB of arrays
+        gmap = GridMap(MapConfig())
+        gmap.store.create([(i, 0) for i in range(24)], fill=True)
+        meta, arrays = snapshot_parts(snapshot_file("z", gmap))
+        npz = io.BytesIO()
+        np.savez(npz, **arrays)  # type: ignore[arg-type]
+        body = snapshot_body(meta, npz=npz.getvalue(), deflate=True)
+        assert len(body) < SPOOL_MEMORY_BYTES < len(npz.getvalue()) - (4 << 20)
+    with running_api() as api:
+        assert api.client.put("/maps/kept", json={}).status_code == 201
+        etag = api.client.get("/maps/kept").headers["etag"]
+        with caplog.at_level(logging.ERROR, logger="fleetmap.api"):
+            put = api.client.put("/maps/kept/snapshot", content=body, headers={"Content-Type": MEDIA})
+        action = "read back from" if fail == "read" else "written to"
+        assert put.status_code == 503, put.text
+        assert put.json()["detail"] == (
+            f"the upload could not be {action} the temporary directory {tmp_path} (Input/output error)"
+        )
+        logged = [r for r in caplog.records if r.levelno == logging.ERROR and str(tmp_path) in r.getMessage()]
+        assert logged, caplog.text
+        assert api.client.get("/maps/kept").headers["etag"] == etag
+        wait_for(lambda: not spool_files(os.getpid(), tmp_path), timeout=5, what="the spool closed")
+        assert list(tmp_path.iterdir()) == []

@@ -14,7 +14,8 @@ import errno
 import io
 import tempfile
 import zipfile
-from typing import IO
+from collections.abc import Callable
+from typing import IO, Any
 
 #: Bytes of an upload kept in memory before it goes to a file: every upload the routes' tests and
 #: clients make of a small map stays in memory (no disk), and a big one costs no more than this.
@@ -31,14 +32,17 @@ _NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 class SpoolFailed(Exception):
-    """An upload could not be written to the temporary directory: `status` 507 (Insufficient Storage)
-    when it has no room, else 503 (unwritable, out of descriptors: retry later). Nothing was changed.
-    Not an OSError, so that the readers' handling of a corrupt zip (which includes OSError) never
-    takes it for the client's fault."""
+    """An upload could not be written to, or read back from, the temporary directory: `status` 507
+    (Insufficient Storage) when it has no room, else 503 (an I/O error of its disk, unwritable, out
+    of descriptors: the server's fault, not the body's; retry later). Nothing was changed. Not an
+    OSError, so that the readers' handling of a corrupt zip (which includes OSError) never takes it
+    for the client's fault: an EIO reading a spool back was answered 422, "the body is not a zip
+    file"."""
 
-    def __init__(self, exc: OSError) -> None:
+    def __init__(self, exc: OSError, action: str = "written to") -> None:
         directory = tempfile.gettempdir()
         reason = exc.strerror or str(exc)
+        self.directory, self.reason = directory, reason
         if exc.errno in _NO_ROOM:
             self.status = 507
             message = (
@@ -47,13 +51,69 @@ class SpoolFailed(Exception):
             )
         else:
             self.status = 503
-            message = f"the upload could not be written to the temporary directory {directory} ({reason})"
+            message = f"the upload could not be {action} the temporary directory {directory} ({reason})"
         super().__init__(message)
 
 
+class _Spool(tempfile.SpooledTemporaryFile[bytes]):
+    """A `SpooledTemporaryFile` whose every failure of its own I/O is a `SpoolFailed`: its file is
+    the server's, so an error reading or writing it (EIO from a failing disk, ENOSPC) is never the
+    upload's fault, whichever reader (zipfile, numpy, the nav2 reader) meets it. A seek before the
+    start (EINVAL) stays an OSError: its position comes from the upload (a corrupt zip's offsets),
+    and zipfile expects an OSError there."""
+
+    def _io(self, action: str, call: Callable[..., Any], *args: Any) -> Any:
+        try:
+            return call(*args)
+        except OSError as exc:
+            raise SpoolFailed(exc, action) from None
+
+    def write(self, s: Any) -> int:
+        return int(self._io("written to", super().write, s))
+
+    def writelines(self, iterable: Any) -> None:
+        self._io("written to", super().writelines, iterable)
+
+    def flush(self) -> None:
+        self._io("written to", super().flush)
+
+    def truncate(self, size: int | None = None) -> int:
+        return int(self._io("written to", super().truncate, size))
+
+    def rollover(self) -> None:
+        self._io("written to", super().rollover)
+
+    def read(self, *args: Any) -> bytes:
+        return bytes(self._io("read back from", super().read, *args))
+
+    def read1(self, *args: Any) -> bytes:
+        return bytes(self._io("read back from", super().read1, *args))
+
+    def readinto(self, b: Any) -> int:
+        return int(self._io("read back from", super().readinto, b))
+
+    def readinto1(self, b: Any) -> int:
+        return int(self._io("read back from", super().readinto1, b))
+
+    def readline(self, *args: Any) -> bytes:
+        return bytes(self._io("read back from", super().readline, *args))
+
+    def readlines(self, *args: Any) -> list[bytes]:
+        return list(self._io("read back from", super().readlines, *args))
+
+    def seek(self, *args: Any) -> int:
+        try:
+            return int(super().seek(*args))
+        except OSError as exc:
+            if exc.errno == errno.EINVAL:  # a position before the start: the upload's, not the disk's
+                raise
+            raise SpoolFailed(exc, "read back from") from None
+
+
 def spooled_file() -> tempfile.SpooledTemporaryFile[bytes]:
-    """A new empty spool (binary, readable and seekable); close it when done (that removes its file)."""
-    return tempfile.SpooledTemporaryFile(max_size=SPOOL_MEMORY_BYTES, prefix="fleetmap-upload-")
+    """A new empty spool (binary, readable and seekable); close it when done (that removes its file).
+    Its reads, writes and seeks raise `SpoolFailed` for an error of the temporary directory's disk."""
+    return _Spool(max_size=SPOOL_MEMORY_BYTES, prefix="fleetmap-upload-")
 
 
 def close_spool(spool: IO[bytes]) -> None:
@@ -61,7 +121,7 @@ def close_spool(spool: IO[bytes]) -> None:
     holds, which fails as the write before it did when the disk is full, and that error (raised in a
     `finally`) would replace the `SpoolFailed` being answered with a 500. The descriptor is closed
     whether the flush fails or not."""
-    with contextlib.suppress(OSError):
+    with contextlib.suppress(OSError, SpoolFailed):
         spool.close()
 
 
@@ -71,7 +131,7 @@ def spool_write(spool: IO[bytes], data: bytes) -> None:
     block on the disk: call it off the event loop."""
     try:
         spool.write(data)
-    except OSError as exc:
+    except OSError as exc:  # a spool of `spooled_file` raises SpoolFailed itself; another file, this
         raise SpoolFailed(exc) from None
 
 

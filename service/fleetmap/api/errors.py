@@ -409,7 +409,12 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(SpoolFailed)
     async def _spool_failed(request: Request, exc: SpoolFailed) -> JSONResponse:
-        # The service's temporary directory, not the client: 507 when it has no room, else 503.
+        # The service's temporary directory, not the client: 507 when it has no room, else 503 (an
+        # I/O error of its disk). Logged, for the operator: the client only sees its upload refused.
+        method, path = request.method, request.url.path
+        fields = {"method": method, "path": path, "directory": exc.directory}
+        level = logging.WARNING if exc.status == 507 else logging.ERROR
+        log.log(level, "%s %s refused: %s", method, path, exc, extra=fields)
         return _json(exc.status, str(exc))
 
     @app.exception_handler(ClientDisconnect)

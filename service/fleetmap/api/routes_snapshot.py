@@ -38,13 +38,16 @@ ZIP_UPLOAD = {
 REPLACED: dict[int | str, dict[str, Any]] = {
     200: {"model": MapInfo, "description": "Replaced the map that had this id"}
 }
-#: The errors of an upload: those of `install_upload`, and a 507 that also says the temporary
-#: directory may have no room for the upload (`spooled_body`).
+#: The errors of an upload: those of `install_upload`, and a 503 and a 507 that also say what the
+#: temporary directory may do to the upload (`spooled_body`, `fleetmap.spool.SpoolFailed`).
 UPLOAD_ERRORS = error_responses(
     412, 413, 415, 422, 503, 507,
     described={
+        503: "The server already holds its limit of uploads in progress, its temporary directory "
+        "(TMPDIR) failed to write or read the upload (an I/O error of its disk), or the map was "
+        "installed but could not be stored: retry later",
         507: "The service's memory budget for map tiles (--max-memory) is used up, or its temporary "
-        "directory (TMPDIR) has no room for the upload"
+        "directory (TMPDIR) has no room for the upload",
     },
 )  # fmt: skip
 
@@ -63,7 +66,7 @@ async def spooled_body(request: Request, uploads: Slots) -> AsyncIterator[IO[byt
     body's deadline, a cancelled task), the spool is closed and so its file removed. The body limit
     (`BodyLimitMiddleware`) applies as the body arrives: it counts what `receive` hands over, so a
     body past it raises `BodyTooLarge` (413) from here with no more of it read. `SpoolFailed` (507,
-    or 503) if the temporary directory cannot take the body.
+    or 503) if the temporary directory cannot take the body, or (from the reader) give it back.
 
     The upload takes one of `uploads` (`ApiSettings.max_uploads`) before a byte of its body is read,
     and gives it back with its spool: with none free it is refused with 503 and `Retry-After`, its
@@ -155,10 +158,12 @@ async def put_snapshot(
     snapshot, or holds a tile or a cell value the service could not have made; 413 if a part of it
     decompresses to more than its limit (see the docs); 507 if its tiles need more memory than the
     budget (`--max-memory`) leaves, or if the service's temporary directory has no room for the
-    upload (it is kept there, not in memory, while it is read); 503 (`Retry-After: 5`), before the
-    body is read, if the server already holds its limit of uploads in progress (4 by default); none
-    changes anything. 503 if the map was installed but could not be stored. `If-Match` /
-    `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing changed; before the body is read)."""
+    upload (it is kept there, not in memory, while it is read); 503 naming that directory if its
+    disk fails to write or read the upload (an I/O error: the server's fault, logged, never the
+    body's); 503 (`Retry-After: 5`), before the body is read, if the server already holds its limit
+    of uploads in progress (4 by default); none changes anything. 503 if the map was installed but
+    could not be stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing
+    changed; before the body is read)."""
 
     def read(body: IO[bytes], _config: MapConfig | None, reservation: UploadReservation | None) -> GridMap:
         return map_from_snapshot_file(body, reservation=reservation)
