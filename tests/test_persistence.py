@@ -39,6 +39,7 @@ from fleetmap.journal import JournalEntry, JournalWriter
 from fleetmap.persistence import DurableStore, changed_tiles
 from fleetmap.registry import MapRegistry
 from fleetmap.scan import Scan
+from fleetmap.spool import UploadStopped
 from fleetmap.storage_format import (
     MAX_SNAPSHOT_META_BYTES,
     TILE_MAGIC,
@@ -652,6 +653,36 @@ def test_a_stored_tiles_npz_is_read_once_and_still_checked_whole() -> None:
             "snapshot member tiles.npz cannot be read (the file is corrupt): Bad CRC-32 for file 'tiles.npz'"
         ), where
         assert refused.value.status == 422
+
+
+@pytest.mark.parametrize("tiles", ["stored", "deflated"])
+def test_an_upload_reader_stops_between_chunks_once_told(tiles: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`map_from_snapshot_file(stop=...)`: once `stop` is set (its request ended, at the shutdown's
+    cutoff) the reader raises `UploadStopped` at its next chunk, whether it is decompressing a
+    compressed tiles.npz or reading a layer's data (both run on for seconds for a big upload, and
+    a highly compressed one reads nothing from the body meanwhile: closing the body stops neither).
+    Without `stop`, or before it is set, the file is read as ever."""
+    monkeypatch.setattr(storage_format, "_READ_CHUNK", 1 << 12)
+    data = snapshot_file("m", random_tiles_map(2, tile_size=64))
+    meta, arrays = snapshot_parts(data)
+    body = data if tiles == "stored" else snapshot_body(meta, arrays, deflate=True)
+    stop = threading.Event()
+    chunks = 0
+    real_check = storage_format.check_stop
+
+    def check(event: threading.Event | None) -> None:
+        nonlocal chunks
+        chunks += 1
+        if chunks == 3:  # told to stop mid-read
+            stop.set()
+        real_check(event)
+
+    monkeypatch.setattr(storage_format, "check_stop", check)
+    with pytest.raises(UploadStopped):
+        map_from_snapshot_file(body, stop=stop)
+    assert chunks == 3  # stopped there: no chunk more read
+    assert len(map_from_snapshot_file(body, stop=threading.Event()).store) == 2
+    assert len(map_from_snapshot_file(body).store) == 2
 
 
 @pytest.mark.parametrize("how", ["utf-8 name", "before the start", "zip64 offset"])

@@ -11,17 +11,22 @@ from __future__ import annotations
 
 import errno
 import io
+import json
 import logging
 import os
 import resource
+import signal
 import socket
 import tempfile
 import threading
 import time
+import zipfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
+from unittest import mock
 
 import httpx
 import numpy as np
@@ -33,8 +38,9 @@ from test_http_exhaustion import metric
 from fleetmap.api.app import ApiSettings
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
+from fleetmap.http_server import GRACEFUL_HTTP_SECONDS
 from fleetmap.spool import SPOOL_MEMORY_BYTES
-from fleetmap.storage_format import snapshot_file
+from fleetmap.storage_format import SNAPSHOT_FORMAT, snapshot_file
 
 BODY_TIMEOUT = 4.0
 #: A body's bytes sent before the test looks for its spool: past what the spool keeps in memory.
@@ -475,3 +481,77 @@ def test_an_io_error_of_the_temporary_directory_is_the_servers_503_not_the_uploa
         assert api.client.get("/maps/kept").headers["etag"] == etag
         wait_for(lambda: not spool_files(os.getpid(), tmp_path), timeout=5, what="the spool closed")
         assert list(tmp_path.iterdir()) == []
+
+
+def zeros_snapshot(chunks: int) -> bytes:
+    """A snapshot whose tiles.npz is deflated and holds `chunks` x 16 MiB of zeros (not an npz: it is
+    refused only once decompressed whole), made in a moment: 16 MiB of zeros deflated once, after a
+    full flush (which resets the compressor's state), gives the same bytes every time, so the
+    member is those bytes `chunks` times (zipfile's compressor replaced by one that repeats them)."""
+    chunk = bytes(16 << 20)
+    deflate = zlib.compressobj(9, zlib.DEFLATED, -15)
+    block = deflate.compress(chunk) + deflate.flush(zlib.Z_FULL_FLUSH)
+    assert deflate.compress(chunk) + deflate.flush(zlib.Z_FULL_FLUSH) == block
+    end = deflate.flush()
+
+    class Repeat:
+        def compress(self, data: bytes) -> bytes:
+            assert len(data) == len(chunk)
+            return block
+
+        def flush(self) -> bytes:
+            return end
+
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as zf:
+        zf.writestr("map.json", json.dumps({"format": SNAPSHOT_FORMAT, "config": {}}))
+        info = zipfile.ZipInfo("tiles.npz")
+        info.compress_type = zipfile.ZIP_DEFLATED
+        with (
+            mock.patch.object(zipfile, "_get_compressor", lambda *_args, **_kwargs: Repeat()),
+            zf.open(info, "w", force_zip64=True) as member,
+        ):
+            for _ in range(chunks):
+                member.write(chunk)  # zipfile sums its CRC, as for a real one
+    return out.getvalue()
+
+
+def held_open(pid: int, directory: Path) -> list[str]:
+    """`spool_files`, none once process `pid` has exited."""
+    try:
+        return spool_files(pid, directory)
+    except FileNotFoundError:  # /proc/<pid>/fd: gone with the process
+        return []
+
+
+def test_an_upload_still_being_decompressed_at_shutdown_stops_with_its_request(tmp_path: Path) -> None:
+    """SIGTERM while an upload's reader decompresses a compressed tiles.npz into the temporary
+    directory: the request is answered 503 at the graceful shutdown's cutoff, and its reader, on a
+    worker thread, stops then too. It ran on to the end (4 GiB of zeros written to TMPDIR, here some
+    13 s after the cutoff), and the process's exit waited for it: asyncio joins its executor's
+    threads. The spool's file is unlinked as it is made, so TMPDIR shows nothing either way; the
+    service's descriptor into it (`spool_files`) shows the reader still at work."""
+    body = zeros_snapshot(255)  # 4080 MiB, within the 4 GiB limit; a 4 MB body, kept in memory
+    assert len(body) < SPOOL_MEMORY_BYTES
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    svc = ServiceProcess(tmp_path, ["--in-memory"], env={"TMPDIR": str(tmpdir)}).start()
+    try:
+        pid = svc.proc.pid  # type: ignore[union-attr]
+        with start_upload(svc, "/maps/zeros/snapshot", len(body)) as sock:
+            sock.sendall(body)
+            # The only spool on disk is the decompressed tiles.npz's: the reader is at work.
+            wait_for(lambda: spool_files(pid, tmpdir), timeout=20, what="the decompressed copy's spool")
+            sent = time.monotonic()
+            svc.proc.send_signal(signal.SIGTERM)  # type: ignore[union-attr]
+            sock.settimeout(GRACEFUL_HTTP_SECONDS + 10)
+            status, answer = read_answer(sock)
+        assert status == 503 and "shutting down" in answer, answer
+        # The reader stops with its request: its spool is closed at once, not when it is done.
+        wait_for(lambda: not held_open(pid, tmpdir), timeout=1.5, what="the reader stopped")
+        assert svc.stop(timeout=30) == 0, svc.logs()
+        assert time.monotonic() - sent < GRACEFUL_HTTP_SECONDS + 3, svc.logs()
+    finally:
+        svc.stop()
+    assert list(tmpdir.iterdir()) == []
+    assert "Traceback" not in svc.logs(), svc.logs()

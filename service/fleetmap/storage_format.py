@@ -9,6 +9,7 @@ import io
 import json
 import math
 import struct
+import threading
 import zipfile
 import zlib
 from collections.abc import Callable, Sequence
@@ -23,7 +24,7 @@ from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.database import StorageError
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
-from fleetmap.spool import as_file, close_spool, spool_write, spooled_file, upload_zip
+from fleetmap.spool import as_file, check_stop, close_spool, spool_write, spooled_file, upload_zip
 from fleetmap.tiles import LayerArray, TileKey, TileLimitError, layer_arrays, tile_bytes
 
 if TYPE_CHECKING:
@@ -435,8 +436,9 @@ def _data_start(fp: IO[bytes], info: zipfile.ZipInfo) -> int:
 
 
 def _tiles_npz(
-    outer: zipfile.ZipFile, fp: IO[bytes], limit: int, stack: contextlib.ExitStack
-) -> tuple[IO[bytes], Callable[[], None]]:
+    outer: zipfile.ZipFile, fp: IO[bytes], limit: int, stack: contextlib.ExitStack,
+    stop: threading.Event | None = None,
+) -> tuple[IO[bytes], Callable[[], None]]:  # fmt: skip
     """Member `tiles.npz` of the snapshot `outer` (read from `fp`) as a file that can seek, checked as
     `_read_member` checks a member (its declared size against `limit`, its local header, its CRC)
     but never held in memory whole, and a function that completes the check. A stored member (what
@@ -444,7 +446,8 @@ def _tiles_npz(
     arrays are read, and the function given back reads what they left and compares it. A compressed
     one (a snapshot zipped again by some tool) is decompressed into a spool (`stack` closes it) and
     checked whole as that is written; its function does nothing. Both raise `SnapshotError` for a
-    corrupt member. Raises `SpoolFailed` if the spool has no room."""
+    corrupt member. Raises `SpoolFailed` if the spool has no room, `UploadStopped` once `stop` is
+    set (checked between chunks of the decompression)."""
     path = "tiles.npz"
     info = _member(outer, path, path, limit)
 
@@ -472,6 +475,7 @@ def _tiles_npz(
     try:
         with outer.open(info) as member:
             while chunk := member.read(_READ_CHUNK):
+                check_stop(stop)
                 size += len(chunk)
                 if size > limit:
                     raise SnapshotError(
@@ -552,9 +556,12 @@ def _check_npy(npy: _Npy, dtype: np.dtype | None, shape: tuple[int, ...], what: 
         )
 
 
-def _read_npy(npz: zipfile.ZipFile, npy: _Npy, out: np.ndarray | None = None) -> np.ndarray:
+def _read_npy(
+    npz: zipfile.ZipFile, npy: _Npy, out: np.ndarray | None = None, stop: threading.Event | None = None
+) -> np.ndarray:
     """The data of a checked array (`_check_npy`), streamed into `out` (C-contiguous, of its shape)
-    when given. Never reads more than its header declared; a member that ends early is refused."""
+    when given. Never reads more than its header declared; a member that ends early is refused.
+    Raises `UploadStopped` once `stop` is set (checked between chunks)."""
     fits = out is not None and not npy.fortran and out.dtype == npy.dtype
     stored_shape = npy.shape[::-1] if npy.fortran else npy.shape
     buf = out if out is not None and fits else np.empty(stored_shape, dtype=npy.dtype)
@@ -564,6 +571,7 @@ def _read_npy(npz: zipfile.ZipFile, npy: _Npy, out: np.ndarray | None = None) ->
             fp.read(npy.offset)
             at = 0
             while at < len(dest):
+                check_stop(stop)
                 chunk = fp.read(min(_READ_CHUNK, len(dest) - at))
                 if not chunk:
                     raise SnapshotError(f"snapshot member {npy.path} ends early")
@@ -661,7 +669,7 @@ def _check_values(a: LayerArray, values: np.ndarray, keys: list[TileKey], config
 
 def map_from_snapshot_file(
     data: bytes | IO[bytes], max_tiles: int | None = None, max_bytes: int = MAX_SNAPSHOT_BYTES,
-    reservation: UploadReservation | None = None,
+    reservation: UploadReservation | None = None, stop: threading.Event | None = None,
 ) -> GridMap:  # fmt: skip
     """A map restored from a `snapshot_file`: its bytes, or a binary file open for reading that can
     seek (an upload spooled to disk: `fleetmap.spool`), which is read in place, never held in memory
@@ -677,7 +685,8 @@ def map_from_snapshot_file(
     installed is one the service could have built. With `reservation` (an upload's room in the
     memory budget), the map's tiles are reserved once every header is checked, before anything is
     allocated, and refused (507) if the budget has no room for them; the map returned is charged
-    with them."""
+    with them. With `stop`, it raises `UploadStopped` soon after `stop` is set: the reader of an
+    upload whose request ended (the shutdown's cutoff) must not decompress and read on for seconds."""
     fp = as_file(data)
     with contextlib.ExitStack() as stack:
         try:
@@ -686,7 +695,7 @@ def map_from_snapshot_file(
             raise SnapshotError(f"not a fleetmap snapshot: the body is not a zip file ({exc})") from None
         with outer:
             config = _snapshot_config(outer, max_tiles)
-            inner, verify_tiles = _tiles_npz(outer, fp, max_bytes, stack)
+            inner, verify_tiles = _tiles_npz(outer, fp, max_bytes, stack, stop)
         try:
             try:
                 npz = upload_zip(inner)
@@ -716,7 +725,7 @@ def map_from_snapshot_file(
                 gmap.store.create(keys, fill=False)
                 for a, npy in zip(layout, arrays, strict=True):
                     values = gmap.store.pools[a.name][: len(keys)]
-                    _read_npy(npz, npy, values)
+                    _read_npy(npz, npy, values, stop)
                     _check_values(a, values, keys, config)
         except SnapshotError:
             # A corrupt tiles.npz is what to name, as when its CRC was checked before its arrays:

@@ -4,6 +4,7 @@ map_server `map.yaml` zipped with its image. It installs as a snapshot upload do
 from __future__ import annotations
 
 import email.message
+import threading
 from typing import IO, Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
@@ -84,7 +85,13 @@ async def put_import(
     defaults = state.registry.default_config
 
     # Its body is not held in memory while it is read, as a snapshot's; one of the uploads in progress.
-    def read(body: IO[bytes], config: MapConfig | None, reservation: UploadReservation | None) -> GridMap:
+    # Not stopped by `stop`: its body is at most 16 MiB and its image 64 Mpixels, read in a second or two.
+    def read(
+        body: IO[bytes],
+        config: MapConfig | None,
+        reservation: UploadReservation | None,
+        _stop: threading.Event,
+    ) -> GridMap:
         return map_from_nav2_zip(body, config, defaults, reservation=reservation, snap_origin=snap_origin)
 
     try:

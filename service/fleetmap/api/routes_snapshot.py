@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 from collections.abc import AsyncIterator, Callable
 from typing import IO, Any
 
@@ -165,8 +166,13 @@ async def put_snapshot(
     could not be stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing
     changed; before the body is read)."""
 
-    def read(body: IO[bytes], _config: MapConfig | None, reservation: UploadReservation | None) -> GridMap:
-        return map_from_snapshot_file(body, reservation=reservation)
+    def read(
+        body: IO[bytes],
+        _config: MapConfig | None,
+        reservation: UploadReservation | None,
+        stop: threading.Event,
+    ) -> GridMap:
+        return map_from_snapshot_file(body, reservation=reservation, stop=stop)
 
     try:
         return await install_upload(state, map_id, request, response, read, conditions)
@@ -182,16 +188,18 @@ async def install_upload(
     map_id: str,
     request: Request,
     response: Response,
-    read: Callable[[IO[bytes], MapConfig | None, UploadReservation | None], GridMap],
+    read: Callable[[IO[bytes], MapConfig | None, UploadReservation | None, threading.Event], GridMap],
     conditions: Preconditions,
 ) -> MapInfo:
     """Install the map an upload holds as map `map_id`, replacing any map of that id, durably: what
     `PUT .../snapshot` and `PUT .../import` share. The request's body goes to a spool
-    (`spooled_body`, one of the uploads in progress); `read(body, config, reservation)` makes the
-    map from it on a worker thread, with the configuration of the map it replaces (None for a new
-    id), charging it to the upload's room in the memory budget (`MapRegistry.upload_reservation`;
-    None without a budget) before it allocates the tiles; whatever it raises for a bad upload (a
-    507 when the budget has no room) propagates with nothing changed, and the room is given back.
+    (`spooled_body`, one of the uploads in progress); `read(body, config, reservation, stop)` makes
+    the map from it on a worker thread, with the configuration of the map it replaces (None for a
+    new id), charging it to the upload's room in the memory budget (`MapRegistry.upload_reservation`;
+    None without a budget) before it allocates the tiles, and stopping (`spool.UploadStopped`) soon
+    after `stop` is set, which it is when the request ends before the reader does; whatever it
+    raises for a bad upload (a 507 when the budget has no room) propagates with nothing changed,
+    and the room is given back.
     Sets 201 (with `Location`) for a new map, else 200; NotDurable (503) if the map was installed
     but could not be stored. `conditions` (the request's If-Match / If-None-Match) are checked
     before the body is read, sparing a doomed upload its transfer (gigabytes, for a big map) and
@@ -214,7 +222,14 @@ async def install_upload(
         # read together (and scans meanwhile) cannot each take the same free bytes; given back on
         # every other way out, a cancelled request's too.
         with state.registry.upload_reservation(replaced) as reservation:
-            gmap = await asyncio.to_thread(read, body, config, reservation)
+            stop = threading.Event()
+            try:
+                gmap = await asyncio.to_thread(read, body, config, reservation, stop)
+            finally:
+                # A request cancelled while its reader runs (the shutdown's cutoff) does not wait for
+                # it: the reader stops at its next chunk rather than decompress on to 4 GiB into the
+                # temporary directory, for the process's exit to wait for (asyncio joins its threads).
+                stop.set()
             return await _install(state, map_id, response, gmap, conditions, reservation)
 
 
