@@ -4,6 +4,7 @@ is test_durability.py."""
 
 from __future__ import annotations
 
+import errno
 import io
 import itertools
 import json
@@ -17,6 +18,7 @@ import time
 import zipfile
 import zlib
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 import pytest
@@ -687,16 +689,17 @@ def test_an_upload_reader_stops_between_chunks_once_told(tiles: str, monkeypatch
 
 @pytest.mark.parametrize("how", ["utf-8 name", "before the start", "zip64 offset"])
 @pytest.mark.parametrize("member", ["map.json", "tiles.npz", "tiles.npz/keys.npy"])
-@pytest.mark.parametrize("source", ["bytes", "file"])
+@pytest.mark.parametrize("source", ["bytes", "file", "spool on disk"])
 def test_a_zip_whose_headers_zipfile_reads_only_when_opening_a_member_is_refused_not_a_500(
-    tmp_path: Path, how: str, member: str, source: str
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, how: str, member: str, source: str
 ) -> None:
     """zipfile checks a member's local header, and seeks to its offset, only when the member is
     opened: a local name flagged UTF-8 that is not (UnicodeDecodeError), an offset before the file's
     start (ValueError from a `BytesIO`, the in-memory spool of every upload under 16 MiB) or past
     what a seek takes (OverflowError) escaped the reader's errors and were answered 500 with a
     traceback. Each is a corrupt file (422), in the snapshot or in its tiles.npz, read from bytes or
-    from a file (a spool on disk)."""
+    from a file, and from a spool on disk (whose disk's errors are `SpoolFailed`, 503: none of these
+    is one)."""
     data = snapshot_file("s", small_snapshot_map())
     meta, arrays = snapshot_parts(data)
     if member == "tiles.npz/keys.npy":
@@ -707,15 +710,39 @@ def test_a_zip_whose_headers_zipfile_reads_only_when_opening_a_member_is_refused
         body = hostile_zip(data, member, how)
     path = tmp_path / "s.zip"
     path.write_bytes(body)
-    with (
-        path.open("rb") if source == "file" else io.BytesIO(body) as fp,
-        pytest.raises(ValueError) as refused,
-    ):
-        map_from_snapshot_file(fp if source == "file" else body)
+    fp: IO[bytes]
+    if source == "spool on disk":
+        monkeypatch.setattr(spool, "SPOOL_MEMORY_BYTES", 64)  # this small body goes to the spool's file
+        monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+        fp = spool.spooled_file()
+        spool.spool_write(fp, body)
+        fp.seek(0)
+        assert fp._rolled  # type: ignore[attr-defined]
+    else:
+        fp = path.open("rb") if source == "file" else io.BytesIO(body)
+    with fp, pytest.raises(ValueError) as refused:
+        map_from_snapshot_file(body if source == "bytes" else fp)
     assert isinstance(refused.value, SnapshotError) and refused.value.status == 422, repr(refused.value)
     # The part at fault named: the whole file when every offset of it is shifted, else the member.
     whole = how == "before the start" and member != "tiles.npz/keys.npy"
     assert ("the body is not a zip file" if whole else member.split("/")[0]) in str(refused.value)
+
+
+def test_a_seek_before_a_disk_spools_start_is_an_oserror_not_a_spool_failure(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A spool's disk errors are `SpoolFailed` (503, the server's), but a position before its start
+    comes from the upload (a zip's offsets): it stays the OSError (EINVAL) that zipfile expects of
+    any file and the readers take for a corrupt upload."""
+    monkeypatch.setattr(spool, "SPOOL_MEMORY_BYTES", 64)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    with spool.spooled_file() as fp:
+        spool.spool_write(fp, bytes(100))
+        assert fp._rolled  # type: ignore[attr-defined]
+        with pytest.raises(OSError) as refused:
+            fp.seek(-1)
+        assert refused.value.errno == errno.EINVAL
+        assert fp.seek(10) == 10 and fp.read(5) == bytes(5)
 
 
 def test_a_zip_of_too_many_entries_is_refused_before_zipfile_lists_them() -> None:
