@@ -146,7 +146,7 @@ def spool_write(spool: IO[bytes], data: bytes) -> None:
     block on the disk: call it off the event loop."""
     try:
         spool.write(data)
-    except OSError as exc:  # a spool of `spooled_file` raises SpoolFailed itself; another file, this
+    except OSError as exc:  # from a file not made by `spooled_file` (whose writes raise SpoolFailed)
         raise SpoolFailed(exc) from None
 
 

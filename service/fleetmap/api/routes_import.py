@@ -73,10 +73,10 @@ async def put_import(
     memory than the budget leaves (its body, at most 16 MiB, is kept in memory: only a body limit
     raised past that, `ApiSettings.max_body_bytes`, goes to the temporary directory as a snapshot's,
     and may find no room there, 507 too, or fail to write or read it, 503); 503 (`Retry-After: 5`),
-    before the body is read, if the
-    server already holds its limit of uploads in progress (snapshots and imports, 4 by default); none
-    changes anything. 503 if it was installed but could not be stored. `If-Match` / `If-None-Match: *`
-    as for `PUT /maps/{map_id}` (412, nothing changed; before the body is read)."""
+    before the body is read, if the server already holds its limit of uploads in progress
+    (snapshots and imports, 4 by default); none changes anything. 503 if it was installed but could
+    not be stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing
+    changed; before the body is read)."""
     del format  # one format for now: the parameter names it, as GET .../export's does
     content_type = request.headers.get("content-type")
     if not _is_zip_media_type(content_type):
