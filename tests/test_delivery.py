@@ -42,7 +42,7 @@ from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.registry import IngestRejected, Job, MapRegistry
-from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger
+from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger, pairs
 from fleetmap.scan import Scan
 from fleetmap.unmapped import MAX_UNMAPPED_ROBOTS
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
@@ -81,7 +81,7 @@ def test_refused_seqs_and_lost_gaps_are_listed_compactly_until_the_cap() -> None
         ledger.settle(ledger.open(seq), integrated=k % 2 == 0)
     assert isinstance(ledger.refused_seqs, array) and isinstance(ledger.lost_gaps, array)
     assert list(ledger.refused_seqs) == [2**40 + 3 * k for k in range(2, LEDGER_HISTORY + 1, 2)]
-    gaps = ledger.gaps()
+    gaps = pairs(ledger.lost_gaps)
     assert gaps is not None and len(gaps) == LEDGER_HISTORY - 1  # none before the session's first scan
     assert gaps[0] == (2**40 + 6, 2) and gaps[-1] == (seq, 2)
     ledger.withdraw_refusal(seq)  # the last refused scan sent again and accepted
@@ -90,7 +90,7 @@ def test_refused_seqs_and_lost_gaps_are_listed_compactly_until_the_cap() -> None
         seq += 3
         robot.accept(seq, 0.0, 7)
         ledger.settle(ledger.open(seq), integrated=False)
-    assert ledger.refused_seqs is None and ledger.lost_gaps is None and ledger.gaps() is None
+    assert ledger.refused_seqs is None and ledger.lost_gaps is None and pairs(ledger.lost_gaps) is None
 
 
 @pytest.mark.parametrize("case", ["resent after the full queue refused it", "restart without session ids"])

@@ -92,7 +92,7 @@ class SessionLedger:
     _reopened_top: int = field(default=0, repr=False)
     _gap: int = field(default=0, repr=False)  # seqs lost before the scan `open` is called for next
     #: The seqs of its scans settled as refused (less those whose refusal was withdrawn), and
-    #: seq, n (flat, in pairs: `gaps`) for the n seqs lost just before seq, in this process: the
+    #: seq, n (flat, in pairs: see `pairs`) for the n seqs lost just before seq, in this process: the
     #: delivery query lists them so that a flush counts only the scans through its last seq, not
     #: those published after it began (`fleetmap_client.publisher._report`). None when not known: a
     #: ledger restored from a snapshot, or past LEDGER_HISTORY entries. Int64 (seqs are below 2**63).
@@ -165,10 +165,6 @@ class SessionLedger:
         return cls(
             first_seq, settled, integrated, refused, lost, duplicates, refused_seqs=None, lost_gaps=None
         )
-
-    def gaps(self) -> list[tuple[int, int]] | None:
-        """`lost_gaps` as (seq, n) pairs: the n seqs just before seq were lost. None: not known."""
-        return pairs(self.lost_gaps)
 
     def first_unsettled(self) -> int | None:
         """The lowest seq of its scans not settled yet, None if every one is. Not always the front

@@ -131,9 +131,6 @@ class TileStore:
             )  # fmt: skip
         return pools
 
-    def has_array(self, name: str) -> bool:
-        return name in self.pools
-
     def create(self, keys: list[TileKey], fill: bool = True) -> None:
         """Create tiles for `keys` (none may exist yet), all or none: past the cap, raise
         `TileLimitError` and create nothing. Their cells are never-observed, except with `fill`
