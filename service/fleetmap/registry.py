@@ -724,7 +724,7 @@ class MapRegistry:
             if not self.queue.put((map_id, robot_id), job):
                 self._settle(job, integrated=False)
                 robot.dropped += 1
-                robot.refused = (session_key(session), seq)  # a retry of it is not a duplicate
+                robot.refused_scan = (session_key(session), seq)  # a retry of it is not a duplicate
                 reason = "ingest queue full: scan dropped"
                 robot.last_error = f"scan seq {seq}: {reason}"
                 if self._remove_unclaimed(entry) is not None:
@@ -960,8 +960,8 @@ class MapRegistry:
                             lambda exc: self._mark_not_durable(job, exc), job.wire.session,
                         )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
-            # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422, and
-            # a retry once memory is freed is integrated, not taken for a duplicate (`RobotState.refused`).
+            # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422, and a
+            # retry once memory is freed is integrated, not taken for a duplicate (`RobotState.refused_scan`).
             budget = isinstance(exc, MemoryBudgetError)
             self._finish_rejected(job, str(exc), 507 if budget else 422, retriable=budget)
             return
@@ -1008,7 +1008,7 @@ class MapRegistry:
         """A scan that does not count as integrated: count it on its robot (as `not_durable` if it
         was `applied`, else as rejected) with `reason` as its last error, and answer its caller
         `status`. A `retriable` scan (refused for the service's sake, not its own) may be sent again
-        with its seq (`RobotState.refused`). A `provisional` map that this refusal leaves with no
+        with its seq (`RobotState.refused_scan`). A `provisional` map that this refusal leaves with no
         scan unsettled is removed again (`_remove_unclaimed`), and the caller answered once that is
         stored."""
         removed = None
@@ -1021,7 +1021,7 @@ class MapRegistry:
                 robot.unsettled -= 1
                 robot.last_error = reason
                 if retriable:
-                    robot.refused = (session_key(job.wire.session), job.wire.seq)
+                    robot.refused_scan = (session_key(job.wire.session), job.wire.seq)
                 if applied:
                     robot.not_durable += 1
                     entry.provisional = False  # it holds the scan, durable or not

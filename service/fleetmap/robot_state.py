@@ -289,7 +289,7 @@ class RobotState:
     #: its scans is accepted. Its seq was recorded (so it is not also counted as lost), yet it was
     #: never integrated: a re-send of it, which a REST client answered 503 or 507 is told to make, is
     #: accepted rather than ignored as a duplicate. Not saved: it is about the last moments.
-    refused: tuple[int, int] | None = None
+    refused_scan: tuple[int, int] | None = None
     #: Its JSON in live viewers' robots events, made by the first event stream that sent it and sent
     #: as is by the others (`api.robots_feed`): key (what the JSON shows) -> JSON. Not saved.
     viewer_json: dict[tuple, str] = field(default_factory=dict, repr=False, compare=False)
@@ -353,8 +353,8 @@ class RobotState:
         its session's seq is past it (a copy, a retry, a stale message). A session not heard
         before is never a duplicate: its publisher (re)started, or another robot shares this id.
         Without a session, a seq not new is a restart if its stamp says so (`SessionSeqs.is_restart`).
-        A re-send of the scan the full queue refused (`refused`) is new: it was never integrated."""
-        if self.refused == (session_key(session), seq):
+        A re-send of the scan the full queue refused (`refused_scan`) is new: it was never integrated."""
+        if self.refused_scan == (session_key(session), seq):
             return False  # a re-send of the scan the full queue refused
         rec = self.sessions.get(session_key(session))
         if rec is None or seq > rec.last_seq:
@@ -372,10 +372,10 @@ class RobotState:
         id): `conflict_at` becomes `now` (wall-clock), `id_conflicts` counts it if a session among
         them was not known to be in one, and a restart counted when the other one started is
         withdrawn (it ran beside this one). A re-send of the scan the full queue refused
-        (`refused`) changes none of this: its seq was recorded when it first came. Returns whether
+        (`refused_scan`) changes none of this: its seq was recorded when it first came. Returns whether
         this scan interleaved with another session's so."""
         key = session_key(session)
-        refused, self.refused = self.refused, None
+        refused, self.refused_scan = self.refused_scan, None
         if refused == (key, seq):
             if key in self.sessions:
                 self.sessions[key].ledger.withdraw_refusal(seq)  # settled as refused, now accepted after all
