@@ -659,11 +659,15 @@ class MapRegistry:
     def submit(self, map_id: str, robot_id: str, wire: WireScan, wait: bool = False) -> Future | None:
         """Queue a decoded scan for integration, never blocking.
 
-        Returns a Future of the IntegrationResult when `wait`, else None. Raises IngestRejected for
-        a duplicate (status 200: nothing to do), an unknown map without auto-create (404), or a full
-        queue (503). Every refusal is counted on the robot, except one while the registry closes
-        (503, kind `SHUTTING_DOWN`): that scan is not taken at all, its seq not recorded, so that the
-        next process takes it as new when the robot sends it again (a `ScanPublisher`'s cache does).
+        Returns a Future of the IntegrationResult when `wait`, else None. Raises `InvalidId` for an
+        id that is not one, and IngestRejected for a duplicate or a scan from before its map was
+        deleted or replaced (status 200: nothing to do), an unknown map without auto-create or past
+        `max_auto_maps` (404), a map already holding `max_robots_per_map` robots, none of which can
+        be forgotten (429), or a full queue (503). Every refusal is counted on the robot (on the
+        map, and for the delivery query, where the scan has no map or no room on it), except one
+        while the registry closes (503, kind `SHUTTING_DOWN`): that scan is not taken at all, its
+        seq not recorded, so that the next process takes it as new when the robot sends it again (a
+        `ScanPublisher`'s cache does).
         A map this creates is `provisional`: it is removed again if the scan is refused here or later
         (and no other scan reached it meanwhile).
         """
