@@ -31,8 +31,9 @@ from fleetmap.api_models import (
     region_json,
     surface,
 )
+from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED
 from fleetmap.export import Window, known_window, map_png, map_source, nav2_zip, npy_bytes, png_bytes
-from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap
+from fleetmap.grid_map import GridMap
 
 router = APIRouter(route_class=StrictRoute)
 
