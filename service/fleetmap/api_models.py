@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, overload
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, get_args, overload
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -44,8 +44,13 @@ if TYPE_CHECKING:  # the conversions' argument types only: a client parsing answ
 MAX_POINTS = 100_000
 
 StateName = Literal["unknown", "free", "occupied"]
+assert set(get_args(StateName)) == set(STATE_NAMES.values())
 #: Why a ray stopped (`GridMap.cast_rays`' `RAY_STATUS_NAMES`).
 RayStatusName = Literal["occupied", "unknown", "max_range"]
+assert set(get_args(RayStatusName)) == set(RAY_STATUS_NAMES.values())
+#: The layers a region or a tile can be read as (`grid_map.REGION_LAYERS`, which `api.state` holds
+#: it to: this module may not import the engine): the routes' `layer` parameter, the client's `Layer`.
+RegionLayer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
 #: A map coordinate in a JSON body: a finite number (strict: no strings or booleans), metres.
 Coordinate = Annotated[float, Field(strict=True, ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False)]
 # Fixed-length arrays are lists with a length, not tuples: OpenAPI 3.1's `prefixItems` (what tuples

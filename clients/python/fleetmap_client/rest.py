@@ -50,6 +50,7 @@ from fleetmap.api_models import (
     MapList,
     MapSummary,
     RaycastResponse,
+    RegionLayer,
     RobotsDeltaEvent,
     RobotsEvent,
     ScanResult,
@@ -110,7 +111,8 @@ SCAN_TIMEOUT = 15.0
 #: the caller guessing whether an upload took effect.
 TRANSFER_TIMEOUT = 300.0
 
-Layer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
+#: The layers `region` and `region_png` read (the API's `RegionLayer`).
+Layer = RegionLayer
 #: What `FleetmapClient.events` returns: a generator (so `.close()` ends the stream early) of
 #: (event name, data) pairs.
 EventStream = Generator[tuple[str, dict[str, Any]], None, None]

@@ -15,7 +15,7 @@ import numpy as np
 from fastapi import APIRouter, Query, Response
 
 from fleetmap.api.errors import ApiError, error_responses, too_many
-from fleetmap.api.state import MapId, RegionLayer, State, coordinate
+from fleetmap.api.state import MapId, State, coordinate
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import (
     CellsRequest,
@@ -24,6 +24,7 @@ from fleetmap.api_models import (
     RaycastRequest,
     RaycastResponse,
     RegionJson,
+    RegionLayer,
     Surface,
     cell_value,
     cells_json,
