@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from fleetmap.auth import Role
-from fleetmap.cell_queries import MAX_RAYS, RAY_STATUS_NAMES, STATE_NAMES, cell_edge
+from fleetmap.cell_queries import MAX_RAYS, RAY_STATUS_NAMES, STATE_NAMES, UnknownCells, cell_edge
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.scan import Pose2D
 
@@ -330,7 +330,7 @@ class RaycastRequest(BaseModel):
         allow_inf_nan=False,
         description="metres a ray goes at most; at most 20000 cells, and rays x cells at most 2**24",
     )
-    unknown: Literal["stop", "pass"] = Field(
+    unknown: UnknownCells = Field(
         default="stop",
         description="stop: a ray stops at its first never-observed cell (status unknown); pass: it "
         "walks through unknown cells",

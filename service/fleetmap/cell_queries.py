@@ -12,6 +12,7 @@ under the same name, so `from fleetmap.grid_map import MAX_RAYS` means what it a
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Literal
 
 import numpy as np
 
@@ -29,6 +30,8 @@ STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "oc
 #: of `kernels/raycast.py` (which drops the cache).
 RAY_OCCUPIED, RAY_UNKNOWN, RAY_MAX_RANGE = 0, 1, 2
 RAY_STATUS_NAMES = {RAY_OCCUPIED: "occupied", RAY_UNKNOWN: "unknown", RAY_MAX_RANGE: "max_range"}
+#: What a cast ray does at a never-observed cell: stops there (status unknown), or walks through it.
+UnknownCells = Literal["stop", "pass"]
 
 #: Bounds of one `GridMap.cast_rays` call, which holds the map's lock (integration needs it) for its
 #: whole walk: rays, the longest ray in cells (`max_range / resolution`), and rays x that length. The

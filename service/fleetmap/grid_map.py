@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Mapping, Sequence
-from typing import Any, Literal, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -32,6 +32,7 @@ from fleetmap.cell_queries import STATE_NAMES as STATE_NAMES
 from fleetmap.cell_queries import STATE_OCCUPIED as STATE_OCCUPIED
 from fleetmap.cell_queries import STATE_UNKNOWN as STATE_UNKNOWN
 from fleetmap.cell_queries import Points as Points
+from fleetmap.cell_queries import UnknownCells
 from fleetmap.cell_queries import as_points as as_points
 from fleetmap.cell_queries import cell_edge as cell_edge
 from fleetmap.config import MAX_COORDINATE, LayerName, MapConfig
@@ -418,7 +419,7 @@ class GridMap:
         origin: Sequence[float] | Sequence[Sequence[float]] | np.ndarray,
         angles: float | Sequence[float] | np.ndarray,
         max_range: float,
-        unknown: Literal["stop", "pass"] = "stop",
+        unknown: UnknownCells = "stop",
     ) -> RaycastResult:
         """Where rays first meet an obstacle (OctoMap's `castRay`, one call for many rays).
 

@@ -56,7 +56,7 @@ from fleetmap.api_models import (
     ScanResult,
     Surface,
 )
-from fleetmap.cell_queries import MAX_RAY_WALK, MAX_RAYS, Points, as_points
+from fleetmap.cell_queries import MAX_RAY_WALK, MAX_RAYS, Points, UnknownCells, as_points
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.scan import Scan
@@ -500,7 +500,7 @@ class FleetmapClient:
         origin: Sequence[float] | Sequence[Sequence[float]] | np.ndarray,
         angles: float | Sequence[float] | np.ndarray,
         max_range: float,
-        unknown: Literal["stop", "pass"] = "stop",
+        unknown: UnknownCells = "stop",
     ) -> dict[str, np.ndarray]:
         """`POST /maps/{map_id}/raycast`: where rays from `origin` first meet an obstacle (OctoMap's
         castRay; the server runs `GridMap.cast_rays`).
