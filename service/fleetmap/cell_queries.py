@@ -1,7 +1,8 @@
 """The vocabulary of a map's cell and ray queries, without the engine that answers them.
 
-What `GridMap.cells` and `GridMap.cast_rays` take (`Points`, `as_points`, the ray limits), what their
-answers' codes mean (`STATE_NAMES`, `RAY_STATUS_NAMES`), and where a cell begins (`cell_edge`).
+What `GridMap.cells` and `GridMap.cast_rays` take (`Points`, `as_points`, the ray limits,
+`UnknownCells`), what their answers' codes mean (`STATE_NAMES`, `RAY_STATUS_NAMES`), and where a
+cell begins (`cell_edge`).
 The REST edge needs these and not the engine: `fleetmap.api_models` writes answers with them and
 `fleetmap_client.rest` checks requests with them. So this module imports numpy only, never
 `fleetmap.kernels` (whose import loads numba) nor anything that does: importing the REST client
@@ -83,6 +84,7 @@ __all__ = [
     "STATE_OCCUPIED",
     "STATE_UNKNOWN",
     "Points",
+    "UnknownCells",
     "as_points",
     "cell_edge",
 ]

@@ -551,4 +551,12 @@ def _session_parameter(value: str | None) -> int | None:
     return int(value)
 
 
-__all__ = ["DEFAULT_LISTEN", "MODES", "IngestStartError", "ZenohIngest", "parse_key"]
+__all__ = [
+    "DEFAULT_LISTEN",
+    "MODES",
+    "IngestStartError",
+    "ZenohIngest",
+    "is_loopback_host",
+    "parse_key",
+    "unauthenticated_endpoints",
+]

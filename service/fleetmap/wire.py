@@ -300,6 +300,7 @@ __all__ = [
     "JSON_ENCODING",
     "SCAN_KEY",
     "SCAN_KEY_WILDCARD",
+    "SEQ_LIMIT",
     "SESSION_LIMIT",
     "PoseMessage",
     "ScanError",
@@ -307,4 +308,5 @@ __all__ = [
     "SessionDelivery",
     "is_valid_id",
     "new_session_id",
+    "zenoh_error_text",
 ]
