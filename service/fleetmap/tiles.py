@@ -33,7 +33,8 @@ KernelPools = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 class TileLimitError(RuntimeError):
-    """A scan needed more tiles than the map's cap allows. The map was not changed."""
+    """A scan needed more tiles than the map's cap allows (or, as the subclass
+    `memory_budget.MemoryBudgetError`, than a shared memory budget holds). The map was not changed."""
 
 
 @dataclass(frozen=True)
