@@ -136,7 +136,8 @@ class ApiSettings:
     signin_max_failures: int = DEFAULT_MAX_FAILURES
     signin_window: float = DEFAULT_WINDOW
     signin_max_clients: int = DEFAULT_MAX_CLIENTS
-    #: Called by GET /healthz for the Zenoh session's status (server.py provides it).
+    #: Called by GET /healthz for the Zenoh session's status (`fleetmap serve` passes
+    #: `serve_ros.zenoh_status`, the session's and its ROS parts').
     zenoh_status: Callable[[], dict[str, Any]] | None = None
     #: The registry's integration hook. None: the `IntegrationMetrics` whose `on_integrated` the
     #: registry was built with, or, if the registry has no hook, a new one installed on it.
