@@ -904,6 +904,8 @@ class MapRegistry:
                 entry.touch(robot)
 
     def iter_robots(self) -> Iterator[tuple[str, str, RobotState]]:
+        """(map id, robot id, state) of every robot of every map. Holds the registry's lock until the
+        iteration ends: consume it whole, at once (`GET /healthz` counts the robots online)."""
         with self.lock:
             for entry in self.maps.values():
                 for robot_id, state in entry.robots.items():
@@ -1068,6 +1070,8 @@ class MapRegistry:
         """Settle `job`'s scan in its session's ledger (call under the registry's lock)."""
         if job.receipt is not None:
             job.receipt.ledger.settle(job.receipt, integrated)
+
+    # -- reporting -------------------------------------------------------------------------------
 
     def delivery_status(self, map_id: str, robot_id: str, session: int | None = None) -> DeliveryStatus:
         """What became of robot `robot_id`'s scans on map `map_id` (the Zenoh delivery query's
