@@ -26,6 +26,7 @@ from fleetmap.api import (
     routes_data,
     routes_import,
     routes_maps,
+    routes_service,
     routes_session,
     routes_snapshot,
     routes_tiles,
@@ -238,6 +239,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     if settings.zenoh_status is not None:
         app.state.fleetmap.metrics.watch_zenoh(settings.zenoh_status)
     errors.install(app)
+    app.include_router(routes_service.router)
     app.include_router(routes_maps.router)
     app.include_router(routes_data.router)
     app.include_router(routes_tiles.router)
