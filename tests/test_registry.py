@@ -39,7 +39,7 @@ def registry():
 
 
 def test_fair_queue_round_robin_and_one_in_flight_per_source() -> None:
-    q: FairQueue[str, int] = FairQueue(per_source=100)
+    q: FairQueue[str, int] = FairQueue(per_source=100, total=1000)
     for k in range(5):
         q.put("flood", k)
     q.put("quiet", 100)
