@@ -29,6 +29,7 @@ from fleetmap_client.publisher import (
     ScanPublisher,
     _report,
 )
+from registry_idle import wait_idle
 from robot_process import scans_for
 from service_process import FreezableProxy, RestartingService, ServiceProcess, reaped, wait_for
 from test_client_zenoh import Router, _write_carmen
@@ -121,7 +122,7 @@ def test_settled_does_not_pass_a_seq_accepted_again_while_it_waits(case: str) ->
     last = 2 if session else 0
     reg.start()
     try:
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         early = seen[0].sessions[0]
         assert early.settled is None or early.settled < last, f"seq {last} waited, yet settled {early}"
         final = reg.delivery_status("m", "r", 7 if session else 0).sessions[0]
@@ -171,7 +172,7 @@ def test_a_snapshot_does_not_save_a_seq_accepted_again_as_the_services_while_it_
             saved = seqs.settled_seq()
         assert saved < first, f"seq {first} waits, yet a snapshot would save seq {saved} as the service's"
         release.set()
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         final = reg.delivery_status("m", "r", 7 if resend else 0).sessions[0]
         # Every scan settled: the highest seq accepted (7, not the re-sent 5 settled last; the
         # earlier run's 1), the 507 no longer counted as refused once its re-send was accepted.
@@ -956,7 +957,7 @@ def test_scans_refused_on_a_map_they_created_are_settled_once_the_map_is_removed
         for future in futures:
             with pytest.raises(IngestRejected):
                 future.result(timeout=120)
-        assert reg.wait_idle(120)
+        assert wait_idle(reg, 120)
         status = reg.delivery_status("m", "r", 7)
         assert status.status == "no_map", status
         report = _report(status, 7, 0, 2)

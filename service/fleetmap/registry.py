@@ -1127,17 +1127,6 @@ class MapRegistry:
         oldest = min(job.enqueued_at for job in heads)
         return depth, max(0.0, time.monotonic() - oldest)
 
-    def wait_idle(self, timeout: float = 10.0) -> bool:
-        """Wait until the queue is empty, no scan is in flight and every applied scan is durable."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.queue.idle():
-                if self.durable is not None:
-                    self.durable.writer.flush()
-                return True
-            time.sleep(0.005)
-        return False
-
 
 def _forgetting_order(item: tuple[str, RobotState]) -> tuple[bool, float]:
     """Which robot a full map forgets first (`MapRegistry._forget_idle`): one whose every message
