@@ -17,6 +17,7 @@ import httpx
 import pytest
 import uvicorn
 from prometheus_client.parser import text_string_to_metric_families
+from registry_idle import wait_idle
 from test_api_support import RunningApi, fan_scan, running_api
 
 from fleetmap.api import ApiSettings, create_app
@@ -48,7 +49,7 @@ def backlog(api: RunningApi, map_id: str, scans: int = 5, age: float = 0.15) -> 
             assert time.monotonic() < deadline, registry.backlog()
             time.sleep(0.01)
         yield
-    assert registry.wait_idle(10)
+    assert wait_idle(registry, 10)
 
 
 def timed_get(api: RunningApi, path: str, out: dict[str, object]) -> threading.Thread:

@@ -29,6 +29,7 @@ from fleetmap_client.publisher import (
     ScanPublisher,
     _report,
 )
+from registry_idle import wait_idle
 from robot_process import scans_for
 from service_process import FreezableProxy, RestartingService, ServiceProcess, reaped, wait_for
 from test_client_zenoh import Router, _write_carmen
@@ -42,7 +43,7 @@ from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.registry import IngestRejected, Job, MapRegistry
-from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger
+from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger, pairs
 from fleetmap.scan import Scan
 from fleetmap.unmapped import MAX_UNMAPPED_ROBOTS
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
@@ -81,7 +82,7 @@ def test_refused_seqs_and_lost_gaps_are_listed_compactly_until_the_cap() -> None
         ledger.settle(ledger.open(seq), integrated=k % 2 == 0)
     assert isinstance(ledger.refused_seqs, array) and isinstance(ledger.lost_gaps, array)
     assert list(ledger.refused_seqs) == [2**40 + 3 * k for k in range(2, LEDGER_HISTORY + 1, 2)]
-    gaps = ledger.gaps()
+    gaps = pairs(ledger.lost_gaps)
     assert gaps is not None and len(gaps) == LEDGER_HISTORY - 1  # none before the session's first scan
     assert gaps[0] == (2**40 + 6, 2) and gaps[-1] == (seq, 2)
     ledger.withdraw_refusal(seq)  # the last refused scan sent again and accepted
@@ -90,7 +91,7 @@ def test_refused_seqs_and_lost_gaps_are_listed_compactly_until_the_cap() -> None
         seq += 3
         robot.accept(seq, 0.0, 7)
         ledger.settle(ledger.open(seq), integrated=False)
-    assert ledger.refused_seqs is None and ledger.lost_gaps is None and ledger.gaps() is None
+    assert ledger.refused_seqs is None and ledger.lost_gaps is None and pairs(ledger.lost_gaps) is None
 
 
 @pytest.mark.parametrize("case", ["resent after the full queue refused it", "restart without session ids"])
@@ -121,7 +122,7 @@ def test_settled_does_not_pass_a_seq_accepted_again_while_it_waits(case: str) ->
     last = 2 if session else 0
     reg.start()
     try:
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         early = seen[0].sessions[0]
         assert early.settled is None or early.settled < last, f"seq {last} waited, yet settled {early}"
         final = reg.delivery_status("m", "r", 7 if session else 0).sessions[0]
@@ -171,7 +172,7 @@ def test_a_snapshot_does_not_save_a_seq_accepted_again_as_the_services_while_it_
             saved = seqs.settled_seq()
         assert saved < first, f"seq {first} waits, yet a snapshot would save seq {saved} as the service's"
         release.set()
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         final = reg.delivery_status("m", "r", 7 if resend else 0).sessions[0]
         # Every scan settled: the highest seq accepted (7, not the re-sent 5 settled last; the
         # earlier run's 1), the 507 no longer counted as refused once its re-send was accepted.
@@ -203,7 +204,7 @@ def test_a_snapshot_saves_the_counts_only_as_far_as_the_sessions_seqs(case: str)
     else:
         receipts.append(accept(state, 6))
         state.sessions[7].ledger.settle(receipts[1], integrated=False)  # refused (the queue was full)
-        state.refused = (7, 6)
+        state.refused_scan = (7, 6)
         if case == "refused and sent again":
             receipts.append(accept(state, 6))
     restored = RobotState.from_saved(json.loads(json.dumps(state.saved())))  # a snapshot, then a crash
@@ -956,7 +957,7 @@ def test_scans_refused_on_a_map_they_created_are_settled_once_the_map_is_removed
         for future in futures:
             with pytest.raises(IngestRejected):
                 future.result(timeout=120)
-        assert reg.wait_idle(120)
+        assert wait_idle(reg, 120)
         status = reg.delivery_status("m", "r", 7)
         assert status.status == "no_map", status
         report = _report(status, 7, 0, 2)

@@ -22,6 +22,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from registry_idle import wait_idle
 from robot_process import scans_for
 from service_process import RobotProcess, ServiceProcess, wait_for
 
@@ -447,9 +448,9 @@ def test_a_snapshot_that_never_switched_is_ignored(tmp_path: Path) -> None:
     for k, scan in enumerate(scans):
         reg.submit("m", "r", WireScan(k, 0.0, scan))
         if k == 15:
-            assert reg.wait_idle()
+            assert wait_idle(reg)
             reg.snapshot_all()  # a real snapshot half-way
-    assert reg.wait_idle()
+    assert wait_idle(reg)
     expected = reg.get("m").gmap
     i0, j0, i1, j1 = expected.known_bounds()
     want = expected.region("log_odds", i0, j0, i1, j1)
@@ -771,7 +772,7 @@ def test_scans_queued_at_a_snapshot_and_lost_in_a_crash_are_taken_again_from_the
     gmap = None
     try:
         reg.submit("m", "r", WireScan(0, 0.0, scans[0], session))
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         gmap = reg.get("m").gmap
         gmap.lock.acquire()  # the workers wait for the map: scans 1-4 stay accepted, not applied
         for k in range(1, 5):
@@ -784,7 +785,7 @@ def test_scans_queued_at_a_snapshot_and_lost_in_a_crash_are_taken_again_from_the
         assert again.get("m").scans_integrated == 1
         for k in range(1, 5):  # the robot's cache, fetched by the new process
             again.submit("m", "r", WireScan(k, float(k), scans[k], session))
-        assert again.wait_idle()
+        assert wait_idle(again)
         robot = again.get("m").robots["r"]
         assert (robot.scans_integrated, robot.duplicates, robot.lost, robot.last_seq) == (5, 0, 0, 4)
         expected = GridMap()

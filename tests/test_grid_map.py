@@ -216,12 +216,12 @@ def test_a_saturated_map_reports_no_change(layers: list[str]) -> None:
     m = make_map(layers=layers, tile_size=64)
     fan = Scan.from_fan((3.17, 3.11, 0.4), -2.3, 4.6 / 540, np.full(540, 4.0), range_max=30.0)
     plan = m.plan(fan)
-    assert plan.run.size > 0 and plan.cell.size > 0 and plan.num_tiles > 1
+    assert plan.runs.shape[1] > 0 and plan.cell.size > 0 and plan.num_tiles > 1
     for _ in range(12):  # the octomap preset clamps after 5 misses or 5 hits
         m.integrate(fan)
     before = m.store.versions[: len(m.store)].copy()
     result = m.integrate(fan)
-    assert result.cell_updates == plan.cell.size + int(plan.run_len.sum())
+    assert result.cell_updates == plan.cell.size + int(plan.runs[1].sum())
     if layers == ["occupancy"]:
         assert result.changed_tiles == []
         assert (m.store.versions[: len(m.store)] == before).all()

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import zenoh
 from fleetmap_client.publisher import ScanPublisher
+from registry_idle import wait_idle
 from service_process import FreezableProxy, free_port, wait_for
 
 from fleetmap import codec
@@ -119,7 +120,7 @@ def test_json_and_binary_scans_integrate_exactly_like_the_engine(
         sent["mb"].append((pb, BINARY_ENCODING))
     for map_id in sent:
         wait_for(lambda m=map_id: integrated(registry, m, "r1") == 25, what=f"25 scans on {map_id}")
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     for map_id, payloads in sent.items():
         entry = registry.get(map_id)
         assert_same_map(entry.gmap, engine_map(payloads))
@@ -163,7 +164,7 @@ def test_bad_payloads_are_counted_per_robot_with_reasons_and_change_nothing(
     wait_for(lambda: ingest.status()["decode_errors"] == len(bad), what="every bad payload")
     assert state.scans_rejected == len(bad) and entry.scans_rejected == len(bad)
     assert "unknown encoding" in (state.last_error or "")
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     assert entry.gmap.store.clock == before[0]  # no tile was written
     np.testing.assert_array_equal(entry.gmap.region("log_odds", *entry.gmap.known_bounds()), before[1])
     assert state.scans_integrated == 3 and state.last_seq == 2  # refused messages do not move seq
@@ -224,7 +225,7 @@ def test_seq_gaps_duplicates_and_restart_are_accounted(
     for k, seq in enumerate(seqs):
         pub.put(codec.encode_binary(scans[k], seq))
     wait_for(lambda: ingest.status()["messages_received"] == len(seqs), what="every message")
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     state = registry.get("m").robots["r1"]
     assert (state.scans_integrated, state.duplicates, state.lost, state.last_seq) == (7, 2, 2, 1)
     assert ingest.status()["rejected"] == {"duplicate": 2}
@@ -256,7 +257,7 @@ def test_full_queue_refuses_the_newest_without_blocking_the_callback() -> None:
             for p in payloads[1:]:
                 pub.put(p)
             wait_for(lambda: ingest.status()["messages_received"] == 12, what="all 12 delivered while locked")
-        assert registry.wait_idle()
+        assert wait_idle(registry)
         state = entry.robots["r1"]
         assert state.dropped == 12 - 3  # one in flight and two queued got through
         assert state.scans_integrated == 3
@@ -617,7 +618,7 @@ def test_a_map_created_by_a_refused_zenoh_scan_is_removed_again() -> None:
         for map_id in ("fresh", "tokened"):
             scan_publisher(session, map_id, "r1", BINARY_ENCODING).put(too_big)
         wait_for(lambda: ingest.status()["scans_submitted"] == 2, what="both scans submitted")
-        assert registry.wait_idle()
+        assert wait_idle(registry)
         assert list(registry.maps) == ["tokened"]
         assert "max_tiles" in registry.get("tokened").robots["r1"].last_error
         token.undeclare()

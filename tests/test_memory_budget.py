@@ -319,23 +319,23 @@ def test_a_replaced_maps_bytes_are_lent_once_and_the_loan_ends_with_either_side(
     old = GridMap(SMALL)
     old.store.charge(budget)
     old.store.create([(k, 0) for k in range(20)])
-    assert budget.used == 20 * TILE_BYTES and budget.free() == 10 * TILE_BYTES
+    assert budget.used == 20 * TILE_BYTES and budget._free() == 10 * TILE_BYTES
     first, second = UploadReservation(budget, old.store), UploadReservation(budget, old.store)
     new = [GridMap(SMALL) for _ in range(3)]
     first.charge(new[0].store, 20)  # 10 free, 10 of the old map's
-    assert budget.used == 40 * TILE_BYTES and budget.lent == 10 * TILE_BYTES and budget.free() == 0
+    assert budget.used == 40 * TILE_BYTES and budget.lent == 10 * TILE_BYTES and budget._free() == 0
     with pytest.raises(MemoryBudgetError, match="and 0.0 MiB of the map it replaces"):
         second.charge(new[1].store, 11)  # the old map has 10 tiles' bytes left to lend
     assert budget.used == 40 * TILE_BYTES
     second.charge(new[1].store, 10)
-    assert budget.used == 50 * TILE_BYTES and budget.lent == 20 * TILE_BYTES and budget.free() == 0
+    assert budget.used == 50 * TILE_BYTES and budget.lent == 20 * TILE_BYTES and budget._free() == 0
     with pytest.raises(MemoryBudgetError):  # a scan's growth: what is lent is no one else's
         new[2].store.charge(budget)
         new[2].store.create([(0, 0)])
     old.store.uncharge()  # the old map is deleted: both loans end with it, and its bytes go back
-    assert budget.used == 30 * TILE_BYTES and budget.lent == 0 and budget.free() == 0
+    assert budget.used == 30 * TILE_BYTES and budget.lent == 0 and budget._free() == 0
     second.release()
-    assert budget.used == 20 * TILE_BYTES and budget.free() == 10 * TILE_BYTES
+    assert budget.used == 20 * TILE_BYTES and budget._free() == 10 * TILE_BYTES
     first.install(new[0].store)
     first.release()  # installed: kept
     assert budget.used == 20 * TILE_BYTES == new[0].store.charged.bytes  # type: ignore[union-attr]

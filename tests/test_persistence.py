@@ -22,6 +22,7 @@ from typing import IO
 
 import numpy as np
 import pytest
+from registry_idle import wait_idle
 from test_api_support import (
     declare_size,
     hostile_zip,
@@ -818,7 +819,7 @@ def test_a_deleted_map_leaves_nothing_behind_in_the_store(tmp_path: Path) -> Non
             registry.submit(map_id, "r", WireScan(1, 0.0, fan(0.0, 11), None))  # maybe still queued
             registry.delete(map_id, wait=True)
         registry.create("kept", wait=True)
-        registry.wait_idle()
+        wait_idle(registry)
         store = registry.durable
         assert store is not None
         for kept in (store._created, store._last_journal_id, store._rows_since, store._snapshot_clock):

@@ -102,9 +102,9 @@ def paint(gmap: GridMap, cells: dict[tuple[int, int], float]) -> None:
     store.create(keys)
     for (i, j), value in cells.items():
         slot, li, lj = store.slots[(i >> store.shift, j >> store.shift)], i & store.mask, j & store.mask
-        if store.has_array("log_odds"):
+        if "log_odds" in store.pools:
             store.pools["log_odds"][slot, lj, li] = value
-        if store.has_array("hits"):
+        if "hits" in store.pools:
             more = 0 if math.isnan(value) else round(2 * value)
             hits, misses = (0, 0) if math.isnan(value) else (1 + max(more, 0), 1 + max(-more, 0))
             store.pools["hits"][slot, lj, li] = hits

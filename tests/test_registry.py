@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from registry_idle import wait_idle
 
 from fleetmap import persistence
 from fleetmap.codec import WireScan
@@ -39,7 +40,7 @@ def registry():
 
 
 def test_fair_queue_round_robin_and_one_in_flight_per_source() -> None:
-    q: FairQueue[str, int] = FairQueue(per_source=100)
+    q: FairQueue[str, int] = FairQueue(per_source=100, total=1000)
     for k in range(5):
         q.put("flood", k)
     q.put("quiet", 100)
@@ -106,7 +107,7 @@ def test_each_robot_is_integrated_in_seq_order(registry: MapRegistry) -> None:
     scans = [scan_at(0.1 * k, r=1.0 + 0.37 * (k % 5)) for k in range(60)]
     for k, s in enumerate(scans):
         registry.submit("m", "r1", WireScan(k, 0.0, s))
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     ref = GridMap(MapConfig())
     for s in scans:
         ref.integrate(s)
@@ -124,7 +125,7 @@ def test_seq_duplicates_gaps_and_restart(registry: MapRegistry) -> None:
     registry.submit("m", "r", WireScan(9, 0.0, scan_at(0)))  # 6, 7, 8 lost
     registry.submit("m", "r", WireScan(0, 0.0, scan_at(0)))  # a restarted robot
     registry.submit("m", "r", WireScan(1, 0.0, scan_at(0)))
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     robot = registry.get("m").robots["r"]
     assert (robot.duplicates, robot.lost, robot.scans_integrated, robot.last_seq) == (1, 3, 4, 1)
 
@@ -137,7 +138,7 @@ def test_a_late_copy_of_seq_0_restarts_a_robot_without_session_ids_only(registry
         registry.submit("m", "plain", WireScan(seq, stamp, scan_at(0)))
         with contextlib.suppress(IngestRejected):
             registry.submit("m", "session", WireScan(seq, stamp, scan_at(0), session=7))
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     plain, session = registry.get("m").robots["plain"], registry.get("m").robots["session"]
     assert (plain.scans_integrated, plain.restarts, plain.duplicates, plain.last_seq) == (3, 1, 0, 0)
     assert (session.scans_integrated, session.restarts, session.duplicates, session.last_seq) == (2, 0, 1, 1)
@@ -167,7 +168,7 @@ def test_a_scan_the_full_queue_refused_is_integrated_when_sent_again() -> None:
         assert full.value.status == 503
     reg.start()
     try:
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         for session in (None, 77):
             retry = reg.submit("m", f"r{session}", WireScan(4, 1.0, scan_at(1.0), session), wait=True)
             assert retry is not None and retry.result(10).cell_updates > 0
@@ -210,14 +211,14 @@ def test_map_lifecycle_and_errors(registry: MapRegistry) -> None:
 def test_submit_never_blocks_while_a_map_is_locked(registry: MapRegistry) -> None:
     """A reader holding the map lock delays integration, never the (Zenoh callback) caller."""
     registry.submit("m", "r", WireScan(0, 0.0, scan_at(0)))
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     entry = registry.get("m")
     with entry.gmap.lock:
         started = time.monotonic()
         for k in range(1, 30):
             registry.submit("m", "r", WireScan(k, 0.0, scan_at(0)))
         assert time.monotonic() - started < 1.0
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     assert entry.robots["r"].scans_integrated == 30
 
 
@@ -228,7 +229,7 @@ def test_readers_never_see_half_a_scan() -> None:
     n = 40
     s = scan_at(0.0, r=3.0, n=n)
     registry.submit("m", "r", WireScan(0, 0.0, s))
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     gmap = registry.get("m").gmap
     b = gmap.known_bounds()
     per_scan = int(gmap.region("hits", *b).sum())
@@ -250,7 +251,7 @@ def test_readers_never_see_half_a_scan() -> None:
             for _ in range(100):
                 registry.submit("m", "r", WireScan(seq, 0.0, s))
                 seq += 1
-            assert registry.wait_idle(30)
+            assert wait_idle(registry, 30)
     finally:
         stop.set()
         reader.join(5)
@@ -417,7 +418,7 @@ def test_scans_queued_for_a_deleted_or_replaced_map_are_answered_at_once(
             assert registry.backlog()[0] == 0
             stall.release.set()
             first.exception(5)  # answered too (what it says: test_a_scan_in_flight_...)
-            assert registry.wait_idle()
+            assert wait_idle(registry)
             if remove == "replace":
                 assert registry.get("m").robots == {}  # the new map never saw these scans
                 registry.delete("m")
@@ -444,7 +445,7 @@ def test_a_scan_in_flight_when_its_map_is_replaced_reaches_neither_map(
         with pytest.raises(IngestRejected) as gone:
             future.result(5)
         assert gone.value.status == 409 and "not integrated" in gone.value.reason
-        assert registry.wait_idle()
+        assert wait_idle(registry)
         assert (new.robots, new.scans_integrated, len(new.gmap.store)) == ({}, 0, 0)
         assert len(old.gmap.store) == 0  # not applied to the old one either
         with sqlite3.connect(registry.durable.path) as conn:
@@ -486,7 +487,7 @@ def test_a_map_created_by_a_refused_scan_is_removed_again(tmp_path: Path) -> Non
             with pytest.raises(IngestRejected) as refused:
                 future.result(5)
             assert refused.value.status == 422 and "max_tiles" in refused.value.reason
-        assert registry.wait_idle()
+        assert wait_idle(registry)
         assert sorted(entry.id for entry in registry.list()) == ["put", "shared", "token"]
         assert "removed again" in alone.exception().reason and "removed" not in shared.exception().reason
         robots = registry.get("shared").robots
@@ -732,7 +733,7 @@ def test_an_integration_bug_is_counted_every_time_and_its_traceback_logged_rate_
     caplog.set_level(logging.ERROR, logger="fleetmap.registry")
     for seq in range(40):
         registry.submit("m", "r", WireScan(seq, 0.0, scan_at(0.0)))
-    assert registry.wait_idle()
+    assert wait_idle(registry)
     robot = registry.get("m").robots["r"]
     assert robot.scans_rejected == 40 and robot.scans_integrated == 0
     assert "internal error: 'a bug'" in (robot.last_error or "")

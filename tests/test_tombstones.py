@@ -15,6 +15,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import pytest
+from registry_idle import wait_idle
 from robot_process import scans_for
 
 from fleetmap import persistence, tombstones
@@ -54,7 +55,7 @@ def restarted(data: Path) -> Iterator[MapRegistry]:
     for seq in range(5):
         first.submit("m", "r", wire(seq))
     first.submit("m", "other", wire(0, session=None))
-    assert first.wait_idle()
+    assert wait_idle(first)
     first.delete("m", wait=True)
     first.close()
     again = registry(data)
@@ -79,7 +80,7 @@ def test_old_scans_of_a_deleted_map_are_ignored_after_a_restart(restarted: MapRe
 
 def test_a_new_scan_or_session_or_a_scan_without_session_makes_a_new_map(restarted: MapRegistry) -> None:
     restarted.submit("m", "r", wire(5))  # newer than what the service had
-    assert restarted.wait_idle()
+    assert wait_idle(restarted)
     robot = restarted.get("m").robots["r"]
     assert (robot.scans_integrated, robot.last_seq, robot.lost) == (1, 5, 0)
     refused = refusal(restarted, "m", "r", wire(3))  # the old ones stay ignored beside the new map
@@ -87,7 +88,7 @@ def test_a_new_scan_or_session_or_a_scan_without_session_makes_a_new_map(restart
     assert restarted.get("m").robots["r"].duplicates == 1  # counted on the robot, which exists now
     restarted.submit("m", "r", wire(0, session=SESSION + 1))  # the robot's process restarted
     restarted.submit("m", "other", wire(0, session=None))  # never re-delivered: not covered
-    assert restarted.wait_idle()
+    assert wait_idle(restarted)
     assert restarted.get("m").scans_integrated == 3
 
 
@@ -98,7 +99,7 @@ def test_a_token_of_a_buried_robot_creates_no_map_but_another_robots_does(restar
     restarted.set_online("m", "new", True)
     assert restarted.get("m").robots["new"].online
     restarted.submit("m", "r", wire(6))  # the buried robot is shown online once its map exists again
-    assert restarted.wait_idle()
+    assert wait_idle(restarted)
     assert restarted.get("m").robots["r"].scans_integrated == 1
 
 
@@ -107,7 +108,7 @@ def test_the_robots_of_a_replaced_map_are_buried(data: Path) -> None:
     try:
         for seq in range(3):
             reg.submit("m", "r", wire(seq))
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         uploaded = reg.get("m").gmap  # (any map will do: the old one, installed again)
         reg.replace("m", uploaded, wait=True)
         assert refusal(reg, "m", "r", wire(2)).status == 200
@@ -127,11 +128,11 @@ def test_a_map_deleted_twice_remembers_every_session_and_the_higher_seq(data: Pa
     try:
         for seq in range(4):
             reg.submit("m", "r", wire(seq))
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         reg.delete("m", wait=True)
         reg.submit("m", "r", wire(8))  # the robot goes on: a new map
         reg.submit("m", "r", wire(0, session=SESSION + 1))  # and another process of it
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         reg.delete("m", wait=True)
         assert reg.tombstones.covers("m", "r", SESSION, 8) is not None
         assert reg.tombstones.covers("m", "r", SESSION, 9) is None
@@ -162,7 +163,7 @@ def test_tombstones_past_their_days_are_forgotten_at_start(data: Path) -> None:
         assert reg.tombstones.covers("old", "r", SESSION, 9) is None
         assert reg.tombstones.covers("recent", "r", SESSION, 9) is not None
         reg.submit("old", "r", wire(9))  # its map comes back: a month is what the docs promise
-        assert reg.wait_idle()
+        assert wait_idle(reg)
     finally:
         reg.close()
     db = sqlite3.connect(data / DB_NAME)
@@ -197,7 +198,7 @@ def test_a_deletion_not_stored_keeps_its_tombstones_when_a_new_map_of_its_id_sup
     try:
         for seq in range(5):
             reg.submit("m", "r", wire(seq))
-        assert reg.wait_idle(60)
+        assert wait_idle(reg, 60)
         failing = [True]
         bury = persistence._bury
 
@@ -214,7 +215,7 @@ def test_a_deletion_not_stored_keeps_its_tombstones_when_a_new_map_of_its_id_sup
             reg.create("m", wait=True)
         else:
             reg.submit("m", "x", wire(0, session=SESSION + 9))
-            assert reg.wait_idle(60)
+            assert wait_idle(reg, 60)
         assert reg.durable is not None and reg.durable.writer.unstored == ()
     finally:
         reg.close()
@@ -312,9 +313,9 @@ def feed_then_forget(reg: MapRegistry) -> None:
     map, which holds one robot, forgets r (offline, nothing waiting) to make room for x."""
     for seq in range(5):
         reg.submit("m", "r", wire(seq))
-    assert reg.wait_idle()
+    assert wait_idle(reg)
     reg.submit("m", "x", wire(0, session=SESSION + 50))
-    assert reg.wait_idle()
+    assert wait_idle(reg)
     assert sorted(reg.get("m").robots) == ["x"]
 
 
@@ -325,7 +326,7 @@ def assert_old_scans_ignored(reg: MapRegistry, integrated: int) -> None:
         refused = refusal(reg, "m", "r", wire(seq))
         assert refused.status == 200 and refused.kind == "duplicate", refused.reason
         assert "forgot robot 'r'" in refused.reason and "had seq 4" in refused.reason
-    assert reg.wait_idle()
+    assert wait_idle(reg)
     assert reg.get("m").scans_integrated == integrated
 
 
@@ -342,14 +343,14 @@ def test_a_forgotten_robots_cached_scans_are_not_integrated_twice() -> None:
         reg.set_online("m", "x", True)  # (x online: r may not make room for a third robot)
         reg.set_online("m", "x", False)
         reg.submit("m", "r", wire(5))  # newer than what the map had: r starts afresh with it
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         robot = reg.get("m").robots["r"]
         assert (robot.scans_integrated, robot.last_seq, robot.lost, robot.restarts) == (1, 5, 0, 0)
         assert refusal(reg, "m", "r", wire(3)).status == 200
         assert robot.duplicates == 1  # counted on the robot, which exists again
         reg.submit("m", "r", wire(0, session=SESSION + 1))  # its process restarted: a new session
         reg.submit("m", "r", wire(1, session=None))  # never re-delivered: never covered
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         assert reg.get("m").scans_integrated == 9
     finally:
         reg.close()
@@ -371,7 +372,7 @@ def test_the_delivery_query_calls_a_forgotten_robots_scans_gone_only_once_its_ma
         assert reg.delivery_status("m", "r").buried == []
         reg.set_online("m", "r", False)
         reg.submit("m", "x", wire(1, session=SESSION + 50))  # r forgotten again (merged, still forgotten)
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         assert "r" not in reg.get("m").robots
         reg.delete("m")
         status = reg.delivery_status("m", "r", SESSION)
@@ -441,10 +442,10 @@ def test_a_robot_forgotten_at_restore_is_remembered_across_restarts(data: Path) 
     try:
         for seq in range(5):
             reg.submit("m", "r", wire(seq))
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         for robot_id in ("a", "b"):
             reg.submit("m", robot_id, wire(0, session=SESSION + 60))
-        assert reg.wait_idle()
+        assert wait_idle(reg)
     finally:
         reg.close()
     for _restart in range(2):
@@ -588,11 +589,11 @@ def test_forgotten_robots_churning_never_push_a_deleted_maps_robots_out(
     reg = forgetting_registry(data)
     try:
         reg.submit("gone", "r", wire(0))
-        assert reg.wait_idle()
+        assert wait_idle(reg)
         reg.delete("gone", wait=True)
         for k in range(6):  # each new id makes live map `m` forget the previous one
             reg.submit("m", f"a{k}", wire(0, session=SESSION + 100 + k))
-            assert reg.wait_idle()
+            assert wait_idle(reg)
         assert len(reg.tombstones) == 3
         assert reg.tombstones.buried("gone", "r")
         assert [reg.tombstones.get("m", f"a{k}") is not None for k in range(5)] == [False] * 3 + [True] * 2
@@ -677,7 +678,7 @@ def test_forgotten_robots_stones_waiting_for_a_failing_disk_stay_within_the_boun
         monkeypatch.setattr(persistence, "_bury", failing_bury)
         for k in range(8):
             reg.submit("m", f"a{k}", wire(0, session=SESSION + 100 + k))
-            assert reg.wait_idle()
+            assert wait_idle(reg)
             reg.snapshot_all(every_map=True)
         assert sorted(reg.get("m").unstored_stones) == ["a4", "a5", "a6"]
         monkeypatch.setattr(persistence, "_bury", bury)

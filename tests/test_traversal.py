@@ -290,13 +290,11 @@ def _planned_cells(scan: Scan, config: MapConfig, shift: int) -> list[tuple[tupl
     local = (1 << (2 * shift)) - 1
     mask = (1 << shift) - 1
     out = []
-    runs = [
-        (c + x, 1) for c, n in zip(plan.run.tolist(), plan.run_len.tolist(), strict=True) for x in range(n)
-    ]
+    runs = [(c + x, 1) for c, n in zip(*plan.runs.tolist(), strict=True) for x in range(n)]
     for c, k in list(zip(plan.cell.tolist(), plan.kind.tolist(), strict=True)) + runs:
         tile, pos = c >> (2 * shift), c & local
-        i = (int(plan.tiles_i[tile]) << shift) + (pos & mask)
-        j = (int(plan.tiles_j[tile]) << shift) + (pos >> shift)
+        i = (int(plan.tiles[0, tile]) << shift) + (pos & mask)
+        j = (int(plan.tiles[1, tile]) << shift) + (pos >> shift)
         out.append(((i, j), k))
     return out
 

@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, overload
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, get_args, overload
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from fleetmap.auth import Role
-from fleetmap.cell_queries import MAX_RAYS, RAY_STATUS_NAMES, STATE_NAMES, cell_edge
+from fleetmap.cell_queries import MAX_RAYS, RAY_STATUS_NAMES, STATE_NAMES, UnknownCells, cell_edge
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.scan import Pose2D
 
@@ -44,8 +44,13 @@ if TYPE_CHECKING:  # the conversions' argument types only: a client parsing answ
 MAX_POINTS = 100_000
 
 StateName = Literal["unknown", "free", "occupied"]
+assert set(get_args(StateName)) == set(STATE_NAMES.values())
 #: Why a ray stopped (`GridMap.cast_rays`' `RAY_STATUS_NAMES`).
 RayStatusName = Literal["occupied", "unknown", "max_range"]
+assert set(get_args(RayStatusName)) == set(RAY_STATUS_NAMES.values())
+#: The layers a region or a tile can be read as (`grid_map.REGION_LAYERS`, which `api.state` holds
+#: it to: this module may not import the engine): the routes' `layer` parameter, the client's `Layer`.
+RegionLayer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
 #: A map coordinate in a JSON body: a finite number (strict: no strings or booleans), metres.
 Coordinate = Annotated[float, Field(strict=True, ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False)]
 # Fixed-length arrays are lists with a length, not tuples: OpenAPI 3.1's `prefixItems` (what tuples
@@ -325,7 +330,7 @@ class RaycastRequest(BaseModel):
         allow_inf_nan=False,
         description="metres a ray goes at most; at most 20000 cells, and rays x cells at most 2**24",
     )
-    unknown: Literal["stop", "pass"] = Field(
+    unknown: UnknownCells = Field(
         default="stop",
         description="stop: a ray stops at its first never-observed cell (status unknown); pass: it "
         "walks through unknown cells",
@@ -718,8 +723,15 @@ __all__ = [
     "MapList",
     "MapStats",
     "MapSummary",
+    "MapPoint",
+    "Point",
+    "Coordinate",
     "Pose",
+    "RayStatusName",
+    "RaycastRequest",
+    "RaycastResponse",
     "RegionJson",
+    "RegionLayer",
     "RobotChange",
     "RobotLive",
     "RobotStats",
@@ -727,6 +739,8 @@ __all__ = [
     "RobotsDeltaEvent",
     "RobotsEvent",
     "ScanResult",
+    "Session",
+    "StateName",
     "Surface",
     "TilesEvent",
     "cell_value",
@@ -735,6 +749,7 @@ __all__ = [
     "map_info",
     "storage_status",
     "map_summary",
+    "raycast_json",
     "region_json",
     "robot_live",
     "robot_stats",

@@ -1,7 +1,8 @@
 """The vocabulary of a map's cell and ray queries, without the engine that answers them.
 
-What `GridMap.cells` and `GridMap.cast_rays` take (`Points`, `as_points`, the ray limits), what their
-answers' codes mean (`STATE_NAMES`, `RAY_STATUS_NAMES`), and where a cell begins (`cell_edge`).
+What `GridMap.cells` and `GridMap.cast_rays` take (`Points`, `as_points`, the ray limits,
+`UnknownCells`), what their answers' codes mean (`STATE_NAMES`, `RAY_STATUS_NAMES`), and where a
+cell begins (`cell_edge`).
 The REST edge needs these and not the engine: `fleetmap.api_models` writes answers with them and
 `fleetmap_client.rest` checks requests with them. So this module imports numpy only, never
 `fleetmap.kernels` (whose import loads numba) nor anything that does: importing the REST client
@@ -12,6 +13,7 @@ under the same name, so `from fleetmap.grid_map import MAX_RAYS` means what it a
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Literal
 
 import numpy as np
 
@@ -29,6 +31,8 @@ STATE_NAMES = {STATE_UNKNOWN: "unknown", STATE_FREE: "free", STATE_OCCUPIED: "oc
 #: of `kernels/raycast.py` (which drops the cache).
 RAY_OCCUPIED, RAY_UNKNOWN, RAY_MAX_RANGE = 0, 1, 2
 RAY_STATUS_NAMES = {RAY_OCCUPIED: "occupied", RAY_UNKNOWN: "unknown", RAY_MAX_RANGE: "max_range"}
+#: What a cast ray does at a never-observed cell: stops there (status unknown), or walks through it.
+UnknownCells = Literal["stop", "pass"]
 
 #: Bounds of one `GridMap.cast_rays` call, which holds the map's lock (integration needs it) for its
 #: whole walk: rays, the longest ray in cells (`max_range / resolution`), and rays x that length. The
@@ -80,6 +84,7 @@ __all__ = [
     "STATE_OCCUPIED",
     "STATE_UNKNOWN",
     "Points",
+    "UnknownCells",
     "as_points",
     "cell_edge",
 ]

@@ -19,7 +19,8 @@ import time
 import httpx
 
 from fleetmap.cli import CliError
-from fleetmap.wire import is_valid_id
+from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP
+from fleetmap.wire import DEFAULT_ENDPOINT, is_valid_id
 
 
 class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
@@ -38,9 +39,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "printed address to watch. Ctrl-C stops everything; the map is kept in --data-dir.",
         formatter_class=_DefaultsShown,
     )
-    p.add_argument("--http", default="127.0.0.1:8000", metavar="HOST:PORT", help="viewer and API address")
-    p.add_argument("--zenoh", default="tcp/127.0.0.1:7447", metavar="ENDPOINT", help="where robots connect")
-    p.add_argument("--data-dir", default="./fleetmap-data", help="the service's durable storage")
+    # The defaults of `fleetmap serve`, which this command starts.
+    p.add_argument("--http", default=DEFAULT_HTTP, metavar="HOST:PORT", help="viewer and API address")
+    p.add_argument("--zenoh", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help="where robots connect")
+    p.add_argument("--data-dir", default=DEFAULT_DATA_DIR, help="the service's durable storage")
     p.add_argument("--robots", type=int, default=3, help="simulated robots")
     p.add_argument("--map", default="demo", help="map id the robots publish to")
     p.add_argument("--seed", type=int, default=1, help="floor plan and robots' seed")

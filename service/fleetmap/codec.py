@@ -86,7 +86,9 @@ class InputLimits:
     - `max_beams`: beams per scan;
     - `max_range`: the longest range trusted, metres: readings at or beyond it (or the message's own
       range_max, whichever is smaller) are "no return", never a return kilometres away;
-    - angles must be finite and span at most one turn (plus a rounding margin).
+    - angles must be finite and span at most one turn (plus a rounding margin);
+    - `max_payload_bytes`: the size of the encoded message, checked by `decode` before it decodes
+      (`PayloadTooLarge`).
     """
 
     world_bound: float = 100_000.0

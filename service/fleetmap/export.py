@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap, cell_edge
+from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED, cell_edge
+from fleetmap.grid_map import GridMap
 
 #: map_server's trinary pixel values and the thresholds that read them back unchanged.
 PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN = 0, 254, 205

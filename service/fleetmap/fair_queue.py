@@ -28,20 +28,21 @@ class QueueClosed(Exception):
 class FairQueue(Generic[S, T]):
     """Bounded FIFOs per source, served round-robin, one item of a source in flight at a time (see
     the module docstring). `put` never blocks; `get` blocks until an item is ready or the queue is
-    closed and drained. The registry's sizes are `registry.QUEUE_PER_ROBOT` and `QUEUE_TOTAL`."""
+    closed and drained."""
 
     def __init__(
         self,
-        per_source: int = 64,
-        total: int = 4096,
+        per_source: int,
+        total: int,
         group: Callable[[S], Hashable] | None = None,
         per_group: int | None = None,
         size_of: Callable[[T], int] | None = None,
         max_bytes: int | None = None,
     ) -> None:
-        """`group(source)` names a source's group (default: none); `per_group` (default `total`)
-        bounds the items of one group. With `size_of(item)` (bytes), the items queued hold at most
-        `max_bytes` together."""
+        """At most `per_source` items per source and `total` in all (the registry's sizes:
+        `registry.QUEUE_PER_ROBOT`, `QUEUE_TOTAL`). `group(source)` names a source's group (default:
+        none); `per_group` (default `total`) bounds the items of one group. With `size_of(item)`
+        (bytes), the items queued hold at most `max_bytes` together."""
         self.per_source = per_source
         self.total = total
         self._size_of = size_of

@@ -101,6 +101,7 @@ from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
 from fleetmap.wire import (
     ALIVE_KEY_WILDCARD,
     CONNECT_RETRY,
+    DEFAULT_ENDPOINT,
     DELIVERY_ERROR_ENCODING,
     DELIVERY_FIELDS_1_EXCLUDE,
     DELIVERY_FIELDS_PARAMETER,
@@ -116,7 +117,7 @@ from fleetmap.wire import (
 log = logging.getLogger("fleetmap.ingest")
 
 #: Where the service listens when nothing else is said: loopback only, Zenoh's usual port.
-DEFAULT_LISTEN: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+DEFAULT_LISTEN: tuple[str, ...] = (DEFAULT_ENDPOINT,)
 #: Zenoh session modes.
 MODES = ("router", "peer", "client")
 
@@ -550,4 +551,12 @@ def _session_parameter(value: str | None) -> int | None:
     return int(value)
 
 
-__all__ = ["DEFAULT_LISTEN", "MODES", "IngestStartError", "ZenohIngest", "parse_key"]
+__all__ = [
+    "DEFAULT_LISTEN",
+    "MODES",
+    "IngestStartError",
+    "ZenohIngest",
+    "is_loopback_host",
+    "parse_key",
+    "unauthenticated_endpoints",
+]

@@ -124,12 +124,8 @@ class MemoryBudget:
             self.used += size
             charge.bytes += size
 
-    def free(self) -> int | None:
-        """Bytes the limit leaves (None: no limit)."""
-        with self._lock:
-            return self._free()
-
     def _free(self) -> int | None:
+        """Bytes the limit leaves (None: no limit); call under `_lock`."""
         # `used` holds lent bytes twice, in the old map's charge and in the reservation that borrowed
         # them, and the limit bounds the rest. A borrower took every free byte first, so a loan makes
         # room for no one else; when it ends, the bytes that go back are what it no longer excuses.

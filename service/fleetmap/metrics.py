@@ -629,7 +629,7 @@ class ServiceMetrics:
         self.collector_registry.register(IngestGateCollector(gate))
 
     def watch_http_connections(self, count: Callable[[], int], limit: int) -> None:
-        """Report `count()` as the open HTTP connections, out of `limit` (server.py)."""
+        """Report `count()` as the open HTTP connections, out of `limit` (`http_server.make_server`)."""
         self.service_info.max_connections = limit
         self.service_info.connections = count
 

@@ -1,9 +1,11 @@
 """A log that stays readable under a flood: `RateLimitedLog`.
 
-Used where strangers can make the service log: Zenoh messages refused by the ingest (one robot can
-send thousands a second) and HTTP connections refused when the process is out of descriptors; and
-where a failing disk would: every journal commit fails while it is full, hundreds a second; and
-where a bug would: an integration that raises for every scan would write a traceback per scan.
+Used where strangers can make the service log: Zenoh and ROS messages refused by the ingests (one
+robot can send thousands a second), liveliness tokens coming and going, robot id conflicts, maps
+that scans create and lose again, and HTTP connections refused when the process is out of
+descriptors; where a failing disk would: every journal commit, and every map's snapshot, fails
+while it is full; where a map the ROS publisher cannot publish would, at every change; and where a
+bug would: an integration that raises for every scan would write a traceback per scan.
 """
 
 from __future__ import annotations

@@ -659,11 +659,15 @@ class MapRegistry:
     def submit(self, map_id: str, robot_id: str, wire: WireScan, wait: bool = False) -> Future | None:
         """Queue a decoded scan for integration, never blocking.
 
-        Returns a Future of the IntegrationResult when `wait`, else None. Raises IngestRejected for
-        a duplicate (status 200: nothing to do), an unknown map without auto-create (404), or a full
-        queue (503). Every refusal is counted on the robot, except one while the registry closes
-        (503, kind `SHUTTING_DOWN`): that scan is not taken at all, its seq not recorded, so that the
-        next process takes it as new when the robot sends it again (a `ScanPublisher`'s cache does).
+        Returns a Future of the IntegrationResult when `wait`, else None. Raises `InvalidId` for an
+        id that is not one, and IngestRejected for a duplicate or a scan from before its map was
+        deleted or replaced (status 200: nothing to do), an unknown map without auto-create or past
+        `max_auto_maps` (404), a map already holding `max_robots_per_map` robots, none of which can
+        be forgotten (429), or a full queue (503). Every refusal is counted on the robot (on the
+        map, and for the delivery query, where the scan has no map or no room on it), except one
+        while the registry closes (503, kind `SHUTTING_DOWN`): that scan is not taken at all, its
+        seq not recorded, so that the next process takes it as new when the robot sends it again (a
+        `ScanPublisher`'s cache does).
         A map this creates is `provisional`: it is removed again if the scan is refused here or later
         (and no other scan reached it meanwhile).
         """
@@ -724,7 +728,7 @@ class MapRegistry:
             if not self.queue.put((map_id, robot_id), job):
                 self._settle(job, integrated=False)
                 robot.dropped += 1
-                robot.refused = (session_key(session), seq)  # a retry of it is not a duplicate
+                robot.refused_scan = (session_key(session), seq)  # a retry of it is not a duplicate
                 reason = "ingest queue full: scan dropped"
                 robot.last_error = f"scan seq {seq}: {reason}"
                 if self._remove_unclaimed(entry) is not None:
@@ -900,6 +904,8 @@ class MapRegistry:
                 entry.touch(robot)
 
     def iter_robots(self) -> Iterator[tuple[str, str, RobotState]]:
+        """(map id, robot id, state) of every robot of every map. Holds the registry's lock until the
+        iteration ends: consume it whole, at once (`GET /healthz` counts the robots online)."""
         with self.lock:
             for entry in self.maps.values():
                 for robot_id, state in entry.robots.items():
@@ -960,8 +966,8 @@ class MapRegistry:
                             lambda exc: self._mark_not_durable(job, exc), job.wire.session,
                         )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
-            # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422, and
-            # a retry once memory is freed is integrated, not taken for a duplicate (`RobotState.refused`).
+            # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422, and a
+            # retry once memory is freed is integrated, not taken for a duplicate (`RobotState.refused_scan`).
             budget = isinstance(exc, MemoryBudgetError)
             self._finish_rejected(job, str(exc), 507 if budget else 422, retriable=budget)
             return
@@ -1008,7 +1014,7 @@ class MapRegistry:
         """A scan that does not count as integrated: count it on its robot (as `not_durable` if it
         was `applied`, else as rejected) with `reason` as its last error, and answer its caller
         `status`. A `retriable` scan (refused for the service's sake, not its own) may be sent again
-        with its seq (`RobotState.refused`). A `provisional` map that this refusal leaves with no
+        with its seq (`RobotState.refused_scan`). A `provisional` map that this refusal leaves with no
         scan unsettled is removed again (`_remove_unclaimed`), and the caller answered once that is
         stored."""
         removed = None
@@ -1021,7 +1027,7 @@ class MapRegistry:
                 robot.unsettled -= 1
                 robot.last_error = reason
                 if retriable:
-                    robot.refused = (session_key(job.wire.session), job.wire.seq)
+                    robot.refused_scan = (session_key(job.wire.session), job.wire.seq)
                 if applied:
                     robot.not_durable += 1
                     entry.provisional = False  # it holds the scan, durable or not
@@ -1064,6 +1070,8 @@ class MapRegistry:
         """Settle `job`'s scan in its session's ledger (call under the registry's lock)."""
         if job.receipt is not None:
             job.receipt.ledger.settle(job.receipt, integrated)
+
+    # -- reporting -------------------------------------------------------------------------------
 
     def delivery_status(self, map_id: str, robot_id: str, session: int | None = None) -> DeliveryStatus:
         """What became of robot `robot_id`'s scans on map `map_id` (the Zenoh delivery query's
@@ -1118,17 +1126,6 @@ class MapRegistry:
             return depth, 0.0
         oldest = min(job.enqueued_at for job in heads)
         return depth, max(0.0, time.monotonic() - oldest)
-
-    def wait_idle(self, timeout: float = 10.0) -> bool:
-        """Wait until the queue is empty, no scan is in flight and every applied scan is durable."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.queue.idle():
-                if self.durable is not None:
-                    self.durable.writer.flush()
-                return True
-            time.sleep(0.005)
-        return False
 
 
 def _forgetting_order(item: tuple[str, RobotState]) -> tuple[bool, float]:

@@ -92,7 +92,7 @@ class SessionLedger:
     _reopened_top: int = field(default=0, repr=False)
     _gap: int = field(default=0, repr=False)  # seqs lost before the scan `open` is called for next
     #: The seqs of its scans settled as refused (less those whose refusal was withdrawn), and
-    #: seq, n (flat, in pairs: `gaps`) for the n seqs lost just before seq, in this process: the
+    #: seq, n (flat, in pairs: see `pairs`) for the n seqs lost just before seq, in this process: the
     #: delivery query lists them so that a flush counts only the scans through its last seq, not
     #: those published after it began (`fleetmap_client.publisher._report`). None when not known: a
     #: ledger restored from a snapshot, or past LEDGER_HISTORY entries. Int64 (seqs are below 2**63).
@@ -165,10 +165,6 @@ class SessionLedger:
         return cls(
             first_seq, settled, integrated, refused, lost, duplicates, refused_seqs=None, lost_gaps=None
         )
-
-    def gaps(self) -> list[tuple[int, int]] | None:
-        """`lost_gaps` as (seq, n) pairs: the n seqs just before seq were lost. None: not known."""
-        return pairs(self.lost_gaps)
 
     def first_unsettled(self) -> int | None:
         """The lowest seq of its scans not settled yet, None if every one is. Not always the front
@@ -293,7 +289,7 @@ class RobotState:
     #: its scans is accepted. Its seq was recorded (so it is not also counted as lost), yet it was
     #: never integrated: a re-send of it, which a REST client answered 503 or 507 is told to make, is
     #: accepted rather than ignored as a duplicate. Not saved: it is about the last moments.
-    refused: tuple[int, int] | None = None
+    refused_scan: tuple[int, int] | None = None
     #: Its JSON in live viewers' robots events, made by the first event stream that sent it and sent
     #: as is by the others (`api.robots_feed`): key (what the JSON shows) -> JSON. Not saved.
     viewer_json: dict[tuple, str] = field(default_factory=dict, repr=False, compare=False)
@@ -357,8 +353,8 @@ class RobotState:
         its session's seq is past it (a copy, a retry, a stale message). A session not heard
         before is never a duplicate: its publisher (re)started, or another robot shares this id.
         Without a session, a seq not new is a restart if its stamp says so (`SessionSeqs.is_restart`).
-        A re-send of the scan the full queue refused (`refused`) is new: it was never integrated."""
-        if self.refused == (session_key(session), seq):
+        A re-send of the scan the full queue refused (`refused_scan`) is new: it was never integrated."""
+        if self.refused_scan == (session_key(session), seq):
             return False  # a re-send of the scan the full queue refused
         rec = self.sessions.get(session_key(session))
         if rec is None or seq > rec.last_seq:
@@ -376,10 +372,10 @@ class RobotState:
         id): `conflict_at` becomes `now` (wall-clock), `id_conflicts` counts it if a session among
         them was not known to be in one, and a restart counted when the other one started is
         withdrawn (it ran beside this one). A re-send of the scan the full queue refused
-        (`refused`) changes none of this: its seq was recorded when it first came. Returns whether
+        (`refused_scan`) changes none of this: its seq was recorded when it first came. Returns whether
         this scan interleaved with another session's so."""
         key = session_key(session)
-        refused, self.refused = self.refused, None
+        refused, self.refused_scan = self.refused_scan, None
         if refused == (key, seq):
             if key in self.sessions:
                 self.sessions[key].ledger.withdraw_refusal(seq)  # settled as refused, now accepted after all

@@ -1,21 +1,18 @@
 """`fleetmap serve`: the long-running service. Robots publish scans over Zenoh; maps are served over HTTP.
 
-    fleetmap serve [--http HOST:PORT] [--zenoh-listen EP ...] [--zenoh-connect EP ...]
-                   [--zenoh-config FILE.json5] [--data-dir DIR] [--config FILE] [--no-auto-create]
-                   [--workers N] [--ingest-backlog-ms MS] [--max-read-delay-ms MS]
-                   [--ros-publish-map MAP_ID[=TOPIC] ...] [--ros-domain N] [--ros-map-frame FRAME]
-                   [--ros-map-period S] [--ros-distro jazzy|humble]
-                   [--log-level LEVEL] [--log-format text|json] [--access-log]
+    fleetmap serve [OPTIONS]     (`fleetmap serve --help` lists them; they are defined in `serve_options`)
 
 One process holds everything: a `MapRegistry` (maps, robots, integration worker threads), a
 `ZenohIngest` (the service's own Zenoh session: a router by default, so robots connect to it
 directly in client mode and nothing else needs installing) and the REST API (`fleetmap.api`) run by
-uvicorn in the main thread; with `--ros-publish-map`, a `RosMapPublisher` (fleetmap.ros.map_publisher)
-publishes maps to ROS 2 on the same Zenoh session from a thread of its own.
+uvicorn in the main thread; with `--ros-scans`, a `RosScanIngest` (fleetmap.ros.ingest) takes ROS 2
+robots' LaserScans, and with `--ros-publish-map` a `RosMapPublisher` (fleetmap.ros.map_publisher)
+publishes maps to ROS 2, both on the same Zenoh session from a thread of their own.
 
 Start-up order: the HTTP socket is bound first (so a port in use fails before anything else starts),
-the compiled kernels are warmed, the registry's workers start, the Zenoh session opens, then uvicorn
-serves. Only then is the ready line printed on stdout:
+the data directory is opened, the compiled kernels are warmed, the registry restores the stored maps
+and starts its workers, the Zenoh session opens (and the ROS 2 parts on it), then uvicorn serves.
+Only then is the ready line printed on stdout:
 
     fleetmap serving http://HOST:PORT  zenoh: ENDPOINTS
 

@@ -1,10 +1,11 @@
-"""Uploads kept on disk rather than in memory: the body of a snapshot or nav2 upload (4 GiB at most
-for a snapshot) was held whole in memory while it was read, beside the map it builds and outside
-the memory budget (`--max-memory`). It is now written to a `SpooledTemporaryFile`: in memory up to
-SPOOL_MEMORY_BYTES, then in a file of the temporary directory (`tempfile.gettempdir()`: `TMPDIR`,
-else /tmp), unlinked as soon as it is made (so a crash leaves nothing behind) and closed, its room
-given back, when the upload is done with. The readers (`map_from_snapshot_file`,
-`map_from_nav2_zip`) take such a file as well as bytes (`as_file`).
+"""Uploads kept on disk rather than in memory while they are read: the body of a snapshot or nav2
+upload (4 GiB at most for a snapshot) goes to a `SpooledTemporaryFile` (`spooled_file`,
+`spool_write`), in memory up to SPOOL_MEMORY_BYTES, then in a file of the temporary directory
+(`tempfile.gettempdir()`: `TMPDIR`, else /tmp), unlinked as soon as it is made (so a crash leaves
+nothing behind) and closed, its room given back, when the upload is done with (`close_spool`). Held
+whole in memory, it sat beside the map it builds and outside the memory budget (`--max-memory`).
+The readers (`map_from_snapshot_file`, `map_from_nav2_zip`) take such a file as well as bytes
+(`as_file`), and open a zip only through `upload_zip`, which checks its directory first.
 """
 
 from __future__ import annotations

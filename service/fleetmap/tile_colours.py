@@ -8,7 +8,8 @@ import math
 
 import numpy as np
 
-from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap
+from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED
+from fleetmap.grid_map import GridMap
 
 #: A hit / miss count at or above this is the top of the colour ramp (log scale below it).
 COUNT_SCALE = 1000

@@ -33,7 +33,8 @@ KernelPools = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 class TileLimitError(RuntimeError):
-    """A scan needed more tiles than the map's cap allows. The map was not changed."""
+    """A scan needed more tiles than the map's cap allows (or, as the subclass
+    `memory_budget.MemoryBudgetError`, than a shared memory budget holds). The map was not changed."""
 
 
 @dataclass(frozen=True)
@@ -130,9 +131,6 @@ class TileStore:
                 self.pool("tsdf_weight"),
             )  # fmt: skip
         return pools
-
-    def has_array(self, name: str) -> bool:
-        return name in self.pools
 
     def create(self, keys: list[TileKey], fill: bool = True) -> None:
         """Create tiles for `keys` (none may exist yet), all or none: past the cap, raise

@@ -117,24 +117,6 @@ class UpdatePlan(NamedTuple):
     def num_tiles(self) -> int:
         return int(self.tiles.shape[1])
 
-    @property
-    def run(self) -> np.ndarray:
-        """First cell of each run."""
-        return self.runs[0]
-
-    @property
-    def run_len(self) -> np.ndarray:
-        """Length of each run."""
-        return self.runs[1]
-
-    @property
-    def tiles_i(self) -> np.ndarray:
-        return self.tiles[0]
-
-    @property
-    def tiles_j(self) -> np.ndarray:
-        return self.tiles[1]
-
 
 def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     """Every cell update `scan` implies under `config`, for tiles of `1 << shift` cells. Raises

@@ -30,6 +30,10 @@ SCAN_KEY = "fleetmap/{map_id}/{robot_id}/scan"
 ALIVE_KEY = "fleetmap/{map_id}/{robot_id}/alive"
 SCAN_KEY_WILDCARD = "fleetmap/*/*/scan"
 ALIVE_KEY_WILDCARD = "fleetmap/*/*/alive"
+#: The Zenoh endpoint the service listens on and robots connect to when neither is told otherwise
+#: (`fleetmap.ingest.DEFAULT_LISTEN`, `fleetmap_client.publisher.DEFAULT_CONNECT`, `fleetmap demo`):
+#: loopback only, Zenoh's usual port.
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 #: Zenoh's `connect/retry` of robots (`fleetmap_client.publisher.client_config`) and of the
 #: service's own session when it connects to a router (`--zenoh-connect`), unless their
 #: configuration sets it: 0.1 s after a lost connection, then 0.2, 0.4 and every 0.5 s. Zenoh's
@@ -279,6 +283,7 @@ class DeliveryStatus(BaseModel):
 
 __all__ = [
     "CONNECT_RETRY",
+    "DEFAULT_ENDPOINT",
     "ALIVE_KEY",
     "ALIVE_KEY_WILDCARD",
     "BINARY_ENCODING",
@@ -295,6 +300,7 @@ __all__ = [
     "JSON_ENCODING",
     "SCAN_KEY",
     "SCAN_KEY_WILDCARD",
+    "SEQ_LIMIT",
     "SESSION_LIMIT",
     "PoseMessage",
     "ScanError",
@@ -302,4 +308,5 @@ __all__ = [
     "SessionDelivery",
     "is_valid_id",
     "new_session_id",
+    "zenoh_error_text",
 ]

@@ -3,7 +3,8 @@
 * `fleetmap_client.publisher.ScanPublisher`: the robot side, publishing scans over Zenoh, and
   confirming they are in the map (`flush`: a `DeliveryReport`).
 * `fleetmap_client.rest.FleetmapClient`: a typed client of the REST API, for programs.
-* `fleetmap_client.cli`: the `fleetmap replay` and `fleetmap sim` commands.
+* `fleetmap_client.cli`: the `fleetmap replay` and `fleetmap sim` commands, which run
+  `fleetmap_client.replay.replay` and `fleetmap_client.sim.run_sim`.
 
 Submodules are imported lazily so that a robot that only publishes does not import httpx, and a
 program that only reads maps does not start Zenoh.

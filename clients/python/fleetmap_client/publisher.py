@@ -100,6 +100,7 @@ from fleetmap.wire import (
     ALIVE_KEY,
     BINARY_ENCODING,
     CONNECT_RETRY,
+    DEFAULT_ENDPOINT,
     DELIVERY_ERROR_ENCODING,
     DELIVERY_FIELDS,
     DELIVERY_FIELDS_PARAMETER,
@@ -116,7 +117,7 @@ from fleetmap.wire import (
 )
 
 #: Where `fleetmap serve` listens by default.
-DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
+DEFAULT_CONNECT = (DEFAULT_ENDPOINT,)
 
 #: How long one connection attempt of the background opener may take. Zenoh retries within an
 #: attempt; between attempts the opener checks whether the publisher was closed.

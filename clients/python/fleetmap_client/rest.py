@@ -50,12 +50,13 @@ from fleetmap.api_models import (
     MapList,
     MapSummary,
     RaycastResponse,
+    RegionLayer,
     RobotsDeltaEvent,
     RobotsEvent,
     ScanResult,
     Surface,
 )
-from fleetmap.cell_queries import MAX_RAY_WALK, MAX_RAYS, Points, as_points
+from fleetmap.cell_queries import MAX_RAY_WALK, MAX_RAYS, Points, UnknownCells, as_points
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.scan import Scan
@@ -110,7 +111,8 @@ SCAN_TIMEOUT = 15.0
 #: the caller guessing whether an upload took effect.
 TRANSFER_TIMEOUT = 300.0
 
-Layer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
+#: The layers `region` and `region_png` read (the API's `RegionLayer`).
+Layer = RegionLayer
 #: What `FleetmapClient.events` returns: a generator (so `.close()` ends the stream early) of
 #: (event name, data) pairs.
 EventStream = Generator[tuple[str, dict[str, Any]], None, None]
@@ -498,7 +500,7 @@ class FleetmapClient:
         origin: Sequence[float] | Sequence[Sequence[float]] | np.ndarray,
         angles: float | Sequence[float] | np.ndarray,
         max_range: float,
-        unknown: Literal["stop", "pass"] = "stop",
+        unknown: UnknownCells = "stop",
     ) -> dict[str, np.ndarray]:
         """`POST /maps/{map_id}/raycast`: where rays from `origin` first meet an obstacle (OctoMap's
         castRay; the server runs `GridMap.cast_rays`).

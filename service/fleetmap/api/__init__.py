@@ -1,7 +1,8 @@
 """fleetmap's REST API (FastAPI): `create_app(registry, settings=ApiSettings(...))`.
 
 Modules: `app` (the app and its settings), `state` (what routes share), `errors` (every error is
-`{"detail": ...}` JSON), `routes_maps` (health, metrics, maps, scans), `routes_data` (cells, rays,
+`{"detail": ...}` JSON), `routes_service` (health, metrics),
+`routes_maps` (maps, scans), `routes_data` (cells, rays,
 regions, surfaces, exports), `routes_tiles` (PNG tiles), `routes_snapshot` (a map as one file,
 down and up), `routes_import` (a map from a nav2 map), `events` (server-sent events) with
 `robots_feed` (what a stream has sent of the robots), `routes_session` (a browser's sign-in),

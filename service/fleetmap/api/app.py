@@ -26,6 +26,7 @@ from fleetmap.api import (
     routes_data,
     routes_import,
     routes_maps,
+    routes_service,
     routes_session,
     routes_snapshot,
     routes_tiles,
@@ -136,7 +137,8 @@ class ApiSettings:
     signin_max_failures: int = DEFAULT_MAX_FAILURES
     signin_window: float = DEFAULT_WINDOW
     signin_max_clients: int = DEFAULT_MAX_CLIENTS
-    #: Called by GET /healthz for the Zenoh session's status (server.py provides it).
+    #: Called by GET /healthz for the Zenoh session's status (`fleetmap serve` passes
+    #: `serve_ros.zenoh_status`, the session's and its ROS parts').
     zenoh_status: Callable[[], dict[str, Any]] | None = None
     #: The registry's integration hook. None: the `IntegrationMetrics` whose `on_integrated` the
     #: registry was built with, or, if the registry has no hook, a new one installed on it.
@@ -237,6 +239,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     if settings.zenoh_status is not None:
         app.state.fleetmap.metrics.watch_zenoh(settings.zenoh_status)
     errors.install(app)
+    app.include_router(routes_service.router)
     app.include_router(routes_maps.router)
     app.include_router(routes_data.router)
     app.include_router(routes_tiles.router)

@@ -15,7 +15,7 @@ import numpy as np
 from fastapi import APIRouter, Query, Response
 
 from fleetmap.api.errors import ApiError, error_responses, too_many
-from fleetmap.api.state import MapId, RegionLayer, State, coordinate
+from fleetmap.api.state import MapId, State, coordinate
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import (
     CellsRequest,
@@ -24,6 +24,7 @@ from fleetmap.api_models import (
     RaycastRequest,
     RaycastResponse,
     RegionJson,
+    RegionLayer,
     Surface,
     cell_value,
     cells_json,
@@ -31,8 +32,9 @@ from fleetmap.api_models import (
     region_json,
     surface,
 )
+from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED
 from fleetmap.export import Window, known_window, map_png, map_source, nav2_zip, npy_bytes, png_bytes
-from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, GridMap
+from fleetmap.grid_map import GridMap
 
 router = APIRouter(route_class=StrictRoute)
 

@@ -12,8 +12,9 @@ from fastapi.concurrency import run_in_threadpool
 from fleetmap import tile_render
 from fleetmap.api.errors import error_responses
 from fleetmap.api.http_semantics import etag_matches
-from fleetmap.api.state import MapId, RegionLayer, State
+from fleetmap.api.state import MapId, State
 from fleetmap.api.strict_requests import StrictRoute
+from fleetmap.api_models import RegionLayer
 from fleetmap.tile_render import MAX_ZOOM, MIN_ZOOM, check_layer, etag_for, tile_version
 
 router = APIRouter(route_class=StrictRoute)

@@ -1,17 +1,18 @@
 """What every route needs: the app's `ApiState` (registry, settings, metrics, tile cache) and the
-shared parameter types (validated map and robot ids, coordinates, layers)."""
+shared parameter types (validated map and robot ids, coordinates). The layers a route reads,
+`api_models.RegionLayer`, are held here to the engine's (`grid_map.REGION_LAYERS`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Literal, get_args
+from typing import TYPE_CHECKING, Annotated, get_args
 
 from fastapi import Depends, Query, Request
 from fastapi import Path as PathParam
 
 from fleetmap.api.priority import IngestGate
-from fleetmap.api_models import MAX_COORDINATE
+from fleetmap.api_models import MAX_COORDINATE, RegionLayer
 from fleetmap.grid_map import REGION_LAYERS
 from fleetmap.metrics import ServiceMetrics
 from fleetmap.registry import MapEntry, MapRegistry
@@ -106,7 +107,6 @@ RobotId = Annotated[
     Query(pattern=ID_PATTERN, description="robot id, [A-Za-z0-9_-]{1,64}", examples=["robot1"]),
 ]
 
-RegionLayer = Literal["log_odds", "probability", "state", "hits", "misses", "tsdf", "tsdf_weight"]
 assert get_args(RegionLayer) == REGION_LAYERS  # the layers a route takes are those the engine reads
 
 

@@ -23,8 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN
 from fleetmap.export import Window, map_state
-from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap
+from fleetmap.grid_map import GridMap
 from fleetmap.ros.cdr import CdrWriter
 
 ROS_TYPE = "nav_msgs/msg/OccupancyGrid"
