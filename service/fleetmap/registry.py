@@ -916,11 +916,10 @@ class MapRegistry:
     def _work(self) -> None:
         while True:
             try:
-                got = self.queue.get()
+                got = self.queue.get()  # without a timeout: an item, or QueueClosed
             except QueueClosed:
                 return
-            if got is None:
-                continue
+            assert got is not None
             source, job = got
             try:
                 self._integrate(job)

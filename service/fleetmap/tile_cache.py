@@ -28,7 +28,9 @@ class _Cached:
 
 class TileCache:
     """Thread-safe LRU of rendered tiles keyed by (map id, generation, layer, z, x, y), each stored
-    with the tile version it shows.
+    with the tile version it shows. It holds at most `max_entries` tiles and `max_bytes` of PNG
+    (more only while its one tile is larger), the least recently used going first; the zoomed-out
+    reductions it renders from are cached apart, in `reduced` (a `ReducedCache` of `reduced_bytes`).
 
     `get_or_render` reads the current version first (cheap, lock-free), serves the cached PNG if it
     is that version (or newer), else renders, stores and returns it. Concurrent requests for the
