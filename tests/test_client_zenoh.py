@@ -819,9 +819,9 @@ def test_sim_confirms_its_scans_with_the_service(tmp_path: Path, max_beams: int 
         assert integrated and int(integrated.group(1)) >= 2, done.stdout
     else:
         assert done.returncode == 1, (done.stdout, done.stderr)
-        for robot in ("sim-1", "sim-2"):
+        for robot in ("sim-1", "sim-2"):  # a robot of a slow machine may have published only 1 scan
             assert re.search(
-                rf"fleetmap sim: warning: {robot}: \d+ scans published, 0 integrated", done.stderr
+                rf"fleetmap sim: warning: {robot}: \d+ scans? published, 0 integrated", done.stderr
             )
         assert "refused" in done.stderr and "confirmed integrated" not in done.stdout
 
