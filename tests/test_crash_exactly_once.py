@@ -22,7 +22,7 @@ What it found: a restarted service took part of a robot's cache, then a later sc
 rest (6 to 450 scans counted lost, none reported missed by zenoh-ext), in about half of the runs of
 10 restarts: robots connected while the service's router waited 0.5 s in `zenoh.open` had their
 caches fetched twice at once by the new scan subscriber, and zenoh-ext skipped part of them. The
-router no longer waits (`scouting/delay` 0, fleetmap/ingest.py). After that, 5 of 5 runs of 10
+router no longer waits (`scouting/delay` 0, fleetmap/zenoh_ingest.py). After that, 5 of 5 runs of 10
 restarts passed, and 8 of 11 heavier runs (12 restarts, 40 scans/s, up to 4 s down). The losses left
 were of two kinds, both found and fixed on 2026-11-27 (docs/protocol.md, "Delivery guarantees"):
 

@@ -45,7 +45,7 @@ from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.registry import IngestRejected, Job, MapRegistry
 from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger, pairs
 from fleetmap.scan import Scan
-from fleetmap.unmapped import MAX_UNMAPPED_ROBOTS
+from fleetmap.unmapped_refusals import MAX_UNMAPPED_ROBOTS
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
 
 

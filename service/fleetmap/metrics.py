@@ -35,7 +35,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 if TYPE_CHECKING:
-    from fleetmap.api.priority import IngestGate
+    from fleetmap.api.ingest_priority import IngestGate
     from fleetmap.api.state import Slots
     from fleetmap.grid_map import IntegrationResult
     from fleetmap.registry import Job, MapEntry, MapRegistry
@@ -311,7 +311,7 @@ class ServiceInfoCollector(Collector):
 
 
 class IngestGateCollector(Collector):
-    """HTTP requests held back for ingest (`fleetmap.api.priority`), read at scrape."""
+    """HTTP requests held back for ingest (`fleetmap.api.ingest_priority`), read at scrape."""
 
     def __init__(self, gate: IngestGate) -> None:
         self.gate = gate

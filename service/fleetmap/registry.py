@@ -33,7 +33,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import NoReturn
 
-from fleetmap.changes import ChangeFeed
+from fleetmap.change_feed import ChangeFeed
 from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
@@ -55,7 +55,7 @@ from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
 from fleetmap.tombstones import Tombstone, Tombstones
-from fleetmap.unmapped import UnmappedRefusals
+from fleetmap.unmapped_refusals import UnmappedRefusals
 from fleetmap.wire import BuriedSession, DeliveryStatus, SessionDelivery, is_valid_id
 
 log = logging.getLogger("fleetmap.registry")

@@ -31,7 +31,7 @@ ALIVE_KEY = "fleetmap/{map_id}/{robot_id}/alive"
 SCAN_KEY_WILDCARD = "fleetmap/*/*/scan"
 ALIVE_KEY_WILDCARD = "fleetmap/*/*/alive"
 #: The Zenoh endpoint the service listens on and robots connect to when neither is told otherwise
-#: (`fleetmap.ingest.DEFAULT_LISTEN`, `fleetmap_client.publisher.DEFAULT_CONNECT`, `fleetmap demo`):
+#: (`fleetmap.zenoh_ingest.DEFAULT_LISTEN`, `fleetmap_client.publisher.DEFAULT_CONNECT`, `fleetmap demo`):
 #: loopback only, Zenoh's usual port.
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 #: Zenoh's `connect/retry` of robots (`fleetmap_client.publisher.client_config`) and of the

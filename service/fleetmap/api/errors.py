@@ -28,9 +28,9 @@ from fleetmap.codec import DecodeError, PayloadTooLarge
 from fleetmap.grid_map import LayerUnavailableError, RayLimitError
 from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
-from fleetmap.spool import SpoolFailed
 from fleetmap.tile_render import TileError
 from fleetmap.tiles import TileLimitError
+from fleetmap.upload_spool import SpoolFailed
 
 log = logging.getLogger("fleetmap.api")
 
