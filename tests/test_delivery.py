@@ -41,8 +41,9 @@ from fleetmap import codec
 from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
+from fleetmap.map_entry import IngestRejected, Job
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
-from fleetmap.registry import IngestRejected, Job, MapRegistry
+from fleetmap.registry import MapRegistry
 from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger, pairs
 from fleetmap.scan import Scan
 from fleetmap.unmapped_refusals import MAX_UNMAPPED_ROBOTS

@@ -95,9 +95,10 @@ import zenoh
 import zenoh.ext
 
 from fleetmap import codec
+from fleetmap.map_entry import IngestRejected
 from fleetmap.network import is_loopback_host
 from fleetmap.rate_limited_log import RateLimitedLog
-from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
+from fleetmap.registry import InvalidId, MapRegistry
 from fleetmap.wire import (
     ALIVE_KEY_WILDCARD,
     CONNECT_RETRY,

@@ -93,7 +93,7 @@ from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import ReplacedEvent, TilesEvent, tile_windows
 from fleetmap.auth import GRANT_SCOPE_KEY, Grant
 from fleetmap.change_feed import ChangeFeed
-from fleetmap.registry import MapEntry
+from fleetmap.map_entry import MapEntry
 
 router = APIRouter(route_class=StrictRoute)
 

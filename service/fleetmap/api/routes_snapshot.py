@@ -18,8 +18,9 @@ from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo, map_info
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
+from fleetmap.map_entry import MapEntry
 from fleetmap.memory_budget import UploadReservation
-from fleetmap.registry import MapEntry, MapNotFound
+from fleetmap.registry import MapNotFound
 from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
 from fleetmap.upload_spool import close_spool, spool_write, spooled_file
 
