@@ -1,4 +1,4 @@
-"""Ingest before reads (`fleetmap.api.priority`): HTTP requests wait while scans wait.
+"""Ingest before reads (`fleetmap.api.ingest_priority`): HTTP requests wait while scans wait.
 
 A real registry with running workers behind a real uvicorn server (test_api_support): the backlog is
 made real by holding the map's lock, so the workers block in apply and the robot's later scans queue
@@ -21,7 +21,7 @@ from registry_idle import wait_idle
 from test_api_support import RunningApi, fan_scan, running_api
 
 from fleetmap.api import ApiSettings, create_app
-from fleetmap.api.priority import IngestGate, is_exempt
+from fleetmap.api.ingest_priority import IngestGate, is_exempt
 from fleetmap.codec import WireScan
 from fleetmap.registry import MapRegistry
 

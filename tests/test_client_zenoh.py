@@ -25,9 +25,10 @@ import pytest
 import zenoh
 import zenoh.ext
 from fleetmap_client import cli
-from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, ScanPublisher, client_config
+from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, ScanPublisher
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
 from fleetmap_client.sim import SimError, robot_ids, run_sim
+from fleetmap_client.zenoh_config import client_config
 from service_process import DATASETS_DIR, ServiceProcess, free_port, reaped, wait_for
 
 from fleetmap.codec import WireScan, decode, encode_json

@@ -22,7 +22,7 @@ What it found: a restarted service took part of a robot's cache, then a later sc
 rest (6 to 450 scans counted lost, none reported missed by zenoh-ext), in about half of the runs of
 10 restarts: robots connected while the service's router waited 0.5 s in `zenoh.open` had their
 caches fetched twice at once by the new scan subscriber, and zenoh-ext skipped part of them. The
-router no longer waits (`scouting/delay` 0, fleetmap/ingest.py). After that, 5 of 5 runs of 10
+router no longer waits (`scouting/delay` 0, fleetmap/zenoh_ingest.py). After that, 5 of 5 runs of 10
 restarts passed, and 8 of 11 heavier runs (12 restarts, 40 scans/s, up to 4 s down). The losses left
 were of two kinds, both found and fixed on 2026-11-27 (docs/protocol.md, "Delivery guarantees"):
 
@@ -30,7 +30,7 @@ were of two kinds, both found and fixed on 2026-11-27 (docs/protocol.md, "Delive
   with Zenoh's default backoff (again 1, 3, 7, 11 s ... after the loss, then every 4 s), so they met
   a restarted service up to 4 s after it listened and missed one that was up for less; five such in
   a row kept them away for 37 s, longer than 1000 scans last at 40 scans/s. Robots now retry every
-  0.5 s at most (`connect/retry`, `fleetmap_client.publisher.client_config`; measured with
+  0.5 s at most (`connect/retry`, `fleetmap_client.zenoh_config.client_config`; measured with
   scripts/reconnect_timing.py: 0.1-0.45 s after the service listens, against up to 3.9 s).
 - one robot lost 70 to 600 scans: a scan it put while its session was reconnecting (between the
   publisher's look at the link and the put) reached the restarted service live, before the service

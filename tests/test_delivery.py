@@ -22,12 +22,12 @@ from typing import Any
 import httpx
 import pytest
 import zenoh
+from fleetmap_client.delivery import delivery_report
 from fleetmap_client.publisher import (
     DeliveryReport,
     DeliveryUnsupported,
     PublisherClosed,
     ScanPublisher,
-    _report,
 )
 from registry_idle import wait_idle
 from robot_process import scans_for
@@ -41,11 +41,12 @@ from fleetmap import codec
 from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
+from fleetmap.map_entry import IngestRejected, Job
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
-from fleetmap.registry import IngestRejected, Job, MapRegistry
+from fleetmap.registry import MapRegistry
 from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger, pairs
 from fleetmap.scan import Scan
-from fleetmap.unmapped import MAX_UNMAPPED_ROBOTS
+from fleetmap.unmapped_refusals import MAX_UNMAPPED_ROBOTS
 from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
 
 
@@ -911,7 +912,7 @@ def test_refusals_from_before_a_robot_was_on_its_map_do_not_hold_up_its_flush_af
         reg.replace("m", GridMap(MapConfig()))
     status = reg.delivery_status("m", "r", 7)
     assert [entry.last_seq for entry in status.buried] == [9], status
-    report = _report(status, 7, 0, 9)
+    report = delivery_report(status, 7, 0, 9)
     assert (report.settled, report.gone, report.confirmed) == (True, 10, False), (report, status)
     reg.close()
 
@@ -926,10 +927,10 @@ def test_a_scan_of_a_deleted_maps_robot_refused_again_at_the_limits_does_not_hol
     for seq in range(10):
         reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
     reg.delete("m")
-    assert _report(reg.delivery_status("m", "r", 7), 7, 0, 9).gone == 10
+    assert delivery_report(reg.delivery_status("m", "r", 7), 7, 0, 9).gone == 10
     reg.reject("m", "r", "scan seq 7 refused: pose (1e+06, 0) is outside the world bound", (7, 7.0, 7))
     status = reg.delivery_status("m", "r", 7)
-    report = _report(status, 7, 0, 9)
+    report = delivery_report(status, 7, 0, 9)
     assert (report.settled, report.gone, report.refused) == (True, 10, 0), (report, status)
     assert status.sessions == [] and status.last_error is None, status
     reg.close()
@@ -960,7 +961,7 @@ def test_scans_refused_on_a_map_they_created_are_settled_once_the_map_is_removed
         assert wait_idle(reg, 120)
         status = reg.delivery_status("m", "r", 7)
         assert status.status == "no_map", status
-        report = _report(status, 7, 0, 2)
+        report = delivery_report(status, 7, 0, 2)
         assert (report.settled, report.refused, report.integrated) == (True, 3, 0), (report, status)
         expected = "memory budget" if budget else "ingest queue full"
         assert report.last_error is not None and expected in report.last_error, report
@@ -1000,7 +1001,7 @@ def test_refusals_under_made_up_ids_do_not_push_out_a_real_robots_refused_scans(
         reg.reject(f"fake{k % 300}", f"x{k}", "scan seq 0 refused: 99999 beams", (0, 0.0, 1 + k))
     assert len(reg.unmapped) == MAX_UNMAPPED_ROBOTS  # the bound holds
     status = reg.delivery_status("m", "r", 7)
-    report = _report(status, 7, 0, 4)
+    report = delivery_report(status, 7, 0, 4)
     assert (status.status, report.settled, report.refused) == ("no_map", True, 5), (report, status)
     assert status.last_error is not None and "no map" in status.last_error, status
     # The made-up ones are forgotten oldest first; without tokens, a real robot's would be too.

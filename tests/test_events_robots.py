@@ -277,7 +277,7 @@ def test_streams_of_one_map_share_their_tiles_events(monkeypatch: Any) -> None:
     lies within the last event made sends that one: here 10 streams in step make one event per poll,
     not 10, and every stream is told of every tile changed after its version, a lagging one too."""
     import fleetmap.api.events as events
-    from fleetmap.changes import ChangeFeed
+    from fleetmap.change_feed import ChangeFeed
 
     made: list[int] = []
     real = events.tile_windows

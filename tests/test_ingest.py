@@ -20,12 +20,12 @@ from service_process import FreezableProxy, free_port, wait_for
 from fleetmap import codec
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
-from fleetmap.ingest import IngestStartError, ZenohIngest, parse_key
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import MapRegistry
 from fleetmap.scan import Scan
 from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap.wire import ALIVE_KEY, BINARY_ENCODING, JSON_ENCODING, SCAN_KEY
+from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest, parse_key
 
 PLAN = generate_floorplan(3, width_m=16.0, height_m=12.0)
 

@@ -23,7 +23,7 @@ ENGINE_MODULES = (
     "update_plan",
     "grid_map",
     "export",
-    "spool",
+    "upload_spool",
     "nav2_import",
 )
 ENGINE_PACKAGES = ("kernels", "datasets", "sim", "examples")
@@ -140,7 +140,7 @@ def test_the_rest_client_loads_no_service_runtime() -> None:
     loaded = result.stdout.split()
     service_runtime = {
         "fleetmap.registry", "fleetmap.fair_queue", "fleetmap.journal", "fleetmap.persistence",
-        "fleetmap.database", "fleetmap.ingest", "fleetmap.server", "fleetmap.serve_options",
+        "fleetmap.database", "fleetmap.zenoh_ingest", "fleetmap.server", "fleetmap.serve_options",
         "fleetmap.serve_environment", "fleetmap.serve_ros", "fleetmap.http_server", "fleetmap.warm_up",
         "fleetmap.api",
     }  # fmt: skip

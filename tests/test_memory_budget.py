@@ -18,9 +18,10 @@ from service_process import ServiceProcess
 from fleetmap.codec import WireScan, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
+from fleetmap.map_entry import IngestRejected
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation, parse_size
 from fleetmap.persistence import DurableStore
-from fleetmap.registry import IngestRejected, MapRegistry
+from fleetmap.registry import MapRegistry
 from fleetmap.scan import Scan
 from fleetmap.tiles import FIRST_GROWTH_BYTES, FIRST_GROWTH_TILES
 

@@ -32,10 +32,10 @@ from fleetmap import serve_environment, server
 from fleetmap.api.app import WEB_DIR_ENV
 from fleetmap.auth import TOKENS_ENV
 from fleetmap.database import DB_NAME
-from fleetmap.ingest import unauthenticated_endpoints
 from fleetmap.memory_budget import MemoryBudget
 from fleetmap.registry import QUEUE_TOTAL
 from fleetmap.wire import BINARY_ENCODING
+from fleetmap.zenoh_ingest import unauthenticated_endpoints
 
 WRITE_A = "write-token-aaaaaaaaaaaaaaaa"
 WRITE_B = "write-token-bbbbbbbbbbbbbbbb"

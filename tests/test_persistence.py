@@ -33,7 +33,7 @@ from test_api_support import (
     snapshot_parts,
 )
 
-from fleetmap import spool, storage_format
+from fleetmap import storage_format, upload_spool
 from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME, StorageError, open_database
@@ -42,7 +42,6 @@ from fleetmap.journal import JournalEntry, JournalWriter
 from fleetmap.persistence import DurableStore, changed_tiles
 from fleetmap.registry import MapRegistry
 from fleetmap.scan import Scan
-from fleetmap.spool import UploadStopped
 from fleetmap.storage_format import (
     MAX_SNAPSHOT_META_BYTES,
     TILE_MAGIC,
@@ -55,6 +54,7 @@ from fleetmap.storage_format import (
     tile_to_blob,
 )
 from fleetmap.tiles import LayerArray, TileStore
+from fleetmap.upload_spool import UploadStopped
 
 
 def fan(x: float, n: int = 1081) -> Scan:
@@ -570,7 +570,7 @@ def test_an_uploaded_snapshot_is_checked_before_any_tile_is_allocated(monkeypatc
 def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """An upload is spooled to a file (`fleetmap.spool`) and read from it: `map_from_snapshot_file`
+    """An upload is spooled to a file (`fleetmap.upload_spool`) and read from it: `map_from_snapshot_file`
     takes a file as well as bytes, and reads tiles.npz where it lies in the file (a stored member, as
     `snapshot_file` writes it) or from a spool (a compressed one), never whole in memory. It read
     tiles.npz into bytes, a second copy of an upload of up to 4 GiB beside the map it builds."""
@@ -578,7 +578,7 @@ def test_a_snapshot_is_read_from_a_file_without_holding_its_tiles_in_memory(
 
     # Small chunks and a small spool, so that a small file shows it; the spool in a directory of ours.
     monkeypatch.setattr(storage_format, "_READ_CHUNK", 1 << 16)
-    monkeypatch.setattr(spool, "SPOOL_MEMORY_BYTES", 1 << 16)
+    monkeypatch.setattr(upload_spool, "SPOOL_MEMORY_BYTES", 1 << 16)
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     gmap = random_tiles_map(16, tile_size=128)
     data = snapshot_file("m", gmap)
@@ -713,10 +713,11 @@ def test_a_zip_whose_headers_zipfile_reads_only_when_opening_a_member_is_refused
     path.write_bytes(body)
     fp: IO[bytes]
     if source == "spool on disk":
-        monkeypatch.setattr(spool, "SPOOL_MEMORY_BYTES", 64)  # this small body goes to the spool's file
+        # This small body goes to the spool's file.
+        monkeypatch.setattr(upload_spool, "SPOOL_MEMORY_BYTES", 64)
         monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-        fp = spool.spooled_file()
-        spool.spool_write(fp, body)
+        fp = upload_spool.spooled_file()
+        upload_spool.spool_write(fp, body)
         fp.seek(0)
         assert fp._rolled  # type: ignore[attr-defined]
     else:
@@ -735,10 +736,10 @@ def test_a_seek_before_a_disk_spools_start_is_an_oserror_not_a_spool_failure(
     """A spool's disk errors are `SpoolFailed` (503, the server's), but a position before its start
     comes from the upload (a zip's offsets): it stays the OSError (EINVAL) that zipfile expects of
     any file and the readers take for a corrupt upload."""
-    monkeypatch.setattr(spool, "SPOOL_MEMORY_BYTES", 64)
+    monkeypatch.setattr(upload_spool, "SPOOL_MEMORY_BYTES", 64)
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    with spool.spooled_file() as fp:
-        spool.spool_write(fp, bytes(100))
+    with upload_spool.spooled_file() as fp:
+        upload_spool.spool_write(fp, bytes(100))
         assert fp._rolled  # type: ignore[attr-defined]
         with pytest.raises(OSError) as refused:
             fp.seek(-1)
@@ -758,7 +759,7 @@ def test_a_zip_of_too_many_entries_is_refused_before_zipfile_lists_them() -> Non
     meta, arrays = snapshot_parts(data)
     with zipfile.ZipFile(io.BytesIO(data)) as zf:
         npz = zf.read("tiles.npz")
-    entries = spool.MAX_ZIP_DIRECTORY_BYTES // 52 + 1000
+    entries = upload_spool.MAX_ZIP_DIRECTORY_BYTES // 52 + 1000
     for body, where in [
         (padded_zip(data, entries), "the body is not a zip file"),
         (snapshot_body(meta, npz=padded_zip(npz, entries)), "tiles.npz is not a valid .npz file"),

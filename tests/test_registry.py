@@ -21,8 +21,9 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.fair_queue import FairQueue
 from fleetmap.grid_map import GridMap
+from fleetmap.map_entry import IngestRejected
 from fleetmap.persistence import DurableStore
-from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, MapRegistry
+from fleetmap.registry import InvalidId, MapConflict, MapNotFound, MapRegistry
 from fleetmap.robot_state import CONFLICT_SHOWN, MAX_SESSIONS, RobotState
 from fleetmap.scan import Scan
 

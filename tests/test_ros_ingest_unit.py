@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from fleetmap.codec import WireScan
-from fleetmap.registry import IngestRejected, MapRegistry
+from fleetmap.map_entry import IngestRejected
+from fleetmap.registry import MapRegistry
 from fleetmap.ros.graph import Qos, RosNode, publisher_of_token
 from fleetmap.ros.ingest import RosScanIngest, robot_id_for, session_from_gid
 from fleetmap.ros.laser_scan import LaserScanMsg, encode_laser_scan

@@ -21,7 +21,7 @@ from PIL import Image
 from fleetmap import tile_cache
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import REGION_LAYERS, STATE_OCCUPIED, GridMap
-from fleetmap.registry import MapEntry
+from fleetmap.map_entry import MapEntry
 from fleetmap.scan import Scan
 from fleetmap.tile_cache import TileCache
 from fleetmap.tile_render import (

@@ -23,8 +23,9 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME
 from fleetmap.grid_map import GridMap
+from fleetmap.map_entry import IngestRejected
 from fleetmap.persistence import DurableStore
-from fleetmap.registry import IngestRejected, MapRegistry, NotDurable
+from fleetmap.registry import MapRegistry, NotDurable
 from fleetmap.robot_state import MAX_SESSIONS, RobotState
 from fleetmap.tombstones import Tombstone, Tombstones
 

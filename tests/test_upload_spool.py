@@ -1,5 +1,5 @@
 """Uploads (`PUT /maps/{id}/snapshot`, `PUT /maps/{id}/import`) are spooled to the temporary
-directory, not held in memory while they are read (`fleetmap.spool`, `routes_snapshot.spooled_body`),
+directory, not held in memory while they are read (`fleetmap.upload_spool`, `routes_snapshot.spooled_body`),
 on the real service process with `TMPDIR` pointed at a directory of the test's.
 
 A spool's file is unlinked as it is made, so the directory shows nothing: the service's open
@@ -39,8 +39,8 @@ from fleetmap.api.app import ApiSettings
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.http_server import GRACEFUL_HTTP_SECONDS
-from fleetmap.spool import SPOOL_MEMORY_BYTES
 from fleetmap.storage_format import SNAPSHOT_FORMAT, snapshot_file
+from fleetmap.upload_spool import SPOOL_MEMORY_BYTES
 
 BODY_TIMEOUT = 4.0
 #: A body's bytes sent before the test looks for its spool: past what the spool keeps in memory.

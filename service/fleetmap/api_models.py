@@ -35,8 +35,8 @@ if TYPE_CHECKING:  # the conversions' argument types only: a client parsing answ
     # The engine's types too: `grid_map` and `tiles` load numba and compile the kernels. No model
     # field has one of these types, so pydantic never needs them resolved.
     from fleetmap.grid_map import GridMap, RaycastResult
+    from fleetmap.map_entry import MapEntry
     from fleetmap.persistence import StorageHealth
-    from fleetmap.registry import MapEntry
     from fleetmap.robot_state import RobotState
     from fleetmap.tiles import TileKey
 

@@ -35,10 +35,11 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 if TYPE_CHECKING:
-    from fleetmap.api.priority import IngestGate
+    from fleetmap.api.ingest_priority import IngestGate
     from fleetmap.api.state import Slots
     from fleetmap.grid_map import IntegrationResult
-    from fleetmap.registry import Job, MapEntry, MapRegistry
+    from fleetmap.map_entry import Job, MapEntry
+    from fleetmap.registry import MapRegistry
     from fleetmap.tile_cache import TileCache
 
 #: Prometheus' text exposition format.
@@ -48,7 +49,7 @@ CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 STORAGE_OPERATIONS = ("journal_commit", "snapshot", "map_change")
 
 #: `fleetmap_zenoh_scans_refused_total{reason}`: the kinds of `ZenohIngest`'s refusals
-#: (`registry.REFUSAL_KINDS`).
+#: (`map_entry.REFUSAL_KINDS`).
 ZENOH_REFUSALS = ("duplicate", "no_map", "too_many_robots", "queue_full", "shutting_down")
 #: Why ROS 2 scans (`--ros-scans`) are refused, exported at 0 from the start (fleetmap.ros.ingest).
 ROS_REFUSALS = ("invalid_topic", "undecodable", "no_tf", "tf_error", "invalid_scan", "pending_full")
@@ -311,7 +312,7 @@ class ServiceInfoCollector(Collector):
 
 
 class IngestGateCollector(Collector):
-    """HTTP requests held back for ingest (`fleetmap.api.priority`), read at scrape."""
+    """HTTP requests held back for ingest (`fleetmap.api.ingest_priority`), read at scrape."""
 
     def __init__(self, gate: IngestGate) -> None:
         self.gate = gate

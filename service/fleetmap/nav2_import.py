@@ -67,8 +67,8 @@ from pydantic import ValidationError
 
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import GridMap
-from fleetmap.spool import upload_zip
 from fleetmap.tiles import TileKey, TileLimitError
+from fleetmap.upload_spool import upload_zip
 
 if TYPE_CHECKING:
     from fleetmap.memory_budget import UploadReservation
@@ -487,7 +487,8 @@ def map_from_nav2_zip(
     names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
     no `..`, no absolute path): what `GET /maps/{id}/export?format=ros` gives. Entries under
     `__MACOSX/` are not read. `data` is the zip's bytes, or a binary file open for reading that can
-    seek (an upload spooled to disk: `fleetmap.spool`), which is left open. Raises `Nav2ImportError`."""
+    seek (an upload spooled to disk: `fleetmap.upload_spool`), which is left open. Raises
+    `Nav2ImportError`."""
     try:
         zf = upload_zip(data)
     except (*_ZIP_ERRORS, ValueError) as exc:

@@ -15,6 +15,9 @@ committed. Viewers see its tiles change at once. Map changes (create, delete, re
 on the same journal in order, and callers that answer a client (`wait=True`) return only once the
 change is committed. A map is deleted or replaced under its lock and the registry's (`_removing`), so
 a scan whose map went while it was planned is applied and journaled nowhere, and its caller is told.
+
+What the registry holds of each map and scan (`MapEntry`, `Job`, `IngestRejected`) is in
+`map_entry.py`; what it answers a robot's delivery query (`delivery_status`), in `delivery.py`.
 """
 
 from __future__ import annotations
@@ -27,36 +30,27 @@ import logging
 import sqlite3
 import threading
 import time
-from array import array
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass, field
 from typing import NoReturn
 
-from fleetmap.changes import ChangeFeed
+from fleetmap import delivery
 from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
 from fleetmap.fair_queue import FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult
+from fleetmap.map_entry import SHUTTING_DOWN, Expectation, IngestRejected, Job, MapEntry
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation
 from fleetmap.persistence import DurableStore
 from fleetmap.rate_limited_log import RateLimitedLog
-from fleetmap.robot_state import (
-    CONFLICT_SHOWN,
-    NO_SESSION,
-    Receipt,
-    RobotState,
-    SessionSeqs,
-    pairs,
-    session_key,
-)
+from fleetmap.robot_state import CONFLICT_SHOWN, NO_SESSION, RobotState, session_key
 from fleetmap.scan import ScanError
 from fleetmap.storage_format import scan_to_blob
 from fleetmap.tiles import TileLimitError
 from fleetmap.tombstones import Tombstone, Tombstones
-from fleetmap.unmapped import UnmappedRefusals
-from fleetmap.wire import BuriedSession, DeliveryStatus, SessionDelivery, is_valid_id
+from fleetmap.unmapped_refusals import UnmappedRefusals
+from fleetmap.wire import DeliveryStatus, is_valid_id
 
 log = logging.getLogger("fleetmap.registry")
 
@@ -91,114 +85,6 @@ class InvalidId(ValueError):
 
 class NotDurable(Exception):
     """A map change took effect in memory but was not committed to storage (in time)."""
-
-
-@dataclass
-class MapEntry:
-    """One map: its engine object, its robots, its change feed."""
-
-    id: str
-    gmap: GridMap
-    generation: int
-    robots: dict[str, RobotState] = field(default_factory=dict)
-    scans_integrated: int = 0
-    scans_rejected: int = 0
-    #: Its change versions start at `generation` (see `MapRegistry._generations`): an event id from
-    #: an earlier map of this id, or from before a restart, is below them.
-    changes: ChangeFeed = field(init=False)
-    created_at: float = field(default_factory=time.time)
-    #: Set when the map is deleted or replaced, under its lock and the registry's (`_removing`): a
-    #: worker holding the map's lock that finds it set neither applies nor journals a scan to it.
-    retired: bool = False
-    #: Created by a scan (auto-create) and claimed by nothing since: if every scan that reached it is
-    #: refused, it is removed again (`_remove_unclaimed`), so a refused scan creates no map. Cleared
-    #: once a scan of it is applied, and by `create` (PUT) or a robot's liveliness token
-    #: (`set_online`), either of which would have created the map anyway.
-    provisional: bool = False
-    #: Scans accepted for this map (`submit`) that are neither counted as integrated nor refused yet:
-    #: queued, in flight, or applied and waiting for their journal commit.
-    unsettled: int = 0
-    #: The entry `replace` installed in this one's place (under `MapRegistry.lock`), so an event
-    #: stream can tell a map replaced under its id (it follows the new one) from a deleted one.
-    replaced_by: MapEntry | None = field(default=None, repr=False)
-    #: Bumped (under the registry's lock) whenever what a viewer shows of its robots changes: a robot
-    #: created, forgotten, or changed in a field of `RobotState.changed`. An event stream that saw
-    #: this version has nothing to send while it stays.
-    live_version: int = 0
-    #: The tombstones of robots it forgot (`Tombstones.forget`) that storage does not hold yet, by
-    #: robot id: its next snapshot stores them in the transaction that drops those robots' rows
-    #: (`MapRegistry.snapshot_all`). With a `DurableStore` only.
-    unstored_stones: dict[str, Tombstone] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        self.changes = ChangeFeed(start=self.generation)
-
-    @property
-    def config(self) -> MapConfig:
-        return self.gmap.config
-
-    def robot(self, robot_id: str) -> RobotState:
-        """Robot `robot_id`, created if the map has none of that id (call under the registry's lock)."""
-        state = self.robots.get(robot_id)
-        if state is None:
-            state = self.robots[robot_id] = RobotState()
-            self.touch(state)
-        return state
-
-    def touch(self, robot: RobotState) -> None:
-        """Record that a field of `robot` that viewers show changed (call under the registry's lock)."""
-        self.live_version += 1
-        robot.changed = self.live_version
-
-    def forget(self, robot_id: str) -> None:
-        """Remove robot `robot_id` and all the service knows of it (call under the registry's lock)."""
-        del self.robots[robot_id]
-        self.live_version += 1
-
-
-#: A check a map change runs on the map it would change (None: no map of that id) under the registry's
-#: lock, before it changes anything; it raises to refuse the change (the REST API's If-Match).
-Expectation = Callable[[MapEntry | None], None]
-
-
-@dataclass
-class Job:
-    """A scan waiting for integration, and who waits for its outcome (REST)."""
-
-    map_id: str
-    robot_id: str
-    wire: WireScan
-    generation: int
-    #: time.monotonic() when the scan was queued, when it was applied to its map (readers see it
-    #: from then on), and whether it was handed to the journal then (its row committed later).
-    enqueued_at: float
-    future: Future[IntegrationResult] | None = None
-    applied_at: float | None = None
-    journaled: bool = False
-    #: Its entry in its publisher session's ledger, settled with the scan (`MapRegistry._settle`).
-    receipt: Receipt | None = None
-
-
-#: What each `IngestRejected` status means, as the ingests count their refusals (`kind`).
-REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
-#: The kind of the refusal of a scan submitted while the registry closes (`MapRegistry.close`).
-SHUTTING_DOWN = "shutting_down"
-
-
-class IngestRejected(Exception):
-    """A scan refused before integration: `reason` says why; `status` suggests an HTTP status."""
-
-    def __init__(self, reason: str, status: int = 422, kind: str | None = None) -> None:
-        super().__init__(reason)
-        self.reason = reason
-        self.status = status
-        self._kind = kind
-
-    @property
-    def kind(self) -> str:
-        """The refusal's kind for counters: the one given, else by status (`REFUSAL_KINDS`; `other`
-        for any other status)."""
-        return self._kind or REFUSAL_KINDS.get(self.status, "other")
 
 
 def _failure_site(exc: BaseException) -> str:
@@ -1073,48 +959,9 @@ class MapRegistry:
     # -- reporting -------------------------------------------------------------------------------
 
     def delivery_status(self, map_id: str, robot_id: str, session: int | None = None) -> DeliveryStatus:
-        """What became of robot `robot_id`'s scans on map `map_id` (the Zenoh delivery query's
-        answer): its counters and, per publisher session it remembers (only `session` if given:
-        its session id, 0 for scans without one), its ledger; and the sessions whose scans went with
-        a deleted or replaced map of this id (`Tombstones`), so that a robot stops waiting for them.
-        Not those of a robot the map merely forgot (`Tombstone.forgotten`): its scans are in the map.
-        Holds the registry's lock briefly."""
-        with self.lock:
-            entry = self.maps.get(map_id)
-            robot = None if entry is None else entry.robots.get(robot_id)
-            stone = self.tombstones.get(map_id, robot_id)
-            buried = (
-                []
-                if stone is None or stone.forgotten
-                else [
-                    BuriedSession(session=key, last_seq=seq, deleted_at=stone.deleted_at)
-                    for key, seq in stone.sessions.items()
-                    if session is None or key == session
-                ]
-            )
-            if robot is None:
-                # Without its map, or room on it: the sessions whose scans were refused so, if any.
-                refused, last_refusal = self.unmapped.deliveries(map_id, robot_id, session)
-                return DeliveryStatus(
-                    map_id=map_id, robot_id=robot_id, status="no_map" if entry is None else "no_robot",
-                    buried=buried, sessions=refused, last_error=last_refusal,
-                )  # fmt: skip
-            rows = [
-                _session_row(key, seqs)
-                for key, seqs in robot.sessions.items()
-                if seqs.ledger.first_seq is not None and (session is None or key == session)
-            ]
-            counters = (robot.unsettled, robot.scans_integrated, robot.lost, robot.dropped, robot.duplicates)
-            last_error = robot.last_error
-        # The reply is made after the lock from copies (`_session_row`): with 8 sessions' lists of
-        # refused seqs and gaps full, made under it the lock was held 45 µs, and 80 with the lists
-        # as arrays (boxing their ints); 2 µs now (the reply takes 80 µs).
-        unsettled, scans_integrated, lost, dropped, duplicates = counters
-        return DeliveryStatus(
-            map_id=map_id, robot_id=robot_id, status="ok", unsettled=unsettled,
-            scans_integrated=scans_integrated, lost=lost, dropped=dropped, duplicates=duplicates,
-            sessions=[_session_delivery(*row) for row in rows], buried=buried, last_error=last_error,
-        )  # fmt: skip
+        """What became of robot `robot_id`'s scans on map `map_id`: the Zenoh delivery query's answer
+        (`delivery.delivery_status`). Holds the registry's lock briefly."""
+        return delivery.delivery_status(self, map_id, robot_id, session)
 
     def backlog(self) -> tuple[int, float]:
         """(scans waiting for integration, seconds the oldest of them has waited). Cheap: one short
@@ -1145,31 +992,6 @@ def _covered_reason(stone: Tombstone, wire: WireScan) -> str:
             f"room for another robot ({had}; the scans it had are in the map): ignored"
         )
     return f"seq {wire.seq} is from before map {stone.map_id!r} was deleted or replaced ({had}): ignored"
-
-
-def _session_row(key: int, seqs: SessionSeqs) -> tuple:
-    """What the delivery query answers of the session `key` of a robot (one with a scan in its
-    ledger), copied under the registry's lock for `_session_delivery` to read after it: its seqs
-    and counts, and its lists as they are (arrays: a copy is a memcpy)."""
-    ledger = seqs.ledger
-    refused = None if ledger.refused_seqs is None else ledger.refused_seqs[:]
-    gaps = None if ledger.lost_gaps is None else ledger.lost_gaps[:]
-    return (
-        key, ledger.first_seq, seqs.last_seq, ledger.settled, ledger.integrated, ledger.refused,
-        ledger.lost, ledger.duplicates, refused, gaps,
-    )  # fmt: skip
-
-
-def _session_delivery(
-    key: int, first_seq: int, last_accepted: int, settled: int | None, integrated: int, refused: int,
-    lost: int, duplicates: int, refused_seqs: array[int] | None, lost_gaps: array[int] | None,
-) -> SessionDelivery:  # fmt: skip
-    """The delivery query's entry of a session from its copy (`_session_row`)."""
-    return SessionDelivery(
-        session=key, first_seq=first_seq, last_accepted=last_accepted, settled=settled,
-        integrated=integrated, refused=refused, lost=lost, duplicates=duplicates,
-        refused_seqs=None if refused_seqs is None else list(refused_seqs), lost_gaps=pairs(lost_gaps),
-    )  # fmt: skip
 
 
 def _queued_bytes(job: Job) -> int:

@@ -94,7 +94,7 @@ class SessionLedger:
     #: The seqs of its scans settled as refused (less those whose refusal was withdrawn), and
     #: seq, n (flat, in pairs: see `pairs`) for the n seqs lost just before seq, in this process: the
     #: delivery query lists them so that a flush counts only the scans through its last seq, not
-    #: those published after it began (`fleetmap_client.publisher._report`). None when not known: a
+    #: those published after it began (`fleetmap_client.delivery.delivery_report`). None when not known: a
     #: ledger restored from a snapshot, or past LEDGER_HISTORY entries. Int64 (seqs are below 2**63).
     refused_seqs: array[int] | None = field(default_factory=lambda: array("q"), repr=False)
     lost_gaps: array[int] | None = field(default_factory=lambda: array("q"), repr=False)

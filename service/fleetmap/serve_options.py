@@ -15,7 +15,6 @@ from fleetmap.cli import CliError
 from fleetmap.codec import InputLimits
 from fleetmap.failed_signins import DEFAULT_MAX_FAILURES, DEFAULT_WINDOW
 from fleetmap.http_limits import RESERVED_DESCRIPTORS
-from fleetmap.ingest import DEFAULT_LISTEN
 from fleetmap.log_format import LOG_FORMATS
 from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS
@@ -23,6 +22,7 @@ from fleetmap.ros.transforms import TfError, normalize_frame
 from fleetmap.scan import MAX_BEAMS
 from fleetmap.serve_environment import RepeatedOption, environment_first
 from fleetmap.wire import is_valid_id
+from fleetmap.zenoh_ingest import DEFAULT_LISTEN
 
 DEFAULT_HTTP = "127.0.0.1:8000"
 DEFAULT_DATA_DIR = "./fleetmap-data"

@@ -15,9 +15,9 @@ import zenoh
 from fleetmap.cli import CliError
 
 if TYPE_CHECKING:
-    from fleetmap.ingest import ZenohIngest
     from fleetmap.registry import MapRegistry
     from fleetmap.ros.ingest import RosScanIngest
+    from fleetmap.zenoh_ingest import ZenohIngest
 
 
 def ros_map_frame(args: argparse.Namespace, map_id: str) -> str:

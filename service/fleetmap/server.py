@@ -58,12 +58,13 @@ from fleetmap.codec import InputLimits, configure_limits
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
 from fleetmap.http_server import bind_http, make_server, url_host
-from fleetmap.ingest import IngestStartError, ZenohIngest, is_loopback_host
 from fleetmap.log_format import configure_logging
+from fleetmap.network import is_loopback_host
 from fleetmap.persistence import DurableStore
 from fleetmap.serve_options import DEFAULT_DATA_DIR, ROS_MAP_DEFAULTS, add_serve_parser, parse_http
 from fleetmap.serve_ros import ros_domain, ros_options, start_ros_maps, start_ros_scans, zenoh_status
 from fleetmap.warm_up import warm_up
+from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest
 
 if TYPE_CHECKING:
     from fleetmap.ros.ingest import RosScanIngest

@@ -24,8 +24,8 @@ from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.database import StorageError
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
-from fleetmap.spool import as_file, check_stop, close_spool, spool_write, spooled_file, upload_zip
 from fleetmap.tiles import LayerArray, TileKey, TileLimitError, layer_arrays, tile_bytes
+from fleetmap.upload_spool import as_file, check_stop, close_spool, spool_write, spooled_file, upload_zip
 
 if TYPE_CHECKING:
     from fleetmap.memory_budget import UploadReservation
@@ -672,7 +672,7 @@ def map_from_snapshot_file(
     reservation: UploadReservation | None = None, stop: threading.Event | None = None,
 ) -> GridMap:  # fmt: skip
     """A map restored from a `snapshot_file`: its bytes, or a binary file open for reading that can
-    seek (an upload spooled to disk: `fleetmap.spool`), which is read in place, never held in memory
+    seek (an upload spooled to disk: `fleetmap.upload_spool`), which is read in place, never held in memory
     whole, and left open. Raises `SnapshotError` with a reason if it is not one, or one this service
     refuses; `SpoolFailed` if a compressed tiles.npz has no room in the temporary directory.
 

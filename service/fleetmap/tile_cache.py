@@ -16,7 +16,7 @@ from fleetmap.tile_reduce import ReducedCache
 from fleetmap.tile_render import check_layer, etag_for, render_tile_versioned, tile_version
 
 if TYPE_CHECKING:
-    from fleetmap.registry import MapEntry
+    from fleetmap.map_entry import MapEntry
 
 
 @dataclass(frozen=True)

@@ -31,10 +31,10 @@ ALIVE_KEY = "fleetmap/{map_id}/{robot_id}/alive"
 SCAN_KEY_WILDCARD = "fleetmap/*/*/scan"
 ALIVE_KEY_WILDCARD = "fleetmap/*/*/alive"
 #: The Zenoh endpoint the service listens on and robots connect to when neither is told otherwise
-#: (`fleetmap.ingest.DEFAULT_LISTEN`, `fleetmap_client.publisher.DEFAULT_CONNECT`, `fleetmap demo`):
+#: (`fleetmap.zenoh_ingest.DEFAULT_LISTEN`, `fleetmap_client.zenoh_config.DEFAULT_CONNECT`, `fleetmap demo`):
 #: loopback only, Zenoh's usual port.
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
-#: Zenoh's `connect/retry` of robots (`fleetmap_client.publisher.client_config`) and of the
+#: Zenoh's `connect/retry` of robots (`fleetmap_client.zenoh_config.client_config`) and of the
 #: service's own session when it connects to a router (`--zenoh-connect`), unless their
 #: configuration sets it: 0.1 s after a lost connection, then 0.2, 0.4 and every 0.5 s. Zenoh's
 #: default (1 s growing to 4 s) met a restarted service up to 4 s after it listened, and never one

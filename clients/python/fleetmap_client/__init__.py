@@ -16,12 +16,13 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # what type checkers and IDEs see; at run time `__getattr__` imports on demand
-    from fleetmap_client.publisher import DeliveryReport, DeliveryUnsupported, PublisherClosed, ScanPublisher
+    from fleetmap_client.delivery import DeliveryReport
+    from fleetmap_client.publisher import DeliveryUnsupported, PublisherClosed, ScanPublisher
     from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged
 
 _EXPORTS = {
     "ScanPublisher": "fleetmap_client.publisher",
-    "DeliveryReport": "fleetmap_client.publisher",
+    "DeliveryReport": "fleetmap_client.delivery",
     "DeliveryUnsupported": "fleetmap_client.publisher",
     "PublisherClosed": "fleetmap_client.publisher",
     "FleetmapClient": "fleetmap_client.rest",

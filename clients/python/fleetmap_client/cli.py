@@ -19,7 +19,8 @@ from collections.abc import Sequence
 
 from fleetmap.cli import CliError, dataset_error, run_command
 
-from .publisher import DEFAULT_CONNECT, ScanPublisher
+from .publisher import ScanPublisher
+from .zenoh_config import DEFAULT_CONNECT
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -79,17 +79,15 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import json
 import math
 import numbers
 import threading
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal
+from typing import Literal
 
 import zenoh
 import zenoh.ext
@@ -99,8 +97,6 @@ from fleetmap.scan import Scan
 from fleetmap.wire import (
     ALIVE_KEY,
     BINARY_ENCODING,
-    CONNECT_RETRY,
-    DEFAULT_ENDPOINT,
     DELIVERY_ERROR_ENCODING,
     DELIVERY_FIELDS,
     DELIVERY_FIELDS_PARAMETER,
@@ -116,23 +112,17 @@ from fleetmap.wire import (
     zenoh_error_text,
 )
 
-#: Where `fleetmap serve` listens by default.
-DEFAULT_CONNECT = (DEFAULT_ENDPOINT,)
+from .delivery import DeliveryReport, delivery_report, ended_session_report
+from .zenoh_config import (
+    CONNECT_ATTEMPT_MS,
+    DEFAULT_CONNECT,
+    RECONNECT_PERIOD_FACTOR,
+    RECONNECT_PERIOD_INIT_MS,
+    RECONNECT_PERIOD_MAX_MS,
+    client_config,
+    config_value,
+)
 
-#: How long one connection attempt of the background opener may take. Zenoh retries within an
-#: attempt; between attempts the opener checks whether the publisher was closed.
-CONNECT_ATTEMPT_MS = 1000
-#: The client session's connection retry (`connect/retry`, unless the configuration sets it:
-#: `fleetmap.wire.CONNECT_RETRY`, the service's too): the first wait after a failed attempt, the
-#: longest, and the factor between. Zenoh's own (1000 ms, 4000 ms, 2)
-#: tries again 1, 3, 7, 11, 15 ... s after losing the service, so a robot met a service that came
-#: back up to 4 s after it listened, and none at all that lived less than that: while short-lived
-#: services came and went, robots of tests/test_crash_exactly_once.py stayed unconnected for 37 s,
-#: past what their caches held. Bounded at 0.5 s, a robot is connected again within about half a
-#: second of the service listening; an attempt costs one TCP connection.
-RECONNECT_PERIOD_INIT_MS = int(CONNECT_RETRY["period_init_ms"])
-RECONNECT_PERIOD_MAX_MS = int(CONNECT_RETRY["period_max_ms"])
-RECONNECT_PERIOD_FACTOR = float(CONNECT_RETRY["period_increase_factor"])
 #: How long `close` waits for the opener's attempt in progress to end (one attempt and a margin; a
 #: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running: it is waited
 #: for again at the program's exit, `EXIT_WAIT_S`).
@@ -198,132 +188,6 @@ class DeliveryUnsupported(RuntimeError):
     """`flush` got no answer to its delivery queries from a reachable service (its scan subscriber
     matched for `NO_ANSWER_S`): the service is older than delivery confirmation, or a Zenoh access
     control rule keeps the query from it (docs/security.md)."""
-
-
-@dataclass(frozen=True)
-class DeliveryReport:
-    """What `ScanPublisher.flush` learned of the scans of the publisher's session: seqs `first_seq`
-    to `last_seq` (`published` scans), as the service counted them. True (`confirmed`) when every
-    one of them is integrated into the map (with durable storage: committed to its journal).
-
-    `integrated`, `refused` (settled without being integrated: refused, dropped by the service's
-    full queue, applied but not made durable) and `lost` (seqs that never reached the service) are
-    the service's counts of this session; `unsettled` the rest: in flight, waiting in the backlog,
-    or whose fate the service does not know (it restarted during the session and counts from the
-    first scan it accepted afterwards: `counted_from`). `gone`: scans the service had when the map
-    was deleted or replaced by an upload (it remembers the map's robots: `DeliveryStatus.buried`),
-    which are in no map now. `settled`: the service settled every scan through `last_seq`.
-    `answered`: whether the service answered at all (False: it was unreachable until the timeout).
-    `last_error`: when scans were refused, the service's reason for the robot's last refused (or
-    dropped) scan, as `GET /maps/{id}` shows it (None from a service older than this field)."""
-
-    published: int
-    first_seq: int | None = None
-    last_seq: int | None = None
-    integrated: int = 0
-    refused: int = 0
-    lost: int = 0
-    settled: bool = False
-    answered: bool = False
-    counted_from: int | None = None
-    gone: int = 0
-    last_error: str | None = None
-
-    @property
-    def unsettled(self) -> int:
-        """Scans neither integrated, refused, lost nor gone as far as the service says."""
-        return max(0, self.published - self.integrated - self.refused - self.lost - self.gone)
-
-    @property
-    def confirmed(self) -> bool:
-        """Whether every scan published is integrated: the service settled them all, counted them
-        from the first, and refused or lost none."""
-        if self.published == 0:
-            return True
-        counted = (
-            self.counted_from is not None
-            and self.first_seq is not None
-            and self.counted_from <= self.first_seq
-        )
-        return self.settled and counted and self.refused == 0 and self.lost == 0 and self.gone == 0
-
-    def __bool__(self) -> bool:
-        return self.confirmed
-
-    def summary(self) -> str:
-        """One line: `N scans published, N integrated`, and what became of the others."""
-        scans = "scan" if self.published == 1 else "scans"
-        text = f"{self.published} {scans} published, {self.integrated} integrated"
-        if self.confirmed:
-            return text
-        if not self.answered:
-            return f"{text}: the service did not answer, {self.published - self.integrated} unconfirmed"
-        refused = "refused or dropped by the service"
-        if self.last_error:
-            refused += f" (the last: {self.last_error})"
-        parts = [f"{count} {what}" for count, what in (
-            (self.lost, "lost"), (self.refused, refused),
-            (self.gone, "went with a deleted or replaced map"), (self.unsettled, "unconfirmed"),
-        ) if count]  # fmt: skip
-        return f"{text}: {', '.join(parts) or 'not settled'}"
-
-
-def client_config(
-    connect: Sequence[str] | str | None = None, zenoh_config: zenoh.Config | str | Path | None = None
-) -> zenoh.Config:
-    """The Zenoh configuration of a robot's session.
-
-    Starts from `zenoh_config` (a `zenoh.Config`, or the path of a JSON5 configuration file) or an
-    empty configuration, then fills in what it leaves unset: mode `client`, connect endpoints
-    (`connect`, else `DEFAULT_CONNECT`; an explicit `connect` always wins), `connect/timeout_ms` of
-    one attempt (`CONNECT_ATTEMPT_MS`), `connect/retry` (`RECONNECT_PERIOD_INIT_MS` growing by
-    `RECONNECT_PERIOD_FACTOR` to at most `RECONNECT_PERIOD_MAX_MS` between attempts, also when Zenoh
-    reconnects a lost session; a configuration that sets any key of `connect/retry` keeps Zenoh's
-    defaults for the others) and multicast scouting off. Raises ValueError for a bad file or
-    endpoint list.
-    """
-    if zenoh_config is None:
-        cfg = zenoh.Config()
-    elif isinstance(zenoh_config, zenoh.Config):
-        # zenoh.open does not consume a Config, but copy anyway so our insertions stay ours.
-        cfg = zenoh.Config.from_json5(str(zenoh_config))
-    else:
-        try:
-            cfg = zenoh.Config.from_file(str(zenoh_config))
-        except (zenoh.ZError, OSError) as exc:
-            message = zenoh_error_text(exc)
-            raise ValueError(f"cannot read Zenoh configuration {zenoh_config}: {message}") from None
-    if _get(cfg, "mode") is None:
-        cfg.insert_json5("mode", '"client"')
-    if connect is not None or not _get(cfg, "connect/endpoints"):
-        # One endpoint given as a string is that endpoint, not a list of its characters.
-        if isinstance(connect, str):
-            endpoints = [connect]
-        else:
-            endpoints = list(DEFAULT_CONNECT if connect is None else connect)
-        if not endpoints or not all(isinstance(e, str) and e for e in endpoints):
-            raise ValueError(f"connect must be a non-empty list of Zenoh endpoints, got {connect!r}")
-        try:
-            cfg.insert_json5("connect/endpoints", _json_list(endpoints))
-        except zenoh.ZError as exc:
-            raise ValueError(f"invalid Zenoh endpoint in {endpoints}: {zenoh_error_text(exc)}") from None
-    if _get(cfg, "connect/timeout_ms") is None:
-        cfg.insert_json5("connect/timeout_ms", str(CONNECT_ATTEMPT_MS))
-    if _get(cfg, "connect/retry") is None:
-        # Zenoh takes the block whole (its keys cannot be inserted one by one into an unset one).
-        cfg.insert_json5("connect/retry", json.dumps(CONNECT_RETRY))
-    if _get(cfg, "scouting/multicast/enabled") is None:
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-    return cfg
-
-
-def _get(cfg: zenoh.Config, key: str) -> Any:
-    """A configuration value as Python (None when unset)."""
-    return json.loads(cfg.get_json(key))
-
-
-def _json_list(items: Sequence[str]) -> str:
-    return json.dumps(list(items))
 
 
 #: Publishers not closed yet, and threads of closed ones (openers, fetch watchers) `close` stopped
@@ -421,7 +285,7 @@ class ScanPublisher:
         self.scan_key = SCAN_KEY.format(map_id=map_id, robot_id=robot_id)
         self.alive_key = ALIVE_KEY.format(map_id=map_id, robot_id=robot_id)
         self._config = client_config(connect, zenoh_config)
-        self.endpoints: list[str] = list(_get(self._config, "connect/endpoints") or [])
+        self.endpoints: list[str] = list(config_value(self._config, "connect/endpoints") or [])
         self._encode = encode_binary if encoding == "binary" else encode_json
         self._zenoh_encoding = zenoh.Encoding(BINARY_ENCODING if encoding == "binary" else JSON_ENCODING)
         # _lock guards the session objects and the counters; the opener thread sets them.
@@ -857,7 +721,7 @@ class ScanPublisher:
         self, session: int | None, first: int, last: int, timeout: float | None, ended: bool
     ) -> DeliveryReport:
         """Ask the service until the scans `first` .. `last` of `session` are settled (or, `ended`,
-        final: `_ended_report`), or `timeout` passes; `flush` and `flush_ended`."""
+        final: `ended_session_report`), or `timeout` passes; `flush` and `flush_ended`."""
         deadline = _deadline(timeout)
         report = DeliveryReport(published=last - first + 1, first_seq=first, last_seq=last)
         unanswered_since: float | None = None  # since when the queries end at once without a reply
@@ -872,11 +736,11 @@ class ScanPublisher:
             unanswered = status is None and now - started < wait_at_most / 2
             if status is not None:
                 unanswered_since = None
-                report = _report(status, session, first, last)
+                report = delivery_report(status, session, first, last)
                 if report.settled:
                     return report
                 if ended:
-                    final = _ended_report(status, session, report)
+                    final = ended_session_report(status, session, report)
                     if final is not None:
                         return final
             elif unanswered and self.connected and self.subscribed:
@@ -998,61 +862,6 @@ def _deadline(timeout: float | None) -> float | None:
     if math.isnan(timeout):
         raise ValueError("timeout must be a number of seconds or None, got NaN")
     return time.monotonic() + float(timeout)
-
-
-def _ended_report(
-    status: DeliveryStatus, session_id: int | None, report: DeliveryReport
-) -> DeliveryReport | None:
-    """The final `report` of an ended session (`ScanPublisher.flush_ended`), None while the service
-    still has scans of it to settle: the seqs after the last it accepted are lost (they went with
-    the publisher's backlog). `report` as it is when the service counts nothing of the session."""
-    entry = status.session(session_id)
-    if entry is None:
-        return report
-    assert report.last_seq is not None
-    if entry.settled is None or entry.settled < entry.last_accepted:
-        return None
-    never = max(0, report.last_seq - entry.last_accepted)
-    return replace(report, lost=report.lost + never, settled=True)
-
-
-def _report(status: DeliveryStatus, session_id: int | None, first: int, last: int) -> DeliveryReport:
-    """The `DeliveryReport` of the scans `first` .. `last` of session `session_id` from the service's
-    `status`."""
-    published = last - first + 1
-    # Listed also without the map (`no_map`): the scans the service refused for want of it.
-    entry = status.session(session_id)
-    # Scans `first` .. `gone_through` went with a deleted or replaced map, unless the counts of the
-    # map there now include them (a session the service counts from before the map went).
-    buried = status.buried_session(session_id) if session_id is not None else None
-    gone_through = first - 1 if buried is None else min(buried.last_seq, last)
-    if entry is not None and entry.first_seq <= gone_through:
-        gone_through = first - 1
-    gone = gone_through - first + 1
-    if entry is None:  # nothing of this session accepted (yet) by the map there is now
-        return DeliveryReport(
-            published=published, first_seq=first, last_seq=last, answered=True, gone=gone,
-            settled=gone == published,
-        )  # fmt: skip
-    integrated, refused, lost = min(entry.integrated, published), entry.refused, entry.lost
-    if entry.last_accepted > last:
-        # The service's counts take in scans published after `flush` began (a robot that goes on
-        # publishing, or whose backlog came in all at once): only those through `last` are asked
-        # about. A scan refused after it made "10 scans published, 10 integrated: 1 refused".
-        if entry.refused_seqs is not None and entry.lost_gaps is not None:
-            refused = sum(1 for seq in entry.refused_seqs if seq <= last)
-            lost = sum(max(0, min(n, last - (seq - n) + 1)) for seq, n in entry.lost_gaps)
-            counted = last - max(first, entry.first_seq) + 1
-            integrated = min(integrated, max(0, counted - refused - lost))
-        else:  # counted, not listed (an older service, or too many): at most what was asked about
-            refused = min(refused, published)
-            lost = min(lost, published - refused)
-            integrated = min(integrated, published - refused - lost)
-    return DeliveryReport(
-        published=published, first_seq=first, last_seq=last, integrated=integrated, refused=refused,
-        lost=lost, settled=entry.settled is not None and entry.settled >= last, answered=True,
-        counted_from=entry.first_seq, gone=gone, last_error=status.last_error if refused else None,
-    )  # fmt: skip
 
 
 __all__ = [

@@ -39,7 +39,8 @@ from pathlib import Path
 from fleetmap.datasets import Dataset, load_dataset
 from fleetmap.scan import Scan
 
-from .publisher import DeliveryReport, DeliveryUnsupported, Encoding, ScanPublisher
+from .delivery import DeliveryReport
+from .publisher import DeliveryUnsupported, Encoding, ScanPublisher
 
 #: Scans per second of a replay at rate 1 (the dataset readers expose no timestamps; see above).
 NOMINAL_SCAN_RATE = 10.0

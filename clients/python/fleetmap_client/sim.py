@@ -27,7 +27,8 @@ from fleetmap.scan import MAX_BEAMS
 from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap.sim.floorplan import FloorPlan
 
-from .publisher import CLOSE_WAIT_S, DeliveryReport, DeliveryUnsupported, Encoding, ScanPublisher
+from .delivery import DeliveryReport
+from .publisher import CLOSE_WAIT_S, DeliveryUnsupported, Encoding, ScanPublisher
 
 
 class SimError(RuntimeError):

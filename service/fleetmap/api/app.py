@@ -42,7 +42,7 @@ from fleetmap.api.http_semantics import (
     JsonETags,
     NegotiatedGZip,
 )
-from fleetmap.api.priority import IngestGate, IngestPriority
+from fleetmap.api.ingest_priority import IngestGate, IngestPriority
 from fleetmap.api.security_headers import SecurityHeaders
 from fleetmap.api.signin_limit import SignInLimit
 from fleetmap.api.state import ApiState
@@ -169,7 +169,7 @@ class ApiSettings:
     #: Uploads (`PUT .../snapshot`, `PUT .../import`) in progress at once, from their head to their
     #: answer (a slow body until its deadline); past it a new one is refused with 503 before its body
     #: is read. Each
-    #: holds up to 17 MiB of memory for its body (`fleetmap.spool`), disk of its size in the
+    #: holds up to 17 MiB of memory for its body (`fleetmap.upload_spool`), disk of its size in the
     #: temporary directory (and of its tiles.npz decompressed, if that is compressed), and a worker
     #: thread while it is read (asyncio's pool has 5 on one core). Without it they were bounded only
     #: by the HTTP connections (1024): 16 GiB of memory from slow bodies, or a 1 MiB upload each
@@ -186,7 +186,7 @@ class ApiSettings:
     #: Event streams open at once (all maps, all clients); past it a new one is refused with 503.
     #: Each holds memory and polls every `events_period`: thousands would starve ingest.
     max_event_streams: int = 256
-    #: Ingest before reads (`fleetmap.api.priority`): while the oldest scan waiting for integration
+    #: Ingest before reads (`fleetmap.api.ingest_priority`): while the oldest scan waiting for integration
     #: has waited longer than this many seconds, new HTTP requests wait; 0 switches it off.
     ingest_backlog: float = 0.01
     #: The longest a request waits for the ingest backlog to clear, seconds; then it is served anyway.

@@ -30,7 +30,7 @@ from fastapi import Depends, Header, Request, Response
 
 from fleetmap.api.errors import ApiError
 from fleetmap.api.http_semantics import generation_etag, strong_match, weak_match
-from fleetmap.registry import Expectation, MapEntry
+from fleetmap.map_entry import Expectation, MapEntry
 
 #: One entity tag of a list (RFC 9110, 8.8.3): optionally `W/`, then a quoted opaque tag (any
 #: visible character but `"`, and obs-text).

@@ -26,11 +26,12 @@ from fleetmap.api.http_semantics import head_allowed
 from fleetmap.api_models import ErrorItem, ErrorResponse
 from fleetmap.codec import DecodeError, PayloadTooLarge
 from fleetmap.grid_map import LayerUnavailableError, RayLimitError
-from fleetmap.registry import IngestRejected, InvalidId, MapConflict, MapNotFound, NotDurable
+from fleetmap.map_entry import IngestRejected
+from fleetmap.registry import InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
-from fleetmap.spool import SpoolFailed
 from fleetmap.tile_render import TileError
 from fleetmap.tiles import TileLimitError
+from fleetmap.upload_spool import SpoolFailed
 
 log = logging.getLogger("fleetmap.api")
 

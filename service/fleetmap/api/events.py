@@ -92,8 +92,8 @@ from fleetmap.api.state import ApiState, EventStreamSlots, MapId, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import ReplacedEvent, TilesEvent, tile_windows
 from fleetmap.auth import GRANT_SCOPE_KEY, Grant
-from fleetmap.changes import ChangeFeed
-from fleetmap.registry import MapEntry
+from fleetmap.change_feed import ChangeFeed
+from fleetmap.map_entry import MapEntry
 
 router = APIRouter(route_class=StrictRoute)
 

@@ -16,7 +16,7 @@ import threading
 from itertools import islice
 
 from fleetmap.api_models import RobotChange, RobotLive, RobotsDeltaEvent, RobotsEvent, robot_live
-from fleetmap.registry import MapEntry
+from fleetmap.map_entry import MapEntry
 from fleetmap.robot_state import RobotState
 from fleetmap.scan import Pose2D
 

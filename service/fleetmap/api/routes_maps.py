@@ -22,7 +22,8 @@ from fleetmap.api_models import (
     tile_windows,
 )
 from fleetmap.config import MapConfig
-from fleetmap.registry import IngestRejected, MapNotFound
+from fleetmap.map_entry import IngestRejected
+from fleetmap.registry import MapNotFound
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
 
 router = APIRouter(route_class=StrictRoute)

@@ -18,10 +18,11 @@ from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo, map_info
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
+from fleetmap.map_entry import MapEntry
 from fleetmap.memory_budget import UploadReservation
-from fleetmap.registry import MapEntry, MapNotFound
-from fleetmap.spool import close_spool, spool_write, spooled_file
+from fleetmap.registry import MapNotFound
 from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
+from fleetmap.upload_spool import close_spool, spool_write, spooled_file
 
 router = APIRouter(tags=["maps"], route_class=StrictRoute)
 
@@ -40,7 +41,7 @@ REPLACED: dict[int | str, dict[str, Any]] = {
     200: {"model": MapInfo, "description": "Replaced the map that had this id"}
 }
 #: The errors of an upload: those of `install_upload`, and a 503 and a 507 that also say what the
-#: temporary directory may do to the upload (`spooled_body`, `fleetmap.spool.SpoolFailed`).
+#: temporary directory may do to the upload (`spooled_body`, `fleetmap.upload_spool.SpoolFailed`).
 UPLOAD_ERRORS = error_responses(
     412, 413, 415, 422, 503, 507,
     described={
@@ -62,7 +63,7 @@ UPLOAD_RETRY_AFTER_SECONDS = 5
 @contextlib.asynccontextmanager
 async def spooled_body(request: Request, uploads: Slots) -> AsyncIterator[IO[bytes]]:
     """The request's body as a binary file (at its start; readable, seekable), which is not held in
-    memory: streamed to a spool (`fleetmap.spool`: in memory up to 16 MiB, then a file of the
+    memory: streamed to a spool (`fleetmap.upload_spool`: in memory up to 16 MiB, then a file of the
     temporary directory). On leaving, whatever happened (an answer, a refusal, the client gone, the
     body's deadline, a cancelled task), the spool is closed and so its file removed. The body limit
     (`BodyLimitMiddleware`) applies as the body arrives: it counts what `receive` hands over, so a

@@ -11,11 +11,12 @@ from typing import TYPE_CHECKING, Annotated, get_args
 from fastapi import Depends, Query, Request
 from fastapi import Path as PathParam
 
-from fleetmap.api.priority import IngestGate
+from fleetmap.api.ingest_priority import IngestGate
 from fleetmap.api_models import MAX_COORDINATE, RegionLayer
 from fleetmap.grid_map import REGION_LAYERS
+from fleetmap.map_entry import MapEntry
 from fleetmap.metrics import ServiceMetrics
-from fleetmap.registry import MapEntry, MapRegistry
+from fleetmap.registry import MapRegistry
 from fleetmap.tile_cache import TileCache
 from fleetmap.wire import ID_PATTERN
 

@@ -47,8 +47,9 @@ import zenoh.ext
 
 from fleetmap import codec
 from fleetmap.codec import WireScan
+from fleetmap.map_entry import IngestRejected
 from fleetmap.rate_limited_log import RateLimitedLog
-from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
+from fleetmap.registry import InvalidId, MapRegistry
 from fleetmap.ros import laser_scan, tf_message
 from fleetmap.ros.cdr import CdrError
 from fleetmap.ros.graph import ADMIN_SPACE, PUBLISHER, publisher_of_token

@@ -73,8 +73,9 @@ import zenoh
 import zenoh.ext
 
 from fleetmap.export import Window, changed_window, known_window, map_source
+from fleetmap.map_entry import MapEntry
 from fleetmap.rate_limited_log import RateLimitedLog
-from fleetmap.registry import MapEntry, MapRegistry
+from fleetmap.registry import MapRegistry
 from fleetmap.ros.graph import (
     DURABILITY_TRANSIENT_LOCAL,
     DURABILITY_VOLATILE,

@@ -83,7 +83,6 @@ client with nothing to connect to) raise `IngestStartError` with a readable mess
 from __future__ import annotations
 
 import contextlib
-import ipaddress
 import json
 import logging
 import threading
@@ -96,8 +95,10 @@ import zenoh
 import zenoh.ext
 
 from fleetmap import codec
+from fleetmap.map_entry import IngestRejected
+from fleetmap.network import is_loopback_host
 from fleetmap.rate_limited_log import RateLimitedLog
-from fleetmap.registry import IngestRejected, InvalidId, MapRegistry
+from fleetmap.registry import InvalidId, MapRegistry
 from fleetmap.wire import (
     ALIVE_KEY_WILDCARD,
     CONNECT_RETRY,
@@ -114,6 +115,7 @@ from fleetmap.wire import (
     zenoh_error_text,
 )
 
+# The logger keeps the module's first name: log configurations and filters in use name it.
 log = logging.getLogger("fleetmap.ingest")
 
 #: Where the service listens when nothing else is said: loopback only, Zenoh's usual port.
@@ -128,15 +130,6 @@ class IngestStartError(RuntimeError):
 
 #: Zenoh link protocols whose endpoints authenticate the other side (certificates).
 _AUTHENTICATED_PROTOCOLS = frozenset({"tls", "quic"})
-
-
-def is_loopback_host(host: str) -> bool:
-    """Whether only this machine reaches `host`: a loopback address, or `localhost` (what the REST
-    API may bind without tokens, `fleetmap.server`, and a Zenoh endpoint is not warned of)."""
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return host == "localhost"
 
 
 def unauthenticated_endpoints(listen: Sequence[str], cfg: zenoh.Config) -> list[str]:
@@ -556,7 +549,6 @@ __all__ = [
     "MODES",
     "IngestStartError",
     "ZenohIngest",
-    "is_loopback_host",
     "parse_key",
     "unauthenticated_endpoints",
 ]
