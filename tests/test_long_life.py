@@ -118,8 +118,8 @@ def test_robots_gone_a_while_leave_metrics_and_come_back_when_heard(tmp_path: Pa
     up by any Zenoh peer), growing every scrape by up to 8192 series a map, long after the robots
     were gone. A robot neither online nor heard for --metrics-robot-idle seconds now leaves
     /metrics; the map still holds it, and its series come back with its counts when it is heard."""
-    with ServiceProcess(tmp_path, ["--in-memory", "--metrics-robot-idle", "2"]) as svc:
-        _post_robots(svc, ["gone", "back"])
+    idle = 4.0  # long enough for the posts and the scrape after them on a busy machine
+    with ServiceProcess(tmp_path, ["--in-memory", "--metrics-robot-idle", str(idle)]) as svc:
         cfg = zenoh.Config()
         cfg.insert_json5("mode", '"client"')
         cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
@@ -129,8 +129,9 @@ def test_robots_gone_a_while_leave_metrics_and_come_back_when_heard(tmp_path: Pa
             # Online (its liveliness token alive) but silent: it stays, however long it is silent.
             token = session.liveliness().declare_token("fleetmap/m/present/alive")
             wait_for(lambda: "present" in _robot_series(svc), timeout=10, what="the online robot's series")
+            _post_robots(svc, ["gone", "back"])
             assert _robot_series(svc) == {"gone": 1, "back": 1, "present": 0}
-            time.sleep(2.5)
+            time.sleep(idle + 0.5)
             assert _robot_series(svc) == {"present": 0}
             assert _robots(svc) == {"gone", "back", "present"}  # the map keeps them
             url = f"{svc.base_url}/maps/m/scans"
