@@ -4,13 +4,16 @@ after a restart."""
 
 from __future__ import annotations
 
+import json
 import re
 import sqlite3
 import time
 from pathlib import Path
 
 import httpx
-from service_process import ServiceProcess
+import zenoh
+from prometheus_client.parser import text_string_to_metric_families
+from service_process import ServiceProcess, wait_for
 
 from fleetmap.database import DB_NAME
 
@@ -95,3 +98,46 @@ def test_a_map_deleted_after_a_viewer_showed_it_gives_its_memory_back(tmp_path: 
         # Looked at once: every scrape allocates, and enough of them bring on the collection.
         time.sleep(1.0)
         assert _memory_used(svc) == 0
+
+
+def _robot_series(svc: ServiceProcess) -> dict[str, float]:
+    """Robot id -> its `fleetmap_scans_integrated_total` on map m, as /metrics shows it now."""
+    text = httpx.get(f"{svc.base_url}/metrics", timeout=10).text
+    return {
+        sample.labels["robot"]: sample.value
+        for family in text_string_to_metric_families(text)
+        if family.name == "fleetmap_scans_integrated"
+        for sample in family.samples
+        if sample.labels.get("map") == "m"
+    }
+
+
+def test_robots_gone_a_while_leave_metrics_and_come_back_when_heard(tmp_path: Path) -> None:
+    """A map forgets its robots only once it holds --max-robots-per-map (1024), so /metrics kept 8
+    series for every robot id a map had ever heard (robots renamed, replaced, simulated, or ids made
+    up by any Zenoh peer), growing every scrape by up to 8192 series a map, long after the robots
+    were gone. A robot neither online nor heard for --metrics-robot-idle seconds now leaves
+    /metrics; the map still holds it, and its series come back with its counts when it is heard."""
+    idle = 4.0  # long enough for the posts and the scrape after them on a busy machine
+    with ServiceProcess(tmp_path, ["--in-memory", "--metrics-robot-idle", str(idle)]) as svc:
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", '"client"')
+        cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        session = zenoh.open(cfg)
+        try:
+            # Online (its liveliness token alive) but silent: it stays, however long it is silent.
+            token = session.liveliness().declare_token("fleetmap/m/present/alive")
+            wait_for(lambda: "present" in _robot_series(svc), timeout=10, what="the online robot's series")
+            _post_robots(svc, ["gone", "back"])
+            assert _robot_series(svc) == {"gone": 1, "back": 1, "present": 0}
+            time.sleep(idle + 0.5)
+            assert _robot_series(svc) == {"present": 0}
+            assert _robots(svc) == {"gone", "back", "present"}  # the map keeps them
+            url = f"{svc.base_url}/maps/m/scans"
+            r = httpx.post(url, params={"robot_id": "back"}, json=_scan(1), timeout=30)
+            assert r.status_code == 200, r.text
+            assert _robot_series(svc) == {"present": 0, "back": 2}
+            token.undeclare()
+        finally:
+            session.close()

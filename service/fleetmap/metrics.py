@@ -54,6 +54,14 @@ ZENOH_REFUSALS = ("duplicate", "no_map", "too_many_robots", "queue_full", "shutt
 #: Why ROS 2 scans (`--ros-scans`) are refused, exported at 0 from the start (fleetmap.ros.ingest).
 ROS_REFUSALS = ("invalid_topic", "undecodable", "no_tf", "tf_error", "invalid_scan", "pending_full")
 
+#: Seconds after a robot was last heard (a scan, a refusal, its liveliness token) that its series
+#: leave /metrics, unless it is online (`serve --metrics-robot-idle`). Robot ids come and go (a
+#: renamed or replaced robot, a simulation, any Zenoh peer making them up) and a map forgets its
+#: robots only once it holds `max_robots_per_map` (1024): without this a map's scrape kept 8 series
+#: for every robot it had ever heard, up to 8192, long after they were gone. The registry keeps the
+#: robot (`GET /maps/{id}` shows it), and its series come back, with the same counts, when it is heard.
+ROBOT_SERIES_IDLE = 3600.0
+
 #: Latency buckets in seconds: sub-millisecond integrations up to multi-second backlogs.
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 
@@ -127,10 +135,13 @@ _Family = CounterMetricFamily | GaugeMetricFamily
 
 
 class RegistryCollector(Collector):
-    """Reads the registry's counters at scrape time (no double bookkeeping)."""
+    """Reads the registry's counters at scrape time (no double bookkeeping). A robot's series are
+    those of the robots online or heard within the last `robot_idle` seconds (`ROBOT_SERIES_IDLE`);
+    a deleted map's go with it."""
 
-    def __init__(self, registry: MapRegistry) -> None:
+    def __init__(self, registry: MapRegistry, robot_idle: float = ROBOT_SERIES_IDLE) -> None:
         self.registry = registry
+        self.robot_idle = robot_idle
 
     def describe(self) -> list[Metric]:
         # Only the names matter here (for clash detection when registering); values come in collect.
@@ -150,12 +161,14 @@ class RegistryCollector(Collector):
         # families under one hold of it (8 samples a robot) held it for about a second a scrape at
         # 45,000 robots, and every scan waited that long. Maps need not be read at one instant.
         rows: list[tuple[str, str, int, int, int, int, int, int, bool, int]] = []
+        heard_since = time.time() - self.robot_idle  # `last_heard` is wall-clock time: it is stored
         for entry in entries:
             with self.registry.lock:
                 rows.extend(
                     (entry.id, robot_id, state.scans_integrated, state.scans_rejected, state.lost,
                      state.duplicates, state.dropped, state.not_durable, state.online, state.id_conflicts)
                     for robot_id, state in entry.robots.items()
+                    if state.online or state.last_heard >= heard_since
                 )  # fmt: skip
         rows.sort(key=lambda row: (row[0], row[1]))
         for map_id, robot_id, ok, bad, gaps, dups, full, lost_commits, is_online, clashes in rows:
@@ -595,9 +608,12 @@ class ServiceMetrics:
     latencies, the tile cache's counters and the tile render latency (`observe_render` is the tile
     cache's `on_render` hook)."""
 
-    def __init__(self, registry: MapRegistry, integration: IntegrationMetrics) -> None:
+    def __init__(
+        self, registry: MapRegistry, integration: IntegrationMetrics, robot_idle: float = ROBOT_SERIES_IDLE
+    ) -> None:
+        """`robot_idle`: see `RegistryCollector`."""
         self.collector_registry = CollectorRegistry()
-        self.collector_registry.register(RegistryCollector(registry))
+        self.collector_registry.register(RegistryCollector(registry, robot_idle))
         self.collector_registry.register(StorageCollector(registry))
         self.service_info = ServiceInfoCollector()
         self.collector_registry.register(self.service_info)
@@ -649,6 +665,7 @@ class ServiceMetrics:
 
 __all__ = [
     "CONTENT_TYPE",
+    "ROBOT_SERIES_IDLE",
     "STORAGE_OPERATIONS",
     "HttpResponsesCollector",
     "IngestGateCollector",

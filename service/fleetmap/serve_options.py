@@ -17,6 +17,7 @@ from fleetmap.failed_signins import DEFAULT_MAX_FAILURES, DEFAULT_WINDOW
 from fleetmap.http_limits import RESERVED_DESCRIPTORS
 from fleetmap.log_format import LOG_FORMATS
 from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
+from fleetmap.metrics import ROBOT_SERIES_IDLE
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS
 from fleetmap.ros.transforms import TfError, normalize_frame
 from fleetmap.scan import MAX_BEAMS
@@ -253,6 +254,17 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
             "seconds of silence after which an event stream sends a ': keepalive' comment (default "
             "15): shorter than the idle timeout of any proxy in front; clients take a stream silent "
             "for a few of these as broken (the Python client: 45 s) and resume it"
+        ),
+    )
+    p.add_argument(
+        "--metrics-robot-idle",
+        type=_seconds_between(1.0, 366 * 86400.0),
+        default=ROBOT_SERIES_IDLE,
+        metavar="S",
+        help=(
+            "seconds after a robot was last heard that its series leave /metrics, unless it is "
+            "online (default 3600): robot ids that come and go must not grow every scrape for good; "
+            "the map keeps the robot, and its series come back when it is heard again"
         ),
     )
     p.add_argument(

@@ -155,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
                 max_read_delay=args.max_read_delay_ms / 1000,
                 max_event_streams=args.max_event_streams,
                 keepalive=args.events_keepalive,
+                metrics_robot_idle=args.metrics_robot_idle,
                 tokens=tokens,
                 require_read_token=args.require_read_token,
                 signin_max_failures=args.max_failed_sign_ins,

@@ -61,7 +61,7 @@ from fleetmap.failed_signins import (
     DEFAULT_WINDOW,
     SignInLimiter,
 )
-from fleetmap.metrics import IntegrationMetrics, ServiceMetrics, StatusCounter
+from fleetmap.metrics import ROBOT_SERIES_IDLE, IntegrationMetrics, ServiceMetrics, StatusCounter
 from fleetmap.registry import MapRegistry
 from fleetmap.storage_format import MAX_SNAPSHOT_BYTES, MAX_SNAPSHOT_META_BYTES
 from fleetmap.wire import ScanMessage
@@ -143,6 +143,10 @@ class ApiSettings:
     #: The registry's integration hook. None: the `IntegrationMetrics` whose `on_integrated` the
     #: registry was built with, or, if the registry has no hook, a new one installed on it.
     metrics: IntegrationMetrics | None = None
+    #: Seconds after which a robot neither online nor heard leaves /metrics (`serve
+    #: --metrics-robot-idle`; `fleetmap.metrics.ROBOT_SERIES_IDLE`): robot ids that came and went
+    #: must not grow the scrape for good.
+    metrics_robot_idle: float = ROBOT_SERIES_IDLE
     #: Seconds POST /scans waits for the integration before answering 503.
     scan_timeout: float = 10.0
     #: Points per POST /cells request (413 past it). At most `MAX_POINTS`: the request model refuses
@@ -232,7 +236,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.state.fleetmap = ApiState(
         registry=registry,
         settings=settings,
-        metrics=ServiceMetrics(registry, integration),
+        metrics=ServiceMetrics(registry, integration, settings.metrics_robot_idle),
         web_dir=settings.web_dir if settings.web_dir is not None else default_web_dir(),
         gate=gate,
     )
