@@ -731,7 +731,7 @@ def test_a_scan_over_the_payload_limit_is_413_and_counted(api: RunningApi) -> No
     """A scan payload over the decoder's 4 MiB (the limit of every scan, as over Zenoh) is "too much
     at once", 413 as docs/api.md says, though far below the 16 MiB body limit; and it is counted on
     the robot as rejected, as the same payload over Zenoh would be."""
-    limit = codec_module.current_limits().max_payload_bytes
+    limit = codec_module.DEFAULT_LIMITS.max_payload_bytes
     body = encode_json(fan_scan(0.0, 0.0, 0.0, [1.0] * 2000), 0).replace(b",", b"," + b" " * 1500)
     assert limit < len(body) < ApiSettings().max_body_bytes
     assert api.client.put("/maps/huge", json=CONFIG).status_code in (200, 201)

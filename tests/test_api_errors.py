@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import string
 import zipfile
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -17,6 +19,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from service_process import ServiceProcess
 from test_api_support import (
     RunningApi,
     declare_size,
@@ -32,6 +35,7 @@ from fleetmap.api import ApiSettings
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
+from fleetmap.scan import Scan
 from fleetmap.storage_format import MAX_SNAPSHOT_BYTES, MAX_SNAPSHOT_META_BYTES, snapshot_file
 from fleetmap.wire import BINARY_ENCODING
 
@@ -499,3 +503,32 @@ def test_a_last_event_id_that_int_refuses_opens_the_stream(api: RunningApi) -> N
             assert event == f"event: {first}"
             if first == "tiles":
                 assert json.loads(next(lines).removeprefix("data: ")) == {"version": version, "reset": True}
+
+
+def test_the_services_input_limits_hold_over_rest_as_over_zenoh(tmp_path: Path) -> None:
+    """`serve --max-beams / --world-bound / --max-range` are the registry's (`MapRegistry.input_limits`),
+    which POST /maps/{id}/scans decodes with, as Zenoh ingest does: a scan past them is a 422 naming
+    the limit in force, not the default's, and a return at or past --max-range is no return."""
+    args = ["--in-memory", "--max-beams", "10", "--world-bound", "100", "--max-range", "5"]
+    with ServiceProcess(tmp_path, args) as service, httpx.Client(base_url=service.base_url) as client:
+        assert client.put("/maps/lim", json={"resolution": 0.05}).status_code == 201
+
+        seqs = iter(range(100))
+
+        def post(scan: Scan) -> httpx.Response:
+            return client.post(
+                "/maps/lim/scans", params={"robot_id": "r"}, content=encode_binary(scan, next(seqs)),
+                headers={"content-type": BINARY_ENCODING},
+            )  # fmt: skip
+
+        r = post(fan_scan(0.0, 0.0, 0.0, [1.0] * 11, range_max=30.0))
+        assert r.status_code == 422 and "11 beams is more than the limit of 10" in r.json()["detail"], r.text
+        r = post(fan_scan(150.0, 0.0, 0.0, [1.0], range_max=30.0))
+        assert r.status_code == 422 and "world bound of +-100 m" in r.json()["detail"], r.text
+        # Two beams along +x and +y: a return at 3 m, and one at 8 m, past --max-range 5.
+        r = post(Scan.from_angles((0.0, 0.0, 0.0), [0.0, math.pi / 2], [3.0, 8.0], 0.0, 30.0))
+        assert r.status_code == 200, r.text
+        points = [[3.01, 0.01], [0.01, 8.01], [0.01, 4.0]]
+        cells = client.post("/maps/lim/cells", json={"points": points}).json()
+        # The 3 m return is a hit; the 8 m one is ignored whole (no return, no clearing by default).
+        assert cells["state"] == ["occupied", "unknown", "unknown"], cells

@@ -252,24 +252,20 @@ def test_unknown_encoding_is_refused_and_bytes_are_sniffed() -> None:
 
 
 def test_input_limits_refuse_what_is_out_of_bounds_and_cap_the_range() -> None:
-    from fleetmap.codec import InputLimits, configure_limits, current_limits
-
-    saved = current_limits()
-    configure_limits(InputLimits(world_bound=100.0, max_beams=10, max_range=50.0))
-    try:
-        with pytest.raises(DecodeError, match="world bound"):
-            decode(encode_binary(make_scan(150.0, 0, 0, [1.0], False), 1), BINARY_ENCODING)
-        with pytest.raises(DecodeError, match="limit of 10"):
-            decode(encode_json(make_scan(0, 0, 0, [1.0] * 11, False), 1), JSON_ENCODING)
-        wide = Scan.from_angles((0, 0, 0), [0.0, 7.0], [1.0, 1.0], 0.0, 30.0)
-        with pytest.raises(DecodeError, match="one turn"):
-            decode(encode_binary(wide, 1), BINARY_ENCODING)
-        far = Scan.from_fan((0, 0, 0), 0.0, 0.1, [10.0, 60.0, 5000.0], 0.0, 1e6)
-        got = decode(encode_binary(far, 1), BINARY_ENCODING).scan
-        assert got.range_max == 50.0
-        assert got.returns_mask().tolist() == [True, False, False]  # beyond the cap: no return
-    finally:
-        configure_limits(saved)
+    limits = InputLimits(world_bound=100.0, max_beams=10, max_range=50.0)
+    within = decode(encode_binary(make_scan(150.0, 0, 0, [1.0], False), 1), BINARY_ENCODING)
+    assert within.scan.pose.x == 150.0  # the default limits take it: the limits given decide
+    with pytest.raises(DecodeError, match="world bound"):
+        decode(encode_binary(make_scan(150.0, 0, 0, [1.0], False), 1), BINARY_ENCODING, limits)
+    with pytest.raises(DecodeError, match="limit of 10"):
+        decode(encode_json(make_scan(0, 0, 0, [1.0] * 11, False), 1), JSON_ENCODING, limits)
+    wide = Scan.from_angles((0, 0, 0), [0.0, 7.0], [1.0, 1.0], 0.0, 30.0)
+    with pytest.raises(DecodeError, match="one turn"):
+        decode(encode_binary(wide, 1), BINARY_ENCODING, limits)
+    far = Scan.from_fan((0, 0, 0), 0.0, 0.1, [10.0, 60.0, 5000.0], 0.0, 1e6)
+    got = decode(encode_binary(far, 1), BINARY_ENCODING, limits).scan
+    assert got.range_max == 50.0
+    assert got.returns_mask().tolist() == [True, False, False]  # beyond the cap: no return
 
 
 def test_rejection_reasons_cannot_inject_log_lines() -> None:
@@ -362,18 +358,11 @@ def test_a_binary_header_over_the_beam_limit_names_the_limit_in_force() -> None:
     """A header whose n is over `--max-beams` (16384 by default) is refused before its length is
     checked. The reason named the engine's ceiling (100000) instead, so a robot sending 20000 beams
     read 'more than the limit of 100000' for one past 16384, or a length error."""
-    from fleetmap.codec import configure_limits, current_limits
-
     header = bytearray(encode_binary(make_scan(0, 0, 0, [1.0], False), 1))
     for n in (16_385, 200_000):
         struct.pack_into("<I", header, 68, n)
         with pytest.raises(DecodeError, match=f"^{n} beams is more than the limit of 16384$"):
             decode_binary(bytes(header))
-    saved = current_limits()
-    configure_limits(InputLimits(max_beams=10))
-    try:
-        struct.pack_into("<I", header, 68, 11)
-        with pytest.raises(DecodeError, match="^11 beams is more than the limit of 10$"):
-            decode_binary(bytes(header))
-    finally:
-        configure_limits(saved)
+    struct.pack_into("<I", header, 68, 11)
+    with pytest.raises(DecodeError, match="^11 beams is more than the limit of 10$"):
+        decode_binary(bytes(header), InputLimits(max_beams=10))

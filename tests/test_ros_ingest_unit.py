@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fleetmap.codec import WireScan
+from fleetmap.codec import DEFAULT_LIMITS, WireScan
 from fleetmap.map_entry import IngestRejected
 from fleetmap.registry import MapRegistry
 from fleetmap.ros.graph import Qos, RosNode, publisher_of_token
@@ -29,6 +29,7 @@ class RecordingRegistry:
         self.submitted: list[tuple[str, str, WireScan]] = []
         self.rejected: list[tuple[str, str, str]] = []
         self.refuse_next: IngestRejected | None = None
+        self.input_limits = DEFAULT_LIMITS
 
     def submit(self, map_id: str, robot_id: str, wire: WireScan) -> None:
         if self.refuse_next is not None:

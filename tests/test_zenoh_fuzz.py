@@ -287,9 +287,9 @@ def wire_encoding(encoding: str | None) -> str:
 
 
 def refused_here(payload: bytes, encoding: str | None) -> bool:
-    """True when the service's decoder and limits (installed in this process too) refuse it."""
+    """True when the service's decoder and limits refuse it."""
     try:
-        codec.decode(payload, wire_encoding(encoding))
+        codec.decode(payload, wire_encoding(encoding), LIMITS)
     except codec.DecodeError:
         return True
     return False
@@ -399,7 +399,7 @@ def reference_map() -> tuple[GridMap, int]:
     gmap = GridMap(MapConfig())
     scans = scans_for(sim=ROBOT_OPTIONS["sim"], count=ROBOT_OPTIONS["count"])
     for seq, scan in enumerate(scans):
-        gmap.integrate(codec.decode(encode(scan, seq, "binary"), BINARY_ENCODING).scan)
+        gmap.integrate(codec.decode(encode(scan, seq, "binary"), BINARY_ENCODING, LIMITS).scan)
     return gmap, len(scans)
 
 
@@ -427,16 +427,7 @@ def rejected_metrics(text: str) -> dict[tuple[str, str], float]:
 # -- the test ------------------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def local_limits() -> Iterator[None]:
-    """This process's decoder uses the service's limits while the test classifies garbage."""
-    previous = codec.current_limits()
-    codec.configure_limits(LIMITS)
-    yield
-    codec.configure_limits(previous)
-
-
-def test_garbage_flood_leaves_the_real_robots_map_exact(tmp_path: Path, local_limits: None) -> None:
+def test_garbage_flood_leaves_the_real_robots_map_exact(tmp_path: Path) -> None:
     svc = ServiceProcess(tmp_path, SERVICE_ARGS).start()
     robot: RobotProcess | None = None
     stop = threading.Event()
@@ -560,7 +551,7 @@ def test_garbage_flood_leaves_the_real_robots_map_exact(tmp_path: Path, local_li
     assert code == 0, f"service exited with {code}:\n{svc.logs()}"
 
 
-def test_every_dedicated_kind_is_refused_by_the_decoder(local_limits: None) -> None:
+def test_every_dedicated_kind_is_refused_by_the_decoder() -> None:
     """The generators produce what their names say: each dedicated kind yields payloads that the
     decoder refuses for the expected reason (checked here so the end-to-end test's per-robot
     last_error assertions rest on the generators, not on luck)."""
@@ -571,11 +562,11 @@ def test_every_dedicated_kind_is_refused_by_the_decoder(local_limits: None) -> N
         for _ in range(3 if robot_id == "evil-size" else 40):
             payload, encoding = garbage.for_robot(robot_id)
             with pytest.raises(codec.DecodeError, match=pattern):
-                codec.decode(payload, wire_encoding(encoding))
+                codec.decode(payload, wire_encoding(encoding), LIMITS)
     # And the valid material really is valid, under both labels a robot may use.
     for payload in valid:
-        assert codec.decode(payload, BINARY_ENCODING).scan.num_beams == 361
-        assert codec.decode(payload, "zenoh/bytes").seq >= 0
+        assert codec.decode(payload, BINARY_ENCODING, LIMITS).scan.num_beams == 361
+        assert codec.decode(payload, "zenoh/bytes", LIMITS).seq >= 0
     assert struct.unpack_from("<4s", valid[0])[0] == codec.MAGIC
 
 

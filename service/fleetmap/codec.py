@@ -123,17 +123,9 @@ class InputLimits:
         return wire
 
 
-#: The limits in force; `configure_limits` (called once by `fleetmap serve`) replaces them.
-_limits = InputLimits()
-
-
-def configure_limits(limits: InputLimits) -> None:
-    global _limits
-    _limits = limits
-
-
-def current_limits() -> InputLimits:
-    return _limits
+#: The limits when none are given: `fleetmap serve`'s defaults. The service's own (its options) are
+#: `MapRegistry.input_limits`, which every way in (Zenoh, REST, ROS 2) passes to the decoders.
+DEFAULT_LIMITS = InputLimits()
 
 
 @dataclass(frozen=True)
@@ -147,20 +139,22 @@ class WireScan:
     session: int | None = None
 
 
-def decode(payload: bytes | bytearray | memoryview, encoding: str) -> WireScan:
-    """Decode a payload by its encoding; an unknown or empty encoding is sniffed (JSON object or
-    binary magic). Raises `DecodeError` (`PayloadTooLarge` past the payload limit)."""
+def decode(
+    payload: bytes | bytearray | memoryview, encoding: str, limits: InputLimits = DEFAULT_LIMITS
+) -> WireScan:
+    """Decode a payload by its encoding, held to `limits`; an unknown or empty encoding is sniffed
+    (JSON object or binary magic). Raises `DecodeError` (`PayloadTooLarge` past the payload limit)."""
     data = bytes(payload)
-    limit = _limits.max_payload_bytes
+    limit = limits.max_payload_bytes
     if len(data) > limit:
         raise PayloadTooLarge(f"payload of {len(data)} bytes exceeds the limit of {limit}")
     kind = encoding.split(";", 1)[0].strip()
     if kind in SNIFFED_ENCODINGS:
         kind = _sniff(data)
     if kind == JSON_ENCODING or kind == "text/json":
-        return decode_json(data)
+        return decode_json(data, limits)
     if kind == BINARY_ENCODING:
-        return decode_binary(data)
+        return decode_binary(data, limits)
     raise DecodeError(f"unknown encoding {encoding!r}; use {JSON_ENCODING} or {BINARY_ENCODING}")
 
 
@@ -189,15 +183,15 @@ def _sniff(data: bytes) -> str:
 JSON_SCAN_FIELDS = 64
 
 
-def decode_json(data: bytes) -> WireScan:
+def decode_json(data: bytes, limits: InputLimits = DEFAULT_LIMITS) -> WireScan:
     if data.startswith(UTF8_BOM):  # the parser's "expected value at line 1 column 1" did not say why
         raise DecodeError("invalid JSON scan: it starts with a byte order mark; send UTF-8 without one")
     # A JSON scan's only lists are `angles` and `ranges`, at most `max_beams` items each, and JSON
     # separates items by commas: a payload with more cannot be a scan within the limits. Counting
     # them (at C speed, about 1 ms for 4 MB) refuses it unparsed: a 4 MB list of 2 million numbers
     # took 110-140 ms to parse, on the Zenoh thread that every robot's scans pass through.
-    if data.count(b",") > 2 * _limits.max_beams + JSON_SCAN_FIELDS:
-        raise DecodeError(f"invalid JSON scan: more items than {_limits.max_beams} beams can have")
+    if data.count(b",") > 2 * limits.max_beams + JSON_SCAN_FIELDS:
+        raise DecodeError(f"invalid JSON scan: more items than {limits.max_beams} beams can have")
     try:
         # Strict: "5" or true for a number, or 5.0 for the seq, is a sender's mistake to name, not to
         # guess at (lax mode read true as seq 1).
@@ -205,7 +199,7 @@ def decode_json(data: bytes) -> WireScan:
     except ValidationError as exc:
         raise DecodeError(f"invalid JSON scan: {_first_error(exc)}") from None
     _refuse_repeated_keys(data, message)
-    return from_message(message)
+    return from_message(message, limits)
 
 
 def repeated_key(pairs: list[tuple[str, Any]]) -> str | None:
@@ -239,16 +233,16 @@ def _refuse_repeated_keys(data: bytes, message: ScanMessage) -> None:
         json.loads(data, object_pairs_hook=_unique_pairs)
 
 
-def from_message(message: ScanMessage) -> WireScan:
-    """A validated `ScanMessage` as a `WireScan` within the input limits; raises `DecodeError` if
-    the engine or the limits refuse it."""
+def from_message(message: ScanMessage, limits: InputLimits = DEFAULT_LIMITS) -> WireScan:
+    """A validated `ScanMessage` as a `WireScan` within `limits`; raises `DecodeError` if the engine
+    or the limits refuse it."""
     try:
-        return _limits.check(WireScan(message.seq, message.stamp, message.to_scan(), message.session))
+        return limits.check(WireScan(message.seq, message.stamp, message.to_scan(), message.session))
     except ScanError as exc:
         raise DecodeError(str(exc), (message.seq, message.stamp, message.session)) from None
 
 
-def decode_binary(data: bytes) -> WireScan:
+def decode_binary(data: bytes, limits: InputLimits = DEFAULT_LIMITS) -> WireScan:
     if len(data) < HEADER.size:
         raise DecodeError(f"binary scan of {len(data)} bytes is shorter than its {HEADER.size}-byte header")
     (magic, version, flags, _reserved, seq, stamp, x, y, theta, range_min, range_max, angle_min,
@@ -272,7 +266,7 @@ def decode_binary(data: bytes) -> WireScan:
     # Refused before the length is checked or anything allocated, against the limit in force
     # (`--max-beams`, 16384 by default) rather than the engine's MAX_BEAMS, so the reason names the
     # limit the robot broke, as `InputLimits.check` does for a scan of the right length.
-    beam_limit = min(_limits.max_beams, MAX_BEAMS)
+    beam_limit = min(limits.max_beams, MAX_BEAMS)
     if n > beam_limit:
         # A well-formed header: the scan is refused, as `InputLimits.check` refuses one (`scan_id`).
         known = seq < SEQ_LIMIT and math.isfinite(stamp)
@@ -307,7 +301,7 @@ def decode_binary(data: bytes) -> WireScan:
         scan = Scan(Pose2D(x, y, theta), angles, ranges, float(range_min), float(range_max))
     except ScanError as exc:
         raise DecodeError(str(exc), (int(seq), float(stamp), session)) from None
-    return _limits.check(WireScan(int(seq), float(stamp), scan, session))
+    return limits.check(WireScan(int(seq), float(stamp), scan, session))
 
 
 def encode_binary(

@@ -35,7 +35,7 @@ from concurrent.futures import Future
 from typing import NoReturn
 
 from fleetmap import delivery
-from fleetmap.codec import WireScan
+from fleetmap.codec import DEFAULT_LIMITS, InputLimits, WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
 from fleetmap.fair_queue import FairQueue, QueueClosed
@@ -114,6 +114,7 @@ class MapRegistry:
         max_auto_maps: int = 256,
         max_robots_per_map: int = 1024,
         memory_budget: MemoryBudget | None = None,
+        input_limits: InputLimits = DEFAULT_LIMITS,
     ) -> None:
         self.default_config = default_config or MapConfig()
         self.auto_create = auto_create
@@ -146,6 +147,9 @@ class MapRegistry:
         self.max_auto_maps = max_auto_maps
         # Likewise for robot ids: a sender cycling through ids must not grow state (or logs) at will.
         self.max_robots_per_map = max_robots_per_map
+        #: What the service accepts of a robot's scan (`serve --world-bound`, `--max-beams`,
+        #: `--max-range`): every way in (Zenoh, REST, ROS 2) decodes and checks scans against it.
+        self.input_limits = input_limits
         #: (map id, robot id) of every liveliness token present (`set_online`), whether or not its map
         #: exists: a map created or installed under that id later shows those robots online at once.
         self._alive: set[tuple[str, str]] = set()

@@ -54,7 +54,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 from fleetmap.auth import TokenFile, TokenFileError, TokenSet
 from fleetmap.cli import CliError, load_config, parse_command_line, run_command
-from fleetmap.codec import InputLimits, configure_limits
+from fleetmap.codec import InputLimits
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
 from fleetmap.http_server import bind_http, make_server, url_host
@@ -125,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
             durable=durable,
             memory_budget=args.max_memory,
             max_robots_per_map=args.max_robots_per_map,
+            input_limits=options.input_limits,
         )
         ingest = ZenohIngest(
             registry,
@@ -213,17 +214,18 @@ class _StartOptions(NamedTuple):
     settings_cls: Any  # ... its ApiSettings (`_load_api`)
     tokens: TokenSet | TokenFile | None
     ros: tuple[int, str] | None  # --ros-scans' (domain id, fixed frame)
+    input_limits: InputLimits  # --world-bound, --max-beams, --max-range
 
 
 def _checked_options(args: argparse.Namespace) -> _StartOptions:
-    """What `run` starts from, after the checks of the options that need no socket or storage (the
-    input limits are set for the process here). Raises CliError."""
+    """What `run` starts from, after the checks of the options that need no socket or storage.
+    Raises CliError."""
     host, port = parse_http(args.http)
     default_config = load_config(args.config)
     create_app, settings_cls = _load_api()
     if not (args.world_bound > 0 and args.max_range > 0):
         raise CliError("--world-bound and --max-range must be positive")
-    configure_limits(InputLimits(args.world_bound, args.max_beams, args.max_range))
+    input_limits = InputLimits(args.world_bound, args.max_beams, args.max_range)
     topics = [spec.topic for spec in args.ros_publish_map]
     if len(set(topics)) < len(topics):
         raise CliError("--ros-publish-map: two maps on one ROS topic; give each its own (MAP_ID=TOPIC)")
@@ -245,7 +247,7 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
             "maps. Give --auth-tokens FILE (or $FLEETMAP_TOKENS), or --insecure to accept that"
         )
     ros = ros_options(args)
-    return _StartOptions(host, port, default_config, create_app, settings_cls, tokens, ros)
+    return _StartOptions(host, port, default_config, create_app, settings_cls, tokens, ros, input_limits)
 
 
 def _load_tokens(path: str | None) -> TokenSet | TokenFile | None:

@@ -389,7 +389,7 @@ class ZenohIngest:
             return
         map_id, robot_id = ids
         try:
-            wire = codec.decode(payload, encoding)
+            wire = codec.decode(payload, encoding, self.registry.input_limits)
         except codec.DecodeError as exc:
             if exc.scan_id is None:
                 reason = f"undecodable {encoding or 'unspecified'} payload: {exc}"

@@ -180,11 +180,12 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
     registry = state.registry
     body = await request.body()
     content_type = request.headers.get("content-type", "")
+    limits = registry.input_limits
     try:
         if len(body) <= DECODE_ON_LOOP_BYTES:
-            wire = codec.decode(body, content_type)
+            wire = codec.decode(body, content_type, limits)
         else:  # parsing a few MB of JSON takes tens of ms: not on the loop every request waits on
-            wire = await asyncio.to_thread(codec.decode, body, content_type)
+            wire = await asyncio.to_thread(codec.decode, body, content_type, limits)
     except codec.DecodeError as exc:
         registry.reject(map_id, robot_id, str(exc))  # counted as over Zenoh, too large or not
         raise  # the app's handlers answer it: 413 past the payload limit (PayloadTooLarge), else 422

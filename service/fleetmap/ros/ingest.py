@@ -259,7 +259,7 @@ class RosScanIngest:
             reason = f"topic {topic[:200]!r} gives robot id {robot_id[:80]!r}, not [A-Za-z0-9_-]{{1,64}}"
             self._refuse("invalid_topic", None, reason)
             return
-        limit = codec.current_limits().max_payload_bytes
+        limit = self.registry.input_limits.max_payload_bytes
         if len(payload) > limit:
             self._refuse(
                 "undecodable", robot_id, f"LaserScan of {len(payload)} bytes exceeds the limit of {limit}"
@@ -270,7 +270,7 @@ class RosScanIngest:
         except CdrError as exc:
             self._refuse("undecodable", robot_id, f"undecodable LaserScan on {topic}: {exc}")
             return
-        max_beams = codec.current_limits().max_beams
+        max_beams = self.registry.input_limits.max_beams
         if len(msg.ranges) > max_beams:  # refused before it waits (and holds memory)
             reason = f"LaserScan of {len(msg.ranges)} beams is more than the limit of {max_beams}"
             self._refuse("invalid_scan", robot_id, reason)
@@ -516,7 +516,7 @@ class RosScanIngest:
             msg.range_min,
             msg.range_max,
         )
-        return codec.current_limits().check(WireScan(item.seq, msg.stamp, scan, item.session))
+        return self.registry.input_limits.check(WireScan(item.seq, msg.stamp, scan, item.session))
 
     def _tree_for(self, namespace: str) -> TfBuffer | None:
         """The TF tree a scan of `namespace` (`/robot1/front`, or '' for the root) is posed in
