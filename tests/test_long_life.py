@@ -100,13 +100,13 @@ def test_a_map_deleted_after_a_viewer_showed_it_gives_its_memory_back(tmp_path: 
         assert _memory_used(svc) == 0
 
 
-def _robot_series(svc: ServiceProcess) -> dict[str, float]:
-    """Robot id -> its `fleetmap_scans_integrated_total` on map m, as /metrics shows it now."""
+def _robot_series(svc: ServiceProcess, family_name: str = "fleetmap_scans_integrated") -> dict[str, float]:
+    """Robot id -> its sample of `family_name` on map m, as /metrics shows it now."""
     text = httpx.get(f"{svc.base_url}/metrics", timeout=10).text
     return {
         sample.labels["robot"]: sample.value
         for family in text_string_to_metric_families(text)
-        if family.name == "fleetmap_scans_integrated"
+        if family.name == family_name
         for sample in family.samples
         if sample.labels.get("map") == "m"
     }
@@ -116,8 +116,9 @@ def test_robots_gone_a_while_leave_metrics_and_come_back_when_heard(tmp_path: Pa
     """A map forgets its robots only once it holds --max-robots-per-map (1024), so /metrics kept 8
     series for every robot id a map had ever heard (robots renamed, replaced, simulated, or ids made
     up by any Zenoh peer), growing every scrape by up to 8192 series a map, long after the robots
-    were gone. A robot neither online nor heard for --metrics-robot-idle seconds now leaves
-    /metrics; the map still holds it, and its series come back with its counts when it is heard."""
+    were gone. A robot neither online nor heard for --metrics-robot-idle seconds now keeps only its
+    online gauge (at 0, so that an alert on a robot gone goes on firing); the map still holds it,
+    and its counters come back with its counts when it is heard."""
     idle = 4.0  # long enough for the posts and the scrape after them on a busy machine
     with ServiceProcess(tmp_path, ["--in-memory", "--metrics-robot-idle", str(idle)]) as svc:
         cfg = zenoh.Config()
@@ -133,6 +134,7 @@ def test_robots_gone_a_while_leave_metrics_and_come_back_when_heard(tmp_path: Pa
             assert _robot_series(svc) == {"gone": 1, "back": 1, "present": 0}
             time.sleep(idle + 0.5)
             assert _robot_series(svc) == {"present": 0}
+            assert _robot_series(svc, "fleetmap_robot_online") == {"present": 1, "gone": 0, "back": 0}
             assert _robots(svc) == {"gone", "back", "present"}  # the map keeps them
             url = f"{svc.base_url}/maps/m/scans"
             r = httpx.post(url, params={"robot_id": "back"}, json=_scan(1), timeout=30)

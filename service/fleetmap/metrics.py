@@ -54,12 +54,13 @@ ZENOH_REFUSALS = ("duplicate", "no_map", "too_many_robots", "queue_full", "shutt
 #: Why ROS 2 scans (`--ros-scans`) are refused, exported at 0 from the start (fleetmap.ros.ingest).
 ROS_REFUSALS = ("invalid_topic", "undecodable", "no_tf", "tf_error", "invalid_scan", "pending_full")
 
-#: Seconds after a robot was last heard (a scan, a refusal, its liveliness token) that its series
+#: Seconds after a robot was last heard (a scan, a refusal, its liveliness token) that its counters
 #: leave /metrics, unless it is online (`serve --metrics-robot-idle`). Robot ids come and go (a
 #: renamed or replaced robot, a simulation, any Zenoh peer making them up) and a map forgets its
 #: robots only once it holds `max_robots_per_map` (1024): without this a map's scrape kept 8 series
-#: for every robot it had ever heard, up to 8192, long after they were gone. The registry keeps the
-#: robot (`GET /maps/{id}` shows it), and its series come back, with the same counts, when it is heard.
+#: for every robot it had ever heard, up to 8192, long after they were gone. Its online gauge stays
+#: (1 series a robot the map keeps), for alerts on robots gone; the registry keeps the robot
+#: (`GET /maps/{id}` shows it), and its counters come back, with the same counts, when it is heard.
 ROBOT_SERIES_IDLE = 3600.0
 
 #: Latency buckets in seconds: sub-millisecond integrations up to multi-second backlogs.
@@ -135,9 +136,9 @@ _Family = CounterMetricFamily | GaugeMetricFamily
 
 
 class RegistryCollector(Collector):
-    """Reads the registry's counters at scrape time (no double bookkeeping). A robot's series are
-    those of the robots online or heard within the last `robot_idle` seconds (`ROBOT_SERIES_IDLE`);
-    a deleted map's go with it."""
+    """Reads the registry's counters at scrape time (no double bookkeeping). Every robot a map keeps
+    has its `fleetmap_robot_online`; its 7 counters are there while it is online or was heard
+    within the last `robot_idle` seconds (`ROBOT_SERIES_IDLE`); a deleted map's go with it."""
 
     def __init__(self, registry: MapRegistry, robot_idle: float = ROBOT_SERIES_IDLE) -> None:
         self.registry = registry
@@ -160,26 +161,31 @@ class RegistryCollector(Collector):
         # take, and one map's at a time (at most `max_robots_per_map` robots): building the
         # families under one hold of it (8 samples a robot) held it for about a second a scrape at
         # 45,000 robots, and every scan waited that long. Maps need not be read at one instant.
-        rows: list[tuple[str, str, int, int, int, int, int, int, bool, int]] = []
+        rows: list[tuple[str, str, int, int, int, int, int, int, bool, int, bool]] = []
         heard_since = time.time() - self.robot_idle  # `last_heard` is wall-clock time: it is stored
         for entry in entries:
             with self.registry.lock:
                 rows.extend(
                     (entry.id, robot_id, state.scans_integrated, state.scans_rejected, state.lost,
-                     state.duplicates, state.dropped, state.not_durable, state.online, state.id_conflicts)
+                     state.duplicates, state.dropped, state.not_durable, state.online, state.id_conflicts,
+                     state.online or state.last_heard >= heard_since)
                     for robot_id, state in entry.robots.items()
-                    if state.online or state.last_heard >= heard_since
                 )  # fmt: skip
         rows.sort(key=lambda row: (row[0], row[1]))
-        for map_id, robot_id, ok, bad, gaps, dups, full, lost_commits, is_online, clashes in rows:
+        for map_id, robot_id, ok, bad, gaps, dups, full, lost_commits, is_online, clashes, active in rows:
             labels = [map_id, robot_id]
+            # Every robot the map keeps has its online gauge, so that an alert on a robot gone
+            # (`fleetmap_robot_online == 0`) goes on firing however long it stays gone; an idle
+            # robot's counters do not move, and leave.
+            online.add_metric(labels, 1.0 if is_online else 0.0)
+            if not active:
+                continue
             integrated.add_metric(labels, ok)
             rejected.add_metric(labels, bad)
             lost.add_metric(labels, gaps)
             duplicates.add_metric(labels, dups)
             dropped.add_metric(labels, full)
             not_durable.add_metric(labels, lost_commits)
-            online.add_metric(labels, 1.0 if is_online else 0.0)
             conflicts.add_metric(labels, clashes)
         maps.add_metric([], len(entries))
         queued, oldest = self.registry.backlog()

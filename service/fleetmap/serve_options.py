@@ -262,9 +262,10 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         default=ROBOT_SERIES_IDLE,
         metavar="S",
         help=(
-            "seconds after a robot was last heard that its series leave /metrics, unless it is "
+            "seconds after a robot was last heard that its counters leave /metrics, unless it is "
             "online (default 3600): robot ids that come and go must not grow every scrape for good; "
-            "the map keeps the robot, and its series come back when it is heard again"
+            "its fleetmap_robot_online stays while the map keeps the robot, and its counters come "
+            "back when it is heard again"
         ),
     )
     p.add_argument(

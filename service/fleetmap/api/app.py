@@ -143,9 +143,9 @@ class ApiSettings:
     #: The registry's integration hook. None: the `IntegrationMetrics` whose `on_integrated` the
     #: registry was built with, or, if the registry has no hook, a new one installed on it.
     metrics: IntegrationMetrics | None = None
-    #: Seconds after which a robot neither online nor heard leaves /metrics (`serve
+    #: Seconds after which the counters of a robot neither online nor heard leave /metrics (`serve
     #: --metrics-robot-idle`; `fleetmap.metrics.ROBOT_SERIES_IDLE`): robot ids that came and went
-    #: must not grow the scrape for good.
+    #: must not grow the scrape for good. Its `fleetmap_robot_online` stays.
     metrics_robot_idle: float = ROBOT_SERIES_IDLE
     #: Seconds POST /scans waits for the integration before answering 503.
     scan_timeout: float = 10.0
