@@ -695,11 +695,11 @@ def test_a_large_scan_body_is_decoded_off_the_event_loop(
     entered, release = threading.Event(), threading.Event()
     real = codec_module.decode
 
-    def held(body: bytes, content_type: str) -> object:
+    def held(body: bytes, content_type: str, limits: codec_module.InputLimits) -> object:
         if len(body) > routes_maps.DECODE_ON_LOOP_BYTES:
             entered.set()
             release.wait(10)
-        return real(body, content_type)
+        return real(body, content_type, limits)
 
     monkeypatch.setattr(codec_module, "decode", held)
     scan = fan_scan(0.0, 0.0, 0.0, [1.0] * 16000)
