@@ -717,7 +717,7 @@ def test_a_zip_whose_headers_zipfile_reads_only_when_opening_a_member_is_refused
         monkeypatch.setattr(upload_spool, "SPOOL_MEMORY_BYTES", 64)
         monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
         fp = upload_spool.spooled_file()
-        upload_spool.spool_write(fp, body)
+        fp.write(body)
         fp.seek(0)
         assert fp._rolled  # type: ignore[attr-defined]
     else:
@@ -739,7 +739,7 @@ def test_a_seek_before_a_disk_spools_start_is_an_oserror_not_a_spool_failure(
     monkeypatch.setattr(upload_spool, "SPOOL_MEMORY_BYTES", 64)
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     with upload_spool.spooled_file() as fp:
-        upload_spool.spool_write(fp, bytes(100))
+        fp.write(bytes(100))
         assert fp._rolled  # type: ignore[attr-defined]
         with pytest.raises(OSError) as refused:
             fp.seek(-1)

@@ -25,7 +25,7 @@ from fleetmap.database import StorageError
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
 from fleetmap.tiles import LayerArray, TileKey, TileLimitError, layer_arrays, tile_bytes
-from fleetmap.upload_spool import as_file, check_stop, close_spool, spool_write, spooled_file, upload_zip
+from fleetmap.upload_spool import as_file, check_stop, close_spool, spooled_file, upload_zip
 
 if TYPE_CHECKING:
     from fleetmap.memory_budget import UploadReservation
@@ -481,7 +481,7 @@ def _tiles_npz(
                     raise SnapshotError(
                         f"snapshot member {path} holds more than the limit of {limit} bytes", 413
                     )
-                spool_write(copy, chunk)  # its errors are not the file's: not in _ZIP_ERRORS
+                copy.write(chunk)  # its errors are SpoolFailed, the server's, not the file's (_ZIP_ERRORS)
     except _ZIP_ERRORS as exc:
         raise corrupt(exc) from None
     copy.seek(0)

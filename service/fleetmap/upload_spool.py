@@ -1,11 +1,11 @@
 """Uploads kept on disk rather than in memory while they are read: the body of a snapshot or nav2
-upload (4 GiB at most for a snapshot) goes to a `SpooledTemporaryFile` (`spooled_file`,
-`spool_write`), in memory up to SPOOL_MEMORY_BYTES, then in a file of the temporary directory
-(`tempfile.gettempdir()`: `TMPDIR`, else /tmp), unlinked as soon as it is made (so a crash leaves
-nothing behind) and closed, its room given back, when the upload is done with (`close_spool`). Held
-whole in memory, it sat beside the map it builds and outside the memory budget (`--max-memory`).
-The readers (`map_from_snapshot_file`, `map_from_nav2_zip`) take such a file as well as bytes
-(`as_file`), and open a zip only through `upload_zip`, which checks its directory first.
+upload (4 GiB at most for a snapshot) goes to a `SpooledTemporaryFile` (`spooled_file`), in memory
+up to SPOOL_MEMORY_BYTES, then in a file of the temporary directory (`tempfile.gettempdir()`:
+`TMPDIR`, else /tmp), unlinked as soon as it is made (so a crash leaves nothing behind) and closed,
+its room given back, when the upload is done with (`close_spool`). Held whole in memory, it sat
+beside the map it builds and outside the memory budget (`--max-memory`). The readers
+(`map_from_snapshot_file`, `map_from_nav2_zip`) take such a file as well as bytes (`as_file`), and
+open a zip only through `upload_zip`, which checks its directory first.
 """
 
 from __future__ import annotations
@@ -139,16 +139,6 @@ def close_spool(spool: IO[bytes]) -> None:
     whether the flush fails or not."""
     with contextlib.suppress(OSError, SpoolFailed):
         spool.close()
-
-
-def spool_write(spool: IO[bytes], data: bytes) -> None:
-    """Append `data` to `spool`; raises `SpoolFailed` if the temporary directory cannot take it (the
-    spool's first write past SPOOL_MEMORY_BYTES makes its file and copies what it held there). May
-    block on the disk: call it off the event loop."""
-    try:
-        spool.write(data)
-    except OSError as exc:  # from a file not made by `spooled_file` (whose writes raise SpoolFailed)
-        raise SpoolFailed(exc) from None
 
 
 def as_file(data: bytes | IO[bytes]) -> IO[bytes]:

@@ -22,7 +22,7 @@ from fleetmap.map_entry import MapEntry
 from fleetmap.memory_budget import UploadReservation
 from fleetmap.registry import MapNotFound
 from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
-from fleetmap.upload_spool import close_spool, spool_write, spooled_file
+from fleetmap.upload_spool import close_spool, spooled_file
 
 router = APIRouter(tags=["maps"], route_class=StrictRoute)
 
@@ -88,7 +88,7 @@ async def spooled_body(request: Request, uploads: Slots) -> AsyncIterator[IO[byt
             headers={"Retry-After": str(UPLOAD_RETRY_AFTER_SECONDS)},
         )
     spool = spooled_file()
-    writing: asyncio.Future[None] | None = None
+    writing: asyncio.Future[int] | None = None  # a write of the spool, on a worker thread
 
     def done() -> None:
         close_spool(spool)
@@ -101,13 +101,15 @@ async def spooled_body(request: Request, uploads: Slots) -> AsyncIterator[IO[byt
             pending.append(chunk)
             held += len(chunk)
             if held >= _WRITE_BATCH:
-                writing = asyncio.ensure_future(asyncio.to_thread(spool_write, spool, b"".join(pending)))
+                # Off the loop: the spool's first write past its memory makes its file and copies
+                # what it held there, and any write may wait on the disk.
+                writing = asyncio.ensure_future(asyncio.to_thread(spool.write, b"".join(pending)))
                 # Shielded: a cancelled request must not close the spool under a write still running
                 # on its thread (the `finally` below waits for it instead).
                 await asyncio.shield(writing)
                 pending, held = [], 0
         if pending:
-            writing = asyncio.ensure_future(asyncio.to_thread(spool_write, spool, b"".join(pending)))
+            writing = asyncio.ensure_future(asyncio.to_thread(spool.write, b"".join(pending)))
             await asyncio.shield(writing)
         spool.seek(0)
         yield spool
