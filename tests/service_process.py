@@ -317,8 +317,18 @@ class FreezableProxy:
                 continue
             frozen = threading.Event()
             with self.lock:
-                self.connections.append((client, upstream, frozen))
-                delay, self._next_delay = self._next_delay, 0.0
+                # A cut() or freeze(refuse_new=True) that came while the upstream was connected
+                # refuses this one too: kept, it would have outlived the cut, and a client in the
+                # middle of its handshake would wait for its open timeout (10 s) before trying again.
+                refused = self.refusing
+                if not refused:
+                    self.connections.append((client, upstream, frozen))
+                    delay, self._next_delay = self._next_delay, 0.0
+            if refused:
+                self.refused.append(time.monotonic())
+                upstream.close()
+                client.close()
+                continue
             for source, sink, wait in ((client, upstream, delay), (upstream, client, 0.0)):
                 threading.Thread(target=self._pump, args=(source, sink, frozen, wait), daemon=True).start()
 
@@ -365,9 +375,9 @@ class FreezableProxy:
     def freeze(self, refuse_new: bool = False) -> int:
         """Stop forwarding on every connection open now (and, with `refuse_new`, refuse new ones until
         `restore()`); returns how many."""
-        if refuse_new:
-            self.refusing = True
         with self.lock:
+            if refuse_new:
+                self.refusing = True
             for _, _, frozen in self.connections:
                 frozen.set()
             return len(self.connections)
@@ -375,8 +385,8 @@ class FreezableProxy:
     def cut(self) -> int:
         """Close every connection open now, both ways, and refuse new ones until `restore()`;
         returns how many were closed."""
-        self.refusing = True
         with self.lock:
+            self.refusing = True
             connections, self.connections = self.connections, []
         for client, upstream, frozen in connections:
             frozen.set()
