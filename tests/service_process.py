@@ -305,8 +305,13 @@ class FreezableProxy:
         while True:
             try:
                 client, _ = self.listener.accept()
-            except OSError:  # closed
-                return
+            except OSError:
+                if self.listener.fileno() == -1:  # close()d
+                    return
+                # Any other error (a connection aborted before it was accepted, EMFILE under
+                # load) must not end the proxy: its listener would then only queue connections.
+                time.sleep(0.01)
+                continue
             try:
                 if self.refusing:
                     self.refused.append(time.monotonic())
