@@ -28,7 +28,7 @@ pytestmark = pytest.mark.skipif(
 )
 
 MAP_ID = "live"
-#: The viewer's TILE_REFRESH_MS (clients/web/app.js): one tile is requested at most this often.
+#: The viewer's TILE_REFRESH_MS (clients/web/config.js): one tile is requested at most this often.
 TILE_REFRESH_S = 0.5
 
 #: Counts the page's `tiles` and robots (full or delta) events from now on (window.eventsSeen), on

@@ -1,0 +1,111 @@
+/*
+ * Signing in and out (the app.js header, "Signing in"): needSignIn shows the form over the map when a
+ * read is refused (401), and clears the page of the maps; the form posts its token once to `session`,
+ * which answers with an HttpOnly session cookie; "Sign out" deletes it. Whether this browser holds a
+ * session is kept in localStorage (SIGNED_IN_KEY), for the "Sign out" button.
+ */
+import { SIGNED_IN_KEY, TOKEN_CHARS } from './config.js';
+import {
+  emptyEl, errorEl, mapSelect, signInEl, signInError, signInForm, signInToken, signOutButton,
+} from './dom.js';
+import { deselectMap, refreshMaps, setMapOptions } from './maps.js';
+import { errorDetail } from './rest.js';
+import { state } from './state.js';
+import { setConnection, showError } from './status.js';
+
+/**
+ * A read was refused for want of a valid token: nothing of the maps stays on the page (its user
+ * may no longer see them; the URL keeps the map and view, shown again after signing in), and the
+ * sign-in form takes the map's place.
+ */
+export function needSignIn() {
+  if (!signInEl.hidden) return;
+  deselectMap(true);
+  setMapOptions([]);
+  mapSelect.disabled = true;
+  emptyEl.hidden = true;
+  clearTimeout(state.errorTimer);
+  errorEl.hidden = true;
+  rememberSignedIn(false);
+  signInError.hidden = true;
+  signInEl.hidden = false;
+  setConnection('signin');
+  signInToken.focus();
+}
+
+/** Say why signing in failed, under the form's button (an alert: a screen reader says it). */
+function signInFailed(message) {
+  signInError.textContent = message;
+  signInError.hidden = false;
+  signInToken.setAttribute('aria-invalid', 'true');
+  signInToken.focus();
+}
+
+/** Whether this browser holds a session: shows "Sign out" (kept over reloads, see SIGNED_IN_KEY). */
+function rememberSignedIn(signedIn) {
+  signOutButton.hidden = !signedIn;
+  try {
+    if (signedIn) localStorage.setItem(SIGNED_IN_KEY, '1');
+    else localStorage.removeItem(SIGNED_IN_KEY);
+  } catch (_) { /* storage blocked: "Sign out" shows until the page is reloaded */ }
+}
+
+/** Handle the sign-in form and the "Sign out" button. */
+export function handleSignInAndOut() {
+  // The token goes to the service once, in a header; the page forgets it as soon as it is sent.
+  signInForm.addEventListener('submit', async (e) => {
+    e.preventDefault();
+    const token = signInToken.value.trim();
+    if (!TOKEN_CHARS.test(token)) {
+      signInFailed(token ? 'a token holds printable ASCII characters only, no spaces' : 'enter your API token');
+      return;
+    }
+    let resp;
+    try {
+      resp = await fetch('session', {
+        method: 'POST',
+        headers: { Authorization: `Bearer ${token}`, Accept: 'application/json' },
+        cache: 'no-store',
+      });
+    } catch (err) {
+      signInFailed(`cannot reach the service (${err.message})`);
+      return;
+    }
+    if (!resp.ok) {
+      signInFailed(resp.status === 401 ? 'unknown token: check it and try again'
+        : `cannot sign in: ${resp.status} ${await errorDetail(resp)}`);
+      return;
+    }
+    signInToken.value = '';
+    signInToken.removeAttribute('aria-invalid');
+    signInError.hidden = true;
+    signInEl.hidden = true;
+    rememberSignedIn(true);
+    setConnection('starting');
+    refreshMaps();
+  });
+
+  // Signing out clears the cookie; the next request then shows the form (or, if reads are open after
+  // all, the page goes on as it is).
+  signOutButton.addEventListener('click', async () => {
+    rememberSignedIn(false);
+    try {
+      await fetch('session', { method: 'DELETE', cache: 'no-store' });
+    } catch (err) {
+      showError(`cannot sign out: cannot reach the service (${err.message})`, true);
+      return;
+    }
+    refreshMaps();
+  });
+
+  // Clicks, drags and the wheel over the form are the form's, not the map's under it.
+  L.DomEvent.disableClickPropagation(signInEl);
+  L.DomEvent.disableScrollPropagation(signInEl);
+}
+
+/** Show "Sign out" if this browser signed in before (on an earlier page load). */
+export function showSignOutIfSignedIn() {
+  try {
+    signOutButton.hidden = localStorage.getItem(SIGNED_IN_KEY) !== '1';
+  } catch (_) { /* storage blocked: no "Sign out" until the user signs in on this page */ }
+}
