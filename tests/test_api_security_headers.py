@@ -6,6 +6,7 @@ real browser that the policy blocks nothing the viewer needs."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,8 +15,29 @@ from service_process import ServiceProcess
 from test_auth import READ, WRITE, bearer
 from test_operations import BROKEN_TILES_SERVICE, post_scans
 
+#: The web viewer of this checkout, which the service under test serves at `/` and `/static/`.
+WEB_DIR = Path(__file__).resolve().parents[1] / "clients" / "web"
+#: A JavaScript file's `Content-Type`, without which a browser runs no module script (nor, as the
+#: answer is `nosniff`, any script).
+JAVASCRIPT_TYPES = {"text/javascript", "application/javascript"}
+
+
+def viewer_modules() -> list[str]:
+    """The viewer's ES modules as its page asks for them: `app.js` (index.html's module script), then
+    every module an `import ... from './x.js'` names, followed from module to module."""
+    found: list[str] = []
+    todo = ["app.js"]
+    while todo:
+        name = todo.pop(0)
+        if name not in found:
+            found.append(name)
+            source = (WEB_DIR / name).read_text(encoding="utf-8")
+            todo += re.findall(r"^import [^;]*? from '\./([\w.-]+\.js)';$", source, re.M)
+    return [f"/static/{name}" for name in found]
+
+
 #: The viewer's files, as its page asks for them, and a Leaflet image its style sheet names.
-VIEWER_FILES = ["/", "/static/app.js", "/static/style.css", "/vendor/leaflet/leaflet.js",
+VIEWER_FILES = ["/", *viewer_modules(), "/static/style.css", "/vendor/leaflet/leaflet.js",
                 "/vendor/leaflet/leaflet.css", "/vendor/leaflet/images/layers.png"]  # fmt: skip
 EVERY_ANSWER = {
     "x-content-type-options": "nosniff",
@@ -56,6 +78,11 @@ def test_the_viewer_files_carry_a_policy_allowing_only_what_the_viewer_loads(
             assert r.status_code == 200, (path, r.status_code)
             assert policy(r) == VIEWER_POLICY, (path, r.headers)
             assert_every_answer_headers(r, path)
+            if path.endswith(".js"):
+                assert r.headers["content-type"].partition(";")[0] in JAVASCRIPT_TYPES, (path, r.headers)
+    # Every script of the viewer is one its page loads (app.js imports it, or a module app.js imports).
+    scripts = {f"/static/{p.name}" for p in WEB_DIR.glob("*.js")}
+    assert scripts == {path for path in VIEWER_FILES if path.startswith("/static/") and path.endswith(".js")}
     # A file the viewer does not have is still under the viewer's folder: same headers on its 404.
     r = httpx.get(f"{url}/static/nothing.js")
     assert r.status_code == 404 and policy(r) == VIEWER_POLICY

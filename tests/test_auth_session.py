@@ -20,6 +20,7 @@ from typing import Any
 import httpx
 import pytest
 from service_process import ServiceProcess, wait_for
+from test_api_security_headers import viewer_modules
 from test_auth import ADMIN, READ, SCAN, WRITE, bearer
 
 from fleetmap.auth import (
@@ -32,8 +33,8 @@ from fleetmap.auth import (
 
 TILE = "/maps/m/tiles/0/0/-1.png"
 UNKNOWN = "unknown-token-0123456789"
-#: The viewer's files, as its page asks for them.
-VIEWER_FILES = ["/", "/static/app.js", "/static/style.css", "/vendor/leaflet/leaflet.js",
+#: The viewer's files, as its page asks for them (its ES modules: before the user can sign in).
+VIEWER_FILES = ["/", *viewer_modules(), "/static/style.css", "/vendor/leaflet/leaflet.js",
                 "/vendor/leaflet/leaflet.css"]  # fmt: skip
 #: What a request that needs `write` answers without a token, cookie or not.
 WRITE_401 = "this request needs a token with the 'write' role: send 'Authorization: Bearer <token>'"

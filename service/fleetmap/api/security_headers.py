@@ -25,9 +25,11 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from fleetmap.auth import is_viewer_file
 
 #: What the web viewer (clients/web, and Leaflet) loads, and nothing more:
-#: - scripts (`leaflet.js`, `app.js`) and style sheets (`leaflet.css`, `style.css`) from the service;
-#:   no inline script or `style` attribute (Leaflet and the viewer set styles through the DOM, which a
-#:   policy does not restrict);
+#: - scripts (`leaflet.js`; `app.js` and the ES modules it imports from `/static/`) and style sheets
+#:   (`leaflet.css`, `style.css`) from the service; no inline script or `style` attribute (Leaflet and
+#:   the viewer set styles through the DOM, which a policy does not restrict). A browser runs a module
+#:   script only with a JavaScript `Content-Type` (as `nosniff` asks of every script): `/static/`
+#:   names a `.js` file `text/javascript` or `application/javascript` (Python's `mimetypes`);
 #: - images from the service (tiles, Leaflet's icons) and `data:` ones (the empty favicon, the
 #:   transparent image of a failed tile); robot markers are inline SVG markup, not images;
 #: - `fetch` and `EventSource` (`connect-src`) to the service only;
