@@ -121,7 +121,7 @@ TAGS = [
 class ApiSettings:
     """Options of the app. Everything has a default."""
 
-    #: Directory of the web viewer (index.html, app.js, ...), served at `/` and `/static/`.
+    #: Directory of the web viewer (index.html, app.js and its modules, ...), served at `/` and `/static/`.
     #: None: `default_web_dir()` ($FLEETMAP_WEB_DIR, the checkout's clients/web, ./clients/web).
     web_dir: Path | None = None
     #: Origins allowed by CORS (e.g. ["http://localhost:5173"]); empty: no CORS headers.
