@@ -1,0 +1,81 @@
+"""glibc's malloc arenas, limited by the service itself (`fleetmap.malloc_arenas`): counted by glibc's
+own `malloc_info` in real processes whose threads allocate at once."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from service_process import ServiceProcess, wait_for
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's arenas: Linux only")
+
+#: A process that (maybe) limits its arenas, then has 12 threads each allocate with glibc's malloc
+#: while all are alive (a thread's first malloc takes an arena of its own while under the limit),
+#: and prints what `limit_malloc_arenas` returned and the arenas `malloc_info` lists.
+PROBE = r"""
+import ctypes, ctypes.util, json, os, sys, tempfile, threading
+from fleetmap.malloc_arenas import limit_malloc_arenas
+limited = limit_malloc_arenas() if sys.argv[1] == "limit" else None
+libc = ctypes.CDLL(ctypes.util.find_library("c"))
+libc.malloc.restype = ctypes.c_void_p
+libc.malloc.argtypes = [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+barrier = threading.Barrier(12)
+def allocate():
+    blocks = [libc.malloc(1000) for _ in range(100)]
+    barrier.wait()  # every thread holds its blocks (and its arena) until all have allocated
+    for block in blocks:
+        libc.free(block)
+threads = [threading.Thread(target=allocate) for _ in range(12)]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join()
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
+libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+libc.fclose.argtypes = [ctypes.c_void_p]
+path = tempfile.mktemp()
+f = libc.fopen(path.encode(), b"w")
+libc.malloc_info(0, f)
+libc.fclose(f)
+info = open(path).read()
+os.unlink(path)
+print(json.dumps({"limited": limited, "arenas": info.count("<heap nr=")}))
+"""
+
+
+def probe(mode: str, env_extra: dict[str, str] | None = None) -> dict[str, object]:
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"} | (env_extra or {})
+    service_dir = str(Path(__file__).resolve().parents[1] / "service")
+    env["PYTHONPATH"] = os.pathsep.join([service_dir, env.get("PYTHONPATH", "")])
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE, mode], env=env, capture_output=True, text=True, timeout=60, check=True
+    ).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_limiting_leaves_two_arenas_where_threads_took_one_each() -> None:
+    free = probe("free")
+    limited = probe("limit")
+    assert free["arenas"] > 2, f"without the limit the 12 threads should have taken several arenas: {free}"
+    assert limited == {"limited": True, "arenas": 2}, limited
+
+
+def test_malloc_arena_max_in_the_environment_wins() -> None:
+    """An operator's `MALLOC_ARENA_MAX` stands: the service does not override it."""
+    got = probe("limit", {"MALLOC_ARENA_MAX": "4"})
+    assert got["limited"] is False
+    assert got["arenas"] == 4, got
+
+
+def test_the_service_limits_its_arenas_at_start(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The real service process makes the call before its threads exist (its log says so at debug)."""
+    monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
+    with ServiceProcess(tmp_path, ["--in-memory", "--log-level", "debug"]) as service:
+        wait_for(lambda: "malloc arenas limited to 2" in service.logs(), 10, 0.1, "the arena line")
