@@ -13,6 +13,7 @@ from numba import njit
 
 from fleetmap.kernels.kinds import BEAM_HIT, BEAM_SKIP, CELL_HIT, CELL_MISS
 from fleetmap.kernels.traversal import EXACT, cell_at, cells, crossing, exact_start, exact_steps_i
+from fleetmap.kernels.update import updated_log_odds
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -207,19 +208,16 @@ def walk_dense(
     return n
 
 
-@njit(cache=True, nogil=True)
-def walk_far(
+@njit(cache=True, nogil=True, inline="always")
+def _walk_far_rests(
     kinds: np.ndarray, starts: np.ndarray, crossings: np.ndarray, far: np.ndarray, shift: int, wshift: int,
-    ti0: int, tj0: int, ni: int, scratch: np.ndarray, found: np.ndarray, kind_out: np.ndarray, n: int,
-    planes: np.ndarray,
+    ti0: int, tj0: int, scratch: np.ndarray, found: np.ndarray, n: int,
 ) -> int:  # fmt: skip
-    """Walk the rests `trace_fan_rows` handed back (`far[h] = (beam, column, row)` of each rest's
-    first cell; the beams' walk states `starts` and `crossings` from `exact_starts`) in the dense
-    window, append their distinct cells from `found[n]` as plane keys with their kinds, and return
-    the new count. Those rows hold no other cells of the scan."""
+    """The walks of `walk_far` and `walk_far_apply`: mark the rests' cells in the dense window,
+    append each distinct cell's window key from `found[n]` and return the new count. The end cells
+    of returns are marked hits after all walks, so that a later beam's miss cannot undo a hit."""
     i0 = ti0 << shift
     j0 = tj0 << shift
-    start = n
     hit_keys = np.empty(far.shape[0], dtype=np.int64)
     hits = 0
     for q in range(far.shape[0]):
@@ -233,8 +231,85 @@ def walk_far(
             hits += 1
     for k in range(hits):
         scratch[hit_keys[k]] = CELL_MISS | CELL_HIT
+    return n
+
+
+@njit(cache=True, nogil=True)
+def walk_far(
+    kinds: np.ndarray, starts: np.ndarray, crossings: np.ndarray, far: np.ndarray, shift: int, wshift: int,
+    ti0: int, tj0: int, ni: int, scratch: np.ndarray, found: np.ndarray, kind_out: np.ndarray, n: int,
+    planes: np.ndarray,
+) -> int:  # fmt: skip
+    """Walk the rests `trace_fan_rows` handed back (`far[h] = (beam, column, row)` of each rest's
+    first cell; the beams' walk states `starts` and `crossings` from `exact_starts`) in the dense
+    window, append their distinct cells from `found[n]` as plane keys with their kinds, and return
+    the new count. Those rows hold no other cells of the scan."""
+    start = n
+    n = _walk_far_rests(kinds, starts, crossings, far, shift, wshift, ti0, tj0, scratch, found, n)
     collect_dense(found[start:], n - start, scratch, shift, wshift, ni, kind_out[start:], planes)
     return n
+
+
+@njit(cache=True, nogil=True)
+def walk_far_apply(
+    kinds: np.ndarray, starts: np.ndarray, crossings: np.ndarray, far: np.ndarray, shift: int, wshift: int,
+    ti0: int, tj0: int, ni: int, scratch: np.ndarray, found: np.ndarray, n: int, slots: np.ndarray,
+    log_odds: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float, changed: np.ndarray,
+) -> int:  # fmt: skip
+    """`walk_far`, with the cells applied to the log-odds pool instead of collected for the apply:
+    the same walks, then `apply_dense` over the cells they found (`found[n:]` is work space).
+    Returns the number of cells updated. For the one-call path when every tile of the box exists
+    (`slots[plane]` is each box tile's pool slot, planes row-major over the box)."""
+    end = _walk_far_rests(kinds, starts, crossings, far, shift, wshift, ti0, tj0, scratch, found, n)
+    apply_dense(
+        found[n:], end - n, scratch, shift, wshift, ni, slots, log_odds, l_hit, l_miss, l_min, l_max, changed
+    )
+    return end - n
+
+
+@njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs
+def apply_dense(
+    found: np.ndarray, n: int, scratch: np.ndarray, shift: int, wshift: int, ni: int, slots: np.ndarray,
+    log_odds: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float, changed: np.ndarray,
+) -> None:  # fmt: skip
+    """`collect_dense` and `update.apply_cells` in one pass, for cells whose tiles all exist: read
+    and re-zero the marks of `found[:n]` (window keys, each cell once), apply each cell's hit or miss
+    to the log-odds pool (`updated_log_odds`, the one rule) in the tile at `slots[plane]` (plane =
+    tile row * ni + tile column in the window), and set `changed[plane]` where a stored value
+    changed. What it saves: the plane keys and kinds written out and read back, the planes'
+    flags and the apply's own pass."""
+    # Unsigned throughout (keys, planes and pool offsets are >= 0), as in `collect_dense`.
+    col_mask = np.uint64((1 << wshift) - 1)
+    t_mask = np.uint64((1 << shift) - 1)
+    w = np.uint64(wshift)
+    t = np.uint64(shift)
+    per_row = np.uint64(ni)
+    flat_log_odds = log_odds.reshape(-1)
+    # A walk's cells mostly stay in one tile: the slot is looked up and the change flag stored only
+    # when the tile changes (a store per cell would chain every iteration to the last, see apply_cells).
+    plane = np.uint64(0xFFFFFFFFFFFFFFFF)
+    start = np.uint64(0)
+    diff = False
+    for k in range(np.uint64(n)):
+        key = np.uint64(found[k])
+        hit = (scratch[key] & CELL_HIT) != 0
+        scratch[key] = 0
+        li = key & col_mask
+        lj = key >> w
+        p = (lj >> t) * per_row + (li >> t)
+        if p != plane:
+            if diff:
+                changed[plane] = 1
+            diff = False
+            plane = p
+            start = np.uint64(slots[p]) << (t + t)
+        at = start | ((lj & t_mask) << t) | (li & t_mask)
+        old = flat_log_odds[at]
+        new = updated_log_odds(old, hit, l_hit, l_miss, l_min, l_max)
+        flat_log_odds[at] = new
+        diff |= new != old  # NaN != anything: a first observation is a change
+    if diff:
+        changed[plane] = 1
 
 
 @njit(cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]  # _nrt is not in numba's stubs

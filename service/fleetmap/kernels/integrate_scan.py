@@ -8,6 +8,11 @@ finds the tiles in `kernels.tile_index`, creates the missing ones when the pools
 room (as `TileStore.create` would), and bumps the versions itself. Its result is the plan-and-apply
 result bit for bit. When a tile is missing and there is no room, or the cap would be passed, it
 changes nothing, and the caller plans and applies (which grows the store, or refuses the scan).
+
+With occupancy alone, when every tile of the scan's box is already stored (looked up before
+anything is traced), the trace and the apply are one pass (`ray_model.trace_apply_scan`): the far
+walks' cells go from the trace's window straight into the pool, without the collection and apply
+passes of their own. The same result, bit for bit; any other scan takes the path above unchanged.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.ray_model import trace_scan
+from fleetmap.kernels.ray_model import APPLIED, APPLY_NEEDS_SCRATCH, NOT_APPLIED, trace_apply_scan, trace_scan
 from fleetmap.kernels.scan_geometry import (
     EXTENT_OUT_OF_RANGE,
     EXTENT_TOO_LONG,
@@ -25,6 +30,7 @@ from fleetmap.kernels.scan_geometry import (
     scan_rays,
 )
 from fleetmap.kernels.tile_index import index_add, index_find, index_has_room
+from fleetmap.kernels.traversal import EXACT
 from fleetmap.kernels.tsdf import fuse_tsdf, trace_tsdf
 from fleetmap.kernels.update import apply_cells, bump_versions, init_tile, merge_tiles_in_box
 
@@ -61,7 +67,8 @@ def integrate_ray_scan(
     Returns `(status, cell updates, TSDF updates, version clock, tiles, extra)`: with INTEGRATED,
     the pools hold the scan, each changed tile got the next version from `clock`, the clock
     returned is the newest version, `tiles` (rows: tile i, tile j) lists the changed tiles in the
-    plan's tile order and then the `extra` tiles created here in slot order. With NEEDS_SCRATCH,
+    plan's tile order and then the `extra` tiles created here in slot order (none when
+    `_integrate_existing` did the scan: it runs only when every tile is stored). With NEEDS_SCRATCH,
     `extra` is the scratch size needed. With any other status nothing changed."""
     none = np.empty((2, 0), dtype=np.int64)
     rays, kinds, xmin, ymin, xmax, ymax, traced, longest, walk = scan_rays(
@@ -82,6 +89,17 @@ def integrate_ray_scan(
         return TOO_WIDE, 0, 0, clock, none, 0
     ox = x / res
     oy = y / res
+    if method == EXACT and log_odds.size and not hits.size and not tsdf.size:
+        # Occupancy alone, and every tile of the box already stored: trace and apply in one pass
+        # (`trace_apply_scan`), which skips the far cells' collection. Else the path below.
+        status, updates, clock, out = _integrate_existing(
+            ox, oy, rays, kinds, shift, ti0, tj0, ti1, tj1, scratch, index_keys, index_slots, log_odds, l_hit,
+            l_miss, l_min, l_max, versions, clock,
+        )  # fmt: skip
+        if status == APPLY_NEEDS_SCRATCH:
+            return NEEDS_SCRATCH, 0, 0, clock, none, updates
+        if status == APPLIED:
+            return INTEGRATED, updates, 0, clock, out, 0
     tiles, cell, kind, runs, needed = trace_scan(
         ox, oy, rays, kinds, method, shift, ti0, tj0, ti1, tj1, scratch
     )
@@ -144,3 +162,51 @@ def integrate_ray_scan(
             out[0, n_changed + slots[k] - first_new] = tiles[0, k]
             out[1, n_changed + slots[k] - first_new] = tiles[1, k]
     return INTEGRATED, updates, tsdf_updates, clock, out, created
+
+
+@njit(cache=True, nogil=True)
+def _integrate_existing(
+    ox: float, oy: float, rays: np.ndarray, kinds: np.ndarray, shift: int, ti0: int, tj0: int, ti1: int,
+    tj1: int, scratch: np.ndarray, index_keys: np.ndarray, index_slots: np.ndarray, log_odds: np.ndarray,
+    l_hit: float, l_miss: float, l_min: float, l_max: float, versions: np.ndarray, clock: int,
+) -> tuple[int, int, int, np.ndarray]:  # fmt: skip
+    """`integrate_ray_scan`'s exact trace and log-odds apply through `trace_apply_scan`, when every
+    tile of the scan's box `[ti0, ti1] x [tj0, tj1]` is stored. The box's slots are looked up
+    before anything is traced, so that a missing tile leaves the map untouched.
+
+    Returns `(status, cells updated or the scratch size needed, clock, changed tiles)`, status one
+    of `trace_apply_scan`'s: with APPLIED the changed tiles got their versions in the box's
+    row-major order, which is the plan's tile order (`trace_scan` numbers the tiles that hold a cell
+    row-major over the box too), and are returned in that order. With any other status nothing
+    changed."""
+    none = np.empty((2, 0), dtype=np.int64)
+    ni = ti1 - ti0 + 1
+    nj = tj1 - tj0 + 1
+    slots = np.empty(ni * nj, dtype=np.int64)
+    for a in range(nj):
+        for c in range(ni):
+            slot = index_find(index_keys, index_slots, ti0 + c, tj0 + a)
+            if slot < 0:
+                return NOT_APPLIED, 0, clock, none
+            slots[a * ni + c] = slot
+    changed = np.zeros(ni * nj, dtype=np.uint8)
+    status, updates, needed = trace_apply_scan(
+        ox, oy, rays, kinds, shift, ti0, tj0, ti1, tj1, scratch, slots, log_odds, l_hit, l_miss, l_min, l_max,
+        changed,
+    )  # fmt: skip
+    if status == APPLY_NEEDS_SCRATCH:
+        return status, needed, clock, none
+    if status != APPLIED:
+        return status, 0, clock, none
+    clock = bump_versions(changed, slots, versions, clock)
+    n_changed = 0
+    for k in range(changed.size):
+        n_changed += changed[k]
+    out = np.empty((2, n_changed), dtype=np.int64)
+    c = 0
+    for k in range(changed.size):
+        if changed[k]:
+            out[0, c] = ti0 + k % ni
+            out[1, c] = tj0 + k // ni
+            c += 1
+    return APPLIED, updates, clock, out

@@ -10,10 +10,18 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from fleetmap.kernels.beam_walks import collect_dense, touched_tile_index, walk_dense, walk_far, walk_planes
+from fleetmap.kernels.beam_walks import (
+    collect_dense,
+    touched_tile_index,
+    walk_dense,
+    walk_far,
+    walk_far_apply,
+    walk_planes,
+)
 from fleetmap.kernels.fan_rows import MIN_RUN, trace_fan_rows
 from fleetmap.kernels.kinds import BEAM_HIT, BEAM_SKIP, CELL_HIT, CELL_MISS
 from fleetmap.kernels.traversal import EXACT, cell_count, exact_starts, walk
+from fleetmap.kernels.update import apply_cells
 
 
 @njit(cache=True, nogil=True)
@@ -90,14 +98,7 @@ def trace_scan(
     plane_shift = 2 * shift
     nj = tj1 - tj0 + 1
     ni = ti1 - ti0 + 1
-    visits = 0
-    for b in range(ex.size):
-        if kinds[b] != BEAM_SKIP:
-            visits += cell_count(ox, oy, ex[b], ey[b], method)
-    wshift = shift  # the dense window's rows are 2**wshift cells, so a key splits with shifts
-    while (1 << wshift) < (ni << shift):
-        wshift += 1
-    dense = (nj << (shift + wshift)) <= DENSE_WINDOW_CELLS
+    visits, wshift, dense = _window(ox, oy, ex, ey, kinds, method, shift, ni, nj)
     if method == EXACT:
         # Row by row near the sensor (`fan_rows`), in row order, and the far rows by walks in the
         # dense window (when the box fits one).
@@ -147,6 +148,90 @@ def trace_scan(
             planes[found[k] >> plane_shift] = 1
     none = np.empty(0, dtype=np.int64)
     return _number_tiles(index, planes, found[:n], kind_out[:n], none, none, plane_shift, ti0, tj0, dense)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _window(
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, method: int, shift: int, ni: int,
+    nj: int,
+) -> tuple[int, int, bool]:  # fmt: skip
+    """The cells the beams visit in all (the work arrays' size), the dense window's row shift (rows
+    of `2**wshift` cells, so that a key splits with shifts) and whether the box fits the window."""
+    visits = 0
+    for b in range(ex.size):
+        if kinds[b] != BEAM_SKIP:
+            visits += cell_count(ox, oy, ex[b], ey[b], method)
+    wshift = shift
+    while (1 << wshift) < (ni << shift):
+        wshift += 1
+    return visits, wshift, (nj << (shift + wshift)) <= DENSE_WINDOW_CELLS
+
+
+#: `trace_apply_scan` statuses.
+APPLIED = 0  # the scan is in the pool
+NOT_APPLIED = 1  # nothing changed: the caller traces and applies (`trace_scan`, `apply_cells`)
+APPLY_NEEDS_SCRATCH = 2  # nothing changed: the scratch is too small (the size it needs is returned)
+
+
+@njit(cache=True, nogil=True)
+def trace_apply_scan(
+    ox: float, oy: float, rays: np.ndarray, kinds: np.ndarray, shift: int, ti0: int, tj0: int, ti1: int,
+    tj1: int, scratch: np.ndarray, slots: np.ndarray, log_odds: np.ndarray, l_hit: float, l_miss: float,
+    l_min: float, l_max: float, changed: np.ndarray,
+) -> tuple[int, int, int]:  # fmt: skip
+    """`trace_scan` (EXACT) followed by `update.apply_cells` on the log-odds pool alone, when every
+    tile of the box `[ti0, ti1] x [tj0, tj1]` exists: `slots[a * ni + c]` is the pool slot of tile
+    `(ti0 + c, tj0 + a)` (ni = ti1 - ti0 + 1), and `changed` (one flag per box tile, zeroed) gets a
+    1 where a stored value changed. The pool ends as the trace and apply would leave it, bit for
+    bit: the same cells, each updated once, a hit if any beam ends in it.
+
+    The far walks' cells (most of an indoor scan's single cells) are applied straight from the
+    window by `walk_far_apply`, not written out as plane keys and kinds, read back and applied by a
+    pass of their own; the row trace's cells and runs go to `apply_cells` as before. With all the
+    box's tiles at hand, no tile list is built and no key renumbered.
+
+    Returns `(status, cells updated, scratch needed)`. NOT_APPLIED when the box does not fit the
+    dense window or the fan is not one the row trace takes (nothing changed, scratch still zero):
+    the caller takes `trace_scan`'s path, which handles those."""
+    ex = rays[2]
+    ey = rays[3]
+    nj = tj1 - tj0 + 1
+    ni = ti1 - ti0 + 1
+    visits, wshift, dense = _window(ox, oy, ex, ey, kinds, EXACT, shift, ni, nj)
+    if not dense:
+        return NOT_APPLIED, 0, 0
+    if scratch.size < nj << (shift + wshift):
+        return APPLY_NEEDS_SCRATCH, 0, nj << (shift + wshift)
+    found = np.empty(visits, dtype=np.int64)
+    kind_out = np.empty(visits, dtype=np.uint8)
+    run_key = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
+    run_len = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
+    planes = np.zeros(nj * ni, dtype=np.uint8)  # trace_fan_rows flags them; not needed here
+    far = np.empty((ex.size, 3), dtype=np.int64)
+    starts, crossings = exact_starts(np.full(ex.size, ox), np.full(ex.size, oy), ex, ey)
+    n, r, h = trace_fan_rows(
+        ox, oy, ex, ey, kinds, starts, crossings, shift, ti0, tj0, ni, found, kind_out, run_key, run_len,
+        planes, far,
+    )  # fmt: skip
+    if n < 0:
+        return NOT_APPLIED, 0, 0
+    updates = 0
+    if h:
+        updates = walk_far_apply(
+            kinds, starts, crossings, far[:h], shift, wshift, ti0, tj0, ni, scratch, found, n, slots,
+            log_odds, l_hit, l_miss, l_min, l_max, changed,
+        )  # fmt: skip
+    # The row trace's keys are plane keys numbered row-major over the box: `slots`' numbering.
+    runs = np.empty((2, r), dtype=np.int64)
+    runs[0] = run_key[:r]
+    runs[1] = run_len[:r]
+    no_counts = np.empty((0, 0, 0), dtype=np.uint32)
+    if n or r:
+        updates += apply_cells(
+            found[:n], kind_out[:n], runs, slots, shift, log_odds, no_counts, no_counts, l_hit, l_miss, l_min,
+            l_max, changed,
+        )  # fmt: skip
+    return APPLIED, updates, 0
 
 
 @njit(cache=True, nogil=True)
