@@ -227,3 +227,30 @@ def test_the_fallback_never_uses_a_cache_directory_others_can_write(
     status = chosen.stat()
     assert (status.st_uid, status.st_mode & 0o077) == (os.getuid(), 0)
     assert str(chosen) == numba.config.CACHE_DIR
+
+
+def _resident_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmRSS for process {pid}")
+
+
+def test_a_first_start_compiles_in_a_child_and_keeps_none_of_the_compilers_memory(tmp_path: Path) -> None:
+    """The first start on an empty cache compiles the kernels in a child process, and then holds about
+    what a start that loaded them holds: compiled in the service's own process, LLVM kept ~210 MB
+    more for the process's whole life. The second start on the same cache loads them."""
+    from service_process import ServiceProcess
+
+    env = {"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    starts = []
+    for name in ("cold", "warm"):
+        (tmp_path / name).mkdir()
+        with ServiceProcess(tmp_path / name, ["--in-memory"], startup_timeout=600, env=env) as service:
+            assert service.proc is not None
+            starts.append((_resident_mb(service.proc.pid), service.logs()))
+    (cold_mb, cold_log), (warm_mb, warm_log) = starts
+    assert cold_mb < warm_mb + 80, f"first start {cold_mb:.0f} MB resident, second {warm_mb:.0f} MB"
+    assert "compiling the engine's kernels in a child process" in cold_log, cold_log
+    assert "failed" not in cold_log
+    assert "loading the engine's compiled kernels" in warm_log and "child process" not in warm_log, warm_log

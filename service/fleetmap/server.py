@@ -64,7 +64,7 @@ from fleetmap.network import is_loopback_host
 from fleetmap.persistence import DurableStore
 from fleetmap.serve_options import DEFAULT_DATA_DIR, ROS_MAP_DEFAULTS, add_serve_parser, parse_http
 from fleetmap.serve_ros import ros_domain, ros_options, start_ros_maps, start_ros_scans, zenoh_status
-from fleetmap.warm_up import warm_up
+from fleetmap.warm_up import compile_in_child, warm_up
 from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest
 
 if TYPE_CHECKING:
@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         sock = bind_http(options.host, options.port)
         port = sock.getsockname()[1]
         durable = _open_storage(args, sock)
-        _warm_engine()
+        _warm_engine(stop)
         registry = MapRegistry(
             options.default_config,
             auto_create=not args.no_auto_create,
@@ -289,14 +289,25 @@ def _open_storage(args: argparse.Namespace, sock: socket.socket) -> DurableStore
         raise CliError(str(exc)) from None
 
 
-def _warm_engine() -> None:
-    """`warm_up`, said in the log: the first start after an install compiles the kernels (10-30 s,
-    silent otherwise)."""
-    log.info(
-        "loading the engine's compiled kernels (the first start after an install compiles them: about "
-        "15 s, a minute or two on a busy machine; later starts load them from disk)"
-    )
+def _warm_engine(stop: threading.Event) -> None:
+    """`warm_up`, said in the log. The first start after an install compiles the kernels (10-30 s)
+    in a child process (`compile_in_child`: the memory LLVM takes goes with the child), then loads
+    them like any later start; if the child fails, this process compiles them itself, unless the
+    service is stopping (`stop`: a SIGTERM to the process group ended the child too)."""
+    from fleetmap.kernels import one_call_kernel_cached  # here: numba loads with it
+
     started = time.perf_counter()
+    if not one_call_kernel_cached():
+        log.info(
+            "compiling the engine's kernels in a child process (the first start after an install: "
+            "about 15 s, a minute or two on a busy machine; later starts load them from disk)"
+        )
+        if not compile_in_child():
+            if stop.is_set():
+                return
+            log.warning("compiling the kernels in a child process failed; compiling them here")
+    else:
+        log.info("loading the engine's compiled kernels")
     warm_up()
     log.info("engine ready in %.1f s", time.perf_counter() - started)
 

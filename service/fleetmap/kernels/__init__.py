@@ -112,6 +112,15 @@ def _probe() -> None:
     """A function for numba's cache locators, which want one (they read only its first line)."""
 
 
+def one_call_kernel_cached() -> bool:
+    """Whether numba's cache holds a compiled `integrate_scan.integrate_ray_scan` (the largest kernel,
+    which every map's first scans run): False on the first start after an install or an upgrade, or
+    after `drop_stale_compiled_cache` dropped the cache. A cache written on another CPU counts as
+    held (numba then compiles in-process, as it would anyway). Call after this package's import."""
+    directory = _numba_cache_directory(Path(__file__).parent / "integrate_scan.py")
+    return any(directory.glob("integrate_scan.integrate_ray_scan-*.nbi"))
+
+
 def _numba_cache_directory(source: Path) -> Path:
     """The directory where numba caches the functions of `source` (`_locator_directory`), or the
     in-tree `__pycache__` when numba's locators cannot be asked."""
