@@ -58,6 +58,32 @@ def trace_rays(
 DENSE_WINDOW_CELLS = 1 << 23
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _trace_rows(
+    ox: float, oy: float, ex: np.ndarray, ey: np.ndarray, kinds: np.ndarray, shift: int, ti0: int, tj0: int,
+    ni: int, nj: int, visits: int, far_rows: bool,
+) -> tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+    int, int, int,
+]:  # fmt: skip
+    """The row trace (`fan_rows.trace_fan_rows`) of an exact fan with its work arrays, for `trace_scan`
+    and `trace_apply_scan`: `(found, kind_out, run_key, run_len, planes, far, starts, crossings, n, r,
+    h)`, `n < 0` when the fan is not one the row trace takes. With `far_rows` the far rests are handed
+    back in `far[:h]` for the walks (the dense window); without, the rows go all the way."""
+    found = np.empty(visits, dtype=np.int64)
+    kind_out = np.empty(visits, dtype=np.uint8)
+    run_key = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
+    run_len = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
+    planes = np.zeros(nj * ni, dtype=np.uint8)
+    far = np.empty((ex.size if far_rows else 0, 3), dtype=np.int64)
+    starts, crossings = exact_starts(np.full(ex.size, ox), np.full(ex.size, oy), ex, ey)
+    n, r, h = trace_fan_rows(
+        ox, oy, ex, ey, kinds, starts, crossings, shift, ti0, tj0, ni, found, kind_out, run_key, run_len,
+        planes, far,
+    )  # fmt: skip
+    return found, kind_out, run_key, run_len, planes, far, starts, crossings, n, r, h
+
+
 @njit(cache=True, nogil=True)
 def trace_scan(
     ox: float,
@@ -104,17 +130,9 @@ def trace_scan(
         # dense window (when the box fits one).
         if dense and scratch.size < nj << (shift + wshift):
             return _no_trace(nj << (shift + wshift))
-        found = np.empty(visits, dtype=np.int64)
-        kind_out = np.empty(visits, dtype=np.uint8)
-        run_key = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
-        run_len = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
-        planes = np.zeros(nj * ni, dtype=np.uint8)
-        far = np.empty((ex.size if dense else 0, 3), dtype=np.int64)
-        starts, crossings = exact_starts(np.full(ex.size, ox), np.full(ex.size, oy), ex, ey)
-        n, r, h = trace_fan_rows(
-            ox, oy, ex, ey, kinds, starts, crossings, shift, ti0, tj0, ni, found, kind_out, run_key, run_len,
-            planes, far,
-        )  # fmt: skip
+        found, kind_out, run_key, run_len, planes, far, starts, crossings, n, r, h = _trace_rows(
+            ox, oy, ex, ey, kinds, shift, ti0, tj0, ni, nj, visits, dense
+        )
         if n >= 0:
             if h:
                 n = walk_far(
@@ -202,17 +220,10 @@ def trace_apply_scan(
         return NOT_APPLIED, 0, 0
     if scratch.size < nj << (shift + wshift):
         return APPLY_NEEDS_SCRATCH, 0, nj << (shift + wshift)
-    found = np.empty(visits, dtype=np.int64)
-    kind_out = np.empty(visits, dtype=np.uint8)
-    run_key = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
-    run_len = np.empty(visits // MIN_RUN + 1, dtype=np.int64)
-    planes = np.zeros(nj * ni, dtype=np.uint8)  # trace_fan_rows flags them; not needed here
-    far = np.empty((ex.size, 3), dtype=np.int64)
-    starts, crossings = exact_starts(np.full(ex.size, ox), np.full(ex.size, oy), ex, ey)
-    n, r, h = trace_fan_rows(
-        ox, oy, ex, ey, kinds, starts, crossings, shift, ti0, tj0, ni, found, kind_out, run_key, run_len,
-        planes, far,
-    )  # fmt: skip
+    # (The planes `_trace_rows` flags are not needed here: `slots` covers the whole box.)
+    found, kind_out, run_key, run_len, _, far, starts, crossings, n, r, h = _trace_rows(
+        ox, oy, ex, ey, kinds, shift, ti0, tj0, ni, nj, visits, True
+    )
     if n < 0:
         return NOT_APPLIED, 0, 0
     updates = 0
