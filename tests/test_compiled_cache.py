@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -236,23 +238,84 @@ def _resident_mb(pid: int) -> float:
     raise AssertionError(f"no VmRSS for process {pid}")
 
 
+#: A `sitecustomize` (on PYTHONPATH) through which the kernels' compile child, and it alone, prints a
+#: line: numba warns there on some machines. The service must log it in its own format.
+CHILD_SAYS = "a warning printed by the compile child"
+_SITECUSTOMIZE = f"""
+import sys
+if "fleetmap.warm_up" in sys.orig_argv:
+    print({CHILD_SAYS!r}, file=sys.stderr, flush=True)
+"""
+
+
+def _printing_child_env(tmp_path: Path) -> dict[str, str]:
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(_SITECUSTOMIZE)
+    return {"PYTHONPATH": os.pathsep.join([str(site), *filter(None, [os.environ.get("PYTHONPATH")])])}
+
+
 def test_a_first_start_compiles_in_a_child_and_keeps_none_of_the_compilers_memory(tmp_path: Path) -> None:
     """The first start on an empty cache compiles the kernels in a child process, and then holds about
     what a start that loaded them holds: compiled in the service's own process, LLVM kept ~210 MB
-    more for the process's whole life. The second start on the same cache loads them."""
+    more for the process's whole life. The second start on the same cache loads them. What the
+    child printed is in the service's log as one record of its format (JSON here): a plain-text
+    line would break a log collector."""
     from service_process import ServiceProcess
 
-    env = {"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    env = {"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache"), **_printing_child_env(tmp_path)}
     starts = []
     for name in ("cold", "warm"):
         (tmp_path / name).mkdir()
-        with ServiceProcess(tmp_path / name, ["--in-memory"], startup_timeout=600, env=env) as service:
+        args = ["--in-memory", "--log-format", "json"]
+        with ServiceProcess(tmp_path / name, args, startup_timeout=600, env=env) as service:
             assert service.proc is not None
             starts.append((_resident_mb(service.proc.pid), service.logs()))
     (cold_mb, cold_log), (warm_mb, warm_log) = starts
     assert cold_mb < warm_mb + 80, f"first start {cold_mb:.0f} MB resident, second {warm_mb:.0f} MB"
+    records = [json.loads(line) for line in cold_log.splitlines()]  # every line one JSON object
+    messages = [str(record["message"]) for record in records]
     # Before the address, a first start says why it takes up to minutes.
     said = "compiling the engine's kernels in a child process (the first start after an install: about 15 s"
-    assert said in cold_log, cold_log
+    assert any(message.startswith(said) for message in messages), cold_log
+    printed = [r for r in records if CHILD_SAYS in str(r["message"])]
+    assert [(r["level"], r["message"]) for r in printed] == [
+        ("WARNING", f"the kernels' compilation in a child process printed:\n{CHILD_SAYS}")
+    ], cold_log
     assert "failed" not in cold_log
     assert "loading the engine's compiled kernels" in warm_log and "child process" not in warm_log, warm_log
+
+
+def _children(pid: int) -> list[int]:
+    return [int(child) for child in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+def test_a_service_stopped_during_its_first_compile_ends_the_compile_and_exits_cleanly(
+    tmp_path: Path,
+) -> None:
+    """`kill` (or `docker stop`) signals the service, not its process group: the compile child goes on
+    compiling. The service must end it and exit at once, not wait out the compilation (15 s to
+    minutes) and then restore and serve for nothing; the child must not outlive it."""
+    from service_process import ServiceProcess, wait_for
+
+    cache = tmp_path / "numba-cache"
+    service = ServiceProcess(tmp_path)  # its command line and log file; started here, not waited for
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    with (
+        open(service.log_path, "wb") as log,
+        subprocess.Popen(service.args, stdout=log, stderr=log, env=env) as proc,
+    ):
+        try:
+            wait_for(lambda: _children(proc.pid), 120, what="the compile child")
+            (child,) = _children(proc.pid)
+            assert "fleetmap.warm_up" in Path(f"/proc/{child}/cmdline").read_text(), service.logs()
+            proc.send_signal(signal.SIGTERM)  # the service alone
+            assert proc.wait(60) == 0, service.logs()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert not Path(f"/proc/{child}").exists(), "the compile child outlived the service"
+    logs = service.logs()
+    assert "the kernels' compilation was cut short" in logs and "stopped before serving" in logs, logs
+    assert "compiling them here" not in logs and "fleetmap serving" not in logs, logs
+    assert not list(cache.rglob("integrate_scan.integrate_ray_scan-*.nbi")), "the compilation ran to its end"

@@ -118,6 +118,12 @@ def run(args: argparse.Namespace) -> int:
         port = sock.getsockname()[1]
         durable = _open_storage(args, sock)
         _warm_engine(stop)
+        if stop.is_set():  # signalled while starting: nothing restored or served yet, nothing to save
+            sock.close()
+            if durable is not None:
+                durable.close()
+            log.info("stopped before serving")
+            return 0
         registry = MapRegistry(
             options.default_config,
             auto_create=not args.no_auto_create,
@@ -293,7 +299,8 @@ def _warm_engine(stop: threading.Event) -> None:
     """`warm_up`, said in the log. The first start after an install compiles the kernels (10-30 s)
     in a child process (`compile_in_child`: the memory LLVM takes goes with the child), then loads
     them like any later start; if the child fails, this process compiles them itself, unless the
-    service is stopping (`stop`: a SIGTERM to the process group ended the child too)."""
+    service is stopping (`stop`: the child is ended then, see `compile_in_child`). What the child
+    printed is logged as one warning, in the log's format."""
     from fleetmap.kernels import one_call_kernel_cached  # here: numba loads with it
 
     started = time.perf_counter()
@@ -302,9 +309,13 @@ def _warm_engine(stop: threading.Event) -> None:
             "compiling the engine's kernels in a child process (the first start after an install: "
             "about 15 s, a minute or two on a busy machine; later starts load them from disk)"
         )
-        if not compile_in_child():
-            if stop.is_set():
-                return
+        compiled = compile_in_child(stop)
+        if compiled.output.strip():  # one record, in the log's format (numba's warnings, a traceback)
+            log.warning("the kernels' compilation in a child process printed:\n%s", compiled.output.rstrip())
+        if compiled.stopped or (not compiled.finished and stop.is_set()):
+            log.info("stopping: the kernels' compilation was cut short")
+            return
+        if not compiled.finished:
             log.warning("compiling the kernels in a child process failed; compiling them here")
     else:
         log.info("loading the engine's compiled kernels")

@@ -8,6 +8,8 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
+from typing import NamedTuple
 
 
 def warm_up() -> None:
@@ -48,26 +50,65 @@ def warm_up() -> None:
     reduce_tsdf_tiles(tsdf, tsdf, slots, 0, 0, 2, 2, np.empty((1, 1, 1), dtype=np.float32))
 
 
-def compile_in_child() -> bool:
+#: How often `compile_in_child` looks at its stop event while the child compiles (seconds).
+STOP_POLL_S = 0.2
+#: How long a child told to stop (SIGTERM) has to end before it is killed (seconds).
+STOP_GRACE_S = 5.0
+
+
+class ChildCompile(NamedTuple):
+    """What `compile_in_child` saw: whether the child compiled the kernels (exit status 0), whether
+    it was stopped first, and what it printed (stdout and stderr together, as one text)."""
+
+    finished: bool
+    stopped: bool
+    output: str
+
+
+def compile_in_child(stop: threading.Event | None = None) -> ChildCompile:
     """Compile the kernels into numba's on-disk cache in a child process (`python -m
-    fleetmap.warm_up`); True if it finished. The caller's `warm_up` then loads them from the cache.
+    fleetmap.warm_up`). The caller's `warm_up` then loads them from the cache.
 
     Why: LLVM keeps what a compilation took for the life of the process (about 210 MB more resident
     memory in a service that compiled its kernels than in one that loaded them, for as long as it
     runs, however long that is). The child's memory goes with the child. The child writes the cache
     this process uses (`NUMBA_CACHE_DIR` passed on, for a cache directory chosen at run time by
-    `kernels.ensure_compiled_cache_location`)."""
+    `kernels.ensure_compiled_cache_location`).
+
+    When `stop` is set while the child compiles (the service got SIGTERM, but the child did not: a
+    `kill` or `docker stop` signals one process, not its group), the child is terminated, and killed
+    after `STOP_GRACE_S`: a stopping service does not wait out a compilation. The child's output is
+    returned, not passed through, so that the caller can log it in the service's log format (a
+    plain-text line in a JSON log would break a log collector)."""
     import numba
 
     env = dict(os.environ)
     cache_dir = numba.config.CACHE_DIR  # type: ignore[attr-defined]  # set from the environment at import
     if cache_dir:
         env["NUMBA_CACHE_DIR"] = str(cache_dir)
+    command = [sys.executable, "-m", "fleetmap.warm_up"]
     try:
-        done = subprocess.run([sys.executable, "-m", "fleetmap.warm_up"], env=env, check=False)
-    except OSError:
-        return False
-    return done.returncode == 0
+        child = subprocess.Popen(
+            command, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True, errors="replace",
+        )  # fmt: skip
+    except OSError as exc:
+        return ChildCompile(False, False, f"cannot run {sys.executable}: {exc}")
+    while True:
+        try:  # (a retried communicate loses no output)
+            output, _ = child.communicate(timeout=STOP_POLL_S)
+        except subprocess.TimeoutExpired:
+            if stop is None or not stop.is_set():
+                continue
+            child.terminate()
+            try:
+                output, _ = child.communicate(timeout=STOP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                child.kill()
+                output, _ = child.communicate()
+            return ChildCompile(False, True, output)
+        stopped = stop is not None and stop.is_set()  # (a SIGTERM to the group ended the child too)
+        return ChildCompile(child.returncode == 0, stopped and child.returncode != 0, output)
 
 
 if __name__ == "__main__":
