@@ -20,6 +20,7 @@ import httpx
 
 from fleetmap.cli import CliError
 from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP
+from fleetmap.signal_event import SignalEvent
 from fleetmap.wire import DEFAULT_ENDPOINT, is_valid_id
 
 
@@ -63,8 +64,8 @@ def run(args: argparse.Namespace) -> int:
         [sys.executable, "-m", "fleetmap.server", "--http", args.http, "--zenoh-listen", args.zenoh,
          "--data-dir", args.data_dir],
     )  # fmt: skip
-    stop = threading.Event()
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    stop = SignalEvent()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set_in_handler())
     ready = False
     try:
         url = f"http://{args.http}/"

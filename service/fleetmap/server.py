@@ -64,6 +64,7 @@ from fleetmap.network import is_loopback_host
 from fleetmap.persistence import DurableStore
 from fleetmap.serve_options import DEFAULT_DATA_DIR, ROS_MAP_DEFAULTS, add_serve_parser, parse_http
 from fleetmap.serve_ros import ros_domain, ros_options, start_ros_maps, start_ros_scans, zenoh_status
+from fleetmap.signal_event import SignalEvent
 from fleetmap.warm_up import compile_in_child, warm_up
 from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest
 
@@ -92,13 +93,13 @@ def run(args: argparse.Namespace) -> int:
     from fleetmap.registry import MapRegistry
 
     _configure_process(args)
-    stop = threading.Event()
+    stop = SignalEvent()
     server: Any = None
 
     def on_signal(signum: int, _frame: object) -> None:
         # Before uvicorn runs (start-up) and after it returns (uvicorn re-raises the signal it
         # caught): note the request; uvicorn handles the signal itself while it serves.
-        stop.set()
+        stop.set_in_handler()
         if server is not None:
             server.should_exit = True
 

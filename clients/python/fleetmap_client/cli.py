@@ -18,6 +18,7 @@ import sys
 from collections.abc import Sequence
 
 from fleetmap.cli import CliError, dataset_error, run_command
+from fleetmap.signal_event import SignalEvent
 
 from .publisher import ScanPublisher
 from .zenoh_config import DEFAULT_CONNECT
@@ -202,7 +203,6 @@ def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
 
 def run_sim_command(args: argparse.Namespace) -> int:
     import signal
-    import threading
 
     from fleetmap.wire import ID_PATTERN, is_valid_id
 
@@ -216,14 +216,14 @@ def run_sim_command(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     if not args.confirm_timeout >= 0.0:
         raise CliError(f"--confirm-timeout must be a number of seconds >= 0, got {args.confirm_timeout}")
-    stop = threading.Event()
+    stop = SignalEvent()
 
     # Ctrl-C (or SIGINT from a script that started us with SIGINT ignored) stops the robots, and the
     # summary of what they published is still printed; a second one ends the wait for confirmation.
     def interrupt(*_: object) -> None:
         if stop.is_set():
             raise KeyboardInterrupt
-        stop.set()
+        stop.set_in_handler()
 
     previous = signal.signal(signal.SIGINT, interrupt)
     print(
