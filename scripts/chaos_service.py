@@ -48,6 +48,7 @@ from service_process import ServiceProcess, wait_for  # noqa: E402
 
 from fleetmap import codec  # noqa: E402
 from fleetmap.scan import Pose2D, Scan  # noqa: E402
+from fleetmap.signal_event import SignalEvent  # noqa: E402
 
 STABLE_MAPS = ("stable-a", "stable-b")
 CHURN_MAP = "churn"
@@ -82,8 +83,8 @@ def robot_main(args: argparse.Namespace) -> int:
 
     plan = generate_floorplan(args.seed % 3, width_m=20.0, height_m=15.0)
     sim = SimulatedRobot(plan, args.seed, num_beams=90, range_max=12.0, speed=1.0, scan_rate=5.0)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop = SignalEvent()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set_in_handler())
     sent = not_sent = 0
     pub = ScanPublisher(args.map, args.robot, connect=[args.connect])
     pub.wait_connected(timeout=60)
