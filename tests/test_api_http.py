@@ -67,8 +67,10 @@ def test_head_answers_every_get_route_with_its_headers_and_no_body(mapped: httpx
     missing = mapped.head("/maps/nope")
     assert missing.status_code == 404 and missing.headers["content-type"] == "application/json"
     # Where HEAD works, 405s say so; the event stream is the exception (its GET never ends).
-    r = mapped.post("/maps/m/region")
+    r = mapped.post("/maps/m/cell")
     assert r.status_code == 405 and r.headers["allow"] == "GET, HEAD", r.headers
+    r = mapped.post("/maps/m/region")  # read, and cleared with DELETE
+    assert r.status_code == 405 and r.headers["allow"] == "DELETE, GET, HEAD", r.headers
     r = mapped.head("/maps/m/events")
     assert r.status_code == 405 and r.headers["allow"] == "GET"
 

@@ -375,6 +375,18 @@ class RaycastResponse(_Model):
 # -- regions, surfaces ------------------------------------------------------------------------------
 
 
+class RegionCleared(_Model):
+    """`DELETE /maps/{map_id}/region`: the cells made unknown."""
+
+    window: CellWindow = Field(description="the cells [i0, j0, i1, j1] cleared: i0 <= i < i1, j0 <= j < j1")
+    cells_cleared: int = Field(
+        description="cells of the window that were observed (in some layer) and are unknown now"
+    )
+    changed_tiles: list[CellWindow] = Field(
+        description="cell windows [i0, j0, i1, j1] of the storage tiles that changed (new versions, ETags)"
+    )
+
+
 class RegionJson(_Model):
     """`GET /maps/{map_id}/region?format=json`: a dense window of one layer."""
 

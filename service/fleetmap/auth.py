@@ -7,7 +7,7 @@ characters (what an HTTP header carries as is). Clients send `Authorization: Bea
 may do everything `write` may, `write` everything `read` may.
 
 What needs which role:
-- writing (POST scans, PUT/DELETE maps, PUT snapshots and nav2 imports): `write`;
+- writing (POST scans, PUT/DELETE maps, DELETE regions, PUT snapshots and nav2 imports): `write`;
 - reading (every GET, and POST /maps/{id}/cells and /raycast, which only read): `read`, unless
   reading is left open (`require_read=False`, the default), then anyone;
 - signing a browser in (`POST /session`): a token of any role, whether reading is open or not;

@@ -22,8 +22,11 @@ LOCK_NAME = "fleetmap.lock"
 #: the `tombstones` table, created at start where it is missing, which an older service ignores,
 #: and its `forgotten` column, added at start where it is missing: an older service names the
 #: columns it reads and writes, its rows get 0 there, and it takes a forgotten robot's stone for a
-#: deleted map's, which ignores the same old scans.)
-SCHEMA_VERSION = 1
+#: deleted map's, which ignores the same old scans.) Version 2: a journal row may also be a window of
+#: cells cleared (`storage_format.cleared_window_to_blob`, `DELETE /maps/{id}/region`), which a version
+#: 1 service would take for a corrupt row; the tables are the same, and version 1 databases are read
+#: as they are (raised to 2 on open).
+SCHEMA_VERSION = 2
 #: Refuse to start with less free space than this in the data directory.
 MIN_FREE_BYTES = 64 * 1024 * 1024
 SCHEMA = """

@@ -110,6 +110,14 @@ class IntegrationResult(NamedTuple):
     tiles_created: int
 
 
+class WindowCleared(NamedTuple):
+    """What `GridMap.clear_window` did: how many cells were observed (in some layer) and are unknown
+    now, and the tiles that changed."""
+
+    cells: int
+    changed_tiles: list[TileKey]
+
+
 class GridMap:
     """A sparse, unbounded 2D map with the layers its `MapConfig` switches on.
 
@@ -204,6 +212,13 @@ class GridMap:
         if status == integrate_scan.TOO_LONG:
             raise ScanError(too_long())
         return None  # NEEDS_TILES
+
+    def clear_window(self, i0: int, j0: int, i1: int, j1: int) -> WindowCleared:
+        """Forget the cells `[i0, i1) x [j0, j1)`: every layer back to never-observed there, as
+        before any scan (octomap_server's clear of a bounding box). Tiles stay stored; the changed
+        ones get new versions. Later scans observe the cells again as usual."""
+        with self.lock:
+            return WindowCleared(*self.store.clear_window(i0, j0, i1, j1))
 
     def plan(self, scan: Scan) -> UpdatePlan:
         """The updates `scan` implies; touches no map state, so it needs no lock."""

@@ -38,10 +38,11 @@ import numpy as np
 
 from fleetmap.config import STORED_CONFIG, MapConfig
 from fleetmap.database import StorageError, connect, open_database
+from fleetmap.export import Window
 from fleetmap.grid_map import GridMap
 from fleetmap.journal import JournalEntry, JournalWriter
 from fleetmap.scan import Scan
-from fleetmap.storage_format import scan_from_blob, tile_from_blob, tile_to_blob
+from fleetmap.storage_format import journal_row_from_blob, tile_from_blob, tile_to_blob
 from fleetmap.tombstones import MAX_TOMBSTONES, Tombstone, forgotten_before
 
 log = logging.getLogger("fleetmap.persistence")
@@ -116,8 +117,10 @@ class StoredJournal:
     def __len__(self) -> int:
         return self.count
 
-    def __iter__(self) -> Iterator[tuple[str, int, float, int | None, Scan]]:
-        """(robot id, seq, stamp, session id or None, scan) of each row, in journal order."""
+    def __iter__(self) -> Iterator[tuple[str, int, float, int | None, Scan | Window]]:
+        """(robot id, seq, stamp, session id or None, scan) of each row, in journal order; a row that
+        cleared a window of cells (`MapRegistry.clear_window`) has that `Window` for its scan, no
+        robot id (""), seq 0 and the time it was cleared."""
         conn = connect(self.path)
         try:
             last = self.after
@@ -133,7 +136,7 @@ class StoredJournal:
                     return
                 for row_id, robot_id, seq, stamp, session, blob in rows:
                     try:
-                        scan = scan_from_blob(blob)
+                        scan = journal_row_from_blob(blob)
                     except StorageError as exc:
                         raise unreadable_database(
                             self.path, self.map_id, f"journal row {row_id}: {exc}"

@@ -38,15 +38,16 @@ from fleetmap import delivery
 from fleetmap.codec import DEFAULT_LIMITS, InputLimits, WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
+from fleetmap.export import Window
 from fleetmap.fair_queue import FairQueue, QueueClosed
-from fleetmap.grid_map import GridMap, IntegrationResult
+from fleetmap.grid_map import GridMap, IntegrationResult, WindowCleared
 from fleetmap.map_entry import SHUTTING_DOWN, Expectation, IngestRejected, Job, MapEntry
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation
 from fleetmap.persistence import DurableStore
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.robot_state import CONFLICT_SHOWN, NO_SESSION, RobotState, session_key
 from fleetmap.scan import ScanError
-from fleetmap.storage_format import scan_to_blob
+from fleetmap.storage_format import cleared_window_to_blob, scan_to_blob
 from fleetmap.tiles import TileLimitError
 from fleetmap.tombstones import Tombstone, Tombstones
 from fleetmap.unmapped_refusals import UnmappedRefusals
@@ -217,7 +218,7 @@ class MapRegistry:
             entry.scans_rejected = counters["scans_rejected"]
             entry.robots = {rid: RobotState.from_saved(data) for rid, data in counters["robots"].items()}
             started = last_report = time.monotonic()
-            for replayed, (robot_id, seq, stamp, session, scan) in enumerate(journal):
+            for replayed, (robot_id, seq, stamp, session, row) in enumerate(journal):
                 if time.monotonic() - last_report >= RESTORE_REPORT:
                     # 20,000 scans take 10-20 s: say the service is busy, not stuck.
                     last_report = time.monotonic()
@@ -225,6 +226,10 @@ class MapRegistry:
                         "restoring map %s: %d of %d journal scans replayed (%.0f s)",
                         map_id, replayed, len(journal), last_report - started, extra={"map_id": map_id},
                     )  # fmt: skip
+                if isinstance(row, Window):  # a window cleared (`clear_window`): no robot's scan
+                    gmap.clear_window(row.i0, row.j0, row.i1, row.j1)
+                    continue
+                scan = row
                 gmap.integrate(scan)  # the same engine, in journal order: the same map
                 robot = entry.robot(robot_id)
                 robot.scans_integrated += 1
@@ -539,6 +544,33 @@ class MapRegistry:
         removed: Future = Future()
         removed.set_result(None)
         return removed
+
+    def clear_window(self, entry: MapEntry, window: Window) -> WindowCleared:
+        """Forget the cells of `window` in the map of `entry` (`get`; `GridMap.clear_window`: every
+        layer back to never-observed there), in order with the map's scans: a scan applied before is
+        forgotten there, one applied after observes the cells again. Viewers are told of the changed
+        tiles. With storage it is journaled as a scan is, and committed before this returns, so that
+        a restart replays it where it happened. Raises `MapConflict` when the map was deleted or
+        replaced since `entry` was looked up (the window may be another map's cells), or
+        `NotDurable` when the cells are forgotten in memory but the journal's commit failed (the
+        map's next snapshot stores it, as for a scan's)."""
+        map_id = entry.id
+        stored: Future | None = None
+        with entry.gmap.lock:
+            if entry.retired:
+                raise MapConflict(f"map {map_id!r} was deleted or replaced meanwhile; nothing was cleared")
+            cleared = entry.gmap.clear_window(window.i0, window.j0, window.i1, window.j1)
+            if cleared.cells and self.durable is not None:
+                stored = Future()
+                # Under the map's lock, as a scan's row: the journal's order is the order of changes.
+                self.durable.journal(
+                    map_id, "", 0, time.time(), cleared_window_to_blob(window),
+                    lambda _row: stored.set_result(None), stored.set_exception,
+                )  # fmt: skip
+        if cleared.changed_tiles:
+            entry.changes.record(cleared.changed_tiles)  # viewers see the change now
+        _wait_stored(stored, f"{cleared.cells} cells of map {map_id!r} were made unknown")
+        return cleared
 
     def list(self) -> list[MapEntry]:
         with self.lock:

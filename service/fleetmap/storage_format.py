@@ -22,6 +22,7 @@ from pydantic import ValidationError
 
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.database import StorageError
+from fleetmap.export import Window
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan
 from fleetmap.tiles import LayerArray, TileKey, TileLimitError, layer_arrays, tile_bytes
@@ -145,6 +146,34 @@ def scan_from_blob(blob: bytes) -> Scan:
         return Scan(Pose2D(x, y, theta), angles, ranges, range_min, range_max)
     except (struct.error, ValueError) as exc:  # too short, or a Scan that cannot be (ScanError)
         raise StorageError(f"corrupt journal entry: {exc}") from exc
+
+
+#: A journal row that is not a scan: a window of cells made unknown (`GridMap.clear_window`, `DELETE
+#: /maps/{id}/region`). This version byte (no scan's), the window's i0, j0, i1 and j1, then the CRC-32
+#: of what comes before. Replayed in journal order with the scans, so a restart forgets the cells
+#: just where the running service did.
+_CLEARED_WINDOW = struct.Struct("<Bqqqq")
+_CLEARED_WINDOW_VERSION = 100
+
+
+def cleared_window_to_blob(window: Window) -> bytes:
+    """The journal row of a window cleared (`journal_row_from_blob` reads it back)."""
+    body = _CLEARED_WINDOW.pack(_CLEARED_WINDOW_VERSION, window.i0, window.j0, window.i1, window.j1)
+    return body + _SCAN_CRC.pack(zlib.crc32(body))
+
+
+def journal_row_from_blob(blob: bytes) -> Scan | Window:
+    """What a journal row holds: a scan (`scan_to_blob`, any version `scan_from_blob` reads) or a
+    window of cells cleared (`cleared_window_to_blob`); `StorageError` if the row is corrupt."""
+    if blob[:1] != bytes([_CLEARED_WINDOW_VERSION]):
+        return scan_from_blob(blob)
+    if len(blob) != _CLEARED_WINDOW.size + _SCAN_CRC.size:
+        raise StorageError("corrupt journal entry: a cleared window of the wrong size")
+    (crc,) = _SCAN_CRC.unpack_from(blob, _CLEARED_WINDOW.size)
+    if zlib.crc32(blob[: _CLEARED_WINDOW.size]) != crc:
+        raise StorageError("corrupt journal entry: its checksum does not match its contents")
+    _, i0, j0, i1, j1 = _CLEARED_WINDOW.unpack_from(blob)
+    return Window(i0, j0, i1, j1)
 
 
 #: Stored tiles, format 2 (docs/durability.md, "Tile rows"): this magic, then zlib (level 1) of one

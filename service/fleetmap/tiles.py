@@ -259,6 +259,37 @@ class TileStore:
         every tile changed since then. The caller holds the map's lock."""
         return np.flatnonzero(self.versions[: len(self.keys)] > since)
 
+    def clear_window(self, i0: int, j0: int, i1: int, j1: int) -> tuple[int, list[TileKey]]:
+        """Make the cells `[i0, i1) x [j0, j1)` never-observed again in every array (each its
+        `unknown` value, as `create` fills a tile), and give each tile where one of them was
+        observed a new version. Tiles stay stored. Returns (how many of the cells were observed in
+        some layer, the tiles changed, in slot order). The caller holds the map's lock.
+
+        Only stored tiles are visited, so a window far larger than the map costs what the map does."""
+        if i1 <= i0 or j1 <= j0:
+            return 0, []
+        s, t = self.shift, self.tile_size
+        ti0, tj0, ti1, tj1 = i0 >> s, j0 >> s, (i1 - 1) >> s, (j1 - 1) >> s
+        cleared, changed = 0, []
+        for slot, (ti, tj) in enumerate(self.keys):
+            if not (ti0 <= ti <= ti1 and tj0 <= tj <= tj1):
+                continue
+            rows = slice(max(j0, tj * t) - tj * t, min(j1, (tj + 1) * t) - tj * t)
+            columns = slice(max(i0, ti * t) - ti * t, min(i1, (ti + 1) * t) - ti * t)
+            observed = np.zeros((rows.stop - rows.start, columns.stop - columns.start), dtype=bool)
+            for array in self.arrays:
+                block = self.pools[array.name][slot, rows, columns]
+                observed |= ~np.isnan(block) if np.isnan(array.unknown) else block != array.unknown
+            count = int(np.count_nonzero(observed))
+            if count == 0:
+                continue
+            for array in self.arrays:
+                self.pools[array.name][slot, rows, columns] = array.unknown
+            self.versions[slot] = self._tick()
+            cleared += count
+            changed.append((ti, tj))
+        return cleared, changed
+
     # -- reads -----------------------------------------------------------------------------------
 
     def fill_window(

@@ -50,6 +50,7 @@ from fleetmap.api_models import (
     MapList,
     MapSummary,
     RaycastResponse,
+    RegionCleared,
     RegionLayer,
     RobotsDeltaEvent,
     RobotsEvent,
@@ -599,6 +600,15 @@ class FleetmapClient:
         i0, j0, i1, j1 = (int(v) for v in response.headers["X-Fleetmap-Window"].split(","))
         ox, oy = (float(v) for v in response.headers["X-Fleetmap-Origin"].split(","))
         return array, (i0, j0, i1, j1), (ox, oy)
+
+    def clear_region(self, map_id: str, xmin: float, ymin: float, xmax: float, ymax: float) -> RegionCleared:
+        """`DELETE /maps/{map_id}/region`: make the cells with index in [floor(xmin/res),
+        floor(xmax/res)) x [floor(ymin/res), floor(ymax/res)) unknown again in every layer, as before
+        any scan, and return once the server has stored that. `FleetmapError` 404 for no such map,
+        422 for an empty window, 503 if the cells were cleared but that could not be stored yet."""
+        _check_id("map_id", map_id)
+        response = self._request("DELETE", f"/maps/{map_id}/region", params=_bounds(xmin, ymin, xmax, ymax))
+        return RegionCleared.model_validate_json(response.content)
 
     def region_png(
         self,

@@ -96,8 +96,8 @@ cell `(i, j)` of a map with resolution `res` covers `[i*res, (i+1)*res) x [j*res
 Every error is JSON `{"detail": "..."}`. See docs/api.md.
 
 Authentication: when the server runs with API tokens (`fleetmap serve --auth-tokens FILE`), requests
-send `Authorization: Bearer <token>`. Writing (POST scans, PUT and DELETE maps, PUT snapshots and
-imports) needs a token with the `write` or `admin` role; reading is open unless the server requires
+send `Authorization: Bearer <token>`. Writing (POST scans, PUT and DELETE maps, DELETE regions, PUT snapshots
+and imports) needs a token with the `write` or `admin` role; reading is open unless the server requires
 a `read` token (`--require-read-token`); `/healthz` and the web viewer's files are always open. A
 missing or unknown token is a 401, a token whose role is too low a 403. Without tokens the server
 only listens on loopback. A browser, whose tiles and event streams cannot send a header, signs in

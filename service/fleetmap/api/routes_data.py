@@ -1,4 +1,5 @@
-"""Reading maps: one cell, many cells, rays cast through them, dense regions, TSDF surfaces, exports.
+"""Reading maps: one cell, many cells, rays cast through them, dense regions, TSDF surfaces, exports;
+and forgetting a region (`DELETE /maps/{id}/region`, the one write here, beside its read).
 
 Reads take the map's lock only inside the engine's read calls (`GridMap.cells`, `region`,
 `cast_rays`, ...), which copy what they need (rays read the tiles in place), so a read sees every
@@ -9,6 +10,7 @@ its thread pool, so a large read never stalls the event loop.
 from __future__ import annotations
 
 import math
+import sys
 from typing import Annotated, Literal
 
 import numpy as np
@@ -23,6 +25,7 @@ from fleetmap.api_models import (
     CellValue,
     RaycastRequest,
     RaycastResponse,
+    RegionCleared,
     RegionJson,
     RegionLayer,
     Surface,
@@ -31,6 +34,7 @@ from fleetmap.api_models import (
     raycast_json,
     region_json,
     surface,
+    tile_windows,
 )
 from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED
 from fleetmap.export import Window, known_window, map_png, map_source, nav2_zip, npy_bytes, png_bytes
@@ -39,6 +43,8 @@ from fleetmap.grid_map import GridMap
 router = APIRouter(route_class=StrictRoute)
 
 OptCoordinate = Annotated[float | None, coordinate("metres; give all four bounds or none")]
+#: A required bound of a window, metres.
+Bound = Annotated[float, coordinate("metres")]
 
 
 def _json(model: RegionJson | Surface) -> Response:
@@ -237,6 +243,42 @@ def get_region(
         return Response(png_bytes(pixels), media_type="image/png", headers=headers)
     model = region_json(layer, [window.i0, window.j0, window.i1, window.j1], gmap.resolution, values)
     return Response(model.model_dump_json(), media_type="application/json", headers=headers)
+
+
+@router.delete(
+    "/maps/{map_id}/region",
+    tags=["maps"],
+    summary="Forget a window of cells (make them unknown)",
+    response_model=RegionCleared,
+    responses=error_responses(404, 409, 422, 503),
+)
+def delete_region(
+    map_id: MapId,
+    state: State,
+    xmin: Bound,
+    ymin: Bound,
+    xmax: Bound,
+    ymax: Bound,
+) -> RegionCleared:
+    """Makes the cells with index in `[floor(xmin/res), floor(xmax/res))` x `[floor(ymin/res),
+    floor(ymax/res))` unknown again in every layer the map keeps, as before any scan (octomap_server's
+    clear of a bounding box): a shelf moved where no robot looks again, the trace of a bad pose.
+    All four bounds are required (422 otherwise; DELETE /maps/{map_id} removes a whole map). Scans
+    applied before are forgotten there; later ones observe the cells again. The changed tiles get
+    new ETags and event streams announce them. With durable storage it is journaled in order with
+    the scans and stored before the answer. 503: the cells are unknown, but that could not be
+    stored yet; the map's next snapshot stores it. 409: the map was deleted or replaced while the
+    request ran, nothing cleared. Needs a `write` token where tokens are set."""
+    entry = state.entry(map_id)
+    gmap = entry.gmap
+    # No cell limit: only stored tiles are visited, whatever the window's size.
+    window = _window(gmap, (xmin, ymin, xmax, ymax), limit=sys.maxsize)
+    cleared = state.registry.clear_window(entry, window)
+    return RegionCleared(
+        window=[window.i0, window.j0, window.i1, window.j1],
+        cells_cleared=cleared.cells,
+        changed_tiles=tile_windows(cleared.changed_tiles, gmap.store.tile_size),
+    )
 
 
 def region_pixels(layer: str, values: np.ndarray) -> np.ndarray:
