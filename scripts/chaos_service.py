@@ -6,10 +6,11 @@
 Opt-in, never part of `pytest` (it takes minutes and both CPU cores). For `--minutes`, at once:
 robots publishing through real Zenoh sessions (`ScanPublisher`, each its own process; two pairs
 share a robot id, some restart their publisher), maps deleted and created again, a map replaced
-with `PUT /maps/{id}/snapshot`, event streams opened and dropped (full and `?robots=delta`, with
-`Last-Event-ID`), tiles read with conditional GETs and HEADs, bad requests (bad JSON, duplicate
-keys, huge heads, long targets), `/metrics` scraped; the service runs with `--log-format json` and
-is SIGKILLed and restarted `--kills` times on the same data directory.
+with `PUT /maps/{id}/snapshot`, small windows of the stable maps cleared (`DELETE
+/maps/{id}/region`) while their robots publish, event streams opened and dropped (full and
+`?robots=delta`, with `Last-Event-ID`), tiles read with conditional GETs and HEADs, bad requests
+(bad JSON, duplicate keys, huge heads, long targets), `/metrics` scraped; the service runs with
+`--log-format json` and is SIGKILLed and restarted `--kills` times on the same data directory.
 
 Invariants, checked while it runs and at the end (the exit code is the number violated):
 no 5xx answer (but the stream cap's 503); every log line JSON, no traceback, no sentence written
@@ -17,7 +18,8 @@ more than 30 times a minute; after a restart, a stream resumed with the old Last
 with a reset, and an old tile ETag revalidates only an unchanged tile; `/metrics` parses;
 a delta stream's folded robots equal a fresh `robots` event after quiescence; for the robots of
 the last round, scans integrated = sent - dropped - rejected - duplicate; RSS and open descriptors
-level off; a map read after a kill equals the map before it (its scans were committed), the
+level off; a map read after a kill equals the map before it (its scans and cleared windows were
+committed), the
 churned and replaced maps too (snapshots run every second, racing their deletes and replacements).
 """
 
@@ -206,6 +208,25 @@ class Chaos:
                                headers={"content-type": snap.headers["content-type"]})  # fmt: skip
                 self.check(r, "put snapshot")
         time.sleep(self.rng.uniform(0.5, 2.0))
+
+    def clear_regions(self, client: httpx.Client) -> None:
+        """Forget a small window of a stable map now and then, while its robots publish: under
+        `churn_lock`, so that each clear answered before a kill is in the maps compared after it
+        (the journal's row of it, replayed between the same scans)."""
+        base = self.svc.base
+        map_id = self.rng.choice(STABLE_MAPS)
+        x, y = self.rng.uniform(0.0, 18.0), self.rng.uniform(0.0, 13.0)
+        w, h = self.rng.uniform(0.2, 3.0), self.rng.uniform(0.2, 3.0)
+        window = {"xmin": x, "ymin": y, "xmax": x + w, "ymax": y + h}
+        with self.churn_lock:
+            r = client.delete(f"{base}/maps/{map_id}/region", params=window)
+        self.check(r, "clear region")
+        if r.status_code == 200:
+            self.stats["regions cleared"] += 1
+            self.stats["cells cleared"] += r.json()["cells_cleared"]
+        elif r.status_code != 404:  # (a stable map is made at the start; 404 only before that)
+            self.v.add("clear region", f"{map_id} {window}: {r.status_code} {r.text[:300]}")
+        time.sleep(self.rng.uniform(0.5, 1.5))
 
     def streams(self, client: httpx.Client) -> None:
         base = self.svc.base
@@ -439,6 +460,7 @@ def chaos_main(args: argparse.Namespace) -> int:
     samples: list[tuple[float, int, int]] = []
     threads = [
         threading.Thread(target=chaos.guarded, args=(chaos.churn_maps,), daemon=True),
+        threading.Thread(target=chaos.guarded, args=(chaos.clear_regions,), daemon=True),
         threading.Thread(target=chaos.guarded, args=(chaos.bad_requests,), daemon=True),
         threading.Thread(target=chaos.guarded, args=(chaos.scrape, samples), daemon=True),
         *(threading.Thread(target=chaos.guarded, args=(chaos.streams,), daemon=True) for _ in range(4)),
