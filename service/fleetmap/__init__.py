@@ -52,6 +52,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see; at run time `__getattr__` 
         LayerUnavailableError,
         RaycastResult,
         RayLimitError,
+        WindowCleared,
     )
     from fleetmap.scan import Pose2D, Scan, ScanError
     from fleetmap.tiles import TileLimitError
@@ -88,6 +89,7 @@ _EXPORTS = {
     "RayLimitError": "fleetmap.grid_map",
     "TileLimitError": "fleetmap.tiles",
     "Window": "fleetmap.export",
+    "WindowCleared": "fleetmap.grid_map",
     "known_window": "fleetmap.export",
     "write_build_outputs": "fleetmap.export",
     "Dataset": "fleetmap.datasets",
@@ -126,6 +128,7 @@ __all__ = [
     "TileLimitError",
     "TsdfParams",
     "Window",
+    "WindowCleared",
     "known_window",
     "load_dataset",
     "logit",
