@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import sqlite3
 from pathlib import Path
 
 import httpx
@@ -11,12 +13,13 @@ import pytest
 from fleetmap_client.rest import FleetmapClient, FleetmapError
 from service_process import ServiceProcess
 
-from fleetmap.api_models import tile_windows
+from fleetmap.api_models import RegionCleared, tile_windows
 from fleetmap.codec import WireScan, decode, encode_json
 from fleetmap.config import MapConfig
-from fleetmap.database import StorageError
+from fleetmap.database import BASE_LAYOUT, CLEARED_WINDOWS_LAYOUT, DB_NAME, StorageError
 from fleetmap.export import Window
 from fleetmap.grid_map import GridMap
+from fleetmap.map_entry import IngestRejected
 from fleetmap.registry import MapConflict, MapRegistry
 from fleetmap.scan import Pose2D, Scan
 from fleetmap.sim import SimulatedRobot, generate_floorplan
@@ -127,6 +130,11 @@ def _engine(scans: list[Scan], cleared_after: int) -> tuple[GridMap, tuple[int, 
     return gmap, (cleared.cells, tile_windows(cleared.changed_tiles, CONFIG.tile_size))
 
 
+def _layout(data: Path) -> int:
+    with contextlib.closing(sqlite3.connect(data / DB_NAME)) as conn:
+        return int(conn.execute("PRAGMA user_version").fetchone()[0])
+
+
 def _assert_same_map(client: FleetmapClient, gmap: GridMap) -> None:
     bounds = gmap.known_bounds()
     assert bounds is not None
@@ -172,8 +180,20 @@ def test_delete_region_over_http_is_journaled_and_survives_a_crash(tmp_path: Pat
         assert missing.value.status == 404
         assert client.get_map("m").stats.scans_integrated == 10
 
-        version = client.get_map("m").stats.version
-        result = client.clear_region("m", box["xmin"], box["ymin"], box["xmax"], box["ymax"])
+        # If-Match: another map's tag is a 412 and nothing changes; the map's own passes (below).
+        info, etag = client.get_map_and_etag("m")
+        with httpx.Client(base_url=svc.base_url, headers={"Authorization": f"Bearer {WRITE}"}) as http:
+            stale = http.delete("/maps/m/region", params=box, headers={"If-Match": '"map-0"'})
+            assert stale.status_code == 412 and stale.headers["etag"] == etag, stale.text
+            # The database's layout is raised before the first cleared window's row, not before:
+            # until a region is cleared, an older fleetmap can still open the directory.
+            assert _layout(tmp_path / "data") == BASE_LAYOUT
+            version = client.get_map("m").stats.version
+            answer = http.delete("/maps/m/region", params=box, headers={"If-Match": etag})
+            assert answer.status_code == 200, answer.text
+        assert _layout(tmp_path / "data") == CLEARED_WINDOWS_LAYOUT
+        result = RegionCleared.model_validate_json(answer.content)
+        assert info.stats.version == version
         assert result.window == [WINDOW.i0, WINDOW.j0, WINDOW.i1, WINDOW.j1]
         assert (result.cells_cleared, result.changed_tiles) == (cells, tiles) and cells > 1000
         # Viewers are told: the changed tiles come in the event stream as a scan's would.
@@ -211,5 +231,12 @@ def test_no_window_is_cleared_in_a_map_that_replaced_the_one_it_was_computed_for
         with pytest.raises(MapConflict, match="deleted or replaced meanwhile; nothing was cleared"):
             registry.clear_window(entry, WINDOW)
         assert registry.clear_window(registry.get("m"), WINDOW) == (0, [])  # the new map: nothing yet
+        entry = registry.get("m")
+        done = registry.submit("m", "r", WireScan(seq=1, stamp=0.0, scan=scans[0]), wait=True)
+        assert done is not None and done.result(30).cell_updates > 0
     finally:
         registry.close()
+    # Once the registry closes (the final snapshot, the journal's close), nothing is cleared.
+    with pytest.raises(IngestRejected, match="shutting down: nothing was cleared") as closing:
+        registry.clear_window(entry, Window(-1000, -1000, 1000, 1000))
+    assert closing.value.status == 503 and entry.gmap.known_bounds() is not None

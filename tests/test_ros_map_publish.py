@@ -36,6 +36,7 @@ from test_ingest import client_session
 
 from fleetmap.codec import JSON_ENCODING, encode_json
 from fleetmap.config import MapConfig
+from fleetmap.export import Window
 from fleetmap.registry import MapRegistry
 from fleetmap.ros.map_publisher import MapTopic, RosMapOptions, RosMapPublisher
 from fleetmap.ros.rmw_zenoh import Attachment, decode_attachment
@@ -407,6 +408,38 @@ def test_a_map_replaced_by_one_with_nothing_to_publish_leaves_no_stale_grid(in_p
             assert late.received() == []
         finally:
             late.close()
+    finally:
+        publisher.close()
+
+
+def test_a_map_whose_every_cell_was_cleared_is_published_unknown(in_process: InProcess) -> None:
+    """`DELETE /maps/{id}/region` over the whole map leaves no observed cell: subscribers get that
+    change, and so does the grid's cache once a full grid is due. Before, a map with no observed cell
+    was taken for one not observed yet: nothing was published, and nav2 (and any node starting
+    later) kept the old obstacles."""
+    registry = in_process.registry
+    options = RosMapOptions((MapTopic("a"),), period=3600.0, full_grid_interval=0.0)
+    publisher = RosMapPublisher(registry, in_process.router, options)
+    try:
+        entry = registry.create("a", MapConfig(resolution=0.5))[0]
+        entry.gmap.integrate(room_scan(1.0, 1.0))
+        publisher.start()  # its first check publishes; the next would be an hour later
+        wait_for(lambda: publisher.topics[0].grid.published == 1, timeout=5, what="the first grid")
+        first = RosSubscriber(in_process.endpoint)
+        try:
+            old = grid_cells(wait_for(first.received, timeout=5, what="the cached grid")[0].grid)
+        finally:
+            first.close()
+        assert (old != -1).sum() > 30
+        assert registry.clear_window(entry, Window(-1000, -1000, 1000, 1000)).cells >= (old != -1).sum()
+        assert entry.gmap.known_bounds() is None
+        assert publisher.publish_changed() == 1  # an update (a full grid is due at once here)
+        late = RosSubscriber(in_process.endpoint)
+        try:
+            grid = grid_cells(wait_for(late.received, timeout=5, what="the cached grid")[-1].grid)
+        finally:
+            late.close()
+        assert grid.shape == old.shape and (grid == -1).all()
     finally:
         publisher.close()
 

@@ -22,11 +22,17 @@ LOCK_NAME = "fleetmap.lock"
 #: the `tombstones` table, created at start where it is missing, which an older service ignores,
 #: and its `forgotten` column, added at start where it is missing: an older service names the
 #: columns it reads and writes, its rows get 0 there, and it takes a forgotten robot's stone for a
-#: deleted map's, which ignores the same old scans.) Version 2: a journal row may also be a window of
-#: cells cleared (`storage_format.cleared_window_to_blob`, `DELETE /maps/{id}/region`), which a version
-#: 1 service would take for a corrupt row; the tables are the same, and version 1 databases are read
-#: as they are (raised to 2 on open).
+#: deleted map's, which ignores the same old scans.) Version 2 (`CLEARED_WINDOWS_LAYOUT`): a journal
+#: row may also be a window of cells cleared (`storage_format.cleared_window_to_blob`, `DELETE
+#: /maps/{id}/region`), which a version 1 service would take for a corrupt row. The tables are the
+#: same, so a database is raised to 2 only before its first such row (`DurableStore
+#: .allow_cleared_windows`): until a region is cleared, an older service can still open it (a
+#: rollback after an upgrade).
 SCHEMA_VERSION = 2
+#: The layout a new database is written as, and the least an opened one is raised to.
+BASE_LAYOUT = 1
+#: The layout whose journal may hold cleared windows.
+CLEARED_WINDOWS_LAYOUT = 2
 #: Refuse to start with less free space than this in the data directory.
 MIN_FREE_BYTES = 64 * 1024 * 1024
 SCHEMA = """
@@ -168,12 +174,23 @@ def _check_and_create(data_dir: Path) -> Path:
         try:
             conn.executescript(SCHEMA)
             _migrate(conn)
-            conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+            (version,) = conn.execute("PRAGMA user_version").fetchone()
+            if version < BASE_LAYOUT:
+                conn.execute(f"PRAGMA user_version = {BASE_LAYOUT}")
         finally:
             conn.close()
     except sqlite3.DatabaseError as exc:
         raise StorageError(f"cannot open the map database {path}: {exc}") from None
     return path
+
+
+def layout_version(path: Path) -> int:
+    """The layout version (`PRAGMA user_version`) of the database at `path`."""
+    conn = connect(path)
+    try:
+        return int(conn.execute("PRAGMA user_version").fetchone()[0])
+    finally:
+        conn.close()
 
 
 def _refuse_unknown_layout(path: Path) -> None:

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetmap.config import STORED_CONFIG, MapConfig
-from fleetmap.database import StorageError, connect, open_database
+from fleetmap.database import CLEARED_WINDOWS_LAYOUT, StorageError, connect, layout_version, open_database
 from fleetmap.export import Window
 from fleetmap.grid_map import GridMap
 from fleetmap.journal import JournalEntry, JournalWriter
@@ -202,6 +202,8 @@ class DurableStore:
         # Held until `close`: no second service may use this directory meanwhile.
         self.path, self._dir_lock = open_database(self.data_dir)
         self.writer = JournalWriter(self.path, on_error=self._storage_failed)
+        #: Whether the database's layout allows cleared windows in the journal (`allow_cleared_windows`).
+        self._cleared_windows = layout_version(self.path) >= CLEARED_WINDOWS_LAYOUT
         self.snapshot_interval = snapshot_interval
         self.snapshot_rows = snapshot_rows
         self.snapshot_pace = snapshot_pace
@@ -504,6 +506,17 @@ class DurableStore:
         with self._health_lock:
             self._awaiting.pop(map_id, None)
             self._snapshot_errors.pop(map_id, None)
+
+    def allow_cleared_windows(self) -> None:
+        """Raise the database's layout to `CLEARED_WINDOWS_LAYOUT` if it is lower, committed before
+        this returns: before the first journal row of a cleared window, which an older fleetmap
+        would take for a corrupt row (it refuses the newer layout instead). Raises `sqlite3.Error`
+        or `OSError` if that cannot be stored (nothing is cleared then). Never call it while holding a
+        lock a durability callback takes: it waits for the writer."""
+        if self._cleared_windows:
+            return
+        self.writer.run(lambda conn: conn.execute(f"PRAGMA user_version = {CLEARED_WINDOWS_LAYOUT}"))
+        self._cleared_windows = True
 
     def journal(
         self, map_id: str, robot_id: str, seq: int, stamp: float, blob: bytes,

@@ -545,20 +545,45 @@ class MapRegistry:
         removed.set_result(None)
         return removed
 
-    def clear_window(self, entry: MapEntry, window: Window) -> WindowCleared:
+    def clear_window(
+        self, entry: MapEntry, window: Window, expect: Expectation | None = None
+    ) -> WindowCleared:
         """Forget the cells of `window` in the map of `entry` (`get`; `GridMap.clear_window`: every
         layer back to never-observed there), in order with the map's scans: a scan applied before is
         forgotten there, one applied after observes the cells again. Viewers are told of the changed
         tiles. With storage it is journaled as a scan is, and committed before this returns, so that
-        a restart replays it where it happened. Raises `MapConflict` when the map was deleted or
-        replaced since `entry` was looked up (the window may be another map's cells), or
-        `NotDurable` when the cells are forgotten in memory but the journal's commit failed (the
-        map's next snapshot stores it, as for a scan's)."""
+        a restart replays it where it happened.
+
+        `expect` as for `create`, called under the map's lock with the map (None if it went since
+        `entry` was looked up). Raises `MapConflict` when the map was deleted or replaced since then
+        (the window may be another map's cells); `IngestRejected` 503 while the registry closes, or
+        when the storage cannot take a cleared window (nothing cleared in either case); `NotDurable`
+        when the cells are forgotten in memory but the journal's commit failed (the map's next
+        snapshot stores it, unless the service stops first)."""
         map_id = entry.id
-        stored: Future | None = None
-        with entry.gmap.lock:
+
+        def check() -> None:  # under the map's lock
+            if expect is not None:
+                expect(None if entry.retired else entry)
             if entry.retired:
                 raise MapConflict(f"map {map_id!r} was deleted or replaced meanwhile; nothing was cleared")
+            if self._closing:  # its row could come after the final snapshot, and the journal's close
+                raise IngestRejected(
+                    "the service is shutting down: nothing was cleared; send it again once it is back",
+                    503, SHUTTING_DOWN,
+                )  # fmt: skip
+
+        if self.durable is not None:
+            with entry.gmap.lock:
+                check()  # a refused request must not raise the layout
+            try:  # before anything changes, and without a lock held (it waits for the writer)
+                self.durable.allow_cleared_windows()
+            except (sqlite3.Error, OSError, StorageError) as exc:
+                reason = f"nothing was cleared: the storage cannot take it ({exc})"
+                raise IngestRejected(reason, 503) from None
+        stored: Future | None = None
+        with entry.gmap.lock:
+            check()
             cleared = entry.gmap.clear_window(window.i0, window.j0, window.i1, window.j1)
             if cleared.cells and self.durable is not None:
                 stored = Future()

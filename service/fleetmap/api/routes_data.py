@@ -16,6 +16,7 @@ from typing import Annotated, Literal
 import numpy as np
 from fastapi import APIRouter, Query, Response
 
+from fleetmap.api.conditional import Conditions
 from fleetmap.api.errors import ApiError, error_responses, too_many
 from fleetmap.api.state import MapId, State, coordinate
 from fleetmap.api.strict_requests import StrictRoute
@@ -63,7 +64,9 @@ def _window(
     if xmin is None and ymin is None and xmax is None and ymax is None:
         window = known_window(gmap)
         if window is None:
-            raise ApiError(409, "the map has no observed cell yet; give xmin, ymin, xmax and ymax")
+            raise ApiError(
+                409, "the map has no observed cell (none yet, or all cleared); give xmin, ymin, xmax and ymax"
+            )
     elif xmin is None or ymin is None or xmax is None or ymax is None:
         raise ApiError(422, "give all of xmin, ymin, xmax and ymax, or none of them (the observed extent)")
     else:
@@ -250,11 +253,12 @@ def get_region(
     tags=["maps"],
     summary="Forget a window of cells (make them unknown)",
     response_model=RegionCleared,
-    responses=error_responses(404, 409, 422, 503),
+    responses=error_responses(404, 409, 412, 422, 503),
 )
 def delete_region(
     map_id: MapId,
     state: State,
+    conditions: Conditions,
     xmin: Bound,
     ymin: Bound,
     xmax: Bound,
@@ -264,16 +268,19 @@ def delete_region(
     floor(ymax/res))` unknown again in every layer the map keeps, as before any scan (octomap_server's
     clear of a bounding box): a shelf moved where no robot looks again, the trace of a bad pose.
     All four bounds are required (422 otherwise; DELETE /maps/{map_id} removes a whole map). Scans
-    applied before are forgotten there; later ones observe the cells again. The changed tiles get
-    new ETags and event streams announce them. With durable storage it is journaled in order with
-    the scans and stored before the answer. 503: the cells are unknown, but that could not be
-    stored yet; the map's next snapshot stores it. 409: the map was deleted or replaced while the
-    request ran, nothing cleared. Needs a `write` token where tokens are set."""
+    applied before are forgotten there; later ones observe the cells again (so a retry also forgets
+    what was observed in between). The changed tiles get new ETags and event streams announce them.
+    With durable storage it is journaled in order with the scans and stored before the answer.
+    503: nothing was cleared (the service is stopping, or its storage cannot take it), or the cells
+    are unknown but that could not be stored yet (the detail says which): the map's next snapshot
+    stores it, but a crash before that loses it. `If-Match`: only if the map has that `ETag` (412
+    otherwise, nothing cleared). 409: the map was deleted or replaced while the request ran, nothing
+    cleared. Needs a `write` token where tokens are set."""
     entry = state.entry(map_id)
     gmap = entry.gmap
     # No cell limit: only stored tiles are visited, whatever the window's size.
     window = _window(gmap, (xmin, ymin, xmax, ymax), limit=sys.maxsize)
-    cleared = state.registry.clear_window(entry, window)
+    cleared = state.registry.clear_window(entry, window, conditions.expectation(map_id))
     return RegionCleared(
         window=[window.i0, window.j0, window.i1, window.j1],
         cells_cleared=cleared.cells,
@@ -363,14 +370,14 @@ def get_export(
     `ros`: a zip of `map.yaml` + `map.pgm` (nav2 map_server, trinary: 0 occupied, 254 free, 205
     unknown, by the map's thresholds; origin = lower-left corner); `png`: grayscale, 255 (1 - p),
     unknown 128. p is the occupancy layer's, or for a map keeping only counts (and the TSDF) the count
-    model's hits / (hits + misses). 409 for a map with no observed cell yet, 422 for a map keeping only
+    model's hits / (hits + misses). 409 for a map with no observed cell, 422 for a map keeping only
     the TSDF."""
     gmap = state.entry(map_id).gmap
     if map_source(gmap) is None:
         raise ApiError(422, "this map keeps neither an 'occupancy' nor a 'counts' layer: nothing to export")
     window = known_window(gmap, margin)
     if window is None:
-        raise ApiError(409, "the map has no observed cell yet: nothing to export")
+        raise ApiError(409, "the map has no observed cell (none yet, or all cleared): nothing to export")
     ny, nx = window.shape
     if nx * ny > state.settings.max_export_cells:
         limit = state.settings.max_export_cells

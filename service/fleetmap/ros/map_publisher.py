@@ -504,7 +504,11 @@ class RosMapPublisher:
         started = time.perf_counter()
         window = known_window(gmap)
         if window is None:
-            return 0  # no observed cell yet: published once it has one
+            if topic.window is None:
+                return 0  # no observed cell yet: published once it has one
+            # Every cell cleared since (`DELETE .../region`): the last grid's window, unknown now,
+            # so that subscribers and the grid's cache do not keep the old cells.
+            window = topic.window
         ny, nx = window.shape
         if nx * ny > self.options.max_cells:
             topic.window = None
