@@ -184,15 +184,6 @@ def _check_and_create(data_dir: Path) -> Path:
     return path
 
 
-def layout_version(path: Path) -> int:
-    """The layout version (`PRAGMA user_version`) of the database at `path`."""
-    conn = connect(path)
-    try:
-        return int(conn.execute("PRAGMA user_version").fetchone()[0])
-    finally:
-        conn.close()
-
-
 def _refuse_unknown_layout(path: Path) -> None:
     """Raise `StorageError` for a database at `path` that this fleetmap must not write to: one a
     newer fleetmap wrote (a higher `user_version`), or one that is not a map database at all (tables,

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetmap.config import STORED_CONFIG, MapConfig
-from fleetmap.database import CLEARED_WINDOWS_LAYOUT, StorageError, connect, layout_version, open_database
+from fleetmap.database import CLEARED_WINDOWS_LAYOUT, StorageError, connect, open_database
 from fleetmap.export import Window
 from fleetmap.grid_map import GridMap
 from fleetmap.journal import JournalEntry, JournalWriter
@@ -136,12 +136,12 @@ class StoredJournal:
                     return
                 for row_id, robot_id, seq, stamp, session, blob in rows:
                     try:
-                        scan = journal_row_from_blob(blob)
+                        row = journal_row_from_blob(blob)
                     except StorageError as exc:
                         raise unreadable_database(
                             self.path, self.map_id, f"journal row {row_id}: {exc}"
                         ) from None
-                    yield robot_id, seq, stamp, session, scan
+                    yield robot_id, seq, stamp, session, row
                 last = rows[-1][0]
         except sqlite3.DatabaseError as exc:
             raise unreadable_database(self.path, self.map_id, exc) from None
@@ -202,8 +202,8 @@ class DurableStore:
         # Held until `close`: no second service may use this directory meanwhile.
         self.path, self._dir_lock = open_database(self.data_dir)
         self.writer = JournalWriter(self.path, on_error=self._storage_failed)
-        #: Whether the database's layout allows cleared windows in the journal (`allow_cleared_windows`).
-        self._cleared_windows = layout_version(self.path) >= CLEARED_WINDOWS_LAYOUT
+        #: Whether the database's layout is known to allow cleared windows (`allow_cleared_windows`).
+        self._cleared_windows = False
         self.snapshot_interval = snapshot_interval
         self.snapshot_rows = snapshot_rows
         self.snapshot_pace = snapshot_pace
@@ -515,7 +515,13 @@ class DurableStore:
         lock a durability callback takes: it waits for the writer."""
         if self._cleared_windows:
             return
-        self.writer.run(lambda conn: conn.execute(f"PRAGMA user_version = {CLEARED_WINDOWS_LAYOUT}"))
+
+        def raise_layout(conn: sqlite3.Connection) -> None:
+            (version,) = conn.execute("PRAGMA user_version").fetchone()
+            if version < CLEARED_WINDOWS_LAYOUT:
+                conn.execute(f"PRAGMA user_version = {CLEARED_WINDOWS_LAYOUT}")
+
+        self.writer.run(raise_layout)
         self._cleared_windows = True
 
     def journal(

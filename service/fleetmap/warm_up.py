@@ -57,11 +57,10 @@ STOP_GRACE_S = 5.0
 
 
 class ChildCompile(NamedTuple):
-    """What `compile_in_child` saw: whether the child compiled the kernels (exit status 0), whether
-    it was stopped first, and what it printed (stdout and stderr together, as one text)."""
+    """What `compile_in_child` saw: whether the child compiled the kernels (exit status 0), and what
+    it printed (stdout and stderr together, as one text)."""
 
     finished: bool
-    stopped: bool
     output: str
 
 
@@ -93,7 +92,7 @@ def compile_in_child(stop: threading.Event | None = None) -> ChildCompile:
             text=True, errors="replace",
         )  # fmt: skip
     except OSError as exc:
-        return ChildCompile(False, False, f"cannot run {sys.executable}: {exc}")
+        return ChildCompile(False, f"cannot run {sys.executable}: {exc}")
     while True:
         try:  # (a retried communicate loses no output)
             output, _ = child.communicate(timeout=STOP_POLL_S)
@@ -106,9 +105,8 @@ def compile_in_child(stop: threading.Event | None = None) -> ChildCompile:
             except subprocess.TimeoutExpired:
                 child.kill()
                 output, _ = child.communicate()
-            return ChildCompile(False, True, output)
-        stopped = stop is not None and stop.is_set()  # (a SIGTERM to the group ended the child too)
-        return ChildCompile(child.returncode == 0, stopped and child.returncode != 0, output)
+            return ChildCompile(False, output)
+        return ChildCompile(child.returncode == 0, output)
 
 
 if __name__ == "__main__":
