@@ -15,6 +15,7 @@ import json
 import logging
 import os
 import resource
+import shutil
 import signal
 import socket
 import tempfile
@@ -35,12 +36,19 @@ from service_process import ServiceProcess, wait_for
 from test_api_support import random_tiles_map, running_api, snapshot_body, snapshot_parts
 from test_http_exhaustion import metric
 
+from fleetmap import upload_spool
 from fleetmap.api.app import ApiSettings
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.http_server import GRACEFUL_HTTP_SECONDS
 from fleetmap.storage_format import SNAPSHOT_FORMAT, snapshot_file
-from fleetmap.upload_spool import SPOOL_MEMORY_BYTES
+from fleetmap.upload_spool import (
+    SPOOL_CHECK_EVERY,
+    SPOOL_MEMORY_BYTES,
+    SpoolFailed,
+    close_spool,
+    spooled_file,
+)
 
 BODY_TIMEOUT = 4.0
 #: A body's bytes sent before the test looks for its spool: past what the spool keeps in memory.
@@ -555,3 +563,34 @@ def test_an_upload_still_being_decompressed_at_shutdown_stops_with_its_request(t
         svc.stop()
     assert list(tmpdir.iterdir()) == []
     assert "Traceback" not in svc.logs(), svc.logs()
+
+
+def test_a_spool_leaves_its_disk_room_for_the_maps_storage(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A spool on disk (past SPOOL_MEMORY_BYTES) never fills its disk: once its next SPOOL_CHECK_EVERY
+    bytes would leave less than SPOOL_DISK_RESERVE free, it fails as on a full disk (507), saying
+    why. A snapshot upload may be as big as the memory budget, and the temporary directory may share
+    its disk with the journal. (The disk is real; the reserve is raised past its free space here.)"""
+    chunk = b"\0" * (1 << 20)
+    spool = spooled_file("download")
+    try:
+        free = shutil.disk_usage(tempfile.gettempdir()).free
+        monkeypatch.setattr(upload_spool, "SPOOL_DISK_RESERVE", free + (1 << 40))
+        for _ in range(SPOOL_MEMORY_BYTES >> 20):  # in memory: no disk to look at
+            spool.write(chunk)
+        with pytest.raises(SpoolFailed) as failed:
+            for _ in range(SPOOL_CHECK_EVERY >> 20):
+                spool.write(chunk)
+        assert failed.value.status == 507
+        assert "has no room for the download (it would leave less than" in str(failed.value), failed.value
+    finally:
+        close_spool(spool)
+    monkeypatch.undo()  # the real reserve: with more than that free, the spool grows
+    if shutil.disk_usage(tempfile.gettempdir()).free < upload_spool.SPOOL_DISK_RESERVE + (64 << 20):
+        pytest.skip(f"{tempfile.gettempdir()} has less than the reserve and 64 MiB free")
+    spool = spooled_file()
+    try:
+        for _ in range((SPOOL_MEMORY_BYTES + 2 * SPOOL_CHECK_EVERY) >> 20):
+            spool.write(chunk)
+        assert spool.tell() == SPOOL_MEMORY_BYTES + 2 * SPOOL_CHECK_EVERY
+    finally:
+        close_spool(spool)
