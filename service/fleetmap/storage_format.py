@@ -276,17 +276,30 @@ def tile_from_blob(blob: bytes, gmap: GridMap) -> list[np.ndarray]:
 SNAPSHOT_FORMAT = "fleetmap-snapshot-1"
 
 
-def snapshot_file(map_id: str, gmap: GridMap) -> bytes:
-    """One map as a single file: a zip of `map.json` (format, id, config) and `tiles.npz`."""
+def write_snapshot_file(map_id: str, gmap: GridMap, out: IO[bytes]) -> None:
+    """One map as a single file, written to `out` (binary, seekable, at its start): a zip of
+    `map.json` (format, id, config) and `tiles.npz` (stored, so that a reader finds it where it lies).
+
+    The compressed arrays go straight into `out` as they are made: besides the copy of the tiles
+    (`_copy_tiles`), nothing the size of the map is held in memory. (The file was built in memory
+    and then copied out, three copies of the compressed map besides the tiles' copy.) `tiles.npz`
+    is written with ZIP64 headers whatever its size, so that a map past 4 GiB is written the same
+    way as any other (zipfile cannot switch to them once a member of unknown size has begun)."""
     keys, arrays = _copy_tiles(gmap)
-    buf = io.BytesIO()
-    npz = io.BytesIO()
-    # mypy fears that a key of `arrays` is savez's allow_pickle; they are layer array names.
-    np.savez_compressed(npz, keys=np.array(keys, dtype=np.int64).reshape(-1, 2), **arrays)  # type: ignore[arg-type]
     meta = {"format": SNAPSHOT_FORMAT, "id": map_id, "config": gmap.config.model_dump(mode="json")}
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_STORED) as zf:
         zf.writestr("map.json", json.dumps(meta, indent=2))
-        zf.writestr("tiles.npz", npz.getvalue())
+        with zf.open("tiles.npz", "w", force_zip64=True) as member:
+            # mypy fears that a key of `arrays` is savez's allow_pickle; they are layer array names.
+            np.savez_compressed(member, keys=np.array(keys, dtype=np.int64).reshape(-1, 2), **arrays)  # type: ignore[arg-type]
+        del arrays
+
+
+def snapshot_file(map_id: str, gmap: GridMap) -> bytes:
+    """`write_snapshot_file` into bytes: for small maps and tests (the service streams downloads
+    through a temporary file)."""
+    buf = io.BytesIO()
+    write_snapshot_file(map_id, gmap, buf)
     return buf.getvalue()
 
 

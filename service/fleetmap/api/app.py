@@ -63,7 +63,6 @@ from fleetmap.failed_signins import (
 )
 from fleetmap.metrics import ROBOT_SERIES_IDLE, IntegrationMetrics, ServiceMetrics, StatusCounter
 from fleetmap.registry import MapRegistry
-from fleetmap.storage_format import MAX_SNAPSHOT_BYTES, MAX_SNAPSHOT_META_BYTES
 from fleetmap.wire import ScanMessage
 
 log = logging.getLogger("fleetmap.api")
@@ -164,12 +163,18 @@ class ApiSettings:
     #: Bytes of a request body (413 past it). A scan's payload has its own, smaller limit, the same as
     #: over Zenoh: `fleetmap.codec.InputLimits.max_payload_bytes` (4 MiB; also 413).
     max_body_bytes: int = 16 * 1024 * 1024
-    #: Bytes of a snapshot upload's body (`PUT /maps/{id}/snapshot`; 413 past it): as much as the
-    #: file may hold decompressed (`MAX_SNAPSHOT_BYTES` of tiles, `MAX_SNAPSHOT_META_BYTES` of
-    #: map.json) and 1 MiB of zip structure, so that every map an upload may hold can be sent.
-    #: `max_body_bytes` refused the snapshot of a map of 342 tiles (17.8 MB) that the service had
-    #: itself written, though its arrays were 10 times under the upload's limit.
-    max_snapshot_body_bytes: int = MAX_SNAPSHOT_BYTES + MAX_SNAPSHOT_META_BYTES + (1 << 20)
+    #: Bytes the tiles of an uploaded snapshot may hold (`PUT /maps/{id}/snapshot`: its tiles.npz, and
+    #: all its arrays together; 413 past it, before anything is decompressed). None: what the memory
+    #: budget for all maps' tiles holds (`--max-memory`), or without a budget the memory this process
+    #: may use (`memory_budget.available_memory`): every map the service could hold can be restored,
+    #: whatever its size. (A fixed 4 GiB refused the snapshots of maps of more than about 3,200 tiles
+    #: with every layer, which the service downloads, stores and restarts with.)
+    max_snapshot_tile_bytes: int | None = None
+    #: Bytes of a snapshot upload's body (413 past it). None: as much as the file may hold
+    #: decompressed (the tiles' limit, `MAX_SNAPSHOT_META_BYTES` of map.json) and 1 MiB of zip
+    #: structure, so that every map an upload may hold can be sent. (`max_body_bytes` refused the
+    #: snapshot of a map of 342 tiles, 17.8 MB, that the service had itself written.)
+    max_snapshot_body_bytes: int | None = None
     #: Uploads (`PUT .../snapshot`, `PUT .../import`) in progress at once, from their head to their
     #: answer (a slow body until its deadline); past it a new one is refused with 503 before its body
     #: is read. Each
@@ -179,6 +184,12 @@ class ApiSettings:
     #: by the HTTP connections (1024): 16 GiB of memory from slow bodies, or a 1 MiB upload each
     #: making the service write 4 GiB (a compressed tiles.npz of zeros), filling the disk.
     max_uploads: int = 4
+    #: Snapshot downloads (`GET .../snapshot`) in progress at once, from their head to the last byte
+    #: sent; past it a new one is refused with 503. Each holds a copy of its map's tiles in memory
+    #: while its file is written, then the file, of about the map's compressed size, in the
+    #: temporary directory until it is sent: without a limit, a reader could make the service hold
+    #: as many copies of its biggest map as it opened requests.
+    max_downloads: int = 4
     #: Rendered tiles kept in memory.
     tile_cache_size: int = 4096
     #: Seconds between two polls of an event stream (and so the most often an event is sent).
@@ -261,7 +272,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     app.add_middleware(
         errors.BodyLimitMiddleware,
         max_bytes=settings.max_body_bytes,
-        max_snapshot_bytes=settings.max_snapshot_body_bytes,
+        max_snapshot_bytes=app.state.fleetmap.snapshot_body_bytes,
     )
     # A request held back has not been read or run at all.
     app.add_middleware(IngestPriority, gate=gate)

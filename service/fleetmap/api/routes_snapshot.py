@@ -9,6 +9,8 @@ from collections.abc import AsyncIterator, Callable
 from typing import IO, Any
 
 from fastapi import APIRouter, Request, Response
+from fastapi.responses import StreamingResponse
+from starlette.types import Receive, Scope, Send
 
 from fleetmap.api.conditional import Conditions, Preconditions, tag_map
 from fleetmap.api.errors import ApiError, error_responses, validation_detail
@@ -21,7 +23,12 @@ from fleetmap.grid_map import GridMap
 from fleetmap.map_entry import MapEntry
 from fleetmap.memory_budget import UploadReservation
 from fleetmap.registry import MapNotFound
-from fleetmap.storage_format import SNAPSHOT_FORMAT, SnapshotError, map_from_snapshot_file, snapshot_file
+from fleetmap.storage_format import (
+    SNAPSHOT_FORMAT,
+    SnapshotError,
+    map_from_snapshot_file,
+    write_snapshot_file,
+)
 from fleetmap.upload_spool import close_spool, spooled_file
 
 router = APIRouter(tags=["maps"], route_class=StrictRoute)
@@ -53,7 +60,8 @@ UPLOAD_ERRORS = error_responses(
     },
 )  # fmt: skip
 
-#: Bytes of body gathered before they are written to the spool in one call on a worker thread.
+#: Bytes of body gathered before they are written to the spool in one call on a worker thread (and
+#: of a download read from its spool at a time).
 _WRITE_BATCH = 1 << 20
 #: Seconds an upload refused for the limit of uploads in progress is told to wait (`Retry-After`):
 #: uploads take seconds (a big one a minute), so the default second would only make clients resend.
@@ -131,18 +139,80 @@ async def spooled_body(request: Request, uploads: Slots) -> AsyncIterator[IO[byt
             "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
             "description": f"a {SNAPSHOT_FORMAT} zip: map.json (configuration) and tiles.npz (every layer)",
         },
-        **error_responses(404, 422),
+        **error_responses(
+            404,
+            422,
+            503,
+            507,
+            described={
+                503: "The server already sends its limit of snapshot downloads, or its temporary "
+                "directory (TMPDIR) failed to write or read the download (an I/O error of its disk): "
+                "retry later",
+                507: "The service's temporary directory (TMPDIR) has no room for the download",
+            },
+        ),
     },  # fmt: skip
 )
 async def get_snapshot(map_id: MapId, state: State) -> Response:
     """The whole map (configuration and every tile of every layer) as one zip file, consistent: it
-    is taken under the map's lock, between two scans. `PUT` it to this or another server to restore."""
+    is taken under the map's lock, between two scans. `PUT` it to this or another server to restore.
+    The file is written to the service's temporary directory, then sent: 507 if that has no room for
+    it, 503 if its disk fails; 503 (`Retry-After: 5`) if the server already sends its limit of
+    downloads (4 by default). Nothing changes either way."""
     entry = state.entry(map_id)
-    data = await asyncio.to_thread(snapshot_file, map_id, entry.gmap)
-    return Response(
-        data, media_type=MEDIA_TYPE,
-        headers={"Content-Disposition": f'attachment; filename="{map_id}.fleetmap.zip"'},
+    downloads = state.downloads
+    if not downloads.acquire():
+        raise ApiError(
+            503,
+            f"the server already sends its limit of {downloads.limit} snapshot downloads at once; retry "
+            "later",
+            headers={"Retry-After": str(UPLOAD_RETRY_AFTER_SECONDS)},
+        )
+    spool = spooled_file("download")
+    try:
+        size = await asyncio.to_thread(_write_download, map_id, entry.gmap, spool)
+    except BaseException:
+        close_spool(spool)
+        downloads.release()
+        raise
+    return _SpoolResponse(
+        spool, downloads, media_type=MEDIA_TYPE,
+        headers={
+            "Content-Disposition": f'attachment; filename="{map_id}.fleetmap.zip"',
+            "Content-Length": str(size),
+        },
     )  # fmt: skip
+
+
+def _write_download(map_id: str, gmap: GridMap, spool: IO[bytes]) -> int:
+    """The map's snapshot file written to `spool`, which is left at its start; its size."""
+    write_snapshot_file(map_id, gmap, spool)
+    size = spool.tell()
+    spool.seek(0)
+    return size
+
+
+class _SpoolResponse(StreamingResponse):
+    """A download sent from its spool, a megabyte at a time, each read on a worker thread (the spool
+    may be on a slow disk). When the response ends, however it ends (sent, the client gone, the
+    server stopping), the spool is closed, its file's room given back, and the download's slot
+    released: here rather than in the generator, since a generator cancelled before its first step
+    never runs its `finally`."""
+
+    def __init__(self, spool: IO[bytes], slots: Slots, **kwargs: Any) -> None:
+        async def chunks() -> AsyncIterator[bytes]:
+            while chunk := await asyncio.to_thread(spool.read, _WRITE_BATCH):
+                yield chunk
+
+        super().__init__(chunks(), **kwargs)
+        self._spool, self._slots = spool, slots
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            close_spool(self._spool)
+            self._slots.release()
 
 
 @router.put(
@@ -175,7 +245,9 @@ async def put_snapshot(
         reservation: UploadReservation | None,
         stop: threading.Event,
     ) -> GridMap:
-        return map_from_snapshot_file(body, reservation=reservation, stop=stop)
+        return map_from_snapshot_file(
+            body, max_bytes=state.snapshot_tile_bytes, reservation=reservation, stop=stop
+        )
 
     try:
         return await install_upload(state, map_id, request, response, read, conditions)

@@ -15,8 +15,10 @@ from fleetmap.api.ingest_priority import IngestGate
 from fleetmap.api_models import MAX_COORDINATE, RegionLayer
 from fleetmap.grid_map import REGION_LAYERS
 from fleetmap.map_entry import MapEntry
+from fleetmap.memory_budget import available_memory
 from fleetmap.metrics import ServiceMetrics
 from fleetmap.registry import MapRegistry
+from fleetmap.storage_format import MAX_SNAPSHOT_META_BYTES
 from fleetmap.tile_cache import TileCache
 from fleetmap.wire import ID_PATTERN
 
@@ -75,17 +77,32 @@ class ApiState:
     event_streams: EventStreamSlots = field(init=False)
     #: The uploads in progress (`routes_snapshot.spooled_body`), at most `settings.max_uploads`.
     uploads: Slots = field(init=False)
+    #: The snapshot downloads in progress (`routes_snapshot.get_snapshot`), at most
+    #: `settings.max_downloads`.
+    downloads: Slots = field(init=False)
+    #: The limits of a snapshot upload: its tiles' bytes and its body's (`ApiSettings`).
+    snapshot_tile_bytes: int = field(init=False)
+    snapshot_body_bytes: int = field(init=False)
 
     def __post_init__(self) -> None:
+        budget = self.registry.memory_budget
+        tiles = self.settings.max_snapshot_tile_bytes
+        if tiles is None:
+            tiles = budget.limit if budget is not None and budget.limit is not None else available_memory()
+        body = self.settings.max_snapshot_body_bytes
+        self.snapshot_tile_bytes = tiles
+        self.snapshot_body_bytes = tiles + MAX_SNAPSHOT_META_BYTES + (1 << 20) if body is None else body
         self.tiles = TileCache(self.settings.tile_cache_size, on_render=self.metrics.observe_render)
         self.event_streams = EventStreamSlots(self.settings.max_event_streams)
         self.uploads = Slots(self.settings.max_uploads)
+        self.downloads = Slots(self.settings.max_downloads)
         self.metrics.watch_tile_cache(self.tiles)
         self.metrics.watch_gate(self.gate)
         self.metrics.watch_slots(self.event_streams, "event_streams", "Event streams (GET /maps/{id}/events)")
         self.metrics.watch_slots(
             self.uploads, "uploads", "Uploads (PUT /maps/{id}/snapshot and /maps/{id}/import)"
         )
+        self.metrics.watch_slots(self.downloads, "downloads", "Snapshot downloads (GET /maps/{id}/snapshot)")
 
     def entry(self, map_id: str) -> MapEntry:
         """The map, or MapNotFound (answered 404)."""
