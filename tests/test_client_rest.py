@@ -358,6 +358,37 @@ def test_posted_scans_and_every_query_match_the_engine(client: FleetmapClient, s
     assert bad.value.status == 422 and client.get_map("q-copy").stats.tiles == info.stats.tiles
 
 
+def test_snapshots_saved_to_a_file_and_uploaded_from_one(
+    client: FleetmapClient, scans: list[Scan], tmp_path: Path
+) -> None:
+    """`save_snapshot` writes the download to a file as it arrives (a big map's takes gigabytes) and
+    `upload_snapshot` sends a file from its path or an open file: the same map comes back. A failed
+    download leaves no file, and an earlier one where it was."""
+    client.create_map("files", CONFIG)
+    for k, scan in enumerate(scans[:4]):
+        client.post_scan("files", "r1", scan, seq=k)
+    path = tmp_path / "files.fleetmap.zip"
+    size = client.save_snapshot("files", path)
+    assert size == path.stat().st_size > 0 and not (tmp_path / "files.fleetmap.zip.part").exists()
+    x0, y0, x1, y1 = -5.0, -5.0, 15.0, 12.0
+    for target, source in (("files-a", path), ("files-b", open(path, "rb"))):  # noqa: SIM115
+        with contextlib.ExitStack() as stack:
+            if not isinstance(source, Path):
+                stack.enter_context(source)
+            restored = client.upload_snapshot(target, source)
+        assert restored.stats.tiles == client.get_map("files").stats.tiles
+        for layer in ("log_odds", "hits", "tsdf"):
+            np.testing.assert_array_equal(
+                client.region(target, x0, y0, x1, y1, layer=layer),  # type: ignore[arg-type]
+                client.region("files", x0, y0, x1, y1, layer=layer),  # type: ignore[arg-type]
+            )
+    kept = path.read_bytes()
+    with pytest.raises(FleetmapError) as missing:
+        client.save_snapshot("no-such-map", path)
+    assert missing.value.status == 404
+    assert path.read_bytes() == kept and sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
 def test_threads_posting_one_robots_scans_lose_none(client: FleetmapClient, scans: list[Scan]) -> None:
     """The client is thread-safe, but threads posting one robot's scans with automatic seqs read
     the counter before any answer moved it: 4 threads posting 40 scans sent most seqs twice (or a

@@ -23,6 +23,7 @@ address another resource. The endpoint reference is the OpenAPI spec (openapi/op
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
@@ -33,7 +34,7 @@ import zipfile
 from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal
+from typing import IO, Any, Literal
 
 import httpx
 import numpy as np
@@ -106,6 +107,8 @@ TOKEN_ENV = "FLEETMAP_TOKEN"
 #: end in httpx's bare ReadTimeout instead of the server's 503 saying what happened.
 SCAN_TIMEOUT = 15.0
 
+#: Bytes `save_snapshot` reads from the answer at a time.
+_TRANSFER_CHUNK = 1 << 20
 #: How long the whole-map transfers (`download_snapshot`, `upload_snapshot`, `import_nav2`,
 #: `export`) wait for their answer by default, seconds: the service reads, checks and stores, or
 #: packs, every tile of the map first, seconds for a big one, and a bare ReadTimeout would leave
@@ -333,21 +336,58 @@ class FleetmapClient:
 
     def download_snapshot(self, map_id: str) -> bytes:
         """`GET /maps/{map_id}/snapshot`: the whole map (configuration and every tile of every layer)
-        as one zip file, taken between two scans; `upload_snapshot` restores it here or elsewhere."""
+        as one zip file, taken between two scans; `upload_snapshot` restores it here or elsewhere.
+        For a big map, `save_snapshot` writes it to a file instead of holding it in memory."""
         _check_id("map_id", map_id)
         return self._transfer("GET", f"/maps/{map_id}/snapshot").content
 
+    def save_snapshot(self, map_id: str, path: str | os.PathLike[str]) -> int:
+        """`download_snapshot` written to the file `path` as it arrives, never held in memory whole
+        (a big map's file takes gigabytes); returns its size in bytes. It goes to `path` + `.part`
+        first, renamed to `path` once whole: an error (`FleetmapError`, a dropped connection) leaves
+        no file, and an earlier one at `path` as it was."""
+        _check_id("map_id", map_id)
+        target = Path(path)
+        part = target.with_name(target.name + ".part")
+        timeout = httpx.Timeout(self.timeout, read=self.transfer_timeout)
+        try:
+            with self._http.stream("GET", f"/maps/{map_id}/snapshot", timeout=timeout) as response:
+                if response.is_error:
+                    response.read()
+                    _raise_for_error(response)
+                with open(part, "wb") as fp:
+                    for chunk in response.iter_bytes(_TRANSFER_CHUNK):
+                        fp.write(chunk)
+        except BaseException as exc:
+            part.unlink(missing_ok=True)
+            if isinstance(exc, httpx.TransportError):
+                raise _naming_the_service(exc, self.base_url) from exc
+            raise
+        os.replace(part, target)
+        return target.stat().st_size
+
     def upload_snapshot(
-        self, map_id: str, snapshot: bytes, *, if_match: str | None = None, create_only: bool = False
+        self,
+        map_id: str,
+        snapshot: bytes | str | os.PathLike[str] | IO[bytes],
+        *,
+        if_match: str | None = None,
+        create_only: bool = False,
     ) -> MapInfo:
         """`PUT /maps/{map_id}/snapshot`: install a `download_snapshot` file as map `map_id`, replacing
-        any map of that id, and return it once stored. `FleetmapError` 422 (or 413) for a file that
-        is not a valid snapshot, naming the part at fault; nothing changes then. `if_match`: replace
-        only the map of that ETag (`get_map_and_etag`), `create_only`: only if there is no map of
-        the id; else `MapChanged` (412), nothing changed."""
+        any map of that id, and return it once stored. `snapshot`: the file's bytes, its path (a
+        `save_snapshot` file: sent from the file as it is read, never held in memory whole), or a
+        binary file open for reading. `FleetmapError` 422 (or 413) for a file that is not a valid
+        snapshot, naming the part at fault; nothing changes then. `if_match`: replace only the map
+        of that ETag (`get_map_and_etag`), `create_only`: only if there is no map of the id; else
+        `MapChanged` (412), nothing changed."""
         _check_id("map_id", map_id)
         headers = {"content-type": "application/zip", **_conditions(if_match, create_only)}
-        response = self._transfer("PUT", f"/maps/{map_id}/snapshot", content=snapshot, headers=headers)
+        with contextlib.ExitStack() as stack:
+            body = snapshot
+            if isinstance(snapshot, (str, os.PathLike)):
+                body = stack.enter_context(open(snapshot, "rb"))  # noqa: SIM115 - closed by the stack
+            response = self._transfer("PUT", f"/maps/{map_id}/snapshot", content=body, headers=headers)
         return MapInfo.model_validate_json(response.content)
 
     def import_nav2(
