@@ -26,9 +26,9 @@ import httpx
 import numpy as np
 import pytest
 from service_process import ServiceProcess, wait_for
-from test_api_support import random_tiles_map, snapshot_body, snapshot_parts
+from test_api_support import random_tiles_map, snapshot_body
 from test_http_exhaustion import metric
-from test_upload_spool import send_chunked, spool_files
+from test_upload_spool import same_map, send_chunked, spool_files
 
 from fleetmap.memory_budget import available_memory
 from fleetmap.storage_format import snapshot_file
@@ -60,14 +60,6 @@ def service(
         put = httpx.put(f"{svc.base_url}/maps/big/snapshot", content=big_snapshot, timeout=60)
         assert put.status_code == 201, put.text
         yield svc, tmpdir
-
-
-def same_map(a: bytes, b: bytes) -> None:
-    meta_a, arrays_a = snapshot_parts(a)
-    meta_b, arrays_b = snapshot_parts(b)
-    assert meta_a["config"] == meta_b["config"] and arrays_a.keys() == arrays_b.keys()
-    for name, values in arrays_a.items():
-        assert np.array_equal(values, arrays_b[name], equal_nan=True), name
 
 
 def start_download(svc: ServiceProcess, path: str = "/maps/big/snapshot") -> tuple[socket.socket, bytes]:

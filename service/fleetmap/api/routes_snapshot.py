@@ -68,6 +68,17 @@ _WRITE_BATCH = 1 << 20
 UPLOAD_RETRY_AFTER_SECONDS = 5
 
 
+def _take_slot(slots: Slots, busy: str) -> None:
+    """Take one of `slots` for a transfer, or refuse it with 503 and `Retry-After` ("the server
+    already <busy>; retry later") when all are taken."""
+    if not slots.acquire():
+        raise ApiError(
+            503,
+            f"the server already {busy}; retry later",
+            headers={"Retry-After": str(UPLOAD_RETRY_AFTER_SECONDS)},
+        )
+
+
 @contextlib.asynccontextmanager
 async def spooled_body(request: Request, uploads: Slots) -> AsyncIterator[IO[bytes]]:
     """The request's body as a binary file (at its start; readable, seekable), which is not held in
@@ -88,13 +99,9 @@ async def spooled_body(request: Request, uploads: Slots) -> AsyncIterator[IO[byt
     kernel holds the writer until writeback catches up, for up to hundreds of milliseconds a call,
     and on the event loop that would stall every other request and the ingest of scans meanwhile.
     Batching keeps the thread hops few (4096 for 4 GiB) and the memory held at a megabyte."""
-    if not uploads.acquire():
-        raise ApiError(
-            503,
-            f"the server already holds its limit of {uploads.limit} uploads in progress (snapshots and "
-            "nav2 imports); retry later",
-            headers={"Retry-After": str(UPLOAD_RETRY_AFTER_SECONDS)},
-        )
+    _take_slot(
+        uploads, f"holds its limit of {uploads.limit} uploads in progress (snapshots and nav2 imports)"
+    )
     spool = spooled_file()
     writing: asyncio.Future[int] | None = None  # a write of the spool, on a worker thread
 
@@ -161,13 +168,7 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
     downloads (4 by default). Nothing changes either way."""
     entry = state.entry(map_id)
     downloads = state.downloads
-    if not downloads.acquire():
-        raise ApiError(
-            503,
-            f"the server already sends its limit of {downloads.limit} snapshot downloads at once; retry "
-            "later",
-            headers={"Retry-After": str(UPLOAD_RETRY_AFTER_SECONDS)},
-        )
+    _take_slot(downloads, f"sends its limit of {downloads.limit} snapshot downloads at once")
     spool = spooled_file("download")
     try:
         size = await asyncio.to_thread(_write_download, map_id, entry.gmap, spool)
