@@ -27,7 +27,6 @@ from test_compiled_cache import LOADED_KERNELS
 from fleetmap import cli, server
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
-from fleetmap.export import IMAGE_STRIP_ROWS
 from fleetmap.grid_map import GridMap
 
 RES = 0.05
@@ -402,11 +401,12 @@ def test_build_of_the_intel_log_equals_the_library_map(datasets_dir: Path, tmp_p
     np.testing.assert_array_equal(read_pgm(tmp_path / "map.pgm"), want[::-1])
     assert (want == 0).sum() > 10_000 and (want == 254).sum() > 100_000  # a real map, walls and floor
     # map.png the same way, from the float32 probabilities the map gives (unknown as p = 0.5). The
-    # images are made strip by strip: this window spans several strips and ends inside one.
+    # images are made a storage tile at a time: this window spans several tiles and ends inside one.
     gray = np.round(255.0 * (1.0 - np.nan_to_num(p.astype(np.float32), nan=0.5))).astype(np.uint8)
     with Image.open(tmp_path / "map.png") as image:
         np.testing.assert_array_equal(np.asarray(image), gray[::-1])
-    assert log_odds.shape[0] > 2 * IMAGE_STRIP_ROWS and log_odds.shape[0] % IMAGE_STRIP_ROWS
+    tile = MapConfig().tile_size
+    assert log_odds.shape[0] > 2 * tile and log_odds.shape[0] % tile
 
 
 @pytest.mark.parametrize(

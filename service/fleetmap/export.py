@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import zipfile
 from collections.abc import Callable, Iterator
@@ -46,6 +47,15 @@ class Window:
     def origin(self, resolution: float) -> tuple[float, float]:
         """Map point of the window's lower-left corner."""
         return cell_edge(self.i0, resolution), cell_edge(self.j0, resolution)
+
+    def aligned(self, scale: int) -> Window:
+        """The smallest window holding this one whose edges lie on multiples of `scale` cells: one
+        made of whole blocks of `scale` x `scale` cells, as an export at `scale` times the map's
+        resolution reads it (`most_occupied`)."""
+        return Window(
+            self.i0 // scale * scale, self.j0 // scale * scale, -(-self.i1 // scale) * scale,
+            -(-self.j1 // scale) * scale,
+        )  # fmt: skip
 
 
 def known_window(gmap: GridMap, margin: int = 0) -> Window | None:
@@ -116,6 +126,18 @@ def map_source(gmap: GridMap) -> str | None:
     return None
 
 
+def most_occupied(probability: np.ndarray, scale: int) -> np.ndarray:
+    """Each block of `scale` x `scale` cells of `probability` (whose sides are multiples of `scale`)
+    as one cell: its most occupied known cell, NaN (unknown) only where every cell is unknown. The
+    rule of the viewer's zoomed-out tiles: an obstacle seen in a block is never averaged away, and a
+    block seen free stays free."""
+    if scale == 1:
+        return probability
+    ny, nx = probability.shape
+    blocks = probability.reshape(ny // scale, scale, nx // scale, scale)
+    return np.fmax.reduce(np.fmax.reduce(blocks, axis=3), axis=1)  # fmax ignores NaN
+
+
 def map_probability(gmap: GridMap, window: Window) -> np.ndarray:
     """The occupancy probability its images show over a window (row 0 = lowest y), NaN where
     unknown: from the log-odds, or the count model's `hits / (hits + misses)` (see `map_source`).
@@ -129,21 +151,13 @@ def map_probability(gmap: GridMap, window: Window) -> np.ndarray:
         return np.where(total > 0, hits / total, np.nan)
 
 
-#: Rows of a window turned into image pixels at a time: the probabilities are float64 with a few
-#: temporaries, so a whole window at once took several times the finished image's memory (1 GB for
-#: the Freiburg campus map, whose 8-bit image is 37 MB).
-IMAGE_STRIP_ROWS = 256
-
-
-def map_image(gmap: GridMap, window: Window, pixels: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-    """An 8-bit image of a window (top row = highest y): `pixels` of `map_probability` over strips
-    of `IMAGE_STRIP_ROWS` rows (row 0 = lowest y), each the same shape as its input."""
-    ny, nx = window.shape
-    image = np.empty((max(ny, 0), max(nx, 0)), dtype=np.uint8)
-    for j in range(window.j0, window.j1, IMAGE_STRIP_ROWS):
-        strip = Window(window.i0, j, window.i1, min(j + IMAGE_STRIP_ROWS, window.j1))
-        image[j - window.j0 : strip.j1 - window.j0] = pixels(map_probability(gmap, strip))
-    return image[::-1]
+def map_image(
+    gmap: GridMap, window: Window, pixels: Callable[[np.ndarray], np.ndarray], scale: int = 1
+) -> np.ndarray:
+    """An 8-bit image of a window (top row = highest y): `pixels` (elementwise, each the same shape
+    as its input) of `map_probability`, read as `by_blocks` reads it; with `scale` > 1 (a window
+    `aligned` to it), a pixel per block of `scale` x `scale` cells (`most_occupied`)."""
+    return by_blocks(gmap, window, scale, pixels)[::-1]
 
 
 def tile_blocks(window: Window, tile_size: int) -> Iterator[Window]:
@@ -159,36 +173,80 @@ def tile_blocks(window: Window, tile_size: int) -> Iterator[Window]:
             )
 
 
-def map_state(gmap: GridMap, window: Window) -> np.ndarray:
-    """The trinary `state` codes (`STATE_UNKNOWN` / `STATE_FREE` / `STATE_OCCUPIED`, uint8, row 0 =
-    lowest y) of `map_probability` by the map's thresholds, the classification the nav2 files show.
-    Read one storage tile at a time (`tile_blocks`): the map's lock is held for one tile's copy at
-    a time, so integration never waits longer for it (a whole window in one read held it for
-    milliseconds), and only a tile's probabilities are held. Raises LayerUnavailableError for a
-    TSDF-only map."""
+def by_blocks(
+    gmap: GridMap, window: Window, scale: int, convert: Callable[[np.ndarray], np.ndarray]
+) -> np.ndarray:
+    """`convert` (elementwise, to uint8) of `map_probability` over a window (row 0 = lowest y), a
+    cell per block of `scale` x `scale` of the map's (`most_occupied`; the window `aligned` to
+    `scale`). Read about one storage tile at a time (`tile_blocks`): the map's lock is held for one
+    tile's copy at a time, so integration never waits longer for it (a whole window in one read
+    held it for milliseconds), and only a tile's probabilities are held. A part of the window with
+    no stored tile is `convert` of unknown without a read: a sparse map's window is mostly such
+    parts (a window of 2^30 cells around two scans took 15 s a state export when they were read).
+    Raises LayerUnavailableError for a TSDF-only map."""
     ny, nx = window.shape
-    state = np.empty((max(ny, 0), max(nx, 0)), dtype=np.uint8)
-    for block in tile_blocks(window, gmap.store.tile_size):
-        rows = slice(block.j0 - window.j0, block.j1 - window.j0)
-        cols = slice(block.i0 - window.i0, block.i1 - window.i0)
-        state[rows, cols] = gmap.classify_probability(map_probability(gmap, block))
-    return state
+    out = np.empty((max(ny, 0) // scale, max(nx, 0) // scale), dtype=np.uint8)
+    out.fill(convert(np.full((1, 1), np.nan))[0, 0])
+    for block in tile_blocks(window, max(1, gmap.store.tile_size // scale) * scale):
+        if not gmap.store.any_tile_in(block.i0, block.j0, block.i1, block.j1):
+            continue
+        rows = slice((block.j0 - window.j0) // scale, (block.j1 - window.j0) // scale)
+        cols = slice((block.i0 - window.i0) // scale, (block.i1 - window.i0) // scale)
+        out[rows, cols] = convert(most_occupied(map_probability(gmap, block), scale))
+    return out
 
 
-def nav2_files(gmap: GridMap, window: Window, name: str = "map") -> dict[str, bytes]:
-    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, of `map_state`."""
-    image = state_to_pgm(map_state(gmap, window))
-    yaml_text = nav2_yaml(f"{name}.pgm", gmap.resolution, window.origin(gmap.resolution))
+def map_state(gmap: GridMap, window: Window, scale: int = 1) -> np.ndarray:
+    """The trinary `state` codes (`STATE_UNKNOWN` / `STATE_FREE` / `STATE_OCCUPIED`, uint8, row 0 =
+    lowest y) of `map_probability` by the map's thresholds, the classification the nav2 files show,
+    read as `by_blocks` reads it; with `scale` > 1 (a window `aligned` to it), a code per block of
+    `scale` x `scale` cells, of its `most_occupied` cell."""
+    return by_blocks(gmap, window, scale, gmap.classify_probability)
+
+
+def nav2_files(gmap: GridMap, window: Window, name: str = "map", scale: int = 1) -> dict[str, bytes]:
+    """`{name}.yaml` and `{name}.pgm` in the nav2 map_server format, of `map_state` (a cell per
+    `scale` x `scale` of the map's, the window `aligned` to `scale`)."""
+    image = state_to_pgm(map_state(gmap, window, scale))
+    yaml_text = nav2_yaml(
+        f"{name}.pgm", export_resolution(gmap.resolution, scale), window.origin(gmap.resolution)
+    )
     return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(image)}
 
 
-def nav2_zip(gmap: GridMap, window: Window, name: str = "map") -> bytes:
+def nav2_zip(gmap: GridMap, window: Window, name: str = "map", scale: int = 1) -> bytes:
     """The nav2 files in one zip archive."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for filename, data in nav2_files(gmap, window, name).items():
+        for filename, data in nav2_files(gmap, window, name, scale).items():
             zf.writestr(filename, data)
     return buf.getvalue()
+
+
+#: The coarsest export: a pixel per block of at most this many cells a side.
+MAX_EXPORT_SCALE = 256
+
+
+def export_scale(map_resolution: float, resolution: float) -> int:
+    """How many of a map's cells a side one cell of an export at `resolution` holds: `resolution`
+    must be a whole multiple of the map's, from 1 to MAX_EXPORT_SCALE times (to a part in 10^9,
+    so that 0.15 is 3 x 0.05); ValueError saying why otherwise."""
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"an export's resolution must be a positive number of metres, got {resolution!r}")
+    scale = round(resolution / map_resolution)
+    if not 1 <= scale <= MAX_EXPORT_SCALE or abs(scale * map_resolution - resolution) > 1e-9 * resolution:
+        raise ValueError(
+            f"an export's resolution must be the map's ({map_resolution!r} m) times a whole number from 1 "
+            f"to {MAX_EXPORT_SCALE}, got {resolution!r}"
+        )
+    return scale
+
+
+def export_resolution(map_resolution: float, scale: int) -> float:
+    """The resolution of an export at `scale` (`export_scale`), as its files state it: the map's
+    exactly when `scale` is 1, else the product to 12 significant digits (0.15 for 3 x 0.05, where
+    the float product is 0.15000000000000002)."""
+    return map_resolution if scale == 1 else float(f"{map_resolution * scale:.12g}")
 
 
 def probability_to_gray(probability: np.ndarray) -> np.ndarray:
@@ -205,9 +263,9 @@ def png_bytes(pixels: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def map_png(gmap: GridMap, window: Window) -> bytes:
-    """`map_probability` of a window as a grayscale PNG."""
-    return png_bytes(map_image(gmap, window, probability_to_gray))
+def map_png(gmap: GridMap, window: Window, scale: int = 1) -> bytes:
+    """`map_probability` of a window as a grayscale PNG (a pixel per `scale` x `scale` cells)."""
+    return png_bytes(map_image(gmap, window, probability_to_gray, scale))
 
 
 def npy_bytes(array: np.ndarray) -> bytes:

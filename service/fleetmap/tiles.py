@@ -8,7 +8,8 @@ plain arrays and a slot lookup instead of a dictionary of arrays. The pool doubl
 amortised copy; the cap bounds it).
 
 A `TileStore` is not thread-safe on its own: `GridMap` serialises writers and readers with its lock
-(`len()` and `memory_bytes()` excepted: statistics read them without it).
+(`len()` and `memory_bytes()` excepted: statistics read them without it; and `any_tile_in`, which
+exports read between their tiles' reads).
 """
 
 from __future__ import annotations
@@ -239,6 +240,17 @@ class TileStore:
         """Give each tile `slots[k]` with `changed[k]` set a new version (`kernels.update.bump_versions`:
         a store-wide clock, so versions never repeat)."""
         self._version_clock = bump_versions(changed, slots, self.versions, self._version_clock)
+
+    def any_tile_in(self, i0: int, j0: int, i1: int, j1: int) -> bool:
+        """Whether a stored tile holds a cell of `[i0, i1) x [j0, j1)` (not empty). Reads the index
+        without the map's lock: a tile created meanwhile may be missed, as a read just before it
+        would have missed it (tiles are never removed)."""
+        s = self.shift
+        return any(
+            (ti, tj) in self.slots
+            for tj in range(j0 >> s, ((j1 - 1) >> s) + 1)
+            for ti in range(i0 >> s, ((i1 - 1) >> s) + 1)
+        )
 
     def version(self, key: TileKey) -> int | None:
         slot = self.slots.get(key)

@@ -698,14 +698,24 @@ class FleetmapClient:
         parsed = Surface.model_validate_json(response.content)
         return np.array(parsed.points, dtype=np.float64).reshape(-1, 2)
 
-    def export(self, map_id: str, format: Literal["ros", "png"] = "ros", margin: int | None = None) -> bytes:
+    def export(
+        self,
+        map_id: str,
+        format: Literal["ros", "png"] = "ros",
+        margin: int | None = None,
+        resolution: float | None = None,
+    ) -> bytes:
         """`GET /maps/{map_id}/export`: "ros" = a zip of map.yaml + map.pgm (nav2 map_server), "png"
-        = one grayscale PNG; `margin` unknown cells around the observed extent (server default 2).
-        `FleetmapError` 409 for a map with no observed cell."""
+        = one grayscale PNG; `margin` unknown cells around the observed extent (server default 2);
+        `resolution` metres per exported cell, the map's times a whole number (each exported cell
+        shows the most occupied known cell of its block; default the map's). `FleetmapError` 409 for
+        a map with no observed cell, 422 for a resolution that is not such a multiple."""
         _check_id("map_id", map_id)
         params: dict[str, Any] = {"format": format}
         if margin is not None:
             params["margin"] = margin
+        if resolution is not None:
+            params["resolution"] = resolution
         return self._transfer("GET", f"/maps/{map_id}/export", params=params).content
 
     # -- live events -------------------------------------------------------------------------------

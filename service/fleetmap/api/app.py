@@ -158,6 +158,11 @@ class ApiSettings:
     #: 4 or more: the Freiburg campus map (6,039 x 6,059 cells, 36.6 M) exports in 0.7 s with 110 MB
     #: at its peak (PNG: 0.8 s, 80 MB); under the region's limit it could not be exported at all.
     max_export_cells: int = 64 * 1024 * 1024
+    #: The map's cells an export reads (its window at the map's resolution): past it 413. An export
+    #: at k times the map's resolution reads k * k cells for each it writes; this bounds its time
+    #: (about 10 s for the 2^30 cells of a 1.6 km square at 0.05 m) where `max_export_cells` bounds
+    #: its memory.
+    max_export_read_cells: int = 1 << 30
     #: Cells per region as JSON (much bigger per cell than npy).
     max_json_cells: int = 1024 * 1024
     #: Bytes of a request body (413 past it). A scan's payload has its own, smaller limit, the same as

@@ -38,7 +38,17 @@ from fleetmap.api_models import (
     tile_windows,
 )
 from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED
-from fleetmap.export import Window, known_window, map_png, map_source, nav2_zip, npy_bytes, png_bytes
+from fleetmap.export import (
+    MAX_EXPORT_SCALE,
+    Window,
+    export_scale,
+    known_window,
+    map_png,
+    map_source,
+    nav2_zip,
+    npy_bytes,
+    png_bytes,
+)
 from fleetmap.grid_map import GridMap
 
 router = APIRouter(route_class=StrictRoute)
@@ -365,35 +375,59 @@ def get_export(
     state: State,
     format: Annotated[Literal["ros", "png"], Query(description="ros: zip of map.yaml + map.pgm")] = "ros",
     margin: Annotated[int, Query(ge=0, le=1000, description="unknown cells added around the map")] = 2,
+    resolution: Annotated[
+        float | None,
+        Query(
+            gt=0,
+            description="metres per cell of the export: the map's (default) times a whole number from 1 to "
+            f"{MAX_EXPORT_SCALE}; each exported cell shows the most occupied known cell of its block",
+        ),
+    ] = None,
 ) -> Response:
     """The observed extent of the map, grown by `margin` cells, exactly as `fleetmap build` writes it:
     `ros`: a zip of `map.yaml` + `map.pgm` (nav2 map_server, trinary: 0 occupied, 254 free, 205
     unknown, by the map's thresholds; origin = lower-left corner); `png`: grayscale, 255 (1 - p),
     unknown 128. p is the occupancy layer's, or for a map keeping only counts (and the TSDF) the count
-    model's hits / (hits + misses). 409 for a map with no observed cell, 422 for a map keeping only
-    the TSDF."""
+    model's hits / (hits + misses). `resolution`: coarser than the map's by a whole factor k, each
+    exported cell is a block of k x k of the map's cells aligned on multiples of k (the extent grown
+    to whole blocks), showing the block's most occupied known cell (unknown only if every cell is
+    unknown): obstacles are kept, not averaged away. 409 for a map with no observed cell, 422 for a
+    map keeping only the TSDF or a resolution that is not such a multiple, 413 past the export limit
+    (counted in exported cells)."""
     gmap = state.entry(map_id).gmap
     if map_source(gmap) is None:
         raise ApiError(422, "this map keeps neither an 'occupancy' nor a 'counts' layer: nothing to export")
+    try:
+        scale = 1 if resolution is None else export_scale(gmap.resolution, resolution)
+    except ValueError as exc:
+        raise ApiError(422, str(exc)) from None
     window = known_window(gmap, margin)
     if window is None:
         raise ApiError(409, "the map has no observed cell (none yet, or all cleared): nothing to export")
-    ny, nx = window.shape
+    window = window.aligned(scale)
+    ny, nx = window.shape[0] // scale, window.shape[1] // scale
     if nx * ny > state.settings.max_export_cells:
         limit = state.settings.max_export_cells
         raise ApiError(
             413,
-            f"the map spans {nx} x {ny} cells, more than the export limit of {limit} "
-            "(`max_export_cells`); read it by /region windows instead",
+            f"the export spans {nx} x {ny} cells, more than the export limit of {limit} "
+            "(`max_export_cells`); export it at a coarser resolution, or read it by /region windows",
+        )
+    if window.shape[0] * window.shape[1] > state.settings.max_export_read_cells:
+        limit = state.settings.max_export_read_cells
+        raise ApiError(
+            413,
+            f"the map spans {window.shape[1]} x {window.shape[0]} of its cells, more than an export reads "
+            f"({limit}, `max_export_read_cells`); read it by /region windows",
         )
     if format == "ros":
         return Response(
-            nav2_zip(gmap, window),
+            nav2_zip(gmap, window, scale=scale),
             media_type="application/zip",
             headers={"Content-Disposition": f'attachment; filename="{map_id}.zip"'},
         )
     return Response(
-        map_png(gmap, window),
+        map_png(gmap, window, scale),
         media_type="image/png",
         headers={"Content-Disposition": f'attachment; filename="{map_id}.png"'},
     )

@@ -1,0 +1,153 @@
+"""Exports at a coarser resolution than the map's (`GET /maps/{id}/export?resolution=`,
+`fleetmap.export.most_occupied`): each exported cell is a block of k x k of the map's cells, aligned
+on multiples of k, and shows the block's most occupied known cell.
+
+The reference here reduces the map's whole probability window by strided views (`reference`), not by
+blocks of a tile at a time as the export does, and the real service's files are checked against it."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+import zipfile
+
+import numpy as np
+import pytest
+from fleetmap_client import FleetmapClient, FleetmapError
+from PIL import Image
+from service_process import ServiceProcess
+from test_api import post_scan
+from test_api_support import fan_scan, running_api
+
+from fleetmap.api.app import ApiSettings
+from fleetmap.config import MapConfig
+from fleetmap.export import (
+    MAX_EXPORT_SCALE,
+    Window,
+    export_resolution,
+    export_scale,
+    known_window,
+    map_image,
+    map_state,
+    probability_to_gray,
+)
+from fleetmap.grid_map import GridMap
+from fleetmap.scan import Pose2D
+from fleetmap.sim import SimulatedRobot, generate_floorplan
+
+
+def reference(probability: np.ndarray, k: int) -> np.ndarray:
+    """`most_occupied` another way: the largest of the k * k strided views of the window, NaN only
+    where every cell of a block is NaN."""
+    ny, nx = probability.shape
+    out = np.full((ny // k, nx // k), np.nan, dtype=probability.dtype)
+    for dj in range(k):
+        for di in range(k):
+            out = np.fmax(out, probability[dj::k, di::k])
+    return out
+
+
+def mapped(tile_size: int, seed: int) -> GridMap:
+    """A floor plan mapped by a simulated robot, a few metres either side of 0 (negative cells too)."""
+    plan = generate_floorplan(seed, width_m=16.0, height_m=12.0)
+    robot = SimulatedRobot(plan, seed=seed, num_beams=181, range_max=8.0)
+    gmap = GridMap(MapConfig(resolution=0.05, tile_size=tile_size))
+    for _ in range(12):
+        scan = robot.tick()
+        # The plan spans [0, 16] x [0, 12]: moved across 0, the whole scan with its pose.
+        pose = Pose2D(scan.pose.x - 8.0, scan.pose.y - 6.0, scan.pose.theta)
+        gmap.integrate(dataclasses.replace(scan, pose=pose))
+    return gmap
+
+
+@pytest.mark.parametrize(("tile_size", "k"), [(256, 2), (256, 3), (64, 5), (16, 20), (32, 1)])
+def test_a_coarse_export_shows_each_blocks_most_occupied_cell(tile_size: int, k: int) -> None:
+    """Images and nav2 states at k times the resolution, read a few tiles at a time, against the
+    reference over the whole window: for block sides that divide the tile size, that do not, and
+    that are larger than a tile, on windows across 0."""
+    gmap = mapped(tile_size, seed=3)
+    window = known_window(gmap, margin=2)
+    assert window is not None and window.i0 < 0
+    aligned = window.aligned(k)
+    assert aligned.i0 % k == 0 and aligned.j1 % k == 0 and aligned.i0 <= window.i0 and aligned.j1 >= window.j1
+    expected = reference(gmap.region("probability", aligned.i0, aligned.j0, aligned.i1, aligned.j1), k)
+    state = map_state(gmap, aligned, k)
+    np.testing.assert_array_equal(state, gmap.classify_probability(expected))
+    image = map_image(gmap, aligned, probability_to_gray, k)
+    np.testing.assert_array_equal(image, probability_to_gray(expected)[::-1])
+    # An obstacle is kept: every block holding an occupied cell is occupied.
+    fine = map_state(gmap, aligned)
+    occupied_blocks = reference(np.where(fine == 2, 1.0, np.nan), k) == 1.0
+    assert occupied_blocks.any() and (state[occupied_blocks] == 2).all()
+
+
+def test_the_resolution_must_be_a_whole_multiple_of_the_maps() -> None:
+    assert export_scale(0.05, 0.05) == 1 and export_scale(0.05, 0.1) == 2 and export_scale(0.05, 0.15) == 3
+    assert export_scale(0.05, 0.05 * MAX_EXPORT_SCALE) == MAX_EXPORT_SCALE
+    for bad in (0.07, 0.025, 0.05 * (MAX_EXPORT_SCALE + 1), 0.0, -0.1, math.nan, math.inf):
+        with pytest.raises(ValueError, match="resolution"):
+            export_scale(0.05, bad)
+    assert export_resolution(0.05, 3) == 0.15 and export_resolution(0.05, 1) == 0.05
+    assert Window(-5, -1, 7, 9).aligned(4) == Window(-8, -4, 8, 12)
+
+
+def test_the_service_exports_a_map_at_a_coarser_resolution(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The real service's nav2 files and PNG at 0.15 m from a 0.05 m map: the YAML says 0.15 and an
+    origin on the block grid, and every pixel is the reference's over the service's own probability
+    window (read with /region); a resolution that is not a whole multiple is refused with 422."""
+    plan = generate_floorplan(5, width_m=14.0, height_m=10.0)
+    robot = SimulatedRobot(plan, seed=5, num_beams=271, range_max=8.0)
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc, FleetmapClient(svc.base_url) as client:
+        client.create_map("m", MapConfig(resolution=0.05))
+        for seq in range(10):
+            client.post_scan("m", "r", robot.tick(), seq=seq)
+        k, res = 3, 0.05
+        with zipfile.ZipFile(io.BytesIO(client.export("m", "ros", resolution=0.15))) as zf:
+            yaml_text = zf.read("map.yaml").decode()
+            pgm = Image.open(io.BytesIO(zf.read("map.pgm")))
+        assert "resolution: 0.15\n" in yaml_text
+        origin = yaml_text.split("origin: [")[1].split("]")[0].split(", ")
+        i0, j0 = round(float(origin[0]) / res), round(float(origin[1]) / res)
+        assert i0 % k == 0 and j0 % k == 0
+        width, height = pgm.size
+        x0, y0 = i0 * res, j0 * res
+        x1, y1 = x0 + width * k * res, y0 + height * k * res
+        # Cells [floor(xmin / res), floor(xmax / res)): a quarter cell in, whatever the rounding.
+        q = res / 4
+        probability = client.region("m", x0 + q, y0 + q, x1 + q, y1 + q, layer="probability")
+        assert probability.shape == (height * k, width * k)
+        expected = reference(probability, k)
+        pixels = np.asarray(pgm)[::-1]
+        state = np.full(expected.shape, 205)
+        with np.errstate(invalid="ignore"):
+            state[expected > 0.65] = 0
+            state[expected < 0.196] = 254
+        np.testing.assert_array_equal(pixels, state)
+        assert (pixels == 0).any() and (pixels == 254).any() and (pixels == 205).any()
+        png = np.asarray(Image.open(io.BytesIO(client.export("m", "png", resolution=0.15))))
+        np.testing.assert_array_equal(png, probability_to_gray(expected)[::-1])
+        with pytest.raises(FleetmapError) as refused:
+            client.export("m", "ros", resolution=0.07)
+        assert refused.value.status == 422 and "times a whole number" in str(refused.value)
+
+
+def test_the_export_limit_counts_exported_cells() -> None:
+    """A map past `max_export_cells` at its own resolution is exported at twice it (a quarter of the
+    cells), and the refusal says so."""
+    scan = fan_scan(0.0, 0.0, 0.0, [3.0] * 61)
+    engine = GridMap(MapConfig())
+    engine.integrate(scan)
+    i0, j0, i1, j1 = engine.known_bounds()  # type: ignore[misc]
+    cells = (i1 - i0 + 4) * (j1 - j0 + 4)  # the export's default margin: 2 cells
+    with running_api(ApiSettings(max_export_cells=cells // 2)) as api:
+        assert post_scan(api, "big", "r", scan, 0).status_code == 200
+        refused = api.client.get("/maps/big/export")
+        assert refused.status_code == 413 and "coarser resolution" in refused.json()["detail"]
+        coarse = api.client.get("/maps/big/export", params={"resolution": 0.1})
+        assert coarse.status_code == 200, coarse.text
+    # What an export reads is bounded too: k * k of the map's cells for each it writes.
+    with running_api(ApiSettings(max_export_read_cells=cells - 1)) as api:
+        assert post_scan(api, "big", "r", scan, 0).status_code == 200
+        refused = api.client.get("/maps/big/export", params={"resolution": 0.1})
+        assert refused.status_code == 413 and "max_export_read_cells" in refused.json()["detail"]
