@@ -155,7 +155,7 @@ class ApiSettings:
     max_region_cells: int = 16 * 1024 * 1024
     #: Cells per export (`GET /maps/{id}/export`: nav2 zip or PNG of the whole map): 8192 x 8192,
     #: 409.6 m square at 0.05 m. An export holds 3 bytes a cell at most while it is made, a region
-    #: 4 or more: the Freiburg campus map (6,039 x 6,059 cells, 36.6 M) exports in 0.7 s with 110 MB
+    #: 4 or more: the Freiburg campus map (6,039 x 6,059 cells, 36.6 M) exports in 0.5 s with 110 MB
     #: at its peak (PNG: 0.8 s, 80 MB); under the region's limit it could not be exported at all.
     max_export_cells: int = 64 * 1024 * 1024
     #: The map's cells an export reads (its window at the map's resolution): past it 413. An export
