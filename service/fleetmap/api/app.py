@@ -156,7 +156,7 @@ class ApiSettings:
     #: Cells per export (`GET /maps/{id}/export`: nav2 zip or PNG of the whole map): 8192 x 8192,
     #: 409.6 m square at 0.05 m. An export holds 3 bytes a cell at most while it is made, a region
     #: 4 or more: the Freiburg campus map (6,039 x 6,059 cells, 36.6 M) exports in 0.5 s with 110 MB
-    #: at its peak (PNG: 0.8 s, 80 MB); under the region's limit it could not be exported at all.
+    #: at its peak (PNG: 0.5 s, 77 MB); under the region's limit it could not be exported at all.
     max_export_cells: int = 64 * 1024 * 1024
     #: The map's cells an export reads (its window at the map's resolution): past it 413. An export
     #: at k times the map's resolution reads k * k cells for each it writes; this bounds its time
