@@ -222,3 +222,29 @@ def test_the_upload_limit_is_the_memory_budget(tmp_path: Path) -> None:
         put = httpx.put(f"{svc.base_url}/maps/c/snapshot", content=body)
         assert put.status_code == 422, put.text
         assert "has shape" in put.json()["detail"], put.text
+
+
+def test_a_client_that_stops_reading_its_download_is_dropped(tmp_path: Path, big_snapshot: bytes) -> None:
+    """A client that asks for a download and then reads nothing, its connection left open, is
+    dropped once it has read nothing for `--http-send-timeout` seconds, as if it had gone: its slot
+    and its spool come back. Four such clients held every download slot for ever (nothing timed an
+    answer out), and every other download was refused with 503."""
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    args = ["--in-memory", "--http-send-timeout", "5"]
+    with ServiceProcess(tmp_path, args, env={"TMPDIR": str(tmpdir)}) as svc:
+        pid = svc.proc.pid  # type: ignore[union-attr]
+        put = httpx.put(f"{svc.base_url}/maps/big/snapshot", content=big_snapshot, timeout=60)
+        assert put.status_code == 201, put.text
+        stalled = [start_download(svc) for _ in range(MAX_DOWNLOADS)]
+        try:
+            assert metric(svc, "fleetmap_downloads") > 0  # (the first may be dropped already)
+            wait_for(lambda: metric(svc, "fleetmap_downloads") == 0, timeout=20, what="the slots back")
+            wait_for(lambda: not spool_files(pid, tmpdir), timeout=5, what="no spool")
+            got = httpx.get(f"{svc.base_url}/maps/big/snapshot", timeout=60)
+            assert got.status_code == 200, got.text
+            same_map(big_snapshot, got.content)
+        finally:
+            for sock, _ in stalled:
+                sock.close()
+        assert "Traceback" not in svc.logs() and "ERROR" not in svc.logs(), svc.logs()

@@ -8,7 +8,7 @@ service's 1024 descriptors: robots could no longer connect over Zenoh, HTTP went
 asyncio logged every refused accept with a traceback (300 MB of log in a minute). Nobody needs a
 token to do that: a connection is only checked once its request head has arrived.
 
-`bounded_http_protocol` returns uvicorn's httptools protocol with four limits:
+`bounded_http_protocol` returns uvicorn's httptools protocol with five limits:
 
 - at most `max_connections` HTTP connections are open at once; the next one is answered with a
   JSON 503 and closed at once, so HTTP alone can never use up the descriptors Zenoh, SQLite and the
@@ -16,6 +16,10 @@ token to do that: a connection is only checked once its request head has arrived
 - a request's head (request line and headers) must arrive within `head_timeout` seconds of the
   connection opening, or of the request's first byte on a kept-alive connection;
 - its body must then arrive within `body_timeout` seconds;
+- a client must take what its answer sends: if it reads nothing for `send_timeout` seconds while
+  the answer waits on it (the connection's write buffer full), the connection is dropped. A client
+  that asked for a snapshot download and stopped reading, connection open, held one of the 4
+  download slots (and the download's file in TMPDIR) for ever: four of them refused every download;
 - its head may be at most MAX_HEAD_BYTES long: past it the answer is a JSON 414 (the request line
   alone is that long) or 431 (headers), and the connection is closed (after LINGER seconds at most
   of reading and dropping what the client still sends, so that it reads the answer, not a reset).
@@ -40,7 +44,8 @@ refused), and rate-limits asyncio's complaints when descriptors do run out (`qui
 Python 3.11 logs one traceback per connection still waiting, 46,000 in 8 s).
 
 A connection past a deadline is closed. Nothing limits how long a response takes: an event stream,
-or a scan waiting for its integration, runs as long as it needs once its request has arrived.
+or a scan waiting for its integration, runs as long as it needs once its request has arrived, as
+long as its client reads what it is sent.
 """
 
 from __future__ import annotations
@@ -150,7 +155,9 @@ class RateLimitedWarnings:
         return getattr(self._logger, name)
 
 
-def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeout: float) -> type:
+def bounded_http_protocol(
+    max_connections: int, head_timeout: float, body_timeout: float, send_timeout: float = 60.0
+) -> type:
     """uvicorn's httptools protocol with the limits of the module's docstring (pass the class as
     `uvicorn.Config(http=...)`)."""
     # Imported here: `fleetmap --help` (which imports server.py, and so this module) need not load
@@ -176,6 +183,9 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
             self._refusal: bytes | None = None
             # A refusal was sent: what the client still sends is read and dropped (`_refuse`).
             self._lingering = False
+            # Armed while the transport's write buffer is full (`pause_writing`): the client reads
+            # nothing of its answer.
+            self._send_stall: asyncio.TimerHandle | None = None
 
         def data_received(self, data: bytes) -> None:
             if self._lingering:
@@ -239,7 +249,30 @@ def bounded_http_protocol(max_connections: int, head_timeout: float, body_timeou
 
         def connection_lost(self, exc: Exception | None) -> None:
             self._disarm()
+            self._resumed()
             super().connection_lost(exc)
+
+        def pause_writing(self) -> None:
+            super().pause_writing()
+            if self._send_stall is None:
+                self._send_stall = self.loop.call_later(send_timeout, self._stalled)
+
+        def resume_writing(self) -> None:
+            self._resumed()
+            super().resume_writing()
+
+        def _resumed(self) -> None:
+            if self._send_stall is not None:
+                self._send_stall.cancel()
+                self._send_stall = None
+
+        def _stalled(self) -> None:
+            """The client read nothing for `send_timeout` seconds: drop the connection (abort, not
+            close, which would wait for the unread bytes to go). uvicorn then tells the app that the
+            client went away, as when it closes: the answer ends, and a download gives back its slot
+            and its file."""
+            self._send_stall = None
+            self.transport.abort()
 
         def on_message_begin(self) -> None:
             super().on_message_begin()

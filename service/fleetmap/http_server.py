@@ -76,8 +76,9 @@ def make_server(args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: S
 
     max_connections = connection_limit(args.max_http_connections, raise_descriptor_limit())
     log.info(
-        "HTTP: at most %d connections; request heads within %g s, bodies within %g s",
-        max_connections, args.http_head_timeout, args.http_body_timeout,
+        "HTTP: at most %d connections; request heads within %g s, bodies within %g s; clients that "
+        "read nothing of an answer for %g s dropped",
+        max_connections, args.http_head_timeout, args.http_body_timeout, args.http_send_timeout,
     )  # fmt: skip
     # httptools (a dependency; C) rather than h11 (pure Python) parses HTTP: about a quarter
     # less CPU, and GIL time the integration workers do not wait for, per cached tile. Its
@@ -89,7 +90,9 @@ def make_server(args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: S
         access_log=args.access_log,
         timeout_graceful_shutdown=GRACEFUL_HTTP_SECONDS,
         lifespan="auto",
-        http=bounded_http_protocol(max_connections, args.http_head_timeout, args.http_body_timeout),
+        http=bounded_http_protocol(
+            max_connections, args.http_head_timeout, args.http_body_timeout, args.http_send_timeout
+        ),
         backlog=ACCEPT_BACKLOG,
         forwarded_allow_ips=_trusted_proxies(args.forwarded_allow_ips),
     )

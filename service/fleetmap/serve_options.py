@@ -309,6 +309,17 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         ),
     )
     p.add_argument(
+        "--http-send-timeout",
+        type=_seconds_between(0.1, 3600.0),
+        default=60.0,
+        metavar="S",
+        help=(
+            "drop a connection whose client has read nothing of its answer for this many seconds while "
+            "the answer waits on it (default 60: a snapshot download's client that stops reading "
+            "would hold one of the 4 download slots for ever)"
+        ),
+    )
+    p.add_argument(
         "--config",
         type=_path,
         metavar="FILE",
