@@ -12,6 +12,7 @@ import contextlib
 import io
 import json
 import math
+import os
 import threading
 import time
 import zipfile
@@ -387,6 +388,41 @@ def test_snapshots_saved_to_a_file_and_uploaded_from_one(
         client.save_snapshot("no-such-map", path)
     assert missing.value.status == 404
     assert path.read_bytes() == kept and sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
+def test_a_snapshot_uploaded_from_an_open_file_is_sent_from_where_it_stands(
+    client: FleetmapClient, scans: list[Scan], tmp_path: Path
+) -> None:
+    """`upload_snapshot` sends an open file from its position to its end, whatever file it is: one
+    whose first bytes the caller has read past (a snapshot after a header of its own) and a pipe
+    (standard input). httpx declared the whole file's size whatever its position, and a pipe's 0,
+    then failed mid-request with h11's "Too little (much) data for declared Content-Length"."""
+    client.create_map("piped", CONFIG)
+    for k, scan in enumerate(scans[:2]):
+        client.post_scan("piped", "r1", scan, seq=k)
+    snapshot = client.download_snapshot("piped")
+    tiles = client.get_map("piped").stats.tiles
+    path = tmp_path / "with-header.bin"
+    path.write_bytes(b"HEADER" + snapshot)
+    with open(path, "rb") as fp:
+        assert fp.read(6) == b"HEADER"
+        assert client.upload_snapshot("piped-offset", fp).stats.tiles == tiles
+    read, write = os.pipe()
+
+    def feed() -> None:
+        with open(write, "wb") as out:
+            out.write(snapshot)
+
+    feeder = threading.Thread(target=feed)
+    feeder.start()
+    with open(read, "rb") as pipe:
+        assert client.upload_snapshot("piped-pipe", pipe).stats.tiles == tiles
+    feeder.join()
+    x0, y0, x1, y1 = -5.0, -5.0, 15.0, 12.0
+    for target in ("piped-offset", "piped-pipe"):
+        np.testing.assert_array_equal(
+            client.region(target, x0, y0, x1, y1), client.region("piped", x0, y0, x1, y1)
+        )
 
 
 def test_threads_posting_one_robots_scans_lose_none(client: FleetmapClient, scans: list[Scan]) -> None:

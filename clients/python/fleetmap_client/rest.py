@@ -190,6 +190,12 @@ def _bounds(
     return {"xmin": float(xmin), "ymin": float(ymin), "xmax": float(xmax), "ymax": float(ymax)}
 
 
+def _read_chunks(fp: IO[bytes]) -> Iterator[bytes]:
+    """What is left of the binary file `fp`, _TRANSFER_CHUNK bytes at a time."""
+    while chunk := fp.read(_TRANSFER_CHUNK):
+        yield chunk
+
+
 class FleetmapClient:
     """A synchronous client of one fleetmap service at `base_url` (e.g. "http://127.0.0.1:8000").
 
@@ -377,16 +383,24 @@ class FleetmapClient:
         """`PUT /maps/{map_id}/snapshot`: install a `download_snapshot` file as map `map_id`, replacing
         any map of that id, and return it once stored. `snapshot`: the file's bytes, its path (a
         `save_snapshot` file: sent from the file as it is read, never held in memory whole), or a
-        binary file open for reading. `FleetmapError` 422 (or 413) for a file that is not a valid
-        snapshot, naming the part at fault; nothing changes then. `if_match`: replace only the map
-        of that ETag (`get_map_and_etag`), `create_only`: only if there is no map of the id; else
-        `MapChanged` (412), nothing changed."""
+        binary file open for reading (sent from where it stands to its end; a pipe too).
+        `FleetmapError` 422 (or 413) for a file that is not a valid snapshot, naming the part at
+        fault; nothing changes then. `if_match`: replace only the map of that ETag
+        (`get_map_and_etag`), `create_only`: only if there is no map of the id; else `MapChanged`
+        (412), nothing changed."""
         _check_id("map_id", map_id)
         headers = {"content-type": "application/zip", **_conditions(if_match, create_only)}
         with contextlib.ExitStack() as stack:
-            body = snapshot
+            body: bytes | IO[bytes] | Iterator[bytes]
             if isinstance(snapshot, (str, os.PathLike)):
                 body = stack.enter_context(open(snapshot, "rb"))  # noqa: SIM115 - closed by the stack
+            elif isinstance(snapshot, (bytes, bytearray, memoryview)):
+                body = snapshot
+            else:
+                # From where the caller's file stands, to its end, chunked: httpx would declare the
+                # whole file's size (`os.fstat`) whatever its position, and 0 for a pipe, then fail
+                # sending more or less than that ("Too much data for declared Content-Length").
+                body = _read_chunks(snapshot)
             response = self._transfer("PUT", f"/maps/{map_id}/snapshot", content=body, headers=headers)
         return MapInfo.model_validate_json(response.content)
 
