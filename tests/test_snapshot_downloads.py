@@ -209,9 +209,10 @@ def test_the_upload_limit_is_the_memory_budget(tmp_path: Path) -> None:
         put = httpx.put(f"{svc.base_url}/maps/c/snapshot", content=body)
         assert put.status_code == 413, put.text
         assert f"hold {size} bytes" in put.json()["detail"] and "67108864" in put.json()["detail"]
-        status, answer, sent = send_chunked(svc.port, "/maps/c/snapshot", b"\0" * (1 << 20), 80)
+        # Refused as it arrives: what was sent past the limit is at most what the sockets buffer.
+        status, answer, sent = send_chunked(svc.port, "/maps/c/snapshot", b"\0" * (1 << 20), 160)
         assert status == 413 and f"larger than the limit of {(64 << 20) + (2 << 20)} bytes" in answer, answer
-        assert sent < 80 << 20
+        assert sent < 128 << 20
         small = snapshot_file("s", random_tiles_map(2, tile_size=64))
         assert httpx.put(f"{svc.base_url}/maps/c/snapshot", content=small).status_code == 201
     body, size = crafted_upload(256)
