@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import threading
 from collections.abc import AsyncIterator, Callable
 from typing import IO, Any
@@ -29,9 +30,10 @@ from fleetmap.storage_format import (
     map_from_snapshot_file,
     write_snapshot_file,
 )
-from fleetmap.upload_spool import close_spool, spooled_file
+from fleetmap.upload_spool import UploadStopped, check_stop, close_spool, spooled_file
 
 router = APIRouter(tags=["maps"], route_class=StrictRoute)
+log = logging.getLogger("fleetmap.api")
 
 MEDIA_TYPE = "application/zip"
 
@@ -63,6 +65,8 @@ UPLOAD_ERRORS = error_responses(
 #: Bytes of body gathered before they are written to the spool in one call on a worker thread (and
 #: of a download read from its spool at a time).
 _WRITE_BATCH = 1 << 20
+#: Seconds between two looks at whether a download's client went away while its file is written.
+_DISCONNECT_POLL_S = 0.2
 #: Seconds an upload refused for the limit of uploads in progress is told to wait (`Retry-After`):
 #: uploads take seconds (a big one a minute), so the default second would only make clients resend.
 UPLOAD_RETRY_AFTER_SECONDS = 5
@@ -160,7 +164,7 @@ async def spooled_body(request: Request, uploads: Slots) -> AsyncIterator[IO[byt
         ),
     },  # fmt: skip
 )
-async def get_snapshot(map_id: MapId, state: State) -> Response:
+async def get_snapshot(map_id: MapId, state: State, request: Request) -> Response:
     """The whole map (configuration and every tile of every layer) as one zip file, consistent: it
     is taken under the map's lock, between two scans. `PUT` it to this or another server to restore.
     The file is written to the service's temporary directory, then sent: 507 if that has no room for
@@ -170,11 +174,29 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
     downloads = state.downloads
     _take_slot(downloads, f"sends its limit of {downloads.limit} snapshot downloads at once")
     spool = spooled_file("download")
-    try:
-        size = await asyncio.to_thread(_write_download, map_id, entry.gmap, spool)
-    except BaseException:
+    stop = threading.Event()
+    writer = asyncio.ensure_future(asyncio.to_thread(_write_download, map_id, entry.gmap, spool, stop))
+
+    def written(_: asyncio.Future[int]) -> None:
+        if not writer.cancelled():
+            writer.exception()  # retrieved: it is answered (or its client gone) already
         close_spool(spool)
         downloads.release()
+
+    try:
+        # A client that goes away while its file is written stops the writing at its next write: it
+        # ran to the end (half a minute for a 4.46 GB map), holding the slot and a copy of the map,
+        # so a client dropping 4 downloads as often as they were written kept the others at 503.
+        while not (await asyncio.wait({writer}, timeout=_DISCONNECT_POLL_S))[0]:
+            if await request.is_disconnected():
+                stop.set()
+        size = writer.result()
+    except BaseException as exc:
+        stop.set()  # cancelled too (the server stopping): the writer stops at its next write
+        writer.add_done_callback(written)  # the spool is closed once the writer let go of it
+        if isinstance(exc, UploadStopped):
+            log.info("the download of map %s stopped as it was written: its client went away", map_id)
+            raise ApiError(503, "the client went away") from None
         raise
     return _SpoolResponse(
         spool, downloads, media_type=MEDIA_TYPE,
@@ -185,12 +207,28 @@ async def get_snapshot(map_id: MapId, state: State) -> Response:
     )  # fmt: skip
 
 
-def _write_download(map_id: str, gmap: GridMap, spool: IO[bytes]) -> int:
-    """The map's snapshot file written to `spool`, which is left at its start; its size."""
-    write_snapshot_file(map_id, gmap, spool)
+def _write_download(map_id: str, gmap: GridMap, spool: IO[bytes], stop: threading.Event) -> int:
+    """The map's snapshot file written to `spool`, which is left at its start; its size. Raises
+    `UploadStopped` at the first write after `stop` is set."""
+    write_snapshot_file(map_id, gmap, _StoppableWrites(spool, stop))  # type: ignore[arg-type]
     size = spool.tell()
     spool.seek(0)
     return size
+
+
+class _StoppableWrites:
+    """A binary file whose writes raise `UploadStopped` once `stop` is set; anything else is the
+    file's own."""
+
+    def __init__(self, file: IO[bytes], stop: threading.Event) -> None:
+        self._file, self._stop = file, stop
+
+    def write(self, data: bytes) -> int:
+        check_stop(self._stop)
+        return self._file.write(data)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._file, name)
 
 
 class _SpoolResponse(StreamingResponse):
