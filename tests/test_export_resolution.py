@@ -85,7 +85,7 @@ def test_a_coarse_export_shows_each_blocks_most_occupied_cell(tile_size: int, k:
 def test_the_resolution_must_be_a_whole_multiple_of_the_maps() -> None:
     assert export_scale(0.05, 0.05) == 1 and export_scale(0.05, 0.1) == 2 and export_scale(0.05, 0.15) == 3
     assert export_scale(0.05, 0.05 * MAX_EXPORT_SCALE) == MAX_EXPORT_SCALE
-    for bad in (0.07, 0.025, 0.05 * (MAX_EXPORT_SCALE + 1), 0.0, -0.1, math.nan, math.inf):
+    for bad in (0.07, 0.025, 0.05 * (MAX_EXPORT_SCALE + 1), 0.0, -0.1, math.nan, math.inf, 1.65e308, 5e-324):
         with pytest.raises(ValueError, match="resolution"):
             export_scale(0.05, bad)
     assert export_resolution(0.05, 3) == 0.15 and export_resolution(0.05, 1) == 0.05

@@ -233,7 +233,8 @@ def export_scale(map_resolution: float, resolution: float) -> int:
     so that 0.15 is 3 x 0.05); ValueError saying why otherwise."""
     if not (math.isfinite(resolution) and resolution > 0):
         raise ValueError(f"an export's resolution must be a positive number of metres, got {resolution!r}")
-    scale = round(resolution / map_resolution)
+    ratio = resolution / map_resolution  # inf for 1e308 m: refused before it is rounded (OverflowError)
+    scale = round(ratio) if ratio < 2 * MAX_EXPORT_SCALE else 0
     if not 1 <= scale <= MAX_EXPORT_SCALE or abs(scale * map_resolution - resolution) > 1e-9 * resolution:
         raise ValueError(
             f"an export's resolution must be the map's ({map_resolution!r} m) times a whole number from 1 "
