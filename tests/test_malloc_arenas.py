@@ -75,7 +75,60 @@ def test_malloc_arena_max_in_the_environment_wins() -> None:
 
 
 def test_the_service_limits_its_arenas_at_start(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The real service process makes the call before its threads exist (its log says so at debug)."""
+    """The real service process makes the calls before its threads exist (its log says so at debug)."""
     monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
     with ServiceProcess(tmp_path, ["--in-memory", "--log-level", "debug"]) as service:
         wait_for(lambda: "malloc arenas limited to 2" in service.logs(), 10, 0.1, "the arena line")
+        assert "malloc mmap threshold fixed at 1 MiB" in service.logs()
+
+
+#: A process that (maybe) fixes its mmap threshold, frees a mapped block of 20 MiB (which raises
+#: glibc's threshold past 2 MiB unless it is fixed), then holds a block of 2 MiB and prints what
+#: `fix_mmap_threshold` returned and how many more blocks `malloc_info` counts as mapped with it
+#: held (1: the 2 MiB one; 0: it came from the heap).
+MMAP_PROBE = r"""
+import ctypes, ctypes.util, json, os, sys, tempfile
+from fleetmap.malloc_arenas import fix_mmap_threshold
+fixed = fix_mmap_threshold() if sys.argv[1] == "fix" else None
+libc = ctypes.CDLL(ctypes.util.find_library("c"))
+libc.malloc.restype = ctypes.c_void_p
+libc.malloc.argtypes = [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
+libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+libc.fclose.argtypes = [ctypes.c_void_p]
+def mapped():
+    path = tempfile.mktemp()
+    f = libc.fopen(path.encode(), b"w")
+    libc.malloc_info(0, f)
+    libc.fclose(f)
+    info = open(path).read()
+    os.unlink(path)
+    return int(info.rsplit('<total type="mmap" count="', 1)[1].split('"', 1)[0])
+libc.free(libc.malloc(20 << 20))
+before = mapped()
+block = libc.malloc(2 << 20)
+print(json.dumps({"fixed": fixed, "mapped": mapped() - before}))
+"""
+
+
+def mmap_probe(mode: str, env_extra: dict[str, str] | None = None) -> dict[str, object]:
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_MMAP_THRESHOLD_"} | (env_extra or {})
+    service_dir = str(Path(__file__).resolve().parents[1] / "service")
+    env["PYTHONPATH"] = os.pathsep.join([service_dir, env.get("PYTHONPATH", "")])
+    out = subprocess.run(
+        [sys.executable, "-c", MMAP_PROBE, mode], env=env, capture_output=True, text=True, timeout=60,
+        check=True,
+    ).stdout  # fmt: skip
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_a_fixed_mmap_threshold_maps_blocks_glibc_would_take_from_the_heap() -> None:
+    """Once a 20 MiB block was freed, glibc takes a 2 MiB one from the heap (its threshold moved up);
+    with the service's fixed threshold it maps it, and gives it back to the system when freed. An
+    operator's `MALLOC_MMAP_THRESHOLD_` stands."""
+    assert mmap_probe("free") == {"fixed": None, "mapped": 0}
+    assert mmap_probe("fix") == {"fixed": True, "mapped": 1}
+    assert mmap_probe("fix", {"MALLOC_MMAP_THRESHOLD_": str(64 << 20)}) == {"fixed": False, "mapped": 0}

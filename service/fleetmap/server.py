@@ -59,7 +59,12 @@ from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
 from fleetmap.http_server import bind_http, make_server, url_host
 from fleetmap.log_format import configure_logging
-from fleetmap.malloc_arenas import SERVICE_ARENAS, limit_malloc_arenas
+from fleetmap.malloc_arenas import (
+    SERVICE_ARENAS,
+    SERVICE_MMAP_THRESHOLD,
+    fix_mmap_threshold,
+    limit_malloc_arenas,
+)
 from fleetmap.network import is_loopback_host
 from fleetmap.persistence import DurableStore
 from fleetmap.serve_options import DEFAULT_DATA_DIR, ROS_MAP_DEFAULTS, add_serve_parser, parse_http
@@ -201,8 +206,13 @@ def _configure_process(args: argparse.Namespace) -> None:
     Zenoh's own log, the GIL's switch interval."""
     # First, before any thread of the service allocates (see malloc_arenas).
     limited = limit_malloc_arenas()
+    fixed = fix_mmap_threshold()
     configure_logging(str(args.log_level), str(args.log_format))
     log.debug("malloc arenas %s", f"limited to {SERVICE_ARENAS}" if limited else "as the environment says")
+    log.debug(
+        "malloc mmap threshold %s",
+        f"fixed at {SERVICE_MMAP_THRESHOLD >> 20} MiB" if fixed else "as the environment says",
+    )
     for warning in getattr(args, "environment_warnings", ()):
         log.warning("%s", warning)
     # Zenoh's own log: refused TLS handshakes and wrong passwords show there (RUST_LOG=warn for more).
