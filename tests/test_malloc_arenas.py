@@ -14,17 +14,34 @@ from service_process import ServiceProcess, wait_for
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's arenas: Linux only")
 
-#: A process that (maybe) limits its arenas, then has 12 threads each allocate with glibc's malloc
-#: while all are alive (a thread's first malloc takes an arena of its own while under the limit),
-#: and prints what `limit_malloc_arenas` returned and the arenas `malloc_info` lists.
-PROBE = r"""
-import ctypes, ctypes.util, json, os, sys, tempfile, threading
-from fleetmap.malloc_arenas import limit_malloc_arenas
-limited = limit_malloc_arenas() if sys.argv[1] == "limit" else None
+#: glibc's malloc, free and `malloc_info` (as text: `malloc_info()`) in a probe process.
+LIBC = r"""
+import ctypes, ctypes.util, os, tempfile
 libc = ctypes.CDLL(ctypes.util.find_library("c"))
 libc.malloc.restype = ctypes.c_void_p
 libc.malloc.argtypes = [ctypes.c_size_t]
 libc.free.argtypes = [ctypes.c_void_p]
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
+libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+libc.fclose.argtypes = [ctypes.c_void_p]
+def malloc_info():
+    path = tempfile.mktemp()
+    f = libc.fopen(path.encode(), b"w")
+    libc.malloc_info(0, f)
+    libc.fclose(f)
+    info = open(path).read()
+    os.unlink(path)
+    return info
+"""
+
+#: A process that (maybe) limits its arenas, then has 12 threads each allocate with glibc's malloc
+#: while all are alive (a thread's first malloc takes an arena of its own while under the limit),
+#: and prints what `limit_malloc_arenas` returned and the arenas `malloc_info` lists.
+PROBE = r"""
+import json, sys, threading
+from fleetmap.malloc_arenas import limit_malloc_arenas
+limited = limit_malloc_arenas() if sys.argv[1] == "limit" else None
 barrier = threading.Barrier(12)
 def allocate():
     blocks = [libc.malloc(1000) for _ in range(100)]
@@ -36,27 +53,22 @@ for t in threads:
     t.start()
 for t in threads:
     t.join()
-libc.fopen.restype = ctypes.c_void_p
-libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
-libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
-libc.fclose.argtypes = [ctypes.c_void_p]
-path = tempfile.mktemp()
-f = libc.fopen(path.encode(), b"w")
-libc.malloc_info(0, f)
-libc.fclose(f)
-info = open(path).read()
-os.unlink(path)
-print(json.dumps({"limited": limited, "arenas": info.count("<heap nr=")}))
+print(json.dumps({"limited": limited, "arenas": malloc_info().count("<heap nr=")}))
 """
 
 
-def probe(mode: str, env_extra: dict[str, str] | None = None) -> dict[str, object]:
-    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"} | (env_extra or {})
+def probe(
+    mode: str, env_extra: dict[str, str] | None = None, script: str = PROBE, unset: str = "MALLOC_ARENA_MAX"
+) -> dict[str, object]:
+    """What a probe `script` (after LIBC) prints last, run with `mode`, without `unset` in its
+    environment unless `env_extra` sets it."""
+    env = {k: v for k, v in os.environ.items() if k != unset} | (env_extra or {})
     service_dir = str(Path(__file__).resolve().parents[1] / "service")
     env["PYTHONPATH"] = os.pathsep.join([service_dir, env.get("PYTHONPATH", "")])
     out = subprocess.run(
-        [sys.executable, "-c", PROBE, mode], env=env, capture_output=True, text=True, timeout=60, check=True
-    ).stdout
+        [sys.executable, "-c", LIBC + script, mode], env=env, capture_output=True, text=True, timeout=60,
+        check=True,
+    ).stdout  # fmt: skip
     return json.loads(out.strip().splitlines()[-1])
 
 
@@ -88,25 +100,11 @@ def test_the_service_limits_its_arenas_at_start(tmp_path: Path, monkeypatch: pyt
 #: `fix_mmap_threshold` returned and how many more blocks `malloc_info` counts as mapped with it
 #: held (1: the 2 MiB one; 0: it came from the heap).
 MMAP_PROBE = r"""
-import ctypes, ctypes.util, json, os, sys, tempfile
+import json, sys
 from fleetmap.malloc_arenas import fix_mmap_threshold
 fixed = fix_mmap_threshold() if sys.argv[1] == "fix" else None
-libc = ctypes.CDLL(ctypes.util.find_library("c"))
-libc.malloc.restype = ctypes.c_void_p
-libc.malloc.argtypes = [ctypes.c_size_t]
-libc.free.argtypes = [ctypes.c_void_p]
-libc.fopen.restype = ctypes.c_void_p
-libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
-libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
-libc.fclose.argtypes = [ctypes.c_void_p]
 def mapped():
-    path = tempfile.mktemp()
-    f = libc.fopen(path.encode(), b"w")
-    libc.malloc_info(0, f)
-    libc.fclose(f)
-    info = open(path).read()
-    os.unlink(path)
-    return int(info.rsplit('<total type="mmap" count="', 1)[1].split('"', 1)[0])
+    return int(malloc_info().rsplit('<total type="mmap" count="', 1)[1].split('"', 1)[0])
 libc.free(libc.malloc(20 << 20))
 before = mapped()
 block = libc.malloc(2 << 20)
@@ -115,14 +113,7 @@ print(json.dumps({"fixed": fixed, "mapped": mapped() - before}))
 
 
 def mmap_probe(mode: str, env_extra: dict[str, str] | None = None) -> dict[str, object]:
-    env = {k: v for k, v in os.environ.items() if k != "MALLOC_MMAP_THRESHOLD_"} | (env_extra or {})
-    service_dir = str(Path(__file__).resolve().parents[1] / "service")
-    env["PYTHONPATH"] = os.pathsep.join([service_dir, env.get("PYTHONPATH", "")])
-    out = subprocess.run(
-        [sys.executable, "-c", MMAP_PROBE, mode], env=env, capture_output=True, text=True, timeout=60,
-        check=True,
-    ).stdout  # fmt: skip
-    return json.loads(out.strip().splitlines()[-1])
+    return probe(mode, env_extra, MMAP_PROBE, "MALLOC_MMAP_THRESHOLD_")
 
 
 def test_a_fixed_mmap_threshold_maps_blocks_glibc_would_take_from_the_heap() -> None:
