@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import os
 import sys
+from typing import Any
 
 #: The service's arenas: the main one and one more shared by its threads.
 SERVICE_ARENAS = 2
@@ -59,11 +61,25 @@ def _mallopt(variable: str, parameter: int, value: int) -> bool:
     choice, which glibc applied at start, wins); whether it was made and succeeded."""
     if os.environ.get(variable) or not sys.platform.startswith("linux"):
         return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # not found, or a C library without mallopt
-        return False
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
-    return bool(mallopt(parameter, value))  # 1 on success
+    mallopt = _libc_mallopt()
+    return mallopt is not None and bool(mallopt(parameter, value))  # 1 on success
+
+
+@functools.cache
+def _libc_mallopt() -> Any:
+    """glibc's `mallopt`, or None where the C library has none (musl) or cannot be found. glibc by
+    its soname first: `ctypes.util.find_library` runs `ldconfig -p` in a child process, one at each
+    call, which a start-up need not spawn (a test that waits for the service's compile child found
+    ldconfig instead)."""
+    for find in (lambda: "libc.so.6", lambda: ctypes.util.find_library("c")):
+        name = find()
+        if name is None:
+            continue
+        try:
+            mallopt = ctypes.CDLL(name).mallopt
+        except (OSError, AttributeError):  # not found, or a C library without mallopt
+            continue
+        mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+        mallopt.restype = ctypes.c_int
+        return mallopt
+    return None
