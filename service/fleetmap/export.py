@@ -245,9 +245,9 @@ def export_scale(map_resolution: float, resolution: float) -> int:
 
 def export_resolution(map_resolution: float, scale: int) -> float:
     """The resolution of an export at `scale` (`export_scale`), as its files state it: the map's
-    exactly when `scale` is 1, else the product to 12 significant digits (0.15 for 3 x 0.05, where
-    the float product is 0.15000000000000002)."""
-    return map_resolution if scale == 1 else float(f"{map_resolution * scale:.12g}")
+    exactly when `scale` is 1, else the product rounded as the exports' origins are (`cell_edge`:
+    0.15 for 3 x 0.05, where the float product is 0.15000000000000002)."""
+    return map_resolution if scale == 1 else cell_edge(scale, map_resolution)
 
 
 def probability_to_gray(probability: np.ndarray) -> np.ndarray:

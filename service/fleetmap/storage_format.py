@@ -292,7 +292,6 @@ def write_snapshot_file(map_id: str, gmap: GridMap, out: IO[bytes]) -> None:
         with zf.open("tiles.npz", "w", force_zip64=True) as member:
             # mypy fears that a key of `arrays` is savez's allow_pickle; they are layer array names.
             np.savez_compressed(member, keys=np.array(keys, dtype=np.int64).reshape(-1, 2), **arrays)  # type: ignore[arg-type]
-        del arrays
 
 
 def snapshot_file(map_id: str, gmap: GridMap) -> bytes:

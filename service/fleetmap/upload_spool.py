@@ -72,7 +72,8 @@ class SpoolFailed(Exception):
 
 class UploadStopped(Exception):
     """The upload's request ended (cancelled at the shutdown's cutoff, or otherwise gone) while its
-    reader still ran on a worker thread: the reader stops at its next chunk. It ran on to the end, a
+    reader still ran on a worker thread: the reader stops at its next chunk (a download's writer
+    likewise, at its next write: `routes_snapshot.get_snapshot`). It ran on to the end, a
     compressed tiles.npz decompressed into the temporary directory up to its limit, and the
     process's exit waited for it (the event loop's executor joins its threads): 13 s more for a
     3.4 MB snapshot of 3.3 GiB of zeros."""
