@@ -18,6 +18,7 @@ import socket
 import sqlite3
 import subprocess
 import sys
+import time
 from collections import Counter
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -185,6 +186,35 @@ def test_sighup_reloads_the_token_file_and_keeps_serving(tmp_path: Path) -> None
         assert svc.alive()
         post_scans(svc.base_url, "m", "r", range(3, 4), token=WRITE_B)
         assert "short" not in svc.logs()
+        assert svc.stop() == 0
+
+
+def test_a_burst_of_sighups_is_served_off_the_signal_handler(tmp_path: Path) -> None:
+    """SIGHUP's reload ran inside the signal handler, in the HTTP server's thread: a burst of them
+    (a reload loop in a deployment script) nested handlers until a RecursionError, raised out of
+    whatever that thread ran (asyncio logged tracebacks from a socket's read callback). Now the
+    handler only wakes a thread: no traceback, the API keeps answering, and the file as it is after
+    the burst is the one in force."""
+    tokens = tmp_path / "tokens.txt"
+    tokens.write_text(f"write {WRITE_A}\n")
+    with ServiceProcess(tmp_path, ["--auth-tokens", str(tokens)]) as svc:
+        assert svc.proc is not None
+        end = time.monotonic() + 3
+        while time.monotonic() < end:
+            for _ in range(1000):
+                svc.proc.send_signal(signal.SIGHUP)
+        tokens.write_text(f"write {WRITE_B}\n")  # A revoked, B added
+        svc.proc.send_signal(signal.SIGHUP)
+        assert httpx.get(f"{svc.base_url}/healthz", timeout=10).status_code == 200
+
+        def b_in_force() -> bool:
+            answer = httpx.post(f"{svc.base_url}/maps/m/scans", params={"robot_id": "r"}, json=scan_body(1),
+                                headers={"Authorization": f"Bearer {WRITE_B}"})  # fmt: skip
+            return answer.status_code != 401
+
+        wait_for(b_in_force, 10, what="the token file as it is after the burst")
+        assert svc.alive()
+        assert "Traceback" not in svc.logs() and "RecursionError" not in svc.logs()
         assert svc.stop() == 0
 
 

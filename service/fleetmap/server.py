@@ -48,7 +48,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -69,7 +69,7 @@ from fleetmap.network import is_loopback_host
 from fleetmap.persistence import DurableStore
 from fleetmap.serve_options import DEFAULT_DATA_DIR, ROS_MAP_DEFAULTS, add_serve_parser, parse_http
 from fleetmap.serve_ros import ros_domain, ros_options, start_ros_maps, start_ros_scans, zenoh_status
-from fleetmap.signal_event import SignalEvent
+from fleetmap.signal_event import SignalEvent, SignalWakeups
 from fleetmap.warm_up import compile_in_child, warm_up
 from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest
 
@@ -112,8 +112,13 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
     # SIGHUP's default action ends the process at once (no snapshot, no clean close): `kill -HUP` or
-    # systemd's ExecReload must reload the token file instead.
-    signal.signal(signal.SIGHUP, lambda _signum, _frame: reload_tokens(tokens))
+    # systemd's ExecReload must reload the token file instead, on a thread of its own (`SignalWakeups`).
+    hangups = SignalWakeups()
+    reloader = threading.Thread(
+        target=_reload_on_hangup, args=(hangups, lambda: tokens), name="fleetmap-sighup", daemon=True
+    )
+    reloader.start()
+    signal.signal(signal.SIGHUP, lambda _signum, _frame: hangups.notify_in_handler())
     ros: RosScanIngest | None = None
     try:
         options = _checked_options(args)
@@ -197,6 +202,8 @@ def run(args: argparse.Namespace) -> int:
         # SendSIGHUP=.
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, signal.SIG_IGN)
+        hangups.close()
+        reloader.join(timeout=5)
     log.info("stopped")
     return 0
 
@@ -278,6 +285,17 @@ def _load_tokens(path: str | None) -> TokenSet | TokenFile | None:
         return TokenFile(path) if path else TokenSet.load(None)
     except TokenFileError as exc:
         raise CliError(str(exc)) from None
+
+
+def _reload_on_hangup(hangups: SignalWakeups, tokens: Callable[[], TokenSet | TokenFile | None]) -> None:
+    """The SIGHUP thread: `reload_tokens` after each wake-up (once for the signals that came while
+    it ran), until `hangups` is closed. `tokens` gives the tokens in force (None until the options
+    are read)."""
+    while hangups.wait():
+        try:
+            reload_tokens(tokens())
+        except Exception:  # the next SIGHUP must still be served
+            log.exception("SIGHUP: the reload failed; the tokens in force are kept")
 
 
 def reload_tokens(tokens: TokenSet | TokenFile | None) -> None:
