@@ -153,6 +153,36 @@ def test_downloads_in_progress_are_limited_and_a_client_gone_gives_its_slot_back
     assert "Traceback" not in svc.logs(), svc.logs()
 
 
+def test_a_head_on_a_snapshot_writes_nothing_and_takes_no_slot(
+    service: tuple[ServiceProcess, Path], big_snapshot: bytes
+) -> None:
+    """A HEAD answers the download's headers without writing the file (it wrote the whole map and
+    held a download slot, to send nothing): with every slot held it is still 200 at once, with no
+    `Content-Length` (unknown until written) and no spool of its own; a map that is not there is a
+    404, as the GET's."""
+    svc, tmpdir = service
+    pid = svc.proc.pid  # type: ignore[union-attr]
+    refused = metric(svc, "fleetmap_downloads_refused_total")
+    stalled = [start_download(svc) for _ in range(MAX_DOWNLOADS)]
+    try:
+        wait_for(lambda: len(spool_files(pid, tmpdir)) == MAX_DOWNLOADS, timeout=20, what="4 spools")
+        head = httpx.head(f"{svc.base_url}/maps/big/snapshot", timeout=30)
+        assert head.status_code == 200, head.headers
+        assert head.headers["content-type"] == MEDIA
+        assert head.headers["content-disposition"] == 'attachment; filename="big.fleetmap.zip"'
+        assert "content-length" not in head.headers and head.content == b""
+        assert len(spool_files(pid, tmpdir)) == MAX_DOWNLOADS
+        assert metric(svc, "fleetmap_downloads") == MAX_DOWNLOADS
+        assert metric(svc, "fleetmap_downloads_refused_total") == refused
+        assert httpx.head(f"{svc.base_url}/maps/nothing/snapshot").status_code == 404
+    finally:
+        for sock, _ in stalled:
+            sock.close()
+    wait_for(lambda: metric(svc, "fleetmap_downloads") == 0, timeout=10, what="every slot back")
+    # The GET after it is whole.
+    same_map(big_snapshot, httpx.get(f"{svc.base_url}/maps/big/snapshot", timeout=60).content)
+
+
 def test_a_download_the_temporary_directory_has_no_room_for_is_refused_with_507(
     tmp_path: Path, big_snapshot: bytes
 ) -> None:

@@ -3,7 +3,9 @@
 - `HEAD` is answered on every `GET` route but the event stream, as the `GET` would be (status and
   headers, `Content-Length` and `ETag` included) without the body. FastAPI routes answer only the
   methods they declare, and tile servers' clients and CDNs check tiles with HEAD. The event stream is
-  left out: its `GET` never ends, so a HEAD would hold one of the server's event-stream slots.
+  left out: its `GET` never ends, so a HEAD would hold one of the server's event-stream slots. A
+  route whose GET is costly to make may answer a HEAD with less (`is_head`): a map's snapshot
+  download sends its headers without writing the file, so without its `Content-Length`.
 - `Cache-Control: no-cache` on every answer that does not set its own: map data changes with every
   scan, and a CDN in front would otherwise apply its default lifetime (an hour on some) to answers
   without one and serve stale cells and regions. `no-cache` still lets caches store and revalidate.
@@ -38,6 +40,7 @@ import hashlib
 
 from starlette.datastructures import Headers, MutableHeaders
 from starlette.middleware.gzip import GZipMiddleware
+from starlette.requests import Request
 from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -59,6 +62,16 @@ _PRIVATE_DIRECTIVES = {"private", "no-store"}
 def is_event_stream(path: str) -> bool:
     """Whether `path` is a map's event stream, `/maps/{map_id}/events` (ids never hold a `/`)."""
     return path.startswith("/maps/") and path.endswith("/events") and path.count("/") == 3
+
+
+#: The scope key `HeadAsGet` sets on the GET a HEAD runs as (`is_head`).
+HEAD_SCOPE_KEY = "fleetmap.head"
+
+
+def is_head(request: Request) -> bool:
+    """Whether `request`, a GET to the route, is a HEAD run as a GET by `HeadAsGet`: its body will
+    be dropped, so a route may leave out the work of making it."""
+    return bool(request.scope.get(HEAD_SCOPE_KEY))
 
 
 def head_allowed(path: str) -> bool:
@@ -85,7 +98,7 @@ class HeadAsGet:
             await send(message)
 
         # A copy: the server reads the method from its own scope to know it must send no body.
-        await self.app({**scope, "method": "GET"}, receive, without_body)
+        await self.app({**scope, "method": "GET", HEAD_SCOPE_KEY: True}, receive, without_body)
 
 
 class DefaultHeaders:

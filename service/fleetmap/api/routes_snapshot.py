@@ -15,7 +15,7 @@ from starlette.types import Receive, Scope, Send
 
 from fleetmap.api.conditional import Conditions, Preconditions, tag_map
 from fleetmap.api.errors import ApiError, error_responses, validation_detail
-from fleetmap.api.http_semantics import created_status
+from fleetmap.api.http_semantics import created_status, is_head
 from fleetmap.api.state import MapId, Slots, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo, map_info
@@ -169,8 +169,17 @@ async def get_snapshot(map_id: MapId, state: State, request: Request) -> Respons
     is taken under the map's lock, between two scans. `PUT` it to this or another server to restore.
     The file is written to the service's temporary directory, then sent: 507 if that has no room for
     it, 503 if its disk fails; 503 (`Retry-After: 5`) if the server already sends its limit of
-    downloads (4 by default). Nothing changes either way."""
+    downloads (4 by default). Nothing changes either way. A HEAD answers the headers without writing
+    the file, so without its `Content-Length`, and takes no download slot."""
     entry = state.entry(map_id)
+    disposition = f'attachment; filename="{map_id}.fleetmap.zip"'
+    if is_head(request):
+        # The file is made only to be sent: a HEAD (a script checking that the map is there, a
+        # download manager's probe) wrote all of it (half a minute for a 4.46 GB map) and held one
+        # of the download slots, to send nothing.
+        head = Response(media_type=MEDIA_TYPE, headers={"Content-Disposition": disposition})
+        del head.headers["Content-Length"]  # unknown until written: not the empty body's 0
+        return head
     downloads = state.downloads
     _take_slot(downloads, f"sends its limit of {downloads.limit} snapshot downloads at once")
     spool = spooled_file("download")
@@ -200,10 +209,7 @@ async def get_snapshot(map_id: MapId, state: State, request: Request) -> Respons
         raise
     return _SpoolResponse(
         spool, downloads, media_type=MEDIA_TYPE,
-        headers={
-            "Content-Disposition": f'attachment; filename="{map_id}.fleetmap.zip"',
-            "Content-Length": str(size),
-        },
+        headers={"Content-Disposition": disposition, "Content-Length": str(size)},
     )  # fmt: skip
 
 
