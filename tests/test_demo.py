@@ -180,6 +180,65 @@ def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:
     assert demo.returncode == 2 and "the service stopped unexpectedly" in out, out
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_demo_stopped_by_kill_or_a_closed_terminal_stops_its_service_too(
+    tmp_path: Path, sig: signal.Signals
+) -> None:
+    """`kill`, `timeout` or `docker stop` (SIGTERM), or the terminal closed (SIGHUP), ended the demo
+    at once and left its service running, holding the ports and the data directory: the next `make
+    demo` found them in use. Now they stop it as Ctrl-C does."""
+    http, zenoh = free_port(), free_port()
+    data = tmp_path / "data"
+    demo = subprocess.Popen(
+        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+         "--data-dir", str(data), "--robots", "1"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    with reaped(demo):
+        assert demo.stdout is not None
+        for line in demo.stdout:
+            if "open http" in line:
+                break
+        demo.send_signal(sig)
+        out, _ = demo.communicate(timeout=60)
+    assert demo.returncode == 0, out
+    assert out.rstrip().splitlines()[-1] == f"fleetmap demo: stopped; the map is kept in {data}", out
+    assert port_is_free(http) and port_is_free(zenoh)
+    DataDirLock(data).release()  # no service holds the data directory (StorageError otherwise)
+
+
+def test_a_killed_demo_takes_its_service_down_with_it(tmp_path: Path) -> None:
+    """A demo killed outright (SIGKILL, a crash) cannot stop its service itself: the kernel sends
+    the service SIGTERM when the demo dies (prctl's death signal), and it stops cleanly."""
+    http, zenoh = free_port(), free_port()
+    log = open(tmp_path / "demo.log", "w+")  # noqa: SIM115 - read back below
+    demo = subprocess.Popen(
+        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+         "--data-dir", str(tmp_path / "data"), "--robots", "1"],
+        stdout=log, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+
+    def output() -> str:
+        log.seek(0)
+        return log.read()
+
+    with reaped(demo):
+        deadline = time.monotonic() + 120
+        while "open http" not in output():
+            assert demo.poll() is None and time.monotonic() < deadline, output()
+            time.sleep(0.2)
+        demo.kill()
+        demo.wait(10)
+    deadline = time.monotonic() + 60
+    while not (port_is_free(http) and port_is_free(zenoh)):
+        assert time.monotonic() < deadline, output()
+        time.sleep(0.2)
+    deadline = time.monotonic() + 30
+    while "fleetmap.server: stopped" not in output():  # a clean stop, its map saved
+        assert time.monotonic() < deadline, output()
+        time.sleep(0.2)
+
+
 def test_make_demo_on_a_fresh_clone_says_what_it_installs_and_how_long_it_takes(tmp_path: Path) -> None:
     """A fresh clone's first `make demo` installs from PyPI for minutes with pip quiet: it says so
     first, rather than leaving a newcomer before a silent `pip install --quiet -e .`. (`make -n`

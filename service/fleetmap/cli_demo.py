@@ -1,5 +1,6 @@
 """`fleetmap demo`: the main job. Starts the service and a small fleet of simulated robots exploring
 a synthetic floor plan, and prints the web viewer's address; runs until Ctrl-C (or `--seconds`).
+SIGTERM and SIGHUP stop it as Ctrl-C does, and its service is sent SIGTERM if it dies otherwise.
 
 The service runs as its own process (`fleetmap serve`), exactly as in production; the robots run
 in this process and publish over Zenoh in client mode, as real robots would.
@@ -8,13 +9,16 @@ in this process and publish over Zenoh in client mode, as real robots would.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import math
+import os
 import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import httpx
 
@@ -60,12 +64,16 @@ def run(args: argparse.Namespace) -> int:
     # the robots would map into that other service: refuse before starting anything.
     for address in (args.http, args.zenoh.split("/", 1)[-1]):
         _check_free(address)
+    stop = SignalEvent()
+    # Ctrl-C, and also `kill`, `timeout`, `docker stop` (SIGTERM) and a closed terminal (SIGHUP):
+    # each ended the demo at once and left its service running on, holding the ports and the data
+    # directory that the next `make demo` then found in use.
+    previous = {sig: signal.signal(sig, lambda *_: stop.set_in_handler()) for sig in STOP_SIGNALS}
     service = subprocess.Popen(
         [sys.executable, "-m", "fleetmap.server", "--http", args.http, "--zenoh-listen", args.zenoh,
          "--data-dir", args.data_dir],
+        preexec_fn=_end_with_parent(),
     )  # fmt: skip
-    stop = SignalEvent()
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set_in_handler())
     ready = False
     try:
         url = f"http://{args.http}/"
@@ -89,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f"the service stopped unexpectedly (exit code {service.returncode}); see above")
         return 0
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         service.terminate()
         try:
             service.wait(30)
@@ -99,6 +108,30 @@ def run(args: argparse.Namespace) -> int:
         # at the start, scrolled away since).
         if ready and service.returncode == 0:
             print(f"fleetmap demo: stopped; the map is kept in {args.data_dir}", flush=True)
+
+
+#: The signals that stop the demo cleanly: the robots, then the service (which saves the map).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: prctl(2)'s option: the signal a process gets when its parent dies (Linux).
+_PR_SET_PDEATHSIG = 1
+
+
+def _end_with_parent() -> Callable[[], None] | None:
+    """What the service's child runs before it starts (Linux; None elsewhere): ask the kernel to send
+    it SIGTERM when the demo dies, however it dies (SIGKILL, a crash), so that the service stops
+    cleanly instead of living on without it. Loaded here, in the demo, with no thread running yet:
+    the child may only call what is ready (it runs between fork and exec)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
+    demo = os.getpid()
+
+    def set_death_signal() -> None:
+        prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM))
+        if os.getppid() != demo:  # the demo died before the call took effect
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return set_death_signal
 
 
 def _check_fleet(args: argparse.Namespace) -> None:
