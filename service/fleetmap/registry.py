@@ -25,7 +25,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import heapq
-import itertools
 import logging
 import sqlite3
 import threading
@@ -130,12 +129,14 @@ class MapRegistry:
         # Generations name a map's incarnation beyond this process: a tile's ETag holds it, and a
         # browser revalidates a tile cached before a restart. Counting from 1 again, a map deleted and
         # created again before the restart came back with the old map's generation (and, changed as
-        # often, its tile versions): the old map's cached tile got 304. Starting at the microseconds
+        # often, its tile versions): the old map's cached tile got 304. Taken from the microseconds
         # since the epoch, a process's generations are above every earlier one's, unless it made
         # more than a million maps a second. A map's change versions start at its generation too,
-        # for the event ids a reconnecting client sends back (`ChangeFeed`): no map integrates a
-        # million scans a second either.
-        self._generations = itertools.count(time.time_ns() // 1000)
+        # for the event ids a reconnecting client sends back (`ChangeFeed`), so a generation is also
+        # above every change version a map removed before it gave (`_next_generation`).
+        self._last_generation = 0
+        #: The highest change version of the maps removed so far (`_retire`): the next map starts above.
+        self._removed_versions = 0
         #: Called as `on_integrated(entry, job, result, seconds)` for each scan once it counts as
         #: integrated (journaled, with persistence), on that thread; it must be quick and not raise.
         #: The REST app's metrics set it when the registry was built without one.
@@ -213,7 +214,7 @@ class MapRegistry:
         assert self.durable is not None
         self.tombstones = Tombstones(self.durable.load_tombstones(), now=time.time())
         for map_id, gmap, counters, journal in self.durable.load():
-            entry = MapEntry(map_id, gmap, next(self._generations))
+            entry = MapEntry(map_id, gmap, self._next_generation())
             entry.scans_integrated = counters["scans_integrated"]
             entry.scans_rejected = counters["scans_rejected"]
             entry.robots = {rid: RobotState.from_saved(data) for rid, data in counters["robots"].items()}
@@ -384,7 +385,7 @@ class MapRegistry:
                     stored = self.durable.map_stored(map_id)
                 entry, created = existing, False
             else:
-                entry = MapEntry(map_id, self._charged(GridMap(config)), next(self._generations))
+                entry = MapEntry(map_id, self._charged(GridMap(config)), self._next_generation())
                 self._add(entry)
                 if self.durable is not None:
                     stored = self.durable.map_created(map_id, entry.gmap)  # queued before any of its scans
@@ -430,7 +431,7 @@ class MapRegistry:
             buried = self.tombstones.bury(map_id, old.robots, time.time()) if old is not None else []
             if old is not None:
                 self.unmapped.forget(map_id, old.robots)
-            entry = MapEntry(map_id, self._charged(gmap), next(self._generations))
+            entry = MapEntry(map_id, self._charged(gmap), self._next_generation())
             self._add(entry)
             if old is not None:
                 old.replaced_by = entry
@@ -508,6 +509,17 @@ class MapRegistry:
                     return
             # Replaced while this waited for its lock: try again with the map that is there now.
 
+    def _next_generation(self) -> int:
+        """A new map's generation (call under the registry's lock): above every earlier one, above
+        the change versions of every map removed before (`_removed_versions`), and at least the
+        microseconds since the epoch now, as docs/api.md says of event ids. Counting on from the
+        process's start, a map made again after its predecessor's many changes started its versions
+        below that one's last: a client resuming with that last id (`Last-Event-ID`) took the new
+        map's changes since then as news to the old map it shows, not the reset it needed."""
+        now = time.time_ns() // 1000
+        self._last_generation = max(self._last_generation + 1, self._removed_versions + 1, now)
+        return self._last_generation
+
     def _retire(self, entry: MapEntry) -> list[Job]:
         """Take map `entry` out of the registry and its queued scans off the queue; return those, for
         the caller to answer with `_finish_gone` once it released the locks. Call it inside
@@ -517,6 +529,7 @@ class MapRegistry:
         this map id is of this map."""
         del self.maps[entry.id]
         entry.retired = True
+        self._removed_versions = max(self._removed_versions, entry.changes.version)
         # Its bytes go back to the budget now, not once the last reader lets go of the map: a scan
         # sent again after the DELETE that made room was refused 507 while a viewer's event stream
         # still held the map. Retired, it never grows again (no scan is applied to it).
