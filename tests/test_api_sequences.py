@@ -1,12 +1,18 @@
-"""Sequences of requests against the real service whose answers must stay right across them: what a
-client that comes back after a map changed under it is told.
+"""Sequences of requests against the real service whose answers must stay right across them: a
+client coming back after its map changed under it, a write racing another writer's.
 """
 
 from __future__ import annotations
 
+import io
 import json
+import threading
+import time
+import zipfile
 
 import httpx
+import numpy as np
+from PIL import Image
 from service_process import ServiceProcess
 
 from fleetmap.codec import encode_json
@@ -54,3 +60,43 @@ def test_a_stream_resumed_after_its_map_was_made_again_is_reset(service: Service
             post_scan(c, "m", "b", seq, -10.0 if seq == 1 else 5.0, -10.0 if seq == 1 else 5.0)
         event = first_tiles_event(c, "m", old_last)
         assert event.get("reset") is True, event
+
+
+def nav2_zip_of(side: int) -> bytes:
+    """A nav2 map of `side` x `side` pixels at 0.05 m, free with a wall every 50 rows: big enough
+    that the service takes a second or more to read it."""
+    pixels = np.full((side, side), 254, np.uint8)
+    pixels[::50] = 0
+    image = io.BytesIO()
+    Image.fromarray(pixels).save(image, format="PNG")
+    body = io.BytesIO()
+    with zipfile.ZipFile(body, "w") as zf:
+        zf.writestr("m.yaml", "image: m.png\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\nnegate: 0\n"
+                    "occupied_thresh: 0.65\nfree_thresh: 0.25\n")  # fmt: skip
+        zf.writestr("m.png", image.getvalue())
+    return body.getvalue()
+
+
+def test_an_import_read_while_its_map_was_made_again_changes_nothing(service: ServiceProcess) -> None:
+    """A nav2 import takes the configuration of the map it replaces, and is refused (422) at another
+    resolution. Read with the configuration of the map there when its body was in, it replaced the
+    map another writer made meanwhile at 0.1 m with a 0.05 m map, answering 200: a map of a
+    configuration no longer there, where the import sent after that writer is refused. Now 409,
+    nothing changed; sent again, it meets the 0.1 m map (422)."""
+    body = nav2_zip_of(6000)  # about 2 s to read on a shared 2-core machine
+    zipped = {"content-type": "application/zip"}
+    with httpx.Client(base_url=service.base_url, timeout=60) as c:
+        assert c.put("/maps/imp", json={"resolution": 0.05, "max_tiles": 8192}).status_code == 201
+        answers: list[httpx.Response] = []
+        upload = threading.Thread(
+            target=lambda: answers.append(c.put("/maps/imp/import", content=body, headers=zipped))
+        )
+        upload.start()
+        time.sleep(0.4)  # its body (49 kB) is in, its image being read
+        assert c.delete("/maps/imp").status_code == 204
+        assert c.put("/maps/imp", json={"resolution": 0.1, "max_tiles": 8192}).status_code == 201
+        upload.join(60)
+        assert answers[0].status_code == 409, answers[0].text
+        assert c.get("/maps/imp").json()["resolution"] == 0.1
+        again = c.put("/maps/imp/import", content=body, headers=zipped)
+        assert again.status_code == 422 and "resolution" in again.text, again.text

@@ -10,7 +10,7 @@ from typing import IO, Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 
 from fleetmap.api.conditional import Conditions
-from fleetmap.api.errors import ApiError
+from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.routes_snapshot import (
     MEDIA_TYPE,
     REPLACED,
@@ -41,7 +41,7 @@ def _is_zip_media_type(content_type: str | None) -> bool:
     response_model=MapInfo,
     status_code=201,
     openapi_extra=ZIP_UPLOAD,
-    responses={**REPLACED, **UPLOAD_ERRORS},
+    responses={**REPLACED, **UPLOAD_ERRORS, **error_responses(409)},
 )
 async def put_import(
     map_id: MapId,
@@ -76,7 +76,9 @@ async def put_import(
     before the body is read, if the server already holds its limit of uploads in progress
     (snapshots and imports, 4 by default); none changes anything. 503 if it was installed but could
     not be stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing
-    changed; before the body is read)."""
+    changed; before the body is read). 409, nothing changed, if while the upload was read (with the
+    configuration of the map there then) the map was deleted, or made or replaced with another
+    configuration."""
     del format  # one format for now: the parameter names it, as GET .../export's does
     content_type = request.headers.get("content-type")
     if not _is_zip_media_type(content_type):
@@ -95,6 +97,6 @@ async def put_import(
         return map_from_nav2_zip(body, config, defaults, reservation=reservation, snap_origin=snap_origin)
 
     try:
-        return await install_upload(state, map_id, request, response, read, conditions)
+        return await install_upload(state, map_id, request, response, read, conditions, reads_config=True)
     except Nav2ImportError as exc:
         raise ApiError(exc.status, f"nav2 map: {exc}") from None

@@ -310,6 +310,8 @@ async def install_upload(
     response: Response,
     read: Callable[[IO[bytes], MapConfig | None, UploadReservation | None, threading.Event], GridMap],
     conditions: Preconditions,
+    *,
+    reads_config: bool = False,
 ) -> MapInfo:
     """Install the map an upload holds as map `map_id`, replacing any map of that id, durably: what
     `PUT .../snapshot` and `PUT .../import` share. The request's body goes to a spool
@@ -319,7 +321,10 @@ async def install_upload(
     None without a budget) before it allocates the tiles, and stopping (`spool.UploadStopped`) soon
     after `stop` is set, which it is when the request ends before the reader does; whatever it
     raises for a bad upload (a 507 when the budget has no room) propagates with nothing changed,
-    and the room is given back.
+    and the room is given back. `reads_config`: the map `read` makes depends on that configuration
+    (a nav2 import's does), so it is installed only where it is what reading it for the map there
+    then makes: over a map of its configuration, or over none if it was read for none; else 409,
+    nothing changed (the map deleted, created or replaced by another meanwhile).
     Sets 201 (with `Location`) for a new map, else 200; NotDurable (503) if the map was installed
     but could not be stored. `conditions` (the request's If-Match / If-None-Match) are checked
     before the body is read, sparing a doomed upload its transfer (gigabytes, for a big map) and
@@ -350,7 +355,13 @@ async def install_upload(
                 # it: the reader stops at its next chunk rather than decompress on to 4 GiB into the
                 # temporary directory, for the process's exit to wait for (asyncio joins its threads).
                 stop.set()
-            return await _install(state, map_id, response, gmap, conditions, reservation)
+            read_with = config if reads_config else ANY_CONFIG
+            return await _install(state, map_id, response, gmap, conditions, reservation, read_with)
+
+
+#: `_install`'s `read_with` for an upload that holds its own configuration (a snapshot): it replaces
+#: whatever map is there when it is installed.
+ANY_CONFIG = object()
 
 
 async def _install(
@@ -360,8 +371,12 @@ async def _install(
     gmap: GridMap,
     conditions: Preconditions,
     reservation: UploadReservation | None,
+    read_with: MapConfig | None | object,
 ) -> MapInfo:
-    """`install_upload`'s last step: replace map `map_id` with the upload's map `gmap`, durably."""
+    """`install_upload`'s last step: replace map `map_id` with the upload's map `gmap`, durably. Unless
+    `read_with` is `ANY_CONFIG`, `gmap` was read for that configuration of the map there (None: no
+    map), and is installed only over a map of its own configuration, or over none if read for none
+    (else 409): what reading it again for the map there now would make."""
     # Whether a map was replaced is known only where it is, under the registry's lock: the map
     # looked up before the upload was read (seconds, for a big one), may have been created,
     # deleted or replaced by another writer since, and a 201 Created for an upload that replaced
@@ -372,6 +387,18 @@ async def _install(
     def expect(old: MapEntry | None) -> None:
         if check is not None:
             check(old)
+        # A nav2 import is read with the configuration of the map there when its body was in: a
+        # map made or replaced by another writer since (at another resolution, say) was replaced
+        # by a map of a configuration no longer there, a 200 where the import, sent after that
+        # writer, would have been refused (another resolution) or made with that map's.
+        if read_with is not ANY_CONFIG and (
+            read_with is not None if old is None else old.gmap.config != gmap.config
+        ):
+            raise ApiError(
+                409,
+                f"map {map_id!r} was deleted, created or replaced while the upload was read (with the "
+                "configuration of the map there before): nothing changed; send it again",
+            )
         found.append(old)
 
     # On a worker thread: storing a big map's tiles takes seconds (the event loop serves on).
