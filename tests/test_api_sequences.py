@@ -100,3 +100,21 @@ def test_an_import_read_while_its_map_was_made_again_changes_nothing(service: Se
         assert c.get("/maps/imp").json()["resolution"] == 0.1
         again = c.put("/maps/imp/import", content=body, headers=zipped)
         assert again.status_code == 422 and "resolution" in again.text, again.text
+
+
+def test_a_tile_revalidated_with_its_tag_on_a_second_field_line_is_not_modified(
+    service: ServiceProcess,
+) -> None:
+    """`If-None-Match` sent on two field lines is one list (RFC 9110, 5.3), as a proxy merging a
+    client's tags may send it: the tile's tag on the second line is a 304, as on the first. The
+    tile route read the first line alone and sent the whole tile again."""
+    with httpx.Client(base_url=service.base_url, timeout=30) as c:
+        post_scan(c, "t", "r", 1, 0.5, 0.5)
+        etag = c.get("/maps/t/tiles/0/0/-1.png").headers["etag"]
+        for method in ("GET", "HEAD"):
+            r = c.request(
+                method,
+                "/maps/t/tiles/0/0/-1.png",
+                headers=[("If-None-Match", '"other"'), ("If-None-Match", etag)],
+            )
+            assert r.status_code == 304 and r.headers["etag"] == etag, (method, r.status_code)

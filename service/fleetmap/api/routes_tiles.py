@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Query, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 
@@ -89,6 +89,7 @@ _TILE_HEADER_SPEC = {
     },
 )
 async def get_tile(
+    request: Request,
     map_id: MapId,
     z: Annotated[int, PathParam(ge=MIN_ZOOM, le=MAX_ZOOM, description="zoom: 2**z pixels per cell")],
     x: Annotated[int, PathParam(description="tile column: cells i in [x*S, (x+1)*S), S = 256 / 2**z")],
@@ -100,6 +101,9 @@ async def get_tile(
     # On the event loop: a revalidation or a cache hit takes microseconds, and a hop to the thread
     # pool would cost more than that (and another thread wanting the GIL). Only renders go there.
     entry = state.entry(map_id)
+    # Every field line, joined as one list (RFC 9110, 5.3), as `JsonETags` and the writes' conditions
+    # read them: the parameter holds only the first, and a tag on a second line got the whole tile.
+    if_none_match = ", ".join(request.headers.getlist("if-none-match")) or None
     if if_none_match:
         # Answer a revalidation from the version alone: no render, no cache lookup.
         check_layer(entry.gmap, layer)
