@@ -351,6 +351,22 @@ def test_query_parameters_once_each_unknown_ones_ignored(mapped: httpx.Client) -
         assert r.status_code == 422 and "finite" in r.json()["detail"], (value, r.text)
 
 
+def test_a_number_with_an_underscore_is_refused_where_it_was_read_as_another(mapped: httpx.Client) -> None:
+    """pydantic reads `1_0` as 10: a typo in a coordinate, a tile index or a resolution was answered
+    for another place than asked. Numbers in the query and the path take no underscore; ids still do."""
+    for path, where, name in (
+        ("/maps/m/cell?x=1_0.5&y=0", "query", "x"),
+        ("/maps/m/tiles/0/1_0/0.png", "path", "x"),
+        ("/maps/m/export?resolution=0.1_0", "query", "resolution"),
+    ):
+        r = mapped.get(path)
+        assert r.status_code == 422, (path, r.status_code, r.text)
+        assert r.json()["detail"].startswith(f"{where} parameter {name!r}: "), r.text
+        assert r.json()["errors"][0]["loc"] == [where, name], r.text
+    assert mapped.get("/maps/m/cell?x=10.5&y=0").json()["x"] == 10.5  # written plainly, as before
+    assert mapped.put("/maps/with_underscore", json={}).status_code == 201
+
+
 def test_a_put_that_creates_answers_201_with_its_location_then_200(mapped: httpx.Client) -> None:
     created = mapped.put("/maps/p", json={"resolution": 0.1})
     assert created.status_code == 201 and created.headers["location"] == "/maps/p"

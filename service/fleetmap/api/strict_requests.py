@@ -11,7 +11,9 @@
   Zenoh messages) refuses it: one rule for every body (RFC 8259 forbids sending one);
 - 422 naming the reason for any other body that is not JSON (e.g. an integer of more digits than
   Python converts), where FastAPI said "could not be decoded";
-- 422 for a query parameter of the route given twice (`?x=0&x=5`): FastAPI would take the last.
+- 422 for a query parameter of the route given twice (`?x=0&x=5`): FastAPI would take the last;
+- 422 for a number (a query or path parameter of type int or float) written with an underscore:
+  pydantic reads `1_0` as 10, so a typo (`x=1_0.5`) was answered for another place than asked.
 
 Query parameters a route does not take are ignored, as caches and tile clients add their own
 (`?v=2`, `?_=<time>`) to bust caches.
@@ -21,6 +23,8 @@ from __future__ import annotations
 
 import email.message
 import json
+import types
+import typing
 from collections.abc import Callable, Coroutine
 from typing import Any
 
@@ -93,6 +97,32 @@ def _query_names(dependant: Dependant) -> set[str]:
     return names
 
 
+def _number_params(dependant: Dependant) -> list[tuple[str, str]]:
+    """The route's query and path parameters that are numbers (int or float, or optionally one), as
+    (where, name) pairs, its dependencies' included."""
+    found = [
+        (where, param.alias)
+        for where, params in (("query", dependant.query_params), ("path", dependant.path_params))
+        for param in params
+        if _is_number(param.field_info.annotation)
+    ]
+    for sub in dependant.dependencies:
+        found += _number_params(sub)
+    return found
+
+
+def _is_number(annotation: Any) -> bool:
+    """Whether a parameter of type `annotation` is a number: int, float, or a union holding one."""
+    if annotation in (int, float):
+        return True
+    members = (
+        typing.get_args(annotation)
+        if typing.get_origin(annotation) in (typing.Union, types.UnionType)
+        else ()
+    )
+    return any(member in (int, float) for member in members)
+
+
 class StrictRoute(APIRoute):
     """An APIRoute reading its JSON body and query parameters strictly (see the module's docstring)."""
 
@@ -100,8 +130,19 @@ class StrictRoute(APIRoute):
         handler = super().get_route_handler()
         takes_body = self.body_field is not None
         query_names = _query_names(self.dependant)
+        number_params = _number_params(self.dependant)
 
         async def strict_handler(request: Request) -> Response:
+            for where, name in number_params:
+                value = (request.query_params if where == "query" else request.path_params).get(name)
+                if isinstance(value, str) and "_" in value:
+                    raise ApiError(
+                        422,
+                        f"{where} parameter {name!r}: {value!r} is not a number (no underscores)",
+                        errors=[
+                            ErrorItem(loc=[where, name], msg="not a number (no underscores)", type="number")
+                        ],
+                    )
             repeated = sorted({key for key in query_names if len(request.query_params.getlist(key)) > 1})
             if repeated:
                 # One problem per parameter in `errors`, as a validation failure lists them.
