@@ -531,3 +531,48 @@ def test_a_robot_a_full_map_forgot_is_not_integrated_twice_from_its_cache(tmp_pa
     finally:
         pub.close()
         services.close()
+
+
+def test_close_while_a_publish_is_blocked_on_a_frozen_link_closes_the_session(
+    service: ServiceProcess,
+) -> None:
+    """A robot thread inside `publish`, blocked by congestion control BLOCK on a frozen link, while
+    another thread closes the publisher (the robot shutting down): `close()` must close the session
+    without raising. zenoh-python holds the publisher borrowed during the put, so undeclaring it
+    then raised RuntimeError ("Already borrowed") out of close(), which left the session open; the
+    blocked thread then gets `PublisherClosed` (or False: its scan given up)."""
+    scans = scans_for(sim=6, beams=50_000, count=1)
+    proxy = FreezableProxy(service.zenoh_port)
+    pub = ScanPublisher("frozen", "r1", connect=[proxy.endpoint])
+    outcome: list[object] = []
+
+    def publish_until_closed() -> None:
+        try:
+            while True:
+                pub.publish(scans[0])
+        except Exception as exc:  # noqa: BLE001 - what the thread ended with is the test's finding
+            outcome.append(exc)
+
+    sender = threading.Thread(target=publish_until_closed, daemon=True)
+    try:
+        assert pub.wait_connected(20)
+        session = pub._session
+        assert session is not None
+        proxy.freeze()
+        sender.start()
+        # Blocked: nothing more is handed to Zenoh (a 200 kB scan fills the socket buffers at once).
+        counted = [-1]
+
+        def stalled() -> bool:
+            before, counted[0] = counted[0], pub.published
+            return counted[0] == before
+
+        wait_for(stalled, 10, 0.5, "publish blocked on the frozen link")
+        pub.close()  # raised RuntimeError: Already borrowed
+        assert session.is_closed()
+        sender.join(20)
+        assert not sender.is_alive()
+        assert [type(exc) for exc in outcome] == [publisher_module.PublisherClosed], outcome
+    finally:
+        pub.close()
+        proxy.close()

@@ -127,6 +127,11 @@ from .zenoh_config import (
 #: configuration whose own `connect/timeout_ms` is longer, or -1, may leave it running: it is waited
 #: for again at the program's exit, `EXIT_WAIT_S`).
 CLOSE_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 2.0
+#: How long `close` waits for a `publish` inside Zenoh's put (congestion control BLOCK on a congested
+#: or frozen link) to return before it undeclares the publisher: Zenoh closes a link it could not
+#: send on for `transport/link/tx/queue/congestion_control/block/wait_before_close` (5 s by
+#: default), which ends the put.
+CLOSE_SEND_WAIT_S = 6.0
 #: How long, at the program's exit, each publisher thread still inside a Zenoh call (an opener's
 #: connection attempt) is waited for (`_settle_at_exit`): one that comes back from Zenoh while the
 #: interpreter finalizes aborts the process. A `connect/timeout_ms` longer than this (or -1) may
@@ -792,7 +797,9 @@ class ScanPublisher:
         """Withdraw the liveliness token, undeclare the publisher and close the session. Idempotent.
 
         Scans already handed to Zenoh over a live link are flushed by the session close (reliable
-        channel); scans still waiting for re-delivery (`backlogged`, `pending`) are given up. While
+        channel); scans still waiting for re-delivery (`backlogged`, `pending`) are given up. A
+        `publish` of another thread blocked in Zenoh (BLOCK on a congested or frozen link) is waited
+        for, at most `CLOSE_SEND_WAIT_S`. While
         no connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`;
         an attempt still running then is waited for at the program's exit, at most `EXIT_WAIT_S`).
         A publisher the program leaves open is closed at its exit (atexit)."""
@@ -809,10 +816,21 @@ class ScanPublisher:
             self.backlogged -= len(self._pending)
             self.dropped += len(self._pending)
             self._pending.clear()
-        for thing in (token, fetch_watch, publisher, None if matching is publisher else matching):
-            if thing is not None:
-                with contextlib.suppress(zenoh.ZError):
-                    thing.undeclare()
+        # A `publish` may be inside the publisher's put (BLOCK: a congested or frozen link), during
+        # which zenoh-python holds the publisher borrowed: its undeclare raised RuntimeError
+        # ("Already borrowed") out of close(), which left the session open, and the session's
+        # close waits for such a put until its own timeout (10 s). Wait for the put instead: it
+        # returns once the link drains, or once Zenoh closes a link it could not send on.
+        sending = self._send_lock.acquire(timeout=CLOSE_SEND_WAIT_S)
+        try:
+            for thing in (token, fetch_watch, publisher, None if matching is publisher else matching):
+                if thing is not None:
+                    # RuntimeError: a put still borrows it past the wait; the session's close undeclares it.
+                    with contextlib.suppress(zenoh.ZError, RuntimeError):
+                        thing.undeclare()
+        finally:
+            if sending:
+                self._send_lock.release()
         if session is not None:
             with contextlib.suppress(zenoh.ZError):
                 session.close()
@@ -865,7 +883,8 @@ def _deadline(timeout: float | None) -> float | None:
 
 
 __all__ = [
-    "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT", "EXIT_WAIT_S",
+    "CLOSE_SEND_WAIT_S", "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT",
+    "EXIT_WAIT_S",
     "FETCH_MARGIN_S", "HEARTBEAT_S", "RECONNECT_HOLD_MAX_S", "RECONNECT_HOLD_S", "RECONNECT_PERIOD_FACTOR",
     "RECONNECT_PERIOD_INIT_MS", "RECONNECT_PERIOD_MAX_MS",
     "DeliveryReport", "DeliveryUnsupported", "PublisherClosed", "ScanPublisher", "client_config",
