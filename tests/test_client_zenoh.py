@@ -782,6 +782,23 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
         assert "robots on map" not in bad.stdout, bad.stdout
 
 
+def test_sim_refuses_a_timeout_of_nan_or_below_0_before_it_waits() -> None:
+    """`fleetmap sim --wait-timeout nan` waited for an absent service for ever (replay's refuses it),
+    and -1 gave up "within -1 s"; `run_sim(confirm_timeout=nan)` ran, then raised in every robot's
+    flush thread. Refused at once now, as replay's are."""
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    command = [sys.executable, "-m", "fleetmap_client.cli", "sim", "--robots", "1", "--connect", nobody]
+    for value in ("nan", "-1"):
+        bad = subprocess.run([*command, "--wait-timeout", value], capture_output=True, text=True, timeout=30)
+        assert bad.returncode == 2, bad.stderr
+        assert f"--wait-timeout must be a number of seconds >= 0, got {float(value)}" in bad.stderr
+        assert "robots on map" not in bad.stdout, bad.stdout
+    for name in ("wait_timeout", "confirm_timeout"):
+        options = {"wait_timeout": 0.5, name: math.nan}
+        with pytest.raises(ValueError, match=f"{name} must be a number of seconds >= 0, got nan"):
+            run_sim(1, connect=[nobody], seconds=0.1, **options)
+
+
 def test_a_second_ctrl_c_stops_the_sims_wait_for_confirmation(router: Router) -> None:
     """The first Ctrl-C stops the robots and starts the wait for confirmation (this router answers
     no delivery query: a few seconds); a second one ends it at once, exit 130, no traceback."""

@@ -216,6 +216,8 @@ def run_sim_command(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     if not args.confirm_timeout >= 0.0:
         raise CliError(f"--confirm-timeout must be a number of seconds >= 0, got {args.confirm_timeout}")
+    if args.wait_timeout is not None and not args.wait_timeout >= 0.0:  # NaN: waited for ever
+        raise CliError(f"--wait-timeout must be a number of seconds >= 0, got {args.wait_timeout}")
     stop = SignalEvent()
 
     # Ctrl-C (or SIGINT from a script that started us with SIGINT ignored) stops the robots, and the

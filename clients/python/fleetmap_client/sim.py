@@ -119,9 +119,15 @@ def run_sim(
     `confirm_timeout`: once the robots stopped, wait at most that many seconds (the robots asked at
     once) for the service to confirm their scans (`ScanPublisher.flush`, into `SimResult.delivery`);
     None (default): ask nothing. Raises ValueError for bad arguments (e.g. a robot id that `prefix`
-    makes invalid).
+    makes invalid, a timeout below 0 or NaN).
     """
     check_fleet(robots, rate, seconds, beams, speed)
+    for name, value in (("wait_timeout", wait_timeout), ("confirm_timeout", confirm_timeout)):
+        # As `replay.replay`'s: a wait_timeout of NaN waited for the service for ever, a negative one
+        # gave up "within -1 s", and a confirm_timeout of NaN raised in each robot's flush thread
+        # (a traceback per robot) after the whole run.
+        if value is not None and not value >= 0.0:
+            raise ValueError(f"{name} must be a number of seconds >= 0, got {value}")
     stop = stop or threading.Event()
     ids = robot_ids(robots, prefix)
     floor = plan if plan is not None else generate_floorplan(seed)
