@@ -503,6 +503,32 @@ def test_scans_refused_at_the_input_limits_are_settled_as_refused_not_lost(tmp_p
         assert pub.flush(10) == report
 
 
+def test_json_scans_of_far_too_many_beams_are_settled_as_refused_not_lost(tmp_path: Path) -> None:
+    """A JSON scan of so many beams that `decode_json` refuses it unparsed (more items than twice
+    the beam limit: its commas are counted first) is refused as the binary one is, with its seq:
+    the service counted it as undecodable, its seq as `lost` when the next came (besides
+    `scans_rejected`: one scan counted twice), and the last scan of a session refused so was never
+    settled: the robot's flush waited for it until its timeout, saying nothing of the refusal."""
+    near = Scan.from_fan((5.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    dense = Scan.from_fan((5.0, 5.0, 0.0), -3.0, 6.0 / 5000, [1.0] * 5000, 0.05, 10.0)
+    with (
+        ServiceProcess(tmp_path, ["--in-memory", "--max-beams", "1000"]) as service,
+        ScanPublisher("lim", "r1", connect=[service.zenoh_endpoint], encoding="json") as pub,
+    ):
+        assert pub.wait_connected(20), pub.last_connect_error
+        for seq in range(6):
+            pub.publish(dense if seq in (2, 5) else near, seq=seq, stamp=float(seq))
+        started = time.monotonic()
+        report = pub.flush(10)
+        assert time.monotonic() - started < 5, report  # the last scan's refusal settled it
+        assert (report.published, report.integrated, report.refused, report.lost) == (6, 4, 2, 0), report
+        assert report.settled and report.last_error is not None, report
+        assert "scan seq 5 refused: invalid JSON scan: more items than 1000 beams" in report.last_error
+        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            robot = map_stats(http, "lim")["robots"]["r1"]
+        assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 2, 0), robot
+
+
 def test_flush_against_a_service_without_delivery_queries_is_an_error_not_a_hang() -> None:
     """A router that subscribes to scans as the service does but declares no delivery queryable
     (a service older than delivery confirmation): flush raises `DeliveryUnsupported` within a few

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 from dataclasses import dataclass
 from typing import Any
@@ -183,6 +184,35 @@ def _sniff(data: bytes) -> str:
 JSON_SCAN_FIELDS = 64
 
 
+#: `"seq": 7`, `"stamp": 1.5`, `"session": 42` (or null) in a JSON scan's bytes (`_json_scan_id`).
+_JSON_SCAN_ID_FIELD = re.compile(rb'"(seq|stamp|session)"\s*:\s*(null|-?[0-9][0-9.eE+-]*)')
+
+
+def _json_scan_id(data: bytes) -> tuple[int, float, int | None] | None:
+    """The (seq, stamp, session) of a JSON scan that `decode_json` refuses unparsed (too many items
+    for the beam limit), read from the bytes (a pass at C speed, as the count of commas): each of
+    the three at most once, seq present, each valid as `ScanMessage` takes it. A scan's only strings
+    are its keys, so in a scan as a client writes it they are these fields. None when not so (the
+    message is refused as undecodable: its seq is not recorded)."""
+    found: dict[bytes, bytes] = {}
+    for match in _JSON_SCAN_ID_FIELD.finditer(data):
+        key, value = match.groups()
+        if key in found:
+            return None
+        found[key] = value
+    try:
+        seq = int(found[b"seq"])  # int(b"7.0") raises: a seq must be an integer, as strict parsing says
+        stamp = float(found.get(b"stamp", b"0"))
+        session = None if found.get(b"session", b"null") == b"null" else int(found[b"session"])
+    except (KeyError, ValueError):
+        return None
+    if not (0 <= seq < SEQ_LIMIT and math.isfinite(stamp)):
+        return None
+    if session is not None and not 1 <= session < SESSION_LIMIT:
+        return None
+    return seq, stamp, session
+
+
 def decode_json(data: bytes, limits: InputLimits = DEFAULT_LIMITS) -> WireScan:
     if data.startswith(UTF8_BOM):  # the parser's "expected value at line 1 column 1" did not say why
         raise DecodeError("invalid JSON scan: it starts with a byte order mark; send UTF-8 without one")
@@ -191,7 +221,12 @@ def decode_json(data: bytes, limits: InputLimits = DEFAULT_LIMITS) -> WireScan:
     # them (at C speed, about 1 ms for 4 MB) refuses it unparsed: a 4 MB list of 2 million numbers
     # took 110-140 ms to parse, on the Zenoh thread that every robot's scans pass through.
     if data.count(b",") > 2 * limits.max_beams + JSON_SCAN_FIELDS:
-        raise DecodeError(f"invalid JSON scan: more items than {limits.max_beams} beams can have")
+        # Refused as a scan past the beam limit, as binary's header check and `InputLimits.check`
+        # refuse one, when its seq can be read (`_json_scan_id`): without it the service counted its
+        # seq as lost too, and its robot's flush, never told, waited for it when it was the last.
+        raise DecodeError(
+            f"invalid JSON scan: more items than {limits.max_beams} beams can have", _json_scan_id(data)
+        )
     try:
         # Strict: "5" or true for a number, or 5.0 for the seq, is a sender's mistake to name, not to
         # guess at (lax mode read true as seq 1).
