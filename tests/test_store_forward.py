@@ -14,6 +14,8 @@ tests/test_ingest.py (`scan_publisher`) and tests/robot_process.py (tests/test_e
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -27,7 +29,7 @@ import zenoh
 from fleetmap_client.publisher import ScanPublisher
 from prometheus_client.parser import text_string_to_metric_families
 from robot_process import scans_for
-from service_process import FreezableProxy, RestartingService, ServiceProcess, free_port, wait_for
+from service_process import FreezableProxy, RestartingService, ServiceProcess, free_port, reaped, wait_for
 from test_e2e import assert_region_equal, map_stats, wait_integrated
 
 from fleetmap import codec
@@ -575,4 +577,46 @@ def test_close_while_a_publish_is_blocked_on_a_frozen_link_closes_the_session(
         assert [type(exc) for exc in outcome] == [publisher_module.PublisherClosed], outcome
     finally:
         pub.close()
+        proxy.close()
+
+
+#: A robot program whose daemon thread publishes big scans while the main thread ends (argv: the
+#: endpoint): its publisher is closed at the exit (atexit) while that thread is blocked in Zenoh.
+_EXIT_WHILE_BLOCKED = """
+import sys, threading, time
+from fleetmap.scan import Scan
+from fleetmap_client.publisher import ScanPublisher
+scan = Scan.from_fan((0.0, 0.0, 0.0), -3.0, 6.0 / 50_000, [3.0] * 50_000, 0.1, 10.0)
+pub = ScanPublisher("frozen", "r1", connect=[sys.argv[1]])
+assert pub.wait_connected(20)
+print("connected", flush=True)
+sys.stdin.readline()  # the link is frozen now
+threading.Thread(target=lambda: [pub.publish(scan) for _ in iter(int, 1)], daemon=True).start()
+time.sleep(2)  # blocked by then: the socket buffers hold a few 200 kB scans
+"""
+
+
+def test_a_program_that_ends_while_a_publish_is_blocked_on_a_frozen_link_exits_cleanly(
+    service: ServiceProcess,
+) -> None:
+    """The atexit close of a publisher left open, while a daemon thread's `publish` is blocked by
+    BLOCK on a frozen link, raised "Already borrowed" in the atexit callback, and the interpreter
+    then finalized with that thread inside Zenoh's put: the process died of SIGABRT ("FATAL:
+    exception not rethrown") instead of exiting 0."""
+    proxy = FreezableProxy(service.zenoh_port)
+    child = subprocess.Popen(
+        [sys.executable, "-c", _EXIT_WHILE_BLOCKED, proxy.endpoint], stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        with reaped(child):
+            assert child.stdout is not None and child.stdin is not None
+            assert child.stdout.readline().strip() == "connected"
+            proxy.freeze()
+            child.stdin.write("frozen\n")
+            child.stdin.flush()
+            out, _ = child.communicate(timeout=60)
+        assert "Already borrowed" not in out and "FATAL" not in out, out
+        assert child.returncode == 0, out
+    finally:
         proxy.close()
