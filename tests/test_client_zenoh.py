@@ -29,7 +29,7 @@ from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, Sca
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
 from fleetmap_client.sim import SimError, robot_ids, run_sim
 from fleetmap_client.zenoh_config import client_config
-from service_process import DATASETS_DIR, ServiceProcess, free_port, reaped, wait_for
+from service_process import DATASETS_DIR, FreezableProxy, ServiceProcess, free_port, reaped, wait_for
 
 from fleetmap.codec import WireScan, decode, encode_json
 from fleetmap.datasets import load_dataset
@@ -691,6 +691,54 @@ def test_replay_command_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str
         )
         assert time.monotonic() - started < 5
         assert "must be a number of seconds >= 0, got nan" in capsys.readouterr().err
+
+
+def test_replay_goes_on_at_its_rate_after_a_pause_for_a_lost_connection(
+    router: Router, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A replay paused for a lost connection goes on at its rate when the service is back: it kept
+    its schedule, so every scan due during the pause went out at once after it (at --rate 20, 2760
+    scans in a second after 12 s away, and the service's ingest queue of 1024 dropped hundreds)."""
+    log = tmp_path / "corridor.log"
+    _write_carmen(log, 120)
+    proxy = FreezableProxy(router.port)
+    sent: list[float] = []
+    publish = ScanPublisher.publish
+
+    def timed(pub: ScanPublisher, *args: Any, **kwargs: Any) -> bool:
+        sent.append(time.monotonic())
+        return publish(pub, *args, **kwargs)
+
+    monkeypatch.setattr(ScanPublisher, "publish", timed)
+    done: list[Any] = []
+    runner = threading.Thread(
+        target=lambda: done.append(
+            replay(
+                log,
+                "pace",
+                "r1",
+                rate=4.0,
+                connect=[proxy.endpoint],
+                progress=False,
+                wait_timeout=20,
+                confirm=False,
+            )
+        )
+    )
+    try:
+        runner.start()
+        wait_for(lambda: len(sent) >= 10, 20, 0.01, "the first scans")
+        proxy.cut()
+        time.sleep(2.0)  # 80 scans due meanwhile at 40 a second
+        proxy.restore()
+        back = time.monotonic()
+        runner.join(30)
+    finally:
+        proxy.close()
+    assert done and done[0].scans == 120 and done[0].pauses == 1, done
+    after = [t for t in sent if t > back]
+    in_first_second = sum(1 for t in after if t < after[0] + 1.0)
+    assert in_first_second <= 55, f"{in_first_second} scans in the second after the pause, at 40 a second"
 
 
 def test_replay_help_says_that_rate_0_lets_the_service_drop_scans() -> None:
