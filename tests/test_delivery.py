@@ -34,7 +34,7 @@ from robot_process import scans_for
 from service_process import FreezableProxy, RestartingService, ServiceProcess, reaped, wait_for
 from test_client_zenoh import Router, _write_carmen
 from test_e2e import assert_region_equal, map_stats, wait_integrated
-from test_ingest import client_session
+from test_ingest import client_session, scan_publisher
 from test_store_forward import LAYERS, engine_map, publish_then_cut
 
 from fleetmap import codec
@@ -47,7 +47,14 @@ from fleetmap.registry import MapRegistry
 from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger, pairs
 from fleetmap.scan import Scan
 from fleetmap.unmapped_refusals import MAX_UNMAPPED_ROBOTS
-from fleetmap.wire import BINARY_ENCODING, DELIVERY_KEY, SCAN_KEY, DeliveryStatus, SessionDelivery
+from fleetmap.wire import (
+    BINARY_ENCODING,
+    DELIVERY_KEY,
+    JSON_ENCODING,
+    SCAN_KEY,
+    DeliveryStatus,
+    SessionDelivery,
+)
 
 
 def test_settled_passes_only_scans_settled_in_order() -> None:
@@ -527,6 +534,55 @@ def test_json_scans_of_far_too_many_beams_are_settled_as_refused_not_lost(tmp_pa
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
             robot = map_stats(http, "lim")["robots"]["r1"]
         assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 2, 0), robot
+
+
+def test_scans_refused_for_their_body_are_settled_as_refused_not_lost(tmp_path: Path) -> None:
+    """Scans of a robot written to docs/protocol.md (not `ScanPublisher`, which refuses them first)
+    whose seq and session are fine but whose body the service refuses: JSON of 2 angles but 20
+    ranges, JSON with a negative range_min, binary with a NaN range_min. Each is refused with its
+    seq, as a scan past the input limits is: they were counted in `scans_rejected` and, as
+    undecodable, their seqs as `lost` too (one scan counted twice), and the session's last scan
+    refused so was never settled (a robot's flush waited for it until its timeout)."""
+    body = {"pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": -1.0, "angle_increment": 0.1}
+
+    def json_scan(seq: int, **changes: Any) -> bytes:
+        message = {"seq": seq, "stamp": float(seq), "session": 77, **body, "ranges": [2.0] * 20} | changes
+        return json.dumps({k: v for k, v in message.items() if v is not None}).encode()
+
+    near = Scan.from_fan((0.0, 0.0, 0.0), -1.0, 0.1, [2.0] * 20, 0.05, 10.0)
+    nan_range_min = bytearray(codec.encode_binary(near, 3, stamp=3.0, session=77))
+    header = list(codec.HEADER_V2.unpack_from(nan_range_min))
+    header[9] = float("nan")  # range_min
+    codec.HEADER_V2.pack_into(nan_range_min, 0, *header)
+    payloads = [
+        (json_scan(0), JSON_ENCODING),
+        (json_scan(1, angle_min=None, angle_increment=None, angles=[0.0, 0.1]), JSON_ENCODING),
+        (json_scan(2), JSON_ENCODING),
+        (bytes(nan_range_min), BINARY_ENCODING),
+        (json_scan(4), JSON_ENCODING),
+        (json_scan(5, range_min=-1.0), JSON_ENCODING),
+    ]
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        session = client_session(service.zenoh_endpoint)
+        try:
+            publisher = scan_publisher(session, "body", "r1", JSON_ENCODING)
+            for payload, encoding in payloads:
+                publisher.put(payload, encoding=zenoh.Encoding(encoding))
+            with httpx.Client(base_url=service.base_url, timeout=10) as http:
+                wait_for(lambda: map_stats(http, "body")["robots"]["r1"]["scans_rejected"] == 3, 20)
+                robot = map_stats(http, "body")["robots"]["r1"]
+            assert (robot["scans_integrated"], robot["lost"], robot["last_seq"]) == (3, 0, 5), robot
+            assert robot["last_error"].startswith("scan seq 5 refused: invalid JSON scan: range_min"), robot
+            answer = query(session, DELIVERY_KEY.format(map_id="body", robot_id="r1") + "?fields=2")
+            assert isinstance(answer, DeliveryStatus)
+            entry = answer.session(77)
+            assert entry is not None, answer
+            assert (entry.last_accepted, entry.settled, entry.integrated, entry.refused, entry.lost) == (
+                5, 5, 3, 3, 0,
+            ), entry  # fmt: skip
+            assert entry.refused_seqs == [1, 3, 5], entry
+        finally:
+            session.close()
 
 
 def test_flush_against_a_service_without_delivery_queries_is_an_error_not_a_hang() -> None:

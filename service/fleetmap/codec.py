@@ -189,11 +189,11 @@ _JSON_SCAN_ID_FIELD = re.compile(rb'"(seq|stamp|session)"\s*:\s*(null|-?[0-9][0-
 
 
 def _json_scan_id(data: bytes) -> tuple[int, float, int | None] | None:
-    """The (seq, stamp, session) of a JSON scan that `decode_json` refuses unparsed (too many items
-    for the beam limit), read from the bytes (a pass at C speed, as the count of commas): each of
-    the three at most once, seq present, each valid as `ScanMessage` takes it. A scan's only strings
-    are its keys, so in a scan as a client writes it they are these fields. None when not so (the
-    message is refused as undecodable: its seq is not recorded)."""
+    """The (seq, stamp, session) of a JSON scan that `decode_json` refuses, unparsed (too many items
+    for the beam limit) or invalid, read from the bytes (a pass at C speed, as the count of commas):
+    each of the three at most once, seq present, each valid as `ScanMessage` takes it. A scan's only
+    strings are its keys, so in a scan as a client writes it they are these fields. None when not
+    so (the message is refused as undecodable: its seq is not recorded)."""
     found: dict[bytes, bytes] = {}
     for match in _JSON_SCAN_ID_FIELD.finditer(data):
         key, value = match.groups()
@@ -232,7 +232,10 @@ def decode_json(data: bytes, limits: InputLimits = DEFAULT_LIMITS) -> WireScan:
         # guess at (lax mode read true as seq 1).
         message = ScanMessage.model_validate_json(data, strict=True)
     except ValidationError as exc:
-        raise DecodeError(f"invalid JSON scan: {_first_error(exc)}") from None
+        # With its seq when that can be read (`_json_scan_id`): a scan refused for its body (2 angles
+        # but 3 ranges, a negative range_min) was counted lost as well as rejected, and its robot's
+        # flush waited for it when it was the last, as for the binary scans `from_message` refuses.
+        raise DecodeError(f"invalid JSON scan: {_first_error(exc)}", _json_scan_id(data)) from None
     _refuse_repeated_keys(data, message)
     return from_message(message, limits)
 
@@ -321,7 +324,11 @@ def decode_binary(data: bytes, limits: InputLimits = DEFAULT_LIMITS) -> WireScan
         checked += [("angle_min", angle_min), ("angle_increment", angle_increment)]
     for name, value in checked:
         if not math.isfinite(value):
-            raise DecodeError(f"{name} must be finite")
+            # With a finite stamp (checked first) the scan's identity is known: refused as a scan, as
+            # `decode_json` refuses a non-finite range_min (counted lost too without it).
+            raise DecodeError(
+                f"{name} must be finite", None if name == "stamp" else (int(seq), float(stamp), session)
+            )
     body = np.frombuffer(data, dtype="<f4", offset=header.size)
     # Any 32-bit pattern may arrive, signalling NaNs included: widening them is fine (they stay NaN,
     # an invalid reading), so numpy's warning about it is noise.
