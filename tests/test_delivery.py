@@ -919,6 +919,25 @@ def test_flush_and_wait_connected_refuse_a_timeout_that_is_not_a_number() -> Non
         assert not pub.flush(0.2).answered  # a number still works
 
 
+def test_flush_ended_refuses_ids_past_the_wires_bounds_at_once() -> None:
+    """`flush_ended` of a session id at or past 2**53, or a seq at or past 2**63 (a saved value read
+    back wrong), is a ValueError at once: a reachable service answered the first with an error reply
+    (RuntimeError, "the delivery query failed"), the second made a report of 2**63 scans
+    "unconfirmed", and with no service reachable both waited for the timeout."""
+    with ScanPublisher("to", "r1", connect=["tcp/127.0.0.1:9"]) as pub:  # nothing listens there
+        for args, words in [
+            ((2**53, 0, 1), "session_id must be an integer in [0, 2**53)"),
+            ((5, 0, 2**63), "last_seq must be an integer in [0, 2**63)"),
+            ((5, 2**63, 2**63 + 1), "first_seq must be an integer in [0, 2**63)"),
+            ((5, -1, 1), "first_seq must be an integer in [0, 2**63)"),
+        ]:
+            started = time.monotonic()
+            with pytest.raises(ValueError, match=re.escape(words)):
+                pub.flush_ended(*args, timeout=3)
+            assert time.monotonic() - started < 1
+        assert not pub.flush_ended(2**53 - 1, 0, 2**63 - 1, timeout=0.2).answered  # the bounds themselves
+
+
 def test_flush_counts_the_scans_through_its_last_seq_only(tmp_path: Path) -> None:
     """A robot flushes in a dead zone (its scans through seq 19 published, seq 15 one the service
     refuses) and goes on publishing meanwhile (seq 25 refused too); the link comes back and the

@@ -105,6 +105,7 @@ from fleetmap.wire import (
     JSON_ENCODING,
     SCAN_KEY,
     SEQ_LIMIT,
+    SESSION_LIMIT,
     DeliveryStatus,
     ScanMessage,
     is_valid_id,
@@ -708,12 +709,22 @@ class ScanPublisher:
         the last one it accepted count as `lost`, and the report is `settled`. It returns at once,
         unsettled, when the service counts nothing of the session (none of its scans arrived, or the
         service forgot it: an in-memory service restarted since, or the robot's 8 more recent
-        sessions), and on the timeout otherwise (None: no limit). Asks and raises as `flush` does.
+        sessions), and on the timeout otherwise (None: no limit). Asks and raises as `flush` does, and
+        ValueError for a session id outside [0, 2**53) or a seq outside [0, 2**63), or a last_seq
+        below first_seq.
         Do not call it for a session whose publisher still runs (it may deliver more): `flush` that
         one."""
-        for name, value in (("session_id", session_id), ("first_seq", first_seq), ("last_seq", last_seq)):
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
-                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+        # Within the wire's bounds too: a session id past 2**53 came back as the service's error reply
+        # (a RuntimeError, "the delivery query failed"), a seq past 2**63 as a report of that many
+        # scans "unconfirmed", and with no service reachable either waited for the timeout.
+        limits = (
+            ("session_id", session_id, SESSION_LIMIT, "2**53"),
+            ("first_seq", first_seq, SEQ_LIMIT, "2**63"),
+            ("last_seq", last_seq, SEQ_LIMIT, "2**63"),
+        )
+        for name, value, limit, text in limits:
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 0 <= value < limit:
+                raise ValueError(f"{name} must be an integer in [0, {text}), got {value!r}")
         if last_seq < first_seq:
             raise ValueError(f"last_seq {last_seq} is below first_seq {first_seq}")
         if self._closed.is_set():
