@@ -919,6 +919,30 @@ def test_flush_and_wait_connected_refuse_a_timeout_that_is_not_a_number() -> Non
         assert not pub.flush(0.2).answered  # a number still works
 
 
+@pytest.mark.parametrize("backlog", [10, 0])
+def test_scans_given_up_before_the_first_connection_are_reported_lost(tmp_path: Path, backlog: int) -> None:
+    """A robot that starts before the service and publishes more than its backlog (or anything with
+    backlog 0) gives up its first scans. The service counts from the first scan it gets, so it knew
+    nothing of them and the flush, final (`settled`), called them "unconfirmed"; the publisher
+    knows it never sent them: they are lost, as docs/clients.md says ("dropped on the robot, lost
+    at the service")."""
+    near = Scan.from_fan((5.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
+    service = ServiceProcess(tmp_path, ["--in-memory"])
+    with ScanPublisher("early", "r1", connect=[service.zenoh_endpoint], backlog=backlog) as pub:
+        for _ in range(15):
+            pub.publish(near)
+        with service.start():
+            assert pub.wait_connected(20), pub.last_connect_error
+            for _ in range(5):
+                pub.publish(near)
+            report = pub.flush(10)
+    given_up = 5 if backlog else 15
+    assert pub.dropped == given_up
+    assert report.settled and (report.published, report.integrated) == (20, 20 - given_up), report
+    assert (report.lost, report.unsettled, report.counted_from) == (given_up, 0, given_up), report
+    assert report.summary() == f"20 scans published, {20 - given_up} integrated: {given_up} lost"
+
+
 def test_flush_ended_refuses_ids_past_the_wires_bounds_at_once() -> None:
     """`flush_ended` of a session id at or past 2**53, or a seq at or past 2**63 (a saved value read
     back wrong), is a ValueError at once: a reachable service answered the first with an error reply

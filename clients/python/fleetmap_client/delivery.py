@@ -16,16 +16,17 @@ class DeliveryReport:
     to `last_seq` (`published` scans), as the service counted them. True (`confirmed`) when every
     one of them is integrated into the map (with durable storage: committed to its journal).
 
-    `integrated`, `refused` (settled without being integrated: refused, dropped by the service's
-    full queue, applied but not made durable) and `lost` (seqs that never reached the service) are
-    the service's counts of this session; `unsettled` the rest: in flight, waiting in the backlog,
-    or whose fate the service does not know (it restarted during the session and counts from the
-    first scan it accepted afterwards: `counted_from`). `gone`: scans the service had when the map
-    was deleted or replaced by an upload (it remembers the map's robots: `DeliveryStatus.buried`),
-    which are in no map now. `settled`: the service settled every scan through `last_seq`.
-    `answered`: whether the service answered at all (False: it was unreachable until the timeout).
-    `last_error`: when scans were refused, the service's reason for the robot's last refused (or
-    dropped) scan, as `GET /maps/{id}` shows it (None from a service older than this field)."""
+    `integrated`, `refused` (settled without being integrated: refused, dropped by the service's full
+    queue, applied but not made durable) and `lost` (seqs that never reached the service) are the
+    service's counts of this session (`flush` adds to `lost` the session's first seqs that the publisher
+    gave up before it sent any, which the service never heard of); `unsettled` the rest: in flight,
+    waiting in the backlog, or whose fate the service does not know (it restarted during the session and
+    counts from the first scan it accepted afterwards: `counted_from`). `gone`: scans the service had
+    when the map was deleted or replaced by an upload (it remembers the map's robots:
+    `DeliveryStatus.buried`), which are in no map now. `settled`: the service settled every scan through
+    `last_seq`. `answered`: whether the service answered at all (False: it was unreachable until the
+    timeout). `last_error`: when scans were refused, the service's reason for the robot's last refused
+    (or dropped) scan, as `GET /maps/{id}` shows it (None from a service older than this field)."""
 
     published: int
     first_seq: int | None = None

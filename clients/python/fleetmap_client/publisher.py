@@ -85,6 +85,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
 from typing import Literal
@@ -307,9 +308,9 @@ class ScanPublisher:
         # Only for `subscribed`: an advanced publisher has no matching status, a plain one on the same
         # key (never put to) has. With backlog 0 it is the publisher itself.
         self._matching: zenoh.Publisher | None = None
-        # Scans published before the session opened, or during a reconnection's hold (payloads in
-        # seq order), sent when it opens or the hold ends.
-        self._pending: deque[bytes] = deque()
+        # Scans published before the session opened, or during a reconnection's hold (seq, session id
+        # and payload, in seq order), sent when it opens or the hold ends.
+        self._pending: deque[tuple[int, int | None, bytes]] = deque()
         # Whether the link was up at the last look (publish or the watcher), and the routers and
         # peers it went to: a change to up, or a router or peer not there at the last look (a
         # restarted service has a new Zenoh id), is a (re)connection, which starts a hold
@@ -334,6 +335,9 @@ class ScanPublisher:
         self._last_seq: int | None = None
         # The seq of the first scan of the current session (`session_id`): `flush` covers from it.
         self._session_first_seq: int | None = None
+        # The seq of the first scan of the current session handed to Zenoh (None: none yet). Those
+        # before it were given up here (`_with_given_up`).
+        self._session_first_sent: int | None = None
         self._session_id = new_session_id() if send_session_id else None
         #: Scans handed to Zenoh while a router (or peer) was connected (see the class docstring).
         self.published = 0
@@ -496,10 +500,12 @@ class ScanPublisher:
         assert publisher is not None  # the session opened
         sent = 0
         with contextlib.suppress(zenoh.ZError):  # close() raced: the rest are given up
-            for payload in held:
+            for seq, session, payload in held:
                 self._cached = True  # before the put: a put that raises may have reached the cache
                 publisher.put(payload)  # Zenoh's cache keeps it too, should the link die again
                 sent += 1
+                if self._session_first_sent is None:
+                    self._note_sent(seq, session)
         given_up = len(held) - sent
         with self._lock:
             self.backlogged -= sent + given_up
@@ -627,6 +633,7 @@ class ScanPublisher:
                 payload = self._encode(scan, seq, stamp, session=session)
                 if self._session_first_seq is None or session != self._session_id:
                     self._session_first_seq = seq
+                    self._session_first_sent = None
                 self._session_id = session
                 self._next_seq = seq + 1
                 self._last_seq = seq
@@ -640,7 +647,7 @@ class ScanPublisher:
                         self._pending.popleft()  # the oldest gives way
                         self.backlogged -= 1
                         self.dropped += 1
-                    self._pending.append(payload)
+                    self._pending.append((seq, session, payload))
                     self.backlogged += 1
                 return True
             connected = self.connected
@@ -657,12 +664,20 @@ class ScanPublisher:
                 with self._lock:
                     self.dropped += 1
                 return False
+            self._note_sent(seq, session)
         with self._lock:
             if connected:
                 self.published += 1
             else:
                 self.backlogged += 1
         return True
+
+    def _note_sent(self, seq: int, session: int | None) -> None:
+        """The scan `seq` of session `session` was handed to Zenoh: the first of the current
+        session's so is `_session_first_sent`."""
+        with self._lock:
+            if self._session_first_sent is None and session == self._session_id:
+                self._session_first_sent = seq
 
     # -- delivery confirmation ---------------------------------------------------------------------
 
@@ -753,6 +768,8 @@ class ScanPublisher:
             if status is not None:
                 unanswered_since = None
                 report = delivery_report(status, session, first, last)
+                if not ended:
+                    report = self._with_given_up(report, session)
                 if report.settled:
                     return report
                 if ended:
@@ -774,6 +791,19 @@ class ScanPublisher:
             wait = FLUSH_POLL_S if deadline is None else min(FLUSH_POLL_S, deadline - now)
             if self._closed.wait(max(0.0, wait)):
                 raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} was closed during flush")
+
+    def _with_given_up(self, report: DeliveryReport, session: int | None) -> DeliveryReport:
+        """`report` (of this publisher's session `session`) with the seqs before the first scan of
+        the session handed to Zenoh counted as `lost`: given up here before the service could see
+        them (pushed out of the full queue before the first connection, dropped with backlog 0).
+        The service counts from the first scan it got (`counted_from`) and knew nothing of them:
+        they were "unconfirmed" in a report already final (`settled`)."""
+        with self._lock:
+            first_sent = self._session_first_sent if session == self._session_id else None
+        first, counted = report.first_seq, report.counted_from
+        if first_sent is None or first is None or counted is None or counted <= first:
+            return report
+        return replace(report, lost=report.lost + min(first_sent, counted) - first)
 
     def _query_delivery(self, session_id: int | None, timeout: float) -> DeliveryStatus | None:
         """One delivery query: the service's answer, None when none came (no session or link yet,
