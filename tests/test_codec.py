@@ -366,3 +366,37 @@ def test_a_binary_header_over_the_beam_limit_names_the_limit_in_force() -> None:
     struct.pack_into("<I", header, 68, 11)
     with pytest.raises(DecodeError, match="^11 beams is more than the limit of 10$"):
         decode_binary(bytes(header), InputLimits(max_beams=10))
+
+
+@pytest.mark.parametrize(
+    ("changes", "scan_id"),
+    [
+        ({"angles": [0.0, 0.1]}, (7, 2.5, 42)),  # 2 angles but 3 ranges: refused with its identity
+        ({"range_min": -1.0}, (7, 2.5, 42)),
+        ({"session": None, "range_min": -1.0}, (7, 2.5, None)),
+        ({"ranges": [1.0] * 40_000}, (7, 2.5, 42)),  # past the beam limit, refused unparsed
+        ({"stamp": "2.5", "range_min": -1.0}, None),  # an identity not as ScanMessage takes it
+        ({"session": 0, "range_min": -1.0}, None),
+        ({"seq": 7.0, "range_min": -1.0}, None),
+        ({"seq": -7, "range_min": -1.0}, None),
+    ],
+)
+def test_a_refused_json_scan_carries_its_identity_when_it_can_be_read(
+    changes: dict[str, object], scan_id: tuple[int, float, int | None] | None
+) -> None:
+    """A JSON scan refused for its body keeps its (seq, stamp, session), so the service settles it
+    as refused rather than count its seq as lost (tests/test_delivery.py); one whose identity is not
+    valid has none."""
+    pose = {"x": 0, "y": 0, "theta": 0}
+    message: dict[str, object] = {"seq": 7, "stamp": 2.5, "session": 42, "pose": pose, "angle_min": 0.0,
+                                  "angle_increment": 0.1, "ranges": [1.0, 2.0, 3.0]}  # fmt: skip
+    if "angles" in changes:
+        del message["angle_min"], message["angle_increment"]
+    payload = json.dumps({k: v for k, v in (message | changes).items() if v is not None}).encode()
+    with pytest.raises(DecodeError) as refused:
+        decode(payload, JSON_ENCODING)
+    assert refused.value.scan_id == scan_id
+    repeated = payload.replace(b'{"seq": 7', b'{"seq": 7, "seq": 8', 1)
+    with pytest.raises(DecodeError) as refused:
+        decode(repeated, JSON_ENCODING)
+    assert refused.value.scan_id is None  # which seq the robot meant is a guess

@@ -184,8 +184,10 @@ def _sniff(data: bytes) -> str:
 JSON_SCAN_FIELDS = 64
 
 
-#: `"seq": 7`, `"stamp": 1.5`, `"session": 42` (or null) in a JSON scan's bytes (`_json_scan_id`).
+#: `"seq": 7`, `"stamp": 1.5`, `"session": 42` (or null) in a JSON scan's bytes (`_json_scan_id`),
+#: and those keys whatever their value.
 _JSON_SCAN_ID_FIELD = re.compile(rb'"(seq|stamp|session)"\s*:\s*(null|-?[0-9][0-9.eE+-]*)')
+_JSON_SCAN_ID_KEY = re.compile(rb'"(?:seq|stamp|session)"\s*:')
 
 
 def _json_scan_id(data: bytes) -> tuple[int, float, int | None] | None:
@@ -200,6 +202,8 @@ def _json_scan_id(data: bytes) -> tuple[int, float, int | None] | None:
         if key in found:
             return None
         found[key] = value
+    if len(_JSON_SCAN_ID_KEY.findall(data)) != len(found):  # one with another value: "stamp": "1"
+        return None
     try:
         seq = int(found[b"seq"])  # int(b"7.0") raises: a seq must be an integer, as strict parsing says
         stamp = float(found.get(b"stamp", b"0"))
