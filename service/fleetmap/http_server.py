@@ -10,7 +10,9 @@ import argparse
 import asyncio
 import errno
 import logging
+import os
 import socket
+import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -114,6 +116,25 @@ def make_server(args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: S
     return server
 
 
+def print_ready_line(line: str) -> None:
+    """Print `line` (the ready line) on stdout; if stdout cannot take it, log that (on stderr, with
+    the line) instead, and point stdout at /dev/null. Never raises.
+
+    Why: a stdout whose reader is gone (`fleetmap serve | some-filter` that exited, a `tee` that was
+    killed) or that cannot be written (redirected to a file on a full disk) raised out of uvicorn's
+    start-up: a service that had started, restored its maps and opened Zenoh stopped again, with a
+    traceback and exit 1. The ready line is all the service writes to stdout, so it serves on. The
+    line stays in stdout's buffer (unless PYTHONUNBUFFERED is set): left pointing at the broken
+    stream, the interpreter's flush at exit failed again, and a clean stop exited 120, not 0."""
+    try:
+        print(line, flush=True)
+    except OSError as exc:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        log.warning("cannot print the ready line on stdout (%s); serving on: %s", exc.strerror, line)
+
+
 def _ready_server_class() -> type:
     import uvicorn
 
@@ -128,7 +149,7 @@ def _ready_server_class() -> type:
             quiet_accept_errors(asyncio.get_running_loop())
             await super().startup(sockets=sockets)
             if self.started and not self.should_exit:
-                print(self.ready_line, flush=True)
+                print_ready_line(self.ready_line)
 
         async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
             if self.before_shutdown is not None:

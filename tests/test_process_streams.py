@@ -1,0 +1,48 @@
+"""The commands' standard streams in the states operators leave them in: a stdout whose reader
+exited (`| head -1`, a killed `tee`) or that cannot be written (a file on a full disk). Each test
+runs the real process and checks its exit code and what it printed."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+from typing import IO
+
+import httpx
+import pytest
+from service_process import ServiceProcess, _child_env, reaped, wait_for
+
+
+@pytest.mark.parametrize("stdout", ["reader gone", "full disk"])
+def test_a_stdout_that_cannot_be_written_does_not_stop_the_service(tmp_path: Path, stdout: str) -> None:
+    """The ready line is the service's only output on stdout. Printed into a pipe whose reader had
+    exited, or into /dev/full, it raised out of uvicorn's start-up: the service stopped with a
+    traceback and exit 1 once it had started. Now it logs that the line could not be printed and
+    serves on, and a SIGTERM still stops it with exit 0 (not 120: Python's flush of stdout at exit
+    failing too) and no traceback."""
+    svc = ServiceProcess(tmp_path, ["--in-memory"])
+    sink: IO[bytes]
+    if stdout == "reader gone":
+        read_end, write_end = os.pipe()
+        os.close(read_end)  # the reader exited before the service printed anything
+        sink = os.fdopen(write_end, "wb")
+    else:
+        sink = open("/dev/full", "wb")  # noqa: SIM115 - closed once the child has it
+    # As most run it (systemd, a shell): stdout buffered, so that the line is still in the buffer
+    # when the interpreter exits.
+    env = {name: value for name, value in _child_env().items() if name != "PYTHONUNBUFFERED"}
+    with open(svc.log_path, "wb") as log, sink:
+        proc = subprocess.Popen(svc.args, stdout=sink, stderr=log, stdin=subprocess.DEVNULL, env=env)
+    svc.proc = proc  # so that svc.stop() ends it
+    with reaped(proc):  # type: ignore[arg-type]  # (a bytes Popen; reaped only polls and kills)
+        wait_for(
+            lambda: proc.poll() is not None or "cannot print the ready line" in svc.logs(),
+            timeout=60, what="the ready line's failure logged",
+        )  # fmt: skip
+        assert proc.poll() is None, f"exit {proc.returncode}:\n{svc.logs()}"
+        assert httpx.get(f"{svc.base_url}/healthz", timeout=10).status_code == 200
+        assert svc.stop() == 0, svc.logs()
+    logs = svc.logs()
+    assert "Traceback" not in logs and "Exception ignored" not in logs, logs
+    assert f"serving on: fleetmap serving {svc.base_url}" in logs, logs
