@@ -11,7 +11,10 @@ from typing import IO
 
 import httpx
 import pytest
-from service_process import ServiceProcess, _child_env, reaped, wait_for
+from service_process import ServiceProcess, _child_env, fleetmap_command, reaped, wait_for
+from test_build import scene_log
+
+from fleetmap.cli import STDOUT_GONE
 
 
 @pytest.mark.parametrize("stdout", ["reader gone", "full disk"])
@@ -46,3 +49,25 @@ def test_a_stdout_that_cannot_be_written_does_not_stop_the_service(tmp_path: Pat
     logs = svc.logs()
     assert "Traceback" not in logs and "Exception ignored" not in logs, logs
     assert f"serving on: fleetmap serving {svc.base_url}" in logs, logs
+
+
+@pytest.mark.parametrize("buffered", [True, False])
+def test_a_command_whose_stdout_reader_exited_ends_quietly(tmp_path: Path, buffered: bool) -> None:
+    """`fleetmap build ... | head -1`: a reader that exited before the command printed its summary.
+    The command ended in a BrokenPipeError traceback and exit 1 (stdout unbuffered), or in Python's
+    "Exception ignored ... BrokenPipeError" and exit 120 (buffered, as most run it). It now ends
+    quietly with a shell's code for a command that SIGPIPE ended, 141, its outputs written."""
+    env = {name: value for name, value in os.environ.items() if name != "PYTHONUNBUFFERED"}
+    if not buffered:
+        env["PYTHONUNBUFFERED"] = "1"
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    log, out = scene_log(tmp_path / "scene.log"), tmp_path / "out"
+    with os.fdopen(write_end, "wb") as sink:
+        done = subprocess.run(
+            [*fleetmap_command(), "build", str(log), "--out", str(out), "--quiet"],
+            stdout=sink, stderr=subprocess.PIPE, text=True, env=env, timeout=300,
+        )  # fmt: skip
+    assert done.returncode == STDOUT_GONE == 141, done.stderr
+    assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr, done.stderr
+    assert (out / "map.yaml").is_file() and (out / "meta.json").is_file()

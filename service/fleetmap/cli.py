@@ -72,13 +72,33 @@ def unrecognized_arguments(parser: argparse.ArgumentParser, extras: Sequence[str
 
 def run_command(args: argparse.Namespace) -> int:
     """Run a parsed subcommand; a `CliError` is printed without a traceback, exit code 2 (as a
-    JSON log object with `serve --log-format json`, whose log pipeline reads JSON only)."""
+    JSON log object with `serve --log-format json`, whose log pipeline reads JSON only). A stdout
+    whose reader exited ends the command quietly, exit code `STDOUT_GONE`."""
     try:
-        return int(args.run(args) or 0)
+        try:
+            return int(args.run(args) or 0)
+        finally:
+            # Here, not in the interpreter's exit: a failure of it is then caught below.
+            if sys.stdout is not None:
+                sys.stdout.flush()
     except CliError as exc:
         line = f"fleetmap {args.command}: error: {exc}"
         print(plain_line(line, getattr(args, "log_format", "text"), logging.ERROR), file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # `fleetmap build ... | head -1`, `fleetmap sim | grep -m1 ...`: the reader had what it
+        # wanted. This ended in a traceback, exit 1, or (stdout buffered) in Python's "Exception
+        # ignored ... BrokenPipeError" at exit, exit 120. stdout now goes to /dev/null, so that the
+        # interpreter's own flush at exit does not fail again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return STDOUT_GONE
+
+
+#: The exit code of a command whose stdout's reader exited: a shell's code for a command that
+#: SIGPIPE ended (128 + 13), as other commands in a pipeline end when they write to it.
+STDOUT_GONE = 141
 
 
 #: Modules that add subcommands: each has `add_parser(sub)` which calls `sub.add_parser(...)` and
