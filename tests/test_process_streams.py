@@ -5,6 +5,8 @@ runs the real process and checks its exit code and what it printed."""
 from __future__ import annotations
 
 import os
+import re
+import signal
 import subprocess
 from pathlib import Path
 from typing import IO
@@ -12,7 +14,7 @@ from typing import IO
 import httpx
 import pytest
 from service_process import ServiceProcess, _child_env, fleetmap_command, reaped, wait_for
-from test_build import scene_log
+from test_build import flaser, scene_log
 
 from fleetmap.cli import STDOUT_GONE
 
@@ -71,3 +73,34 @@ def test_a_command_whose_stdout_reader_exited_ends_quietly(tmp_path: Path, buffe
     assert done.returncode == STDOUT_GONE == 141, done.stderr
     assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr, done.stderr
     assert (out / "map.yaml").is_file() and (out / "meta.json").is_file()
+
+
+def test_ctrl_c_stops_a_build_between_two_scans_in_one_line(tmp_path: Path) -> None:
+    """Ctrl-C while `fleetmap build` integrates: the KeyboardInterrupt was raised inside a compiled
+    kernel's call and came out as numba's SystemError ("returned a result with an exception set"),
+    a traceback and exit 1. Now the build stops between two scans, says so in one line, writes
+    nothing and exits 130, as a shell reports Ctrl-C."""
+    beams = 361
+    ranges = [19.5] * beams
+    lines = [flaser(ranges, 0.01 * (k % 500), 0.02 * (k % 300), 0.001 * k) for k in range(3000)]
+    log = tmp_path / "long.log"
+    log.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    build = subprocess.Popen(
+        [*fleetmap_command(), "build", str(log), "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a terminal starts it
+    )  # fmt: skip
+    with reaped(build):
+        assert build.stderr is not None
+        progress = ""
+        while not re.search(r"\| [1-9]\d*/3000 ", progress):  # tqdm's bar: scans integrated
+            chunk = build.stderr.read(1)
+            assert chunk, f"the build ended before its scans: {progress}"
+            progress += chunk
+        build.send_signal(signal.SIGINT)
+        stdout, stderr = build.communicate(timeout=60)
+    assert build.returncode == 130, progress + stderr
+    assert "Traceback" not in stderr, stderr
+    assert re.search(r"fleetmap build: interrupted after \d+ of 3000 scans; nothing written", stderr), stderr
+    assert stdout == "" and not out.exists()

@@ -14,6 +14,7 @@ import importlib
 import json
 import logging
 import os
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -24,6 +25,7 @@ from pydantic import ValidationError
 
 from fleetmap.config import MapConfig
 from fleetmap.log_format import plain_line
+from fleetmap.signal_event import SignalEvent
 
 if TYPE_CHECKING:
     from fleetmap.grid_map import GridMap
@@ -72,8 +74,9 @@ def unrecognized_arguments(parser: argparse.ArgumentParser, extras: Sequence[str
 
 def run_command(args: argparse.Namespace) -> int:
     """Run a parsed subcommand; a `CliError` is printed without a traceback, exit code 2 (as a
-    JSON log object with `serve --log-format json`, whose log pipeline reads JSON only). A stdout
-    whose reader exited ends the command quietly, exit code `STDOUT_GONE`."""
+    JSON log object with `serve --log-format json`, whose log pipeline reads JSON only). Ctrl-C
+    that the command does not take itself is one line, exit code `INTERRUPTED`; a stdout whose
+    reader exited ends the command quietly, exit code `STDOUT_GONE`."""
     try:
         try:
             return int(args.run(args) or 0)
@@ -85,6 +88,9 @@ def run_command(args: argparse.Namespace) -> int:
         line = f"fleetmap {args.command}: error: {exc}"
         print(plain_line(line, getattr(args, "log_format", "text"), logging.ERROR), file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C where a command does not take it itself
+        print(f"fleetmap {args.command}: interrupted", file=sys.stderr)
+        return INTERRUPTED
     except BrokenPipeError:
         # `fleetmap build ... | head -1`, `fleetmap sim | grep -m1 ...`: the reader had what it
         # wanted. This ended in a traceback, exit 1, or (stdout buffered) in Python's "Exception
@@ -96,6 +102,8 @@ def run_command(args: argparse.Namespace) -> int:
         return STDOUT_GONE
 
 
+#: The exit code of a command that Ctrl-C stopped: a shell's code for SIGINT (128 + 2).
+INTERRUPTED = 130
 #: The exit code of a command whose stdout's reader exited: a shell's code for a command that
 #: SIGPIPE ended (128 + 13), as other commands in a pipeline end when they write to it.
 STDOUT_GONE = 141
@@ -220,15 +228,32 @@ def _build(args: argparse.Namespace) -> int:
     if len(dataset):
         _load_kernels(config, dataset[0], quiet=args.quiet)
     started = time.perf_counter()
-    updates = tsdf_updates = skipped = 0
-    for scan in tqdm(dataset, total=len(dataset), unit="scan", disable=args.quiet, file=sys.stderr):
-        try:
-            result = gmap.integrate(scan)
-            updates += result.cell_updates
-            tsdf_updates += result.tsdf_updates
-        except (ScanError, TileLimitError) as exc:
-            skipped += 1
-            tqdm.write(f"skipped a scan: {exc}", file=sys.stderr)
+    updates = tsdf_updates = skipped = done = 0
+    # Ctrl-C is taken between two scans: raised inside a compiled kernel's call, KeyboardInterrupt
+    # came out as numba's SystemError ("returned a result with an exception set"), a traceback and
+    # exit 1.
+    interrupted = SignalEvent()
+    previous = signal.signal(signal.SIGINT, lambda *_: interrupted.set_in_handler())
+    try:
+        for scan in tqdm(dataset, total=len(dataset), unit="scan", disable=args.quiet, file=sys.stderr):
+            if interrupted.is_set():
+                break
+            done += 1
+            try:
+                result = gmap.integrate(scan)
+                updates += result.cell_updates
+                tsdf_updates += result.tsdf_updates
+            except (ScanError, TileLimitError) as exc:
+                skipped += 1
+                tqdm.write(f"skipped a scan: {exc}", file=sys.stderr)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if interrupted.is_set():
+        print(
+            f"fleetmap build: interrupted after {done} of {len(dataset)} scans; nothing written",
+            file=sys.stderr,
+        )
+        return INTERRUPTED
     elapsed = time.perf_counter() - started
     earlier = [out_dir / name for name in BUILD_FILES if (out_dir / name).is_file()]
     try:
