@@ -331,3 +331,37 @@ def test_a_service_stopped_during_its_first_compile_ends_the_compile_and_exits_c
     assert "the kernels' compilation was cut short" in logs and "stopped before serving" in logs, logs
     assert "compiling them here" not in logs and "fleetmap serving" not in logs, logs
     assert not list(cache.rglob("integrate_scan.integrate_ray_scan-*.nbi")), "the compilation ran to its end"
+
+
+def test_a_service_killed_during_its_first_compile_leaves_no_compile_child(tmp_path: Path) -> None:
+    """SIGKILL (or the OOM killer) gives the service no chance to end its compile child, which went
+    on compiling, orphaned, for up to minutes, beside the compile of the service started next. The
+    child now gets SIGTERM from the kernel when the service dies."""
+    from service_process import ServiceProcess, wait_for
+
+    service = ServiceProcess(tmp_path)  # its command line and log file; started here, not waited for
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    with (
+        open(service.log_path, "wb") as log,
+        subprocess.Popen(service.args, stdout=log, stderr=log, env=env) as proc,
+    ):
+        try:
+            wait_for(lambda: _compile_children(proc.pid), 120, what="the compile child")
+            (child,) = _compile_children(proc.pid)
+            proc.kill()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    try:
+        wait_for(lambda: not _alive(child), 20, what="the compile child gone with the service")
+    finally:
+        if _alive(child):
+            os.kill(child, signal.SIGKILL)
+
+
+def _alive(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie, ended and not yet reaped, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
