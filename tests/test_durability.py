@@ -14,7 +14,9 @@ import json
 import random
 import re
 import shutil
+import signal
 import sqlite3
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -24,7 +26,7 @@ import numpy as np
 import pytest
 from registry_idle import wait_idle
 from robot_process import scans_for
-from service_process import RobotProcess, ServiceProcess, wait_for
+from service_process import RobotProcess, ServiceProcess, reaped, wait_for
 
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
@@ -801,3 +803,43 @@ def test_scans_queued_at_a_snapshot_and_lost_in_a_crash_are_taken_again_from_the
         if gmap is not None:
             gmap.lock.release()
         reg.close()
+
+
+def test_a_stop_whose_last_snapshot_fails_says_what_is_not_stored_and_exits_1(tmp_path: Path) -> None:
+    """SIGTERM while the disk fails: the last snapshot cannot store the scans whose journal commits
+    failed. The log said "snapshot of map m failed (retried at the next one)" (there was no next
+    one), then "stopped", and the process exited 0 as after a clean stop. Now the line says it was
+    the last one, a last line names the maps a restart finds as they were stored last, and the
+    exit code is 1. The failing disk is RLIMIT_FSIZE, as in the failing disk's test above; the
+    service's log goes to a pipe, which the limit does not cut."""
+    resource = pytest.importorskip("resource")
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=1, count=2)]
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(tmp_path / "data")])
+    proc = subprocess.Popen(
+        svc.args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True
+    )
+    with reaped(proc):
+        wait_for(lambda: _answers(svc.base_url), timeout=60, what="the service up")
+
+        def post(k: int) -> int:
+            message = json.loads(encode_json(scans[k], k))
+            url = f"{svc.base_url}/maps/m/scans"
+            return httpx.post(url, params={"robot_id": "r"}, json=message, timeout=30).status_code
+
+        assert post(0) == 200
+        _, hard = resource.prlimit(proc.pid, resource.RLIMIT_FSIZE)
+        resource.prlimit(proc.pid, resource.RLIMIT_FSIZE, (1, hard))  # every write to a file fails
+        assert post(1) == 503  # applied, not durable: only a snapshot could store it now
+        proc.send_signal(signal.SIGTERM)
+        output, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, output
+    assert "snapshot of map m failed (the last one: the service is stopping)" in output, output
+    assert "stopped, but storage failed to keep maps m (see the errors above)" in output, output
+    assert "retried at the next one" not in output and "Traceback" not in output, output
+
+
+def _answers(base_url: str) -> bool:
+    try:
+        return httpx.get(f"{base_url}/healthz", timeout=2).status_code == 200
+    except httpx.TransportError:
+        return False

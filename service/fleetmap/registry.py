@@ -195,20 +195,25 @@ class MapRegistry:
         for t in self._workers:
             t.start()
 
-    def close(self, timeout: float = 30.0) -> None:
+    def close(self, timeout: float = 30.0) -> tuple[str, ...]:
         """Stop taking scans, finish the queued ones, stop the workers, snapshot every map (also one
         with no scan since its last snapshot: its robots' counters of refused messages may have
         changed, and only a snapshot keeps them). A scan submitted from now on is refused without a
-        trace (`submit`)."""
+        trace (`submit`). Returns the maps storage failed to keep (a durable registry): scans
+        applied while the journal failed that this last snapshot could not store either, or a
+        creation, restore or deletion not stored; a restart finds them as they were stored last."""
         with self.lock:  # so that no `submit` sees the registry open and then the queue closed
             self._closing = True
             self.queue.close()
         for t in self._workers:
             if t.is_alive():
                 t.join(timeout)
-        if self.durable is not None:
-            self.snapshot_all(False, every_map=True)
-            self.durable.close()
+        if self.durable is None:
+            return ()
+        self.snapshot_all(False, every_map=True, last=True)
+        self.durable.close()
+        health = self.durable.health()
+        return tuple(sorted({*health.maps_awaiting_snapshot, *health.map_changes_not_stored}))
 
     def _restore(self) -> None:
         assert self.durable is not None
@@ -291,10 +296,11 @@ class MapRegistry:
         finally:
             reservation.release()
 
-    def snapshot_all(self, only_overdue: bool = False, every_map: bool = False) -> None:
+    def snapshot_all(self, only_overdue: bool = False, every_map: bool = False, last: bool = False) -> None:
         """Snapshot every map with journaled scans (only those past the row threshold if asked; every
         map with `every_map`). A map whose snapshot fails (a full or failing disk) is logged and
-        reported by `DurableStore.health`, and the others are still snapshotted."""
+        reported by `DurableStore.health`, and the others are still snapshotted. `last`: the
+        registry is closing, and a failed snapshot is not retried (its line says so)."""
         if self.durable is None:
             return
         for entry in self.list():
@@ -310,10 +316,10 @@ class MapRegistry:
                     if saved:
                         self._stones_stored(entry, saved[0]["forgotten"])
                 except (sqlite3.Error, OSError, StorageError) as exc:
+                    then = "the last one: the service is stopping" if last else "retried at the next one"
                     self._snapshot_log.error(
-                        "snapshot", f"snapshot of map {entry.id} failed (retried at the next one): {exc}",
-                        map_id=entry.id,
-                    )  # fmt: skip
+                        "snapshot", f"snapshot of map {entry.id} failed ({then}): {exc}", map_id=entry.id
+                    )
 
     def _is_current(self, entry: MapEntry) -> bool:
         """Whether `entry` is still the map of its id (not deleted or replaced). Called under the

@@ -26,10 +26,11 @@ SIGHUP reads the `--auth-tokens` file again (a file that cannot be used keeps th
 SIGINT / SIGTERM shut down gracefully: uvicorn stops serving (open event streams end at once, other
 requests in flight get `http_server.GRACEFUL_HTTP_SECONDS`, then are answered 503 or cut off: `ShutdownCutoff`
 in api/errors.py), the Zenoh session closes (no more scans come in), the
-registry integrates every scan already queued and stops its workers, and the process exits 0 (a
-second signal changes nothing: it does not cut the shutdown short). A configuration error (bad
-address, port in use, bad config file) prints one line `fleetmap serve: error: ...` and exits 2,
-without a traceback.
+registry integrates every scan already queued, stops its workers and snapshots every map, and the
+process exits 0 (a second signal changes nothing: it does not cut the shutdown short), or 1 when
+storage failed and a map's last state could not be stored (the last line names those maps). A
+configuration error (bad address, port in use, bad config file) prints one line
+`fleetmap serve: error: ...` and exits 2, without a traceback.
 
 This module is the start-up and shutdown sequence (`run`, and the steps it takes in order). The
 rest of the command: `serve_options` (the options, their defaults and the checks of their values),
@@ -120,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
     reloader.start()
     signal.signal(signal.SIGHUP, lambda _signum, _frame: hangups.notify_in_handler())
     ros: RosScanIngest | None = None
+    unstored: tuple[str, ...] = ()  # maps the registry's close could not store
     try:
         options = _checked_options(args)
         tokens = options.tokens
@@ -194,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
             if ros is not None:
                 ros.close()
             ingest.close()
-            registry.close()
+            unstored = registry.close()
     finally:
         # Ignored, not given back their default action: the process ends once `run` returns, and a
         # signal in that last moment (the interpreter's exit takes ~50 ms) killed it, exit -15 / -1
@@ -204,6 +206,14 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, signal.SIG_IGN)
         hangups.close()
         reloader.join(timeout=5)
+    if unstored:
+        # After the errors that said what failed: the outcome, and an exit code a supervisor sees.
+        log.error(
+            "stopped, but storage failed to keep maps %s (see the errors above): a restart finds them "
+            "as they were stored last",
+            ", ".join(unstored),
+        )
+        return 1
     log.info("stopped")
     return 0
 
