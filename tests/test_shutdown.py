@@ -10,6 +10,7 @@ import json
 import logging
 import signal
 import socket
+import sqlite3
 import subprocess
 import threading
 import time
@@ -17,9 +18,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 import httpx
-from service_process import RobotProcess, ServiceProcess, wait_for
+import numpy as np
+from service_process import RobotProcess, ServiceProcess, reaped, wait_for
 
+from fleetmap.config import MapConfig
+from fleetmap.database import DB_NAME
+from fleetmap.grid_map import GridMap
 from fleetmap.log_format import ShutdownCutoffLog
+from fleetmap.persistence import DurableStore
+from fleetmap.scan import Scan
+from fleetmap.storage_format import scan_to_blob
 
 
 def integrated(base_url: str, map_id: str) -> dict[str, int]:
@@ -168,3 +176,39 @@ def test_uvicorns_lines_about_cancelled_requests_fit_a_routine_restart() -> None
     assert not cutoff.filter(cancelled)
     bug = record("Exception in ASGI application\n", (), RuntimeError("a real bug"))
     assert cutoff.filter(bug) and bug.levelno == logging.ERROR
+
+
+def test_a_signal_during_the_restore_opens_nothing_and_saves_the_restored_maps(tmp_path: Path) -> None:
+    """SIGTERM while the stored maps are restored (a long journal takes 10-20 s a map): the service
+    finished the restore and then went on starting, opened its Zenoh session (robots could connect
+    and send scans for a moment) and logged where it served, before it stopped. Now it opens
+    nothing once the restore is done, snapshots the maps as restored (the next start replays no
+    journal) and exits 0."""
+    data = tmp_path / "data"
+    store = DurableStore(data)
+    store.map_created("m", GridMap(MapConfig())).result()
+    store.close()
+    rng = np.random.default_rng(3)
+    rows = []
+    for seq in range(6000):  # journal rows as a crash leaves them: seconds to replay
+        ranges = rng.uniform(0.5, 12.0, 1081)
+        pose = (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-3, 3))
+        scan = Scan.from_fan(pose, -2.35, 4.7 / 1080, ranges, 0.05, 30.0)
+        rows.append(("m", "r", seq, 0.0, scan_to_blob(scan)))
+    with sqlite3.connect(data / DB_NAME) as conn:
+        conn.executemany(
+            "INSERT INTO journal (map_id, robot_id, seq, stamp, scan) VALUES (?, ?, ?, ?, ?)", rows
+        )
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+    with open(svc.log_path, "wb") as log:
+        proc = subprocess.Popen(svc.args, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    with reaped(proc):  # type: ignore[arg-type]  # (a bytes Popen; reaped only polls and kills)
+        wait_for(lambda: "engine ready" in svc.logs(), timeout=120, what="the restore under way")
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(120) == 0, svc.logs()
+    logs = svc.logs()
+    assert "restored map m: 16 tiles, 6000 journal scans replayed" in logs, logs
+    assert "stopped before serving" in logs, logs
+    assert "zenoh" not in logs.lower() and "fleetmap serving" not in logs and "HTTP" not in logs, logs
+    with sqlite3.connect(data / DB_NAME) as conn:
+        assert conn.execute("SELECT COUNT(*) FROM journal").fetchone() == (0,)

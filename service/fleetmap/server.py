@@ -17,6 +17,8 @@ Only then is the ready line printed on stdout:
     fleetmap serving http://HOST:PORT  zenoh: ENDPOINTS
 
 (with `--log-format json`, a JSON log object whose message is that line: see fleetmap.log_format).
+SIGINT / SIGTERM during the warm-up or the restore end the start there ("stopped before serving",
+exit 0): the Zenoh session is not opened, and restored maps are snapshotted as restored.
 
 Every option can also be given as an environment variable, `FLEETMAP_` and the option's name in
 capitals with `-` as `_` (`--data-dir` is `FLEETMAP_DATA_DIR`, `--insecure` is `FLEETMAP_INSECURE=1`,
@@ -161,6 +163,15 @@ def run(args: argparse.Namespace) -> int:
             assert durable is not None  # only a durable registry reads storage at start
             durable.close()
             raise CliError(str(exc)) from None
+        if stop.is_set():
+            # Signalled during the restore (10-20 s a map with a long journal): it went on to open
+            # the Zenoh session, taking robots' scans for a moment, and logged where it served.
+            # Closed now, the registry snapshots the maps as restored: the next start replays
+            # nothing (and nothing is new that storage could fail to keep).
+            sock.close()
+            registry.close()
+            log.info("stopped before serving")
+            return 0
         ros_maps: Any = None
         try:
             try:
