@@ -242,6 +242,30 @@ def test_a_build_into_an_earlier_builds_folder_leaves_none_of_its_files(tmp_path
     assert np.load(out / "tsdf.npy").shape == tuple(info["shape"])
 
 
+def test_a_build_that_cannot_write_all_its_files_leaves_the_folder_as_it_was(tmp_path: Path) -> None:
+    """A disk that fills up while the build writes (here a file-size limit of 1000 bytes: map.yaml
+    fits, map.pgm does not): the build said it could not write, and left a new map.yaml beside a
+    truncated map.pgm and the earlier build's other files, a folder nav2 loaded as a map. Now no
+    file takes its name until every one is written: the earlier build is there as it was, and
+    nothing half-written is left."""
+    resource = pytest.importorskip("resource")
+    log = scene_log(tmp_path / "scene.log")
+    out = tmp_path / "out"
+    first = build(log, "--out", out, "--resolution", "0.1", "--quiet")
+    assert first.returncode == 0, first.stderr
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+    limited = subprocess.run(
+        [*fleetmap_command(), "build", str(log), "--out", str(out), "--quiet"],
+        capture_output=True, text=True, timeout=300,
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (1000, 1000)),
+    )  # fmt: skip
+    assert limited.returncode == 2, limited.stderr
+    assert limited.stderr.startswith(f"fleetmap build: error: cannot write the outputs to {out}:"), (
+        limited.stderr
+    )
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before
+
+
 def test_build_reads_the_seed_matlab_convention(tmp_path: Path) -> None:
     """The .mat of the course: robot at (1, 2) in its y-down frame, a 3 m beam at +90 degrees. Its
     end point lies three metres "up" the image, at map point (1, 1) once y points up."""

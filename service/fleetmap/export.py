@@ -292,12 +292,18 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
     names. A file of `BUILD_FILES` this map has none of (an earlier build's, into the same folder,
     of other layers) is removed: it described another map (another window, resolution or data), and
     a reader of the folder, nav2 loading map.yaml or a script loading hits.npy, took it for this
-    one's. Returns the paths written; raises ValueError for a map with no observed cell."""
+    one's. Returns the paths written; raises ValueError for a map with no observed cell.
+
+    Each file is written beside its final name (`.NAME.partial`) and all take their names only once
+    every one is written: a build that fails on the way (a full disk, a file-size limit) leaves the
+    folder as it was, where it left a truncated map.pgm beside a new map.yaml, and an earlier
+    build's other files, for nav2 to load."""
     out_dir = Path(out_dir)
     window = known_window(gmap, margin)
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")
     written: list[Path] = []
+    made_dir = not out_dir.exists()
 
     def write(filename: str, data: bytes | np.ndarray) -> None:
         # Each file as soon as it is made, the layers one at a time: a dense window spans the whole
@@ -305,12 +311,38 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
         # made with the first file, so that a map too large to export leaves none behind.
         out_dir.mkdir(parents=True, exist_ok=True)
         path = out_dir / filename
-        if isinstance(data, np.ndarray):
-            np.save(path, data, allow_pickle=False)
-        else:
-            path.write_bytes(data)
         written.append(path)
+        with open(_partial(path), "wb") as file:
+            if isinstance(data, np.ndarray):
+                np.save(file, data, allow_pickle=False)
+            else:
+                file.write(data)
 
+    try:
+        _write_build_files(gmap, window, write)
+    except BaseException:
+        for path in written:
+            _partial(path).unlink(missing_ok=True)
+        if made_dir and out_dir.is_dir() and not any(out_dir.iterdir()):
+            out_dir.rmdir()
+        raise
+    for path in written:
+        os.replace(_partial(path), path)
+    for name in BUILD_FILES:
+        if out_dir / name not in written:
+            (out_dir / name).unlink(missing_ok=True)
+    return written
+
+
+def _partial(path: Path) -> Path:
+    """Where `write_build_outputs` writes `path` until every file is written."""
+    return path.with_name(f".{path.name}.partial")
+
+
+def _write_build_files(
+    gmap: GridMap, window: Window, write: Callable[[str, bytes | np.ndarray], None]
+) -> None:
+    """`write_build_outputs`' files, each given to `write(filename, data)` as soon as it is made."""
     source = map_source(gmap)
     if source is not None:
         for filename, data in nav2_files(gmap, window).items():
@@ -335,7 +367,3 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
         "config": gmap.config.model_dump(mode="json"),
     }
     write("meta.json", (json.dumps(meta, indent=2) + "\n").encode())
-    for name in BUILD_FILES:
-        if out_dir / name not in written:
-            (out_dir / name).unlink(missing_ok=True)
-    return written
