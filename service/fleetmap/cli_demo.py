@@ -9,7 +9,7 @@ in this process and publish over Zenoh in client mode, as real robots would.
 from __future__ import annotations
 
 import argparse
-import ctypes
+import functools
 import math
 import os
 import signal
@@ -18,11 +18,11 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
 
 import httpx
 
 from fleetmap.cli import CliError
+from fleetmap.parent_death import end_with_parent
 from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP
 from fleetmap.signal_event import SignalEvent
 from fleetmap.wire import DEFAULT_ENDPOINT, is_valid_id
@@ -72,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
     service = subprocess.Popen(
         [sys.executable, "-m", "fleetmap.server", "--http", args.http, "--zenoh-listen", args.zenoh,
          "--data-dir", args.data_dir],
-        preexec_fn=_end_with_parent(),
+        # (The demo runs no thread yet: the child may run Python between fork and exec.)
+        preexec_fn=functools.partial(end_with_parent, os.getpid()),
     )  # fmt: skip
     ready = False
     try:
@@ -112,26 +113,6 @@ def run(args: argparse.Namespace) -> int:
 
 #: The signals that stop the demo cleanly: the robots, then the service (which saves the map).
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-#: prctl(2)'s option: the signal a process gets when its parent dies (Linux).
-_PR_SET_PDEATHSIG = 1
-
-
-def _end_with_parent() -> Callable[[], None] | None:
-    """What the service's child runs before it starts (Linux; None elsewhere): ask the kernel to send
-    it SIGTERM when the demo dies, however it dies (SIGKILL, a crash), so that the service stops
-    cleanly instead of living on without it. Loaded here, in the demo, with no thread running yet:
-    the child may only call what is ready (it runs between fork and exec)."""
-    if not sys.platform.startswith("linux"):
-        return None
-    prctl = ctypes.CDLL(None, use_errno=True).prctl
-    demo = os.getpid()
-
-    def set_death_signal() -> None:
-        prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM))
-        if os.getppid() != demo:  # the demo died before the call took effect
-            os.kill(os.getpid(), signal.SIGTERM)
-
-    return set_death_signal
 
 
 def _check_fleet(args: argparse.Namespace) -> None:

@@ -11,6 +11,8 @@ import sys
 import threading
 from typing import NamedTuple
 
+from fleetmap.parent_death import end_with_parent
+
 
 def warm_up() -> None:
     """Integrate tiny scans into throwaway maps so the compiled kernels are loaded (or compiled)
@@ -85,7 +87,7 @@ def compile_in_child(stop: threading.Event | None = None) -> ChildCompile:
     cache_dir = numba.config.CACHE_DIR  # type: ignore[attr-defined]  # set from the environment at import
     if cache_dir:
         env["NUMBA_CACHE_DIR"] = str(cache_dir)
-    command = [sys.executable, "-m", "fleetmap.warm_up", str(os.getpid())]  # (`_end_with_parent`)
+    command = [sys.executable, "-m", "fleetmap.warm_up", str(os.getpid())]  # (`end_with_parent`)
     try:
         child = subprocess.Popen(
             command, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -109,31 +111,9 @@ def compile_in_child(stop: threading.Event | None = None) -> ChildCompile:
         return ChildCompile(child.returncode == 0, output)
 
 
-#: prctl(2)'s option: the signal a process gets when its parent dies (Linux).
-_PR_SET_PDEATHSIG = 1
-
-
-def _end_with_parent(parent: int) -> None:
-    """In the compile child: ask the kernel for SIGTERM when the service (`parent`) dies, however it
-    dies, and end now if it died already (Linux; elsewhere nothing). (The kernel sends it when the
-    thread that started the child ends: `compile_in_child` runs on the service's main thread.)
-
-    Why: `compile_in_child` ends the child when the service stops, but a service killed (SIGKILL,
-    the OOM killer) could not, and its child went on compiling for up to minutes, orphaned, beside
-    the restarted service's own compile."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-    import signal
-
-    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM))
-    if os.getppid() != parent:  # the service died before the call took effect
-        sys.exit(1)
-
-
 if __name__ == "__main__":
     # `python -m fleetmap.warm_up [SERVICE_PID]`: the compile child is given the service's pid; run
     # by hand, it compiles with no parent to watch.
     if len(sys.argv) > 1:
-        _end_with_parent(int(sys.argv[1]))
+        end_with_parent(int(sys.argv[1]))
     warm_up()
