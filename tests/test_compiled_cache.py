@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -9,13 +10,18 @@ import signal
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numba
 import pytest
 
 import fleetmap
 from fleetmap.kernels import drop_stale_compiled_cache, ensure_compiled_cache_location
+
+if TYPE_CHECKING:
+    from service_process import ServiceProcess
 
 
 def _cached(package: Path) -> set[str]:
@@ -302,41 +308,11 @@ def _compile_children(pid: int) -> list[int]:
     return found
 
 
-def test_a_service_stopped_during_its_first_compile_ends_the_compile_and_exits_cleanly(
-    tmp_path: Path,
-) -> None:
-    """`kill` (or `docker stop`) signals the service, not its process group: the compile child goes on
-    compiling. The service must end it and exit at once, not wait out the compilation (15 s to
-    minutes) and then restore and serve for nothing; the child must not outlive it."""
-    from service_process import ServiceProcess, wait_for
-
-    cache = tmp_path / "numba-cache"
-    service = ServiceProcess(tmp_path)  # its command line and log file; started here, not waited for
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
-    with (
-        open(service.log_path, "wb") as log,
-        subprocess.Popen(service.args, stdout=log, stderr=log, env=env) as proc,
-    ):
-        try:
-            # The compile child, not a passing one (the C library's `ldconfig -p` of ctypes, if any).
-            wait_for(lambda: _compile_children(proc.pid), 120, what="the compile child")
-            (child,) = _compile_children(proc.pid)
-            proc.send_signal(signal.SIGTERM)  # the service alone
-            assert proc.wait(60) == 0, service.logs()
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-    assert not Path(f"/proc/{child}").exists(), "the compile child outlived the service"
-    logs = service.logs()
-    assert "the kernels' compilation was cut short" in logs and "stopped before serving" in logs, logs
-    assert "compiling them here" not in logs and "fleetmap serving" not in logs, logs
-    assert not list(cache.rglob("integrate_scan.integrate_ray_scan-*.nbi")), "the compilation ran to its end"
-
-
-def test_a_service_killed_during_its_first_compile_leaves_no_compile_child(tmp_path: Path) -> None:
-    """SIGKILL (or the OOM killer) gives the service no chance to end its compile child, which went
-    on compiling, orphaned, for up to minutes, beside the compile of the service started next. The
-    child now gets SIGTERM from the kernel when the service dies."""
+@contextlib.contextmanager
+def _first_start(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], ServiceProcess, int]]:
+    """A service started on an empty numba cache (`tmp_path / "numba-cache"`) and not waited for: it,
+    its `ServiceProcess` (command line and log) and its compile child's pid, once that runs. The
+    service is killed on the way out if it still runs."""
     from service_process import ServiceProcess, wait_for
 
     service = ServiceProcess(tmp_path)  # its command line and log file; started here, not waited for
@@ -346,12 +322,40 @@ def test_a_service_killed_during_its_first_compile_leaves_no_compile_child(tmp_p
         subprocess.Popen(service.args, stdout=log, stderr=log, env=env) as proc,
     ):
         try:
+            # The compile child, not a passing one (the C library's `ldconfig -p` of ctypes, if any).
             wait_for(lambda: _compile_children(proc.pid), 120, what="the compile child")
             (child,) = _compile_children(proc.pid)
-            proc.kill()
+            yield proc, service, child
         finally:
             if proc.poll() is None:
                 proc.kill()
+
+
+def test_a_service_stopped_during_its_first_compile_ends_the_compile_and_exits_cleanly(
+    tmp_path: Path,
+) -> None:
+    """`kill` (or `docker stop`) signals the service, not its process group: the compile child goes on
+    compiling. The service must end it and exit at once, not wait out the compilation (15 s to
+    minutes) and then restore and serve for nothing; the child must not outlive it."""
+    with _first_start(tmp_path) as (proc, service, child):
+        proc.send_signal(signal.SIGTERM)  # the service alone
+        assert proc.wait(60) == 0, service.logs()
+    assert not Path(f"/proc/{child}").exists(), "the compile child outlived the service"
+    logs = service.logs()
+    assert "the kernels' compilation was cut short" in logs and "stopped before serving" in logs, logs
+    assert "compiling them here" not in logs and "fleetmap serving" not in logs, logs
+    cache = tmp_path / "numba-cache"
+    assert not list(cache.rglob("integrate_scan.integrate_ray_scan-*.nbi")), "the compilation ran to its end"
+
+
+def test_a_service_killed_during_its_first_compile_leaves_no_compile_child(tmp_path: Path) -> None:
+    """SIGKILL (or the OOM killer) gives the service no chance to end its compile child, which went
+    on compiling, orphaned, for up to minutes, beside the compile of the service started next. The
+    child now gets SIGTERM from the kernel when the service dies."""
+    from service_process import wait_for
+
+    with _first_start(tmp_path) as (proc, _, child):
+        proc.kill()
     try:
         wait_for(lambda: not _alive(child), 20, what="the compile child gone with the service")
     finally:

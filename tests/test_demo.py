@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -31,39 +32,55 @@ def port_is_free(port: int) -> bool:
         return True
 
 
+class Demo:
+    """`fleetmap demo` started on free ports with `args`, what it and its service print in a file."""
+
+    def __init__(self, tmp_path: Path, *args: str) -> None:
+        self.http, self.zenoh = free_port(), free_port()
+        self.data = tmp_path / "data"
+        self.log = open(tmp_path / "demo.log", "w+")  # noqa: SIM115 - read back by `output`
+        self.proc = subprocess.Popen(
+            [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{self.http}", "--zenoh",
+             f"tcp/127.0.0.1:{self.zenoh}", "--data-dir", str(self.data), *args],
+            stdout=self.log, stderr=subprocess.STDOUT, text=True,
+        )  # fmt: skip
+
+    def output(self) -> str:
+        self.log.seek(0)
+        return self.log.read()
+
+    def wait_until(self, done: Callable[[], bool], timeout: float, what: str) -> None:
+        """Wait for `done`, failing with the output if it takes longer than `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while not done():
+            assert time.monotonic() < deadline, f"no {what} within {timeout} s:\n{self.output()}"
+            time.sleep(0.2)
+
+    def wait_for_address(self) -> None:
+        """Until it prints the viewer's address, which it does once the service answers."""
+        address = f"open http://127.0.0.1:{self.http}/#map=demo"
+        self.wait_until(lambda: address in self.output(), 120, "address")
+        assert self.proc.poll() is None, self.output()
+
+
 def test_demo_maps_until_ctrl_c_then_stops_everything_and_keeps_the_map(tmp_path: Path) -> None:
-    http, zenoh = free_port(), free_port()
-    data = tmp_path / "data"
-    log = open(tmp_path / "demo.log", "w+")  # noqa: SIM115 - read back below
-    demo = subprocess.Popen(
-        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
-         "--data-dir", str(data), "--robots", "2", "--rate", "10"],
-        stdout=log, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
-
-    def output() -> str:
-        log.seek(0)
-        return log.read()
-
-    with reaped(demo):
+    demo = Demo(tmp_path, "--robots", "2", "--rate", "10")
+    with reaped(demo.proc):
         # It prints the viewer's address once the service answers, then the robots map.
-        deadline = time.monotonic() + 120
-        while f"open http://127.0.0.1:{http}/#map=demo" not in output():
-            assert demo.poll() is None and time.monotonic() < deadline, output()
-            time.sleep(0.2)
-        viewer = httpx.get(f"http://127.0.0.1:{http}/", timeout=5)
+        demo.wait_for_address()
+        viewer = httpx.get(f"http://127.0.0.1:{demo.http}/", timeout=5)
         assert viewer.status_code == 200 and "leaflet" in viewer.text.lower()
-        integrated = 0
-        while integrated < 30:
-            assert demo.poll() is None and time.monotonic() < deadline, output()
-            r = httpx.get(f"http://127.0.0.1:{http}/maps/demo", timeout=5)
-            if r.status_code == 200:
-                integrated = sum(robot["scans_integrated"] for robot in r.json()["stats"]["robots"].values())
-            time.sleep(0.2)
 
-        demo.send_signal(signal.SIGINT)  # Ctrl-C
-        assert demo.wait(60) == 0, output()
-    text = output()
+        def integrated() -> int:
+            assert demo.proc.poll() is None, demo.output()
+            r = httpx.get(f"http://127.0.0.1:{demo.http}/maps/demo", timeout=5)
+            robots = r.json()["stats"]["robots"] if r.status_code == 200 else {}
+            return sum(robot["scans_integrated"] for robot in robots.values())
+
+        demo.wait_until(lambda: integrated() >= 30, 120, "30 scans integrated")
+        demo.proc.send_signal(signal.SIGINT)  # Ctrl-C
+        assert demo.proc.wait(60) == 0, demo.output()
+    text = demo.output()
     assert "Traceback" not in text, text
     # Before the address, the engine's kernels: loaded here (the tests' cache is warm). A first start
     # after an install compiles them for up to minutes and says how long (tests/test_compiled_cache.py).
@@ -73,13 +90,13 @@ def test_demo_maps_until_ctrl_c_then_stops_everything_and_keeps_the_map(tmp_path
     published, dropped = int(summary[1]), int(summary[2])
     assert published >= 30 and dropped == 0
     # Its last line, below the service's own shutdown lines, says where the map is kept.
-    assert text.rstrip().splitlines()[-1] == f"fleetmap demo: stopped; the map is kept in {data}", text
+    assert text.rstrip().splitlines()[-1] == f"fleetmap demo: stopped; the map is kept in {demo.data}", text
 
     # The service is gone: both of its ports are free again.
-    assert port_is_free(http) and port_is_free(zenoh)
+    assert port_is_free(demo.http) and port_is_free(demo.zenoh)
 
     # The map was kept: a service restarted on the demo's data directory holds every scan published.
-    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as service:
+    with ServiceProcess(tmp_path, ["--data-dir", str(demo.data)]) as service:
         robots = httpx.get(f"{service.base_url}/maps/demo", timeout=5).json()["stats"]["robots"]
         assert sum(robot["scans_integrated"] for robot in robots.values()) == published
         assert len(robots) == 2
@@ -187,56 +204,28 @@ def test_demo_stopped_by_kill_or_a_closed_terminal_stops_its_service_too(
     """`kill`, `timeout` or `docker stop` (SIGTERM), or the terminal closed (SIGHUP), ended the demo
     at once and left its service running, holding the ports and the data directory: the next `make
     demo` found them in use. Now they stop it as Ctrl-C does."""
-    http, zenoh = free_port(), free_port()
-    data = tmp_path / "data"
-    demo = subprocess.Popen(
-        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
-         "--data-dir", str(data), "--robots", "1"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
-    with reaped(demo):
-        assert demo.stdout is not None
-        for line in demo.stdout:
-            if "open http" in line:
-                break
-        demo.send_signal(sig)
-        out, _ = demo.communicate(timeout=60)
-    assert demo.returncode == 0, out
-    assert out.rstrip().splitlines()[-1] == f"fleetmap demo: stopped; the map is kept in {data}", out
-    assert port_is_free(http) and port_is_free(zenoh)
-    DataDirLock(data).release()  # no service holds the data directory (StorageError otherwise)
+    demo = Demo(tmp_path, "--robots", "1")
+    with reaped(demo.proc):
+        demo.wait_for_address()
+        demo.proc.send_signal(sig)
+        assert demo.proc.wait(60) == 0, demo.output()
+    out = demo.output()
+    assert out.rstrip().splitlines()[-1] == f"fleetmap demo: stopped; the map is kept in {demo.data}", out
+    assert port_is_free(demo.http) and port_is_free(demo.zenoh)
+    DataDirLock(demo.data).release()  # no service holds the data directory (StorageError otherwise)
 
 
 def test_a_killed_demo_takes_its_service_down_with_it(tmp_path: Path) -> None:
     """A demo killed outright (SIGKILL, a crash) cannot stop its service itself: the kernel sends
     the service SIGTERM when the demo dies (prctl's death signal), and it stops cleanly."""
-    http, zenoh = free_port(), free_port()
-    log = open(tmp_path / "demo.log", "w+")  # noqa: SIM115 - read back below
-    demo = subprocess.Popen(
-        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
-         "--data-dir", str(tmp_path / "data"), "--robots", "1"],
-        stdout=log, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
-
-    def output() -> str:
-        log.seek(0)
-        return log.read()
-
-    with reaped(demo):
-        deadline = time.monotonic() + 120
-        while "open http" not in output():
-            assert demo.poll() is None and time.monotonic() < deadline, output()
-            time.sleep(0.2)
-        demo.kill()
-        demo.wait(10)
-    deadline = time.monotonic() + 60
-    while not (port_is_free(http) and port_is_free(zenoh)):
-        assert time.monotonic() < deadline, output()
-        time.sleep(0.2)
-    deadline = time.monotonic() + 30
-    while "fleetmap.server: stopped" not in output():  # a clean stop, its map saved
-        assert time.monotonic() < deadline, output()
-        time.sleep(0.2)
+    demo = Demo(tmp_path, "--robots", "1")
+    with reaped(demo.proc):
+        demo.wait_for_address()
+        demo.proc.kill()
+        demo.proc.wait(10)
+    demo.wait_until(lambda: port_is_free(demo.http) and port_is_free(demo.zenoh), 60, "ports freed")
+    # A clean stop, its map saved.
+    demo.wait_until(lambda: "fleetmap.server: stopped" in demo.output(), 30, "clean stop of the service")
 
 
 def test_make_demo_on_a_fresh_clone_says_what_it_installs_and_how_long_it_takes(tmp_path: Path) -> None:
