@@ -791,6 +791,25 @@ def test_sim_command_runs_and_reports(router: Router, capsys: pytest.CaptureFixt
     assert keys == {"fleetmap/simcli/sim-1/scan", "fleetmap/simcli/sim-2/scan"}
 
 
+def test_sim_stopped_before_it_reached_a_service_claims_no_confirmation(tmp_path: Path) -> None:
+    """Ctrl-C while the robots still wait for a service that is not there: nothing went out, and the
+    command said "sim: all 0 scans confirmed integrated", as if a service had answered."""
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "fleetmap_client.cli", "sim", "--robots", "1", "--map", "m", "--connect",
+         f"tcp/127.0.0.1:{free_port()}", "--wait-timeout", "60"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    with reaped(sim):
+        assert sim.stdout is not None
+        assert sim.stdout.readline().startswith("sim: 1 robot on map 'm'")
+        time.sleep(1)  # waiting for the service now
+        sim.send_signal(signal.SIGINT)
+        out, _ = sim.communicate(timeout=60)
+    assert sim.returncode == 0, out
+    assert "sim: 1 robot published 0 scans" in out and "confirmed integrated" not in out, out
+    assert "sim: nothing published, nothing to confirm" in out, out
+
+
 def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_first(
     router: Router, tmp_path: Path
 ) -> None:

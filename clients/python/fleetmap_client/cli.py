@@ -267,6 +267,11 @@ def run_sim_command(args: argparse.Namespace) -> int:
     )
     if args.no_confirm:
         return 0
+    if result.total == 0:
+        # Stopped before a scan went out (Ctrl-C while it waited for the service, say): there is
+        # nothing to confirm, and "all 0 scans confirmed integrated" claimed a service had answered.
+        print("sim: nothing published, nothing to confirm")
+        return 0
     if result.unconfirmable is not None:  # an older service: what sim always did, with a warning
         print(f"fleetmap sim: warning: not confirmed: {result.unconfirmable}", file=sys.stderr)
         return 0
