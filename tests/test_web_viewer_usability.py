@@ -497,7 +497,11 @@ def test_link_restores_view_and_names_missing_layers(
         "() => { const m = window.fleetmapViewer.map, c = m.getCenter(), r = window.fleetmapViewer.state.res;"
         " return [c.lng * r, c.lat * r, m.getZoom()]; }"
     )
-    assert view == pytest.approx([12.5, -3.25, 3], abs=1e-6)
+    # To the screen pixel (0.05 m / 2**3 at zoom 3): when the page's layout changes the map's size by
+    # an odd number of pixels after the view is set (under load, CI once), Leaflet keeps the centre by
+    # panning half the change, rounded to a whole pixel, so it may move by half a pixel.
+    pixel = 0.05 / 2**3
+    assert view == pytest.approx([12.5, -3.25, 3], abs=pixel)
     assert _hash_params(page) == {"map": map_id, "layer": "misses", "x": "12.5", "y": "-3.25", "z": "3"}
 
     # The user pans and zooms: the URL follows; a reload shows the same view.

@@ -71,7 +71,8 @@ export function showPointerCoords() {
 export function followContainerSize() {
   // Leaflet measures its container only when told: whenever the map area changes size (window
   // resized, toolbar wrapping to another line, the folded panel opened under it), tell it, so the
-  // view does not leave gaps. The centre stays where it was: it is the keyboard's cell cursor.
+  // view does not leave gaps. The centre stays where it was: it is the keyboard's cell cursor. (To
+  // the pixel: Leaflet pans by whole pixels, so a change by an odd number of them moves it by half.)
   if (window.ResizeObserver) {
     new ResizeObserver(() => map.invalidateSize({ pan: true, animate: false })).observe($('map'));
   }
