@@ -94,12 +94,18 @@ def run_command(args: argparse.Namespace) -> int:
     except BrokenPipeError:
         # `fleetmap build ... | head -1`, `fleetmap sim | grep -m1 ...`: the reader had what it
         # wanted. This ended in a traceback, exit 1, or (stdout buffered) in Python's "Exception
-        # ignored ... BrokenPipeError" at exit, exit 120. stdout now goes to /dev/null, so that the
-        # interpreter's own flush at exit does not fail again.
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
+        # ignored ... BrokenPipeError" at exit, exit 120.
+        discard_stdout()
         return STDOUT_GONE
+
+
+def discard_stdout() -> None:
+    """Point stdout (file descriptor 1's) at /dev/null, once it cannot be written (its reader gone, a
+    full disk): what is still in its buffer, and whatever comes later, then goes nowhere, and the
+    interpreter's flush at exit does not fail again (a clean stop exited 120)."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
 
 
 #: The exit code of a command that Ctrl-C stopped: a shell's code for SIGINT (128 + 2).

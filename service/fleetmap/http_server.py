@@ -10,13 +10,11 @@ import argparse
 import asyncio
 import errno
 import logging
-import os
 import socket
-import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from fleetmap.cli import CliError
+from fleetmap.cli import CliError, discard_stdout
 from fleetmap.http_limits import (
     ACCEPT_BACKLOG,
     bounded_http_protocol,
@@ -129,9 +127,7 @@ def print_ready_line(line: str) -> None:
     try:
         print(line, flush=True)
     except OSError as exc:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
+        discard_stdout()
         log.warning("cannot print the ready line on stdout (%s); serving on: %s", exc.strerror, line)
 
 

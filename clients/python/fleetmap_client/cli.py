@@ -214,10 +214,10 @@ def run_sim_command(args: argparse.Namespace) -> int:
         check_fleet(args.robots, args.rate, args.seconds, args.beams, args.speed)
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    if not args.confirm_timeout >= 0.0:
-        raise CliError(f"--confirm-timeout must be a number of seconds >= 0, got {args.confirm_timeout}")
-    if args.wait_timeout is not None and not args.wait_timeout >= 0.0:  # NaN: waited for ever
-        raise CliError(f"--wait-timeout must be a number of seconds >= 0, got {args.wait_timeout}")
+    # Before the line announcing the robots too, named as options (run_sim checks them again).
+    for option, value in (("--confirm-timeout", args.confirm_timeout), ("--wait-timeout", args.wait_timeout)):
+        if value is not None and not value >= 0.0:  # NaN: the wait for the service never ended
+            raise CliError(f"{option} must be a number of seconds >= 0, got {value}")
     stop = SignalEvent()
 
     # Ctrl-C (or SIGINT from a script that started us with SIGINT ignored) stops the robots, and the

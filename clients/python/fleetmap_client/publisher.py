@@ -910,6 +910,16 @@ class ScanPublisher:
         )
 
 
+def check_timeouts(**timeouts: float | None) -> None:
+    """ValueError naming the first of `timeouts` (seconds; None: no limit) that is below 0 or NaN:
+    the commands' checks of their arguments (`replay.replay`, `sim.run_sim`), before they publish or
+    wait. NaN passed every check downstream: a wait for it never ended, a flush raised only after
+    the whole run, and a negative one gave up "within -1 s"."""
+    for name, value in timeouts.items():
+        if value is not None and not value >= 0.0:
+            raise ValueError(f"{name} must be a number of seconds >= 0, got {value}")
+
+
 def _deadline(timeout: float | None) -> float | None:
     """The monotonic time at which a wait of `timeout` seconds ends (None: no limit; a negative
     timeout has ended already). Raises TypeError for a timeout that is not a number and ValueError

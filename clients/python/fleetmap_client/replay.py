@@ -40,7 +40,7 @@ from fleetmap.datasets import Dataset, load_dataset
 from fleetmap.scan import Scan
 
 from .delivery import DeliveryReport
-from .publisher import DeliveryUnsupported, Encoding, ScanPublisher
+from .publisher import DeliveryUnsupported, Encoding, ScanPublisher, check_timeouts
 
 #: Scans per second of a replay at rate 1 (the dataset readers expose no timestamps; see above).
 NOMINAL_SCAN_RATE = 10.0
@@ -103,10 +103,7 @@ def replay(
         raise ValueError(f"rate must be a finite number >= 0, got {rate}")
     if limit is not None and limit < 0:
         raise ValueError(f"limit must be >= 0, got {limit}")
-    for name, value in (("wait_timeout", wait_timeout), ("confirm_timeout", confirm_timeout)):
-        # NaN passed every check downstream and was found out only after the whole replay.
-        if value is not None and not value >= 0.0:
-            raise ValueError(f"{name} must be a number of seconds >= 0, got {value}")
+    check_timeouts(wait_timeout=wait_timeout, confirm_timeout=confirm_timeout)
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     count = len(ds) if limit is None else min(limit, len(ds))
     period = 0.0 if rate == 0.0 else 1.0 / (NOMINAL_SCAN_RATE * rate)

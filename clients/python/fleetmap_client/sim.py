@@ -28,7 +28,7 @@ from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap.sim.floorplan import FloorPlan
 
 from .delivery import DeliveryReport
-from .publisher import CLOSE_WAIT_S, DeliveryUnsupported, Encoding, ScanPublisher
+from .publisher import CLOSE_WAIT_S, DeliveryUnsupported, Encoding, ScanPublisher, check_timeouts
 
 
 class SimError(RuntimeError):
@@ -122,12 +122,7 @@ def run_sim(
     makes invalid, a timeout below 0 or NaN).
     """
     check_fleet(robots, rate, seconds, beams, speed)
-    for name, value in (("wait_timeout", wait_timeout), ("confirm_timeout", confirm_timeout)):
-        # As `replay.replay`'s: a wait_timeout of NaN waited for the service for ever, a negative one
-        # gave up "within -1 s", and a confirm_timeout of NaN raised in each robot's flush thread
-        # (a traceback per robot) after the whole run.
-        if value is not None and not value >= 0.0:
-            raise ValueError(f"{name} must be a number of seconds >= 0, got {value}")
+    check_timeouts(wait_timeout=wait_timeout, confirm_timeout=confirm_timeout)
     stop = stop or threading.Event()
     ids = robot_ids(robots, prefix)
     floor = plan if plan is not None else generate_floorplan(seed)

@@ -31,7 +31,7 @@ from typing import Annotated
 from fastapi import Depends, Header, Request, Response
 
 from fleetmap.api.errors import ApiError
-from fleetmap.api.http_semantics import generation_etag, strong_match, weak_match
+from fleetmap.api.http_semantics import generation_etag, joined_field_lines, strong_match, weak_match
 from fleetmap.map_entry import Expectation, MapEntry
 
 #: One entity tag of a list (RFC 9110, 8.8.3): optionally `W/`, then a quoted opaque tag (any
@@ -139,12 +139,6 @@ class Preconditions:
             raise ApiError(412, f"If-None-Match: map {map_id!r} has the ETag {current}", headers=headers)
 
 
-def _joined(request: Request, name: str) -> str | None:
-    """A header's field lines joined with commas, as RFC 9110 5.3 allows for list headers."""
-    lines = request.headers.getlist(name)
-    return ", ".join(lines) if lines else None
-
-
 async def preconditions(
     request: Request,
     if_match: Annotated[
@@ -165,8 +159,8 @@ async def preconditions(
     """The write's preconditions, read from every field line of each header (FastAPI's parameters,
     declared for the spec, hold only the first). 422 for a malformed value."""
     del if_match, if_none_match  # read below, all field lines
-    match = _joined(request, "if-match")
-    none_match = _joined(request, "if-none-match")
+    match = joined_field_lines(request.headers, "if-match")
+    none_match = joined_field_lines(request.headers, "if-none-match")
     parsed_match = None if match is None else parse_entity_tags(match, "If-Match")
     parsed_none = None if none_match is None else parse_entity_tags(none_match, "If-None-Match")
     return Preconditions(

@@ -64,6 +64,14 @@ def is_event_stream(path: str) -> bool:
     return path.startswith("/maps/") and path.endswith("/events") and path.count("/") == 3
 
 
+def joined_field_lines(headers: Headers, name: str) -> str | None:
+    """A list header's field lines joined with commas, as one list (RFC 9110, 5.3), or None when it
+    is absent: `If-None-Match` and `If-Match` (a tag on a second line, as a proxy merging a client's
+    tags sends it, was missed when the first line alone was read), `Accept-Encoding`."""
+    lines = headers.getlist(name)
+    return ", ".join(lines) if lines else None
+
+
 #: The scope key `HeadAsGet` sets on the GET a HEAD runs as (`is_head`).
 HEAD_SCOPE_KEY = "fleetmap.head"
 
@@ -176,7 +184,7 @@ class NegotiatedGZip(GZipMiddleware):
             await super().__call__(scope, receive, send)
             return
         original = scope["headers"]
-        offered = ", ".join(Headers(scope=scope).getlist("accept-encoding"))
+        offered = joined_field_lines(Headers(scope=scope), "accept-encoding") or ""
         headers = [(k, v) for k, v in original if k.lower() != b"accept-encoding"]
         if accepts_gzip(offered):
             headers.append((b"accept-encoding", b"gzip"))
@@ -249,9 +257,7 @@ class JsonETags:
         if scope["type"] != "http" or scope["method"] != "GET":
             await self.app(scope, receive, send)
             return
-        # Every field line, joined as one list (RFC 9110, 5.3), as the writes' conditions read them:
-        # the first alone missed a tag sent on a second `If-None-Match` line.
-        if_none_match = ", ".join(Headers(scope=scope).getlist("if-none-match")) or None
+        if_none_match = joined_field_lines(Headers(scope=scope), "if-none-match")
         start: Message | None = None
         not_modified = False  # a 304 was sent for the route's own ETag: its body goes nowhere
 

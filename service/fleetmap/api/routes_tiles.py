@@ -11,7 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from fleetmap import tile_render
 from fleetmap.api.errors import error_responses
-from fleetmap.api.http_semantics import etag_matches
+from fleetmap.api.http_semantics import etag_matches, joined_field_lines
 from fleetmap.api.state import MapId, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import RegionLayer
@@ -101,9 +101,9 @@ async def get_tile(
     # On the event loop: a revalidation or a cache hit takes microseconds, and a hop to the thread
     # pool would cost more than that (and another thread wanting the GIL). Only renders go there.
     entry = state.entry(map_id)
-    # Every field line, joined as one list (RFC 9110, 5.3), as `JsonETags` and the writes' conditions
-    # read them: the parameter holds only the first, and a tag on a second line got the whole tile.
-    if_none_match = ", ".join(request.headers.getlist("if-none-match")) or None
+    # Every field line (the parameter, which documents the header, holds only the first: a tag on a
+    # second line got the whole tile).
+    if_none_match = joined_field_lines(request.headers, "if-none-match")
     if if_none_match:
         # Answer a revalidation from the version alone: no render, no cache lookup.
         check_layer(entry.gmap, layer)
