@@ -424,7 +424,9 @@ def test_a_volatile_subscriber_such_as_rviz_by_default_gets_a_grid_at_once(
         topic = publisher.topics[0]
         wait_for(lambda: topic.grid.published == 1, timeout=5, what="the first grid")
         rviz = readers(in_process.endpoint, token=True, grid_qos=Qos(durability=DURABILITY_VOLATILE, depth=5))
-        grid = wait_for(lambda: rviz.received("grid"), timeout=5, what="a grid for the volatile subscriber")[
+        # "At once" against the hour of the publisher's period: 20 s, since the subscriber's token
+        # must be discovered first (CI, loaded, once took over 5 s).
+        grid = wait_for(lambda: rviz.received("grid"), timeout=20, what="a grid for the volatile subscriber")[
             0
         ]
         assert topic.window is not None
