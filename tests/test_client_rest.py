@@ -765,6 +765,13 @@ def test_events_of_an_unknown_map(client: FleetmapClient) -> None:
     assert exc.value.status == 404
 
 
+@pytest.mark.parametrize("since", [-1, "7", 2.0, True])
+def test_events_refuse_a_since_that_is_no_change_version(client: FleetmapClient, since: object) -> None:
+    # Sent as it is, the server reads such a Last-Event-ID as none at all and starts from now.
+    with pytest.raises(ValueError, match="since must be a change version"):
+        client.events("any", since=since)  # type: ignore[arg-type]
+
+
 def test_parse_sse_follows_the_event_stream_format() -> None:
     lines = [
         *["retry: 1000", "", "id: 4", "event: tiles", 'data: {"version": 4,', 'data: "tiles": []}', ""],

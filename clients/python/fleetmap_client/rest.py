@@ -27,6 +27,7 @@ import contextlib
 import io
 import json
 import math
+import operator
 import os
 import threading
 import time
@@ -177,6 +178,21 @@ def _check_id(name: str, value: str) -> str:
     if not isinstance(value, str) or not is_valid_id(value):
         raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
     return value
+
+
+def _check_since(since: int | None) -> int | None:
+    """`events`' `since`: a change version (an integer >= 0) or None. Anything else, sent as
+    `Last-Event-ID`, would be read by the server as no version at all, and the stream would start
+    from now instead of resuming: a silent gap in what the program sees."""
+    if since is None:
+        return None
+    try:
+        version = operator.index(since) if not isinstance(since, bool) else -1
+    except TypeError:
+        version = -1
+    if version < 0:
+        raise ValueError(f"since must be a change version (an integer >= 0) or None, got {since!r}")
+    return version
 
 
 def _bounds(
@@ -772,7 +788,7 @@ class FleetmapClient:
         _check_id("map_id", map_id)
         if robots not in ("full", "delta"):
             raise ValueError(f"robots must be 'full' or 'delta', got {robots!r}")
-        stream = self._events(map_id, since)
+        stream = self._events(map_id, _check_since(since))
         return stream if robots == "delta" else fold_robots(stream)
 
     def _events(self, map_id: str, since: int | None) -> EventStream:
