@@ -866,6 +866,17 @@ def test_sim_refuses_a_timeout_of_nan_or_below_0_before_it_waits() -> None:
             run_sim(1, connect=[nobody], seconds=0.1, **options)
 
 
+def test_a_sim_that_finds_no_service_gives_up_soon_after_its_wait_timeout() -> None:
+    """Closing a publisher that never connected waits for its connection attempt (about a second):
+    the sim closed its robots one after another, so 300 robots took four minutes to give up after
+    a 5 s `--wait-timeout`. They are closed together now: 20 robots in about 1 s, not 10-16."""
+    started = time.monotonic()
+    with pytest.raises(SimError, match="no fleetmap service reachable"):
+        run_sim(20, connect=[f"tcp/127.0.0.1:{free_port()}"], seconds=0.1, wait_timeout=0.5, beams=91,
+                plan=generate_floorplan(4, width_m=20.0, height_m=15.0))  # fmt: skip
+    assert time.monotonic() - started < 6.0
+
+
 def test_a_second_ctrl_c_stops_the_sims_wait_for_confirmation(router: Router) -> None:
     """The first Ctrl-C stops the robots and starts the wait for confirmation (this router answers
     no delivery query: a few seconds); a second one ends it at once, exit 130, no traceback."""
