@@ -104,6 +104,16 @@ def npz_member(name: str = "", data: bytes = b"") -> bytes:
     return out.getvalue()
 
 
+def npy_with_header(header: bytes) -> bytes:
+    """A version 1.0 .npy file whose header is `header` (padded as numpy pads it), and no data."""
+    header += b" " * (63 - (10 + len(header)) % 64) + b"\n"
+    return b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header
+
+
+#: A header such as a flipped bit of a deflated tiles.npz makes: numpy's fallback parser, which it
+#: runs when `literal_eval` fails, raises tokenize.TokenError for it.
+UNTERMINATED = b"{'descr': '" + b"''<u4', 'fortran_order': False, 'shape': (2, 16, 16), }"
+
 TILE = "/maps/e/tiles"
 R = "/maps/e/region?xmin=0&ymin=0&xmax=1&ymax=1"
 
@@ -184,6 +194,13 @@ CASES: list[tuple[str, str, dict[str, Any], int, str]] = [
         "PUT",
         SNAP,
         {"content": snapshot_body(META, npz=npz_member("hits.npy", b"garbage"))},
+        422,
+        "not a valid .npy",
+    ),
+    (
+        "PUT",
+        SNAP,
+        {"content": snapshot_body(META, npz=npz_member("hits.npy", npy_with_header(UNTERMINATED)))},
         422,
         "not a valid .npy",
     ),

@@ -10,6 +10,7 @@ import json
 import math
 import struct
 import threading
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Callable, Sequence
@@ -571,7 +572,10 @@ def _npy_header(npz: zipfile.ZipFile, name: str) -> _Npy:
             offset = fp.tell()
     except _ZIP_ERRORS as exc:
         raise SnapshotError(f"snapshot member {path} cannot be read (the file is corrupt): {exc}") from None
-    except (ValueError, TypeError, SyntaxError) as exc:  # numpy's words for a header it cannot parse
+    # numpy's words for a header it cannot parse. TokenError (not a ValueError) comes from the
+    # tokenizer numpy falls back on when `literal_eval` fails: an unterminated ''' in a header (a
+    # flipped bit of a deflated tiles.npz made one) was a 500.
+    except (ValueError, TypeError, SyntaxError, tokenize.TokenError) as exc:
         raise SnapshotError(f"snapshot member {path} is not a valid .npy array ({exc})") from None
     return _Npy(info, path, np.dtype(dtype), tuple(shape), bool(fortran), offset)
 
