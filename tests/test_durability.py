@@ -307,6 +307,44 @@ def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_ma
         assert stats(svc.base_url, "m")["scans_integrated"] == 6
 
 
+def test_a_robot_or_tombstone_row_of_the_wrong_shape_is_a_clear_error_at_start(tmp_path: Path) -> None:
+    """A `robots` row or a tombstone whose JSON is valid but not what the service saved (a damaged
+    database): refused at start like a damaged tile, exit code 2, one line naming the file (and the
+    map and robot). Before the fix a robot row of the wrong shape stopped the start with a traceback
+    (exit code 1), and a counter that was not a number started a service whose GET of the map was a
+    500; a tombstone's seq that was a list was a traceback too."""
+    scan = json.loads(encode_json(as_received(scans_for(sim=1, plan_seed=1, count=1)[0]), 1))
+    data = tmp_path / "data"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        for map_id in ("m", "gone"):
+            r = httpx.post(
+                f"{svc.base_url}/maps/{map_id}/scans", params={"robot_id": "r"}, json=scan, timeout=30
+            )
+            assert r.status_code == 200, r.text
+        assert httpx.delete(f"{svc.base_url}/maps/gone").status_code == 204  # robot r's tombstone
+    # Stopped cleanly: map m's robot r is a `robots` row.
+    damages = {
+        "list": ("UPDATE robots SET state = '[]'", " (map 'm'): robot 'r': "),
+        "counter": ("""UPDATE robots SET state = '{"scans_integrated": "x"}'""", " (map 'm'): robot 'r': "),
+        "session": ("""UPDATE robots SET state = '{"sessions": [[1]]}'""", " (map 'm'): robot 'r': "),
+        "tombstone": ("""UPDATE tombstones SET sessions = '{"1": [1]}'""", ": tombstone of gone/r: "),
+    }
+    for name, (sql, where) in damages.items():
+        damaged = tmp_path / f"damaged-{name}"
+        shutil.copytree(data, damaged)
+        with sqlite3.connect(damaged / DB_NAME) as conn:
+            assert conn.execute(sql).rowcount == 1
+        svc = ServiceProcess(tmp_path, ["--data-dir", str(damaged)])
+        with pytest.raises(RuntimeError) as refused:
+            svc.start()
+        assert svc.proc is not None and svc.proc.returncode == 2, (name, str(refused.value))
+        output = str(refused.value)
+        assert "Traceback" not in output, output
+        assert f"cannot read the map database {damaged / DB_NAME}{where}" in output, output
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        assert stats(svc.base_url, "m")["robots"]["r"]["scans_integrated"] == 1
+
+
 def peak_memory_mb(pid: int) -> float:
     """The process's peak resident memory so far (VmHWM), in MB."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():

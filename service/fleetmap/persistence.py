@@ -41,6 +41,7 @@ from fleetmap.database import CLEARED_WINDOWS_LAYOUT, StorageError, connect, ope
 from fleetmap.export import Window
 from fleetmap.grid_map import GridMap
 from fleetmap.journal import JournalEntry, JournalWriter
+from fleetmap.robot_state import RobotState
 from fleetmap.scan import Scan
 from fleetmap.storage_format import journal_row_from_blob, tile_from_blob, tile_to_blob
 from fleetmap.tombstones import MAX_TOMBSTONES, Tombstone, forgotten_before
@@ -266,7 +267,8 @@ class DurableStore:
     # -- start ---------------------------------------------------------------------------------------
 
     def load(self) -> list[tuple[str, GridMap, dict, StoredJournal]]:
-        """Every stored map: (id, map from its snapshot, saved counters, journal rows after it).
+        """Every stored map: (id, map from its snapshot, saved counters (its robots as `RobotState`),
+        journal rows after it).
 
         The caller (the registry) replays the journal rows in order through its own bookkeeping;
         they are read as it goes (`StoredJournal`).
@@ -361,8 +363,12 @@ class DurableStore:
                     gmap.store.pools[a.name][slot] = arr
                 gmap.store.versions[slot] = version
         gmap.store.restore_clock(max(clock, max((r[2] for r in rows), default=0)))
-        robots = {rid: json.loads(state) for rid, state in conn.execute(
-            "SELECT robot_id, state FROM robots WHERE map_id = ?", (map_id,))}  # fmt: skip
+        robots = {}
+        for rid, state in conn.execute("SELECT robot_id, state FROM robots WHERE map_id = ?", (map_id,)):
+            try:
+                robots[rid] = RobotState.from_saved(json.loads(state))
+            except ValueError as exc:  # a damaged row: `load` refuses the database, naming the map
+                raise ValueError(f"robot {rid!r}: {exc}") from None
         count, last = conn.execute(
             "SELECT COUNT(*), MAX(id) FROM journal WHERE map_id = ? AND id > ?", (map_id, snap_id)
         ).fetchone()

@@ -222,7 +222,7 @@ class MapRegistry:
             entry = MapEntry(map_id, gmap, self._next_generation())
             entry.scans_integrated = counters["scans_integrated"]
             entry.scans_rejected = counters["scans_rejected"]
-            entry.robots = {rid: RobotState.from_saved(data) for rid, data in counters["robots"].items()}
+            entry.robots = counters["robots"]
             started = last_report = time.monotonic()
             for replayed, (robot_id, seq, stamp, session, row) in enumerate(journal):
                 if time.monotonic() - last_report >= RESTORE_REPORT:

@@ -36,6 +36,37 @@ NO_SESSION = 0
 LEDGER_HISTORY = 64
 
 
+#: The saved counters (`RobotState.SAVED`) that are not integers: what else each may hold.
+_SAVED_NOT_INT: dict[str, type | tuple[type, ...]] = {
+    "last_stamp": (int, float, type(None)),
+    "last_error": (str, type(None)),
+    "last_heard": (int, float),
+    "conflict_at": (int, float, type(None)),
+}
+
+
+def _check_saved(name: str, value: object, kind: type | tuple[type, ...]) -> Any:
+    """`value`, saved as field `name`, if it is a `kind` (a bool is no integer); else ValueError."""
+    if isinstance(value, bool) or not isinstance(value, kind):
+        raise ValueError(f"a saved robot's {name} is {value!r}")
+    return value
+
+
+def _number(value: object, where: str) -> float:
+    """`value`, a JSON number saved in `where`; else ValueError."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"a saved robot's {where} holds {value!r}, not a number")
+    return value
+
+
+def _numbers(row: list, where: str) -> list:
+    """`row`, a saved list of numbers, None and booleans (a session's seqs, a ledger's counts)."""
+    for value in row:
+        if value is not None and not isinstance(value, (bool, int, float)):
+            raise ValueError(f"a saved robot's {where} holds {value!r}, not a number")
+    return row
+
+
 def session_key(session: int | None) -> int:
     """The key in `RobotState.sessions` of the scans of publisher session `session` (None: none sent)."""
     return NO_SESSION if session is None else session
@@ -327,19 +358,36 @@ class RobotState:
         return out
 
     @classmethod
-    def from_saved(cls, data: dict) -> RobotState:
-        saved: dict[str, Any] = {name: data.get(name, getattr(cls, name, None)) for name in cls.SAVED}
-        state = cls(**saved)
-        if data.get("last_pose"):
-            state.add_pose(Pose2D(*data["last_pose"]))
-        if "sessions" in data:
-            state.sessions = {int(row[0]): SessionSeqs(*row[1:]) for row in data["sessions"]}
-            for row in data.get("ledgers", ()):
-                if int(row[0]) in state.sessions:
-                    state.sessions[int(row[0])].ledger = SessionLedger.from_saved(row[1:])
-        elif data.get("last_seq") is not None:
-            # Saved before sessions existed: every scan so far came without one.
-            state.sessions = {NO_SESSION: SessionSeqs(data["last_seq"], state.last_stamp, 0, 0)}
+    def from_saved(cls, data: object) -> RobotState:
+        """The robot `saved` gave (read back from JSON). ValueError if `data` is not such a robot (a
+        damaged database): the service then refuses to start with one line naming the map, where a
+        row of the wrong shape was a traceback, and a counter that is not a number a 500 from every
+        later GET of its map."""
+        if not isinstance(data, dict):
+            raise ValueError(f"a saved robot is a JSON object, not {type(data).__name__}")
+        for name in cls.SAVED:
+            if name in data:  # (a robot saved by an older version may lack the newer counters)
+                _check_saved(name, data[name], _SAVED_NOT_INT.get(name, int))
+        try:
+            saved: dict[str, Any] = {name: data.get(name, getattr(cls, name, None)) for name in cls.SAVED}
+            state = cls(**saved)
+            if data.get("last_pose"):
+                state.add_pose(Pose2D(*(_number(v, "last_pose") for v in data["last_pose"])))
+            if "sessions" in data:
+                state.sessions = {
+                    int(row[0]): SessionSeqs(*_numbers(row[1:], "sessions")) for row in data["sessions"]
+                }
+                for row in data.get("ledgers", ()):
+                    if int(row[0]) in state.sessions:
+                        state.sessions[int(row[0])].ledger = SessionLedger.from_saved(
+                            _numbers(row[1:], "ledgers")
+                        )
+            elif data.get("last_seq") is not None:
+                # Saved before sessions existed: every scan so far came without one.
+                last_seq = _check_saved("last_seq", data["last_seq"], int)
+                state.sessions = {NO_SESSION: SessionSeqs(last_seq, state.last_stamp, 0, 0)}
+        except (TypeError, KeyError, IndexError, AttributeError) as exc:  # (ValueError: as it is)
+            raise ValueError(f"a saved robot of the wrong shape: {exc}") from None
         return state
 
     def add_pose(self, pose: Pose2D) -> None:

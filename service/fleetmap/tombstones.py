@@ -93,7 +93,10 @@ class Tombstone:
         stored = json.loads(sessions_json)
         if not isinstance(stored, dict):
             raise ValueError(f"tombstone of {map_id}/{robot_id}: sessions are not a JSON object")
-        sessions = {int(k): int(v) for k, v in stored.items()}
+        try:
+            sessions = {int(k): int(v) for k, v in stored.items()}
+        except TypeError:  # a seq that is a list or an object (int() of a wrong string: ValueError)
+            raise ValueError(f"tombstone of {map_id}/{robot_id}: a session's seq is not a number") from None
         return cls(map_id, robot_id, deleted_at, sessions, forgotten=bool(forgotten))
 
 
