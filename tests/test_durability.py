@@ -302,6 +302,20 @@ def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_ma
         assert "Traceback" not in output, output
         assert f"cannot read the map database {damaged / DB_NAME} (map 'm'): " in output, output
         assert "corrupt" in output, output
+    # A journal column of another type than the writer stores (SQLite keeps any type in any column):
+    # a scan or a seq as text stopped the start with a traceback.
+    for name, sql in (("scan-text", "scan = 'x'"), ("seq-text", "seq = 'x'")):
+        damaged = tmp_path / f"damaged-{name}"
+        shutil.copytree(data, damaged)
+        with sqlite3.connect(damaged / DB_NAME) as conn:
+            conn.execute(f"UPDATE journal SET {sql} WHERE id = (SELECT MIN(id) FROM journal)")
+        svc = ServiceProcess(tmp_path, ["--data-dir", str(damaged)])
+        with pytest.raises(RuntimeError) as refused:
+            svc.start()
+        assert svc.proc is not None and svc.proc.returncode == 2, str(refused.value)
+        output = str(refused.value)
+        assert "Traceback" not in output, output
+        assert re.search(r"\(map 'm'\): journal row \d+: corrupt journal entry", output), output
     # The undamaged directory still starts and holds all six scans.
     with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
         assert stats(svc.base_url, "m")["scans_integrated"] == 6

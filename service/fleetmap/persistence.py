@@ -102,6 +102,25 @@ def unreadable_database(path: Path, map_id: str | None, exc: BaseException | str
     )
 
 
+def _check_journal_columns(
+    robot_id: object, seq: object, stamp: object, session: object, blob: object
+) -> None:
+    """`StorageError` unless a journal row's columns hold what the writer stores in them. SQLite
+    keeps whatever type a value had in any column (a row edited by hand, a damaged page), and such
+    a value (a scan or a seq stored as text) stopped the replay with a traceback."""
+    if not (
+        isinstance(robot_id, str)
+        and isinstance(seq, int)
+        and isinstance(stamp, (int, float))
+        and (session is None or isinstance(session, int))
+        and isinstance(blob, bytes)
+    ):
+        kinds = ", ".join(type(v).__name__ for v in (robot_id, seq, stamp, session, blob))
+        raise StorageError(
+            f"corrupt journal entry: its robot id, seq, stamp, session and scan are of types {kinds}"
+        )
+
+
 class StoredJournal:
     """A map's journal rows after its snapshot, in order, read and decoded `BATCH` rows at a time
     while they are replayed. Decoded all at once before the replay, they took 17 KB a scan of 1081
@@ -137,6 +156,7 @@ class StoredJournal:
                     return
                 for row_id, robot_id, seq, stamp, session, blob in rows:
                     try:
+                        _check_journal_columns(robot_id, seq, stamp, session, blob)
                         row = journal_row_from_blob(blob)
                     except StorageError as exc:
                         raise unreadable_database(
