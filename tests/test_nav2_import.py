@@ -524,6 +524,16 @@ def test_a_zip_of_too_many_entries_is_refused_before_zipfile_lists_them() -> Non
     assert map_from_nav2_zip(padded_zip(body, 100), CONFIG).known_bounds() == (0, 0, 2, 2)
 
 
+def test_a_zip_entry_with_an_empty_name_is_not_read() -> None:
+    """An entry whose name is empty (a damaged or hand-made zip): zipfile's `is_dir` raised
+    IndexError for it, a 500 from PUT /maps/{id}/import. It is neither the YAML nor its image."""
+    buf = io.BytesIO(nav2_zip(nav2_yaml(), {"map.pgm": PIXELS}))
+    with zipfile.ZipFile(buf, "a") as zf:
+        zf.writestr(zipfile.ZipInfo(""), b"nameless")  # (a str name "" fails in zipfile itself)
+    assert "" in zipfile.ZipFile(buf).namelist()
+    assert map_from_nav2_zip(buf.getvalue(), CONFIG).known_bounds() == (0, 0, 2, 2)
+
+
 def test_a_zip_with_the_yaml_in_a_folder_reads_the_image_beside_it() -> None:
     body = nav2_zip(
         nav2_yaml("map.pgm"), {"maps/map.pgm": PIXELS, "map.pgm": b"decoy"}, yaml_name="maps/site.yml"

@@ -496,7 +496,13 @@ def map_from_nav2_zip(
     with zf:
         # macOS's Finder (Compress) adds, for a file with extended attributes, an AppleDouble
         # `__MACOSX/<folder>/._<name>`: `._map.yaml` is no second YAML file.
-        infos = [i for i in zf.infolist() if not i.is_dir() and not i.filename.startswith("__MACOSX/")]
+        # A folder's name ends in '/' (`ZipInfo.is_dir`, which raised IndexError, a 500, for an entry
+        # with an empty name: such an entry is neither the YAML nor its image, and is not read).
+        infos = [
+            i
+            for i in zf.infolist()
+            if not i.filename.endswith("/") and not i.filename.startswith("__MACOSX/")
+        ]
         yamls = [i for i in infos if i.filename.lower().endswith((".yaml", ".yml"))]
         if len(yamls) != 1:
             named = ", ".join(i.filename for i in yamls) or "none"
