@@ -264,6 +264,8 @@ PIXELS = pgm_bytes(np.zeros((2, 2), dtype=np.uint8))
         (nav2_yaml(resolution=0.1), "resolution 0.1 m differs from the map configuration's 0.05 m"),
         ("[1, 2]", "map.yaml must hold a mapping of fields, not a list"),
         ("image: [unclosed", "map.yaml is not valid YAML"),
+        # map_server (yaml-cpp) reads the first of two, PyYAML the last: refused, not guessed.
+        (nav2_yaml() + "resolution: 0.1\n", "the field 'resolution' is given twice"),
     ],
 )
 def test_a_bad_yaml_is_refused_naming_the_field(yaml_text: str, message: str) -> None:

@@ -146,6 +146,20 @@ class _MapYamlLoader(yaml.SafeLoader):
                 )
         return super().compose_node(parent, index)
 
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        """A mapping, refusing a key written twice: PyYAML keeps the last value, map_server's
+        yaml-cpp the first, so a map.yaml saying `resolution` twice was imported at another
+        resolution (or origin, or thresholds) than nav2 loads it with."""
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if isinstance(key, str) and key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"the field {key!r} is given twice", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
 
 #: A number as yaml-cpp's `as<double>()` (map_server's reader) reads it where PyYAML's YAML 1.1
 #: resolver leaves a string: an exponent without a dot or a sign, as in `1e-05`, which yaml-cpp
