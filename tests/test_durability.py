@@ -263,6 +263,42 @@ def test_another_programs_database_is_refused_at_start_and_left_unchanged(tmp_pa
     assert sorted(p.name for p in data.iterdir()) == [DB_NAME, "fleetmap.lock"]
 
 
+def test_a_database_deleted_beside_its_write_ahead_log_is_refused_and_the_log_kept(tmp_path: Path) -> None:
+    """`fleetmap.db` deleted (or moved, or emptied) after a crash, its `-wal` left with the journal of
+    acknowledged scans: SQLite made a new empty database there and dropped the log, so the service
+    started with no maps and those scans were gone for good. It is refused, exit code 2, the log left
+    as it was; put back, the database starts with every scan."""
+    data = tmp_path / "data"
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        scan = json.loads(encode_json(as_received(scans_for(sim=1, plan_seed=1, count=1)[0]), 1))
+        r = httpx.post(f"{svc.base_url}/maps/m/scans", params={"robot_id": "r"}, json=scan, timeout=30)
+        assert r.status_code == 200, r.text
+        svc.proc.kill()  # the map and its scan are in the write-ahead log only
+        svc.proc.wait()
+    finally:
+        svc.stop()
+    wal = data / f"{DB_NAME}-wal"
+    log = wal.read_bytes()
+    assert log
+    moved = tmp_path / "moved.db"
+    (data / DB_NAME).rename(moved)
+    for state in ("missing", "empty"):
+        if state == "empty":
+            (data / DB_NAME).write_bytes(b"")
+        svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+        with pytest.raises(RuntimeError) as refused:
+            svc.start()
+        assert svc.proc is not None and svc.proc.returncode == 2, str(refused.value)
+        output = str(refused.value)
+        assert "Traceback" not in output, output
+        assert f"the map database {data / DB_NAME} is {state}, but its write-ahead log {wal} holds" in output
+        assert wal.read_bytes() == log
+    moved.replace(data / DB_NAME)
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        assert stats(svc.base_url, "m")["scans_integrated"] == 1
+
+
 def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_map(tmp_path: Path) -> None:
     """A tile row or a journal row that no longer decodes (bit rot, a bad copy): the service refuses
     to start with one line naming the database file and the map, exit code 2, and no traceback

@@ -169,6 +169,7 @@ def _check_and_create(data_dir: Path) -> Path:
         )
     path = data_dir / DB_NAME
     try:
+        _refuse_orphaned_wal(path)
         _refuse_unknown_layout(path)
         conn = connect(path)
         try:
@@ -182,6 +183,27 @@ def _check_and_create(data_dir: Path) -> Path:
     except sqlite3.DatabaseError as exc:
         raise StorageError(f"cannot open the map database {path}: {exc}") from None
     return path
+
+
+def _refuse_orphaned_wal(path: Path) -> None:
+    """Raise `StorageError` if the database at `path` is missing (or empty) while its write-ahead
+    log is not: the database file was deleted or moved (a restore of some of the files, a clean-up
+    of `*.db`) and the log holds its latest commits, the journal of acknowledged scans among them.
+    SQLite opened a new empty database there and dropped the log: the service started with no maps
+    and the scans were gone for good. A crash never leaves this: the database is written first."""
+    wal = path.with_name(path.name + "-wal")
+    try:
+        wal_size = wal.stat().st_size
+        db_size = path.stat().st_size if path.exists() else 0
+    except OSError:  # no log (the usual case), or one that cannot be read: SQLite says so next
+        return
+    if wal_size > 0 and db_size == 0:
+        state = "empty" if path.exists() else "missing"
+        raise StorageError(
+            f"the map database {path} is {state}, but its write-ahead log {wal} holds {wal_size} bytes of "
+            "its latest changes: the database file was deleted or moved. Put it back beside the log, "
+            "or move the directory aside to start with no maps (this start would drop the log)"
+        )
 
 
 def _refuse_unknown_layout(path: Path) -> None:
