@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 from registry_idle import wait_idle
 from robot_process import scans_for
-from service_process import RobotProcess, ServiceProcess, reaped, wait_for
+from service_process import RobotProcess, ServiceProcess, fleetmap_command, free_port, reaped, wait_for
 
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
@@ -177,6 +177,32 @@ def test_unwritable_data_dir_is_a_clear_error_at_start(tmp_path: Path) -> None:
         svc.start()
     assert "data directory" in str(failed.value)
     assert svc.proc is not None and svc.proc.returncode == 2
+
+
+def test_a_data_directory_with_no_room_is_a_clear_error_at_start(tmp_path: Path) -> None:
+    """A disk with no room left: the pid written into the lock file failed first, and the start was
+    a traceback, exit code 1. It is refused with one line saying so, exit code 2. The full disk is
+    the service's RLIMIT_FSIZE at 0, so that every write to a file fails (EFBIG, as ENOSPC would; a
+    full filesystem would need a mount); its output goes to a pipe, which the limit leaves alone."""
+    resource = pytest.importorskip("resource")
+    data = tmp_path / "data"
+    args = [
+        "--data-dir",
+        str(data),
+        "--http",
+        f"127.0.0.1:{free_port()}",
+        "--zenoh-listen",
+        "tcp/127.0.0.1:0",
+    ]
+    done = subprocess.run(
+        [*fleetmap_command(), "serve", *args],
+        capture_output=True, text=True, timeout=60,
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (0, resource.RLIM_INFINITY)),
+    )  # fmt: skip
+    output = done.stdout + done.stderr
+    assert done.returncode == 2, output
+    assert "Traceback" not in output, output
+    assert f"data directory {data} has no room to write (File too large)" in output, output
 
 
 def test_a_second_service_on_the_same_data_directory_is_refused(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ and how every connection to it is opened (WAL, full fsync on commit)."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import os
 import shutil
@@ -113,10 +114,13 @@ class DataDirLock:
                 "two services on one data directory would overwrite each other's maps: stop it, or "
                 "give this one another --data-dir"
             ) from None
-        # Only a message for whoever is refused next: the lock itself is what counts.
+        # Only a message for whoever is refused next: the lock itself is what counts. A disk with no
+        # room left fails the write (ENOSPC, EFBIG): that start was a traceback, exit 1; the check of
+        # the directory's room that follows says what is wrong.
         pid = f"{os.getpid()}\n".encode()
-        os.ftruncate(self._fd, 0)
-        os.pwrite(self._fd, pid, 0)
+        with contextlib.suppress(OSError):
+            os.ftruncate(self._fd, 0)
+            os.pwrite(self._fd, pid, 0)
 
     def release(self) -> None:
         """Give the directory up (closing the file drops the lock); idempotent."""
@@ -157,6 +161,11 @@ def _check_and_create(data_dir: Path) -> Path:
             f.flush()
             os.fsync(f.fileno())
     except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            raise StorageError(
+                f"data directory {data_dir} has no room to write ({exc.strerror}); at least "
+                f"{MIN_FREE_BYTES // (1024 * 1024)} MiB must be free"
+            ) from None
         raise StorageError(f"data directory {data_dir} is not writable: {exc.strerror}") from None
     finally:
         with contextlib.suppress(OSError):  # (a full disk failed the write, and left the file)
