@@ -231,6 +231,28 @@ def test_a_second_service_on_the_same_data_directory_is_refused(tmp_path: Path) 
         assert httpx.get(f"{third.base_url}/maps/kept", timeout=10).status_code == 200
 
 
+def test_a_second_service_is_refused_even_once_the_lock_file_was_deleted(tmp_path: Path) -> None:
+    """`fleetmap.lock` deleted while its service runs (an operator clearing a "stale" lock file): its
+    lock went with it, and a second service made a new file, locked it and ran beside the first on
+    the same database, both answering 200. The directory itself is locked too: the second is refused;
+    once the first stops, a service starts there as usual."""
+    data = tmp_path / "data"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as first:
+        assert httpx.put(f"{first.base_url}/maps/kept", timeout=30).status_code == 201
+        (data / "fleetmap.lock").unlink()
+        second = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+        try:
+            with pytest.raises(RuntimeError) as refused:
+                second.start()
+        finally:
+            second.stop()
+        assert second.proc is not None and second.proc.returncode == 2, str(refused.value)
+        assert f"data directory {data} is in use by another fleetmap service" in str(refused.value)
+        assert "Traceback" not in str(refused.value)
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as third:
+        assert httpx.get(f"{third.base_url}/maps/kept", timeout=10).status_code == 200
+
+
 def test_a_data_directory_of_a_newer_schema_is_refused_at_start(tmp_path: Path) -> None:
     """A database a newer fleetmap wrote (a higher `PRAGMA user_version`) may hold tables, tiles or
     journal rows this one would misread or overwrite: the service refuses it, exit code 2, naming the

@@ -9,6 +9,7 @@ import fcntl
 import os
 import shutil
 import sqlite3
+import threading
 from pathlib import Path
 
 DB_NAME = "fleetmap.db"
@@ -96,7 +97,11 @@ class DataDirLock:
     It is a POSIX record lock (`fcntl.lockf`) on `fleetmap.lock`: the kernel drops it when the
     process ends, however it ends (kill -9 included), so a crash never leaves a stale lock. Such
     locks belong to a process, not to an open file: a second `DurableStore` in the same process
-    (what in-process tests do to play a restart after a crash) is not refused."""
+    (what in-process tests do to play a restart after a crash) is not refused.
+
+    The directory itself is locked too (`flock`, `_lock_directory`): a lock file deleted while its
+    service runs (an operator clearing "stale" lock files) took its lock with it, and a second
+    service made a new one, locked it and ran beside the first on the same database."""
 
     def __init__(self, data_dir: Path) -> None:
         path = data_dir / LOCK_NAME
@@ -104,11 +109,13 @@ class DataDirLock:
             self._fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
             raise StorageError(f"data directory {data_dir} is not writable: {exc.strerror}") from None
+        self._dir: tuple[int, int] | None = None
         try:
+            self._dir = _lock_directory(data_dir)
             fcntl.lockf(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
+        except (OSError, _DirectoryInUse):
             holder = os.pread(self._fd, 32, 0).decode(errors="replace").strip() or "unknown"
-            os.close(self._fd)
+            self.release()
             raise StorageError(
                 f"data directory {data_dir} is in use by another fleetmap service (pid {holder}); "
                 "two services on one data directory would overwrite each other's maps: stop it, or "
@@ -127,6 +134,59 @@ class DataDirLock:
         if self._fd >= 0:
             os.close(self._fd)  # drops the lock
             self._fd = -1
+        if self._dir is not None:
+            _unlock_directory(self._dir)
+            self._dir = None
+
+
+class _DirectoryInUse(Exception):
+    """Another process holds the data directory's `flock` (`_lock_directory`)."""
+
+
+#: This process's locks of data directories (`_lock_directory`): (device, inode) -> [descriptor,
+#: holders]. A `flock` belongs to an open file, not to a process: a second `DurableStore` on the
+#: same directory in this process (in-process tests play a restart after a crash so) shares the
+#: first one's, as it shares its POSIX lock of `fleetmap.lock`.
+_DIRECTORY_LOCKS: dict[tuple[int, int], list[int]] = {}
+_DIRECTORY_LOCKS_GUARD = threading.Lock()
+
+
+def _lock_directory(data_dir: Path) -> tuple[int, int] | None:
+    """Lock `data_dir` itself (`flock`, dropped by the kernel when the process ends), which no one
+    can delete as a file; its key for `_unlock_directory`, or None where its file system takes no
+    such lock (the lock file's alone guards it then). `_DirectoryInUse` if another process holds it."""
+    try:
+        fd = os.open(data_dir, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return None
+    with _DIRECTORY_LOCKS_GUARD:
+        stat = os.fstat(fd)
+        key = (stat.st_dev, stat.st_ino)
+        held = _DIRECTORY_LOCKS.get(key)
+        if held is not None:
+            os.close(fd)
+            held[1] += 1
+            return key
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise _DirectoryInUse() from None
+        except OSError:  # not supported there (some network file systems)
+            os.close(fd)
+            return None
+        _DIRECTORY_LOCKS[key] = [fd, 1]
+        return key
+
+
+def _unlock_directory(key: tuple[int, int]) -> None:
+    """Give up one hold of the directory lock `key`; the last one closes it (dropping the lock)."""
+    with _DIRECTORY_LOCKS_GUARD:
+        held = _DIRECTORY_LOCKS[key]
+        held[1] -= 1
+        if held[1] == 0:
+            del _DIRECTORY_LOCKS[key]
+            os.close(held[0])
 
 
 def open_database(data_dir: Path) -> tuple[Path, DataDirLock]:
