@@ -179,6 +179,24 @@ def test_unwritable_data_dir_is_a_clear_error_at_start(tmp_path: Path) -> None:
     assert svc.proc is not None and svc.proc.returncode == 2
 
 
+def test_a_data_directory_behind_a_dangling_link_is_refused_saying_so(tmp_path: Path) -> None:
+    """A data directory that is (or lies under) a symbolic link to a directory that is not there, as
+    when the disk it points into is not mounted: refused with "a file, not a directory" before, which
+    sent the operator looking for a file. The message names the link and its target, and nothing is
+    made through the link."""
+    target = tmp_path / "unmounted" / "fleetmap"
+    link = tmp_path / "data"
+    link.symlink_to(target)
+    for data in (link, link / "maps"):
+        svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+        with pytest.raises(RuntimeError) as failed:
+            svc.start()
+        assert svc.proc is not None and svc.proc.returncode == 2, str(failed.value)
+        assert f"{link} is a symbolic link to {target}, which does not exist" in str(failed.value)
+        assert "Traceback" not in str(failed.value)
+    assert not (tmp_path / "unmounted").exists()
+
+
 def test_a_data_directory_with_no_room_is_a_clear_error_at_start(tmp_path: Path) -> None:
     """A disk with no room left: the pid written into the lock file failed first, and the start was
     a traceback, exit code 1. It is refused with one line saying so, exit code 2. The full disk is

@@ -199,6 +199,16 @@ def open_database(data_dir: Path) -> tuple[Path, DataDirLock]:
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
     except FileExistsError:
+        dangling = [p for p in (data_dir, *data_dir.parents) if p.is_symlink() and not p.exists()]
+        if dangling:
+            # A link (the directory's, or a folder's on its path) to a directory that is not there (a
+            # disk not mounted, a volume gone) was "a file, not a directory". It is not made through
+            # the link: on an unmounted disk's mount point, the maps would go to the disk beneath.
+            link = dangling[0]
+            raise StorageError(
+                f"data directory {data_dir}: {link} is a symbolic link to {os.readlink(link)}, which "
+                "does not exist (a disk not mounted?): make that directory, or give --data-dir another"
+            ) from None
         # `--data-dir BACKUP/fleetmap.db`, the database rather than its directory, said "cannot
         # create data directory BACKUP/fleetmap.db: File exists".
         hint = f" (give the directory that holds {DB_NAME})" if data_dir.name == DB_NAME else ""
