@@ -189,8 +189,11 @@ def test_a_data_directory_behind_a_dangling_link_is_refused_saying_so(tmp_path: 
     link.symlink_to(target)
     for data in (link, link / "maps"):
         svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
-        with pytest.raises(RuntimeError) as failed:
-            svc.start()
+        try:
+            with pytest.raises(RuntimeError) as failed:
+                svc.start()
+        finally:
+            svc.stop()  # (a service that started after all must not outlive the test)
         assert svc.proc is not None and svc.proc.returncode == 2, str(failed.value)
         assert f"{link} is a symbolic link to {target}, which does not exist" in str(failed.value)
         assert "Traceback" not in str(failed.value)
@@ -353,8 +356,11 @@ def test_a_database_deleted_beside_its_write_ahead_log_is_refused_and_the_log_ke
         if state == "empty":
             (data / DB_NAME).write_bytes(b"")
         svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
-        with pytest.raises(RuntimeError) as refused:
-            svc.start()
+        try:
+            with pytest.raises(RuntimeError) as refused:
+                svc.start()
+        finally:
+            svc.stop()  # (before the fix it started, and outlived the test)
         assert svc.proc is not None and svc.proc.returncode == 2, str(refused.value)
         output = str(refused.value)
         assert "Traceback" not in output, output
@@ -412,8 +418,11 @@ def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_ma
         with sqlite3.connect(damaged / DB_NAME) as conn:
             conn.execute(f"UPDATE journal SET {sql} WHERE id = (SELECT MIN(id) FROM journal)")
         svc = ServiceProcess(tmp_path, ["--data-dir", str(damaged)])
-        with pytest.raises(RuntimeError) as refused:
-            svc.start()
+        try:
+            with pytest.raises(RuntimeError) as refused:
+                svc.start()
+        finally:
+            svc.stop()  # (a service that started after all must not outlive the test)
         assert svc.proc is not None and svc.proc.returncode == 2, str(refused.value)
         output = str(refused.value)
         assert "Traceback" not in output, output
@@ -451,8 +460,11 @@ def test_a_robot_or_tombstone_row_of_the_wrong_shape_is_a_clear_error_at_start(t
         with sqlite3.connect(damaged / DB_NAME) as conn:
             assert conn.execute(sql).rowcount == 1
         svc = ServiceProcess(tmp_path, ["--data-dir", str(damaged)])
-        with pytest.raises(RuntimeError) as refused:
-            svc.start()
+        try:
+            with pytest.raises(RuntimeError) as refused:
+                svc.start()
+        finally:
+            svc.stop()  # (before the fix a counter that was not a number started, and outlived the test)
         assert svc.proc is not None and svc.proc.returncode == 2, (name, str(refused.value))
         output = str(refused.value)
         assert "Traceback" not in output, output
