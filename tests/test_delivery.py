@@ -931,7 +931,7 @@ def test_scans_given_up_before_the_first_connection_are_reported_lost(tmp_path: 
     with ScanPublisher("early", "r1", connect=[service.zenoh_endpoint], backlog=backlog) as pub:
         for _ in range(15):
             pub.publish(near)
-        with service.start():
+        with service:  # (starts it: `with service.start()` started a second one, and left the first)
             assert pub.wait_connected(20), pub.last_connect_error
             for _ in range(5):
                 pub.publish(near)
