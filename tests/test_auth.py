@@ -232,3 +232,20 @@ def test_cors_allows_exactly_the_configured_origins_and_covers_auth_errors(
             httpx.put(f"{url}/maps/m", json={}, headers={"Origin": STRANGER}),
         ):
             assert "access-control-allow-origin" not in r.headers
+
+
+def test_a_refused_cors_preflight_is_a_json_error_naming_what_was_refused(tmp_path: Path) -> None:
+    """docs/api.md: every error answer is JSON with a `detail`. A preflight the CORS settings refuse
+    was Starlette's plain text `Disallowed CORS origin`, the one error a client could not parse."""
+    with ServiceProcess(tmp_path, ["--cors-origin", PAGE]) as svc:
+        url = f"{svc.base_url}/maps/m"
+        r = httpx.options(url, headers={"Origin": STRANGER, "Access-Control-Request-Method": "PUT"})
+        assert r.status_code == 400 and r.headers["content-type"] == "application/json", r.text
+        assert STRANGER in r.json()["detail"] and "--cors-origin" in r.json()["detail"]
+        assert "access-control-allow-origin" not in r.headers and "Origin" in r.headers["vary"]
+        r = httpx.options(url, headers={"Origin": PAGE, "Access-Control-Request-Method": "PATCH"})
+        assert r.status_code == 400 and r.headers["access-control-allow-origin"] == PAGE
+        assert "'PATCH' is not allowed" in r.json()["detail"], r.text
+        # An allowed preflight is answered as before.
+        r = httpx.options(url, headers={"Origin": PAGE, "Access-Control-Request-Method": "PUT"})
+        assert r.status_code == 200 and r.headers["access-control-allow-origin"] == PAGE

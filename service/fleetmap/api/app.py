@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI
-from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel
 
@@ -32,6 +31,7 @@ from fleetmap.api import (
     routes_tiles,
     static,
 )
+from fleetmap.api.cors import JsonCORS
 from fleetmap.api.events import router as events_router
 from fleetmap.api.http_semantics import (
     GZIP_LEVEL,
@@ -303,7 +303,7 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         # carries the CORS headers, the auth middleware's 401 and 403 included: without them the
         # page sees an opaque network error.
         app.add_middleware(
-            CORSMiddleware,
+            JsonCORS,
             allow_origins=settings.cors_origins,
             allow_methods=["GET", "PUT", "POST", "DELETE"],
             allow_headers=["*"],
