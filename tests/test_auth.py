@@ -3,6 +3,7 @@ loopback-only without tokens, and tokens never written to the logs."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -177,6 +178,37 @@ def test_token_files_no_client_could_use_are_refused_in_one_line(
     assert out.returncode == 2, out.stderr
     assert f"fleetmap serve: error: {path.parent}/{message}" in out.stderr
     assert "Traceback" not in out.stderr and "0123456789abcdef" not in out.stderr
+
+
+def test_the_spec_declares_the_tokens_and_refusals_of_every_operation(
+    tmp_path: Path, token_file: Path
+) -> None:
+    """Each operation of openapi/openapi.json that a token server guards lists the token's schemes
+    (optional: a server without tokens needs none) and the 401 / 403 the real service answers it
+    with. The schemes were declared in the components only, applied to no operation: Swagger UI's
+    Authorize sent the token with no request (every write tried from /docs was a 401), and a
+    client checking answers against the spec found the 401 and 403 undocumented."""
+    spec = json.loads((Path(__file__).resolve().parents[1] / "openapi" / "openapi.json").read_text())
+    args = ["--auth-tokens", str(token_file), "--require-read-token"]
+    with ServiceProcess(tmp_path, args) as svc, httpx.Client(base_url=svc.base_url) as client:
+        for path, operations in spec["paths"].items():
+            url = path.format(map_id="m", z=0, x=0, y=0)
+            for method, operation in operations.items():
+                where = f"{method.upper()} {path}"
+                schemes = [name for scheme in operation.get("security", []) for name in scheme]
+                r = client.request(method, url)
+                if r.status_code != 401:  # open to anyone
+                    assert path in ("/healthz", "/session"), (where, r.status_code)
+                    continue
+                assert "401" in operation["responses"] and "bearerToken" in schemes, where
+                if path == "/session":  # signing in: a token of any role, never a cookie
+                    continue
+                assert {} in operation["security"], where  # a tokenless server needs none
+                r = client.request(method, url, headers=bearer(READ))
+                if r.status_code == 403:
+                    assert "403" in operation["responses"], where
+                else:  # a read: a browser's session cookie may stand for the token
+                    assert "sessionCookie" in schemes, where
 
 
 PAGE = "https://viewer.example"  # an origin allowed by --cors-origin

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -54,7 +55,7 @@ from fleetmap.api_models import (
     RobotsEvent,
     TilesEvent,
 )
-from fleetmap.auth import SESSION_COOKIE, AuthMiddleware, TokenFile, TokenSet
+from fleetmap.auth import SESSION_COOKIE, SESSION_PATH, AuthMiddleware, TokenFile, TokenSet, required_role
 from fleetmap.failed_signins import (
     DEFAULT_MAX_CLIENTS,
     DEFAULT_MAX_FAILURES,
@@ -351,8 +352,9 @@ def _install_openapi(app: FastAPI) -> None:
                 tags=app.openapi_tags,
             )
             components = schema.setdefault("components", {})
-            # Documented, not required per operation: whether tokens are needed depends on how the
-            # server runs (see DESCRIPTION), and clients of a tokenless server send none.
+            # Declared optional on each operation (`_declare_security`): whether tokens are needed
+            # depends on how the server runs (see DESCRIPTION), and clients of a tokenless server
+            # send none.
             components["securitySchemes"] = {
                 "bearerToken": {
                     "type": "http",
@@ -373,6 +375,7 @@ def _install_openapi(app: FastAPI) -> None:
                 schemas[model.__name__] = extra
             _declare_json_revalidation(schema)
             _declare_map_etags(schema)
+            _declare_security(schema)
             app.openapi_schema = _finite(schema)
         return app.openapi_schema
 
@@ -425,6 +428,49 @@ def _declare_map_etags(schema: dict[str, Any]) -> None:
     paths["/maps/{map_id}"]["get"]["responses"]["304"] = {
         "description": "Not modified: If-None-Match holds the map's ETag (the same map, configuration)"
     }
+
+
+#: The 401 and 403 of an operation that needs a token when the server runs with tokens, by the role
+#: it needs (`fleetmap.auth.required_role`).
+_AUTH_ERRORS = {
+    "read": {
+        "401": "With API tokens and `--require-read-token`: no token, or an unknown or revoked one "
+        "(a session cookie's too)",
+    },
+    "write": {
+        "401": "With API tokens (`--auth-tokens`): no token, or an unknown or revoked one (a session "
+        "cookie never stands for a token on a write)",
+        "403": "With API tokens: the token's role is too low (a `read` token)",
+    },
+}
+
+
+def _declare_security(schema: dict[str, Any]) -> None:
+    """Declare on every operation that may need a token the schemes that carry one, optional (`{}`:
+    a server without tokens needs none), and the 401 / 403 it answers without a right one. Declared
+    only in the components, the schemes applied to no operation: Swagger UI's Authorize sent the
+    token with none of them (every write tried from /docs was a 401), and generated clients had no
+    place for it nor a documented 401."""
+    error = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorResponse"}}}
+    challenge = {"WWW-Authenticate": {"description": 'Bearer realm="fleetmap"', "schema": {"type": "string"}}}
+    for path, operations in schema.get("paths", {}).items():
+        if path == SESSION_PATH:  # its own: signing in needs a token (routes_session)
+            continue
+        concrete = re.sub(r"\{[^}]*\}", "x", path)
+        for method, operation in operations.items():
+            needed = required_role(method.upper(), concrete, require_read=True)
+            if needed is None:
+                continue
+            schemes: list[dict[str, list[str]]] = [{"bearerToken": []}]
+            if needed == "read":  # a browser's session cookie stands for its token on reads only
+                schemes.append({"sessionCookie": []})
+            operation["security"] = [*schemes, {}]
+            responses = operation["responses"]
+            for status, description in _AUTH_ERRORS[needed].items():
+                answer: dict[str, Any] = {"description": description, "content": error}
+                if status == "401":
+                    answer["headers"] = challenge
+                responses.setdefault(status, answer)
 
 
 def _finite(node: Any) -> Any:
