@@ -33,7 +33,8 @@ API_DOC = REPO_DIR / "docs" / "api.md"
 #: The api.md examples that make the map the others read, run first: `PUT` the map, `POST` its scan.
 SETUP_COMMANDS = ("-X PUT $U/maps/warehouse ", "$U/maps/warehouse/scans?robot_id=robot1")
 #: Options the docs give to other programs than `fleetmap`.
-OTHER_TOOLS_OPTIONS = {"--build", "--data-binary", "--max-time", "--ros-args"}
+#: curl's --http1.1 is matched as --http1.
+OTHER_TOOLS_OPTIONS = {"--build", "--data-binary", "--http1", "--http2", "--max-time", "--ros-args"}
 #: `fleetmap_*` names that are not metrics: a Python package, the browser session's cookie.
 NOT_METRICS = {"fleetmap_client", "fleetmap_session"}
 

@@ -255,6 +255,34 @@ def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: Serv
     assert httpx.post(f"{service.base_url}/maps/m/cells", json={"points": points}).status_code == 200
 
 
+def test_a_request_to_switch_protocols_with_a_body_is_refused_not_run_without_it(
+    service: ServiceProcess,
+) -> None:
+    """`curl --http2` over http:// asks to switch to HTTP/2 (`Upgrade: h2c`). httptools takes what
+    follows such a head for the other protocol's bytes, and uvicorn ran the request without its body:
+    `PUT /maps/{id}` with `{"resolution": 0.1}` made a map of the default 0.05 m, answered 201. Such a
+    request is refused now, nothing changed; one without a body is answered as any other."""
+    upgrade = (
+        "Upgrade: h2c\r\nConnection: Upgrade, HTTP2-Settings\r\nHTTP2-Settings: AAMAAABkAAQCAAAAAAIAAAAA\r\n"
+    )
+    config = b'{"resolution": 0.1}'
+    requests = [
+        f"PUT /maps/h2c HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(config)}\r\n{upgrade}\r\n".encode()
+        + config,
+        f"PUT /maps/h2c HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+        f"Transfer-Encoding: chunked\r\n{upgrade}\r\n".encode()
+        + b"%x\r\n%s\r\n0\r\n\r\n" % (len(config), config),
+    ]
+    for request in requests:
+        status, content_type, body = raw_answer(service, request)
+        assert (status, content_type) == (400, "application/json"), body
+        assert "switch protocols" in str(body["detail"]) and "--http1.1" in str(body["detail"])
+    assert httpx.get(f"{service.base_url}/maps/h2c").status_code == 404
+    r = httpx.get(f"{service.base_url}/maps/m", headers={"Upgrade": "h2c", "Connection": "Upgrade"})
+    assert r.status_code == 200 and r.json()["id"] == "m"
+
+
 def test_a_refused_head_s_answer_is_not_lost_to_a_reset(service: ServiceProcess) -> None:
     """A head refused while its client is still sending (a 100 kB URL followed by 4 MB more): the
     service read only the start of it. Closing at once, with the rest unread, made the kernel reset

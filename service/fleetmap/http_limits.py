@@ -32,6 +32,14 @@ uvicorn's text/plain (`send_400_response`): the same bytes on the wire otherwise
 Like every answer of the app, these answers carry `Cache-Control: no-cache` and the security headers
 (`COMMON_HEADERS`).
 
+A request that asks to switch protocols (`Upgrade: h2c`, as `curl --http2` sends over http://) and
+has a body is refused too, with a JSON 400 (`UPGRADE_WITH_BODY`), before it reaches the app: the
+service speaks no other protocol, and httptools takes the bytes after such a head for the other
+protocol's, so uvicorn handed the app the request without its body. `curl --http2 -X PUT -d
+'{"resolution": 0.1}'` created a map of the default 0.05 m, answered 201; a scan was refused as
+empty. Without a body there is nothing to lose: the request is answered over HTTP/1.1, its
+`Upgrade` ignored (RFC 9110, 7.8).
+
 uvicorn logs a warning for each request it refuses so ("Invalid HTTP request received.", also for
 the 414 and 431 of a head that arrived whole, and "Unsupported upgrade request."): anyone can send
 them, and a client looping on bad heads wrote 10 lines a second of one sentence. The protocol's
@@ -112,6 +120,11 @@ INVALID_REQUEST = error_response(400, "Bad Request", "invalid HTTP request: it c
 URL_TOO_LONG = error_response(
     414, "URI Too Long", f"the request line is longer than {MAX_HEAD_BYTES} bytes: send less in the URL"
 )
+UPGRADE_WITH_BODY = error_response(
+    400, "Bad Request",
+    "the request asks to switch protocols (an Upgrade header) and has a body, which this server "
+    "cannot read then: send it without Upgrade (curl: --http1.1, not --http2, for an http:// URL)",
+)  # fmt: skip
 HEAD_TOO_LARGE = error_response(
     431, "Request Header Fields Too Large",
     f"the request's head (request line and headers) is longer than {MAX_HEAD_BYTES} bytes",
@@ -287,9 +300,22 @@ def bounded_http_protocol(
                 # whose handler (uvicorn's) answers with `send_400_response`, i.e. this refusal.
                 self._refusal = URL_TOO_LONG if len(self.url) >= MAX_HEAD_BYTES else HEAD_TOO_LARGE
                 raise ValueError(f"request head of {size} bytes")
+            if self.parser.should_upgrade() and not self._should_upgrade() and self._has_body():
+                # httptools ends the request at its head and leaves the body to the other protocol:
+                # the app would get the request without it (see the module's docstring).
+                self._refusal = UPGRADE_WITH_BODY
+                raise ValueError("a request to switch protocols with a body")
             self._disarm()
             self._arm(body_timeout)
             super().on_headers_complete()
+
+        def _has_body(self) -> bool:
+            """Whether the current request's head announces a body (uvicorn keeps its headers'
+            names in lower case)."""
+            return any(
+                name == b"transfer-encoding" or (name == b"content-length" and value.strip() != b"0")
+                for name, value in self.headers
+            )
 
         def on_message_complete(self) -> None:
             self._head_bytes = 0  # what follows is the next request's head
