@@ -283,6 +283,29 @@ def test_a_request_to_switch_protocols_with_a_body_is_refused_not_run_without_it
     assert r.status_code == 200 and r.json()["id"] == "m"
 
 
+def test_a_request_to_switch_protocols_without_a_body_is_answered_quietly_and_so_is_the_next(
+    service: ServiceProcess,
+) -> None:
+    """A request with `Upgrade` (h2c, or websocket: the service serves neither) and no body is
+    answered over HTTP/1.1, as RFC 9110 lets a server ignore the `Upgrade`. uvicorn dropped what the
+    client sent after it (a pipelined request was never answered) and logged two warnings for each,
+    one telling the operator to install a WebSocket library."""
+    already = len(service.logs())
+    for protocol in ("h2c", "websocket"):
+        upgrading = f"GET /maps/m HTTP/1.1\r\nHost: t\r\nUpgrade: {protocol}\r\nConnection: Upgrade\r\n\r\n"
+        closing = "GET /healthz HTTP/1.1\r\nHost: t\r\nConnection: close\r\n\r\n"
+        with socket.create_connection(("127.0.0.1", service.port), timeout=10) as sock:
+            sock.sendall((upgrading + closing).encode())  # one piece: pipelined
+            answer = b""
+            while chunk := sock.recv(65536):
+                answer += chunk
+        assert answer.count(b"HTTP/1.1 200 OK\r\n") == 2, answer[:300]
+        assert b'"id":"m"' in answer and b'"status":"ok"' in answer
+    assert httpx.get(f"{service.base_url}/healthz").status_code == 200  # its log line is written
+    logged = service.logs()[already:]
+    assert "upgrade" not in logged.lower() and "WebSocket" not in logged, logged
+
+
 def test_a_refused_head_s_answer_is_not_lost_to_a_reset(service: ServiceProcess) -> None:
     """A head refused while its client is still sending (a 100 kB URL followed by 4 MB more): the
     service read only the start of it. Closing at once, with the rest unread, made the kernel reset

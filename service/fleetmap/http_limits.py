@@ -38,10 +38,12 @@ service speaks no other protocol, and httptools takes the bytes after such a hea
 protocol's, so uvicorn handed the app the request without its body. `curl --http2 -X PUT -d
 '{"resolution": 0.1}'` created a map of the default 0.05 m, answered 201; a scan was refused as
 empty. Without a body there is nothing to lose: the request is answered over HTTP/1.1, its
-`Upgrade` ignored (RFC 9110, 7.8).
+`Upgrade` ignored (RFC 9110, 7.8), and nothing is logged (uvicorn warned of each, advising to
+install a WebSocket library the service has no use for); what the client sent after it is read as
+HTTP again (uvicorn dropped it: a request pipelined behind it was never answered).
 
 uvicorn logs a warning for each request it refuses so ("Invalid HTTP request received.", also for
-the 414 and 431 of a head that arrived whole, and "Unsupported upgrade request."): anyone can send
+the 414 and 431 of a head that arrived whole): anyone can send
 them, and a client looping on bad heads wrote 10 lines a second of one sentence. The protocol's
 warnings go through a `RateLimitedLog`: each sentence at most once per LOG_INTERVAL, with the count
 of those held back.
@@ -62,6 +64,7 @@ import asyncio
 import json
 import logging
 import resource
+import sys
 from typing import Any, cast
 
 from fleetmap.rate_limited_log import RateLimitedLog
@@ -196,6 +199,8 @@ def bounded_http_protocol(
             self._refusal: bytes | None = None
             # A refusal was sent: what the client still sends is read and dropped (`_refuse`).
             self._lingering = False
+            # The bytes `data_received` is parsing (`_unsupported_upgrade_warning` reads on in them).
+            self._received = b""
             # Armed while the transport's write buffer is full (`pause_writing`): the client reads
             # nothing of its answer.
             self._send_stall: asyncio.TimerHandle | None = None
@@ -203,6 +208,7 @@ def bounded_http_protocol(
         def data_received(self, data: bytes) -> None:
             if self._lingering:
                 return
+            self._received = data
             in_head = self._head_bytes is not None
             if in_head:
                 self._head_bytes = (self._head_bytes or 0) + len(data)
@@ -219,6 +225,18 @@ def bounded_http_protocol(
             # refused here, by the URL parser: the same 414 as one that arrives slowly.
             too_long = len(getattr(self, "url", b"")) >= MAX_HEAD_BYTES
             self._refuse(self._refusal or (URL_TOO_LONG if too_long else INVALID_REQUEST))
+
+        def _unsupported_upgrade_warning(self) -> None:
+            """uvicorn's handling of a request that asks to switch to a protocol it does not serve
+            (h2c; websocket without a WebSocket library), called while it handles httptools'
+            `HttpParserUpgrade`, whose argument is where the other protocol would begin in the bytes
+            received. The service speaks HTTP/1.1 only and ignores the `Upgrade` (RFC 9110, 7.8): the
+            request, which has no body (`on_headers_complete` refuses one that has), is answered as
+            any other, so there is nothing to warn of; and what follows it is HTTP, to be read on."""
+            error = sys.exc_info()[1]
+            offset = error.args[0] if error is not None and error.args else None
+            if isinstance(offset, int) and 0 <= offset < len(self._received):
+                self.data_received(self._received[offset:])
 
         def _refuse(self, answer: bytes) -> None:
             """Send `answer` and end the connection, so that the client can read it. Closing at once,
