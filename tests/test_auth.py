@@ -266,6 +266,31 @@ def test_cors_allows_exactly_the_configured_origins_and_covers_auth_errors(
             assert "access-control-allow-origin" not in r.headers
 
 
+def test_cors_origins_no_browser_sends_are_refused_at_start(tmp_path: Path) -> None:
+    """The CORS middleware compares a request's `Origin` with each `--cors-origin` as it is: a value no
+    browser sends (with the trailing slash an address bar shows, without its scheme, in capitals, with
+    the default port) let no page in, and the service started without a word."""
+    cases = [
+        ("https://viewer.example/", "(an origin has nothing after its host and port, not even a '/')"),
+        ("viewer.example", "(an origin starts with its scheme: https://...)"),
+        ("https://Viewer.example", "(browsers send it in lower case)"),
+        ("https://viewer.example:443", "(browsers leave the default port 443 of https out)"),
+    ]
+    for origin, hint in cases:
+        done = subprocess.run(
+            [sys.executable, "-m", "fleetmap.server", "--in-memory", "--cors-origin", PAGE, origin],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert done.returncode == 2 and f"got {origin!r} {hint}" in done.stderr, (origin, done.stderr)
+    # As browsers send them: a port that is not the default, an IPv6 address in brackets.
+    with ServiceProcess(
+        tmp_path, ["--cors-origin", "http://localhost:5173", "http://[::1]:8080", PAGE]
+    ) as svc:
+        for origin in ("http://localhost:5173", "http://[::1]:8080", PAGE):
+            r = httpx.get(f"{svc.base_url}/healthz", headers={"Origin": origin})
+            assert r.headers.get("access-control-allow-origin") == origin, origin
+
+
 def test_a_refused_cors_preflight_is_a_json_error_naming_what_was_refused(tmp_path: Path) -> None:
     """docs/api.md: every error answer is JSON with a `detail`. A preflight the CORS settings refuse
     was Starlette's plain text `Disallowed CORS origin`, the one error a client could not parse."""

@@ -406,9 +406,10 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
         elif option == "--ros-domain":  # a number without a default (it falls back to $ROS_DOMAIN_ID)
             argv, text = [option, "5"], "5"
         elif action.nargs == "+":
-            # Lists of anything but addresses (Zenoh endpoints, origins) take any text.
+            # Lists of anything but addresses and origins (Zenoh endpoints) take any text.
             items = {
                 "--forwarded-allow-ips": ["10.0.0.1", "10.0.0.2"],
+                "--cors-origin": ["http://a", "https://b:8443"],
                 "--ros-publish-map": ["lab", "wh=/wh/map"],
             }.get(option, ["tcp/a:1", "tcp/b:2"])
             argv, text = [option, *items], "  ".join(items)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import re
 from collections.abc import Callable
 from typing import Any, NoReturn, TypeVar
 
@@ -221,8 +222,10 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         "--cors-origin",
         nargs="+",
         default=[],
+        type=_cors_origin,
         metavar="ORIGIN",
-        help="origins allowed to call the API from a browser (CORS), matched exactly ('*': any); "
+        help="origins allowed to call the API from a browser (CORS), as a browser sends them "
+        "(https://viewer.example, http://localhost:5173: no path), matched exactly ('*': any); "
         "default none",
     )
     p.add_argument(
@@ -496,6 +499,39 @@ def _proxy_address(text: str) -> str:
         message += " (separate addresses with spaces, not commas)"
     elif ":" not in text and any(c.isalpha() for c in text):  # a name, not a mistyped IPv6 address
         message += " (host names are not looked up)"
+    raise argparse.ArgumentTypeError(message)
+
+
+#: An origin as a browser sends it in `Origin` (RFC 6454, 6.2): a scheme, `://`, a host (a name, or
+#: an IPv6 address in brackets) and a port, in lower case, with nothing after.
+_ORIGIN = re.compile(r"^[a-z][a-z0-9+.-]*://(\[[0-9a-f:.]+\]|[a-z0-9._~-]+)(:[0-9]{1,5})?$")
+#: Ports a browser leaves out of an origin: the scheme's default.
+_DEFAULT_PORTS = {"http": 80, "https": 443}
+
+
+def _cors_origin(text: str) -> str:
+    """An argparse `type` for `--cors-origin`: `*`, `null`, or an origin as a browser sends it in
+    its `Origin` header. The CORS middleware compares that header with each value as it is, so a value
+    no browser sends never matched, and nothing said so: `https://viewer.example/` (with the slash
+    an address bar shows), `viewer.example` (no scheme), `https://Viewer.example`, or
+    `https://viewer.example:443` (browsers leave the default port out) let no page in."""
+    text = text.strip()
+    if text in ("*", "null"):
+        return text
+    match = _ORIGIN.match(text)
+    scheme, _, rest = text.partition("://")
+    port = match.group(2) if match else None
+    if match and not (port and (int(port[1:]) > 65535 or _DEFAULT_PORTS.get(scheme) == int(port[1:]))):
+        return text
+    message = f"expected an origin as a browser sends it (https://viewer.example:8443) or '*', got {text!r}"
+    if not rest:
+        message += " (an origin starts with its scheme: https://...)"
+    elif any(c in rest for c in "/?#"):
+        message += " (an origin has nothing after its host and port, not even a '/')"
+    elif text != text.lower():
+        message += " (browsers send it in lower case)"
+    elif port and int(port[1:]) <= 65535:
+        message += f" (browsers leave the default port {port[1:]} of {scheme} out)"
     raise argparse.ArgumentTypeError(message)
 
 
