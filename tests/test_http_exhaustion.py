@@ -301,6 +301,15 @@ def test_a_request_to_switch_protocols_without_a_body_is_answered_quietly_and_so
                 answer += chunk
         assert answer.count(b"HTTP/1.1 200 OK\r\n") == 2, answer[:300]
         assert b'"id":"m"' in answer and b'"status":"ok"' in answer
+    # Many in one read: each is answered (the rest after each was parsed in a call of its own, a
+    # recursion that a thousand took past Python's limit: no answer, and a fatal error logged).
+    upgrading = "GET /healthz HTTP/1.1\r\nHost: t\r\nUpgrade: h2c\r\nConnection: Upgrade\r\n\r\n"
+    with socket.create_connection(("127.0.0.1", service.port), timeout=30) as sock:
+        sock.sendall((upgrading * 1000 + closing).encode())
+        answer = b""
+        while chunk := sock.recv(65536):
+            answer += chunk
+    assert answer.count(b"HTTP/1.1 200 OK\r\n") == 1001
     assert httpx.get(f"{service.base_url}/healthz").status_code == 200  # its log line is written
     logged = service.logs()[already:]
     assert "upgrade" not in logged.lower() and "WebSocket" not in logged, logged

@@ -199,25 +199,30 @@ def bounded_http_protocol(
             self._refusal: bytes | None = None
             # A refusal was sent: what the client still sends is read and dropped (`_refuse`).
             self._lingering = False
-            # The bytes `data_received` is parsing (`_unsupported_upgrade_warning` reads on in them).
+            # The bytes `data_received` is parsing, and what of them follows a request that asked
+            # to switch protocols (`_unsupported_upgrade_warning`), to be parsed next.
             self._received = b""
+            self._after_upgrade = b""
             # Armed while the transport's write buffer is full (`pause_writing`): the client reads
             # nothing of its answer.
             self._send_stall: asyncio.TimerHandle | None = None
 
         def data_received(self, data: bytes) -> None:
-            if self._lingering:
-                return
-            self._received = data
-            in_head = self._head_bytes is not None
-            if in_head:
-                self._head_bytes = (self._head_bytes or 0) + len(data)
-                self._request_line_ended = self._request_line_ended or b"\n" in data
-            super().data_received(data)
-            # Still in the same head after all of `data`: every byte of it was head. (A head that
-            # arrived whole in this chunk, at most 256 KiB, is measured by `on_headers_complete`.)
-            if in_head and (self._head_bytes or 0) > MAX_HEAD_BYTES and not self.transport.is_closing():
-                self._refuse(HEAD_TOO_LARGE if self._request_line_ended else URL_TOO_LONG)
+            # A loop, not a call per request that asked to switch protocols: a client pipelining
+            # thousands of them in one read would otherwise go past Python's recursion limit.
+            while data and not self._lingering:
+                self._received, self._after_upgrade = data, b""
+                in_head = self._head_bytes is not None
+                if in_head:
+                    self._head_bytes = (self._head_bytes or 0) + len(data)
+                    self._request_line_ended = self._request_line_ended or b"\n" in data
+                super().data_received(data)
+                # Still in the same head after all of `data`: every byte of it was head. (A head
+                # that arrived whole in this chunk, at most 256 KiB, is measured by
+                # `on_headers_complete`.)
+                if in_head and (self._head_bytes or 0) > MAX_HEAD_BYTES and not self.transport.is_closing():
+                    self._refuse(HEAD_TOO_LARGE if self._request_line_ended else URL_TOO_LONG)
+                data = self._after_upgrade
 
         def send_400_response(self, msg: str) -> None:
             # uvicorn's answer to what httptools cannot parse, as JSON (its msg says nothing more
@@ -236,7 +241,7 @@ def bounded_http_protocol(
             error = sys.exc_info()[1]
             offset = error.args[0] if error is not None and error.args else None
             if isinstance(offset, int) and 0 <= offset < len(self._received):
-                self.data_received(self._received[offset:])
+                self._after_upgrade = self._received[offset:]  # parsed next by `data_received`
 
         def _refuse(self, answer: bytes) -> None:
             """Send `answer` and end the connection, so that the client can read it. Closing at once,
