@@ -71,6 +71,21 @@ def test_spec_is_complete_and_typed() -> None:
     assert "application/x-fleetmap-scan" in body
 
 
+def test_every_503_declares_its_retry_after() -> None:
+    """Every 503 carries `Retry-After` (docs/api.md, "Errors"), and a generated client reads the
+    headers it may use from the spec: the spec declared it on none."""
+    spec = json.loads(COMMITTED.read_text(encoding="utf-8"))
+    answers = [
+        (f"{method.upper()} {path}", op["responses"]["503"])
+        for path, item in spec["paths"].items()
+        for method, op in item.items()
+        if "503" in op["responses"]
+    ]
+    assert len(answers) >= 8
+    for where, answer in answers:
+        assert answer.get("headers", {}).get("Retry-After", {}).get("schema") == {"type": "integer"}, where
+
+
 def test_docs_describe_every_operation() -> None:
     """docs/api.md has a section for every path of the spec (so a new endpoint gets documented)."""
     spec = json.loads(COMMITTED.read_text(encoding="utf-8"))

@@ -53,6 +53,11 @@ _DESCRIPTIONS = {
 
 #: Seconds a 503 tells the client to wait before it retries (`Retry-After`), unless the route says.
 RETRY_AFTER_SECONDS = 1
+#: The spec of the `Retry-After` header every 503 carries.
+_RETRY_AFTER_SPEC = {
+    "description": f"seconds to wait before retrying ({RETRY_AFTER_SECONDS} unless the answer says more)",
+    "schema": {"type": "integer"},
+}
 
 
 def error_responses(
@@ -61,7 +66,12 @@ def error_responses(
     """OpenAPI `responses` entries for the error statuses a route may answer; `described` gives the
     route's own description of a status (and adds it), where the shared one would mislead."""
     descriptions = {s: _DESCRIPTIONS[s] for s in statuses} | (described or {})
-    return {s: {"model": ErrorResponse, "description": text} for s, text in sorted(descriptions.items())}
+    responses: dict[int | str, dict[str, Any]] = {}
+    for status, text in sorted(descriptions.items()):
+        responses[status] = {"model": ErrorResponse, "description": text}
+        if status == 503:  # every one carries it (`_json`): a generated client reads it from the spec
+            responses[status]["headers"] = {"Retry-After": _RETRY_AFTER_SPEC}
+    return responses
 
 
 class ApiError(Exception):
