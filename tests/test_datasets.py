@@ -185,6 +185,22 @@ def test_front_laser_offset_in_force_at_each_line(tmp_path: Path) -> None:
     np.testing.assert_allclose(poses, expected, atol=1e-12)
 
 
+@pytest.mark.parametrize("compress", [False, True])
+def test_a_byte_order_mark_does_not_hide_the_first_line(tmp_path: Path, compress: bool) -> None:
+    """A log saved with a UTF-8 byte order mark (as Notepad saves) reads as without one: its first
+    line's tag was read as '\\ufeffPARAM', an unknown message skipped silently, so the laser offset
+    it set was lost and every scan lay 0.5 m off (a first FLASER line was lost the same way)."""
+    lines = ["PARAM robot_frontlaser_offset 0.5 1.0 host 1.0", flaser([1.0, 1.0], 1.0, 2.0, 0.0)]
+    plain = load_dataset(write_log(tmp_path / "plain.log", lines))
+    path = write_log(tmp_path / "bom.log", lines)
+    data = b"\xef\xbb\xbf" + path.read_bytes()
+    path.write_bytes(gzip.compress(data) if compress else data)
+    np.testing.assert_array_equal(load_dataset(path).poses, plain.poses)
+    np.testing.assert_allclose(plain.poses, [[1.5, 2.0, 0.0]])
+    path.write_bytes(b"\xef\xbb\xbf" + write_log(tmp_path / "scan.log", lines[1:]).read_bytes())
+    assert len(load_dataset(path)) == 1
+
+
 def test_front_laser_max_param_in_force(tmp_path: Path) -> None:
     lines = [
         flaser([1.0, 50.0]),

@@ -125,12 +125,15 @@ def read_carmen(
 
 
 def _numbered_lines(path: Path) -> Iterator[tuple[int, str]]:
-    """(1-based line number, decoded line) of a plain or gzip file."""
+    """(1-based line number, decoded line) of a plain or gzip file. A UTF-8 byte order mark at the
+    start of the file is not part of its first line: an editor that saves with one (Notepad) made
+    that line's tag "\ufeffPARAM" or "\ufeffFLASER", an unknown message skipped without a word, so
+    a log lost its first scan, or its robot_frontlaser_offset, which moved every later scan."""
     opener = gzip.open if is_gzip(path) else open
     with opener(path, "rb") as f:
         for lineno, raw in enumerate(f, start=1):
             try:
-                yield lineno, raw.decode("utf-8")
+                yield lineno, raw.decode("utf-8-sig" if lineno == 1 else "utf-8")
             except UnicodeDecodeError:
                 raise DatasetError(f"{path}:{lineno}: not UTF-8 text: not a CARMEN log") from None
 
