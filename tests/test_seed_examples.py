@@ -76,6 +76,26 @@ def test_seed004_command_writes_the_belief(tmp_path: Path) -> None:
     np.testing.assert_allclose(saved, seed004.run())
 
 
+def test_seed004_saves_at_the_name_given_or_says_why_not(tmp_path: Path) -> None:
+    """`--out` is the file written, whatever its name: np.save of a path without `.npy` added it,
+    so `--out DIR` wrote DIR.npy beside the folder and `--out m_f` wrote m_f.npy, each saying
+    'saved' the name given; an --out that cannot be written was a traceback after the run."""
+    command = [sys.executable, "-m", "fleetmap.examples.seed004", "--out"]
+    out = tmp_path / "m_f"
+    done = subprocess.run([*command, str(out)], capture_output=True, text=True, check=True)
+    assert done.stdout.splitlines()[-1] == f"saved {out}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m_f"]
+    np.testing.assert_allclose(np.load(out), seed004.run())
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    for bad, reason in ((folder, "Is a directory"), (tmp_path / "none" / "m.npy", "No such file")):
+        failed = subprocess.run([*command, str(bad)], capture_output=True, text=True)
+        assert failed.returncode == 2 and failed.stdout == ""
+        assert f"error: cannot write --out {bad}: {reason}" in failed.stderr
+        assert "Traceback" not in failed.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "m_f"]
+
+
 def hand_fused(distance: float) -> tuple[float, int]:
     """The seed002 fusion done by hand: mean of (z - d)/t over the measurements whose band holds d."""
     values = [(z - distance) / seed002.TRUNCATION for z in seed002.MEASUREMENTS]

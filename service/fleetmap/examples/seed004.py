@@ -124,10 +124,18 @@ def run() -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True, type=Path, help="where to save m_f (.npy)")
+    parser.add_argument("--out", required=True, type=Path, help="the .npy file to save m_f in")
     args = parser.parse_args(argv)
-    m_f = run()
-    np.save(args.out, m_f)
+    # The file is opened first, so that an --out that cannot be written is one line, not a traceback
+    # after the run; and written through its handle, at the name given: np.save of a path adds
+    # ".npy" to a name without it, so `--out /tmp` wrote /tmp.npy and `--out m_f` m_f.npy, and the
+    # command said "saved /tmp", "saved m_f".
+    try:
+        with open(args.out, "wb") as file:
+            m_f = run()
+            np.save(file, m_f)
+    except OSError as exc:
+        parser.error(f"cannot write --out {args.out}: {exc.strerror}")
     for i, j in ((40, 10), (30, 40), (35, 40), (0, 50), (10, 5), (20, 15), (25, 50)):
         print(f"m_f[{i}, {j}] = {m_f[i, j]:.6f}")
     print(f"saved {args.out}")
