@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .base import DEFAULT_RANGE_MIN, UNBOUNDED_RANGE_MAX, Dataset, DatasetError
+from .base import DEFAULT_RANGE_MIN, UNBOUNDED_RANGE_MAX, Dataset, DatasetError, open_log
 from .carmen import read_carmen
 from .matlab import HDF5_MAGIC, read_matlab
 
@@ -47,8 +47,11 @@ def load_dataset(
     can't be opened.
     """
     path = Path(path)
-    with open(path, "rb") as f:
-        head = f.read(8)
-    if path.suffix.lower() == ".mat" or head.startswith(_MAT_HEADER) or head == HDF5_MAGIC:
-        return read_matlab(path, range_min=range_min, range_max=range_max)
-    return read_carmen(path, range_min=range_min, range_max=range_max)
+    # Opened once (`open_log`): a pipe's first bytes, read here to tell the format, are gone from
+    # it when it is opened again.
+    with open_log(path) as stream:
+        head = stream.read(8)
+        stream.seek(0)
+        if path.suffix.lower() == ".mat" or head.startswith(_MAT_HEADER) or head == HDF5_MAGIC:
+            return read_matlab(path, range_min=range_min, range_max=range_max, stream=stream)
+        return read_carmen(path, range_min=range_min, range_max=range_max, stream=stream)

@@ -9,9 +9,12 @@ largest real log, 2008 scans of 360 beams, is under 6 MB).
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -33,6 +36,18 @@ class DatasetError(ValueError):
 
     The message names the file and, for text formats, the 1-based line number.
     """
+
+
+@contextmanager
+def open_log(path: Path) -> Iterator[BinaryIO]:
+    """The file at `path`, opened once, as a binary stream that can seek back to its start: the file
+    itself, or for a pipe (`fleetmap build <(zcat log.gz)`, /dev/stdin), which can be read only
+    once, all of its bytes in memory (a log is a few MB). The readers look at a file's first bytes
+    to tell its format and then read it from the start: opened again, a pipe had lost those bytes
+    and all its first read had buffered, so a small log read as empty, the Intel log lost its first
+    scan without a word, and a gzipped one was 'not UTF-8 text'. Raises `OSError` as `open` does."""
+    with open(path, "rb") as file:
+        yield file if file.seekable() else io.BytesIO(file.read())
 
 
 def check_range_window(range_min: float | None, range_max: float | None) -> tuple[float, float | None]:

@@ -49,11 +49,13 @@ from the previous scan's; mirroring the beam order raises that to 0.3-0.4 m, and
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import math
 import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -65,6 +67,7 @@ from .base import (
     DatasetError,
     check_range_window,
     dataset_name,
+    open_log,
 )
 
 #: `range_max` of FLASER scans when the log has no `robot_front_laser_max` PARAM.
@@ -88,29 +91,37 @@ def flaser_angles(n: int) -> np.ndarray:
     return -math.pi / 2 + step * np.arange(n, dtype=np.float64)
 
 
-def is_gzip(path: Path) -> bool:
-    """True when the file starts with the gzip magic bytes, whatever its name."""
-    with open(path, "rb") as f:
-        return f.read(2) == GZIP_MAGIC
-
-
 def read_carmen(
-    path: str | Path, *, range_min: float | None = None, range_max: float | None = None
+    path: str | Path,
+    *,
+    range_min: float | None = None,
+    range_max: float | None = None,
+    stream: BinaryIO | None = None,
 ) -> Dataset:
     """Read a CARMEN log (plain text or gzip, detected by content) into a `Dataset`.
 
     `range_min` (default 1e-3) and `range_max` (default: the log's, per message) override the
-    log's values for every scan; `range_max=math.inf` means no limit. Raises `DatasetError` naming
-    the file and line for a malformed line, for a file that is not text, and for a log without any
-    FLASER or ROBOTLASER1 message. Raises `FileNotFoundError` / `OSError` when the file can't be opened.
+    log's values for every scan; `range_max=math.inf` means no limit. `stream`, when given, is the
+    file already open (`open_log`, at its start), read instead of opening `path`, which then names
+    it only. Raises `DatasetError` naming the file and line for a malformed line, for a file that
+    is not text, and for a log without any FLASER or ROBOTLASER1 message. Raises
+    `FileNotFoundError` / `OSError` when the file can't be opened.
     """
     path = Path(path)
     rmin, rmax_override = check_range_window(range_min, range_max)
+    if stream is None:
+        with open_log(path) as opened:
+            return _read_carmen(opened, path, rmin, rmax_override)
+    return _read_carmen(stream, path, rmin, rmax_override)
+
+
+def _read_carmen(stream: BinaryIO, path: Path, rmin: float, rmax_override: float | None) -> Dataset:
+    """`read_carmen` of an open `stream`, the range window checked."""
     builder = DatasetBuilder()
     state = _ParseState()
     lineno = 0
     try:
-        for lineno, line in _numbered_lines(path):
+        for lineno, line in _numbered_lines(stream, path):
             try:
                 _parse_line(line, state, builder, rmin, rmax_override)
             except _LineError as exc:
@@ -124,13 +135,14 @@ def read_carmen(
     return builder.build(name=dataset_name(path), path=path, format="carmen", range_min=rmin)
 
 
-def _numbered_lines(path: Path) -> Iterator[tuple[int, str]]:
+def _numbered_lines(stream: BinaryIO, path: Path) -> Iterator[tuple[int, str]]:
     """(1-based line number, decoded line) of a plain or gzip file. A UTF-8 byte order mark at the
-    start of the file is not part of its first line: an editor that saves with one (Notepad) made
-    that line's tag "\ufeffPARAM" or "\ufeffFLASER", an unknown message skipped without a word, so
-    a log lost its first scan, or its robot_frontlaser_offset, which moved every later scan."""
-    opener = gzip.open if is_gzip(path) else open
-    with opener(path, "rb") as f:
+    start of the file is not part of its first line: an editor that saves with one (Notepad) put
+    it in front of that line's tag, which then named no known message and was skipped without a
+    word, so a log lost its first scan, or its robot_frontlaser_offset, which moved every scan."""
+    compressed = stream.read(2) == GZIP_MAGIC
+    stream.seek(0)
+    with gzip.GzipFile(fileobj=stream, mode="rb") if compressed else contextlib.nullcontext(stream) as f:
         for lineno, raw in enumerate(f, start=1):
             try:
                 yield lineno, raw.decode("utf-8-sig" if lineno == 1 else "utf-8")

@@ -27,7 +27,7 @@ unambiguous (the other orientation doesn't fit).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import scipy.io
@@ -40,25 +40,36 @@ from .base import (
     DatasetError,
     check_range_window,
     dataset_name,
+    open_log,
 )
 
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 
 
 def read_matlab(
-    path: str | Path, *, range_min: float | None = None, range_max: float | None = None
+    path: str | Path,
+    *,
+    range_min: float | None = None,
+    range_max: float | None = None,
+    stream: BinaryIO | None = None,
 ) -> Dataset:
     """Read a course-style .mat file into a `Dataset` (see the module docstring for the frames).
 
     `range_min` (default 1e-3) and `range_max` (default no limit; `math.inf` also means no limit)
-    apply to every scan. Raises `DatasetError` for a file scipy can't read, a missing variable,
-    inconsistent shapes, non-numeric data or a non-finite pose or angle.
+    apply to every scan. `stream`, when given, is the file already open (`open_log`, at its
+    start), read instead of opening `path`, which then names it only. Raises `DatasetError` for a
+    file scipy can't read, a missing variable, inconsistent shapes, non-numeric data or a
+    non-finite pose or angle.
     """
     path = Path(path)
     rmin, rmax = check_range_window(range_min, range_max)
     if rmax is None:
         rmax = UNBOUNDED_RANGE_MAX
-    data = _load(path)
+    if stream is None:
+        with open_log(path) as opened:
+            data = _load(opened, path)
+    else:
+        data = _load(stream, path)
 
     angles = _numeric(path, data, "scanAngles").ravel()
     n = angles.size
@@ -96,9 +107,9 @@ def read_matlab(
     return builder.build(name=dataset_name(path), path=path, format="matlab", range_min=rmin)
 
 
-def _load(path: Path) -> dict[str, Any]:
-    with open(path, "rb") as f:
-        head = f.read(520)
+def _load(stream: BinaryIO, path: Path) -> dict[str, Any]:
+    head = stream.read(520)
+    stream.seek(0)
     # MATLAB writes v7.3 files as HDF5 with a 512-byte text header ("MATLAB 7.3 MAT-file...") in
     # front, so the HDF5 signature sits at byte 512; other HDF5 writers put it at byte 0.
     if head.startswith(b"MATLAB 7.3") or HDF5_MAGIC in (head[:8], head[512:520]):
@@ -106,9 +117,7 @@ def _load(path: Path) -> dict[str, Any]:
             f"{path}: a MATLAB v7.3 (HDF5) file, which is not supported; re-save it with save(..., '-v7')"
         )
     try:
-        return scipy.io.loadmat(path)
-    except FileNotFoundError:
-        raise
+        return scipy.io.loadmat(stream)  # type: ignore[arg-type]  # it reads a file object too (its docs)
     except Exception as exc:
         # scipy's reader fails on a non-MAT or truncated file with whatever its parsing step hits
         # (MatReadError, ValueError, IndexError on a short header, zlib.error, ...): all mean the
