@@ -20,6 +20,7 @@ from fleetmap.sim import (
     generate_floorplan,
     simulate_scan,
 )
+from fleetmap.sim.floorplan import FloorPlanError, passage_clearance
 from fleetmap.sim.lidar import _cast_one
 
 # --------------------------------------------------------------------------------------------------
@@ -333,6 +334,23 @@ def test_floorplan_helpers() -> None:
         plan.random_free_point(rng, clearance=10.0)
     with pytest.raises(ValueError):
         generate_floorplan(0, door_width=0.8)
+
+
+def test_a_robot_too_wide_for_the_doors_is_a_parameter_error() -> None:
+    """A robot_radius the doors cannot pass is refused as the parameter it is: a 0.45 m robot (an
+    0.9 m wide AMR, under the 1 m door) raised RuntimeError 'generator bug: seed 1 produced a plan
+    with unreachable free space'. The bound is the one the guarantee is checked with."""
+    with pytest.raises(FloorPlanError, match=r"radius 0.45 m does not fit through a door \(20 cells"):
+        generate_floorplan(1, robot_radius=0.45)
+    with pytest.raises(FloorPlanError, match="radius 0.3 m does not fit through the narrowest corridor"):
+        generate_floorplan(1, door_width=0.9, corridor_width=0.9, resolution=0.1)
+    for width in range(1, 8):  # passage_clearance is clearance_map's value in such a passage
+        occupied = np.ones((21, 12), dtype=bool)
+        occupied[:, 2 : 2 + width] = False
+        clearance = FloorPlan(occupied, 0.1).clearance_map[10, 2 : 2 + width].max()
+        assert clearance == pytest.approx(max(passage_clearance(width, 0.1), 0.0))
+    plan = generate_floorplan(1, robot_radius=0.42)  # 0.429 m of clearance in a door: fits
+    assert plan.free_components(0.42) == 1
 
 
 # --------------------------------------------------------------------------------------------------

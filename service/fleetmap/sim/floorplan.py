@@ -188,7 +188,8 @@ def generate_floorplan(
 
     Guarantees (checked by a flood fill before returning; a violation raises RuntimeError): the free
     cells form one 4-connected region, and so do the cells with `clearance_map >= robot_radius`, so a
-    disc robot of that radius can reach every room.
+    disc robot of that radius can reach every room. Raises `FloorPlanError` for parameters it cannot
+    meet that for, such as a robot too wide for the doors or corridors (`passage_clearance`).
     """
     if not (door_width >= MIN_DOOR_WIDTH):
         raise FloorPlanError(f"door_width must be >= {MIN_DOOR_WIDTH} m, got {door_width}")
@@ -214,13 +215,23 @@ def generate_floorplan(
         min_room=math.ceil(min_room_size / resolution),
         max_room=math.ceil(max_room_size / resolution),
     )
+    cw = max(1, round(corridor_width / resolution))
+    # The robot must fit through the narrowest passage, by the bound the guarantee is checked with:
+    # a robot too wide for the doors failed that check, as "generator bug: ... unreachable free space".
+    narrowest, passage = min((lay.dw_min, "a door"), (int(cw * _CORRIDOR_SCALE[0]), "the narrowest corridor"))
+    if passage_clearance(narrowest, resolution) < robot_radius:
+        raise FloorPlanError(
+            f"a robot of radius {robot_radius:g} m does not fit through {passage} ({narrowest} cells "
+            f"of {resolution:g} m, where clearance_map keeps "
+            f"{max(passage_clearance(narrowest, resolution), 0.0):.3g} m): give a smaller robot_radius, "
+            "a wider door_width or corridor_width, or a finer resolution"
+        )
     nx, ny = round(width_m / resolution), round(height_m / resolution)
     if min(nx, ny) < lay.min_room + 2 * lay.tw:
         raise FloorPlanError(f"a {width_m} x {height_m} m plan cannot hold one {min_room_size} m room")
 
     rng = np.random.default_rng(seed)
     occ = np.ones((ny, nx), dtype=np.bool_)  # carve free space out of solid: walls are what is left
-    cw = max(1, round(corridor_width / resolution))
     xs_blocks, xs_corr = _split_axis(rng, lay.tw, nx - lay.tw, cw, lay, int(width_m // 15))
     ys_blocks, ys_corr = _split_axis(rng, lay.tw, ny - lay.tw, cw, lay, int(height_m // 16))
     for c0, c1 in xs_corr:
@@ -263,6 +274,17 @@ def generate_floorplan(
     return plan
 
 
+def passage_clearance(width: int, resolution: float) -> float:
+    """`FloorPlan.clearance_map`'s value (metres) along the middle of a straight passage `width`
+    cells wide between solid cells, such as a door or a corridor: the centre distance to the nearer
+    side, `(width + 1) // 2` cells, less the map's margin of sqrt(2) cells (negative: none)."""
+    return (width + 1) // 2 * resolution - math.sqrt(2.0) * resolution
+
+
+#: Each corridor's width is the `corridor_width` (in cells) times a factor drawn from this range.
+_CORRIDOR_SCALE = (0.85, 1.2)
+
+
 def _split_axis(
     rng: np.random.Generator, lo: int, hi: int, cw: int, lay: _Layout, n_corridors: int
 ) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
@@ -273,7 +295,7 @@ def _split_axis(
     """
     n = max(0, min(2, n_corridors))
     while True:
-        widths = [int(cw * rng.uniform(0.85, 1.2)) for _ in range(n)]
+        widths = [int(cw * rng.uniform(*_CORRIDOR_SCALE)) for _ in range(n)]
         spare = (hi - lo) - sum(w + 2 * lay.tw for w in widths) - (n + 1) * lay.min_room
         if spare >= 0 or n == 0:
             break
