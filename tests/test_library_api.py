@@ -203,6 +203,30 @@ def test_scan_inputs_that_are_not_numbers_raise_scan_error(build: object, messag
         build()  # type: ignore[operator]
 
 
+@pytest.mark.parametrize(
+    ("build", "message"),
+    [
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, [10**400]), "ranges must be numbers.*int too large"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, np.array([10**400])), "ranges must be numbers.*too large"),
+        (lambda: Scan.from_angles((0, 0, 0), [10**400], [1.0]), "angles must be numbers: int too large"),
+        (lambda: Scan.from_fan((10**400, 0, 0), 0, 0.1, [1.0]), "pose must be a Pose2D"),
+        (lambda: Scan.from_fan((0, 0, 0), 10**400, 0.1, [1.0]), "angle_min must be a finite number, got an"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, [1.0], 0, 10**400), "range_max must be a finite number"),
+        (lambda: Scan.from_angles((0, 0, 0), np.array([0.5j, 1 + 0.5j]), [1, 2]), "angles must be real"),
+        (lambda: Scan.from_angles((0, 0, 0), [0.5j], [1.0]), "angles must be real numbers"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, np.array([2 + 1j])), "ranges must be real numbers"),
+    ],
+)  # fmt: skip
+def test_scan_inputs_beyond_real_floats_raise_scan_error(build: object, message: str) -> None:
+    """A Python int beyond float's range raised OverflowError, not the documented ScanError (a
+    ValueError) a caller catches; a complex array was taken with its imaginary parts dropped (angles
+    [0.5j, 1 + 0.5j] became [0, 1]), with numpy's ComplexWarning only."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ScanError, match=message):
+            build()  # type: ignore[operator]
+
+
 def test_a_fan_whose_angles_overflow_is_refused_without_a_numpy_warning() -> None:
     """A finite increment can still make infinite angles (1e308 x 2): refused as such, quietly (the
     schema fuzzer found numpy's overflow warning on the REST path)."""

@@ -159,7 +159,7 @@ def ranges_to_array(ranges: Sequence[float | None] | np.ndarray) -> np.ndarray:
         raise ScanError(f"ranges must be a sequence of numbers or None, got {type(ranges).__name__}")
     try:
         return np.array([math.inf if v is None else float(v) for v in ranges], dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an int past float's range
         raise ScanError(f"ranges must be numbers or None: {exc}") from None
 
 
@@ -167,9 +167,11 @@ def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
     """`values` as a float64 array, or `ScanError` naming `name` (not numpy's bare ValueError)."""
     if isinstance(values, str | bytes):
         raise ScanError(f"{name} must be a sequence of numbers, got {type(values).__name__}")
+    if np.iscomplexobj(values):  # numpy would drop the imaginary parts, with a warning only
+        raise ScanError(f"{name} must be real numbers, got complex ones")
     try:
         return np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an int past float's range
         raise ScanError(f"{name} must be numbers: {exc}") from None
 
 
@@ -178,6 +180,8 @@ def _as_number(name: str, value: float) -> float:
         return float(value)
     except (TypeError, ValueError):
         raise ScanError(f"{name} must be a number, got {value!r}") from None
+    except OverflowError:  # an int past float's range (its repr may be thousands of digits)
+        raise ScanError(f"{name} must be a finite number, got an integer beyond float range") from None
 
 
 def _as_pose(pose: Pose2D | tuple[float, float, float]) -> Pose2D:
@@ -186,7 +190,7 @@ def _as_pose(pose: Pose2D | tuple[float, float, float]) -> Pose2D:
         return pose
     try:
         x, y, theta = (float(v) for v in pose)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int past float's range
         raise ScanError(
             f"pose must be a Pose2D or an (x, y, theta) sequence of numbers, got {pose!r}"
         ) from None
