@@ -178,6 +178,9 @@ def test_scan_built_directly_means_what_from_angles_means() -> None:
     assert direct.ranges.dtype == direct.angles.dtype == np.float64
     assert isinstance(direct.range_min, float) and isinstance(direct.range_max, float)
     assert direct.no_return_mask().tolist() == [False, True]
+    # A Pose2D of ints or numpy scalars is held as floats, as a tuple of them is.
+    assert Scan(Pose2D(1, 2, np.float32(0.5)), [0.0], [1.0], 0, 10).pose == direct.pose  # type: ignore[arg-type]
+    assert all(type(v) is float for v in (direct.pose.x, direct.pose.y, direct.pose.theta))
 
 
 @pytest.mark.parametrize(
@@ -194,11 +197,16 @@ def test_scan_built_directly_means_what_from_angles_means() -> None:
         (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, [1.0], range_max=None), "range_max must be a number"),
         (lambda: Scan(Pose2D(0, 0, 0), [0.0], [1.0], "x", 5.0), "range_min must be a number, got 'x'"),  # type: ignore[arg-type]
         (lambda: Scan((0, 0), [0.0], [1.0], 0.0, 5.0), "pose must be a Pose2D"),  # type: ignore[arg-type]
+        (lambda: Scan(Pose2D("a", 0, 0), [0.0], [1.0], 0.0, 5.0), r"sequence of numbers, got \('a', 0, 0\)"),  # type: ignore[arg-type]
+        (lambda: Scan.from_fan(Pose2D(None, 0, 0), 0, 0.1, [1.0]), "pose must be a Pose2D"),  # type: ignore[arg-type]
+        (lambda: Scan.from_fan(Pose2D(10**400, 0, 0), 0, 0.1, [1.0]), "pose must be a Pose2D"),
     ],
 )  # fmt: skip
 def test_scan_inputs_that_are_not_numbers_raise_scan_error(build: object, message: str) -> None:
     """Each raised numpy's bare ValueError, a TypeError or an AttributeError ('tuple' object has no
-    attribute 'is_finite'), or, for a string of digits, built a scan of its characters."""
+    attribute 'is_finite'), or, for a string of digits, built a scan of its characters. A `Pose2D`
+    (which checks nothing) of a string or None raised TypeError from the finiteness check, and one
+    of an int past float's range OverflowError."""
     with pytest.raises(ScanError, match=message):
         build()  # type: ignore[operator]
 

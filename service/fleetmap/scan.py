@@ -61,8 +61,9 @@ class Scan:
         # The constructor takes what `from_fan` / `from_angles` take (a pose tuple, lists, None for
         # "no return"), so that building a Scan directly means the same as through them.
         # The checks of types already right are skipped: every decoded and replayed scan comes here.
-        if type(self.pose) is not Pose2D:
-            object.__setattr__(self, "pose", _as_pose(self.pose))
+        pose = self.pose
+        if type(pose) is not Pose2D or not type(pose.x) is type(pose.y) is type(pose.theta) is float:
+            object.__setattr__(self, "pose", _as_pose(pose))
         angles, ranges = self.angles, self.ranges
         if type(angles) is not np.ndarray or angles.dtype != np.float64:
             angles = _as_floats("angles", angles)
@@ -185,9 +186,14 @@ def _as_number(name: str, value: float) -> float:
 
 
 def _as_pose(pose: Pose2D | tuple[float, float, float]) -> Pose2D:
-    """A `Pose2D`, or one made of an (x, y, theta) sequence; `ScanError` for anything else."""
+    """A `Pose2D` of floats, made of a `Pose2D` or an (x, y, theta) sequence; `ScanError` for anything
+    else. A `Pose2D` checks nothing when built: one of a string (`Pose2D("1", 0, 0)`) raised
+    TypeError from the finiteness check, and one of an int past int64 an OverflowError in the
+    kernel, where `Scan` promises ScanError."""
     if isinstance(pose, Pose2D):
-        return pose
+        if type(pose.x) is type(pose.y) is type(pose.theta) is float:
+            return pose
+        pose = (pose.x, pose.y, pose.theta)
     try:
         x, y, theta = (float(v) for v in pose)
     except (TypeError, ValueError, OverflowError):  # OverflowError: an int past float's range
