@@ -24,7 +24,7 @@ from PIL import Image
 from service_process import REPO_DIR, fleetmap_command
 from test_compiled_cache import LOADED_KERNELS
 
-from fleetmap import cli, server
+from fleetmap import cli, export, server
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import GridMap
@@ -263,6 +263,40 @@ def test_a_build_that_cannot_write_all_its_files_leaves_the_folder_as_it_was(tmp
     assert limited.stderr.startswith(f"fleetmap build: error: cannot write the outputs to {out}:"), (
         limited.stderr
     )
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before
+
+
+def test_a_build_whose_files_cannot_all_take_their_names_leaves_the_folder_as_it_was(tmp_path: Path) -> None:
+    """The files were renamed one by one once all were written, and a rename that failed (here
+    map.pgm is a folder) left the new map.yaml beside the earlier files and eight .partial files.
+    Now such a name is refused before any rename, and a rename that fails anyway (a file written
+    meanwhile vanished; in a sticky folder, another user's file) puts back what was renamed."""
+    log = scene_log(tmp_path / "scene.log")
+    out = tmp_path / "out"
+    first = build(log, "--out", out, "--resolution", "0.1", "--quiet")
+    assert first.returncode == 0, first.stderr
+    (out / "map.pgm").unlink()
+    (out / "map.pgm").mkdir()
+    before = {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()}
+    refused = build(log, "--out", out, "--quiet")
+    assert refused.returncode == 2
+    assert refused.stderr == (
+        f"fleetmap build: error: cannot write the outputs to {out}: [Errno 21] a folder has the name "
+        f"of an output: '{out / 'map.pgm'}'\n"
+    )
+    assert {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()} == before
+    assert sorted(path.name for path in out.iterdir()) == sorted([*before, "map.pgm"])
+    # A rename that fails after others were made: map.yaml and map.png had new files, map.pgm's
+    # is gone; the earlier map.yaml is back, the new map.png (no earlier one) removed.
+    (out / "map.pgm").rmdir()
+    (out / "map.png").unlink()
+    names = ("map.yaml", "map.png", "map.pgm")
+    for name in names:
+        (out / f".{name}.partial").write_bytes(b"new")
+    (out / ".map.pgm.partial").unlink()
+    with pytest.raises(FileNotFoundError):
+        export._install([out / name for name in names])
+    del before["map.png"]
     assert {path.name: path.read_bytes() for path in out.iterdir()} == before
 
 

@@ -10,6 +10,7 @@ point of the lower-left corner of its cell window.
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import math
@@ -320,14 +321,13 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
 
     try:
         _write_build_files(gmap, window, write)
+        _install(written)
     except BaseException:
         for path in written:
             _partial(path).unlink(missing_ok=True)
         if made_dir and out_dir.is_dir() and not any(out_dir.iterdir()):
             out_dir.rmdir()
         raise
-    for path in written:
-        os.replace(_partial(path), path)
     for name in BUILD_FILES:
         if out_dir / name not in written:
             (out_dir / name).unlink(missing_ok=True)
@@ -337,6 +337,46 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
 def _partial(path: Path) -> Path:
     """Where `write_build_outputs` writes `path` until every file is written."""
     return path.with_name(f".{path.name}.partial")
+
+
+def _install(paths: list[Path]) -> None:
+    """Give each written file (`_partial`) its name, all or none: when one cannot take it (its name
+    is a folder; in a sticky folder such as /tmp, another user's file), the files already renamed
+    get their earlier contents back, kept meanwhile as hard links, and the error is raised. Renamed
+    one by one without that, a failure left the new map.yaml beside the earlier map.pgm.
+
+    A name that is a folder is refused before anything is renamed (a folder is not a file to
+    replace); a file that cannot be linked (a file system without hard links, a protected link)
+    stops it before any rename too."""
+    for path in paths:
+        if path.is_dir() and not path.is_symlink():
+            raise IsADirectoryError(errno.EISDIR, "a folder has the name of an output", str(path))
+    kept: dict[Path, Path] = {}  # earlier file -> its hard link
+    renamed: list[Path] = []
+    try:
+        for path in paths:
+            if os.path.lexists(path):
+                _previous(path).unlink(missing_ok=True)
+                os.link(path, _previous(path), follow_symlinks=False)
+                kept[path] = _previous(path)
+        for path in paths:
+            os.replace(_partial(path), path)
+            renamed.append(path)
+    except BaseException:
+        for path in renamed:
+            if path in kept:
+                os.replace(kept.pop(path), path)
+            else:
+                path.unlink(missing_ok=True)
+        raise
+    finally:
+        for link in kept.values():
+            link.unlink(missing_ok=True)
+
+
+def _previous(path: Path) -> Path:
+    """Where `_install` keeps the earlier file of `path` until every new one has its name."""
+    return path.with_name(f".{path.name}.previous")
 
 
 def _write_build_files(
