@@ -18,6 +18,7 @@ import pytest
 from pydantic import ValidationError
 
 import fleetmap
+from fleetmap.config import MapConfig
 from fleetmap.export import write_build_outputs
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Pose2D, Scan, ScanError
@@ -253,6 +254,25 @@ def test_grid_map_takes_a_configuration_dict_and_refuses_other_things() -> None:
         GridMap({"tile_size": 100})  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="config must be a MapConfig, .* not float"):
         GridMap(0.05)  # type: ignore[arg-type]
+
+
+def test_a_map_keeps_its_configuration_when_the_one_given_changes() -> None:
+    """A MapConfig reused for a second map, changed in between, changed the first map too (the map
+    held the caller's object): its cells, laid out at 0.05 m, were read at 0.1 m (the hit cell at
+    0.5 m read unknown) and its TSDF layer was gone, while it integrated at 0.05 m as before."""
+    config = MapConfig(resolution=0.05)
+    first = GridMap(config)
+    first.integrate(Scan.from_angles((0.025, 0.025, 0.0), [0.0], [0.5], 0.0, 10.0))
+    hit = [[0.525, 0.025]]
+    assert first.cells(hit)["state"].tolist() == [fleetmap.STATE_OCCUPIED]
+    config.resolution = 0.1
+    config.layers.remove("tsdf")
+    config.occupancy.occupied_thresh = 0.99
+    second = GridMap(config)
+    assert (second.resolution, second.config.layers) == (0.1, ["occupancy", "counts"])
+    assert first.resolution == 0.05 and first.config == MapConfig(resolution=0.05)
+    assert first.cells(hit)["state"].tolist() == [fleetmap.STATE_OCCUPIED]
+    assert first.cells(hit)["tsdf"].tolist() == [0.0]  # the return lies at its centre
 
 
 def test_integrate_refuses_what_is_not_a_scan() -> None:

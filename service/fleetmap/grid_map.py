@@ -121,9 +121,10 @@ class WindowCleared(NamedTuple):
 class GridMap:
     """A sparse, unbounded 2D map with the layers its `MapConfig` switches on.
 
-    `config` is a `MapConfig`, a dict of its fields (validated as `MapConfig.model_validate` does:
-    pydantic's `ValidationError`, a ValueError, for a bad one) or None for the defaults. Thread-safe:
-    writers and readers share `lock`.
+    `config` is a `MapConfig` (the map keeps a copy: changing the one given later changes no map),
+    a dict of its fields (validated as `MapConfig.model_validate` does: pydantic's
+    `ValidationError`, a ValueError, for a bad one) or None for the defaults. Thread-safe: writers
+    and readers share `lock`.
     """
 
     def __init__(self, config: MapConfig | Mapping[str, Any] | None = None) -> None:
@@ -131,7 +132,13 @@ class GridMap:
             config = MapConfig()
         elif isinstance(config, Mapping):
             config = MapConfig.model_validate(config)
-        elif not isinstance(config, MapConfig):
+        elif isinstance(config, MapConfig):
+            # A copy of its own: the map's cells were laid out by this configuration, and the
+            # caller's object can change (pydantic models are mutable). A MapConfig reused for a
+            # second map (`cfg.resolution = 0.1; GridMap(cfg)`) re-read the first map's cells at
+            # the new resolution, silently: its points fell in other cells and it lost layers.
+            config = config.model_copy(deep=True)
+        else:
             raise TypeError(
                 f"config must be a MapConfig, a dict of its fields or None, not {type(config).__name__}"
             )
