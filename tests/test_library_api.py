@@ -258,21 +258,38 @@ def test_grid_map_takes_a_configuration_dict_and_refuses_other_things() -> None:
 
 def test_a_map_keeps_its_configuration_when_the_one_given_changes() -> None:
     """A MapConfig reused for a second map, changed in between, changed the first map too (the map
-    held the caller's object): its cells, laid out at 0.05 m, were read at 0.1 m (the hit cell at
-    0.5 m read unknown) and its TSDF layer was gone, while it integrated at 0.05 m as before."""
+    held the caller's object): with the TSDF layer taken out of the list, the first map, which
+    keeps and integrates it, said it had none."""
     config = MapConfig(resolution=0.05)
     first = GridMap(config)
     first.integrate(Scan.from_angles((0.025, 0.025, 0.0), [0.0], [0.5], 0.0, 10.0))
     hit = [[0.525, 0.025]]
-    assert first.cells(hit)["state"].tolist() == [fleetmap.STATE_OCCUPIED]
-    config.resolution = 0.1
     config.layers.remove("tsdf")
-    config.occupancy.occupied_thresh = 0.99
     second = GridMap(config)
-    assert (second.resolution, second.config.layers) == (0.1, ["occupancy", "counts"])
-    assert first.resolution == 0.05 and first.config == MapConfig(resolution=0.05)
+    assert second.config.layers == ["occupancy", "counts"]
+    assert first.config == MapConfig(resolution=0.05)
     assert first.cells(hit)["state"].tolist() == [fleetmap.STATE_OCCUPIED]
     assert first.cells(hit)["tsdf"].tolist() == [0.0]  # the return lies at its centre
+
+
+@pytest.mark.parametrize(
+    ("part", "field", "value"),
+    [
+        ("", "resolution", 0.0),
+        ("", "tile_size", 100),
+        ("occupancy", "p_hit", 0.8),
+        ("tsdf", "truncation", -1.0),
+    ],
+)
+def test_a_configuration_cannot_be_changed_past_its_validation(part: str, field: str, value: float) -> None:
+    """A MapConfig's fields could be assigned, unvalidated: resolution 0 made every scan a
+    ZeroDivisionError, resolution -1 a map of nonsense, tile_size 100 broke the tiling, and p_hit on
+    a validated configuration was ignored (its l_hit, resolved, is the value in use). A
+    configuration is made whole and validated: MapConfig(...), MapConfig.model_validate(...)."""
+    config = MapConfig()
+    with pytest.raises(ValidationError, match="Instance is frozen"):
+        setattr(getattr(config, part) if part else config, field, value)
+    assert config == MapConfig()
 
 
 def test_integrate_refuses_what_is_not_a_scan() -> None:

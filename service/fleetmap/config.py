@@ -3,6 +3,10 @@
 These pydantic models are the one definition of a map's configuration: the engine reads them, the
 CLI loads them from JSON, and the REST API uses them as its request and response schema. Every field
 is optional; defaults are chosen to be right for a typical indoor 2D lidar.
+
+The models are frozen: a field assigned after validation was not validated (resolution 0 made every
+scan a ZeroDivisionError, and p_hit set on a validated configuration was ignored, its l_hit being
+the value in use). Other values make another configuration.
 """
 
 from __future__ import annotations
@@ -81,7 +85,7 @@ class OccupancyParams(BaseModel):
     probability (`p_hit`), not both. After validation the `l_*` fields always hold the values in use.
     """
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     preset: OccupancyPreset = "octomap"
     l_hit: float | None = Field(default=None, description="log-odds added for a hit (> 0)")
@@ -162,7 +166,7 @@ class BeamModelParams(BaseModel):
     """The inverse range sensor model of Probabilistic Robotics (table 9.2), used when
     `sensor_model` is `beam`. Occupied and free cells get the occupancy layer's l_hit / l_miss."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     alpha: float = Field(
         default=0.1,
@@ -176,7 +180,7 @@ class BeamModelParams(BaseModel):
 class TsdfParams(BaseModel):
     """Truncated signed distance fusion along each beam."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     truncation: float = Field(
         default=0.2,
@@ -192,7 +196,7 @@ class TsdfParams(BaseModel):
 class MapConfig(BaseModel):
     """Everything that defines how a map stores and integrates scans."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     resolution: float = Field(default=0.05, gt=0.001, le=100.0, description="metres per cell")
     tile_size: int = Field(default=256, ge=16, le=4096, description="cells per tile side, a power of two")
