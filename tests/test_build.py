@@ -338,6 +338,13 @@ def bad_config(directory: Path) -> Path:
     return path
 
 
+def twice_config(directory: Path) -> Path:
+    """A configuration holding a key twice: it was read as the last value, silently."""
+    path = directory / "twice.json"
+    path.write_text('{"resolution": 0.05, "occupancy": {"p_hit": 0.7, "p_hit": 0.9}}')
+    return path
+
+
 @pytest.mark.parametrize(
     ("make_args", "words"),
     [
@@ -348,6 +355,10 @@ def bad_config(directory: Path) -> Path:
             lambda d: [scene_log(d / "s.log"), "--config", bad_config(d)],
             "invalid map configuration: resolution: Input should be greater than 0.001; "
             "tsdf.max_weight: Input should be a finite number",
+        ),
+        (
+            lambda d: [scene_log(d / "s.log"), "--config", twice_config(d)],
+            "twice.json: the key 'p_hit' appears twice in an object",
         ),
         (lambda d: [scene_log(d / "s.log"), "--range-min", "3", "--range-max", "2"], "range"),
         # Every reading below range_min: no observed cell, nothing to export.
@@ -365,6 +376,7 @@ def bad_config(directory: Path) -> Path:
         "bad-resolution",
         "missing-config",
         "bad-config",
+        "a-key-twice",
         "inverted-ranges",
         "nothing-observed",
         "a-far-pose",

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
+from fleetmap.codec import repeated_key
 from fleetmap.config import MapConfig
 from fleetmap.log_format import plain_line
 from fleetmap.signal_event import SignalEvent
@@ -145,13 +146,15 @@ def dataset_error(path: str, exc: Exception) -> CliError:
 def load_config(path: str | None, **overrides: object) -> MapConfig:
     """A map configuration from a JSON file (or defaults), with command-line overrides applied.
     Raises `CliError` if the file cannot be read, is not JSON text (UTF-8, or the UTF-16 / 32 that
-    JSON allows) or does not validate."""
+    JSON allows), holds a key twice in one object or does not validate."""
     data: dict[str, object] = {}
     if path:
         try:
-            data = json.loads(Path(path).read_bytes())
+            data = json.loads(Path(path).read_bytes(), object_pairs_hook=_unique_keys)
         except (OSError, json.JSONDecodeError) as exc:
             raise CliError(f"cannot read config {path}: {exc}") from None
+        except _RepeatedKey as exc:
+            raise CliError(f"cannot read config {path}: the key {exc} appears twice in an object") from None
         except UnicodeDecodeError as exc:  # not text: a traceback and exit 1 said nothing of the file
             raise CliError(f"cannot read config {path}: not UTF-8 text (byte {exc.start})") from None
         if not isinstance(data, dict):
@@ -162,6 +165,20 @@ def load_config(path: str | None, **overrides: object) -> MapConfig:
     except ValidationError as exc:
         problems = [f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors()]
         raise CliError("invalid map configuration: " + "; ".join(problems)) from None
+
+
+class _RepeatedKey(Exception):
+    """A JSON object of a configuration file holds this key twice."""
+
+
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict[str, object]:
+    """`json.loads`' object hook for configuration files: a key given twice (`"resolution": 0.05`,
+    later `"resolution": 0.1`) was read as its last value, silently; which one was meant is a guess,
+    and the REST API refuses such a body (as `PUT /maps/{id}` takes the same configuration)."""
+    repeated = repeated_key(pairs)
+    if repeated is not None:
+        raise _RepeatedKey(repr(repeated))
+    return dict(pairs)
 
 
 # -- build -----------------------------------------------------------------------------------------
