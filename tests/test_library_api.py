@@ -332,3 +332,19 @@ def test_write_build_outputs_takes_a_string_path(tmp_path: Path) -> None:
     written = write_build_outputs(gmap, str(tmp_path / "out"))
     assert {p.name for p in written} >= {"map.yaml", "map.pgm", "map.png", "meta.json", "log_odds.npy"}
     assert all(p.is_file() for p in written)
+
+
+@pytest.mark.parametrize("margin", [-2, -1000, 2.5, True, "2"])
+def test_write_build_outputs_refuses_a_margin_that_is_not_cells_around_the_map(
+    tmp_path: Path, margin: object
+) -> None:
+    """`margin` is the unknown cells added around the observed ones: -2 cut two rows and columns of
+    observed cells off every file without a word, -1000 failed in Pillow ('cannot write empty
+    image') and 2.5 in range() ('float' object cannot be interpreted as an integer)."""
+    gmap = GridMap()
+    gmap.integrate(_fan())
+    with pytest.raises(ValueError, match=f"margin must be a whole number of cells >= 0, got {margin!r}"):
+        write_build_outputs(gmap, tmp_path / "out", margin=margin)  # type: ignore[arg-type]
+    assert not (tmp_path / "out").exists()
+    window = fleetmap.known_window(gmap, np.int64(3))
+    assert window is not None and window == fleetmap.known_window(gmap, 3)

@@ -60,7 +60,11 @@ class Window:
 
 
 def known_window(gmap: GridMap, margin: int = 0) -> Window | None:
-    """The smallest window holding every observed cell, grown by `margin` cells; None if empty."""
+    """The smallest window holding every observed cell, grown by `margin` cells; None if empty.
+    ValueError unless `margin` is a whole number >= 0: a negative one cut observed cells off the
+    exports without a word (or left none: Pillow's 'cannot write empty image')."""
+    if isinstance(margin, bool) or not isinstance(margin, int | np.integer) or margin < 0:
+        raise ValueError(f"margin must be a whole number of cells >= 0, got {margin!r}")
     bounds = gmap.known_bounds()
     if bounds is None:
         return None
@@ -288,12 +292,13 @@ BUILD_FILES = (
 def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: int = 2) -> list[Path]:
     """Everything `fleetmap build` writes into `out_dir` (created if missing): map.yaml, map.pgm,
     map.png, one .npy per stored layer, and meta.json, over the observed cells plus `margin` unknown
-    cells around them. The map files show the occupancy layer, or for a map that keeps only counts
-    (and maybe the TSDF) the count model's `hits / (hits + misses)`, which meta.json's `map_source`
-    names. A file of `BUILD_FILES` this map has none of (an earlier build's, into the same folder,
-    of other layers) is removed: it described another map (another window, resolution or data), and
-    a reader of the folder, nav2 loading map.yaml or a script loading hits.npy, took it for this
-    one's. Returns the paths written; raises ValueError for a map with no observed cell.
+    cells around them (ValueError unless `margin` >= 0, see `known_window`). The map files show the
+    occupancy layer, or for a map that keeps only counts (and maybe the TSDF) the count model's
+    `hits / (hits + misses)`, which meta.json's `map_source` names. A file of `BUILD_FILES` this map
+    has none of (an earlier build's, into the same folder, of other layers) is removed: it described
+    another map (another window, resolution or data), and a reader of the folder, nav2 loading
+    map.yaml or a script loading hits.npy, took it for this one's. Returns the paths written;
+    raises ValueError for a map with no observed cell.
 
     Each file is written beside its final name (`.NAME.partial`) and all take their names only once
     every one is written: a build that fails on the way (a full disk, a file-size limit) leaves the
