@@ -15,6 +15,7 @@ import io
 import json
 import math
 import os
+import shutil
 import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -351,19 +352,22 @@ def _install(paths: list[Path]) -> None:
     one by one without that, a failure left the new map.yaml beside the earlier map.pgm.
 
     A name that is a folder is refused before anything is renamed (a folder is not a file to
-    replace); a file that cannot be linked (a file system without hard links, a protected link)
-    stops it before any rename too."""
+    replace). On a file system without hard links (FAT) the earlier files are kept as copies; one
+    that cannot be kept stops it before any rename."""
     for path in paths:
         if path.is_dir() and not path.is_symlink():
             raise IsADirectoryError(errno.EISDIR, "a folder has the name of an output", str(path))
-    kept: dict[Path, Path] = {}  # earlier file -> its hard link
+    kept: dict[Path, Path] = {}  # earlier file -> where it is kept (registered first: always removed)
     renamed: list[Path] = []
     try:
         for path in paths:
             if os.path.lexists(path):
-                _previous(path).unlink(missing_ok=True)
-                os.link(path, _previous(path), follow_symlinks=False)
                 kept[path] = _previous(path)
+                kept[path].unlink(missing_ok=True)
+                try:
+                    os.link(path, kept[path], follow_symlinks=False)
+                except OSError:
+                    shutil.copy2(path, kept[path], follow_symlinks=False)
         for path in paths:
             os.replace(_partial(path), path)
             renamed.append(path)
