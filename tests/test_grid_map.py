@@ -388,6 +388,19 @@ def test_cells_of_points_billions_of_tiles_apart() -> None:
     assert got["hits"].tolist() == [0, 0, 0, 1, 0] and got["misses"].tolist() == [0, 1, 0, 0, 1]
 
 
+def test_cells_of_counts_whose_sum_passes_uint32_are_known() -> None:
+    """A counts map's `known` was `hits + misses > 0` in uint32, which wraps: a cell of 2**32 - 1
+    hits (where counts saturate) and one miss, or 2**31 of each (a snapshot may hold any counts),
+    read as never observed."""
+    m = make_map(layers=["counts"])
+    m.integrate(one_beam((0.125, 0.125, 0.0), 0.0, 1.0))
+    slot = m.store.slots[(0, 0)]
+    m.store.pools["hits"][slot, 0, :2] = [2**32 - 1, 2**31]
+    m.store.pools["misses"][slot, 0, :2] = [1, 2**31]
+    got = m.cells(np.array([[0.125, 0.125], [0.375, 0.125], [0.125, 0.375]]))
+    assert got["known"].tolist() == [True, True, False]
+
+
 def test_state_thresholds() -> None:
     """state: p > 0.65 occupied, p < 0.196 free, in between unknown: one miss (p 0.4) is still
     'unknown', four misses (p 0.165) are free, one hit (p 0.7) is occupied."""

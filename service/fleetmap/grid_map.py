@@ -356,7 +356,9 @@ class GridMap:
             out["state"] = self.classify(lo)
         if "hits" in raw:
             out["hits"], out["misses"] = raw["hits"], raw["misses"]
-            out.setdefault("known", (raw["hits"] + raw["misses"]) > 0)
+            # Not hits + misses > 0: the uint32 sum wraps (a saturated 2**32 - 1 hits and one miss
+            # made 0, an observed cell "unknown"; a snapshot may hold any counts).
+            out.setdefault("known", (raw["hits"] > 0) | (raw["misses"] > 0))
         if "tsdf" in raw:
             weight = raw["tsdf_weight"]
             out["tsdf"] = np.where(weight > 0, raw["tsdf"], np.nan).astype(np.float32)
