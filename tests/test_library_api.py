@@ -348,3 +348,12 @@ def test_write_build_outputs_refuses_a_margin_that_is_not_cells_around_the_map(
     assert not (tmp_path / "out").exists()
     window = fleetmap.known_window(gmap, np.int64(3))
     assert window is not None and window == fleetmap.known_window(gmap, 3)
+
+
+@pytest.mark.parametrize("p", [0.0, 1.0, 1.5, -0.1, math.nan])
+def test_logit_of_what_is_not_a_probability_says_so(p: float) -> None:
+    """`fleetmap.logit(1.0)` raised ZeroDivisionError ('float division by zero'), 0 and 1.5 math's
+    'math domain error', and NaN gave NaN log-odds."""
+    with pytest.raises(ValueError, match=f"must lie strictly between 0 and 1, got {p!r}"):
+        fleetmap.logit(p)
+    assert fleetmap.probability(fleetmap.logit(0.7)) == pytest.approx(0.7)

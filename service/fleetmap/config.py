@@ -48,7 +48,10 @@ MAX_TSDF_WEIGHT = 1e30
 
 
 def logit(p: float) -> float:
-    """Log-odds of probability `p`."""
+    """Log-odds of probability `p`, which must lie strictly between 0 and 1 (ValueError otherwise:
+    it was math's 'math domain error' for 0 and 1.5, and ZeroDivisionError for 1)."""
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"a probability for log-odds must lie strictly between 0 and 1, got {p!r}")
     return math.log(p / (1.0 - p))
 
 
