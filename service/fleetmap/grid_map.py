@@ -276,7 +276,10 @@ class GridMap:
     def cell_index(self, x: float, y: float) -> tuple[int, int]:
         """The cell containing map point (x, y): `floor(x / res)`, `floor(y / res)` in double precision,
         as the integration computes it. A point on a cell edge written in decimal (0.15 at 0.05) is
-        not exact in binary and may fall in either neighbouring cell."""
+        not exact in binary and may fall in either neighbouring cell. ValueError for a coordinate
+        that is not finite (as `cells` refuses one: math.floor raised OverflowError for inf)."""
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError(f"a point must be finite numbers, got ({x!r}, {y!r})")
         return math.floor(x / self.resolution), math.floor(y / self.resolution)
 
     def region(self, layer: str, i0: int, j0: int, i1: int, j1: int) -> np.ndarray:
