@@ -242,6 +242,36 @@ def test_a_build_into_an_earlier_builds_folder_leaves_none_of_its_files(tmp_path
     assert np.load(out / "tsdf.npy").shape == tuple(info["shape"])
 
 
+def test_a_build_removes_only_what_an_earlier_build_wrote(tmp_path: Path) -> None:
+    """Every file of an output's name that this map has none of was removed as 'an earlier
+    build's', whoever wrote it: a TSDF-only build into a folder holding the user's own map.png and
+    hits.npy (`--out .`) deleted both. Only the files an earlier build's meta.json names are its
+    own now. An empty --out (`--out "$OUT"` with OUT unset) built into the current folder."""
+    log = scene_log(tmp_path / "scene.log")
+    (tmp_path / "tsdf.json").write_text(json.dumps({"layers": ["tsdf"]}))
+    out = tmp_path / "out"
+    out.mkdir()
+    mine = {"map.png": b"my drawing", "hits.npy": b"my counts", "notes.txt": b"mine"}
+    for name, data in mine.items():
+        (out / name).write_bytes(data)
+    done = build(log, "--out", out, "--config", tmp_path / "tsdf.json", "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert "removed" not in done.stdout
+    assert {name: (out / name).read_bytes() for name in mine} == mine
+    names = sorted([*mine, "meta.json", "tsdf.npy", "tsdf_weight.npy"])
+    assert sorted(p.name for p in out.iterdir()) == names
+    # Run in `out`, with a PYTHONPATH that still finds this checkout's packages from there.
+    paths = os.environ.get("PYTHONPATH", "").split(os.pathsep)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(str(Path(p).resolve()) for p in paths if p)}
+    empty = subprocess.run(
+        [*fleetmap_command(), "build", str(log), "--out", "", "--quiet"],
+        capture_output=True, text=True, timeout=300, cwd=out, env=env,
+    )  # fmt: skip
+    assert empty.returncode == 2
+    assert empty.stderr == "fleetmap build: error: --out is empty: give the folder to write the map into\n"
+    assert sorted(p.name for p in out.iterdir()) == names
+
+
 def test_a_build_that_cannot_write_all_its_files_leaves_the_folder_as_it_was(tmp_path: Path) -> None:
     """A disk that fills up while the build writes (here a file-size limit of 1000 bytes: map.yaml
     fits, map.pgm does not): the build said it could not write, and left a new map.yaml beside a

@@ -235,12 +235,15 @@ def _build(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from fleetmap.datasets import DatasetError, load_dataset
-    from fleetmap.export import BUILD_FILES, write_build_outputs
+    from fleetmap.export import earlier_build_files, write_build_outputs
     from fleetmap.grid_map import GridMap
     from fleetmap.scan import ScanError
     from fleetmap.tiles import TileLimitError
 
     config = load_config(args.config, resolution=args.resolution, no_return_range=args.no_return_range)
+    if not args.out.strip():
+        # Path("") is the current folder: `--out "$OUT"` with OUT unset wrote the map there.
+        raise CliError("--out is empty: give the folder to write the map into")
     out_dir = Path(args.out)
     _check_out_dir(out_dir)  # before the build, which can take minutes, is done for nothing
     try:
@@ -278,7 +281,7 @@ def _build(args: argparse.Namespace) -> int:
         )
         return INTERRUPTED
     elapsed = time.perf_counter() - started
-    earlier = [out_dir / name for name in BUILD_FILES if (out_dir / name).is_file()]
+    earlier = earlier_build_files(out_dir)
     try:
         written = write_build_outputs(gmap, out_dir)
     except ValueError as exc:

@@ -295,11 +295,11 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
     map.png, one .npy per stored layer, and meta.json, over the observed cells plus `margin` unknown
     cells around them (ValueError unless `margin` >= 0, see `known_window`). The map files show the
     occupancy layer, or for a map that keeps only counts (and maybe the TSDF) the count model's
-    `hits / (hits + misses)`, which meta.json's `map_source` names. A file of `BUILD_FILES` this map
-    has none of (an earlier build's, into the same folder, of other layers) is removed: it described
-    another map (another window, resolution or data), and a reader of the folder, nav2 loading
-    map.yaml or a script loading hits.npy, took it for this one's. Returns the paths written;
-    raises ValueError for a map with no observed cell.
+    `hits / (hits + misses)`, which meta.json's `map_source` names. A file an earlier build into the
+    same folder wrote (`earlier_build_files`) that this map has none of (of other layers) is
+    removed: it described another map (another window, resolution or data), and a reader of the
+    folder, nav2 loading map.yaml or a script loading hits.npy, took it for this one's. Returns the
+    paths written; raises ValueError for a map with no observed cell.
 
     Each file is written beside its final name (`.NAME.partial`) and all take their names only once
     every one is written: a build that fails on the way (a full disk, a file-size limit) leaves the
@@ -309,6 +309,7 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
     window = known_window(gmap, margin)
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")
+    earlier = earlier_build_files(out_dir)
     written: list[Path] = []
     made_dir = not out_dir.exists()
 
@@ -334,10 +335,30 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
         if made_dir and out_dir.is_dir() and not any(out_dir.iterdir()):
             out_dir.rmdir()
         raise
-    for name in BUILD_FILES:
-        if out_dir / name not in written:
-            (out_dir / name).unlink(missing_ok=True)
+    for path in earlier:
+        if path not in written:
+            path.unlink(missing_ok=True)
     return written
+
+
+def earlier_build_files(out_dir: str | os.PathLike[str]) -> list[Path]:
+    """The files an earlier `write_build_outputs` left in `out_dir`, as its meta.json names them
+    (its `layers`' .npy files, the map files unless its `map_source` was None, and itself), in
+    `BUILD_FILES` order; none without a meta.json of a build. Only those are an earlier build's:
+    every file of a `BUILD_FILES` name was taken for one, so a build into a folder holding the
+    user's own map.png or hits.npy (`--out .`, an unset variable's `--out ""`) deleted it."""
+    out_dir = Path(out_dir)
+    try:
+        meta = json.loads((out_dir / "meta.json").read_bytes())
+    except (OSError, ValueError):  # none, or not a build's (ValueError: JSON's and UTF-8's errors)
+        return []
+    layers = meta.get("layers") if isinstance(meta, dict) else None
+    if not isinstance(layers, list) or "map_source" not in meta:
+        return []
+    names = {"meta.json", *(f"{layer}.npy" for layer in layers if isinstance(layer, str))}
+    if meta["map_source"] is not None:
+        names.update(("map.yaml", "map.pgm", "map.png"))
+    return [out_dir / name for name in BUILD_FILES if name in names and (out_dir / name).is_file()]
 
 
 def _partial(path: Path) -> Path:
