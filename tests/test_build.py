@@ -330,6 +330,37 @@ def test_a_build_whose_files_cannot_all_take_their_names_leaves_the_folder_as_it
     assert {path.name: path.read_bytes() for path in out.iterdir()} == before
 
 
+def test_a_build_keeps_the_earlier_files_as_copies_where_hard_links_fail(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On a file system without hard links (FAT: a USB stick) `_install` keeps the earlier files as
+    copies while the new ones take their names, so a rebuild there works and a failed rename still
+    puts them back. os.link is made to fail as FAT's does (EPERM) because no FAT file system can
+    be mounted here."""
+
+    def no_links(*_: object, **__: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "link", no_links)
+    names = ("map.yaml", "map.png", "map.pgm")
+    for name in names:
+        (tmp_path / name).write_bytes(b"earlier " + name.encode())
+        (tmp_path / f".{name}.partial").write_bytes(b"new")
+    export._install([tmp_path / name for name in names])
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == dict.fromkeys(names, b"new")
+    # The third rename fails: the two files renamed get their earlier contents back from the copies.
+    for name in names:
+        (tmp_path / name).write_bytes(b"earlier " + name.encode())
+        (tmp_path / f".{name}.partial").write_bytes(b"new")
+    (tmp_path / ".map.pgm.partial").unlink()
+    with pytest.raises(FileNotFoundError):
+        export._install([tmp_path / name for name in names])
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if not p.name.endswith(".partial")} == {
+        name: b"earlier " + name.encode() for name in names
+    }
+    assert not any(p.name.endswith(".previous") for p in tmp_path.iterdir())
+
+
 def test_build_reads_the_seed_matlab_convention(tmp_path: Path) -> None:
     """The .mat of the course: robot at (1, 2) in its y-down frame, a 3 m beam at +90 degrees. Its
     end point lies three metres "up" the image, at map point (1, 1) once y points up."""
