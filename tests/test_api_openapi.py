@@ -9,6 +9,9 @@ import json
 from pathlib import Path
 from types import ModuleType
 
+import httpx
+from service_process import ServiceProcess
+
 ROOT = Path(__file__).resolve().parents[1]
 COMMITTED = ROOT / "openapi" / "openapi.json"
 
@@ -84,6 +87,30 @@ def test_every_503_declares_its_retry_after() -> None:
     assert len(answers) >= 8
     for where, answer in answers:
         assert answer.get("headers", {}).get("Retry-After", {}).get("schema") == {"type": "integer"}, where
+
+
+def test_the_snapshot_uploads_415_says_what_the_route_refuses(tmp_path: Path) -> None:
+    """A snapshot upload is read from its bytes whatever its Content-Type (the import's is checked):
+    the spec's shared 415 said "a zip: application/zip" for both, so a client checking answers
+    against the spec took the service's 201 for a body sent as text/plain for a mistake."""
+    spec = json.loads(COMMITTED.read_text(encoding="utf-8"))
+    snapshot = spec["paths"]["/maps/{map_id}/snapshot"]["put"]["responses"]["415"]["description"]
+    imported = spec["paths"]["/maps/{map_id}/import"]["put"]["responses"]["415"]["description"]
+    assert "Content-Encoding" in snapshot and "not checked" in snapshot
+    assert "application/zip" in imported and "not checked" not in imported
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/a", json={"resolution": 0.1}).status_code == 201
+        body = httpx.get(f"{svc.base_url}/maps/a/snapshot").content
+        for headers in ({"content-type": "text/plain"}, {}):
+            put = httpx.put(f"{svc.base_url}/maps/b/snapshot", content=body, headers=headers)
+            assert put.status_code in (200, 201), put.text
+        refused = httpx.put(
+            f"{svc.base_url}/maps/b/snapshot", content=body, headers={"content-encoding": "gzip"}
+        )
+        assert refused.status_code == 415, refused.text
+        text = {"content-type": "text/plain"}
+        wrong = httpx.put(f"{svc.base_url}/maps/c/import", content=body, headers=text)
+        assert wrong.status_code == 415, wrong.text
 
 
 def test_docs_describe_every_operation() -> None:

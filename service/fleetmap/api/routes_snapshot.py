@@ -62,6 +62,12 @@ UPLOAD_ERRORS = error_responses(
     },
 )  # fmt: skip
 
+#: A snapshot upload's 415: its body is read as the snapshot whatever its Content-Type.
+SNAPSHOT_UNSUPPORTED_MEDIA = (
+    "The body was sent with a Content-Encoding (gzip, ...): send the file as it is. Its Content-Type "
+    "is not checked (application/zip is its type): the body is read as a snapshot file either way"
+)
+
 #: Bytes of body gathered before they are written to the spool in one call on a worker thread (and
 #: of a download read from its spool at a time).
 _WRITE_BATCH = 1 << 20
@@ -266,7 +272,13 @@ class _SpoolResponse(StreamingResponse):
     response_model=MapInfo,
     status_code=201,
     openapi_extra=ZIP_UPLOAD,
-    responses={**REPLACED, **UPLOAD_ERRORS},
+    responses={
+        **REPLACED,
+        **UPLOAD_ERRORS,
+        # Its own: the shared sentence says a zip must come as application/zip, as an import's must,
+        # but a snapshot is read from its bytes whatever its Content-Type (`curl -T` sends none).
+        **error_responses(415, described={415: SNAPSHOT_UNSUPPORTED_MEDIA}),
+    },
 )
 async def put_snapshot(
     map_id: MapId, request: Request, response: Response, state: State, conditions: Conditions
