@@ -702,3 +702,10 @@ def test_the_client_uploads_a_yaml_path_with_its_image_or_zip_bytes(tmp_path: Pa
         assert caught.value.status == 422 and "not on the map's cell grid" in str(caught.value)
         # Asked to, the service moves it to the nearest cell edge (0.01 m: 0.2 cells, to 0).
         assert fm.import_nav2("snapped", off_grid, snap_origin=True).stats.bounds == [0.0, 0.0, 0.1, 0.1]
+        # A YAML giving a field twice is refused (map_server takes the first, PyYAML the last) by
+        # the server, and by the client when it writes the YAML out again for an image in a folder,
+        # which kept the last value only and hid the repetition from the server.
+        yaml_path.write_text(nav2_yaml("img/floor.png", origin="[1.0, 2.0, 0.0]") + "resolution: 0.1\n")
+        with pytest.raises(ValueError, match="gives the field 'resolution' twice"):
+            fm.import_nav2("twice", yaml_path)
+        assert "twice" not in {m.id for m in fm.list_maps()}

@@ -70,7 +70,8 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
     """A zip of a nav2 map_server `map.yaml` and the image it names (relative to the YAML's folder
     unless absolute), as `PUT /maps/{id}/import` reads it: the image beside the YAML under its own
     file name, the YAML's `image` rewritten to that name when it named a folder too. ValueError for
-    a YAML without an `image` file name; OSError if a file cannot be read."""
+    a YAML without an `image` file name, or, to be rewritten, with a field given twice (the server
+    refuses such a YAML); OSError if a file cannot be read."""
     yaml_path = Path(yaml_path)
     text = yaml_path.read_bytes()
     doc = yaml.safe_load(text)
@@ -80,12 +81,28 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
     image_path = yaml_path.parent / image  # an absolute `image` stays itself
     name = image_path.name
     if name != image:  # the server reads only an image beside the YAML in the zip
+        # Written out again from `doc`, a field given twice would keep its last value only, and
+        # the server, which refuses such a YAML (map_server takes the first), would never see it.
+        repeated = _repeated_field(text)
+        if repeated is not None:
+            raise ValueError(f"{yaml_path} gives the field {repeated!r} twice: which one is meant?")
         text = yaml.safe_dump({**doc, "image": name}, sort_keys=False).encode()
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
         zf.writestr(yaml_path.name if yaml_path.suffix in (".yaml", ".yml") else "map.yaml", text)
         zf.writestr(name, image_path.read_bytes())
     return buf.getvalue()
+
+
+def _repeated_field(text: bytes) -> str | None:
+    """The first top-level field a YAML document gives twice, or None."""
+    node = yaml.compose(text, Loader=yaml.SafeLoader)
+    seen: set[str] = set()
+    for key, _ in node.value if isinstance(node, yaml.MappingNode) else ():
+        if isinstance(key, yaml.ScalarNode) and key.value in seen:
+            return str(key.value)
+        seen.add(key.value)
+    return None
 
 
 #: Seconds `events` waits before it resumes a lost stream (the server's `retry:`, 1000 ms), unless a
