@@ -367,6 +367,21 @@ def test_a_number_with_an_underscore_is_refused_where_it_was_read_as_another(map
     assert mapped.put("/maps/with_underscore", json={}).status_code == 201
 
 
+def test_an_integer_not_in_plain_decimal_is_refused_so_a_tile_has_one_url(mapped: httpx.Client) -> None:
+    """pydantic reads `01`, `+1`, `1.0` and ` 1` as 1: a tile had many URLs, each cached apart by
+    browsers and proxies. Integers in the path and the query are plain decimal; floats keep their
+    forms (`1e1` is a coordinate as good as `10`)."""
+    assert mapped.get("/maps/m/tiles/0/-1/0.png").status_code != 422  # plain, negative
+    for spelling in ("01", "+1", "1.0", "%201", "-0", "1e0"):
+        r = mapped.get(f"/maps/m/tiles/0/{spelling}/0.png")
+        assert r.status_code == 422, (spelling, r.status_code, r.text)
+        assert r.json()["detail"].startswith("path parameter 'x': ") and "plain decimal" in r.text, r.text
+        assert r.json()["errors"][0]["loc"] == ["path", "x"], r.text
+    r = mapped.get("/maps/m/export?margin=+2")
+    assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["query", "margin"], r.text
+    assert mapped.get("/maps/m/cell?x=1e1&y=+0").json()["x"] == 10.0
+
+
 def test_a_put_that_creates_answers_201_with_its_location_then_200(mapped: httpx.Client) -> None:
     created = mapped.put("/maps/p", json={"resolution": 0.1})
     assert created.status_code == 201 and created.headers["location"] == "/maps/p"

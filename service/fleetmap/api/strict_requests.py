@@ -13,7 +13,10 @@
   Python converts), where FastAPI said "could not be decoded";
 - 422 for a query parameter of the route given twice (`?x=0&x=5`): FastAPI would take the last;
 - 422 for a number (a query or path parameter of type int or float) written with an underscore:
-  pydantic reads `1_0` as 10, so a typo (`x=1_0.5`) was answered for another place than asked.
+  pydantic reads `1_0` as 10, so a typo (`x=1_0.5`) was answered for another place than asked;
+- 422 for an integer parameter (a tile's z, x and y, a margin, ...) not written in plain decimal
+  (`01`, `+1`, `1.0`, ` 1`, `-0`): pydantic reads each as the number, so one tile had many URLs,
+  each cached apart by browsers and proxies.
 
 Query parameters a route does not take are ignored, as caches and tile clients add their own
 (`?v=2`, `?_=<time>`) to bust caches.
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 import email.message
 import json
+import re
 import types
 import typing
 from collections.abc import Callable, Coroutine
@@ -97,11 +101,11 @@ def _query_names(dependant: Dependant) -> set[str]:
     return names
 
 
-def _number_params(dependant: Dependant) -> list[tuple[str, str]]:
+def _number_params(dependant: Dependant) -> list[tuple[str, str, bool]]:
     """The route's query and path parameters that are numbers (int or float, or optionally one), as
-    (where, name) pairs, its dependencies' included."""
+    (where, name, whether it is an integer) triples, its dependencies' included."""
     found = [
-        (where, param.alias)
+        (where, param.alias, _is_integer(param.field_info.annotation))
         for where, params in (("query", dependant.query_params), ("path", dependant.path_params))
         for param in params
         if _is_number(param.field_info.annotation)
@@ -113,14 +117,35 @@ def _number_params(dependant: Dependant) -> list[tuple[str, str]]:
 
 def _is_number(annotation: Any) -> bool:
     """Whether a parameter of type `annotation` is a number: int, float, or a union holding one."""
-    if annotation in (int, float):
-        return True
-    members = (
-        typing.get_args(annotation)
-        if typing.get_origin(annotation) in (typing.Union, types.UnionType)
-        else ()
-    )
-    return any(member in (int, float) for member in members)
+    return any(member in (int, float) for member in _members(annotation))
+
+
+def _is_integer(annotation: Any) -> bool:
+    """Whether a parameter of type `annotation` is an integer: int, or a union holding int and no float."""
+    members = _members(annotation)
+    return int in members and float not in members
+
+
+def _members(annotation: Any) -> tuple[Any, ...]:
+    """The types a parameter of type `annotation` may hold: a union's members, or itself."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return typing.get_args(annotation)
+    return (annotation,)
+
+
+#: An integer as a client writes it when it means one number by one URL: plain decimal digits, a
+#: minus sign for a negative one, no leading zero.
+_PLAIN_INTEGER = re.compile(r"0|-?[1-9][0-9]*")
+
+
+def _not_a_plain_number(value: str, integer: bool) -> str | None:
+    """Why a number parameter's `value` is refused, or None: an underscore anywhere; for an integer,
+    any other form than plain decimal."""
+    if "_" in value:
+        return "not a number (no underscores)"
+    if integer and not _PLAIN_INTEGER.fullmatch(value):
+        return "not an integer in plain decimal (digits, '-' if negative, no leading zero)"
+    return None
 
 
 class StrictRoute(APIRoute):
@@ -133,15 +158,14 @@ class StrictRoute(APIRoute):
         number_params = _number_params(self.dependant)
 
         async def strict_handler(request: Request) -> Response:
-            for where, name in number_params:
+            for where, name, integer in number_params:
                 value = (request.query_params if where == "query" else request.path_params).get(name)
-                if isinstance(value, str) and "_" in value:
+                why = _not_a_plain_number(value, integer) if isinstance(value, str) else None
+                if why is not None:
                     raise ApiError(
                         422,
-                        f"{where} parameter {name!r}: {value!r} is not a number (no underscores)",
-                        errors=[
-                            ErrorItem(loc=[where, name], msg="not a number (no underscores)", type="number")
-                        ],
+                        f"{where} parameter {name!r}: {value!r} is {why}",
+                        errors=[ErrorItem(loc=[where, name], msg=why, type="number")],
                     )
             repeated = sorted({key for key in query_names if len(request.query_params.getlist(key)) > 1})
             if repeated:
