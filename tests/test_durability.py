@@ -168,6 +168,20 @@ def check_database_intact(path: Path) -> None:
         conn.close()
 
 
+def refused_start(tmp_path: Path, data: Path) -> str:
+    """Start a service on the data directory `data`, which must refuse to start with exit code 2;
+    returns its output. Stopped whatever happens, so that a service that started after all does not
+    outlive the test."""
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
+    try:
+        with pytest.raises(RuntimeError) as refused:
+            svc.start()
+    finally:
+        svc.stop()
+    assert svc.proc is not None and svc.proc.returncode == 2, str(refused.value)
+    return str(refused.value)
+
+
 def test_unwritable_data_dir_is_a_clear_error_at_start(tmp_path: Path) -> None:
     # A path that is a file cannot be a directory, even for root (who ignores permission bits).
     blocker = tmp_path / "file"
@@ -188,15 +202,9 @@ def test_a_data_directory_behind_a_dangling_link_is_refused_saying_so(tmp_path: 
     link = tmp_path / "data"
     link.symlink_to(target)
     for data in (link, link / "maps"):
-        svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
-        try:
-            with pytest.raises(RuntimeError) as failed:
-                svc.start()
-        finally:
-            svc.stop()  # (a service that started after all must not outlive the test)
-        assert svc.proc is not None and svc.proc.returncode == 2, str(failed.value)
-        assert f"{link} is a symbolic link to {target}, which does not exist" in str(failed.value)
-        assert "Traceback" not in str(failed.value)
+        output = refused_start(tmp_path, data)
+        assert f"{link} is a symbolic link to {target}, which does not exist" in output
+        assert "Traceback" not in output
     assert not (tmp_path / "unmounted").exists()
 
 
@@ -261,15 +269,9 @@ def test_a_second_service_is_refused_even_once_the_lock_file_was_deleted(tmp_pat
     with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as first:
         assert httpx.put(f"{first.base_url}/maps/kept", timeout=30).status_code == 201
         (data / "fleetmap.lock").unlink()
-        second = ServiceProcess(tmp_path, ["--data-dir", str(data)])
-        try:
-            with pytest.raises(RuntimeError) as refused:
-                second.start()
-        finally:
-            second.stop()
-        assert second.proc is not None and second.proc.returncode == 2, str(refused.value)
-        assert f"data directory {data} is in use by another fleetmap service" in str(refused.value)
-        assert "Traceback" not in str(refused.value)
+        output = refused_start(tmp_path, data)
+        assert f"data directory {data} is in use by another fleetmap service" in output
+        assert "Traceback" not in output
     with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as third:
         assert httpx.get(f"{third.base_url}/maps/kept", timeout=10).status_code == 200
 
@@ -293,18 +295,12 @@ def test_a_data_directory_of_a_newer_schema_is_refused_at_start(tmp_path: Path) 
             return conn.execute("PRAGMA user_version").fetchone()[0], list(conn.iterdump())
 
     before = contents()
-    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
-    try:
-        with pytest.raises(RuntimeError) as refused:
-            svc.start()
-    finally:
-        svc.stop()  # (a service that started after all must not outlive the test)
-    assert svc.proc is not None and svc.proc.returncode == 2
+    output = refused_start(tmp_path, data)
     assert (
         f"the map database {data / DB_NAME} was written by a newer fleetmap (schema version "
         f"{SCHEMA_VERSION + 1}; this one reads up to {SCHEMA_VERSION})"
-    ) in str(refused.value)
-    assert "Traceback" not in str(refused.value)
+    ) in output
+    assert "Traceback" not in output
     assert contents() == before
 
 
@@ -319,15 +315,9 @@ def test_another_programs_database_is_refused_at_start_and_left_unchanged(tmp_pa
         conn.execute("INSERT INTO invoices (total) VALUES (12.5)")
     conn.close()
     before = (data / DB_NAME).read_bytes()
-    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
-    try:
-        with pytest.raises(RuntimeError) as refused:
-            svc.start()
-    finally:
-        svc.stop()  # (before the fix it started, and outlived the test)
-    assert svc.proc is not None and svc.proc.returncode == 2
-    assert f"{data / DB_NAME} is not a fleetmap map database (its tables: invoices)" in str(refused.value)
-    assert "Traceback" not in str(refused.value)
+    output = refused_start(tmp_path, data)  # (unfixed, it started)
+    assert f"{data / DB_NAME} is not a fleetmap map database (its tables: invoices)" in output
+    assert "Traceback" not in output
     assert (data / DB_NAME).read_bytes() == before
     assert sorted(p.name for p in data.iterdir()) == [DB_NAME, "fleetmap.lock"]
 
@@ -355,14 +345,7 @@ def test_a_database_deleted_beside_its_write_ahead_log_is_refused_and_the_log_ke
     for state in ("missing", "empty"):
         if state == "empty":
             (data / DB_NAME).write_bytes(b"")
-        svc = ServiceProcess(tmp_path, ["--data-dir", str(data)])
-        try:
-            with pytest.raises(RuntimeError) as refused:
-                svc.start()
-        finally:
-            svc.stop()  # (before the fix it started, and outlived the test)
-        assert svc.proc is not None and svc.proc.returncode == 2, str(refused.value)
-        output = str(refused.value)
+        output = refused_start(tmp_path, data)  # (unfixed, it started)
         assert "Traceback" not in output, output
         assert f"the map database {data / DB_NAME} is {state}, but its write-ahead log {wal} holds" in output
         assert wal.read_bytes() == log
@@ -417,14 +400,7 @@ def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_ma
         shutil.copytree(data, damaged)
         with sqlite3.connect(damaged / DB_NAME) as conn:
             conn.execute(f"UPDATE journal SET {sql} WHERE id = (SELECT MIN(id) FROM journal)")
-        svc = ServiceProcess(tmp_path, ["--data-dir", str(damaged)])
-        try:
-            with pytest.raises(RuntimeError) as refused:
-                svc.start()
-        finally:
-            svc.stop()  # (a service that started after all must not outlive the test)
-        assert svc.proc is not None and svc.proc.returncode == 2, str(refused.value)
-        output = str(refused.value)
+        output = refused_start(tmp_path, damaged)
         assert "Traceback" not in output, output
         assert re.search(r"\(map 'm'\): journal row \d+: corrupt journal entry", output), output
     # The undamaged directory still starts and holds all six scans.
@@ -459,15 +435,8 @@ def test_a_robot_or_tombstone_row_of_the_wrong_shape_is_a_clear_error_at_start(t
         shutil.copytree(data, damaged)
         with sqlite3.connect(damaged / DB_NAME) as conn:
             assert conn.execute(sql).rowcount == 1
-        svc = ServiceProcess(tmp_path, ["--data-dir", str(damaged)])
-        try:
-            with pytest.raises(RuntimeError) as refused:
-                svc.start()
-        finally:
-            svc.stop()  # (before the fix a counter that was not a number started, and outlived the test)
-        assert svc.proc is not None and svc.proc.returncode == 2, (name, str(refused.value))
-        output = str(refused.value)
-        assert "Traceback" not in output, output
+        output = refused_start(tmp_path, damaged)  # (unfixed, a counter not a number started)
+        assert "Traceback" not in output, (name, output)
         assert f"cannot read the map database {damaged / DB_NAME}{where}" in output, output
     with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
         assert stats(svc.base_url, "m")["robots"]["r"]["scans_integrated"] == 1
