@@ -186,10 +186,12 @@ def generate_floorplan(
     rectangles (furniture, 0.4-1.6 m) and discs (pillars, r 0.15-0.4 m) inside rooms, each at least
     `obstacle_gap` metres from anything solid.
 
-    Guarantees (checked by a flood fill before returning; a violation raises RuntimeError): the free
-    cells form one 4-connected region, and so do the cells with `clearance_map >= robot_radius`, so a
-    disc robot of that radius can reach every room. Raises `FloorPlanError` for parameters it cannot
-    meet that for, such as a robot too wide for the doors or corridors (`passage_clearance`).
+    Guarantees (checked by a flood fill before returning): the free cells form one 4-connected
+    region, and so do the cells with `clearance_map >= robot_radius`, so a disc robot of that radius
+    can reach every room. A draw that misses them is made again from seeds derived from `seed`, at
+    most `PLAN_ATTEMPTS` draws in all. Raises `FloorPlanError` for parameters it cannot meet that
+    for, such as a robot too wide for the doors or corridors (`passage_clearance`), or when no draw
+    met it.
     """
     if not (door_width >= MIN_DOOR_WIDTH):
         raise FloorPlanError(f"door_width must be >= {MIN_DOOR_WIDTH} m, got {door_width}")
@@ -230,7 +232,40 @@ def generate_floorplan(
     if min(nx, ny) < lay.min_room + 2 * lay.tw:
         raise FloorPlanError(f"a {width_m} x {height_m} m plan cannot hold one {min_room_size} m room")
 
-    rng = np.random.default_rng(seed)
+    # A draw may leave a pocket of clearance the robot cannot reach, or a split wall too short for
+    # its door, mostly on coarse grids (0.2 m cells: about one parameter set in three): the draw is
+    # made again from seeds derived from `seed`, so the plan is still the same for the same
+    # arguments, and the first draw's plan is the one it always was.
+    for attempt in range(PLAN_ATTEMPTS):
+        rng = np.random.default_rng(seed if attempt == 0 else [seed, attempt])
+        try:
+            plan = _draw_plan(
+                rng, nx, ny, cw, lay, width_m, height_m, n_obstacles, obstacle_gap, resolution, origin
+            )
+        except _DrawFailed:
+            continue
+        if plan.free_components() == 1 and plan.free_components(robot_radius) == 1:
+            return plan
+    raise FloorPlanError(
+        f"no floor plan of seed {seed} in {PLAN_ATTEMPTS} draws has all its free space reachable by a "
+        f"robot of radius {robot_radius:g} m: give a finer resolution, a smaller robot_radius or wider "
+        "doors"
+    )
+
+
+#: Draws `generate_floorplan` makes before it gives up on its parameters.
+PLAN_ATTEMPTS = 20
+
+
+class _DrawFailed(Exception):
+    """A draw of `_draw_plan` that cannot be completed (a split wall too short for its door)."""
+
+
+def _draw_plan(
+    rng: np.random.Generator, nx: int, ny: int, cw: int, lay: _Layout, width_m: float, height_m: float,
+    n_obstacles: int, obstacle_gap: float, resolution: float, origin: tuple[float, float],
+) -> FloorPlan:  # fmt: skip
+    """One draw of `generate_floorplan`'s plan from `rng`, its reachability not yet checked."""
     occ = np.ones((ny, nx), dtype=np.bool_)  # carve free space out of solid: walls are what is left
     xs_blocks, xs_corr = _split_axis(rng, lay.tw, nx - lay.tw, cw, lay, int(width_m // 15))
     ys_blocks, ys_corr = _split_axis(rng, lay.tw, ny - lay.tw, cw, lay, int(height_m // 16))
@@ -267,11 +302,7 @@ def generate_floorplan(
                 leaves[k] = leaf = _add_side_door(rng, occ, leaf, side, lay)
 
     _place_obstacles(rng, occ, leaves, n_obstacles, obstacle_gap, resolution)
-
-    plan = FloorPlan(occ, resolution, origin)
-    if plan.free_components() != 1 or plan.free_components(robot_radius) != 1:
-        raise RuntimeError(f"generator bug: seed {seed} produced a plan with unreachable free space")
-    return plan
+    return FloorPlan(occ, resolution, origin)
 
 
 def passage_clearance(width: int, resolution: float) -> float:
@@ -398,7 +429,7 @@ def _split_rooms(
         wall_side = "top"
     with_door = _add_side_door(rng, occ, first, wall_side, lay)
     if not with_door.doors[wall_side]:
-        raise RuntimeError("generator bug: a split wall too short for a door")
+        raise _DrawFailed("a split wall too short for a door")
     door = with_door.doors[wall_side][-1]
     opposite = "left" if vertical else "bottom"
     second_doors = dict(second.doors)
