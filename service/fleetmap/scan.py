@@ -49,6 +49,9 @@ class Scan:
     contiguous float64; None in `ranges` means "no return", as in JSON), and numbers for the range
     window. Anything invalid (non-finite pose or angles, mismatched lengths, a range window that is
     not `0 <= range_min < range_max`, inputs that are not numbers) raises `ScanError`, a ValueError.
+    Arrays that are contiguous float64 already are kept, not copied (every decoded scan comes so):
+    the checks hold for them as they were when the scan was built, so do not write into an array a
+    scan holds (a NaN angle written later is no longer refused, and fails the integration).
     """
 
     pose: Pose2D
