@@ -460,3 +460,34 @@ def test_bad_ros_options_stop_with_one_line(args: list[str], env: dict[str, str]
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], proc.stderr
+
+
+def test_the_highest_ros_domain_is_read(service_factory: Callable[..., ServiceProcess]) -> None:
+    """`--ros-domain` takes 0 ... 4294967295 (docs/ros.md): the scans and TF of a domain id of ten
+    digits are read as any. Before, a key whose domain had more than 9 digits was no rmw_zenoh key:
+    every scan was refused as `invalid_topic` and the TF ignored."""
+    domain = 2**32 - 1
+    service = service_factory("--ros-scans", "lab", "--ros-domain", str(domain))
+    session = client_session(service.zenoh_endpoint)
+    try:
+        key = lambda topic, kind: topic_key(domain, topic, kind, TYPE_HASHES[kind])  # noqa: E731
+        scan_pub = session.declare_publisher(key("/robot1/scan", LASER))
+        tf_pub = session.declare_publisher(key("/robot1/tf", TF))
+        wait_for(lambda: scan_pub.matching_status.matching, timeout=20, what="the service's subscriber")
+        with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
+            for dt in (-(10**7), 10**7):
+                tf_pub.put(
+                    tf_payload(stamp_ns_of(0) + dt, [("map", "laser", (1.0, 2.0, 0.0), Rotation.identity())])
+                )
+            scan_pub.put(
+                LaserData(stamp_ns_of(0), -1.0, 0.02, np.full(100, 2.0, np.float32)).payload("laser")
+            )
+            wait_for(
+                lambda: robot_stats(http, "robot1").get("scans_integrated") == 1,
+                timeout=10, what="the scan of domain 4294967295 integrated",
+            )  # fmt: skip
+            ros = healthz_ros(http)
+            assert (ros["domain_id"], ros["refused"], ros["tf_refused"]) == (domain, {}, 0), ros
+        assert service.stop() == 0
+    finally:
+        session.close()

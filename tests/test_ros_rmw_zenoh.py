@@ -67,7 +67,10 @@ def test_parse_topic_key() -> None:
     assert parse_topic_key(topic_key(3, "/tf", "tf2_msgs/msg/TFMessage", "h")) == TopicKey(
         3, "/tf", "tf2_msgs/msg/TFMessage", "h"
     )
+    highest = topic_key(2**32 - 1, "/scan", "sensor_msgs/msg/LaserScan", "h")  # `--ros-domain`'s largest
+    assert parse_topic_key(highest) == TopicKey(2**32 - 1, "/scan", "sensor_msgs/msg/LaserScan", "h")
     for bad in (
+        "4294967296/scan/sensor_msgs::msg::dds_::LaserScan_/h",
         "fleetmap/lab/r1/scan",
         "x/scan/sensor_msgs::msg::dds_::LaserScan_/h",
         "0/sensor_msgs::msg::dds_::LaserScan_/h",  # no topic

@@ -40,6 +40,8 @@ _ROS_TYPE = re.compile(rf"^({_NAME})/({_NAME})/({_NAME})$")
 _DDS_TYPE = re.compile(rf"^({_NAME})::({_NAME})::dds_::({_NAME})_$")
 _TOPIC_SEGMENT = re.compile(r"^[A-Za-z0-9_]+$")
 _HASH = re.compile(r"^[A-Za-z0-9_]+$")
+#: The largest ROS domain id fleetmap takes (`--ros-domain`): its key chunk has up to 10 digits.
+MAX_DOMAIN_ID = 2**32 - 1
 
 
 def dds_type_name(ros_type: str) -> str:
@@ -81,7 +83,10 @@ class TopicKey:
 def parse_topic_key(key: str) -> TopicKey | None:
     """Parse `<domain>/<topic...>/<dds type>/<hash>`; None if `key` is not such a key."""
     parts = key.split("/")
-    if len(parts) < 4 or not parts[0].isdigit() or len(parts[0]) > 9:
+    # Any domain `--ros-domain` takes, 4294967295 (10 digits) too; the length bounds int()'s work.
+    if len(parts) < 4 or not (parts[0].isascii() and parts[0].isdigit()) or len(parts[0]) > 10:
+        return None
+    if int(parts[0]) > MAX_DOMAIN_ID:
         return None
     ros_type = ros_type_name(parts[-2])
     if ros_type is None or not _HASH.match(parts[-1]):
