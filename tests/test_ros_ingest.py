@@ -491,3 +491,39 @@ def test_the_highest_ros_domain_is_read(service_factory: Callable[..., ServicePr
         assert service.stop() == 0
     finally:
         session.close()
+
+
+def test_a_scan_in_the_fixed_frame_needs_no_tf(service_factory: Callable[..., ServiceProcess]) -> None:
+    """A laser whose scans are in the fixed frame itself (a stationary laser mapped in its own frame,
+    `--ros-fixed-frame laser`) publishes no TF: tf2 gives the identity from a frame to itself, known
+    or not, so the scans are integrated at the origin, as the engine integrates the same beams
+    there. Before, each waited for TF that never came and was dropped (`no_tf`)."""
+    service = service_factory("--ros-scans", "lab", "--ros-fixed-frame", "laser")
+    session = client_session(service.zenoh_endpoint)
+    try:
+        scan_pub = session.declare_publisher(topic_key(0, "/scan", LASER, TYPE_HASHES[LASER]))
+        wait_for(lambda: scan_pub.matching_status.matching, timeout=20, what="the service's subscriber")
+        expected = GridMap(MapConfig())
+        with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
+            for k, frame in enumerate(("laser", "/laser")):  # tf2 drops the leading /
+                data = LaserData(stamp_ns_of(k), -1.0, 0.02, np.linspace(1.5, 3.0, 100, dtype=np.float32))
+                scan_pub.put(data.payload(frame))
+                expected.integrate(
+                    Scan.from_fan(
+                        (0.0, 0.0, 0.0),
+                        float(np.float32(data.angle_min)),
+                        float(np.float32(data.angle_increment)),
+                        data.ranges,
+                        float(np.float32(data.range_min)),
+                        float(np.float32(data.range_max)),
+                    )  # fmt: skip
+                )
+                wait_for(
+                    lambda k=k: robot_stats(http, "robot").get("scans_integrated") == k + 1,
+                    timeout=10, what=f"scan {k} in the fixed frame integrated",
+                )  # fmt: skip
+            assert healthz_ros(http)["refused"] == {}
+            assert_region_equal(http, "lab", expected, ALL_LAYERS)
+        assert service.stop() == 0
+    finally:
+        session.close()

@@ -502,6 +502,8 @@ class RosScanIngest:
         msg = item.msg
         with self._tf_lock:
             tree = self._tree_for(item.namespace)
+            if tree is None and normalize_frame(msg.frame_id) == normalize_frame(self.fixed_frame):
+                tree = TfBuffer()  # a scan in the fixed frame needs no TF: the identity (`lookup`)
             if tree is None:
                 where = f"{item.namespace}/tf" if item.namespace else "/tf"
                 raise TfPending(f"no TF received on {where}, a parent namespace's tf or /tf")

@@ -279,8 +279,11 @@ class TfBuffer:
     def lookup(self, target: str, source: str, stamp: float) -> Transform:
         """The pose of frame `source` in frame `target` at `stamp` (seconds). Raises TfPending when
         more TF could answer it (unknown or unconnected frames, a stamp past the newest sample of a
-        dynamic edge on the way), TfError when none will."""
+        dynamic edge on the way), TfError when none will. A frame in itself is the identity at any
+        stamp, in the tree or not (as tf2's `lookupTransform`)."""
         target, source = normalize_frame(target), normalize_frame(source)
+        if target == source:
+            return Transform.identity()
         for frame in (target, source):
             if frame not in self._frames:
                 raise TfPending(f"frame {frame!r} is not in the TF tree")
