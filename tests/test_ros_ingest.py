@@ -527,3 +527,55 @@ def test_a_scan_in_the_fixed_frame_needs_no_tf(service_factory: Callable[..., Se
         assert service.stop() == 0
     finally:
         session.close()
+
+
+def test_a_scan_stamped_zero_is_posed_at_the_newest_tf(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    """A LaserScan whose `header.stamp` is 0 (unset: `ros2 topic pub`, drivers without a clock) is
+    posed, as tf2 poses time 0, at the latest time every edge of its chain has TF for (here the
+    newer of two samples of `map -> base_link`), and integrated as the engine integrates the beams
+    there. Before, time 0 was taken literally: more than 10 s before the TF kept, the scan waited
+    for TF "in case time went back" and was dropped (`no_tf`)."""
+    service = service_factory("--ros-scans", "lab")
+    session = client_session(service.zenoh_endpoint)
+    try:
+        key = lambda topic, kind: topic_key(0, topic, kind, TYPE_HASHES[kind])  # noqa: E731
+        scan_pub = session.declare_publisher(key("/robot1/scan", LASER))
+        tf_pub = session.declare_publisher(key("/robot1/tf", TF))
+        static_pub = session.declare_publisher(key("/robot1/tf_static", TF))
+        wait_for(lambda: scan_pub.matching_status.matching, timeout=20, what="the service's subscriber")
+        with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
+            static_pub.put(tf_payload(T0_NS, [("base_link", "laser", (0.5, 0.0, 0.0), Rotation.identity())]))
+            turn = Rotation.from_euler("z", 0.4)
+            tf_pub.put(tf_payload(stamp_ns_of(0), [("map", "base_link", (1.0, 2.0, 0.0), turn)]))
+            tf_pub.put(tf_payload(stamp_ns_of(1), [("map", "base_link", (3.0, 2.0, 0.0), turn)]))
+            wait_for(
+                lambda: healthz_ros(http)["tf_trees"].get("/robot1", {}).get("samples") == 3,
+                timeout=10, what="the robot's TF",
+            )  # fmt: skip
+            data = LaserData(0, -1.0, 0.02, np.linspace(1.5, 3.0, 100, dtype=np.float32))
+            scan_pub.put(data.payload("laser"))
+            wait_for(
+                lambda: robot_stats(http, "robot1").get("scans_integrated") == 1,
+                timeout=10, what="the scan stamped 0 integrated",
+            )  # fmt: skip
+            assert healthz_ros(http)["refused"] == {}
+            expected = GridMap(MapConfig())
+            laser_x, laser_y = 3.0 + 0.5 * math.cos(0.4), 2.0 + 0.5 * math.sin(0.4)
+            expected.integrate(
+                Scan.from_fan(
+                    (laser_x, laser_y, 0.4),
+                    float(np.float32(data.angle_min)),
+                    float(np.float32(data.angle_increment)),
+                    data.ranges,
+                    float(np.float32(data.range_min)),
+                    float(np.float32(data.range_max)),
+                )  # fmt: skip
+            )
+            pose = http.get("/maps/lab").json()["stats"]["robots"]["robot1"]["last_pose"]
+            assert [pose["x"], pose["y"], pose["theta"]] == pytest.approx([laser_x, laser_y, 0.4], abs=1e-9)
+            assert_region_equal(http, "lab", expected, ALL_LAYERS)
+        assert service.stop() == 0
+    finally:
+        session.close()

@@ -280,7 +280,8 @@ class TfBuffer:
         """The pose of frame `source` in frame `target` at `stamp` (seconds). Raises TfPending when
         more TF could answer it (unknown or unconnected frames, a stamp past the newest sample of a
         dynamic edge on the way), TfError when none will. A frame in itself is the identity at any
-        stamp, in the tree or not (as tf2's `lookupTransform`)."""
+        stamp, in the tree or not, and a `stamp` of 0 means the latest time every dynamic edge on the
+        way has a sample for (as tf2's `lookupTransform` and its `TimePointZero`)."""
         target, source = normalize_frame(target), normalize_frame(source)
         if target == source:
             return Transform.identity()
@@ -293,9 +294,22 @@ class TfBuffer:
         ancestor = next((f for f in up_source if f in common), None)
         if ancestor is None:
             raise TfPending(f"frames {target!r} and {source!r} are not connected in the TF tree")
+        if stamp == 0.0:
+            stamp = self._latest_common_time(up_target, up_source, ancestor)
         return self._to_ancestor(up_target, ancestor, stamp).inverse() * self._to_ancestor(
             up_source, ancestor, stamp
         )
+
+    def _latest_common_time(self, up_target: list[str], up_source: list[str], ancestor: str) -> float:
+        """tf2's latest common time of a lookup: the oldest of the newest samples of the dynamic edges
+        between both frames and their common `ancestor` (0 when all are static: any stamp does)."""
+        newest = [
+            edge.stamps[-1]
+            for chain in (up_target, up_source)
+            for frame in chain[: chain.index(ancestor)]
+            if not (edge := self._edges[frame]).static
+        ]
+        return min(newest, default=0.0)
 
     def _to_ancestor(self, chain: list[str], ancestor: str, stamp: float) -> Transform:
         """The pose of chain[0] in `ancestor`, composed edge by edge up the chain."""
