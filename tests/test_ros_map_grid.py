@@ -340,6 +340,14 @@ NEED_MAPS = "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publi
         (["--ros-map-period", "2"], NEED_MAPS),
         (["--ros-distro", "humble"], NEED_MAPS),
         (["--ros-publish-map", "a", "b=/map"], "--ros-publish-map: two maps on one ROS topic"),
+        (
+            ["--ros-publish-map", "a=/x/map", "b=/x/map_updates"],
+            "--ros-publish-map: /x/map_updates is map b's topic and the updates topic of map a's /x/map",
+        ),
+        (
+            ["--ros-publish-map", "a=/map_updates", "a=/map"],
+            "--ros-publish-map: /map_updates is map a's topic and the updates topic of map a's /map",
+        ),
         (["--ros-publish-map", "a"], "$ROS_DOMAIN_ID='one': expected a whole number"),
     ],
 )

@@ -275,10 +275,11 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
     if not (args.world_bound > 0 and args.max_range > 0):
         raise CliError("--world-bound and --max-range must be positive")
     input_limits = InputLimits(args.world_bound, args.max_beams, args.max_range)
-    topics = [spec.topic for spec in args.ros_publish_map]
-    if len(set(topics)) < len(topics):
-        raise CliError("--ros-publish-map: two maps on one ROS topic; give each its own (MAP_ID=TOPIC)")
-    if topics:
+    if args.ros_publish_map:
+        from fleetmap.ros.map_publisher import topic_clash
+
+        if (clash := topic_clash(args.ros_publish_map)) is not None:
+            raise CliError(f"--ros-publish-map: {clash}")
         ros_domain(args)  # a bad $ROS_DOMAIN_ID stops the start here, not once Zenoh runs
     elif (args.ros_map_frame, args.ros_map_period, args.ros_distro) != ROS_MAP_DEFAULTS:
         # Given for nothing: most likely --ros-publish-map was forgotten (or its variable unset).

@@ -170,6 +170,24 @@ def parse_map_topic(text: str) -> MapTopic:
     return MapTopic(map_id, topic)
 
 
+def topic_clash(specs: tuple[MapTopic, ...] | list[MapTopic]) -> str | None:
+    """What makes `specs` unpublishable together, or None: two maps on one topic, or a map's topic
+    that is another's (or its own other topic's) updates topic (`a=/x/map b=/x/map_updates`), where
+    an OccupancyGrid and an OccupancyGridUpdate would share one ROS topic, which ROS tools refuse
+    (`ros2 topic echo`: more than one type)."""
+    topics = [spec.topic for spec in specs]
+    if len(set(topics)) < len(topics):
+        return "two maps on one ROS topic; give each its own (MAP_ID=TOPIC)"
+    for spec in specs:
+        for other in specs:
+            if other.updates_topic == spec.topic:
+                return (
+                    f"{spec.topic} is map {spec.map_id}'s topic and the updates topic of map "
+                    f"{other.map_id}'s {other.topic}; give it another"
+                )
+    return None
+
+
 @dataclass(frozen=True)
 class RosMapOptions:
     """What `RosMapPublisher` publishes, and how."""
