@@ -21,6 +21,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+import zenoh
 from scipy.spatial.transform import Rotation
 from service_process import ServiceProcess, free_port, wait_for
 from test_ros_ingest import (
@@ -281,3 +282,55 @@ def test_a_simulation_restarted_under_use_sim_time_is_posed_again(
         assert service.stop() == 0
     finally:
         first.close()
+
+
+def test_a_tf_tree_at_its_sample_limit_keeps_up_with_time(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    """A robot whose TF has many fast edges (a mobile manipulator: robot_state_publisher sends each
+    moving joint at the joint_states rate; or a fleet's prefixed frames in one root tree) fills its
+    tree's 20 000 samples before its edges' 10 s of history. Here 41 edges at 100 Hz, 24 600 samples
+    in 6 s: the tree keeps every edge moving, its fullest edges' oldest samples making room, and a
+    scan stamped at the end is posed. Before, every sample past the limit was refused: the tree froze
+    for good (an edge drops old samples only when it takes a new one) and every later scan was
+    dropped (`no_tf`)."""
+    service = service_factory("--ros-scans", "lab")
+    node = RosNodeEmulation(service.zenoh_endpoint, "robot")
+    try:
+        wait_for(
+            lambda: node.publisher("/robot1/scan", LASER).matching_status.matching,
+            timeout=20, what="the service's scan subscriber",
+        )  # fmt: skip
+        # Blocking, not dropping, when the link is busy: every TF message must arrive.
+        static_pub, tf_pub = (
+            node.session.declare_publisher(
+                topic_key(0, topic, TF, TYPE_HASHES[TF]), congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            for topic in ("/robot1/tf_static", "/robot1/tf")
+        )
+        static_pub.put(tf_payload(stamp_ns_of(0), [("base_link", "laser", (0.2, 0.0, 0.3), LEVEL)]))
+        with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
+            joints = [("base_link", f"joint{j}", (0.1 * j, 0.0, 0.5), LEVEL) for j in range(40)]
+            for k in range(600):  # 10 ms apart: 100 Hz
+                stamp = stamp_ns_of(0) + k * 10_000_000
+                tf_pub.put(tf_payload(stamp, [("map", "base_link", (1.0, 2.0, 0.0), LEVEL), *joints]))
+            wait_for(
+                lambda: healthz_ros(http)["tf_messages"] == 601, timeout=20, what="the TF messages handled"
+            )
+            assert healthz_ros(http)["tf_trees"]["/robot1"]["samples"] == 20_000
+            node.put(
+                "/robot1/scan",
+                LASER,
+                LaserData(stamp_ns_of(0) + 5_985_000_000, -1.0, 0.02, np.full(100, 2.0, np.float32)).payload(
+                    "laser"
+                ),
+            )
+            wait_for(
+                lambda: robots(http).get("robot1", {}).get("scans_integrated") == 1,
+                timeout=10, what="the scan at the end of the TF integrated",
+            )  # fmt: skip
+            ros = healthz_ros(http)
+            assert (ros["refused"], ros["tf_refused"]) == ({}, 0), ros
+        assert service.stop() == 0
+    finally:
+        node.close()

@@ -194,10 +194,24 @@ def test_memory_is_bounded() -> None:
         for i in range(10):
             buf.add(TransformStamped(0.0, "odom", f"f{i}", (0.0, 0.0, 0.0), q), static=True)
     assert buf.frames == 8
+    # At the tree's limit the fullest edge's oldest sample makes room: the tree stays bounded and
+    # keeps up with time, rather than refusing every later sample for good.
     small = TfBuffer(max_samples=10)
+    for i in range(15):
+        small.add(TransformStamped(float(i), "odom", "base", (float(i), 0.0, 0.0), q), static=False)
+    assert small.samples == 10
+    assert small.lookup("odom", "base", 13.5).translation[0] == pytest.approx(13.5)
+    for i in range(8):
+        small.add(TransformStamped(float(i), "odom", "arm", (0.0, 0.0, 0.0), q), static=False)
+    assert small.samples == 10  # the fullest edge gave its oldest each time ("base" keeps 11 ... 14)
+    assert small.lookup("odom", "base", 14.0).translation[0] == pytest.approx(14.0)
+    full = TfBuffer(max_samples=4)  # every edge down to the two samples it interpolates between
+    for child in ("a", "b"):
+        for i in range(2):
+            full.add(TransformStamped(float(i), "odom", child, (0.0, 0.0, 0.0), q), static=False)
     with pytest.raises(TfError, match="samples"):
-        for i in range(11):
-            small.add(TransformStamped(float(i), "odom", "base", (0.0, 0.0, 0.0), q), static=False)
+        full.add(TransformStamped(0.0, "odom", "c", (0.0, 0.0, 0.0), q), static=False)
+    assert full.samples == 4
 
 
 def test_normalize_frame() -> None:

@@ -11,8 +11,9 @@ edge); one before its oldest kept sample but within the window is a `TfError` (i
 
 Bounded against hostile input: frames per tree, samples per edge, samples per tree, and a history
 window per edge (older samples dropped as newer ones arrive; a sample older than the window means
-time went back, and the edge starts again from it). What does not fit is refused with a
-`TfError` whose message says which limit.
+time went back, and the edge starts again from it; at the samples-per-tree limit the fullest
+dynamic edge gives up its oldest). What does not fit is refused with a `TfError` whose message says
+which limit.
 """
 
 from __future__ import annotations
@@ -225,7 +226,7 @@ class TfBuffer:
         edge = self._edges.get(child)
         if edge is None or edge.parent != parent or edge.static != static:
             if edge is None and self._samples >= self.max_samples:
-                raise TfError(f"TF tree already holds {self._samples} samples, the most it may hold")
+                self._make_room()
             if edge is not None:
                 self._samples -= len(edge.stamps)
             edge = self._edges[child] = _Edge(parent, static)
@@ -251,7 +252,8 @@ class TfBuffer:
             edge.values[7 * i : 7 * i + 7] = array("d", values)  # the same stamp again: the newer wins
             return
         if self._samples >= self.max_samples:
-            raise TfError(f"TF tree already holds {self._samples} samples, the most it may hold")
+            self._make_room()
+            i = bisect.bisect_left(stamps, t.stamp)  # the room may have been made on this edge
         stamps.insert(i, t.stamp)
         edge.values[7 * i : 7 * i] = array("d", values)
         self._samples += 1
@@ -262,6 +264,24 @@ class TfBuffer:
             del stamps[:drop]
             del edge.values[: 7 * drop]
             self._samples -= drop
+
+    def _make_room(self) -> None:
+        """At the tree's sample limit: drop the oldest sample of the dynamic edge holding the most.
+        Many fast edges (a robot's moving joints at the joint_states rate, a fleet's frames in one
+        tree) can fill the tree before their history window; refusing new samples then would freeze
+        every edge for good (an edge drops its old samples only as it takes new ones), so the
+        fullest edges' histories get shorter instead. Each edge keeps two samples to interpolate
+        between; raises TfError when no edge has more."""
+        fullest = max(
+            (edge for edge in self._edges.values() if not edge.static),
+            key=lambda e: len(e.stamps),
+            default=None,
+        )
+        if fullest is None or len(fullest.stamps) <= 2:
+            raise TfError(f"TF tree already holds {self._samples} samples, the most it may hold")
+        del fullest.stamps[0]
+        del fullest.values[:7]
+        self._samples -= 1
 
     def _chain(self, frame: str) -> list[str]:
         """`frame` and its ancestors up to its root."""
