@@ -372,8 +372,9 @@ def test_ros_robots_build_the_same_map_as_the_engine(
             assert set(robots) == {"robot1", "robot2"}
             assert robots["robot2"]["scans_rejected"] == 0
             # Seqs from rmw_zenoh's sequence numbers (from 1) less 1, sessions from the gids: one per
-            # publisher, nothing lost, no id conflict.
-            assert (robots["robot1"]["last_seq"], robots["robot2"]["last_seq"]) == (6, 5)
+            # publisher, nothing lost (robot1's two refused scans are seqs 7 and 8, settled as
+            # refused), no id conflict.
+            assert (robots["robot1"]["last_seq"], robots["robot2"]["last_seq"]) == (8, 5)
             for stats in robots.values():
                 assert (stats["lost"], stats["duplicates"], stats["id_conflict"]) == (0, 0, False), stats
             assert map_stats(http, "lab")["scans_integrated"] == 13
@@ -579,3 +580,51 @@ def test_a_scan_stamped_zero_is_posed_at_the_newest_tf(
         assert service.stop() == 0
     finally:
         session.close()
+
+
+def test_a_refused_scan_is_not_also_counted_lost(service_factory: Callable[..., ServiceProcess]) -> None:
+    """A scan refused (a bad scan, garbage, no TF) reached the service: rmw_zenoh's attachment gives
+    its sequence number and publisher, so its seq is settled as refused, as a native scan refused by
+    the input limits is (protocol.md), in the robot's order: garbage arriving while an earlier scan
+    waits for its TF does not make that scan a duplicate. Before, only `scans_rejected` counted a
+    refused scan, and the next scan accepted counted it again in `lost` (scans that never reached
+    the service)."""
+    service = service_factory("--ros-scans", "lab", "--in-memory")
+    robot = RosRobot(service.zenoh_endpoint, "robot1")
+    level = Rotation.identity()
+
+    def tf(k: int) -> None:
+        for dt in (-(10**7), 10**7):
+            robot.put_tf(tf_payload(stamp_ns_of(k) + dt, [("map", "base_link", (1.0, 2.0, 0.0), level)]))
+
+    def scan(k: int, frame: str = "laser", range_min: float = 0.05) -> bytes:
+        return LaserData(stamp_ns_of(k), -1.0, 0.02, np.full(100, 2.0, np.float32), range_min).payload(frame)
+
+    try:
+        wait_for(lambda: robot.scan_pub.matching_status.matching, timeout=20, what="the service's subscriber")
+        with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
+            robot.put_static(tf_payload(stamp_ns_of(0), [("base_link", "laser", (0.2, 0.0, 0.3), level)]))
+            tf(0)
+            robot.put_scan(scan(0))  # seq 0: creates the map, where refusals are counted
+            wait_for(
+                lambda: robot_stats(http, "robot1").get("scans_integrated") == 1, timeout=10, what="seq 0"
+            )
+            robot.put_scan(scan(1))  # seq 1 waits for its TF, sent after the next two
+            robot.put_scan(b"\x00\x01\x00\x00" + b"\xff" * 40)  # seq 2: undecodable
+            robot.put_scan(scan(2, range_min=50.0))  # seq 3: range_min above range_max
+            time.sleep(0.1)
+            tf(1)
+            tf(2)
+            robot.put_scan(scan(2, frame="no_such_frame"))  # seq 4: no TF ever
+            tf(3)
+            robot.put_scan(scan(3))  # seq 5
+            stats = wait_for(
+                lambda: (s := robot_stats(http, "robot1")).get("scans_integrated") == 3 and s,
+                timeout=10, what="seqs 1 and 5 integrated",
+            )  # fmt: skip
+            assert healthz_ros(http)["refused"] == {"invalid_scan": 1, "undecodable": 1, "no_tf": 1}
+            got = {key: stats[key] for key in ("scans_rejected", "lost", "duplicates", "last_seq")}
+            assert got == {"scans_rejected": 3, "lost": 0, "duplicates": 0, "last_seq": 5}, stats
+        assert service.stop() == 0
+    finally:
+        robot.close()

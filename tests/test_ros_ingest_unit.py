@@ -37,7 +37,9 @@ class RecordingRegistry:
             raise exc
         self.submitted.append((map_id, robot_id, wire))
 
-    def reject(self, map_id: str, robot_id: str, reason: str) -> None:
+    def reject(
+        self, map_id: str, robot_id: str, reason: str, scan_id: tuple[int, float, int | None] | None = None
+    ) -> None:
         self.rejected.append((map_id, robot_id, reason))
 
 

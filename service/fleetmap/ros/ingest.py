@@ -29,7 +29,9 @@ queue (bounded; the newest refused when full) and the `fleetmap-ros` thread pose
 covers its stamp, in order per robot. A scan whose TF has not come `tf_timeout` seconds after it
 arrived is dropped (tf2's MessageFilter does the same), counted on the robot (`scans_rejected`,
 `last_error` saying why) and in `status()`. A scan that can never be posed (a tilted laser, a stamp
-older than the TF kept, a bad scan) is refused at once the same way.
+older than the TF kept, a bad scan) is refused at once the same way, or, while scans of its robot
+are queued, when its turn comes: a refusal settles the scan's seq (not lost), which must not
+overtake an earlier scan's submission.
 """
 
 from __future__ import annotations
@@ -105,12 +107,24 @@ def session_from_gid(gid: bytes) -> int:
 
 @dataclass
 class _Pending:
-    msg: LaserScanMsg
+    """A scan on its robot's queue: waiting for the TF that poses it, or (`refusal`: kind, reason)
+    refused already, to be counted in its robot's order (`msg` None: it could not be read)."""
+
+    msg: LaserScanMsg | None
     namespace: str
     seq: int
     session: int | None
     deadline: float  # time.monotonic() after which it is dropped if TF still does not cover it
     waited: bool = False  # counted once in `scans_waited_for_tf`
+    refusal: tuple[str, str] | None = None
+
+    @property
+    def scan_id(self) -> tuple[int, float, int] | None:
+        """What settles it when it is refused (`RosScanIngest._refuse`): None without a session (no
+        rmw_zenoh attachment), whose seq is not the publisher's."""
+        if self.session is None:
+            return None
+        return (self.seq, 0.0 if self.msg is None else self.msg.stamp, self.session)
 
 
 class _Robot:
@@ -234,12 +248,17 @@ class RosScanIngest:
         except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
             log.exception("unexpected error handling a ROS scan sample on %s", sample.key_expr)
 
-    def _refuse(self, kind: str, robot_id: str | None, reason: str) -> None:
-        """Count a refused scan (on its robot when there is one) and log it, rate-limited."""
+    def _refuse(
+        self, kind: str, robot_id: str | None, reason: str, scan_id: tuple[int, float, int] | None = None
+    ) -> None:
+        """Count a refused scan (on its robot when there is one) and log it, rate-limited. `scan_id`:
+        its (seq, stamp, session) when its publisher's attachment gave them (`_Pending.scan_id`),
+        which settles its seq as refused, as `MapRegistry.reject` does a native scan's: it reached the
+        service, and is not to be counted as lost when the next one arrives."""
         with self._lock:
             self.refused[kind] += 1
         if robot_id is not None:
-            self.registry.reject(self.map_id, robot_id, reason)
+            self.registry.reject(self.map_id, robot_id, reason, scan_id)
         who = f"{self.map_id}/{robot_id}" if robot_id else "ROS"
         self._log.warning(
             f"ros-{kind}:{robot_id}", f"refused a ROS scan of {who}: {reason}", map_id=self.map_id,
@@ -259,27 +278,7 @@ class RosScanIngest:
             reason = f"topic {topic[:200]!r} gives robot id {robot_id[:80]!r}, not [A-Za-z0-9_-]{{1,64}}"
             self._refuse("invalid_topic", None, reason)
             return
-        limit = self.registry.input_limits.max_payload_bytes
-        if len(payload) > limit:
-            self._refuse(
-                "undecodable", robot_id, f"LaserScan of {len(payload)} bytes exceeds the limit of {limit}"
-            )
-            return
-        try:
-            msg = decode_laser_scan(payload)
-        except CdrError as exc:
-            self._refuse("undecodable", robot_id, f"undecodable LaserScan on {topic}: {exc}")
-            return
-        max_beams = self.registry.input_limits.max_beams
-        if len(msg.ranges) > max_beams:  # refused before it waits (and holds memory)
-            reason = f"LaserScan of {len(msg.ranges)} beams is more than the limit of {max_beams}"
-            self._refuse("invalid_scan", robot_id, reason)
-            return
-        try:
-            normalize_frame(msg.frame_id)
-        except TfError as exc:  # checked here so that no reason or log line carries a huge id
-            self._refuse("tf_error", robot_id, f"LaserScan on {topic}: {exc}")
-            return
+        msg, refusal = self._decode(topic, payload)
         meta = decode_attachment(attachment) if attachment is not None else None
         namespace = topic.rsplit("/", 1)[0]
         with self._lock:
@@ -297,22 +296,57 @@ class RosScanIngest:
                         robot.counters[topic] = seq
                     session = None
                 assert session is None or 1 <= session < SESSION_LIMIT
-                full = len(robot.pending) >= self.max_pending or self._waiting >= MAX_WAITING
-                if not full:
+                item = _Pending(
+                    msg, namespace, seq, session, time.monotonic() + self.tf_timeout, refusal=refusal
+                )
+                # A refused scan is refused at once, unless scans of its robot are queued (waiting
+                # for TF, or being handed on by the thread): then it queues behind them, to be refused
+                # in the robot's order, since settling its seq (`_refuse`) before an earlier scan is
+                # submitted would make that one a duplicate.
+                refuse_now = refusal is not None and not robot.pending
+                full = not refuse_now and (
+                    len(robot.pending) >= self.max_pending or self._waiting >= MAX_WAITING
+                )
+                if not (refuse_now or full):
                     self._waiting += 1
-                    deadline = time.monotonic() + self.tf_timeout
-                    robot.pending.append(_Pending(msg, namespace, seq, session, deadline))
+                    robot.pending.append(item)
         if robot is None:
             self._refuse("too_many_robots", None, f"already {MAX_ROBOTS} ROS robots; {robot_id!r} ignored")
             return
-        if full:
+        if refuse_now:
+            assert refusal is not None
+            self._refuse(refusal[0], robot_id, refusal[1], item.scan_id)
+            return
+        if full:  # not settled (see above): its seq counts as lost once a later one is accepted
+            frame = "" if msg is None else msg.frame_id
             reason = (
                 f"{self.max_pending} scans of the robot ({MAX_WAITING} of all robots) already wait for TF "
-                f"(is TF published for {msg.frame_id!r}?)"
+                f"(is TF published for {frame!r}?)"
             )
             self._refuse("pending_full", robot_id, reason)
             return
         self._wake.set()
+
+    def _decode(self, topic: str, payload: bytes) -> tuple[LaserScanMsg | None, tuple[str, str] | None]:
+        """The LaserScan of `payload`, or (None, (kind, reason)) if it is refused before it waits for
+        TF: garbage, more beams than the limit, an invalid frame id (so that it holds no memory while
+        queued, and no reason or log line carries a huge id)."""
+        limit = self.registry.input_limits.max_payload_bytes
+        if len(payload) > limit:
+            return None, ("undecodable", f"LaserScan of {len(payload)} bytes exceeds the limit of {limit}")
+        try:
+            msg = decode_laser_scan(payload)
+        except CdrError as exc:
+            return None, ("undecodable", f"undecodable LaserScan on {topic}: {exc}")
+        max_beams = self.registry.input_limits.max_beams
+        if len(msg.ranges) > max_beams:
+            reason = f"LaserScan of {len(msg.ranges)} beams is more than the limit of {max_beams}"
+            return None, ("invalid_scan", reason)
+        try:
+            normalize_frame(msg.frame_id)
+        except TfError as exc:
+            return None, ("tf_error", f"LaserScan on {topic}: {exc}")
+        return msg, None
 
     def _room_for_robot(self) -> bool:
         """Whether another robot may be tracked (caller holds `_lock`): below MAX_ROBOTS, or after
@@ -453,6 +487,15 @@ class RosScanIngest:
                     if not robot.pending:
                         break
                     item = robot.pending[0]
+                # Handed on (submitted or refused) before it leaves the queue: while the robot's queue
+                # is not empty, a refusal in `_handle_scan` queues behind it (see there).
+                if item.refusal is not None:
+                    kind, reason = item.refusal
+                    self._refuse(kind, robot_id, reason, item.scan_id)
+                    self._pop(robot)
+                    continue
+                msg = item.msg
+                assert msg is not None  # only a refused scan has none
                 now = time.monotonic()
                 try:
                     wire = self._pose(item)
@@ -465,30 +508,25 @@ class RosScanIngest:
                         if next_deadline is None or item.deadline < next_deadline:
                             next_deadline = item.deadline
                         break
-                    self._pop(robot)
                     reason = (
-                        f"no TF for the scan at {item.msg.stamp:.3f} ({self.fixed_frame} -> "
-                        f"{item.msg.frame_id}) within {self.tf_timeout:g} s: {exc}"
+                        f"no TF for the scan at {msg.stamp:.3f} ({self.fixed_frame} -> "
+                        f"{msg.frame_id}) within {self.tf_timeout:g} s: {exc}"
                     )
-                    self._refuse("no_tf", robot_id, reason)
-                    continue
+                    self._refuse("no_tf", robot_id, reason, item.scan_id)
                 except TfError as exc:
-                    self._pop(robot)
-                    self._refuse("tf_error", robot_id, f"scan at {item.msg.stamp:.3f} not posed: {exc}")
-                    continue
+                    reason = f"scan at {msg.stamp:.3f} not posed: {exc}"
+                    self._refuse("tf_error", robot_id, reason, item.scan_id)
                 except (ScanError, codec.DecodeError) as exc:
-                    self._pop(robot)
-                    self._refuse("invalid_scan", robot_id, f"invalid LaserScan: {exc}")
-                    continue
+                    self._refuse("invalid_scan", robot_id, f"invalid LaserScan: {exc}", item.scan_id)
                 except Exception as exc:  # a bug: drop the scan, or it would block its robot for good
-                    self._pop(robot)
                     self._log.error(
                         f"ros-bug:{type(exc).__name__}", "unexpected error posing a ROS scan", exc
                     )
-                    self._refuse("invalid_scan", robot_id, f"not posed: internal error {type(exc).__name__}")
-                    continue
+                    reason = f"not posed: internal error {type(exc).__name__}"
+                    self._refuse("invalid_scan", robot_id, reason, item.scan_id)
+                else:
+                    self._submit(robot_id, wire)
                 self._pop(robot)
-                self._submit(robot_id, wire)
         return None if next_deadline is None else max(0.0, next_deadline - time.monotonic())
 
     def _pop(self, robot: _Robot) -> None:
@@ -500,6 +538,7 @@ class RosScanIngest:
         """The scan as fleetmap integrates it, posed by TF; raises TfPending, TfError, ScanError,
         DecodeError."""
         msg = item.msg
+        assert msg is not None  # only a refused scan has none
         with self._tf_lock:
             tree = self._tree_for(item.namespace)
             if tree is None and normalize_frame(msg.frame_id) == normalize_frame(self.fixed_frame):
