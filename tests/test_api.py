@@ -745,6 +745,31 @@ def test_a_scan_over_the_payload_limit_is_413_and_counted(api: RunningApi) -> No
     assert robot["last_error"] == r.json()["detail"]
 
 
+def test_a_scan_with_a_session_refused_at_the_input_limits_is_rejected_not_also_lost(api: RunningApi) -> None:
+    """A scan with a session id that breaks the input limits (a pose outside the world bound) is a
+    422, counted as rejected with its seq recorded, as over Zenoh (docs/protocol.md, "Limits"): the
+    robot's next seq is no gap. The REST ingest dropped its seq, so the next scan counted it as lost
+    too: three scans, two integrated, one rejected and one lost. A copy of it is a duplicate."""
+    assert api.client.put("/maps/lim-rest", json=CONFIG).status_code in (200, 201)
+
+    def post(seq: int, x: float) -> httpx.Response:
+        body = encode_json(fan_scan(x, 0.0, 0.0, [1.0] * 31), seq, float(seq), session=77)
+        return api.client.post(
+            "/maps/lim-rest/scans", params={"robot_id": "r"}, content=body,
+            headers={"content-type": JSON_ENCODING},
+        )  # fmt: skip
+
+    assert post(0, 0.0).json()["status"] == "integrated"
+    r = post(1, 5e6)
+    assert r.status_code == 422 and "world bound" in r.json()["detail"], r.text
+    assert post(1, 5e6).status_code == 422  # its copy: refused again, counted once
+    assert post(2, 0.0).json()["status"] == "integrated"
+    robot = api.client.get("/maps/lim-rest").json()["stats"]["robots"]["r"]
+    counts = {k: robot[k] for k in ("scans_integrated", "scans_rejected", "lost", "duplicates", "last_seq")}
+    assert counts == {"scans_integrated": 2, "scans_rejected": 1, "lost": 0, "duplicates": 1, "last_seq": 2}
+    assert robot["last_error"].startswith("scan seq 1 refused: pose (5e+06, 0) is outside the world bound")
+
+
 # -- metrics ------------------------------------------------------------------------------------------
 
 

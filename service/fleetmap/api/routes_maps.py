@@ -187,7 +187,11 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
         else:  # parsing a few MB of JSON takes tens of ms: not on the loop every request waits on
             wire = await asyncio.to_thread(codec.decode, body, content_type, limits)
     except codec.DecodeError as exc:
-        registry.reject(map_id, robot_id, str(exc))  # counted as over Zenoh, too large or not
+        # Counted as over Zenoh, too large or not. A scan whose seq and session id could be read
+        # (`scan_id`: its body broke the input limits) is settled as refused with its seq, as Zenoh's
+        # ingest does: without it, the robot's next seq counted it as lost too (one scan, two counts).
+        reason = str(exc) if exc.scan_id is None else f"scan seq {exc.scan_id[0]} refused: {exc}"
+        registry.reject(map_id, robot_id, reason, exc.scan_id)
         raise  # the app's handlers answer it: 413 past the payload limit (PayloadTooLarge), else 422
     try:
         future = registry.submit(map_id, robot_id, wire, wait=True)
