@@ -770,6 +770,26 @@ def test_a_scan_with_a_session_refused_at_the_input_limits_is_rejected_not_also_
     assert robot["last_error"].startswith("scan seq 1 refused: pose (5e+06, 0) is outside the world bound")
 
 
+def test_a_seq_refused_at_integration_without_a_session_is_free_for_the_next_scan(api: RunningApi) -> None:
+    """A scan without a session id refused when it is integrated (it needs more tiles than the map's
+    max_tiles: 422) leaves its seq free, as one the decoder refuses does: the next scan sent under
+    it is integrated. Its seq was recorded when it was queued, so that scan was answered
+    "duplicate" and never integrated; `FleetmapClient.post_scan`, whose automatic seq stays after a
+    422, lost the robot's next scan so, silently."""
+    assert api.client.put("/maps/cap", json={**CONFIG, "max_tiles": 1}).status_code in (200, 201)
+    near = fan_scan(1.6, 1.6, 0.0, [0.5] * 31)  # within one tile of 64 cells (3.2 m)
+    r = post_scan(api, "cap", "r", near, 0)
+    assert r.status_code == 200 and r.json()["status"] == "integrated", r.text
+    r = post_scan(api, "cap", "r", fan_scan(50.0, 50.0, 0.0, [0.5] * 31), 1)
+    assert r.status_code == 422 and "max_tiles" in r.json()["detail"], r.text
+    r = post_scan(api, "cap", "r", near, 1)
+    assert r.status_code == 200 and r.json()["status"] == "integrated", r.text
+    assert post_scan(api, "cap", "r", near, 1).json()["status"] == "duplicate"  # once integrated, taken
+    robot = api.client.get("/maps/cap").json()["stats"]["robots"]["r"]
+    counts = {k: robot[k] for k in ("scans_integrated", "scans_rejected", "lost", "duplicates", "last_seq")}
+    assert counts == {"scans_integrated": 2, "scans_rejected": 1, "lost": 0, "duplicates": 1, "last_seq": 1}
+
+
 # -- metrics ------------------------------------------------------------------------------------------
 
 

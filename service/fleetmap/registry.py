@@ -933,8 +933,13 @@ class MapRegistry:
         except (ScanError, TileLimitError) as exc:
             # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422, and a
             # retry once memory is freed is integrated, not taken for a duplicate (`RobotState.refused_scan`).
+            # A scan without a session id refused here keeps its seq free as well, as one the decoder
+            # refuses does (docs/protocol.md, "Limits": the map's max_tiles is one): its seq was
+            # recorded when it was queued, and the next scan sent under it (a REST client's, whose
+            # automatic seq stays after a 422) was ignored as a duplicate, never integrated.
             budget = isinstance(exc, MemoryBudgetError)
-            self._finish_rejected(job, str(exc), 507 if budget else 422, retriable=budget)
+            retriable = budget or job.wire.session is None
+            self._finish_rejected(job, str(exc), 507 if budget else 422, retriable=retriable)
             return
         if result is None:
             self._finish_gone(job)
@@ -978,10 +983,10 @@ class MapRegistry:
     ) -> None:
         """A scan that does not count as integrated: count it on its robot (as `not_durable` if it
         was `applied`, else as rejected) with `reason` as its last error, and answer its caller
-        `status`. A `retriable` scan (refused for the service's sake, not its own) may be sent again
-        with its seq (`RobotState.refused_scan`). A `provisional` map that this refusal leaves with no
-        scan unsettled is removed again (`_remove_unclaimed`), and the caller answered once that is
-        stored."""
+        `status`. A `retriable` scan (refused for the service's sake, or sent without a session id:
+        `_integrate`) may be sent again with its seq (`RobotState.refused_scan`). A `provisional` map
+        that this refusal leaves with no scan unsettled is removed again (`_remove_unclaimed`), and
+        the caller answered once that is stored."""
         removed = None
         with self.lock:
             self._settle(job, integrated=False)

@@ -316,10 +316,12 @@ class RobotState:
     id_conflicts: int = 0
     conflict_at: float | None = None  # wall-clock time of the last interleaved scan
     #: (session key, seq) of its last scan refused for the service's sake: the full ingest queue's
-    #: (counted in `dropped`, answered 503) or the memory budget's (answered 507), until another of
-    #: its scans is accepted. Its seq was recorded (so it is not also counted as lost), yet it was
-    #: never integrated: a re-send of it, which a REST client answered 503 or 507 is told to make, is
-    #: accepted rather than ignored as a duplicate. Not saved: it is about the last moments.
+    #: (counted in `dropped`, answered 503) or the memory budget's (answered 507), or one without a
+    #: session id refused at integration (422: the map's max_tiles), until another of its scans is
+    #: accepted. Its seq was recorded (so it is not also counted as lost), yet it was never
+    #: integrated: a re-send of it, which a REST client answered 503 or 507 is told to make, or the
+    #: next scan under a seq a 422 left free, is accepted rather than ignored as a duplicate. Not
+    #: saved: it is about the last moments.
     refused_scan: tuple[int, int] | None = None
     #: Its JSON in live viewers' robots events, made by the first event stream that sent it and sent
     #: as is by the others (`api.robots_feed`): key (what the JSON shows) -> JSON. Not saved.
