@@ -84,7 +84,9 @@ def zenoh_error_text(exc: BaseException) -> str:
 
 def is_valid_id(value: str) -> bool:
     """Whether `value` is a valid map or robot id (`ID_PATTERN`: 1 to 64 of A-Z a-z 0-9 _ -)."""
-    return bool(_ID_RE.match(value))
+    # The whole of it: `match` also took an id followed by a newline (`$` matches before a last
+    # one), and a Zenoh key `fleetmap/m\n/r/scan` made a map that no URL can name, nor delete.
+    return _ID_RE.fullmatch(value) is not None
 
 
 def _finite(value: float) -> float:
