@@ -211,6 +211,33 @@ def test_two_robots_under_one_robot_id_are_both_integrated_and_the_conflict_repo
     assert robot_stats(http, "life-restart", "r").get("id_conflict") in (False, None)
 
 
+def test_three_robots_under_one_robot_id_count_two_conflicts_however_they_are_found(
+    http: httpx.Client,
+) -> None:
+    """Three robots under one id count 2 in `id_conflicts` (docs/protocol.md, "Sessions": two robots
+    1, a third one more), whether the third is found after the first two or all three at once (a
+    fleet booted together with one configuration): found at once, they counted 1, as two robots do."""
+
+    def post(map_id: str, session: int, seq: int) -> None:
+        body = codec.encode_json(scan_at(0.1 * seq), seq, float(seq), session=session)
+        answer = http.post(
+            f"/maps/{map_id}/scans", params={"robot_id": "r"}, content=body,
+            headers={"content-type": JSON_ENCODING},
+        )  # fmt: skip
+        assert answer.status_code == 200 and answer.json()["status"] == "integrated", answer.text
+
+    # One after the other: two interleave (1), then a third joins them (2).
+    for session, seq in ((11, 0), (12, 0), (11, 1), (12, 1), (13, 0), (11, 2), (12, 2), (13, 1)):
+        post("life-three-later", session, seq)
+    # At once: three first scans, then each one's second.
+    for session, seq in ((21, 0), (22, 0), (23, 0), (21, 1), (22, 1), (23, 1)):
+        post("life-three-at-once", session, seq)
+    for map_id in ("life-three-later", "life-three-at-once"):
+        stats = robot_stats(http, map_id, "r")
+        assert (stats["id_conflicts"], stats["restarts"], stats["lost"]) == (2, 0, 0), (map_id, stats)
+        assert robot_metric(http, "fleetmap_robot_id_conflicts_total", map_id, "r") == 2.0
+
+
 def test_a_robot_restarting_with_its_clock_and_seq_at_0_is_a_new_session_not_duplicates(
     service: ServiceProcess, http: httpx.Client
 ) -> None:

@@ -311,8 +311,9 @@ class RobotState:
     #: is the current one, whose last seq is the robot's (`last_seq`).
     sessions: dict[int, SessionSeqs] = field(default_factory=dict)
     accepted: int = 0  # scans accepted (the clock of the sessions' `first_scan_no`, `last_scan_no`)
-    #: Times scans of a session were found interleaved with another session's not yet known to
-    #: interleave with (two robots publishing under one id: 1; a third, or one of them restarted: +1).
+    #: Sessions found interleaved with another session's, the first two of a conflict counting once
+    #: (two robots publishing under one id: 1; three: 2, found at once or one after the other; one of
+    #: them restarted: +1).
     id_conflicts: int = 0
     conflict_at: float | None = None  # wall-clock time of the last interleaved scan
     #: (session key, seq) of its last scan refused for the service's sake: the full ingest queue's
@@ -468,8 +469,11 @@ class RobotState:
         newly = [rec for rec in (back, *beside) if not rec.conflict]
         for rec in newly:
             rec.conflict = True
-        if newly:
-            self.id_conflicts += 1
+        # Each session found counts, but the first two of a conflict count once between them (two
+        # robots under one id: 1): three found at once are 2, as a third found later adds 1. Counted
+        # once per finding, three robots started together showed 1, as two robots do.
+        first_found = len(newly) == len(beside) + 1
+        self.id_conflicts += len(newly) - 1 if first_found else len(newly)
 
     def in_conflict(self, now: float) -> bool:
         """Whether scans of two sessions interleaved within the last CONFLICT_SHOWN seconds."""
