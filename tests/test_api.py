@@ -770,6 +770,26 @@ def test_a_scan_with_a_session_refused_at_the_input_limits_is_rejected_not_also_
     assert robot["last_error"].startswith("scan seq 1 refused: pose (5e+06, 0) is outside the world bound")
 
 
+def test_a_scans_media_type_is_read_whatever_its_case(api: RunningApi) -> None:
+    """`Content-Type: Application/JSON` is JSON (media types are case-insensitive, RFC 9110, 8.3.1),
+    as for every other JSON body of the API: a scan sent so was refused as of an unknown encoding,
+    and counted as rejected."""
+    assert api.client.put("/maps/case", json=CONFIG).status_code in (200, 201)
+    scan = fan_scan(0.0, 0.0, 0.0, [1.0] * 31)
+    for seq, (body, content_type) in enumerate(
+        [
+            (encode_json(scan, 0), "Application/JSON; charset=UTF-8"),
+            (encode_binary(scan, 1), BINARY_ENCODING.upper()),
+        ]
+    ):
+        r = api.client.post(
+            "/maps/case/scans", params={"robot_id": "r"}, content=body, headers={"content-type": content_type}
+        )
+        assert r.status_code == 200 and r.json()["status"] == "integrated", (seq, r.text)
+    robot = api.client.get("/maps/case").json()["stats"]["robots"]["r"]
+    assert (robot["scans_integrated"], robot["scans_rejected"]) == (2, 0)
+
+
 def test_a_seq_refused_at_integration_without_a_session_is_free_for_the_next_scan(api: RunningApi) -> None:
     """A scan without a session id refused when it is integrated (it needs more tiles than the map's
     max_tiles: 422) leaves its seq free, as one the decoder refuses does: the next scan sent under

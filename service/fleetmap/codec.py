@@ -149,7 +149,8 @@ def decode(
     limit = limits.max_payload_bytes
     if len(data) > limit:
         raise PayloadTooLarge(f"payload of {len(data)} bytes exceeds the limit of {limit}")
-    kind = encoding.split(";", 1)[0].strip()
+    # Media types are case-insensitive (RFC 9110, 8.3.1), as the REST API's other JSON bodies take them.
+    kind = encoding.split(";", 1)[0].strip().lower()
     if kind in SNIFFED_ENCODINGS:
         kind = _sniff(data)
     if kind == JSON_ENCODING or kind == "text/json":
