@@ -793,21 +793,34 @@ def test_a_scans_media_type_is_read_whatever_its_case(api: RunningApi) -> None:
 def test_a_seq_refused_at_integration_without_a_session_is_free_for_the_next_scan(api: RunningApi) -> None:
     """A scan without a session id refused when it is integrated (it needs more tiles than the map's
     max_tiles: 422) leaves its seq free, as one the decoder refuses does: the next scan sent under
-    it is integrated. Its seq was recorded when it was queued, so that scan was answered
-    "duplicate" and never integrated; `FleetmapClient.post_scan`, whose automatic seq stays after a
-    422, lost the robot's next scan so, silently."""
+    it is integrated, and a copy of that one is a duplicate. Its seq was recorded when it was
+    queued, so that scan was answered "duplicate" and never integrated (`FleetmapClient.post_scan`,
+    whose automatic seq stays after a 422, lost the robot's next scan so, silently); and once it
+    was, a copy of it, its stamp later than the refused scan's, was taken for a restart."""
     assert api.client.put("/maps/cap", json={**CONFIG, "max_tiles": 1}).status_code in (200, 201)
     near = fan_scan(1.6, 1.6, 0.0, [0.5] * 31)  # within one tile of 64 cells (3.2 m)
-    r = post_scan(api, "cap", "r", near, 0)
-    assert r.status_code == 200 and r.json()["status"] == "integrated", r.text
-    r = post_scan(api, "cap", "r", fan_scan(50.0, 50.0, 0.0, [0.5] * 31), 1)
-    assert r.status_code == 422 and "max_tiles" in r.json()["detail"], r.text
-    r = post_scan(api, "cap", "r", near, 1)
-    assert r.status_code == 200 and r.json()["status"] == "integrated", r.text
-    assert post_scan(api, "cap", "r", near, 1).json()["status"] == "duplicate"  # once integrated, taken
+    far = fan_scan(50.0, 50.0, 0.0, [0.5] * 31)  # in another tile: past max_tiles
+
+    def post(scan: Scan, seq: int, stamp: float) -> httpx.Response:
+        return api.client.post(
+            "/maps/cap/scans", params={"robot_id": "r"}, content=encode_json(scan, seq, stamp),
+            headers={"content-type": JSON_ENCODING},
+        )  # fmt: skip
+
+    assert post(near, 0, 0.0).json()["status"] == "integrated"
+    # Seq 1 refused, then taken by a scan of the same stamp (FleetmapClient sends 0); seq 2 refused,
+    # then taken by a scan of a later stamp.
+    for seq, stamp in ((1, 0.0), (2, 5.0)):
+        r = post(far, seq, 0.0)
+        assert r.status_code == 422 and "max_tiles" in r.json()["detail"], r.text
+        r = post(near, seq, stamp)
+        assert r.status_code == 200 and r.json()["status"] == "integrated", r.text
+        assert post(near, seq, stamp).json()["status"] == "duplicate"  # its copy, once integrated
     robot = api.client.get("/maps/cap").json()["stats"]["robots"]["r"]
-    counts = {k: robot[k] for k in ("scans_integrated", "scans_rejected", "lost", "duplicates", "last_seq")}
-    assert counts == {"scans_integrated": 2, "scans_rejected": 1, "lost": 0, "duplicates": 1, "last_seq": 1}
+    names = ("scans_integrated", "scans_rejected", "lost", "duplicates", "restarts", "last_seq")
+    assert {k: robot[k] for k in names} == {
+        "scans_integrated": 3, "scans_rejected": 2, "lost": 0, "duplicates": 2, "restarts": 0, "last_seq": 2,
+    }  # fmt: skip
 
 
 # -- metrics ------------------------------------------------------------------------------------------

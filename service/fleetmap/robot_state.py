@@ -428,8 +428,14 @@ class RobotState:
         key = session_key(session)
         refused, self.refused_scan = self.refused_scan, None
         if refused == (key, seq):
-            if key in self.sessions:
-                self.sessions[key].ledger.withdraw_refusal(seq)  # settled as refused, now accepted after all
+            rec = self.sessions.get(key)
+            if rec is not None:
+                rec.ledger.withdraw_refusal(seq)  # settled as refused, now accepted after all
+                if rec.last_seq == seq:
+                    # The scan accepted under its seq now (a REST client's next scan after a 422, of
+                    # a later stamp) is the last: without a session id a copy of it, its stamp
+                    # later than the refused one's, was taken for a restart and integrated twice.
+                    rec.stamp = stamp
             return False  # a re-send of the scan the full queue refused: its seq is recorded already
         self.accepted += 1
         rec = self.sessions.pop(key, None)
