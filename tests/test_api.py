@@ -850,7 +850,7 @@ def test_metrics_count_per_robot(api: RunningApi) -> None:
     m2 = (("map", "met"), ("robot", "m2"))
     assert samples[("fleetmap_scans_integrated_total", m1)] == 4
     assert samples[("fleetmap_scans_duplicate_total", m1)] == 1
-    assert samples[("fleetmap_scans_lost_total", m1)] == 2
+    assert samples[("fleetmap_scans_lost", m1)] == 2
     assert samples[("fleetmap_scans_rejected_total", m1)] == 1
     assert samples[("fleetmap_scans_dropped_total", m1)] == 0
     assert samples[("fleetmap_scans_integrated_total", m2)] == 1

@@ -238,6 +238,31 @@ def test_three_robots_under_one_robot_id_count_two_conflicts_however_they_are_fo
         assert robot_metric(http, "fleetmap_robot_id_conflicts_total", map_id, "r") == 2.0
 
 
+def test_lost_goes_down_when_a_gap_was_another_robots_so_it_is_a_gauge(http: httpx.Client) -> None:
+    """A robot's `lost` counts a gap once a later seq arrives, and takes it back when the "gap" turns
+    out to be another robot publishing under the id. It was the counter fleetmap_scans_lost_total,
+    which fell: Prometheus reads that as a reset, and `increase()` reported the whole value again."""
+
+    def post(session: int, seq: int) -> None:
+        body = codec.encode_json(scan_at(0.01 * seq), seq, float(seq), session=session)
+        answer = http.post(
+            "/maps/life-lost/scans", params={"robot_id": "r"}, content=body,
+            headers={"content-type": JSON_ENCODING},
+        )  # fmt: skip
+        assert answer.status_code == 200 and answer.json()["status"] == "integrated", answer.text
+
+    for seq in (0, 1, 2, 3, 4, 9):  # 5 to 8 lost
+        post(11, seq)
+    assert robot_stats(http, "life-lost", "r")["lost"] == 4
+    post(22, 500)  # another session far ahead: the robot's scans 10 to 499 look lost
+    assert robot_stats(http, "life-lost", "r")["lost"] == 504
+    post(11, 10)  # the first session goes on: 22 was another robot under the id, not a restart
+    assert robot_stats(http, "life-lost", "r")["lost"] == 4
+    assert robot_metric(http, "fleetmap_scans_lost", "life-lost", "r") == 4.0
+    families = {f.name: f.type for f in text_string_to_metric_families(http.get("/metrics").text)}
+    assert families["fleetmap_scans_lost"] == "gauge"
+
+
 def test_a_robot_restarting_with_its_clock_and_seq_at_0_is_a_new_session_not_duplicates(
     service: ServiceProcess, http: httpx.Client
 ) -> None:

@@ -126,7 +126,7 @@ def test_metrics_are_valid_prometheus_text_and_show_what_an_operator_watches(tmp
     # Per map and robot.
     assert value("fleetmap_scans_integrated_total", map="warehouse", robot="robot-1") == 3
     assert value("fleetmap_scans_integrated_total", map="yard_2", robot="r-2") == 3
-    assert value("fleetmap_scans_lost_total", map="yard_2", robot="r-2") == 2
+    assert value("fleetmap_scans_lost", map="yard_2", robot="r-2") == 2
     assert value("fleetmap_scans_rejected_total", map="warehouse", robot="robot-1") == 0
     # Ingest, storage, memory, tiles, event streams.
     assert value("fleetmap_queue_depth") == 0

@@ -211,7 +211,16 @@ class RegistryCollector(Collector):
                 "Scans refused as invalid (undecodable or refused by the engine)",
                 labels=robot,
             ),
-            CounterMetricFamily("fleetmap_scans_lost", "Gaps in the robot's sequence numbers", labels=robot),
+            # A gauge, not a counter: a gap is counted when a later seq arrives, and taken back when it
+            # turns out to be another robot's (an id conflict found withdraws the "restart" it made),
+            # so it goes down, which a counter must not: Prometheus reads a counter that falls as
+            # a reset, and `increase()` then reports the whole value again.
+            GaugeMetricFamily(
+                "fleetmap_scans_lost",
+                "Gaps in the robot's sequence numbers (goes down when a gap turns out to be another robot "
+                "publishing under the id)",
+                labels=robot,
+            ),
             CounterMetricFamily(
                 "fleetmap_scans_duplicate", "Scans ignored because their seq was not new", labels=robot
             ),

@@ -49,8 +49,9 @@ def healthz(state: State) -> Health:
 )
 def metrics(state: State) -> Response:
     """Counters per map and robot (`fleetmap_scans_integrated_total`, `fleetmap_scans_rejected_total`,
-    `fleetmap_scans_lost_total`, `fleetmap_scans_duplicate_total`, `fleetmap_scans_dropped_total`,
-    labels `map`, `robot`), `fleetmap_robot_online`, `fleetmap_queue_depth`,
+    `fleetmap_scans_duplicate_total`, `fleetmap_scans_dropped_total`, labels `map`, `robot`), the
+    gauge `fleetmap_scans_lost` (a gap taken back when it was another robot's: it goes down),
+    `fleetmap_robot_online`, `fleetmap_queue_depth`,
     `fleetmap_ingest_backlog_seconds` (how long the oldest queued scan has waited), `fleetmap_maps`,
     `fleetmap_map_tiles`, `fleetmap_map_memory_bytes`, and the histograms
     `fleetmap_integration_seconds` (plan + apply of one scan), `fleetmap_ingest_latency_seconds`
