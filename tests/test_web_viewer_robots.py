@@ -93,3 +93,41 @@ def test_viewer_applies_robot_deltas(page: Any, service_factory: Callable[..., S
     assert counts["robots_delta"] > 0 and counts["robots"] == counts["open"], counts
     assert not page.page_errors, page.page_errors
     http.close()
+
+
+def test_robots_named_like_object_properties(
+    page: Any, service_factory: Callable[..., ServiceProcess]
+) -> None:
+    """Robot ids the id pattern allows that are also names of every JavaScript object's properties
+    (`__proto__`, `constructor`) move, count their scans and are listed like any other robot: a
+    delta for `__proto__` set a prototype instead of a report, and the robot stayed where it was
+    first seen, at its first scan count."""
+    svc = service_factory("--in-memory")
+    http = httpx.Client(base_url=svc.base_url, timeout=30)
+    assert http.put(f"/maps/{MAP_ID}", json={}).status_code == 201
+    ids = ["__proto__", "constructor", "plain"]
+    for k, rid in enumerate(ids):
+        post(http, rid, 0, float(k), 0.0, MAP_ID)
+    page.goto(f"{svc.base_url}/#map={MAP_ID}")
+    _wait(page, "() => document.getElementById('status').dataset.state === 'connected'", what="connected")
+    _wait(page, "(ids) => ids.every((id) => window.fleetmapViewer.state.robots.has(id))", ids, what="robots")
+    for seq in range(1, 4):
+        for k, rid in enumerate(ids):
+            post(http, rid, seq, float(k), 0.5 * seq, MAP_ID)
+    want = current_robots(svc, MAP_ID)
+    # A list, not an object: in the page's JavaScript a key __proto__ would be lost as well.
+    expected = [[rid, want.robots[rid].scans_integrated, want.robots[rid].pose] for rid in ids]
+    assert all(n == 4 for _, n, _ in expected), expected
+    _wait(
+        page,
+        """(want) => want.every(([id, n, pose]) => {
+          const r = window.fleetmapViewer.state.robots.get(id);
+          const row = document.querySelector(`#robot-list li[data-robot-id="${id}"] .scans`);
+          return r && r.data.scans_integrated === n && JSON.stringify(r.data.pose) === JSON.stringify(pose)
+            && row && row.textContent === `${n} scans`;
+        })""",
+        expected,
+        what=f"every robot at its last pose and scan count {expected}",
+    )
+    assert not page.page_errors, page.page_errors
+    http.close()

@@ -177,7 +177,7 @@ export async function refreshInfo(token, first) {
     if (stats.robots) {
       // Only robots the stream has not shown yet: what it sent may be newer than this answer,
       // and with deltas a robot that does not change again would keep a stale report.
-      const reports = {};
+      const reports = Object.create(null); // a robot may be called __proto__ (see applyRobotsDelta)
       for (const [id, r] of Object.entries(stats.robots)) {
         if (state.robots.has(id)) continue;
         reports[id] = { online: r.online, pose: r.last_pose, scans_integrated: r.scans_integrated };

@@ -69,7 +69,7 @@ export function updateRobots(reports, complete = false, edits = null) {
   reports = reports || {};
   if (complete) {
     for (const id of [...state.robots.keys()]) {
-      if (!(id in reports)) removeRobot(id);
+      if (!Object.hasOwn(reports, id)) removeRobot(id); // not `in`: 'constructor' is in every object
     }
   }
   const ids = Object.keys(reports).sort(naturalOrder.compare);
@@ -130,7 +130,9 @@ function drawChanged() {
  */
 export function applyRobotsDelta(delta) {
   for (const id of delta.removed || []) removeRobot(id);
-  const reports = {};
+  // No prototype: a robot may be called __proto__ (the id pattern allows it), and assigning that
+  // key of a plain object sets its prototype instead, so the robot's changes were never drawn.
+  const reports = Object.create(null);
   const edits = new Set();
   for (const [id, change] of Object.entries(delta.robots || {})) {
     const known = state.robots.get(id);
