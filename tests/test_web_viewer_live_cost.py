@@ -21,6 +21,7 @@ import httpx
 import pytest
 from service_process import RobotProcess, ServiceProcess, wait_for
 from test_web_viewer import CHROMIUM, SHOW_MS, _wait
+from test_web_viewer_recovery import _scan
 
 pytestmark = pytest.mark.skipif(
     not CHROMIUM.exists(),
@@ -54,6 +55,11 @@ _SET_VISIBILITY_JS = """
   Object.defineProperty(document, 'hidden', {configurable: true, get: () => hidden});
   document.dispatchEvent(new Event('visibilitychange'));
 }
+"""
+#: The page is hidden from its start, as one opened in a background tab (added before its scripts run).
+_HIDDEN_FROM_THE_START_JS = """
+Object.defineProperty(document, 'visibilityState', {configurable: true, get: () => 'hidden'});
+Object.defineProperty(document, 'hidden', {configurable: true, get: () => true});
 """
 _STATUS_JS = "(s) => document.getElementById('status').dataset.state === s"
 
@@ -213,4 +219,32 @@ def test_hidden_tab_fetches_nothing(
     counted_page.evaluate(_SET_VISIBILITY_JS, False)
     _wait(counted_page, _STATUS_JS, "connected", what="connected again")
     wait_for(lambda: _tile_requests(counted_page) > 0, timeout=SHOW_MS / 1000, what="tiles reloaded")
+    assert not counted_page.page_errors, counted_page.page_errors
+
+
+def test_a_tab_opened_hidden_catches_up_when_shown(counted_page: Any, svc: ServiceProcess) -> None:
+    """A viewer opened in a background tab loads the map but opens no event stream; the map changes
+    before the tab is shown, and the stream opened then reports only later changes. Shown, the page
+    catches up as after a reconnect: its tiles are asked for again (they kept the map as it was
+    when the page loaded)."""
+    base = svc.base_url
+    assert httpx.put(f"{base}/maps/{MAP_ID}", json={}, timeout=10.0).status_code == 201
+    _scan(base, MAP_ID, "r1", 1, 2.0, 2.0)
+    counted_page.add_init_script(_HIDDEN_FROM_THE_START_JS)
+    counted_page.goto(f"{base}/#map={MAP_ID}")
+    _wait(counted_page, _STATUS_JS, "paused", what="the paused status")
+    _wait(
+        counted_page,
+        "() => document.querySelectorAll('#map img.leaflet-tile-loaded').length > 0",
+        what="tiles",
+    )
+    counted_page.tile_requests.clear()
+    for seq in range(2, 5):  # the robot moves on: its ring of walls too, in view
+        _scan(base, MAP_ID, "r1", seq, 2.0 + 0.5 * seq, 2.0)
+
+    counted_page.evaluate(_SET_VISIBILITY_JS, False)
+    _wait(counted_page, _STATUS_JS, "connected", what="connected")
+    wait_for(
+        lambda: _tile_requests(counted_page) > 0, timeout=SHOW_MS / 1000, what="the tiles asked for again"
+    )
     assert not counted_page.page_errors, counted_page.page_errors

@@ -27,7 +27,10 @@ export function closeEvents() {
 export function openEvents(mapId) {
   closeEvents();
   if (document.visibilityState === 'hidden') {
-    // Nobody looks: no stream until the tab is shown (see the visibilitychange listener).
+    // Nobody looks: no stream until the tab is shown (see the visibilitychange listener). The map
+    // changes meanwhile and the stream, opened then, reports only later changes: catch up when it
+    // opens, as after a break (a page opened in a background tab kept its first tiles for good).
+    state.eventsBroken = true;
     setConnection('paused');
     return;
   }
