@@ -308,6 +308,23 @@ def test_tiles_that_failed_are_asked_again(page: Any, svc: ServiceProcess) -> No
     assert not page.page_errors, page.page_errors
 
 
+def test_maps_are_listed_in_natural_order(page: Any, svc: ServiceProcess) -> None:
+    """The map selector lists maps as the robot list lists robots, in natural order (floor-2 before
+    floor-10, case aside), and a page opened without a link shows the first of them: the code-unit
+    order put floor-10 first, and any capitalised id before every lower-case one."""
+    base = svc.base_url
+    for map_id in ("floor-10", "floor-2", "Zone"):
+        assert httpx.put(f"{base}/maps/{map_id}", json={}, timeout=10.0).status_code == 201
+    _open(page, base, "")
+    assert page.eval_on_selector_all("#map-select option", "els => els.map((o) => o.value)") == [
+        "floor-2",
+        "floor-10",
+        "Zone",
+    ]
+    assert page.evaluate("() => window.fleetmapViewer.state.mapId") == "floor-2"
+    assert not page.page_errors, page.page_errors
+
+
 def test_missing_map_that_appears_is_no_longer_not_found(page: Any, svc: ServiceProcess) -> None:
     """A link names a map that does not exist yet: the page says so and waits. When the map appears
     it is shown, and 'map NAME not found' goes with it (it stayed beside the map for up to 15 s)."""

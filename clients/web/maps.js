@@ -12,7 +12,7 @@ import { readHash } from './hash.js';
 import { setLayerOptions } from './layers.js';
 import { boundsInView, map, moveQuietly, showView, toLatLng } from './leaflet-map.js';
 import { enc, getJSON } from './rest.js';
-import { clearRobots, redrawRobots, updateRobots } from './robots.js';
+import { clearRobots, naturalOrder, redrawRobots, updateRobots } from './robots.js';
 import { state } from './state.js';
 import { clearError, setConnection, showError } from './status.js';
 import { queueTiles, tiles } from './tiles.js';
@@ -45,7 +45,8 @@ export async function refreshMaps() {
   try {
     const body = await getJSON('maps');
     const items = Array.isArray(body) ? body : (body.maps || []);
-    ids = items.map((m) => (typeof m === 'string' ? m : m.id)).filter(Boolean).sort();
+    // In natural order, as the robots are: warehouse-2 before warehouse-10, and case aside.
+    ids = items.map((m) => (typeof m === 'string' ? m : m.id)).filter(Boolean).sort(naturalOrder.compare);
   } catch (err) {
     showError(`map list: ${err.message}`, !!err.network);
     return;

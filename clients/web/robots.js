@@ -11,7 +11,7 @@ import { map, toLatLng } from './leaflet-map.js';
 import { renderRobotList } from './robot-list.js';
 import { state, stats } from './state.js';
 
-// Robot ids in natural order: sim-2 before sim-10.
+// Robot (and map) ids in natural order: sim-2 before sim-10.
 export const naturalOrder = new Intl.Collator(undefined, { numeric: true, sensitivity: 'base' });
 // Robot colours: saturated and dark enough to stand out on the light grey of free space.
 const ROBOT_COLORS = ['#1f77b4', '#d62728', '#2ca02c', '#9467bd', '#e6550d',
