@@ -325,6 +325,24 @@ def test_maps_are_listed_in_natural_order(page: Any, svc: ServiceProcess) -> Non
     assert not page.page_errors, page.page_errors
 
 
+def test_a_page_without_maps_says_when_the_service_is_unreachable(page: Any, svc: ServiceProcess) -> None:
+    """With no map to show (so no event stream), the service stops: the status says it cannot be
+    reached, not 'waiting for robots'. Back, the status waits again and 'cannot reach the service'
+    goes at the next map-list poll (5 s), not only when it fades 15 s after the last failed poll."""
+    base = svc.base_url
+    page.goto(f"{base}/")
+    _wait(page, "() => document.getElementById('status').dataset.state === 'waiting'", what="waiting")
+    svc.stop()
+    _wait(page, _ERROR_JS, "cannot reach the service", what="'cannot reach the service'")
+    assert page.inner_text("#status-text") == "cannot reach the service; retrying…"
+    svc.start()
+    _wait(page, "() => document.getElementById('status').dataset.state === 'waiting'", what="waiting again")
+    page.wait_for_function(
+        "() => document.getElementById('error').hidden", timeout=7_500
+    )  # the next poll, 5 s at most; the fade would come 10 s later at the earliest
+    assert not page.page_errors, page.page_errors
+
+
 def test_missing_map_that_appears_is_no_longer_not_found(page: Any, svc: ServiceProcess) -> None:
     """A link names a map that does not exist yet: the page says so and waits. When the map appears
     it is shown, and 'map NAME not found' goes with it (it stayed beside the map for up to 15 s)."""

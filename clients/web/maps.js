@@ -14,7 +14,7 @@ import { boundsInView, map, moveQuietly, showView, toLatLng } from './leaflet-ma
 import { enc, getJSON } from './rest.js';
 import { clearRobots, naturalOrder, redrawRobots, updateRobots } from './robots.js';
 import { state } from './state.js';
-import { clearError, setConnection, showError } from './status.js';
+import { clearError, clearNetworkError, setConnection, showError } from './status.js';
 import { queueTiles, tiles } from './tiles.js';
 
 /** stats.bounds (metres) as [xmin, ymin, xmax, ymax], accepting a list or an object; null if none. */
@@ -49,8 +49,14 @@ export async function refreshMaps() {
     ids = items.map((m) => (typeof m === 'string' ? m : m.id)).filter(Boolean).sort(naturalOrder.compare);
   } catch (err) {
     showError(`map list: ${err.message}`, !!err.network);
+    // With a map shown its event stream's state says as much; with none the status said 'waiting
+    // for robots' while nothing could be waited for.
+    if (err.network && !state.mapId) setConnection('unreachable');
     return;
   }
+  // The service answers: 'cannot reach' is no longer true (it stayed 15 s). A stream in trouble
+  // keeps its own reason (e.g. its 503) until it opens.
+  if (!state.mapId || state.connection === 'connected') clearNetworkError();
   const current = [...mapSelect.options].map((o) => o.value);
   if (ids.join('\n') !== current.join('\n')) setMapOptions(ids);
   mapSelect.disabled = ids.length === 0;

@@ -64,6 +64,7 @@ export function renderStatus() {
     connected: 'connected',
     reconnecting: 'reconnecting to events…',
     error: 'event stream lost; retrying…',
+    unreachable: 'cannot reach the service; retrying…',
     paused: 'paused while the tab is hidden',
     signin: 'sign in to see the maps',
   };
