@@ -178,3 +178,41 @@ def test_the_viewer_says_when_sign_ins_are_refused_for_a_while(
     assert "try again in" in page.inner_text("#sign-in-error")
     assert page.is_visible("#sign-in") and _session_cookies(page) == []
     assert not page.page_errors, page.page_errors
+
+
+def test_a_sign_out_that_failed_can_be_tried_again(
+    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    """The network drops the sign-out (DELETE session): the page says it could not sign out and keeps
+    'Sign out', since the browser still holds its session; the next click signs out. ('Sign out' went
+    at the first click, and with it the only way to end the session, over reloads too.)"""
+    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
+    _map_with_a_robot(svc.base_url)
+    page.goto(f"{svc.base_url}/#map={MAP_ID}")
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form")
+    _sign_in(page, READ)
+    _wait(page, _CONNECTED_JS, what="connected")
+
+    def drop_sign_outs(route: Any) -> None:
+        if route.request.method == "DELETE":
+            route.abort()
+        else:
+            route.continue_()
+
+    page.route("**/session", drop_sign_outs)
+    page.click("#sign-out")
+    _wait(
+        page,
+        "() => { const e = document.getElementById('error');"
+        " return !e.hidden && e.textContent.includes('cannot sign out'); }",
+        what="'cannot sign out'",
+    )
+    assert page.is_visible("#sign-out") and len(_session_cookies(page)) == 1
+    assert page.evaluate("() => localStorage.getItem('fleetmap.signedIn')") == "1"  # for a reload
+
+    page.unroute("**/session")
+    page.click("#sign-out")
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form after signing out")
+    assert _session_cookies(page) == [] and page.is_hidden("#sign-out")
+    assert not page.page_errors, page.page_errors

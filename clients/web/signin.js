@@ -87,14 +87,21 @@ export function handleSignInAndOut() {
 
   // Signing out clears the cookie; the next request then shows the form (or, if reads are open after
   // all, the page goes on as it is).
+  // Until the service has cleared the cookie the browser is still signed in: "Sign out" stays, to
+  // try again (it went at the click, and a failed sign-out left a session no button could end).
   signOutButton.addEventListener('click', async () => {
-    rememberSignedIn(false);
+    let resp;
     try {
-      await fetch('session', { method: 'DELETE', cache: 'no-store' });
+      resp = await fetch('session', { method: 'DELETE', cache: 'no-store' });
     } catch (err) {
       showError(`cannot sign out: cannot reach the service (${err.message})`, true);
       return;
     }
+    if (!resp.ok) {
+      showError(`cannot sign out: ${resp.status} ${await errorDetail(resp)}`);
+      return;
+    }
+    rememberSignedIn(false);
     refreshMaps();
   });
 
