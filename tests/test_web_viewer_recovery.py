@@ -132,6 +132,27 @@ def test_link_to_a_missing_map(page: Any, svc: ServiceProcess) -> None:
     assert not page.page_errors, page.page_errors
 
 
+def test_an_edited_hash_names_what_is_shown(page: Any, svc: ServiceProcess) -> None:
+    """The hash edited by hand to leave out the layer, or to name a view out of range, is written
+    again to name the layer and view shown (it kept the edit, so a link copied from the address bar
+    showed another layer, or the map fitted, than the page the link was copied from)."""
+    base = svc.base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    _open(page, base, f"#map={MAP_ID}&layer=hits")
+    page.evaluate("() => { location.hash = '#map=alpha'; }")
+    _wait(page, f"() => location.hash === '#map={MAP_ID}&layer=hits'", what="the layer shown in the URL")
+    page.evaluate("() => { location.hash = '#map=alpha&layer=hits&x=4&y=2&z=3'; }")
+    _wait(page, "() => window.fleetmapViewer.map.getZoom() === 3", what="the view of the link")
+    page.evaluate("() => { location.hash = '#map=alpha&layer=hits&x=1e400&y=2&z=1'; }")
+    _wait(
+        page,
+        f"() => location.hash === '#map={MAP_ID}&layer=hits&x=4&y=2&z=3'",
+        what="the view shown in the URL",
+    )
+    assert page.evaluate("() => window.fleetmapViewer.state.layer") == "hits"
+    assert not page.page_errors, page.page_errors
+
+
 def test_robot_rows_are_stable_buttons(page: Any, svc: ServiceProcess) -> None:
     """Robot rows are updated in place while robots events come (so a slow click is not lost), in
     natural order, and are buttons: a click or Enter centres the map on the robot."""

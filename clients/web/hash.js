@@ -83,5 +83,8 @@ export function followHashEdits() {
       state.viewChosen = true;
       showView(h.view);
     }
+    // The URL names what is shown, whatever the edit left out or named out of range (no layer, a
+    // view beyond the limits): a link copied from it showed another layer, or the map fitted.
+    writeHash();
   });
 }
