@@ -311,7 +311,8 @@ def test_tiles_that_failed_are_asked_again(page: Any, svc: ServiceProcess) -> No
     """The network drops tile requests for a moment while the map changes, and the event stream stays
     up. The tiles that failed showed nothing (a hole in the map, the robot's trail running over
     unknown space) until their cells changed again, which on a finished map is never: each one is
-    now asked for again, and the map is whole again without a reload or a pan."""
+    now asked for again, and the map is whole again without a reload or a pan, and without the
+    message that a tile failed."""
     base = svc.base_url
     _make_map(base, {"r1": (2.0, 2.0)})
     _open(page, base, f"#map={MAP_ID}&layer=probability")
@@ -320,11 +321,14 @@ def test_tiles_that_failed_are_asked_again(page: Any, svc: ServiceProcess) -> No
     page.route("**/tiles/**", lambda route: route.abort("internetdisconnected"))
     _scan(base, MAP_ID, "r1", 2, 2.5, 2.0)  # changes the tiles in view: the page asks for them again
     _wait(page, f"() => ({_FAILED_TILES_JS})() > 0", what="tiles failing while the network drops them")
+    _wait(page, _ERROR_JS, "failed to load", what="'tile ... failed to load'")
     page.unroute("**/tiles/**")
 
     # No scan comes any more: nothing but the viewer itself may ask for the failed tiles again.
     _wait(page, _TILES_LOADED_JS, what="every tile loaded again (no hole left)")
     assert page.evaluate(_FAILED_TILES_JS) == 0
+    # Loaded, no tile failed any more: the message goes with the failure (it stayed 15 s).
+    assert page.is_hidden("#error"), page.inner_text("#error")
     assert page.evaluate("() => document.getElementById('status').dataset.state") == "connected"
     assert not page.page_errors, page.page_errors
 

@@ -13,7 +13,7 @@ import { map, windowInView } from './leaflet-map.js';
 import { refreshInfo, showNoScans } from './maps.js';
 import { enc } from './rest.js';
 import { state } from './state.js';
-import { showError } from './status.js';
+import { clearError, showError } from './status.js';
 
 // A per-page-load prefix for tile versions: a map deleted and re-created restarts its versions,
 // and a reloaded page must not hit tiles an earlier page load left in the browser cache.
@@ -62,7 +62,10 @@ export function trackShownTiles() {
       tile.loading = false;
       if (tile.stale) schedulePump(0);
     };
-    e.tile.addEventListener('load', done);
+    e.tile.addEventListener('load', () => {
+      clearError(failedMessage(e.coords)); // asked again and loaded: it stayed 15 s, no longer true
+      done();
+    });
     // A failed tile shows nothing (errorTileUrl), and nothing else would ask for it again until its
     // cells change, on a finished map never: a network blip left holes in the map. Ask again after
     // TILE_RETRY_MS, while the stream is connected (a reconnect reloads every tile anyway).
@@ -84,12 +87,17 @@ export function trackShownTiles() {
     // A tile that fails (e.g. the map was deleted, the service is down) shows the transparent
     // errorTileUrl, not a broken image; say why, unless the status line already does (no stream).
     if (state.mapId && state.connection === 'connected') {
-      showError(`tile ${e.coords.z}/${e.coords.x}/${e.coords.y} failed to load`);
+      showError(failedMessage(e.coords));
     }
   });
 
   // A stale tile that comes into view (pan, zoom) is due at once.
   map.on('moveend', () => schedulePump(0));
+}
+
+/** What the page says of a tile that failed to load. */
+function failedMessage(c) {
+  return `tile ${c.z}/${c.x}/${c.y} failed to load`;
 }
 
 /** The cell window [i0, j0, i1, j1) a tile covers (tile_render.tile_window without the step). */
