@@ -237,6 +237,23 @@ def _tab_to(page: Any, element_id: str, presses: int = 40) -> None:
     raise AssertionError(f"#{element_id} is not reachable with Tab")
 
 
+def test_errors_show_on_a_narrow_screen(new_page: Callable[..., Any], shared_service: ServiceProcess) -> None:
+    """On a phone, with the panel folded, an error (here a link to a map that does not exist) shows in
+    the window and is announced: it lived in the folded panel, out of sight and out of a screen
+    reader's reach, so the page silently showed another map."""
+    base = shared_service.base_url
+    _put_map(base, "narrow-error")
+    _scan(base, "narrow-error", "r1", 1, 1.0, 1.0)
+    page = new_page(390, 844)
+    _open(page, base, "#map=narrow-ghost")
+    _wait(page, "() => document.getElementById('error').textContent.includes('map narrow-ghost not found')")
+    assert page.get_attribute("#side-toggle", "aria-expanded") == "false"  # folded
+    error = page.get_by_role("alert")
+    assert error.is_visible() and "map narrow-ghost not found" in error.inner_text()
+    assert _inside_window(error.evaluate("(el) => el.getBoundingClientRect().toJSON()"), 390, 844)
+    assert not page.page_errors, page.page_errors
+
+
 def test_cell_query_without_a_mouse(new_page: Callable[..., Any], shared_service: ServiceProcess) -> None:
     """The map takes the focus with Tab, shows a cross at its centre, pans with the arrow keys and
     queries the cell under the cross with Enter; a point can be typed instead; a live region says
