@@ -254,6 +254,26 @@ def test_errors_show_on_a_narrow_screen(new_page: Callable[..., Any], shared_ser
     assert not page.page_errors, page.page_errors
 
 
+def test_folded_summary_while_the_service_is_away(
+    new_page: Callable[..., Any], service_factory: Callable[..., ServiceProcess]
+) -> None:
+    """The folded panel's line counts the robots online only while the event stream says so: with
+    the service gone the list says 'unknown', and the line said '0 online' as if every robot had
+    gone offline."""
+    svc = service_factory("--in-memory")
+    _put_map(svc.base_url, "away")
+    _scan(svc.base_url, "away", "r1", 1, 1.0, 1.0)
+    _scan(svc.base_url, "away", "r2", 1, 4.0, 1.0)
+    page = new_page(390, 844)
+    _open(page, svc.base_url, "#map=away")
+    summary = "() => document.getElementById('side-summary').textContent"
+    _wait(page, f"() => ({summary})() === '2 robots, 0 online'", what="the robots counted")
+    svc.stop()
+    _wait(page, "() => document.getElementById('status').dataset.state !== 'connected'", what="the loss")
+    _wait(page, f"() => ({summary})() === '2 robots, state unknown'", what="the robots' state unknown")
+    assert not page.page_errors, page.page_errors
+
+
 def test_cell_query_without_a_mouse(new_page: Callable[..., Any], shared_service: ServiceProcess) -> None:
     """The map takes the focus with Tab, shows a cross at its centre, pans with the arrow keys and
     queries the cell under the cross with Enter; a point can be typed instead; a live region says

@@ -11,7 +11,10 @@ export function renderSideSummary() {
   let text = state.cellSummary || '';
   if (!text && state.robots.size) {
     const online = [...state.robots.values()].filter((r) => robotState(r) === 'online').length;
-    text = `${state.robots.size} robot${state.robots.size === 1 ? '' : 's'}, ${online} online`;
+    // Without a connected stream the list says 'unknown': '0 online' would say they all went.
+    const known = state.connection === 'connected';
+    text = `${state.robots.size} robot${state.robots.size === 1 ? '' : 's'}, `
+      + (known ? `${online} online` : 'state unknown');
   }
   if (sideSummary.textContent !== text) sideSummary.textContent = text;
 }
