@@ -123,6 +123,7 @@ def test_the_viewer_signs_in_with_a_read_token(
     svc.proc.send_signal(signal.SIGHUP)
     wait_for(lambda: "SIGHUP: 1 API tokens read" in svc.logs(), 10, what="the reload's log line")
     _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form again after the token was revoked")
+    assert page.inner_text("#status") == "sign in to see the maps"  # no 'last update' of a map not shown
     assert page.evaluate("() => document.querySelectorAll('#map img.leaflet-tile').length") == 0
     assert page.evaluate("() => document.querySelectorAll('#robot-list li[data-robot-id]').length") == 0
     assert page.evaluate(

@@ -100,6 +100,7 @@ export function deselectMap(keepHash = false) {
   state.mapId = null;
   state.info = null;
   state.viewChosen = false;
+  state.lastUpdate = null; // the status line's 'last update' was of the map no longer shown
   closeEvents();
   clearRobots();
   clearCell();
@@ -117,6 +118,7 @@ export async function selectMap(mapId) {
   clearRobots();
   state.mapId = mapId;
   state.info = null;
+  state.lastUpdate = null; // of the map shown before: this one's first event comes at once
   state.fitted = false;
   state.eventsBroken = false;
   // A link's view belongs to the map it names; another map is fitted to its bounds.
