@@ -217,3 +217,31 @@ def test_a_sign_out_that_failed_can_be_tried_again(
     _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form after signing out")
     assert _session_cookies(page) == [] and page.is_hidden("#sign-out")
     assert not page.page_errors, page.page_errors
+
+
+def test_signing_in_in_one_tab_signs_in_the_others(
+    browser: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    """Two tabs of one browser ask for a token; the user signs in in one. The session cookie is the
+    browser's, so the other tab shows the map too, without its form (it kept asking for the token,
+    with no request that could find out, until it was reloaded)."""
+    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
+    _map_with_a_robot(svc.base_url)
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    try:
+        first, second = context.new_page(), context.new_page()
+        errors: list[str] = []
+        for tab in (first, second):
+            tab.on("pageerror", lambda e: errors.append(str(e)))
+            tab.goto(f"{svc.base_url}/#map={MAP_ID}")
+            _wait(tab, _SIGN_IN_SHOWN_JS, what="the sign-in form")
+        _sign_in(first, READ)
+        _wait(first, _CONNECTED_JS, what="the first tab connected")
+        _wait(second, _SIGN_IN_GONE_JS, what="the second tab's form gone")
+        _wait(second, _CONNECTED_JS, what="the second tab connected")
+        second.wait_for_selector(_ROW, timeout=SHOW_MS)
+        assert second.is_visible("#sign-out")
+        assert errors == [], errors
+    finally:
+        context.close()

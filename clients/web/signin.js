@@ -50,6 +50,17 @@ function rememberSignedIn(signedIn) {
   } catch (_) { /* storage blocked: "Sign out" shows until the page is reloaded */ }
 }
 
+/** Signed in, here or in another tab: the form goes (forgetting what was typed) and the maps are read. */
+function signedIn() {
+  signInToken.value = '';
+  signInToken.removeAttribute('aria-invalid');
+  signInError.hidden = true;
+  signInEl.hidden = true;
+  rememberSignedIn(true);
+  setConnection('starting');
+  refreshMaps();
+}
+
 /** Handle the sign-in form and the "Sign out" button. */
 export function handleSignInAndOut() {
   // The token goes to the service once, in a header; the page forgets it as soon as it is sent.
@@ -76,13 +87,7 @@ export function handleSignInAndOut() {
         : `cannot sign in: ${resp.status} ${await errorDetail(resp)}`);
       return;
     }
-    signInToken.value = '';
-    signInToken.removeAttribute('aria-invalid');
-    signInError.hidden = true;
-    signInEl.hidden = true;
-    rememberSignedIn(true);
-    setConnection('starting');
-    refreshMaps();
+    signedIn();
   });
 
   // Signing out clears the cookie; the next request then shows the form (or, if reads are open after
@@ -103,6 +108,12 @@ export function handleSignInAndOut() {
     }
     rememberSignedIn(false);
     refreshMaps();
+  });
+
+  // Signed in in another tab of this browser (the cookie is shared): this tab's form, which no
+  // request is made under, would have asked for the token again until reloaded.
+  window.addEventListener('storage', (e) => {
+    if (e.key === SIGNED_IN_KEY && e.newValue === '1' && !signInEl.hidden) signedIn();
   });
 
   // Clicks, drags and the wheel over the form are the form's, not the map's under it.
