@@ -403,6 +403,36 @@ _WATCH_LIVE_JS = """
 """
 
 
+def test_cell_of_a_map_keeping_some_layers(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """A cell of a map that keeps only TSDF, or only counts: the panel lists the fields of the layers
+    the map keeps, and the sentence a screen reader hears says their values. The service answers null
+    for the others, which the page took for values: the sentence began 'null, probability —' and
+    left out the TSDF value, the table listed every field."""
+    base = shared_service.base_url
+    expected = {"tsdf": ["known", "tsdf", "tsdf_weight"], "counts": ["known", "hits", "misses"]}
+    page = new_page()
+    for layer, fields in expected.items():
+        map_id = f"only-{layer}"
+        _put_map(base, map_id, {"layers": [layer]})
+        _scan(base, map_id, "r1", 1, 0.0, 0.0)
+        _open(page, base, f"#map={map_id}")
+        page.fill("#cell-x", "2.99")  # a cell of the ring of walls 3 m around the robot
+        page.fill("#cell-y", "0")
+        page.press("#cell-y", "Enter")
+        _wait(page, "() => document.querySelector('#cell-info table') !== null", what=f"the {map_id} cell")
+        shown = page.eval_on_selector_all("#cell-info td", "tds => tds.map((td) => td.dataset.field)")
+        assert shown == fields, shown
+        cell = httpx.get(f"{base}/maps/{map_id}/cell", params={"x": 2.99, "y": 0}, timeout=10.0).json()
+        said = page.inner_text("#cell-announce").split(": ", 1)[1]
+        if layer == "tsdf":
+            assert said == f"TSDF {cell['tsdf']:.3f}", said
+        else:
+            assert said == f"{cell['hits']} hits, {cell['misses']} misses", said
+    assert not page.page_errors, page.page_errors
+
+
 def test_labels_focus_contrast_and_quiet_live_regions(
     new_page: Callable[..., Any], shared_service: ServiceProcess
 ) -> None:

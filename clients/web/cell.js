@@ -14,6 +14,19 @@ import { showError } from './status.js';
 
 // Cell fields shown on click, in this order.
 const CELL_FIELDS = ['known', 'probability', 'state', 'log_odds', 'hits', 'misses', 'tsdf', 'tsdf_weight'];
+// The field of each layer that has a value in every cell of a map keeping the layer (an unknown
+// cell's state is 'unknown', its counts and TSDF weight 0): the service answers null for the fields
+// of a layer the map does not keep, and null is also an unknown cell's log odds or TSDF value.
+const LAYER_OF_FIELD = {
+  probability: 'state', state: 'state', log_odds: 'state', hits: 'hits', misses: 'hits',
+  tsdf: 'tsdf_weight', tsdf_weight: 'tsdf_weight',
+};
+
+/** Whether the map keeps the layer of a cell's field (`known` is every map's). */
+function kept(cell, key) {
+  const probe = LAYER_OF_FIELD[key];
+  return probe === undefined ? key in cell : cell[probe] !== null && cell[probe] !== undefined;
+}
 
 /** A cell value as the inspector shows it: a dash for none, yes / no, counts whole, others rounded. */
 function fmt(v, key) {
@@ -136,10 +149,10 @@ function announceCell(text) {
 /** What a cell holds, in words: its state and probability, its counts, its TSDF value. */
 function cellSentence(i, j, x, y, cell) {
   const parts = [];
-  if ('state' in cell) parts.push(String(cell.state));
-  if ('probability' in cell && cell.known) parts.push(`probability ${fmt(cell.probability, 'probability')}`);
-  if ('hits' in cell) parts.push(`${fmt(cell.hits, 'hits')} hits, ${fmt(cell.misses, 'misses')} misses`);
-  if (!('state' in cell) && 'tsdf' in cell) parts.push(`TSDF ${fmt(cell.tsdf, 'tsdf')}`);
+  if (kept(cell, 'state')) parts.push(String(cell.state));
+  if (kept(cell, 'probability') && cell.known) parts.push(`probability ${fmt(cell.probability, 'probability')}`);
+  if (kept(cell, 'hits')) parts.push(`${fmt(cell.hits, 'hits')} hits, ${fmt(cell.misses, 'misses')} misses`);
+  if (!kept(cell, 'state') && kept(cell, 'tsdf')) parts.push(`TSDF ${fmt(cell.tsdf, 'tsdf')}`);
   return `Cell (${i}, ${j}) at x ${x.toFixed(2)} m, y ${y.toFixed(2)} m: ${parts.join(', ')}`;
 }
 
@@ -149,7 +162,7 @@ function renderCell(i, j, x, y, cell) {
   where.textContent = `cell (${i}, ${j}) · x ${x.toFixed(3)} m, y ${y.toFixed(3)} m`;
   const table = document.createElement('table');
   for (const key of CELL_FIELDS) {
-    if (!(key in cell)) continue; // a layer the map does not keep
+    if (!kept(cell, key)) continue; // a layer the map does not keep
     const tr = document.createElement('tr');
     const th = document.createElement('th');
     th.textContent = key;
