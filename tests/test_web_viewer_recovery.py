@@ -162,6 +162,7 @@ def test_robot_rows_are_stable_buttons(page: Any, svc: ServiceProcess) -> None:
     page.wait_for_selector(_ROW.format("sim-10"), timeout=SHOW_MS)
     ids = page.eval_on_selector_all("#robot-list li", "els => els.map((li) => li.dataset.robotId)")
     assert ids == ["sim-2", "sim-10"], ids
+    assert page.inner_text(f"{_ROW.format('sim-10')} .scans") == "1 scan"  # not '1 scans'
     assert page.eval_on_selector_all(
         "#robot-list li",
         "els => els.every((li) => li.querySelector('button') && li.querySelector('button').tabIndex === 0)",

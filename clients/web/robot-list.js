@@ -80,7 +80,8 @@ function renderRow(robot) {
   const shown = robotState(robot);
   const li = robot.row;
   const online = shown === 'unknown' ? 'unknown' : String(shown === 'online');
-  const scans = `${robot.data.scans_integrated ?? 0} scans`;
+  const n = robot.data.scans_integrated ?? 0;
+  const scans = `${n} scan${n === 1 ? '' : 's'}`;
   const st = li.children[0].children[2]; // button > .online-state (see robotRow)
   const scansEl = li.children[0].children[3]; // button > .scans
   if (li.dataset.online === online && st.textContent === shown && scansEl.textContent === scans) return false;
