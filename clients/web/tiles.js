@@ -63,7 +63,9 @@ export function trackShownTiles() {
       if (tile.stale) schedulePump(0);
     };
     e.tile.addEventListener('load', () => {
-      clearError(failedMessage(e.coords)); // asked again and loaded: it stayed 15 s, no longer true
+      // Asked again and loaded, the tile no longer failed (the message stayed 15 s). Not when the
+      // image that loaded is the errorTileUrl Leaflet puts in a failed tile's place.
+      if (e.tile.getAttribute('src') !== tiles.options.errorTileUrl) clearError(failedMessage(e.coords));
       done();
     });
     // A failed tile shows nothing (errorTileUrl), and nothing else would ask for it again until its
