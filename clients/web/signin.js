@@ -91,9 +91,9 @@ export function handleSignInAndOut() {
   });
 
   // Signing out clears the cookie; the next request then shows the form (or, if reads are open after
-  // all, the page goes on as it is).
-  // Until the service has cleared the cookie the browser is still signed in: "Sign out" stays, to
-  // try again (it went at the click, and a failed sign-out left a session no button could end).
+  // all, the page goes on as it is). Until the service has cleared it the browser is still signed
+  // in: "Sign out" stays, to try again (it went at the click, and a sign-out that failed left a
+  // session no button could end).
   signOutButton.addEventListener('click', async () => {
     let resp;
     try {
