@@ -116,6 +116,18 @@ class LaserData:
         )  # fmt: skip
         return bytes(TS.serialize_cdr(msg, LASER))
 
+    def engine_scan(self, pose: tuple[float, float, float], sign: float = 1.0) -> Scan:
+        """The scan the engine integrates for this LaserScan posed at `pose`: its fields as the message
+        carries them (float32), the beams' order reversed (`sign` -1) for a laser mounted upside down."""
+        return Scan.from_fan(
+            pose,
+            sign * float(np.float32(self.angle_min)),
+            sign * float(np.float32(self.angle_increment)),
+            self.ranges,
+            float(np.float32(self.range_min)),
+            float(np.float32(self.range_max)),
+        )
+
 
 class RosRobot:
     """What an rmw_zenoh ROS 2 robot in namespace `ns` puts on Zenoh: LaserScan on /<ns>/scan, TF
@@ -253,16 +265,7 @@ class Fleet:
         assert pose.mirrored == upside_down
         assert math.remainder(pose.theta - sensor[2], math.tau) == pytest.approx(0.0, abs=1e-9)
         sign = -1.0 if pose.mirrored else 1.0
-        self.expected.integrate(
-            Scan.from_fan(
-                (pose.x, pose.y, pose.theta),
-                sign * float(np.float32(data.angle_min)),
-                sign * float(np.float32(data.angle_increment)),
-                data.ranges,
-                float(np.float32(data.range_min)),
-                float(np.float32(data.range_max)),
-            )  # fmt: skip
-        )
+        self.expected.integrate(data.engine_scan((pose.x, pose.y, pose.theta), sign))
         self.native.integrate(
             Scan.from_fan(sensor, a_min, inc, ranges, float(np.float32(0.05)), float(np.float32(12.0)))
         )
@@ -509,16 +512,7 @@ def test_a_scan_in_the_fixed_frame_needs_no_tf(service_factory: Callable[..., Se
             for k, frame in enumerate(("laser", "/laser")):  # tf2 drops the leading /
                 data = LaserData(stamp_ns_of(k), -1.0, 0.02, np.linspace(1.5, 3.0, 100, dtype=np.float32))
                 scan_pub.put(data.payload(frame))
-                expected.integrate(
-                    Scan.from_fan(
-                        (0.0, 0.0, 0.0),
-                        float(np.float32(data.angle_min)),
-                        float(np.float32(data.angle_increment)),
-                        data.ranges,
-                        float(np.float32(data.range_min)),
-                        float(np.float32(data.range_max)),
-                    )  # fmt: skip
-                )
+                expected.integrate(data.engine_scan((0.0, 0.0, 0.0)))
                 wait_for(
                     lambda k=k: robot_stats(http, "robot").get("scans_integrated") == k + 1,
                     timeout=10, what=f"scan {k} in the fixed frame integrated",
@@ -564,16 +558,7 @@ def test_a_scan_stamped_zero_is_posed_at_the_newest_tf(
             assert healthz_ros(http)["refused"] == {}
             expected = GridMap(MapConfig())
             laser_x, laser_y = 3.0 + 0.5 * math.cos(0.4), 2.0 + 0.5 * math.sin(0.4)
-            expected.integrate(
-                Scan.from_fan(
-                    (laser_x, laser_y, 0.4),
-                    float(np.float32(data.angle_min)),
-                    float(np.float32(data.angle_increment)),
-                    data.ranges,
-                    float(np.float32(data.range_min)),
-                    float(np.float32(data.range_max)),
-                )  # fmt: skip
-            )
+            expected.integrate(data.engine_scan((laser_x, laser_y, 0.4)))
             pose = http.get("/maps/lab").json()["stats"]["robots"]["robot1"]["last_pose"]
             assert [pose["x"], pose["y"], pose["theta"]] == pytest.approx([laser_x, laser_y, 0.4], abs=1e-9)
             assert_region_equal(http, "lab", expected, ALL_LAYERS)
