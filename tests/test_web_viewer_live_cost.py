@@ -62,16 +62,25 @@ Object.defineProperty(document, 'visibilityState', {configurable: true, get: () 
 Object.defineProperty(document, 'hidden', {configurable: true, get: () => true});
 """
 _STATUS_JS = "(s) => document.getElementById('status').dataset.state === s"
+#: The viewer's period of asking for the map list (clients/web/config.js, MAPS_REFRESH_MS).
+MAP_LIST_PERIOD_S = 5.0
 
 
 @pytest.fixture
 def counted_page(page: Any) -> Any:
     """conftest's page, counting its tile requests: `page.tile_requests`, tile path
-    (no query) -> requests."""
+    (no query) -> requests; and its requests of the map list, `page.map_list_requests`."""
     page.tile_requests = Counter()
-    page.on(
-        "request", lambda r: page.tile_requests.update([urlsplit(r.url).path]) if "/tiles/" in r.url else None
-    )
+    page.map_list_requests = 0
+
+    def count(request: Any) -> None:
+        path = urlsplit(request.url).path
+        if "/tiles/" in path:
+            page.tile_requests.update([path])
+        elif path == "/maps":
+            page.map_list_requests += 1
+
+    page.on("request", count)
     return page
 
 
@@ -210,15 +219,21 @@ def test_hidden_tab_fetches_nothing(
         counted_page, "() => [...document.querySelectorAll('#map img.leaflet-tile')].every((i) => i.complete)"
     )
     counted_page.tile_requests.clear()
+    counted_page.map_list_requests = 0
+    hidden_at = time.monotonic()
     version = _map_version(svc.base_url)
     wait_for(lambda: _map_version(svc.base_url) >= version + 40, timeout=60, what="40 more map changes")
+    # Longer than the map list's period (5 s), which it polled while hidden too.
+    time.sleep(max(0.0, hidden_at + MAP_LIST_PERIOD_S + 1.0 - time.monotonic()))
     assert _tile_requests(counted_page) == 0, (
         f"a hidden counted_page requested tiles: {counted_page.tile_requests}"
     )
+    assert counted_page.map_list_requests == 0, "a hidden page asked for the map list"
 
     counted_page.evaluate(_SET_VISIBILITY_JS, False)
     _wait(counted_page, _STATUS_JS, "connected", what="connected again")
     wait_for(lambda: _tile_requests(counted_page) > 0, timeout=SHOW_MS / 1000, what="tiles reloaded")
+    assert counted_page.map_list_requests >= 1  # asked for at once when shown, not at the next period
     assert not counted_page.page_errors, counted_page.page_errors
 
 

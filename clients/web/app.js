@@ -2,7 +2,7 @@
  * fleetmap web viewer: plain JavaScript on Leaflet, no build step.
  *
  * What it shows and where it gets it (all URLs relative to the page, so a path prefix works):
- *   GET maps                      -> the map selector (refreshed every MAPS_REFRESH_MS)
+ *   GET maps                      -> the map selector (refreshed every MAPS_REFRESH_MS while shown)
  *   GET maps/{id}                 -> config.layers (layer selector), config.resolution, stats.bounds (fit),
  *                                    stats.robots (initial robot list)
  *   GET maps/{id}/tiles/{z}/{x}/{y}.png?layer=L&v=V
@@ -105,7 +105,12 @@ handleSignInAndOut();
 renderStatus();
 showSignOutIfSignedIn();
 refreshMaps();
-setInterval(refreshMaps, MAPS_REFRESH_MS);
+// Not while the tab is hidden, which shows nothing and so asks for nothing (pauseWhileHidden); once
+// shown, at once, as its stream catches up.
+setInterval(() => { if (document.visibilityState !== 'hidden') refreshMaps(); }, MAPS_REFRESH_MS);
+document.addEventListener('visibilitychange', () => {
+  if (document.visibilityState !== 'hidden') refreshMaps();
+});
 
 // For tests and debugging from the console: read-only views of the viewer's state.
 window.fleetmapViewer = { map, tiles, state };
