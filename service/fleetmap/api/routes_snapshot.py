@@ -208,7 +208,12 @@ async def get_snapshot(map_id: MapId, state: State, request: Request) -> Respons
         size = writer.result()
     except BaseException as exc:
         stop.set()  # cancelled too (the server stopping): the writer stops at its next write
-        writer.add_done_callback(written)  # the spool is closed once the writer let go of it
+        if writer.done():
+            # It failed (no room: 507): closed now, before the answer. As a done callback it ran a
+            # loop turn later, and a client reading the 507 could still find the file held open.
+            written(writer)
+        else:
+            writer.add_done_callback(written)  # the spool is closed once the writer let go of it
         if isinstance(exc, UploadStopped):
             log.info("the download of map %s stopped as it was written: its client went away", map_id)
             raise ApiError(503, "the client went away") from None
