@@ -275,6 +275,10 @@ def _frames_end(data: bytes | bytearray, count: int) -> int | None:
     return end if end <= len(data) else None
 
 
+#: How many of a connection's last client bytes `FreezableProxy` keeps (`freeze(sent=...)`).
+_TAIL_BYTES = 4096
+
+
 class FreezableProxy:
     """A TCP proxy on a free loopback port to `target_port`, each connection forwarded by two
     threads. `freeze()` stops forwarding on every connection open now, both ways, while leaving its
@@ -287,7 +291,10 @@ class FreezableProxy:
     restarted on another port); a connection the target refuses is closed. `refused` lists when
     (`time.monotonic()`) each connection refused by a cut or freeze came: a client's attempts.
     `delay_after_handshake(s)`: the next connection's client's bytes after its Zenoh handshake reach
-    the target `s` seconds late (a service slow to take in a robot that just connected)."""
+    the target `s` seconds late (a service slow to take in a robot that just connected).
+    `freeze(sent=b"...")` freezes only the connections whose client's last bytes hold `sent`: over
+    HTTP, the one whose last request was that (a browser's event stream, its other connections left
+    working)."""
 
     def __init__(self, target_port: int) -> None:
         self.target_port = target_port
@@ -299,6 +306,8 @@ class FreezableProxy:
         self.refusing = False
         self.refused: list[float] = []
         self._next_delay = 0.0
+        #: The last `_TAIL_BYTES` each connection's client sent, by its `frozen` event.
+        self.tails: dict[threading.Event, bytearray] = {}
         threading.Thread(target=self._accept, daemon=True).start()
 
     def _accept(self) -> None:
@@ -328,22 +337,29 @@ class FreezableProxy:
                 refused = self.refusing
                 if not refused:
                     self.connections.append((client, upstream, frozen))
+                    tail = self.tails[frozen] = bytearray()
                     delay, self._next_delay = self._next_delay, 0.0
             if refused:
                 self.refused.append(time.monotonic())
                 upstream.close()
                 client.close()
                 continue
-            for source, sink, wait in ((client, upstream, delay), (upstream, client, 0.0)):
-                threading.Thread(target=self._pump, args=(source, sink, frozen, wait), daemon=True).start()
+            for source, sink, wait, seen in ((client, upstream, delay, tail), (upstream, client, 0.0, None)):
+                pump_args = (source, sink, frozen, wait, seen)
+                threading.Thread(target=self._pump, args=pump_args, daemon=True).start()
 
     @staticmethod
     def _pump(
-        source: socket.socket, sink: socket.socket, frozen: threading.Event, delay: float = 0.0
+        source: socket.socket,
+        sink: socket.socket,
+        frozen: threading.Event,
+        delay: float = 0.0,
+        tail: bytearray | None = None,
     ) -> None:
         """Forward `source` to `sink` until either closes or `frozen` is set. With `delay`, what
         follows the first two Zenoh frames (a client's InitSyn and OpenSyn, the handshake; over TCP
-        each batch is prefixed with its length, 2 bytes little-endian) is sent `delay` s late."""
+        each batch is prefixed with its length, 2 bytes little-endian) is sent `delay` s late.
+        `tail` keeps the last `_TAIL_BYTES` forwarded."""
         source.settimeout(0.05)
         handshake: bytearray | None = bytearray() if delay else None  # the client's bytes so far
         while not frozen.is_set():
@@ -361,6 +377,9 @@ class FreezableProxy:
                         sink.shutdown(socket.SHUT_WR)
                     return
                 continue
+            if tail is not None:
+                tail += data
+                del tail[:-_TAIL_BYTES]
             if handshake is not None:
                 handshake += data
                 end = _frames_end(handshake, 2)
@@ -377,15 +396,16 @@ class FreezableProxy:
             except OSError:
                 return
 
-    def freeze(self, refuse_new: bool = False) -> int:
-        """Stop forwarding on every connection open now (and, with `refuse_new`, refuse new ones until
-        `restore()`); returns how many."""
+    def freeze(self, refuse_new: bool = False, sent: bytes | None = None) -> int:
+        """Stop forwarding on every connection open now, or with `sent` on those whose client's last
+        bytes hold it (and, with `refuse_new`, refuse new ones until `restore()`); returns how many."""
         with self.lock:
             if refuse_new:
                 self.refusing = True
-            for _, _, frozen in self.connections:
+            chosen = [f for _, _, f in self.connections if sent is None or sent in self.tails[f]]
+            for frozen in chosen:
                 frozen.set()
-            return len(self.connections)
+            return len(chosen)
 
     def cut(self) -> int:
         """Close every connection open now, both ways, and refuse new ones until `restore()`;
@@ -393,6 +413,7 @@ class FreezableProxy:
         with self.lock:
             self.refusing = True
             connections, self.connections = self.connections, []
+            self.tails = {}
         for client, upstream, frozen in connections:
             frozen.set()
             for sock in (client, upstream):

@@ -649,6 +649,42 @@ def test_events_tiles_robots_resume_and_delete(api: RunningApi) -> None:
             reader.close()
 
 
+def test_keepalive_events_for_pages(api: RunningApi) -> None:
+    """A browser's EventSource never shows comments to the page, so a web page could not tell a
+    quiet map from a stream that died silently. `?keepalive=event` sends the keepalives as
+    `keepalive` events carrying the period, the first at once (the page knows the period before any
+    silence), and no comment; without it, comments as before."""
+    api.client.put("/maps/ka", json=CONFIG)
+    reader = EventReader(f"{api.base_url}/maps/ka/events?keepalive=event")
+    try:
+        opened = time.monotonic()
+        assert reader.next("keepalive", timeout=5.0)[0] == {"interval": 0.3}
+        assert time.monotonic() - opened < 0.25  # at once, not after the first 0.3 s of silence
+        reader.next("robots")
+        # The map stays quiet: keepalive events, about every 0.3 s, and no comment.
+        started = time.monotonic()
+        for _ in range(3):
+            assert reader.next("keepalive", timeout=2.0)[0] == {"interval": 0.3}
+        assert 0.6 < time.monotonic() - started < 3.0
+        assert reader.keepalives == 0
+    finally:
+        reader.close()
+    plain = EventReader(f"{api.base_url}/maps/ka/events")
+    try:
+        deadline = time.monotonic() + 5
+        while plain.keepalives == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert plain.keepalives > 0
+        plain.close()
+        kinds = []
+        while (item := plain.events.get(timeout=1)) is not None:
+            kinds.append(item[0])
+        assert "keepalive" not in kinds
+    finally:
+        plain.close()
+    assert api.client.get("/maps/ka/events", params={"keepalive": "often"}).status_code == 422
+
+
 def test_events_follow_a_map_replaced_by_a_snapshot(api: RunningApi) -> None:
     """`PUT /maps/{id}/snapshot` replaces the map under its id (200 on GET afterwards): the stream says
     `replaced`, not `deleted`, with the new map's change version as its id, and goes on with the new

@@ -19,7 +19,7 @@ from typing import Any
 
 import httpx
 import pytest
-from service_process import ServiceProcess
+from service_process import FreezableProxy, ServiceProcess
 from test_web_viewer import (
     _ALL_TILES_OF_LAYER_JS,
     _LAYER_OPTIONS_JS,
@@ -332,6 +332,34 @@ def test_tiles_that_failed_are_asked_again(page: Any, svc: ServiceProcess) -> No
     assert page.is_hidden("#error"), page.inner_text("#error")
     assert page.evaluate("() => document.getElementById('status').dataset.state") == "connected"
     assert not page.page_errors, page.page_errors
+
+
+def test_a_stream_that_died_silently_is_opened_again(
+    page: Any, service_factory: Callable[..., ServiceProcess]
+) -> None:
+    """The event stream's connection dies without a FIN or RST (a NAT or proxy dropped it, a laptop
+    slept): the browser holds it open for good, and the page showed a stale map as live, its robots
+    never moving again. The stream's keepalive events (here every 0.5 s) bound every silence, so the
+    page notices a stream silent for three of them, opens another, and catches up."""
+    svc = service_factory("--in-memory", "--events-keepalive", "0.5")
+    base = svc.base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    proxy = FreezableProxy(svc.port)  # the page's way to the service; scans go directly
+    try:
+        _open(page, f"http://127.0.0.1:{proxy.port}", f"#map={MAP_ID}&layer=probability")
+        _wait(page, _TILES_LOADED_JS, what="every tile loaded")
+        assert proxy.freeze(sent=b"/events?") == 1  # the stream only: tiles still load
+        _scan(base, MAP_ID, "r1", 2, 2.5, 2.0)
+        _wait(
+            page,
+            "() => window.fleetmapViewer.state.robots.get('r1')?.data?.scans_integrated === 2",
+            what="the robot's second scan, through a new stream",
+        )
+        _wait(page, _TILES_LOADED_JS, what="every tile loaded again")
+        assert page.evaluate("() => document.getElementById('status').dataset.state") == "connected"
+        assert not page.page_errors, page.page_errors
+    finally:
+        proxy.close()
 
 
 def test_maps_are_listed_in_natural_order(page: Any, svc: ServiceProcess) -> None:

@@ -31,6 +31,8 @@
  * rendering, and a hidden tab fetches nothing (it also closes its event stream until shown again).
  * Tiles created later use the newest counter. A tile that failed to load is stale again, due
  * TILE_RETRY_MS later (while the event stream is connected; a reconnect reloads every tile anyway).
+ * The stream's keepalive events (every 15 s of silence by default) bound its silences: one silent
+ * for SILENT_STREAM_INTERVALS of them is opened again (events.js), as after any break.
  *
  * Signing in: a service run with --require-read-token answers every read 401 without a token, and
  * neither an <img> tile nor an EventSource can send one. A 401 shows a form (over the map) whose token

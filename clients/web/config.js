@@ -16,6 +16,10 @@ export const TILE_REFRESH_MS = 500;    // one tile is requested again at most th
 export const TILE_RETRY_MS = 3000;     // a tile that failed to load is asked for again after this long
 export const RECONNECT_MS = 3000;      // retry delay when the browser gives up on the event stream
 export const MAX_RETRY_AFTER_MS = 60000; // the longest a refusal's Retry-After holds the stream's retry back
+// The event stream sends a `keepalive` event after every `interval` seconds without news (it says
+// how many when it opens): one that sent nothing for this many intervals died without a word (a
+// half-open connection: a NAT or proxy dropped it, the laptop slept), and is opened again.
+export const SILENT_STREAM_INTERVALS = 3;
 // Until the user moves the map, the view follows the map as it grows (a demo's robots explore
 // beyond the first fit): its bounds are looked up at most this often while tiles change.
 export const FOLLOW_MS = 2000;

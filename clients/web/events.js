@@ -4,9 +4,11 @@
  * selection (`replaced`, `deleted`), and reconnects: by itself while the browser retries, after
  * RECONNECT_MS (or the service's Retry-After) when the browser gave up, and with every tile and robot
  * loaded again after any break. A hidden tab closes its stream until it is shown again
- * (pauseWhileHidden).
+ * (pauseWhileHidden). The stream's `keepalive` events break every silence, so one that says nothing
+ * for SILENT_STREAM_INTERVALS of them is dead though the browser thinks it open: it is opened again
+ * (watchSilence).
  */
-import { MAX_RETRY_AFTER_MS, RECONNECT_MS } from './config.js';
+import { MAX_RETRY_AFTER_MS, RECONNECT_MS, SILENT_STREAM_INTERVALS } from './config.js';
 import { deselectMap, refreshMaps, reloadMap } from './maps.js';
 import { enc, errorDetail } from './rest.js';
 import { applyRobotsDelta, updateRobots } from './robots.js';
@@ -19,6 +21,8 @@ import { queueTiles } from './tiles.js';
 export function closeEvents() {
   clearTimeout(state.reconnectTimer);
   state.reconnectTimer = null;
+  clearTimeout(state.silenceTimer);
+  state.silenceTimer = null;
   if (state.events) state.events.close();
   state.events = null;
 }
@@ -35,8 +39,23 @@ export function openEvents(mapId) {
     return;
   }
   setConnection('connecting');
-  const es = new EventSource(`maps/${enc(mapId)}/events?robots=delta`);
+  const es = new EventSource(`maps/${enc(mapId)}/events?robots=delta&keepalive=event`);
   state.events = es;
+  let interval = 0; // seconds between the stream's keepalives, once its first one said
+  // Anything the stream sends shows it alive: wait for the next thing, at most a few keepalives long.
+  const alive = () => {
+    clearTimeout(state.silenceTimer);
+    if (interval > 0) state.silenceTimer = setTimeout(silent, SILENT_STREAM_INTERVALS * interval * 1000);
+  };
+  // Nothing came for too long: the connection died without a FIN or RST, and the browser, which
+  // never times a stream out, would show this stale map as live for good. Open another stream,
+  // catching up as after any break.
+  const silent = () => {
+    if (es !== state.events) return;
+    state.eventsBroken = true;
+    setConnection('reconnecting');
+    openEvents(mapId);
+  };
   es.onopen = () => {
     if (es !== state.events) return;
     setConnection('connected');
@@ -50,6 +69,8 @@ export function openEvents(mapId) {
   es.onerror = () => {
     if (es !== state.events) return;
     state.eventsBroken = true;
+    // The break is known: the browser's retry, or ours below, takes over from the silence watch.
+    clearTimeout(state.silenceTimer);
     if (es.readyState === EventSource.CLOSED) {
       // The browser gave up (e.g. an HTTP error): try again ourselves after a pause.
       setConnection('error');
@@ -70,10 +91,22 @@ export function openEvents(mapId) {
       showError(`bad ${e.type} event: ${err.message}`);
       return;
     }
+    alive();
     state.lastUpdate = new Date();
     renderStatus();
     fn(data);
   };
+  es.addEventListener('keepalive', (e) => {
+    if (es !== state.events) return;
+    let sent = 0;
+    try {
+      sent = Number(JSON.parse(e.data).interval);
+    } catch (_) {
+      // Not this service's keepalive: it still shows the stream alive.
+    }
+    if (sent > 0) interval = sent;
+    alive();
+  });
   es.addEventListener('tiles', handle(queueTiles));
   es.addEventListener('robots', handle((d) => updateRobots(d.robots, true)));
   es.addEventListener('robots_delta', handle(applyRobotsDelta));

@@ -19,6 +19,7 @@ export const state = {
   events: null,         // the EventSource of the selected map
   eventsBroken: false,  // the stream failed since it last opened: redraw everything when it reopens
   reconnectTimer: null,
+  silenceTimer: null,   // fires when the open stream has been silent too long (events.js)
   connection: 'starting',
   lastUpdate: null,     // Date of the last event received
   robots: new Map(),    // robot id -> {id, color, data, marker, trail, row, drawn, trailEdit}

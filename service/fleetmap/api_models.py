@@ -488,6 +488,16 @@ class ReplacedEvent(_Model):
     version: int
 
 
+class KeepaliveEvent(_Model):
+    """`event: keepalive` of `GET /maps/{map_id}/events?keepalive=event`: the stream is alive. Sent
+    once when the stream opens and after every `interval` seconds without anything else sent, so a
+    client that heard nothing (no event of any kind) for a few intervals knows its connection died
+    silently and reconnects. A browser's EventSource never shows `: keepalive` comments to the page:
+    this event is how a web page tells a quiet map from a dead stream."""
+
+    interval: float = Field(gt=0, description="seconds of silence after which the server sends one")
+
+
 # -- conversions ------------------------------------------------------------------------------------
 
 
@@ -730,6 +740,7 @@ __all__ = [
     "ErrorItem",
     "ErrorResponse",
     "Health",
+    "KeepaliveEvent",
     "StorageStatus",
     "MapInfo",
     "MapList",

@@ -254,9 +254,10 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         default=15.0,
         metavar="S",
         help=(
-            "seconds of silence after which an event stream sends a ': keepalive' comment (default "
-            "15): shorter than the idle timeout of any proxy in front; clients take a stream silent "
-            "for a few of these as broken (the Python client: 45 s) and resume it"
+            "seconds of silence after which an event stream sends a ': keepalive' comment, or a "
+            "keepalive event (?keepalive=event, the web viewer's) (default 15): shorter than the "
+            "idle timeout of any proxy in front; clients take a stream silent for a few of these "
+            "as broken (the Python client and the web viewer: 45 s) and resume it"
         ),
     )
     p.add_argument(

@@ -55,7 +55,9 @@ Format (text/event-stream):
 - `: keepalive` comment lines after 15 s without anything sent (`ApiSettings.keepalive`, `fleetmap
   serve --events-keepalive`) keep proxies from closing an idle stream, and tell a client that a
   stream silent for several such periods is dead (a half-open connection): the Python client
-  resumes it after 45 s of silence.
+  resumes it after 45 s of silence. A browser's EventSource never shows comments to the page, so a
+  stream opened with `?keepalive=event` gets `keepalive` events instead (`{"interval": 15.0}`), and
+  one at once when it opens: the web viewer reopens a stream that sent nothing for three intervals.
 - `: the server is shutting down`, the last line of every open stream when the service stops
   (`EventStreamSlots.close_all`); the response then ends cleanly.
 - `: the token of this stream was revoked`, the last line of a stream opened with a token (its
@@ -90,7 +92,7 @@ from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.robots_feed import RobotsFeed
 from fleetmap.api.state import ApiState, EventStreamSlots, MapId, State
 from fleetmap.api.strict_requests import StrictRoute
-from fleetmap.api_models import ReplacedEvent, TilesEvent, tile_windows
+from fleetmap.api_models import KeepaliveEvent, ReplacedEvent, TilesEvent, tile_windows
 from fleetmap.auth import GRANT_SCOPE_KEY, Grant
 from fleetmap.change_feed import ChangeFeed
 from fleetmap.map_entry import MapEntry
@@ -176,18 +178,29 @@ async def event_stream(
     since: int | None,
     robot_deltas: bool = False,
     grant: Grant | None = None,
+    keepalive_events: bool = False,
 ) -> AsyncIterator[str]:
     """The events of one client until it disconnects (Starlette then cancels this generator), the
     map is deleted, or the token that let the stream in (`grant`; None: no token was needed) is no
     longer valid. A map replaced under its id is followed: `replaced`, then the new map's events.
-    `robot_deltas` (`?robots=delta`): after the first `robots` event of a map, `robots_delta` events."""
+    `robot_deltas` (`?robots=delta`): after the first `robots` event of a map, `robots_delta` events.
+    `keepalive_events` (`?keepalive=event`): keepalives as `keepalive` events, one at once, instead of
+    comments."""
     registry, settings = state.registry, state.settings
+    keepalive = (
+        _event("keepalive", KeepaliveEvent(interval=settings.keepalive).model_dump_json())
+        if keepalive_events
+        else ": keepalive\n\n"
+    )
     feed = entry.changes
     tile_size = entry.config.tile_size
     robots_feed = RobotsFeed(entry, registry.lock)
     successor: MapEntry | None = entry
     try:
         yield "retry: 1000\n\n"  # EventSource reconnects after 1 s
+        if keepalive_events:
+            # At once: the client learns the interval, and so when a silence means a dead stream.
+            yield keepalive
         version = feed.version if since is None else since
         if since is not None and since > feed.version:
             # A version this map never had (the id is from a deleted or replaced map of the same name):
@@ -236,7 +249,7 @@ async def event_stream(
                     yield _event("robots", robots)
                     last_sent = time.monotonic()
             if time.monotonic() - last_sent >= settings.keepalive:
-                yield ": keepalive\n\n"
+                yield keepalive
                 last_sent = time.monotonic()
             await asyncio.sleep(settings.events_period)
         # The server is shutting down (`EventStreamSlots.close_all`): end the stream, so that the
@@ -292,6 +305,13 @@ async def get_events(
         Literal["full", "delta"],
         Query(description="`delta`: after a first full `robots` event, send what changed as `robots_delta`"),
     ] = "full",
+    keepalive: Annotated[
+        Literal["comment", "event"],
+        Query(
+            description="`event`: send keepalives as `keepalive` events (one at once, with the interval), "
+            "which an EventSource shows to the page, instead of comments"
+        ),
+    ] = "comment",
 ) -> StreamingResponse:
     """Server-sent events, at most one `tiles` and one `robots` event per 100 ms:
 
@@ -308,7 +328,10 @@ async def get_events(
       by `PUT /maps/{map_id}/snapshot`; reload its metadata and every tile. The stream goes on with
       the new map's events (change versions start again at `version`);
     - `event: deleted`, data `{"id": map_id}`: the map was deleted, the stream ends;
-    - `: keepalive` comments after 15 s without anything sent (`ApiSettings.keepalive`);
+    - `: keepalive` comments after 15 s without anything sent (`ApiSettings.keepalive`); with
+      `?keepalive=event`, `event: keepalive`, data `{"interval": float}` instead, and one at once when
+      the stream opens: a page (whose EventSource hides comments) that hears nothing for a few
+      intervals knows the connection died silently, and reconnects;
     - `: the server is shutting down`: the service is stopping; the stream ends cleanly after it;
     - `: the token of this stream was revoked`: the token (bearer or session cookie) that opened the
       stream was revoked, or demoted below the role reading needs; the stream ends after it.
@@ -336,7 +359,12 @@ async def get_events(
         slots,
         # The token that let the stream in, if one had to (the auth middleware left it here).
         event_stream(
-            state, entry, since, robot_deltas=robots == "delta", grant=request.scope.get(GRANT_SCOPE_KEY)
+            state,
+            entry,
+            since,
+            robot_deltas=robots == "delta",
+            grant=request.scope.get(GRANT_SCOPE_KEY),
+            keepalive_events=keepalive == "event",
         ),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
