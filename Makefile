@@ -15,6 +15,7 @@ OUT ?= out
 SYSTEM_PACKAGES ?= chromium curl unzip
 # Test processes (pytest-xdist): most tests wait on a real service they started, so two share a
 # 2-core machine well. `make test TEST_WORKERS=0` runs them in one process, in file order.
+# The run ends with its 20 slowest tests: CI's log shows what keeps it near its 15-minute budget.
 TEST_WORKERS ?= 2
 
 .PHONY: demo serve test bench bench-service lint format clean system-deps
@@ -42,7 +43,7 @@ test: $(DEV_STAMP) system-deps
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
 	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
 	$(VENV)/bin/mypy
-	$(PY) -m pytest -q -n $(TEST_WORKERS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --durations=20
 
 serve: $(STAMP)
 	$(VENV)/bin/fleetmap serve $(SERVE_ARGS)
