@@ -404,6 +404,33 @@ def test_refusals_of_unreadable_images_say_what_the_file_is_and_nothing_of_the_p
     assert str(caught.value) == "map.pgm is not a PGM or PNG image"
 
 
+def png16(samples: np.ndarray, colour_type: int) -> bytes:
+    """A 16-bit PNG (which Pillow does not write) of `samples`, uint16 (height, width, channels),
+    in PNG colour type `colour_type`: 2 RGB, 4 grey with alpha, 6 RGBA."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+    h, w, _ = samples.shape
+    header = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([16, colour_type, 0, 0, 0])
+    rows = b"".join(b"\0" + row.astype(">u2").tobytes() for row in samples)  # filter 0 each row
+    chunks = chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b"")
+    return b"\x89PNG\r\n\x1a\n" + chunks
+
+
+@pytest.mark.parametrize(("colour_type", "channels"), [(2, 3), (4, 2), (6, 4)])
+def test_a_16_bit_png_with_colour_or_alpha_is_refused_not_read_at_8_bits(
+    colour_type: int, channels: int
+) -> None:
+    """Pillow opens a 16-bit RGB, grey-with-alpha or RGBA PNG as 8-bit RGB / RGBA, the high byte of
+    each sample: 52700 / 65535, free for map_server with free_thresh 0.196 (occ 0.19585), was read
+    as 205, unknown. Refused, as a 16-bit grey PNG is."""
+    samples = np.full((1, 2, channels), 65535, np.uint16)
+    samples[0, 0, : 3 if channels >= 3 else 1] = 52700
+    with pytest.raises(Nav2ImportError, match="map.png is a 16-bit PNG .* only 8-bit grey images are read"):
+        map_from_nav2(nav2_yaml("map.png"), png16(samples, colour_type), CONFIG)
+
+
 def test_a_pgm_whose_maxval_is_not_255_is_refused() -> None:
     """Pillow rounds a maxval-100 PGM's 50 to 128 (0.502), where map_server has 0.5: in scale mode
     (thresholds 0.65 / 0.196) 39 of 100 was published as 92 % instead of 91 %, and at a threshold a

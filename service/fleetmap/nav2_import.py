@@ -39,11 +39,11 @@ Limits (`Nav2ImportError` names what is wrong; nothing is created): a yaw other 
 image is not on the map's axis-aligned cells), an origin that is not on the map's cell grid (within
 1e-6 of a cell edge; with `snap_origin` it is moved to the nearest one instead, by at most half a
 cell: SLAM tools put the origin anywhere, and map_saver writes it rounded), a resolution other
-than the configuration's, images that are not 8-bit grey
-(grey with alpha, and RGB / RGBA whose channels are equal everywhere, as map_saver writes scale
-maps, are grey; a PGM's maxval must be 255), images over MAX_IMAGE_SIDE on a side or
-MAX_IMAGE_PIXELS in all, more tiles than the map's `max_tiles`. Tiles are created only where a cell
-is known; every layer but occupancy stays unknown. Pixel values are mapped through a table of their
+than the configuration's, images that are not 8-bit grey (grey with alpha, and RGB / RGBA whose
+channels are equal everywhere, as map_saver writes scale maps, are grey; a PGM's maxval must be
+255, a PNG's samples 8 bits at most), images over MAX_IMAGE_SIDE on a side or MAX_IMAGE_PIXELS in
+all, more tiles than the map's `max_tiles`. Tiles are created only where a cell is known; every
+layer but occupancy stays unknown. Pixel values are mapped through a table of their
 256 (or 256 x 256 with alpha) possible values, and each tile is written with one numpy gather.
 """
 
@@ -323,6 +323,11 @@ def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.nda
         if im.mode not in ("L", "LA", "RGB", "RGBA"):
             kind = _MODE_WORDS.get(im.mode, "an unsupported")
             raise Nav2ImportError(f"{name} is {kind} image (mode {im.mode}): only 8-bit grey images are read")
+        if _png_bit_depth(im, data) == 16:
+            raise Nav2ImportError(
+                f"{name} is a 16-bit PNG (mode {im.mode} as Pillow reads it, 8 bits of each 16): map_server "
+                "reads all 16 bits, which 8 bits do not hold; only 8-bit grey images are read"
+            )
         maxval = _pnm_maxval(im)
         if maxval != 255:
             raise Nav2ImportError(
@@ -353,6 +358,23 @@ def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.nda
         )
     alpha = np.ascontiguousarray(pixels[:, :, 3]) if im.mode == "RGBA" else None
     return np.ascontiguousarray(grey), alpha
+
+
+#: Where a PNG's bit depth is: after its 8-byte signature, the IHDR chunk's length and type (4 bytes
+#: each), width and height (4 bytes each). Pillow has checked that IHDR comes first when it opened it.
+_PNG_BIT_DEPTH_AT = 24
+
+
+def _png_bit_depth(im: ImageFile.ImageFile, data: bytes) -> int | None:
+    """The bit depth of a PNG's samples (1, 2, 4, 8 or 16) from its IHDR chunk, None for any other
+    image. Pillow opens a 16-bit grey PNG as mode I;16, but a 16-bit RGB, RGBA or grey-with-alpha
+    one as plain RGB / RGBA keeping the high byte of each sample: such a map was read at 8 bits
+    without a word, where map_server's 16 bits put pixels near a threshold in another class (a grey
+    of 52700 / 65535 is free with free_thresh 0.196, its high byte 205 unknown) and scale mode's
+    percentages elsewhere."""
+    if im.format != "PNG" or len(data) <= _PNG_BIT_DEPTH_AT:
+        return None
+    return data[_PNG_BIT_DEPTH_AT]
 
 
 def _pnm_maxval(im: ImageFile.ImageFile) -> int:
