@@ -736,3 +736,9 @@ def test_the_client_uploads_a_yaml_path_with_its_image_or_zip_bytes(tmp_path: Pa
         with pytest.raises(ValueError, match="gives the field 'resolution' twice"):
             fm.import_nav2("twice", yaml_path)
         assert "twice" not in {m.id for m in fm.list_maps()}
+        # A file that is not YAML (an unclosed list) is the ValueError its contract names, not
+        # PyYAML's ParserError; nothing is sent.
+        yaml_path.write_text("image: img/floor.png\nresolution: 0.05\norigin: [1.0, 2.0, 0.0\nnegate: 0\n")
+        with pytest.raises(ValueError, match=r"floor.yaml is not valid YAML: while parsing a flow sequence"):
+            fm.import_nav2("broken", yaml_path)
+        assert "broken" not in {m.id for m in fm.list_maps()}

@@ -70,11 +70,16 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
     """A zip of a nav2 map_server `map.yaml` and the image it names (relative to the YAML's folder
     unless absolute), as `PUT /maps/{id}/import` reads it: the image beside the YAML under its own
     file name, the YAML's `image` rewritten to that name when it named a folder too. ValueError for
-    a YAML without an `image` file name, or, to be rewritten, with a field given twice (the server
-    refuses such a YAML); OSError if a file cannot be read."""
+    a file that is not YAML, a YAML without an `image` file name, or, to be rewritten, with a field
+    given twice (the server refuses such a YAML); OSError if a file cannot be read."""
     yaml_path = Path(yaml_path)
     text = yaml_path.read_bytes()
-    doc = yaml.safe_load(text)
+    try:
+        doc = yaml.safe_load(text)
+    except (yaml.YAMLError, RecursionError) as exc:
+        # PyYAML's own error (ParserError, ScannerError) is no ValueError: it came out of
+        # `import_nav2` as an exception its contract does not name, with a traceback.
+        raise ValueError(f"{yaml_path} is not valid YAML: {exc}") from None
     image = doc.get("image") if isinstance(doc, dict) else None
     if not isinstance(image, str) or not image:
         raise ValueError(f"{yaml_path} names no image file ('image')")
