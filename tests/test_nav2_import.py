@@ -20,7 +20,7 @@ from test_api_support import hostile_zip, padded_zip
 
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
-from fleetmap.export import known_window, nav2_files, pgm_bytes
+from fleetmap.export import Window, known_window, nav2_files, pgm_bytes
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap
 from fleetmap.memory_budget import MemoryBudget, UploadReservation
 from fleetmap.nav2_import import (
@@ -335,6 +335,25 @@ def test_a_float32_resolution_printed_in_full_is_the_map_s_resolution() -> None:
     # A value that is not exactly a float32 is the YAML's own, even within a float32's rounding.
     assert map_from_nav2(nav2_yaml(resolution="0.0500000001"), PIXELS).resolution == 0.0500000001
     assert map_from_nav2(nav2_yaml(resolution="0.03125"), PIXELS).resolution == 0.03125
+
+
+def test_a_map_configured_at_a_float32_resolution_printed_in_full_takes_its_own_export_back() -> None:
+    """A map made at 0.05000000074505806 m (the resolution copied from a published OccupancyGrid)
+    exports it as is; its import read the YAML's value as 0.05 (the float32's shortest decimal),
+    and refused it against the map's own configuration: `PUT /maps/{id}/import` of the map's own
+    export gave 422. For map_server, whose resolution is a float32, the two are one resolution."""
+    config = MapConfig(resolution=float(np.float32(0.05)))
+    gmap = GridMap(config)
+    gmap.store.create([(-1, -1)])
+    gmap.store.pools["log_odds"][gmap.store.slots[(-1, -1)], -3:, -5:] = L_MAX  # cells -5..-1, -3..-1
+    files = nav2_files(gmap, Window(-5, -3, 0, 0))
+    assert "resolution: 0.05000000074505806\n" in files["map.yaml"].decode()
+    again = map_from_nav2(files["map.yaml"], files["map.pgm"], config)
+    assert again.resolution == config.resolution and again.known_bounds() == (-5, -3, 0, 0)
+    assert nav2_files(again, Window(-5, -3, 0, 0)) == files
+    # Another resolution is still refused, saying which.
+    with pytest.raises(Nav2ImportError, match="resolution 0.1 m differs from the map configuration's"):
+        map_from_nav2(nav2_yaml(resolution="0.1"), PIXELS, config)
 
 
 def test_the_off_grid_message_says_by_how_much() -> None:

@@ -406,7 +406,10 @@ def _grid_index(value: float, resolution: float, what: str, snap: bool = False) 
 
 def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | None) -> MapConfig:
     if config is not None:
-        if not math.isclose(meta.resolution, config.resolution, rel_tol=RESOLUTION_TOLERANCE):
+        # Compared as map_server publishes both, a float32: a map configured at 0.05000000074505806
+        # m (copied from a published map) writes that into its export, which reads as 0.05.
+        published = _published_resolution(config.resolution)
+        if not math.isclose(meta.resolution, published, rel_tol=RESOLUTION_TOLERANCE):
             raise Nav2ImportError(
                 f"map.yaml resolution {meta.resolution!r} m differs from the map configuration's "
                 f"{config.resolution!r} m"
@@ -432,7 +435,8 @@ def map_from_nav2(
     """A new map holding a nav2 map_server map (the YAML text and the image file's bytes), read
     as map_server reads it (see the module's docstring).
 
-    `config`: the new map's configuration, whose resolution must be the YAML's; without it,
+    `config`: the new map's configuration, whose resolution must be the YAML's (the same float32,
+    as map_server publishes it: 0.05 and 0.05000000074505806 are one resolution); without it,
     `defaults` (or the default configuration) with the YAML's resolution. The occupancy layer gets
     the map; the configuration's other layers stay unknown. With `reservation` (an upload's room in
     the memory budget), the map's tiles are reserved before anything is allocated, and refused (507)
