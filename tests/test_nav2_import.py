@@ -109,6 +109,14 @@ def test_negate_reads_dark_pixels_as_free() -> None:
     for quoted, plain in (('"1"', 1), ("'0'", 0)):
         got = log_odds_row(row_map([0, 255], negate=quoted), 2)
         assert np.array_equal(got, log_odds_row(row_map([0, 255], negate=plain), 2))
+    # Not an integer, map_server reads `negate` as yaml-cpp's boolean, whose words PyYAML leaves
+    # strings when quoted, or always (y, n): refused before ("must be an integer or a boolean").
+    for word, plain in (("y", 1), ("N", 0), ('"true"', 1), ("'Off'", 0), ('"YES"', 1), ("'No'", 0)):
+        got = log_odds_row(row_map([0, 255], negate=word), 2)
+        assert np.array_equal(got, log_odds_row(row_map([0, 255], negate=plain), 2)), word
+    for word in ("yES", '"tRUE"', "si"):  # not in yaml-cpp's flexible case, or not a boolean
+        with pytest.raises(Nav2ImportError, match="'negate' must be an integer or a boolean"):
+            row_map([0, 255], negate=word)
 
 
 def test_scale_mode_publishes_the_rescaled_percentage_and_has_no_unknown_grey() -> None:

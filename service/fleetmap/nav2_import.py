@@ -9,7 +9,8 @@ What map_server does (navigation2, nav2_map_server/src/map_io.cpp, `loadMapYaml`
 
 - The YAML needs `image`, `resolution`, `origin` (three numbers: x, y, yaw of the image's lower-left
   pixel corner), `occupied_thresh`, `free_thresh` and `negate` (an integer, quoted or not,
-  non-zero is true, or a boolean); `mode` is `trinary` (the default when absent), `scale` or
+  non-zero is true, or a boolean as yaml-cpp reads one, quoted or not: y / yes / true / on and
+  n / no / false / off); `mode` is `trinary` (the default when absent), `scale` or
   `raw`, in any case.
 - The resolution is published as a float32 (`nav_msgs/MapMetaData`): a YAML resolution that is
   exactly a float32, as a file written from a published map holds it, is read as that float32's
@@ -167,6 +168,11 @@ class _MapYamlLoader(yaml.SafeLoader):
 _NUMBER_TEXT = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
 #: A quoted integer, which yaml-cpp's `as<int>()` reads as that integer (PyYAML: a string).
 _INTEGER_TEXT = re.compile(r"[+-]?[0-9]+")
+#: yaml-cpp's booleans (`convert<bool>`, which map_server's `negate` falls back to when it is no
+#: integer): these words, quoted or not, all lower case, all upper case or capitalised. PyYAML reads
+#: only the unquoted yes / no / true / false / on / off as booleans, not `y`, `n` or a quoted word.
+_YAML_CPP_BOOLS = {"y": True, "n": False, "yes": True, "no": False, "true": True, "false": False}
+_YAML_CPP_BOOLS.update({"on": True, "off": False})
 #: The most characters of a YAML value an error message quotes.
 _SHOWN_CHARS = 80
 
@@ -179,6 +185,14 @@ def _shown(value: object) -> str:
     except ValueError:
         return f"an integer of more than {sys.get_int_max_str_digits()} digits"
     return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 3] + "..."
+
+
+def _yaml_cpp_bool(text: str) -> bool | None:
+    """`text` as yaml-cpp's `as<bool>()` reads it (`_YAML_CPP_BOOLS`, in its "flexible case": all
+    lower, all upper, or an upper first letter and the rest all lower or all upper), else None."""
+    rest = text[1:]
+    flexible = text.islower() or (text[:1].isupper() and (not rest or rest.islower() or rest.isupper()))
+    return _YAML_CPP_BOOLS.get(text.lower()) if flexible else None
 
 
 def _number(doc: dict[str, Any], key: str) -> float:
@@ -252,6 +266,10 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     if isinstance(negate, str) and _INTEGER_TEXT.fullmatch(negate):
         # yaml-cpp, map_server's parser, reads a quoted integer as that integer (`negate: "0"`).
         negate = int(negate)
+    elif isinstance(negate, str) and _yaml_cpp_bool(negate) is not None:
+        # Not an integer, map_server reads it as a boolean, as yaml-cpp does: `negate: y`, or
+        # `negate: "true"`, which PyYAML leaves strings, were refused though map_server loads them.
+        negate = _yaml_cpp_bool(negate)
     if not isinstance(negate, (bool, int)):
         raise Nav2ImportError(f"map.yaml 'negate' must be an integer or a boolean, got {_shown(negate)}")
     mode = doc.get("mode", "trinary")
