@@ -271,6 +271,9 @@ PIXELS = pgm_bytes(np.zeros((2, 2), dtype=np.uint8))
         (nav2_yaml(image=None), "'image' must name the image file"),
         (nav2_yaml(resolution=0.1), "resolution 0.1 m differs from the map configuration's 0.05 m"),
         ("[1, 2]", "map.yaml must hold a mapping of fields, not a list"),
+        # An empty file (a save cut short) said "not a NoneType", Python's word for nothing.
+        ("", "map.yaml is empty: it must hold a mapping of fields"),
+        ("# only a comment\n", "map.yaml is empty: it must hold a mapping of fields"),
         ("image: [unclosed", "map.yaml is not valid YAML"),
         # map_server (yaml-cpp) reads the first of two, PyYAML the last: refused, not guessed.
         (nav2_yaml() + "resolution: 0.1\n", "the field 'resolution' is given twice"),

@@ -238,6 +238,8 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
         raise Nav2ImportError(f"map.yaml is not valid YAML: {exc}") from None
     except ValueError as exc:  # PyYAML's int() of more than 4300 digits
         raise Nav2ImportError(f"map.yaml holds a number Python does not read: {exc}") from None
+    if doc is None:  # no document at all: an empty file, or only comments
+        raise Nav2ImportError("map.yaml is empty: it must hold a mapping of fields (image, resolution, ...)")
     if not isinstance(doc, dict):
         raise Nav2ImportError(f"map.yaml must hold a mapping of fields, not a {type(doc).__name__}")
     image = doc.get("image")
