@@ -315,13 +315,20 @@ def test_aliases_of_lists_are_refused_before_anything_walks_them(field: str) -> 
             "'image' must name the image file, got an integer of more",
         ),
         (nav2_yaml(origin="[1e999, 0, 0]"), "'origin' must be a finite number, got '1e999'"),
+        # Finite, but infinite in cells (1.7e308 / 0.05): math.floor's OverflowError, and snapped too.
+        (nav2_yaml(origin="[1.7e308, 0, 0]"), "the map reaches beyond the +-1e+07 m the service accepts"),
+        (nav2_yaml(origin="[0, -1.7e308, 0]"), "the map reaches beyond the +-1e+07 m the service accepts"),
     ],
 )
-def test_huge_numbers_are_refused_as_such_not_as_a_crash(yaml_text: str, message: str) -> None:
+@pytest.mark.parametrize("snap_origin", [False, True])
+def test_huge_numbers_are_refused_as_such_not_as_a_crash(
+    yaml_text: str, message: str, snap_origin: bool
+) -> None:
     """Before: PyYAML's int() of 5000 digits (a ValueError), float() of a 400-digit integer (an
-    OverflowError) and the repr of a 6000-digit hex image name (a ValueError) were HTTP 500s."""
+    OverflowError), the repr of a 6000-digit hex image name (a ValueError) and an origin that is
+    infinite in cells (an OverflowError) were HTTP 500s."""
     with pytest.raises(Nav2ImportError) as caught:
-        map_from_nav2(yaml_text, PIXELS, CONFIG)
+        map_from_nav2(yaml_text, PIXELS, CONFIG, snap_origin=snap_origin)
     assert message in str(caught.value) and caught.value.status == 422
 
 

@@ -480,13 +480,16 @@ def _map_from_meta(
         )
     config = _map_config(meta, config, defaults)
     res = config.resolution
+    beyond = f"the map reaches beyond the +-{MAX_COORDINATE:g} m the service accepts (origin {ox!r}, {oy!r})"
+    # Before it is counted in cells: 1.7e308 m, finite, is an infinite number of cells, which
+    # `_grid_index` cannot round (OverflowError, an HTTP 500).
+    if max(abs(ox), abs(oy)) > MAX_COORDINATE:
+        raise Nav2ImportError(beyond)
     i0, j0 = _grid_index(ox, res, "x", snap_origin), _grid_index(oy, res, "y", snap_origin)
     grey, alpha = read_image(image, image_name or meta.image)
     h, w = grey.shape
     if max(abs(i0), abs(i0 + w), abs(j0), abs(j0 + h)) * res > MAX_COORDINATE:
-        raise Nav2ImportError(
-            f"the map reaches beyond the +-{MAX_COORDINATE:g} m the service accepts (origin {ox!r}, {oy!r})"
-        )
+        raise Nav2ImportError(beyond)
     values = occupancy_grid_values(meta, alpha is not None)
     _, _, l_min, l_max = config.occupancy.resolved()
     lut = log_odds_of_values(values, l_min, l_max)
