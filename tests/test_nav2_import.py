@@ -310,10 +310,7 @@ def test_aliases_of_lists_are_refused_before_anything_walks_them(field: str) -> 
     [
         (nav2_yaml(resolution="1" + "0" * 5000), "map.yaml holds a number Python does not read"),
         (nav2_yaml(origin=f"[1{'0' * 400}, 0, 0]"), f"'origin' must be a finite number, got 1{'0' * 76}..."),
-        (
-            nav2_yaml(image="0x" + "f" * 5000),
-            "'image' must name the image file, got an integer of more",
-        ),
+        (nav2_yaml(image="1" * 4000), f"'image' must name the image file, got {'1' * 77}..."),
         (nav2_yaml(origin="[1e999, 0, 0]"), "'origin' must be a finite number, got '1e999'"),
         # Finite, but infinite in cells (1.7e308 / 0.05): math.floor's OverflowError, and snapped too.
         (nav2_yaml(origin="[1.7e308, 0, 0]"), "the map reaches beyond the +-1e+07 m the service accepts"),
@@ -325,8 +322,9 @@ def test_huge_numbers_are_refused_as_such_not_as_a_crash(
     yaml_text: str, message: str, snap_origin: bool
 ) -> None:
     """Before: PyYAML's int() of 5000 digits (a ValueError), float() of a 400-digit integer (an
-    OverflowError), the repr of a 6000-digit hex image name (a ValueError) and an origin that is
-    infinite in cells (an OverflowError) were HTTP 500s."""
+    OverflowError), the repr of a 6000-digit hex image name (a ValueError; yaml-cpp reads hex as
+    text, and so does the import now) and an origin that is infinite in cells (an OverflowError)
+    were HTTP 500s."""
     with pytest.raises(Nav2ImportError) as caught:
         map_from_nav2(yaml_text, PIXELS, CONFIG, snap_origin=snap_origin)
     assert message in str(caught.value) and caught.value.status == 422
@@ -337,6 +335,26 @@ def test_numbers_are_read_as_yaml_cpp_reads_them() -> None:
     PyYAML's YAML 1.1 resolver leaves both strings, which were refused."""
     gmap = map_from_nav2(nav2_yaml(resolution="5e-2", origin="[2.0e1, -1e-12, 0e0]"), PIXELS, CONFIG)
     assert gmap.resolution == 0.05 and gmap.known_bounds() == (400, 0, 402, 2)
+
+
+def test_integers_with_a_leading_zero_are_decimal_as_yaml_cpp_reads_them() -> None:
+    """PyYAML's YAML 1.1 reads `010` as octal 8, yaml-cpp's `as<double>()` as 10: `origin: [-010,
+    020, 0]` was imported 2 m and 4 m away from where map_server puts it, without a word. Forms
+    yaml-cpp reads as no number at all (hex, underscores, sexagesimal: map_server fails to load
+    the YAML) are refused, where PyYAML made numbers of them."""
+    gmap = map_from_nav2(nav2_yaml(origin="[-010, 020, 00]"), PIXELS, CONFIG)
+    assert gmap.known_bounds() == (-200, 400, -198, 402)  # -10 m, 20 m
+    on = log_odds_row(row_map([0, 255], negate="01"), 2)  # an integer still: non-zero, true
+    assert np.array_equal(on, log_odds_row(row_map([0, 255], negate=1), 2))
+    for text in ("0x10", "1_000", "1:30"):
+        with pytest.raises(Nav2ImportError, match=f"'origin' must be a finite number, got '{text}'"):
+            map_from_nav2(nav2_yaml(origin=f"[0, {text}, 0]"), PIXELS, CONFIG)
+    for text in ("0_.05", "0:0.05"):
+        with pytest.raises(Nav2ImportError, match=f"'resolution' must be a finite number, got '{text}'"):
+            map_from_nav2(nav2_yaml(resolution=text), PIXELS, CONFIG)
+    # An image named 0x10 is that file, for yaml-cpp's `as<std::string>()` too: not "an integer".
+    with pytest.raises(Nav2ImportError, match="names the image '0x10', which is not in the zip"):
+        map_from_nav2_zip(nav2_zip(nav2_yaml(image="0x10"), {"map.pgm": PIXELS}), CONFIG)
 
 
 def test_a_float32_resolution_printed_in_full_is_the_map_s_resolution() -> None:

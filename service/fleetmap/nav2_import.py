@@ -161,6 +161,26 @@ class _MapYamlLoader(yaml.SafeLoader):
             seen.add(key)
         return super().construct_mapping(node, deep=deep)
 
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> Any:  # int, or str (not PyYAML's int)
+        """An integer written in plain decimal (`0`, `-12`), else its text: PyYAML's YAML 1.1 reads
+        `010` as octal 8 where yaml-cpp's `as<double>()`, map_server's reader, reads 10 (an origin
+        of `[-010, 020, 0]` was imported 2 m and 4 m off), and makes numbers of hex, underscores
+        and sexagesimal, which yaml-cpp does not read as numbers at all. The text goes to
+        `_number`, which reads it as yaml-cpp does (`010` is 10) or refuses it."""
+        text = self.construct_scalar(node)
+        if isinstance(text, str) and not _DECIMAL_INTEGER_TEXT.fullmatch(text):
+            return text
+        return super().construct_yaml_int(node)
+
+    def construct_yaml_float(self, node: yaml.ScalarNode) -> Any:  # float, or str
+        """A float as yaml-cpp reads one (`_NUMBER_TEXT`), or infinity or NaN (refused later, as not
+        finite, saying so), else its text: PyYAML's YAML 1.1 also reads underscores (`0_.05`) and
+        sexagesimal (`1:30.5`), which yaml-cpp does not, and map_server fails to load."""
+        text = self.construct_scalar(node)
+        if isinstance(text, str) and not (_NUMBER_TEXT.fullmatch(text) or _NON_FINITE_TEXT.fullmatch(text)):
+            return text
+        return super().construct_yaml_float(node)
+
 
 #: A number as yaml-cpp's `as<double>()` (map_server's reader) reads it where PyYAML's YAML 1.1
 #: resolver leaves a string: an exponent without a dot or a sign, as in `1e-05`, which yaml-cpp
@@ -168,6 +188,12 @@ class _MapYamlLoader(yaml.SafeLoader):
 _NUMBER_TEXT = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
 #: A quoted integer, which yaml-cpp's `as<int>()` reads as that integer (PyYAML: a string).
 _INTEGER_TEXT = re.compile(r"[+-]?[0-9]+")
+#: An integer PyYAML reads as yaml-cpp does: plain decimal, no leading zero (octal to PyYAML).
+_DECIMAL_INTEGER_TEXT = re.compile(r"[-+]?(?:0|[1-9][0-9]*)")
+#: PyYAML's infinities and NaN (its YAML 1.1 resolver's own forms).
+_NON_FINITE_TEXT = re.compile(r"[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)")
+_MapYamlLoader.add_constructor("tag:yaml.org,2002:int", _MapYamlLoader.construct_yaml_int)
+_MapYamlLoader.add_constructor("tag:yaml.org,2002:float", _MapYamlLoader.construct_yaml_float)
 #: yaml-cpp's booleans (`convert<bool>`, which map_server's `negate` falls back to when it is no
 #: integer): these words, quoted or not, all lower case, all upper case or capitalised. PyYAML reads
 #: only the unquoted yes / no / true / false / on / off as booleans, not `y`, `n` or a quoted word.
