@@ -117,6 +117,13 @@ def test_negate_reads_dark_pixels_as_free() -> None:
     for word in ("yES", '"tRUE"', "si"):  # not in yaml-cpp's flexible case, or not a boolean
         with pytest.raises(Nav2ImportError, match="'negate' must be an integer or a boolean"):
             row_map([0, 255], negate=word)
+    # yaml-cpp's integers take their base from the prefix (hex, octal), and fit in an int.
+    for text, plain in (("0x1", 1), ('"0X0"', 0), ("010", 1), ("'-07'", 1), ("000", 0), ("+2147483647", 1)):
+        got = log_odds_row(row_map([0, 255], negate=text), 2)
+        assert np.array_equal(got, log_odds_row(row_map([0, 255], negate=plain), 2)), text
+    for text in ("2147483648", '"-2147483649"', "0b1", '"09"', "0x123456789"):
+        with pytest.raises(Nav2ImportError, match="'negate' must be an integer or a boolean"):
+            row_map([0, 255], negate=text)
 
 
 def test_scale_mode_publishes_the_rescaled_percentage_and_has_no_unknown_grey() -> None:
@@ -311,6 +318,12 @@ def test_aliases_of_lists_are_refused_before_anything_walks_them(field: str) -> 
         (nav2_yaml(resolution="1" + "0" * 5000), "map.yaml holds a number Python does not read"),
         (nav2_yaml(origin=f"[1{'0' * 400}, 0, 0]"), f"'origin' must be a finite number, got 1{'0' * 76}..."),
         (nav2_yaml(image="1" * 4000), f"'image' must name the image file, got {'1' * 77}..."),
+        # Python's int() of more than 4300 decimal digits (a ValueError), quoted or with a zero first.
+        (
+            nav2_yaml(negate=f'"{"1" * 5000}"'),
+            f"'negate' must be an integer or a boolean, got '{'1' * 76}...",
+        ),
+        (nav2_yaml(negate="0" + "1" * 5000), "'negate' must be an integer or a boolean, got '0111"),
         (nav2_yaml(origin="[1e999, 0, 0]"), "'origin' must be a finite number, got '1e999'"),
         # Finite, but infinite in cells (1.7e308 / 0.05): math.floor's OverflowError, and snapped too.
         (nav2_yaml(origin="[1.7e308, 0, 0]"), "the map reaches beyond the +-1e+07 m the service accepts"),

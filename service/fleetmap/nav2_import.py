@@ -8,10 +8,10 @@ What map_server does (navigation2, nav2_map_server/src/map_io.cpp, `loadMapYaml`
 `loadMapFromFile`; the mode names from map_mode.cpp's `map_mode_from_string`):
 
 - The YAML needs `image`, `resolution`, `origin` (three numbers: x, y, yaw of the image's lower-left
-  pixel corner), `occupied_thresh`, `free_thresh` and `negate` (an integer, quoted or not,
-  non-zero is true, or a boolean as yaml-cpp reads one, quoted or not: y / yes / true / on and
-  n / no / false / off); `mode` is `trinary` (the default when absent), `scale` or
-  `raw`, in any case.
+  pixel corner), `occupied_thresh`, `free_thresh` and `negate` (an integer, quoted or not, in C++'s
+  notation: `0x1f` hex, `017` octal, at most 32 bits, non-zero is true; or a boolean as yaml-cpp
+  reads one, quoted or not: y / yes / true / on and n / no / false / off); `mode` is `trinary` (the
+  default when absent), `scale` or `raw`, in any case.
 - The resolution is published as a float32 (`nav_msgs/MapMetaData`): a YAML resolution that is
   exactly a float32, as a file written from a published map holds it, is read as that float32's
   shortest decimal (0.05000000074505806 is 0.05).
@@ -186,8 +186,10 @@ class _MapYamlLoader(yaml.SafeLoader):
 #: resolver leaves a string: an exponent without a dot or a sign, as in `1e-05`, which yaml-cpp
 #: itself writes for a small origin.
 _NUMBER_TEXT = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
-#: A quoted integer, which yaml-cpp's `as<int>()` reads as that integer (PyYAML: a string).
-_INTEGER_TEXT = re.compile(r"[+-]?[0-9]+")
+#: An integer as yaml-cpp's `as<int>()` reads one (`_yaml_cpp_int`), with no more digits than a
+#: value in an int's 32 bits may have (so it is never a long conversion).
+_YAML_CPP_INTEGER_TEXT = re.compile(r"[-+]?(?:0[xX][0-9a-fA-F]{1,8}|0[0-7]{0,11}|[1-9][0-9]{0,9})")
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 #: An integer PyYAML reads as yaml-cpp does: plain decimal, no leading zero (octal to PyYAML).
 _DECIMAL_INTEGER_TEXT = re.compile(r"[-+]?(?:0|[1-9][0-9]*)")
 #: PyYAML's infinities and NaN (its YAML 1.1 resolver's own forms).
@@ -211,6 +213,35 @@ def _shown(value: object) -> str:
     except ValueError:
         return f"an integer of more than {sys.get_int_max_str_digits()} digits"
     return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 3] + "..."
+
+
+def _negate(value: object) -> bool:
+    """map.yaml's `negate` as map_server reads it: yaml-cpp's `as<int>()` (non-zero is true), and
+    failing that its `as<bool>()`; `Nav2ImportError` when both fail, as map_server's load does."""
+    if isinstance(value, bool):
+        return value
+    number = value if isinstance(value, int) else _yaml_cpp_int(value) if isinstance(value, str) else None
+    if number is not None and INT32_MIN <= number <= INT32_MAX:
+        return number != 0
+    # Not an integer, map_server reads it as a boolean, as yaml-cpp does: `negate: y`, or
+    # `negate: "true"`, which PyYAML leaves strings, were refused though map_server loads them.
+    flag = _yaml_cpp_bool(value) if isinstance(value, str) else None
+    if flag is None:
+        raise Nav2ImportError(f"map.yaml 'negate' must be an integer or a boolean, got {_shown(value)}")
+    return flag
+
+
+def _yaml_cpp_int(text: str) -> int | None:
+    """`text` as yaml-cpp's `as<int>()` reads it (C++'s stream extraction with the base from the
+    prefix, as strtol's base 0: `0x1f` hex, `017` octal, else decimal; `negate: "0"` quoted too),
+    None for any other text or one past an int's 32 bits. Counted by its digits, never converted
+    whole: Python refuses to convert more than 4300 decimal digits (a ValueError, an HTTP 500)."""
+    if not _YAML_CPP_INTEGER_TEXT.fullmatch(text):
+        return None
+    digits = text.lstrip("+-")
+    base = 16 if digits[:2] in ("0x", "0X") else 8 if len(digits) > 1 and digits[0] == "0" else 10
+    number = int(digits, base)
+    return -number if text.startswith("-") else number
 
 
 def _yaml_cpp_bool(text: str) -> bool | None:
@@ -290,16 +321,7 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
         )
     if "negate" not in doc:
         raise Nav2ImportError("map.yaml has no 'negate'")
-    negate = doc["negate"]
-    if isinstance(negate, str) and _INTEGER_TEXT.fullmatch(negate):
-        # yaml-cpp, map_server's parser, reads a quoted integer as that integer (`negate: "0"`).
-        negate = int(negate)
-    elif isinstance(negate, str) and _yaml_cpp_bool(negate) is not None:
-        # Not an integer, map_server reads it as a boolean, as yaml-cpp does: `negate: y`, or
-        # `negate: "true"`, which PyYAML leaves strings, were refused though map_server loads them.
-        negate = _yaml_cpp_bool(negate)
-    if not isinstance(negate, (bool, int)):
-        raise Nav2ImportError(f"map.yaml 'negate' must be an integer or a boolean, got {_shown(negate)}")
+    negate = _negate(doc["negate"])
     mode = doc.get("mode", "trinary")
     if not isinstance(mode, str) or mode.lower() not in NAV2_MODES:
         raise Nav2ImportError(f"map.yaml 'mode' must be trinary, scale or raw, got {_shown(mode)}")
