@@ -804,6 +804,10 @@ def test_the_client_uploads_a_yaml_path_with_its_image_or_zip_bytes(tmp_path: Pa
         with pytest.raises(ValueError, match="gives the field 'resolution' twice"):
             fm.import_nav2("twice", yaml_path)
         assert "twice" not in {m.id for m in fm.list_maps()}
+        # Written out again (the image is in a folder), the YAML keeps what map_server reads: its
+        # `010` is 10 (PyYAML's octal 8 put the map 2 m off), its `true` a boolean to yaml-cpp too.
+        yaml_path.write_text(nav2_yaml("img/floor.png", origin="[010, 2.0, 0.0]", negate="false"))
+        assert fm.import_nav2("decimal", yaml_path).stats.bounds == pytest.approx([10.0, 2.0, 10.3, 2.2])
         # A file that is not YAML (an unclosed list) is the ValueError its contract names, not
         # PyYAML's ParserError; nothing is sent.
         yaml_path.write_text("image: img/floor.png\nresolution: 0.05\norigin: [1.0, 2.0, 0.0\nnegate: 0\n")

@@ -75,7 +75,10 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
     yaml_path = Path(yaml_path)
     text = yaml_path.read_bytes()
     try:
-        doc = yaml.safe_load(text)
+        # Every value as its text (BaseLoader), as the server and map_server's yaml-cpp read them:
+        # written out again from PyYAML's types, `origin: [010, ...]` became octal 8, and map_server
+        # reads 10. Text that looks like a number is written quoted, which both read as that number.
+        doc = yaml.load(text, Loader=yaml.BaseLoader)  # safe: BaseLoader makes only str, list, dict
     except (yaml.YAMLError, RecursionError) as exc:
         # PyYAML's own error (ParserError, ScannerError) is no ValueError: it came out of
         # `import_nav2` as an exception its contract does not name, with a traceback.
