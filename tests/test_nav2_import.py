@@ -789,6 +789,11 @@ def test_the_client_uploads_a_yaml_path_with_its_image_or_zip_bytes(tmp_path: Pa
         assert fm.cell("floor", 1.0 + 0.025, 2.0 + 3 * 0.05 + 0.025).state == "occupied"  # the top row
         assert fm.cell("floor", 1.0 + 0.025, 2.0 + 0.025).state == "free"
         assert fm.import_nav2("floor", str(yaml_path)).id == "floor"  # replaced
+        # The path of a zip (an export saved to a file) is sent as it is: it was read as a YAML
+        # ("not valid YAML: unacceptable character").
+        zip_path = tmp_path / "floor.ZIP"
+        zip_path.write_bytes(fm.export("floor", "ros"))
+        assert fm.import_nav2("from-zip", zip_path).stats.bounds == fm.get_map("floor").stats.bounds
         info = fm.import_nav2("zipped", nav2_zip(nav2_yaml(), {"map.pgm": PIXELS}))
         assert info.stats.bounds == [0.0, 0.0, 0.1, 0.1]
         off_grid = nav2_zip(nav2_yaml(origin="[0.01, 0, 0]"), {"map.pgm": PIXELS})

@@ -458,8 +458,10 @@ class FleetmapClient:
         replacing any map of that id (keeping its configuration), and return it once stored.
 
         `source`: the path of a `map.yaml` (it is zipped here with the image it names, which is
-        read relative to the YAML's folder as map_server does), or the bytes of a zip holding one
-        YAML file and its image (what `GET /maps/{id}/export?format=ros` gives). `FleetmapError` 422
+        read relative to the YAML's folder as map_server does), or a zip holding one YAML file and
+        its image (what `GET /maps/{id}/export?format=ros` gives): its bytes, or the path of a file
+        whose name ends in `.zip`, sent as it is. ValueError for a YAML file that is not YAML or
+        names no image (nothing is sent). `FleetmapError` 422
         naming the field or image at fault (a rotated map, an origin off the cell grid, a colour
         image, ...), 413 past a size limit; nothing changes then. OSError if a file cannot be read.
         `snap_origin`: an origin off the map's cell grid (as SLAM tools and map_saver write them) is
@@ -467,7 +469,12 @@ class FleetmapClient:
         `create_only` as for `upload_snapshot`."""
         _check_id("map_id", map_id)
         headers = {"content-type": "application/zip", **_conditions(if_match, create_only)}
-        body = source if isinstance(source, bytes) else nav2_files_zip(source)
+        if isinstance(source, bytes):
+            body = source
+        elif Path(source).suffix.lower() == ".zip":  # an export saved to a file: not a YAML to zip
+            body = Path(source).read_bytes()
+        else:
+            body = nav2_files_zip(source)
         response = self._transfer(
             "PUT", f"/maps/{map_id}/import", params={"format": "ros", "snap_origin": snap_origin},
             content=body,
