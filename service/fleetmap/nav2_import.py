@@ -189,7 +189,7 @@ _NUMBER_TEXT = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)
 #: An integer as yaml-cpp's `as<int>()` reads one (`_yaml_cpp_int`), with no more digits than a
 #: value in an int's 32 bits may have (so it is never a long conversion).
 _YAML_CPP_INTEGER_TEXT = re.compile(r"[-+]?(?:0[xX][0-9a-fA-F]{1,8}|0[0-7]{0,11}|[1-9][0-9]{0,9})")
-INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+_INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
 #: An integer PyYAML reads as yaml-cpp does: plain decimal, no leading zero (octal to PyYAML).
 _DECIMAL_INTEGER_TEXT = re.compile(r"[-+]?(?:0|[1-9][0-9]*)")
 #: PyYAML's infinities and NaN (its YAML 1.1 resolver's own forms).
@@ -199,8 +199,9 @@ _MapYamlLoader.add_constructor("tag:yaml.org,2002:float", _MapYamlLoader.constru
 #: yaml-cpp's booleans (`convert<bool>`, which map_server's `negate` falls back to when it is no
 #: integer): these words, quoted or not, all lower case, all upper case or capitalised. PyYAML reads
 #: only the unquoted yes / no / true / false / on / off as booleans, not `y`, `n` or a quoted word.
-_YAML_CPP_BOOLS = {"y": True, "n": False, "yes": True, "no": False, "true": True, "false": False}
-_YAML_CPP_BOOLS.update({"on": True, "off": False})
+_YAML_CPP_BOOLS = {
+    "y": True, "n": False, "yes": True, "no": False, "true": True, "false": False, "on": True, "off": False,
+}  # fmt: skip
 #: The most characters of a YAML value an error message quotes.
 _SHOWN_CHARS = 80
 
@@ -221,7 +222,7 @@ def _negate(value: object) -> bool:
     if isinstance(value, bool):
         return value
     number = value if isinstance(value, int) else _yaml_cpp_int(value) if isinstance(value, str) else None
-    if number is not None and INT32_MIN <= number <= INT32_MAX:
+    if number is not None and _INT32_MIN <= number <= _INT32_MAX:
         return number != 0
     # Not an integer, map_server reads it as a boolean, as yaml-cpp does: `negate: y`, or
     # `negate: "true"`, which PyYAML leaves strings, were refused though map_server loads them.
