@@ -350,6 +350,17 @@ def test_numbers_are_read_as_yaml_cpp_reads_them() -> None:
     assert gmap.resolution == 0.05 and gmap.known_bounds() == (400, 0, 402, 2)
 
 
+def test_only_the_first_document_of_the_yaml_is_read_as_map_server_reads_it() -> None:
+    """map_server's `YAML::LoadFile` reads the file's first document and no further: a map.yaml
+    ending in `---` (another document, empty or not, even one that is not valid YAML) loads there,
+    and was refused here ("expected a single document in the stream")."""
+    want = map_from_nav2(nav2_yaml(), PIXELS, CONFIG).known_bounds()
+    for rest in ("---\n", "---\nimage: other.pgm\nresolution: 0.1\n", "...\n---\nbroken: [\n"):
+        assert map_from_nav2(nav2_yaml() + rest, PIXELS, CONFIG).known_bounds() == want, rest
+    with pytest.raises(Nav2ImportError, match="map.yaml is empty"):  # the first document is empty
+        map_from_nav2("---\n---\n" + nav2_yaml(), PIXELS, CONFIG)
+
+
 def test_integers_with_a_leading_zero_are_decimal_as_yaml_cpp_reads_them() -> None:
     """PyYAML's YAML 1.1 reads `010` as octal 8, yaml-cpp's `as<double>()` as 10: `origin: [-010,
     020, 0]` was imported 2 m and 4 m away from where map_server puts it, without a word. Forms
@@ -813,6 +824,9 @@ def test_the_client_uploads_a_yaml_path_with_its_image_or_zip_bytes(tmp_path: Pa
         # `010` is 10 (PyYAML's octal 8 put the map 2 m off), its `true` a boolean to yaml-cpp too.
         yaml_path.write_text(nav2_yaml("img/floor.png", origin="[010, 2.0, 0.0]", negate="false"))
         assert fm.import_nav2("decimal", yaml_path).stats.bounds == pytest.approx([10.0, 2.0, 10.3, 2.2])
+        # Its first document only, as map_server reads it (a second one was "not valid YAML").
+        yaml_path.write_text(nav2_yaml("img/floor.png", origin="[1.0, 2.0, 0.0]") + "---\nimage: x.png\n")
+        assert fm.import_nav2("first", yaml_path).stats.bounds == pytest.approx([1.0, 2.0, 1.3, 2.2])
         # A file that is not YAML (an unclosed list) is the ValueError its contract names, not
         # PyYAML's ParserError; nothing is sent.
         yaml_path.write_text("image: img/floor.png\nresolution: 0.05\norigin: [1.0, 2.0, 0.0\nnegate: 0\n")

@@ -74,24 +74,29 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
     given twice (the server refuses such a YAML); OSError if a file cannot be read."""
     yaml_path = Path(yaml_path)
     text = yaml_path.read_bytes()
+    # Every value as its text (BaseLoader: only str, list, dict), as the server and map_server's
+    # yaml-cpp read them: written out again from PyYAML's types, `origin: [010, ...]` became octal
+    # 8, and map_server reads 10. Text that looks like a number is written quoted, which both read
+    # as that number. The first document only, as map_server's `YAML::LoadFile` reads it.
+    loader = yaml.BaseLoader(text)
     try:
-        # Every value as its text (BaseLoader), as the server and map_server's yaml-cpp read them:
-        # written out again from PyYAML's types, `origin: [010, ...]` became octal 8, and map_server
-        # reads 10. Text that looks like a number is written quoted, which both read as that number.
-        doc = yaml.load(text, Loader=yaml.BaseLoader)  # safe: BaseLoader makes only str, list, dict
+        node = loader.get_node() if loader.check_node() else None
+        doc = None if node is None else loader.construct_document(node)
     except (yaml.YAMLError, RecursionError) as exc:
         # PyYAML's own error (ParserError, ScannerError) is no ValueError: it came out of
         # `import_nav2` as an exception its contract does not name, with a traceback.
         raise ValueError(f"{yaml_path} is not valid YAML: {exc}") from None
-    image = doc.get("image") if isinstance(doc, dict) else None
-    if not isinstance(image, str) or not image:
+    finally:
+        loader.dispose()
+    if not isinstance(doc, dict) or not isinstance(doc.get("image"), str) or not doc["image"]:
         raise ValueError(f"{yaml_path} names no image file ('image')")
+    image = doc["image"]
     image_path = yaml_path.parent / image  # an absolute `image` stays itself
     name = image_path.name
     if name != image:  # the server reads only an image beside the YAML in the zip
         # Written out again from `doc`, a field given twice would keep its last value only, and
         # the server, which refuses such a YAML (map_server takes the first), would never see it.
-        repeated = _repeated_field(text)
+        repeated = _repeated_field(node)
         if repeated is not None:
             raise ValueError(f"{yaml_path} gives the field {repeated!r} twice: which one is meant?")
         text = yaml.safe_dump({**doc, "image": name}, sort_keys=False).encode()
@@ -102,9 +107,8 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
     return buf.getvalue()
 
 
-def _repeated_field(text: bytes) -> str | None:
-    """The first top-level field a YAML document gives twice, or None."""
-    node = yaml.compose(text, Loader=yaml.SafeLoader)
+def _repeated_field(node: yaml.Node | None) -> str | None:
+    """The first top-level field a composed YAML document gives twice, or None."""
     seen: set[str] = set()
     for key, _ in node.value if isinstance(node, yaml.MappingNode) else ():
         if isinstance(key, yaml.ScalarNode) and key.value in seen:
