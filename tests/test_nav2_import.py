@@ -411,6 +411,9 @@ def test_a_map_configured_at_a_float32_resolution_printed_in_full_takes_its_own_
     again = map_from_nav2(files["map.yaml"], files["map.pgm"], config)
     assert again.resolution == config.resolution and again.known_bounds() == (-5, -3, 0, 0)
     assert nav2_files(again, Window(-5, -3, 0, 0)) == files
+    # A value within a part in 10^9 of the configuration's own (no float32) is still its resolution.
+    near = map_from_nav2(nav2_yaml(resolution="0.0500000007", origin="[0.0, 0.0, 0]"), PIXELS, config)
+    assert near.resolution == config.resolution
     # Another resolution is still refused, saying which.
     with pytest.raises(Nav2ImportError, match="resolution 0.1 m differs from the map configuration's"):
         map_from_nav2(nav2_yaml(resolution="0.1"), PIXELS, config)

@@ -480,10 +480,12 @@ def _grid_index(value: float, resolution: float, what: str, snap: bool = False) 
 
 def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | None) -> MapConfig:
     if config is not None:
-        # Compared as map_server publishes both, a float32: a map configured at 0.05000000074505806
-        # m (copied from a published map) writes that into its export, which reads as 0.05.
-        published = _published_resolution(config.resolution)
-        if not math.isclose(meta.resolution, published, rel_tol=RESOLUTION_TOLERANCE):
+        # Also as map_server publishes both, a float32: a map configured at 0.05000000074505806 m
+        # (copied from a published map) writes that into its export, which reads as 0.05.
+        if not any(
+            math.isclose(meta.resolution, resolution, rel_tol=RESOLUTION_TOLERANCE)
+            for resolution in (config.resolution, _published_resolution(config.resolution))
+        ):
             raise Nav2ImportError(
                 f"map.yaml resolution {meta.resolution!r} m differs from the map configuration's "
                 f"{config.resolution!r} m"
