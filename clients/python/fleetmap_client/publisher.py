@@ -519,12 +519,12 @@ class ScanPublisher:
         return bool(self._connected_to())
 
     def _connected_to(self) -> frozenset[str]:
-        """The Zenoh ids of the routers and peers the session is connected to (none: not connected)."""
+        """The Zenoh ids of the routers and peers the session is connected to (none: not connected,
+        or closed)."""
         session = self._session
         if session is None or self._closed.is_set():
             return frozenset()
-        info = session.info
-        return frozenset(str(zid) for zid in (*info.routers_zid(), *info.peers_zid()))
+        return _neighbours_of(session)
 
     @property
     def subscribed(self) -> bool:
@@ -637,12 +637,17 @@ class ScanPublisher:
                 self._session_id = session
                 self._next_seq = seq + 1
                 self._last_seq = seq
-                publisher = self._publisher
+                publisher, zenoh_session = self._publisher, self._session
                 if publisher is None and not self.backlog:  # no session yet, nothing kept
                     self.dropped += 1
                     return False
             if publisher is None or self._check_link():  # no session yet, no link, or a hold: queue it
                 with self._lock:
+                    if self._closed.is_set():
+                        # close() ran since the check above (from another thread) and gave up the
+                        # queue: queued now, the scan would stay there unsent, counted `backlogged`.
+                        self.dropped += 1
+                        return False
                     if len(self._pending) == self.backlog:
                         self._pending.popleft()  # the oldest gives way
                         self.backlogged -= 1
@@ -650,7 +655,10 @@ class ScanPublisher:
                     self._pending.append((seq, session, payload))
                     self.backlogged += 1
                 return True
-            connected = self.connected
+            # The session's link, not `self.connected`, which is False once close() has begun: a
+            # close() of another thread waits for this put (`_send_lock`), and the session's close
+            # then flushes it over the live link, so it is `published`, not `backlogged`.
+            connected = zenoh_session is not None and bool(_neighbours_of(zenoh_session))
             if not connected and not self.backlog:
                 with self._lock:
                     self.dropped += 1
@@ -908,6 +916,16 @@ class ScanPublisher:
             f"ScanPublisher(map_id={self.map_id!r}, robot_id={self.robot_id!r}, encoding={self.encoding!r}, "
             f"{state}, endpoints={self.endpoints})"
         )
+
+
+def _neighbours_of(session: zenoh.Session) -> frozenset[str]:
+    """The Zenoh ids of the routers and peers `session` is connected to (none: not connected, or
+    the session closed)."""
+    try:
+        info = session.info
+        return frozenset(str(zid) for zid in (*info.routers_zid(), *info.peers_zid()))
+    except zenoh.ZError:  # closed meanwhile
+        return frozenset()
 
 
 def check_timeouts(**timeouts: float | None) -> None:
