@@ -28,7 +28,7 @@ from fleetmap_client import cli
 from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, ScanPublisher
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
 from fleetmap_client.sim import SimError, robot_ids, run_sim
-from fleetmap_client.zenoh_config import client_config
+from fleetmap_client.zenoh_config import client_config, config_value
 from service_process import DATASETS_DIR, FreezableProxy, ServiceProcess, free_port, reaped, wait_for
 
 from fleetmap.codec import WireScan, decode, encode_json
@@ -587,6 +587,22 @@ def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong(tmp
         "Endpoints must be of the form <protocol>/<address>[?<metadata>][#<config>]: 127.0.0.1:7447"
     )
     assert " at /" not in str(bad.value) and "Message {" not in str(bad.value)
+
+
+def test_a_zenoh_config_that_is_neither_a_config_nor_a_path_is_a_type_error_naming_it(tmp_path: Path) -> None:
+    """A dict of settings, the likeliest wrong type, was taken for a file name: "cannot read Zenoh
+    configuration {'mode': 'client'}: No such file or directory (os error 2)" sent the robot's
+    author looking for a file. A `pathlib.Path` still names a file."""
+    settings = {"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:7447"]}}
+    with pytest.raises(
+        TypeError, match=r"zenoh_config must be a zenoh.Config or the path of a JSON5 file, not dict"
+    ):
+        ScanPublisher("m", "r", zenoh_config=settings)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="not bytes"):
+        client_config(None, b"robot.json5")  # type: ignore[arg-type]
+    config_file = tmp_path / "robot.json5"
+    config_file.write_text('{mode: "client", connect: {endpoints: ["tcp/127.0.0.1:7"]}}')
+    assert config_value(client_config(None, config_file), "connect/endpoints") == ["tcp/127.0.0.1:7"]
 
 
 def test_client_config_defaults_and_overrides() -> None:

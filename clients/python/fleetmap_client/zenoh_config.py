@@ -6,6 +6,7 @@ session to the service may use it too (docs/clients.md)."""
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -45,16 +46,24 @@ def client_config(
     `RECONNECT_PERIOD_FACTOR` to at most `RECONNECT_PERIOD_MAX_MS` between attempts, also when Zenoh
     reconnects a lost session; a configuration that sets any key of `connect/retry` keeps Zenoh's
     defaults for the others) and multicast scouting off. Raises ValueError for a bad file or
-    endpoint list.
+    endpoint list, TypeError for a `zenoh_config` of another type (a dict).
     """
     if zenoh_config is None:
         cfg = zenoh.Config()
     elif isinstance(zenoh_config, zenoh.Config):
         # zenoh.open does not consume a Config, but copy anyway so our insertions stay ours.
         cfg = zenoh.Config.from_json5(str(zenoh_config))
+    elif not isinstance(zenoh_config, str | os.PathLike):
+        # Anything else was taken for a file name: a dict of settings failed with "cannot read Zenoh
+        # configuration {'mode': 'client'}: No such file or directory".
+        raise TypeError(
+            "zenoh_config must be a zenoh.Config or the path of a JSON5 file, "
+            f"not {type(zenoh_config).__name__} (for settings in a dict: "
+            "zenoh.Config.from_json5(json.dumps(settings)))"
+        )
     else:
         try:
-            cfg = zenoh.Config.from_file(str(zenoh_config))
+            cfg = zenoh.Config.from_file(os.fspath(zenoh_config))
         except (zenoh.ZError, OSError) as exc:
             message = zenoh_error_text(exc)
             raise ValueError(f"cannot read Zenoh configuration {zenoh_config}: {message}") from None
