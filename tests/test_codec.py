@@ -24,12 +24,15 @@ from fleetmap.codec import (
     encode_binary,
     encode_json,
 )
+from fleetmap.grid_map import GridMap
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, SESSION_LIMIT, ScanMessage
 
 finite = st.floats(-1e4, 1e4, allow_nan=False, allow_infinity=False)
 ranges = st.lists(
-    st.one_of(st.floats(0.0, 100.0), st.just(math.inf), st.just(math.nan)), min_size=1, max_size=50
+    st.one_of(st.floats(0.0, 100.0), st.just(math.inf), st.just(-math.inf), st.just(math.nan)),
+    min_size=1,
+    max_size=50,
 )
 
 
@@ -56,12 +59,13 @@ def test_binary_round_trip(x: float, y: float, th: float, rs: list[float], expli
 @settings(max_examples=200, deadline=None)
 @given(finite, finite, st.floats(-10, 10), ranges, st.booleans())
 def test_json_round_trip(x: float, y: float, th: float, rs: list[float], explicit: bool) -> None:
-    """JSON keeps every value exactly; inf becomes null (no return); NaN beams (invalid readings,
-    which JSON cannot hold) are left out, since no sensor model uses them."""
+    """JSON keeps every value exactly; +inf becomes null (no return); NaN beams (invalid readings,
+    which JSON cannot hold) and -inf ones (below any range_min) are left out, since no sensor
+    model uses them."""
     scan = make_scan(x, y, th, rs, explicit)
     got = decode(encode_json(scan, 7), JSON_ENCODING)
     assert got.seq == 7
-    valid = ~np.isnan(scan.ranges)
+    valid = ~np.isnan(scan.ranges) & (scan.ranges != -math.inf)
     np.testing.assert_array_equal(got.scan.angles, scan.angles[valid])
     np.testing.assert_array_equal(got.scan.ranges, scan.ranges[valid])
 
@@ -295,6 +299,26 @@ def test_a_json_nan_range_is_an_invalid_reading_like_binary_nan() -> None:
     described = (schema["description"] + schema["properties"]["ranges"].get("description", "")).lower()
     assert "binary encoding only" not in described
     assert "nan: an invalid reading, ignored" in described
+
+
+@pytest.mark.parametrize("encode", [encode_binary, encode_json])
+def test_a_reading_of_minus_infinity_is_ignored_in_both_encodings_not_made_a_no_return(
+    encode: Callable[[Scan, int], bytes],
+) -> None:
+    """-inf is below any range_min (ROS drivers report "too close to measure" so, REP 117): every
+    sensor model ignores it. The JSON encoding wrote it as null, which means +inf, no return, so a
+    map with no_return_range > 0 cleared the beam as free space, through the obstacle right in front
+    of the sensor: a robot publishing JSON, or `post_scan` with its default JSON, got another map
+    than the engine's of the same scan."""
+    config = {"no_return_range": 2.0}
+    scan = Scan.from_fan((0.0, 0.0, 0.0), -0.2, 0.1, [-math.inf, 3.0, -math.inf, 3.0, -math.inf], 0.05, 10.0)
+    decoded = decode(encode(scan, 1), BINARY_ENCODING if encode is encode_binary else JSON_ENCODING).scan
+    assert not decoded.no_return_mask().any()
+    engine, service = GridMap(config), GridMap(config)
+    engine.integrate(scan)
+    service.integrate(decoded)
+    window = (-40, -40, 80, 80)
+    np.testing.assert_array_equal(service.region("log_odds", *window), engine.region("log_odds", *window))
 
 
 def test_a_json_list_too_long_for_any_scan_is_refused_before_it_is_parsed() -> None:

@@ -392,10 +392,13 @@ def encode_binary(
 
 
 def encode_json(scan: Scan, seq: int, stamp: float = 0.0, session: int | None = None) -> bytes:
-    """The JSON encoding of a scan, exact: inf (no return) becomes null; beams with an invalid
-    reading (NaN, which JSON cannot hold) are left out, since every sensor model ignores them; the
+    """The JSON encoding of a scan, exact: +inf (no return) becomes null; beams with an invalid
+    reading (NaN, which JSON cannot hold) or a reading of -inf (below any range_min, e.g. ROS's
+    "too close to measure", REP 117) are left out, since every sensor model ignores them; the
     compact angle_min + increment form is used only when it decodes to these angles bit for bit."""
-    valid = ~np.isnan(scan.ranges)
+    # Not -inf as null: null means +inf, no return, which a map with no_return_range > 0 clears as
+    # free space along the beam, through the obstacle too close to measure (binary keeps -inf).
+    valid = ~np.isnan(scan.ranges) & (scan.ranges != -math.inf)
     angles = scan.angles[valid]
     ranges = scan.ranges[valid]
     n = int(angles.size)
@@ -405,7 +408,7 @@ def encode_json(scan: Scan, seq: int, stamp: float = 0.0, session: int | None = 
         **({} if session is None else {"session": session}),
         "pose": {"x": scan.pose.x, "y": scan.pose.y, "theta": scan.pose.theta},
         "range_min": scan.range_min,
-        "ranges": [None if math.isinf(r) else r for r in ranges.tolist()],
+        "ranges": [None if r == math.inf else r for r in ranges.tolist()],
     }
     if math.isfinite(scan.range_max):
         message["range_max"] = scan.range_max
