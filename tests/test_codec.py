@@ -321,6 +321,23 @@ def test_a_reading_of_minus_infinity_is_ignored_in_both_encodings_not_made_a_no_
     np.testing.assert_array_equal(service.region("log_odds", *window), engine.region("log_odds", *window))
 
 
+def test_a_scan_message_serialized_by_pydantic_decodes_to_the_same_scan() -> None:
+    """`ScanMessage` is the wire schema, and `model_dump_json` the natural way to put one on the
+    wire from Python without `ScanPublisher`. Pydantic wrote NaN and infinities as null: a message
+    with the default range_max (no maximum) was refused ("range_max: Input should be a valid
+    number"), and NaN readings (invalid) and -inf ones (below range_min) became no returns, as
+    `from_scan` also made -inf. Now they travel as the literals the decoders read."""
+    scan = Scan.from_fan((1.0, 2.0, 0.5), -0.2, 0.1, [math.nan, -math.inf, math.inf, 1.5, 0.01], 0.05)
+    message = ScanMessage.from_scan(scan, seq=4, stamp=2.5, session=9)
+    for payload in (message.model_dump_json(), message.model_dump_json(exclude_none=True)):
+        got = decode(payload.encode(), JSON_ENCODING)
+        assert (got.seq, got.stamp, got.session) == (4, 2.5, 9)
+        np.testing.assert_array_equal(got.scan.ranges, scan.ranges)
+        np.testing.assert_array_equal(got.scan.no_return_mask(), [False, False, True, False, False])
+        assert got.scan.range_max == InputLimits().max_range  # no maximum: the service's cap
+    np.testing.assert_array_equal(message.to_scan().ranges, scan.ranges)
+
+
 def test_a_json_list_too_long_for_any_scan_is_refused_before_it_is_parsed() -> None:
     """2 million ranges in 4 MB took 110-140 ms to parse before pydantic refused the list, on the
     Zenoh thread all robots share; the items are counted first. The largest valid scan still

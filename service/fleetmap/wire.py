@@ -131,7 +131,11 @@ class ScanMessage(BaseModel):
     `json` and many ROS bridges write, is accepted rather than refusing the whole scan.)
     """
 
-    model_config = ConfigDict(extra="forbid")
+    # `model_dump_json` writes NaN and infinities as the literals NaN, Infinity and -Infinity, which
+    # the decoders read (docs/protocol.md). Pydantic's default wrote them as null: a NaN reading
+    # (invalid) became null (no return), -inf (below range_min) too, and the default range_max
+    # (inf, no maximum) null, which the service refuses ("range_max: Input should be a valid number").
+    model_config = ConfigDict(extra="forbid", ser_json_inf_nan="constants")
 
     seq: int = Field(ge=0, lt=SEQ_LIMIT, description="per-robot sequence number, +1 per scan")
     stamp: Finite = Field(default=0.0, description="acquisition time, seconds (any epoch)")
@@ -183,7 +187,8 @@ class ScanMessage(BaseModel):
 
     @classmethod
     def from_scan(cls, scan: Scan, seq: int, stamp: float = 0.0, session: int | None = None) -> ScanMessage:
-        """The message for an engine scan (explicit angles; inf ranges become null)."""
+        """The message for an engine scan (explicit angles; +inf ranges become null, no return; NaN
+        and -inf stay, both ignored: null would make them no returns)."""
         return cls(
             seq=seq,
             stamp=stamp,
@@ -192,7 +197,7 @@ class ScanMessage(BaseModel):
             angles=scan.angles.tolist(),
             range_min=scan.range_min,
             range_max=scan.range_max,
-            ranges=[None if math.isinf(r) else r for r in scan.ranges.tolist()],
+            ranges=[None if r == math.inf else r for r in scan.ranges.tolist()],
         )
 
 
