@@ -28,7 +28,7 @@ from fleetmap_client import cli
 from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, ScanPublisher
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
 from fleetmap_client.sim import SimError, robot_ids, run_sim
-from fleetmap_client.zenoh_config import client_config, config_value
+from fleetmap_client.zenoh_config import client_config, config_value, connect_endpoints
 from service_process import DATASETS_DIR, FreezableProxy, ServiceProcess, free_port, reaped, wait_for
 
 from fleetmap.codec import WireScan, decode, encode_json
@@ -603,6 +603,28 @@ def test_a_zenoh_config_that_is_neither_a_config_nor_a_path_is_a_type_error_nami
     config_file = tmp_path / "robot.json5"
     config_file.write_text('{mode: "client", connect: {endpoints: ["tcp/127.0.0.1:7"]}}')
     assert config_value(client_config(None, config_file), "connect/endpoints") == ["tcp/127.0.0.1:7"]
+
+
+def test_endpoints_set_per_mode_in_a_config_file_are_read_for_the_session_s_mode(
+    router: Router, tmp_path: Path
+) -> None:
+    """Zenoh takes `connect/endpoints` per mode too (`{client: [...], peer: [...]}`, in a file shared
+    by several kinds of nodes). The publisher connected, but took the keys for its endpoints: it
+    said "waiting for the fleetmap service at peer, client"; and a file with endpoints for other
+    modes only left the client none ("No peer specified and multicast scouting deactivated!")
+    where docs/clients.md promises the default endpoint."""
+    shared = tmp_path / "shared.json5"
+    shared.write_text(
+        f'{{connect: {{endpoints: {{peer: ["tcp/127.0.0.1:1"], client: ["{router.endpoint}"]}}}}}}'
+    )
+    with ScanPublisher("m", "per-mode", zenoh_config=shared) as pub:
+        assert pub.endpoints == [router.endpoint]
+        assert f"endpoints=['{router.endpoint}']" in repr(pub)
+        assert pub.wait_connected(10)
+    routers_only = tmp_path / "routers.json5"
+    routers_only.write_text('{connect: {endpoints: {router: ["tcp/127.0.0.1:1"]}}}')
+    assert connect_endpoints(client_config(None, routers_only)) == ["tcp/127.0.0.1:7447"]
+    assert connect_endpoints(client_config(router.endpoint, routers_only)) == [router.endpoint]
 
 
 def test_client_config_defaults_and_overrides() -> None:

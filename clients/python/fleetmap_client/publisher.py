@@ -122,7 +122,7 @@ from .zenoh_config import (
     RECONNECT_PERIOD_INIT_MS,
     RECONNECT_PERIOD_MAX_MS,
     client_config,
-    config_value,
+    connect_endpoints,
 )
 
 #: How long `close` waits for the opener's attempt in progress to end (one attempt and a margin; a
@@ -292,7 +292,7 @@ class ScanPublisher:
         self.scan_key = SCAN_KEY.format(map_id=map_id, robot_id=robot_id)
         self.alive_key = ALIVE_KEY.format(map_id=map_id, robot_id=robot_id)
         self._config = client_config(connect, zenoh_config)
-        self.endpoints: list[str] = list(config_value(self._config, "connect/endpoints") or [])
+        self.endpoints: list[str] = connect_endpoints(self._config)
         self._encode = encode_binary if encoding == "binary" else encode_json
         self._zenoh_encoding = zenoh.Encoding(BINARY_ENCODING if encoding == "binary" else JSON_ENCODING)
         # _lock guards the session objects and the counters; the opener thread sets them.

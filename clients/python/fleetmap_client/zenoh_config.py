@@ -45,8 +45,9 @@ def client_config(
     one attempt (`CONNECT_ATTEMPT_MS`), `connect/retry` (`RECONNECT_PERIOD_INIT_MS` growing by
     `RECONNECT_PERIOD_FACTOR` to at most `RECONNECT_PERIOD_MAX_MS` between attempts, also when Zenoh
     reconnects a lost session; a configuration that sets any key of `connect/retry` keeps Zenoh's
-    defaults for the others) and multicast scouting off. Raises ValueError for a bad file or
-    endpoint list, TypeError for a `zenoh_config` of another type (a dict).
+    defaults for the others) and multicast scouting off. Endpoints set per mode in the file count
+    for the session's mode only: none for it, and the default is filled in. Raises ValueError for
+    a bad file or endpoint list, TypeError for a `zenoh_config` of another type (a dict).
     """
     if zenoh_config is None:
         cfg = zenoh.Config()
@@ -69,7 +70,7 @@ def client_config(
             raise ValueError(f"cannot read Zenoh configuration {zenoh_config}: {message}") from None
     if config_value(cfg, "mode") is None:
         cfg.insert_json5("mode", '"client"')
-    if connect is not None or not config_value(cfg, "connect/endpoints"):
+    if connect is not None or not connect_endpoints(cfg):
         # One endpoint given as a string is that endpoint, not a list of its characters.
         if isinstance(connect, str):
             endpoints = [connect]
@@ -96,11 +97,22 @@ def config_value(cfg: zenoh.Config, key: str) -> Any:
     return json.loads(cfg.get_json(key))
 
 
+def connect_endpoints(cfg: zenoh.Config) -> list[str]:
+    """The endpoints a session of `cfg` connects to: `connect/endpoints`, a list, or Zenoh's
+    per-mode form (`{client: [...], peer: [...], router: [...]}`) read for the configuration's
+    mode (`client` when unset). Empty when it sets none for that mode."""
+    endpoints = config_value(cfg, "connect/endpoints")
+    if isinstance(endpoints, dict):
+        # Its keys were taken for endpoints ("waiting for the fleetmap service at peer, client").
+        endpoints = endpoints.get(config_value(cfg, "mode") or "client")
+    return list(endpoints or [])
+
+
 def _json_list(items: Sequence[str]) -> str:
     return json.dumps(list(items))
 
 
 __all__ = [
     "CONNECT_ATTEMPT_MS", "DEFAULT_CONNECT", "RECONNECT_PERIOD_FACTOR", "RECONNECT_PERIOD_INIT_MS",
-    "RECONNECT_PERIOD_MAX_MS", "client_config", "config_value",
+    "RECONNECT_PERIOD_MAX_MS", "client_config", "config_value", "connect_endpoints",
 ]  # fmt: skip
