@@ -43,8 +43,9 @@ subscriber fetches from that cache what it did not receive: the scans in flight 
 (the publisher cannot tell, until Zenoh notices, that they went nowhere), and those the service had
 not made durable when it was killed. They arrive in order, before newer ones, without duplicates
 (docs/protocol.md, "Delivery guarantees"). Scans published while the publisher KNOWS it is
-disconnected (no router or peer connected), and those published before the session first opened,
-wait in the publisher's own queue instead, of at most `backlog` scans (the oldest pushed out,
+disconnected (no router or peer connected, or, behind a router, no subscriber of its key: the
+service away), and those published before the session first opened, wait in the publisher's own
+queue instead, of at most `backlog` scans (the oldest pushed out,
 counted in `dropped`; the service counts them as `lost`), so `publish` still returns True for them
 (counted in `backlogged`). After the session connects, and after every reconnection, scans wait in
 that queue too (the hold): at least `RECONNECT_HOLD_S` (0.5 s), and, once Zenoh's cache holds a
@@ -319,6 +320,9 @@ class ScanPublisher:
         # for the cache that reached the publisher since (`_fetched_at`, set by `_watch_fetches`) is
         # the new service's, and ends the hold.
         self._link_up = False
+        # Whether a subscriber of the scan key (the service's) was known at the last look: one that
+        # appears over a link that stayed up starts a hold too (`_check_link`).
+        self._listened = False
         self._neighbours: frozenset[str] = frozenset()
         self._hold_until: float | None = None
         self._hold_least = 0.0
@@ -462,18 +466,33 @@ class ScanPublisher:
         after the hold: `RECONNECT_HOLD_S` after the (re)connection was noticed and `FETCH_MARGIN_S`
         after a query for the cache reached the publisher since the link came up (the service is
         fetching it: its replies leave first), or `RECONNECT_HOLD_MAX_S` after it when none came. A
-        session that opened without a link (a peer's) keeps its scans queued until it has one."""
+        session that opened without a link (a peer's) keeps its scans queued until it has one.
+
+        The same holds for the service's scan subscriber behind a router (`fleetmap serve
+        --zenoh-connect`, robots connected to that router): a service that restarts there changes
+        no link of the robot's, only whether a subscriber of its key is known. While none is, scans
+        wait in the queue too, and one that appears starts a hold (unless one runs): put live as
+        the restarted service subscribed, a scan reached it before its fetch of the cache, and
+        zenoh-ext dropped the whole cache as old (1 of 3 kill -9 restarts lost every scan published
+        while the service was away, and those it had not made durable)."""
         if not self.backlog:
             return False
         neighbours = self._connected_to()
         up = bool(neighbours)
+        listened = up and self.subscribed
         now = time.monotonic()
         with self._lock:
             looked, self._looked_at = self._looked_at, now
             # A new router or peer too: a service killed and restarted between two looks (a robot
             # publishing rarely, a starved watcher) was never seen down, and its new process must
             # get the cache before any live scan all the same.
-            if up and (not self._link_up or not neighbours <= self._neighbours):
+            reconnected = up and (not self._link_up or not neighbours <= self._neighbours)
+            # A subscriber again over the same link: the service (re)started behind a router. A
+            # hold already running (the link itself came back) is not started again: the query it
+            # waits for may have come already, and a new hold would wait for another.
+            resubscribed = listened and not self._listened and self._hold_until is None
+            self._listened = listened
+            if reconnected or resubscribed:
                 # With nothing in the cache yet (the first connection), there is no fetch to wait
                 # for: a router or peer that never queries (no fleetmap service behind it yet, a
                 # plain subscriber) held the first scans RECONNECT_HOLD_MAX_S, past `fleetmap
@@ -492,6 +511,10 @@ class ScanPublisher:
                 if now < self._hold_until and (now < self._hold_least or fetching):
                     return True
                 self._hold_until = None
+            if not listened:
+                # After the hold, so that a hold ends (`wait_connected(require_subscriber=False)`)
+                # where no service subscribes yet; its scans wait for one (and for its hold).
+                return True
             if not self._pending:
                 return False
             held = list(self._pending)
