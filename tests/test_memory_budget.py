@@ -8,6 +8,7 @@ import contextlib
 import gc
 import json
 import random
+import re
 from typing import Any
 
 import httpx
@@ -135,7 +136,19 @@ def test_the_registry_refuses_past_the_budget_with_507_and_counts_it() -> None:
             if isinstance(refused, IngestRejected):
                 break
         assert isinstance(refused, IngestRejected) and refused.status == 507, refused
-        assert "memory budget" in refused.reason
+        assert "memory budget" in refused.reason and "--max-memory" in refused.reason
+        # What is missing, in units that show it: in MiB alone, tiles of a kilobyte made "this scan
+        # needs 0.0 MiB more" and "1.0 MiB used up (0.0 MiB held)" of every refusal here.
+        budget = registry.memory_budget
+        assert budget is not None and budget.limit is not None
+        free = budget.limit - budget.used
+        assert 0 <= free < 16 * TILE_BYTES
+        shown_free = f"{free} bytes" if free < 1024 else f"{free / 1024:.1f} KiB"
+        assert f"{60 * TILE_BYTES / 1024:.1f} KiB (`fleetmap serve --max-memory`), has {shown_free} free" in (
+            refused.reason
+        ), refused.reason
+        needed = re.search(r"the scan needs ([0-9.]+) KiB more", refused.reason)
+        assert needed is not None and float(needed.group(1)) * 1024 > free, refused.reason
         robot = registry.get("m").robots["r"]
         assert robot.scans_rejected == 1 and "memory budget" in (robot.last_error or "")
         integrated = robot.scans_integrated
@@ -299,7 +312,8 @@ def test_an_upload_reservation_becomes_its_maps_charge_or_goes_back() -> None:
     with pytest.raises(RuntimeError), registry.upload_reservation(None) as refused:
         assert refused is not None
         other = GridMap(SMALL)
-        with pytest.raises(MemoryBudgetError, match="memory budget .* has 0.0 MiB free"):
+        shown = r"need 20\.2 KiB, and the service's memory budget .* has 10\.1 KiB free"
+        with pytest.raises(MemoryBudgetError, match=shown):
             refused.charge(other.store, 20)  # does not fit beside "m": nothing reserved
         assert budget.used == 20 * TILE_BYTES
         refused.charge(other.store, 10)
@@ -325,7 +339,7 @@ def test_a_replaced_maps_bytes_are_lent_once_and_the_loan_ends_with_either_side(
     new = [GridMap(SMALL) for _ in range(3)]
     first.charge(new[0].store, 20)  # 10 free, 10 of the old map's
     assert budget.used == 40 * TILE_BYTES and budget.lent == 10 * TILE_BYTES and budget._free() == 0
-    with pytest.raises(MemoryBudgetError, match="and 0.0 MiB of the map it replaces"):
+    with pytest.raises(MemoryBudgetError, match=r"has 0 bytes free \(and 10\.1 KiB of the map it replaces\)"):
         second.charge(new[1].store, 11)  # the old map has 10 tiles' bytes left to lend
     assert budget.used == 40 * TILE_BYTES
     second.charge(new[1].store, 10)

@@ -566,7 +566,8 @@ def test_more_tiles_than_max_tiles_or_than_the_memory_budget_is_refused_before_a
         map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, max_tiles=1))
     budget = MemoryBudget(1000)
     with pytest.raises(
-        Nav2ImportError, match=r"the map's 2 tiles need .* memory budget .* has 0.0 MiB free"
+        Nav2ImportError,
+        match=r"the map's 2 tiles need 2\.5 MiB, and the service's memory budget .* has 1000 bytes free",
     ) as caught:
         map_from_nav2(nav2_yaml(), pixels, CONFIG, reservation=UploadReservation(budget, None))
     assert caught.value.status == 507 and budget.used == 0

@@ -79,9 +79,9 @@ class MemoryBudget:
             granted = wanted if free is None else min(wanted, free // unit)
             if granted < needed:
                 raise MemoryBudgetError(
-                    f"the service's memory budget of {_mib(self.limit)} is used up ({_mib(self.used)} held "
-                    f"by all maps' tiles; this scan needs {_mib(needed * unit)} more): the scan was not "
-                    "integrated (the budget is `fleetmap serve --max-memory`)"
+                    f"the scan needs {_size(needed * unit)} more for its new tiles, and the service's memory "
+                    f"budget for all maps' tiles, {_size(self.limit)} (`fleetmap serve --max-memory`), has "
+                    f"{_size(free)} free ({_size(self.used)} held): the scan was not integrated"
                 )
             self.used += granted * unit
             charge.bytes += granted * unit
@@ -111,10 +111,10 @@ class MemoryBudget:
                     0 if replacing is None else replacing.bytes - sum(b.borrowed for b in replacing.borrowers)
                 )
                 if borrowed > lendable:
-                    beside = "" if replacing is None else f" (and {_mib(lendable)} of the map it replaces)"
+                    beside = "" if replacing is None else f" (and {_size(lendable)} of the map it replaces)"
                     raise MemoryBudgetError(
-                        f"need {_mib(size)}, and the service's memory budget for all maps' tiles has "
-                        f"{_mib(free)} free{beside} (`fleetmap serve --max-memory`)"
+                        f"need {_size(size)}, and the service's memory budget for all maps' tiles has "
+                        f"{_size(free)} free{beside} (`fleetmap serve --max-memory`)"
                     )
             if borrowed:
                 assert replacing is not None
@@ -226,8 +226,19 @@ class UploadReservation:
                 self._store.uncharge()
 
 
-def _mib(size: int | None) -> str:
-    return "unlimited" if size is None else f"{size / 2**20:.1f} MiB"
+def _size(size: int | None) -> str:
+    """`size` bytes for a person: in the largest binary unit it holds one of, to a tenth (whole
+    bytes below 1 KiB). In MiB alone, tiles of 16 cells (a kilobyte each) made "this scan needs
+    0.0 MiB more" and "0.0 MiB free" of a refusal, which said nothing of what was missing."""
+    if size is None:
+        return "unlimited"
+    if size < 1 << 10:
+        return f"{size} bytes"
+    unit = next(u for u in ("TiB", "GiB", "MiB", "KiB") if size >= 1 << _SHIFTS[u])
+    return f"{size / (1 << _SHIFTS[unit]):.1f} {unit}"
+
+
+_SHIFTS = {"KiB": 10, "MiB": 20, "GiB": 30, "TiB": 40}
 
 
 #: `--max-memory`'s default: this share of the memory the service may use (its cgroup's limit, or the
