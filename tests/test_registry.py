@@ -273,6 +273,11 @@ def test_scans_create_at_most_max_auto_maps() -> None:
     assert len(reg.list()) == 3
     reg.create("m5")
     assert len(reg.list()) == 4
+    # Maps made with PUT count too: the refusal names the limit, not the maps held as if it were.
+    with pytest.raises(IngestRejected) as refused:
+        reg.submit("m6", "r", WireScan(0, 0.0, scan_at(0)))
+    assert refused.value.status == 404
+    assert "holds 4 maps" in refused.value.reason and "fewer than 3" in refused.value.reason, refused.value
 
 
 def test_robot_ids_per_map_are_capped() -> None:

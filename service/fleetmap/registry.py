@@ -658,10 +658,13 @@ class MapRegistry:
                 if not self.auto_create:
                     self._refuse_unmapped(map_id, robot_id, wire, f"no map {map_id!r} (auto-create is off)")
                 if len(self.maps) >= self.max_auto_maps:
+                    # The limit said as such: "holds 300 maps, the most scans may create" (maps made
+                    # with PUT count too) named a number that was not the limit.
                     self._refuse_unmapped(
                         map_id, robot_id, wire,
-                        f"no map {map_id!r}, and the service already holds {len(self.maps)} maps, the most "
-                        "scans may create; create it with PUT /maps/{id}",
+                        f"no map {map_id!r}, and the service already holds {len(self.maps)} maps: scans "
+                        f"create a map only while it holds fewer than {self.max_auto_maps}; create it "
+                        "with PUT /maps/{id}",
                     )  # fmt: skip
                 entry, _ = self.create(map_id, by_scan=True)
                 entry.provisional = True
