@@ -239,3 +239,28 @@ def test_the_readme_layout_places_every_module() -> None:
         if not any(p.relative_to(REPO_DIR).is_relative_to(placed) for placed in paths)
     ]
     assert not unplaced, f"README.md's Layout table does not place {unplaced}"
+
+
+#: How the docs give the scans a robot's ingest queue holds (the number is the group).
+QUEUE_PER_ROBOT_PHRASES = (
+    r"robot's (?:ingest )?queue holds ([0-9][0-9 ,]*)",
+    r"per-robot ingest queue \(([0-9][0-9 ,]*) scans",
+    r"ingest queue holds ([0-9][0-9 ,]*) scans per robot",
+    r"robot's FIFO \(([0-9][0-9 ,]*) by default",
+    r"own bounded FIFO \(([0-9][0-9 ,]*) scans",
+)
+
+
+def test_the_docs_give_the_scans_a_robots_queue_holds_as_the_service_has_them() -> None:
+    """api.md's "Ingest before reads" said each robot's queue holds 64 scans (and that a scan
+    waiting too long is dropped) long after the queue held 1024, the number every other page gives:
+    a reader sizing a robot's burst took the service to drop 16 times sooner than it does."""
+    from fleetmap.registry import QUEUE_PER_ROBOT
+
+    found = []
+    for doc in USER_DOCS:
+        text = re.sub(r"\s+", " ", doc.read_text(encoding="utf-8"))
+        for phrase in QUEUE_PER_ROBOT_PHRASES:
+            found += [(doc.name, int(re.sub(r"[ ,]", "", n))) for n in re.findall(phrase, text)]
+    assert len(found) >= 5, found  # the phrases still find what the pages say
+    assert all(n == QUEUE_PER_ROBOT for _, n in found), found
