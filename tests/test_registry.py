@@ -157,6 +157,35 @@ def test_queue_full_refuses_newest_and_counts_it() -> None:
     reg.submit("m", "other", WireScan(0, 0.0, scan_at(0)))  # other robots are not affected
 
 
+def test_a_scan_the_full_queue_refuses_is_told_which_bound_refused_it() -> None:
+    """A robot (and a REST client's 503) was told "ingest queue full: scan dropped" alone, whether
+    its own queue was full (it sends faster than it is integrated) or other robots filled its map's
+    share or the whole queue (nothing it can change by sending slower): the reason now says which,
+    in `last_error` too."""
+    reg = MapRegistry(queue_per_robot=2, queue_total=6, queue_bytes=1 << 30)  # workers not started
+    for seq in range(2):
+        reg.submit("m", "r", WireScan(seq, 0.0, scan_at(0)))
+    with pytest.raises(IngestRejected) as own:
+        reg.submit("m", "r", WireScan(2, 0.0, scan_at(0)))
+    assert own.value.status == 503 and "ingest queue full" in own.value.reason
+    assert "the robot's queue holds 2 scans waiting" in own.value.reason, own.value.reason
+    assert reg.get("m").robots["r"].last_error == f"scan seq 2: {own.value.reason}"
+    reg.submit("m", "s", WireScan(0, 0.0, scan_at(0)))  # map m holds its half: 3 of 6
+    with pytest.raises(IngestRejected) as share:
+        reg.submit("m", "t", WireScan(0, 0.0, scan_at(0)))
+    assert "map 'm''s share of the queue, 3 scans of all its robots, is full" in share.value.reason
+    for k in range(3):
+        reg.submit(f"other{k}", "r", WireScan(0, 0.0, scan_at(0)))
+    with pytest.raises(IngestRejected) as total:
+        reg.submit("another", "r", WireScan(0, 0.0, scan_at(0)))
+    assert "the queue holds 6 scans of all maps' robots waiting" in total.value.reason, total.value.reason
+    small = MapRegistry(queue_bytes=30 * 16)  # one scan of 30 beams (bearings and ranges, 8 bytes)
+    small.submit("m", "r", WireScan(0, 0.0, scan_at(0)))
+    with pytest.raises(IngestRejected) as size:
+        small.submit("n", "r", WireScan(0, 0.0, scan_at(0)))
+    assert "the queue holds 480 bytes of all maps' scans waiting" in size.value.reason, size.value.reason
+
+
 def test_a_scan_the_full_queue_refused_is_integrated_when_sent_again() -> None:
     """A REST client answered 503 (queue full) is told to retry later. The refused scan's seq was
     recorded (so that it is not also counted as lost), and its retry was ignored as a duplicate of

@@ -25,6 +25,11 @@ class QueueClosed(Exception):
     """`get` on a closed, drained queue."""
 
 
+#: Why `offer` refused an item: its source's FIFO, its group's share, the whole queue or its bytes
+#: were full, or the queue is closed.
+FULL_SOURCE, FULL_GROUP, FULL_TOTAL, FULL_BYTES, CLOSED = "source", "group", "total", "bytes", "closed"
+
+
 class FairQueue(Generic[S, T]):
     """Bounded FIFOs per source, served round-robin, one item of a source in flight at a time (see
     the module docstring). `put` never blocks; `get` blocks until an item is ready or the queue is
@@ -62,22 +67,33 @@ class FairQueue(Generic[S, T]):
         """Enqueue without blocking. False, and nothing queued, when the source's FIFO is full
         (`per_source`), its group's share is (`per_group`), the whole queue is (`total`), the item
         would pass `max_bytes`, or the queue is closed."""
+        return self.offer(source, item) is None
+
+    def offer(self, source: S, item: T) -> str | None:
+        """`put`, saying why an item is refused: None when it is queued, else which bound refused it
+        (`FULL_SOURCE`, `FULL_GROUP`, `FULL_TOTAL`, `FULL_BYTES`, or `CLOSED`), the first that
+        applies in that order, so that a sender is told whether its own FIFO is full or others
+        fill the queue."""
         with self._cond:
             if self._closed:
-                return False
+                return CLOSED
             fifo = self._fifos.get(source)
             if fifo is None:
                 fifo = self._fifos[source] = deque()
             group = self._group(source) if self._group is not None else None
             in_group = self._group_size.get(group, 0)
             weight = self._size_of(item) if self._size_of is not None else 0
-            if (
-                len(fifo) >= self.per_source or self._size >= self.total or in_group >= self.per_group
-                or (self.max_bytes is not None and self._bytes + weight > self.max_bytes)
-            ):  # fmt: skip
+            full = (
+                FULL_SOURCE if len(fifo) >= self.per_source
+                else FULL_GROUP if in_group >= self.per_group
+                else FULL_TOTAL if self._size >= self.total
+                else FULL_BYTES if self.max_bytes is not None and self._bytes + weight > self.max_bytes
+                else None
+            )  # fmt: skip
+            if full is not None:
                 if not fifo and source not in self._busy:
                     del self._fifos[source]
-                return False
+                return full
             fifo.append(item)
             self._size += 1
             self._bytes += weight
@@ -85,7 +101,7 @@ class FairQueue(Generic[S, T]):
             if len(fifo) == 1 and source not in self._busy:
                 self._ready.append(source)
                 self._cond.notify()
-            return True
+            return None
 
     def get(self, timeout: float | None = None) -> tuple[S, T] | None:
         """The next item of the next ready source, marking that source busy until `done(source)`.

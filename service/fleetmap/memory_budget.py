@@ -79,9 +79,10 @@ class MemoryBudget:
             granted = wanted if free is None else min(wanted, free // unit)
             if granted < needed:
                 raise MemoryBudgetError(
-                    f"the scan needs {_size(needed * unit)} more for its new tiles, and the service's memory "
-                    f"budget for all maps' tiles, {_size(self.limit)} (`fleetmap serve --max-memory`), has "
-                    f"{_size(free)} free ({_size(self.used)} held): the scan was not integrated"
+                    f"the scan needs {format_size(needed * unit)} more for its new tiles, and the service's "
+                    f"memory budget for all maps' tiles, {format_size(self.limit)} (`fleetmap serve "
+                    f"--max-memory`), has {format_size(free)} free ({format_size(self.used)} held): the scan "
+                    "was not integrated"
                 )
             self.used += granted * unit
             charge.bytes += granted * unit
@@ -111,10 +112,12 @@ class MemoryBudget:
                     0 if replacing is None else replacing.bytes - sum(b.borrowed for b in replacing.borrowers)
                 )
                 if borrowed > lendable:
-                    beside = "" if replacing is None else f" (and {_size(lendable)} of the map it replaces)"
+                    beside = (
+                        "" if replacing is None else f" (and {format_size(lendable)} of the map it replaces)"
+                    )
                     raise MemoryBudgetError(
-                        f"need {_size(size)}, and the service's memory budget for all maps' tiles has "
-                        f"{_size(free)} free{beside} (`fleetmap serve --max-memory`)"
+                        f"need {format_size(size)}, and the service's memory budget for all maps' tiles has "
+                        f"{format_size(free)} free{beside} (`fleetmap serve --max-memory`)"
                     )
             if borrowed:
                 assert replacing is not None
@@ -226,7 +229,7 @@ class UploadReservation:
                 self._store.uncharge()
 
 
-def _size(size: int | None) -> str:
+def format_size(size: int | None) -> str:
     """`size` bytes for a person: in the largest binary unit it holds one of, to a tenth (whole
     bytes below 1 KiB). In MiB alone, tiles of 16 cells (a kilobyte each) made "this scan needs
     0.0 MiB more" and "0.0 MiB free" of a refusal, which said nothing of what was missing."""

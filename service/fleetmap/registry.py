@@ -38,10 +38,10 @@ from fleetmap.codec import DEFAULT_LIMITS, InputLimits, WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
 from fleetmap.export import Window
-from fleetmap.fair_queue import FairQueue, QueueClosed
+from fleetmap.fair_queue import FULL_BYTES, FULL_GROUP, FULL_SOURCE, FULL_TOTAL, FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult, WindowCleared
 from fleetmap.map_entry import SHUTTING_DOWN, Expectation, IngestRejected, Job, MapEntry
-from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation
+from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation, format_size
 from fleetmap.persistence import DurableStore
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.robot_state import CONFLICT_SHOWN, NO_SESSION, RobotState, session_key
@@ -694,11 +694,12 @@ class MapRegistry:
             job.receipt = robot.sessions[session_key(session)].ledger.open(seq)
             if wait:
                 job.future = Future()
-            if not self.queue.put((map_id, robot_id), job):
+            full = self.queue.offer((map_id, robot_id), job)
+            if full is not None:
                 self._settle(job, integrated=False)
                 robot.dropped += 1
                 robot.refused_scan = (session_key(session), seq)  # a retry of it is not a duplicate
-                reason = "ingest queue full: scan dropped"
+                reason = f"ingest queue full: scan dropped ({self._queue_full(full, map_id)})"
                 robot.last_error = f"scan seq {seq}: {reason}"
                 if self._remove_unclaimed(entry) is not None:
                     reason += f"; map {map_id!r}, created for it, was removed again"
@@ -706,6 +707,21 @@ class MapRegistry:
             entry.unsettled += 1
             robot.unsettled += 1
             return job.future
+
+    def _queue_full(self, full: str, map_id: str) -> str:
+        """Which bound of the ingest queue refused a scan of map `map_id` (`FairQueue.offer`'s
+        `full`), for its reason: "ingest queue full" alone did not say whether the robot sends
+        faster than it is integrated, or other robots (of its map, or of all maps) fill the queue."""
+        queue = self.queue
+        if full == FULL_SOURCE:
+            return f"the robot's queue holds {queue.per_source} scans waiting"
+        if full == FULL_GROUP:
+            return f"map {map_id!r}'s share of the queue, {queue.per_group} scans of all its robots, is full"
+        if full == FULL_TOTAL:
+            return f"the queue holds {queue.total} scans of all maps' robots waiting"
+        if full == FULL_BYTES:
+            return f"the queue holds {format_size(queue.max_bytes)} of all maps' scans waiting"
+        return "the queue is closed"
 
     def _refuse_unmapped(
         self, map_id: str, robot_id: str, wire: WireScan, reason: str, status: int = 404
