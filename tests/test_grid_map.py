@@ -593,7 +593,7 @@ def test_a_growing_store_holds_its_old_and_new_pools_one_array_at_a_time() -> No
         store = TileStore(64, ["occupancy", "counts", "tsdf"], max_tiles=10_000)
         keys = [(i, 0) for i in range(64)]
         store.create(keys[:1])
-        while len(store) < store._capacity:  # fill the first growth's room
+        while len(store) < store._capacity:  # fill the room made so far
             store.create([keys[len(store)]])
         store.kernel_pools()  # as every integration does before tiles are created
         sample = {a.name: store.pools[a.name][: len(store)].copy() for a in store.arrays}

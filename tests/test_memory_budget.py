@@ -24,7 +24,6 @@ from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReserv
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import MapRegistry
 from fleetmap.scan import Scan
-from fleetmap.tiles import FIRST_GROWTH_BYTES, FIRST_GROWTH_TILES
 
 #: Small tiles (0.8 m) and one layer, so that a few scans need many tiles of 1032 bytes each.
 SMALL = MapConfig(tile_size=16, layers=("occupancy",))
@@ -55,8 +54,8 @@ def test_parse_size() -> None:
 
 def test_empty_maps_hold_nothing_and_big_tiles_grow_one_at_a_time() -> None:
     """Four empty maps of 4096-cell tiles were charged 16 tiles (5.4 GB) each, and every other map's
-    growth was then refused. Empty maps now hold no pool, and a first growth holds at most
-    FIRST_GROWTH_BYTES of tiles, or the one tile a scan needs."""
+    growth was then refused. Empty maps now hold no pool, a first growth holds the tiles a scan
+    needs (the one tile of 64 MiB here), and the pools double from there."""
     budget = MemoryBudget(100 << 20)
     big = [GridMap(MapConfig(tile_size=4096, layers=("occupancy",))) for _ in range(4)]
     for gmap in big:
@@ -66,11 +65,10 @@ def test_empty_maps_hold_nothing_and_big_tiles_grow_one_at_a_time() -> None:
     small.store.charge(budget)
     for k in range(8):
         small.integrate(scan_at(0.5 * k))  # grows freely
-    assert budget.used == small.memory_bytes() >= FIRST_GROWTH_TILES * TILE_BYTES
+    assert budget.used == small.memory_bytes() < 2 * len(small.store) * TILE_BYTES
     inside_one_tile = Scan.from_fan((100.0, 100.0, 0.0), -1.5, 0.1, [2.0] * 31, 0.0, 30.0)
-    big[0].integrate(inside_one_tile)  # 64 MiB a tile: more than FIRST_GROWTH_BYTES, so one tile
+    big[0].integrate(inside_one_tile)  # 64 MiB a tile: room for the one tile it needs
     assert len(big[0].store) == 1 and big[0].memory_bytes() == 4096 * 4096 * 4 + 8
-    assert FIRST_GROWTH_BYTES < 4096 * 4096 * 4
     with pytest.raises(MemoryBudgetError):  # a second 64 MiB tile does not fit beside the first
         big[1].integrate(inside_one_tile)
     assert big[1].memory_bytes() == 0
@@ -79,13 +77,13 @@ def test_empty_maps_hold_nothing_and_big_tiles_grow_one_at_a_time() -> None:
 def test_maps_share_the_budget_and_a_refused_scan_changes_nothing() -> None:
     a, b = GridMap(SMALL), GridMap(SMALL)
     assert a.memory_bytes() == 0  # an empty map holds no pool
-    start = FIRST_GROWTH_TILES * TILE_BYTES  # the room a map's first tiles make
+    start = 16 * TILE_BYTES
     budget = MemoryBudget(2 * start + 24 * TILE_BYTES)
     a.store.charge(budget)
     b.store.charge(budget)
     assert budget.used == 0
-    b.integrate(scan_at(-1.0))  # b's first tiles
-    assert budget.used == b.memory_bytes() >= start
+    b.integrate(scan_at(-1.0))  # b's first tiles: room for them, no more
+    assert budget.used == b.memory_bytes() == len(b.store) * TILE_BYTES
     refused = None
     for k in range(200):
         before = state(a)
@@ -163,11 +161,23 @@ def test_the_registry_refuses_past_the_budget_with_507_and_counts_it() -> None:
 
 
 def test_the_service_answers_507_past_max_memory_and_keeps_serving(tmp_path) -> None:
-    """A real service with a budget of 24 MiB: the default map (3 layers, 1.3 MiB a tile) makes room
-    for 16 tiles (21 MiB) on its first scan, so a robot roaming far needs more and is refused; the
-    map and the service stay as they were, and /metrics shows the budget."""
+    """A real service with a budget of 24 MiB (18 tiles of the default map: 3 layers, 1.3 MiB a
+    tile): small maps hold what their tiles take, so several fit; a robot roaming far needs more
+    and is refused; the map and the service stay as they were, and /metrics shows the budget."""
     with ServiceProcess(tmp_path, ["--in-memory", "--max-memory", "24MiB"]) as svc:
         url = svc.base_url
+        # Maps of a tile or two each. A map's first tiles made room for 16 (21 MiB here), all
+        # charged to the budget though never used: the second map got what was left, the third was
+        # refused 507 while the service held 3 tiles (at the default 75 % of 4 GiB, 140 such maps).
+        small = Scan.from_fan((0.5, 0.5, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0)  # two tiles
+        for k in range(6):
+            body = json.loads(encode_json(small, 0))
+            r = httpx.post(f"{url}/maps/small{k}/scans", params={"robot_id": "r"}, json=body, timeout=30)
+            assert r.status_code == 200, (k, r.text)
+            stats = httpx.get(f"{url}/maps/small{k}", timeout=10).json()["stats"]
+            assert stats["tiles"] == 2 and stats["memory_bytes"] <= 2 * 1.3 * 2**20, stats
+        for k in range(6):  # 12 tiles held, 15.6 MiB: room for 6 more
+            assert httpx.delete(f"{url}/maps/small{k}", timeout=10).status_code == 204
         statuses = []
         for k in range(12):
             scan = Scan.from_fan((40.0 * k, 0.0, 0.0), -1.5, 0.1, [2.0] * 31, 0.0, 30.0)

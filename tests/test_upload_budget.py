@@ -29,8 +29,8 @@ from test_upload_spool import read_answer, start_upload
 from fleetmap.export import pgm_bytes
 from fleetmap.storage_format import snapshot_file
 
-#: Tiles of each uploaded map (every layer, 256 x 256 cells): 16 or more, so that the map's store
-#: holds exactly its tiles (a store's first growth makes room for 16).
+#: Tiles of each uploaded map (every layer, 256 x 256 cells); the map's store
+#: holds exactly its tiles (a store's first growth makes room for just those).
 TILES = 24
 
 

@@ -69,14 +69,6 @@ def tile_bytes(tile_size: int, arrays: Iterable[LayerArray]) -> int:
     return tile_size * tile_size * sum(np.dtype(a.dtype).itemsize for a in arrays)
 
 
-#: A store's pools are empty until its first tile; then they grow to room for this many tiles, or
-#: as many as FIRST_GROWTH_BYTES hold (at least the tiles needed), and double from there. An empty
-#: map thus holds no capacity: the memory budget counts capacity, and four empty maps of 4096-cell
-#: tiles would otherwise have been charged 5.4 GB and refused every other map's growth.
-FIRST_GROWTH_TILES = 16
-FIRST_GROWTH_BYTES = 32 << 20
-
-
 class TileStore:
     """Pooled per-layer tile arrays, a tile-key -> slot index, and a version per tile."""
 
@@ -146,8 +138,12 @@ class TileStore:
             )
         needed = len(self.keys) + len(keys)
         if needed > self._capacity:
-            initial = max(1, min(FIRST_GROWTH_TILES, FIRST_GROWTH_BYTES // self._tile_bytes()))
-            target = 2 * self._capacity if self._capacity else initial
+            # Empty until its first tiles, then room for just those, doubling from there: the memory
+            # budget counts capacity. Four empty maps of 4096-cell tiles charged 5.4 GB and refused
+            # every other map's growth; and a first growth to room for 16 tiles (21 MiB of the
+            # default map) charged a map of one or two tiles 8 to 16 times what it held: 13 such
+            # maps used up 256 MiB, and the 14th was refused 507 while the service held 26 tiles.
+            target = 2 * self._capacity if self._capacity else needed
             self._grow(min(max(needed, target), self.max_tiles), needed)
         first = len(self.keys)
         for key in keys:
