@@ -116,6 +116,29 @@ def test_map_lifecycle(api: RunningApi) -> None:
     assert r.status_code == 201 and MapConfig.model_validate(r.json()["config"]) == MapConfig()
 
 
+def test_a_configuration_takes_numbers_as_json_numbers_only(api: RunningApi) -> None:
+    """`{"max_tiles": true}` made a map of at most 1 tile (every scan past its first tile refused),
+    `{"resolution": true}` one of 1 m cells and `{"max_tiles": "4096"}` passed as a number: the
+    configuration took booleans and strings for numbers, where every other JSON body of the API
+    (scans, points) refuses them. Now 422, naming the field, and no map is made."""
+    c = api.client
+    for config, field in [
+        ({"max_tiles": True}, "max_tiles"),
+        ({"max_tiles": "4096"}, "max_tiles"),
+        ({"max_tiles": 64.0}, "max_tiles"),
+        ({"resolution": True}, "resolution"),
+        ({"resolution": "0.1"}, "resolution"),
+        ({"tsdf": {"truncation": False}}, "truncation"),
+        ({"occupancy": {"p_hit": "0.7"}}, "p_hit"),
+    ]:
+        r = c.put("/maps/strict", json=config)
+        assert r.status_code == 422 and field in r.text, (config, r.text)
+        assert c.get("/maps/strict").status_code == 404
+    r = c.put("/maps/strict", json={"resolution": 1, "max_tiles": 64, "tsdf": {"truncation": 2}})
+    assert r.status_code == 201 and r.json()["config"]["resolution"] == 1.0, r.text  # an integer is a number
+    assert c.delete("/maps/strict").status_code == 204
+
+
 def test_scan_creates_map_unless_auto_create_is_off(api: RunningApi) -> None:
     scan = fan_scan(0, 0, 0, [1.0] * 31)
     r = post_scan(api, "autocreated", "r1", scan, 0)

@@ -91,16 +91,26 @@ class OccupancyParams(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     preset: OccupancyPreset = "octomap"
-    l_hit: float | None = Field(default=None, description="log-odds added for a hit (> 0)")
-    l_miss: float | None = Field(default=None, description="log-odds added for a miss (< 0)")
-    l_min: float | None = Field(default=None, description="lower clamp of a cell's log-odds")
-    l_max: float | None = Field(default=None, description="upper clamp of a cell's log-odds")
-    p_hit: float | None = Field(default=None, gt=0, lt=1, description="hit probability, instead of l_hit")
-    p_miss: float | None = Field(default=None, gt=0, lt=1, description="miss probability, instead of l_miss")
-    p_min: float | None = Field(default=None, gt=0, lt=1, description="lower clamp as a probability")
-    p_max: float | None = Field(default=None, gt=0, lt=1, description="upper clamp as a probability")
-    occupied_thresh: float = Field(default=0.65, gt=0, lt=1, description="p above this is `occupied`")
-    free_thresh: float = Field(default=0.196, gt=0, lt=1, description="p below this is `free`")
+    l_hit: float | None = Field(strict=True, default=None, description="log-odds added for a hit (> 0)")
+    l_miss: float | None = Field(strict=True, default=None, description="log-odds added for a miss (< 0)")
+    l_min: float | None = Field(strict=True, default=None, description="lower clamp of a cell's log-odds")
+    l_max: float | None = Field(strict=True, default=None, description="upper clamp of a cell's log-odds")
+    p_hit: float | None = Field(
+        strict=True, default=None, gt=0, lt=1, description="hit probability, instead of l_hit"
+    )
+    p_miss: float | None = Field(
+        strict=True, default=None, gt=0, lt=1, description="miss probability, instead of l_miss"
+    )
+    p_min: float | None = Field(
+        strict=True, default=None, gt=0, lt=1, description="lower clamp as a probability"
+    )
+    p_max: float | None = Field(
+        strict=True, default=None, gt=0, lt=1, description="upper clamp as a probability"
+    )
+    occupied_thresh: float = Field(
+        strict=True, default=0.65, gt=0, lt=1, description="p above this is `occupied`"
+    )
+    free_thresh: float = Field(strict=True, default=0.196, gt=0, lt=1, description="p below this is `free`")
 
     @model_validator(mode="after")
     def _resolve(self, info: ValidationInfo) -> OccupancyParams:
@@ -172,12 +182,13 @@ class BeamModelParams(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     alpha: float = Field(
+        strict=True,
         default=0.1,
         gt=0,
         allow_inf_nan=False,
         description=f"obstacle thickness in metres; at most {MAX_BAND_CELLS} cells",
     )
-    beta: float = Field(default=0.0175, gt=0, lt=math.pi, description="beam width in radians")
+    beta: float = Field(strict=True, default=0.0175, gt=0, lt=math.pi, description="beam width in radians")
 
 
 class TsdfParams(BaseModel):
@@ -186,24 +197,36 @@ class TsdfParams(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     truncation: float = Field(
+        strict=True,
         default=0.2,
         gt=0,
         allow_inf_nan=False,
         description=f"truncation distance t in metres; at most {MAX_BAND_CELLS} cells",
     )
     max_weight: float = Field(
-        default=1000.0, gt=0, le=MAX_TSDF_WEIGHT, description="cap on a cell's accumulated weight"
+        strict=True,
+        default=1000.0,
+        gt=0,
+        le=MAX_TSDF_WEIGHT,
+        description="cap on a cell's accumulated weight",
     )
 
 
 class MapConfig(BaseModel):
     """Everything that defines how a map stores and integrates scans."""
 
+    # Its numbers, and its parameters' (`OccupancyParams`, `BeamModelParams`, `TsdfParams`), are
+    # `strict`: a JSON boolean or string is refused, as in every other body of the API, where lax
+    # validation took `{"max_tiles": true}` as a map of 1 tile and `"0.1"` as a number. An integer
+    # still counts as a number for a float.
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
-    resolution: float = Field(default=0.05, gt=0.001, le=100.0, description="metres per cell")
-    tile_size: int = Field(default=256, ge=16, le=4096, description="cells per tile side, a power of two")
+    resolution: float = Field(strict=True, default=0.05, gt=0.001, le=100.0, description="metres per cell")
+    tile_size: int = Field(
+        strict=True, default=256, ge=16, le=4096, description="cells per tile side, a power of two"
+    )
     max_tiles: int = Field(
+        strict=True,
         default=4096,
         ge=1,
         le=1_000_000,
@@ -215,7 +238,11 @@ class MapConfig(BaseModel):
     traversal: Literal["exact", "bresenham"] = "exact"
     update: Literal["per_scan", "per_ray"] = "per_scan"
     no_return_range: float = Field(
-        default=0.0, ge=0, le=1000.0, description="metres of a no-return beam to clear as free; 0 = ignore"
+        strict=True,
+        default=0.0,
+        ge=0,
+        le=1000.0,
+        description="metres of a no-return beam to clear as free; 0 = ignore",
     )
     beam: BeamModelParams = Field(default_factory=BeamModelParams)
     tsdf: TsdfParams = Field(default_factory=TsdfParams)
