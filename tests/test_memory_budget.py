@@ -225,6 +225,31 @@ def test_the_service_answers_507_past_max_memory_and_keeps_serving(tmp_path) -> 
         assert r.status_code == 200, r.text  # replaced, not created
 
 
+def test_a_budget_that_holds_no_tile_of_the_default_map_is_warned_of_at_start(tmp_path) -> None:
+    """`--max-memory 1MiB` was taken without a word, though it holds no tile of the default map
+    (3 layers of 256 x 256 cells, 1.3 MiB): every robot's scan was then refused 507. It is still
+    taken (maps of smaller tiles fit), with a warning at start that says so."""
+    with ServiceProcess(tmp_path, ["--in-memory", "--max-memory", "1MiB"]) as svc:
+        url = svc.base_url
+        scan = Scan.from_fan((0.5, 0.5, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0)
+        r = httpx.post(
+            f"{url}/maps/m/scans", params={"robot_id": "r"}, json=json.loads(encode_json(scan, 0)), timeout=30
+        )
+        assert r.status_code == 507, r.text
+        assert httpx.put(f"{url}/maps/small", json={"tile_size": 64}, timeout=10).status_code == 201
+        r = httpx.post(
+            f"{url}/maps/small/scans", params={"robot_id": "r"}, json=json.loads(encode_json(scan, 0)),
+            timeout=30,
+        )  # fmt: skip
+        assert r.status_code == 200, r.text
+        logs = svc.logs()
+    warning = (
+        "WARNING fleetmap.server: --max-memory 1.0 MiB holds no tile of the default map configuration "
+        "(--config; 1.3 MiB a tile: 256 x 256 cells of occupancy, counts, tsdf)"
+    )
+    assert warning in logs, logs
+
+
 def test_a_restart_restores_maps_past_the_budget_and_then_refuses_growth(tmp_path) -> None:
     """The journal's scans were accepted: replaying them at start is never refused, even when the
     restored maps hold more than the (new, smaller) budget; they are counted, and growth waits."""

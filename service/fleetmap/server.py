@@ -194,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
                 signin_window=args.failed_sign_in_window,
             )
             app = options.create_app(registry, settings=settings)
-            _log_protection(args, tokens, durable is not None)
+            _log_protection(args, tokens, durable is not None, options.default_config)
             server = make_server(args, app, f"http://{url_host(options.host)}:{port}", ingest.endpoints)
             freeze_startup_objects()
             if not stop.is_set():
@@ -390,9 +390,12 @@ def _load_api() -> tuple[Any, Any]:
     return create_app, ApiSettings
 
 
-def _log_protection(args: argparse.Namespace, tokens: TokenSet | TokenFile | None, durable: bool) -> None:
+def _log_protection(
+    args: argparse.Namespace, tokens: TokenSet | TokenFile | None, durable: bool, default_config: MapConfig
+) -> None:
     """The start-up lines that say how the service is protected and bounded: API tokens, where
-    maps are kept and their memory budget."""
+    maps are kept and their memory budget, and a warning when that budget cannot hold one tile of
+    the maps scans create (`--config`)."""
     budget = args.max_memory
     source = f"file {args.auth_tokens}, read again on SIGHUP" if args.auth_tokens else "$FLEETMAP_TOKENS"
     log.info(
@@ -406,6 +409,20 @@ def _log_protection(args: argparse.Namespace, tokens: TokenSet | TokenFile | Non
         "no limit" if budget.limit is None else f"{budget.limit / 2**20:.0f} MiB (--max-memory)",
         budget.used / 2**20,
     )  # fmt: skip
+    from fleetmap.memory_budget import format_size
+    from fleetmap.tiles import TileStore
+
+    tile = TileStore(default_config.tile_size, default_config.layers, 1).bytes_for(1)  # an empty store
+    if budget.limit is not None and tile > budget.limit:
+        # Else every scan of such a map is refused 507 and nothing says why until the first one is:
+        # `--max-memory 1MiB` holds no tile of the default map (1.3 MiB), though it was taken.
+        log.warning(
+            "--max-memory %s holds no tile of the default map configuration (--config; %s a tile: "
+            "%d x %d cells of %s): every scan of such a map will be refused (507); raise it, or give "
+            "a --config of smaller tiles or fewer layers",
+            format_size(budget.limit), format_size(tile), default_config.tile_size,
+            default_config.tile_size, ", ".join(default_config.layers),
+        )  # fmt: skip
     if args.in_memory and args.data_dir != DEFAULT_DATA_DIR:
         # Both given (the Docker image sets $FLEETMAP_DATA_DIR): the directory is not used, and a
         # reader of the options alone expected the maps to be kept there.
