@@ -18,8 +18,9 @@ from fastapi import APIRouter, Query, Response
 from fleetmap.api.conditional import Conditions
 from fleetmap.api.errors import ApiError, error_responses, too_many
 from fleetmap.api.state import MapId, State, coordinate
-from fleetmap.api.strict_requests import StrictRoute
+from fleetmap.api.strict_requests import StrictRoute, limit_json_values
 from fleetmap.api_models import (
+    MAX_POINTS,
     CellsRequest,
     CellsResponse,
     CellValue,
@@ -36,7 +37,7 @@ from fleetmap.api_models import (
     surface,
     tile_windows,
 )
-from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED
+from fleetmap.cell_queries import MAX_RAYS, STATE_FREE, STATE_OCCUPIED
 from fleetmap.export import (
     MAX_EXPORT_SCALE,
     Window,
@@ -51,6 +52,10 @@ from fleetmap.export import (
 from fleetmap.grid_map import GridMap
 
 router = APIRouter(route_class=StrictRoute)
+# The most values a valid body holds: a point is two numbers and a comma between them, and one
+# between points; a ray an angle and, with `origins`, its two numbers (the slack: the other keys).
+limit_json_values("/maps/{map_id}/cells", 2 * MAX_POINTS + 16, f"{MAX_POINTS} points")
+limit_json_values("/maps/{map_id}/raycast", 3 * MAX_RAYS + 16, f"{MAX_RAYS} rays")
 
 OptCoordinate = Annotated[float | None, coordinate("metres; give all four bounds or none")]
 #: A required bound of a window, metres.
