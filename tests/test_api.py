@@ -395,14 +395,22 @@ def test_a_body_of_far_more_points_or_rays_than_allowed_is_refused_before_it_is_
             b'{"angles":[0],"max_range":1,"origins":[' + points[: 6 * 2_000_000 - 1] + b"]}",
             "10000 rays",
         ),
+        # A map's configuration holds a few dozen values: a body of millions under a key it does
+        # not have was parsed whole too, before `extra="forbid"` refused the key.
+        ("", b'{"x":[' + points[: 6 * 2_000_000 - 1] + b"]}", "the values of a map configuration"),
     ]:
         started = time.monotonic()
-        r = api.client.post(f"/maps/pts/{path}", content=body, headers={"content-type": "application/json"})
+        headers = {"content-type": "application/json"}
+        if path:
+            r = api.client.post(f"/maps/pts/{path}", content=body, headers=headers)
+        else:
+            r = api.client.put("/maps/pts-new", content=body, headers=headers)
         assert r.status_code == 413, r.text
         assert (
             r.json()["detail"] == f"the body holds more than {what} (the limit per request); it was not read"
         )
         assert time.monotonic() - started < 1.0  # not parsed: 1.3 s and more when it was
+    assert api.client.get("/maps/pts-new").status_code == 404
     angles = [0.001 * k for k in range(10_000)]
     r = api.client.post(
         "/maps/pts/raycast",

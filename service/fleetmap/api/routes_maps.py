@@ -12,7 +12,7 @@ from fleetmap.api.conditional import Conditions, tag_map
 from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.http_semantics import created_status
 from fleetmap.api.state import MapId, RobotId, State
-from fleetmap.api.strict_requests import StrictRoute
+from fleetmap.api.strict_requests import StrictRoute, limit_json_values
 from fleetmap.api_models import (
     MapInfo,
     MapList,
@@ -27,6 +27,8 @@ from fleetmap.registry import MapNotFound
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
 
 router = APIRouter(route_class=StrictRoute)
+# A configuration holds a few dozen values (`PUT /maps/{map_id}`): far more is no configuration.
+limit_json_values("/maps/{map_id}", 1024, "the values of a map configuration")
 
 #: Scan bodies up to this size are decoded on the event loop (a 1081-beam JSON scan is about 10 KB and
 #: decodes in well under a millisecond: a thread hop would cost more); larger ones in a thread.
