@@ -200,6 +200,13 @@ def test_the_service_answers_507_past_max_memory_and_keeps_serving(tmp_path) -> 
         )
         assert float(samples["fleetmap_memory_limit_bytes"]) == 24 * 2**20
         assert float(samples["fleetmap_memory_used_bytes"]) == info["memory_bytes"] <= 24 * 2**20
+        # The 507 is counted among the robot's rejected scans, and the series says it may be: its
+        # HELP called every one of them "refused as invalid", which a scan the budget refused is not.
+        assert 'fleetmap_scans_rejected_total{map="far",robot="r"} 1.0' in metrics
+        help_line = next(
+            line for line in metrics.splitlines() if line.startswith("# HELP fleetmap_scans_rejected")
+        )
+        assert "memory budget" in help_line, help_line
         # Still serving: a scan near what is mapped needs no new tile and is integrated.
         near = Scan.from_fan((0.0, 0.0, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0)
         r = httpx.post(

@@ -157,7 +157,10 @@ class RobotStats(_Model):
     last_seq: int | None = Field(description="sequence number of the last scan accepted")
     last_stamp: float | None = Field(default=None, description="stamp of its last integrated scan")
     scans_integrated: int
-    scans_rejected: int = Field(description="scans refused as invalid (see last_error)")
+    scans_rejected: int = Field(
+        description="scans refused: invalid, past the map's max_tiles, or for the memory budget "
+        "(see last_error)"
+    )
     last_error: str | None = Field(
         description="why the last scan refused (or applied but not made durable, see not_durable) was so"
     )

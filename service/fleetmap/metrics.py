@@ -208,7 +208,8 @@ class RegistryCollector(Collector):
             CounterMetricFamily("fleetmap_scans_integrated", "Scans integrated into the map", labels=robot),
             CounterMetricFamily(
                 "fleetmap_scans_rejected",
-                "Scans refused as invalid (undecodable or refused by the engine)",
+                "Scans refused: undecodable, past the input limits or the map's max_tiles, or needing tiles "
+                "the memory budget (--max-memory) cannot hold",
                 labels=robot,
             ),
             # A gauge, not a counter: a gap is counted when a later seq arrives, and taken back when it
