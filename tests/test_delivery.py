@@ -212,7 +212,7 @@ def test_a_snapshot_saves_the_counts_only_as_far_as_the_sessions_seqs(case: str)
     else:
         receipts.append(accept(state, 6))
         state.sessions[7].ledger.settle(receipts[1], integrated=False)  # refused (the queue was full)
-        state.refused_scan = (7, 6)
+        state.note_refused(6, 7)
         if case == "refused and sent again":
             receipts.append(accept(state, 6))
     restored = RobotState.from_saved(json.loads(json.dumps(state.saved())))  # a snapshot, then a crash

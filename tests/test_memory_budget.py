@@ -160,6 +160,47 @@ def test_the_registry_refuses_past_the_budget_with_507_and_counts_it() -> None:
         registry.close()
 
 
+def test_several_scans_refused_507_are_each_integrated_when_sent_again() -> None:
+    """A robot (with a session id, as `FleetmapClient` and `ScanPublisher` send) whose scans kept
+    coming while the budget was full got 507 for several of them; once memory is freed it sends each
+    again, as docs/api.md tells it to. Only the last refused one was remembered as refused: the others
+    were answered 200 "duplicate" and never integrated."""
+    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(60 * TILE_BYTES))
+    registry.start()
+
+    def send(map_id: str, k: int) -> Any:
+        try:
+            future = registry.submit(map_id, "r", WireScan(k, float(k), scan_at(0.5 * k), 7), wait=True)
+            assert future is not None
+            return future.result(10)
+        except IngestRejected as exc:
+            return exc
+
+    try:
+        assert not isinstance(send("other", 0), IngestRejected)  # holds the budget's first tiles
+        for k in range(100):
+            if isinstance(send("m", k), IngestRejected):
+                break
+        refused = [k, k + 1, k + 2]
+        for seq in refused[1:]:  # farther on: new tiles again
+            result = send("m", seq)
+            assert isinstance(result, IngestRejected) and result.status == 507, result
+        robot = registry.get("m").robots["r"]
+        integrated = robot.scans_integrated
+        registry.delete("other", wait=True)  # its tiles' bytes go back to the budget
+        for seq in refused:
+            again = send("m", seq)
+            assert not isinstance(again, IngestRejected) and again.cell_updates > 0, (seq, again)
+        assert robot.scans_integrated == integrated + 3 and robot.lost == 0
+        ledger = robot.sessions[7].ledger
+        assert (ledger.refused, ledger.integrated) == (0, integrated + 3), ledger
+        for seq in refused:  # each once: a second copy is a duplicate
+            copy = send("m", seq)
+            assert isinstance(copy, IngestRejected) and copy.status == 200 and "duplicate" in copy.reason
+    finally:
+        registry.close()
+
+
 def test_the_service_answers_507_past_max_memory_and_keeps_serving(tmp_path) -> None:
     """A real service with a budget of 24 MiB (18 tiles of the default map: 3 layers, 1.3 MiB a
     tile): small maps hold what their tiles take, so several fit; a robot roaming far needs more

@@ -698,7 +698,7 @@ class MapRegistry:
             if full is not None:
                 self._settle(job, integrated=False)
                 robot.dropped += 1
-                robot.refused_scan = (session_key(session), seq)  # a retry of it is not a duplicate
+                robot.note_refused(seq, session)  # a retry of it is not a duplicate
                 reason = f"ingest queue full: scan dropped ({self._queue_full(full, map_id)})"
                 robot.last_error = f"scan seq {seq}: {reason}"
                 if self._remove_unclaimed(entry) is not None:
@@ -950,8 +950,9 @@ class MapRegistry:
                             lambda exc: self._mark_not_durable(job, exc), job.wire.session,
                         )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
-            # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422, and a
-            # retry once memory is freed is integrated, not taken for a duplicate (`RobotState.refused_scan`).
+            # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422, and
+            # a retry once memory is freed is integrated, not taken for a duplicate
+            # (`RobotState.refused_scans`).
             # A scan without a session id refused here keeps its seq free as well, as one the decoder
             # refuses does (docs/protocol.md, "Limits": the map's max_tiles is one): its seq was
             # recorded when it was queued, and the next scan sent under it (a REST client's, whose
@@ -1003,7 +1004,7 @@ class MapRegistry:
         """A scan that does not count as integrated: count it on its robot (as `not_durable` if it
         was `applied`, else as rejected) with `reason` as its last error, and answer its caller
         `status`. A `retriable` scan (refused for the service's sake, or sent without a session id:
-        `_integrate`) may be sent again with its seq (`RobotState.refused_scan`). A `provisional` map
+        `_integrate`) may be sent again with its seq (`RobotState.refused_scans`). A `provisional` map
         that this refusal leaves with no scan unsettled is removed again (`_remove_unclaimed`), and
         the caller answered once that is stored."""
         removed = None
@@ -1016,7 +1017,7 @@ class MapRegistry:
                 robot.unsettled -= 1
                 robot.last_error = reason
                 if retriable:
-                    robot.refused_scan = (session_key(job.wire.session), job.wire.seq)
+                    robot.note_refused(job.wire.seq, job.wire.session)
                 if applied:
                     robot.not_durable += 1
                     entry.provisional = False  # it holds the scan, durable or not

@@ -34,6 +34,11 @@ NO_SESSION = 0
 #: as arrays, 12.0 kB without the lists (tracemalloc); 1024 robots on each of 256 maps: 21.8 GB,
 #: 6.8 GB, 3.1 GB. A cap of 32 would give 19.3 kB, 16 gives 16.2 kB, but flushes under-confirm sooner.
 LEDGER_HISTORY = 64
+#: Scans refused for the service's sake that a robot may send again under their seqs
+#: (`RobotState.refused_scans`): a REST client answered 507 for several scans while the memory
+#: budget was full retries each once memory is freed. The oldest are forgotten past this many (a
+#: robot's worst case about 2 kB; robot state is not charged to the memory budget).
+MAX_REFUSED_RETRIES = 16
 
 
 #: The saved counters (`RobotState.SAVED`) that are not integers: what else each may hold.
@@ -316,14 +321,17 @@ class RobotState:
     #: them restarted: +1).
     id_conflicts: int = 0
     conflict_at: float | None = None  # wall-clock time of the last interleaved scan
-    #: (session key, seq) of its last scan refused for the service's sake: the full ingest queue's
-    #: (counted in `dropped`, answered 503) or the memory budget's (answered 507), or one without a
-    #: session id refused at integration (422: the map's max_tiles), until another of its scans is
-    #: accepted. Its seq was recorded (so it is not also counted as lost), yet it was never
-    #: integrated: a re-send of it, which a REST client answered 503 or 507 is told to make, or the
-    #: next scan under a seq a 422 left free, is accepted rather than ignored as a duplicate. Not
-    #: saved: it is about the last moments.
-    refused_scan: tuple[int, int] | None = None
+    #: (session key, seq) of its scans refused for the service's sake, oldest first: the full ingest
+    #: queue's (counted in `dropped`, answered 503) or the memory budget's (answered 507), or one
+    #: without a session id refused at integration (422: the map's max_tiles). Their seqs were
+    #: recorded (so they are not also counted as lost), yet they were never integrated: a re-send of
+    #: one, which a REST client answered 503 or 507 is told to make, or the next scan under a seq a
+    #: 422 left free, is accepted rather than ignored as a duplicate (`note_refused`). One without a
+    #: session id only until another of its scans is accepted (a seq of its own is then a restart's,
+    #: not a re-send); one with a session id until it is sent again, of at most MAX_REFUSED_RETRIES
+    #: (several scans refused while the budget was full are each sent again). Not saved: it is
+    #: about the last moments.
+    refused_scans: dict[tuple[int, int], None] = field(default_factory=dict, repr=False)
     #: Its JSON in live viewers' robots events, made by the first event stream that sent it and sent
     #: as is by the others (`api.robots_feed`): key (what the JSON shows) -> JSON. Not saved.
     viewer_json: dict[tuple, str] = field(default_factory=dict, repr=False, compare=False)
@@ -399,14 +407,29 @@ class RobotState:
         self.trail.append((pose.x, pose.y, pose.theta))
         self.appended += 1
 
+    def note_refused(self, seq: int, session: int | None) -> None:
+        """The scan `seq` of session `session`, accepted, was refused for the service's sake: a
+        re-send of it is new (`refused_scans`)."""
+        key = (session_key(session), seq)
+        self.refused_scans.pop(key, None)
+        self.refused_scans[key] = None
+        while len(self.refused_scans) > MAX_REFUSED_RETRIES:
+            del self.refused_scans[next(iter(self.refused_scans))]
+
+    @property
+    def refused_with_session(self) -> frozenset[tuple[int, int]]:
+        """Its `refused_scans` that carry a session id (those a tombstone keeps: `Tombstone`)."""
+        return frozenset(key for key in self.refused_scans if key[0] != NO_SESSION)
+
     def is_duplicate(self, seq: int, stamp: float, session: int | None) -> bool:
         """Whether the scan `seq` of publisher session `session` (None: it sent none) is not new:
         its session's seq is past it (a copy, a retry, a stale message). A session not heard
         before is never a duplicate: its publisher (re)started, or another robot shares this id.
         Without a session, a seq not new is a restart if its stamp says so (`SessionSeqs.is_restart`).
-        A re-send of the scan the full queue refused (`refused_scan`) is new: it was never integrated."""
-        if self.refused_scan == (session_key(session), seq):
-            return False  # a re-send of the scan the full queue refused
+        A re-send of a scan refused for the service's sake (`refused_scans`) is new: it was never
+        integrated."""
+        if (session_key(session), seq) in self.refused_scans:
+            return False  # a re-send of a scan the full queue or the memory budget refused
         rec = self.sessions.get(session_key(session))
         if rec is None or seq > rec.last_seq:
             return False
@@ -422,12 +445,17 @@ class RobotState:
         comes back after another one was heard is an id conflict (two publishers under one robot
         id): `conflict_at` becomes `now` (wall-clock), `id_conflicts` counts it if a session among
         them was not known to be in one, and a restart counted when the other one started is
-        withdrawn (it ran beside this one). A re-send of the scan the full queue refused
-        (`refused_scan`) changes none of this: its seq was recorded when it first came. Returns whether
-        this scan interleaved with another session's so."""
+        withdrawn (it ran beside this one). A re-send of a scan refused for the service's sake
+        (`refused_scans`) changes none of this: its seq was recorded when it first came. Returns
+        whether this scan interleaved with another session's so."""
         key = session_key(session)
-        refused, self.refused_scan = self.refused_scan, None
-        if refused == (key, seq):
+        resent = (key, seq) in self.refused_scans
+        if resent:
+            del self.refused_scans[(key, seq)]
+        # Another scan accepted: a refused seq without a session id that comes next is a restart's.
+        for refused in [k for k in self.refused_scans if k[0] == NO_SESSION]:
+            del self.refused_scans[refused]
+        if resent:
             rec = self.sessions.get(key)
             if rec is not None:
                 rec.ledger.withdraw_refusal(seq)  # settled as refused, now accepted after all
@@ -436,7 +464,7 @@ class RobotState:
                     # a later stamp) is the last: without a session id a copy of it, its stamp
                     # later than the refused one's, was taken for a restart and integrated twice.
                     rec.stamp = stamp
-            return False  # a re-send of the scan the full queue refused: its seq is recorded already
+            return False  # a re-send of a scan refused for the service's sake: its seq is recorded already
         self.accepted += 1
         rec = self.sessions.pop(key, None)
         beside: list[SessionSeqs] = []

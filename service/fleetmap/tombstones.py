@@ -67,17 +67,18 @@ class Tombstone:
     `forgotten`: the robot was forgotten by its map, which lives on (`Tombstones.forget`), and
     `deleted_at` is when: its scans through those seqs are in that map, not gone with it.
 
-    `refused_scan` is the robot's `RobotState.refused_scan` then, (session id, seq) of its last scan refused
-    for the service's sake (a full queue: 503; the memory budget: 507): its seq is recorded, yet the
-    service never had the scan, and its sender is told to send it again, which must be integrated,
-    not ignored as from before the deletion. Not stored, as `RobotState.refused_scan` is not: after a
-    restart it is covered, as the map's own bookkeeping would have it."""
+    `refused_scans` are the robot's `RobotState.refused_scans` then that carry a session id,
+    (session id, seq) of its scans refused for the service's sake (a full queue: 503; the memory
+    budget: 507): their seqs are recorded, yet the service never had the scans, and their sender is
+    told to send them again, which must be integrated, not ignored as from before the deletion. Not
+    stored, as `RobotState.refused_scans` is not: after a restart they are covered, as the map's own
+    bookkeeping would have it."""
 
     map_id: str
     robot_id: str
     deleted_at: float
     sessions: Mapping[int, int]
-    refused_scan: tuple[int, int] | None = None
+    refused_scans: frozenset[tuple[int, int]] = frozenset()
     forgotten: bool = False
 
     def sessions_json(self) -> str:
@@ -111,12 +112,6 @@ def merged_sessions(old: Mapping[int, int], state: RobotState) -> dict[int, int]
     while len(sessions) > MAX_SESSIONS:
         del sessions[next(iter(sessions))]
     return sessions
-
-
-def _refused_scan_with_session(state: RobotState) -> tuple[int, int] | None:
-    """`state.refused_scan` if its scan carries a session id (only those are ever covered), else None."""
-    refused = state.refused_scan
-    return refused if refused is not None and refused[0] != NO_SESSION else None
 
 
 class Tombstones:
@@ -171,12 +166,12 @@ class Tombstones:
         for robot_id, state in robots.items():
             old = self._drop(map_id, robot_id)
             sessions = merged_sessions({} if old is None else old.sessions, state)
-            stone = Tombstone(map_id, robot_id, now, sessions, _refused_scan_with_session(state))
+            stone = Tombstone(map_id, robot_id, now, sessions, state.refused_with_session)
             self._put(stone)
             made.append(stone)
         for robot_id in sorted(self._forgotten.get(map_id, ())):  # (a copy: `_put` changes it)
             old = self._stones[map_id, robot_id]
-            stone = Tombstone(map_id, robot_id, now, old.sessions, old.refused_scan)
+            stone = Tombstone(map_id, robot_id, now, old.sessions, old.refused_scans)
             self._put(stone)
             made.append(stone)
         self.prune(now)
@@ -196,7 +191,7 @@ class Tombstones:
         old = self._drop(map_id, robot_id)
         stone = Tombstone(
             map_id, robot_id, now, merged_sessions({} if old is None else old.sessions, state),
-            _refused_scan_with_session(state), forgotten=True,
+            state.refused_with_session, forgotten=True,
         )  # fmt: skip
         self._put(stone)
         self.prune(now)
@@ -205,9 +200,9 @@ class Tombstones:
     def covers(self, map_id: str, robot_id: str, session: int | None, seq: int) -> Tombstone | None:
         """The tombstone that makes scan `seq` of publisher session `session` one from before its map
         was deleted (or its robot forgotten by it: `Tombstone.forgotten`), or None: the scan is not
-        known to be old (or is the one its robot was told to send again: `Tombstone.refused_scan`)."""
+        known to be old (or is one its robot was told to send again: `Tombstone.refused_scans`)."""
         stone = self._stones.get((map_id, robot_id))
-        if stone is None or session is None or stone.refused_scan == (session, seq):
+        if stone is None or session is None or (session, seq) in stone.refused_scans:
             return None
         last = stone.sessions.get(session)
         return stone if last is not None and seq <= last else None
