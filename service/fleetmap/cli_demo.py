@@ -62,8 +62,8 @@ def run(args: argparse.Namespace) -> int:
     _check_fleet(args)
     # Another service on these ports would answer /healthz for ours, which would die unseen, and
     # the robots would map into that other service: refuse before starting anything.
-    for address in (args.http, args.zenoh.split("/", 1)[-1]):
-        _check_free(address)
+    for option, value in (("--http", args.http), ("--zenoh", args.zenoh)):
+        _check_free(option, value)
     stop = SignalEvent()
     # Ctrl-C, and also `kill`, `timeout`, `docker stop` (SIGTERM) and a closed terminal (SIGHUP):
     # each ended the demo at once and left its service running on, holding the ports and the data
@@ -128,13 +128,23 @@ def _check_fleet(args: argparse.Namespace) -> None:
         raise CliError(f"--map {args.map!r} is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -")
 
 
-def _check_free(address: str) -> None:
-    """Raise CliError if nothing can listen on `address` (HOST:PORT): something else does, or the
-    host is not this machine's."""
+def _check_free(option: str, value: str) -> None:
+    """Raise CliError if nothing can listen on the address of `option`'s `value` (HOST:PORT, or a
+    Zenoh endpoint PROTOCOL/HOST:PORT): something else does, the host is not this machine's, or the
+    port is 0."""
+    address = value.split("/", 1)[-1]
     host, _, port = address.rpartition(":")
     host = host.strip("[]") or "127.0.0.1"
     if not port.isdigit():
         return  # the service reports an address it cannot parse itself
+    if int(port) == 0:
+        # `serve --http HOST:0` picks a free port, but the demo polls, prints and connects its
+        # robots to the port it was given: with 0 it waited 120 s for an answer on port 0 (or its
+        # robots waited for ever) while its service ran on another port.
+        raise CliError(
+            f"{option} {value}: the demo needs a fixed port, not 0 (it prints the viewer's address "
+            "and points its robots at the service)"
+        )
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
