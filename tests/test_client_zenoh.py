@@ -981,6 +981,24 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
         assert "robots on map" not in bad.stdout, bad.stdout
 
 
+def test_sim_command_stops_on_sigterm_as_on_ctrl_c(router: Router) -> None:
+    """SIGTERM (`kill`, `docker stop`) stops the robots and prints the summary, exit 0, as Ctrl-C
+    does. It killed the sim without a word (exit -15); as PID 1 of compose.yaml's robots container,
+    which receives no signal it does not handle, `docker compose stop` waited 10 s, then killed it."""
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "fleetmap_client.cli", "sim", "--robots", "1", "--rate", "20", "--beams", "91",
+         "--map", "term", "--connect", router.endpoint, "--wait-timeout", "20", "--no-confirm"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    with reaped(sim):
+        wait_for(lambda: any(k.startswith("fleetmap/term/") for k, _, _ in router.samples()), 30, 0.05,
+                 "the robot's first scans")  # fmt: skip
+        sim.send_signal(signal.SIGTERM)
+        out, _ = sim.communicate(timeout=30)
+    assert sim.returncode == 0, (sim.returncode, out)
+    assert "sim: 1 robot published" in out and "Traceback" not in out, out
+
+
 def test_sim_refuses_a_timeout_of_nan_or_below_0_before_it_waits() -> None:
     """`fleetmap sim --wait-timeout nan` waited for an absent service for ever (replay's refuses it),
     and -1 gave up "within -1 s"; `run_sim(confirm_timeout=nan)` ran, then raised in every robot's

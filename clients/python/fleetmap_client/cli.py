@@ -173,7 +173,7 @@ def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
         description=(
             "Simulated robots (ids sim-1, sim-2, ...) explore one synthetic floor plan and publish "
             "their scans to a running fleetmap service over Zenoh in real time, each with its own "
-            "Zenoh session and liveliness token, until --seconds pass or Ctrl-C."
+            "Zenoh session and liveliness token, until --seconds pass or Ctrl-C (or SIGTERM)."
         ),
     )
     p.add_argument("--robots", type=int, default=3, metavar="N", help="number of robots (default 3)")
@@ -222,12 +222,15 @@ def run_sim_command(args: argparse.Namespace) -> int:
 
     # Ctrl-C (or SIGINT from a script that started us with SIGINT ignored) stops the robots, and the
     # summary of what they published is still printed; a second one ends the wait for confirmation.
+    # SIGTERM too (`kill`, `docker stop`): it ended the sim at once, without its summary, and as a
+    # container's PID 1 (compose.yaml's robots), which gets no signal it has no handler for, it was
+    # not stopped at all until Docker killed it 10 s later.
     def interrupt(*_: object) -> None:
         if stop.is_set():
             raise KeyboardInterrupt
         stop.set_in_handler()
 
-    previous = signal.signal(signal.SIGINT, interrupt)
+    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     print(
         f"sim: {args.robots} robot{'' if args.robots == 1 else 's'} on map {args.map_id!r} "
         f"(floor plan seed {args.seed}), "
@@ -257,7 +260,8 @@ def run_sim_command(args: argparse.Namespace) -> int:
         print("sim interrupted", file=sys.stderr)
         return 130
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     dropped, kept = sum(result.dropped.values()), sum(result.backlogged.values())
     print(
         f"sim: {len(result.robots)} robot{'' if len(result.robots) == 1 else 's'} published "
