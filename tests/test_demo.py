@@ -180,6 +180,21 @@ def test_demo_refuses_a_fleet_it_cannot_run_before_starting_anything(
     assert done.stdout == "" and not (tmp_path / "data").exists()
 
 
+def test_demo_serves_beyond_loopback_with_insecure_as_the_refusal_says(tmp_path: Path) -> None:
+    """Without API tokens the service refuses a non-loopback --http and says to give --insecure,
+    which the demo had no option for: a demo shown to another machine (or run in a VM and watched
+    from its host) could not be started at all."""
+    http, zenoh = free_port(), free_port()
+    command = [*fleetmap_command(), "demo", "--http", f"0.0.0.0:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+               "--data-dir", str(tmp_path / "data"), "--robots", "1", "--seconds", "0"]  # fmt: skip
+    refused = subprocess.run(command, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "or --insecure to accept that" in refused.stderr, refused.stderr
+    done = subprocess.run([*command, "--insecure"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"open http://0.0.0.0:{http}/#map=demo" in done.stdout, done.stdout
+    assert "Traceback" not in done.stderr, done.stderr
+
+
 def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:
     http, zenoh = free_port(), free_port()
     demo = subprocess.Popen(

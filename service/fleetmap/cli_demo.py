@@ -48,6 +48,14 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--http", default=DEFAULT_HTTP, metavar="HOST:PORT", help="viewer and API address")
     p.add_argument("--zenoh", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help="where robots connect")
     p.add_argument("--data-dir", default=DEFAULT_DATA_DIR, help="the service's durable storage")
+    # The service refuses a non-loopback --http without API tokens and says to give --insecure:
+    # the demo had no such option, so a demo shown to another machine could not be started.
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="let --http listen beyond loopback (e.g. 0.0.0.0:8000) without API tokens: anyone who "
+        "can reach it may change the maps (as fleetmap serve --insecure)",
+    )
     p.add_argument("--robots", type=int, default=3, help="simulated robots")
     p.add_argument("--map", default="demo", help="map id the robots publish to")
     p.add_argument("--seed", type=int, default=1, help="floor plan and robots' seed")
@@ -71,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     previous = {sig: signal.signal(sig, lambda *_: stop.set_in_handler()) for sig in STOP_SIGNALS}
     service = subprocess.Popen(
         [sys.executable, "-m", "fleetmap.server", "--http", args.http, "--zenoh-listen", args.zenoh,
-         "--data-dir", args.data_dir],
+         "--data-dir", args.data_dir, *(["--insecure"] if args.insecure else [])],
         # (The demo runs no thread yet: the child may run Python between fork and exec.)
         preexec_fn=functools.partial(end_with_parent, os.getpid()),
     )  # fmt: skip
