@@ -299,6 +299,11 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
         # An unset variable in a template: the maps went to the working directory, silently.
         ((), {"FLEETMAP_DATA_DIR": ""}, "$FLEETMAP_DATA_DIR='': expected a path, got an empty value"),
         (("--config", ""), {}, "argument --config: expected a path, got an empty value"),
+        # Both were "--world-bound and --max-range must be positive": neither the one at fault,
+        # nor its value, nor its variable.
+        (("--max-range", "nan"), {}, "argument --max-range: must be a number of metres above 0, got nan"),
+        ((), {"FLEETMAP_WORLD_BOUND": "-1"}, "$FLEETMAP_WORLD_BOUND='-1': must be a number of metres"),
+        (("--world-bound", "far"), {}, "argument --world-bound: expected a number of metres, got 'far'"),
     ]
     for args, env, message in cases:
         done = serve_error(*args, "--data-dir", str(tmp_path / "d"), **env)

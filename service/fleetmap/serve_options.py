@@ -199,7 +199,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     limits = InputLimits()
     p.add_argument(
         "--world-bound",
-        type=float,
+        type=_positive_metres,
         default=limits.world_bound,
         metavar="M",
         help=f"refuse poses farther than this on x or y, metres (default {limits.world_bound:g})",
@@ -213,7 +213,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     )
     p.add_argument(
         "--max-range",
-        type=float,
+        type=_positive_metres,
         default=limits.max_range,
         metavar="M",
         help=f"readings at or beyond this (metres) are 'no return' (default {limits.max_range:g})",
@@ -534,6 +534,19 @@ def _cors_origin(text: str) -> str:
     elif port and int(port[1:]) <= 65535:
         message += f" (browsers leave the default port {port[1:]} of {scheme} out)"
     raise argparse.ArgumentTypeError(message)
+
+
+def _positive_metres(text: str) -> float:
+    """An argparse `type` for `--world-bound` and `--max-range`: a distance above 0 (inf: no bound).
+    Checked once parsed, the two shared one message, "--world-bound and --max-range must be
+    positive", which named neither the one at fault, nor its value, nor its FLEETMAP_ variable."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of metres, got {text!r}") from None
+    if not value > 0:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"must be a number of metres above 0, got {text}")
+    return value
 
 
 N = TypeVar("N", int, float)

@@ -272,8 +272,6 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
     host, port = parse_http(args.http)
     default_config = load_config(args.config)
     create_app, settings_cls = _load_api()
-    if not (args.world_bound > 0 and args.max_range > 0):
-        raise CliError("--world-bound and --max-range must be positive")
     input_limits = InputLimits(args.world_bound, args.max_beams, args.max_range)
     if args.ros_publish_map:
         from fleetmap.ros.map_publisher import topic_clash
