@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -309,17 +310,22 @@ def _compile_children(pid: int) -> list[int]:
 
 
 @contextlib.contextmanager
-def _first_start(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], ServiceProcess, int]]:
+def _first_start(
+    tmp_path: Path, new_session: bool = False
+) -> Iterator[tuple[subprocess.Popen[bytes], ServiceProcess, int]]:
     """A service started on an empty numba cache (`tmp_path / "numba-cache"`) and not waited for: it,
-    its `ServiceProcess` (command line and log) and its compile child's pid, once that runs. The
-    service is killed on the way out if it still runs."""
+    its `ServiceProcess` (command line and log) and its compile child's pid, once that runs. With
+    `new_session`, the service leads a process group of its own, as a terminal's foreground job.
+    The service is killed on the way out if it still runs."""
     from service_process import ServiceProcess, wait_for
 
     service = ServiceProcess(tmp_path)  # its command line and log file; started here, not waited for
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
     with (
         open(service.log_path, "wb") as log,
-        subprocess.Popen(service.args, stdout=log, stderr=log, env=env) as proc,
+        subprocess.Popen(
+            service.args, stdout=log, stderr=log, env=env, start_new_session=new_session
+        ) as proc,
     ):
         try:
             # The compile child, not a passing one (the C library's `ldconfig -p` of ctypes, if any).
@@ -346,6 +352,20 @@ def test_a_service_stopped_during_its_first_compile_ends_the_compile_and_exits_c
     assert "compiling them here" not in logs and "fleetmap serving" not in logs, logs
     cache = tmp_path / "numba-cache"
     assert not list(cache.rglob("integrate_scan.integrate_ray_scan-*.nbi")), "the compilation ran to its end"
+
+
+def test_ctrl_c_during_the_first_compile_stops_the_service_without_a_traceback(tmp_path: Path) -> None:
+    """Ctrl-C in a terminal signals its whole foreground process group: the compile child, interrupted
+    inside numba, printed a KeyboardInterrupt traceback of some 300 lines, which the service logged
+    as a warning before "stopped before serving" (a first `make demo` stopped while it compiled)."""
+    with _first_start(tmp_path, new_session=True) as (proc, service, child):
+        time.sleep(1.5)  # the child is compiling now, well past its interpreter's start
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C does
+        assert proc.wait(60) == 0, service.logs()
+    assert not Path(f"/proc/{child}").exists(), "the compile child outlived the service"
+    logs = service.logs()
+    assert "stopped before serving" in logs, logs
+    assert "Traceback" not in logs and "KeyboardInterrupt" not in logs and "printed" not in logs, logs
 
 
 def test_a_service_killed_during_its_first_compile_leaves_no_compile_child(tmp_path: Path) -> None:

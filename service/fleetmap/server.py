@@ -361,7 +361,7 @@ def _warm_engine(stop: threading.Event) -> None:
         compiled = compile_in_child(stop)
         if compiled.output.strip():  # one record, in the log's format (numba's warnings, a traceback)
             log.warning("the kernels' compilation in a child process printed:\n%s", compiled.output.rstrip())
-        if not compiled.finished and stop.is_set():  # ended by us, or by a SIGTERM to the group
+        if not compiled.finished and stop.is_set():  # ended by us (`compile_in_child`)
             log.info("stopping: the kernels' compilation was cut short")
             return
         if not compiled.finished:

@@ -89,9 +89,14 @@ def compile_in_child(stop: threading.Event | None = None) -> ChildCompile:
         env["NUMBA_CACHE_DIR"] = str(cache_dir)
     command = [sys.executable, "-m", "fleetmap.warm_up", str(os.getpid())]  # (`end_with_parent`)
     try:
+        # In a process group of its own: Ctrl-C in a terminal signals the whole foreground group, and
+        # the child, interrupted inside numba, printed a KeyboardInterrupt traceback of some 300
+        # lines, which the service then logged as the child's output (a first `make demo` stopped
+        # while it compiled). The service, signalled itself, ends the child below; its death ends
+        # the child too (`end_with_parent`).
         child = subprocess.Popen(
             command, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-            text=True, errors="replace",
+            text=True, errors="replace", process_group=0,
         )  # fmt: skip
     except OSError as exc:
         return ChildCompile(False, f"cannot run {sys.executable}: {exc}")
