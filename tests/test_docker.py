@@ -5,6 +5,7 @@ compose file rely on exists in the project, so they cannot silently rot."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import shlex
 import subprocess
@@ -70,7 +71,10 @@ def test_dockerfile_copies_paths_that_exist_and_runs_real_options() -> None:
     assert json.loads(zenoh_config.get_json("listen/endpoints")) == ["tcp/0.0.0.0:7447"]
     assert json.loads(ins["VOLUME"][0]) == [env["FLEETMAP_DATA_DIR"]], "the data directory must be the volume"
     (health,) = ins["HEALTHCHECK"]
-    assert "/healthz" in health and "--start-period=" in health, "a journal replay at start is not unhealthy"
+    assert "fleetmap.healthcheck" in health, (
+        "polls /healthz (test_the_image_health_check_follows_the_api_port)"
+    )
+    assert "--start-period=" in health, "a journal replay at start is not unhealthy"
 
 
 def dockerfile_env(ins: dict[str, list[str]]) -> dict[str, str]:
@@ -135,21 +139,32 @@ def test_readme_documents_the_docker_commands() -> None:
 
 
 def test_the_image_health_check_follows_the_api_port(tmp_path: Path) -> None:
-    """The image's HEALTHCHECK command, run as Docker runs it: it passes against a real service on the
-    port FLEETMAP_HTTP names, and fails where nothing answers. It polled 127.0.0.1:8000 whatever
-    FLEETMAP_HTTP said, so an operator who moved the API had a container unhealthy for good."""
+    """The image's HEALTHCHECK command, run as Docker runs it, but on the test's service rather than
+    PID 1: it passes against a real service on the port its --http names (given after the image
+    name, which the README says is added to the command), else the one FLEETMAP_HTTP names, and
+    fails where nothing answers. It polled 127.0.0.1:8000 whatever FLEETMAP_HTTP said, so an
+    operator who moved the API had a container unhealthy for good; then FLEETMAP_HTTP's port,
+    whatever --http said."""
     from service_process import ServiceProcess, free_port
 
     (health,) = dockerfile_instructions()["HEALTHCHECK"]
-    command = shlex.split(health.split(" CMD ", 1)[1])
-    assert command[:2] == ["python", "-c"]
+    command = json.loads(health.split(" CMD ", 1)[1])  # exec form: no shell in between
+    assert command == ["python", "-m", "fleetmap.healthcheck"]
 
-    def check(http: str) -> int:
-        env = {"PATH": "/usr/bin:/bin", "FLEETMAP_HTTP": http}
-        done = subprocess.run([sys.executable, "-c", command[2]], env=env, capture_output=True, timeout=30)
-        return done.returncode
+    def check(pid: int, http: str | None) -> subprocess.CompletedProcess[str]:
+        env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO / "service")}
+        env |= {"FLEETMAP_HTTP": http} if http is not None else {}
+        run = [sys.executable, *command[1:], str(pid)]
+        return subprocess.run(run, env=env, capture_output=True, text=True, timeout=30)
 
-    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
-        assert check(f"0.0.0.0:{svc.port}") == 0
-        assert check(f"127.0.0.1:{svc.port}") == 0
-    assert check(f"0.0.0.0:{free_port()}") != 0
+    nobody = free_port()
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:  # started with --http 127.0.0.1:PORT
+        assert svc.proc is not None
+        for http in (None, "0.0.0.0:8000", f"0.0.0.0:{nobody}"):  # the command line wins
+            done = check(svc.proc.pid, http)
+            assert done.returncode == 0, (http, done.stderr)
+        # As the image runs it: the port of the variable, for a command line without --http.
+        answering = check(os.getpid(), f"0.0.0.0:{svc.port}")
+        assert answering.returncode == 0, answering.stderr
+    refused = check(os.getpid(), f"0.0.0.0:{nobody}")
+    assert refused.returncode == 1 and f"http://127.0.0.1:{nobody}/healthz" in refused.stderr, refused.stderr
