@@ -772,6 +772,26 @@ def test_replay_waits_for_the_service_then_paces_scans(tmp_path: Path) -> None:
     assert stamps[-1] - stamps[0] >= 5 / NOMINAL_SCAN_RATE - 0.02
 
 
+def test_replay_command_stops_on_sigterm_as_on_ctrl_c(router: Router, tmp_path: Path) -> None:
+    """SIGTERM (`kill`, `docker stop`, a job's deadline) ends the replay as Ctrl-C does: "replay
+    interrupted", exit 130. It killed the replay without a word (exit -15); as a container's PID 1,
+    which receives no signal it does not handle, it went on replaying until Docker killed it."""
+    log = tmp_path / "long.log"
+    _write_carmen(log, 400)  # 40 s at the nominal rate
+    replaying = subprocess.Popen(
+        [sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "term", "--robot", "r",
+         "--connect", router.endpoint, "--wait-timeout", "20", "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    with reaped(replaying):
+        wait_for(lambda: any(k.startswith("fleetmap/term/") for k, _, _ in router.samples()), 30, 0.05,
+                 "the replay's first scans")  # fmt: skip
+        replaying.send_signal(signal.SIGTERM)
+        out, err = replaying.communicate(timeout=30)
+    assert replaying.returncode == 130, (replaying.returncode, out, err)
+    assert "replay interrupted" in err and "Traceback" not in err, err
+
+
 def test_replay_of_the_intel_log_first_50_scans(router: Router) -> None:
     path = DATASETS_DIR / "intel-corrected.log.gz"
     if not path.exists():

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -119,6 +120,10 @@ def run_replay(args: argparse.Namespace) -> int:
         dataset = load_dataset(args.dataset)
     except (DatasetError, OSError) as exc:
         raise dataset_error(args.dataset, exc) from None
+    # SIGTERM (`kill`, `docker stop`, a job's deadline) stops the replay as Ctrl-C does: it ended it
+    # at once, with no word of it, and as a container's PID 1, which receives no signal it has no
+    # handler for, it went on replaying until Docker killed it 10 s later.
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         result = replay(
             dataset,
@@ -140,6 +145,8 @@ def run_replay(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("replay interrupted", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     pauses = f", paused {result.pauses} times for a lost connection" if result.pauses else ""
     print(
         f"replayed {result.scans} scans of {dataset.name} to map {args.map_id!r} as robot "
@@ -202,8 +209,6 @@ def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
 
 
 def run_sim_command(args: argparse.Namespace) -> int:
-    import signal
-
     from fleetmap.wire import ID_PATTERN, is_valid_id
 
     from .sim import SimError, check_fleet, run_sim
