@@ -162,6 +162,8 @@ def test_demo_whose_service_cannot_start_says_so_without_blaming_the_ports(tmp_p
         # its service ran on another one, or its robots waited for ever to connect to port 0.
         (["--http", "127.0.0.1:0"], "--http 127.0.0.1:0: the demo needs a fixed port, not 0"),
         (["--zenoh", "tcp/127.0.0.1:0"], "--zenoh tcp/127.0.0.1:0: the demo needs a fixed port, not 0"),
+        # Refused by the demo itself, not by its service after the demo started it.
+        (["--http", "8000"], "--http '8000': expected HOST:PORT, e.g. 127.0.0.1:8000"),
     ],
 )
 def test_demo_refuses_a_fleet_it_cannot_run_before_starting_anything(
@@ -189,7 +191,10 @@ def test_demo_serves_beyond_loopback_with_insecure_as_the_refusal_says(tmp_path:
                "--data-dir", str(tmp_path / "data"), "--robots", "1", "--seconds", "0"]  # fmt: skip
     refused = subprocess.run(command, capture_output=True, text=True, timeout=60)
     assert refused.returncode == 2 and "or --insecure to accept that" in refused.stderr, refused.stderr
-    done = subprocess.run([*command, "--insecure"], capture_output=True, text=True, timeout=120)
+    # `:PORT`, all interfaces as `serve --http` takes it: the demo polled and printed `http://:PORT/`,
+    # which nothing answers, and waited for its service until it gave up.
+    command[command.index("--http") + 1] = f":{http}"
+    done = subprocess.run([*command, "--insecure"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stdout + done.stderr
     assert f"open http://0.0.0.0:{http}/#map=demo" in done.stdout, done.stdout
     assert "Traceback" not in done.stderr, done.stderr

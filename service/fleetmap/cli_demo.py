@@ -23,7 +23,7 @@ import httpx
 
 from fleetmap.cli import CliError
 from fleetmap.parent_death import end_with_parent
-from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP
+from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP, parse_http
 from fleetmap.signal_event import SignalEvent
 from fleetmap.wire import DEFAULT_ENDPOINT, is_valid_id
 
@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from fleetmap_client.sim import run_sim
 
     _check_fleet(args)
+    _viewer_url(args.http)  # a bad --http refused before anything starts
     # Another service on these ports would answer /healthz for ours, which would die unseen, and
     # the robots would map into that other service: refuse before starting anything.
     for option, value in (("--http", args.http), ("--zenoh", args.zenoh)):
@@ -85,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     ready = False
     try:
-        url = f"http://{args.http}/"
+        url = _viewer_url(args.http)
         _wait_for_service(service, url, stop)
         if stop.is_set():
             return 0
@@ -117,6 +118,15 @@ def run(args: argparse.Namespace) -> int:
         # at the start, scrolled away since).
         if ready and service.returncode == 0:
             print(f"fleetmap demo: stopped; the map is kept in {args.data_dir}", flush=True)
+
+
+def _viewer_url(http: str) -> str:
+    """The address of the viewer (and of /healthz below it) that `--http` `http` serves, as the
+    service's ready line names it: `:8000` (all interfaces, with --insecure) was polled and printed
+    as `http://:8000/`, which nothing answers, so the demo waited for its service until it gave
+    up. Raises CliError for an address the service would refuse."""
+    host, port = parse_http(http)
+    return f"http://{f'[{host}]' if ':' in host else host}:{port}/"
 
 
 #: The signals that stop the demo cleanly: the robots, then the service (which saves the map).
