@@ -993,6 +993,8 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
         ("--beams", "0", "beams must be 1 to 100000, got 0"),
         ("--beams", "100001", "beams must be 1 to 100000, got 100001"),
         ("--speed", "-1", "speed must be finite and >= 0, got -1.0"),
+        # numpy's "expected non-negative integer", after the banner, naming no option.
+        ("--seed", "-1", "seed must be >= 0, got -1"),
     ]:
         args = [*command, "--map", "m", option, value]
         bad = subprocess.run(args, capture_output=True, text=True, timeout=60)

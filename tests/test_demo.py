@@ -158,6 +158,8 @@ def test_demo_whose_service_cannot_start_says_so_without_blaming_the_ports(tmp_p
         (["--rate", "0"], "--rate must be a number of scans per second above 0, got 0"),
         (["--seconds", "-1"], "--seconds must be 0 or more (or left out: until Ctrl-C), got -1"),
         (["--map", "bad/id"], "--map 'bad/id' is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -"),
+        # Started the service, waited for it, then ended in numpy's traceback.
+        (["--seed", "-1"], "--seed must be 0 or more, got -1"),
         # Port 0 (`serve`'s "any free port"): the demo waited 120 s for an answer on port 0 while
         # its service ran on another one, or its robots waited for ever to connect to port 0.
         (["--http", "127.0.0.1:0"], "--http 127.0.0.1:0: the demo needs a fixed port, not 0"),

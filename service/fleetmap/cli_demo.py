@@ -142,6 +142,8 @@ def _check_fleet(args: argparse.Namespace) -> None:
         raise CliError(f"--rate must be a number of scans per second above 0, got {args.rate:g}")
     if args.seconds is not None and not args.seconds >= 0.0:
         raise CliError(f"--seconds must be 0 or more (or left out: until Ctrl-C), got {args.seconds:g}")
+    if args.seed < 0:  # numpy's traceback, once the service was up ("expected non-negative integer")
+        raise CliError(f"--seed must be 0 or more, got {args.seed}")
     if not is_valid_id(args.map):
         raise CliError(f"--map {args.map!r} is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -")
 

@@ -216,7 +216,7 @@ def run_sim_command(args: argparse.Namespace) -> int:
     if not is_valid_id(args.map_id):
         raise CliError(f"map id {args.map_id!r} must match {ID_PATTERN}")
     try:  # before the line announcing the robots
-        check_fleet(args.robots, args.rate, args.seconds, args.beams, args.speed)
+        check_fleet(args.robots, args.rate, args.seconds, args.beams, args.speed, args.seed)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     # Before the line announcing the robots too, named as options (run_sim checks them again).

@@ -69,12 +69,14 @@ def robot_ids(count: int, prefix: str = "sim") -> list[str]:
 
 
 def check_fleet(
-    robots: int, rate: float, seconds: float | None, beams: int = 1081, speed: float = 1.0
+    robots: int, rate: float, seconds: float | None, beams: int = 1081, speed: float = 1.0, seed: int = 1
 ) -> None:
     """ValueError unless `run_sim` can run `robots` robots at `rate` scans/s for `seconds` (None: no
-    limit), with lidars of `beams` beams, at `speed` m/s: at least one robot, a finite rate above
-    0, seconds not negative, 1 to `MAX_BEAMS` beams (a scan holds no more), a finite speed not
-    negative."""
+    limit), with lidars of `beams` beams, at `speed` m/s, on the floor plan of `seed`: at least one
+    robot, a finite rate above 0, seconds not negative, 1 to `MAX_BEAMS` beams (a scan holds no
+    more), a finite speed not negative, a seed not negative (numpy's generators take no other)."""
+    if seed < 0:  # was numpy's "expected non-negative integer", from inside the floor plan's draw
+        raise ValueError(f"seed must be >= 0, got {seed}")
     if robots < 1:
         raise ValueError(f"robots must be >= 1, got {robots}")
     if not (rate > 0.0 and rate != float("inf")):
@@ -121,7 +123,7 @@ def run_sim(
     None (default): ask nothing. Raises ValueError for bad arguments (e.g. a robot id that `prefix`
     makes invalid, a timeout below 0 or NaN).
     """
-    check_fleet(robots, rate, seconds, beams, speed)
+    check_fleet(robots, rate, seconds, beams, speed, seed)
     check_timeouts(wait_timeout=wait_timeout, confirm_timeout=confirm_timeout)
     stop = stop or threading.Event()
     ids = robot_ids(robots, prefix)
