@@ -202,6 +202,23 @@ def test_demo_serves_beyond_loopback_with_insecure_as_the_refusal_says(tmp_path:
     assert "Traceback" not in done.stderr, done.stderr
 
 
+def test_demo_finds_its_service_whatever_proxy_the_environment_names(tmp_path: Path) -> None:
+    """With HTTP_PROXY set (a company network) and 127.0.0.1 not in NO_PROXY, the demo asked the
+    proxy for its own service's /healthz (a dead one here), and gave up after 120 s on a service
+    that ran."""
+    http, zenoh = free_port(), free_port()
+    proxy = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    env = {key: value for key, value in os.environ.items() if key.lower() != "no_proxy"}
+    env |= {"HTTP_PROXY": proxy, "http_proxy": proxy, "ALL_PROXY": proxy, "all_proxy": proxy}
+    done = subprocess.run(
+        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+         "--data-dir", str(tmp_path / "data"), "--robots", "1", "--seconds", "0"],
+        capture_output=True, text=True, timeout=60, env=env,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"open http://127.0.0.1:{http}/#map=demo" in done.stdout, done.stdout
+
+
 def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:
     http, zenoh = free_port(), free_port()
     demo = subprocess.Popen(

@@ -204,7 +204,10 @@ def _wait_for_service(
                 f"the service exited with code {service.returncode} before it was ready (see its error above)"
             )
         try:
-            if httpx.get(url + "healthz", timeout=1.0).status_code == 200:
+            # Never through a proxy (trust_env=False): the service is this machine's, and with
+            # HTTP_PROXY set and 127.0.0.1 not in NO_PROXY (a company network) every poll went to
+            # the proxy, and the demo gave up on a service that ran.
+            if httpx.get(url + "healthz", timeout=1.0, trust_env=False).status_code == 200:
                 return
         except httpx.TransportError:
             pass
