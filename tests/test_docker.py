@@ -151,8 +151,13 @@ def test_the_image_health_check_follows_the_api_port(tmp_path: Path) -> None:
     command = json.loads(health.split(" CMD ", 1)[1])  # exec form: no shell in between
     assert command == ["python", "-m", "fleetmap.healthcheck"]
 
+    # A proxy for the container's outbound traffic, which cannot reach its 127.0.0.1 (nothing
+    # listens there): the check went through it and failed.
+    proxy = f"http://127.0.0.1:{free_port()}"
+
     def check(pid: int, http: str | None) -> subprocess.CompletedProcess[str]:
-        env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO / "service")}
+        env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO / "service"), "HTTP_PROXY": proxy}
+        env |= {"http_proxy": proxy}
         env |= {"FLEETMAP_HTTP": http} if http is not None else {}
         run = [sys.executable, *command[1:], str(pid)]
         return subprocess.run(run, env=env, capture_output=True, text=True, timeout=30)

@@ -45,8 +45,11 @@ def main(argv: Sequence[str]) -> int:
     """Check the service of process `argv[0]` (default 1); 0 healthy, 1 not, with the reason on stderr."""
     port = api_port(service_command(argv[0] if argv else "1"), os.environ)
     url = f"http://127.0.0.1:{port}/healthz"
+    # No proxy: urlopen's default opener sent the check to $HTTP_PROXY (set in a container for its
+    # outbound traffic), which cannot reach the container's own 127.0.0.1: unhealthy for good.
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
     try:
-        with urllib.request.urlopen(url, timeout=2) as answer:
+        with opener.open(url, timeout=2) as answer:
             return 0 if answer.status == 200 else 1
     except (OSError, ValueError) as exc:  # refused, timed out, an HTTP error status, a bad port
         print(f"fleetmap healthcheck: {url}: {exc}", file=sys.stderr)
