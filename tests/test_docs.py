@@ -106,6 +106,9 @@ def test_no_command_help_shows_a_default_of_none() -> None:
     for command, p in sub.choices.items():
         text = p.format_help()
         assert "default: None" not in text and "(None" not in text, f"fleetmap {command} --help:\n{text}"
+        # An on/off flag's "(default: False)": off unless given, which every flag is. (Help lines
+        # wrap: "(default:" may end one.)
+        assert "default: False" not in " ".join(text.split()), f"fleetmap {command} --help:\n{text}"
 
 
 def test_every_command_help_says_what_the_command_does() -> None:

@@ -30,10 +30,13 @@ from fleetmap.wire import DEFAULT_ENDPOINT, is_valid_id
 
 class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
     """Each option's default in its help, except a None default, which the help itself describes
-    (`--seconds` printed "(default: None)")."""
+    (`--seconds` printed "(default: None)"), and an on/off flag's False (`--insecure`: off unless
+    given, as every flag)."""
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
-        return action.help if action.default is None else super()._get_help_string(action)
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
