@@ -164,6 +164,8 @@ def test_demo_whose_service_cannot_start_says_so_without_blaming_the_ports(tmp_p
         # its service ran on another one, or its robots waited for ever to connect to port 0.
         (["--http", "127.0.0.1:0"], "--http 127.0.0.1:0: the demo needs a fixed port, not 0"),
         (["--zenoh", "tcp/127.0.0.1:0"], "--zenoh tcp/127.0.0.1:0: the demo needs a fixed port, not 0"),
+        # An OverflowError traceback from the demo's check of the port.
+        (["--zenoh", "tcp/127.0.0.1:99999"], "--zenoh tcp/127.0.0.1:99999: port must be at most 65535"),
         # Refused by the demo itself, not by its service after the demo started it.
         (["--http", "8000"], "--http '8000': expected HOST:PORT, e.g. 127.0.0.1:8000"),
     ],

@@ -154,12 +154,14 @@ def _check_fleet(args: argparse.Namespace) -> None:
 def _check_free(option: str, value: str) -> None:
     """Raise CliError if nothing can listen on the address of `option`'s `value` (HOST:PORT, or a
     Zenoh endpoint PROTOCOL/HOST:PORT): something else does, the host is not this machine's, or the
-    port is 0."""
+    port is 0 or past 65535."""
     address = value.split("/", 1)[-1]
     host, _, port = address.rpartition(":")
     host = host.strip("[]") or "127.0.0.1"
     if not port.isdigit():
         return  # the service reports an address it cannot parse itself
+    if int(port) > 65535:  # socket.bind's OverflowError: a traceback
+        raise CliError(f"{option} {value}: port must be at most 65535")
     if int(port) == 0:
         # `serve --http HOST:0` picks a free port, but the demo polls, prints and connects its
         # robots to the port it was given: with 0 it waited 120 s for an answer on port 0 (or its
