@@ -166,6 +166,13 @@ def test_demo_whose_service_cannot_start_says_so_without_blaming_the_ports(tmp_p
         (["--zenoh", "tcp/127.0.0.1:0"], "--zenoh tcp/127.0.0.1:0: the demo needs a fixed port, not 0"),
         # An OverflowError traceback from the demo's check of the port.
         (["--zenoh", "tcp/127.0.0.1:99999"], "--zenoh tcp/127.0.0.1:99999: port must be at most 65535"),
+        # Not this machine's address (TEST-NET-1): "is another fleetmap service running?" sent the
+        # user after a service that was not there.
+        (
+            ["--http", "192.0.2.1:8000"],
+            "cannot listen on 192.0.2.1:8000: Cannot assign requested address (the demo's service runs on "
+            "this machine: give --http one of its addresses and a port it may use, e.g. 127.0.0.1:8001)",
+        ),
         # Refused by the demo itself, not by its service after the demo started it.
         (["--http", "8000"], "--http '8000': expected HOST:PORT, e.g. 127.0.0.1:8000"),
     ],

@@ -9,6 +9,7 @@ in this process and publish over Zenoh in client mode, as real robots would.
 from __future__ import annotations
 
 import argparse
+import errno
 import functools
 import math
 import os
@@ -176,6 +177,15 @@ def _check_free(option: str, value: str) -> None:
         try:
             probe.bind((host, int(port)))
         except OSError as exc:
+            if exc.errno != errno.EADDRINUSE:
+                # A host that is not this machine's (EADDRNOTAVAIL), a name that does not resolve,
+                # a port it may not use: "is another fleetmap service running?" sent the user
+                # after a service that was not there.
+                raise CliError(
+                    f"cannot listen on {address}: {exc.strerror or exc} (the demo's service runs on "
+                    f"this machine: give {option} one of its addresses and a port it may use, e.g. "
+                    f"{'127.0.0.1:8001' if option == '--http' else 'tcp/127.0.0.1:7448'})"
+                ) from None
             # `make demo` is how the README starts it, and `make demo --http ...` is make's own
             # option error: say how make passes them on.
             # Another demo or `fleetmap serve` started in this folder also holds ./fleetmap-data,
