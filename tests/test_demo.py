@@ -226,6 +226,9 @@ def test_demo_finds_its_service_whatever_proxy_the_environment_names(tmp_path: P
     )  # fmt: skip
     assert done.returncode == 0, done.stdout + done.stderr
     assert f"open http://127.0.0.1:{http}/#map=demo" in done.stdout, done.stdout
+    # One robot, in the singular ("to watch 1 robots", "1 robots published 0 scans").
+    assert "to watch 1 robot map a floor plan" in done.stdout, done.stdout
+    assert "fleetmap demo: 1 robot published 0 scans (0 dropped)" in done.stdout, done.stdout
 
 
 def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:

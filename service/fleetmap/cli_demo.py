@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
         if stop.is_set():
             return 0
         ready = True
-        print(f"\nfleetmap demo: open {url}#map={args.map} to watch {args.robots} robots map a floor plan")
+        fleet = _count(args.robots, "robot")
+        print(f"\nfleetmap demo: open {url}#map={args.map} to watch {fleet} map a floor plan")
         print(
             f"  (Ctrl-C stops the robots and the service; the map is kept in {args.data_dir})\n", flush=True
         )
@@ -106,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
             connect=[args.zenoh], stop=stop,
         )  # fmt: skip
         sent, dropped = sum(result.published.values()), sum(result.dropped.values())
-        print(f"fleetmap demo: {len(result.robots)} robots published {sent} scans ({dropped} dropped)")
+        robots = _count(len(result.robots), "robot")
+        print(f"fleetmap demo: {robots} published {_count(sent, 'scan')} ({dropped} dropped)")
         if service.poll() is not None:
             raise CliError(f"the service stopped unexpectedly (exit code {service.returncode}); see above")
         return 0
@@ -122,6 +124,11 @@ def run(args: argparse.Namespace) -> int:
         # at the start, scrolled away since).
         if ready and service.returncode == 0:
             print(f"fleetmap demo: stopped; the map is kept in {args.data_dir}", flush=True)
+
+
+def _count(number: int, noun: str) -> str:
+    """`number` and `noun`, plural but for 1: "1 robots published 1 scans" (as `fleetmap sim` says)."""
+    return f"{number} {noun}{'' if number == 1 else 's'}"
 
 
 def _viewer_url(http: str) -> str:
