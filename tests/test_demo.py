@@ -5,13 +5,17 @@ with its simulated robots over Zenoh, stop the robots and the service cleanly, a
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import shutil
 import signal
 import socket
 import subprocess
+import sys
+import threading
 import time
+import types
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,6 +23,7 @@ import httpx
 import pytest
 from service_process import REPO_DIR, ServiceProcess, fleetmap_command, free_port, reaped
 
+from fleetmap import cli_demo
 from fleetmap.database import DataDirLock
 
 
@@ -229,6 +234,39 @@ def test_demo_finds_its_service_whatever_proxy_the_environment_names(tmp_path: P
     # One robot, in the singular ("to watch 1 robots", "1 robots published 0 scans").
     assert "to watch 1 robot map a floor plan" in done.stdout, done.stdout
     assert "fleetmap demo: 1 robot published 0 scans (0 dropped)" in done.stdout, done.stdout
+
+
+def test_demo_waits_for_a_slow_first_start_as_long_as_its_service_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A first start compiles the kernels, a minute or two on a busy machine and several on a small
+    board: the demo gave up after a fixed 120 s, and killed the service with its compile. It now
+    waits while the service runs, saying so now and then. The service here is a stand-in that
+    answers `/healthz` after 1.5 s, and the demo's clock runs 100 s per look (with the stand-in,
+    what a real slow start would take minutes to show, which the test run cannot spend)."""
+    (tmp_path / "healthz").write_text("ok")
+    port = free_port()
+    server = subprocess.Popen(
+        [
+            sys.executable, "-c",
+            "import functools, http.server, sys, time; time.sleep(1.5); http.server.ThreadingHTTPServer("
+            "('127.0.0.1', int(sys.argv[1])), functools.partial(http.server.SimpleHTTPRequestHandler, "
+            "directory=sys.argv[2])).serve_forever()",
+            str(port), str(tmp_path),
+        ],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    clock = itertools.count(0.0, 100.0)
+    fast = types.SimpleNamespace(monotonic=lambda: next(clock), sleep=time.sleep)
+    monkeypatch.setattr(cli_demo, "time", fast)
+    try:
+        cli_demo._wait_for_service(server, f"http://127.0.0.1:{port}/", threading.Event())
+        assert server.poll() is None  # it answered, and runs on
+    finally:
+        server.kill()
+        server.wait()
+    out = capsys.readouterr().out
+    assert "fleetmap demo: still waiting for the service to answer" in out, out
 
 
 def test_demo_stops_when_its_service_dies(tmp_path: Path) -> None:

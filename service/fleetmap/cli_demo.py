@@ -214,10 +214,17 @@ def _watch(service: subprocess.Popen, stop: threading.Event) -> None:
         time.sleep(0.5)
 
 
-def _wait_for_service(
-    service: subprocess.Popen, url: str, stop: threading.Event, timeout: float = 120.0
-) -> None:
-    deadline = time.monotonic() + timeout
+#: Seconds between the demo's reminders that it still waits for its service to answer.
+WAIT_NOTE_S = 30.0
+
+
+def _wait_for_service(service: subprocess.Popen, url: str, stop: threading.Event) -> None:
+    """Until the service answers `/healthz` at `url`, `stop` is set, or the service exits (CliError).
+    No time limit while it runs: a first start compiles the kernels (a minute or two on a busy
+    machine, several on a small board), and a restart restores every stored map; a fixed 120 s gave
+    up on such a start and killed it, compile and all. It says every WAIT_NOTE_S that it waits, and
+    Ctrl-C stops it, as always."""
+    noted = time.monotonic()
     while not stop.is_set():
         if service.poll() is not None:
             # Its ports were free a moment ago (`_check_free`): the service said why on the line
@@ -233,6 +240,11 @@ def _wait_for_service(
                 return
         except httpx.TransportError:
             pass
-        if time.monotonic() > deadline:
-            raise CliError(f"the service did not answer at {url} within {timeout:.0f} s")
+        if time.monotonic() - noted >= WAIT_NOTE_S:
+            noted = time.monotonic()
+            print(
+                f"fleetmap demo: still waiting for the service to answer at {url} (a first start "
+                "compiles its kernels; Ctrl-C stops)",
+                flush=True,
+            )
         time.sleep(0.2)
