@@ -545,6 +545,14 @@ def test_the_client_casts_rays(service: ServiceProcess) -> None:
             fm.raycast("client", (0.0, 0.0), [math.inf], 1.0)
         with pytest.raises(ValueError, match="pair"):
             fm.raycast("client", (0.0, 0.0, 0.0), [0.0], 1.0)
+        # Angles of two dimensions are refused, as the engine refuses them: not flattened into 6 rays
+        # and paired with 6 origins in an order the caller never chose.
+        with pytest.raises(ValueError, match="one-dimensional"):
+            gmap.cast_rays((0.0, 0.0), np.zeros((2, 3)), 1.0)
+        with pytest.raises(ValueError, match="one-dimensional"):
+            fm.raycast("client", (0.0, 0.0), np.zeros((2, 3)), 1.0)
+        with pytest.raises(ValueError, match="one-dimensional"):
+            fm.raycast("client", np.zeros((6, 2)), np.zeros((2, 3)), 1.0)
         with pytest.raises(FleetmapError) as err:
             fm.raycast("nothing-here", (0.0, 0.0), [0.0], 1.0)
         assert err.value.status == 404

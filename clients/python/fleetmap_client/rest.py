@@ -619,7 +619,8 @@ class FleetmapClient:
         Returns one NumPy array per field, one entry per angle in order: `status` (str: "occupied",
         "unknown", "max_range"), `range` (float64, metres to where the ray enters that cell: 0 for
         the origin's own cell, `max_range` when nothing stopped it), `x`, `y` (float64, that point),
-        `i`, `j` (int64, the cell). ValueError for a non-finite or malformed argument before any request.
+        `i`, `j` (int64, the cell). ValueError for a non-finite or malformed argument (angles of more
+        than one dimension among them, as the engine refuses them) before any request.
 
         Any number of rays: past what the service casts in one request (`MAX_RAYS`, 10 000 rays,
         and `MAX_RAY_WALK`, 2**24 cells of rays x `max_range`), they are cast in several requests,
@@ -632,7 +633,12 @@ class FleetmapClient:
         starts = np.asarray(origin, dtype=np.float64)
         if starts.shape != (2,) and not (starts.ndim == 2 and starts.shape[1] == 2):
             raise ValueError(f"origin must be an (x, y) pair, or one per angle, not {origin!r}")
-        rays = np.asarray(angles, dtype=np.float64).reshape(-1)
+        rays = np.asarray(angles, dtype=np.float64)
+        # Refused as the engine refuses it: flattened, a (2, 3) array was cast as 6 rays, paired with
+        # 6 origins in an order the caller never chose.
+        if rays.ndim > 1:
+            raise ValueError(f"angles must be a number or a one-dimensional sequence; got shape {rays.shape}")
+        rays = rays.reshape(-1)
         if not np.isfinite(rays).all():
             raise ValueError("angles must be finite numbers (radians)")
         if starts.ndim == 2 and len(starts) != len(rays):
