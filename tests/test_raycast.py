@@ -553,6 +553,20 @@ def test_the_client_casts_rays(service: ServiceProcess) -> None:
             fm.raycast("client", (0.0, 0.0), np.zeros((2, 3)), 1.0)
         with pytest.raises(ValueError, match="one-dimensional"):
             fm.raycast("client", np.zeros((6, 2)), np.zeros((2, 3)), 1.0)
+        # No rays answer no rays, as the engine does (the service, 1 to 10 000 a request, refuses
+        # none: it is not asked); a range that is not positive is refused before any request.
+        none = fm.raycast("client", (0.4, -0.3), [], 8.0)
+        empty = gmap.cast_rays((0.4, -0.3), [], 8.0)
+        assert set(none) == {"status", "range", "x", "y", "i", "j"}
+        for name in ("range", "x", "y", "i", "j"):
+            assert none[name].shape == (0,) and none[name].dtype == getattr(empty, name).dtype
+        assert none["status"].shape == (0,) and none["status"].dtype.kind == "U"
+        assert fm.raycast("client", np.zeros((0, 2)), np.zeros(0), 8.0)["range"].shape == (0,)
+        for bad_range in (0.0, -1.0):
+            with pytest.raises(ValueError, match="max_range must be a positive"):
+                fm.raycast("client", (0.0, 0.0), [0.0], bad_range)
+            with pytest.raises(ValueError, match="max_range must be a positive"):
+                fm.raycast("client", (0.0, 0.0), [], bad_range)
         with pytest.raises(FleetmapError) as err:
             fm.raycast("nothing-here", (0.0, 0.0), [0.0], 1.0)
         assert err.value.status == 404

@@ -620,14 +620,16 @@ class FleetmapClient:
         "unknown", "max_range"), `range` (float64, metres to where the ray enters that cell: 0 for
         the origin's own cell, `max_range` when nothing stopped it), `x`, `y` (float64, that point),
         `i`, `j` (int64, the cell). ValueError for a non-finite or malformed argument (angles of more
-        than one dimension among them, as the engine refuses them) before any request.
+        than one dimension among them, as the engine refuses them) or a `max_range` that is not
+        positive, before any request.
 
         Any number of rays: past what the service casts in one request (`MAX_RAYS`, 10 000 rays,
         and `MAX_RAY_WALK`, 2**24 cells of rays x `max_range`), they are cast in several requests,
         in order, each at its own moment (scans may land between them); for the second limit the
         client reads the map's resolution first (one `GET /maps/{map_id}`), only when the rays
         might pass it. A `max_range` over 20 000 cells, a limit of each ray, answers 413 as
-        `FleetmapError`: cast shorter rays.
+        `FleetmapError`: cast shorter rays. No angles at all answer empty arrays, as the engine
+        does, without a request (the service casts 1 to 10 000 rays a request).
         """
         _check_id("map_id", map_id)
         starts = np.asarray(origin, dtype=np.float64)
@@ -646,8 +648,14 @@ class FleetmapClient:
         if not np.isfinite(starts).all():
             raise ValueError(f"coordinates must be finite, got origin {origin!r}")
         max_range = _finite(max_range)
+        if max_range <= 0:
+            raise ValueError(f"max_range must be a positive number of metres, got {max_range!r}")
         if unknown not in ("stop", "pass"):
             raise ValueError(f"unknown must be 'stop' or 'pass', not {unknown!r}")
+        if len(rays) == 0:
+            # The engine answers no rays with empty arrays; the service casts 1 to MAX_RAYS a request
+            # and refuses none (422), which a caller casting a filtered set of rays would meet.
+            return _no_rays()
         per_request = MAX_RAYS
         # The service walks at most MAX_RAY_WALK cells a request, rays x max_range in cells, and the
         # client knows the cells only from the map's resolution: read it only when the rays could
@@ -880,6 +888,18 @@ class FleetmapClient:
 _MIN_RESOLUTION: float = next(
     float(m.gt) for m in MapConfig.model_fields["resolution"].metadata if getattr(m, "gt", None) is not None
 )
+
+
+def _no_rays() -> dict[str, np.ndarray]:
+    """What `FleetmapClient.raycast` answers for no rays: its fields, each empty, of their dtypes."""
+    return {
+        "status": np.array([], dtype=str),
+        "range": np.array([], dtype=np.float64),
+        "x": np.array([], dtype=np.float64),
+        "y": np.array([], dtype=np.float64),
+        "i": np.array([], dtype=np.int64),
+        "j": np.array([], dtype=np.int64),
+    }
 
 
 def _in_parts(
