@@ -316,6 +316,14 @@ def test_cells_reads_only_x_y_pairs() -> None:
     one = gmap.cells([2.51, 0.5])
     assert one["known"].tolist() == [True] and one["hits"].tolist() == [1]
     assert gmap.cells(np.zeros((0, 2)))["known"].shape == (0,)
+    assert gmap.cells([])["known"].shape == (0,)
+    # An empty array of another shape is not "no points": [[]] is one point without coordinates, an
+    # (n, 0) array n of them; read as none, the answer had 0 entries where the caller counted on n.
+    for shape in [(1, 0), (5, 0), (0, 3), (0, 0), (0, 2, 2)]:
+        with pytest.raises(ValueError, match=re.escape(f"shape (n, 2); got shape {shape}")):
+            gmap.cells(np.zeros(shape))
+    with pytest.raises(ValueError, match=r"got shape \(1, 0\)"):
+        gmap.cells([[]])
     with np.errstate(all="raise"):
         far = gmap.cells([[1e300, -1e300], [2.51, 0.5]])
     assert far["known"].tolist() == [False, True]

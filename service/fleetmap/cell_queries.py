@@ -54,13 +54,16 @@ def cell_edge(index: int, resolution: float) -> float:
 
 def as_points(points: Points) -> np.ndarray:
     """Map points as a float64 array of shape (n, 2); one (x, y) pair alone is one point, an empty
-    sequence none. Raises ValueError for any other shape (an (n, 3) array is not read as 3n/2
-    points), for values that are not numbers, and for a coordinate that is not finite."""
+    sequence (or an array of shape (0, 2)) none. Raises ValueError for any other shape (an (n, 3)
+    array is not read as 3n/2 points, nor `[[]]` or an (n, 0) array as no points), for values that
+    are not numbers, and for a coordinate that is not finite."""
     try:
         pts = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"points must be (x, y) pairs of numbers: {exc}") from None
-    if pts.size == 0:
+    # Only these are "no points": `[[]]` is one point without coordinates, and an (n, 0) array n of
+    # them; read as none, the answer had 0 entries where the caller counted on n.
+    if pts.shape in ((0,), (0, 2)):
         return pts.reshape(0, 2)
     if pts.shape == (2,):
         pts = pts.reshape(1, 2)
