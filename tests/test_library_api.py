@@ -324,6 +324,17 @@ def test_cells_reads_only_x_y_pairs() -> None:
             gmap.cells(np.zeros(shape))
     with pytest.raises(ValueError, match=r"got shape \(1, 0\)"):
         gmap.cells([[]])
+    # Two points written x + yj were read as the one point (x1, x2), numpy dropping the imaginary
+    # parts with a warning only; rays' angles given as unit complex directions, as their cosines.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for complex_points in (np.array([2.51 + 0.5j, 3.0 + 0.5j]), np.array([[2.51 + 0j, 0.5]])):
+            with pytest.raises(ValueError, match="complex"):
+                gmap.cells(complex_points)
+        with pytest.raises(ValueError, match="angles must be numbers"):
+            gmap.cast_rays((0.0, 0.0), np.exp(1j * np.array([0.0, 1.0])), 1.0)
+        with pytest.raises(ValueError, match="origin must be an"):
+            gmap.cast_rays(np.array([1.0 + 0j, 0.5]), [0.0], 1.0)
     with np.errstate(all="raise"):
         far = gmap.cells([[1e300, -1e300], [2.51, 0.5]])
     assert far["known"].tolist() == [False, True]

@@ -553,6 +553,13 @@ def test_the_client_casts_rays(service: ServiceProcess) -> None:
             fm.raycast("client", (0.0, 0.0), np.zeros((2, 3)), 1.0)
         with pytest.raises(ValueError, match="one-dimensional"):
             fm.raycast("client", np.zeros((6, 2)), np.zeros((2, 3)), 1.0)
+        # Complex numbers are refused, not cut to their real parts (with numpy's warning only).
+        with pytest.raises(ValueError, match="complex"):
+            fm.raycast("client", (0.0, 0.0), np.exp(1j * angles), 1.0)
+        with pytest.raises(ValueError, match="complex"):
+            fm.raycast("client", np.array([0.4 + 0j, -0.3]), [0.0], 1.0)
+        with pytest.raises(ValueError, match="complex"):
+            fm.cells("client", np.array([0.4 - 0.3j, 1.0 + 0.5j]))
         # No rays answer no rays, as the engine does (the service, 1 to 10 000 a request, refuses
         # none: it is not asked); a range that is not positive is refused before any request.
         none = fm.raycast("client", (0.4, -0.3), [], 8.0)

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
+import numpy.typing as npt
 
 #: Map points as `GridMap.cells` (and the REST client's `cells`) take them: (x, y) pairs, shape
 #: (n, 2), or one pair alone (one point).
@@ -52,13 +53,24 @@ def cell_edge(index: int, resolution: float) -> float:
     return round(index * resolution, 9)
 
 
+def float_array(values: npt.ArrayLike) -> np.ndarray:
+    """`values` as a float64 array, as `np.asarray(values, dtype=np.float64)`, but ValueError for
+    complex numbers: numpy drops their imaginary parts with a warning only, so two points written
+    x + yj, an array of shape (2,), were read as the one point (x1, x2), and directions as unit
+    complex numbers as angles equal to their cosines. Raises what `np.asarray` raises otherwise."""
+    if np.iscomplexobj(values):
+        raise ValueError("got complex numbers, whose imaginary parts would be dropped: give real ones")
+    return np.asarray(values, dtype=np.float64)
+
+
 def as_points(points: Points) -> np.ndarray:
     """Map points as a float64 array of shape (n, 2); one (x, y) pair alone is one point, an empty
     sequence (or an array of shape (0, 2)) none. Raises ValueError for any other shape (an (n, 3)
     array is not read as 3n/2 points, nor `[[]]` or an (n, 0) array as no points), for values that
-    are not numbers, and for a coordinate that is not finite."""
+    are not numbers (complex ones too: two points x + yj are not the pair of their real parts), and
+    for a coordinate that is not finite."""
     try:
-        pts = np.asarray(points, dtype=np.float64)
+        pts = float_array(points)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"points must be (x, y) pairs of numbers: {exc}") from None
     # Only these are "no points": `[[]]` is one point without coordinates, and an (n, 0) array n of
@@ -90,4 +102,5 @@ __all__ = [
     "UnknownCells",
     "as_points",
     "cell_edge",
+    "float_array",
 ]

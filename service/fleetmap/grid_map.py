@@ -35,6 +35,7 @@ from fleetmap.cell_queries import Points as Points
 from fleetmap.cell_queries import UnknownCells
 from fleetmap.cell_queries import as_points as as_points
 from fleetmap.cell_queries import cell_edge as cell_edge
+from fleetmap.cell_queries import float_array as float_array
 from fleetmap.config import MAX_COORDINATE, LayerName, MapConfig
 from fleetmap.kernels import integrate_scan
 from fleetmap.kernels.raycast import cast_rays
@@ -477,7 +478,7 @@ class GridMap:
         `MAX_RAY_WALK`; `LayerUnavailableError` for a map that keeps neither the occupancy nor the
         counts layer. Reads under the map's lock, from the tiles themselves (no copy)."""
         try:
-            a = np.asarray(angles, dtype=np.float64)
+            a = float_array(angles)
         except (TypeError, ValueError):
             raise ValueError(f"angles must be numbers (radians), not {angles!r}") from None
         if a.ndim > 1:
@@ -607,7 +608,7 @@ def _ray_origins(
     per ray). ValueError unless `origin` is one (x, y) pair or `rays` of them (shape (rays, 2)),
     each two finite numbers within +-1e7 m."""
     try:
-        o = np.asarray(origin, dtype=np.float64)
+        o = float_array(origin)
     except (TypeError, ValueError):
         raise ValueError(f"origin must be an (x, y) pair of numbers or one per ray, not {origin!r}") from None
     if o.shape != (2,) and not (o.ndim == 2 and o.shape[1] == 2):

@@ -59,7 +59,7 @@ from fleetmap.api_models import (
     ScanResult,
     Surface,
 )
-from fleetmap.cell_queries import MAX_RAY_WALK, MAX_RAYS, Points, UnknownCells, as_points
+from fleetmap.cell_queries import MAX_RAY_WALK, MAX_RAYS, Points, UnknownCells, as_points, float_array
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.scan import Scan
@@ -632,10 +632,10 @@ class FleetmapClient:
         does, without a request (the service casts 1 to 10 000 rays a request).
         """
         _check_id("map_id", map_id)
-        starts = np.asarray(origin, dtype=np.float64)
+        starts = float_array(origin)
         if starts.shape != (2,) and not (starts.ndim == 2 and starts.shape[1] == 2):
             raise ValueError(f"origin must be an (x, y) pair, or one per angle, not {origin!r}")
-        rays = np.asarray(angles, dtype=np.float64)
+        rays = float_array(angles)
         # Refused as the engine refuses it: flattened, a (2, 3) array was cast as 6 rays, paired with
         # 6 origins in an order the caller never chose.
         if rays.ndim > 1:
