@@ -335,6 +335,16 @@ def test_cells_reads_only_x_y_pairs() -> None:
             gmap.cast_rays((0.0, 0.0), np.exp(1j * np.array([0.0, 1.0])), 1.0)
         with pytest.raises(ValueError, match="origin must be an"):
             gmap.cast_rays(np.array([1.0 + 0j, 0.5]), [0.0], 1.0)
+    # An int beyond float's range raised OverflowError, which is no ValueError: past the errors
+    # these calls document.
+    with pytest.raises(ValueError, match="pairs of numbers"):
+        gmap.cells([[10**400, 0.5]])
+    with pytest.raises(ValueError, match="angles must be numbers"):
+        gmap.cast_rays((0.0, 0.0), [10**400], 1.0)
+    with pytest.raises(ValueError, match="origin must be an"):
+        gmap.cast_rays((10**400, 0.0), [0.0], 1.0)
+    with pytest.raises(ValueError, match="max_range must be a positive finite number"):
+        gmap.cast_rays((0.0, 0.0), [0.0], 10**400)
     with np.errstate(all="raise"):
         far = gmap.cells([[1e300, -1e300], [2.51, 0.5]])
     assert far["known"].tolist() == [False, True]

@@ -560,6 +560,15 @@ def test_the_client_casts_rays(service: ServiceProcess) -> None:
             fm.raycast("client", np.array([0.4 + 0j, -0.3]), [0.0], 1.0)
         with pytest.raises(ValueError, match="complex"):
             fm.cells("client", np.array([0.4 - 0.3j, 1.0 + 0.5j]))
+        # So are ints beyond float's range (OverflowError, no ValueError, escaped), before any request.
+        huge = 10**400
+        for args in [((huge, 0.0), [0.0], 1.0), ((0.0, 0.0), [huge], 1.0), ((0.0, 0.0), [0.0], huge)]:
+            with pytest.raises(ValueError):
+                fm.raycast("client", *args)  # type: ignore[arg-type]
+        with pytest.raises(ValueError):
+            fm.cells("client", [[huge, 0.0]])
+        with pytest.raises(ValueError, match="finite"):
+            fm.cell("client", huge, 0.0)
         # No rays answer no rays, as the engine does (the service, 1 to 10 000 a request, refuses
         # none: it is not asked); a range that is not positive is refused before any request.
         none = fm.raycast("client", (0.4, -0.3), [], 8.0)

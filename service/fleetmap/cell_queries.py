@@ -57,10 +57,15 @@ def float_array(values: npt.ArrayLike) -> np.ndarray:
     """`values` as a float64 array, as `np.asarray(values, dtype=np.float64)`, but ValueError for
     complex numbers: numpy drops their imaginary parts with a warning only, so two points written
     x + yj, an array of shape (2,), were read as the one point (x1, x2), and directions as unit
-    complex numbers as angles equal to their cosines. Raises what `np.asarray` raises otherwise."""
+    complex numbers as angles equal to their cosines; and ValueError, not OverflowError (no
+    ValueError, so past the callers' documented errors), for an int beyond float's range. Raises what
+    `np.asarray` raises otherwise."""
     if np.iscomplexobj(values):
         raise ValueError("got complex numbers, whose imaginary parts would be dropped: give real ones")
-    return np.asarray(values, dtype=np.float64)
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except OverflowError:
+        raise ValueError("got an integer beyond the range of a float") from None
 
 
 def as_points(points: Points) -> np.ndarray:

@@ -489,7 +489,10 @@ class GridMap:
         ox, oy = _ray_origins(origin, a.size)
         if not np.isfinite(a).all():
             raise ValueError("angles must be finite numbers (radians)")
-        max_range = float(max_range)
+        try:
+            max_range = float(max_range)
+        except OverflowError:  # an int past float's range: not finite either
+            max_range = math.inf
         if not (math.isfinite(max_range) and max_range > 0):
             raise ValueError(f"max_range must be a positive finite number of metres, got {max_range}")
         cells = max_range / self.resolution

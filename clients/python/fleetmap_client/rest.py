@@ -1042,7 +1042,12 @@ def _scan_not_taken(exc: BaseException) -> bool:
 
 
 def _finite(value: float) -> float:
-    v = float(value)
+    """`value` as a float; ValueError unless it is a finite number (an int beyond float's range too,
+    which float() refuses with OverflowError)."""
+    try:
+        v = float(value)
+    except OverflowError:
+        raise ValueError("coordinates must be finite, got an integer beyond the range of a float") from None
     if not math.isfinite(v):
         raise ValueError(f"coordinates must be finite, got {value!r}")
     return v
