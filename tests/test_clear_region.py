@@ -10,7 +10,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from fleetmap_client.rest import FleetmapClient, FleetmapError
+from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged
 from service_process import ServiceProcess
 
 from fleetmap.api_models import RegionCleared, tile_windows
@@ -181,18 +181,18 @@ def test_delete_region_over_http_is_journaled_and_survives_a_crash(tmp_path: Pat
         assert client.get_map("m").stats.scans_integrated == 10
 
         # If-Match: another map's tag is a 412 and nothing changes; the map's own passes (below).
+        # The client's clear_region sends it as its other writes do (it had no if_match at all).
         info, etag = client.get_map_and_etag("m")
-        with httpx.Client(base_url=svc.base_url, headers={"Authorization": f"Bearer {WRITE}"}) as http:
-            stale = http.delete("/maps/m/region", params=box, headers={"If-Match": '"map-0"'})
-            assert stale.status_code == 412 and stale.headers["etag"] == etag, stale.text
-            # The database's layout is raised before the first cleared window's row, not before:
-            # until a region is cleared, an older fleetmap can still open the directory.
-            assert _layout(tmp_path / "data") == BASE_LAYOUT
-            version = client.get_map("m").stats.version
-            answer = http.delete("/maps/m/region", params=box, headers={"If-Match": etag})
-            assert answer.status_code == 200, answer.text
+        with pytest.raises(MapChanged) as stale:
+            client.clear_region("m", *box.values(), if_match='"map-0"')
+        assert stale.value.status == 412 and stale.value.etag == etag
+        # The database's layout is raised before the first cleared window's row, not before:
+        # until a region is cleared, an older fleetmap can still open the directory.
+        assert _layout(tmp_path / "data") == BASE_LAYOUT
+        version = client.get_map("m").stats.version
+        result = client.clear_region("m", *box.values(), if_match=etag)
+        assert isinstance(result, RegionCleared)
         assert _layout(tmp_path / "data") == CLEARED_WINDOWS_LAYOUT
-        result = RegionCleared.model_validate_json(answer.content)
         assert info.stats.version == version
         assert result.window == [WINDOW.i0, WINDOW.j0, WINDOW.i1, WINDOW.j1]
         assert (result.cells_cleared, result.changed_tiles) == (cells, tiles) and cells > 1000

@@ -721,13 +721,22 @@ class FleetmapClient:
         ox, oy = (float(v) for v in response.headers["X-Fleetmap-Origin"].split(","))
         return array, (i0, j0, i1, j1), (ox, oy)
 
-    def clear_region(self, map_id: str, xmin: float, ymin: float, xmax: float, ymax: float) -> RegionCleared:
+    def clear_region(
+        self, map_id: str, xmin: float, ymin: float, xmax: float, ymax: float, *, if_match: str | None = None
+    ) -> RegionCleared:
         """`DELETE /maps/{map_id}/region`: make the cells with index in [floor(xmin/res),
         floor(xmax/res)) x [floor(ymin/res), floor(ymax/res)) unknown again in every layer, as before
         any scan, and return once the server has stored that. `FleetmapError` 404 for no such map,
-        422 for an empty window, 503 if the cells were cleared but that could not be stored yet."""
+        422 for an empty window, 503 if the cells were cleared but that could not be stored yet.
+        `if_match`: clear only in the map of that ETag (`get_map_and_etag`); `MapChanged` (412,
+        nothing cleared) if the map is another one by now, as for the other writes of a map."""
         _check_id("map_id", map_id)
-        response = self._request("DELETE", f"/maps/{map_id}/region", params=_bounds(xmin, ymin, xmax, ymax))
+        response = self._request(
+            "DELETE",
+            f"/maps/{map_id}/region",
+            params=_bounds(xmin, ymin, xmax, ymax),
+            headers=_conditions(if_match),
+        )
         return RegionCleared.model_validate_json(response.content)
 
     def region_png(
