@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import sqlite3
 from pathlib import Path
 
@@ -175,6 +176,15 @@ def test_delete_region_over_http_is_journaled_and_survives_a_crash(tmp_path: Pat
         with pytest.raises(FleetmapError) as empty:
             client.clear_region("m", 1.0, 1.0, 1.0, 2.0)
         assert empty.value.status == 422 and "holds no cell" in empty.value.detail
+        # A bound that is not a finite number is the client's ValueError before any request (an int
+        # past float's range raised OverflowError; NaN went out, to come back as a 422).
+        for bad in (math.nan, math.inf, 10**400):
+            with pytest.raises(ValueError, match="finite"):
+                client.clear_region("m", 0.0, 0.0, bad, 1.0)
+            with pytest.raises(ValueError, match="finite"):
+                client.region("m", bad, 0.0, 1.0, 1.0)
+            with pytest.raises(ValueError, match="finite"):
+                client.surface("m", 0.0, 0.0, 1.0, bad)
         with pytest.raises(FleetmapError) as missing:
             client.clear_region("no-such-map", 0.0, 0.0, 1.0, 1.0)
         assert missing.value.status == 404

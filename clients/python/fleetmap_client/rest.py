@@ -227,12 +227,14 @@ def _check_since(since: int | None) -> int | None:
 def _bounds(
     xmin: float | None, ymin: float | None, xmax: float | None, ymax: float | None
 ) -> dict[str, float]:
-    """Query parameters of a window: all four bounds, or none (the map's observed extent)."""
+    """Query parameters of a window: all four bounds, or none (the map's observed extent).
+    ValueError for a bound that is not a finite number, before any request, as `cell` refuses a
+    point (float() of an int past float's range raised OverflowError, no ValueError)."""
     if xmin is None or ymin is None or xmax is None or ymax is None:
         if any(b is not None for b in (xmin, ymin, xmax, ymax)):
             raise ValueError("give all of xmin, ymin, xmax and ymax, or none of them (the observed extent)")
         return {}
-    return {"xmin": float(xmin), "ymin": float(ymin), "xmax": float(xmax), "ymax": float(ymax)}
+    return {"xmin": _finite(xmin), "ymin": _finite(ymin), "xmax": _finite(xmax), "ymax": _finite(ymax)}
 
 
 def _read_chunks(fp: IO[bytes]) -> Iterator[bytes]:
