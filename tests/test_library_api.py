@@ -388,10 +388,11 @@ def test_logit_of_what_is_not_a_probability_says_so(p: float) -> None:
     assert fleetmap.probability(fleetmap.logit(0.7)) == pytest.approx(0.7)
 
 
-@pytest.mark.parametrize("point", [(math.inf, 0.0), (0.0, -math.inf), (math.nan, 1.0)])
+@pytest.mark.parametrize("point", [(math.inf, 0.0), (0.0, -math.inf), (math.nan, 1.0), (0, -(10**400))])
 def test_cell_index_of_a_point_that_is_not_finite_is_a_value_error(point: tuple[float, float]) -> None:
     """`cell_index(inf, 0)` raised math.floor's OverflowError ('cannot convert float infinity to
-    integer'), not the ValueError `cells` raises for such a point."""
+    integer'), not the ValueError `cells` raises for such a point; an int past float's range,
+    math.isfinite's OverflowError ('int too large to convert to float')."""
     with pytest.raises(ValueError, match="a point must be finite numbers"):
         GridMap().cell_index(*point)
     assert GridMap().cell_index(-1e-12, 0.07) == (-1, 1)

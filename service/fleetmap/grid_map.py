@@ -278,9 +278,14 @@ class GridMap:
         """The cell containing map point (x, y): `floor(x / res)`, `floor(y / res)` in double precision,
         as the integration computes it. A point on a cell edge written in decimal (0.15 at 0.05) is
         not exact in binary and may fall in either neighbouring cell. ValueError for a coordinate
-        that is not finite (as `cells` refuses one: math.floor raised OverflowError for inf)."""
-        if not (math.isfinite(x) and math.isfinite(y)):
-            raise ValueError(f"a point must be finite numbers, got ({x!r}, {y!r})")
+        that is not finite (as `cells` refuses one: math.floor raised OverflowError for inf, and
+        math.isfinite for an int past float's range)."""
+        try:
+            finite = math.isfinite(x) and math.isfinite(y)
+        except OverflowError:  # an int past float's range: not finite as a float either
+            finite = False
+        if not finite:
+            raise ValueError(f"a point must be finite numbers, got ({_short(x)}, {_short(y)})")
         return math.floor(x / self.resolution), math.floor(y / self.resolution)
 
     def region(self, layer: str, i0: int, j0: int, i1: int, j1: int) -> np.ndarray:
@@ -586,6 +591,14 @@ class GridMap:
                 f"layer {layer!r} needs the {needs!r} layer, which this map does not keep"
             )
         return source
+
+
+def _short(value: object) -> str:
+    """`repr(value)` for an error message, but a few words for an int past float's range (its repr
+    is hundreds of digits, or raises ValueError past Python's limit on them)."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 2**1024:
+        return "an integer beyond the range of a float"
+    return repr(value)
 
 
 #: A cell index beyond any a map can hold (scans reach at most MAX_CELL_INDEX = 2**40 cells).
