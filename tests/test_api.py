@@ -353,6 +353,30 @@ def test_region_npy_json_png_match_engine(api: RunningApi, engine_map: GridMap) 
     assert np.array_equal(np.load(io.BytesIO(r.content)), engine_map.region("hits", *b))  # type: ignore[misc]
 
 
+def test_region_bounds_on_cell_edges_in_decimal_are_those_edges(api: RunningApi, engine_map: GridMap) -> None:
+    """Bounds on cell edges written in decimal: 0.15 / 0.05 is 2.9999999999999996, so `xmin=0.15`
+    started the window at cell 2, and the origin a region answer reports did not give its own window
+    back (the window moved by a cell for about a sixth of the edges at 0.05 m). Such a bound is now
+    that edge; one a little way inside a cell (a millionth of a cell) is still floored."""
+    edges = [round(k * RES, 10) for k in range(-40, 41)]  # -2.0 ... 2.0 as a person writes them
+    assert any(math.floor(x / RES) != k for k, x in zip(range(-40, 41), edges, strict=True))
+    for k, x in zip(range(-40, 41), edges, strict=True):
+        params = {"xmin": x, "ymin": x, "xmax": x + 0.5, "ymax": x + 0.5, "layer": "hits", "format": "json"}
+        body = api.client.get("/maps/eng/region", params=params).json()
+        assert body["window"][:2] == [k, k], (x, body["window"])
+        again = {**params, "xmin": body["origin"][0], "ymin": body["origin"][1]}
+        assert api.client.get("/maps/eng/region", params=again).json()["window"] == body["window"]
+    inside = {
+        "xmin": 0.15 - 1e-6 * RES,
+        "ymin": 0.0,
+        "xmax": 0.5,
+        "ymax": 0.5,
+        "layer": "hits",
+        "format": "json",
+    }
+    assert api.client.get("/maps/eng/region", params=inside).json()["window"][0] == 2
+
+
 def test_surface(api: RunningApi, engine_map: GridMap) -> None:
     got = api.client.get("/maps/eng/surface").json()
     b = engine_map.known_bounds()

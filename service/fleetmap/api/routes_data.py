@@ -68,12 +68,27 @@ def _json(model: RegionJson | Surface) -> Response:
     return Response(model.model_dump_json(), media_type="application/json")
 
 
+#: A bound within this many cells of a cell edge is that edge (`_edge`).
+EDGE_TOLERANCE = 1e-9
+
+
+def _edge(bound: float, resolution: float) -> int:
+    """`floor(bound / resolution)`, but a bound within EDGE_TOLERANCE cells of a cell edge is that
+    edge: written in decimal, an edge is rarely one in binary, and 0.15 / 0.05 is 2.9999999999999996
+    (the float 0.15 lies below 0.15), so `xmin=0.15` at 0.05 m started the window at cell 2, not 3,
+    and the origin a region answer reports (0.15) did not give its own window back."""
+    cells = bound / resolution
+    nearest = round(cells)
+    return nearest if abs(cells - nearest) <= EDGE_TOLERANCE * max(1.0, abs(cells)) else math.floor(cells)
+
+
 def _window(
     gmap: GridMap,
     bounds: tuple[float | None, float | None, float | None, float | None],
     limit: int | None,
 ) -> Window:
-    """The cells `[floor(xmin/res), floor(xmax/res)) x [floor(ymin/res), floor(ymax/res))`, or the
+    """The cells `[floor(xmin/res), floor(xmax/res)) x [floor(ymin/res), floor(ymax/res))` (a bound on
+    a cell edge in decimal is that edge: `_edge`), or the
     observed extent when no bound is given. 422 for a partial or empty window, 409 for no bounds on an
     empty map, 413 past `limit` cells (None: any number)."""
     xmin, ymin, xmax, ymax = bounds
@@ -86,11 +101,8 @@ def _window(
     elif xmin is None or ymin is None or xmax is None or ymax is None:
         raise ApiError(422, "give all of xmin, ymin, xmax and ymax, or none of them (the observed extent)")
     else:
-        xmin, ymin, xmax, ymax = float(xmin), float(ymin), float(xmax), float(ymax)
         res = gmap.resolution
-        window = Window(
-            math.floor(xmin / res), math.floor(ymin / res), math.floor(xmax / res), math.floor(ymax / res)
-        )
+        window = Window(*(_edge(float(bound), res) for bound in (xmin, ymin, xmax, ymax)))
         if window.i1 <= window.i0 or window.j1 <= window.j0:
             raise ApiError(
                 422,
@@ -232,7 +244,9 @@ def get_region(
     format: Annotated[Literal["npy", "json", "png"], Query(description="answer format")] = "npy",
 ) -> Response:
     """The cells with index in `[floor(xmin/res), floor(xmax/res))` x `[floor(ymin/res),
-    floor(ymax/res))` (no bounds: the observed extent), as:
+    floor(ymax/res))` (no bounds: the observed extent; a bound within a billionth of a cell of a cell
+    edge is that edge: `xmin=0.15` at 0.05 m starts at cell 3, though 0.15 / 0.05 is
+    2.9999999999999996), as:
 
     - `npy`: a NumPy array of shape (ny, nx), row 0 = the LOWEST y; float32 with NaN for unknown
       (`log_odds`, `probability`, `tsdf`; `tsdf_weight` 0), uint32 counts (`hits`, `misses`, 0 if
@@ -281,7 +295,8 @@ def delete_region(
     ymax: Bound,
 ) -> RegionCleared:
     """Makes the cells with index in `[floor(xmin/res), floor(xmax/res))` x `[floor(ymin/res),
-    floor(ymax/res))` unknown again in every layer the map keeps, as before any scan (octomap_server's
+    floor(ymax/res))` (a bound on a cell edge in decimal is that edge, as for `GET .../region`)
+    unknown again in every layer the map keeps, as before any scan (octomap_server's
     clear of a bounding box): a shelf moved where no robot looks again, the trace of a bad pose.
     All four bounds are required (422 otherwise; DELETE /maps/{map_id} removes a whole map). Scans
     applied before are forgotten there; later ones observe the cells again (so a retry also forgets
