@@ -697,8 +697,10 @@ class FleetmapClient:
     ) -> np.ndarray:
         """`GET /maps/{map_id}/region?format=npy`: a dense window of one layer.
 
-        The cells with index in [floor(xmin/res), floor(xmax/res)) x [floor(ymin/res), floor(ymax/res));
-        no bounds at all: the map's observed extent. Shape (ny, nx), row 0 = the LOWEST y; float32
+        The cells with index in [floor(xmin/res), floor(xmax/res)) x [floor(ymin/res), floor(ymax/res)),
+        a bound within a billionth of a cell of a cell edge being that edge (0.15 at 0.05 m starts
+        at cell 3, though 0.15 / 0.05 is 2.9999999999999996); no bounds at all: the map's observed
+        extent. Shape (ny, nx), row 0 = the LOWEST y; float32
         with NaN for unknown (log_odds, probability, tsdf), uint32 counts (hits, misses), uint8 state
         codes (0 unknown, 1 free, 2 occupied). Use `region_window` for where the window lies.
         """
@@ -727,8 +729,9 @@ class FleetmapClient:
         self, map_id: str, xmin: float, ymin: float, xmax: float, ymax: float, *, if_match: str | None = None
     ) -> RegionCleared:
         """`DELETE /maps/{map_id}/region`: make the cells with index in [floor(xmin/res),
-        floor(xmax/res)) x [floor(ymin/res), floor(ymax/res)) unknown again in every layer, as before
-        any scan, and return once the server has stored that. `FleetmapError` 404 for no such map,
+        floor(xmax/res)) x [floor(ymin/res), floor(ymax/res)) (a bound on a cell edge is that edge, as
+        for `region`) unknown again in every layer, as before any scan, and return once the server
+        has stored that. `FleetmapError` 404 for no such map,
         422 for an empty window, 503 if the cells were cleared but that could not be stored yet.
         `if_match`: clear only in the map of that ETag (`get_map_and_etag`); `MapChanged` (412,
         nothing cleared) if the map is another one by now, as for the other writes of a map."""
