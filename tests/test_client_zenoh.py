@@ -778,18 +778,25 @@ def test_replay_command_stops_on_sigterm_as_on_ctrl_c(router: Router, tmp_path: 
     which receives no signal it does not handle, it went on replaying until Docker killed it."""
     log = tmp_path / "long.log"
     _write_carmen(log, 400)  # 40 s at the nominal rate
-    replaying = subprocess.Popen(
-        [sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "term", "--robot", "r",
-         "--connect", router.endpoint, "--wait-timeout", "20", "--quiet"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    with reaped(replaying):
-        wait_for(lambda: any(k.startswith("fleetmap/term/") for k, _, _ in router.samples()), 30, 0.05,
-                 "the replay's first scans")  # fmt: skip
-        replaying.send_signal(signal.SIGTERM)
-        out, err = replaying.communicate(timeout=30)
-    assert replaying.returncode == 130, (replaying.returncode, out, err)
+    code, _, err = _sigterm_after_first_scans(
+        router, ["replay", str(log), "--robot", "r", "--wait-timeout", "20", "--quiet"]
+    )
+    assert code == 130, (code, err)
     assert "replay interrupted" in err and "Traceback" not in err, err
+
+
+def _sigterm_after_first_scans(router: Router, args: list[str]) -> tuple[int, str, str]:
+    """Run `fleetmap_client.cli` with `args` on map "term" through `router`, send it SIGTERM once its
+    first scans came, and return its exit code, stdout and stderr."""
+    command = [sys.executable, "-m", "fleetmap_client.cli", *args]
+    command += ["--map", "term", "--connect", router.endpoint]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with reaped(process):
+        wait_for(lambda: any(k.startswith("fleetmap/term/") for k, _, _ in router.samples()), 30, 0.05,
+                 "the first scans")  # fmt: skip
+        process.send_signal(signal.SIGTERM)
+        out, err = process.communicate(timeout=30)
+    return process.returncode, out, err
 
 
 def test_replay_of_the_intel_log_first_50_scans(router: Router) -> None:
@@ -1007,18 +1014,12 @@ def test_sim_command_stops_on_sigterm_as_on_ctrl_c(router: Router) -> None:
     """SIGTERM (`kill`, `docker stop`) stops the robots and prints the summary, exit 0, as Ctrl-C
     does. It killed the sim without a word (exit -15); as PID 1 of compose.yaml's robots container,
     which receives no signal it does not handle, `docker compose stop` waited 10 s, then killed it."""
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "fleetmap_client.cli", "sim", "--robots", "1", "--rate", "20", "--beams", "91",
-         "--map", "term", "--connect", router.endpoint, "--wait-timeout", "20", "--no-confirm"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
-    with reaped(sim):
-        wait_for(lambda: any(k.startswith("fleetmap/term/") for k, _, _ in router.samples()), 30, 0.05,
-                 "the robot's first scans")  # fmt: skip
-        sim.send_signal(signal.SIGTERM)
-        out, _ = sim.communicate(timeout=30)
-    assert sim.returncode == 0, (sim.returncode, out)
-    assert "sim: 1 robot published" in out and "Traceback" not in out, out
+    code, out, err = _sigterm_after_first_scans(
+        router,
+        ["sim", "--robots", "1", "--rate", "20", "--beams", "91", "--wait-timeout", "20", "--no-confirm"],
+    )
+    assert code == 0, (code, out, err)
+    assert "sim: 1 robot published" in out and "Traceback" not in out + err, (out, err)
 
 
 def test_sim_refuses_a_timeout_of_nan_or_below_0_before_it_waits() -> None:

@@ -111,6 +111,18 @@ def test_maps_share_the_budget_and_a_refused_scan_changes_nothing() -> None:
     assert budget.used == a.memory_bytes() and a.memory_bytes() <= budget.limit + held_by_b  # type: ignore[operator]
 
 
+def _send(registry: MapRegistry, map_id: str, k: int, session: int | None) -> Any:
+    """Robot "r"'s scan `k` (seq k, at x = 0.5 k: farther scans need new tiles) of publisher session
+    `session`: its IntegrationResult, or the IngestRejected that refused it (a duplicate: 200)."""
+    stamp = 0.0 if session is None else float(k)
+    try:
+        future = registry.submit(map_id, "r", WireScan(k, stamp, scan_at(0.5 * k), session), wait=True)
+        assert future is not None
+        return future.result(10)
+    except IngestRejected as exc:
+        return exc
+
+
 def test_the_registry_refuses_past_the_budget_with_507_and_counts_it() -> None:
     """...and the refused scan, sent again with its seq once memory is freed, is integrated: its seq
     was recorded when it was accepted into the queue, so the retry was a "duplicate", never
@@ -119,13 +131,7 @@ def test_the_registry_refuses_past_the_budget_with_507_and_counts_it() -> None:
     registry.start()
 
     def send(map_id: str, k: int) -> Any:
-        """The scan's IntegrationResult, or the IngestRejected that refused it (a duplicate: 200)."""
-        try:
-            future = registry.submit(map_id, "r", WireScan(k, 0.0, scan_at(0.5 * k)), wait=True)
-            assert future is not None
-            return future.result(10)
-        except IngestRejected as exc:
-            return exc
+        return _send(registry, map_id, k, None)
 
     try:
         assert not isinstance(send("other", 0), IngestRejected)  # holds the budget's first tiles
@@ -169,12 +175,7 @@ def test_several_scans_refused_507_are_each_integrated_when_sent_again() -> None
     registry.start()
 
     def send(map_id: str, k: int) -> Any:
-        try:
-            future = registry.submit(map_id, "r", WireScan(k, float(k), scan_at(0.5 * k), 7), wait=True)
-            assert future is not None
-            return future.result(10)
-        except IngestRejected as exc:
-            return exc
+        return _send(registry, map_id, k, 7)
 
     try:
         assert not isinstance(send("other", 0), IngestRejected)  # holds the budget's first tiles
