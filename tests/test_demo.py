@@ -236,6 +236,26 @@ def test_demo_finds_its_service_whatever_proxy_the_environment_names(tmp_path: P
     assert "fleetmap demo: 1 robot published 0 scans (0 dropped)" in done.stdout, done.stdout
 
 
+def test_demo_sets_its_service_up_with_its_own_options_not_the_environments(tmp_path: Path) -> None:
+    """FLEETMAP_* variables meant for `fleetmap serve` reached the demo's service: FLEETMAP_IN_MEMORY
+    kept no map while the demo said where it was kept, and a FLEETMAP_ZENOH_CONFIG (a TLS router's,
+    here one that is missing) stopped the service or left the demo's robots waiting. The demo now
+    leaves them out and says so."""
+    http, zenoh = free_port(), free_port()
+    env = os.environ | {"FLEETMAP_IN_MEMORY": "1", "FLEETMAP_ZENOH_CONFIG": str(tmp_path / "tls.json5")}
+    done = subprocess.run(
+        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+         "--data-dir", str(tmp_path / "data"), "--robots", "1", "--seconds", "0"],
+        capture_output=True, text=True, timeout=60, env=env,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "fleetmap demo: its service ignores FLEETMAP_IN_MEMORY, FLEETMAP_ZENOH_CONFIG" in done.stdout, (
+        done.stdout
+    )
+    assert done.stdout.rstrip().endswith(f"the map is kept in {tmp_path / 'data'}"), done.stdout
+    assert (tmp_path / "data" / "fleetmap.db").is_file()  # kept where it says
+
+
 def test_demo_waits_for_a_slow_first_start_as_long_as_its_service_runs(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -24,6 +24,7 @@ import httpx
 
 from fleetmap.cli import CliError
 from fleetmap.parent_death import end_with_parent
+from fleetmap.serve_environment import ENV_PREFIX
 from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP, parse_http
 from fleetmap.signal_event import SignalEvent
 from fleetmap.wire import DEFAULT_ENDPOINT, is_valid_id
@@ -82,11 +83,23 @@ def run(args: argparse.Namespace) -> int:
     # each ended the demo at once and left its service running on, holding the ports and the data
     # directory that the next `make demo` then found in use.
     previous = {sig: signal.signal(sig, lambda *_: stop.set_in_handler()) for sig in STOP_SIGNALS}
+    # The demo's options alone set its service up. FLEETMAP_* variables meant for `fleetmap serve`
+    # (an operator's shell) made it contradict the demo: FLEETMAP_IN_MEMORY kept no map where the
+    # demo said it was kept, FLEETMAP_ZENOH_CONFIG of a TLS router left its plain-TCP robots
+    # waiting for ever. They are left out, and named.
+    env = {key: value for key, value in os.environ.items() if not key.startswith(ENV_PREFIX)}
+    ignored = sorted(set(os.environ) - set(env))
+    if ignored:
+        print(
+            f"fleetmap demo: its service ignores {', '.join(ignored)} (the demo's options set it up; "
+            "fleetmap serve reads them)",
+            flush=True,
+        )
     service = subprocess.Popen(
         [sys.executable, "-m", "fleetmap.server", "--http", args.http, "--zenoh-listen", args.zenoh,
          "--data-dir", args.data_dir, *(["--insecure"] if args.insecure else [])],
         # (The demo runs no thread yet: the child may run Python between fork and exec.)
-        preexec_fn=functools.partial(end_with_parent, os.getpid()),
+        preexec_fn=functools.partial(end_with_parent, os.getpid()), env=env,
     )  # fmt: skip
     ready = False
     try:
