@@ -156,6 +156,22 @@ def test_scale_mode_reads_transparent_pixels_as_unknown() -> None:
     assert got[3] == logit_clamped(float(np.rint(((1 - 128 / 255) - 0.196) / (0.65 - 0.196) * 100)))
 
 
+def test_scale_mode_ignores_the_colour_of_pixels_it_reads_as_unknown() -> None:
+    """In scale mode map_server reads every pixel that is not opaque as unknown, whatever its
+    colour: an RGBA map whose transparent pixels keep a colour (GIMP can save them so) was refused
+    as a colour image. Opaque colour is still refused, and in trinary mode, which averages alpha in
+    with the colour, any colour."""
+    rgba = np.array([[[10, 20, 30, 0], [0, 0, 0, 255], [200, 100, 50, 128]]], dtype=np.uint8)
+    got = log_odds_row(map_from_nav2(nav2_yaml("map.png", mode="scale"), png(rgba), CONFIG), 3)
+    assert math.isnan(got[0]) and got[1] == L_MAX and math.isnan(got[2])
+    opaque = rgba.copy()
+    opaque[0, 2, 3] = 255
+    with pytest.raises(Nav2ImportError, match=r"colour image \(mode RGBA\): pixel \(2, 0\)"):
+        map_from_nav2(nav2_yaml("map.png", mode="scale"), png(opaque), CONFIG)
+    with pytest.raises(Nav2ImportError, match=r"colour image \(mode RGBA\): pixel \(0, 0\)"):
+        map_from_nav2(nav2_yaml("map.png"), png(rgba), CONFIG)
+
+
 def test_trinary_mode_averages_alpha_in_as_map_server_does() -> None:
     """With an alpha channel, trinary's shade is (r + g + b + alpha) / 4: an opaque 205 is free."""
     grey = np.array([[0, 205, 205, 254]], dtype=np.uint8)

@@ -41,7 +41,8 @@ image is not on the map's axis-aligned cells), an origin that is not on the map'
 1e-6 of a cell edge; with `snap_origin` it is moved to the nearest one instead, by at most half a
 cell: SLAM tools put the origin anywhere, and map_saver writes it rounded), a resolution other
 than the configuration's, images that are not 8-bit grey (grey with alpha, and RGB / RGBA whose
-channels are equal everywhere, as map_saver writes scale maps, are grey; a PGM's maxval must be
+channels are equal everywhere, as map_saver writes scale maps, are grey, and in scale mode where
+a pixel is opaque: map_server reads the others as unknown; a PGM's maxval must be
 255, a PNG's samples 8 bits at most), images over MAX_IMAGE_SIDE on a side or MAX_IMAGE_PIXELS in
 all, more tiles than the map's `max_tiles`. Tiles are created only where a cell is known; every
 layer but occupancy stays unknown. Pixel values are mapped through a table of their
@@ -374,7 +375,9 @@ def log_odds_of_values(values: np.ndarray, l_min: float, l_max: float) -> np.nda
     return lo.astype(np.float32)
 
 
-def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.ndarray | None]:
+def read_image(
+    data: bytes, name: str = "the image", opaque_colour_only: bool = False
+) -> tuple[np.ndarray, np.ndarray | None]:
     """The grey values (uint8, row 0 = the image's top) and the alpha channel (None without one) of
     a PGM or PNG image; `Nav2ImportError` saying what it is when it is not 8-bit grey, or too big."""
     try:
@@ -423,6 +426,11 @@ def read_image(data: bytes, name: str = "the image") -> tuple[np.ndarray, np.nda
         return np.ascontiguousarray(pixels[:, :, 0]), np.ascontiguousarray(pixels[:, :, 1])
     grey = pixels[:, :, 0]
     colour = (pixels[:, :, 1] != grey) | (pixels[:, :, 2] != grey)
+    if opaque_colour_only and im.mode == "RGBA":
+        # map_server's scale mode reads every pixel not opaque as unknown, whatever its colour: an
+        # editor that keeps the colour of transparent pixels (GIMP's "save colour values from
+        # transparent pixels") made such a map refused as a colour image.
+        colour &= pixels[:, :, 3] == 255
     if colour.any():
         y, x = (int(k) for k in np.argwhere(colour)[0])
         channels = tuple(int(c) for c in pixels[y, x])
@@ -542,7 +550,7 @@ def _map_from_meta(
     if max(abs(ox), abs(oy)) > MAX_COORDINATE:
         raise Nav2ImportError(beyond)
     i0, j0 = _grid_index(ox, res, "x", snap_origin), _grid_index(oy, res, "y", snap_origin)
-    grey, alpha = read_image(image, image_name or meta.image)
+    grey, alpha = read_image(image, image_name or meta.image, opaque_colour_only=meta.mode == "scale")
     h, w = grey.shape
     if max(abs(i0), abs(i0 + w), abs(j0), abs(j0 + h)) * res > MAX_COORDINATE:
         raise Nav2ImportError(beyond)
