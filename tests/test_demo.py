@@ -256,6 +256,37 @@ def test_demo_sets_its_service_up_with_its_own_options_not_the_environments(tmp_
     assert (tmp_path / "data" / "fleetmap.db").is_file()  # kept where it says
 
 
+def test_demo_whose_service_cannot_store_the_map_at_stop_says_so_and_fails(tmp_path: Path) -> None:
+    """Stopped while its disk fails, the service's last snapshot fails and it exits 1, saying which
+    maps a restart finds as they were stored last; the demo exited 0 all the same (only its "stopped;
+    the map is kept" line went missing). It now ends with an error, exit 2 as its other errors. The
+    failing disk is the service's RLIMIT_FSIZE lowered to 1 byte, as in test_durability.py (a full
+    file system would need a mount, which tests cannot make; the service's own last lines go to a
+    file here, so they fail to be written too)."""
+    resource = pytest.importorskip("resource")
+    demo = Demo(tmp_path, "--robots", "1", "--rate", "10")
+    with reaped(demo.proc):
+        demo.wait_for_address()
+        (service,) = (
+            int(pid)
+            for pid in Path(f"/proc/{demo.proc.pid}/task/{demo.proc.pid}/children").read_text().split()
+        )
+        _, hard = resource.prlimit(service, resource.RLIMIT_FSIZE)
+        resource.prlimit(service, resource.RLIMIT_FSIZE, (1, hard))
+
+        def scans_not_durable() -> int:
+            storage = httpx.get(f"http://127.0.0.1:{demo.http}/healthz", timeout=5).json()["storage"]
+            return storage["scans_not_durable"]
+
+        demo.wait_until(lambda: scans_not_durable() > 0, 60, "scans whose journal commit failed")
+        demo.proc.send_signal(signal.SIGINT)  # Ctrl-C
+        code = demo.proc.wait(60)
+    text = demo.output()
+    assert code == 2, text
+    assert "fleetmap demo: error: the service did not stop cleanly (exit code 1)" in text, text
+    assert "the map is kept in" not in text.rstrip().splitlines()[-1], text
+
+
 def test_demo_waits_for_a_slow_first_start_as_long_as_its_service_runs(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

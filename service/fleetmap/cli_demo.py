@@ -124,7 +124,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"fleetmap demo: {robots} published {_count(sent, 'scan')} ({dropped} dropped)")
         if service.poll() is not None:
             raise CliError(f"the service stopped unexpectedly (exit code {service.returncode}); see above")
-        return 0
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -133,10 +132,19 @@ def run(args: argparse.Namespace) -> int:
             service.wait(30)
         except subprocess.TimeoutExpired:
             service.kill()
+            service.wait()
         # The last words after Ctrl-C, below the service's own: where the map went (it was said
         # at the start, scrolled away since).
         if ready and service.returncode == 0:
             print(f"fleetmap demo: stopped; the map is kept in {args.data_dir}", flush=True)
+    if ready and service.returncode != 0:
+        # Its last snapshot failed (a full or failing disk: it said which maps a restart finds as
+        # they were stored last) or it had to be killed: the demo exited 0 all the same.
+        raise CliError(
+            f"the service did not stop cleanly (exit code {service.returncode}): the map may lack its "
+            "last scans; see its last lines above"
+        )
+    return 0
 
 
 def _count(number: int, noun: str) -> str:
