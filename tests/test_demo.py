@@ -37,6 +37,20 @@ def port_is_free(port: int) -> bool:
         return True
 
 
+def run_demo(
+    tmp_path: Path, *args: str, env: dict[str, str] | None = None
+) -> tuple[subprocess.CompletedProcess[str], int]:
+    """`fleetmap demo ARGS` on free loopback ports with its data in `tmp_path / "data"`, run to its
+    end (60 s at most): what it did, and its HTTP port."""
+    http, zenoh = free_port(), free_port()
+    done = subprocess.run(
+        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+         "--data-dir", str(tmp_path / "data"), *args],
+        capture_output=True, text=True, timeout=60, env=env,
+    )  # fmt: skip
+    return done, http
+
+
 class Demo:
     """`fleetmap demo` started on free ports with `args`, what it and its service print in a file."""
 
@@ -187,12 +201,7 @@ def test_demo_refuses_a_fleet_it_cannot_run_before_starting_anything(
 ) -> None:
     """`fleetmap demo --robots 0` (or a rate of 0, a bad map id) started the service, waited for it,
     then ended in a ValueError traceback from the simulation."""
-    http, zenoh = free_port(), free_port()
-    done = subprocess.run(
-        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
-         "--data-dir", str(tmp_path / "data"), *option],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+    done, _ = run_demo(tmp_path, *option)
     assert done.returncode == 2, done.stdout + done.stderr
     assert done.stderr.startswith(f"fleetmap demo: error: {says}") and done.stderr.count("\n") == 1
     assert done.stdout == "" and not (tmp_path / "data").exists()
@@ -220,15 +229,10 @@ def test_demo_finds_its_service_whatever_proxy_the_environment_names(tmp_path: P
     """With HTTP_PROXY set (a company network) and 127.0.0.1 not in NO_PROXY, the demo asked the
     proxy for its own service's /healthz (a dead one here), and gave up after 120 s on a service
     that ran."""
-    http, zenoh = free_port(), free_port()
     proxy = f"http://127.0.0.1:{free_port()}"  # nothing listens there
     env = {key: value for key, value in os.environ.items() if key.lower() != "no_proxy"}
     env |= {"HTTP_PROXY": proxy, "http_proxy": proxy, "ALL_PROXY": proxy, "all_proxy": proxy}
-    done = subprocess.run(
-        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
-         "--data-dir", str(tmp_path / "data"), "--robots", "1", "--seconds", "0"],
-        capture_output=True, text=True, timeout=60, env=env,
-    )  # fmt: skip
+    done, http = run_demo(tmp_path, "--robots", "1", "--seconds", "0", env=env)
     assert done.returncode == 0, done.stdout + done.stderr
     assert f"open http://127.0.0.1:{http}/#map=demo" in done.stdout, done.stdout
     # One robot, in the singular ("to watch 1 robots", "1 robots published 0 scans").
@@ -241,13 +245,8 @@ def test_demo_sets_its_service_up_with_its_own_options_not_the_environments(tmp_
     kept no map while the demo said where it was kept, and a FLEETMAP_ZENOH_CONFIG (a TLS router's,
     here one that is missing) stopped the service or left the demo's robots waiting. The demo now
     leaves them out and says so."""
-    http, zenoh = free_port(), free_port()
     env = os.environ | {"FLEETMAP_IN_MEMORY": "1", "FLEETMAP_ZENOH_CONFIG": str(tmp_path / "tls.json5")}
-    done = subprocess.run(
-        [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
-         "--data-dir", str(tmp_path / "data"), "--robots", "1", "--seconds", "0"],
-        capture_output=True, text=True, timeout=60, env=env,
-    )  # fmt: skip
+    done, _ = run_demo(tmp_path, "--robots", "1", "--seconds", "0", env=env)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "fleetmap demo: its service ignores FLEETMAP_IN_MEMORY, FLEETMAP_ZENOH_CONFIG" in done.stdout, (
         done.stdout

@@ -104,6 +104,12 @@ def publish_robot_tf(
         node.put(f"{ns}/tf", TF, tf_payload(stamp_ns(k, base_ns) + dt, [edge]))
 
 
+def wait_subscribed(node: RosNodeEmulation, topic: str, what: str = "the service's scan subscriber") -> None:
+    """Until the service's LaserScan subscriber matches `node`'s publisher of `topic` (a scan put
+    before would go nowhere)."""
+    wait_for(lambda: node.publisher(topic, LASER).matching_status.matching, timeout=20, what=what)
+
+
 def laser(k: int, frame: str, base_ns: int | None = None) -> bytes:
     return LaserData(stamp_ns(k, base_ns), -1.0, 0.02, np.full(100, 2.0, np.float32)).payload(frame)
 
@@ -118,10 +124,7 @@ def test_a_laser_in_a_sub_namespace_is_posed_by_its_robots_tf(
     service = service_factory("--ros-scans", "lab")
     node = RosNodeEmulation(service.zenoh_endpoint, "robot")
     try:
-        wait_for(
-            lambda: node.publisher("/robot1/front/scan", LASER).matching_status.matching,
-            timeout=20, what="the service's scan subscriber",
-        )  # fmt: skip
+        wait_subscribed(node, "/robot1/front/scan")
         with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
             for k in range(3):
                 publish_robot_tf(node, "/robot1", {"front_laser": LEVEL}, k)
@@ -151,10 +154,7 @@ def test_a_robot_with_two_lasers_is_two_fleetmap_robots_without_an_id_conflict(
     lasers = {"front_laser": LEVEL, "rear_laser": Rotation.from_euler("z", 180, degrees=True)}
     try:
         for node, topic in ((front, "/robot1/scan_front"), (rear, "/robot1/scan_rear")):
-            wait_for(
-                lambda n=node, t=topic: n.publisher(t, LASER).matching_status.matching,
-                timeout=20, what="the service's scan subscriber",
-            )  # fmt: skip
+            wait_subscribed(node, topic)
         with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
             for k in range(4):
                 publish_robot_tf(tf, "/robot1", lasers, k)
@@ -245,10 +245,7 @@ def test_a_simulation_restarted_under_use_sim_time_is_posed_again(
     service = service_factory("--ros-scans", "lab")
     first = RosNodeEmulation(service.zenoh_endpoint, "gazebo", "/sim1")
     try:
-        wait_for(
-            lambda: first.publisher("/sim1/scan", LASER).matching_status.matching,
-            timeout=20, what="the service's scan subscriber",
-        )  # fmt: skip
+        wait_subscribed(first, "/sim1/scan")
         with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
             for k in range(3):  # sim time 300 s on: a run of five minutes
                 publish_robot_tf(first, "/sim1", {"laser": LEVEL}, k, base_ns=300 * 10**9)
@@ -260,10 +257,7 @@ def test_a_simulation_restarted_under_use_sim_time_is_posed_again(
             first.close()  # the simulation stops; restarted, its clock starts from 0 again
             second = RosNodeEmulation(service.zenoh_endpoint, "gazebo", "/sim1")
             try:
-                wait_for(
-                    lambda: second.publisher("/sim1/scan", LASER).matching_status.matching,
-                    timeout=20, what="the restarted robot's scan publisher matched",
-                )  # fmt: skip
+                wait_subscribed(second, "/sim1/scan", "the restarted robot's scan publisher matched")
                 for k in range(3):  # sim time 2 s on; each scan before its TF, as TF often comes
                     second.put("/sim1/scan", LASER, laser(k, "laser", base_ns=2 * 10**9))
                     time.sleep(0.05)
@@ -297,10 +291,7 @@ def test_a_tf_tree_at_its_sample_limit_keeps_up_with_time(
     service = service_factory("--ros-scans", "lab")
     node = RosNodeEmulation(service.zenoh_endpoint, "robot")
     try:
-        wait_for(
-            lambda: node.publisher("/robot1/scan", LASER).matching_status.matching,
-            timeout=20, what="the service's scan subscriber",
-        )  # fmt: skip
+        wait_subscribed(node, "/robot1/scan")
         # Blocking, not dropping, when the link is busy: every TF message must arrive.
         static_pub, tf_pub = (
             node.session.declare_publisher(

@@ -23,6 +23,7 @@ import time
 import httpx
 
 from fleetmap.cli import CliError
+from fleetmap.http_server import url_host
 from fleetmap.parent_death import end_with_parent
 from fleetmap.serve_environment import ENV_PREFIX
 from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP, parse_http
@@ -158,7 +159,7 @@ def _viewer_url(http: str) -> str:
     as `http://:8000/`, which nothing answers, so the demo waited for its service until it gave
     up. Raises CliError for an address the service would refuse."""
     host, port = parse_http(http)
-    return f"http://{f'[{host}]' if ':' in host else host}:{port}/"
+    return f"http://{url_host(host)}:{port}/"
 
 
 #: The signals that stop the demo cleanly: the robots, then the service (which saves the map).

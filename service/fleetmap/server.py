@@ -68,11 +68,13 @@ from fleetmap.malloc_arenas import (
     fix_mmap_threshold,
     limit_malloc_arenas,
 )
+from fleetmap.memory_budget import format_size
 from fleetmap.network import is_loopback_host
 from fleetmap.persistence import DurableStore
 from fleetmap.serve_options import DEFAULT_DATA_DIR, ROS_MAP_DEFAULTS, add_serve_parser, parse_http
 from fleetmap.serve_ros import ros_domain, ros_options, start_ros_maps, start_ros_scans, zenoh_status
 from fleetmap.signal_event import SignalEvent, SignalWakeups
+from fleetmap.tiles import TileStore
 from fleetmap.warm_up import compile_in_child, warm_up
 from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest
 
@@ -407,9 +409,6 @@ def _log_protection(
         "no limit" if budget.limit is None else f"{budget.limit / 2**20:.0f} MiB (--max-memory)",
         budget.used / 2**20,
     )  # fmt: skip
-    from fleetmap.memory_budget import format_size
-    from fleetmap.tiles import TileStore
-
     tile = TileStore(default_config.tile_size, default_config.layers, 1).bytes_for(1)  # an empty store
     if budget.limit is not None and tile > budget.limit:
         # Else every scan of such a map is refused 507 and nothing says why until the first one is:

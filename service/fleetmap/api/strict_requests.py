@@ -6,8 +6,8 @@
   FastAPI would pass the bytes on as they are and answer a puzzling "Input should be a valid
   dictionary";
 - 413 for a JSON body of a route with a limit of values (`limit_json_values`: the points of
-  `POST .../cells`, the rays of `.../raycast`) that holds more commas than a valid body can, before
-  it is parsed;
+  `POST .../cells`, the rays of `.../raycast`, a map configuration of `PUT /maps/{id}`) that holds
+  more commas than a valid body can, before it is parsed;
 - 422 for a JSON body that holds a key twice (`{"resolution": 0.05, "resolution": 0.1}`): the JSON
   parser would keep the last one silently, and which one the client meant is a guess;
 - 422 for a JSON body starting with a byte order mark, as `POST /scans` (whose codec is also that of
