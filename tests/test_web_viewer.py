@@ -150,9 +150,15 @@ _LOADED_TILES_JS = "[...document.querySelectorAll('#map img.leaflet-tile-loaded'
 _LAYER_OPTIONS_JS = "[...document.querySelectorAll('#layer-select option')].map((o) => o.value).join()"
 
 #: Per loaded tile image: its URL, size and how many of its pixels are not fully transparent (drawn
-#: to a canvas: the tiles are same-origin, so the canvas is readable).
+#: to a canvas: the tiles are same-origin, so the canvas is readable). Null while one is loading
+#: again: see `_tile_pixels`.
 _TILE_PIXELS_JS = """
-() => [...document.querySelectorAll('#map img.leaflet-tile-loaded')].map((img) => {
+() => {
+  const imgs = [...document.querySelectorAll('#map img.leaflet-tile-loaded')];
+  // A tile whose src was set again (a refresh) keeps its class while its next image loads, with no
+  // image to read: null, read again later.
+  if (imgs.some((img) => !img.complete || img.naturalWidth === 0)) return null;
+  return imgs.map((img) => {
   const c = document.createElement('canvas');
   c.width = img.naturalWidth;
   c.height = img.naturalHeight;
@@ -162,7 +168,8 @@ _TILE_PIXELS_JS = """
   let opaque = 0;
   for (let k = 3; k < d.length; k += 4) if (d[k] > 0) opaque++;
   return {src: img.src, width: c.width, height: c.height, opaque};
-})
+  });
+}
 """
 
 #: For a robot at map point (x, y) metres on a map of resolution `res`: where the page should draw it
@@ -221,6 +228,21 @@ def _settled_tiles(page: Any, statuses: dict[str, int]) -> list[str]:
             return srcs
         if time.monotonic() > deadline:
             raise AssertionError(f"tiles did not all load with 200: {tiles} {statuses}")
+        page.wait_for_timeout(50)
+
+
+def _tile_pixels(page: Any, statuses: dict[str, int]) -> list[dict[str, Any]]:
+    """Once every tile has loaded (`_settled_tiles`), what `_TILE_PIXELS_JS` reads of each. A tile
+    refreshed between the two (robots keep scanning) has no image to read for a moment: read again
+    then (getImageData refused its 0-pixel canvas, and a CI run failed so)."""
+    deadline = time.monotonic() + SHOW_MS / 1000
+    while True:
+        _settled_tiles(page, statuses)
+        pixels = page.evaluate(_TILE_PIXELS_JS)
+        if pixels is not None:
+            return list(pixels)
+        if time.monotonic() > deadline:
+            raise AssertionError("a tile kept loading again")
         page.wait_for_timeout(50)
 
 
@@ -289,8 +311,7 @@ def test_web_viewer_end_to_end(service: ServiceProcess) -> None:
 
             # Tiles: loaded with HTTP 200 from the tile endpoint, and showing the map (not transparent).
             _wait(page, f"() => {_LOADED_TILES_JS}.length > 0", what="loaded tiles")
-            _settled_tiles(page, tile_statuses)
-            tiles = page.evaluate(_TILE_PIXELS_JS)
+            tiles = _tile_pixels(page, tile_statuses)
             for tile in tiles:
                 assert f"/maps/{MAP_ID}/tiles/" in tile["src"] and "layer=probability" in tile["src"], tile
                 assert (tile["width"], tile["height"]) == (256, 256), tile
@@ -377,7 +398,7 @@ def test_web_viewer_end_to_end(service: ServiceProcess) -> None:
                 rf"#map={MAP_ID}&layer=hits&x=[-0-9.]+&y=[-0-9.]+&z=-?\d+",
                 page.evaluate("() => location.hash"),
             )
-            hits_tiles = page.evaluate(_TILE_PIXELS_JS)
+            hits_tiles = _tile_pixels(page, tile_statuses)
             assert all(tile_statuses.get(t["src"]) == 200 for t in hits_tiles), hits_tiles
             assert sum(t["opaque"] for t in hits_tiles) > 1000, hits_tiles
 
@@ -438,8 +459,7 @@ def test_web_viewer_end_to_end(service: ServiceProcess) -> None:
                 before,
                 what="the replacing map's tiles",
             )
-            _settled_tiles(page, tile_statuses)
-            replaced_tiles = page.evaluate(_TILE_PIXELS_JS)
+            replaced_tiles = _tile_pixels(page, tile_statuses)
             assert sum(t["opaque"] for t in replaced_tiles) > 1000, replaced_tiles
             assert page.eval_on_selector("#map-select", "el => el.value") == other
             assert page.evaluate("() => location.hash") == f"#map={other}&layer=hits"

@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 from service_process import ServiceProcess
 from test_auth import READ, WRITE, bearer
-from test_web_viewer import _LOADED_TILES_JS, _TILE_PIXELS_JS, CHROMIUM, SHOW_MS, _settled_tiles, _wait
+from test_web_viewer import _LOADED_TILES_JS, CHROMIUM, SHOW_MS, _tile_pixels, _wait
 from test_web_viewer_recovery import _scan
 from test_web_viewer_signin import (
     _CONNECTED_JS,
@@ -55,8 +55,7 @@ def test_the_policy_blocks_nothing_the_viewer_needs(
 
     # Tiles drawn, the robot's marker (inline SVG) and row, Leaflet's styles applied.
     _wait(page, f"() => {_LOADED_TILES_JS}.length > 0", what="loaded tiles")
-    _settled_tiles(page, tile_statuses)
-    drawn = page.evaluate(_TILE_PIXELS_JS)
+    drawn = _tile_pixels(page, tile_statuses)
     assert sum(t["opaque"] for t in drawn) > 1000, drawn
     page.wait_for_selector(_ROW, timeout=SHOW_MS)
     assert page.locator(".robot-marker svg").count() == 1

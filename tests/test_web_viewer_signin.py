@@ -17,7 +17,7 @@ import httpx
 import pytest
 from service_process import ServiceProcess, wait_for
 from test_auth import READ, WRITE, bearer
-from test_web_viewer import _LOADED_TILES_JS, _TILE_PIXELS_JS, CHROMIUM, SHOW_MS, _settled_tiles, _wait
+from test_web_viewer import _LOADED_TILES_JS, CHROMIUM, SHOW_MS, _tile_pixels, _wait
 from test_web_viewer_recovery import _scan
 from test_web_viewer_usability import _CONTRAST_JS, _FOCUS_JS
 
@@ -107,8 +107,7 @@ def test_the_viewer_signs_in_with_a_read_token(
     assert page.eval_on_selector("#map-select", "el => el.value") == MAP_ID
     assert page.evaluate("() => location.hash") == f"#map={MAP_ID}&layer=probability"
     _wait(page, f"() => {_LOADED_TILES_JS}.length > 0", what="loaded tiles")
-    _settled_tiles(page, tile_statuses)
-    drawn = page.evaluate(_TILE_PIXELS_JS)
+    drawn = _tile_pixels(page, tile_statuses)
     assert sum(t["opaque"] for t in drawn) > 1000, drawn  # the ring of walls and the free space in it
     page.wait_for_selector(_ROW, timeout=SHOW_MS)
     assert page.is_visible("#sign-out")
