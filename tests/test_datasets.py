@@ -205,6 +205,39 @@ def test_a_byte_order_mark_does_not_hide_the_first_line(tmp_path: Path, compress
     assert len(load_dataset(path)) == 1
 
 
+@pytest.mark.parametrize("compress", [False, True])
+@pytest.mark.parametrize("ending", ["\r", "\r\n", "mixed"])
+def test_lines_may_end_in_cr_lf_or_a_lone_cr(tmp_path: Path, ending: str, compress: bool) -> None:
+    """A log with Windows (CR LF) or classic Mac (CR alone) line endings, or both, reads as with LF:
+    with CR alone the whole log was one line and was refused as 'not a CARMEN laser log'. A
+    malformed line is still named by its number, counted at every line end."""
+    lines = [
+        "# a comment",
+        "PARAM robot_frontlaser_offset 0.5 1.0 host 1.0",
+        flaser([1.0, 2.0], 1.0, 2.0, 0.0),
+        robotlaser1([4.0, 5.0], (1.0, 1.0, 1.0)),
+        flaser([3.0, 4.0], -1.0, 0.5, 1.0),
+    ]
+    expected = load_dataset(write_log(tmp_path / "lf.log", lines))
+    assert len(expected) == 3
+
+    def write(name: str, lines: list[str]) -> Path:
+        ends = ["\r", "\r\n", "\n", "\r"] * len(lines) if ending == "mixed" else [ending] * len(lines)
+        data = "".join(line + end for line, end in zip(lines, ends, strict=False)).encode()
+        path = tmp_path / name
+        path.write_bytes(gzip.compress(data) if compress else data)
+        return path
+
+    ds = load_dataset(write("odd.log", lines))
+    assert len(ds) == len(expected)
+    np.testing.assert_array_equal(ds.poses, expected.poses)
+    for got, want in zip(ds, expected, strict=True):
+        np.testing.assert_array_equal(got.ranges, want.ranges)
+        np.testing.assert_array_equal(got.angles, want.angles)
+    with pytest.raises(DatasetError, match=r"bad\.log:4: FLASER range 0"):
+        load_dataset(write("bad.log", [*lines[:3], "FLASER 1 x 0 0 0 0 0 0 0 h 0", lines[4]]))
+
+
 def test_front_laser_max_param_in_force(tmp_path: Path) -> None:
     lines = [
         flaser([1.0, 50.0]),

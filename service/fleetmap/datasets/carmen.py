@@ -139,15 +139,27 @@ def _numbered_lines(stream: BinaryIO, path: Path) -> Iterator[tuple[int, str]]:
     """(1-based line number, decoded line) of a plain or gzip file. A UTF-8 byte order mark at the
     start of the file is not part of its first line: an editor that saves with one (Notepad) put
     it in front of that line's tag, which then named no known message and was skipped without a
-    word, so a log lost its first scan, or its robot_frontlaser_offset, which moved every scan."""
+    word, so a log lost its first scan, or its robot_frontlaser_offset, which moved every scan.
+
+    Lines end at LF, CR LF or a lone CR, as in Python's text files ("universal newlines"): a log
+    with classic Mac line endings (CR alone) was one line, its first word a `#` comment or a
+    PARAM, and was refused as 'no FLASER or ROBOTLASER1 message in 1 lines: not a CARMEN laser
+    log'; a lone CR between two lines (logs joined) made them one, refused as malformed."""
     compressed = stream.read(2) == GZIP_MAGIC
     stream.seek(0)
+    lineno = 0
     with gzip.GzipFile(fileobj=stream, mode="rb") if compressed else contextlib.nullcontext(stream) as f:
-        for lineno, raw in enumerate(f, start=1):
-            try:
-                yield lineno, raw.decode("utf-8-sig" if lineno == 1 else "utf-8")
-            except UnicodeDecodeError:
-                raise DatasetError(f"{path}:{lineno}: not UTF-8 text: not a CARMEN log") from None
+        for raw in f:
+            body = raw[:-1] if raw.endswith(b"\n") else raw
+            if body.endswith(b"\r"):  # CR LF, one line end
+                body = body[:-1]
+            # The check first: nearly every line has no CR, and is not copied by a split.
+            for piece in body.split(b"\r") if b"\r" in body else (body,):
+                lineno += 1
+                try:
+                    yield lineno, piece.decode("utf-8-sig" if lineno == 1 else "utf-8")
+                except UnicodeDecodeError:
+                    raise DatasetError(f"{path}:{lineno}: not UTF-8 text: not a CARMEN log") from None
 
 
 class _ParseState:
