@@ -238,6 +238,39 @@ def test_lines_may_end_in_cr_lf_or_a_lone_cr(tmp_path: Path, ending: str, compre
         load_dataset(write("bad.log", [*lines[:3], "FLASER 1 x 0 0 0 0 0 0 0 h 0", lines[4]]))
 
 
+@pytest.mark.parametrize("compress", [False, True])
+@pytest.mark.parametrize("encoding", ["utf-16-le", "utf-16-be"])
+def test_a_utf16_log_reads_as_its_utf8_text(tmp_path: Path, encoding: str, compress: bool) -> None:
+    """A log saved as UTF-16 with its byte order mark (Windows PowerShell 5's `>` writes so, CR LF
+    line ends included) reads as the same text in UTF-8: it was refused as 'not UTF-8 text: not a
+    CARMEN log'. Its malformed lines are named by their numbers, and UTF-16 that does not decode
+    is one clear error."""
+    lines = ["PARAM robot_frontlaser_offset 0.5 1.0 host 1.0", flaser([1.0, 2.0], 1.0, 2.0, 0.0)]
+    lines.append(robotlaser1([4.0, 5.0], (1.0, 1.0, 1.0)))
+    expected = load_dataset(write_log(tmp_path / "utf8.log", lines))
+
+    def write(name: str, text: str) -> Path:
+        bom = b"\xff\xfe" if encoding.endswith("le") else b"\xfe\xff"
+        data = bom + text.encode(encoding)
+        path = tmp_path / name
+        path.write_bytes(gzip.compress(data) if compress else data)
+        return path
+
+    ds = load_dataset(write("utf16.log", "\r\n".join(lines) + "\r\n"))
+    assert len(ds) == len(expected) == 2
+    np.testing.assert_array_equal(ds.poses, expected.poses)
+    for got, want in zip(ds, expected, strict=True):
+        np.testing.assert_array_equal(got.ranges, want.ranges)
+        np.testing.assert_array_equal(got.angles, want.angles)
+    with pytest.raises(DatasetError, match=r"bad\.log:3: FLASER range 0"):
+        load_dataset(write("bad.log", "\n".join([*lines[:2], "FLASER 1 x 0 0 0 0 0 0 0 h 0"])))
+    broken = write("broken.log", "\n".join(lines))
+    data = gzip.decompress(broken.read_bytes()) if compress else broken.read_bytes()
+    broken.write_bytes(data[:-1])  # half a character at its end
+    with pytest.raises(DatasetError, match="not UTF-16 text"):
+        load_dataset(broken)
+
+
 def test_front_laser_max_param_in_force(tmp_path: Path) -> None:
     lines = [
         flaser([1.0, 50.0]),

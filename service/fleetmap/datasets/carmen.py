@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import contextlib
 import gzip
+import io
 import math
 import zlib
 from collections.abc import Callable, Iterator
@@ -74,6 +75,8 @@ from .base import (
 DEFAULT_FLASER_RANGE_MAX = 80.0
 
 GZIP_MAGIC = b"\x1f\x8b"
+#: The byte order marks of UTF-16 text, little- and big-endian.
+_UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")
 
 # Field counts around the ranges, from the message layouts in the module docstring.
 _FLASER_TAIL = 9  # x y theta odom_x odom_y odom_theta ipc_ts host logger_ts
@@ -144,11 +147,20 @@ def _numbered_lines(stream: BinaryIO, path: Path) -> Iterator[tuple[int, str]]:
     Lines end at LF, CR LF or a lone CR, as in Python's text files ("universal newlines"): a log
     with classic Mac line endings (CR alone) was one line, its first word a `#` comment or a
     PARAM, and was refused as 'no FLASER or ROBOTLASER1 message in 1 lines: not a CARMEN laser
-    log'; a lone CR between two lines (logs joined) made them one, refused as malformed."""
+    log'; a lone CR between two lines (logs joined) made them one, refused as malformed.
+
+    A file that starts with a UTF-16 byte order mark is UTF-16 text: Windows PowerShell 5's `>`
+    writes so (`gzip -dc intel.log.gz > intel.log`), and such a log was refused as 'not UTF-8
+    text: not a CARMEN log'."""
     compressed = stream.read(2) == GZIP_MAGIC
     stream.seek(0)
     lineno = 0
     with gzip.GzipFile(fileobj=stream, mode="rb") if compressed else contextlib.nullcontext(stream) as f:
+        if f.read(2) in _UTF16_BOMS:
+            f.seek(0)  # the codec reads the mark, to tell the byte order
+            yield from _utf16_lines(f.read(), path)
+            return
+        f.seek(0)
         for raw in f:
             body = raw[:-1] if raw.endswith(b"\n") else raw
             if body.endswith(b"\r"):  # CR LF, one line end
@@ -160,6 +172,20 @@ def _numbered_lines(stream: BinaryIO, path: Path) -> Iterator[tuple[int, str]]:
                     yield lineno, piece.decode("utf-8-sig" if lineno == 1 else "utf-8")
                 except UnicodeDecodeError:
                     raise DatasetError(f"{path}:{lineno}: not UTF-8 text: not a CARMEN log") from None
+
+
+def _utf16_lines(data: bytes, path: Path) -> Iterator[tuple[int, str]]:
+    """(1-based line number, line) of UTF-16 text that starts with its byte order mark, lines
+    ending as `_numbered_lines` ends them (LF, CR LF or CR). A whole log in memory is a few MB."""
+    try:
+        text = data.decode("utf-16")
+    except UnicodeDecodeError as exc:
+        raise DatasetError(
+            f"{path}: not UTF-16 text (byte {exc.start}), though it starts as UTF-16 does"
+        ) from None
+    # A StringIO with newline=None ends lines at LF, CR LF and CR only (str.splitlines ends them
+    # at form feeds and other separators too, where a UTF-8 log's lines do not end).
+    yield from enumerate(io.StringIO(text, newline=None), start=1)
 
 
 class _ParseState:
