@@ -455,6 +455,38 @@ def test_build_errors_are_clear_and_write_nothing(
     assert not out.exists()
 
 
+def test_a_build_out_of_memory_is_one_clear_line(tmp_path: Path) -> None:
+    """A map whose tiles outgrow the memory the process may have (here a `ulimit -v` of 2 GiB, as
+    shared machines set; elsewhere a fine resolution on a small machine) ends the build with one
+    line saying so and what to change, exit 2, nothing written: it ended in numpy's traceback
+    ('Unable to allocate 2.50 GiB for an array with shape (40, 4096, 4096)'), exit 1. The second
+    scan's 900 m beams reach 40 tiles of 4096 cells at once, 2.5 GiB for the occupancy layer
+    alone; the first scan's 2 tiles (128 MiB) fit, as does the rest of the command (about 700 MB
+    of address space, numba's included)."""
+    resource = pytest.importorskip("resource")  # POSIX: the limit is real, not a simulated failure
+    log = tmp_path / "far.log"
+    log.write_text(
+        "PARAM robot_front_laser_max 2000 0 h 0\n"
+        + flaser([1.0] * 180, 0.0, 0.0, 0.0) + "\n" + flaser([900.0] * 180, 0.0, 0.0, 0.0) + "\n"
+    )  # fmt: skip
+    config = tmp_path / "big_tiles.json"
+    config.write_text('{"tile_size": 4096, "layers": ["occupancy"]}')
+    out = tmp_path / "out"
+
+    def limit_memory() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
+
+    done = subprocess.run(
+        [*fleetmap_command(), "build", str(log), "--out", str(out), "--config", str(config), "--quiet"],
+        capture_output=True, text=True, timeout=300, preexec_fn=limit_memory,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("fleetmap build: error: out of memory at scan 2 of 2, growing the map")
+    assert "tiles of 4096 x 4096 cells" in done.stderr and "coarser --resolution" in done.stderr
+    assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("command", ["build", "replay"])
 def test_a_missing_dataset_says_what_to_give_and_where_to_find_one(tmp_path: Path, command: str) -> None:
     """The README's examples name `../shared/datasets/...`, which a fresh clone does not have: the

@@ -272,6 +272,8 @@ def _build(args: argparse.Namespace) -> int:
             except (ScanError, TileLimitError) as exc:
                 skipped += 1
                 tqdm.write(f"skipped a scan: {exc}", file=sys.stderr)
+            except MemoryError:
+                raise CliError(_out_of_memory(gmap, done, len(dataset))) from None
     finally:
         signal.signal(signal.SIGINT, previous)
     if interrupted.is_set():
@@ -320,6 +322,21 @@ def _too_large(gmap: GridMap) -> str:
         f"the map spans {nx} x {ny} cells ({nx * res:.6g} x {ny * res:.6g} m at {res:g} m), too many "
         f"for its images and arrays (map.pgm alone would be {nx * ny / 2**30:,.1f} GiB, each .npy four "
         "times that); look for a pose far from the others in the log, or use a coarser --resolution"
+    )
+
+
+def _out_of_memory(gmap: GridMap, scan: int, scans: int) -> str:
+    """The error for a build whose map's tiles outgrew the memory the process may have. A map at a
+    fine resolution (or of large tiles) grows its pools by doubling, and a growth past what the
+    machine, or a `ulimit -v`, allows ended the build in numpy's traceback ('Unable to allocate
+    2.50 GiB for an array with shape (40, 4096, 4096)'), exit 1."""
+    from fleetmap.memory_budget import format_size
+
+    store = gmap.store
+    return (
+        f"out of memory at scan {scan} of {scans}, growing the map past its {len(store)} tiles of "
+        f"{store.tile_size} x {store.tile_size} cells ({format_size(store.memory_bytes())}); nothing "
+        "written: use a coarser --resolution, or a --config with fewer layers or smaller tiles"
     )
 
 
