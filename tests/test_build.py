@@ -455,20 +455,20 @@ def test_build_errors_are_clear_and_write_nothing(
     assert not out.exists()
 
 
-def test_a_build_out_of_memory_is_one_clear_line(tmp_path: Path) -> None:
+@pytest.mark.parametrize("big_first", [False, True], ids=["grows-later", "grows-at-once"])
+def test_a_build_out_of_memory_is_one_clear_line(tmp_path: Path, big_first: bool) -> None:
     """A map whose tiles outgrow the memory the process may have (here a `ulimit -v` of 2 GiB, as
     shared machines set; elsewhere a fine resolution on a small machine) ends the build with one
     line saying so and what to change, exit 2, nothing written: it ended in numpy's traceback
-    ('Unable to allocate 2.50 GiB for an array with shape (40, 4096, 4096)'), exit 1. The second
+    ('Unable to allocate 2.50 GiB for an array with shape (40, 4096, 4096)'), exit 1. The far
     scan's 900 m beams reach 40 tiles of 4096 cells at once, 2.5 GiB for the occupancy layer
-    alone; the first scan's 2 tiles (128 MiB) fit, as does the rest of the command (about 700 MB
-    of address space, numba's included)."""
+    alone; the near scan's 2 tiles (128 MiB) fit, as does the rest of the command (about 700 MB
+    of address space, numba's included). With the far scan first, the kernels' load, which
+    integrates the first scan into a throwaway map, ran out of memory and ended in the traceback."""
     resource = pytest.importorskip("resource")  # POSIX: the limit is real, not a simulated failure
     log = tmp_path / "far.log"
-    log.write_text(
-        "PARAM robot_front_laser_max 2000 0 h 0\n"
-        + flaser([1.0] * 180, 0.0, 0.0, 0.0) + "\n" + flaser([900.0] * 180, 0.0, 0.0, 0.0) + "\n"
-    )  # fmt: skip
+    scans = [flaser([1.0] * 180, 0.0, 0.0, 0.0), flaser([900.0] * 180, 0.0, 0.0, 0.0)]
+    log.write_text("\n".join(["PARAM robot_front_laser_max 2000 0 h 0", *scans[:: -1 if big_first else 1]]))
     config = tmp_path / "big_tiles.json"
     config.write_text('{"tile_size": 4096, "layers": ["occupancy"]}')
     out = tmp_path / "out"
@@ -481,7 +481,8 @@ def test_a_build_out_of_memory_is_one_clear_line(tmp_path: Path) -> None:
         capture_output=True, text=True, timeout=300, preexec_fn=limit_memory,
     )  # fmt: skip
     assert done.returncode == 2, done.stderr
-    assert done.stderr.startswith("fleetmap build: error: out of memory at scan 2 of 2, growing the map")
+    scan = 1 if big_first else 2
+    assert done.stderr.startswith(f"fleetmap build: error: out of memory at scan {scan} of 2, growing")
     assert "tiles of 4096 x 4096 cells" in done.stderr and "coarser --resolution" in done.stderr
     assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
     assert not out.exists()

@@ -353,7 +353,9 @@ def _load_kernels(config: MapConfig, scan: Scan, quiet: bool) -> None:
         print("loading the engine's compiled kernels (the first run after an install compiles them)",
               file=sys.stderr, flush=True)  # fmt: skip
     throwaway = GridMap(config)
-    with contextlib.suppress(ScanError, TileLimitError):  # the build skips such a scan and says so
+    # The build skips such a scan and says so; and it stops at a scan whose tiles do not fit in
+    # memory with a clear error, where this one ended in a traceback.
+    with contextlib.suppress(ScanError, TileLimitError, MemoryError):
         throwaway.integrate(scan)
         throwaway.integrate(scan)
 
