@@ -272,6 +272,19 @@ def test_a_build_removes_only_what_an_earlier_build_wrote(tmp_path: Path) -> Non
     assert sorted(p.name for p in out.iterdir()) == names
 
 
+def test_a_build_into_a_folder_whose_meta_json_nests_deep_is_not_stopped_by_it(tmp_path: Path) -> None:
+    """A meta.json that json's parser cannot read for its depth (arrays 100,000 deep) is not an
+    earlier build's, as one that is not JSON is not: the build replaces it. Its RecursionError
+    ended the build in a traceback, exit 1, after the scans were integrated."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "meta.json").write_text("[" * 100_000 + "]" * 100_000)
+    done = build(scene_log(tmp_path / "scene.log"), "--out", out, "--quiet")
+    assert done.returncode == 0, done.stderr
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["layers"] == ["log_odds", "hits", "misses", "tsdf", "tsdf_weight"]
+
+
 def test_a_build_that_cannot_write_all_its_files_leaves_the_folder_as_it_was(tmp_path: Path) -> None:
     """A disk that fills up while the build writes (here a file-size limit of 1000 bytes: map.yaml
     fits, map.pgm does not): the build said it could not write, and left a new map.yaml beside a
@@ -399,6 +412,13 @@ def bad_config(directory: Path) -> Path:
     return path
 
 
+def deep_config(directory: Path) -> Path:
+    """A configuration of arrays nested 100,000 deep: json's parser recurses into them."""
+    path = directory / "deep.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    return path
+
+
 def twice_config(directory: Path) -> Path:
     """A configuration holding a key twice: it was read as the last value, silently."""
     path = directory / "twice.json"
@@ -421,6 +441,11 @@ def twice_config(directory: Path) -> Path:
             lambda d: [scene_log(d / "s.log"), "--config", twice_config(d)],
             "twice.json: the key 'p_hit' appears twice in an object",
         ),
+        # A RecursionError's traceback, exit 1.
+        (
+            lambda d: [scene_log(d / "s.log"), "--config", deep_config(d)],
+            "deep.json: its JSON nests too deeply",
+        ),
         (lambda d: [scene_log(d / "s.log"), "--range-min", "3", "--range-max", "2"], "range"),
         # Every reading below range_min: no observed cell, nothing to export.
         (lambda d: [scene_log(d / "s.log"), "--range-min", "5"], "no observed cell"),
@@ -438,6 +463,7 @@ def twice_config(directory: Path) -> Path:
         "missing-config",
         "bad-config",
         "a-key-twice",
+        "a-deep-config",
         "inverted-ranges",
         "nothing-observed",
         "a-far-pose",

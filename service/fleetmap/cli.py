@@ -146,7 +146,8 @@ def dataset_error(path: str, exc: Exception) -> CliError:
 def load_config(path: str | None, **overrides: object) -> MapConfig:
     """A map configuration from a JSON file (or defaults), with command-line overrides applied.
     Raises `CliError` if the file cannot be read, is not JSON text (UTF-8, or the UTF-16 / 32 that
-    JSON allows), holds a key twice in one object or does not validate."""
+    JSON allows), nests too deeply for the parser, holds a key twice in one object or does not
+    validate."""
     data: dict[str, object] = {}
     if path:
         try:
@@ -157,6 +158,8 @@ def load_config(path: str | None, **overrides: object) -> MapConfig:
             raise CliError(f"cannot read config {path}: the key {exc} appears twice in an object") from None
         except UnicodeDecodeError as exc:  # not text: a traceback and exit 1 said nothing of the file
             raise CliError(f"cannot read config {path}: not UTF-8 text (byte {exc.start})") from None
+        except RecursionError:  # arrays in arrays thousands deep: json's parser recurses
+            raise CliError(f"cannot read config {path}: its JSON nests too deeply") from None
         if not isinstance(data, dict):
             raise CliError(f"config {path} must hold a JSON object")
     data.update({k: v for k, v in overrides.items() if v is not None})

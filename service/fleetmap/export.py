@@ -350,7 +350,9 @@ def earlier_build_files(out_dir: str | os.PathLike[str]) -> list[Path]:
     out_dir = Path(out_dir)
     try:
         meta = json.loads((out_dir / "meta.json").read_bytes())
-    except (OSError, ValueError):  # none, or not a build's (ValueError: JSON's and UTF-8's errors)
+    # None, or not a build's (ValueError: JSON's and UTF-8's errors; RecursionError: JSON nested
+    # thousands deep, which json's parser recurses into).
+    except (OSError, ValueError, RecursionError):
         return []
     layers = meta.get("layers") if isinstance(meta, dict) else None
     if not isinstance(layers, list) or "map_source" not in meta:
