@@ -566,6 +566,19 @@ def test_build_to_an_output_path_that_is_not_a_directory_is_a_clear_error(tmp_pa
     assert "integrated" not in done.stdout
 
 
+def test_build_to_an_output_name_too_long_for_the_file_system_is_a_clear_error(tmp_path: Path) -> None:
+    """An `--out` whose name the file system cannot hold (a component over 255 bytes, as a name
+    made from a configuration can be) is refused in one line before any scan is integrated: looking
+    for it raised ENAMETOOLONG, which ended in a traceback, exit 1. (A folder the user may not look
+    into, EACCES, raised there too; not tested here, where the tests run as root.)"""
+    log = scene_log(tmp_path / "s.log")
+    out = tmp_path / ("m" * 300)
+    done = build(log, "--out", out, "--quiet")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr == f"fleetmap build: error: cannot write the outputs to {out}: File name too long\n"
+    assert "integrated" not in done.stdout
+
+
 def test_build_of_the_intel_log_equals_the_library_map(datasets_dir: Path, tmp_path: Path) -> None:
     log = datasets_dir / "intel-corrected.log.gz"
     done = build(log, "--out", tmp_path, "--quiet")

@@ -368,9 +368,15 @@ def _check_out_dir(out_dir: Path) -> None:
     its nearest existing ancestor must be a writable directory. Creates nothing, so that a build
     that fails later (no observed cell) leaves no empty directory behind."""
     existing = out_dir
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
+    try:
+        while not existing.exists() and existing != existing.parent:
+            existing = existing.parent
+        is_dir = existing.is_dir()
+    except OSError as exc:
+        # `exists` answers False only for a name that is not there: a name too long for the file
+        # system, or one in a folder the user may not look into, raised, and ended in a traceback.
+        raise CliError(f"cannot write the outputs to {out_dir}: {exc.strerror or exc}") from None
+    if not is_dir:
         raise CliError(f"cannot write the outputs to {out_dir}: {existing} is not a directory")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise CliError(f"cannot write the outputs to {out_dir}: {existing} is not writable")
