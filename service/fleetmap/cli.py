@@ -274,7 +274,8 @@ def _build(args: argparse.Namespace) -> int:
                 tsdf_updates += result.tsdf_updates
             except (ScanError, TileLimitError) as exc:
                 skipped += 1
-                tqdm.write(f"skipped a scan: {exc}", file=sys.stderr)
+                # Which one: a log holds thousands, and 'skipped a scan' could not be found in it.
+                tqdm.write(f"skipped scan {done} of {len(dataset)}: {exc}", file=sys.stderr)
             except MemoryError:
                 raise CliError(_out_of_memory(gmap, done, len(dataset))) from None
     finally:
