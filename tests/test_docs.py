@@ -36,7 +36,7 @@ SETUP_COMMANDS = ("-X PUT $U/maps/warehouse ", "$U/maps/warehouse/scans?robot_id
 #: curl's --http1.1 is matched as --http1.
 OTHER_TOOLS_OPTIONS = {"--build", "--data-binary", "--http1", "--http2", "--max-time", "--ros-args"}
 #: `fleetmap_*` names that are not metrics: a Python package, the browser session's cookie.
-NOT_METRICS = {"fleetmap_client", "fleetmap_session"}
+NOT_METRICS = {"fleetmap_client", "fleetmap_session", "fleetmap_scans"}  # the last: a ROS node
 
 
 def console_steps(doc: Path) -> list[tuple[str, str]]:

@@ -15,7 +15,7 @@ import pytest
 from fleetmap.codec import DEFAULT_LIMITS, WireScan
 from fleetmap.map_entry import IngestRejected
 from fleetmap.registry import MapRegistry
-from fleetmap.ros.graph import Qos, RosNode, publisher_of_token
+from fleetmap.ros.graph import Qos, RosNode, publisher_of_token, type_hash_of_token
 from fleetmap.ros.ingest import RosScanIngest, robot_id_for, session_from_gid
 from fleetmap.ros.laser_scan import LaserScanMsg, encode_laser_scan
 from fleetmap.ros.rmw_zenoh import TYPE_HASHES, Attachment, encode_attachment, topic_key
@@ -187,6 +187,13 @@ def test_laserscan_publisher_tokens_name_their_topic() -> None:
     assert publisher_of_token(node.node_token()) is None
     assert publisher_of_token(token.replace("/MP/", "/MS/")) is None  # a subscription
     assert publisher_of_token("fleetmap/lab/r1/alive") is None
+    # The type hash fleetmap's subscription of the topic states: the publisher's (Humble's too).
+    assert type_hash_of_token(token) == "RIHS01_x"
+    humble = node.publisher_token(
+        3, "/robot1/scan", "sensor_msgs::msg::dds_::LaserScan_", "TypeHashNotSupported", Qos()
+    )
+    assert type_hash_of_token(humble) == "TypeHashNotSupported"
+    assert type_hash_of_token(node.node_token()) is None
 
 
 def test_a_map_deleted_after_a_scan_is_not_made_again_by_showing_its_robot_online() -> None:

@@ -179,6 +179,18 @@ def test_a_robot_with_two_lasers_is_two_fleetmap_robots_without_an_id_conflict(
             node.close()
 
 
+def scan_subscriptions(session: zenoh.Session) -> list[tuple[str, str, str, str]]:
+    """The LaserScan subscriptions in the ROS graph, as rmw_zenoh's graph cache reads them from the
+    liveliness tokens: (node, topic, type hash, QoS) of each."""
+    replies = session.liveliness().get(f"@ros2_lv/0/*/*/*/MS/*/*/*/*/{dds_type_name(LASER)}/**")
+    found = []
+    for reply in replies:
+        if reply.ok is not None:
+            parts = str(reply.ok.key_expr).split("/")
+            found.append((parts[8], parts[9].replace("%", "/"), parts[11], parts[12]))
+    return sorted(found)
+
+
 def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
     service_factory: Callable[..., ServiceProcess],
 ) -> None:
@@ -187,7 +199,13 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
     closes, as when the robot is switched off or its network lost), as native robots are by their
     `alive` tokens. A publisher that existed before the service started counts (the liveliness
     subscriber has history); other graph tokens (a node's, another type's publisher) do not. Before,
-    a ROS robot was never online."""
+    a ROS robot was never online.
+
+    While the topic has a publisher, the graph shows the service's subscription of it (node
+    `/fleetmap_scans`, SensorDataQoS: best effort, depth 5), gone with the last publisher. rmw_zenoh
+    counts subscription tokens in a publisher's `get_subscription_count()`, which lazy publishers
+    (pointcloud_to_laserscan) wait for before they publish anything. Before, the service declared
+    none: `ros2 topic info` showed no subscriber, and such a robot never sent a scan."""
     router = f"tcp/127.0.0.1:{free_port()}"
     router_session_ = router_session(router)  # rmw_zenohd: the robot is up before the service
     robot2 = RosNodeEmulation(router, "driver", "/robot2", tokens=True)
@@ -200,6 +218,11 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
             wait_for(
                 lambda: robots(http).get("robot2", {}).get("online") is True,
                 timeout=20, what="robot2 online from its LaserScan publisher's token",
+            )  # fmt: skip
+            subscription = ("fleetmap_scans", "/robot2/scan", TYPE_HASHES[LASER], "2::,5:,:,:,,")
+            wait_for(
+                lambda: scan_subscriptions(router_session_) == [subscription],
+                timeout=10, what="the service's subscription of /robot2/scan in the ROS graph",
             )  # fmt: skip
             for k in range(2):
                 publish_robot_tf(robot2, "/robot2", {"laser": LEVEL}, k)
@@ -221,6 +244,10 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
                 timeout=20, what="robot2 offline once its publisher is gone",
             )  # fmt: skip
             assert healthz_ros(http)["robots_online"] == 0
+            wait_for(
+                lambda: scan_subscriptions(router_session_) == [],
+                timeout=10, what="the subscription gone with the topic's last publisher",
+            )  # fmt: skip
         assert service.stop() == 0
         logs = service.logs()
         assert "Traceback" not in logs

@@ -25,6 +25,7 @@ mangled (`/` becomes `%`: the root namespace and enclave `/` are `%`, topic `/ma
 from __future__ import annotations
 
 import hashlib
+import re
 from dataclasses import dataclass
 
 ADMIN_SPACE = "@ros2_lv"
@@ -36,6 +37,8 @@ SUBSCRIPTION = "MS"
 RELIABILITY_RELIABLE, RELIABILITY_BEST_EFFORT = 1, 2
 DURABILITY_TRANSIENT_LOCAL, DURABILITY_VOLATILE = 1, 2
 HISTORY_KEEP_LAST, HISTORY_KEEP_ALL = 1, 2
+
+_HASH_CHUNK = re.compile(r"^[A-Za-z0-9_]{1,128}$")
 
 
 @dataclass(frozen=True)
@@ -63,6 +66,11 @@ MAP_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_TRANSIENT_LOCAL, HISTORY_KEEP_LAS
 #: it on a newer grid, turning cells back. Depth 1: a volatile rmw_zenoh publisher keeps no cache, so
 #: the depth only shows in the graph.
 MAP_UPDATES_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_VOLATILE, HISTORY_KEEP_LAST, 1)
+#: What fleetmap's LaserScan subscriptions state (`--ros-scans`): rclcpp's SensorDataQoS (best effort,
+#: volatile, keep last 5), as nav2's costmaps and slam_toolbox subscribe to scans. A best-effort
+#: volatile subscription is compatible with every publisher's QoS (`rmw_qos_profile_check_compatible`),
+#: so rmw_zenoh counts it in every LaserScan publisher's `get_subscription_count()`.
+SCAN_SUBSCRIPTION_QOS = Qos(RELIABILITY_BEST_EFFORT, DURABILITY_VOLATILE, HISTORY_KEEP_LAST, 5)
 
 
 def mangle(name: str) -> str:
@@ -82,6 +90,16 @@ def subscription_of_token(token: str) -> tuple[int, str, str] | None:
     """(domain, topic, DDS type name) of a subscription's token (`MS`), as `publisher_of_token` reads
     a publisher's; None for any other key."""
     return _endpoint_of_token(token, SUBSCRIPTION)
+
+
+def type_hash_of_token(token: str) -> str | None:
+    """The type hash a publisher's or subscription's token states (its twelfth chunk: a RIHS01 hash,
+    or Humble's `TypeHashNotSupported`), None if it has none that could stand in a key expression of
+    fleetmap's own (letters, digits and `_` only)."""
+    parts = token.split("/")
+    if len(parts) < 13 or not _HASH_CHUNK.match(parts[11]):
+        return None
+    return parts[11]
 
 
 def durability_of_token(token: str) -> int:

@@ -24,6 +24,12 @@ publisher (`@ros2_lv/<domain>/.../MP/.../<topic>/sensor_msgs::msg::dds_::LaserSc
 `fleetmap.ros.graph`), which goes when the publisher is destroyed or its node's session is lost;
 a liveliness subscriber with history reports those present at start.
 
+For each LaserScan topic that has a publisher, the service declares the graph token of a
+subscription of it (node `/fleetmap_scans`, SensorDataQoS), as rmw_zenoh does for each subscription:
+without it `ros2 topic info` shows no subscriber, and publishers that publish only while a
+subscription is matched (`get_subscription_count() > 0`: pointcloud_to_laserscan, lazy bridges)
+never send fleetmap a scan. The tokens are declared and undeclared by the `fleetmap-ros` thread.
+
 Threads: the Zenoh callbacks decode and append, never wait. A scan goes on its robot's pending
 queue (bounded; the newest refused when full) and the `fleetmap-ros` thread poses it as soon as TF
 covers its stamp, in order per robot. A scan whose TF has not come `tf_timeout` seconds after it
@@ -54,9 +60,16 @@ from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import InvalidId, MapRegistry
 from fleetmap.ros import laser_scan, tf_message
 from fleetmap.ros.cdr import CdrError
-from fleetmap.ros.graph import ADMIN_SPACE, PUBLISHER, publisher_of_token
+from fleetmap.ros.graph import (
+    ADMIN_SPACE,
+    PUBLISHER,
+    SCAN_SUBSCRIPTION_QOS,
+    RosNode,
+    publisher_of_token,
+    type_hash_of_token,
+)
 from fleetmap.ros.laser_scan import LaserScanMsg, decode_laser_scan
-from fleetmap.ros.rmw_zenoh import dds_type_name, decode_attachment, parse_topic_key
+from fleetmap.ros.rmw_zenoh import TYPE_HASHES, dds_type_name, decode_attachment, parse_topic_key
 from fleetmap.ros.tf_message import decode_tf_message
 from fleetmap.ros.transforms import TfBuffer, TfError, TfPending, normalize_frame, sensor_pose_2d
 from fleetmap.scan import Scan, ScanError
@@ -80,6 +93,13 @@ MAX_PUBLISHER_TOKENS = 4096
 ROOT_ROBOT_ID = "robot"
 #: The usual name of a robot's LaserScan topic (nav2's default): the robot id is its namespace alone.
 SCAN_TOPIC_NAME = "scan"
+#: The ROS node fleetmap's LaserScan subscriptions belong to in the ROS graph, and its node id on the
+#: service's Zenoh session (the map publisher's node, `/fleetmap`, is 0).
+SCAN_NODE_NAME = "fleetmap_scans"
+SCAN_NODE_ID = 1
+#: The subscriptions' entity ids start past this: apart from the map publisher's (1, 2, ... two a
+#: published topic) on the same session, as rmw_zenoh's ids are unique per session.
+SCAN_ENTITY_ID_BASE = 1 << 16
 
 
 def robot_id_for(topic: str) -> str:
@@ -177,6 +197,14 @@ class RosScanIngest:
         self._trees: dict[str, TfBuffer] = {}  # by namespace ('' for /tf)
         self._waiting = 0  # scans in all robots' pending queues
         self._publisher_tokens: dict[str, str] = {}  # token key -> robot id, LaserScan publishers alive
+        #: LaserScan topic -> (its publishers alive, the type hash of the first one's token): the
+        #: topics the graph should show a subscription of (`_sync_subscription_tokens`).
+        self._scan_topics: dict[str, tuple[int, str]] = {}
+        #: What the thread declared: the node's token, and per topic its subscription's token.
+        self._node_token: Any = None
+        self._subscription_tokens: dict[str, Any] = {}
+        self._next_entity_id = SCAN_ENTITY_ID_BASE
+        self._graph_node: RosNode | None = None
         self._alive: Counter[str] = Counter()  # robot id -> its LaserScan publishers alive (> 0)
         self._wake = threading.Event()
         self._stop = False
@@ -210,6 +238,10 @@ class RosScanIngest:
             )
             # rmw_zenoh before its AdvancedPublisher: a publication cache answering queries on the key.
             self.session.get(self.tf_key, self._on_reply)
+            self._graph_node = RosNode(
+                self.domain_id, str(self.session.zid()), node_id=SCAN_NODE_ID, name=SCAN_NODE_NAME
+            )
+            self._node_token = self.session.liveliness().declare_token(self._graph_node.node_token())
             # With history: the publishers that exist already are reported at once.
             self._subscribers.append(
                 self.session.liveliness().declare_subscriber(self.token_key, self._on_token, history=True)
@@ -236,6 +268,13 @@ class RosScanIngest:
         thread, self._thread = self._thread, None
         if thread is not None:
             thread.join(timeout=5)
+        # After the thread, which declares the subscriptions' tokens: none is declared after this.
+        tokens = [*self._subscription_tokens.values(), self._node_token]
+        self._subscription_tokens, self._node_token = {}, None
+        for token in tokens:
+            if token is not None:
+                with contextlib.suppress(zenoh.ZError):
+                    token.undeclare()
 
     # -- Zenoh callbacks (Zenoh threads: never block) --------------------------------------------
 
@@ -372,13 +411,18 @@ class RosScanIngest:
             if not is_valid_id(robot_id):
                 return  # its scans are refused as invalid_topic
             present = sample.kind == zenoh.SampleKind.PUT
+            topic = parsed[1]
             with self._lock:  # held across set_online: a robot's PUT and DELETE reach it in order
+                publishers, type_hash = self._scan_topics.get(topic, (0, ""))
                 if present:
                     if key in self._publisher_tokens or len(self._publisher_tokens) >= MAX_PUBLISHER_TOKENS:
                         return
                     self._publisher_tokens[key] = robot_id
                     self._alive[robot_id] += 1
                     changed = self._alive[robot_id] == 1
+                    default_hash = TYPE_HASHES[laser_scan.ROS_TYPE]
+                    type_hash = type_hash or type_hash_of_token(key) or default_hash
+                    self._scan_topics[topic] = (publishers + 1, type_hash)
                 else:
                     if self._publisher_tokens.pop(key, None) is None:
                         return
@@ -386,8 +430,14 @@ class RosScanIngest:
                     changed = self._alive[robot_id] == 0
                     if changed:
                         del self._alive[robot_id]
+                    if publishers > 1:
+                        self._scan_topics[topic] = (publishers - 1, type_hash)
+                    else:
+                        self._scan_topics.pop(topic, None)
                 if changed:
                     self.registry.set_online(self.map_id, robot_id, present)
+            if publishers == 0 or not present and publishers == 1:
+                self._wake.set()  # a topic's first publisher came or its last went: its subscription token
             if changed:  # any peer can declare tokens: rate-limited, as the native ingest's
                 state = "online" if present else "offline"
                 self._alive_log.log(
@@ -471,9 +521,36 @@ class RosScanIngest:
                 return
             try:
                 timeout = self._pass()
+                self._sync_subscription_tokens()
             except Exception:  # a bug must not end the thread: every later scan would wait forever
                 log.exception("unexpected error posing ROS scans")
                 timeout = 0.1
+
+    def _sync_subscription_tokens(self) -> None:
+        """Declare the graph token of a subscription of each LaserScan topic that has a publisher, and
+        undeclare those of topics whose publishers are all gone (on the `fleetmap-ros` thread: a
+        declaration may wait on the session, which Zenoh's callbacks must not)."""
+        node = self._graph_node
+        if node is None:
+            return
+        with self._lock:
+            wanted = dict(self._scan_topics)
+        for topic in [t for t in self._subscription_tokens if t not in wanted]:
+            with contextlib.suppress(zenoh.ZError):
+                self._subscription_tokens.pop(topic).undeclare()
+        for topic, (_, type_hash) in wanted.items():
+            if topic in self._subscription_tokens or self._stop:
+                continue
+            self._next_entity_id += 1
+            key = node.subscription_token(
+                self._next_entity_id,
+                topic,
+                dds_type_name(laser_scan.ROS_TYPE),
+                type_hash,
+                SCAN_SUBSCRIPTION_QOS,
+            )
+            with contextlib.suppress(zenoh.ZError):  # the session closing: nothing to show any more
+                self._subscription_tokens[topic] = self.session.liveliness().declare_token(key)
 
     def _pass(self) -> float | None:
         """Pose, submit or drop what each robot's queue holds, in order; the seconds until the
