@@ -451,6 +451,8 @@ def test_tilted_laser_and_bad_topics_are_refused_with_reasons(
             "$FLEETMAP_ROS_DOMAIN='x': expected a whole number",
         ),
         (["--ros-scans", "lab"], {"ROS_DOMAIN_ID": "zero"}, "$ROS_DOMAIN_ID='zero': expected a whole number"),
+        # A digit to str.isdigit() that int() refuses: it stopped the start with a traceback.
+        (["--ros-scans", "lab"], {"ROS_DOMAIN_ID": "\u00b2"}, "$ROS_DOMAIN_ID='\u00b2': expected a whole"),
         (
             ["--ros-scans", "lab", "--ros-fixed-frame", "/"],
             {},

@@ -41,7 +41,9 @@ def ros_domain(args: argparse.Namespace, environ: dict[str, str] | None = None) 
     text = (os.environ if environ is None else environ).get("ROS_DOMAIN_ID", "").strip()
     if not text:
         return 0
-    if not text.isdigit() or int(text) >= 2**32:
+    # ASCII digits only: str.isdigit() is also true of '²', which int() refuses, and of other
+    # scripts' digits, which ROS's own strtoul reads as no number.
+    if not (text.isascii() and text.isdigit()) or int(text) >= 2**32:
         raise CliError(f"$ROS_DOMAIN_ID={text!r}: expected a whole number (or give --ros-domain N)")
     return int(text)
 
