@@ -179,10 +179,10 @@ def test_a_robot_with_two_lasers_is_two_fleetmap_robots_without_an_id_conflict(
             node.close()
 
 
-def scan_subscriptions(session: zenoh.Session) -> list[tuple[str, str, str, str]]:
-    """The LaserScan subscriptions in the ROS graph, as rmw_zenoh's graph cache reads them from the
-    liveliness tokens: (node, topic, type hash, QoS) of each."""
-    replies = session.liveliness().get(f"@ros2_lv/0/*/*/*/MS/*/*/*/*/{dds_type_name(LASER)}/**")
+def subscriptions(session: zenoh.Session, ros_type: str = LASER) -> list[tuple[str, str, str, str]]:
+    """The subscriptions of `ros_type` in the ROS graph, as rmw_zenoh's graph cache reads them from
+    the liveliness tokens: (node, topic, type hash, QoS) of each."""
+    replies = session.liveliness().get(f"@ros2_lv/0/*/*/*/MS/*/*/*/*/{dds_type_name(ros_type)}/**")
     found = []
     for reply in replies:
         if reply.ok is not None:
@@ -202,10 +202,11 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
     a ROS robot was never online.
 
     While the topic has a publisher, the graph shows the service's subscription of it (node
-    `/fleetmap_scans`, SensorDataQoS: best effort, depth 5), gone with the last publisher. rmw_zenoh
-    counts subscription tokens in a publisher's `get_subscription_count()`, which lazy publishers
-    (pointcloud_to_laserscan) wait for before they publish anything. Before, the service declared
-    none: `ros2 topic info` showed no subscriber, and such a robot never sent a scan."""
+    `/fleetmap_scans`, SensorDataQoS: best effort, depth 5), gone with the last publisher, and so for
+    a TF topic (with tf2's listener's QoS). rmw_zenoh counts subscription tokens in a publisher's
+    `get_subscription_count()`, which lazy publishers (pointcloud_to_laserscan, lazy bridges) wait
+    for before they publish anything. Before, the service declared none: `ros2 topic info` showed
+    no subscriber, and such a robot never sent a scan."""
     router = f"tcp/127.0.0.1:{free_port()}"
     router_session_ = router_session(router)  # rmw_zenohd: the robot is up before the service
     robot2 = RosNodeEmulation(router, "driver", "/robot2", tokens=True)
@@ -213,6 +214,8 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
     try:
         robot2.publisher("/robot2/scan", LASER)  # declared, its token with it; nothing published yet
         other.publisher("/robot3/tf", TF)  # a graph token of another type: no robot
+        other.publisher("/robot3/tf_static", TF)
+        other.publisher("/robot3/not_tf", TF)  # a TFMessage on another topic is not TF: not read
         service = service_factory("--ros-scans", "lab", "--zenoh-connect", router)
         with httpx.Client(base_url=service.base_url, timeout=20.0) as http:
             wait_for(
@@ -221,8 +224,16 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
             )  # fmt: skip
             subscription = ("fleetmap_scans", "/robot2/scan", TYPE_HASHES[LASER], "2::,5:,:,:,,")
             wait_for(
-                lambda: scan_subscriptions(router_session_) == [subscription],
+                lambda: subscriptions(router_session_) == [subscription],
                 timeout=10, what="the service's subscription of /robot2/scan in the ROS graph",
+            )  # fmt: skip
+            tf_subscriptions = [
+                ("fleetmap_scans", "/robot3/tf", TYPE_HASHES[TF], "::,100:,:,:,,"),
+                ("fleetmap_scans", "/robot3/tf_static", TYPE_HASHES[TF], ":1:,1:,:,:,,"),
+            ]
+            wait_for(
+                lambda: subscriptions(router_session_, TF) == tf_subscriptions,
+                timeout=10, what="the service's subscription of /robot3/tf in the ROS graph",
             )  # fmt: skip
             for k in range(2):
                 publish_robot_tf(robot2, "/robot2", {"laser": LEVEL}, k)
@@ -245,7 +256,7 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
             )  # fmt: skip
             assert healthz_ros(http)["robots_online"] == 0
             wait_for(
-                lambda: scan_subscriptions(router_session_) == [],
+                lambda: subscriptions(router_session_) == [],
                 timeout=10, what="the subscription gone with the topic's last publisher",
             )  # fmt: skip
         assert service.stop() == 0

@@ -71,6 +71,11 @@ MAP_UPDATES_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_VOLATILE, HISTORY_KEEP_LA
 #: volatile subscription is compatible with every publisher's QoS (`rmw_qos_profile_check_compatible`),
 #: so rmw_zenoh counts it in every LaserScan publisher's `get_subscription_count()`.
 SCAN_SUBSCRIPTION_QOS = Qos(RELIABILITY_BEST_EFFORT, DURABILITY_VOLATILE, HISTORY_KEEP_LAST, 5)
+#: What fleetmap's subscriptions of `tf` and `tf_static` state: tf2_ros' TransformListener's
+#: (DynamicListenerQoS: reliable, volatile, keep last 100; StaticListenerQoS: reliable, transient
+#: local, keep last 1), as TF's publishers expect of a listener.
+TF_SUBSCRIPTION_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_VOLATILE, HISTORY_KEEP_LAST, 100)
+TF_STATIC_SUBSCRIPTION_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_TRANSIENT_LOCAL, HISTORY_KEEP_LAST, 1)
 
 
 def mangle(name: str) -> str:

@@ -24,11 +24,12 @@ publisher (`@ros2_lv/<domain>/.../MP/.../<topic>/sensor_msgs::msg::dds_::LaserSc
 `fleetmap.ros.graph`), which goes when the publisher is destroyed or its node's session is lost;
 a liveliness subscriber with history reports those present at start.
 
-For each LaserScan topic that has a publisher, the service declares the graph token of a
-subscription of it (node `/fleetmap_scans`, SensorDataQoS), as rmw_zenoh does for each subscription:
-without it `ros2 topic info` shows no subscriber, and publishers that publish only while a
-subscription is matched (`get_subscription_count() > 0`: pointcloud_to_laserscan, lazy bridges)
-never send fleetmap a scan. The tokens are declared and undeclared by the `fleetmap-ros` thread.
+For each LaserScan, `tf` and `tf_static` topic that has a publisher (seen by its graph token), the
+service declares the graph token of a subscription of it (node `/fleetmap_scans`; SensorDataQoS for
+scans, tf2's listener's QoS for TF), as rmw_zenoh does for each subscription: without it `ros2
+topic info` shows no subscriber, and publishers that publish only while a subscription is matched
+(`get_subscription_count() > 0`: pointcloud_to_laserscan, lazy bridges) never send fleetmap a scan.
+The tokens are declared and undeclared by the `fleetmap-ros` thread.
 
 Threads: the Zenoh callbacks decode and append, never wait. A scan goes on its robot's pending
 queue (bounded; the newest refused when full) and the `fleetmap-ros` thread poses it as soon as TF
@@ -64,6 +65,8 @@ from fleetmap.ros.graph import (
     ADMIN_SPACE,
     PUBLISHER,
     SCAN_SUBSCRIPTION_QOS,
+    TF_STATIC_SUBSCRIPTION_QOS,
+    TF_SUBSCRIPTION_QOS,
     RosNode,
     publisher_of_token,
     type_hash_of_token,
@@ -93,6 +96,8 @@ MAX_PUBLISHER_TOKENS = 4096
 ROOT_ROBOT_ID = "robot"
 #: The usual name of a robot's LaserScan topic (nav2's default): the robot id is its namespace alone.
 SCAN_TOPIC_NAME = "scan"
+#: The names of TF's topics (in the root namespace or a robot's).
+TF_TOPIC_NAME, TF_STATIC_TOPIC_NAME = "tf", "tf_static"
 #: The ROS node fleetmap's LaserScan subscriptions belong to in the ROS graph, and its node id on the
 #: service's Zenoh session (the map publisher's node, `/fleetmap`, is 0).
 SCAN_NODE_NAME = "fleetmap_scans"
@@ -190,6 +195,10 @@ class RosScanIngest:
         self.token_key = (
             f"{ADMIN_SPACE}/{domain_id}/*/*/*/{PUBLISHER}/*/*/*/*/{dds_type_name(laser_scan.ROS_TYPE)}/**"
         )
+        #: Their TF publishers' (of every TFMessage topic: `_on_tf_token` keeps tf and tf_static).
+        self.tf_token_key = (
+            f"{ADMIN_SPACE}/{domain_id}/*/*/*/{PUBLISHER}/*/*/*/*/{dds_type_name(tf_message.ROS_TYPE)}/**"
+        )
         self._subscribers: list[Any] = []
         self._lock = threading.Lock()  # guards _robots, the counters
         self._tf_lock = threading.Lock()  # guards _trees
@@ -197,12 +206,13 @@ class RosScanIngest:
         self._trees: dict[str, TfBuffer] = {}  # by namespace ('' for /tf)
         self._waiting = 0  # scans in all robots' pending queues
         self._publisher_tokens: dict[str, str] = {}  # token key -> robot id, LaserScan publishers alive
-        #: LaserScan topic -> (its publishers alive, the type hash of the first one's token): the
-        #: topics the graph should show a subscription of (`_sync_subscription_tokens`).
-        self._scan_topics: dict[str, tuple[int, str]] = {}
-        #: What the thread declared: the node's token, and per topic its subscription's token.
+        self._tf_publisher_tokens: set[str] = set()  # token keys of the tf and tf_static publishers alive
+        #: (LaserScan or TF topic, its ROS type) -> (its publishers alive, the type hash of the first
+        #: one's token): the topics the graph should show a subscription of (`_count_publisher`).
+        self._graph_topics: dict[tuple[str, str], tuple[int, str]] = {}
+        #: What the thread declared: the node's token, and per (topic, type) its subscription's token.
         self._node_token: Any = None
-        self._subscription_tokens: dict[str, Any] = {}
+        self._subscription_tokens: dict[tuple[str, str], Any] = {}
         self._next_entity_id = SCAN_ENTITY_ID_BASE
         self._graph_node: RosNode | None = None
         self._alive: Counter[str] = Counter()  # robot id -> its LaserScan publishers alive (> 0)
@@ -245,6 +255,11 @@ class RosScanIngest:
             # With history: the publishers that exist already are reported at once.
             self._subscribers.append(
                 self.session.liveliness().declare_subscriber(self.token_key, self._on_token, history=True)
+            )
+            self._subscribers.append(
+                self.session.liveliness().declare_subscriber(
+                    self.tf_token_key, self._on_tf_token, history=True
+                )
             )
         except zenoh.ZError:
             self.close()
@@ -411,18 +426,13 @@ class RosScanIngest:
             if not is_valid_id(robot_id):
                 return  # its scans are refused as invalid_topic
             present = sample.kind == zenoh.SampleKind.PUT
-            topic = parsed[1]
             with self._lock:  # held across set_online: a robot's PUT and DELETE reach it in order
-                publishers, type_hash = self._scan_topics.get(topic, (0, ""))
                 if present:
                     if key in self._publisher_tokens or len(self._publisher_tokens) >= MAX_PUBLISHER_TOKENS:
                         return
                     self._publisher_tokens[key] = robot_id
                     self._alive[robot_id] += 1
                     changed = self._alive[robot_id] == 1
-                    default_hash = TYPE_HASHES[laser_scan.ROS_TYPE]
-                    type_hash = type_hash or type_hash_of_token(key) or default_hash
-                    self._scan_topics[topic] = (publishers + 1, type_hash)
                 else:
                     if self._publisher_tokens.pop(key, None) is None:
                         return
@@ -430,14 +440,9 @@ class RosScanIngest:
                     changed = self._alive[robot_id] == 0
                     if changed:
                         del self._alive[robot_id]
-                    if publishers > 1:
-                        self._scan_topics[topic] = (publishers - 1, type_hash)
-                    else:
-                        self._scan_topics.pop(topic, None)
+                self._count_publisher(parsed[1], laser_scan.ROS_TYPE, key, present)
                 if changed:
                     self.registry.set_online(self.map_id, robot_id, present)
-            if publishers == 0 or not present and publishers == 1:
-                self._wake.set()  # a topic's first publisher came or its last went: its subscription token
             if changed:  # any peer can declare tokens: rate-limited, as the native ingest's
                 state = "online" if present else "offline"
                 self._alive_log.log(
@@ -447,6 +452,48 @@ class RosScanIngest:
                 )  # fmt: skip
         except Exception:
             log.exception("unexpected error handling a ROS graph token %s", sample.key_expr)
+
+    def _on_tf_token(self, sample: zenoh.Sample) -> None:
+        """A TFMessage publisher's graph token appeared or went: counted for the subscription of its
+        topic the graph shows (`tf` and `tf_static` topics only: others are not TF)."""
+        try:
+            key = str(sample.key_expr)
+            parsed = publisher_of_token(key)
+            if parsed is None or parsed[0] != self.domain_id:
+                return
+            if parsed[1].rpartition("/")[2] not in (TF_TOPIC_NAME, TF_STATIC_TOPIC_NAME):
+                return
+            present = sample.kind == zenoh.SampleKind.PUT
+            with self._lock:
+                if present:
+                    if (
+                        key in self._tf_publisher_tokens
+                        or len(self._tf_publisher_tokens) >= MAX_PUBLISHER_TOKENS
+                    ):
+                        return
+                    self._tf_publisher_tokens.add(key)
+                elif key in self._tf_publisher_tokens:
+                    self._tf_publisher_tokens.discard(key)
+                else:
+                    return
+                self._count_publisher(parsed[1], tf_message.ROS_TYPE, key, present)
+        except Exception:
+            log.exception("unexpected error handling a ROS graph token %s", sample.key_expr)
+
+    def _count_publisher(self, topic: str, ros_type: str, token: str, present: bool) -> None:
+        """Count a publisher of `topic` (of `ros_type`) come (`present`) or gone, for the subscription
+        of the topic the graph shows while it has one; wakes the thread, which declares and undeclares
+        those tokens, when its first came or its last went (caller holds `_lock`)."""
+        publishers, type_hash = self._graph_topics.get((topic, ros_type), (0, ""))
+        if present:
+            type_hash = type_hash or type_hash_of_token(token) or TYPE_HASHES[ros_type]
+            self._graph_topics[topic, ros_type] = (publishers + 1, type_hash)
+        elif publishers > 1:
+            self._graph_topics[topic, ros_type] = (publishers - 1, type_hash)
+        else:
+            self._graph_topics.pop((topic, ros_type), None)
+        if publishers == 0 or (not present and publishers == 1):
+            self._wake.set()
 
     def _mark_online(self, robot_id: str) -> None:
         """After a scan of `robot_id` was submitted: if a publisher of it is alive, make sure the
@@ -475,7 +522,7 @@ class RosScanIngest:
         if topic_key is None or topic_key.ros_type != tf_message.ROS_TYPE:
             return
         namespace, _, name = topic_key.topic.rpartition("/")
-        if name not in ("tf", "tf_static"):
+        if name not in (TF_TOPIC_NAME, TF_STATIC_TOPIC_NAME):
             return  # a TFMessage on another topic is not TF
         try:
             transforms = decode_tf_message(payload)
@@ -497,7 +544,7 @@ class RosScanIngest:
             if tree is not None:
                 for t in transforms:
                     try:
-                        tree.add(t, static=name == "tf_static")
+                        tree.add(t, static=name == TF_STATIC_TOPIC_NAME)
                     except TfError as exc:
                         refused.append(str(exc))
         with self._lock:
@@ -534,23 +581,25 @@ class RosScanIngest:
         if node is None:
             return
         with self._lock:
-            wanted = dict(self._scan_topics)
-        for topic in [t for t in self._subscription_tokens if t not in wanted]:
+            wanted = dict(self._graph_topics)
+        for gone in [t for t in self._subscription_tokens if t not in wanted]:
             with contextlib.suppress(zenoh.ZError):
-                self._subscription_tokens.pop(topic).undeclare()
-        for topic, (_, type_hash) in wanted.items():
-            if topic in self._subscription_tokens or self._stop:
+                self._subscription_tokens.pop(gone).undeclare()
+        for (topic, ros_type), (_, type_hash) in wanted.items():
+            if (topic, ros_type) in self._subscription_tokens or self._stop:
                 continue
+            if ros_type == laser_scan.ROS_TYPE:
+                qos = SCAN_SUBSCRIPTION_QOS
+            elif topic.rpartition("/")[2] == TF_STATIC_TOPIC_NAME:
+                qos = TF_STATIC_SUBSCRIPTION_QOS
+            else:
+                qos = TF_SUBSCRIPTION_QOS
             self._next_entity_id += 1
             key = node.subscription_token(
-                self._next_entity_id,
-                topic,
-                dds_type_name(laser_scan.ROS_TYPE),
-                type_hash,
-                SCAN_SUBSCRIPTION_QOS,
+                self._next_entity_id, topic, dds_type_name(ros_type), type_hash, qos
             )
             with contextlib.suppress(zenoh.ZError):  # the session closing: nothing to show any more
-                self._subscription_tokens[topic] = self.session.liveliness().declare_token(key)
+                self._subscription_tokens[topic, ros_type] = self.session.liveliness().declare_token(key)
 
     def _pass(self) -> float | None:
         """Pose, submit or drop what each robot's queue holds, in order; the seconds until the
