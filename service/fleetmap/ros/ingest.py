@@ -210,6 +210,9 @@ class RosScanIngest:
         #: (LaserScan or TF topic, its ROS type) -> (its publishers alive, the type hash of the first
         #: one's token): the topics the graph should show a subscription of (`_count_publisher`).
         self._graph_topics: dict[tuple[str, str], tuple[int, str]] = {}
+        #: A topic got its first publisher or lost its last since the thread last looked (its passes
+        #: run at every TF message: they look at `_graph_topics` only then).
+        self._graph_changed = False
         #: What the thread declared: the node's token, and per (topic, type) its subscription's token.
         self._node_token: Any = None
         self._subscription_tokens: dict[tuple[str, str], Any] = {}
@@ -493,6 +496,7 @@ class RosScanIngest:
         else:
             self._graph_topics.pop((topic, ros_type), None)
         if publishers == 0 or (not present and publishers == 1):
+            self._graph_changed = True
             self._wake.set()
 
     def _mark_online(self, robot_id: str) -> None:
@@ -581,6 +585,9 @@ class RosScanIngest:
         if node is None:
             return
         with self._lock:
+            if not self._graph_changed:
+                return
+            self._graph_changed = False
             wanted = dict(self._graph_topics)
         for gone in [t for t in self._subscription_tokens if t not in wanted]:
             with contextlib.suppress(zenoh.ZError):
