@@ -339,7 +339,15 @@ NEED_MAPS = "--ros-map-frame, --ros-map-period and --ros-distro need --ros-publi
     [
         (["--ros-map-period", "2"], NEED_MAPS),
         (["--ros-distro", "humble"], NEED_MAPS),
-        (["--ros-publish-map", "a", "b=/map"], "--ros-publish-map: two maps on one ROS topic"),
+        (
+            ["--ros-publish-map", "a", "b=/map"],
+            "--ros-publish-map: two maps on one ROS topic (a and b on /map)",
+        ),
+        # One map named twice: the message said "two maps on one ROS topic".
+        (
+            ["--ros-publish-map", "a", "a=/map"],
+            "--ros-publish-map: map a is given twice on /map; give it once",
+        ),
         (
             ["--ros-publish-map", "a=/x/map", "b=/x/map_updates"],
             "--ros-publish-map: /x/map_updates is map b's topic and the updates topic of map a's /x/map",

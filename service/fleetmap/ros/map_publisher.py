@@ -175,9 +175,17 @@ def topic_clash(specs: tuple[MapTopic, ...] | list[MapTopic]) -> str | None:
     that is another's (or its own other topic's) updates topic (`a=/x/map b=/x/map_updates`), where
     an OccupancyGrid and an OccupancyGridUpdate would share one ROS topic, which ROS tools refuse
     (`ros2 topic echo`: more than one type)."""
-    topics = [spec.topic for spec in specs]
-    if len(set(topics)) < len(topics):
-        return "two maps on one ROS topic; give each its own (MAP_ID=TOPIC)"
+    first: dict[str, MapTopic] = {}
+    for spec in specs:
+        other = first.setdefault(spec.topic, spec)
+        if other is spec:
+            continue
+        if other.map_id == spec.map_id:  # not two maps: one named twice, which the message must say
+            return f"map {spec.map_id} is given twice on {spec.topic}; give it once"
+        return (
+            f"two maps on one ROS topic ({other.map_id} and {spec.map_id} on {spec.topic}); give each "
+            "its own (MAP_ID=TOPIC)"
+        )
     for spec in specs:
         for other in specs:
             if other.updates_topic == spec.topic:
