@@ -164,6 +164,19 @@ def test_refusals_are_counted_with_their_reasons() -> None:
     assert len(registry.submitted) == 1
 
 
+def test_a_bad_scan_behind_a_full_queue_is_refused_for_what_it_is() -> None:
+    """A scan refused before it waits (garbage here) while its robot's queue is full of scans
+    waiting for TF: it was counted as `pending_full`, its reason asking whether TF is published for
+    frame ''. It is refused for what it is, and still not settled (its turn never comes)."""
+    ingest, registry = make(max_pending=2)
+    for stamp in (1.0, 1.1):  # no TF: they wait
+        ingest._handle_scan(scan_key("/r/scan"), laser(stamp), None)
+    ingest._handle_scan(scan_key("/r/scan"), b"\x00\x01\x00\x00garbage", None)
+    assert ingest.status()["refused"] == {"undecodable": 1}
+    ((_, robot_id, reason),) = registry.rejected
+    assert robot_id == "r" and "undecodable LaserScan on /r/scan" in reason
+
+
 def test_tf_floods_and_bad_transforms_are_counted_not_kept() -> None:
     ingest, _ = make()
     bad = encode_tf_message([TransformStamped(0.0, "a", "b", (math.nan, 0.0, 0.0), IDENTITY)])

@@ -374,6 +374,12 @@ class RosScanIngest:
             assert refusal is not None
             self._refuse(refusal[0], robot_id, refusal[1], item.scan_id)
             return
+        if full and refusal is not None:
+            # Refused for what it is (garbage, too many beams, a bad frame id), not for the queue it
+            # could not join; unsettled all the same, as any scan refused while its robot's queue is
+            # full (see above).
+            self._refuse(refusal[0], robot_id, refusal[1])
+            return
         if full:  # not settled (see above): its seq counts as lost once a later one is accepted
             frame = "" if msg is None else msg.frame_id
             reason = (
