@@ -72,8 +72,9 @@ def _put_map(base: str, map_id: str, config: dict[str, Any] | None = None) -> No
 def _open(page: Any, base: str, hash_: str, *, exists: bool = True) -> None:
     """Load the viewer at `hash_` and wait until it shows the map the hash names (if it `exists`),
     connected. A page on the viewer already only changes its hash (a same-document navigation):
-    its stream of the map shown before still says 'connected' then, so the map selector is waited
-    for as well."""
+    its status says 'connected' of the map shown before until the page selects the new one (after
+    a map-list poll if it did not know it), so the map selector is waited for first; the selection
+    sets both at once (test_status_while_another_map_loads)."""
     page.goto(f"{base}/{hash_}")
     map_id = dict(urllib.parse.parse_qsl(hash_.lstrip("#"))).get("map")
     if map_id is not None and exists:
@@ -656,4 +657,41 @@ def test_link_with_a_view_out_of_range(new_page: Callable[..., Any], shared_serv
         " return [c.lng * r, c.lat * r]; }"
     )
     assert math.dist(centre, (1.0, 1.0)) < 5.0, centre  # fitted to the scan's 3 m ring of walls
+    assert not page.page_errors, page.page_errors
+
+
+# ---- switching maps -----------------------------------------------------------------------------------
+
+
+def test_status_while_another_map_loads(new_page: Callable[..., Any], shared_service: ServiceProcess) -> None:
+    """Another map is selected (a link's hash, the selector) while the service is slow to answer for
+    it: the status line no longer says 'connected' of the map shown before, whose stream is closed.
+    It did until the new map's GET answered, so it claimed a live stream the page no longer had (and
+    kept claiming it if that answer failed), and a wait for 'connected' passed at once."""
+    base = shared_service.base_url
+    for map_id, x in (("switch-a", 1.0), ("switch-b", 4.0)):
+        _put_map(base, map_id)
+        _scan(base, map_id, "r1", 1, x, 1.0)
+    page = new_page()
+    _open(page, base, "#map=switch-a")
+    held: list[Any] = []
+    page.route("**/maps/switch-b", lambda route: held.append(route))  # its GET held back: the service is slow
+    try:
+        page.evaluate("() => { location.hash = '#map=switch-b'; }")
+        _wait(
+            page, "() => document.getElementById('map-select').value === 'switch-b'", what="switch-b chosen"
+        )
+        for _ in range(250):  # the request reaches the route
+            if held:
+                break
+            page.wait_for_timeout(20)
+        assert held, "the map's GET was not seen"
+        assert page.get_attribute("#status", "data-state") != "connected"
+        assert not page.inner_text("#status").startswith("connected")
+    finally:
+        for route in held:
+            route.continue_()
+        page.unroute("**/maps/switch-b")
+    _wait(page, _CONNECTED_JS, what="connected to switch-b")
+    assert "/maps/switch-b/events?" in page.evaluate("() => window.fleetmapViewer.state.events.url")
     assert not page.page_errors, page.page_errors

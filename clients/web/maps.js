@@ -119,6 +119,9 @@ export async function selectMap(mapId) {
   state.mapId = mapId;
   state.info = null;
   state.lastUpdate = null; // of the map shown before: this one's first event comes at once
+  // The stream of the map shown before is closed: the status line no longer says 'connected' (it
+  // did until this map's GET answered, and for good if that failed). openEvents says what follows.
+  setConnection('connecting');
   state.fitted = false;
   state.eventsBroken = false;
   // A link's view belongs to the map it names; another map is fitted to its bounds.
