@@ -662,6 +662,16 @@ def test_link_with_a_view_out_of_range(new_page: Callable[..., Any], shared_serv
 
 # ---- switching maps -----------------------------------------------------------------------------------
 
+#: The URL of every tile image on the map, once each is a loaded 256-pixel tile of map `id`.
+_TILES_OF_MAP_JS = """
+(id) => {
+  const imgs = [...document.querySelectorAll('#map img.leaflet-tile')];
+  const ok = imgs.length > 0 && imgs.every((i) => i.complete && i.naturalWidth === 256
+    && i.src.includes(`/maps/${id}/tiles/`));
+  return ok ? imgs.map((i) => i.src) : null;
+}
+"""
+
 
 def test_status_while_another_map_loads(new_page: Callable[..., Any], shared_service: ServiceProcess) -> None:
     """Another map is selected (a link's hash, the selector) while the service is slow to answer for
@@ -694,4 +704,30 @@ def test_status_while_another_map_loads(new_page: Callable[..., Any], shared_ser
         page.unroute("**/maps/switch-b")
     _wait(page, _CONNECTED_JS, what="connected to switch-b")
     assert "/maps/switch-b/events?" in page.evaluate("() => window.fleetmapViewer.state.events.url")
+    assert not page.page_errors, page.page_errors
+
+
+def test_tiles_of_a_map_that_changed_while_another_was_shown(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """The user looks at another map for a while, and back: the first map's tiles are asked for again,
+    showing what its robots mapped meanwhile. Its tiles had the URLs they had before (the page's
+    tile counter had not moved on a quiet map), and the browser showed the images it still held for
+    them without asking the service: the map stayed as it was until those cells changed again."""
+    base = shared_service.base_url
+    for map_id in ("return-a", "return-b"):
+        _put_map(base, map_id)
+        _scan(base, map_id, "r1", 1, 1.0, 1.0)
+    page = new_page()
+    _open(page, base, "#map=return-a")
+    before = _wait(page, _TILES_OF_MAP_JS, "return-a", what="return-a's tiles")
+    page.select_option("#map-select", "return-b")
+    _wait(page, _TILES_OF_MAP_JS, "return-b", what="return-b's tiles")
+    _scan(base, "return-a", "r1", 2, 1.5, 1.0)  # return-a changes while return-b is shown
+    asked: list[str] = []
+    page.on("request", lambda r: asked.append(r.url) if "/maps/return-a/tiles/" in r.url else None)
+    page.select_option("#map-select", "return-a")
+    after = _wait(page, _TILES_OF_MAP_JS, "return-a", what="return-a's tiles again")
+    assert not set(before) & set(after), f"tiles shown from before the change: {set(before) & set(after)}"
+    assert set(after) <= set(asked), f"tiles not asked of the service: {set(after) - set(asked)}"
     assert not page.page_errors, page.page_errors

@@ -23,7 +23,7 @@
  * map, the view too: &x=<metres>&y=<metres>&z=<zoom> (the centre), so a link shows the same place.
  *
  * Live refresh: the `v` query parameter of a tile URL is a counter this page bumps whenever tiles
- * change. A displayed tile whose cells intersect a changed window is marked stale, and a stale tile
+ * change, and whenever a map is selected (one shown before may have changed meanwhile). A displayed tile whose cells intersect a changed window is marked stale, and a stale tile
  * gets a new URL (so a new request, never a stale browser-cache hit) only when (a) it is in view,
  * (b) its previous request has finished, (c) TILE_REFRESH_MS have passed since that request began,
  * and (d) the page is visible. So a tile that changes 50 times a second is fetched at most

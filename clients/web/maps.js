@@ -122,6 +122,10 @@ export async function selectMap(mapId) {
   // The stream of the map shown before is closed: the status line no longer says 'connected' (it
   // did until this map's GET answered, and for good if that failed). openEvents says what follows.
   setConnection('connecting');
+  // New tile URLs: the browser keeps the images of URLs this page loaded and shows them again
+  // without asking (no-cache or not), so a map shown before, changed meanwhile (or deleted and
+  // made again under its id), kept its old tiles under the counter they were loaded with.
+  state.tileCounter += 1;
   state.fitted = false;
   state.eventsBroken = false;
   // A link's view belongs to the map it names; another map is fitted to its bounds.
