@@ -485,6 +485,17 @@ def _bounds(base: str) -> list[float]:
     return httpx.get(f"{base}/maps/{MAP_ID}", timeout=10.0).json()["stats"]["bounds"]
 
 
+#: Sets window.__dragDone once the next drag of the map has ended, its inertia included: Leaflet
+#: fires `moveend` at once after `dragend` without inertia, else when the inertia's pan has ended.
+_DRAG_DONE_JS = """
+() => {
+  window.__dragDone = false;
+  const m = window.fleetmapViewer.map;
+  m.once('dragend', () => m.once('moveend', () => { window.__dragDone = true; }));
+}
+"""
+
+
 def test_the_view_follows_a_growing_map_until_the_user_moves_it(page: Any, svc: ServiceProcess) -> None:
     """The view was fitted to the map once, at the first scans: as a demo's robots explored on, the
     new rooms ran off screen and a newcomer had to zoom out to see them. Until the user moves the
@@ -501,12 +512,15 @@ def test_the_view_follows_a_growing_map_until_the_user_moves_it(page: Any, svc: 
     # The user pans: from now on the view is theirs.
     box = page.locator("#map").bounding_box()
     assert box is not None
+    page.evaluate(_DRAG_DONE_JS)
     page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
     page.mouse.down()
     page.mouse.move(box["x"] + box["width"] / 2 + 80, box["y"] + box["height"] / 2 + 40, steps=5)
     page.mouse.up()
     _wait(page, "() => window.fleetmapViewer.state.viewChosen", what="the user's pan noticed")
-    page.wait_for_timeout(1500)  # the drag's inertia runs out
+    # The drag's inertia runs out: it lasts as long as the drag was fast, and starts a frame after
+    # the button is released (a fixed 1.5 s, or a wait for Leaflet's pan animation, could end first).
+    _wait(page, "() => window.__dragDone === true", what="the drag's end, inertia included")
     chosen = page.evaluate("() => window.fleetmapViewer.map.getCenter()")
     _scan(base, MAP_ID, "r1", 4, -120.0, 0.0)  # answered once integrated: its tiles event is on its way
     page.wait_for_timeout(5000)  # past two follow periods: a follow would have refitted by now
