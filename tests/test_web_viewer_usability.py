@@ -136,6 +136,11 @@ _OVERFLOWING_JS = """
 #: The map's centre, in Leaflet's pixel coordinates at the current zoom.
 _CENTRE_JS = "() => { const m = window.fleetmapViewer.map, p = m.project(m.getCenter()); return [p.x, p.y]; }"
 _BOX_JS = "(sel) => document.querySelector(sel).getBoundingClientRect().toJSON()"
+#: Leaflet's idea of the map's size is its container's (it measures only when told: invalidateSize).
+_SIZE_KNOWN_JS = """
+() => { const m = window.fleetmapViewer.map, s = m.getSize(), c = m.getContainer();
+  return s.x === c.clientWidth && s.y === c.clientHeight; }
+"""
 
 
 def _inside_window(box: dict[str, float], width: int, height: int) -> bool:
@@ -190,7 +195,9 @@ def test_narrow_screens(
         page,
         f"() => document.getElementById('map').getBoundingClientRect().height < {map_box['height'] - 50}",
     )
-    page.wait_for_timeout(100)  # the ResizeObserver's turn
+    # Leaflet told of its new size (by the ResizeObserver): until then it still computes the centre
+    # from its old size, and the centre read here was the old one whatever the page did.
+    _wait(page, _SIZE_KNOWN_JS, what="the map's new size known to Leaflet")
     assert page.evaluate(_CENTRE_JS) == pytest.approx(centre, abs=1.0)
     row = page.get_by_role("button", name="r2")
     assert row.is_visible()
