@@ -53,6 +53,8 @@ _TILES_LOADED_JS = """
   return imgs.length > 0 && imgs.every((i) => i.complete && i.naturalWidth === 256);
 }
 """
+#: The URL of every tile image on the map.
+_TILE_URLS_JS = "() => [...document.querySelectorAll('#map img.leaflet-tile')].map((i) => i.src)"
 _AWAY_JS = "() => window.fleetmapViewer.map.setView([-4000, -4000], 0, {animate: false})"
 #: The error panel is shown and says `text`.
 _ERROR_JS = (
@@ -348,6 +350,7 @@ def test_a_stream_that_died_silently_is_opened_again(
     try:
         _open(page, f"http://127.0.0.1:{proxy.port}", f"#map={MAP_ID}&layer=probability")
         _wait(page, _TILES_LOADED_JS, what="every tile loaded")
+        before = page.evaluate(_TILE_URLS_JS)
         assert proxy.freeze(sent=b"/events?") == 1  # the stream only: tiles still load
         _scan(base, MAP_ID, "r1", 2, 2.5, 2.0)
         _wait(
@@ -355,7 +358,14 @@ def test_a_stream_that_died_silently_is_opened_again(
             "() => window.fleetmapViewer.state.robots.get('r1')?.data?.scans_integrated === 2",
             what="the robot's second scan, through a new stream",
         )
-        _wait(page, _TILES_LOADED_JS, what="every tile loaded again")
+        # Caught up: every tile asked for again (the new stream says nothing of what changed before
+        # it opened). Loaded tiles alone were no news: those of before the freeze were loaded too.
+        _wait(
+            page,
+            f"(before) => ({_TILES_LOADED_JS})() && ({_TILE_URLS_JS})().every((u) => !before.includes(u))",
+            before,
+            what="every tile loaded again",
+        )
         assert page.evaluate("() => document.getElementById('status').dataset.state") == "connected"
         assert not page.page_errors, page.page_errors
     finally:
