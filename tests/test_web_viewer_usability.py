@@ -21,7 +21,7 @@ from typing import Any
 import httpx
 import pytest
 from service_process import ServiceProcess
-from test_web_viewer import CHROMIUM, SHOW_MS, _wait
+from test_web_viewer import _ALL_TILES_OF_LAYER_JS, CHROMIUM, SHOW_MS, _wait
 from test_web_viewer_recovery import _CENTRED_ON_JS, _scan
 
 pytestmark = pytest.mark.skipif(
@@ -737,4 +737,56 @@ def test_tiles_of_a_map_that_changed_while_another_was_shown(
     after = _wait(page, _TILES_OF_MAP_JS, "return-a", what="return-a's tiles again")
     assert not set(before) & set(after), f"tiles shown from before the change: {set(before) & set(after)}"
     assert set(after) <= set(asked), f"tiles not asked of the service: {set(after) - set(asked)}"
+    assert not page.page_errors, page.page_errors
+
+
+def test_a_map_replaced_by_one_without_the_layer_shown(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """The map shown is replaced (a snapshot upload) by one that does not keep the layer shown, and
+    the service is slow to answer the page's GET of the new map. Its scans changed tiles meanwhile,
+    and the page asked for them in the old layer: every one was refused (422), the map went blank
+    and a 'tile failed to load' message came per tile, until the GET answered. Tiles now wait for
+    the new map's layers; then every tile is loaded in the layer shown."""
+    base = shared_service.base_url
+    _put_map(base, "keeps-counts", {"layers": ["counts"]})
+    _scan(base, "keeps-counts", "r1", 1, 1.0, 1.0)
+    snapshot = httpx.get(f"{base}/maps/keeps-counts/snapshot", timeout=30.0)
+    assert snapshot.status_code == 200, snapshot.text
+    _put_map(base, "replaced-live")
+    _scan(base, "replaced-live", "r1", 1, 1.0, 1.0)
+    page = new_page()
+    _open(page, base, "#map=replaced-live&layer=probability")
+    _wait(page, _TILES_OF_MAP_JS, "replaced-live", what="the map's tiles")
+    page.evaluate(_WATCH_LIVE_JS)
+    refused: list[str] = []
+    page.on("response", lambda r: refused.append(r.url) if "/tiles/" in r.url and r.status >= 400 else None)
+    held: list[Any] = []
+    page.route("**/maps/replaced-live", lambda route: held.append(route))  # the service is slow
+    try:
+        r = httpx.put(
+            f"{base}/maps/replaced-live/snapshot",
+            content=snapshot.content,
+            headers={"content-type": "application/zip"},
+            timeout=30.0,
+        )
+        assert r.status_code == 200, r.text
+        for _ in range(250):  # the `replaced` event came: the page asks for the new map
+            if held:
+                break
+            page.wait_for_timeout(20)
+        assert held, "the page did not ask for the replaced map"
+        counter = page.evaluate("() => window.fleetmapViewer.state.tileCounter")
+        _scan(base, "replaced-live", "r1", 2, 1.5, 1.0)  # tiles of the new map change in view
+        _wait(page, "(c) => window.fleetmapViewer.state.tileCounter > c", counter, what="the tiles event")
+        page.wait_for_timeout(700)  # > TILE_REFRESH_MS: every stale tile in view is due by now
+    finally:
+        for route in held:
+            route.continue_()
+        page.unroute("**/maps/replaced-live")
+    _wait(page, _ALL_TILES_OF_LAYER_JS, "hits", what="tiles of the hits layer")
+    _wait(page, _TILES_OF_MAP_JS, "replaced-live", what="every tile loaded")
+    assert refused == [], refused
+    failed = [said for said in page.evaluate("() => window.__spoken") if "failed to load" in said]
+    assert failed == [], failed
     assert not page.page_errors, page.page_errors

@@ -23,12 +23,15 @@
  * map, the view too: &x=<metres>&y=<metres>&z=<zoom> (the centre), so a link shows the same place.
  *
  * Live refresh: the `v` query parameter of a tile URL is a counter this page bumps whenever tiles
- * change, and whenever a map is selected (one shown before may have changed meanwhile). A displayed tile whose cells intersect a changed window is marked stale, and a stale tile
- * gets a new URL (so a new request, never a stale browser-cache hit) only when (a) it is in view,
- * (b) its previous request has finished, (c) TILE_REFRESH_MS have passed since that request began,
- * and (d) the page is visible. So a tile that changes 50 times a second is fetched at most
- * 1000 / TILE_REFRESH_MS times a second, a slow service is never asked for a tile it is still
- * rendering, and a hidden tab fetches nothing (it also closes its event stream until shown again).
+ * change, and whenever a map is selected (one shown before may have changed meanwhile). A displayed
+ * tile whose cells intersect a changed window is marked stale, and a stale tile gets a new URL (so a
+ * new request, never a stale browser-cache hit) only when (a) it is in view, (b) its previous request
+ * has finished, (c) TILE_REFRESH_MS have passed since that request began, (d) the page is visible,
+ * and (e) the map's layers are known (not while a replaced or reconnected map's GET is under way:
+ * the layer shown may be one it no longer keeps). So a tile that changes 50 times a second is
+ * fetched at most 1000 / TILE_REFRESH_MS times a second, a slow service is never asked for a tile it
+ * is still rendering, and a hidden tab fetches nothing (it also closes its event stream until shown
+ * again).
  * Tiles created later use the newest counter. A tile that failed to load is stale again, due
  * TILE_RETRY_MS later (while the event stream is connected; a reconnect reloads every tile anyway).
  * The stream's keepalive events (every 15 s of silence by default) bound its silences: one silent

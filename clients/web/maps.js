@@ -128,6 +128,7 @@ export async function selectMap(mapId) {
   state.tileCounter += 1;
   state.fitted = false;
   state.eventsBroken = false;
+  state.tilesHeldBy = 0; // a reload of the map shown before no longer holds tiles back
   // A link's view belongs to the map it names; another map is fitted to its bounds.
   const linked = readHash();
   state.pendingView = linked.map === mapId ? linked.view : null;
@@ -155,12 +156,19 @@ export async function selectMap(mapId) {
  */
 export async function reloadMap(refit = true, spread = false) {
   const token = state.selectToken;
+  // Until the map's GET answers, the layer shown may be one the new map does not keep: no tile is
+  // asked for meanwhile (pumpTiles). Its tiles events came first on a slow service, and every tile
+  // they touched was refused (422), left blank, each with a 'failed to load' message; the reset
+  // below asks for every tile once the layers are known.
+  const reload = ++state.reloads;
+  state.tilesHeldBy = reload;
   clearRobots();
   // A replaced map may lie elsewhere; after a reconnect keep the user's view unless the
   // resolution changed (refreshInfo refits then: the same cell indices are other places).
   if (refit) state.fitted = false;
   clearCell();
   await refreshInfo(token, true);
+  if (state.tilesHeldBy === reload) state.tilesHeldBy = 0;
   // Every tile, after the layer selector knows the new map's layers (the layer may have changed).
   const reset = () => { if (token === state.selectToken) queueTiles({ reset: true }); };
   if (spread) setTimeout(reset, Math.random() * RECONNECT_SPREAD_MS);

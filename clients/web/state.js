@@ -16,6 +16,8 @@ export const state = {
   followTimer: null,    // the next such look, if one is planned (followSoon)
   infoInFlight: false,  // a GET maps/{id} for fitting is under way
   selectToken: 0,       // bumped on each map selection; late answers for an older one are ignored
+  reloads: 0,           // reloads of the selected map begun (reloadMap)
+  tilesHeldBy: 0,       // the reload whose GET of the map holds tile requests back (its layers unknown), or 0
   events: null,         // the EventSource of the selected map
   eventsBroken: false,  // the stream failed since it last opened: redraw everything when it reopens
   reconnectTimer: null,

@@ -202,6 +202,7 @@ function pumpTiles() {
   state.pumpTimer = null;
   state.pumpAt = Infinity;
   if (document.visibilityState === 'hidden' || !state.mapId || !map.hasLayer(tiles)) return;
+  if (state.tilesHeldBy) return; // the map is being loaded again: its layers are not known yet (reloadMap)
   const now = performance.now();
   let next = Infinity;
   for (const tile of state.shownTiles.values()) {
