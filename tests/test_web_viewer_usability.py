@@ -790,3 +790,38 @@ def test_a_map_replaced_by_one_without_the_layer_shown(
     failed = [said for said in page.evaluate("() => window.__spoken") if "failed to load" in said]
     assert failed == [], failed
     assert not page.page_errors, page.page_errors
+
+
+def test_a_late_failure_of_a_map_left_shows_no_error(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """The user picks a map whose GET is slow, then another: when the first GET fails at last, the
+    page, showing the second map, says nothing of the first. It showed 'map late-b: ...' in the
+    error banner (and announced it), about a map no longer shown."""
+    base = shared_service.base_url
+    for map_id in ("late-a", "late-b"):
+        _put_map(base, map_id)
+        _scan(base, map_id, "r1", 1, 1.0, 1.0)
+    page = new_page()
+    _open(page, base, "#map=late-a")
+    held: list[Any] = []
+    page.route("**/maps/late-b", lambda route: held.append(route))  # its GET held back: the service is slow
+    try:
+        page.evaluate("() => { location.hash = '#map=late-b'; }")
+        for _ in range(250):  # the request reaches the route
+            if held:
+                break
+            page.wait_for_timeout(20)
+        assert held, "the map's GET was not seen"
+        page.evaluate("() => { location.hash = '#map=late-a'; }")  # the user goes back before it answers
+        _open(page, base, "#map=late-a")
+        held.pop().fulfill(status=503, content_type="application/json", body='{"detail": "overloaded"}')
+        page.wait_for_timeout(500)  # the failed answer is handled (nothing to wait for: it must show nothing)
+    finally:
+        for route in held:
+            route.continue_()
+        page.unroute("**/maps/late-b")
+    error = page.inner_text("#error") if page.is_visible("#error") else ""
+    assert "late-b" not in error, error
+    assert page.eval_on_selector("#map-select", "el => el.value") == "late-a"
+    assert not page.page_errors, page.page_errors

@@ -183,7 +183,8 @@ export async function refreshInfo(token, first) {
   try {
     info = await getJSON(`maps/${enc(mapId)}`);
   } catch (err) {
-    showError(`map ${mapId}: ${err.message}`, !!err.network);
+    // Only of the map still shown: a slow answer for one the user has left is no news of this one.
+    if (token === state.selectToken) showError(`map ${mapId}: ${err.message}`, !!err.network);
     return false;
   }
   if (token !== state.selectToken) return false;
