@@ -411,6 +411,21 @@ def test_build_skips_scans_it_cannot_integrate_and_says_so(tmp_path: Path) -> No
     )
 
 
+def test_a_build_whose_every_scan_is_skipped_says_so(tmp_path: Path) -> None:
+    """Every scan skipped (here: each beyond the map's coordinate range): the error says so, not
+    only that the map has no observed cell, which read as if the log held no usable reading."""
+    far = [flaser([1.0, 2.0], 1e13, 0.0, 0.0) for _ in range(3)]
+    log = tmp_path / "far.log"
+    log.write_text("\n".join(far) + "\n")
+    done = build(log, "--out", tmp_path / "out", "--quiet")
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.splitlines()[-1] == (
+        "fleetmap build: error: the map has no observed cell: nothing to export"
+        " (3 of 3 scans skipped, see above)"
+    )
+    assert not (tmp_path / "out").exists()
+
+
 def bad_config(directory: Path) -> Path:
     path = directory / "bad.json"
     path.write_text('{"resolution": 0, "tsdf": {"max_weight": Infinity}}')

@@ -291,7 +291,9 @@ def _build(args: argparse.Namespace) -> int:
     try:
         written = write_build_outputs(gmap, out_dir)
     except ValueError as exc:
-        raise CliError(str(exc)) from None
+        # Why it is empty, when scans were skipped: the error alone read as if the log held nothing.
+        why = f" ({skipped} of {len(dataset)} scans skipped, see above)" if skipped else ""
+        raise CliError(f"{exc}{why}") from None
     except OSError as exc:  # a full disk, or a directory made unwritable during the build
         raise CliError(f"cannot write the outputs to {out_dir}: {exc}") from None
     except MemoryError:
