@@ -413,7 +413,8 @@ def test_a_robot_or_tombstone_row_of_the_wrong_shape_is_a_clear_error_at_start(t
     database): refused at start like a damaged tile, exit code 2, one line naming the file (and the
     map and robot). Before the fix a robot row of the wrong shape stopped the start with a traceback
     (exit code 1), and a counter that was not a number started a service whose GET of the map was a
-    500; a tombstone's seq that was a list was a traceback too."""
+    500; a tombstone's seq that was a list was a traceback too. Likewise a `maps` row or a tombstone
+    whose columns hold values of another type than the service writes there."""
     scan = json.loads(encode_json(as_received(scans_for(sim=1, plan_seed=1, count=1)[0]), 1))
     data = tmp_path / "data"
     with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
@@ -429,6 +430,16 @@ def test_a_robot_or_tombstone_row_of_the_wrong_shape_is_a_clear_error_at_start(t
         "counter": ("""UPDATE robots SET state = '{"scans_integrated": "x"}'""", " (map 'm'): robot 'r': "),
         "session": ("""UPDATE robots SET state = '{"sessions": [[1]]}'""", " (map 'm'): robot 'r': "),
         "tombstone": ("""UPDATE tombstones SET sessions = '{"1": [1]}'""", ": tombstone of gone/r: "),
+        # Columns of another type than the service stores (SQLite keeps any type in any column): a
+        # clock as text was a traceback, a counter as a fraction a service whose GET /maps was a 500.
+        "map-row": (
+            "UPDATE maps SET clock = 'x', scans_integrated = 2.5 WHERE id = 'm'",
+            " (map 'm'): corrupt maps row: clock, scans_integrated not of the type the service stores",
+        ),
+        "tombstone-time": (
+            "UPDATE tombstones SET deleted_at = 'x'",
+            ": tombstone of gone/r: its time of deletion is not a number",
+        ),
     }
     for name, (sql, where) in damages.items():
         damaged = tmp_path / f"damaged-{name}"

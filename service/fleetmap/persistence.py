@@ -121,6 +121,29 @@ def _check_journal_columns(
         )
 
 
+def _check_map_columns(
+    config: object, snap_id: object, snap_gen: object, clock: object, integrated: object,
+    rejected: object, created: object,
+) -> None:  # fmt: skip
+    """`StorageError` unless a `maps` row's columns hold what the service stores in them: the
+    configuration as text, whole numbers for the journal id, generation, clock and counters, a
+    number for the creation time. SQLite keeps whatever type a value had in any column (a row edited
+    by hand, a damaged page): a clock or a generation stored as text stopped the start with a
+    traceback, and a counter stored as a fraction started a service whose every GET of the map (and
+    GET /maps) was a 500."""
+    counts = {
+        "snapshot_journal_id": snap_id, "snapshot_gen": snap_gen, "clock": clock,
+        "scans_integrated": integrated, "scans_rejected": rejected,
+    }  # fmt: skip
+    wrong = [name for name, value in counts.items() if type(value) is not int]
+    if type(config) is not str:
+        wrong.append("config")
+    if type(created) not in (int, float):
+        wrong.append("created_at")
+    if wrong:
+        raise StorageError(f"corrupt maps row: {', '.join(wrong)} not of the type the service stores")
+
+
 class StoredJournal:
     """A map's journal rows after its snapshot, in order, read and decoded `BATCH` rows at a time
     while they are replayed. Decoded all at once before the replay, they took 17 KB a scan of 1081
@@ -361,6 +384,7 @@ class DurableStore:
     ) -> tuple[str, GridMap, dict, StoredJournal]:
         """One stored map (a row of `maps`): its snapshot's tiles loaded, what the snapshot made
         obsolete deleted, and its journal rows after the snapshot, to be read as they are replayed."""
+        _check_map_columns(config_json, snap_id, snap_gen, clock, integrated, rejected, created)
         # Stored before today's limits, perhaps: a map that was accepted keeps loading.
         gmap = GridMap(MapConfig.model_validate_json(config_json, context={STORED_CONFIG: True}))
         # Rows of a snapshot that never switched its generation (a crash mid-snapshot) are

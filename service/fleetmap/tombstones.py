@@ -89,8 +89,12 @@ class Tombstone:
     def from_row(
         cls, map_id: str, robot_id: str, deleted_at: float, sessions_json: str, forgotten: int = 0
     ) -> Tombstone:
-        """The tombstone of a stored row; ValueError if its sessions are not a JSON object of
-        session ids and seqs (a damaged database)."""
+        """The tombstone of a stored row; ValueError if its time is not a number or its sessions are
+        not a JSON object of session ids and seqs (a damaged database)."""
+        # SQLite keeps any type in any column (a damaged page, a row edited by hand): a time stored
+        # as text stopped the start with a traceback where the stones are sorted by it.
+        if type(deleted_at) not in (int, float):
+            raise ValueError(f"tombstone of {map_id}/{robot_id}: its time of deletion is not a number")
         stored = json.loads(sessions_json)
         if not isinstance(stored, dict):
             raise ValueError(f"tombstone of {map_id}/{robot_id}: sessions are not a JSON object")
