@@ -355,9 +355,10 @@ def test_a_database_deleted_beside_its_write_ahead_log_is_refused_and_the_log_ke
 
 
 def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_map(tmp_path: Path) -> None:
-    """A tile row or a journal row that no longer decodes (bit rot, a bad copy): the service refuses
-    to start with one line naming the database file and the map, exit code 2, and no traceback
-    (before the fix: a traceback ending in `corrupt tile: ...`, exit code 1)."""
+    """A tile row or a journal row that no longer decodes (bit rot, a bad copy), or a configuration
+    that no longer holds the map's tiles: the service refuses to start with one line naming the
+    database file and the map, exit code 2, and no traceback (before the fix: a traceback ending in
+    `corrupt tile: ...`, exit code 1)."""
     scans = [as_received(s) for s in scans_for(sim=3, plan_seed=1, count=6)]
     data = tmp_path / "data"
 
@@ -403,6 +404,24 @@ def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_ma
         output = refused_start(tmp_path, damaged)
         assert "Traceback" not in output, output
         assert re.search(r"\(map 'm'\): journal row \d+: corrupt journal entry", output), output
+    # A configuration whose max_tiles is below the map's tiles (edited or damaged since): the 3 tiles
+    # the scans made stored, or only made by the journal's replay (its tile rows gone). Either was a
+    # traceback ("the scan needs 3 new tile(s) ..."), exit code 1.
+    for name, sql, reason in (
+        ("max-tiles-stored", "", "3 stored tiles are more than its configuration's max_tiles (2)"),
+        ("max-tiles-replayed", "DELETE FROM tiles", "journal scan 1 of 3: "),
+    ):
+        damaged = tmp_path / f"damaged-{name}"
+        shutil.copytree(data, damaged)
+        with sqlite3.connect(damaged / DB_NAME) as conn:
+            (config,) = conn.execute("SELECT config FROM maps WHERE id = 'm'").fetchone()
+            conn.execute("UPDATE maps SET config = ?", (json.dumps({**json.loads(config), "max_tiles": 2}),))
+            if sql:
+                conn.execute(sql)
+        output = refused_start(tmp_path, damaged)
+        assert "Traceback" not in output, (name, output)
+        assert f"cannot read the map database {damaged / DB_NAME} (map 'm'): {reason}" in output, output
+        assert "max_tiles" in output, output
     # The undamaged directory still starts and holds all six scans.
     with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
         assert stats(svc.base_url, "m")["scans_integrated"] == 6

@@ -399,6 +399,13 @@ class DurableStore:
         ).fetchall()
         self._created[map_id] = created
         self._last_gen = max(self._last_gen, snap_gen)
+        if len(rows) > gmap.config.max_tiles:
+            # (A configuration edited or damaged since: the store refused the tiles with "the scan
+            # needs N new tile(s)", a traceback at start.)
+            raise StorageError(
+                f"{len(rows)} stored tiles are more than its configuration's max_tiles "
+                f"({gmap.config.max_tiles})"
+            )
         if rows:
             gmap.store.create([(ti, tj) for ti, tj, _, _ in rows])
             for ti, tj, version, data in rows:

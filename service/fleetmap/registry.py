@@ -42,10 +42,10 @@ from fleetmap.fair_queue import FULL_BYTES, FULL_GROUP, FULL_SOURCE, FULL_TOTAL,
 from fleetmap.grid_map import GridMap, IntegrationResult, WindowCleared
 from fleetmap.map_entry import SHUTTING_DOWN, Expectation, IngestRejected, Job, MapEntry
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation, format_size
-from fleetmap.persistence import DurableStore
+from fleetmap.persistence import DurableStore, unreadable_database
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.robot_state import CONFLICT_SHOWN, NO_SESSION, RobotState, session_key
-from fleetmap.scan import ScanError
+from fleetmap.scan import Scan, ScanError
 from fleetmap.storage_format import cleared_window_to_blob, scan_to_blob
 from fleetmap.tiles import TileLimitError
 from fleetmap.tombstones import Tombstone, Tombstones
@@ -225,6 +225,15 @@ class MapRegistry:
             entry.robots = counters["robots"]
             started = last_report = time.monotonic()
             for replayed, (robot_id, seq, stamp, session, row) in enumerate(journal):
+                try:
+                    self._replay(gmap, row)
+                except (TileLimitError, ValueError) as exc:
+                    # The engine applied every journaled row once; one it refuses now (its map's
+                    # configuration edited or damaged since: a lower max_tiles) is a damaged database,
+                    # which stopped the start with a traceback.
+                    raise unreadable_database(
+                        self.durable.path, map_id, f"journal scan {replayed + 1} of {len(journal)}: {exc}"
+                    ) from None
                 if time.monotonic() - last_report >= RESTORE_REPORT:
                     # 20,000 scans take 10-20 s: say the service is busy, not stuck.
                     last_report = time.monotonic()
@@ -233,10 +242,8 @@ class MapRegistry:
                         map_id, replayed, len(journal), last_report - started, extra={"map_id": map_id},
                     )  # fmt: skip
                 if isinstance(row, Window):  # a window cleared (`clear_window`): no robot's scan
-                    gmap.clear_window(row.i0, row.j0, row.i1, row.j1)
                     continue
                 scan = row
-                gmap.integrate(scan)  # the same engine, in journal order: the same map
                 robot = entry.robot(robot_id)
                 robot.scans_integrated += 1
                 # The journal holds integrated scans only, so a gap in a robot's seqs since the
@@ -269,6 +276,15 @@ class MapRegistry:
                 "restored map %s: %d tiles, %d journal scans replayed", map_id, len(gmap.store), len(journal),
                 extra={"map_id": map_id},
             )  # fmt: skip
+
+    @staticmethod
+    def _replay(gmap: GridMap, row: Scan | Window) -> None:
+        """Apply one journal row to `gmap` as it was applied when it was journaled: a window cleared
+        (`clear_window`), or a scan (the same engine, in journal order: the same map)."""
+        if isinstance(row, Window):
+            gmap.clear_window(row.i0, row.j0, row.i1, row.j1)
+        else:
+            gmap.integrate(row)
 
     def _charged(self, gmap: GridMap) -> GridMap:
         """`gmap`, its store charged to the memory budget unless it is already (an upload's map,
