@@ -390,6 +390,37 @@ def test_snapshots_saved_to_a_file_and_uploaded_from_one(
     assert path.read_bytes() == kept and sorted(p.name for p in tmp_path.iterdir()) == [path.name]
 
 
+def test_a_saved_snapshot_is_on_disk_before_it_takes_its_name(
+    client: FleetmapClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`save_snapshot` syncs the `.part` file to disk before renaming it to `path`, and then the
+    folder (the rename): renamed with its data still in the page cache, a power cut soon after could
+    leave a backup empty or cut short, the earlier one at `path` gone too. A power cut cannot be made
+    here, so the test watches the calls that prevent that (the real ones, recorded in order)."""
+    client.create_map("synced", CONFIG)
+    path = tmp_path / "synced.fleetmap.zip"
+    path.write_bytes(b"an earlier backup")
+    calls: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        calls.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
+        calls.append(("replace", str(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    client.save_snapshot("synced", path)
+    monkeypatch.undo()
+    folder = os.path.realpath(tmp_path)  # (what /proc names the descriptors by)
+    part = os.path.join(folder, path.name + ".part")
+    assert calls == [("fsync", part), ("replace", str(path)), ("fsync", folder)], calls
+    assert path.read_bytes()[:2] == b"PK"
+
+
 def test_a_snapshot_uploaded_from_an_open_file_is_sent_from_where_it_stands(
     client: FleetmapClient, scans: list[Scan], tmp_path: Path
 ) -> None:

@@ -397,8 +397,9 @@ class FleetmapClient:
     def save_snapshot(self, map_id: str, path: str | os.PathLike[str]) -> int:
         """`download_snapshot` written to the file `path` as it arrives, never held in memory whole
         (a big map's file takes gigabytes); returns its size in bytes. It goes to `path` + `.part`
-        first, renamed to `path` once whole: an error (`FleetmapError`, a dropped connection) leaves
-        no file, and an earlier one at `path` as it was."""
+        first, renamed to `path` once whole and on disk (fsync): an error (`FleetmapError`, a dropped
+        connection) leaves no file, and an earlier one at `path` as it was; a power cut leaves the
+        earlier file or the whole new one."""
         _check_id("map_id", map_id)
         target = Path(path)
         part = target.with_name(target.name + ".part")
@@ -411,12 +412,18 @@ class FleetmapClient:
                 with open(part, "wb") as fp:
                     for chunk in response.iter_bytes(_TRANSFER_CHUNK):
                         fp.write(chunk)
+                    # On disk before it takes the name: renamed while its data was still only in
+                    # the page cache, a power cut (or a kernel crash) soon after could leave `path`
+                    # empty or cut short on most file systems, the earlier backup there gone too.
+                    fp.flush()
+                    os.fsync(fp.fileno())
         except BaseException as exc:
             part.unlink(missing_ok=True)
             if isinstance(exc, httpx.TransportError):
                 raise _naming_the_service(exc, self.base_url) from exc
             raise
         os.replace(part, target)
+        _sync_directory(target.parent)  # the rename itself
         return target.stat().st_size
 
     def upload_snapshot(
@@ -1099,3 +1106,18 @@ __all__ = [
     "fold_robots",
     "parse_sse",
 ]
+
+
+def _sync_directory(directory: Path) -> None:
+    """Make the names in `directory` durable (a rename into it), where the system can: a directory
+    cannot be opened for that on some (Windows), nor synced on some file systems; the file's own
+    data is synced already, so at worst a power cut keeps the earlier name's file."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        with contextlib.suppress(OSError):
+            os.fsync(fd)
+    finally:
+        os.close(fd)
