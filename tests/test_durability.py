@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import random
 import re
 import shutil
@@ -232,6 +233,35 @@ def test_a_data_directory_with_no_room_is_a_clear_error_at_start(tmp_path: Path)
     assert done.returncode == 2, output
     assert "Traceback" not in output, output
     assert f"data directory {data} has no room to write (File too large)" in output, output
+
+
+def test_a_database_file_the_service_cannot_write_is_refused_as_such_not_as_damaged(tmp_path: Path) -> None:
+    """A `fleetmap.db` the service's user cannot write (a backup copied in by root for a service
+    that runs as its own user) in a directory it can: the start got past the directory's checks and
+    failed at its first write, "attempt to write a readonly database", reported as a damaged
+    database to restore from a backup or move aside (which would throw the maps away). It is refused
+    saying that the file cannot be written and that the database is not damaged, exit code 2. Root
+    ignores permission bits, so as root the file is made immutable (`chattr +i`) instead."""
+    data = tmp_path / "data"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        r = httpx.put(f"{svc.base_url}/maps/kept", json={}, timeout=30)
+        assert r.status_code == 201, r.text
+    db = data / DB_NAME
+    if os.geteuid() != 0:
+        db.chmod(0o444)
+    elif subprocess.run(["chattr", "+i", str(db)], capture_output=True).returncode != 0:
+        pytest.skip("running as root where chattr +i cannot make a file read-only")
+    try:
+        output = refused_start(tmp_path, data)
+    finally:
+        if os.geteuid() == 0:
+            subprocess.run(["chattr", "-i", str(db)], check=True)
+        db.chmod(0o644)
+    assert "Traceback" not in output, output
+    assert f"the map database file {db} cannot be written" in output, output
+    assert "the database is not damaged" in output and "damaged database" not in output, output
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:  # writable again: all there
+        assert httpx.get(f"{svc.base_url}/maps/kept", timeout=10).status_code == 200
 
 
 def test_a_second_service_on_the_same_data_directory_is_refused(tmp_path: Path) -> None:

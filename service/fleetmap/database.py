@@ -7,6 +7,7 @@ import contextlib
 import errno
 import fcntl
 import os
+import pwd
 import shutil
 import sqlite3
 import threading
@@ -247,6 +248,7 @@ def _check_and_create(data_dir: Path) -> Path:
             f"at least {MIN_FREE_BYTES // (1024 * 1024)} MiB are needed"
         )
     path = data_dir / DB_NAME
+    _refuse_unwritable(path)
     try:
         _refuse_orphaned_wal(path)
         _refuse_unknown_layout(path)
@@ -262,6 +264,39 @@ def _check_and_create(data_dir: Path) -> Path:
     except sqlite3.DatabaseError as exc:
         raise StorageError(f"cannot open the map database {path}: {exc}") from None
     return path
+
+
+def _refuse_unwritable(path: Path) -> None:
+    """Raise `StorageError` if the database at `path`, or its write-ahead log or shared-memory file,
+    exists but cannot be opened for writing: a file of another user (a backup copied in by root for a
+    service that runs as its own user), read-only, or immutable. The directory's own check passed, so
+    the start went on and the first write at load failed with SQLite's "attempt to write a readonly
+    database", reported as a damaged database to restore from a backup or move aside, which would
+    have thrown the maps away."""
+    for file in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
+        try:
+            fd = os.open(file, os.O_RDWR)
+        except FileNotFoundError:
+            continue
+        except OSError as exc:
+            if exc.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
+                continue  # (a directory of that name, ...: SQLite says what is wrong next)
+            user = _user_name()
+            raise StorageError(
+                f"the map database file {file} cannot be written ({exc.strerror}): the database is not "
+                f"damaged; give the user the service runs as ({user}) write access to it (chown, "
+                "chmod; chattr -i if it is immutable)"
+            ) from None
+        os.close(fd)
+
+
+def _user_name() -> str:
+    """The name of the user this process runs as (its uid if it has none)."""
+    uid = os.geteuid()
+    try:
+        return pwd.getpwuid(uid).pw_name
+    except KeyError:  # (a uid with no name: a container's)
+        return f"uid {uid}"
 
 
 def _refuse_orphaned_wal(path: Path) -> None:
