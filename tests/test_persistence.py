@@ -9,6 +9,7 @@ import io
 import itertools
 import json
 import logging
+import os
 import queue
 import sqlite3
 import struct
@@ -33,7 +34,7 @@ from test_api_support import (
     snapshot_parts,
 )
 
-from fleetmap import storage_format, upload_spool
+from fleetmap import database, storage_format, upload_spool
 from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.database import DB_NAME, StorageError, open_database
@@ -843,6 +844,30 @@ def test_a_data_directory_that_is_a_file_is_refused_saying_so(tmp_path: Path) ->
     other.write_text("x")
     with pytest.raises(StorageError, match=r"notes\.txt is a file, not a directory$"):
         open_database(other)
+
+
+@pytest.mark.parametrize("code", [errno.ENOLCK, errno.EOPNOTSUPP])
+def test_a_data_directory_whose_file_system_takes_no_locks_is_refused_saying_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, code: int
+) -> None:
+    """A file system that takes no POSIX locks (an NFS mount without its lock service: ENOLCK; some
+    FUSE file systems) was reported as "in use by another fleetmap service (pid N)", N the pid of
+    whichever service wrote the lock file last, long gone. Such a mount cannot be made here, so the
+    lock's call fails as it does there (the only stand-in in this test)."""
+    data = tmp_path / "data"
+    DurableStore(data).close()  # a lock file left by an earlier service, holding its pid
+    (data / "fleetmap.lock").write_text("4242\n")
+
+    def no_locks(fd: int, cmd: int) -> None:
+        raise OSError(code, os.strerror(code))
+
+    monkeypatch.setattr(database.fcntl, "lockf", no_locks)
+    with pytest.raises(StorageError) as refused:
+        open_database(data)
+    message = str(refused.value)
+    assert message.startswith(f"data directory {data} cannot be locked ({os.strerror(code)}): "), message
+    assert "in use" not in message and "4242" not in message, message
+    assert "a directory on a local disk" in message, message
 
 
 def test_a_snapshots_tile_rows_never_reach_a_map_created_again_meanwhile(tmp_path: Path, monkeypatch) -> None:

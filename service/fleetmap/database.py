@@ -114,7 +114,20 @@ class DataDirLock:
         try:
             self._dir = _lock_directory(data_dir)
             fcntl.lockf(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except (OSError, _DirectoryInUse):
+        except (OSError, _DirectoryInUse) as exc:
+            if isinstance(exc, OSError) and exc.errno not in (errno.EAGAIN, errno.EACCES):
+                # Not held by anyone: the file system takes no POSIX locks (ENOLCK from an NFS
+                # mount without its lock service, ENOSYS or EOPNOTSUPP from some FUSE file systems).
+                # It said "in use by another fleetmap service (pid N)", naming whichever service
+                # wrote the lock file last, long gone: an operator went looking for it, or deleted
+                # the "stale" file, and was refused the same way again.
+                self.release()
+                raise StorageError(
+                    f"data directory {data_dir} cannot be locked ({exc.strerror}): its file system "
+                    "does not take the locks that keep a second service, and SQLite's own writers, "
+                    "apart (some network and FUSE file systems do not): give --data-dir a directory "
+                    "on a local disk"
+                ) from None
             holder = os.pread(self._fd, 32, 0).decode(errors="replace").strip() or "unknown"
             self.release()
             raise StorageError(
