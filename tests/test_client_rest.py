@@ -388,6 +388,13 @@ def test_snapshots_saved_to_a_file_and_uploaded_from_one(
         client.save_snapshot("no-such-map", path)
     assert missing.value.status == 404
     assert path.read_bytes() == kept and sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+    # A path the download cannot take (a folder): the error, and no `.part` left behind (it was:
+    # the whole download, gigabytes for a big map).
+    folder = tmp_path / "a-folder"
+    folder.mkdir()
+    with pytest.raises(IsADirectoryError):
+        client.save_snapshot("files", folder)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, folder.name])
 
 
 def test_a_saved_snapshot_is_on_disk_before_it_takes_its_name(

@@ -398,8 +398,8 @@ class FleetmapClient:
         """`download_snapshot` written to the file `path` as it arrives, never held in memory whole
         (a big map's file takes gigabytes); returns its size in bytes. It goes to `path` + `.part`
         first, renamed to `path` once whole and on disk (fsync): an error (`FleetmapError`, a dropped
-        connection) leaves no file, and an earlier one at `path` as it was; a power cut leaves the
-        earlier file or the whole new one."""
+        connection, an `OSError` of the rename: `path` a folder, say) leaves no file, and an earlier
+        one at `path` as it was; a power cut leaves the earlier file or the whole new one."""
         _check_id("map_id", map_id)
         target = Path(path)
         part = target.with_name(target.name + ".part")
@@ -422,7 +422,13 @@ class FleetmapClient:
             if isinstance(exc, httpx.TransportError):
                 raise _naming_the_service(exc, self.base_url) from exc
             raise
-        os.replace(part, target)
+        try:
+            os.replace(part, target)
+        except OSError:
+            # (`path` a folder, or a name this user may not replace): the whole download, gigabytes
+            # for a big map, was left behind as `.part` beside it.
+            part.unlink(missing_ok=True)
+            raise
         _sync_directory(target.parent)  # the rename itself
         return target.stat().st_size
 
