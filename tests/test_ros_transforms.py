@@ -4,6 +4,7 @@ the 3D -> 2D projection of level, upside-down and tilted lasers, and the limits.
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -212,6 +213,36 @@ def test_memory_is_bounded() -> None:
     with pytest.raises(TfError, match="samples"):
         full.add(TransformStamped(0.0, "odom", "c", (0.0, 0.0, 0.0), q), static=False)
     assert full.samples == 4
+
+
+def test_a_full_tree_forgets_the_frames_of_robots_gone_quiet() -> None:
+    """Robots that come and go under frame prefixes of their own on one shared tree: once it is
+    full, the frames below edges with no sample within the history kept are forgotten to make room,
+    and robots still publishing keep theirs. Every new frame was refused until a restart."""
+    q = (0.0, 0.0, 0.0, 1.0)
+    buf = TfBuffer(history=10.0, max_frames=10)
+
+    def robot(name: str, stamp: float) -> None:  # map -> odom -> base_link (dynamic) -> laser (static)
+        buf.add(TransformStamped(stamp, "map", f"{name}/odom", (1.0, 0.0, 0.0), q), static=False)
+        buf.add(
+            TransformStamped(stamp, f"{name}/odom", f"{name}/base_link", (0.0, 1.0, 0.0), q), static=False
+        )
+        buf.add(TransformStamped(0.0, f"{name}/base_link", f"{name}/laser", (0.5, 0.0, 0.0), q), static=True)
+
+    for name in ("r1", "r2", "r3"):
+        robot(name, 100.0)  # 10 frames: full
+    robot("r3", 125.0)  # r3 keeps publishing; r1 and r2 went quiet 25 s ago
+    robot("r4", 125.0)
+    assert buf.frames == 7  # map, r3's and r4's
+    assert buf.lookup("map", "r4/laser", 125.0).translation == pytest.approx((1.5, 1.0, 0.0))
+    assert buf.lookup("map", "r3/laser", 125.0).translation == pytest.approx((1.5, 1.0, 0.0))
+    with pytest.raises(TfPending, match="not in the TF tree"):
+        buf.lookup("map", "r1/laser", 100.0)
+    # Within the history nothing is forgotten: a full tree of robots publishing refuses new frames.
+    for name in ("r5", "r6"):
+        with pytest.raises(TfError, match="frames") if name == "r6" else contextlib.nullcontext():
+            robot(name, 126.0)
+    assert buf.lookup("map", "r3/laser", 125.0).translation == pytest.approx((1.5, 1.0, 0.0))
 
 
 def test_normalize_frame() -> None:

@@ -222,7 +222,10 @@ class TfBuffer:
         values = (*t.translation, qx / n, qy / n, qz / n, qw / n)
         new = {parent, child} - self._frames
         if len(self._frames) + len(new) > self.max_frames:
-            raise TfError(f"TF tree already has {len(self._frames)} frames, the most it may have")
+            self._forget_stale(now=t.stamp)
+            new = {parent, child} - self._frames
+            if len(self._frames) + len(new) > self.max_frames:
+                raise TfError(f"TF tree already has {len(self._frames)} frames, the most it may have")
         edge = self._edges.get(child)
         if edge is None or edge.parent != parent or edge.static != static:
             if edge is None and self._samples >= self.max_samples:
@@ -264,6 +267,41 @@ class TfBuffer:
             del stamps[:drop]
             del edge.values[: 7 * drop]
             self._samples -= drop
+
+    def _forget_stale(self, now: float) -> None:
+        """At the tree's frame limit: forget each dynamic edge with no sample within the history
+        kept (before `now`, or the tree's newest sample if later), and every frame below it. Those
+        frames can serve no lookup until their edge gets samples again (a lookup needs a sample
+        within the history), and robots that came and went under frame prefixes of their own on
+        one shared tree (`robot7/odom`, ...) would otherwise fill it for good: every new frame,
+        every new robot's, was refused until the service restarted. A static edge below a
+        forgotten one goes too: its robot, back, publishes it again when it restarts (tf_static
+        is latched); one that only lost its link for longer than the history needs it again."""
+        newest = max(
+            (edge.stamps[-1] for edge in self._edges.values() if not edge.static and edge.stamps),
+            default=now,
+        )
+        horizon = max(now, newest) - self.history
+        stale = [
+            child
+            for child, edge in self._edges.items()
+            if not edge.static and (not edge.stamps or edge.stamps[-1] < horizon)
+        ]
+        if not stale:
+            return
+        below: dict[str, list[str]] = {}
+        for child, edge in self._edges.items():
+            below.setdefault(edge.parent, []).append(child)
+        gone: set[str] = set()
+        todo = list(stale)
+        while todo:
+            frame = todo.pop()
+            if frame not in gone:
+                gone.add(frame)
+                todo.extend(below.get(frame, ()))
+        for frame in gone:  # each the child of an edge: a stale one, or one below it
+            self._samples -= len(self._edges.pop(frame).stamps)
+        self._frames = set(self._edges) | {edge.parent for edge in self._edges.values()}
 
     def _make_room(self) -> None:
         """At the tree's sample limit: drop the oldest sample of the dynamic edge holding the most.
