@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -291,18 +292,81 @@ def test_cors_origins_no_browser_sends_are_refused_at_start(tmp_path: Path) -> N
             assert r.headers.get("access-control-allow-origin") == origin, origin
 
 
-def test_a_refused_cors_preflight_is_a_json_error_naming_what_was_refused(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def cors_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """A service without tokens (the default) that lets the page `PAGE` call it (`--cors-origin`)."""
+    with ServiceProcess(tmp_path_factory.mktemp("cors"), ["--cors-origin", PAGE]) as svc:
+        yield svc
+
+
+def test_a_refused_cors_preflight_is_a_json_error_naming_what_was_refused(
+    cors_service: ServiceProcess,
+) -> None:
     """docs/api.md: every error answer is JSON with a `detail`. A preflight the CORS settings refuse
     was Starlette's plain text `Disallowed CORS origin`, the one error a client could not parse."""
-    with ServiceProcess(tmp_path, ["--cors-origin", PAGE]) as svc:
-        url = f"{svc.base_url}/maps/m"
-        r = httpx.options(url, headers={"Origin": STRANGER, "Access-Control-Request-Method": "PUT"})
-        assert r.status_code == 400 and r.headers["content-type"] == "application/json", r.text
-        assert STRANGER in r.json()["detail"] and "--cors-origin" in r.json()["detail"]
-        assert "access-control-allow-origin" not in r.headers and "Origin" in r.headers["vary"]
-        r = httpx.options(url, headers={"Origin": PAGE, "Access-Control-Request-Method": "PATCH"})
-        assert r.status_code == 400 and r.headers["access-control-allow-origin"] == PAGE
-        assert "'PATCH' is not allowed" in r.json()["detail"], r.text
-        # An allowed preflight is answered as before.
-        r = httpx.options(url, headers={"Origin": PAGE, "Access-Control-Request-Method": "PUT"})
-        assert r.status_code == 200 and r.headers["access-control-allow-origin"] == PAGE
+    url = f"{cors_service.base_url}/maps/m"
+    r = httpx.options(url, headers={"Origin": STRANGER, "Access-Control-Request-Method": "PUT"})
+    assert r.status_code == 400 and r.headers["content-type"] == "application/json", r.text
+    assert STRANGER in r.json()["detail"] and "--cors-origin" in r.json()["detail"]
+    assert "access-control-allow-origin" not in r.headers and "Origin" in r.headers["vary"]
+    r = httpx.options(url, headers={"Origin": PAGE, "Access-Control-Request-Method": "PATCH"})
+    assert r.status_code == 400 and r.headers["access-control-allow-origin"] == PAGE
+    assert "'PATCH' is not allowed" in r.json()["detail"], r.text
+    # An allowed preflight is answered as before.
+    r = httpx.options(url, headers={"Origin": PAGE, "Access-Control-Request-Method": "PUT"})
+    assert r.status_code == 200 and r.headers["access-control-allow-origin"] == PAGE
+
+
+def test_a_page_on_another_site_cannot_write_through_its_visitors_browser(
+    cors_service: ServiceProcess,
+) -> None:
+    """Any page may make a browser send a POST without a `Content-Type` anywhere, with no preflight
+    (`fetch(url, {method: 'POST', mode: 'no-cors', body: bytes})`); the scans route sniffs such a
+    body, so every site a user of a service without tokens visited could create maps on it and
+    integrate scans into them. The requests are sent here with the headers such a browser sends
+    (Chromium's `Sec-Fetch-*` and `Origin`), not from a browser: which requests a browser sends
+    without a preflight is the browser's, what the service does with them is what is tested."""
+    url = cors_service.base_url
+    body = json.dumps(SCAN).encode()  # no Content-Type: sniffed as JSON
+
+    def scan(map_id: str, headers: dict[str, str]) -> httpx.Response:
+        return httpx.post(
+            f"{url}/maps/{map_id}/scans", params={"robot_id": "r"}, content=body, headers=headers
+        )
+
+    no_cors = {"Sec-Fetch-Mode": "no-cors", "Sec-Fetch-Dest": "empty"}
+    refused = [
+        ("cross-site", {**no_cors, "Origin": STRANGER, "Sec-Fetch-Site": "cross-site"}),
+        # A sandboxed frame's or a file's page: its origin is `null`.
+        ("null origin", {**no_cors, "Origin": "null", "Sec-Fetch-Site": "cross-site"}),
+        # Another port of the same host is the same site, not the same origin.
+        ("same-site", {**no_cors, "Origin": "http://127.0.0.1:1", "Sec-Fetch-Site": "same-site"}),
+        # A browser without `Sec-Fetch-Site`: its `Origin` names another host than the request's.
+        ("old browser", {"Origin": STRANGER}),
+    ]
+    for what, headers in refused:
+        r = scan("forged", headers)
+        assert r.status_code == 403 and r.headers["content-type"] == "application/json", (what, r.text)
+        assert "cross-site request refused" in r.json()["detail"] and "--cors-origin" in r.json()["detail"]
+        assert r.headers["x-content-type-options"] == "nosniff", r.headers  # the API's own answer
+    r = httpx.delete(f"{url}/maps/forged", headers={"Origin": STRANGER, "Sec-Fetch-Site": "cross-site"})
+    assert r.status_code == 403, r.text
+    assert httpx.get(f"{url}/maps/forged").status_code == 404  # nothing was created
+    assert httpx.get(f"{url}/maps").json()["maps"] == []
+
+    # Written as before: by a client that is no browser's page, by the service's own pages, by a
+    # request the user made, by a page `--cors-origin` allows, by an older browser's same-origin page.
+    host = url.removeprefix("http://")
+    allowed = [
+        ("no browser", {}),
+        ("same-origin", {"Origin": url, "Sec-Fetch-Site": "same-origin"}),
+        ("the user's own", {"Sec-Fetch-Site": "none"}),
+        ("allowed page", {"Origin": PAGE, "Sec-Fetch-Site": "cross-site"}),
+        ("old browser, same origin", {"Origin": url, "Host": host}),
+    ]
+    for i, (what, headers) in enumerate(allowed):
+        r = scan(f"ok-{i}", headers)
+        assert r.status_code == 200 and r.json()["status"] == "integrated", (what, r.text)
+    # Reads are not checked: they change nothing, and CORS keeps their answers from other pages.
+    r = httpx.get(f"{url}/maps/ok-0", headers={"Origin": STRANGER, "Sec-Fetch-Site": "cross-site"})
+    assert r.status_code == 200 and "access-control-allow-origin" not in r.headers

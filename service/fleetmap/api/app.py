@@ -33,6 +33,7 @@ from fleetmap.api import (
     static,
 )
 from fleetmap.api.cors import JsonCORS
+from fleetmap.api.cross_site import CrossSiteWrites
 from fleetmap.api.events import router as events_router
 from fleetmap.api.http_semantics import (
     GZIP_LEVEL,
@@ -296,6 +297,9 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     # Outside every middleware that waits (the ingest gate, a body being read): a request cancelled
     # at shutdown anywhere in them gets its 503 here, with the CORS and default headers put on it.
     app.add_middleware(errors.ShutdownCutoff)
+    # Outside auth and the sign-in limit: a write another site's page started is refused whatever it
+    # carries; inside the middleware below, so that its 403 gets their headers.
+    app.add_middleware(CrossSiteWrites, allowed_origins=settings.cors_origins)
     # Inside every middleware that puts headers on all answers (below), so that a bug's 500 carries
     # them too: Starlette's own 500 comes from outside them all.
     app.add_middleware(errors.BugAnswer)
