@@ -56,6 +56,8 @@ def test_roles_on_the_real_service(tmp_path: Path, token_file: Path) -> None:
         assert httpx.delete(f"{url}/maps/m", headers=bearer(READ)).status_code == 403
         assert httpx.delete(f"{url}/maps/m", headers=bearer(ADMIN)).status_code == 204
         assert httpx.get(f"{url}/healthz").status_code == 200
+        # With tokens, a request may name any host (a reverse proxy passes its own on).
+        assert httpx.get(f"{url}/maps", headers={"Host": "fleetmap.example"}).status_code == 200
         logs = svc.logs()
     for token in (READ, WRITE, ADMIN, "not-a-token-at-all-xx"):
         assert token not in logs
@@ -107,6 +109,9 @@ def test_insecure_allows_all_interfaces() -> None:
             if "fleetmap serving" in line:
                 break
         assert httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=5).status_code == 200
+        # --insecure accepts requests for any host, as it accepts any address.
+        r = httpx.get(f"http://127.0.0.1:{port}/maps", headers={"Host": "fleetmap.example"}, timeout=5)
+        assert r.status_code == 200, r.text
     finally:
         proc.terminate()
         proc.wait(30)
@@ -370,3 +375,43 @@ def test_a_page_on_another_site_cannot_write_through_its_visitors_browser(
     # Reads are not checked: they change nothing, and CORS keeps their answers from other pages.
     r = httpx.get(f"{url}/maps/ok-0", headers={"Origin": STRANGER, "Sec-Fetch-Site": "cross-site"})
     assert r.status_code == 200 and "access-control-allow-origin" not in r.headers
+
+
+def test_a_page_rebound_to_loopback_cannot_reach_a_service_without_tokens(
+    cors_service: ServiceProcess,
+) -> None:
+    """DNS rebinding: a page of `http://attacker.example:PORT` whose name the attacker then points at
+    127.0.0.1 is the service's own origin to the browser (`Sec-Fetch-Site: same-origin`, no CORS in
+    the way), so its script could read, delete and overwrite every map of a service without tokens.
+    Its requests name the attacker's host in `Host`: they are refused. Sent here with the headers
+    such a browser sends, over loopback as the rebound page's would come."""
+    url = cors_service.base_url
+    port = url.rpartition(":")[2]
+    assert httpx.put(f"{url}/maps/kept", json={}).status_code == 201
+    page = f"http://attacker.example:{port}"
+    rebound = {"Host": f"attacker.example:{port}", "Origin": page, "Sec-Fetch-Site": "same-origin"}
+    for method, path in [("GET", "/maps"), ("GET", "/maps/kept/tiles/0/0/0.png"), ("DELETE", "/maps/kept"),
+                         ("PUT", "/maps/kept"), ("GET", "/healthz")]:  # fmt: skip
+        r = httpx.request(method, f"{url}{path}", headers=rebound, json={} if method == "PUT" else None)
+        assert r.status_code == 403 and r.headers["content-type"] == "application/json", (
+            method,
+            path,
+            r.text,
+        )
+        assert "'attacker.example:" in r.json()["detail"] and "DNS rebinding" in r.json()["detail"]
+        assert r.headers["x-frame-options"] == "DENY"  # the API's own answer
+    assert httpx.get(f"{url}/maps/kept").status_code == 200  # still there
+    # A name of this machine, as a browser or client sends it, with or without the port.
+    for host in (
+        f"127.0.0.1:{port}",
+        f"localhost:{port}",
+        "LocalHost.",
+        "127.0.0.2",
+        "[::1]:80",
+        "localhost",
+    ):
+        r = httpx.get(f"{url}/maps/kept", headers={"Host": host})
+        assert r.status_code == 200, (host, r.text)
+    # Not a name of this machine, though it resembles one.
+    for host in ("localhost.attacker.example", "127.0.0.1.nip.io", "[::2]:80", "0.0.0.0"):
+        assert httpx.get(f"{url}/maps", headers={"Host": host}).status_code == 403, host

@@ -194,7 +194,10 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     p.add_argument(
         "--insecure",
         action="store_true",
-        help="allow binding HTTP to a non-loopback address without API tokens",
+        help=(
+            "serve without API tokens beyond this machine: bind HTTP to a non-loopback address, and "
+            "answer requests whose Host names another machine (a proxy's)"
+        ),
     )
     limits = InputLimits()
     p.add_argument(

@@ -194,6 +194,9 @@ def run(args: argparse.Namespace) -> int:
                 require_read_token=args.require_read_token,
                 signin_max_failures=args.max_failed_sign_ins,
                 signin_window=args.failed_sign_in_window,
+                # Without tokens only this machine may change the maps: its socket is on loopback,
+                # and a web page rebound to 127.0.0.1 names another host.
+                loopback_hosts_only=tokens is None and not args.insecure,
             )
             app = options.create_app(registry, settings=settings)
             _log_protection(args, tokens, durable is not None, options.default_config)

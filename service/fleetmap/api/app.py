@@ -45,6 +45,7 @@ from fleetmap.api.http_semantics import (
     NegotiatedGZip,
 )
 from fleetmap.api.ingest_priority import IngestGate, IngestPriority
+from fleetmap.api.loopback_host import LoopbackHostOnly
 from fleetmap.api.security_headers import SecurityHeaders
 from fleetmap.api.signin_limit import SignInLimit
 from fleetmap.api.state import ApiState
@@ -138,6 +139,11 @@ class ApiSettings:
     signin_max_failures: int = DEFAULT_MAX_FAILURES
     signin_window: float = DEFAULT_WINDOW
     signin_max_clients: int = DEFAULT_MAX_CLIENTS
+    #: Answer only requests whose `Host` names this machine (`localhost`, a loopback address), 403
+    #: to others: a web page whose name was pointed at 127.0.0.1 (DNS rebinding) must not reach a
+    #: service without tokens (`fleetmap.api.loopback_host`). `fleetmap serve` sets it without tokens
+    #: and without `--insecure`.
+    loopback_hosts_only: bool = False
     #: Called by GET /healthz for the Zenoh session's status (`fleetmap serve` passes
     #: `serve_ros.zenoh_status`, the session's and its ROS parts').
     zenoh_status: Callable[[], dict[str, Any]] | None = None
@@ -300,6 +306,9 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
     # Outside auth and the sign-in limit: a write another site's page started is refused whatever it
     # carries; inside the middleware below, so that its 403 gets their headers.
     app.add_middleware(CrossSiteWrites, allowed_origins=settings.cors_origins)
+    if settings.loopback_hosts_only:
+        # Outside auth too, for the same reason; its 403 gets the headers of the middleware below.
+        app.add_middleware(LoopbackHostOnly)
     # Inside every middleware that puts headers on all answers (below), so that a bug's 500 carries
     # them too: Starlette's own 500 comes from outside them all.
     app.add_middleware(errors.BugAnswer)
