@@ -32,8 +32,16 @@ def bearer(token: str) -> dict[str, str]:
 
 
 def test_roles_on_the_real_service(tmp_path: Path, token_file: Path) -> None:
+    token_file.chmod(0o644)  # as written with the usual umask 022
     with ServiceProcess(tmp_path, ["--auth-tokens", str(token_file)]) as svc:
         url = svc.base_url
+        # Anyone who can read the file holds its tokens: the start-up log says so, and what to do.
+        warning = (
+            f"WARNING fleetmap.server: the token file {token_file} is readable by every user of this "
+            "machine (mode 0644): they can use its tokens; make it readable by the service's user "
+            f"only (chmod 600 {token_file})"
+        )
+        assert warning in svc.logs()
         # Writing needs write or admin.
         r = httpx.put(f"{url}/maps/m", json={})
         assert r.status_code == 401 and "Bearer" in r.json()["detail"]

@@ -322,10 +322,12 @@ def test_revoking_the_token_ends_its_sessions(tmp_path: Path) -> None:
     """The cookie is matched against the tokens in force on every request: rewriting the token file
     and SIGHUP end the session at once, with no session store to clear."""
     tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    tokens.chmod(0o600)
     with ServiceProcess(
         tmp_path, ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token"]
     ) as svc:
         assert svc.proc is not None
+        assert "token file" not in svc.logs()  # readable by its owner only: nothing to warn of
         url = svc.base_url
         session = cookie(set_cookie(httpx.post(f"{url}/session", headers=bearer(READ)))[0])
         kept = cookie(set_cookie(httpx.post(f"{url}/session", headers=bearer(WRITE)))[0])
@@ -341,9 +343,12 @@ def test_revoking_the_token_ends_its_sessions(tmp_path: Path) -> None:
         assert httpx.get(f"{url}/maps", headers=kept).status_code == 200  # other sessions go on
         # Given back, the token's old cookie works again: it stands for the token, nothing else.
         write_tokens(tokens, f"read {READ}", f"write {WRITE}")
+        tokens.chmod(0o640)  # its group may read it now: the reload says so
         svc.proc.send_signal(signal.SIGHUP)
         wait_for(lambda: "SIGHUP: 2 API tokens read" in svc.logs(), 10, what="the second reload")
         assert httpx.get(f"{url}/maps", headers=session).status_code == 200
+        warning = f"the token file {tokens} is readable by the users of its group (mode 0640)"
+        wait_for(lambda: warning in svc.logs(), 10, what="the reload's warning")
         logs = svc.logs()
     for secret in (READ, WRITE, session_of(READ), session_of(WRITE)):
         assert secret not in logs

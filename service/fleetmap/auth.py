@@ -40,6 +40,7 @@ import hmac
 import json
 import os
 import re
+import stat
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -175,6 +176,26 @@ class TokenSet:
             if hmac.compare_digest(known, digest) and (found is None or _RANK[role] > _RANK[found]):
                 found = role
         return found
+
+
+def others_may_read(path: str) -> str | None:
+    """A warning if users other than the file's owner may read the token file `path` (its mode
+    grants read to its group or to others), else None (also when it cannot be looked at: reading it
+    then fails with its own message). Anyone who can read the file holds its tokens, an admin's
+    among them, and a file written with the usual umask 022 is readable by every user of the
+    machine. A warning, not a refusal: Kubernetes and Docker mount secrets readable by all (0644,
+    0444) inside a container where no other user runs."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if not mode & (stat.S_IRGRP | stat.S_IROTH):
+        return None
+    who = "every user of this machine" if mode & stat.S_IROTH else "the users of its group"
+    return (
+        f"the token file {path} is readable by {who} (mode {stat.S_IMODE(mode):04o}): they can use "
+        f"its tokens; make it readable by the service's user only (chmod 600 {path})"
+    )
 
 
 def session_value(token: str) -> str:

@@ -55,7 +55,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-from fleetmap.auth import TokenFile, TokenFileError, TokenSet
+from fleetmap.auth import TokenFile, TokenFileError, TokenSet, others_may_read
 from fleetmap.cli import CliError, load_config, parse_command_line, run_command
 from fleetmap.codec import InputLimits
 from fleetmap.config import MapConfig
@@ -335,6 +335,8 @@ def reload_tokens(tokens: TokenSet | TokenFile | None) -> None:
         log.error("SIGHUP: kept the tokens in force: %s", exc)
         return
     log.info("SIGHUP: %d API tokens read from %s", count, tokens.path)
+    if (warning := others_may_read(tokens.path)) is not None:
+        log.warning("%s", warning)
 
 
 def _open_storage(args: argparse.Namespace, sock: socket.socket) -> DurableStore | None:
@@ -406,6 +408,8 @@ def _log_protection(
         f"required to write{' and read' if args.require_read_token else ''} ({source})" if tokens
         else "NONE: anyone who can reach the API may change maps (loopback only unless --insecure)",
     )  # fmt: skip
+    if isinstance(tokens, TokenFile) and (warning := others_may_read(tokens.path)) is not None:
+        log.warning("%s", warning)
     log.info(
         "maps: %s; their tiles within %s (%.0f MiB held)",
         f"durable in {Path(args.data_dir).resolve()}" if durable else "in memory only (--in-memory)",
