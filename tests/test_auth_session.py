@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -481,3 +482,43 @@ def test_without_tokens_there_is_nothing_to_sign_in_to(tmp_path: Path) -> None:
         assert r.status_code == 404 and "set-cookie" not in r.headers
         assert "without API tokens" in r.json()["detail"] and "nothing to sign in to" in r.json()["detail"]
         assert httpx.delete(f"{svc.base_url}/session").status_code == 204  # signing out is harmless
+
+
+def test_healthz_tells_no_map_ids_or_files_to_a_client_that_may_not_read(tmp_path: Path) -> None:
+    """`/healthz` is open to liveness probes, and lists the maps storage failed for and the failure's
+    text, which names them and the data directory's files: with reads needing a token, a client
+    without one read there the map ids `GET /maps` refused it. It is told that storage failed, when,
+    and how many scans are not durable; a reader, by token or session cookie, is told all of it."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    data = tmp_path / "data"
+    args = ["--data-dir", str(data), "--auth-tokens", str(tokens), "--require-read-token"]
+    with ServiceProcess(tmp_path, args) as svc:
+        url = svc.base_url
+
+        def scan(seq: int) -> int:
+            body = {**SCAN, "seq": seq}
+            params = {"robot_id": "r"}
+            return httpx.post(
+                f"{url}/maps/site-7/scans", params=params, json=body, headers=bearer(WRITE)
+            ).status_code
+
+        assert scan(1) == 200
+        shutil.rmtree(data)  # storage fails from here on (see test_durability.py)
+        assert scan(2) == 503
+        assert httpx.get(f"{url}/maps").status_code == 401
+
+        anyone = httpx.get(f"{url}/healthz")
+        assert anyone.status_code == 200 and anyone.json()["status"] == "degraded"
+        storage = anyone.json()["storage"]
+        assert storage["ok"] is False and storage["scans_not_durable"] == 1 and storage["last_error_at"]
+        assert storage["maps_awaiting_snapshot"] == [] and storage["map_changes_not_stored"] == []
+        assert storage["last_error"].startswith("storage failed (what failed, and the maps it concerns")
+        assert "site-7" not in anyone.text and str(data) not in anyone.text, anyone.text
+        # An unknown token, or a cookie of none, is anyone.
+        for headers in (bearer("not-a-token-at-all-xx"), cookie(session_of("not-a-token-at-all-xx"))):
+            assert httpx.get(f"{url}/healthz", headers=headers).json()["storage"] == storage
+
+        for headers in (bearer(READ), cookie(session_of(READ))):
+            told = httpx.get(f"{url}/healthz", headers=headers).json()["storage"]
+            assert told["maps_awaiting_snapshot"] == ["site-7"], told
+            assert str(data) in told["last_error"] and "deleted or replaced" in told["last_error"]

@@ -86,6 +86,13 @@ class ErrorResponse(_Model):
     errors: list[ErrorItem] | None = None
 
 
+#: `StorageStatus.last_error` to a client that may not read the maps.
+WITHHELD_STORAGE_ERROR = (
+    "storage failed (what failed, and the maps it concerns, are shown with a read token: this "
+    "service requires one to read)"
+)
+
+
 class StorageStatus(_Model):
     """The data directory's health (`DurableStore.health`)."""
 
@@ -94,16 +101,33 @@ class StorageStatus(_Model):
         "map holds scans whose journal commit failed (its next snapshot makes them durable), and while "
         "a map's creation, restore or deletion is not stored"
     )
-    last_error: str | None = Field(description="the latest storage failure, kept after recovery")
+    last_error: str | None = Field(
+        description="the latest storage failure, kept after recovery (it names maps and files: to a "
+        "client without a read token, where the service requires one, only that there was one)"
+    )
     last_error_at: float | None = Field(description="when it happened, Unix time")
     scans_not_durable: int = Field(description="scans applied whose journal commit failed, since start")
     maps_awaiting_snapshot: list[str] = Field(
-        description="maps holding such scans, until their next snapshot"
+        description="maps holding such scans, until their next snapshot (empty to a client without a "
+        "read token, where the service requires one: map ids are what reads need it for)"
     )
     map_changes_not_stored: list[str] = Field(
         description="maps whose creation, restore or deletion could not be stored yet: retried until "
-        "it is, and meanwhile none of the map's scans is made durable"
+        "it is, and meanwhile none of the map's scans is made durable (empty to a client without a "
+        "read token, where the service requires one)"
     )
+
+    def withheld(self) -> StorageStatus:
+        """This status as a client that may not read the maps sees it: whether storage is ok, when
+        it last failed and how many scans are not durable, but not which maps, nor the error's text
+        (it names maps and the data directory's files)."""
+        return self.model_copy(
+            update={
+                "last_error": None if self.last_error is None else WITHHELD_STORAGE_ERROR,
+                "maps_awaiting_snapshot": [],
+                "map_changes_not_stored": [],
+            }
+        )
 
 
 class Health(_Model):

@@ -358,6 +358,22 @@ class AuthMiddleware:
         await self.app(scope, receive, send)
 
 
+def may_read(
+    headers: Iterable[tuple[bytes, bytes]], tokens: TokenSet | TokenFile | None, require_read: bool
+) -> bool:
+    """Whether a request with `headers` may read the maps, as `AuthMiddleware` would let a read in:
+    always without tokens or without `require_read`, else with a bearer token of any role or, without
+    one, a session cookie that stands for a configured token. For the open routes (`/healthz`) that
+    answer more to a reader than to anyone."""
+    if tokens is None or not require_read:
+        return True
+    headers = list(headers)
+    token = bearer_token(headers)
+    if token is not None:
+        return tokens.role_of(token) is not None
+    return any(tokens.role_of_session(value) is not None for value in _sessions(headers))
+
+
 def bearer_token(headers: Iterable[tuple[bytes, bytes]]) -> str | None:
     """The token of an ASGI request's `Authorization: Bearer <token>` header, or None."""
     for name, value in headers:

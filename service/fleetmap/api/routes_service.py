@@ -2,29 +2,37 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Request, Response
 
 from fleetmap.api.state import State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import Health, storage_status
+from fleetmap.auth import may_read
 from fleetmap.metrics import CONTENT_TYPE
 
 router = APIRouter(route_class=StrictRoute)
 
 
 @router.get("/healthz", tags=["service"], summary="Liveness and a few numbers", response_model=Health)
-def healthz(state: State) -> Health:
+def healthz(request: Request, state: State) -> Health:
     """Answers 200 while the service runs, with the number of maps, robots online, the ingest queue
     depth, when the service runs a Zenoh session its status, and when it is durable its storage's
     health. `status` is `degraded` while storage is not ok: a journal commit or a snapshot failed
     (a full or failing disk), or a map holds scans whose journal commit failed until its next
     snapshot. The service goes on integrating and serving meanwhile, and recovers by itself once
-    storage works."""
+    storage works. Open to anyone (liveness probes carry no token); where reading needs a token
+    (`--require-read-token`), a client without one is not told which maps storage failed for, nor
+    the error (it names maps and files)."""
     registry = state.registry
     maps = registry.list()
     online = sum(1 for _, _, robot in registry.iter_robots() if robot.online)
     zenoh = state.settings.zenoh_status() if state.settings.zenoh_status else None
     storage = storage_status(registry.durable.health()) if registry.durable is not None else None
+    settings = state.settings
+    if storage is not None and not may_read(
+        request.scope["headers"], settings.tokens, settings.require_read_token
+    ):
+        storage = storage.withheld()
     return Health(
         status="ok" if storage is None or storage.ok else "degraded",
         maps=len(maps),
