@@ -289,6 +289,8 @@ def test_cors_origins_no_browser_sends_are_refused_at_start(tmp_path: Path) -> N
         ("viewer.example", "(an origin starts with its scheme: https://...)"),
         ("https://Viewer.example", "(browsers send it in lower case)"),
         ("https://viewer.example:443", "(browsers leave the default port 443 of https out)"),
+        # Any site can make a page whose origin is `null` (a sandboxed frame): it would let all in.
+        ("null", "(the origin of sandboxed frames, data: pages and local files, which any site can make"),
     ]
     for origin, hint in cases:
         done = subprocess.run(

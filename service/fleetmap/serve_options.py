@@ -514,14 +514,24 @@ _DEFAULT_PORTS = {"http": 80, "https": 443}
 
 
 def _cors_origin(text: str) -> str:
-    """An argparse `type` for `--cors-origin`: `*`, `null`, or an origin as a browser sends it in
-    its `Origin` header. The CORS middleware compares that header with each value as it is, so a value
+    """An argparse `type` for `--cors-origin`: `*`, or an origin as a browser sends it in its
+    `Origin` header. The CORS middleware compares that header with each value as it is, so a value
     no browser sends never matched, and nothing said so: `https://viewer.example/` (with the slash
     an address bar shows), `viewer.example` (no scheme), `https://Viewer.example`, or
-    `https://viewer.example:443` (browsers leave the default port out) let no page in."""
+    `https://viewer.example:443` (browsers leave the default port out) let no page in.
+
+    `null` is refused too, though browsers send it: it is the origin of every sandboxed frame
+    (`<iframe sandbox>`), `data:` page and local file, which any site can make, so allowing it let
+    every site's pages call the API (read, and write without tokens) while it looked like no site."""
     text = text.strip()
-    if text in ("*", "null"):
+    if text == "*":
         return text
+    if text == "null":
+        raise argparse.ArgumentTypeError(
+            "expected an origin as a browser sends it (https://viewer.example:8443) or '*', got 'null' "
+            "(the origin of sandboxed frames, data: pages and local files, which any site can make: it "
+            "would let every site in; give '*' if that is meant)"
+        )
     match = _ORIGIN.match(text)
     scheme, _, rest = text.partition("://")
     port = match.group(2) if match else None
