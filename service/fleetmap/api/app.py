@@ -453,7 +453,9 @@ _AUTH_ERRORS = {
     "write": {
         "401": "With API tokens (`--auth-tokens`): no token, or an unknown or revoked one (a session "
         "cookie never stands for a token on a write)",
-        "403": "With API tokens: the token's role is too low (a `read` token)",
+        "403": "With API tokens: the token's role is too low (a `read` token). With or without: a "
+        "write that a browser says a page of another site started (`Sec-Fetch-Site`, `Origin`), "
+        "unless `--cors-origin` allows that page",
     },
 }
 
