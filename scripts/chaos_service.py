@@ -293,11 +293,11 @@ class Chaos:
         self.stats["bad scans posted"] += 1
         host, port = "127.0.0.1", self.svc.svc.port
         for raw in (
-            b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 70000 + b"\r\n\r\n",
-            b"GET /" + b"a" * 70000 + b" HTTP/1.1\r\nHost: x\r\n\r\n",
+            b"GET /healthz HTTP/1.1\r\nHost: localhost\r\nX-Big: " + b"a" * 70000 + b"\r\n\r\n",
+            b"GET /" + b"a" * 70000 + b" HTTP/1.1\r\nHost: localhost\r\n\r\n",
             b"GARBAGE\r\n\r\n",
-            b"GET /maps HTTP/1.1\r\nHost: x\r\nContent-Length: zz\r\n\r\n",
-            b"GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n\r\n",
+            b"GET /maps HTTP/1.1\r\nHost: localhost\r\nContent-Length: zz\r\n\r\n",
+            b"GET /healthz HTTP/1.1\r\nHost: localhost\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n\r\n",
         ):
             with socket.create_connection((host, port), timeout=5) as s:
                 try:

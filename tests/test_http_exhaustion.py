@@ -43,7 +43,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess
 def open_event_stream(svc: ServiceProcess, map_id: str = "m") -> socket.socket:
     """A raw connection holding `GET /maps/{map_id}/events` open, once its first bytes arrived."""
     sock = socket.create_connection(("127.0.0.1", svc.port), timeout=10)
-    sock.sendall(f"GET /maps/{map_id}/events HTTP/1.1\r\nHost: t\r\n\r\n".encode())
+    sock.sendall(f"GET /maps/{map_id}/events HTTP/1.1\r\nHost: localhost\r\n\r\n".encode())
     head = b""
     while b"retry:" not in head:
         chunk = sock.recv(4096)
@@ -131,14 +131,14 @@ def test_a_connection_that_sends_nothing_is_closed(service: ServiceProcess) -> N
 
 def test_a_request_head_sent_a_byte_at_a_time_is_cut_off(service: ServiceProcess) -> None:
     with socket.create_connection(("127.0.0.1", service.port)) as sock:
-        sock.sendall(b"GET /maps HTTP/1.1\r\nHost: t\r\n")
+        sock.sendall(b"GET /maps HTTP/1.1\r\nHost: localhost\r\n")
         assert seconds_until_closed(sock, 10, dribble=b"X") < HEAD_TIMEOUT + 1.5
 
 
 def test_a_request_body_that_stalls_is_cut_off(service: ServiceProcess) -> None:
     """A read route (open to anyone): the body it buffers would otherwise stay in memory for ever."""
     with socket.create_connection(("127.0.0.1", service.port)) as sock:
-        head = b"POST /maps/m/cells HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+        head = b"POST /maps/m/cells HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\n"
         sock.sendall(head + b"Content-Length: 1000000\r\n\r\n" + b" " * 100_000)
         closed_after = seconds_until_closed(sock, 15, dribble=b" ")
         assert BODY_TIMEOUT - 0.5 < closed_after < BODY_TIMEOUT + 1.5
@@ -149,7 +149,7 @@ def test_an_upload_cut_off_mid_body_is_not_logged_as_a_bug(service: ServiceProce
     Starlette's ClientDisconnect from `request.body()` was answered as an internal error, logged at
     ERROR with two tracebacks (fleetmap's and uvicorn's) for each such request."""
     with socket.create_connection(("127.0.0.1", service.port)) as sock:
-        head = b"PUT /maps/cut-off/snapshot HTTP/1.1\r\nHost: t\r\nContent-Type: application/zip\r\n"
+        head = b"PUT /maps/cut-off/snapshot HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/zip\r\n"
         sock.sendall(head + b"Content-Length: 100000\r\n\r\n" + b"x" * 1000)
         assert seconds_until_closed(sock, 10) < BODY_TIMEOUT + 1.5
     with socket.create_connection(("127.0.0.1", service.port)) as sock:  # gone before the deadline
@@ -226,8 +226,8 @@ def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: Serv
     """Every answer of the API is JSON {"detail": ...}, also those httptools' parser and the head limit
     give before a request reaches the app; and a head over MAX_HEAD_BYTES is refused, not read into
     memory (neither uvicorn nor httptools bounds it: a 10 MB header was answered 200)."""
-    long_url = b"GET /maps/" + b"a" * 100_000 + b" HTTP/1.1\r\nHost: t\r\n\r\n"
-    long_header = b"GET /healthz HTTP/1.1\r\nHost: t\r\nX-Big: " + b"b" * 100_000 + b"\r\n\r\n"
+    long_url = b"GET /maps/" + b"a" * 100_000 + b" HTTP/1.1\r\nHost: localhost\r\n\r\n"
+    long_header = b"GET /healthz HTTP/1.1\r\nHost: localhost\r\nX-Big: " + b"b" * 100_000 + b"\r\n\r\n"
     # In pieces and never ended: refused once past the limit, not read on until the head timeout.
     url_detail = "the request line is longer than 65536 bytes"
     head_detail = "the request's head (request line and headers) is longer than 65536 bytes"
@@ -238,7 +238,7 @@ def test_an_oversized_or_unparsable_request_head_gets_a_json_error(service: Serv
         (long_header[:-4], 8192, 431, head_detail),
         # The big header first: httptools hands a header over only once the next one begins, so
         # no header was seen yet when the limit refused it; it is still not the request line.
-        (long_header.replace(b"Host: t\r\n", b"")[:-4], 8192, 431, head_detail),
+        (long_header.replace(b"Host: localhost\r\n", b"")[:-4], 8192, 431, head_detail),
         (b"NOT HTTP AT ALL\r\n\r\n", 0, 400, "invalid HTTP request"),
     ]
     for request, piece, status, detail in cases:
@@ -267,10 +267,10 @@ def test_a_request_to_switch_protocols_with_a_body_is_refused_not_run_without_it
     )
     config = b'{"resolution": 0.1}'
     requests = [
-        f"PUT /maps/h2c HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+        f"PUT /maps/h2c HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\n"
         f"Content-Length: {len(config)}\r\n{upgrade}\r\n".encode()
         + config,
-        f"PUT /maps/h2c HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+        f"PUT /maps/h2c HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\n"
         f"Transfer-Encoding: chunked\r\n{upgrade}\r\n".encode()
         + b"%x\r\n%s\r\n0\r\n\r\n" % (len(config), config),
     ]
@@ -292,8 +292,10 @@ def test_a_request_to_switch_protocols_without_a_body_is_answered_quietly_and_so
     one telling the operator to install a WebSocket library."""
     already = len(service.logs())
     for protocol in ("h2c", "websocket"):
-        upgrading = f"GET /maps/m HTTP/1.1\r\nHost: t\r\nUpgrade: {protocol}\r\nConnection: Upgrade\r\n\r\n"
-        closing = "GET /healthz HTTP/1.1\r\nHost: t\r\nConnection: close\r\n\r\n"
+        upgrading = (
+            f"GET /maps/m HTTP/1.1\r\nHost: localhost\r\nUpgrade: {protocol}\r\nConnection: Upgrade\r\n\r\n"
+        )
+        closing = "GET /healthz HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n"
         with socket.create_connection(("127.0.0.1", service.port), timeout=10) as sock:
             sock.sendall((upgrading + closing).encode())  # one piece: pipelined
             answer = b""
@@ -303,7 +305,7 @@ def test_a_request_to_switch_protocols_without_a_body_is_answered_quietly_and_so
         assert b'"id":"m"' in answer and b'"status":"ok"' in answer
     # Many in one read: each is answered (the rest after each was parsed in a call of its own, a
     # recursion that a thousand took past Python's limit: no answer, and a fatal error logged).
-    upgrading = "GET /healthz HTTP/1.1\r\nHost: t\r\nUpgrade: h2c\r\nConnection: Upgrade\r\n\r\n"
+    upgrading = "GET /healthz HTTP/1.1\r\nHost: localhost\r\nUpgrade: h2c\r\nConnection: Upgrade\r\n\r\n"
     with socket.create_connection(("127.0.0.1", service.port), timeout=30) as sock:
         sock.sendall((upgrading * 1000 + closing).encode())
         answer = b""
@@ -321,7 +323,7 @@ def test_a_refused_head_s_answer_is_not_lost_to_a_reset(service: ServiceProcess)
     the connection, and the reset could destroy the 414 before the client read it (CI saw
     "connection reset by peer" under load). The service now half-closes after its answer and drops
     what still arrives, so the client reads the answer, then the end of the stream."""
-    request = b"GET /maps/" + b"a" * 100_000 + b" HTTP/1.1\r\nHost: t\r\n\r\n" + b"x" * 4_000_000
+    request = b"GET /maps/" + b"a" * 100_000 + b" HTTP/1.1\r\nHost: localhost\r\n\r\n" + b"x" * 4_000_000
     for _ in range(5):
         with socket.create_connection(("127.0.0.1", service.port), timeout=10) as sock:
             sock.sendall(request)  # all of it: the service reads and drops what follows its answer
@@ -346,8 +348,8 @@ def test_answers_given_before_the_app_carry_the_apps_common_headers(service: Ser
     assert expected["cache-control"] == "no-cache" and expected["x-content-type-options"] == "nosniff"
     requests = {
         400: b"NOT HTTP AT ALL\r\n\r\n",
-        414: b"GET /maps/" + b"a" * 100_000 + b" HTTP/1.1\r\nHost: t\r\n\r\n",
-        431: b"GET /healthz HTTP/1.1\r\nHost: t\r\nX-Big: " + b"b" * 100_000 + b"\r\n\r\n",
+        414: b"GET /maps/" + b"a" * 100_000 + b" HTTP/1.1\r\nHost: localhost\r\n\r\n",
+        431: b"GET /healthz HTTP/1.1\r\nHost: localhost\r\nX-Big: " + b"b" * 100_000 + b"\r\n\r\n",
     }
     for status, request in requests.items():
         got, headers, _ = raw_answer_with_headers(service, request)
@@ -397,7 +399,7 @@ def test_a_connection_flood_leaves_robots_and_the_log_alone(tmp_path: Path) -> N
             robot.start()
             robot.wait(60)
             with socket.create_connection(("127.0.0.1", svc.port), timeout=5) as extra:
-                extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: t\r\n\r\n")
+                extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: localhost\r\n\r\n")
                 assert extra.recv(4096).startswith(b"HTTP/1.1 503"), "refused with an answer, at once"
         finally:
             for sock in flood:

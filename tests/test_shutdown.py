@@ -126,7 +126,7 @@ def test_a_request_still_running_when_the_graceful_wait_ends_gets_503(tmp_path: 
     with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
         sock = socket.create_connection(("127.0.0.1", svc.port), timeout=20)
         head = (
-            b"PUT /maps/m/snapshot HTTP/1.1\r\nHost: x\r\nContent-Type: application/octet-stream\r\n"
+            b"PUT /maps/m/snapshot HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/octet-stream\r\n"
             b"Content-Length: 100000\r\n\r\n"
         )
         sock.sendall(head + b"x" * 1000)

@@ -67,7 +67,7 @@ def start_download(svc: ServiceProcess, path: str = "/maps/big/snapshot") -> tup
     service then stalls sending the body. Returns the socket and what it read (the head, maybe more)."""
     sock = socket.create_connection(("127.0.0.1", svc.port), timeout=30)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 16)  # buffer little of the body
-    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: t\r\nConnection: close\r\n\r\n".encode())
+    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n".encode())
     got = b""
     while b"\r\n\r\n" not in got:
         chunk = sock.recv(4096)
@@ -293,7 +293,7 @@ def test_a_download_whose_client_goes_away_stops_being_written(tmp_path: Path) -
         body = snapshot_file("big", random_tiles_map(64))
         assert httpx.put(f"{svc.base_url}/maps/big/snapshot", content=body, timeout=60).status_code == 201
         with socket.create_connection(("127.0.0.1", svc.port), timeout=30) as sock:
-            sock.sendall(b"GET /maps/big/snapshot HTTP/1.1\r\nHost: t\r\n\r\n")
+            sock.sendall(b"GET /maps/big/snapshot HTTP/1.1\r\nHost: localhost\r\n\r\n")
             wait_for(lambda: metric(svc, "fleetmap_downloads") == 1, timeout=10, what="a download")
         stopped = "the download of map big stopped as it was written: its client went away"
         wait_for(lambda: stopped in svc.logs(), timeout=20, what="the writing stopped")

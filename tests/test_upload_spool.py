@@ -97,7 +97,8 @@ def start_upload(svc: ServiceProcess, path: str, length: int, headers: str = "")
     """A raw connection that has sent the head of `PUT path` with a body of `length` bytes."""
     sock = socket.create_connection(("127.0.0.1", svc.port), timeout=30)
     head = (
-        f"PUT {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/zip\r\nContent-Length: {length}\r\n"
+        f"PUT {path} HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/zip\r\n"
+        f"Content-Length: {length}\r\n"
         f"Connection: close\r\n{headers}\r\n"
     )
     sock.sendall(head.encode())
@@ -245,7 +246,7 @@ def send_chunked(port: int, path: str, chunk: bytes, chunks: int) -> tuple[int, 
 
     def send() -> None:
         nonlocal sent
-        head = f"PUT {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/zip\r\n"
+        head = f"PUT {path} HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/zip\r\n"
         head += "Transfer-Encoding: chunked\r\n\r\n"
         try:
             sock.sendall(head.encode())
