@@ -355,21 +355,25 @@ def test_the_tests_free_ports_are_never_given_twice() -> None:
 def test_zenoh_beyond_loopback_without_credentials_is_warned_of(tmp_path: Path) -> None:
     """A plain Zenoh endpoint beyond loopback takes anyone's scans: a warning at start says so and
     names it (the REST API refuses such an address without tokens; Zenoh has no check of its own).
-    Loopback, TLS and a user / password configuration are not warned of."""
+    Loopback, mutual TLS and a user / password configuration are not warned of; TLS alone is."""
     endpoint = f"tcp/0.0.0.0:{free_port()}"
     with ServiceProcess(tmp_path, ["--in-memory", "--zenoh-listen", endpoint]) as svc:
         open_logs = svc.logs()
     with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
         loopback_logs = svc.logs()
     warning = (
-        "beyond loopback with neither TLS nor a user / password: anyone who reaches it can publish scans"
+        "beyond loopback with neither mutual TLS nor a user / password: anyone who reaches it can "
+        "publish scans"
     )
     assert f"zenoh listens on {endpoint} {warning}" in open_logs, open_logs
     assert warning not in loopback_logs
     plain = zenoh.Config()
-    assert unauthenticated_endpoints(["tcp/0.0.0.0:1", "tcp/[::1]:2", "tls/0.0.0.0:3"], plain) == [
-        "tcp/0.0.0.0:1"
-    ]
+    endpoints = ["tcp/0.0.0.0:1", "tcp/[::1]:2", "tls/0.0.0.0:3", "quic/[::1]:4"]
+    # TLS without mutual TLS encrypts, but takes any robot: it was not warned of.
+    assert unauthenticated_endpoints(endpoints, plain) == ["tcp/0.0.0.0:1", "tls/0.0.0.0:3"]
+    mtls = zenoh.Config()
+    mtls.insert_json5("transport/link/tls/enable_mtls", "true")
+    assert unauthenticated_endpoints(endpoints, mtls) == ["tcp/0.0.0.0:1"]
     users = zenoh.Config()
     users.insert_json5("transport/auth/usrpwd/dictionary_file", '"/etc/fleetmap/users.txt"')
     assert unauthenticated_endpoints(["tcp/0.0.0.0:1"], users) == []

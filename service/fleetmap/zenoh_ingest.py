@@ -128,23 +128,26 @@ class IngestStartError(RuntimeError):
     """The Zenoh session could not be opened; the message says why (no Rust source locations)."""
 
 
-#: Zenoh link protocols whose endpoints authenticate the other side (certificates).
-_AUTHENTICATED_PROTOCOLS = frozenset({"tls", "quic"})
+#: Zenoh link protocols whose endpoints can authenticate the other side: with mutual TLS
+#: (`transport/link/tls/enable_mtls`) a robot must present a certificate. Without it, TLS encrypts
+#: but the service accepts any robot (docs/security.md).
+_CERTIFICATE_PROTOCOLS = frozenset({"tls", "quic"})
 
 
 def unauthenticated_endpoints(listen: Sequence[str], cfg: zenoh.Config) -> list[str]:
     """The endpoints of `listen` that anyone beyond this host may connect to without credentials:
-    neither loopback nor TLS / QUIC, in a configuration without user / password authentication
-    (`transport/auth/usrpwd`)."""
+    not loopback, and neither TLS / QUIC with mutual TLS, in a configuration without user /
+    password authentication (`transport/auth/usrpwd`)."""
     usrpwd = json.loads(cfg.get_json("transport/auth/usrpwd"))
     if isinstance(usrpwd, dict) and (usrpwd.get("dictionary_file") or usrpwd.get("user")):
         return []
+    mtls = json.loads(cfg.get_json("transport/link/tls/enable_mtls")) is True
     found = []
     for endpoint in listen:
         protocol, _, address = endpoint.partition("/")
         host = address.split("#", 1)[0].rpartition(":")[0].strip("[]")
         local = protocol in ("unixsock-stream", "unixpipe") or is_loopback_host(host)
-        if not (local or protocol in _AUTHENTICATED_PROTOCOLS):
+        if not (local or (mtls and protocol in _CERTIFICATE_PROTOCOLS)):
             found.append(endpoint)
     return found
 
@@ -335,8 +338,8 @@ class ZenohIngest:
             # The REST API refuses to serve beyond loopback without tokens; Zenoh has no such check
             # of its own, and a plain endpoint took anyone's scans (and maps, with auto-create).
             log.warning(
-                "zenoh listens on %s beyond loopback with neither TLS nor a user / password: anyone "
-                "who reaches it can publish scans (see docs/security.md)",
+                "zenoh listens on %s beyond loopback with neither mutual TLS nor a user / password: "
+                "anyone who reaches it can publish scans (see docs/security.md)",
                 ", ".join(open_endpoints),
             )
 
