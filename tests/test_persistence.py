@@ -993,3 +993,29 @@ def test_snapshot_download_allocates_its_copy_before_taking_the_maps_lock() -> N
     assert copy.store.keys == gmap.store.keys
     for a in gmap.store.arrays:
         assert np.array_equal(copy.store.pools[a.name][: len(keys)], gmap.store.pools[a.name][: len(keys)])
+
+
+def test_a_database_another_program_keeps_locked_is_not_called_damaged(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A `sqlite3` shell left in a write transaction on the service's database: the start fails
+    saying another program holds it, not that the database is damaged and should be restored from a
+    backup or moved aside (which would throw the maps away). The wait for the lock is shortened
+    from 30 s to keep the test quick; the lock is a real one, of a second connection."""
+    store = DurableStore(tmp_path)
+    store.close()
+    monkeypatch.setattr(database, "BUSY_TIMEOUT", 0.2)
+    other = sqlite3.connect(tmp_path / DB_NAME, isolation_level=None)
+    try:
+        other.execute("BEGIN EXCLUSIVE")  # what `sqlite3 fleetmap.db` then BEGIN EXCLUSIVE; holds
+        again = DurableStore(tmp_path)
+        try:
+            with pytest.raises(StorageError) as refused:
+                again.load()
+        finally:
+            again.close()
+    finally:
+        other.close()
+    message = str(refused.value)
+    assert "another program kept it locked" in message and "not damaged" in message, message
+    assert "restore" not in message, message

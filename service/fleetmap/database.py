@@ -373,12 +373,16 @@ def _migrate(conn: sqlite3.Connection) -> None:
         conn.execute("ALTER TABLE tombstones ADD COLUMN forgotten INTEGER NOT NULL DEFAULT 0")
 
 
+#: Seconds a connection waits for a lock another connection (or program) holds on the database.
+BUSY_TIMEOUT = 30.0
+
+
 def connect(path: Path, synchronous: str = "FULL", autocheckpoint: bool = True) -> sqlite3.Connection:
     """A connection to the database at `path` as every part of the service opens one: WAL, autocommit
-    (transactions are explicit BEGIN / COMMIT), usable from any thread, waiting up to 30 s for a lock.
-    `synchronous` FULL makes a commit durable when it returns; `autocheckpoint=False` leaves WAL
-    checkpoints to the caller."""
-    conn = sqlite3.connect(path, timeout=30.0, isolation_level=None, check_same_thread=False)
+    (transactions are explicit BEGIN / COMMIT), usable from any thread, waiting up to `BUSY_TIMEOUT`
+    for a lock. `synchronous` FULL makes a commit durable when it returns; `autocheckpoint=False`
+    leaves WAL checkpoints to the caller."""
+    conn = sqlite3.connect(path, timeout=BUSY_TIMEOUT, isolation_level=None, check_same_thread=False)
     conn.execute("PRAGMA journal_mode=WAL")
     conn.execute(f"PRAGMA synchronous={synchronous}")  # FULL: a commit is on disk when COMMIT returns
     # Debian builds SQLite with SECURE_DELETE on: every freed page would be overwritten with zeros,

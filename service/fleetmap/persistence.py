@@ -96,6 +96,17 @@ def unreadable_database(path: Path, map_id: str | None, exc: BaseException | str
     """The error that stops the service at start when its database cannot be read."""
     where = "" if map_id is None else f" (map {map_id!r})"
     reason = " ".join(str(exc).split())  # one line, also for pydantic's multi-line messages
+    if isinstance(exc, sqlite3.OperationalError) and reason in (
+        "database is locked",
+        "database table is locked",
+    ):
+        # Another program holds a write lock (a `sqlite3` shell in a transaction, a backup tool):
+        # the database is fine, and the advice to restore it from a backup would throw maps away.
+        return StorageError(
+            f"cannot read the map database {path}{where}: another program kept it locked for longer "
+            "than the service waits (a sqlite3 shell in a transaction, a backup tool?); the database "
+            "is not damaged: end that program, then start the service again"
+        )
     return StorageError(
         f"cannot read the map database {path}{where}: {reason}; the service does not start on a damaged "
         "database: restore the data directory from a backup, or move it aside"
