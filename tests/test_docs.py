@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
 import itertools
 import os
@@ -267,3 +268,50 @@ def test_the_docs_give_the_scans_a_robots_queue_holds_as_the_service_has_them() 
             found += [(doc.name, int(re.sub(r"[ ,]", "", n))) for n in re.findall(phrase, text)]
     assert len(found) >= 5, found  # the phrases still find what the pages say
     assert all(n == QUEUE_PER_ROBOT for _, n in found), found
+
+
+def documented_methods(doc: Path, table_head: str) -> dict[str, str]:
+    """The `name(parameters)` of each row of the doc's table that starts with `table_head`: name
+    -> its parameters as written (`\\|` as `|`)."""
+    text = doc.read_text(encoding="utf-8")
+    table = text[text.index(table_head) :].split("\n\n", 1)[0]
+    rows = re.findall(r"^\| `(\w+)\((.*?)\)` \|", table, re.M)
+    return {name: parameters.replace("\\|", "|") for name, parameters in rows}
+
+
+def test_the_rest_client_methods_of_clients_md_have_their_real_signatures() -> None:
+    """docs/clients.md's table of `FleetmapClient` methods showed `clear_region(..., if_match=None)`
+    as a parameter that may be given by position, where it is keyword-only: a caller who went by
+    the table and passed the ETag sixth got a TypeError. Each row's parameters are the method's, in
+    order, a `*` where the keyword-only ones start, with the defaults it has (a row may leave a
+    default out, or show the choices `"a"|"b"`, the first the default; `...`: as the row above);
+    and every public method has a row."""
+    import inspect
+
+    from fleetmap_client.rest import FleetmapClient
+
+    rows = documented_methods(REPO_DIR / "docs" / "clients.md", "| method | endpoint | returns |")
+    public = {name for name, _ in inspect.getmembers(FleetmapClient, inspect.isfunction)}
+    missing = sorted(n for n in public - set(rows) if not n.startswith("_") and n != "close")
+    assert not missing, f"docs/clients.md's FleetmapClient table lacks {missing}"
+    wrong = []
+    for name, written in rows.items():
+        if written == "...":
+            continue
+        parameters = list(inspect.signature(getattr(FleetmapClient, name)).parameters.values())[1:]
+        keyword_only = False
+        shown = []
+        for part in (p.strip() for p in written.split(",") if p.strip()):
+            if part == "*":
+                keyword_only = True
+                continue
+            parameter, _, default = part.partition("=")
+            shown.append((parameter, keyword_only, default.split("|")[0] or None))
+        real = [(p.name, p.kind is p.KEYWORD_ONLY, p.default) for p in parameters]
+        if [s[:2] for s in shown] != [r[:2] for r in real]:
+            wrong.append(f"{name}({written}) is {name}{inspect.signature(getattr(FleetmapClient, name))}")
+            continue
+        for (parameter, _, default), (_, _, real_default) in zip(shown, real, strict=True):
+            if default is not None and ast.literal_eval(default) != real_default:
+                wrong.append(f"{name}: {parameter}'s default is {real_default!r}, not {default}")
+    assert not wrong, "docs/clients.md:\n" + "\n".join(wrong)
