@@ -315,3 +315,49 @@ def test_the_rest_client_methods_of_clients_md_have_their_real_signatures() -> N
             if default is not None and ast.literal_eval(default) != real_default:
                 wrong.append(f"{name}: {parameter}'s default is {real_default!r}, not {default}")
     assert not wrong, "docs/clients.md:\n" + "\n".join(wrong)
+
+
+def _number(text: str) -> float:
+    """A number as the docs write it: `16 384`, `100,000`, `4 194 304`."""
+    return float(re.sub(r"[ ,]", "", text))
+
+
+def test_the_limits_tables_give_the_services_limits() -> None:
+    """docs/security.md's table of input checks said a binary scan must be "version 1" long after
+    the service read version 2 (the one with a session id, which `ScanPublisher` sends): a reader
+    writing a robot in another language from that table would think session ids unreadable. The
+    limits the tables of security.md and protocol.md state are the code's."""
+    from fleetmap.codec import DEFAULT_LIMITS, VERSION, VERSION_SESSION
+    from fleetmap.config import MapConfig
+    from fleetmap.registry import QUEUE_BYTES, QUEUE_PER_ROBOT, QUEUE_TOTAL
+    from fleetmap.robot_state import MAX_SESSIONS
+
+    limits = DEFAULT_LIMITS
+    security = re.sub(r"\s+", " ", (REPO_DIR / "docs" / "security.md").read_text(encoding="utf-8"))
+    protocol = re.sub(r"\s+", " ", (REPO_DIR / "docs" / "protocol.md").read_text(encoding="utf-8"))
+    number = r"([0-9][0-9 ,]*[0-9]|[0-9])"
+    checks = [
+        (security, rf"`--world-bound` metres \(default {number}\)", limits.world_bound),
+        (security, rf"`--max-beams` \(default {number}\)", limits.max_beams),
+        (security, rf"`--max-range` \(default {number} m\)", limits.max_range),
+        (security, rf"a scan: at most 4 MiB \({number} bytes\)", limits.max_payload_bytes),
+        (protocol, rf"\| payload size \| 4 MiB \({number} bytes\)", limits.max_payload_bytes),
+        (protocol, rf"\| beams per scan \| {number} \(`--max-beams`", limits.max_beams),
+        (protocol, rf"\| sensor pose \| .{{0,20}} ≤ {number} m \(`--world-bound`\)", limits.world_bound),
+        (protocol, rf"\| trusted range \| {number} m \(`--max-range`\)", limits.max_range),
+        (protocol, rf"\| sessions remembered \| {number} per robot", MAX_SESSIONS),
+        (protocol, rf"\| queued scans \| {number} per robot", QUEUE_PER_ROBOT),
+        (protocol, rf"\| queued scans \| [^|]*, {number} in total", QUEUE_TOTAL),
+        (protocol, rf"\| queued scans \| [^|]*, {number} MiB of decoded beams", QUEUE_BYTES / 2**20),
+        (protocol, rf"\| tiles per map \| [^|]*\(default {number}\)", MapConfig().max_tiles),
+    ]
+    wrong = []
+    for text, pattern, value in checks:
+        found = re.findall(pattern, text)
+        if len(found) != 1 or _number(found[0]) != value:
+            wrong.append(f"{pattern}: the docs give {found}, the code {value}")
+    layout = re.findall(r"\| binary layout \| magic, (versions? .*?), known flags", security)
+    versions = {int(v) for v in re.findall(r"[0-9]+", layout[0])} if len(layout) == 1 else set()
+    if versions != {VERSION, VERSION_SESSION}:
+        wrong.append(f"security.md: the binary layout versions are {VERSION}, {VERSION_SESSION}: {layout}")
+    assert not wrong, "\n".join(wrong)
