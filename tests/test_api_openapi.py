@@ -89,6 +89,29 @@ def test_every_503_declares_its_retry_after() -> None:
         assert answer.get("headers", {}).get("Retry-After", {}).get("schema") == {"type": "integer"}, where
 
 
+def test_every_operation_with_a_body_documents_its_413_and_415() -> None:
+    """Every request body is held to a size (16 MiB, a snapshot's its own: 413) and refused when sent
+    compressed (415), whatever the route (docs/api.md, "Errors"); `PUT /maps/{map_id}` answered a
+    17 MiB configuration 413 where its spec listed no 413, so a client checking answers against the
+    spec (Schemathesis' status check, a generated client's typed errors) took it for a mistake of
+    the service. (The body limit's 413 on a route is tested live in tests/test_upload_spool.py.)"""
+    spec = json.loads(COMMITTED.read_text(encoding="utf-8"))
+    with_body = [
+        (f"{method.upper()} {path}", op["responses"])
+        for path, item in spec["paths"].items()
+        for method, op in item.items()
+        if "requestBody" in op
+    ]
+    assert len(with_body) >= 6
+    undocumented = [
+        f"{where}: {status}"
+        for where, responses in with_body
+        for status in ("413", "415")
+        if status not in responses
+    ]
+    assert not undocumented, undocumented
+
+
 def test_the_snapshot_uploads_415_says_what_the_route_refuses(tmp_path: Path) -> None:
     """A snapshot upload is read from its bytes whatever its Content-Type (the import's is checked):
     the spec's shared 415 said "a zip: application/zip" for both, so a client checking answers

@@ -50,7 +50,10 @@ def list_maps(state: State) -> MapList:
     tags=["maps"],
     summary="Create a map",
     response_model=MapInfo,
-    responses={201: {"model": MapInfo, "description": "Created"}, **error_responses(409, 412, 415, 422, 503)},
+    responses={
+        201: {"model": MapInfo, "description": "Created"},
+        **error_responses(409, 412, 413, 415, 422, 503),
+    },
 )
 def put_map(
     map_id: MapId,
