@@ -361,3 +361,27 @@ def test_the_limits_tables_give_the_services_limits() -> None:
     if versions != {VERSION, VERSION_SESSION}:
         wrong.append(f"security.md: the binary layout versions are {VERSION}, {VERSION_SESSION}: {layout}")
     assert not wrong, "\n".join(wrong)
+
+
+def test_the_docs_give_every_503s_retry_after() -> None:
+    """docs/api.md's "Errors" said every 503 carries `Retry-After` 5 for event streams, uploads
+    and downloads, "else 1", and listed no 503 for a connection past `--max-http-connections`:
+    that one, which the HTTP server answers itself, says 5, so a client tuned to the page retried
+    five times too soon. The row names each 503 that says 5, and the numbers are the code's."""
+    from fleetmap import http_limits
+    from fleetmap.api import errors, events, routes_snapshot
+
+    text = re.sub(r"\s+", " ", API_DOC.read_text(encoding="utf-8"))
+    found = re.findall(
+        r"Every 503 carries `Retry-After` \(seconds: ([0-9]+) for ([^)]*), else ([0-9]+)\)", text
+    )
+    assert len(found) == 1, found
+    longer, which, otherwise = found[0]
+    assert int(otherwise) == errors.RETRY_AFTER_SECONDS
+    for seconds, named in (
+        (events.RETRY_AFTER_SECONDS, "event streams"),
+        (routes_snapshot.UPLOAD_RETRY_AFTER_SECONDS, "uploads and downloads"),
+        (http_limits.RETRY_AFTER_SECONDS, "connections"),
+    ):
+        assert named in which and seconds == int(longer), (named, seconds, found)
+    assert "`--max-http-connections`" in text.split("| 503 |", 1)[1].split("| 507 |", 1)[0]
