@@ -385,3 +385,38 @@ def test_the_docs_give_every_503s_retry_after() -> None:
     ):
         assert named in which and seconds == int(longer), (named, seconds, found)
     assert "`--max-http-connections`" in text.split("| 503 |", 1)[1].split("| 507 |", 1)[0]
+
+
+#: Units of the defaults of docs/api.md's `ApiSettings` table, in the field's unit (seconds, bytes).
+SETTING_UNITS = {"": 1, "s": 1, "MiB": 1 << 20}
+
+
+def test_the_api_settings_table_gives_every_field_its_default() -> None:
+    """docs/api.md's "Limits and settings" table is what someone embedding the app
+    (`create_app(registry, ApiSettings(...))`) or sizing a deployment reads: every field of
+    `ApiSettings` has a row, and each default written as a number is the field's."""
+    import dataclasses
+
+    from fleetmap.api.app import ApiSettings
+
+    text = API_DOC.read_text(encoding="utf-8")
+    table = text[text.index("| `ApiSettings` field |") :].split("\n\n", 1)[0]
+    defaults = {f.name: f.default for f in dataclasses.fields(ApiSettings)}
+    rows = re.findall(r"^\| ((?:`\w+`(?:, )?)+) \| ([^|]*) \|", table, re.M)
+    listed = [name for names, _ in rows for name in re.findall(r"`(\w+)`", names)]
+    assert sorted(listed) == sorted(defaults), f"fields {sorted(set(defaults) ^ set(listed))}"
+    checked, wrong = 0, []
+    for names, written in rows:
+        fields = re.findall(r"`(\w+)`", names)
+        values = re.sub(r"\(.*?\)", "", written).split(", ")
+        if len(values) != len(fields):
+            values = [written] * len(fields)  # one default for all, or none written as a number
+        for name, value in zip(fields, values, strict=True):
+            number = re.fullmatch(r"\s*([0-9][0-9 ]*(?:\.[0-9]+)?)\s*(s|MiB)?\s*", value)
+            if number is None:
+                continue
+            checked += 1
+            if float(number[1].replace(" ", "")) * SETTING_UNITS[number[2] or ""] != defaults[name]:
+                wrong.append(f"{name}: the table says {value.strip()}, the default is {defaults[name]!r}")
+    assert checked >= 18, checked  # the pattern still reads the numbers of the table
+    assert not wrong, "docs/api.md, Limits and settings:\n" + "\n".join(wrong)
