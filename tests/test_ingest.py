@@ -712,3 +712,26 @@ def test_the_services_zenoh_callback_threads_are_waited_for_at_exit_and_end_with
     for thread in started:
         thread.join(10)
     assert not any(t.is_alive() for t in started), started
+
+
+def test_a_listen_endpoint_on_port_0_says_the_port_robots_reach(registry: MapRegistry) -> None:
+    """`fleetmap serve --zenoh-listen tcp/127.0.0.1:0` listened on a port Zenoh picked and reports
+    nowhere, and its start-up line, ready line and /healthz all said `tcp/127.0.0.1:0`: no robot
+    could be pointed at it. The service picks the free port itself, as `--http HOST:0` does, and
+    says that one: a robot connecting there has its scans integrated."""
+    ingest = ZenohIngest(registry, listen=["tcp/127.0.0.1:0", f"tcp/127.0.0.1:{free_port()}"])
+    ingest.start()
+    try:
+        endpoint = ingest.listen[0]
+        host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+        assert host == "127.0.0.1" and int(port) > 0, endpoint
+        assert ingest.status()["listen"] == ingest.listen and ingest.status()["endpoints"][0] == endpoint
+        session = client_session(endpoint)
+        try:
+            pub = scan_publisher(session, "m", "r1", BINARY_ENCODING)
+            pub.put(codec.encode_binary(sim_scans(3, 1)[0], 0))
+            wait_for(lambda: integrated(registry, "m", "r1") == 1, what="the scan sent to the port said")
+        finally:
+            session.close()
+    finally:
+        ingest.close()

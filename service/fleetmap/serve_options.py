@@ -63,7 +63,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         metavar="ENDPOINT",
         help=(
             f"Zenoh endpoints robots connect to (default {' '.join(DEFAULT_LISTEN)}; with --zenoh-connect "
-            "the default is not to listen)"
+            "the default is not to listen; port 0 picks a free port, which the log and /healthz give)"
         ),
     )
     p.add_argument(

@@ -85,6 +85,8 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import re
+import socket
 import threading
 from collections import Counter
 from collections.abc import Sequence
@@ -126,6 +128,33 @@ MODES = ("router", "peer", "client")
 
 class IngestStartError(RuntimeError):
     """The Zenoh session could not be opened; the message says why (no Rust source locations)."""
+
+
+#: A listen endpoint on port 0 of an IP link (`tcp/127.0.0.1:0`, `udp/[::1]:0#iface=lo`): the
+#: protocol, the host as written, and what follows the port.
+_PORT_ZERO = re.compile(r"(tcp|udp|tls|quic)/(\[[^\]]*\]|[^/:?#\[\]]+):0((?:[?#].*)?)")
+
+
+def with_free_port(endpoint: str) -> str:
+    """`endpoint` with port 0 replaced by a port of its host free now (the operating system's pick,
+    as for `--http HOST:0`); any other endpoint as it is. Zenoh, given port 0, listens on a port of
+    its choosing but reports it nowhere (neither its API nor its log), so the service's start-up
+    line, its ready line and /healthz said `tcp/127.0.0.1:0`, which no robot can connect to. A host
+    that cannot be bound is left to Zenoh, whose error names it."""
+    match = _PORT_ZERO.fullmatch(endpoint)
+    if match is None:
+        return endpoint
+    protocol, host, rest = match.groups()
+    address = host.strip("[]")
+    family = socket.AF_INET6 if ":" in address else socket.AF_INET
+    kind = socket.SOCK_DGRAM if protocol in ("udp", "quic") else socket.SOCK_STREAM
+    try:
+        with socket.socket(family, kind) as probe:
+            probe.bind((address, 0))
+            port = probe.getsockname()[1]
+    except OSError:
+        return endpoint
+    return f"{protocol}/{host}:{port}{rest}"
 
 
 #: Zenoh link protocols whose endpoints can authenticate the other side: with mutual TLS
@@ -242,6 +271,7 @@ class ZenohIngest:
             listen = list(file_listen)
         else:
             listen = [] if self.connect else list(DEFAULT_LISTEN)
+        listen = [with_free_port(endpoint) for endpoint in listen]
         if self._mode_arg is not None:
             mode = self._mode_arg
         elif self.config_file is not None and file_mode is not None:
