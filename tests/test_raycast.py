@@ -288,6 +288,11 @@ def test_bad_arguments_are_refused() -> None:
             gmap.cast_rays((0, 0), [0.0], bad)
     with pytest.raises(RayLimitError, match=f"limit of {MAX_RAY_CELLS} cells"):
         gmap.cast_rays((0, 0), [0.0], MAX_RAY_CELLS * 0.05 * 1.001)
+    # Just past the limit, the message does not round the cells down to the limit itself ("1000.01 m
+    # is 20000 cells, more than the limit of 20000 cells"), and gives the limit in metres.
+    with pytest.raises(RayLimitError) as just_past:
+        gmap.cast_rays((0, 0), [0.0], 1000.01)
+    assert "is 20000.2 cells" in str(just_past.value) and "20000 cells (1000 m)" in str(just_past.value)
     rays = MAX_RAY_WALK // MAX_RAY_CELLS
     with pytest.raises(RayLimitError, match=f"{rays + 1} rays of 20000 cells .* limit of {MAX_RAY_WALK}"):
         gmap.cast_rays((0, 0), np.zeros(rays + 1), MAX_RAY_CELLS * 0.05)

@@ -502,9 +502,11 @@ class GridMap:
             raise ValueError(f"max_range must be a positive finite number of metres, got {max_range}")
         cells = max_range / self.resolution
         if cells > MAX_RAY_CELLS:
+            # Not rounded to whole cells: 1000.01 m at 0.05 m was "20000 cells, more than the limit
+            # of 20000 cells". The limit in metres is what a caller can set max_range to.
             raise RayLimitError(
-                f"max_range {max_range} m is {cells:.0f} cells at resolution {self.resolution} m, more "
-                f"than the limit of {MAX_RAY_CELLS} cells"
+                f"max_range {max_range:g} m is {cells:.6g} cells at resolution {self.resolution} m, more "
+                f"than the limit of {MAX_RAY_CELLS} cells ({MAX_RAY_CELLS * self.resolution:g} m)"
             )
         if a.size * cells > MAX_RAY_WALK:
             raise RayLimitError(
