@@ -152,6 +152,8 @@ def test_trusted_proxies_that_uvicorn_would_never_match_are_refused(tmp_path: Pa
             "expected an IP address, a network (10.0.0.0/8) or '*'",
         ),
         ([], {"FLEETMAP_FORWARDED_ALLOW_IPS": "127.0.0.1, 10.1.2.3"}, "$FLEETMAP_FORWARDED_ALLOW_IPS="),
+        # uvicorn's own variable (docs/api.md names it), read without the option: checked alike.
+        ([], {"FORWARDED_ALLOW_IPS": "127.0.0.1, proxy.internal"}, "$FORWARDED_ALLOW_IPS='127.0.0.1, "),
     ]
     for args, env, message in cases:
         done = subprocess.run(
@@ -163,11 +165,17 @@ def test_trusted_proxies_that_uvicorn_would_never_match_are_refused(tmp_path: Pa
     # `*` among other addresses (uvicorn trusts all only for `*` alone: in a list it was ignored).
     tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}")
     forwarded = {**bearer(READ), "X-Forwarded-Proto": "https"}
-    for trusted in (["127.0.0.5/8"], ["10.1.2.3", "*"]):
-        args = ["--in-memory", "--auth-tokens", str(tokens), "--forwarded-allow-ips", *trusted]
-        with ServiceProcess(tmp_path, args) as svc:
+    # So is uvicorn's variable's: it went to uvicorn as it was, whose strict parse took the network
+    # for a name no address equals, and the proxy was silently not trusted.
+    for trusted, env in (
+        (["--forwarded-allow-ips", "127.0.0.5/8"], {}),
+        (["--forwarded-allow-ips", "10.1.2.3", "*"], {}),
+        ([], {"FORWARDED_ALLOW_IPS": "10.1.2.3, 127.0.0.5/8"}),
+    ):
+        args = ["--in-memory", "--auth-tokens", str(tokens), *trusted]
+        with ServiceProcess(tmp_path, args, env=env) as svc:
             r = httpx.post(f"{svc.base_url}/session", headers=forwarded)
-            assert r.status_code == 200 and "Secure" in set_cookie(r)[1], (trusted, r.headers)
+            assert r.status_code == 200 and "Secure" in set_cookie(r)[1], (trusted, env, r.headers)
 
 
 def test_signing_in_needs_a_valid_token_in_the_header(secured: ServiceProcess) -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, NoReturn, TypeVar
 
 from fleetmap.cli import CliError
@@ -483,6 +483,32 @@ def _frame_id(text: str) -> str:
         return normalize_frame(text.strip())
     except TfError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+#: uvicorn's own variable of the proxies it trusts (entries separated by commas), which `fleetmap
+#: serve` reads when neither --forwarded-allow-ips nor $FLEETMAP_FORWARDED_ALLOW_IPS is given.
+UVICORN_PROXIES_ENV = "FORWARDED_ALLOW_IPS"
+
+
+def proxies_of_uvicorns_variable(environ: Mapping[str, str]) -> list[str] | None:
+    """The proxies of uvicorn's $FORWARDED_ALLOW_IPS, checked and written as --forwarded-allow-ips'
+    are (`_proxy_address`), or None when it is not set. It went to uvicorn as it was, which takes an
+    entry it cannot parse as a name no connection's address equals: a host name, a typo, a network
+    with host bits set (`10.0.0.5/8`, which the option takes), and `*` among other entries as
+    nothing. The proxy was then silently not trusted (its `https` ignored, the session cookie set
+    without `Secure`), though docs/api.md names the variable. Raises CliError naming it."""
+    text = environ.get(UVICORN_PROXIES_ENV)
+    if text is None:
+        return None
+    proxies = []
+    for entry in (part.strip() for part in text.split(",")):
+        if not entry:  # `a,` or an empty variable: uvicorn's literal "" matches no address either
+            continue
+        try:
+            proxies.append(_proxy_address(entry))
+        except argparse.ArgumentTypeError as exc:
+            raise CliError(f"${UVICORN_PROXIES_ENV}={text!r}: {exc}") from None
+    return proxies
 
 
 def _proxy_address(text: str) -> str:

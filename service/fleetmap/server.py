@@ -46,6 +46,7 @@ from __future__ import annotations
 import argparse
 import gc
 import logging
+import os
 import signal
 import socket
 import sys
@@ -71,7 +72,13 @@ from fleetmap.malloc_arenas import (
 from fleetmap.memory_budget import format_size
 from fleetmap.network import is_loopback_host
 from fleetmap.persistence import DurableStore
-from fleetmap.serve_options import DEFAULT_DATA_DIR, ROS_MAP_DEFAULTS, add_serve_parser, parse_http
+from fleetmap.serve_options import (
+    DEFAULT_DATA_DIR,
+    ROS_MAP_DEFAULTS,
+    add_serve_parser,
+    parse_http,
+    proxies_of_uvicorns_variable,
+)
 from fleetmap.serve_ros import ros_domain, ros_options, start_ros_maps, start_ros_scans, zenoh_status
 from fleetmap.signal_event import SignalEvent, SignalWakeups
 from fleetmap.tiles import TileStore
@@ -278,6 +285,8 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
     default_config = load_config(args.config)
     create_app, settings_cls = _load_api()
     input_limits = InputLimits(args.world_bound, args.max_beams, args.max_range)
+    if args.forwarded_allow_ips is None:  # else the option (or its variable) wins, as documented
+        args.forwarded_allow_ips = proxies_of_uvicorns_variable(os.environ)
     if args.ros_publish_map:
         from fleetmap.ros.map_publisher import topic_clash
 
