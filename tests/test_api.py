@@ -219,6 +219,26 @@ def test_healthz_and_static_files(api: RunningApi) -> None:
     assert c.get("/vendor/leaflet/images/marker-icon.png").content[:4] == b"\x89PNG"
 
 
+def test_a_viewer_not_installed_is_a_404_for_each_of_its_files(tmp_path: Path) -> None:
+    """With the viewer's folder missing ($FLEETMAP_WEB_DIR misspelt, an install without
+    clients/web), `/` said so with a 404, but every `/static/...` file was a 500 with a traceback
+    in the log (Starlette's check of the folder raised). Each says so now; a folder installed
+    after start-up is served."""
+    web = tmp_path / "viewer"
+    with running_api(ApiSettings(web_dir=web)) as running:
+        c = running.client
+        for path in ("/", "/static/app.js", "/static/modules/map.js"):
+            r = c.get(path)
+            assert r.status_code == 404 and "web viewer is not installed" in r.json()["detail"], (
+                path,
+                r.text,
+            )
+        web.mkdir()
+        (web / "app.js").write_text("console.log('installed later');")
+        assert c.get("/static/app.js").text == "console.log('installed later');"
+        assert c.get("/static/missing.js").status_code == 404
+
+
 # -- scans, cells and regions against the engine -------------------------------------------------------
 
 

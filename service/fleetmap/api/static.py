@@ -18,6 +18,23 @@ from fleetmap.api.errors import ApiError
 LEAFLET_DIR = Path(leaflet.BASE_DIR)
 
 
+def _not_installed(place: Path) -> ApiError:
+    """The 404 of a request for the web viewer where it is not installed."""
+    return ApiError(404, f"the web viewer is not installed ({place} not found); the API is at /docs")
+
+
+class _ViewerFiles(StaticFiles):
+    """The viewer's folder, which may not exist (yet): a request while it does not answers 404
+    saying so, as `/` does. Starlette's check of the folder raised RuntimeError instead, a 500 with
+    a traceback in the log for each file asked for ($FLEETMAP_WEB_DIR misspelt, an install without
+    clients/web). The check runs again at the next request until the folder is there."""
+
+    async def check_config(self) -> None:
+        if self.directory is not None and not Path(self.directory).is_dir():
+            raise _not_installed(Path(self.directory))
+        await super().check_config()
+
+
 def install(app: FastAPI, web_dir: Path) -> None:
     """Serve `web_dir/index.html` at `/`, `web_dir` at `/static/`, Leaflet at `/vendor/leaflet/`.
 
@@ -28,8 +45,8 @@ def install(app: FastAPI, web_dir: Path) -> None:
     def index() -> FileResponse:
         page = web_dir / "index.html"
         if not page.is_file():
-            raise ApiError(404, f"the web viewer is not installed ({page} not found); the API is at /docs")
+            raise _not_installed(page)
         return FileResponse(page, media_type="text/html", headers={"Cache-Control": "no-cache"})
 
-    app.mount("/static", StaticFiles(directory=web_dir, check_dir=False), name="static")
+    app.mount("/static", _ViewerFiles(directory=web_dir, check_dir=False), name="static")
     app.mount("/vendor/leaflet", StaticFiles(directory=LEAFLET_DIR), name="leaflet")
