@@ -875,7 +875,8 @@ class FleetmapClient:
         # longer than a few of them is a dead connection (httpx.ReadTimeout), resumed below.
         timeout = httpx.Timeout(self.timeout, read=self.events_read_timeout)
         # The last `id:` the server sent, as an EventSource keeps it; `since` is sent the same way
-        # (the server reads `Last-Event-ID` as `?since=`, which would win over it on a resume).
+        # (the server reads `Last-Event-ID` as `?since=`; servers before 2026-11 let `?since=` win
+        # over it on a resume).
         last_id = None if since is None else str(since)
         followed = False  # a stream was opened: from then on a lost one is resumed
         while True:

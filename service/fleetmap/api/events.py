@@ -337,14 +337,21 @@ async def get_events(
       stream was revoked, or demoted below the role reading needs; the stream ends after it.
 
     A reconnecting EventSource sends `Last-Event-ID` (the last tiles version it got) and receives what
-    changed since; `?since=` does the same by hand. Robots always start with a full `robots` event.
+    changed since; `?since=` does the same by hand (a `Last-Event-ID` that is a version wins over it:
+    an EventSource opened with `?since=` sends both on a reconnect, the header being the later).
+    Robots always start with a full `robots` event.
 
     503 (with `Retry-After`) when the server already holds its limit of open streams (256 by
     default) or is shutting down. A browser's EventSource closes for good on a 503 (it reconnects by
     itself only after a stream that ended): reopen it after `Retry-After`, as the web viewer does."""
     entry = state.entry(map_id)
-    if since is None and last_event_id is not None:
-        since = last_event_version(last_event_id)
+    # `Last-Event-ID` wins over `?since=`: an EventSource opened with `?since=` sends that URL again on
+    # every reconnect, with the id of the last event it got, which is later. Reading `since` first
+    # replayed everything from it on each reconnect: a reset (reload every tile) once the map's log
+    # no longer reached back to it, as it soon does on a busy map.
+    resumed = None if last_event_id is None else last_event_version(last_event_id)
+    if resumed is not None:
+        since = resumed
     slots = state.event_streams
     if slots.closing or not slots.acquire():  # (no slot is taken while closing)
         why = (
