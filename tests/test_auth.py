@@ -271,6 +271,14 @@ def test_cors_allows_exactly_the_configured_origins_and_covers_auth_errors(
         assert r.status_code == 201 and r.headers["access-control-allow-origin"] == PAGE
         r = httpx.get(f"{url}/maps/m/tiles/0/0/0.png", headers={"Origin": PAGE})
         assert "etag" in r.headers["access-control-expose-headers"].lower()
+        # HEAD works wherever GET does, from a page too: with a token (not a simple request's
+        # header) it is preflighted, and the preflight refused it ('HEAD' is not allowed), so the
+        # page's HEAD failed as a network error.
+        head = {**preflight, "Access-Control-Request-Method": "HEAD"}
+        r = httpx.options(f"{url}/maps/m/tiles/0/0/0.png", headers=head)
+        assert r.status_code == 200 and "HEAD" in r.headers["access-control-allow-methods"], r.text
+        r = httpx.head(f"{url}/maps/m/tiles/0/0/0.png", headers={"Origin": PAGE, **bearer(READ)})
+        assert r.status_code == 200 and r.headers["access-control-allow-origin"] == PAGE
 
         # Another origin gets no CORS header on any answer, success or error.
         for r in (

@@ -319,7 +319,10 @@ def create_app(registry: MapRegistry, *, settings: ApiSettings | None = None) ->
         app.add_middleware(
             JsonCORS,
             allow_origins=settings.cors_origins,
-            allow_methods=["GET", "PUT", "POST", "DELETE"],
+            # HEAD too: a page's HEAD with a header a simple request may not carry (`Authorization`,
+            # `If-None-Match`) is preflighted, and a refused preflight fails it, though HEAD works
+            # wherever GET does (docs/api.md, "HTTP conventions").
+            allow_methods=["GET", "HEAD", "PUT", "POST", "DELETE"],
             allow_headers=["*"],
             expose_headers=[
                 "ETag",
