@@ -406,6 +406,15 @@ def test_small_json_answers_carry_an_etag_and_revalidate_to_304(mapped: httpx.Cl
     assert same.headers["cache-control"] == "no-cache" and "content-type" not in same.headers
     assert mapped.get("/maps", headers={**GZIP, "If-None-Match": f'"other", {etag}'}).status_code == 304
     assert mapped.head("/maps", headers={"If-None-Match": etag}).status_code == 304
+    # A 304 says the Vary its 200 would (RFC 9110, 15.4.5): the gzip middleware put `Accept-Encoding`
+    # only on the 200 it compressed, so the 304 of a large answer left it out.
+    zipped = mapped.get("/openapi.json", headers=GZIP)
+    assert zipped.headers["content-encoding"] == "gzip" and "Accept-Encoding" in zipped.headers["vary"]
+    spec_etag = {"If-None-Match": zipped.headers["etag"]}
+    again = mapped.get("/openapi.json", headers={**GZIP, **spec_etag})
+    assert again.status_code == 304 and "Accept-Encoding" in again.headers.get("vary", ""), again.headers
+    plain = mapped.get("/openapi.json", headers={"Accept-Encoding": "identity", **spec_etag})
+    assert plain.status_code == 304 and "Accept-Encoding" not in plain.headers.get("vary", "")
     assert mapped.put("/maps/another", json={}).status_code == 201
     changed = mapped.get("/maps", headers={"If-None-Match": etag})
     assert changed.status_code == 200 and changed.headers["etag"] != etag

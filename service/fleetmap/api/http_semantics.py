@@ -257,7 +257,11 @@ class JsonETags:
         if scope["type"] != "http" or scope["method"] != "GET":
             await self.app(scope, receive, send)
             return
-        if_none_match = joined_field_lines(Headers(scope=scope), "if-none-match")
+        request_headers = Headers(scope=scope)
+        if_none_match = joined_field_lines(request_headers, "if-none-match")
+        # Whether the gzip middleware outside would compress the 200 (it leaves `Accept-Encoding:
+        # gzip` in the scope exactly when gzip is acceptable, `NegotiatedGZip`).
+        gzip_accepted = request_headers.get("accept-encoding") == "gzip"
         start: Message | None = None
         not_modified = False  # a 304 was sent for the route's own ETag: its body goes nowhere
 
@@ -272,7 +276,8 @@ class JsonETags:
                 own = headers.get("etag")
                 if json and own is not None and if_none_match and etag_matches(if_none_match, own):
                     not_modified = True
-                    await send(_not_modified(message, own))
+                    length = int(headers.get("content-length", "0") or 0)
+                    await send(_not_modified(message, own, gzip_accepted and length >= GZIP_MINIMUM_BYTES))
                     await send({"type": "http.response.body", "body": b""})
                     return
                 if json and own is None:
@@ -284,7 +289,8 @@ class JsonETags:
                 if not message.get("more_body", False) and len(body) <= JSON_ETAG_MAX_BYTES:
                     etag = json_etag(body)
                     if if_none_match and etag_matches(if_none_match, etag):
-                        await send(_not_modified(held, etag))
+                        gzipped = gzip_accepted and len(body) >= GZIP_MINIMUM_BYTES
+                        await send(_not_modified(held, etag, gzipped))
                         await send({"type": "http.response.body", "body": b""})
                         return
                     MutableHeaders(scope=held).append("ETag", etag)
@@ -294,7 +300,13 @@ class JsonETags:
         await self.app(scope, receive, tagging_send)
 
 
-def _not_modified(start: Message, etag: str) -> Message:
-    """The 304 for a 200's start message: its caching headers, no body headers (RFC 9110, 15.4.5)."""
+def _not_modified(start: Message, etag: str, gzipped: bool) -> Message:
+    """The 304 for a 200's start message: its caching headers, no body headers (RFC 9110, 15.4.5).
+    `gzipped`: the 200 would have been compressed, so it would have said `Vary: Accept-Encoding`,
+    which the gzip middleware adds only to answers it compresses, never to this bodiless one. RFC
+    9110, 15.4.5: a 304 carries the `Vary` its 200 would have, so a cache revalidating a stored
+    answer learns the same selecting header (the 304 said `Vary: Origin` alone, or none)."""
     kept = [(k, v) for k, v in start.get("headers", []) if k.lower() in (b"cache-control", b"vary")]
+    if gzipped:
+        kept.append((b"vary", b"Accept-Encoding"))
     return {"type": "http.response.start", "status": 304, "headers": [*kept, (b"etag", etag.encode())]}
