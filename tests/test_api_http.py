@@ -110,6 +110,13 @@ def test_large_answers_are_gzipped_for_clients_that_accept_it(mapped: httpx.Clie
     assert not mapped.get("/static/app.js", headers=IDENTITY).headers["etag"].startswith("W/")
     again = mapped.get("/static/app.js", headers={**GZIP, "If-None-Match": static.headers["etag"]})
     assert again.status_code == 304
+    # Its 304 says what the 200 would (RFC 9110, 15.4.5): the same weak tag, and the Vary on
+    # Accept-Encoding; it said the strong tag with no Vary, and matched nothing a cache stored.
+    assert again.headers["etag"] == static.headers["etag"], again.headers
+    assert "accept-encoding" in again.headers.get("vary", "").lower()
+    plain = mapped.get("/static/app.js", headers={**IDENTITY, "If-None-Match": static.headers["etag"]})
+    assert plain.status_code == 304 and not plain.headers["etag"].startswith("W/")
+    assert "accept-encoding" not in plain.headers.get("vary", "").lower()
 
 
 def test_the_spec_declares_the_headers_that_locate_and_validate_reads(mapped: httpx.Client) -> None:

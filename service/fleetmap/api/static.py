@@ -5,14 +5,21 @@ Leaflet comes from the `xstatic-leaflet` package, so the viewer works with no in
 
 from __future__ import annotations
 
+import mimetypes
+import os
 from pathlib import Path
 
 import xstatic.pkg.leaflet as leaflet
 from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.datastructures import Headers
+from starlette.middleware.gzip import DEFAULT_EXCLUDED_CONTENT_TYPES
+from starlette.responses import Response
+from starlette.types import Scope
 
 from fleetmap.api.errors import ApiError
+from fleetmap.api.http_semantics import GZIP_MINIMUM_BYTES, accepts_gzip, joined_field_lines
 
 #: Leaflet's files (leaflet.js, leaflet.css, images/).
 LEAFLET_DIR = Path(leaflet.BASE_DIR)
@@ -23,7 +30,45 @@ def _not_installed(place: Path) -> ApiError:
     return ApiError(404, f"the web viewer is not installed ({place} not found); the API is at /docs")
 
 
-class _ViewerFiles(StaticFiles):
+class ViewerFiles(StaticFiles):
+    """Starlette's `StaticFiles`, whose 304 says what the 200 it stands for would (RFC 9110, 15.4.5).
+
+    The gzip middleware compresses a file's 200 (1 KiB or more, a compressible type) for a client
+    that accepts gzip, adding `Vary: Accept-Encoding`, and `DefaultHeaders` makes its strong `ETag`
+    weak (`W/"..."`: other bytes). A 304 has no body, so neither happened to it: a browser holding
+    the gzipped file under `W/"x"` revalidated it and was told `"x"`, strong, and no `Vary` on
+    `Accept-Encoding`; a cache matching the 304's validator to what it stored (RFC 9111, 4.3.4)
+    finds nothing to freshen, and fetches the file again."""
+
+    def file_response(
+        self,
+        full_path: str | os.PathLike[str],
+        stat_result: os.stat_result,
+        scope: Scope,
+        status_code: int = 200,
+    ) -> Response:
+        response = super().file_response(full_path, stat_result, scope, status_code)
+        if response.status_code == 304 and _would_gzip(full_path, stat_result, scope):
+            etag = response.headers.get("etag")
+            if etag is not None and etag.startswith('"'):
+                response.headers["etag"] = f"W/{etag}"
+            response.headers.add_vary_header("Accept-Encoding")
+        return response
+
+
+def _would_gzip(full_path: str | os.PathLike[str], stat_result: os.stat_result, scope: Scope) -> bool:
+    """Whether the gzip middleware would compress this file's 200 for the request of `scope`: the
+    client accepts gzip, the file is big enough, and its type is not one left as it is."""
+    offered = joined_field_lines(Headers(scope=scope), "accept-encoding") or ""
+    if not accepts_gzip(offered) or stat_result.st_size < GZIP_MINIMUM_BYTES:
+        return False
+    media_type = mimetypes.guess_type(str(full_path))[0] or "text/plain"  # as FileResponse
+    return media_type not in DEFAULT_EXCLUDED_CONTENT_TYPES and (
+        f"{media_type.split('/')[0]}/*" not in DEFAULT_EXCLUDED_CONTENT_TYPES
+    )
+
+
+class _ViewerFolder(ViewerFiles):
     """The viewer's folder, which may not exist (yet): a request while it does not answers 404
     saying so, as `/` does. Starlette's check of the folder raised RuntimeError instead, a 500 with
     a traceback in the log for each file asked for ($FLEETMAP_WEB_DIR misspelt, an install without
@@ -48,5 +93,5 @@ def install(app: FastAPI, web_dir: Path) -> None:
             raise _not_installed(page)
         return FileResponse(page, media_type="text/html", headers={"Cache-Control": "no-cache"})
 
-    app.mount("/static", _ViewerFiles(directory=web_dir, check_dir=False), name="static")
-    app.mount("/vendor/leaflet", StaticFiles(directory=LEAFLET_DIR), name="leaflet")
+    app.mount("/static", _ViewerFolder(directory=web_dir, check_dir=False), name="static")
+    app.mount("/vendor/leaflet", ViewerFiles(directory=LEAFLET_DIR), name="leaflet")
