@@ -117,6 +117,12 @@ def test_large_answers_are_gzipped_for_clients_that_accept_it(mapped: httpx.Clie
     plain = mapped.get("/static/app.js", headers={**IDENTITY, "If-None-Match": static.headers["etag"]})
     assert plain.status_code == 304 and not plain.headers["etag"].startswith("W/")
     assert "accept-encoding" not in plain.headers.get("vary", "").lower()
+    # The viewer's page (`/`) revalidates the same way; it had an ETag but answered every
+    # revalidation, each page load (`no-cache`), with the whole page.
+    page = mapped.get("/", headers=GZIP)
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+    again = mapped.get("/", headers={**GZIP, "If-None-Match": page.headers["etag"]})
+    assert again.status_code == 304 and again.content == b"" and again.headers["etag"] == page.headers["etag"]
 
 
 def test_the_spec_declares_the_headers_that_locate_and_validate_reads(mapped: httpx.Client) -> None:

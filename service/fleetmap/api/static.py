@@ -10,8 +10,7 @@ import os
 from pathlib import Path
 
 import xstatic.pkg.leaflet as leaflet
-from fastapi import FastAPI
-from fastapi.responses import FileResponse
+from fastapi import FastAPI, Request
 from fastapi.staticfiles import StaticFiles
 from starlette.datastructures import Headers
 from starlette.middleware.gzip import DEFAULT_EXCLUDED_CONTENT_TYPES
@@ -86,12 +85,16 @@ def install(app: FastAPI, web_dir: Path) -> None:
     The directory is looked up per request (not checked now), so a viewer installed after start-up,
     or edited while the service runs, is served as it is on disk."""
 
+    viewer_files = _ViewerFolder(directory=web_dir, check_dir=False)
+
     @app.get("/", include_in_schema=False)
-    def index() -> FileResponse:
+    def index(request: Request) -> Response:
         page = web_dir / "index.html"
         if not page.is_file():
             raise _not_installed(page)
-        return FileResponse(page, media_type="text/html", headers={"Cache-Control": "no-cache"})
+        # As the files under /static/ are answered: a browser revalidating the page (`no-cache`, on
+        # every load) with its ETag gets 304, not the whole page again.
+        return viewer_files.file_response(page, page.stat(), request.scope)
 
-    app.mount("/static", _ViewerFolder(directory=web_dir, check_dir=False), name="static")
+    app.mount("/static", viewer_files, name="static")
     app.mount("/vendor/leaflet", ViewerFiles(directory=LEAFLET_DIR), name="leaflet")
