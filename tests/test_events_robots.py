@@ -316,3 +316,25 @@ def test_streams_of_one_map_share_their_tiles_events(monkeypatch: Any) -> None:
     _, data = events.tiles_event(feed, behind, 16)
     assert data is not None
     assert {tuple(w) for w in json.loads(data)["tiles"]} == {(16, 16, 32, 32), (32, 32, 48, 48)}
+
+
+def test_a_stream_resumed_from_long_ago_does_not_share_its_event() -> None:
+    """A viewer resuming with an old `Last-Event-ID` gets everything changed since; that event was
+    left for the streams in step to share, which then told every other viewer of the map of all
+    those tiles again (each refetched them all), not just of what changed since their last event."""
+    from fleetmap.api.events import tiles_event
+    from fleetmap.change_feed import ChangeFeed
+
+    feed = ChangeFeed(start=100)
+    live = feed.version
+    for tile in [(0, 0), (1, 0), (2, 0)]:  # a live stream follows the map, poll by poll
+        feed.record([tile])
+        live, data = tiles_event(feed, live, 16)
+        assert data is not None
+    feed.record([(9, 9)])
+    # A stream resumed from the start (the viewer slept): all four tiles, rightly.
+    _, resumed = tiles_event(feed, 100, 16)
+    assert resumed is not None and len(json.loads(resumed)["tiles"]) == 4
+    # The live stream is told of the one tile changed since its last event.
+    _, data = tiles_event(feed, live, 16)
+    assert data is not None and json.loads(data)["tiles"] == [[144, 144, 160, 160]], data

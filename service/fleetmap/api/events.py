@@ -150,7 +150,9 @@ def tiles_event(feed: ChangeFeed, version: int, tile_size: int) -> tuple[int, st
     and gets 304s. Each stream made its own before, the same work once per viewer: 100 streams of a
     map that 200 robots change took 73 ms of the event loop per 100 ms poll. A stream behind or ahead
     of that event makes its own, which the others then share: streams fall into step within a poll.
-    A version bump that changed no tile is not news (None)."""
+    A version bump that changed no tile is not news (None). An event made by a stream behind the
+    shared one's start is that stream's alone: shared, it would tell the streams in step of
+    everything changed since that stream's (maybe old) version."""
     last = _last_tiles.get(feed)
     if last is not None and last[0] <= version < last[1]:
         return last[1], last[2]
@@ -164,7 +166,12 @@ def tiles_event(feed: ChangeFeed, version: int, tile_size: int) -> tuple[int, st
     data = TilesEvent(version=batch.version, tiles=tile_windows(batch.tiles, tile_size)).model_dump_json(
         exclude_none=True
     )
-    _last_tiles[feed] = (version, batch.version, data)
+    if last is None or version >= last[0]:
+        # Shared only when it starts no earlier than the event the others share. A stream behind it
+        # (a viewer resuming with a `Last-Event-ID` from minutes ago) makes an event of everything
+        # changed since then; shared, every stream in step sent it too, and every viewer of the map
+        # asked again for every tile of those minutes, all of which it had.
+        _last_tiles[feed] = (version, batch.version, data)
     return batch.version, data
 
 
