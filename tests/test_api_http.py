@@ -117,6 +117,17 @@ def test_large_answers_are_gzipped_for_clients_that_accept_it(mapped: httpx.Clie
     plain = mapped.get("/static/app.js", headers={**IDENTITY, "If-None-Match": static.headers["etag"]})
     assert plain.status_code == 304 and not plain.headers["etag"].startswith("W/")
     assert "accept-encoding" not in plain.headers.get("vary", "").lower()
+    # A tag on a second field line (as a proxy merging tags sends it) matches, as for tiles:
+    # Starlette read the first line alone, answering the whole file. `*` matches too.
+    star = mapped.get("/static/app.js", headers={**GZIP, "If-None-Match": "*"})
+    assert star.status_code == 304
+    two_lines = [
+        ("Accept-Encoding", "gzip"),
+        ("If-None-Match", '"other"'),
+        ("If-None-Match", static.headers["etag"]),
+    ]
+    assert mapped.get("/static/app.js", headers=two_lines).status_code == 304
+    assert mapped.get("/static/app.js", headers={**GZIP, "If-None-Match": '"other"'}).status_code == 200
     # The viewer's page (`/`) revalidates the same way; it had an ETag but answered every
     # revalidation, each page load (`no-cache`), with the whole page.
     page = mapped.get("/", headers=GZIP)

@@ -18,7 +18,7 @@ from starlette.responses import Response
 from starlette.types import Scope
 
 from fleetmap.api.errors import ApiError
-from fleetmap.api.http_semantics import GZIP_MINIMUM_BYTES, accepts_gzip, joined_field_lines
+from fleetmap.api.http_semantics import GZIP_MINIMUM_BYTES, accepts_gzip, etag_matches, joined_field_lines
 
 #: Leaflet's files (leaflet.js, leaflet.css, images/).
 LEAFLET_DIR = Path(leaflet.BASE_DIR)
@@ -38,6 +38,17 @@ class ViewerFiles(StaticFiles):
     the gzipped file under `W/"x"` revalidated it and was told `"x"`, strong, and no `Vary` on
     `Accept-Encoding`; a cache matching the 304's validator to what it stored (RFC 9111, 4.3.4)
     finds nothing to freshen, and fetches the file again."""
+
+    def is_not_modified(self, response_headers: Headers, request_headers: Headers) -> bool:
+        """`If-None-Match` as the API reads it (`etag_matches`, RFC 9110 13.1.2): every field line
+        of it (a list header, RFC 9110 5.3). Starlette read the first line alone: a client whose
+        tag a proxy put on a second line got the whole file. Without `If-None-Match`, Starlette's
+        `If-Modified-Since`."""
+        if_none_match = joined_field_lines(request_headers, "if-none-match")
+        if if_none_match is None:
+            return super().is_not_modified(response_headers, request_headers)
+        etag = response_headers.get("etag")
+        return etag is not None and etag_matches(if_none_match, etag)
 
     def file_response(
         self,
