@@ -27,7 +27,7 @@ import zenoh.ext
 from fleetmap_client import cli
 from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, ScanPublisher
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
-from fleetmap_client.sim import SimError, robot_ids, run_sim
+from fleetmap_client.sim import SimError, check_fleet, robot_ids, run_sim
 from fleetmap_client.zenoh_config import client_config, config_value, connect_endpoints
 from service_process import DATASETS_DIR, FreezableProxy, ServiceProcess, free_port, reaped, wait_for
 
@@ -1132,3 +1132,45 @@ def test_sim_stops_on_request(router: Router) -> None:
     assert result.published["sim-1"] >= 1
     with pytest.raises(ValueError, match="robots must be"):
         run_sim(0)
+
+
+def test_sim_refuses_more_robots_than_its_file_descriptors_allow_naming_the_limit() -> None:
+    """Each robot holds two file descriptors (its Zenoh session's socket and shared-memory segment):
+    at `ulimit -n 1024` (a common default) 520 robots ran out of them, and the robots beyond waited
+    for ever (with --wait-timeout: "no fleetmap service reachable ... (Unable to create POSIX shm
+    segment: OS error 24)", though the service was up). Refused at once now, naming the limit; the
+    command first raises its soft limit to the hard one, so here both are lowered."""
+    import resource
+
+    def low_limit() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
+
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    command = [sys.executable, "-m", "fleetmap_client.cli", "sim", "--connect", nobody, "--wait-timeout", "5"]
+    bad = subprocess.run(
+        [*command, "--robots", "200"], capture_output=True, text=True, timeout=30, preexec_fn=low_limit
+    )
+    assert bad.returncode == 2, bad.stderr
+    assert "200 robots need about 464 file descriptors" in bad.stderr, bad.stderr
+    assert "this process may open 256 (ulimit -n; hard limit 256)" in bad.stderr, bad.stderr
+    assert "at most 96 robots per process" in bad.stderr, bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 1, bad.stderr  # one line, no traceback
+    assert "robots on map" not in bad.stdout, bad.stdout
+
+    def low_soft_limit() -> None:  # a soft limit the hard one allows raising: the command raises it
+        resource.setrlimit(resource.RLIMIT_NOFILE, (256, 1024))
+
+    quick = [*command[:-1], "0.5", "--robots", "200", "--beams", "9"]
+    done = subprocess.run(quick, capture_output=True, text=True, timeout=60, preexec_fn=low_soft_limit)
+    assert done.returncode == 2, done.stderr
+    assert "no fleetmap service reachable" in done.stderr, done.stderr
+    assert "file descriptors" not in done.stderr and "OS error 24" not in done.stderr, done.stderr
+
+
+def test_sim_refuses_more_robots_than_the_machine_has_threads_for() -> None:
+    """`fleetmap sim --robots 100000` needs 300,000 threads (three per robot) where a machine allows
+    some tens of thousands (kernel.pid_max is 32768 by default): it spent a minute building the
+    robots, then failed at their threads or waited for ever. Refused at once now, naming the limit.
+    A million robots need 3 million threads, more than any machine this runs on allows."""
+    with pytest.raises(ValueError, match=r"1000000 robots need about 3000064 threads \(3 per robot\)"):
+        check_fleet(1_000_000, rate=10.0, seconds=None)  # as run_sim and the command check first

@@ -17,7 +17,10 @@ while the robots keep moving.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import resource
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -68,13 +71,77 @@ def robot_ids(count: int, prefix: str = "sim") -> list[str]:
     return [f"{prefix}-{k + 1}" for k in range(count)]
 
 
+#: File descriptors one simulated robot holds: its Zenoh session's TCP socket and the POSIX
+#: shared-memory segment zenoh-python makes for each session (measured: 2.1 per robot with 100).
+FDS_PER_ROBOT = 2
+#: Threads one simulated robot runs: its own (`_drive`), its publisher's opener and link watcher,
+#: and its publisher's fetch watcher (measured: 3.1 per robot with 100).
+THREADS_PER_ROBOT = 3
+#: File descriptors and threads the rest of the process needs (interpreter, Zenoh's runtime).
+PROCESS_RESERVE = 64
+
+
+def _read_int(path: str) -> int | None:
+    """The integer in the file at `path` (a /proc/sys setting), None where there is none."""
+    try:
+        with open(path, encoding="ascii") as file:
+            return int(file.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def raise_open_files_limit() -> None:
+    """Raise this process's soft `ulimit -n` to its hard limit (as `fleetmap serve` does): the soft
+    limit is often 1024 while the hard one allows far more, and each robot needs `FDS_PER_ROBOT`."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and (hard == resource.RLIM_INFINITY or soft < hard):
+        # e.g. macOS refuses an unlimited soft limit: the soft one stays, and check_capacity says so
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+
+
+def check_capacity(robots: int) -> None:
+    """ValueError unless this process may open the file descriptors and start the threads that
+    `robots` simulated robots need (`FDS_PER_ROBOT`, `THREADS_PER_ROBOT` each, `PROCESS_RESERVE`
+    besides); the message names the limit and what to change. Past them the robots beyond could not
+    open their Zenoh sessions ("OS error 24", reported as no service reachable) and waited for ever,
+    or could not start their threads."""
+    fds = robots * FDS_PER_ROBOT + PROCESS_RESERVE
+    threads = robots * THREADS_PER_ROBOT + PROCESS_RESERVE
+    thread_limits = {
+        "kernel.pid_max": _read_int("/proc/sys/kernel/pid_max"),
+        "kernel.threads-max": _read_int("/proc/sys/kernel/threads-max"),
+    }
+    nproc, _ = resource.getrlimit(resource.RLIMIT_NPROC)
+    if nproc != resource.RLIM_INFINITY and os.geteuid() != 0:  # root is not held to `ulimit -u`
+        thread_limits["ulimit -u"] = nproc
+    for name, limit in thread_limits.items():
+        if limit is not None and threads > limit:
+            most = max(0, limit - PROCESS_RESERVE) // THREADS_PER_ROBOT
+            raise ValueError(
+                f"{robots} robots need about {threads} threads ({THREADS_PER_ROBOT} per robot) but this "
+                f"machine allows {limit} ({name}): run at most {most} robots per process (several "
+                "processes on different maps, or machines), or raise it"
+            )
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and fds > soft:
+        hard_text = "unlimited" if hard == resource.RLIM_INFINITY else str(hard)
+        raise ValueError(
+            f"{robots} robots need about {fds} file descriptors ({FDS_PER_ROBOT} per robot: its Zenoh "
+            f"session's socket and shared-memory segment) but this process may open {soft} (ulimit -n; "
+            f"hard limit {hard_text}): raise it (ulimit -n {fds}, as root if past the hard limit) or run "
+            f"at most {max(0, soft - PROCESS_RESERVE) // FDS_PER_ROBOT} robots per process"
+        )
+
+
 def check_fleet(
     robots: int, rate: float, seconds: float | None, beams: int = 1081, speed: float = 1.0, seed: int = 1
 ) -> None:
     """ValueError unless `run_sim` can run `robots` robots at `rate` scans/s for `seconds` (None: no
     limit), with lidars of `beams` beams, at `speed` m/s, on the floor plan of `seed`: at least one
     robot, a finite rate above 0, seconds not negative, 1 to `MAX_BEAMS` beams (a scan holds no
-    more), a finite speed not negative, a seed not negative (numpy's generators take no other)."""
+    more), a finite speed not negative, a seed not negative (numpy's generators take no other),
+    and no more robots than this process's file descriptors and threads allow (`check_capacity`)."""
     if seed < 0:  # was numpy's "expected non-negative integer", from inside the floor plan's draw
         raise ValueError(f"seed must be >= 0, got {seed}")
     if robots < 1:
@@ -89,6 +156,7 @@ def check_fleet(
         raise ValueError(f"beams must be 1 to {MAX_BEAMS}, got {beams}")
     if not (math.isfinite(speed) and speed >= 0.0):
         raise ValueError(f"speed must be finite and >= 0, got {speed}")
+    check_capacity(robots)
 
 
 def run_sim(
@@ -279,4 +347,4 @@ def _drive(
         stop.wait(max(0.0, due - now))
 
 
-__all__ = ["SimError", "SimResult", "robot_ids", "run_sim"]
+__all__ = ["SimError", "SimResult", "check_capacity", "raise_open_files_limit", "robot_ids", "run_sim"]
