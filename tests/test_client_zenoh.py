@@ -1174,3 +1174,28 @@ def test_sim_refuses_more_robots_than_the_machine_has_threads_for() -> None:
     A million robots need 3 million threads, more than any machine this runs on allows."""
     with pytest.raises(ValueError, match=r"1000000 robots need about 3000064 threads \(3 per robot\)"):
         check_fleet(1_000_000, rate=10.0, seconds=None)  # as run_sim and the command check first
+
+
+def test_a_sim_out_of_file_descriptors_says_so_at_once_not_that_no_service_answers(router: Router) -> None:
+    """A program whose other files leave too few descriptors for its robots (the fleet check counts
+    only the robots' own): the robots beyond could not open their sessions ("OS error 24"), retried
+    for ever without a wait timeout, and with one the sim said "no fleetmap service reachable". It
+    stops at once now, saying the process ran out of file descriptors. A router is needed: the
+    sessions of the first robots must hold their descriptors, as connected ones do."""
+    program = f"""
+import os, resource, sys
+from fleetmap_client.sim import SimError, run_sim
+from fleetmap.sim import generate_floorplan
+resource.setrlimit(resource.RLIMIT_NOFILE, (300, 300))
+held = [os.open(os.devnull, os.O_RDONLY) for _ in range(150)]  # the program's other files
+try:
+    run_sim(60, connect=["{router.endpoint}"], seconds=0.1, beams=9,
+            plan=generate_floorplan(4, width_m=20.0, height_m=15.0))
+except SimError as exc:
+    print(exc)
+    sys.exit(3)
+"""
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 3, (done.stdout, done.stderr)
+    assert "could not open its Zenoh session: this process ran out of file descriptors" in done.stdout
+    assert "ulimit -n 300" in done.stdout, done.stdout

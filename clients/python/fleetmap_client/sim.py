@@ -291,6 +291,26 @@ def _confirm(publishers: list[ScanPublisher], timeout: float, result: SimResult)
         raise
 
 
+#: How Zenoh's errors end when the process has no file descriptor left (EMFILE), e.g. "Unable to
+#: create POSIX shm segment: OS error 24".
+_OUT_OF_DESCRIPTORS = "os error 24"
+
+
+def _check_descriptors(publishers: list[ScanPublisher]) -> None:
+    """SimError if a publisher could not open its session for want of file descriptors. Any of them,
+    not only the one waited for: the first robots may wait for a service not up yet while the last
+    ones failed. Not the service's doing, and not over by waiting: the sim retried for ever (without
+    --wait-timeout), then said "no fleetmap service reachable" with the service up."""
+    for pub in publishers:
+        error = pub.last_connect_error or ""
+        if _OUT_OF_DESCRIPTORS in error.lower():
+            soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+            raise SimError(
+                f"robot {pub.robot_id} could not open its Zenoh session: this process ran out of file "
+                f"descriptors (ulimit -n {soft}; {error}): raise it, or run fewer robots"
+            )
+
+
 def _wait_all(
     publishers: list[ScanPublisher],
     timeout: float | None,
@@ -308,6 +328,7 @@ def _wait_all(
             if not told and now - started >= 1.0 and on_waiting is not None:
                 on_waiting(pub)
                 told = True
+            _check_descriptors(publishers)
             if deadline is not None and now >= deadline:
                 reason = f" ({pub.last_connect_error})" if pub.last_connect_error else ""
                 where = ", ".join(pub.endpoints)
