@@ -1199,3 +1199,22 @@ except SimError as exc:
     assert done.returncode == 3, (done.stdout, done.stderr)
     assert "could not open its Zenoh session: this process ran out of file descriptors" in done.stdout
     assert "ulimit -n 300" in done.stdout, done.stdout
+
+
+def test_a_sim_whose_service_takes_no_more_sessions_says_so_not_that_none_is_reachable() -> None:
+    """A fleetmap service's Zenoh router takes at most 1000 sessions (`max_sessions`) and refuses
+    the others with the timeout of an absent service: a sim of 1100 robots said "no fleetmap
+    service reachable" with 1000 of them connected. A router taking 3 stands in for it here."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"router"')
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cfg.insert_json5("listen/endpoints", f'["{endpoint}"]')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("transport/unicast/max_sessions", "3")
+    with zenoh.open(cfg), pytest.raises(SimError) as raised:
+        run_sim(5, connect=[endpoint], seconds=0.1, wait_timeout=2.0, beams=9, confirm_timeout=None,
+                plan=generate_floorplan(4, width_m=20.0, height_m=15.0))  # fmt: skip
+    message = str(raised.value)
+    expected = f"only 3 of 5 robots could connect to the service at {endpoint} within 2 s"
+    assert message.startswith(expected), message
+    assert "transport/unicast/max_sessions" in message, message

@@ -77,6 +77,8 @@ FDS_PER_ROBOT = 2
 #: Threads one simulated robot runs: its own (`_drive`), its publisher's opener and link watcher,
 #: and its publisher's fetch watcher (measured: 3.1 per robot with 100).
 THREADS_PER_ROBOT = 3
+#: Robots a fleetmap service takes at once by default: Zenoh's `transport/unicast/max_sessions`.
+SERVICE_SESSIONS = 1000
 #: File descriptors and threads the rest of the process needs (interpreter, Zenoh's runtime).
 PROCESS_RESERVE = 64
 
@@ -332,6 +334,17 @@ def _wait_all(
             if deadline is not None and now >= deadline:
                 reason = f" ({pub.last_connect_error})" if pub.last_connect_error else ""
                 where = ", ".join(pub.endpoints)
+                connected = sum(other.connected for other in publishers)
+                if 0 < connected < len(publishers):
+                    # The service is up, but refuses the others' sessions just as an absent one
+                    # would (a timeout): its Zenoh router takes only so many. (All connected: a
+                    # router with no service behind it, whose subscriber is what they wait for.)
+                    raise SimError(
+                        f"only {connected} of {len(publishers)} robots could connect to the service at "
+                        f"{where} within {timeout:g} s{reason}: its Zenoh router takes no more sessions? "
+                        f"(at most {SERVICE_SESSIONS} unless its --zenoh-config raises "
+                        "transport/unicast/max_sessions: docs/protocol.md)"
+                    )
                 raise SimError(f"no fleetmap service reachable at {where} within {timeout:g} s{reason}")
 
 
