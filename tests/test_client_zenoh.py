@@ -1218,3 +1218,13 @@ def test_a_sim_whose_service_takes_no_more_sessions_says_so_not_that_none_is_rea
     expected = f"only 3 of 5 robots could connect to the service at {endpoint} within 2 s"
     assert message.startswith(expected), message
     assert "transport/unicast/max_sessions" in message, message
+
+
+def test_a_slow_sim_stops_at_its_seconds_not_at_the_end_of_a_period(router: Router) -> None:
+    """A robot slept until its next scan was due even when that was past the end: at --rate 0.1,
+    --seconds 15 ran 20 s (a period of 10 s). Now it stops at the end: a scan at 0 s, at 0.5
+    scans/s none more, and the run lasts its 0.6 s, not 2 s."""
+    result = run_sim(2, rate=0.5, seconds=0.6, connect=[router.endpoint], beams=9, wait_timeout=20,
+                     plan=generate_floorplan(4, width_m=20.0, height_m=15.0))  # fmt: skip
+    assert result.total == 2, result
+    assert 0.6 <= result.seconds < 1.5, result.seconds

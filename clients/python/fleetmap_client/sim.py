@@ -378,7 +378,9 @@ def _drive(
         now = time.monotonic()
         if due < now - period:
             due = now  # fell behind by more than a period: don't burst, resume from now
-        stop.wait(max(0.0, due - now))
+        # Not past the deadline: at --rate 0.1 a robot slept its whole 10 s period through it, so
+        # --seconds 15 ran 20 s.
+        stop.wait(max(0.0, (due if deadline is None else min(due, deadline)) - now))
 
 
 __all__ = ["SimError", "SimResult", "check_capacity", "raise_open_files_limit", "robot_ids", "run_sim"]
