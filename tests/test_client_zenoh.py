@@ -1228,3 +1228,23 @@ def test_a_slow_sim_stops_at_its_seconds_not_at_the_end_of_a_period(router: Rout
                      plan=generate_floorplan(4, width_m=20.0, height_m=15.0))  # fmt: skip
     assert result.total == 2, result
     assert 0.6 <= result.seconds < 1.5, result.seconds
+
+
+def test_a_sim_too_busy_for_its_rate_counts_the_scans_it_skipped_and_says_so(
+    router: Router, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A robot that fell behind its rate resumed from now, silently: 400 robots at 1 scan/s for 10 s
+    on a busy machine published 2757 scans, and the summary read as if the rate had been kept. The
+    scans skipped are counted now, and the command warns. 50000 scans/s is more than one robot's
+    ray casting and encoding keep up with (some 3000/s here)."""
+    code = cli.main(["sim", "--robots", "1", "--rate", "50000", "--seconds", "1",
+                     "--connect", router.endpoint, "--wait-timeout", "20", "--no-confirm"])  # fmt: skip
+    assert code == 0
+    out, err = capsys.readouterr()
+    match = re.search(r"warning: (\d+) scans skipped: the robots fell behind 50000 scans/s", err)
+    assert match is not None, err
+    published = re.search(r"published (\d+) scans", out)
+    assert published is not None, out
+    skipped, sent = int(match.group(1)), int(published.group(1))
+    assert skipped > sent > 0
+    assert 49_000 <= skipped + sent <= 50_100  # every scan due in the second: taken or skipped

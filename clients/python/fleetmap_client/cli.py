@@ -275,6 +275,14 @@ def run_sim_command(args: argparse.Namespace) -> int:
         + (f" ({kept} kept for re-delivery while the service was unreachable)" if kept else "")
         + (f" ({dropped} dropped)" if dropped else "")
     )
+    skipped = sum(result.skipped.values())
+    if skipped:
+        print(
+            f"fleetmap sim: warning: {skipped} scan{'' if skipped == 1 else 's'} skipped: the robots fell "
+            f"behind {args.rate:g} scans/s, this machine is too busy for {len(result.robots)} robots at "
+            "that rate (run fewer, or fewer --beams or a lower --rate)",
+            file=sys.stderr,
+        )
     if args.no_confirm:
         return 0
     if result.total == 0:

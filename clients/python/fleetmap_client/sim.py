@@ -7,7 +7,8 @@ All robots explore one synthetic floor plan (`fleetmap.sim.generate_floorplan(se
 default). Each robot is its own `ScanPublisher` (its own Zenoh session and liveliness token, robot
 ids `sim-1`, `sim-2`, ...) driven by its own thread: every 1/rate s it advances its simulation by
 1/rate s and publishes the scan taken there, with seq 0, 1, 2, ... and the wall-clock stamp. A robot
-that falls behind (a busy machine) does not burst to catch up: it resumes the schedule from now.
+that falls behind (a busy machine) does not burst to catch up: it resumes the schedule from now,
+and counts the scans it skipped (`SimResult.skipped`; `fleetmap sim` warns of them).
 
 The robots start once the service is reachable (they wait for it), run for `seconds` (None: until
 stopped) and leave when stopped; scans published while the service is unreachable are kept in each
@@ -46,6 +47,9 @@ class SimResult:
     #: Scans kept for re-delivery while disconnected (`ScanPublisher.backlogged`).
     backlogged: dict[str, int] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=dict)  # scans given up (`ScanPublisher.dropped`)
+    #: Scans never taken because the robot fell behind its rate (a machine too busy for the fleet):
+    #: their times passed while it was still busy with earlier ones, and it resumed from then.
+    skipped: dict[str, int] = field(default_factory=dict)
     seconds: float = 0.0
     #: With `confirm_timeout`: what each robot's `ScanPublisher.flush` learned; a robot whose flush
     #: got an error answer is in `confirm_errors` instead, with it.
@@ -217,7 +221,7 @@ def run_sim(
         threads = [
             threading.Thread(
                 target=_drive_or_stop,
-                args=(sim, pub, rate, deadline, stop, failures),
+                args=(sim, pub, rate, deadline, stop, failures, result.skipped),
                 name=f"fleetmap-{pub.robot_id}",
                 daemon=True,
             )
@@ -355,19 +359,28 @@ def _drive_or_stop(
     deadline: float | None,
     stop: threading.Event,
     failures: dict[str, BaseException],
+    skipped: dict[str, int],
 ) -> None:
-    """`_drive`; an error ends the whole simulation (`stop`), recorded in `failures` by robot id."""
+    """`_drive`; an error ends the whole simulation (`stop`), recorded in `failures` by robot id.
+    The scans it skipped for falling behind go to `skipped`, by robot id."""
     try:
-        _drive(robot, pub, rate, deadline, stop)
+        skipped[pub.robot_id] = 0
+        _drive(robot, pub, rate, deadline, stop, skipped)
     except Exception as exc:
         failures.setdefault(pub.robot_id, exc)
         stop.set()
 
 
 def _drive(
-    robot: SimulatedRobot, pub: ScanPublisher, rate: float, deadline: float | None, stop: threading.Event
+    robot: SimulatedRobot,
+    pub: ScanPublisher,
+    rate: float,
+    deadline: float | None,
+    stop: threading.Event,
+    skipped: dict[str, int],
 ) -> None:
-    """One robot's loop: tick, publish, wait for the next period."""
+    """One robot's loop: tick, publish, wait for the next period. Counts in `skipped[robot id]` the
+    scans whose times passed while it was behind."""
     period = 1.0 / rate
     due = time.monotonic()
     while not stop.is_set():
@@ -377,7 +390,14 @@ def _drive(
         due += period
         now = time.monotonic()
         if due < now - period:
-            due = now  # fell behind by more than a period: don't burst, resume from now
+            # Fell behind by more than a period: don't burst, resume with the scan due now (the
+            # schedule's slot in progress). The slots passed meanwhile (before the deadline) are
+            # never taken: counted, or the summary's total looked like the rate was kept.
+            behind = math.floor((now - due) / period)
+            if deadline is not None:
+                behind = min(behind, max(0, math.ceil((deadline - due) / period)))
+            skipped[pub.robot_id] += behind
+            due += behind * period
         # Not past the deadline: at --rate 0.1 a robot slept its whole 10 s period through it, so
         # --seconds 15 ran 20 s.
         stop.wait(max(0.0, (due if deadline is None else min(due, deadline)) - now))
