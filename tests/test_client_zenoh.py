@@ -1248,3 +1248,18 @@ def test_a_sim_too_busy_for_its_rate_counts_the_scans_it_skipped_and_says_so(
     skipped, sent = int(match.group(1)), int(published.group(1))
     assert skipped > sent > 0
     assert 49_000 <= skipped + sent <= 50_100  # every scan due in the second: taken or skipped
+
+
+def test_a_sim_of_more_robots_than_a_service_takes_says_so_first() -> None:
+    """A fleetmap service takes 1000 Zenoh sessions at once by default and refuses the others as an
+    absent service would, logging nothing: `fleetmap sim --robots 1001` left its last robot waiting
+    for ever, without a word of why. It warns first now (here with no service: it then gives up)."""
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    command = [sys.executable, "-m", "fleetmap_client.cli", "sim", "--connect", nobody, "--wait-timeout", "0",
+               "--beams", "9"]  # fmt: skip
+    done = subprocess.run([*command, "--robots", "1001"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert "warning: a fleetmap service takes at most 1000 robots at once" in done.stderr, done.stderr
+    assert "transport/unicast/max_sessions" in done.stderr, done.stderr
+    done = subprocess.run([*command, "--robots", "2"], capture_output=True, text=True, timeout=60)
+    assert "warning" not in done.stderr, done.stderr

@@ -211,7 +211,7 @@ def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
 def run_sim_command(args: argparse.Namespace) -> int:
     from fleetmap.wire import ID_PATTERN, is_valid_id
 
-    from .sim import SimError, check_fleet, raise_open_files_limit, run_sim
+    from .sim import SERVICE_SESSIONS, SimError, check_fleet, raise_open_files_limit, run_sim
 
     if not is_valid_id(args.map_id):
         raise CliError(f"map id {args.map_id!r} must match {ID_PATTERN}")
@@ -224,6 +224,16 @@ def run_sim_command(args: argparse.Namespace) -> int:
     for option, value in (("--confirm-timeout", args.confirm_timeout), ("--wait-timeout", args.wait_timeout)):
         if value is not None and not value >= 0.0:  # NaN: the wait for the service never ended
             raise CliError(f"{option} must be a number of seconds >= 0, got {value}")
+    if args.robots > SERVICE_SESSIONS:
+        # Past it the service refuses the other robots' sessions as an absent one would, and logs
+        # nothing: without --wait-timeout the robots beyond waited for ever, with no word of why.
+        print(
+            f"fleetmap sim: warning: a fleetmap service takes at most {SERVICE_SESSIONS} robots at once "
+            "unless its --zenoh-config raises transport/unicast/max_sessions (docs/protocol.md); the "
+            "robots beyond wait for a free session",
+            file=sys.stderr,
+            flush=True,
+        )
     stop = SignalEvent()
 
     # Ctrl-C (or SIGINT from a script that started us with SIGINT ignored) stops the robots, and the
