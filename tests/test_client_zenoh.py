@@ -1263,3 +1263,15 @@ def test_a_sim_of_more_robots_than_a_service_takes_says_so_first() -> None:
     assert "transport/unicast/max_sessions" in done.stderr, done.stderr
     done = subprocess.run([*command, "--robots", "2"], capture_output=True, text=True, timeout=60)
     assert "warning" not in done.stderr, done.stderr
+
+
+def test_a_sim_prefix_too_long_for_its_last_robot_is_refused_before_any_robot_joins(router: Router) -> None:
+    """Robot ids grow with their number: with a 61-character prefix `p...-1` to `p...-99` are valid
+    and `p...-100` (65 characters) is not, and it was refused only when its publisher was made, after
+    the 99 robots before it had connected and declared their tokens (which create the map on a
+    fleetmap service). Refused before any robot is made now."""
+    with pytest.raises(ValueError, match=r"robot id 'p{61}-100' \(prefix 'p{61}'\) is invalid"):
+        run_sim(100, prefix="p" * 61, connect=[router.endpoint], seconds=0.1, wait_timeout=5, beams=9,
+                plan=generate_floorplan(4, width_m=20.0, height_m=15.0))  # fmt: skip
+    time.sleep(0.5)  # a robot's token reaches the router within milliseconds
+    assert router.alive_events() == []

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from fleetmap.scan import MAX_BEAMS
 from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap.sim.floorplan import FloorPlan
+from fleetmap.wire import is_valid_id
 
 from .delivery import DeliveryReport
 from .publisher import CLOSE_WAIT_S, DeliveryUnsupported, Encoding, ScanPublisher, check_timeouts
@@ -201,6 +202,16 @@ def run_sim(
     check_timeouts(wait_timeout=wait_timeout, confirm_timeout=confirm_timeout)
     stop = stop or threading.Event()
     ids = robot_ids(robots, prefix)
+    # All of them before any robot connects: the last id is the longest, and one too long raised
+    # only when its publisher was made, after the robots before it had joined the map.
+    for rid in (ids[0], ids[-1]):
+        if not is_valid_id(rid):
+            raise ValueError(
+                f"robot id {rid!r} (prefix {prefix!r}) is invalid: use 1 to 64 characters from "
+                "A-Z a-z 0-9 _ -"
+            )
+    if not is_valid_id(map_id):
+        raise ValueError(f"map_id {map_id!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
     floor = plan if plan is not None else generate_floorplan(seed)
     sims = [
         SimulatedRobot(floor, seed=seed * 1000 + k, scan_rate=rate, num_beams=beams, range_max=range_max,
