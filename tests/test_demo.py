@@ -179,6 +179,9 @@ def test_demo_whose_service_cannot_start_says_so_without_blaming_the_ports(tmp_p
         (["--map", "bad/id"], "--map 'bad/id' is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -"),
         # Started the service, waited for it, then ended in numpy's traceback.
         (["--seed", "-1"], "--seed must be 0 or more, got -1"),
+        # More robots than any machine has threads for (3 per robot): a ValueError traceback from
+        # the simulation once the service was up.
+        (["--robots", "1000000"], "1000000 robots need about 3000064 threads (3 per robot)"),
         # Port 0 (`serve`'s "any free port"): the demo waited 120 s for an answer on port 0 while
         # its service ran on another one, or its robots waited for ever to connect to port 0.
         (["--http", "127.0.0.1:0"], "--http 127.0.0.1:0: the demo needs a fixed port, not 0"),

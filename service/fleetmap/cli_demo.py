@@ -168,7 +168,8 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 def _check_fleet(args: argparse.Namespace) -> None:
     """Raise CliError for options the robots cannot run with, before the service starts: `--robots
-    0` started the service, waited for it, then ended in a traceback from `run_sim`."""
+    0` started the service, waited for it, then ended in a traceback from `run_sim`. Raises this
+    process's soft `ulimit -n` to its hard limit, for the robots' file descriptors."""
     if args.robots < 1:
         raise CliError(f"--robots must be at least 1, got {args.robots}")
     if not (0.0 < args.rate < math.inf):
@@ -179,6 +180,15 @@ def _check_fleet(args: argparse.Namespace) -> None:
         raise CliError(f"--seed must be 0 or more, got {args.seed}")
     if not is_valid_id(args.map):
         raise CliError(f"--map {args.map!r} is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -")
+    from fleetmap_client.sim import check_capacity, raise_open_files_limit
+
+    # More robots than this process has file descriptors or the machine threads for: `run_sim`
+    # raised it as a traceback, once the service was up.
+    raise_open_files_limit()
+    try:
+        check_capacity(args.robots)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
 
 
 def _check_free(option: str, value: str) -> None:
