@@ -11,6 +11,7 @@ browser and one in-memory service for the module (each test on its own maps), on
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import threading
@@ -680,6 +681,30 @@ _TILES_OF_MAP_JS = """
 """
 
 
+@contextlib.contextmanager
+def _map_get_held(page: Any, map_id: str) -> Iterator[list[Any]]:
+    """While the block runs, the page's GET of map `map_id` is held back (a slow service): yields the
+    routes held, which the block may answer itself (`fulfill`); those still held after it go on to
+    the service."""
+    held: list[Any] = []
+    page.route(f"**/maps/{map_id}", lambda route: held.append(route))  # (playwright takes no builtin)
+    try:
+        yield held
+    finally:
+        for route in held:
+            route.continue_()
+        page.unroute(f"**/maps/{map_id}")
+
+
+def _until_held(page: Any, held: list[Any], what: str) -> None:
+    """Wait until the page's request reaches a `_map_get_held` route (5 s at most)."""
+    for _ in range(250):
+        if held:
+            return
+        page.wait_for_timeout(20)
+    raise AssertionError(f"{what} was not seen")
+
+
 def test_status_while_another_map_loads(new_page: Callable[..., Any], shared_service: ServiceProcess) -> None:
     """Another map is selected (a link's hash, the selector) while the service is slow to answer for
     it: the status line no longer says 'connected' of the map shown before, whose stream is closed.
@@ -691,24 +716,14 @@ def test_status_while_another_map_loads(new_page: Callable[..., Any], shared_ser
         _scan(base, map_id, "r1", 1, x, 1.0)
     page = new_page()
     _open(page, base, "#map=switch-a")
-    held: list[Any] = []
-    page.route("**/maps/switch-b", lambda route: held.append(route))  # its GET held back: the service is slow
-    try:
+    with _map_get_held(page, "switch-b") as held:
         page.evaluate("() => { location.hash = '#map=switch-b'; }")
         _wait(
             page, "() => document.getElementById('map-select').value === 'switch-b'", what="switch-b chosen"
         )
-        for _ in range(250):  # the request reaches the route
-            if held:
-                break
-            page.wait_for_timeout(20)
-        assert held, "the map's GET was not seen"
+        _until_held(page, held, "the map's GET")
         assert page.get_attribute("#status", "data-state") != "connected"
         assert not page.inner_text("#status").startswith("connected")
-    finally:
-        for route in held:
-            route.continue_()
-        page.unroute("**/maps/switch-b")
     _wait(page, _CONNECTED_JS, what="connected to switch-b")
     assert "/maps/switch-b/events?" in page.evaluate("() => window.fleetmapViewer.state.events.url")
     assert not page.page_errors, page.page_errors
@@ -761,9 +776,7 @@ def test_a_map_replaced_by_one_without_the_layer_shown(
     page.evaluate(_WATCH_LIVE_JS)
     refused: list[str] = []
     page.on("response", lambda r: refused.append(r.url) if "/tiles/" in r.url and r.status >= 400 else None)
-    held: list[Any] = []
-    page.route("**/maps/replaced-live", lambda route: held.append(route))  # the service is slow
-    try:
+    with _map_get_held(page, "replaced-live") as held:
         r = httpx.put(
             f"{base}/maps/replaced-live/snapshot",
             content=snapshot.content,
@@ -771,19 +784,11 @@ def test_a_map_replaced_by_one_without_the_layer_shown(
             timeout=30.0,
         )
         assert r.status_code == 200, r.text
-        for _ in range(250):  # the `replaced` event came: the page asks for the new map
-            if held:
-                break
-            page.wait_for_timeout(20)
-        assert held, "the page did not ask for the replaced map"
+        _until_held(page, held, "the page's GET of the replaced map")  # after the `replaced` event
         counter = page.evaluate("() => window.fleetmapViewer.state.tileCounter")
         _scan(base, "replaced-live", "r1", 2, 1.5, 1.0)  # tiles of the new map change in view
         _wait(page, "(c) => window.fleetmapViewer.state.tileCounter > c", counter, what="the tiles event")
         page.wait_for_timeout(700)  # > TILE_REFRESH_MS: every stale tile in view is due by now
-    finally:
-        for route in held:
-            route.continue_()
-        page.unroute("**/maps/replaced-live")
     _wait(page, _ALL_TILES_OF_LAYER_JS, "hits", what="tiles of the hits layer")
     _wait(page, _TILES_OF_MAP_JS, "replaced-live", what="every tile loaded")
     assert refused == [], refused
@@ -804,23 +809,13 @@ def test_a_late_failure_of_a_map_left_shows_no_error(
         _scan(base, map_id, "r1", 1, 1.0, 1.0)
     page = new_page()
     _open(page, base, "#map=late-a")
-    held: list[Any] = []
-    page.route("**/maps/late-b", lambda route: held.append(route))  # its GET held back: the service is slow
-    try:
+    with _map_get_held(page, "late-b") as held:
         page.evaluate("() => { location.hash = '#map=late-b'; }")
-        for _ in range(250):  # the request reaches the route
-            if held:
-                break
-            page.wait_for_timeout(20)
-        assert held, "the map's GET was not seen"
+        _until_held(page, held, "the map's GET")
         page.evaluate("() => { location.hash = '#map=late-a'; }")  # the user goes back before it answers
         _open(page, base, "#map=late-a")
         held.pop().fulfill(status=503, content_type="application/json", body='{"detail": "overloaded"}')
         page.wait_for_timeout(500)  # the failed answer is handled (nothing to wait for: it must show nothing)
-    finally:
-        for route in held:
-            route.continue_()
-        page.unroute("**/maps/late-b")
     error = page.inner_text("#error") if page.is_visible("#error") else ""
     assert "late-b" not in error, error
     assert page.eval_on_selector("#map-select", "el => el.value") == "late-a"
