@@ -326,30 +326,15 @@ class AuthMiddleware:
         if needed is None:
             await self.app(scope, receive, send)
             return
-        headers = scope.get("headers", [])
-        token = bearer_token(headers)
-        # The cookie counts only where no header is sent, and only for reads (never a write: CSRF).
         reads = is_read_request(scope["method"], scope["path"])
-        sessions = _sessions(headers) if token is None and reads else []
-        role: str | None = None
-        if token is not None:
-            digest = _digest(token)
-            role = self.tokens.role_of_digest(digest)
-        elif sessions:
-            # The first that stands for a configured token: a browser sends every session cookie it
-            # holds for the request's host and path, another page's first (a longer Path, or set
-            # earlier; RFC 6265, 5.4), and one it cannot read must not hide the viewer's own.
-            for value in sessions:
-                role = self.tokens.role_of_session(value)
-                if role is not None:
-                    digest = bytes.fromhex(value)
-                    break
-        else:
+        credential = _credential(scope.get("headers", []), self.tokens, reads)
+        if credential is None:
             await _deny(send, 401, f"this request needs a token with the {needed!r} role: "
                         "send 'Authorization: Bearer <token>'")  # fmt: skip
             return
-        if role is None:
-            await _deny(send, 401, "unknown token" if token is not None else UNKNOWN_SESSION)
+        role, digest, bearer = credential
+        if role is None or digest is None:
+            await _deny(send, 401, "unknown token" if bearer else UNKNOWN_SESSION)
             return
         if _RANK[role] < _RANK[needed]:
             await _deny(send, 403, f"this request needs the {needed!r} role; the token has {role!r}")
@@ -358,20 +343,42 @@ class AuthMiddleware:
         await self.app(scope, receive, send)
 
 
+def _credential(
+    headers: Iterable[tuple[bytes, bytes]], tokens: TokenSet | TokenFile, reads: bool
+) -> tuple[str | None, bytes | None, bool] | None:
+    """What a request's credential stands for: (its role, None if it stands for no configured token;
+    the token's digest; whether it was a bearer token), or None if it carries none. The token is the
+    `Authorization: Bearer` header's; without one, a read (`reads`) may carry a session cookie."""
+    headers = list(headers)
+    token = bearer_token(headers)
+    if token is not None:
+        digest = _digest(token)
+        return tokens.role_of_digest(digest), digest, True
+    # The cookie counts only where no header is sent, and only for reads (never a write: CSRF).
+    sessions = _sessions(headers) if reads else []
+    if not sessions:
+        return None
+    # The first that stands for a configured token: a browser sends every session cookie it holds
+    # for the request's host and path, another page's first (a longer Path, or set earlier; RFC
+    # 6265, 5.4), and one it cannot read must not hide the viewer's own.
+    for value in sessions:
+        role = tokens.role_of_session(value)
+        if role is not None:
+            return role, bytes.fromhex(value), False
+    return None, None, False
+
+
 def may_read(
     headers: Iterable[tuple[bytes, bytes]], tokens: TokenSet | TokenFile | None, require_read: bool
 ) -> bool:
     """Whether a request with `headers` may read the maps, as `AuthMiddleware` would let a read in:
-    always without tokens or without `require_read`, else with a bearer token of any role or, without
-    one, a session cookie that stands for a configured token. For the open routes (`/healthz`) that
-    answer more to a reader than to anyone."""
+    always without tokens or without `require_read`, else with a credential (`_credential`) that
+    stands for a configured token, of any role. For the open routes (`/healthz`) that answer more
+    to a reader than to anyone."""
     if tokens is None or not require_read:
         return True
-    headers = list(headers)
-    token = bearer_token(headers)
-    if token is not None:
-        return tokens.role_of(token) is not None
-    return any(tokens.role_of_session(value) is not None for value in _sessions(headers))
+    credential = _credential(headers, tokens, reads=True)
+    return credential is not None and credential[0] is not None
 
 
 def bearer_token(headers: Iterable[tuple[bytes, bytes]]) -> str | None:
