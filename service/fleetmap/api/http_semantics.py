@@ -39,7 +39,7 @@ from __future__ import annotations
 import hashlib
 
 from starlette.datastructures import Headers, MutableHeaders
-from starlette.middleware.gzip import GZipMiddleware
+from starlette.middleware.gzip import DEFAULT_EXCLUDED_CONTENT_TYPES, GZipMiddleware
 from starlette.requests import Request
 from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -168,6 +168,20 @@ def accepts_gzip(accept_encoding: str) -> bool:
     return False
 
 
+def gzips(request_headers: Headers, size: int, media_type: str = "application/json") -> bool:
+    """Whether `NegotiatedGZip` compresses a 200 of `size` bytes of `media_type` for a request with
+    `request_headers` (read inside it or outside: it leaves `Accept-Encoding: gzip` exactly when
+    gzip is acceptable): gzip acceptable (`accepts_gzip`), at least `GZIP_MINIMUM_BYTES`, and not a
+    type Starlette leaves as it is. A 304 standing for that 200 must say the `Vary:
+    Accept-Encoding` (and the weak tag) the compressed 200 would have, which the middleware puts
+    only on what it compresses (RFC 9110, 15.4.5)."""
+    offered = joined_field_lines(request_headers, "accept-encoding") or ""
+    if size < GZIP_MINIMUM_BYTES or not accepts_gzip(offered):
+        return False
+    family = f"{media_type.split('/')[0]}/*"
+    return media_type not in DEFAULT_EXCLUDED_CONTENT_TYPES and family not in DEFAULT_EXCLUDED_CONTENT_TYPES
+
+
 class NegotiatedGZip(GZipMiddleware):
     """Starlette's `GZipMiddleware`, deciding from the client's `Accept-Encoding` as `accepts_gzip`
     does. Starlette compresses whenever the header holds the text `gzip`, so a client refusing gzip
@@ -259,9 +273,6 @@ class JsonETags:
             return
         request_headers = Headers(scope=scope)
         if_none_match = joined_field_lines(request_headers, "if-none-match")
-        # Whether the gzip middleware outside would compress the 200 (it leaves `Accept-Encoding:
-        # gzip` in the scope exactly when gzip is acceptable, `NegotiatedGZip`).
-        gzip_accepted = request_headers.get("accept-encoding") == "gzip"
         start: Message | None = None
         not_modified = False  # a 304 was sent for the route's own ETag: its body goes nowhere
 
@@ -277,7 +288,7 @@ class JsonETags:
                 if json and own is not None and if_none_match and etag_matches(if_none_match, own):
                     not_modified = True
                     length = int(headers.get("content-length", "0") or 0)
-                    await send(_not_modified(message, own, gzip_accepted and length >= GZIP_MINIMUM_BYTES))
+                    await send(_not_modified(message, own, gzips(request_headers, length)))
                     await send({"type": "http.response.body", "body": b""})
                     return
                 if json and own is None:
@@ -289,8 +300,7 @@ class JsonETags:
                 if not message.get("more_body", False) and len(body) <= JSON_ETAG_MAX_BYTES:
                     etag = json_etag(body)
                     if if_none_match and etag_matches(if_none_match, etag):
-                        gzipped = gzip_accepted and len(body) >= GZIP_MINIMUM_BYTES
-                        await send(_not_modified(held, etag, gzipped))
+                        await send(_not_modified(held, etag, gzips(request_headers, len(body))))
                         await send({"type": "http.response.body", "body": b""})
                         return
                     MutableHeaders(scope=held).append("ETag", etag)

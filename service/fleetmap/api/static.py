@@ -13,12 +13,11 @@ import xstatic.pkg.leaflet as leaflet
 from fastapi import FastAPI, Request
 from fastapi.staticfiles import StaticFiles
 from starlette.datastructures import Headers
-from starlette.middleware.gzip import DEFAULT_EXCLUDED_CONTENT_TYPES
 from starlette.responses import Response
 from starlette.types import Scope
 
 from fleetmap.api.errors import ApiError
-from fleetmap.api.http_semantics import GZIP_MINIMUM_BYTES, accepts_gzip, etag_matches, joined_field_lines
+from fleetmap.api.http_semantics import etag_matches, gzips, joined_field_lines
 
 #: Leaflet's files (leaflet.js, leaflet.css, images/).
 LEAFLET_DIR = Path(leaflet.BASE_DIR)
@@ -58,24 +57,15 @@ class ViewerFiles(StaticFiles):
         status_code: int = 200,
     ) -> Response:
         response = super().file_response(full_path, stat_result, scope, status_code)
-        if response.status_code == 304 and _would_gzip(full_path, stat_result, scope):
+        if response.status_code != 304:
+            return response
+        media_type = mimetypes.guess_type(str(full_path))[0] or "text/plain"  # as FileResponse
+        if gzips(Headers(scope=scope), stat_result.st_size, media_type):
             etag = response.headers.get("etag")
             if etag is not None and etag.startswith('"'):
                 response.headers["etag"] = f"W/{etag}"
             response.headers.add_vary_header("Accept-Encoding")
         return response
-
-
-def _would_gzip(full_path: str | os.PathLike[str], stat_result: os.stat_result, scope: Scope) -> bool:
-    """Whether the gzip middleware would compress this file's 200 for the request of `scope`: the
-    client accepts gzip, the file is big enough, and its type is not one left as it is."""
-    offered = joined_field_lines(Headers(scope=scope), "accept-encoding") or ""
-    if not accepts_gzip(offered) or stat_result.st_size < GZIP_MINIMUM_BYTES:
-        return False
-    media_type = mimetypes.guess_type(str(full_path))[0] or "text/plain"  # as FileResponse
-    return media_type not in DEFAULT_EXCLUDED_CONTENT_TYPES and (
-        f"{media_type.split('/')[0]}/*" not in DEFAULT_EXCLUDED_CONTENT_TYPES
-    )
 
 
 class _ViewerFolder(ViewerFiles):

@@ -584,9 +584,10 @@ class RosScanIngest:
                 timeout = 0.1
 
     def _sync_subscription_tokens(self) -> None:
-        """Declare the graph token of a subscription of each LaserScan topic that has a publisher, and
-        undeclare those of topics whose publishers are all gone (on the `fleetmap-ros` thread: a
-        declaration may wait on the session, which Zenoh's callbacks must not)."""
+        """Declare the graph token of a subscription of each LaserScan, `tf` and `tf_static` topic
+        that has a publisher, and undeclare those of topics whose publishers are all gone (on the
+        `fleetmap-ros` thread: a declaration may wait on the session, which Zenoh's callbacks must
+        not)."""
         node = self._graph_node
         if node is None:
             return
