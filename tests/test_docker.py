@@ -173,3 +173,17 @@ def test_the_image_health_check_follows_the_api_port(tmp_path: Path) -> None:
         assert answering.returncode == 0, answering.stderr
     refused = check(os.getpid(), f"0.0.0.0:{nobody}")
     assert refused.returncode == 1 and f"http://127.0.0.1:{nobody}/healthz" in refused.stderr, refused.stderr
+
+    # A service on one address, not on all: IPv6 loopback alone (`[::]` binds IPv6 alone too). The
+    # check polled 127.0.0.1, which nothing answers: unhealthy for good.
+    ipv6 = ServiceProcess(tmp_path, ["--in-memory", "--http", f"[::1]:{nobody}"])
+    ipv6.base_url = f"http://[::1]:{nobody}"  # where the start waits for /healthz
+    with ipv6:
+        assert ipv6.proc is not None
+        for http in (None, f"127.0.0.1:{ipv6.port}"):  # the command line's last --http wins
+            done = check(ipv6.proc.pid, http)
+            assert done.returncode == 0, (http, done.stderr)
+        answering = check(os.getpid(), f"[::1]:{nobody}")
+        assert answering.returncode == 0, answering.stderr
+    gone = check(os.getpid(), f"[::]:{nobody}")  # every IPv6 address: polled at ::1
+    assert gone.returncode == 1 and f"http://[::1]:{nobody}/healthz" in gone.stderr, gone.stderr
