@@ -435,6 +435,23 @@ def test_a_map_configured_at_a_float32_resolution_printed_in_full_takes_its_own_
         map_from_nav2(nav2_yaml(resolution="0.1"), PIXELS, config)
 
 
+def test_an_origin_on_the_grid_of_the_float32_or_the_shortest_resolution_is_on_the_map_s_grid() -> None:
+    """0.05 and 0.05000000074505806 are one resolution to the import (map_server publishes a
+    float32), but the origin was checked on the map's grid only: the export of a map configured at
+    0.05000000074505806, whose origin is -400 of its cells (-20.000000298), was refused by a new
+    map, made at 0.05, as 6e-06 cells off its grid (and a 0.05 map's export by a map configured at
+    the float32): a copy of any map reaching 3.4 m from the origin was refused."""
+    full = float(np.float32(0.05))
+    for exported_at, imported_at in ((full, None), (full, CONFIG), (0.05, MapConfig(resolution=full))):
+        gmap = GridMap(MapConfig(resolution=exported_at))
+        gmap.store.create([(-2, -2)])
+        gmap.store.pools["log_odds"][gmap.store.slots[(-2, -2)], 112:115, 112:118] = L_MAX
+        files = nav2_files(gmap, Window(-400, -400, -394, -397))
+        again = map_from_nav2(files["map.yaml"], files["map.pgm"], imported_at)
+        assert again.known_bounds() == (-400, -400, -394, -397)
+        assert np.array_equal(again.region("log_odds", -400, -400, -394, -397), np.full((3, 6), L_MAX))
+
+
 def test_the_off_grid_message_says_by_how_much() -> None:
     with pytest.raises(Nav2ImportError) as caught:
         map_from_nav2(nav2_yaml(origin="[0.0, 1.001, 0.0]"), PIXELS, CONFIG)

@@ -38,8 +38,9 @@ pixel's own `occ`, that becomes the probability: the map robots navigated with i
 
 Limits (`Nav2ImportError` names what is wrong; nothing is created): a yaw other than 0 (a rotated
 image is not on the map's axis-aligned cells), an origin that is not on the map's cell grid (within
-1e-6 of a cell edge; with `snap_origin` it is moved to the nearest one instead, by at most half a
-cell: SLAM tools put the origin anywhere, and map_saver writes it rounded), a resolution other
+1e-6 of a cell edge of the map's resolution or of the YAML's, read or as a float32; with
+`snap_origin` it is moved to the nearest one instead, by at most half a cell: SLAM tools put the
+origin anywhere, and map_saver writes it rounded), a resolution other
 than the configuration's, images that are not 8-bit grey (grey with alpha, and RGB / RGBA whose
 channels are equal everywhere, as map_saver writes scale maps, are grey, and in scale mode where
 a pixel is opaque: map_server reads the others as unknown; a PGM's maxval must be
@@ -471,12 +472,20 @@ def _pnm_maxval(im: ImageFile.ImageFile) -> int:
     return args[-1] if isinstance(args, tuple) and isinstance(args[-1], int) else 255
 
 
-def _grid_index(value: float, resolution: float, what: str, snap: bool = False) -> int:
-    """The cell edge index of origin coordinate `value`: the edge it lies on (within GRID_TOLERANCE
-    cells), or with `snap` the nearest one (half a cell off: the one above)."""
+def _grid_index(value: float, resolutions: tuple[float, ...], what: str, snap: bool = False) -> int:
+    """The cell edge index of origin coordinate `value` on a map of resolution `resolutions[0]`: the
+    edge it lies on (within GRID_TOLERANCE cells) on the grid of one of `resolutions` (those that
+    are the map's, `_grid_resolutions`), or with `snap` the nearest one of the map's own grid (half
+    a cell off: the one above)."""
+    for resolution in resolutions:
+        cells = value / resolution
+        nearest = math.floor(cells + 0.5)
+        if abs(cells - nearest) <= GRID_TOLERANCE:
+            return int(nearest)
+    resolution = resolutions[0]
     cells = value / resolution
     nearest = math.floor(cells + 0.5)
-    if abs(cells - nearest) > GRID_TOLERANCE and not snap:
+    if not snap:
         raise Nav2ImportError(
             f"map.yaml origin {what} {value!r} is not on the map's cell grid: it is {cells:.9g} cells of "
             f"{resolution!r} m from 0, {abs(cells - nearest):.3g} cells off the nearest cell edge "
@@ -484,6 +493,17 @@ def _grid_index(value: float, resolution: float, what: str, snap: bool = False) 
             "snap_origin moves it to the nearest edge"
         )
     return int(nearest)
+
+
+def _grid_resolutions(meta: Nav2Meta, config: MapConfig) -> tuple[float, ...]:
+    """The resolutions whose cell grid a map.yaml's origin may lie on to be on the grid of a map of
+    `config` (whose resolution `_map_config` took for the YAML's): the map's, the YAML's as read
+    (`_published_resolution`), and that as map_server publishes it, a float32. 0.05 and
+    0.05000000074505806 are one resolution, but their grids drift apart by 1.5e-8 cells a cell: the
+    export of a map configured at the float32, its origin 400 of its cells from 0, was 6e-06 cells
+    off the grid of a new map made at 0.05, and refused (as was a 0.05 map's export by a map
+    configured at the float32)."""
+    return config.resolution, meta.resolution, float(np.float32(meta.resolution))
 
 
 def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | None) -> MapConfig:
@@ -549,7 +569,8 @@ def _map_from_meta(
     # `_grid_index` cannot round (OverflowError, an HTTP 500).
     if max(abs(ox), abs(oy)) > MAX_COORDINATE:
         raise Nav2ImportError(beyond)
-    i0, j0 = _grid_index(ox, res, "x", snap_origin), _grid_index(oy, res, "y", snap_origin)
+    grid = _grid_resolutions(meta, config)
+    i0, j0 = _grid_index(ox, grid, "x", snap_origin), _grid_index(oy, grid, "y", snap_origin)
     grey, alpha = read_image(image, image_name or meta.image, opaque_colour_only=meta.mode == "scale")
     h, w = grey.shape
     if max(abs(i0), abs(i0 + w), abs(j0), abs(j0 + h)) * res > MAX_COORDINATE:
