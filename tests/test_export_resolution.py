@@ -30,9 +30,11 @@ from fleetmap.export import (
     known_window,
     map_image,
     map_state,
+    nav2_files,
     probability_to_gray,
 )
 from fleetmap.grid_map import GridMap
+from fleetmap.nav2_import import map_from_nav2
 from fleetmap.scan import Pose2D
 from fleetmap.sim import SimulatedRobot, generate_floorplan
 
@@ -90,6 +92,24 @@ def test_the_resolution_must_be_a_whole_multiple_of_the_maps() -> None:
             export_scale(0.05, bad)
     assert export_resolution(0.05, 3) == 0.15 and export_resolution(0.05, 1) == 0.05
     assert Window(-5, -1, 7, 9).aligned(4) == Window(-8, -4, 8, 12)
+
+
+def test_a_coarse_export_states_its_cells_resolution_to_a_float_s_precision() -> None:
+    """The resolution of a coarse export was rounded to the nanometre, as the origins are: for a map
+    at 0.05000000074505806 (a float32's 0.05, copied from a published map), 3 x is
+    0.15000000223517418, and the YAML said 0.150000002, a grid that parts from the exported cells'
+    by 1.5e-9 cells a cell: the export of the map 200 m from the origin did not import (its origin
+    4e-06 cells off that grid), nor did a 0.0123456789012 m map's 5 m away."""
+    for map_resolution in (float(np.float32(0.05)), 0.0123456789012):
+        stated = export_resolution(map_resolution, 3)
+        assert stated == pytest.approx(3 * map_resolution, rel=1e-14, abs=0)
+        gmap = GridMap(MapConfig(resolution=map_resolution, layers=["occupancy"]))
+        gmap.store.create([(-16, 0)])
+        gmap.store.pools["log_odds"][gmap.store.slots[(-16, 0)], 0:3, 96:102] = 3.0  # cells -4000..-3994
+        files = nav2_files(gmap, Window(-4002, 0, -3993, 3), scale=3)
+        assert f"resolution: {stated!r}\n" in files["map.yaml"].decode()
+        again = map_from_nav2(files["map.yaml"], files["map.pgm"])
+        assert again.resolution == stated and again.known_bounds() == (-1334, 0, -1331, 1)
 
 
 def test_the_service_exports_a_map_at_a_coarser_resolution(tmp_path) -> None:  # type: ignore[no-untyped-def]

@@ -249,11 +249,18 @@ def export_scale(map_resolution: float, resolution: float) -> int:
     return scale
 
 
+#: The significant digits an export's resolution is stated to (`export_resolution`).
+RESOLUTION_DIGITS = 15
+
+
 def export_resolution(map_resolution: float, scale: int) -> float:
     """The resolution of an export at `scale` (`export_scale`), as its files state it: the map's
-    exactly when `scale` is 1, else the product rounded as the exports' origins are (`cell_edge`:
-    0.15 for 3 x 0.05, where the float product is 0.15000000000000002)."""
-    return map_resolution if scale == 1 else cell_edge(scale, map_resolution)
+    exactly when `scale` is 1, else the product to RESOLUTION_DIGITS significant digits, which drops
+    a float's rounding (0.15 for 3 x 0.05, where the float product is 0.15000000000000002) and
+    nothing else. Rounded to the nanometre as the origins are, 3 x 0.05000000074505806 (a float32's
+    0.05) was stated 0.150000002, whose grid parts from the exported cells' by 1.5e-9 cells a cell:
+    the map's export 200 m from the origin was off the grid of its own YAML, and did not import."""
+    return map_resolution if scale == 1 else float(f"{scale * map_resolution:.{RESOLUTION_DIGITS}g}")
 
 
 def probability_to_gray(probability: np.ndarray) -> np.ndarray:
