@@ -413,6 +413,23 @@ def test_a_float32_resolution_printed_in_full_is_the_map_s_resolution() -> None:
     assert map_from_nav2(nav2_yaml(resolution="0.03125"), PIXELS).resolution == 0.03125
 
 
+def test_a_float32_resolution_printed_to_a_float_s_nine_digits_is_the_map_s_resolution() -> None:
+    """yaml-cpp's emitter writes a float with 9 significant digits (`max_digits10`): a tool that
+    writes map.yaml from a published map's float32 `info.resolution` says 0.0500000007 for a 0.05 m
+    map, 0.0250000004 for 0.025 m. map_server publishes such a map at the float32 of 0.05, as it
+    does a map.yaml saying 0.05; the import took it for another resolution: refused against a 0.05
+    m map, and a new map made at 0.0500000007 put an origin of -10.0 2.8e-06 cells off its grid."""
+    for written, resolution in (("0.0500000007", 0.05), ("0.0250000004", 0.025), ("0.100000001", 0.1)):
+        assert f"{np.float32(resolution):.9g}" == written
+        yaml_text = nav2_yaml(resolution=written, origin="[-10.0, -10.0, 0]")
+        for config in (MapConfig(resolution=resolution), None):
+            gmap = map_from_nav2(yaml_text, PIXELS, config)
+            edge = round(-10.0 / resolution)
+            assert gmap.resolution == resolution and gmap.known_bounds() == (edge, edge, edge + 2, edge + 2)
+    # A value of 9 digits that is no float32's is the YAML's own.
+    assert map_from_nav2(nav2_yaml(resolution="0.0500000008"), PIXELS).resolution == 0.0500000008
+
+
 def test_a_map_configured_at_a_float32_resolution_printed_in_full_takes_its_own_export_back() -> None:
     """A map made at 0.05000000074505806 m (the resolution copied from a published OccupancyGrid)
     exports it as is; its import read the YAML's value as 0.05 (the float32's shortest decimal),

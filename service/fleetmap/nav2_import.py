@@ -13,8 +13,9 @@ What map_server does (navigation2, nav2_map_server/src/map_io.cpp, `loadMapYaml`
   reads one, quoted or not: y / yes / true / on and n / no / false / off); `mode` is `trinary` (the
   default when absent), `scale` or `raw`, in any case.
 - The resolution is published as a float32 (`nav_msgs/MapMetaData`): a YAML resolution that is
-  exactly a float32, as a file written from a published map holds it, is read as that float32's
-  shortest decimal (0.05000000074505806 is 0.05).
+  a float32 printed in full, as a file written from a published map holds it (exactly, or to the 9
+  digits yaml-cpp writes a float with), is read as that float32's shortest decimal
+  (0.05000000074505806 and 0.0500000007 are 0.05).
 - Row 0 of the image is its top: pixel `(x, y)` is written to `data[width * (height - y - 1) + x]`,
   so the top row is the highest y.
 - A pixel's `shade` is the mean of its red, green and blue channels on a 0..1 scale (for a grey
@@ -270,20 +271,28 @@ def _number(doc: dict[str, Any], key: str) -> float:
     return number
 
 
+#: The significant digits that print a float32 in full (C++'s `max_digits10` for a float): what
+#: yaml-cpp's emitter writes a float with, and C++ streams set to that precision.
+FLOAT32_DIGITS = 9
+
+
 def _published_resolution(value: float) -> float:
-    """The YAML's resolution as the map it describes has it: a value that is exactly a float32 is
-    the shortest decimal of that float32 (0.05000000074505806 is 0.05), any other value is itself.
+    """The YAML's resolution as the map it describes has it: a value that is a float32 printed in
+    full, exactly (0.05000000074505806) or to FLOAT32_DIGITS significant digits (0.0500000007), is
+    the shortest decimal of that float32 (0.05); any other value is itself.
 
     Why: `nav_msgs/MapMetaData.resolution` is a float32, so map_server publishes float32(resolution)
-    and every ROS consumer (AMCL, costmaps) uses that; a map.yaml written from a published map by
-    rclpy (or from `ros2 topic echo /map`) holds that float32 printed in full, 0.05000000074505806
-    for a 0.05 m map. Taken as is, it differed from a 0.05 m map's configuration, and a new map made
-    at it put an origin such as -10.0 2.98e-06 cells off its grid: both refused. A resolution
-    written by hand is exactly a float32 only as a short binary fraction (0.5, 0.03125), which is its
-    own shortest decimal: those, and every other value, are unchanged."""
+    and every ROS consumer (AMCL, costmaps) uses that; a map.yaml written from a published map holds
+    that float32 printed in full: 0.05000000074505806 for a 0.05 m map by rclpy (or from `ros2 topic
+    echo /map`), 0.0500000007 by a C++ tool through yaml-cpp's emitter, which writes a float with 9
+    digits. Taken as is, it differed from a 0.05 m map's configuration, and a new map made at it put
+    an origin such as -10.0 2.98e-06 cells off its grid: both refused, though map_server publishes
+    it as it publishes 0.05. A resolution written by hand is a float32 in full only as a short
+    binary fraction (0.5, 0.03125), which is its own shortest decimal: those, and every other value,
+    are unchanged."""
     with np.errstate(over="ignore", under="ignore"):
         single = np.float32(value)
-    if float(single) != value:
+    if value not in (float(single), float(f"{float(single):.{FLOAT32_DIGITS}g}")):
         return value
     return float(str(single))  # numpy prints a float32 as its shortest round-tripping decimal
 
