@@ -52,7 +52,7 @@ def png(pixels: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def nav2_zip(yaml_text: str, files: dict[str, bytes], yaml_name: str = "map.yaml") -> bytes:
+def nav2_zip(yaml_text: str | bytes, files: dict[str, bytes], yaml_name: str = "map.yaml") -> bytes:
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         zf.writestr(yaml_name, yaml_text)
@@ -306,6 +306,31 @@ def test_a_bad_yaml_is_refused_naming_the_field(yaml_text: str, message: str) ->
     with pytest.raises(Nav2ImportError) as caught:
         map_from_nav2(yaml_text, PIXELS, CONFIG)
     assert message in str(caught.value) and caught.value.status == 422
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "message"),
+    [
+        (b"image: map\xff.pgm\n" + nav2_yaml(image=None).encode(), "invalid start byte"),
+        (b"\xfe\xff\x00i\x00", "truncated data"),  # a UTF-16 BOM, "i", half a character
+        (nav2_yaml(image="map.pgm\x01").encode(), "special characters are not allowed"),
+        (nav2_yaml(image="map.pgm\x01"), "special characters are not allowed"),
+    ],
+)
+def test_a_yaml_that_is_not_utf8_text_is_refused_as_such_not_as_a_crash(
+    yaml_text: str | bytes, message: str
+) -> None:
+    """PyYAML's loader decodes the start of its input (4 KB) as it is made: a map.yaml of other bytes
+    than UTF-8 (Latin-1, a stray byte) or with a control character raised its ReaderError there,
+    before the parse that turns YAML's errors into a refusal, and `PUT .../import` answered 500."""
+    for parse in (
+        lambda: map_from_nav2(yaml_text, PIXELS, CONFIG),
+        lambda: map_from_nav2_zip(nav2_zip(yaml_text, {"map.pgm": PIXELS}), CONFIG),
+    ):
+        with pytest.raises(Nav2ImportError) as caught:
+            parse()
+        assert "map.yaml is not valid YAML" in str(caught.value) and message in str(caught.value)
+        assert caught.value.status == 422
 
 
 #: Six levels of ten aliases: a list of 10**6 strings in 250 bytes (nine levels, 10**9, took the

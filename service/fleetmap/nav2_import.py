@@ -301,8 +301,12 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     """The fields of a map_server YAML file, checked; `Nav2ImportError` naming the field at fault."""
     if len(text) > MAX_YAML_BYTES:
         raise Nav2ImportError(f"map.yaml is {len(text)} bytes, more than the limit of {MAX_YAML_BYTES}", 413)
-    loader = _MapYamlLoader(text)  # a SafeLoader: no Python objects
+    loader: _MapYamlLoader | None = None
     try:
+        # Made inside the `try`: it decodes the start of `text` (4 KB) at once, and raises its
+        # ReaderError there for bytes that are not UTF-8 (or UTF-16) or for a control character,
+        # which was an HTTP 500.
+        loader = _MapYamlLoader(text)  # a SafeLoader: no Python objects
         # The first document only, as map_server's `YAML::LoadFile` reads it: `yaml.load` refused a
         # file ending in `---` (another document), which map_server loads.
         doc = loader.get_data() if loader.check_data() else None
@@ -311,7 +315,8 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     except ValueError as exc:  # PyYAML's int() of more than 4300 digits
         raise Nav2ImportError(f"map.yaml holds a number Python does not read: {exc}") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
     if doc is None:  # no document at all: an empty file, or only comments
         raise Nav2ImportError("map.yaml is empty: it must hold a mapping of fields (image, resolution, ...)")
     if not isinstance(doc, dict):
