@@ -13,7 +13,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from fleetmap_client.rest import FleetmapClient, FleetmapError
+from fleetmap_client.rest import FleetmapClient, FleetmapError, nav2_files_zip
 from PIL import Image
 from service_process import ServiceProcess
 from test_api_support import hostile_zip, padded_zip
@@ -912,3 +912,19 @@ def test_the_client_uploads_a_yaml_path_with_its_image_or_zip_bytes(tmp_path: Pa
         with pytest.raises(ValueError, match=r"floor.yaml is not valid YAML: while parsing a flow sequence"):
             fm.import_nav2("broken", yaml_path)
         assert "broken" not in {m.id for m in fm.list_maps()}
+
+
+@pytest.mark.parametrize(
+    "text", [b"image: map\xff.pgm\nresolution: 0.05\n", b"image: map.pgm\x01\nresolution: 0.05\n"]
+)
+def test_the_client_refuses_a_yaml_file_that_is_not_utf8_text_as_its_contract_says(
+    tmp_path: Path, text: bytes
+) -> None:
+    """`nav2_files_zip` (`import_nav2` of a YAML path) promises ValueError for a file that is not
+    YAML: a map.yaml of Latin-1 bytes, or with a control character, raised PyYAML's ReaderError
+    instead, from the loader's constructor, before the try that turned YAML's errors into it."""
+    yaml_path = tmp_path / "map.yaml"
+    yaml_path.write_bytes(text)
+    (tmp_path / "map.pgm").write_bytes(PIXELS)
+    with pytest.raises(ValueError, match="map.yaml is not valid YAML: unacceptable character"):
+        nav2_files_zip(yaml_path)

@@ -78,8 +78,11 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
     # yaml-cpp read them: written out again from PyYAML's types, `origin: [010, ...]` became octal
     # 8, and map_server reads 10. Text that looks like a number is written quoted, which both read
     # as that number. The first document only, as map_server's `YAML::LoadFile` reads it.
-    loader = yaml.BaseLoader(text)
+    loader: yaml.BaseLoader | None = None
     try:
+        # Made inside the `try`: it decodes the start of the file at once, and raises its
+        # ReaderError there for bytes that are not UTF-8 (Latin-1) or for a control character.
+        loader = yaml.BaseLoader(text)
         node = loader.get_node() if loader.check_node() else None
         doc = None if node is None else loader.construct_document(node)
     except (yaml.YAMLError, RecursionError) as exc:
@@ -87,7 +90,8 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
         # `import_nav2` as an exception its contract does not name, with a traceback.
         raise ValueError(f"{yaml_path} is not valid YAML: {exc}") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
     if not isinstance(doc, dict) or not isinstance(doc.get("image"), str) or not doc["image"]:
         raise ValueError(f"{yaml_path} names no image file ('image')")
     image = doc["image"]
