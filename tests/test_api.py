@@ -397,6 +397,36 @@ def test_region_bounds_on_cell_edges_in_decimal_are_those_edges(api: RunningApi,
     assert api.client.get("/maps/eng/region", params=inside).json()["window"][0] == 2
 
 
+def test_region_bounds_far_from_the_origin_are_floored_unless_on_an_edge(api: RunningApi) -> None:
+    """The tolerance that makes a decimal edge that edge grew with the cell index (a billionth of
+    it): at 0.01 m, 5,300 km north (UTM northings, a georeferenced nav2 map) it was half a cell, so
+    every bound in the upper half of a cell moved to the next edge. `ymin=5300000.006` started the
+    window, and a cleared region, at row 530000001 while its point lies in row 530000000 (`/cell`).
+    A bound is the edge only within the rounding of the division there; decimal edges still are."""
+    res = 0.01
+    r = api.client.put("/maps/utm", json={"resolution": res, "layers": ["counts"]})
+    assert r.status_code in (200, 201), r.text
+    x, y = 500000.006, 5300000.006
+    cell = api.client.get("/maps/utm/cell", params={"x": x, "y": y}).json()
+    assert (cell["i"], cell["j"]) == (50000000, 530000000)
+    bounds = {"xmin": x, "ymin": y, "xmax": x + 0.1, "ymax": y + 0.1}
+    r = api.client.get("/maps/utm/region", params={**bounds, "layer": "hits"})
+    assert r.status_code == 200, r.text
+    assert r.headers["x-fleetmap-window"] == "50000000,530000000,50000010,530000010"
+    r = api.client.delete("/maps/utm/region", params=bounds)
+    assert r.status_code == 200, r.text
+    assert r.json()["window"] == [50000000, 530000000, 50000010, 530000010]
+    # Edges written in decimal there are still those edges, and an answer's origin gives its window.
+    for k in range(530000000, 530000020):
+        edge = round(k * res, 10)
+        params = {"xmin": 0.0, "ymin": edge, "xmax": 0.05, "ymax": edge + 0.05}
+        params |= {"layer": "hits", "format": "json"}
+        body = api.client.get("/maps/utm/region", params=params).json()
+        assert body["window"][1] == k, (edge, body["window"])
+        again = {**params, "ymin": body["origin"][1]}
+        assert api.client.get("/maps/utm/region", params=again).json()["window"] == body["window"]
+
+
 def test_surface(api: RunningApi, engine_map: GridMap) -> None:
     got = api.client.get("/maps/eng/surface").json()
     b = engine_map.known_bounds()

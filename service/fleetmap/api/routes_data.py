@@ -70,16 +70,25 @@ def _json(model: RegionJson | Surface) -> Response:
 
 #: A bound within this many cells of a cell edge is that edge (`_edge`).
 EDGE_TOLERANCE = 1e-9
+#: Far from the origin, where a billionth of a cell is below the precision of `bound / resolution`,
+#: a bound within this many units in the last place of that quotient of an edge is that edge: the
+#: bound and the resolution written in decimal, and the division, each round by half of one.
+EDGE_ULPS = 16
 
 
 def _edge(bound: float, resolution: float) -> int:
-    """`floor(bound / resolution)`, but a bound within EDGE_TOLERANCE cells of a cell edge is that
-    edge: written in decimal, an edge is rarely one in binary, and 0.15 / 0.05 is 2.9999999999999996
-    (the float 0.15 lies below 0.15), so `xmin=0.15` at 0.05 m started the window at cell 2, not 3,
-    and the origin a region answer reports (0.15) did not give its own window back."""
+    """`floor(bound / resolution)`, but a bound within EDGE_TOLERANCE cells of a cell edge (or, far
+    from the origin, within EDGE_ULPS units in the last place of the quotient) is that edge: written
+    in decimal, an edge is rarely one in binary, and 0.15 / 0.05 is 2.9999999999999996 (the float
+    0.15 lies below 0.15), so `xmin=0.15` at 0.05 m started the window at cell 2, not 3, and the
+    origin a region answer reports (0.15) did not give its own window back. The tolerance does not
+    grow with the cell index beyond the quotient's precision: a billionth of the index was half a cell
+    at 0.01 m and 5,300 km (a UTM northing), and moved every bound in a cell's upper half to the next
+    edge."""
     cells = bound / resolution
     nearest = round(cells)
-    return nearest if abs(cells - nearest) <= EDGE_TOLERANCE * max(1.0, abs(cells)) else math.floor(cells)
+    tolerance = max(EDGE_TOLERANCE, EDGE_ULPS * math.ulp(cells))
+    return nearest if abs(cells - nearest) <= tolerance else math.floor(cells)
 
 
 def _window(
