@@ -46,6 +46,12 @@ class Window:
         """(rows, columns) = (j1 - j0, i1 - i0), the shape of the window's arrays."""
         return self.j1 - self.j0, self.i1 - self.i0
 
+    @property
+    def cells(self) -> int:
+        """How many cells the window holds."""
+        ny, nx = self.shape
+        return nx * ny
+
     def origin(self, resolution: float) -> tuple[float, float]:
         """Map point of the window's lower-left corner."""
         return cell_edge(self.i0, resolution), cell_edge(self.j0, resolution)

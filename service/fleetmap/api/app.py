@@ -203,6 +203,12 @@ class ApiSettings:
     #: temporary directory until it is sent: without a limit, a reader could make the service hold
     #: as many copies of its biggest map as it opened requests.
     max_downloads: int = 4
+    #: Reads of windows of more than `LARGE_READ_CELLS` cells (`GET .../region`, `.../surface`,
+    #: `.../export`) in progress at once, from the request to the last byte of the answer sent; past
+    #: it a new one is refused with 503 (`api.large_reads`). A region of 16 Mi cells holds about
+    #: 450 MB while it is made and its answer (64 MB as npy) until the client has read it: without a
+    #: limit, the thread pool's 40 workers and slow readers held as many as a client sent.
+    max_large_reads: int = 4
     #: Rendered tiles kept in memory.
     tile_cache_size: int = 4096
     #: Seconds between two polls of an event stream (and so the most often an event is sent).

@@ -17,6 +17,7 @@ from fastapi import APIRouter, Query, Response
 
 from fleetmap.api.conditional import Conditions
 from fleetmap.api.errors import ApiError, error_responses, too_many
+from fleetmap.api.large_reads import large_read
 from fleetmap.api.state import MapId, State, coordinate
 from fleetmap.api.strict_requests import StrictRoute, limit_json_values
 from fleetmap.api_models import (
@@ -27,7 +28,6 @@ from fleetmap.api_models import (
     RaycastRequest,
     RaycastResponse,
     RegionCleared,
-    RegionJson,
     RegionLayer,
     Surface,
     cell_value,
@@ -60,12 +60,6 @@ limit_json_values("/maps/{map_id}/raycast", 3 * MAX_RAYS + 16, f"{MAX_RAYS} rays
 OptCoordinate = Annotated[float | None, coordinate("metres; give all four bounds or none")]
 #: A required bound of a window, metres.
 Bound = Annotated[float, coordinate("metres")]
-
-
-def _json(model: RegionJson | Surface) -> Response:
-    """Serialise a (possibly large) answer straight from the model, without FastAPI validating it a
-    second time against the response model it already is."""
-    return Response(model.model_dump_json(), media_type="application/json")
 
 
 #: A bound within this many cells of a cell edge is that edge (`_edge`).
@@ -119,10 +113,10 @@ def _window(
                 "beyond xmin and ymax one cell beyond ymin",
             )
     ny, nx = window.shape
-    if limit is not None and nx * ny > limit:
+    if limit is not None and window.cells > limit:
         raise ApiError(
             413,
-            f"the window has {nx} x {ny} = {nx * ny} cells, more than the limit of {limit}; "
+            f"the window has {nx} x {ny} = {window.cells} cells, more than the limit of {limit}; "
             "ask for smaller windows",
         )
     return window
@@ -239,7 +233,7 @@ _WINDOW_HEADER_SPEC = {
             "description": "The window; see the headers",
             "headers": _WINDOW_HEADER_SPEC,
         },
-        **error_responses(404, 409, 413, 422),
+        **error_responses(404, 409, 413, 422, 503),
     },
 )
 def get_region(
@@ -267,24 +261,27 @@ def get_region(
       (`tsdf`, the signed distance over the truncation, in [-1, 1]: 127.5 (1 + tsdf)).
 
     Headers: `X-Fleetmap-Window: i0,j0,i1,j1`, `X-Fleetmap-Origin: x,y` (lower-left corner, metres),
-    `X-Fleetmap-Resolution`. 422 if the map does not keep the layer; 413 past 16777216 cells."""
+    `X-Fleetmap-Resolution`. 422 if the map does not keep the layer; 413 past 16777216 cells; 503 (with
+    `Retry-After`) for a window of more than 1048576 cells while the server already reads its limit
+    of such windows at once (4), until their answers are sent."""
     entry = state.entry(map_id)
     gmap = entry.gmap
     limit = state.settings.max_json_cells if format == "json" else state.settings.max_region_cells
     window = _window(gmap, (xmin, ymin, xmax, ymax), limit)
-    values = gmap.region(layer, window.i0, window.j0, window.i1, window.j1)
-    headers = _window_headers(window, gmap.resolution)
-    if format == "npy":
-        return Response(
-            npy_bytes(values),
-            media_type="application/octet-stream",
-            headers={**headers, "Content-Disposition": f'attachment; filename="{map_id}-{layer}.npy"'},
-        )
-    if format == "png":
-        pixels = region_pixels(layer, values)
-        return Response(png_bytes(pixels), media_type="image/png", headers=headers)
-    model = region_json(layer, [window.i0, window.j0, window.i1, window.j1], gmap.resolution, values)
-    return Response(model.model_dump_json(), media_type="application/json", headers=headers)
+    with large_read(state.large_reads, window.cells) as read:
+        values = gmap.region(layer, window.i0, window.j0, window.i1, window.j1)
+        headers = _window_headers(window, gmap.resolution)
+        if format == "npy":
+            return read.answer(
+                npy_bytes(values),
+                media_type="application/octet-stream",
+                headers={**headers, "Content-Disposition": f'attachment; filename="{map_id}-{layer}.npy"'},
+            )
+        if format == "png":
+            pixels = region_pixels(layer, values)
+            return read.answer(png_bytes(pixels), media_type="image/png", headers=headers)
+        model = region_json(layer, [window.i0, window.j0, window.i1, window.j1], gmap.resolution, values)
+        return read.answer(model.model_dump_json(), media_type="application/json", headers=headers)
 
 
 @router.delete(
@@ -361,7 +358,7 @@ def region_pixels(layer: str, values: np.ndarray) -> np.ndarray:
     tags=["queries"],
     summary="TSDF zero crossings (surface points)",
     response_model=Surface,
-    responses=error_responses(404, 409, 413, 422),
+    responses=error_responses(404, 409, 413, 422, 503),
 )
 def get_surface(
     map_id: MapId,
@@ -373,13 +370,16 @@ def get_surface(
 ) -> Response:
     """Points where the TSDF changes sign between two observed neighbouring cells of the window
     (as for /region; no bounds: the observed extent), placed by linear interpolation between the
-    cell centres: sub-cell surface points in metres. 422 if the map keeps no TSDF layer."""
+    cell centres: sub-cell surface points in metres. 422 if the map keeps no TSDF layer; 503 as for
+    /region, for a window of more than 1048576 cells."""
     gmap = state.entry(map_id).gmap
     if not gmap.config.has("tsdf"):
         raise ApiError(422, "this map keeps no 'tsdf' layer: no surface to extract")
     window = _window(gmap, (xmin, ymin, xmax, ymax), state.settings.max_region_cells)
-    points = gmap.surface(window.i0, window.j0, window.i1, window.j1)
-    return _json(surface([window.i0, window.j0, window.i1, window.j1], points))
+    with large_read(state.large_reads, window.cells) as read:
+        points = gmap.surface(window.i0, window.j0, window.i1, window.j1)
+        model = surface([window.i0, window.j0, window.i1, window.j1], points)
+        return read.answer(model.model_dump_json(), media_type="application/json")
 
 
 # -- export -----------------------------------------------------------------------------------------
@@ -398,7 +398,7 @@ def get_surface(
             },
             "description": "The export, as an attachment",
         },
-        **error_responses(404, 409, 413, 422),
+        **error_responses(404, 409, 413, 422, 503),
     },
 )
 def get_export(
@@ -424,7 +424,7 @@ def get_export(
     to whole blocks), showing the block's most occupied known cell (unknown only if every cell is
     unknown): obstacles are kept, not averaged away. 409 for a map with no observed cell, 422 for a
     map keeping only the TSDF or a resolution that is not such a multiple, 413 past the export limit
-    (counted in exported cells)."""
+    (counted in exported cells), 503 as for /region when the map spans more than 1048576 cells."""
     gmap = state.entry(map_id).gmap
     if map_source(gmap) is None:
         raise ApiError(422, "this map keeps neither an 'occupancy' nor a 'counts' layer: nothing to export")
@@ -451,14 +451,15 @@ def get_export(
             f"the map spans {window.shape[1]} x {window.shape[0]} of its cells, more than an export reads "
             f"({limit}, `max_export_read_cells`); read it by /region windows",
         )
-    if format == "ros":
-        return Response(
-            nav2_zip(gmap, window, scale=scale),
-            media_type="application/zip",
-            headers={"Content-Disposition": f'attachment; filename="{map_id}.zip"'},
+    with large_read(state.large_reads, window.cells) as read:
+        if format == "ros":
+            return read.answer(
+                nav2_zip(gmap, window, scale=scale),
+                media_type="application/zip",
+                headers={"Content-Disposition": f'attachment; filename="{map_id}.zip"'},
+            )
+        return read.answer(
+            map_png(gmap, window, scale),
+            media_type="image/png",
+            headers={"Content-Disposition": f'attachment; filename="{map_id}.png"'},
         )
-    return Response(
-        map_png(gmap, window, scale),
-        media_type="image/png",
-        headers={"Content-Disposition": f'attachment; filename="{map_id}.png"'},
-    )

@@ -4,6 +4,7 @@ shared parameter types (validated map and robot ids, coordinates). The layers a 
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, get_args
@@ -66,6 +67,23 @@ class EventStreamSlots(Slots):
         self.closing = True
 
 
+class ThreadSlots(Slots):
+    """`Slots` taken and given back from any thread: by the plain-function routes on the thread pool,
+    and by their answers on the event loop once sent (`api.large_reads`)."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(limit)
+        self._lock = threading.Lock()
+
+    def acquire(self) -> bool:
+        with self._lock:
+            return super().acquire()
+
+    def release(self) -> None:
+        with self._lock:
+            super().release()
+
+
 @dataclass
 class ApiState:
     registry: MapRegistry
@@ -80,6 +98,8 @@ class ApiState:
     #: The snapshot downloads in progress (`routes_snapshot.get_snapshot`), at most
     #: `settings.max_downloads`.
     downloads: Slots = field(init=False)
+    #: The reads of big windows in progress (`api.large_reads`), at most `settings.max_large_reads`.
+    large_reads: ThreadSlots = field(init=False)
     #: The limits of a snapshot upload: its tiles' bytes and its body's (`ApiSettings`).
     snapshot_tile_bytes: int = field(init=False)
     snapshot_body_bytes: int = field(init=False)
@@ -96,6 +116,7 @@ class ApiState:
         self.event_streams = EventStreamSlots(self.settings.max_event_streams)
         self.uploads = Slots(self.settings.max_uploads)
         self.downloads = Slots(self.settings.max_downloads)
+        self.large_reads = ThreadSlots(self.settings.max_large_reads)
         self.metrics.watch_tile_cache(self.tiles)
         self.metrics.watch_gate(self.gate)
         self.metrics.watch_slots(self.event_streams, "event_streams", "Event streams (GET /maps/{id}/events)")
@@ -103,6 +124,9 @@ class ApiState:
             self.uploads, "uploads", "Uploads (PUT /maps/{id}/snapshot and /maps/{id}/import)"
         )
         self.metrics.watch_slots(self.downloads, "downloads", "Snapshot downloads (GET /maps/{id}/snapshot)")
+        self.metrics.watch_slots(
+            self.large_reads, "large_reads", "Reads of big windows (GET /maps/{id}/region, /surface, /export)"
+        )
 
     def entry(self, map_id: str) -> MapEntry:
         """The map, or MapNotFound (answered 404)."""

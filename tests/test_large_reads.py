@@ -1,0 +1,85 @@
+"""Reads of big windows (`GET /maps/{id}/region`, `/surface`, `/export` of more than 1 Mi cells) are
+limited in number at once (`ApiSettings.max_large_reads`, 4), on the real service process.
+
+Each read was bounded, but not how many ran together: a region of 16 Mi cells held about 450 MB
+while it was made and its 64 MB answer until the client read it, so eight clients at once held
+3.2 GB more, and a few dozen more memory than the machine had. Smaller windows never wait.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Iterator
+
+import httpx
+import numpy as np
+import pytest
+from service_process import ServiceProcess, wait_for
+from test_api_support import fan_scan
+from test_http_exhaustion import metric
+from test_snapshot_downloads import finish_download, start_download
+
+from fleetmap.codec import encode_json
+
+#: Big reads in progress at once (`ApiSettings.max_large_reads`).
+MAX_LARGE_READS = 4
+#: A region of 4096 x 4096 cells at 0.05 m (the most one may hold), as npy: 64 MiB, far more than the
+#: sockets between the test and the service buffer, so a client that stops reading holds it.
+BIG = "/maps/m/region?xmin=-102.4&ymin=-102.4&xmax=102.4&ymax=102.4&layer=hits"
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    with ServiceProcess(tmp_path_factory.mktemp("logs"), ["--in-memory"]) as svc:
+        scan = encode_json(fan_scan(0.0, 0.0, 0.0, [1.0] * 61), 0)
+        r = httpx.post(
+            f"{svc.base_url}/maps/m/scans",
+            params={"robot_id": "r"},
+            content=scan,
+            headers={"content-type": "application/json"},
+            timeout=30,
+        )
+        assert r.status_code == 200, r.text
+        yield svc
+
+
+def test_big_window_reads_in_progress_are_limited_and_a_client_gone_gives_its_slot_back(
+    service: ServiceProcess,
+) -> None:
+    """Four clients that asked for a 16 Mi-cell region and read nothing hold the four slots: the next
+    big region, or surface, is answered 503 with `Retry-After`, counted, having read nothing; a small
+    window is answered as ever. Clients that go away give their slots back, and the answers of those
+    that read on are whole."""
+    svc = service
+    stalled = [start_download(svc, BIG) for _ in range(MAX_LARGE_READS)]
+    try:
+        # Each answer's head has come: its read took its slot before it read the map.
+        for _, head in stalled:
+            assert head.startswith(b"HTTP/1.1 200"), head[:200]
+        refused = httpx.get(f"{svc.base_url}{BIG}", timeout=60)
+        assert refused.status_code == 503, refused.status_code
+        assert refused.headers["retry-after"] == "1"
+        assert "limit of 4 windows of more than 1048576 cells" in refused.json()["detail"]
+        window = {"xmin": -102.4, "ymin": -102.4, "xmax": 102.4, "ymax": 102.4}
+        surface = httpx.get(f"{svc.base_url}/maps/m/surface", params=window, timeout=60)
+        assert surface.status_code == 503, surface.text
+        assert metric(svc, "fleetmap_large_reads") == MAX_LARGE_READS
+        assert metric(svc, "fleetmap_large_reads_refused_total") == 2
+        small = httpx.get(f"{svc.base_url}/maps/m/region", params={"layer": "hits"}, timeout=30)
+        assert small.status_code == 200 and np.load(io.BytesIO(small.content)).sum() > 0
+        # Two clients go away before reading their answers.
+        for sock, _ in stalled[:2]:
+            sock.close()
+        wait_for(lambda: metric(svc, "fleetmap_large_reads") == 2, timeout=30, what="2 slots back")
+        again = httpx.get(f"{svc.base_url}{BIG}", timeout=60)
+        assert again.status_code == 200
+        assert np.load(io.BytesIO(again.content)).shape == (4096, 4096)
+        for sock, head in stalled[2:]:
+            headers, body = finish_download(sock, head)
+            assert int(headers["content-length"]) == len(body)
+            assert np.array_equal(np.load(io.BytesIO(body)), np.load(io.BytesIO(again.content)))
+    finally:
+        for sock, _ in stalled:
+            sock.close()
+    wait_for(lambda: metric(svc, "fleetmap_large_reads") == 0, timeout=30, what="every slot back")
+    assert "Traceback" not in svc.logs(), svc.logs()
