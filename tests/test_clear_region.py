@@ -14,6 +14,8 @@ import pytest
 from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged
 from service_process import ServiceProcess
 
+from fleetmap.api.conditional import Preconditions, map_etag
+from fleetmap.api.errors import ApiError
 from fleetmap.api_models import RegionCleared, tile_windows
 from fleetmap.codec import WireScan, decode, encode_json
 from fleetmap.config import MapConfig
@@ -223,6 +225,39 @@ def test_delete_region_over_http_is_journaled_and_survives_a_crash(tmp_path: Pat
             assert client.get_map("m").stats.scans_integrated == len(scans)
             if crash:
                 assert svc.stop() == 0
+
+
+def test_a_condition_on_a_map_replaced_meanwhile_is_compared_with_the_map_there_now(
+    scans: list[Scan],
+) -> None:
+    """The route looks the map up, then clears under its lock: a map replaced in between failed its
+    `If-Match` as "there is no map 'm'", without an `ETag`, though a map was there. The 412 says what
+    the map is now and carries its tag, as every write's does (docs/api.md, "Conditional writes");
+    with that tag the clear is refused as computed for another map (409). Nothing is cleared."""
+    registry = MapRegistry(workers=1)
+    registry.start()
+    try:
+        entry, _ = registry.create("m", CONFIG)
+        done = registry.submit("m", "r", WireScan(seq=0, stamp=0.0, scan=scans[0]), wait=True)
+        assert done is not None and done.result(30).cell_updates > 0
+        registry.delete("m", wait=True)
+        now, _ = registry.create("m", CONFIG)
+        done = registry.submit("m", "r2", WireScan(seq=0, stamp=0.0, scan=scans[0]), wait=True)
+        assert done is not None and done.result(30).cell_updates > 0
+        before = _layers(now.gmap, WINDOW)
+        stale = Preconditions(if_match=[map_etag(entry)]).expectation("m")
+        with pytest.raises(ApiError) as refused:
+            registry.clear_window(entry, WINDOW, stale)
+        assert refused.value.status == 412
+        assert refused.value.headers == {"ETag": map_etag(now)}
+        assert f"its ETag is now {map_etag(now)}" in refused.value.detail, refused.value.detail
+        fresh = Preconditions(if_match=[map_etag(now)]).expectation("m")
+        with pytest.raises(MapConflict, match="deleted or replaced meanwhile; nothing was cleared"):
+            registry.clear_window(entry, WINDOW, fresh)
+        after = _layers(now.gmap, WINDOW)
+        assert all(np.array_equal(before[k], after[k], equal_nan=True) for k in STORED)
+    finally:
+        registry.close()
 
 
 def test_no_window_is_cleared_in_a_map_that_replaced_the_one_it_was_computed_for(

@@ -337,6 +337,15 @@ class MapRegistry:
                         "snapshot", f"snapshot of map {entry.id} failed ({then}): {exc}", map_id=entry.id
                     )
 
+    def _current(self, entry: MapEntry) -> MapEntry | None:
+        """The map of `entry`'s id now: `entry` itself while it is not retired, else the map that
+        replaced it, or None. Called under the map's lock (`clear_window`): the registry's comes
+        second, the one order they nest in."""
+        if not entry.retired:
+            return entry
+        with self.lock:
+            return self.maps.get(entry.id)
+
     def _is_current(self, entry: MapEntry) -> bool:
         """Whether `entry` is still the map of its id (not deleted or replaced). Called under the
         map's lock (`DurableStore.snapshot`): the registry's comes second, the one order they nest in."""
@@ -599,7 +608,9 @@ class MapRegistry:
 
         def check() -> None:  # under the map's lock
             if expect is not None:
-                expect(None if entry.retired else entry)
+                # Compared with the map under the id now: one that replaced `entry` since it was looked
+                # up is there (its 412 names its ETag), not none.
+                expect(self._current(entry))
             if entry.retired:
                 raise MapConflict(f"map {map_id!r} was deleted or replaced meanwhile; nothing was cleared")
             if self._closing:  # its row could come after the final snapshot, and the journal's close
