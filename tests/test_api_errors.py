@@ -350,6 +350,27 @@ def test_every_bad_request_is_a_clear_4xx_and_changes_nothing(api: RunningApi) -
     assert robot["last_error"]
 
 
+def test_an_empty_window_is_refused_naming_the_cells_its_bounds_make(api: RunningApi) -> None:
+    """A window is `[floor(xmin/res), floor(xmax/res))`: at 0.05 m, bounds 0.045 m apart (0.04 and
+    0.085) make a window of one column, and bounds 0.039 m apart (0.01 and 0.049) none. The refusal
+    said "xmax must be at least one cell beyond xmin", wrong both ways; it names the cells the bounds
+    make, for GET and DELETE alike."""
+    c = api.client
+    one = c.get(
+        "/maps/e/region", params={"xmin": 0.04, "ymin": 0.0, "xmax": 0.085, "ymax": 1.0, "layer": "hits"}
+    )
+    assert one.status_code == 200 and one.headers["x-fleetmap-window"] == "0,0,1,20"
+    none = {"xmin": 0.01, "ymin": 0.0, "xmax": 0.049, "ymax": 1.0}
+    for r in (
+        c.get("/maps/e/region", params={**none, "layer": "hits"}),
+        c.delete("/maps/e/region", params=none),
+    ):
+        assert r.status_code == 422, r.text
+        detail = r.json()["detail"]
+        assert "the window holds no cell" in detail and "[0, 0) x [0, 20)" in detail, detail
+        assert "at least one cell beyond" not in detail
+
+
 def test_validation_errors_list_every_problem(api: RunningApi) -> None:
     r = api.client.get(
         "/maps/e/region", params={"xmin": "a", "ymin": "b", "xmax": 1, "ymax": 1, "layer": "x"}

@@ -107,10 +107,13 @@ def _window(
         res = gmap.resolution
         window = Window(*(_edge(float(bound), res) for bound in (xmin, ymin, xmax, ymax)))
         if window.i1 <= window.i0 or window.j1 <= window.j0:
+            # The cells the bounds make, not a rule of thumb: "xmax at least one cell beyond xmin"
+            # was wrong both ways (0.04 to 0.085 at 0.05 m is a column; 0.01 to 0.049 none).
             raise ApiError(
                 422,
-                f"the window holds no cell: at resolution {res} m, xmax must be at least one cell "
-                "beyond xmin and ymax one cell beyond ymin",
+                f"the window holds no cell: at resolution {res} m the bounds make the cells "
+                f"[{window.i0}, {window.i1}) x [{window.j0}, {window.j1}) (floor(bound / resolution) of "
+                "each): xmax must lie in a later cell than xmin, and ymax than ymin",
             )
     ny, nx = window.shape
     if limit is not None and window.cells > limit:
