@@ -208,6 +208,9 @@ def test_delete_region_over_http_is_journaled_and_survives_a_crash(tmp_path: Pat
         assert info.stats.version == version
         assert result.window == [WINDOW.i0, WINDOW.j0, WINDOW.i1, WINDOW.j1]
         assert (result.cells_cleared, result.changed_tiles) == (cells, tiles) and cells > 1000
+        # The tiles stay stored, as docs/api.md says: clearing frees no memory (deleting the map does).
+        stats = client.get_map("m").stats
+        assert (stats.tiles, stats.memory_bytes) == (info.stats.tiles, info.stats.memory_bytes)
         # Viewers are told: the changed tiles come in the event stream as a scan's would.
         stream = client.events("m", since=version)
         event, data = next(stream)
