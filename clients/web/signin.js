@@ -50,15 +50,28 @@ function rememberSignedIn(signedIn) {
   } catch (_) { /* storage blocked: "Sign out" shows until the page is reloaded */ }
 }
 
-/** Signed in, here or in another tab: the form goes (forgetting what was typed) and the maps are read. */
-function signedIn() {
+/**
+ * The form goes (forgetting what was typed) and the maps are read: signed in, here or in another tab
+ * (`session`), or without a session where none is needed (reads are open).
+ */
+function closeSignIn(session) {
   signInToken.value = '';
   signInToken.removeAttribute('aria-invalid');
   signInError.hidden = true;
   signInEl.hidden = true;
-  rememberSignedIn(true);
+  rememberSignedIn(session);
   setConnection('starting');
   refreshMaps();
+}
+
+/** Whether the service lets this browser read the maps as it is (a read answers, with no token asked). */
+async function readsAreOpen() {
+  try {
+    const resp = await fetch('maps', { headers: { Accept: 'application/json' }, cache: 'no-store' });
+    return resp.ok;
+  } catch (_) {
+    return false;
+  }
 }
 
 /** Handle the sign-in form and the "Sign out" button. */
@@ -82,12 +95,20 @@ export function handleSignInAndOut() {
       signInFailed(`cannot reach the service (${err.message})`);
       return;
     }
+    // 404: the service runs without tokens (it restarted without them while the form was shown), so
+    // there is nothing to sign in to and reads need no token: show the maps. The form said so and
+    // stayed, and only a reload showed them. Only if a read works, though: a 404 of a proxy that
+    // does not pass `session` on must not hide the form the reads still need.
+    if (resp.status === 404 && await readsAreOpen()) {
+      closeSignIn(false);
+      return;
+    }
     if (!resp.ok) {
       signInFailed(resp.status === 401 ? 'unknown token: check it and try again'
         : `cannot sign in: ${resp.status} ${await errorDetail(resp)}`);
       return;
     }
-    signedIn();
+    closeSignIn(true);
   });
 
   // Signing out clears the cookie; the next request then shows the form (or, if reads are open after
@@ -113,7 +134,7 @@ export function handleSignInAndOut() {
   // Signed in in another tab of this browser (the cookie is shared): this tab's form, which no
   // request is made under, would have asked for the token again until reloaded.
   window.addEventListener('storage', (e) => {
-    if (e.key === SIGNED_IN_KEY && e.newValue === '1' && !signInEl.hidden) signedIn();
+    if (e.key === SIGNED_IN_KEY && e.newValue === '1' && !signInEl.hidden) closeSignIn(true);
   });
 
   // Clicks, drags and the wheel over the form are the form's, not the map's under it.
