@@ -272,3 +272,36 @@ def test_a_service_back_without_tokens_lets_the_form_show_the_maps(
     assert page.is_hidden("#sign-out") and _session_cookies(page) == []  # no session: none is needed
     assert page.input_value("#sign-in-token") == ""
     assert not page.page_errors, page.page_errors
+
+
+def test_the_form_says_when_the_browser_does_not_keep_the_session_cookie(
+    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    """The service accepts the token but the browser keeps no cookie (cookies blocked for the site, or
+    a `Secure` cookie, a proxy having said https, on a page served over http: simulated here by an
+    answer without the cookie). The form says so, not an unknown token, and the token field is not
+    marked wrong. (It went and came back at once, emptied, saying nothing: the user could only
+    retype the right token, to the same end.)"""
+    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}")
+    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
+    page.goto(f"{svc.base_url}/")
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form")
+
+    def accept_without_a_cookie(route: Any) -> None:
+        if route.request.method == "POST":
+            route.fulfill(status=200, json={"role": "read"})
+        else:
+            route.continue_()
+
+    page.route("**/session", accept_without_a_cookie)
+    _sign_in(page, READ)
+    _wait(
+        page,
+        "() => document.getElementById('sign-in-error').textContent"
+        ".includes('did not keep the session cookie')",
+        what="why the sign-in did not take",
+    )
+    assert page.is_visible("#sign-in") and page.is_hidden("#sign-out")
+    assert page.get_attribute("#sign-in-token", "aria-invalid") is None  # the token is right
+    assert page.inner_text("#status-text") == "sign in to see the maps"
+    assert not page.page_errors, page.page_errors

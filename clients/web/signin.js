@@ -33,11 +33,15 @@ export function needSignIn() {
   signInToken.focus();
 }
 
-/** Say why signing in failed, under the form's button (an alert: a screen reader says it). */
-function signInFailed(message) {
+/**
+ * Say why signing in failed, under the form's button (an alert: a screen reader says it).
+ * `tokenWrong`: the token itself was refused (the field is marked invalid, to be corrected).
+ */
+function signInFailed(message, tokenWrong = true) {
   signInError.textContent = message;
   signInError.hidden = false;
-  signInToken.setAttribute('aria-invalid', 'true');
+  if (tokenWrong) signInToken.setAttribute('aria-invalid', 'true');
+  else signInToken.removeAttribute('aria-invalid');
   signInToken.focus();
 }
 
@@ -64,13 +68,14 @@ function closeSignIn(session) {
   refreshMaps();
 }
 
-/** Whether the service lets this browser read the maps as it is (a read answers, with no token asked). */
-async function readsAreOpen() {
+/** The status of a read made as this browser is (with the session cookie it keeps, if any); 0 if the
+ * service cannot be reached. */
+async function readStatus() {
   try {
     const resp = await fetch('maps', { headers: { Accept: 'application/json' }, cache: 'no-store' });
-    return resp.ok;
+    return resp.status;
   } catch (_) {
-    return false;
+    return 0;
   }
 }
 
@@ -99,13 +104,24 @@ export function handleSignInAndOut() {
     // there is nothing to sign in to and reads need no token: show the maps. The form said so and
     // stayed, and only a reload showed them. Only if a read works, though: a 404 of a proxy that
     // does not pass `session` on must not hide the form the reads still need.
-    if (resp.status === 404 && await readsAreOpen()) {
+    if (resp.status === 404 && await readStatus() === 200) {
       closeSignIn(false);
       return;
     }
     if (!resp.ok) {
       signInFailed(resp.status === 401 ? 'unknown token: check it and try again'
         : `cannot sign in: ${resp.status} ${await errorDetail(resp)}`);
+      return;
+    }
+    // The answer set the session cookie, but the browser may not keep it: cookies blocked for this
+    // site, or a `Secure` one (a proxy told the service the request came over https) on a page served
+    // over http. Then the form went, the first read was refused, and it came back at once, saying
+    // nothing. A read tells; the page keeps no token either way.
+    if (await readStatus() === 401) {
+      signInToken.value = '';
+      signInFailed('the service accepted the token, but this browser did not keep the session cookie: '
+        + 'allow cookies for this site (behind a proxy: open the viewer over https if the proxy says '
+        + 'https to the service)', false);
       return;
     }
     closeSignIn(true);
