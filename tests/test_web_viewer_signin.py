@@ -305,3 +305,36 @@ def test_the_form_says_when_the_browser_does_not_keep_the_session_cookie(
     assert page.get_attribute("#sign-in-token", "aria-invalid") is None  # the token is right
     assert page.inner_text("#status-text") == "sign in to see the maps"
     assert not page.page_errors, page.page_errors
+
+
+def test_the_form_says_why_it_asks_again_when_a_session_ends(
+    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    """The token of the page's session is revoked while its map is shown: the form that replaces the
+    map says the session ended and why it may have (it said only what it says to a first visitor,
+    that the service needs a token, and the map the user was watching was simply gone). Signing out,
+    which the user asked for, and a first visit say nothing of the kind."""
+    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
+    assert svc.proc is not None
+    _map_with_a_robot(svc.base_url)
+    page.goto(f"{svc.base_url}/#map={MAP_ID}")
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form")
+    assert page.is_hidden("#sign-in-error")  # a first visit: nothing ended
+    _sign_in(page, READ)
+    _wait(page, _CONNECTED_JS, what="connected")
+
+    _tokens(tokens, f"write {WRITE}")
+    svc.proc.send_signal(signal.SIGHUP)
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form after the token was revoked")
+    _wait(page, "() => !document.getElementById('sign-in-error').hidden", what="why the form is back")
+    said = page.inner_text("#sign-in-error")
+    assert "session has ended" in said and "revoked" in said, said
+    assert page.get_attribute("#sign-in-token", "aria-invalid") is None  # nothing typed was wrong
+
+    _sign_in(page, WRITE)
+    _wait(page, _CONNECTED_JS, what="connected again")
+    page.click("#sign-out")
+    _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form after signing out")
+    assert page.is_hidden("#sign-in-error"), page.inner_text("#sign-in-error")
+    assert not page.page_errors, page.page_errors

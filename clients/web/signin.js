@@ -13,13 +13,19 @@ import { errorDetail } from './rest.js';
 import { state } from './state.js';
 import { setConnection, showError } from './status.js';
 
+/** What the form says when it takes the place of a session's map (see needSignIn). */
+const SESSION_ENDED = 'Your session has ended: its token was revoked or replaced, or this browser signed '
+  + 'out in another tab or was closed since. Sign in again to see the maps.';
+
 /**
  * A read was refused for want of a valid token: nothing of the maps stays on the page (its user
  * may no longer see them; the URL keeps the map and view, shown again after signing in), and the
- * sign-in form takes the map's place.
+ * sign-in form takes the map's place. Where this browser held a session (it showed "Sign out"), the
+ * form says the session ended: a map being watched vanished with no word of why.
  */
 export function needSignIn() {
   if (!signInEl.hidden) return;
+  const ended = !signOutButton.hidden; // signing out hides it first: no news to the user who asked
   deselectMap(true);
   setMapOptions([]);
   mapSelect.disabled = true;
@@ -27,7 +33,9 @@ export function needSignIn() {
   clearTimeout(state.errorTimer);
   errorEl.hidden = true;
   rememberSignedIn(false);
-  signInError.hidden = true;
+  signInError.textContent = ended ? SESSION_ENDED : '';
+  signInError.hidden = !ended;
+  signInToken.removeAttribute('aria-invalid');
   signInEl.hidden = false;
   setConnection('signin');
   signInToken.focus();
