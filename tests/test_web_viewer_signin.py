@@ -160,7 +160,8 @@ def test_the_viewer_says_when_sign_ins_are_refused_for_a_while(
     page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
 ) -> None:
     """Past the failed sign-ins allowed (here one), the form says why it cannot sign in and when to
-    try again (the 429's detail), rather than calling the right token unknown."""
+    try again (the 429's detail), rather than calling the right token unknown, nor marking it wrong
+    (a screen reader said the field was invalid, as after an unknown token)."""
     tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}")
     svc = service_factory(
         "--in-memory", "--auth-tokens", str(tokens), "--require-read-token", "--max-failed-sign-ins", "1"
@@ -169,6 +170,7 @@ def test_the_viewer_says_when_sign_ins_are_refused_for_a_while(
     _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form")
     _sign_in(page, UNKNOWN)
     _wait(page, "() => document.getElementById('sign-in-error').textContent.includes('unknown token')")
+    assert page.get_attribute("#sign-in-token", "aria-invalid") == "true"
     _sign_in(page, READ)
     _wait(
         page,
@@ -176,6 +178,7 @@ def test_the_viewer_says_when_sign_ins_are_refused_for_a_while(
         what="the 429's detail under the form",
     )
     assert "try again in" in page.inner_text("#sign-in-error")
+    assert page.get_attribute("#sign-in-token", "aria-invalid") is None
     assert page.is_visible("#sign-in") and _session_cookies(page) == []
     assert not page.page_errors, page.page_errors
 

@@ -105,7 +105,7 @@ export function handleSignInAndOut() {
         cache: 'no-store',
       });
     } catch (err) {
-      signInFailed(`cannot reach the service (${err.message})`);
+      signInFailed(`cannot reach the service (${err.message})`, false);
       return;
     }
     // 404: the service runs without tokens (it restarted without them while the form was shown), so
@@ -116,9 +116,14 @@ export function handleSignInAndOut() {
       closeSignIn(false);
       return;
     }
+    // Only a 401 says the token is wrong; others (429: too many failed sign-ins from this address,
+    // 503, ...) say nothing of it, and a right token must not be marked invalid.
+    if (resp.status === 401) {
+      signInFailed('unknown token: check it and try again');
+      return;
+    }
     if (!resp.ok) {
-      signInFailed(resp.status === 401 ? 'unknown token: check it and try again'
-        : `cannot sign in: ${resp.status} ${await errorDetail(resp)}`);
+      signInFailed(`cannot sign in: ${resp.status} ${await errorDetail(resp)}`, false);
       return;
     }
     // The answer set the session cookie, but the browser may not keep it: cookies blocked for this
