@@ -530,3 +530,22 @@ def test_healthz_tells_no_map_ids_or_files_to_a_client_that_may_not_read(tmp_pat
             told = httpx.get(f"{url}/healthz", headers=headers).json()["storage"]
             assert told["maps_awaiting_snapshot"] == ["site-7"], told
             assert str(data) in told["last_error"] and "deleted or replaced" in told["last_error"]
+
+
+def test_healthz_names_no_ros_map_or_topic_to_a_client_that_may_not_read(tmp_path: Path) -> None:
+    """With the ROS side on (`--ros-scans`, `--ros-publish-map`), `/healthz`'s `zenoh` held the ROS
+    ingest's and publisher's status: the map each builds or publishes, its topics and keys, the
+    robots' namespaces. With reads needing a token, a client without one read there the map ids
+    `GET /maps` refused it. It is told the session's own status; a reader is told the ROS parts too."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"read {READ}")
+    args = ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token"]
+    args += ["--ros-scans", "site-7", "--ros-publish-map", "site-7=/site_7_grid"]
+    with ServiceProcess(tmp_path, args) as svc:
+        anyone = httpx.get(f"{svc.base_url}/healthz")
+        assert anyone.status_code == 200 and anyone.json()["zenoh"]["running"] is True
+        assert "site-7" not in anyone.text and "site_7" not in anyone.text, anyone.text
+        assert "ros" not in anyone.json()["zenoh"] and "ros_maps" not in anyone.json()["zenoh"]
+        for headers in (bearer(READ), cookie(session_of(READ))):
+            told = httpx.get(f"{svc.base_url}/healthz", headers=headers).json()["zenoh"]
+            assert told["ros"]["map_id"] == "site-7", told
+            assert told["ros_maps"]["topics"]["/site_7_grid"]["map_id"] == "site-7", told

@@ -130,6 +130,20 @@ class StorageStatus(_Model):
         )
 
 
+#: The keys of `Health.zenoh` under which `fleetmap serve` adds its ROS side's status
+#: (`serve_ros.zenoh_status`): the ROS scan ingest's (`--ros-scans`) and the ROS map publisher's
+#: (`--ros-publish-map`). They name maps, topics and robots' namespaces.
+ZENOH_ROS_SCANS = "ros"
+ZENOH_ROS_MAPS = "ros_maps"
+
+
+def withheld_zenoh_status(status: dict[str, Any]) -> dict[str, Any]:
+    """`Health.zenoh` as a client that may not read the maps sees it: the Zenoh session's own status,
+    without the ROS parts (`ZENOH_ROS_SCANS`, `ZENOH_ROS_MAPS`), which name the maps they build and
+    publish, their topics and the robots' namespaces (map ids are what reads need a token for)."""
+    return {key: value for key, value in status.items() if key not in (ZENOH_ROS_SCANS, ZENOH_ROS_MAPS)}
+
+
 class Health(_Model):
     """`GET /healthz`."""
 
@@ -139,7 +153,11 @@ class Health(_Model):
     maps: int = Field(description="maps held")
     robots_online: int = Field(description="robots with a live liveliness token, over all maps")
     queue_depth: int = Field(description="scans waiting for integration")
-    zenoh: dict[str, Any] | None = Field(default=None, description="the Zenoh session's status, if any")
+    zenoh: dict[str, Any] | None = Field(
+        default=None,
+        description="the Zenoh session's status, if any, with its ROS side's under `ros` and `ros_maps` "
+        "(left out to a client without a read token, where the service requires one: they name maps)",
+    )
     storage: StorageStatus | None = Field(
         default=None, description="durable storage's health; null with --in-memory"
     )

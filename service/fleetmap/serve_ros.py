@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from fleetmap.api_models import ZENOH_ROS_MAPS, ZENOH_ROS_SCANS
 from fleetmap.cli import CliError
 
 if TYPE_CHECKING:
@@ -105,16 +106,17 @@ def zenoh_status(
     ingest: ZenohIngest, ros: RosScanIngest | None, ros_maps: Any
 ) -> Callable[[], dict[str, Any]]:
     """`GET /healthz`'s `zenoh`: the session's status, with the ROS ingest's under `ros` and the ROS
-    map publisher's under `ros_maps`."""
+    map publisher's under `ros_maps` (`api_models.ZENOH_ROS_SCANS`, `ZENOH_ROS_MAPS`: withheld from a
+    client that may not read)."""
     if ros is None and ros_maps is None:
         return ingest.status
 
     def status() -> dict[str, Any]:
         parts = ingest.status()
         if ros is not None:
-            parts["ros"] = ros.status()
+            parts[ZENOH_ROS_SCANS] = ros.status()
         if ros_maps is not None:
-            parts["ros_maps"] = ros_maps.status()
+            parts[ZENOH_ROS_MAPS] = ros_maps.status()
         return parts
 
     return status

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request, Response
 
 from fleetmap.api.state import State
 from fleetmap.api.strict_requests import StrictRoute
-from fleetmap.api_models import Health, storage_status
+from fleetmap.api_models import Health, storage_status, withheld_zenoh_status
 from fleetmap.auth import may_read
 from fleetmap.metrics import CONTENT_TYPE
 
@@ -22,17 +22,17 @@ def healthz(request: Request, state: State) -> Health:
     snapshot. The service goes on integrating and serving meanwhile, and recovers by itself once
     storage works. Open to anyone (liveness probes carry no token); where reading needs a token
     (`--require-read-token`), a client without one is not told which maps storage failed for, nor
-    the error (it names maps and files)."""
+    the error (it names maps and files), nor the ROS side's status (it names the maps it builds and
+    publishes)."""
     registry = state.registry
     maps = registry.list()
     online = sum(1 for _, _, robot in registry.iter_robots() if robot.online)
     zenoh = state.settings.zenoh_status() if state.settings.zenoh_status else None
     storage = storage_status(registry.durable.health()) if registry.durable is not None else None
     settings = state.settings
-    if storage is not None and not may_read(
-        request.scope["headers"], settings.tokens, settings.require_read_token
-    ):
-        storage = storage.withheld()
+    if not may_read(request.scope["headers"], settings.tokens, settings.require_read_token):
+        storage = storage.withheld() if storage is not None else None
+        zenoh = withheld_zenoh_status(zenoh) if zenoh is not None else None
     return Health(
         status="ok" if storage is None or storage.ok else "degraded",
         maps=len(maps),
