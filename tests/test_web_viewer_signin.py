@@ -249,23 +249,30 @@ def test_signing_in_in_one_tab_signs_in_the_others(
         context.close()
 
 
-def test_a_service_back_without_tokens_lets_the_form_show_the_maps(
-    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+@pytest.mark.parametrize("tokens_after", ["none", "for writes only"])
+def test_a_service_back_with_reads_open_lets_the_form_show_the_maps(
+    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path, tokens_after: str
 ) -> None:
-    """The page asks for a token; the service restarts without tokens (reads open to anyone). Signing
-    in, which has nothing to sign in to (404), shows the maps, the form gone: the form said 'there is
-    nothing to sign in to (reads need no token)' and stayed, with no way to the maps but a reload."""
+    """The page asks for a token; the service restarts with reads open to anyone: without tokens, or
+    with tokens for writes only. Signing in, whatever it answers (404: nothing to sign in to; 401
+    for a token no longer listed), shows the maps, the form gone. The form said 'there is nothing
+    to sign in to (reads need no token)', or 'unknown token', and stayed, with no way to the maps
+    but a reload."""
     tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
     svc = service_factory("--auth-tokens", str(tokens), "--require-read-token")
     page.goto(f"{svc.base_url}/#map={MAP_ID}")
     _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form")
 
     svc.stop()
-    svc.args = [a for a in svc.args if a not in (str(tokens), "--auth-tokens", "--require-read-token")]
+    dropped = (
+        ("--require-read-token",)
+        if tokens_after != "none"
+        else (str(tokens), "--auth-tokens", "--require-read-token")
+    )
+    svc.args = [a for a in svc.args if a not in dropped]
+    _tokens(tokens, f"write {WRITE}")
     svc.start()
-    r = httpx.put(f"{svc.base_url}/maps/{MAP_ID}", json={}, timeout=10.0)
-    assert r.status_code == 201, r.text
-    _scan(svc.base_url, MAP_ID, ROBOT_ID, 1, 2.0, 2.0)
+    _map_with_a_robot(svc.base_url)
 
     _sign_in(page, READ)
     _wait(page, _SIGN_IN_GONE_JS, what="the form gone")

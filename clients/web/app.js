@@ -43,8 +43,8 @@
  * (HttpOnly: this page never sees it) that the browser then sends with every request, tiles and the
  * event stream included. The page keeps no token. A 401 later (the token was revoked) shows the form
  * again, saying the session ended; with reads open no request is ever refused, and the page never
- * shows it (a form shown before the service restarted without tokens, whose sign-in then answers
- * 404, goes on to the maps).
+ * shows it (a form shown before the service restarted with reads open goes on to the maps when
+ * its sign-in is refused, as a read then works).
  *
  * Robots are drawn incrementally: a robot's marker and trail are made once, then moved and turned in
  * place, and only when its report changed; a robot the service no longer reports is removed. The

@@ -108,11 +108,12 @@ export function handleSignInAndOut() {
       signInFailed(`cannot reach the service (${err.message})`, false);
       return;
     }
-    // 404: the service runs without tokens (it restarted without them while the form was shown), so
-    // there is nothing to sign in to and reads need no token: show the maps. The form said so and
-    // stayed, and only a reload showed them. Only if a read works, though: a 404 of a proxy that
-    // does not pass `session` on must not hide the form the reads still need.
-    if (resp.status === 404 && await readStatus() === 200) {
+    // Refused, but reads may be open by now: the service restarted while the form was shown, without
+    // tokens (then it answers 404: nothing to sign in to) or with tokens for writes only (a token no
+    // longer listed: 401). The form stayed, saying so, and only a reload showed the maps, which need
+    // no token: a read that works shows them. (A 404 is not taken for that alone: a proxy that does
+    // not pass `session` on must not hide the form the reads still need.)
+    if (!resp.ok && await readStatus() === 200) {
       closeSignIn(false);
       return;
     }
