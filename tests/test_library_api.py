@@ -245,6 +245,19 @@ def test_a_fan_whose_angles_overflow_is_refused_without_a_numpy_warning() -> Non
             Scan.from_fan((0, 0, 0), 1.0, 1e308, [1.0, 2.0, 3.0], 0.0, 10.0)
 
 
+@pytest.mark.parametrize(("theta", "angle"), [(1e308, 1e308), (-1e308, -1.7e308), (1.7e308, 1.7e308)])
+def test_a_scan_whose_heading_plus_bearing_overflows_is_refused(theta: float, angle: float) -> None:
+    """A finite heading and finite bearings can still add up to an infinite direction in the map
+    frame (1e308 + 1e308): such a scan was taken, and integrated as a streak of hits and free cells
+    in a direction it never gave (57 cells of a map changed by 3 beams that point nowhere)."""
+    gmap = GridMap()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ScanError, match="heading plus its beam angles must be finite"):
+            gmap.integrate(Scan.from_angles((1.0, 2.0, theta), [angle, angle], [1.0, 0.5], 0.05, 30.0))
+    assert gmap.known_bounds() is None
+
+
 # -- GridMap: its inputs ---------------------------------------------------------------------------
 
 

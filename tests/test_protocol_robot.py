@@ -277,6 +277,13 @@ REFUSALS = [
     ("pose", BINARY, patched(24, "<d", math.nan), "pose must be finite"),
     ("bound", BINARY, patched(32, "<d", 2e5), "outside the world bound of +-100000 m"),
     ("fan-nan", BINARY, patched(56, "<d", math.nan), "angle_min must be finite"),
+    # Each finite, their sum is not: no direction for its beams.
+    (
+        "heading",
+        BINARY,
+        doc_binary(1, 0.0, (0.0, 0.0, 1e308), [1.0, 2.0], angle_min=1e308, angle_increment=0.25),
+        "the sensor heading plus its beam angles must be finite",
+    ),
     ("beams", BINARY, patched(68, "<I", 16_385), "16385 beams is more than the limit of 16384"),
     ("session", BINARY, doc_binary(1, 0.0, (0, 0, 0), [1.0], session=0), "session must be in [1, 2**53)"),
     ("encoding", "text/plain", EXAMPLE, "unknown encoding"),

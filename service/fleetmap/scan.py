@@ -88,6 +88,11 @@ class Scan:
             raise ScanError(f"{angles.size} beams is more than the limit of {MAX_BEAMS}")
         if not np.all(np.isfinite(angles)):
             raise ScanError("beam angles must be finite")
+        if angles.size and not _directions_finite(self.pose.theta, angles):
+            raise ScanError(
+                f"the sensor heading plus its beam angles must be finite: heading {self.pose.theta:g} with "
+                f"angles from {angles.min():g} to {angles.max():g} overflows"
+            )
         if not (math.isfinite(self.range_min) and self.range_min >= 0.0):
             raise ScanError(f"range_min must be finite and >= 0, got {self.range_min}")
         if not self.range_max > self.range_min:  # inf is allowed: "no maximum"
@@ -177,6 +182,13 @@ def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
         return np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an int past float's range
         raise ScanError(f"{name} must be numbers: {exc}") from None
+
+
+def _directions_finite(theta: float, angles: np.ndarray) -> bool:
+    """Whether every beam's direction in the map frame, `theta + angle`, is finite (both finite, their
+    sum can overflow: 1e308 + 1e308). The sum rises with the angle, so its two ends tell. Such a
+    direction was integrated as a streak of cells where no beam points (its cosine is NaN)."""
+    return math.isfinite(theta + float(angles.min())) and math.isfinite(theta + float(angles.max()))
 
 
 def _as_number(name: str, value: float) -> float:
