@@ -219,6 +219,32 @@ def test_invalid_keys_are_counted_globally_and_create_nothing(
         token.undeclare()
 
 
+def test_an_invalid_key_is_logged_cut_short(
+    ingest: ZenohIngest, robot: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A key is the sender's to make as long as a Zenoh message holds (some 60 KB): its warning
+    wrote it whole, a 60 KB log line every 5 s from one peer (a scan's field names are cut short in
+    its reason; the ROS ingest cuts keys to 200 characters)."""
+    payload = codec.encode_binary(sim_scans(5, 1)[0], 0)
+    long_id = "x" * 30_000
+    with caplog.at_level(logging.WARNING, logger="fleetmap.ingest"):
+        robot.put(f"fleetmap/{long_id}/r1/scan", payload, encoding=zenoh.Encoding(BINARY_ENCODING))
+        token = robot.liveliness().declare_token(f"fleetmap/m/{long_id}/alive")
+        try:
+            wait_for(lambda: ingest.status()["invalid_keys"] == 2, what="both invalid keys")
+            wait_for(lambda: len(caplog.records) == 2, what="a line for each")
+        finally:
+            token.undeclare()
+    for record in caplog.records:
+        line = record.getMessage()
+        assert len(line) < 500, line[:300]
+        # Both keys, fleetmap/<id>/r1/scan and fleetmap/m/<id>/alive, are 30017 characters long.
+        assert "invalid key 'fleetmap/" in line and "... (30017 characters)" in line, line[:300]
+    assert {"scan", "liveliness"} == {
+        "scan" if " scan " in r.getMessage() else "liveliness" for r in caplog.records
+    }
+
+
 def test_parse_key() -> None:
     assert parse_key("fleetmap/m-1/r_2/scan", "scan") == ("m-1", "r_2")
     assert parse_key("fleetmap/m/r/alive", "scan") is None

@@ -417,8 +417,8 @@ class ZenohIngest:
         if ids is None:
             with self._lock:
                 self.invalid_keys += 1
-            self._log.warning("invalid-key", f"ignored a scan on invalid key {key!r}: ids must match "
-                              "[A-Za-z0-9_-]{1,64} in fleetmap/<map_id>/<robot_id>/scan")  # fmt: skip
+            self._log.warning("invalid-key", f"ignored a scan on invalid key {_shown_key(key)}: ids must "
+                              "match [A-Za-z0-9_-]{1,64} in fleetmap/<map_id>/<robot_id>/scan")  # fmt: skip
             return
         map_id, robot_id = ids
         try:
@@ -514,7 +514,9 @@ class ZenohIngest:
             if ids is None:
                 with self._lock:
                     self.invalid_keys += 1
-                self._log.warning("invalid-alive-key", f"ignored a liveliness token on invalid key {key!r}")
+                self._log.warning(
+                    "invalid-alive-key", f"ignored a liveliness token on invalid key {_shown_key(key)}"
+                )
                 return
             online = sample.kind == zenoh.SampleKind.PUT
             with self._lock:
@@ -565,6 +567,18 @@ class ZenohIngest:
                 "delivery_queries": self.delivery_queries,
                 "robots_alive": len(self._alive),
             }
+
+
+#: The most characters of a key a log line quotes (as the ROS ingest's lines do).
+SHOWN_KEY_CHARS = 200
+
+
+def _shown_key(key: str) -> str:
+    """`key` quoted for a log line, cut to SHOWN_KEY_CHARS with its length said. A key is the
+    sender's to make, as long as a Zenoh message holds (some 60 KB): its warning wrote it whole."""
+    if len(key) <= SHOWN_KEY_CHARS:
+        return repr(key)
+    return f"{key[:SHOWN_KEY_CHARS]!r}... ({len(key)} characters)"
 
 
 def _session_parameter(value: str | None) -> int | None:
