@@ -711,3 +711,43 @@ def test_a_scrape_holds_the_registry_lock_only_to_copy_the_counters() -> None:
     assert [(s.labels["map"], s.labels["robot"]) for s in online] == [
         (m, f"r{k}") for m in ("a", "b") for k in range(3)
     ]
+
+
+def test_the_zenoh_session_limit_is_reported_and_warned_of_when_reached(tmp_path: Path) -> None:
+    """The service's router accepts `transport/unicast/max_sessions` robots (Zenoh's default 1000)
+    and refuses the next ones at their handshake; they retry for ever, seeing what they see with no
+    service at all. The service said nothing of it, nor how many sessions it held: an operator of
+    1001 robots had no sign why one never showed. Now /healthz and /metrics give the sessions and
+    the limit, and a warning says when the limit is reached (as the config file set it here)."""
+    config = tmp_path / "zenoh.json5"
+    config.write_text("{ transport: { unicast: { max_sessions: 2 } } }")
+    with ServiceProcess(tmp_path, ["--in-memory", "--zenoh-config", str(config)]) as svc:
+        status = httpx.get(f"{svc.base_url}/healthz").json()["zenoh"]
+        assert status["sessions"] == 0 and status["max_sessions"] == 2
+        robots = [zenoh.open(zenoh_client_config(svc.zenoh_endpoint)) for _ in range(2)]
+        try:
+            with pytest.raises(zenoh.ZError, match="Unable to connect"):
+                zenoh.open(zenoh_client_config(svc.zenoh_endpoint))  # the third: refused
+            wait_for(
+                lambda: httpx.get(f"{svc.base_url}/healthz").json()["zenoh"]["sessions"] == 2,
+                10, what="two sessions in /healthz",
+            )  # fmt: skip
+            wait_for(
+                lambda: "holds 2 Zenoh sessions, its limit (transport/unicast/max_sessions)" in svc.logs(),
+                10, what="the warning",
+            )  # fmt: skip
+            metrics = {
+                s.name: s.value
+                for f in text_string_to_metric_families(httpx.get(f"{svc.base_url}/metrics").text)
+                for s in f.samples
+            }
+            assert metrics["fleetmap_zenoh_sessions"] == 2 and metrics["fleetmap_zenoh_max_sessions"] == 2
+            robots.pop().close()
+            wait_for(
+                lambda: httpx.get(f"{svc.base_url}/healthz").json()["zenoh"]["sessions"] == 1,
+                10, what="one session left",
+            )  # fmt: skip
+            robots.append(zenoh.open(zenoh_client_config(svc.zenoh_endpoint)))  # room again
+        finally:
+            for robot in robots:
+                robot.close()

@@ -475,11 +475,15 @@ class ZenohCollector(Collector):
 
     def collect(self) -> Iterator[Metric]:
         families = self._families()
-        up, routers, peers, alive, received, submitted, invalid, undecodable, refused, missed = families
+        (up, routers, peers, sessions, max_sessions, alive, received, submitted, invalid, undecodable,
+         refused, missed) = families  # fmt: skip
         status = self.status()
         up.add_metric([], 1.0 if status.get("running") else 0.0)
         routers.add_metric([], status.get("routers", 0))
         peers.add_metric([], status.get("peers", 0))
+        sessions.add_metric([], status.get("sessions", 0))
+        if status.get("max_sessions") is not None:
+            max_sessions.add_metric([], status["max_sessions"])
         alive.add_metric([], status.get("robots_alive", 0))
         received.add_metric([], status.get("messages_received", 0))
         submitted.add_metric([], status.get("scans_submitted", 0))
@@ -511,6 +515,15 @@ class ZenohCollector(Collector):
                 "Zenoh routers the session is connected to (0 in client mode: the router is unreachable)",
             ),
             GaugeMetricFamily("fleetmap_zenoh_peers", "Zenoh peers the session is connected to"),
+            GaugeMetricFamily(
+                "fleetmap_zenoh_sessions",
+                "Zenoh unicast sessions connected to the service's session (robots; routers and peers too)",
+            ),
+            GaugeMetricFamily(
+                "fleetmap_zenoh_max_sessions",
+                "The most Zenoh sessions the service's session accepts (transport/unicast/max_sessions); "
+                "robots past it are refused at their handshake",
+            ),
             GaugeMetricFamily(
                 "fleetmap_zenoh_robots_alive", "Robot liveliness tokens the session sees (every map)"
             ),

@@ -244,6 +244,11 @@ class ZenohIngest:
         self.unrecoverable = 0
         self.liveliness_events = 0
         self.delivery_queries = 0  # delivery queries answered (errors included)
+        #: The Zenoh ids of the unicast sessions connected to this one now (robots; with
+        #: `--zenoh-connect`, routers and peers too), kept by `_on_transport`; and the most the
+        #: session accepts, its `transport/unicast/max_sessions` (set by `start`).
+        self._sessions: set[str] = set()
+        self.max_sessions: int | None = None
         self._log = RateLimitedLog(log)
         # Robots coming online and going offline: any Zenoh peer can declare and drop liveliness
         # tokens thousands of times a second (13000 lines a second were written, unbounded), so these
@@ -329,6 +334,7 @@ class ZenohIngest:
         if self._closed:
             raise IngestStartError("this ingest was closed; create a new one")
         cfg = self.build_config()
+        self.max_sessions = _max_sessions(cfg)
         try:
             session = zenoh.open(cfg)
         except zenoh.ZError as exc:
@@ -353,15 +359,20 @@ class ZenohIngest:
             self._subscribers.append(
                 session.declare_queryable(DELIVERY_KEY_WILDCARD, self._on_delivery_query)
             )
+            # history=True: sessions that connected before it was declared count too.
+            self._subscribers.append(
+                session.info.declare_transport_events_listener(self._on_transport, history=True)
+            )
         except zenoh.ZError as exc:
             self.close()
             raise IngestStartError(f"cannot subscribe: {zenoh_error_text(exc)}") from None
         log.info(
-            "zenoh %s session %s listening on %s%s",
+            "zenoh %s session %s listening on %s%s%s",
             self.mode,
             session.zid(),
             ", ".join(self.listen) or "nothing",
             f", connecting to {', '.join(self.connect)}" if self.connect else "",
+            "" if self.max_sessions is None else f"; at most {self.max_sessions} sessions (robots) at once",
         )
         open_endpoints = unauthenticated_endpoints(self.listen, cfg)
         if open_endpoints:
@@ -459,6 +470,34 @@ class ZenohIngest:
                 # after DELETE): make sure its robot shows as online. Under our lock so a token
                 # DELETE cannot slip in between.
                 self.registry.mark_online(map_id, robot_id)
+
+    def _on_transport(self, event: zenoh.TransportEvent) -> None:
+        """A unicast session (a robot's, or with `--zenoh-connect` a router's or peer's) connected to
+        this one or left it: count it, and warn (rate-limited) when the sessions reach
+        `max_sessions`, past which Zenoh refuses a robot at its handshake without telling this
+        session (the robot sees "Unable to connect" and retries for ever). CPU only."""
+        try:
+            transport = event.transport
+            if transport.is_multicast:
+                return
+            zid = str(transport.zid)
+            with self._lock:
+                if event.kind == zenoh.SampleKind.PUT:
+                    self._sessions.add(zid)
+                else:
+                    self._sessions.discard(zid)
+                held = len(self._sessions)
+            limit = self.max_sessions
+            if event.kind == zenoh.SampleKind.PUT and limit is not None and held >= limit:
+                self._log.warning(
+                    "max-sessions",
+                    f"the Zenoh {self.mode} holds {held} Zenoh sessions, its limit "
+                    "(transport/unicast/max_sessions): further robots are refused at their handshake "
+                    "(they see 'Unable to connect' and retry) until one leaves; raise it in the "
+                    "--zenoh-config file (docs/protocol.md)",
+                )
+        except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
+            log.exception("unexpected error handling a Zenoh transport event")
 
     def _on_miss(self, miss: zenoh.ext.Miss) -> None:
         """zenoh-ext gave up on `miss.nb` samples of the publisher `miss.source`: count and log them.
@@ -566,7 +605,16 @@ class ZenohIngest:
                 "liveliness_events": self.liveliness_events,
                 "delivery_queries": self.delivery_queries,
                 "robots_alive": len(self._alive),
+                "sessions": len(self._sessions),
+                "max_sessions": self.max_sessions,
             }
+
+
+def _max_sessions(cfg: zenoh.Config) -> int | None:
+    """The most unicast sessions a session of `cfg` accepts (`transport/unicast/max_sessions`:
+    Zenoh's default 1000, or what the `--zenoh-config` file sets); None if it says no number."""
+    value = json.loads(cfg.get_json("transport/unicast/max_sessions"))
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
 
 
 #: The most characters of a key a log line quotes (as the ROS ingest's lines do).
