@@ -13,6 +13,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import signal
 import socket
 import sqlite3
@@ -33,6 +34,7 @@ from fleetmap import serve_environment, server
 from fleetmap.api.app import WEB_DIR_ENV
 from fleetmap.auth import TOKENS_ENV
 from fleetmap.database import DB_NAME
+from fleetmap.http_limits import RESERVED_DESCRIPTORS
 from fleetmap.memory_budget import MemoryBudget
 from fleetmap.registry import QUEUE_TOTAL
 from fleetmap.wire import BINARY_ENCODING
@@ -748,6 +750,44 @@ def test_the_zenoh_session_limit_is_reported_and_warned_of_when_reached(tmp_path
                 10, what="one session left",
             )  # fmt: skip
             robots.append(zenoh.open(zenoh_client_config(svc.zenoh_endpoint)))  # room again
+        finally:
+            for robot in robots:
+                robot.close()
+
+
+def test_zenoh_sessions_are_held_to_what_the_descriptors_leave_http(tmp_path: Path) -> None:
+    """Each robot's session holds one of the service's file descriptors, and Zenoh accepted its
+    default 1000 whatever `ulimit -n` was: with 400 descriptors, 365 robots took all of them, and
+    /healthz, the REST API and the viewer went unanswered ("cannot accept HTTP connections: Too many
+    open files", 340 a second) for as long as the robots stayed. HTTP's limit was lowered to the
+    descriptors, Zenoh's not. Now Zenoh's sessions are lowered too, with a warning, so that HTTP
+    keeps its share: with 500 descriptors, 116 beyond the 384 kept for storage, half each."""
+    descriptors = 500
+    limit = (descriptors - RESERVED_DESCRIPTORS) // 2
+
+    def low_limit() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (descriptors, descriptors))
+
+    with ServiceProcess(tmp_path, ["--in-memory"], preexec_fn=low_limit) as svc:
+        status = httpx.get(f"{svc.base_url}/healthz").json()["zenoh"]
+        assert status["max_sessions"] == limit
+        assert f"at most {limit} Zenoh sessions (robots), not 1000" in svc.logs()
+        metrics = {
+            s.name: s.value
+            for f in text_string_to_metric_families(httpx.get(f"{svc.base_url}/metrics").text)
+            for s in f.samples
+        }
+        assert metrics["fleetmap_http_connections_limit"] == limit
+        robots = []
+        try:
+            for _ in range(limit):
+                robots.append(zenoh.open(zenoh_client_config(svc.zenoh_endpoint)))
+            with pytest.raises(zenoh.ZError, match="Unable to connect"):
+                zenoh.open(zenoh_client_config(svc.zenoh_endpoint))
+            # HTTP is still served, and says why no more robots connect.
+            status = httpx.get(f"{svc.base_url}/healthz", timeout=10).json()["zenoh"]
+            assert status["sessions"] == status["max_sessions"] == limit
+            wait_for(lambda: "raise the service's hard ulimit -n" in svc.logs(), 10, what="the warning")
         finally:
             for robot in robots:
                 robot.close()

@@ -12,7 +12,7 @@ token to do that: a connection is only checked once its request head has arrived
 
 - at most `max_connections` HTTP connections are open at once; the next one is answered with a
   JSON 503 and closed at once, so HTTP alone can never use up the descriptors Zenoh, SQLite and the
-  snapshot files need;
+  snapshot files need (nor Zenoh's sessions those of HTTP: `zenoh_session_limit` bounds them);
 - a request's head (request line and headers) must arrive within `head_timeout` seconds of the
   connection opening, or of the request's first byte on a kept-alive connection;
 - its body must then arrive within `body_timeout` seconds;
@@ -150,8 +150,19 @@ def raise_descriptor_limit() -> int:
 
 def connection_limit(requested: int, descriptors: int) -> int:
     """`requested`, lowered so that HTTP connections leave RESERVED_DESCRIPTORS of `descriptors`
-    (at least 16 connections)."""
+    (at least 16 connections). `descriptors`: what Zenoh's sessions leave (`zenoh_session_limit`)."""
     return max(16, min(requested, descriptors - RESERVED_DESCRIPTORS))
+
+
+def zenoh_session_limit(descriptors: int, http_requested: int) -> int:
+    """The most Zenoh sessions (robots) the service may accept with `descriptors` file descriptors:
+    what RESERVED_DESCRIPTORS and `http_requested` HTTP connections leave, but at least half of
+    those beyond the reserve (HTTP then gets the other half: `connection_limit` of what the sessions
+    leave). Each session holds a descriptor, and Zenoh's own limit (`transport/unicast/max_sessions`,
+    1000 by default) knows nothing of them: 365 robots took all of 400, and HTTP, /healthz included,
+    went unanswered while they stayed."""
+    beyond = descriptors - RESERVED_DESCRIPTORS
+    return max(1, beyond - http_requested, beyond // 2)
 
 
 class RateLimitedWarnings:

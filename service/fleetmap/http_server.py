@@ -20,7 +20,6 @@ from fleetmap.http_limits import (
     bounded_http_protocol,
     connection_limit,
     quiet_accept_errors,
-    raise_descriptor_limit,
 )
 from fleetmap.log_format import UVICORN_LOG_CONFIG, plain_line
 
@@ -69,12 +68,15 @@ def _trusted_proxies(addresses: list[str] | None) -> list[str] | str | None:
     return addresses
 
 
-def make_server(args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: Sequence[str]) -> Any:
+def make_server(
+    args: argparse.Namespace, app: Any, url: str, zenoh_endpoints: Sequence[str], descriptors: int
+) -> Any:
     """The uvicorn server of `app` with fleetmap's connection limits and log, its ready line set;
-    logs the HTTP limits and address."""
+    logs the HTTP limits and address. `descriptors`: the process's file descriptors that Zenoh's
+    sessions leave (`http_limits.zenoh_session_limit`)."""
     import uvicorn
 
-    max_connections = connection_limit(args.max_http_connections, raise_descriptor_limit())
+    max_connections = connection_limit(args.max_http_connections, descriptors)
     log.info(
         "HTTP: at most %d connections; request heads within %g s, bodies within %g s; clients that "
         "read nothing of an answer for %g s dropped",

@@ -292,7 +292,8 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         metavar="N",
         help=(
             "HTTP connections open at once; past it a new one gets 503 and is closed (default 1024, "
-            f"lowered to leave {RESERVED_DESCRIPTORS} of the process's file descriptors to Zenoh and storage)"
+            f"lowered to leave {RESERVED_DESCRIPTORS} of the process's file descriptors to Zenoh and "
+            "storage, and robots' Zenoh sessions theirs)"
         ),
     )
     p.add_argument(

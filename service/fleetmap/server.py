@@ -61,6 +61,7 @@ from fleetmap.cli import CliError, load_config, parse_command_line, run_command
 from fleetmap.codec import InputLimits
 from fleetmap.config import MapConfig
 from fleetmap.database import StorageError
+from fleetmap.http_limits import raise_descriptor_limit, zenoh_session_limit
 from fleetmap.http_server import bind_http, make_server, url_host
 from fleetmap.log_format import configure_logging
 from fleetmap.malloc_arenas import (
@@ -158,12 +159,15 @@ def run(args: argparse.Namespace) -> int:
             max_robots_per_map=args.max_robots_per_map,
             input_limits=options.input_limits,
         )
+        # Zenoh's sessions (one descriptor each) and HTTP's connections share the descriptors.
+        descriptors = raise_descriptor_limit()
         ingest = ZenohIngest(
             registry,
             listen=args.zenoh_listen,
             connect=args.zenoh_connect,
             config_file=args.zenoh_config,
             shared_memory=args.zenoh_shared_memory,
+            session_limit=zenoh_session_limit(descriptors, args.max_http_connections),
         )
         try:
             registry.start()  # restores the stored maps
@@ -207,7 +211,10 @@ def run(args: argparse.Namespace) -> int:
             )
             app = options.create_app(registry, settings=settings)
             _log_protection(args, tokens, durable is not None, options.default_config)
-            server = make_server(args, app, f"http://{url_host(options.host)}:{port}", ingest.endpoints)
+            server = make_server(
+                args, app, f"http://{url_host(options.host)}:{port}", ingest.endpoints,
+                descriptors - (ingest.max_sessions or 0),
+            )  # fmt: skip
             freeze_startup_objects()
             if not stop.is_set():
                 server.run(sockets=[sock])

@@ -86,6 +86,7 @@ import contextlib
 import json
 import logging
 import re
+import resource
 import socket
 import threading
 from collections import Counter
@@ -214,6 +215,7 @@ class ZenohIngest:
         config_file: str | Path | None = None,
         mode: str | None = None,
         shared_memory: bool = False,
+        session_limit: int | None = None,
     ) -> None:
         if mode is not None and mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
@@ -225,6 +227,9 @@ class ZenohIngest:
         #: pool per local robot (430 MiB of RSS for 25 robots) and delayed each robot's first samples
         #: by up to 250 ms, while loopback TCP carries a 4 KB scan in microseconds.
         self.shared_memory = shared_memory
+        #: The most sessions the process's file descriptors hold (`http_limits.zenoh_session_limit`):
+        #: the configuration's `transport/unicast/max_sessions` is lowered to it, with a warning.
+        self.session_limit = session_limit
         self._mode_arg = mode
         # Resolved by start(): what the session actually uses.
         self.mode: str | None = None
@@ -249,6 +254,8 @@ class ZenohIngest:
         #: session accepts, its `transport/unicast/max_sessions` (set by `start`).
         self._sessions: set[str] = set()
         self.max_sessions: int | None = None
+        #: How to accept more sessions, for the warning at the limit (`_bounded_sessions`).
+        self._more_sessions = "raise it in the --zenoh-config file (docs/protocol.md)"
         self._log = RateLimitedLog(log)
         # Robots coming online and going offline: any Zenoh peer can declare and drop liveliness
         # tokens thousands of times a second (13000 lines a second were written, unbounded), so these
@@ -334,7 +341,7 @@ class ZenohIngest:
         if self._closed:
             raise IngestStartError("this ingest was closed; create a new one")
         cfg = self.build_config()
-        self.max_sessions = _max_sessions(cfg)
+        self.max_sessions = self._bounded_sessions(cfg)
         try:
             session = zenoh.open(cfg)
         except zenoh.ZError as exc:
@@ -383,6 +390,23 @@ class ZenohIngest:
                 "anyone who reaches it can publish scans (see docs/security.md)",
                 ", ".join(open_endpoints),
             )
+
+    def _bounded_sessions(self, cfg: zenoh.Config) -> int | None:
+        """The most sessions `cfg` lets the session accept, lowered (in `cfg`) to `session_limit`
+        with a warning when that is fewer: a session past the descriptors took those HTTP needs."""
+        configured = _max_sessions(cfg)
+        limit = self.session_limit
+        if limit is None or (configured is not None and configured <= limit):
+            return configured
+        cfg.insert_json5("transport/unicast/max_sessions", json.dumps(limit))
+        self._more_sessions = "it was lowered to the open files limit: raise the service's hard ulimit -n"
+        log.warning(
+            "zenoh: at most %d Zenoh sessions (robots), not %s: this process may open %s files "
+            "(ulimit -n), each session holds one, and HTTP needs its share; raise the hard limit for "
+            "more robots (docs/protocol.md)",
+            limit, configured, _open_files_limit(),
+        )  # fmt: skip
+        return limit
 
     def close(self) -> None:
         """Undeclare the subscribers and close the session. Idempotent."""
@@ -493,8 +517,7 @@ class ZenohIngest:
                     "max-sessions",
                     f"the Zenoh {self.mode} holds {held} Zenoh sessions, its limit "
                     "(transport/unicast/max_sessions): further robots are refused at their handshake "
-                    "(they see 'Unable to connect' and retry) until one leaves; raise it in the "
-                    "--zenoh-config file (docs/protocol.md)",
+                    f"(they see 'Unable to connect' and retry) until one leaves; {self._more_sessions}",
                 )
         except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
             log.exception("unexpected error handling a Zenoh transport event")
@@ -615,6 +638,12 @@ def _max_sessions(cfg: zenoh.Config) -> int | None:
     Zenoh's default 1000, or what the `--zenoh-config` file sets); None if it says no number."""
     value = json.loads(cfg.get_json("transport/unicast/max_sessions"))
     return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def _open_files_limit() -> str:
+    """This process's soft limit of open files, for a log line."""
+    soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    return "unlimited" if soft == resource.RLIM_INFINITY else str(soft)
 
 
 #: The most characters of a key a log line quotes (as the ROS ingest's lines do).
