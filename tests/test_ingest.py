@@ -245,6 +245,31 @@ def test_an_invalid_key_is_logged_cut_short(
     }
 
 
+def test_a_scan_refused_at_integration_is_logged_with_its_reason(
+    registry: MapRegistry, ingest: ZenohIngest, robot: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A robot's scan refused by its map (past `max_tiles`, or the memory budget) was counted on the
+    robot and nowhere in the log, where every other refusal of a Zenoh scan is (rate-limited): the
+    robot is told nothing, and an operator reading the log saw none of its scans refused."""
+    registry.create("tiny", MapConfig(tile_size=16, max_tiles=1))
+    far = Scan.from_fan((0.4, 0.4, 0.0), -1.0, 0.1, [20.0] * 20, 0.05, 30.0)
+    with caplog.at_level(logging.WARNING, logger="fleetmap.registry"):
+        robot.put(
+            SCAN_KEY.format(map_id="tiny", robot_id="r1"),
+            codec.encode_binary(far, 7, session=5),
+            encoding=zenoh.Encoding(BINARY_ENCODING),
+        )
+        wait_for(lambda: "r1" in registry.get("tiny").robots, what="the robot")
+        state = wait_for(
+            lambda: (s := registry.get("tiny").robots["r1"]).scans_rejected and s, what="the refusal"
+        )
+        wait_for(lambda: caplog.records, what="a log line")
+    assert state.last_error is not None and "max_tiles" in state.last_error
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "scan seq 7 from tiny/r1 refused" in lines[0], lines
+    assert state.last_error in lines[0]
+
+
 def test_parse_key() -> None:
     assert parse_key("fleetmap/m-1/r_2/scan", "scan") == ("m-1", "r_2")
     assert parse_key("fleetmap/m/r/alive", "scan") is None

@@ -174,6 +174,9 @@ class MapRegistry:
         self._snapshot_log = RateLimitedLog(log)
         # Integrations that raised (bugs): one traceback per kind and place every 5 s.
         self._bug_log = RateLimitedLog(log)
+        # Robots' scans their map refused at integration (past max_tiles, the memory budget): one
+        # line per robot every 5 s, as the ingest logs the refusals before integration.
+        self._refusal_log = RateLimitedLog(log)
         self._workers = [
             threading.Thread(target=self._work, name=f"fleetmap-integrate-{k}", daemon=True)
             for k in range(workers)
@@ -1054,6 +1057,13 @@ class MapRegistry:
                     removed = self._remove_unclaimed(entry)
         future = job.future
         if future is None:
+            if not applied:  # (a failed commit is logged by the journal)
+                # No one else is told: a Zenoh or ROS robot gets no answer (a REST client gets this).
+                self._refusal_log.warning(
+                    f"refused:{job.map_id}/{job.robot_id}",
+                    f"scan seq {job.wire.seq} from {job.map_id}/{job.robot_id} refused: {reason}",
+                    map_id=job.map_id, robot_id=job.robot_id, seq=job.wire.seq,
+                )  # fmt: skip
             return
         if removed is None:
             _refuse(future, IngestRejected(reason, status))
