@@ -217,6 +217,15 @@ def test_invalid_keys_are_counted_globally_and_create_nothing(
         assert ingest.status()["scans_submitted"] == 0
     finally:
         token.undeclare()
+    # The invalid token's disappearance is not a second message ignored: it was counted again, so
+    # `invalid_keys` grew by two for each token. A valid token after it, seen in order on the same
+    # subscriber, shows that the disappearance was handled.
+    valid = robot.liveliness().declare_token("fleetmap/m/r2/alive")
+    try:
+        wait_for(lambda: ingest.status()["robots_alive"] == 1, what="the valid token")
+        assert ingest.status()["invalid_keys"] == 6
+    finally:
+        valid.undeclare()
 
 
 def test_an_invalid_key_is_logged_cut_short(

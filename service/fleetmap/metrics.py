@@ -532,7 +532,9 @@ class ZenohCollector(Collector):
                 "fleetmap_zenoh_scans_submitted", "Scans received over Zenoh and queued for integration"
             ),
             CounterMetricFamily(
-                "fleetmap_zenoh_invalid_keys", "Zenoh messages ignored: an invalid map or robot id in the key"
+                "fleetmap_zenoh_invalid_keys",
+                "Zenoh messages ignored: an invalid map or robot id in the key (scans; liveliness tokens "
+                "as they appear)",
             ),
             CounterMetricFamily("fleetmap_zenoh_decode_errors", "Zenoh scan messages not decoded"),
             CounterMetricFamily(

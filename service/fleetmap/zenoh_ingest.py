@@ -574,8 +574,9 @@ class ZenohIngest:
             key = str(sample.key_expr)
             ids = parse_key(key, "alive")
             if ids is None:
-                with self._lock:
-                    self.invalid_keys += 1
+                if sample.kind == zenoh.SampleKind.PUT:  # its disappearance is no second message
+                    with self._lock:
+                        self.invalid_keys += 1
                 self._log.warning(
                     "invalid-alive-key", f"ignored a liveliness token on invalid key {_shown_key(key)}"
                 )
