@@ -249,6 +249,45 @@ def test_signing_in_in_one_tab_signs_in_the_others(
         context.close()
 
 
+def test_signing_out_in_one_tab_signs_out_the_others(
+    browser: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    """Two tabs show the map, signed in; the user signs out in one. The other shows the form at once,
+    saying the session ended: its map and its event stream, opened with the cookie, went on until
+    its next poll of the map list (5 s), which is turned off here so that only the sign-out can end
+    them (the other tab's reaction to signing in was handled, to signing out not)."""
+    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
+    _map_with_a_robot(svc.base_url)
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    try:
+        first, second = context.new_page(), context.new_page()
+        # The second tab polls no map list (MAPS_REFRESH_MS): only what signing out does can reach it.
+        second.add_init_script(
+            "{ const every = window.setInterval;"
+            " window.setInterval = (f, ms, ...a) => (ms === 5000 ? 0 : every(f, ms, ...a)); }"
+        )
+        errors: list[str] = []
+        for tab in (first, second):
+            tab.on("pageerror", lambda e: errors.append(str(e)))
+            tab.goto(f"{svc.base_url}/#map={MAP_ID}")
+            _wait(tab, _SIGN_IN_SHOWN_JS, what="the sign-in form")
+        _sign_in(first, READ)
+        for tab in (first, second):
+            _wait(tab, _CONNECTED_JS, what="connected")
+        second.wait_for_selector(_ROW, timeout=SHOW_MS)
+
+        first.click("#sign-out")
+        _wait(first, _SIGN_IN_SHOWN_JS, what="the form in the tab that signed out")
+        _wait(second, _SIGN_IN_SHOWN_JS, what="the form in the other tab")
+        assert "session has ended" in second.inner_text("#sign-in-error")
+        assert second.is_hidden("#sign-out") and second.query_selector(_ROW) is None
+        assert second.evaluate("() => document.getElementById('status').dataset.state") == "signin"
+        assert errors == [], errors
+    finally:
+        context.close()
+
+
 @pytest.mark.parametrize("tokens_after", ["none", "for writes only"])
 def test_a_service_back_with_reads_open_lets_the_form_show_the_maps(
     page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path, tokens_after: str

@@ -162,9 +162,17 @@ export function handleSignInAndOut() {
   });
 
   // Signed in in another tab of this browser (the cookie is shared): this tab's form, which no
-  // request is made under, would have asked for the token again until reloaded.
-  window.addEventListener('storage', (e) => {
-    if (e.key === SIGNED_IN_KEY && e.newValue === '1' && !signInEl.hidden) closeSignIn(true);
+  // request is made under, would have asked for the token again until reloaded. Signed out in
+  // another: this tab's map, and its event stream opened with the cookie, went on until the next
+  // poll of the maps (5 s; never in a tab whose polls stopped): a read now shows the form, saying
+  // the session ended, or where reads are open the maps as anyone sees them, with no "Sign out".
+  window.addEventListener('storage', async (e) => {
+    if (e.key !== SIGNED_IN_KEY) return;
+    if (e.newValue === '1' && !signInEl.hidden) closeSignIn(true);
+    else if (e.newValue === null && signInEl.hidden && !signOutButton.hidden) {
+      await refreshMaps();
+      if (signInEl.hidden) signOutButton.hidden = true;
+    }
   });
 
   // Clicks, drags and the wheel over the form are the form's, not the map's under it.
