@@ -7,6 +7,7 @@ import json
 import logging
 import threading
 import time
+import tracemalloc
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -195,6 +196,32 @@ def test_each_decode_error_reason_reaches_the_robot(
     state = registry.get("m").robots["r9"]
     assert state.scans_rejected == 1 and reason in (state.last_error or "")
     assert state.scans_integrated == 0 and state.last_seq is None
+
+
+def test_an_oversized_payload_is_refused_before_it_is_copied(
+    registry: MapRegistry, ingest: ZenohIngest, robot: zenoh.Session
+) -> None:
+    """A payload over the limit (4 MiB) is refused by its size before it is copied out of Zenoh's
+    buffer: Zenoh takes messages of up to 1 GiB, and one copied whole into Python to be refused held
+    its size again (170 MB more for a 200 MB put). Python's allocations are traced meanwhile."""
+    registry.create("m")
+    size = 64 << 20
+    tracemalloc.start()
+    try:
+        robot.put(
+            SCAN_KEY.format(map_id="m", robot_id="r9"), bytes(size), encoding=zenoh.Encoding(BINARY_ENCODING),
+            congestion_control=zenoh.CongestionControl.BLOCK,  # a message this big is dropped otherwise
+        )  # fmt: skip
+        tracemalloc.reset_peak()  # the test's own 64 MB payload is not the service's
+        wait_for(lambda: ingest.status()["decode_errors"] == 1, what="the refusal", timeout=60)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    state = registry.get("m").robots["r9"]
+    assert state.scans_rejected == 1 and f"payload of {size} bytes exceeds the limit" in (
+        state.last_error or ""
+    )
+    assert peak < size // 4, f"{peak} bytes allocated by Python while a {size}-byte payload was refused"
 
 
 def test_invalid_keys_are_counted_globally_and_create_nothing(

@@ -140,15 +140,20 @@ class WireScan:
     session: int | None = None
 
 
+def check_payload_size(size: int, limits: InputLimits = DEFAULT_LIMITS) -> None:
+    """Raise `PayloadTooLarge` if a payload of `size` bytes is over `limits.max_payload_bytes`: what
+    `decode` checks first, and what a transport can check before it copies the payload out."""
+    if size > limits.max_payload_bytes:
+        raise PayloadTooLarge(f"payload of {size} bytes exceeds the limit of {limits.max_payload_bytes}")
+
+
 def decode(
     payload: bytes | bytearray | memoryview, encoding: str, limits: InputLimits = DEFAULT_LIMITS
 ) -> WireScan:
     """Decode a payload by its encoding, held to `limits`; an unknown or empty encoding is sniffed
     (JSON object or binary magic). Raises `DecodeError` (`PayloadTooLarge` past the payload limit)."""
+    check_payload_size(len(payload), limits)
     data = bytes(payload)
-    limit = limits.max_payload_bytes
-    if len(data) > limit:
-        raise PayloadTooLarge(f"payload of {len(data)} bytes exceeds the limit of {limit}")
     # Media types are case-insensitive (RFC 9110, 8.3.1), as the REST API's other JSON bodies take them.
     kind = encoding.split(";", 1)[0].strip().lower()
     if kind in SNIFFED_ENCODINGS:

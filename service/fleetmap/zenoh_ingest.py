@@ -439,11 +439,11 @@ class ZenohIngest:
 
     def _on_scan(self, sample: zenoh.Sample) -> None:
         try:
-            self._handle_scan(str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding))
+            self._handle_scan(str(sample.key_expr), sample.payload, str(sample.encoding))
         except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
             log.exception("unexpected error handling a scan sample on %s", sample.key_expr)
 
-    def _handle_scan(self, key: str, payload: bytes, encoding: str) -> None:
+    def _handle_scan(self, key: str, payload: zenoh.ZBytes | bytes, encoding: str) -> None:
         """Parse, decode and submit one scan sample. Never blocks: every step is CPU only, and
         `MapRegistry.submit` refuses rather than waits when the queue is full."""
         with self._lock:
@@ -456,8 +456,13 @@ class ZenohIngest:
                               "match [A-Za-z0-9_-]{1,64} in fleetmap/<map_id>/<robot_id>/scan")  # fmt: skip
             return
         map_id, robot_id = ids
+        limits = self.registry.input_limits
         try:
-            wire = codec.decode(payload, encoding, self.registry.input_limits)
+            # Its size before it is copied out of Zenoh's buffer: Zenoh takes messages of up to
+            # 1 GiB, and a 200 MB put was copied whole into Python, 170 MB more held, to be refused.
+            codec.check_payload_size(len(payload), limits)
+            data = payload if isinstance(payload, bytes) else payload.to_bytes()
+            wire = codec.decode(data, encoding, limits)
         except codec.DecodeError as exc:
             if exc.scan_id is None:
                 reason = f"undecodable {encoding or 'unspecified'} payload: {exc}"
