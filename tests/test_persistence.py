@@ -830,6 +830,31 @@ def test_a_deleted_map_leaves_nothing_behind_in_the_store(tmp_path: Path) -> Non
         registry.close()
 
 
+def test_a_map_removed_before_its_creation_is_stored_leaves_nothing_behind(tmp_path: Path) -> None:
+    """A map removed while its creation still waits for the journal writer (a scan's map removed
+    again at once, `MapRegistry._remove_unclaimed`: the queue full, the memory budget used up) left
+    its last journal id behind: the creation, stored after the removal had cleared the map id's
+    bookkeeping, set it again, one entry for every such map id for the service's whole life."""
+    registry = MapRegistry(MapConfig(tile_size=16), durable=DurableStore(tmp_path))
+    registry.start()
+    store = registry.durable
+    assert store is not None
+    try:
+        gate = threading.Event()
+        held = store.writer.submit(lambda _conn: gate.wait(10))  # the writer is busy: creations wait
+        for k in range(5):
+            registry.create(f"brief-{k}")
+            registry.delete(f"brief-{k}")
+        registry.create("kept")
+        gate.set()
+        held.result(timeout=10)
+        store.writer.flush()
+        for kept in (store._created, store._last_journal_id, store._rows_since, store._snapshot_clock):
+            assert set(kept) <= {"kept"}, kept
+    finally:
+        registry.close()
+
+
 def test_a_data_directory_that_is_a_file_is_refused_saying_so(tmp_path: Path) -> None:
     """`--data-dir BACKUP/fleetmap.db` (the database, where its directory was meant) said "cannot
     create data directory .../fleetmap.db: File exists"."""

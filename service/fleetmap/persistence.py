@@ -514,7 +514,11 @@ class DurableStore:
             _bury(conn, stones)
             conn.execute("COMMIT")
             self._buried(map_id)
-            self._last_journal_id[map_id] = 0
+            with self._maps_lock:
+                # Only while this map is the one of its id: removed before its creation was stored
+                # (`map_deleted` has dropped the id's bookkeeping already), set here it stayed for good.
+                if self._created.get(map_id) == created:
+                    self._last_journal_id[map_id] = 0
 
         return self.writer.change_map(map_id, self._reporting(f"storing the new map {map_id!r} failed", op))
 
