@@ -1042,6 +1042,45 @@ def test_refusals_from_before_a_robot_was_on_its_map_do_not_hold_up_its_flush_af
     reg.close()
 
 
+@pytest.mark.parametrize("want", ["map", "room"])
+def test_scans_refused_before_a_robot_was_on_its_map_count_as_refused_once_it_is(want: str) -> None:
+    """A robot started before its map was made (`--no-auto-create`), or while the map was full of
+    online robots: its first scans are refused and remembered, its flush says so. Once the map
+    was made (or had room) and took its next scans, the answer listed the session from its first
+    scan on the map only, and the refused scans, which the service still remembered, vanished from
+    it: "12 scans published, 6 integrated: 5 unconfirmed" with `settled` true and no `last_error`,
+    where docs/clients.md promises they count as refused, saying why."""
+    reg = MapRegistry(auto_create=want == "room", max_robots_per_map=1)
+    reg.start()
+    try:
+        if want == "room":
+            reg.set_online("m", "other", True)  # the map's one robot, online: no room for "r"
+        for seq in range(5):
+            with pytest.raises(IngestRejected, match="no map" if want == "map" else "already has 1 robots"):
+                reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 7))
+        if want == "map":
+            reg.create("m")
+        else:
+            reg.set_online("m", "other", False)  # gone: forgotten to make room for "r"
+        futures = [reg.submit("m", "r", WireScan(s, float(s), _scan(), 7), wait=True) for s in range(6, 12)]
+        for future in futures:
+            assert future is not None
+            future.result(timeout=30)
+        status = reg.delivery_status("m", "r", 7)
+        report = delivery_report(status, 7, 0, 11)  # seq 5 never came: lost
+        assert (report.settled, report.integrated, report.refused, report.lost, report.unsettled) == (
+            True, 6, 5, 1, 0,
+        ), (report, status)  # fmt: skip
+        assert report.counted_from == 0 and not report.confirmed, report
+        reason = "no map 'm' (auto-create is off)" if want == "map" else "already has 1 robots"
+        assert report.last_error is not None and reason in report.last_error, report
+        # A flush of the first seqs only, while the robot publishes on: those, refused, one by one.
+        early = delivery_report(status, 7, 0, 2)
+        assert (early.settled, early.integrated, early.refused, early.lost) == (True, 0, 3, 0), early
+    finally:
+        reg.close()
+
+
 def test_a_scan_of_a_deleted_maps_robot_refused_again_at_the_limits_does_not_hold_up_its_flush() -> None:
     """A deleted map's robot's cache fetched again (after a restart of the service, or of its link):
     its copies are ignored as from before the deletion (the tombstone), but a copy refused at the

@@ -2,8 +2,9 @@
 
 `delivery_status` reads, under the registry's lock, a robot's counters and the ledger of each of
 its publisher sessions (`robot_state.SessionLedger`), the sessions that went with a deleted or
-replaced map (`Tombstones`), and, for a robot without its map, the scans refused for want of it
-(`UnmappedRefusals`); it builds the `DeliveryStatus` after the lock, from copies. `ScanPublisher.flush`
+replaced map (`Tombstones`), and the scans refused for want of the map or of room on it
+(`UnmappedRefusals`): all a robot without its map has, and the first scans of a robot that is on it
+now; it builds the `DeliveryStatus` after the lock, from copies. `ScanPublisher.flush`
 asks for it (docs/protocol.md, "Delivery confirmation"); `ZenohIngest._on_delivery_query` answers.
 """
 
@@ -12,7 +13,7 @@ from __future__ import annotations
 from array import array
 from typing import TYPE_CHECKING
 
-from fleetmap.robot_state import SessionSeqs, pairs
+from fleetmap.robot_state import LEDGER_HISTORY, MAX_SESSIONS, SessionSeqs, pairs
 from fleetmap.wire import BuriedSession, DeliveryStatus, SessionDelivery
 
 if TYPE_CHECKING:
@@ -27,7 +28,8 @@ def delivery_status(
     its session id, 0 for scans without one), its ledger; and the sessions whose scans went with
     a deleted or replaced map of this id (`Tombstones`), so that a robot stops waiting for them.
     Not those of a robot the map merely forgot (`Tombstone.forgotten`): its scans are in the map.
-    Holds the registry's lock briefly."""
+    Its scans refused before it was on the map (for want of the map, or of room on it) are in its
+    sessions too (`_with_refusals_before`). Holds the registry's lock briefly."""
     with registry.lock:
         entry = registry.maps.get(map_id)
         robot = None if entry is None else entry.robots.get(robot_id)
@@ -54,7 +56,10 @@ def delivery_status(
             if seqs.ledger.first_seq is not None and (session is None or key == session)
         ]
         counters = (robot.unsettled, robot.scans_integrated, robot.lost, robot.dropped, robot.duplicates)
-        last_error = robot.last_error
+        # Remembered until the map goes or forgets the robot, but its ledgers begin at its first scan
+        # on the map: without them, its flush called the scans refused before "unconfirmed", why unsaid.
+        before, refusal = registry.unmapped.deliveries(map_id, robot_id, session)
+        last_error = robot.last_error or refusal
     # The reply is made after the lock from copies (`_session_row`): with 8 sessions' lists of
     # refused seqs and gaps full, made under it the lock was held 45 µs, and 80 with the lists
     # as arrays (boxing their ints); 2 µs now (the reply takes 80 µs).
@@ -62,8 +67,56 @@ def delivery_status(
     return DeliveryStatus(
         map_id=map_id, robot_id=robot_id, status="ok", unsettled=unsettled,
         scans_integrated=scans_integrated, lost=lost, dropped=dropped, duplicates=duplicates,
-        sessions=[_session_delivery(*row) for row in rows], buried=buried, last_error=last_error,
+        sessions=_with_refusals_before([_session_delivery(*row) for row in rows], before), buried=buried,
+        last_error=last_error,
     )  # fmt: skip
+
+
+def _with_refusals_before(
+    sessions: list[SessionDelivery], before: list[SessionDelivery]
+) -> list[SessionDelivery]:
+    """The robot's `sessions` on its map, each begun at the first of its scans refused before the
+    robot was on the map (`before`: `UnmappedRefusals.deliveries`) when those came before its first
+    scan counted there: they count as refused, the seqs between that never came as lost. A session
+    of `before` alone (a publisher that ended before the robot was on the map) is listed as it is,
+    first, with at most `MAX_SESSIONS` sessions listed in all (the robot's own last)."""
+    if not before:
+        return sessions
+    earlier = {entry.session: entry for entry in before}
+    joined = []
+    for entry in sessions:
+        first = earlier.pop(entry.session, None)
+        if first is not None and first.last_accepted < entry.first_seq:
+            entry = _joined(first, entry)
+        joined.append(entry)
+    return [*earlier.values(), *joined][-MAX_SESSIONS:]
+
+
+def _joined(first: SessionDelivery, then: SessionDelivery) -> SessionDelivery:
+    """Session `then`, as the map counts it, preceded by `first`, its scans refused before the robot
+    was on the map (all seqs below `then.first_seq`)."""
+    gap = then.first_seq - first.last_accepted - 1  # seqs between the two that never came: lost
+    refused_seqs = lost_gaps = None
+    # Listed one by one only when every seq of `first` was refused (`UnmappedRefusals` counts them,
+    # and lists none), and as many as a ledger lists.
+    listed = first.last_accepted - first.first_seq + 1
+    if (
+        first.lost == 0
+        and then.refused_seqs is not None
+        and then.lost_gaps is not None
+        and listed + len(then.refused_seqs) <= LEDGER_HISTORY
+    ):
+        refused_seqs = [*range(first.first_seq, first.last_accepted + 1), *then.refused_seqs]
+        lost_gaps = [*([(then.first_seq, gap)] if gap else []), *then.lost_gaps]
+    return then.model_copy(
+        update={
+            "first_seq": first.first_seq,
+            "refused": first.refused + then.refused,
+            "lost": first.lost + gap + then.lost,
+            "refused_seqs": refused_seqs,
+            "lost_gaps": lost_gaps,
+        }
+    )
 
 
 def _session_row(key: int, seqs: SessionSeqs) -> tuple:
