@@ -88,9 +88,59 @@ def test_a_new_scan_or_session_or_a_scan_without_session_makes_a_new_map(restart
     assert refused.status == 200
     assert restarted.get("m").robots["r"].duplicates == 1  # counted on the robot, which exists now
     restarted.submit("m", "r", wire(0, session=SESSION + 1))  # the robot's process restarted
-    restarted.submit("m", "other", wire(0, session=None))  # never re-delivered: not covered
+    restarted.submit("m", "other", WireScan(0, 5.0, SCANS[0], None))  # its robot restarted: a later stamp
     assert wait_idle(restarted)
     assert restarted.get("m").scans_integrated == 3
+
+
+def test_old_scans_without_a_session_id_of_a_deleted_map_are_ignored_after_a_restart(data: Path) -> None:
+    """A `ScanPublisher(send_session_id=False)` keeps its cache as any other, and the service fetches
+    it again after a restart: its scans, carrying no session id, were not covered by the robot's
+    tombstone, so they made the deleted map again with its old scans (seen on the real service: a
+    map deleted after 20 such scans came back after a SIGTERM and a restart, 20 scans integrated).
+    A copy carries its old stamp: one at or below the last seq with a stamp no later than the last
+    scan's is ignored, seq 0 too (the cache's first scan: taken for a restart, as a live map takes
+    seq 0, it made the map again); a robot that started its sequence again with a later stamp, or
+    without a clock (stamp 0), makes a new map, whose own bookkeeping then tells its copies. The
+    same holds for a robot a full map forgot."""
+    first = registry(data)
+    for seq in range(5):
+        first.submit("m", "plain", WireScan(seq, 10.0 + seq, SCANS[seq], None))
+    assert wait_idle(first)
+    first.delete("m", wait=True)
+    first.close()
+    again = registry(data)
+    try:
+        for seq in range(5):
+            refused = refusal(again, "m", "plain", WireScan(seq, 10.0 + seq, SCANS[seq], None))
+            assert refused.status == 200 and "had seq 4" in refused.reason, refused.reason
+        assert "m" not in again.maps  # no copy made the map again
+        again.submit("m", "plain", WireScan(2, 99.0, SCANS[2], None))  # restarted: a later stamp
+        assert wait_idle(again)
+        assert again.get("m").robots["plain"].scans_integrated == 1
+        again.delete("m", wait=True)
+        for seq in range(3):  # a robot without a clock, restarted: its run goes on below the stone
+            again.submit("m", "plain", WireScan(seq, 0.0, SCANS[seq], None))
+        assert wait_idle(again)
+        assert again.get("m").scans_integrated == 3
+        with pytest.raises(IngestRejected, match="duplicate seq 2"):  # the map's own copy rule
+            again.submit("m", "plain", WireScan(2, 0.0, SCANS[2], None))
+    finally:
+        again.close()
+    # A robot a full map forgets: its copies are not integrated twice into the map, which lives on.
+    full = MapRegistry(max_robots_per_map=1)
+    full.start()
+    try:
+        for seq in range(1, 4):
+            full.submit("f", "plain", WireScan(seq, 10.0 + seq, SCANS[seq], None))
+        assert wait_idle(full)
+        full.submit("f", "next", wire(0))  # forgets "plain", offline and idle, to make room
+        assert wait_idle(full)
+        refused = refusal(full, "f", "plain", WireScan(2, 12.0, SCANS[2], None))
+        assert refused.status == 200 and "forgot robot 'plain'" in refused.reason, refused.reason
+        assert full.get("f").scans_integrated == 4
+    finally:
+        full.close()
 
 
 def test_a_token_of_a_buried_robot_creates_no_map_but_another_robots_does(restarted: MapRegistry) -> None:
@@ -461,8 +511,8 @@ def test_a_robot_forgotten_at_restore_is_remembered_across_restarts(data: Path) 
 def test_forgotten_robots_stones_become_a_deleted_maps_only_with_their_own_map() -> None:
     """`Tombstones.forget` keeps a robot of a live map (covered, not `buried`); `bury` of that map,
     deleted or replaced, makes its forgotten robots' stones ordinary ones of that moment, and leaves
-    other maps' alone. A robot with no session id has nothing to remember, nor one with none of
-    its scans in the map (every one refused)."""
+    other maps' alone. A robot with none of its scans in the map (every one refused) has nothing
+    to remember; one without a session id has its last seq and stamp (`Tombstone.plain`)."""
     state = RobotState()
     state.accept(4, 4.0, SESSION)
     stones = Tombstones()
@@ -474,13 +524,18 @@ def test_forgotten_robots_stones_become_a_deleted_maps_only_with_their_own_map()
     no_session = RobotState()
     no_session.accept(9, 9.0, None)
     no_session.scans_integrated = 1
-    assert stones.forget("m", "plain", no_session, now=1002.0) is None
+    plain = stones.forget("m", "plain", no_session, now=1002.0)
+    assert plain is not None and plain.plain == (9, 9.0) and not plain.sessions
+    assert (
+        stones.covers("m", "plain", None, 9, 9.0) is plain
+        and stones.covers("m", "plain", None, 9, 9.5) is None
+    )
     assert stones.covers("m", "r", SESSION, 4) is forgotten and not stones.buried("m", "r")
     live = RobotState()
     live.accept(2, 2.0, SESSION + 1)
     made = stones.bury("m", {"live": live}, now=2000.0)
     assert [(s.robot_id, s.deleted_at, s.forgotten) for s in made] == [
-        ("live", 2000.0, False), ("r", 2000.0, False),
+        ("live", 2000.0, False), ("plain", 2000.0, False), ("r", 2000.0, False),
     ]  # fmt: skip
     assert stones.buried("m", "r") and stones.covers("m", "r", SESSION, 4) is not None
     other = stones.get("other", "r")

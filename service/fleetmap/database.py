@@ -25,9 +25,11 @@ LOCK_NAME = "fleetmap.lock"
 #: the `tombstones` table, created at start where it is missing, which an older service ignores,
 #: and its `forgotten` column, added at start where it is missing: an older service names the
 #: columns it reads and writes, its rows get 0 there, and it takes a forgotten robot's stone for a
-#: deleted map's, which ignores the same old scans.) Version 2 (`CLEARED_WINDOWS_LAYOUT`): a journal
-#: row may also be a window of cells cleared (`storage_format.cleared_window_to_blob`, `DELETE
-#: /maps/{id}/region`), which a version 1 service would take for a corrupt row. The tables are the
+#: deleted map's, which ignores the same old scans; and its `plain_seq` and `plain_stamp` columns,
+#: likewise: an older service writes NULL there, and does not cover such scans, as before.)
+#: Version 2 (`CLEARED_WINDOWS_LAYOUT`): a journal row may also be a window of cells cleared
+#: (`storage_format.cleared_window_to_blob`, `DELETE /maps/{id}/region`), which a version 1
+#: service would take for a corrupt row. The tables are the
 #: same, so a database is raised to 2 only before its first such row (`DurableStore
 #: .allow_cleared_windows`): until a region is cleared, an older service can still open it (a
 #: rollback after an upgrade).
@@ -80,6 +82,8 @@ CREATE TABLE IF NOT EXISTS tombstones (  -- robots of deleted and replaced maps 
     deleted_at REAL NOT NULL,
     sessions TEXT NOT NULL,  -- JSON: publisher session id -> the last seq the service had
     forgotten INTEGER NOT NULL DEFAULT 0,  -- 1: forgotten by its map, which lives on
+    plain_seq INTEGER,  -- the last seq and stamp the service had of its scans without a session id
+    plain_stamp REAL,
     PRIMARY KEY (map_id, robot_id)
 );
 """
@@ -363,14 +367,18 @@ def _refuse_unknown_layout(path: Path) -> None:
 def _migrate(conn: sqlite3.Connection) -> None:
     """Bring a database written before the journal had its `session` column up to date: its rows
     keep NULL there (no session: their restarts are told by their stamps, as when they were
-    written); and one written before tombstones had their `forgotten` column: its rows are all
-    deleted maps' robots (0)."""
+    written); one written before tombstones had their `forgotten` column: its rows are all
+    deleted maps' robots (0); and one written before their `plain_seq` and `plain_stamp` columns:
+    NULL there (its scans without a session id were not remembered)."""
     columns = {row[1] for row in conn.execute("PRAGMA table_info(journal)")}
     if "session" not in columns:
         conn.execute("ALTER TABLE journal ADD COLUMN session INTEGER")
     columns = {row[1] for row in conn.execute("PRAGMA table_info(tombstones)")}
     if "forgotten" not in columns:
         conn.execute("ALTER TABLE tombstones ADD COLUMN forgotten INTEGER NOT NULL DEFAULT 0")
+    if "plain_seq" not in columns:
+        conn.execute("ALTER TABLE tombstones ADD COLUMN plain_seq INTEGER")
+        conn.execute("ALTER TABLE tombstones ADD COLUMN plain_stamp REAL")
 
 
 #: Seconds a connection waits for a lock another connection (or program) holds on the database.

@@ -74,9 +74,19 @@ def _bury(conn: sqlite3.Connection, buried: Sequence[Tombstone]) -> None:
     if not buried:
         return
     conn.executemany(
-        "INSERT OR REPLACE INTO tombstones (map_id, robot_id, deleted_at, sessions, forgotten) "
-        "VALUES (?, ?, ?, ?, ?)",
-        [(t.map_id, t.robot_id, t.deleted_at, t.sessions_json(), int(t.forgotten)) for t in buried],
+        "INSERT OR REPLACE INTO tombstones (map_id, robot_id, deleted_at, sessions, forgotten, plain_seq, "
+        "plain_stamp) VALUES (?, ?, ?, ?, ?, ?, ?)",
+        [
+            (
+                t.map_id,
+                t.robot_id,
+                t.deleted_at,
+                t.sessions_json(),
+                int(t.forgotten),
+                *(t.plain or (None, None)),
+            )
+            for t in buried
+        ],
     )
     conn.execute("DELETE FROM tombstones WHERE deleted_at < ?", (forgotten_before(time.time()),))
 
@@ -373,7 +383,8 @@ class DurableStore:
                     (MAX_TOMBSTONES,),
                 )
             rows = conn.execute(
-                "SELECT map_id, robot_id, deleted_at, sessions, forgotten FROM tombstones"
+                "SELECT map_id, robot_id, deleted_at, sessions, forgotten, plain_seq, plain_stamp "
+                "FROM tombstones"
             ).fetchall()
             return [Tombstone.from_row(*row) for row in rows]
         except (sqlite3.DatabaseError, ValueError) as exc:

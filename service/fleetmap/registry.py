@@ -678,7 +678,7 @@ class MapRegistry:
                 # callbacks for a moment after the ingest's session closed.
                 raise IngestRejected("the service is shutting down: scan not taken", 503, SHUTTING_DOWN)
             entry = self.maps.get(map_id)
-            stone = self.tombstones.covers(map_id, robot_id, wire.session, wire.seq)
+            stone = self._covered(map_id, entry, robot_id, wire.session, wire.seq, wire.stamp)
             if stone is not None:
                 robot = entry.robots.get(robot_id) if entry is not None else None
                 if robot is not None:
@@ -737,6 +737,22 @@ class MapRegistry:
             entry.unsettled += 1
             robot.unsettled += 1
             return job.future
+
+    def _covered(
+        self, map_id: str, entry: MapEntry | None, robot_id: str, session: int | None, seq: int, stamp: float
+    ) -> Tombstone | None:
+        """The tombstone that makes the scan `seq` (of `stamp`, of publisher session `session`) of
+        robot `robot_id` on map `map_id` (`entry`, None: none now) a copy of one from before the map
+        went or forgot the robot (`Tombstones.covers`), or None (call under the registry's lock).
+        Without a session id, only while the robot has no scan without one on the map: once it has
+        (it started its sequence again, past the tombstone), the map's own bookkeeping tells copies
+        from new scans, as it would have had the map never gone; the tombstone's, still at the old
+        run's seq, took the new run's next scans for copies."""
+        if session is None and entry is not None:
+            robot = entry.robots.get(robot_id)
+            if robot is not None and NO_SESSION in robot.sessions:
+                return None
+        return self.tombstones.covers(map_id, robot_id, session, seq, stamp)
 
     def _queue_full(self, full: str, map_id: str) -> str:
         """Which bound of the ingest queue refused a scan of map `map_id` (`FairQueue.offer`'s
@@ -797,9 +813,9 @@ class MapRegistry:
             return
         with self.lock:
             entry = self.maps.get(map_id)
-            stone = (
-                None if scan_id is None else self.tombstones.covers(map_id, robot_id, scan_id[2], scan_id[0])
-            )
+            stone = None
+            if scan_id is not None:
+                stone = self._covered(map_id, entry, robot_id, scan_id[2], scan_id[0], scan_id[1])
             if stone is not None:
                 # A copy of a scan from before its map went (or its robot was forgotten): ignored as
                 # `submit` ignores one, first. Remembered as a robot's without a map, it hid the
@@ -1127,7 +1143,7 @@ def _forgetting_order(item: tuple[str, RobotState]) -> tuple[bool, float]:
 
 def _covered_reason(stone: Tombstone, wire: WireScan) -> str:
     """Why the scan `wire`, covered by `stone` (`Tombstones.covers`), is ignored (a 200 answer)."""
-    had = f"the service had seq {stone.sessions[session_key(wire.session)]} of this publisher then"
+    had = f"the service had seq {stone.last_seq(wire.session)} of this publisher then"
     if stone.forgotten:
         return (
             f"seq {wire.seq} is from before map {stone.map_id!r} forgot robot {stone.robot_id!r} to make "

@@ -416,11 +416,6 @@ class RobotState:
         while len(self.refused_scans) > MAX_REFUSED_RETRIES:
             del self.refused_scans[next(iter(self.refused_scans))]
 
-    @property
-    def refused_with_session(self) -> frozenset[tuple[int, int]]:
-        """Its `refused_scans` that carry a session id (those a tombstone keeps: `Tombstone`)."""
-        return frozenset(key for key in self.refused_scans if key[0] != NO_SESSION)
-
     def is_duplicate(self, seq: int, stamp: float, session: int | None) -> bool:
         """Whether the scan `seq` of publisher session `session` (None: it sent none) is not new:
         its session's seq is past it (a copy, a retry, a stale message). A session not heard

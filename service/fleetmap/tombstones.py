@@ -23,8 +23,14 @@ so its token brings it back as before (`buried` is False) and the delivery query
 sessions as gone with a map. When that map is deleted or replaced, its forgotten robots' stones
 become ordinary ones (`bury`): their scans went with it.
 
-Scans without a session id (plain publishers) are never covered: they are not re-delivered, and
-their seqs may start again at any time.
+Scans without a session id are covered by their last seq and stamp (`Tombstone.plain`): a copy
+carries its old stamp, so one at or below that seq whose stamp is not later than that scan's (and
+not 0: a robot without a clock, whose copies cannot be told from a restart) is from before; a robot
+that started its sequence again, with a later stamp, goes through. They are re-delivered too: a
+`ScanPublisher(send_session_id=False)` keeps its cache, and after a restart of the service its old
+scans, not covered, made the deleted map again with them. (A live map takes seq 0 for a restart
+whatever its stamp, `SessionSeqs.is_restart`; here that let a cache's first scan, a copy, make the
+map again.)
 
 Maps are created and deleted under new ids for the service's whole life, so tombstones are bounded:
 kept `TOMBSTONE_DAYS`, and for at most `MAX_TOMBSTONES` robots (`prune`). Past that many, forgotten
@@ -44,7 +50,7 @@ import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from fleetmap.robot_state import MAX_SESSIONS, NO_SESSION, RobotState
+from fleetmap.robot_state import MAX_SESSIONS, NO_SESSION, RobotState, session_key
 
 #: Days a deleted map's robots (and a map's forgotten robots) are remembered.
 TOMBSTONE_DAYS = 30.0
@@ -67,12 +73,15 @@ class Tombstone:
     `forgotten`: the robot was forgotten by its map, which lives on (`Tombstones.forget`), and
     `deleted_at` is when: its scans through those seqs are in that map, not gone with it.
 
-    `refused_scans` are the robot's `RobotState.refused_scans` then that carry a session id,
-    (session id, seq) of its scans refused for the service's sake (a full queue: 503; the memory
-    budget: 507): their seqs are recorded, yet the service never had the scans, and their sender is
-    told to send them again, which must be integrated, not ignored as from before the deletion. Not
-    stored, as `RobotState.refused_scans` is not: after a restart they are covered, as the map's own
-    bookkeeping would have it."""
+    `refused_scans` are the robot's `RobotState.refused_scans` then, (session key, seq) of its scans
+    refused for the service's sake (a full queue: 503; the memory budget: 507): their seqs are
+    recorded, yet the service never had the scans, and their sender is told to send them again,
+    which must be integrated, not ignored as from before the deletion. Not stored, as
+    `RobotState.refused_scans` is not: after a restart they are covered, as the map's own
+    bookkeeping would have it.
+
+    `plain`: the last seq and stamp (None: unknown) the service had of the robot's scans without a
+    session id, None if it had none."""
 
     map_id: str
     robot_id: str
@@ -80,6 +89,17 @@ class Tombstone:
     sessions: Mapping[int, int]
     refused_scans: frozenset[tuple[int, int]] = frozenset()
     forgotten: bool = False
+    plain: tuple[int, float | None] | None = None
+
+    def plain_row(self) -> tuple[int | None, float | None]:
+        """`plain` as stored (`plain_seq`, `plain_stamp`; NULL: none)."""
+        return (None, None) if self.plain is None else self.plain
+
+    def last_seq(self, session: int | None) -> int | None:
+        """The last seq the service had of publisher session `session` (None: scans without one)."""
+        if session is None:
+            return None if self.plain is None else self.plain[0]
+        return self.sessions.get(session)
 
     def sessions_json(self) -> str:
         """`sessions` as stored (a JSON object of decimal strings: session ids need 64 bits)."""
@@ -87,14 +107,23 @@ class Tombstone:
 
     @classmethod
     def from_row(
-        cls, map_id: str, robot_id: str, deleted_at: float, sessions_json: str, forgotten: int = 0
-    ) -> Tombstone:
-        """The tombstone of a stored row; ValueError if its time is not a number or its sessions are
-        not a JSON object of session ids and seqs (a damaged database)."""
+        cls, map_id: str, robot_id: str, deleted_at: float, sessions_json: str, forgotten: int = 0,
+        plain_seq: int | None = None, plain_stamp: float | None = None,
+    ) -> Tombstone:  # fmt: skip
+        """The tombstone of a stored row; ValueError if its time is not a number, its sessions are
+        not a JSON object of session ids and seqs, or its `plain` seq and stamp are not numbers (a
+        damaged database)."""
         # SQLite keeps any type in any column (a damaged page, a row edited by hand): a time stored
         # as text stopped the start with a traceback where the stones are sorted by it.
         if type(deleted_at) not in (int, float):
             raise ValueError(f"tombstone of {map_id}/{robot_id}: its time of deletion is not a number")
+        if not (
+            (plain_seq is None and plain_stamp is None)
+            or (type(plain_seq) is int and (plain_stamp is None or type(plain_stamp) in (int, float)))
+        ):
+            raise ValueError(
+                f"tombstone of {map_id}/{robot_id}: its scans without a session id are not numbers"
+            )
         stored = json.loads(sessions_json)
         if not isinstance(stored, dict):
             raise ValueError(f"tombstone of {map_id}/{robot_id}: sessions are not a JSON object")
@@ -102,7 +131,8 @@ class Tombstone:
             sessions = {int(k): int(v) for k, v in stored.items()}
         except TypeError:  # a seq that is a list or an object (int() of a wrong string: ValueError)
             raise ValueError(f"tombstone of {map_id}/{robot_id}: a session's seq is not a number") from None
-        return cls(map_id, robot_id, deleted_at, sessions, forgotten=bool(forgotten))
+        plain = None if plain_seq is None else (plain_seq, plain_stamp)
+        return cls(map_id, robot_id, deleted_at, sessions, forgotten=bool(forgotten), plain=plain)
 
 
 def merged_sessions(old: Mapping[int, int], state: RobotState) -> dict[int, int]:
@@ -116,6 +146,15 @@ def merged_sessions(old: Mapping[int, int], state: RobotState) -> dict[int, int]
     while len(sessions) > MAX_SESSIONS:
         del sessions[next(iter(sessions))]
     return sessions
+
+
+def merged_plain(old: Tombstone | None, state: RobotState) -> tuple[int, float | None] | None:
+    """The `Tombstone.plain` of a robot that had the stone `old` and buries `state` now: the seq and
+    stamp of its last scan without a session id, `state`'s if it had one (its newest), else the old."""
+    rec = state.sessions.get(NO_SESSION)
+    if rec is not None:
+        return rec.last_seq, rec.stamp
+    return None if old is None else old.plain
 
 
 class Tombstones:
@@ -170,12 +209,15 @@ class Tombstones:
         for robot_id, state in robots.items():
             old = self._drop(map_id, robot_id)
             sessions = merged_sessions({} if old is None else old.sessions, state)
-            stone = Tombstone(map_id, robot_id, now, sessions, state.refused_with_session)
+            stone = Tombstone(
+                map_id, robot_id, now, sessions, frozenset(state.refused_scans),
+                plain=merged_plain(old, state),
+            )  # fmt: skip
             self._put(stone)
             made.append(stone)
         for robot_id in sorted(self._forgotten.get(map_id, ())):  # (a copy: `_put` changes it)
             old = self._stones[map_id, robot_id]
-            stone = Tombstone(map_id, robot_id, now, old.sessions, old.refused_scans)
+            stone = Tombstone(map_id, robot_id, now, old.sessions, old.refused_scans, plain=old.plain)
             self._put(stone)
             made.append(stone)
         self.prune(now)
@@ -184,32 +226,42 @@ class Tombstones:
     def forget(self, map_id: str, robot_id: str, state: RobotState, now: float) -> Tombstone | None:
         """Remember robot `robot_id`, forgotten at `now` by map `map_id`, which lives on: its
         sessions' seqs, merged with its earlier stone as `bury` merges them, in a `forgotten` stone.
-        Returns it, to store, or None if there is nothing to remember (no session with an id, or
-        none of its scans in the map, `RobotState.in_map`: nothing to integrate twice, and scans
-        refused at the input limits under made-up robot ids took stones): its earlier stone, if
-        any, then stays as it was. A robot that had an ordinary stone (its map was
+        Returns it, to store, or None if there is nothing to remember (no scan's seq, or none of
+        its scans in the map, `RobotState.in_map`: nothing to integrate twice, and scans refused at
+        the input limits under made-up robot ids took stones): its earlier stone, if any, then
+        stays as it was. A robot that had an ordinary stone (its map was
         deleted before, and the robot fed the new one) gets a forgotten one: its scans since are in
         the live map, which the delivery query must not call gone; the older ones stay covered."""
-        if not state.in_map or all(key == NO_SESSION for key in state.sessions):
+        if not state.in_map or not state.sessions:
             return None
         old = self._drop(map_id, robot_id)
         stone = Tombstone(
             map_id, robot_id, now, merged_sessions({} if old is None else old.sessions, state),
-            state.refused_with_session, forgotten=True,
+            frozenset(state.refused_scans), forgotten=True, plain=merged_plain(old, state),
         )  # fmt: skip
         self._put(stone)
         self.prune(now)
         return stone
 
-    def covers(self, map_id: str, robot_id: str, session: int | None, seq: int) -> Tombstone | None:
-        """The tombstone that makes scan `seq` of publisher session `session` one from before its map
-        was deleted (or its robot forgotten by it: `Tombstone.forgotten`), or None: the scan is not
-        known to be old (or is one its robot was told to send again: `Tombstone.refused_scans`)."""
+    def covers(
+        self, map_id: str, robot_id: str, session: int | None, seq: int, stamp: float = 0.0
+    ) -> Tombstone | None:
+        """The tombstone that makes scan `seq` (of stamp `stamp`) of publisher session `session`
+        (None: it sent none) one from before its map was deleted (or its robot forgotten by it:
+        `Tombstone.forgotten`), or None: the scan is not known to be old (or is one its robot was
+        told to send again: `Tombstone.refused_scans`; or, without a session id, one of a later
+        stamp than the last, or of none (0): see the module's docstring)."""
         stone = self._stones.get((map_id, robot_id))
-        if stone is None or session is None or (session, seq) in stone.refused_scans:
+        if stone is None or (session_key(session), seq) in stone.refused_scans:
             return None
-        last = stone.sessions.get(session)
-        return stone if last is not None and seq <= last else None
+        last = stone.last_seq(session)
+        if last is None or seq > last:
+            return None
+        if session is None:
+            last_stamp = None if stone.plain is None else stone.plain[1]
+            if last_stamp is None or not 0 < stamp <= last_stamp:
+                return None
+        return stone
 
     def get(self, map_id: str, robot_id: str) -> Tombstone | None:
         """The tombstone of robot `robot_id` of a deleted or replaced map `map_id`, or of one map
