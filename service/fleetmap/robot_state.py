@@ -248,6 +248,9 @@ class SessionSeqs:
     #: What became of its scans: saved apart (`RobotState.saved`'s `ledgers`, which an older service
     #: ignores), so not a constructor argument.
     ledger: SessionLedger = field(default_factory=SessionLedger, init=False, compare=False)
+    #: The stamp of its scan of seq 0 since its last restart (None: none, or unknown), for scans
+    #: without a session id (`is_restart`): saved apart too (`RobotState.saved`'s `start_stamps`).
+    start_stamp: float | None = field(default=None, init=False, compare=False)
 
     def saved(self) -> list:
         """Its constructor's fields in order (`SessionSeqs(*saved)` gives it back), not the ledger,
@@ -278,11 +281,17 @@ class SessionSeqs:
         than the last accepted scan's says "restarted". A repeated message (a retry, a copy) carries
         its old stamp, a stale one an earlier stamp: both stay duplicates. Seq 0 is also a restart
         with an equal or earlier stamp (robots without stamps send 0; a robot without a real-time
-        clock may boot in 1970), unless it repeats the last accepted scan, seq 0 with the same stamp.
+        clock may boot in 1970), unless it repeats the last accepted scan, seq 0 with the same stamp,
+        or is a copy of the scan of seq 0 of the current run: the same stamp as that one's
+        (`start_stamp`), not 0. A `ScanPublisher(send_session_id=False)`'s cache, fetched again after
+        a restart of the service, starts with that copy while it holds the robot's first scans: taken
+        for a restart, it and every copy after it were integrated a second time.
         A publisher that sends a session id needs none of this: a new session is a restart."""
         if self.stamp is not None and stamp > self.stamp:
             return True
-        return seq == 0 and not (self.last_seq == 0 and stamp == self.stamp)
+        if seq != 0 or (self.last_seq == 0 and stamp == self.stamp):
+            return False
+        return not (stamp != 0 and stamp == self.start_stamp)
 
 
 @dataclass
@@ -366,6 +375,9 @@ class RobotState:
         # Apart from the sessions: a service from before ledgers reads each session row as
         # `SessionSeqs` arguments, and ignores keys it does not know.
         out["ledgers"] = [[key, *rec.ledger.saved()] for key, rec in self.sessions.items()]
+        out["start_stamps"] = [
+            [key, rec.start_stamp] for key, rec in self.sessions.items() if rec.start_stamp is not None
+        ]
         return out
 
     @classmethod
@@ -393,6 +405,9 @@ class RobotState:
                         state.sessions[int(row[0])].ledger = SessionLedger.from_saved(
                             _numbers(row[1:], "ledgers")
                         )
+                for key, start_stamp in data.get("start_stamps", ()):
+                    if int(key) in state.sessions:
+                        state.sessions[int(key)].start_stamp = _number(start_stamp, "start_stamps")
             elif data.get("last_seq") is not None:
                 # Saved before sessions existed: every scan so far came without one.
                 last_seq = _check_saved("last_seq", data["last_seq"], int)
@@ -474,6 +489,7 @@ class RobotState:
                 self.restarts += 1
                 self.lost += seq
                 rec.ledger.count_lost(seq)
+                rec.start_stamp = None  # its new run's seq 0, unless this is it (below)
             elif seq > rec.last_seq + 1:
                 self.lost += seq - rec.last_seq - 1
                 rec.ledger.count_lost(seq - rec.last_seq - 1)
@@ -481,6 +497,8 @@ class RobotState:
             if beside:
                 self._conflict(rec, beside, now)
             rec.last_seq, rec.stamp, rec.last_scan_no = seq, stamp, self.accepted
+        if seq == 0:
+            rec.start_stamp = stamp
         self.sessions[key] = rec
         while len(self.sessions) > MAX_SESSIONS:
             del self.sessions[next(iter(self.sessions))]

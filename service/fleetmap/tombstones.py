@@ -28,9 +28,9 @@ carries its old stamp, so one at or below that seq whose stamp is not later than
 not 0: a robot without a clock, whose copies cannot be told from a restart) is from before; a robot
 that started its sequence again, with a later stamp, goes through. They are re-delivered too: a
 `ScanPublisher(send_session_id=False)` keeps its cache, and after a restart of the service its old
-scans, not covered, made the deleted map again with them. (A live map takes seq 0 for a restart
-whatever its stamp, `SessionSeqs.is_restart`; here that let a cache's first scan, a copy, make the
-map again.)
+scans, not covered, made the deleted map again with them. (A live map takes seq 0 of an earlier
+stamp for a restart unless it is the run's own seq 0 again, `SessionSeqs.is_restart`; a stone
+keeps no run's seq 0, and its robot's copies are what it is for.)
 
 Maps are created and deleted under new ids for the service's whole life, so tombstones are bounded:
 kept `TOMBSTONE_DAYS`, and for at most `MAX_TOMBSTONES` robots (`prune`). Past that many, forgotten
