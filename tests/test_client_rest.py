@@ -9,14 +9,18 @@ same scans (decoded from the same payloads, so float32 wire rounding is the same
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
 import json
 import math
+import multiprocessing
 import os
+import pickle
 import threading
 import time
 import zipfile
 from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
@@ -613,6 +617,37 @@ def test_errors_carry_the_server_detail(client: FleetmapClient, scans: list[Scan
         FleetmapClient(nowhere, timeout=2).health()
     with pytest.raises(httpx.ConnectError, match=f"the fleetmap service at {nowhere}"):
         next(iter(FleetmapClient(nowhere, timeout=2).events("errs")))
+
+
+def _get_map_id(base_url: str, map_id: str) -> str:
+    """A worker process's job in the test below: the id `get_map` answers."""
+    with FleetmapClient(base_url, timeout=20.0) as fm:
+        return fm.get_map(map_id).id
+
+
+def test_errors_reach_another_process_whole(service: ServiceProcess, client: FleetmapClient) -> None:
+    """A program spreading its queries over processes (ProcessPoolExecutor, multiprocessing) gets
+    a worker's `FleetmapError` back as it was raised: pickled with its one sentence as `args`, it
+    could not be made again (its constructor wants the status and the detail), and the pool broke,
+    failing every other query of it as well (BrokenProcessPool)."""
+    client.create_map("pickled", {"resolution": 0.1})
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        missing = pool.submit(_get_map_id, service.base_url, "no-such-map")
+        with pytest.raises(FleetmapError) as raised:
+            missing.result(timeout=120)
+        assert pool.submit(_get_map_id, service.base_url, "pickled").result(timeout=120) == "pickled"
+    assert (raised.value.status, raised.value.detail) == (404, "no map 'no-such-map'")
+    # Every field, and a MapChanged's ETag, through pickle and copy.
+    _, etag = client.get_map_and_etag("pickled")
+    client.delete_map("pickled")
+    client.create_map("pickled", {"resolution": 0.1})
+    with pytest.raises(MapChanged) as changed:
+        client.delete_map("pickled", if_match=etag)
+    for again in (pickle.loads(pickle.dumps(changed.value)), copy.copy(changed.value)):
+        assert type(again) is MapChanged and str(again) == str(changed.value)
+        fields = ("status", "detail", "errors", "retry_after", "etag")
+        assert [getattr(again, f) for f in fields] == [getattr(changed.value, f) for f in fields]
+    assert changed.value.etag is not None and changed.value.etag != etag
 
 
 def test_api_tokens(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -175,6 +175,17 @@ class FleetmapError(Exception):
         self.errors = errors or []
         self.retry_after = retry_after
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Made again from its own arguments: Exception's pickling calls the class with `args`, the
+        # one sentence, which this signature refused (TypeError), so a FleetmapError raised in a
+        # worker process (multiprocessing, ProcessPoolExecutor) broke the whole pool, and
+        # `copy.copy` of one raised.
+        return type(self), self._arguments(), self.__dict__
+
+    def _arguments(self) -> tuple[Any, ...]:
+        """The constructor's arguments that make this error again (`__reduce__`)."""
+        return self.status, self.detail, self.errors, self.retry_after
+
 
 class MapChanged(FleetmapError):
     """A conditional write (`if_match=`, `create_only=`) refused with 412: the map is not the one the
@@ -192,6 +203,9 @@ class MapChanged(FleetmapError):
     ) -> None:
         super().__init__(status, detail, errors, retry_after)
         self.etag = etag
+
+    def _arguments(self) -> tuple[Any, ...]:
+        return (*super()._arguments(), self.etag)
 
 
 def _conditions(if_match: str | None, create_only: bool = False) -> dict[str, str]:
