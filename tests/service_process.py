@@ -294,10 +294,12 @@ class FreezableProxy:
     the target `s` seconds late (a service slow to take in a robot that just connected).
     `freeze(sent=b"...")` freezes only the connections whose client's last bytes hold `sent`: over
     HTTP, the one whose last request was that (a browser's event stream, its other connections left
-    working)."""
+    working). `lag`: what the target sends, its close too, reaches the client `lag` seconds late (at
+    least), as over a slow link."""
 
-    def __init__(self, target_port: int) -> None:
+    def __init__(self, target_port: int, lag: float = 0.0) -> None:
         self.target_port = target_port
+        self.lag = lag
         self.listener = socket.create_server(("127.0.0.1", 0))
         self.port = self.listener.getsockname()[1]
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
@@ -344,8 +346,11 @@ class FreezableProxy:
                 upstream.close()
                 client.close()
                 continue
-            for source, sink, wait, seen in ((client, upstream, delay, tail), (upstream, client, 0.0, None)):
-                pump_args = (source, sink, frozen, wait, seen)
+            for source, sink, wait, seen, lag in (
+                (client, upstream, delay, tail, 0.0),
+                (upstream, client, 0.0, None, self.lag),
+            ):
+                pump_args = (source, sink, frozen, wait, seen, lag)
                 threading.Thread(target=self._pump, args=pump_args, daemon=True).start()
 
     @staticmethod
@@ -355,11 +360,13 @@ class FreezableProxy:
         frozen: threading.Event,
         delay: float = 0.0,
         tail: bytearray | None = None,
+        lag: float = 0.0,
     ) -> None:
         """Forward `source` to `sink` until either closes or `frozen` is set. With `delay`, what
         follows the first two Zenoh frames (a client's InitSyn and OpenSyn, the handshake; over TCP
         each batch is prefixed with its length, 2 bytes little-endian) is sent `delay` s late.
-        `tail` keeps the last `_TAIL_BYTES` forwarded."""
+        `tail` keeps the last `_TAIL_BYTES` forwarded. `lag`: each read, and the close, is passed
+        on `lag` s after it came."""
         source.settimeout(0.05)
         handshake: bytearray | None = bytearray() if delay else None  # the client's bytes so far
         while not frozen.is_set():
@@ -371,6 +378,7 @@ class FreezableProxy:
                 with contextlib.suppress(OSError):
                     sink.shutdown(socket.SHUT_RDWR)
                 return
+            time.sleep(lag)
             if not data or frozen.is_set():  # frozen: what arrives now is dropped, never forwarded
                 if not data:
                     with contextlib.suppress(OSError):

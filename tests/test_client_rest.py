@@ -650,6 +650,23 @@ def test_errors_reach_another_process_whole(service: ServiceProcess, client: Fle
     assert changed.value.etag is not None and changed.value.etag != etag
 
 
+def test_a_connection_the_service_closes_as_idle_is_not_used_again(service: ServiceProcess) -> None:
+    """The service closes a kept-alive connection after 5 s idle (uvicorn's keep-alive), and httpx
+    kept one for 5 s too: over a slow link, a request sent a little under 5 s after the last answer
+    reached the service after it had closed the connection, and failed ("Server disconnected without
+    sending a response", a RemoteProtocolError; a post_scan's seq then skipped as maybe taken). The
+    client lets its connections go well before the service's do. The idle wait here is the case
+    itself; a busy machine could only hide the failure (a service late to close), never cause one."""
+    proxy = FreezableProxy(service.port, lag=0.6)  # 0.6 s from the service to the client
+    try:
+        with FleetmapClient(f"http://127.0.0.1:{proxy.port}", timeout=20.0) as fm:
+            fm.health()
+            time.sleep(4.7)  # idle: the service's close is 0.6 s behind, its 5 s passed on arrival
+            assert fm.health().status == "ok"
+    finally:
+        proxy.close()
+
+
 def test_api_tokens(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import fleetmap.serve_options
 

@@ -141,6 +141,16 @@ TOKEN_ENV = "FLEETMAP_TOKEN"
 #: end in httpx's bare ReadTimeout instead of the server's 503 saying what happened.
 SCAN_TIMEOUT = 15.0
 
+#: Seconds an idle connection is kept for the next request. The service closes one idle for 5 s
+#: (uvicorn's keep-alive), and a request it gets on a connection it closed fails unanswered
+#: ("Server disconnected without sending a response"): with httpx's own 5 s, a request sent a little
+#: under 5 s after the last answer met that close whenever the link took longer than the rest of the
+#: 5 s (the answer's way here, the request's there). Letting go well before leaves a link up to 3 s
+#: round trip; a new connection costs a loopback or LAN handshake.
+KEEPALIVE_EXPIRY = 2.0
+#: Connections the client opens at once, and keeps idle, at most (httpx's defaults).
+_LIMITS = httpx.Limits(max_connections=100, max_keepalive_connections=20, keepalive_expiry=KEEPALIVE_EXPIRY)
+
 #: Bytes `save_snapshot` reads from the answer at a time.
 _TRANSFER_CHUNK = 1 << 20
 #: How long the whole-map transfers (`download_snapshot`, `upload_snapshot`, `import_nav2`,
@@ -301,7 +311,7 @@ class FleetmapClient:
         self.transfer_timeout = max(transfer_timeout, timeout)
         token = token if token is not None else os.environ.get(TOKEN_ENV) or None
         headers = {"Authorization": f"Bearer {token}"} if token else {}
-        self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers)
+        self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers, limits=_LIMITS)
         #: Next automatic seq per (map_id, robot_id) for `post_scan` of a `Scan` without a seq.
         self._next_seq: dict[tuple[str, str], int] = {}
         #: Per (map_id, robot_id): held by `post_scan` while it sends one of that robot's scans.
@@ -1123,6 +1133,7 @@ __all__ = [
     "TOKEN_ENV",
     "TRANSFER_TIMEOUT",
     "EVENTS_READ_TIMEOUT",
+    "KEEPALIVE_EXPIRY",
     "EventStream",
     "FleetmapClient",
     "FleetmapError",
