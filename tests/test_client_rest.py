@@ -689,6 +689,20 @@ def test_api_tokens(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
         monkeypatch.setenv("FLEETMAP_TOKEN", writer)
         with FleetmapClient(svc.base_url) as from_env:
             assert from_env.create_map("locked").id == "locked"
+        # A token read whole from its file (its line end), or from an env file written on Windows
+        # (\r\n), is the token: the service drops the whitespace around it too. httpx refused it
+        # at every request, the token itself in its message ("Illegal header value b'Bearer ...'").
+        (tmp_path / "my-token").write_text(writer + "\n")
+        with FleetmapClient(svc.base_url, token=(tmp_path / "my-token").read_text()) as from_file:
+            assert from_file.create_map("from-file").id == "from-file"
+        monkeypatch.setenv("FLEETMAP_TOKEN", writer + "\r\n")
+        with FleetmapClient(svc.base_url) as from_env_file:
+            from_env_file.delete_map("from-file")
+        # One that no header can carry is refused at once, naming no token.
+        for unsendable in ("w" * 8 + "-secret-tökén", writer[:8] + " " + writer[8:]):
+            with pytest.raises(ValueError, match="printable ASCII") as refused:
+                FleetmapClient(svc.base_url, token=unsendable)
+            assert "secret" not in str(refused.value)
 
 
 # -- events ----------------------------------------------------------------------------------------

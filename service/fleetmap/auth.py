@@ -76,8 +76,8 @@ UNKNOWN_SESSION = "unknown token (the session cookie's token is unknown or was r
 #: A comment: `#` at the start of a line or after whitespace (a `#` inside a token is part of it).
 _COMMENT = re.compile(r"(^|\s)#.*$")
 #: What a token may hold: printable ASCII, no space. A header's bytes are read as Latin-1, so any
-#: other character could never match what a client sends.
-_TOKEN = re.compile(r"^[\x21-\x7e]+$")
+#: other character could never match what a client sends (the clients check theirs against it too).
+TOKEN_CHARACTERS = re.compile(r"^[\x21-\x7e]+$")
 
 Scope = dict
 Receive = Callable[[], Awaitable[dict]]
@@ -111,7 +111,7 @@ class TokenSet:
             role, token = parts
             if len(token) < 16:
                 raise TokenFileError(f"{source}:{lineno}: tokens must be at least 16 characters")
-            if not _TOKEN.match(token):
+            if not TOKEN_CHARACTERS.match(token):
                 raise TokenFileError(
                     f"{source}:{lineno}: tokens may hold only printable ASCII characters (no client "
                     "could send any other in an Authorization header)"

@@ -59,6 +59,7 @@ from fleetmap.api_models import (
     ScanResult,
     Surface,
 )
+from fleetmap.auth import TOKEN_CHARACTERS
 from fleetmap.cell_queries import MAX_RAY_WALK, MAX_RAYS, Points, UnknownCells, as_points, float_array
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
@@ -231,6 +232,24 @@ def _conditions(if_match: str | None, create_only: bool = False) -> dict[str, st
     return headers
 
 
+def _authorization(token: str | None) -> dict[str, str]:
+    """The `Authorization` header that carries the API token `token` (none for None or a blank one),
+    its surrounding whitespace dropped as the service drops it: a token read whole from its file ends
+    with a line end, one from an env file written on Windows with a carriage return. ValueError,
+    naming no token, for one holding a character no header carries (tokens are printable ASCII
+    without spaces, `fleetmap.auth.TOKEN_CHARACTERS`): httpx refused it only at each request, with
+    the token itself in its message ("Illegal header value b'Bearer ...'"), for any log to keep."""
+    token = (token or "").strip()
+    if not token:
+        return {}
+    if not TOKEN_CHARACTERS.match(token):
+        raise ValueError(
+            f"the API token (token= or ${TOKEN_ENV}) holds a character no HTTP header carries: a "
+            "token is printable ASCII characters without spaces"
+        )
+    return {"Authorization": f"Bearer {token}"}
+
+
 def _check_id(name: str, value: str) -> str:
     if not isinstance(value, str) or not is_valid_id(value):
         raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
@@ -284,7 +303,9 @@ class FleetmapClient:
     server before the stream is taken for dead and resumed (`events`); give a server run with a
     longer `--events-keepalive` a longer one (None: wait for ever). `token`: an API token of the
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
-    from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it).
+    from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it);
+    surrounding whitespace (a line end) is dropped, and a token with a character no header carries
+    is a ValueError here, naming no token.
     Thread-safe (one httpx.Client; `post_scan` sends one robot's scans one at a time, in call
     order, so threads sharing a robot's automatic seqs lose none); use as a context manager or call
     `close()`.
@@ -309,8 +330,7 @@ class FleetmapClient:
         self.timeout = timeout
         self.scan_timeout = max(scan_timeout, timeout)
         self.transfer_timeout = max(transfer_timeout, timeout)
-        token = token if token is not None else os.environ.get(TOKEN_ENV) or None
-        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        headers = _authorization(token if token is not None else os.environ.get(TOKEN_ENV))
         self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers, limits=_LIMITS)
         #: Next automatic seq per (map_id, robot_id) for `post_scan` of a `Scan` without a seq.
         self._next_seq: dict[tuple[str, str], int] = {}
