@@ -176,6 +176,62 @@ def _late_service(status: int, detail: str, delay: float = 1.5) -> Iterator[str]
         server.server_close()
 
 
+@contextlib.contextmanager
+def _redirect_to(target: str, status: int = 301) -> Iterator[str]:
+    """A real HTTP server on a free port that answers every request with a redirect (`status`) to
+    the same path at `target`, as a proxy sending http:// to https:// does; yields its URL."""
+
+    class Redirect(BaseHTTPRequestHandler):
+        def _redirect(self) -> None:
+            self.rfile.read(int(self.headers.get("content-length") or 0))
+            body = b"<html><body>Moved</body></html>"
+            self.send_response(status)
+            self.send_header("location", target + self.path)
+            self.send_header("content-type", "text/html")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        do_GET = do_POST = do_PUT = do_DELETE = _redirect
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Redirect)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_a_redirect_is_no_answer(client: FleetmapClient, service: ServiceProcess, tmp_path: Path) -> None:
+    """A redirect (a proxy in front of the service sending http:// to https://, a service moved) is
+    an error naming where it points, and nothing was done: every status below 400 was taken for the
+    answer, so `delete_map` returned as if the map were deleted, `save_snapshot` wrote the
+    redirect's HTML page as the backup and returned its size, an event stream "reconnected" for
+    ever, and the readers raised pydantic's ValidationError about invalid JSON."""
+    client.create_map("moved", CONFIG)
+    backup = tmp_path / "moved.zip"
+    with _redirect_to(service.base_url) as old, FleetmapClient(old, timeout=20.0) as fm:
+        calls: list[Callable[[], object]] = [
+            lambda: fm.delete_map("moved"),
+            lambda: fm.save_snapshot("moved", backup),
+            lambda: fm.download_snapshot("moved"),
+            lambda: fm.get_map("moved"),
+            lambda: fm.metrics(),
+            lambda: next(fm.events("moved")),
+        ]
+        for call in calls:
+            with pytest.raises(FleetmapError) as moved:
+                call()
+            assert moved.value.status == 301
+            assert f"redirect to {service.base_url}/" in moved.value.detail
+    assert not backup.exists() and not backup.with_name("moved.zip.part").exists()
+    assert client.get_map("moved").id == "moved"  # not deleted
+
+
 def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
     """The service answers a scan once it is integrated, or 503 after its own wait (10 s by
     default): a client whose timeout is not longer than that got httpx's bare ReadTimeout instead

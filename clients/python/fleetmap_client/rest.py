@@ -14,7 +14,8 @@
 
 Answers are parsed into the models of `fleetmap.api_models` (the same classes the server answers
 with), array answers into NumPy arrays. Every error answer of the server raises `FleetmapError` with
-its HTTP status and the server's `detail` sentence; network failures raise httpx's own
+its HTTP status and the server's `detail` sentence, and so does a redirect (which the client does
+not follow: give it the address it points to); network failures raise httpx's own
 `httpx.TransportError` (e.g. `httpx.ConnectError` when nothing listens). A service started with
 API tokens answers 401 / 403 without the right one: pass `token=` (or set $FLEETMAP_TOKEN).
 Map and robot ids are checked before any request (ValueError), because an id with a `/` would
@@ -454,7 +455,7 @@ class FleetmapClient:
         timeout = httpx.Timeout(self.timeout, read=self.transfer_timeout)
         try:
             with self._http.stream("GET", f"/maps/{map_id}/snapshot", timeout=timeout) as response:
-                if response.is_error:
+                if _failed(response):
                     response.read()
                     _raise_for_error(response)
                 with open(part, "wb") as fp:
@@ -936,7 +937,7 @@ class FleetmapClient:
                 with self._http.stream(
                     "GET", f"/maps/{map_id}/events", params=params, headers=headers, timeout=timeout
                 ) as response:
-                    if response.status_code >= 400:
+                    if _failed(response):
                         response.read()
                         if not (followed and response.status_code == 503):
                             _raise_for_error(response)  # 404: the map is gone; 401 / 403: no access
@@ -1129,10 +1130,33 @@ def _finite(value: float) -> float:
     return v
 
 
+def _failed(response: httpx.Response) -> bool:
+    """Whether `response` is no answer to the request: a 4xx / 5xx, or a redirect (3xx) the client
+    does not follow. Not a 304: what `tile` asked for with the ETag it has."""
+    return response.status_code >= 300 and response.status_code != 304
+
+
 def _raise_for_error(response: httpx.Response) -> None:
-    """Raise `FleetmapError` for a 4xx / 5xx answer, with the server's detail."""
-    if response.status_code < 400:
+    """Raise `FleetmapError` for a 4xx / 5xx answer, with the server's detail, and for a redirect
+    (3xx but 304), naming where it points.
+
+    A redirect is no answer: a proxy in front of the service sending http:// to https:// (301), a
+    service moved. Taken for one, as every status below 400 was, `delete_map` returned as if the map
+    were deleted, `save_snapshot` wrote the redirect's HTML page as the backup and returned its
+    size, and an event stream resumed it for ever. The client follows none: httpx would drop the
+    API token on the way to another host, and send a write redirected by a 301 or 302 as a GET."""
+    if not _failed(response):
         return
+    if response.status_code < 400:
+        location = response.headers.get("Location")
+        to = f" to {location}" if location else ""
+        raise FleetmapError(
+            response.status_code,
+            f"{response.request.url} answered with a redirect{to} ({response.status_code} "
+            f"{response.reason_phrase}), which the client does not follow: give it the service's "
+            "address there",
+            retry_after=_retry_after_seconds(response),
+        )
     detail = response.text.strip() or response.reason_phrase
     errors: list[dict[str, Any]] = []
     try:
