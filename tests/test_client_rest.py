@@ -925,6 +925,18 @@ def test_events_of_an_unknown_map(client: FleetmapClient) -> None:
     assert exc.value.status == 404
 
 
+def test_events_from_a_server_that_sends_no_event_stream() -> None:
+    """Another web server at the address (a wrong port, a proxy's page) answering 200 with no event
+    stream fails the stream, as an EventSource fails such a connection: its answer held no event,
+    so the stream was taken as lost and resumed every second for ever, each time yielding a
+    "reconnected" that never was. A real HTTP server answers 200 with JSON here."""
+    with _late_service(200, "welcome to another app", delay=0.0) as base, FleetmapClient(base) as fm:
+        stream = fm.events("somewhere")
+        with pytest.raises(FleetmapError, match="application/json, not an event stream") as exc:
+            next(stream)
+        assert exc.value.status == 200
+
+
 @pytest.mark.parametrize("since", [-1, "7", 2.0, True])
 def test_events_refuse_a_since_that_is_no_change_version(client: FleetmapClient, since: object) -> None:
     # Sent as it is, the server reads such a Last-Event-ID as none at all and starts from now.

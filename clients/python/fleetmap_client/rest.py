@@ -909,7 +909,8 @@ class FleetmapClient:
         changed meanwhile come in the next `tiles` event (or a reset). It then yields
         ("reconnected", {"last_event_id": ...}) first: a restarted service may hold another map
         under the id, so reload `get_map` as after `replaced`. A 404 then (the map was deleted
-        meanwhile) or 401 / 403 raises `FleetmapError`.
+        meanwhile) or 401 / 403 raises `FleetmapError`, and so does an answer that is no event
+        stream (not `text/event-stream`: another web server at the address), at any time.
         """
         _check_id("map_id", map_id)
         if robots not in ("full", "delta"):
@@ -943,6 +944,7 @@ class FleetmapClient:
                             _raise_for_error(response)  # 404: the map is gone; 401 / 403: no access
                         delay = _retry_after(response, delay)  # the server is stopping or full
                     else:
+                        _raise_unless_event_stream(response)
                         if followed:
                             yield "reconnected", {"last_event_id": last_id}
                         followed = True
@@ -1054,6 +1056,21 @@ def _parse_sse_ids(lines: Iterator[str]) -> Iterator[tuple[str | None, str, dict
             data.append(value)
         elif field == "id" and "\0" not in value:
             last_id = value
+
+
+def _raise_unless_event_stream(response: httpx.Response) -> None:
+    """Raise `FleetmapError` for an answer to `events`' request that is no event stream (its
+    content type not `text/event-stream`), as an EventSource fails such a connection instead of
+    reconnecting: another web server at the address (a wrong port, a proxy's page) answered 200
+    with HTML, which held no event, so the stream was taken as lost and resumed every second for
+    ever, each time yielding a "reconnected" that never was."""
+    media_type = response.headers.get("content-type", "").partition(";")[0].strip().lower()
+    if media_type != "text/event-stream":
+        raise FleetmapError(
+            response.status_code,
+            f"{response.request.url} answered {media_type or 'without a content type'}, not an event "
+            "stream (text/event-stream): is it a fleetmap service?",
+        )
 
 
 def _retry_after(response: httpx.Response, default: float) -> float:
