@@ -232,6 +232,34 @@ def test_a_redirect_is_no_answer(client: FleetmapClient, service: ServiceProcess
     assert client.get_map("moved").id == "moved"  # not deleted
 
 
+def test_post_scan_checks_seq_and_stamp_as_the_publisher_does(
+    client: FleetmapClient, scans: list[Scan]
+) -> None:
+    """A NumPy integer seq (from `np.arange`) is a seq: it failed in the JSON encoder ("Object of
+    type int64 is not JSON serializable"), and, sent in binary, became the robot's automatic
+    counter, which then failed every later JSON scan of it. A seq or stamp no scan can carry is
+    refused before any request, as `ScanPublisher.publish` refuses it: sent, its 422 counted against
+    the robot as a rejected scan."""
+    client.create_map("seqs", CONFIG)
+    assert client.post_scan("seqs", "r1", scans[0], seq=np.int64(0)).status == "integrated"
+    assert client.post_scan("seqs", "r1", scans[1], seq=np.uint8(1), encoding="binary").seq == 1
+    assert client.post_scan("seqs", "r1", scans[2], stamp=np.float32(2.5)).seq == 2  # automatic
+    assert client.post_scan("seqs", "r1", scans[3]).status == "integrated"
+    refused: list[tuple[type[Exception], str, dict[str, Any]]] = [
+        (TypeError, "seq must be an integer", {"seq": 4.0}),
+        (TypeError, "seq must be an integer", {"seq": True}),
+        (ValueError, r"seq must be in \[0, 2\*\*63\)", {"seq": -1}),
+        (ValueError, r"seq must be in \[0, 2\*\*63\)", {"seq": 2**63}),
+        (TypeError, "stamp must be a number", {"stamp": "now"}),
+        (ValueError, "stamp must be finite", {"stamp": math.inf}),
+    ]
+    for error, message, arguments in refused:
+        with pytest.raises(error, match=message):
+            client.post_scan("seqs", "r1", scans[4], **arguments)
+    robot = client.get_map("seqs").stats.robots["r1"]
+    assert (robot.scans_integrated, robot.scans_rejected, robot.last_seq) == (4, 0, 3)
+
+
 def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
     """The service answers a scan once it is integrated, or 503 after its own wait (10 s by
     default): a client whose timeout is not longer than that got httpx's bare ReadTimeout instead

@@ -116,6 +116,7 @@ from fleetmap.wire import (
 )
 
 from .delivery import DeliveryReport, delivery_report, ended_session_report
+from .scan_arguments import checked_seq, checked_stamp
 from .zenoh_config import (
     CONNECT_ATTEMPT_MS,
     DEFAULT_CONNECT,
@@ -629,18 +630,8 @@ class ScanPublisher:
         elif not isinstance(scan, Scan):
             raise TypeError(f"publish takes a fleetmap Scan or ScanMessage, not {type(scan).__name__}")
         if seq is not None:
-            if isinstance(seq, bool) or not isinstance(seq, numbers.Integral):
-                raise TypeError(f"seq must be an integer, got {seq!r}")
-            seq = int(seq)
-            if not 0 <= seq < SEQ_LIMIT:
-                raise ValueError(f"seq must be in [0, 2**63), got {seq}")
-        if stamp is None:
-            stamp = time.time()
-        if isinstance(stamp, bool) or not isinstance(stamp, numbers.Real):
-            raise TypeError(f"stamp must be a number (seconds), got {stamp!r}")
-        stamp = float(stamp)
-        if not math.isfinite(stamp):
-            raise ValueError(f"stamp must be finite, got {stamp}")
+            seq = checked_seq(seq)
+        stamp = checked_stamp(time.time() if stamp is None else stamp)
         with self._send_lock:
             with self._lock:
                 if self._closed.is_set():

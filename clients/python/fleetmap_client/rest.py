@@ -67,6 +67,8 @@ from fleetmap.config import MapConfig
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
 
+from .scan_arguments import checked_seq, checked_stamp
+
 
 def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
     """A zip of a nav2 map_server `map.yaml` and the image it names (relative to the YAML's folder
@@ -568,7 +570,9 @@ class FleetmapClient:
         (`seq` / `stamp`, when given, override theirs). `encoding` chooses the body for a `Scan`
         (JSON or the binary encoding of docs/protocol.md). Returns the `ScanResult` (status
         "integrated", or "duplicate" when the seq was not new). Raises TypeError before any request
-        for a `scan` of another type, `FleetmapError` 422 for an invalid scan, 404 for an unknown
+        for a `scan` of another type, a `seq` that is not an integer or a `stamp` that is not a
+        number, ValueError for a `seq` outside [0, 2**63) or a stamp that is not finite (as
+        `ScanPublisher.publish`), `FleetmapError` 422 for an invalid scan, 404 for an unknown
         map when the server does not create maps on first use, 503 when the server could not
         integrate it in time (it still will) or its queue is full.
         Waits for the answer up to `scan_timeout` (see the class).
@@ -586,6 +590,12 @@ class FleetmapClient:
             raise TypeError(
                 f"post_scan takes a fleetmap Scan, a ScanMessage or a dict, not {type(scan).__name__}"
             )
+        # Checked here as the publisher checks them: a NumPy integer seq (from `np.arange`) failed
+        # in the JSON encoder, and, sent in binary, became the automatic counter, which then failed
+        # every later JSON scan of the robot; a float or negative one was sent, and its 422 counted
+        # against the robot as a rejected scan.
+        seq = None if seq is None else checked_seq(seq)
+        stamp = None if stamp is None else checked_stamp(stamp)
         key = (map_id, robot_id)
         # One robot's scans are sent one at a time, in call order, each with its seq: two threads
         # that took seqs 0 and 1 could otherwise both take 0 (one ignored as a duplicate), or send 1
@@ -1095,7 +1105,7 @@ def _scan_body(
     dict carries none, or not an integer: the server refuses it). `seq` is required for a `Scan`."""
     if isinstance(scan, Scan):
         assert seq is not None
-        stamp = 0.0 if stamp is None else float(stamp)
+        stamp = 0.0 if stamp is None else stamp
         if encoding == "binary":
             return encode_binary(scan, seq, stamp), BINARY_ENCODING, seq
         return encode_json(scan, seq, stamp), JSON_ENCODING, seq
