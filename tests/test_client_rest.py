@@ -260,6 +260,27 @@ def test_post_scan_checks_seq_and_stamp_as_the_publisher_does(
     assert (robot.scans_integrated, robot.scans_rejected, robot.last_seq) == (4, 0, 3)
 
 
+def test_timeouts_are_checked_when_the_client_is_made(service: ServiceProcess) -> None:
+    """A timeout of 0 failed every request as a ConnectError ("Operation now in progress", naming
+    the service as if it were down), a negative one or NaN at each request, and None (httpx's "no
+    limit") as a TypeError of `max` ("'>' not supported between ..."). Each is now refused at once,
+    naming the argument; `events_read_timeout` alone takes None (wait for ever)."""
+    for name in ("timeout", "scan_timeout", "transfer_timeout", "events_read_timeout"):
+        for wrong in (
+            0,
+            -1.0,
+            math.nan,
+            math.inf,
+            "10",
+            True,
+            *([None] if name != "events_read_timeout" else []),
+        ):
+            with pytest.raises(ValueError, match=f"^{name} must be a positive number of seconds"):
+                FleetmapClient(service.base_url, **{name: wrong})
+    with FleetmapClient(service.base_url, timeout=5, events_read_timeout=None) as fm:
+        assert fm.health().status == "ok"
+
+
 def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
     """The service answers a scan once it is integrated, or 503 after its own wait (10 s by
     default): a client whose timeout is not longer than that got httpx's bare ReadTimeout instead

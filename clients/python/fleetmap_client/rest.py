@@ -28,6 +28,7 @@ import contextlib
 import io
 import json
 import math
+import numbers
 import operator
 import os
 import threading
@@ -253,6 +254,13 @@ def _authorization(token: str | None) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"}
 
 
+def _positive_seconds(name: str, value: object) -> float:
+    """`value`, the argument `name`, as seconds: ValueError unless it is a positive finite number."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < float(value) < math.inf:
+        raise ValueError(f"{name} must be a positive number of seconds, not {value!r}")
+    return float(value)
+
+
 def _check_id(name: str, value: str) -> str:
     if not isinstance(value, str) or not is_valid_id(value):
         raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
@@ -304,7 +312,8 @@ class FleetmapClient:
     to store or pack; and the event stream's reads wait up to `events_read_timeout` (default
     `EVENTS_READ_TIMEOUT`, 45 s: three of the service's keepalive periods) for anything from the
     server before the stream is taken for dead and resumed (`events`); give a server run with a
-    longer `--events-keepalive` a longer one (None: wait for ever). `token`: an API token of the
+    longer `--events-keepalive` a longer one (None: wait for ever). Each timeout is a positive number
+    of seconds (ValueError here otherwise). `token`: an API token of the
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
     from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it);
     surrounding whitespace (a line end) is dropped, and a token with a character no header carries
@@ -323,16 +332,19 @@ class FleetmapClient:
         transfer_timeout: float = TRANSFER_TIMEOUT,
         events_read_timeout: float | None = EVENTS_READ_TIMEOUT,
     ) -> None:
-        read = events_read_timeout
-        if read is not None and not (isinstance(read, int | float) and math.isfinite(read) and read > 0):
-            raise ValueError(
-                f"events_read_timeout must be a positive number of seconds or None, not {read!r}"
-            )
-        self.events_read_timeout = read
+        # Checked here: a timeout of 0 failed each request as a ConnectError "Operation now in
+        # progress" naming the service, as if it were down; a negative one, or NaN, at each request;
+        # None (httpx's "no limit"), as a TypeError of `max` here.
+        timeout = _positive_seconds("timeout", timeout)
+        self.events_read_timeout = (
+            None
+            if events_read_timeout is None
+            else _positive_seconds("events_read_timeout", events_read_timeout)
+        )
         self.base_url = base_url.rstrip("/")
         self.timeout = timeout
-        self.scan_timeout = max(scan_timeout, timeout)
-        self.transfer_timeout = max(transfer_timeout, timeout)
+        self.scan_timeout = max(_positive_seconds("scan_timeout", scan_timeout), timeout)
+        self.transfer_timeout = max(_positive_seconds("transfer_timeout", transfer_timeout), timeout)
         headers = _authorization(token if token is not None else os.environ.get(TOKEN_ENV))
         self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers, limits=_LIMITS)
         #: Next automatic seq per (map_id, robot_id) for `post_scan` of a `Scan` without a seq.
