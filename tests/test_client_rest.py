@@ -281,6 +281,36 @@ def test_timeouts_are_checked_when_the_client_is_made(service: ServiceProcess) -
         assert fm.health().status == "ok"
 
 
+def test_an_answer_that_is_not_fleetmaps_is_a_fleetmap_error(scans: list[Scan]) -> None:
+    """Another web server answering 200 at the address (a captive portal's page, a wrong port), or
+    a service of another version: each reader raises `FleetmapError` naming the address, what came
+    and what was expected. They raised pydantic's ValidationError ("Invalid JSON ..."), `region`
+    NumPy's ValueError "This file contains pickled (object) data", `get_map_and_etag` a KeyError:
+    none of the errors the client promises, nor a word of the address. A real HTTP server answers
+    200 with JSON here."""
+    with _late_service(200, "welcome", delay=0.0) as base, FleetmapClient(base) as other:
+        readers: list[tuple[str, Callable[[], object]]] = [
+            ("a Health", other.health),
+            ("a MapList", other.list_maps),
+            ("a MapInfo", lambda: other.create_map("m")),
+            ("a map with its ETag", lambda: other.get_map_and_etag("m")),
+            ("a ScanResult", lambda: other.post_scan("m", "r1", scans[0])),
+            ("a CellValue", lambda: other.cell("m", 0.0, 0.0)),
+            ("a CellsResponse", lambda: other.cells("m", [[0.0, 0.0]])),
+            ("a RaycastResponse", lambda: other.raycast("m", (0.0, 0.0), [0.0], 1.0)),
+            ("a window of a map", lambda: other.region("m")),
+            ("a Surface", lambda: other.surface("m")),
+        ]
+        for expected, read in readers:
+            with pytest.raises(FleetmapError) as exc:
+                read()
+            assert exc.value.status == 200
+            assert exc.value.detail.startswith(f"{base}/")
+            assert (
+                f"answered application/json, not {expected} as a fleetmap service answers" in exc.value.detail
+            )
+
+
 def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
     """The service answers a scan once it is integrated, or 503 after its own wait (10 s by
     default): a client whose timeout is not longer than that got httpx's bare ReadTimeout instead

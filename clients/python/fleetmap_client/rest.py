@@ -37,12 +37,12 @@ import zipfile
 from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any, Literal
+from typing import IO, Any, Literal, TypeVar
 
 import httpx
 import numpy as np
 import yaml
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from fleetmap.api_models import (
     MAX_POINTS,
@@ -163,6 +163,9 @@ _TRANSFER_CHUNK = 1 << 20
 #: packs, every tile of the map first, seconds for a big one, and a bare ReadTimeout would leave
 #: the caller guessing whether an upload took effect.
 TRANSFER_TIMEOUT = 300.0
+
+#: A model of `fleetmap.api_models` an answer is read as (`_read`).
+_Model = TypeVar("_Model", bound=BaseModel)
 
 #: The layers `region` and `region_png` read (the API's `RegionLayer`).
 Layer = RegionLayer
@@ -387,7 +390,7 @@ class FleetmapClient:
 
     def health(self) -> Health:
         """`GET /healthz`: maps held, robots online, ingest queue depth, Zenoh status."""
-        return Health.model_validate_json(self._request("GET", "/healthz").content)
+        return _read(Health, self._request("GET", "/healthz"))
 
     def metrics(self) -> str:
         """`GET /metrics`: the Prometheus text exposition."""
@@ -397,7 +400,7 @@ class FleetmapClient:
 
     def list_maps(self) -> list[MapSummary]:
         """`GET /maps`: every map with its resolution, layers and counters, sorted by id."""
-        return MapList.model_validate_json(self._request("GET", "/maps").content).maps
+        return _read(MapList, self._request("GET", "/maps")).maps
 
     def create_map(
         self,
@@ -424,7 +427,7 @@ class FleetmapClient:
         else:
             kwargs = {"json": dict(config)}
         response = self._request("PUT", f"/maps/{map_id}", headers=headers, **kwargs)
-        return MapInfo.model_validate_json(response.content)
+        return _read(MapInfo, response)
 
     def get_map(self, map_id: str) -> MapInfo:
         """`GET /maps/{map_id}`: configuration and statistics (per-robot counters, bounds, tiles)."""
@@ -438,7 +441,10 @@ class FleetmapClient:
         keep it: after one, read it again)."""
         _check_id("map_id", map_id)
         response = self._request("GET", f"/maps/{map_id}")
-        return MapInfo.model_validate_json(response.content), response.headers["ETag"]
+        etag = response.headers.get("ETag")
+        if etag is None:  # a proxy that drops it: without it no conditional write can be made
+            raise _not_fleetmap(response, "a map with its ETag", "no ETag header")
+        return _read(MapInfo, response), etag
 
     def delete_map(self, map_id: str, *, if_match: str | None = None) -> None:
         """`DELETE /maps/{map_id}`, returning once the server has stored the deletion; `FleetmapError`
@@ -525,7 +531,7 @@ class FleetmapClient:
                 # sending more or less than that ("Too much data for declared Content-Length").
                 body = _read_chunks(snapshot)
             response = self._transfer("PUT", f"/maps/{map_id}/snapshot", content=body, headers=headers)
-        return MapInfo.model_validate_json(response.content)
+        return _read(MapInfo, response)
 
     def import_nav2(
         self,
@@ -562,7 +568,7 @@ class FleetmapClient:
             content=body,
             headers=headers,
         )  # fmt: skip
-        return MapInfo.model_validate_json(response.content)
+        return _read(MapInfo, response)
 
     # -- scans -------------------------------------------------------------------------------------
 
@@ -631,7 +637,7 @@ class FleetmapClient:
                 raise
             if sent_seq is not None:
                 self._next_seq[key] = sent_seq + 1
-        return ScanResult.model_validate_json(response.content)
+        return _read(ScanResult, response)
 
     def _robot_lock(self, key: tuple[str, str]) -> threading.Lock:
         """The lock `post_scan` holds while it sends a scan of robot `key` (map_id, robot_id)."""
@@ -644,7 +650,7 @@ class FleetmapClient:
         """`GET /maps/{map_id}/cell`: every layer's value in the cell containing the map point (x, y)."""
         _check_id("map_id", map_id)
         response = self._request("GET", f"/maps/{map_id}/cell", params={"x": _finite(x), "y": _finite(y)})
-        return CellValue.model_validate_json(response.content)
+        return _read(CellValue, response)
 
     def cells(self, map_id: str, points: Points) -> dict[str, np.ndarray]:
         """`POST /maps/{map_id}/cells`: every layer at many map points at once.
@@ -669,7 +675,7 @@ class FleetmapClient:
     def _cells(self, map_id: str, pts: np.ndarray) -> dict[str, np.ndarray]:
         """One `POST /maps/{map_id}/cells` of at most MAX_POINTS checked points, as `cells` answers."""
         response = self._request("POST", f"/maps/{map_id}/cells", json={"points": pts.tolist()})
-        parsed = CellsResponse.model_validate_json(response.content)
+        parsed = _read(CellsResponse, response)
         out: dict[str, np.ndarray] = {
             "i": np.array(parsed.i, dtype=np.int64),
             "j": np.array(parsed.j, dtype=np.int64),
@@ -760,7 +766,7 @@ class FleetmapClient:
     def _raycast(self, map_id: str, body: dict[str, Any]) -> dict[str, np.ndarray]:
         """One `POST /maps/{map_id}/raycast` of `body`, as `raycast` answers."""
         response = self._request("POST", f"/maps/{map_id}/raycast", json=body)
-        parsed = RaycastResponse.model_validate_json(response.content)
+        parsed = _read(RaycastResponse, response)
         return {
             "status": np.array(parsed.status, dtype=str),
             "range": np.array(parsed.range, dtype=np.float64),
@@ -804,9 +810,12 @@ class FleetmapClient:
         _check_id("map_id", map_id)
         params: dict[str, Any] = {**_bounds(xmin, ymin, xmax, ymax), "layer": layer, "format": "npy"}
         response = self._request("GET", f"/maps/{map_id}/region", params=params)
-        array = np.load(io.BytesIO(response.content), allow_pickle=False)
-        i0, j0, i1, j1 = (int(v) for v in response.headers["X-Fleetmap-Window"].split(","))
-        ox, oy = (float(v) for v in response.headers["X-Fleetmap-Origin"].split(","))
+        try:
+            array = np.load(io.BytesIO(response.content), allow_pickle=False)
+            i0, j0, i1, j1 = (int(v) for v in response.headers["X-Fleetmap-Window"].split(","))
+            ox, oy = (float(v) for v in response.headers["X-Fleetmap-Origin"].split(","))
+        except (ValueError, KeyError, EOFError) as exc:  # said "... contains pickled (object) data"
+            raise _not_fleetmap(response, "a window of a map", f"{type(exc).__name__}: {exc}") from None
         return array, (i0, j0, i1, j1), (ox, oy)
 
     def clear_region(
@@ -826,7 +835,7 @@ class FleetmapClient:
             params=_bounds(xmin, ymin, xmax, ymax),
             headers=_conditions(if_match),
         )
-        return RegionCleared.model_validate_json(response.content)
+        return _read(RegionCleared, response)
 
     def region_png(
         self,
@@ -873,7 +882,7 @@ class FleetmapClient:
         map keeps no TSDF layer."""
         _check_id("map_id", map_id)
         response = self._request("GET", f"/maps/{map_id}/surface", params=_bounds(xmin, ymin, xmax, ymax))
-        parsed = Surface.model_validate_json(response.content)
+        parsed = _read(Surface, response)
         return np.array(parsed.points, dtype=np.float64).reshape(-1, 2)
 
     def export(
@@ -1080,19 +1089,45 @@ def _parse_sse_ids(lines: Iterator[str]) -> Iterator[tuple[str | None, str, dict
             last_id = value
 
 
+def _media_type(response: httpx.Response) -> str:
+    """The media type of `response`'s `Content-Type`, without its parameters ("" without one)."""
+    return response.headers.get("content-type", "").partition(";")[0].strip().lower()
+
+
 def _raise_unless_event_stream(response: httpx.Response) -> None:
     """Raise `FleetmapError` for an answer to `events`' request that is no event stream (its
     content type not `text/event-stream`), as an EventSource fails such a connection instead of
     reconnecting: another web server at the address (a wrong port, a proxy's page) answered 200
     with HTML, which held no event, so the stream was taken as lost and resumed every second for
     ever, each time yielding a "reconnected" that never was."""
-    media_type = response.headers.get("content-type", "").partition(";")[0].strip().lower()
-    if media_type != "text/event-stream":
-        raise FleetmapError(
-            response.status_code,
-            f"{response.request.url} answered {media_type or 'without a content type'}, not an event "
-            "stream (text/event-stream): is it a fleetmap service?",
-        )
+    if _media_type(response) != "text/event-stream":
+        raise _not_fleetmap(response, "an event stream", "whose content type is text/event-stream")
+
+
+def _read(model: type[_Model], response: httpx.Response) -> _Model:
+    """`response`'s JSON body as `model`; `FleetmapError` (of the answer's status) when it is not
+    one, naming what came instead."""
+    try:
+        return model.model_validate_json(response.content)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(part) for part in first["loc"])
+        raise _not_fleetmap(
+            response, f"a {model.__name__}", f"{where}: {first['msg']}" if where else first["msg"]
+        ) from None
+
+
+def _not_fleetmap(response: httpx.Response, expected: str, reason: str) -> FleetmapError:
+    """The `FleetmapError` for a successful answer that is not the one a fleetmap service gives:
+    another web server answering at the address (a captive portal's or a proxy's page, a wrong
+    port), or a service of another version. Raised as pydantic's ValidationError ("Invalid JSON:
+    expected value at line 1 column 1"), or for a window NumPy's "contains pickled (object) data",
+    it was neither of the errors the client promises, and said nothing of the address."""
+    return FleetmapError(
+        response.status_code,
+        f"{response.request.url} answered {_media_type(response) or 'without a content type'}, not "
+        f"{expected} as a fleetmap service answers ({reason}): is it a fleetmap service, of this version?",
+    )
 
 
 def _retry_after(response: httpx.Response, default: float) -> float:
