@@ -719,6 +719,12 @@ def test_tiles_with_etags(client: FleetmapClient, scans: list[Scan]) -> None:
     with pytest.raises(FleetmapError) as bad_zoom:
         client.tile("tiles", 99, 0, 0)
     assert bad_zoom.value.status == 422 and "z" in bad_zoom.value.detail
+    # NumPy integers are tile indices; a float is refused, before any request: cut to an int, -0.5
+    # (a point left of tile 0, divided by the tile size) asked for tile 0, not -1, with no word.
+    assert client.tile("tiles", np.int64(0), np.int32(tx), np.uint16(ty) if ty >= 0 else ty)[0] == png2
+    for z, x, y in ((0, tx - 0.5, ty), (0, tx, float(ty)), (0.0, tx, ty), (0, True, ty)):
+        with pytest.raises(TypeError, match="tile . must be an integer"):
+            client.tile("tiles", z, x, y)  # type: ignore[arg-type]
 
 
 def test_errors_carry_the_server_detail(client: FleetmapClient, scans: list[Scan]) -> None:

@@ -264,6 +264,18 @@ def _positive_seconds(name: str, value: object) -> float:
     return float(value)
 
 
+def _tile_index(name: str, value: object) -> int:
+    """`tile`'s `z`, `x` or `y` as an int; TypeError for anything but an integer (a NumPy one too).
+    Cut to an int, a float named another tile: -0.5 (a point left of tile 0, divided by the tile
+    size) asked for tile 0, not -1, and 0.9 for tile 0, with no word."""
+    if isinstance(value, bool):
+        raise TypeError(f"tile {name} must be an integer, got {value!r}")
+    try:
+        return operator.index(value)  # type: ignore[arg-type]
+    except TypeError:
+        raise TypeError(f"tile {name} must be an integer, got {value!r}") from None
+
+
 def _check_id(name: str, value: str) -> str:
     if not isinstance(value, str) or not is_valid_id(value):
         raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
@@ -857,13 +869,14 @@ class FleetmapClient:
     ) -> tuple[bytes | None, str]:
         """`GET /maps/{map_id}/tiles/{z}/{x}/{y}.png`: a 256 x 256 RGBA tile (Leaflet CRS.Simple,
         zoom 0 = one pixel per cell). With the `etag` of an earlier answer, returns (None, etag) while
-        the tile is unchanged (the server answered 304), else (png bytes, new etag)."""
+        the tile is unchanged (the server answered 304), else (png bytes, new etag). TypeError before
+        any request for a `z`, `x` or `y` that is not an integer."""
         _check_id("map_id", map_id)
+        z, x, y = (_tile_index(name, value) for name, value in (("z", z), ("x", x), ("y", y)))
         headers = {"If-None-Match": etag} if etag else {}
         response = self._request(
-            "GET", f"/maps/{map_id}/tiles/{int(z)}/{int(x)}/{int(y)}.png", params={"layer": layer},
-            headers=headers,
-        )  # fmt: skip
+            "GET", f"/maps/{map_id}/tiles/{z}/{x}/{y}.png", params={"layer": layer}, headers=headers
+        )
         new_etag = response.headers.get("ETag", "")
         if response.status_code == 304:
             return None, new_etag or (etag or "")
