@@ -16,6 +16,7 @@ import math
 import multiprocessing
 import os
 import pickle
+import re
 import threading
 import time
 import zipfile
@@ -228,7 +229,7 @@ def test_a_redirect_is_no_answer(client: FleetmapClient, service: ServiceProcess
                 call()
             assert moved.value.status == 301
             assert f"redirect to {service.base_url}/" in moved.value.detail
-    assert not backup.exists() and not backup.with_name("moved.zip.part").exists()
+    assert list(tmp_path.iterdir()) == []  # no backup, nor a part of one
     assert client.get_map("moved").id == "moved"  # not deleted
 
 
@@ -509,7 +510,7 @@ def test_snapshots_saved_to_a_file_and_uploaded_from_one(
         client.post_scan("files", "r1", scan, seq=k)
     path = tmp_path / "files.fleetmap.zip"
     size = client.save_snapshot("files", path)
-    assert size == path.stat().st_size > 0 and not (tmp_path / "files.fleetmap.zip.part").exists()
+    assert size == path.stat().st_size > 0 and [p.name for p in tmp_path.iterdir()] == [path.name]
     x0, y0, x1, y1 = -5.0, -5.0, 15.0, 12.0
     for target, source in (("files-a", path), ("files-b", open(path, "rb"))):  # noqa: SIM115
         with contextlib.ExitStack() as stack:
@@ -562,9 +563,54 @@ def test_a_saved_snapshot_is_on_disk_before_it_takes_its_name(
     client.save_snapshot("synced", path)
     monkeypatch.undo()
     folder = os.path.realpath(tmp_path)  # (what /proc names the descriptors by)
-    part = os.path.join(folder, path.name + ".part")
-    assert calls == [("fsync", part), ("replace", str(path)), ("fsync", folder)], calls
+    assert [c[0] for c in calls] == ["fsync", "replace", "fsync"], calls
+    part = calls[0][1]  # the call's own part file, beside the backup
+    assert os.path.dirname(part) == folder and re.fullmatch(
+        rf"{re.escape(path.name)}\.[0-9a-f]{{16}}\.part", os.path.basename(part)
+    )
+    assert calls[1:] == [("replace", str(path)), ("fsync", folder)], calls
     assert path.read_bytes()[:2] == b"PK"
+
+
+def test_snapshots_saved_to_one_path_at_once_each_leave_a_whole_file(
+    client: FleetmapClient, scans: list[Scan], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two saves to one path at once (threads sharing the client, as it allows, or an overlapping
+    backup job) each write their own part file and rename it whole. Both went to `path.part`: each
+    truncated the other's, one renamed it, possibly unfinished, and returned the size it then had
+    (0 was seen), the other failed renaming what was gone (FileNotFoundError). Here both downloads
+    are written before either is renamed (each waits for the other at its fsync), as happens when
+    they overlap."""
+    client.create_map("twice", CONFIG)
+    for k, scan in enumerate(scans[:3]):
+        client.post_scan("twice", "r1", scan, seq=k)
+    expected = client.download_snapshot("twice")
+    path = tmp_path / "twice.fleetmap.zip"
+    both_written = threading.Barrier(2, timeout=60)
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        real_fsync(fd)
+        if os.readlink(f"/proc/self/fd/{fd}").endswith(".part"):
+            both_written.wait()
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    outcomes: list[object] = []
+
+    def save() -> None:
+        try:
+            outcomes.append(client.save_snapshot("twice", path))
+        except Exception as exc:  # noqa: BLE001 - the outcome to check
+            outcomes.append(exc)
+
+    savers = [threading.Thread(target=save) for _ in range(2)]
+    for saver in savers:
+        saver.start()
+    for saver in savers:
+        saver.join(120)
+    monkeypatch.undo()
+    assert outcomes == [len(expected), len(expected)]
+    assert path.read_bytes() == expected and [p.name for p in tmp_path.iterdir()] == [path.name]
 
 
 def test_a_snapshot_uploaded_from_an_open_file_is_sent_from_where_it_stands(

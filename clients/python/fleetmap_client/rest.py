@@ -31,6 +31,7 @@ import math
 import numbers
 import operator
 import os
+import secrets
 import threading
 import time
 import zipfile
@@ -477,22 +478,28 @@ class FleetmapClient:
 
     def save_snapshot(self, map_id: str, path: str | os.PathLike[str]) -> int:
         """`download_snapshot` written to the file `path` as it arrives, never held in memory whole
-        (a big map's file takes gigabytes); returns its size in bytes. It goes to `path` + `.part`
-        first, renamed to `path` once whole and on disk (fsync): an error (`FleetmapError`, a dropped
-        connection, an `OSError` of the rename: `path` a folder, say) leaves no file, and an earlier
-        one at `path` as it was; a power cut leaves the earlier file or the whole new one."""
+        (a big map's file takes gigabytes); returns its size in bytes. It goes to a `.part` file
+        beside `path` first (`<name>.<random>.part`, its own for each call), renamed to `path` once
+        whole and on disk (fsync): an error (`FleetmapError`, a dropped connection, an `OSError` of
+        the rename: `path` a folder, say) leaves no file, and an earlier one at `path` as it was; a
+        power cut leaves the earlier file or the whole new one; saves to one `path` at once (threads,
+        an overlapping backup job) each leave a whole file there, the last one renamed."""
         _check_id("map_id", map_id)
         target = Path(path)
-        part = target.with_name(target.name + ".part")
+        # Its own: with one `path.part` for every call, two saves to one path at once wrote into one
+        # file (each truncating it at its start), one renamed it, possibly unfinished, and returned
+        # the size it then had (0, say), and the other failed to rename what was gone.
+        part = target.with_name(f"{target.name}.{secrets.token_hex(8)}.part")
         timeout = httpx.Timeout(self.timeout, read=self.transfer_timeout)
+        size = 0
         try:
             with self._http.stream("GET", f"/maps/{map_id}/snapshot", timeout=timeout) as response:
                 if _failed(response):
                     response.read()
                     _raise_for_error(response)
-                with open(part, "wb") as fp:
+                with open(part, "xb") as fp:
                     for chunk in response.iter_bytes(_TRANSFER_CHUNK):
-                        fp.write(chunk)
+                        size += fp.write(chunk)
                     # On disk before it takes the name: renamed while its data was still only in
                     # the page cache, a power cut (or a kernel crash) soon after could leave `path`
                     # empty or cut short on most file systems, the earlier backup there gone too.
@@ -511,7 +518,7 @@ class FleetmapClient:
             part.unlink(missing_ok=True)
             raise
         _sync_directory(target.parent)  # the rename itself
-        return target.stat().st_size
+        return size
 
     def upload_snapshot(
         self,
