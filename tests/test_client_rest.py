@@ -648,6 +648,24 @@ def test_a_snapshot_uploaded_from_an_open_file_is_sent_from_where_it_stands(
         )
 
 
+def test_snapshots_and_nav2_maps_sent_from_a_bytearray_or_a_memoryview(
+    client: FleetmapClient, scans: list[Scan]
+) -> None:
+    """`upload_snapshot` said it takes a bytearray or a memoryview of the file, and handed it to
+    httpx as it was, which took it for an iterable of chunks and failed on its first byte ("object
+    of type 'int' has no len()"); `import_nav2` took a bytearray for a path ("expected str, bytes or
+    os.PathLike object")."""
+    client.create_map("views", CONFIG)
+    client.post_scan("views", "r1", scans[0])
+    snapshot, ros = client.download_snapshot("views"), client.export("views")
+    tiles = client.get_map("views").stats.tiles
+    assert client.upload_snapshot("views-bytearray", bytearray(snapshot)).stats.tiles == tiles
+    assert client.upload_snapshot("views-memoryview", memoryview(snapshot)).stats.tiles == tiles
+    for target, source in (("nav2-bytearray", bytearray(ros)), ("nav2-memoryview", memoryview(ros))):
+        assert client.import_nav2(target, source).stats.tiles > 0
+        np.testing.assert_array_equal(client.region(target), client.region("nav2-bytearray"))
+
+
 def test_threads_posting_one_robots_scans_lose_none(client: FleetmapClient, scans: list[Scan]) -> None:
     """The client is thread-safe, but threads posting one robot's scans with automatic seqs read
     the counter before any answer moved it: 4 threads posting 40 scans sent most seqs twice (or a

@@ -523,13 +523,14 @@ class FleetmapClient:
     def upload_snapshot(
         self,
         map_id: str,
-        snapshot: bytes | str | os.PathLike[str] | IO[bytes],
+        snapshot: bytes | bytearray | memoryview | str | os.PathLike[str] | IO[bytes],
         *,
         if_match: str | None = None,
         create_only: bool = False,
     ) -> MapInfo:
         """`PUT /maps/{map_id}/snapshot`: install a `download_snapshot` file as map `map_id`, replacing
-        any map of that id, and return it once stored. `snapshot`: the file's bytes, its path (a
+        any map of that id, and return it once stored. `snapshot`: the file's bytes (or a bytearray or
+        memoryview of them), its path (a
         `save_snapshot` file: sent from the file as it is read, never held in memory whole), or a
         binary file open for reading (sent from where it stands to its end; a pipe too).
         `FleetmapError` 422 (or 413) for a file that is not a valid snapshot, naming the part at
@@ -543,7 +544,9 @@ class FleetmapClient:
             if isinstance(snapshot, (str, os.PathLike)):
                 body = stack.enter_context(open(snapshot, "rb"))  # noqa: SIM115 - closed by the stack
             elif isinstance(snapshot, (bytes, bytearray, memoryview)):
-                body = snapshot
+                # As bytes: httpx takes a bytearray or memoryview for an iterable of chunks, and
+                # failed on its first byte ("object of type 'int' has no len()").
+                body = bytes(snapshot)
             else:
                 # From where the caller's file stands, to its end, chunked: httpx would declare the
                 # whole file's size (`os.fstat`) whatever its position, and 0 for a pipe, then fail
@@ -555,7 +558,7 @@ class FleetmapClient:
     def import_nav2(
         self,
         map_id: str,
-        source: str | os.PathLike[str] | bytes,
+        source: str | os.PathLike[str] | bytes | bytearray | memoryview,
         snap_origin: bool = False,
         *,
         if_match: str | None = None,
@@ -566,7 +569,8 @@ class FleetmapClient:
 
         `source`: the path of a `map.yaml` (it is zipped here with the image it names, which is
         read relative to the YAML's folder as map_server does), or a zip holding one YAML file and
-        its image (what `GET /maps/{id}/export?format=ros` gives): its bytes, or the path of a file
+        its image (what `GET /maps/{id}/export?format=ros` gives): its bytes (a bytearray or
+        memoryview too), or the path of a file
         whose name ends in `.zip`, sent as it is. ValueError for a YAML file that is not YAML or
         names no image (nothing is sent). `FleetmapError` 422
         naming the field or image at fault (a rotated map, an origin off the cell grid, a colour
@@ -576,8 +580,8 @@ class FleetmapClient:
         `create_only` as for `upload_snapshot`."""
         _check_id("map_id", map_id)
         headers = {"content-type": "application/zip", **_conditions(if_match, create_only)}
-        if isinstance(source, bytes):
-            body = source
+        if isinstance(source, (bytes, bytearray, memoryview)):  # (a bytearray was taken for a path)
+            body = bytes(source)
         elif Path(source).suffix.lower() == ".zip":  # an export saved to a file: not a YAML to zip
             body = Path(source).read_bytes()
         else:
