@@ -765,6 +765,31 @@ def test_post_scan_sends_nan_and_infinities_as_the_protocol_reads_them(client: F
     assert (robot.scans_integrated, robot.scans_rejected) == (2, 0)
 
 
+def test_numpy_values_in_a_configuration_or_a_dict_scan(client: FleetmapClient, scans: list[Scan]) -> None:
+    """A configuration dict or a dict scan holding NumPy values (a computed `np.int64` tile size, a
+    `np.float32` resolution, ranges as an array, a seq from `np.arange`) is sent as the numbers and
+    lists they hold: json refused them ("Object of type int64 is not JSON serializable"). The
+    automatic seq goes on after a dict's NumPy seq, as after a Python one."""
+    config = {"resolution": np.float32(0.125), "tile_size": np.int64(64), "layers": np.array(["occupancy"])}
+    info = client.create_map("numpy-values", config)
+    assert (info.resolution, info.config.tile_size, info.config.layers) == (0.125, 64, ["occupancy"])
+    fan = scans[0]
+    as_dict = {
+        "seq": np.arange(5)[3],
+        "stamp": np.float32(1.5),
+        "pose": {"x": np.float64(fan.pose.x), "y": fan.pose.y, "theta": np.float32(fan.pose.theta)},
+        "angle_min": fan.angles[0],
+        "angle_increment": (fan.angles[1] - fan.angles[0]),
+        "range_min": fan.range_min,
+        "range_max": fan.range_max,
+        "ranges": fan.ranges.astype(np.float32),
+    }
+    assert client.post_scan("numpy-values", "r1", as_dict).seq == 3
+    assert client.post_scan("numpy-values", "r1", scans[1]).seq == 4  # the automatic seq went on
+    robot = client.get_map("numpy-values").stats.robots["r1"]
+    assert (robot.scans_integrated, robot.scans_rejected, robot.lost) == (2, 0, 0)
+
+
 def test_tiles_with_etags(client: FleetmapClient, scans: list[Scan]) -> None:
     client.create_map("tiles", CONFIG)
     client.post_scan("tiles", "r1", scans[0], seq=0)

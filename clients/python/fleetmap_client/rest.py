@@ -438,7 +438,8 @@ class FleetmapClient:
             kwargs = {"content": config.model_dump_json()}
             headers["content-type"] = JSON_ENCODING
         else:
-            kwargs = {"json": dict(config)}
+            kwargs = {"content": _json(dict(config))}
+            headers["content-type"] = JSON_ENCODING
         response = self._request("PUT", f"/maps/{map_id}", headers=headers, **kwargs)
         return _read(MapInfo, response)
 
@@ -1190,9 +1191,24 @@ def _scan_body(
     # NaN and infinities as the literals NaN, Infinity and -Infinity, which the service reads as a
     # JSON scan's invalid reading, no return, and no maximum (docs/protocol.md): a ScanMessage's
     # range_max is infinite unless given, and its NaN ranges stay invalid.
-    body = json.dumps(message, separators=(",", ":")).encode()
     sent = message.get("seq")
-    return body, JSON_ENCODING, sent if isinstance(sent, int) else None
+    sent_seq = int(sent) if isinstance(sent, numbers.Integral) and not isinstance(sent, bool) else None
+    return _json(message), JSON_ENCODING, sent_seq
+
+
+def _json(value: Any) -> bytes:
+    """`value` as compact JSON, NumPy scalars and arrays in it as the numbers and lists they hold
+    (a configuration's `np.int64` tile size, a dict scan's ranges as an array), which json refused
+    ("Object of type int64 is not JSON serializable"); NaN and infinities as the literals the
+    service reads."""
+    return json.dumps(value, separators=(",", ":"), default=_plain).encode()
+
+
+def _plain(value: Any) -> Any:
+    """`json.dumps`' `default` for `_json`: a NumPy scalar or array as its Python value."""
+    if isinstance(value, np.generic | np.ndarray):
+        return value.tolist()
+    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
 
 
 def _naming_the_service(exc: httpx.TransportError, base_url: str) -> httpx.TransportError:
