@@ -634,6 +634,15 @@ def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong(tmp
         "invalid Zenoh endpoint in ['127.0.0.1:7447']: Endpoints must be of the form "
         "<protocol>/<address>[?<metadata>][#<config>]: 127.0.0.1:7447"
     )
+    # Flags that are not bools: "no" was true, and the robot blocked on a full link it meant to drop on.
+    for flags in ({"block": "no"}, {"send_session_id": "false"}):
+        with pytest.raises(TypeError, match="must be True or False"):
+            ScanPublisher("m", "r", connect="tcp/127.0.0.1:1", **flags)  # type: ignore[arg-type]
+    # As a URL, which Zenoh takes for the protocol `tcp:`: the robot waited for the service for ever.
+    with pytest.raises(
+        ValueError, match=r"^'tcp://h:7447' is written as a URL: .* PROTOCOL/ADDRESS, tcp/h:7447$"
+    ):
+        ScanPublisher("m", "r", connect=["tcp/127.0.0.1:1", "tcp://h:7447"])
     config_file = tmp_path / "robot.json5"
     config_file.write_text('{mode: "client", connect: {endpoints: ["127.0.0.1:7447"]}}')
     with pytest.raises(ValueError) as bad:

@@ -394,6 +394,12 @@ def test_serve_errors_exit_2_without_a_traceback(service: ServiceProcess, tmp_pa
             "error: invalid Zenoh endpoint: Endpoints must be of the form "
             "<protocol>/<address>[?<metadata>][#<config>]: 127.0.0.1:7447\n",
         ),
+        # As a URL: Zenoh took `tcp:` for its protocol ("Unicast not supported for tcp: protocol").
+        (
+            ["--http", "127.0.0.1:0", "--zenoh-connect", "tcp://127.0.0.1:7447"],
+            "error: invalid Zenoh endpoint: 'tcp://127.0.0.1:7447' is written as a URL: a Zenoh endpoint is "
+            "PROTOCOL/ADDRESS, tcp/127.0.0.1:7447\n",
+        ),
     ]
     for args, message in cases:
         # --in-memory: these runs must not open (or create) ./fleetmap-data in the working directory.

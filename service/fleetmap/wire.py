@@ -82,6 +82,20 @@ def zenoh_error_text(exc: BaseException) -> str:
     return " ".join(text.split())
 
 
+def check_endpoint_form(endpoint: str) -> None:
+    """Raise ValueError if `endpoint` is written as a URL (`tcp://127.0.0.1:7447`) rather than as
+    the Zenoh endpoint `PROTOCOL/ADDRESS` (`tcp/127.0.0.1:7447`): Zenoh takes the URL for protocol
+    `tcp:` and address `/127.0.0.1:7447`, so a robot given one waited for the service for ever and
+    the service failed to listen with "Unicast not supported for tcp: protocol". Other mistakes
+    are Zenoh's own to report (`zenoh_error_text`)."""
+    protocol, slash, rest = endpoint.partition("/")
+    if slash and protocol.endswith(":") and rest.startswith("/"):
+        raise ValueError(
+            f"{endpoint!r} is written as a URL: a Zenoh endpoint is PROTOCOL/ADDRESS, "
+            f"{protocol[:-1]}/{rest[1:]}"
+        )
+
+
 def is_valid_id(value: str) -> bool:
     """Whether `value` is a valid map or robot id (`ID_PATTERN`: 1 to 64 of A-Z a-z 0-9 _ -)."""
     # The whole of it: `match` also took an id followed by a newline (`$` matches before a last

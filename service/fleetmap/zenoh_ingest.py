@@ -114,6 +114,7 @@ from fleetmap.wire import (
     JSON_ENCODING,
     SCAN_KEY_WILDCARD,
     SESSION_LIMIT,
+    check_endpoint_form,
     is_valid_id,
     zenoh_error_text,
 )
@@ -299,6 +300,8 @@ class ZenohIngest:
             if not file_connect:
                 raise IngestStartError("Zenoh client mode needs connect endpoints")
         try:
+            for endpoint in (*listen, *self.connect):
+                check_endpoint_form(endpoint)
             cfg.insert_json5("mode", json.dumps(mode))
             cfg.insert_json5("listen/endpoints", json.dumps(listen))
             if self.connect:

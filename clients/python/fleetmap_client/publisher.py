@@ -246,7 +246,8 @@ class ScanPublisher:
         block: True (default) publishes with `CongestionControl.BLOCK` (a full link blocks `publish`,
             no scan is dropped); False uses `DROP` (best effort: never blocks, may drop under load).
         send_session_id: True (default) sends a random session id in every scan (see the module docstring);
-            False sends none (then the service recognises restarts by the stamps only).
+            False sends none (then the service recognises restarts by the stamps only). Both flags must
+            be bools (TypeError otherwise: `block="no"` was taken for True).
         backlog: scans kept for re-delivery after a lost connection (default `DEFAULT_BACKLOG`; see the
             module docstring); 0: none, with a plain Zenoh publisher, for a service older than
             store and forward (scans published while disconnected are then dropped).
@@ -286,6 +287,9 @@ class ScanPublisher:
             raise ValueError(f"backlog must be an integer >= 0, got {backlog!r}")
         if encoding not in ("binary", "json"):
             raise ValueError(f"encoding must be 'binary' or 'json', got {encoding!r}")
+        for name, flag in (("block", block), ("send_session_id", send_session_id)):
+            if not isinstance(flag, bool):  # block="no" (or "false" read from a file) was taken for True
+                raise TypeError(f"{name} must be True or False, got {flag!r}")
         self.map_id = map_id
         self.robot_id = robot_id
         self.encoding: Encoding = encoding

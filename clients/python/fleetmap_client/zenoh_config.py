@@ -13,7 +13,7 @@ from typing import Any
 
 import zenoh
 
-from fleetmap.wire import CONNECT_RETRY, DEFAULT_ENDPOINT, zenoh_error_text
+from fleetmap.wire import CONNECT_RETRY, DEFAULT_ENDPOINT, check_endpoint_form, zenoh_error_text
 
 #: Where `fleetmap serve` listens by default.
 DEFAULT_CONNECT = (DEFAULT_ENDPOINT,)
@@ -78,6 +78,8 @@ def client_config(
             endpoints = list(DEFAULT_CONNECT if connect is None else connect)
         if not endpoints or not all(isinstance(e, str) and e for e in endpoints):
             raise ValueError(f"connect must be a non-empty list of Zenoh endpoints, got {connect!r}")
+        for endpoint in endpoints:
+            check_endpoint_form(endpoint)
         try:
             cfg.insert_json5("connect/endpoints", _json_list(endpoints))
         except zenoh.ZError as exc:
