@@ -148,6 +148,18 @@ def test_bad_arguments_are_refused_before_any_request(client: FleetmapClient, sc
 
 
 @contextlib.contextmanager
+def _serving(handler: type[BaseHTTPRequestHandler]) -> Iterator[str]:
+    """A real HTTP server on a free port answering with `handler`, on a thread; yields its URL."""
+    server = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+@contextlib.contextmanager
 def _late_service(status: int, detail: str, delay: float = 1.5) -> Iterator[str]:
     """A real HTTP server on a free port that answers every GET, POST and PUT `delay` seconds late
     with `status` and `{"detail": detail}`, as the service answers its slow requests; yields its URL."""
@@ -168,13 +180,8 @@ def _late_service(status: int, detail: str, delay: float = 1.5) -> Iterator[str]
         def log_message(self, format: str, *args: Any) -> None:
             pass
 
-    server = ThreadingHTTPServer(("127.0.0.1", 0), LateService)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}"
-    finally:
-        server.shutdown()
-        server.server_close()
+    with _serving(LateService) as url:
+        yield url
 
 
 @contextlib.contextmanager
@@ -198,13 +205,8 @@ def _redirect_to(target: str, status: int = 301) -> Iterator[str]:
         def log_message(self, format: str, *args: Any) -> None:
             pass
 
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Redirect)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}"
-    finally:
-        server.shutdown()
-        server.server_close()
+    with _serving(Redirect) as url:
+        yield url
 
 
 def test_a_redirect_is_no_answer(client: FleetmapClient, service: ServiceProcess, tmp_path: Path) -> None:
@@ -398,10 +400,7 @@ def test_automatic_seq_moves_past_a_scan_the_service_may_still_integrate(scans: 
         def log_message(self, format: str, *args: Any) -> None:
             pass
 
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Service)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        url = f"http://127.0.0.1:{server.server_address[1]}"
+    with _serving(Service) as url:
         with FleetmapClient(url, timeout=1.0, scan_timeout=1.0) as fm:
             with pytest.raises(FleetmapError, match="it will be integrated"):
                 fm.post_scan("m", "r1", scans[0])
@@ -415,9 +414,6 @@ def test_automatic_seq_moves_past_a_scan_the_service_may_still_integrate(scans: 
             with pytest.raises(httpx.ConnectError):
                 nowhere.post_scan("m", "r1", scans[0])
             assert nowhere._next_seq.get(("m", "r1"), 0) == 0  # nothing left: seq 0 is still free
-    finally:
-        server.shutdown()
-        server.server_close()
     assert seqs == [0, 1, 1, 2, 3]
 
 

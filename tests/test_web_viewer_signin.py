@@ -7,9 +7,10 @@ never asks. Same Chromium and skip rule as test_web_viewer.py; one in-memory ser
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import signal
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -221,23 +222,41 @@ def test_a_sign_out_that_failed_can_be_tried_again(
     assert not page.page_errors, page.page_errors
 
 
-def test_signing_in_in_one_tab_signs_in_the_others(
-    browser: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
-) -> None:
-    """Two tabs of one browser ask for a token; the user signs in in one. The session cookie is the
-    browser's, so the other tab shows the map too, without its form (it kept asking for the token,
-    with no request that could find out, until it was reloaded)."""
+@contextlib.contextmanager
+def _two_tabs(
+    browser: Any,
+    service_factory: Callable[..., ServiceProcess],
+    tmp_path: Path,
+    second_script: str | None = None,
+) -> Iterator[tuple[Any, Any, list[str]]]:
+    """Two tabs of one browser on a service that needs a token to read, holding map MAP_ID with a
+    robot, each showing its sign-in form: yields (first tab, second tab, the pages' errors). The
+    second runs `second_script` before its page's own."""
     tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
     svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
     _map_with_a_robot(svc.base_url)
     context = browser.new_context(viewport={"width": 1280, "height": 800})
     try:
         first, second = context.new_page(), context.new_page()
+        if second_script is not None:
+            second.add_init_script(second_script)
         errors: list[str] = []
         for tab in (first, second):
             tab.on("pageerror", lambda e: errors.append(str(e)))
             tab.goto(f"{svc.base_url}/#map={MAP_ID}")
             _wait(tab, _SIGN_IN_SHOWN_JS, what="the sign-in form")
+        yield first, second, errors
+    finally:
+        context.close()
+
+
+def test_signing_in_in_one_tab_signs_in_the_others(
+    browser: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    """Two tabs of one browser ask for a token; the user signs in in one. The session cookie is the
+    browser's, so the other tab shows the map too, without its form (it kept asking for the token,
+    with no request that could find out, until it was reloaded)."""
+    with _two_tabs(browser, service_factory, tmp_path) as (first, second, errors):
         _sign_in(first, READ)
         _wait(first, _CONNECTED_JS, what="the first tab connected")
         _wait(second, _SIGN_IN_GONE_JS, what="the second tab's form gone")
@@ -245,8 +264,6 @@ def test_signing_in_in_one_tab_signs_in_the_others(
         second.wait_for_selector(_ROW, timeout=SHOW_MS)
         assert second.is_visible("#sign-out")
         assert errors == [], errors
-    finally:
-        context.close()
 
 
 def test_signing_out_in_one_tab_signs_out_the_others(
@@ -256,22 +273,12 @@ def test_signing_out_in_one_tab_signs_out_the_others(
     saying the session ended: its map and its event stream, opened with the cookie, went on until
     its next poll of the map list (5 s), which is turned off here so that only the sign-out can end
     them (the other tab's reaction to signing in was handled, to signing out not)."""
-    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
-    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
-    _map_with_a_robot(svc.base_url)
-    context = browser.new_context(viewport={"width": 1280, "height": 800})
-    try:
-        first, second = context.new_page(), context.new_page()
-        # The second tab polls no map list (MAPS_REFRESH_MS): only what signing out does can reach it.
-        second.add_init_script(
-            "{ const every = window.setInterval;"
-            " window.setInterval = (f, ms, ...a) => (ms === 5000 ? 0 : every(f, ms, ...a)); }"
-        )
-        errors: list[str] = []
-        for tab in (first, second):
-            tab.on("pageerror", lambda e: errors.append(str(e)))
-            tab.goto(f"{svc.base_url}/#map={MAP_ID}")
-            _wait(tab, _SIGN_IN_SHOWN_JS, what="the sign-in form")
+    # The second tab polls no map list (MAPS_REFRESH_MS): only what signing out does can reach it.
+    no_polls = (
+        "{ const every = window.setInterval;"
+        " window.setInterval = (f, ms, ...a) => (ms === 5000 ? 0 : every(f, ms, ...a)); }"
+    )
+    with _two_tabs(browser, service_factory, tmp_path, second_script=no_polls) as (first, second, errors):
         _sign_in(first, READ)
         for tab in (first, second):
             _wait(tab, _CONNECTED_JS, what="connected")
@@ -284,8 +291,6 @@ def test_signing_out_in_one_tab_signs_out_the_others(
         assert second.is_hidden("#sign-out") and second.query_selector(_ROW) is None
         assert second.evaluate("() => document.getElementById('status').dataset.state") == "signin"
         assert errors == [], errors
-    finally:
-        context.close()
 
 
 @pytest.mark.parametrize("tokens_after", ["none", "for writes only"])
