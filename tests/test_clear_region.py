@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import math
 import sqlite3
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -22,7 +23,7 @@ from fleetmap.config import MapConfig
 from fleetmap.database import BASE_LAYOUT, CLEARED_WINDOWS_LAYOUT, DB_NAME, StorageError
 from fleetmap.export import Window
 from fleetmap.grid_map import GridMap
-from fleetmap.map_entry import IngestRejected
+from fleetmap.map_entry import IngestRejected, MapEntry
 from fleetmap.registry import MapConflict, MapRegistry
 from fleetmap.scan import Pose2D, Scan
 from fleetmap.sim import SimulatedRobot, generate_floorplan
@@ -230,6 +231,27 @@ def test_delete_region_over_http_is_journaled_and_survives_a_crash(tmp_path: Pat
                 assert svc.stop() == 0
 
 
+def _integrate(registry: MapRegistry, robot_id: str, seq: int, scan: Scan) -> None:
+    """Integrate `scan` as seq `seq` of robot `robot_id` into map "m" of `registry`, and wait for it."""
+    done = registry.submit("m", robot_id, WireScan(seq=seq, stamp=0.0, scan=scan), wait=True)
+    assert done is not None and done.result(30).cell_updates > 0
+
+
+@contextlib.contextmanager
+def _registry_whose_map_went(scans: list[Scan]) -> Iterator[tuple[MapRegistry, MapEntry]]:
+    """A started registry whose map "m" took a scan of robot "r" and was then deleted: yields it and
+    that map's entry, gone; closed after."""
+    registry = MapRegistry(workers=1)
+    registry.start()
+    try:
+        entry, _ = registry.create("m", CONFIG)
+        _integrate(registry, "r", 0, scans[0])
+        registry.delete("m", wait=True)
+        yield registry, entry
+    finally:
+        registry.close()
+
+
 def test_a_condition_on_a_map_replaced_meanwhile_is_compared_with_the_map_there_now(
     scans: list[Scan],
 ) -> None:
@@ -237,16 +259,9 @@ def test_a_condition_on_a_map_replaced_meanwhile_is_compared_with_the_map_there_
     `If-Match` as "there is no map 'm'", without an `ETag`, though a map was there. The 412 says what
     the map is now and carries its tag, as every write's does (docs/api.md, "Conditional writes");
     with that tag the clear is refused as computed for another map (409). Nothing is cleared."""
-    registry = MapRegistry(workers=1)
-    registry.start()
-    try:
-        entry, _ = registry.create("m", CONFIG)
-        done = registry.submit("m", "r", WireScan(seq=0, stamp=0.0, scan=scans[0]), wait=True)
-        assert done is not None and done.result(30).cell_updates > 0
-        registry.delete("m", wait=True)
+    with _registry_whose_map_went(scans) as (registry, entry):
         now, _ = registry.create("m", CONFIG)
-        done = registry.submit("m", "r2", WireScan(seq=0, stamp=0.0, scan=scans[0]), wait=True)
-        assert done is not None and done.result(30).cell_updates > 0
+        _integrate(registry, "r2", 0, scans[0])
         before = _layers(now.gmap, WINDOW)
         stale = Preconditions(if_match=[map_etag(entry)]).expectation("m")
         with pytest.raises(ApiError) as refused:
@@ -259,8 +274,6 @@ def test_a_condition_on_a_map_replaced_meanwhile_is_compared_with_the_map_there_
             registry.clear_window(entry, WINDOW, fresh)
         after = _layers(now.gmap, WINDOW)
         assert all(np.array_equal(before[k], after[k], equal_nan=True) for k in STORED)
-    finally:
-        registry.close()
 
 
 def test_no_window_is_cleared_in_a_map_that_replaced_the_one_it_was_computed_for(
@@ -268,22 +281,13 @@ def test_no_window_is_cleared_in_a_map_that_replaced_the_one_it_was_computed_for
 ) -> None:
     """The route computes the window with the map's resolution, then clears: a map deleted, or replaced
     by one of another resolution, in between is refused (409), not cleared with the wrong cells."""
-    registry = MapRegistry(workers=1)
-    registry.start()
-    try:
-        entry, _ = registry.create("m", CONFIG)
-        done = registry.submit("m", "r", WireScan(seq=0, stamp=0.0, scan=scans[0]), wait=True)
-        assert done is not None and done.result(30).cell_updates > 0
-        registry.delete("m", wait=True)
+    with _registry_whose_map_went(scans) as (registry, entry):
         registry.create("m", MapConfig(resolution=0.05))
         with pytest.raises(MapConflict, match="deleted or replaced meanwhile; nothing was cleared"):
             registry.clear_window(entry, WINDOW)
         assert registry.clear_window(registry.get("m"), WINDOW) == (0, [])  # the new map: nothing yet
         entry = registry.get("m")
-        done = registry.submit("m", "r", WireScan(seq=1, stamp=0.0, scan=scans[0]), wait=True)
-        assert done is not None and done.result(30).cell_updates > 0
-    finally:
-        registry.close()
+        _integrate(registry, "r", 1, scans[0])
     # Once the registry closes (the final snapshot, the journal's close), nothing is cleared.
     with pytest.raises(IngestRejected, match="shutting down: nothing was cleared") as closing:
         registry.clear_window(entry, Window(-1000, -1000, 1000, 1000))
