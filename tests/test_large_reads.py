@@ -30,7 +30,11 @@ BIG = "/maps/m/region?xmin=-102.4&ymin=-102.4&xmax=102.4&ymax=102.4&layer=hits"
 
 @pytest.fixture(scope="module")
 def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
-    with ServiceProcess(tmp_path_factory.mktemp("logs"), ["--in-memory"]) as svc:
+    # A send timeout past the test's length: the stalled clients read nothing until the end, and on a
+    # loaded machine (four 16 Mi-cell regions made at once) that took longer than the default 60 s,
+    # after which the service dropped them and their answers came cut short.
+    args = ["--in-memory", "--http-send-timeout", "600"]
+    with ServiceProcess(tmp_path_factory.mktemp("logs"), args) as svc:
         scan = encode_json(fan_scan(0.0, 0.0, 0.0, [1.0] * 61), 0)
         r = httpx.post(
             f"{svc.base_url}/maps/m/scans",
