@@ -412,6 +412,33 @@ def test_state_thresholds() -> None:
     assert m.region("state", 0, 0, 5, 1)[0].tolist() == [STATE_FREE] + [STATE_UNKNOWN] * 3 + [STATE_OCCUPIED]
 
 
+def test_state_follows_the_probability_the_map_reports() -> None:
+    """`state` is `free` when p < free_thresh and `occupied` when p > occupied_thresh, for the p the
+    map reports (a float32, in `cells`, the probability layer and JSON as that float32's exact
+    value). The thresholds were rounded to float32 for the comparison (numpy compares a float32
+    array with a Python float in float32): with p_min 0.19599999999 a missed cell reported
+    p 0.19599999487 with free_thresh 0.196 and state `unknown`, and no cell of the map was ever
+    free. Likewise a cell at p 0.97000003 was not occupied above occupied_thresh 0.97."""
+    for occupancy, state in (
+        ({"p_min": 0.19599999999}, STATE_FREE),
+        ({"p_max": 0.9700000001, "occupied_thresh": 0.97}, STATE_OCCUPIED),
+    ):
+        m = make_map(layers=["occupancy"], occupancy=occupancy)
+        for _ in range(8):  # the sensor cell missed to l_min, the end cell hit to l_max
+            m.integrate(one_beam((0.125, 0.125, 0.0), 0.0, 1.0))
+        got = m.cells(np.array([[0.125, 0.125], [1.125, 0.125]]))
+        p, thresholds = got["probability"].astype(np.float64), m.config.occupancy
+        expected = np.where(
+            p > thresholds.occupied_thresh,
+            STATE_OCCUPIED,
+            np.where(p < thresholds.free_thresh, STATE_FREE, STATE_UNKNOWN),
+        )
+        assert state in expected.tolist()
+        assert got["state"].tolist() == expected.tolist()
+        assert m.region("state", 0, 0, 5, 1)[0, [0, 4]].tolist() == expected.tolist()
+        assert m.classify(m.region("log_odds", 0, 0, 5, 1))[0, [0, 4]].tolist() == expected.tolist()
+
+
 def test_layer_unavailable() -> None:
     """Reading a layer the map does not keep, or no layer at all, raises LayerUnavailableError;
     cells() reports only the kept layers."""

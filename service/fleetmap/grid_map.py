@@ -315,11 +315,20 @@ class GridMap:
 
     def classify_probability(self, p: np.ndarray) -> np.ndarray:
         """`state` codes of occupancy probabilities by the map's thresholds (nav2's rule: p >
-        occupied_thresh is occupied, p < free_thresh is free, otherwise and NaN (unknown) unknown)."""
+        occupied_thresh is occupied, p < free_thresh is free, otherwise and NaN (unknown) unknown).
+        Compared in double precision, the thresholds as configured: `p` as given (the float32 the
+        map reports) against them."""
         state = np.full(p.shape, STATE_UNKNOWN, dtype=np.uint8)
+        # np.float64, not the Python float: numpy compares a float32 array with a Python float in
+        # float32, which rounded the thresholds (free_thresh 0.196 to 0.19599999487), so a cell
+        # reported at p 0.19599999487 was not free. The cast is per chunk of the loop, not a copy.
+        occupied, free = (
+            np.float64(self.config.occupancy.occupied_thresh),
+            np.float64(self.config.occupancy.free_thresh),
+        )
         with np.errstate(invalid="ignore"):
-            state[p > self.config.occupancy.occupied_thresh] = STATE_OCCUPIED
-            state[p < self.config.occupancy.free_thresh] = STATE_FREE
+            state[p > occupied] = STATE_OCCUPIED
+            state[p < free] = STATE_FREE
         return state
 
     def cells(self, points: Points) -> dict[str, np.ndarray]:
