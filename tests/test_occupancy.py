@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
+from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED
 from fleetmap.config import OCCUPANCY_PRESETS, STORED_CONFIG, MapConfig, OccupancyParams, logit, probability
 from fleetmap.grid_map import GridMap
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, segment_cells
@@ -146,7 +147,7 @@ def test_invalid_parameters_rejected(kwargs: dict[str, object]) -> None:
         ({"preset": "cartographer", "occupied_thresh": 0.9}, "no cell could ever be occupied"),
         ({"l_max": 0.5}, r"p_max 0\.622459 \(l_max 0\.5\)"),
         ({"p_min": 0.25}, r"p_min 0\.25 .* not below free_thresh 0\.196: no cell could ever be free"),
-        ({"preset": "cartographer", "free_thresh": 0.1}, "no cell could ever be free"),
+        ({"preset": "cartographer", "free_thresh": 0.099}, "no cell could ever be free"),
     ],
 )
 def test_a_clamp_that_makes_a_state_unreachable_is_refused(kwargs: dict[str, object], words: str) -> None:
@@ -164,6 +165,67 @@ def test_a_clamp_that_makes_a_state_unreachable_is_refused(kwargs: dict[str, obj
         >= {k: v for k, v in kwargs.items() if not k.startswith("p_")}.items()
     )
     OccupancyParams(p_max=0.6, p_min=0.25, occupied_thresh=0.55, free_thresh=0.3)
+
+
+def _saturated_states(occupancy: dict[str, object]) -> list[int]:
+    """The states of a beam's cells, driven to the clamp (the hit cell to l_max, the cells before it
+    to l_min), in a map of `occupancy` (loaded as a stored configuration: not refused)."""
+    config = MapConfig.model_validate(
+        {"resolution": RES, "layers": ["occupancy"], "occupancy": occupancy}, context={STORED_CONFIG: True}
+    )
+    m = GridMap(config)
+    for _ in range(60):  # Cartographer's miss takes 55 to reach its clamp
+        m.integrate(beams([0.0], [1.0]))
+    assert lo(m, 4, 0) == np.float32(config.occupancy.l_max)
+    assert lo(m, 0, 0) == np.float32(config.occupancy.l_min)
+    return [int(v) for v in m.region("state", 0, 0, 5, 1)[0]]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        (
+            {"p_max": 0.7, "occupied_thresh": 0.69999999999},
+            r"p_max 0\.7 \(l_max 0\.847298; p 0\.699999988 as a cell stores it, in float32\) is not above "
+            r"occupied_thresh 0\.69999999999: no cell could ever be occupied",
+        ),
+        ({"p_max": 0.9000000001, "occupied_thresh": 0.9}, r"p 0\.899999976 as a cell stores it"),
+        (
+            {"p_min": 0.249999999, "free_thresh": 0.25},
+            r"p_min 0\.25 \(l_min -1\.09861; p 0\.25 as a cell stores it, in float32\) is not below "
+            r"free_thresh 0\.25: no cell could ever be free",
+        ),
+    ],
+)
+def test_a_clamp_past_a_threshold_only_in_double_precision_is_refused(
+    kwargs: dict[str, object], words: str
+) -> None:
+    """Cells hold float32 log-odds, and their probability is rounded to float32 before the
+    thresholds classify it: a clamp a hair past a threshold in double precision (p_min 0.249999999
+    against free_thresh 0.25) can land on it, or short of it, as stored. Such a clamp was accepted,
+    and then no cell of the map was ever free (or occupied), as with the clamps refused for that."""
+    states = _saturated_states(kwargs)
+    assert STATE_OCCUPIED not in states or STATE_FREE not in states  # what the refusal prevents
+    with pytest.raises(ValidationError, match=words):
+        OccupancyParams(**kwargs)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"preset": "cartographer", "free_thresh": 0.1},  # p_min 0.1: 0.09999999 as stored
+        {"occupied_thresh": 0.97},  # OctoMap's p_max 0.97: 0.97000003 as stored
+        {"p_min": 0.19599999999},  # 0.19599999487 as stored
+        {"p_max": 0.7000001, "p_min": 0.2499999, "occupied_thresh": 0.7, "free_thresh": 0.25},
+    ],
+)
+def test_a_clamp_past_a_threshold_as_stored_is_accepted(kwargs: dict[str, object]) -> None:
+    """A clamp on a threshold in double precision that cells, as stored, do cross is accepted (it
+    was refused, saying no cell could ever be free, of a map whose cells would have been): the
+    rule is the one the map classifies its cells by."""
+    OccupancyParams(**kwargs)  # type: ignore[arg-type]
+    assert STATE_OCCUPIED in _saturated_states(kwargs)
+    assert STATE_FREE in _saturated_states(kwargs)
 
 
 def test_invalid_map_config_rejected() -> None:

@@ -15,6 +15,7 @@ import logging
 import math
 from typing import Any, Literal, get_args
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, model_validator
 
 LayerName = Literal["occupancy", "counts", "tsdf"]
@@ -61,6 +62,20 @@ def probability(log_odds: float) -> float:
         return 1.0 / (1.0 + math.exp(-log_odds))
     e = math.exp(log_odds)
     return e / (1.0 + e)
+
+
+def log_odds_to_probability(log_odds: np.ndarray) -> np.ndarray:
+    """`p = 1 - 1/(1 + exp(l))` elementwise, NaN stays NaN; float32 out: the probability a map
+    reports (`probability` layer, `/cells`) and classifies by its thresholds (`GridMap.classify`)."""
+    lo = np.asarray(log_odds, dtype=np.float64)
+    with np.errstate(over="ignore"):
+        return (1.0 - 1.0 / (1.0 + np.exp(lo))).astype(np.float32)
+
+
+def stored_probability(log_odds: float) -> float:
+    """The probability a map reports, and classifies by its thresholds, for a cell at `log_odds`:
+    cells hold float32 log-odds, and `log_odds_to_probability` rounds the probability to float32."""
+    return float(log_odds_to_probability(np.array([log_odds], dtype=np.float32))[0])
 
 
 #: Named occupancy parameter sets, as log-odds (l_hit, l_miss, l_min, l_max).
@@ -144,19 +159,27 @@ class OccupancyParams(BaseModel):
             raise ValueError("free_thresh must be below occupied_thresh")
         # A clamp that keeps every cell on one side of a threshold makes that state unreachable: with
         # p_max 0.6 and occupied_thresh 0.65 the nav2 export of a building had no wall, and nothing
-        # said why. A stored map keeps its configuration.
+        # said why. Judged by the p a cell at the clamp has as stored (`stored_probability`), as
+        # `GridMap.classify_probability` judges it: in double precision a clamp a hair past a
+        # threshold may be on it, or short of it, in float32 (p_max 0.9000000001 against 0.9 made a
+        # map with no occupied cell), and one on it may be past it (Cartographer's p_min 0.1 with
+        # free_thresh 0.1 was refused, though its cells become free). A stored map keeps its
+        # configuration.
         if not (info.context or {}).get(STORED_CONFIG):
-            if probability(hi) <= self.occupied_thresh:
+            p_max, p_min = stored_probability(hi), stored_probability(lo)
+            if p_max <= self.occupied_thresh:
+                stored = _as_stored(probability(hi) > self.occupied_thresh, p_max)
                 raise ValueError(
-                    f"the clamp p_max {probability(hi):.6g} (l_max {hi:g}) is not above occupied_thresh "
-                    f"{self.occupied_thresh:g}: no cell could ever be occupied (raise the clamp or "
-                    "lower occupied_thresh)"
+                    f"the clamp p_max {probability(hi):.6g} (l_max {hi:g}{stored}) is not above "
+                    f"occupied_thresh {self.occupied_thresh:.12g}: no cell could ever be occupied (raise "
+                    "the clamp or lower occupied_thresh)"
                 )
-            if probability(lo) >= self.free_thresh:
+            if p_min >= self.free_thresh:
+                stored = _as_stored(probability(lo) < self.free_thresh, p_min)
                 raise ValueError(
-                    f"the clamp p_min {probability(lo):.6g} (l_min {lo:g}) is not below free_thresh "
-                    f"{self.free_thresh:g}: no cell could ever be free (lower the clamp or raise "
-                    "free_thresh)"
+                    f"the clamp p_min {probability(lo):.6g} (l_min {lo:g}{stored}) is not below "
+                    f"free_thresh {self.free_thresh:.12g}: no cell could ever be free (lower the clamp "
+                    "or raise free_thresh)"
                 )
         # Store the resolved values; probabilities are derived, so drop them to keep one truth.
         object.__setattr__(self, "l_hit", hit)
@@ -173,6 +196,12 @@ class OccupancyParams(BaseModel):
         if hit is None or miss is None or lo is None or hi is None:  # made by model_construct
             raise ValueError("occupancy parameters that were not validated have no log-odds")
         return hit, miss, lo, hi
+
+
+def _as_stored(past_in_double: bool, stored: float) -> str:
+    """For a clamp that is past its threshold in double precision, refused as cells store it: what
+    its probability is there (else nothing: the probability in double precision says it all)."""
+    return f"; p {stored:.9g} as a cell stores it, in float32" if past_in_double else ""
 
 
 class BeamModelParams(BaseModel):

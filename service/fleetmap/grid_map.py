@@ -37,6 +37,7 @@ from fleetmap.cell_queries import as_points as as_points
 from fleetmap.cell_queries import cell_edge as cell_edge
 from fleetmap.cell_queries import float_array as float_array
 from fleetmap.config import MAX_COORDINATE, LayerName, MapConfig
+from fleetmap.config import log_odds_to_probability as log_odds_to_probability
 from fleetmap.kernels import integrate_scan
 from fleetmap.kernels.raycast import cast_rays
 from fleetmap.kernels.traversal import BRESENHAM, EXACT
@@ -682,10 +683,3 @@ def _local_bounds(seen: np.ndarray) -> tuple[int, int, int, int] | None:
         return None
     cols = np.flatnonzero(seen.any(axis=0))
     return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
-
-
-def log_odds_to_probability(log_odds: np.ndarray) -> np.ndarray:
-    """`p = 1 - 1/(1 + exp(l))` elementwise, NaN stays NaN; float32 out."""
-    lo = np.asarray(log_odds, dtype=np.float64)
-    with np.errstate(over="ignore"):
-        return (1.0 - 1.0 / (1.0 + np.exp(lo))).astype(np.float32)
