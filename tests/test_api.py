@@ -116,6 +116,25 @@ def test_map_lifecycle(api: RunningApi) -> None:
     assert r.status_code == 201 and MapConfig.model_validate(r.json()["config"]) == MapConfig()
 
 
+def test_a_configuration_with_its_layers_in_another_order_is_the_same(api: RunningApi) -> None:
+    """`layers` is a set of layers (no layer twice): listed in another order they keep the same map.
+    `PUT` with them so was a 409, "exists with a different configuration": a provisioning script that
+    builds its list from a Python set (whose order changes from one process to the next) failed at
+    random on its second run. The map keeps the order it was made with; other layers are a 409."""
+    c = api.client
+    made = c.put("/maps/order", json={"resolution": 0.1, "layers": ["tsdf", "occupancy"]})
+    assert made.status_code == 201, made.text
+    again = c.put("/maps/order", json={"resolution": 0.1, "layers": ["occupancy", "tsdf"]})
+    assert again.status_code == 200, again.text
+    assert again.json()["config"] == made.json()["config"]
+    assert again.json()["config"]["layers"] == ["tsdf", "occupancy"]
+    for layers in (["occupancy"], ["occupancy", "tsdf", "counts"], ["counts", "tsdf"]):
+        r = c.put("/maps/order", json={"resolution": 0.1, "layers": layers})
+        assert r.status_code == 409 and "different configuration" in r.json()["detail"], layers
+    r = c.put("/maps/order", json={"resolution": 0.2, "layers": ["occupancy", "tsdf"]})
+    assert r.status_code == 409
+
+
 def test_a_configuration_takes_numbers_as_json_numbers_only(api: RunningApi) -> None:
     """`{"max_tiles": true}` made a map of at most 1 tile (every scan past its first tile refused),
     `{"resolution": true}` one of 1 m cells and `{"max_tiles": "4096"}` passed as a number: the

@@ -322,6 +322,15 @@ class MapConfig(BaseModel):
         """Whether the map keeps `layer` (`occupancy`, `counts` or `tsdf`)."""
         return layer in self.layers
 
+    def same_map_as(self, other: MapConfig) -> bool:
+        """Whether `other` configures the same map: every field equal, `layers` as a set. The order
+        of the layers is only the order a map lists and stores them in (`["tsdf", "occupancy"]` keeps
+        the same cells as `["occupancy", "tsdf"]`), and a list built from a set has any order."""
+        return (
+            set(self.layers) == set(other.layers)
+            and self.model_copy(update={"layers": other.layers}) == other
+        )
+
     @property
     def has_cell_layers(self) -> bool:
         """Whether the map keeps a layer that scans update with hits and misses (occupancy or

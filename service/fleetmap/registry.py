@@ -393,7 +393,8 @@ class MapRegistry:
         by_scan: bool = False,
         expect: Expectation | None = None,
     ) -> tuple[MapEntry, bool]:
-        """Create a map, or return the existing one if its configuration is the same.
+        """Create a map, or return the existing one if its configuration is the same
+        (`MapConfig.same_map_as`: its layers in any order).
         Returns (entry, created). Raises MapConflict for a different configuration. With `wait`, the
         map, new or found, is committed to storage before this returns (else NotDurable). `by_scan`: created
         for a scan (auto-create), its log line rate-limited. `expect(existing)` is called with the
@@ -407,7 +408,7 @@ class MapRegistry:
             if expect is not None:
                 expect(existing)
             if existing is not None:
-                if existing.config != config:
+                if not existing.config.same_map_as(config):
                     raise MapConflict(
                         f"map {map_id!r} exists with a different configuration; delete it first"
                     )

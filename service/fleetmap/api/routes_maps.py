@@ -72,10 +72,11 @@ def put_map(
     storage). If it exists with the same configuration, nothing changes (200); with a different one,
     409: delete it first.
     Configurations compare after defaults and presets are resolved, so `{}` equals the defaults
-    written out. 503: the map was created but could not be stored; the service retries, and the same
-    PUT answers 200 once it is stored. `If-None-Match: *`: create only (412 if the map exists, even
-    with the same configuration); `If-Match`: only if the map exists with that `ETag` (412
-    otherwise, before the configurations are compared). The answer carries the map's `ETag`."""
+    written out, and `layers` in any order. 503: the map was created but could not be stored; the
+    service retries, and the same PUT answers 200 once it is stored. `If-None-Match: *`: create
+    only (412 if the map exists, even with the same configuration); `If-Match`: only if the map
+    exists with that `ETag` (412 otherwise, before the configurations are compared). The answer
+    carries the map's `ETag`."""
     entry, created = state.registry.create(map_id, config, wait=True, expect=conditions.expectation(map_id))
     created_status(response, map_id, created=created)
     tag_map(response, entry)
