@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED
+from fleetmap.cell_queries import RAY_OCCUPIED, STATE_FREE, STATE_OCCUPIED
 from fleetmap.config import OCCUPANCY_PRESETS, STORED_CONFIG, MapConfig, OccupancyParams, logit, probability
 from fleetmap.grid_map import GridMap
 from fleetmap.kernels.traversal import BRESENHAM, EXACT, segment_cells
@@ -156,15 +156,34 @@ def test_a_clamp_that_makes_a_state_unreachable_is_refused(kwargs: dict[str, obj
     Intel log exported a nav2 map with no wall at all, silently. The same clamp with thresholds
     that it can cross is fine, and a stored map keeps its configuration."""
     with pytest.raises(ValidationError, match=words):
-        OccupancyParams(**kwargs)  # type: ignore[arg-type]
-    with pytest.raises(ValidationError, match="could ever be"):
         MapConfig.model_validate({"occupancy": kwargs})
     stored = MapConfig.model_validate({"occupancy": kwargs}, context={STORED_CONFIG: True})
     assert (
         stored.occupancy.model_dump(exclude_none=True).items()
         >= {k: v for k, v in kwargs.items() if not k.startswith("p_")}.items()
     )
-    OccupancyParams(p_max=0.6, p_min=0.25, occupied_thresh=0.55, free_thresh=0.3)
+    MapConfig(occupancy=OccupancyParams(p_max=0.6, p_min=0.25, occupied_thresh=0.55, free_thresh=0.3))
+
+
+@pytest.mark.parametrize("layers", [["counts"], ["tsdf"], ["counts", "tsdf"]])
+def test_a_map_without_the_occupancy_layer_takes_thresholds_past_the_clamp(layers: list[str]) -> None:
+    """The clamp bounds the occupancy layer's log-odds only. A counts map classifies by the count
+    model's p = hits / (hits + misses), which reaches 0 and 1 (rays, exports), and a TSDF map by
+    no p at all: a counts map with occupied_thresh 0.99 was refused, saying no cell could ever be
+    occupied (by OctoMap's clamp, p 0.97, which it does not use), though a cell hit every time is.
+    With the occupancy layer the same thresholds are refused, located at `occupancy`."""
+    occupancy = {"occupied_thresh": 0.99, "free_thresh": 0.01}
+    config = MapConfig.model_validate({"resolution": RES, "layers": layers, "occupancy": occupancy})
+    with pytest.raises(ValidationError, match=r"occupancy\n.*no cell could ever be occupied") as refused:
+        MapConfig.model_validate(
+            {"resolution": RES, "layers": [*layers, "occupancy"], "occupancy": occupancy}
+        )
+    assert [e["loc"] for e in refused.value.errors()] == [("occupancy",)]
+    if "counts" in layers:
+        m = GridMap(config)
+        m.integrate(beams([0.0], [1.0]))  # cells 0..3 missed (p 0), cell 4 hit (p 1)
+        ray = m.cast_rays(SENSOR, [0.0], 3.0)
+        assert (int(ray.status[0]), int(ray.i[0])) == (RAY_OCCUPIED, 4)
 
 
 def _saturated_states(occupancy: dict[str, object]) -> list[int]:
@@ -207,7 +226,7 @@ def test_a_clamp_past_a_threshold_only_in_double_precision_is_refused(
     states = _saturated_states(kwargs)
     assert STATE_OCCUPIED not in states or STATE_FREE not in states  # what the refusal prevents
     with pytest.raises(ValidationError, match=words):
-        OccupancyParams(**kwargs)  # type: ignore[arg-type]
+        MapConfig.model_validate({"occupancy": kwargs})
 
 
 @pytest.mark.parametrize(
@@ -223,7 +242,7 @@ def test_a_clamp_past_a_threshold_as_stored_is_accepted(kwargs: dict[str, object
     """A clamp on a threshold in double precision that cells, as stored, do cross is accepted (it
     was refused, saying no cell could ever be free, of a map whose cells would have been): the
     rule is the one the map classifies its cells by."""
-    OccupancyParams(**kwargs)  # type: ignore[arg-type]
+    MapConfig.model_validate({"occupancy": kwargs})
     assert STATE_OCCUPIED in _saturated_states(kwargs)
     assert STATE_FREE in _saturated_states(kwargs)
 

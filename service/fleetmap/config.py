@@ -16,7 +16,7 @@ import math
 from typing import Any, Literal, get_args
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 LayerName = Literal["occupancy", "counts", "tsdf"]
 ALL_LAYERS: tuple[LayerName, ...] = ("occupancy", "counts", "tsdf")
@@ -101,6 +101,8 @@ class OccupancyParams(BaseModel):
 
     Explicit values override the preset's. A value may be given as log-odds (`l_hit`) or as a
     probability (`p_hit`), not both. After validation the `l_*` fields always hold the values in use.
+    The thresholds also classify a counts map's cells (by hits / (hits + misses)); a `MapConfig`
+    that keeps the occupancy layer needs the clamp to reach past them (`unreachable_state`).
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
@@ -157,30 +159,6 @@ class OccupancyParams(BaseModel):
             )
         if self.free_thresh >= self.occupied_thresh:
             raise ValueError("free_thresh must be below occupied_thresh")
-        # A clamp that keeps every cell on one side of a threshold makes that state unreachable: with
-        # p_max 0.6 and occupied_thresh 0.65 the nav2 export of a building had no wall, and nothing
-        # said why. Judged by the p a cell at the clamp has as stored (`stored_probability`), as
-        # `GridMap.classify_probability` judges it: in double precision a clamp a hair past a
-        # threshold may be on it, or short of it, in float32 (p_max 0.9000000001 against 0.9 made a
-        # map with no occupied cell), and one on it may be past it (Cartographer's p_min 0.1 with
-        # free_thresh 0.1 was refused, though its cells become free). A stored map keeps its
-        # configuration.
-        if not (info.context or {}).get(STORED_CONFIG):
-            p_max, p_min = stored_probability(hi), stored_probability(lo)
-            if p_max <= self.occupied_thresh:
-                stored = _as_stored(probability(hi) > self.occupied_thresh, p_max)
-                raise ValueError(
-                    f"the clamp p_max {probability(hi):.6g} (l_max {hi:g}{stored}) is not above "
-                    f"occupied_thresh {self.occupied_thresh:.12g}: no cell could ever be occupied (raise "
-                    "the clamp or lower occupied_thresh)"
-                )
-            if p_min >= self.free_thresh:
-                stored = _as_stored(probability(lo) < self.free_thresh, p_min)
-                raise ValueError(
-                    f"the clamp p_min {probability(lo):.6g} (l_min {lo:g}{stored}) is not below "
-                    f"free_thresh {self.free_thresh:.12g}: no cell could ever be free (lower the clamp "
-                    "or raise free_thresh)"
-                )
         # Store the resolved values; probabilities are derived, so drop them to keep one truth.
         object.__setattr__(self, "l_hit", hit)
         object.__setattr__(self, "l_miss", miss)
@@ -189,6 +167,36 @@ class OccupancyParams(BaseModel):
         for name in ("p_hit", "p_miss", "p_min", "p_max"):
             object.__setattr__(self, name, None)
         return self
+
+    def unreachable_state(self) -> str | None:
+        """Why no cell of a map's occupancy layer could ever be occupied, or free, under these
+        parameters (its clamp stops at or short of a threshold), else None.
+
+        A clamp that keeps every cell on one side of a threshold makes that state unreachable: with
+        p_max 0.6 and occupied_thresh 0.65 the nav2 export of a building had no wall, and nothing
+        said why. Judged by the p a cell at the clamp has as stored (`stored_probability`), as
+        `GridMap.classify_probability` judges it: in double precision a clamp a hair past a
+        threshold may be on it, or short of it, in float32 (p_max 0.9000000001 against 0.9 made a
+        map with no occupied cell), and one on it may be past it (Cartographer's p_min 0.1 with
+        free_thresh 0.1 was refused, though its cells become free). Only the occupancy layer's
+        log-odds are clamped: `MapConfig` asks this of a map that keeps it."""
+        _, _, lo, hi = self.resolved()
+        p_max, p_min = stored_probability(hi), stored_probability(lo)
+        if p_max <= self.occupied_thresh:
+            stored = _as_stored(probability(hi) > self.occupied_thresh, p_max)
+            return (
+                f"the clamp p_max {probability(hi):.6g} (l_max {hi:g}{stored}) is not above "
+                f"occupied_thresh {self.occupied_thresh:.12g}: no cell could ever be occupied (raise "
+                "the clamp or lower occupied_thresh)"
+            )
+        if p_min >= self.free_thresh:
+            stored = _as_stored(probability(lo) < self.free_thresh, p_min)
+            return (
+                f"the clamp p_min {probability(lo):.6g} (l_min {lo:g}{stored}) is not below "
+                f"free_thresh {self.free_thresh:.12g}: no cell could ever be free (lower the clamp "
+                "or raise free_thresh)"
+            )
+        return None
 
     def resolved(self) -> tuple[float, float, float, float]:
         """(l_hit, l_miss, l_min, l_max) in use: validation resolved all four (never None after it)."""
@@ -298,6 +306,22 @@ class MapConfig(BaseModel):
                 )  # fmt: skip
                 data[section] = {**params, name: limit}
         return data
+
+    @field_validator("occupancy")
+    @classmethod
+    def _clamp_reaches_the_thresholds(
+        cls, occupancy: OccupancyParams, info: ValidationInfo
+    ) -> OccupancyParams:
+        """A map that keeps the occupancy layer needs a clamp past both thresholds
+        (`OccupancyParams.unreachable_state`); one without it classifies by the count model's
+        p = hits / (hits + misses), which reaches 0 and 1, or not at all (TSDF), whatever the clamp.
+        (`layers` is validated before `occupancy`: absent here only when it was invalid.) A stored
+        map keeps its configuration."""
+        if "occupancy" in info.data.get("layers", ()) and not (info.context or {}).get(STORED_CONFIG):
+            reason = occupancy.unreachable_state()
+            if reason is not None:
+                raise ValueError(reason)
+        return occupancy
 
     @model_validator(mode="after")
     def _check(self, info: ValidationInfo) -> MapConfig:
