@@ -165,6 +165,31 @@ def test_a_clamp_that_makes_a_state_unreachable_is_refused(kwargs: dict[str, obj
     MapConfig(occupancy=OccupancyParams(p_max=0.6, p_min=0.25, occupied_thresh=0.55, free_thresh=0.3))
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        ({"l_hit": 1e-46}, r"l_hit 1e-46 is 0 as a cell stores log-odds \(float32\)"),
+        ({"l_miss": -5e-324}, r"l_miss -4\.94066e-324 is 0 as a cell stores log-odds \(float32\)"),
+    ],
+)
+def test_a_log_odds_step_that_float32_cells_round_to_zero_is_refused(
+    kwargs: dict[str, object], words: str
+) -> None:
+    """Cells hold float32 log-odds: an l_hit of 1e-46 (positive, so accepted) added to an unknown
+    cell's 0 is 0 again, so a hit cell stayed at p 0.5 whatever the scans (an l_miss likewise):
+    refused now, naming the field. A stored map keeps its configuration."""
+    stored = MapConfig.model_validate(
+        {"resolution": RES, "layers": ["occupancy"], "occupancy": kwargs}, context={STORED_CONFIG: True}
+    )
+    m = GridMap(stored)
+    for _ in range(5):
+        m.integrate(beams([0.0], [1.0]))
+    assert lo(m, 4, 0) == 0.0 if "l_hit" in kwargs else lo(m, 0, 0) == 0.0  # what the refusal prevents
+    with pytest.raises(ValidationError, match=words):
+        MapConfig.model_validate({"occupancy": kwargs})
+    MapConfig.model_validate({"occupancy": {"l_hit": 1e-44, "l_miss": -1e-44}})  # a float32 holds these
+
+
 @pytest.mark.parametrize("layers", [["counts"], ["tsdf"], ["counts", "tsdf"]])
 def test_a_map_without_the_occupancy_layer_takes_thresholds_past_the_clamp(layers: list[str]) -> None:
     """The clamp bounds the occupancy layer's log-odds only. A counts map classifies by the count

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
-from fleetmap.config import MapConfig
+from fleetmap.config import STORED_CONFIG, MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.scan import Scan
 
@@ -105,6 +106,26 @@ def test_max_weight_caps_the_weight() -> None:
     assert got[(9, 0)][1] == 2.0
     assert got[(8, 0)][0] == pytest.approx(2 / 9, abs=1e-6)
     assert got[(6, 0)] == (1.0, 2.0)  # two samples of 1 from z = 8: weight 2
+
+
+def test_a_weight_cap_that_float32_weights_round_to_zero_is_refused() -> None:
+    """Weights are float32, and a weight of 0 means never observed: with max_weight 1e-50 (positive,
+    so accepted) every fused cell's weight became 0, and the TSDF layer of the map never observed a
+    cell, scan after scan. Refused now, naming the field; the smallest cap a float32 holds is
+    accepted, and a stored map keeps its configuration."""
+    stored = MapConfig.model_validate(
+        {"resolution": RES, "layers": ["tsdf"], "tsdf": {"max_weight": 1e-50}}, context={STORED_CONFIG: True}
+    )
+    m = GridMap(stored)
+    along_x(m, 2.25)
+    assert m.known_bounds() is None  # what the refusal prevents
+    with pytest.raises(
+        ValidationError, match=r"max_weight 1e-50 is 0 as a cell's weight is stored \(float32\)"
+    ):
+        MapConfig.model_validate({"layers": ["tsdf"], "tsdf": {"max_weight": 1e-50}})
+    tiny = tsdf_map(max_weight=float(np.nextafter(np.float32(0), np.float32(1))))
+    along_x(tiny, 2.25)
+    assert tiny.known_bounds() is not None
 
 
 @pytest.mark.parametrize("layers", [["tsdf"], ["occupancy", "tsdf"]])

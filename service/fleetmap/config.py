@@ -64,6 +64,16 @@ def probability(log_odds: float) -> float:
     return e / (1.0 + e)
 
 
+#: The smallest positive float32 (a subnormal): cells and weights are stored as float32, and a
+#: positive parameter below about half of it is stored as 0.
+_FLOAT32_TINIEST = float(np.nextafter(np.float32(0), np.float32(1)))
+
+
+def _vanishes_in_float32(value: float) -> bool:
+    """Whether `value`, not 0, is 0 once stored as a float32."""
+    return value != 0 and np.float32(value) == 0
+
+
 def log_odds_to_probability(log_odds: np.ndarray) -> np.ndarray:
     """`p = 1 - 1/(1 + exp(l))` elementwise, NaN stays NaN; float32 out: the probability a map
     reports (`probability` layer, `/cells`) and classifies by its thresholds (`GridMap.classify`)."""
@@ -151,6 +161,14 @@ class OccupancyParams(BaseModel):
             raise ValueError(f"l_hit must be positive (p_hit > 0.5), got {hit}")
         if miss >= 0:
             raise ValueError(f"l_miss must be negative (p_miss < 0.5), got {miss}")
+        if not (info.context or {}).get(STORED_CONFIG):
+            for name, step in (("l_hit", hit), ("l_miss", miss)):
+                # Added to an unknown cell's 0 and stored, such a step is 0 again: no cell would move.
+                if _vanishes_in_float32(step):
+                    raise ValueError(
+                        f"{name} {step:g} is 0 as a cell stores log-odds (float32): it would change "
+                        f"no cell (|{name}| must be at least {_FLOAT32_TINIEST:g})"
+                    )
         if not lo < 0 < hi:
             # Said both ways: a clamp given as p_min / p_max is refused in the terms it was given in.
             raise ValueError(
@@ -247,6 +265,18 @@ class TsdfParams(BaseModel):
         le=MAX_TSDF_WEIGHT,
         description="cap on a cell's accumulated weight",
     )
+
+    @field_validator("max_weight")
+    @classmethod
+    def _weight_holds_in_float32(cls, max_weight: float, info: ValidationInfo) -> float:
+        """A cap that a float32 weight rounds to 0 makes every fused cell's weight 0, which is never
+        observed: the TSDF layer would observe nothing. A stored map keeps its configuration."""
+        if _vanishes_in_float32(max_weight) and not (info.context or {}).get(STORED_CONFIG):
+            raise ValueError(
+                f"max_weight {max_weight:g} is 0 as a cell's weight is stored (float32): no cell would "
+                f"ever be observed (it must be at least {_FLOAT32_TINIEST:g})"
+            )
+        return max_weight
 
 
 class MapConfig(BaseModel):
