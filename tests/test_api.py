@@ -135,6 +135,32 @@ def test_a_configuration_with_its_layers_in_another_order_is_the_same(api: Runni
     assert r.status_code == 409
 
 
+def test_an_invalid_configuration_is_located_at_its_fields(api: RunningApi) -> None:
+    """Each problem of a configuration is located (`errors[].loc`) at the field at fault, as pydantic
+    locates a bad type or range, and all are listed: a tile size that is not a power of two, no or
+    repeated layers and a band too wide for the resolution were located at the body as a whole,
+    and listed only once every field was valid otherwise (a bad resolution hid them)."""
+    c = api.client
+    cases = [
+        ({"tile_size": 100}, [["body", "tile_size"]], "body.tile_size: tile_size must be a power of two"),
+        ({"layers": []}, [["body", "layers"]], "body.layers: a map needs at least one layer"),
+        ({"layers": ["tsdf", "tsdf"]}, [["body", "layers"]], "body.layers: layers must not repeat"),
+        ({"tsdf": {"truncation": 13.0}}, [["body", "tsdf"]], "body.tsdf: tsdf.truncation 13 m is more than"),
+        ({"beam": {"alpha": 13.0}}, [["body", "beam"]], "body.beam: beam.alpha 13 m is more than"),
+        (
+            {"resolution": 0, "tile_size": 100, "layers": []},
+            [["body", "resolution"], ["body", "tile_size"], ["body", "layers"]],
+            "body.resolution: Input should be greater than 0.001 (and 2 more problems)",
+        ),
+    ]
+    for body, locs, detail in cases:
+        r = c.put("/maps/located", json=body)
+        assert r.status_code == 422, (body, r.text)
+        assert [e["loc"] for e in r.json()["errors"]] == locs, (body, r.text)
+        assert r.json()["detail"].startswith(detail), (body, r.text)
+    assert c.get("/maps/located").status_code == 404
+
+
 def test_a_configuration_takes_numbers_as_json_numbers_only(api: RunningApi) -> None:
     """`{"max_tiles": true}` made a map of at most 1 tile (every scan past its first tile refused),
     `{"resolution": true}` one of 1 m cells and `{"max_tiles": "4096"}` passed as a number: the

@@ -311,8 +311,9 @@ class MapConfig(BaseModel):
         le=1000.0,
         description="metres of a no-return beam to clear as free; 0 = ignore",
     )
-    beam: BeamModelParams = Field(default_factory=BeamModelParams)
-    tsdf: TsdfParams = Field(default_factory=TsdfParams)
+    # Their defaults validated too: the band limit depends on the resolution.
+    beam: BeamModelParams = Field(default_factory=BeamModelParams, validate_default=True)
+    tsdf: TsdfParams = Field(default_factory=TsdfParams, validate_default=True)
 
     @model_validator(mode="before")
     @classmethod
@@ -353,24 +354,45 @@ class MapConfig(BaseModel):
                 raise ValueError(reason)
         return occupancy
 
-    @model_validator(mode="after")
-    def _check(self, info: ValidationInfo) -> MapConfig:
-        if self.tile_size & (self.tile_size - 1):
-            raise ValueError(f"tile_size must be a power of two, got {self.tile_size}")
-        if not self.layers:
+    # Each rule below is a validator of the field it is about, so that a refusal is located there
+    # (`errors[].loc` of a 422: `["body", "tile_size"]`), and listed beside every other problem: as
+    # checks of the whole model, they were located at the body and ran only once all else was valid.
+
+    @field_validator("tile_size")
+    @classmethod
+    def _tile_size_is_a_power_of_two(cls, tile_size: int) -> int:
+        if tile_size & (tile_size - 1):
+            raise ValueError(f"tile_size must be a power of two, got {tile_size}")
+        return tile_size
+
+    @field_validator("layers")
+    @classmethod
+    def _layers_are_a_set(cls, layers: list[LayerName]) -> list[LayerName]:
+        if not layers:
             raise ValueError("a map needs at least one layer")
-        if len(set(self.layers)) != len(self.layers):
+        if len(set(layers)) != len(layers):
             raise ValueError("layers must not repeat")
-        if not (info.context or {}).get(STORED_CONFIG):
-            limit = MAX_BAND_CELLS * self.resolution
-            for section, name in _BAND_WIDTHS:
-                value = getattr(getattr(self, section), name)
-                if value > limit:
-                    raise ValueError(
-                        f"{section}.{name} {value:g} m is more than {MAX_BAND_CELLS} cells at resolution "
-                        f"{self.resolution:g} m (at most {limit:g} m)"
-                    )
-        return self
+        return layers
+
+    @field_validator("tsdf", "beam")
+    @classmethod
+    def _band_within_its_cells(
+        cls, params: TsdfParams | BeamModelParams, info: ValidationInfo
+    ) -> TsdfParams | BeamModelParams:
+        """`tsdf.truncation` and `beam.alpha` are at most MAX_BAND_CELLS cells of the map's resolution
+        (validated before them: absent here only when it was invalid). A stored map keeps its own."""
+        resolution = info.data.get("resolution")
+        if resolution is None or (info.context or {}).get(STORED_CONFIG):
+            return params
+        limit = MAX_BAND_CELLS * resolution
+        for section, name in _BAND_WIDTHS:
+            value = getattr(params, name, None)
+            if section == info.field_name and value is not None and value > limit:
+                raise ValueError(
+                    f"{section}.{name} {value:g} m is more than {MAX_BAND_CELLS} cells at resolution "
+                    f"{resolution:g} m (at most {limit:g} m)"
+                )
+        return params
 
     def has(self, layer: LayerName) -> bool:
         """Whether the map keeps `layer` (`occupancy`, `counts` or `tsdf`)."""
