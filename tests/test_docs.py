@@ -174,15 +174,20 @@ def test_the_command_synopses_of_clients_md_list_every_option() -> None:
         assert not missing, f"docs/clients.md: the usage of fleetmap {command} lacks {missing}"
 
 
-def test_every_metric_the_docs_name_is_exported(service: ServiceProcess) -> None:
-    """On a durable service with the default options, as the docs describe: its storage metrics exist."""
-    # Per-map and per-robot series exist once a robot has sent a scan, tile renders once one is drawn.
+def scrape_with_every_series(service: ServiceProcess) -> str:
+    """`service`'s /metrics once a robot has sent a scan and a tile was drawn: per-map and per-robot
+    series exist only then, tile renders only once one is drawn."""
     url = f"{service.base_url}/maps/metrics-check"
     scan = {"seq": 0, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": 0, "angle_increment": 0.1,
             "ranges": [1.0]}  # fmt: skip
     httpx.post(f"{url}/scans?robot_id=r1", json=scan).raise_for_status()
     httpx.get(f"{url}/tiles/0/0/-1.png").raise_for_status()
-    exported = httpx.get(f"{service.base_url}/metrics").text
+    return httpx.get(f"{service.base_url}/metrics").text
+
+
+def test_every_metric_the_docs_name_is_exported(service: ServiceProcess) -> None:
+    """On a durable service with the default options, as the docs describe: its storage metrics exist."""
+    exported = scrape_with_every_series(service)
     missing = []
     for doc in USER_DOCS:
         for name in (
@@ -210,6 +215,43 @@ def test_every_metric_the_docs_name_is_exported(service: ServiceProcess) -> None
         and not any(n.endswith("*") and name.startswith(n[:-1]) for n in listed)
     ]
     assert not undocumented, "exported but not in docs/api.md's table of metrics: " + ", ".join(undocumented)
+
+
+#: PromQL functions meant for counters (they read a fall as a reset) and those meant for gauges.
+COUNTER_FUNCTIONS = ("rate", "irate", "increase", "resets")
+GAUGE_FUNCTIONS = ("delta", "idelta", "deriv", "predict_linear")
+
+
+def test_the_alert_expressions_of_api_md_query_metrics_as_exported(service: ServiceProcess) -> None:
+    """docs/api.md's "What to alert on" is copied into alerting rules: an expression naming a metric
+    that does not exist finds no series and never fires, with no error. Its "scans lost" alert was
+    `..._lost_total` under `increase()`, a counter renamed to the gauge `fleetmap_scans_lost` long
+    before: an abbreviation nobody could paste, of a metric gone, under a function for counters."""
+    exported = scrape_with_every_series(service)
+    types = dict(re.findall(r"^# TYPE (\S+) (\S+)$", exported, re.M))
+    text = API_DOC.read_text(encoding="utf-8")
+    section = text.split("What to alert on, from `/metrics` alone:", 1)[1].split("\n\n", 2)[1]
+    rows = [row.split("|")[2] for row in section.splitlines()[2:] if row.startswith("|")]
+    assert len(rows) >= 8, "docs/api.md: the table of what to alert on was not found"
+
+    def kind(name: str) -> str | None:
+        """The type of `name` as exported; a histogram's `_bucket`, `_sum` and `_count` count up."""
+        stem = re.sub(r"_(bucket|sum|count)$", "", name)
+        return types.get(name) or ("counter" if types.get(stem) == "histogram" else None)
+
+    wrong = []
+    # The code spans that are queries (the cells also name options, a class, a status code).
+    for expression in (span for row in rows for span in re.findall(r"`([^`]+)`", row) if "_" in span):
+        if "..." in expression:
+            wrong.append(f"{expression}: an abbreviation, not an expression to paste")
+        names = re.findall(r"\b(?:fleetmap|process)_\w+", expression)
+        wrong += [f"{expression}: {name} is not on /metrics" for name in names if kind(name) is None]
+        for function, name in re.findall(r"\b(\w+)\(\s*((?:fleetmap|process)_\w+)", expression):
+            if function in COUNTER_FUNCTIONS and kind(name) not in (None, "counter"):
+                wrong.append(f"{expression}: {function}() of {name}, a {kind(name)}, not a counter")
+            if function in GAUGE_FUNCTIONS and kind(name) not in (None, "gauge"):
+                wrong.append(f"{expression}: {function}() of {name}, a {kind(name)}, not a gauge")
+    assert not wrong, "docs/api.md, What to alert on:\n" + "\n".join(wrong)
 
 
 def layout_paths() -> set[Path]:
