@@ -19,6 +19,7 @@ import socket
 import sqlite3
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter
 from datetime import datetime, timedelta
@@ -675,6 +676,56 @@ def test_metrics_count_every_http_answer_by_status_and_show_the_zenoh_session(tm
     # Storage failures by operation, at 0 on a healthy disk (tests/test_durability.py fails one).
     for operation in ("journal_commit", "snapshot", "map_change"):
         assert seen[("fleetmap_storage_failures_total", (("operation", operation),))] == 0
+
+
+def test_a_stalled_disk_shows_on_metrics_as_scans_waiting_for_their_journal_commit(tmp_path: Path) -> None:
+    """A disk that stalls (a journal commit that hangs) moved no metric: with durable storage a scan
+    counts as integrated only once its row commits, so `fleetmap_journal_commits_total` and
+    `fleetmap_scans_integrated_total` stopped together, and docs/api.md's alert for it (commits at 0
+    while scans are integrated) could never fire; the workers go on applying scans, so the ingest
+    queue stayed empty too. The journal's backlog now shows it: rows waiting and the oldest's age.
+    Here another program holds the database's write lock, as a stalled disk holds the commit."""
+    with ServiceProcess(tmp_path) as svc:
+        post_scans(svc.base_url, "m", "r", range(1, 3))
+
+        def scrape() -> dict[str, float]:
+            text = httpx.get(f"{svc.base_url}/metrics").text
+            return {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples}
+
+        before = scrape()
+        assert before["fleetmap_journal_rows_waiting"] == 0
+        assert before["fleetmap_journal_backlog_seconds"] == 0
+        data_dir = Path(svc.args[svc.args.index("--data-dir") + 1])
+        holder = sqlite3.connect(data_dir / DB_NAME, isolation_level=None, timeout=30)
+        holder.execute("BEGIN EXCLUSIVE")
+        answers: list[httpx.Response] = []
+        sender = threading.Thread(
+            target=lambda: answers.append(
+                httpx.post(f"{svc.base_url}/maps/m/scans", params={"robot_id": "r"}, json=scan_body(3),
+                           timeout=60)
+            )
+        )  # fmt: skip
+        try:
+            sender.start()
+            stalled = wait_for(
+                lambda: (m := scrape())["fleetmap_journal_backlog_seconds"] > 0.5 and m,
+                20,
+                what="the stalled commit on /metrics",
+            )
+        finally:
+            holder.execute("ROLLBACK")
+            holder.close()
+        sender.join(60)
+        assert stalled["fleetmap_journal_rows_waiting"] == 1
+        # What the alert used to watch did not move: neither would tell a stalled disk.
+        assert stalled["fleetmap_journal_commits_total"] == before["fleetmap_journal_commits_total"]
+        assert stalled["fleetmap_queue_depth"] == 0
+        after = wait_for(
+            lambda: (m := scrape())["fleetmap_journal_rows_waiting"] == 0 and m, 20, what="the commit"
+        )
+        assert after["fleetmap_journal_backlog_seconds"] == 0
+        assert after["fleetmap_journal_rows_total"] == before["fleetmap_journal_rows_total"] + 1
+        assert answers and answers[0].status_code in (200, 503)  # 503: not integrated within 10 s
 
 
 def test_a_scrape_holds_the_registry_lock_only_to_copy_the_counters() -> None:

@@ -103,6 +103,12 @@ class JournalWriter:
         self.unstored: tuple[str, ...] = ()
         self._last_retry = 0.0  # time.monotonic() of the last retry of every unstored change
         self._attached_lock = threading.Lock()
+        # time.monotonic() of each appended row not yet committed (or failed), oldest first, for
+        # `backlog`. Scans count as integrated only once their rows commit, so while the disk stalls
+        # no counter moves at all (commits and scans integrated alike) and the ingest queue stays
+        # empty: only these rows, applied and waiting, show it.
+        self._waiting: collections.deque[float] = collections.deque()
+        self._waiting_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="fleetmap-journal", daemon=True)
         self._thread.start()
         self.commits = 0
@@ -137,7 +143,24 @@ class JournalWriter:
         return future
 
     def append(self, entry: JournalEntry) -> None:
-        self._queue.put(entry)
+        # Under the lock, so that `_waiting` is in the queue's order, which the writer takes rows in.
+        with self._waiting_lock:
+            self._waiting.append(time.monotonic())
+            self._queue.put(entry)
+
+    def backlog(self) -> tuple[int, float]:
+        """(rows appended and not yet committed or failed, seconds the oldest of them has waited):
+        a disk that stalls shows as an age that grows (`fleetmap_journal_backlog_seconds`)."""
+        with self._waiting_lock:
+            if not self._waiting:
+                return 0, 0.0
+            return len(self._waiting), max(0.0, time.monotonic() - self._waiting[0])
+
+    def _settled(self, rows: int) -> None:
+        """The writer is done with the `rows` oldest appended rows (committed, failed or held back)."""
+        with self._waiting_lock:
+            for _ in range(min(rows, len(self._waiting))):
+                self._waiting.popleft()
 
     def submit(self, op: Callable[[sqlite3.Connection], object]) -> Future:
         """Queue a database operation for the writer thread, in order with the journal entries
@@ -362,6 +385,13 @@ class JournalWriter:
     def _commit(self, batch: list[JournalEntry]) -> bool:
         """Commit `batch` (which may be empty), a share of the attached rows and of the superseded
         rows in one transaction; False if there was nothing to do or the commit failed."""
+        try:
+            return self._commit_batch(batch)
+        finally:
+            self._settled(len(batch))  # whatever became of them: their rows wait no longer
+
+    def _commit_batch(self, batch: list[JournalEntry]) -> bool:
+        """`_commit`'s work, with `batch`'s rows still counted as waiting (`backlog`)."""
         if not batch and not self._trim and not self._attached:
             return False
         attached = self._take_attached()

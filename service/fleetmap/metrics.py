@@ -264,8 +264,11 @@ class RegistryCollector(Collector):
 
 
 class StorageCollector(Collector):
-    """The journal writer's own counters (commits and rows written since start), read at scrape:
-    a rate of commits that falls to 0 while scans arrive means the disk stalls."""
+    """The journal writer's own counters (commits and rows written since start) and its backlog
+    (scans applied whose rows wait for their commit, and how long the oldest has waited), read at
+    scrape. A disk that stalls shows in the backlog's age alone: with durable storage a scan counts
+    as integrated only once its row commits, so commits and scans integrated stop together, and the
+    ingest queue stays empty (the workers go on applying scans)."""
 
     def __init__(self, registry: MapRegistry) -> None:
         self.registry = registry
@@ -274,18 +277,21 @@ class StorageCollector(Collector):
         return list(self._families())
 
     def collect(self) -> Iterator[Metric]:
-        commits, rows, failures = self._families()
+        commits, rows, failures, waiting, age = self._families()
         durable = self.registry.durable
         if durable is None:
             return
         commits.add_metric([], durable.writer.commits)
         rows.add_metric([], durable.writer.rows)
+        pending, oldest = durable.writer.backlog()
+        waiting.add_metric([], pending)
+        age.add_metric([], oldest)
         counted = dict(durable.failures)  # a copy: the writer and snapshot threads add to it
         # Every operation from the start, at 0 until it fails: `increase()` over a series that
         # appears with its first failure misses that failure.
         for operation in STORAGE_OPERATIONS:
             failures.add_metric([operation], counted.get(operation, 0))
-        yield from (commits, rows, failures)
+        yield from (commits, rows, failures, waiting, age)
 
     @staticmethod
     def _families() -> tuple[_Family, ...]:
@@ -297,6 +303,14 @@ class StorageCollector(Collector):
                 "Storage operations that failed (a full or failing disk): journal commits, snapshots, "
                 "map creations / deletions",
                 labels=["operation"],
+            ),
+            GaugeMetricFamily(
+                "fleetmap_journal_rows_waiting", "Scans applied whose journal rows wait for their commit"
+            ),
+            GaugeMetricFamily(
+                "fleetmap_journal_backlog_seconds",
+                "Seconds the oldest scan applied and waiting for its journal commit has waited (a stalled "
+                "disk: it grows)",
             ),
         )
 
