@@ -7,18 +7,21 @@ from __future__ import annotations
 
 import math
 import time
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
+import zenoh
 
 from fleetmap.codec import DEFAULT_LIMITS, WireScan
 from fleetmap.map_entry import IngestRejected
 from fleetmap.registry import MapRegistry
+from fleetmap.ros import tf_message
 from fleetmap.ros.graph import Qos, RosNode, publisher_of_token, type_hash_of_token
-from fleetmap.ros.ingest import RosScanIngest, robot_id_for, session_from_gid
+from fleetmap.ros.ingest import MAX_TREES, RosScanIngest, robot_id_for, session_from_gid
 from fleetmap.ros.laser_scan import LaserScanMsg, encode_laser_scan
-from fleetmap.ros.rmw_zenoh import TYPE_HASHES, Attachment, encode_attachment, topic_key
+from fleetmap.ros.rmw_zenoh import TYPE_HASHES, Attachment, dds_type_name, encode_attachment, topic_key
 from fleetmap.ros.tf_message import TransformStamped, encode_tf_message
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
@@ -236,3 +239,47 @@ def test_a_map_deleted_after_a_scan_is_not_made_again_by_showing_its_robot_onlin
     registry.delete("lab")
     ingest._mark_online("robot1")  # its map gone: nothing to show, nothing made
     assert "lab" not in registry.maps
+
+
+def _tf_publisher(node: RosNode, entity_id: int, topic: str, present: bool) -> SimpleNamespace:
+    """What the graph's liveliness subscriber hands `_on_tf_token`: a TFMessage publisher's token of
+    `topic` appearing (`present`) or going."""
+    token = node.publisher_token(
+        entity_id, topic, dds_type_name(tf_message.ROS_TYPE), "TypeHashNotSupported", Qos()
+    )
+    return SimpleNamespace(key_expr=token, kind=zenoh.SampleKind.PUT if present else zenoh.SampleKind.DELETE)
+
+
+def test_tf_trees_of_robots_gone_make_room_for_new_robots() -> None:
+    """The ingest keeps at most 64 TF trees, one per namespace publishing TF, and kept each for the
+    service's whole life: a fleet whose robots come and go under new namespaces (renamed, replaced,
+    simulated) had every later robot's TF refused ("already 64 TF namespaces") once 64 namespaces
+    had ever published, and its scans refused for want of TF, for good. A new namespace now takes the
+    place of the tree heard from least recently of a namespace whose tf and tf_static publishers are
+    all gone; while every tree has a publisher alive, a new one is still refused."""
+    ingest, registry = make()
+    node = RosNode(0, "a1b2c3", node_id=0, name="robot_state_publisher", namespace="/")
+    for i in range(MAX_TREES):
+        ingest._on_tf_token(_tf_publisher(node, i, f"/old{i}/tf", True))  # type: ignore[arg-type]
+        ingest._handle_tf(tf_key(f"/old{i}/tf"), tf(1.0, ("map", "laser", 0.0)))
+    ingest._handle_tf(tf_key("/new0/tf"), tf(1.0, ("map", "laser", 0.0)))
+    assert "/new0" not in ingest.status()["tf_trees"]  # every robot still publishes TF
+    assert ingest.status()["tf_refused"] == 1
+    # Two robots leave (their nodes end: their publishers' tokens go); old1 was heard last of them.
+    ingest._handle_tf(tf_key("/old0/tf"), tf(2.0, ("map", "laser", 0.0)))
+    for i in (1, 0):
+        ingest._on_tf_token(_tf_publisher(node, i, f"/old{i}/tf", False))  # type: ignore[arg-type]
+    # Two new robots come, each in its own namespace: their TF is kept and poses their scans.
+    for i, x in ((1, 3.0), (2, 4.0)):
+        ingest._on_tf_token(_tf_publisher(node, 100 + i, f"/new{i}/tf", True))  # type: ignore[arg-type]
+        ingest._handle_tf(tf_key(f"/new{i}/tf"), tf(1.0, ("map", "laser", x)))
+        ingest._handle_tf(tf_key(f"/new{i}/tf"), tf(3.0, ("map", "laser", x)))
+        ingest._handle_scan(scan_key(f"/new{i}/scan"), laser(2.0), None)
+    ingest._pass()
+    assert [(r, w.scan.pose.x) for _, r, w in registry.submitted] == [("new1", 3.0), ("new2", 4.0)]
+    trees = set(ingest.status()["tf_trees"])
+    assert len(trees) == MAX_TREES and {"/new1", "/new2"} <= trees
+    assert not {"/old0", "/old1"} & trees  # the robots gone, old1 first (heard from least recently)
+    # Full again, every tree's publisher alive: the next one is refused.
+    ingest._handle_tf(tf_key("/new3/tf"), tf(1.0, ("map", "laser", 0.0)))
+    assert "/new3" not in ingest.status()["tf_trees"]

@@ -203,7 +203,8 @@ class RosScanIngest:
         self._lock = threading.Lock()  # guards _robots, the counters
         self._tf_lock = threading.Lock()  # guards _trees
         self._robots: dict[str, _Robot] = {}
-        self._trees: dict[str, TfBuffer] = {}  # by namespace ('' for /tf)
+        #: By namespace ('' for /tf), in the order they were last heard (`_forget_a_tree`).
+        self._trees: dict[str, TfBuffer] = {}
         self._waiting = 0  # scans in all robots' pending queues
         self._publisher_tokens: dict[str, str] = {}  # token key -> robot id, LaserScan publishers alive
         self._tf_publisher_tokens: set[str] = set()  # token keys of the tf and tf_static publishers alive
@@ -545,13 +546,17 @@ class RosScanIngest:
             return
         refused: list[str] = []
         with self._tf_lock:
-            tree = self._trees.get(namespace)
+            tree = self._trees.pop(namespace, None)
             if tree is None:
-                if len(self._trees) >= MAX_TREES:
-                    refused.append(f"already {MAX_TREES} TF namespaces; {namespace[:80]!r} ignored")
+                if len(self._trees) >= MAX_TREES and not self._forget_a_tree():
+                    refused.append(
+                        f"already {MAX_TREES} TF namespaces, each with a tf or tf_static publisher "
+                        f"alive; {namespace[:80]!r} ignored"
+                    )
                 else:
-                    tree = self._trees[namespace] = TfBuffer()
+                    tree = TfBuffer()
             if tree is not None:
+                self._trees[namespace] = tree  # (last: the trees in the order they were last heard)
                 for t in transforms:
                     try:
                         tree.add(t, static=name == TF_STATIC_TOPIC_NAME)
@@ -566,6 +571,25 @@ class RosScanIngest:
                 f"refused {len(refused)} transform(s) on {topic_key.topic}: {refused[0]}",
             )
         self._wake.set()
+
+    def _forget_a_tree(self) -> bool:
+        """Make room for one more TF tree: forget the tree heard from least recently of a namespace
+        none of whose `tf` and `tf_static` publishers is alive (its robot gone, renamed or replaced);
+        False when every tree has one. Robots come and go under new namespaces for the service's
+        whole life: kept for good, the trees of those gone refused every later robot's TF once 64
+        namespaces had ever published. (Caller holds `_tf_lock`; `_lock` is taken inside it, the
+        one order they nest in.)"""
+        with self._lock:
+            publishing = {
+                topic.rpartition("/")[0]
+                for topic, ros_type in self._graph_topics
+                if ros_type == tf_message.ROS_TYPE
+            }
+        gone = next((namespace for namespace in self._trees if namespace not in publishing), None)
+        if gone is None:
+            return False
+        del self._trees[gone]
+        return True
 
     # -- the fleetmap-ros thread -----------------------------------------------------------------
 
