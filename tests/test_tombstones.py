@@ -745,3 +745,45 @@ def test_forgotten_robots_stones_waiting_for_a_failing_disk_stay_within_the_boun
     db = sqlite3.connect(data / DB_NAME)
     assert sorted(row[0] for row in db.execute("SELECT robot_id FROM tombstones")) == ["a4", "a5", "a6"]
     db.close()
+
+
+@pytest.mark.parametrize("missing", [("plain_seq", "plain_stamp"), ("plain_stamp",)])
+def test_a_database_without_the_plain_columns_gets_them_at_start(
+    data: Path, missing: tuple[str, ...]
+) -> None:
+    """A data directory written before tombstones had their `plain_seq` and `plain_stamp` columns
+    gets them at start, NULL in its rows (an older service did not cover scans without a session id);
+    so does one that has only the first: each column is a transaction of its own in autocommit, and
+    a crash (kill -9, a power cut) between the two left that, which then stopped every later start
+    with "no such column: plain_stamp"."""
+    from fleetmap.database import SCHEMA
+
+    data.mkdir()
+    old_schema = SCHEMA
+    for column in missing:
+        lines = old_schema.split("\n")
+        old_schema = "\n".join(line for line in lines if not line.lstrip().startswith(column))
+    assert old_schema.count("plain_") == 2 - len(missing)
+    db = sqlite3.connect(data / DB_NAME)
+    db.executescript(old_schema)
+    db.execute(  # as an older service writes one
+        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES ('m', 'r', ?, ?)",
+        (time.time(), f'{{"{SESSION}": 4}}'),
+    )
+    db.commit()
+    db.close()
+    reg = registry(data)
+    try:
+        stone = reg.tombstones.get("m", "r")
+        assert stone is not None and stone.plain is None and dict(stone.sessions) == {SESSION: 4}
+        reg.submit("n", "p", wire(3, session=None))
+        wait_idle(reg)
+        reg.delete("n", wait=True)
+    finally:
+        reg.close()
+    store = DurableStore(data)
+    try:
+        stones = {s.map_id: s for s in store.load_tombstones()}
+        assert sorted(stones) == ["m", "n"] and stones["n"].plain is not None and stones["n"].plain[0] == 3
+    finally:
+        store.close()

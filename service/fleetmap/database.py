@@ -369,16 +369,31 @@ def _migrate(conn: sqlite3.Connection) -> None:
     keep NULL there (no session: their restarts are told by their stamps, as when they were
     written); one written before tombstones had their `forgotten` column: its rows are all
     deleted maps' robots (0); and one written before their `plain_seq` and `plain_stamp` columns:
-    NULL there (its scans without a session id were not remembered)."""
-    columns = {row[1] for row in conn.execute("PRAGMA table_info(journal)")}
-    if "session" not in columns:
-        conn.execute("ALTER TABLE journal ADD COLUMN session INTEGER")
-    columns = {row[1] for row in conn.execute("PRAGMA table_info(tombstones)")}
-    if "forgotten" not in columns:
-        conn.execute("ALTER TABLE tombstones ADD COLUMN forgotten INTEGER NOT NULL DEFAULT 0")
-    if "plain_seq" not in columns:
-        conn.execute("ALTER TABLE tombstones ADD COLUMN plain_seq INTEGER")
-        conn.execute("ALTER TABLE tombstones ADD COLUMN plain_stamp REAL")
+    NULL there (its scans without a session id were not remembered). Each column missing is added,
+    all in one transaction: `conn` is in autocommit, where each ALTER TABLE committed alone, and a
+    crash between `plain_seq` and `plain_stamp` left a database that had the one, so was taken for
+    migrated, and failed every later start for want of the other."""
+    wanted = {
+        "journal": [("session", "INTEGER")],
+        "tombstones": [
+            ("forgotten", "INTEGER NOT NULL DEFAULT 0"),
+            ("plain_seq", "INTEGER"),
+            ("plain_stamp", "REAL"),
+        ],
+    }
+    alters = []
+    for table, columns in wanted.items():
+        present = {row[1] for row in conn.execute(f"PRAGMA table_info({table})")}
+        alters += [
+            f"ALTER TABLE {table} ADD COLUMN {name} {kind}" for name, kind in columns if name not in present
+        ]
+    if not alters:  # (no write lock taken: a database another program holds must not fail here)
+        return
+    # (A failure leaves the transaction open: closing `conn`, as `open_database` does, rolls it back.)
+    conn.execute("BEGIN IMMEDIATE")
+    for alter in alters:
+        conn.execute(alter)
+    conn.execute("COMMIT")
 
 
 #: Seconds a connection waits for a lock another connection (or program) holds on the database.
