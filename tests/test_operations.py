@@ -10,6 +10,7 @@ another machine.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -31,7 +32,7 @@ import zenoh
 from prometheus_client.parser import text_string_to_metric_families
 from service_process import ServiceProcess, free_port, reaped, wait_for
 
-from fleetmap import serve_environment, server
+from fleetmap import cli, serve_environment, server
 from fleetmap.api.app import WEB_DIR_ENV
 from fleetmap.auth import TOKENS_ENV
 from fleetmap.database import DB_NAME
@@ -437,6 +438,39 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
         defaults = serve_options([], {}, monkeypatch)
         from_variable = serve_options([], {serve_environment.env_name(action): text}, monkeypatch)
         assert from_variable == serve_options(argv, {}, monkeypatch) != defaults, option
+
+
+def test_a_list_option_given_twice_keeps_the_values_of_both() -> None:
+    """`--zenoh-listen tcp/a --zenoh-listen tls/b` listened on tls/b alone, and `--cors-origin A
+    --cors-origin B` allowed B alone: argparse's plain list option keeps its last occurrence, and
+    nothing said the first was dropped. Every command's list options keep every value, in order, as
+    `--ros-publish-map` already did: given twice, they mean what one occurrence of all the values
+    means."""
+    parser = argparse.ArgumentParser(prog="fleetmap")
+    sub = parser.add_subparsers(dest="command", required=True)
+    cli._add_build(sub)
+    for name in cli.COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    required = {"replay": ["data.log", "--map", "m", "--robot", "r"]}
+    values = {
+        "--forwarded-allow-ips": ["10.0.0.1", "10.0.0.2"],
+        "--cors-origin": ["http://a", "https://b:8443"],
+        "--ros-publish-map": ["lab", "wh=/wh/map"],
+    }
+    checked = []
+    for command, p in sub.choices.items():
+        for action in p._actions:
+            if action.nargs != "+":
+                continue
+            option = action.option_strings[-1]
+            first, second = values.get(option, ["tcp/a:1", "tcp/b:2"])
+            base = [command, *required.get(command, [])]
+            twice = parser.parse_args([*base, option, first, option, second])
+            once = parser.parse_args([*base, option, first, second])
+            assert getattr(twice, action.dest) == getattr(once, action.dest), f"fleetmap {command} {option}"
+            checked.append(f"{command} {option}")
+    expected = {"serve --zenoh-listen", "serve --cors-origin", "replay --connect", "sim --connect"}
+    assert expected <= set(checked), checked
 
 
 def test_on_off_variables_take_the_documented_words_and_the_command_line_wins(

@@ -105,7 +105,9 @@ class RepeatedOption(argparse.Action):
     """An option that may be given several times, each with one or more values, all kept in order
     (`--ros-publish-map a --ros-publish-map b c`: a, b, c). Its variable gives values separated by
     spaces; the command line's first occurrence replaces those (the command line wins, as for every
-    option) rather than adding to them."""
+    option) rather than adding to them. Every list option of `fleetmap serve` is one: argparse's
+    own kept the last occurrence alone, silently (`--zenoh-listen tcp/a --zenoh-listen tls/b`
+    listened on tls/b only)."""
 
     def __call__(
         self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any, option: Any = None

@@ -60,6 +60,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     p.add_argument(
         "--zenoh-listen",
         nargs="+",
+        action=RepeatedOption,
         metavar="ENDPOINT",
         help=(
             f"Zenoh endpoints robots connect to (default {' '.join(DEFAULT_LISTEN)}; with --zenoh-connect "
@@ -69,6 +70,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     p.add_argument(
         "--zenoh-connect",
         nargs="+",
+        action=RepeatedOption,
         default=[],
         metavar="ENDPOINT",
         help=(
@@ -224,6 +226,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     p.add_argument(
         "--cors-origin",
         nargs="+",
+        action=RepeatedOption,
         default=[],
         type=_cors_origin,
         metavar="ORIGIN",
@@ -234,6 +237,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     p.add_argument(
         "--forwarded-allow-ips",
         nargs="+",
+        action=RepeatedOption,
         type=_proxy_address,
         default=None,
         metavar="IP",

@@ -35,6 +35,7 @@ def _add_connection(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--connect",
         nargs="+",
+        action="extend",  # given twice, both lists (argparse's default kept the last alone)
         metavar="EP",
         default=None,
         help=f"Zenoh endpoints of the service (default {DEFAULT_CONNECT[0]}, where `fleetmap serve` listens)",
