@@ -218,7 +218,13 @@ def test_demo_serves_beyond_loopback_with_insecure_as_the_refusal_says(tmp_path:
     command = [*fleetmap_command(), "demo", "--http", f"0.0.0.0:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
                "--data-dir", str(tmp_path / "data"), "--robots", "1", "--seconds", "0"]  # fmt: skip
     refused = subprocess.run(command, capture_output=True, text=True, timeout=60)
-    assert refused.returncode == 2 and "or --insecure to accept that" in refused.stderr, refused.stderr
+    assert refused.returncode == 2 and "give --insecure to accept that" in refused.stderr, refused.stderr
+    # Said by the demo, before its service starts, in one line: the service's refusal named
+    # --auth-tokens FILE and $FLEETMAP_TOKENS, neither of which the demo takes (it leaves out every
+    # FLEETMAP_ variable), beside --insecure.
+    assert refused.stderr.startswith("fleetmap demo: error: ") and refused.stderr.count("\n") == 1
+    assert "--auth-tokens" not in refused.stderr and "FLEETMAP_TOKENS" not in refused.stderr
+    assert not (tmp_path / "data").exists()
     # `:PORT`, all interfaces as `serve --http` takes it: the demo polled and printed `http://:PORT/`,
     # which nothing answers, and waited for its service until it gave up.
     command[command.index("--http") + 1] = f":{http}"

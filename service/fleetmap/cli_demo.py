@@ -24,6 +24,7 @@ import httpx
 
 from fleetmap.cli import CliError
 from fleetmap.http_server import url_host
+from fleetmap.network import is_loopback_host
 from fleetmap.parent_death import end_with_parent
 from fleetmap.serve_environment import ENV_PREFIX
 from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP, parse_http
@@ -79,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     # the robots would map into that other service: refuse before starting anything.
     for option, value in (("--http", args.http), ("--zenoh", args.zenoh)):
         _check_free(option, value)
+    _check_exposure(args)  # after: an address not this machine's is that first
     stop = SignalEvent()
     # Ctrl-C, and also `kill`, `timeout`, `docker stop` (SIGTERM) and a closed terminal (SIGHUP):
     # each ended the demo at once and left its service running on, holding the ports and the data
@@ -189,6 +191,19 @@ def _check_fleet(args: argparse.Namespace) -> None:
         check_capacity(args.robots)
     except ValueError as exc:
         raise CliError(str(exc)) from None
+
+
+def _check_exposure(args: argparse.Namespace) -> None:
+    """Raise CliError for an `--http` beyond loopback without `--insecure`, which the demo's service,
+    run without API tokens, would refuse: the service's refusal said to give `--auth-tokens FILE`
+    (or $FLEETMAP_TOKENS), which the demo takes neither of (it leaves out every FLEETMAP_ variable),
+    or `--insecure`, the one that a demo can take."""
+    host, _ = parse_http(args.http)
+    if not args.insecure and not is_loopback_host(host):
+        raise CliError(
+            f"--http {args.http} listens beyond this machine, and the demo's service runs without API "
+            "tokens: anyone who can reach it could change the maps; give --insecure to accept that"
+        )
 
 
 def _check_free(option: str, value: str) -> None:
