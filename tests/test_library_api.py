@@ -201,6 +201,17 @@ def test_scan_built_directly_means_what_from_angles_means() -> None:
         (lambda: Scan(Pose2D("a", 0, 0), [0.0], [1.0], 0.0, 5.0), r"sequence of numbers, got \('a', 0, 0\)"),  # type: ignore[arg-type]
         (lambda: Scan.from_fan(Pose2D(None, 0, 0), 0, 0.1, [1.0]), "pose must be a Pose2D"),  # type: ignore[arg-type]
         (lambda: Scan.from_fan(Pose2D(10**400, 0, 0), 0, 0.1, [1.0]), "pose must be a Pose2D"),
+        # Strings (and bytes) that read as numbers were read so: README.md says a string raises.
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, ["1.5", "2"]), "ranges must be numbers"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, [1.0, b"2"]), "ranges must be numbers"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, np.array(["1.5", "2"])), "ranges must be numbers"),
+        (lambda: Scan.from_angles((0, 0, 0), ["0", "0.1"], [1.0, 2.0]), "angles must be numbers"),
+        (lambda: Scan.from_angles((0, 0, 0), np.array([0, "1"], object), [1, 2]), "angles must be numbers"),
+        (lambda: Scan.from_fan(("1", "2", "0"), 0, 0.1, [1.0]), "pose must be a Pose2D"),
+        (lambda: Scan(Pose2D("1", 0, 0), [0.0], [1.0], 0.0, 5.0), "pose must be a Pose2D"),  # type: ignore[arg-type]
+        (lambda: Scan.from_fan((0, 0, 0), "0.1", 0.1, [1.0]), "angle_min must be a number, got '0.1'"),
+        (lambda: Scan(Pose2D(0, 0, 0), [0.0], [1.0], "0", 5.0), "range_min must be a number, got '0'"),  # type: ignore[arg-type]
+        (lambda: Scan(Pose2D(0, 0, 0), [0.0], [1.0], 0.0, "inf"), "range_max must be a number, got 'inf'"),  # type: ignore[arg-type]
     ],
 )  # fmt: skip
 def test_scan_inputs_that_are_not_numbers_raise_scan_error(build: object, message: str) -> None:

@@ -167,9 +167,17 @@ def ranges_to_array(ranges: Sequence[float | None] | np.ndarray) -> np.ndarray:
     if isinstance(ranges, str | bytes) or not isinstance(ranges, Iterable):
         raise ScanError(f"ranges must be a sequence of numbers or None, got {type(ranges).__name__}")
     try:
-        return np.array([math.inf if v is None else float(v) for v in ranges], dtype=np.float64)
+        return np.array([math.inf if v is None else _real(v) for v in ranges], dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an int past float's range
         raise ScanError(f"ranges must be numbers or None: {exc}") from None
+
+
+def _real(value: object) -> float:
+    """`float(value)`, but TypeError for a string or bytes, which `float` (and numpy) would read
+    ("1.5", b"inf"): the engine takes numbers, as the wire's JSON does, not text that looks like one."""
+    if isinstance(value, str | bytes | bytearray):
+        raise TypeError(f"got {type(value).__name__} {value!r}, not a number")
+    return float(value)  # type: ignore[arg-type]  # TypeError for what is no number
 
 
 def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
@@ -179,7 +187,13 @@ def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
     if np.iscomplexobj(values):  # numpy would drop the imaginary parts, with a warning only
         raise ScanError(f"{name} must be real numbers, got complex ones")
     try:
-        return np.asarray(values, dtype=np.float64)
+        array = np.asarray(values)
+        # Text that reads as numbers ("0.1"), which the conversion below would parse (`_real`).
+        if array.dtype.kind in "SUV" or (
+            array.dtype == object and any(isinstance(v, str | bytes | bytearray) for v in array.flat)
+        ):
+            raise TypeError(f"got text ({array.dtype}), not numbers")
+        return array.astype(np.float64, copy=False)
     except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an int past float's range
         raise ScanError(f"{name} must be numbers: {exc}") from None
 
@@ -193,7 +207,7 @@ def _directions_finite(theta: float, angles: np.ndarray) -> bool:
 
 def _as_number(name: str, value: float) -> float:
     try:
-        return float(value)
+        return _real(value)
     except (TypeError, ValueError):
         raise ScanError(f"{name} must be a number, got {value!r}") from None
     except OverflowError:  # an int past float's range (its repr may be thousands of digits)
@@ -210,7 +224,7 @@ def _as_pose(pose: Pose2D | tuple[float, float, float]) -> Pose2D:
             return pose
         pose = (pose.x, pose.y, pose.theta)
     try:
-        x, y, theta = (float(v) for v in pose)
+        x, y, theta = (_real(v) for v in pose)
     except (TypeError, ValueError, OverflowError):  # OverflowError: an int past float's range
         raise ScanError(
             f"pose must be a Pose2D or an (x, y, theta) sequence of numbers, got {pose!r}"
