@@ -30,6 +30,11 @@ def main() -> None:
     parser.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
     parser.add_argument("--reps", type=int, default=7)
     args = parser.parse_args()
+    if not args.dataset.is_file():  # a fresh clone has no ../shared/datasets: not a traceback
+        parser.error(
+            f"no dataset at {args.dataset}: this reads a CARMEN log (by default the Intel log of "
+            "../shared/datasets beside the repository); give one with --dataset PATH"
+        )
     dataset = load_dataset(args.dataset)
     gmap = GridMap(MapConfig(resolution=0.05))
     for scan in dataset:
