@@ -670,6 +670,21 @@ def test_start_errors_are_readable(registry: MapRegistry, tmp_path) -> None:  # 
         ZenohIngest(registry, mode="satellite")
 
 
+def test_a_listen_endpoint_given_twice_is_refused_as_such(registry: MapRegistry, tmp_path: Path) -> None:
+    """`--zenoh-listen tcp/127.0.0.1:7447 tcp/127.0.0.1:7447` (or the endpoint in the config file and
+    on the command line, now that a list option given twice takes both) failed with Zenoh's
+    "Address already in use", which sent the user after another process that was not there.
+    Two `:0` endpoints are two free ports (`with_free_port`), not one endpoint twice."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with pytest.raises(IngestStartError, match=f"listen endpoint {endpoint} is given twice"):
+        ZenohIngest(registry, listen=[endpoint, f"tcp/127.0.0.1:{free_port()}", endpoint]).build_config()
+    path = tmp_path / "zenoh.json5"
+    path.write_text(f"{{ listen: {{ endpoints: ['{endpoint}', '{endpoint}'] }} }}\n")
+    with pytest.raises(IngestStartError, match="given twice"):
+        ZenohIngest(registry, config_file=path).build_config()
+    ZenohIngest(registry, listen=["tcp/127.0.0.1:0", "tcp/127.0.0.1:0"]).build_config()
+
+
 def test_close_is_idempotent_and_stops_ingest(registry: MapRegistry) -> None:
     ing = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{free_port()}"])
     ing.start()

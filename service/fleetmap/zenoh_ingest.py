@@ -284,6 +284,10 @@ class ZenohIngest:
             listen = list(file_listen)
         else:
             listen = [] if self.connect else list(DEFAULT_LISTEN)
+        if twice := sorted({e for e in listen if listen.count(e) > 1 and _PORT_ZERO.fullmatch(e) is None}):
+            # Zenoh opens a listener per endpoint, and the second failed with "Address already in
+            # use", which sent the user after another process that was not there.
+            raise IngestStartError(f"the listen endpoint {', '.join(twice)} is given twice: give each once")
         listen = [with_free_port(endpoint) for endpoint in listen]
         if self._mode_arg is not None:
             mode = self._mode_arg
