@@ -29,6 +29,7 @@ from pathlib import Path
 import httpx
 import pytest
 import zenoh
+from fleetmap_client.rest import TOKEN_ENV as CLIENT_TOKEN_ENV
 from prometheus_client.parser import text_string_to_metric_families
 from service_process import ServiceProcess, free_port, reaped, wait_for
 
@@ -407,6 +408,12 @@ def test_variables_that_name_no_option_are_warned_of(monkeypatch: pytest.MonkeyP
     ]
     assert serve_namespace([], {"FLEETMAP_DATA_DIR": "/x"}, monkeypatch).environment_warnings == []
     assert {TOKENS_ENV, WEB_DIR_ENV} == serve_environment.OTHER_VARIABLES
+    # The Python client's token, which docs/clients.md says to set: "did you mean $FLEETMAP_TOKENS?"
+    # sent its user to give the service a token in the client's variable's place, of another format.
+    assert serve_namespace([], {CLIENT_TOKEN_ENV: "t" * 16}, monkeypatch).environment_warnings == [
+        f"${CLIENT_TOKEN_ENV} is the Python client's API token (fleetmap_client.rest), not a variable of "
+        "`fleetmap serve`, whose tokens are --auth-tokens FILE or $FLEETMAP_TOKENS: ignored"
+    ]
 
 
 def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.MonkeyPatch) -> None:

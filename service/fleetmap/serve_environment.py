@@ -21,6 +21,16 @@ ENV_PREFIX = "FLEETMAP_"
 #: viewer's folder (`fleetmap.api.app.WEB_DIR_ENV`, spelled out: importing it loads FastAPI for
 #: every command; tests/test_operations.py checks the two agree).
 OTHER_VARIABLES = frozenset({TOKENS_ENV, "FLEETMAP_WEB_DIR"})
+#: FLEETMAP_ variables of fleetmap's clients, which `serve` does not read, and what each is: a
+#: warning says so rather than name the closest variable of `serve` (the client's token,
+#: `fleetmap_client.rest.TOKEN_ENV`, spelled out to load no client here: was "did you mean
+#: $FLEETMAP_TOKENS?", a variable of another format; tests/test_operations.py checks the names agree).
+CLIENT_VARIABLES = {
+    "FLEETMAP_TOKEN": (
+        "the Python client's API token (fleetmap_client.rest), not a variable of `fleetmap serve`, "
+        "whose tokens are --auth-tokens FILE or $FLEETMAP_TOKENS"
+    ),
+}
 #: What a FLEETMAP_* variable of an on/off option (--insecure, ...) may say.
 _ENV_TRUE = {"1", "true", "yes", "on"}
 _ENV_FALSE = {"0", "false", "no", "off", ""}
@@ -76,6 +86,9 @@ def unknown_variables(parser: argparse.ArgumentParser) -> list[str]:
     warnings = []
     for variable in sorted(v for v in os.environ if v.startswith(ENV_PREFIX)):
         if variable in known or variable in OTHER_VARIABLES:
+            continue
+        if variable in CLIENT_VARIABLES:
+            warnings.append(f"${variable} is {CLIENT_VARIABLES[variable]}: ignored")
             continue
         close = difflib.get_close_matches(variable, sorted(known | OTHER_VARIABLES), n=1, cutoff=0.8)
         hint = f" (did you mean ${close[0]}?)" if close else ""
