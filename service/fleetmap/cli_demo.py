@@ -26,7 +26,7 @@ from fleetmap.cli import CliError
 from fleetmap.http_server import url_host
 from fleetmap.network import is_loopback_host
 from fleetmap.parent_death import end_with_parent
-from fleetmap.serve_environment import ENV_PREFIX
+from fleetmap.serve_environment import CLIENT_VARIABLES, ENV_PREFIX
 from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP, parse_http
 from fleetmap.signal_event import SignalEvent
 from fleetmap.wire import DEFAULT_ENDPOINT, is_valid_id
@@ -91,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     # demo said it was kept, FLEETMAP_ZENOH_CONFIG of a TLS router left its plain-TCP robots
     # waiting for ever. They are left out, and named.
     env = {key: value for key, value in os.environ.items() if not key.startswith(ENV_PREFIX)}
-    ignored = sorted(set(os.environ) - set(env))
+    # Named but for the clients' own (the REST client's token): no setting of `fleetmap serve`.
+    ignored = sorted(set(os.environ) - set(env) - CLIENT_VARIABLES.keys())
     if ignored:
         print(
             f"fleetmap demo: its service ignores {', '.join(ignored)} (the demo's options set it up; "
