@@ -1250,7 +1250,12 @@ def test_a_sim_too_busy_for_its_rate_counts_the_scans_it_skipped_and_says_so(
                      "--connect", router.endpoint, "--wait-timeout", "20", "--no-confirm"])  # fmt: skip
     assert code == 0
     out, err = capsys.readouterr()
-    match = re.search(r"warning: (\d+) scans skipped: the robots fell behind 50000 scans/s", err)
+    # One robot, in the singular: "the robots fell behind ..., too busy for 1 robots" was printed.
+    match = re.search(
+        r"warning: (\d+) scans skipped: the robot fell behind 50000 scans/s, this machine is too busy for 1 "
+        r"robot at that rate",
+        err,
+    )
     assert match is not None, err
     published = re.search(r"published (\d+) scans", out)
     assert published is not None, out

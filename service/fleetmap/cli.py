@@ -125,6 +125,12 @@ class CliError(Exception):
     """An error the user can fix; printed without a traceback."""
 
 
+def counted(number: int, noun: str) -> str:
+    """`number` and `noun`, plural but for 1, as the commands' summaries say it ("1 robots published
+    1 scans", "too busy for 1 robots" were printed)."""
+    return f"{number} {noun}{'' if number == 1 else 's'}"
+
+
 def dataset_error(path: str, exc: Exception) -> CliError:
     """The `CliError` for a dataset `load_dataset` could not read. A missing one gets a hint: the
     README's examples name `../shared/datasets/...`, which a fresh clone does not have, and a bare

@@ -22,7 +22,7 @@ import time
 
 import httpx
 
-from fleetmap.cli import CliError
+from fleetmap.cli import CliError, counted
 from fleetmap.http_server import url_host
 from fleetmap.network import is_loopback_host
 from fleetmap.parent_death import end_with_parent
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         if stop.is_set():
             return 0
         ready = True
-        fleet = _count(args.robots, "robot")
+        fleet = counted(args.robots, "robot")
         print(f"\nfleetmap demo: open {url}#map={args.map} to watch {fleet} map a floor plan")
         print(
             f"  (Ctrl-C stops the robots and the service; the map is kept in {args.data_dir})\n", flush=True
@@ -124,8 +124,8 @@ def run(args: argparse.Namespace) -> int:
             connect=[args.zenoh], stop=stop,
         )  # fmt: skip
         sent, dropped = sum(result.published.values()), sum(result.dropped.values())
-        robots = _count(len(result.robots), "robot")
-        print(f"fleetmap demo: {robots} published {_count(sent, 'scan')} ({dropped} dropped)")
+        robots = counted(len(result.robots), "robot")
+        print(f"fleetmap demo: {robots} published {counted(sent, 'scan')} ({dropped} dropped)")
         if service.poll() is not None:
             raise CliError(f"the service stopped unexpectedly (exit code {service.returncode}); see above")
     finally:
@@ -149,11 +149,6 @@ def run(args: argparse.Namespace) -> int:
             "last scans; see its last lines above"
         )
     return 0
-
-
-def _count(number: int, noun: str) -> str:
-    """`number` and `noun`, plural but for 1: "1 robots published 1 scans" (as `fleetmap sim` says)."""
-    return f"{number} {noun}{'' if number == 1 else 's'}"
 
 
 def _viewer_url(http: str) -> str:

@@ -18,7 +18,7 @@ import signal
 import sys
 from collections.abc import Sequence
 
-from fleetmap.cli import CliError, dataset_error, run_command
+from fleetmap.cli import CliError, counted, dataset_error, run_command
 from fleetmap.signal_event import SignalEvent
 
 from .publisher import ScanPublisher
@@ -249,7 +249,7 @@ def run_sim_command(args: argparse.Namespace) -> int:
 
     previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     print(
-        f"sim: {args.robots} robot{'' if args.robots == 1 else 's'} on map {args.map_id!r} "
+        f"sim: {counted(args.robots, 'robot')} on map {args.map_id!r} "
         f"(floor plan seed {args.seed}), "
         f"{args.rate:g} scans/s each" + (f" for {args.seconds:g} s" if args.seconds is not None else ""),
         flush=True,
@@ -280,17 +280,18 @@ def run_sim_command(args: argparse.Namespace) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     dropped, kept = sum(result.dropped.values()), sum(result.backlogged.values())
+    robots = len(result.robots)
     print(
-        f"sim: {len(result.robots)} robot{'' if len(result.robots) == 1 else 's'} published "
-        f"{result.total} scan{'' if result.total == 1 else 's'} in {result.seconds:.1f} s"
+        f"sim: {counted(robots, 'robot')} published {counted(result.total, 'scan')} in {result.seconds:.1f} s"
         + (f" ({kept} kept for re-delivery while the service was unreachable)" if kept else "")
         + (f" ({dropped} dropped)" if dropped else "")
     )
     skipped = sum(result.skipped.values())
     if skipped:
+        who = "the robot" if robots == 1 else "the robots"
         print(
-            f"fleetmap sim: warning: {skipped} scan{'' if skipped == 1 else 's'} skipped: the robots fell "
-            f"behind {args.rate:g} scans/s, this machine is too busy for {len(result.robots)} robots at "
+            f"fleetmap sim: warning: {counted(skipped, 'scan')} skipped: {who} "
+            f"fell behind {args.rate:g} scans/s, this machine is too busy for {counted(robots, 'robot')} at "
             "that rate (run fewer, or fewer --beams or a lower --rate)",
             file=sys.stderr,
         )
