@@ -25,15 +25,15 @@ from fleetmap.codec import encode_json
 
 #: Big reads in progress at once (`ApiSettings.max_large_reads`).
 MAX_LARGE_READS = 4
-#: A region of 4096 x 4096 cells at 0.05 m (the most one may hold), as npy: 64 MiB, far more than the
+#: A region of 2048 x 2048 cells at 0.05 m (4 Mi cells, a big read), as npy: 16 MiB, far more than the
 #: sockets between the test and the service buffer, so a client that stops reading holds it.
-BIG = "/maps/m/region?xmin=-102.4&ymin=-102.4&xmax=102.4&ymax=102.4&layer=hits"
+BIG = "/maps/m/region?xmin=-51.2&ymin=-51.2&xmax=51.2&ymax=51.2&layer=hits"
 
 
 @pytest.fixture(scope="module")
 def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
     # A send timeout past the test's length: the stalled clients read nothing until the end, and on a
-    # loaded machine (four 16 Mi-cell regions made at once) that took longer than the default 60 s,
+    # loaded machine (four big regions made at once) that took longer than the default 60 s,
     # after which the service dropped them and their answers came cut short.
     args = ["--in-memory", "--http-send-timeout", "600"]
     with ServiceProcess(tmp_path_factory.mktemp("logs"), args) as svc:
@@ -52,7 +52,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess
 def test_big_window_reads_in_progress_are_limited_and_a_client_gone_gives_its_slot_back(
     service: ServiceProcess,
 ) -> None:
-    """Four clients that asked for a 16 Mi-cell region and read nothing hold the four slots: the next
+    """Four clients that asked for a 4 Mi-cell region and read nothing hold the four slots: the next
     big region, or surface, is answered 503 with `Retry-After`, counted, having read nothing; a small
     window is answered as ever. Clients that go away give their slots back, and the answers of those
     that read on are whole."""
@@ -66,7 +66,7 @@ def test_big_window_reads_in_progress_are_limited_and_a_client_gone_gives_its_sl
         assert refused.status_code == 503, refused.status_code
         assert refused.headers["retry-after"] == "1"
         assert "limit of 4 windows of more than 1048576 cells" in refused.json()["detail"]
-        window = {"xmin": -102.4, "ymin": -102.4, "xmax": 102.4, "ymax": 102.4}
+        window = {"xmin": -51.2, "ymin": -51.2, "xmax": 51.2, "ymax": 51.2}
         surface = httpx.get(f"{svc.base_url}/maps/m/surface", params=window, timeout=60)
         assert surface.status_code == 503, surface.text
         assert metric(svc, "fleetmap_large_reads") == MAX_LARGE_READS
@@ -79,7 +79,7 @@ def test_big_window_reads_in_progress_are_limited_and_a_client_gone_gives_its_sl
         wait_for(lambda: metric(svc, "fleetmap_large_reads") == 2, timeout=30, what="2 slots back")
         again = httpx.get(f"{svc.base_url}{BIG}", timeout=60)
         assert again.status_code == 200
-        assert np.load(io.BytesIO(again.content)).shape == (4096, 4096)
+        assert np.load(io.BytesIO(again.content)).shape == (2048, 2048)
         for sock, head in stalled[2:]:
             headers, body = finish_download(sock, head)
             assert int(headers["content-length"]) == len(body)
@@ -97,7 +97,8 @@ def test_a_big_read_whose_client_went_away_is_not_written_on_into_the_log(servic
     event loop run: a client that reset its connection was noticed only once the whole answer had
     been written to the dead socket, and asyncio logged a warning, "socket.send() raised
     exception.", with nothing to say which answer or why, for each piece past the fifth: some 60
-    lines for each 64 MB region a client gave up on. The answer now stops at the piece after."""
+    lines for each 64 MB region a client gave up on (some 10 for these 16 MB). The answer now stops
+    at the piece after."""
     svc = service
     for _ in range(3):
         sock, head = start_download(svc, BIG)
