@@ -71,6 +71,11 @@ def test_big_window_reads_in_progress_are_limited_and_a_client_gone_gives_its_sl
         assert surface.status_code == 503, surface.text
         assert metric(svc, "fleetmap_large_reads") == MAX_LARGE_READS
         assert metric(svc, "fleetmap_large_reads_refused_total") == 2
+        # A layer the map does not keep is said so (422), whatever the slots: it was a 503, to retry.
+        created = httpx.put(f"{svc.base_url}/maps/tsdf-only", json={"layers": ["tsdf"]}, timeout=30)
+        assert created.status_code == 201, created.text
+        lacking = httpx.get(f"{svc.base_url}{BIG.replace('/maps/m/', '/maps/tsdf-only/')}", timeout=60)
+        assert lacking.status_code == 422 and "does not keep" in lacking.json()["detail"], lacking.text
         small = httpx.get(f"{svc.base_url}/maps/m/region", params={"layer": "hits"}, timeout=30)
         assert small.status_code == 200 and np.load(io.BytesIO(small.content)).sum() > 0
         # Two clients go away before reading their answers.

@@ -293,7 +293,7 @@ class GridMap:
         """A dense copy of one layer over cells `[i0, i1) x [j0, j1)`, shape (j1-j0, i1-i0), row 0 =
         lowest y. Unknown is NaN for `log_odds`, `probability` and `tsdf`, 0 for the counts and
         `tsdf_weight`, and `STATE_UNKNOWN` for `state`."""
-        source = self._source(layer)
+        source = self.layer_source(layer)
         ny, nx = max(0, j1 - j0), max(0, i1 - i0)
         dtype = np.uint32 if source in ("hits", "misses") else np.float32
         # Weights and counts are 0 where unknown, as the tiles store them: filled so from the start
@@ -451,7 +451,7 @@ class GridMap:
 
     def surface(self, i0: int, j0: int, i1: int, j1: int) -> np.ndarray:
         """TSDF zero-crossing points (rows of map (x, y)) between cells in `[i0, i1) x [j0, j1)`."""
-        self._source("tsdf")
+        self.layer_source("tsdf")
         with self.lock:
             tsdf = np.zeros((max(0, j1 - j0), max(0, i1 - i0)), dtype=np.float32)
             weight = np.zeros_like(tsdf)
@@ -594,7 +594,9 @@ class GridMap:
         """Bytes the map's tiles hold: `TileStore.memory_bytes` (capacity, not only tiles in use)."""
         return self.store.memory_bytes()
 
-    def _source(self, layer: str) -> str:
+    def layer_source(self, layer: str) -> str:
+        """The stored layer that the readable layer `layer` (`REGION_LAYERS`) is made from;
+        `LayerUnavailableError` if it is no such layer or the map does not keep its source."""
         if layer not in LAYER_SOURCES:
             raise LayerUnavailableError(f"unknown layer {layer!r}; one of {', '.join(REGION_LAYERS)}")
         source, needs = LAYER_SOURCES[layer]

@@ -271,6 +271,7 @@ def get_region(
     gmap = entry.gmap
     limit = state.settings.max_json_cells if format == "json" else state.settings.max_region_cells
     window = _window(gmap, (xmin, ymin, xmax, ymax), limit)
+    gmap.layer_source(layer)  # a layer the map does not keep is a 422 before any slot is taken, not a 503
     with large_read(state.large_reads, window.cells) as read:
         values = gmap.region(layer, window.i0, window.j0, window.i1, window.j1)
         headers = _window_headers(window, gmap.resolution)
