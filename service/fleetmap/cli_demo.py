@@ -178,11 +178,13 @@ def _check_fleet(args: argparse.Namespace) -> None:
         raise CliError(f"--seed must be 0 or more, got {args.seed}")
     if not is_valid_id(args.map):
         raise CliError(f"--map {args.map!r} is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -")
-    from fleetmap_client.sim import check_capacity, raise_open_files_limit
+    from fleetmap_client.sim import check_capacity
+
+    from fleetmap.http_limits import raise_descriptor_limit
 
     # More robots than this process has file descriptors or the machine threads for: `run_sim`
     # raised it as a traceback, once the service was up.
-    raise_open_files_limit()
+    raise_descriptor_limit()
     try:
         check_capacity(args.robots)
     except ValueError as exc:

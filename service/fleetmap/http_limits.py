@@ -136,7 +136,8 @@ HEAD_TOO_LARGE = error_response(
 
 def raise_descriptor_limit() -> int:
     """Raise this process's soft limit of open files to its hard limit (as the Go runtime does: the
-    soft limit, often 1024, is a compatibility default for select()); returns the new soft limit."""
+    soft limit, often 1024, is a compatibility default for select()); returns the new soft limit.
+    `fleetmap serve` calls it, and so do `fleetmap sim` and `demo` for their robots' sessions."""
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if hard == resource.RLIM_INFINITY or hard > soft:
         target = hard if hard != resource.RLIM_INFINITY else max(soft, 1 << 20)

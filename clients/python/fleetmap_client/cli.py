@@ -210,13 +210,15 @@ def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
 
 
 def run_sim_command(args: argparse.Namespace) -> int:
+    from fleetmap.http_limits import raise_descriptor_limit
     from fleetmap.wire import ID_PATTERN, is_valid_id
 
-    from .sim import SERVICE_SESSIONS, SimError, check_fleet, raise_open_files_limit, run_sim
+    from .sim import SERVICE_SESSIONS, SimError, check_fleet, run_sim
 
     if not is_valid_id(args.map_id):
         raise CliError(f"map id {args.map_id!r} must match {ID_PATTERN}")
-    raise_open_files_limit()  # before check_fleet, which counts the file descriptors robots need
+    # As fleetmap serve does; before check_fleet, which counts the file descriptors robots need.
+    raise_descriptor_limit()
     try:  # before the line announcing the robots
         check_fleet(args.robots, args.rate, args.seconds, args.beams, args.speed, args.seed)
     except ValueError as exc:

@@ -18,7 +18,6 @@ while the robots keep moving.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import resource
@@ -95,16 +94,6 @@ def _read_int(path: str) -> int | None:
             return int(file.read().split()[0])
     except (OSError, ValueError, IndexError):
         return None
-
-
-def raise_open_files_limit() -> None:
-    """Raise this process's soft `ulimit -n` to its hard limit (as `fleetmap serve` does): the soft
-    limit is often 1024 while the hard one allows far more, and each robot needs `FDS_PER_ROBOT`."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft != resource.RLIM_INFINITY and (hard == resource.RLIM_INFINITY or soft < hard):
-        # e.g. macOS refuses an unlimited soft limit: the soft one stays, and check_capacity says so
-        with contextlib.suppress(ValueError, OSError):
-            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
 
 
 def check_capacity(robots: int) -> None:
@@ -414,4 +403,4 @@ def _drive(
         stop.wait(max(0.0, (due if deadline is None else min(due, deadline)) - now))
 
 
-__all__ = ["SimError", "SimResult", "check_capacity", "raise_open_files_limit", "robot_ids", "run_sim"]
+__all__ = ["SimError", "SimResult", "check_capacity", "robot_ids", "run_sim"]
