@@ -24,7 +24,6 @@ from fleetmap.export import Window, known_window, nav2_files, pgm_bytes
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap
 from fleetmap.memory_budget import MemoryBudget, UploadReservation
 from fleetmap.nav2_import import (
-    DECODING_BYTES_PER_PIXEL,
     MAX_IMAGE_SIDE,
     Nav2ImportError,
     map_from_nav2,
@@ -640,35 +639,15 @@ def test_more_tiles_than_max_tiles_or_than_the_memory_budget_is_refused_before_a
         Nav2ImportError, match="needs 2 tiles of 256 x 256 cells, more than the configuration's max_tiles 1"
     ):
         map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, max_tiles=1))
-    budget = MemoryBudget(10_000)  # room to decode the image, not for its tiles
+    budget = MemoryBudget(1000)
     with pytest.raises(
         Nav2ImportError,
-        match=r"the map's 2 tiles need 2\.5 MiB, and the service's memory budget .* has 5\.1 KiB free",
+        match=r"the map's 2 tiles need 2\.5 MiB, and the service's memory budget .* has 1000 bytes free",
     ) as caught:
         map_from_nav2(nav2_yaml(), pixels, CONFIG, reservation=UploadReservation(budget, None))
     assert caught.value.status == 507 and budget.used == 0
     with pytest.raises(Nav2ImportError, match="keeps no occupancy layer"):
         map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, layers=["counts"]))
-
-
-def test_decoding_an_image_holds_its_memory_in_the_budget_while_it_runs() -> None:
-    """An image's decoding takes memory beside its map's tiles (up to 12 bytes a pixel, measured):
-    a 3 KB zip of a transparent 64-Mpixel PNG, which makes no tile, made the service take 800 MB
-    for a second outside `--max-memory`, four uploads at once. It is held in the upload's
-    reservation while the image is decoded, 507 where the budget has no room, and given back."""
-    image = png(np.zeros((64, 1000, 2), dtype=np.uint8))  # grey with alpha 0: no known cell
-    yaml_text = nav2_yaml("map.png", mode="scale")
-    pixels = 64 * 1000
-    tight = MemoryBudget(pixels * DECODING_BYTES_PER_PIXEL - 1)
-    refusal = r"decoding map\.png \(64000 pixels\) would need 1000\.0 KiB"
-    with pytest.raises(Nav2ImportError, match=refusal) as caught:
-        map_from_nav2(yaml_text, image, CONFIG, reservation=UploadReservation(tight, None))
-    assert caught.value.status == 507 and tight.used == 0
-
-    # Room enough: decoded, no tile made, and every byte back once it is read.
-    roomy = MemoryBudget(pixels * DECODING_BYTES_PER_PIXEL)
-    gmap = map_from_nav2(yaml_text, image, CONFIG, reservation=UploadReservation(roomy, None))
-    assert len(gmap.store.slots) == 0 and roomy.used == 0
 
 
 @pytest.mark.parametrize(

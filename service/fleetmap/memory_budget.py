@@ -11,14 +11,11 @@ store is freed.
 An upload's map (a snapshot, a nav2 import) is built beside the maps being served, for seconds, and
 up to 4 are built at once: each reserves its tiles' bytes (`UploadReservation`) before it allocates
 them, atomically, and holds them until the map is installed or the upload ends, so that uploads
-together, and scans meanwhile, cannot take the service past the limit. A nav2 import also holds its
-image's decoding memory while it decodes (`UploadReservation.scratch`): up to 16 bytes a pixel, 1 GiB
-for the biggest image, which a 3 KB zip asks for.
+together, and scans meanwhile, cannot take the service past the limit.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
 import threading
@@ -205,19 +202,6 @@ class UploadReservation:
             store.charge(self.budget, charge)
             self._store = store
 
-    def scratch(self, size: int) -> contextlib.AbstractContextManager[None]:
-        """Hold `size` more bytes of the budget for the upload's reader while the returned context
-        runs: working memory it needs beside its map's tiles (a nav2 image's decoded pixels), which
-        goes back when the context ends. Reserved at once, from the free bytes alone (the replaced
-        map is still held meanwhile): raises `MemoryBudgetError` (nothing held) if they do not fit,
-        or if the upload already ended."""
-        with self._lock:
-            if self._state != "open":
-                raise MemoryBudgetError(f"the upload's reservation is {self._state}")
-        charge = Charge()
-        self.budget.reserve_replacing(size, charge, None)
-        return _Released(self.budget, charge)
-
     def install(self, store: TileStore) -> None:
         """`store`'s map is being installed (under the registry's lock): what it holds stays charged,
         as its own (a store the reader did not `charge` is charged as any map is). The loan of the
@@ -243,16 +227,6 @@ class UploadReservation:
             self._state = "released"
             if self._store is not None:
                 self._store.uncharge()
-
-
-class _Released(contextlib.AbstractContextManager[None]):
-    """A context that gives `charge`'s bytes back to `budget` when it ends (`UploadReservation.scratch`)."""
-
-    def __init__(self, budget: MemoryBudget, charge: Charge) -> None:
-        self._budget, self._charge = budget, charge
-
-    def __exit__(self, *exc_info: object) -> None:
-        self._budget.release(self._charge)
 
 
 def format_size(size: int | None) -> str:

@@ -61,7 +61,6 @@ import re
 import sys
 import zipfile
 import zlib
-from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any, Literal
 
@@ -391,10 +390,11 @@ def log_odds_of_values(values: np.ndarray, l_min: float, l_max: float) -> np.nda
     return lo.astype(np.float32)
 
 
-def _open_image(data: bytes, name: str) -> ImageFile.ImageFile:
-    """The PGM or PNG image of `data`, its header read, its pixels not yet decoded, and its size
-    checked: `Nav2ImportError` when it is no such image, empty, or past MAX_IMAGE_SIDE or
-    MAX_IMAGE_PIXELS (413)."""
+def read_image(
+    data: bytes, name: str = "the image", opaque_colour_only: bool = False
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The grey values (uint8, row 0 = the image's top) and the alpha channel (None without one) of
+    a PGM or PNG image; `Nav2ImportError` saying what it is when it is not 8-bit grey, or too big."""
     try:
         im = Image.open(io.BytesIO(data), formats=["PNG", "PPM"])  # reads the header only
     except Image.DecompressionBombError as exc:
@@ -403,33 +403,15 @@ def _open_image(data: bytes, name: str) -> ImageFile.ImageFile:
         raise Nav2ImportError(f"{name} is not a PGM or PNG image") from None
     except (OSError, ValueError, SyntaxError) as exc:
         raise Nav2ImportError(f"{name} is not a PGM or PNG image ({exc})") from None
-    w, h = im.size
-    if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE or w * h > MAX_IMAGE_PIXELS:
-        im.close()
-        raise Nav2ImportError(
-            f"{name} is {w} x {h} pixels: at most {MAX_IMAGE_SIDE} on a side and {MAX_IMAGE_PIXELS} "
-            "in all are imported", 413,
-        )  # fmt: skip
-    if w == 0 or h == 0:
-        im.close()
-        raise Nav2ImportError(f"{name} is empty ({w} x {h} pixels)")
-    return im
-
-
-def image_pixels(data: bytes, name: str = "the image") -> int:
-    """The number of pixels of the PGM or PNG image of `data`, from its header alone (nothing is
-    decoded); `Nav2ImportError` as `read_image` raises it for an image that is none, empty, or too big."""
-    with _open_image(data, name) as im:
+    with im:
         w, h = im.size
-    return w * h
-
-
-def read_image(
-    data: bytes, name: str = "the image", opaque_colour_only: bool = False
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """The grey values (uint8, row 0 = the image's top) and the alpha channel (None without one) of
-    a PGM or PNG image; `Nav2ImportError` saying what it is when it is not 8-bit grey, or too big."""
-    with _open_image(data, name) as im:
+        if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE or w * h > MAX_IMAGE_PIXELS:
+            raise Nav2ImportError(
+                f"{name} is {w} x {h} pixels: at most {MAX_IMAGE_SIDE} on a side and {MAX_IMAGE_PIXELS} "
+                "in all are imported", 413,
+            )  # fmt: skip
+        if w == 0 or h == 0:
+            raise Nav2ImportError(f"{name} is empty ({w} x {h} pixels)")
         if im.mode not in ("L", "LA", "RGB", "RGBA"):
             kind = _MODE_WORDS.get(im.mode, "an unsupported")
             raise Nav2ImportError(f"{name} is {kind} image (mode {im.mode}): only 8-bit grey images are read")
@@ -603,48 +585,10 @@ def _map_from_meta(
         raise Nav2ImportError(beyond)
     grid = _grid_resolutions(meta, config)
     i0, j0 = _grid_index(ox, grid, "x", snap_origin), _grid_index(oy, grid, "y", snap_origin)
-    name = image_name or meta.image
-    pixels = image_pixels(image, name)
-    with _decoding_room(reservation, pixels, name):
-        grey, alpha = read_image(image, name, opaque_colour_only=meta.mode == "scale")
-        h, w = grey.shape
-        if max(abs(i0), abs(i0 + w), abs(j0), abs(j0 + h)) * res > MAX_COORDINATE:
-            raise Nav2ImportError(beyond)
-        return _map_of_image(grey, alpha, meta, config, (i0, j0), reservation)
-
-
-#: Bytes a pixel takes while an image is decoded and read, beside the map's tiles: Pillow's pixels
-#: (4 bytes each in every mode read), numpy's copy of them, and the grey and alpha planes and masks
-#: taken from it. Measured peaks: 6 (grey with alpha) to 12 (RGBA) bytes a pixel.
-DECODING_BYTES_PER_PIXEL = 16
-
-
-@contextlib.contextmanager
-def _decoding_room(reservation: UploadReservation | None, pixels: int, name: str) -> Iterator[None]:
-    """Hold room in the upload's memory budget (`reservation`; none: nothing held) for decoding an
-    image of `pixels` pixels while the block runs: `Nav2ImportError` 507 if the budget has none.
-    A 3 KB zip of a transparent 64-Mpixel PNG made the service take 800 MB for a second, outside
-    `--max-memory`, and four such uploads could run at once."""
-    if reservation is None:
-        yield
-        return
-    try:
-        room = reservation.scratch(pixels * DECODING_BYTES_PER_PIXEL)
-    except TileLimitError as exc:  # the budget's MemoryBudgetError
-        raise Nav2ImportError(f"decoding {name} ({pixels} pixels) would {exc}", 507) from None
-    with room:
-        yield
-
-
-def _map_of_image(
-    grey: np.ndarray, alpha: np.ndarray | None, meta: Nav2Meta, config: MapConfig,
-    origin_cell: tuple[int, int], reservation: UploadReservation | None,
-) -> GridMap:  # fmt: skip
-    """The map of `config` whose occupancy layer holds the image's pixels (`read_image`), read by
-    `meta`'s mode and thresholds, its lower-left pixel at cell `origin_cell`: `_map_from_meta`'s
-    second half."""
-    i0, j0 = origin_cell
+    grey, alpha = read_image(image, image_name or meta.image, opaque_colour_only=meta.mode == "scale")
     h, w = grey.shape
+    if max(abs(i0), abs(i0 + w), abs(j0), abs(j0 + h)) * res > MAX_COORDINATE:
+        raise Nav2ImportError(beyond)
     values = occupancy_grid_values(meta, alpha is not None)
     _, _, l_min, l_max = config.occupancy.resolved()
     lut = log_odds_of_values(values, l_min, l_max)

@@ -69,11 +69,10 @@ async def put_import(
     `application/zip`; 422 naming the field or the image at fault (a rotated map, an origin off the
     cell grid, another resolution than the replaced map's, an image that is not 8-bit grey, more
     tiles than `max_tiles`; with `snap_origin`, an origin off the grid is moved to the nearest cell
-    edge instead); 413 for an image or a file past its limit; 507 if its tiles, or its image while
-    it is decoded (16 bytes a pixel), need more memory than the budget leaves (its body, at most 16
-    MiB, is kept in memory: only a body limit raised past that, `ApiSettings.max_body_bytes`, goes
-    to the temporary directory as a snapshot's, and may find no room there, 507 too, or fail to
-    write or read it, 503); 503 (`Retry-After: 5`),
+    edge instead); 413 for an image or a file past its limit; 507 if its tiles need more
+    memory than the budget leaves (its body, at most 16 MiB, is kept in memory: only a body limit
+    raised past that, `ApiSettings.max_body_bytes`, goes to the temporary directory as a snapshot's,
+    and may find no room there, 507 too, or fail to write or read it, 503); 503 (`Retry-After: 5`),
     before the body is read, if the server already holds its limit of uploads in progress
     (snapshots and imports, 4 by default); none changes anything. 503 if it was installed but could
     not be stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing
