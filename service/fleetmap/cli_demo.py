@@ -54,7 +54,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     # The defaults of `fleetmap serve`, which this command starts.
     p.add_argument("--http", default=DEFAULT_HTTP, metavar="HOST:PORT", help="viewer and API address")
     p.add_argument("--zenoh", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", help="where robots connect")
-    p.add_argument("--data-dir", default=DEFAULT_DATA_DIR, help="the service's durable storage")
+    p.add_argument(
+        "--data-dir", default=DEFAULT_DATA_DIR, metavar="DIR", help="the service's durable storage"
+    )
     # The service refuses a non-loopback --http without API tokens and says to give --insecure:
     # the demo had no such option, so a demo shown to another machine could not be started.
     p.add_argument(
@@ -63,11 +65,13 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         help="let --http listen beyond loopback (e.g. 0.0.0.0:8000) without API tokens: anyone who "
         "can reach it may change the maps (as fleetmap serve --insecure)",
     )
-    p.add_argument("--robots", type=int, default=3, help="simulated robots")
-    p.add_argument("--map", default="demo", help="map id the robots publish to")
-    p.add_argument("--seed", type=int, default=1, help="floor plan and robots' seed")
-    p.add_argument("--rate", type=float, default=10.0, help="scans per second per robot")
-    p.add_argument("--seconds", type=float, default=None, help="stop after this many s (default: at Ctrl-C)")
+    p.add_argument("--robots", type=int, default=3, metavar="N", help="simulated robots")
+    p.add_argument("--map", default="demo", metavar="MAP_ID", help="map id the robots publish to")
+    p.add_argument("--seed", type=int, default=1, metavar="SEED", help="floor plan and robots' seed")
+    p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="scans per second per robot")
+    p.add_argument(
+        "--seconds", type=float, default=None, metavar="T", help="stop after T s (default: at Ctrl-C)"
+    )
     p.set_defaults(run=run)
 
 
