@@ -482,6 +482,18 @@ def test_surface(api: RunningApi, engine_map: GridMap) -> None:
     pts = want
     near_wall = np.minimum(np.abs(np.abs(pts[:, 0]) - 3), np.abs(np.abs(pts[:, 1]) - 2))
     assert np.median(near_wall) < 2 * RES
+    # Read in two windows that meet on the wall x = 3 m (a cell edge), it is the same points: the
+    # crossings between the cells either side of the edge were in neither window.
+    i0, j0, i1, j1 = b  # type: ignore[misc]
+    parts = [
+        api.client.get(
+            "/maps/eng/surface", params={"xmin": x0, "ymin": j0 * RES, "xmax": x1, "ymax": j1 * RES}
+        )
+        for x0, x1 in ((i0 * RES, 3.0), (3.0, i1 * RES))
+    ]
+    points = np.array(parts[0].json()["points"] + parts[1].json()["points"])
+    assert len(points) == len(want)
+    np.testing.assert_allclose(points[np.lexsort(points.T[::-1])], want[np.lexsort(want.T[::-1])], atol=1e-9)
 
 
 def test_too_many_points_at_the_default_cap(api: RunningApi) -> None:

@@ -248,3 +248,38 @@ def test_surface_interpolates_between_two_cells() -> None:
     assert pts.shape == (1, 2)
     assert pts[0] == pytest.approx([9.2 * RES, 0.5 * RES], abs=1e-6)
     assert m.surface(100, 100, 120, 120).shape == (0, 2)
+
+
+@pytest.mark.parametrize("wall", [1.0, 0.97, 1.03, -1.5, 1.049])
+@pytest.mark.parametrize("vertical", [True, False])
+def test_windows_side_by_side_share_out_the_surface(wall: float, vertical: bool) -> None:
+    """Each surface point belongs to the window it lies in: the surfaces of two windows side by side
+    are, together, the surface of the window they make, each point in one of them. A wall at x = 1.0
+    m (a cell edge at 0.1 m) lies between cells 9 and 10: the windows of cells 0..9 and 10..19 each
+    found no crossing (one cell of each pair lay outside), though the wall lies in both, so a map read
+    in windows (a big one must be: 413 past 16 Mi cells) lost every point along their seams."""
+    res = 0.1
+    m = tsdf_map(truncation=0.3, resolution=res)
+    m.integrate(_wall_scan(wall, 0.01, 0.02, vertical))
+    m.integrate(_wall_scan(wall, -0.23, -0.31, vertical))
+    seam = math.floor(wall / res + 0.5)  # the cell edge nearest the wall: windows meet there
+
+    def surface(lo: int, hi: int) -> np.ndarray:
+        return m.surface(lo, -40, hi, 40) if vertical else m.surface(-40, lo, 40, hi)
+
+    whole = surface(seam - 20, seam + 20)
+    across = whole[:, 0 if vertical else 1]
+    assert len(whole) > 10 and np.abs(across - wall).max() < 0.25 * res
+    below, above = surface(seam - 20, seam), surface(seam, seam + 20)
+    assert len(below) + len(above) == len(whole)
+    both = np.concatenate([below, above])
+    np.testing.assert_allclose(
+        sorted(map(tuple, both.tolist())), sorted(map(tuple, whole.tolist())), atol=1e-9
+    )
+    # Each point is in the window it was found in: [seam - 20, seam) or [seam, seam + 20) cells.
+    assert (below[:, 0 if vertical else 1] < seam * res + 1e-9).all()
+    assert (above[:, 0 if vertical else 1] >= seam * res - 1e-9).all()
+    # And every window's points lie in it, whatever edge it has: here one cell around the wall.
+    for lo in range(seam - 2, seam + 1):
+        for p in surface(lo, lo + 1):
+            assert lo * res - 1e-9 <= p[0 if vertical else 1] <= (lo + 1) * res + 1e-9

@@ -450,15 +450,21 @@ class GridMap:
         return seen
 
     def surface(self, i0: int, j0: int, i1: int, j1: int) -> np.ndarray:
-        """TSDF zero-crossing points (rows of map (x, y)) between cells in `[i0, i1) x [j0, j1)`."""
+        """TSDF zero-crossing points (rows of map (x, y)) that lie in the cells `[i0, i1) x [j0, j1)`:
+        those between two of its cells, and those between one of them and a neighbour outside that
+        fall inside (`kernels.tsdf.zero_crossings`). Windows side by side share out the surface,
+        each point to the one it lies in: read only between the window's own cells, the crossings
+        along the edge where two windows met were in neither, and a map read in windows lost them."""
         self.layer_source("tsdf")
+        nx, ny = max(0, i1 - i0), max(0, j1 - j0)
+        # The window and one cell around it, where the neighbours outside lie.
         with self.lock:
-            tsdf = np.zeros((max(0, j1 - j0), max(0, i1 - i0)), dtype=np.float32)
+            tsdf = np.zeros((ny + 2, nx + 2), dtype=np.float32)
             weight = np.zeros_like(tsdf)
-            self.store.fill_window("tsdf", i0, j0, tsdf)
-            self.store.fill_window("tsdf_weight", i0, j0, weight)
-        xs, ys = zero_crossings(tsdf, weight)
-        return np.stack([(xs + i0) * self.resolution, (ys + j0) * self.resolution], axis=1)
+            self.store.fill_window("tsdf", i0 - 1, j0 - 1, tsdf)
+            self.store.fill_window("tsdf_weight", i0 - 1, j0 - 1, weight)
+        xs, ys = zero_crossings(tsdf, weight, 1, 1, nx + 1, ny + 1)
+        return np.stack([(xs + (i0 - 1)) * self.resolution, (ys + (j0 - 1)) * self.resolution], axis=1)
 
     def cast_rays(
         self,

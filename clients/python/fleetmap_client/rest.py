@@ -903,8 +903,9 @@ class FleetmapClient:
         ymax: float | None = None,
     ) -> np.ndarray:
         """`GET /maps/{map_id}/surface`: TSDF zero-crossing points, sub-cell interpolated, as an
-        (n, 2) float64 array of x, y in metres (window as for `region`). `FleetmapError` 422 if the
-        map keeps no TSDF layer."""
+        (n, 2) float64 array of x, y in metres: those that lie in the window (as for `region`), so
+        that windows side by side share out the surface. `FleetmapError` 422 if the map keeps no
+        TSDF layer."""
         _check_id("map_id", map_id)
         response = self._request("GET", f"/maps/{map_id}/surface", params=_bounds(xmin, ymin, xmax, ymax))
         parsed = _read(Surface, response)

@@ -372,10 +372,12 @@ def get_surface(
     xmax: OptCoordinate = None,
     ymax: OptCoordinate = None,
 ) -> Response:
-    """Points where the TSDF changes sign between two observed neighbouring cells of the window
-    (as for /region; no bounds: the observed extent), placed by linear interpolation between the
-    cell centres: sub-cell surface points in metres. 422 if the map keeps no TSDF layer; 503 as for
-    /region, for a window of more than 1048576 cells."""
+    """Points where the TSDF changes sign between two observed neighbouring cells, placed by linear
+    interpolation between the cell centres (sub-cell surface points in metres), that lie in the
+    window's cells (as for /region; no bounds: the observed extent), also those between a cell of
+    the window and its neighbour outside it: windows side by side share out the surface, each point
+    to the one it lies in. 422 if the map keeps no TSDF layer; 503 as for /region, for a window of
+    more than 1048576 cells."""
     gmap = state.entry(map_id).gmap
     if not gmap.config.has("tsdf"):
         raise ApiError(422, "this map keeps no 'tsdf' layer: no surface to extract")

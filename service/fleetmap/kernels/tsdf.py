@@ -179,12 +179,21 @@ def fuse_tsdf(
 
 
 @njit(cache=True, nogil=True)
-def zero_crossings(tsdf: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-cell surface points of a dense window, in window CELL coordinates (cell centres at +0.5).
+def zero_crossings(
+    tsdf: np.ndarray, weight: np.ndarray, i0: int, j0: int, i1: int, j1: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-cell surface points of a dense window that lie in its cells `[i0, i1) x [j0, j1)`, in
+    window CELL coordinates (cell centres at +0.5).
 
     Between every pair of horizontally or vertically neighbouring observed cells (weight > 0) on
     opposite sides of zero (one value > 0, the other <= 0), the point where the linear interpolation
-    of the two values is zero. `tsdf` and `weight` are (ny, nx), row = y.
+    of the two values is zero: a fraction `f` of the way from the first cell's centre to the
+    second's, so in the first cell for f < 0.5 and in the second from f = 0.5 (its edge) on. Only
+    the points whose cell lies in `[i0, i1) x [j0, j1)` are kept. A window holding those cells and
+    one more around them finds the crossings between them and their neighbours outside, and windows
+    side by side then share out a surface, each point to the one it lies in: decided by `f`, which
+    is the same in every window, not by the point's coordinates, rounded differently in each.
+    `tsdf` and `weight` are (ny, nx), row = y.
     """
     ny, nx = tsdf.shape
     xs = np.empty(2 * ny * nx, dtype=np.float64)
@@ -203,7 +212,11 @@ def zero_crossings(tsdf: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np
                 b = float(tsdf[jj, ii])
                 if (a > 0) != (b > 0):
                     f = a / (a - b)
-                    xs[n] = i + 0.5 + f * di
-                    ys[n] = j + 0.5 + f * dj
-                    n += 1
+                    second = f >= 0.5
+                    ci = ii if second else i
+                    cj = jj if second else j
+                    if i0 <= ci < i1 and j0 <= cj < j1:
+                        xs[n] = i + 0.5 + f * di
+                        ys[n] = j + 0.5 + f * dj
+                        n += 1
     return xs[:n], ys[:n]
