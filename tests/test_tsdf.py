@@ -128,6 +128,23 @@ def test_a_weight_cap_that_float32_weights_round_to_zero_is_refused() -> None:
     assert tiny.known_bounds() is not None
 
 
+def test_a_truncation_of_no_cells_is_refused() -> None:
+    """Scans divide by the truncation in cells (`truncation / resolution`): 5e-324 m at 100 m per cell
+    is 0 there (the division underflows), and every scan with a return failed with "internal error:
+    division by zero" (a 422 counted against the robot, a traceback in the log), on a map its
+    configuration had been accepted for. Refused now, naming the field; the smallest truncation
+    that is a positive number of cells at that resolution integrates."""
+    with pytest.raises(ValidationError, match=r"truncation 4.94066e-324 m is 0 cells at resolution 100 m"):
+        MapConfig.model_validate({"resolution": 100.0, "layers": ["tsdf"], "tsdf": {"truncation": 5e-324}})
+    truncation = 5e-324
+    while truncation / 100.0 == 0:
+        truncation = float(np.nextafter(truncation, 1.0))
+    m = tsdf_map(truncation=truncation, resolution=100.0)
+    # A return exactly at the centre of cell 2 (sdf 0): the one cell a band this narrow can hold.
+    m.integrate(Scan.from_angles((50.0, 50.0, 0.0), [0.0], [200.0], 0.0, 1e4))
+    assert observed(m) == {(2, 0): (0.0, 1.0)}
+
+
 @pytest.mark.parametrize("layers", [["tsdf"], ["occupancy", "tsdf"]])
 def test_a_scan_that_changes_no_cell_changes_no_tile_version(layers: list[str]) -> None:
     """Cells at their weight cap fused with the values they hold do not change, so a scan that

@@ -380,7 +380,8 @@ class MapConfig(BaseModel):
         cls, params: TsdfParams | BeamModelParams, info: ValidationInfo
     ) -> TsdfParams | BeamModelParams:
         """`tsdf.truncation` and `beam.alpha` are at most MAX_BAND_CELLS cells of the map's resolution
-        (validated before them: absent here only when it was invalid). A stored map keeps its own."""
+        (validated before them: absent here only when it was invalid), and the truncation is more
+        than 0 cells. A stored map keeps its own."""
         resolution = info.data.get("resolution")
         if resolution is None or (info.context or {}).get(STORED_CONFIG):
             return params
@@ -392,6 +393,14 @@ class MapConfig(BaseModel):
                     f"{section}.{name} {value:g} m is more than {MAX_BAND_CELLS} cells at resolution "
                     f"{resolution:g} m (at most {limit:g} m)"
                 )
+        # Scans divide each band cell's distance by the truncation in cells: one so small that
+        # `truncation / resolution` underflows to 0 made every scan with a return fail with
+        # "division by zero".
+        if isinstance(params, TsdfParams) and params.truncation / resolution == 0:
+            raise ValueError(
+                f"tsdf.truncation {params.truncation:g} m is 0 cells at resolution {resolution:g} m (the "
+                "division underflows): no scan could be fused; give a positive number of cells"
+            )
         return params
 
     def has(self, layer: LayerName) -> bool:
