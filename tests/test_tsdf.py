@@ -177,6 +177,24 @@ def test_each_beam_is_one_sample() -> None:
     assert got[(9, 0)] == (0.0, 2.0)
 
 
+def test_a_tsdf_only_map_ignores_its_no_return_range() -> None:
+    """No-return beams add nothing to the TSDF, and a map without a cell layer clears no cells, so its
+    `no_return_range` changes nothing: a scan is fused as with none. It was counted in the scan's
+    extent: at 0.01 m in tiles of 16 cells, clearing 100 m (1250 tiles each way) made every scan
+    with a no-return beam "span too large an area" and be refused."""
+    angles = np.linspace(-3.0, 3.0, 61)
+    ranges = np.where(np.arange(61) % 2 == 0, 3.0, math.inf)  # every other beam returns nothing
+    scan = Scan.from_angles((0.31, -0.27, 0.4), angles, ranges)
+    maps = [
+        GridMap(MapConfig(resolution=0.01, tile_size=16, layers=["tsdf"], no_return_range=clear))
+        for clear in (0.0, 100.0)
+    ]
+    for m in maps:
+        assert m.integrate(scan).tsdf_updates > 0
+    want, got = (observed(m, window=400) for m in maps)
+    assert got == want and len(got) > 500
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     x=st.floats(-3, 3),

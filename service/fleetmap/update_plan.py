@@ -124,7 +124,10 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
     res = config.resolution
     pose = scan.pose
     ox, oy = pose.x / res, pose.y / res
-    beams, extent = _scan_beams(scan, config.no_return_range, res, shift, config)
+    # No-return beams are cleared in the cell layers only (the TSDF fuses returns alone): a TSDF-only
+    # map's no_return_range counted in the scan's extent, and refused scans as too wide for nothing.
+    clear_range = config.no_return_range if config.has_cell_layers else 0.0
+    beams, extent = _scan_beams(scan, clear_range, res, shift, config)
     if extent[0] == EXTENT_OUT_OF_RANGE:
         raise ScanError(OUT_OF_RANGE_MESSAGE)
     if extent[0] == EXTENT_TOO_LONG:
