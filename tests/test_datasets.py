@@ -415,8 +415,10 @@ def test_malformed_line_names_file_and_line(tmp_path: Path, bad: str, words: str
         ([robotlaser1([1.0, 2.0, 3.0], (0.0, 0.0, 0.0), res=1e308)], "ROBOTLASER1 beam angles"),
         # x and the offset are finite, the sensor's x (x + offset * cos(theta)) is not.
         (["PARAM robot_frontlaser_offset 1e308 0 h 0", flaser([1.0, 2.0], x=1.7e308)], "FLASER sensor pose"),
+        # Every bearing (1e308) and the heading (1e308) are finite, a beam's direction, their sum, is not.
+        ([robotlaser1([1.0, 2.0], (0.0, 0.0, 1e308), start=1e308, res=0.0)], "ROBOTLASER1 beam directions"),
     ],
-    ids=["robotlaser1-angles", "flaser-sensor-pose"],
+    ids=["robotlaser1-angles", "flaser-sensor-pose", "robotlaser1-directions"],
 )
 def test_a_line_whose_scan_would_not_be_finite_is_malformed_at_load(
     tmp_path: Path, lines: list[str], words: str
@@ -585,8 +587,12 @@ GOOD_MAT = {"ranges": np.ones((3, 2)), "scanAngles": np.zeros(3), "pose": np.zer
         ({"pose": np.full((3, 2), np.nan)}, "non-finite"),
         ({"scanAngles": ["a", "b", "c"]}, "numeric"),
         ({"ranges": np.ones(6)}, "ranges has shape"),
+        # Finite bearings and a finite heading whose sum, a beam's direction, is not: building that
+        # scan mid-build raised ScanError, a traceback from `fleetmap build`.
+        ({"scanAngles": np.full(3, 1e308), "pose": np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 1e308]])},
+         "scan 1 \\(0-based\\): heading 1e\\+308 plus its beam angles"),
     ],
-)
+)  # fmt: skip
 def test_mat_malformed(tmp_path: Path, changes: dict[str, object], words: str) -> None:
     variables = {k: v for k, v in (GOOD_MAT | changes).items() if v is not None}
     path = tmp_path / "bad.mat"

@@ -88,7 +88,7 @@ class Scan:
             raise ScanError(f"{angles.size} beams is more than the limit of {MAX_BEAMS}")
         if not np.all(np.isfinite(angles)):
             raise ScanError("beam angles must be finite")
-        if angles.size and not _directions_finite(self.pose.theta, angles):
+        if angles.size and not directions_finite(self.pose.theta, angles):
             raise ScanError(
                 f"the sensor heading plus its beam angles must be finite: heading {self.pose.theta:g} with "
                 f"angles from {angles.min():g} to {angles.max():g} overflows"
@@ -198,10 +198,11 @@ def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
         raise ScanError(f"{name} must be numbers: {exc}") from None
 
 
-def _directions_finite(theta: float, angles: np.ndarray) -> bool:
+def directions_finite(theta: float, angles: np.ndarray) -> bool:
     """Whether every beam's direction in the map frame, `theta + angle`, is finite (both finite, their
     sum can overflow: 1e308 + 1e308). The sum rises with the angle, so its two ends tell. Such a
-    direction was integrated as a streak of cells where no beam points (its cosine is NaN)."""
+    direction was integrated as a streak of cells where no beam points (its cosine is NaN). `Scan`
+    refuses such a scan; the dataset readers refuse such a line when they load it."""
     return math.isfinite(theta + float(angles.min())) and math.isfinite(theta + float(angles.max()))
 
 

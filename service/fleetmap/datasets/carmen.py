@@ -60,7 +60,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from ..scan import MAX_BEAMS
+from ..scan import MAX_BEAMS, directions_finite
 from .base import (
     UNBOUNDED_RANGE_MAX,
     Dataset,
@@ -261,6 +261,9 @@ def _parse_robotlaser1(
         _number(tokens, base + j, f"ROBOTLASER1 laser pose {f}") for j, f in enumerate(("x", "y", "theta"))
     )
     angles = state.angles((n, start, step), lambda: _robotlaser1_angles(n, start, step))
+    if not directions_finite(theta, angles):
+        # Refused here, with the line, for the reason `_robotlaser1_angles` gives: `Scan` refuses it.
+        raise _LineError(f"ROBOTLASER1 beam directions laser_theta {theta} + beam angle overflow")
     rmax = _scan_range_max(rmax_override, max_range, rmin, "ROBOTLASER1 max_range")
     builder.add((x, y, theta), angles, ranges, rmax)
 

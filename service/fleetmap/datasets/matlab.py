@@ -32,7 +32,7 @@ from typing import Any, BinaryIO
 import numpy as np
 import scipy.io
 
-from ..scan import MAX_BEAMS
+from ..scan import MAX_BEAMS, directions_finite
 from .base import (
     UNBOUNDED_RANGE_MAX,
     Dataset,
@@ -58,8 +58,8 @@ def read_matlab(
     `range_min` (default 1e-3) and `range_max` (default no limit; `math.inf` also means no limit)
     apply to every scan. `stream`, when given, is the file already open (`open_log`, at its
     start), read instead of opening `path`, which then names it only. Raises `DatasetError` for a
-    file scipy can't read, a missing variable, inconsistent shapes, non-numeric data or a
-    non-finite pose or angle.
+    file scipy can't read, a missing variable, inconsistent shapes, non-numeric data, a
+    non-finite pose or angle, or a heading plus beam angle that is not finite (overflows).
     """
     path = Path(path)
     rmin, rmax = check_range_window(range_min, range_max)
@@ -98,6 +98,14 @@ def read_matlab(
     bad = np.flatnonzero(~np.all(np.isfinite(pose), axis=0))
     if bad.size:
         raise DatasetError(f"{path}: scan {bad[0]} (0-based) has a non-finite pose {pose[:, bad[0]]}")
+
+    # A scan whose beam directions overflow (finite heading plus finite bearings) is one `Scan`
+    # refuses: refused here, where it was built mid-build and stopped `fleetmap build` with a traceback.
+    for j in range(k):
+        if not directions_finite(float(pose[2, j]), angles):
+            raise DatasetError(
+                f"{path}: scan {j} (0-based): heading {pose[2, j]:g} plus its beam angles overflows"
+            )
 
     builder = DatasetBuilder()
     cols = np.ascontiguousarray(ranges.T, dtype=np.float64)  # one row per scan
