@@ -206,6 +206,26 @@ def test_a_byte_order_mark_does_not_hide_the_first_line(tmp_path: Path, compress
 
 
 @pytest.mark.parametrize("compress", [False, True])
+def test_a_comment_in_another_encoding_does_not_refuse_the_log(tmp_path: Path, compress: bool) -> None:
+    """A comment is free text, skipped unread, whatever encoding its writer used: a log whose
+    header comment says 'Universität' in Latin-1 (or Windows-1252) was refused whole, 'not UTF-8
+    text: not a CARMEN log', though every message in it is. A message line that is not UTF-8 is
+    still refused, naming its line."""
+    lines = [flaser([1.0, 2.0], 1.0, 2.0, 0.0), flaser([3.0, 4.0], -1.0, 0.5, 1.0)]
+    expected = load_dataset(write_log(tmp_path / "utf8.log", lines))
+    comment = "# Universität Freiburg, Jürgen's robot".encode("latin-1")
+    for first in (True, False):
+        data = b"\n".join([comment, lines[0].encode(), comment, lines[1].encode()] if first else
+                          [lines[0].encode(), b"  " + comment, lines[1].encode()]) + b"\n"  # fmt: skip
+        path = tmp_path / "latin1.log"
+        path.write_bytes(gzip.compress(data) if compress else data)
+        np.testing.assert_array_equal(load_dataset(path).poses, expected.poses)
+    path.write_bytes(b"\n".join([lines[0].encode(), b"FLASER 1 1.0 0 0 0 0 0 0 1.0 J\xfcrgen 1.0"]) + b"\n")
+    with pytest.raises(DatasetError, match=r"latin1\.log:2: not UTF-8 text"):
+        load_dataset(path)
+
+
+@pytest.mark.parametrize("compress", [False, True])
 @pytest.mark.parametrize("ending", ["\r", "\r\n", "mixed"])
 def test_lines_may_end_in_cr_lf_or_a_lone_cr(tmp_path: Path, ending: str, compress: bool) -> None:
     """A log with Windows (CR LF) or classic Mac (CR alone) line endings, or both, reads as with LF:

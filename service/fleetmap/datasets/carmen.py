@@ -22,7 +22,8 @@ Readings at or above `range_max` are kept as they are: `Scan` treats them as "no
 `range_min` is `DEFAULT_RANGE_MIN` (1 mm) rather than 0, so that zero readings, the laser's "no
 measurement" code, are ignored, as are negative readings. `#` comments, `ODOM`,
 `NEFF`, `SYNC`, `RLASER`, `TRUEPOS`, `ROBOTLASER2` (the rear laser) and every unknown message type
-are skipped; PARAM lines are skipped except for the two parameters above.
+are skipped (comments whatever their encoding: the rest of a log must be UTF-8 or UTF-16 text);
+PARAM lines are skipped except for the two parameters above.
 
 Every FLASER / ROBOTLASER1 line must have exactly the number of fields the format implies: a line
 that lost a reading would otherwise shift every later field and silently read a range as the pose.
@@ -168,10 +169,23 @@ def _numbered_lines(stream: BinaryIO, path: Path) -> Iterator[tuple[int, str]]:
             # The check first: nearly every line has no CR, and is not copied by a split.
             for piece in body.split(b"\r") if b"\r" in body else (body,):
                 lineno += 1
-                try:
-                    yield lineno, piece.decode("utf-8-sig" if lineno == 1 else "utf-8")
-                except UnicodeDecodeError:
-                    raise DatasetError(f"{path}:{lineno}: not UTF-8 text: not a CARMEN log") from None
+                yield lineno, _decode_line(piece, lineno, path)
+
+
+def _decode_line(line: bytes, lineno: int, path: Path) -> str:
+    """A UTF-8 line of a log as text (the byte order mark dropped from the first). A `#` comment
+    that is not UTF-8 is free text in another encoding (a header saying 'Universität' in Latin-1),
+    which the parser skips unread: it comes with its odd bytes replaced, where it had the whole log
+    refused as 'not UTF-8 text: not a CARMEN log'. Any other line that is not UTF-8 raises
+    `DatasetError` naming it."""
+    encoding = "utf-8-sig" if lineno == 1 else "utf-8"
+    try:
+        return line.decode(encoding)
+    except UnicodeDecodeError:
+        text = line.decode(encoding, errors="replace")
+        if text.lstrip().startswith("#"):
+            return text
+        raise DatasetError(f"{path}:{lineno}: not UTF-8 text: not a CARMEN log") from None
 
 
 def _utf16_lines(data: bytes, path: Path) -> Iterator[tuple[int, str]]:
