@@ -104,3 +104,27 @@ def test_ctrl_c_stops_a_build_between_two_scans_in_one_line(tmp_path: Path) -> N
     assert "Traceback" not in stderr, stderr
     assert re.search(r"fleetmap build: interrupted after \d+ of 3000 scans; nothing written", stderr), stderr
     assert stdout == "" and not out.exists()
+
+
+def test_a_build_started_with_stderr_closed_writes_its_map_and_nothing_else_to_stdout(tmp_path: Path) -> None:
+    """A build started with its stderr closed (`2>&-`, a daemon's child): Python has no sys.stderr
+    then, so the kernels' notice and the progress, printed to `file=None`, went to STDOUT, into the
+    summary a script reads, and the progress bar raised AttributeError: exit 1, nothing written and
+    nothing said. Now its diagnostics go nowhere, as a shell's closed stderr means, and stdout has
+    the summary alone; an error still exits 2, without a word on stdout."""
+
+    def run(*args: str | Path) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [*fleetmap_command(), "build", *map(str, args)],
+            stdout=subprocess.PIPE, text=True, timeout=300, preexec_fn=lambda: os.close(2),
+        )  # fmt: skip
+
+    out = tmp_path / "out"
+    done = run(scene_log(tmp_path / "scene.log"), "--out", out)
+    assert done.returncode == 0, done.stdout
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("4 scans integrated (0 skipped)"), done.stdout
+    assert all(line.startswith("wrote ") for line in lines[1:]) and len(lines) == 10, done.stdout
+    assert (out / "map.yaml").is_file() and (out / "meta.json").is_file()
+    missing = run(tmp_path / "missing.log", "--out", tmp_path / "out2")
+    assert (missing.returncode, missing.stdout) == (2, "")

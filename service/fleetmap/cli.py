@@ -34,6 +34,7 @@ if TYPE_CHECKING:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    give_stderr_a_sink()
     parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_build(sub)
@@ -98,6 +99,17 @@ def run_command(args: argparse.Namespace) -> int:
         # ignored ... BrokenPipeError" at exit, exit 120.
         discard_stdout()
         return STDOUT_GONE
+
+
+def give_stderr_a_sink() -> None:
+    """Point a missing stderr at /dev/null. A command started with file descriptor 2 closed (`2>&-`,
+    a daemon's child) has `sys.stderr` None: a notice printed to it (`file=None`) went to STDOUT,
+    into the summary a script reads, and tqdm's progress bar raised AttributeError (a build exited
+    1, having written and said nothing). Its diagnostics now go nowhere, as a closed stderr means.
+    /dev/null takes the lowest free descriptor: 2 when only stderr is closed, which child processes
+    then inherit as theirs."""
+    if sys.stderr is None:
+        sys.stderr = open(os.devnull, "w")  # noqa: SIM115 - the process's stderr until it exits
 
 
 def discard_stdout() -> None:
