@@ -13,6 +13,7 @@ import math
 import os
 import subprocess
 import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,7 +22,7 @@ import pytest
 import scipy.io
 import yaml
 from PIL import Image
-from service_process import REPO_DIR, fleetmap_command
+from service_process import REPO_DIR, fleetmap_command, wait_for
 from test_compiled_cache import LOADED_KERNELS
 
 from fleetmap import cli, export, server
@@ -341,6 +342,64 @@ def test_a_build_whose_files_cannot_all_take_their_names_leaves_the_folder_as_it
         export._install([out / name for name in names])
     del before["map.png"]
     assert {path.name: path.read_bytes() for path in out.iterdir()} == before
+
+
+def waiting_for_a_flock(pid: int) -> bool:
+    """Whether a thread of process `pid` waits for a `flock` (a `->` line of /proc/locks)."""
+    return any(
+        line.split()[1:3] == ["->", "FLOCK"] and line.split()[5] == str(pid)
+        for line in Path("/proc/locks").read_text().splitlines()
+    )
+
+
+@pytest.mark.skipif(not Path("/proc/locks").exists(), reason="needs Linux's /proc/locks")
+def test_two_builds_into_one_folder_at_once_leave_one_whole_map(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two builds writing into one folder at once (a `make -j`, a build started again in another
+    terminal) wrote the same `.NAME.partial` files: one took the other's files for its own, its
+    rename of a file the other had already renamed failed, and the folder was left with map.yaml
+    and map.pgm of one map beside meta.json and the arrays of the other, one build saying it had
+    written them. Now a build holds the folder while it writes: the second waits for the
+    first, and the folder holds the second's whole map."""
+    fine, coarse = GridMap(MapConfig(resolution=RES)), GridMap(MapConfig(resolution=2 * RES))
+    for gmap in (fine, coarse):
+        for scan in load_dataset(scene_log(tmp_path / "scene.log")):
+            gmap.integrate(scan)
+    out = tmp_path / "out"
+    errors: list[BaseException] = []
+
+    def write_coarse() -> None:
+        try:
+            export.write_build_outputs(coarse, out)
+        except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
+            errors.append(exc)
+
+    second = threading.Thread(target=write_coarse)
+    real = export._write_build_files
+
+    Write = Callable[[str, bytes | np.ndarray], None]
+
+    def pausing(gmap: GridMap, window: export.Window, write: Write) -> None:
+        def write_then_let_the_second_in(name: str, data: bytes | np.ndarray) -> None:
+            write(name, data)
+            if name == "map.yaml":  # the first build is writing: the second starts, and gets in or waits
+                second.start()
+                wait_for(lambda: not second.is_alive() or waiting_for_a_flock(os.getpid()), timeout=120,
+                         what="the second build done or waiting")  # fmt: skip
+
+        real(gmap, window, write_then_let_the_second_in if gmap is fine else write)
+
+    monkeypatch.setattr(export, "_write_build_files", pausing)
+    try:
+        export.write_build_outputs(fine, out)
+    finally:
+        second.join(timeout=120)
+    assert not errors, errors
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["resolution"] == yaml.safe_load((out / "map.yaml").read_text())["resolution"] == 2 * RES
+    assert list(read_pgm(out / "map.pgm").shape) == meta["shape"] == list(np.load(out / "log_odds.npy").shape)
+    assert sorted(path.name for path in out.iterdir()) == sorted(export.BUILD_FILES)
 
 
 def test_a_build_keeps_the_earlier_files_as_copies_where_hard_links_fail(

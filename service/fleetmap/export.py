@@ -10,7 +10,9 @@ point of the lower-left corner of its cell window.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import fcntl
 import io
 import json
 import math
@@ -322,36 +324,68 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
     window = known_window(gmap, margin)
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")
-    earlier = earlier_build_files(out_dir)
     written: list[Path] = []
+    earlier: list[Path] = []
     made_dir = not out_dir.exists()
+    with contextlib.ExitStack() as holding:
 
-    def write(filename: str, data: bytes | np.ndarray) -> None:
-        # Each file as soon as it is made, the layers one at a time: a dense window spans the whole
-        # map, and holding every file at once took several times the tiles' memory. The folder is
-        # made with the first file, so that a map too large to export leaves none behind.
-        out_dir.mkdir(parents=True, exist_ok=True)
-        path = out_dir / filename
-        written.append(path)
-        with open(_partial(path), "wb") as file:
-            if isinstance(data, np.ndarray):
-                np.save(file, data, allow_pickle=False)
-            else:
-                file.write(data)
+        def write(filename: str, data: bytes | np.ndarray) -> None:
+            # Each file as soon as it is made, the layers one at a time: a dense window spans the
+            # whole map, and holding every file at once took several times the tiles' memory. The
+            # folder is made with the first file, so that a map too large to export leaves none
+            # behind, and held from then on (`_hold_folder`); what an earlier build left in it is
+            # read once it is held, as another build may have just written it.
+            if not written:
+                holding.enter_context(_hold_folder(out_dir))
+                earlier.extend(earlier_build_files(out_dir))
+            path = out_dir / filename
+            written.append(path)
+            with open(_partial(path), "wb") as file:
+                if isinstance(data, np.ndarray):
+                    np.save(file, data, allow_pickle=False)
+                else:
+                    file.write(data)
 
-    try:
-        _write_build_files(gmap, window, write)
-        _install(written)
-    except BaseException:
-        for path in written:
-            _partial(path).unlink(missing_ok=True)
-        if made_dir and out_dir.is_dir() and not any(out_dir.iterdir()):
-            out_dir.rmdir()
-        raise
-    for path in earlier:
-        if path not in written:
-            path.unlink(missing_ok=True)
+        try:
+            _write_build_files(gmap, window, write)
+            _install(written)
+        except BaseException:
+            for path in written:
+                _partial(path).unlink(missing_ok=True)
+            if made_dir and out_dir.is_dir() and not any(out_dir.iterdir()):
+                out_dir.rmdir()
+            raise
+        for path in earlier:
+            if path not in written:
+                path.unlink(missing_ok=True)
     return written
+
+
+@contextlib.contextmanager
+def _hold_folder(out_dir: Path) -> Iterator[None]:
+    """Make `out_dir` if missing and hold it while one `write_build_outputs` writes into it: an
+    exclusive `flock` of the folder itself, which another one into the same folder waits for (the
+    kernel drops it when the process ends, however it ends). Two builds at once (a `make -j`, a
+    build started again in another terminal) wrote the same `.NAME.partial` files and renamed each
+    other's: the folder was left with map.yaml and map.pgm of one map beside meta.json and the
+    arrays of the other. A folder removed while this waited (the other build failed, and removed
+    the folder it had made) is made again. Where the file system takes no such lock (some network
+    file systems), the folder is written unheld."""
+    while True:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(out_dir, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            with contextlib.suppress(OSError):  # no flock there (ENOLCK, EOPNOTSUPP)
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            try:
+                held = os.path.samestat(os.fstat(fd), os.stat(out_dir))
+            except FileNotFoundError:
+                held = False
+            if held:
+                yield
+                return
+        finally:
+            os.close(fd)
 
 
 def earlier_build_files(out_dir: str | os.PathLike[str]) -> list[Path]:
