@@ -16,6 +16,7 @@ import pytest
 from service_process import ServiceProcess, _child_env, fleetmap_command, reaped, wait_for
 from test_build import flaser, scene_log
 
+from fleetmap import cli
 from fleetmap.cli import STDOUT_GONE
 
 
@@ -128,3 +129,18 @@ def test_a_build_started_with_stderr_closed_writes_its_map_and_nothing_else_to_s
     assert (out / "map.yaml").is_file() and (out / "meta.json").is_file()
     missing = run(tmp_path / "missing.log", "--out", tmp_path / "out2")
     assert (missing.returncode, missing.stdout) == (2, "")
+
+
+def test_ctrl_c_while_the_command_starts_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ctrl-C in the second or two the command takes to import its commands' modules (numba's
+    among them), before any command runs: Python's traceback of the import in progress, forty
+    lines, and an exit by SIGINT. Now one line and exit 130, as Ctrl-C gives while a command runs.
+    (A module whose import raises KeyboardInterrupt stands for the key pressed during it.)"""
+    (tmp_path / "pressed_during_import.py").write_text("raise KeyboardInterrupt\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(cli, "COMMAND_MODULES", [*cli.COMMAND_MODULES, "pressed_during_import"])
+    assert cli.main(["build", str(tmp_path / "scene.log"), "--out", str(tmp_path / "out")]) == cli.INTERRUPTED
+    assert capsys.readouterr() == ("", "fleetmap: interrupted\n")
+    assert not (tmp_path / "out").exists()

@@ -35,12 +35,19 @@ if TYPE_CHECKING:
 
 def main(argv: Sequence[str] | None = None) -> int:
     give_stderr_a_sink()
-    parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    _add_build(sub)
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).add_parser(sub)
-    return run_command(parse_command_line(parser, sub, argv))
+    try:
+        parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__.splitlines()[0])
+        sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+        _add_build(sub)
+        for name in COMMAND_MODULES:
+            importlib.import_module(name).add_parser(sub)
+        args = parse_command_line(parser, sub, argv)
+    except KeyboardInterrupt:
+        # Ctrl-C in the second or two the commands' modules (numba's among them) take to import
+        # ended in the traceback of the import in progress; one line, as `run_command` says it.
+        print("fleetmap: interrupted", file=sys.stderr)
+        return INTERRUPTED
+    return run_command(args)
 
 
 def parse_command_line(
