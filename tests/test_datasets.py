@@ -607,6 +607,9 @@ GOOD_MAT = {"ranges": np.ones((3, 2)), "scanAngles": np.zeros(3), "pose": np.zer
         ({"pose": np.full((3, 2), np.nan)}, "non-finite"),
         ({"scanAngles": ["a", "b", "c"]}, "numeric"),
         ({"ranges": np.ones(6)}, "ranges has shape"),
+        # As a CARMEN log without a laser message is refused: `fleetmap build` said only that the
+        # map had no observed cell, and `fleetmap replay` published nothing.
+        ({"ranges": np.ones((3, 0)), "pose": np.zeros((3, 0))}, "no scan: ranges holds 0 scans of 3"),
         # Finite bearings and a finite heading whose sum, a beam's direction, is not: building that
         # scan mid-build raised ScanError, a traceback from `fleetmap build`.
         ({"scanAngles": np.full(3, 1e308), "pose": np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 1e308]])},

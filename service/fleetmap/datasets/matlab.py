@@ -58,7 +58,7 @@ def read_matlab(
     `range_min` (default 1e-3) and `range_max` (default no limit; `math.inf` also means no limit)
     apply to every scan. `stream`, when given, is the file already open (`open_log`, at its
     start), read instead of opening `path`, which then names it only. Raises `DatasetError` for a
-    file scipy can't read, a missing variable, inconsistent shapes, non-numeric data, a
+    file scipy can't read, a missing variable, no scan, inconsistent shapes, non-numeric data, a
     non-finite pose or angle, or a heading plus beam angle that is not finite (overflows).
     """
     path = Path(path)
@@ -89,6 +89,9 @@ def read_matlab(
             )
         ranges = ranges.T  # saved as K x N
     k = ranges.shape[1]
+    if k == 0:  # as a CARMEN log without a laser message is refused (`fleetmap build` said only
+        # that the map had no observed cell)
+        raise DatasetError(f"{path}: no scan: ranges holds 0 scans of {n} readings")
 
     pose = _numeric(path, data, "pose")
     if pose.shape != (3, k):
