@@ -144,3 +144,19 @@ def test_ctrl_c_while_the_command_starts_is_one_line(
     assert cli.main(["build", str(tmp_path / "scene.log"), "--out", str(tmp_path / "out")]) == cli.INTERRUPTED
     assert capsys.readouterr() == ("", "fleetmap: interrupted\n")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_build_whose_stdout_is_on_a_full_disk_says_so_in_one_line(tmp_path: Path) -> None:
+    """`fleetmap build ... > build.log` on a full disk (here /dev/full): the summary's print raised
+    OSError, a traceback and exit 1, though the map was written. Now one line says stdout could
+    not be written, exit 2; the map is there."""
+    log, out = scene_log(tmp_path / "scene.log"), tmp_path / "out"
+    with open("/dev/full", "wb") as full:
+        done = subprocess.run(
+            [*fleetmap_command(), "build", str(log), "--out", str(out), "--quiet"],
+            stdout=full, stderr=subprocess.PIPE, text=True, timeout=300,
+        )  # fmt: skip
+    assert (done.returncode, done.stderr) == (
+        2, "fleetmap build: error: cannot write to stdout: No space left on device\n"
+    ), done.stderr  # fmt: skip
+    assert (out / "map.yaml").is_file() and (out / "meta.json").is_file()

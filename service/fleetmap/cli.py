@@ -119,6 +119,20 @@ def give_stderr_a_sink() -> None:
         sys.stderr = open(os.devnull, "w")  # noqa: SIM115 - the process's stderr until it exits
 
 
+def print_out(lines: Sequence[str]) -> None:
+    """Print `lines` to stdout, and flush it. A stdout that cannot be written (a file on a full disk,
+    /dev/full) raises `CliError` saying so, its output discarded (`discard_stdout`): `print` raised
+    OSError, a traceback and exit 1. A reader gone raises BrokenPipeError, which `run_command`
+    takes."""
+    try:
+        print("\n".join(lines), flush=True)
+    except BrokenPipeError:
+        raise
+    except OSError as exc:
+        discard_stdout()
+        raise CliError(f"cannot write to stdout: {exc.strerror or exc}") from None
+
+
 def discard_stdout() -> None:
     """Point stdout (file descriptor 1's) at /dev/null, once it cannot be written (its reader gone, a
     full disk): what is still in its buffer, and whatever comes later, then goes nowhere, and the
@@ -326,15 +340,18 @@ def _build(args: argparse.Namespace) -> int:
     rates = [f"{updates / max(elapsed, 1e-9) / 1e6:.1f} M cell updates/s"] if config.has_cell_layers else []
     if config.has("tsdf"):  # a TSDF-only map said "0.0 M cell updates/s"
         rates.append(f"{tsdf_updates / max(elapsed, 1e-9) / 1e6:.1f} M TSDF updates/s")
-    print(
-        f"{len(dataset) - skipped} scans integrated ({skipped} skipped) in {elapsed:.2f} s, "
-        f"{', '.join(rates)}, {len(gmap.store)} tiles"
+    print_out(
+        [
+            f"{len(dataset) - skipped} scans integrated ({skipped} skipped) in {elapsed:.2f} s, "
+            f"{', '.join(rates)}, {len(gmap.store)} tiles",
+            *(f"wrote {path}" for path in written),
+            *(
+                f"removed {path}, an earlier build's: this map has no such layer"
+                for path in earlier
+                if path not in written
+            ),
+        ]
     )
-    for path in written:
-        print(f"wrote {path}")
-    for path in earlier:
-        if path not in written:
-            print(f"removed {path}, an earlier build's: this map has no such layer")
     return 0
 
 
