@@ -595,6 +595,23 @@ def test_mat_range_overrides(tmp_path: Path) -> None:
     np.testing.assert_array_equal(scan.no_return_mask(), [False, False, True])
 
 
+@pytest.mark.parametrize("name", ["course.mat.gz", "course.gz", "course.bin"])
+def test_a_gzipped_mat_file_reads_as_the_mat_file(tmp_path: Path, name: str) -> None:
+    """A .mat file compressed with gzip (as logs are, and as a course's files are shared) reads as
+    the file itself: it was taken for a gzipped CARMEN log and refused as 'not UTF-8 text: not a
+    CARMEN log', naming a line of a file that has none."""
+    path = write_mat(tmp_path / "course.mat", np.array([[1.0, 2.0], [3.0, 4.0]]), np.array([-0.5, 0.5]),
+                     np.array([[1.0, 2.0], [3.0, 4.0], [0.1, 0.2]]))  # fmt: skip
+    expected = load_dataset(path)
+    packed = tmp_path / name
+    packed.write_bytes(gzip.compress(path.read_bytes()))
+    ds = load_dataset(packed)
+    assert (ds.format, ds.name, len(ds)) == ("matlab", "course", 2)
+    np.testing.assert_array_equal(ds.poses, expected.poses)
+    for got, want in zip(ds, expected, strict=True):
+        np.testing.assert_array_equal(got.ranges, want.ranges)
+
+
 GOOD_MAT = {"ranges": np.ones((3, 2)), "scanAngles": np.zeros(3), "pose": np.zeros((3, 2))}
 
 

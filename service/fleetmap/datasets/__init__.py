@@ -6,17 +6,22 @@
     for scan in ds:      # fleetmap.scan.Scan objects in log order, sensor poses in the map frame
         ...
 
-`load_dataset` picks the reader: MATLAB for a `.mat` name or a file starting with a MAT-file header,
-CARMEN for everything else (plain or gzip, detected from the content). Every reader parses the whole
-file up front, so a malformed file raises `DatasetError` from `load_dataset`, never mid-iteration.
+`load_dataset` picks the reader: MATLAB for a `.mat` name or a file starting with a MAT-file header
+(plain or gzip), CARMEN for everything else (plain or gzip, detected from the content). Every reader
+parses the whole file up front, so a malformed file raises `DatasetError` from `load_dataset`, never
+mid-iteration.
 """
 
 from __future__ import annotations
 
+import gzip
+import io
+import zlib
 from pathlib import Path
+from typing import BinaryIO
 
 from .base import DEFAULT_RANGE_MIN, UNBOUNDED_RANGE_MAX, Dataset, DatasetError, open_log
-from .carmen import read_carmen
+from .carmen import GZIP_MAGIC, read_carmen
 from .matlab import HDF5_MAGIC, read_matlab
 
 __all__ = [
@@ -52,6 +57,32 @@ def load_dataset(
     with open_log(path) as stream:
         head = stream.read(8)
         stream.seek(0)
-        if path.suffix.lower() == ".mat" or head.startswith(_MAT_HEADER) or head == HDF5_MAGIC:
+        unpacked = _gunzipped_mat(stream, path) if head.startswith(GZIP_MAGIC) else None
+        if unpacked is not None:
+            return read_matlab(path, range_min=range_min, range_max=range_max, stream=unpacked)
+        if path.suffix.lower() == ".mat" or _is_mat(head):
             return read_matlab(path, range_min=range_min, range_max=range_max, stream=stream)
         return read_carmen(path, range_min=range_min, range_max=range_max, stream=stream)
+
+
+def _is_mat(head: bytes) -> bool:
+    """Whether a file's first 8 bytes are those of a MAT-file (v4 to v7.2, or v7.3's HDF5)."""
+    return head.startswith(_MAT_HEADER) or head == HDF5_MAGIC
+
+
+def _gunzipped_mat(stream: BinaryIO, path: Path) -> BinaryIO | None:
+    """A gzip `stream`'s content, in memory (a course's file is a few MB), when it is a MAT-file;
+    else None, the stream at its start again: a gzipped CARMEN log, or data too corrupt to tell,
+    which the CARMEN reader reports. A gzipped .mat was read as a CARMEN log, and refused as 'not
+    UTF-8 text: not a CARMEN log'. `DatasetError` for a MAT-file whose gzip data is corrupt."""
+    head = b""
+    try:
+        with gzip.GzipFile(fileobj=stream, mode="rb") as file:
+            head = file.read(8)
+            if _is_mat(head):
+                return io.BytesIO(head + file.read())
+    except (OSError, EOFError, zlib.error) as exc:  # gzip.BadGzipFile is an OSError
+        if _is_mat(head):
+            raise DatasetError(f"{path}: a gzipped .mat file whose gzip data is corrupt: {exc}") from None
+    stream.seek(0)
+    return None
