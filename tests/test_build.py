@@ -457,6 +457,13 @@ def test_build_shows_progress_unless_quiet(tmp_path: Path) -> None:
     assert quiet.returncode == 0 and quiet.stderr == ""
 
 
+def test_a_build_of_one_scan_says_scan(tmp_path: Path) -> None:
+    """The summary counts as `counted` does: a log of one scan said '1 scans integrated'."""
+    done = build(scene_log(tmp_path / "one.log", scans=1), "--out", tmp_path / "out", "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("1 scan integrated (0 skipped) in "), done.stdout
+
+
 def test_build_skips_scans_it_cannot_integrate_and_says_so(tmp_path: Path) -> None:
     """Each scan skipped is named by its place in the log, so that it can be found there: the
     message was 'skipped a scan: ...', which of a log's thousands of scans it did not say."""

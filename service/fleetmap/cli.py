@@ -342,7 +342,7 @@ def _build(args: argparse.Namespace) -> int:
         rates.append(f"{tsdf_updates / max(elapsed, 1e-9) / 1e6:.1f} M TSDF updates/s")
     print_out(
         [
-            f"{len(dataset) - skipped} scans integrated ({skipped} skipped) in {elapsed:.2f} s, "
+            f"{counted(len(dataset) - skipped, 'scan')} integrated ({skipped} skipped) in {elapsed:.2f} s, "
             f"{', '.join(rates)}, {len(gmap.store)} tiles",
             *(f"wrote {path}" for path in written),
             *(
