@@ -4,8 +4,11 @@ pixel rules per value and mode, the geometry, every refusal, and the REST route 
 
 from __future__ import annotations
 
+import functools
 import io
 import math
+import struct
+import threading
 import zipfile
 import zlib
 from pathlib import Path
@@ -18,6 +21,7 @@ from PIL import Image
 from service_process import ServiceProcess
 from test_api_support import hostile_zip, padded_zip
 
+from fleetmap import nav2_import
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
 from fleetmap.export import Window, known_window, nav2_files, pgm_bytes
@@ -29,6 +33,7 @@ from fleetmap.nav2_import import (
     map_from_nav2,
     map_from_nav2_zip,
 )
+from fleetmap.upload_spool import UploadStopped
 
 CONFIG = MapConfig(resolution=0.05)
 L_MIN, L_MAX = (float(np.float32(v)) for v in CONFIG.occupancy.resolved()[2:])
@@ -648,6 +653,82 @@ def test_more_tiles_than_max_tiles_or_than_the_memory_budget_is_refused_before_a
     assert caught.value.status == 507 and budget.used == 0
     with pytest.raises(Nav2ImportError, match="keeps no occupancy layer"):
         map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, layers=["counts"]))
+
+
+def transparent_png(width: int, height: int) -> bytes:
+    """An RGBA PNG of `width` x `height` fully transparent pixels, made a row at a time (260 KB for
+    64 Mpixels: every pixel is unknown in scale mode, so its map has no tile)."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    row = bytes(1 + 4 * width)  # filter 0, then every channel 0
+    packer = zlib.compressobj(9)
+    idat = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
+    head = struct.pack(">IIBBBBB", width, height, 8, 6, 0, 0, 0)  # 8 bits, RGBA, not interlaced
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", head) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+def peak_rss_mib(pid: int) -> float:
+    """The peak resident memory of process `pid` since it started or since `reset_peak_rss`, in MiB."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(next(line for line in status.splitlines() if line.startswith("VmHWM:")).split()[1]) / 1024
+
+
+def reset_peak_rss(pid: int) -> None:
+    Path(f"/proc/{pid}/clear_refs").write_text("5")  # VmHWM back to the present resident memory
+
+
+@pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux's /proc/PID/clear_refs")
+def test_imports_sent_together_decode_one_image_at_a_time(tmp_path: Path) -> None:
+    """Decoding an image takes memory outside the tiles' budget (`--max-memory`): a 64-Mpixel image
+    with alpha takes 256 MiB decoded. Four zips of 260 KB each, a transparent 64-Mpixel PNG (no
+    known cell, so no tile and nothing reserved), sent at once, took the service 2.8 GB past a
+    budget of 64 MiB, each decoding at once and copying its image whole into numpy; one image is
+    now read at a time, a strip at a time, and the peak stays within what one decode takes."""
+    body = nav2_zip(nav2_yaml("map.png", mode="scale"), {"map.png": transparent_png(8192, 8192)})
+    assert len(body) < 1 << 20
+    with ServiceProcess(tmp_path, ["--in-memory", "--max-memory", "64MiB"]) as svc:
+        pid = svc.proc.pid  # type: ignore[union-attr]
+        reset_peak_rss(pid)
+        before = peak_rss_mib(pid)
+        answers: list[httpx.Response] = []
+        put = functools.partial(httpx.put, headers={"content-type": "application/zip"}, timeout=300)
+        threads = [
+            threading.Thread(
+                target=lambda k=k: answers.append(put(f"{svc.base_url}/maps/m{k}/import", content=body))
+            )
+            for k in range(4)
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(300)
+        assert sorted(r.status_code for r in answers) == [201] * 4, [r.text for r in answers]
+        assert all(r.json()["stats"]["tiles"] == 0 for r in answers)
+        grown = peak_rss_mib(pid) - before
+        assert grown < 600, f"the service's peak grew by {grown:.0f} MiB for four imports of no tile"
+        assert "Traceback" not in svc.logs(), svc.logs()
+
+
+def test_a_reader_waits_for_the_decoding_turn_and_stops_waiting_when_told() -> None:
+    """A reader waits for the image being read before its own (the process's one decoding turn),
+    then reads; told to stop while it waits (its upload's request ended), it stops there, so the
+    process's exit does not wait for its turn."""
+    stop = threading.Event()
+    stop.set()
+    with nav2_import._DECODING:  # another image is being read
+        with pytest.raises(UploadStopped):
+            map_from_nav2(nav2_yaml(), PIXELS, CONFIG, stop=stop)
+        with pytest.raises(UploadStopped):
+            map_from_nav2_zip(nav2_zip(nav2_yaml(), {"map.pgm": PIXELS}), CONFIG, stop=stop)
+        done: list[GridMap] = []
+        waiting = threading.Thread(target=lambda: done.append(map_from_nav2(nav2_yaml(), PIXELS, CONFIG)))
+        waiting.start()
+        waiting.join(0.3)
+        assert not done  # still waiting: the turn is held
+    waiting.join(30)
+    assert len(done) == 1 and len(done[0].store) == 1
 
 
 @pytest.mark.parametrize(

@@ -47,8 +47,16 @@ channels are equal everywhere, as map_saver writes scale maps, are grey, and in 
 a pixel is opaque: map_server reads the others as unknown; a PGM's maxval must be
 255, a PNG's samples 8 bits at most), images over MAX_IMAGE_SIDE on a side or MAX_IMAGE_PIXELS in
 all, more tiles than the map's `max_tiles`. Tiles are created only where a cell is known; every
-layer but occupancy stays unknown. Pixel values are mapped through a table of their
-256 (or 256 x 256 with alpha) possible values, and each tile is written with one numpy gather.
+layer but occupancy stays unknown.
+
+Memory: an image is decoded by Pillow whole (1 byte a pixel for grey, 4 with alpha or colour), then
+turned into map_server's values (one byte a pixel) a strip of rows at a time, through a table of
+the 256 (or 256 x 256 with alpha) possible pixels, and the decoded image is freed before the tiles
+are made; each tile's log-odds is one numpy gather of those values. That working memory is not the
+maps' (`--max-memory` bounds the tiles), so one image at a time is read in the process
+(`_decoding_turn`), from the image file's bytes to the map's tiles: a 3 KB zip holds a transparent
+64-Mpixel PNG, about 350 MB to decode (800 MB when numpy copied it whole), and four such uploads
+at once took the service 2.8 GB past a budget of 256 MiB. Others wait their turn.
 """
 
 from __future__ import annotations
@@ -59,8 +67,10 @@ import math
 import posixpath
 import re
 import sys
+import threading
 import zipfile
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any, Literal
 
@@ -72,7 +82,7 @@ from pydantic import ValidationError
 from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.tiles import TileKey, TileLimitError
-from fleetmap.upload_spool import upload_zip
+from fleetmap.upload_spool import check_stop, upload_zip
 
 if TYPE_CHECKING:
     from fleetmap.memory_budget import UploadReservation
@@ -89,6 +99,14 @@ MAX_IMAGE_FILE_BYTES = MAX_IMAGE_PIXELS * 4 + (1 << 20)
 GRID_TOLERANCE = 1e-6
 #: How far the YAML's resolution may be from the configuration's, relative.
 RESOLUTION_TOLERANCE = 1e-9
+#: Rows of a decoded image turned into map_server's values at a time (`image_values`): a strip's
+#: copies take at most 16 MiB (16384 pixels of 4 bytes, 256 rows) beside the image.
+STRIP_ROWS = 256
+#: Seconds between two looks at whether an upload waiting for its turn to decode was cut off.
+_TURN_POLL_S = 0.1
+#: Held while an image is read into a map, from its file's bytes to the map's tiles: one at a time
+#: in the process (see the module's docstring).
+_DECODING = threading.Lock()
 
 Nav2Mode = Literal["trinary", "scale", "raw"]
 NAV2_MODES: tuple[Nav2Mode, ...] = ("trinary", "scale", "raw")
@@ -390,11 +408,12 @@ def log_odds_of_values(values: np.ndarray, l_min: float, l_max: float) -> np.nda
     return lo.astype(np.float32)
 
 
-def read_image(
-    data: bytes, name: str = "the image", opaque_colour_only: bool = False
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """The grey values (uint8, row 0 = the image's top) and the alpha channel (None without one) of
-    a PGM or PNG image; `Nav2ImportError` saying what it is when it is not 8-bit grey, or too big."""
+def image_values(data: bytes, name: str, meta: Nav2Meta) -> np.ndarray:
+    """map_server's OccupancyGrid value (int8: -1 unknown, else 0..100, `occupancy_grid_values`)
+    of every pixel of a PGM or PNG image read by `meta`'s mode and thresholds, row 0 the image's
+    top; `Nav2ImportError` saying what it is when it is not 8-bit grey, or too big. Decoded whole
+    by Pillow, then read a strip of `STRIP_ROWS` rows at a time: the numpy copy of a whole image
+    with alpha (4 bytes a pixel) and its planes and masks doubled what decoding takes."""
     try:
         im = Image.open(io.BytesIO(data), formats=["PNG", "PPM"])  # reads the header only
     except Image.DecompressionBombError as exc:
@@ -432,29 +451,42 @@ def read_image(
                 f"{name} marks a transparent colour (a tRNS chunk): save it with an alpha channel instead"
             )
         try:
-            pixels = np.asarray(im)
+            im.load()
         except (OSError, ValueError, SyntaxError, zlib.error) as exc:
             raise Nav2ImportError(f"{name} cannot be decoded (the file is corrupt): {exc}") from None
-    if im.mode == "L":
-        return pixels, None
-    if im.mode == "LA":
-        return np.ascontiguousarray(pixels[:, :, 0]), np.ascontiguousarray(pixels[:, :, 1])
+        table = occupancy_grid_values(meta, im.mode in ("LA", "RGBA"))
+        values = np.empty((h, w), dtype=np.int8)
+        for top in range(0, h, STRIP_ROWS):
+            strip = np.asarray(im.crop((0, top, w, min(h, top + STRIP_ROWS))))
+            values[top : top + len(strip)] = table[_grey_and_alpha(strip, im.mode, meta, name, top)]
+    return values
+
+
+def _grey_and_alpha(
+    pixels: np.ndarray, mode: str, meta: Nav2Meta, name: str, top: int
+) -> tuple[np.ndarray, ...]:
+    """The grey values, and the alpha channel where the image has one, of `pixels` (rows `top` on
+    of an image of Pillow's `mode` L, LA, RGB or RGBA), to index `occupancy_grid_values`'s table;
+    `Nav2ImportError` naming the first pixel whose channels differ, where they must not: anywhere,
+    or in scale mode only where it is opaque (map_server's scale mode reads every pixel not opaque
+    as unknown, whatever its colour: an editor that keeps the colour of transparent pixels, GIMP's
+    "save colour values from transparent pixels", made such a map refused as a colour image)."""
+    if mode == "L":
+        return (pixels,)
     grey = pixels[:, :, 0]
+    if mode == "LA":
+        return grey, pixels[:, :, 1]
     colour = (pixels[:, :, 1] != grey) | (pixels[:, :, 2] != grey)
-    if opaque_colour_only and im.mode == "RGBA":
-        # map_server's scale mode reads every pixel not opaque as unknown, whatever its colour: an
-        # editor that keeps the colour of transparent pixels (GIMP's "save colour values from
-        # transparent pixels") made such a map refused as a colour image.
+    if meta.mode == "scale" and mode == "RGBA":
         colour &= pixels[:, :, 3] == 255
     if colour.any():
         y, x = (int(k) for k in np.argwhere(colour)[0])
         channels = tuple(int(c) for c in pixels[y, x])
         raise Nav2ImportError(
-            f"{name} is a colour image (mode {im.mode}): pixel ({x}, {y}) is {channels}; only 8-bit grey "
-            "images are read"
+            f"{name} is a colour image (mode {mode}): pixel ({x}, {top + y}) is {channels}; only 8-bit "
+            "grey images are read"
         )
-    alpha = np.ascontiguousarray(pixels[:, :, 3]) if im.mode == "RGBA" else None
-    return np.ascontiguousarray(grey), alpha
+    return (grey,) if mode == "RGB" else (grey, pixels[:, :, 3])
 
 
 #: Where a PNG's bit depth is: after its 8-byte signature, the IHDR chunk's length and type (4 bytes
@@ -549,6 +581,7 @@ def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | 
 def map_from_nav2(
     yaml_text: str | bytes, image: bytes, config: MapConfig | None = None, defaults: MapConfig | None = None,
     reservation: UploadReservation | None = None, image_name: str | None = None, snap_origin: bool = False,
+    stop: threading.Event | None = None,
 ) -> GridMap:  # fmt: skip
     """A new map holding a nav2 map_server map (the YAML text and the image file's bytes), read
     as map_server reads it (see the module's docstring).
@@ -560,16 +593,33 @@ def map_from_nav2(
     the memory budget), the map's tiles are reserved before anything is allocated, and refused (507)
     if the budget has no room for them. An origin off the map's cell grid is
     refused, or with `snap_origin` moved to the nearest cell edge (by at most half a cell on each
-    axis). Raises `Nav2ImportError`."""
+    axis). One image is read at a time in the process: a call waits for the others' (the module's
+    docstring says why), raising `UploadStopped` if `stop` is set while it waits. Raises
+    `Nav2ImportError`."""
     meta = parse_nav2_yaml(yaml_text)
-    return _map_from_meta(meta, image, config, defaults, reservation, image_name, snap_origin)
+    with _decoding_turn(stop):
+        return _map_from_meta(meta, image, config, defaults, reservation, image_name, snap_origin)
+
+
+@contextlib.contextmanager
+def _decoding_turn(stop: threading.Event | None) -> Iterator[None]:
+    """The block runs while this thread holds the process's one turn to read an image into a map
+    (`_DECODING`), waiting for it as long as it takes: each read is bounded (MAX_IMAGE_PIXELS), a
+    few seconds at most. `UploadStopped` if `stop` is set meanwhile (the upload's request ended: a
+    waiting reader would otherwise hold the process's exit until its turn came and went)."""
+    while not _DECODING.acquire(timeout=_TURN_POLL_S):
+        check_stop(stop)
+    try:
+        yield
+    finally:
+        _DECODING.release()
 
 
 def _map_from_meta(
     meta: Nav2Meta, image: bytes, config: MapConfig | None, defaults: MapConfig | None,
     reservation: UploadReservation | None, image_name: str | None, snap_origin: bool,
 ) -> GridMap:  # fmt: skip
-    """`map_from_nav2` of a parsed map.yaml."""
+    """`map_from_nav2` of a parsed map.yaml; the caller holds the decoding turn."""
     ox, oy, yaw = meta.origin
     if yaw != 0.0:
         raise Nav2ImportError(
@@ -585,16 +635,16 @@ def _map_from_meta(
         raise Nav2ImportError(beyond)
     grid = _grid_resolutions(meta, config)
     i0, j0 = _grid_index(ox, grid, "x", snap_origin), _grid_index(oy, grid, "y", snap_origin)
-    grey, alpha = read_image(image, image_name or meta.image, opaque_colour_only=meta.mode == "scale")
-    h, w = grey.shape
+    values = image_values(image, image_name or meta.image, meta)
+    h, w = values.shape
     if max(abs(i0), abs(i0 + w), abs(j0), abs(j0 + h)) * res > MAX_COORDINATE:
         raise Nav2ImportError(beyond)
-    values = occupancy_grid_values(meta, alpha is not None)
     _, _, l_min, l_max = config.occupancy.resolved()
-    lut = log_odds_of_values(values, l_min, l_max)
-    known_lut = values != OCC_GRID_UNKNOWN
+    # The log-odds of every value, indexed by its byte: -1 (unknown) is 255, NaN.
+    lut = log_odds_of_values(np.arange(256, dtype=np.uint8).view(np.int8), l_min, l_max)
     # Row 0 of the image is its top (the highest y): flipped, row 0 is j0, as the map's arrays are.
-    index: tuple[np.ndarray, ...] = (grey[::-1],) if alpha is None else (grey[::-1], alpha[::-1])
+    flipped = values[::-1]
+    index = flipped.view(np.uint8)
     t, s = config.tile_size, config.tile_size.bit_length() - 1
     windows: list[tuple[TileKey, slice, slice, slice, slice]] = []
     for tj in range(j0 >> s, ((j0 + h - 1) >> s) + 1):
@@ -603,7 +653,7 @@ def _map_from_meta(
         for ti in range(i0 >> s, ((i0 + w - 1) >> s) + 1):
             gi0, gi1 = max(i0, ti * t), min(i0 + w, (ti + 1) * t)
             cols = slice(gi0 - i0, gi1 - i0)
-            if known_lut[tuple(a[rows, cols] for a in index)].any():  # a tile only where a cell is known
+            if (flipped[rows, cols] != OCC_GRID_UNKNOWN).any():  # a tile only where a cell is known
                 local = (slice(gj0 - tj * t, gj1 - tj * t), slice(gi0 - ti * t, gi1 - ti * t))
                 windows.append(((ti, tj), rows, cols, *local))
     if len(windows) > config.max_tiles:
@@ -620,7 +670,7 @@ def _map_from_meta(
     gmap.store.create([key for key, *_ in windows])  # every cell of every layer unknown, versioned
     pool = gmap.store.pools["log_odds"]
     for key, rows, cols, local_rows, local_cols in windows:
-        pool[gmap.store.slots[key], local_rows, local_cols] = lut[tuple(a[rows, cols] for a in index)]
+        pool[gmap.store.slots[key], local_rows, local_cols] = lut[index[rows, cols]]
     return gmap
 
 
@@ -644,12 +694,14 @@ def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> bytes
 def map_from_nav2_zip(
     data: bytes | IO[bytes], config: MapConfig | None = None, defaults: MapConfig | None = None,
     reservation: UploadReservation | None = None, snap_origin: bool = False,
+    stop: threading.Event | None = None,
 ) -> GridMap:  # fmt: skip
     """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and the image it
     names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
     no `..`, no absolute path): what `GET /maps/{id}/export?format=ros` gives. Entries under
     `__MACOSX/` are not read. `data` is the zip's bytes, or a binary file open for reading that can
-    seek (an upload spooled to disk: `fleetmap.upload_spool`), which is left open. Raises
+    seek (an upload spooled to disk: `fleetmap.upload_spool`), which is left open. The image is read
+    from the zip in its turn, as `map_from_nav2` reads it (`stop` as there). Raises
     `Nav2ImportError`."""
     try:
         zf = upload_zip(data)
@@ -686,5 +738,8 @@ def map_from_nav2_zip(
         found = [i for i in infos if i.filename == path]
         if not found:
             raise Nav2ImportError(f"map.yaml names the image {name!r}, which is not in the zip")
-        image = _zip_member(zf, found[0], MAX_IMAGE_FILE_BYTES)
-    return _map_from_meta(meta, image, config, defaults, reservation, name, snap_origin)
+        # In its turn from here: the image's bytes (up to MAX_IMAGE_FILE_BYTES from a zip of a few
+        # KB) are the first of what reading it takes.
+        with _decoding_turn(stop):
+            image = _zip_member(zf, found[0], MAX_IMAGE_FILE_BYTES)
+            return _map_from_meta(meta, image, config, defaults, reservation, name, snap_origin)

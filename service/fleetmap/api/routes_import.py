@@ -78,7 +78,8 @@ async def put_import(
     not be stored. `If-Match` / `If-None-Match: *` as for `PUT /maps/{map_id}` (412, nothing
     changed; before the body is read). 409, nothing changed, if while the upload was read (with the
     configuration of the map there then) the map was deleted, or made or replaced with another
-    configuration."""
+    configuration. One image is read at a time in the server (its decoding takes memory outside
+    `--max-memory`): an import sent while another is read waits for it."""
     del format  # one format for now: the parameter names it, as GET .../export's does
     content_type = request.headers.get("content-type")
     if not _is_zip_media_type(content_type):
@@ -87,14 +88,17 @@ async def put_import(
     defaults = state.registry.default_config
 
     # Its body is not held in memory while it is read, as a snapshot's; one of the uploads in progress.
-    # Not stopped by `stop`: its body is at most 16 MiB and its image 64 Mpixels, read in a second or two.
+    # Stopped by `stop` only while it waits for its turn to decode (one image at a time in the
+    # process): its body is at most 16 MiB and its image 64 Mpixels, read in a few seconds.
     def read(
         body: IO[bytes],
         config: MapConfig | None,
         reservation: UploadReservation | None,
-        _stop: threading.Event,
+        stop: threading.Event,
     ) -> GridMap:
-        return map_from_nav2_zip(body, config, defaults, reservation=reservation, snap_origin=snap_origin)
+        return map_from_nav2_zip(
+            body, config, defaults, reservation=reservation, snap_origin=snap_origin, stop=stop
+        )
 
     try:
         return await install_upload(state, map_id, request, response, read, conditions, reads_config=True)
