@@ -809,6 +809,18 @@ def test_a_zip_with_the_yaml_in_a_folder_reads_the_image_beside_it() -> None:
     assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
 
 
+def test_a_zip_holding_its_image_twice_is_refused_not_read_from_the_first() -> None:
+    """A zip may hold two entries of one name: Python's zipfile appending a file to a zip adds one
+    (with a warning), as some tools updating a zip do. unzip and zipfile itself read the last; the
+    import read the first, so a map.pgm updated so was imported as it was before, without a word."""
+    buf = io.BytesIO(nav2_zip(nav2_yaml(), {"map.pgm": pgm_bytes(np.full((1, 2), 254, np.uint8))}))
+    with zipfile.ZipFile(buf, "a") as zf, pytest.warns(UserWarning, match="Duplicate name"):
+        zf.writestr("map.pgm", pgm_bytes(np.zeros((1, 2), np.uint8)))  # the map updated: occupied
+    with pytest.raises(Nav2ImportError, match=r"the zip holds the image 'map\.pgm' 2 times") as caught:
+        map_from_nav2_zip(buf.getvalue(), CONFIG)
+    assert caught.value.status == 422
+
+
 def test_an_image_written_dot_slash_name_is_the_file_beside_the_yaml() -> None:
     """`image: ./map.pgm`, as hand-written map.yaml files often say, is map.pgm beside the YAML to
     map_server (the YAML's folder + '/' + the name): it was refused as not a plain file name."""

@@ -696,8 +696,8 @@ def map_from_nav2_zip(
     reservation: UploadReservation | None = None, snap_origin: bool = False,
     stop: threading.Event | None = None,
 ) -> GridMap:  # fmt: skip
-    """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and the image it
-    names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
+    """`map_from_nav2` of a zip holding exactly one YAML file (`*.yaml` / `*.yml`) and, once, the image
+    it names, which must be a plain file name beside it in the zip, maybe written `./name` (no folder,
     no `..`, no absolute path): what `GET /maps/{id}/export?format=ros` gives. Entries under
     `__MACOSX/` are not read. `data` is the zip's bytes, or a binary file open for reading that can
     seek (an upload spooled to disk: `fleetmap.upload_spool`), which is left open. The image is read
@@ -738,6 +738,13 @@ def map_from_nav2_zip(
         found = [i for i in infos if i.filename == path]
         if not found:
             raise Nav2ImportError(f"map.yaml names the image {name!r}, which is not in the zip")
+        # zipfile appending a file of a name already there adds a second entry: which one is the
+        # image depends on the tool (unzip and zipfile read the last), and the first was read here.
+        if len(found) > 1:
+            raise Nav2ImportError(
+                f"the zip holds the image {name!r} {len(found)} times: which one is the map is not clear "
+                "(unzip reads the last); zip it again with one"
+            )
         # In its turn from here: the image's bytes (up to MAX_IMAGE_FILE_BYTES from a zip of a few
         # KB) are the first of what reading it takes.
         with _decoding_turn(stop):
