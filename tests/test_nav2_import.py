@@ -821,6 +821,18 @@ def test_a_zip_holding_its_image_twice_is_refused_not_read_from_the_first() -> N
     assert caught.value.status == 422
 
 
+def test_an_image_name_zipped_as_utf_8_without_the_zip_s_utf_8_flag_is_found() -> None:
+    """Info-ZIP's `zip`, the usual zip of Linux, stores a name as its UTF-8 bytes without the flag
+    that says so, and zipfile reads such a name as code page 437 ('B├╝ro.pgm'): `image: Büro.pgm`
+    was refused as not in the zip, though unzip gives map_server that very file."""
+    body = nav2_zip(nav2_yaml("Büro.pgm"), {"mxx/Bxxro.pgm": PIXELS}, yaml_name="mxx/site.yaml")
+    # As Info-ZIP writes them: the names' UTF-8 bytes (as long), in the local headers and the directory.
+    body = body.replace(b"Bxxro.pgm", "Büro.pgm".encode()).replace(b"mxx/", "mä/".encode())
+    with zipfile.ZipFile(io.BytesIO(body)) as zf:
+        assert [i.filename for i in zf.infolist()] == ["m├ñ/site.yaml", "m├ñ/B├╝ro.pgm"]
+    assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
+
+
 def test_an_image_written_dot_slash_name_is_the_file_beside_the_yaml() -> None:
     """`image: ./map.pgm`, as hand-written map.yaml files often say, is map.pgm beside the YAML to
     map_server (the YAML's folder + '/' + the name): it was refused as not a plain file name."""

@@ -691,6 +691,23 @@ def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> bytes
     return data
 
 
+#: A zip entry's flag saying that its name is UTF-8 (bit 11 of the general purpose flags, APPNOTE).
+_ZIP_UTF8_FLAG = 0x800
+
+
+def _entry_name(info: zipfile.ZipInfo) -> str:
+    """The name of a zip entry as unzip hands it to map_server on Linux: zipfile's, or for a name
+    stored without the UTF-8 flag, which zipfile reads as code page 437, its bytes read as UTF-8
+    when they are UTF-8. Info-ZIP's `zip`, Linux's usual one, stores a name so: `image: Büro.pgm`
+    was not found in its zip, whose entry zipfile calls 'B├╝ro.pgm'."""
+    if info.flag_bits & _ZIP_UTF8_FLAG:
+        return info.filename
+    try:
+        return info.filename.encode("cp437").decode("utf-8")
+    except UnicodeError:  # a name in code page 437 indeed (old Windows tools), or another one
+        return info.filename
+
+
 def map_from_nav2_zip(
     data: bytes | IO[bytes], config: MapConfig | None = None, defaults: MapConfig | None = None,
     reservation: UploadReservation | None = None, snap_origin: bool = False,
@@ -734,8 +751,8 @@ def map_from_nav2_zip(
                 f"map.yaml 'image' {meta.image!r} is not a plain file name: the image must lie beside the "
                 "YAML file in the zip"
             )
-        path = posixpath.join(posixpath.dirname(yamls[0].filename), name)
-        found = [i for i in infos if i.filename == path]
+        path = posixpath.join(posixpath.dirname(_entry_name(yamls[0])), name)
+        found = [i for i in infos if _entry_name(i) == path]
         if not found:
             raise Nav2ImportError(f"map.yaml names the image {name!r}, which is not in the zip")
         # zipfile appending a file of a name already there adds a second entry: which one is the
