@@ -833,6 +833,19 @@ def test_an_image_name_zipped_as_utf_8_without_the_zip_s_utf_8_flag_is_found() -
     assert map_from_nav2_zip(body, CONFIG).known_bounds() == (0, 0, 2, 2)
 
 
+def test_a_zip_whose_folders_are_written_with_backslashes_reads_the_image_beside_the_yaml() -> None:
+    """Windows PowerShell's Compress-Archive writes `maps\\site.yaml`, a backslash between folder and
+    file, which unzip reads as a folder in a zip made on Windows: the image beside the YAML was
+    looked for as `map.pgm`, at the top, and refused as not in the zip."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for name, data in (("maps\\site.yaml", nav2_yaml("map.pgm")), ("maps\\map.pgm", PIXELS)):
+            info = zipfile.ZipInfo(name)
+            info.create_system = 0  # made on Windows (MS-DOS, FAT): unzip reads a backslash as a '/'
+            zf.writestr(info, data)
+    assert map_from_nav2_zip(buf.getvalue(), CONFIG).known_bounds() == (0, 0, 2, 2)
+
+
 def test_an_image_written_dot_slash_name_is_the_file_beside_the_yaml() -> None:
     """`image: ./map.pgm`, as hand-written map.yaml files often say, is map.pgm beside the YAML to
     map_server (the YAML's folder + '/' + the name): it was refused as not a plain file name."""

@@ -693,19 +693,23 @@ def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> bytes
 
 #: A zip entry's flag saying that its name is UTF-8 (bit 11 of the general purpose flags, APPNOTE).
 _ZIP_UTF8_FLAG = 0x800
+#: The host systems of a zip entry made on Windows or DOS (APPNOTE's "version made by").
+_WINDOWS_ZIP_SYSTEMS = (0, 6, 11, 14)
 
 
 def _entry_name(info: zipfile.ZipInfo) -> str:
     """The name of a zip entry as unzip hands it to map_server on Linux: zipfile's, or for a name
     stored without the UTF-8 flag, which zipfile reads as code page 437, its bytes read as UTF-8
-    when they are UTF-8. Info-ZIP's `zip`, Linux's usual one, stores a name so: `image: Büro.pgm`
-    was not found in its zip, whose entry zipfile calls 'B├╝ro.pgm'."""
-    if info.flag_bits & _ZIP_UTF8_FLAG:
-        return info.filename
-    try:
-        return info.filename.encode("cp437").decode("utf-8")
-    except UnicodeError:  # a name in code page 437 indeed (old Windows tools), or another one
-        return info.filename
+    when they are UTF-8, and with '/' for a backslash in a zip made on Windows. Info-ZIP's `zip`,
+    Linux's usual one, stores a name so: `image: Büro.pgm` was not found in its zip, whose entry
+    zipfile calls 'B├╝ro.pgm'."""
+    name = info.filename
+    if not info.flag_bits & _ZIP_UTF8_FLAG:
+        with contextlib.suppress(UnicodeError):  # else a name in code page 437 indeed (old Windows tools)
+            name = name.encode("cp437").decode("utf-8")
+    # Windows PowerShell's Compress-Archive separates folders with a backslash, which unzip reads as
+    # a '/' in a zip made on Windows (its host system MS-DOS / FAT, HPFS, NTFS or VFAT).
+    return name.replace("\\", "/") if info.create_system in _WINDOWS_ZIP_SYSTEMS else name
 
 
 def map_from_nav2_zip(
