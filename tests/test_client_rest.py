@@ -768,7 +768,7 @@ def test_numpy_values_in_a_configuration_or_a_dict_scan(client: FleetmapClient, 
     automatic seq goes on after a dict's NumPy seq, as after a Python one."""
     config = {"resolution": np.float32(0.125), "tile_size": np.int64(64), "layers": np.array(["occupancy"])}
     info = client.create_map("numpy-values", config)
-    assert (info.resolution, info.config.tile_size, info.config.layers) == (0.125, 64, ["occupancy"])
+    assert (info.resolution, info.config.tile_size, info.config.layers) == (0.125, 64, ("occupancy",))
     fan = scans[0]
     as_dict = {
         "seq": np.arange(5)[3],

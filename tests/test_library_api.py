@@ -12,6 +12,7 @@ import sys
 import textwrap
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -273,7 +274,7 @@ def test_a_scan_whose_heading_plus_bearing_overflows_is_refused(theta: float, an
 
 
 def test_grid_map_takes_a_configuration_dict_and_refuses_other_things() -> None:
-    assert GridMap({"resolution": 0.1, "layers": ["occupancy"]}).config.layers == ["occupancy"]  # type: ignore[arg-type]
+    assert GridMap({"resolution": 0.1, "layers": ["occupancy"]}).config.layers == ("occupancy",)  # type: ignore[arg-type]
     with pytest.raises(ValidationError, match="tile_size must be a power of two"):
         GridMap({"tile_size": 100})  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="config must be a MapConfig, .* not float"):
@@ -288,9 +289,9 @@ def test_a_map_keeps_its_configuration_when_the_one_given_changes() -> None:
     first = GridMap(config)
     first.integrate(Scan.from_angles((0.025, 0.025, 0.0), [0.0], [0.5], 0.0, 10.0))
     hit = [[0.525, 0.025]]
-    config.layers.remove("tsdf")
+    object.__setattr__(config, "layers", ("occupancy", "counts"))  # `layers` is a tuple now
     second = GridMap(config)
-    assert second.config.layers == ["occupancy", "counts"]
+    assert second.config.layers == ("occupancy", "counts")
     assert first.config == MapConfig(resolution=0.05)
     assert first.cells(hit)["state"].tolist() == [fleetmap.STATE_OCCUPIED]
     assert first.cells(hit)["tsdf"].tolist() == [0.0]  # the return lies at its centre
@@ -420,3 +421,23 @@ def test_cell_index_of_a_point_that_is_not_finite_is_a_value_error(point: tuple[
     with pytest.raises(ValueError, match="a point must be finite numbers"):
         GridMap().cell_index(*point)
     assert GridMap().cell_index(-1e-12, 0.07) == (-1, 1)
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        lambda layers: layers.clear(),
+        lambda layers: layers.append("tsdf"),
+        lambda layers: layers.__setitem__(0, "walls"),
+    ],
+    ids=["emptied", "repeated", "unknown"],
+)
+def test_a_configurations_layers_cannot_be_changed_past_its_validation(change: Any) -> None:
+    """`layers` was a list inside a frozen configuration: changed in place, it held what validation
+    refuses (no layer, one twice, one that does not exist), and a map made of it kept no layer and
+    integrated every scan into nothing, kept the TSDF twice, or failed with a bare KeyError."""
+    config = MapConfig()
+    with pytest.raises((TypeError, AttributeError)):
+        change(config.layers)
+    assert config == MapConfig()
+    assert set(GridMap(config).store.pools) == {"log_odds", "hits", "misses", "tsdf", "tsdf_weight"}

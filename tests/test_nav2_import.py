@@ -236,7 +236,7 @@ def test_without_a_configuration_the_default_takes_the_yaml_resolution() -> None
     assert gmap.resolution == 0.1 and gmap.known_bounds() == (3, -2, 5, 0)
     base = MapConfig(layers=["occupancy"], max_tiles=7)
     gmap = map_from_nav2(nav2_yaml(resolution=0.1), pgm_bytes(np.zeros((2, 2), np.uint8)), defaults=base)
-    assert gmap.config.layers == ["occupancy"] and gmap.config.max_tiles == 7 and gmap.resolution == 0.1
+    assert gmap.config.layers == ("occupancy",) and gmap.config.max_tiles == 7 and gmap.resolution == 0.1
 
 
 # -- the round trip of fleetmap's own export ---------------------------------------------------------

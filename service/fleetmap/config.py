@@ -4,9 +4,10 @@ These pydantic models are the one definition of a map's configuration: the engin
 CLI loads them from JSON, and the REST API uses them as its request and response schema. Every field
 is optional; defaults are chosen to be right for a typical indoor 2D lidar.
 
-The models are frozen: a field assigned after validation was not validated (resolution 0 made every
-scan a ZeroDivisionError, and p_hit set on a validated configuration was ignored, its l_hit being
-the value in use). Other values make another configuration.
+The models are frozen, and hold nothing that could be changed in place (`layers` is a tuple): a field
+assigned after validation was not validated (resolution 0 made every scan a ZeroDivisionError, and
+p_hit set on a validated configuration was ignored, its l_hit being the value in use). Other values
+make another configuration.
 """
 
 from __future__ import annotations
@@ -299,7 +300,10 @@ class MapConfig(BaseModel):
         le=1_000_000,
         description="cap on tiles per map; a scan that needs more is rejected",
     )
-    layers: list[LayerName] = Field(default_factory=lambda: list(ALL_LAYERS))
+    # A tuple, not a list: the model is frozen, but a list's contents could still be changed in
+    # place past validation (emptied, a layer twice, a name of no layer), and a map made of it kept
+    # nothing or failed with a KeyError. A JSON array or a list is taken, and read back as a tuple.
+    layers: tuple[LayerName, ...] = ALL_LAYERS
     occupancy: OccupancyParams = Field(default_factory=OccupancyParams)
     sensor_model: Literal["ray", "beam"] = "ray"
     traversal: Literal["exact", "bresenham"] = "exact"
@@ -367,7 +371,7 @@ class MapConfig(BaseModel):
 
     @field_validator("layers")
     @classmethod
-    def _layers_are_a_set(cls, layers: list[LayerName]) -> list[LayerName]:
+    def _layers_are_a_set(cls, layers: tuple[LayerName, ...]) -> tuple[LayerName, ...]:
         if not layers:
             raise ValueError("a map needs at least one layer")
         if len(set(layers)) != len(layers):

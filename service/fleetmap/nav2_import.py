@@ -573,7 +573,8 @@ def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | 
             raise Nav2ImportError(f"map.yaml resolution {meta.resolution!r}: {problems}") from None
     if not config.has("occupancy"):
         raise Nav2ImportError(
-            f"the map configuration keeps no occupancy layer (layers {config.layers}): a nav2 map seeds it"
+            f"the map configuration keeps no occupancy layer (layers {', '.join(config.layers)}): a nav2 map "
+            "seeds it"
         )
     return config
 
