@@ -441,3 +441,37 @@ def test_a_configurations_layers_cannot_be_changed_past_its_validation(change: A
         change(config.layers)
     assert config == MapConfig()
     assert set(GridMap(config).store.pools) == {"log_odds", "hits", "misses", "tsdf", "tsdf_weight"}
+
+
+def test_masked_ranges_are_invalid_readings() -> None:
+    """A NumPy masked array of ranges (a driver's or a file's way of marking bad readings) lost its
+    mask: each masked reading was integrated as the value under it, a wall where the sensor saw
+    nothing valid. A masked reading is an invalid one (NaN), ignored as such."""
+    values = np.full(90, 2.0)
+    bad = np.arange(90) % 3 == 0
+    masked = np.ma.array(values, mask=bad)
+    expected = np.where(bad, np.nan, values)
+    for scan in (
+        Scan.from_fan((0.5, 0.5, 0.0), -math.pi / 2, math.pi / 90, masked, 0.05, 10.0),
+        Scan.from_angles((0.5, 0.5, 0.0), np.linspace(-1.5, 1.5, 90), masked, 0.05, 10.0),
+        Scan((0.5, 0.5, 0.0), np.linspace(-1.5, 1.5, 90), masked, 0.05, 10.0),  # type: ignore[arg-type]
+    ):
+        assert type(scan.ranges) is np.ndarray
+        np.testing.assert_array_equal(scan.ranges, expected)
+    gmap, reference = GridMap(), GridMap()
+    gmap.integrate(Scan.from_fan((0.5, 0.5, 0.0), -math.pi / 2, math.pi / 90, masked, 0.05, 10.0))
+    reference.integrate(Scan.from_fan((0.5, 0.5, 0.0), -math.pi / 2, math.pi / 90, expected, 0.05, 10.0))
+    bounds = reference.known_bounds()
+    assert bounds is not None and gmap.known_bounds() == bounds
+    np.testing.assert_array_equal(gmap.region("hits", *bounds), reference.region("hits", *bounds))
+
+
+def test_masked_angles_are_refused() -> None:
+    """A masked bearing is no bearing: refused, not read as the value under its mask."""
+    angles = np.ma.array([0.0, 0.1, 0.2], mask=[False, True, False])
+    with pytest.raises(ScanError, match="angles must not be masked"):
+        Scan.from_angles((0.0, 0.0, 0.0), angles, [1.0, 1.0, 1.0])
+    with pytest.raises(ScanError, match="angles must not be masked"):
+        Scan((0.0, 0.0, 0.0), angles, [1.0, 1.0, 1.0], 0.0, 10.0)  # type: ignore[arg-type]
+    unmasked = Scan.from_angles((0.0, 0.0, 0.0), np.ma.array([0.0, 0.1]), [1.0, 1.0])
+    assert type(unmasked.angles) is np.ndarray and unmasked.angles.tolist() == [0.0, 0.1]

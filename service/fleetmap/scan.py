@@ -46,8 +46,9 @@ class Scan:
 
     Build one with `from_fan` (ROS LaserScan style) or `from_angles`, or directly, which takes the
     same inputs: a `Pose2D` or an (x, y, theta) sequence, sequences or arrays of numbers (stored as
-    contiguous float64; None in `ranges` means "no return", as in JSON), and numbers for the range
-    window. Anything invalid (non-finite pose or angles, mismatched lengths, a range window that is
+    contiguous float64; None in `ranges` means "no return", as in JSON, and a masked element of a
+    masked array of ranges an invalid reading, NaN; masked angles are refused), and numbers for the
+    range window. Anything invalid (non-finite pose or angles, mismatched lengths, a range window that is
     not `0 <= range_min < range_max`, inputs that are not numbers) raises `ScanError`, a ValueError.
     Arrays that are contiguous float64 already are kept, not copied (every decoded scan comes so):
     the checks hold for them as they were when the scan was built, so do not write into an array a
@@ -161,7 +162,12 @@ class Scan:
 def ranges_to_array(ranges: Sequence[float | None] | np.ndarray) -> np.ndarray:
     """Ranges as float64; None (a JSON null) becomes +inf, i.e. "no return", in a list and in an
     object array alike (numpy alone would make it NaN, an invalid reading). Raises `ScanError` for
-    anything that is not a sequence of numbers and None (a string is not one)."""
+    anything that is not a sequence of numbers and None (a string is not one). A masked element of a
+    NumPy masked array is an invalid reading: NaN."""
+    if isinstance(ranges, np.ma.MaskedArray):
+        # `np.asarray` drops the mask: the value under a masked reading (0, a fill value) was
+        # integrated as a return, a wall where the sensor saw nothing valid.
+        return np.where(np.ma.getmaskarray(ranges), np.nan, ranges_to_array(ranges.data))
     if isinstance(ranges, np.ndarray) and ranges.dtype != object:
         return _as_floats("ranges", ranges)
     if isinstance(ranges, str | bytes) or not isinstance(ranges, Iterable):
@@ -184,6 +190,8 @@ def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
     """`values` as a float64 array, or `ScanError` naming `name` (not numpy's bare ValueError)."""
     if isinstance(values, str | bytes):
         raise ScanError(f"{name} must be a sequence of numbers, got {type(values).__name__}")
+    if np.ma.is_masked(values):  # numpy would read the values under the mask, dropping it
+        raise ScanError(f"{name} must not be masked: give every beam its value, or mask its range instead")
     if np.iscomplexobj(values):  # numpy would drop the imaginary parts, with a warning only
         raise ScanError(f"{name} must be real numbers, got complex ones")
     try:
