@@ -8,6 +8,8 @@ from __future__ import annotations
 import importlib
 import itertools
 import math
+import subprocess
+import sys
 import threading
 import time
 import tracemalloc
@@ -878,3 +880,49 @@ class _NoWalk(dict):
 
     def values(self):  # type: ignore[no-untyped-def]
         raise AssertionError("walked every tile")
+
+
+#: A map of 16-cell tiles applies the plan of a map of 256-cell tiles; the process's exit status and
+#: what it prints tell what happened.
+_FOREIGN_PLAN = """
+import numpy as np
+from fleetmap import GridMap, MapConfig, Scan
+scan = Scan.from_fan((0.5, 0.5, 0.3), -3.0, 0.02, np.full(300, 9.0), 0.05, 10.0)
+small = GridMap(MapConfig(tile_size=16))
+large = GridMap(MapConfig(tile_size=256))
+try:
+    small.apply(large.plan(scan))
+except ValueError as exc:
+    print("refused:", exc)
+"""
+
+
+@pytest.mark.parametrize(
+    "other",
+    [{"tile_size": 16}, {"resolution": 0.1}, {"layers": ["tsdf"]}, {"traversal": "bresenham"}],
+)
+def test_a_plan_applies_only_to_a_map_configured_as_its_own(other: dict[str, object]) -> None:
+    """`apply` took a plan made by any map: one of another tile size wrote its cells into other tiles
+    and cells (a 9 m fan became a map 300 m across, or crashed the process: a segmentation fault
+    when the plan's tiles were larger than the map's), one of another resolution or sensor model a
+    map of another scan. A plan made under another configuration is refused (ValueError), the map
+    unchanged; one of a map configured alike applies as the map's own plan."""
+    scan = Scan.from_fan((0.5, 0.5, 0.3), -3.0, 0.02, np.full(300, 9.0), 0.05, 10.0)
+    gmap = GridMap(MapConfig(tile_size=256))
+    with pytest.raises(ValueError, match="made under another map configuration"):
+        gmap.apply(GridMap({"tile_size": 256, **other}).plan(scan))
+    assert len(gmap.store) == 0 and gmap.known_bounds() is None
+    alike = GridMap({"tile_size": 256, "layers": ["tsdf", "counts", "occupancy"]})
+    reference = GridMap(MapConfig(tile_size=256))
+    assert gmap.apply(alike.plan(scan)) == reference.integrate(scan)
+    bounds = reference.known_bounds()
+    assert bounds is not None and gmap.known_bounds() == bounds
+    for layer in ALL_READ_LAYERS:
+        np.testing.assert_array_equal(gmap.region(layer, *bounds), reference.region(layer, *bounds))
+
+
+def test_a_plan_of_larger_tiles_does_not_crash_the_process() -> None:
+    """The segmentation fault, in a process of its own."""
+    result = subprocess.run([sys.executable, "-c", _FOREIGN_PLAN], capture_output=True, text=True)
+    assert result.returncode == 0, f"exit status {result.returncode}: {result.stderr[-2000:]}"
+    assert result.stdout.startswith("refused: ") and "made under another map configuration" in result.stdout

@@ -237,7 +237,16 @@ class GridMap:
     def apply(self, plan: UpdatePlan) -> IntegrationResult:
         """Write a plan's updates, atomically with respect to readers. Creates the tiles the plan
         needs first, all or none: raises `TileLimitError` (`MemoryBudgetError` past a shared budget)
-        with the map unchanged when they do not fit."""
+        with the map unchanged when they do not fit. `plan` must come from this map's `plan`, or that
+        of a map configured alike (`MapConfig.same_map_as`): ValueError for another, map unchanged."""
+        # A plan's cells are keyed by its map's tile size: one of larger tiles wrote past the ends
+        # of this map's tiles (a segmentation fault), one of smaller tiles into other cells, and one
+        # of another resolution or model drew another scan. Identity first: the usual case is free.
+        if plan.config is not self.config and not plan.config.same_map_as(self.config):
+            raise ValueError(
+                "the plan was made under another map configuration than this map's: apply a plan "
+                "of this map's `plan`, or of a map configured alike"
+            )
         if plan.num_tiles == 0:
             return IntegrationResult(0, 0, [], 0)
         cfg, store = self.config, self.store

@@ -97,7 +97,8 @@ class UpdatePlan(NamedTuple):
     for the TSDF layer. `tiles` (rows: tile i, tile j) lists every tile any of them touches, the
     per-scan updates' tiles first; `occ_tile` and `tsdf_tile` give each ordered entry's tile in
     that list. (Pairs of rows share one array: each array a kernel hands back costs a fraction of
-    a microsecond.)
+    a microsecond.) `config` is the map configuration it was planned under: its cells are laid out
+    by its tile size and resolution, and made by its models, so it means nothing to another map.
     """
 
     cell: np.ndarray
@@ -112,6 +113,7 @@ class UpdatePlan(NamedTuple):
     tsdf_value: np.ndarray
     tsdf_tile: np.ndarray
     tiles: np.ndarray
+    config: MapConfig
 
     @property
     def num_tiles(self) -> int:
@@ -172,6 +174,7 @@ def plan_scan(scan: Scan, config: MapConfig, shift: int) -> UpdatePlan:
         tsdf_value,
         tsdf_tile,
         tiles,
+        config,
     )
 
 
