@@ -4,6 +4,7 @@ README's example run as written, and clear errors for the wrong inputs a new use
 from __future__ import annotations
 
 import importlib
+import json
 import math
 import os
 import re
@@ -11,6 +12,7 @@ import subprocess
 import sys
 import textwrap
 import warnings
+from dataclasses import astuple
 from pathlib import Path
 from typing import Any
 
@@ -402,6 +404,21 @@ def test_write_build_outputs_refuses_a_margin_that_is_not_cells_around_the_map(
     assert not (tmp_path / "out").exists()
     window = fleetmap.known_window(gmap, np.int64(3))
     assert window is not None and window == fleetmap.known_window(gmap, 3)
+
+
+def test_write_build_outputs_takes_a_numpy_margin(tmp_path: Path) -> None:
+    """`known_window` takes a NumPy integer margin, but its window then held NumPy integers, and
+    `write_build_outputs` failed at its last file, meta.json ('Object of type int64 is not JSON
+    serializable'), having written nothing. A window's edges are Python ints whatever the margin."""
+    gmap = GridMap()
+    gmap.integrate(_fan())
+    window = fleetmap.known_window(gmap, np.int64(2))
+    assert window is not None and all(type(edge) is int for edge in astuple(window))
+    write_build_outputs(gmap, tmp_path / "numpy", margin=np.uint8(2))  # type: ignore[arg-type]
+    write_build_outputs(gmap, tmp_path / "python", margin=2)
+    for name in ("meta.json", "map.pgm", "hits.npy"):
+        assert (tmp_path / "numpy" / name).read_bytes() == (tmp_path / "python" / name).read_bytes(), name
+    assert json.loads((tmp_path / "numpy" / "meta.json").read_text())["cell_window"] == list(astuple(window))
 
 
 @pytest.mark.parametrize("p", [0.0, 1.0, 1.5, -0.1, math.nan])

@@ -70,10 +70,14 @@ class Window:
 
 def known_window(gmap: GridMap, margin: int = 0) -> Window | None:
     """The smallest window holding every observed cell, grown by `margin` cells; None if empty.
-    ValueError unless `margin` is a whole number >= 0: a negative one cut observed cells off the
-    exports without a word (or left none: Pillow's 'cannot write empty image')."""
+    ValueError unless `margin` is a whole number >= 0 (a Python or NumPy integer): a negative one cut
+    observed cells off the exports without a word (or left none: Pillow's 'cannot write empty
+    image'). The window's edges are Python ints."""
     if isinstance(margin, bool) or not isinstance(margin, int | np.integer) or margin < 0:
         raise ValueError(f"margin must be a whole number of cells >= 0, got {margin!r}")
+    # A Python int: with a NumPy one the window's edges were NumPy integers (which json, meta.json's
+    # writer, refuses), and a negative edge minus an unsigned one overflowed.
+    margin = int(margin)
     bounds = gmap.known_bounds()
     if bounds is None:
         return None
