@@ -11,6 +11,7 @@ import re
 import subprocess
 import sys
 import textwrap
+import threading
 import warnings
 from dataclasses import astuple
 from pathlib import Path
@@ -21,6 +22,7 @@ import pytest
 from pydantic import ValidationError
 
 import fleetmap
+from fleetmap import export
 from fleetmap.config import MapConfig
 from fleetmap.export import write_build_outputs
 from fleetmap.grid_map import GridMap
@@ -388,6 +390,44 @@ def test_write_build_outputs_takes_a_string_path(tmp_path: Path) -> None:
     written = write_build_outputs(gmap, str(tmp_path / "out"))
     assert {p.name for p in written} >= {"map.yaml", "map.pgm", "map.png", "meta.json", "log_odds.npy"}
     assert all(p.is_file() for p in written)
+
+
+def test_write_build_outputs_writes_one_state_of_a_map_being_integrated(tmp_path: Path) -> None:
+    """A scan integrated by another thread while the files were written went into some of them and
+    not the others: map.pgm showed a wall that log_odds.npy and hits.npy did not hold, each file
+    of another map. The files are of one state now: integration waits until they are written. The
+    other thread integrates between two of the export's reads if it can do so without waiting."""
+    gmap = GridMap()
+    gmap.integrate(_fan())
+    late = _fan((0.6, 0.4, 1.0))
+    read = gmap.region
+    integrated: list[bool] = []
+
+    def integrate_if_free() -> None:
+        if gmap.lock.acquire(blocking=False):
+            try:
+                gmap.integrate(late)
+            finally:
+                gmap.lock.release()
+            integrated.append(True)
+
+    def region_then_a_scan(*args: Any) -> np.ndarray:
+        out = read(*args)
+        if not integrated:
+            writer = threading.Thread(target=integrate_if_free)
+            writer.start()
+            writer.join()
+        return out
+
+    gmap.region = region_then_a_scan  # type: ignore[method-assign]
+    write_build_outputs(gmap, tmp_path, margin=0)
+    gmap.region = read  # type: ignore[method-assign]
+    log_odds = np.load(tmp_path / "log_odds.npy")
+    hits, misses = np.load(tmp_path / "hits.npy"), np.load(tmp_path / "misses.npy")
+    np.testing.assert_array_equal(~np.isnan(log_odds), (hits > 0) | (misses > 0))
+    pgm = (tmp_path / "map.pgm").read_bytes()
+    assert pgm.endswith(export.pgm_bytes(export.state_to_pgm(gmap.classify(log_odds))))
+    assert not integrated  # it waited
 
 
 @pytest.mark.parametrize("margin", [-2, -1000, 2.5, True, "2"])

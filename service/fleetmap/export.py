@@ -323,8 +323,18 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
     Each file is written beside its final name (`.NAME.partial`) and all take their names only once
     every one is written: a build that fails on the way (a full disk, a file-size limit) leaves the
     folder as it was, where it left a truncated map.pgm beside a new map.yaml, and an earlier
-    build's other files, for nav2 to load."""
+    build's other files, for nav2 to load.
+
+    The files are of one state of the map: it holds the map's lock while it writes them, so a scan
+    integrated by another thread meanwhile waits (one that went in between two files was in some
+    of them and not the others: a map.pgm with a wall that log_odds.npy did not hold)."""
     out_dir = Path(out_dir)
+    with gmap.lock:  # held to the end, below: the files are of one state of the map
+        return _write_build_outputs(gmap, out_dir, margin)
+
+
+def _write_build_outputs(gmap: GridMap, out_dir: Path, margin: int) -> list[Path]:
+    """`write_build_outputs`, under the map's lock."""
     window = known_window(gmap, margin)
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")
