@@ -285,6 +285,21 @@ def test_grid_map_takes_a_configuration_dict_and_refuses_other_things() -> None:
         GridMap(0.05)  # type: ignore[arg-type]
 
 
+def test_a_configuration_takes_numpy_integers_as_the_numbers_they_hold() -> None:
+    """A computed tile size or tile cap (`2 ** np.arange(...)`, `np.int64`) was refused, "Input
+    should be a valid integer", where a NumPy float resolution was taken and the REST client sends
+    both; a NumPy bool stays refused, as a Python one is."""
+    config = MapConfig(tile_size=np.int64(64), max_tiles=np.uint16(300), resolution=np.float32(0.125))  # type: ignore[arg-type]
+    assert config == MapConfig(tile_size=64, max_tiles=300, resolution=0.125)
+    assert type(config.tile_size) is int and type(config.max_tiles) is int
+    assert GridMap({"tile_size": np.int32(32)}).config.tile_size == 32
+    for wrong in (np.True_, True):
+        with pytest.raises(ValidationError, match="max_tiles"):
+            MapConfig(max_tiles=wrong)  # type: ignore[arg-type]
+    with pytest.raises(ValidationError, match="tile_size must be a power of two"):
+        MapConfig(tile_size=np.int64(100))  # type: ignore[arg-type]
+
+
 def test_a_map_keeps_its_configuration_when_the_one_given_changes() -> None:
     """A MapConfig reused for a second map, changed in between, changed the first map too (the map
     held the caller's object): with the TSDF layer taken out of the list, the first map, which

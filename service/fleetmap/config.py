@@ -362,6 +362,14 @@ class MapConfig(BaseModel):
     # (`errors[].loc` of a 422: `["body", "tile_size"]`), and listed beside every other problem: as
     # checks of the whole model, they were located at the body and ran only once all else was valid.
 
+    @field_validator("tile_size", "max_tiles", mode="before")
+    @classmethod
+    def _numpy_integer_is_an_int(cls, value: Any) -> Any:
+        """A NumPy integer counts as the int it holds (a tile size computed as an `np.int64`), as a
+        NumPy float counts as a number for the float fields: strict validation refused it, where
+        the REST client sends it. A NumPy bool is no integer to NumPy either: still refused."""
+        return int(value) if isinstance(value, np.integer) else value
+
     @field_validator("tile_size")
     @classmethod
     def _tile_size_is_a_power_of_two(cls, tile_size: int) -> int:
