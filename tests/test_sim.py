@@ -224,6 +224,18 @@ def test_simulate_scan_fan_and_noise() -> None:
     assert 0.015 < float(np.std(err)) < 0.025 and abs(float(np.mean(err))) < 0.005
 
 
+@pytest.mark.parametrize("num_beams", [2.5, 3.0, "3", np.float64(3.0), True, 0, -1])
+def test_simulate_scan_takes_a_whole_number_of_beams(num_beams: object) -> None:
+    """num_beams 2.5 made 3 beams spaced for 2.5, the last one 90 degrees past the field of view;
+    what is not a whole number >= 1 is refused, naming it."""
+    plan = generate_floorplan(3, 12.0, 9.0)
+    with pytest.raises(ValueError, match="num_beams must be a whole number >= 1"):
+        simulate_scan(plan, (6.0, 4.5, 0.0), num_beams=num_beams)  # type: ignore[arg-type]
+    assert simulate_scan(plan, (6.0, 4.5, 0.0), num_beams=np.int64(3)).angles.tolist() == pytest.approx(
+        [-0.75 * math.pi, 0.0, 0.75 * math.pi]
+    )
+
+
 @st.composite
 def ray_problems(draw: st.DrawFn) -> tuple[FloorPlan, float, float, np.ndarray, float]:
     nx, ny = draw(st.integers(1, 8)), draw(st.integers(1, 8))
@@ -416,8 +428,8 @@ def test_robot_boxed_in_escapes_safely() -> None:
     assert robot.odometer > 50.0
     with pytest.raises(ValueError):
         SimulatedRobot(plan, 0, start=Pose2D(0.15, 1.5, 0.0))  # too close to the wall
-    for beams in (0, 100_001):  # no scan could be made: refused here, not at the first scan
-        with pytest.raises(ValueError, match=f"num_beams must be 1 to 100000, got {beams}"):
+    for beams in (0, 100_001, 2.5):  # no scan could be made: refused here, not at the first scan
+        with pytest.raises(ValueError, match=f"num_beams must be a whole number, 1 to 100000, got {beams}"):
             SimulatedRobot(plan, 0, num_beams=beams)
 
 

@@ -177,8 +177,10 @@ def simulate_scan(
         pose = Pose2D(*(float(v) for v in pose))
     if (angle_min is None) != (angle_increment is None):
         raise ValueError("give both angle_min and angle_increment, or neither")
-    if num_beams < 1:
-        raise ValueError(f"num_beams must be >= 1, got {num_beams}")
+    # A whole number: 2.5 made 3 beams spaced for 2.5, the last one far past the field of view.
+    if isinstance(num_beams, bool) or not isinstance(num_beams, int | np.integer) or num_beams < 1:
+        raise ValueError(f"num_beams must be a whole number >= 1, got {num_beams!r}")
+    num_beams = int(num_beams)
     if angle_min is None or angle_increment is None:
         angle_min = -0.5 * fov
         angle_increment = fov / (num_beams - 1) if num_beams > 1 else 0.0

@@ -140,8 +140,13 @@ class SimulatedRobot:
             raise ValueError(f"clearance must be finite and > 0, got {clearance}")
         if not (math.isfinite(turn_rate) and turn_rate > 0.0):
             raise ValueError(f"turn_rate must be finite and > 0, got {turn_rate}")
-        if not 1 <= num_beams <= MAX_BEAMS:  # else the first scan fails, in the caller's loop
-            raise ValueError(f"num_beams must be 1 to {MAX_BEAMS}, got {num_beams}")
+        # Else the first scan fails, in the caller's loop (`simulate_scan` takes a whole number).
+        if (
+            isinstance(num_beams, bool)
+            or not isinstance(num_beams, int | np.integer)
+            or not 1 <= num_beams <= MAX_BEAMS
+        ):
+            raise ValueError(f"num_beams must be a whole number, 1 to {MAX_BEAMS}, got {num_beams!r}")
         self.plan = plan
         self.speed = float(speed)
         self.scan_rate = float(scan_rate)
