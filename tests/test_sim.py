@@ -236,6 +236,16 @@ def test_simulate_scan_takes_a_whole_number_of_beams(num_beams: object) -> None:
     )
 
 
+def test_simulate_scan_points_a_single_beam_at_the_heading() -> None:
+    """The default fan is centred on the heading; one beam was put at its left edge, -135 degrees,
+    a range of another wall than the one the sensor faces."""
+    plan = generate_floorplan(3, 12.0, 9.0)
+    pose = Pose2D(*plan.random_free_point(np.random.default_rng(0), 0.5), 0.4)
+    scan = simulate_scan(plan, pose, num_beams=1)
+    assert scan.angles.tolist() == [0.0]
+    assert scan.ranges.tolist() == cast_rays(plan, pose.x, pose.y, np.array([0.4]), 30.0).tolist()
+
+
 @st.composite
 def ray_problems(draw: st.DrawFn) -> tuple[FloorPlan, float, float, np.ndarray, float]:
     nx, ny = draw(st.integers(1, 8)), draw(st.integers(1, 8))

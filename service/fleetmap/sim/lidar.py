@@ -165,8 +165,8 @@ def simulate_scan(
 
     Beam i points at `angle_min + i * angle_increment` relative to the sensor heading. By default the
     `num_beams` beams spread evenly over `fov`, centred on the heading, first and last beam on the
-    edges (1081 beams over 270 degrees = 0.25 degree spacing); pass both `angle_min` and
-    `angle_increment` to choose the fan yourself.
+    edges (1081 beams over 270 degrees = 0.25 degree spacing; a single beam points at the heading);
+    pass both `angle_min` and `angle_increment` to choose the fan yourself.
 
     Ranges are exact (see `cast_rays`), +inf for "no return" (nothing within `range_max`), 0.0 for
     every beam if the sensor is inside an occupied cell. With `noise_std > 0`, zero-mean Gaussian
@@ -182,8 +182,10 @@ def simulate_scan(
         raise ValueError(f"num_beams must be a whole number >= 1, got {num_beams!r}")
     num_beams = int(num_beams)
     if angle_min is None or angle_increment is None:
-        angle_min = -0.5 * fov
-        angle_increment = fov / (num_beams - 1) if num_beams > 1 else 0.0
+        if num_beams > 1:
+            angle_min, angle_increment = -0.5 * fov, fov / (num_beams - 1)
+        else:  # centred on the heading as a fan is: it was at the fan's left edge
+            angle_min, angle_increment = 0.0, 0.0
     if not noise_std >= 0.0:
         raise ValueError(f"noise_std must be >= 0, got {noise_std}")
     angles = angle_min + angle_increment * np.arange(num_beams, dtype=np.float64)
