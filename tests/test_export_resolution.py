@@ -94,6 +94,36 @@ def test_the_resolution_must_be_a_whole_multiple_of_the_maps() -> None:
     assert Window(-5, -1, 7, 9).aligned(4) == Window(-8, -4, 8, 12)
 
 
+@pytest.mark.parametrize("scale", [0, -1, 2.5, True, "2"])
+def test_an_export_scale_that_is_not_a_whole_number_of_cells_is_refused(scale: object) -> None:
+    """`map_state`, `map_image`, `nav2_files`, `map_png` (`fleetmap.export`, the library's exports)
+    took any scale: 0 was a ZeroDivisionError, -1 numpy's 'negative dimensions are not allowed',
+    2.5 "'float' object cannot be interpreted as an integer"."""
+    gmap = mapped(64, seed=3)
+    window = known_window(gmap)
+    assert window is not None
+    with pytest.raises(ValueError, match=f"scale must be a whole number of cells >= 1, got {scale!r}"):
+        map_state(gmap, window, scale)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="scale must be a whole number"):
+        nav2_files(gmap, window, scale=scale)  # type: ignore[arg-type]
+
+
+def test_a_coarse_export_of_a_window_not_aligned_to_its_blocks_is_refused() -> None:
+    """A coarse export reads blocks aligned on multiples of the scale (`Window.aligned`); a window
+    that was not failed in numpy ('cannot reshape array of size ... into shape ...'). It is refused,
+    saying what to pass; the aligned window exports as before."""
+    gmap = mapped(64, seed=3)
+    window = known_window(gmap, margin=1)
+    assert window is not None and window != window.aligned(4)
+    with pytest.raises(ValueError, match=r"not aligned to blocks of 4 cells: pass window.aligned\(4\)"):
+        map_state(gmap, window, 4)
+    with pytest.raises(ValueError, match="not aligned"):
+        map_image(gmap, window, probability_to_gray, 4)
+    aligned = window.aligned(4)
+    assert map_state(gmap, aligned, 4).shape == (aligned.shape[0] // 4, aligned.shape[1] // 4)
+    assert map_state(gmap, window).shape == window.shape  # scale 1: any window
+
+
 def test_a_coarse_export_states_its_cells_resolution_to_a_float_s_precision() -> None:
     """The resolution of a coarse export was rounded to the nanometre, as the origins are: for a map
     at 0.05000000074505806 (a float32's 0.05, copied from a published map), 3 x is

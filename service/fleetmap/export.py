@@ -201,7 +201,16 @@ def by_blocks(
     held it for milliseconds), and only a tile's probabilities are held. A part of the window with
     no stored tile is `convert` of unknown without a read: a sparse map's window is mostly such
     parts (a window of 2^30 cells around two scans took 15 s a state export when they were read).
-    Raises LayerUnavailableError for a TSDF-only map."""
+    Raises LayerUnavailableError for a TSDF-only map, ValueError for a `scale` that is not a whole
+    number >= 1 or a window not `aligned` to it."""
+    # Checked here, where every export of a window reads it: 0 was a ZeroDivisionError, -1 and 2.5
+    # numpy's and range()'s errors, and an unaligned window numpy's "cannot reshape array".
+    if isinstance(scale, bool) or not isinstance(scale, int | np.integer) or scale < 1:
+        raise ValueError(f"scale must be a whole number of cells >= 1, got {scale!r}")
+    if window != window.aligned(scale):
+        raise ValueError(
+            f"the window {window} is not aligned to blocks of {scale} cells: pass window.aligned({scale})"
+        )
     ny, nx = window.shape
     out = np.empty((max(ny, 0) // scale, max(nx, 0) // scale), dtype=np.uint8)
     out.fill(convert(np.full((1, 1), np.nan))[0, 0])
