@@ -547,3 +547,28 @@ def test_masked_angles_are_refused() -> None:
         Scan((0.0, 0.0, 0.0), angles, [1.0, 1.0, 1.0], 0.0, 10.0)  # type: ignore[arg-type]
     unmasked = Scan.from_angles((0.0, 0.0, 0.0), np.ma.array([0.0, 0.1]), [1.0, 1.0])
     assert type(unmasked.angles) is np.ndarray and unmasked.angles.tolist() == [0.0, 0.1]
+
+
+def test_cell_windows_take_integers_of_any_kind_and_name_what_is_not_one() -> None:
+    """`region`, `surface` and `clear_window` take cell indices: NumPy integers mixed (int64 with
+    uint64 made a float64 width, "'numpy.float64' object cannot be interpreted as an integer") work
+    as the ints they hold, and a float said "unsupported operand type(s) for >>" (clear_window) or
+    "'float' object cannot be interpreted as an integer", naming nothing; now a TypeError names it."""
+    gmap = GridMap()
+    gmap.integrate(_fan())
+    window = (np.int64(0), np.int32(-5), np.uint64(30), np.int64(40))
+    expected = gmap.region("hits", 0, -5, 30, 40)
+    np.testing.assert_array_equal(gmap.region("hits", *window), expected)  # type: ignore[arg-type]
+    np.testing.assert_array_equal(gmap.surface(*window), gmap.surface(0, -5, 30, 40))  # type: ignore[arg-type]
+    for call in (
+        lambda: gmap.region("hits", 0, -5, 30.0, 40),
+        lambda: gmap.surface(0, -5, 30.0, 40),
+        lambda: gmap.clear_window(0, -5, 30.0, 40),
+    ):
+        with pytest.raises(TypeError, match="i1 must be an integer cell index, got 30.0"):
+            call()
+    with pytest.raises(TypeError, match="j0 must be an integer cell index, got True"):
+        gmap.clear_window(0, True, 30, 40)
+    np.testing.assert_array_equal(gmap.region("hits", 0, -5, 30, 40), expected)
+    assert gmap.clear_window(*window).cells > 0  # type: ignore[arg-type]
+    assert not gmap.region("hits", 0, -5, 30, 40).any()

@@ -225,7 +225,9 @@ class GridMap:
     def clear_window(self, i0: int, j0: int, i1: int, j1: int) -> WindowCleared:
         """Forget the cells `[i0, i1) x [j0, j1)`: every layer back to never-observed there, as
         before any scan (octomap_server's clear of a bounding box). Tiles stay stored; the changed
-        ones get new versions. Later scans observe the cells again as usual."""
+        ones get new versions. Later scans observe the cells again as usual. TypeError for an index
+        that is not an integer (NumPy's are taken), with the map unchanged."""
+        i0, j0, i1, j1 = _cell_window(i0, j0, i1, j1)
         with self.lock:
             return WindowCleared(*self.store.clear_window(i0, j0, i1, j1))
 
@@ -301,7 +303,9 @@ class GridMap:
     def region(self, layer: str, i0: int, j0: int, i1: int, j1: int) -> np.ndarray:
         """A dense copy of one layer over cells `[i0, i1) x [j0, j1)`, shape (j1-j0, i1-i0), row 0 =
         lowest y. Unknown is NaN for `log_odds`, `probability` and `tsdf`, 0 for the counts and
-        `tsdf_weight`, and `STATE_UNKNOWN` for `state`."""
+        `tsdf_weight`, and `STATE_UNKNOWN` for `state`. TypeError for an index that is not an
+        integer (NumPy's are taken)."""
+        i0, j0, i1, j1 = _cell_window(i0, j0, i1, j1)
         source = self.layer_source(layer)
         ny, nx = max(0, j1 - j0), max(0, i1 - i0)
         dtype = np.uint32 if source in ("hits", "misses") else np.float32
@@ -463,7 +467,9 @@ class GridMap:
         those between two of its cells, and those between one of them and a neighbour outside that
         fall inside (`kernels.tsdf.zero_crossings`). Windows side by side share out the surface,
         each point to the one it lies in: read only between the window's own cells, the crossings
-        along the edge where two windows met were in neither, and a map read in windows lost them."""
+        along the edge where two windows met were in neither, and a map read in windows lost them.
+        TypeError for an index that is not an integer (NumPy's are taken)."""
+        i0, j0, i1, j1 = _cell_window(i0, j0, i1, j1)
         self.layer_source("tsdf")
         nx, ny = max(0, i1 - i0), max(0, j1 - j0)
         # The window and one cell around it, where the neighbours outside lie.
@@ -666,6 +672,16 @@ def _ray_origins(
         raise ValueError(f"origin must be finite, within +-{MAX_COORDINATE:g} m; got {bad.tolist()}")
     xy = o.reshape(-1, 2).T.copy()  # rows x and y, each contiguous
     return xy[0], xy[1]
+
+
+def _cell_window(i0: int, j0: int, i1: int, j1: int) -> tuple[int, int, int, int]:
+    """A window's cell indices as Python ints; TypeError naming one that is no integer (a bool is
+    not one). NumPy integers mixed made a float width (int64 - uint64 is a float64), and a float
+    failed deep inside with a message naming nothing (`>>`, `range()`)."""
+    for name, value in (("i0", i0), ("j0", j0), ("i1", i1), ("j1", j1)):
+        if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer):
+            raise TypeError(f"{name} must be an integer cell index, got {value!r}")
+    return int(i0), int(j0), int(i1), int(j1)
 
 
 def _check_scan(scan: object) -> None:
