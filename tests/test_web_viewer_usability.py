@@ -668,6 +668,34 @@ def test_link_with_a_view_out_of_range(new_page: Callable[..., Any], shared_serv
     assert not page.page_errors, page.page_errors
 
 
+#: The centre of the view in screen pixels at the zoom shown.
+_CENTRE_PX_JS = (
+    "() => { const m = window.fleetmapViewer.map, p = m.project(m.getCenter(), m.getZoom());"
+    " return [p.x, p.y, m.getZoom()]; }"
+)
+
+
+def test_a_link_to_a_fine_map_opens_the_same_place(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """The URL's view of a map of 2 mm cells names the same place to the screen pixel. Written to the
+    centimetre (5 cells, 80 pixels at zoom 4), a link to the view, or the page reloaded, opened up
+    to 40 pixels away, and Enter queried another cell than the one under the cross."""
+    base = shared_service.base_url
+    map_id = "fine-link"
+    _put_map(base, map_id, {"resolution": 0.002})
+    _scan(base, map_id, "r1", 1, 0.0, 0.0)
+    page = new_page()
+    _open(page, base, f"#map={map_id}&x=0.1234&y=-0.0567&z=4")
+    shown = page.evaluate(_CENTRE_PX_JS)
+    page.reload()
+    _wait(page, _CONNECTED_JS, what="connected again")
+    again = page.evaluate(_CENTRE_PX_JS)
+    assert again[2] == shown[2] == 4
+    assert math.dist(again[:2], shown[:2]) <= 1.0, (shown, again, _hash_params(page))
+    assert not page.page_errors, page.page_errors
+
+
 # ---- switching maps -----------------------------------------------------------------------------------
 
 #: The URL of every tile image on the map, once each is a loaded 256-pixel tile of map `id`.

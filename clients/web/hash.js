@@ -22,10 +22,19 @@ export function readHash() {
   return { map: p.get('map'), layer: p.get('layer'), view };
 }
 
-/** The view shown, as the hash writes it: centre in metres (to the centimetre) and zoom. */
+/**
+ * The view shown, as the hash writes it: centre in metres and zoom. The centre is rounded to the
+ * centimetre, or finer where a centimetre is more than a screen pixel at the zoom shown (a map of
+ * millimetre cells zoomed in: 0.01 m was 80 pixels at 2 mm and zoom 4, so a link opened up to 40
+ * pixels away, and the cross at the centre on another cell).
+ */
 function currentView() {
   const c = map.getCenter();
-  return { x: +(c.lng * state.res).toFixed(2), y: +(c.lat * state.res).toFixed(2), z: map.getZoom() };
+  const z = map.getZoom();
+  const metresPerPixel = state.res / 2 ** z;
+  // Rounding moves the centre by at most half a unit of the last digit: half a pixel at most.
+  const digits = Math.min(10, Math.max(2, Math.ceil(-Math.log10(metresPerPixel))));
+  return { x: +(c.lng * state.res).toFixed(digits), y: +(c.lat * state.res).toFixed(digits), z };
 }
 
 /** Replace (not push) the hash: switching maps or panning should not fill the back button's history. */
