@@ -783,6 +783,22 @@ def test_tiles_of_a_map_that_changed_while_another_was_shown(
     assert not page.page_errors, page.page_errors
 
 
+def _snapshot_keeping_counts(base: str, map_id: str) -> bytes:
+    """The snapshot of a new map `map_id` that keeps the counts layer only, with one scan."""
+    _put_map(base, map_id, {"layers": ["counts"]})
+    _scan(base, map_id, "r1", 1, 1.0, 1.0)
+    snapshot = httpx.get(f"{base}/maps/{map_id}/snapshot", timeout=30.0)
+    assert snapshot.status_code == 200, snapshot.text
+    return snapshot.content
+
+
+def _replace(base: str, map_id: str, snapshot: bytes) -> None:
+    """Replace map `map_id` with a snapshot (its streams get a `replaced` event)."""
+    headers = {"content-type": "application/zip"}
+    r = httpx.put(f"{base}/maps/{map_id}/snapshot", content=snapshot, headers=headers, timeout=30.0)
+    assert r.status_code == 200, r.text
+
+
 def test_a_map_replaced_by_one_without_the_layer_shown(
     new_page: Callable[..., Any], shared_service: ServiceProcess
 ) -> None:
@@ -792,10 +808,7 @@ def test_a_map_replaced_by_one_without_the_layer_shown(
     and a 'tile failed to load' message came per tile, until the GET answered. Tiles now wait for
     the new map's layers; then every tile is loaded in the layer shown."""
     base = shared_service.base_url
-    _put_map(base, "keeps-counts", {"layers": ["counts"]})
-    _scan(base, "keeps-counts", "r1", 1, 1.0, 1.0)
-    snapshot = httpx.get(f"{base}/maps/keeps-counts/snapshot", timeout=30.0)
-    assert snapshot.status_code == 200, snapshot.text
+    snapshot = _snapshot_keeping_counts(base, "keeps-counts")
     _put_map(base, "replaced-live")
     _scan(base, "replaced-live", "r1", 1, 1.0, 1.0)
     page = new_page()
@@ -805,13 +818,7 @@ def test_a_map_replaced_by_one_without_the_layer_shown(
     refused: list[str] = []
     page.on("response", lambda r: refused.append(r.url) if "/tiles/" in r.url and r.status >= 400 else None)
     with _map_get_held(page, "replaced-live") as held:
-        r = httpx.put(
-            f"{base}/maps/replaced-live/snapshot",
-            content=snapshot.content,
-            headers={"content-type": "application/zip"},
-            timeout=30.0,
-        )
-        assert r.status_code == 200, r.text
+        _replace(base, "replaced-live", snapshot)
         _until_held(page, held, "the page's GET of the replaced map")  # after the `replaced` event
         counter = page.evaluate("() => window.fleetmapViewer.state.tileCounter")
         _scan(base, "replaced-live", "r1", 2, 1.5, 1.0)  # tiles of the new map change in view
@@ -847,4 +854,31 @@ def test_a_late_failure_of_a_map_left_shows_no_error(
     error = page.inner_text("#error") if page.is_visible("#error") else ""
     assert "late-b" not in error, error
     assert page.eval_on_selector("#map-select", "el => el.value") == "late-a"
+    assert not page.page_errors, page.page_errors
+
+
+def test_tiles_the_user_brings_into_view_while_a_replaced_map_loads(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """As above, but the user pans and zooms while the page's GET of the replaced map is slow: each
+    tile Leaflet made for the new view was asked for at once in the old layer, refused (422) and left
+    blank, 26 of them, until its retry 3 s later. Such tiles now wait for the map's layers too."""
+    base = shared_service.base_url
+    snapshot = _snapshot_keeping_counts(base, "keeps-counts-2")
+    _put_map(base, "replaced-moved")
+    _scan(base, "replaced-moved", "r1", 1, 1.0, 1.0)
+    page = new_page()
+    _open(page, base, "#map=replaced-moved&layer=probability")
+    _wait(page, _TILES_OF_MAP_JS, "replaced-moved", what="the map's tiles")
+    refused: list[str] = []
+    page.on("response", lambda r: refused.append(r.url) if "/tiles/" in r.url and r.status >= 400 else None)
+    with _map_get_held(page, "replaced-moved") as held:
+        _replace(base, "replaced-moved", snapshot)
+        _until_held(page, held, "the page's GET of the replaced map")  # after the `replaced` event
+        page.evaluate("() => window.fleetmapViewer.map.panBy([900, 600], {animate: false})")
+        page.evaluate("() => window.fleetmapViewer.map.zoomIn(1, {animate: false})")
+        page.wait_for_timeout(700)  # the new view's tiles are made (and were asked for at once)
+    _wait(page, _ALL_TILES_OF_LAYER_JS, "hits", what="tiles of the hits layer")
+    _wait(page, _TILES_OF_MAP_JS, "replaced-moved", what="every tile loaded")
+    assert refused == [], refused
     assert not page.page_errors, page.page_errors

@@ -32,8 +32,10 @@
  * fetched at most 1000 / TILE_REFRESH_MS times a second, a slow service is never asked for a tile it
  * is still rendering, and a hidden tab fetches nothing (it also closes its event stream until shown
  * again).
- * Tiles created later use the newest counter. A tile that failed to load is stale again, due
- * TILE_RETRY_MS later (while the event stream is connected; a reconnect reloads every tile anyway).
+ * Tiles created later use the newest counter; while (e) does not hold, they show nothing until it does
+ * (the user panned or zoomed while a replaced map loads: asked for at once, they were refused 422).
+ * A tile that failed to load is stale again, due TILE_RETRY_MS later (while the event stream is
+ * connected; a reconnect reloads every tile anyway).
  * The stream's keepalive events (every 15 s of silence by default) bound its silences: one silent
  * for SILENT_STREAM_INTERVALS of them is opened again (events.js), as after any break.
  *

@@ -18,6 +18,8 @@ import { clearError, showError } from './status.js';
 // A per-page-load prefix for tile versions: a map deleted and re-created restarts its versions,
 // and a reloaded page must not hit tiles an earlier page load left in the browser cache.
 const PAGE_STAMP = Date.now().toString(36);
+// A transparent image (unknown cells look the same): a failed tile's, and a held one's (below).
+const BLANK_TILE = 'data:image/gif;base64,R0lGODlhAQABAIAAAAAAAP///yH5BAEAAAAALAAAAAABAAEAAAIBRAA7';
 
 /** The tile layer: its URL carries the map, the layer and the version counter. */
 const FleetTiles = L.TileLayer.extend({
@@ -28,6 +30,10 @@ const FleetTiles = L.TileLayer.extend({
     return img;
   },
   getTileUrl(coords) {
+    // While a reloaded map's layers are unknown (state.tilesHeldBy), the layer shown may be one it no
+    // longer keeps: a tile Leaflet makes meanwhile (the user panned or zoomed) shows nothing, where it
+    // was asked for and refused (422), until the reload's reset asks for every tile (reloadMap).
+    if (state.tilesHeldBy) return BLANK_TILE;
     const v = `${PAGE_STAMP}-${state.tileCounter}`;
     return `maps/${enc(state.mapId)}/tiles/${coords.z}/${coords.x}/${coords.y}.png` +
       `?layer=${enc(state.layer)}&v=${v}`;
@@ -41,8 +47,8 @@ export const tiles = new FleetTiles('', {
   minNativeZoom: MIN_ZOOM,
   noWrap: true,
   keepBuffer: 1,
-  // A failed tile: a transparent image (unknown cells look the same), never the broken-image icon.
-  errorTileUrl: 'data:image/gif;base64,R0lGODlhAQABAIAAAAAAAP///yH5BAEAAAAALAAAAAABAAEAAAIBRAA7',
+  // A failed tile: a transparent image, never the broken-image icon.
+  errorTileUrl: BLANK_TILE,
 });
 
 /**
