@@ -214,6 +214,23 @@ def test_robot_rows_are_stable_buttons(page: Any, svc: ServiceProcess) -> None:
     assert not page.page_errors, page.page_errors
 
 
+def test_a_focused_robot_row_keeps_the_focus_as_robots_come(page: Any, svc: ServiceProcess) -> None:
+    """A keyboard user on a robot's row keeps their place when another robot joins the list: the
+    list was rebuilt whole, every row taken out and put back, and the focused row lost the focus to
+    the page, so the next Tab started again from the top of the page (robots leaving did the same)."""
+    base = svc.base_url
+    _make_map(base, {"sim-5": (2.0, 2.0), "sim-7": (6.0, 2.0)})
+    _open(page, base, f"#map={MAP_ID}")
+    page.wait_for_selector(_ROW.format("sim-7"), timeout=SHOW_MS)
+    page.focus(f"{_ROW.format('sim-7')} button")
+    focused = "() => document.activeElement.closest('#robot-list li')?.dataset.robotId ?? 'none'"
+    assert page.evaluate(focused) == "sim-7"
+    _scan(base, MAP_ID, "sim-6", 1, 4.0, 2.0)  # a robot joins, before sim-7 in the list
+    page.wait_for_selector(_ROW.format("sim-6"), timeout=SHOW_MS)
+    assert page.evaluate(focused) == "sim-7", "the focus left the robot's row"
+    assert not page.page_errors, page.page_errors
+
+
 def test_restart_with_another_map(page: Any, service_factory: Callable[..., ServiceProcess]) -> None:
     """The service restarts and the map comes back with another resolution and other layers (its data
     directory restored from another backup): after the event stream reconnects the viewer shows the

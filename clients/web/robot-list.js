@@ -66,13 +66,19 @@ export function renderRobotList(changed) {
   }
   if (!state.listChanged && robotList.children.length === state.robots.size) return;
   state.listChanged = false;
-  // Rows join or leave the list only when robots come or go, in their order.
+  // Rows join or leave the list only when robots come or go, in their order. The rows that stay are
+  // left where they are: rebuilt whole (replaceChildren), every row was taken out and put back, and
+  // a row taken out loses the keyboard focus, so a user tabbing through the robots lost their place
+  // whenever one came or went.
   const ids = [...state.robots.keys()].sort(naturalOrder.compare);
   const rows = ids.map((id) => state.robots.get(id).row).filter(Boolean);
-  const current = [...robotList.children];
-  if (current.length !== rows.length || current.some((el, k) => el !== rows[k])) {
-    robotList.replaceChildren(...rows);
+  const kept = new Set(rows);
+  for (const el of [...robotList.children]) {
+    if (!kept.has(el)) el.remove(); // a robot gone, or the 'no robots' line
   }
+  rows.forEach((row, k) => {
+    if (robotList.children[k] !== row) robotList.insertBefore(row, robotList.children[k] ?? null);
+  });
 }
 
 /** Write a robot's state and scan count into its row, where they changed; true if any did. */
