@@ -866,6 +866,44 @@ def test_a_data_directory_deleted_while_the_service_runs_makes_nothing_durable_a
         assert stats(svc.base_url, "m")["robots"]["r"]["not_durable"] == 1
 
 
+def test_a_write_ahead_log_deleted_while_the_service_runs_makes_nothing_durable_and_says_so(
+    tmp_path: Path,
+) -> None:
+    """The journal's commits go to `fleetmap.db-wal` first, and SQLite goes on committing into a
+    deleted log through its open descriptor: before the fix, after `rm fleetmap.db-wal` (a clean-up
+    of "temporary" files) scans were answered 200 and /healthz said ok, and a SIGKILL lost every one
+    committed since the last checkpoint (9 of 35 acknowledged in a probe). Now such a scan is answered
+    503 (applied, not durable), /healthz says what happened, and after a SIGKILL every scan answered
+    200 is in the restarted service's map."""
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=1, count=6)]
+    data = tmp_path / "data"
+    wal = data / f"{DB_NAME}-wal"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+
+        def post(k: int) -> httpx.Response:
+            message = json.loads(encode_json(scans[k], k))
+            return httpx.post(
+                f"{svc.base_url}/maps/m/scans", params={"robot_id": "r"}, json=message, timeout=30
+            )
+
+        for k in range(3):
+            assert post(k).status_code == 200
+        wal.unlink()
+        answers = [post(k) for k in range(3, 6)]
+        assert [a.status_code for a in answers] == [503] * 3, [a.text for a in answers]
+        assert "deleted or replaced" in answers[0].json()["detail"]
+        health = httpx.get(f"{svc.base_url}/healthz", timeout=10).json()
+        assert health["status"] == "degraded"
+        assert f"{wal} was deleted or replaced" in health["storage"]["last_error"]
+        assert stats(svc.base_url, "m")["robots"]["r"]["not_durable"] == 3
+        assert svc.proc is not None
+        svc.proc.kill()
+        svc.proc.wait(30)
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        robot = stats(svc.base_url, "m")["robots"]["r"]
+        assert (robot["last_seq"], robot["scans_integrated"]) == (2, 3)
+
+
 def test_failing_snapshots_of_many_maps_log_a_few_lines_not_one_per_map_per_interval(tmp_path: Path) -> None:
     """A failing disk fails every map's snapshot at every interval. Each failure was a log line of
     its own: 30 maps at a 0.5 s interval wrote 128 lines in 5 s (200 maps at the default 30 s, 400

@@ -89,6 +89,11 @@ CREATE TABLE IF NOT EXISTS tombstones (  -- robots of deleted and replaced maps 
 """
 
 
+def wal_path(path: Path) -> Path:
+    """The write-ahead log of the database at `path`, where SQLite (WAL mode) commits first."""
+    return path.with_name(path.name + "-wal")
+
+
 class StorageError(RuntimeError):
     """The data directory cannot hold the maps (unwritable, full, corrupt, in use). The message says
     why."""
@@ -290,7 +295,7 @@ def _refuse_unwritable(path: Path) -> None:
     the start went on and the first write at load failed with SQLite's "attempt to write a readonly
     database", reported as a damaged database to restore from a backup or move aside, which would
     have thrown the maps away."""
-    for file in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
+    for file in (path, wal_path(path), path.with_name(path.name + "-shm")):
         try:
             fd = os.open(file, os.O_RDWR)
         except FileNotFoundError:
@@ -322,7 +327,7 @@ def _refuse_orphaned_wal(path: Path) -> None:
     of `*.db`) and the log holds its latest commits, the journal of acknowledged scans among them.
     SQLite opened a new empty database there and dropped the log: the service started with no maps
     and the scans were gone for good. A crash never leaves this: the database is written first."""
-    wal = path.with_name(path.name + "-wal")
+    wal = wal_path(path)
     try:
         wal_size = wal.stat().st_size
         db_size = path.stat().st_size if path.exists() else 0

@@ -2,7 +2,8 @@
 (one transaction, one fsync, for every scan of the last few milliseconds); snapshots hand it their
 tile rows and the journal rows they supersede. It also stores map changes (created, replaced,
 deleted), retrying one whose transaction failed until it commits (`JournalWriter.change_map`), and
-checks before each commit that the database file is still the one it opened."""
+checks before each commit that the database file and its write-ahead log are still the ones it
+opened."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from fleetmap.database import StorageError, connect
+from fleetmap.database import StorageError, connect, wal_path
 from fleetmap.rate_limited_log import RateLimitedLog
 
 log = logging.getLogger("fleetmap.journal")
@@ -80,9 +81,15 @@ class JournalWriter:
         # The journal writer never checkpoints the WAL by itself (a checkpoint copies hundreds of MB);
         # the snapshot thread does after each snapshot, leaving only a short tail to the writer.
         self._conn = connect(path, autocheckpoint=False)
-        self._path = path
-        # Which file the connection writes to: see `_check_database_file`.
-        self._file_id = _file_id(path)
+        # Which files the connection writes to (see `_check_database_file`): the database, and its
+        # write-ahead log, which `connect` made (or opened) by switching the database to WAL mode.
+        self._files = {
+            file: (what, _file_id(file))
+            for file, what in (
+                (path, "the map database"),
+                (wal_path(path), "the map database's write-ahead log"),
+            )
+        }
         self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | object | None] = (
             queue.Queue()
         )
@@ -212,17 +219,19 @@ class JournalWriter:
         return self.submit(again)
 
     def _check_database_file(self) -> None:
-        """Raise `sqlite3.OperationalError` if the database file at the path is not the one the writer
-        opened: the data directory was deleted (or the file replaced) while the service ran. SQLite
-        goes on committing into the deleted file, through its open descriptor, without an error:
-        scans were counted as integrated and /healthz said ok, and a restart found an empty
-        directory."""
-        if _file_id(self._path) != self._file_id:
-            raise sqlite3.OperationalError(
-                f"the map database {self._path} was deleted or replaced while the service ran, so "
-                "nothing can be made durable any more; save each map with GET /maps/{id}/snapshot "
-                "before restarting the service"
-            )
+        """Raise `sqlite3.OperationalError` if the database file or its write-ahead log at their paths
+        are not the ones the writer opened: the data directory was deleted (or a file replaced)
+        while the service ran. SQLite goes on committing into a deleted file, through its open
+        descriptor, without an error: scans were counted as integrated and /healthz said ok, and a
+        restart found an empty directory or, the log alone deleted (a clean-up of "temporary"
+        files), a database without the commits since the last checkpoint."""
+        for file, (what, opened) in self._files.items():
+            if _file_id(file) != opened:
+                raise sqlite3.OperationalError(
+                    f"{what} {file} was deleted or replaced while the service ran, so nothing can "
+                    "be made durable any more; save each map with GET /maps/{id}/snapshot before "
+                    "restarting the service"
+                )
 
     def _change(self, map_id: str, op: Callable[[sqlite3.Connection], object]) -> object:
         """Run a map change on the writer thread; keep it in `_unstored` if its transaction fails."""
@@ -415,7 +424,7 @@ class JournalWriter:
             for a in attached:
                 self._conn.execute(a.sql, a.params)
             trimmed = self._trim_some()
-            self._check_database_file()  # (a stat: about 1 us per group commit)
+            self._check_database_file()  # (two stats: a few us per group commit)
             self._conn.execute("COMMIT")
         except sqlite3.Error as exc:
             # Nothing of this batch is durable: the scans stay applied in memory but are never
