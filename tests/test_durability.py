@@ -209,6 +209,21 @@ def test_a_data_directory_behind_a_dangling_link_is_refused_saying_so(tmp_path: 
     assert not (tmp_path / "unmounted").exists()
 
 
+def test_a_data_directory_that_is_a_symbolic_link_loop_is_refused_saying_so(tmp_path: Path) -> None:
+    """A data directory that is a symbolic link leading back to itself (`data -> data`, or `data ->
+    other -> data`) was refused as "a symbolic link to other, which does not exist (a disk not
+    mounted?): make that directory", though `other` exists (a link) and no directory can be made
+    there. The message says it is a loop."""
+    (tmp_path / "self").symlink_to("self")
+    (tmp_path / "data").symlink_to("other")
+    (tmp_path / "other").symlink_to("data")
+    for data in (tmp_path / "self", tmp_path / "data"):
+        output = refused_start(tmp_path, data)
+        assert f"{data} is a symbolic link that leads back to itself" in output, output
+        assert "does not exist" not in output
+        assert "Traceback" not in output
+
+
 def test_a_data_directory_with_no_room_is_a_clear_error_at_start(tmp_path: Path) -> None:
     """A disk with no room left: the pid written into the lock file failed first, and the start was
     a traceback, exit code 1. It is refused with one line saying so, exit code 2. The full disk is

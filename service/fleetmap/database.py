@@ -228,6 +228,14 @@ def open_database(data_dir: Path) -> tuple[Path, DataDirLock]:
             # disk not mounted, a volume gone) was "a file, not a directory". It is not made through
             # the link: on an unmounted disk's mount point, the maps would go to the disk beneath.
             link = dangling[0]
+            if _link_loops(link):
+                # (It was "a symbolic link to B, which does not exist: make that directory", of a link
+                # to B, itself a link back to it: no directory can be made there.)
+                raise StorageError(
+                    f"data directory {data_dir}: {link} is a symbolic link that leads back to itself "
+                    f"({link} -> {os.readlink(link)} -> ...): point it to a directory, or give --data-dir "
+                    "another"
+                ) from None
             raise StorageError(
                 f"data directory {data_dir}: {link} is a symbolic link to {os.readlink(link)}, which "
                 "does not exist (a disk not mounted?): make that directory, or give --data-dir another"
@@ -244,6 +252,16 @@ def open_database(data_dir: Path) -> tuple[Path, DataDirLock]:
     except BaseException:
         lock.release()
         raise
+
+
+def _link_loops(link: Path) -> bool:
+    """Whether following the symbolic link `link` never ends (it leads back to itself, at once or
+    through other links)."""
+    try:
+        os.stat(link)
+    except OSError as exc:
+        return exc.errno == errno.ELOOP
+    return False
 
 
 def _check_and_create(data_dir: Path) -> Path:
