@@ -29,6 +29,7 @@ from pathlib import Path
 import httpx
 import pytest
 import zenoh
+from fleetmap_client.publisher import ScanPublisher
 from fleetmap_client.rest import TOKEN_ENV as CLIENT_TOKEN_ENV
 from prometheus_client.parser import text_string_to_metric_families
 from service_process import ServiceProcess, free_port, reaped, wait_for
@@ -38,8 +39,10 @@ from fleetmap.api.app import WEB_DIR_ENV
 from fleetmap.auth import TOKENS_ENV
 from fleetmap.database import DB_NAME
 from fleetmap.http_limits import RESERVED_DESCRIPTORS
+from fleetmap.journal import JournalWriter
 from fleetmap.memory_budget import MemoryBudget
-from fleetmap.registry import QUEUE_TOTAL
+from fleetmap.registry import QUEUE_PER_ROBOT, QUEUE_TOTAL
+from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING
 from fleetmap.zenoh_ingest import unauthenticated_endpoints
 
@@ -767,6 +770,71 @@ def test_a_stalled_disk_shows_on_metrics_as_scans_waiting_for_their_journal_comm
         assert after["fleetmap_journal_backlog_seconds"] == 0
         assert after["fleetmap_journal_rows_total"] == before["fleetmap_journal_rows_total"] + 1
         assert answers and answers[0].status_code in (200, 503)  # 503: not integrated within 10 s
+
+
+def test_a_stalled_disk_holds_the_scans_in_the_bounded_ingest_queue_not_in_memory_without_end(
+    tmp_path: Path,
+) -> None:
+    """While no journal commit came back (a stalled disk: a frozen file system, a hung network
+    mount), the workers went on applying scans and appending them to the journal's queue, each
+    holding its scan: memory grew without bound (1.2 MB/s for two robots at 20 Hz in a probe with
+    the file system frozen by `fsfreeze`, and all of it lost in a crash). Now at most
+    `JournalWriter.MAX_WAITING` rows wait; past that the workers wait too, the scans wait in the
+    ingest queue, whose bounds refuse the newest (`dropped`) as under any other overload, and once
+    the disk moves again every scan not dropped is integrated. Another program holding the
+    database's write lock stalls the commits here, as in the test above."""
+    limit = JournalWriter.MAX_WAITING
+    count = limit + QUEUE_PER_ROBOT + 500  # past the rows waiting, one scan held and the robot's FIFO
+    with ServiceProcess(tmp_path) as svc:
+        post_scans(svc.base_url, "m", "r", range(1))
+
+        def scrape() -> dict[str, float]:
+            text = httpx.get(f"{svc.base_url}/metrics").text
+            return {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples}
+
+        def robot() -> dict:
+            return httpx.get(f"{svc.base_url}/maps/m").json()["stats"]["robots"]["r"]
+
+        data_dir = Path(svc.args[svc.args.index("--data-dir") + 1])
+        holder = sqlite3.connect(data_dir / DB_NAME, isolation_level=None, timeout=30)
+        holder.execute("BEGIN EXCLUSIVE")
+        try:
+            with ScanPublisher("m", "r", connect=[svc.zenoh_endpoint], backlog=count) as pub:
+                assert pub.wait_connected(20), pub.last_connect_error
+                for seq in range(1, count + 1):
+                    pub.publish(
+                        Scan.from_fan((0.0, 0.5, 0.001 * seq), -1.5, 0.05, [2.0] * 61, 0.1, 10.0), seq=seq
+                    )
+                # Until the service has taken every scan somewhere: waiting for its commit, queued,
+                # held by a worker, or refused (with the bound), or until more wait than the bound.
+                stalled = wait_for(
+                    lambda: (
+                        (
+                            (m := scrape())["fleetmap_journal_rows_waiting"] > limit
+                            or m["fleetmap_journal_rows_waiting"]
+                            + m["fleetmap_queue_depth"]
+                            + robot()["dropped"]
+                            >= count - 1
+                        )
+                        and m
+                    ),
+                    25,
+                    what="every scan taken in while the commits stall",
+                )
+        finally:
+            holder.execute("ROLLBACK")
+            holder.close()
+        assert stalled["fleetmap_journal_rows_waiting"] <= limit
+        dropped = robot()["dropped"]
+        assert dropped > 0
+        # The disk moves again: every scan not refused is integrated (none applied and lost).
+        final = wait_for(
+            lambda: (r := robot())["scans_integrated"] + r["dropped"] + r["not_durable"] == count + 1 and r,
+            60,
+            what="every scan settled",
+        )
+        assert final["not_durable"] == 0, final
+        assert final["scans_integrated"] == count + 1 - dropped
 
 
 def test_a_scrape_holds_the_registry_lock_only_to_copy_the_counters() -> None:

@@ -76,6 +76,9 @@ class JournalWriter:
     #: Seconds between retries of a map change that failed to commit, unless a row of that map
     #: waits for it (a restored map's change carries all its tiles: not one retry per group commit).
     RETRY_IDLE = 1.0
+    #: Rows appended and not yet committed (or failed) past which `wait_for_room` holds the
+    #: integration workers back: 5 s of scans at 400 a second, about 60 MB with 1081 beams.
+    MAX_WAITING = 2048
 
     def __init__(self, path: Path, on_error: Callable[[Exception], None] | None = None):
         # The journal writer never checkpoints the WAL by itself (a checkpoint copies hundreds of MB);
@@ -116,6 +119,7 @@ class JournalWriter:
         # empty: only these rows, applied and waiting, show it.
         self._waiting: collections.deque[float] = collections.deque()
         self._waiting_lock = threading.Lock()
+        self._room = threading.Condition(self._waiting_lock)  # fewer than MAX_WAITING: `wait_for_room`
         self._thread = threading.Thread(target=self._run, name="fleetmap-journal", daemon=True)
         self._thread.start()
         self.commits = 0
@@ -163,11 +167,22 @@ class JournalWriter:
                 return 0, 0.0
             return len(self._waiting), max(0.0, time.monotonic() - self._waiting[0])
 
+    def wait_for_room(self) -> None:
+        """Return once fewer than `MAX_WAITING` appended rows wait for their commit: at once, unless
+        the disk stalls. Call it holding no lock. Each waiting row holds its scan (about 30 KB with
+        1081 beams: decoded, as a blob, and its job), and while no commit came back (a frozen file
+        system, a hung network mount) the integration workers went on applying and appending scans
+        at full speed: memory grew without bound (1.2 MB/s for two robots at 20 Hz). Held back
+        here, scans wait in the ingest queue instead, whose bounds refuse the newest (`dropped`)."""
+        with self._room:
+            self._room.wait_for(lambda: len(self._waiting) < self.MAX_WAITING)
+
     def _settled(self, rows: int) -> None:
         """The writer is done with the `rows` oldest appended rows (committed, failed or held back)."""
         with self._waiting_lock:
             for _ in range(min(rows, len(self._waiting))):
                 self._waiting.popleft()
+            self._room.notify_all()
 
     def submit(self, op: Callable[[sqlite3.Connection], object]) -> Future:
         """Queue a database operation for the writer thread, in order with the journal entries

@@ -640,6 +640,11 @@ class DurableStore:
 
         self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable, failed, session))
 
+    def wait_for_journal_room(self) -> None:
+        """Return once the journal has room for another applied scan: at once, unless the disk stalls
+        (`JournalWriter.wait_for_room`). Call it before applying a scan, holding no lock."""
+        self.writer.wait_for_room()
+
     def health(self) -> StorageHealth:
         unstored = self.writer.unstored
         with self._health_lock:

@@ -966,6 +966,10 @@ class MapRegistry:
                 self.queue.done(source)
 
     def _integrate(self, job: Job) -> None:
+        if self.durable is not None:
+            # While the disk stalls, scans wait in the ingest queue, whose bounds hold, rather than
+            # applied in memory behind a commit that does not come back, without end.
+            self.durable.wait_for_journal_room()
         with self.lock:
             entry = self.maps.get(job.map_id)
         if entry is None or entry.generation != job.generation:
