@@ -86,12 +86,10 @@ class JournalWriter:
         self._conn = connect(path, autocheckpoint=False)
         # Which files the connection writes to (see `_check_database_file`): the database, and its
         # write-ahead log, which `connect` made (or opened) by switching the database to WAL mode.
+        self._wal = wal_path(path)
         self._files = {
             file: (what, _file_id(file))
-            for file, what in (
-                (path, "the map database"),
-                (wal_path(path), "the map database's write-ahead log"),
-            )
+            for file, what in ((path, "the map database"), (self._wal, "the map database's write-ahead log"))
         }
         self._queue: queue.Queue[JournalEntry | Callable[[sqlite3.Connection], None] | object | None] = (
             queue.Queue()
@@ -255,6 +253,7 @@ class JournalWriter:
             result = op(self._conn)
         except BaseException as exc:
             self._roll_back()
+            self._save_deleted_log()
             if isinstance(exc, sqlite3.Error):  # storage: retried; anything else is a bug, not retried
                 self._unstored[map_id] = op
             # Published either way: `change_map` may have dropped a failed change this one replaced,
@@ -278,6 +277,21 @@ class JournalWriter:
         with contextlib.suppress(sqlite3.Error):
             if self._conn.in_transaction:
                 self._conn.execute("ROLLBACK")
+
+    def _save_deleted_log(self) -> None:
+        """After a failed transaction: if the write-ahead log was deleted or replaced (see
+        `_check_database_file`), copy what it holds into the database, through the connection's
+        open descriptor (a checkpoint). Its last commits, acknowledged, were in that log alone: a
+        crash before the snapshot thread's next checkpoint (within a second) lost them."""
+        if _file_id(self._wal) == self._files[self._wal][1]:
+            return
+        try:
+            self._conn.execute("PRAGMA wal_checkpoint(FULL)").fetchone()
+        except sqlite3.Error as exc:
+            self._failure_log.error(
+                "deleted log",
+                f"the commits in the deleted write-ahead log {self._wal} could not be saved: {exc}",
+            )
 
     def _retry_unstored(self, needed: set[str | None] | None = None) -> None:
         """Retry the map changes that are not stored (on the writer thread, between transactions):
@@ -449,6 +463,7 @@ class JournalWriter:
             what = f"journal commit failed ({len(batch)} scans not durable): {exc}"
             self._failure_log.error("commit", what)
             self._roll_back()
+            self._save_deleted_log()
             for a in attached:
                 a.future.set_exception(exc)
             # Superseded rows are harmless (ignored and deleted at start); retrying their deletion
