@@ -955,6 +955,26 @@ def test_failing_snapshots_of_many_maps_log_a_few_lines_not_one_per_map_per_inte
     assert re.search(r"\(\d+ similar messages suppressed\)", failed[-1]) or len(failed) == 1
 
 
+def test_a_map_change_the_disk_refuses_is_logged_as_an_error_once(tmp_path: Path) -> None:
+    """A map created, restored or deleted whose transaction failed was answered 503 and listed in
+    /healthz, but the log said only "installed map m9 from an upload" (or "created map m", for a
+    map a robot's scan made, which no HTTP client is told about), and later "the change of map m9 is
+    stored now", of a failure it had never mentioned. Now the failure is an ERROR line naming the
+    map, once for the change, not once per retry (every second, and each time a client repeats it).
+
+    The disk fails as in the test above, the data directory deleted (the log is beside it)."""
+    data = tmp_path / "data"
+    with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
+        shutil.rmtree(data)
+        for _ in range(3):
+            answer = httpx.put(f"{svc.base_url}/maps/new", timeout=30)
+            assert answer.status_code == 503, answer.text
+        logged = [line for line in svc.logs().splitlines() if "ERROR" in line and "map new" in line]
+    assert len(logged) == 1, svc.logs()
+    assert "could not be stored" in logged[0] and "deleted or replaced" in logged[0], logged[0]
+    assert "retried" in logged[0]
+
+
 def test_a_scan_whose_map_is_replaced_while_it_integrates_is_not_replayed_into_the_new_map(
     tmp_path: Path,
 ) -> None:

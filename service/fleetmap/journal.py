@@ -255,6 +255,16 @@ class JournalWriter:
             self._roll_back()
             self._save_deleted_log()
             if isinstance(exc, sqlite3.Error):  # storage: retried; anything else is a bug, not retried
+                if map_id not in self.unstored:
+                    # Once per change, not per retry. Only /healthz and the 503 told before, and the
+                    # log said just "created map m" (a map a robot's scan made, which no HTTP client
+                    # hears of), then "the change of map m is stored now" of a failure never named.
+                    self._failure_log.error(
+                        "map_change",
+                        f"the change of map {map_id} (created, replaced or deleted) could not be stored: "
+                        f"{exc}; it is retried until it is, and the map's scans are not durable meanwhile",
+                        map_id=map_id,
+                    )
                 self._unstored[map_id] = op
             # Published either way: `change_map` may have dropped a failed change this one replaced,
             # and /healthz must not go on listing a map whose rows are no longer held back.
