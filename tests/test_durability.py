@@ -9,6 +9,7 @@ order-independent `counts` layer.
 
 from __future__ import annotations
 
+import ctypes
 import io
 import json
 import os
@@ -921,6 +922,54 @@ def test_a_write_ahead_log_deleted_while_the_service_runs_makes_nothing_durable_
     with ServiceProcess(tmp_path, ["--data-dir", str(data)]) as svc:
         robot = stats(svc.base_url, "m")["robots"]["r"]
         assert (robot["last_seq"], robot["scans_integrated"]) == (2, 3)
+
+
+def _permission_bits_hold_for_root() -> None:
+    """In a service's child process before it starts (`preexec_fn`): drop CAP_DAC_OVERRIDE and
+    CAP_DAC_READ_SEARCH from the bounding set (`prctl(PR_CAPBSET_DROP)`), so that root, once it runs
+    the service, is held to permission bits as another user would be."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    for capability in (1, 2):  # CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH
+        if libc.prctl(24, capability, 0, 0, 0) != 0:  # PR_CAPBSET_DROP
+            raise OSError(ctypes.get_errno(), "prctl(PR_CAPBSET_DROP) failed")
+
+
+def test_a_data_directory_made_inaccessible_under_the_service_is_not_reported_deleted(tmp_path: Path) -> None:
+    """`chmod 000` of the data directory under the running service (a `chmod -R` or `chown -R` of
+    the volume) makes the journal writer's check of the database file fail, and it was reported as
+    "the map database was deleted or replaced while the service ran, so nothing can be made durable
+    any more; save each map before restarting": untrue (the file is there, and commits resumed by
+    themselves once access came back). Now the scan's 503 and /healthz say that the file cannot be
+    looked at, and why. Root ignores permission bits, so as root the service runs without the
+    capabilities that let it (`_permission_bits_hold_for_root`)."""
+    scans = [as_received(s) for s in scans_for(sim=3, plan_seed=1, count=3)]
+    data = tmp_path / "data"
+    preexec = _permission_bits_hold_for_root if os.geteuid() == 0 else None
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data)], preexec_fn=preexec)
+    try:
+        svc.start()
+    except subprocess.SubprocessError as exc:  # (a container that may not change capabilities)
+        pytest.skip(f"cannot run the service without root's permission override: {exc}")
+    with svc:
+
+        def post(k: int) -> httpx.Response:
+            message = json.loads(encode_json(scans[k], k))
+            return httpx.post(
+                f"{svc.base_url}/maps/m/scans", params={"robot_id": "r"}, json=message, timeout=30
+            )
+
+        assert post(0).status_code == 200
+        data.chmod(0)
+        try:
+            refused = post(1)
+            health = httpx.get(f"{svc.base_url}/healthz", timeout=10).json()
+        finally:
+            data.chmod(0o755)
+        assert refused.status_code == 503, refused.text
+        for told in (refused.json()["detail"], health["storage"]["last_error"]):
+            assert "deleted or replaced" not in told, told
+            assert f"{data / DB_NAME} cannot be looked at (Permission denied)" in told, told
+        assert post(2).status_code == 200  # access back: the journal commits again
 
 
 def test_failing_snapshots_of_many_maps_log_a_few_lines_not_one_per_map_per_interval(tmp_path: Path) -> None:

@@ -321,7 +321,7 @@ def _refuse_unwritable(path: Path) -> None:
         except OSError as exc:
             if exc.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
                 continue  # (a directory of that name, ...: SQLite says what is wrong next)
-            user = _user_name()
+            user = user_name()
             raise StorageError(
                 f"the map database file {file} cannot be written ({exc.strerror}): the database is not "
                 f"damaged; give the user the service runs as ({user}) write access to it (chown, "
@@ -330,7 +330,7 @@ def _refuse_unwritable(path: Path) -> None:
         os.close(fd)
 
 
-def _user_name() -> str:
+def user_name() -> str:
     """The name of the user this process runs as (its uid if it has none)."""
     uid = os.geteuid()
     try:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from fleetmap.database import StorageError, connect, wal_path
+from fleetmap.database import StorageError, connect, user_name, wal_path
 from fleetmap.rate_limited_log import RateLimitedLog
 
 log = logging.getLogger("fleetmap.journal")
@@ -239,7 +239,18 @@ class JournalWriter:
         restart found an empty directory or, the log alone deleted (a clean-up of "temporary"
         files), a database without the commits since the last checkpoint."""
         for file, (what, opened) in self._files.items():
-            if _file_id(file) != opened:
+            try:
+                now = _file_id(file)
+            except OSError as exc:
+                # Not a sign that it is gone: the data directory's permissions taken away under the
+                # service (a chmod or chown of the volume) were reported as the database deleted,
+                # "nothing can be made durable any more", though commits resumed with the access.
+                raise sqlite3.OperationalError(
+                    f"{what} {file} cannot be looked at ({exc.strerror}), so the service cannot tell "
+                    f"that it still writes to it: give the user it runs as ({user_name()}) access to "
+                    "the data directory again, and commits resume"
+                ) from None
+            if now != opened:
                 raise sqlite3.OperationalError(
                     f"{what} {file} was deleted or replaced while the service ran, so nothing can "
                     "be made durable any more; save each map with GET /maps/{id}/snapshot before "
@@ -293,7 +304,10 @@ class JournalWriter:
         `_check_database_file`), copy what it holds into the database, through the connection's
         open descriptor (a checkpoint). Its last commits, acknowledged, were in that log alone: a
         crash before the snapshot thread's next checkpoint (within a second) lost them."""
-        if _file_id(self._wal) == self._files[self._wal][1]:
+        try:
+            if _file_id(self._wal) == self._files[self._wal][1]:
+                return
+        except OSError:  # cannot be looked at: not known to be gone (`_check_database_file`)
             return
         try:
             self._conn.execute("PRAGMA wal_checkpoint(FULL)").fetchone()
@@ -504,10 +518,11 @@ class JournalWriter:
 
 
 def _file_id(path: Path) -> tuple[int, int] | None:
-    """(device, inode) of the file at `path`, None if there is none (or it cannot be looked at)."""
+    """(device, inode) of the file at `path`, None if there is none (it, or a directory on its path,
+    is gone). Raises `OSError` if it cannot be looked at (no permission)."""
     try:
         st = os.stat(path)
-    except OSError:
+    except (FileNotFoundError, NotADirectoryError):
         return None
     return st.st_dev, st.st_ino
 
