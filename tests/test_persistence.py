@@ -167,6 +167,32 @@ def test_failing_commits_are_logged_once_an_interval_and_their_end_once(
     assert lines[1].startswith("journal commits succeed again, after 20 failed (20 scans not durable")
 
 
+def test_a_failed_commit_of_snapshot_rows_alone_says_so_not_zero_scans_not_durable(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """While the disk is full and no scan arrives, the commits that fail carry a snapshot's tile rows
+    (or the deletion of superseded journal rows) alone, and each was logged as "journal commit
+    failed (0 scans not durable)": a failure of the journal that lost nothing, or a snapshot's,
+    the operator could not tell. It now says what the transaction held."""
+    path, _lock = open_database(tmp_path)
+    writer = JournalWriter(path)
+    try:
+        with caplog.at_level(logging.INFO, logger="fleetmap.journal"):
+            path.rename(tmp_path / "moved")  # not the writer's file at its path: every commit fails
+            row = writer.attach(
+                "INSERT INTO robots (map_id, robot_id, state) VALUES (?, ?, ?)", ("m", "r", "{}")
+            )
+            with pytest.raises(sqlite3.Error):
+                row.result(timeout=10)
+            (tmp_path / "moved").rename(path)
+    finally:
+        writer.close()
+    lines = [r.getMessage() for r in caplog.records if r.name == "fleetmap.journal"]
+    assert lines, "the failure was not logged"
+    assert "0 scans" not in lines[0], lines[0]
+    assert lines[0].startswith("storing 1 tile row of a snapshot failed (the snapshot is retried)"), lines[0]
+
+
 def test_attached_rows_ride_along_with_the_next_group_commit(tmp_path: Path, monkeypatch) -> None:
     """A snapshot's tile rows are written in the journal's own transactions: with the next group
     commit while scans arrive, alone once none has come for ATTACH_WAIT."""

@@ -484,8 +484,7 @@ class JournalWriter:
             # counted, and the service reports the storage failure loudly.
             self._failed_commits += 1
             self._failed_scans += len(batch)
-            what = f"journal commit failed ({len(batch)} scans not durable): {exc}"
-            self._failure_log.error("commit", what)
+            self._failure_log.error("commit", _failed_commit(batch, attached, exc))
             self._roll_back()
             self._save_deleted_log()
             for a in attached:
@@ -515,6 +514,18 @@ class JournalWriter:
         for e, row_id in zip(batch, ids, strict=True):
             _tell(e.on_durable, int(row_id))
         return True
+
+
+def _failed_commit(batch: list[JournalEntry], attached: list[_AttachedRow], exc: Exception) -> str:
+    """The log line of a failed transaction that held `batch` and `attached` (a snapshot's tile rows,
+    the only rows attached), saying what it held: one of tile rows or superseded rows' deletion
+    alone was "journal commit failed (0 scans not durable)", a journal failure that lost nothing."""
+    if batch:
+        return f"journal commit failed ({len(batch)} scans not durable): {exc}"
+    if attached:
+        rows = f"{len(attached)} tile row{'s' if len(attached) > 1 else ''}"
+        return f"storing {rows} of a snapshot failed (the snapshot is retried): {exc}"
+    return f"deleting journal rows a snapshot superseded failed (harmless: ignored, and deleted later): {exc}"
 
 
 def _file_id(path: Path) -> tuple[int, int] | None:
