@@ -519,6 +519,19 @@ def test_dataset_is_reiterable_and_yields_private_arrays(tmp_path: Path) -> None
         ds[3]
 
 
+def test_dataset_takes_slices_and_numpy_integers_and_names_any_other_index(tmp_path: Path) -> None:
+    """A dataset indexes as a list does: `ds[1:3]` (the scans to replay a part of a log) raised
+    "'<=' not supported between 'int' and 'slice'", and `ds[1.5]` NumPy's IndexError about its
+    arrays, naming nothing of the dataset."""
+    ds = load_dataset(write_log(tmp_path / "sl.log", [flaser([1.0, 2.0], x=float(i)) for i in range(5)]))
+    assert [s.pose.x for s in ds[1:3]] == [1.0, 2.0]
+    assert [s.pose.x for s in ds[::-2]] == [4.0, 2.0, 0.0]
+    assert ds[7:9] == []
+    assert ds[np.int64(3)].pose.x == 3.0
+    with pytest.raises(TypeError, match="dataset indices must be integers or slices, not float"):
+        ds[1.5]  # type: ignore[call-overload]
+
+
 # ---------------------------------------------------------------------------------------------------
 # MATLAB (.mat) files in the Coursera course's convention
 

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import io
 import math
+import operator
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, SupportsIndex, overload
 
 import numpy as np
 
@@ -143,7 +144,7 @@ class Dataset:
 
     `len(ds)` is the number of scans, known without building any. `iter(ds)` can be called any
     number of times and yields new `Scan` objects whose arrays are private copies, so a consumer may
-    modify them. `ds[i]` builds scan i alone.
+    modify them. `ds[i]` builds scan i alone, `ds[a:b]` the list of those scans.
     """
 
     def __init__(
@@ -179,11 +180,26 @@ class Dataset:
         for i in range(len(self)):
             yield self._scan(i)
 
-    def __getitem__(self, index: int) -> Scan:
+    @overload
+    def __getitem__(self, index: SupportsIndex) -> Scan: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[Scan]: ...
+
+    def __getitem__(self, index: SupportsIndex | slice) -> Scan | list[Scan]:
+        """Scan `index` (from the end if negative; NumPy integers too), or the list of a slice's
+        scans, as a list indexes: `IndexError` past the end, `TypeError` for any other index."""
         n = len(self)
-        if not -n <= index < n:
-            raise IndexError(f"scan index {index} out of range for {n} scans")
-        return self._scan(index % n)
+        if isinstance(index, slice):
+            return [self._scan(i) for i in range(*index.indices(n))]
+        try:
+            i = operator.index(index)
+        except TypeError:
+            kind = type(index).__name__
+            raise TypeError(f"dataset indices must be integers or slices, not {kind}") from None
+        if not -n <= i < n:
+            raise IndexError(f"scan index {i} out of range for {n} scans")
+        return self._scan(i % n)
 
     def __repr__(self) -> str:
         return f"Dataset(name={self.name!r}, format={self.format!r}, scans={len(self)}, path='{self.path}')"
