@@ -53,17 +53,31 @@ def cell_edge(index: int, resolution: float) -> float:
     return round(index * resolution, 9)
 
 
+def real_number(value: object) -> float:
+    """`float(value)`, but TypeError for a string or bytes, which `float` (and numpy) would read
+    ("1.5", b"inf"): the engine takes numbers, as the wire's JSON does, not text that looks like one."""
+    if isinstance(value, str | bytes | bytearray):
+        raise TypeError(f"got {type(value).__name__} {value!r}, not a number")
+    return float(value)  # type: ignore[arg-type]  # TypeError for what is no number
+
+
 def float_array(values: npt.ArrayLike) -> np.ndarray:
     """`values` as a float64 array, as `np.asarray(values, dtype=np.float64)`, but ValueError for
     complex numbers: numpy drops their imaginary parts with a warning only, so two points written
     x + yj, an array of shape (2,), were read as the one point (x1, x2), and directions as unit
-    complex numbers as angles equal to their cosines; and ValueError, not OverflowError (no
-    ValueError, so past the callers' documented errors), for an int beyond float's range. Raises what
-    `np.asarray` raises otherwise."""
+    complex numbers as angles equal to their cosines; ValueError for text, which numpy parses
+    ("0.5"), as `real_number` refuses it; and ValueError, not OverflowError (no ValueError, so past
+    the callers' documented errors), for an int beyond float's range. Raises what `np.asarray`
+    raises otherwise."""
     if np.iscomplexobj(values):
         raise ValueError("got complex numbers, whose imaginary parts would be dropped: give real ones")
     try:
-        return np.asarray(values, dtype=np.float64)
+        array = np.asarray(values)
+        if array.dtype.kind in "SUV" or (
+            array.dtype == object and any(isinstance(v, str | bytes | bytearray) for v in array.flat)
+        ):
+            raise ValueError(f"got text ({array.dtype}), not numbers")
+        return array.astype(np.float64, copy=False)
     except OverflowError:
         raise ValueError("got an integer beyond the range of a float") from None
 
@@ -108,4 +122,5 @@ __all__ = [
     "as_points",
     "cell_edge",
     "float_array",
+    "real_number",
 ]

@@ -32,7 +32,7 @@ from fleetmap.cell_queries import STATE_NAMES as STATE_NAMES
 from fleetmap.cell_queries import STATE_OCCUPIED as STATE_OCCUPIED
 from fleetmap.cell_queries import STATE_UNKNOWN as STATE_UNKNOWN
 from fleetmap.cell_queries import Points as Points
-from fleetmap.cell_queries import UnknownCells
+from fleetmap.cell_queries import UnknownCells, real_number
 from fleetmap.cell_queries import as_points as as_points
 from fleetmap.cell_queries import cell_edge as cell_edge
 from fleetmap.cell_queries import float_array as float_array
@@ -525,12 +525,15 @@ class GridMap:
         ox, oy = _ray_origins(origin, a.size)
         if not np.isfinite(a).all():
             raise ValueError("angles must be finite numbers (radians)")
+        given = max_range
         try:
-            max_range = float(max_range)
+            max_range = real_number(max_range)  # text ("10") is no number here either
         except OverflowError:  # an int past float's range: not finite either
             max_range = math.inf
+        except TypeError:  # not a number: refused below
+            max_range = math.nan
         if not (math.isfinite(max_range) and max_range > 0):
-            raise ValueError(f"max_range must be a positive finite number of metres, got {max_range}")
+            raise ValueError(f"max_range must be a positive finite number of metres, got {given!r:.40}")
         cells = max_range / self.resolution
         if cells > MAX_RAY_CELLS:
             # Not rounded to whole cells: 1000.01 m at 0.05 m was "20000 cells, more than the limit

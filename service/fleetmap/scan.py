@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fleetmap.cell_queries import float_array, real_number
+
 #: Beams per scan accepted by the engine; far above any real 2D scanner (a 0.1 degree 360 degree
 #: scanner has 3600). Protects the kernels from absurd allocations.
 MAX_BEAMS = 100_000
@@ -173,21 +175,14 @@ def ranges_to_array(ranges: Sequence[float | None] | np.ndarray) -> np.ndarray:
     if isinstance(ranges, str | bytes) or not isinstance(ranges, Iterable):
         raise ScanError(f"ranges must be a sequence of numbers or None, got {type(ranges).__name__}")
     try:
-        return np.array([math.inf if v is None else _real(v) for v in ranges], dtype=np.float64)
+        return np.array([math.inf if v is None else real_number(v) for v in ranges], dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an int past float's range
         raise ScanError(f"ranges must be numbers or None: {exc}") from None
 
 
-def _real(value: object) -> float:
-    """`float(value)`, but TypeError for a string or bytes, which `float` (and numpy) would read
-    ("1.5", b"inf"): the engine takes numbers, as the wire's JSON does, not text that looks like one."""
-    if isinstance(value, str | bytes | bytearray):
-        raise TypeError(f"got {type(value).__name__} {value!r}, not a number")
-    return float(value)  # type: ignore[arg-type]  # TypeError for what is no number
-
-
 def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
-    """`values` as a float64 array, or `ScanError` naming `name` (not numpy's bare ValueError)."""
+    """`values` as a float64 array, or `ScanError` naming `name` (not numpy's bare ValueError):
+    `float_array`'s rules (no complex numbers, no text), and no mask."""
     if isinstance(values, str | bytes):
         raise ScanError(f"{name} must be a sequence of numbers, got {type(values).__name__}")
     if np.ma.is_masked(values):  # numpy would read the values under the mask, dropping it
@@ -195,14 +190,8 @@ def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
     if np.iscomplexobj(values):  # numpy would drop the imaginary parts, with a warning only
         raise ScanError(f"{name} must be real numbers, got complex ones")
     try:
-        array = np.asarray(values)
-        # Text that reads as numbers ("0.1"), which the conversion below would parse (`_real`).
-        if array.dtype.kind in "SUV" or (
-            array.dtype == object and any(isinstance(v, str | bytes | bytearray) for v in array.flat)
-        ):
-            raise TypeError(f"got text ({array.dtype}), not numbers")
-        return array.astype(np.float64, copy=False)
-    except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an int past float's range
+        return float_array(values)
+    except (TypeError, ValueError) as exc:
         raise ScanError(f"{name} must be numbers: {exc}") from None
 
 
@@ -216,7 +205,7 @@ def directions_finite(theta: float, angles: np.ndarray) -> bool:
 
 def _as_number(name: str, value: float) -> float:
     try:
-        return _real(value)
+        return real_number(value)
     except (TypeError, ValueError):
         raise ScanError(f"{name} must be a number, got {value!r}") from None
     except OverflowError:  # an int past float's range (its repr may be thousands of digits)
@@ -233,7 +222,7 @@ def _as_pose(pose: Pose2D | tuple[float, float, float]) -> Pose2D:
             return pose
         pose = (pose.x, pose.y, pose.theta)
     try:
-        x, y, theta = (_real(v) for v in pose)
+        x, y, theta = (real_number(v) for v in pose)
     except (TypeError, ValueError, OverflowError):  # OverflowError: an int past float's range
         raise ScanError(
             f"pose must be a Pose2D or an (x, y, theta) sequence of numbers, got {pose!r}"
