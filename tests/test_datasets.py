@@ -497,9 +497,14 @@ def test_range_overrides(tmp_path: Path) -> None:
         ({"range_max": 0.5, "range_min": 1.0}, "range_max"),
         ({"range_max": 2e6}, "range_max"),
         ({"range_max": math.nan}, "range_max"),
+        # Text was parsed ("20" taken as 20 m, as no Scan would), or raised float()'s bare ValueError.
+        ({"range_max": "20"}, "range_max must be a number, got '20'"),
+        ({"range_min": "0.1"}, "range_min must be a number, got '0.1'"),
+        ({"range_max": "far"}, "range_max must be a number"),
+        ({"range_min": [1.0]}, "range_min must be a number"),
     ],
 )
-def test_invalid_range_overrides(tmp_path: Path, kwargs: dict[str, float], words: str) -> None:
+def test_invalid_range_overrides(tmp_path: Path, kwargs: dict[str, object], words: str) -> None:
     path = write_log(tmp_path / "r.log", [flaser([1.0])])
     with pytest.raises(DatasetError, match=words):
         load_dataset(path, **kwargs)

@@ -19,6 +19,7 @@ from typing import BinaryIO, SupportsIndex, overload
 
 import numpy as np
 
+from ..cell_queries import real_number
 from ..scan import Pose2D, Scan
 
 #: Default `range_min` of every reader. The logs have no minimum range, but a reading of exactly 0
@@ -58,12 +59,12 @@ def check_range_window(range_min: float | None, range_max: float | None) -> tupl
     not given, and +inf becomes `UNBOUNDED_RANGE_MAX`. Raises `DatasetError` for a window no `Scan`
     would accept, so a bad override fails at load time rather than on the first scan.
     """
-    rmin = DEFAULT_RANGE_MIN if range_min is None else float(range_min)
+    rmin = DEFAULT_RANGE_MIN if range_min is None else _number("range_min", range_min)
     if not (math.isfinite(rmin) and rmin >= 0.0):
         raise DatasetError(f"range_min must be finite and >= 0, got {range_min!r}")
     if range_max is None:
         return rmin, None
-    rmax = float(range_max)
+    rmax = _number("range_max", range_max)
     if rmax == math.inf:
         rmax = UNBOUNDED_RANGE_MAX
     if not (rmax > rmin and rmax <= UNBOUNDED_RANGE_MAX):
@@ -72,6 +73,15 @@ def check_range_window(range_min: float | None, range_max: float | None) -> tupl
             f"(or inf), got {range_max!r}"
         )
     return rmin, rmax
+
+
+def _number(name: str, value: object) -> float:
+    """`value` as a float, or `DatasetError` naming `name`: text ("20") is no number here, as it is
+    none to a `Scan` (`real_number`); float() parsed it, or raised its bare ValueError."""
+    try:
+        return real_number(value)
+    except (TypeError, ValueError, OverflowError):
+        raise DatasetError(f"{name} must be a number, got {value!r:.40}") from None
 
 
 class DatasetBuilder:
