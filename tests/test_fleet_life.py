@@ -132,6 +132,33 @@ def test_copies_and_stale_scans_are_duplicates_even_at_seq_0(
         assert counters(wait_integrated(http, "life-copies", "unstamped", 5)) == (5, 1, 0, 0, 1)
 
 
+def test_a_copy_from_before_a_robots_clock_stepped_back_is_a_duplicate(
+    service: ServiceProcess, http: httpx.Client
+) -> None:
+    """A robot without session ids whose clock NTP steps back an hour mid-run: its seqs go on, so
+    its scans are integrated. A copy of a scan from before the step (a retry, its cache fetched
+    again) carries a stamp later than the last scan's: it was taken for a restart, integrated a
+    second time, moved `last_seq` back and counted the seqs before it as lost. The run's latest
+    stamp, not the last one's, tells a restart now; so does seq 0 of a real restart."""
+    t0 = 1_800_000_000.0
+    with raw_publishers(service.zenoh_endpoint, "life-ntp", ["r"]) as pubs:
+        for seq in range(10):  # the clock steps back 3600 s between seq 4 and seq 5
+            stamp = t0 + seq - (3600.0 if seq >= 5 else 0.0)
+            pubs["r"].put(codec.encode_binary(scan_at(float(seq)), seq, stamp))
+        wait_integrated(http, "life-ntp", "r", 10)
+        for seq in (2, 0):  # late copies from before the step
+            pubs["r"].put(codec.encode_binary(scan_at(float(seq)), seq, t0 + seq))
+        pubs["r"].put(codec.encode_binary(scan_at(10.0), 10, t0 - 3600.0 + 10))
+        stats = wait_for(
+            lambda: (s := robot_stats(http, "life-ntp", "r")).get("scans_integrated", 0) >= 11 and s,
+            timeout=20, what="seq 10 integrated",
+        )  # fmt: skip
+        assert counters(stats) == (11, 10, 0, 2, 0)  # was (13, 10, 11, 0, 2): both copies integrated
+        pubs["r"].put(codec.encode_binary(scan_at(0.5), 0, t0 - 3000.0))  # a real restart: seq 0
+        stats = wait_integrated(http, "life-ntp", "r", 12)
+    assert counters(stats) == (12, 0, 0, 2, 1)
+
+
 def test_robots_outlive_a_service_restart_and_a_robot_restart_after_it(tmp_path: Path) -> None:
     """The service restarts (SIGTERM, durable storage) under a robot that keeps its session: the
     robot reconnects by itself, shows online again, continues its sequence with nothing counted as

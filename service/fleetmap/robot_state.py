@@ -236,7 +236,11 @@ class SessionSeqs:
     restarts of each other."""
 
     last_seq: int  # seq of its last accepted scan
-    stamp: float | None  # stamp of its last accepted scan (None: unknown, in an old snapshot)
+    #: The latest stamp among its scans accepted since its last restart (None: unknown, in an old
+    #: snapshot), not the last one's: a robot whose clock stepped back (NTP) has stamps below it
+    #: after the step, and a copy of a scan from before the step was taken for a restart by its
+    #: stamp, later than the last scan's, and integrated again (`is_restart`).
+    stamp: float | None
     #: The robot's `accepted` count at its first scan and at its last: which sessions were heard
     #: since which (a logical clock, not a time).
     first_scan_no: int
@@ -278,12 +282,13 @@ class SessionSeqs:
         A robot process that restarts counts from 0 again, but its first scans can be lost (published
         before its session reached the service) or it may count from 1; either way its scans must
         not be ignored as duplicates until it passes its old seq. Its stamps go on, so a later stamp
-        than the last accepted scan's says "restarted". A repeated message (a retry, a copy) carries
-        its old stamp, a stale one an earlier stamp: both stay duplicates. Seq 0 is also a restart
-        with an equal or earlier stamp (robots without stamps send 0; a robot without a real-time
-        clock may boot in 1970), unless it repeats the last accepted scan, seq 0 with the same stamp,
-        or is a copy of the scan of seq 0 of the current run: the same stamp as that one's
-        (`start_stamp`), not 0. A `ScanPublisher(send_session_id=False)`'s cache, fetched again after
+        than any of the run's accepted scans (`stamp`) says "restarted". A repeated message (a retry,
+        a copy) carries its old stamp, a stale one an earlier stamp: both stay duplicates, also when
+        the robot's clock stepped back since (its later scans' stamps are below the copy's). Seq 0 is
+        also a restart with an equal or earlier stamp (robots without stamps send 0; a robot without
+        a real-time clock may boot in 1970), unless it repeats the last accepted scan, seq 0 with the
+        same stamp, or is a copy of the scan of seq 0 of the current run: the same stamp as that
+        one's (`start_stamp`), not 0. A `ScanPublisher(send_session_id=False)`'s cache, fetched again after
         a restart of the service, starts with that copy while it holds the robot's first scans: taken
         for a restart, it and every copy after it were integrated a second time.
         A publisher that sends a session id needs none of this: a new session is a restart."""
@@ -473,7 +478,7 @@ class RobotState:
                     # The scan accepted under its seq now (a REST client's next scan after a 422, of
                     # a later stamp) is the last: without a session id a copy of it, its stamp
                     # later than the refused one's, was taken for a restart and integrated twice.
-                    rec.stamp = stamp
+                    rec.stamp = stamp if rec.stamp is None else max(rec.stamp, stamp)
             return False  # a re-send of a scan refused for the service's sake: its seq is recorded already
         self.accepted += 1
         rec = self.sessions.pop(key, None)
@@ -496,7 +501,9 @@ class RobotState:
             beside = [other for other in self.sessions.values() if other.last_scan_no > rec.last_scan_no]
             if beside:
                 self._conflict(rec, beside, now)
-            rec.last_seq, rec.stamp, rec.last_scan_no = seq, stamp, self.accepted
+            # The run's latest stamp (`SessionSeqs.stamp`); a restart's own starts its run.
+            latest = max(rec.stamp, stamp) if seq > rec.last_seq and rec.stamp is not None else stamp
+            rec.last_seq, rec.stamp, rec.last_scan_no = seq, latest, self.accepted
         if seq == 0:
             rec.start_stamp = stamp
         self.sessions[key] = rec

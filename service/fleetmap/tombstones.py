@@ -23,14 +23,14 @@ so its token brings it back as before (`buried` is False) and the delivery query
 sessions as gone with a map. When that map is deleted or replaced, its forgotten robots' stones
 become ordinary ones (`bury`): their scans went with it.
 
-Scans without a session id are covered by their last seq and stamp (`Tombstone.plain`): a copy
-carries its old stamp, so one at or below that seq whose stamp is not later than that scan's (and
-not 0: a robot without a clock, whose copies cannot be told from a restart) is from before; a robot
-that started its sequence again, with a later stamp, goes through. They are re-delivered too: a
-`ScanPublisher(send_session_id=False)` keeps its cache, and after a restart of the service its old
-scans, not covered, made the deleted map again with them. (A live map takes seq 0 of an earlier
-stamp for a restart unless it is the run's own seq 0 again, `SessionSeqs.is_restart`; a stone
-keeps no run's seq 0, and its robot's copies are what it is for.)
+Scans without a session id are covered by their last seq and their run's latest stamp
+(`Tombstone.plain`, `SessionSeqs.stamp`): a copy carries its old stamp, so one at or below that seq
+whose stamp is not later than that (and not 0: a robot without a clock, whose copies cannot be told
+from a restart) is from before; a robot that started its sequence again, with a later stamp, goes
+through. They are re-delivered too: a `ScanPublisher(send_session_id=False)` keeps its cache, and
+after a restart of the service its old scans, not covered, made the deleted map again with them.
+(A live map takes seq 0 of an earlier stamp for a restart unless it is the run's own seq 0 again,
+`SessionSeqs.is_restart`; a stone keeps no run's seq 0, and its robot's copies are what it is for.)
 
 Maps are created and deleted under new ids for the service's whole life, so tombstones are bounded:
 kept `TOMBSTONE_DAYS`, and for at most `MAX_TOMBSTONES` robots (`prune`). Past that many, forgotten
@@ -80,8 +80,8 @@ class Tombstone:
     `RobotState.refused_scans` is not: after a restart they are covered, as the map's own
     bookkeeping would have it.
 
-    `plain`: the last seq and stamp (None: unknown) the service had of the robot's scans without a
-    session id, None if it had none."""
+    `plain`: the last seq and the run's latest stamp (None: unknown) the service had of the robot's
+    scans without a session id, None if it had none."""
 
     map_id: str
     robot_id: str
