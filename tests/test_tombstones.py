@@ -143,6 +143,29 @@ def test_old_scans_without_a_session_id_of_a_deleted_map_are_ignored_after_a_res
         full.close()
 
 
+def test_old_scans_of_negative_stamps_of_a_deleted_map_are_ignored(data: Path) -> None:
+    """Stamps are of any epoch, so some are negative; only 0 says "no clock". A stone covered a copy
+    only with a stamp above 0: the copies of a robot whose stamps are negative, ignored as
+    duplicates by the live map, made the deleted map again with its old scans."""
+    reg = registry(data)
+    try:
+        for seq in range(5):
+            reg.submit("m", "plain", WireScan(seq, -1000.0 + seq, SCANS[seq], None))
+        assert wait_idle(reg)
+        with pytest.raises(IngestRejected, match="duplicate seq 2"):  # the live map's copy rule
+            reg.submit("m", "plain", WireScan(2, -998.0, SCANS[2], None))
+        reg.delete("m", wait=True)
+        for seq in range(5):
+            refused = refusal(reg, "m", "plain", WireScan(seq, -1000.0 + seq, SCANS[seq], None))
+            assert refused.status == 200 and "had seq 4" in refused.reason, refused.reason
+        assert "m" not in reg.maps
+        reg.submit("m", "plain", WireScan(2, -10.0, SCANS[2], None))  # restarted: a later stamp
+        assert wait_idle(reg)
+        assert reg.get("m").robots["plain"].scans_integrated == 1
+    finally:
+        reg.close()
+
+
 def test_a_token_of_a_buried_robot_creates_no_map_but_another_robots_does(restarted: MapRegistry) -> None:
     restarted.set_online("m", "r", True)  # seen again: the service restarted, or its link came back
     restarted.set_online("m", "other", True)  # buried too, though it sent no session id

@@ -259,7 +259,8 @@ class Tombstones:
             return None
         if session is None:
             last_stamp = None if stone.plain is None else stone.plain[1]
-            if last_stamp is None or not 0 < stamp <= last_stamp:
+            # Stamps are of any epoch, negative ones too: only 0 says "no clock" (as `is_restart`).
+            if last_stamp is None or stamp == 0 or stamp > last_stamp:
                 return None
         return stone
 
