@@ -732,6 +732,10 @@ def test_interleaved_sessions_are_a_conflict_shown_for_a_minute_and_a_late_copy_
     assert robot.is_duplicate(3, 0.0, 1) and not robot.is_duplicate(5, 0.0, 1)
     assert robot.in_conflict(100.0 + CONFLICT_SHOWN - 1) and not robot.in_conflict(100.0 + CONFLICT_SHOWN)
 
+    # The service's clock stepped back an hour (NTP) after the last interleaved scan: not shown for
+    # the hour and a minute until the clock is back there (`conflict_at` is wall-clock time, saved).
+    assert not robot.in_conflict(100.0 - 3600.0)
+
     restarted = RobotState()
     for k in range(3):
         restarted.accept(k, 50.0 + k, 7, now=1.0)

@@ -530,5 +530,9 @@ class RobotState:
         self.id_conflicts += len(newly) - 1 if first_found else len(newly)
 
     def in_conflict(self, now: float) -> bool:
-        """Whether scans of two sessions interleaved within the last CONFLICT_SHOWN seconds."""
-        return self.conflict_at is not None and now - self.conflict_at < CONFLICT_SHOWN
+        """Whether scans of two sessions interleaved within the last CONFLICT_SHOWN seconds (`now`
+        and `conflict_at` are wall-clock time, which a snapshot keeps across restarts). A
+        `conflict_at` after `now` is from before the service's clock stepped back: how long ago is
+        not known, and taken for "just now" the conflict showed for as long as the step (hours)
+        plus a minute; one that goes on shows again with its next interleaved scan."""
+        return self.conflict_at is not None and 0.0 <= now - self.conflict_at < CONFLICT_SHOWN
