@@ -133,3 +133,41 @@ def test_a_window_of_any_size_is_cleared(service: ServiceProcess) -> None:
         r = c.delete("/maps/fine/region", params=everything)
         assert r.status_code == 200 and r.json()["cells_cleared"] > 0, r.text
         assert c.get("/maps/fine").json()["stats"]["bounds"] is None
+
+
+def resume_position(client: httpx.Client, map_id: str) -> str | None:
+    """Open `map_id`'s event stream as an EventSource would, read what it sends on connect (up to its
+    first `robots` event), leave, and return the last event id the EventSource then holds: what it
+    sends back as `Last-Event-ID` when it reconnects (None: it sends none, and the stream starts from
+    now). Follows the HTML rules: an `id:` line sets the id even in a block without data."""
+    last_id: str | None = None
+    with client.stream("GET", f"/maps/{map_id}/events", timeout=10) as r:
+        assert r.status_code == 200
+        kind = ""
+        for line in r.iter_lines():
+            if line.startswith("id: "):
+                last_id = line.removeprefix("id: ")
+            elif line.startswith("event: "):
+                kind = line.removeprefix("event: ")
+            elif line == "" and kind == "robots":
+                return last_id
+    raise AssertionError("the stream ended before its first robots event")
+
+
+def test_a_stream_left_before_any_change_resumes_without_a_gap(service: ServiceProcess) -> None:
+    """docs/api.md, events: a reconnecting EventSource sends the last id as `Last-Event-ID` and gets
+    the changes since. A stream gave ids only with `tiles` events, so a viewer whose connection
+    dropped before the map first changed under it (a quiet map, a proxy closing idle streams) held
+    no id: it reconnected without one, the stream started from then, and the tiles changed while it
+    was away were never announced (its tiles stayed stale for good)."""
+    with httpx.Client(base_url=service.base_url, timeout=30) as c:
+        assert c.put("/maps/quiet", json={"tile_size": 16}).status_code == 201
+        last_id = resume_position(c, "quiet")
+        # Away: the map changes.
+        scan = Scan.from_fan((0.3, 0.1, 0.0), -1.5, 0.05, [1.0] * 61, 0.0, 30.0)
+        r = c.post("/maps/quiet/scans", params={"robot_id": "a"}, content=encode_json(scan, 1), headers=JSON)
+        assert r.status_code == 200 and r.json()["changed_tiles"], r.text
+        changed = r.json()["changed_tiles"]
+        assert last_id is not None, "the stream gave the client no event id to resume from"
+        event = first_tiles_event(c, "quiet", int(last_id))
+        assert "reset" not in event and all(w in event["tiles"] for w in changed), (event, changed)

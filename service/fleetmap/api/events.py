@@ -9,6 +9,8 @@ Format (text/event-stream):
 
     retry: 1000
 
+    id: 41
+
     id: 42
     event: tiles
     data: {"version": 42, "tiles": [[0, 0, 256, 256], [256, 0, 512, 256]]}
@@ -23,6 +25,10 @@ Format (text/event-stream):
 
     : keepalive
 
+- `id:` alone, once when the stream opens: the change version it starts from (the `since` it
+  resumes after, else the map's version now), which an EventSource keeps as its last event id
+  without dispatching anything, so a client that loses the stream before any `tiles` event still
+  resumes from there (`Last-Event-ID`) instead of from its reconnection, missing what changed.
 - `tiles`: cell windows `[i0, j0, i1, j1]` of the storage tiles changed since the last event (refetch
   the web tiles that overlap them; the streams of a map share their events, `tiles_event`, so one
   may name a few tiles the previous one did too), or `{"version": v, "reset": true}`: too much
@@ -218,6 +224,13 @@ async def event_stream(
                 feed.version,
             )
             version = feed.version
+        else:
+            # Where this stream starts, as an id without data (an EventSource takes it as its last
+            # event id and dispatches nothing): a client whose connection drops before the first
+            # `tiles` event resumes from here. Ids came only with `tiles` events, so one that left a
+            # quiet map reconnected without `Last-Event-ID`, started from then, and never heard of
+            # the tiles changed while it was away.
+            yield f"id: {version}\n\n"
         last_sent = time.monotonic()
         while not state.event_streams.closing:
             if grant is not None and not grant.still_valid():
@@ -322,6 +335,9 @@ async def get_events(
 ) -> StreamingResponse:
     """Server-sent events, at most one `tiles` and one `robots` event per 100 ms:
 
+    - `id: <version>` alone (no data), first: the change version the stream starts from, which an
+      EventSource keeps as its last event id, so a client that loses the stream before any `tiles`
+      event resumes from there;
     - `event: tiles`, `id: <version>`, data `{"version": int, "tiles": [[i0, j0, i1, j1], ...]}`: the
       cell windows of the storage tiles changed since the previous event (refetch the overlapping web
       tiles), or `{"version": int, "reset": true}`: reload everything;
@@ -343,7 +359,7 @@ async def get_events(
     - `: the token of this stream was revoked`: the token (bearer or session cookie) that opened the
       stream was revoked, or demoted below the role reading needs; the stream ends after it.
 
-    A reconnecting EventSource sends `Last-Event-ID` (the last tiles version it got) and receives what
+    A reconnecting EventSource sends `Last-Event-ID` (the last version it got) and receives what
     changed since; `?since=` does the same by hand (a `Last-Event-ID` that is a version wins over it:
     an EventSource opened with `?since=` sends both on a reconnect, the header being the later).
     Robots always start with a full `robots` event.
