@@ -17,7 +17,9 @@ Tile convention (the REST endpoint `GET /maps/{map_id}/tiles/{z}/{x}/{y}.png?lay
 What a pixel shows when it summarises several cells (z < 0), so that zooming out never hides what
 matters: `probability` / `log_odds` / `state` show the MOST occupied known cell of the block (walls do
 not vanish), `hits` / `misses` / `tsdf_weight` the largest value, `tsdf` the value nearest the
-surface (smallest |tsdf|). A pixel is unknown (transparent) only if no cell of its block is known.
+surface (smallest |tsdf|). A pixel is unknown (transparent) where no cell of its block is known;
+for `state`, also where the block's most occupied known cell lies between the thresholds (below),
+as that cell alone is: free cells beside it do not make the block free.
 
 Colours (RGBA; unknown is fully transparent, everything known is opaque):
 
