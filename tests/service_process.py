@@ -68,13 +68,27 @@ _PORTS = (20000, 32000)
 _given_ports: set[int] = set()
 
 
+def _port_range() -> tuple[int, int]:
+    """The part of `_PORTS` this process picks from: under pytest-xdist, worker k of n takes the k-th
+    of n equal parts, so that two workers never pick the same port. Picking from the whole range,
+    two services starting at once in two workers could be given one port, free when each looked,
+    and one of them failed to start ("Address already in use", CI 2026-11-29)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")  # "gw0", "gw1", ... in xdist's workers
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if not worker.startswith("gw") or count <= 1:
+        return _PORTS
+    k, span = int(worker[2:]), (_PORTS[1] - _PORTS[0]) // count
+    return _PORTS[0] + k * span, _PORTS[0] + (k + 1) * span
+
+
 def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now, outside the ephemeral range, and not given out before
-    by this process (a small race remains until the child binds it, with other processes picking
-    from the same range at random)."""
-    rng = random.Random()  # seeded from the OS: the xdist workers pick independently
+    """A TCP port free on 127.0.0.1 right now, outside the ephemeral range, not given out before by
+    this process, nor one another xdist worker of this run may give (`_port_range`). A small race
+    remains until the child binds it, with other programs picking from the same range."""
+    rng = random.Random()  # seeded from the OS
+    low, high = _port_range()
     for _ in range(1000):
-        port = rng.randrange(*_PORTS)
+        port = rng.randrange(low, high)
         if port in _given_ports:
             continue
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -84,7 +98,7 @@ def free_port() -> int:
                 continue
         _given_ports.add(port)
         return port
-    raise RuntimeError(f"no free TCP port in {_PORTS[0]}-{_PORTS[1]} on 127.0.0.1")
+    raise RuntimeError(f"no free TCP port in {low}-{high} on 127.0.0.1")
 
 
 def _child_env(extra: Mapping[str, str] | None = None) -> dict[str, str]:
