@@ -649,6 +649,46 @@ def test_map_changes_are_durable_when_answered(tmp_path: Path) -> None:
         restarted.stop()
 
 
+def test_refusals_are_stored_by_the_next_snapshot_though_nothing_was_journaled(tmp_path: Path) -> None:
+    """Scans refused, ignored as duplicates or dropped leave no journal row: their counts are stored
+    by the map's snapshots. Only maps with journaled scans were snapshotted, so a map whose robots
+    had only refusals since its last snapshot kept them in memory alone, and a SIGKILL minutes later
+    still took them along, where docs/durability.md says a crash loses those of its last moments."""
+    data = tmp_path / "data"
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data), "--snapshot-interval", "0.5"]).start()
+    scan = Scan.from_fan(Pose2D(1.0, 2.0, 0.0), -0.5, 0.01, [2.0] * 100, 0.05, 30.0)
+    too_many_beams = Scan.from_fan(Pose2D(1.0, 2.0, 0.0), -0.5, 0.00001, [2.0] * 20000, 0.05, 30.0)
+    try:
+        url = svc.base_url
+
+        def post(s: Scan, seq: int) -> httpx.Response:
+            body = encode_json(s, seq, 1.0)
+            return httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, content=body, timeout=30,
+                              headers={"content-type": "application/json"})  # fmt: skip
+
+        def stored() -> tuple[int, int] | None:
+            """The map's counts (integrated, rejected) as its last snapshot stored them."""
+            with sqlite3.connect(f"file:{data / DB_NAME}?mode=ro", uri=True) as conn:
+                query = "SELECT scans_integrated, scans_rejected FROM maps WHERE id = 'm'"
+                return conn.execute(query).fetchone()
+
+        assert post(scan, 0).json()["status"] == "integrated"
+        wait_for(lambda: stored() == (1, 0), what="a snapshot storing the scan")
+        assert post(too_many_beams, 1).status_code == 422
+        assert post(scan, 0).json()["status"] == "duplicate"
+        wait_for(lambda: stored() == (1, 1), what="a snapshot storing the refusal")
+        svc.proc.kill()  # SIGKILL: no closing snapshot
+        svc.proc.wait()
+    finally:
+        svc.stop()
+    restarted = ServiceProcess(tmp_path, ["--data-dir", str(data)]).start()
+    try:
+        robot = httpx.get(f"{restarted.base_url}/maps/m", timeout=10).json()["stats"]["robots"]["r"]
+    finally:
+        restarted.stop()
+    assert (robot["scans_integrated"], robot["scans_rejected"], robot["duplicates"]) == (1, 1, 1), robot
+
+
 def test_a_snapshot_that_never_switched_is_ignored(tmp_path: Path) -> None:
     """A crash after a snapshot wrote tile rows but before it switched the map to them: at start the
     map is the previous snapshot plus the journal, and the stray rows are gone."""

@@ -59,6 +59,9 @@ class MapEntry:
     #: robot id: its next snapshot stores them in the transaction that drops those robots' rows
     #: (`MapRegistry.snapshot_all`). With a `DurableStore` only.
     unstored_stones: dict[str, Tombstone] = field(default_factory=dict)
+    #: `unjournaled()` as its last snapshot stored it (or as restored at start): a change since makes
+    #: a snapshot due (`MapRegistry.snapshot_all`).
+    unjournaled_stored: int = 0
 
     def __post_init__(self) -> None:
         self.changes = ChangeFeed(start=self.generation)
@@ -79,6 +82,12 @@ class MapEntry:
         """Record that a field of `robot` that viewers show changed (call under the registry's lock)."""
         self.live_version += 1
         robot.changed = self.live_version
+
+    def unjournaled(self) -> int:
+        """How many scans it counted that left no journal row: refused (counted on the map, robots'
+        refusals too), ignored as duplicates, or dropped by the full queue (call under the
+        registry's lock). Only a snapshot stores their counts."""
+        return self.scans_rejected + sum(robot.duplicates + robot.dropped for robot in self.robots.values())
 
     def forget(self, robot_id: str) -> None:
         """Remove robot `robot_id` and all the service knows of it (call under the registry's lock)."""

@@ -226,6 +226,7 @@ class MapRegistry:
             entry.scans_integrated = counters["scans_integrated"]
             entry.scans_rejected = counters["scans_rejected"]
             entry.robots = counters["robots"]
+            entry.unjournaled_stored = entry.unjournaled()  # as stored: no snapshot due for them
             started = last_report = time.monotonic()
             for replayed, (robot_id, seq, stamp, session, row) in enumerate(journal):
                 try:
@@ -323,9 +324,14 @@ class MapRegistry:
         if self.durable is None:
             return
         for entry in self.list():
-            needed = self.durable.needs_snapshot(entry.id)
+            # Refusals, duplicates and drops are journaled nowhere: only a snapshot stores their
+            # counts. Checked at the full passes only, which the refusals alone make due: a map
+            # whose robots' scans were all refused since its last snapshot was never snapshotted,
+            # and a crash hours later took their counts along.
+            refusals = not only_overdue and self._refusals_unsaved(entry)
+            needed = self.durable.needs_snapshot(entry.id) or refusals
             if every_map or (needed and (not only_overdue or self.durable.overdue(entry.id))):
-                saved: list[dict] = []  # what the snapshot stores of the map's robots
+                saved: list[tuple[dict, int]] = []  # what the snapshot stores of the map's robots
                 counters = functools.partial(self._saved_counters, entry, saved)
                 # Listed above, perhaps seconds ago (each snapshot takes its time): the map may have
                 # been deleted or replaced since, and a new map of its id must not get its snapshot.
@@ -333,7 +339,9 @@ class MapRegistry:
                 try:
                     self.durable.snapshot(entry.id, entry.gmap, counters, current)
                     if saved:
-                        self._stones_stored(entry, saved[0]["forgotten"])
+                        stored, unjournaled = saved[0]
+                        self._stones_stored(entry, stored["forgotten"])
+                        entry.unjournaled_stored = unjournaled
                 except (sqlite3.Error, OSError, StorageError) as exc:
                     then = "the last one: the service is stopping" if last else "retried at the next one"
                     self._snapshot_log.error(
@@ -355,8 +363,15 @@ class MapRegistry:
         with self.lock:
             return self.maps.get(entry.id) is entry
 
-    def _saved_counters(self, entry: MapEntry, taken: list[dict]) -> dict:
-        """What a snapshot of map `entry` stores of its robots (and appends to `taken`): their
+    def _refusals_unsaved(self, entry: MapEntry) -> bool:
+        """Whether map `entry` counted scans without a journal row (`MapEntry.unjournaled`) since
+        its last snapshot stored its counters."""
+        with self.lock:
+            return entry.unjournaled() != entry.unjournaled_stored
+
+    def _saved_counters(self, entry: MapEntry, taken: list[tuple[dict, int]]) -> dict:
+        """What a snapshot of map `entry` stores of its robots (and appends to `taken`, with its
+        `MapEntry.unjournaled` then): their
         counters, and the tombstones of the robots it forgot that storage does not hold yet, those
         `self.tombstones` still holds: the others were pruned (`MAX_TOMBSTONES`, `TOMBSTONE_DAYS`),
         and kept here while snapshots failed (a failing disk), they piled up without bound, one per
@@ -372,7 +387,7 @@ class MapRegistry:
                 "robots": {rid: state.saved() for rid, state in entry.robots.items()},
                 "forgotten": list(entry.unstored_stones.values()),
             }
-        taken.append(saved)
+            taken.append((saved, entry.unjournaled()))
         return saved
 
     def _stones_stored(self, entry: MapEntry, stones: list[Tombstone]) -> None:
