@@ -33,8 +33,9 @@ from fleetmap_client import cli
 from fleetmap_client.publisher import ScanPublisher
 from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged, parse_sse
 from PIL import Image
-from service_process import FreezableProxy, ServiceProcess, free_port, wait_for
+from service_process import REPO_DIR, FreezableProxy, ServiceProcess, free_port, wait_for
 
+from fleetmap.api_models import ReplacedEvent
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
@@ -1006,6 +1007,41 @@ def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, sca
     client.delete_map("ev-rep")
     assert finished.wait(10), "the event stream did not end after the map was deleted"
     assert received[-1] == ("deleted", {"id": "ev-rep"})
+
+
+def test_a_nav2_import_replacing_a_map_sends_replaced(client: FleetmapClient, scans: list[Scan]) -> None:
+    """`PUT /maps/{id}/import` replaces a map as a snapshot upload does, and its streams get `replaced`
+    too; the docs of the event (docs/api.md, docs/clients.md, the spec, `ReplacedEvent`) named the
+    snapshot upload alone, so a client following an imported map was told to expect `deleted`."""
+    client.create_map("ev-imp", CONFIG)
+    client.post_scan("ev-imp", "rob", scans[0], seq=0)
+    nav2 = client.export("ev-imp", "ros")
+    received: list[tuple[str, dict[str, Any]]] = []
+
+    def listen() -> None:
+        with FleetmapClient(client.base_url) as own:
+            for event in own.events("ev-imp"):
+                received.append(event)
+                if event[0] in ("replaced", "deleted"):
+                    return
+
+    threading.Thread(target=listen, daemon=True).start()
+    wait_for(lambda: any(e == "robots" for e, _ in received), 10, 0.02, "the initial robots event")
+    assert client.import_nav2("ev-imp", nav2).id == "ev-imp"
+    start = client.get_map("ev-imp").stats.version
+    wait_for(lambda: ("replaced", {"id": "ev-imp", "version": start}) in received, 10, 0.02, "replaced")
+    api = (REPO_DIR / "docs" / "api.md").read_text(encoding="utf-8")
+    clients = (REPO_DIR / "docs" / "clients.md").read_text(encoding="utf-8")
+    spec = (REPO_DIR / "openapi" / "openapi.json").read_text(encoding="utf-8")
+    descriptions = {
+        "docs/api.md": re.search(r"^- `replaced`:.*?(?=^- )", api, re.M | re.S),
+        "docs/clients.md": re.search(r'\("replaced", \{"id",.*?\(reload', clients, re.S),
+        "openapi.json": re.search(r"event: replaced`, `id: <version>`.*?;", spec, re.S),
+    }
+    for where, found in descriptions.items():
+        assert found is not None, f"{where} no longer describes the replaced event where it did"
+        assert "/import" in found.group(0), f"{where} does not say an import sends replaced: {found.group(0)}"
+    assert "/import" in (ReplacedEvent.__doc__ or "")
 
 
 def test_events_resume_after_the_service_restarts(tmp_path: Path, scans: list[Scan]) -> None:

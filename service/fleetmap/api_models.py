@@ -525,9 +525,9 @@ class RobotsDeltaEvent(_Model):
 
 class ReplacedEvent(_Model):
     """`event: replaced` of `GET /maps/{map_id}/events`: the map was replaced under its id (`PUT
-    /maps/{map_id}/snapshot`): new configuration, cells, robots and change versions. Reload the map
-    (`GET /maps/{map_id}`) and every tile; the stream goes on with the new map's events, whose change
-    versions start at `version` (also the event's id)."""
+    /maps/{map_id}/snapshot` or `PUT /maps/{map_id}/import`): new configuration, cells, robots and
+    change versions. Reload the map (`GET /maps/{map_id}`) and every tile; the stream goes on with
+    the new map's events, whose change versions start at `version` (also the event's id)."""
 
     id: str
     version: int

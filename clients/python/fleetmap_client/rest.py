@@ -939,9 +939,10 @@ class FleetmapClient:
         """`GET /maps/{map_id}/events`: the map's server-sent events as (event, data) pairs, e.g.
         ("tiles", {"version": 7, "tiles": [[i0, j0, i1, j1], ...]}) or ("tiles", {"version": 9,
         "reset": True}), ("robots", {"robots": {...}}), ("replaced", {"id": ..., "version": v}) when
-        the map was replaced by a snapshot upload (reload its metadata and tiles; the stream goes on
-        with the new map's events, its versions starting at v), ("deleted", {"id": ...}) after which
-        the stream ends. Keepalive comments are skipped. `since`: resume after that change version.
+        the map was replaced by an upload, a snapshot or a nav2 import (reload its metadata and
+        tiles; the stream goes on with the new map's events, its versions starting at v), ("deleted",
+        {"id": ...}) after which the stream ends. Keepalive comments are skipped. `since`: resume
+        after that change version.
 
         Robots: the stream is always asked for deltas (`?robots=delta`: only what changed travels).
         With `robots="full"` (the default) they are folded here (`RobotsEvent.apply`), and every

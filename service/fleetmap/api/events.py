@@ -53,9 +53,10 @@ Format (text/event-stream):
   client that asked for deltas never mistakes one for the full list (which would remove every
   robot it omits), because a delta is never called `robots`.
 - `replaced`: `{"id": map_id, "version": v}`, with `id: v`: the map was replaced under its id by
-  `PUT /maps/{map_id}/snapshot` (new configuration, cells and robots; change versions start again).
-  Reload the map's metadata and every tile. The stream goes on with the new map's events (a
-  `robots` event follows at once), and `v` is its change version, so a reconnect resumes from it.
+  `PUT /maps/{map_id}/snapshot` or `PUT /maps/{map_id}/import` (new configuration, cells and
+  robots; change versions start again). Reload the map's metadata and every tile. The stream goes
+  on with the new map's events (a `robots` event follows at once), and `v` is its change version,
+  so a reconnect resumes from it.
 - `deleted`: the map was deleted; the stream ends. (Also when it was deleted and created again
   between two polls: it is another map, which a client must select anew.)
 - `: keepalive` comment lines after 15 s without anything sent (`ApiSettings.keepalive`, `fleetmap
@@ -348,8 +349,9 @@ async def get_events(
       "removed": ["<robot_id>", ...]}`: the robots changed since the previous robots event, with only
       the trail points appended since, and the robots forgotten (see `RobotsDeltaEvent`);
     - `event: replaced`, `id: <version>`, data `{"id": map_id, "version": int}`: the map was replaced
-      by `PUT /maps/{map_id}/snapshot`; reload its metadata and every tile. The stream goes on with
-      the new map's events (change versions start again at `version`);
+      by `PUT /maps/{map_id}/snapshot` or `PUT /maps/{map_id}/import`; reload its metadata and
+      every tile. The stream goes on with the new map's events (change versions start again at
+      `version`);
     - `event: deleted`, data `{"id": map_id}`: the map was deleted, the stream ends;
     - `: keepalive` comments after 15 s without anything sent (`ApiSettings.keepalive`); with
       `?keepalive=event`, `event: keepalive`, data `{"interval": float}` instead, and one at once when
