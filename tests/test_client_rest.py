@@ -496,6 +496,23 @@ def test_posted_scans_and_every_query_match_the_engine(client: FleetmapClient, s
     assert bad.value.status == 422 and client.get_map("q-copy").stats.tiles == info.stats.tiles
 
 
+def test_a_window_bound_on_a_cell_edge_is_that_edge_as_clients_md_says(
+    client: FleetmapClient, scans: list[Scan]
+) -> None:
+    """docs/clients.md gave `region`'s window as `[floor(xmin/res), ...)` alone, which puts 0.3 at
+    0.1 m in cell 2 (0.3 / 0.1 is 2.9999999999999996); the service (and the methods' docstrings)
+    take a bound on a cell edge for that edge: cell 3. The page now says so."""
+    client.create_map("edge", CONFIG)
+    client.post_scan("edge", "rob", scans[0], seq=0)
+    assert math.floor(0.3 / CONFIG.resolution) == 2
+    _, window, origin = client.region_window("edge", 0.3, 0.3, 0.6, 0.6)
+    assert (window, origin) == ((3, 3, 6, 6), (0.3, 0.3))
+    assert client.clear_region("edge", 0.3, 0.3, 0.6, 0.6).window == [3, 3, 6, 6]
+    page = (REPO_DIR / "docs" / "clients.md").read_text(encoding="utf-8")
+    bullet = re.search(r"^- `region` / `surface` take.*?(?=^- )", page, re.M | re.S)
+    assert bullet is not None and "edge" in bullet.group(0), bullet
+
+
 def test_snapshots_saved_to_a_file_and_uploaded_from_one(
     client: FleetmapClient, scans: list[Scan], tmp_path: Path
 ) -> None:
