@@ -168,18 +168,27 @@ def accepts_gzip(accept_encoding: str) -> bool:
     return False
 
 
+def negotiated(size: int, media_type: str = "application/json") -> bool:
+    """Whether `NegotiatedGZip` negotiates the encoding of a 200 of `size` bytes of `media_type`: at
+    least `GZIP_MINIMUM_BYTES`, of a type Starlette does not leave as it is. Such a 200 says `Vary:
+    Accept-Encoding` whether it is compressed or not (Starlette's identity responder adds it too, for
+    a client that takes no gzip), and so must a 304 standing for it (RFC 9110, 15.4.5), which the
+    middleware, finding no body, leaves without."""
+    family = f"{media_type.split('/')[0]}/*"
+    return (
+        size >= GZIP_MINIMUM_BYTES
+        and media_type not in DEFAULT_EXCLUDED_CONTENT_TYPES
+        and family not in DEFAULT_EXCLUDED_CONTENT_TYPES
+    )
+
+
 def gzips(request_headers: Headers, size: int, media_type: str = "application/json") -> bool:
     """Whether `NegotiatedGZip` compresses a 200 of `size` bytes of `media_type` for a request with
     `request_headers` (read inside it or outside: it leaves `Accept-Encoding: gzip` exactly when
-    gzip is acceptable): gzip acceptable (`accepts_gzip`), at least `GZIP_MINIMUM_BYTES`, and not a
-    type Starlette leaves as it is. A 304 standing for that 200 must say the `Vary:
-    Accept-Encoding` (and the weak tag) the compressed 200 would have, which the middleware puts
-    only on what it compresses (RFC 9110, 15.4.5)."""
+    gzip is acceptable): `negotiated`, and gzip acceptable (`accepts_gzip`). A 304 standing for that
+    200 must say the weak tag the compressed 200 would have."""
     offered = joined_field_lines(request_headers, "accept-encoding") or ""
-    if size < GZIP_MINIMUM_BYTES or not accepts_gzip(offered):
-        return False
-    family = f"{media_type.split('/')[0]}/*"
-    return media_type not in DEFAULT_EXCLUDED_CONTENT_TYPES and family not in DEFAULT_EXCLUDED_CONTENT_TYPES
+    return negotiated(size, media_type) and accepts_gzip(offered)
 
 
 class NegotiatedGZip(GZipMiddleware):
@@ -288,7 +297,7 @@ class JsonETags:
                 if json and own is not None and if_none_match and etag_matches(if_none_match, own):
                     not_modified = True
                     length = int(headers.get("content-length", "0") or 0)
-                    await send(_not_modified(message, own, gzips(request_headers, length)))
+                    await send(_not_modified(message, own, negotiated(length)))
                     await send({"type": "http.response.body", "body": b""})
                     return
                 if json and own is None:
@@ -300,7 +309,7 @@ class JsonETags:
                 if not message.get("more_body", False) and len(body) <= JSON_ETAG_MAX_BYTES:
                     etag = json_etag(body)
                     if if_none_match and etag_matches(if_none_match, etag):
-                        await send(_not_modified(held, etag, gzips(request_headers, len(body))))
+                        await send(_not_modified(held, etag, negotiated(len(body))))
                         await send({"type": "http.response.body", "body": b""})
                         return
                     MutableHeaders(scope=held).append("ETag", etag)
@@ -310,13 +319,14 @@ class JsonETags:
         await self.app(scope, receive, tagging_send)
 
 
-def _not_modified(start: Message, etag: str, gzipped: bool) -> Message:
+def _not_modified(start: Message, etag: str, varies: bool) -> Message:
     """The 304 for a 200's start message: its caching headers, no body headers (RFC 9110, 15.4.5).
-    `gzipped`: the 200 would have been compressed, so it would have said `Vary: Accept-Encoding`,
-    which the gzip middleware adds only to answers it compresses, never to this bodiless one. RFC
-    9110, 15.4.5: a 304 carries the `Vary` its 200 would have, so a cache revalidating a stored
-    answer learns the same selecting header (the 304 said `Vary: Origin` alone, or none)."""
+    `varies`: the 200's encoding is negotiated (`negotiated`), so it would have said `Vary:
+    Accept-Encoding`, compressed or not, which the gzip middleware adds only to answers with a body,
+    never to this bodiless one. RFC 9110, 15.4.5: a 304 carries the `Vary` its 200 would have, so a
+    cache revalidating a stored answer learns the same selecting header (the 304 said `Vary: Origin`
+    alone, or none; and none to a client taking no gzip, whose 200 said `Accept-Encoding`)."""
     kept = [(k, v) for k, v in start.get("headers", []) if k.lower() in (b"cache-control", b"vary")]
-    if gzipped:
+    if varies:
         kept.append((b"vary", b"Accept-Encoding"))
     return {"type": "http.response.start", "status": 304, "headers": [*kept, (b"etag", etag.encode())]}

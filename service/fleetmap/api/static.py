@@ -17,7 +17,7 @@ from starlette.responses import Response
 from starlette.types import Scope
 
 from fleetmap.api.errors import ApiError
-from fleetmap.api.http_semantics import etag_matches, gzips, joined_field_lines
+from fleetmap.api.http_semantics import etag_matches, gzips, joined_field_lines, negotiated
 
 #: Leaflet's files (leaflet.js, leaflet.css, images/).
 LEAFLET_DIR = Path(leaflet.BASE_DIR)
@@ -60,11 +60,12 @@ class ViewerFiles(StaticFiles):
         if response.status_code != 304:
             return response
         media_type = mimetypes.guess_type(str(full_path))[0] or "text/plain"  # as FileResponse
+        if negotiated(stat_result.st_size, media_type):  # its 200 says so, compressed or not
+            response.headers.add_vary_header("Accept-Encoding")
         if gzips(Headers(scope=scope), stat_result.st_size, media_type):
             etag = response.headers.get("etag")
             if etag is not None and etag.startswith('"'):
                 response.headers["etag"] = f"W/{etag}"
-            response.headers.add_vary_header("Accept-Encoding")
         return response
 
 
