@@ -144,3 +144,25 @@ def test_docs_describe_every_operation() -> None:
         for method in item:
             operation = f"{method.upper()} {path}"
             assert operation in docs, f"docs/api.md does not describe {operation}"
+
+
+def test_every_operation_documents_the_403s_the_service_answers(service: ServiceProcess) -> None:
+    """Without tokens the service answers 403 to any request whose `Host` names another machine (DNS
+    rebinding), and with or without them to a write a page of another site started, signing in and
+    out included; the spec gave a 403 only to writes that need a token, and none to reads, to
+    `/healthz` or to `POST` / `DELETE /session`, which a generated client then took for undocumented."""
+    paths = json.loads(COMMITTED.read_text(encoding="utf-8"))["paths"]
+    url = service.base_url
+    assert httpx.get(f"{url}/healthz", headers={"Host": "evil.example"}).status_code == 403
+    cross_site = {"Origin": "http://evil.example", "Sec-Fetch-Site": "cross-site"}
+    assert httpx.post(f"{url}/session", headers=cross_site).status_code == 403
+    assert httpx.delete(f"{url}/session", headers=cross_site).status_code == 403
+    undocumented = [
+        f"{method.upper()} {path}"
+        for path, operations in paths.items()
+        for method, operation in operations.items()
+        if "403" not in operation["responses"]
+    ]
+    assert not undocumented, f"no 403 in the spec for {undocumented}"
+    assert "Host" in paths["/healthz"]["get"]["responses"]["403"]["description"]
+    assert "another site" in paths["/session"]["post"]["responses"]["403"]["description"]

@@ -57,7 +57,15 @@ from fleetmap.api_models import (
     RobotsEvent,
     TilesEvent,
 )
-from fleetmap.auth import SESSION_COOKIE, SESSION_PATH, AuthMiddleware, TokenFile, TokenSet, required_role
+from fleetmap.auth import (
+    SESSION_COOKIE,
+    SESSION_PATH,
+    AuthMiddleware,
+    TokenFile,
+    TokenSet,
+    is_read_request,
+    required_role,
+)
 from fleetmap.failed_signins import (
     DEFAULT_MAX_CLIENTS,
     DEFAULT_MAX_FAILURES,
@@ -398,6 +406,7 @@ def _install_openapi(app: FastAPI) -> None:
             _declare_json_revalidation(schema)
             _declare_map_etags(schema)
             _declare_security(schema)
+            _declare_forbidden(schema)
             app.openapi_schema = _finite(schema)
         return app.openapi_schema
 
@@ -462,11 +471,19 @@ _AUTH_ERRORS = {
     "write": {
         "401": "With API tokens (`--auth-tokens`): no token, or an unknown or revoked one (a session "
         "cookie never stands for a token on a write)",
-        "403": "With API tokens: the token's role is too low (a `read` token). With or without: a "
-        "write that a browser says a page of another site started (`Sec-Fetch-Site`, `Origin`), "
-        "unless `--cors-origin` allows that page",
+        "403": "With API tokens: the token's role is too low (a `read` token)",
     },
 }
+#: The 403s of any request, whatever it needs: a `Host` of another machine (`loopback_hosts_only`),
+#: and for a write (`fleetmap.auth.is_read_request`), another site's page (`CrossSiteWrites`).
+_ANY_REQUEST_403 = (
+    "Without API tokens (and without `--insecure`): a `Host` that names no loopback host (DNS "
+    "rebinding: docs/security.md)"
+)
+_CROSS_SITE_403 = (
+    "With or without tokens: a write that a browser says a page of another site started "
+    "(`Sec-Fetch-Site`, `Origin`), unless `--cors-origin` allows that page"
+)
 
 
 def _declare_security(schema: dict[str, Any]) -> None:
@@ -495,6 +512,21 @@ def _declare_security(schema: dict[str, Any]) -> None:
                 if status == "401":
                     answer["headers"] = challenge
                 responses.setdefault(status, answer)
+
+
+def _declare_forbidden(schema: dict[str, Any]) -> None:
+    """Declare on every operation the 403s any request may get besides a token's role (after
+    `_declare_security`, whose 403 it completes): the spec gave a 403 to writes that need a token
+    alone, none to reads, `/healthz` or signing in and out, which answer it all the same."""
+    error = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorResponse"}}}
+    for path, operations in schema.get("paths", {}).items():
+        concrete = re.sub(r"\{[^}]*\}", "x", path)
+        for method, operation in operations.items():
+            reasons = [_ANY_REQUEST_403]
+            if not is_read_request(method.upper(), concrete):
+                reasons.append(_CROSS_SITE_403)
+            answer = operation["responses"].setdefault("403", {"description": "", "content": error})
+            answer["description"] = ". ".join(filter(None, [answer["description"], *reasons]))
 
 
 def _finite(node: Any) -> Any:
