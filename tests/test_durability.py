@@ -990,7 +990,9 @@ def test_a_data_directory_made_inaccessible_under_the_service_is_not_reported_de
         svc.start()
     except subprocess.SubprocessError as exc:  # (a container that may not change capabilities)
         pytest.skip(f"cannot run the service without root's permission override: {exc}")
-    with svc:
+    # Stopped by hand, not by `with svc:`, whose entry starts a second service: it left the first
+    # running after the test, for good (the second, refused the data directory, had stopped).
+    try:
 
         def post(k: int) -> httpx.Response:
             message = json.loads(encode_json(scans[k], k))
@@ -1010,6 +1012,8 @@ def test_a_data_directory_made_inaccessible_under_the_service_is_not_reported_de
             assert "deleted or replaced" not in told, told
             assert f"{data / DB_NAME} cannot be looked at (Permission denied)" in told, told
         assert post(2).status_code == 200  # access back: the journal commits again
+    finally:
+        svc.stop()
 
 
 def test_failing_snapshots_of_many_maps_log_a_few_lines_not_one_per_map_per_interval(tmp_path: Path) -> None:
