@@ -38,6 +38,7 @@ from fleetmap.codec import JSON_ENCODING, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.export import Window
 from fleetmap.registry import MapRegistry
+from fleetmap.ros import occupancy_grid
 from fleetmap.ros.map_publisher import MapTopic, RosMapOptions, RosMapPublisher
 from fleetmap.ros.rmw_zenoh import Attachment, decode_attachment
 from fleetmap.scan import Scan
@@ -608,3 +609,44 @@ def test_the_grid_is_in_the_frame_the_ros_scans_map_is_built_in(
     finally:
         robot.client.close()
     assert svc.stop() == 0
+
+
+def test_a_map_grown_while_its_topics_are_checked_gets_each_topic_the_grid_of_its_own_window(
+    in_process: InProcess, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One map on two topics, and a scan that grows it after the second topic read the tile clock
+    but before it read the map's window: the first topic's grid (same clock, the window before the
+    scan) is not the second's. Reused for it, the second topic's subscribers held a grid of the old
+    window while the publisher took them to hold the new one, so its next updates were offsets in a
+    window they did not have (cells misplaced, or refused as out of bounds)."""
+    from fleetmap.ros import map_publisher
+
+    registry = in_process.registry
+    entry = registry.create("lab", MapConfig(resolution=0.5))[0]
+    entry.gmap.integrate(room_scan(1.0, 1.0))
+    real, calls = map_publisher.known_window, []
+
+    def racing(gmap: Any, *args: Any) -> Any:
+        calls.append(1)
+        if len(calls) == 2:  # the second topic's window: a scan far off lands first
+            gmap.integrate(room_scan(1.0, 1.0, width=30.0, height=20.0))
+        return real(gmap, *args)
+
+    monkeypatch.setattr(map_publisher, "known_window", racing)
+    topics = (MapTopic("lab", "/robot1/map"), MapTopic("lab", "/robot2/map"))
+    publisher = RosMapPublisher(registry, in_process.router, RosMapOptions(topics, period=3600.0))
+    subs = [RosSubscriber(in_process.endpoint, topic.grid.key) for topic in publisher.topics]
+    try:
+        assert publisher.publish_changed() == 2
+        grids = [wait_for(sub.received, timeout=5, what="a grid")[0].grid for sub in subs]
+        for topic, grid in zip(publisher.topics, grids, strict=True):
+            assert topic.window is not None
+            assert (int(grid.info.height), int(grid.info.width)) == topic.window.shape
+        window = publisher.topics[1].window
+        assert window is not None
+        assert np.array_equal(grid_cells(grids[1]), occupancy_grid.grid_cells(entry.gmap, window))
+        assert publisher.topics[0].window != publisher.topics[1].window  # the race did happen
+    finally:
+        for sub in subs:
+            sub.close()
+        publisher.close()

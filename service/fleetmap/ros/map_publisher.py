@@ -559,7 +559,9 @@ class RosMapPublisher:
         if part is None:
             # Cleared before the cells are read: a subscription that appears meanwhile gets another.
             topic.new_subscriber = topic.new_volatile_subscriber = False
-            key: tuple[Any, ...] = ("grid", spec.map_id, generation, clock)
+            # The window too: read after the clock, it may differ between two topics of one clock
+            # (a scan that grew the map in between), and a grid is only good for its own window.
+            key: tuple[Any, ...] = ("grid", spec.map_id, generation, clock, window)
             payload = built.get(key)
             if payload is None:
                 payload = built[key] = occupancy_grid(gmap, window, frame_id, time.time_ns())
