@@ -24,7 +24,16 @@ from fleetmap import GridMap, MapConfig, Scan
 from fleetmap.export import Window, changed_window, known_window, map_state, nav2_files, tile_blocks
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED
 from fleetmap.ros import graph
-from fleetmap.ros.graph import MAP_QOS, Qos, RosNode, entity_gid, mangle, qos_keyexpr
+from fleetmap.ros.graph import (
+    MAP_QOS,
+    TF_STATIC_SUBSCRIPTION_QOS,
+    TF_SUBSCRIPTION_QOS,
+    Qos,
+    RosNode,
+    entity_gid,
+    mangle,
+    qos_keyexpr,
+)
 from fleetmap.ros.map_publisher import MapTopic, parse_map_topic, type_hash
 from fleetmap.ros.occupancy_grid import (
     GridInfo,
@@ -226,6 +235,11 @@ def test_qos_is_written_as_rmw_zenoh_writes_it_defaults_left_empty() -> None:
     assert qos_keyexpr(MAP_QOS) == ":1:,1:,:,:,,"
     assert qos_keyexpr(Qos()) == "::,:,:,:,,"
     assert qos_keyexpr(Qos(reliability=2, durability=2, history=1, depth=10)) == "2::,10:,:,:,,"
+    # tf2_ros' TransformListener's (tf2_ros/qos.hpp): DynamicListenerQoS and StaticListenerQoS are
+    # both keep last 100, the static one transient local (depth 1 is StaticBroadcasterQoS's, the
+    # publisher's side).
+    assert qos_keyexpr(TF_SUBSCRIPTION_QOS) == "::,100:,:,:,,"
+    assert qos_keyexpr(TF_STATIC_SUBSCRIPTION_QOS) == ":1:,100:,:,:,,"
 
 
 def test_node_and_publisher_tokens() -> None:

@@ -229,7 +229,7 @@ def test_ros_robots_are_online_while_their_laserscan_publisher_exists(
             )  # fmt: skip
             tf_subscriptions = [
                 ("fleetmap_scans", "/robot3/tf", TYPE_HASHES[TF], "::,100:,:,:,,"),
-                ("fleetmap_scans", "/robot3/tf_static", TYPE_HASHES[TF], ":1:,1:,:,:,,"),
+                ("fleetmap_scans", "/robot3/tf_static", TYPE_HASHES[TF], ":1:,100:,:,:,,"),
             ]
             wait_for(
                 lambda: subscriptions(router_session_, TF) == tf_subscriptions,

@@ -72,10 +72,12 @@ MAP_UPDATES_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_VOLATILE, HISTORY_KEEP_LA
 #: so rmw_zenoh counts it in every LaserScan publisher's `get_subscription_count()`.
 SCAN_SUBSCRIPTION_QOS = Qos(RELIABILITY_BEST_EFFORT, DURABILITY_VOLATILE, HISTORY_KEEP_LAST, 5)
 #: What fleetmap's subscriptions of `tf` and `tf_static` state: tf2_ros' TransformListener's
-#: (DynamicListenerQoS: reliable, volatile, keep last 100; StaticListenerQoS: reliable, transient
-#: local, keep last 1), as TF's publishers expect of a listener.
+#: (tf2_ros/qos.hpp: DynamicListenerQoS, reliable, volatile, keep last 100; StaticListenerQoS,
+#: reliable, transient local, keep last 100), as TF's publishers expect of a listener. Depth 1 is
+#: StaticBroadcasterQoS's, the publisher's: a listener keeps the static transforms of every
+#: broadcaster, so `ros2 topic info -v /tf_static` showed fleetmap as no listener is.
 TF_SUBSCRIPTION_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_VOLATILE, HISTORY_KEEP_LAST, 100)
-TF_STATIC_SUBSCRIPTION_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_TRANSIENT_LOCAL, HISTORY_KEEP_LAST, 1)
+TF_STATIC_SUBSCRIPTION_QOS = Qos(RELIABILITY_RELIABLE, DURABILITY_TRANSIENT_LOCAL, HISTORY_KEEP_LAST, 100)
 
 
 def mangle(name: str) -> str:
