@@ -335,6 +335,54 @@ def test_a_change_over_half_the_window_goes_as_a_grid(in_process: InProcess) -> 
         publisher.close()
 
 
+def test_robots_at_opposite_corners_send_updates_of_their_tiles_not_grids(
+    in_process: InProcess,  # noqa: F811 - the fixture
+    readers: Callable[..., MapReader],
+) -> None:
+    """Two robots each in a corner tile of a big map change two tiles, whose bounding box is the
+    whole map: they go as an update per tile, not as a full grid every period (as when the update
+    was that bounding box, which docs/ros.md's cost of robots "in a few tiles" did not hold for a
+    fleet spread over a site), and a reader writing them over the grid holds the map; more tiles
+    apart than a reader's queue holds go as one message."""
+    registry = in_process.registry
+    publisher = RosMapPublisher(registry, in_process.router, RosMapOptions((MapTopic("lab"),), period=3600.0))
+    reader = readers(in_process.endpoint)
+    try:
+        gmap = registry.create("lab", MapConfig(resolution=0.05))[0].gmap
+        for x, y in [(10.0, 10.0), (30.0, 10.0), (10.0, 30.0), (30.0, 30.0), (20.0, 20.0)]:
+            gmap.integrate(square_room_scan(x, y))
+        assert publisher.publish_changed() == 1  # declared on the way: the first grid
+        wait_for(lambda: reader.received("grid"), timeout=10, what="the first grid")
+        topic = publisher.topics[0]
+        window = topic.window
+        assert window is not None and window.shape[1] > 3 * gmap.store.tile_size
+        for k in range(3):
+            gmap.integrate(pillar_scan(*TILE_CENTRE, distance=1.0 + 0.2 * k))
+            gmap.integrate(pillar_scan(SIDE - TILE_CENTRE[0], SIDE - TILE_CENTRE[1], distance=1.0 + 0.2 * k))
+            assert publisher.publish_changed() == 2  # one update per robot's tile
+        assert (topic.grid.published, topic.updates.published) == (1, 6)
+        assert topic.updates.last["bytes"] < 1.1 * gmap.store.tile_size**2  # a tile, not the map
+        # Six tiles apart: more updates in one burst than RViz's queue of 5 holds. One message.
+        side = gmap.store.tile_size * 0.05
+        for ti, tj in [(0, 0), (2, 0), (1, 1), (3, 1), (0, 2), (2, 2)]:
+            gmap.integrate(pillar_scan(ti * side + 1.0, tj * side + 1.0, distance=0.5))
+        assert publisher.publish_changed() == 1
+        assert topic.window == window  # inside the room: the map did not grow
+        expected = occupancy_grid.grid_cells(gmap, window)
+
+        def current() -> bool:
+            cells = reader.map()
+            return cells is not None and np.array_equal(cells, expected)
+
+        try:
+            wait_for(current, timeout=10, what="the reader's map, the grid with the updates written over it")
+        except AssertionError as exc:
+            received = [(m.kind, m.sequence) for m in reader.received()]
+            raise AssertionError(f"{exc}; the reader received (kind, sequence) {received}") from None
+    finally:
+        publisher.close()
+
+
 class StaticLayer:
     """nav2's static layer with `subscribe_to_updates` (`StaticLayer::incomingMap`, `incomingUpdate`,
     `updateBounds` in nav2_costmap_2d/plugins/static_layer.cpp, Humble to Rolling): the first grid
@@ -369,22 +417,23 @@ def test_an_update_overwritten_by_a_grid_nav2_loads_late_is_made_good_by_the_nex
 ) -> None:
     """nav2's static layer loads a grid after its first only at the costmap's next update (1 Hz for
     nav2's global costmap) and writes an update at once: an update that arrives in between is
-    overwritten by that grid. The next update must bring the costmap up to date, so each update
-    carries everything changed since the last grid, not only since the last update."""
+    overwritten by that grid. The next updates must bring the costmap up to date, so each check's
+    updates carry everything changed since the last grid, not only since the last updates."""
     registry = in_process.registry
     publisher = RosMapPublisher(registry, in_process.router, RosMapOptions((MapTopic("a"),), period=3600.0))
     reader = readers(in_process.endpoint)
     nav2 = StaticLayer()
     taken = 0
 
-    def publish(kind: str) -> None:
+    def publish(kind: str, count: int = 1) -> None:
+        """One check, which puts `count` messages of `kind` (an update per changed tile apart)."""
         nonlocal taken
-        assert publisher.publish_changed() == 1
-        wait_for(lambda: len(reader.received()) > taken, timeout=5, what=f"the {kind}")
-        message = reader.received()[taken]
-        assert message.kind == kind
-        nav2.incoming(message)
-        taken += 1
+        assert publisher.publish_changed() == count
+        wait_for(lambda: len(reader.received()) >= taken + count, timeout=5, what=f"the {kind}")
+        for message in reader.received()[taken : taken + count]:
+            assert message.kind == kind
+            nav2.incoming(message)
+        taken += count
 
     try:
         gmap = registry.create("a", MapConfig(resolution=0.05))[0].gmap
@@ -399,7 +448,7 @@ def test_an_update_overwritten_by_a_grid_nav2_loads_late_is_made_good_by_the_nex
         publish("update")  # before the costmap's next update: overwritten by the buffered grid
         nav2.update_bounds()
         gmap.integrate(pillar_scan(TILE_CENTRE[0], TILE_CENTRE[1] + 12.8))  # the next tile north
-        publish("update")
+        publish("update", count=2)  # the east tile's again, and the north tile's
         nav2.update_bounds()
         assert topic.window is not None
         assert nav2.cells is not None

@@ -89,23 +89,47 @@ def changed_window(gmap: GridMap, since: int, window: Window) -> Window | None:
     """The part of `window` that may have changed after the map's tile clock (`TileStore.clock`) was
     `since`: the smallest window holding every storage tile whose version is above `since`, clipped
     to `window`; None when none of them meets `window`. A cell changes only with its tile's version,
-    so every cell of `window` outside the answer is as it was at `since`. One hold of the map's lock,
-    one pass over the tile versions (the keys of the changed tiles only are read)."""
+    so every cell of `window` outside the answer is as it was at `since`. See `changed_windows`."""
+    parts = changed_windows(gmap, since, window)
+    return bounding_window(parts) if parts else None
+
+
+def bounding_window(windows: list[Window]) -> Window:
+    """The smallest window holding every one of `windows` (at least one)."""
+    return Window(
+        min(w.i0 for w in windows), min(w.j0 for w in windows), max(w.i1 for w in windows),
+        max(w.j1 for w in windows),
+    )  # fmt: skip
+
+
+def changed_windows(gmap: GridMap, since: int, window: Window) -> list[Window]:
+    """The parts of `window` that may have changed after the map's tile clock was `since`, as
+    disjoint rectangles: the storage tiles whose version is above `since`, those side by side in a
+    row of tiles as one, each clipped to `window` (none that misses it), ordered by row then column.
+    Every cell of `window` outside them is as it was at `since`. Apart, not as their bounding box:
+    two robots at opposite corners of a map change two tiles, whose bounding box is the whole map.
+    One hold of the map's lock, one pass over the tile versions (the keys of the changed tiles only
+    are read)."""
     store = gmap.store
     with gmap.lock:
         changed = store.changed_since(since)
-        keys = np.array([store.keys[slot] for slot in changed.tolist()], dtype=np.int64).reshape(-1, 2)
-    if not len(keys):
-        return None
+        keys = sorted((int(tj), int(ti)) for ti, tj in (store.keys[slot] for slot in changed.tolist()))
     t = store.tile_size
-    (ti0, tj0), (ti1, tj1) = keys.min(axis=0), keys.max(axis=0) + 1
-    part = Window(
-        max(window.i0, int(ti0) * t),
-        max(window.j0, int(tj0) * t),
-        min(window.i1, int(ti1) * t),
-        min(window.j1, int(tj1) * t),
-    )
-    return part if part.i0 < part.i1 and part.j0 < part.j1 else None
+    runs: list[list[int]] = []  # [tj, first ti, last ti] of each run of tiles side by side
+    for tj, ti in keys:
+        if runs and runs[-1][0] == tj and runs[-1][2] == ti - 1:
+            runs[-1][2] = ti
+        else:
+            runs.append([tj, ti, ti])
+    parts = []
+    for tj, ti0, ti1 in runs:
+        part = Window(
+            max(window.i0, ti0 * t), max(window.j0, tj * t), min(window.i1, (ti1 + 1) * t),
+            min(window.j1, (tj + 1) * t),
+        )  # fmt: skip
+        if part.i0 < part.i1 and part.j0 < part.j1:
+            parts.append(part)
+    return parts
 
 
 def state_to_pgm(state: np.ndarray) -> np.ndarray:

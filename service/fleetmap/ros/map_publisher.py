@@ -28,15 +28,18 @@ map that did not change costs only that. A changed map is published as:
 
 - a **full grid** on `<topic>` when there is none of this map yet, when its observed extent
   (`export.known_window`, the grid's window) changed (the map grew: subscribers resize on a grid),
-  when the changed part would be more than half the window, or when the grid in the publisher's
+  when the changed parts would be more than half the window, or when the grid in the publisher's
   cache is behind the map (updates went out since) and either `full_grid_interval` has passed
   since it or a new subscription of `<topic>` appeared, or when a new VOLATILE subscription
   appeared (it asks no cache);
-- else an **update** on `<topic>_updates`: the part of the window in the storage tiles changed
-  since the last full grid (their versions above the tile clock its cells were read at,
-  `export.changed_window`), the cells made by the same `occupancy_grid.grid_cells` as a grid's.
-  Since the grid, not since the last update: whoever holds that grid is current after the next
-  update, also when an update before it was lost (a subscriber that dropped it, or nav2's static
+- else **updates** on `<topic>_updates`: the part of the window in the storage tiles changed
+  since the last full grid (their versions above the tile clock its cells were read at), one
+  update per run of changed tiles side by side in a row of tiles (`export.changed_windows`: apart,
+  since the bounding box of two robots' tiles at opposite corners is the whole map; their bounding
+  box past `MAX_UPDATES_PER_CHECK` runs, a reader's queue), the cells made
+  by the same `occupancy_grid.grid_cells` as a grid's. Since the grid, not since the last updates:
+  whoever holds that grid is current after the next check's updates, also when one before them was
+  lost (a subscriber that dropped it, or nav2's static
   layer, which loads a grid only at its costmap's next update and so writes over an update that
   came in between).
 
@@ -72,7 +75,7 @@ from typing import Any
 import zenoh
 import zenoh.ext
 
-from fleetmap.export import Window, changed_window, known_window, map_source
+from fleetmap.export import Window, bounding_window, changed_windows, known_window, map_source
 from fleetmap.map_entry import MapEntry
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import MapRegistry
@@ -123,9 +126,12 @@ HEARTBEAT_PERIOD = 0.5
 #: from. A full grid of a 4 M-cell map is 3.85 MiB: every 10 s is a tenth of what a grid per second
 #: sent.
 FULL_GRID_INTERVAL = 10.0
-#: An update whose cells would be more than this share of the window's goes as a full grid: hardly
+#: Updates whose cells would be more than this share of the window's go as a full grid: hardly
 #: bigger, and it also refreshes the cache.
 MAX_UPDATE_SHARE = 0.5
+#: Updates put in one check at most: a reader's queue loses the oldest of a longer burst, and RViz's
+#: Map display queues 5 (`rclcpp::QoS(5)`). More runs of changed tiles go as their bounding box.
+MAX_UPDATES_PER_CHECK = 5
 
 _TOPIC_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 
@@ -548,15 +554,19 @@ class RosMapPublisher:
         frame_id = dict(self.options.map_frames).get(spec.map_id, self.options.frame_id)
         assert topic.seen is not None
         generation, clock = topic.seen
-        part = None
+        parts: list[Window] | None = None
         if window == topic.window and not grid_due:
-            part = changed_window(gmap, topic.grid_clock, window)
-            if part is None:
+            # The changed tiles as rectangles apart, not their bounding box: robots at opposite
+            # corners of a map change a tile each, whose bounding box is the whole map.
+            parts = changed_windows(gmap, topic.grid_clock, window)
+            if not parts:
                 topic.grid_clock = clock  # nothing the grid shows changed (a tile touched outside it)
                 return 0
-            if part.shape[0] * part.shape[1] > MAX_UPDATE_SHARE * nx * ny:
-                part = None
-        if part is None:
+            if len(parts) > MAX_UPDATES_PER_CHECK:
+                parts = [bounding_window(parts)]
+            if sum(part.cells for part in parts) > MAX_UPDATE_SHARE * nx * ny:
+                parts = None
+        if parts is None:
             # Cleared before the cells are read: a subscription that appears meanwhile gets another.
             topic.new_subscriber = topic.new_volatile_subscriber = False
             # The window too: read after the clock, it may differ between two topics of one clock
@@ -568,20 +578,26 @@ class RosMapPublisher:
             topic.grid.put(payload, time.perf_counter() - started)
             topic.window, topic.grid_at, topic.behind = window, time.monotonic(), False
             topic.grid_clock = clock
-            kind, what = "grid", f"{nx} x {ny} cells"
-        else:
+            log.debug(
+                "ROS 2: map %r published on %s: a grid of %d x %d cells, %d bytes",
+                spec.map_id, spec.topic, nx, ny, len(payload), extra={"map_id": spec.map_id},
+            )  # fmt: skip
+            return 1
+        # One update per rectangle: together they bring the last grid up to date (module doc).
+        for part in parts:
             key = ("update", spec.map_id, generation, clock, window, part)
             payload = built.get(key)
             if payload is None:
                 payload = built[key] = occupancy_grid_update(gmap, window, part, frame_id, time.time_ns())
             topic.updates.put(payload, time.perf_counter() - started)
-            topic.behind = True
-            kind, what = "update", f"{part.shape[1]} x {part.shape[0]} of {nx} x {ny} cells"
+            started = time.perf_counter()
+        topic.behind = True
         log.debug(
-            "ROS 2: map %r published on %s: a %s of %s, %d bytes",
-            spec.map_id, spec.topic, kind, what, len(payload), extra={"map_id": spec.map_id},
+            "ROS 2: map %r published on %s: %d update(s), %d of %d x %d cells",
+            spec.map_id, spec.topic, len(parts), sum(part.cells for part in parts), nx, ny,
+            extra={"map_id": spec.map_id},
         )  # fmt: skip
-        return 1
+        return len(parts)
 
     def _declare(self, topic: _Topic) -> None:
         topic.grid.declare(self.session)
