@@ -799,6 +799,23 @@ def _replace(base: str, map_id: str, snapshot: bytes) -> None:
     assert r.status_code == 200, r.text
 
 
+def _page_of_a_map_to_replace(
+    new_page: Callable[..., Any], base: str, map_id: str, source_id: str
+) -> tuple[bytes, Any, list[str]]:
+    """A page showing map `map_id` (one scan, the probability layer) with all its tiles; a snapshot
+    of map `source_id`, which keeps counts only (`_snapshot_keeping_counts`), to replace it with;
+    and the URLs of the tiles the page is refused from now on, filled as they come."""
+    snapshot = _snapshot_keeping_counts(base, source_id)
+    _put_map(base, map_id)
+    _scan(base, map_id, "r1", 1, 1.0, 1.0)
+    page = new_page()
+    _open(page, base, f"#map={map_id}&layer=probability")
+    _wait(page, _TILES_OF_MAP_JS, map_id, what="the map's tiles")
+    refused: list[str] = []
+    page.on("response", lambda r: refused.append(r.url) if "/tiles/" in r.url and r.status >= 400 else None)
+    return snapshot, page, refused
+
+
 def test_a_map_replaced_by_one_without_the_layer_shown(
     new_page: Callable[..., Any], shared_service: ServiceProcess
 ) -> None:
@@ -808,15 +825,8 @@ def test_a_map_replaced_by_one_without_the_layer_shown(
     and a 'tile failed to load' message came per tile, until the GET answered. Tiles now wait for
     the new map's layers; then every tile is loaded in the layer shown."""
     base = shared_service.base_url
-    snapshot = _snapshot_keeping_counts(base, "keeps-counts")
-    _put_map(base, "replaced-live")
-    _scan(base, "replaced-live", "r1", 1, 1.0, 1.0)
-    page = new_page()
-    _open(page, base, "#map=replaced-live&layer=probability")
-    _wait(page, _TILES_OF_MAP_JS, "replaced-live", what="the map's tiles")
+    snapshot, page, refused = _page_of_a_map_to_replace(new_page, base, "replaced-live", "keeps-counts")
     page.evaluate(_WATCH_LIVE_JS)
-    refused: list[str] = []
-    page.on("response", lambda r: refused.append(r.url) if "/tiles/" in r.url and r.status >= 400 else None)
     with _map_get_held(page, "replaced-live") as held:
         _replace(base, "replaced-live", snapshot)
         _until_held(page, held, "the page's GET of the replaced map")  # after the `replaced` event
@@ -864,14 +874,7 @@ def test_tiles_the_user_brings_into_view_while_a_replaced_map_loads(
     tile Leaflet made for the new view was asked for at once in the old layer, refused (422) and left
     blank, 26 of them, until its retry 3 s later. Such tiles now wait for the map's layers too."""
     base = shared_service.base_url
-    snapshot = _snapshot_keeping_counts(base, "keeps-counts-2")
-    _put_map(base, "replaced-moved")
-    _scan(base, "replaced-moved", "r1", 1, 1.0, 1.0)
-    page = new_page()
-    _open(page, base, "#map=replaced-moved&layer=probability")
-    _wait(page, _TILES_OF_MAP_JS, "replaced-moved", what="the map's tiles")
-    refused: list[str] = []
-    page.on("response", lambda r: refused.append(r.url) if "/tiles/" in r.url and r.status >= 400 else None)
+    snapshot, page, refused = _page_of_a_map_to_replace(new_page, base, "replaced-moved", "keeps-counts-2")
     with _map_get_held(page, "replaced-moved") as held:
         _replace(base, "replaced-moved", snapshot)
         _until_held(page, held, "the page's GET of the replaced map")  # after the `replaced` event
