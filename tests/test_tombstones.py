@@ -587,6 +587,19 @@ def test_a_forgotten_robot_keeps_what_an_earlier_deletion_buried_and_the_bounds_
     assert [s.robot_id for s in stones.bury("m", {}, now=1004.0)] == ["s", "t"]
 
 
+def _older_services_database(data: Path, schema: str) -> None:
+    """A database in `data` made with an older service's `schema`, holding the tombstone of robot r
+    of map m as such a service writes it: the four columns it knows."""
+    db = sqlite3.connect(data / DB_NAME)
+    db.executescript(schema)
+    db.execute(
+        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES ('m', 'r', ?, ?)",
+        (time.time(), f'{{"{SESSION}": 4}}'),
+    )
+    db.commit()
+    db.close()
+
+
 def test_a_database_from_before_forgotten_robots_gets_the_column_at_start(data: Path) -> None:
     """A data directory written before tombstones had their `forgotten` column gets it at start, its
     rows deleted maps' robots; an older service, which names the four columns it writes, still
@@ -598,14 +611,7 @@ def test_a_database_from_before_forgotten_robots_gets_the_column_at_start(data: 
         "    forgotten INTEGER NOT NULL DEFAULT 0,  -- 1: forgotten by its map, which lives on\n", ""
     )
     assert old_schema != SCHEMA
-    db = sqlite3.connect(data / DB_NAME)
-    db.executescript(old_schema)
-    db.execute(
-        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES ('m', 'r', ?, ?)",
-        (time.time(), f'{{"{SESSION}": 4}}'),
-    )
-    db.commit()
-    db.close()
+    _older_services_database(data, old_schema)
     reg = registry(data)
     try:
         stone = reg.tombstones.get("m", "r")
@@ -787,14 +793,7 @@ def test_a_database_without_the_plain_columns_gets_them_at_start(
         lines = old_schema.split("\n")
         old_schema = "\n".join(line for line in lines if not line.lstrip().startswith(column))
     assert old_schema.count("plain_") == 2 - len(missing)
-    db = sqlite3.connect(data / DB_NAME)
-    db.executescript(old_schema)
-    db.execute(  # as an older service writes one
-        "INSERT INTO tombstones (map_id, robot_id, deleted_at, sessions) VALUES ('m', 'r', ?, ?)",
-        (time.time(), f'{{"{SESSION}": 4}}'),
-    )
-    db.commit()
-    db.close()
+    _older_services_database(data, old_schema)
     reg = registry(data)
     try:
         stone = reg.tombstones.get("m", "r")
