@@ -53,6 +53,12 @@ def cell_edge(index: int, resolution: float) -> float:
     return round(index * resolution, 9)
 
 
+def is_whole_number(value: object) -> bool:
+    """Whether `value` is an integer, Python's or NumPy's: not a bool (an int to Python, none to
+    NumPy), nor a float, whole or not (a count, a size or an index given as 2.5 is a mistake)."""
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
 def real_number(value: object) -> float:
     """`float(value)`, but TypeError for a string or bytes, which `float` (and numpy) would read
     ("1.5", b"inf"): the engine takes numbers, as the wire's JSON does, not text that looks like one."""
@@ -122,5 +128,6 @@ __all__ = [
     "as_points",
     "cell_edge",
     "float_array",
+    "is_whole_number",
     "real_number",
 ]

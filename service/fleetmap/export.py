@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED, cell_edge
+from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED, cell_edge, is_whole_number
 from fleetmap.grid_map import GridMap
 
 #: map_server's trinary pixel values and the thresholds that read them back unchanged.
@@ -73,7 +73,7 @@ def known_window(gmap: GridMap, margin: int = 0) -> Window | None:
     ValueError unless `margin` is a whole number >= 0 (a Python or NumPy integer): a negative one cut
     observed cells off the exports without a word (or left none: Pillow's 'cannot write empty
     image'). The window's edges are Python ints."""
-    if isinstance(margin, bool) or not isinstance(margin, int | np.integer) or margin < 0:
+    if not is_whole_number(margin) or margin < 0:
         raise ValueError(f"margin must be a whole number of cells >= 0, got {margin!r}")
     # A Python int: with a NumPy one the window's edges were NumPy integers (which json, meta.json's
     # writer, refuses), and a negative edge minus an unsigned one overflowed.
@@ -229,7 +229,7 @@ def by_blocks(
     number >= 1 or a window not `aligned` to it."""
     # Checked here, where every export of a window reads it: 0 was a ZeroDivisionError, -1 and 2.5
     # numpy's and range()'s errors, and an unaligned window numpy's "cannot reshape array".
-    if isinstance(scale, bool) or not isinstance(scale, int | np.integer) or scale < 1:
+    if not is_whole_number(scale) or scale < 1:
         raise ValueError(f"scale must be a whole number of cells >= 1, got {scale!r}")
     if window != window.aligned(scale):
         raise ValueError(

@@ -32,7 +32,7 @@ from fleetmap.cell_queries import STATE_NAMES as STATE_NAMES
 from fleetmap.cell_queries import STATE_OCCUPIED as STATE_OCCUPIED
 from fleetmap.cell_queries import STATE_UNKNOWN as STATE_UNKNOWN
 from fleetmap.cell_queries import Points as Points
-from fleetmap.cell_queries import UnknownCells, real_number
+from fleetmap.cell_queries import UnknownCells, is_whole_number, real_number
 from fleetmap.cell_queries import as_points as as_points
 from fleetmap.cell_queries import cell_edge as cell_edge
 from fleetmap.cell_queries import float_array as float_array
@@ -682,7 +682,7 @@ def _cell_window(i0: int, j0: int, i1: int, j1: int) -> tuple[int, int, int, int
     not one). NumPy integers mixed made a float width (int64 - uint64 is a float64), and a float
     failed deep inside with a message naming nothing (`>>`, `range()`)."""
     for name, value in (("i0", i0), ("j0", j0), ("i1", i1), ("j1", j1)):
-        if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer):
+        if not is_whole_number(value):
             raise TypeError(f"{name} must be an integer cell index, got {value!r}")
     return int(i0), int(j0), int(i1), int(j1)
 

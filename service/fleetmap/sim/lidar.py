@@ -24,6 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
+from fleetmap.cell_queries import is_whole_number
 from fleetmap.scan import Pose2D, Scan
 
 from .floorplan import FloorPlan
@@ -178,7 +179,7 @@ def simulate_scan(
     if (angle_min is None) != (angle_increment is None):
         raise ValueError("give both angle_min and angle_increment, or neither")
     # A whole number: 2.5 made 3 beams spaced for 2.5, the last one far past the field of view.
-    if isinstance(num_beams, bool) or not isinstance(num_beams, int | np.integer) or num_beams < 1:
+    if not is_whole_number(num_beams) or num_beams < 1:
         raise ValueError(f"num_beams must be a whole number >= 1, got {num_beams!r}")
     num_beams = int(num_beams)
     if angle_min is None or angle_increment is None:

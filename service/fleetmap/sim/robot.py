@@ -19,6 +19,7 @@ import weakref
 import numpy as np
 from numba import njit
 
+from fleetmap.cell_queries import is_whole_number
 from fleetmap.scan import MAX_BEAMS, Pose2D, Scan
 
 from .floorplan import FloorPlan
@@ -141,11 +142,7 @@ class SimulatedRobot:
         if not (math.isfinite(turn_rate) and turn_rate > 0.0):
             raise ValueError(f"turn_rate must be finite and > 0, got {turn_rate}")
         # Else the first scan fails, in the caller's loop (`simulate_scan` takes a whole number).
-        if (
-            isinstance(num_beams, bool)
-            or not isinstance(num_beams, int | np.integer)
-            or not 1 <= num_beams <= MAX_BEAMS
-        ):
+        if not is_whole_number(num_beams) or not 1 <= num_beams <= MAX_BEAMS:
             raise ValueError(f"num_beams must be a whole number, 1 to {MAX_BEAMS}, got {num_beams!r}")
         self.plan = plan
         self.speed = float(speed)
