@@ -21,7 +21,15 @@ from ros_types import GRID, TYPESTORE
 from test_operations import serve_namespace
 
 from fleetmap import GridMap, MapConfig, Scan
-from fleetmap.export import Window, changed_window, known_window, map_state, nav2_files, tile_blocks
+from fleetmap.export import (
+    Window,
+    bounding_window,
+    changed_windows,
+    known_window,
+    map_state,
+    nav2_files,
+    tile_blocks,
+)
 from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED
 from fleetmap.ros import graph
 from fleetmap.ros.graph import (
@@ -163,8 +171,9 @@ def test_an_update_carries_the_cells_of_its_part_at_their_offset_in_the_grid() -
     clock = gmap.store.clock
     angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
     gmap.integrate(Scan.from_angles((2.0, 2.0, 0.0), angles, np.full(90, 0.3), 0.0, 20.0))  # a pillar
-    part = changed_window(gmap, clock, window)
-    assert part is not None
+    parts = changed_windows(gmap, clock, window)
+    assert parts
+    part = bounding_window(parts)  # the update of them all in one
     # The tiles (16 cells) the pillar's 0.3 m touch: a few, not the window.
     assert part.shape[0] * part.shape[1] <= 9 * 16 * 16 < window.shape[0] * window.shape[1] // 4
     msg = TYPESTORE.deserialize_cdr(occupancy_grid_update(gmap, window, part, "odom", 5_000_000_123), UPDATE)
@@ -179,7 +188,7 @@ def test_an_update_carries_the_cells_of_its_part_at_their_offset_in_the_grid() -
         cells, np.asarray(before.data).reshape(window.shape)
     )
     # Nothing changed since: no part; a part outside the window is refused.
-    assert changed_window(gmap, gmap.store.clock, window) is None
+    assert changed_windows(gmap, gmap.store.clock, window) == []
     with pytest.raises(ValueError):
         occupancy_grid_update(gmap, window, Window(window.i0 - 1, part.j0, part.i1, part.j1), "map", 0)
 

@@ -85,15 +85,6 @@ def known_window(gmap: GridMap, margin: int = 0) -> Window | None:
     return Window(i0 - margin, j0 - margin, i1 + margin, j1 + margin)
 
 
-def changed_window(gmap: GridMap, since: int, window: Window) -> Window | None:
-    """The part of `window` that may have changed after the map's tile clock (`TileStore.clock`) was
-    `since`: the smallest window holding every storage tile whose version is above `since`, clipped
-    to `window`; None when none of them meets `window`. A cell changes only with its tile's version,
-    so every cell of `window` outside the answer is as it was at `since`. See `changed_windows`."""
-    parts = changed_windows(gmap, since, window)
-    return bounding_window(parts) if parts else None
-
-
 def bounding_window(windows: list[Window]) -> Window:
     """The smallest window holding every one of `windows` (at least one)."""
     return Window(
