@@ -217,6 +217,16 @@ def test_scan_built_directly_means_what_from_angles_means() -> None:
         (lambda: Scan.from_fan((0, 0, 0), "0.1", 0.1, [1.0]), "angle_min must be a number, got '0.1'"),
         (lambda: Scan(Pose2D(0, 0, 0), [0.0], [1.0], "0", 5.0), "range_min must be a number, got '0'"),  # type: ignore[arg-type]
         (lambda: Scan(Pose2D(0, 0, 0), [0.0], [1.0], 0.0, "inf"), "range_max must be a number, got 'inf'"),  # type: ignore[arg-type]
+        # Bools, dates and durations were numbers to numpy and float(): ranges of True were walls
+        # 1 m away, a date a wall some 20,000 m away (days since 1970), an x of True 1 m.
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, np.array([True, False])), "numbers: got bool"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, [True, 2.0]), "ranges must be numbers or None: got bool"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, np.array(["2024-01-01"], "M8[D]")), "got datetime64"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, np.array([3], "timedelta64[s]")), "got timedelta64"),
+        (lambda: Scan.from_angles((0, 0, 0), np.array([False, True]), [1.0, 2.0]), "angles must be numbers"),
+        (lambda: Scan.from_fan((True, 0, 0), 0, 0.1, [1.0]), "pose must be a Pose2D"),
+        (lambda: Scan.from_fan((0, 0, 0), np.bool_(True), 0.1, [1.0]), "angle_min must be a number"),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, [np.timedelta64(2, "s")]), "ranges must be numbers or"),
     ],
 )  # fmt: skip
 def test_scan_inputs_that_are_not_numbers_raise_scan_error(build: object, message: str) -> None:
@@ -400,6 +410,12 @@ def test_cells_reads_only_x_y_pairs() -> None:
         gmap.cast_rays(["0.5", 0.5], [0.0], 1.0)
     with pytest.raises(ValueError, match="max_range must be a positive finite number"):
         gmap.cast_rays((0.0, 0.0), [0.0], "10")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="pairs of numbers: got bool"):
+        gmap.cells(np.array([[True, False]]))
+    with pytest.raises(ValueError, match="angles must be numbers"):
+        gmap.cast_rays((0.0, 0.0), np.array([True]), 1.0)
+    with pytest.raises(ValueError, match="max_range must be a positive finite number"):
+        gmap.cast_rays((0.0, 0.0), [0.0], True)
     with np.errstate(all="raise"):
         far = gmap.cells([[1e300, -1e300], [2.51, 0.5]])
     assert far["known"].tolist() == [False, True]

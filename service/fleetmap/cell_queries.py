@@ -61,8 +61,10 @@ def is_whole_number(value: object) -> bool:
 
 def real_number(value: object) -> float:
     """`float(value)`, but TypeError for a string or bytes, which `float` (and numpy) would read
-    ("1.5", b"inf"): the engine takes numbers, as the wire's JSON does, not text that looks like one."""
-    if isinstance(value, str | bytes | bytearray):
+    ("1.5", b"inf"): the engine takes numbers, as the wire's JSON does, not text that looks like one;
+    and TypeError for a bool (`float(True)` is 1.0: a pose's x given as True was 1 m) and for a NumPy
+    date or duration (`float` gives its count of days or seconds since some epoch)."""
+    if isinstance(value, str | bytes | bytearray | bool | np.bool_ | np.datetime64 | np.timedelta64):
         raise TypeError(f"got {type(value).__name__} {value!r}, not a number")
     return float(value)  # type: ignore[arg-type]  # TypeError for what is no number
 
@@ -72,7 +74,9 @@ def float_array(values: npt.ArrayLike) -> np.ndarray:
     complex numbers: numpy drops their imaginary parts with a warning only, so two points written
     x + yj, an array of shape (2,), were read as the one point (x1, x2), and directions as unit
     complex numbers as angles equal to their cosines; ValueError for text, which numpy parses
-    ("0.5"), as `real_number` refuses it; and ValueError, not OverflowError (no ValueError, so past
+    ("0.5"), as `real_number` refuses it; ValueError for an array of bools, dates or durations, which
+    numpy converts to 0 / 1, days or seconds (ranges of True were walls 1 m away; `real_number`
+    refuses them one by one); and ValueError, not OverflowError (no ValueError, so past
     the callers' documented errors), for an int beyond float's range. Raises what `np.asarray`
     raises otherwise."""
     if np.iscomplexobj(values):
@@ -83,6 +87,8 @@ def float_array(values: npt.ArrayLike) -> np.ndarray:
             array.dtype == object and any(isinstance(v, str | bytes | bytearray) for v in array.flat)
         ):
             raise ValueError(f"got text ({array.dtype}), not numbers")
+        if array.dtype.kind in "bmM":
+            raise ValueError(f"got {array.dtype} values, not numbers")
         return array.astype(np.float64, copy=False)
     except OverflowError:
         raise ValueError("got an integer beyond the range of a float") from None
