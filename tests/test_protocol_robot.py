@@ -335,3 +335,31 @@ def test_the_module_names_a_layout_the_doc_has() -> None:
     """This robot's header format is the doc's table, read from the doc itself."""
     doc = (Path(__file__).resolve().parents[1] / "docs" / "protocol.md").read_text()
     assert struct.calcsize(DOC_HEADER) == 72 and "A 72-byte header (version 1), or an 80-byte one" in doc
+
+
+def test_a_zenoh_delete_on_a_scan_key_is_no_refused_scan(robot: zenoh.Session, http: httpx.Client) -> None:
+    """A scan is a put ("one scan per sample (put)"). A Zenoh DELETE on the key (`publisher.delete()`,
+    `session.delete(key)`) carries no payload: it was decoded as one, counted as the robot's refused
+    scan with "a payload starting b'' is neither a binary scan ... nor a JSON object" as its
+    `last_error`, which hid the robot's real last refusal. It is ignored, as the ROS ingest ignores one."""
+    publish(robot, "deletes", "r1", BINARY, doc_binary(0, 1.0, (0.0, 0.0, 0.0), [1.0, 2.0], session=7))
+    publish(robot, "deletes", "r1", BINARY, patched(32, "<d", 2e5))  # a refusal: its reason stays
+    wait_for(lambda: robot_state(http, "deletes", "r1").get("scans_rejected") == 1, what="the refusal")
+    errors_before = http.get("/healthz").json()["zenoh"]["decode_errors"]
+    key = "fleetmap/deletes/r1/scan"
+    pub = robot.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+    try:
+        wait_for(lambda: pub.matching_status.matching, timeout=10, interval=0.01, what="the service")
+        pub.delete()
+        robot.delete(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        # Samples of one session arrive in order: once this scan is in, the deletes were handled.
+        pub.put(doc_binary(1, 2.0, (0.0, 0.0, 0.0), [1.0, 2.0], session=7))
+    finally:
+        pub.undeclare()
+    state = wait_for(
+        lambda: (s := robot_state(http, "deletes", "r1")) and s["scans_integrated"] == 2 and s,
+        timeout=30, what="the scan after the deletes",
+    )  # fmt: skip
+    assert state["scans_rejected"] == 1 and state["lost"] == 0, state
+    assert "outside the world bound" in state["last_error"], state["last_error"]
+    assert http.get("/healthz").json()["zenoh"]["decode_errors"] == errors_before

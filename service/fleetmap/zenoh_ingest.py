@@ -198,9 +198,10 @@ def parse_key(key: str, suffix: str) -> tuple[str, str] | None:
 class ZenohIngest:
     """The service's Zenoh session, feeding scans and liveliness into a `MapRegistry`.
 
-    Contract: after `start()`, every scan sample on `fleetmap/<map>/<robot>/scan` is either submitted
-    to the registry or counted (globally in `status()`, and on the robot through the registry where
-    the ids are valid) with a rate-limited log line saying why. `close()` undeclares the subscribers
+    Contract: after `start()`, every scan sample (a put: a delete carries no scan and is ignored) on
+    `fleetmap/<map>/<robot>/scan` is either submitted to the registry or counted (globally in
+    `status()`, and on the robot through the registry where the ids are valid) with a rate-limited
+    log line saying why. `close()` undeclares the subscribers
     and closes the session. Both are idempotent. Zenoh may still run a scan callback for a moment
     after the session closed (seen at a SIGTERM during a robot's cache fetch): what it submits then,
     the closing registry refuses without recording it (`MapRegistry.submit`, `shutting_down`), so
@@ -446,6 +447,11 @@ class ZenohIngest:
 
     def _on_scan(self, sample: zenoh.Sample) -> None:
         try:
+            if sample.kind != zenoh.SampleKind.PUT:
+                # A DELETE on a scan key (`publisher.delete()`) carries no scan: decoded as one, its
+                # empty payload was counted as the robot's refused scan, and its reason ("a payload
+                # starting b'' is neither a binary scan ...") replaced the robot's real last_error.
+                return
             self._handle_scan(str(sample.key_expr), sample.payload, str(sample.encoding))
         except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
             log.exception("unexpected error handling a scan sample on %s", sample.key_expr)
