@@ -143,6 +143,40 @@ def test_old_scans_without_a_session_id_of_a_deleted_map_are_ignored_after_a_res
         full.close()
 
 
+def test_a_cache_without_session_ids_fetched_again_after_the_new_map_integrates_nothing_twice(
+    data: Path,
+) -> None:
+    """A robot without session ids goes on publishing after its map was deleted: its next scan (seq
+    5) makes the new map. Its cache, fetched again after a restart of the service, holds its scans
+    from before the deletion and that one. Once the robot was on the new map the tombstone was no
+    longer asked, and the map's own bookkeeping took the cache's first scan, the copy of seq 0, for
+    a restart (the new map's run has no seq 0 of its own to tell a copy by): it and every copy
+    after it were integrated into the new map, which had not held them, and seq 5 a second time."""
+    first = registry(data)
+    for seq in range(5):
+        first.submit("m", "plain", WireScan(seq, 10.0 + seq, SCANS[seq], None))
+    assert wait_idle(first)
+    first.delete("m", wait=True)
+    first.submit("m", "plain", WireScan(5, 15.0, SCANS[5], None))  # the robot goes on: a new map
+    assert wait_idle(first)
+    first.close()
+    again = registry(data)
+    try:
+        for seq in range(6):  # the robot's cache, fetched again
+            refused = refusal(again, "m", "plain", WireScan(seq, 10.0 + seq, SCANS[seq], None))
+            assert refused.status == 200 and refused.kind == "duplicate", (seq, refused.reason)
+        assert wait_idle(again)
+        robot = again.get("m").robots["plain"]
+        assert (robot.scans_integrated, robot.restarts, robot.duplicates) == (1, 0, 6)
+        again.submit("m", "plain", WireScan(6, 16.0, SCANS[6], None))  # its next scan goes on
+        again.submit("m", "plain", WireScan(0, 100.0, SCANS[0], None))  # restarted: a later stamp
+        again.submit("m", "plain", WireScan(0, 0.0, SCANS[1], None))  # restarted without a clock
+        assert wait_idle(again)
+        assert (robot.scans_integrated, robot.restarts) == (4, 2)
+    finally:
+        again.close()
+
+
 def test_old_scans_of_negative_stamps_of_a_deleted_map_are_ignored(data: Path) -> None:
     """Stamps are of any epoch, so some are negative; only 0 says "no clock". A stone covered a copy
     only with a stamp above 0: the copies of a robot whose stamps are negative, ignored as

@@ -760,13 +760,17 @@ class MapRegistry:
         """The tombstone that makes the scan `seq` (of `stamp`, of publisher session `session`) of
         robot `robot_id` on map `map_id` (`entry`, None: none now) a copy of one from before the map
         went or forgot the robot (`Tombstones.covers`), or None (call under the registry's lock).
-        Without a session id, only while the robot has no scan without one on the map: once it has
-        (it started its sequence again, past the tombstone), the map's own bookkeeping tells copies
-        from new scans, as it would have had the map never gone; the tombstone's, still at the old
-        run's seq, took the new run's next scans for copies."""
+        Without a session id, once the robot has a scan without one on the map (it went on, or
+        started its sequence again, past the tombstone), a seq past the map's last of them is new,
+        as it would be had the map never gone: the tombstone's, still at the old run's seq, took the
+        new run's next scans for copies. A seq not past it the tombstone still tells: the map's own
+        bookkeeping takes a copy of seq 0 for a restart (its run has no seq 0 of its own to tell a
+        copy by), and a robot's cache fetched again begins with one: it and every copy after it
+        were integrated into the new map."""
         if session is None and entry is not None:
             robot = entry.robots.get(robot_id)
-            if robot is not None and NO_SESSION in robot.sessions:
+            plain = robot.sessions.get(NO_SESSION) if robot is not None else None
+            if plain is not None and seq > plain.last_seq:
                 return None
         return self.tombstones.covers(map_id, robot_id, session, seq, stamp)
 
