@@ -371,6 +371,28 @@ def test_an_empty_window_is_refused_naming_the_cells_its_bounds_make(api: Runnin
         assert "at least one cell beyond" not in detail
 
 
+def test_a_region_of_a_layer_the_map_does_not_keep_is_refused_saying_so_whatever_its_window(
+    api: RunningApi,
+) -> None:
+    """A region of a layer the map does not keep is a 422 saying so, whatever the window: the window
+    was judged first, so a TSDF-only map's `state` was a 409 telling the client to give bounds (on an
+    empty map), a 413 to ask for smaller windows, or a 422 naming the window's cells, and the client
+    who followed that advice got another refusal for the same reason it had not been told."""
+    c = api.client
+    assert c.put("/maps/tsdf-empty", json={"layers": ["tsdf"]}).status_code == 201
+    try:
+        for path, params in (
+            ("/maps/tsdf-empty/region", {}),  # no bounds on a map with no observed cell
+            ("/maps/tsdf/region", {"xmin": -100, "ymin": -100, "xmax": 100, "ymax": 100}),  # past the limit
+            ("/maps/tsdf/region", {"xmin": 1, "ymin": 0, "xmax": 1, "ymax": 1}),  # no cell
+        ):
+            r = c.get(path, params={**params, "layer": "state"})
+            assert r.status_code == 422, (path, params, r.text)
+            assert "needs the 'occupancy' layer" in r.json()["detail"], (path, params, r.text)
+    finally:
+        assert c.delete("/maps/tsdf-empty").status_code == 204
+
+
 def test_validation_errors_list_every_problem(api: RunningApi) -> None:
     r = api.client.get(
         "/maps/e/region", params={"xmin": "a", "ymin": "b", "xmax": 1, "ymax": 1, "layer": "x"}

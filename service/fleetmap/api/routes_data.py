@@ -269,9 +269,12 @@ def get_region(
     of such windows at once (4), until their answers are sent."""
     entry = state.entry(map_id)
     gmap = entry.gmap
+    # A layer the map does not keep is a 422 saying so before the window is judged (a 409 for no
+    # bounds on an empty map, a 413 past the limit, a 422 for no cell: advice that, followed, met
+    # this refusal next) and before any slot is taken (a 503 to retry, which no retry could change).
+    gmap.layer_source(layer)
     limit = state.settings.max_json_cells if format == "json" else state.settings.max_region_cells
     window = _window(gmap, (xmin, ymin, xmax, ymax), limit)
-    gmap.layer_source(layer)  # a layer the map does not keep is a 422 before any slot is taken, not a 503
     with large_read(state.large_reads, window.cells) as read:
         values = gmap.region(layer, window.i0, window.j0, window.i1, window.j1)
         headers = _window_headers(window, gmap.resolution)
