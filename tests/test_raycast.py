@@ -213,6 +213,11 @@ def test_counts_maps_use_the_count_model_and_tsdf_maps_cannot_cast() -> None:
     tsdf_only = GridMap(MapConfig(layers=["tsdf"]))
     with pytest.raises(LayerUnavailableError, match="'occupancy' or the 'counts'"):
         tsdf_only.cast_rays((0.0, 0.0), [0.0], 1.0)
+    # Said whatever the rays: they were judged first, so rays too long for the limits were a
+    # RayLimitError (413), and the caller who shortened them met this refusal only next.
+    for angles, max_range in (([0.0], 1e6), ([0.0] * (MAX_RAYS + 1), 1.0), ([0.0] * 1000, 900.0)):
+        with pytest.raises(LayerUnavailableError, match="'occupancy' or the 'counts'"):
+            tsdf_only.cast_rays((0.0, 0.0), angles, max_range)
 
 
 def test_the_occupied_log_odds_edge_is_classify_s_own() -> None:
@@ -524,8 +529,9 @@ def test_bad_requests_are_refused_as_the_api_does(service: ServiceProcess) -> No
     assert raycast(url, "bad", {**ok, "angles": [0.0] * 838, "max_range": 1000.0}).status_code == 200
     # A map keeping only the TSDF has nothing to cast against: 422, as a layer the map does not keep.
     assert httpx.put(f"{url}/maps/tsdf-only", json={"layers": ["tsdf"]}).status_code == 201
-    r = raycast(url, "tsdf-only", ok)
-    assert r.status_code == 422 and "'occupancy' or the 'counts' layer" in r.json()["detail"]
+    for change in ({}, {"max_range": MAX_RAY_CELLS * 0.05 + 1}, {"angles": [0.0] * 1000, "max_range": 900.0}):
+        r = raycast(url, "tsdf-only", {**ok, **change})
+        assert r.status_code == 422 and "'occupancy' or the 'counts' layer" in r.json()["detail"], r.text
 
 
 def test_the_client_casts_rays(service: ServiceProcess) -> None:

@@ -512,7 +512,11 @@ class GridMap:
         or another `unknown`; `RayLimitError` (a ValueError) for more than `MAX_RAYS` rays, a
         `max_range` longer than `MAX_RAY_CELLS` cells, or rays x `max_range` in cells over
         `MAX_RAY_WALK`; `LayerUnavailableError` for a map that keeps neither the occupancy nor the
-        counts layer. Reads under the map's lock, from the tiles themselves (no copy)."""
+        counts layer, whatever the rays (it is checked first). Reads under the map's lock, from the
+        tiles themselves (no copy)."""
+        # The map first: rays too many or too long for the limits were refused as such (413 over
+        # REST), and the caller who cut them down met this refusal, which no rays avoid, only next.
+        use_counts = self._ray_source() == "counts"
         try:
             a = float_array(angles)
         except (TypeError, ValueError):
@@ -550,7 +554,6 @@ class GridMap:
             )
         if unknown not in ("stop", "pass"):
             raise ValueError(f"unknown must be 'stop' or 'pass', not {unknown!r}")
-        use_counts = self._ray_source() == "counts"
         occupied_thresh = self.config.occupancy.occupied_thresh
         log_odds_occupied = math.nan if use_counts else self._log_odds_occupied()
         cos, sin = np.cos(a), np.sin(a)
