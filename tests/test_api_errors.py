@@ -306,6 +306,10 @@ CASES: list[tuple[str, str, dict[str, Any], int, str]] = [
     # export, events
     ("GET", "/maps/e/export?format=tiff", {}, 422, "tiff"),
     ("GET", "/maps/e/export?margin=-1", {}, 422, "margin"),
+    # Not finite, as every number parameter says (nan was "Input should be greater than 0").
+    ("GET", "/maps/e/export?resolution=nan", {}, 422, "resolution': Input should be a finite number"),
+    ("GET", "/maps/e/export?resolution=inf", {}, 422, "resolution': Input should be a finite number"),
+    ("GET", "/maps/e/export?resolution=1e400", {}, 422, "resolution': Input should be a finite number"),
     ("GET", "/maps/tsdf/export", {}, 422, "occupancy"),
     ("GET", "/maps/empty/export", {}, 409, "no observed cell"),
     ("GET", "/maps/e/events?since=-1", {}, 422, "since"),

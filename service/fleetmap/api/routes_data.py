@@ -419,6 +419,8 @@ def get_export(
         float | None,
         Query(
             gt=0,
+            # nan was "should be greater than 0", and inf export_scale's refusal: one word for both.
+            allow_inf_nan=False,
             description="metres per cell of the export: the map's (default) times a whole number from 1 to "
             f"{MAX_EXPORT_SCALE}; each exported cell shows the most occupied known cell of its block",
         ),
