@@ -298,6 +298,10 @@ def test_bad_arguments_are_refused() -> None:
     with pytest.raises(RayLimitError) as just_past:
         gmap.cast_rays((0, 0), [0.0], 1000.01)
     assert "is 20000.2 cells" in str(just_past.value) and "20000 cells (1000 m)" in str(just_past.value)
+    # Nor rounds what was sent, however little past the limit ("max_range 1000 m is 20000 cells").
+    with pytest.raises(RayLimitError) as hair_past:
+        gmap.cast_rays((0, 0), [0.0], 1000.0001)
+    assert str(hair_past.value).startswith("max_range 1000.0001 m is 20000.002 cells"), hair_past.value
     rays = MAX_RAY_WALK // MAX_RAY_CELLS
     with pytest.raises(RayLimitError, match=f"{rays + 1} rays of 20000 cells .* limit of {MAX_RAY_WALK}"):
         gmap.cast_rays((0, 0), np.zeros(rays + 1), MAX_RAY_CELLS * 0.05)

@@ -540,10 +540,12 @@ class GridMap:
             raise ValueError(f"max_range must be a positive finite number of metres, got {given!r:.40}")
         cells = max_range / self.resolution
         if cells > MAX_RAY_CELLS:
-            # Not rounded to whole cells: 1000.01 m at 0.05 m was "20000 cells, more than the limit
-            # of 20000 cells". The limit in metres is what a caller can set max_range to.
+            # Not rounded: 1000.01 m at 0.05 m was "20000 cells, more than the limit of 20000 cells",
+            # and 1000.0001 m, to 6 digits, "max_range 1000 m is 20000 cells". max_range as sent, the
+            # cells to 15 digits (a float's rounding left out); the limit in metres is what a caller
+            # can set max_range to.
             raise RayLimitError(
-                f"max_range {max_range:g} m is {cells:.6g} cells at resolution {self.resolution} m, more "
+                f"max_range {max_range!r} m is {cells:.15g} cells at resolution {self.resolution} m, more "
                 f"than the limit of {MAX_RAY_CELLS} cells ({MAX_RAY_CELLS * self.resolution:g} m)"
             )
         if a.size * cells > MAX_RAY_WALK:
