@@ -293,6 +293,8 @@ def test_band_widths_are_finite_and_at_most_256_cells() -> None:
         ({"resolution": 0.01, "tsdf": {"truncation": 2.57}}, "tsdf.truncation 2.57 m is more than 256 cells"),
         ({"tsdf": {"truncation": 1e9}}, "at most 12.8 m"),
         ({"beam": {"alpha": 13.0}}, "beam.alpha 13 m is more than 256 cells at resolution 0.05 m"),
+        # A hair past the limit is said as given, not rounded to the limit ("12.8 m ... at most 12.8 m").
+        ({"tsdf": {"truncation": 12.8000001}}, r"truncation 12.8000001 m is more .*\(at most 12.8 m\)"),
         ({"tsdf": {"truncation": math.inf}}, "finite"),
         ({"beam": {"alpha": math.nan}}, "finite"),
     ):

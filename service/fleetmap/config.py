@@ -401,9 +401,11 @@ class MapConfig(BaseModel):
         for section, name in _BAND_WIDTHS:
             value = getattr(params, name, None)
             if section == info.field_name and value is not None and value > limit:
+                # To 15 digits, not :g's 6: 12.8000001 m at 0.05 m was "12.8 m is more than 256
+                # cells ... (at most 12.8 m)". 15 leave out a float's rounding (17.92 for 256 x 0.07).
                 raise ValueError(
-                    f"{section}.{name} {value:g} m is more than {MAX_BAND_CELLS} cells at resolution "
-                    f"{resolution:g} m (at most {limit:g} m)"
+                    f"{section}.{name} {value:.15g} m is more than {MAX_BAND_CELLS} cells at resolution "
+                    f"{resolution:.15g} m (at most {limit:.15g} m)"
                 )
         # Scans divide each band cell's distance by the truncation in cells: one so small that
         # `truncation / resolution` underflows to 0 made every scan with a return fail with
