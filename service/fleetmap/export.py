@@ -19,7 +19,7 @@ import math
 import os
 import shutil
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -178,8 +178,10 @@ def map_probability(gmap: GridMap, window: Window) -> np.ndarray:
     i0, j0, i1, j1 = window.i0, window.j0, window.i1, window.j1
     if map_source(gmap) != "counts":
         return gmap.region("probability", i0, j0, i1, j1)
-    hits = gmap.region("hits", i0, j0, i1, j1).astype(np.float64)
-    total = hits + gmap.region("misses", i0, j0, i1, j1)
+    with gmap.lock:  # both counts of one moment: read apart, a scan between them tore cells
+        hits = gmap.region("hits", i0, j0, i1, j1).astype(np.float64)
+        misses = gmap.region("misses", i0, j0, i1, j1)
+    total = hits + misses
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(total > 0, hits / total, np.nan)
 
@@ -196,14 +198,47 @@ def map_image(
 def tile_blocks(window: Window, tile_size: int) -> Iterator[Window]:
     """The parts of `window` in each storage tile it meets (tiles of `tile_size` cells, aligned on
     multiples of it), row of tiles by row of tiles from the lowest y."""
-    for jt in range(window.j0 // tile_size * tile_size, window.j1, tile_size):
-        for it in range(window.i0 // tile_size * tile_size, window.i1, tile_size):
-            yield Window(
-                max(window.i0, it),
-                max(window.j0, jt),
-                min(window.i1, it + tile_size),
-                min(window.j1, jt + tile_size),
+    for tj in range(window.j0 // tile_size, (window.j1 - 1) // tile_size + 1):
+        for ti in range(window.i0 // tile_size, (window.i1 - 1) // tile_size + 1):
+            yield _block(window, tile_size, ti, tj)
+
+
+def _block(window: Window, size: int, bi: int, bj: int) -> Window:
+    """The part of `window` in block (bi, bj) of a grid of `size` x `size` cells aligned on
+    multiples of `size`: one of `tile_blocks`."""
+    return Window(
+        max(window.i0, bi * size),
+        max(window.j0, bj * size),
+        min(window.i1, (bi + 1) * size),
+        min(window.j1, (bj + 1) * size),
+    )
+
+
+def _blocks_changed(gmap: GridMap, window: Window, size: int, since: int) -> list[Window]:
+    """The blocks of `tile_blocks(window, size)` that meet a storage tile changed (or created) since
+    the store's `clock` was `since`, in grid order. The caller holds the map's lock."""
+    store = gmap.store
+    t = store.tile_size
+    grid: set[tuple[int, int]] = set()
+    for slot in store.changed_since(since).tolist():
+        ti, tj = store.keys[slot]
+        # The tile's cells, within the window, and the blocks they fall in.
+        i0, i1 = max(window.i0, ti * t), min(window.i1, (ti + 1) * t)
+        j0, j1 = max(window.j0, tj * t), min(window.j1, (tj + 1) * t)
+        if i0 < i1 and j0 < j1:
+            grid.update(
+                (bi, bj)
+                for bj in range(j0 // size, (j1 - 1) // size + 1)
+                for bi in range(i0 // size, (i1 - 1) // size + 1)
             )
+    return [_block(window, size, bi, bj) for bj, bi in sorted((bj, bi) for bi, bj in grid)]
+
+
+#: `by_blocks` reads again the blocks changed while it read them, block by block, at most this many
+#: times before it reads those changed during the last such pass under one hold of the map's lock.
+#: Each pass is shorter than the one before (it reads only what changed during it), so the last
+#: hold is short: some tiles around the robots.
+CATCH_UP_PASSES = 2
 
 
 def by_blocks(
@@ -216,8 +251,13 @@ def by_blocks(
     held it for milliseconds), and only a tile's probabilities are held. A part of the window with
     no stored tile is `convert` of unknown without a read: a sparse map's window is mostly such
     parts (a window of 2^30 cells around two scans took 15 s a state export when they were read).
-    Raises LayerUnavailableError for a TSDF-only map, ValueError for a `scale` that is not a whole
-    number >= 1 or a window not `aligned` to it."""
+    Yet the image is of one moment of the map, the end of the read: a scan integrated while it reads
+    changes tiles read before it, and the blocks of those tiles are read again, the last of them
+    under one hold of the lock (`CATCH_UP_PASSES`; read once each, an export of a map robots wrote
+    showed cells of several moments, which the map never held at once). Every cell is of that
+    moment, within the window the caller chose before it (a map that grew meanwhile shows within
+    it). Raises LayerUnavailableError for a TSDF-only map, ValueError for a `scale` that is not a
+    whole number >= 1 or a window not `aligned` to it."""
     # Checked here, where every export of a window reads it: 0 was a ZeroDivisionError, -1 and 2.5
     # numpy's and range()'s errors, and an unaligned window numpy's "cannot reshape array".
     if not is_whole_number(scale) or scale < 1:
@@ -229,12 +269,32 @@ def by_blocks(
     ny, nx = window.shape
     out = np.empty((max(ny, 0) // scale, max(nx, 0) // scale), dtype=np.uint8)
     out.fill(convert(np.full((1, 1), np.nan))[0, 0])
-    for block in tile_blocks(window, max(1, gmap.store.tile_size // scale) * scale):
-        if not gmap.store.any_tile_in(block.i0, block.j0, block.i1, block.j1):
-            continue
+
+    def write(block: Window, probability: np.ndarray) -> None:
         rows = slice((block.j0 - window.j0) // scale, (block.j1 - window.j0) // scale)
         cols = slice((block.i0 - window.i0) // scale, (block.i1 - window.i0) // scale)
-        out[rows, cols] = convert(most_occupied(map_probability(gmap, block), scale))
+        out[rows, cols] = convert(most_occupied(probability, scale))
+
+    size = max(1, gmap.store.tile_size // scale) * scale
+    with gmap.lock:
+        since = pass_began = gmap.store.clock
+    blocks: Iterable[Window] = tile_blocks(window, size)
+    for _ in range(CATCH_UP_PASSES):
+        for block in blocks:
+            if gmap.store.any_tile_in(block.i0, block.j0, block.i1, block.j1):
+                write(block, map_probability(gmap, block))
+        with gmap.lock:
+            blocks = _blocks_changed(gmap, window, size, since)
+            if not blocks:  # every block is as it is now
+                return out
+            pass_began, since = since, gmap.store.clock
+    # The last: every block changed since the last pass began (during it, or since), read at one moment.
+    with gmap.lock:
+        last = [
+            (block, map_probability(gmap, block)) for block in _blocks_changed(gmap, window, size, pass_began)
+        ]
+    for block, probability in last:
+        write(block, probability)
     return out
 
 
