@@ -6,6 +6,7 @@ docs/security.md, "REST API"."""
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import os
 import shutil
@@ -24,13 +25,16 @@ from service_process import ServiceProcess, wait_for
 from test_api_security_headers import viewer_modules
 from test_auth import ADMIN, READ, SCAN, WRITE, bearer
 
+from fleetmap.api import ApiSettings, create_app
 from fleetmap.auth import (
     MAX_SESSION_VALUES,
     SESSION_COOKIE,
     UNKNOWN_SESSION,
+    TokenSet,
     is_read_request,
     required_role,
 )
+from fleetmap.registry import MapRegistry
 
 TILE = "/maps/m/tiles/0/0/-1.png"
 UNKNOWN = "unknown-token-0123456789"
@@ -469,6 +473,55 @@ def test_failed_sign_ins_are_limited_per_client_address(tmp_path: Path) -> None:
         time.sleep(max(0.0, started + 3.2 - time.monotonic()))
         assert sign_in(UNKNOWN).status_code == 401
         assert sign_in(READ).status_code == 200
+
+
+def test_sign_ins_whose_refusals_wait_on_their_client_are_counted_at_once() -> None:
+    """A failed sign-in counts as its 401 starts, not once the client has taken it: sending waits
+    while a client reads nothing (its connection's write buffer full, as behind a large answer it
+    asked for first on that connection), and the sign-ins that arrived meanwhile passed the check.
+    On the real service 25 connections, each asking for a 5 MB region (reads are open by default)
+    and then signing in, had 25 guesses answered 401 under a limit of 10. Driven here through the
+    app and all its middleware, with a client that holds its first answer back."""
+    settings = ApiSettings(tokens=TokenSet.parse(f"read {READ}"), signin_max_failures=1)
+    app = create_app(MapRegistry(), settings=settings)
+
+    async def sign_in(token: str, started: asyncio.Event, taken: asyncio.Event) -> int:
+        """POST /session with `token` from one address; its answer waits for `taken` once it started
+        (`started` set then). Returns its status."""
+        headers = [(b"host", b"localhost"), (b"authorization", f"Bearer {token}".encode())]
+        scope = {
+            "type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
+            "scheme": "http", "path": "/session", "raw_path": b"/session", "query_string": b"",
+            "root_path": "", "headers": headers, "client": ("10.0.0.1", 40000),
+            "server": ("127.0.0.1", 8000),
+        }  # fmt: skip
+        status = 0
+
+        async def receive() -> dict[str, Any]:
+            return {"type": "http.request", "body": b"", "more_body": False}
+
+        async def send(message: dict[str, Any]) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                started.set()
+                await taken.wait()
+
+        await app(scope, receive, send)
+        return status
+
+    async def guesses() -> list[int]:
+        waiting, taken = asyncio.Event(), asyncio.Event()
+        first = asyncio.create_task(sign_in(UNKNOWN, waiting, taken))
+        await asyncio.wait_for(waiting.wait(), 30)  # its 401 has started; the client reads nothing
+        read_at_once = asyncio.Event()
+        read_at_once.set()
+        # Another guess meanwhile, and a right token (refused too while the address is: docs).
+        later = [await sign_in(token, asyncio.Event(), read_at_once) for token in (UNKNOWN + "-2", READ)]
+        taken.set()
+        return [await first, *later]
+
+    assert asyncio.run(guesses()) == [401, 429, 429]
 
 
 def test_signing_in_where_reads_are_open(tmp_path: Path) -> None:
