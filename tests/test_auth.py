@@ -11,6 +11,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from fleetmap_client.zenoh_config import client_config
 from service_process import ServiceProcess, free_port
 
 from fleetmap.auth import TokenFileError, TokenSet, required_role
@@ -149,6 +150,42 @@ def test_token_files_are_checked_without_echoing_tokens(tmp_path: Path) -> None:
     assert required_role("POST", "/maps/a/scans", False) == "write"
     out = serve("--auth-tokens", str(tmp_path / "missing.txt"))
     assert out.returncode == 2 and "cannot read token file" in out.stderr
+
+
+def test_a_zenoh_configuration_it_cannot_read_is_reported_without_its_values(tmp_path: Path) -> None:
+    """A Zenoh configuration file may hold a robot's password (`transport/auth/usrpwd`) or a private
+    key inline (`*_base64`), and its errors go to the log (`fleetmap serve`) or to the robot's
+    error (`ScanPublisher`, `fleetmap replay`): Zenoh's error quoted the file's line at fault, the
+    password in it (an unquoted value, a quote left open), or the value of the wrong type (a
+    password written as a number). They now say where the fault is and what was expected, as Zenoh
+    did, but quote nothing of the file."""
+    password = "correct-horse-battery-staple"
+    faults = {
+        "unquoted": f"password: {password},",  # a syntax error: Zenoh printed the line
+        "open quote": f'password: "{password},',
+        "a number": "password: 424242424242,",  # the wrong type: Zenoh printed the value
+        "a boolean": "password: true,",
+    }
+    expected = {
+        "unquoted": "line 5, column 15: expected array, boolean, null, number, object, or string",
+        "a number": "invalid type: integer, expected a string",
+        "a boolean": "invalid type: boolean, expected a string",
+    }
+    for fault, line in faults.items():
+        config = tmp_path / f"{fault}.json5"
+        config.write_text(
+            "{\n  mode: 'router',\n  transport: { auth: { usrpwd: {\n"
+            f"    user: 'robot-7',\n    {line}\n  }} }} }},\n}}\n"
+        )
+        secret = line.removeprefix("password: ").strip('",')
+        out = serve("--zenoh-config", str(config), "--http", f"127.0.0.1:{free_port()}")
+        assert out.returncode == 2, (fault, out.stderr)
+        assert f"cannot load Zenoh config {config}: " in out.stderr, (fault, out.stderr)
+        assert secret not in out.stderr, (fault, out.stderr)
+        assert expected.get(fault, "line 5, column ") in out.stderr, (fault, out.stderr)
+        with pytest.raises(ValueError, match="cannot read Zenoh configuration") as robot:
+            client_config(zenoh_config=config)
+        assert secret not in str(robot.value) and expected.get(fault, "line 5") in str(robot.value)
 
 
 def test_a_token_holding_a_hash_is_the_whole_token(tmp_path: Path) -> None:

@@ -69,17 +69,43 @@ _ZENOH_SOURCE_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
 #: for an endpoint, `JSON error: Message { msg: ..., location: ... }` for a file.
 _ZENOH_JSON5_ERROR = re.compile(
     r'(?:Json5Err\()?Message \{ msg: "(?P<msg>(?:[^"\\]|\\.)*)", '
-    r"location: (?:None|Some\(Location \{[^}]*\}\)) \}\)?"
+    r"location: (?:None|Some\(Location \{ line: (?P<line>\d+), column: (?P<column>\d+) \}\)) \}\)?"
+)
+
+
+#: A syntax error of a configuration, as zenoh reports it: where (` --> 5:15`), then an excerpt of
+#: the file (the line at fault, a caret under the place), then what was expected (`  = expected ...`).
+_ZENOH_SYNTAX_ERROR = re.compile(r"-->\s*(?P<line>\d+):(?P<column>\d+)\n(?:[^\n]*\n)*?[ \t]*= ")
+#: A configuration value of the wrong type, as zenoh quotes it (`invalid type: integer `4242`,
+#: expected a string`, `invalid value: string "x", ...`): the kind is kept, the value left out.
+_ZENOH_QUOTED_VALUE = re.compile(
+    r"(?P<kind>invalid (?:type|value): [a-z ]*[a-z]) (?:`[^`]*`|\"(?:[^\"\\]|\\.)*\")"
 )
 
 
 def zenoh_error_text(exc: BaseException) -> str:
     """A Zenoh error as one line for people: its sentence, without the Rust source locations and the
     debug wrapper of configuration errors that zenoh adds (`Endpoints must be of the form
-    <protocol>/<address>...: 127.0.0.1:7447`, not `Json5Err(Message { msg: "Endpoints must ...`)."""
+    <protocol>/<address>...: 127.0.0.1:7447`, not `Json5Err(Message { msg: "Endpoints must ...`),
+    and without what zenoh quotes of a configuration file: it may hold a robot's password
+    (`transport/auth/usrpwd`) or a private key inline (`*_base64`), and this text goes to the log.
+    A syntax error says where and what was expected (`line 5, column 15: expected array, ...`, not
+    the line itself), a value of the wrong type its kind and place (`invalid type: integer, expected
+    a string (line 5, column 15)`, not the number)."""
     text = _ZENOH_SOURCE_LOCATION.sub("", str(exc))
-    text = _ZENOH_JSON5_ERROR.sub(lambda found: found["msg"].replace('\\"', '"'), text)
+    text = _ZENOH_JSON5_ERROR.sub(_json5_error_sentence, text)
+    text = _ZENOH_SYNTAX_ERROR.sub(lambda found: f"line {found['line']}, column {found['column']}: ", text)
+    text = _ZENOH_QUOTED_VALUE.sub(lambda found: found["kind"], text)
     return " ".join(text.split())
+
+
+def _json5_error_sentence(found: re.Match[str]) -> str:
+    """The sentence of a `_ZENOH_JSON5_ERROR`; where a value is left out of it
+    (`_ZENOH_QUOTED_VALUE`), with the place instead (`(line 5, column 15)`), which is that value's."""
+    sentence = found["msg"].replace('\\"', '"')
+    if found["line"] is not None and _ZENOH_QUOTED_VALUE.search(sentence):
+        sentence += f" (line {found['line']}, column {found['column']})"
+    return sentence
 
 
 def check_endpoint_form(endpoint: str) -> None:
