@@ -238,7 +238,8 @@ def test_the_spec_declares_the_tokens_and_refusals_of_every_operation(
     (optional: a server without tokens needs none) and the 401 / 403 the real service answers it
     with. The schemes were declared in the components only, applied to no operation: Swagger UI's
     Authorize sent the token with no request (every write tried from /docs was a 401), and a
-    client checking answers against the spec found the 401 and 403 undocumented."""
+    client checking answers against the spec found the 401 and 403 undocumented (signing in's 401
+    without the `WWW-Authenticate` it carries)."""
     spec = json.loads((Path(__file__).resolve().parents[1] / "openapi" / "openapi.json").read_text())
     args = ["--auth-tokens", str(token_file), "--require-read-token"]
     with ServiceProcess(tmp_path, args) as svc, httpx.Client(base_url=svc.base_url) as client:
@@ -252,6 +253,9 @@ def test_the_spec_declares_the_tokens_and_refusals_of_every_operation(
                     assert path in ("/healthz", "/session"), (where, r.status_code)
                     continue
                 assert "401" in operation["responses"] and "bearerToken" in schemes, where
+                # The challenge of RFC 9110 (11.6.1) that every 401 carries, declared where it is.
+                assert r.headers["www-authenticate"] == 'Bearer realm="fleetmap"', where
+                assert "WWW-Authenticate" in operation["responses"]["401"].get("headers", {}), where
                 if path == "/session":  # signing in: a token of any role, never a cookie
                     continue
                 assert {} in operation["security"], where  # a tokenless server needs none

@@ -496,6 +496,8 @@ def _declare_security(schema: dict[str, Any]) -> None:
     challenge = {"WWW-Authenticate": {"description": 'Bearer realm="fleetmap"', "schema": {"type": "string"}}}
     for path, operations in schema.get("paths", {}).items():
         if path == SESSION_PATH:  # its own: signing in needs a token (routes_session)
+            # Its 401 comes from the auth middleware too, challenge included.
+            operations["post"]["responses"]["401"].setdefault("headers", challenge)
             continue
         concrete = re.sub(r"\{[^}]*\}", "x", path)
         for method, operation in operations.items():
