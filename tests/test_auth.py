@@ -98,6 +98,19 @@ def serve(*args: str) -> subprocess.CompletedProcess[str]:
     )  # fmt: skip
 
 
+def test_an_empty_token_variable_is_refused_not_taken_for_none(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`FLEETMAP_TOKENS=` (a template's unset variable: `FLEETMAP_TOKENS=${API_TOKENS}`) was taken
+    for no tokens at all: on loopback, behind a reverse proxy on the same machine (which names its
+    upstream `127.0.0.1` in `Host`, as nginx does by default), the service served everyone without
+    a token, and only the start-up log's `API tokens: NONE` told. It stops at start instead, as an
+    empty $FLEETMAP_AUTH_TOKENS does."""
+    for empty in ("", "  "):
+        monkeypatch.setenv("FLEETMAP_TOKENS", empty)
+        out = serve("--http", f"127.0.0.1:{free_port()}", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}")
+        assert out.returncode == 2, out.stderr
+        assert "$FLEETMAP_TOKENS is set but holds no tokens" in out.stderr, out.stderr
+
+
 def test_no_tokens_means_loopback_only(tmp_path: Path) -> None:
     out = serve("--http", f"0.0.0.0:{free_port()}", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}")
     assert out.returncode == 2

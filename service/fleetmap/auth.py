@@ -135,7 +135,8 @@ class TokenSet:
 
     @classmethod
     def load(cls, path: str | None, environ: dict[str, str] | None = None) -> TokenSet | None:
-        """Tokens from `path`, else from $FLEETMAP_TOKENS, else None (no authentication)."""
+        """Tokens from `path`, else from $FLEETMAP_TOKENS, else None (no authentication). Raises
+        TokenFileError for a file or variable that holds none (an empty $FLEETMAP_TOKENS too)."""
         env = os.environ if environ is None else environ
         if path:
             try:
@@ -152,8 +153,16 @@ class TokenSet:
                 line = raw[:start].count(b"\n") + 1
                 raise TokenFileError(f"{path}:{line}: not UTF-8 text (byte {start})") from None
             return cls.parse(text, path)
-        if env.get(TOKENS_ENV):
-            return cls.parse(env[TOKENS_ENV].replace(";", "\n"), f"${TOKENS_ENV}")
+        if TOKENS_ENV in env:
+            text = env[TOKENS_ENV]
+            if not text.strip():
+                # Set but empty, as a template leaves an unset variable (`FLEETMAP_TOKENS=${TOKENS}`):
+                # tokens were meant, and taking it for none served everyone without one, silently.
+                raise TokenFileError(
+                    f"${TOKENS_ENV} is set but holds no tokens: give it 'ROLE TOKEN; ROLE TOKEN', or "
+                    "unset it to serve without tokens"
+                )
+            return cls.parse(text.replace(";", "\n"), f"${TOKENS_ENV}")
         return None
 
     def role_of(self, token: str) -> str | None:
