@@ -334,6 +334,30 @@ def test_a_refused_head_s_answer_is_not_lost_to_a_reset(service: ServiceProcess)
         assert b"the request line is longer than 65536 bytes" in answer
 
 
+def test_a_request_refused_with_its_body_in_the_same_read_is_not_logged_as_a_bug(
+    service: ServiceProcess,
+) -> None:
+    """A request httptools cannot parse (here a snapshot upload naming both Transfer-Encoding and
+    Content-Length, and plain garbage) that arrives in one read with more than MAX_HEAD_BYTES after
+    it (its body: an upload sent whole) is answered 400 and lingered over like any refusal. The
+    bytes of that read were still counted as its head once it was refused, so the head limit refused
+    it a second time, writing after the end of the stream: asyncio logged "Fatal error:
+    protocol.data_received() call failed" with a traceback, an ERROR for anyone's malformed bytes,
+    and reset the connection."""
+    already = len(service.logs())
+    upload = (
+        b"PUT /maps/m/snapshot HTTP/1.1\r\nHost: localhost\r\nContent-Length: 5\r\n"
+        b"Transfer-Encoding: chunked\r\n\r\n" + b"x" * (4 * MAX_HEAD_BYTES)
+    )
+    garbage = b"NOT HTTP AT ALL\r\n\r\n" + b"x" * (4 * MAX_HEAD_BYTES)
+    for request in (upload, garbage) * 3:
+        status, _, body = raw_answer(service, request)
+        assert status == 400 and str(body["detail"]).startswith("invalid HTTP request"), body
+    assert httpx.get(f"{service.base_url}/healthz").status_code == 200  # its log line is written
+    logs = service.logs()[already:]
+    assert "Traceback" not in logs and "Fatal error" not in logs, logs
+
+
 #: Headers every answer of the app carries (without tokens), whatever made it.
 COMMON = ("cache-control", "x-content-type-options", "x-frame-options", "referrer-policy")
 

@@ -231,8 +231,15 @@ def bounded_http_protocol(
                 super().data_received(data)
                 # Still in the same head after all of `data`: every byte of it was head. (A head
                 # that arrived whole in this chunk, at most 256 KiB, is measured by
-                # `on_headers_complete`.)
-                if in_head and (self._head_bytes or 0) > MAX_HEAD_BYTES and not self.transport.is_closing():
+                # `on_headers_complete`.) Unless the parser refused it meanwhile (`_lingering`): the
+                # rest of `data` was its body, and a second refusal wrote after the end of the
+                # stream (asyncio's "Fatal error" traceback, and a reset).
+                if (
+                    in_head
+                    and not self._lingering
+                    and (self._head_bytes or 0) > MAX_HEAD_BYTES
+                    and not self.transport.is_closing()
+                ):
                     self._refuse(HEAD_TOO_LARGE if self._request_line_ended else URL_TOO_LONG)
                 data = self._after_upgrade
 
