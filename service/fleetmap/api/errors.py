@@ -43,7 +43,7 @@ _DESCRIPTIONS = {
     "If-None-Match: * and the map exists; nothing changed",
     413: "The request asks for too much at once",
     415: "The body is not sent as the route reads it (JSON: application/json; a zip: application/zip; "
-    "never with a Content-Encoding)",
+    "never with a Content-Encoding, nor a Transfer-Encoding other than chunked)",
     422: "Invalid request: bad parameter, body or id",
     429: "Too many failed attempts from this client address: try again after Retry-After",
     503: "The service is overloaded, or could not store a change: retry later",
@@ -134,12 +134,28 @@ class BodyTooLarge(StarletteHTTPException):
 _SNAPSHOT_PATH = re.compile(r"/maps/[A-Za-z0-9_-]+/snapshot")
 
 
+#: The request headers that say a body is coded (compressed), by their names as ASGI gives them: the
+#: header as named to the client, and the codings of it that leave the body as it was sent (none,
+#: `identity`; and `chunked`, which the HTTP server undoes itself).
+_CODED_BODY_HEADERS = {
+    b"content-encoding": ("Content-Encoding", {b"identity"}),
+    b"transfer-encoding": ("Transfer-Encoding", {b"chunked"}),
+}
+
+
+def _codings(value: bytes) -> set[bytes]:
+    """The codings a `Content-Encoding` or `Transfer-Encoding` value lists, in lower case."""
+    return {coding.strip().lower() for coding in value.split(b",")} - {b""}
+
+
 class BodyLimitMiddleware:
     """Refuse request bodies over `max_bytes` with a JSON 413: at once when Content-Length says so,
     else as soon as the streamed body passes the limit. (Starlette's own limit answers in plain text.)
     And refuse a body sent with a `Content-Encoding` (gzip, say) with 415 and `Accept-Encoding:
     identity` (RFC 9110, 15.5.16): no route decodes one, and a gzipped JSON body was refused as "not
-    UTF-8 text", a gzipped snapshot as "not a zip file", which did not say what to change."""
+    UTF-8 text", a gzipped snapshot as "not a zip file", which did not say what to change. Likewise
+    a transfer coding other than `chunked` (`Transfer-Encoding: gzip, chunked`): the HTTP server
+    undoes the chunks only, and handed the routes the gzipped bytes as the body."""
 
     def __init__(self, app: ASGIApp, max_bytes: int, max_snapshot_bytes: int | None = None) -> None:
         self.app = app
@@ -160,9 +176,10 @@ class BodyLimitMiddleware:
                 exc = BodyTooLarge(limit)
                 await _json(exc.status_code, exc.detail)(scope, receive, send)
                 return
-            if name == b"content-encoding" and value.strip().lower() not in (b"", b"identity"):
+            header, plain = _CODED_BODY_HEADERS.get(name, ("", set()))
+            if header and _codings(value) - plain:
                 coding = value.decode("latin-1")[:40]
-                detail = f"a body with Content-Encoding {coding!r} is not read here: send it uncompressed"
+                detail = f"a body with {header} {coding!r} is not read here: send it uncompressed"
                 await _json(415, detail, headers={"Accept-Encoding": "identity"})(scope, receive, send)
                 return
         received = 0
