@@ -144,6 +144,23 @@ def test_a_request_body_that_stalls_is_cut_off(service: ServiceProcess) -> None:
         assert BODY_TIMEOUT - 0.5 < closed_after < BODY_TIMEOUT + 1.5
 
 
+def test_an_upload_whose_body_misses_its_deadline_is_told_why(service: ServiceProcess) -> None:
+    """A snapshot upload over a slow link that does not arrive within --http-body-timeout is cut off:
+    the connection was closed without a word, and the client saw "empty reply" or "connection
+    reset", nothing that said to raise the limit (as docs/api.md says to for big maps). It gets a
+    JSON 408 naming the option, then the end of the stream; nothing is installed."""
+    with socket.create_connection(("127.0.0.1", service.port), timeout=15) as sock:
+        head = b"PUT /maps/slow/snapshot HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/zip\r\n"
+        sock.sendall(head + b"Content-Length: 100000\r\n\r\n" + b"x" * 1000)
+        answer = b""
+        while chunk := sock.recv(65536):
+            answer += chunk
+    assert answer.startswith(b"HTTP/1.1 408 "), answer
+    detail = json.loads(answer.partition(b"\r\n\r\n")[2])["detail"]
+    assert "--http-body-timeout" in detail and f"{BODY_TIMEOUT:g} s" in detail, detail
+    assert httpx.get(f"{service.base_url}/maps/slow").status_code == 404
+
+
 def test_an_upload_cut_off_mid_body_is_not_logged_as_a_bug(service: ServiceProcess) -> None:
     """A body cut off (its deadline, or a client that goes away mid-upload) is the client's doing:
     Starlette's ClientDisconnect from `request.body()` was answered as an internal error, logged at

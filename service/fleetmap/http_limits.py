@@ -15,7 +15,10 @@ token to do that: a connection is only checked once its request head has arrived
   snapshot files need (nor Zenoh's sessions those of HTTP: `zenoh_session_limit` bounds them);
 - a request's head (request line and headers) must arrive within `head_timeout` seconds of the
   connection opening, or of the request's first byte on a kept-alive connection;
-- its body must then arrive within `body_timeout` seconds;
+- its body must then arrive within `body_timeout` seconds, or it is answered with a JSON 408 naming
+  the limit (`body_too_slow`) and the connection is closed as after a refused head: a big snapshot
+  upload over a slow link, cut off without a word, left its client with "empty reply from server"
+  and nothing saying which option to raise;
 - a client must take what its answer sends: if it reads nothing for `send_timeout` seconds while
   the answer waits on it (the connection's write buffer full), the connection is dropped. A client
   that asked for a snapshot download and stopped reading, connection open, held one of the 4
@@ -53,9 +56,9 @@ event loop (uvicorn's default of 2048 let one burst take 2048 descriptors before
 refused), and rate-limits asyncio's complaints when descriptors do run out (`quiet_accept_errors`;
 Python 3.11 logs one traceback per connection still waiting, 46,000 in 8 s).
 
-A connection past a deadline is closed. Nothing limits how long a response takes: an event stream,
-or a scan waiting for its integration, runs as long as it needs once its request has arrived, as
-long as its client reads what it is sent.
+A connection past a deadline is closed (after that 408 if it was its body's). Nothing limits how
+long a response takes: an event stream, or a scan waiting for its integration, runs as long as it
+needs once its request has arrived, as long as its client reads what it is sent.
 """
 
 from __future__ import annotations
@@ -134,6 +137,15 @@ HEAD_TOO_LARGE = error_response(
 )  # fmt: skip
 
 
+def body_too_slow(body_timeout: float) -> bytes:
+    """The answer to a request whose body did not arrive within `body_timeout` seconds."""
+    return error_response(
+        408, "Request Timeout",
+        f"the request's body did not arrive within {body_timeout:g} s of its head (the server's "
+        "--http-body-timeout): send it faster, or have the limit raised for big uploads over a slow link",
+    )  # fmt: skip
+
+
 def raise_descriptor_limit() -> int:
     """Raise this process's soft limit of open files to its hard limit (as the Go runtime does: the
     soft limit, often 1024, is a compatibility default for select()); returns the new soft limit.
@@ -194,6 +206,7 @@ def bounded_http_protocol(
 
     # One for all connections: a flood comes over many.
     refusal_log = RateLimitedLog(logging.getLogger("uvicorn.error"))
+    late_body = body_too_slow(body_timeout)
 
     class BoundedHttpToolsProtocol(HttpToolsProtocol):
         def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -348,7 +361,7 @@ def bounded_http_protocol(
                 self._refusal = UPGRADE_WITH_BODY
                 raise ValueError("a request to switch protocols with a body")
             self._disarm()
-            self._arm(body_timeout)
+            self._deadline = self.loop.call_later(body_timeout, self._body_late)
             super().on_headers_complete()
 
         def _has_body(self) -> bool:
@@ -377,6 +390,19 @@ def bounded_http_protocol(
             self._deadline = None
             if not self.transport.is_closing():
                 self.transport.close()
+
+        def _body_late(self) -> None:
+            """The request's body missed its deadline: tell the client why (408), unless it is
+            being answered already (a refusal sent before its body, which it kept sending), and
+            end the connection as `_refuse` does; the app hears that its client went away."""
+            self._deadline = None
+            if self.transport.is_closing():
+                return
+            cycle = self.cycle
+            if cycle is not None and cycle.response_started:
+                self.transport.close()
+            else:
+                self._refuse(late_body)
 
     return BoundedHttpToolsProtocol
 

@@ -316,8 +316,8 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         default=60.0,
         metavar="S",
         help=(
-            "close a connection whose request body has not all arrived this many seconds after its "
-            "headers (default 60: a 16 MiB body at 2.2 Mbit/s)"
+            "answer 408 and close a connection whose request body has not all arrived this many seconds "
+            "after its headers (default 60: a 16 MiB body at 2.2 Mbit/s)"
         ),
     )
     p.add_argument(
