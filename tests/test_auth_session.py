@@ -24,6 +24,7 @@ import pytest
 from service_process import ServiceProcess, wait_for
 from test_api_security_headers import viewer_modules
 from test_auth import ADMIN, READ, SCAN, WRITE, bearer
+from test_http_exhaustion import metric
 
 from fleetmap.api import ApiSettings, create_app
 from fleetmap.auth import (
@@ -365,6 +366,47 @@ def test_revoking_the_token_ends_its_sessions(tmp_path: Path) -> None:
         logs = svc.logs()
     for secret in (READ, WRITE, session_of(READ), session_of(WRITE)):
         assert secret not in logs
+
+
+def test_an_upload_whose_token_is_revoked_while_it_arrives_changes_nothing(tmp_path: Path) -> None:
+    """A snapshot upload takes minutes over a slow link, and a token may be revoked meanwhile (token
+    file and SIGHUP): the map was replaced all the same, by a token no longer let in. It is now a 401
+    saying so, nothing changed; an upload of a token kept is installed."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"write {WRITE}", f"admin {ADMIN}")
+    with ServiceProcess(tmp_path, ["--in-memory", "--auth-tokens", str(tokens)]) as svc:
+        assert svc.proc is not None
+        url = svc.base_url
+        r = httpx.post(f"{url}/maps/m/scans", params={"robot_id": "r"}, json=SCAN, headers=bearer(ADMIN))
+        assert r.status_code == 200, r.text
+        snapshot = httpx.get(f"{url}/maps/m/snapshot", headers=bearer(ADMIN)).content
+        revoked = threading.Event()
+
+        def body() -> Iterator[bytes]:
+            yield snapshot[: len(snapshot) // 2]
+            assert revoked.wait(30)
+            yield snapshot[len(snapshot) // 2 :]
+
+        answer: list[httpx.Response] = []
+        headers = {**bearer(WRITE), "Content-Type": "application/zip"}
+        upload = threading.Thread(
+            target=lambda: answer.append(
+                httpx.put(f"{url}/maps/copy/snapshot", content=body(), headers=headers, timeout=30)
+            )
+        )
+        upload.start()
+        wait_for(lambda: metric(svc, "fleetmap_uploads") == 1, 10, what="the upload under way")
+        write_tokens(tokens, f"admin {ADMIN}")  # the write token revoked
+        svc.proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: "SIGHUP: 1 API tokens read" in svc.logs(), 10, what="the reload's log line")
+        revoked.set()
+        upload.join(30)
+        assert answer and answer[0].status_code == 401, answer
+        assert "revoked" in answer[0].json()["detail"] and "nothing changed" in answer[0].json()["detail"]
+        assert answer[0].headers["www-authenticate"] == 'Bearer realm="fleetmap"'
+        assert httpx.get(f"{url}/maps/copy", headers=bearer(ADMIN)).status_code == 404
+        # The same upload with a token still in force is installed.
+        r = httpx.put(f"{url}/maps/copy/snapshot", content=snapshot, headers={**headers, **bearer(ADMIN)})
+        assert r.status_code == 201, r.text
 
 
 class StreamReader:

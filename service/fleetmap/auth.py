@@ -41,10 +41,10 @@ import json
 import os
 import re
 import stat
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 #: A token's role; each may do everything the roles before it may.
 Role = Literal["read", "write", "admin"]
@@ -422,11 +422,29 @@ def _sessions(headers: Iterable[tuple[bytes, bytes]]) -> list[str]:
     return list(found)
 
 
+#: The challenge of every 401 (RFC 9110, 11.6.1): the scheme the API takes.
+CHALLENGE = 'Bearer realm="fleetmap"'
+
+
+def revoked_during(scope: Mapping[str, Any]) -> str | None:
+    """Why a request let in by a token may not finish what it came for, or None: its token was
+    revoked, or demoted below the role it needed, since it was let in (`Grant.still_valid`). For a
+    write that takes minutes to arrive (a snapshot upload), checked before it changes anything: a
+    token revoked meanwhile replaced the map all the same. None for a request let in without one."""
+    grant = scope.get(GRANT_SCOPE_KEY)
+    if grant is None or grant.still_valid():
+        return None
+    return (
+        f"the token this request was sent with was revoked, or lost the {grant.needed!r} role, while "
+        "its body was read: nothing changed"
+    )
+
+
 async def _deny(send: Send, status: int, detail: str) -> None:
     body = json.dumps({"detail": detail}).encode()
     headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
     if status == 401:
-        headers.append((b"www-authenticate", b'Bearer realm="fleetmap"'))
+        headers.append((b"www-authenticate", CHALLENGE.encode()))
     await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})
 

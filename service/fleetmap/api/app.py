@@ -58,6 +58,7 @@ from fleetmap.api_models import (
     TilesEvent,
 )
 from fleetmap.auth import (
+    CHALLENGE,
     SESSION_COOKIE,
     SESSION_PATH,
     AuthMiddleware,
@@ -493,7 +494,7 @@ def _declare_security(schema: dict[str, Any]) -> None:
     token with none of them (every write tried from /docs was a 401), and generated clients had no
     place for it nor a documented 401."""
     error = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorResponse"}}}
-    challenge = {"WWW-Authenticate": {"description": 'Bearer realm="fleetmap"', "schema": {"type": "string"}}}
+    challenge = {"WWW-Authenticate": {"description": CHALLENGE, "schema": {"type": "string"}}}
     for path, operations in schema.get("paths", {}).items():
         if path == SESSION_PATH:  # its own: signing in needs a token (routes_session)
             # Its 401 comes from the auth middleware too, challenge included.

@@ -19,6 +19,7 @@ from fleetmap.api.http_semantics import created_status, is_head
 from fleetmap.api.state import MapId, Slots, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo, map_info
+from fleetmap.auth import CHALLENGE, revoked_during
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.map_entry import MapEntry
@@ -346,7 +347,9 @@ async def install_upload(
     but could not be stored. `conditions` (the request's If-Match / If-None-Match) are checked
     before the body is read, sparing a doomed upload its transfer (gigabytes, for a big map) and
     its spool, again once it is in, and last where the map is installed, under the registry's
-    lock, so that of two uploads sent with the same ETag one is installed and the other gets 412."""
+    lock, so that of two uploads sent with the same ETag one is installed and the other gets 412.
+    401, nothing changed, if the request's token was revoked (or demoted) while the upload was read
+    (`auth.revoked_during`)."""
 
     def current() -> MapEntry | None:
         with contextlib.suppress(MapNotFound):
@@ -372,6 +375,9 @@ async def install_upload(
                 # it: the reader stops at its next chunk rather than decompress on to 4 GiB into the
                 # temporary directory, for the process's exit to wait for (asyncio joins its threads).
                 stop.set()
+            revoked = revoked_during(request.scope)
+            if revoked is not None:
+                raise ApiError(401, revoked, headers={"WWW-Authenticate": CHALLENGE})
             read_with = config if reads_config else ANY_CONFIG
             return await _install(state, map_id, response, gmap, conditions, reservation, read_with)
 
