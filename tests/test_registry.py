@@ -1002,3 +1002,41 @@ def test_robots_whose_every_scan_broke_the_input_limits_give_their_place_first()
         assert [reg.tombstones.get("m", f"junk-{k}") for k in (1, 2)] == [None, None]
     finally:
         reg.close()
+
+
+def _snapshot_generations(data: Path) -> dict[str, int]:
+    """Each stored map's snapshot generation, which every snapshot of the map moves on."""
+    with contextlib.closing(sqlite3.connect(f"file:{data / 'fleetmap.db'}?mode=ro", uri=True)) as conn:
+        return dict(conn.execute("SELECT id, snapshot_gen FROM maps").fetchall())
+
+
+def test_a_clean_stop_snapshots_only_the_maps_with_something_unsaved(tmp_path: Path) -> None:
+    """The stop's last pass snapshotted every map, also one with nothing new since its last
+    snapshot: a writer round trip and a synced transaction each, about 5 ms a map, so a service of
+    5,000 idle maps took 27 s to stop (Docker kills after 10 s by default). It snapshots the maps the
+    periodic pass would: journaled scans, or counts and tombstones that only a snapshot stores."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    for map_id in ("idle", "scanned", "refused"):
+        registry.create(map_id, wait=True)
+    registry.submit("refused", "r", WireScan(0, 0.0, scan_at(0.0)), wait=True).result(10)  # type: ignore[union-attr]
+    registry.close()
+    before = _snapshot_generations(tmp_path)
+
+    again = MapRegistry(durable=DurableStore(tmp_path))
+    again.start()
+    again.submit("scanned", "r", WireScan(0, 0.0, scan_at(0.0)), wait=True).result(10)  # type: ignore[union-attr]
+    with pytest.raises(IngestRejected):
+        again.submit("refused", "r", WireScan(0, 0.0, scan_at(0.0)))  # a duplicate: no journal row
+    again.close()
+    after = _snapshot_generations(tmp_path)
+    assert after["idle"] == before["idle"], "a map with nothing new was snapshotted again"
+    assert after["scanned"] != before["scanned"] and after["refused"] != before["refused"]
+
+    last = MapRegistry(durable=DurableStore(tmp_path))
+    last.start()
+    try:
+        assert last.get("scanned").robots["r"].scans_integrated == 1
+        assert last.get("refused").robots["r"].duplicates == 1
+    finally:
+        last.close()
