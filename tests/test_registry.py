@@ -1040,3 +1040,19 @@ def test_a_clean_stop_snapshots_only_the_maps_with_something_unsaved(tmp_path: P
         assert last.get("refused").robots["r"].duplicates == 1
     finally:
         last.close()
+
+
+def test_the_last_snapshot_of_a_stop_is_not_paced(tmp_path: Path) -> None:
+    """Snapshots pace themselves (`DurableStore.snapshot_pace`: a sleep after each tile) so that the
+    workers integrating scans keep the cores; the stop's last snapshot slept as much, though no
+    worker runs by then, and 61,000 changed tiles took 22 s to store where they need 10 (Docker
+    kills after 10 s by default). A pace that would sleep for hours shows it: the stop still ends."""
+    registry = MapRegistry(durable=DurableStore(tmp_path, snapshot_interval=3600.0, snapshot_pace=1e7))
+    registry.start()
+    registry.submit("m", "r", WireScan(0, 0.0, scan_at(0.0)), wait=True).result(10)  # type: ignore[union-attr]
+    stopping = threading.Thread(target=registry.close, daemon=True)  # (daemon: a hung one is left behind)
+    stopping.start()
+    stopping.join(120)
+    assert not stopping.is_alive(), "the stop's last snapshot slept its pace"
+    with contextlib.closing(sqlite3.connect(tmp_path / "fleetmap.db")) as conn:
+        assert conn.execute("SELECT COUNT(*) FROM tiles WHERE map_id = 'm'").fetchone()[0] > 0

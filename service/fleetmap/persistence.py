@@ -253,7 +253,8 @@ class DurableStore:
     (copying every journal row written since into the database file). Every 30 s or 20 000 rows
     keeps a restart's replay to about 10-20 s at 400 scans/s. After each tile the snapshot thread
     sleeps `snapshot_pace` times as long as the tile took, so it uses at most 1 / (1 + pace) of a
-    core (a quarter by default) instead of one for tens of ms.
+    core (a quarter by default) instead of one for tens of ms; once the service stops
+    (`stop_periodic`), its last snapshots go at full speed.
     """
 
     def __init__(
@@ -750,8 +751,10 @@ class DurableStore:
                     )
                 )
                 # The machine's few cores also integrate scans: spread the encoding out rather
-                # than take a core for tens of ms at once.
-                time.sleep((time.perf_counter() - started) * self.snapshot_pace)
+                # than take a core for tens of ms at once. Not once the service stops (`stop_periodic`):
+                # no scan is integrated then, and the pace only delayed the stop (61,000 tiles took
+                # 22 s where they need 10) towards the container's kill.
+                self._stop.wait((time.perf_counter() - started) * self.snapshot_pace)
             for future in written:
                 future.result()  # every row committed before the switch (raises if one failed)
 
@@ -835,10 +838,16 @@ class DurableStore:
     def overdue(self, map_id: str) -> bool:
         return self._rows_since.get(map_id, 0) >= self.snapshot_rows
 
-    def close(self) -> None:
+    def stop_periodic(self) -> None:
+        """Stop the periodic snapshots (`start_periodic`), the one under way finished first, and pace
+        no snapshot from now on: the service is stopping, and its last snapshots are all that is
+        left to do. Idempotent."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
+
+    def close(self) -> None:
+        self.stop_periodic()
         self.writer.close()
         with contextlib.suppress(sqlite3.Error):
             self._snapshot_conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")

@@ -214,6 +214,8 @@ class MapRegistry:
                 t.join(timeout)
         if self.durable is None:
             return ()
+        # Unpaced from here (and a periodic pass under way finished first): no worker needs the cores.
+        self.durable.stop_periodic()
         # Not `every_map`: a map with nothing unsaved gains nothing from a snapshot, and each costs a
         # writer round trip and a synced transaction (5,000 idle maps took 27 s to stop).
         self.snapshot_all(False, last=True)
