@@ -506,3 +506,27 @@ def test_any_sequence_of_scans_uploads_and_deletions_keeps_the_budget_exact(seed
                 assert charged is not None and charged.bytes == e.gmap.memory_bytes(), (seed, step)
     assert budget.lent == 0
     assert budget.used == sum(e.gmap.memory_bytes() for e in registry.list())
+
+
+def test_a_map_whose_one_tile_is_more_than_the_whole_budget_is_refused_when_made(tmp_path) -> None:
+    """`PUT /maps/{id}` made a map of any configuration, even one whose single tile needs more than
+    all of `--max-memory` (1024-cell tiles of the three layers: 20 MiB, in a budget of 16): 201, and
+    every scan of it was then refused 507, to be "sent again once memory is freed", though no
+    deletion could ever make room. Such a PUT is refused 507 now, saying so, and makes no map; a
+    configuration whose tiles fit is made as before."""
+    with ServiceProcess(tmp_path, ["--in-memory", "--max-memory", "16MiB"]) as svc:
+        url = svc.base_url
+        r = httpx.put(f"{url}/maps/huge", json={"tile_size": 1024}, timeout=30)
+        assert r.status_code == 507, r.text
+        assert "20.0 MiB" in r.json()["detail"] and "16.0 MiB" in r.json()["detail"], r.text
+        assert httpx.get(f"{url}/maps/huge", timeout=10).status_code == 404
+        fits = {"tile_size": 1024, "layers": ["occupancy"]}  # 4 MiB a tile
+        assert httpx.put(f"{url}/maps/fits", json=fits, timeout=30).status_code == 201
+        scan = Scan.from_fan((0.5, 0.5, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0)
+        r = httpx.post(
+            f"{url}/maps/fits/scans",
+            params={"robot_id": "r"},
+            json=json.loads(encode_json(scan, 0)),
+            timeout=30,
+        )
+        assert r.status_code == 200, r.text

@@ -88,6 +88,18 @@ class MemoryBudget:
             charge.bytes += granted * unit
             return granted
 
+    def check_tile(self, tile: int, what: str) -> None:
+        """Raise `MemoryBudgetError` if one tile of `tile` bytes (`tiles.slot_bytes`) is more than the
+        whole limit: no map of such tiles could ever hold one, whatever other maps gave back, so
+        making it (`what`) would only have every scan of it refused, each told to try again once
+        memory is freed."""
+        if self.limit is not None and tile > self.limit:
+            raise MemoryBudgetError(
+                f"{what}: one of its tiles needs {format_size(tile)}, more than the service's whole memory "
+                f"budget for all maps' tiles, {format_size(self.limit)} (`fleetmap serve --max-memory`), "
+                "so no scan could ever be integrated into it; give it smaller tiles or fewer layers"
+            )
+
     def reserve_replacing(self, size: int, charge: Charge, replacing: Charge | None) -> None:
         """Reserve `size` bytes for `charge`, an upload's reservation for a map that replaces the map
         charged `replacing` (None: a new map), counting that map's bytes as free: they go back when

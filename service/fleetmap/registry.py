@@ -47,7 +47,7 @@ from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.robot_state import CONFLICT_SHOWN, NO_SESSION, RobotState, session_key
 from fleetmap.scan import Scan, ScanError
 from fleetmap.storage_format import cleared_window_to_blob, scan_to_blob
-from fleetmap.tiles import TileLimitError
+from fleetmap.tiles import TileLimitError, layer_arrays, slot_bytes
 from fleetmap.tombstones import Tombstone, Tombstones
 from fleetmap.unmapped_refusals import UnmappedRefusals
 from fleetmap.wire import DeliveryStatus, is_valid_id
@@ -419,18 +419,24 @@ class MapRegistry:
     ) -> tuple[MapEntry, bool]:
         """Create a map, or return the existing one if its configuration is the same
         (`MapConfig.same_map_as`: its layers in any order).
-        Returns (entry, created). Raises MapConflict for a different configuration. With `wait`, the
+        Returns (entry, created). Raises MapConflict for a different configuration, and
+        MemoryBudgetError, nothing made, for a new map of a `config` given whose one tile needs more
+        than the whole memory budget (`MemoryBudget.check_tile`; the default configuration, which
+        scans and robots' tokens create maps of, is warned of at start instead). With `wait`, the
         map, new or found, is committed to storage before this returns (else NotDurable). `by_scan`: created
         for a scan (auto-create), its log line rate-limited. `expect(existing)` is called with the
         map of that id (None if none) under the registry's lock before anything changes: whatever it
         raises propagates with nothing changed (a conditional write's precondition)."""
         _check_id("map id", map_id)
-        config = config or self.default_config
+        given, config = config, config or self.default_config
         stored = None
         with self.lock:
             existing = self.maps.get(map_id)
             if expect is not None:
                 expect(existing)
+            if existing is None and given is not None and self.memory_budget is not None:
+                tile = slot_bytes(given.tile_size, layer_arrays(given.layers))
+                self.memory_budget.check_tile(tile, f"map {map_id!r} was not made")
             if existing is not None:
                 if not existing.config.same_map_as(config):
                     raise MapConflict(

@@ -69,6 +69,12 @@ def tile_bytes(tile_size: int, arrays: Iterable[LayerArray]) -> int:
     return tile_size * tile_size * sum(np.dtype(a.dtype).itemsize for a in arrays)
 
 
+def slot_bytes(tile_size: int, arrays: Iterable[LayerArray]) -> int:
+    """Bytes one slot of a store's capacity holds: a tile of `arrays`, and its version. What
+    `TileStore.memory_bytes` (and so the memory budget) counts a tile as."""
+    return tile_bytes(tile_size, arrays) + np.dtype(np.int64).itemsize
+
+
 class TileStore:
     """Pooled per-layer tile arrays, a tile-key -> slot index, and a version per tile."""
 
@@ -344,4 +350,4 @@ class TileStore:
 
     def _tile_bytes(self) -> int:
         """Bytes one slot of capacity holds: a tile of every stored array, and its version."""
-        return tile_bytes(self.tile_size, self.arrays) + 8
+        return slot_bytes(self.tile_size, self.arrays)

@@ -27,6 +27,7 @@ from fleetmap.api_models import ErrorItem, ErrorResponse
 from fleetmap.codec import DecodeError, PayloadTooLarge
 from fleetmap.grid_map import LayerUnavailableError, RayLimitError
 from fleetmap.map_entry import IngestRejected
+from fleetmap.memory_budget import MemoryBudgetError
 from fleetmap.registry import InvalidId, MapConflict, MapNotFound, NotDurable
 from fleetmap.scan import ScanError
 from fleetmap.tile_render import TileError
@@ -386,6 +387,7 @@ _CLIENT_ERRORS: tuple[tuple[type[Exception], int], ...] = (
     (DecodeError, 422),
     (ScanError, 422),
     (TileError, 422),
+    (MemoryBudgetError, 507),  # before its base class: a map whose tiles the budget cannot hold
     (TileLimitError, 409),
 )
 

@@ -52,7 +52,7 @@ def list_maps(state: State) -> MapList:
     response_model=MapInfo,
     responses={
         201: {"model": MapInfo, "description": "Created"},
-        **error_responses(409, 412, 413, 415, 422, 503),
+        **error_responses(409, 412, 413, 415, 422, 503, 507),
     },
 )
 def put_map(
@@ -75,8 +75,10 @@ def put_map(
     written out, and `layers` in any order. 503: the map was created but could not be stored; the
     service retries, and the same PUT answers 200 once it is stored. `If-None-Match: *`: create
     only (412 if the map exists, even with the same configuration); `If-Match`: only if the map
-    exists with that `ETag` (412 otherwise, before the configurations are compared). The answer
-    carries the map's `ETag`."""
+    exists with that `ETag` (412 otherwise, before the configurations are compared). 507: a new
+    map of a configuration whose one tile needs more than the whole memory budget
+    (`--max-memory`), which could never hold one: nothing is made. The answer carries the map's
+    `ETag`."""
     entry, created = state.registry.create(map_id, config, wait=True, expect=conditions.expectation(map_id))
     created_status(response, map_id, created=created)
     tag_map(response, entry)
