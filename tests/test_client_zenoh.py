@@ -861,6 +861,30 @@ def test_replay_command_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str
         assert "must be a number of seconds >= 0, got nan" in capsys.readouterr().err
 
 
+def test_a_rate_too_slow_for_a_thread_to_wait_out_is_refused_before_anything_starts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`fleetmap replay --rate 1e-300` published its first scan, then ended in an OverflowError
+    traceback from `time.sleep` (exit 1), and `fleetmap sim --rate 1e-12` said "robot sim-1 stopped:
+    OverflowError: timestamp out of range for platform time_t": no thread waits past
+    `threading.TIMEOUT_MAX` (about 292 years) at once. Such a rate is refused at once now, before
+    the replay waits for its service or the sim announces its robots."""
+    log = tmp_path / "ok.log"
+    _write_carmen(log, 2)
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    with pytest.raises(ValueError, match=r"rate 1e-300 is too slow: a scan every 1e\+299 s"):
+        replay(log, "m", "r", rate=1e-300, connect=[nobody], wait_timeout=0.5, progress=False)
+    command = ["replay", str(log), "--map", "m", "--robot", "r", "--connect", nobody, "--quiet"]
+    assert cli.main([*command, "--rate", "1e-300"]) == 2
+    assert "fleetmap replay: error: rate 1e-300 is too slow" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=r"rate 1e-12 is too slow: a scan every 1e\+12 s"):
+        check_fleet(1, rate=1e-12, seconds=None)
+    assert cli.main(["sim", "--robots", "1", "--rate", "1e-12", "--connect", nobody]) == 2
+    out, err = capsys.readouterr()
+    assert "fleetmap sim: error: rate 1e-12 is too slow" in err and "robots on map" not in out, (out, err)
+    check_fleet(1, rate=1e-9, seconds=None)  # a scan every 31 years: slow, but a thread can wait it
+
+
 def test_replay_goes_on_at_its_rate_after_a_pause_for_a_lost_connection(
     router: Router, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

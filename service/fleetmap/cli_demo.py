@@ -182,15 +182,16 @@ def _check_fleet(args: argparse.Namespace) -> None:
         raise CliError(f"--seed must be 0 or more, got {args.seed}")
     if not is_valid_id(args.map):
         raise CliError(f"--map {args.map!r} is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -")
-    from fleetmap_client.sim import check_capacity
+    from fleetmap_client.sim import check_fleet
 
     from fleetmap.http_limits import raise_descriptor_limit
 
-    # More robots than this process has file descriptors or the machine threads for: `run_sim`
-    # raised it as a traceback, once the service was up.
+    # The rest of what `run_sim` refuses: more robots than this process has file descriptors or the
+    # machine threads for, a rate slower than a thread can wait. It raised them as a traceback,
+    # once the service was up.
     raise_descriptor_limit()
     try:
-        check_capacity(args.robots)
+        check_fleet(args.robots, args.rate, args.seconds, seed=args.seed)
     except ValueError as exc:
         raise CliError(str(exc)) from None
 

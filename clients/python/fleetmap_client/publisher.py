@@ -956,6 +956,19 @@ def check_timeouts(**timeouts: float | None) -> None:
             raise ValueError(f"{name} must be a number of seconds >= 0, got {value}")
 
 
+def check_period(period: float, what: str) -> None:
+    """ValueError unless a thread can wait `period` seconds (the time between two scans of
+    `replay.replay` and `sim.run_sim` at their rate, `what`, which the message names) at once: at
+    most `threading.TIMEOUT_MAX`, about 292 years, which `time.sleep` and `Event.wait` take.
+    Past it the replay published its first scan, then ended in an OverflowError traceback, and the
+    sim's robots stopped on "OverflowError: timestamp out of range for platform time_t"."""
+    if period > threading.TIMEOUT_MAX:
+        raise ValueError(
+            f"{what} is too slow: a scan every {period:.3g} s, longer than a thread can wait "
+            f"({threading.TIMEOUT_MAX:.4g} s, about 292 years)"
+        )
+
+
 def _deadline(timeout: float | None) -> float | None:
     """The monotonic time at which a wait of `timeout` seconds ends (None: no limit; a negative
     timeout has ended already). Raises TypeError for a timeout that is not a number and ValueError
@@ -974,5 +987,6 @@ __all__ = [
     "EXIT_WAIT_S",
     "FETCH_MARGIN_S", "HEARTBEAT_S", "RECONNECT_HOLD_MAX_S", "RECONNECT_HOLD_S", "RECONNECT_PERIOD_FACTOR",
     "RECONNECT_PERIOD_INIT_MS", "RECONNECT_PERIOD_MAX_MS",
-    "DeliveryReport", "DeliveryUnsupported", "PublisherClosed", "ScanPublisher", "client_config",
+    "DeliveryReport", "DeliveryUnsupported", "PublisherClosed", "ScanPublisher", "check_period",
+    "check_timeouts", "client_config",
 ]  # fmt: skip

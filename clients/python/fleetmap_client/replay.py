@@ -40,7 +40,7 @@ from fleetmap.datasets import Dataset, load_dataset
 from fleetmap.scan import Scan
 
 from .delivery import DeliveryReport
-from .publisher import DeliveryUnsupported, Encoding, ScanPublisher, check_timeouts
+from .publisher import DeliveryUnsupported, Encoding, ScanPublisher, check_period, check_timeouts
 
 #: Scans per second of a replay at rate 1 (the dataset readers expose no timestamps; see above).
 NOMINAL_SCAN_RATE = 10.0
@@ -101,12 +101,13 @@ def replay(
     """
     if not (rate >= 0.0 and rate != float("inf")):
         raise ValueError(f"rate must be a finite number >= 0, got {rate}")
+    period = 0.0 if rate == 0.0 else 1.0 / (NOMINAL_SCAN_RATE * rate)
+    check_period(period, f"rate {rate:g}")
     if limit is not None and limit < 0:
         raise ValueError(f"limit must be >= 0, got {limit}")
     check_timeouts(wait_timeout=wait_timeout, confirm_timeout=confirm_timeout)
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     count = len(ds) if limit is None else min(limit, len(ds))
-    period = 0.0 if rate == 0.0 else 1.0 / (NOMINAL_SCAN_RATE * rate)
     with ScanPublisher(
         map_id, robot_id, connect=connect, encoding=encoding, zenoh_config=zenoh_config
     ) as pub:

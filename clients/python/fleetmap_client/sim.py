@@ -32,7 +32,14 @@ from fleetmap.sim.floorplan import FloorPlan
 from fleetmap.wire import is_valid_id
 
 from .delivery import DeliveryReport
-from .publisher import CLOSE_WAIT_S, DeliveryUnsupported, Encoding, ScanPublisher, check_timeouts
+from .publisher import (
+    CLOSE_WAIT_S,
+    DeliveryUnsupported,
+    Encoding,
+    ScanPublisher,
+    check_period,
+    check_timeouts,
+)
 
 
 class SimError(RuntimeError):
@@ -135,15 +142,17 @@ def check_fleet(
 ) -> None:
     """ValueError unless `run_sim` can run `robots` robots at `rate` scans/s for `seconds` (None: no
     limit), with lidars of `beams` beams, at `speed` m/s, on the floor plan of `seed`: at least one
-    robot, a finite rate above 0, seconds not negative, 1 to `MAX_BEAMS` beams (a scan holds no
-    more), a finite speed not negative, a seed not negative (numpy's generators take no other),
-    and no more robots than this process's file descriptors and threads allow (`check_capacity`)."""
+    robot, a finite rate above 0 whose period a thread can wait (`check_period`), seconds not
+    negative, 1 to `MAX_BEAMS` beams (a scan holds no more), a finite speed not negative, a seed not
+    negative (numpy's generators take no other), and no more robots than this process's file
+    descriptors and threads allow (`check_capacity`)."""
     if seed < 0:  # was numpy's "expected non-negative integer", from inside the floor plan's draw
         raise ValueError(f"seed must be >= 0, got {seed}")
     if robots < 1:
         raise ValueError(f"robots must be >= 1, got {robots}")
     if not (rate > 0.0 and rate != float("inf")):
         raise ValueError(f"rate must be a finite number > 0, got {rate}")
+    check_period(1.0 / rate, f"rate {rate:g}")
     if seconds is not None and not seconds >= 0.0:
         raise ValueError(f"seconds must be >= 0, got {seconds}")
     # Checked here, not at the first scan: --beams 0 let every robot thread die with a traceback,
