@@ -617,12 +617,24 @@ def test_json_log_is_one_object_per_line_with_uvicorn_and_the_ready_line(tmp_pat
 
 
 def test_a_bad_option_is_one_json_line_with_json_logs() -> None:
-    done = serve_error("--log-format", "json", "--http", "nowhere")
-    assert done.returncode == 2
-    (line,) = done.stderr.strip().splitlines()
-    error = json.loads(line)
-    assert error["level"] == "ERROR"
-    assert error["message"].startswith("fleetmap serve: error: --http 'nowhere'")
+    """With JSON logs asked for by the command line (before or after the bad value) or by the
+    environment, a value its option's check refuses is one JSON object: argparse's refusal was a
+    text line among the JSON a log pipeline reads."""
+    cases = [
+        (("--log-format", "json", "--http", "nowhere"), {}, "--http 'nowhere': expected HOST:PORT"),
+        (("--workers", "0", "--log-format=json"), {}, "argument --workers: must be between 1 and 64"),
+        (("--workers", "0"), {"FLEETMAP_LOG_FORMAT": "json"}, "argument --workers: must be between"),
+    ]
+    for args, env, message in cases:
+        done = serve_error(*args, **env)
+        assert done.returncode == 2
+        (line,) = done.stderr.strip().splitlines()
+        error = json.loads(line)
+        assert error["level"] == "ERROR"
+        assert error["message"].startswith(f"fleetmap serve: error: {message}"), error
+    # The command line wins over the variable here too.
+    done = serve_error("--workers", "0", "--log-format", "text", FLEETMAP_LOG_FORMAT="json")
+    assert done.stderr.startswith("fleetmap serve: error: argument --workers: must be between"), done.stderr
 
 
 # -- backup and restore ----------------------------------------------------------------------------

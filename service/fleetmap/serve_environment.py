@@ -9,11 +9,12 @@ import argparse
 import difflib
 import logging
 import os
+import sys
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from fleetmap.auth import TOKENS_ENV
-from fleetmap.log_format import plain_line
+from fleetmap.log_format import LOG_FORMATS, plain_line
 
 #: Prefix of the environment variables that give `serve` options (FLEETMAP_DATA_DIR, ...).
 ENV_PREFIX = "FLEETMAP_"
@@ -66,7 +67,7 @@ def environment_first(parser: argparse.ArgumentParser) -> Callable[..., Any]:
         try:
             namespace, extras = parse(args, namespace)
         except argparse.ArgumentError as exc:
-            parser.error(str(exc))
+            one_line_error(parser, str(exc), _log_format_asked(args, namespace))
         if problem:
             line = plain_line(f"{parser.prog}: error: {problem}", namespace.log_format, logging.ERROR)
             parser.exit(2, line + "\n")
@@ -74,6 +75,28 @@ def environment_first(parser: argparse.ArgumentParser) -> Callable[..., Any]:
         return namespace, extras
 
     return parse_known_args
+
+
+def one_line_error(parser: argparse.ArgumentParser, message: str, log_format: str = "text") -> NoReturn:
+    """Exit 2 with `message` as one line naming the command and its help (as a JSON log object with
+    `log_format` json), rather than argparse's usage first (`serve`'s took 15 lines above the
+    error, which a service manager's log shows out of order)."""
+    line = f"{parser.prog}: error: {message} (see {parser.prog} --help)"
+    parser.exit(2, plain_line(line, log_format, logging.ERROR) + "\n")
+
+
+def _log_format_asked(args: Sequence[str] | None, namespace: Any) -> str:
+    """The log format a command line `args` that its parser refused asks for: its last valid
+    `--log-format`, else the one `namespace` holds (its variable's), else text. A value its option
+    refused (`--log-format json --http nowhere`, `FLEETMAP_LOG_FORMAT=json ... --workers 0`) was
+    refused in a text line, among the JSON lines a log pipeline reads."""
+    asked = getattr(namespace, "log_format", None) or "text"
+    words = list(sys.argv[1:] if args is None else args)
+    for word, following in zip(words, [*words[1:], None], strict=True):
+        value = following if word == "--log-format" else word.partition("=")[2]
+        if (word == "--log-format" or word.startswith("--log-format=")) and value in LOG_FORMATS:
+            asked = value
+    return str(asked)
 
 
 def unknown_variables(parser: argparse.ArgumentParser) -> list[str]:

@@ -22,7 +22,7 @@ from fleetmap.metrics import ROBOT_SERIES_IDLE
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS
 from fleetmap.ros.transforms import TfError, normalize_frame
 from fleetmap.scan import MAX_BEAMS
-from fleetmap.serve_environment import RepeatedOption, environment_first
+from fleetmap.serve_environment import RepeatedOption, environment_first, one_line_error
 from fleetmap.wire import is_valid_id
 from fleetmap.zenoh_ingest import DEFAULT_LISTEN
 
@@ -439,11 +439,10 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
 
 
 def _one_line_error(parser: argparse.ArgumentParser) -> Callable[[str], NoReturn]:
-    """`parser.error` that prints one line, not argparse's usage first (`serve` has 28 options: the
-    usage took 15 lines above the error, which a service manager's log shows out of order)."""
+    """`parser.error` that prints one line (`one_line_error`), not argparse's usage first."""
 
     def error(message: str) -> NoReturn:
-        parser.exit(2, f"{parser.prog}: error: {message} (see {parser.prog} --help)\n")
+        one_line_error(parser, message)
 
     return error
 
