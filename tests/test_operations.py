@@ -312,6 +312,10 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
         (("--max-range", "nan"), {}, "argument --max-range: must be a number of metres above 0, got nan"),
         ((), {"FLEETMAP_WORLD_BOUND": "-1"}, "$FLEETMAP_WORLD_BOUND='-1': must be a number of metres"),
         (("--world-bound", "far"), {}, "argument --world-bound: expected a number of metres, got 'far'"),
+        # Checked only once parsed, a bad $FLEETMAP_HTTP was refused as "--http 'localhost': ...",
+        # an option the command line did not hold (the Docker image sets the variable).
+        ((), {"FLEETMAP_HTTP": "localhost"}, "$FLEETMAP_HTTP='localhost': expected HOST:PORT"),
+        (("--http", "127.0.0.1:99999"), {}, "argument --http: port must be at most 65535, got"),
     ]
     for args, env, message in cases:
         done = serve_error(*args, "--data-dir", str(tmp_path / "d"), **env)
@@ -443,6 +447,8 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
             up = option == "--ros-map-period"
             value = action.default + 1 if up else action.default - 1
             argv, text = [option, str(value)], str(value)
+        elif option == "--http":
+            argv, text = [option, "127.0.0.1:9000"], "127.0.0.1:9000"
         else:  # text, or a size (--max-memory)
             argv, text = [option, "1GiB"], "1GiB"
         defaults = serve_options([], {}, monkeypatch)
@@ -621,7 +627,7 @@ def test_a_bad_option_is_one_json_line_with_json_logs() -> None:
     environment, a value its option's check refuses is one JSON object: argparse's refusal was a
     text line among the JSON a log pipeline reads."""
     cases = [
-        (("--log-format", "json", "--http", "nowhere"), {}, "--http 'nowhere': expected HOST:PORT"),
+        (("--log-format", "json", "--http", "nowhere"), {}, "argument --http: expected HOST:PORT"),
         (("--workers", "0", "--log-format=json"), {}, "argument --workers: must be between 1 and 64"),
         (("--workers", "0"), {"FLEETMAP_LOG_FORMAT": "json"}, "argument --workers: must be between"),
     ]

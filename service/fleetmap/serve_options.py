@@ -1,6 +1,6 @@
 """`fleetmap serve`'s command line: the parser of its options (`add_serve_parser`), each option's
 default and help, and the argparse `type`s that check a value as it is parsed (`_path`, `_map_id`,
-`_int_between`, ... and `parse_http` for `--http`), so that a bad value stops the start with one line
+`_int_between`, `_http_address`, ...), so that a bad value stops the start with one line
 naming the option. Every option is also read from its FLEETMAP_ variable (`serve_environment`).
 What the options then start is `server.run`'s."""
 
@@ -53,6 +53,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     )
     p.add_argument(
         "--http",
+        type=_http_address,
         default=DEFAULT_HTTP,
         metavar="HOST:PORT",
         help=f"address of the REST API and web viewer (default {DEFAULT_HTTP}; port 0 picks a free port)",
@@ -621,13 +622,33 @@ def _int_between(low: int, high: int) -> Callable[[str], int]:
 
 
 def parse_http(text: str) -> tuple[str, int]:
-    """(host, port) of `HOST:PORT`, `[IPV6]:PORT` or `:PORT` (all interfaces). Raises CliError."""
+    """(host, port) of `HOST:PORT`, `[IPV6]:PORT` or `:PORT` (all interfaces). Raises CliError
+    naming `--http` (the demo's option; `serve`'s is checked as it is parsed, `_http_address`)."""
+    try:
+        return _split_http(text)
+    except ValueError as exc:
+        raise CliError(f"--http {text!r}: {exc}") from None
+
+
+def _http_address(text: str) -> str:
+    """An argparse `type` for `--http`: `text` if `parse_http` takes it. Checked once parsed, a bad
+    $FLEETMAP_HTTP (the Docker image sets it) was refused as "--http 'localhost': ...", naming an
+    option the command line did not hold, where every other variable is named as itself."""
+    try:
+        _split_http(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{exc}, got {text!r}") from None
+    return text
+
+
+def _split_http(text: str) -> tuple[str, int]:
+    """`parse_http`'s (host, port); ValueError saying what is wrong, without the value."""
     host, sep, port_text = text.rpartition(":")
     if not sep or not port_text.isdigit():
-        raise CliError(f"--http {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8000")
+        raise ValueError("expected HOST:PORT, e.g. 127.0.0.1:8000")
     port = int(port_text)
     if port > 65535:
-        raise CliError(f"--http {text!r}: port must be at most 65535")
+        raise ValueError("port must be at most 65535")
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]
     return host or "0.0.0.0", port
