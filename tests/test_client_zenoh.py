@@ -1288,6 +1288,22 @@ def test_a_sim_too_busy_for_its_rate_counts_the_scans_it_skipped_and_says_so(
     assert 49_000 <= skipped + sent <= 50_100  # every scan due in the second: taken or skipped
 
 
+def test_a_sim_of_infinite_seconds_runs_until_stopped_also_when_it_falls_behind(router: Router) -> None:
+    """`fleetmap sim --seconds inf` (and `fleetmap demo --seconds inf`) is taken as no limit, but a
+    robot that fell behind its rate then counted its skipped scans up to an infinite deadline:
+    "robot sim-1 stopped: OverflowError: cannot convert float infinity to integer", exit 2 (the
+    demo: SimError's traceback). 50000 scans/s is more than one robot keeps up with (see above)."""
+    stop = threading.Event()
+    timer = threading.Timer(1.0, stop.set)  # a stop, not a measure: the robot runs until then
+    timer.start()
+    try:
+        result = run_sim(1, rate=50000.0, seconds=math.inf, connect=[router.endpoint], beams=9,
+                         wait_timeout=20, stop=stop)  # fmt: skip
+    finally:
+        timer.cancel()
+    assert result.total > 0 and sum(result.skipped.values()) > 0, result
+
+
 def test_a_sim_of_more_robots_than_a_service_takes_says_so_first() -> None:
     """A fleetmap service takes 1000 Zenoh sessions at once by default and refuses the others as an
     absent service would, logging nothing: `fleetmap sim --robots 1001` left its last robot waiting

@@ -185,7 +185,7 @@ def run_sim(
     confirm_timeout: float | None = None,
 ) -> SimResult:
     """Run `robots` simulated robots on `map_id` until `seconds` pass (from when they start moving;
-    None: no limit) or `stop` is set. Blocks; returns what each robot published.
+    None or inf: no limit) or `stop` is set. Blocks; returns what each robot published.
 
     `seed` picks the floor plan (`generate_floorplan(seed)`, unless `plan` is given) and the robots'
     start poses and routes (robot k uses seed `seed * 1000 + k`). `rate` is scans per second per
@@ -225,7 +225,9 @@ def run_sim(
             )
         _wait_all(publishers, wait_timeout, stop, on_waiting)
         started = time.monotonic()
-        deadline = None if seconds is None else started + seconds
+        # Infinite seconds are no limit, as None: a deadline of inf broke the count of the scans a
+        # robot behind its rate skipped up to it (OverflowError: "cannot convert float infinity").
+        deadline = None if seconds is None or math.isinf(seconds) else started + seconds
         failures: dict[str, BaseException] = {}
         threads = [
             threading.Thread(
