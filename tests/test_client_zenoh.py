@@ -643,6 +643,11 @@ def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong(tmp
         ValueError, match=r"^'tcp://h:7447' is written as a URL: .* PROTOCOL/ADDRESS, tcp/h:7447$"
     ):
         ScanPublisher("m", "r", connect=["tcp/127.0.0.1:1", "tcp://h:7447"])
+    # Without its port: Zenoh's "invalid socket address" named no endpoint.
+    with pytest.raises(
+        ValueError, match=r"^'tcp/h' has no port: a Zenoh tcp endpoint is tcp/HOST:PORT, e.g. tcp/h:7447$"
+    ):
+        ScanPublisher("m", "r", connect="tcp/h")
     config_file = tmp_path / "robot.json5"
     config_file.write_text('{mode: "client", connect: {endpoints: ["127.0.0.1:7447"]}}')
     with pytest.raises(ValueError) as bad:

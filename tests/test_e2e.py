@@ -395,10 +395,17 @@ def test_serve_errors_exit_2_without_a_traceback(service: ServiceProcess, tmp_pa
             "<protocol>/<address>[?<metadata>][#<config>]: 127.0.0.1:7447\n",
         ),
         # As a URL: Zenoh took `tcp:` for its protocol ("Unicast not supported for tcp: protocol").
+        # Checked as the option is parsed, before maps are loaded.
         (
             ["--http", "127.0.0.1:0", "--zenoh-connect", "tcp://127.0.0.1:7447"],
-            "error: invalid Zenoh endpoint: 'tcp://127.0.0.1:7447' is written as a URL: a Zenoh endpoint is "
-            "PROTOCOL/ADDRESS, tcp/127.0.0.1:7447\n",
+            "error: argument --zenoh-connect: 'tcp://127.0.0.1:7447' is written as a URL: a Zenoh endpoint "
+            "is PROTOCOL/ADDRESS, tcp/127.0.0.1:7447 (see fleetmap serve --help)\n",
+        ),
+        # Without a port: Zenoh's "invalid socket address" named no endpoint, once every map was loaded.
+        (
+            ["--http", "127.0.0.1:0", "--zenoh-listen", "tcp/127.0.0.1"],
+            "error: argument --zenoh-listen: 'tcp/127.0.0.1' has no port: a Zenoh tcp endpoint is "
+            "tcp/HOST:PORT, e.g. tcp/127.0.0.1:7447 (see fleetmap serve --help)\n",
         ),
     ]
     for args, message in cases:

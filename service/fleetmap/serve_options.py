@@ -23,7 +23,7 @@ from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS
 from fleetmap.ros.transforms import TfError, normalize_frame
 from fleetmap.scan import MAX_BEAMS
 from fleetmap.serve_environment import RepeatedOption, environment_first, one_line_error
-from fleetmap.wire import is_valid_id
+from fleetmap.wire import check_endpoint_form, is_valid_id
 from fleetmap.zenoh_ingest import DEFAULT_LISTEN
 
 DEFAULT_HTTP = "127.0.0.1:8000"
@@ -61,6 +61,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     p.add_argument(
         "--zenoh-listen",
         nargs="+",
+        type=_zenoh_endpoint,
         action=RepeatedOption,
         metavar="ENDPOINT",
         help=(
@@ -71,6 +72,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
     p.add_argument(
         "--zenoh-connect",
         nargs="+",
+        type=_zenoh_endpoint,
         action=RepeatedOption,
         default=[],
         metavar="ENDPOINT",
@@ -638,6 +640,18 @@ def _http_address(text: str) -> str:
         _split_http(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"{exc}, got {text!r}") from None
+    return text
+
+
+def _zenoh_endpoint(text: str) -> str:
+    """An argparse `type` for `--zenoh-listen` / `--zenoh-connect`: `text` unless
+    `wire.check_endpoint_form` refuses it (a URL, or no port). Checked by the ingest only once the
+    service had loaded every map (minutes, for big ones), after which `tcp/127.0.0.1` failed with
+    Zenoh's "invalid socket address", naming no endpoint."""
+    try:
+        check_endpoint_form(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
     return text
 
 

@@ -108,17 +108,30 @@ def _json5_error_sentence(found: re.Match[str]) -> str:
     return sentence
 
 
+#: Zenoh's link protocols whose address is HOST:PORT (not a path, as `unixsock-stream`'s).
+_PORTED_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})
+
+
 def check_endpoint_form(endpoint: str) -> None:
     """Raise ValueError if `endpoint` is written as a URL (`tcp://127.0.0.1:7447`) rather than as
     the Zenoh endpoint `PROTOCOL/ADDRESS` (`tcp/127.0.0.1:7447`): Zenoh takes the URL for protocol
     `tcp:` and address `/127.0.0.1:7447`, so a robot given one waited for the service for ever and
-    the service failed to listen with "Unicast not supported for tcp: protocol". Other mistakes
-    are Zenoh's own to report (`zenoh_error_text`)."""
+    the service failed to listen with "Unicast not supported for tcp: protocol"; or one of a
+    protocol of host and port (`tcp`, `udp`, ...) without its port. Other mistakes are Zenoh's own
+    to report (`zenoh_error_text`)."""
     protocol, slash, rest = endpoint.partition("/")
     if slash and protocol.endswith(":") and rest.startswith("/"):
         raise ValueError(
             f"{endpoint!r} is written as a URL: a Zenoh endpoint is PROTOCOL/ADDRESS, "
             f"{protocol[:-1]}/{rest[1:]}"
+        )
+    # Without its port (`tcp/127.0.0.1`), Zenoh says only "invalid socket address", naming no
+    # endpoint, and the service said so only once it had loaded every map.
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    if slash and protocol in _PORTED_PROTOCOLS and not re.search(r":\d+$", address):
+        raise ValueError(
+            f"{endpoint!r} has no port: a Zenoh {protocol} endpoint is {protocol}/HOST:PORT, "
+            f"e.g. {protocol}/{address.rstrip(':') or '127.0.0.1'}:7447"
         )
 
 
