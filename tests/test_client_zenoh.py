@@ -400,6 +400,72 @@ def test_closing_gives_up_the_queued_scans_and_counts_them_as_dropped(sim_scans:
     assert (pub.pending, pub.backlogged, pub.dropped, pub.published) == (0, 0, 3, 0)
 
 
+# A robot program whose SIGTERM handler closes its publisher ("close"), or publishes a scan
+# ("publish"), the signal arriving while `publish` holds the publisher's locks (here: as it encodes
+# the second scan, the moment a big JSON scan spends most of its time in). `close` must not wait for
+# what the interrupted `publish` holds: that one goes on only once the handler returned. Its waits
+# are made far longer than the subprocess's timeout, so a close that waits at all fails the test
+# instead of passing slowly.
+_SIGNAL_HANDLER_PROGRAM = """
+import signal, sys
+from fleetmap.sim import SimulatedRobot, generate_floorplan
+from fleetmap_client import publisher
+publisher.CLOSE_WAIT_S = publisher.CLOSE_SEND_WAIT_S = 600.0
+pub = publisher.ScanPublisher("lab", "sigterm", connect=[sys.argv[1]], encoding="json")
+assert pub.wait_connected(15), pub.last_connect_error
+robot = SimulatedRobot(generate_floorplan(1), num_beams=91, seed=1)
+scans = [robot.tick() for _ in range(3)]
+assert pub.publish(scans[0])
+def on_sigterm(signum, frame):
+    if sys.argv[2] == "close":
+        pub.close()
+        print("closed in the handler")
+        return
+    try:
+        pub.publish(scans[2])
+    except RuntimeError as exc:
+        print("refused in the handler:", exc)
+signal.signal(signal.SIGTERM, on_sigterm)
+encode = pub._encode
+def encode_and_get_sigterm(*args, **kwargs):
+    pub._encode = encode
+    signal.raise_signal(signal.SIGTERM)  # its handler runs here, inside publish
+    return encode(*args, **kwargs)
+pub._encode = encode_and_get_sigterm
+print("second publish", pub.publish(scans[1]))
+print("counters", pub.published, pub.backlogged, pub.dropped, pub.pending)
+"""
+
+
+def test_a_signal_handler_closes_a_publisher_interrupted_inside_publish(router: Router) -> None:
+    """`close()` called by a signal handler that interrupted `publish` of the same thread: the
+    publish held the publisher's (non-reentrant) locks, so the close hung for ever when the signal
+    came while it encoded (2 runs in 3 of a loop of 20,000-beam JSON scans and a SIGALRM), and took
+    9 s otherwise (6 s for the send lock, 3 s for the link watcher blocked on it). Now it closes at
+    once, and the interrupted publish gives its scan up (`dropped`) as after any close."""
+    program = [sys.executable, "-c", _SIGNAL_HANDLER_PROGRAM, router.endpoint, "close"]
+    done = subprocess.run(program, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, (done.stdout, done.stderr)
+    assert done.stdout.splitlines() == ["closed in the handler", "second publish False", "counters 1 0 1 0"]
+    assert [w.seq for _, _, w in router.wait_count(1, "fleetmap/lab/sigterm/scan")] == [0]
+
+
+def test_a_signal_handler_may_not_publish_inside_an_interrupted_publish(router: Router) -> None:
+    """A signal handler that publishes while it interrupted a `publish` of the same thread: with the
+    locks reentrant (for a close there), its publish ran inside the interrupted one, took the same
+    seq and sent its scan first, and the interrupted one's scan arrived as a duplicate (ignored).
+    It is refused with a RuntimeError saying why; the interrupted publish goes on unharmed."""
+    program = [sys.executable, "-c", _SIGNAL_HANDLER_PROGRAM, router.endpoint, "publish"]
+    done = subprocess.run(program, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, (done.stdout, done.stderr)
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("refused in the handler: publish() was called by a signal handler"), lines
+    assert lines[1:] == ["second publish True", "counters 2 0 0 0"]
+    scans = router.wait_count(2, "fleetmap/lab/sigterm/scan")
+    assert [w.seq for _, _, w in scans] == [0, 1]
+    assert len(router.wait_count(2)) == 2  # nothing more was sent
+
+
 @pytest.mark.parametrize("when", ["before the link check", "after the link check"])
 def test_a_close_from_another_thread_during_a_publish_leaves_every_scan_counted_where_it_went(
     router: Router, sim_scans: list[Scan], when: str

@@ -201,10 +201,11 @@ class DeliveryUnsupported(RuntimeError):
 
 #: Publishers not closed yet, and threads of closed ones (openers, fetch watchers) `close` stopped
 #: waiting for while they were still inside a Zenoh call: `_settle_at_exit` closes the ones and
-#: waits for the others before the interpreter finalizes. Guarded by `_exit_lock`.
+#: waits for the others before the interpreter finalizes. Guarded by `_exit_lock`, reentrant as the
+#: publisher's own locks are: a signal handler may close a publisher while its thread holds it.
 _unclosed: set[ScanPublisher] = set()
 _threads_in_zenoh: set[threading.Thread] = set()
-_exit_lock = threading.Lock()
+_exit_lock = threading.RLock()
 
 
 def _settle_at_exit() -> None:
@@ -302,11 +303,17 @@ class ScanPublisher:
         self._encode = encode_binary if encoding == "binary" else encode_json
         self._zenoh_encoding = zenoh.Encoding(BINARY_ENCODING if encoding == "binary" else JSON_ENCODING)
         # _lock guards the session objects and the counters; the opener thread sets them.
-        self._lock = threading.Lock()
+        # Both locks are reentrant for `close()` from a signal handler (a robot's SIGTERM handler):
+        # it runs in the thread it interrupted, inside `publish` perhaps, whose locks stay held
+        # until the handler returns. With plain locks that close() waited for itself: for ever
+        # for `_lock` (held while a scan is encoded), 6 s (`CLOSE_SEND_WAIT_S`) for `_send_lock`.
+        # Taken again so, close() finds the interrupted publish between two bytecodes, never
+        # inside a Zenoh call; once the handler returns, that publish finds the publisher closed.
+        self._lock = threading.RLock()
         # _send_lock is held by `publish` from taking a seq to handing the scan to Zenoh, so that
         # scans leave in seq order: the service takes a scan whose seq arrives after a higher one for
         # a duplicate and ignores it. Not `_lock`, which `close` and the counters need meanwhile.
-        self._send_lock = threading.Lock()
+        self._send_lock = threading.RLock()
         self._opened = threading.Event()
         self._closed = threading.Event()
         self._session: zenoh.Session | None = None
@@ -342,6 +349,9 @@ class ScanPublisher:
         self._token: zenoh.LivelinessToken | None = None
         self._next_seq = 0
         self._last_seq: int | None = None
+        # True while `publish` runs (under `_send_lock`): a publish of the same thread meanwhile is
+        # one of a signal handler, refused.
+        self._publishing = False
         # The seq of the first scan of the current session (`session_id`): `flush` covers from it.
         self._session_first_seq: int | None = None
         # The seq of the first scan of the current session handed to Zenoh (None: none yet). Those
@@ -454,10 +464,17 @@ class ScanPublisher:
     def _watch(self) -> None:
         """Until `close()`: notice (re)connections and end their holds (`_check_link`)."""
         while not self._closed.wait(WATCH_INTERVAL_S):
-            with self._send_lock:
+            # Not a wait without end: a `publish` interrupted by a signal handler that closes the
+            # publisher holds the lock until the handler returns, and close() joins this thread
+            # meanwhile (it waited `CLOSE_WAIT_S` for it).
+            if not self._send_lock.acquire(timeout=WATCH_INTERVAL_S):
+                continue
+            try:
                 if self._closed.is_set():
                     return
                 self._check_link()
+            finally:
+                self._send_lock.release()
 
     def _check_link(self) -> bool:
         """With `_send_lock` held, the session open: while the link is down, and during the hold
@@ -623,9 +640,10 @@ class ScanPublisher:
         Raises `PublisherClosed` after `close()`, TypeError for a `scan` that is neither, a seq that
         is not an integer or a stamp that is not a number, ValueError for a negative or too large seq
         or a non-finite stamp, and `fleetmap.scan.ScanError` for a `ScanMessage` the engine refuses
-        or, in binary, a scan whose range_min or angles float32 cannot hold (`codec.encode_binary`).
-        A call that raises publishes nothing and leaves the seq counter as it was (the service would
-        count a skipped seq as a lost scan).
+        or, in binary, a scan whose range_min or angles float32 cannot hold (`codec.encode_binary`),
+        RuntimeError when a signal handler calls it while it interrupted a publish of the same
+        thread (`close()` may be called there). A call that raises publishes nothing and leaves the
+        seq counter as it was (the service would count a skipped seq as a lost scan).
         """
         if isinstance(scan, ScanMessage):
             seq = scan.seq if seq is None else seq
@@ -637,60 +655,78 @@ class ScanPublisher:
             seq = checked_seq(seq)
         stamp = checked_stamp(time.time() if stamp is None else stamp)
         with self._send_lock:
+            # A signal handler publishing while it interrupted a publish of this thread: the locks
+            # are reentrant (for `close()` there), so its publish would run inside the interrupted
+            # one and send its scan before that one's lower seq, which the service then ignores as
+            # a duplicate, or send the queue while the interrupted one was sending it.
+            if self._publishing:
+                raise RuntimeError(
+                    "publish() was called by a signal handler that interrupted a publish() of the same "
+                    "thread: set a flag in the handler and publish from the program's loop"
+                )
+            self._publishing = True
+            try:
+                return self._send(scan, seq, stamp)
+            finally:
+                self._publishing = False
+
+    def _send(self, scan: Scan, seq: int | None, stamp: float) -> bool:
+        """`publish`, its arguments checked, with `_send_lock` held: take the seq, encode, and queue
+        the scan or hand it to Zenoh."""
+        with self._lock:
+            if self._closed.is_set():
+                raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
+            session = self._session_id
+            if seq is None:
+                seq = self._next_seq
+                if seq >= SEQ_LIMIT:
+                    raise ValueError("the automatic seq passed 2**63 - 1: publish with seq=0 to restart")
+            elif session is not None and self._last_seq is not None and seq < self._last_seq:
+                session = new_session_id()  # the seq starts again: under the old session, duplicates
+            # Encoded before the counter moves, so that a scan that cannot be encoded leaves no gap.
+            payload = self._encode(scan, seq, stamp, session=session)
+            if self._session_first_seq is None or session != self._session_id:
+                self._session_first_seq = seq
+                self._session_first_sent = None
+            self._session_id = session
+            self._next_seq = seq + 1
+            self._last_seq = seq
+            publisher, zenoh_session = self._publisher, self._session
+            if publisher is None and not self.backlog:  # no session yet, nothing kept
+                self.dropped += 1
+                return False
+        if publisher is None or self._check_link():  # no session yet, no link, or a hold: queue it
             with self._lock:
                 if self._closed.is_set():
-                    raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
-                session = self._session_id
-                if seq is None:
-                    seq = self._next_seq
-                    if seq >= SEQ_LIMIT:
-                        raise ValueError("the automatic seq passed 2**63 - 1: publish with seq=0 to restart")
-                elif session is not None and self._last_seq is not None and seq < self._last_seq:
-                    session = new_session_id()  # the seq starts again: under the old session, duplicates
-                # Encoded before the counter moves, so that a scan that cannot be encoded leaves no gap.
-                payload = self._encode(scan, seq, stamp, session=session)
-                if self._session_first_seq is None or session != self._session_id:
-                    self._session_first_seq = seq
-                    self._session_first_sent = None
-                self._session_id = session
-                self._next_seq = seq + 1
-                self._last_seq = seq
-                publisher, zenoh_session = self._publisher, self._session
-                if publisher is None and not self.backlog:  # no session yet, nothing kept
+                    # close() ran since the check above (from another thread) and gave up the
+                    # queue: queued now, the scan would stay there unsent, counted `backlogged`.
                     self.dropped += 1
                     return False
-            if publisher is None or self._check_link():  # no session yet, no link, or a hold: queue it
-                with self._lock:
-                    if self._closed.is_set():
-                        # close() ran since the check above (from another thread) and gave up the
-                        # queue: queued now, the scan would stay there unsent, counted `backlogged`.
-                        self.dropped += 1
-                        return False
-                    if len(self._pending) == self.backlog:
-                        self._pending.popleft()  # the oldest gives way
-                        self.backlogged -= 1
-                        self.dropped += 1
-                    self._pending.append((seq, session, payload))
-                    self.backlogged += 1
-                return True
-            # The session's link, not `self.connected`, which is False once close() has begun: a
-            # close() of another thread waits for this put (`_send_lock`), and the session's close
-            # then flushes it over the live link, so it is `published`, not `backlogged`.
-            connected = zenoh_session is not None and bool(_neighbours_of(zenoh_session))
-            if not connected and not self.backlog:
-                with self._lock:
+                if len(self._pending) == self.backlog:
+                    self._pending.popleft()  # the oldest gives way
+                    self.backlogged -= 1
                     self.dropped += 1
-                return False
-            try:
-                # The link died since `_check_link` looked: the cache keeps it for the service to fetch.
-                self._cached = True
-                publisher.put(payload)
-            except zenoh.ZError:
-                # Only possible when close() raced with this call: report it like a disconnection.
-                with self._lock:
-                    self.dropped += 1
-                return False
-            self._note_sent(seq, session)
+                self._pending.append((seq, session, payload))
+                self.backlogged += 1
+            return True
+        # The session's link, not `self.connected`, which is False once close() has begun: a
+        # close() of another thread waits for this put (`_send_lock`), and the session's close
+        # then flushes it over the live link, so it is `published`, not `backlogged`.
+        connected = zenoh_session is not None and bool(_neighbours_of(zenoh_session))
+        if not connected and not self.backlog:
+            with self._lock:
+                self.dropped += 1
+            return False
+        try:
+            # The link died since `_check_link` looked: the cache keeps it for the service to fetch.
+            self._cached = True
+            publisher.put(payload)
+        except zenoh.ZError:
+            # Only possible when close() raced with this call: report it like a disconnection.
+            with self._lock:
+                self.dropped += 1
+            return False
+        self._note_sent(seq, session)
         with self._lock:
             if connected:
                 self.published += 1
