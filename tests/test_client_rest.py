@@ -315,6 +315,58 @@ def test_an_answer_that_is_not_fleetmaps_is_a_fleetmap_error(scans: list[Scan]) 
             )
 
 
+@contextlib.contextmanager
+def _web_page_server() -> Iterator[str]:
+    """A real HTTP server on a free port answering every request 200 with an HTML page, as a captive
+    portal or another web server on a wrong port does; yields its URL."""
+
+    class WebPage(BaseHTTPRequestHandler):
+        def _page(self) -> None:
+            self.rfile.read(int(self.headers.get("content-length") or 0))
+            body = b"<html><body>Welcome to the guest Wi-Fi: sign in to go on.</body></html>"
+            self.send_response(200)
+            self.send_header("content-type", "text/html; charset=utf-8")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        do_GET = do_POST = do_PUT = do_DELETE = _page
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    with _serving(WebPage) as url:
+        yield url
+
+
+def test_an_answer_read_as_bytes_that_is_not_fleetmaps_is_a_fleetmap_error(tmp_path: Path) -> None:
+    """The answers the client returns as bytes or text, and `delete_map`'s empty one, from another
+    web server at the address (a captive portal's 200 page): `save_snapshot` wrote the page as the
+    backup and returned its size, `download_snapshot`, `export`, `region_png`, `tile` and `metrics`
+    returned it as the zip, PNG or metrics, and `delete_map` returned as if the map were deleted.
+    Each raises `FleetmapError` naming the address, what came and what was expected, and leaves no
+    file behind."""
+    backup = tmp_path / "backup.zip"
+    with _web_page_server() as base, FleetmapClient(base) as other:
+        calls: list[tuple[str, Callable[[], object]]] = [
+            ("a snapshot of a map", lambda: other.save_snapshot("m", backup)),
+            ("a snapshot of a map", lambda: other.download_snapshot("m")),
+            ("a nav2 map zip", lambda: other.export("m")),
+            ("a PNG image", lambda: other.export("m", "png")),
+            ("a PNG image", lambda: other.region_png("m")),
+            ("a PNG image", lambda: other.tile("m", 0, 0, 0)),
+            ("Prometheus metrics", other.metrics),
+            ("an empty answer (204 No Content)", lambda: other.delete_map("m")),
+        ]
+        for expected, call in calls:
+            with pytest.raises(FleetmapError) as exc:
+                call()
+            assert exc.value.status == 200
+            assert exc.value.detail.startswith(f"{base}/")
+            assert f"answered text/html, not {expected} as a fleetmap service answers" in exc.value.detail
+    assert list(tmp_path.iterdir()) == []  # no backup, nor a part of one
+
+
 def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
     """The service answers a scan once it is integrated, or 503 after its own wait (10 s by
     default): a client whose timeout is not longer than that got httpx's bare ReadTimeout instead

@@ -165,6 +165,11 @@ _TRANSFER_CHUNK = 1 << 20
 #: the caller guessing whether an upload took effect.
 TRANSFER_TIMEOUT = 300.0
 
+#: The content types of the answers the client returns as bytes (`_bytes_of`), with what they are.
+_SNAPSHOT = ("application/zip", "a snapshot of a map")
+_NAV2_ZIP = ("application/zip", "a nav2 map zip")
+_PNG = ("image/png", "a PNG image")
+
 #: A model of `fleetmap.api_models` an answer is read as (`_read`).
 _Model = TypeVar("_Model", bound=BaseModel)
 
@@ -407,7 +412,9 @@ class FleetmapClient:
 
     def metrics(self) -> str:
         """`GET /metrics`: the Prometheus text exposition."""
-        return self._request("GET", "/metrics").text
+        response = self._request("GET", "/metrics")
+        _raise_unless_media_type(response, "text/plain", "Prometheus metrics")
+        return response.text
 
     # -- maps --------------------------------------------------------------------------------------
 
@@ -468,14 +475,17 @@ class FleetmapClient:
         a 503 whose deletion is still being stored is a `MapChanged`: the first attempt removed
         it)."""
         _check_id("map_id", map_id)
-        self._request("DELETE", f"/maps/{map_id}", headers=_conditions(if_match))
+        response = self._request("DELETE", f"/maps/{map_id}", headers=_conditions(if_match))
+        if response.status_code != 204:  # another web server's page: no map was deleted
+            status = f"status {response.status_code}"
+            raise _not_fleetmap(response, "an empty answer (204 No Content)", status)
 
     def download_snapshot(self, map_id: str) -> bytes:
         """`GET /maps/{map_id}/snapshot`: the whole map (configuration and every tile of every layer)
         as one zip file, taken between two scans; `upload_snapshot` restores it here or elsewhere.
         For a big map, `save_snapshot` writes it to a file instead of holding it in memory."""
         _check_id("map_id", map_id)
-        return self._transfer("GET", f"/maps/{map_id}/snapshot").content
+        return _bytes_of(self._transfer("GET", f"/maps/{map_id}/snapshot"), *_SNAPSHOT)
 
     def save_snapshot(self, map_id: str, path: str | os.PathLike[str]) -> int:
         """`download_snapshot` written to the file `path` as it arrives, never held in memory whole
@@ -498,6 +508,7 @@ class FleetmapClient:
                 if _failed(response):
                     response.read()
                     _raise_for_error(response)
+                _raise_unless_media_type(response, *_SNAPSHOT)  # before a file is made for it
                 with open(part, "xb") as fp:
                     for chunk in response.iter_bytes(_TRANSFER_CHUNK):
                         size += fp.write(chunk)
@@ -874,7 +885,7 @@ class FleetmapClient:
         highest y, unknown transparent)."""
         _check_id("map_id", map_id)
         params: dict[str, Any] = {**_bounds(xmin, ymin, xmax, ymax), "layer": layer, "format": "png"}
-        return self._request("GET", f"/maps/{map_id}/region", params=params).content
+        return _bytes_of(self._request("GET", f"/maps/{map_id}/region", params=params), *_PNG)
 
     def tile(
         self, map_id: str, z: int, x: int, y: int, layer: Layer = "probability", etag: str | None = None
@@ -892,7 +903,7 @@ class FleetmapClient:
         new_etag = response.headers.get("ETag", "")
         if response.status_code == 304:
             return None, new_etag or (etag or "")
-        return response.content, new_etag
+        return _bytes_of(response, *_PNG), new_etag
 
     def surface(
         self,
@@ -929,7 +940,8 @@ class FleetmapClient:
             params["margin"] = margin
         if resolution is not None:
             params["resolution"] = resolution
-        return self._transfer("GET", f"/maps/{map_id}/export", params=params).content
+        response = self._transfer("GET", f"/maps/{map_id}/export", params=params)
+        return _bytes_of(response, *(_PNG if format == "png" else _NAV2_ZIP))
 
     # -- live events -------------------------------------------------------------------------------
 
@@ -1127,8 +1139,23 @@ def _raise_unless_event_stream(response: httpx.Response) -> None:
     reconnecting: another web server at the address (a wrong port, a proxy's page) answered 200
     with HTML, which held no event, so the stream was taken as lost and resumed every second for
     ever, each time yielding a "reconnected" that never was."""
-    if _media_type(response) != "text/event-stream":
-        raise _not_fleetmap(response, "an event stream", "whose content type is text/event-stream")
+    _raise_unless_media_type(response, "text/event-stream", "an event stream")
+
+
+def _raise_unless_media_type(response: httpx.Response, media_type: str, expected: str) -> None:
+    """Raise `FleetmapError` (`_not_fleetmap`: `expected` was not what came) for a successful answer
+    whose content type is not `media_type`: the answers the client hands on as bytes or text rather
+    than parse (a snapshot, an export, a PNG, the metrics), where another web server's page at the
+    address (a captive portal's, a wrong port's) went through unread: `save_snapshot` wrote it as
+    the backup and returned its size."""
+    if _media_type(response) != media_type:
+        raise _not_fleetmap(response, expected, f"whose content type is {media_type}")
+
+
+def _bytes_of(response: httpx.Response, media_type: str, expected: str) -> bytes:
+    """`response`'s body, once `_raise_unless_media_type` found it of `media_type`."""
+    _raise_unless_media_type(response, media_type, expected)
+    return response.content
 
 
 def _read(model: type[_Model], response: httpx.Response) -> _Model:
