@@ -667,6 +667,48 @@ def test_a_refused_publish_leaves_no_gap_in_the_seqs(router: Router, sim_scans: 
     assert [wire.seq for _, _, wire in got] == [0, 1]
 
 
+@pytest.mark.parametrize("where", ["in the link check", "in the put"])
+def test_a_publish_interrupted_by_ctrl_c_leaves_no_gap_in_the_seqs(
+    router: Router, sim_scans: list[Scan], where: str
+) -> None:
+    """Ctrl-C (or SIGTERM, which `fleetmap replay` turns into the same KeyboardInterrupt) while a
+    publish is inside the link check or Zenoh's put, before the scan left: the seq counter had moved
+    already, so that seq was never sent: the service counted a lost scan, and a robot that flushed
+    after the Ctrl-C waited the flush's whole timeout for it ("1 unconfirmed", 2 runs in 8 of a
+    loop publishing to a real service). Interrupted there, the call publishes nothing and keeps
+    the counter, as every call that raises does."""
+    with ScanPublisher("m", "ctrl-c", connect=[router.endpoint]) as pub:
+        assert pub.wait_connected(10)
+        assert pub.publish(sim_scans[0])
+
+        def interrupted(*args: Any) -> Any:
+            raise KeyboardInterrupt
+
+        if where == "in the link check":
+            pub._check_link = interrupted  # type: ignore[method-assign]
+        else:
+            assert pub._publisher is not None
+            publisher, pub._publisher = pub._publisher, _Interrupting()  # type: ignore[assignment]
+        with pytest.raises(KeyboardInterrupt):
+            pub.publish(sim_scans[1])
+        assert (pub.last_seq, pub.next_seq, pub.published, pub.backlogged, pub.dropped) == (0, 1, 1, 0, 0)
+        if where == "in the link check":
+            del pub._check_link
+        else:
+            pub._publisher = publisher
+        assert pub.publish(sim_scans[1])
+        got = router.wait_count(2, "fleetmap/m/ctrl-c/scan")
+    assert [wire.seq for _, _, wire in got] == [0, 1]
+
+
+class _Interrupting:
+    """A stand-in for the publisher's Zenoh publisher whose put is interrupted by Ctrl-C before it
+    sent anything."""
+
+    def put(self, payload: bytes) -> None:
+        raise KeyboardInterrupt
+
+
 def test_binary_publishes_a_range_max_beyond_float32_as_no_maximum(router: Router) -> None:
     """A legal scan whose range_max is beyond float32 (sys.float_info.max, a common "no maximum")
     made `publish` raise struct's OverflowError in the binary encoding, which JSON sends as is. It

@@ -683,20 +683,20 @@ class ScanPublisher:
                     raise ValueError("the automatic seq passed 2**63 - 1: publish with seq=0 to restart")
             elif session is not None and self._last_seq is not None and seq < self._last_seq:
                 session = new_session_id()  # the seq starts again: under the old session, duplicates
-            # Encoded before the counter moves, so that a scan that cannot be encoded leaves no gap.
+            # The counter moves only once the scan is handed on (`_take_seq`: sent, queued or given
+            # up), so that a call that raises leaves no gap: one that cannot be encoded, and a
+            # KeyboardInterrupt (Ctrl-C, or SIGTERM as `fleetmap replay` maps it) raised during the
+            # link check or the put. Moved first, such a seq was never sent: the service counted it
+            # lost, and a `flush` after the Ctrl-C waited its whole timeout for it (2 runs in 8).
             payload = self._encode(scan, seq, stamp, session=session)
-            if self._session_first_seq is None or session != self._session_id:
-                self._session_first_seq = seq
-                self._session_first_sent = None
-            self._session_id = session
-            self._next_seq = seq + 1
-            self._last_seq = seq
             publisher, zenoh_session = self._publisher, self._session
             if publisher is None and not self.backlog:  # no session yet, nothing kept
+                self._take_seq(seq, session)
                 self.dropped += 1
                 return False
         if publisher is None or self._check_link():  # no session yet, no link, or a hold: queue it
             with self._lock:
+                self._take_seq(seq, session)
                 if self._closed.is_set():
                     # close() ran since the check above (from another thread) and gave up the
                     # queue: queued now, the scan would stay there unsent, counted `backlogged`.
@@ -715,6 +715,7 @@ class ScanPublisher:
         connected = zenoh_session is not None and bool(_neighbours_of(zenoh_session))
         if not connected and not self.backlog:
             with self._lock:
+                self._take_seq(seq, session)
                 self.dropped += 1
             return False
         try:
@@ -724,8 +725,11 @@ class ScanPublisher:
         except zenoh.ZError:
             # Only possible when close() raced with this call: report it like a disconnection.
             with self._lock:
+                self._take_seq(seq, session)
                 self.dropped += 1
             return False
+        with self._lock:
+            self._take_seq(seq, session)
         self._note_sent(seq, session)
         with self._lock:
             if connected:
@@ -733,6 +737,16 @@ class ScanPublisher:
             else:
                 self.backlogged += 1
         return True
+
+    def _take_seq(self, seq: int, session: int | None) -> None:
+        """With `_lock` held: the scan `seq` of session `session` was handed on (sent, queued or
+        given up), so the seq counter moves past it (and the session is this publisher's now)."""
+        if self._session_first_seq is None or session != self._session_id:
+            self._session_first_seq = seq
+            self._session_first_sent = None
+        self._session_id = session
+        self._next_seq = seq + 1
+        self._last_seq = seq
 
     def _note_sent(self, seq: int, session: int | None) -> None:
         """The scan `seq` of session `session` was handed to Zenoh: the first of the current
