@@ -894,6 +894,28 @@ def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_sc
             assert (unknown.answered, unknown.settled, unknown.unsettled) == (True, False, 10), unknown
 
 
+def test_flush_ended_takes_the_session_id_a_publisher_without_one_saved(tmp_path: Path) -> None:
+    """A robot whose publisher sends no session id (`send_session_id=False`, for a service older
+    than session ids) saves `pub.session_id`, None, as docs/clients.md says, and asks about its
+    previous process's scans with it: `flush_ended` refused None ("session_id must be an integer"),
+    though it asks about scans without a session id when given 0, and its type said `int` where
+    `session_id` is `int | None`. None now asks about them."""
+    scans = scans_for(sim=18, beams=91, count=5)
+    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
+        connect = [service.zenoh_endpoint]
+        with ScanPublisher("nosession", "r1", connect=connect, send_session_id=False) as before:
+            assert before.wait_connected(20), before.last_connect_error
+            for seq, scan in enumerate(scans):
+                assert before.publish(scan, seq=seq, stamp=float(seq))
+            assert before.flush(20).confirmed
+            saved = (before.session_id, 0, before.last_seq)
+        assert saved == (None, 0, 4)
+        with ScanPublisher("nosession", "r1", connect=connect, send_session_id=False) as pub:
+            assert pub.session_id is None
+            report = pub.flush_ended(*saved, timeout=20)
+    assert report.confirmed and (report.published, report.integrated, report.settled) == (5, 5, True), report
+
+
 def test_flush_and_wait_connected_refuse_a_timeout_that_is_not_a_number() -> None:
     """A timeout of NaN (a robot's configuration read badly) made flush and wait_connected wait for
     ever, as no time is ever past NaN: now a ValueError at once, and a string a TypeError naming the

@@ -788,11 +788,12 @@ class ScanPublisher:
         return self._await_delivery(session, first, last, timeout, ended=False)
 
     def flush_ended(
-        self, session_id: int, first_seq: int, last_seq: int, timeout: float | None = None
+        self, session_id: int | None, first_seq: int, last_seq: int, timeout: float | None = None
     ) -> DeliveryReport:
         """What became of the scans `first_seq` .. `last_seq` of an ENDED publisher session of this
         robot: one whose publisher no longer runs, typically the robot's process before it restarted
-        mid-mission (`flush` covers only this publisher's own session). Save `session_id` and
+        mid-mission (`flush` covers only this publisher's own session). Save `session_id` (None for
+        a publisher made with `send_session_id=False`: its scans without a session id) and
         `last_seq` as the robot publishes (and the first seq) to ask about them after a restart.
 
         Its scans the service had not received went with that publisher's backlog, so the answer is
@@ -808,8 +809,10 @@ class ScanPublisher:
         # Within the wire's bounds too: a session id past 2**53 came back as the service's error reply
         # (a RuntimeError, "the delivery query failed"), a seq past 2**63 as a report of that many
         # scans "unconfirmed", and with no service reachable either waited for the timeout.
+        # None: the scans sent without a session id, as `session_id` says of a publisher made with
+        # send_session_id=False (it was refused, though 0, the query's "none", asked about them).
         limits = (
-            ("session_id", session_id, SESSION_LIMIT, "2**53"),
+            ("session_id", 0 if session_id is None else session_id, SESSION_LIMIT, "2**53"),
             ("first_seq", first_seq, SEQ_LIMIT, "2**63"),
             ("last_seq", last_seq, SEQ_LIMIT, "2**63"),
         )
@@ -821,7 +824,7 @@ class ScanPublisher:
         if self._closed.is_set():
             raise PublisherClosed(f"publisher {self.map_id}/{self.robot_id} is closed")
         return self._await_delivery(
-            int(session_id) or None, int(first_seq), int(last_seq), timeout, ended=True
+            int(session_id or 0) or None, int(first_seq), int(last_seq), timeout, ended=True
         )
 
     def _await_delivery(
