@@ -130,6 +130,34 @@ def test_ids_are_checked_before_any_request(client: FleetmapClient) -> None:
         client.cell("m", float("nan"), 0)
 
 
+def test_a_coordinate_or_range_that_is_no_number_is_a_value_error_before_any_request() -> None:
+    """`cell`'s point, a window's bounds and `raycast`'s `max_range` are numbers ("a bound that is
+    not a finite number is a ValueError before any request", docs/clients.md): float() read text
+    ("1.5"), True (1.0) and a NumPy date (its seconds since 1970), which went to the service as
+    those numbers, where `cells`, `raycast`'s origin and the engine refuse them; None or a
+    one-element array raised float()'s TypeError instead. The client points at a port where
+    nothing listens: any request would be a ConnectError."""
+    with FleetmapClient(f"http://127.0.0.1:{free_port()}", timeout=5) as nowhere:
+        calls: list[Callable[[Any], object]] = [
+            lambda wrong: nowhere.cell("m", wrong, 0.0),
+            lambda wrong: nowhere.cell("m", 0.0, wrong),
+            lambda wrong: nowhere.region("m", 0.0, 0.0, wrong, 1.0),
+            lambda wrong: nowhere.region_png("m", wrong, 0.0, 1.0, 1.0),
+            lambda wrong: nowhere.surface("m", 0.0, wrong, 1.0, 1.0),
+            lambda wrong: nowhere.clear_region("m", 0.0, 0.0, 1.0, wrong),
+            lambda wrong: nowhere.raycast("m", (0.0, 0.0), [0.0], wrong),
+        ]
+        for wrong in ("1.5", b"1", True, np.bool_(False), np.datetime64(5, "s"), np.array([1.0]), 1j):
+            for call in calls:
+                with pytest.raises(ValueError, match="must be finite numbers"):
+                    call(wrong)
+        for call in (calls[0], calls[-1]):  # None: no bound at all for a window (all four or none)
+            with pytest.raises(ValueError, match="must be finite numbers"):
+                call(None)
+        with pytest.raises(httpx.ConnectError):  # numbers (NumPy's too) are asked for
+            nowhere.cell("m", np.float32(1.5), 2)
+
+
 def test_bad_arguments_are_refused_before_any_request(client: FleetmapClient, scans: list[Scan]) -> None:
     """Each of these went to the server before: (x, y, z) rows were sent as 3n/2 points, an unknown
     encoding posted the scan as JSON, and a bad id of `events` waited for the first `next()`."""

@@ -63,7 +63,15 @@ from fleetmap.api_models import (
     Surface,
 )
 from fleetmap.auth import TOKEN_CHARACTERS
-from fleetmap.cell_queries import MAX_RAY_WALK, MAX_RAYS, Points, UnknownCells, as_points, float_array
+from fleetmap.cell_queries import (
+    MAX_RAY_WALK,
+    MAX_RAYS,
+    Points,
+    UnknownCells,
+    as_points,
+    float_array,
+    real_number,
+)
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.scan import Scan
@@ -1263,13 +1271,17 @@ def _scan_not_taken(exc: BaseException) -> bool:
 
 def _finite(value: float) -> float:
     """`value` as a float; ValueError unless it is a finite number (an int beyond float's range too,
-    which float() refuses with OverflowError)."""
+    which float() refuses with OverflowError). A number as the engine takes one (`real_number`):
+    float() read text ("1.5"), True and a NumPy date as numbers, sent as those, where `cells` and the
+    engine refuse them; None or an array raised its TypeError."""
     try:
-        v = float(value)
+        v = real_number(value)
     except OverflowError:
-        raise ValueError("coordinates must be finite, got an integer beyond the range of a float") from None
+        raise ValueError("coordinates must be finite numbers, got an int past a float's range") from None
+    except TypeError as exc:  # what is no number at all: `real_number` says what it got
+        raise ValueError(f"coordinates must be finite numbers: {exc}") from None
     if not math.isfinite(v):
-        raise ValueError(f"coordinates must be finite, got {value!r}")
+        raise ValueError(f"coordinates must be finite numbers, got {value!r}")
     return v
 
 
