@@ -746,6 +746,12 @@ def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong(tmp
     for flags in ({"block": "no"}, {"send_session_id": "false"}):
         with pytest.raises(TypeError, match="must be True or False"):
             ScanPublisher("m", "r", connect="tcp/127.0.0.1:1", **flags)  # type: ignore[arg-type]
+    for backlog in (-1, True, 2.5, "5"):
+        with pytest.raises(ValueError, match="backlog must be an integer >= 0"):
+            ScanPublisher("m", "r", connect="tcp/127.0.0.1:1", backlog=backlog)  # type: ignore[arg-type]
+    # A NumPy integer is one, as for a seq (it was refused as "backlog must be an integer").
+    with ScanPublisher("m", "r", connect="tcp/127.0.0.1:1", backlog=np.int64(5)) as pub:  # type: ignore[arg-type]
+        assert pub.backlog == 5 and type(pub.backlog) is int
     # As a URL, which Zenoh takes for the protocol `tcp:`: the robot waited for the service for ever.
     with pytest.raises(
         ValueError, match=r"^'tcp://h:7447' is written as a URL: .* PROTOCOL/ADDRESS, tcp/h:7447$"

@@ -94,6 +94,7 @@ from typing import Literal
 import zenoh
 import zenoh.ext
 
+from fleetmap.cell_queries import is_whole_number
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.scan import Scan
 from fleetmap.wire import (
@@ -284,7 +285,7 @@ class ScanPublisher:
         for name, value in (("map_id", map_id), ("robot_id", robot_id)):
             if not isinstance(value, str) or not is_valid_id(value):
                 raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
-        if isinstance(backlog, bool) or not isinstance(backlog, int) or backlog < 0:
+        if not is_whole_number(backlog) or backlog < 0:  # a NumPy integer too, as a seq may be
             raise ValueError(f"backlog must be an integer >= 0, got {backlog!r}")
         if encoding not in ("binary", "json"):
             raise ValueError(f"encoding must be 'binary' or 'json', got {encoding!r}")
