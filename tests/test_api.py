@@ -135,6 +135,31 @@ def test_a_configuration_with_its_layers_in_another_order_is_the_same(api: Runni
     assert r.status_code == 409
 
 
+def test_a_preset_and_its_values_written_out_are_the_same_configuration(api: RunningApi) -> None:
+    """Configurations compare after presets are resolved (docs/api.md, `PUT /maps/{map_id}`): a map
+    made with the `int8` preset is the map of its four values written out, under any preset name
+    (the values given override the preset's), and the other way round. The preset's name took part
+    in the comparison, so such a `PUT` was a 409, "exists with a different configuration", for a map
+    whose every cell it would have updated alike. Another value, or other thresholds, stay a 409."""
+    c = api.client
+    int8 = {"l_hit": 9.0, "l_miss": -9.0, "l_min": -128.0, "l_max": 127.0}
+    made = c.put("/maps/preset", json={"resolution": 0.1, "occupancy": {"preset": "int8"}})
+    assert made.status_code == 201, made.text
+    for written in (int8, {**int8, "preset": "cartographer"}):
+        again = c.put("/maps/preset", json={"resolution": 0.1, "occupancy": written})
+        assert again.status_code == 200, (written, again.text)
+        assert again.json()["config"] == made.json()["config"]  # the map as it was made
+    written_out = c.put("/maps/written", json={"resolution": 0.1, "occupancy": int8})
+    assert written_out.status_code == 201, written_out.text
+    named = c.put("/maps/written", json={"resolution": 0.1, "occupancy": {"preset": "int8"}})
+    assert named.status_code == 200, named.text
+    assert named.json()["config"]["occupancy"]["preset"] == "octomap"  # as it was made
+    for other in ({**int8, "l_hit": 8.0}, {"preset": "int8", "occupied_thresh": 0.7}, {"preset": "coursera"}):
+        r = c.put("/maps/preset", json={"resolution": 0.1, "occupancy": other})
+        assert r.status_code == 409 and "different configuration" in r.json()["detail"], other
+    assert c.get("/maps/preset").json()["config"] == made.json()["config"]
+
+
 def test_an_invalid_configuration_is_located_at_its_fields(api: RunningApi) -> None:
     """Each problem of a configuration is located (`errors[].loc`) at the field at fault, as pydantic
     locates a bad type or range, and all are listed: a tile size that is not a power of two, no or

@@ -217,6 +217,13 @@ class OccupancyParams(BaseModel):
             )
         return None
 
+    def same_params_as(self, other: OccupancyParams) -> bool:
+        """Whether `other` updates and classifies cells as these parameters do: every value in use
+        equal. The `preset` only names where the values not given explicitly came from: once they
+        are resolved (`l_*`), it changes no cell, so `{"preset": "int8"}` is the same as int8's four
+        values written out under any preset name."""
+        return self.model_copy(update={"preset": other.preset}) == other
+
     def resolved(self) -> tuple[float, float, float, float]:
         """(l_hit, l_miss, l_min, l_max) in use: validation resolved all four (never None after it)."""
         hit, miss, lo, hi = self.l_hit, self.l_miss, self.l_min, self.l_max
@@ -422,12 +429,16 @@ class MapConfig(BaseModel):
         return layer in self.layers
 
     def same_map_as(self, other: MapConfig) -> bool:
-        """Whether `other` configures the same map: every field equal, `layers` as a set. The order
-        of the layers is only the order a map lists and stores them in (`["tsdf", "occupancy"]` keeps
-        the same cells as `["occupancy", "tsdf"]`), and a list built from a set has any order."""
+        """Whether `other` configures the same map: every field equal, `layers` as a set and
+        `occupancy` by the values in use (`OccupancyParams.same_params_as`). The order of the layers
+        is only the order a map lists and stores them in (`["tsdf", "occupancy"]` keeps the same
+        cells as `["occupancy", "tsdf"]`), and a list built from a set has any order; a preset's
+        name only says where values came from (a map of the `int8` preset is the map of its values
+        written out: compared by the name too, a `PUT` of them was a 409)."""
         return (
             set(self.layers) == set(other.layers)
-            and self.model_copy(update={"layers": other.layers}) == other
+            and self.occupancy.same_params_as(other.occupancy)
+            and self.model_copy(update={"layers": other.layers, "occupancy": other.occupancy}) == other
         )
 
     @property

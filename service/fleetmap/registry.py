@@ -418,7 +418,7 @@ class MapRegistry:
         expect: Expectation | None = None,
     ) -> tuple[MapEntry, bool]:
         """Create a map, or return the existing one if its configuration is the same
-        (`MapConfig.same_map_as`: its layers in any order).
+        (`MapConfig.same_map_as`: its layers in any order, a preset as its values).
         Returns (entry, created). Raises MapConflict for a different configuration, and
         MemoryBudgetError, nothing made, for a new map of a `config` given whose one tile needs more
         than the whole memory budget (`MemoryBudget.check_tile`; the default configuration, which
