@@ -274,6 +274,48 @@ def test_the_service_answers_507_past_max_memory_and_keeps_serving(tmp_path) -> 
         assert r.status_code == 200, r.text  # replaced, not created
 
 
+def test_scans_refused_507_are_integrated_when_sent_again_after_a_restart_that_raised_the_budget(
+    tmp_path,
+) -> None:
+    """A scan answered 507 is to be sent again with its seq once memory is freed (docs/api.md), and
+    the way an operator frees memory is often a restart with a larger `--max-memory`. The service
+    forgot across its restart which seqs it had refused so: the snapshot of its clean shutdown saved
+    them as the robots' last seqs, and the re-sends were answered 200 "duplicate", never integrated.
+    Robot "r" sends a session id (as `FleetmapClient` does), "plain" none: each re-send goes in
+    once, a second copy is a duplicate."""
+    data = ["--data-dir", str(tmp_path / "data")]
+    # The default map: 1.3 MiB a tile, so 3 MiB holds two tiles, and 64 MiB plenty.
+    near = Scan.from_fan((5.0, 5.0, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0)
+    far = [Scan.from_fan((50.0 * k, 50.0, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0) for k in (1, 2)]
+    sent = [("r", 1, far[0], 7), ("r", 2, far[1], 7), ("plain", 1, far[0], None)]
+
+    def post(
+        url: str, robot: str, seq: int, scan: Scan, session: int | None, map_id: str = "m"
+    ) -> httpx.Response:
+        body = json.loads(encode_json(scan, seq, stamp=float(seq), session=session))
+        return httpx.post(f"{url}/maps/{map_id}/scans", params={"robot_id": robot}, json=body, timeout=30)
+
+    with ServiceProcess(tmp_path, [*data, "--max-memory", "3MiB"]) as svc:
+        for robot, session in (("r", 7), ("plain", None)):
+            r = post(svc.base_url, robot, 0, near, session)
+            assert r.json()["status"] == "integrated", r.text
+        assert post(svc.base_url, "r", 0, near, None, "other").status_code == 200  # the second tile
+        for robot, seq, scan, session in sent:
+            r = post(svc.base_url, robot, seq, scan, session)
+            assert r.status_code == 507 and "memory budget" in r.json()["detail"], r.text
+        assert svc.stop() == 0  # a clean shutdown: its final snapshot saves the robots
+    with ServiceProcess(tmp_path, [*data, "--max-memory", "64MiB"]) as svc:
+        for robot, seq, scan, session in sent:
+            r = post(svc.base_url, robot, seq, scan, session)
+            assert r.status_code == 200 and r.json()["status"] == "integrated", (robot, seq, r.text)
+        for robot, seq, scan, session in sent:  # each once
+            r = post(svc.base_url, robot, seq, scan, session)
+            assert r.status_code == 200 and r.json()["status"] == "duplicate", (robot, seq, r.text)
+        robots = httpx.get(f"{svc.base_url}/maps/m", timeout=10).json()["stats"]["robots"]
+        assert (robots["r"]["scans_integrated"], robots["plain"]["scans_integrated"]) == (3, 2), robots
+        assert robots["r"]["lost"] == robots["plain"]["lost"] == 0, robots
+
+
 def test_a_budget_that_holds_no_tile_of_the_default_map_is_warned_of_at_start(tmp_path) -> None:
     """`--max-memory 1MiB` was taken without a word, though it holds no tile of the default map
     (3 layers of 256 x 256 cells, 1.3 MiB): every robot's scan was then refused 507. It is still

@@ -719,6 +719,24 @@ def test_a_robots_sessions_stay_bounded_and_survive_its_saved_state() -> None:
     assert not restored.in_conflict(1.0)
 
 
+def test_a_robots_scans_refused_for_the_services_sake_survive_its_saved_state() -> None:
+    """The scans refused for the service's sake (a full queue, the memory budget) that the robot may
+    send again are saved with it, in order, so that a re-send after a restart is still new
+    (tests/test_memory_budget.py runs it through the real service); a damaged list is refused."""
+    robot = RobotState()
+    for seq, session in [(0, 7), (1, 7), (2, 7), (0, None)]:
+        robot.accept(seq, float(seq), session, now=1.0)
+    robot.note_refused(2, 7)
+    robot.note_refused(1, 7)
+    saved = json.loads(json.dumps(robot.saved()))
+    restored = RobotState.from_saved(saved)
+    assert list(restored.refused_scans) == [(7, 2), (7, 1)]
+    assert not restored.is_duplicate(1, 1.0, 7) and restored.is_duplicate(0, 0.0, 7)
+    for damaged in ({"7": 1}, [[7]], [[7, "1"]], [[7, True]], [[7, 1.5]]):
+        with pytest.raises(ValueError, match="refused_scans"):
+            RobotState.from_saved({**saved, "refused_scans": damaged})
+
+
 def test_interleaved_sessions_are_a_conflict_shown_for_a_minute_and_a_late_copy_is_not() -> None:
     """Two publishers under one id: each one's seqs counted apart (no duplicate, lost or restart
     from switching), one conflict; a third joins: one more, its restart withdrawn too. The conflict

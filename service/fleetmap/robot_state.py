@@ -72,6 +72,20 @@ def _numbers(row: list, where: str) -> list:
     return row
 
 
+def _refused_scans(rows: object) -> dict[tuple[int, int], None]:
+    """`RobotState.refused_scans` as `RobotState.saved` saved them, [session key, seq] pairs oldest
+    first (a robot saved before they were has none); ValueError for anything else."""
+    if not isinstance(rows, list):
+        raise ValueError(f"a saved robot's refused_scans is {rows!r}, not a list")
+    refused: dict[tuple[int, int], None] = {}
+    for row in rows[-MAX_REFUSED_RETRIES:]:
+        if not (isinstance(row, list) and len(row) == 2):
+            raise ValueError(f"a saved robot's refused_scans holds {row!r}, not a [session, seq] pair")
+        key, seq = (_check_saved("refused_scans", value, int) for value in row)
+        refused[(key, seq)] = None
+    return refused
+
+
 def session_key(session: int | None) -> int:
     """The key in `RobotState.sessions` of the scans of publisher session `session` (None: none sent)."""
     return NO_SESSION if session is None else session
@@ -343,8 +357,10 @@ class RobotState:
     #: 422 left free, is accepted rather than ignored as a duplicate (`note_refused`). One without a
     #: session id only until another of its scans is accepted (a seq of its own is then a restart's,
     #: not a re-send); one with a session id until it is sent again, of at most MAX_REFUSED_RETRIES
-    #: (several scans refused while the budget was full are each sent again). Not saved: it is
-    #: about the last moments.
+    #: (several scans refused while the budget was full are each sent again). Saved with the other
+    #: counters (`saved`): an operator frees memory for 507s by restarting the service with a larger
+    #: `--max-memory`, and the re-sends that followed were answered "duplicate", never integrated
+    #: (the snapshot had saved their seqs as accepted).
     refused_scans: dict[tuple[int, int], None] = field(default_factory=dict, repr=False)
     #: Its JSON in live viewers' robots events, made by the first event stream that sent it and sent
     #: as is by the others (`api.robots_feed`): key (what the JSON shows) -> JSON. Not saved.
@@ -383,7 +399,19 @@ class RobotState:
         out["start_stamps"] = [
             [key, rec.start_stamp] for key, rec in self.sessions.items() if rec.start_stamp is not None
         ]
+        # Oldest first; only those whose refusal the saved ledgers count: a re-send withdraws it.
+        out["refused_scans"] = [[k, seq] for k, seq in self.refused_scans if self._refusal_saved(k, seq)]
         return out
+
+    def _refusal_saved(self, key: int, seq: int) -> bool:
+        """Whether `saved` counts the refusal of scan `seq` of session `key`: its seq is within the
+        session's saved seqs (`SessionSeqs.settled_seq`), and its receipt is not still open behind a
+        scan not settled (`SessionLedger.saved` leaves those to be counted again after a crash, when
+        they come again: then its seq is new as it is)."""
+        rec = self.sessions.get(key)
+        if rec is None or seq > rec.settled_seq():
+            return False
+        return all(receipt.seq != seq for receipt in rec.ledger.open_receipts)
 
     @classmethod
     def from_saved(cls, data: object) -> RobotState:
@@ -413,6 +441,7 @@ class RobotState:
                 for key, start_stamp in data.get("start_stamps", ()):
                     if int(key) in state.sessions:
                         state.sessions[int(key)].start_stamp = _number(start_stamp, "start_stamps")
+                state.refused_scans = _refused_scans(data.get("refused_scans", []))
             elif data.get("last_seq") is not None:
                 # Saved before sessions existed: every scan so far came without one.
                 last_seq = _check_saved("last_seq", data["last_seq"], int)

@@ -76,9 +76,9 @@ class Tombstone:
     `refused_scans` are the robot's `RobotState.refused_scans` then, (session key, seq) of its scans
     refused for the service's sake (a full queue: 503; the memory budget: 507): their seqs are
     recorded, yet the service never had the scans, and their sender is told to send them again,
-    which must be integrated, not ignored as from before the deletion. Not stored, as
-    `RobotState.refused_scans` is not: after a restart they are covered, as the map's own
-    bookkeeping would have it.
+    which must be integrated, not ignored as from before the deletion. Not stored (a live map's
+    snapshot saves its robots' `RobotState.refused_scans`; a tombstone's row has no room for them):
+    after a restart they are covered.
 
     `plain`: the last seq and the run's latest stamp (None: unknown) the service had of the robot's
     scans without a session id, None if it had none."""
