@@ -185,6 +185,35 @@ def test_uploads_replace_only_the_map_of_the_tag(client: httpx.Client) -> None:
     assert client.get("/maps/up-new").headers["etag"] == new.headers["etag"]
 
 
+def test_the_same_upload_twice_replaces_the_map_again_as_the_docs_say(client: httpx.Client) -> None:
+    """docs/api.md ("Content types") said of every `PUT` that the same one twice changes nothing the
+    second time. So it is for `PUT /maps/{map_id}` (same map, same `ETag`); a snapshot sent twice
+    replaces the map twice: the same cells, but another map (a new `ETag`, so the first answer's is
+    stale, and its robots afresh). A retry sent with the `If-Match` read replaces nothing made
+    since. The docs now say so."""
+    zipped = {"content-type": "application/zip"}
+    etag = fresh(client, "twice")
+    assert client.put("/maps/twice", json={"resolution": 0.05}).headers["etag"] == etag
+    scan(client, "twice", "r", 1)
+    snapshot = client.get("/maps/twice/snapshot").content
+    client.delete("/maps/twice-copy")
+    first = client.put("/maps/twice-copy/snapshot", content=snapshot, headers=zipped)
+    assert first.status_code == 201, first.text
+    scan(client, "twice-copy", "r", 1)  # a robot maps on into the restored map
+    second = client.put("/maps/twice-copy/snapshot", content=snapshot, headers=zipped)
+    assert second.status_code == 200, second.text
+    assert second.headers["etag"] != first.headers["etag"] and second.json()["stats"]["robots"] == {}
+    assert_refused(client.put("/maps/twice-copy/snapshot", content=snapshot,
+                              headers={**zipped, "If-Match": first.headers["etag"]}))  # fmt: skip
+    window = {"xmin": -4, "ymin": -4, "xmax": 4, "ymax": 4, "layer": "log_odds"}
+    regions = [client.get(f"/maps/{m}/region", params=window).content for m in ("twice", "twice-copy")]
+    assert regions[0] == regions[1]  # the snapshot's cells, not the robot's scan since
+    conventions = (Path(__file__).resolve().parent.parent / "docs" / "api.md").read_text(encoding="utf-8")
+    conventions = " ".join(conventions.split("## HTTP conventions", 1)[1].split("## Endpoints", 1)[0].split())
+    assert "the same PUT twice changes nothing" not in conventions
+    assert "sent again replaces the map again" in conventions
+
+
 def race(writers: list[Callable[[], httpx.Response]]) -> list[int]:
     """Run `writers` at once (each on its thread, released together) and return their statuses."""
     barrier = threading.Barrier(len(writers))
