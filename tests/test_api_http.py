@@ -395,6 +395,25 @@ def test_a_body_with_a_transfer_coding_other_than_chunked_is_refused_saying_so(m
     assert send("/maps/plain/snapshot", snapshot, "Chunked", "application/zip")[0] == 201
 
 
+def test_a_content_encoding_without_a_body_refuses_nothing(mapped: httpx.Client) -> None:
+    """A `Content-Encoding` says how a body is encoded: a request without one (a GET, a HEAD, a
+    DELETE, `Content-Length: 0`) has nothing encoded. Every such request was refused 415 "a body
+    with Content-Encoding 'gzip' is not read here", /healthz too (a monitor or a client library
+    that sets the header on every request saw the service refuse all of it), with a status the spec
+    gives none of those routes. A body sent so is still refused (above), chunked too."""
+    gzipped = {"content-encoding": "gzip"}
+    assert mapped.get("/healthz", headers=gzipped).status_code == 200
+    assert mapped.get("/maps/m", headers=gzipped).status_code == 200
+    assert mapped.head(TILE, headers=gzipped).status_code == 200
+    empty = mapped.put("/maps/m", content=b"", headers={**gzipped, "content-length": "0"})
+    assert empty.status_code == 200, empty.text  # no body: the defaults, as the map has them
+    assert mapped.put("/maps/gone", headers=gzipped).status_code == 201
+    assert mapped.delete("/maps/gone", headers=gzipped).status_code == 204
+    body = gzip.compress(json.dumps({"points": [[0.0, 0.0]]}).encode())
+    chunked = mapped.post("/maps/m/cells", content=iter([body]), headers={**JSON, **gzipped})
+    assert chunked.status_code == 415 and "chunked" in chunked.request.headers["transfer-encoding"]
+
+
 def test_query_parameters_once_each_unknown_ones_ignored(mapped: httpx.Client) -> None:
     for path in ("/maps/m/cell?x=0&x=5&y=0", f"{TILE}?layer=hits&layer=probability",
                  "/maps/m/region?xmin=0&xmin=1&ymin=0&xmax=1&ymax=1"):  # fmt: skip

@@ -156,7 +156,10 @@ class BodyLimitMiddleware:
     identity` (RFC 9110, 15.5.16): no route decodes one, and a gzipped JSON body was refused as "not
     UTF-8 text", a gzipped snapshot as "not a zip file", which did not say what to change. Likewise
     a transfer coding other than `chunked` (`Transfer-Encoding: gzip, chunked`): the HTTP server
-    undoes the chunks only, and handed the routes the gzipped bytes as the body."""
+    undoes the chunks only, and handed the routes the gzipped bytes as the body. Only a request with
+    a body (a Content-Length above 0, or a Transfer-Encoding): the header says how a body is
+    encoded, and a GET or DELETE that carried it (a client library setting it on every request) was
+    refused 415 too, /healthz included."""
 
     def __init__(self, app: ASGIApp, max_bytes: int, max_snapshot_bytes: int | None = None) -> None:
         self.app = app
@@ -172,17 +175,23 @@ class BodyLimitMiddleware:
         limit = self.max_bytes
         if scope["method"] == "PUT" and _SNAPSHOT_PATH.fullmatch(scope["path"]):
             limit = self.max_snapshot_bytes
+        coding, has_body = None, False
         for name, value in scope.get("headers", ()):
-            if name == b"content-length" and value.isdigit() and int(value) > limit:
-                exc = BodyTooLarge(limit)
-                await _json(exc.status_code, exc.detail)(scope, receive, send)
-                return
+            if name == b"content-length" and value.isdigit():
+                if int(value) > limit:
+                    exc = BodyTooLarge(limit)
+                    await _json(exc.status_code, exc.detail)(scope, receive, send)
+                    return
+                has_body = has_body or int(value) > 0
+            elif name == b"transfer-encoding":  # chunked (or another coding): a body, however long
+                has_body = True
             header, plain = _CODED_BODY_HEADERS.get(name, ("", set()))
             if header and _codings(value) - plain:
-                coding = value.decode("latin-1")[:40]
-                detail = f"a body with {header} {coding!r} is not read here: send it uncompressed"
-                await _json(415, detail, headers={"Accept-Encoding": "identity"})(scope, receive, send)
-                return
+                coding = f"{header} {value.decode('latin-1')[:40]!r}"
+        if coding is not None and has_body:
+            detail = f"a body with {coding} is not read here: send it uncompressed"
+            await _json(415, detail, headers={"Accept-Encoding": "identity"})(scope, receive, send)
+            return
         received = 0
 
         async def limited() -> Message:
