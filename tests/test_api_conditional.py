@@ -214,6 +214,35 @@ def test_the_same_upload_twice_replaces_the_map_again_as_the_docs_say(client: ht
     assert "sent again replaces the map again" in conventions
 
 
+def test_a_scan_sent_with_a_condition_goes_only_into_the_map_of_it(client: httpx.Client) -> None:
+    """`POST /maps/{map_id}/scans` writes a map too: a client that reads a map's `ETag` and sends its
+    scans with `If-Match` must not see them go into another map made or restored under the id
+    meanwhile. The headers were ignored (RFC 9110, 13.1.1: an origin server MUST evaluate them), so
+    such a scan went into whatever map was there, or made one. Now 412 with the map's `ETag`,
+    nothing counted or created; `If-None-Match: *` sends a scan only to a map that does not exist
+    yet (it makes it)."""
+    etag = fresh(client, "guarded")
+    body = {**SCAN, "seq": 1}
+
+    def post(map_id: str, headers: dict[str, str]) -> httpx.Response:
+        return client.post(f"/maps/{map_id}/scans", params={"robot_id": "r"}, json=body, headers=headers)
+
+    r = post("guarded", {"If-Match": etag})
+    assert r.status_code == 200 and r.json()["status"] == "integrated", r.text
+    assert_refused(post("guarded", {"If-Match": '"map-1"'}))
+    refused = post("guarded", {"If-None-Match": "*"})
+    assert "exists" in assert_refused(refused) and refused.headers["etag"] == etag
+    stats = client.get("/maps/guarded").json()["stats"]
+    robot = stats["robots"]["r"]
+    assert (stats["scans_integrated"], stats["scans_rejected"], robot["duplicates"]) == (1, 0, 0), stats
+    client.delete("/maps/guarded-new")
+    assert_refused(post("guarded-new", {"If-Match": etag}))  # it would make a map: not the one read
+    assert client.get("/maps/guarded-new").status_code == 404
+    made = post("guarded-new", {"If-None-Match": "*"})
+    assert made.status_code == 200 and made.json()["status"] == "integrated", made.text
+    assert_refused(post("guarded", {"If-Match": "map-1"}), 422)  # not a quoted tag
+
+
 def race(writers: list[Callable[[], httpx.Response]]) -> list[int]:
     """Run `writers` at once (each on its thread, released together) and return their statuses."""
     barrier = threading.Barrier(len(writers))

@@ -683,7 +683,14 @@ class MapRegistry:
 
     # -- ingest ----------------------------------------------------------------------------------
 
-    def submit(self, map_id: str, robot_id: str, wire: WireScan, wait: bool = False) -> Future | None:
+    def submit(
+        self,
+        map_id: str,
+        robot_id: str,
+        wire: WireScan,
+        wait: bool = False,
+        expect: Expectation | None = None,
+    ) -> Future | None:
         """Queue a decoded scan for integration, never blocking.
 
         Returns a Future of the IntegrationResult when `wait`, else None. Raises `InvalidId` for an
@@ -696,7 +703,9 @@ class MapRegistry:
         seq not recorded, so that the next process takes it as new when the robot sends it again (a
         `ScanPublisher`'s cache does).
         A map this creates is `provisional`: it is removed again if the scan is refused here or later
-        (and no other scan reached it meanwhile).
+        (and no other scan reached it meanwhile). `expect` as for `create`, called with the map (None
+        if there is none and the scan would make it) before anything is counted or changed: whatever
+        it raises propagates, the scan taken nowhere (a REST scan's precondition).
         """
         _check_id("map id", map_id)
         _check_id("robot id", robot_id)
@@ -709,6 +718,11 @@ class MapRegistry:
                 # callbacks for a moment after the ingest's session closed.
                 raise IngestRejected("the service is shutting down: scan not taken", 503, SHUTTING_DOWN)
             entry = self.maps.get(map_id)
+            # Not for a scan refused for want of its map (404): an answer that would not have been
+            # a success comes before the preconditions (RFC 9110, 13.2.1), as for DELETE /maps/{id}.
+            creates = self.auto_create and len(self.maps) < self.max_auto_maps
+            if expect is not None and (entry is not None or creates):
+                expect(entry)
             stone = self._covered(map_id, entry, robot_id, wire.session, wire.seq, wire.stamp)
             if stone is not None:
                 robot = entry.robots.get(robot_id) if entry is not None else None

@@ -1,6 +1,6 @@
 """Conditional writes on a map (RFC 9110, 13): `If-Match` and `If-None-Match` on `PUT /maps/{id}`,
-`DELETE /maps/{id}`, `PUT /maps/{id}/snapshot`, `PUT /maps/{id}/import` and `DELETE
-/maps/{id}/region`, so that two operators
+`DELETE /maps/{id}`, `PUT /maps/{id}/snapshot`, `PUT /maps/{id}/import`, `DELETE
+/maps/{id}/region` and `POST /maps/{id}/scans`, so that two operators
 (or scripts) acting on one map cannot clobber each other: each sends the `ETag` it read, and the
 second write finds the map changed (412) instead of undoing the first.
 
@@ -17,7 +17,7 @@ same whether the answer is gzipped or not (it validates the map, not the bytes: 
 leaves it strong, so a client can send it back whatever encoding it accepted).
 
 The conditions are evaluated where the write takes effect, under the registry's lock
-(`MapRegistry.create`, `replace` and `delete` call `Preconditions.check` there; `clear_window`
+(`MapRegistry.create`, `replace`, `delete` and `submit` call `Preconditions.check` there; `clear_window`
 under the map's lock, where a map's removal also takes effect), so two writers
 sending the same tag cannot both pass: exactly one wins, the other gets 412 with nothing changed.
 """

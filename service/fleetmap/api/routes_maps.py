@@ -154,6 +154,7 @@ _SCAN_BODY = {
     responses=error_responses(
         404,
         409,
+        412,
         413,
         415,
         422,
@@ -165,7 +166,9 @@ _SCAN_BODY = {
         },
     ),
 )
-async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: State) -> ScanResult:
+async def post_scan(
+    map_id: MapId, robot_id: RobotId, request: Request, state: State, conditions: Conditions
+) -> ScanResult:
     """The scan a robot would publish over Zenoh, for clients without Zenoh. Answers once the scan is
     integrated (a tile or cell read after the answer includes it), with the cell updates and the
     changed storage tiles; `{"status": "duplicate"}` (200) when `seq` is not above the robot's last
@@ -184,7 +187,9 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
     `not_durable`; the map's next snapshot saves it, and a retry is a duplicate; see
     `GET /healthz`); 507 the scan needs new tiles that the service's memory budget for all maps
     (`--max-memory`) cannot hold: it is refused whole, counted as rejected, and the map is unchanged
-    (sent again with the same seq once memory is freed, it is integrated)."""
+    (sent again with the same seq once memory is freed, it is integrated). `If-Match`: only into the
+    map of that `ETag` (412 otherwise, the scan taken nowhere, counted nowhere); `If-None-Match: *`:
+    only into a map it makes."""
     registry = state.registry
     body = await request.body()
     content_type = request.headers.get("content-type", "")
@@ -202,7 +207,7 @@ async def post_scan(map_id: MapId, robot_id: RobotId, request: Request, state: S
         registry.reject(map_id, robot_id, reason, exc.scan_id)
         raise  # the app's handlers answer it: 413 past the payload limit (PayloadTooLarge), else 422
     try:
-        future = registry.submit(map_id, robot_id, wire, wait=True)
+        future = registry.submit(map_id, robot_id, wire, wait=True, expect=conditions.expectation(map_id))
     except IngestRejected as exc:
         if exc.status == 200:
             return ScanResult(seq=wire.seq, status="duplicate", detail=exc.reason)
