@@ -166,3 +166,27 @@ def test_every_operation_documents_the_403s_the_service_answers(service: Service
     assert not undocumented, f"no 403 in the spec for {undocumented}"
     assert "Host" in paths["/healthz"]["get"]["responses"]["403"]["description"]
     assert "another site" in paths["/session"]["post"]["responses"]["403"]["description"]
+
+
+def test_every_412_declares_the_maps_etag_and_every_201_its_location(service: ServiceProcess) -> None:
+    """A failed condition's 412 carries the map's current `ETag` (to send again), and a PUT that made
+    its map answers 201 with its `Location`: both were sent, and the spec declared neither, so a
+    generated client could not read them."""
+    paths = json.loads(COMMITTED.read_text(encoding="utf-8"))["paths"]
+    answers = {
+        (f"{method.upper()} {path}", status): operation["responses"][status]
+        for path, operations in paths.items()
+        for method, operation in operations.items()
+        for status in ("412", "201")
+        if status in operation["responses"]
+    }
+    assert len([key for key in answers if key[1] == "412"]) >= 5
+    assert len([key for key in answers if key[1] == "201"]) >= 3
+    for (where, status), answer in answers.items():
+        header = "ETag" if status == "412" else "Location"
+        assert answer.get("headers", {}).get(header, {}).get("schema") == {"type": "string"}, where
+    url = service.base_url
+    made = httpx.put(f"{url}/maps/spec-headers", json={})
+    assert made.status_code == 201 and made.headers["location"] == "/maps/spec-headers"
+    refused = httpx.put(f"{url}/maps/spec-headers", json={}, headers={"If-None-Match": "*"})
+    assert refused.status_code == 412 and refused.headers["etag"] == made.headers["etag"]

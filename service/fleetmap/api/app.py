@@ -444,8 +444,8 @@ _MAP_ETAG_ANSWERS = {
 
 def _declare_map_etags(schema: dict[str, Any]) -> None:
     """Declare the map's strong `ETag` on the answers that carry it (in place of the weak hash that
-    `_declare_json_revalidation` declares on JSON GETs): a generated client reads it there to send
-    it back as `If-Match`."""
+    `_declare_json_revalidation` declares on JSON GETs), a 412's included: a generated client reads
+    it there to send it back as `If-Match`. And a 201's `Location`."""
     etag = {
         "description": "the map's strong entity tag: it changes when the map is created, replaced or "
         "loaded again (a restart), not with scans. Send it as If-Match with PUT or DELETE of the map, "
@@ -457,6 +457,18 @@ def _declare_map_etags(schema: dict[str, Any]) -> None:
         responses = paths[path][method]["responses"]
         for status in statuses:
             responses[status].setdefault("headers", {})["ETag"] = etag
+    # The 412 of a failed condition carries the map's ETag (`conditional.Preconditions`), and a 201
+    # of a PUT the made map's `Location` (`http_semantics.created_status`): both were sent, and a
+    # generated client knew neither from the spec.
+    current = {**etag, "description": "the map's current entity tag, when the map exists (send it again)"}
+    location = {"description": "the map made: /maps/{map_id}", "schema": {"type": "string"}}
+    for operations in paths.values():
+        for operation in operations.values():
+            responses = operation.get("responses", {})
+            if "412" in responses:
+                responses["412"].setdefault("headers", {})["ETag"] = current
+            if "201" in responses:
+                responses["201"].setdefault("headers", {})["Location"] = location
     paths["/maps/{map_id}"]["get"]["responses"]["304"] = {
         "description": "Not modified: If-None-Match holds the map's ETag (the same map, configuration)"
     }
