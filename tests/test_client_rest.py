@@ -1064,6 +1064,33 @@ def test_events_stream_tiles_robots_and_deletion(client: FleetmapClient, scans: 
     assert received[-1] == ("deleted", {"id": "ev"})
 
 
+def test_closing_the_client_ends_its_event_streams_read_in_other_threads(client: FleetmapClient) -> None:
+    """A program that reads a map's events in a thread and closes its client to stop: the reader
+    stayed blocked until the server's next keepalive (some 15 s), then failed with RuntimeError on
+    the closed pool. Its iteration now just stops, at once."""
+    client.create_map("ev-close", CONFIG)
+    own = FleetmapClient(client.base_url)
+    received: list[str] = []
+    failures: list[BaseException] = []
+
+    def listen() -> None:
+        try:
+            for event, _data in own.events("ev-close"):
+                received.append(event)
+        except BaseException as exc:  # what the reader saw, to assert on
+            failures.append(exc)
+
+    thread = threading.Thread(target=listen, daemon=True)
+    thread.start()
+    wait_for(lambda: "robots" in received, 10, 0.02, "the initial robots event")
+    own.close()
+    thread.join(60)
+    assert not thread.is_alive() and not failures, failures
+    with pytest.raises(RuntimeError, match="closed"):  # a request afterwards, as every other
+        next(own.events("ev-close"))
+    own.close()  # idempotent
+
+
 def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, scans: list[Scan]) -> None:
     """A map replaced by `PUT /maps/{id}/snapshot` still exists: `events` yields `replaced` and goes
     on with the new map's events; only a deletion ends it."""

@@ -32,6 +32,7 @@ import numbers
 import operator
 import os
 import secrets
+import socket
 import threading
 import time
 import zipfile
@@ -381,6 +382,10 @@ class FleetmapClient:
         #: Per (map_id, robot_id): held by `post_scan` while it sends one of that robot's scans.
         self._robot_locks: dict[tuple[str, str], threading.Lock] = {}
         self._robot_locks_lock = threading.Lock()
+        #: The event streams being read (`events`), which `close` ends; guarded by `_streams_lock`.
+        self._streams: set[httpx.Response] = set()
+        self._streams_lock = threading.Lock()
+        self._closed = False
 
     # -- plumbing ----------------------------------------------------------------------------------
 
@@ -398,7 +403,17 @@ class FleetmapClient:
         return self._request(method, url, timeout=timeout, **kwargs)
 
     def close(self) -> None:
-        """Close the connection pool. Idempotent; a request afterwards raises RuntimeError."""
+        """Close the connection pool, and end the event streams being read (`events`, in other
+        threads too: their iteration stops at once). Idempotent; a request afterwards raises
+        RuntimeError."""
+        with self._streams_lock:
+            self._closed = True
+            streams = list(self._streams)
+        # Closing the pool does not wake a thread blocked reading a stream: it read on until the
+        # server's next keepalive (some 15 s), then failed on the closed pool with RuntimeError.
+        # Shut down, its socket reads as ended now.
+        for response in streams:
+            _shut_down(response)
         self._http.close()
 
     def __enter__(self) -> FleetmapClient:
@@ -973,9 +988,10 @@ class FleetmapClient:
         `RobotsDeltaEvent` as a dict (`RobotsDeltaEvent.model_validate(data)` types it), for a
         program that keeps its own state of a big fleet and wants only the changes.
 
-        The generator is lazy: the request is made on the first `next()`. It ends after `deleted`;
-        close it early with `.close()` on the generator (or by leaving a `for` loop and dropping
-        it). Raises `FleetmapError` (e.g. 404 unknown map) or httpx's `ConnectError` on the first
+        The generator is lazy: the request is made on the first `next()`. It ends after `deleted`,
+        and when the client is closed (`close()`, from any thread: a thread reading the stream
+        stops at once); close it early with `.close()` on the generator (or by leaving a `for` loop
+        and dropping it). Raises `FleetmapError` (e.g. 404 unknown map) or httpx's `ConnectError` on the first
         `next()`; an invalid `map_id` raises ValueError here, at the call, as every other method
         does.
 
@@ -996,6 +1012,20 @@ class FleetmapClient:
         stream = self._events(map_id, _check_since(since))
         return stream if robots == "delta" else fold_robots(stream)
 
+    @contextlib.contextmanager
+    def _open_stream(self, response: httpx.Response) -> Iterator[None]:
+        """`response`, an event stream, among those `close` ends while it is read; `_StreamClosed` if
+        the client was closed already."""
+        with self._streams_lock:
+            if self._closed:
+                raise _StreamClosed
+            self._streams.add(response)
+        try:
+            yield
+        finally:
+            with self._streams_lock:
+                self._streams.discard(response)
+
     def _events(self, map_id: str, since: int | None) -> EventStream:
         """The stream, resumed after a lost connection or a server restart (see `events`)."""
         params = {"robots": "delta"}
@@ -1013,9 +1043,12 @@ class FleetmapClient:
             headers = {} if last_id is None else {"Last-Event-ID": last_id}
             delay = RECONNECT_DELAY
             try:
-                with self._http.stream(
-                    "GET", f"/maps/{map_id}/events", params=params, headers=headers, timeout=timeout
-                ) as response:
+                with (
+                    self._http.stream(
+                        "GET", f"/maps/{map_id}/events", params=params, headers=headers, timeout=timeout
+                    ) as response,
+                    self._open_stream(response),
+                ):
                     if _failed(response):
                         response.read()
                         if not (followed and response.status_code == 503):
@@ -1031,13 +1064,33 @@ class FleetmapClient:
                             yield event, data
                             if event == "deleted":
                                 return
+            except _StreamClosed:
+                return
             except httpx.TransportError as exc:
+                if self._closed:  # `close` ended it
+                    return
                 if not followed:  # nothing listens at all: say so, as every other method does
                     raise _naming_the_service(exc, self.base_url) from exc
+            if self._closed:
+                return
             # The stream ended without `deleted` (the server stopped: "the server is shutting
             # down"), the connection was lost, or it stayed silent past the read timeout (a
             # ReadTimeout: leaving the `with` closed that connection): wait for the service, go on.
             time.sleep(delay)
+
+
+class _StreamClosed(Exception):
+    """The client was closed as an event stream opened (`FleetmapClient._open_stream`)."""
+
+
+def _shut_down(response: httpx.Response) -> None:
+    """Shut the socket of a streamed `response` down, so that a thread blocked reading it reads its
+    end at once (closing the socket alone leaves such a read blocked, on Linux)."""
+    stream = response.extensions.get("network_stream")
+    sock = stream.get_extra_info("socket") if stream is not None else None
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.shutdown(socket.SHUT_RDWR)
 
 
 #: The finest resolution a map may have (`MapConfig.resolution` is above it): with it, `raycast`
