@@ -32,6 +32,7 @@ from fleetmap.config import MapConfig
 from fleetmap.export import PGM_FREE, PGM_OCCUPIED, PGM_UNKNOWN, state_to_pgm
 from fleetmap.grid_map import REGION_LAYERS, STATE_NAMES, GridMap, cell_edge
 from fleetmap.scan import Scan
+from fleetmap.tiles import SLOT_OVERHEAD
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
 
 RES = 0.05
@@ -1147,7 +1148,11 @@ def test_statistics_do_not_wait_for_the_map_lock(api: RunningApi) -> None:
     assert post_scan(api, "busy", "r", scan, 0).json()["status"] == "integrated"
     gmap = api.registry.get("busy").gmap
     store = gmap.store
-    pool_bytes = sum(p.nbytes for p in store.pools.values()) + store.versions.nbytes
+    pool_bytes = (
+        sum(p.nbytes for p in store.pools.values())
+        + store.versions.nbytes
+        + SLOT_OVERHEAD * len(store.versions)
+    )
     with gmap.lock:  # as the ingest worker or the snapshot writer would hold it
         metrics = c.get("/metrics", timeout=5).text
         listed = c.get("/maps", timeout=5).json()["maps"]

@@ -20,14 +20,16 @@ from fleetmap.codec import WireScan, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.map_entry import IngestRejected
-from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation, parse_size
+from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation, format_size, parse_size
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import MapRegistry
 from fleetmap.scan import Scan
+from fleetmap.tiles import SLOT_OVERHEAD
 
-#: Small tiles (0.8 m) and one layer, so that a few scans need many tiles of 1032 bytes each.
+#: Small tiles (0.8 m) and one layer, so that a few scans need many tiles of 1416 bytes each (their
+#: cells, version and bookkeeping).
 SMALL = MapConfig(tile_size=16, layers=("occupancy",))
-TILE_BYTES = 16 * 16 * 4 + 8
+TILE_BYTES = 16 * 16 * 4 + 8 + SLOT_OVERHEAD
 
 
 def scan_at(x: float) -> Scan:
@@ -52,6 +54,52 @@ def test_parse_size() -> None:
             parse_size(bad)
 
 
+@pytest.mark.parametrize(
+    ("tile_size", "layers", "tiles"),
+    [
+        (16, ("occupancy",), 400),  # a first growth: capacity = tiles
+        (16, ("occupancy",), 33_000),  # the index just doubled (4 entries a tile)
+        (16, ("occupancy", "counts", "tsdf"), 200_000),
+        (64, ("counts",), 4_100),
+        (256, ("tsdf",), 65),
+    ],
+)
+def test_memory_bytes_counts_what_a_map_of_any_tile_size_holds(
+    tile_size: int, layers: tuple, tiles: int
+) -> None:
+    """The budget counted only the pools and versions: the tiles' keys, the kernels' index and the
+    per-slot bounds, ~300 bytes a tile, were not counted, 30 % more than `memory_bytes` said in a map
+    of 16-cell tiles (a service at `--max-memory 256MiB` held 100 MB of them uncounted). Everything
+    a map's tiles make it hold, as tracemalloc sees it (numpy's arrays included), is within what it
+    counts, and each slot of capacity counts `SLOT_OVERHEAD` bytes more than its cells and version."""
+    import tracemalloc
+
+    from fleetmap.tiles import layer_arrays, tile_bytes
+
+    warm = GridMap(MapConfig(tile_size=tile_size, layers=layers))
+    warm.store.create([(0, 0), (3, 3)])
+    warm.known_bounds()
+    del warm
+    gmap = GridMap(MapConfig(tile_size=tile_size, layers=layers, max_tiles=1_000_000))
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        side = 1000
+        for first in range(0, tiles, 400):  # past the small-int cache, as a map's far tiles are
+            gmap.store.create(
+                [(300 + k % side, 300 + k // side) for k in range(first, min(tiles, first + 400))]
+            )
+        assert gmap.known_bounds() is None  # no cell observed, but each tile's bounds are kept
+        gc.collect()
+        held = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    capacity = len(gmap.store.versions)
+    assert gmap.memory_bytes() == capacity * (tile_bytes(tile_size, layer_arrays(layers)) + 8 + SLOT_OVERHEAD)
+    assert held <= gmap.memory_bytes(), (held - gmap.memory_bytes()) / tiles
+
+
 def test_empty_maps_hold_nothing_and_big_tiles_grow_one_at_a_time() -> None:
     """Four empty maps of 4096-cell tiles were charged 16 tiles (5.4 GB) each, and every other map's
     growth was then refused. Empty maps now hold no pool, a first growth holds the tiles a scan
@@ -68,7 +116,7 @@ def test_empty_maps_hold_nothing_and_big_tiles_grow_one_at_a_time() -> None:
     assert budget.used == small.memory_bytes() < 2 * len(small.store) * TILE_BYTES
     inside_one_tile = Scan.from_fan((100.0, 100.0, 0.0), -1.5, 0.1, [2.0] * 31, 0.0, 30.0)
     big[0].integrate(inside_one_tile)  # 64 MiB a tile: room for the one tile it needs
-    assert len(big[0].store) == 1 and big[0].memory_bytes() == 4096 * 4096 * 4 + 8
+    assert len(big[0].store) == 1 and big[0].memory_bytes() == 4096 * 4096 * 4 + 8 + SLOT_OVERHEAD
     with pytest.raises(MemoryBudgetError):  # a second 64 MiB tile does not fit beside the first
         big[1].integrate(inside_one_tile)
     assert big[1].memory_bytes() == 0
@@ -438,7 +486,8 @@ def test_an_upload_reservation_becomes_its_maps_charge_or_goes_back() -> None:
     with pytest.raises(RuntimeError), registry.upload_reservation(None) as refused:
         assert refused is not None
         other = GridMap(SMALL)
-        shown = r"need 20\.2 KiB, and the service's memory budget .* has 10\.1 KiB free"
+        need, free = (re.escape(format_size(n * TILE_BYTES)) for n in (20, 10))
+        shown = rf"need {need}, and the service's memory budget .* has {free} free"
         with pytest.raises(MemoryBudgetError, match=shown):
             refused.charge(other.store, 20)  # does not fit beside "m": nothing reserved
         assert budget.used == 20 * TILE_BYTES
@@ -465,7 +514,10 @@ def test_a_replaced_maps_bytes_are_lent_once_and_the_loan_ends_with_either_side(
     new = [GridMap(SMALL) for _ in range(3)]
     first.charge(new[0].store, 20)  # 10 free, 10 of the old map's
     assert budget.used == 40 * TILE_BYTES and budget.lent == 10 * TILE_BYTES and budget._free() == 0
-    with pytest.raises(MemoryBudgetError, match=r"has 0 bytes free \(and 10\.1 KiB of the map it replaces\)"):
+    lendable = re.escape(format_size(10 * TILE_BYTES))
+    with pytest.raises(
+        MemoryBudgetError, match=rf"has 0 bytes free \(and {lendable} of the map it replaces\)"
+    ):
         second.charge(new[1].store, 11)  # the old map has 10 tiles' bytes left to lend
     assert budget.used == 40 * TILE_BYTES
     second.charge(new[1].store, 10)

@@ -238,7 +238,9 @@ class MapStats(_Model):
         description="[xmin, ymin, xmax, ymax] in metres of every observed cell; null for an empty map"
     )
     tiles: int = Field(description="storage tiles allocated")
-    memory_bytes: int = Field(description="bytes held by the map's tile pools")
+    memory_bytes: int = Field(
+        description="bytes the map's tiles hold: pools, versions, bookkeeping (what --max-memory counts)"
+    )
     version: int = Field(default=0, description="the map's change version (as in the events stream)")
 
 

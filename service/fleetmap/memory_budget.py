@@ -1,4 +1,5 @@
-"""A memory budget shared by maps: the bytes all their tile pools may hold together.
+"""A memory budget shared by maps: the bytes all their tiles may hold together (their pools, versions
+and bookkeeping: `tiles.slot_bytes`).
 
 `MapConfig.max_tiles` bounds one map; a service holding many maps also needs a bound on all of them,
 or robots mapping new ground make it grow until the operating system kills it. Each `TileStore`

@@ -243,7 +243,11 @@ class RegistryCollector(Collector):
                 labels=robot,
             ),
             GaugeMetricFamily("fleetmap_map_tiles", "Storage tiles allocated", labels=["map"]),
-            GaugeMetricFamily("fleetmap_map_memory_bytes", "Bytes in the map's tile pools", labels=["map"]),
+            GaugeMetricFamily(
+                "fleetmap_map_memory_bytes",
+                "Bytes the map's tiles hold: pools, versions, bookkeeping",
+                labels=["map"],
+            ),
             GaugeMetricFamily("fleetmap_maps", "Maps held"),
             GaugeMetricFamily("fleetmap_queue_depth", "Scans waiting for integration"),
             GaugeMetricFamily(
@@ -252,10 +256,8 @@ class RegistryCollector(Collector):
             GaugeMetricFamily(
                 "fleetmap_storage_ok", "1 while durable storage is healthy (GET /healthz: storage)"
             ),
-            GaugeMetricFamily("fleetmap_memory_used_bytes", "Bytes all maps' tile pools hold (--max-memory)"),
-            GaugeMetricFamily(
-                "fleetmap_memory_limit_bytes", "Bytes all maps' tile pools may hold (--max-memory)"
-            ),
+            GaugeMetricFamily("fleetmap_memory_used_bytes", "Bytes all maps' tiles hold (--max-memory)"),
+            GaugeMetricFamily("fleetmap_memory_limit_bytes", "Bytes all maps' tiles may hold (--max-memory)"),
             GaugeMetricFamily(
                 "fleetmap_queue_limit",
                 "Scans the ingest queue holds at most (all robots); past it new scans are dropped",

@@ -69,10 +69,21 @@ def tile_bytes(tile_size: int, arrays: Iterable[LayerArray]) -> int:
     return tile_size * tile_size * sum(np.dtype(a.dtype).itemsize for a in arrays)
 
 
+#: Bytes a tile costs beyond its cells and its version, in the structures that grow with a map's tiles
+#: whatever their size: its key in `TileStore.slots` and `keys` (a tuple of two ints, its slot as an
+#: int, a dict entry, a list pointer: 130-220 bytes), the kernels' index (`kernels.tile_index`: 24
+#: bytes an entry, 2 to 4 entries a tile) and `GridMap`'s bounds per slot (40 bytes, up to twice over
+#: as they double). tracemalloc measured 280-330 bytes a tile, up to 305 a slot of capacity (tiles of
+#: 16 to 4096 cells, any layers: none of it depends on them). Uncounted, a map of 16-cell tiles held
+#: 30 % more than the memory budget said it did.
+SLOT_OVERHEAD = 384
+
+
 def slot_bytes(tile_size: int, arrays: Iterable[LayerArray]) -> int:
-    """Bytes one slot of a store's capacity holds: a tile of `arrays`, and its version. What
-    `TileStore.memory_bytes` (and so the memory budget) counts a tile as."""
-    return tile_bytes(tile_size, arrays) + np.dtype(np.int64).itemsize
+    """Bytes one slot of a store's capacity holds: a tile of `arrays`, its version, and its share of
+    the bookkeeping that grows with the tiles (`SLOT_OVERHEAD`). What `TileStore.memory_bytes` (and so
+    the memory budget) counts a tile as."""
+    return tile_bytes(tile_size, arrays) + np.dtype(np.int64).itemsize + SLOT_OVERHEAD
 
 
 class TileStore:
@@ -337,7 +348,8 @@ class TileStore:
                     block[weights[cells] <= 0] = np.nan
 
     def memory_bytes(self) -> int:
-        """Bytes held by the pools and the versions (allocated capacity, not only tiles in use).
+        """Bytes held by the pools, the versions and the bookkeeping of the tiles (`slot_bytes` a slot
+        of allocated capacity, not only tiles in use).
 
         Like `len()`, it reads one int that growing replaces at once, so statistics (`/metrics`,
         `GET /maps`) read both without the map's lock: a scrape never waits for a scan or for a
@@ -349,5 +361,6 @@ class TileStore:
         return tiles * self._tile_bytes()
 
     def _tile_bytes(self) -> int:
-        """Bytes one slot of capacity holds: a tile of every stored array, and its version."""
+        """Bytes one slot of capacity holds: a tile of every stored array, its version and its
+        bookkeeping (`slot_bytes`)."""
         return slot_bytes(self.tile_size, self.arrays)
