@@ -573,3 +573,29 @@ def test_zoomed_out_render_holds_its_blocks_not_a_copy_of_the_window() -> None:
             tracemalloc.stop()
         assert png != EMPTY_PNG
         assert peak < layer_bytes // 5, (z, peak)
+
+
+def test_the_reduced_cache_counts_what_each_block_holds_beside_its_cells() -> None:
+    """`ReducedCache` counted only its blocks' cells against its bound (128 MiB): a map of 16-cell
+    tiles seen zoomed out makes blocks of one cell, 4 bytes counted for ~450 held (the block's array
+    object, its key, its version, its place in the LRU), so the bound let it hold ~15 GB. Everything
+    it holds, as tracemalloc sees it, stays within its bound now, whatever the blocks' size."""
+    import tracemalloc
+
+    from fleetmap.tile_reduce import ReducedCache
+
+    for side in (1, 4, 16):
+        cache = ReducedCache(1 << 20)
+        gc.collect()
+        tracemalloc.start()
+        try:
+            before = tracemalloc.get_traced_memory()[0]
+            for k in range(20_000):  # keyed as `tile_reduce.snapshot` keys them
+                block = np.zeros((side, side), dtype=np.float32)
+                cache.put((1, "log_odds", 1000 + k, 2000 + k, 0, 0, 16, 16), 12345 + k, block)
+            gc.collect()
+            held = tracemalloc.get_traced_memory()[0] - before
+        finally:
+            tracemalloc.stop()
+        assert held <= cache.max_bytes, (side, held)
+        assert cache.nbytes <= cache.max_bytes

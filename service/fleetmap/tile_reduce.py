@@ -126,10 +126,22 @@ def _unknown_value(source: str) -> tuple[type[np.generic], float]:
 # -- the cache of reduced blocks -----------------------------------------------------------------------
 
 
+#: Bytes a cached block holds beside its cells: its array object, its key (a tuple of eight), its
+#: version and its place in the LRU (whose table a full cache's churn keeps at its largest);
+#: tracemalloc measured 460-520. Counted with the cells: a map of 16-cell tiles seen zoomed out makes
+#: blocks of one cell (4 bytes), so a bound on cells alone let 128 MiB of them hold ~15 GB.
+BLOCK_OVERHEAD = 640
+
+
+def _block_bytes(block: np.ndarray) -> int:
+    """What `ReducedCache` counts a block as: its cells and `BLOCK_OVERHEAD`."""
+    return block.nbytes + BLOCK_OVERHEAD
+
+
 class ReducedCache:
-    """Thread-safe LRU of reduced storage-tile blocks `key -> (version, array)`, bounded in bytes.
-    A key is a tuple whose first item is the token of the store the block comes from
-    (`_store_token`).
+    """Thread-safe LRU of reduced storage-tile blocks `key -> (version, array)`, bounded in bytes (each
+    block's cells and its `BLOCK_OVERHEAD`). A key is a tuple whose first item is the token of the
+    store the block comes from (`_store_token`).
 
     A zoomed-out web tile spans many storage tiles; re-reducing all of them whenever any one changes
     would copy the whole window under the map lock. With this cache a render copies and reduces only
@@ -163,7 +175,7 @@ class ReducedCache:
             token = self._freed.pop()
             self._followed.discard(token)
             for key in [k for k in self._items if k[0] == token]:
-                self._bytes -= self._items.pop(key)[1].nbytes
+                self._bytes -= _block_bytes(self._items.pop(key)[1])
 
     def get(self, key: tuple[Hashable, ...], version: int) -> np.ndarray | None:
         with self._lock:
@@ -191,16 +203,16 @@ class ReducedCache:
             self._drop_freed()
             old = self._items.pop(key, None)
             if old is not None:
-                self._bytes -= old[1].nbytes
+                self._bytes -= _block_bytes(old[1])
             if old is not None and old[0] > version:  # a racing render stored a newer block: keep it
                 self._items[key] = old
-                self._bytes += old[1].nbytes
+                self._bytes += _block_bytes(old[1])
                 return
             self._items[key] = (version, array)
-            self._bytes += array.nbytes
+            self._bytes += _block_bytes(array)
             while self._bytes > self.max_bytes and self._items:
                 _, (_, evicted) = self._items.popitem(last=False)
-                self._bytes -= evicted.nbytes
+                self._bytes -= _block_bytes(evicted)
 
     @property
     def nbytes(self) -> int:
