@@ -100,6 +100,26 @@ def test_memory_bytes_counts_what_a_map_of_any_tile_size_holds(
     assert held <= gmap.memory_bytes(), (held - gmap.memory_bytes()) / tiles
 
 
+@pytest.mark.parametrize("gib", [1, 2, 4, 16])
+def test_auto_leaves_room_for_what_the_budget_does_not_count(
+    monkeypatch: pytest.MonkeyPatch, gib: int
+) -> None:
+    """`auto` was 75 % of the memory the service may use, whatever that was: in a container of 1 GiB,
+    768 MiB of tiles beside the 250-400 MB the service holds without them (and the rendered tiles'
+    caches, up to 384 MiB) passed the container's limit, so the service was killed where the budget
+    should have refused scans with 507. It leaves `RESERVED` (1 GiB) now (in less than 4/3 GiB, a
+    quarter of the memory for the tiles), and is 75 % of 4 GiB or more as before."""
+    import fleetmap.memory_budget as memory_budget
+
+    monkeypatch.setattr(memory_budget, "available_memory", lambda: gib << 30)
+    auto = parse_size("auto")
+    assert auto is not None
+    assert auto == max(gib << 28, min(3 * (gib << 28), (gib << 30) - (1 << 30)))
+    if gib >= 2:
+        assert (gib << 30) - auto >= 1 << 30  # room for the fixed overhead (README) and the caches
+    assert auto >= gib << 28
+
+
 def test_empty_maps_hold_nothing_and_big_tiles_grow_one_at_a_time() -> None:
     """Four empty maps of 4096-cell tiles were charged 16 tiles (5.4 GB) each, and every other map's
     growth was then refused. Empty maps now hold no pool, a first growth holds the tiles a scan

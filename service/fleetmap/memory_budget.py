@@ -257,9 +257,22 @@ def format_size(size: int | None) -> str:
 _SHIFTS = {"KiB": 10, "MiB": 20, "GiB": 30, "TiB": 40}
 
 
-#: `--max-memory`'s default: this share of the memory the service may use (its cgroup's limit, or the
-#: machine's RAM), leaving room for Python, the tile cache and the operating system.
+#: `--max-memory`'s default (`auto_budget`): this share of the memory the service may use (its cgroup's
+#: limit, or the machine's RAM), leaving room for Python, the tile cache and the operating system...
 DEFAULT_SHARE = 0.75
+#: ... and at least this much: what the service holds beside its maps' tiles (250-400 MB, README), the
+#: rendered tiles' caches (up to 384 MiB) and the maps' change feeds. A share alone left 256 MiB of
+#: a 1 GiB container, where the service was killed before its budget refused a scan.
+RESERVED = 1 << 30
+#: ... except in less than 4 / 3 GiB, where the budget keeps this share of it (the service is then
+#: short of memory whatever its budget).
+SMALLEST_SHARE = 0.25
+
+
+def auto_budget(available: int) -> int:
+    """`--max-memory auto`: the budget for a service that may use `available` bytes."""
+    return int(max(available * SMALLEST_SHARE, min(available * DEFAULT_SHARE, available - RESERVED)))
+
 
 _SIZE = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*(|k|m|g|t|kib|mib|gib|tib|kb|mb|gb|tb)\s*$", re.IGNORECASE)
 _UNITS = {"": 1, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}
@@ -267,13 +280,13 @@ _UNITS = {"": 1, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}
 
 def parse_size(text: str) -> int | None:
     """A size such as `512MiB`, `2G` or `1073741824` (bytes; k, M, G, T are powers of 1024, with or
-    without `iB` / `B`), `none` for no limit, or `auto` for `DEFAULT_SHARE` of `available_memory()`.
+    without `iB` / `B`), `none` for no limit, or `auto` for `auto_budget(available_memory())`.
     Raises ValueError with the reason."""
     word = text.strip().lower()
     if word == "none":
         return None
     if word == "auto":
-        return int(available_memory() * DEFAULT_SHARE)
+        return auto_budget(available_memory())
     match = _SIZE.match(text)
     if match is None:
         raise ValueError(f"expected a size such as 512MiB, 2GiB, none or auto, got {text!r}")

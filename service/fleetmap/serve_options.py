@@ -17,7 +17,7 @@ from fleetmap.codec import InputLimits
 from fleetmap.failed_signins import DEFAULT_MAX_FAILURES, DEFAULT_WINDOW
 from fleetmap.http_limits import RESERVED_DESCRIPTORS
 from fleetmap.log_format import LOG_FORMATS
-from fleetmap.memory_budget import DEFAULT_SHARE, MemoryBudget, parse_size
+from fleetmap.memory_budget import DEFAULT_SHARE, RESERVED, MemoryBudget, parse_size
 from fleetmap.metrics import ROBOT_SERIES_IDLE
 from fleetmap.persistence import SNAPSHOT_INTERVAL, SNAPSHOT_ROWS
 from fleetmap.ros.transforms import TfError, normalize_frame
@@ -150,7 +150,9 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         help=(
             "bytes all maps' tiles may hold together, e.g. 4GiB; scans that would need more are "
             f"refused (507) and their maps unchanged. 'auto' (default): {DEFAULT_SHARE * 100:.0f}%% of the "
-            "memory this process may use (its cgroup's limit, else the machine's); 'none': no limit"
+            f"memory this process may use (its cgroup's limit, else the machine's), leaving at least "
+            f"{RESERVED >> 30} GiB for the rest of the service (a quarter of less than 4/3 GiB); "
+            "'none': no limit"
         ),
     )
     p.add_argument(
