@@ -11,12 +11,13 @@ import tracemalloc
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 import zenoh
 from fleetmap_client.publisher import ScanPublisher
 from registry_idle import wait_idle
-from service_process import FreezableProxy, free_port, wait_for
+from service_process import FreezableProxy, ServiceProcess, free_port, wait_for
 
 from fleetmap import codec
 from fleetmap.config import MapConfig
@@ -444,6 +445,34 @@ def test_liveliness_online_offline_including_tokens_older_than_the_service(regis
     finally:
         ingest.close()
         router.close()
+
+
+def test_a_token_its_map_cannot_show_is_not_logged_as_a_robot_online(tmp_path: Path) -> None:
+    """A liveliness token for a robot its map has no room for (every robot it holds online) was
+    logged "robot full/b is online", and its going "offline", though GET /maps/{id} and /metrics
+    listed no such robot. The line now says the robot is not on its map, and why; a robot the map
+    shows keeps its plain line."""
+    with ServiceProcess(tmp_path, ["--in-memory", "--max-robots-per-map", "1"]) as svc:
+        session = client_session(svc.zenoh_endpoint)
+        try:
+            a = session.liveliness().declare_token(ALIVE_KEY.format(map_id="full", robot_id="a"))
+            wait_for(lambda: "robot full/a is online" in svc.logs(), timeout=20, what="a's token")
+            b = session.liveliness().declare_token(ALIVE_KEY.format(map_id="full", robot_id="b"))
+            wait_for(lambda: "robot full/b is online" in svc.logs(), timeout=20, what="b's token")
+            robots = httpx.get(f"{svc.base_url}/maps/full", timeout=10).json()["stats"]["robots"]
+            assert sorted(robots) == ["a"] and robots["a"]["online"] is True
+            assert 'robot="b"' not in httpx.get(f"{svc.base_url}/metrics", timeout=10).text
+            lines = {line.split(": ", 1)[1] for line in svc.logs().splitlines() if "robot full/" in line}
+            assert "robot full/a is online" in lines, lines
+            assert (
+                "robot full/b is online (its liveliness token), but not on its map: map 'full' already "
+                "has 1 robots, the most it may have, every one online or with scans waiting"
+            ) in lines, lines
+            b.undeclare()
+            a.undeclare()
+            wait_for(lambda: "robot full/a is offline" in svc.logs(), timeout=20, what="a offline")
+        finally:
+            session.close()
 
 
 def test_robot_online_again_after_its_map_is_recreated(

@@ -930,10 +930,14 @@ class MapRegistry:
         self.unmapped.forget(entry.id, [rid for rid, _ in chosen])
         return len(chosen)
 
-    def set_online(self, map_id: str, robot_id: str, online: bool) -> None:
-        """A robot's liveliness token appeared or went away."""
+    def set_online(self, map_id: str, robot_id: str, online: bool) -> str | None:
+        """A robot's liveliness token appeared or went away. Returns None once its map shows the
+        robot so (or, for a token gone, shows it nowhere online), else why the map does not show the
+        robot online though its token appeared: there is no map and the token may not create one,
+        or the map holds its most robots and none can make room. The caller's log line says so: it
+        said "robot M/R is online" of a robot that `GET /maps/{id}` and `/metrics` did not list."""
         if not (is_valid_id(map_id) and is_valid_id(robot_id)):
-            return
+            return "invalid map or robot id" if online else None
         with self.lock:
             if online:
                 self._alive.add((map_id, robot_id))
@@ -941,23 +945,38 @@ class MapRegistry:
                 self._alive.discard((map_id, robot_id))
             entry = self.maps.get(map_id)
             if entry is None:
-                if not (online and self.auto_create) or len(self.maps) >= self.max_auto_maps:
-                    return
+                if not online:
+                    return None
+                if not self.auto_create:
+                    return f"there is no map {map_id!r}, and tokens and scans create none (--no-auto-create)"
+                if len(self.maps) >= self.max_auto_maps:
+                    return (
+                        f"there is no map {map_id!r}, and the service already holds {len(self.maps)} maps: "
+                        f"tokens and scans create a map only while it holds fewer than {self.max_auto_maps}"
+                    )
                 if self.tombstones.buried(map_id, robot_id):
-                    return  # its map was deleted under it: a token seen again (a restart) is no new robot
+                    # Its map was deleted under it: a token seen again (a restart) is no new robot.
+                    return f"its map {map_id!r} was deleted (or replaced) under it, and is not made again"
                 entry, _ = self.create(map_id)
             elif online:
                 entry.provisional = False  # the token would have created the map: it stays
             elif robot_id not in entry.robots:
                 # Nothing to show offline: making room for it would forget an idle robot (and any
                 # Zenoh peer can declare and drop tokens under made-up robot ids).
-                return
-            if self._room_for(entry, robot_id):
-                robot = entry.robot(robot_id)
-                robot.last_heard = time.time()
-                if robot.online != online:
-                    robot.online = online
-                    entry.touch(robot)
+                return None
+            if not self._room_for(entry, robot_id):
+                if not online:
+                    return None
+                return (
+                    f"map {map_id!r} already has {len(entry.robots)} robots, the most it may have, "
+                    "every one online or with scans waiting"
+                )
+            robot = entry.robot(robot_id)
+            robot.last_heard = time.time()
+            if robot.online != online:
+                robot.online = online
+                entry.touch(robot)
+            return None
 
     def mark_online(self, map_id: str, robot_id: str) -> None:
         """After a scan of `robot_id` was accepted while its liveliness (or ROS publisher) token

@@ -606,10 +606,13 @@ class ZenohIngest:
                     self._alive.add(ids)
                 else:
                     self._alive.discard(ids)
-                self.registry.set_online(ids[0], ids[1], online)
+                unshown = self.registry.set_online(ids[0], ids[1], online)
             state = "online" if online else "offline"
+            # A token the map cannot show (no room, no map) is no robot online in GET /maps/{id} nor
+            # /metrics: the line says so, rather than "is online" of a robot listed nowhere.
+            shown = f" (its liveliness token), but not on its map: {unshown}" if unshown else ""
             self._alive_log.log(
-                logging.INFO, f"{state}:{ids[0]}/{ids[1]}", f"robot {ids[0]}/{ids[1]} is {state}",
+                logging.INFO, f"{state}:{ids[0]}/{ids[1]}", f"robot {ids[0]}/{ids[1]} is {state}{shown}",
                 map_id=ids[0], robot_id=ids[1],
             )  # fmt: skip
         except Exception:

@@ -451,13 +451,14 @@ class RosScanIngest:
                     if changed:
                         del self._alive[robot_id]
                 self._count_publisher(parsed[1], laser_scan.ROS_TYPE, key, present)
-                if changed:
-                    self.registry.set_online(self.map_id, robot_id, present)
+                unshown = self.registry.set_online(self.map_id, robot_id, present) if changed else None
             if changed:  # any peer can declare tokens: rate-limited, as the native ingest's
                 state = "online" if present else "offline"
+                shown = f", but not on its map: {unshown}" if unshown else ""  # as the native ingest's
+                publisher = f"LaserScan publisher on {parsed[1]}"
                 self._alive_log.log(
                     logging.INFO, f"{state}:{robot_id}",
-                    f"ROS robot {self.map_id}/{robot_id} is {state} (LaserScan publisher on {parsed[1]})",
+                    f"ROS robot {self.map_id}/{robot_id} is {state} ({publisher}){shown}",
                     map_id=self.map_id, robot_id=robot_id,
                 )  # fmt: skip
         except Exception:
