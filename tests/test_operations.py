@@ -31,10 +31,11 @@ import pytest
 import zenoh
 from fleetmap_client.publisher import ScanPublisher
 from fleetmap_client.rest import TOKEN_ENV as CLIENT_TOKEN_ENV
+from prometheus_client.core import Metric
 from prometheus_client.parser import text_string_to_metric_families
 from service_process import ServiceProcess, free_port, reaped, wait_for
 
-from fleetmap import cli, serve_environment, server
+from fleetmap import cli, codec, serve_environment, server
 from fleetmap.api.app import WEB_DIR_ENV
 from fleetmap.auth import TOKENS_ENV
 from fleetmap.database import DB_NAME
@@ -969,3 +970,40 @@ def test_zenoh_sessions_are_held_to_what_the_descriptors_leave_http(tmp_path: Pa
         finally:
             for robot in robots:
                 robot.close()
+
+
+def test_zenoh_decode_errors_say_they_count_scans_past_the_input_limits(tmp_path: Path) -> None:
+    """`fleetmap_zenoh_decode_errors_total` counts well-formed scans refused at the input limits (a
+    pose outside `--world-bound`, too many beams) as well as undecodable ones (docs/protocol.md,
+    "Sequence numbers"), but its HELP text ("Zenoh scan messages not decoded") and the table of
+    docs/api.md ("scans that could not be decoded (a robot's bug, or garbage)") said only the
+    latter: an operator reading a rise of it as garbage on the network looked in the wrong place."""
+    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+        session = zenoh.open(zenoh_client_config(svc.zenoh_endpoint))
+        try:
+            publisher = session.declare_publisher(
+                "fleetmap/m/far/scan", encoding=zenoh.Encoding(BINARY_ENCODING)
+            )
+            wait_for(lambda: publisher.matching_status.matching, 10, what="the service's subscriber")
+            far = Scan.from_fan((1e9, 0.0, 0.0), -1.0, 0.01, [3.0] * 10, 0.05, 30.0)
+            publisher.put(codec.encode_binary(far, 0, stamp=1.0, session=7))
+
+            def family() -> Metric | None:
+                text = httpx.get(f"{svc.base_url}/metrics").text
+                found = [
+                    f
+                    for f in text_string_to_metric_families(text)
+                    if f.name == "fleetmap_zenoh_decode_errors"
+                ]
+                return found[0] if found and found[0].samples[0].value == 1 else None
+
+            counted = wait_for(family, 10, what="the scan past the world bound counted")
+        finally:
+            session.close()
+    assert "input limits" in counted.documentation, counted.documentation
+    row = next(
+        line
+        for line in (Path(__file__).resolve().parent.parent / "docs" / "api.md").read_text().splitlines()
+        if "decode_errors_total` |" in line
+    )
+    assert "input limits" in row and "world-bound" in row, row

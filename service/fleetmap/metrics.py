@@ -552,7 +552,13 @@ class ZenohCollector(Collector):
                 "Zenoh messages ignored: an invalid map or robot id in the key (scans; liveliness tokens "
                 "as they appear)",
             ),
-            CounterMetricFamily("fleetmap_zenoh_decode_errors", "Zenoh scan messages not decoded"),
+            # Both kinds: the decoder applies the input limits (codec.decode), and a pose outside
+            # the world bound is a robot's fault as much as garbage is.
+            CounterMetricFamily(
+                "fleetmap_zenoh_decode_errors",
+                "Zenoh scan messages refused before they were queued: undecodable, or past the input "
+                "limits (a pose outside --world-bound, more than --max-beams beams, ...)",
+            ),
             CounterMetricFamily(
                 "fleetmap_zenoh_scans_refused",
                 "Scans received over Zenoh that the registry refused, by reason (queue_full, duplicate, ...)",
