@@ -1007,3 +1007,26 @@ def test_zenoh_decode_errors_say_they_count_scans_past_the_input_limits(tmp_path
         if "decode_errors_total` |" in line
     )
     assert "input limits" in row and "world-bound" in row, row
+
+
+def test_journal_rows_say_they_count_cleared_windows_too(tmp_path: Path) -> None:
+    """A region cleared (`DELETE /maps/{id}/region`) is a journal row between the scans, and
+    `fleetmap_journal_rows_total` counts it, but its HELP text ("Journal rows (scans) committed")
+    and docs/api.md ("journal transactions and scans committed") said scans only: after a clear it
+    no longer matched the scans integrated, with nothing to say why."""
+    with ServiceProcess(tmp_path, ["--data-dir", str(tmp_path / "data")]) as svc:
+        post_scans(svc.base_url, "m", "r", range(1, 3))
+
+        def rows() -> Metric:
+            text = httpx.get(f"{svc.base_url}/metrics").text
+            return next(f for f in text_string_to_metric_families(text) if f.name == "fleetmap_journal_rows")
+
+        assert rows().samples[0].value == 2
+        window = {"xmin": -1, "ymin": -1, "xmax": 1, "ymax": 1}
+        assert httpx.delete(f"{svc.base_url}/maps/m/region", params=window).status_code == 200
+        counted = rows()
+    assert counted.samples[0].value == 3  # the clear's row
+    assert "cleared" in counted.documentation, counted.documentation
+    api = (Path(__file__).resolve().parent.parent / "docs" / "api.md").read_text()
+    row = next(line for line in api.splitlines() if "`fleetmap_journal_rows_total` |" in line)
+    assert "cleared" in row, row

@@ -299,7 +299,12 @@ class StorageCollector(Collector):
     def _families() -> tuple[_Family, ...]:
         return (
             CounterMetricFamily("fleetmap_journal_commits", "Journal transactions committed (group commits)"),
-            CounterMetricFamily("fleetmap_journal_rows", "Journal rows (scans) committed"),
+            # A cleared window is a row between the scans (DELETE /maps/{id}/region), so after one
+            # the rows are more than the scans integrated.
+            CounterMetricFamily(
+                "fleetmap_journal_rows",
+                "Journal rows committed: scans, and windows cleared (DELETE /maps/{map_id}/region)",
+            ),
             CounterMetricFamily(
                 "fleetmap_storage_failures",
                 "Storage operations that failed (a full or failing disk): journal commits, snapshots, "
