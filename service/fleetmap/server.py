@@ -81,6 +81,7 @@ from fleetmap.serve_options import (
     proxies_of_uvicorns_variable,
 )
 from fleetmap.serve_ros import ros_domain, ros_options, start_ros_maps, start_ros_scans, zenoh_status
+from fleetmap.shown_endpoint import shown_endpoints
 from fleetmap.signal_event import SignalEvent, SignalWakeups
 from fleetmap.tiles import TileStore
 from fleetmap.warm_up import compile_in_child, warm_up
@@ -212,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
             app = options.create_app(registry, settings=settings)
             _log_protection(args, tokens, durable is not None, options.default_config)
             server = make_server(
-                args, app, f"http://{url_host(options.host)}:{port}", ingest.endpoints,
+                args, app, f"http://{url_host(options.host)}:{port}", shown_endpoints(ingest.endpoints),
                 descriptors - (ingest.max_sessions or 0),
             )  # fmt: skip
             freeze_startup_objects()

@@ -102,6 +102,7 @@ from fleetmap.map_entry import IngestRejected
 from fleetmap.network import is_loopback_host
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import InvalidId, MapRegistry
+from fleetmap.shown_endpoint import shown_endpoints
 from fleetmap.wire import (
     ALIVE_KEY_WILDCARD,
     CONNECT_RETRY,
@@ -385,8 +386,8 @@ class ZenohIngest:
             "zenoh %s session %s listening on %s%s%s",
             self.mode,
             session.zid(),
-            ", ".join(self.listen) or "nothing",
-            f", connecting to {', '.join(self.connect)}" if self.connect else "",
+            ", ".join(shown_endpoints(self.listen)) or "nothing",
+            f", connecting to {', '.join(shown_endpoints(self.connect))}" if self.connect else "",
             "" if self.max_sessions is None else f"; at most {self.max_sessions} sessions (robots) at once",
         )
         open_endpoints = unauthenticated_endpoints(self.listen, cfg)
@@ -396,7 +397,7 @@ class ZenohIngest:
             log.warning(
                 "zenoh listens on %s beyond loopback with neither mutual TLS nor a user / password: "
                 "anyone who reaches it can publish scans (see docs/security.md)",
-                ", ".join(open_endpoints),
+                ", ".join(shown_endpoints(open_endpoints)),
             )
 
     def _bounded_sessions(self, cfg: zenoh.Config) -> int | None:
@@ -637,9 +638,10 @@ class ZenohIngest:
             return {
                 "running": session is not None,
                 "mode": self.mode,
-                "listen": list(self.listen),
-                "connect": list(self.connect),
-                "endpoints": self.endpoints,
+                # Without their configuration values (a TLS key given inline): /healthz answers anyone.
+                "listen": shown_endpoints(self.listen),
+                "connect": shown_endpoints(self.connect),
+                "endpoints": shown_endpoints(self.endpoints),
                 **info,
                 "messages_received": self.messages_received,
                 "scans_submitted": self.scans_submitted,
