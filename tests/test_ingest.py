@@ -307,6 +307,26 @@ def test_a_scan_refused_at_integration_is_logged_with_its_reason(
     assert state.last_error in lines[0]
 
 
+def test_a_scan_refused_at_the_input_limits_is_logged_with_its_seq_as_a_field(
+    registry: MapRegistry, ingest: ZenohIngest, robot: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A log line about a scan carries its `seq` as a field beside `map_id` and `robot_id` (docs/
+    security.md, "What is logged": a JSON log pipeline filters on it), as the lines of the scans the
+    registry refuses do; a well-formed scan refused at the input limits (a pose outside the world
+    bound), whose seq the line's text names, had no such field."""
+    far = Scan.from_fan((1e9, 0.0, 0.0), -1.0, 0.1, [2.0] * 10, 0.05, 30.0)
+    with caplog.at_level(logging.WARNING, logger="fleetmap.ingest"):
+        robot.put(
+            SCAN_KEY.format(map_id="m", robot_id="far"),
+            codec.encode_binary(far, 7, session=5),
+            encoding=zenoh.Encoding(BINARY_ENCODING),
+        )
+        wait_for(lambda: caplog.records, what="a log line")
+    (record,) = caplog.records
+    assert "scan seq 7 refused" in record.getMessage(), record.getMessage()
+    assert (record.map_id, record.robot_id, record.seq) == ("m", "far", 7)  # type: ignore[attr-defined]
+
+
 def test_parse_key() -> None:
     assert parse_key("fleetmap/m-1/r_2/scan", "scan") == ("m-1", "r_2")
     assert parse_key("fleetmap/m/r/alive", "scan") is None

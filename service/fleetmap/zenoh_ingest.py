@@ -485,9 +485,12 @@ class ZenohIngest:
             with self._lock:
                 self.decode_errors += 1
             self.registry.reject(map_id, robot_id, reason, exc.scan_id)
+            # Its seq as a field too when it was read (a scan past the input limits), as the lines
+            # of the scans the registry refuses carry theirs.
+            seq = {} if exc.scan_id is None else {"seq": exc.scan_id[0]}
             self._log.warning(
                 f"decode:{map_id}/{robot_id}", f"rejected a scan from {map_id}/{robot_id}: {reason}",
-                map_id=map_id, robot_id=robot_id,
+                map_id=map_id, robot_id=robot_id, **seq,
             )  # fmt: skip
             return
         try:
