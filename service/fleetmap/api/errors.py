@@ -54,6 +54,10 @@ _DESCRIPTIONS = {
 
 #: Seconds a 503 tells the client to wait before it retries (`Retry-After`), unless the route says.
 RETRY_AFTER_SECONDS = 1
+#: The status of a request whose client went away before its answer began (nginx's 499, "client
+#: closed request"): sent to no one, it is only counted (`fleetmap_http_responses_total`). Not a 503:
+#: nothing failed, and a dropped download counted as one fired the alert on the API's 5xx answers.
+CLIENT_CLOSED_REQUEST = 499
 #: The spec of the `Retry-After` header every 503 carries.
 _RETRY_AFTER_SPEC = {
     "description": f"seconds to wait before retrying ({RETRY_AFTER_SECONDS} unless the answer says more)",

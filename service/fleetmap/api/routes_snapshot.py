@@ -14,7 +14,7 @@ from fastapi.responses import StreamingResponse
 from starlette.types import Receive, Scope, Send
 
 from fleetmap.api.conditional import Conditions, Preconditions, tag_map
-from fleetmap.api.errors import ApiError, error_responses, validation_detail
+from fleetmap.api.errors import CLIENT_CLOSED_REQUEST, ApiError, error_responses, validation_detail
 from fleetmap.api.http_semantics import created_status, is_head
 from fleetmap.api.state import MapId, Slots, State
 from fleetmap.api.strict_requests import StrictRoute
@@ -216,8 +216,11 @@ async def get_snapshot(map_id: MapId, state: State, request: Request) -> Respons
         else:
             writer.add_done_callback(written)  # the spool is closed once the writer let go of it
         if isinstance(exc, UploadStopped):
-            log.info("the download of map %s stopped as it was written: its client went away", map_id)
-            raise ApiError(503, "the client went away") from None
+            log.info(
+                "the download of map %s stopped as it was written: its client went away", map_id,
+                extra={"map_id": map_id},
+            )  # fmt: skip
+            raise ApiError(CLIENT_CLOSED_REQUEST, "the client went away") from None
         raise
     return _SpoolResponse(
         spool, downloads, media_type=MEDIA_TYPE,
