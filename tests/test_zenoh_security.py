@@ -23,6 +23,7 @@ import shutil
 import socket
 import ssl
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -475,3 +476,27 @@ def test_a_tls_key_given_in_an_endpoint_is_never_shown(pki: Pki, tmp_path: Path)
     for text, where in ((health.text, "/healthz"), (logs, "the log")):
         assert key not in text and key[:40] not in text, f"the private key is in {where}"
     assert f"listening on {shown}" in logs and f"zenoh: {shown}" in logs
+
+
+def test_a_robots_tls_key_given_in_its_endpoint_is_never_shown(tmp_path: Path) -> None:
+    """A robot may give its TLS key inline too (`#connect_private_key_base64=...`): `fleetmap replay`
+    printed it whole in its "waiting for the fleetmap service at ..." line and in its error (Zenoh's
+    own text quoting the endpoint), and so did the publisher's repr and the endpoint checks'
+    messages. Each shows the key's name without its value now."""
+    secret = "U0VDUkVULUtFWS1ET05PVC1TSE9X"
+    endpoint = f"tls/127.0.0.1:{free_port()}#connect_private_key_base64={secret}"
+    log = tmp_path / "one.log"
+    log.write_text("FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 0.0 robot 0.0\n")
+    command = [sys.executable, "-m", "fleetmap", "replay", str(log), "--map", "m", "--robot", "r",
+               "--connect", endpoint, "--wait-timeout", "3"]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0 and "no fleetmap service reachable" in result.stderr, result.stderr
+    assert "connect_private_key_base64=..." in result.stderr, result.stderr
+    assert secret not in result.stdout + result.stderr
+    with ScanPublisher("m", "r", connect=endpoint) as pub:
+        assert secret not in repr(pub) and "connect_private_key_base64=..." in repr(pub)
+        assert pub.endpoints == [endpoint]  # what it connects to is as given
+    for bad in (endpoint.replace("tls/", "tls://"), f"tls/127.0.0.1#connect_private_key_base64={secret}"):
+        with pytest.raises(ValueError) as refused:
+            ScanPublisher("m", "r", connect=bad)
+        assert secret not in str(refused.value), refused.value

@@ -20,6 +20,7 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from fleetmap.scan import MAX_BEAMS, Pose2D, Scan, ScanError
+from fleetmap.shown_endpoint import shown_endpoint
 
 #: Map and robot ids: what may stand in a Zenoh key expression and a URL path segment unescaped.
 ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
@@ -83,6 +84,11 @@ _ZENOH_QUOTED_VALUE = re.compile(
 )
 
 
+#: An endpoint with its own configuration (`tls/host:7447#connect_private_key_base64=...`), as a
+#: Zenoh error quotes it: shown without the values (`shown_endpoint`), which may be a private key.
+_ENDPOINT_WITH_CONFIG = re.compile(r"[A-Za-z0-9_-]+/[^\s#\"'`,\])]+#[^\s\"'`,\])]+")
+
+
 def zenoh_error_text(exc: BaseException) -> str:
     """A Zenoh error as one line for people: its sentence, without the Rust source locations and the
     debug wrapper of configuration errors that zenoh adds (`Endpoints must be of the form
@@ -93,6 +99,7 @@ def zenoh_error_text(exc: BaseException) -> str:
     the line itself), a value of the wrong type its kind and place (`invalid type: integer, expected
     a string (line 5, column 15)`, not the number)."""
     text = _ZENOH_SOURCE_LOCATION.sub("", str(exc))
+    text = _ENDPOINT_WITH_CONFIG.sub(lambda found: shown_endpoint(found[0]), text)
     text = _ZENOH_JSON5_ERROR.sub(_json5_error_sentence, text)
     text = _ZENOH_SYNTAX_ERROR.sub(lambda found: f"line {found['line']}, column {found['column']}: ", text)
     text = _ZENOH_QUOTED_VALUE.sub(lambda found: found["kind"], text)
@@ -122,15 +129,15 @@ def check_endpoint_form(endpoint: str) -> None:
     protocol, slash, rest = endpoint.partition("/")
     if slash and protocol.endswith(":") and rest.startswith("/"):
         raise ValueError(
-            f"{endpoint!r} is written as a URL: a Zenoh endpoint is PROTOCOL/ADDRESS, "
-            f"{protocol[:-1]}/{rest[1:]}"
+            f"{shown_endpoint(endpoint)!r} is written as a URL: a Zenoh endpoint is PROTOCOL/ADDRESS, "
+            f"{shown_endpoint(protocol[:-1] + '/' + rest[1:])}"
         )
     # Without its port (`tcp/127.0.0.1`), Zenoh says only "invalid socket address", naming no
     # endpoint, and the service said so only once it had loaded every map.
     address = re.split(r"[?#]", rest, maxsplit=1)[0]
     if slash and protocol in _PORTED_PROTOCOLS and not re.search(r":\d+$", address):
         raise ValueError(
-            f"{endpoint!r} has no port: a Zenoh {protocol} endpoint is {protocol}/HOST:PORT, "
+            f"{shown_endpoint(endpoint)!r} has no port: a Zenoh {protocol} endpoint is {protocol}/HOST:PORT, "
             f"e.g. {protocol}/{address.rstrip(':') or '127.0.0.1'}:7447"
         )
 

@@ -62,8 +62,8 @@ def _add_connection(p: argparse.ArgumentParser) -> None:
 
 def _waiting(pub: ScanPublisher) -> None:
     print(
-        f"waiting for the fleetmap service at {', '.join(pub.endpoints)} (start it with `fleetmap serve`; "
-        "Ctrl-C to stop)",
+        f"waiting for the fleetmap service at {', '.join(pub.shown_endpoints)} (start it with "
+        "`fleetmap serve`; Ctrl-C to stop)",
         file=sys.stderr,
         flush=True,
     )

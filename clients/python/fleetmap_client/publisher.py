@@ -97,6 +97,7 @@ import zenoh.ext
 from fleetmap.cell_queries import is_whole_number
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.scan import Scan
+from fleetmap.shown_endpoint import shown_endpoints
 from fleetmap.wire import (
     ALIVE_KEY,
     BINARY_ENCODING,
@@ -860,9 +861,9 @@ class ScanPublisher:
                 unanswered_since = now if unanswered_since is None else unanswered_since
                 if now - unanswered_since >= NO_ANSWER_S:
                     raise DeliveryUnsupported(
-                        f"the fleetmap service at {', '.join(self.endpoints)} answers no delivery query "
-                        f"({DELIVERY_KEY.format(map_id=self.map_id, robot_id=self.robot_id)}): it is older "
-                        "than delivery confirmation, or access control keeps the query from it"
+                        f"the fleetmap service at {', '.join(self.shown_endpoints)} answers no delivery "
+                        f"query ({DELIVERY_KEY.format(map_id=self.map_id, robot_id=self.robot_id)}): it is "
+                        "older than delivery confirmation, or access control keeps the query from it"
                     )
             else:
                 unanswered_since = None  # not reachable, or silent: not yet
@@ -982,11 +983,18 @@ class ScanPublisher:
     ) -> None:
         self.close()
 
+    @property
+    def shown_endpoints(self) -> list[str]:
+        """`endpoints` as they may be shown, in logs and messages: the configuration an endpoint
+        carries after `#` (a TLS private key given inline, `#connect_private_key_base64=...`) with
+        its values left out (`fleetmap.shown_endpoint`), as the service shows its own."""
+        return shown_endpoints(self.endpoints)
+
     def __repr__(self) -> str:
         state = "closed" if self.closed else "connected" if self.connected else "connecting"
         return (
             f"ScanPublisher(map_id={self.map_id!r}, robot_id={self.robot_id!r}, encoding={self.encoding!r}, "
-            f"{state}, endpoints={self.endpoints})"
+            f"{state}, endpoints={self.shown_endpoints})"
         )
 
 

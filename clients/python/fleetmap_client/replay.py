@@ -138,7 +138,7 @@ def _wait(
             raise ReplayError("the publisher was closed")
         reason = f" ({pub.last_connect_error})" if pub.last_connect_error else ""
         raise ReplayError(
-            f"no fleetmap service reachable at {', '.join(pub.endpoints)} within {timeout:g} s{reason}"
+            f"no fleetmap service reachable at {', '.join(pub.shown_endpoints)} within {timeout:g} s{reason}"
         )
 
 

@@ -348,7 +348,7 @@ def _wait_all(
             _check_descriptors(publishers)
             if deadline is not None and now >= deadline:
                 reason = f" ({pub.last_connect_error})" if pub.last_connect_error else ""
-                where = ", ".join(pub.endpoints)
+                where = ", ".join(pub.shown_endpoints)
                 connected = sum(other.connected for other in publishers)
                 if 0 < connected < len(publishers):
                     # The service is up, but refuses the others' sessions just as an absent one
