@@ -252,6 +252,20 @@ def test_demo_finds_its_service_whatever_proxy_the_environment_names(tmp_path: P
     assert "fleetmap demo: 1 robot published 0 scans (0 dropped)" in done.stdout, done.stdout
 
 
+def test_demo_warns_of_the_scans_its_robots_skipped_falling_behind_their_rate(tmp_path: Path) -> None:
+    """Robots that fall behind their rate skip scans: `fleetmap sim` warns of them, the demo said
+    nothing, its summary counting only what was sent. 50000 scans/s is more than one robot's
+    simulation can make on any machine."""
+    done, _http = run_demo(tmp_path, "--robots", "1", "--rate", "50000", "--seconds", "1")
+    assert done.returncode == 0, done.stdout + done.stderr
+    warning = re.search(
+        r"fleetmap demo: warning: (\d+) scans skipped: the robot fell behind 50000 scans/s, this machine is "
+        r"too busy for 1 robot at that rate \(run fewer, or a lower --rate\)",
+        done.stderr,
+    )
+    assert warning is not None and int(warning[1]) > 0, done.stderr
+
+
 def test_demo_sets_its_service_up_with_its_own_options_not_the_environments(tmp_path: Path) -> None:
     """FLEETMAP_* variables meant for `fleetmap serve` reached the demo's service: FLEETMAP_IN_MEMORY
     kept no map while the demo said where it was kept, and a FLEETMAP_ZENOH_CONFIG (a TLS router's,

@@ -76,6 +76,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 
 
 def run(args: argparse.Namespace) -> int:
+    from fleetmap_client.cli import skipped_warning
     from fleetmap_client.sim import run_sim
 
     _check_fleet(args)
@@ -130,6 +131,9 @@ def run(args: argparse.Namespace) -> int:
         sent, dropped = sum(result.published.values()), sum(result.dropped.values())
         robots = counted(len(result.robots), "robot")
         print(f"fleetmap demo: {robots} published {counted(sent, 'scan')} ({dropped} dropped)")
+        warning = skipped_warning(result, args.rate)
+        if warning is not None:  # the summary counts what was sent: scans never made go unsaid
+            print(f"fleetmap demo: warning: {warning} (run fewer, or a lower --rate)", file=sys.stderr)
         if service.poll() is not None:
             raise CliError(f"the service stopped unexpectedly (exit code {service.returncode}); see above")
     finally:

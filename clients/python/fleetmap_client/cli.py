@@ -17,12 +17,16 @@ import argparse
 import signal
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from fleetmap.cli import CliError, counted, dataset_error, run_command
 from fleetmap.signal_event import SignalEvent
 
 from .publisher import ScanPublisher
 from .zenoh_config import DEFAULT_CONNECT
+
+if TYPE_CHECKING:  # imported where the sim runs: the command line's other commands do without it
+    from .sim import SimResult
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -57,6 +61,20 @@ def _add_connection(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="S",
         help="give up when the service is not reachable for S seconds (default: wait forever)",
+    )
+
+
+def skipped_warning(result: SimResult, rate: float) -> str | None:
+    """What to warn of the scans the robots of a sim at `rate` scans/s skipped because they fell
+    behind it (`SimResult.skipped`), or None if they skipped none: `fleetmap sim` and `fleetmap
+    demo` both say so (the demo said nothing of them, its summary counting only what was sent)."""
+    skipped, robots = sum(result.skipped.values()), len(result.robots)
+    if not skipped:
+        return None
+    who = "the robot" if robots == 1 else "the robots"
+    return (
+        f"{counted(skipped, 'scan')} skipped: {who} fell behind {rate:g} scans/s, this machine is too "
+        f"busy for {counted(robots, 'robot')} at that rate"
     )
 
 
@@ -288,15 +306,10 @@ def run_sim_command(args: argparse.Namespace) -> int:
         + (f" ({kept} kept for re-delivery while the service was unreachable)" if kept else "")
         + (f" ({dropped} dropped)" if dropped else "")
     )
-    skipped = sum(result.skipped.values())
-    if skipped:
-        who = "the robot" if robots == 1 else "the robots"
-        print(
-            f"fleetmap sim: warning: {counted(skipped, 'scan')} skipped: {who} "
-            f"fell behind {args.rate:g} scans/s, this machine is too busy for {counted(robots, 'robot')} at "
-            "that rate (run fewer, or fewer --beams or a lower --rate)",
-            file=sys.stderr,
-        )
+    warning = skipped_warning(result, args.rate)
+    if warning is not None:
+        advice = "run fewer, or fewer --beams or a lower --rate"
+        print(f"fleetmap sim: warning: {warning} ({advice})", file=sys.stderr)
     if args.no_confirm:
         return 0
     if result.total == 0:
