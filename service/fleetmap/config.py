@@ -452,3 +452,14 @@ class MapConfig(BaseModel):
         """Whether scans are traced beam by beam into hits and misses: the ray model with a cell
         layer. (The TSDF band and the beam model visit only a few cells around each return.)"""
         return self.sensor_model == "ray" and self.has_cell_layers
+
+
+def is_immutable(config: MapConfig) -> bool:
+    """Whether nothing can change `config`: it and its parameters are of this module's frozen
+    classes, not of subclasses, which may not be frozen. Such a configuration can be shared."""
+    return (
+        type(config) is MapConfig
+        and type(config.occupancy) is OccupancyParams
+        and type(config.beam) is BeamModelParams
+        and type(config.tsdf) is TsdfParams
+    )
