@@ -226,65 +226,69 @@ class MapRegistry:
     def _restore(self) -> None:
         assert self.durable is not None
         self.tombstones = Tombstones(self.durable.load_tombstones(), now=time.time())
-        for map_id, gmap, counters, journal in self.durable.load():
-            entry = MapEntry(map_id, gmap, self._next_generation())
-            entry.scans_integrated = counters["scans_integrated"]
-            entry.scans_rejected = counters["scans_rejected"]
-            entry.robots = counters["robots"]
-            entry.unjournaled_stored = entry.unjournaled()  # as stored: no snapshot due for them
-            started = last_report = time.monotonic()
-            for replayed, (robot_id, seq, stamp, session, row) in enumerate(journal):
-                try:
-                    self._replay(gmap, row)
-                except (TileLimitError, ValueError) as exc:
-                    # The engine applied every journaled row once; one it refuses now (its map's
-                    # configuration edited or damaged since: a lower max_tiles) is a damaged database,
-                    # which stopped the start with a traceback.
-                    raise unreadable_database(
-                        self.durable.path, map_id, f"journal scan {replayed + 1} of {len(journal)}: {exc}"
-                    ) from None
-                if time.monotonic() - last_report >= RESTORE_REPORT:
-                    # 20,000 scans take 10-20 s: say the service is busy, not stuck.
-                    last_report = time.monotonic()
-                    log.info(
-                        "restoring map %s: %d of %d journal scans replayed (%.0f s)",
-                        map_id, replayed, len(journal), last_report - started, extra={"map_id": map_id},
-                    )  # fmt: skip
-                if isinstance(row, Window):  # a window cleared (`clear_window`): no robot's scan
-                    continue
-                scan = row
-                robot = entry.robot(robot_id)
-                robot.scans_integrated += 1
-                # The journal holds integrated scans only, so a gap in a robot's seqs since the
-                # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
-                # the gap, whose counts died with the process, count as lost too), and a seq that
-                # is not new was a restart; sessions interleaving were an id conflict, seen now.
-                # A row the robot's saved bookkeeping already holds (accepted before the snapshot,
-                # applied after it) is a duplicate to it: counted once, when it was accepted.
-                if not robot.is_duplicate(seq, stamp, session):
-                    robot.accept(seq, stamp, session, time.time())
-                    ledger = robot.sessions[session_key(session)].ledger
-                    ledger.settle(ledger.open(seq), integrated=True)
-                robot.last_stamp = stamp
-                robot.add_pose(scan.pose)
-                # Heard after the snapshot (whose counters hold every older `last_heard`), in journal
-                # order: the robots that go first below are the ones heard from least recently.
-                robot.last_heard = time.time()
-                entry.scans_integrated += 1
-            # A database written before forgotten robots were deleted from it holds every robot the
-            # map ever saw, and robots first heard since the snapshot add to its robots: the map
-            # holds at most `max_robots_per_map`, as `_room_for` keeps it while the service runs.
-            self._forget_idle(entry, len(entry.robots) - self.max_robots_per_map)
-            # Charged after the replay, which the budget must never refuse: those scans were accepted.
-            self._charged(gmap)
-            # Its bounds read every tile once (0.2-0.5 s for a 1 km map of 6,400 tiles): here, before
-            # anything is served, rather than under the map's lock in the first GET /maps/{id}.
-            gmap.known_bounds()
-            self._add(entry)
-            log.info(
-                "restored map %s: %d tiles, %d journal scans replayed", map_id, len(gmap.store), len(journal),
-                extra={"map_id": map_id},
-            )  # fmt: skip
+        try:
+            for map_id, gmap, counters, journal in self.durable.load():
+                entry = MapEntry(map_id, gmap, self._next_generation())
+                entry.scans_integrated = counters["scans_integrated"]
+                entry.scans_rejected = counters["scans_rejected"]
+                entry.robots = counters["robots"]
+                entry.unjournaled_stored = entry.unjournaled()  # as stored: no snapshot due for them
+                started = last_report = time.monotonic()
+                for replayed, (robot_id, seq, stamp, session, row) in enumerate(journal):
+                    try:
+                        self._replay(gmap, row)
+                    except (TileLimitError, ValueError) as exc:
+                        # The engine applied every journaled row once; one it refuses now (its map's
+                        # configuration edited or damaged since: a lower max_tiles) is a damaged database,
+                        # which stopped the start with a traceback.
+                        raise unreadable_database(
+                            self.durable.path, map_id, f"journal scan {replayed + 1} of {len(journal)}: {exc}"
+                        ) from None
+                    if time.monotonic() - last_report >= RESTORE_REPORT:
+                        # 20,000 scans take 10-20 s: say the service is busy, not stuck.
+                        last_report = time.monotonic()
+                        log.info(
+                            "restoring map %s: %d of %d journal scans replayed (%.0f s)",
+                            map_id, replayed, len(journal), last_report - started, extra={"map_id": map_id},
+                        )  # fmt: skip
+                    if isinstance(row, Window):  # a window cleared (`clear_window`): no robot's scan
+                        continue
+                    scan = row
+                    robot = entry.robot(robot_id)
+                    robot.scans_integrated += 1
+                    # The journal holds integrated scans only, so a gap in a robot's seqs since the
+                    # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
+                    # the gap, whose counts died with the process, count as lost too), and a seq that
+                    # is not new was a restart; sessions interleaving were an id conflict, seen now.
+                    # A row the robot's saved bookkeeping already holds (accepted before the snapshot,
+                    # applied after it) is a duplicate to it: counted once, when it was accepted.
+                    if not robot.is_duplicate(seq, stamp, session):
+                        robot.accept(seq, stamp, session, time.time())
+                        ledger = robot.sessions[session_key(session)].ledger
+                        ledger.settle(ledger.open(seq), integrated=True)
+                    robot.last_stamp = stamp
+                    robot.add_pose(scan.pose)
+                    # Heard after the snapshot (whose counters hold every older `last_heard`), in journal
+                    # order: the robots that go first below are the ones heard from least recently.
+                    robot.last_heard = time.time()
+                    entry.scans_integrated += 1
+                # A database written before forgotten robots were deleted from it holds every robot the
+                # map ever saw, and robots first heard since the snapshot add to its robots: the map
+                # holds at most `max_robots_per_map`, as `_room_for` keeps it while the service runs.
+                self._forget_idle(entry, len(entry.robots) - self.max_robots_per_map)
+                # Charged after the replay, which the budget must never refuse: those scans were accepted.
+                self._charged(gmap)
+                # Its bounds read every tile once (0.2-0.5 s for a 1 km map of 6,400 tiles): here, before
+                # anything is served, rather than under the map's lock in the first GET /maps/{id}.
+                gmap.known_bounds()
+                self._add(entry)
+                log.info(
+                    "restored map %s: %d tiles, %d journal scans replayed",
+                    map_id, len(gmap.store), len(journal), extra={"map_id": map_id},
+                )  # fmt: skip
+        finally:
+            # Its maps are restored: the connection their journals were read on is closed.
+            self.durable.restored()
 
     @staticmethod
     def _replay(gmap: GridMap, row: Scan | Window) -> None:
