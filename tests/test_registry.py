@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import re
 import sqlite3
 import threading
 import time
@@ -17,6 +18,7 @@ import pytest
 from registry_idle import wait_idle
 
 from fleetmap import persistence
+from fleetmap import registry as registry_module
 from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.fair_queue import FairQueue
@@ -1074,3 +1076,68 @@ def test_the_last_snapshot_of_a_stop_is_not_paced(tmp_path: Path) -> None:
     assert not stopping.is_alive(), "the stop's last snapshot slept its pace"
     with contextlib.closing(sqlite3.connect(tmp_path / "fleetmap.db")) as conn:
         assert conn.execute("SELECT COUNT(*) FROM tiles WHERE map_id = 'm'").fetchone()[0] > 0
+
+
+def _crashed_with_maps(data_dir: Path, scans: dict[str, int]) -> None:
+    """Leave in `data_dir` the maps of `scans` (map id -> scans of robot r) as a crash leaves them:
+    created and journaled, never snapshotted."""
+    registry = MapRegistry(durable=DurableStore(data_dir))
+    registry.start()
+    for map_id, count in scans.items():
+        registry.create(map_id, MapConfig(tile_size=16), wait=True)
+        for seq in range(count):
+            registry.submit(map_id, "r", WireScan(seq, 0.0, scan_at(0.1 * seq)), wait=True).result(10)  # type: ignore[union-attr]
+    registry.queue.close()  # a crash: no snapshot, only the journal
+    for t in registry._workers:
+        t.join(5)
+    registry.durable.close()  # type: ignore[union-attr]
+
+
+def test_the_restore_logs_totals_not_a_line_per_map(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A start logged a line per restored map: 5,000 lines for 5,000 maps. Now one line of totals
+    (maps, tiles, journal scans replayed); each map's own line is at debug level. The maps are
+    restored as before."""
+    _crashed_with_maps(tmp_path, {"a": 3, "b": 0, "c": 2})
+    caplog.set_level(logging.INFO, logger="fleetmap.registry")
+    again = MapRegistry(durable=DurableStore(tmp_path))
+    again.start()
+    try:
+        tiles = sum(len(again.get(m).gmap.store) for m in "abc")
+        assert tiles > 0
+        assert [again.get(m).scans_integrated for m in "abc"] == [3, 0, 2]
+    finally:
+        again.close()
+    lines = [r.getMessage() for r in caplog.records if "restor" in r.getMessage()]
+    assert len(lines) == 1, lines
+    assert re.fullmatch(
+        rf"restored 3 map\(s\) in [0-9.]+ s: {tiles} tiles, 5 journal scans replayed", lines[0]
+    )
+
+
+def test_a_long_restore_reports_its_progress_in_the_maps(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """While maps are restored, the log says every RESTORE_REPORT seconds how many of them are done
+    (as it says how far a long journal's replay is), and a map whose replay reported its progress
+    gets its own closing line."""
+    _crashed_with_maps(tmp_path, {"a": 2, "b": 0, "c": 1})
+    monkeypatch.setattr(registry_module, "RESTORE_REPORT", 0.0)  # every step reports
+    caplog.set_level(logging.INFO, logger="fleetmap.registry")
+    again = MapRegistry(durable=DurableStore(tmp_path))
+    again.start()
+    try:
+        tiles = {m: len(again.get(m).gmap.store) for m in "ac"}
+    finally:
+        again.close()
+    lines = [r.getMessage() for r in caplog.records if "restor" in r.getMessage()]
+    assert [re.sub(r" \(\d+ s\)$", "", line) for line in lines[:-1]] == [
+        "restoring maps: 0 of 3 restored",
+        "restoring map a: 0 of 2 journal scans replayed",
+        "restoring map a: 1 of 2 journal scans replayed",
+        f"restored map a: {tiles['a']} tiles, 2 journal scans replayed",
+        "restoring maps: 1 of 3 restored",
+        "restoring maps: 2 of 3 restored",
+        "restoring map c: 0 of 1 journal scans replayed",
+        f"restored map c: {tiles['c']} tiles, 1 journal scans replayed",
+    ], lines
+    assert lines[-1].startswith("restored 3 map(s) in "), lines

@@ -42,7 +42,7 @@ from fleetmap.fair_queue import FULL_BYTES, FULL_GROUP, FULL_SOURCE, FULL_TOTAL,
 from fleetmap.grid_map import GridMap, IntegrationResult, WindowCleared
 from fleetmap.map_entry import SHUTTING_DOWN, Expectation, IngestRejected, Job, MapEntry
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation, format_size
-from fleetmap.persistence import DurableStore, unreadable_database
+from fleetmap.persistence import DurableStore, StoredJournal, unreadable_database
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.robot_state import CONFLICT_SHOWN, NO_SESSION, RobotState, session_key
 from fleetmap.scan import Scan, ScanError
@@ -224,71 +224,103 @@ class MapRegistry:
         return tuple(sorted({*health.maps_awaiting_snapshot, *health.map_changes_not_stored}))
 
     def _restore(self) -> None:
+        """Restore every stored map (`DurableStore.load`) and replay its journal. The log says how
+        far it is every `RESTORE_REPORT` seconds, in the maps and in a long journal, and ends with
+        one line of totals: a line per map made 5,000 lines of a start with 5,000 maps (a map whose
+        replay took that long still gets its own line). A map that cannot be restored stops the
+        start with a `StorageError` naming it."""
         assert self.durable is not None
         self.tombstones = Tombstones(self.durable.load_tombstones(), now=time.time())
+        started = last_report = time.monotonic()
+        tiles = replayed = 0
         try:
-            for map_id, gmap, counters, journal in self.durable.load():
-                entry = MapEntry(map_id, gmap, self._next_generation())
-                entry.scans_integrated = counters["scans_integrated"]
-                entry.scans_rejected = counters["scans_rejected"]
-                entry.robots = counters["robots"]
-                entry.unjournaled_stored = entry.unjournaled()  # as stored: no snapshot due for them
-                started = last_report = time.monotonic()
-                for replayed, (robot_id, seq, stamp, session, row) in enumerate(journal):
-                    try:
-                        self._replay(gmap, row)
-                    except (TileLimitError, ValueError) as exc:
-                        # The engine applied every journaled row once; one it refuses now (its map's
-                        # configuration edited or damaged since: a lower max_tiles) is a damaged database,
-                        # which stopped the start with a traceback.
-                        raise unreadable_database(
-                            self.durable.path, map_id, f"journal scan {replayed + 1} of {len(journal)}: {exc}"
-                        ) from None
-                    if time.monotonic() - last_report >= RESTORE_REPORT:
-                        # 20,000 scans take 10-20 s: say the service is busy, not stuck.
-                        last_report = time.monotonic()
-                        log.info(
-                            "restoring map %s: %d of %d journal scans replayed (%.0f s)",
-                            map_id, replayed, len(journal), last_report - started, extra={"map_id": map_id},
-                        )  # fmt: skip
-                    if isinstance(row, Window):  # a window cleared (`clear_window`): no robot's scan
-                        continue
-                    scan = row
-                    robot = entry.robot(robot_id)
-                    robot.scans_integrated += 1
-                    # The journal holds integrated scans only, so a gap in a robot's seqs since the
-                    # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
-                    # the gap, whose counts died with the process, count as lost too), and a seq that
-                    # is not new was a restart; sessions interleaving were an id conflict, seen now.
-                    # A row the robot's saved bookkeeping already holds (accepted before the snapshot,
-                    # applied after it) is a duplicate to it: counted once, when it was accepted.
-                    if not robot.is_duplicate(seq, stamp, session):
-                        robot.accept(seq, stamp, session, time.time())
-                        ledger = robot.sessions[session_key(session)].ledger
-                        ledger.settle(ledger.open(seq), integrated=True)
-                    robot.last_stamp = stamp
-                    robot.add_pose(scan.pose)
-                    # Heard after the snapshot (whose counters hold every older `last_heard`), in journal
-                    # order: the robots that go first below are the ones heard from least recently.
-                    robot.last_heard = time.time()
-                    entry.scans_integrated += 1
-                # A database written before forgotten robots were deleted from it holds every robot the
-                # map ever saw, and robots first heard since the snapshot add to its robots: the map
-                # holds at most `max_robots_per_map`, as `_room_for` keeps it while the service runs.
-                self._forget_idle(entry, len(entry.robots) - self.max_robots_per_map)
-                # Charged after the replay, which the budget must never refuse: those scans were accepted.
-                self._charged(gmap)
-                # Its bounds read every tile once (0.2-0.5 s for a 1 km map of 6,400 tiles): here, before
-                # anything is served, rather than under the map's lock in the first GET /maps/{id}.
-                gmap.known_bounds()
-                self._add(entry)
-                log.info(
-                    "restored map %s: %d tiles, %d journal scans replayed",
-                    map_id, len(gmap.store), len(journal), extra={"map_id": map_id},
+            stored = self.durable.load()
+            for restored, (map_id, gmap, counters, journal) in enumerate(stored):
+                if time.monotonic() - last_report >= RESTORE_REPORT:
+                    last_report = time.monotonic()
+                    log.info(
+                        "restoring maps: %d of %d restored (%.0f s)",
+                        restored, len(stored), last_report - started,
+                    )  # fmt: skip
+                before = last_report
+                last_report = self._restore_map(map_id, gmap, counters, journal, last_report)
+                tiles += len(gmap.store)
+                replayed += len(journal)
+                # At debug level, unless its replay reported progress: the line ends what those began.
+                level = logging.INFO if last_report != before else logging.DEBUG
+                log.log(
+                    level, "restored map %s: %d tiles, %d journal scans replayed", map_id, len(gmap.store),
+                    len(journal), extra={"map_id": map_id},
                 )  # fmt: skip
         finally:
-            # Its maps are restored: the connection their journals were read on is closed.
             self.durable.restored()
+        log.info(
+            "restored %d map(s) in %.1f s: %d tiles, %d journal scans replayed",
+            len(stored), time.monotonic() - started, tiles, replayed,
+        )  # fmt: skip
+
+    def _restore_map(
+        self, map_id: str, gmap: GridMap, counters: dict, journal: StoredJournal, last_report: float
+    ) -> float:
+        """Restore one stored map: its saved counters, its journal replayed through the registry's
+        bookkeeping, and the map added. `last_report`: when the log last said how far the restore
+        is; returns it as this map leaves it."""
+        assert self.durable is not None
+        entry = MapEntry(map_id, gmap, self._next_generation())
+        entry.scans_integrated = counters["scans_integrated"]
+        entry.scans_rejected = counters["scans_rejected"]
+        entry.robots = counters["robots"]
+        entry.unjournaled_stored = entry.unjournaled()  # as stored: no snapshot due for them
+        started = time.monotonic()
+        for replayed, (robot_id, seq, stamp, session, row) in enumerate(journal):
+            try:
+                self._replay(gmap, row)
+            except (TileLimitError, ValueError) as exc:
+                # The engine applied every journaled row once; one it refuses now (its map's
+                # configuration edited or damaged since: a lower max_tiles) is a damaged database,
+                # which stopped the start with a traceback.
+                raise unreadable_database(
+                    self.durable.path, map_id, f"journal scan {replayed + 1} of {len(journal)}: {exc}"
+                ) from None
+            if time.monotonic() - last_report >= RESTORE_REPORT:
+                # 20,000 scans take 10-20 s: say the service is busy, not stuck.
+                last_report = time.monotonic()
+                log.info(
+                    "restoring map %s: %d of %d journal scans replayed (%.0f s)",
+                    map_id, replayed, len(journal), last_report - started, extra={"map_id": map_id},
+                )  # fmt: skip
+            if isinstance(row, Window):  # a window cleared (`clear_window`): no robot's scan
+                continue
+            scan = row
+            robot = entry.robot(robot_id)
+            robot.scans_integrated += 1
+            # The journal holds integrated scans only, so a gap in a robot's seqs since the
+            # snapshot is counted as lost, as `submit` counted it (scans refused or dropped in
+            # the gap, whose counts died with the process, count as lost too), and a seq that
+            # is not new was a restart; sessions interleaving were an id conflict, seen now.
+            # A row the robot's saved bookkeeping already holds (accepted before the snapshot,
+            # applied after it) is a duplicate to it: counted once, when it was accepted.
+            if not robot.is_duplicate(seq, stamp, session):
+                robot.accept(seq, stamp, session, time.time())
+                ledger = robot.sessions[session_key(session)].ledger
+                ledger.settle(ledger.open(seq), integrated=True)
+            robot.last_stamp = stamp
+            robot.add_pose(scan.pose)
+            # Heard after the snapshot (whose counters hold every older `last_heard`), in journal
+            # order: the robots that go first below are the ones heard from least recently.
+            robot.last_heard = time.time()
+            entry.scans_integrated += 1
+        # A database written before forgotten robots were deleted from it holds every robot the
+        # map ever saw, and robots first heard since the snapshot add to its robots: the map
+        # holds at most `max_robots_per_map`, as `_room_for` keeps it while the service runs.
+        self._forget_idle(entry, len(entry.robots) - self.max_robots_per_map)
+        # Charged after the replay, which the budget must never refuse: those scans were accepted.
+        self._charged(gmap)
+        # Its bounds read every tile once (0.2-0.5 s for a 1 km map of 6,400 tiles): here, before
+        # anything is served, rather than under the map's lock in the first GET /maps/{id}.
+        gmap.known_bounds()
+        self._add(entry)
+        return last_report
 
     @staticmethod
     def _replay(gmap: GridMap, row: Scan | Window) -> None:
