@@ -1101,3 +1101,20 @@ def test_the_start_reads_every_map_and_journal_on_one_connection(tmp_path: Path,
             opened[0].execute("SELECT 1")
     finally:
         again.close()
+
+
+def test_maps_stored_with_one_configuration_share_it_when_loaded(tmp_path: Path) -> None:
+    """Each stored map's configuration was validated anew (0.1 ms each, 0.5 s of a start with 5,000
+    maps made by one `PUT /maps/{id}` body): one stored configuration is now validated once, and
+    its maps share the (frozen) MapConfig. Another configuration is its own."""
+    store = DurableStore(tmp_path)
+    for map_id, config in (("a", MapConfig()), ("b", MapConfig()), ("c", MapConfig(resolution=0.1))):
+        store.map_created(map_id, GridMap(config)).result()
+    store.close()
+    again = DurableStore(tmp_path)
+    try:
+        maps = {map_id: gmap for map_id, gmap, _c, _j in again.load()}
+        assert maps["a"].config is maps["b"].config
+        assert maps["a"].config == MapConfig() and maps["c"].config == MapConfig(resolution=0.1)
+    finally:
+        again.close()

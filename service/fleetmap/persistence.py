@@ -361,8 +361,12 @@ class DurableStore:
             # its creation had failed to commit. Nothing would ever read or delete them.
             for table in MAP_TABLES:
                 conn.execute(f"DELETE FROM {table} WHERE map_id NOT IN (SELECT id FROM maps)")
+            # Each configuration stored, validated once: thousands of maps made by the same
+            # `PUT /maps/{id}` body (or scans, with the default) share one. A MapConfig is frozen, and
+            # a GridMap shares the one it is given. (0.1 ms a validation: 0.5 s for 5,000 maps.)
+            configs: dict[str, MapConfig] = {}
             for map_id, *columns in stored_maps:  # (map_id: for the error, if this one's rows are bad)
-                out.append(self._load_map(conn, map_id, *columns))
+                out.append(self._load_map(conn, configs, map_id, *columns))
             return out
         # ValueError: a stored configuration that does not validate (pydantic's ValidationError).
         except (sqlite3.DatabaseError, zlib.error, StorageError, ValueError) as exc:
@@ -413,6 +417,7 @@ class DurableStore:
     def _load_map(
         self,
         conn: sqlite3.Connection,
+        configs: dict[str, MapConfig],
         map_id: str,
         config_json: str,
         snap_id: int,
@@ -423,10 +428,16 @@ class DurableStore:
         created: float,
     ) -> tuple[str, GridMap, dict, StoredJournal]:
         """One stored map (a row of `maps`): its snapshot's tiles loaded, what the snapshot made
-        obsolete deleted, and its journal rows after the snapshot, to be read as they are replayed."""
+        obsolete deleted, and its journal rows after the snapshot, to be read as they are replayed.
+        `configs`: the configurations validated so far, by their stored JSON; this map's is added."""
         _check_map_columns(config_json, snap_id, snap_gen, clock, integrated, rejected, created)
-        # Stored before today's limits, perhaps: a map that was accepted keeps loading.
-        gmap = GridMap(MapConfig.model_validate_json(config_json, context={STORED_CONFIG: True}))
+        config = configs.get(config_json)
+        if config is None:
+            # Stored before today's limits, perhaps: a map that was accepted keeps loading.
+            config = configs[config_json] = MapConfig.model_validate_json(
+                config_json, context={STORED_CONFIG: True}
+            )
+        gmap = GridMap(config)
         # Rows of a snapshot that never switched its generation (a crash mid-snapshot) are
         # not part of the map; each tile is its newest committed generation.
         conn.execute("DELETE FROM tiles WHERE map_id = ? AND gen > ?", (map_id, snap_gen))
