@@ -22,6 +22,7 @@ from service_process import ServiceProcess
 from test_api_support import hostile_zip, padded_zip
 
 from fleetmap import nav2_import
+from fleetmap.api.routes_snapshot import ANY_CONFIG, read_for_the_map_there
 from fleetmap.config import MapConfig
 from fleetmap.datasets import load_dataset
 from fleetmap.export import Window, known_window, nav2_files, pgm_bytes
@@ -253,6 +254,28 @@ def intel_map() -> GridMap:
     for scan in load_dataset(path, range_max=8.0):
         gmap.integrate(scan)
     return gmap
+
+
+def test_an_import_installs_over_a_map_of_its_very_configuration_listed_otherwise() -> None:
+    """An import is read for the configuration of the map there when its body is in, and installed
+    only over a map of that configuration (else 409: the map changed while it was read). Compared
+    with `!=`, a map replaced meanwhile by one of the same configuration, its layers listed in another
+    order or its occupancy preset written out as values, refused it. Another configuration still
+    does, as does a map made where none was, or none left where one was."""
+    read_with = MapConfig(layers=["occupancy", "counts"], occupancy={"preset": "int8"})
+    made = read_with
+    values = read_with.occupancy.model_dump(exclude={"preset"})
+    same = MapConfig(layers=["counts", "occupancy"], occupancy=values)
+    assert same != read_with and same.same_map_as(read_with)
+    assert read_for_the_map_there(read_with, same, made)
+    assert read_for_the_map_there(read_with, read_with, made)
+    assert not read_for_the_map_there(read_with, MapConfig(resolution=0.1), made)
+    assert not read_for_the_map_there(read_with, None, made)  # deleted meanwhile
+    # Read for no map: over one another writer made meanwhile, if it is of what the import made.
+    assert not read_for_the_map_there(None, MapConfig(resolution=0.1), made)
+    assert read_for_the_map_there(None, same, made)
+    assert read_for_the_map_there(None, None, made)
+    assert read_for_the_map_there(ANY_CONFIG, MapConfig(resolution=0.1), made)  # a snapshot's own
 
 
 def test_the_intel_map_exported_and_imported_has_the_same_state_cell_for_cell(intel_map: GridMap) -> None:

@@ -390,6 +390,22 @@ async def install_upload(
 ANY_CONFIG = object()
 
 
+def read_for_the_map_there(
+    read_with: MapConfig | None | object, there: MapConfig | None, made: MapConfig
+) -> bool:
+    """Whether a map `made` from an upload read for the configuration `read_with` (None: for no map;
+    `ANY_CONFIG`: an upload of its own configuration) is what reading it for the map there now
+    (of configuration `there`, None: none) would make: read for none and none there, or a map of
+    the same configuration there (`MapConfig.same_map_as`: its layers in any order, a preset as its
+    values; compared with `!=`, a map replaced meanwhile by one of its very configuration, its
+    layers listed in another order, had the import refused 409)."""
+    if read_with is ANY_CONFIG:
+        return True
+    if there is None:
+        return read_with is None
+    return there.same_map_as(made)
+
+
 async def _install(
     state: State,
     map_id: str,
@@ -417,9 +433,7 @@ async def _install(
         # map made or replaced by another writer since (at another resolution, say) was replaced
         # by a map of a configuration no longer there, a 200 where the import, sent after that
         # writer, would have been refused (another resolution) or made with that map's.
-        if read_with is not ANY_CONFIG and (
-            read_with is not None if old is None else old.gmap.config != gmap.config
-        ):
+        if not read_for_the_map_there(read_with, None if old is None else old.gmap.config, gmap.config):
             raise ApiError(
                 409,
                 f"map {map_id!r} was deleted, created or replaced while the upload was read (with the "
