@@ -756,8 +756,7 @@ class MapRegistry:
             entry = self.maps.get(map_id)
             # Not for a scan refused for want of its map (404): an answer that would not have been
             # a success comes before the preconditions (RFC 9110, 13.2.1), as for DELETE /maps/{id}.
-            creates = self.auto_create and len(self.maps) < self.max_auto_maps
-            if expect is not None and (entry is not None or creates):
+            if expect is not None and (entry is not None or self._creates_maps()):
                 expect(entry)
             stone = self._covered(map_id, entry, robot_id, wire.session, wire.seq, wire.stamp)
             if stone is not None:
@@ -965,6 +964,11 @@ class MapRegistry:
             entry.forget(rid)
         self.unmapped.forget(entry.id, [rid for rid, _ in chosen])
         return len(chosen)
+
+    def _creates_maps(self) -> bool:
+        """Whether a scan (or token) of a map that does not exist would create it now: auto-create
+        on, and fewer than `max_auto_maps` maps held (call under the registry's lock)."""
+        return self.auto_create and len(self.maps) < self.max_auto_maps
 
     def set_online(self, map_id: str, robot_id: str, online: bool) -> str | None:
         """A robot's liveliness token appeared or went away. Returns None once its map shows the
