@@ -227,6 +227,56 @@ def test_a_burst_of_sighups_is_served_off_the_signal_handler(tmp_path: Path) -> 
         assert svc.stop() == 0
 
 
+#: A `sitecustomize` that sends its own process SIGHUP as each of `HANGUP_AT` starts to import,
+#: so that a test hits the start's import window (seconds long, but not at a time a test can aim at).
+SIGHUP_WHILE_IMPORTING = """
+import os, signal, sys
+_left = set(os.environ["HANGUP_AT"].split(","))
+def _hang_up(event, args):
+    if event == "import" and args[0] in _left:
+        _left.discard(args[0])
+        os.kill(os.getpid(), signal.SIGHUP)
+sys.addaudithook(_hang_up)
+"""
+
+
+def hangups_while_importing(tmp_path: Path, modules: str) -> dict[str, str]:
+    """The environment of a child process that is sent SIGHUP as each of `modules` (comma-separated)
+    starts to import."""
+    hook = tmp_path / "hangup-hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(SIGHUP_WHILE_IMPORTING)
+    path = os.pathsep.join([str(hook), os.environ.get("PYTHONPATH", "")])
+    return {"PYTHONPATH": path, "HANGUP_AT": modules}
+
+
+def test_a_sighup_while_the_service_starts_is_held_not_its_end(tmp_path: Path) -> None:
+    """SIGHUP's handler was installed once `serve` had imported its modules (pydantic, FastAPI,
+    numba: seconds): a SIGHUP before, a service manager's reload right after the start, ended the
+    process (exit 129). `fleetmap`'s entry point holds it from the first: the service starts, the held
+    SIGHUP reads the token file once the tokens are read, and it stops cleanly."""
+    tokens = tmp_path / "tokens.txt"
+    tokens.write_text(f"write {WRITE_A}\n")
+    env = hangups_while_importing(tmp_path, "pydantic,fastapi,numba")
+    service = ServiceProcess(tmp_path, ["--auth-tokens", str(tokens)], env=env)
+    service.args[1:3] = ["-m", "fleetmap", "serve"]  # the entry point's way, not `-m fleetmap.server`
+    with service as svc:
+        assert svc.proc is not None
+        wait_for(lambda: "SIGHUP: 1 API tokens read" in svc.logs(), 10, what="the held SIGHUP's reload")
+        post_scans(svc.base_url, "m", "r", range(1, 2), token=WRITE_A)
+        assert svc.stop() == 0, svc.logs()
+
+
+def test_a_sighup_while_a_command_starts_ends_a_command_that_does_not_take_it(tmp_path: Path) -> None:
+    """Held while the command line is read, SIGHUP keeps its default action for a command that does
+    not take it (`fleetmap build`: a closed terminal ends it): delivered once the command is known."""
+    env = {**os.environ, **hangups_while_importing(tmp_path, "pydantic")}
+    result = subprocess.run([sys.executable, "-m", "fleetmap", "build", str(tmp_path / "none.log"), "--out",
+                             str(tmp_path / "out")], env=env, capture_output=True, timeout=120)  # fmt: skip
+    assert result.returncode == -signal.SIGHUP, result.stderr
+    assert not (tmp_path / "out").exists()
+
+
 # -- environment, start-up log, one-line errors ----------------------------------------------------
 
 

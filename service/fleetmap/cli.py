@@ -26,7 +26,7 @@ from pydantic import ValidationError
 from fleetmap.codec import repeated_key
 from fleetmap.config import MapConfig
 from fleetmap.log_format import plain_line
-from fleetmap.signal_event import SignalEvent
+from fleetmap.signal_event import HANGUPS, SignalEvent
 
 if TYPE_CHECKING:
     from fleetmap.grid_map import GridMap
@@ -47,6 +47,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # ended in the traceback of the import in progress; one line, as `run_command` says it.
         print("fleetmap: interrupted", file=sys.stderr)
         return INTERRUPTED
+    if HANGUPS.holding and not getattr(args, "takes_hangup", False):
+        # A command that does not take SIGHUP (`takes_hangup`): its default action from now on,
+        # and a SIGHUP held meanwhile ends it now, as it would have.
+        HANGUPS.release(signal.SIG_DFL)
     return run_command(args)
 
 

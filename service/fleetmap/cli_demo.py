@@ -28,7 +28,7 @@ from fleetmap.network import is_loopback_host
 from fleetmap.parent_death import end_with_parent
 from fleetmap.serve_environment import CLIENT_VARIABLES, ENV_PREFIX
 from fleetmap.serve_options import DEFAULT_DATA_DIR, DEFAULT_HTTP, parse_http
-from fleetmap.signal_event import SignalEvent
+from fleetmap.signal_event import HANGUPS, SignalEvent
 from fleetmap.wire import DEFAULT_ENDPOINT, is_valid_id
 
 
@@ -72,7 +72,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument(
         "--seconds", type=float, default=None, metavar="T", help="stop after T s (default: at Ctrl-C)"
     )
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, takes_hangup=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -87,10 +87,16 @@ def run(args: argparse.Namespace) -> int:
         _check_free(option, value)
     _check_exposure(args)  # after: an address not this machine's is that first
     stop = SignalEvent()
+
+    def on_stop(_signum: int, _frame: object) -> None:
+        stop.set_in_handler()
+
     # Ctrl-C, and also `kill`, `timeout`, `docker stop` (SIGTERM) and a closed terminal (SIGHUP):
     # each ended the demo at once and left its service running on, holding the ports and the data
     # directory that the next `make demo` then found in use.
-    previous = {sig: signal.signal(sig, lambda *_: stop.set_in_handler()) for sig in STOP_SIGNALS}
+    previous = {sig: signal.signal(sig, on_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    # SIGHUP was held from the start (`HANGUPS`): one that came meanwhile stops the demo now.
+    previous[signal.SIGHUP] = HANGUPS.release(on_stop)
     # The demo's options alone set its service up. FLEETMAP_* variables meant for `fleetmap serve`
     # (an operator's shell) made it contradict the demo: FLEETMAP_IN_MEMORY kept no map where the
     # demo said it was kept, FLEETMAP_ZENOH_CONFIG of a TLS router left its plain-TCP robots
@@ -166,10 +172,6 @@ def _viewer_url(http: str) -> str:
     up. Raises CliError for an address the service would refuse."""
     host, port = parse_http(http)
     return f"http://{url_host(host)}:{port}/"
-
-
-#: The signals that stop the demo cleanly: the robots, then the service (which saves the map).
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def _check_fleet(args: argparse.Namespace) -> None:

@@ -82,7 +82,7 @@ from fleetmap.serve_options import (
 )
 from fleetmap.serve_ros import ros_domain, ros_options, start_ros_maps, start_ros_scans, zenoh_status
 from fleetmap.shown_endpoint import shown_endpoints
-from fleetmap.signal_event import SignalEvent, SignalWakeups
+from fleetmap.signal_event import HANGUPS, SignalEvent, SignalWakeups
 from fleetmap.tiles import TileStore
 from fleetmap.warm_up import compile_in_child, warm_up
 from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest
@@ -97,7 +97,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     """Add the `serve` subcommand to the `fleetmap` command line: its options (`serve_options`), run
     by `run`."""
     parser = add_serve_parser(sub)
-    parser.set_defaults(run=run)
+    parser.set_defaults(run=run, takes_hangup=True)
     return parser
 
 
@@ -132,12 +132,14 @@ def run(args: argparse.Namespace) -> int:
         target=_reload_on_hangup, args=(hangups, lambda: tokens), name="fleetmap-sighup", daemon=True
     )
     reloader.start()
-    signal.signal(signal.SIGHUP, lambda _signum, _frame: hangups.notify_in_handler())
     ros: RosScanIngest | None = None
     unstored: tuple[str, ...] = ()  # maps the registry's close could not store
     try:
         options = _checked_options(args)
         tokens = options.tokens
+        # Installed once the tokens are read: a SIGHUP held since the start (`HANGUPS`) reads the
+        # token file again now, where before it was said to have nothing to reload.
+        HANGUPS.release(lambda _signum, _frame: hangups.notify_in_handler())
         # The HTTP socket first: a second instance on a busy port must fail before it opens the
         # (possibly shared) data directory.
         sock = bind_http(options.host, options.port)
@@ -465,7 +467,9 @@ def freeze_startup_objects() -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m fleetmap.server [serve options]`: the same as `fleetmap serve`."""
+    """`python -m fleetmap.server [serve options]`: the same as `fleetmap serve` (SIGHUP held from
+    here, after this module's imports, where `fleetmap`'s entry point holds it before them)."""
+    HANGUPS.hold()
     parser = argparse.ArgumentParser(prog="fleetmap")
     sub = parser.add_subparsers(dest="command", required=True)
     add_parser(sub)

@@ -1,11 +1,19 @@
 """What a signal handler may safely do: set a `threading.Event` (`SignalEvent`: the stop request of
 `fleetmap serve`, `fleetmap demo` and `fleetmap sim`), or wake a thread that does the signal's work
-(`SignalWakeups`: SIGHUP's reload in `fleetmap serve`)."""
+(`SignalWakeups`: SIGHUP's reload in `fleetmap serve`); and SIGHUP held while a command starts
+(`HANGUPS`)."""
 
 from __future__ import annotations
 
 import os
+import signal
 import threading
+from collections.abc import Callable
+from types import FrameType
+from typing import Any
+
+#: What `signal.signal` takes and returns: a handler, `SIG_DFL` / `SIG_IGN`, or None.
+Handler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
 
 
 class SignalEvent(threading.Event):
@@ -71,3 +79,40 @@ class SignalWakeups:
         """End `wait` in the waiting thread (it returns False). Call once, after the handler is
         replaced."""
         os.close(self._write)
+
+
+class HeldSignal:
+    """A signal noted, not acted on, from `hold` until the command says what it means (`release`).
+
+    Why: `fleetmap serve` reloads its token file on SIGHUP and `fleetmap demo` stops on it, but
+    each could install its handler only after importing its modules (pydantic, FastAPI, numba: 2-3 s
+    on a busy machine). A SIGHUP in that window (a service manager's reload right after the start,
+    a terminal closed at once) took the default action: the process ended, exit 129, its start cut
+    short. `fleetmap`'s entry point holds SIGHUP before any of those imports."""
+
+    def __init__(self, signum: signal.Signals) -> None:
+        self.signum = signum
+        self.holding = False
+        self._arrived = False
+
+    def hold(self) -> None:
+        """Note the signal from now on instead of acting on it; main thread only."""
+        signal.signal(self.signum, self._note)
+        self.holding = True
+
+    def _note(self, _signum: int, _frame: FrameType | None) -> None:
+        self._arrived = True
+
+    def release(self, handler: Handler) -> Handler:
+        """Install `handler` for the signal (`SIG_DFL`: its default action) and, when it came while
+        held, deliver it once now (so a held SIGHUP ends a command that does not take it, as it
+        would have); returns the handler replaced. Main thread only."""
+        previous = signal.signal(self.signum, handler)
+        arrived, self._arrived, self.holding = self._arrived, False, False
+        if arrived:
+            signal.raise_signal(self.signum)
+        return previous
+
+
+#: SIGHUP, held by `fleetmap`'s entry point (`fleetmap.__main__.main`) until the command runs.
+HANGUPS = HeldSignal(signal.SIGHUP)
