@@ -565,6 +565,45 @@ def test_fifty_robots(new_page: Callable[..., Any], shared_service: ServiceProce
     assert not page.page_errors, page.page_errors
 
 
+#: Per robot row: its id, the text its name shows (all of it unless clipped) and whether the scan count
+#: sits on one line.
+_ROW_TEXT_JS = """
+() => [...document.querySelectorAll('#robot-list li[data-robot-id]')].map((li) => {
+  const name = li.querySelector('.name'), scans = li.querySelector('.scans');
+  const clipped = name.scrollWidth > name.clientWidth || name.scrollHeight > name.clientHeight;
+  return {id: li.dataset.robotId, shown: clipped ? null : name.textContent,
+          scansOneLine: scans.getClientRects().length === 1
+            && scans.getBoundingClientRect().height < 1.5 * parseFloat(getComputedStyle(scans).lineHeight)};
+})
+"""
+
+
+@pytest.mark.parametrize("width", [1280, 375])
+def test_long_robot_ids_are_shown_whole(
+    width: int, new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """Robot ids of a real fleet (`agv_warehouse_north_01`, `..._02`: no space nor hyphen to wrap at)
+    are shown whole in the robot list, on a wide and on a phone-sized window. The name was cut to
+    the panel's width with an ellipsis, and both rows read `agv_wareho…`: two robots the list could
+    not tell apart. The scan count stays on one line ('2' over 'scans' took two)."""
+    base = shared_service.base_url
+    map_id = f"long-ids-{width}"
+    ids = ["agv_warehouse_north_01", "agv_warehouse_north_02", "r-" + "x" * 62]
+    _put_map(base, map_id)
+    for k, robot_id in enumerate(ids):
+        _scan(base, map_id, robot_id, 1, 2.0 * k, 0.0)
+    page = new_page(width, 800)
+    _open(page, base, f"#map={map_id}")
+    if page.is_visible("#side-toggle"):
+        page.click("#side-toggle")  # the folded panel of a narrow window, opened
+    _wait(page, f"() => document.querySelectorAll('#robot-list li[data-robot-id]').length === {len(ids)}")
+    rows = page.evaluate(_ROW_TEXT_JS)
+    assert [row["shown"] for row in rows] == ids, rows
+    assert all(row["scansOneLine"] for row in rows), rows
+    assert page.evaluate("() => document.documentElement.scrollWidth") <= width
+    assert not page.page_errors, page.page_errors
+
+
 # ---- links --------------------------------------------------------------------------------------------
 
 
