@@ -295,6 +295,24 @@ def test_last_map_deleted(page: Any, svc: ServiceProcess) -> None:
     assert not page.page_errors, page.page_errors
 
 
+def test_last_map_gone_over_a_restart_says_so(page: Any, svc: ServiceProcess) -> None:
+    """The service restarts without the shown map, the only one (it kept its maps in memory; a
+    restored backup may lack it too): no `deleted` event tells the page, whose stream was down, and
+    the map-list poll finds the map gone. The page says so, as it does when another map is left or
+    when the `deleted` event tells; it went to 'Waiting for robots' without a word."""
+    base = svc.base_url
+    _make_map(base, {"r1": (2.0, 2.0)})
+    _open(page, base, f"#map={MAP_ID}")
+    svc.stop()
+    _wait(page, "() => document.getElementById('status').dataset.state !== 'connected'", what="the loss")
+    svc.start()  # --in-memory: without the map
+    _wait(page, "() => document.getElementById('map-select').disabled", what="no maps")
+    _wait(page, _ERROR_JS, f"map {MAP_ID} was deleted", what="that the map was deleted")
+    assert page.is_visible("#empty")  # and it waits for robots
+    assert page.evaluate("() => location.hash") == ""
+    assert not page.page_errors, page.page_errors
+
+
 #: The fill colour of every robot marker's arrow, by robot id.
 _MARKER_COLOURS_JS = """
 () => Object.fromEntries([...window.fleetmapViewer.state.robots.values()]

@@ -62,11 +62,15 @@ export async function refreshMaps() {
   mapSelect.disabled = ids.length === 0;
   emptyEl.hidden = ids.length > 0;
   if (ids.length === 0) {
-    if (state.mapId) deselectMap();
+    // The map shown is gone and no `deleted` event said so (the stream was down: a restart, a
+    // hidden tab): say it, as below where another map is left, rather than vanish without a word.
+    const gone = state.mapId;
+    if (gone) deselectMap();
     setConnection('waiting');
     // A link to a map that does not exist (yet): say so once; it is shown as soon as it appears.
     const wanted = readHash().map;
-    if (wanted && state.notFound !== wanted) showError(`map ${wanted} not found`);
+    if (gone) showError(`map ${gone} was deleted`);
+    else if (wanted && state.notFound !== wanted) showError(`map ${wanted} not found`);
     state.notFound = wanted;
     return;
   }
