@@ -454,6 +454,49 @@ def test_cell_of_a_map_keeping_some_layers(
         assert not page.page_errors, page.page_errors
 
 
+def test_the_cell_shown_follows_the_scans_that_change_it(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """The panel's cell is asked again when robots change it: its values stayed those of the click
+    while the tiles around it went on changing, with no time on them to say so. The new values are
+    shown, not spoken (a live region that spoke with every scan would drown the rest); a cell the
+    changes do not touch is not asked again."""
+    base = shared_service.base_url
+    map_id = "live-cell"
+    _put_map(base, map_id)
+    _scan(base, map_id, "r1", 1, 0.0, 0.0)
+    page = new_page()
+    _open(page, base, f"#map={map_id}")
+    page.fill("#cell-x", "3.01")  # the cell of the ring of walls 3 m around the robot, at x 3.00-3.05
+    page.fill("#cell-y", "0")
+    page.press("#cell-y", "Enter")
+    hits_js = "document.querySelector('#cell-info td[data-field=\"hits\"]')"
+    _wait(page, f"() => {hits_js} !== null", what="the cell")
+    assert page.inner_text('#cell-info td[data-field="hits"]') == "1"
+    spoken = page.inner_text("#cell-announce")
+    page.evaluate(  # count the page's cell queries from now on
+        "() => { window.__cellAsked = 0; const f = window.fetch; window.fetch = (u, ...a) => {"
+        " if (String(u).includes('/cell?')) window.__cellAsked += 1; return f(u, ...a); }; }"
+    )
+
+    for seq in (2, 3):
+        _scan(base, map_id, "r1", seq, 0.0, 0.0)
+    hits = httpx.get(f"{base}/maps/{map_id}/cell", params={"x": 3.01, "y": 0}, timeout=10.0).json()["hits"]
+    assert hits == 3
+    _wait(page, f"() => {hits_js}.textContent === '3'", what="the cell's new hits")
+    assert page.inner_text("#cell-announce") == spoken  # shown, not spoken
+    assert "3 hits" in page.evaluate("() => document.getElementById('side-summary').textContent")
+
+    # Scans far away (a ring 3 m around (40, 40)) change tiles, not this cell: not asked for them.
+    # Then one more scan over it: asked once, whether or not the two came in one redraw.
+    asked = page.evaluate("() => window.__cellAsked")
+    _scan(base, map_id, "r2", 1, 40.0, 40.0)
+    _scan(base, map_id, "r1", 4, 0.0, 0.0)
+    _wait(page, f"() => {hits_js}.textContent === '4'", what="the cell's hits after one more scan")
+    assert page.evaluate("() => window.__cellAsked") == asked + 1
+    assert not page.page_errors, page.page_errors
+
+
 def test_labels_focus_contrast_and_quiet_live_regions(
     new_page: Callable[..., Any], shared_service: ServiceProcess
 ) -> None:

@@ -2,7 +2,9 @@
  * The cell inspector: a click on the map, Enter with the map focused (the cell under the cross at the
  * centre) or a typed point asks GET maps/{id}/cell for one cell, outlines it on the map and shows its
  * values in the side panel, in a table and in one sentence for screen readers. clearCell forgets it.
- * An answer for a cell no longer asked about (state.cellToken) is dropped.
+ * An answer for a cell no longer asked about (state.cellToken) is dropped. The cell shown is asked
+ * again, quietly, when the map's changes touch it (refreshCell): robots go on mapping it, and its
+ * values stayed those of the click.
  */
 import { MAX_METRES } from './config.js';
 import { cellAnnounce, cellForm, cellFormError, cellInfo, cellX, cellY, coordsEl } from './dom.js';
@@ -45,6 +47,7 @@ export function clearCell() {
   cellInfo.innerHTML = '<p class="none">Click the map, or type a point, to query a cell.</p>';
   delete cellInfo.dataset.i;
   delete cellInfo.dataset.j;
+  state.cellShown = null;
   if (state.cellMarker) { state.cellMarker.remove(); state.cellMarker = null; }
   coordsEl.textContent = '';
   cellAnnounce.textContent = '';
@@ -111,14 +114,18 @@ function drawCellMarker(i, j) {
 
 /**
  * Ask for cell (i, j) and show its values. `point`: the [x, y] in metres to ask at (a typed point);
- * by default the cell's centre (no rounding doubts at cell edges).
+ * by default the cell's centre (no rounding doubts at cell edges). `again`: the cell shown, asked
+ * again because it changed (refreshCell): its values are replaced in place, not announced (a live
+ * region that spoke with every scan would drown the rest), and a failure keeps the last ones.
  */
-async function queryCell(i, j, point = null) {
+async function queryCell(i, j, point = null, again = false) {
   if (!state.mapId) return;
   const token = ++state.cellToken;
   const [x, y] = point || [(i + 0.5) * state.res, (j + 0.5) * state.res];
-  drawCellMarker(i, j);
-  cellInfo.innerHTML = '<p class="none">querying…</p>';
+  if (!again) {
+    drawCellMarker(i, j);
+    cellInfo.innerHTML = '<p class="none">querying…</p>';
+  }
   try {
     const cell = await getJSON(`maps/${enc(state.mapId)}/cell?x=${x}&y=${y}`);
     if (token !== state.cellToken) return;
@@ -126,22 +133,37 @@ async function queryCell(i, j, point = null) {
     const ci = Number.isInteger(cell.i) ? cell.i : i;
     const cj = Number.isInteger(cell.j) ? cell.j : j;
     if (ci !== i || cj !== j) drawCellMarker(ci, cj);
-    renderCell(ci, cj, x, y, cell);
-    if (!point) {
+    state.cellShown = { i: ci, j: cj, point };
+    renderCell(ci, cj, x, y, cell, !again);
+    if (!point && !again) {
       cellX.value = String(+x.toFixed(3));
       cellY.value = String(+y.toFixed(3));
     }
   } catch (err) {
-    if (token !== state.cellToken) return;
+    if (token !== state.cellToken || again) return;
     cellInfo.innerHTML = '<p class="none">no value</p>';
     announceCell(`cell query failed: ${err.message}`);
     showError(`cell query: ${err.message}`, !!err.network);
   }
 }
 
-/** One sentence for the live region and the folded panel's line. */
-function announceCell(text) {
-  cellAnnounce.textContent = text;
+/**
+ * The map changed in `windows` (cell windows [i0, j0, i1, j1), as the `tiles` event gives them), or
+ * everywhere (`reset`): ask again for the cell shown when they hold it. Called once per redraw of
+ * the tiles (tiles.js), so at most as often as tiles are.
+ */
+export function refreshCell(windows, reset) {
+  const shown = state.cellShown;
+  if (!shown || !state.mapId) return;
+  const { i, j } = shown;
+  if (reset || windows.some((w) => w[0] <= i && i < w[2] && w[1] <= j && j < w[3])) {
+    queryCell(i, j, shown.point, true);
+  }
+}
+
+/** One sentence for the live region (`spoken`) and the folded panel's line. */
+function announceCell(text, spoken = true) {
+  if (spoken) cellAnnounce.textContent = text;
   state.cellSummary = text;
   renderSideSummary();
 }
@@ -156,7 +178,8 @@ function cellSentence(i, j, x, y, cell) {
   return `Cell (${i}, ${j}) at x ${x.toFixed(2)} m, y ${y.toFixed(2)} m: ${parts.join(', ')}`;
 }
 
-function renderCell(i, j, x, y, cell) {
+/** Show the values of cell (i, j), asked at (x, y); `spoken`: say them in the live region too. */
+function renderCell(i, j, x, y, cell, spoken) {
   const where = document.createElement('p');
   where.className = 'where';
   where.textContent = `cell (${i}, ${j}) · x ${x.toFixed(3)} m, y ${y.toFixed(3)} m`;
@@ -176,5 +199,5 @@ function renderCell(i, j, x, y, cell) {
   cellInfo.replaceChildren(where, table);
   cellInfo.dataset.i = String(i);
   cellInfo.dataset.j = String(j);
-  announceCell(cellSentence(i, j, x, y, cell));
+  announceCell(cellSentence(i, j, x, y, cell), spoken);
 }

@@ -46,6 +46,7 @@ export const state = {
   pendingView: null,    // the view a link named for the map being selected ({x, y, z})
   cellSummary: '',      // the last cell query, in one sentence
   cellMarker: null,     // the queried cell's outline on the map (cell.js), if one is shown
+  cellShown: null,      // the cell shown in the panel, {i, j, point}: asked again when it changes
 };
 
 /**

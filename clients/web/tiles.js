@@ -6,6 +6,7 @@
  * stale; pumpTiles, which gives a stale tile a new URL once it is due. Until the user moves the map,
  * the view also follows the map as it grows (followSoon).
  */
+import { refreshCell } from './cell.js';
 import {
   FOLLOW_MS, MAX_ZOOM, MIN_ZOOM, TILE_FLUSH_MS, TILE_PX, TILE_REFRESH_MS, TILE_RETRY_MS,
 } from './config.js';
@@ -138,7 +139,9 @@ function flushTiles() {
   const reset = state.pendingReset;
   state.pendingWindows = [];
   state.pendingReset = false;
-  if (!state.mapId || !map.hasLayer(tiles)) return;
+  if (!state.mapId) return;
+  refreshCell(windows, reset);
+  if (!map.hasLayer(tiles)) return;
   state.tileCounter += 1;
   for (const tile of state.shownTiles.values()) {
     if (reset || windows.some((w) => intersects(tileCells(tile.coords), w))) tile.stale = true;
