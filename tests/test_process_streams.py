@@ -107,6 +107,38 @@ def test_ctrl_c_stops_a_build_between_two_scans_in_one_line(tmp_path: Path) -> N
     assert stdout == "" and not out.exists()
 
 
+def test_a_build_started_with_sigint_ignored_keeps_ignoring_it(tmp_path: Path) -> None:
+    """A build started with SIGINT ignored (`fleetmap build ... &` in a script: a non-interactive
+    shell starts background jobs so, that Ctrl-C on the script leaves them running; Python keeps
+    such a disposition too). The build put its own handler in place of the ignore while it
+    integrated, so a Ctrl-C meant for the script stopped the background build: "interrupted,
+    nothing written", exit 130. Now a SIGINT it was started ignoring changes nothing: the map is
+    written and the build exits 0."""
+    beams = 361
+    lines = [flaser([19.5] * beams, 0.01 * (k % 500), 0.02 * (k % 300), 0.001 * k) for k in range(3000)]
+    log = tmp_path / "long.log"
+    log.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    build = subprocess.Popen(
+        [*fleetmap_command(), "build", str(log), "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),  # as `&` in a script starts it
+    )  # fmt: skip
+    with reaped(build):
+        assert build.stderr is not None
+        progress = ""
+        while not re.search(r"\| [1-9]\d*/3000 ", progress):  # tqdm's bar: scans integrated
+            chunk = build.stderr.read(1)
+            assert chunk, f"the build ended before its scans: {progress}"
+            progress += chunk
+        build.send_signal(signal.SIGINT)
+        stdout, stderr = build.communicate(timeout=300)
+    assert build.returncode == 0, progress + stderr
+    assert "interrupted" not in stderr, stderr
+    assert stdout.startswith("3000 scans integrated (0 skipped)"), stdout
+    assert (out / "map.yaml").is_file() and (out / "meta.json").is_file()
+
+
 def test_a_build_started_with_stderr_closed_writes_its_map_and_nothing_else_to_stdout(tmp_path: Path) -> None:
     """A build started with its stderr closed (`2>&-`, a daemon's child): Python has no sys.stderr
     then, so the kernels' notice and the progress, printed to `file=None`, went to STDOUT, into the

@@ -303,9 +303,13 @@ def _build(args: argparse.Namespace) -> int:
     updates = tsdf_updates = skipped = done = 0
     # Ctrl-C is taken between two scans: raised inside a compiled kernel's call, KeyboardInterrupt
     # came out as numba's SystemError ("returned a result with an exception set"), a traceback and
-    # exit 1.
+    # exit 1. A build started with SIGINT ignored keeps ignoring it, as Python does: a script's
+    # `fleetmap build ... &` is started so, that a Ctrl-C meant for the script leaves it running,
+    # and the handler put in place of the ignore stopped it ("interrupted", nothing written).
     interrupted = SignalEvent()
-    previous = signal.signal(signal.SIGINT, lambda *_: interrupted.set_in_handler())
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is not signal.SIG_IGN:
+        signal.signal(signal.SIGINT, lambda *_: interrupted.set_in_handler())
     try:
         for scan in tqdm(dataset, total=len(dataset), unit="scan", disable=args.quiet, file=sys.stderr):
             if interrupted.is_set():
@@ -322,7 +326,8 @@ def _build(args: argparse.Namespace) -> int:
             except MemoryError:
                 raise CliError(_out_of_memory(gmap, done, len(dataset))) from None
     finally:
-        signal.signal(signal.SIGINT, previous)
+        if previous is not signal.SIG_IGN:
+            signal.signal(signal.SIGINT, previous)
     if interrupted.is_set():
         print(
             f"fleetmap build: interrupted after {done} of {len(dataset)} scans; nothing written",
