@@ -76,6 +76,30 @@ def test_a_command_whose_stdout_reader_exited_ends_quietly(tmp_path: Path, buffe
     assert (out / "map.yaml").is_file() and (out / "meta.json").is_file()
 
 
+@pytest.mark.parametrize("stdout", ["its own", "the same pipe"])
+def test_a_build_whose_stderr_reader_exited_still_writes_its_map(tmp_path: Path, stdout: str) -> None:
+    """`fleetmap build ... 2>&1 | head -1`, or progress piped to a log reader that died: the reader
+    of stderr exited while the build ran. The notice and the progress bar, written into that pipe,
+    raised BrokenPipeError out of the build: it ended with exit 141 and without its map, the minutes
+    of integration thrown away for a diagnostic no one reads. Now what is written to a stderr whose
+    reader left goes nowhere, and the build writes its map: exit 0 with the summary on a stdout of
+    its own; 141 when stdout is the same pipe, the map written, as for any stdout whose reader left."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader exited before the build printed anything
+    log, out = scene_log(tmp_path / "scene.log"), tmp_path / "out"
+    with os.fdopen(write_end, "wb") as sink:
+        done = subprocess.run(
+            [*fleetmap_command(), "build", str(log), "--out", str(out)],
+            stdout=sink if stdout == "the same pipe" else subprocess.PIPE, stderr=sink, timeout=300,
+        )  # fmt: skip
+    assert (out / "map.yaml").is_file() and (out / "meta.json").is_file(), done.returncode
+    if stdout == "the same pipe":
+        assert done.returncode == STDOUT_GONE
+    else:
+        assert done.returncode == 0
+        assert done.stdout.decode().startswith("4 scans integrated (0 skipped)"), done.stdout
+
+
 def test_ctrl_c_stops_a_build_between_two_scans_in_one_line(tmp_path: Path) -> None:
     """Ctrl-C while `fleetmap build` integrates: the KeyboardInterrupt was raised inside a compiled
     kernel's call and came out as numba's SystemError ("returned a result with an exception set"),

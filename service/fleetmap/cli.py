@@ -19,7 +19,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TextIO
 
 from pydantic import ValidationError
 
@@ -141,9 +141,43 @@ def discard_stdout() -> None:
     """Point stdout (file descriptor 1's) at /dev/null, once it cannot be written (its reader gone, a
     full disk): what is still in its buffer, and whatever comes later, then goes nowhere, and the
     interpreter's flush at exit does not fail again (a clean stop exited 120)."""
+    _point_at_devnull(sys.stdout)
+
+
+def _point_at_devnull(stream: TextIO) -> None:
+    """Make `stream`'s file descriptor /dev/null's: what it still buffers, and all it is given later,
+    is then written, and goes nowhere."""
     devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, sys.stdout.fileno())
+    os.dup2(devnull, stream.fileno())
     os.close(devnull)
+
+
+class DiagnosticStream:
+    """A command's stderr as its diagnostics (notices, the progress bar) are written to it: once its
+    reader has exited (`2>&1 | head -1`, a log reader that died), they go nowhere (`_point_at_devnull`)
+    instead of raising BrokenPipeError out of the command's work. `fleetmap build` ended so with exit
+    141 and without its map, the integration thrown away for a line no one would read. (Its result
+    goes to stdout, which says, by `STDOUT_GONE`, whether its reader was there.) Every other
+    attribute is the stream's (`encoding`, `fileno`, `isatty`: what tqdm asks of its file)."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            _point_at_devnull(self._stream)
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            _point_at_devnull(self._stream)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
 
 
 #: The exit code of a command that Ctrl-C stopped: a shell's code for SIGINT (128 + 2).
@@ -297,8 +331,9 @@ def _build(args: argparse.Namespace) -> int:
     except (DatasetError, OSError) as exc:
         raise dataset_error(args.dataset, exc) from None
     gmap = GridMap(config)
+    diagnostics = DiagnosticStream(sys.stderr)
     if len(dataset):
-        _load_kernels(config, dataset[0], quiet=args.quiet)
+        _load_kernels(config, dataset[0], args.quiet, diagnostics)
     started = time.perf_counter()
     updates = tsdf_updates = skipped = done = 0
     # Ctrl-C is taken between two scans: raised inside a compiled kernel's call, KeyboardInterrupt
@@ -311,7 +346,7 @@ def _build(args: argparse.Namespace) -> int:
     if previous is not signal.SIG_IGN:
         signal.signal(signal.SIGINT, lambda *_: interrupted.set_in_handler())
     try:
-        for scan in tqdm(dataset, total=len(dataset), unit="scan", disable=args.quiet, file=sys.stderr):
+        for scan in tqdm(dataset, total=len(dataset), unit="scan", disable=args.quiet, file=diagnostics):
             if interrupted.is_set():
                 break
             done += 1
@@ -322,7 +357,7 @@ def _build(args: argparse.Namespace) -> int:
             except (ScanError, TileLimitError) as exc:
                 skipped += 1
                 # Which one: a log holds thousands, and 'skipped a scan' could not be found in it.
-                tqdm.write(f"skipped scan {done} of {len(dataset)}: {exc}", file=sys.stderr)
+                tqdm.write(f"skipped scan {done} of {len(dataset)}: {exc}", file=diagnostics)
             except MemoryError:
                 raise CliError(_out_of_memory(gmap, done, len(dataset))) from None
     finally:
@@ -397,18 +432,21 @@ def _out_of_memory(gmap: GridMap, scan: int, scans: int) -> str:
     )
 
 
-def _load_kernels(config: MapConfig, scan: Scan, quiet: bool) -> None:
+def _load_kernels(
+    config: MapConfig, scan: Scan, quiet: bool, diagnostics: DiagnosticStream | None = None
+) -> None:
     """Load the compiled kernels `config`'s maps use, by integrating `scan` twice into a throwaway map
     (into a new tile, then an existing one: both paths of `GridMap.integrate`), so that the build's
     rate leaves them out. The first run after an install compiles them, which takes 15-30 s: it
-    said nothing, and put the time into the rate it printed (0.3 M cell updates/s for 19)."""
+    said nothing, and put the time into the rate it printed (0.3 M cell updates/s for 19). Unless
+    `quiet`, a notice says so on `diagnostics` (default: stderr)."""
     from fleetmap.grid_map import GridMap
     from fleetmap.scan import ScanError
     from fleetmap.tiles import TileLimitError
 
     if not quiet:
         print("loading the engine's compiled kernels (the first run after an install compiles them)",
-              file=sys.stderr, flush=True)  # fmt: skip
+              file=diagnostics or DiagnosticStream(sys.stderr), flush=True)  # fmt: skip
     throwaway = GridMap(config)
     # The build skips such a scan and says so; and it stops at a scan whose tiles do not fit in
     # memory with a clear error, where this one ended in a traceback.
