@@ -413,6 +413,32 @@ def test_a_map_replaced_by_one_with_nothing_to_publish_leaves_no_stale_grid(in_p
         publisher.close()
 
 
+def test_a_map_grown_past_the_cell_bound_leaves_no_stale_grid(in_process: InProcess) -> None:
+    """A published map whose window grows past the cells published (`max_cells`) is no longer
+    published, and its last grid does not stay in the publisher's cache either: a ROS node starting
+    later would get, as the current map, one that lacks everything seen since, for as long as the
+    map stays that big (the cache is otherwise never more than `full_grid_interval` behind)."""
+    registry = in_process.registry
+    options = RosMapOptions((MapTopic("a"),), period=3600.0, max_cells=1000)
+    publisher = RosMapPublisher(registry, in_process.router, options)
+    try:
+        entry = registry.create("a", MapConfig(resolution=0.5))[0]
+        entry.gmap.integrate(room_scan(1.0, 1.0))
+        publisher.start()  # its first check publishes; the next would be an hour later
+        wait_for(lambda: publisher.topics[0].grid.published == 1, timeout=5, what="the first grid")
+        entry.gmap.integrate(Scan.from_fan((40.0, 40.0, 0.0), 0.0, 0.1, [1.0] * 10))  # 80 x 80 cells
+        assert publisher.publish_changed() == 0  # past the bound: not published
+        assert publisher.topics[0].declared  # the map exists: still declared
+        late = RosSubscriber(in_process.endpoint)
+        try:
+            time.sleep(1.5)  # the cache is queried at once, and the heartbeat comes every 0.5 s
+            assert late.received() == []
+        finally:
+            late.close()
+    finally:
+        publisher.close()
+
+
 def test_a_map_whose_every_cell_was_cleared_is_published_unknown(in_process: InProcess) -> None:
     """`DELETE /maps/{id}/region` over the whole map leaves no observed cell: subscribers get that
     change, and so does the grid's cache once a full grid is due. Before, a map with no observed cell

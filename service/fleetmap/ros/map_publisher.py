@@ -526,7 +526,7 @@ class RosMapPublisher:
         reuses the one made."""
         gmap, spec = entry.gmap, topic.spec
         if map_source(gmap) is None:
-            topic.window = None
+            self._unpublishable(topic)
             self._warnings.warning(
                 f"tsdf {spec.map_id}",
                 f"ROS 2: map {spec.map_id!r} keeps only the TSDF, which has no occupancy to publish",
@@ -543,7 +543,7 @@ class RosMapPublisher:
             window = topic.window
         ny, nx = window.shape
         if nx * ny > self.options.max_cells:
-            topic.window = None
+            self._unpublishable(topic)
             self._warnings.warning(
                 f"size {spec.map_id}",
                 f"ROS 2: map {spec.map_id!r} spans {nx} x {ny} cells, more than the {self.options.max_cells} "
@@ -598,6 +598,18 @@ class RosMapPublisher:
             extra={"map_id": spec.map_id},
         )  # fmt: skip
         return len(parts)
+
+    def _unpublishable(self, topic: _Topic) -> None:
+        """`topic`'s map cannot be published (its window past `max_cells`, or no occupancy to show):
+        nothing more is sent until it can, and a grid already sent leaves the grid publisher's cache,
+        which is dropped with the publishers, declared anew. Kept, the cache handed every ROS node
+        starting later that grid as the current map, however far behind the map it fell (a map
+        grown past the bound stays that big), where it is otherwise never more than
+        `full_grid_interval` behind."""
+        if topic.window is not None:
+            self._undeclare(topic)
+            self._declare(topic)
+        topic.window = None
 
     def _declare(self, topic: _Topic) -> None:
         topic.grid.declare(self.session)
