@@ -647,17 +647,49 @@ def test_an_image_past_the_pixel_bound_is_refused_from_its_header() -> None:
     assert "is 8193 x 8193 pixels" in str(caught.value) and caught.value.status == 413
 
 
-def test_palette_and_bilevel_images_are_refused_saying_what_they_are() -> None:
-    palette = Image.new("P", (2, 2))
-    bilevel = Image.new("1", (2, 2))
-    for im, words in (
-        (palette, "a palette (indexed colour) image (mode P)"),
-        (bilevel, "1-bit black and white"),
+def saved(im: Image.Image, image_format: str = "PNG", **options: object) -> bytes:
+    buf = io.BytesIO()
+    im.save(buf, format=image_format, **options)
+    return buf.getvalue()
+
+
+def test_a_grey_palette_png_and_a_1_bit_png_read_as_map_server_reads_them() -> None:
+    """A PNG optimiser (optipng, oxipng, pngquant) stores a trinary map's three greys as a palette of
+    three colours at 2 bits a pixel, and a map of only walls and free space drawn by hand is often a
+    1-bit PNG: map_server reads each pixel's colour (its palette entry's; a 1-bit sample at full
+    scale, 1 as white) and loads both as it loads the 8-bit grey PNG, pixel for pixel. Both were
+    refused ("only 8-bit grey images are read"), though 2- and 4-bit grey PNGs were read."""
+    grey = np.array([[0, 205, 254, 205], [254, 254, 0, 205]], dtype=np.uint8)
+    want = map_from_nav2(nav2_yaml("map.png"), png(grey), CONFIG)
+    window = (-1, -1, 5, 3)
+    palette = Image.fromarray(grey).convert("P", palette=Image.Palette.ADAPTIVE, colors=3)
+    assert palette.mode == "P" and len(palette.getcolors() or ()) == 3
+    got = map_from_nav2(nav2_yaml("map.png"), saved(palette, bits=2), CONFIG)
+    assert np.array_equal(got.region("log_odds", *window), want.region("log_odds", *window), equal_nan=True)
+    walls = np.array([[0, 255, 255], [255, 0, 255]], dtype=np.uint8)
+    bilevel = Image.fromarray(walls).convert("1")
+    got = map_from_nav2(nav2_yaml("map.png"), saved(bilevel), CONFIG)
+    want = map_from_nav2(nav2_yaml("map.png"), png(walls), CONFIG)
+    assert np.array_equal(got.region("log_odds", *window), want.region("log_odds", *window), equal_nan=True)
+    assert list(got.cells([[0.025, 0.075], [0.075, 0.075]])["state"]) == [STATE_OCCUPIED, STATE_FREE]
+
+
+def test_palette_images_with_colour_and_other_formats_bilevel_images_are_refused_saying_what_they_are() -> (
+    None
+):
+    """A palette PNG is read only where the colours its pixels use are grey (the message names the
+    first pixel that is not, and the mode); one with a transparent colour, as a grey PNG with one, and
+    a 1-bit PBM (not a PGM or a PNG) are refused."""
+    coloured = Image.fromarray(np.array([[[0, 0, 0], [10, 20, 10]]], np.uint8)).convert(
+        "P", palette=Image.Palette.ADAPTIVE
+    )
+    for image, words in (
+        (saved(coloured), "colour image (mode P): pixel (1, 0) is (10, 20, 10)"),
+        (saved(coloured, transparency=0), "marks a transparent colour (a tRNS chunk)"),
+        (saved(Image.new("1", (2, 2)), "PPM"), "1-bit black and white"),
     ):
-        buf = io.BytesIO()
-        im.save(buf, format="PNG")
-        with pytest.raises(Nav2ImportError, match=r"only 8-bit grey images are read") as caught:
-            map_from_nav2(nav2_yaml(), buf.getvalue(), CONFIG)
+        with pytest.raises(Nav2ImportError) as caught:
+            map_from_nav2(nav2_yaml(), image, CONFIG)
         assert words in str(caught.value)
 
 

@@ -44,10 +44,11 @@ image is not on the map's axis-aligned cells), an origin that is not on the map'
 origin anywhere, and map_saver writes it rounded), a resolution other
 than the configuration's, images that are not 8-bit grey (grey with alpha, and RGB / RGBA whose
 channels are equal everywhere, as map_saver writes scale maps, are grey, and in scale mode where
-a pixel is opaque: map_server reads the others as unknown; a PGM's maxval must be
-255, a PNG's samples 8 bits at most), images over MAX_IMAGE_SIDE on a side or MAX_IMAGE_PIXELS in
-all, more tiles than the map's `max_tiles`. Tiles are created only where a cell is known; every
-layer but occupancy stays unknown.
+a pixel is opaque: map_server reads the others as unknown; so are a PNG's samples of 1, 2 or 4
+bits, at full scale, and a palette PNG's pixels whose colours are grey, as PNG optimisers store a
+map's few greys; a PGM's maxval must be 255, a PNG's samples 8 bits at most), images over
+MAX_IMAGE_SIDE on a side or MAX_IMAGE_PIXELS in all, more tiles than the map's `max_tiles`. Tiles
+are created only where a cell is known; every layer but occupancy stays unknown.
 
 Memory: an image is decoded by Pillow whole (1 byte a pixel for grey, 4 with alpha or colour), then
 turned into map_server's values (one byte a pixel) a strip of rows at a time, through a table of
@@ -113,6 +114,12 @@ NAV2_MODES: tuple[Nav2Mode, ...] = ("trinary", "scale", "raw")
 #: map_server's OccupancyGrid values (nav2_util/occ_grid_values.hpp).
 OCC_GRID_UNKNOWN, OCC_GRID_FREE, OCC_GRID_OCCUPIED = -1, 0, 100
 
+#: What each of Pillow's modes of a PNG that are not 8-bit grey, colour or alpha is read as, a strip
+#: at a time: a 1-bit grey PNG's samples as 8-bit grey at full scale (1 is 255), and a palette
+#: PNG's pixels as their entries' colours (then grey where those are), as map_server reads them
+#: (GraphicsMagick hands it every pixel's colour). PNG optimisers (optipng, oxipng, pngquant) store
+#: a map's few greys as a palette; hand-drawn maps of walls and free space are often 1-bit.
+_PNG_READ_AS = {"1": "L", "P": "RGB"}
 #: Pillow's image modes that are not 8-bit grey, in words.
 _MODE_WORDS = {
     "1": "a 1-bit black and white", "P": "a palette (indexed colour)", "PA": "a palette with alpha",
@@ -431,7 +438,8 @@ def image_values(data: bytes, name: str, meta: Nav2Meta) -> np.ndarray:
             )  # fmt: skip
         if w == 0 or h == 0:
             raise Nav2ImportError(f"{name} is empty ({w} x {h} pixels)")
-        if im.mode not in ("L", "LA", "RGB", "RGBA"):
+        mode = _PNG_READ_AS.get(im.mode, im.mode) if im.format == "PNG" else im.mode
+        if mode not in ("L", "LA", "RGB", "RGBA"):
             kind = _MODE_WORDS.get(im.mode, "an unsupported")
             raise Nav2ImportError(f"{name} is {kind} image (mode {im.mode}): only 8-bit grey images are read")
         if _png_bit_depth(im, data) == 16:
@@ -454,19 +462,21 @@ def image_values(data: bytes, name: str, meta: Nav2Meta) -> np.ndarray:
             im.load()
         except (OSError, ValueError, SyntaxError, zlib.error) as exc:
             raise Nav2ImportError(f"{name} cannot be decoded (the file is corrupt): {exc}") from None
-        table = occupancy_grid_values(meta, im.mode in ("LA", "RGBA"))
+        table = occupancy_grid_values(meta, mode in ("LA", "RGBA"))
         values = np.empty((h, w), dtype=np.int8)
         for top in range(0, h, STRIP_ROWS):
-            strip = np.asarray(im.crop((0, top, w, min(h, top + STRIP_ROWS))))
-            values[top : top + len(strip)] = table[_grey_and_alpha(strip, im.mode, meta, name, top)]
+            part = im.crop((0, top, w, min(h, top + STRIP_ROWS)))
+            strip = np.asarray(part if mode == im.mode else part.convert(mode))
+            values[top : top + len(strip)] = table[_grey_and_alpha(strip, mode, meta, name, top, im.mode)]
     return values
 
 
 def _grey_and_alpha(
-    pixels: np.ndarray, mode: str, meta: Nav2Meta, name: str, top: int
+    pixels: np.ndarray, mode: str, meta: Nav2Meta, name: str, top: int, image_mode: str
 ) -> tuple[np.ndarray, ...]:
     """The grey values, and the alpha channel where the image has one, of `pixels` (rows `top` on
-    of an image of Pillow's `mode` L, LA, RGB or RGBA), to index `occupancy_grid_values`'s table;
+    of an image of Pillow's `mode` L, LA, RGB or RGBA, read so from one of `image_mode`, which the
+    message names), to index `occupancy_grid_values`'s table;
     `Nav2ImportError` naming the first pixel whose channels differ, where they must not: anywhere,
     or in scale mode only where it is opaque (map_server's scale mode reads every pixel not opaque
     as unknown, whatever its colour: an editor that keeps the colour of transparent pixels, GIMP's
@@ -483,7 +493,7 @@ def _grey_and_alpha(
         y, x = (int(k) for k in np.argwhere(colour)[0])
         channels = tuple(int(c) for c in pixels[y, x])
         raise Nav2ImportError(
-            f"{name} is a colour image (mode {mode}): pixel ({x}, {top + y}) is {channels}; only 8-bit "
+            f"{name} is a colour image (mode {image_mode}): pixel ({x}, {top + y}) is {channels}; only 8-bit "
             "grey images are read"
         )
     return (grey,) if mode == "RGB" else (grey, pixels[:, :, 3])
