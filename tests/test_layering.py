@@ -24,6 +24,7 @@ ENGINE_MODULES = (
     "grid_map",
     "export",
     "upload_spool",
+    "yaml_whitespace",
     "nav2_import",
 )
 ENGINE_PACKAGES = ("kernels", "datasets", "sim", "examples")

@@ -430,6 +430,40 @@ def test_only_the_first_document_of_the_yaml_is_read_as_map_server_reads_it() ->
         map_from_nav2("---\n---\n" + nav2_yaml(), PIXELS, CONFIG)
 
 
+def test_tabs_between_the_tokens_are_whitespace_as_yaml_cpp_reads_them() -> None:
+    """yaml-cpp (map_server's reader) skips tabs between tokens as it skips spaces: a hand-edited
+    map.yaml with a tab after a colon, a tab before a comment, a trailing tab or a tab in the origin's
+    list loads in map_server. PyYAML skips only spaces there, and such a file was refused ("found
+    character '\\t' that cannot start any token")."""
+    want = map_from_nav2(nav2_yaml(origin="[-1.0, 2.0, 0.0]"), PIXELS, CONFIG)
+    tabbed = (
+        "image:\tmap.pgm\n"
+        "mode: trinary\t# the default\n"
+        "resolution:\t0.05\t\n"
+        "origin: [-1.0,\t2.0, 0.0]\t\n"
+        "negate: 0\t\t\n"
+        "occupied_thresh: 0.65\n"
+        "free_thresh: 0.196\n"
+    )
+    gmap = map_from_nav2(tabbed, PIXELS, CONFIG)
+    assert gmap.known_bounds() == want.known_bounds() == (-20, 40, -18, 42)
+
+
+def test_the_client_zips_a_yaml_with_tabs_between_its_tokens(tmp_path: Path) -> None:
+    """The client reads such a map.yaml as the server does (it was "not valid YAML" to it), also to
+    write it out again for an image in a folder."""
+    (tmp_path / "img").mkdir()
+    (tmp_path / "img" / "map.pgm").write_bytes(PIXELS)
+    (tmp_path / "map.pgm").write_bytes(PIXELS)
+    for image in ("map.pgm", "img/map.pgm"):
+        yaml_path = tmp_path / "map.yaml"
+        yaml_path.write_text(
+            f"image:\t{image}\t# the image\n" + nav2_yaml(origin="[-1.0,\t2.0, 0.0]", image=None)
+        )
+        gmap = map_from_nav2_zip(nav2_files_zip(yaml_path), CONFIG)
+        assert gmap.known_bounds() == (-20, 40, -18, 42), image
+
+
 def test_integers_with_a_leading_zero_are_decimal_as_yaml_cpp_reads_them() -> None:
     """PyYAML's YAML 1.1 reads `010` as octal 8, yaml-cpp's `as<double>()` as 10: `origin: [-010,
     020, 0]` was imported 2 m and 4 m away from where map_server puts it, without a word. Forms

@@ -84,6 +84,7 @@ from fleetmap.config import MAX_COORDINATE, MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.tiles import TileKey, TileLimitError
 from fleetmap.upload_spool import check_stop, upload_zip
+from fleetmap.yaml_whitespace import YamlCppWhitespace
 
 if TYPE_CHECKING:
     from fleetmap.memory_budget import UploadReservation
@@ -155,12 +156,13 @@ class Nav2Meta:
     mode: Nav2Mode
 
 
-class _MapYamlLoader(yaml.SafeLoader):
+class _MapYamlLoader(YamlCppWhitespace, yaml.SafeLoader):
     """PyYAML's safe loader, refusing an alias (`*name`) of a list or a mapping. PyYAML shares the
     aliased object, so nested aliases ("billion laughs") build in a few bytes a structure whose
     every walk (a `repr` in an error message, a comparison) visits 10**9 elements: it took a 600-byte
     map.yaml and 18 GB of the service's memory. An alias of a scalar costs nothing; map_server's
-    files have no aliases at all."""
+    files have no aliases at all. Tabs between tokens are whitespace, as map_server's yaml-cpp reads
+    them (`YamlCppWhitespace`)."""
 
     def compose_node(self, parent: yaml.Node | None, index: int) -> yaml.Node | None:
         if self.check_event(yaml.AliasEvent):

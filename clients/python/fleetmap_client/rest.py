@@ -77,8 +77,14 @@ from fleetmap.codec import encode_binary, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
+from fleetmap.yaml_whitespace import YamlCppWhitespace
 
 from .scan_arguments import checked_seq, checked_stamp
+
+
+class _TextLoader(YamlCppWhitespace, yaml.BaseLoader):
+    """PyYAML's BaseLoader (every value its text), reading tabs between tokens as map_server's
+    yaml-cpp and the server do: a map.yaml with one was "not valid YAML" here, and never sent."""
 
 
 def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
@@ -93,11 +99,11 @@ def nav2_files_zip(yaml_path: str | os.PathLike[str]) -> bytes:
     # yaml-cpp read them: written out again from PyYAML's types, `origin: [010, ...]` became octal
     # 8, and map_server reads 10. Text that looks like a number is written quoted, which both read
     # as that number. The first document only, as map_server's `YAML::LoadFile` reads it.
-    loader: yaml.BaseLoader | None = None
+    loader: _TextLoader | None = None
     try:
         # Made inside the `try`: it decodes the start of the file at once, and raises its
         # ReaderError there for bytes that are not UTF-8 (Latin-1) or for a control character.
-        loader = yaml.BaseLoader(text)
+        loader = _TextLoader(text)
         node = loader.get_node() if loader.check_node() else None
         doc = None if node is None else loader.construct_document(node)
     except (yaml.YAMLError, RecursionError) as exc:
