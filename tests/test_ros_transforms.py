@@ -174,6 +174,22 @@ def test_bad_samples_are_refused() -> None:
     assert buf.frames == 0 and buf.samples == 0
 
 
+def test_a_quaternion_tf2_takes_is_taken_normalised_and_one_it_refuses_is_refused() -> None:
+    """tf2 (`BufferCore::setTransform`) takes a rotation whose |q|^2 is within 0.01 of 1
+    (`QUATERNION_NORMALIZATION_TOLERANCE`, 10e-3) and refuses the others: a static transform written
+    by hand to two digits, `static_transform_publisher --qz 0.71 --qw 0.71` (|q|^2 = 1.0082), poses
+    the robot's laser in tf2, and was refused here (a tolerance of 0.001), leaving every scan of the
+    robot without TF. Taken, it is normalised: a quarter turn exactly."""
+    buf = TfBuffer()
+    buf.add(TransformStamped(0.0, "base_link", "laser", (1.0, 0.0, 0.0), (0.0, 0.0, 0.71, 0.71)), static=True)
+    t = buf.lookup("base_link", "laser", 0.0)
+    assert t.rotation == pytest.approx((0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)), abs=1e-12)
+    assert sensor_pose_2d(t).theta == pytest.approx(math.pi / 2, abs=1e-12)
+    for q in ((0.0, 0.0, 0.7, 0.7), (0.0, 0.0, 0.714, 0.714)):  # |q|^2 0.98 and 1.0196: tf2 refuses
+        with pytest.raises(TfError, match="unit quaternion"):
+            buf.add(TransformStamped(0.0, "base_link", "other", (0.0, 0.0, 0.0), q), static=True)
+
+
 def test_a_loop_is_an_error_not_a_hang() -> None:
     buf = TfBuffer()
     buf.add(TransformStamped(0.0, "a", "b", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)), static=True)

@@ -31,8 +31,11 @@ MAX_FRAMES = 256
 MAX_SAMPLES_PER_EDGE = 2000
 MAX_SAMPLES = 20_000
 MAX_FRAME_ID = 256
-#: How far from unit length a quaternion may be (|q|^2) before it is refused rather than normalised.
-QUATERNION_TOLERANCE = 1e-3
+#: How far from unit length a quaternion may be (|q|^2) and be taken, normalised: tf2's own bound
+#: (`QUATERNION_NORMALIZATION_TOLERANCE`, 10e-3, in `BufferCore::setTransform`), past which tf2 too
+#: refuses it. A tighter one refused transforms written by hand to two digits (`--qz 0.71 --qw 0.71`,
+#: |q|^2 = 1.0082), which tf2 takes: every scan of such a robot went without TF.
+QUATERNION_TOLERANCE = 10e-3
 #: A laser counts as level (or upside down) when its z axis is within this of the map's +z (or -z).
 LEVEL_TOLERANCE_DEG = 5.0
 
@@ -216,7 +219,7 @@ class TfBuffer:
             raise TfError(f"TF {parent} -> {child} is not finite")
         qx, qy, qz, qw = t.rotation
         n2 = qx * qx + qy * qy + qz * qz + qw * qw
-        if abs(n2 - 1.0) > QUATERNION_TOLERANCE:
+        if not abs(n2 - 1.0) < QUATERNION_TOLERANCE:  # as tf2: taken strictly within the bound
             raise TfError(f"TF {parent} -> {child} rotation is not a unit quaternion (|q|^2 = {n2:.6g})")
         n = math.sqrt(n2)
         values = (*t.translation, qx / n, qy / n, qz / n, qw / n)
