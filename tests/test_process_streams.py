@@ -100,6 +100,27 @@ def test_a_build_whose_stderr_reader_exited_still_writes_its_map(tmp_path: Path,
         assert done.stdout.decode().startswith("4 scans integrated (0 skipped)"), done.stdout
 
 
+@pytest.mark.parametrize("stderr", ["a pipe whose reader exited", "a full disk"])
+def test_an_error_a_command_cannot_say_still_exits_with_its_code(tmp_path: Path, stderr: str) -> None:
+    """A command's error line written to a stderr that cannot take it (its reader exited: `2>&1 |
+    head -0`; a full disk: `2>/dev/full`) raised out of the error's handling: a traceback no one saw
+    and exit 1, where a script tells a refusal (2) from a crash (1) by the code. The line goes
+    nowhere now, and the command exits 2 all the same."""
+    if stderr.startswith("a pipe"):
+        read_end, write_end = os.pipe()
+        os.close(read_end)  # the reader exited
+        sink = os.fdopen(write_end, "wb")
+    else:
+        sink = open("/dev/full", "wb")  # noqa: SIM115 - closed by the with below
+    with sink:
+        done = subprocess.run(
+            [*fleetmap_command(), "build", str(tmp_path / "missing.log"), "--out", str(tmp_path / "out")],
+            stdout=subprocess.PIPE, stderr=sink, timeout=120,
+        )  # fmt: skip
+    assert done.returncode == 2, done.returncode
+    assert not (tmp_path / "out").exists()
+
+
 def test_ctrl_c_stops_a_build_between_two_scans_in_one_line(tmp_path: Path) -> None:
     """Ctrl-C while `fleetmap build` integrates: the KeyboardInterrupt was raised inside a compiled
     kernel's call and came out as numba's SystemError ("returned a result with an exception set"),

@@ -45,7 +45,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         # Ctrl-C in the second or two the commands' modules (numba's among them) take to import
         # ended in the traceback of the import in progress; one line, as `run_command` says it.
-        print("fleetmap: interrupted", file=sys.stderr)
+        print("fleetmap: interrupted", file=DiagnosticStream(sys.stderr))
         return INTERRUPTED
     if HANGUPS.holding and not getattr(args, "takes_hangup", False):
         # A command that does not take SIGHUP (`takes_hangup`): its default action from now on,
@@ -99,10 +99,11 @@ def run_command(args: argparse.Namespace) -> int:
                 sys.stdout.flush()
     except CliError as exc:
         line = f"fleetmap {args.command}: error: {exc}"
-        print(plain_line(line, getattr(args, "log_format", "text"), logging.ERROR), file=sys.stderr)
+        level = logging.ERROR
+        print(plain_line(line, getattr(args, "log_format", "text"), level), file=DiagnosticStream(sys.stderr))
         return 2
     except KeyboardInterrupt:  # Ctrl-C where a command does not take it itself
-        print(f"fleetmap {args.command}: interrupted", file=sys.stderr)
+        print(f"fleetmap {args.command}: interrupted", file=DiagnosticStream(sys.stderr))
         return INTERRUPTED
     except BrokenPipeError:
         # `fleetmap build ... | head -1`, `fleetmap sim | grep -m1 ...`: the reader had what it
@@ -153,12 +154,14 @@ def _point_at_devnull(stream: TextIO) -> None:
 
 
 class DiagnosticStream:
-    """A command's stderr as its diagnostics (notices, the progress bar) are written to it: once its
-    reader has exited (`2>&1 | head -1`, a log reader that died), they go nowhere (`_point_at_devnull`)
-    instead of raising BrokenPipeError out of the command's work. `fleetmap build` ended so with exit
-    141 and without its map, the integration thrown away for a line no one would read. (Its result
-    goes to stdout, which says, by `STDOUT_GONE`, whether its reader was there.) Every other
-    attribute is the stream's (`encoding`, `fileno`, `isatty`: what tqdm asks of its file)."""
+    """A command's stderr as its diagnostics (notices, the progress bar, its error line) are written
+    to it: once it cannot take them (its reader has exited: `2>&1 | head -1`, a log reader that
+    died; a full disk: `2>/dev/full`), they go nowhere (`_point_at_devnull`) instead of raising out
+    of the command's work. `fleetmap build` ended so with exit 141 and without its map, the
+    integration thrown away for a line no one would read; an error line ended in a traceback and
+    exit 1 where the error's code is 2. (A command's result goes to stdout, which says, by
+    `STDOUT_GONE`, whether its reader was there.) Every other attribute is the stream's (`encoding`,
+    `fileno`, `isatty`: what tqdm asks of its file)."""
 
     def __init__(self, stream: TextIO) -> None:
         self._stream = stream
@@ -166,14 +169,14 @@ class DiagnosticStream:
     def write(self, text: str) -> int:
         try:
             return self._stream.write(text)
-        except BrokenPipeError:
+        except OSError:
             _point_at_devnull(self._stream)
             return len(text)
 
     def flush(self) -> None:
         try:
             self._stream.flush()
-        except BrokenPipeError:
+        except OSError:
             _point_at_devnull(self._stream)
 
     def __getattr__(self, name: str) -> Any:
