@@ -171,3 +171,33 @@ def test_a_stream_left_before_any_change_resumes_without_a_gap(service: ServiceP
         assert last_id is not None, "the stream gave the client no event id to resume from"
         event = first_tiles_event(c, "quiet", int(last_id))
         assert "reset" not in event and all(w in event["tiles"] for w in changed), (event, changed)
+
+
+def test_a_stream_resumed_from_long_ago_is_not_shared_with_streams_nearer_the_present(
+    service: ServiceProcess,
+) -> None:
+    """docs/api.md, events: the streams of a map share their `tiles` events, so one may name "a few
+    tiles the previous event named". A viewer resuming with an old `Last-Event-ID`, while the map's
+    last shared event was older still (no stream had been in step since: a map followed live by a
+    viewer that only opened after the last event), made an event of everything changed since its id
+    and left it for the others to share: a viewer resuming from just before the latest scan was
+    told of every tile changed since the first viewer's id too, and so was a live stream polling
+    between them, and refetched them all."""
+    with httpx.Client(base_url=service.base_url, timeout=30) as c:
+        assert c.put("/maps/shared", json={"tile_size": 16}).status_code == 201
+        long_ago = c.get("/maps/shared").json()["stats"]["version"]
+        for seq in range(1, 4):  # away: three scans far from where the last one lands
+            post_scan(c, "shared", "a", seq, -5.0 - seq, -5.0)
+        just_before = c.get("/maps/shared").json()["stats"]["version"]
+        scan = Scan.from_fan((5.0, 5.0, 0.0), -0.3, 0.05, [1.0] * 13, 0.0, 30.0)
+        r = c.post("/maps/shared/scans", params={"robot_id": "a"}, content=encode_json(scan, 4), headers=JSON)
+        assert r.status_code == 200 and r.json()["status"] == "integrated", r.text
+        latest = sorted(r.json()["changed_tiles"])
+        # A viewer follows the map live (its stream has polled once it sent the robots).
+        with c.stream("GET", "/maps/shared/events", timeout=10) as live:
+            lines = live.iter_lines()
+            assert any(line == "event: robots" for line in lines)
+            everything = first_tiles_event(c, "shared", long_ago)
+            assert set(map(tuple, latest)) < set(map(tuple, everything["tiles"])), everything
+            nearer = first_tiles_event(c, "shared", just_before)
+        assert sorted(nearer["tiles"]) == latest, (len(nearer["tiles"]), len(latest))

@@ -338,3 +338,32 @@ def test_a_stream_resumed_from_long_ago_does_not_share_its_event() -> None:
     # The live stream is told of the one tile changed since its last event.
     _, data = tiles_event(feed, live, 16)
     assert data is not None and json.loads(data)["tiles"] == [[144, 144, 160, 160]], data
+
+
+def test_a_stream_resumed_after_the_map_went_unwatched_does_not_share_its_event(monkeypatch: Any) -> None:
+    """The last event shared dates from when viewers last followed the map. A viewer that opens
+    later, and one resuming from back then (a laptop woken after the night), poll: the resumed one's
+    event of everything changed since started after that old shared one's start, so it was left
+    for sharing, and the live viewer, in step, was told of every tile the night changed (which it
+    had loaded fresh) instead of the one changed since it opened."""
+    import fleetmap.api.events as events
+    from fleetmap.change_feed import ChangeFeed
+
+    clock = [1000.0]
+    monkeypatch.setattr(events.time, "monotonic", lambda: clock[0])
+    feed = ChangeFeed(start=100)
+    evening = feed.version
+    for tile in [(0, 0), (1, 0)]:  # the evening's viewer follows the map, poll by poll
+        feed.record([tile])
+        evening, data = events.tiles_event(feed, evening, 16)
+        assert data is not None
+    for tile in [(2, 0), (3, 0), (4, 0)]:  # the night: nobody watches
+        feed.record([tile])
+    clock[0] += 8 * 3600
+    live, data = events.tiles_event(feed, feed.version, 16)  # a viewer opens in the morning
+    assert data is None
+    feed.record([(9, 9)])
+    _, data = events.tiles_event(feed, evening, 16)  # the evening's viewer wakes up: the night
+    assert data is not None and len(json.loads(data)["tiles"]) == 4
+    _, data = events.tiles_event(feed, live, 16)
+    assert data is not None and json.loads(data)["tiles"] == [[144, 144, 160, 160]], data

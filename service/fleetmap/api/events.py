@@ -142,9 +142,18 @@ def _successor(maps: dict[str, MapEntry], entry: MapEntry) -> MapEntry | None:
     return follow
 
 
-#: Per change feed, the last `tiles` event a stream made of it: (from version, to version, its data).
-#: Only the event loop reads and writes it.
-_last_tiles: weakref.WeakKeyDictionary[ChangeFeed, tuple[int, int, str]] = weakref.WeakKeyDictionary()
+#: Per change feed, the last `tiles` event a stream made of it for the others to share: (from version,
+#: to version, its data, when it was made: `time.monotonic()`). Only the event loop reads and writes
+#: it, and `_fronts`.
+_last_tiles: weakref.WeakKeyDictionary[ChangeFeed, tuple[int, int, str, float]] = weakref.WeakKeyDictionary()
+#: Per change feed, the newest version one of its streams stands at (it sent everything up to it, or
+#: started from it): no stream of the map is ahead of it.
+_fronts: weakref.WeakKeyDictionary[ChangeFeed, int] = weakref.WeakKeyDictionary()
+
+#: Seconds for which the last shared event shows where the streams in step stand. They poll every
+#: `ApiSettings.events_period` (0.1 s), and each change makes one; an older one dates from before a
+#: quiet spell, or from before the map's viewers last left, and says nothing of the streams now.
+SHARED_EVENT_CURRENT_FOR = 1.0
 
 
 def tiles_event(feed: ChangeFeed, version: int, tile_size: int) -> tuple[int, str | None]:
@@ -157,13 +166,19 @@ def tiles_event(feed: ChangeFeed, version: int, tile_size: int) -> tuple[int, st
     and gets 304s. Each stream made its own before, the same work once per viewer: 100 streams of a
     map that 200 robots change took 73 ms of the event loop per 100 ms poll. A stream behind or ahead
     of that event makes its own, which the others then share: streams fall into step within a poll.
-    A version bump that changed no tile is not news (None). An event made by a stream behind the
-    shared one's start is that stream's alone: shared, it would tell the streams in step of
-    everything changed since that stream's (maybe old) version."""
+    A version bump that changed no tile is not news (None).
+
+    An event is left for sharing only when it starts where the streams in step could be: at or past
+    every stream's version (`_fronts`), or, while the last shared event is current (made within
+    `SHARED_EVENT_CURRENT_FOR`), no earlier than its start. Else it is its stream's alone: made by a
+    stream resuming from an old version, shared, it told every stream in step of everything changed
+    since that version, and every viewer of the map asked again for every one of those tiles."""
     last = _last_tiles.get(feed)
     if last is not None and last[0] <= version < last[1]:
         return last[1], last[2]
+    front = _fronts.get(feed, version)  # (a feed's first stream stands at the front)
     batch = feed.since(version)
+    _fronts[feed] = max(front, batch.version)
     if batch.version == version:
         return version, None
     if batch.reset:
@@ -173,12 +188,15 @@ def tiles_event(feed: ChangeFeed, version: int, tile_size: int) -> tuple[int, st
     data = TilesEvent(version=batch.version, tiles=tile_windows(batch.tiles, tile_size)).model_dump_json(
         exclude_none=True
     )
-    if last is None or version >= last[0]:
-        # Shared only when it starts no earlier than the event the others share. A stream behind it
-        # (a viewer resuming with a `Last-Event-ID` from minutes ago) makes an event of everything
-        # changed since then; shared, every stream in step sent it too, and every viewer of the map
-        # asked again for every tile of those minutes, all of which it had.
-        _last_tiles[feed] = (version, batch.version, data)
+    now = time.monotonic()
+    # Behind the front, the shared event's start tells whether this stream is nearly in step: streams
+    # that poll in step but a scan apart share the next one, and so fall into step. Not once it is
+    # old: a viewer resuming with a `Last-Event-ID` from the evening found the evening's shared event
+    # there, started after it, and its event of the night's changes went to a viewer opened in the
+    # morning, in step, which had loaded those tiles fresh.
+    current = last is not None and now - last[3] <= SHARED_EVENT_CURRENT_FOR and version >= last[0]
+    if version >= front or current:
+        _last_tiles[feed] = (version, batch.version, data, now)
     return batch.version, data
 
 
