@@ -599,3 +599,43 @@ def test_the_reduced_cache_counts_what_each_block_holds_beside_its_cells() -> No
             tracemalloc.stop()
         assert held <= cache.max_bytes, (side, held)
         assert cache.nbytes <= cache.max_bytes
+
+
+def test_tile_versions_read_while_the_map_grows_are_never_torn() -> None:
+    """`tile_version` reads a big window's storage tiles lock-free (a revalidation or a cache hit, on
+    the event loop) while a render in the thread pool extends the index of the store's keys, which a
+    scan grew. The index's key and slot arrays were extended one after the other on one shared
+    object, so a reader between two of them compared arrays of two lengths: a 500 (`operands could
+    not be broadcast together`) on a zoomed-out tile of a map robots were extending."""
+    import sys
+
+    gmap = GridMap(MapConfig(resolution=RES, tile_size=16, max_tiles=200_000, layers=("occupancy",)))
+    store = gmap.store
+    failures: list[BaseException] = []
+    done = threading.Event()
+
+    def grow() -> None:
+        try:
+            for n in range(3000):
+                with gmap.lock:
+                    store.create([(n % 60, n // 60)])
+                tile_version(gmap, -4, 0, -1)  # extends the index, as a render does
+        finally:
+            done.set()
+
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as the interpreter allows
+    try:
+        writer = threading.Thread(target=grow)
+        writer.start()
+        while not done.is_set():
+            try:
+                tile_version(gmap, -4, 0, -1)  # 4096 cells a side: the key index, not probes
+            except Exception as exc:  # noqa: BLE001 - the failure is what the test looks for
+                failures.append(exc)
+                break
+        writer.join()
+    finally:
+        sys.setswitchinterval(interval)
+    assert not failures, failures
+    assert tile_version(gmap, -4, 0, -1) == int(store.versions[: len(store.keys)].max())

@@ -26,16 +26,23 @@ from fleetmap.tiles import TileStore
 # -- which storage tiles lie under a window ------------------------------------------------------------
 
 
+@dataclass(frozen=True)
 class _KeyIndex:
-    """The keys and slots of a store's tiles as arrays, for vectorised window queries over many
-    storage tiles. Tiles are only ever added to a `TileStore` (`keys` grows, `slots` gains entries), so
-    the index is extended with the new keys instead of rebuilt."""
+    """The keys and slots of a store's first `count` tiles as arrays, for vectorised window queries
+    over many storage tiles. Tiles are only ever added to a `TileStore` (`keys` grows, `slots` gains
+    entries), so a newer index extends the last one's arrays instead of building them anew.
 
-    def __init__(self) -> None:
-        self.count = 0
-        self.ti = np.zeros(0, dtype=np.int64)
-        self.tj = np.zeros(0, dtype=np.int64)
-        self.slot = np.zeros(0, dtype=np.int64)
+    Never changed once made: readers use it without the lock while another thread makes the next
+    one (a revalidation on the event loop, a render in the thread pool). Extended in place, array
+    after array, a reader between two of them compared arrays of two lengths (a 500)."""
+
+    count: int
+    ti: np.ndarray
+    tj: np.ndarray
+    slot: np.ndarray
+
+
+_NO_KEYS = _KeyIndex(0, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
 
 _key_indexes: weakref.WeakKeyDictionary[TileStore, _KeyIndex] = weakref.WeakKeyDictionary()
@@ -58,23 +65,23 @@ def _store_token(store: TileStore) -> int:
 
 
 def _key_index(store: TileStore) -> _KeyIndex:
+    """The index of `store`'s tiles as they are now: the last one made, or a new one extending it
+    (kept for the next call) when tiles were added since."""
     with _index_lock:
-        index = _key_indexes.get(store)
-        if index is None:
-            index = _key_indexes[store] = _KeyIndex()
+        index = _key_indexes.get(store, _NO_KEYS)
         # Read the length first: TileStore.create inserts a key into `slots` before appending it to
         # `keys`, so every key in keys[:n] has its slot even while a writer is creating tiles.
         keys = store.keys
         n = len(keys)
         if n > index.count:
             new = keys[index.count : n]
-            index.ti = np.concatenate([index.ti, np.fromiter((k[0] for k in new), np.int64, len(new))])
-            index.tj = np.concatenate([index.tj, np.fromiter((k[1] for k in new), np.int64, len(new))])
             slots = store.slots
-            index.slot = np.concatenate(
-                [index.slot, np.fromiter((slots[k] for k in new), np.int64, len(new))]
+            index = _key_indexes[store] = _KeyIndex(
+                n,
+                np.concatenate([index.ti, np.fromiter((k[0] for k in new), np.int64, len(new))]),
+                np.concatenate([index.tj, np.fromiter((k[1] for k in new), np.int64, len(new))]),
+                np.concatenate([index.slot, np.fromiter((slots[k] for k in new), np.int64, len(new))]),
             )
-            index.count = n
         return index
 
 
