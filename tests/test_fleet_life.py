@@ -265,6 +265,31 @@ def test_three_robots_under_one_robot_id_count_two_conflicts_however_they_are_fo
         assert robot_metric(http, "fleetmap_robot_id_conflicts_total", map_id, "r") == 2.0
 
 
+def test_more_robots_under_one_robot_id_than_sessions_remembered_are_still_a_conflict(
+    service: ServiceProcess,
+) -> None:
+    """Ten robots under one id (a fleet started from one image with its default id), more than the 8
+    sessions a robot's bookkeeping holds: each session was pushed out before it came back, so each
+    of its scans looked like a new session, a restart whose seqs before it were lost. The service
+    counted 180 restarts and a `lost` of 20,000 scans, and showed no conflict at all. A session
+    pushed out is still known when it comes back: the ten count 9 conflicts, nothing lost or
+    restarted, every scan integrated, and a copy of a scan of theirs is a duplicate."""
+    robots = 10
+    with raw_publishers(service.zenoh_endpoint, "life-ten", ["r"]) as pubs:
+        for seq in range(1000, 1020):
+            for session in range(1, robots + 1):
+                pubs["r"].put(codec.encode_binary(scan_at(0.01 * seq), seq, float(seq), session=session))
+        pubs["r"].put(codec.encode_binary(scan_at(0.0), 1010, 1010.0, session=1))  # a copy
+        with httpx.Client(base_url=service.base_url, timeout=10.0) as http:
+            stats = wait_for(
+                lambda: (s := robot_stats(http, "life-ten", "r"))
+                and s["scans_integrated"] + s["duplicates"] == 20 * robots + 1 and s,
+                timeout=20, what="every scan and the copy counted",
+            )  # fmt: skip
+            assert counters(stats) == (20 * robots, 1019, 0, 1, 0)
+            assert stats["id_conflict"] is True and stats["id_conflicts"] == robots - 1
+
+
 def test_lost_goes_down_when_a_gap_was_another_robots_so_it_is_a_gauge(http: httpx.Client) -> None:
     """A robot's `lost` counts a gap once a later seq arrives, and takes it back when the "gap" turns
     out to be another robot publishing under the id. It was the counter fleetmap_scans_lost_total,

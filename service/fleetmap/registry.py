@@ -787,7 +787,8 @@ class MapRegistry:
             seq, stamp, session = wire.seq, wire.stamp, wire.session
             if robot.is_duplicate(seq, stamp, session):
                 robot.duplicates += 1
-                seqs = robot.sessions[session_key(session)]
+                seqs = robot.session_seqs(session)
+                assert seqs is not None  # a duplicate of a session it knows (perhaps pushed out)
                 seqs.ledger.duplicates += 1
                 raise IngestRejected(f"duplicate seq {seq} (last accepted {seqs.last_seq})", 200)
             # Recorded before the queue is tried so a dropped scan is not also counted as lost.
@@ -921,7 +922,9 @@ class MapRegistry:
                 seq, stamp, session = scan_id
                 if robot.is_duplicate(seq, stamp, session):
                     robot.duplicates += 1
-                    robot.sessions[session_key(session)].ledger.duplicates += 1
+                    seqs = robot.session_seqs(session)
+                    assert seqs is not None  # a duplicate of a session it knows (perhaps pushed out)
+                    seqs.ledger.duplicates += 1
                     return
                 robot.accept(seq, stamp, session, now)
                 ledger = robot.sessions[session_key(session)].ledger
