@@ -290,6 +290,28 @@ def test_more_robots_under_one_robot_id_than_sessions_remembered_are_still_a_con
             assert stats["id_conflict"] is True and stats["id_conflicts"] == robots - 1
 
 
+def test_each_of_more_robots_under_one_robot_id_than_sessions_listed_has_its_scans_confirmed(
+    service: ServiceProcess,
+) -> None:
+    """Ten robots under one id flush: the delivery query lists a robot's 8 recent sessions, and the
+    two pushed out of those by the others were not found when asked for by their session id, so
+    those robots' flushes said none of their scans was counted. Asked for by its id, a session
+    pushed out is answered too."""
+    robots = [ScanPublisher("life-ten-flush", "r", connect=service.zenoh_endpoint) for _ in range(10)]
+    try:
+        for pub in robots:
+            assert pub.wait_connected(15)
+        for k in range(5):
+            for pub in robots:
+                assert pub.publish(scan_at(0.1 * k))
+        reports = [pub.flush(30) for pub in robots]
+        assert [report.summary() for report in reports] == ["5 scans published, 5 integrated"] * 10
+        assert all(report.confirmed for report in reports)
+    finally:
+        for pub in robots:
+            pub.close()
+
+
 def test_lost_goes_down_when_a_gap_was_another_robots_so_it_is_a_gauge(http: httpx.Client) -> None:
     """A robot's `lost` counts a gap once a later seq arrives, and takes it back when the "gap" turns
     out to be another robot publishing under the id. It was the counter fleetmap_scans_lost_total,

@@ -11,6 +11,7 @@ asks for it (docs/protocol.md, "Delivery confirmation"); `ZenohIngest._on_delive
 from __future__ import annotations
 
 from array import array
+from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 from fleetmap.robot_state import LEDGER_HISTORY, MAX_SESSIONS, SessionSeqs, pairs
@@ -24,8 +25,9 @@ def delivery_status(
     registry: MapRegistry, map_id: str, robot_id: str, session: int | None = None
 ) -> DeliveryStatus:
     """What became of robot `robot_id`'s scans on map `map_id` (the Zenoh delivery query's
-    answer): its counters and, per publisher session it remembers (only `session` if given:
-    its session id, 0 for scans without one), its ledger; and the sessions whose scans went with
+    answer): its counters and, per recent publisher session (only `session` if given: its
+    session id, 0 for scans without one, which may also be one pushed out of the recent ones),
+    its ledger; and the sessions whose scans went with
     a deleted or replaced map of this id (`Tombstones`), so that a robot stops waiting for them.
     Not those of a robot the map merely forgot (`Tombstone.forgotten`): its scans are in the map.
     Its scans refused before it was on the map (for want of the map, or of room on it) are in its
@@ -50,9 +52,14 @@ def delivery_status(
                 map_id=map_id, robot_id=robot_id, status="no_map" if entry is None else "no_robot",
                 buried=buried, sessions=refused, last_error=last_refusal,
             )  # fmt: skip
+        # Asked for by its id, a session pushed out of the recent ones (more robots under one id
+        # than they hold) is answered too: else its robot's flush found none of its scans counted.
+        sessions: Iterable[tuple[int, SessionSeqs]] = robot.sessions.items()
+        if session is not None and (pushed_out := robot.pushed_out.get(session)) is not None:
+            sessions = [(session, pushed_out)]
         rows = [
             _session_row(key, seqs)
-            for key, seqs in robot.sessions.items()
+            for key, seqs in sessions
             if seqs.ledger.first_seq is not None and (session is None or key == session)
         ]
         counters = (robot.unsettled, robot.scans_integrated, robot.lost, robot.dropped, robot.duplicates)

@@ -23,8 +23,9 @@ MAX_SESSIONS = 8
 #: from one image with its default id) are an id conflict: each session was pushed out by the others
 #: before it came back, and taken for a new session each time (a restart, its seqs before it lost:
 #: nine robots counted 180 restarts and 180,000 lost in 20 scans each, and no conflict): so up to
-#: 16 robots under one id are told apart. Not saved, and not listed by the delivery query; each
-#: keeps its ledger's counts, not its lists: about 1.6 kB (tracemalloc), 13 kB for all 8.
+#: 16 robots under one id are told apart. Not saved, and listed by the delivery query only when
+#: asked for by its id (a flush); each keeps its ledger's counts, not its lists: about 1.6 kB
+#: (tracemalloc), 13 kB for all 8.
 MAX_SESSIONS_PUSHED_OUT = 8
 #: Seconds a robot is shown in an id conflict (`RobotState.in_conflict`) after its last scan that
 #: interleaved with another session's.
@@ -355,6 +356,7 @@ class RobotState:
     #: out first, at most MAX_SESSIONS_PUSHED_OUT: one that comes back ran beside those heard since
     #: (an id conflict), it did not restart. Not saved: after a restart of the service, one such
     #: session is taken for a restart once more, until another pushed out since comes back.
+    #: The delivery query answers for one asked for by its id (`delivery.delivery_status`).
     pushed_out: dict[int, SessionSeqs] = field(default_factory=dict, repr=False)
     accepted: int = 0  # scans accepted (the clock of the sessions' `first_scan_no`, `last_scan_no`)
     #: Sessions found interleaved with another session's, the first two of a conflict counting once
