@@ -13,6 +13,8 @@ import sqlite3
 import threading
 from pathlib import Path
 
+from fleetmap.wal_check import damaged_commits
+
 DB_NAME = "fleetmap.db"
 #: Held locked (a POSIX record lock) by the service that uses the data directory.
 LOCK_NAME = "fleetmap.lock"
@@ -291,6 +293,7 @@ def _check_and_create(data_dir: Path) -> Path:
     _refuse_unwritable(path)
     try:
         _refuse_orphaned_wal(path)
+        _refuse_damaged_wal(path)
         _refuse_unknown_layout(path)
         conn = connect(path)
         try:
@@ -357,6 +360,26 @@ def _refuse_orphaned_wal(path: Path) -> None:
             f"the map database {path} is {state}, but its write-ahead log {wal} holds {wal_size} bytes of "
             "its latest changes: the database file was deleted or moved. Put it back beside the log, "
             "or move the directory aside to start with no maps (this start would drop the log)"
+        )
+
+
+def _refuse_damaged_wal(path: Path) -> None:
+    """Raise `StorageError` if the write-ahead log beside the database at `path` is damaged so that
+    SQLite would drop committed transactions (`wal_check.damaged_commits`): it ends the log at the
+    first bad frame without an error, so the service started on what was left, acknowledged scans of
+    every map after that frame gone. Checked before any connection: the first one to close
+    checkpoints what SQLite recovered and deletes the log, with what it dropped."""
+    wal = wal_path(path)
+    try:
+        lost = damaged_commits(wal)
+    except OSError:  # none (the usual case), or unreadable: SQLite says so next, more precisely
+        return
+    if lost:
+        raise StorageError(
+            f"the write-ahead log {wal} of the map database is damaged: at least {lost} committed "
+            "transaction(s) after the damage would be dropped (a crash never leaves that). Restore the "
+            "data directory from a backup; or, to keep only what precedes the damage, open "
+            f"{path} once with the sqlite3 shell (it keeps the readable part of the log) and start again"
         )
 
 
