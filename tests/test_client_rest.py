@@ -17,6 +17,7 @@ import multiprocessing
 import os
 import pickle
 import re
+import sqlite3
 import threading
 import time
 import zipfile
@@ -38,6 +39,7 @@ from service_process import REPO_DIR, FreezableProxy, ServiceProcess, free_port,
 from fleetmap.api_models import ReplacedEvent
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig
+from fleetmap.database import DB_NAME
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import STATE_NAMES, GridMap
 from fleetmap.scan import Scan
@@ -1337,3 +1339,26 @@ def test_replay_command_into_the_service(
     assert (state.last_pose.x, state.last_pose.y, state.last_pose.theta) == pytest.approx(
         (last.x, last.y, last.theta)
     )
+
+
+def test_a_map_stored_before_todays_configuration_limits_is_read(tmp_path: Path, scans: list[Scan]) -> None:
+    """A map stored before a configuration limit existed keeps loading in the service, with its
+    configuration as it was (test_persistence.test_a_stored_configuration_past_todays_limits_still_loads),
+    and `GET /maps/{id}` answers it. The client validated that configuration as a new one, and so
+    raised for such a map "answered application/json, not a MapInfo ...: is it a fleetmap service,
+    of this version?": an upgraded service's maps could no longer be read with the client."""
+    data_dir = tmp_path / "data"
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data_dir)])
+    with svc, FleetmapClient(svc.base_url, timeout=20.0) as fm:
+        fm.create_map("old", {**CONFIG.model_dump(), "tsdf": {"truncation": 0.3}})
+        fm.post_scan("old", "r1", scans[0])
+    with sqlite3.connect(data_dir / DB_NAME) as conn:  # what an older version could store
+        stored = json.loads(conn.execute("SELECT config FROM maps WHERE id = 'old'").fetchone()[0])
+        stored["tsdf"]["truncation"] = 40.0  # more than 256 cells of 0.1 m: refused since
+        stored["occupancy"]["occupied_thresh"] = 0.99  # past the clamp (p_max 0.97): refused since
+        conn.execute("UPDATE maps SET config = ? WHERE id = 'old'", (json.dumps(stored),))
+    with svc, FleetmapClient(svc.base_url, timeout=20.0) as fm:
+        info = fm.get_map("old")
+        assert info.config.tsdf.truncation == 40.0 and info.config.occupancy.occupied_thresh == 0.99
+        assert info.stats.scans_integrated == 1
+        assert fm.get_map_and_etag("old")[0] == info

@@ -74,7 +74,7 @@ from fleetmap.cell_queries import (
     real_number,
 )
 from fleetmap.codec import encode_binary, encode_json
-from fleetmap.config import MapConfig
+from fleetmap.config import STORED_CONFIG, MapConfig
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
 from fleetmap.yaml_whitespace import YamlCppWhitespace
@@ -1227,9 +1227,12 @@ def _bytes_of(response: httpx.Response, media_type: str, expected: str) -> bytes
 
 def _read(model: type[_Model], response: httpx.Response) -> _Model:
     """`response`'s JSON body as `model`; `FleetmapError` (of the answer's status) when it is not
-    one, naming what came instead."""
+    one, naming what came instead. A map configuration in it is read as a stored one
+    (`STORED_CONFIG`): it is that of a map the service holds, perhaps since before one of today's
+    limits, which the service keeps loading and answering; validated as a new configuration, such a
+    map could not be read ("not a MapInfo ...: is it a fleetmap service, of this version?")."""
     try:
-        return model.model_validate_json(response.content)
+        return model.model_validate_json(response.content, context={STORED_CONFIG: True})
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(part) for part in first["loc"])
