@@ -38,7 +38,7 @@ from service_process import REPO_DIR, FreezableProxy, ServiceProcess, free_port,
 
 from fleetmap.api_models import ReplacedEvent
 from fleetmap.codec import decode, encode_binary, encode_json
-from fleetmap.config import MapConfig
+from fleetmap.config import MapConfig, OccupancyParams, TsdfParams
 from fleetmap.database import DB_NAME
 from fleetmap.datasets import load_dataset
 from fleetmap.grid_map import STATE_NAMES, GridMap
@@ -884,6 +884,21 @@ def test_numpy_values_in_a_configuration_or_a_dict_scan(client: FleetmapClient, 
     assert client.post_scan("numpy-values", "r1", scans[1]).seq == 4  # the automatic seq went on
     robot = client.get_map("numpy-values").stats.robots["r1"]
     assert (robot.scans_integrated, robot.scans_rejected, robot.lost) == (2, 0, 0)
+
+
+def test_a_configuration_dict_holding_the_engines_parameter_models(client: FleetmapClient) -> None:
+    """`create_map` takes a configuration as a `MapConfig` or a dict, and `MapConfig` takes its
+    sections as the engine's models (`{"occupancy": OccupancyParams(preset="int8")}`): such a dict
+    raised json's "Object of type OccupancyParams is not JSON serializable". Each is sent as the
+    values it holds, and the map is the one the same dict makes in the engine."""
+    config = {
+        "resolution": 0.1,
+        "occupancy": OccupancyParams(preset="int8"),
+        "tsdf": TsdfParams(truncation=0.3),
+    }
+    info = client.create_map("engine-sections", config)
+    assert info.config == MapConfig.model_validate(config)
+    assert client.create_map("engine-sections", config).config == info.config  # the same: 200
 
 
 def test_tiles_with_etags(client: FleetmapClient, scans: list[Scan]) -> None:

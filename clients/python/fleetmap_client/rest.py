@@ -1298,15 +1298,19 @@ def _scan_body(
 def _json(value: Any) -> bytes:
     """`value` as compact JSON, NumPy scalars and arrays in it as the numbers and lists they hold
     (a configuration's `np.int64` tile size, a dict scan's ranges as an array), which json refused
-    ("Object of type int64 is not JSON serializable"); NaN and infinities as the literals the
-    service reads."""
+    ("Object of type int64 is not JSON serializable"), and pydantic models in it as the values they
+    hold (a configuration dict's `OccupancyParams`, as `MapConfig` takes it); NaN and infinities as
+    the literals the service reads."""
     return json.dumps(value, separators=(",", ":"), default=_plain).encode()
 
 
 def _plain(value: Any) -> Any:
-    """`json.dumps`' `default` for `_json`: a NumPy scalar or array as its Python value."""
+    """`json.dumps`' `default` for `_json`: a NumPy scalar or array as its Python value, a pydantic
+    model as its JSON form (a `MapConfig` section's resolved values, as the model itself is sent)."""
     if isinstance(value, np.generic | np.ndarray):
         return value.tolist()
+    if isinstance(value, BaseModel):
+        return value.model_dump(mode="json")
     raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
 
 
