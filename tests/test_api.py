@@ -161,6 +161,39 @@ def test_a_preset_and_its_values_written_out_are_the_same_configuration(api: Run
     assert c.get("/maps/preset").json()["config"] == made.json()["config"]
 
 
+def test_a_conflicting_configuration_is_refused_naming_what_differs(api: RunningApi) -> None:
+    """A `PUT` of another configuration than the map's is a 409 that says which fields differ, and
+    how: it said only "exists with a different configuration", and the difference may be invisible
+    in the body sent (`{}` against a map a robot's scan made with the server's `--config`, a p_hit
+    whose log-odds differ from the map's in the 16th digit). The preset's name and the order of the
+    layers, which make no other map, are not differences."""
+    c = api.client
+    made = c.put(
+        "/maps/differs",
+        json={"resolution": 0.1, "layers": ["tsdf", "occupancy"], "occupancy": {"preset": "int8"}},
+    )
+    assert made.status_code == 201, made.text
+    other = {
+        "resolution": 0.2,
+        "layers": ["occupancy", "tsdf"],
+        "occupancy": {"preset": "coursera", "l_hit": 9.0, "l_miss": -9.0, "l_min": -128.0, "l_max": 100.0},
+        "tsdf": {"max_weight": 5.0},
+    }
+    r = c.put("/maps/differs", json=other)
+    assert r.status_code == 409, r.text
+    detail = r.json()["detail"]
+    assert "different configuration" in detail
+    for difference in (
+        "resolution 0.1, not 0.2",
+        "occupancy.l_max 127.0, not 100.0",
+        "tsdf.max_weight 1000.0, not 5.0",
+    ):
+        assert difference in detail, (difference, detail)
+    assert "layers" not in detail and "preset" not in detail and "l_hit" not in detail, detail
+    r = c.put("/maps/differs", json={"resolution": 0.1, "layers": ["tsdf"], "occupancy": {"preset": "int8"}})
+    assert r.status_code == 409 and "layers ['tsdf', 'occupancy'], not ['tsdf']" in r.json()["detail"], r.text
+
+
 def test_an_invalid_configuration_is_located_at_its_fields(api: RunningApi) -> None:
     """Each problem of a configuration is located (`errors[].loc`) at the field at fault, as pydantic
     locates a bad type or range, and all are listed: a tile size that is not a power of two, no or

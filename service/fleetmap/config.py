@@ -222,7 +222,7 @@ class OccupancyParams(BaseModel):
         equal. The `preset` only names where the values not given explicitly came from: once they
         are resolved (`l_*`), it changes no cell, so `{"preset": "int8"}` is the same as int8's four
         values written out under any preset name."""
-        return self.model_copy(update={"preset": other.preset}) == other
+        return not _differences("", self, other)
 
     def resolved(self) -> tuple[float, float, float, float]:
         """(l_hit, l_miss, l_min, l_max) in use: validation resolved all four (never None after it)."""
@@ -230,6 +230,21 @@ class OccupancyParams(BaseModel):
         if hit is None or miss is None or lo is None or hi is None:  # made by model_construct
             raise ValueError("occupancy parameters that were not validated have no log-odds")
         return hit, miss, lo, hi
+
+
+#: Fields of a configuration's sections that make no other map: an occupancy `preset` only names
+#: where the values not given came from (`OccupancyParams.same_params_as`).
+_NAMING_FIELDS = frozenset({"preset"})
+
+
+def _differences(prefix: str, mine: BaseModel, theirs: BaseModel) -> list[str]:
+    """`mine`'s fields whose value `theirs` does not share, but those in _NAMING_FIELDS, each as
+    `<prefix><field> <mine>, not <theirs>`."""
+    return [
+        f"{prefix}{name} {getattr(mine, name)!r}, not {getattr(theirs, name)!r}"
+        for name in type(mine).model_fields
+        if name not in _NAMING_FIELDS and getattr(mine, name) != getattr(theirs, name)
+    ]
 
 
 def _as_stored(past_in_double: bool, stored: float) -> str:
@@ -435,11 +450,25 @@ class MapConfig(BaseModel):
         cells as `["occupancy", "tsdf"]`), and a list built from a set has any order; a preset's
         name only says where values came from (a map of the `int8` preset is the map of its values
         written out: compared by the name too, a `PUT` of them was a 409)."""
-        return (
-            set(self.layers) == set(other.layers)
-            and self.occupancy.same_params_as(other.occupancy)
-            and self.model_copy(update={"layers": other.layers, "occupancy": other.occupancy}) == other
-        )
+        return not self.differences(other)
+
+    def differences(self, other: MapConfig) -> list[str]:
+        """How `other` configures another map than this one (`same_map_as`): for each field that
+        differs, `<field> <this value>, not <other's>`, a section's fields dotted
+        (`occupancy.l_hit 9.0, not 8.0`); none for the same map. A 409 for another configuration
+        said only that it differed, where the difference may not be in the body sent (`{}` against
+        a map a robot's scan made with the server's `--config`)."""
+        found: list[str] = []
+        for name in type(self).model_fields:
+            mine, theirs = getattr(self, name), getattr(other, name)
+            if isinstance(mine, BaseModel) and isinstance(theirs, BaseModel):
+                found += _differences(f"{name}.", mine, theirs)
+            elif name == "layers":
+                if set(mine) != set(theirs):  # a set: the order is only the one a map lists them in
+                    found.append(f"layers {list(mine)!r}, not {list(theirs)!r}")
+            elif mine != theirs:
+                found.append(f"{name} {mine!r}, not {theirs!r}")
+        return found
 
     @property
     def has_cell_layers(self) -> bool:

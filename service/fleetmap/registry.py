@@ -474,9 +474,11 @@ class MapRegistry:
                 tile = slot_bytes(given.tile_size, layer_arrays(given.layers))
                 self.memory_budget.check_tile(tile, f"map {map_id!r} was not made")
             if existing is not None:
-                if not existing.config.same_map_as(config):
+                differences = existing.config.differences(config)
+                if differences:
                     raise MapConflict(
-                        f"map {map_id!r} exists with a different configuration; delete it first"
+                        f"map {map_id!r} exists with a different configuration (the map's "
+                        f"{'; '.join(differences)}); delete it first"
                     )
                 existing.provisional = False  # asked for by name: it stays even if its scans are refused
                 if wait and self.durable is not None:

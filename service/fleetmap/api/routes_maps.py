@@ -70,7 +70,7 @@ def put_map(
 ) -> MapInfo:
     """Creates the map (201, with its `Location`), answering once it is stored (with durable
     storage). If it exists with the same configuration, nothing changes (200); with a different one,
-    409: delete it first.
+    409, naming each field that differs (the map's value first): delete it first.
     Configurations compare after defaults and presets are resolved, so `{}` equals the defaults
     written out, and `layers` in any order. 503: the map was created but could not be stored; the
     service retries, and the same PUT answers 200 once it is stored. `If-None-Match: *`: create
