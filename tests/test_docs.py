@@ -16,6 +16,7 @@ import argparse
 import ast
 import importlib
 import itertools
+import json
 import os
 import re
 import subprocess
@@ -462,3 +463,38 @@ def test_the_api_settings_table_gives_every_field_its_default() -> None:
                 wrong.append(f"{name}: the table says {value.strip()}, the default is {defaults[name]!r}")
     assert checked >= 18, checked  # the pattern still reads the numbers of the table
     assert not wrong, "docs/api.md, Limits and settings:\n" + "\n".join(wrong)
+
+
+def test_the_map_configuration_table_gives_every_field_its_default() -> None:
+    """docs/api.md's table of `PUT /maps/{map_id}`'s body is where a configuration is looked up:
+    every field of `MapConfig` has a row, and each default written as a number or a JSON object of
+    numbers is the field's. `beam` had no row: its parameters' defaults and limits were nowhere."""
+    from fleetmap.config import MapConfig
+
+    text = API_DOC.read_text(encoding="utf-8")
+    start = text.index("### `PUT /maps/{map_id}`")
+    table = text[text.index("| field | default | meaning |", start) :].split("\n\n", 1)[0]
+    rows = dict(re.findall(r"^\| `(\w+)` \| ([^|]*) \|", table, re.M))
+    assert sorted(rows) == sorted(MapConfig.model_fields), (
+        f"fields {sorted(set(rows) ^ set(MapConfig.model_fields))}"
+    )
+    defaults = MapConfig()
+    checked, wrong = 0, []
+    for name, written in rows.items():
+        value = getattr(defaults, name)
+        shown = written.strip().strip("`")
+        try:
+            given = json.loads(shown)
+        except ValueError:
+            continue
+        if isinstance(given, dict):
+            if any(not isinstance(v, int | float) for v in given.values()):
+                continue
+            actual: object = {k: getattr(value, k) for k in given}
+        else:
+            actual = value
+        checked += 1
+        if given != actual:
+            wrong.append(f"{name}: the table says {shown}, the default is {actual!r}")
+    assert checked >= 6, checked  # the pattern still reads the table
+    assert not wrong, "docs/api.md, PUT /maps/{map_id}:\n" + "\n".join(wrong)
