@@ -1356,24 +1356,58 @@ def test_replay_command_into_the_service(
     )
 
 
+def service_with_a_map_past_todays_limits(tmp_path: Path, scans: list[Scan]) -> ServiceProcess:
+    """A stopped service whose data directory holds map `old` (one scan) with a configuration an
+    older version could store, past two of today's limits (`OLD_LIMITS`), as it stores it."""
+    data_dir = tmp_path / "data"
+    svc = ServiceProcess(tmp_path, ["--data-dir", str(data_dir)])
+    with svc, FleetmapClient(svc.base_url, timeout=20.0) as fm:
+        fm.create_map("old", {**CONFIG.model_dump(), "tsdf": {"truncation": 0.3}})
+        fm.post_scan("old", "r1", scans[0])
+    with sqlite3.connect(data_dir / DB_NAME) as conn:
+        stored = json.loads(conn.execute("SELECT config FROM maps WHERE id = 'old'").fetchone()[0])
+        stored["tsdf"]["truncation"] = 40.0  # more than 256 cells of 0.1 m: refused since
+        stored["occupancy"]["occupied_thresh"] = 0.99  # past the clamp (p_max 0.97): refused since
+        conn.execute("UPDATE maps SET config = ? WHERE id = 'old'", (json.dumps(stored),))
+    return svc
+
+
 def test_a_map_stored_before_todays_configuration_limits_is_read(tmp_path: Path, scans: list[Scan]) -> None:
     """A map stored before a configuration limit existed keeps loading in the service, with its
     configuration as it was (test_persistence.test_a_stored_configuration_past_todays_limits_still_loads),
     and `GET /maps/{id}` answers it. The client validated that configuration as a new one, and so
     raised for such a map "answered application/json, not a MapInfo ...: is it a fleetmap service,
     of this version?": an upgraded service's maps could no longer be read with the client."""
-    data_dir = tmp_path / "data"
-    svc = ServiceProcess(tmp_path, ["--data-dir", str(data_dir)])
-    with svc, FleetmapClient(svc.base_url, timeout=20.0) as fm:
-        fm.create_map("old", {**CONFIG.model_dump(), "tsdf": {"truncation": 0.3}})
-        fm.post_scan("old", "r1", scans[0])
-    with sqlite3.connect(data_dir / DB_NAME) as conn:  # what an older version could store
-        stored = json.loads(conn.execute("SELECT config FROM maps WHERE id = 'old'").fetchone()[0])
-        stored["tsdf"]["truncation"] = 40.0  # more than 256 cells of 0.1 m: refused since
-        stored["occupancy"]["occupied_thresh"] = 0.99  # past the clamp (p_max 0.97): refused since
-        conn.execute("UPDATE maps SET config = ? WHERE id = 'old'", (json.dumps(stored),))
+    svc = service_with_a_map_past_todays_limits(tmp_path, scans)
     with svc, FleetmapClient(svc.base_url, timeout=20.0) as fm:
         info = fm.get_map("old")
         assert info.config.tsdf.truncation == 40.0 and info.config.occupancy.occupied_thresh == 0.99
         assert info.stats.scans_integrated == 1
         assert fm.get_map_and_etag("old")[0] == info
+
+
+def test_a_put_of_a_stored_maps_own_configuration_past_todays_limits_is_the_same_map(
+    tmp_path: Path, scans: list[Scan]
+) -> None:
+    """`PUT /maps/{id}` with the configuration the map has is a 200, nothing changed (docs/api.md),
+    which a provisioning script sends at every start. For a map stored before one of today's limits
+    that was a 422, the configuration refused as a new one though it is the map's: the script
+    failed after every upgrade, for a map the service keeps. Such a configuration for any other map
+    (none there, or another configuration) is still refused with 422 and the reason."""
+    svc = service_with_a_map_past_todays_limits(tmp_path, scans)
+    with svc, httpx.Client(base_url=svc.base_url, timeout=20.0) as http:
+        got = http.get("/maps/old")
+        config, etag = got.json()["config"], got.headers["etag"]
+        again = http.put("/maps/old", json=config)
+        assert again.status_code == 200, again.text
+        assert again.json()["config"] == config and again.headers["etag"] == etag
+        assert again.json()["stats"]["scans_integrated"] == 1
+        assert http.put("/maps/old", json=config, headers={"If-None-Match": "*"}).status_code == 412
+        for map_id, body in [("new", config), ("old", {**config, "max_tiles": 100})]:
+            refused = http.put(f"/maps/{map_id}", json=body)
+            assert refused.status_code == 422, (map_id, refused.text)
+            assert any("more than 256 cells" in e["msg"] for e in refused.json()["errors"]), refused.text
+            locs = {tuple(e["loc"]) for e in refused.json()["errors"]}
+            assert locs == {("body", "tsdf"), ("body", "occupancy")}, locs
+        assert http.get("/maps/new").status_code == 404
+        assert http.get("/maps/old").json()["config"] == config

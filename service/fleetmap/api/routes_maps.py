@@ -9,6 +9,7 @@ from fastapi import APIRouter, Body, Request, Response
 
 from fleetmap import codec
 from fleetmap.api.conditional import Conditions, tag_map
+from fleetmap.api.config_body import MapConfigBody, PastTodaysLimits
 from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.http_semantics import created_status
 from fleetmap.api.state import MapId, RobotId, State
@@ -21,7 +22,6 @@ from fleetmap.api_models import (
     map_summary,
     tile_windows,
 )
-from fleetmap.config import MapConfig
 from fleetmap.map_entry import IngestRejected
 from fleetmap.registry import MapNotFound
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
@@ -61,7 +61,7 @@ def put_map(
     response: Response,
     conditions: Conditions,
     config: Annotated[
-        MapConfig | None,
+        MapConfigBody | None,
         Body(
             description="The map's configuration; every field is optional. No body: the server's "
             "default configuration."
@@ -79,7 +79,11 @@ def put_map(
     map of a configuration whose one tile needs more than the whole memory budget
     (`--max-memory`), which could never hold one: nothing is made. The answer carries the map's
     `ETag`."""
-    entry, created = state.registry.create(map_id, config, wait=True, expect=conditions.expectation(map_id))
+    expect = conditions.expectation(map_id)
+    # (Typed as a MapConfig, for the spec: the body's validator also gives this.)
+    if isinstance(config, PastTodaysLimits):  # the configuration of a map stored before a limit
+        config, expect = config.config, config.only_as_its_map(expect)
+    entry, created = state.registry.create(map_id, config, wait=True, expect=expect)
     created_status(response, map_id, created=created)
     tag_map(response, entry)
     return map_info(entry, state.registry.lock)
