@@ -744,6 +744,27 @@ def test_more_tiles_than_max_tiles_or_than_the_memory_budget_is_refused_before_a
         map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, layers=["counts"]))
 
 
+def test_a_default_configuration_without_occupancy_is_named_as_the_servers_default() -> None:
+    """A nav2 map imported under a new id takes the server's default configuration (`--config`,
+    docs/api.md): when that keeps no occupancy layer, the refusal said "the map configuration keeps
+    no occupancy layer", of a map that does not exist, and not how to import it. It names the
+    default, and the way: make the map with `PUT /maps/{map_id}` first."""
+    pixels = pgm_bytes(np.zeros((2, 2), dtype=np.uint8))
+    with pytest.raises(Nav2ImportError) as refused:
+        map_from_nav2(nav2_yaml(), pixels, defaults=MapConfig(layers=["tsdf"]))
+    reason = str(refused.value)
+    assert "server's default configuration (--config)" in reason and "keeps no occupancy layer" in reason
+    assert "PUT /maps/{map_id}" in reason, reason
+    with pytest.raises(Nav2ImportError) as of_the_map:
+        map_from_nav2(nav2_yaml(), pixels, MapConfig(resolution=0.05, layers=["counts"]))
+    assert "the map's configuration keeps no occupancy layer (layers counts)" in str(of_the_map.value)
+    with pytest.raises(Nav2ImportError) as too_fine:  # its TSDF band of 5 m is 500 cells of 0.01 m
+        map_from_nav2(nav2_yaml(resolution=0.01), pixels, defaults=MapConfig(tsdf={"truncation": 5.0}))
+    reason = str(too_fine.value)
+    assert reason.startswith("map.yaml resolution 0.01 does not suit the server's default configuration")
+    assert "tsdf.truncation 5 m is more than 256 cells" in reason and "Value error" not in reason, reason
+
+
 def transparent_png(width: int, height: int) -> bytes:
     """An RGBA PNG of `width` x `height` fully transparent pixels, made a row at a time (260 KB for
     64 Mpixels: every pixel is unknown in scale mode, so its map has no tile)."""

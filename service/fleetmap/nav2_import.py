@@ -565,6 +565,10 @@ def _grid_resolutions(meta: Nav2Meta, config: MapConfig) -> tuple[float, ...]:
 
 
 def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | None) -> MapConfig:
+    """The configuration of the map made of `meta`: `config` (the map's), else `defaults` (the
+    server's `--config`) with the YAML's resolution. Nav2ImportError if the resolutions differ or
+    it keeps no occupancy layer, naming which configuration it is."""
+    whose, how = "the map's configuration", ""
     if config is not None:
         # Also as map_server publishes both, a float32: a map configured at 0.05000000074505806 m
         # (copied from a published map) writes that into its export, which reads as 0.05.
@@ -578,15 +582,21 @@ def _map_config(meta: Nav2Meta, config: MapConfig | None, defaults: MapConfig | 
             )
     else:
         base = (defaults or MapConfig()).model_dump()
+        # Said so: "the map configuration" was read as that of a map, where there is none yet.
+        whose = "the server's default configuration (--config), which a map imported under a new id takes,"
         try:
             config = MapConfig.model_validate({**base, "resolution": meta.resolution})
         except ValidationError as exc:
-            problems = "; ".join(e["msg"] for e in exc.errors(include_url=False))
-            raise Nav2ImportError(f"map.yaml resolution {meta.resolution!r}: {problems}") from None
+            problems = "; ".join(
+                e["msg"].removeprefix("Value error, ") for e in exc.errors(include_url=False)
+            )
+            raise Nav2ImportError(
+                f"map.yaml resolution {meta.resolution!r} does not suit {whose[:-1]}: {problems}"
+            ) from None
+        how = "; make the map with a configuration that keeps it first (PUT /maps/{map_id})"
     if not config.has("occupancy"):
         raise Nav2ImportError(
-            f"the map configuration keeps no occupancy layer (layers {', '.join(config.layers)}): a nav2 map "
-            "seeds it"
+            f"{whose} keeps no occupancy layer (layers {', '.join(config.layers)}): a nav2 map seeds it{how}"
         )
     return config
 
