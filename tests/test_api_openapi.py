@@ -190,3 +190,13 @@ def test_every_412_declares_the_maps_etag_and_every_201_its_location(service: Se
     assert made.status_code == 201 and made.headers["location"] == "/maps/spec-headers"
     refused = httpx.put(f"{url}/maps/spec-headers", json={}, headers={"If-None-Match": "*"})
     assert refused.status_code == 412 and refused.headers["etag"] == made.headers["etag"]
+
+
+def test_the_spec_says_a_maps_layers_are_a_non_empty_set() -> None:
+    """`PUT /maps/{map_id}` refuses no layers and a layer twice (422), but the spec's `layers` was a
+    plain array of layer names: a client or form generated from it sent `[]` or a repeated layer
+    as valid. The spec says what the service takes: at least one item, each once."""
+    spec = json.loads(COMMITTED.read_text(encoding="utf-8"))
+    layers = spec["components"]["schemas"]["MapConfig"]["properties"]["layers"]
+    assert layers.get("minItems") == 1 and layers.get("uniqueItems") is True, layers
+    assert layers["items"]["enum"] == ["occupancy", "counts", "tsdf"]

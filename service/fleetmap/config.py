@@ -325,7 +325,10 @@ class MapConfig(BaseModel):
     # A tuple, not a list: the model is frozen, but a list's contents could still be changed in
     # place past validation (emptied, a layer twice, a name of no layer), and a map made of it kept
     # nothing or failed with a KeyError. A JSON array or a list is taken, and read back as a tuple.
-    layers: tuple[LayerName, ...] = ALL_LAYERS
+    # Its rules (`_layers_are_a_set`) in the spec too, where a generated client or form reads them.
+    layers: tuple[LayerName, ...] = Field(
+        default=ALL_LAYERS, json_schema_extra={"minItems": 1, "uniqueItems": True}
+    )
     occupancy: OccupancyParams = Field(default_factory=OccupancyParams)
     sensor_model: Literal["ray", "beam"] = "ray"
     traversal: Literal["exact", "bresenham"] = "exact"
