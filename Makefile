@@ -21,9 +21,12 @@ TEST_WORKERS ?= 3
 
 .PHONY: demo serve test bench bench-service lint format clean system-deps
 
+# A first install interrupted (Ctrl-C, a closed terminal) while venv ran ensurepip left a
+# .venv/bin/python without pip, and every later run stopped at "No module named pip" until the user
+# found and deleted .venv/: a .venv whose pip does not run is made again.
 $(STAMP): pyproject.toml
 	@echo "fleetmap: installing fleetmap and its dependencies into $(VENV)/ (from PyPI: a few minutes, the first time)"
-	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@$(PY) -m pip --version >/dev/null 2>&1 || $(PYTHON) -m venv --clear $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e .
 	@touch $(STAMP)

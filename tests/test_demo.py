@@ -418,3 +418,24 @@ def test_make_demo_on_a_fresh_clone_says_what_it_installs_and_how_long_it_takes(
         said = next(k for k, line in enumerate(lines) if says in line)
         installs = next(k for k, line in enumerate(lines) if line.endswith(install))
         assert said < installs, plan.stdout  # said before pip starts
+
+
+def test_make_demo_after_a_first_install_interrupted_in_venv_makes_the_venv_again(tmp_path: Path) -> None:
+    """Ctrl-C while the first `make demo` ran `python3 -m venv` (its ensurepip) left a .venv/ whose
+    python has no pip: every later `make demo` stopped at "No module named pip" until the user
+    deleted .venv/ by hand. The next run makes it again. (Offline: pip's index is turned off, so the
+    install itself stops later, at fleetmap's dependencies, once pip runs.)"""
+    for name in ("Makefile", "pyproject.toml"):
+        shutil.copy(REPO_DIR / name, tmp_path / name)
+    venv = tmp_path / ".venv"
+    # What the interrupted venv left: its interpreter, no pip.
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
+    assert subprocess.run([venv / "bin" / "python", "-m", "pip", "--version"], capture_output=True).returncode
+    env = {**os.environ, "PIP_NO_INDEX": "1", "PIP_FIND_LINKS": str(tmp_path / "no-wheels")}
+    run = subprocess.run(
+        ["make", "demo", f"PYTHON={sys.executable}"], cwd=tmp_path, capture_output=True, text=True,
+        timeout=300, env=env,
+    )  # fmt: skip
+    assert "No module named pip" not in run.stdout + run.stderr, run.stdout + run.stderr
+    pip = subprocess.run([venv / "bin" / "python", "-m", "pip", "--version"], capture_output=True, text=True)
+    assert pip.returncode == 0, pip.stderr
