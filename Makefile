@@ -21,12 +21,18 @@ TEST_WORKERS ?= 3
 
 .PHONY: demo serve test bench bench-service lint format clean system-deps
 
+# pyproject.toml's requires-python, checked before the venv is made: pip's refusal came only after
+# the venv of the old Python was made, and that venv stayed (`make demo PYTHON=python3.12` used it
+# again) until the user deleted it. Exits 1 saying so (Python 2's syntax too: no f-string).
+NEW_ENOUGH := import sys; sys.exit(0 if sys.version_info >= (3, 11) else "fleetmap: needs Python 3.11 or newer, and %s is Python %s: give one, e.g. make demo PYTHON=python3.12" % (sys.executable, sys.version.split()[0]))
+
 # A first install interrupted (Ctrl-C, a closed terminal) while venv ran ensurepip left a
 # .venv/bin/python without pip, and every later run stopped at "No module named pip" until the user
-# found and deleted .venv/: a .venv whose pip does not run is made again.
+# found and deleted .venv/: a .venv whose pip does not run, or of too old a Python, is made again.
 $(STAMP): pyproject.toml
 	@echo "fleetmap: installing fleetmap and its dependencies into $(VENV)/ (from PyPI: a few minutes, the first time)"
-	@$(PY) -m pip --version >/dev/null 2>&1 || $(PYTHON) -m venv --clear $(VENV)
+	@$(PY) -c '$(NEW_ENOUGH)' >/dev/null 2>&1 && $(PY) -m pip --version >/dev/null 2>&1 || \
+	  { $(PYTHON) -c '$(NEW_ENOUGH)' && $(PYTHON) -m venv --clear $(VENV); }
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e .
 	@touch $(STAMP)

@@ -439,3 +439,48 @@ def test_make_demo_after_a_first_install_interrupted_in_venv_makes_the_venv_agai
     assert "No module named pip" not in run.stdout + run.stderr, run.stdout + run.stderr
     pip = subprocess.run([venv / "bin" / "python", "-m", "pip", "--version"], capture_output=True, text=True)
     assert pip.returncode == 0, pip.stderr
+
+
+def _python_older_than_3_11() -> str | None:
+    """An interpreter of this machine older than fleetmap's Python 3.11 (on the PATH or pyenv's),
+    or None."""
+    candidates = [shutil.which(f"python3.{minor}") for minor in range(10, 7, -1)]
+    candidates += sorted(str(p) for p in Path.home().glob(".pyenv/versions/3.*/bin/python3"))
+    for candidate in filter(None, candidates):
+        version = subprocess.run(
+            [candidate, "-c", "import sys; print(sys.version_info[1])"], capture_output=True, text=True
+        )
+        if version.returncode == 0 and int(version.stdout) < 11:
+            return candidate
+    return None
+
+
+def test_make_demo_refuses_a_python_too_old_and_replaces_the_venv_made_of_one(tmp_path: Path) -> None:
+    """fleetmap needs Python 3.11: with an older `python3`, `make demo` made .venv/ of it, upgraded
+    pip, and only then pip refused ("requires a different Python"); that .venv/ stayed, so the next
+    `make demo PYTHON=python3.12` went on using it and failed the same way until the user deleted it.
+    Now the old Python is refused first, saying how to give another, and a .venv/ of one is made
+    again with the one given. (Offline: pip's index is off, so the install stops later.)"""
+    old = _python_older_than_3_11()
+    if old is None:
+        pytest.skip("no Python older than 3.11 on this machine (python3.8-3.10 or pyenv's)")
+    for name in ("Makefile", "pyproject.toml"):
+        shutil.copy(REPO_DIR / name, tmp_path / name)
+    env = {**os.environ, "PIP_NO_INDEX": "1", "PIP_FIND_LINKS": str(tmp_path / "no-wheels")}
+    refused = subprocess.run(
+        ["make", "demo", f"PYTHON={old}"], cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env
+    )
+    assert refused.returncode != 0
+    assert f"fleetmap: needs Python 3.11 or newer, and {old} is Python 3." in refused.stderr, refused.stderr
+    assert "make demo PYTHON=python3.12" in refused.stderr
+    assert not (tmp_path / ".venv").exists()  # nothing made of it
+    # A .venv/ of the old Python (made before this check, or by hand) is made again with the new.
+    subprocess.run([old, "-m", "venv", str(tmp_path / ".venv")], check=True, timeout=300)
+    subprocess.run(
+        ["make", "demo", f"PYTHON={sys.executable}"], cwd=tmp_path, capture_output=True, timeout=300, env=env
+    )
+    version = subprocess.run(
+        [tmp_path / ".venv" / "bin" / "python", "-c", "import sys; print(sys.version_info[:2] >= (3, 11))"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert version.stdout.strip() == "True", version
