@@ -211,11 +211,18 @@ def run_sim(
     if not is_valid_id(map_id):
         raise ValueError(f"map_id {map_id!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
     floor = plan if plan is not None else generate_floorplan(seed)
-    sims = [
-        SimulatedRobot(floor, seed=seed * 1000 + k, scan_rate=rate, num_beams=beams, range_max=range_max,
-                       speed=speed)
-        for k in range(robots)
-    ]  # fmt: skip
+
+    def simulated(k: int) -> SimulatedRobot:
+        return SimulatedRobot(floor, seed=seed * 1000 + k, scan_rate=rate, num_beams=beams,
+                              range_max=range_max, speed=speed)  # fmt: skip
+
+    sims = [simulated(k) for k in range(robots)]
+    # The robots' compiled route planner and lidar load from numba's cache at their first call
+    # (0.3 to 0.6 s): on the robots' clock, every run started that far behind its rate, and the demo
+    # and `fleetmap sim` warned of scans skipped on "a machine too busy" for even one robot. A copy
+    # of the first robot (the others keep their own motion) takes its first scan before the clock
+    # starts, and before the robots' sessions take their file descriptors (numba opens files).
+    simulated(0).tick()
     result = SimResult(robots=ids)
     publishers: list[ScanPublisher] = []
     try:
