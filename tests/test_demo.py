@@ -484,3 +484,17 @@ def test_make_demo_refuses_a_python_too_old_and_replaces_the_venv_made_of_one(tm
         capture_output=True, text=True,
     )  # fmt: skip
     assert version.stdout.strip() == "True", version
+
+
+def test_the_data_directories_the_demo_names_are_not_left_untracked_in_git() -> None:
+    """A demo refused for addresses in use says to give it `--data-dir ./fleetmap-data-2`: git
+    ignored ./fleetmap-data only, so that one showed in `git status` as untracked, its SQLite
+    files one `git add -A` away from a commit."""
+    if not (REPO_DIR / ".git").exists():
+        pytest.skip("not a git checkout")
+    for directory in (cli_demo.DEFAULT_DATA_DIR, "./fleetmap-data-2"):
+        path = Path(directory) / "maps.sqlite"  # a file in it
+        ignored = subprocess.run(
+            ["git", "check-ignore", "--no-index", "-q", str(path)], cwd=REPO_DIR, timeout=30
+        )
+        assert ignored.returncode == 0, f"{directory} is not ignored by .gitignore"
