@@ -9,7 +9,6 @@ PY := $(VENV)/bin/python
 # use them: a first `make demo` does not wait for those.
 STAMP := $(VENV)/.installed
 DEV_STAMP := $(VENV)/.installed-test
-OUT ?= out
 # Debian packages the test suite uses: Chromium for the web viewer's end-to-end test; curl and
 # unzip for the examples of docs/api.md, which tests/test_docs.py runs as written.
 SYSTEM_PACKAGES ?= chromium curl unzip
@@ -72,5 +71,7 @@ lint: $(DEV_STAMP)
 format: $(DEV_STAMP)
 	$(VENV)/bin/ruff format service tests clients scripts benchmarks
 
+# The installed tools and their caches. Not the maps: ./fleetmap-data, nor out/, where the README's
+# `fleetmap build` writes (an earlier `make demo` built its map there, and this removed it).
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache .mypy_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache

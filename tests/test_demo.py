@@ -498,3 +498,19 @@ def test_the_data_directories_the_demo_names_are_not_left_untracked_in_git() -> 
             ["git", "check-ignore", "--no-index", "-q", str(path)], cwd=REPO_DIR, timeout=30
         )
         assert ignored.returncode == 0, f"{directory} is not ignored by .gitignore"
+
+
+def test_make_clean_removes_the_tools_and_keeps_the_maps(tmp_path: Path) -> None:
+    """`make clean` removed out/ too, a leftover of a demo that once built its map there: out/ now
+    holds only what the README's `fleetmap build ... --out out/intel` wrote, which `make clean`
+    deleted without a word. It removes the installed tools and their caches, and keeps the maps."""
+    shutil.copy(REPO_DIR / "Makefile", tmp_path / "Makefile")
+    kept = [tmp_path / "out" / "intel" / "map.yaml", tmp_path / "fleetmap-data" / "maps.sqlite"]
+    removed = [tmp_path / name / "x" for name in (".venv", ".pytest_cache", ".ruff_cache", ".mypy_cache")]
+    for path in kept + removed:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("x")
+    done = subprocess.run(["make", "clean"], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert all(path.exists() for path in kept), done.stdout
+    assert not any(path.parent.exists() for path in removed), done.stdout
