@@ -514,3 +514,34 @@ def test_make_clean_removes_the_tools_and_keeps_the_maps(tmp_path: Path) -> None
     assert done.returncode == 0, done.stderr
     assert all(path.exists() for path in kept), done.stdout
     assert not any(path.parent.exists() for path in removed), done.stdout
+
+
+def test_a_second_demo_says_its_map_holds_an_earlier_runs_scans(tmp_path: Path) -> None:
+    """The map is kept in the data directory, and a second demo's robots map into it: with another
+    --seed, another floor plan drawn over the first, silently, which looked like a broken map. The
+    second run says what the map holds already and how to start a new one."""
+    http, zenoh = free_port(), free_port()
+    data = tmp_path / "data"
+
+    def demo(seed: int) -> str:
+        done = subprocess.run(
+            [*fleetmap_command(), "demo", "--http", f"127.0.0.1:{http}", "--zenoh", f"tcp/127.0.0.1:{zenoh}",
+             "--data-dir", str(data), "--robots", "1", "--seconds", "1", "--seed", str(seed)],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stdout + done.stderr
+        return done.stdout
+
+    first = demo(1)
+    assert "already holds" not in first
+    published = int(re.search(r"1 robot published (\d+) scans?", first)[1])  # type: ignore[index]
+    second = demo(2)
+    note = re.search(
+        rf"fleetmap demo: map demo in {re.escape(str(data))} already holds (\d+) scans? of an earlier run, "
+        r"which the robots add to \(another --seed draws another floor plan over it\): --map NAME starts "
+        r"a new map\n",
+        second,
+    )
+    assert note is not None, second
+    assert 0 < int(note[1]) <= published
+    assert second.index(note[0]) < second.index("fleetmap demo: open http")  # said before the robots start
