@@ -9,7 +9,7 @@ import re
 import signal
 import subprocess
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import httpx
 import pytest
@@ -121,29 +121,38 @@ def test_an_error_a_command_cannot_say_still_exits_with_its_code(tmp_path: Path,
     assert not (tmp_path / "out").exists()
 
 
+def long_build(tmp_path: Path, out: Path, sigint: Any) -> subprocess.Popen[str]:
+    """`fleetmap build` of 3000 scans into `out`, started with SIGINT's disposition `sigint`."""
+    lines = [flaser([19.5] * 361, 0.01 * (k % 500), 0.02 * (k % 300), 0.001 * k) for k in range(3000)]
+    log = tmp_path / "long.log"
+    log.write_text("\n".join(lines) + "\n")
+    return subprocess.Popen(
+        [*fleetmap_command(), "build", str(log), "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, sigint),
+    )  # fmt: skip
+
+
+def integrating(build: subprocess.Popen[str]) -> str:
+    """Read `long_build`'s stderr until its progress bar shows scans integrated; returns what it read."""
+    assert build.stderr is not None
+    progress = ""
+    while not re.search(r"\| [1-9]\d*/3000 ", progress):  # tqdm's bar: scans integrated
+        chunk = build.stderr.read(1)
+        assert chunk, f"the build ended before its scans: {progress}"
+        progress += chunk
+    return progress
+
+
 def test_ctrl_c_stops_a_build_between_two_scans_in_one_line(tmp_path: Path) -> None:
     """Ctrl-C while `fleetmap build` integrates: the KeyboardInterrupt was raised inside a compiled
     kernel's call and came out as numba's SystemError ("returned a result with an exception set"),
     a traceback and exit 1. Now the build stops between two scans, says so in one line, writes
     nothing and exits 130, as a shell reports Ctrl-C."""
-    beams = 361
-    ranges = [19.5] * beams
-    lines = [flaser(ranges, 0.01 * (k % 500), 0.02 * (k % 300), 0.001 * k) for k in range(3000)]
-    log = tmp_path / "long.log"
-    log.write_text("\n".join(lines) + "\n")
     out = tmp_path / "out"
-    build = subprocess.Popen(
-        [*fleetmap_command(), "build", str(log), "--out", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a terminal starts it
-    )  # fmt: skip
+    build = long_build(tmp_path, out, signal.SIG_DFL)  # as a terminal starts it
     with reaped(build):
-        assert build.stderr is not None
-        progress = ""
-        while not re.search(r"\| [1-9]\d*/3000 ", progress):  # tqdm's bar: scans integrated
-            chunk = build.stderr.read(1)
-            assert chunk, f"the build ended before its scans: {progress}"
-            progress += chunk
+        progress = integrating(build)
         build.send_signal(signal.SIGINT)
         stdout, stderr = build.communicate(timeout=60)
     assert build.returncode == 130, progress + stderr
@@ -159,23 +168,10 @@ def test_a_build_started_with_sigint_ignored_keeps_ignoring_it(tmp_path: Path) -
     integrated, so a Ctrl-C meant for the script stopped the background build: "interrupted,
     nothing written", exit 130. Now a SIGINT it was started ignoring changes nothing: the map is
     written and the build exits 0."""
-    beams = 361
-    lines = [flaser([19.5] * beams, 0.01 * (k % 500), 0.02 * (k % 300), 0.001 * k) for k in range(3000)]
-    log = tmp_path / "long.log"
-    log.write_text("\n".join(lines) + "\n")
     out = tmp_path / "out"
-    build = subprocess.Popen(
-        [*fleetmap_command(), "build", str(log), "--out", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),  # as `&` in a script starts it
-    )  # fmt: skip
+    build = long_build(tmp_path, out, signal.SIG_IGN)  # as `&` in a script starts it
     with reaped(build):
-        assert build.stderr is not None
-        progress = ""
-        while not re.search(r"\| [1-9]\d*/3000 ", progress):  # tqdm's bar: scans integrated
-            chunk = build.stderr.read(1)
-            assert chunk, f"the build ended before its scans: {progress}"
-            progress += chunk
+        progress = integrating(build)
         build.send_signal(signal.SIGINT)
         stdout, stderr = build.communicate(timeout=300)
     assert build.returncode == 0, progress + stderr

@@ -403,14 +403,19 @@ def test_a_map_replaced_by_one_with_nothing_to_publish_leaves_no_stale_grid(in_p
         registry.create("a", MapConfig(resolution=0.5))
         assert publisher.publish_changed() == 0  # nothing observed: nothing to publish
         assert publisher.topics[0].declared  # the map exists: still declared
-        late = RosSubscriber(in_process.endpoint)
-        try:
-            time.sleep(1.5)  # the cache is queried at once, and the heartbeat comes every 0.5 s
-            assert late.received() == []
-        finally:
-            late.close()
+        assert_a_late_subscriber_gets_no_grid(in_process.endpoint)
     finally:
         publisher.close()
+
+
+def assert_a_late_subscriber_gets_no_grid(endpoint: str) -> None:
+    """A ROS node starting now gets no grid from the publisher's cache."""
+    late = RosSubscriber(endpoint)
+    try:
+        time.sleep(1.5)  # the cache is queried at once, and the heartbeat comes every 0.5 s
+        assert late.received() == []
+    finally:
+        late.close()
 
 
 def test_a_map_grown_past_the_cell_bound_leaves_no_stale_grid(in_process: InProcess) -> None:
@@ -429,12 +434,7 @@ def test_a_map_grown_past_the_cell_bound_leaves_no_stale_grid(in_process: InProc
         entry.gmap.integrate(Scan.from_fan((40.0, 40.0, 0.0), 0.0, 0.1, [1.0] * 10))  # 80 x 80 cells
         assert publisher.publish_changed() == 0  # past the bound: not published
         assert publisher.topics[0].declared  # the map exists: still declared
-        late = RosSubscriber(in_process.endpoint)
-        try:
-            time.sleep(1.5)  # the cache is queried at once, and the heartbeat comes every 0.5 s
-            assert late.received() == []
-        finally:
-            late.close()
+        assert_a_late_subscriber_gets_no_grid(in_process.endpoint)
     finally:
         publisher.close()
 
