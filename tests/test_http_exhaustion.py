@@ -7,6 +7,7 @@ The service here runs with small limits so they are cheap to reach.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import json
 import logging
@@ -495,3 +496,40 @@ def test_a_refused_head_behind_an_event_stream_ends_the_stream_not_as_a_bug(tmp_
         logs = svc.logs()
         assert "Traceback" not in logs and "internal error" not in logs, logs
         assert b"HTTP/1.1 400" not in received, received  # not inside the stream's bytes
+
+
+def _unsent_bytes_of_closed_sockets(port: int) -> list[int]:
+    """The bytes still queued to send by each socket on local port `port` that its process has closed
+    and the kernel still holds (FIN_WAIT1, CLOSING or LAST_ACK), from /proc/net/tcp and tcp6."""
+    held = []
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with contextlib.suppress(FileNotFoundError), open(table) as rows:
+            next(rows)  # the header
+            for row in rows:
+                fields = row.split()
+                local, state, queues = fields[1], fields[3], fields[4]
+                if int(local.rsplit(":", 1)[1], 16) == port and state in ("04", "0B", "09"):
+                    held.append(int(queues.split(":")[0], 16))
+    return held
+
+
+def test_a_client_dropped_for_reading_nothing_leaves_no_unsent_answer_in_the_kernel(tmp_path: Path) -> None:
+    """A client that asks for a big answer and reads none of it is dropped after --http-send-timeout
+    seconds. The drop closed the socket, and the kernel went on holding what the answer had queued
+    (2.8 MB of a region seen in `ss`: FIN-WAIT-1, offered to a client whose window was shut) for as
+    long as that client kept its end open: the connection was gone from the service, not the memory,
+    and a client repeating it pinned a few MB of the machine's memory a time. The drop resets the
+    connection instead, which frees that queue at once."""
+    with ServiceProcess(tmp_path, ["--in-memory", "--http-send-timeout", "1"]) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/m", json={}).status_code == 201
+        with socket.socket() as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # before connect: a small window
+            sock.connect(("127.0.0.1", svc.port))
+            window = "xmin=0&ymin=0&xmax=100&ymax=100&layer=log_odds&format=npy"  # 4 million cells
+            sock.sendall(f"GET /maps/m/region?{window} HTTP/1.1\r\nHost: localhost\r\n\r\n".encode())
+            wait_for(lambda: metric(svc, "fleetmap_http_connections") == 1, timeout=30, what="the drop")
+            held = _unsent_bytes_of_closed_sockets(svc.port)
+            assert not any(held), f"the kernel still holds {held} bytes of the dropped answer"
+            with pytest.raises(ConnectionResetError):
+                while sock.recv(1 << 16):
+                    pass

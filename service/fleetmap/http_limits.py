@@ -20,7 +20,8 @@ token to do that: a connection is only checked once its request head has arrived
   upload over a slow link, cut off without a word, left its client with "empty reply from server"
   and nothing saying which option to raise;
 - a client must take what its answer sends: if it reads nothing for `send_timeout` seconds while
-  the answer waits on it (the connection's write buffer full), the connection is dropped. A client
+  the answer waits on it (the connection's write buffer full), the connection is dropped (reset, so
+  that the kernel does not go on holding the unsent answer for the client). A client
   that asked for a snapshot download and stopped reading, connection open, held one of the 4
   download slots (and the download's file in TMPDIR) for ever: four of them refused every download;
 - its head may be at most MAX_HEAD_BYTES long: past it the answer is a JSON 414 (the request line
@@ -64,9 +65,12 @@ needs once its request has arrived, as long as its client reads what it is sent.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import resource
+import socket
+import struct
 import sys
 from typing import Any, cast
 
@@ -338,8 +342,13 @@ def bounded_http_protocol(
             """The client read nothing for `send_timeout` seconds: drop the connection (abort, not
             close, which would wait for the unread bytes to go). uvicorn then tells the app that the
             client went away, as when it closes: the answer ends, and a download gives back its slot
-            and its file."""
+            and its file.
+
+            The connection is reset, not closed (`reset_on_close`): closed, its socket left the
+            process but not the kernel, which went on offering the answer's queued megabytes to a
+            client whose window stayed shut (FIN-WAIT-1) for as long as that client held its end."""
             self._send_stall = None
+            reset_on_close(self.transport)
             self.transport.abort()
 
         def on_message_begin(self) -> None:
@@ -405,6 +414,16 @@ def bounded_http_protocol(
                 self._refuse(late_body)
 
     return BoundedHttpToolsProtocol
+
+
+def reset_on_close(transport: asyncio.BaseTransport) -> None:
+    """Make the closing of `transport`'s socket reset the connection (SO_LINGER on, 0 s) rather than
+    leave the bytes still queued to the client to the kernel, which holds them, unsent, as long as
+    the client neither reads nor goes away. No-op for a transport without a socket."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):  # already gone: nothing is queued
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
 
 
 def quiet_accept_errors(loop: asyncio.AbstractEventLoop, limited: RateLimitedLog | None = None) -> None:
