@@ -533,3 +533,28 @@ def test_a_client_dropped_for_reading_nothing_leaves_no_unsent_answer_in_the_ker
             with pytest.raises(ConnectionResetError):
                 while sock.recv(1 << 16):
                     pass
+
+
+def test_an_answer_its_client_never_reads_is_not_held_by_the_kernel_after_the_connection_ends(
+    tmp_path: Path,
+) -> None:
+    """An answer that fits whole in the socket's buffers (a 1.8 MB region) is written at once, and the
+    service closes the idle connection a few seconds later (keep-alive, head timeout). Its client
+    reading nothing and keeping its end open, the kernel held those unsent bytes for as long (seen:
+    minutes, until the client closed), FIN-WAIT-1 with a shut window, a connection the service no
+    longer counted: a client could pin the machine's memory 1.8 MB a request, past
+    --max-http-connections. The kernel now drops them after --http-send-timeout seconds of the
+    client reading nothing, as the service drops an open connection."""
+    with ServiceProcess(tmp_path, ["--in-memory", "--http-send-timeout", "1"]) as svc:
+        assert httpx.put(f"{svc.base_url}/maps/m", json={}).status_code == 201
+        with socket.socket() as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # before connect: a small window
+            sock.connect(("127.0.0.1", svc.port))
+            window = "xmin=0&ymin=0&xmax=34&ymax=34&layer=log_odds&format=npy"  # 462 400 cells
+            sock.sendall(f"GET /maps/m/region?{window} HTTP/1.1\r\nHost: localhost\r\n\r\n".encode())
+            wait_for(lambda: metric(svc, "fleetmap_http_connections") == 1, timeout=60, what="closed")
+            wait_for(
+                lambda: not any(_unsent_bytes_of_closed_sockets(svc.port)),
+                timeout=30,
+                what="the unsent answer dropped by the kernel",
+            )

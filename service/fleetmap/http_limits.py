@@ -21,7 +21,9 @@ token to do that: a connection is only checked once its request head has arrived
   and nothing saying which option to raise;
 - a client must take what its answer sends: if it reads nothing for `send_timeout` seconds while
   the answer waits on it (the connection's write buffer full), the connection is dropped (reset, so
-  that the kernel does not go on holding the unsent answer for the client). A client
+  that the kernel does not go on holding the unsent answer for the client); and the kernel drops an
+  answer its client has taken nothing of for as long once the connection is closed
+  (`unsent_answer_timeout`). A client
   that asked for a snapshot download and stopped reading, connection open, held one of the 4
   download slots (and the download's file in TMPDIR) for ever: four of them refused every download;
 - its head may be at most MAX_HEAD_BYTES long: past it the answer is a JSON 414 (the request line
@@ -312,6 +314,7 @@ def bounded_http_protocol(
         # protocol is always handed a Transport.
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
+            unsent_answer_timeout(transport, send_timeout)
             if len(self.connections) > max_connections:
                 # Refused before anything is read: the descriptor is given back at once.
                 transport.write(BUSY_RESPONSE)
@@ -414,6 +417,22 @@ def bounded_http_protocol(
                 self._refuse(late_body)
 
     return BoundedHttpToolsProtocol
+
+
+def unsent_answer_timeout(transport: asyncio.BaseTransport, seconds: float) -> None:
+    """Have the kernel reset `transport`'s connection once bytes sent on it have waited `seconds`
+    for the client to take them (TCP_USER_TIMEOUT; its window shut counts too), also after this
+    process closed the socket. An answer that fitted whole in the socket's buffers, its client
+    reading nothing, was still held by the kernel after the service closed the idle connection
+    (keep-alive or head timeout), for as long as the client kept its end open (1.8 MB of a region
+    minutes later): the service no longer counted that connection, so a client could pin the
+    machine's memory a few MB a request. A client that reads, however slowly, is unaffected. No-op
+    for a transport without a TCP socket."""
+    sock = transport.get_extra_info("socket")
+    user_timeout = getattr(socket, "TCP_USER_TIMEOUT", None)  # Linux only
+    if sock is not None and user_timeout is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
+        with contextlib.suppress(OSError):  # already gone: nothing to time
+            sock.setsockopt(socket.IPPROTO_TCP, user_timeout, max(1, round(seconds * 1000)))
 
 
 def reset_on_close(transport: asyncio.BaseTransport) -> None:
