@@ -8,6 +8,7 @@ Intel log the outputs are compared cell by cell with a map the library builds fr
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import json
 import math
 import os
@@ -741,6 +742,15 @@ def test_an_unknown_option_is_refused_by_its_command_naming_the_one_meant(
         err = capsys.readouterr().err
         assert err.rstrip().splitlines()[-1] == says, err
         assert "usage: fleetmap [-h] COMMAND" not in err and "Traceback" not in err, err
+
+
+def test_the_command_says_its_version(capsys: pytest.CaptureFixture[str]) -> None:
+    """`fleetmap --version` said "the following arguments are required: COMMAND", exit 2: the version
+    that runs was in /metrics only. It prints the installed package's version, exit 0."""
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["--version"])
+    assert stopped.value.code == 0
+    assert capsys.readouterr().out == f"fleetmap {importlib.metadata.version('fleetmap')}\n"
 
 
 @pytest.mark.parametrize("module", ["fleetmap", "fleetmap.cli"])

@@ -27,6 +27,7 @@ from fleetmap.codec import repeated_key
 from fleetmap.config import MapConfig
 from fleetmap.log_format import plain_line
 from fleetmap.signal_event import HANGUPS, SignalEvent
+from fleetmap.version import installed_version
 
 if TYPE_CHECKING:
     from fleetmap.grid_map import GridMap
@@ -37,6 +38,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     give_stderr_a_sink()
     try:
         parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__.splitlines()[0])
+        parser.add_argument("--version", action="version", version=f"fleetmap {installed_version()}")
         sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
         _add_build(sub)
         for name in COMMAND_MODULES:

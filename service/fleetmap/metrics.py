@@ -27,12 +27,13 @@ from __future__ import annotations
 import gc
 import time
 from collections.abc import Callable, Iterable, Iterator
-from importlib import metadata
 from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, ProcessCollector, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
+
+from fleetmap.version import installed_version
 
 if TYPE_CHECKING:
     from fleetmap.api.ingest_priority import IngestGate
@@ -327,10 +328,7 @@ class ServiceInfoCollector(Collector):
     HTTP server runs, its open connections and their limit (`--max-http-connections`)."""
 
     def __init__(self) -> None:
-        try:
-            self.version = metadata.version("fleetmap")
-        except metadata.PackageNotFoundError:  # a source tree that was not installed
-            self.version = "0.0.0"
+        self.version = installed_version()
         self.connections: Callable[[], int] | None = None
         self.max_connections = 0
 
