@@ -194,6 +194,18 @@ def test_raw_mode_takes_the_pixel_value_as_percent() -> None:
     assert np.isnan(got[3:]).all()  # past 100: unknown; negate is ignored in raw mode
 
 
+def test_raw_mode_reads_thresholds_it_does_not_use_whatever_they_are() -> None:
+    """Raw mode uses neither threshold (map_server loads a raw map.yaml saved with both 0): such a
+    map was refused by the check of their order, which only trinary and scale need. They must
+    still be there, numbers, as map_server requires."""
+    got = log_odds_row(row_map([0, 100], mode="raw", occupied_thresh=0, free_thresh=0), 2)
+    np.testing.assert_array_equal(got, np.array([L_MIN, L_MAX], dtype=np.float32))
+    with pytest.raises(Nav2ImportError, match="0 <= free_thresh < occupied_thresh <= 1"):
+        row_map([0, 100], mode="scale", occupied_thresh=0, free_thresh=0)
+    with pytest.raises(Nav2ImportError, match="map.yaml has no 'free_thresh'"):
+        row_map([0, 100], mode="raw", free_thresh=None)
+
+
 def test_geometry_row_order_negative_origin_png_and_pgm() -> None:
     """Row 0 of the image is the top (highest y); the origin is the lower-left corner of the
     bottom-left pixel, here on the grid at negative coordinates; PNG and PGM read alike."""

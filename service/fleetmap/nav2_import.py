@@ -361,13 +361,6 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
         )
     x, y, yaw = (_number({"origin": v}, "origin") for v in origin)
     occupied, free = _number(doc, "occupied_thresh"), _number(doc, "free_thresh")
-    # map_server reads any thresholds; map_saver refuses these (checkSaveParameters), and scale
-    # mode divides by their difference.
-    if not 0.0 <= free < occupied <= 1.0:
-        raise Nav2ImportError(
-            f"map.yaml thresholds must satisfy 0 <= free_thresh < occupied_thresh <= 1, got free_thresh "
-            f"{free!r}, occupied_thresh {occupied!r}"
-        )
     if "negate" not in doc:
         raise Nav2ImportError("map.yaml has no 'negate'")
     negate = _negate(doc["negate"])
@@ -375,6 +368,14 @@ def parse_nav2_yaml(text: str | bytes) -> Nav2Meta:
     if not isinstance(mode, str) or mode.lower() not in NAV2_MODES:
         raise Nav2ImportError(f"map.yaml 'mode' must be trinary, scale or raw, got {_shown(mode)}")
     lowered = NAV2_MODES[NAV2_MODES.index(mode.lower())]
+    # map_server reads any thresholds; map_saver refuses these (checkSaveParameters), and scale
+    # mode divides by their difference. Raw mode reads them (they must be there) but uses neither:
+    # a raw map saved with both 0, which map_server loads, was refused.
+    if lowered != "raw" and not 0.0 <= free < occupied <= 1.0:
+        raise Nav2ImportError(
+            f"map.yaml thresholds must satisfy 0 <= free_thresh < occupied_thresh <= 1, got free_thresh "
+            f"{free!r}, occupied_thresh {occupied!r}"
+        )
     return Nav2Meta(image, resolution, (x, y, yaw), occupied, free, bool(negate), lowered)
 
 
