@@ -531,6 +531,31 @@ def test_region_bounds_far_from_the_origin_are_floored_unless_on_an_edge(api: Ru
         assert api.client.get("/maps/utm/region", params=again).json()["window"] == body["window"]
 
 
+def test_a_region_s_origin_gives_its_window_back_at_a_resolution_of_more_than_nine_decimals(
+    api: RunningApi,
+) -> None:
+    """An answer's origin is rounded to the nanometre (`cell_edge`), and a bound was that edge only
+    within a billionth of a cell of it: at the float32 of 0.05 m (0.05000000074505806, what a map
+    copied from a published nav2 map is configured at), the origin of half the windows starting
+    right of 0 lay up to 10 billionths of a cell below their edge, and asked for again it started
+    the window a cell lower (0.550000008 for cell 11 gave cell 10). A bound within a nanometre of
+    an edge is that edge now; one a millionth of a cell inside it is still floored."""
+    res = float(np.float32(0.05))
+    r = api.client.put("/maps/f32res", json={"resolution": res, "layers": ["counts"]})
+    assert r.status_code in (200, 201), r.text
+    for k in range(-40, 41):
+        params = {"xmin": k * res, "ymin": -k * res, "xmax": (k + 3) * res, "ymax": (3 - k) * res}
+        params |= {"layer": "hits", "format": "json"}
+        r = api.client.get("/maps/f32res/region", params=params)
+        body = r.json()
+        assert body["window"][:2] == [k, -k], (k, body["window"])
+        assert r.headers["x-fleetmap-origin"] == ",".join(map(repr, body["origin"]))
+        again = {**params, "xmin": body["origin"][0], "ymin": body["origin"][1]}
+        assert api.client.get("/maps/f32res/region", params=again).json()["window"] == body["window"], k
+    inside = {"xmin": 11 * res - 1e-6 * res, "ymin": 0.0, "xmax": 1.0, "ymax": 1.0, "format": "json"}
+    assert api.client.get("/maps/f32res/region", params={**inside, "layer": "hits"}).json()["window"][0] == 10
+
+
 def test_surface(api: RunningApi, engine_map: GridMap) -> None:
     got = api.client.get("/maps/eng/surface").json()
     b = engine_map.known_bounds()

@@ -46,11 +46,16 @@ MAX_RAY_CELLS = 20_000
 MAX_RAY_WALK = 2**24
 
 
+#: The decimals of a metre `cell_edge` rounds to: the nanometre.
+EDGE_DIGITS = 9
+
+
 def cell_edge(index: int, resolution: float) -> float:
     """The map coordinate where cell `index` begins (`index * resolution`), rounded to the nanometre
-    so that exports say -20.2 rather than the product's -20.200000000000003. The rounding moves the
-    edge by far less than any resolution a map may have."""
-    return round(index * resolution, 9)
+    (EDGE_DIGITS) so that exports say -20.2 rather than the product's -20.200000000000003. The
+    rounding moves the edge by far less than any resolution a map may have, but by more than a
+    billionth of a cell at a resolution of more than nine decimals (see `api.routes_data._edge`)."""
+    return round(index * resolution, EDGE_DIGITS)
 
 
 def is_whole_number(value: object) -> bool:
@@ -118,6 +123,7 @@ def as_points(points: Points) -> np.ndarray:
 
 
 __all__ = [
+    "EDGE_DIGITS",
     "MAX_RAYS",
     "MAX_RAY_CELLS",
     "MAX_RAY_WALK",

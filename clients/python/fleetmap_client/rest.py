@@ -852,9 +852,9 @@ class FleetmapClient:
         """`GET /maps/{map_id}/region?format=npy`: a dense window of one layer.
 
         The cells with index in [floor(xmin/res), floor(xmax/res)) x [floor(ymin/res), floor(ymax/res)),
-        a bound within a billionth of a cell of a cell edge being that edge (0.15 at 0.05 m starts
-        at cell 3, though 0.15 / 0.05 is 2.9999999999999996); no bounds at all: the map's observed
-        extent. Shape (ny, nx), row 0 = the LOWEST y; float32
+        a bound within a billionth of a cell, or a nanometre, of a cell edge being that edge (0.15 at
+        0.05 m starts at cell 3, though 0.15 / 0.05 is 2.9999999999999996); no bounds at all: the
+        map's observed extent. Shape (ny, nx), row 0 = the LOWEST y; float32
         with NaN for unknown (log_odds, probability, tsdf), uint32 counts (hits, misses), uint8 state
         codes (0 unknown, 1 free, 2 occupied). Use `region_window` for where the window lies.
         """

@@ -37,7 +37,7 @@ from fleetmap.api_models import (
     surface,
     tile_windows,
 )
-from fleetmap.cell_queries import MAX_RAYS, STATE_FREE, STATE_OCCUPIED
+from fleetmap.cell_queries import EDGE_DIGITS, MAX_RAYS, STATE_FREE, STATE_OCCUPIED
 from fleetmap.export import (
     MAX_EXPORT_SCALE,
     Window,
@@ -64,6 +64,12 @@ Bound = Annotated[float, coordinate("metres")]
 
 #: A bound within this many cells of a cell edge is that edge (`_edge`).
 EDGE_TOLERANCE = 1e-9
+#: A bound within this many metres of a cell edge is that edge too (`_edge`): twice the rounding of
+#: the origins answers report (`cell_edge`, to the nanometre). At a resolution of more than nine
+#: decimals that rounding is more than a billionth of a cell: at the float32 of 0.05 m
+#: (0.05000000074505806) up to 1e-8 cells, so the origin of half the windows, asked for again, started
+#: the window a cell lower.
+EDGE_METRES = 10.0**-EDGE_DIGITS
 #: Far from the origin, where a billionth of a cell is below the precision of `bound / resolution`,
 #: a bound within this many units in the last place of that quotient of an edge is that edge: the
 #: bound and the resolution written in decimal, and the division, each round by half of one.
@@ -71,8 +77,9 @@ EDGE_ULPS = 16
 
 
 def _edge(bound: float, resolution: float) -> int:
-    """`floor(bound / resolution)`, but a bound within EDGE_TOLERANCE cells of a cell edge (or, far
-    from the origin, within EDGE_ULPS units in the last place of the quotient) is that edge: written
+    """`floor(bound / resolution)`, but a bound within EDGE_TOLERANCE cells or EDGE_METRES of a cell
+    edge (or, far from the origin, within EDGE_ULPS units in the last place of the quotient) is that
+    edge, so that every origin an answer reports gives its own window back: written
     in decimal, an edge is rarely one in binary, and 0.15 / 0.05 is 2.9999999999999996 (the float
     0.15 lies below 0.15), so `xmin=0.15` at 0.05 m started the window at cell 2, not 3, and the
     origin a region answer reports (0.15) did not give its own window back. The tolerance does not
@@ -81,7 +88,7 @@ def _edge(bound: float, resolution: float) -> int:
     edge."""
     cells = bound / resolution
     nearest = round(cells)
-    tolerance = max(EDGE_TOLERANCE, EDGE_ULPS * math.ulp(cells))
+    tolerance = max(EDGE_TOLERANCE, EDGE_METRES / resolution, EDGE_ULPS * math.ulp(cells))
     return nearest if abs(cells - nearest) <= tolerance else math.floor(cells)
 
 
@@ -250,9 +257,9 @@ def get_region(
     format: Annotated[Literal["npy", "json", "png"], Query(description="answer format")] = "npy",
 ) -> Response:
     """The cells with index in `[floor(xmin/res), floor(xmax/res))` x `[floor(ymin/res),
-    floor(ymax/res))` (no bounds: the observed extent; a bound within a billionth of a cell of a cell
-    edge is that edge: `xmin=0.15` at 0.05 m starts at cell 3, though 0.15 / 0.05 is
-    2.9999999999999996), as:
+    floor(ymax/res))` (no bounds: the observed extent; a bound within a billionth of a cell, or a
+    nanometre, of a cell edge is that edge: `xmin=0.15` at 0.05 m starts at cell 3, though 0.15 /
+    0.05 is 2.9999999999999996), as:
 
     - `npy`: a NumPy array of shape (ny, nx), row 0 = the LOWEST y; float32 with NaN for unknown
       (`log_odds`, `probability`, `tsdf`; `tsdf_weight` 0), uint32 counts (`hits`, `misses`, 0 if
