@@ -706,6 +706,11 @@ def test_export_ros_zip_and_png(api: RunningApi, engine_map: GridMap) -> None:
         assert sorted(zf.namelist()) == ["map.pgm", "map.yaml"]
         meta = yaml.safe_load(zf.read("map.yaml"))
         pgm = zf.read("map.pgm")
+        # The same bytes for the same map: each entry carried the time of the request, so two
+        # downloads of an unchanged map differed. Unzipped, the files are rw-r--r--.
+        assert {info.date_time for info in zf.infolist()} == {(1980, 1, 1, 0, 0, 0)}
+        assert {info.external_attr >> 16 for info in zf.infolist()} == {0o644}
+    assert api.client.get("/maps/eng/export", params={"format": "ros"}).content == r.content
     i0, j0, i1, j1 = engine_map.known_bounds()  # type: ignore[misc]
     i0, j0, i1, j1 = i0 - 2, j0 - 2, i1 + 2, j1 + 2  # the default margin, as `fleetmap build`
     assert meta["image"] == "map.pgm" and meta["mode"] == "trinary" and meta["resolution"] == RES

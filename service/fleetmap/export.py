@@ -316,12 +316,20 @@ def nav2_files(gmap: GridMap, window: Window, name: str = "map", scale: int = 1)
     return {f"{name}.yaml": yaml_text.encode(), f"{name}.pgm": pgm_bytes(image)}
 
 
+#: The time every entry of an export's zip carries (zip's earliest): the archive is then the same
+#: bytes for the same map, where each entry carried the time of the request, so two downloads of an
+#: unchanged map differed (a backup's checksum, a sync tool, a cache compared them in vain).
+ZIP_ENTRY_TIME = (1980, 1, 1, 0, 0, 0)
+
+
 def nav2_zip(gmap: GridMap, window: Window, name: str = "map", scale: int = 1) -> bytes:
-    """The nav2 files in one zip archive."""
+    """The nav2 files in one zip archive, the same bytes for the same map (`ZIP_ENTRY_TIME`)."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
         for filename, data in nav2_files(gmap, window, name, scale).items():
-            zf.writestr(filename, data)
+            entry = zipfile.ZipInfo(filename, date_time=ZIP_ENTRY_TIME)
+            entry.external_attr = 0o644 << 16  # rw-r--r-- when unzipped, as writestr gives a name
+            zf.writestr(entry, data, compress_type=zipfile.ZIP_DEFLATED)
     return buf.getvalue()
 
 
