@@ -224,7 +224,8 @@ def test_a_configuration_takes_numbers_as_json_numbers_only(api: RunningApi) -> 
     """`{"max_tiles": true}` made a map of at most 1 tile (every scan past its first tile refused),
     `{"resolution": true}` one of 1 m cells and `{"max_tiles": "4096"}` passed as a number: the
     configuration took booleans and strings for numbers, where every other JSON body of the API
-    (scans, points) refuses them. Now 422, naming the field, and no map is made."""
+    (scans, points) refuses them. Now 422, naming the field, and no map is made. A null or a
+    container for the resolution was a 500 (see the cases)."""
     c = api.client
     for config, field in [
         ({"max_tiles": True}, "max_tiles"),
@@ -234,6 +235,11 @@ def test_a_configuration_takes_numbers_as_json_numbers_only(api: RunningApi) -> 
         ({"resolution": "0.1"}, "resolution"),
         ({"tsdf": {"truncation": False}}, "truncation"),
         ({"occupancy": {"p_hit": "0.7"}}, "p_hit"),
+        # Refused as a new configuration, each was tried as a stored one, whose band limit
+        # multiplied the resolution unchecked: None * 256 was a 500.
+        ({"resolution": None}, "resolution"),
+        ({"resolution": {}}, "resolution"),
+        ({"resolution": [0.1]}, "resolution"),
     ]:
         r = c.put("/maps/strict", json=config)
         assert r.status_code == 422 and field in r.text, (config, r.text)

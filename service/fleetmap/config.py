@@ -356,6 +356,11 @@ class MapConfig(BaseModel):
             return data
         data = dict(data)
         resolution = data.get("resolution", cls.model_fields["resolution"].default)
+        # Not a number (null, a string, a container: the resolution's own validation refuses it),
+        # there is no band limit to load the widths at: a PUT's body of {"resolution": null},
+        # tried as a stored configuration once refused as a new one, was a TypeError, a 500.
+        if isinstance(resolution, bool) or not isinstance(resolution, (int, float)):
+            return data
         limits = [(section, name, MAX_BAND_CELLS * resolution) for section, name in _BAND_WIDTHS]
         for section, name, limit in [*limits, ("tsdf", "max_weight", MAX_TSDF_WEIGHT)]:
             params = data.get(section)
