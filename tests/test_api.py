@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import math
 import queue
 import threading
@@ -218,6 +219,22 @@ def test_an_invalid_configuration_is_located_at_its_fields(api: RunningApi) -> N
         assert [e["loc"] for e in r.json()["errors"]] == locs, (body, r.text)
         assert r.json()["detail"].startswith(detail), (body, r.text)
     assert c.get("/maps/located").status_code == 404
+
+
+def test_a_refused_configuration_logs_no_stored_map_loaded(
+    api: RunningApi, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A body with a null band width or weight cap is refused as a new configuration, then tried as
+    a stored one (a map stored before today's limits: `fleetmap.api.config_body`), whose loading
+    warned "stored map configuration: tsdf.max_weight was infinite (stored as null); loaded as
+    1e+30": for each refused PUT, where no stored map was loaded at all. Nothing is logged so now;
+    loading a stored map still warns (test_persistence.py)."""
+    with caplog.at_level(logging.WARNING, logger="fleetmap.config"):
+        for section, name in [("tsdf", "max_weight"), ("tsdf", "truncation"), ("beam", "alpha")]:
+            r = api.client.put("/maps/quiet", json={section: {name: None}})
+            assert r.status_code == 422 and f"{section}" in r.text, r.text
+    assert api.client.get("/maps/quiet").status_code == 404
+    assert "stored map configuration" not in caplog.text, caplog.text
 
 
 def test_a_configuration_takes_numbers_as_json_numbers_only(api: RunningApi) -> None:

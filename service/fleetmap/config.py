@@ -36,6 +36,11 @@ MAX_COORDINATE = 1.0e7
 #: still loads (`{STORED_CONFIG: True}`): a map must survive an upgrade.
 STORED_CONFIG = "stored"
 
+#: With STORED_CONFIG, in the context of a configuration only tried as a stored one, not loaded
+#: (a `PUT` body refused as a new configuration: `fleetmap.api.config_body`): nothing is loaded,
+#: so no warning says a stored map was.
+TRIED_AS_STORED = "tried_as_stored"
+
 log = logging.getLogger("fleetmap.config")
 
 #: The band widths limited to MAX_BAND_CELLS cells: (section, field).
@@ -351,7 +356,8 @@ class MapConfig(BaseModel):
         `tsdf.truncation`, `beam.alpha` or `tsdf.max_weight`, which JSON stores as null. A map with
         an infinite band could not integrate any scan (its reach was infinite), so it holds nothing
         a finite width would change: it loads with the width at today's limit. An infinite weight
-        cap loads as MAX_TSDF_WEIGHT, which no float32 weight reaches by fusing. A warning says so."""
+        cap loads as MAX_TSDF_WEIGHT, which no float32 weight reaches by fusing. A warning says so,
+        unless the configuration is only tried as a stored one (`TRIED_AS_STORED`)."""
         if not ((info.context or {}).get(STORED_CONFIG) and isinstance(data, dict)):
             return data
         data = dict(data)
@@ -365,10 +371,13 @@ class MapConfig(BaseModel):
         for section, name, limit in [*limits, ("tsdf", "max_weight", MAX_TSDF_WEIGHT)]:
             params = data.get(section)
             if isinstance(params, dict) and name in params and params[name] is None:
-                log.warning(
-                    "stored map configuration: %s.%s was infinite (stored as null); loaded as %g, "
-                    "today's limit", section, name, limit,
-                )  # fmt: skip
+                # A refused PUT body tried as stored logged this for every request, where no map
+                # was loaded.
+                if not (info.context or {}).get(TRIED_AS_STORED):
+                    log.warning(
+                        "stored map configuration: %s.%s was infinite (stored as null); loaded as %g, "
+                        "today's limit", section, name, limit,
+                    )  # fmt: skip
                 data[section] = {**params, name: limit}
         return data
 

@@ -16,7 +16,7 @@ from typing import Annotated, Any
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError, ValidatorFunctionWrapHandler, WrapValidator
 
-from fleetmap.config import STORED_CONFIG, MapConfig
+from fleetmap.config import STORED_CONFIG, TRIED_AS_STORED, MapConfig
 from fleetmap.map_entry import Expectation, MapEntry
 
 
@@ -48,7 +48,7 @@ def _or_past_todays_limits(value: Any, handler: ValidatorFunctionWrapHandler) ->
         return handler(value)
     except ValidationError as refused:
         try:
-            stored = MapConfig.model_validate(value, context={STORED_CONFIG: True})
+            stored = MapConfig.model_validate(value, context={STORED_CONFIG: True, TRIED_AS_STORED: True})
         except ValidationError:
             raise refused from None
         errors = [{**e, "loc": ("body", *e["loc"])} for e in refused.errors(include_url=False)]
