@@ -200,3 +200,22 @@ def test_the_spec_says_a_maps_layers_are_a_non_empty_set() -> None:
     layers = spec["components"]["schemas"]["MapConfig"]["properties"]["layers"]
     assert layers.get("minItems") == 1 and layers.get("uniqueItems") is True, layers
     assert layers["items"]["enum"] == ["occupancy", "counts", "tsdf"]
+
+
+def test_the_spec_promises_a_weak_etag_on_json_answers_only(service: ServiceProcess) -> None:
+    """A region answered as `.npy` or PNG carries no ETag (only JSON answers are hashed,
+    `JsonETags`), but the spec declared one "on answers up to 1048576 bytes" of these operations,
+    whatever their format: a generated client expected a validator on a 160 KB `.npy` region, which
+    never came. The declaration now says it is a JSON answer's."""
+    paths = json.loads(COMMITTED.read_text(encoding="utf-8"))["paths"]
+    region = paths["/maps/{map_id}/region"]["get"]["responses"]["200"]
+    assert {"application/json", "application/octet-stream"} <= set(region["content"])
+    assert "JSON answer" in region["headers"]["ETag"]["description"]
+    url = service.base_url
+    assert httpx.put(f"{url}/maps/spec-etags", json={}).status_code == 201
+    window = {"xmin": 0, "ymin": 0, "xmax": 1, "ymax": 1}
+    npy = httpx.get(f"{url}/maps/spec-etags/region", params=window)
+    assert npy.status_code == 200 and npy.headers["content-type"] == "application/octet-stream"
+    assert "etag" not in npy.headers  # the live behaviour the declaration must describe
+    as_json = httpx.get(f"{url}/maps/spec-etags/region", params={**window, "format": "json"})
+    assert as_json.status_code == 200 and as_json.headers["etag"].startswith('W/"')

@@ -419,8 +419,11 @@ def _declare_json_revalidation(schema: dict[str, Any]) -> None:
     JSON_ETAG_MAX_BYTES) and the 304 it gives for a matching `If-None-Match`: the service did both,
     and the spec said neither, so a generated client could not revalidate."""
     etag = {
-        "description": f"a weak validator of the answer, on answers up to {JSON_ETAG_MAX_BYTES} bytes: "
-        "send it back in If-None-Match to get 304 while the answer is unchanged",
+        # Only JSON answers are hashed: "on answers up to N bytes" promised one on a region's .npy
+        # and PNG answers too, which carry none.
+        "description": f"a weak validator of a JSON answer of up to {JSON_ETAG_MAX_BYTES} bytes (none on "
+        "the operation's other formats): send it back in If-None-Match to get 304 while the answer is "
+        "unchanged",
         "schema": {"type": "string"},
     }
     for operations in schema.get("paths", {}).values():
