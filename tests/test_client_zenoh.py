@@ -1052,6 +1052,27 @@ def test_replay_goes_on_at_its_rate_after_a_pause_for_a_lost_connection(
     assert in_first_second <= 55, f"{in_first_second} scans in the second after the pause, at 40 a second"
 
 
+def test_replay_command_says_one_pause_in_the_singular(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A replay that paused once for a lost connection said "paused 1 times"."""
+    import fleetmap_client.replay as replay_module
+
+    log = tmp_path / "ok.log"
+    _write_carmen(log, 2)
+    pauses = iter([1, 2])
+
+    def replayed(*args: Any, **kwargs: Any) -> replay_module.ReplayResult:
+        return replay_module.ReplayResult(scans=2, pauses=next(pauses), seconds=1.0)
+
+    monkeypatch.setattr(replay_module, "replay", replayed)
+    args = ["replay", str(log), "--map", "m", "--robot", "r", "--quiet", "--no-confirm"]
+    assert cli.main(args) == 0
+    assert ", paused 1 time for a lost connection" in capsys.readouterr().out
+    assert cli.main(args) == 0
+    assert ", paused 2 times for a lost connection" in capsys.readouterr().out
+
+
 def test_replay_help_says_that_rate_0_lets_the_service_drop_scans() -> None:
     """`fleetmap replay --help` said "--rate X ... (0: as fast as possible, nothing dropped)": a
     3000-scan log of 1081 beams replayed so over loopback had 2695 scans dropped by the service's

@@ -166,7 +166,7 @@ def run_replay(args: argparse.Namespace) -> int:
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
-    pauses = f", paused {result.pauses} times for a lost connection" if result.pauses else ""
+    pauses = f", paused {counted(result.pauses, 'time')} for a lost connection" if result.pauses else ""
     print(
         f"replayed {result.scans} scans of {dataset.name} to map {args.map_id!r} as robot "
         f"{args.robot_id!r} in {result.seconds:.1f} s{pauses}"
