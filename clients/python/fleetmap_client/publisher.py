@@ -919,7 +919,9 @@ class ScanPublisher:
         """Withdraw the liveliness token, undeclare the publisher and close the session. Idempotent.
 
         Scans already handed to Zenoh over a live link are flushed by the session close (reliable
-        channel); scans still waiting for re-delivery (`backlogged`, `pending`) are given up. A
+        channel); scans still waiting for re-delivery (`backlogged`, `pending`) are given up, and so
+        are those put on a link dying unnoticed (counted `published`: Zenoh's cache goes with the
+        session). On such a link the session's close waits about 10 s (Zenoh's close timeout). A
         `publish` of another thread blocked in Zenoh (BLOCK on a congested or frozen link) is waited
         for, at most `CLOSE_SEND_WAIT_S`. While
         no connection was made, it waits for the attempt in progress to end (at most `CLOSE_WAIT_S`;
