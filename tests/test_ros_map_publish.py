@@ -37,6 +37,7 @@ from test_ingest import client_session
 from fleetmap.codec import JSON_ENCODING, encode_json
 from fleetmap.config import MapConfig
 from fleetmap.export import Window
+from fleetmap.map_entry import MapEntry
 from fleetmap.registry import MapRegistry
 from fleetmap.ros import occupancy_grid
 from fleetmap.ros.map_publisher import MapTopic, RosMapOptions, RosMapPublisher
@@ -408,6 +409,16 @@ def test_a_map_replaced_by_one_with_nothing_to_publish_leaves_no_stale_grid(in_p
         publisher.close()
 
 
+def publish_a_room(registry: MapRegistry, publisher: RosMapPublisher) -> MapEntry:
+    """Map `a` (0.5 m cells) of a room scanned once, and `publisher` started on it: its first grid
+    published. Returns the map."""
+    entry = registry.create("a", MapConfig(resolution=0.5))[0]
+    entry.gmap.integrate(room_scan(1.0, 1.0))
+    publisher.start()  # its first check publishes; the next would be an hour later
+    wait_for(lambda: publisher.topics[0].grid.published == 1, timeout=5, what="the first grid")
+    return entry
+
+
 def assert_a_late_subscriber_gets_no_grid(endpoint: str) -> None:
     """A ROS node starting now gets no grid from the publisher's cache."""
     late = RosSubscriber(endpoint)
@@ -427,10 +438,7 @@ def test_a_map_grown_past_the_cell_bound_leaves_no_stale_grid(in_process: InProc
     options = RosMapOptions((MapTopic("a"),), period=3600.0, max_cells=1000)
     publisher = RosMapPublisher(registry, in_process.router, options)
     try:
-        entry = registry.create("a", MapConfig(resolution=0.5))[0]
-        entry.gmap.integrate(room_scan(1.0, 1.0))
-        publisher.start()  # its first check publishes; the next would be an hour later
-        wait_for(lambda: publisher.topics[0].grid.published == 1, timeout=5, what="the first grid")
+        entry = publish_a_room(registry, publisher)
         entry.gmap.integrate(Scan.from_fan((40.0, 40.0, 0.0), 0.0, 0.1, [1.0] * 10))  # 80 x 80 cells
         assert publisher.publish_changed() == 0  # past the bound: not published
         assert publisher.topics[0].declared  # the map exists: still declared
@@ -448,10 +456,7 @@ def test_a_map_whose_every_cell_was_cleared_is_published_unknown(in_process: InP
     options = RosMapOptions((MapTopic("a"),), period=3600.0, full_grid_interval=0.0)
     publisher = RosMapPublisher(registry, in_process.router, options)
     try:
-        entry = registry.create("a", MapConfig(resolution=0.5))[0]
-        entry.gmap.integrate(room_scan(1.0, 1.0))
-        publisher.start()  # its first check publishes; the next would be an hour later
-        wait_for(lambda: publisher.topics[0].grid.published == 1, timeout=5, what="the first grid")
+        entry = publish_a_room(registry, publisher)
         first = RosSubscriber(in_process.endpoint)
         try:
             old = grid_cells(wait_for(first.received, timeout=5, what="the cached grid")[0].grid)
