@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import importlib
 import itertools
 import json
 import os
@@ -88,23 +87,17 @@ def test_api_examples_print_what_the_page_shows(service: ServiceProcess, tmp_pat
 
 
 def fleetmap_parsers() -> dict[str, set[str]]:
-    """Each `fleetmap` command's options, from the real parsers."""
-    parser = argparse.ArgumentParser(prog="fleetmap")
-    sub = parser.add_subparsers()
-    cli._add_build(sub)
-    for name in cli.COMMAND_MODULES:
-        importlib.import_module(name).add_parser(sub)
-    return {name: {o for a in p._actions for o in a.option_strings} for name, p in sub.choices.items()}
+    """Each `fleetmap` command's options, from the real parsers, and under "" the command line's own
+    (`fleetmap --version`)."""
+    parser, sub = cli.command_line_parser()
+    parsers = {"": parser, **sub.choices}
+    return {name: {o for a in p._actions for o in a.option_strings} for name, p in parsers.items()}
 
 
 def test_no_command_help_shows_a_default_of_none() -> None:
     """`fleetmap demo --help` said "--seconds ... (default: None)": each command's help, as a user
     reads it, shows only defaults a user can read."""
-    parser = argparse.ArgumentParser(prog="fleetmap")
-    sub = parser.add_subparsers()
-    cli._add_build(sub)
-    for name in cli.COMMAND_MODULES:
-        importlib.import_module(name).add_parser(sub)
+    _, sub = cli.command_line_parser()
     for command, p in sub.choices.items():
         text = p.format_help()
         assert "default: None" not in text and "(None" not in text, f"fleetmap {command} --help:\n{text}"
@@ -116,11 +109,7 @@ def test_no_command_help_shows_a_default_of_none() -> None:
 def test_every_command_help_says_what_the_command_does() -> None:
     """`fleetmap build --help` was its usage and options alone, where every other command's says
     what it does first."""
-    parser = argparse.ArgumentParser(prog="fleetmap")
-    sub = parser.add_subparsers()
-    cli._add_build(sub)
-    for name in cli.COMMAND_MODULES:
-        importlib.import_module(name).add_parser(sub)
+    _, sub = cli.command_line_parser()
     silent = [command for command, p in sub.choices.items() if not (p.description or "").strip()]
     assert not silent, f"commands whose --help does not say what they do: {silent}"
 
@@ -129,11 +118,7 @@ def test_every_option_with_a_default_says_it_in_its_help() -> None:
     """`fleetmap replay --help` and `fleetmap sim --help` said "--encoding: payload encoding", not
     which one they send when not told (binary, as docs/clients.md says). An option whose default
     is a list, empty, or none, says nothing."""
-    parser = argparse.ArgumentParser(prog="fleetmap")
-    sub = parser.add_subparsers()
-    cli._add_build(sub)
-    for name in cli.COMMAND_MODULES:
-        importlib.import_module(name).add_parser(sub)
+    _, sub = cli.command_line_parser()
     silent = []
     for command, p in sub.choices.items():
         formatter = p.formatter_class(prog=p.prog)

@@ -37,12 +37,7 @@ if TYPE_CHECKING:
 def main(argv: Sequence[str] | None = None) -> int:
     give_stderr_a_sink()
     try:
-        parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__.splitlines()[0])
-        parser.add_argument("--version", action="version", version=f"fleetmap {installed_version()}")
-        sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-        _add_build(sub)
-        for name in COMMAND_MODULES:
-            importlib.import_module(name).add_parser(sub)
+        parser, sub = command_line_parser()
         args = parse_command_line(parser, sub, argv)
     except KeyboardInterrupt:
         # Ctrl-C in the second or two the commands' modules (numba's among them) take to import
@@ -54,6 +49,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         # and a SIGHUP held meanwhile ends it now, as it would have.
         HANGUPS.release(signal.SIG_DFL)
     return run_command(args)
+
+
+def command_line_parser() -> tuple[
+    argparse.ArgumentParser, argparse._SubParsersAction[argparse.ArgumentParser]
+]:
+    """The `fleetmap` command line's parser (its own options: `--version`) and its commands' (each
+    command's parser is `sub.choices[name]`), every command module imported."""
+    parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"fleetmap {installed_version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_build(sub)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    return parser, sub
 
 
 def parse_command_line(
