@@ -109,9 +109,10 @@ def run_command(args: argparse.Namespace) -> int:
             if sys.stdout is not None:
                 sys.stdout.flush()
     except CliError as exc:
-        line = f"fleetmap {args.command}: error: {exc}"
-        level = logging.ERROR
-        print(plain_line(line, getattr(args, "log_format", "text"), level), file=DiagnosticStream(sys.stderr))
+        line = plain_line(
+            f"fleetmap {args.command}: error: {exc}", getattr(args, "log_format", "text"), logging.ERROR
+        )
+        print(line, file=DiagnosticStream(sys.stderr))
         return 2
     except KeyboardInterrupt:  # Ctrl-C where a command does not take it itself
         print(f"fleetmap {args.command}: interrupted", file=DiagnosticStream(sys.stderr))
@@ -380,7 +381,7 @@ def _build(args: argparse.Namespace) -> int:
     if interrupted.is_set():
         print(
             f"fleetmap build: interrupted after {done} of {len(dataset)} scans; nothing written",
-            file=sys.stderr,
+            file=diagnostics,
         )
         return INTERRUPTED
     elapsed = time.perf_counter() - started
