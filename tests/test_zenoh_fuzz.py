@@ -591,13 +591,17 @@ def test_liveliness_token_flood_writes_a_bounded_log(tmp_path: Path) -> None:
                 return int(httpx.get(f"{svc.base_url}/healthz").json()["zenoh"]["liveliness_events"])
 
             wait_for(lambda: events() >= 2 * declared, timeout=30, what="every token event handled")
+            handled = time.monotonic()
         finally:
             session.close()
         assert declared >= 1000, f"only {declared} tokens declared: no flood"
         alive_line = re.compile(r"robot flood/\S+ is (online|offline)")
         lines = [line for line in svc.logs().splitlines() if alive_line.search(line)]
-        # The first token's lines, then at most 100 per interval (the flood spans one or two).
-        assert len(lines) <= 2 + 2 * 100, f"{len(lines)} lines for {2 * declared} token events"
+        # The first token's lines, then at most 100 per interval the handling spanned: one or two on
+        # a quiet machine; a loaded one (CI beside other work) took longer than 2 intervals to handle
+        # 17,526 events, and logged 100 lines in each.
+        periods = math.ceil((handled - started) / LOG_INTERVAL) + 1
+        assert len(lines) <= 2 + periods * 100, f"{len(lines)} lines for {2 * declared} token events"
 
 
 def test_scans_creating_maps_they_lose_again_write_a_bounded_log(tmp_path: Path) -> None:
