@@ -18,7 +18,7 @@ SYSTEM_PACKAGES ?= chromium curl unzip
 # The run ends with its 20 slowest tests: CI's log shows what keeps it within its 15-minute budget.
 TEST_WORKERS ?= 3
 
-.PHONY: demo serve test bench bench-service lint format clean system-deps
+.PHONY: demo serve test bench bench-service soak lint format clean system-deps
 
 # pyproject.toml's requires-python, checked before the venv is made: pip's refusal came only after
 # the venv of the old Python was made, and that venv stayed (`make demo PYTHON=python3.12` used it
@@ -62,6 +62,14 @@ bench: $(DEV_STAMP)
 
 bench-service: $(DEV_STAMP)
 	$(PY) benchmarks/bench_service.py
+
+# The crash tests' long form (a few minutes, not part of `make test`, which runs them with 2 and 4
+# kills): 12 SIGKILLs / SIGTERMs at random moments of a durable service while robots publish.
+SOAK_ROUNDS ?= 12
+soak: $(DEV_STAMP)
+	FLEETMAP_SOAK_ROUNDS=$(SOAK_ROUNDS) $(PY) -m pytest -q -n 0 -p no:cacheprovider \
+		tests/test_crash_exactly_once.py \
+		tests/test_durability.py::test_kill_9_at_random_moments_loses_nothing_reported
 
 lint: $(DEV_STAMP)
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
