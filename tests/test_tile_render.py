@@ -13,6 +13,7 @@ import gc
 import io
 import math
 import threading
+import warnings
 
 import numpy as np
 import pytest
@@ -277,6 +278,32 @@ def test_hit_count_colour_is_consistent_between_tiles() -> None:
     p50 = decode(render_tile(a, "hits", 0, *where(40, 10, 0)[:2]))[where(40, 10, 0)[2:]]
     assert (pa == pb).all() and pa[0, 0, 3] == 255
     assert not (pa == p50).all()
+
+
+def test_weight_ramp_holds_for_the_tiniest_weight_caps() -> None:
+    """`tsdf_weight` sits at `log1p(weight) / log1p(max_weight)` of the ramp for every cap a map may
+    have: below ~3e-39 the float32 reciprocal of log1p(cap) was infinite, so every render warned
+    (overflow, invalid multiply and cast) and a weight at a fraction of the cap took the top colour.
+    Scans add 1 a time (a cap below 1 holds only 0 and the cap); other weights come with a snapshot
+    upload, so they are written into the pool here as one would hold them."""
+    x, y, rows, cols = where(*HIT, 0)
+    hit_at = (rows.start, cols.start)
+    full_at = (rows.start, cols.start + 1)  # the cell in front of the return: weight at the cap
+    half: dict[float, np.ndarray] = {}
+    for cap in (1e-40, 1000.0):
+        gmap = make_map(*beam_to(*HIT), tsdf={"max_weight": cap})
+        store = gmap.store
+        slot = store.slots[(HIT[0] >> store.shift, HIT[1] >> store.shift)]
+        # Half way up the ramp: log1p(weight) = log1p(cap) / 2 (5e-41 for 1e-40, 30.6 for 1000).
+        cell = (slot, HIT[1] & store.mask, HIT[0] & store.mask)
+        store.pools["tsdf_weight"][cell] = math.expm1(math.log1p(cap) / 2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            img = decode(render_tile(gmap, "tsdf_weight", 0, x, y))
+        assert img[full_at][3] == 255 and img[hit_at][3] == 255
+        assert not (img[hit_at] == img[full_at]).all()  # half the ramp is not its top
+        half[cap] = img[hit_at]
+    assert (half[1e-40] == half[1000.0]).all()
 
 
 # -- errors ------------------------------------------------------------------------------------------------

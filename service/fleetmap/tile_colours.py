@@ -44,9 +44,13 @@ _STATE[STATE_OCCUPIED] = (20, 20, 20, 255)
 
 
 def _ramp_index(values: np.ndarray, scale: float) -> np.ndarray:
-    """Ramp LUT indices for non-negative values on a log scale: 0 -> 0 (transparent), else 1..255."""
+    """Ramp LUT indices for non-negative values on a log scale: 0 -> 0 (transparent), else 1..255,
+    at `log1p(value) / log1p(scale)` of the ramp (the top for values at or past `scale`)."""
     v = values.astype(np.float32)
-    t = np.minimum(np.log1p(v) * np.float32(1.0 / math.log1p(scale)), 1.0)
+    # Divided in float64: a `tsdf.max_weight` below ~3e-39 (allowed down to float32's smallest
+    # weight) made the float32 reciprocal of log1p(scale) infinite, so numpy warned on every render
+    # and every weight under the cap took the top colour.
+    t = np.minimum(np.log1p(v, dtype=np.float64) / math.log1p(scale), 1.0)
     idx = (1.0 + np.rint(t * 254.0)).astype(np.uint8)
     idx[~(v > 0)] = 0
     return idx
