@@ -14,6 +14,7 @@ import io
 import math
 import threading
 import warnings
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
@@ -518,6 +519,48 @@ def test_concurrent_requests_render_once_and_stay_consistent() -> None:
     png, etag = cache.get_or_render(entry, "probability", -1, x, y)
     assert etag == f'"1-probability--1-{x}-{y}-{tile_version(gmap, -1, x, y)}"'
     assert png == render_tile(gmap, "probability", -1, x, y)
+
+
+def test_a_request_served_by_a_concurrent_render_counts_as_a_hit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every tile the cache serves is a hit or a render, so that `fleetmap_tile_cache_hits_total` and
+    `fleetmap_tile_renders_total` add up to the tiles served: a request that waited for another
+    request's render of the same tile was neither, and the hit ratio read low under load."""
+    entry = MapEntry("m", make_map(*beam_to(*HIT)), 1)
+    cache = TileCache()
+    x, y, _, _ = where(*HIT, -1)
+    rendering, release, waiting = threading.Event(), threading.Event(), threading.Event()
+    real = tile_cache.render_tile_versioned
+
+    def held_render(*args: object, **kwargs: object) -> tuple[bytes, int]:
+        rendering.set()
+        assert release.wait(60)
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    class WatchedFuture(Future):  # type: ignore[type-arg]
+        """A render's future that says when a request waits for it."""
+
+        def result(self, timeout: float | None = None) -> object:
+            waiting.set()
+            return super().result(timeout)
+
+    monkeypatch.setattr(tile_cache, "render_tile_versioned", held_render)
+    monkeypatch.setattr(tile_cache, "Future", WatchedFuture)
+    served: list[tuple[bytes, str]] = []
+
+    def ask() -> None:
+        served.append(cache.get_or_render(entry, "probability", -1, x, y))
+
+    renderer = threading.Thread(target=ask)
+    renderer.start()
+    assert rendering.wait(60)
+    waiter = threading.Thread(target=ask)
+    waiter.start()
+    assert waiting.wait(60)  # the second request waits for the first one's render
+    release.set()
+    renderer.join()
+    waiter.join()
+    assert len(served) == 2 and served[0] == served[1]
+    assert cache.renders == 1 and cache.hits == 1
 
 
 # -- zoomed-out reads of big windows ------------------------------------------------------------------

@@ -442,7 +442,10 @@ class TileCacheCollector(Collector):
     @staticmethod
     def _families() -> tuple[_Family, ...]:
         return (
-            CounterMetricFamily("fleetmap_tile_cache_hits", "Tile requests served from the cache"),
+            CounterMetricFamily(
+                "fleetmap_tile_cache_hits",
+                "Tile requests served without a render of their own (cached, or another request's render)",
+            ),
             CounterMetricFamily("fleetmap_tile_renders", "Tiles rendered (cache misses)"),
             GaugeMetricFamily("fleetmap_tile_cache_entries", "Rendered tiles held in the cache"),
             CounterMetricFamily(

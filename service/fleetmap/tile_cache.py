@@ -53,8 +53,8 @@ class TileCache:
         self.max_bytes = max_bytes
         self.reduced = ReducedCache(reduced_bytes)
         self.on_render = on_render
-        self.hits = 0  # requests served from the cache
-        self.renders = 0  # tiles actually rendered
+        self.hits = 0  # requests served without a render of their own (cached, or another's render)
+        self.renders = 0  # tiles actually rendered: hits + renders = tiles served
         self._items: OrderedDict[tuple, _Cached] = OrderedDict()
         self._bytes = 0
         self._inflight: dict[tuple, Future[_Cached]] = {}
@@ -103,6 +103,10 @@ class TileCache:
                 return self._render(entry, layer, z, x, y, key, pending)
             done = pending.result()  # re-raises the renderer's exception
             if done.version >= version:
+                # Served without a render of its own: a hit, so that hits and renders add up to the
+                # tiles served (the metrics' hit ratio counted none of these under load).
+                with self._lock:
+                    self.hits += 1
                 return done.png, done.etag
             # That render began before the change we saw: go round (it has left _inflight by now).
 
