@@ -243,6 +243,41 @@ def test_tile_size_does_not_change_the_picture() -> None:
             assert render_tile(small, layer, z, x, y) == render_tile(large, layer, z, x, y), (z, x, y)
 
 
+def test_tsdf_ties_across_storage_tiles_do_not_depend_on_the_tile_size() -> None:
+    """A zoomed-out TSDF pixel whose nearest-surface cells tie (a value and its opposite, either side
+    of a return on a cell edge) shows the one the halving keeps (`kernels.reduce`: the first of a
+    pair), whether those cells share a storage tile or not. Where the pixel spanned several storage
+    tiles, the tie went to whichever block NumPy wrote last: the same scans drew a red pixel with
+    256-cell tiles and a blue one with 16-cell tiles. Each beam runs along an axis from a cell centre
+    to the edge between storage tiles 0 and 1 (cell 16), in binary-exact metres, so the tie is exact.
+    """
+    res, edge = 0.125, 16
+    beams = [  # (start cell centre, direction): along +x, -x, +y and -y, each in its own 32-cell block
+        ((4.5, 3.5), 0.0),
+        ((27.5, 35.5), math.pi),
+        ((67.5, 4.5), math.pi / 2),
+        ((99.5, 27.5), -math.pi / 2),
+    ]
+    scans = []
+    for (ci, cj), theta in beams:
+        reach = abs(edge - (ci if theta in (0.0, math.pi) else cj)) * res
+        scans.append(Scan.from_fan((ci * res, cj * res, theta), 0.0, 0.01, [reach]))
+    small, large = (
+        GridMap(MapConfig(resolution=res, tile_size=size, max_tiles=1000, tsdf={"truncation": 4 * res}))
+        for size in (16, 256)
+    )
+    for gmap in (small, large):
+        for scan in scans:
+            gmap.integrate(scan)
+    # The premise: a cell either side of each return holds +-1/8 of the truncation exactly.
+    assert small.region("tsdf", 15, 3, 17, 4).tolist() == [[0.125, -0.125]]
+    assert small.region("tsdf", 15, 35, 17, 36).tolist() == [[-0.125, 0.125]]
+    for z in (-5, -6, -7, -8):
+        png = render_tile(large, "tsdf", z, 0, -1)
+        assert decode(png)[..., 3].any()
+        assert render_tile(small, "tsdf", z, 0, -1) == png, z
+
+
 # -- colours -------------------------------------------------------------------------------------------------
 
 

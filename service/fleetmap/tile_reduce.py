@@ -4,7 +4,8 @@ cells copied (z >= 0) or reduced to one value per pixel (z < 0, `kernels.reduce`
 lock (`snapshot`), the reduced blocks cached by version between renders (`ReducedCache`), and the
 blocks assembled into the tile's grid of values (`assemble`) once the lock is released. A pixel
 that summarises several cells keeps the most occupied known one (walls do not vanish when zooming
-out), the largest count or weight, or the TSDF value nearest the surface."""
+out), the largest count or weight, or the TSDF value nearest the surface (of two as near, the one
+the kernels' halving keeps, whether the cells share a storage tile or not)."""
 
 from __future__ import annotations
 
@@ -328,13 +329,36 @@ def assemble(snap: _Snapshot, source: str, grid_side: int, piece: int, cells_per
         view[snap.pos_j, :, snap.pos_i, :] = np.stack(snap.blocks)
         return grid
     # Several storage tiles (each reduced to one value) share a pixel: keep the best by the source's
-    # score. maximum.at handles repeated pixels; the winners are then written (ties are equivalent).
+    # score (maximum.at handles repeated pixels), and of the blocks that tie for it, the one the
+    # halving would keep (`_halving_rank`): a TSDF value and its opposite tie, and NumPy writes
+    # repeated indices in no set order, so the tie went to the block written last, and the same
+    # scans drew a red or a blue pixel depending on the map's tile_size.
     values = np.array([blk[0, 0] for blk in snap.blocks], dtype=dtype)
     px = snap.pos_i * piece // cells_per_px
     py = snap.pos_j * piece // cells_per_px
     score = _score(values, source)
     best = np.full((grid_side, grid_side), -np.inf)
     np.maximum.at(best, (py, px), score)
-    win = (score == best[py, px]) & (score > -np.inf)
-    grid[py[win], px[win]] = values[win]
+    win = np.flatnonzero((score == best[py, px]) & (score > -np.inf))
+    pixel = py[win] * grid_side + px[win]
+    rank = _halving_rank(snap.pos_i[win], snap.pos_j[win], cells_per_px // piece)
+    order = np.lexsort((rank, pixel))  # by pixel, then by rank: each pixel's first is its keeper
+    _, first = np.unique(pixel[order], return_index=True)
+    keep = win[order[first]]
+    grid[py[keep], px[keep]] = values[keep]
     return grid
+
+
+def _halving_rank(pos_i: np.ndarray, pos_j: np.ndarray, per_pixel: int) -> np.ndarray:
+    """The order in which halving a pixel's `per_pixel` x `per_pixel` blocks (at positions `pos_i`,
+    `pos_j` in blocks; a power of two) prefers them on a tie, lowest first. `kernels.reduce` halves
+    columns, then rows, keeping the first of a pair on a tie: at every level the lower j half wins,
+    then within it the lower i half, so the rank interleaves the bits of the position within the
+    pixel, j before i, from the highest."""
+    local_i, local_j = pos_i % per_pixel, pos_j % per_pixel
+    rank = np.zeros(pos_i.shape, dtype=np.int64)
+    bit = per_pixel >> 1
+    while bit:
+        rank = rank * 4 + ((local_j & bit) != 0) * 2 + ((local_i & bit) != 0)
+        bit >>= 1
+    return rank
