@@ -38,12 +38,14 @@ def integrate(client: httpx.Client, scan: dict[str, Any], headers: dict[str, str
     )
 
 
-@pytest.fixture
-def mapped(service_factory: Callable[..., ServiceProcess]) -> Iterator[httpx.Client]:
-    """A client of a service (in memory: no test here is about storage) holding map `m` with one
-    scan."""
-    service = service_factory("--in-memory")
-    with httpx.Client(base_url=service.base_url, timeout=30) as client:
+@pytest.fixture(scope="module")
+def mapped(tmp_path_factory: pytest.TempPathFactory) -> Iterator[httpx.Client]:
+    """A client of one service for the module's tests (in memory: no test here is about storage)
+    holding map `m` with one scan, which no test changes; the maps a test makes are its own."""
+    with (
+        ServiceProcess(tmp_path_factory.mktemp("api-http"), ["--in-memory"]) as service,
+        httpx.Client(base_url=service.base_url, timeout=30) as client,
+    ):
         assert client.put("/maps/m", json={"resolution": 0.05}).status_code == 201
         integrate(client, SCAN)
         yield client
