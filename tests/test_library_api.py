@@ -100,6 +100,51 @@ def test_a_program_using_the_python_client_type_checks_strictly(tmp_path: Path) 
     _assert_strictly_typed(program)
 
 
+def test_the_python_clients_numbers_may_be_numpys_to_a_type_checker(tmp_path: Path) -> None:
+    """`mypy --strict` of a program that passes the client NumPy numbers where docs/clients.md says
+    it takes them (a seq from `np.arange`, a tile index, a change version, a coordinate or a stamp
+    read from an array): each was a type error ("incompatible type "signedinteger[_64Bit]";
+    expected "int""), though the call works and the documentation names NumPy's integers. A string
+    is still an error where a number is meant."""
+    pytest.importorskip("mypy")
+    program = tmp_path / "numpy_numbers.py"
+    program.write_text(
+        textwrap.dedent(
+            """\
+            from __future__ import annotations
+
+            import numpy as np
+
+            from fleetmap.scan import Scan
+            from fleetmap_client import FleetmapClient, ScanPublisher
+
+
+            def read(fm: FleetmapClient, scan: Scan, pub: ScanPublisher) -> None:
+                for seq in np.arange(3, dtype=np.int64):
+                    fm.post_scan("m", "r", scan, seq=seq, stamp=np.float32(1.5))
+                    pub.publish(scan, seq=seq, stamp=np.float32(1.5))
+                pub.flush_ended(np.int64(7), np.int64(0), np.int64(2), timeout=np.float32(1.0))
+                fm.tile("m", np.int64(0), np.int32(-1), np.int64(2))
+                fm.events("m", since=np.uint32(4))
+                fm.cell("m", np.float32(1.5), np.int64(2))
+                fm.region("m", np.float32(0), np.int64(0), np.float32(1.5), np.float64(2))
+                fm.region_window("m", np.float32(0), np.int64(0), np.float32(1.5), np.float64(2))
+                fm.region_png("m", np.float32(0), np.int64(0), np.float32(1.5), np.float64(2))
+                fm.surface("m", np.float32(0), np.int64(0), np.float32(1.5), np.float64(2))
+                fm.clear_region("m", np.float32(0), np.int64(0), np.float32(1.5), np.float64(2))
+                fm.raycast("m", (0.0, 0.0), np.float32(0.5), max_range=np.float32(5.0))
+                fm.export("m", margin=np.int64(3), resolution=np.float32(0.1))
+                pub.wait_connected(timeout=np.float32(1.0))
+                pub.flush(timeout=np.int64(1))
+                FleetmapClient(timeout=np.float32(5.0), scan_timeout=np.int64(20)).close()
+                fm.tile("m", "0", 0, 0)  # type: ignore[arg-type]
+                fm.cell("m", "1.5", 2.0)  # type: ignore[arg-type]
+            """
+        )
+    )
+    _assert_strictly_typed(program)
+
+
 def _assert_strictly_typed(program: Path) -> None:
     """`mypy --strict` of `program` as a user runs it: no project configuration (so no pydantic
     plugin), the packages checked as installed ones are (`--follow-imports silent`: their own

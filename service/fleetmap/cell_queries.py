@@ -13,7 +13,7 @@ under the same name, so `from fleetmap.grid_map import MAX_RAYS` means what it a
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -56,6 +56,14 @@ def cell_edge(index: int, resolution: float) -> float:
     rounding moves the edge by far less than any resolution a map may have, but by more than a
     billionth of a cell at a resolution of more than nine decimals (see `api.routes_data._edge`)."""
     return round(index * resolution, EDGE_DIGITS)
+
+
+#: An integer as the engine and the clients take one (`is_whole_number`): Python's or NumPy's. A
+#: NumPy integer (a seq from `np.arange`, an index read from an array) is no `int` to a type checker.
+Integer = int | np.integer[Any]
+#: A number as the engine and the clients take one (`real_number`): Python's or NumPy's, an integer
+#: too. A NumPy float32 or integer (a coordinate read from an array) is no `float` to a type checker.
+Real = float | np.floating[Any] | np.integer[Any]
 
 
 def is_whole_number(value: object) -> bool:
@@ -135,7 +143,9 @@ __all__ = [
     "STATE_NAMES",
     "STATE_OCCUPIED",
     "STATE_UNKNOWN",
+    "Integer",
     "Points",
+    "Real",
     "UnknownCells",
     "as_points",
     "cell_edge",

@@ -94,7 +94,7 @@ from typing import Literal
 import zenoh
 import zenoh.ext
 
-from fleetmap.cell_queries import is_whole_number
+from fleetmap.cell_queries import Integer, Real, is_whole_number
 from fleetmap.codec import encode_binary, encode_json
 from fleetmap.scan import Scan
 from fleetmap.shown_endpoint import shown_endpoints
@@ -281,7 +281,7 @@ class ScanPublisher:
         zenoh_config: zenoh.Config | str | Path | None = None,
         block: bool = True,
         send_session_id: bool = True,
-        backlog: int = DEFAULT_BACKLOG,
+        backlog: Integer = DEFAULT_BACKLOG,
     ) -> None:
         for name, value in (("map_id", map_id), ("robot_id", robot_id)):
             if not isinstance(value, str) or not is_valid_id(value):
@@ -582,7 +582,7 @@ class ScanPublisher:
         # zenoh's stub types matching_status a bool; it is a MatchingStatus (zenoh 1.x).
         return bool(pub.matching_status.matching)  # type: ignore[attr-defined]
 
-    def wait_connected(self, timeout: float | None = None, *, require_subscriber: bool = True) -> bool:
+    def wait_connected(self, timeout: Real | None = None, *, require_subscriber: bool = True) -> bool:
         """Wait until the session is connected and, with `require_subscriber` (default), until a
         subscriber of the scan key is known, i.e. the service's ingest is reachable and listening.
 
@@ -624,7 +624,9 @@ class ScanPublisher:
         """The seq the next `publish` without an explicit seq will use."""
         return self._next_seq
 
-    def publish(self, scan: Scan | ScanMessage, seq: int | None = None, stamp: float | None = None) -> bool:
+    def publish(
+        self, scan: Scan | ScanMessage, seq: Integer | None = None, stamp: Real | None = None
+    ) -> bool:
         """Encode and publish one scan.
 
         `scan` is an engine `Scan` (or a `ScanMessage`, converted with `to_scan`; its seq and stamp
@@ -759,7 +761,7 @@ class ScanPublisher:
 
     # -- delivery confirmation ---------------------------------------------------------------------
 
-    def flush(self, timeout: float | None = None) -> DeliveryReport:
+    def flush(self, timeout: Real | None = None) -> DeliveryReport:
         """Wait until the service reports every scan of this publisher's session (its scans since
         the publisher was made, or since an explicit seq started its seq again) settled, and say
         what became of them: a `DeliveryReport`, true when all of them are integrated.
@@ -790,7 +792,7 @@ class ScanPublisher:
         return self._await_delivery(session, first, last, timeout, ended=False)
 
     def flush_ended(
-        self, session_id: int | None, first_seq: int, last_seq: int, timeout: float | None = None
+        self, session_id: Integer | None, first_seq: Integer, last_seq: Integer, timeout: Real | None = None
     ) -> DeliveryReport:
         """What became of the scans `first_seq` .. `last_seq` of an ENDED publisher session of this
         robot: one whose publisher no longer runs, typically the robot's process before it restarted
@@ -830,7 +832,7 @@ class ScanPublisher:
         )
 
     def _await_delivery(
-        self, session: int | None, first: int, last: int, timeout: float | None, ended: bool
+        self, session: int | None, first: int, last: int, timeout: Real | None, ended: bool
     ) -> DeliveryReport:
         """Ask the service until the scans `first` .. `last` of `session` are settled (or, `ended`,
         final: `ended_session_report`), or `timeout` passes; `flush` and `flush_ended`."""
@@ -1033,7 +1035,7 @@ def check_period(period: float, what: str) -> None:
         )
 
 
-def _deadline(timeout: float | None) -> float | None:
+def _deadline(timeout: Real | None) -> float | None:
     """The monotonic time at which a wait of `timeout` seconds ends (None: no limit; a negative
     timeout has ended already). Raises TypeError for a timeout that is not a number and ValueError
     for NaN, which no time ever passed, so a wait for it never ended."""

@@ -67,7 +67,9 @@ from fleetmap.auth import TOKEN_CHARACTERS
 from fleetmap.cell_queries import (
     MAX_RAY_WALK,
     MAX_RAYS,
+    Integer,
     Points,
+    Real,
     UnknownCells,
     as_points,
     float_array,
@@ -285,14 +287,14 @@ def _positive_seconds(name: str, value: object) -> float:
     return float(value)
 
 
-def _tile_index(name: str, value: object) -> int:
+def _tile_index(name: str, value: Integer) -> int:
     """`tile`'s `z`, `x` or `y` as an int; TypeError for anything but an integer (a NumPy one too).
     Cut to an int, a float named another tile: -0.5 (a point left of tile 0, divided by the tile
     size) asked for tile 0, not -1, and 0.9 for tile 0, with no word."""
     if isinstance(value, bool):
         raise TypeError(f"tile {name} must be an integer, got {value!r}")
     try:
-        return operator.index(value)  # type: ignore[arg-type]
+        return operator.index(value)
     except TypeError:
         raise TypeError(f"tile {name} must be an integer, got {value!r}") from None
 
@@ -303,7 +305,7 @@ def _check_id(name: str, value: str) -> str:
     return value
 
 
-def _check_since(since: int | None) -> int | None:
+def _check_since(since: Integer | None) -> int | None:
     """`events`' `since`: a change version (an integer >= 0) or None. Anything else, sent as
     `Last-Event-ID`, would be read by the server as no version at all, and the stream would start
     from now instead of resuming: a silent gap in what the program sees."""
@@ -318,9 +320,7 @@ def _check_since(since: int | None) -> int | None:
     return version
 
 
-def _bounds(
-    xmin: float | None, ymin: float | None, xmax: float | None, ymax: float | None
-) -> dict[str, float]:
+def _bounds(xmin: Real | None, ymin: Real | None, xmax: Real | None, ymax: Real | None) -> dict[str, float]:
     """Query parameters of a window: all four bounds, or none (the map's observed extent).
     ValueError for a bound that is not a finite number, before any request, as `cell` refuses a
     point (float() of an int past float's range raised OverflowError, no ValueError)."""
@@ -362,11 +362,11 @@ class FleetmapClient:
     def __init__(
         self,
         base_url: str = "http://127.0.0.1:8000",
-        timeout: float = 10.0,
+        timeout: Real = 10.0,
         token: str | None = None,
-        scan_timeout: float = SCAN_TIMEOUT,
-        transfer_timeout: float = TRANSFER_TIMEOUT,
-        events_read_timeout: float | None = EVENTS_READ_TIMEOUT,
+        scan_timeout: Real = SCAN_TIMEOUT,
+        transfer_timeout: Real = TRANSFER_TIMEOUT,
+        events_read_timeout: Real | None = EVENTS_READ_TIMEOUT,
     ) -> None:
         # Checked here: a timeout of 0 failed each request as a ConnectError "Operation now in
         # progress" naming the service, as if it were down; a negative one, or NaN, at each request;
@@ -641,8 +641,8 @@ class FleetmapClient:
         map_id: str,
         robot_id: str,
         scan: Scan | ScanMessage | Mapping[str, Any],
-        seq: int | None = None,
-        stamp: float | None = None,
+        seq: Integer | None = None,
+        stamp: Real | None = None,
         encoding: Literal["json", "binary"] = "json",
     ) -> ScanResult:
         """`POST /maps/{map_id}/scans?robot_id=...`: integrate one scan and wait until it is in the map.
@@ -710,7 +710,7 @@ class FleetmapClient:
 
     # -- queries -----------------------------------------------------------------------------------
 
-    def cell(self, map_id: str, x: float, y: float) -> CellValue:
+    def cell(self, map_id: str, x: Real, y: Real) -> CellValue:
         """`GET /maps/{map_id}/cell`: every layer's value in the cell containing the map point (x, y)."""
         _check_id("map_id", map_id)
         response = self._request("GET", f"/maps/{map_id}/cell", params={"x": _finite(x), "y": _finite(y)})
@@ -761,8 +761,8 @@ class FleetmapClient:
         self,
         map_id: str,
         origin: Sequence[float] | Sequence[Sequence[float]] | np.ndarray,
-        angles: float | Sequence[float] | np.ndarray,
-        max_range: float,
+        angles: Real | Sequence[float] | np.ndarray,
+        max_range: Real,
         unknown: UnknownCells = "stop",
     ) -> dict[str, np.ndarray]:
         """`POST /maps/{map_id}/raycast`: where rays from `origin` first meet an obstacle (OctoMap's
@@ -843,10 +843,10 @@ class FleetmapClient:
     def region(
         self,
         map_id: str,
-        xmin: float | None = None,
-        ymin: float | None = None,
-        xmax: float | None = None,
-        ymax: float | None = None,
+        xmin: Real | None = None,
+        ymin: Real | None = None,
+        xmax: Real | None = None,
+        ymax: Real | None = None,
         layer: Layer = "probability",
     ) -> np.ndarray:
         """`GET /maps/{map_id}/region?format=npy`: a dense window of one layer.
@@ -863,10 +863,10 @@ class FleetmapClient:
     def region_window(
         self,
         map_id: str,
-        xmin: float | None = None,
-        ymin: float | None = None,
-        xmax: float | None = None,
-        ymax: float | None = None,
+        xmin: Real | None = None,
+        ymin: Real | None = None,
+        xmax: Real | None = None,
+        ymax: Real | None = None,
         layer: Layer = "probability",
     ) -> tuple[np.ndarray, tuple[int, int, int, int], tuple[float, float]]:
         """`region`, plus the cell window (i0, j0, i1, j1) and the map point (x, y) of its lower-left
@@ -883,7 +883,7 @@ class FleetmapClient:
         return array, (i0, j0, i1, j1), (ox, oy)
 
     def clear_region(
-        self, map_id: str, xmin: float, ymin: float, xmax: float, ymax: float, *, if_match: str | None = None
+        self, map_id: str, xmin: Real, ymin: Real, xmax: Real, ymax: Real, *, if_match: str | None = None
     ) -> RegionCleared:
         """`DELETE /maps/{map_id}/region`: make the cells with index in [floor(xmin/res),
         floor(xmax/res)) x [floor(ymin/res), floor(ymax/res)) (a bound on a cell edge is that edge, as
@@ -904,10 +904,10 @@ class FleetmapClient:
     def region_png(
         self,
         map_id: str,
-        xmin: float | None = None,
-        ymin: float | None = None,
-        xmax: float | None = None,
-        ymax: float | None = None,
+        xmin: Real | None = None,
+        ymin: Real | None = None,
+        xmax: Real | None = None,
+        ymax: Real | None = None,
         layer: Layer = "probability",
     ) -> bytes:
         """`GET /maps/{map_id}/region?format=png`: the window as a grayscale + alpha PNG (top row =
@@ -917,7 +917,13 @@ class FleetmapClient:
         return _bytes_of(self._request("GET", f"/maps/{map_id}/region", params=params), *_PNG)
 
     def tile(
-        self, map_id: str, z: int, x: int, y: int, layer: Layer = "probability", etag: str | None = None
+        self,
+        map_id: str,
+        z: Integer,
+        x: Integer,
+        y: Integer,
+        layer: Layer = "probability",
+        etag: str | None = None,
     ) -> tuple[bytes | None, str]:
         """`GET /maps/{map_id}/tiles/{z}/{x}/{y}.png`: a 256 x 256 RGBA tile (Leaflet CRS.Simple,
         zoom 0 = one pixel per cell). With the `etag` of an earlier answer, returns (None, etag) while
@@ -937,10 +943,10 @@ class FleetmapClient:
     def surface(
         self,
         map_id: str,
-        xmin: float | None = None,
-        ymin: float | None = None,
-        xmax: float | None = None,
-        ymax: float | None = None,
+        xmin: Real | None = None,
+        ymin: Real | None = None,
+        xmax: Real | None = None,
+        ymax: Real | None = None,
     ) -> np.ndarray:
         """`GET /maps/{map_id}/surface`: TSDF zero-crossing points, sub-cell interpolated, as an
         (n, 2) float64 array of x, y in metres: those that lie in the window (as for `region`), so
@@ -955,8 +961,8 @@ class FleetmapClient:
         self,
         map_id: str,
         format: Literal["ros", "png"] = "ros",
-        margin: int | None = None,
-        resolution: float | None = None,
+        margin: Integer | None = None,
+        resolution: Real | None = None,
     ) -> bytes:
         """`GET /maps/{map_id}/export`: "ros" = a zip of map.yaml + map.pgm (nav2 map_server), "png"
         = one grayscale PNG; `margin` unknown cells around the observed extent (server default 2);
@@ -975,7 +981,7 @@ class FleetmapClient:
     # -- live events -------------------------------------------------------------------------------
 
     def events(
-        self, map_id: str, since: int | None = None, robots: Literal["full", "delta"] = "full"
+        self, map_id: str, since: Integer | None = None, robots: Literal["full", "delta"] = "full"
     ) -> EventStream:
         """`GET /maps/{map_id}/events`: the map's server-sent events as (event, data) pairs, e.g.
         ("tiles", {"version": 7, "tiles": [[i0, j0, i1, j1], ...]}) or ("tiles", {"version": 9,
@@ -1335,7 +1341,7 @@ def _scan_not_taken(exc: BaseException) -> bool:
     return isinstance(exc, httpx.ConnectError | httpx.ConnectTimeout | httpx.PoolTimeout | RuntimeError)
 
 
-def _finite(value: float) -> float:
+def _finite(value: Real) -> float:
     """`value` as a float; ValueError unless it is a finite number (an int beyond float's range too,
     which float() refuses with OverflowError). A number as the engine takes one (`real_number`):
     float() read text ("1.5"), True and a NumPy date as numbers, sent as those, where `cells` and the
