@@ -313,6 +313,27 @@ def test_timeouts_are_checked_when_the_client_is_made(service: ServiceProcess) -
                 FleetmapClient(service.base_url, **{name: wrong})
     with FleetmapClient(service.base_url, timeout=5, events_read_timeout=None) as fm:
         assert fm.health().status == "ok"
+    # The address as read from a file or the environment, with its line end, and the viewer's link.
+    for address in (f" {service.base_url}\n", f"{service.base_url}/#map=m"):
+        with FleetmapClient(address) as fm:
+            assert fm.base_url == service.base_url
+            assert fm.health().status == "ok"
+
+
+@pytest.mark.parametrize(
+    "address",
+    ["localhost:8000", "127.0.0.1:8000", "ftp://127.0.0.1:8000", "http://", "http:/127.0.0.1:8000",
+     "http://[::1:8000", "http://127.0.0.1:8000/?map=m", "http://127.0.0.1:8000/?", ""],
+)  # fmt: skip
+def test_an_address_that_is_no_http_url_is_a_value_error_when_the_client_is_made(address: str) -> None:
+    """A `base_url` without its scheme (`localhost:8000`: httpx took `localhost` for the scheme) or
+    without a host (`http:/127.0.0.1:8000`) was taken, and every request failed with a
+    `TransportError` ("unsupported protocol 'localhost://'", "Name or service not known"): the
+    class a program takes for the service being down, and retries for ever. One httpx cannot parse
+    raised its `InvalidURL`, no ValueError; one with a query sent every request to
+    `/?map=m/healthz`. Each is now a ValueError at once, naming the address."""
+    with pytest.raises(ValueError, match=r"base_url must be the service's http:// or https:// address"):
+        FleetmapClient(address)
 
 
 def test_an_answer_that_is_not_fleetmaps_is_a_fleetmap_error(scans: list[Scan]) -> None:

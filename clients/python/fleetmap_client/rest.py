@@ -280,6 +280,28 @@ def _authorization(token: str | None) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"}
 
 
+def _service_url(base_url: str) -> str:
+    """`base_url`, the service's address, as the client sends its requests there: without the
+    whitespace around it (an address read from a file or the environment), a fragment (the viewer's
+    link, `/#map=m`) or a trailing `/`. ValueError for one that is no http:// or https:// URL with a
+    host, or that has a query: httpx took `localhost:8000` for a URL of the scheme `localhost`, and
+    `http:/127.0.0.1:8000` for one without a host, and every request then failed with a
+    `TransportError` ("unsupported protocol", "Name or service not known"), which a program takes
+    for the service being down (and may retry for ever); a query went before every request's path
+    (`/?map=m/healthz`)."""
+    text = str(base_url).strip().partition("#")[0]
+    try:
+        url = httpx.URL(text)
+    except httpx.InvalidURL:
+        url = None
+    if url is None or url.scheme not in ("http", "https") or not url.host or "?" in text:
+        raise ValueError(
+            f"base_url must be the service's http:// or https:// address, such as http://127.0.0.1:8000, "
+            f"without a query; got {base_url!r}"
+        )
+    return text.rstrip("/")
+
+
 def _positive_seconds(name: str, value: object) -> float:
     """`value`, the argument `name`, as seconds: ValueError unless it is a positive finite number."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < float(value) < math.inf:
@@ -338,7 +360,8 @@ def _read_chunks(fp: IO[bytes]) -> Iterator[bytes]:
 
 
 class FleetmapClient:
-    """A synchronous client of one fleetmap service at `base_url` (e.g. "http://127.0.0.1:8000").
+    """A synchronous client of one fleetmap service at `base_url` (e.g. "http://127.0.0.1:8000"; its
+    http:// or https:// address, ValueError here for anything else, see `_service_url`).
 
     `timeout` (seconds) applies to every request except these: `post_scan` waits for its answer up
     to `scan_timeout` (default `SCAN_TIMEOUT`, 15 s, or `timeout` if longer), because the server
@@ -377,7 +400,7 @@ class FleetmapClient:
             if events_read_timeout is None
             else _positive_seconds("events_read_timeout", events_read_timeout)
         )
-        self.base_url = base_url.rstrip("/")
+        self.base_url = _service_url(base_url)
         self.timeout = timeout
         self.scan_timeout = max(_positive_seconds("scan_timeout", scan_timeout), timeout)
         self.transfer_timeout = max(_positive_seconds("transfer_timeout", transfer_timeout), timeout)
