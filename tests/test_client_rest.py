@@ -981,6 +981,44 @@ def test_errors_carry_the_server_detail(client: FleetmapClient, scans: list[Scan
         next(iter(FleetmapClient(nowhere, timeout=2).events("errs")))
 
 
+def test_errors_do_not_show_the_password_of_the_address() -> None:
+    """An address with a user and password (`http://user:password@proxy/`: httpx sends them as Basic
+    auth, to a proxy in front of the service) showed the password in every error's sentence, which
+    logs keep (a `ConnectError`'s "the fleetmap service at http://robot:s3cret@..."; another web
+    server's page and a redirect named the request's URL whole), and in the client's repr: they show
+    the user, never the password, as the API token is never shown."""
+    secret = "s3cret-Pa55"
+
+    def with_password(url: str) -> str:
+        return url.replace("http://", f"http://robot:{secret}@")
+
+    def shown(error: BaseException) -> str:
+        return f"{error} {error!r}"
+
+    nowhere = with_password(f"http://127.0.0.1:{free_port()}")
+    with FleetmapClient(nowhere, timeout=2) as fm:
+        assert secret not in repr(fm) and "robot@127.0.0.1" in repr(fm)
+        with pytest.raises(httpx.ConnectError) as refused:
+            fm.health()
+        assert secret not in shown(refused.value)
+        assert "the fleetmap service at http://robot@" in str(refused.value)
+        with pytest.raises(httpx.ConnectError) as no_stream:
+            next(iter(fm.events("m")))
+        assert secret not in shown(no_stream.value)
+    with _web_page_server() as page, FleetmapClient(with_password(page)) as fm:
+        with pytest.raises(FleetmapError) as portal:
+            fm.health()
+        assert secret not in shown(portal.value) and "robot@127.0.0.1" in portal.value.detail
+    with _redirect_to("https://elsewhere.example") as moved, FleetmapClient(with_password(moved)) as fm:
+        with pytest.raises(FleetmapError) as redirect:
+            fm.get_map("m")
+        assert secret not in shown(redirect.value)
+        assert "redirect to https://elsewhere.example" in redirect.value.detail
+    with pytest.raises(ValueError) as no_url:
+        FleetmapClient(f"robot:{secret}@127.0.0.1:8000")
+    assert secret not in shown(no_url.value)
+
+
 def _get_map_id(base_url: str, map_id: str) -> str:
     """A worker process's job in the test below: the id `get_map` answers."""
     with FleetmapClient(base_url, timeout=20.0) as fm:

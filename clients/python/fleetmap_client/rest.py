@@ -297,7 +297,7 @@ def _service_url(base_url: str) -> str:
     if url is None or url.scheme not in ("http", "https") or not url.host or "?" in text:
         raise ValueError(
             f"base_url must be the service's http:// or https:// address, such as http://127.0.0.1:8000, "
-            f"without a query; got {base_url!r}"
+            f"without a query; got {_shown_url(str(base_url))!r}"
         )
     return text.rstrip("/")
 
@@ -454,7 +454,7 @@ class FleetmapClient:
         self.close()
 
     def __repr__(self) -> str:
-        return f"FleetmapClient({self.base_url!r})"
+        return f"FleetmapClient({_shown_url(self.base_url)!r})"
 
     # -- service -----------------------------------------------------------------------------------
 
@@ -1276,9 +1276,10 @@ def _not_fleetmap(response: httpx.Response, expected: str, reason: str) -> Fleet
     port), or a service of another version. Raised as pydantic's ValidationError ("Invalid JSON:
     expected value at line 1 column 1"), or for a window NumPy's "contains pickled (object) data",
     it was neither of the errors the client promises, and said nothing of the address."""
+    came = _media_type(response) or "without a content type"
     return FleetmapError(
         response.status_code,
-        f"{response.request.url} answered {_media_type(response) or 'without a content type'}, not "
+        f"{_shown_url(response.request.url)} answered {came}, not "
         f"{expected} as a fleetmap service answers ({reason}): is it a fleetmap service, of this version?",
     )
 
@@ -1351,7 +1352,22 @@ def _naming_the_service(exc: httpx.TransportError, base_url: str) -> httpx.Trans
         request: httpx.Request | None = exc.request
     except RuntimeError:  # raised before a request was made
         request = None
-    return type(exc)(f"{exc} (the fleetmap service at {base_url})", request=request)
+    return type(exc)(f"{exc} (the fleetmap service at {_shown_url(base_url)})", request=request)
+
+
+def _shown_url(url: str | httpx.URL) -> str:
+    """`url` as it may be shown, in an error's sentence or a repr (which logs keep): the password
+    of its user info (`http://user:password@host/`, which httpx sends as Basic auth, e.g. to a proxy
+    in front of the service) left out, the user kept, as the API token is never shown."""
+    text = str(url)
+    scheme, slashes, rest = text.partition("//")
+    if not slashes:  # no scheme (an address refused for that): the user info starts it
+        scheme, rest = "", text
+    authority, slash, path = rest.partition("/")
+    user_info, at, host = authority.rpartition("@")
+    if not at:
+        return text
+    return f"{scheme}{slashes}{user_info.partition(':')[0]}@{host}{slash}{path}"
 
 
 def _scan_not_taken(exc: BaseException) -> bool:
@@ -1402,7 +1418,7 @@ def _raise_for_error(response: httpx.Response) -> None:
         to = f" to {location}" if location else ""
         raise FleetmapError(
             response.status_code,
-            f"{response.request.url} answered with a redirect{to} ({response.status_code} "
+            f"{_shown_url(response.request.url)} answered with a redirect{to} ({response.status_code} "
             f"{response.reason_phrase}), which the client does not follow: give it the service's "
             "address there",
             retry_after=_retry_after_seconds(response),
