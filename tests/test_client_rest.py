@@ -34,9 +34,10 @@ from fleetmap_client import cli
 from fleetmap_client.publisher import ScanPublisher
 from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged, parse_sse
 from PIL import Image
+from pydantic import ValidationError
 from service_process import REPO_DIR, FreezableProxy, ServiceProcess, free_port, wait_for
 
-from fleetmap.api_models import ReplacedEvent
+from fleetmap.api_models import MapInfo, MapStats, ReplacedEvent
 from fleetmap.codec import decode, encode_binary, encode_json
 from fleetmap.config import MapConfig, OccupancyParams, TsdfParams
 from fleetmap.database import DB_NAME
@@ -1443,6 +1444,59 @@ def test_a_map_stored_before_todays_configuration_limits_is_read(tmp_path: Path,
         assert info.config.tsdf.truncation == 40.0 and info.config.occupancy.occupied_thresh == 0.99
         assert info.stats.scans_integrated == 1
         assert fm.get_map_and_etag("old")[0] == info
+
+
+@contextlib.contextmanager
+def _newer_service(answer: dict[str, Any]) -> Iterator[str]:
+    """A real HTTP server on a free port answering every GET and PUT 200 with the JSON `answer` and
+    an ETag, as a fleetmap service answers `GET` and `PUT /maps/{id}`; yields its URL."""
+
+    class NewerService(BaseHTTPRequestHandler):
+        def _answer(self) -> None:
+            self.rfile.read(int(self.headers.get("content-length") or 0))
+            body = json.dumps(answer).encode()
+            self.send_response(200)
+            self.send_header("content-type", "application/json")
+            self.send_header("etag", '"map-1"')
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        do_GET = do_PUT = _answer
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    with _serving(NewerService) as url:
+        yield url
+
+
+def test_a_newer_services_map_configuration_is_read_without_its_new_fields() -> None:
+    """Every answer's unknown fields are left out when read, so that an older client reads a newer
+    service's answers (`fleetmap.api_models`), but a map's configuration refused them: one new
+    setting of a newer service (a top-level field, or one in a section such as `occupancy`) made
+    `get_map`, `create_map` and an upload's answer fail in every older client ("not a MapInfo ...
+    (config.new_setting: Extra inputs are not permitted)"). They are now left out there too; a
+    request's configuration still refuses them."""
+    config = MapConfig(
+        resolution=0.1, layers=("occupancy", "counts"), occupancy=OccupancyParams(preset="int8")
+    )
+    stats = MapStats(scans_integrated=3, scans_rejected=0, robots={}, bounds=None, tiles=1, memory_bytes=1)
+    answer = MapInfo(id="m", config=config, resolution=0.1, tile_size=256, stats=stats).model_dump(
+        mode="json"
+    )
+    answer["config"]["new_setting"] = "on"
+    answer["config"]["occupancy"]["new_parameter"] = 0.5
+    answer["config"]["tsdf"]["new_parameter"] = [1, 2]
+    answer["stats"]["new_count"] = 7
+    with _newer_service(answer) as url, FleetmapClient(url) as fm:
+        assert fm.get_map("m").config == config
+        assert fm.get_map_and_etag("m") == (fm.get_map("m"), '"map-1"')
+        assert fm.create_map("m", config).stats.scans_integrated == 3
+    with pytest.raises(ValidationError, match="new_setting"):
+        MapConfig.model_validate(answer["config"])
+    with pytest.raises(ValidationError, match="new_parameter"):
+        OccupancyParams.model_validate(answer["config"]["occupancy"])
 
 
 def test_a_put_of_a_stored_maps_own_configuration_past_todays_limits_is_the_same_map(

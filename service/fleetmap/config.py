@@ -36,6 +36,14 @@ MAX_COORDINATE = 1.0e7
 #: still loads (`{STORED_CONFIG: True}`): a map must survive an upgrade.
 STORED_CONFIG = "stored"
 
+#: The `model_validate` context under which a configuration is read from a service's answer
+#: (`{ANSWERED_CONFIG: True}`: the REST client reads `MapInfo` so): the fields this version does not
+#: know, a newer service's, are left out, as the answers' other models leave them out
+#: (`fleetmap.api_models`), instead of refusing the whole answer. A request's configuration (a `PUT`
+#: body) and a stored one keep refusing them: there an unknown field is a mistake, or a map this
+#: version cannot make as it was meant.
+ANSWERED_CONFIG = "answered"
+
 #: With STORED_CONFIG, in the context of a configuration only tried as a stored one, not loaded
 #: (a `PUT` body refused as a new configuration: `fleetmap.api.config_body`): nothing is loaded,
 #: so no warning says a stored map was.
@@ -348,6 +356,22 @@ class MapConfig(BaseModel):
     # Their defaults validated too: the band limit depends on the resolution.
     beam: BeamModelParams = Field(default_factory=BeamModelParams, validate_default=True)
     tsdf: TsdfParams = Field(default_factory=TsdfParams, validate_default=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _newer_services_fields_left_out(cls, data: Any, info: ValidationInfo) -> Any:
+        """Read from a service's answer (`ANSWERED_CONFIG`), the configuration without the fields,
+        its own or its sections', that this version does not know: a newer service's new setting
+        made every answer holding a map's configuration (`get_map`, `create_map`, an upload's) fail
+        in an older client ("config.new_field: Extra inputs are not permitted")."""
+        if not ((info.context or {}).get(ANSWERED_CONFIG) and isinstance(data, dict)):
+            return data
+        known = {name: value for name, value in data.items() if name in cls.model_fields}
+        for name, value in known.items():
+            section = cls.model_fields[name].annotation
+            if isinstance(value, dict) and isinstance(section, type) and issubclass(section, BaseModel):
+                known[name] = {key: v for key, v in value.items() if key in section.model_fields}
+        return known
 
     @model_validator(mode="before")
     @classmethod

@@ -76,7 +76,7 @@ from fleetmap.cell_queries import (
     real_number,
 )
 from fleetmap.codec import encode_binary, encode_json
-from fleetmap.config import STORED_CONFIG, MapConfig
+from fleetmap.config import ANSWERED_CONFIG, STORED_CONFIG, MapConfig
 from fleetmap.scan import Scan
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING, ScanMessage, is_valid_id
 from fleetmap.yaml_whitespace import YamlCppWhitespace
@@ -1259,9 +1259,13 @@ def _read(model: type[_Model], response: httpx.Response) -> _Model:
     one, naming what came instead. A map configuration in it is read as a stored one
     (`STORED_CONFIG`): it is that of a map the service holds, perhaps since before one of today's
     limits, which the service keeps loading and answering; validated as a new configuration, such a
-    map could not be read ("not a MapInfo ...: is it a fleetmap service, of this version?")."""
+    map could not be read ("not a MapInfo ...: is it a fleetmap service, of this version?"). And as
+    an answer (`ANSWERED_CONFIG`): the fields of a newer service's configuration that this version
+    does not know are left out, as every answer's unknown fields are."""
     try:
-        return model.model_validate_json(response.content, context={STORED_CONFIG: True})
+        return model.model_validate_json(
+            response.content, context={STORED_CONFIG: True, ANSWERED_CONFIG: True}
+        )
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(part) for part in first["loc"])
