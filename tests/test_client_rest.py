@@ -1106,6 +1106,48 @@ def test_api_tokens(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
             assert "secret" not in str(refused.value)
 
 
+def test_an_api_token_and_an_address_with_a_password_are_not_both_taken(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """httpx sends the user and password of an address (`http://user:password@proxy/`) as Basic
+    auth in the `Authorization` header, the header the API token goes in: given both, it sent the
+    Basic auth and dropped the token without a word, and the service answered 401 ("no token") to
+    a client made with one. Both given (the token as `token=` or `$FLEETMAP_TOKEN`) is now a
+    ValueError when the client is made, naming neither secret; the address alone still sends its
+    user and password."""
+    seen: list[str | None] = []
+
+    class Recorder(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            seen.append(self.headers.get("authorization"))
+            body = b'{"maps": []}'
+            self.send_response(200)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    monkeypatch.delenv("FLEETMAP_TOKEN", raising=False)
+    with _serving(Recorder) as url:
+        address = url.replace("http://", "http://robot:pa55word@")
+        with FleetmapClient(address) as basic:
+            assert basic.list_maps() == []
+        assert seen == ["Basic cm9ib3Q6cGE1NXdvcmQ="]
+        with pytest.raises(ValueError, match="Authorization header") as both:
+            FleetmapClient(address, token="secret-token-1")
+        monkeypatch.setenv("FLEETMAP_TOKEN", "secret-token-1")
+        with pytest.raises(ValueError, match="Authorization header") as both_from_env:
+            FleetmapClient(address)
+        with FleetmapClient(url) as bearer:  # the token alone is sent
+            assert bearer.list_maps() == []
+        assert seen[-1] == "Bearer secret-token-1"
+    for error in (both.value, both_from_env.value):
+        assert "pa55word" not in str(error) and "secret-token" not in str(error)
+
+
 # -- events ----------------------------------------------------------------------------------------
 
 

@@ -376,7 +376,9 @@ class FleetmapClient:
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
     from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it);
     surrounding whitespace (a line end) is dropped, and a token with a character no header carries
-    is a ValueError here, naming no token.
+    is a ValueError here, naming no token, as is a token with an address that has a user and
+    password (`http://user:password@host`: httpx sends those in the Authorization header, and
+    dropped the token).
     Thread-safe (one httpx.Client; `post_scan` sends one robot's scans one at a time, in call
     order, so threads sharing a robot's automatic seqs lose none); use as a context manager or call
     `close()`.
@@ -405,6 +407,14 @@ class FleetmapClient:
         self.scan_timeout = max(_positive_seconds("scan_timeout", scan_timeout), timeout)
         self.transfer_timeout = max(_positive_seconds("transfer_timeout", transfer_timeout), timeout)
         headers = _authorization(token if token is not None else os.environ.get(TOKEN_ENV))
+        if headers and httpx.URL(self.base_url).userinfo:
+            # httpx puts the address's user and password in the Authorization header (Basic auth)
+            # over the client's own: the token was dropped without a word, and the service said 401.
+            raise ValueError(
+                f"the address ({_shown_url(self.base_url)}) has a user and password, which httpx "
+                "sends as Basic auth in the Authorization header, and an API token is given (token= "
+                f"or ${TOKEN_ENV}), which needs that header too: give one of them"
+            )
         self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers, limits=_LIMITS)
         #: Next automatic seq per (map_id, robot_id) for `post_scan` of a `Scan` without a seq.
         self._next_seq: dict[tuple[str, str], int] = {}
