@@ -1489,17 +1489,18 @@ def test_a_map_stored_before_todays_configuration_limits_is_read(tmp_path: Path,
 
 
 @contextlib.contextmanager
-def _newer_service(answer: dict[str, Any]) -> Iterator[str]:
+def _answering(answer: dict[str, Any], etag: str | None = '"map-1"') -> Iterator[str]:
     """A real HTTP server on a free port answering every GET and PUT 200 with the JSON `answer` and
-    an ETag, as a fleetmap service answers `GET` and `PUT /maps/{id}`; yields its URL."""
+    `etag` (none for None), as a fleetmap service answers `GET` and `PUT /maps/{id}`; yields its URL."""
 
-    class NewerService(BaseHTTPRequestHandler):
+    class Answering(BaseHTTPRequestHandler):
         def _answer(self) -> None:
             self.rfile.read(int(self.headers.get("content-length") or 0))
             body = json.dumps(answer).encode()
             self.send_response(200)
             self.send_header("content-type", "application/json")
-            self.send_header("etag", '"map-1"')
+            if etag is not None:
+                self.send_header("etag", etag)
             self.send_header("content-length", str(len(body)))
             self.end_headers()
             self.wfile.write(body)
@@ -1509,8 +1510,28 @@ def _newer_service(answer: dict[str, Any]) -> Iterator[str]:
         def log_message(self, format: str, *args: Any) -> None:
             pass
 
-    with _serving(NewerService) as url:
+    with _serving(Answering) as url:
         yield url
+
+
+def _map_info(config: MapConfig) -> dict[str, Any]:
+    """The JSON of a `MapInfo` of map "m" with `config`, as `GET /maps/m` answers it."""
+    stats = MapStats(scans_integrated=3, scans_rejected=0, robots={}, bounds=None, tiles=1, memory_bytes=1)
+    info = MapInfo(
+        id="m", config=config, resolution=config.resolution, tile_size=config.tile_size, stats=stats
+    )
+    return info.model_dump(mode="json")
+
+
+def test_get_map_needs_no_etag() -> None:
+    """`get_map` read the map through `get_map_and_etag`, which refuses an answer without the map's
+    ETag (no conditional write can be made without it): a service older than conditional writes,
+    or a proxy that drops the header, made `get_map` fail ("not a map with its ETag ... no ETag
+    header"), though it returns no tag. Only `get_map_and_etag` needs one."""
+    with _answering(_map_info(MapConfig()), etag=None) as url, FleetmapClient(url) as fm:
+        assert fm.get_map("m").stats.scans_integrated == 3
+        with pytest.raises(FleetmapError, match="no ETag header"):
+            fm.get_map_and_etag("m")
 
 
 def test_a_newer_services_map_configuration_is_read_without_its_new_fields() -> None:
@@ -1523,15 +1544,12 @@ def test_a_newer_services_map_configuration_is_read_without_its_new_fields() -> 
     config = MapConfig(
         resolution=0.1, layers=("occupancy", "counts"), occupancy=OccupancyParams(preset="int8")
     )
-    stats = MapStats(scans_integrated=3, scans_rejected=0, robots={}, bounds=None, tiles=1, memory_bytes=1)
-    answer = MapInfo(id="m", config=config, resolution=0.1, tile_size=256, stats=stats).model_dump(
-        mode="json"
-    )
+    answer = _map_info(config)
     answer["config"]["new_setting"] = "on"
     answer["config"]["occupancy"]["new_parameter"] = 0.5
     answer["config"]["tsdf"]["new_parameter"] = [1, 2]
     answer["stats"]["new_count"] = 7
-    with _newer_service(answer) as url, FleetmapClient(url) as fm:
+    with _answering(answer) as url, FleetmapClient(url) as fm:
         assert fm.get_map("m").config == config
         assert fm.get_map_and_etag("m") == (fm.get_map("m"), '"map-1"')
         assert fm.create_map("m", config).stats.scans_integrated == 3

@@ -513,8 +513,11 @@ class FleetmapClient:
         return _read(MapInfo, response)
 
     def get_map(self, map_id: str) -> MapInfo:
-        """`GET /maps/{map_id}`: configuration and statistics (per-robot counters, bounds, tiles)."""
-        return self.get_map_and_etag(map_id)[0]
+        """`GET /maps/{map_id}`: configuration and statistics (per-robot counters, bounds, tiles).
+        Needs no ETag in the answer (a service older than conditional writes, a proxy that drops
+        it): only `get_map_and_etag` does."""
+        _check_id("map_id", map_id)
+        return _read(MapInfo, self._request("GET", f"/maps/{map_id}"))
 
     def get_map_and_etag(self, map_id: str) -> tuple[MapInfo, str]:
         """`get_map`, and the map's ETag: pass it as `if_match=` to `delete_map`, `upload_snapshot`,
