@@ -1210,6 +1210,53 @@ def test_closing_the_client_ends_its_event_streams_read_in_other_threads(client:
     own.close()  # idempotent
 
 
+def test_closing_the_client_ends_an_event_stream_waiting_to_resume() -> None:
+    """A reader whose stream ended (the service restarting) waits before it resumes: 1 s, or what a
+    503's Retry-After asks. A client closed meanwhile (the program stopping) let that wait run out,
+    then its reader raised RuntimeError ("the client has been closed") instead of ending as a
+    stream the close finds open does. It now ends at once, without an error."""
+    requests: list[str] = []
+
+    class EndsThenBusy(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            requests.append(self.path)
+            if len(requests) == 1:  # a stream of one event, which then ends
+                body = b'id: 1\nevent: tiles\ndata: {"version": 1, "tiles": []}\n\n'
+                self.send_response(200)
+                self.send_header("content-type", "text/event-stream")
+            else:  # the service is busy: come back in a minute
+                body = b'{"detail": "the server holds its limit of event streams; retry later"}'
+                self.send_response(503)
+                self.send_header("content-type", "application/json")
+                self.send_header("retry-after", "60")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, format: str, *args: Any) -> None:
+            pass
+
+    received: list[str] = []
+    failures: list[BaseException] = []
+    with _serving(EndsThenBusy) as url:
+        own = FleetmapClient(url)
+
+        def listen() -> None:
+            try:
+                for event, _data in own.events("m"):
+                    received.append(event)
+            except BaseException as exc:  # what the reader saw, to assert on
+                failures.append(exc)
+
+        thread = threading.Thread(target=listen, daemon=True)
+        thread.start()
+        wait_for(lambda: len(requests) == 2, 10, 0.02, "the reader's attempt to resume")
+        own.close()
+        thread.join(20)  # well within the 60 s the service asked for
+        assert not thread.is_alive() and not failures, failures
+    assert received == ["tiles"]
+
+
 def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, scans: list[Scan]) -> None:
     """A map replaced by `PUT /maps/{id}/snapshot` still exists: `events` yields `replaced` and goes
     on with the new map's events; only a deletion ends it."""

@@ -34,7 +34,6 @@ import os
 import secrets
 import socket
 import threading
-import time
 import zipfile
 from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -424,7 +423,8 @@ class FleetmapClient:
         #: The event streams being read (`events`), which `close` ends; guarded by `_streams_lock`.
         self._streams: set[httpx.Response] = set()
         self._streams_lock = threading.Lock()
-        self._closed = False
+        #: Set by `close`: the streams being read, or waiting to be resumed, end (`_events`).
+        self._closed = threading.Event()
 
     # -- plumbing ----------------------------------------------------------------------------------
 
@@ -446,7 +446,7 @@ class FleetmapClient:
         threads too: their iteration stops at once). Idempotent; a request afterwards raises
         RuntimeError."""
         with self._streams_lock:
-            self._closed = True
+            self._closed.set()
             streams = list(self._streams)
         # Closing the pool does not wake a thread blocked reading a stream: it read on until the
         # server's next keepalive (some 15 s), then failed on the closed pool with RuntimeError.
@@ -1037,11 +1037,11 @@ class FleetmapClient:
         program that keeps its own state of a big fleet and wants only the changes.
 
         The generator is lazy: the request is made on the first `next()`. It ends after `deleted`,
-        and when the client is closed (`close()`, from any thread: a thread reading the stream
-        stops at once); close it early with `.close()` on the generator (or by leaving a `for` loop
-        and dropping it). Raises `FleetmapError` (e.g. 404 unknown map) or httpx's `ConnectError` on the first
-        `next()`; an invalid `map_id` raises ValueError here, at the call, as every other method
-        does.
+        and when the client is closed (`close()`, from any thread: a thread reading the stream, or
+        waiting to resume it, stops at once); close it early with `.close()` on the generator (or
+        by leaving a `for` loop and dropping it). Raises `FleetmapError` (e.g. 404 unknown map) or
+        httpx's `ConnectError` on the first `next()`; an invalid `map_id` raises ValueError here, at
+        the call, as every other method does.
 
         Once a stream was open, it is followed as an EventSource follows it: when the server stops
         (a restart) or the connection is lost, or nothing at all (not even the server's keepalive)
@@ -1065,7 +1065,7 @@ class FleetmapClient:
         """`response`, an event stream, among those `close` ends while it is read; `_StreamClosed` if
         the client was closed already."""
         with self._streams_lock:
-            if self._closed:
+            if self._closed.is_set():
                 raise _StreamClosed
             self._streams.add(response)
         try:
@@ -1115,16 +1115,25 @@ class FleetmapClient:
             except _StreamClosed:
                 return
             except httpx.TransportError as exc:
-                if self._closed:  # `close` ended it
+                if self._closed.is_set():  # `close` ended it
                     return
                 if not followed:  # nothing listens at all: say so, as every other method does
                     raise _naming_the_service(exc, self.base_url) from exc
-            if self._closed:
-                return
+            except RuntimeError:
+                # The pool closed as a followed stream was resumed (httpx: "the client has been
+                # closed"): `close` ends it, as it ends one it finds open. Before the first
+                # connection it is the RuntimeError of any request after `close`.
+                if followed and self._closed.is_set():
+                    return
+                raise
             # The stream ended without `deleted` (the server stopped: "the server is shutting
             # down"), the connection was lost, or it stayed silent past the read timeout (a
             # ReadTimeout: leaving the `with` closed that connection): wait for the service, go on.
-            time.sleep(delay)
+            # Woken by `close`: slept through, the wait (a 503's Retry-After may ask for minutes)
+            # kept the reader after the program closed the client, which then failed the resume
+            # with RuntimeError instead of ending the stream.
+            if self._closed.wait(delay):
+                return
 
 
 class _StreamClosed(Exception):
