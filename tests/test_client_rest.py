@@ -1171,8 +1171,16 @@ def test_events_stream_tiles_robots_and_deletion(client: FleetmapClient, scans: 
         return {tuple(w) for e, d in received if e == "tiles" for w in d.get("tiles", [])}
 
     wait_for(lambda: {tuple(w) for w in result.changed_tiles} <= tiles_seen(), 10, 0.02, "the tiles event")
+    # The robot is in the map from its scan's acceptance, before the scan is integrated: a robots
+    # event of that moment shows it with no scan and no pose, and the next one with both (a
+    # loaded machine let this test read the first and fail).
     wait_for(
-        lambda: any(e == "robots" and "rob" in d["robots"] for e, d in received), 10, 0.02, "robot 'rob'"
+        lambda: any(
+            e == "robots" and d["robots"].get("rob", {}).get("scans_integrated") for e, d in received
+        ),
+        10,
+        0.02,
+        "robot 'rob' with its scan",
     )
     robots = next(d for e, d in reversed(received) if e == "robots")["robots"]["rob"]
     assert robots["scans_integrated"] == 1 and robots["pose"] == pytest.approx(
