@@ -179,6 +179,27 @@ def test_bad_arguments_are_refused_before_any_request(client: FleetmapClient, sc
     assert client.cells("args", [0.5, 0.5])["known"].tolist() == [False]  # one pair: one point
 
 
+def test_raycast_arguments_that_are_no_numbers_are_a_value_error_before_any_request() -> None:
+    """`raycast` is documented to raise ValueError for a malformed argument before any request, as
+    the engine's `cast_rays` does, but angles given as a generator (`(radians(d) for d in ...)`) or
+    a dict, or an origin given as a dict, raised NumPy's bare TypeError "float() argument must be a
+    string or a real number, not 'generator'", naming neither argument, and ragged angles NumPy's
+    "setting an array element with a sequence". (Nothing listens at the address: a request would
+    be a ConnectError.)"""
+    nowhere = FleetmapClient(f"http://127.0.0.1:{free_port()}", timeout=2)
+    cases: list[tuple[Any, Any, str]] = [
+        ((0.0, 0.0), (math.radians(d) for d in range(0, 360, 10)), "angles"),
+        ((0.0, 0.0), {"a": 0.1}, "angles"),
+        ((0.0, 0.0), [[0.1], [0.2, 0.3]], "angles"),
+        ({"x": 0.0, "y": 0.0}, [0.1], "origin"),
+        ([[0.0, 0.0], [1.0]], [0.1, 0.2], "origin"),
+    ]
+    for origin, angles, what in cases:
+        with pytest.raises(ValueError, match=f"^{what} must be"):
+            nowhere.raycast("m", origin, angles, 1.0)
+    nowhere.close()
+
+
 @contextlib.contextmanager
 def _serving(handler: type[BaseHTTPRequestHandler]) -> Iterator[str]:
     """A real HTTP server on a free port answering with `handler`, on a thread; yields its URL."""

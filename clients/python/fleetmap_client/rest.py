@@ -824,10 +824,18 @@ class FleetmapClient:
         does, without a request (the service casts 1 to 10 000 rays a request).
         """
         _check_id("map_id", map_id)
-        starts = float_array(origin)
+        # What is no numbers (a generator of angles, a dict, ragged rows) was NumPy's TypeError, or
+        # its ValueError, naming no argument: a ValueError naming it, as the engine raises.
+        try:
+            starts = float_array(origin)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"origin must be an (x, y) pair of numbers, or one per angle: {exc}") from None
         if starts.shape != (2,) and not (starts.ndim == 2 and starts.shape[1] == 2):
             raise ValueError(f"origin must be an (x, y) pair, or one per angle, not {origin!r}")
-        rays = float_array(angles)
+        try:
+            rays = float_array(angles)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"angles must be numbers (radians), one or a list or array: {exc}") from None
         # Refused as the engine refuses it: flattened, a (2, 3) array was cast as 6 rays, paired with
         # 6 origins in an order the caller never chose.
         if rays.ndim > 1:
