@@ -200,6 +200,21 @@ def test_raycast_arguments_that_are_no_numbers_are_a_value_error_before_any_requ
     nowhere.close()
 
 
+def test_a_configuration_of_another_type_is_a_type_error_before_any_request() -> None:
+    """`create_map` takes a `MapConfig`, a dict of its fields or None, as the engine's `GridMap`
+    does; a configuration read from a file and passed as its JSON text raised dict()'s "dictionary
+    update sequence element #0 has length 1; 2 is required", another type "'int' object is not
+    iterable". Each is now a TypeError naming what the configuration must be. (Nothing listens at
+    the address: a request would be a ConnectError.)"""
+    nowhere = FleetmapClient(f"http://127.0.0.1:{free_port()}", timeout=2)
+    for wrong in ('{"resolution": 0.1}', b"{}", 5, [("resolution", 0.1)]):
+        with pytest.raises(TypeError, match="^config must be a MapConfig, a dict of its fields or None, not"):
+            nowhere.create_map("m", wrong)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"json.loads"):
+        nowhere.create_map("m", '{"resolution": 0.1}')  # type: ignore[arg-type]
+    nowhere.close()
+
+
 @contextlib.contextmanager
 def _serving(handler: type[BaseHTTPRequestHandler]) -> Iterator[str]:
     """A real HTTP server on a free port answering with `handler`, on a thread; yields its URL."""

@@ -494,7 +494,8 @@ class FleetmapClient:
     ) -> MapInfo:
         """`PUT /maps/{map_id}`: create a map with `config` (None: the server's default). Creating a
         map that exists with the same configuration is a no-op; with a different one it raises
-        `FleetmapError` 409. A bad configuration raises 422 with the server's reason. Returns once
+        `FleetmapError` 409. A bad configuration raises 422 with the server's reason, a `config` of
+        another type (a JSON text) TypeError before any request. Returns once
         the server has stored the map (503: created, but the server could not store it).
         `create_only`: raise `MapChanged` (412) if the map exists at all, even with this
         configuration (`If-None-Match: *`); `if_match`: only if the map exists with that ETag
@@ -506,9 +507,16 @@ class FleetmapClient:
         elif isinstance(config, MapConfig):
             kwargs = {"content": config.model_dump_json()}
             headers["content-type"] = JSON_ENCODING
-        else:
+        elif isinstance(config, Mapping):
             kwargs = {"content": _json(dict(config))}
             headers["content-type"] = JSON_ENCODING
+        else:
+            # As the engine's GridMap refuses it: dict() of a configuration's JSON text (read from a
+            # file) said "dictionary update sequence element #0 has length 1; 2 is required".
+            text = " (a JSON text: json.loads it first)" if isinstance(config, str | bytes) else ""
+            raise TypeError(
+                f"config must be a MapConfig, a dict of its fields or None, not {type(config).__name__}{text}"
+            )
         response = self._request("PUT", f"/maps/{map_id}", headers=headers, **kwargs)
         return _read(MapInfo, response)
 
