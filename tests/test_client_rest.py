@@ -215,6 +215,19 @@ def test_a_configuration_of_another_type_is_a_type_error_before_any_request() ->
     nowhere.close()
 
 
+def test_a_snapshot_of_another_type_is_a_type_error_before_any_request() -> None:
+    """`upload_snapshot` takes a snapshot's bytes, a file's path or a binary file; anything else
+    (None from a variable never set, a list of chunks) went to the service as a request whose body
+    then failed ("'NoneType' object has no attribute 'read'", an AttributeError, the upload cut off
+    at the service). It is now a TypeError before any request. (Nothing listens at the address: a
+    request would be a ConnectError.)"""
+    nowhere = FleetmapClient(f"http://127.0.0.1:{free_port()}", timeout=2)
+    for wrong in (None, 5, [b"PK"], {"snapshot": b"PK"}):
+        with pytest.raises(TypeError, match="^snapshot must be"):
+            nowhere.upload_snapshot("m", wrong)  # type: ignore[arg-type]
+    nowhere.close()
+
+
 @contextlib.contextmanager
 def _serving(handler: type[BaseHTTPRequestHandler]) -> Iterator[str]:
     """A real HTTP server on a free port answering with `handler`, on a thread; yields its URL."""

@@ -617,7 +617,8 @@ class FleetmapClient:
         any map of that id, and return it once stored. `snapshot`: the file's bytes (or a bytearray or
         memoryview of them), its path (a
         `save_snapshot` file: sent from the file as it is read, never held in memory whole), or a
-        binary file open for reading (sent from where it stands to its end; a pipe too).
+        binary file open for reading (sent from where it stands to its end; a pipe too); anything
+        else is a TypeError before any request.
         `FleetmapError` 422 (or 413) for a file that is not a valid snapshot, naming the part at
         fault; nothing changes then. `if_match`: replace only the map of that ETag
         (`get_map_and_etag`), `create_only`: only if there is no map of the id; else `MapChanged`
@@ -632,11 +633,18 @@ class FleetmapClient:
                 # As bytes: httpx takes a bytearray or memoryview for an iterable of chunks, and
                 # failed on its first byte ("object of type 'int' has no len()").
                 body = bytes(snapshot)
-            else:
+            elif callable(getattr(snapshot, "read", None)):
                 # From where the caller's file stands, to its end, chunked: httpx would declare the
                 # whole file's size (`os.fstat`) whatever its position, and 0 for a pipe, then fail
                 # sending more or less than that ("Too much data for declared Content-Length").
                 body = _read_chunks(snapshot)
+            else:
+                # Taken for a file, it failed as its body was sent ("'NoneType' object has no
+                # attribute 'read'"), the upload cut off at the service.
+                raise TypeError(
+                    "snapshot must be the snapshot's bytes, the path of its file or a binary file open "
+                    f"for reading, not {type(snapshot).__name__}"
+                )
             response = self._transfer("PUT", f"/maps/{map_id}/snapshot", content=body, headers=headers)
         return _read(MapInfo, response)
 
