@@ -75,25 +75,15 @@ class FairQueue(Generic[S, T]):
         applies in that order, so that a sender is told whether its own FIFO is full or others
         fill the queue."""
         with self._cond:
-            if self._closed:
-                return CLOSED
+            full = self._refusal(source, item)
+            if full is not None:
+                return full
             fifo = self._fifos.get(source)
             if fifo is None:
                 fifo = self._fifos[source] = deque()
             group = self._group(source) if self._group is not None else None
             in_group = self._group_size.get(group, 0)
             weight = self._size_of(item) if self._size_of is not None else 0
-            full = (
-                FULL_SOURCE if len(fifo) >= self.per_source
-                else FULL_GROUP if in_group >= self.per_group
-                else FULL_TOTAL if self._size >= self.total
-                else FULL_BYTES if self.max_bytes is not None and self._bytes + weight > self.max_bytes
-                else None
-            )  # fmt: skip
-            if full is not None:
-                if not fifo and source not in self._busy:
-                    del self._fifos[source]
-                return full
             fifo.append(item)
             self._size += 1
             self._bytes += weight
@@ -102,6 +92,44 @@ class FairQueue(Generic[S, T]):
                 self._ready.append(source)
                 self._cond.notify()
             return None
+
+    def refusal(self, source: S, item: T) -> str | None:
+        """Which bound `offer` would refuse `item` of `source` by now (None: it would queue it),
+        queuing nothing: a caller that holds a refused item back to offer it again later asks
+        first, before it records the item as taken. Items only leave meanwhile (`get`), unless
+        another thread offers some: the caller serialises its offers with its question."""
+        with self._cond:
+            return self._refusal(source, item)
+
+    def room(self, source: S) -> int:
+        """How many more items of `source` the queue takes now by their counts (`per_source`, its
+        group's `per_group`, `total`; not `max_bytes`, which depends on the items)."""
+        with self._cond:
+            fifo = self._fifos.get(source)
+            group = self._group(source) if self._group is not None else None
+            return max(
+                0,
+                min(
+                    self.per_source - (len(fifo) if fifo else 0),
+                    self.per_group - self._group_size.get(group, 0),
+                    self.total - self._size,
+                ),
+            )
+
+    def _refusal(self, source: S, item: T) -> str | None:
+        """`refusal`, under the lock."""
+        if self._closed:
+            return CLOSED
+        fifo = self._fifos.get(source)
+        group = self._group(source) if self._group is not None else None
+        weight = self._size_of(item) if self._size_of is not None else 0
+        return (
+            FULL_SOURCE if fifo is not None and len(fifo) >= self.per_source
+            else FULL_GROUP if self._group_size.get(group, 0) >= self.per_group
+            else FULL_TOTAL if self._size >= self.total
+            else FULL_BYTES if self.max_bytes is not None and self._bytes + weight > self.max_bytes
+            else None
+        )  # fmt: skip
 
     def get(self, timeout: float | None = None) -> tuple[S, T] | None:
         """The next item of the next ready source, marking that source busy until `done(source)`.

@@ -122,6 +122,9 @@ class Job:
 REFUSAL_KINDS = {200: "duplicate", 404: "no_map", 429: "too_many_robots", 503: "queue_full"}
 #: The kind of the refusal of a scan submitted while the registry closes (`MapRegistry.close`).
 SHUTTING_DOWN = "shutting_down"
+#: The kind of the refusal of a scan the full queue deferred, taken nowhere: its caller fetches it
+#: again once the queue has room (`MapRegistry.submit`'s `defer_when_full`).
+DEFERRED = "deferred"
 
 
 class IngestRejected(Exception):
@@ -140,4 +143,4 @@ class IngestRejected(Exception):
         return self._kind or REFUSAL_KINDS.get(self.status, "other")
 
 
-__all__ = ["REFUSAL_KINDS", "SHUTTING_DOWN", "Expectation", "IngestRejected", "Job", "MapEntry"]
+__all__ = ["DEFERRED", "REFUSAL_KINDS", "SHUTTING_DOWN", "Expectation", "IngestRejected", "Job", "MapEntry"]

@@ -498,7 +498,7 @@ class ZenohCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         families = self._families()
         (up, routers, peers, sessions, max_sessions, alive, received, submitted, invalid, undecodable,
-         refused, missed) = families  # fmt: skip
+         refused, missed, deferred, refetched) = families  # fmt: skip
         status = self.status()
         up.add_metric([], 1.0 if status.get("running") else 0.0)
         routers.add_metric([], status.get("routers", 0))
@@ -516,6 +516,8 @@ class ZenohCollector(Collector):
         for reason, count in sorted(counts.items()):
             refused.add_metric([reason], count)
         missed.add_metric([], status.get("unrecoverable", 0))
+        deferred.add_metric([], status.get("deferred", 0))
+        refetched.add_metric([], status.get("refetched", 0))
         yield from families
         # ROS 2 scans (--ros-scans): at 0 without it, so that alerts need no special case.
         ros_received, ros_submitted, ros_waiting, ros_refused, tf_refused = self._ros_families()
@@ -574,6 +576,15 @@ class ZenohCollector(Collector):
                 "fleetmap_zenoh_scans_unrecoverable",
                 "Scans of advanced publishers (a robot's backlog) that Zenoh could not recover: gone from "
                 "the robot's cache before the service could fetch them",
+            ),
+            CounterMetricFamily(
+                "fleetmap_zenoh_scans_deferred",
+                "Scans of advanced publishers the full ingest queue deferred, or held back behind a "
+                "deferred one, to be fetched again from the robot's cache",
+            ),
+            CounterMetricFamily(
+                "fleetmap_zenoh_scans_refetched",
+                "Scans fetched again from robots' caches after the full ingest queue deferred them",
             ),
         )
 

@@ -40,7 +40,7 @@ from fleetmap.database import StorageError
 from fleetmap.export import Window
 from fleetmap.fair_queue import FULL_BYTES, FULL_GROUP, FULL_SOURCE, FULL_TOTAL, FairQueue, QueueClosed
 from fleetmap.grid_map import GridMap, IntegrationResult, WindowCleared
-from fleetmap.map_entry import SHUTTING_DOWN, Expectation, IngestRejected, Job, MapEntry
+from fleetmap.map_entry import DEFERRED, SHUTTING_DOWN, Expectation, IngestRejected, Job, MapEntry
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation, format_size
 from fleetmap.persistence import DurableStore, StoredJournal, unreadable_database
 from fleetmap.rate_limited_log import RateLimitedLog
@@ -728,6 +728,7 @@ class MapRegistry:
         wire: WireScan,
         wait: bool = False,
         expect: Expectation | None = None,
+        defer_when_full: bool = False,
     ) -> Future | None:
         """Queue a decoded scan for integration, never blocking.
 
@@ -744,6 +745,10 @@ class MapRegistry:
         (and no other scan reached it meanwhile). `expect` as for `create`, called with the map (None
         if there is none and the scan would make it) before anything is counted or changed: whatever
         it raises propagates, the scan taken nowhere (a REST scan's precondition).
+        `defer_when_full`: a scan its caller can fetch again (from its publisher's cache:
+        `backlog_refetch.py`) that the full queue would refuse is not taken at all, as one while the
+        registry closes: its seq not recorded, nothing counted (503, kind `DEFERRED`), so that it is
+        new when it comes again, and the caller offers it again once the queue has room.
         """
         _check_id("map id", map_id)
         _check_id("robot id", robot_id)
@@ -793,6 +798,12 @@ class MapRegistry:
                 assert seqs is not None  # a duplicate of a session it knows (perhaps pushed out)
                 seqs.ledger.duplicates += 1
                 raise IngestRejected(f"duplicate seq {seq} (last accepted {seqs.last_seq})", 200)
+            job = Job(map_id, robot_id, wire, entry.generation, time.monotonic())
+            if defer_when_full and (full := self.queue.refusal((map_id, robot_id), job)) is not None:
+                # Nothing recorded: it comes again from its publisher's cache, new then.
+                reason = f"ingest queue full: scan deferred ({self._queue_full(full, map_id)})"
+                self._remove_unclaimed(entry)
+                raise IngestRejected(reason, 503, DEFERRED)
             # Recorded before the queue is tried so a dropped scan is not also counted as lost.
             if robot.accept(seq, stamp, session, now):
                 self._conflict_log.warning(
@@ -803,7 +814,6 @@ class MapRegistry:
                     map_id=map_id,
                     robot_id=robot_id,
                 )
-            job = Job(map_id, robot_id, wire, entry.generation, time.monotonic())
             job.receipt = robot.sessions[session_key(session)].ledger.open(seq)
             if wait:
                 job.future = Future()

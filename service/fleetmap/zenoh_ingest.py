@@ -4,8 +4,9 @@
 `MapRegistry`. The subscriber callback runs on a Zenoh thread, so it must never block and never
 integrate: it parses the key, decodes the payload and calls `MapRegistry.submit`, which checks the
 sequence number and puts the scan on a bounded per-robot queue without waiting (a full queue refuses
-the NEWEST scan and counts it as `dropped` on the robot). Integration happens on the registry's
-worker threads.
+the NEWEST scan and counts it as `dropped` on the robot; of an advanced publisher, it defers it, and
+`BacklogRefetch` fetches it again from the publisher's cache once there is room: `backlog_refetch.py`).
+Integration happens on the registry's worker threads.
 
 Decoding happens in the callback because it is cheap and never waits: measured on the development
 machine, a 1081-beam scan decodes in about 11 us (binary) and 80 us (JSON, pydantic-validated); the
@@ -98,7 +99,8 @@ import zenoh
 import zenoh.ext
 
 from fleetmap import codec
-from fleetmap.map_entry import IngestRejected
+from fleetmap.backlog_refetch import BacklogRefetch, Origin
+from fleetmap.map_entry import DEFERRED, IngestRejected
 from fleetmap.network import is_loopback_host
 from fleetmap.rate_limited_log import RateLimitedLog
 from fleetmap.registry import InvalidId, MapRegistry
@@ -250,6 +252,10 @@ class ZenohIngest:
         #: Scans that advanced publishers published but zenoh-ext could not recover (the sample miss
         #: listener's `Miss.nb`, summed): gone from the publisher's cache before they could be fetched.
         self.unrecoverable = 0
+        #: Samples of advanced publishers the full queue deferred, or held back behind a deferred
+        #: one, to be fetched again from their publisher's cache (`backlog_refetch.py`).
+        self.deferred = 0
+        self._refetch = BacklogRefetch(self._queue_room, self._handle_fetched, self._count_unrecoverable)
         self.liveliness_events = 0
         self.delivery_queries = 0  # delivery queries answered (errors included)
         #: The Zenoh ids of the unicast sessions connected to this one now (robots; with
@@ -265,6 +271,9 @@ class ZenohIngest:
         # lines are rate-limited too, apart from the refusals' (a token flood must not hide them):
         # one line per robot and state per interval, and at most 100 in all per interval.
         self._alive_log = RateLimitedLog(log, max_lines=100)
+        # Scans the full queue deferred: a line per robot, apart from the refusals' budget (a fleet's
+        # backlogs deferred at once held back the warnings of scans that could not be fetched again).
+        self._deferred_log = RateLimitedLog(log, max_lines=5)
 
     # -- lifecycle -------------------------------------------------------------------------------
 
@@ -382,6 +391,7 @@ class ZenohIngest:
         except zenoh.ZError as exc:
             self.close()
             raise IngestStartError(f"cannot subscribe: {zenoh_error_text(exc)}") from None
+        self._refetch.start(session)
         log.info(
             "zenoh %s session %s listening on %s%s%s",
             self.mode,
@@ -427,6 +437,7 @@ class ZenohIngest:
         session, self._session = self._session, None
         if session is not None:
             session.close()
+        self._refetch.close()  # after the session, whose close ends its fetch in progress
 
     def __enter__(self) -> ZenohIngest:
         self.start()
@@ -453,15 +464,25 @@ class ZenohIngest:
                 # empty payload was counted as the robot's refused scan, and its reason ("a payload
                 # starting b'' is neither a binary scan ...") replaced the robot's real last_error.
                 return
-            self._handle_scan(str(sample.key_expr), sample.payload, str(sample.encoding))
+            key = str(sample.key_expr)
+            with self._lock:
+                self.messages_received += 1
+            self._handle_scan(key, sample.payload, str(sample.encoding), Origin.of(key, sample))
         except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
             log.exception("unexpected error handling a scan sample on %s", sample.key_expr)
 
-    def _handle_scan(self, key: str, payload: zenoh.ZBytes | bytes, encoding: str) -> None:
+    def _handle_fetched(self, key: str, sample: zenoh.Sample, origin: Origin) -> None:
+        """A deferred sample fetched again from its publisher's cache (`BacklogRefetch`'s thread)."""
+        self._handle_scan(key, sample.payload, str(sample.encoding), origin)
+
+    def _handle_scan(
+        self, key: str, payload: zenoh.ZBytes | bytes, encoding: str, origin: Origin | None = None
+    ) -> None:
         """Parse, decode and submit one scan sample. Never blocks: every step is CPU only, and
-        `MapRegistry.submit` refuses rather than waits when the queue is full."""
-        with self._lock:
-            self.messages_received += 1
+        `MapRegistry.submit` refuses rather than waits when the queue is full. A sample of an
+        advanced publisher (`origin`) passes `BacklogRefetch`'s gate: the full queue defers it
+        rather than dropping it, and it is fetched again from the publisher's cache (as are its
+        publisher's later ones, held back meanwhile)."""
         ids = parse_key(key, "scan")
         if ids is None:
             with self._lock:
@@ -470,6 +491,23 @@ class ZenohIngest:
                               "match [A-Za-z0-9_-]{1,64} in fleetmap/<map_id>/<robot_id>/scan")  # fmt: skip
             return
         map_id, robot_id = ids
+        if origin is None:
+            self._decode_and_submit(map_id, robot_id, payload, encoding, defer=False)
+            return
+        with self._refetch.lock:
+            if not self._refetch.admit(origin):
+                with self._lock:
+                    self.deferred += 1
+                return
+            deferred = self._decode_and_submit(map_id, robot_id, payload, encoding, defer=True)
+            self._refetch.taken(origin, deferred)
+
+    def _decode_and_submit(
+        self, map_id: str, robot_id: str, payload: zenoh.ZBytes | bytes, encoding: str, defer: bool
+    ) -> bool:
+        """Decode a scan sample of robot `robot_id` on map `map_id` and submit it (`defer`: as
+        `MapRegistry.submit`'s `defer_when_full`), counting and logging a refusal. Returns whether
+        the full queue deferred it (taken nowhere: it is to be fetched again)."""
         limits = self.registry.input_limits
         try:
             # Its size before it is copied out of Zenoh's buffer: Zenoh takes messages of up to
@@ -492,22 +530,32 @@ class ZenohIngest:
                 f"decode:{map_id}/{robot_id}", f"rejected a scan from {map_id}/{robot_id}: {reason}",
                 map_id=map_id, robot_id=robot_id, **seq,
             )  # fmt: skip
-            return
+            return False
         try:
-            self.registry.submit(map_id, robot_id, wire)
+            self.registry.submit(map_id, robot_id, wire, defer_when_full=defer)
         except IngestRejected as exc:
             kind = exc.kind
+            if kind == DEFERRED:
+                with self._lock:
+                    self.deferred += 1
+                self._deferred_log.log(
+                    logging.INFO, f"deferred:{map_id}/{robot_id}",
+                    f"scan seq {wire.seq} from {map_id}/{robot_id}: {exc.reason}; it is fetched again from "
+                    "the robot's cache as the queue drains",
+                    map_id=map_id, robot_id=robot_id, seq=wire.seq,
+                )  # fmt: skip
+                return True
             with self._lock:
                 self.rejected[kind] += 1
             self._log.warning(
                 f"{kind}:{map_id}/{robot_id}", f"scan seq {wire.seq} from {map_id}/{robot_id}: {exc.reason}",
                 map_id=map_id, robot_id=robot_id, seq=wire.seq,
             )  # fmt: skip
-            return
+            return False
         except InvalidId:  # parse_key validated the ids; kept for safety
             with self._lock:
                 self.invalid_keys += 1
-            return
+            return False
         with self._lock:
             self.scans_submitted += 1
             alive = (map_id, robot_id) in self._alive
@@ -516,6 +564,7 @@ class ZenohIngest:
                 # after DELETE): make sure its robot shows as online. Under our lock so a token
                 # DELETE cannot slip in between.
                 self.registry.mark_online(map_id, robot_id)
+        return False
 
     def _on_transport(self, event: zenoh.TransportEvent) -> None:
         """A unicast session (a robot's, or with `--zenoh-connect` a router's or peer's) connected to
@@ -543,6 +592,22 @@ class ZenohIngest:
                 )
         except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
             log.exception("unexpected error handling a Zenoh transport event")
+
+    def _queue_room(self, key: str) -> int:
+        """How many more scans of scan key `key` the ingest queue takes now (`BacklogRefetch`)."""
+        ids = parse_key(key, "scan")
+        return 0 if ids is None else self.registry.queue.room(ids)
+
+    def _count_unrecoverable(self, count: int, source: str) -> None:
+        """`count` deferred scans of the advanced publisher `source` were gone from its cache when
+        they were fetched again: counted and logged as zenoh-ext's own misses are."""
+        with self._lock:
+            self.unrecoverable += count
+        self._log.warning(
+            f"unrecoverable:{source}",
+            f"{count} deferred scan(s) of the advanced publisher {source} could not be fetched again: gone "
+            "from its cache (its backlog) before the ingest queue had room for them",
+        )
 
     def _on_miss(self, miss: zenoh.ext.Miss) -> None:
         """zenoh-ext gave up on `miss.nb` samples of the publisher `miss.source`: count and log them.
@@ -652,6 +717,8 @@ class ZenohIngest:
                 "decode_errors": self.decode_errors,
                 "rejected": dict(self.rejected),
                 "unrecoverable": self.unrecoverable,
+                "deferred": self.deferred,
+                "refetched": self._refetch.refetched,
                 "liveliness_events": self.liveliness_events,
                 "delivery_queries": self.delivery_queries,
                 "robots_alive": len(self._alive),

@@ -1,0 +1,272 @@
+"""Scans a full ingest queue deferred, fetched again from their publisher's cache once it has room.
+
+Robots' backlogs come back as bursts at network speed (docs/protocol.md, "Delivery guarantees"):
+after a restart of the service, or a dead zone, a fleet's robots send theirs at once, and the
+ingest queue holds only so many (one map's robots share half of it). Dropped there, the newest
+scans were lost to the map, though each was still in its robot's Zenoh cache (the advanced
+publisher's, which holds the last `backlog` scans it put, and answers queries for a range of its
+sequence numbers). So a scan of an advanced publisher (its samples carry their source, the
+publisher's id, and their sequence number in it, `sn`) that the full queue would refuse is not
+taken (`MapRegistry.submit`'s `defer_when_full`: its seq not recorded), and its publisher is
+*behind* from that scan on (`Behind`): its later samples, as they arrive, are held back too
+(submitting them would put them before the deferred one), until `BacklogRefetch`'s thread has
+fetched them again, in order, from the publisher's cache (a Zenoh query on
+`<key>/@adv/pub/<zid>/<eid>/**?_sn=<first>..<last>`, as zenoh-ext's own recovery asks), as many
+as the queue has room for. A full queue costs a delay, not the scans.
+
+`BacklogRefetch.admit` is the gate every sample of an advanced publisher passes, live or fetched
+again: it lets through a publisher that is not behind, and of one that is only its next sample
+(`Behind.next_sn`); `taken` moves that on (or makes the publisher behind when the queue deferred
+the sample). It holds nothing but each behind publisher's two numbers (the first sn not taken,
+the highest seen), so memory does not grow with the backlogs. A sample that comes twice (live and
+fetched again) is taken once by the gate or, if both get through, ignored as a duplicate by the
+registry's seq bookkeeping: each scan is integrated once.
+
+Scans the cache no longer holds when they are fetched (the robot published more than its backlog
+meanwhile, or its publisher is gone) cannot be had. A fetch for as many as the queue has room for
+that brings nothing is followed by one for every sample missing (the cache, which holds the
+publisher's last samples, answers from where it begins now), and the samples before its first reply
+are given up; so is a publisher when such fetches bring nothing `REFETCH_ATTEMPTS` times in a row.
+Those are counted `unrecoverable`, as zenoh-ext's own misses are, and the registry counts them
+`lost` on the robot once a later one is taken. Plain publishers' samples carry no source: a full
+queue drops them, as before.
+
+The thread only asks and submits: it never runs in a Zenoh callback, and the gate's lock is held
+for one sample's decoding and submission at most.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import zenoh
+
+log = logging.getLogger("fleetmap.zenoh")
+
+#: Seconds between the thread's rounds while a publisher is behind. Each round fetches, publisher
+#: after publisher, as many as the queue has room for then: while it stays full, about what the
+#: workers integrated since the last round, and at most one fetch a round finds room.
+REFETCH_PERIOD_S = 0.05
+#: Seconds one fetch may wait for its replies: a robot whose link died answers nothing, and the
+#: fetches of other publishers wait meanwhile (one at a time). A fetch cut short loses nothing: the
+#: next one asks from the first sample not taken.
+REFETCH_TIMEOUT_S = 2.0
+#: Fetches in a row of every sample still missing that bring nothing of a behind publisher before
+#: it is given up (its scans counted unrecoverable): its cache no longer holds them, or it is gone.
+REFETCH_ATTEMPTS = 3
+#: Sequence numbers of zenoh-ext's samples are 32-bit and wrap.
+_SN_MODULUS = 1 << 32
+
+
+@dataclass(frozen=True)
+class Origin:
+    """Where a sample came from: its scan key, its advanced publisher (`zid`, `eid`) and its
+    sequence number there (`sn`)."""
+
+    key: str
+    zid: str
+    eid: int
+    sn: int
+
+    @property
+    def publisher(self) -> tuple[str, int]:
+        return self.zid, self.eid
+
+    @classmethod
+    def of(cls, key: str, sample: zenoh.Sample) -> Origin | None:
+        """The origin of `sample` on `key`, None when it has no source (a plain publisher's)."""
+        info = sample.source_info
+        if info is None or info.source_sn is None or info.source_id is None:
+            return None
+        return cls(key, str(info.source_id.zid), int(info.source_id.eid), int(info.source_sn))
+
+
+@dataclass
+class Behind:
+    """A publisher whose samples wait to be fetched again: from `next_sn` (the first not taken) to
+    `seen_sn` (the highest that arrived and was deferred or held back), of scan key `key`."""
+
+    key: str
+    next_sn: int
+    seen_sn: int
+    #: Whether the next fetch asks for every sample from `next_sn` to `seen_sn`, whatever the
+    #: queue's room: the last one, for as many as it had room for, brought nothing.
+    widen: bool = False
+    empty_fetches: int = 0
+
+
+class BacklogRefetch:
+    """The gate of advanced publishers' samples and the thread that fetches deferred ones again (see
+    the module docstring).
+
+    `room(key)` says how many scans of the scan key `key` the ingest queue takes now; `handle(key,
+    sample, origin)` decodes and submits a fetched sample as the subscriber's callback does (it
+    passes the gate). `on_unrecoverable(count, source)` counts `count` scans of the publisher
+    `source` ("zid/eid") that could not be fetched again."""
+
+    def __init__(
+        self,
+        room: Callable[[str], int],
+        handle: Callable[[str, zenoh.Sample, Origin], None],
+        on_unrecoverable: Callable[[int, str], None],
+    ) -> None:
+        self._room = room
+        self._handle = handle
+        self._on_unrecoverable = on_unrecoverable
+        #: Held from a sample's `admit` to its `taken` (its decoding and submission): the gate's
+        #: decision and the submission are one step, whichever thread a publisher's samples come on.
+        self.lock = threading.RLock()
+        self._behind: dict[tuple[str, int], Behind] = {}
+        self._wake = threading.Event()
+        self._closed = threading.Event()
+        self._session: zenoh.Session | None = None
+        self._thread: threading.Thread | None = None
+        #: Samples fetched again from publishers' caches.
+        self.refetched = 0
+
+    def start(self, session: zenoh.Session) -> None:
+        """Start the fetching thread on `session`."""
+        self._session = session
+        self._thread = threading.Thread(target=self._run, name="fleetmap-refetch", daemon=True)
+        self._thread.start()
+
+    def close(self, timeout: float = REFETCH_TIMEOUT_S + 1.0) -> None:
+        """Stop the thread (after the session closed, which ends its fetch in progress), waiting for
+        it: a thread left inside a Zenoh call when the interpreter finalizes aborts the process.
+        What is still behind is left in the robots' caches: the next process's history query
+        fetches it (nothing of it was recorded)."""
+        self._closed.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def behind(self) -> int:
+        """Publishers behind now."""
+        with self.lock:
+            return len(self._behind)
+
+    # -- the gate (call with `lock` held) -----------------------------------------------------------
+
+    def admit(self, origin: Origin) -> bool:
+        """Whether the sample of `origin` may be submitted now: its publisher is not behind, or this
+        is its next sample (or one already taken, which the registry ignores as a duplicate). A
+        sample held back is noted, so that it is fetched again."""
+        behind = self._behind.get(origin.publisher)
+        if behind is None:
+            return True
+        ahead = (origin.sn - behind.next_sn) % _SN_MODULUS
+        if ahead == 0 or ahead >= _SN_MODULUS // 2:  # its next, or one before it
+            return True
+        if (origin.sn - behind.seen_sn) % _SN_MODULUS < _SN_MODULUS // 2:
+            behind.seen_sn = origin.sn
+        return False
+
+    def taken(self, origin: Origin, deferred: bool) -> None:
+        """The sample of `origin`, admitted, was submitted: `deferred` when the full queue deferred
+        it (its publisher is behind from it), else taken (integrated, refused or a duplicate)."""
+        publisher = origin.publisher
+        behind = self._behind.get(publisher)
+        if deferred:
+            if behind is None:
+                self._behind[publisher] = Behind(origin.key, origin.sn, origin.sn)
+                self._wake.set()
+            return
+        if behind is None or origin.sn != behind.next_sn:
+            return
+        behind.next_sn = (origin.sn + 1) % _SN_MODULUS
+        behind.empty_fetches = 0
+        if (behind.seen_sn - behind.next_sn) % _SN_MODULUS >= _SN_MODULUS // 2:  # every one seen taken
+            del self._behind[publisher]
+
+    # -- the thread ---------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        while not self._closed.is_set():
+            with self.lock:
+                waiting = list(self._behind.items())
+            if not waiting:
+                self._wake.wait()
+                self._wake.clear()
+                continue
+            for publisher, behind in waiting:
+                if self._closed.is_set():
+                    return
+                try:
+                    self._fetch(publisher, behind)
+                except Exception:  # the thread must go on: a bug is logged
+                    log.exception("unexpected error fetching deferred scans again")
+            self._closed.wait(REFETCH_PERIOD_S)
+
+    def _fetch(self, publisher: tuple[str, int], behind: Behind) -> None:
+        """Fetch the next deferred samples of `publisher` again, as many as the queue takes now, and
+        hand each to `handle` (through the gate)."""
+        with self.lock:
+            if self._behind.get(publisher) is not behind:
+                return  # caught up meanwhile
+            first, missing = behind.next_sn, (behind.seen_sn - behind.next_sn) % _SN_MODULUS + 1
+        room = self._room(behind.key)
+        if room <= 0:
+            return  # the queue is full: the next round
+        # Widened: the cache holds none of the first `room` (the robot published on and pushed
+        # them out), and a range of it holds a sample only from where the cache begins now. The
+        # replies past the room are deferred again, held back at the gate.
+        count = missing if behind.widen else min(missing, room)
+        session = self._session
+        if session is None:
+            return
+        last = (first + count - 1) % _SN_MODULUS
+        zid, eid = publisher
+        selector = f"{behind.key}/@adv/pub/{zid}/{eid}/**?_sn={first}..{last}"
+        # Its replies carry the scan key, not the query's: ANY; each is its own sample: no
+        # consolidation (which kept only the last of a key). A channel as long as the replies, so
+        # that Zenoh's thread never waits for this one.
+        replies = session.get(
+            selector,
+            handler=zenoh.handlers.FifoChannel(count + 8),
+            accept_replies=zenoh.ReplyKeyExpr.ANY,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=REFETCH_TIMEOUT_S,
+        )
+        got = 0
+        for reply in replies:
+            sample = reply.ok
+            if sample is None:  # an error reply (another queryable's): no scan
+                continue
+            origin = Origin.of(behind.key, sample)
+            if origin is None or origin.publisher != publisher:
+                continue
+            if got == 0:
+                self._skip_to(publisher, behind, origin.sn)
+            got += 1
+            self.refetched += 1
+            self._handle(behind.key, sample, origin)
+        if got == 0:
+            with self.lock:
+                if not behind.widen:
+                    behind.widen = True
+                    return
+                behind.empty_fetches += 1
+                if behind.empty_fetches < REFETCH_ATTEMPTS or self._behind.get(publisher) is not behind:
+                    return
+                del self._behind[publisher]
+                gone = (behind.seen_sn - behind.next_sn) % _SN_MODULUS + 1
+            self._on_unrecoverable(gone, f"{zid}/{eid}")
+
+    def _skip_to(self, publisher: tuple[str, int], behind: Behind, sn: int) -> None:
+        """A fetch's first reply is `sn`: those before it, from `next_sn`, are gone from the cache."""
+        with self.lock:
+            behind.widen = False
+            if self._behind.get(publisher) is not behind:
+                return
+            gone = (sn - behind.next_sn) % _SN_MODULUS
+            if gone == 0 or gone >= _SN_MODULUS // 2:
+                return
+            behind.next_sn = sn
+        zid, eid = publisher
+        self._on_unrecoverable(gone, f"{zid}/{eid}")
+
+
+__all__ = ["REFETCH_PERIOD_S", "BacklogRefetch", "Behind", "Origin"]
