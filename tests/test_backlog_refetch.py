@@ -156,3 +156,33 @@ def test_deferred_scans_pushed_out_of_a_robots_cache_meanwhile_are_given_up_not_
             pub.close()
         ingest.close()
         registry.close()
+
+
+def test_a_robot_gone_with_its_deferred_scans_is_given_up_and_its_scans_counted() -> None:
+    """A robot that closes while its scans wait to be fetched again takes its cache with it: the
+    service's fetches bring nothing, and after `REFETCH_ATTEMPTS` of them it gives the robot up,
+    counting what it could not fetch as unrecoverable, and forgets it (nothing left behind)."""
+    registry = MapRegistry(workers=1, queue_per_robot=4, queue_total=8)
+    registry.start()
+    entry, _ = registry.create("m")
+    port = free_port()
+    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{port}"])
+    ingest.start()
+    pub = ScanPublisher("m", "r", connect=[f"tcp/127.0.0.1:{port}"])
+    try:
+        assert pub.wait_connected(30)
+        with entry.gmap.lock:
+            for scan in sim_scans(5, 20, beams=61):
+                assert pub.publish(scan)
+            wait_for(lambda: ingest.status()["messages_received"] == 20, timeout=60, what="the scans")
+            pub.close()
+        wait_for(lambda: ingest._refetch.behind() == 0, timeout=60, what="the robot given up")
+        assert wait_idle(registry)
+        integrated = entry.robots["r"].scans_integrated
+        # The queue's 4, the worker's 1, and any the thread fetched again before the robot closed.
+        assert 4 <= integrated < 20
+        assert ingest.status()["unrecoverable"] == 20 - integrated
+    finally:
+        pub.close()
+        ingest.close()
+        registry.close()
