@@ -16,9 +16,6 @@ SYSTEM_PACKAGES ?= chromium curl unzip
 # 2-core machine well (1476 tests: 11 min in three, using 167 % of the two cores, against 12-13 min
 # in two). `make test TEST_WORKERS=0` runs them in one process, in file order.
 # The run ends with its 20 slowest tests: CI's log shows what keeps it within its 15-minute budget.
-# `--dist loadscope`: a module's tests run in one process, so the service, browser or map a module's
-# tests share (module-scoped fixtures) is made once, not once in each process: the run is CPU-bound,
-# and a service's start costs 1.5 s of CPU.
 TEST_WORKERS ?= 3
 
 .PHONY: demo serve test bench bench-service soak lint format clean system-deps
@@ -55,7 +52,7 @@ test: $(DEV_STAMP) system-deps
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
 	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
 	$(VENV)/bin/mypy
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadscope --durations=20
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --durations=20
 
 serve: $(STAMP)
 	$(VENV)/bin/fleetmap serve $(SERVE_ARGS)
