@@ -5,19 +5,56 @@ process, robots' `ScanPublisher`s), a registry with a small queue so that the te
 
 from __future__ import annotations
 
-from fleetmap_client.publisher import ScanPublisher
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+from fleetmap_client.publisher import DEFAULT_BACKLOG, ScanPublisher
 from registry_idle import wait_idle
 from service_process import free_port, wait_for
 from test_ingest import sim_scans
 
 from fleetmap.backlog_refetch import BacklogRefetch, Origin
 from fleetmap.fair_queue import FULL_GROUP, FULL_SOURCE, FairQueue
+from fleetmap.map_entry import MapEntry
 from fleetmap.registry import MapRegistry
 from fleetmap.zenoh_ingest import ZenohIngest
 
 ROBOTS = 20
 #: Scans each robot has queued while the service was away: its recovered backlog.
 BACKLOG = 40
+
+
+@dataclass
+class Fleet:
+    """A service's ingest in this process, on a registry whose queue is small, with map `m` made,
+    and robots' `ScanPublisher`s (`r0`, `r1` ...) connecting to it."""
+
+    registry: MapRegistry
+    entry: MapEntry
+    ingest: ZenohIngest
+    pubs: list[ScanPublisher]
+
+
+@contextlib.contextmanager
+def fleet(robots: int, backlog: int, queue_per_robot: int, queue_total: int) -> Iterator[Fleet]:
+    """A `Fleet` of `robots` publishers keeping `backlog` scans each, its ingest not started (the
+    robots queue their scans meanwhile); everything closed on the way out."""
+    registry = MapRegistry(workers=1, queue_per_robot=queue_per_robot, queue_total=queue_total)
+    registry.start()
+    entry, _ = registry.create("m")
+    port = free_port()
+    pubs = [
+        ScanPublisher("m", f"r{k}", connect=[f"tcp/127.0.0.1:{port}"], backlog=backlog) for k in range(robots)
+    ]
+    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{port}"])
+    try:
+        yield Fleet(registry, entry, ingest, pubs)
+    finally:
+        for pub in pubs:
+            pub.close()
+        ingest.close()
+        registry.close()
 
 
 def test_a_fleets_backlogs_past_the_queue_are_all_integrated_once() -> None:
@@ -27,17 +64,10 @@ def test_a_fleets_backlogs_past_the_queue_are_all_integrated_once() -> None:
     of 800 refused, the robots' flushes said so). Now each is deferred and fetched again from its
     robot's cache once the queue has room: every scan integrated, exactly once, none dropped,
     refused or lost."""
-    registry = MapRegistry(workers=1, queue_per_robot=16, queue_total=48)  # the map's share: 24
-    registry.start()
-    entry, _ = registry.create("m")
-    port = free_port()
-    pubs = [
-        ScanPublisher("m", f"r{k}", connect=[f"tcp/127.0.0.1:{port}"], backlog=BACKLOG + 10)
-        for k in range(ROBOTS)
-    ]
-    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{port}"])
     scans = sim_scans(3, BACKLOG, beams=61)
-    try:
+    # The map's share of the queue: 24.
+    with fleet(ROBOTS, BACKLOG + 10, queue_per_robot=16, queue_total=48) as f:
+        registry, entry, ingest, pubs = f.registry, f.entry, f.ingest, f.pubs
         for pub in pubs:
             for scan in scans:
                 assert pub.publish(scan)
@@ -62,11 +92,6 @@ def test_a_fleets_backlogs_past_the_queue_are_all_integrated_once() -> None:
             assert counts == (BACKLOG, 0, 0, 0, BACKLOG - 1), (k, counts)
         assert entry.scans_integrated == ROBOTS * BACKLOG
         assert ingest._refetch.behind() == 0
-    finally:
-        for pub in pubs:
-            pub.close()
-        ingest.close()
-        registry.close()
 
 
 def test_the_gate_holds_a_behind_publishers_later_samples_until_its_next_is_taken() -> None:
@@ -121,15 +146,10 @@ def test_deferred_scans_pushed_out_of_a_robots_cache_meanwhile_are_given_up_not_
     where it begins and counts the rest unrecoverable. It gave the whole robot up after three empty
     fetches (an early version): 8,342 of 42,000 scans of 40 robots unrecoverable where their caches
     had lost 2,000 at most."""
-    registry = MapRegistry(workers=1, queue_per_robot=8, queue_total=16)  # the map's share: 8
-    registry.start()
-    entry, _ = registry.create("m")
-    port = free_port()
     cache = 30
-    pubs = [ScanPublisher("m", f"r{k}", connect=[f"tcp/127.0.0.1:{port}"], backlog=cache) for k in range(4)]
-    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{port}"])
     scans = sim_scans(4, 2 * cache, beams=61)
-    try:
+    with fleet(4, cache, queue_per_robot=8, queue_total=16) as f:  # the map's share: 8
+        registry, entry, ingest, pubs = f.registry, f.entry, f.ingest, f.pubs
         for pub in pubs:
             for scan in scans[:cache]:
                 assert pub.publish(scan)
@@ -151,25 +171,15 @@ def test_deferred_scans_pushed_out_of_a_robots_cache_meanwhile_are_given_up_not_
         assert status["unrecoverable"] == 4 * 2 * cache - sum(integrated) > 0, (integrated, status)
         assert all(r.settled and r.integrated + r.lost + r.unsettled == 2 * cache for r in reports), reports
         assert ingest._refetch.behind() == 0
-    finally:
-        for pub in pubs:
-            pub.close()
-        ingest.close()
-        registry.close()
 
 
 def test_a_robot_gone_with_its_deferred_scans_is_given_up_and_its_scans_counted() -> None:
     """A robot that closes while its scans wait to be fetched again takes its cache with it: the
     service's fetches bring nothing, and after `REFETCH_ATTEMPTS` of them it gives the robot up,
     counting what it could not fetch as unrecoverable, and forgets it (nothing left behind)."""
-    registry = MapRegistry(workers=1, queue_per_robot=4, queue_total=8)
-    registry.start()
-    entry, _ = registry.create("m")
-    port = free_port()
-    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{port}"])
-    ingest.start()
-    pub = ScanPublisher("m", "r", connect=[f"tcp/127.0.0.1:{port}"])
-    try:
+    with fleet(1, DEFAULT_BACKLOG, queue_per_robot=4, queue_total=8) as f:
+        registry, entry, ingest, (pub,) = f.registry, f.entry, f.ingest, f.pubs
+        ingest.start()
         assert pub.wait_connected(30)
         with entry.gmap.lock:
             for scan in sim_scans(5, 20, beams=61):
@@ -178,11 +188,7 @@ def test_a_robot_gone_with_its_deferred_scans_is_given_up_and_its_scans_counted(
             pub.close()
         wait_for(lambda: ingest._refetch.behind() == 0, timeout=60, what="the robot given up")
         assert wait_idle(registry)
-        integrated = entry.robots["r"].scans_integrated
+        integrated = entry.robots["r0"].scans_integrated
         # The queue's 4, the worker's 1, and any the thread fetched again before the robot closed.
         assert 4 <= integrated < 20
         assert ingest.status()["unrecoverable"] == 20 - integrated
-    finally:
-        pub.close()
-        ingest.close()
-        registry.close()

@@ -1240,24 +1240,31 @@ def test_events_stream_tiles_robots_and_deletion(client: FleetmapClient, scans: 
     assert received[-1] == ("deleted", {"id": "ev"})
 
 
+def _reader(client: FleetmapClient, map_id: str) -> tuple[threading.Thread, list[str], list[BaseException]]:
+    """A thread, started, reading `client.events(map_id)`: it, the events it received and what it
+    raised (the reader's view, to assert on)."""
+    received: list[str] = []
+    failures: list[BaseException] = []
+
+    def listen() -> None:
+        try:
+            for event, _data in client.events(map_id):
+                received.append(event)
+        except BaseException as exc:
+            failures.append(exc)
+
+    thread = threading.Thread(target=listen, daemon=True)
+    thread.start()
+    return thread, received, failures
+
+
 def test_closing_the_client_ends_its_event_streams_read_in_other_threads(client: FleetmapClient) -> None:
     """A program that reads a map's events in a thread and closes its client to stop: the reader
     stayed blocked until the server's next keepalive (some 15 s), then failed with RuntimeError on
     the closed pool. Its iteration now just stops, at once."""
     client.create_map("ev-close", CONFIG)
     own = FleetmapClient(client.base_url)
-    received: list[str] = []
-    failures: list[BaseException] = []
-
-    def listen() -> None:
-        try:
-            for event, _data in own.events("ev-close"):
-                received.append(event)
-        except BaseException as exc:  # what the reader saw, to assert on
-            failures.append(exc)
-
-    thread = threading.Thread(target=listen, daemon=True)
-    thread.start()
+    thread, received, failures = _reader(own, "ev-close")
     wait_for(lambda: "robots" in received, 10, 0.02, "the initial robots event")
     own.close()
     thread.join(60)
@@ -1293,20 +1300,9 @@ def test_closing_the_client_ends_an_event_stream_waiting_to_resume() -> None:
         def log_message(self, format: str, *args: Any) -> None:
             pass
 
-    received: list[str] = []
-    failures: list[BaseException] = []
     with _serving(EndsThenBusy) as url:
         own = FleetmapClient(url)
-
-        def listen() -> None:
-            try:
-                for event, _data in own.events("m"):
-                    received.append(event)
-            except BaseException as exc:  # what the reader saw, to assert on
-                failures.append(exc)
-
-        thread = threading.Thread(target=listen, daemon=True)
-        thread.start()
+        thread, received, failures = _reader(own, "m")
         wait_for(lambda: len(requests) == 2, 10, 0.02, "the reader's attempt to resume")
         own.close()
         thread.join(20)  # well within the 60 s the service asked for
