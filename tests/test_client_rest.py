@@ -228,6 +228,29 @@ def test_a_snapshot_of_another_type_is_a_type_error_before_any_request() -> None
     nowhere.close()
 
 
+class _FakeService(BaseHTTPRequestHandler):
+    """A handler of the fake servers below (`_serving`): `reply` answers, `read_body` reads a
+    request's body, and nothing is logged."""
+
+    def read_body(self) -> bytes:
+        return self.rfile.read(int(self.headers.get("content-length") or 0))
+
+    def reply(
+        self, status: int, body: bytes, content_type: str, headers: dict[str, str] | None = None
+    ) -> None:
+        """Answer `status` with `body` of `content_type`, and `headers` besides."""
+        self.send_response(status)
+        self.send_header("content-type", content_type)
+        for name, value in (headers or {}).items():
+            self.send_header(name, value)
+        self.send_header("content-length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, format: str, *args: Any) -> None:
+        pass
+
+
 @contextlib.contextmanager
 def _serving(handler: type[BaseHTTPRequestHandler]) -> Iterator[str]:
     """A real HTTP server on a free port answering with `handler`, on a thread; yields its URL."""
@@ -245,21 +268,13 @@ def _late_service(status: int, detail: str, delay: float = 1.5) -> Iterator[str]
     """A real HTTP server on a free port that answers every GET, POST and PUT `delay` seconds late
     with `status` and `{"detail": detail}`, as the service answers its slow requests; yields its URL."""
 
-    class LateService(BaseHTTPRequestHandler):
+    class LateService(_FakeService):
         def _answer_late(self) -> None:
-            self.rfile.read(int(self.headers.get("content-length") or 0))
+            self.read_body()
             time.sleep(delay)
-            body = json.dumps({"detail": detail}).encode()
-            self.send_response(status)
-            self.send_header("content-type", "application/json")
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
+            self.reply(status, json.dumps({"detail": detail}).encode(), "application/json")
 
         do_GET = do_POST = do_PUT = _answer_late
-
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
 
     with _serving(LateService) as url:
         yield url
@@ -270,21 +285,14 @@ def _redirect_to(target: str, status: int = 301) -> Iterator[str]:
     """A real HTTP server on a free port that answers every request with a redirect (`status`) to
     the same path at `target`, as a proxy sending http:// to https:// does; yields its URL."""
 
-    class Redirect(BaseHTTPRequestHandler):
+    class Redirect(_FakeService):
         def _redirect(self) -> None:
-            self.rfile.read(int(self.headers.get("content-length") or 0))
-            body = b"<html><body>Moved</body></html>"
-            self.send_response(status)
-            self.send_header("location", target + self.path)
-            self.send_header("content-type", "text/html")
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
+            self.read_body()
+            self.reply(
+                status, b"<html><body>Moved</body></html>", "text/html", {"location": target + self.path}
+            )
 
         do_GET = do_POST = do_PUT = do_DELETE = _redirect
-
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
 
     with _serving(Redirect) as url:
         yield url
@@ -421,20 +429,13 @@ def _web_page_server() -> Iterator[str]:
     """A real HTTP server on a free port answering every request 200 with an HTML page, as a captive
     portal or another web server on a wrong port does; yields its URL."""
 
-    class WebPage(BaseHTTPRequestHandler):
+    class WebPage(_FakeService):
         def _page(self) -> None:
-            self.rfile.read(int(self.headers.get("content-length") or 0))
+            self.read_body()
             body = b"<html><body>Welcome to the guest Wi-Fi: sign in to go on.</body></html>"
-            self.send_response(200)
-            self.send_header("content-type", "text/html; charset=utf-8")
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
+            self.reply(200, body, "text/html; charset=utf-8")
 
         do_GET = do_POST = do_PUT = do_DELETE = _page
-
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
 
     with _serving(WebPage) as url:
         yield url
@@ -539,20 +540,12 @@ def test_automatic_seq_moves_past_a_scan_the_service_may_still_integrate(scans: 
     ]
     seqs: list[int] = []
 
-    class Service(BaseHTTPRequestHandler):
+    class Service(_FakeService):
         def do_POST(self) -> None:
-            seqs.append(json.loads(self.rfile.read(int(self.headers["content-length"])))["seq"])
+            seqs.append(json.loads(self.read_body())["seq"])
             status, answer, delay = answers[len(seqs) - 1]
             time.sleep(delay)
-            body = json.dumps(answer).encode()
-            self.send_response(status)
-            self.send_header("content-type", "application/json")
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
+            self.reply(status, json.dumps(answer).encode(), "application/json")
 
     with _serving(Service) as url:
         with FleetmapClient(url, timeout=1.0, scan_timeout=1.0) as fm:
@@ -1166,18 +1159,10 @@ def test_an_api_token_and_an_address_with_a_password_are_not_both_taken(
     user and password."""
     seen: list[str | None] = []
 
-    class Recorder(BaseHTTPRequestHandler):
+    class Recorder(_FakeService):
         def do_GET(self) -> None:
             seen.append(self.headers.get("authorization"))
-            body = b'{"maps": []}'
-            self.send_response(200)
-            self.send_header("content-type", "application/json")
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
+            self.reply(200, b'{"maps": []}', "application/json")
 
     monkeypatch.delenv("FLEETMAP_TOKEN", raising=False)
     with _serving(Recorder) as url:
@@ -1281,24 +1266,16 @@ def test_closing_the_client_ends_an_event_stream_waiting_to_resume() -> None:
     stream the close finds open does. It now ends at once, without an error."""
     requests: list[str] = []
 
-    class EndsThenBusy(BaseHTTPRequestHandler):
+    class EndsThenBusy(_FakeService):
         def do_GET(self) -> None:
             requests.append(self.path)
             if len(requests) == 1:  # a stream of one event, which then ends
-                body = b'id: 1\nevent: tiles\ndata: {"version": 1, "tiles": []}\n\n'
-                self.send_response(200)
-                self.send_header("content-type", "text/event-stream")
+                self.reply(
+                    200, b'id: 1\nevent: tiles\ndata: {"version": 1, "tiles": []}\n\n', "text/event-stream"
+                )
             else:  # the service is busy: come back in a minute
                 body = b'{"detail": "the server holds its limit of event streams; retry later"}'
-                self.send_response(503)
-                self.send_header("content-type", "application/json")
-                self.send_header("retry-after", "60")
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
+                self.reply(503, body, "application/json", {"retry-after": "60"})
 
     with _serving(EndsThenBusy) as url:
         own = FleetmapClient(url)
@@ -1593,22 +1570,14 @@ def _answering(answer: dict[str, Any], etag: str | None = '"map-1"') -> Iterator
     """A real HTTP server on a free port answering every GET and PUT 200 with the JSON `answer` and
     `etag` (none for None), as a fleetmap service answers `GET` and `PUT /maps/{id}`; yields its URL."""
 
-    class Answering(BaseHTTPRequestHandler):
+    class Answering(_FakeService):
         def _answer(self) -> None:
-            self.rfile.read(int(self.headers.get("content-length") or 0))
-            body = json.dumps(answer).encode()
-            self.send_response(200)
-            self.send_header("content-type", "application/json")
-            if etag is not None:
-                self.send_header("etag", etag)
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
+            self.read_body()
+            self.reply(
+                200, json.dumps(answer).encode(), "application/json", {} if etag is None else {"etag": etag}
+            )
 
         do_GET = do_PUT = _answer
-
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
 
     with _serving(Answering) as url:
         yield url
