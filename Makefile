@@ -48,10 +48,14 @@ system-deps:
 demo: $(STAMP)
 	$(VENV)/bin/fleetmap demo $(DEMO_ARGS)
 
+# The project's modules compiled to bytecode once, before the run: every process the tests start
+# (some 600 services, robots and commands) imports them, and where PYTHONDONTWRITEBYTECODE is set
+# (the development machines set it) each compiled them from source again: 0.12 s of CPU a process.
 test: $(DEV_STAMP) system-deps
 	$(VENV)/bin/ruff check service tests clients scripts benchmarks
 	$(VENV)/bin/ruff format --check service tests clients scripts benchmarks
 	$(VENV)/bin/mypy
+	$(PY) -m compileall -q service clients
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --durations=20
 
 serve: $(STAMP)
