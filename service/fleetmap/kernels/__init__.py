@@ -19,6 +19,8 @@ import stat
 import tempfile
 from pathlib import Path
 
+from fleetmap.kernels.numba_loading import load_numba_array_functions
+
 #: Where the digest of the compiled sources is kept, next to numba's cache files.
 _STAMP = "fleetmap-compiled-sources.sha256"
 
@@ -146,3 +148,4 @@ def _locator_directory(source: Path) -> Path | None:
 
 ensure_compiled_cache_location()
 drop_stale_compiled_cache()
+load_numba_array_functions()
