@@ -10,7 +10,6 @@ another machine.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import math
 import os
@@ -507,17 +506,29 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
         assert from_variable == serve_options(argv, {}, monkeypatch) != defaults, option
 
 
+def test_a_command_line_naming_its_command_adds_that_commands_parser_alone() -> None:
+    """`fleetmap build` imported every command's module (the service's, the demo's: 0.7 s of its
+    start) to build parsers it never used. A command line naming its command now gets that
+    command's parser alone, from the module `cli.COMMAND_MODULES` names for it; the table must name
+    every command's module and only those, or a command would be missing when named."""
+    _, every = cli.command_line_parser()
+    assert set(every.choices) == {"build", *cli.COMMAND_MODULES}
+    table = cli.COMMAND_MODULES
+    for command in every.choices:
+        _, alone = cli.command_line_parser([command, "--help"])
+        module = table.get(command)
+        assert set(alone.choices) == {c for c in table if table[c] == module} if module else {command}
+    for other in ([], ["--help", "build"], ["bulid"], ["--version"]):
+        assert list(cli.command_line_parser(other)[1].choices) == list(every.choices), other
+
+
 def test_a_list_option_given_twice_keeps_the_values_of_both() -> None:
     """`--zenoh-listen tcp/a --zenoh-listen tls/b` listened on tls/b alone, and `--cors-origin A
     --cors-origin B` allowed B alone: argparse's plain list option keeps its last occurrence, and
     nothing said the first was dropped. Every command's list options keep every value, in order, as
     `--ros-publish-map` already did: given twice, they mean what one occurrence of all the values
     means."""
-    parser = argparse.ArgumentParser(prog="fleetmap")
-    sub = parser.add_subparsers(dest="command", required=True)
-    cli._add_build(sub)
-    for name in cli.COMMAND_MODULES:
-        importlib.import_module(name).add_parser(sub)
+    parser, sub = cli.command_line_parser()
     required = {"replay": ["data.log", "--map", "m", "--robot", "r"]}
     values = {
         "--forwarded-allow-ips": ["10.0.0.1", "10.0.0.2"],

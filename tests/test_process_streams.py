@@ -213,8 +213,8 @@ def test_ctrl_c_while_the_command_starts_is_one_line(
     (A module whose import raises KeyboardInterrupt stands for the key pressed during it.)"""
     (tmp_path / "pressed_during_import.py").write_text("raise KeyboardInterrupt\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(cli, "COMMAND_MODULES", [*cli.COMMAND_MODULES, "pressed_during_import"])
-    assert cli.main(["build", str(tmp_path / "scene.log"), "--out", str(tmp_path / "out")]) == cli.INTERRUPTED
+    monkeypatch.setitem(cli.COMMAND_MODULES, "serve", "pressed_during_import")
+    assert cli.main(["serve", "--data-dir", str(tmp_path / "out")]) == cli.INTERRUPTED
     assert capsys.readouterr() == ("", "fleetmap: interrupted\n")
     assert not (tmp_path / "out").exists()
 
