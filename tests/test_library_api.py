@@ -58,7 +58,7 @@ def test_fleetmap_is_a_regular_typed_package() -> None:
         assert (Path(package.__file__).parent / "py.typed").is_file(), package.__name__
 
 
-def test_a_program_using_the_python_client_type_checks_strictly(tmp_path: Path) -> None:
+def test_a_program_using_the_python_client_type_checks_strictly(tmp_path: Path, mypy_cache: Path) -> None:
     """`mypy --strict` of a program using the client as docs/clients.md does. The package's own
     names (`from fleetmap_client import FleetmapClient`) were Any to a type checker (its lazy
     `__getattr__`), so nothing of their use was checked; a NumPy `origin` of `raycast` and one
@@ -97,10 +97,10 @@ def test_a_program_using_the_python_client_type_checks_strictly(tmp_path: Path) 
             """
         )
     )
-    _assert_strictly_typed(program)
+    _assert_strictly_typed(program, mypy_cache)
 
 
-def test_the_python_clients_numbers_may_be_numpys_to_a_type_checker(tmp_path: Path) -> None:
+def test_the_python_clients_numbers_may_be_numpys_to_a_type_checker(tmp_path: Path, mypy_cache: Path) -> None:
     """`mypy --strict` of a program that passes the client NumPy numbers where docs/clients.md says
     it takes them (a seq from `np.arange`, a tile index, a change version, a coordinate or a stamp
     read from an array): each was a type error ("incompatible type "signedinteger[_64Bit]";
@@ -142,23 +142,31 @@ def test_the_python_clients_numbers_may_be_numpys_to_a_type_checker(tmp_path: Pa
             """
         )
     )
-    _assert_strictly_typed(program)
+    _assert_strictly_typed(program, mypy_cache)
 
 
-def _assert_strictly_typed(program: Path) -> None:
+@pytest.fixture(scope="session")
+def mypy_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One mypy cache for this process's strict checks: the first reads NumPy, pydantic and fleetmap
+    (some 6 s of CPU), the others find them there (1 s)."""
+    return tmp_path_factory.mktemp("mypy-cache")
+
+
+def _assert_strictly_typed(program: Path, cache: Path) -> None:
     """`mypy --strict` of `program` as a user runs it: no project configuration (so no pydantic
     plugin), the packages checked as installed ones are (`--follow-imports silent`: their own
-    errors are not reported; `make lint` checks them with the project's settings)."""
+    errors are not reported; `make lint` checks them with the project's settings). `cache` is
+    mypy's cache directory."""
     env = {**os.environ, "MYPYPATH": f"{REPO / 'service'}{os.pathsep}{REPO / 'clients' / 'python'}"}
     result = subprocess.run(
         [sys.executable, "-m", "mypy", "--strict", "--follow-imports", "silent", "--no-error-summary",
-         "--config-file", "", "--cache-dir", str(program.parent / "mypy-cache"), str(program)],
+         "--config-file", "", "--cache-dir", str(cache), str(program)],
         capture_output=True, text=True, cwd=program.parent, env=env,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout + result.stderr
 
 
-def test_a_program_using_the_engine_type_checks_strictly(tmp_path: Path) -> None:
+def test_a_program_using_the_engine_type_checks_strictly(tmp_path: Path, mypy_cache: Path) -> None:
     """`mypy --strict` of a program using the engine as the README does, by a user without pydantic's
     mypy plugin: `MapConfig()` and `MapConfig(resolution=0.05)` were errors ("Missing named argument
     'tile_size'" and three more), because the models gave their defaults positionally
@@ -186,7 +194,7 @@ def test_a_program_using_the_engine_type_checks_strictly(tmp_path: Path) -> None
             """
         )
     )
-    _assert_strictly_typed(program)
+    _assert_strictly_typed(program, mypy_cache)
 
 
 def test_importing_the_wire_schema_loads_no_compiler() -> None:
