@@ -30,7 +30,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from fleetmap_client import cli
+from fleetmap_client import cli, rest
 from fleetmap_client.publisher import ScanPublisher
 from fleetmap_client.rest import FleetmapClient, FleetmapError, MapChanged, parse_sse
 from PIL import Image
@@ -1285,6 +1285,63 @@ def test_closing_the_client_ends_an_event_stream_waiting_to_resume() -> None:
         thread.join(20)  # well within the 60 s the service asked for
         assert not thread.is_alive() and not failures, failures
     assert received == ["tiles"]
+
+
+@contextlib.contextmanager
+def _stream_then(answers: list[tuple[int, str, dict[str, str]]]) -> Iterator[tuple[str, list[str]]]:
+    """A real HTTP server on a free port, as a reverse proxy in front of a restarting service: the
+    first GET is a stream of one `tiles` event (id 1) that then ends, each next one the next of
+    `answers` (status, body, headers; a 200 is another such stream), and 404 after them (the map
+    gone, which ends the client's stream). Yields its URL and the paths asked, in order."""
+    requests: list[str] = []
+    stream = b'id: 1\nevent: tiles\ndata: {"version": 1, "tiles": []}\n\n'
+
+    class Proxy(_FakeService):
+        def do_GET(self) -> None:
+            requests.append(self.path)
+            k = len(requests) - 2
+            if k < 0 or (k < len(answers) and answers[k][0] == 200):
+                self.reply(200, stream, "text/event-stream")
+            elif k < len(answers):
+                status, body, headers = answers[k]
+                self.reply(status, body.encode(), "text/html", headers)
+            else:
+                self.reply(404, b'{"detail": "no map \'m\'"}', "application/json")
+
+    with _serving(Proxy) as url:
+        yield url, requests
+
+
+def test_an_absurd_retry_after_is_read_safely_and_capped(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A `Retry-After` comes from whatever answers, a foreign proxy's too, and may say anything:
+    `1e999` (an infinite float) made the error's `retry_after` infinite and a resumed event
+    stream's wait raise OverflowError ("timeout value is too large") out of `next()`. It is read as
+    at most `MAX_RETRY_AFTER` seconds, at least 0, and what is no number of seconds (NaN, an HTTP
+    date) as none; the stream waits that long and goes on."""
+    values = ["1e999", "-1e999", "nan", "-5", "120", "2.5", "Wed, 21 Oct 2026 07:28:00 GMT", "inf"]
+
+    class Busy(_FakeService):
+        def do_GET(self) -> None:
+            value = values[int(self.path.rsplit("-", 1)[1])]
+            self.reply(503, b'{"detail": "busy"}', "application/json", {"retry-after": value})
+
+    with _serving(Busy) as url, FleetmapClient(url) as fm:
+        waits = []
+        for k in range(len(values)):
+            with pytest.raises(FleetmapError) as busy:
+                fm.get_map(f"busy-{k}")
+            waits.append(busy.value.retry_after)
+    most = rest.MAX_RETRY_AFTER
+    assert waits == [most, 0.0, None, 0.0, most, 2.5, None, most]
+    monkeypatch.setattr(rest, "MAX_RETRY_AFTER", 0.05)  # not a minute: the test goes on past it
+    monkeypatch.setattr(rest, "RECONNECT_DELAY", 0.05)
+    absurd = [(503, "busy", {"retry-after": "1e999"})]
+    with _stream_then(absurd) as (url, requests), FleetmapClient(url) as fm:
+        stream = fm.events("m")
+        assert next(stream)[0] == "tiles"
+        with pytest.raises(FleetmapError) as gone:  # the 404 after the wait, not an OverflowError
+            next(stream)
+    assert gone.value.status == 404 and len(requests) == 3
 
 
 def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, scans: list[Scan]) -> None:

@@ -147,6 +147,11 @@ def _repeated_field(node: yaml.Node | None) -> str | None:
 #: 503's Retry-After says otherwise.
 RECONNECT_DELAY = 1.0
 
+#: The longest wait a `Retry-After` is read as, seconds (the web viewer's `MAX_RETRY_AFTER_MS`). The
+#: service asks for 1 or 5 s; a longer one comes from something else answering (a proxy in front of
+#: it), and may be absurd: `1e999` is an infinite float, which a wait cannot take (OverflowError).
+MAX_RETRY_AFTER = 60.0
+
 #: Seconds `events` waits for anything from an open stream before it takes the connection for dead
 #: and resumes the stream: three of the service's keepalive periods (`: keepalive` after 15 s of
 #: silence, `fleetmap serve --events-keepalive`). A connection that dies without a FIN or RST (a
@@ -200,7 +205,7 @@ class FleetmapError(Exception):
     """An error answer of the service: `status` (HTTP status code), `detail` (the server's sentence
     saying what is wrong), `errors` (the individual validation problems, when the server listed
     them), `retry_after` (the seconds its `Retry-After` header asks a client to wait before trying
-    again, on a 503 or 429; None when it sent none)."""
+    again, on a 503 or 429, at most `MAX_RETRY_AFTER`; None when it sent none)."""
 
     def __init__(
         self,
@@ -1341,12 +1346,16 @@ def _retry_after(response: httpx.Response, default: float) -> float:
 
 
 def _retry_after_seconds(response: httpx.Response) -> float | None:
-    """The seconds an answer's `Retry-After` asks a client to wait; None without one in seconds (the
-    service sends seconds; an HTTP date is not read)."""
+    """The seconds an answer's `Retry-After` asks a client to wait, within [0, `MAX_RETRY_AFTER`];
+    None without a number of seconds there (the service sends seconds; an HTTP date is not read,
+    nor NaN). An infinite one (`1e999`, `inf`: what else answered may send anything) is the most."""
     try:
-        return max(0.0, float(response.headers.get("Retry-After", "")))
+        seconds = float(response.headers.get("Retry-After", ""))
     except ValueError:
         return None
+    if math.isnan(seconds):
+        return None
+    return min(max(0.0, seconds), MAX_RETRY_AFTER)
 
 
 def _scan_body(
@@ -1488,6 +1497,7 @@ def _raise_for_error(response: httpx.Response) -> None:
 
 
 __all__ = [
+    "MAX_RETRY_AFTER",
     "RECONNECT_DELAY",
     "SCAN_TIMEOUT",
     "TOKEN_ENV",
