@@ -1344,6 +1344,30 @@ def test_an_absurd_retry_after_is_read_safely_and_capped(monkeypatch: pytest.Mon
     assert gone.value.status == 404 and len(requests) == 3
 
 
+def test_events_resume_through_a_proxys_gateway_errors(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Behind a reverse proxy (nginx, a load balancer), a restarting service is a 502 (nothing
+    listens yet), a 504 (no answer in time) or a 503 of the proxy's own, without a Retry-After:
+    each ended a followed stream with a `FleetmapError`, where the web viewer's EventSource (and
+    the client itself, for the service's own 503) waits and resumes. They are resumed the same way."""
+    monkeypatch.setattr(rest, "RECONNECT_DELAY", 0.05)
+    page = "<html><body><h1>{}</h1>nginx</body></html>"
+    gateway = [
+        (502, page.format("502 Bad Gateway"), {}),
+        (504, page.format("504 Gateway Time-out"), {}),
+        (503, page.format("503 Service Temporarily Unavailable"), {}),
+        (200, "", {}),
+    ]
+    received: list[str] = []
+    with (
+        _stream_then(gateway) as (url, requests),
+        FleetmapClient(url) as fm,
+        pytest.raises(FleetmapError) as gone,  # the 404 at last: the map is gone
+    ):
+        received.extend(event for event, _ in fm.events("m"))
+    assert received == ["tiles", "reconnected", "tiles"]
+    assert gone.value.status == 404 and len(requests) == 6
+
+
 def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, scans: list[Scan]) -> None:
     """A map replaced by `PUT /maps/{id}/snapshot` still exists: `events` yields `replaced` and goes
     on with the new map's events; only a deletion ends it."""

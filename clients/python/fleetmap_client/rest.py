@@ -147,6 +147,11 @@ def _repeated_field(node: yaml.Node | None) -> str | None:
 #: 503's Retry-After says otherwise.
 RECONNECT_DELAY = 1.0
 
+#: The answers on which `events` waits and resumes a stream it had open, as an EventSource (the web
+#: viewer) does: the service stopping or at its limit of streams (503), and a reverse proxy in front
+#: of a restarting service (502: nothing listens; 504: no answer in time; 503 of its own).
+_RESUMED_STATUSES = frozenset({502, 503, 504})
+
 #: The longest wait a `Retry-After` is read as, seconds (the web viewer's `MAX_RETRY_AFTER_MS`). The
 #: service asks for 1 or 5 s; a longer one comes from something else answering (a proxy in front of
 #: it), and may be absurd: `1e999` is an infinite float, which a wait cannot take (OverflowError).
@@ -1075,13 +1080,14 @@ class FleetmapClient:
         Once a stream was open, it is followed as an EventSource follows it: when the server stops
         (a restart) or the connection is lost, or nothing at all (not even the server's keepalive)
         arrives for `events_read_timeout` seconds (a half-open connection, a frozen server), `next()`
-        waits for the service (`RECONNECT_DELAY`
-        between attempts, a 503's Retry-After) and resumes with `Last-Event-ID`, so the tiles
-        changed meanwhile come in the next `tiles` event (or a reset). It then yields
-        ("reconnected", {"last_event_id": ...}) first: a restarted service may hold another map
-        under the id, so reload `get_map` as after `replaced`. A 404 then (the map was deleted
-        meanwhile) or 401 / 403 raises `FleetmapError`, and so does an answer that is no event
-        stream (not `text/event-stream`: another web server at the address), at any time.
+        waits for the service (`RECONNECT_DELAY` between attempts, or a Retry-After's wait, at most
+        `MAX_RETRY_AFTER`, through its 503s and a reverse proxy's 502, 503 and 504) and resumes
+        with `Last-Event-ID`, so the tiles changed meanwhile come in the next `tiles` event (or a
+        reset). It then yields ("reconnected", {"last_event_id": ...}) first: a restarted service
+        may hold another map under the id, so reload `get_map` as after `replaced`. A 404 then (the
+        map was deleted meanwhile) or 401 / 403 raises `FleetmapError`, and so does an answer that
+        is no event stream (not `text/event-stream`: another web server at the address), at any
+        time.
         """
         _check_id("map_id", map_id)
         if robots not in ("full", "delta"):
@@ -1128,9 +1134,9 @@ class FleetmapClient:
                 ):
                     if _failed(response):
                         response.read()
-                        if not (followed and response.status_code == 503):
+                        if not (followed and response.status_code in _RESUMED_STATUSES):
                             _raise_for_error(response)  # 404: the map is gone; 401 / 403: no access
-                        delay = _retry_after(response, delay)  # the server is stopping or full
+                        delay = _retry_after(response, delay)  # the server, or its proxy, says when
                     else:
                         _raise_unless_event_stream(response)
                         if followed:
@@ -1156,8 +1162,9 @@ class FleetmapClient:
                     return
                 raise
             # The stream ended without `deleted` (the server stopped: "the server is shutting
-            # down"), the connection was lost, or it stayed silent past the read timeout (a
-            # ReadTimeout: leaving the `with` closed that connection): wait for the service, go on.
+            # down"), the connection was lost, it stayed silent past the read timeout (a
+            # ReadTimeout: leaving the `with` closed that connection), or the service (or its
+            # proxy) is not back yet (`_RESUMED_STATUSES`): wait for the service, go on.
             # Woken by `close`: slept through, the wait (a 503's Retry-After may ask for minutes)
             # kept the reader after the program closed the client, which then failed the resume
             # with RuntimeError instead of ending the stream.
