@@ -469,6 +469,50 @@ def test_an_answer_read_as_bytes_that_is_not_fleetmaps_is_a_fleetmap_error(tmp_p
     assert list(tmp_path.iterdir()) == []  # no backup, nor a part of one
 
 
+def test_an_answer_its_content_encoding_does_not_decode_is_a_fleetmap_error(
+    tmp_path: Path, scans: list[Scan]
+) -> None:
+    """A proxy that breaks what it passes on (labels a plain body `Content-Encoding: gzip`, cuts a
+    compressed one): httpx's own `DecodingError` came out of the client, neither of the errors it
+    promises (a `FleetmapError` for an answer no fleetmap service gives, an `httpx.TransportError`
+    for the network). Each answer, a JSON one, a snapshot saved to a file, an event stream and an
+    error answer, is now a `FleetmapError` of its status naming the address and the encoding, and
+    leaves no file behind. A scan answered so (200) is in the map: the next automatic seq moves on,
+    as after any answer, not kept as after a refusal."""
+    kinds = {"snapshot": "application/zip", "events": "text/event-stream"}
+    seqs: list[int] = []
+
+    class Garbling(_FakeService):
+        def do_GET(self) -> None:
+            last = self.path.partition("?")[0].rsplit("/", 1)[1]
+            status = 503 if last == "busy" else 200
+            kind = kinds.get(last, "application/json")
+            self.reply(status, b"not gzip at all", kind, {"content-encoding": "gzip"})
+
+        def do_POST(self) -> None:
+            seqs.append(json.loads(self.read_body())["seq"])
+            self.reply(200, b"not gzip at all", "application/json", {"content-encoding": "gzip"})
+
+    backup = tmp_path / "backup.zip"
+    with _serving(Garbling) as base, FleetmapClient(base) as fm:
+        calls: list[tuple[int, Callable[[], object]]] = [
+            (200, lambda: fm.get_map("m")),
+            (503, lambda: fm.get_map("busy")),
+            (200, lambda: fm.save_snapshot("m", backup)),
+            (200, lambda: next(fm.events("m"))),
+            (200, lambda: fm.post_scan("m", "r1", scans[0])),
+            (200, lambda: fm.post_scan("m", "r1", scans[1])),
+        ]
+        for status, call in calls:
+            with pytest.raises(FleetmapError) as exc:
+                call()
+            assert exc.value.status == status
+            assert exc.value.detail.startswith(f"{base}/maps/")
+            assert "does not decode as its Content-Encoding ('gzip') says" in exc.value.detail
+    assert list(tmp_path.iterdir()) == []  # no backup, nor a part of one
+    assert seqs == [0, 1]
+
+
 def test_post_scan_waits_for_the_servers_own_answer(scans: list[Scan]) -> None:
     """The service answers a scan once it is integrated, or 503 after its own wait (10 s by
     default): a client whose timeout is not longer than that got httpx's bare ReadTimeout instead

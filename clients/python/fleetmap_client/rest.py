@@ -440,7 +440,10 @@ class FleetmapClient:
 
     def _request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
         try:
-            response = self._http.request(method, url, **kwargs)
+            # Streamed, then read here (what `httpx.Client.request` does) so that a body its
+            # Content-Encoding does not decode is refused with its answer's status (`_decoding`).
+            with self._http.stream(method, url, **kwargs) as response, _decoding(response):
+                response.read()
         except httpx.TransportError as exc:
             raise _naming_the_service(exc, self.base_url) from exc
         _raise_for_error(response)
@@ -587,7 +590,10 @@ class FleetmapClient:
         timeout = httpx.Timeout(self.timeout, read=self.transfer_timeout)
         size = 0
         try:
-            with self._http.stream("GET", f"/maps/{map_id}/snapshot", timeout=timeout) as response:
+            with (
+                self._http.stream("GET", f"/maps/{map_id}/snapshot", timeout=timeout) as response,
+                _decoding(response),
+            ):
                 if _failed(response):
                     response.read()
                     _raise_for_error(response)
@@ -1131,6 +1137,7 @@ class FleetmapClient:
                         "GET", f"/maps/{map_id}/events", params=params, headers=headers, timeout=timeout
                     ) as response,
                     self._open_stream(response),
+                    _decoding(response),
                 ):
                     if _failed(response):
                         response.read()
@@ -1346,6 +1353,24 @@ def _not_fleetmap(response: httpx.Response, expected: str, reason: str) -> Fleet
     )
 
 
+@contextlib.contextmanager
+def _decoding(response: httpx.Response) -> Iterator[None]:
+    """Read `response`'s body within: one its `Content-Encoding` does not decode (a proxy that
+    labels a plain body gzip, or cuts a compressed one) raises `FleetmapError` of the answer's
+    status, naming the address and the encoding, where httpx's own `DecodingError` came out of the
+    client, neither of the errors it promises."""
+    try:
+        yield
+    except httpx.DecodingError as exc:
+        encoding = response.headers.get("content-encoding", "")
+        raise FleetmapError(
+            response.status_code,
+            f"{_shown_url(response.request.url)} answered a body that does not decode as its "
+            f"Content-Encoding ({encoding!r}) says ({exc}), which a fleetmap service never sends: "
+            "does something between here and the service (a proxy) alter its answers?",
+        ) from None
+
+
 def _retry_after(response: httpx.Response, default: float) -> float:
     """The seconds a 503's `Retry-After` asks a client to wait (`default` without a number)."""
     seconds = _retry_after_seconds(response)
@@ -1440,9 +1465,11 @@ def _scan_not_taken(exc: BaseException) -> bool:
     """Whether a `post_scan` request that raised `exc` certainly left its scan out of the map, so
     that its seq is still free: the service refused it (a 4xx, or 507 for memory), or the request
     never left (no connection, or the client was closed). Otherwise (a 503, a read timeout, a
-    dropped connection) the scan may be integrated."""
+    dropped connection, or a success whose body could not be read: `_decoding`) the scan may be
+    integrated."""
     if isinstance(exc, FleetmapError):
-        return exc.status < 500 or exc.status == 507
+        answered = 200 <= exc.status < 300  # integrated: its answer's body is what failed
+        return not answered and (exc.status < 500 or exc.status == 507)
     return isinstance(exc, httpx.ConnectError | httpx.ConnectTimeout | httpx.PoolTimeout | RuntimeError)
 
 
