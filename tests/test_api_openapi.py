@@ -136,6 +136,16 @@ def test_the_snapshot_uploads_415_says_what_the_route_refuses(tmp_path: Path) ->
         assert wrong.status_code == 415, wrong.text
 
 
+def test_the_scan_uploads_415_names_the_types_it_reads() -> None:
+    """A scan sent as `text/plain` is a 415 (it was a 422 "unknown encoding", as for a bad scan):
+    the spec's 415 of `POST .../scans` names the two media types the route reads, not the shared
+    "JSON: application/json; a zip: application/zip"."""
+    spec = json.loads(COMMITTED.read_text(encoding="utf-8"))
+    scans = spec["paths"]["/maps/{map_id}/scans"]["post"]["responses"]["415"]["description"]
+    assert "application/json" in scans and "application/x-fleetmap-scan" in scans
+    assert "application/zip" not in scans
+
+
 def test_docs_describe_every_operation() -> None:
     """docs/api.md has a section for every path of the spec (so a new endpoint gets documented)."""
     spec = json.loads(COMMITTED.read_text(encoding="utf-8"))

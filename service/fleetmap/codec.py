@@ -78,6 +78,12 @@ class PayloadTooLarge(DecodeError):
     so Zenoh ingest counts it as rejected like any bad payload; REST answers it 413, not 422."""
 
 
+class UnknownEncoding(DecodeError):
+    """A payload labelled with an encoding the codec does not read (`text/plain`). Still a
+    DecodeError, so Zenoh ingest counts it as rejected like any bad payload; REST answers it 415
+    (Unsupported Media Type), naming the types it reads, not 422: the scan was not looked at."""
+
+
 @dataclass(frozen=True)
 class InputLimits:
     """What the service accepts from robots, beyond well-formedness. Checked on every decoded scan,
@@ -150,8 +156,9 @@ def check_payload_size(size: int, limits: InputLimits = DEFAULT_LIMITS) -> None:
 def decode(
     payload: bytes | bytearray | memoryview, encoding: str, limits: InputLimits = DEFAULT_LIMITS
 ) -> WireScan:
-    """Decode a payload by its encoding, held to `limits`; an unknown or empty encoding is sniffed
-    (JSON object or binary magic). Raises `DecodeError` (`PayloadTooLarge` past the payload limit)."""
+    """Decode a payload by its encoding, held to `limits`; an empty or unspecific encoding is sniffed
+    (JSON object or binary magic). Raises `DecodeError` (`PayloadTooLarge` past the payload limit,
+    `UnknownEncoding` for an encoding it does not read)."""
     check_payload_size(len(payload), limits)
     data = bytes(payload)
     # Media types are case-insensitive (RFC 9110, 8.3.1), as the REST API's other JSON bodies take them.
@@ -162,7 +169,7 @@ def decode(
         return decode_json(data, limits)
     if kind == BINARY_ENCODING:
         return decode_binary(data, limits)
-    raise DecodeError(f"unknown encoding {encoding!r}; use {JSON_ENCODING} or {BINARY_ENCODING}")
+    raise UnknownEncoding(f"unknown encoding {encoding!r}; use {JSON_ENCODING} or {BINARY_ENCODING}")
 
 
 #: Encodings that say nothing of the payload (Zenoh's default among them): it is told by its start.

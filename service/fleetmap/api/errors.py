@@ -24,7 +24,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fleetmap.api.http_semantics import head_allowed
 from fleetmap.api_models import ErrorItem, ErrorResponse
-from fleetmap.codec import DecodeError, PayloadTooLarge
+from fleetmap.codec import DecodeError, PayloadTooLarge, UnknownEncoding
 from fleetmap.grid_map import LayerUnavailableError, RayLimitError
 from fleetmap.map_entry import IngestRejected
 from fleetmap.memory_budget import MemoryBudgetError
@@ -397,6 +397,7 @@ _CLIENT_ERRORS: tuple[tuple[type[Exception], int], ...] = (
     (LayerUnavailableError, 422),
     (RayLimitError, 413),  # a ValueError that asks for too much at once, not a malformed one
     (PayloadTooLarge, 413),  # a DecodeError: Starlette picks the handler of the closest class
+    (UnknownEncoding, 415),  # a DecodeError too
     (DecodeError, 422),
     (ScanError, 422),
     (TileError, 422),

@@ -165,8 +165,11 @@ _SCAN_BODY = {
         503,
         507,
         described={
+            415: f"The scan is sent with another Content-Type than {JSON_ENCODING} or {BINARY_ENCODING} "
+            "(or none: then its first byte tells), or with a Content-Encoding (or a Transfer-Encoding "
+            "other than chunked)",
             429: "The map already holds its most robots (--max-robots-per-map), every one of them online "
-            "or with scans waiting: a new robot's scan is refused (and counted on the map)"
+            "or with scans waiting: a new robot's scan is refused (and counted on the map)",
         },
     ),
 )
@@ -182,7 +185,8 @@ async def post_scan(
     the most maps scans may create), or the map was deleted before the scan was integrated; 409 the
     map was replaced (deleted and created again, or restored from a snapshot) before the scan was
     integrated: it is in neither map; 413 a payload over 4 MiB, the limit of every scan as over
-    Zenoh (counted as rejected too); 422 an invalid scan (counted on the robot as rejected, with the
+    Zenoh (counted as rejected too); 415 a Content-Type that is neither encoding (counted as
+    rejected too, as over Zenoh); 422 an invalid scan (counted on the robot as rejected, with the
     reason as its `last_error`); 429 a new robot on a map that holds its most robots
     (`--max-robots-per-map`), all online or with scans waiting; 503 the robot's ingest queue is
     full (retry later with the same seq: it is then integrated, not taken for a duplicate), the
@@ -209,7 +213,8 @@ async def post_scan(
         # ingest does: without it, the robot's next seq counted it as lost too (one scan, two counts).
         reason = str(exc) if exc.scan_id is None else f"scan seq {exc.scan_id[0]} refused: {exc}"
         registry.reject(map_id, robot_id, reason, exc.scan_id)
-        raise  # the app's handlers answer it: 413 past the payload limit (PayloadTooLarge), else 422
+        raise  # the app's handlers answer it: 413 past the payload limit (PayloadTooLarge), 415 for
+        # a media type the codec does not read (UnknownEncoding), else 422
     try:
         future = registry.submit(map_id, robot_id, wire, wait=True, expect=conditions.expectation(map_id))
     except IngestRejected as exc:
