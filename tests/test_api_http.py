@@ -311,6 +311,10 @@ def test_json_bodies_are_read_strictly_and_a_refused_one_changes_nothing(mapped:
         (b"[" * 100_000 + b"]" * 100_000, JSON, 422, "nested too deeply"),
         (b'{"resolution": 0.05', JSON, 422, "body is not valid JSON for this API: Expecting"),
         (b'{"resolution": 0.05}\xff', JSON, 422, "not UTF-8"),
+        # A JSON null is a body, and no configuration: it made the map with the server's default
+        # configuration, as no body does, while `[]` or `"x"` were refused.
+        (b"null", JSON, 422, "body: a map configuration is a JSON object, not null; send no body"),
+        (b"[]", JSON, 422, "body: Input should be a valid dictionary"),
     ]
     for body, headers, status, words in refused:
         r = mapped.put("/maps/refused", content=body, headers=headers)

@@ -15,6 +15,7 @@ from typing import Annotated, Any
 
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError, ValidatorFunctionWrapHandler, WrapValidator
+from pydantic_core import PydanticCustomError
 
 from fleetmap.config import STORED_CONFIG, TRIED_AS_STORED, MapConfig
 from fleetmap.map_entry import Expectation, MapEntry
@@ -43,7 +44,14 @@ class PastTodaysLimits:
 
 
 def _or_past_todays_limits(value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
-    """`value` as a new configuration, or, refused so but valid as a stored one, `PastTodaysLimits`."""
+    """`value` as a new configuration, or, refused so but valid as a stored one, `PastTodaysLimits`.
+    A JSON null is refused saying what to send instead (FastAPI gives the route its default, the
+    server's configuration, only for no body at all)."""
+    if value is None:
+        raise PydanticCustomError(
+            "dict_type",
+            "a map configuration is a JSON object, not null; send no body for the server's default",
+        )
     try:
         return handler(value)
     except ValidationError as refused:

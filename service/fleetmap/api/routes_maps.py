@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-from typing import Annotated
+from typing import Annotated, cast
 
 from fastapi import APIRouter, Body, Request, Response
 
@@ -22,6 +22,7 @@ from fleetmap.api_models import (
     map_summary,
     tile_windows,
 )
+from fleetmap.config import MapConfig
 from fleetmap.map_entry import IngestRejected
 from fleetmap.registry import MapNotFound
 from fleetmap.wire import BINARY_ENCODING, JSON_ENCODING
@@ -60,13 +61,15 @@ def put_map(
     state: State,
     response: Response,
     conditions: Conditions,
+    # Not `| None`: then a JSON null was taken for no body, the server's default configuration;
+    # without it FastAPI still gives the default for no body (not validated), and refuses a null.
     config: Annotated[
-        MapConfigBody | None,
+        MapConfigBody,
         Body(
             description="The map's configuration; every field is optional. No body: the server's "
-            "default configuration."
+            "default configuration (a JSON null is refused)."
         ),
-    ] = None,
+    ] = None,  # type: ignore[assignment]
 ) -> MapInfo:
     """Creates the map (201, with its `Location`), answering once it is stored (with durable
     storage). If it exists with the same configuration, nothing changes (200); with a different one,
@@ -80,10 +83,12 @@ def put_map(
     (`--max-memory`), which could never hold one: nothing is made. The answer carries the map's
     `ETag`."""
     expect = conditions.expectation(map_id)
-    # (Typed as a MapConfig, for the spec: the body's validator also gives this.)
-    if isinstance(config, PastTodaysLimits):  # the configuration of a map stored before a limit
-        config, expect = config.config, config.only_as_its_map(expect)
-    entry, created = state.registry.create(map_id, config, wait=True, expect=expect)
+    # What the body's validator gives (typed as a MapConfig, for the spec), None for no body.
+    given = cast("MapConfig | PastTodaysLimits | None", config)
+    if isinstance(given, PastTodaysLimits):  # the configuration of a map stored before a limit
+        expect = given.only_as_its_map(expect)
+        given = given.config
+    entry, created = state.registry.create(map_id, given, wait=True, expect=expect)
     created_status(response, map_id, created=created)
     tag_map(response, entry)
     return map_info(entry, state.registry.lock)
