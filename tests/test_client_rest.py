@@ -179,6 +179,31 @@ def test_bad_arguments_are_refused_before_any_request(client: FleetmapClient, sc
     assert client.cells("args", [0.5, 0.5])["known"].tolist() == [False]  # one pair: one point
 
 
+def test_an_etag_no_header_carries_is_a_value_error_before_any_request() -> None:
+    """A conditional write's `if_match` and `tile`'s `etag` go in a header: one with a line break
+    (`'"x"\r\nX-Other: 1'`) went out as far as httpx, whose `LocalProtocolError`, a
+    `TransportError`, read as a network failure "of the fleetmap service at ..."; one with a
+    non-ASCII character raised a bare UnicodeEncodeError. Each is a ValueError naming the argument,
+    before any request, as every other argument is checked; a tag read from a file with its line end
+    is sent without it, as the token is. The client points at a port where nothing listens: any
+    request would be a ConnectError."""
+    with FleetmapClient(f"http://127.0.0.1:{free_port()}", timeout=5) as nowhere:
+        conditional: list[tuple[str, Callable[[str], object]]] = [
+            ("if_match", lambda tag: nowhere.delete_map("m", if_match=tag)),
+            ("if_match", lambda tag: nowhere.create_map("m", if_match=tag)),
+            ("if_match", lambda tag: nowhere.upload_snapshot("m", b"PK", if_match=tag)),
+            ("if_match", lambda tag: nowhere.import_nav2("m", b"PK", if_match=tag)),
+            ("if_match", lambda tag: nowhere.clear_region("m", 0, 0, 1, 1, if_match=tag)),
+            ("etag", lambda tag: nowhere.tile("m", 0, 0, 0, etag=tag)),
+        ]
+        for name, call in conditional:
+            for wrong in ('"x"\r\nX-Other: 1', '"x\ny"', '"\u00e9t\u00e9"', '"x"\x00'):
+                with pytest.raises(ValueError, match=f"^{name} must be an ETag as the service sent it"):
+                    call(wrong)
+            with pytest.raises(httpx.ConnectError):  # sent, without its line end
+                call('"map-1"\n')
+
+
 def test_raycast_arguments_that_are_no_numbers_are_a_value_error_before_any_request() -> None:
     """`raycast` is documented to raise ValueError for a malformed argument before any request, as
     the engine's `cast_rays` does, but angles given as a generator (`(radians(d) for d in ...)`) or

@@ -31,6 +31,7 @@ import math
 import numbers
 import operator
 import os
+import re
 import secrets
 import socket
 import threading
@@ -263,12 +264,27 @@ def _conditions(if_match: str | None, create_only: bool = False) -> dict[str, st
     still that one), `If-None-Match: *` (`create_only`: only if there is no map of the id)."""
     headers: dict[str, str] = {}
     if if_match is not None:
-        if not isinstance(if_match, str) or not if_match.strip():
-            raise ValueError(f"if_match must be an ETag as the service sent it, not {if_match!r}")
-        headers["If-Match"] = if_match
+        headers["If-Match"] = _etag("if_match", if_match)
     if create_only:
         headers["If-None-Match"] = "*"
     return headers
+
+
+#: What a header value the client is given (an ETag) may hold: printable ASCII, spaces and tabs.
+#: A line break would end the header (httpx refused it as it sent the request, with a
+#: `LocalProtocolError`, a `TransportError` read as a network failure), and httpx encodes header
+#: values as ASCII (a bare UnicodeEncodeError otherwise).
+_HEADER_VALUE = re.compile(r"[\x20-\x7e\t]+")
+
+
+def _etag(name: str, value: str) -> str:
+    """`value`, the argument `name` (an entity tag, as a response's `ETag` gave it), without the
+    whitespace around it (a tag read from a file ends with a line end); ValueError before any
+    request unless it is a non-empty string a header carries (`_HEADER_VALUE`)."""
+    tag = value.strip() if isinstance(value, str) else ""
+    if not _HEADER_VALUE.fullmatch(tag):
+        raise ValueError(f"{name} must be an ETag as the service sent it, not {value!r}")
+    return tag
 
 
 def _authorization(token: str | None) -> dict[str, str]:
@@ -1004,10 +1020,11 @@ class FleetmapClient:
         """`GET /maps/{map_id}/tiles/{z}/{x}/{y}.png`: a 256 x 256 RGBA tile (Leaflet CRS.Simple,
         zoom 0 = one pixel per cell). With the `etag` of an earlier answer, returns (None, etag) while
         the tile is unchanged (the server answered 304), else (png bytes, new etag). TypeError before
-        any request for a `z`, `x` or `y` that is not an integer."""
+        any request for a `z`, `x` or `y` that is not an integer, ValueError for an `etag` no header
+        carries."""
         _check_id("map_id", map_id)
         z, x, y = (_tile_index(name, value) for name, value in (("z", z), ("x", x), ("y", y)))
-        headers = {"If-None-Match": etag} if etag else {}
+        headers = {"If-None-Match": _etag("etag", etag)} if etag else {}
         response = self._request(
             "GET", f"/maps/{map_id}/tiles/{z}/{x}/{y}.png", params={"layer": layer}, headers=headers
         )
