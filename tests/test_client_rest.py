@@ -406,7 +406,8 @@ def test_timeouts_are_checked_when_the_client_is_made(service: ServiceProcess) -
 @pytest.mark.parametrize(
     "address",
     ["localhost:8000", "127.0.0.1:8000", "ftp://127.0.0.1:8000", "http://", "http:/127.0.0.1:8000",
-     "http://[::1:8000", "http://127.0.0.1:8000/?map=m", "http://127.0.0.1:8000/?", ""],
+     "http://[::1:8000", "http://127.0.0.1:8000/?map=m", "http://127.0.0.1:8000/?", "",
+     "http://127.0.0.1:80000", "http://127.0.0.1:65536", "http://127.0.0.1:0", "http://127.0.0.1:-1"],
 )  # fmt: skip
 def test_an_address_that_is_no_http_url_is_a_value_error_when_the_client_is_made(address: str) -> None:
     """A `base_url` without its scheme (`localhost:8000`: httpx took `localhost` for the scheme) or
@@ -414,7 +415,9 @@ def test_an_address_that_is_no_http_url_is_a_value_error_when_the_client_is_made
     `TransportError` ("unsupported protocol 'localhost://'", "Name or service not known"): the
     class a program takes for the service being down, and retries for ever. One httpx cannot parse
     raised its `InvalidURL`, no ValueError; one with a query sent every request to
-    `/?map=m/healthz`. Each is now a ValueError at once, naming the address."""
+    `/?map=m/healthz`. A port no TCP connection has (`:80000`, a typo of `:8000`; 0; -1), which
+    httpx takes too, failed every request as "Connection refused". Each is now a ValueError at
+    once, naming the address."""
     with pytest.raises(ValueError, match=r"base_url must be the service's http:// or https:// address"):
         FleetmapClient(address)
 

@@ -313,16 +313,23 @@ def _service_url(base_url: str) -> str:
     `http:/127.0.0.1:8000` for one without a host, and every request then failed with a
     `TransportError` ("unsupported protocol", "Name or service not known"), which a program takes
     for the service being down (and may retry for ever); a query went before every request's path
-    (`/?map=m/healthz`)."""
+    (`/?map=m/healthz`). So was a port no TCP connection has (`:80000`, a typo of `:8000`; 0; -1),
+    which httpx takes as well: "Connection refused" at every request."""
     text = str(base_url).strip().partition("#")[0]
     try:
         url = httpx.URL(text)
     except httpx.InvalidURL:
         url = None
-    if url is None or url.scheme not in ("http", "https") or not url.host or "?" in text:
+    if (
+        url is None
+        or url.scheme not in ("http", "https")
+        or not url.host
+        or "?" in text
+        or not (url.port is None or 1 <= url.port <= 65535)
+    ):
         raise ValueError(
             f"base_url must be the service's http:// or https:// address, such as http://127.0.0.1:8000, "
-            f"without a query; got {_shown_url(str(base_url))!r}"
+            f"without a query, its port from 1 to 65535 if given; got {_shown_url(str(base_url))!r}"
         )
     return text.rstrip("/")
 
