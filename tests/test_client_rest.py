@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import io
+import itertools
 import json
 import math
 import multiprocessing
@@ -1364,13 +1365,14 @@ def _stream_then(answers: list[tuple[int, str, dict[str, str]]]) -> Iterator[tup
     """A real HTTP server on a free port, as a reverse proxy in front of a restarting service: the
     first GET is a stream of one `tiles` event (id 1) that then ends, each next one the next of
     `answers` (status, body, headers; a 200 is another such stream), and 404 after them (the map
-    gone, which ends the client's stream). Yields its URL and the paths asked, in order."""
+    gone, which ends the client's stream). Yields its URL and the paths asked, in order, each
+    followed by `&t=` and the `time.monotonic()` it came at."""
     requests: list[str] = []
     stream = b'id: 1\nevent: tiles\ndata: {"version": 1, "tiles": []}\n\n'
 
     class Proxy(_FakeService):
         def do_GET(self) -> None:
-            requests.append(self.path)
+            requests.append(f"{self.path}&t={time.monotonic()}")  # when it came, too
             k = len(requests) - 2
             if k < 0 or (k < len(answers) and answers[k][0] == 200):
                 self.reply(200, stream, "text/event-stream")
@@ -1438,6 +1440,28 @@ def test_events_resume_through_a_proxys_gateway_errors(monkeypatch: pytest.Monke
         received.extend(event for event, _ in fm.events("m"))
     assert received == ["tiles", "reconnected", "tiles"]
     assert gone.value.status == 404 and len(requests) == 6
+
+
+def test_a_retry_after_shorter_than_the_reconnect_delay_does_not_hurry_a_resume(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A proxy (or anything else answering) that says `Retry-After: 0` on each 503 made a stream
+    waiting to resume ask again at once, as fast as the answers came, a busy loop hammering the
+    proxy and the service behind it; the web viewer waits its own delay at least. The client waits
+    `RECONNECT_DELAY` at least too, however short the Retry-After (only a lower bound is timed: a
+    busy machine makes the gaps longer, never shorter)."""
+    monkeypatch.setattr(rest, "RECONNECT_DELAY", 0.3)
+    now = [(503, "busy", {"retry-after": wait}) for wait in ("0", "0.001", "-1")]
+    times: list[float] = []
+    with _stream_then(now) as (url, requests), FleetmapClient(url) as fm:
+        stream = fm.events("m")
+        assert next(stream)[0] == "tiles"
+        with pytest.raises(FleetmapError) as gone:
+            next(stream)
+        times = [float(path.rpartition("&t=")[2]) for path in requests]
+    assert gone.value.status == 404 and len(requests) == 5
+    gaps = [later - earlier for earlier, later in itertools.pairwise(times)]
+    assert min(gaps) >= 0.3 * 0.9, gaps
 
 
 def test_events_go_on_through_a_snapshot_replacement(client: FleetmapClient, scans: list[Scan]) -> None:

@@ -145,7 +145,7 @@ def _repeated_field(node: yaml.Node | None) -> str | None:
 
 
 #: Seconds `events` waits before it resumes a lost stream (the server's `retry:`, 1000 ms), unless a
-#: 503's Retry-After says otherwise.
+#: 503's Retry-After asks for longer.
 RECONNECT_DELAY = 1.0
 
 #: The answers on which `events` waits and resumes a stream it had open, as an EventSource (the web
@@ -1110,8 +1110,8 @@ class FleetmapClient:
         Once a stream was open, it is followed as an EventSource follows it: when the server stops
         (a restart) or the connection is lost, or nothing at all (not even the server's keepalive)
         arrives for `events_read_timeout` seconds (a half-open connection, a frozen server), `next()`
-        waits for the service (`RECONNECT_DELAY` between attempts, or a Retry-After's wait, at most
-        `MAX_RETRY_AFTER`, through its 503s and a reverse proxy's 502, 503 and 504) and resumes
+        waits for the service (`RECONNECT_DELAY` between attempts, or a Retry-After's longer wait,
+        at most `MAX_RETRY_AFTER`, through its 503s and a reverse proxy's 502, 503 and 504) and resumes
         with `Last-Event-ID`, so the tiles changed meanwhile come in the next `tiles` event (or a
         reset). It then yields ("reconnected", {"last_event_id": ...}) first: a restarted service
         may hold another map under the id, so reload `get_map` as after `replaced`. A 404 then (the
@@ -1396,9 +1396,11 @@ def _decoding(response: httpx.Response) -> Iterator[None]:
 
 
 def _retry_after(response: httpx.Response, default: float) -> float:
-    """The seconds a 503's `Retry-After` asks a client to wait (`default` without a number)."""
+    """The seconds to wait before asking again after `response` (a 503): what its `Retry-After`
+    asks, but never less than `default`. A `Retry-After: 0` (a proxy's, on each of its answers)
+    made a stream waiting to resume ask again at once, a busy loop against the proxy."""
     seconds = _retry_after_seconds(response)
-    return default if seconds is None else seconds
+    return default if seconds is None else max(default, seconds)
 
 
 def _retry_after_seconds(response: httpx.Response) -> float | None:
