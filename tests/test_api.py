@@ -346,6 +346,32 @@ def test_healthz_and_static_files(api: RunningApi) -> None:
     assert c.get("/vendor/leaflet/images/marker-icon.png").content[:4] == b"\x89PNG"
 
 
+def test_a_range_request_for_a_viewer_file_gets_the_whole_file(api: RunningApi) -> None:
+    """The viewer's files answered a `Range` (Starlette's file responses) where no other answer of
+    the service does, and refused a bad one with a plain-text 400 ("Range header: range must be
+    requested") or an empty plain-text 416, where every error answer is JSON with a `detail`
+    (docs/api.md); a range unit other than bytes (`items=0-1`) was a 400 too, where RFC 9110 (14.2)
+    says to ignore it. A `Range` is ignored on them as everywhere else (RFC 9110 allows it): the
+    whole file, 200, and no `Accept-Ranges: bytes` inviting one."""
+    c = api.client
+    for path in ("/", "/static/app.js", "/vendor/leaflet/leaflet.css"):
+        whole = c.get(path)
+        assert whole.status_code == 200 and whole.headers.get("accept-ranges", "none") == "none", path
+        for value in (
+            "bytes=0-3",
+            "bytes=0-1,5-9",
+            "bytes=999999-",
+            "bytes=-0",
+            "bytes=abc",
+            "bytes=5-1",
+            "items=0-1",
+        ):
+            r = c.get(path, headers={"Range": value})
+            where = f"{path} Range: {value} -> {r.status_code} {r.headers.get('content-type')}"
+            assert r.status_code == 200 and r.content == whole.content, where
+            assert "content-range" not in r.headers, where
+
+
 def test_a_viewer_not_installed_is_a_404_for_each_of_its_files(tmp_path: Path) -> None:
     """With the viewer's folder missing ($FLEETMAP_WEB_DIR misspelt, an install without
     clients/web), `/` said so with a 404, but every `/static/...` file was a 500 with a traceback

@@ -13,8 +13,9 @@ import xstatic.pkg.leaflet as leaflet
 from fastapi import FastAPI, Request
 from fastapi.staticfiles import StaticFiles
 from starlette.datastructures import Headers
-from starlette.responses import Response
-from starlette.types import Scope
+from starlette.responses import FileResponse, Response
+from starlette.staticfiles import NotModifiedResponse
+from starlette.types import Receive, Scope, Send
 
 from fleetmap.api.errors import ApiError
 from fleetmap.api.http_semantics import etag_matches, gzips, joined_field_lines, negotiated
@@ -28,8 +29,26 @@ def _not_installed(place: Path) -> ApiError:
     return ApiError(404, f"the web viewer is not installed ({place} not found); the API is at /docs")
 
 
+class WholeFileResponse(FileResponse):
+    """Starlette's `FileResponse`, always of the whole file: a `Range` (and `If-Range`) is ignored,
+    as every other answer of the service ignores it (RFC 9110, 14.2, allows that), and no
+    `Accept-Ranges: bytes` invites one. Starlette's ranges refused a bad one with a plain-text 400
+    ("Range header: range must be requested") or an empty plain-text 416, where every error answer
+    of the service is JSON with a `detail`, and refused a unit other than bytes (`items=0-1`), which
+    RFC 9110 says to ignore; the viewer's files are small and read whole."""
+
+    def __init__(self, path: str | os.PathLike[str], status_code: int, stat_result: os.stat_result) -> None:
+        super().__init__(path, status_code=status_code, stat_result=stat_result)
+        del self.headers["accept-ranges"]
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        headers = [(name, value) for name, value in scope["headers"] if name not in (b"range", b"if-range")]
+        await super().__call__({**scope, "headers": headers}, receive, send)
+
+
 class ViewerFiles(StaticFiles):
-    """Starlette's `StaticFiles`, whose 304 says what the 200 it stands for would (RFC 9110, 15.4.5).
+    """Starlette's `StaticFiles`, whose files are answered whole (`WholeFileResponse`), and whose 304
+    says what the 200 it stands for would (RFC 9110, 15.4.5).
 
     The gzip middleware compresses a file's 200 (1 KiB or more, a compressible type) for a client
     that accepts gzip, adding `Vary: Accept-Encoding`, and `DefaultHeaders` makes its strong `ETag`
@@ -56,7 +75,10 @@ class ViewerFiles(StaticFiles):
         scope: Scope,
         status_code: int = 200,
     ) -> Response:
-        response = super().file_response(full_path, stat_result, scope, status_code)
+        # Starlette's, of a `WholeFileResponse`.
+        response: Response = WholeFileResponse(full_path, status_code=status_code, stat_result=stat_result)
+        if self.is_not_modified(response.headers, Headers(scope=scope)):
+            response = NotModifiedResponse(response.headers)
         if response.status_code != 304:
             return response
         media_type = mimetypes.guess_type(str(full_path))[0] or "text/plain"  # as FileResponse
