@@ -372,6 +372,24 @@ def test_a_range_request_for_a_viewer_file_gets_the_whole_file(api: RunningApi) 
             assert "content-range" not in r.headers, where
 
 
+def test_a_write_to_a_viewer_file_is_a_405_naming_get_and_head(api: RunningApi) -> None:
+    """A method the viewer's files do not take (a POST to `/static/app.js`) was a 405 whose `Allow`
+    was empty and whose detail ended "allowed: ": the methods were looked for among the app's
+    routes at the file's path as the mount sees it (`/app.js`), where none is. RFC 9110 (15.5.6)
+    asks a 405 to list what the resource takes: GET and HEAD, as the API's own 405s list theirs."""
+    c = api.client
+    for path in ("/static/app.js", "/vendor/leaflet/leaflet.js", "/static/missing.js"):
+        for method in ("POST", "PUT", "DELETE", "PATCH", "OPTIONS"):
+            r = c.request(method, path)
+            where = f"{method} {path} -> {r.status_code} {r.text}"
+            assert r.status_code == 405 and r.headers["allow"] == "GET, HEAD", where
+            assert r.json()["detail"] == f"method {method} is not allowed on {path}; allowed: GET, HEAD", (
+                where
+            )
+    r = c.request("OPTIONS", "/maps/nowhere")  # the API's own, as before
+    assert r.status_code == 405 and r.headers["allow"] == "DELETE, GET, HEAD, PUT", r.text
+
+
 def test_a_viewer_not_installed_is_a_404_for_each_of_its_files(tmp_path: Path) -> None:
     """With the viewer's folder missing ($FLEETMAP_WEB_DIR misspelt, an install without
     clients/web), `/` said so with a 404, but every `/static/...` file was a 500 with a traceback

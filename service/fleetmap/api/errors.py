@@ -19,7 +19,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
-from starlette.routing import Match
+from starlette.routing import Match, Mount
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fleetmap.api.http_semantics import head_allowed
@@ -365,14 +365,23 @@ def validation_detail(errors: Sequence[dict[str, Any]]) -> tuple[str, list[Error
 
 
 def _allowed_methods(app: FastAPI, scope: Scope) -> str:
-    """The methods some route accepts at this request's path."""
-    allowed = []
-    for method in ("GET", "PUT", "POST", "DELETE", "PATCH"):
-        probe = {**scope, "method": method}
-        if any(route.matches(probe)[0] == Match.FULL for route in app.router.routes):
-            allowed.append(method)
+    """The methods some route accepts at this request's path: a mount's (the viewer's files) GET,
+    whatever method it is probed with (a mount matches every method; its files take GET only)."""
+    # Probed from the app's root: a request refused inside a mount (a POST to a viewer file) has
+    # the mount's scope, whose root path ends with the mount's prefix, so no route of the app
+    # matched its path and `Allow` was empty.
+    base = {**scope, "root_path": scope.get("app_root_path", scope.get("root_path", ""))}
+    allowed = set()
+    for route in app.router.routes:
+        if isinstance(route, Mount):
+            if route.matches(base)[0] == Match.FULL:
+                allowed.add("GET")
+            continue
+        for method in ("GET", "PUT", "POST", "DELETE", "PATCH"):
+            if route.matches({**base, "method": method})[0] == Match.FULL:
+                allowed.add(method)
     if "GET" in allowed and head_allowed(scope["path"]):
-        allowed.append("HEAD")  # answered by `HeadAsGet`, in front of the routes
+        allowed.add("HEAD")  # answered by `HeadAsGet`, in front of the routes
     return ", ".join(sorted(allowed))
 
 
