@@ -381,14 +381,19 @@ def test_post_scan_checks_seq_and_stamp_as_the_publisher_does(
 def test_timeouts_are_checked_when_the_client_is_made(service: ServiceProcess) -> None:
     """A timeout of 0 failed every request as a ConnectError ("Operation now in progress", naming
     the service as if it were down), a negative one or NaN at each request, and None (httpx's "no
-    limit") as a TypeError of `max` ("'>' not supported between ..."). Each is now refused at once,
-    naming the argument; `events_read_timeout` alone takes None (wait for ever)."""
+    limit") as a TypeError of `max` ("'>' not supported between ..."). One longer than the platform
+    waits (1e10 s, meant as "for ever") was taken, and every request raised OverflowError
+    ("timestamp out of range for platform time_t"). Each is now refused at once, naming the
+    argument; `events_read_timeout` alone takes None (wait for ever), and the longest wait the
+    platform takes is taken."""
     for name in ("timeout", "scan_timeout", "transfer_timeout", "events_read_timeout"):
         for wrong in (
             0,
             -1.0,
             math.nan,
             math.inf,
+            threading.TIMEOUT_MAX * 1.01,
+            1e300,
             "10",
             True,
             *([None] if name != "events_read_timeout" else []),
@@ -397,6 +402,9 @@ def test_timeouts_are_checked_when_the_client_is_made(service: ServiceProcess) -
                 FleetmapClient(service.base_url, **{name: wrong})
     with FleetmapClient(service.base_url, timeout=5, events_read_timeout=None) as fm:
         assert fm.health().status == "ok"
+    longest = threading.TIMEOUT_MAX
+    with FleetmapClient(service.base_url, longest, None, longest, longest, longest) as fm:
+        assert fm.health().status == "ok" and fm.list_maps() is not None
     # The address as read from a file or the environment, with its line end, and the viewer's link.
     for address in (f" {service.base_url}\n", f"{service.base_url}/#map=m"):
         with FleetmapClient(address) as fm:

@@ -335,10 +335,16 @@ def _service_url(base_url: str) -> str:
 
 
 def _positive_seconds(name: str, value: object) -> float:
-    """`value`, the argument `name`, as seconds: ValueError unless it is a positive finite number."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < float(value) < math.inf:
-        raise ValueError(f"{name} must be a positive number of seconds, not {value!r}")
-    return float(value)
+    """`value`, the argument `name`, as seconds: ValueError unless it is a positive number of at
+    most `threading.TIMEOUT_MAX` (292 years on Linux), the longest wait of the platform: a longer
+    one (1e10, meant as "for ever") made every request raise OverflowError ("timestamp out of range
+    for platform time_t"), as the socket's timeout took it."""
+    seconds = float(value) if isinstance(value, numbers.Real) and not isinstance(value, bool) else math.nan
+    if not 0 < seconds <= threading.TIMEOUT_MAX:  # NaN (and what is no number) too
+        raise ValueError(
+            f"{name} must be a positive number of seconds, at most {threading.TIMEOUT_MAX:.0f}, not {value!r}"
+        )
+    return seconds
 
 
 def _tile_index(name: str, value: Integer) -> int:
@@ -404,7 +410,7 @@ class FleetmapClient:
     `EVENTS_READ_TIMEOUT`, 45 s: three of the service's keepalive periods) for anything from the
     server before the stream is taken for dead and resumed (`events`); give a server run with a
     longer `--events-keepalive` a longer one (None: wait for ever). Each timeout is a positive number
-    of seconds (ValueError here otherwise). `token`: an API token of the
+    of seconds, at most `threading.TIMEOUT_MAX` (ValueError here otherwise). `token`: an API token of the
     service (`fleetmap serve --auth-tokens`), sent as `Authorization: Bearer <token>`; None takes it
     from the environment variable `FLEETMAP_TOKEN` if set (a service without tokens ignores it);
     surrounding whitespace (a line end) is dropped, and a token with a character no header carries
