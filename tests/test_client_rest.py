@@ -1340,6 +1340,24 @@ def test_closing_the_client_ends_its_event_streams_read_in_other_threads(client:
     own.close()  # idempotent
 
 
+def test_event_streams_leave_the_clients_requests_their_connections(
+    client: FleetmapClient, service: ServiceProcess
+) -> None:
+    """Each event stream holds a connection for as long as it is followed. They came from the pool
+    every request takes from (100 connections): with 100 streams open (a dashboard following many
+    maps, or many threads one), every other request of the client, a `get_map` or another stream,
+    waited `timeout`, then failed with a `PoolTimeout` reading " (the fleetmap service at ...)", as
+    if the service were at fault. Streams have connections of their own (the service bounds
+    them: `--max-event-streams`)."""
+    client.create_map("many-streams", CONFIG)
+    with FleetmapClient(service.base_url, timeout=5.0) as fm:
+        streams = [fm.events("many-streams") for _ in range(rest._LIMITS.max_connections or 0)]
+        for stream in streams:
+            assert next(stream)[0] == "robots"
+        assert fm.get_map("many-streams").id == "many-streams"
+        assert next(fm.events("many-streams"))[0] == "robots"
+
+
 def test_closing_the_client_ends_an_event_stream_waiting_to_resume() -> None:
     """A reader whose stream ended (the service restarting) waits before it resumes: 1 s, or what a
     503's Retry-After asks. A client closed meanwhile (the program stopping) let that wait run out,

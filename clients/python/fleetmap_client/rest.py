@@ -181,8 +181,14 @@ SCAN_TIMEOUT = 15.0
 #: 5 s (the answer's way here, the request's there). Letting go well before leaves a link up to 3 s
 #: round trip; a new connection costs a loopback or LAN handshake.
 KEEPALIVE_EXPIRY = 2.0
-#: Connections the client opens at once, and keeps idle, at most (httpx's defaults).
+#: Connections the client opens at once, and keeps idle, at most (httpx's defaults), for its requests.
 _LIMITS = httpx.Limits(max_connections=100, max_keepalive_connections=20, keepalive_expiry=KEEPALIVE_EXPIRY)
+#: The event streams' connections (`events`): a pool of their own, each held for as long as its
+#: stream is followed, without a limit here (the service bounds them: `--max-event-streams`). Taken
+#: from `_LIMITS`' pool, 100 streams left the client's requests none: each waited its timeout, then
+#: failed with a PoolTimeout that read as the service's fault. None kept idle: a stream that ended
+#: is resumed after a wait, on a new connection.
+_STREAM_LIMITS = httpx.Limits(max_connections=None, max_keepalive_connections=0)
 
 #: Bytes `save_snapshot` reads from the answer at a time.
 _TRANSFER_CHUNK = 1 << 20
@@ -417,9 +423,10 @@ class FleetmapClient:
     is a ValueError here, naming no token, as is a token with an address that has a user and
     password (`http://user:password@host`: httpx sends those in the Authorization header, and
     dropped the token).
-    Thread-safe (one httpx.Client; `post_scan` sends one robot's scans one at a time, in call
-    order, so threads sharing a robot's automatic seqs lose none); use as a context manager or call
-    `close()`.
+    Thread-safe (one httpx.Client for the requests, at most 100 connections at once, and one for
+    the event streams, a connection each; `post_scan` sends one robot's scans one at a time, in
+    call order, so threads sharing a robot's automatic seqs lose none); use as a context manager or
+    call `close()`.
     """
 
     def __init__(
@@ -454,6 +461,10 @@ class FleetmapClient:
                 f"or ${TOKEN_ENV}), which needs that header too: give one of them"
             )
         self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers, limits=_LIMITS)
+        #: The event streams' connections (`_STREAM_LIMITS`).
+        self._stream_http = httpx.Client(
+            base_url=self.base_url, timeout=timeout, headers=headers, limits=_STREAM_LIMITS
+        )
         #: Next automatic seq per (map_id, robot_id) for `post_scan` of a `Scan` without a seq.
         self._next_seq: dict[tuple[str, str], int] = {}
         #: Per (map_id, robot_id): held by `post_scan` while it sends one of that robot's scans.
@@ -484,7 +495,7 @@ class FleetmapClient:
         return self._request(method, url, timeout=timeout, **kwargs)
 
     def close(self) -> None:
-        """Close the connection pool, and end the event streams being read (`events`, in other
+        """Close the connection pools, and end the event streams being read (`events`, in other
         threads too: their iteration stops at once). Idempotent; a request afterwards raises
         RuntimeError."""
         with self._streams_lock:
@@ -496,6 +507,7 @@ class FleetmapClient:
         for response in streams:
             _shut_down(response)
         self._http.close()
+        self._stream_http.close()
 
     def __enter__(self) -> FleetmapClient:
         return self
@@ -1163,7 +1175,7 @@ class FleetmapClient:
             delay = RECONNECT_DELAY
             try:
                 with (
-                    self._http.stream(
+                    self._stream_http.stream(
                         "GET", f"/maps/{map_id}/events", params=params, headers=headers, timeout=timeout
                     ) as response,
                     self._open_stream(response),
