@@ -6,18 +6,24 @@ process, robots' `ScanPublisher`s), a registry with a small queue so that the te
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+import json
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+import pytest
+import zenoh
 from fleetmap_client.publisher import DEFAULT_BACKLOG, ScanPublisher
 from registry_idle import wait_idle
 from service_process import free_port, wait_for
-from test_ingest import sim_scans
+from test_ingest import client_session, sim_scans
 
+from fleetmap import backlog_refetch, codec
 from fleetmap.backlog_refetch import BacklogRefetch, Origin
 from fleetmap.fair_queue import FULL_GROUP, FULL_SOURCE, FairQueue
 from fleetmap.map_entry import MapEntry
 from fleetmap.registry import MapRegistry
+from fleetmap.scan import Scan
+from fleetmap.wire import BINARY_ENCODING, SCAN_KEY
 from fleetmap.zenoh_ingest import ZenohIngest
 
 ROBOTS = 20
@@ -28,33 +34,83 @@ BACKLOG = 40
 @dataclass
 class Fleet:
     """A service's ingest in this process, on a registry whose queue is small, with map `m` made,
-    and robots' `ScanPublisher`s (`r0`, `r1` ...) connecting to it."""
+    and robots' `ScanPublisher`s (`r0`, `r1` ...) connecting to it (to the router it is a client
+    of, with `router`) at `endpoint`."""
 
     registry: MapRegistry
     entry: MapEntry
     ingest: ZenohIngest
     pubs: list[ScanPublisher]
+    endpoint: str
 
 
 @contextlib.contextmanager
-def fleet(robots: int, backlog: int, queue_per_robot: int, queue_total: int) -> Iterator[Fleet]:
+def fleet(
+    robots: int, backlog: int, queue_per_robot: int, queue_total: int, router: bool = False
+) -> Iterator[Fleet]:
     """A `Fleet` of `robots` publishers keeping `backlog` scans each, its ingest not started (the
-    robots queue their scans meanwhile); everything closed on the way out."""
+    robots queue their scans meanwhile); everything closed on the way out. With `router`, a Zenoh
+    router (a Python session standing in for zenohd) listens, and the ingest is a client of it, as
+    `fleetmap serve --zenoh-connect` is; the robots connect to the router."""
     registry = MapRegistry(workers=1, queue_per_robot=queue_per_robot, queue_total=queue_total)
     registry.start()
     entry, _ = registry.create("m")
-    port = free_port()
-    pubs = [
-        ScanPublisher("m", f"r{k}", connect=[f"tcp/127.0.0.1:{port}"], backlog=backlog) for k in range(robots)
-    ]
-    ingest = ZenohIngest(registry, listen=[f"tcp/127.0.0.1:{port}"])
-    try:
-        yield Fleet(registry, entry, ingest, pubs)
-    finally:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with contextlib.ExitStack() as stack:
+        stack.callback(registry.close)
+        if router:
+            stack.enter_context(router_session(endpoint))
+            ingest = ZenohIngest(registry, connect=[endpoint])
+        else:
+            ingest = ZenohIngest(registry, listen=[endpoint])
+        stack.callback(ingest.close)
+        pubs = [ScanPublisher("m", f"r{k}", connect=[endpoint], backlog=backlog) for k in range(robots)]
         for pub in pubs:
-            pub.close()
-        ingest.close()
-        registry.close()
+            stack.callback(pub.close)
+        yield Fleet(registry, entry, ingest, pubs, endpoint)
+
+
+@contextlib.contextmanager
+def router_session(endpoint: str) -> Iterator[zenoh.Session]:
+    """A Zenoh router listening on `endpoint`: a Python session in router mode, as zenohd (which is
+    not installed here) would route, timestamping off as the service's own router has it."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"router"')
+    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("timestamping/enabled", '{"router": false}')
+    session = zenoh.open(cfg)
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+@contextlib.contextmanager
+def silent_robot(endpoint: str, robot_id: str) -> Iterator[Callable[[Scan, int], None]]:
+    """A robot's advanced publisher whose link died silently once it sent its scans: its samples
+    carry their source and sequence number as a `ScanPublisher`'s do, but its cache's queryable
+    takes every query and answers none (its queries wait, unread, in a channel until the end).
+    Yields `put(scan, sn)`, which returns once the service's subscriber matched."""
+    key = SCAN_KEY.format(map_id="m", robot_id=robot_id)
+    session = client_session(endpoint)
+    try:
+        publisher = session.declare_publisher(key, encoding=zenoh.Encoding(BINARY_ENCODING))
+        source = publisher.id
+        cache = session.declare_queryable(
+            f"{key}/@adv/pub/{source.zid}/{source.eid}/**", zenoh.handlers.FifoChannel(1000)
+        )
+        wait_for(lambda: publisher.matching_status.matching, timeout=30, what="the service's subscriber")
+
+        def put(scan: Scan, sn: int) -> None:
+            publisher.put(
+                codec.encode_binary(scan, sn, stamp=sn / 10.0), source_info=zenoh.SourceInfo(source, sn)
+            )
+
+        yield put
+        cache.undeclare()
+    finally:
+        session.close()
 
 
 def test_a_fleets_backlogs_past_the_queue_are_all_integrated_once() -> None:
@@ -64,41 +120,103 @@ def test_a_fleets_backlogs_past_the_queue_are_all_integrated_once() -> None:
     of 800 refused, the robots' flushes said so). Now each is deferred and fetched again from its
     robot's cache once the queue has room: every scan integrated, exactly once, none dropped,
     refused or lost."""
-    scans = sim_scans(3, BACKLOG, beams=61)
     # The map's share of the queue: 24.
     with fleet(ROBOTS, BACKLOG + 10, queue_per_robot=16, queue_total=48) as f:
+        check_backlogs_integrated_once(f, sim_scans(3, BACKLOG, beams=61), queued=24)
+
+
+def test_deferral_and_refetch_work_through_a_zenoh_router() -> None:
+    """The service a client of a Zenoh router (`fleetmap serve --zenoh-connect`), the robots clients
+    of that router too: the fetches of deferred scans are routed to the robots' caches and their
+    replies back, and the backlogs past the queue are integrated once all the same."""
+    with fleet(4, 30, queue_per_robot=4, queue_total=16, router=True) as f:  # the map's share: 8
+        assert f.ingest.connect == [f.endpoint]
+        check_backlogs_integrated_once(f, sim_scans(6, 20, beams=61), queued=8)
+        assert f.ingest.mode == "client" and f.ingest.status()["routers"] == 1
+
+
+def check_backlogs_integrated_once(f: Fleet, scans: list[Scan], queued: int) -> None:
+    """Every robot of `f` queues `scans` while the ingest is not started, then sends them at once
+    when it starts, with the map locked, into a queue whose map share holds `queued`: afterwards
+    every scan is integrated, exactly once, in order, none dropped, refused or lost, and no
+    publisher is left behind."""
+    registry, entry, ingest, pubs = f.registry, f.entry, f.ingest, f.pubs
+    robots, backlog = len(pubs), len(scans)
+    for pub in pubs:
+        for scan in scans:
+            assert pub.publish(scan)
+    assert sum(pub.pending for pub in pubs) == robots * backlog
+    with entry.gmap.lock:  # nothing integrates: the bursts overflow the queue for certain
+        ingest.start()
+        wait_for(
+            lambda: ingest.status()["messages_received"] == robots * backlog,
+            timeout=60, what="every robot's backlog delivered while the map is locked",
+        )  # fmt: skip
+    reports = [pub.flush(60) for pub in pubs]
+    assert [r.integrated for r in reports] == [backlog] * robots, reports
+    assert all(r.confirmed for r in reports), reports
+    assert wait_idle(registry)
+    status = ingest.status()
+    # The queue held its share and the worker 1: the rest were deferred, and fetched again.
+    assert min(status["deferred"], status["refetched"]) >= robots * backlog - queued - 1, status
+    assert status["rejected"] == {} and status["unrecoverable"] == 0, status
+    for k in range(robots):
+        robot = entry.robots[f"r{k}"]
+        counts = (robot.scans_integrated, robot.dropped, robot.lost, robot.duplicates, robot.last_seq)
+        assert counts == (backlog, 0, 0, 0, backlog - 1), (k, counts)
+    assert entry.scans_integrated == robots * backlog
+    assert ingest._refetch.behind() == 0
+
+
+def test_a_robot_whose_link_died_silently_does_not_hold_up_the_others_fetches(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A robot whose scans were deferred and whose link then died silently answers no fetch: each
+    waits `REFETCH_TIMEOUT_S` (2 s; here 100 s, so that the wait cannot pass unnoticed). Fetched one
+    at a time, every other robot's scans waited for it, and 3 fetches of it, about 6 s, before it
+    was given up; here the two other robots were stuck for the 100 s. Now the fetches run side by
+    side: the others' deferred scans are all integrated, exactly once, while the silent robot's
+    fetch still waits."""
+    monkeypatch.setattr(backlog_refetch, "REFETCH_TIMEOUT_S", 100.0)
+    scans = sim_scans(7, 12, beams=61)
+    with fleet(2, 30, queue_per_robot=4, queue_total=16) as f:  # the map's share: 8
         registry, entry, ingest, pubs = f.registry, f.entry, f.ingest, f.pubs
+        ingest.start()
         for pub in pubs:
-            for scan in scans:
-                assert pub.publish(scan)
-        assert sum(pub.pending for pub in pubs) == ROBOTS * BACKLOG
-        with entry.gmap.lock:  # nothing integrates: the bursts overflow the queue for certain
-            ingest.start()
-            wait_for(
-                lambda: ingest.status()["messages_received"] == ROBOTS * BACKLOG,
-                timeout=60, what="every robot's backlog delivered while the map is locked",
-            )  # fmt: skip
-        reports = [pub.flush(60) for pub in pubs]
-        assert [r.integrated for r in reports] == [BACKLOG] * ROBOTS, reports
-        assert all(r.confirmed for r in reports), reports
-        assert wait_idle(registry)
-        status = ingest.status()
-        # The queue held 24 and the worker 1: the rest were deferred, and fetched again.
-        assert min(status["deferred"], status["refetched"]) >= ROBOTS * BACKLOG - 25, status
-        assert status["rejected"] == {} and status["unrecoverable"] == 0, status
-        for k in range(ROBOTS):
-            robot = entry.robots[f"r{k}"]
-            counts = (robot.scans_integrated, robot.dropped, robot.lost, robot.duplicates, robot.last_seq)
-            assert counts == (BACKLOG, 0, 0, 0, BACKLOG - 1), (k, counts)
-        assert entry.scans_integrated == ROBOTS * BACKLOG
-        assert ingest._refetch.behind() == 0
+            assert pub.wait_connected(30)
+        with silent_robot(f.endpoint, "silent") as put:
+            with entry.gmap.lock:  # nothing integrates: the queue fills
+                # The silent robot first: its FIFO fills, the rest of its scans are deferred, and
+                # its publisher is the first behind.
+                for sn, scan in enumerate(scans):
+                    put(scan, sn)
+                wait_for(lambda: ingest.status()["messages_received"] == 12, timeout=60, what="its scans")
+                for pub in pubs:
+                    for scan in scans:
+                        assert pub.publish(scan)
+                wait_for(lambda: ingest.status()["messages_received"] == 36, timeout=60, what="the others'")
+                assert ingest._refetch.behind() == 3
+            # The map integrates: the queue drains, and the fetches begin.
+            reports = [pub.flush(45) for pub in pubs]
+            assert [r.integrated for r in reports] == [12, 12], reports
+            for k in range(2):
+                robot = entry.robots[f"r{k}"]
+                counts = (robot.scans_integrated, robot.dropped, robot.lost, robot.duplicates, robot.last_seq)
+                assert counts == (12, 0, 0, 0, 11), (k, counts)
+            # Its FIFO's 4 integrated (and the one the worker took, if it took one of its first),
+            # the rest wait for its cache, which answers nothing.
+            assert wait_idle(registry)
+            assert entry.robots["silent"].scans_integrated in (4, 5)
+            assert ingest._refetch.behind() == 1
 
 
 def test_the_gate_holds_a_behind_publishers_later_samples_until_its_next_is_taken() -> None:
     """The gate's bookkeeping alone: a publisher is behind from its deferred sample on; its later
     samples are held back (noted to be fetched), only its next one passes, and once every sample
     seen is taken it is not behind any more. Other publishers pass throughout."""
-    gate = BacklogRefetch(lambda key: 0, lambda key, sample, origin: None, lambda count, source: None)
+    gate = BacklogRefetch(
+        lambda key, promised: 0, lambda key, sample, origin: None, lambda count, source: None
+    )
 
     def origin(sn: int, eid: int = 1) -> Origin:
         return Origin("fleetmap/m/r/scan", "ab", eid, sn)
@@ -136,6 +254,12 @@ def test_fair_queue_says_its_room_and_what_would_refuse_without_queuing() -> Non
     assert q.offer(("a", 2), 0) is None
     assert q.room(("a", 3)) == 0 and q.refusal(("a", 3), 0) == FULL_GROUP
     assert q.room(("b", 1)) == 3
+    assert q.depth() == 4
+    # Items promised to come (the refetch's fetches in flight) count as queued: their source's,
+    # their group's and the whole queue's room is left to them.
+    assert q.room(("a", 2), {("a", 2): 1}) == 0 and q.room(("b", 1), {("a", 2): 1}) == 3
+    assert q.room(("b", 1), {("b", 2): 2}) == 2 and q.room(("b", 2), {("b", 2): 2}) == 1
+    assert q.room(("c", 1), {("b", 1): 3, ("b", 2): 1}) == 2  # the total: 10 - 4 queued - 4 promised
     assert q.depth() == 4
 
 

@@ -31,6 +31,17 @@ Those are counted `unrecoverable`, as zenoh-ext's own misses are, and the regist
 `lost` on the robot once a later one is taken. Plain publishers' samples carry no source: a full
 queue drops them, as before.
 
+The thread asks several publishers' caches at once (`REFETCH_PARALLEL` fetches in flight, one a
+publisher), and reads their replies as they arrive, without waiting on any one fetch: a robot whose
+link died silently answers nothing until its fetch times out (`REFETCH_TIMEOUT_S`), and fetched one
+at a time, every other robot's deferred scans waited for it meanwhile (2 s a fetch, about 6 s
+before it was given up). A fetch is for as many as the queue has room for beside what the fetches
+in flight were promised (`FairQueue.room`'s `promised`), so that fetches side by side do not ask
+for the same room; the publisher with the most samples from its first not taken to its highest
+seen, the nearest to pushing its first out of its cache, gets the room first. Each publisher's
+replies are submitted in order, one fetch of it at a time, so its scans reach the registry in
+order as before.
+
 The thread only asks and submits: it never runs in a Zenoh callback, and the gate's lock is held
 for one sample's decoding and submission at most.
 """
@@ -39,21 +50,30 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import zenoh
 
 log = logging.getLogger("fleetmap.zenoh")
 
-#: Seconds between the thread's rounds while a publisher is behind. Each round fetches, publisher
-#: after publisher, as many as the queue has room for then: while it stays full, about what the
-#: workers integrated since the last round, and at most one fetch a round finds room.
+#: Seconds between the thread's rounds while a publisher is behind. Each round starts a fetch for
+#: every behind publisher without one in flight, for as many as the queue has room for then beside
+#: what the fetches in flight were promised: while it stays full, about what the workers integrated
+#: since the last round.
 REFETCH_PERIOD_S = 0.05
-#: Seconds one fetch may wait for its replies: a robot whose link died answers nothing, and the
-#: fetches of other publishers wait meanwhile (one at a time). A fetch cut short loses nothing: the
-#: next one asks from the first sample not taken.
+#: Seconds one fetch may wait for its replies: a robot whose link died silently answers nothing. A
+#: fetch cut short loses nothing: the next one asks from the first sample not taken.
 REFETCH_TIMEOUT_S = 2.0
+#: Fetches in flight at once at most, one a publisher: a robot whose link died silently holds its
+#: own (and the room it was promised, its FIFO's at most) until `REFETCH_TIMEOUT_S`, and the others'
+#: go on meanwhile. Fetched one at a time, every other robot's waited for it, 2 s a fetch, about 6 s
+#: in all before it was given up.
+REFETCH_PARALLEL = 16
+#: Seconds the thread waits for replies between two looks at its fetches' channels, which it reads
+#: without waiting (a fetch waited on blocks the others').
+REFETCH_POLL_S = 0.005
 #: Fetches in a row of every sample still missing that bring nothing of a behind publisher before
 #: it is given up (its scans counted unrecoverable): its cache no longer holds them, or it is gone.
 REFETCH_ATTEMPTS = 3
@@ -98,6 +118,19 @@ class Behind:
     empty_fetches: int = 0
 
 
+@dataclass
+class _Fetch:
+    """A fetch in flight of `publisher`'s (`behind`) samples: its `replies` as they arrive, those
+    taken so far (`got`), and the queue's room it was counted on that its replies have not taken
+    yet (`promised`), which the other fetches leave to it."""
+
+    publisher: tuple[str, int]
+    behind: Behind
+    replies: zenoh.Handler[zenoh.Reply]
+    promised: int
+    got: int = 0
+
+
 class BacklogRefetch:
     """The gate of advanced publishers' samples and the thread that fetches deferred ones again (see
     the module docstring).
@@ -109,7 +142,7 @@ class BacklogRefetch:
 
     def __init__(
         self,
-        room: Callable[[str], int],
+        room: Callable[[str, Mapping[str, int]], int],
         handle: Callable[[str, zenoh.Sample, Origin], None],
         on_unrecoverable: Callable[[int, str], None],
     ) -> None:
@@ -184,45 +217,76 @@ class BacklogRefetch:
     # -- the thread ---------------------------------------------------------------------------------
 
     def _run(self) -> None:
+        fetches: dict[tuple[str, int], _Fetch] = {}
+        launched = -REFETCH_PERIOD_S
         while not self._closed.is_set():
+            if time.monotonic() - launched >= REFETCH_PERIOD_S:
+                launched = time.monotonic()
+                self._launch(fetches)
+            if fetches:
+                if not self._drain(fetches):
+                    self._closed.wait(REFETCH_POLL_S)
+                continue
             with self.lock:
-                waiting = list(self._behind.items())
-            if not waiting:
+                idle = not self._behind
+            if idle:
                 self._wake.wait()
                 self._wake.clear()
-                continue
-            for publisher, behind in waiting:
-                if self._closed.is_set():
-                    return
-                try:
-                    self._fetch(publisher, behind)
-                except Exception:  # the thread must go on: a bug is logged
-                    log.exception("unexpected error fetching deferred scans again")
-            self._closed.wait(REFETCH_PERIOD_S)
+                launched = -REFETCH_PERIOD_S
+            else:
+                self._closed.wait(REFETCH_PERIOD_S)
 
-    def _fetch(self, publisher: tuple[str, int], behind: Behind) -> None:
-        """Fetch the next deferred samples of `publisher` again, as many as the queue takes now, and
-        hand each to `handle` (through the gate)."""
+    def _launch(self, fetches: dict[tuple[str, int], _Fetch]) -> None:
+        """Start a fetch for each behind publisher without one in flight that the queue has room for
+        (`REFETCH_PARALLEL` in flight at most), the publisher nearest to overrunning its cache first."""
+        with self.lock:
+            # The most samples from the first not taken to the highest seen: its cache holds its
+            # last samples, so it is the nearest to pushing out its first not taken (with caches
+            # alike), and the first to get the queue's room.
+            waiting = sorted(
+                (item for item in self._behind.items() if item[0] not in fetches),
+                key=lambda item: (item[1].seen_sn - item[1].next_sn) % _SN_MODULUS,
+                reverse=True,
+            )
+        for publisher, behind in waiting:
+            if len(fetches) >= REFETCH_PARALLEL or self._closed.is_set():
+                return
+            try:
+                fetch = self._ask(publisher, behind, fetches)
+            except Exception:  # the thread must go on: a bug is logged
+                log.exception("unexpected error fetching deferred scans again")
+                continue
+            if fetch is not None:
+                fetches[publisher] = fetch
+
+    def _ask(
+        self, publisher: tuple[str, int], behind: Behind, fetches: dict[tuple[str, int], _Fetch]
+    ) -> _Fetch | None:
+        """Ask `publisher`'s cache for its next deferred samples, as many as the queue takes now
+        beside what the `fetches` in flight were promised; None when there is no room (or nothing
+        to fetch any more)."""
         with self.lock:
             if self._behind.get(publisher) is not behind:
-                return  # caught up meanwhile
+                return None  # caught up meanwhile
             first, missing = behind.next_sn, (behind.seen_sn - behind.next_sn) % _SN_MODULUS + 1
-        room = self._room(behind.key)
-        if room <= 0:
-            return  # the queue is full: the next round
+            widen = behind.widen
+        promised: dict[str, int] = {}
+        for fetch in fetches.values():
+            promised[fetch.behind.key] = promised.get(fetch.behind.key, 0) + fetch.promised
+        room = self._room(behind.key, promised)
+        session = self._session
+        if room <= 0 or session is None:
+            return None  # the queue is full: the next round
         # Widened: the cache holds none of the first `room` (the robot published on and pushed
         # them out), and a range of it holds a sample only from where the cache begins now. The
         # replies past the room are deferred again, held back at the gate.
-        count = missing if behind.widen else min(missing, room)
-        session = self._session
-        if session is None:
-            return
+        count = missing if widen else min(missing, room)
         last = (first + count - 1) % _SN_MODULUS
         zid, eid = publisher
         selector = f"{behind.key}/@adv/pub/{zid}/{eid}/**?_sn={first}..{last}"
         # Its replies carry the scan key, not the query's: ANY; each is its own sample: no
         # consolidation (which kept only the last of a key). A channel as long as the replies, so
-        # that Zenoh's thread never waits for this one.
+        # that Zenoh's thread never waits for this one, read without waiting (`_drain`).
         replies = session.get(
             selector,
             handler=zenoh.handlers.FifoChannel(count + 8),
@@ -230,30 +294,63 @@ class BacklogRefetch:
             consolidation=zenoh.ConsolidationMode.NONE,
             timeout=REFETCH_TIMEOUT_S,
         )
-        got = 0
-        for reply in replies:
-            sample = reply.ok
-            if sample is None:  # an error reply (another queryable's): no scan
-                continue
-            origin = Origin.of(behind.key, sample)
-            if origin is None or origin.publisher != publisher:
-                continue
-            if got == 0:
-                self._skip_to(publisher, behind, origin.sn)
-            got += 1
-            self.refetched += 1
-            self._handle(behind.key, sample, origin)
-        if got == 0:
-            with self.lock:
-                if not behind.widen:
-                    behind.widen = True
-                    return
-                behind.empty_fetches += 1
-                if behind.empty_fetches < REFETCH_ATTEMPTS or self._behind.get(publisher) is not behind:
-                    return
-                del self._behind[publisher]
-                gone = (behind.seen_sn - behind.next_sn) % _SN_MODULUS + 1
-            self._on_unrecoverable(gone, f"{zid}/{eid}")
+        return _Fetch(publisher, behind, replies, min(count, room))
+
+    def _drain(self, fetches: dict[tuple[str, int], _Fetch]) -> bool:
+        """Hand the replies that arrived of every fetch in flight to `handle` (through the gate), and
+        end the fetches whose replies are all in. Returns whether any reply or end was there."""
+        progressed = False
+        for publisher, fetch in list(fetches.items()):
+            try:
+                while True:
+                    try:
+                        reply = fetch.replies.try_recv()
+                    except zenoh.ZError:  # the channel is closed: every reply is in (or timed out)
+                        del fetches[publisher]
+                        progressed = True
+                        self._ended(fetch)
+                        break
+                    if reply is None:
+                        break
+                    progressed = True
+                    self._take(fetch, reply)
+            except Exception:  # the thread must go on: a bug is logged; the next fetch asks again
+                fetches.pop(publisher, None)
+                log.exception("unexpected error fetching deferred scans again")
+        return progressed
+
+    def _take(self, fetch: _Fetch, reply: zenoh.Reply) -> None:
+        """One reply of `fetch`: its sample, if it is one of the publisher's, to `handle`."""
+        sample = reply.ok
+        if sample is None:  # an error reply (another queryable's, the timeout's): no scan
+            return
+        origin = Origin.of(fetch.behind.key, sample)
+        if origin is None or origin.publisher != fetch.publisher:
+            return
+        if fetch.got == 0:
+            self._skip_to(fetch.publisher, fetch.behind, origin.sn)
+        fetch.got += 1
+        fetch.promised = max(0, fetch.promised - 1)  # in the queue now, or deferred again
+        self.refetched += 1
+        self._handle(fetch.behind.key, sample, origin)
+
+    def _ended(self, fetch: _Fetch) -> None:
+        """`fetch` got every reply it will: one that brought nothing widens the next, or after
+        `REFETCH_ATTEMPTS` widened ones gives the publisher up."""
+        if fetch.got:
+            return
+        publisher, behind = fetch.publisher, fetch.behind
+        with self.lock:
+            if not behind.widen:
+                behind.widen = True
+                return
+            behind.empty_fetches += 1
+            if behind.empty_fetches < REFETCH_ATTEMPTS or self._behind.get(publisher) is not behind:
+                return
+            del self._behind[publisher]
+            gone = (behind.seen_sn - behind.next_sn) % _SN_MODULUS + 1
+        zid, eid = publisher
+        self._on_unrecoverable(gone, f"{zid}/{eid}")
 
     def _skip_to(self, publisher: tuple[str, int], behind: Behind, sn: int) -> None:
         """A fetch's first reply is `sn`: those before it, from `next_sn`, are gone from the cache."""
@@ -269,4 +366,4 @@ class BacklogRefetch:
         self._on_unrecoverable(gone, f"{zid}/{eid}")
 
 
-__all__ = ["REFETCH_PERIOD_S", "BacklogRefetch", "Behind", "Origin"]
+__all__ = ["REFETCH_PARALLEL", "REFETCH_PERIOD_S", "BacklogRefetch", "Behind", "Origin"]

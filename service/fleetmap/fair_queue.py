@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from collections.abc import Callable, Hashable, Iterable
+from collections.abc import Callable, Hashable, Iterable, Mapping
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -101,18 +101,26 @@ class FairQueue(Generic[S, T]):
         with self._cond:
             return self._refusal(source, item)
 
-    def room(self, source: S) -> int:
+    def room(self, source: S, promised: Mapping[S, int] | None = None) -> int:
         """How many more items of `source` the queue takes now by their counts (`per_source`, its
-        group's `per_group`, `total`; not `max_bytes`, which depends on the items)."""
+        group's `per_group`, `total`; not `max_bytes`, which depends on the items), counting
+        `promised[s]` more items of each source `s` as queued: items a caller has asked for and
+        will offer (fetches in flight), which the room it tells another source leaves to them."""
+        promised = promised or {}
         with self._cond:
             fifo = self._fifos.get(source)
             group = self._group(source) if self._group is not None else None
+            in_group = self._group_size.get(group, 0) + sum(
+                count
+                for other, count in promised.items()
+                if self._group is None or self._group(other) == group
+            )
             return max(
                 0,
                 min(
-                    self.per_source - (len(fifo) if fifo else 0),
-                    self.per_group - self._group_size.get(group, 0),
-                    self.total - self._size,
+                    self.per_source - (len(fifo) if fifo else 0) - promised.get(source, 0),
+                    self.per_group - in_group,
+                    self.total - self._size - sum(promised.values()),
                 ),
             )
 

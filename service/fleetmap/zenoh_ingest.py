@@ -91,7 +91,7 @@ import resource
 import socket
 import threading
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -593,10 +593,16 @@ class ZenohIngest:
         except Exception:  # an exception must not escape into Zenoh's thread; a bug is logged
             log.exception("unexpected error handling a Zenoh transport event")
 
-    def _queue_room(self, key: str) -> int:
-        """How many more scans of scan key `key` the ingest queue takes now (`BacklogRefetch`)."""
+    def _queue_room(self, key: str, promised: Mapping[str, int]) -> int:
+        """How many more scans of scan key `key` the ingest queue takes now, counting `promised[k]`
+        more of scan key `k` as queued (`BacklogRefetch`'s fetches in flight)."""
         ids = parse_key(key, "scan")
-        return 0 if ids is None else self.registry.queue.room(ids)
+        if ids is None:
+            return 0
+        sources = {
+            source: count for k, count in promised.items() if (source := parse_key(k, "scan")) is not None
+        }
+        return self.registry.queue.room(ids, sources)
 
     def _count_unrecoverable(self, count: int, source: str) -> None:
         """`count` deferred scans of the advanced publisher `source` were gone from its cache when
