@@ -5,8 +5,8 @@ caches could no longer give back, and how long it takes (docs/protocol.md, "Deli
     ... --silent 1      # one robot's link dies silently once it sent its scans (SIGSTOP)
     ... --router        # robots and service all clients of a Zenoh router (a Python session)
 
-Each robot is its own process with a `ScanPublisher` (`--backlog`, its cache `--cache` when the client
-takes one): it queues `--queued` scans while no service runs (its backlog); then the service starts
+Each robot is its own process with a `ScanPublisher` (`--backlog`, and `--cache`, by default the
+client's): it queues `--queued` scans while no service runs (its backlog); then the service starts
 (`fleetmap serve`, in memory) and every robot, once connected, publishes `--extra` more at once, then
 flushes (`ScanPublisher.flush`) and reports. The service's queue defers what it has no room for and
 fetches it again from the robots' caches (`fleetmap.backlog_refetch`); a robot's scans it gets to

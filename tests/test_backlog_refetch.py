@@ -46,10 +46,16 @@ class Fleet:
 
 @contextlib.contextmanager
 def fleet(
-    robots: int, backlog: int, queue_per_robot: int, queue_total: int, router: bool = False
+    robots: int,
+    backlog: int,
+    queue_per_robot: int,
+    queue_total: int,
+    router: bool = False,
+    cache: int | None = None,
 ) -> Iterator[Fleet]:
-    """A `Fleet` of `robots` publishers keeping `backlog` scans each, its ingest not started (the
-    robots queue their scans meanwhile); everything closed on the way out. With `router`, a Zenoh
+    """A `Fleet` of `robots` publishers keeping `backlog` scans each (and `cache` in their Zenoh
+    caches, by default the client's), its ingest not started (the robots queue their scans
+    meanwhile); everything closed on the way out. With `router`, a Zenoh
     router (a Python session standing in for zenohd) listens, and the ingest is a client of it, as
     `fleetmap serve --zenoh-connect` is; the robots connect to the router."""
     registry = MapRegistry(workers=1, queue_per_robot=queue_per_robot, queue_total=queue_total)
@@ -64,7 +70,10 @@ def fleet(
         else:
             ingest = ZenohIngest(registry, listen=[endpoint])
         stack.callback(ingest.close)
-        pubs = [ScanPublisher("m", f"r{k}", connect=[endpoint], backlog=backlog) for k in range(robots)]
+        pubs = [
+            ScanPublisher("m", f"r{k}", connect=[endpoint], backlog=backlog, cache=cache)
+            for k in range(robots)
+        ]
         for pub in pubs:
             stack.callback(pub.close)
         yield Fleet(registry, entry, ingest, pubs, endpoint)
@@ -265,14 +274,14 @@ def test_fair_queue_says_its_room_and_what_would_refuse_without_queuing() -> Non
 
 def test_deferred_scans_pushed_out_of_a_robots_cache_meanwhile_are_given_up_not_the_rest() -> None:
     """Robots that publish on while the queue is full push their deferred scans out of their caches
-    (a cache holds a publisher's last `backlog` samples). A fetch for the first of them then brings
-    nothing: the service asks for every one missing instead, takes what the cache still holds from
-    where it begins and counts the rest unrecoverable. It gave the whole robot up after three empty
-    fetches (an early version): 8,342 of 42,000 scans of 40 robots unrecoverable where their caches
-    had lost 2,000 at most."""
+    (a cache holds a publisher's last `cache` samples, here only as many as its backlog). A fetch
+    for the first of them then brings nothing: the service asks for every one missing instead,
+    takes what the cache still holds from where it begins and counts the rest unrecoverable. It
+    gave the whole robot up after three empty fetches (an early version): 8,342 of 42,000 scans of
+    40 robots unrecoverable where their caches had lost 2,000 at most."""
     cache = 30
     scans = sim_scans(4, 2 * cache, beams=61)
-    with fleet(4, cache, queue_per_robot=8, queue_total=16) as f:  # the map's share: 8
+    with fleet(4, cache, queue_per_robot=8, queue_total=16, cache=cache) as f:  # the map's share: 8
         registry, entry, ingest, pubs = f.registry, f.entry, f.ingest, f.pubs
         for pub in pubs:
             for scan in scans[:cache]:
@@ -294,6 +303,41 @@ def test_deferred_scans_pushed_out_of_a_robots_cache_meanwhile_are_given_up_not_
         assert all(n >= cache for n in integrated), (integrated, status)
         assert status["unrecoverable"] == 4 * 2 * cache - sum(integrated) > 0, (integrated, status)
         assert all(r.settled and r.integrated + r.lost + r.unsettled == 2 * cache for r in reports), reports
+        assert ingest._refetch.behind() == 0
+
+
+def test_robots_publishing_on_while_their_backlogs_wait_keep_them_in_their_caches() -> None:
+    """The same robots with the client's default cache, twice their backlog: a robot whose whole
+    backlog went out when the service came up may publish as many scans again before the first of
+    them leaves its cache, so the queue's full delay costs none of them. With a cache as large as
+    the backlog (until 2026-11-29), each scan a robot published meanwhile pushed one of its
+    deferred scans out (40 robots x 1050 scans on one map: 50 to 740 unrecoverable; here 35 of
+    these 80)."""
+    backlog = 10
+    scans = sim_scans(4, 2 * backlog, beams=61)
+    with fleet(4, backlog, queue_per_robot=4, queue_total=8) as f:  # the map's share: 4
+        registry, entry, ingest, pubs = f.registry, f.entry, f.ingest, f.pubs
+        assert [pub.cache for pub in pubs] == [2 * backlog] * 4
+        for pub in pubs:
+            for scan in scans[:backlog]:
+                assert pub.publish(scan)
+        with entry.gmap.lock:
+            ingest.start()
+            wait_for(
+                lambda: ingest.status()["messages_received"] == 4 * backlog, timeout=60, what="the backlogs"
+            )
+            for pub in pubs:  # live, and into the caches, behind the backlogs
+                for scan in scans[backlog:]:
+                    assert pub.publish(scan)
+            wait_for(lambda: ingest.status()["messages_received"] == 8 * backlog, timeout=60, what="the rest")
+        reports = [pub.flush(60) for pub in pubs]
+        assert [r.integrated for r in reports] == [2 * backlog] * 4, reports
+        assert wait_idle(registry)
+        assert ingest.status()["unrecoverable"] == 0, ingest.status()
+        for k in range(4):
+            robot = entry.robots[f"r{k}"]
+            counts = (robot.scans_integrated, robot.dropped, robot.lost, robot.duplicates, robot.last_seq)
+            assert counts == (2 * backlog, 0, 0, 0, 2 * backlog - 1), (k, counts)
         assert ingest._refetch.behind() == 0
 
 

@@ -752,6 +752,15 @@ def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong(tmp
     # A NumPy integer is one, as for a seq (it was refused as "backlog must be an integer").
     with ScanPublisher("m", "r", connect="tcp/127.0.0.1:1", backlog=np.int64(5)) as pub:  # type: ignore[arg-type]
         assert pub.backlog == 5 and type(pub.backlog) is int
+        assert pub.cache == 10  # twice the backlog by default
+    # A cache smaller than the backlog would lose the backlog's first scans as it goes out.
+    for cache in (4, -1, True, 7.0):
+        with pytest.raises(ValueError, match=r"cache must be an integer >= backlog \(5\)"):
+            ScanPublisher("m", "r", connect="tcp/127.0.0.1:1", backlog=5, cache=cache)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="a cache needs a backlog"):
+        ScanPublisher("m", "r", connect="tcp/127.0.0.1:1", backlog=0, cache=10)
+    with ScanPublisher("m", "r", connect="tcp/127.0.0.1:1", backlog=5, cache=np.int64(5)) as pub:
+        assert pub.cache == 5 and type(pub.cache) is int
     # As a URL, which Zenoh takes for the protocol `tcp:`: the robot waited for the service for ever.
     with pytest.raises(
         ValueError, match=r"^'tcp://h:7447' is written as a URL: .* PROTOCOL/ADDRESS, tcp/h:7447$"

@@ -354,13 +354,13 @@ def test_scans_past_the_cache_of_a_silently_dead_link_are_counted_as_unrecoverab
     service: ServiceProcess,
 ) -> None:
     """A link that dies without notice (frozen: to the robot it looks alive until Zenoh's lease runs
-    out): the 50 scans published into it go to Zenoh, and its cache keeps the last 10 (the backlog).
+    out): the 50 scans published into it go to Zenoh, and its cache keeps the last 10 (`cache`).
     When the robot has reconnected, the service fetches those 10; the 40 before them were pushed out
     of the cache: the service counts them as unrecoverable (`/healthz` zenoh.unrecoverable,
     `/metrics`) and as lost on the robot."""
     scans = scans_for(sim=6, beams=181, count=60)
     proxy = FreezableProxy(service.zenoh_port)
-    pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10)
+    pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10, cache=10)
     try:
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
             assert zenoh_counters(http) == (0, 0)

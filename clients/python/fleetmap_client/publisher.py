@@ -37,11 +37,12 @@ missed services that came back only briefly).
 
 Store and forward (`backlog`, default `DEFAULT_BACKLOG` = 1000 scans). Robots drive through Wi-Fi
 dead zones, and the service restarts; no scan should be lost to either. The publisher is zenoh-ext's
-ADVANCED publisher: it keeps its last `backlog` scans in a cache, announces its last sequence number
-by heartbeat (`HEARTBEAT_S`) and declares itself (publisher detection), and the service's advanced
-subscriber fetches from that cache what it did not receive: the scans in flight when a link died
-(the publisher cannot tell, until Zenoh notices, that they went nowhere), and those the service had
-not made durable when it was killed. They arrive in order, before newer ones, without duplicates
+ADVANCED publisher: it keeps its last `cache` scans (twice `backlog` by default, `CACHE_BACKLOGS`)
+in a cache, announces its last sequence number by heartbeat (`HEARTBEAT_S`) and declares itself
+(publisher detection), and the service's advanced subscriber fetches from that cache what it did
+not receive: the scans in flight when a link died (the publisher cannot tell, until Zenoh notices,
+that they went nowhere), those the service had not made durable when it was killed, and those its
+full ingest queue deferred. They arrive in order, before newer ones, without duplicates
 (docs/protocol.md, "Delivery guarantees"). Scans published while the publisher KNOWS it is
 disconnected (no router or peer connected, or, behind a router, no subscriber of its key: the
 service away), and those published before the session first opened, wait in the publisher's own
@@ -146,6 +147,13 @@ EXIT_WAIT_S = CONNECT_ATTEMPT_MS / 1000 + 10.0
 #: Scans a publisher keeps for re-delivery by default (`backlog`): at 10 scans/s, 100 s of dead zone,
 #: about 4.5 MB of binary 1081-beam scans. The service's ingest queue holds as many per robot.
 DEFAULT_BACKLOG = 1000
+#: The advanced publisher's cache, by default, in backlogs (`cache`): twice the backlog, so that a
+#: robot whose whole backlog went out at a reconnection may publish as many scans again before the
+#: first of them leaves the cache, while the service, its queue full with a fleet's backlogs, has yet
+#: to fetch them again (docs/protocol.md, "Delivery guarantees"). As large as the backlog, a robot
+#: that published on pushed its backlog's first scans out of the cache one per scan (40 robots x
+#: 1050 scans on one map lost 50 to 740 of them).
+CACHE_BACKLOGS = 2
 #: Seconds between the advanced publisher's heartbeats: how soon after a reconnection the service
 #: learns of scans it missed in flight (scans published while the publisher knew it was disconnected
 #: are not in Zenoh's cache: they wait in its own queue and are sent after the reconnection's hold).
@@ -254,6 +262,9 @@ class ScanPublisher:
         backlog: scans kept for re-delivery after a lost connection (default `DEFAULT_BACKLOG`; see the
             module docstring); 0: none, with a plain Zenoh publisher, for a service older than
             store and forward (scans published while disconnected are then dropped).
+        cache: scans the advanced publisher's Zenoh cache keeps for the service to fetch again, at
+            least `backlog` (default `CACHE_BACKLOGS` times it, 2000: about 9 MB of binary 1081-beam
+            scans; see `CACHE_BACKLOGS`). Not with `backlog=0`, which has no cache.
 
     Counters (each successful `publish` counts in exactly one of the first three):
 
@@ -282,12 +293,19 @@ class ScanPublisher:
         block: bool = True,
         send_session_id: bool = True,
         backlog: Integer = DEFAULT_BACKLOG,
+        cache: Integer | None = None,
     ) -> None:
         for name, value in (("map_id", map_id), ("robot_id", robot_id)):
             if not isinstance(value, str) or not is_valid_id(value):
                 raise ValueError(f"{name} {value!r} is invalid: use 1 to 64 characters from A-Z a-z 0-9 _ -")
         if not is_whole_number(backlog) or backlog < 0:  # a NumPy integer too, as a seq may be
             raise ValueError(f"backlog must be an integer >= 0, got {backlog!r}")
+        if cache is not None and not backlog and cache != 0:
+            raise ValueError(
+                "a cache needs a backlog: backlog=0 publishes with a plain publisher, which keeps none"
+            )
+        if cache is not None and (not is_whole_number(cache) or cache < backlog):
+            raise ValueError(f"cache must be an integer >= backlog ({backlog}), got {cache!r}")
         if encoding not in ("binary", "json"):
             raise ValueError(f"encoding must be 'binary' or 'json', got {encoding!r}")
         for name, flag in (("block", block), ("send_session_id", send_session_id)):
@@ -298,6 +316,8 @@ class ScanPublisher:
         self.encoding: Encoding = encoding
         self.block = block
         self.backlog = int(backlog)
+        #: Scans the advanced publisher's Zenoh cache keeps (0 with `backlog=0`).
+        self.cache = int(cache) if cache is not None else CACHE_BACKLOGS * self.backlog
         self.scan_key = SCAN_KEY.format(map_id=map_id, robot_id=robot_id)
         self.alive_key = ALIVE_KEY.format(map_id=map_id, robot_id=robot_id)
         self._config = client_config(connect, zenoh_config)
@@ -409,7 +429,7 @@ class ScanPublisher:
                         encoding=self._zenoh_encoding,
                         congestion_control=congestion,
                         reliability=zenoh.Reliability.RELIABLE,
-                        cache=zenoh.ext.CacheConfig(self.backlog),
+                        cache=zenoh.ext.CacheConfig(self.cache),
                         sample_miss_detection=zenoh.ext.MissDetectionConfig(
                             heartbeat=HEARTBEAT_S, sporadic_heartbeat=None
                         ),
@@ -1049,8 +1069,8 @@ def _deadline(timeout: Real | None) -> float | None:
 
 
 __all__ = [
-    "CLOSE_SEND_WAIT_S", "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG", "DEFAULT_CONNECT",
-    "EXIT_WAIT_S",
+    "CACHE_BACKLOGS", "CLOSE_SEND_WAIT_S", "CLOSE_WAIT_S", "CONNECT_ATTEMPT_MS", "DEFAULT_BACKLOG",
+    "DEFAULT_CONNECT", "EXIT_WAIT_S",
     "FETCH_MARGIN_S", "HEARTBEAT_S", "RECONNECT_HOLD_MAX_S", "RECONNECT_HOLD_S", "RECONNECT_PERIOD_FACTOR",
     "RECONNECT_PERIOD_INIT_MS", "RECONNECT_PERIOD_MAX_MS",
     "DeliveryReport", "DeliveryUnsupported", "PublisherClosed", "ScanPublisher", "check_period",
