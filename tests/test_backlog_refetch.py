@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import contextlib
 import json
+import signal
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -14,7 +17,7 @@ import pytest
 import zenoh
 from fleetmap_client.publisher import DEFAULT_BACKLOG, ScanPublisher
 from registry_idle import wait_idle
-from service_process import free_port, wait_for
+from service_process import free_port, reaped, wait_for
 from test_ingest import client_session, sim_scans
 
 from fleetmap import backlog_refetch, codec
@@ -217,6 +220,96 @@ def test_a_robot_whose_link_died_silently_does_not_hold_up_the_others_fetches(
             assert wait_idle(registry)
             assert entry.robots["silent"].scans_integrated in (4, 5)
             assert ingest._refetch.behind() == 1
+
+
+#: A robot as its own process (so that the test can stop it, SIGSTOP: its link up and silent): a
+#: `ScanPublisher` with a backlog that publishes argv[2] scans to map `m` through argv[1] once
+#: connected, says "published", and closes when stdin does.
+STOPPABLE_ROBOT = """
+import sys
+from fleetmap_client.publisher import ScanPublisher
+from test_ingest import sim_scans
+with ScanPublisher("m", "stopped", connect=[sys.argv[1]], backlog=100) as pub:
+    assert pub.wait_connected(30)
+    for scan in sim_scans(8, int(sys.argv[2]), beams=61):
+        assert pub.publish(scan)
+    print("published", flush=True)
+    sys.stdin.read()
+"""
+
+
+def test_a_robot_silent_for_a_while_keeps_its_deferred_scans(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A robot whose scans wait to be fetched again, and whose link then goes silent for a while
+    (its session alive to Zenoh, within its lease; here the process is stopped): the fetches that
+    time out say nothing of its cache. Counted as empty ones, they gave the robot up after 4 of them
+    (some 8 s, before Zenoh's 10 s lease ended the session), and its deferred scans, still in its
+    cache, were counted unrecoverable: 15 of these 20, though the robot came back. Now a fetch
+    that timed out is only asked again: once the robot answers, every scan is integrated once.
+    (A robot that is gone for good answers fetches at once, with nothing: those give it up.)"""
+    monkeypatch.setattr(backlog_refetch, "REFETCH_TIMEOUT_S", 0.3)
+    ended: list[int] = []
+    real_ended = BacklogRefetch._ended
+
+    def counting_ended(self: BacklogRefetch, fetch: backlog_refetch._Fetch) -> None:
+        ended.append(fetch.got)
+        real_ended(self, fetch)
+
+    monkeypatch.setattr(BacklogRefetch, "_ended", counting_ended)
+    with fleet(0, 10, queue_per_robot=4, queue_total=16) as f:
+        registry, entry, ingest = f.registry, f.entry, f.ingest
+        ingest.start()
+        robot = subprocess.Popen(
+            [sys.executable, "-c", STOPPABLE_ROBOT, f.endpoint, "20"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        with reaped(robot):
+            assert robot.stdout is not None and robot.stdin is not None
+            with entry.gmap.lock:  # its FIFO fills (4), the rest is deferred
+                assert robot.stdout.readline().strip() == "published"
+                wait_for(lambda: ingest.status()["messages_received"] == 20, timeout=60, what="its scans")
+                robot.send_signal(signal.SIGSTOP)
+            # Fetches of it time out, more than gave it up before, well within its lease (or it is
+            # given up).
+            wait_for(lambda: len(ended) >= 5 or ingest._refetch.behind() == 0, 60, what="its fetches to end")
+            robot.send_signal(signal.SIGCONT)
+            wait_for(lambda: ingest._refetch.behind() == 0, timeout=60, what="its scans fetched again")
+            assert wait_idle(registry)
+            state = entry.robots["stopped"]
+            counts = (state.scans_integrated, state.dropped, state.lost, state.duplicates, state.last_seq)
+            assert counts == (20, 0, 0, 0, 19), (counts, ingest.status())
+            assert ingest.status()["unrecoverable"] == 0
+            robot.stdin.close()
+            assert robot.wait(30) == 0
+
+
+def test_a_publisher_whose_cache_never_answers_is_given_up_in_the_end(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A fetch that times out is asked again (the test above), but not for ever: a publisher whose
+    session lives on and whose cache answers no query (one Zenoh does not end: a peer that is
+    alive, its queryable never reached) would hold its later scans back for good. Past
+    `REFETCH_SILENCE_S` of fetches timing out (here 1 s), they count as empty ones, and it is given
+    up as a gone robot is: its scans not fetched counted unrecoverable, its later ones taken."""
+    monkeypatch.setattr(backlog_refetch, "REFETCH_TIMEOUT_S", 0.2)
+    monkeypatch.setattr(backlog_refetch, "REFETCH_SILENCE_S", 1.0)
+    scans = sim_scans(9, 12, beams=61)
+    with fleet(0, 10, queue_per_robot=4, queue_total=16) as f:
+        registry, entry, ingest = f.registry, f.entry, f.ingest
+        ingest.start()
+        with silent_robot(f.endpoint, "mute") as put:
+            with entry.gmap.lock:
+                for sn, scan in enumerate(scans):
+                    put(scan, sn)
+                wait_for(lambda: ingest.status()["messages_received"] == 12, timeout=60, what="its scans")
+                assert ingest._refetch.behind() == 1
+            wait_for(lambda: ingest._refetch.behind() == 0, timeout=30, what="the mute publisher given up")
+            assert wait_idle(registry)
+            integrated = entry.robots["mute"].scans_integrated
+            assert integrated in (4, 5)  # its FIFO's, and the one the worker took
+            assert ingest.status()["unrecoverable"] == 12 - integrated
+            put(scans[0], 12)  # its next scan is taken again
+            wait_for(lambda: entry.robots["mute"].scans_integrated == integrated + 1, 30, what="its next")
+            assert entry.robots["mute"].lost == 12 - integrated
 
 
 def test_the_gate_holds_a_behind_publishers_later_samples_until_its_next_is_taken() -> None:

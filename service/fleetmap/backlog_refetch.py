@@ -27,6 +27,10 @@ meanwhile, or its publisher is gone) cannot be had. A fetch for as many as the q
 that brings nothing is followed by one for every sample missing (the cache, which holds the
 publisher's last samples, answers from where it begins now), and the samples before its first reply
 are given up; so is a publisher when such fetches bring nothing `REFETCH_ATTEMPTS` times in a row.
+A fetch that timed out is not one of them: the publisher's session did not answer (its link silent,
+within Zenoh's lease), which says nothing of its cache, and the same is asked again; a robot gone
+for good is given up once Zenoh ends its session, and its fetches end at once, empty (fetches that
+time out count only after `REFETCH_SILENCE_S` of them in a row).
 Those are counted `unrecoverable`, as zenoh-ext's own misses are, and the registry counts them
 `lost` on the robot once a later one is taken. Plain publishers' samples carry no source: a full
 queue drops them, as before.
@@ -64,7 +68,8 @@ log = logging.getLogger("fleetmap.zenoh")
 #: since the last round.
 REFETCH_PERIOD_S = 0.05
 #: Seconds one fetch may wait for its replies: a robot whose link died silently answers nothing. A
-#: fetch cut short loses nothing: the next one asks from the first sample not taken.
+#: fetch cut short loses nothing: the next one asks from the first sample not taken, and it does
+#: not count towards giving the robot up (`REFETCH_ATTEMPTS`).
 REFETCH_TIMEOUT_S = 2.0
 #: Fetches in flight at once at most, one a publisher: a robot whose link died silently holds its
 #: own (and the room it was promised, its FIFO's at most) until `REFETCH_TIMEOUT_S`, and the others'
@@ -76,7 +81,13 @@ REFETCH_PARALLEL = 16
 REFETCH_POLL_S = 0.005
 #: Fetches in a row of every sample still missing that bring nothing of a behind publisher before
 #: it is given up (its scans counted unrecoverable): its cache no longer holds them, or it is gone.
+#: Answered, not timed out: a cache answers at once with what it holds.
 REFETCH_ATTEMPTS = 3
+#: Seconds of fetches of a publisher timing out in a row after which they count as empty ones (see
+#: `REFETCH_ATTEMPTS`): three times Zenoh's default lease (10 s), by which a session whose link
+#: died has long been ended; one that lives on and answers no query (a peer whose queryable is never
+#: reached) would otherwise hold its publisher's later scans back for ever.
+REFETCH_SILENCE_S = 30.0
 #: Sequence numbers of zenoh-ext's samples are 32-bit and wrap.
 _SN_MODULUS = 1 << 32
 
@@ -116,6 +127,8 @@ class Behind:
     #: queue's room: the last one, for as many as it had room for, brought nothing.
     widen: bool = False
     empty_fetches: int = 0
+    #: When the first of the fetches timing out in a row was asked (`time.monotonic()`), or None.
+    silent_since: float | None = None
 
 
 @dataclass
@@ -128,7 +141,11 @@ class _Fetch:
     behind: Behind
     replies: zenoh.Handler[zenoh.Reply]
     promised: int
+    #: When it was asked (`time.monotonic()`).
+    asked: float
     got: int = 0
+    #: Whether it ended on its timeout: the publisher's session did not answer (see `_ended`).
+    timed_out: bool = False
 
 
 class BacklogRefetch:
@@ -294,7 +311,7 @@ class BacklogRefetch:
             consolidation=zenoh.ConsolidationMode.NONE,
             timeout=REFETCH_TIMEOUT_S,
         )
-        return _Fetch(publisher, behind, replies, min(count, room))
+        return _Fetch(publisher, behind, replies, min(count, room), time.monotonic())
 
     def _drain(self, fetches: dict[tuple[str, int], _Fetch]) -> bool:
         """Hand the replies that arrived of every fetch in flight to `handle` (through the gate), and
@@ -323,6 +340,7 @@ class BacklogRefetch:
         """One reply of `fetch`: its sample, if it is one of the publisher's, to `handle`."""
         sample = reply.ok
         if sample is None:  # an error reply (another queryable's, the timeout's): no scan
+            fetch.timed_out |= _is_timeout(reply)
             return
         origin = Origin.of(fetch.behind.key, sample)
         if origin is None or origin.publisher != fetch.publisher:
@@ -336,11 +354,26 @@ class BacklogRefetch:
 
     def _ended(self, fetch: _Fetch) -> None:
         """`fetch` got every reply it will: one that brought nothing widens the next, or after
-        `REFETCH_ATTEMPTS` widened ones gives the publisher up."""
-        if fetch.got:
-            return
+        `REFETCH_ATTEMPTS` widened ones gives the publisher up. Not one that timed out: the
+        publisher's session did not answer at all (a cache answers at once, with what it holds), so
+        it says nothing of the cache, and the next fetch asks the same again. A robot whose link
+        went silent for a while, within Zenoh's lease, was given up after 4 of them (about 8 s),
+        its deferred scans counted unrecoverable though its cache still held them; one gone for
+        good is given up once Zenoh ends its session (the lease) and its cache's queryable with it:
+        fetches then end at once, empty. Past `REFETCH_SILENCE_S` of them in a row, though, they
+        count as empty ones: a session that lives on and answers nothing would hold its
+        publisher's later scans back for ever."""
         publisher, behind = fetch.publisher, fetch.behind
         with self.lock:
+            if fetch.timed_out and not fetch.got:
+                if behind.silent_since is None:
+                    behind.silent_since = fetch.asked
+                if time.monotonic() - behind.silent_since < REFETCH_SILENCE_S:
+                    return
+            else:
+                behind.silent_since = None
+            if fetch.got:
+                return
             if not behind.widen:
                 behind.widen = True
                 return
@@ -366,4 +399,10 @@ class BacklogRefetch:
         self._on_unrecoverable(gone, f"{zid}/{eid}")
 
 
-__all__ = ["REFETCH_PARALLEL", "REFETCH_PERIOD_S", "BacklogRefetch", "Behind", "Origin"]
+def _is_timeout(reply: zenoh.Reply) -> bool:
+    """Whether `reply` is the error Zenoh gives a query when its timeout passed (payload "Timeout")."""
+    error = reply.err
+    return error is not None and error.payload.to_bytes() == b"Timeout"
+
+
+__all__ = ["REFETCH_PARALLEL", "REFETCH_PERIOD_S", "REFETCH_SILENCE_S", "BacklogRefetch", "Behind", "Origin"]
