@@ -227,12 +227,14 @@ def test_a_robot_whose_link_died_silently_does_not_hold_up_the_others_fetches(
 #: connected, says "published", and closes when stdin does.
 STOPPABLE_ROBOT = """
 import sys
+from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap_client.publisher import ScanPublisher
-from test_ingest import sim_scans
+plan = generate_floorplan(0, width_m=20.0, height_m=15.0)
+robot = SimulatedRobot(plan, 8, num_beams=61, range_max=10.0, scan_rate=5.0)
 with ScanPublisher("m", "stopped", connect=[sys.argv[1]], backlog=100) as pub:
     assert pub.wait_connected(30)
-    for scan in sim_scans(8, int(sys.argv[2]), beams=61):
-        assert pub.publish(scan)
+    for _ in range(int(sys.argv[2])):
+        assert pub.publish(robot.tick())
     print("published", flush=True)
     sys.stdin.read()
 """
