@@ -4,8 +4,8 @@ Robots' backlogs come back as bursts at network speed (docs/protocol.md, "Delive
 after a restart of the service, or a dead zone, a fleet's robots send theirs at once, and the
 ingest queue holds only so many (one map's robots share half of it). Dropped there, the newest
 scans were lost to the map, though each was still in its robot's Zenoh cache (the advanced
-publisher's, which holds the last `backlog` scans it put, and answers queries for a range of its
-sequence numbers). So a scan of an advanced publisher (its samples carry their source, the
+publisher's, which holds the last scans it put, a `ScanPublisher`'s `cache`, and answers queries
+for a range of its sequence numbers). So a scan of an advanced publisher (its samples carry their source, the
 publisher's id, and their sequence number in it, `sn`) that the full queue would refuse is not
 taken (`MapRegistry.submit`'s `defer_when_full`: its seq not recorded), and its publisher is
 *behind* from that scan on (`Behind`): its later samples, as they arrive, are held back too

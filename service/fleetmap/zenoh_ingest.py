@@ -612,7 +612,7 @@ class ZenohIngest:
         self._log.warning(
             f"unrecoverable:{source}",
             f"{count} deferred scan(s) of the advanced publisher {source} could not be fetched again: gone "
-            "from its cache (its backlog) before the ingest queue had room for them",
+            "from its cache (its last scans) before the ingest queue had room for them",
         )
 
     def _on_miss(self, miss: zenoh.ext.Miss) -> None:
@@ -626,7 +626,7 @@ class ZenohIngest:
             self._log.warning(
                 f"unrecoverable:{source}",
                 f"{nb} scan(s) of the advanced publisher {source} could not be recovered: gone from its "
-                "cache (its backlog) before this service could fetch them",
+                "cache (its last scans) before this service could fetch them",
             )
         except Exception:
             log.exception("unexpected error handling a sample miss")
