@@ -22,18 +22,18 @@ the highest seen), so memory does not grow with the backlogs. A sample that come
 fetched again) is taken once by the gate or, if both get through, ignored as a duplicate by the
 registry's seq bookkeeping: each scan is integrated once.
 
-Scans the cache no longer holds when they are fetched (the robot published more than its backlog
-meanwhile, or its publisher is gone) cannot be had. A fetch for as many as the queue has room for
-that brings nothing is followed by one for every sample missing (the cache, which holds the
+Scans the cache no longer holds when they are fetched (the robot published more than its cache
+holds meanwhile, or its publisher is gone) cannot be had. A fetch for as many as the queue has room
+for that brings nothing is followed by one for every sample missing (the cache, which holds the
 publisher's last samples, answers from where it begins now), and the samples before its first reply
 are given up; so is a publisher when such fetches bring nothing `REFETCH_ATTEMPTS` times in a row.
-A fetch that timed out is not one of them: the publisher's session did not answer (its link silent,
-within Zenoh's lease), which says nothing of its cache, and the same is asked again; a robot gone
-for good is given up once Zenoh ends its session, and its fetches end at once, empty (fetches that
-time out count only after `REFETCH_SILENCE_S` of them in a row).
 Those are counted `unrecoverable`, as zenoh-ext's own misses are, and the registry counts them
-`lost` on the robot once a later one is taken. Plain publishers' samples carry no source: a full
-queue drops them, as before.
+`lost` on the robot once a later one is taken. A fetch that timed out brings nothing either, but it
+is not one of those: the publisher's session did not answer (its link silent, within Zenoh's
+lease), which says nothing of its cache, and the same is asked again; a robot gone for good is
+given up once Zenoh ends its session, and its fetches end at once, empty (fetches that time out
+count only after `REFETCH_SILENCE_S` of them in a row). Plain publishers' samples carry no source:
+a full queue drops them, as before.
 
 The thread asks several publishers' caches at once (`REFETCH_PARALLEL` fetches in flight, one a
 publisher), and reads their replies as they arrive, without waiting on any one fetch: a robot whose
