@@ -46,6 +46,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, get_args
 
+from fleetmap.route_path import route_path
+
 #: A token's role; each may do everything the roles before it may.
 Role = Literal["read", "write", "admin"]
 ROLES: tuple[str, ...] = get_args(Role)
@@ -213,22 +215,25 @@ def session_value(token: str) -> str:
     return _digest(token).hex()
 
 
-def session_cookie(value: str, *, secure: bool) -> str:
+def session_cookie(value: str, *, secure: bool, path: str) -> str:
     """The `Set-Cookie` value that signs a browser in with `value` (`session_value`). `HttpOnly`: the
     page's scripts cannot read it; `SameSite=Strict`: another site's page never makes the browser
-    send it; `Path=/`: every request of the viewer carries it; `Secure` when the request came over
-    https; no `Max-Age`: it ends when the browser closes (or at once when its token is revoked)."""
-    return _with_cookie_attributes(f"{SESSION_COOKIE}={value}", secure)
+    send it; `Path=<path>`, the path the service is served under (`/`, or `--root-path`'s): every
+    request of the viewer carries it, and none to another application of the host (another
+    fleetmap under another prefix, which would overwrite it with its own); `Secure` when the request
+    came over https; no `Max-Age`: it ends when the browser closes (or at once when its token is
+    revoked)."""
+    return _with_cookie_attributes(f"{SESSION_COOKIE}={value}", secure, path)
 
 
-def cleared_session_cookie(*, secure: bool) -> str:
+def cleared_session_cookie(*, secure: bool, path: str) -> str:
     """The `Set-Cookie` value that signs a browser out: the session cookie, empty and expired (with
     the same attributes, or the browser would keep the cookie it has)."""
-    return _with_cookie_attributes(f"{SESSION_COOKIE}=; Max-Age=0", secure)
+    return _with_cookie_attributes(f"{SESSION_COOKIE}=; Max-Age=0", secure, path)
 
 
-def _with_cookie_attributes(cookie: str, secure: bool) -> str:
-    return f"{cookie}; HttpOnly; SameSite=Strict; Path=/" + ("; Secure" if secure else "")
+def _with_cookie_attributes(cookie: str, secure: bool, path: str) -> str:
+    return f"{cookie}; HttpOnly; SameSite=Strict; Path={path}" + ("; Secure" if secure else "")
 
 
 def is_read_request(method: str, path: str) -> bool:
@@ -331,11 +336,11 @@ class AuthMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        needed = required_role(scope["method"], scope["path"], self.require_read)
+        needed = required_role(scope["method"], route_path(scope), self.require_read)
         if needed is None:
             await self.app(scope, receive, send)
             return
-        reads = is_read_request(scope["method"], scope["path"])
+        reads = is_read_request(scope["method"], route_path(scope))
         credential = _credential(scope.get("headers", []), self.tokens, reads)
         if credential is None:
             await _deny(send, 401, f"this request needs a token with the {needed!r} role: "

@@ -97,6 +97,9 @@ def make_server(
         ),
         backlog=ACCEPT_BACKLOG,
         forwarded_allow_ips=_trusted_proxies(args.forwarded_allow_ips),
+        # ASGI's root_path: uvicorn puts it before each request's path, as a proxy that strips it
+        # would have received it, and the app names its URLs under it (`route_path.root_path`).
+        root_path=args.root_path,
     )
     if args.access_log:  # (log_level above set its level too)
         logging.getLogger("uvicorn.access").setLevel(logging.INFO)

@@ -33,6 +33,7 @@ from prometheus_client import CollectorRegistry, Counter, Histogram, ProcessColl
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from fleetmap.route_path import route_path
 from fleetmap.version import installed_version
 
 if TYPE_CHECKING:
@@ -624,7 +625,7 @@ class StatusCounter:
         self.only = only
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
-        if scope["type"] != "http" or (self.only is not None and not self.only(scope["path"])):
+        if scope["type"] != "http" or (self.only is not None and not self.only(route_path(scope))):
             await self.app(scope, receive, send)
             return
         started = False

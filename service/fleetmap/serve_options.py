@@ -251,6 +251,16 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         "by spaces; '*': any; default 127.0.0.1, or uvicorn's $FORWARDED_ALLOW_IPS",
     )
     p.add_argument(
+        "--root-path",
+        type=_root_path,
+        default="",
+        metavar="PREFIX",
+        help="the path under which a reverse proxy serves the service, stripping it from the requests "
+        "it passes on (/fleetmap for https://host/fleetmap/ proxied to the service's root): the "
+        "Location of a made map, /docs, the session cookie's Path and the OpenAPI servers then "
+        "name it; default none (served at the root)",
+    )
+    p.add_argument(
         "--max-event-streams",
         type=_int_between(1, 100_000),
         default=256,
@@ -538,6 +548,32 @@ def _proxy_address(text: str) -> str:
         message += " (separate addresses with spaces, not commas)"
     elif ":" not in text and any(c.isalpha() for c in text):  # a name, not a mistyped IPv6 address
         message += " (host names are not looked up)"
+    raise argparse.ArgumentTypeError(message)
+
+
+#: A path prefix as `--root-path` takes it: `/` and segments of the characters a URL's path may hold
+#: as they are (RFC 3986, 3.3), a percent-encoded byte included.
+_ROOT_PATH = re.compile(r"^(/([A-Za-z0-9._~!$&'()*+,;=:@-]|%[0-9A-Fa-f]{2})+)+$")
+
+
+def _root_path(text: str) -> str:
+    """An argparse `type` for `--root-path`: a path prefix (`/fleetmap`, `/a/b`), written without its
+    trailing `/`, or empty (`/` too: served at the root). It is put before every path the service
+    names (uvicorn adds it to each request's path, as ASGI's root_path), so it must be a URL path as
+    it is sent: uvicorn encodes it as ASCII for every request, and a character outside ASCII failed
+    every one."""
+    text = text.strip().rstrip("/")
+    if not text or _ROOT_PATH.match(text):
+        return text
+    message = f"expected a URL path such as /fleetmap, got {text!r}"
+    if not text.startswith("/"):
+        message += " (it starts with '/')"
+    elif "//" in text:
+        message += " (no empty segment: '//')"
+    elif any(c in text for c in "?#"):
+        message += " (a path only: no query or fragment)"
+    else:
+        message += " (characters other than letters, digits and -._~!$&'()*+,;=:@ are percent-encoded)"
     raise argparse.ArgumentTypeError(message)
 
 

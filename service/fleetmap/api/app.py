@@ -464,7 +464,10 @@ def _declare_map_etags(schema: dict[str, Any]) -> None:
     # of a PUT the made map's `Location` (`http_semantics.created_status`): both were sent, and a
     # generated client knew neither from the spec.
     current = {**etag, "description": "the map's current entity tag, when the map exists (send it again)"}
-    location = {"description": "the map made: /maps/{map_id}", "schema": {"type": "string"}}
+    location = {
+        "description": "the map made: /maps/{map_id} (under `--root-path`)",
+        "schema": {"type": "string"},
+    }
     for operations in paths.values():
         for operation in operations.values():
             responses = operation.get("responses", {})

@@ -31,6 +31,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from fleetmap.api.errors import error_answer
 from fleetmap.auth import is_read_request
+from fleetmap.route_path import route_path
 
 #: `Sec-Fetch-Site` values of requests the browser's user or the service's own pages started.
 _OWN_REQUESTS = ("same-origin", "none")
@@ -48,7 +49,7 @@ class CrossSiteWrites:
         if (
             scope["type"] != "http"
             or scope["method"] == "OPTIONS"
-            or is_read_request(scope["method"], scope["path"])
+            or is_read_request(scope["method"], route_path(scope))
         ):
             await self.app(scope, receive, send)
             return

@@ -29,6 +29,7 @@ from fleetmap.grid_map import LayerUnavailableError, RayLimitError
 from fleetmap.map_entry import IngestRejected
 from fleetmap.memory_budget import MemoryBudgetError
 from fleetmap.registry import InvalidId, MapConflict, MapNotFound, NotDurable
+from fleetmap.route_path import route_path
 from fleetmap.scan import ScanError
 from fleetmap.tile_render import TileError
 from fleetmap.tiles import TileLimitError
@@ -177,7 +178,7 @@ class BodyLimitMiddleware:
             await self.app(scope, receive, send)
             return
         limit = self.max_bytes
-        if scope["method"] == "PUT" and _SNAPSHOT_PATH.fullmatch(scope["path"]):
+        if scope["method"] == "PUT" and _SNAPSHOT_PATH.fullmatch(route_path(scope)):
             limit = self.max_snapshot_bytes
         coding, has_body = None, False
         for name, value in scope.get("headers", ()):
@@ -380,7 +381,7 @@ def _allowed_methods(app: FastAPI, scope: Scope) -> str:
         for method in ("GET", "PUT", "POST", "DELETE", "PATCH"):
             if route.matches({**base, "method": method})[0] == Match.FULL:
                 allowed.add(method)
-    if "GET" in allowed and head_allowed(scope["path"]):
+    if "GET" in allowed and head_allowed(route_path(scope)):
         allowed.add("HEAD")  # answered by `HeadAsGet`, in front of the routes
     return ", ".join(sorted(allowed))
 

@@ -44,6 +44,8 @@ from starlette.requests import Request
 from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from fleetmap.route_path import root_path, route_path
+
 #: Answers smaller than this are sent as they are: a few hundred bytes gain nothing worth a
 #: Content-Encoding (and a tiny gzip body can be larger than the original).
 GZIP_MINIMUM_BYTES = 1024
@@ -96,7 +98,7 @@ class HeadAsGet:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["method"] != "HEAD" or not head_allowed(scope["path"]):
+        if scope["type"] != "http" or scope["method"] != "HEAD" or not head_allowed(route_path(scope)):
             await self.app(scope, receive, send)
             return
 
@@ -218,11 +220,13 @@ class NegotiatedGZip(GZipMiddleware):
             scope["headers"] = original
 
 
-def created_status(response: Response, map_id: str, *, created: bool) -> None:
-    """A PUT's status: 201 with the map's `Location` when it made the map, else 200 (RFC 9110, 9.3.4)."""
+def created_status(request: Request, response: Response, map_id: str, *, created: bool) -> None:
+    """A PUT's status: 201 with the map's `Location` when it made the map, else 200 (RFC 9110, 9.3.4).
+    The `Location` is the map's path under the path the service is served under (`--root-path`):
+    `/maps/{map_id}` was outside it behind a proxy that serves the service under a prefix."""
     if created:
         response.status_code = 201
-        response.headers["Location"] = f"/maps/{map_id}"
+        response.headers["Location"] = f"{root_path(request.scope)}/maps/{map_id}"
     else:
         response.status_code = 200
 

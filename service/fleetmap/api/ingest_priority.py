@@ -27,6 +27,8 @@ from collections.abc import Callable
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from fleetmap.route_path import route_path
+
 #: Seconds between two looks at the backlog while requests wait.
 POLL_SECONDS = 0.002
 
@@ -109,7 +111,7 @@ def _release(future: asyncio.Future[bool], timed_out: bool) -> None:
 
 def is_exempt(scope: Scope) -> bool:
     """Requests the gate never delays: health, metrics and scans posted over HTTP."""
-    path = scope.get("path", "")
+    path = route_path(scope)
     if path in EXEMPT_PATHS:
         return True
     return scope.get("method") == "POST" and path.startswith("/maps/") and path.endswith("/scans")

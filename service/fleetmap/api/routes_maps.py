@@ -59,6 +59,7 @@ def list_maps(state: State) -> MapList:
 def put_map(
     map_id: MapId,
     state: State,
+    request: Request,
     response: Response,
     conditions: Conditions,
     # Not `| None`: then a JSON null was taken for no body, the server's default configuration;
@@ -89,7 +90,7 @@ def put_map(
         expect = given.only_as_its_map(expect)
         given = given.config
     entry, created = state.registry.create(map_id, given, wait=True, expect=expect)
-    created_status(response, map_id, created=created)
+    created_status(request, response, map_id, created=created)
     tag_map(response, entry)
     return map_info(entry, state.registry.lock)
 

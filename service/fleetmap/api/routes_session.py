@@ -24,6 +24,7 @@ from fleetmap.auth import (
     session_cookie,
     session_value,
 )
+from fleetmap.route_path import root_path
 
 router = APIRouter(route_class=StrictRoute)
 
@@ -34,10 +35,15 @@ _CACHE_CONTROL = "no-store"
 def _set_cookie_spec(cookie: str) -> dict[str, Any]:
     """The spec of a `Set-Cookie` header setting `cookie` (`auth.session_cookie`'s attributes)."""
     return {
-        "description": f"`{cookie}; HttpOnly; SameSite=Strict; Path=/`, and `Secure` when the request "
-        "came over https",
+        "description": f"`{cookie}; HttpOnly; SameSite=Strict; Path=/` (the path the service is served "
+        "under: `--root-path`'s behind a proxy), and `Secure` when the request came over https",
         "schema": {"type": "string"},
     }
+
+
+def _cookie_path(request: Request) -> str:
+    """The cookie's `Path`: the path the service is served under (`--root-path`), `/` at the root."""
+    return root_path(request.scope) or "/"
 
 
 def _over_https(request: Request) -> bool:
@@ -91,7 +97,8 @@ async def sign_in(request: Request, response: Response, state: State) -> Session
     role = tokens.role_of(token) if token is not None else None
     if token is None or role is None:
         raise ApiError(401, "signing in needs a valid token: send 'Authorization: Bearer <token>'")
-    response.headers.append("Set-Cookie", session_cookie(session_value(token), secure=_over_https(request)))
+    cookie = session_cookie(session_value(token), secure=_over_https(request), path=_cookie_path(request))
+    response.headers.append("Set-Cookie", cookie)
     response.headers["Cache-Control"] = _CACHE_CONTROL
     return Session(role=role)
 
@@ -114,7 +121,7 @@ async def sign_out(request: Request) -> Response:
     forget its cookie, and must work once the token is revoked too. To end a session for every
     browser that holds it, revoke its token (token file and SIGHUP)."""
     headers = {
-        "Set-Cookie": cleared_session_cookie(secure=_over_https(request)),
+        "Set-Cookie": cleared_session_cookie(secure=_over_https(request), path=_cookie_path(request)),
         "Cache-Control": _CACHE_CONTROL,
     }
     return Response(status_code=204, headers=headers)

@@ -382,7 +382,7 @@ async def install_upload(
             if revoked is not None:
                 raise ApiError(401, revoked, headers={"WWW-Authenticate": CHALLENGE})
             read_with = config if reads_config else ANY_CONFIG
-            return await _install(state, map_id, response, gmap, conditions, reservation, read_with)
+            return await _install(state, map_id, request, response, gmap, conditions, reservation, read_with)
 
 
 #: `_install`'s `read_with` for an upload that holds its own configuration (a snapshot): it replaces
@@ -409,6 +409,7 @@ def read_for_the_map_there(
 async def _install(
     state: State,
     map_id: str,
+    request: Request,
     response: Response,
     gmap: GridMap,
     conditions: Preconditions,
@@ -452,6 +453,6 @@ async def _install(
         state.tiles.drop_map(map_id)
         raise
     state.tiles.drop_map(map_id)
-    created_status(response, map_id, created=found[-1] is None)
+    created_status(request, response, map_id, created=found[-1] is None)
     tag_map(response, entry)
     return map_info(entry, state.registry.lock)

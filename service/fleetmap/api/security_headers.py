@@ -23,6 +23,7 @@ from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fleetmap.auth import is_viewer_file
+from fleetmap.route_path import route_path
 
 #: What the web viewer (clients/web, and Leaflet) loads, and nothing more:
 #: - scripts (`leaflet.js`; `app.js` and the ES modules it imports from `/static/`) and style sheets
@@ -70,7 +71,7 @@ class SecurityHeaders:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        viewer = is_viewer_file(scope["path"])
+        viewer = is_viewer_file(route_path(scope))
 
         async def with_security_headers(message: Message) -> None:
             if message["type"] == "http.response.start":

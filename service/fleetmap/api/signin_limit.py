@@ -35,6 +35,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from fleetmap.api.errors import error_answer
 from fleetmap.auth import SESSION_PATH
 from fleetmap.failed_signins import SignInLimiter
+from fleetmap.route_path import route_path
 
 #: The prefix length by which IPv6 clients are counted.
 IPV6_PREFIX = 64
@@ -70,7 +71,7 @@ class SignInLimit:
         self.limiter = limiter
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["method"] != "POST" or scope["path"] != SESSION_PATH:
+        if scope["type"] != "http" or scope["method"] != "POST" or route_path(scope) != SESSION_PATH:
             await self.app(scope, receive, send)
             return
         address = client_address(scope)
