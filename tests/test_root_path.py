@@ -118,6 +118,12 @@ def test_urls_the_service_names_are_under_the_prefix(proxied: tuple[ServiceProce
         assert http.get(f"{url}/maps").status_code == 200  # reads need no token (no --require-read-token)
         assert http.put(f"{url}/maps/c").status_code == 401  # writes do
 
+        # A 404's hint and a 405's Allow are the routes' under the prefix too.
+        for path, hint in [("/maps/a/", f"{PREFIX}/maps/a"), ("//", f"{PREFIX}/")]:
+            detail = http.get(url + path).json()["detail"]
+            assert detail == f"no such resource: {PREFIX}{path} (did you mean {hint}?)", detail
+        assert http.post(f"{url}/static/app.js", headers=write).headers["allow"] == "GET, HEAD"
+
         # The session cookie is the prefix's (Secure: the proxy said https), and reads with it.
         signed = http.post(f"{url}/session", headers={"Authorization": f"Bearer {READ}"})
         assert signed.status_code == 200, signed.text

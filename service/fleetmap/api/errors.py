@@ -29,7 +29,7 @@ from fleetmap.grid_map import LayerUnavailableError, RayLimitError
 from fleetmap.map_entry import IngestRejected
 from fleetmap.memory_budget import MemoryBudgetError
 from fleetmap.registry import InvalidId, MapConflict, MapNotFound, NotDurable
-from fleetmap.route_path import route_path
+from fleetmap.route_path import root_path, route_path
 from fleetmap.scan import ScanError
 from fleetmap.tile_render import TileError
 from fleetmap.tiles import TileLimitError
@@ -371,7 +371,7 @@ def _allowed_methods(app: FastAPI, scope: Scope) -> str:
     # Probed from the app's root: a request refused inside a mount (a POST to a viewer file) has
     # the mount's scope, whose root path ends with the mount's prefix, so no route of the app
     # matched its path and `Allow` was empty.
-    base = {**scope, "root_path": scope.get("app_root_path", scope.get("root_path", ""))}
+    base = {**scope, "root_path": root_path(scope)}
     allowed = set()
     for route in app.router.routes:
         if isinstance(route, Mount):
@@ -390,10 +390,11 @@ def _slash_hint(app: FastAPI, scope: Scope) -> str:
     """For a path with a trailing slash that names a resource without it, the hint to drop the slash.
     (The app does not redirect: one URL per resource, and a redirect's `Location` built from the
     request is wrong behind a TLS-terminating proxy.)"""
-    path = scope["path"]
+    path = route_path(scope)
     if not path.endswith("/") or path == "/":
         return ""
-    bare = {**scope, "path": path.rstrip("/") or "/", "method": "GET"}
+    # The root path (`--root-path`) stays before the bare path: `//` under it is its `/`.
+    bare = {**scope, "path": root_path(scope) + (path.rstrip("/") or "/"), "method": "GET"}
     if any(route.matches(bare)[0] != Match.NONE for route in app.router.routes):
         return f" (did you mean {bare['path']}?)"
     return ""
