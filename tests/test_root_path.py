@@ -123,6 +123,12 @@ def test_urls_the_service_names_are_under_the_prefix(proxied: tuple[ServiceProce
             detail = http.get(url + path).json()["detail"]
             assert detail == f"no such resource: {PREFIX}{path} (did you mean {hint}?)", detail
         assert http.post(f"{url}/static/app.js", headers=write).headers["allow"] == "GET, HEAD"
+        # A proxy that passes the prefix on (nginx's `proxy_pass http://svc;`, no `/`) is told so.
+        kept = http.get(f"{url}{PREFIX}/maps").json()["detail"]
+        assert kept.endswith(
+            f"(the service was started with --root-path {PREFIX}, for a reverse proxy that "
+            "strips that prefix from the requests it passes on; this one still had it)"
+        ), kept
 
         # The session cookie is the prefix's (Secure: the proxy said https), and reads with it.
         signed = http.post(f"{url}/session", headers={"Authorization": f"Bearer {READ}"})

@@ -417,6 +417,19 @@ _CLIENT_ERRORS: tuple[tuple[type[Exception], int], ...] = (
 )
 
 
+def _kept_prefix_hint(scope: Scope) -> str:
+    """For a path that still starts with the root path once it is taken off (`--root-path /fleetmap`,
+    `/fleetmap/fleetmap/maps`), the hint that the proxy in front passed the prefix on: every request
+    through it is then a 404, which said nothing of why."""
+    root, path = root_path(scope), route_path(scope)
+    if root and (path == root or path.startswith(root + "/")):
+        return (
+            f" (the service was started with --root-path {root}, for a reverse proxy that strips that "
+            "prefix from the requests it passes on; this one still had it)"
+        )
+    return ""
+
+
 def install(app: FastAPI) -> None:
     """Register the handlers that turn every error into `ErrorResponse` JSON."""
 
@@ -428,7 +441,8 @@ def install(app: FastAPI) -> None:
     async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
         if exc.status_code == 404 and detail == "Not Found":
-            detail = f"no such resource: {request.url.path}{_slash_hint(app, request.scope)}"
+            hint = _slash_hint(app, request.scope) or _kept_prefix_hint(request.scope)
+            detail = f"no such resource: {request.url.path}{hint}"
         elif exc.status_code == 405 and detail == "Method Not Allowed":
             # Starlette's Allow lists the first matching route's methods only; list every route's.
             allowed = _allowed_methods(app, request.scope)
