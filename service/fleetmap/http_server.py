@@ -61,7 +61,7 @@ def url_host(host: str) -> str:
 def _trusted_proxies(addresses: list[str] | None) -> list[str] | str | None:
     """uvicorn's `forwarded_allow_ips` for `--forwarded-allow-ips ADDRESS ...`
     (`serve_options._proxy_address`): None, uvicorn's own default ($FORWARDED_ALLOW_IPS, else
-    127.0.0.1), when not given; `*` when one of them is `*` (uvicorn trusts every client only for `*`
+    127.0.0.1 and ::1), when not given; `*` when one of them is `*` (uvicorn trusts every client only for `*`
     alone: in a list, `*` was ignored)."""
     if addresses is not None and "*" in addresses:
         return "*"

@@ -248,7 +248,7 @@ def add_serve_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         metavar="IP",
         help="addresses (or networks, 10.0.0.0/8) of the reverse proxies whose X-Forwarded-Proto / "
         "-For headers are trusted (the session cookie's Secure, the access log's client), separated "
-        "by spaces; '*': any; default 127.0.0.1, or uvicorn's $FORWARDED_ALLOW_IPS",
+        "by spaces; '*': any; default 127.0.0.1 and ::1, or uvicorn's $FORWARDED_ALLOW_IPS",
     )
     p.add_argument(
         "--root-path",

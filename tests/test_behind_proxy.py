@@ -1,6 +1,7 @@
-"""The service behind a reverse proxy that serves it under a path prefix (`fleetmap serve --root-path
-/fleetmap`, https://host/fleetmap/ proxied to the service's root, the prefix stripped as nginx's
-`location /fleetmap/ { proxy_pass http://svc/; }` does): the real service, through a real proxy."""
+"""The service behind a reverse proxy: under a path prefix (`fleetmap serve --root-path /fleetmap`,
+https://host/fleetmap/ proxied to the service's root, the prefix stripped as nginx's
+`location /fleetmap/ { proxy_pass http://svc/; }` does), the real service through a real proxy; and
+the proxies it trusts (`--forwarded-allow-ips`)."""
 
 from __future__ import annotations
 
@@ -174,3 +175,16 @@ def test_root_path_takes_a_url_path_and_names_what_is_wrong(capsys: pytest.Captu
         said = capsys.readouterr().err
         assert f"--root-path: expected a URL path such as /fleetmap, got {given!r} (" in said, said
         assert said.endswith(f"{hint} (see fleetmap serve --help)\n"), said
+
+
+def test_forwarded_allow_ips_help_gives_uvicorns_default(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--forwarded-allow-ips`' help said its default was 127.0.0.1, where uvicorn, which applies it,
+    trusts ::1 as well (a proxy on this machine connecting over IPv6 is trusted too)."""
+    import uvicorn
+
+    monkeypatch.delenv("FORWARDED_ALLOW_IPS", raising=False)
+    default = uvicorn.Config(app=None).forwarded_allow_ips
+    assert isinstance(default, str)
+    _, sub = cli.command_line_parser()
+    (action,) = [a for a in sub.choices["serve"]._actions if "--forwarded-allow-ips" in a.option_strings]
+    assert f"default {' and '.join(default.split(','))}," in (action.help or ""), (default, action.help)
