@@ -410,6 +410,14 @@ def test_a_viewer_not_installed_is_a_404_for_each_of_its_files(tmp_path: Path) -
         assert c.get("/static/missing.js").status_code == 404
 
 
+def test_a_viewer_not_installed_names_the_api_pages_under_the_root_path(tmp_path: Path) -> None:
+    """Its 404 said "the API is at /docs", outside the path a proxy serves the service under."""
+    with running_api(ApiSettings(web_dir=tmp_path / "viewer"), root_path="/fleetmap") as running:
+        for path in ("/", "/static/app.js"):
+            detail = running.client.get(path).json()["detail"]
+            assert detail.endswith("not found); the API is at /fleetmap/docs"), (path, detail)
+
+
 # -- scans, cells and regions against the engine -------------------------------------------------------
 
 

@@ -41,9 +41,11 @@ class RunningApi:
 
 
 @contextmanager
-def running_api(settings: ApiSettings | None = None, **registry_args: object) -> Iterator[RunningApi]:
-    """Start registry workers and a uvicorn server for `create_app(registry, settings=settings)`;
-    stop both on exit."""
+def running_api(
+    settings: ApiSettings | None = None, root_path: str = "", **registry_args: object
+) -> Iterator[RunningApi]:
+    """Start registry workers and a uvicorn server for `create_app(registry, settings=settings)`
+    (served under `root_path`, as `fleetmap serve --root-path` serves it); stop both on exit."""
     metrics = IntegrationMetrics()
     registry = MapRegistry(on_integrated=metrics.on_integrated, **registry_args)  # type: ignore[arg-type]
     registry.start()
@@ -52,7 +54,9 @@ def running_api(settings: ApiSettings | None = None, **registry_args: object) ->
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
-    config = uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=1, lifespan="off")
+    config = uvicorn.Config(
+        app, log_level="warning", timeout_graceful_shutdown=1, lifespan="off", root_path=root_path
+    )
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()

@@ -19,14 +19,18 @@ from starlette.types import Receive, Scope, Send
 
 from fleetmap.api.errors import ApiError
 from fleetmap.api.http_semantics import etag_matches, gzips, joined_field_lines, negotiated
+from fleetmap.route_path import root_path
 
 #: Leaflet's files (leaflet.js, leaflet.css, images/).
 LEAFLET_DIR = Path(leaflet.BASE_DIR)
 
 
-def _not_installed(place: Path) -> ApiError:
-    """The 404 of a request for the web viewer where it is not installed."""
-    return ApiError(404, f"the web viewer is not installed ({place} not found); the API is at /docs")
+def _not_installed(place: Path, scope: Scope) -> ApiError:
+    """The 404 of a request for the web viewer where it is not installed, naming the API's pages under
+    the path the service is served under (`--root-path`): `/docs` was outside it behind a proxy."""
+    return ApiError(
+        404, f"the web viewer is not installed ({place} not found); the API is at {root_path(scope)}/docs"
+    )
 
 
 class WholeFileResponse(FileResponse):
@@ -98,9 +102,16 @@ class _ViewerFolder(ViewerFiles):
     clients/web). The check runs again at the next request until the folder is there."""
 
     async def check_config(self) -> None:
+        # A missing folder is `get_response`'s 404, whose message needs the request's scope; the
+        # folder is looked for at every request, so one installed later is served.
         if self.directory is not None and not Path(self.directory).is_dir():
-            raise _not_installed(Path(self.directory))
+            return
         await super().check_config()
+
+    async def get_response(self, path: str, scope: Scope) -> Response:
+        if self.directory is not None and not Path(self.directory).is_dir():
+            raise _not_installed(Path(self.directory), scope)
+        return await super().get_response(path, scope)
 
 
 def install(app: FastAPI, web_dir: Path) -> None:
@@ -115,7 +126,7 @@ def install(app: FastAPI, web_dir: Path) -> None:
     def index(request: Request) -> Response:
         page = web_dir / "index.html"
         if not page.is_file():
-            raise _not_installed(page)
+            raise _not_installed(page, request.scope)
         # As the files under /static/ are answered: a browser revalidating the page (`no-cache`, on
         # every load) with its ETag gets 304, not the whole page again.
         return viewer_files.file_response(page, page.stat(), request.scope)
