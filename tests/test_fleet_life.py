@@ -408,3 +408,58 @@ def test_a_service_restart_gives_the_session_bookkeeping_it_had(tmp_path: Path) 
             assert twins_now["id_conflicts"] == 2
     finally:
         svc.stop()
+
+
+def test_twenty_robots_under_one_robot_id_are_told_apart_also_after_a_service_restart(
+    tmp_path: Path,
+) -> None:
+    """Twenty robots under one id (a fleet started from one image with its default id), more than
+    the 16 sessions a robot's bookkeeping held: each session was pushed out of them before it came
+    back, so each of its scans looked like a new session (a restart, its seqs before it lost, and
+    one conflict more each time). And the sessions pushed out were not saved: after a restart of
+    the service the robots' caches, fetched again, were integrated a second time for those (with
+    ten robots under one id, two of them). Now every session is known: 19 conflicts, nothing lost
+    or restarted, and after a clean restart copies of every scan are duplicates, each session's
+    next scan goes on from its own seq, and the delivery query answers for a session pushed out."""
+    svc = ServiceProcess(tmp_path, ["--snapshot-interval", "3600"])
+    svc.start()
+    robots, scans = 20, 3
+    sessions = [new_session_id() for _ in range(robots)]
+
+    def put_round(pub: zenoh.Publisher, seqs: range) -> None:
+        for seq in seqs:
+            for sid in sessions:
+                pub.put(codec.encode_binary(scan_at(0.01 * seq), seq, 100.0 + seq, session=sid))
+
+    try:
+        with httpx.Client(base_url=svc.base_url, timeout=10.0) as http:
+            with raw_publishers(svc.zenoh_endpoint, "life-crowd", ["r"]) as pubs:
+                put_round(pubs["r"], range(scans))
+                live = wait_integrated(http, "life-crowd", "r", robots * scans)
+            assert counters(live) == (robots * scans, scans - 1, 0, 0, 0)
+            assert (live["id_conflict"], live["id_conflicts"]) == (True, robots - 1)
+            assert svc.stop() == 0  # a clean stop: snapshotted, the journal empty
+            svc.start()
+            assert robot_stats(http, "life-crowd", "r") == live
+            with raw_publishers(svc.zenoh_endpoint, "life-crowd", ["r"]) as pubs:
+                put_round(pubs["r"], range(scans))  # the caches fetched again: copies
+                put_round(pubs["r"], range(scans, scans + 1))  # and each robot's next scan
+                now = wait_for(
+                    lambda: (s := robot_stats(http, "life-crowd", "r"))
+                    and s["scans_integrated"] + s["duplicates"] == robots * (2 * scans + 1) and s,
+                    timeout=20, what="every copy and next scan counted",
+                )  # fmt: skip
+            assert counters(now) == (robots * (scans + 1), scans, 0, robots * scans, 0)
+            assert now["id_conflicts"] == robots - 1
+            cfg = zenoh.Config()
+            cfg.insert_json5("mode", '"client"')
+            cfg.insert_json5("connect/endpoints", json.dumps([svc.zenoh_endpoint]))
+            with zenoh.open(cfg) as session:
+                key = f"fleetmap/life-crowd/r/delivery?session={sessions[0]}"
+                replies = list(session.get(key, timeout=10))
+            answer = json.loads(replies[0].ok.payload.to_string())  # type: ignore[union-attr]
+            assert [(s["session"], s["integrated"], s["settled"]) for s in answer["sessions"]] == [
+                (sessions[0], scans + 1, scans)
+            ]
+    finally:
+        svc.stop()

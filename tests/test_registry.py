@@ -9,6 +9,7 @@ import re
 import sqlite3
 import threading
 import time
+import tracemalloc
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,13 @@ from fleetmap.grid_map import GridMap
 from fleetmap.map_entry import IngestRejected
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import InvalidId, MapConflict, MapNotFound, MapRegistry
-from fleetmap.robot_state import CONFLICT_SHOWN, MAX_SESSIONS, RobotState
+from fleetmap.robot_state import (
+    CONFLICT_SHOWN,
+    MAX_SESSIONS,
+    MAX_SESSIONS_PUSHED_OUT,
+    PUSHED_OUT_EXPIRY,
+    RobotState,
+)
 from fleetmap.scan import Scan
 
 
@@ -719,6 +726,90 @@ def test_a_robots_sessions_stay_bounded_and_survive_its_saved_state() -> None:
     assert restored.sessions == robot.sessions and restored.saved() == robot.saved()
     assert restored.is_duplicate(0, 0.0, 1000 + 3 * MAX_SESSIONS - 1)
     assert not restored.in_conflict(1.0)
+
+
+def test_many_robots_under_one_id_stay_told_apart_in_bounded_memory_and_saved_state() -> None:
+    """136 sessions under one robot id, each pushed out by the others before it comes back, are
+    all still known: one conflict each but the first, nothing restarted or lost, a copy of a scan
+    of the session pushed out longest ago a duplicate, counted in its ledger; so after the saved
+    state is read back (the sessions pushed out were not saved: their copies, a robot's cache
+    fetched again after a restart of the service, were new). A session more pushes the oldest out
+    for good, as does the robot's PUSHED_OUT_EXPIRY-th scan since a session's last: each comes back
+    as a new session (a restart). Their rows hold the memory the docs say."""
+    crowd = MAX_SESSIONS + MAX_SESSIONS_PUSHED_OUT
+    robot = RobotState()
+    for seq in range(3):
+        for session in range(1, crowd + 1):
+            assert not robot.is_duplicate(seq, float(seq), session)
+            robot.accept(seq, float(seq), session, now=1.0)
+    assert (robot.restarts, robot.lost, robot.id_conflicts) == (0, 0, crowd - 1)
+    assert len(robot.pushed_out) == MAX_SESSIONS_PUSHED_OUT and not robot.settling
+    saved = json.loads(json.dumps(robot.saved()))
+    restored = RobotState.from_saved(saved)
+    assert restored.pushed_out == robot.pushed_out and restored.saved() == robot.saved()
+    row = saved["pushed_out"][0]
+    for damaged in (
+        "x",
+        [row[:-1]],
+        [[*row[:-1], "1"]],
+        [[row[0], 1.5, *row[2:]]],
+        [[2**63, *row[1:]]],
+        [[*row[:4], -1, *row[5:]]],
+    ):
+        with pytest.raises(ValueError, match="pushed_out|wrong shape"):
+            RobotState.from_saved({**saved, "pushed_out": damaged})
+    for state in (robot, restored):
+        assert state.is_duplicate(1, 1.0, 1)
+        assert state.count_duplicate(1).ledger.duplicates == 1
+        seqs = state.session_seqs(1)
+        assert seqs is not None and (seqs.last_seq, seqs.ledger.integrated, seqs.ledger.duplicates) == (
+            2,
+            0,
+            1,
+        )
+        assert not state.is_duplicate(3, 3.0, 1)
+        state.accept(3, 3.0, 1, now=2.0)  # back from the oldest row: no restart, no conflict more
+        assert (state.restarts, state.lost, state.id_conflicts) == (0, 0, crowd - 1)
+
+    robot.accept(0, 9.0, crowd + 1, now=3.0)  # one more: session 2, pushed out longest ago, goes
+    assert 2 not in robot.pushed_out and len(robot.pushed_out) == MAX_SESSIONS_PUSHED_OUT
+    assert not robot.is_duplicate(2, 2.0, 2)
+    assert 3 in robot.pushed_out
+    robot.accepted += PUSHED_OUT_EXPIRY  # (a million scans of sessions heard since)
+    robot.accept(0, 9.0, crowd + 2, now=3.0)  # pushes one out: every row expired
+    assert not robot.pushed_out and len(robot.sessions) == MAX_SESSIONS
+    assert not robot.is_duplicate(2, 2.0, 3)
+    restarts = robot.restarts
+    robot.accept(3, 3.0, 3, now=3.0)
+    assert robot.restarts == restarts + 1
+
+    saved = json.loads(json.dumps(restored.saved()))  # (with session 1's last scan, 3)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        with_rows = RobotState.from_saved(saved)
+        middle = tracemalloc.get_traced_memory()[0]
+        without = RobotState.from_saved({**saved, "pushed_out": []})
+        rows = (middle - before) - (tracemalloc.get_traced_memory()[0] - middle)
+    finally:
+        tracemalloc.stop()
+    assert len(with_rows.pushed_out) == MAX_SESSIONS_PUSHED_OUT and not without.pushed_out
+    assert 10_000 < rows < 16_000  # about 14 kB (docs/security.md)
+
+
+def test_a_session_whose_lost_count_passes_64_bits_is_pushed_out_all_the_same() -> None:
+    """Scans without a session id that restart at seqs near 2**63 (a seq below the last, a later
+    stamp) each add their seq to the session's `lost`: past what a pushed-out session's row holds,
+    the scan of a ninth session that pushed it out failed (struct.error under the registry's lock)."""
+    robot = RobotState()
+    for stamp, seq in enumerate([2**63 - 1, 2**63 - 2, 2**63 - 3, *range(MAX_SESSIONS)]):
+        session = None if seq > MAX_SESSIONS else 1 + seq
+        robot.accept(seq, float(stamp), session, now=1.0)
+        ledger = robot.sessions[session or 0].ledger
+        ledger.settle(ledger.open(seq), integrated=True)
+    plain = robot.session_seqs(None)
+    assert 0 in robot.pushed_out and plain is not None and plain.ledger.lost == 2**63 - 1
+    assert robot.lost == (2**63 - 2) + (2**63 - 3) + sum(range(MAX_SESSIONS))  # (unclamped)
 
 
 def test_a_robots_scans_refused_for_the_services_sake_survive_its_saved_state() -> None:

@@ -55,8 +55,9 @@ def delivery_status(
         # Asked for by its id, a session pushed out of the recent ones (more robots under one id
         # than they hold) is answered too: else its robot's flush found none of its scans counted.
         sessions: Iterable[tuple[int, SessionSeqs]] = robot.sessions.items()
-        if session is not None and (pushed_out := robot.pushed_out.get(session)) is not None:
-            sessions = [(session, pushed_out)]
+        if session is not None and session not in robot.sessions:
+            pushed_out = robot.session_seqs(session)
+            sessions = [] if pushed_out is None else [(session, pushed_out)]
         rows = [
             _session_row(key, seqs)
             for key, seqs in sessions

@@ -793,10 +793,7 @@ class MapRegistry:
             robot.last_heard = now = time.time()
             seq, stamp, session = wire.seq, wire.stamp, wire.session
             if robot.is_duplicate(seq, stamp, session):
-                robot.duplicates += 1
-                seqs = robot.session_seqs(session)
-                assert seqs is not None  # a duplicate of a session it knows (perhaps pushed out)
-                seqs.ledger.duplicates += 1
+                seqs = robot.count_duplicate(session)
                 raise IngestRejected(f"duplicate seq {seq} (last accepted {seqs.last_seq})", 200)
             job = Job(map_id, robot_id, wire, entry.generation, time.monotonic())
             if defer_when_full and (full := self.queue.refusal((map_id, robot_id), job)) is not None:
@@ -933,10 +930,7 @@ class MapRegistry:
             if scan_id is not None and scan_id[2] is not None:
                 seq, stamp, session = scan_id
                 if robot.is_duplicate(seq, stamp, session):
-                    robot.duplicates += 1
-                    seqs = robot.session_seqs(session)
-                    assert seqs is not None  # a duplicate of a session it knows (perhaps pushed out)
-                    seqs.ledger.duplicates += 1
+                    robot.count_duplicate(session)
                     return
                 robot.accept(seq, stamp, session, now)
                 ledger = robot.sessions[session_key(session)].ledger

@@ -6,11 +6,13 @@ holds its lock around every use."""
 
 from __future__ import annotations
 
+import struct
 from array import array
 from collections import deque
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from fleetmap.pushed_out import PushedOutRows, Value
 from fleetmap.scan import Pose2D
 
 #: Poses kept per robot for viewers' trails.
@@ -22,11 +24,21 @@ MAX_SESSIONS = 8
 #: (`RobotState.pushed_out`), so that more robots than MAX_SESSIONS under one id (a fleet started
 #: from one image with its default id) are an id conflict: each session was pushed out by the others
 #: before it came back, and taken for a new session each time (a restart, its seqs before it lost:
-#: nine robots counted 180 restarts and 180,000 lost in 20 scans each, and no conflict): so up to
-#: 16 robots under one id are told apart. Not saved, and listed by the delivery query only when
-#: asked for by its id (a flush); each keeps its ledger's counts, not its lists: about 1.6 kB
-#: (tracemalloc), 13 kB for all 8.
-MAX_SESSIONS_PUSHED_OUT = 8
+#: nine robots counted 180 restarts and 180,000 lost in 20 scans each, and no conflict), and its
+#: copies (its cache fetched again after a restart of the service) for new scans, integrated twice.
+#: So up to 136 robots under one id are told apart. Saved with the robot, and listed by the delivery
+#: query only when asked for by its id (a flush). Each keeps its seqs and its ledger's counts, not
+#: its lists, as a row of numbers (`PushedOutRows`): 105 bytes, about 14 kB for all 128 with the
+#: buffer's slack (tracemalloc; as objects, 8 of them took 13 kB).
+MAX_SESSIONS_PUSHED_OUT = 128
+#: A session pushed out is forgotten once the robot has accepted this many scans of its other
+#: sessions since its last (a day and more of a robot's 10 scans a second): a robot that restarts
+#: every hour does not keep 128 sessions of processes long gone in its bookkeeping and its saved
+#: state. Counted in scans, not seconds: while the service is down, or the robot's sessions all
+#: silent, none is forgotten, so a robot's cache fetched again after a long stop of the service is
+#: still told from new scans. A session that comes back after it was forgotten is a new one (a
+#: restart, its seqs before it lost), as one pushed out of MAX_SESSIONS_PUSHED_OUT is.
+PUSHED_OUT_EXPIRY = 1_000_000
 #: Seconds a robot is shown in an id conflict (`RobotState.in_conflict`) after its last scan that
 #: interleaved with another session's.
 CONFLICT_SHOWN = 60.0
@@ -322,6 +334,31 @@ class SessionSeqs:
         return not (stamp != 0 and stamp == self.start_stamp)
 
 
+#: A pushed-out session's row (`RobotState.pushed_out`, `PushedOutRows`'s kinds of column): its
+#: seqs (`SessionSeqs.saved`: last_seq, stamp, first_scan_no, last_scan_no, start_lost, conflict),
+#: its ledger's counts (`SessionLedger.saved`) and its `start_stamp`.
+_PUSHED_OUT_LAYOUT = "qdqqq?" + "qqqqqq" + "d"
+_LAST_SCAN_NO, _START_LOST, _CONFLICT = 3, 4, 5  # its columns that a conflict found reads
+
+
+def _pushed_out_row(rec: SessionSeqs) -> list[Value]:
+    """The row of session `rec` (`_PUSHED_OUT_LAYOUT`), as far as its scans are settled: as a
+    snapshot saves a session (`SessionSeqs.saved`, `SessionLedger.saved`). Its ledger's counts at
+    most 2**63 - 1, what a row holds: seqs are below it, but scans without a session id that
+    restart at seqs near it add each seq to `lost` (two such made it too large for the row, and
+    the scan that pushed their session out an error under the registry's lock)."""
+    first_seq, settled, *counts = rec.ledger.saved()
+    return [*rec.saved(), first_seq, settled, *(min(count, 2**63 - 1) for count in counts), rec.start_stamp]
+
+
+def _pushed_out_seqs(row: tuple[Value, ...]) -> SessionSeqs:
+    """The session of `row` (`_pushed_out_row`), its ledger's counts without their lists."""
+    rec = SessionSeqs(*row[:6])  # type: ignore[arg-type]
+    rec.ledger = SessionLedger.from_saved(list(row[6:12]))
+    rec.start_stamp = row[12]  # (a float or None: its column's kind)
+    return rec
+
+
 @dataclass
 class RobotState:
     """What the service knows of one robot on one map."""
@@ -353,11 +390,17 @@ class RobotState:
     #: is the current one, whose last seq is the robot's (`last_seq`).
     sessions: dict[int, SessionSeqs] = field(default_factory=dict)
     #: Sessions pushed out of `sessions` by newer ones (key `session_key`), least recently pushed
-    #: out first, at most MAX_SESSIONS_PUSHED_OUT: one that comes back ran beside those heard since
-    #: (an id conflict), it did not restart. Not saved: after a restart of the service, one such
-    #: session is taken for a restart once more, until another pushed out since comes back.
-    #: The delivery query answers for one asked for by its id (`delivery.delivery_status`).
-    pushed_out: dict[int, SessionSeqs] = field(default_factory=dict, repr=False)
+    #: out first, at most MAX_SESSIONS_PUSHED_OUT (and forgotten after PUSHED_OUT_EXPIRY), as rows
+    #: of numbers (`_pushed_out_row`): one that comes back ran beside those heard since (an id
+    #: conflict), it did not restart, and a copy of one of its scans is a duplicate. Saved: after a
+    #: restart of the service they were taken for new sessions, and the robots' caches fetched
+    #: again integrated a second time. The delivery query answers for one asked for by its id
+    #: (`delivery.delivery_status`). `session_seqs` reads one.
+    pushed_out: PushedOutRows = field(default_factory=lambda: PushedOutRows(_PUSHED_OUT_LAYOUT), repr=False)
+    #: Sessions pushed out while scans of theirs still wait (their receipts settle in their
+    #: ledgers, so not a row yet): each becomes a row of `pushed_out` once they are settled. As
+    #: many at most as the robot has scans queued.
+    settling: dict[int, SessionSeqs] = field(default_factory=dict, repr=False)
     accepted: int = 0  # scans accepted (the clock of the sessions' `first_scan_no`, `last_scan_no`)
     #: Sessions found interleaved with another session's, the first two of a conflict counting once
     #: (two robots publishing under one id: 1; three: 2, found at once or one after the other; one of
@@ -414,6 +457,11 @@ class RobotState:
         out["start_stamps"] = [
             [key, rec.start_stamp] for key, rec in self.sessions.items() if rec.start_stamp is not None
         ]
+        # Apart from the sessions too: a service from before it ignores it.
+        out["pushed_out"] = [
+            *([key, *row] for key, row in self.pushed_out.items()),
+            *([key, *_pushed_out_row(rec)] for key, rec in self.settling.items()),
+        ]
         # Oldest first; only those whose refusal the saved ledgers count: a re-send withdraws it.
         out["refused_scans"] = [[k, seq] for k, seq in self.refused_scans if self._refusal_saved(k, seq)]
         return out
@@ -423,7 +471,7 @@ class RobotState:
         session's saved seqs (`SessionSeqs.settled_seq`), and its receipt is not still open behind a
         scan not settled (`SessionLedger.saved` leaves those to be counted again after a crash, when
         they come again: then its seq is new as it is)."""
-        rec = self.sessions.get(key)
+        rec = self.session_seqs(key)
         if rec is None or seq > rec.settled_seq():
             return False
         return all(receipt.seq != seq for receipt in rec.ledger.open_receipts)
@@ -456,12 +504,23 @@ class RobotState:
                 for key, start_stamp in data.get("start_stamps", ()):
                     if int(key) in state.sessions:
                         state.sessions[int(key)].start_stamp = _number(start_stamp, "start_stamps")
+                for row in data.get("pushed_out", ()):
+                    if not (
+                        isinstance(row, list)
+                        and len(row) == 1 + len(_PUSHED_OUT_LAYOUT)
+                        and all(value is None or value >= 0 for value in _numbers(row, "pushed_out"))
+                    ):  # (a row stores None as -1)
+                        raise ValueError(f"a saved robot's pushed_out holds {row!r}, not a session's row")
+                    key, *values = row
+                    state.pushed_out.put(_check_saved("pushed_out", key, int), values)
                 state.refused_scans = _refused_scans(data.get("refused_scans", []))
             elif data.get("last_seq") is not None:
                 # Saved before sessions existed: every scan so far came without one.
                 last_seq = _check_saved("last_seq", data["last_seq"], int)
                 state.sessions = {NO_SESSION: SessionSeqs(last_seq, state.last_stamp, 0, 0)}
-        except (TypeError, KeyError, IndexError, AttributeError) as exc:  # (ValueError: as it is)
+        # (ValueError: as it is; struct.error, OverflowError: a pushed-out session's row of the
+        # wrong kinds, or numbers past 64 bits)
+        except (TypeError, KeyError, IndexError, AttributeError, struct.error, OverflowError) as exc:
             raise ValueError(f"a saved robot of the wrong shape: {exc}") from None
         return state
 
@@ -496,9 +555,29 @@ class RobotState:
 
     def session_seqs(self, session: int | None) -> SessionSeqs | None:
         """The bookkeeping of publisher session `session` (None: scans without one), one of the
-        recent `sessions` or one `pushed_out`; None if the robot knows no such session."""
+        recent `sessions` or one pushed out (`settling`, or `pushed_out`: then a copy of its row,
+        which `_keep` writes back once changed); None if the robot knows no such session."""
         key = session_key(session)
-        return self.sessions.get(key) or self.pushed_out.get(key)
+        rec = self.sessions.get(key) or self.settling.get(key)
+        if rec is None and (row := self.pushed_out.get(key)) is not None:
+            rec = _pushed_out_seqs(row)
+        return rec
+
+    def _keep(self, key: int, rec: SessionSeqs) -> None:
+        """Session `key`'s bookkeeping `rec`, from `session_seqs` and changed since, is kept: a
+        pushed-out one's row is written again (the others `rec` is)."""
+        if key in self.pushed_out:
+            self.pushed_out.put(key, _pushed_out_row(rec))
+
+    def count_duplicate(self, session: int | None) -> SessionSeqs:
+        """Count a scan of session `session` that `is_duplicate` found not new, on the robot and in
+        its session's ledger (perhaps a pushed-out one's); returns the session's bookkeeping."""
+        rec = self.session_seqs(session)
+        assert rec is not None  # a duplicate of a session it knows (perhaps pushed out)
+        self.duplicates += 1
+        rec.ledger.duplicates += 1
+        self._keep(session_key(session), rec)
+        return rec
 
     def accept(self, seq: int, stamp: float, session: int | None = None, now: float = 0.0) -> bool:
         """Record the scan `seq` of publisher session `session` as accepted (by `submit`, or replayed
@@ -529,12 +608,15 @@ class RobotState:
                     # a later stamp) is the last: without a session id a copy of it, its stamp
                     # later than the refused one's, was taken for a restart and integrated twice.
                     rec.stamp = stamp if rec.stamp is None else max(rec.stamp, stamp)
+                self._keep(key, rec)
             return False  # a re-send of a scan refused for the service's sake: its seq is recorded already
         self.accepted += 1
         rec = self.sessions.pop(key, None)
         if rec is None:  # back after others pushed it out: they ran beside it (below)
-            rec = self.pushed_out.pop(key, None)
-        beside: list[SessionSeqs] = []
+            rec = self.settling.pop(key, None)
+        if rec is None and (row := self.pushed_out.pop(key)) is not None:
+            rec = _pushed_out_seqs(row)
+        interleaved = False
         if rec is None:
             rec = SessionSeqs(seq, stamp, self.accepted, self.accepted)
             if self.sessions:
@@ -552,30 +634,61 @@ class RobotState:
                 rec.ledger.count_lost(seq - rec.last_seq - 1)
             # Those pushed out meanwhile too: one that started after `rec`'s last scan was taken
             # for a restart, withdrawn only if found here.
-            others = (*self.sessions.values(), *self.pushed_out.values())
+            others = (*self.sessions.values(), *self.settling.values())
             beside = [other for other in others if other.last_scan_no > rec.last_scan_no]
-            if beside:
-                self._conflict(rec, beside, now)
+            rows, unchanged = self._rows_heard_since(rec.last_scan_no)
+            interleaved = bool(beside or rows or unchanged)
+            if interleaved:
+                self._conflict(rec, [*beside, *rows.values()], unchanged, now)
+                for row_key, row_rec in rows.items():
+                    self._keep(row_key, row_rec)
             # The run's latest stamp (`SessionSeqs.stamp`); a restart's own starts its run.
             latest = max(rec.stamp, stamp) if seq > rec.last_seq and rec.stamp is not None else stamp
             rec.last_seq, rec.stamp, rec.last_scan_no = seq, latest, self.accepted
         if seq == 0:
             rec.start_stamp = stamp
         self.sessions[key] = rec
+        if len(self.sessions) > MAX_SESSIONS or self.settling:
+            self._push_out()
+        return interleaved
+
+    def _push_out(self) -> None:
+        """Push the least recently heard of `sessions` past MAX_SESSIONS out (`settling` while
+        scans of theirs wait, else `pushed_out`), and forget those pushed out past
+        MAX_SESSIONS_PUSHED_OUT or PUSHED_OUT_EXPIRY (the least recently pushed out first)."""
         while len(self.sessions) > MAX_SESSIONS:
             oldest = next(iter(self.sessions))
-            pushed = self.pushed_out[oldest] = self.sessions.pop(oldest)
+            pushed = self.settling[oldest] = self.sessions.pop(oldest)
             # Its counts stay (its scans still queued settle in them); not its lists, which made a
             # robot's pushed-out sessions hold 4 times as much as its recent ones (robot ids and
             # session ids made up by any Zenoh peer: docs/security.md). A flush then counts its
             # refusals and losses after its last seq too, as past LEDGER_HISTORY of them.
             pushed.ledger.refused_seqs = pushed.ledger.lost_gaps = None
-        while len(self.pushed_out) > MAX_SESSIONS_PUSHED_OUT:
-            del self.pushed_out[next(iter(self.pushed_out))]
-        return bool(beside)
+        for key in [key for key, rec in self.settling.items() if not rec.ledger.open_receipts]:
+            self.pushed_out.put(key, _pushed_out_row(self.settling.pop(key)))
+        heard = self.pushed_out.column(_LAST_SCAN_NO)
+        forget = max(0, len(heard) - MAX_SESSIONS_PUSHED_OUT)
+        while forget < len(heard) and heard[forget] <= self.accepted - PUSHED_OUT_EXPIRY:  # type: ignore[operator]
+            forget += 1
+        self.pushed_out.drop_first(forget)
 
-    def _conflict(self, back: SessionSeqs, beside: list[SessionSeqs], now: float) -> None:
-        """Session `back` came back after the sessions `beside` were heard: they ran at once."""
+    def _rows_heard_since(self, scan_no: int) -> tuple[dict[int, SessionSeqs], int]:
+        """The sessions of `pushed_out` heard after the robot's scan `scan_no` that a conflict
+        found now changes (not known to be in one yet, or counted as a restart: `_conflict`), as
+        copies of their rows by key, and how many others were heard after it."""
+        changed: dict[int, SessionSeqs] = {}
+        unchanged = 0
+        for key, row in self.pushed_out.items():
+            if row[_LAST_SCAN_NO] > scan_no:  # type: ignore[operator]
+                if row[_CONFLICT] and row[_START_LOST] is None:
+                    unchanged += 1
+                else:
+                    changed[key] = _pushed_out_seqs(row)
+        return changed, unchanged
+
+    def _conflict(self, back: SessionSeqs, beside: list[SessionSeqs], unchanged: int, now: float) -> None:
+        """Session `back` came back after the sessions `beside` and `unchanged` others (known to be
+        in a conflict, and not counted as restarts) were heard: they ran at once."""
         self.conflict_at = now
         for other in beside:
             if other.start_lost is not None and other.first_scan_no > back.last_scan_no:
@@ -589,7 +702,7 @@ class RobotState:
         # Each session found counts, but the first two of a conflict count once between them (two
         # robots under one id: 1): three found at once are 2, as a third found later adds 1. Counted
         # once per finding, three robots started together showed 1, as two robots do.
-        first_found = len(newly) == len(beside) + 1
+        first_found = not unchanged and len(newly) == len(beside) + 1
         self.id_conflicts += len(newly) - 1 if first_found else len(newly)
 
     def in_conflict(self, now: float) -> bool:

@@ -1,0 +1,126 @@
+"""The publisher sessions a robot's bookkeeping pushed out of its recent ones, kept compactly
+(`PushedOutRows`): each as one row of machine numbers in a byte buffer, not as Python objects, so
+that a robot remembers many of them in little memory. More robots under one robot id than the
+recent sessions (a fleet started from one image with its default id) each push the others out
+before they come back; a session not remembered then was taken for a new one with each scan (a
+restart, its seqs before it lost), and its copies (its cache fetched again after a restart of the
+service) for new scans, integrated twice. `fleetmap.robot_state.RobotState` says what the numbers
+of a row are; this module only keeps them."""
+
+from __future__ import annotations
+
+import math
+import struct
+from array import array
+from collections.abc import Iterator, Sequence
+
+#: A row's value: an integer in [0, 2**63), a float, a bool, or None (not known).
+Value = int | float | bool | None
+
+
+class PushedOutRows:
+    """Rows of numbers keyed by an integer (a session key), least recently put first.
+
+    `layout` gives each column's kind as a `struct` format character: `q` an integer in
+    [0, 2**63) or None (stored as -1), `d` a float or None (stored as NaN), `?` a bool. A pushed-out
+    session's row (13 numbers) takes 97 bytes and its key 8, where a `SessionSeqs` with its ledger
+    took about 1.6 kB (tracemalloc). Finding a key scans the keys, an array searched at C speed:
+    rows are few (`fleetmap.robot_state.MAX_SESSIONS_PUSHED_OUT` per robot at most)."""
+
+    __slots__ = ("_format", "_keys", "_data", "_nones")
+
+    def __init__(self, layout: str) -> None:
+        self._format = struct.Struct("<" + layout)
+        self._keys = array("q")
+        self._data = bytearray()
+        #: Per column: what stands for None in it (None: the column holds no None, a bool).
+        self._nones: tuple[int | float | None, ...] = tuple(
+            -1 if kind == "q" else math.nan if kind == "d" else None for kind in layout
+        )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, PushedOutRows):
+            return NotImplemented
+        return list(self.items()) == list(other.items()) and self._format.format == other._format.format
+
+    __hash__ = None  # type: ignore[assignment]  # (mutable)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __contains__(self, key: int) -> bool:
+        return key in self._keys
+
+    def keys(self) -> list[int]:
+        """The keys, least recently put first."""
+        return self._keys.tolist()
+
+    def get(self, key: int) -> tuple[Value, ...] | None:
+        """The row of `key`, None if there is none."""
+        index = self._index(key)
+        return None if index is None else self._row(index)
+
+    def pop(self, key: int) -> tuple[Value, ...] | None:
+        """The row of `key`, removed; None if there is none."""
+        index = self._index(key)
+        if index is None:
+            return None
+        row = self._row(index)
+        self._remove(index)
+        return row
+
+    def put(self, key: int, row: Sequence[Value]) -> None:
+        """Keep `row` for `key`: in place of its row if it has one (its place kept), else last."""
+        packed = self._format.pack(
+            *(none if value is None else value for value, none in zip(row, self._nones, strict=True))
+        )
+        index = self._index(key)
+        if index is None:
+            self._keys.append(key)
+            self._data += packed
+        else:
+            size = self._format.size
+            self._data[index * size : (index + 1) * size] = packed
+
+    def items(self) -> Iterator[tuple[int, tuple[Value, ...]]]:
+        """(key, row) of each, least recently put first."""
+        for index, key in enumerate(self._keys):
+            yield key, self._row(index)
+
+    def column(self, column: int) -> list[Value]:
+        """Column `column` of every row, in the rows' order (None where so stored)."""
+        none = self._nones[column]
+        values = (row[column] for row in self._format.iter_unpack(self._data))
+        return [None if _is_none(value, none) else value for value in values]
+
+    def drop_first(self, count: int = 1) -> None:
+        """Forget the `count` rows put least recently."""
+        del self._keys[:count]
+        del self._data[: count * self._format.size]
+
+    def _index(self, key: int) -> int | None:
+        try:
+            return self._keys.index(key)
+        except ValueError:
+            return None
+
+    def _row(self, index: int) -> tuple[Value, ...]:
+        row = self._format.unpack_from(self._data, index * self._format.size)
+        return tuple(
+            None if _is_none(value, none) else value for value, none in zip(row, self._nones, strict=True)
+        )
+
+    def _remove(self, index: int) -> None:
+        size = self._format.size
+        del self._keys[index]
+        del self._data[index * size : (index + 1) * size]
+
+
+def _is_none(value: Value, none: int | float | None) -> bool:
+    """Whether `value`, read from a column whose None is stored as `none`, stands for None."""
+    if isinstance(none, float):  # NaN, which equals nothing
+        return isinstance(value, float) and math.isnan(value)
+    return none is not None and value == none
+
+
+__all__ = ["PushedOutRows", "Value"]
