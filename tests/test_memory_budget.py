@@ -23,6 +23,7 @@ from fleetmap.map_entry import IngestRejected
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError, UploadReservation, format_size, parse_size
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import MapRegistry
+from fleetmap.robot_state import MAX_SESSIONS
 from fleetmap.scan import Scan
 from fleetmap.tiles import SLOT_OVERHEAD
 
@@ -266,6 +267,39 @@ def test_several_scans_refused_507_are_each_integrated_when_sent_again() -> None
         for seq in refused:  # each once: a second copy is a duplicate
             copy = send("m", seq)
             assert isinstance(copy, IngestRejected) and copy.status == 200 and "duplicate" in copy.reason
+    finally:
+        registry.close()
+
+
+def test_a_scan_refused_507_is_integrated_when_sent_again_after_its_session_was_pushed_out() -> None:
+    """A robot's scan refused 507, sent again once memory is freed, after more than MAX_SESSIONS
+    other sessions under its id were heard (robots sharing one id, each sending scans): its session
+    was pushed out of the robot's recent ones, the re-send's receipt was opened among those, and
+    the submit failed with a KeyError (a 500 over REST, an error in the Zenoh callback) instead of
+    integrating it. So too when its session was forgotten meanwhile: its re-send is a new session's."""
+    registry = MapRegistry(SMALL, memory_budget=MemoryBudget(60 * TILE_BYTES))
+    registry.start()
+    try:
+        assert not isinstance(_send(registry, "other", 0, None), IngestRejected)  # the first tiles
+        for k in range(100):
+            if isinstance(_send(registry, "m", k, 7), IngestRejected):
+                break
+        for session in range(100, 100 + MAX_SESSIONS):  # within the map's tiles: integrated
+            assert not isinstance(_send(registry, "m", 0, session), IngestRejected)
+        robot = registry.get("m").robots["r"]
+        assert 7 not in robot.sessions and robot.session_seqs(7) is not None
+        integrated = robot.scans_integrated
+        registry.delete("other", wait=True)  # its tiles' bytes go back to the budget
+        again = _send(registry, "m", k, 7)
+        assert not isinstance(again, IngestRejected) and again.cell_updates > 0, again
+        assert robot.scans_integrated == integrated + 1 and (robot.lost, robot.restarts) == (0, MAX_SESSIONS)
+        ledger = robot.sessions[7].ledger
+        assert (ledger.refused, ledger.integrated, ledger.settled) == (0, k + 1, k), ledger
+
+        robot.note_refused(3, 9)  # the re-send of a scan of a session forgotten since: a new one's
+        again = _send(registry, "m", 3, 9)
+        assert not isinstance(again, IngestRejected), again
+        assert robot.sessions[9].ledger.integrated == 1 and robot.restarts == MAX_SESSIONS + 1
     finally:
         registry.close()
 

@@ -599,23 +599,20 @@ class RobotState:
         # Another scan accepted: a refused seq without a session id that comes next is a restart's.
         for refused in [k for k in self.refused_scans if k[0] == NO_SESSION]:
             del self.refused_scans[refused]
-        if resent:
-            rec = self.session_seqs(session)
-            if rec is not None:
-                rec.ledger.withdraw_refusal(seq)  # settled as refused, now accepted after all
-                if rec.last_seq == seq:
-                    # The scan accepted under its seq now (a REST client's next scan after a 422, of
-                    # a later stamp) is the last: without a session id a copy of it, its stamp
-                    # later than the refused one's, was taken for a restart and integrated twice.
-                    rec.stamp = stamp if rec.stamp is None else max(rec.stamp, stamp)
-                self._keep(key, rec)
+        rec = self._take_session(key)
+        if resent and rec is not None:
+            rec.ledger.withdraw_refusal(seq)  # settled as refused, now accepted after all
+            if rec.last_seq == seq:
+                # The scan accepted under its seq now (a REST client's next scan after a 422, of a
+                # later stamp) is the last: without a session id a copy of it, its stamp later than
+                # the refused one's, was taken for a restart and integrated twice.
+                rec.stamp = stamp if rec.stamp is None else max(rec.stamp, stamp)
+            # Among the recent sessions, where the caller opens its receipt (`SessionLedger.open`):
+            # one pushed out of them (other robots under its id heard since) failed with a KeyError.
+            self._recent(key, rec)
             return False  # a re-send of a scan refused for the service's sake: its seq is recorded already
+        # (A re-send of a session forgotten since is a new session's scan.)
         self.accepted += 1
-        rec = self.sessions.pop(key, None)
-        if rec is None:  # back after others pushed it out: they ran beside it (below)
-            rec = self.settling.pop(key, None)
-        if rec is None and (row := self.pushed_out.pop(key)) is not None:
-            rec = _pushed_out_seqs(row)
         interleaved = False
         if rec is None:
             rec = SessionSeqs(seq, stamp, self.accepted, self.accepted)
@@ -647,10 +644,24 @@ class RobotState:
             rec.last_seq, rec.stamp, rec.last_scan_no = seq, latest, self.accepted
         if seq == 0:
             rec.start_stamp = stamp
+        self._recent(key, rec)
+        return interleaved
+
+    def _take_session(self, key: int) -> SessionSeqs | None:
+        """The bookkeeping of session `key` (`session_key`), taken out of the recent `sessions` or
+        those pushed out (`settling`, `pushed_out`) to be changed and put back (`_recent`); None if
+        the robot knows no such session."""
+        rec = self.sessions.pop(key, None) or self.settling.pop(key, None)
+        if rec is None and (row := self.pushed_out.pop(key)) is not None:
+            rec = _pushed_out_seqs(row)
+        return rec
+
+    def _recent(self, key: int, rec: SessionSeqs) -> None:
+        """Session `key`'s bookkeeping `rec` (`_take_session`) is heard now: the last of the recent
+        `sessions`, which pushes the least recently heard past MAX_SESSIONS out."""
         self.sessions[key] = rec
         if len(self.sessions) > MAX_SESSIONS or self.settling:
             self._push_out()
-        return interleaved
 
     def _push_out(self) -> None:
         """Push the least recently heard of `sessions` past MAX_SESSIONS out (`settling` while
