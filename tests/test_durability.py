@@ -466,8 +466,13 @@ def test_a_damaged_database_is_a_clear_error_at_start_naming_the_file_and_the_ma
         assert f"cannot read the map database {damaged / DB_NAME} (map 'm'): " in output, output
         assert "corrupt" in output, output
     # A journal column of another type than the writer stores (SQLite keeps any type in any column):
-    # a scan or a seq as text stopped the start with a traceback.
-    for name, sql in (("scan-text", "scan = 'x'"), ("seq-text", "seq = 'x'")):
+    # a scan or a seq as text stopped the start with a traceback. Its refusals too (not JSON, or
+    # not pairs of a seq and a flag).
+    for name, sql in (
+        ("scan-text", "scan = 'x'"), ("seq-text", "seq = 'x'"), ("refused-text", "refused = 'x'"),
+        ("refused-shape", "refused = '[[1]]'"), ("refused-seq", "refused = '[[-1, 0]]'"),
+        ("refused-blob", "refused = x'00'"),
+    ):  # fmt: skip
         damaged = tmp_path / f"damaged-{name}"
         shutil.copytree(data, damaged)
         with sqlite3.connect(damaged / DB_NAME) as conn:
@@ -769,6 +774,46 @@ def test_refusals_are_stored_by_the_next_snapshot_though_nothing_was_journaled(t
     finally:
         restarted.stop()
     assert (robot["scans_integrated"], robot["scans_rejected"], robot["duplicates"]) == (1, 1, 1), robot
+
+
+def test_a_robots_refusals_before_a_journaled_scan_outlive_a_crash_as_refusals(tmp_path: Path) -> None:
+    """A robot's scans refused with a session id (one answered 507 for the memory budget, to be
+    sent again; one refused 422 at the input limits) and then a later scan of its integrated: killed
+    before a snapshot, the service came back with the refused seqs counted as lost (the journal
+    holds integrated scans only, and the gap before the later one's row was taken for scans that
+    never came), and the 507 one's re-send, as docs/api.md tells a client to make, was answered
+    200 "duplicate" and never integrated. The later scan's journal row now carries the seqs of
+    its session refused before it: replayed as refused, the 507 one as one that may come again."""
+    data = ["--data-dir", str(tmp_path / "data"), "--snapshot-interval", "3600"]
+    # The default map: 1.3 MiB a tile, so 3 MiB holds two tiles, and 64 MiB plenty.
+    near = Scan.from_fan((5.0, 5.0, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0)
+    far = Scan.from_fan((50.0, 50.0, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0)
+    outside = Scan.from_fan((1e9, 0.0, 0.0), -1.5, 0.1, [1.0] * 31, 0.0, 30.0)
+
+    def post(url: str, seq: int, scan: Scan, map_id: str = "m") -> httpx.Response:
+        body = encode_json(scan, seq, stamp=float(seq), session=7)
+        return httpx.post(f"{url}/maps/{map_id}/scans", params={"robot_id": "r"}, content=body,
+                          headers={"content-type": "application/json"}, timeout=30)  # fmt: skip
+
+    def robot(url: str) -> dict:
+        stats = httpx.get(f"{url}/maps/m", timeout=10).json()["stats"]["robots"]["r"]
+        return {k: stats[k] for k in ("scans_integrated", "lost", "last_seq", "restarts")}
+
+    sent = [(0, near, 200), (1, far, 507), (2, outside, 422), (3, near, 200)]
+    with ServiceProcess(tmp_path, [*data, "--max-memory", "3MiB"]) as svc:
+        assert post(svc.base_url, 0, near, "other").status_code == 200  # the second tile
+        assert [post(svc.base_url, seq, scan).status_code for seq, scan, _ in sent] == [c for *_, c in sent]
+        before = robot(svc.base_url)
+        assert before == {"scans_integrated": 2, "lost": 0, "last_seq": 3, "restarts": 0}
+        assert svc.proc is not None
+        svc.proc.kill()  # SIGKILL: no snapshot, only the journal
+        svc.proc.wait()
+    with ServiceProcess(tmp_path, [*data, "--max-memory", "64MiB"]) as svc:
+        assert robot(svc.base_url) == before
+        again = post(svc.base_url, 1, far)
+        assert again.status_code == 200 and again.json()["status"] == "integrated", again.text
+        assert post(svc.base_url, 1, far).json()["status"] == "duplicate"  # once
+        assert robot(svc.base_url) == {**before, "scans_integrated": 3}
 
 
 def test_a_snapshot_that_never_switched_is_ignored(tmp_path: Path) -> None:

@@ -130,11 +130,11 @@ def test_superseded_rows_left_by_a_crash_are_deleted_at_start(tmp_path: Path, mo
     again = DurableStore(tmp_path)
     try:
         [(map_id, restored, _counters, replay)] = again.load()
-        assert map_id == "m" and [seq for _robot, seq, _stamp, _session, _scan in replay] == [8, 9, 10, 11]
+        assert map_id == "m" and [row[1] for row in replay] == [8, 9, 10, 11]  # (their seqs)
         assert len(journal_rows(tmp_path)) == 4
         window = gmap.known_bounds()
         assert window is not None
-        for scan in (s for _r, _q, _t, _session, s in replay):
+        for scan in (row[-1] for row in replay):
             restored.integrate(scan)
         np.testing.assert_array_equal(restored.region("log_odds", *window), gmap.region("log_odds", *window))
     finally:
@@ -1095,7 +1095,9 @@ def test_the_start_reads_every_map_and_journal_on_one_connection(tmp_path: Path,
     monkeypatch.setattr(persistence, "connect", counted)
     try:
         loaded = again.load()
-        replayed = {map_id: [seq for _r, seq, _t, _s, _scan in replay] for map_id, _g, _c, replay in loaded}
+        replayed = {
+            map_id: [seq for _r, seq, _t, _s, _refused, _scan in replay] for map_id, _g, _c, replay in loaded
+        }
         assert replayed == {"m": [0, 1, 2], "e1": [], "e2": []}
         assert len(opened) == 1
         again.restored()

@@ -28,7 +28,9 @@ LOCK_NAME = "fleetmap.lock"
 #: and its `forgotten` column, added at start where it is missing: an older service names the
 #: columns it reads and writes, its rows get 0 there, and it takes a forgotten robot's stone for a
 #: deleted map's, which ignores the same old scans; and its `plain_seq` and `plain_stamp` columns,
-#: likewise: an older service writes NULL there, and does not cover such scans, as before.)
+#: likewise: an older service writes NULL there, and does not cover such scans, as before; and the
+#: journal's `refused` column, likewise: an older service writes NULL there, and its replay counts
+#: the seqs refused before a row as lost, as before.)
 #: Version 2 (`CLEARED_WINDOWS_LAYOUT`): a journal row may also be a window of cells cleared
 #: (`storage_format.cleared_window_to_blob`, `DELETE /maps/{id}/region`), which a version 1
 #: service would take for a corrupt row. The tables are the
@@ -75,7 +77,8 @@ CREATE TABLE IF NOT EXISTS journal (
     seq INTEGER NOT NULL,
     stamp REAL NOT NULL,
     scan BLOB NOT NULL,
-    session INTEGER  -- the publisher's session id (`ScanMessage.session`); NULL: it sent none
+    session INTEGER,  -- the publisher's session id (`ScanMessage.session`); NULL: it sent none
+    refused TEXT  -- JSON [[seq, may be sent again], ...]: its session's scans refused before it; NULL: none
 );
 CREATE INDEX IF NOT EXISTS journal_map ON journal (map_id, id);
 CREATE TABLE IF NOT EXISTS tombstones (  -- robots of deleted and replaced maps (`tombstones.py`)
@@ -411,16 +414,17 @@ def _refuse_unknown_layout(path: Path) -> None:
 
 
 def _migrate(conn: sqlite3.Connection) -> None:
-    """Bring a database written before the journal had its `session` column up to date: its rows
-    keep NULL there (no session: their restarts are told by their stamps, as when they were
-    written); one written before tombstones had their `forgotten` column: its rows are all
-    deleted maps' robots (0); and one written before their `plain_seq` and `plain_stamp` columns:
-    NULL there (its scans without a session id were not remembered). Each column missing is added,
-    all in one transaction: `conn` is in autocommit, where each ALTER TABLE committed alone, and a
-    crash between `plain_seq` and `plain_stamp` left a database that had the one, so was taken for
-    migrated, and failed every later start for want of the other."""
+    """Bring a database written before the journal had its `session` column up to date: its rows keep
+    NULL there (no session: their restarts are told by their stamps, as when they were written),
+    and its `refused` column (NULL: the row names no refusal); one written before tombstones had
+    their `forgotten` column: its rows are all deleted maps' robots (0); and one written before
+    their `plain_seq` and `plain_stamp` columns: NULL there (its scans without a session id were
+    not remembered). Each column missing is added, all in one transaction: `conn` is in
+    autocommit, where each ALTER TABLE committed alone, and a crash between `plain_seq` and
+    `plain_stamp` left a database that had the one, so was taken for migrated, and failed every
+    later start for want of the other."""
     wanted = {
-        "journal": [("session", "INTEGER")],
+        "journal": [("session", "INTEGER"), ("refused", "TEXT")],
         "tombstones": [
             ("forgotten", "INTEGER NOT NULL DEFAULT 0"),
             ("plain_seq", "INTEGER"),

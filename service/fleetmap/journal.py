@@ -30,7 +30,9 @@ log = logging.getLogger("fleetmap.journal")
 @dataclass
 class JournalEntry:
     """One accepted scan to append: `blob` is `storage_format.scan_to_blob` of it, `session` its
-    publisher's session id (None: it sent none). The writer calls
+    publisher's session id (None: it sent none), `refused` the JSON of the seqs of its session
+    refused before it that the row names (`persistence.DurableStore.journal`; None: none). The
+    writer calls
     `on_durable(journal_id)` once its row is committed, or `on_failed(error)` if the transaction
     meant to carry it failed (the row is then never written)."""
 
@@ -42,6 +44,7 @@ class JournalEntry:
     on_durable: Callable[[int], None]
     on_failed: Callable[[Exception], None]
     session: int | None = None
+    refused: str | None = None
 
 
 class _AttachedRow(NamedTuple):
@@ -468,9 +471,9 @@ class JournalWriter:
             self._conn.execute("BEGIN IMMEDIATE")
             for e in batch:
                 cur = self._conn.execute(
-                    "INSERT INTO journal (map_id, robot_id, seq, stamp, scan, session) "
-                    "VALUES (?, ?, ?, ?, ?, ?)",
-                    (e.map_id, e.robot_id, e.seq, e.stamp, e.blob, e.session),
+                    "INSERT INTO journal (map_id, robot_id, seq, stamp, scan, session, refused) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (e.map_id, e.robot_id, e.seq, e.stamp, e.blob, e.session, e.refused),
                 )
                 assert cur.lastrowid is not None  # set by every INSERT
                 ids.append(cur.lastrowid)

@@ -142,6 +142,21 @@ def _check_journal_columns(
         )
 
 
+def _journal_refusals(named: object) -> list[tuple[int, bool]]:
+    """The refusals a journal row names (its `refused` column, `DurableStore.journal`): (seq, may
+    be sent again) pairs; `StorageError` for anything else."""
+    if named is None:
+        return []
+    try:
+        pairs = json.loads(named) if isinstance(named, str) else None
+        refused = [(seq, bool(resend)) for seq, resend in pairs]  # type: ignore[union-attr]
+    except (ValueError, TypeError):
+        refused = None
+    if refused is None or not all(type(seq) is int and 0 <= seq < 2**63 for seq, _ in refused):
+        raise StorageError(f"corrupt journal entry: its refused seqs are {str(named)[:100]!r}")
+    return refused
+
+
 def _check_map_columns(
     config: object, snap_id: object, snap_gen: object, clock: object, integrated: object,
     rejected: object, created: object,
@@ -186,10 +201,13 @@ class StoredJournal:
     def __len__(self) -> int:
         return self.count
 
-    def __iter__(self) -> Iterator[tuple[str, int, float, int | None, Scan | Window]]:
-        """(robot id, seq, stamp, session id or None, scan) of each row, in journal order; a row that
-        cleared a window of cells (`MapRegistry.clear_window`) has that `Window` for its scan, no
-        robot id (""), seq 0 and the time it was cleared."""
+    def __iter__(
+        self,
+    ) -> Iterator[tuple[str, int, float, int | None, list[tuple[int, bool]], Scan | Window]]:
+        """(robot id, seq, stamp, session id or None, the seqs of its session refused before it
+        that it names with whether each may be sent again (`DurableStore.journal`), scan) of each
+        row, in journal order; a row that cleared a window of cells (`MapRegistry.clear_window`)
+        has that `Window` for its scan, no robot id (""), seq 0 and the time it was cleared."""
         if not self.count:
             return
         try:
@@ -198,21 +216,23 @@ class StoredJournal:
                 # A batch is fetched whole before any row is decoded: a cursor left open by a row
                 # that does not decode kept a read lock, and the shutdown's checkpoint waited 30 s.
                 rows = self.conn.execute(
-                    "SELECT id, robot_id, seq, stamp, session, scan FROM journal WHERE map_id = ? AND id > ? "
+                    "SELECT id, robot_id, seq, stamp, session, refused, scan FROM journal "
+                    "WHERE map_id = ? AND id > ? "
                     "ORDER BY id LIMIT ?",
                     (self.map_id, last, self.BATCH),
                 ).fetchall()
                 if not rows:
                     return
-                for row_id, robot_id, seq, stamp, session, blob in rows:
+                for row_id, robot_id, seq, stamp, session, named, blob in rows:
                     try:
                         _check_journal_columns(robot_id, seq, stamp, session, blob)
+                        refused = _journal_refusals(named)
                         row = journal_row_from_blob(blob)
                     except StorageError as exc:
                         raise unreadable_database(
                             self.path, self.map_id, f"journal row {row_id}: {exc}"
                         ) from None
-                    yield robot_id, seq, stamp, session, row
+                    yield robot_id, seq, stamp, session, refused, row
                 last = rows[-1][0]
         except sqlite3.DatabaseError as exc:
             raise unreadable_database(self.path, self.map_id, exc) from None
@@ -639,10 +659,12 @@ class DurableStore:
     def journal(
         self, map_id: str, robot_id: str, seq: int, stamp: float, blob: bytes,
         on_durable: Callable[[int], None], on_failed: Callable[[Exception], None],
-        session: int | None = None,
+        session: int | None = None, refused: Sequence[tuple[int, bool]] | None = None,
     ) -> None:  # fmt: skip
         """Append an applied scan (its `scan_to_blob`, made before taking the lock); MUST be called
-        under the map's lock so the journal's order is the order scans were applied in.
+        under the map's lock so the journal's order is the order scans were applied in. `refused`:
+        the seqs of its session refused before it, each with whether it may be sent again
+        (`RobotState.unjournaled_refusals`), which its row names for the replay after a crash.
 
         `on_durable(journal_id)` follows once its row is committed. If that commit fails (a full or
         failing disk), `on_failed(error)` follows instead: the scan stays applied in memory, and the
@@ -667,7 +689,8 @@ class DurableStore:
                 self._awaiting[map_id] = self._awaiting.get(map_id, 0) + 1
             on_failed(exc)
 
-        self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable, failed, session))
+        named = None if not refused else json.dumps([[number, int(resend)] for number, resend in refused])
+        self.writer.append(JournalEntry(map_id, robot_id, seq, stamp, blob, durable, failed, session, named))
 
     def wait_for_journal_room(self) -> None:
         """Return once the journal has room for another applied scan: at once, unless the disk stalls

@@ -29,7 +29,7 @@ import logging
 import sqlite3
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from typing import NoReturn
 
@@ -272,7 +272,7 @@ class MapRegistry:
         entry.robots = counters["robots"]
         entry.unjournaled_stored = entry.unjournaled()  # as stored: no snapshot due for them
         started = time.monotonic()
-        for replayed, (robot_id, seq, stamp, session, row) in enumerate(journal):
+        for replayed, (robot_id, seq, stamp, session, refused, row) in enumerate(journal):
             try:
                 self._replay(gmap, row)
             except (TileLimitError, ValueError) as exc:
@@ -299,7 +299,11 @@ class MapRegistry:
             # the gap, whose counts died with the process, count as lost too), and a seq that
             # is not new was a restart; sessions interleaving were an id conflict, seen now.
             # A row the robot's saved bookkeeping already holds (accepted before the snapshot,
-            # applied after it) is a duplicate to it: counted once, when it was accepted.
+            # applied after it) is a duplicate to it: counted once, when it was accepted. The
+            # scans of its session refused before it that the row names are counted refused first.
+            for refused_seq, resend in refused:
+                if session is not None:  # (only rows of scans with a session id name them)
+                    robot.replay_refusal(refused_seq, stamp, session, resend, time.time())
             if not robot.is_duplicate(seq, stamp, session):
                 robot.accept(seq, stamp, session, time.time())
                 ledger = robot.sessions[session_key(session)].ledger
@@ -1115,6 +1119,7 @@ class MapRegistry:
                             job.map_id, job.robot_id, job.wire.seq, job.wire.stamp, blob,
                             lambda _row: self._mark_integrated(entry, job, result, elapsed),
                             lambda exc: self._mark_not_durable(job, exc), job.wire.session,
+                            self._unjournaled_refusals(entry, job),
                         )  # fmt: skip
         except (ScanError, TileLimitError) as exc:
             # The service's budget is not the scan's fault: 507 (Insufficient Storage), not 422, and
@@ -1134,6 +1139,18 @@ class MapRegistry:
         entry.changes.record(result.changed_tiles)  # viewers see the change now
         if self.durable is None:
             self._mark_integrated(entry, job, result, time.perf_counter() - started)
+
+    def _unjournaled_refusals(self, entry: MapEntry, job: Job) -> Sequence[tuple[int, bool]] | None:
+        """What the journal row of `job`'s scan names besides it (`RobotState.unjournaled_refusals`):
+        the refused scans of its session before it, which the replay after a crash counts as
+        refused, not lost; None when there are none (looked at without the registry's lock first:
+        the common case takes no lock). Called under the map's lock (the registry's comes second)."""
+        session, receipt = job.wire.session, job.receipt
+        if session is None or receipt is None or not receipt.ledger.unjournaled:
+            return None
+        with self.lock:
+            robot = entry.robots.get(job.robot_id)
+            return None if robot is None else robot.unjournaled_refusals(job.wire.seq, session) or None
 
     def _mark_integrated(self, entry: MapEntry, job: Job, result: IntegrationResult, elapsed: float) -> None:
         """The scan is applied (and durable, with persistence): count it and answer its caller."""

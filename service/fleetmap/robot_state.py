@@ -55,6 +55,11 @@ NO_SESSION = 0
 #: as arrays, 12.0 kB without the lists (tracemalloc); 1024 robots on each of 256 maps: 21.8 GB,
 #: 6.8 GB, 3.1 GB. A cap of 32 would give 19.3 kB, 16 gives 16.2 kB, but flushes under-confirm sooner.
 LEDGER_HISTORY = 64
+#: A session's refused seqs that its next journaled scan names (`SessionLedger.unjournaled`): the
+#: journal holds integrated scans only, and after a crash the seqs refused before a journaled scan
+#: were taken for scans that never came (lost), and the re-send of one refused 507 for a duplicate.
+#: Past as many between two of its journaled scans, the oldest are so still (128 bytes a session).
+UNJOURNALED_REFUSALS = 16
 #: Scans refused for the service's sake that a robot may send again under their seqs
 #: (`RobotState.refused_scans`): a REST client answered 507 for several scans while the memory
 #: budget was full retries each once memory is freed. The oldest are forgotten past this many (a
@@ -169,6 +174,10 @@ class SessionLedger:
     #: ledger restored from a snapshot, or past LEDGER_HISTORY entries. Int64 (seqs are below 2**63).
     refused_seqs: array[int] | None = field(default_factory=lambda: array("q"), repr=False)
     lost_gaps: array[int] | None = field(default_factory=lambda: array("q"), repr=False)
+    #: The seqs of its scans settled as refused in this process that no journal row names yet, at
+    #: most UNJOURNALED_REFUSALS (None: none): the row of its next scan journaled names those
+    #: below its seq (`take_unjournaled`), and the replay after a crash counts them refused again.
+    unjournaled: array[int] | None = field(default=None, repr=False)
 
     def open(self, seq: int) -> Receipt:
         """A receipt for the scan `seq`, accepted now."""
@@ -205,6 +214,11 @@ class SessionLedger:
                 self.refused_seqs.append(receipt.seq)
                 if len(self.refused_seqs) > LEDGER_HISTORY:
                     self.refused_seqs = None
+            if self.unjournaled is None:
+                self.unjournaled = array("q")
+            self.unjournaled.append(receipt.seq)
+            if len(self.unjournaled) > UNJOURNALED_REFUSALS:
+                del self.unjournaled[0]
         receipts = self.open_receipts
         while receipts and receipts[0].settled:
             done = receipts.popleft()
@@ -251,8 +265,21 @@ class SessionLedger:
             self.lost += count
             self._gap += count
 
+    def take_unjournaled(self, below: int) -> list[int]:
+        """The seqs of its refused scans that no journal row names yet and are below `below` (the
+        seq of its scan journaled now, whose row names them), in order; they are named then."""
+        if not self.unjournaled:
+            return []
+        taken = sorted(seq for seq in self.unjournaled if seq < below)
+        if taken:
+            rest = [seq for seq in self.unjournaled if seq >= below]
+            self.unjournaled = array("q", rest) if rest else None
+        return taken
+
     def withdraw_refusal(self, seq: int) -> None:
         """The scan `seq`, settled as refused, was sent again and accepted: not refused after all."""
+        if self.unjournaled and seq in self.unjournaled:
+            self.unjournaled.remove(seq)
         self.refused -= 1
         if self.refused_seqs is not None and seq in self.refused_seqs:
             self.refused_seqs.reverse()
@@ -529,6 +556,32 @@ class RobotState:
         self.last_pose = pose
         self.trail.append((pose.x, pose.y, pose.theta))
         self.appended += 1
+
+    def unjournaled_refusals(self, seq: int, session: int) -> list[tuple[int, bool]]:
+        """What the journal row of scan `seq` of session `session` names (`take_unjournaled`): the
+        seqs of the session refused before it that no row names yet, each with whether it may be
+        sent again (`refused_scans`: refused for the service's sake)."""
+        rec = self.session_seqs(session)
+        if rec is None:
+            return []
+        taken = rec.ledger.take_unjournaled(seq)
+        if taken:
+            self._keep(session, rec)
+        return [(refused, (session, refused) in self.refused_scans) for refused in taken]
+
+    def replay_refusal(self, seq: int, stamp: float, session: int, resend: bool, now: float) -> None:
+        """A journal row, replayed, names scan `seq` of session `session` as refused before it
+        (`unjournaled_refusals`; `resend`: it may be sent again): count it so, as when it came, if
+        the robot's saved bookkeeping does not hold it already. Its `stamp` is the row's."""
+        rec = self.session_seqs(session)
+        if rec is not None and seq <= rec.last_seq:
+            return  # accepted before the snapshot: counted in it
+        self.accept(seq, stamp, session, now)
+        ledger = self.sessions[session].ledger
+        ledger.settle(ledger.open(seq), integrated=False)
+        ledger.unjournaled = None  # named by the row that is replayed now
+        if resend:
+            self.note_refused(seq, session)
 
     def note_refused(self, seq: int, session: int | None) -> None:
         """The scan `seq` of session `session`, accepted, was refused for the service's sake: a
