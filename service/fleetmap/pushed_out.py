@@ -13,9 +13,13 @@ import math
 import struct
 from array import array
 from collections.abc import Iterator, Sequence
+from operator import itemgetter
+from typing import Any
 
 #: A row's value: an integer in [0, 2**63), a float, a bool, or None (not known).
 Value = int | float | bool | None
+#: What stands for None in an integer column (`PushedOutRows.columns` reads it as stored).
+STORED_NONE = -1
 
 
 class PushedOutRows:
@@ -35,7 +39,7 @@ class PushedOutRows:
         self._data = bytearray()
         #: Per column: what stands for None in it (None: the column holds no None, a bool).
         self._nones: tuple[int | float | None, ...] = tuple(
-            -1 if kind == "q" else math.nan if kind == "d" else None for kind in layout
+            STORED_NONE if kind == "q" else math.nan if kind == "d" else None for kind in layout
         )
 
     def __eq__(self, other: object) -> bool:
@@ -87,11 +91,11 @@ class PushedOutRows:
         for index, key in enumerate(self._keys):
             yield key, self._row(index)
 
-    def column(self, column: int) -> list[Value]:
-        """Column `column` of every row, in the rows' order (None where so stored)."""
-        none = self._nones[column]
-        values = (row[column] for row in self._format.iter_unpack(self._data))
-        return [None if _is_none(value, none) else value for value in values]
+    def columns(self, *columns: int) -> list[Any]:
+        """Columns `columns` of every row (a tuple of them, or the value of one), in the rows'
+        order, as stored (None as `STORED_NONE` or NaN): read at C speed, where decoding whole rows
+        (`items`) took 5 µs a row, and a robot's 128 rows were read with each of its scans."""
+        return list(map(itemgetter(*columns), self._format.iter_unpack(self._data)))
 
     def drop_first(self, count: int = 1) -> None:
         """Forget the `count` rows put least recently."""
@@ -123,4 +127,4 @@ def _is_none(value: Value, none: int | float | None) -> bool:
     return none is not None and value == none
 
 
-__all__ = ["PushedOutRows", "Value"]
+__all__ = ["STORED_NONE", "PushedOutRows", "Value"]
