@@ -164,7 +164,7 @@ def test_root_path_takes_a_url_path_and_names_what_is_wrong(capsys: pytest.Captu
         assert serve.parse_args(["--root-path", given]).root_path == taken, given
     assert serve.parse_args([]).root_path == ""
     for given, hint in [
-        ("fleetmap", "(it starts with '/')"),
+        ("fleetmap", "(a path starts with '/')"),
         ("/a//b", "(no empty segment: '//')"),
         ("/a?b=1", "(a path only: no query or fragment)"),
         ("/flëetmap", "are percent-encoded)"),

@@ -499,6 +499,8 @@ def test_each_variable_means_its_option_on_the_command_line(monkeypatch: pytest.
             argv, text = [option, str(value)], str(value)
         elif option == "--http":
             argv, text = [option, "127.0.0.1:9000"], "127.0.0.1:9000"
+        elif option == "--root-path":
+            argv, text = [option, "/fleetmap"], "/fleetmap"
         else:  # text, or a size (--max-memory)
             argv, text = [option, "1GiB"], "1GiB"
         defaults = serve_options([], {}, monkeypatch)

@@ -11,7 +11,10 @@ a client (a 201's `Location`, the session cookie's `Path`) puts `root_path` befo
 
 from __future__ import annotations
 
-from starlette.types import Scope
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the REST client imports `auth`, which uses this module, and loads no Starlette
+    from starlette.types import Scope
 
 
 def root_path(scope: Scope) -> str:

@@ -567,7 +567,7 @@ def _root_path(text: str) -> str:
         return text
     message = f"expected a URL path such as /fleetmap, got {text!r}"
     if not text.startswith("/"):
-        message += " (it starts with '/')"
+        message += " (a path starts with '/')"
     elif "//" in text:
         message += " (no empty segment: '//')"
     elif any(c in text for c in "?#"):
