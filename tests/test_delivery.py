@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 from array import array
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -244,6 +245,23 @@ def test_the_reply_docs_protocol_md_shows_is_the_services_model() -> None:
     assert set(shown["sessions"][0]) == set(SessionDelivery.model_fields)
 
 
+@pytest.fixture(scope="module")
+def memory_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One `--in-memory` service for the module's tests that need no option of their own: each uses
+    maps of its own (ids no other test here uses), and none stops, restarts or reconfigures it.
+    A test that does keeps a service of its own."""
+    with ServiceProcess(tmp_path_factory.mktemp("delivery-memory"), ["--in-memory"]) as service:
+        yield service
+
+
+@pytest.fixture(scope="module")
+def durable_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One durable service (its own data directory) for the module's tests that need it as it
+    starts, on the same terms as `memory_service`."""
+    with ServiceProcess(tmp_path_factory.mktemp("delivery-durable")) as service:
+        yield service
+
+
 def query(session: zenoh.Session, key: str) -> DeliveryStatus | str:
     """The service's answer to a delivery query on `key` (a selector): the status, or an error
     reply's text. AssertionError when nothing answers."""
@@ -255,13 +273,12 @@ def query(session: zenoh.Session, key: str) -> DeliveryStatus | str:
     raise AssertionError(f"no answer to the delivery query {key}")
 
 
-def test_flush_confirms_scans_integrated_and_durable(tmp_path: Path) -> None:
+def test_flush_confirms_scans_integrated_and_durable(durable_service: ServiceProcess) -> None:
     """A robot publishes 40 scans and flushes: the service (durable: each scan counts once its
     journal row is committed) reports all 40 integrated, and the map holds exactly them."""
     scans = scans_for(sim=11, beams=181, count=40)
     with (
-        ServiceProcess(tmp_path) as service,
-        ScanPublisher("fl", "r1", connect=[service.zenoh_endpoint]) as pub,
+        ScanPublisher("fl", "r1", connect=[durable_service.zenoh_endpoint]) as pub,
     ):
         assert pub.wait_connected(20), pub.last_connect_error
         for seq, scan in enumerate(scans):
@@ -270,61 +287,61 @@ def test_flush_confirms_scans_integrated_and_durable(tmp_path: Path) -> None:
         assert report.confirmed and report, report
         assert (report.published, report.integrated, report.refused, report.lost) == (40, 40, 0, 0)
         assert report.summary() == "40 scans published, 40 integrated"
-        with httpx.Client(base_url=service.base_url, timeout=10) as http:
+        with httpx.Client(base_url=durable_service.base_url, timeout=10) as http:
             # Confirmed means integrated already: no waiting for the map here.
             assert map_stats(http, "fl")["scans_integrated"] == 40
             assert_region_equal(http, "fl", engine_map(scans), LAYERS)
 
 
-def test_flush_waits_through_a_dead_zone(tmp_path: Path) -> None:
+def test_flush_waits_through_a_dead_zone(memory_service: ServiceProcess) -> None:
     """Scans published into a dead zone (the link cut, new connections refused) are not confirmed
     while it lasts; flush waits, the link comes back 1.5 s later, the backlog delivers them and
     flush confirms all of them."""
     scans = scans_for(sim=12, beams=181, count=30)
-    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
-        proxy = FreezableProxy(service.zenoh_port)
-        pub = ScanPublisher("dz", "r1", connect=[proxy.endpoint])
-        try:
-            with httpx.Client(base_url=service.base_url, timeout=10) as http:
-                publish_then_cut(pub, proxy, http, "dz", scans, 10)
-                for seq in range(10, len(scans)):
-                    assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
-                assert not pub.flush(0.5)  # in the dead zone: not confirmed (yet)
-                threading.Timer(1.5, proxy.restore).start()
-                started = time.monotonic()
-                report = pub.flush(30)
-                assert report.confirmed, report
-                assert time.monotonic() - started > 1.0  # it waited for the link
-                assert (report.published, report.integrated) == (30, 30)
-                assert map_stats(http, "dz")["scans_integrated"] == 30
-        finally:
-            pub.close()
-            proxy.close()
+    proxy = FreezableProxy(memory_service.zenoh_port)
+    pub = ScanPublisher("dz", "r1", connect=[proxy.endpoint])
+    try:
+        with httpx.Client(base_url=memory_service.base_url, timeout=10) as http:
+            publish_then_cut(pub, proxy, http, "dz", scans, 10)
+            for seq in range(10, len(scans)):
+                assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
+            assert not pub.flush(0.5)  # in the dead zone: not confirmed (yet)
+            threading.Timer(1.5, proxy.restore).start()
+            started = time.monotonic()
+            report = pub.flush(30)
+            assert report.confirmed, report
+            assert time.monotonic() - started > 1.0  # it waited for the link
+            assert (report.published, report.integrated) == (30, 30)
+            assert map_stats(http, "dz")["scans_integrated"] == 30
+    finally:
+        pub.close()
+        proxy.close()
 
 
-def test_replay_whose_link_dies_silently_near_the_end_reports_unconfirmed_scans(tmp_path: Path) -> None:
+def test_replay_whose_link_dies_silently_near_the_end_reports_unconfirmed_scans(
+    memory_service: ServiceProcess, tmp_path: Path
+) -> None:
     """`fleetmap replay` of 40 scans, its link frozen after some 25 were integrated and never back
     (new connections refused; to the robot the frozen one looks alive): the replay publishes the
     rest into it, as it always did, but then says they are not confirmed and exits with 1 (it said
     "replayed 40 scans" and exited 0)."""
     log = tmp_path / "corridor.log"
     _write_carmen(log, 40)
-    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
-        proxy = FreezableProxy(service.zenoh_port)
-        command = [
-            sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "rp", "--robot", "r1",
-            "--rate", "1", "--connect", proxy.endpoint, "--quiet", "--wait-timeout", "20",
-            "--confirm-timeout", "3",
-        ]  # fmt: skip
-        proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            with reaped(proc), httpx.Client(base_url=service.base_url, timeout=10) as http:
-                wait_integrated(http, "rp", 25, timeout=60)
-                proxy.freeze(refuse_new=True)
-                out, err = proc.communicate(timeout=60)
-                integrated = map_stats(http, "rp")["scans_integrated"]
-        finally:
-            proxy.close()
+    proxy = FreezableProxy(memory_service.zenoh_port)
+    command = [
+        sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "rp", "--robot", "r1",
+        "--rate", "1", "--connect", proxy.endpoint, "--quiet", "--wait-timeout", "20",
+        "--confirm-timeout", "3",
+    ]  # fmt: skip
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        with reaped(proc), httpx.Client(base_url=memory_service.base_url, timeout=10) as http:
+            wait_integrated(http, "rp", 25, timeout=60)
+            proxy.freeze(refuse_new=True)
+            out, err = proc.communicate(timeout=60)
+            integrated = map_stats(http, "rp")["scans_integrated"]
+    finally:
+        proxy.close()
     assert proc.returncode == 1, (proc.returncode, out, err)
     assert "replayed 40 scans" in out, (out, err)
     assert 25 <= integrated < 40
@@ -332,26 +349,27 @@ def test_replay_whose_link_dies_silently_near_the_end_reports_unconfirmed_scans(
     assert "40 scans published, 0 integrated: the service did not answer, 40 unconfirmed" in err, err
 
 
-def test_replay_whose_service_goes_for_good_midway_says_so(tmp_path: Path) -> None:
+def test_replay_whose_service_goes_for_good_midway_says_so(
+    memory_service: ServiceProcess, tmp_path: Path
+) -> None:
     """`fleetmap replay` whose service goes away after some scans and does not come back within
     `--wait-timeout`: it exits with 2 saying it lost the service after publishing k of the scans,
     where it said "no fleetmap service reachable", as if there had never been one."""
     log = tmp_path / "corridor.log"
     _write_carmen(log, 40)
-    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
-        proxy = FreezableProxy(service.zenoh_port)
-        command = [
-            sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "gone", "--robot", "r1",
-            "--rate", "1", "--connect", proxy.endpoint, "--quiet", "--wait-timeout", "2",
-        ]  # fmt: skip
-        proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            with reaped(proc), httpx.Client(base_url=service.base_url, timeout=10) as http:
-                wait_integrated(http, "gone", 10, timeout=60)
-                proxy.cut()
-                out, err = proc.communicate(timeout=60)
-        finally:
-            proxy.close()
+    proxy = FreezableProxy(memory_service.zenoh_port)
+    command = [
+        sys.executable, "-m", "fleetmap_client.cli", "replay", str(log), "--map", "gone", "--robot", "r1",
+        "--rate", "1", "--connect", proxy.endpoint, "--quiet", "--wait-timeout", "2",
+    ]  # fmt: skip
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        with reaped(proc), httpx.Client(base_url=memory_service.base_url, timeout=10) as http:
+            wait_integrated(http, "gone", 10, timeout=60)
+            proxy.cut()
+            out, err = proc.communicate(timeout=60)
+    finally:
+        proxy.close()
     assert proc.returncode == 2, (proc.returncode, out, err)
     assert re.search(
         r"lost the fleetmap service after publishing \d+ of 40 scans, and it did not come back", err
@@ -359,47 +377,44 @@ def test_replay_whose_service_goes_for_good_midway_says_so(tmp_path: Path) -> No
     assert "Traceback" not in err, err
 
 
-def test_a_query_for_an_unknown_map_or_robot_says_so(tmp_path: Path) -> None:
+def test_a_query_for_an_unknown_map_or_robot_says_so(memory_service: ServiceProcess) -> None:
     """The service answers a query about a map it does not hold, or a robot the map does not know,
     with a status that says so (not silence); one about several robots (a wildcard) or with a bad
     session id gets an error reply. A known robot's answer lists its session."""
     scans = scans_for(sim=13, beams=181, count=3)
-    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
-        session = client_session(service.zenoh_endpoint)
-        try:
-            answer = query(session, DELIVERY_KEY.format(map_id="nowhere", robot_id="r1"))
-            assert isinstance(answer, DeliveryStatus)
-            assert (answer.status, answer.map_id, answer.robot_id, answer.sessions) == (
-                "no_map",
-                "nowhere",
-                "r1",
-                [],
-            )
-            key = SCAN_KEY.format(map_id="qm", robot_id="r1")
-            for seq, scan in enumerate(scans):
-                payload = codec.encode_binary(scan, seq, stamp=float(seq), session=77)
-                session.put(key, payload, encoding=zenoh.Encoding(BINARY_ENCODING))
-            with httpx.Client(base_url=service.base_url, timeout=10) as http:
-                wait_integrated(http, "qm", 3, timeout=30)
-            answer = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r2"))
-            assert isinstance(answer, DeliveryStatus) and answer.status == "no_robot"
-            answer = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r1"))
-            assert isinstance(answer, DeliveryStatus) and answer.status == "ok"
-            entry = answer.session(77)
-            assert entry is not None and (entry.first_seq, entry.last_accepted, entry.settled) == (0, 2, 2)
-            assert (answer.scans_integrated, answer.unsettled, entry.integrated) == (3, 0, 3)
-            assert (
-                query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r1") + "?session=5").sessions == []
-            )  # type: ignore[union-attr]
-            wildcard = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="*"))
-            assert isinstance(wildcard, str) and "ask for one robot" in wildcard
-            bad = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r1") + "?session=x")
-            assert isinstance(bad, str) and "session must be an integer" in bad
-        finally:
-            session.close()
+    session = client_session(memory_service.zenoh_endpoint)
+    try:
+        answer = query(session, DELIVERY_KEY.format(map_id="nowhere", robot_id="r1"))
+        assert isinstance(answer, DeliveryStatus)
+        assert (answer.status, answer.map_id, answer.robot_id, answer.sessions) == (
+            "no_map",
+            "nowhere",
+            "r1",
+            [],
+        )
+        key = SCAN_KEY.format(map_id="qm", robot_id="r1")
+        for seq, scan in enumerate(scans):
+            payload = codec.encode_binary(scan, seq, stamp=float(seq), session=77)
+            session.put(key, payload, encoding=zenoh.Encoding(BINARY_ENCODING))
+        with httpx.Client(base_url=memory_service.base_url, timeout=10) as http:
+            wait_integrated(http, "qm", 3, timeout=30)
+        answer = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r2"))
+        assert isinstance(answer, DeliveryStatus) and answer.status == "no_robot"
+        answer = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r1"))
+        assert isinstance(answer, DeliveryStatus) and answer.status == "ok"
+        entry = answer.session(77)
+        assert entry is not None and (entry.first_seq, entry.last_accepted, entry.settled) == (0, 2, 2)
+        assert (answer.scans_integrated, answer.unsettled, entry.integrated) == (3, 0, 3)
+        assert query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r1") + "?session=5").sessions == []  # type: ignore[union-attr]
+        wildcard = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="*"))
+        assert isinstance(wildcard, str) and "ask for one robot" in wildcard
+        bad = query(session, DELIVERY_KEY.format(map_id="qm", robot_id="r1") + "?session=x")
+        assert isinstance(bad, str) and "session must be an integer" in bad
+    finally:
+        session.close()
 
 
-def test_a_query_without_fields_2_gets_the_first_versions_reply(tmp_path: Path) -> None:
+def test_a_query_without_fields_2_gets_the_first_versions_reply(memory_service: ServiceProcess) -> None:
     """Robots in the field run the client they were built with, which read the delivery reply
     strictly: a field it did not know made its flush fail ("not a fleetmap one"). A query without
     `fields=2` gets the reply's first fields only, which such a client reads; one with it (today's
@@ -407,65 +422,61 @@ def test_a_query_without_fields_2_gets_the_first_versions_reply(tmp_path: Path) 
 
     first_fields = set(DeliveryStatus.model_fields) - {"last_error"}
     scan = scans_for(sim=21, beams=181, count=1)[0]
-    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
-        session = client_session(service.zenoh_endpoint)
-        try:
-            payload = codec.encode_binary(scan, 0, stamp=0.0, session=78)
-            session.put(
-                SCAN_KEY.format(map_id="fv", robot_id="r1"), payload, encoding=zenoh.Encoding(BINARY_ENCODING)
-            )
-            with httpx.Client(base_url=service.base_url, timeout=10) as http:
-                wait_integrated(http, "fv", 1, timeout=30)
-            key = DELIVERY_KEY.format(map_id="fv", robot_id="r1")
-            replies = {}
-            for selector in (key + "?session=78", key + "?session=78;fields=2"):
-                got = [
-                    r.ok.payload.to_string() for r in session.get(selector, timeout=5.0) if r.ok is not None
-                ]
-                assert len(got) == 1, (selector, got)
-                replies[selector] = json.loads(got[0])
-            first = replies[key + "?session=78"]
-            assert set(first) == first_fields, set(first) ^ first_fields
-            assert set(first["sessions"][0]) == set(SessionDelivery.model_fields) - {
-                "refused_seqs",
-                "lost_gaps",
-            }
-            newer = replies[key + "?session=78;fields=2"]
-            assert "last_error" in newer and newer["sessions"][0]["refused_seqs"] == []
-        finally:
-            session.close()
+    session = client_session(memory_service.zenoh_endpoint)
+    try:
+        payload = codec.encode_binary(scan, 0, stamp=0.0, session=78)
+        session.put(
+            SCAN_KEY.format(map_id="fv", robot_id="r1"), payload, encoding=zenoh.Encoding(BINARY_ENCODING)
+        )
+        with httpx.Client(base_url=memory_service.base_url, timeout=10) as http:
+            wait_integrated(http, "fv", 1, timeout=30)
+        key = DELIVERY_KEY.format(map_id="fv", robot_id="r1")
+        replies = {}
+        for selector in (key + "?session=78", key + "?session=78;fields=2"):
+            got = [r.ok.payload.to_string() for r in session.get(selector, timeout=5.0) if r.ok is not None]
+            assert len(got) == 1, (selector, got)
+            replies[selector] = json.loads(got[0])
+        first = replies[key + "?session=78"]
+        assert set(first) == first_fields, set(first) ^ first_fields
+        assert set(first["sessions"][0]) == set(SessionDelivery.model_fields) - {
+            "refused_seqs",
+            "lost_gaps",
+        }
+        newer = replies[key + "?session=78;fields=2"]
+        assert "last_error" in newer and newer["sessions"][0]["refused_seqs"] == []
+    finally:
+        session.close()
 
 
-def test_the_answer_counts_refused_and_duplicate_scans(tmp_path: Path) -> None:
+def test_the_answer_counts_refused_and_duplicate_scans(memory_service: ServiceProcess) -> None:
     """Scans the service does not integrate are settled all the same, and counted: a duplicate seq
     (ignored) and a scan that needs more tiles than its map may have (refused at integration).
     The session is settled through its last seq, and flush reports it settled but not confirmed."""
     near = Scan.from_fan((5.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)  # inside one tile
     far = Scan.from_fan((500.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)  # a tile more
-    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
-        httpx.put(f"{service.base_url}/maps/rf", json={"max_tiles": 1}, timeout=10).raise_for_status()
-        pub = ScanPublisher("rf", "r1", connect=[service.zenoh_endpoint], backlog=0)
-        try:
-            assert pub.wait_connected(20), pub.last_connect_error
-            for seq in range(3):
-                pub.publish(near, seq=seq, stamp=float(seq))
-            pub.publish(near, seq=2, stamp=2.0)  # the last seq again: a resend, a duplicate
-            pub.publish(far, seq=3, stamp=3.0)  # a second tile: refused
-            pub.publish(near, seq=4, stamp=4.0)
-            report = pub.flush(30)
-            assert report.settled and not report.confirmed, report
-            assert (report.published, report.integrated, report.refused, report.lost) == (5, 4, 1, 0)
-            assert report.last_error is not None and "max_tiles" in report.last_error, report
-            refused = f"1 refused or dropped by the service (the last: {report.last_error})"
-            assert report.summary() == f"5 scans published, 4 integrated: {refused}"
-            assert pub._session is not None
-            answer = query(pub._session, DELIVERY_KEY.format(map_id="rf", robot_id="r1"))
-            assert isinstance(answer, DeliveryStatus)
-            entry = answer.session(pub.session_id)
-            assert entry is not None and (entry.duplicates, entry.refused, entry.settled) == (1, 1, 4)
-            assert answer.duplicates == 1 and answer.unsettled == 0
-        finally:
-            pub.close()
+    httpx.put(f"{memory_service.base_url}/maps/rf", json={"max_tiles": 1}, timeout=10).raise_for_status()
+    pub = ScanPublisher("rf", "r1", connect=[memory_service.zenoh_endpoint], backlog=0)
+    try:
+        assert pub.wait_connected(20), pub.last_connect_error
+        for seq in range(3):
+            pub.publish(near, seq=seq, stamp=float(seq))
+        pub.publish(near, seq=2, stamp=2.0)  # the last seq again: a resend, a duplicate
+        pub.publish(far, seq=3, stamp=3.0)  # a second tile: refused
+        pub.publish(near, seq=4, stamp=4.0)
+        report = pub.flush(30)
+        assert report.settled and not report.confirmed, report
+        assert (report.published, report.integrated, report.refused, report.lost) == (5, 4, 1, 0)
+        assert report.last_error is not None and "max_tiles" in report.last_error, report
+        refused = f"1 refused or dropped by the service (the last: {report.last_error})"
+        assert report.summary() == f"5 scans published, 4 integrated: {refused}"
+        assert pub._session is not None
+        answer = query(pub._session, DELIVERY_KEY.format(map_id="rf", robot_id="r1"))
+        assert isinstance(answer, DeliveryStatus)
+        entry = answer.session(pub.session_id)
+        assert entry is not None and (entry.duplicates, entry.refused, entry.settled) == (1, 1, 4)
+        assert answer.duplicates == 1 and answer.unsettled == 0
+    finally:
+        pub.close()
 
 
 def test_scans_refused_at_the_input_limits_are_settled_as_refused_not_lost(tmp_path: Path) -> None:
@@ -536,7 +547,7 @@ def test_json_scans_of_far_too_many_beams_are_settled_as_refused_not_lost(tmp_pa
         assert (robot["scans_integrated"], robot["scans_rejected"], robot["lost"]) == (4, 2, 0), robot
 
 
-def test_scans_refused_for_their_body_are_settled_as_refused_not_lost(tmp_path: Path) -> None:
+def test_scans_refused_for_their_body_are_settled_as_refused_not_lost(memory_service: ServiceProcess) -> None:
     """Scans of a robot written to docs/protocol.md (not `ScanPublisher`, which refuses them first)
     whose seq and session are fine but whose body the service refuses: JSON of 2 angles but 20
     ranges, JSON with a negative range_min, binary with a NaN range_min. Each is refused with its
@@ -562,27 +573,26 @@ def test_scans_refused_for_their_body_are_settled_as_refused_not_lost(tmp_path: 
         (json_scan(4), JSON_ENCODING),
         (json_scan(5, range_min=-1.0), JSON_ENCODING),
     ]
-    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
-        session = client_session(service.zenoh_endpoint)
-        try:
-            publisher = scan_publisher(session, "body", "r1", JSON_ENCODING)
-            for payload, encoding in payloads:
-                publisher.put(payload, encoding=zenoh.Encoding(encoding))
-            with httpx.Client(base_url=service.base_url, timeout=10) as http:
-                wait_for(lambda: map_stats(http, "body")["robots"]["r1"]["scans_rejected"] == 3, 20)
-                robot = map_stats(http, "body")["robots"]["r1"]
-            assert (robot["scans_integrated"], robot["lost"], robot["last_seq"]) == (3, 0, 5), robot
-            assert robot["last_error"].startswith("scan seq 5 refused: invalid JSON scan: range_min"), robot
-            answer = query(session, DELIVERY_KEY.format(map_id="body", robot_id="r1") + "?fields=2")
-            assert isinstance(answer, DeliveryStatus)
-            entry = answer.session(77)
-            assert entry is not None, answer
-            assert (entry.last_accepted, entry.settled, entry.integrated, entry.refused, entry.lost) == (
-                5, 5, 3, 3, 0,
-            ), entry  # fmt: skip
-            assert entry.refused_seqs == [1, 3, 5], entry
-        finally:
-            session.close()
+    session = client_session(memory_service.zenoh_endpoint)
+    try:
+        publisher = scan_publisher(session, "body", "r1", JSON_ENCODING)
+        for payload, encoding in payloads:
+            publisher.put(payload, encoding=zenoh.Encoding(encoding))
+        with httpx.Client(base_url=memory_service.base_url, timeout=10) as http:
+            wait_for(lambda: map_stats(http, "body")["robots"]["r1"]["scans_rejected"] == 3, 20)
+            robot = map_stats(http, "body")["robots"]["r1"]
+        assert (robot["scans_integrated"], robot["lost"], robot["last_seq"]) == (3, 0, 5), robot
+        assert robot["last_error"].startswith("scan seq 5 refused: invalid JSON scan: range_min"), robot
+        answer = query(session, DELIVERY_KEY.format(map_id="body", robot_id="r1") + "?fields=2")
+        assert isinstance(answer, DeliveryStatus)
+        entry = answer.session(77)
+        assert entry is not None, answer
+        assert (entry.last_accepted, entry.settled, entry.integrated, entry.refused, entry.lost) == (
+            5, 5, 3, 3, 0,
+        ), entry  # fmt: skip
+        assert entry.refused_seqs == [1, 3, 5], entry
+    finally:
+        session.close()
 
 
 def test_flush_against_a_service_without_delivery_queries_is_an_error_not_a_hang() -> None:
@@ -664,38 +674,39 @@ def test_replay_whose_delivery_answer_is_not_fleetmaps_says_so_and_exits_1(tmp_p
     assert "fleetmap replay: warning: not confirmed: the delivery answer is not a fleetmap one" in proc.stderr
 
 
-def test_the_scans_of_a_robot_without_a_map_refused_at_the_limits_are_settled(tmp_path: Path) -> None:
+def test_the_scans_of_a_robot_without_a_map_refused_at_the_limits_are_settled(
+    memory_service: ServiceProcess,
+) -> None:
     """A robot that declares no liveliness token (one written in another language: docs/protocol.md
     says it need not) and whose every scan breaks the input limits (UTM eastings as map
     coordinates) makes no map: a refused scan creates none, so the service answered `no_map` and
     nothing of them, and a flush waited for ever. The answer now lists them settled and refused,
     and says why."""
     utm = Scan.from_fan((500_000.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
-    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
-        session = client_session(service.zenoh_endpoint)
-        try:
-            key = SCAN_KEY.format(map_id="utm", robot_id="r1")
-            for seq in range(3):
-                payload = codec.encode_binary(utm, seq, stamp=float(seq), session=79)
-                session.put(key, payload, encoding=zenoh.Encoding(BINARY_ENCODING))
-            selector = DELIVERY_KEY.format(map_id="utm", robot_id="r1") + "?session=79;fields=2"
+    session = client_session(memory_service.zenoh_endpoint)
+    try:
+        key = SCAN_KEY.format(map_id="utm", robot_id="r1")
+        for seq in range(3):
+            payload = codec.encode_binary(utm, seq, stamp=float(seq), session=79)
+            session.put(key, payload, encoding=zenoh.Encoding(BINARY_ENCODING))
+        selector = DELIVERY_KEY.format(map_id="utm", robot_id="r1") + "?session=79;fields=2"
 
-            def listed() -> DeliveryStatus | None:
-                # All three: the scans are answered one by one, and the first may be listed alone.
-                answer = query(session, selector)
-                if not isinstance(answer, DeliveryStatus) or not answer.sessions:
-                    return None
-                entry = answer.session(79)
-                return answer if entry is not None and entry.refused + entry.integrated >= 3 else None
-
-            answer = wait_for(listed, 10, what="the three refused scans listed")
-            assert isinstance(answer, DeliveryStatus) and answer.status == "no_map", answer
+        def listed() -> DeliveryStatus | None:
+            # All three: the scans are answered one by one, and the first may be listed alone.
+            answer = query(session, selector)
+            if not isinstance(answer, DeliveryStatus) or not answer.sessions:
+                return None
             entry = answer.session(79)
-            assert entry is not None and (entry.settled, entry.refused, entry.integrated) == (2, 3, 0), entry
-            assert answer.last_error is not None and "outside the world bound" in answer.last_error
-            assert httpx.get(f"{service.base_url}/maps/utm", timeout=10).status_code == 404  # still no map
-        finally:
-            session.close()
+            return answer if entry is not None and entry.refused + entry.integrated >= 3 else None
+
+        answer = wait_for(listed, 10, what="the three refused scans listed")
+        assert isinstance(answer, DeliveryStatus) and answer.status == "no_map", answer
+        entry = answer.session(79)
+        assert entry is not None and (entry.settled, entry.refused, entry.integrated) == (2, 3, 0), entry
+        assert answer.last_error is not None and "outside the world bound" in answer.last_error
+        assert httpx.get(f"{memory_service.base_url}/maps/utm", timeout=10).status_code == 404  # still no map
+    finally:
+        session.close()
 
 
 def test_flush_reads_an_answer_with_fields_it_does_not_know() -> None:
@@ -728,26 +739,26 @@ def test_flush_reads_an_answer_with_fields_it_does_not_know() -> None:
 
 
 @pytest.mark.parametrize("how", ["deleted", "replaced"])
-def test_flush_after_the_map_went_says_so_at_once(tmp_path: Path, how: str) -> None:
+def test_flush_after_the_map_went_says_so_at_once(memory_service: ServiceProcess, how: str) -> None:
     """A robot's 10 scans are integrated, then its map is deleted (or replaced by an upload) before it
     flushes: flush without a timeout returns at once, unconfirmed, saying the map went with its
     scans, where it waited forever for a session the service no longer counted. The service knows
     it from the tombstones it keeps of the map's robots."""
     scans = scans_for(sim=15, beams=181, count=10)
+    map_id = f"went-{how}"  # each case a map of its own, on the module's service
     with (
-        ServiceProcess(tmp_path, ["--in-memory"]) as service,
-        ScanPublisher("went", "r1", connect=[service.zenoh_endpoint]) as pub,
-        httpx.Client(base_url=service.base_url, timeout=10) as http,
+        ScanPublisher(map_id, "r1", connect=[memory_service.zenoh_endpoint]) as pub,
+        httpx.Client(base_url=memory_service.base_url, timeout=10) as http,
     ):
         assert pub.wait_connected(20), pub.last_connect_error
         for seq, scan in enumerate(scans):
             pub.publish(scan, seq=seq, stamp=float(seq))
-        wait_integrated(http, "went", 10, timeout=30)
+        wait_integrated(http, map_id, 10, timeout=30)
         if how == "deleted":
-            assert http.delete("/maps/went").status_code == 204
+            assert http.delete(f"/maps/{map_id}").status_code == 204
         else:
-            snapshot = http.get("/maps/went/snapshot").content
-            assert http.put("/maps/went/snapshot", content=snapshot).status_code == 200
+            snapshot = http.get(f"/maps/{map_id}/snapshot").content
+            assert http.put(f"/maps/{map_id}/snapshot", content=snapshot).status_code == 200
         outcome: list[object] = []
         flusher = threading.Thread(target=lambda: outcome.append(pub.flush()), daemon=True)
         flusher.start()
@@ -759,14 +770,13 @@ def test_flush_after_the_map_went_says_so_at_once(tmp_path: Path, how: str) -> N
         assert report.summary() == "10 scans published, 0 integrated: 10 went with a deleted or replaced map"
 
 
-def test_flush_after_the_map_went_midway_counts_both_parts(tmp_path: Path) -> None:
+def test_flush_after_the_map_went_midway_counts_both_parts(memory_service: ServiceProcess) -> None:
     """The map is deleted after 10 of a robot's scans; it publishes 10 more, which make a new map of
     that id: flush says 10 integrated and 10 gone with the deleted map, not confirmed."""
     scans = scans_for(sim=16, beams=181, count=20)
     with (
-        ServiceProcess(tmp_path, ["--in-memory"]) as service,
-        ScanPublisher("midway", "r1", connect=[service.zenoh_endpoint]) as pub,
-        httpx.Client(base_url=service.base_url, timeout=10) as http,
+        ScanPublisher("midway", "r1", connect=[memory_service.zenoh_endpoint]) as pub,
+        httpx.Client(base_url=memory_service.base_url, timeout=10) as http,
     ):
         assert pub.wait_connected(20), pub.last_connect_error
         for seq in range(10):
@@ -854,7 +864,9 @@ def test_flush_of_scans_refused_for_want_of_room_for_the_robot_returns_saying_so
         assert report.last_error is not None and "already has 1 robots, the most it" in report.last_error
 
 
-def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_scans(tmp_path: Path) -> None:
+def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_scans(
+    durable_service: ServiceProcess,
+) -> None:
     """A robot publishes 10 scans, drives into a dead zone, publishes 10 more into its backlog, and
     its process restarts there (the backlog goes with it). The new process's publisher confirms its
     own 5 scans; `flush_ended` on the previous session, whose id and seqs the robot saved, says
@@ -862,10 +874,9 @@ def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_sc
     part again. `flush` alone confirmed the new session and said nothing of the old one."""
     scans = scans_for(sim=18, beams=181, count=20)
     with (
-        ServiceProcess(tmp_path) as service,
-        httpx.Client(base_url=service.base_url, timeout=10) as http,
+        httpx.Client(base_url=durable_service.base_url, timeout=10) as http,
     ):
-        proxy = FreezableProxy(service.zenoh_port)
+        proxy = FreezableProxy(durable_service.zenoh_port)
         before = ScanPublisher("reboot", "r1", connect=[proxy.endpoint])
         try:
             publish_then_cut(before, proxy, http, "reboot", scans, 10)
@@ -876,7 +887,7 @@ def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_sc
             before.close()  # the process died: its backlog with it
             proxy.close()
         assert saved[0] is not None and saved[2] == 19
-        with ScanPublisher("reboot", "r1", connect=[service.zenoh_endpoint]) as pub:
+        with ScanPublisher("reboot", "r1", connect=[durable_service.zenoh_endpoint]) as pub:
             assert pub.wait_connected(20), pub.last_connect_error
             for seq in range(5):
                 pub.publish(scans[seq], seq=seq, stamp=100.0 + seq)
@@ -894,25 +905,26 @@ def test_a_robot_restarted_midway_learns_what_became_of_its_previous_sessions_sc
             assert (unknown.answered, unknown.settled, unknown.unsettled) == (True, False, 10), unknown
 
 
-def test_flush_ended_takes_the_session_id_a_publisher_without_one_saved(tmp_path: Path) -> None:
+def test_flush_ended_takes_the_session_id_a_publisher_without_one_saved(
+    memory_service: ServiceProcess,
+) -> None:
     """A robot whose publisher sends no session id (`send_session_id=False`, for a service older
     than session ids) saves `pub.session_id`, None, as docs/clients.md says, and asks about its
     previous process's scans with it: `flush_ended` refused None ("session_id must be an integer"),
     though it asks about scans without a session id when given 0, and its type said `int` where
     `session_id` is `int | None`. None now asks about them."""
     scans = scans_for(sim=18, beams=91, count=5)
-    with ServiceProcess(tmp_path, ["--in-memory"]) as service:
-        connect = [service.zenoh_endpoint]
-        with ScanPublisher("nosession", "r1", connect=connect, send_session_id=False) as before:
-            assert before.wait_connected(20), before.last_connect_error
-            for seq, scan in enumerate(scans):
-                assert before.publish(scan, seq=seq, stamp=float(seq))
-            assert before.flush(20).confirmed
-            saved = (before.session_id, 0, before.last_seq)
-        assert saved == (None, 0, 4)
-        with ScanPublisher("nosession", "r1", connect=connect, send_session_id=False) as pub:
-            assert pub.session_id is None
-            report = pub.flush_ended(*saved, timeout=20)
+    connect = [memory_service.zenoh_endpoint]
+    with ScanPublisher("nosession", "r1", connect=connect, send_session_id=False) as before:
+        assert before.wait_connected(20), before.last_connect_error
+        for seq, scan in enumerate(scans):
+            assert before.publish(scan, seq=seq, stamp=float(seq))
+        assert before.flush(20).confirmed
+        saved = (before.session_id, 0, before.last_seq)
+    assert saved == (None, 0, 4)
+    with ScanPublisher("nosession", "r1", connect=connect, send_session_id=False) as pub:
+        assert pub.session_id is None
+        report = pub.flush_ended(*saved, timeout=20)
     assert report.confirmed and (report.published, report.integrated, report.settled) == (5, 5, True), report
 
 
@@ -984,7 +996,7 @@ def test_flush_ended_refuses_ids_past_the_wires_bounds_at_once() -> None:
         assert not pub.flush_ended(2**53 - 1, 0, 2**63 - 1, timeout=0.2).answered  # the bounds themselves
 
 
-def test_flush_counts_the_scans_through_its_last_seq_only(tmp_path: Path) -> None:
+def test_flush_counts_the_scans_through_its_last_seq_only(memory_service: ServiceProcess) -> None:
     """A robot flushes in a dead zone (its scans through seq 19 published, seq 15 one the service
     refuses) and goes on publishing meanwhile (seq 25 refused too); the link comes back and the
     backlog arrives at once, so the service's counts take in scans published after the flush began.
@@ -993,10 +1005,9 @@ def test_flush_counts_the_scans_through_its_last_seq_only(tmp_path: Path) -> Non
     scans = scans_for(sim=19, beams=181, count=30)
     utm = Scan.from_fan((500_000.0, 5.0, 0.0), -1.0, 0.1, [1.0] * 20, 0.05, 10.0)
     with (
-        ServiceProcess(tmp_path, ["--in-memory"]) as service,
-        httpx.Client(base_url=service.base_url, timeout=10) as http,
+        httpx.Client(base_url=memory_service.base_url, timeout=10) as http,
     ):
-        proxy = FreezableProxy(service.zenoh_port)
+        proxy = FreezableProxy(memory_service.zenoh_port)
         pub = ScanPublisher("through", "r1", connect=[proxy.endpoint])
         try:
             publish_then_cut(pub, proxy, http, "through", scans, 10)
