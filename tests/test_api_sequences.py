@@ -9,9 +9,11 @@ import json
 import threading
 import time
 import zipfile
+from collections.abc import Iterator
 
 import httpx
 import numpy as np
+import pytest
 from PIL import Image
 from service_process import ServiceProcess
 
@@ -19,6 +21,14 @@ from fleetmap.codec import encode_json
 from fleetmap.scan import Scan
 
 JSON = {"content-type": "application/json"}
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One service (default options) for the module's tests, in place of conftest's one per test:
+    each works on maps of its own (ids no other test here uses) and none stops or reconfigures it."""
+    with ServiceProcess(tmp_path_factory.mktemp("api-sequences")) as svc:
+        yield svc
 
 
 def post_scan(client: httpx.Client, map_id: str, robot: str, seq: int, x: float, y: float) -> None:
