@@ -6,14 +6,24 @@ from __future__ import annotations
 import difflib
 import importlib.util
 import json
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
 import httpx
+import pytest
 from service_process import ServiceProcess
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMITTED = ROOT / "openapi" / "openapi.json"
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One service (default options) for the module's tests that ask the live service, in place of
+    conftest's one per test: each makes maps of its own, if any, and none stops or reconfigures it."""
+    with ServiceProcess(tmp_path_factory.mktemp("api-openapi")) as svc:
+        yield svc
 
 
 def _export_script() -> ModuleType:
