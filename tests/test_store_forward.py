@@ -41,9 +41,12 @@ LAYERS = ("log_odds", "hits", "misses", "tsdf", "tsdf_weight")
 RATE = 25.0
 
 
-@pytest.fixture
-def service(tmp_path: Path) -> Iterator[ServiceProcess]:
-    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One `--in-memory` service for the module's tests that need no other: each publishes to maps
+    of its own (ids no other test here uses) and counts the service-wide Zenoh counters from what
+    they were when it began; none stops or restarts it (those tests keep their own)."""
+    with ServiceProcess(tmp_path_factory.mktemp("store-forward"), ["--in-memory"]) as svc:
         yield svc
 
 
@@ -123,7 +126,10 @@ def test_a_dead_zone_loses_no_scan(service: ServiceProcess, backlog: int) -> Non
     backlog changes."""
     scans = scans_for(sim=3, count=150)
     proxy = FreezableProxy(service.zenoh_port)
-    robot = Robot(proxy, "dz", scans, backlog)
+    map_id = f"dz-{backlog}"  # each case a map of its own, on the module's service
+    robot = Robot(proxy, map_id, scans, backlog)
+    with httpx.Client(base_url=service.base_url, timeout=10) as http:
+        counted_before = zenoh_counters(http)  # the module's earlier tests' count
     try:
         robot.start()
         robot.wait_sent(40)
@@ -133,16 +139,16 @@ def test_a_dead_zone_loses_no_scan(service: ServiceProcess, backlog: int) -> Non
         robot.finish()
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
             if backlog:
-                wait_integrated(http, "dz", len(scans), timeout=30)
-                state = robot_stats(http, "dz", "r1")
+                wait_integrated(http, map_id, len(scans), timeout=30)
+                state = robot_stats(http, map_id, "r1")
                 assert (state["scans_integrated"], state["lost"], state["dropped"]) == (len(scans), 0, 0)
                 assert state["last_seq"] == len(scans) - 1 and state["restarts"] == 0
                 assert robot.pub.dropped == 0
-                assert_region_equal(http, "dz", engine_map(scans), LAYERS)
-                assert zenoh_counters(http) == (0, 0)
+                assert_region_equal(http, map_id, engine_map(scans), LAYERS)
+                assert zenoh_counters(http) == counted_before
             else:
-                wait_for(lambda: robot_stats(http, "dz", "r1")["last_seq"] == len(scans) - 1, 30, 0.05)
-                state = robot_stats(http, "dz", "r1")
+                wait_for(lambda: robot_stats(http, map_id, "r1")["last_seq"] == len(scans) - 1, 30, 0.05)
+                state = robot_stats(http, map_id, "r1")
                 assert robot.pub.dropped >= 40, robot.pub.dropped  # given up while disconnected
                 assert state["lost"] >= 40 and state["scans_integrated"] == len(scans) - state["lost"], state
     finally:
@@ -312,6 +318,9 @@ def test_a_burst_of_1000_recovered_scans_fits_the_ingest_queue(service: ServiceP
     pub = ScanPublisher("burst", "r1", connect=[proxy.endpoint], backlog=1000)
     try:
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            queue_full = (
+                http.get("/healthz").json()["zenoh"]["rejected"].get("queue_full", 0)
+            )  # earlier tests'
             publish_then_cut(pub, proxy, http, "burst", scans, 10)
             for seq in range(10, len(scans)):
                 assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
@@ -320,7 +329,7 @@ def test_a_burst_of_1000_recovered_scans_fits_the_ingest_queue(service: ServiceP
             wait_integrated(http, "burst", len(scans), timeout=60)
             state = robot_stats(http, "burst", "r1")
             assert (state["scans_integrated"], state["lost"], state["dropped"]) == (len(scans), 0, 0), state
-            assert http.get("/healthz").json()["zenoh"]["rejected"].get("queue_full", 0) == 0
+            assert http.get("/healthz").json()["zenoh"]["rejected"].get("queue_full", 0) == queue_full
     finally:
         pub.close()
         proxy.close()
@@ -336,6 +345,7 @@ def test_scans_past_the_backlog_of_a_dead_zone_are_counted_as_lost(service: Serv
     pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10)
     try:
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
+            counted_before = zenoh_counters(http)  # the module's earlier tests' count
             publish_then_cut(pub, proxy, http, "miss", scans, 10)
             for seq in range(10, 60):
                 assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
@@ -344,7 +354,7 @@ def test_scans_past_the_backlog_of_a_dead_zone_are_counted_as_lost(service: Serv
             wait_integrated(http, "miss", 20, timeout=30)
             state = robot_stats(http, "miss", "r1")
             assert (state["scans_integrated"], state["lost"], state["last_seq"]) == (20, 40, 59), state
-            assert zenoh_counters(http) == (0, 0)
+            assert zenoh_counters(http) == counted_before
     finally:
         pub.close()
         proxy.close()
@@ -360,22 +370,27 @@ def test_scans_past_the_cache_of_a_silently_dead_link_are_counted_as_unrecoverab
     `/metrics`) and as lost on the robot."""
     scans = scans_for(sim=6, beams=181, count=60)
     proxy = FreezableProxy(service.zenoh_port)
-    pub = ScanPublisher("miss", "r1", connect=[proxy.endpoint], backlog=10, cache=10)
+    pub = ScanPublisher("unrecoverable", "r1", connect=[proxy.endpoint], backlog=10, cache=10)
     try:
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
-            assert zenoh_counters(http) == (0, 0)
+            healthz, metric = zenoh_counters(http)  # the module's earlier tests' count
             assert pub.wait_connected(20)
             for seq in range(10):
                 pub.publish(scans[seq], seq=seq, stamp=float(seq))
-            wait_integrated(http, "miss", 10, timeout=20)
+            wait_integrated(http, "unrecoverable", 10, timeout=20)
             assert proxy.freeze(refuse_new=True) >= 1
             for seq in range(10, 60):
                 assert pub.publish(scans[seq], seq=seq, stamp=float(seq))
             assert pub.pending == 0  # handed to Zenoh: the robot did not know
             proxy.restore()  # the frozen link stays silent until Zenoh gives up on it
-            wait_integrated(http, "miss", 20, timeout=60)
-            wait_for(lambda: zenoh_counters(http) == (40, 40), 10, 0.05, "40 unrecoverable scans")
-            state = robot_stats(http, "miss", "r1")
+            wait_integrated(http, "unrecoverable", 20, timeout=60)
+            wait_for(
+                lambda: zenoh_counters(http) == (healthz + 40, metric + 40),
+                10,
+                0.05,
+                "40 unrecoverable scans",
+            )
+            state = robot_stats(http, "unrecoverable", "r1")
             assert (state["scans_integrated"], state["lost"], state["last_seq"]) == (20, 40, 59), state
     finally:
         pub.close()
@@ -545,7 +560,7 @@ def test_close_while_a_publish_is_blocked_on_a_frozen_link_closes_the_session(
     blocked thread then gets `PublisherClosed` (or False: its scan given up)."""
     scans = scans_for(sim=6, beams=50_000, count=1)
     proxy = FreezableProxy(service.zenoh_port)
-    pub = ScanPublisher("frozen", "r1", connect=[proxy.endpoint])
+    pub = ScanPublisher("frozen-close", "r1", connect=[proxy.endpoint])
     outcome: list[object] = []
 
     def publish_until_closed() -> None:
