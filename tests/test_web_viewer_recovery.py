@@ -4,7 +4,9 @@ test_web_viewer.py walks through the normal life of a map; these tests cover wha
 survive: a link to a map that does not exist, robot rows clicked while robots events keep coming, the
 service restarting with another map under the same id, and the last map being deleted. Scans come
 through `POST /maps/{id}/scans` (no Zenoh needed here). Same Chromium and skip rule as
-test_web_viewer.py; one browser for the module, one page and one in-memory service per test.
+test_web_viewer.py; one browser for the module, one page per test, and one in-memory service for
+the tests that each show a map of their own (a test about which maps the service holds, or that
+stops it, has one of its own).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import itertools
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import httpx
@@ -94,18 +96,32 @@ def _scan(
 
 
 def _make_map(
-    base: str, robots: dict[str, tuple[float, float]], config: dict[str, Any] | None = None
+    base: str,
+    robots: dict[str, tuple[float, float]],
+    config: dict[str, Any] | None = None,
+    map_id: str = MAP_ID,
 ) -> None:
-    """PUT the map (with `config`), and one scan from each robot at its (x, y)."""
-    r = httpx.put(f"{base}/maps/{MAP_ID}", json=config or {}, timeout=10.0)
+    """PUT the map `map_id` (with `config`), and one scan from each robot at its (x, y)."""
+    r = httpx.put(f"{base}/maps/{map_id}", json=config or {}, timeout=10.0)
     assert r.status_code in (200, 201), r.text
     for robot_id, (x, y) in robots.items():
-        _scan(base, MAP_ID, robot_id, 1, x, y)
+        _scan(base, map_id, robot_id, 1, x, y)
 
 
 @pytest.fixture
 def svc(service_factory: Callable[..., ServiceProcess]) -> ServiceProcess:
+    """An in-memory service of the test's own: for tests about the maps the service holds (which
+    one a page shows, the list) or that stop it."""
     return service_factory("--in-memory")
+
+
+@pytest.fixture(scope="module")
+def shared_svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One in-memory service for the module's tests that each open a page on a map of their own
+    (named in the link, an id no other test here uses) and neither stop the service nor care which
+    other maps it holds."""
+    with ServiceProcess(tmp_path_factory.mktemp("viewer-recovery"), ["--in-memory"]) as service:
+        yield service
 
 
 def _open(page: Any, base: str, hash_: str) -> None:
@@ -134,33 +150,33 @@ def test_link_to_a_missing_map(page: Any, svc: ServiceProcess) -> None:
     assert not page.page_errors, page.page_errors
 
 
-def test_an_edited_hash_names_what_is_shown(page: Any, svc: ServiceProcess) -> None:
+def test_an_edited_hash_names_what_is_shown(page: Any, shared_svc: ServiceProcess) -> None:
     """The hash edited by hand to leave out the layer, or to name a view out of range, is written
     again to name the layer and view shown (it kept the edit, so a link copied from the address bar
     showed another layer, or the map fitted, than the page the link was copied from)."""
-    base = svc.base_url
-    _make_map(base, {"r1": (2.0, 2.0)})
-    _open(page, base, f"#map={MAP_ID}&layer=hits")
-    page.evaluate("() => { location.hash = '#map=alpha'; }")
-    _wait(page, f"() => location.hash === '#map={MAP_ID}&layer=hits'", what="the layer shown in the URL")
-    page.evaluate("() => { location.hash = '#map=alpha&layer=hits&x=4&y=2&z=3'; }")
+    base, map_id = shared_svc.base_url, "edited"  # a map of its own on the shared service
+    _make_map(base, {"r1": (2.0, 2.0)}, map_id=map_id)
+    _open(page, base, f"#map={map_id}&layer=hits")
+    page.evaluate(f"() => {{ location.hash = '#map={map_id}'; }}")
+    _wait(page, f"() => location.hash === '#map={map_id}&layer=hits'", what="the layer shown in the URL")
+    page.evaluate(f"() => {{ location.hash = '#map={map_id}&layer=hits&x=4&y=2&z=3'; }}")
     _wait(page, "() => window.fleetmapViewer.map.getZoom() === 3", what="the view of the link")
-    page.evaluate("() => { location.hash = '#map=alpha&layer=hits&x=1e400&y=2&z=1'; }")
+    page.evaluate(f"() => {{ location.hash = '#map={map_id}&layer=hits&x=1e400&y=2&z=1'; }}")
     _wait(
         page,
-        f"() => location.hash === '#map={MAP_ID}&layer=hits&x=4&y=2&z=3'",
+        f"() => location.hash === '#map={map_id}&layer=hits&x=4&y=2&z=3'",
         what="the view shown in the URL",
     )
     assert page.evaluate("() => window.fleetmapViewer.state.layer") == "hits"
     assert not page.page_errors, page.page_errors
 
 
-def test_robot_rows_are_stable_buttons(page: Any, svc: ServiceProcess) -> None:
+def test_robot_rows_are_stable_buttons(page: Any, shared_svc: ServiceProcess) -> None:
     """Robot rows are updated in place while robots events come (so a slow click is not lost), in
     natural order, and are buttons: a click or Enter centres the map on the robot."""
-    base = svc.base_url
-    _make_map(base, {"sim-10": (6.0, 2.0), "sim-2": (2.0, 2.0)})
-    _open(page, base, f"#map={MAP_ID}")
+    base, map_id = shared_svc.base_url, "rows"  # a map of its own on the shared service
+    _make_map(base, {"sim-10": (6.0, 2.0), "sim-2": (2.0, 2.0)}, map_id=map_id)
+    _open(page, base, f"#map={map_id}")
     page.wait_for_selector(_ROW.format("sim-10"), timeout=SHOW_MS)
     ids = page.eval_on_selector_all("#robot-list li", "els => els.map((li) => li.dataset.robotId)")
     assert ids == ["sim-2", "sim-10"], ids
@@ -176,7 +192,7 @@ def test_robot_rows_are_stable_buttons(page: Any, svc: ServiceProcess) -> None:
     def feed() -> None:
         seq = 2
         while not stop.is_set():
-            _scan(base, MAP_ID, "sim-2", seq, 2.0, 2.0)
+            _scan(base, map_id, "sim-2", seq, 2.0, 2.0)
             seq += 1
             stop.wait(0.08)
 
@@ -214,18 +230,18 @@ def test_robot_rows_are_stable_buttons(page: Any, svc: ServiceProcess) -> None:
     assert not page.page_errors, page.page_errors
 
 
-def test_a_focused_robot_row_keeps_the_focus_as_robots_come(page: Any, svc: ServiceProcess) -> None:
+def test_a_focused_robot_row_keeps_the_focus_as_robots_come(page: Any, shared_svc: ServiceProcess) -> None:
     """A keyboard user on a robot's row keeps their place when another robot joins the list: the
     list was rebuilt whole, every row taken out and put back, and the focused row lost the focus to
     the page, so the next Tab started again from the top of the page (robots leaving did the same)."""
-    base = svc.base_url
-    _make_map(base, {"sim-5": (2.0, 2.0), "sim-7": (6.0, 2.0)})
-    _open(page, base, f"#map={MAP_ID}")
+    base, map_id = shared_svc.base_url, "focus"  # a map of its own on the shared service
+    _make_map(base, {"sim-5": (2.0, 2.0), "sim-7": (6.0, 2.0)}, map_id=map_id)
+    _open(page, base, f"#map={map_id}")
     page.wait_for_selector(_ROW.format("sim-7"), timeout=SHOW_MS)
     page.focus(f"{_ROW.format('sim-7')} button")
     focused = "() => document.activeElement.closest('#robot-list li')?.dataset.robotId ?? 'none'"
     assert page.evaluate(focused) == "sim-7"
-    _scan(base, MAP_ID, "sim-6", 1, 4.0, 2.0)  # a robot joins, before sim-7 in the list
+    _scan(base, map_id, "sim-6", 1, 4.0, 2.0)  # a robot joins, before sim-7 in the list
     page.wait_for_selector(_ROW.format("sim-6"), timeout=SHOW_MS)
     assert page.evaluate(focused) == "sim-7", "the focus left the robot's row"
     assert not page.page_errors, page.page_errors
@@ -321,13 +337,13 @@ _MARKER_COLOURS_JS = """
 """
 
 
-def test_twelve_robots_have_twelve_colours(page: Any, svc: ServiceProcess) -> None:
+def test_twelve_robots_have_twelve_colours(page: Any, shared_svc: ServiceProcess) -> None:
     """Colours came from a hash of the id into 10 colours: with 12 robots two pairs shared one, and
     the map has no label to tell them apart. Each robot of a map now has its own, the same after a
     reload."""
-    base = svc.base_url
-    _make_map(base, {f"sim-{k}": (3.0 * k, 0.0) for k in range(1, 13)})
-    _open(page, base, f"#map={MAP_ID}")
+    base, map_id = shared_svc.base_url, "twelve"  # a map of its own on the shared service
+    _make_map(base, {f"sim-{k}": (3.0 * k, 0.0) for k in range(1, 13)}, map_id=map_id)
+    _open(page, base, f"#map={map_id}")
     _wait(page, "() => window.fleetmapViewer.state.robots.size === 12", what="12 robots")
     _wait(page, "() => document.querySelectorAll('.robot-marker').length === 12", what="12 markers")
     colours = page.evaluate(_MARKER_COLOURS_JS)
@@ -345,19 +361,19 @@ _FAILED_TILES_JS = (
 )
 
 
-def test_tiles_that_failed_are_asked_again(page: Any, svc: ServiceProcess) -> None:
+def test_tiles_that_failed_are_asked_again(page: Any, shared_svc: ServiceProcess) -> None:
     """The network drops tile requests for a moment while the map changes, and the event stream stays
     up. The tiles that failed showed nothing (a hole in the map, the robot's trail running over
     unknown space) until their cells changed again, which on a finished map is never: each one is
     now asked for again, and the map is whole again without a reload or a pan, and without the
     message that a tile failed."""
-    base = svc.base_url
-    _make_map(base, {"r1": (2.0, 2.0)})
-    _open(page, base, f"#map={MAP_ID}&layer=probability")
+    base, map_id = shared_svc.base_url, "failed"  # a map of its own on the shared service
+    _make_map(base, {"r1": (2.0, 2.0)}, map_id=map_id)
+    _open(page, base, f"#map={map_id}&layer=probability")
     _wait(page, _TILES_LOADED_JS, what="every tile loaded")
 
     page.route("**/tiles/**", lambda route: route.abort("internetdisconnected"))
-    _scan(base, MAP_ID, "r1", 2, 2.5, 2.0)  # changes the tiles in view: the page asks for them again
+    _scan(base, map_id, "r1", 2, 2.5, 2.0)  # changes the tiles in view: the page asks for them again
     _wait(page, f"() => ({_FAILED_TILES_JS})() > 0", what="tiles failing while the network drops them")
     _wait(page, _ERROR_JS, "failed to load", what="'tile ... failed to load'")
     page.unroute("**/tiles/**")
@@ -526,8 +542,8 @@ _SHOWS_BOUNDS_JS = """
 """
 
 
-def _bounds(base: str) -> list[float]:
-    return httpx.get(f"{base}/maps/{MAP_ID}", timeout=10.0).json()["stats"]["bounds"]
+def _bounds(base: str, map_id: str = MAP_ID) -> list[float]:
+    return httpx.get(f"{base}/maps/{map_id}", timeout=10.0).json()["stats"]["bounds"]
 
 
 #: Sets window.__dragDone once the next drag of the map has ended, its inertia included: Leaflet
@@ -541,17 +557,19 @@ _DRAG_DONE_JS = """
 """
 
 
-def test_the_view_follows_a_growing_map_until_the_user_moves_it(page: Any, svc: ServiceProcess) -> None:
+def test_the_view_follows_a_growing_map_until_the_user_moves_it(
+    page: Any, shared_svc: ServiceProcess
+) -> None:
     """The view was fitted to the map once, at the first scans: as a demo's robots explored on, the
     new rooms ran off screen and a newcomer had to zoom out to see them. Until the user moves the
     map, the view now follows it as it grows; once the user has moved it, it stays put."""
-    base = svc.base_url
-    _make_map(base, {"r1": (0.0, 0.0)})
-    _open(page, base, f"#map={MAP_ID}")
-    _wait(page, _SHOWS_BOUNDS_JS, _bounds(base), what="the first fit")
+    base, map_id = shared_svc.base_url, "growing"  # a map of its own on the shared service
+    _make_map(base, {"r1": (0.0, 0.0)}, map_id=map_id)
+    _open(page, base, f"#map={map_id}")
+    _wait(page, _SHOWS_BOUNDS_JS, _bounds(base, map_id), what="the first fit")
     for seq, x in enumerate((40.0, 80.0), start=2):  # far beyond the first fit, on that zoom
-        _scan(base, MAP_ID, "r1", seq, x, 0.0)
-        _wait(page, _SHOWS_BOUNDS_JS, _bounds(base), what=f"the view following the map to x = {x} m")
+        _scan(base, map_id, "r1", seq, x, 0.0)
+        _wait(page, _SHOWS_BOUNDS_JS, _bounds(base, map_id), what=f"the view following the map to x = {x} m")
     assert page.evaluate("() => window.fleetmapViewer.state.viewChosen") is False
 
     # The user pans: from now on the view is theirs.
@@ -567,10 +585,10 @@ def test_the_view_follows_a_growing_map_until_the_user_moves_it(page: Any, svc: 
     # the button is released (a fixed 1.5 s, or a wait for Leaflet's pan animation, could end first).
     _wait(page, "() => window.__dragDone === true", what="the drag's end, inertia included")
     chosen = page.evaluate("() => window.fleetmapViewer.map.getCenter()")
-    _scan(base, MAP_ID, "r1", 4, -120.0, 0.0)  # answered once integrated: its tiles event is on its way
+    _scan(base, map_id, "r1", 4, -120.0, 0.0)  # answered once integrated: its tiles event is on its way
     page.wait_for_timeout(5000)  # past two follow periods: a follow would have refitted by now
     assert page.evaluate("() => window.fleetmapViewer.map.getCenter()") == chosen
-    assert not page.evaluate(_SHOWS_BOUNDS_JS, _bounds(base))
+    assert not page.evaluate(_SHOWS_BOUNDS_JS, _bounds(base, map_id))
     assert not page.page_errors, page.page_errors
 
 
@@ -580,15 +598,15 @@ _DETACHED_TILES_JS = """
 """
 
 
-def test_tiles_aborted_by_a_zoom_are_forgotten(page: Any, svc: ServiceProcess) -> None:
+def test_tiles_aborted_by_a_zoom_are_forgotten(page: Any, shared_svc: ServiceProcess) -> None:
     """Tiles still loading when the user zooms again (an animated zoom, as the buttons and the wheel
     do) are aborted: Leaflet takes them off the map and fires 'tileabort', not 'tileunload'. The
     viewer kept them in its list of shown tiles, and every reset after (a reconnect, a replaced map)
     asked the service for each of them again, for nothing. Tile answers are held back here so that
     the second zoom catches the first one's tiles loading."""
-    base = svc.base_url
-    _make_map(base, {"r1": (2.0, 2.0)})
-    _open(page, base, f"#map={MAP_ID}&layer=probability")
+    base, map_id = shared_svc.base_url, "aborted"  # a map of its own on the shared service
+    _make_map(base, {"r1": (2.0, 2.0)}, map_id=map_id)
+    _open(page, base, f"#map={map_id}&layer=probability")
     _wait(page, _TILES_LOADED_JS, what="every tile loaded")
     page.evaluate(
         "() => { const v = window.fleetmapViewer; v.aborted = 0; v.tiles.on('tileabort', () => v.aborted++);"
