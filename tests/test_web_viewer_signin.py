@@ -2,7 +2,8 @@
 Chromium: the page loads, asks for a token, says when it is wrong, and with a read token shows the
 map (tiles drawn, the robot, the live event stream) through the session cookie `POST /session` set;
 a revoked token brings the form back, and signing out clears the cookie. With reads open the page
-never asks. Same Chromium and skip rule as test_web_viewer.py; one in-memory service per test.
+never asks. Same Chromium and skip rule as test_web_viewer.py; one in-memory service per test that
+revokes a token, restarts it, fails a sign-in or needs other options, and one shared by the others.
 """
 
 from __future__ import annotations
@@ -43,11 +44,24 @@ def _tokens(path: Path, *lines: str) -> Path:
     return path
 
 
-def _map_with_a_robot(base: str) -> None:
-    """Map MAP_ID with a scan of ROBOT_ID (a ring of walls around (2, 2)), written with the write token."""
-    r = httpx.put(f"{base}/maps/{MAP_ID}", json={}, headers=bearer(WRITE), timeout=10.0)
+def _map_with_a_robot(base: str, map_id: str = MAP_ID) -> None:
+    """Map `map_id` with a scan of ROBOT_ID (a ring of walls around (2, 2)), written with the write
+    token."""
+    r = httpx.put(f"{base}/maps/{map_id}", json={}, headers=bearer(WRITE), timeout=10.0)
     assert r.status_code == 201, r.text
-    _scan(base, MAP_ID, ROBOT_ID, 1, 2.0, 2.0, headers=bearer(WRITE))
+    _scan(base, map_id, ROBOT_ID, 1, 2.0, 2.0, headers=bearer(WRITE))
+
+
+@pytest.fixture(scope="module")
+def secured(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One in-memory service needing a token to read (the read and the write token) for the module's
+    tests that each show a map of their own, if any, and neither revoke a token, restart the
+    service, nor fail a sign-in (the failures a client address may make are counted service-wide);
+    those tests have a service of their own."""
+    tmp = tmp_path_factory.mktemp("viewer-signin")
+    tokens = _tokens(tmp / "tokens.txt", f"read {READ}", f"write {WRITE}")
+    with ServiceProcess(tmp, ["--in-memory", "--auth-tokens", str(tokens), "--require-read-token"]) as svc:
+        yield svc
 
 
 def _sign_in(page: Any, token: str) -> None:
@@ -184,16 +198,13 @@ def test_the_viewer_says_when_sign_ins_are_refused_for_a_while(
     assert not page.page_errors, page.page_errors
 
 
-def test_a_sign_out_that_failed_can_be_tried_again(
-    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
-) -> None:
+def test_a_sign_out_that_failed_can_be_tried_again(page: Any, secured: ServiceProcess) -> None:
     """The network drops the sign-out (DELETE session): the page says it could not sign out and keeps
     'Sign out', since the browser still holds its session; the next click signs out. ('Sign out' went
     at the first click, and with it the only way to end the session, over reloads too.)"""
-    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
-    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
-    _map_with_a_robot(svc.base_url)
-    page.goto(f"{svc.base_url}/#map={MAP_ID}")
+    map_id = "sign-out"  # a map of its own on the module's service
+    _map_with_a_robot(secured.base_url, map_id)
+    page.goto(f"{secured.base_url}/#map={map_id}")
     _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form")
     _sign_in(page, READ)
     _wait(page, _CONNECTED_JS, what="connected")
@@ -224,17 +235,12 @@ def test_a_sign_out_that_failed_can_be_tried_again(
 
 @contextlib.contextmanager
 def _two_tabs(
-    browser: Any,
-    service_factory: Callable[..., ServiceProcess],
-    tmp_path: Path,
-    second_script: str | None = None,
+    browser: Any, svc: ServiceProcess, map_id: str, second_script: str | None = None
 ) -> Iterator[tuple[Any, Any, list[str]]]:
-    """Two tabs of one browser on a service that needs a token to read, holding map MAP_ID with a
-    robot, each showing its sign-in form: yields (first tab, second tab, the pages' errors). The
-    second runs `second_script` before its page's own."""
-    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}", f"write {WRITE}")
-    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
-    _map_with_a_robot(svc.base_url)
+    """Two tabs of one browser on `svc` (a service that needs a token to read), holding map `map_id`
+    with a robot, each showing its sign-in form: yields (first tab, second tab, the pages' errors).
+    The second runs `second_script` before its page's own."""
+    _map_with_a_robot(svc.base_url, map_id)
     context = browser.new_context(viewport={"width": 1280, "height": 800})
     try:
         first, second = context.new_page(), context.new_page()
@@ -243,20 +249,18 @@ def _two_tabs(
         errors: list[str] = []
         for tab in (first, second):
             tab.on("pageerror", lambda e: errors.append(str(e)))
-            tab.goto(f"{svc.base_url}/#map={MAP_ID}")
+            tab.goto(f"{svc.base_url}/#map={map_id}")
             _wait(tab, _SIGN_IN_SHOWN_JS, what="the sign-in form")
         yield first, second, errors
     finally:
         context.close()
 
 
-def test_signing_in_in_one_tab_signs_in_the_others(
-    browser: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
-) -> None:
+def test_signing_in_in_one_tab_signs_in_the_others(browser: Any, secured: ServiceProcess) -> None:
     """Two tabs of one browser ask for a token; the user signs in in one. The session cookie is the
     browser's, so the other tab shows the map too, without its form (it kept asking for the token,
     with no request that could find out, until it was reloaded)."""
-    with _two_tabs(browser, service_factory, tmp_path) as (first, second, errors):
+    with _two_tabs(browser, secured, "tabs-in") as (first, second, errors):
         _sign_in(first, READ)
         _wait(first, _CONNECTED_JS, what="the first tab connected")
         _wait(second, _SIGN_IN_GONE_JS, what="the second tab's form gone")
@@ -266,9 +270,7 @@ def test_signing_in_in_one_tab_signs_in_the_others(
         assert errors == [], errors
 
 
-def test_signing_out_in_one_tab_signs_out_the_others(
-    browser: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
-) -> None:
+def test_signing_out_in_one_tab_signs_out_the_others(browser: Any, secured: ServiceProcess) -> None:
     """Two tabs show the map, signed in; the user signs out in one. The other shows the form at once,
     saying the session ended: its map and its event stream, opened with the cookie, went on until
     its next poll of the map list (5 s), which is turned off here so that only the sign-out can end
@@ -278,7 +280,7 @@ def test_signing_out_in_one_tab_signs_out_the_others(
         "{ const every = window.setInterval;"
         " window.setInterval = (f, ms, ...a) => (ms === 5000 ? 0 : every(f, ms, ...a)); }"
     )
-    with _two_tabs(browser, service_factory, tmp_path, second_script=no_polls) as (first, second, errors):
+    with _two_tabs(browser, secured, "tabs-out", second_script=no_polls) as (first, second, errors):
         _sign_in(first, READ)
         for tab in (first, second):
             _wait(tab, _CONNECTED_JS, what="connected")
@@ -329,16 +331,14 @@ def test_a_service_back_with_reads_open_lets_the_form_show_the_maps(
 
 
 def test_the_form_says_when_the_browser_does_not_keep_the_session_cookie(
-    page: Any, service_factory: Callable[..., ServiceProcess], tmp_path: Path
+    page: Any, secured: ServiceProcess
 ) -> None:
     """The service accepts the token but the browser keeps no cookie (cookies blocked for the site, or
     a `Secure` cookie, a proxy having said https, on a page served over http: simulated here by an
     answer without the cookie). The form says so, not an unknown token, and the token field is not
     marked wrong. (It went and came back at once, emptied, saying nothing: the user could only
     retype the right token, to the same end.)"""
-    tokens = _tokens(tmp_path / "tokens.txt", f"read {READ}")
-    svc = service_factory("--in-memory", "--auth-tokens", str(tokens), "--require-read-token")
-    page.goto(f"{svc.base_url}/")
+    page.goto(f"{secured.base_url}/")
     _wait(page, _SIGN_IN_SHOWN_JS, what="the sign-in form")
 
     def accept_without_a_cookie(route: Any) -> None:
