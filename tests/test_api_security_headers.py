@@ -7,10 +7,11 @@ real browser that the policy blocks nothing the viewer needs."""
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import httpx
+import pytest
 from service_process import ServiceProcess
 from test_auth import READ, WRITE, bearer
 from test_operations import BROKEN_TILES_SERVICE, post_scans
@@ -69,10 +70,18 @@ def assert_every_answer_headers(response: httpx.Response, what: str) -> None:
         assert response.headers.get(name) == value, (what, response.status_code, name, response.headers)
 
 
+@pytest.fixture(scope="module")
+def in_memory(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One `--in-memory` service for the module's tests that need no other option: they read its
+    answers' headers, and make no map but their own."""
+    with ServiceProcess(tmp_path_factory.mktemp("security-headers"), ["--in-memory"]) as service:
+        yield service
+
+
 def test_the_viewer_files_carry_a_policy_allowing_only_what_the_viewer_loads(
-    service_factory: Callable[..., ServiceProcess],
+    in_memory: ServiceProcess,
 ) -> None:
-    url = service_factory("--in-memory").base_url
+    url = in_memory.base_url
     for path in VIEWER_FILES:
         for r in (httpx.get(f"{url}{path}"), httpx.head(f"{url}{path}")):
             assert r.status_code == 200, (path, r.status_code)
@@ -88,10 +97,8 @@ def test_the_viewer_files_carry_a_policy_allowing_only_what_the_viewer_loads(
     assert r.status_code == 404 and policy(r) == VIEWER_POLICY
 
 
-def test_every_answer_is_nosniff_unframeable_and_sends_no_referrer(
-    service_factory: Callable[..., ServiceProcess],
-) -> None:
-    url = service_factory("--in-memory").base_url
+def test_every_answer_is_nosniff_unframeable_and_sends_no_referrer(in_memory: ServiceProcess) -> None:
+    url = in_memory.base_url
     assert httpx.put(f"{url}/maps/m", json={}).status_code == 201
     answers = {
         "map list": httpx.get(f"{url}/maps"),
