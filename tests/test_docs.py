@@ -20,9 +20,11 @@ import os
 import re
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import pytest
 from service_process import REPO_DIR, ServiceProcess
 
 from fleetmap import cli
@@ -160,6 +162,14 @@ def test_the_command_synopses_of_clients_md_list_every_option() -> None:
         assert not missing, f"docs/clients.md: the usage of fleetmap {command} lacks {missing}"
 
 
+@pytest.fixture(scope="module")
+def metrics_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One durable service with the default options for the module's two tests of its /metrics:
+    both only read it, once `scrape_with_every_series` has made every series exist."""
+    with ServiceProcess(tmp_path_factory.mktemp("docs-metrics")) as service:
+        yield service
+
+
 def scrape_with_every_series(service: ServiceProcess) -> str:
     """`service`'s /metrics once a robot has sent a scan and a tile was drawn: per-map and per-robot
     series exist only then, tile renders only once one is drawn."""
@@ -171,9 +181,9 @@ def scrape_with_every_series(service: ServiceProcess) -> str:
     return httpx.get(f"{service.base_url}/metrics").text
 
 
-def test_every_metric_the_docs_name_is_exported(service: ServiceProcess) -> None:
+def test_every_metric_the_docs_name_is_exported(metrics_service: ServiceProcess) -> None:
     """On a durable service with the default options, as the docs describe: its storage metrics exist."""
-    exported = scrape_with_every_series(service)
+    exported = scrape_with_every_series(metrics_service)
     missing = []
     for doc in USER_DOCS:
         for name in (
@@ -208,12 +218,12 @@ COUNTER_FUNCTIONS = ("rate", "irate", "increase", "resets")
 GAUGE_FUNCTIONS = ("delta", "idelta", "deriv", "predict_linear")
 
 
-def test_the_alert_expressions_of_api_md_query_metrics_as_exported(service: ServiceProcess) -> None:
+def test_the_alert_expressions_of_api_md_query_metrics_as_exported(metrics_service: ServiceProcess) -> None:
     """docs/api.md's "What to alert on" is copied into alerting rules: an expression naming a metric
     that does not exist finds no series and never fires, with no error. Its "scans lost" alert was
     `..._lost_total` under `increase()`, a counter renamed to the gauge `fleetmap_scans_lost` long
     before: an abbreviation nobody could paste, of a metric gone, under a function for counters."""
-    exported = scrape_with_every_series(service)
+    exported = scrape_with_every_series(metrics_service)
     types = dict(re.findall(r"^# TYPE (\S+) (\S+)$", exported, re.M))
     text = API_DOC.read_text(encoding="utf-8")
     section = text.split("What to alert on, from `/metrics` alone:", 1)[1].split("\n\n", 2)[1]
