@@ -72,16 +72,27 @@ def test_roles_on_the_real_service(tmp_path: Path, token_file: Path) -> None:
         assert token not in logs
 
 
-def test_reads_can_require_a_token(tmp_path: Path, token_file: Path) -> None:
-    with ServiceProcess(tmp_path, ["--auth-tokens", str(token_file), "--require-read-token"]) as svc:
-        assert httpx.get(f"{svc.base_url}/maps").status_code == 401
-        assert httpx.get(f"{svc.base_url}/maps", headers=bearer(READ)).status_code == 200
-        assert httpx.post(f"{svc.base_url}/maps/x/cells", json={"points": []}).status_code == 401
-        ray = {"origin": [0.0, 0.0], "angles": [0.0], "max_range": 5.0}
-        assert httpx.post(f"{svc.base_url}/maps/x/raycast", json=ray).status_code == 401
-        r = httpx.post(f"{svc.base_url}/maps/x/raycast", json=ray, headers=bearer(READ))
-        assert r.status_code == 404 and r.json()["detail"] == "no map 'x'"  # a read token gets through
-        assert httpx.get(f"{svc.base_url}/healthz").status_code == 200  # probes carry no token
+@pytest.fixture(scope="module")
+def reads_need_a_token(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One service of the read, write and admin tokens that requires a token to read, for the
+    module's tests that only ask it (none changes its tokens or stops it, and none makes a map)."""
+    tmp = tmp_path_factory.mktemp("reads-need-a-token")
+    tokens = tmp / "tokens.txt"
+    tokens.write_text(f"read {READ}\nwrite {WRITE}\nadmin {ADMIN}\n")
+    with ServiceProcess(tmp, ["--auth-tokens", str(tokens), "--require-read-token"]) as svc:
+        yield svc
+
+
+def test_reads_can_require_a_token(reads_need_a_token: ServiceProcess) -> None:
+    svc = reads_need_a_token
+    assert httpx.get(f"{svc.base_url}/maps").status_code == 401
+    assert httpx.get(f"{svc.base_url}/maps", headers=bearer(READ)).status_code == 200
+    assert httpx.post(f"{svc.base_url}/maps/x/cells", json={"points": []}).status_code == 401
+    ray = {"origin": [0.0, 0.0], "angles": [0.0], "max_range": 5.0}
+    assert httpx.post(f"{svc.base_url}/maps/x/raycast", json=ray).status_code == 401
+    r = httpx.post(f"{svc.base_url}/maps/x/raycast", json=ray, headers=bearer(READ))
+    assert r.status_code == 404 and r.json()["detail"] == "no map 'x'"  # a read token gets through
+    assert httpx.get(f"{svc.base_url}/healthz").status_code == 200  # probes carry no token
 
 
 def test_tokens_from_the_environment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -245,7 +256,7 @@ def test_token_files_no_client_could_use_are_refused_in_one_line(
 
 
 def test_the_spec_declares_the_tokens_and_refusals_of_every_operation(
-    tmp_path: Path, token_file: Path
+    reads_need_a_token: ServiceProcess,
 ) -> None:
     """Each operation of openapi/openapi.json that a token server guards lists the token's schemes
     (optional: a server without tokens needs none) and the 401 / 403 the real service answers it
@@ -254,8 +265,7 @@ def test_the_spec_declares_the_tokens_and_refusals_of_every_operation(
     client checking answers against the spec found the 401 and 403 undocumented (signing in's 401
     without the `WWW-Authenticate` it carries)."""
     spec = json.loads((Path(__file__).resolve().parents[1] / "openapi" / "openapi.json").read_text())
-    args = ["--auth-tokens", str(token_file), "--require-read-token"]
-    with ServiceProcess(tmp_path, args) as svc, httpx.Client(base_url=svc.base_url) as client:
+    with httpx.Client(base_url=reads_need_a_token.base_url) as client:
         for path, operations in spec["paths"].items():
             url = path.format(map_id="m", z=0, x=0, y=0)
             for method, operation in operations.items():
