@@ -13,7 +13,7 @@ map's robots changed. Same Chromium and skip rule as test_web_viewer.py.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Iterator
 from typing import Any
 
 import httpx
@@ -27,7 +27,6 @@ pytestmark = pytest.mark.skipif(
     reason="/usr/bin/chromium is missing: install Debian's chromium package (make system-deps)",
 )
 
-MAP_ID = "drawing"
 ROBOT = "t1"
 #: Trail points a stream keeps per robot (the service's trail length).
 TRAIL_POINTS = 100
@@ -80,28 +79,36 @@ async (deltas) => {
 """
 
 
-def _drawn_as_service(svc: ServiceProcess) -> list[list[float]]:
-    """Robot t1's trail as the page should draw it: the service's trail points, then its pose."""
-    r = current_robots(svc, MAP_ID).robots[ROBOT]
+@pytest.fixture(scope="module")
+def in_memory(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One in-memory service for the module's tests, each drawing robot t1 of a map of its own."""
+    with ServiceProcess(tmp_path_factory.mktemp("viewer-drawing"), ["--in-memory"]) as service:
+        yield service
+
+
+def _drawn_as_service(svc: ServiceProcess, map_id: str) -> list[list[float]]:
+    """Robot t1's trail on `map_id` as the page should draw it: the service's trail points, then
+    its pose."""
+    r = current_robots(svc, map_id).robots[ROBOT]
     assert r.pose is not None
     return [[round(x, 3), round(y, 3)] for x, y in [*r.trail, r.pose[:2]]]
 
 
-def test_delta_extends_the_drawn_trail(page: Any, service_factory: Callable[..., ServiceProcess]) -> None:
-    svc = service_factory("--in-memory")
+def test_delta_extends_the_drawn_trail(page: Any, in_memory: ServiceProcess) -> None:
+    svc, map_id = in_memory, "delta"  # a map of its own on the module's service
     http = httpx.Client(base_url=svc.base_url, timeout=30)
-    assert http.put(f"/maps/{MAP_ID}", json={"resolution": 0.05, "tile_size": 64}).status_code == 201
+    assert http.put(f"/maps/{map_id}", json={"resolution": 0.05, "tile_size": 64}).status_code == 201
     for k in range(TRAIL_POINTS - 1):
-        post(http, ROBOT, k, 0.05 * k, 1.0, MAP_ID)
-    page.goto(f"{svc.base_url}/#map={MAP_ID}")
+        post(http, ROBOT, k, 0.05 * k, 1.0, map_id)
+    page.goto(f"{svc.base_url}/#map={map_id}")
     _wait(page, "() => document.getElementById('status').dataset.state === 'connected'", what="connected")
-    want = _drawn_as_service(svc)
+    want = _drawn_as_service(svc, map_id)
     assert len(want) == TRAIL_POINTS  # 99 trail points and the pose
     _wait(page, f"(want) => JSON.stringify(({_DRAWN_JS})()) === JSON.stringify(want)", want, what="the trail")
     before = page.evaluate(_TAG_JS)
 
-    post(http, ROBOT, TRAIL_POINTS - 1, 0.05 * (TRAIL_POINTS - 1), 1.0, MAP_ID)
-    want = _drawn_as_service(svc)
+    post(http, ROBOT, TRAIL_POINTS - 1, 0.05 * (TRAIL_POINTS - 1), 1.0, map_id)
+    want = _drawn_as_service(svc, map_id)
     assert len(want) == TRAIL_POINTS + 1
     _wait(
         page, f"(want) => JSON.stringify(({_DRAWN_JS})()) === JSON.stringify(want)", want, what="101 points"
@@ -114,8 +121,8 @@ def test_delta_extends_the_drawn_trail(page: Any, service_factory: Callable[...,
     assert now["stats"]["rowsBuilt"] == before["rowsBuilt"], (before, now)
 
     # One point past what a stream keeps: the oldest goes, and the page still draws the service's trail.
-    post(http, ROBOT, TRAIL_POINTS, 0.05 * TRAIL_POINTS, 1.5, MAP_ID)
-    want = _drawn_as_service(svc)
+    post(http, ROBOT, TRAIL_POINTS, 0.05 * TRAIL_POINTS, 1.5, map_id)
+    want = _drawn_as_service(svc, map_id)
     assert len(want) == TRAIL_POINTS + 1 and want[0] == [0.05, 1.0], want[:2]
     _wait(
         page,
@@ -130,17 +137,15 @@ def test_delta_extends_the_drawn_trail(page: Any, service_factory: Callable[...,
     http.close()
 
 
-def test_events_within_one_frame_are_drawn_once(
-    page: Any, service_factory: Callable[..., ServiceProcess]
-) -> None:
-    svc = service_factory("--in-memory")
+def test_events_within_one_frame_are_drawn_once(page: Any, in_memory: ServiceProcess) -> None:
+    svc, map_id = in_memory, "burst"  # a map of its own on the module's service
     http = httpx.Client(base_url=svc.base_url, timeout=30)
-    assert http.put(f"/maps/{MAP_ID}", json={"resolution": 0.05, "tile_size": 64}).status_code == 201
+    assert http.put(f"/maps/{map_id}", json={"resolution": 0.05, "tile_size": 64}).status_code == 201
     for k in range(3):
-        post(http, ROBOT, k, 0.05 * k, 1.0, MAP_ID)
-    page.goto(f"{svc.base_url}/#map={MAP_ID}")
+        post(http, ROBOT, k, 0.05 * k, 1.0, map_id)
+    page.goto(f"{svc.base_url}/#map={map_id}")
     _wait(page, "() => document.getElementById('status').dataset.state === 'connected'", what="connected")
-    want = _drawn_as_service(svc)
+    want = _drawn_as_service(svc, map_id)
     _wait(page, f"(want) => JSON.stringify(({_DRAWN_JS})()) === JSON.stringify(want)", want, what="the trail")
 
     burst = 5
