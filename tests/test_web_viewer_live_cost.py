@@ -28,7 +28,6 @@ pytestmark = pytest.mark.skipif(
     reason="/usr/bin/chromium is missing: install Debian's chromium package (make system-deps)",
 )
 
-MAP_ID = "live"
 #: The viewer's TILE_REFRESH_MS (clients/web/config.js): one tile is requested at most this often.
 TILE_REFRESH_S = 0.5
 
@@ -84,19 +83,28 @@ def counted_page(page: Any) -> Any:
     return page
 
 
-@pytest.fixture
-def svc(service_factory: Callable[..., ServiceProcess]) -> ServiceProcess:
-    return service_factory("--in-memory")
+@pytest.fixture(scope="module")
+def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One in-memory service for the module's tests: each shows a map of its own (`map_id`), and
+    the robots of a test are stopped when it ends."""
+    with ServiceProcess(tmp_path_factory.mktemp("viewer-live-cost"), ["--in-memory"]) as service:
+        yield service
 
 
 @pytest.fixture
-def robots(svc: ServiceProcess, tmp_path: Path) -> Iterator[Callable[..., RobotProcess]]:
-    """Start robot processes on `svc` (`robots("r1", sim=1, rate=20, count=400)`): they stay online
-    until the test ends, when they are stopped."""
+def map_id(request: pytest.FixtureRequest) -> str:
+    """The test's own map on the module's service: its name without `test_` (at most 64 characters)."""
+    return request.node.originalname.removeprefix("test_")[:64]
+
+
+@pytest.fixture
+def robots(svc: ServiceProcess, map_id: str, tmp_path: Path) -> Iterator[Callable[..., RobotProcess]]:
+    """Start robot processes on `svc` publishing to `map_id` (`robots("r1", sim=1, rate=20,
+    count=400)`): they stay online until the test ends, when they are stopped."""
     started: list[RobotProcess] = []
 
     def start(robot_id: str, **options: object) -> RobotProcess:
-        robot = RobotProcess(svc.zenoh_endpoint, MAP_ID, robot_id, log_dir=tmp_path, linger=-1, **options)
+        robot = RobotProcess(svc.zenoh_endpoint, map_id, robot_id, log_dir=tmp_path, linger=-1, **options)
         started.append(robot.start())
         return robot
 
@@ -112,29 +120,29 @@ def _tile_requests(page: Any) -> int:
     return sum(page.tile_requests.values())
 
 
-def _map_version(base: str) -> int:
-    r = httpx.get(f"{base}/maps/{MAP_ID}", timeout=10.0)
+def _map_version(base: str, map_id: str) -> int:
+    r = httpx.get(f"{base}/maps/{map_id}", timeout=10.0)
     return int(r.json()["stats"]["version"]) if r.status_code == 200 else -1
 
 
-def _open_live(page: Any, base: str) -> None:
-    """Open the viewer on the map once it exists, wait until it is connected and shows its tiles."""
-    wait_for(lambda: _map_version(base) > 0, timeout=60, what="the robots' map")
-    page.goto(f"{base}/#map={MAP_ID}")
+def _open_live(page: Any, base: str, map_id: str) -> None:
+    """Open the viewer on `map_id` once it exists, wait until it is connected and shows its tiles."""
+    wait_for(lambda: _map_version(base, map_id) > 0, timeout=60, what="the robots' map")
+    page.goto(f"{base}/#map={map_id}")
     _wait(page, _STATUS_JS, "connected", what="connected")
     _wait(page, "() => document.querySelectorAll('#map img.leaflet-tile-loaded').length > 0", what="tiles")
     _wait(page, "() => window.fleetmapViewer.state.fitted", what="the view fitted to the map")
 
 
 def test_robot_markers_are_moved_in_place(
-    counted_page: Any, svc: ServiceProcess, robots: Callable[..., Any]
+    counted_page: Any, svc: ServiceProcess, map_id: str, robots: Callable[..., Any]
 ) -> None:
     """Three robots moving and scanning: across many robots events each marker (its element and its
     arrow) stays the same DOM object, tagged with a JS property before, and the counted_page's element count
     does not grow. The viewer used to rebuild every marker's icon on every event."""
     for k in range(3):
         robots(f"r{k + 1}", sim=k + 1, rate=10, count=400, beams=91)
-    _open_live(counted_page, svc.base_url)
+    _open_live(counted_page, svc.base_url, map_id)
     _wait(
         counted_page,
         "() => document.querySelectorAll('.robot-marker svg').length === 3",
@@ -178,14 +186,14 @@ def test_robot_markers_are_moved_in_place(
 
 
 def test_hot_tile_requested_at_refresh_rate(
-    counted_page: Any, svc: ServiceProcess, robots: Callable[..., Any]
+    counted_page: Any, svc: ServiceProcess, map_id: str, robots: Callable[..., Any]
 ) -> None:
     """A robot scanning 40 times a second changes the tiles around it with every tiles event (up to
     10 a second). Each tile is requested at most once per TILE_REFRESH_S of the elapsed time, plus
     slack, however many events came, and the hottest tile is still refreshed. Counts, not timings:
     the bound grows with the elapsed time, so a slow machine only makes it looser."""
     robots("hot", sim=1, rate=40, count=4000, beams=181)
-    _open_live(counted_page, svc.base_url)
+    _open_live(counted_page, svc.base_url, map_id)
     counted_page.evaluate(_COUNT_EVENTS_JS)
     counted_page.tile_requests.clear()
     started = time.monotonic()
@@ -205,12 +213,12 @@ def test_hot_tile_requested_at_refresh_rate(
 
 
 def test_hidden_tab_fetches_nothing(
-    counted_page: Any, svc: ServiceProcess, robots: Callable[..., Any]
+    counted_page: Any, svc: ServiceProcess, map_id: str, robots: Callable[..., Any]
 ) -> None:
     """Hidden, the counted_page closes its event stream and requests no tile while the map keeps changing;
     shown again, it reconnects and reloads its tiles."""
     robots("busy", sim=2, rate=20, count=4000, beams=181)
-    _open_live(counted_page, svc.base_url)
+    _open_live(counted_page, svc.base_url, map_id)
     counted_page.evaluate(_SET_VISIBILITY_JS, True)
     _wait(counted_page, _STATUS_JS, "paused", what="the paused status")
     assert counted_page.evaluate("() => window.fleetmapViewer.state.events") is None
@@ -221,8 +229,10 @@ def test_hidden_tab_fetches_nothing(
     counted_page.tile_requests.clear()
     counted_page.map_list_requests = 0
     hidden_at = time.monotonic()
-    version = _map_version(svc.base_url)
-    wait_for(lambda: _map_version(svc.base_url) >= version + 40, timeout=60, what="40 more map changes")
+    version = _map_version(svc.base_url, map_id)
+    wait_for(
+        lambda: _map_version(svc.base_url, map_id) >= version + 40, timeout=60, what="40 more map changes"
+    )
     # Longer than the map list's period (5 s), which it polled while hidden too.
     time.sleep(max(0.0, hidden_at + MAP_LIST_PERIOD_S + 1.0 - time.monotonic()))
     assert _tile_requests(counted_page) == 0, (
@@ -237,16 +247,18 @@ def test_hidden_tab_fetches_nothing(
     assert not counted_page.page_errors, counted_page.page_errors
 
 
-def test_a_tab_opened_hidden_catches_up_when_shown(counted_page: Any, svc: ServiceProcess) -> None:
+def test_a_tab_opened_hidden_catches_up_when_shown(
+    counted_page: Any, svc: ServiceProcess, map_id: str
+) -> None:
     """A viewer opened in a background tab loads the map but opens no event stream; the map changes
     before the tab is shown, and the stream opened then reports only later changes. Shown, the page
     catches up as after a reconnect: its tiles are asked for again (they kept the map as it was
     when the page loaded)."""
     base = svc.base_url
-    assert httpx.put(f"{base}/maps/{MAP_ID}", json={}, timeout=10.0).status_code == 201
-    _scan(base, MAP_ID, "r1", 1, 2.0, 2.0)
+    assert httpx.put(f"{base}/maps/{map_id}", json={}, timeout=10.0).status_code == 201
+    _scan(base, map_id, "r1", 1, 2.0, 2.0)
     counted_page.add_init_script(_HIDDEN_FROM_THE_START_JS)
-    counted_page.goto(f"{base}/#map={MAP_ID}")
+    counted_page.goto(f"{base}/#map={map_id}")
     _wait(counted_page, _STATUS_JS, "paused", what="the paused status")
     _wait(
         counted_page,
@@ -255,7 +267,7 @@ def test_a_tab_opened_hidden_catches_up_when_shown(counted_page: Any, svc: Servi
     )
     counted_page.tile_requests.clear()
     for seq in range(2, 5):  # the robot moves on: its ring of walls too, in view
-        _scan(base, MAP_ID, "r1", seq, 2.0 + 0.5 * seq, 2.0)
+        _scan(base, map_id, "r1", seq, 2.0 + 0.5 * seq, 2.0)
 
     counted_page.evaluate(_SET_VISIBILITY_JS, False)
     _wait(counted_page, _STATUS_JS, "connected", what="connected")
