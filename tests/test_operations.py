@@ -22,6 +22,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from collections.abc import Iterator
 from datetime import datetime, timedelta
 from pathlib import Path
 
@@ -414,15 +415,34 @@ def test_the_tests_free_ports_are_never_given_twice() -> None:
     assert len(set(ports)) == len(ports)
 
 
-def test_zenoh_beyond_loopback_without_credentials_is_warned_of(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def in_memory(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One `--in-memory` service on loopback for the module's tests that need no other option: one
+    reads its start-up log, one publishes a scan (robot `far` of map `m`); nothing else publishes to
+    it."""
+    with ServiceProcess(tmp_path_factory.mktemp("operations-memory"), ["--in-memory"]) as service:
+        yield service
+
+
+@pytest.fixture(scope="module")
+def durable(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One durable service with the default options for the module's stalled-disk tests: each
+    stalls the commits of its own scans to a map of its own, and lets them go before it ends; they
+    count the service-wide counters from what they were when they began."""
+    with ServiceProcess(tmp_path_factory.mktemp("operations-durable")) as service:
+        yield service
+
+
+def test_zenoh_beyond_loopback_without_credentials_is_warned_of(
+    tmp_path: Path, in_memory: ServiceProcess
+) -> None:
     """A plain Zenoh endpoint beyond loopback takes anyone's scans: a warning at start says so and
     names it (the REST API refuses such an address without tokens; Zenoh has no check of its own).
     Loopback, mutual TLS and a user / password configuration are not warned of; TLS alone is."""
     endpoint = f"tcp/0.0.0.0:{free_port()}"
     with ServiceProcess(tmp_path, ["--in-memory", "--zenoh-listen", endpoint]) as svc:
         open_logs = svc.logs()
-    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
-        loopback_logs = svc.logs()
+    loopback_logs = in_memory.logs()
     warning = (
         "beyond loopback with neither mutual TLS nor a user / password: anyone who reaches it can "
         "publish scans"
@@ -806,58 +826,59 @@ def test_metrics_count_every_http_answer_by_status_and_show_the_zenoh_session(tm
         assert seen[("fleetmap_storage_failures_total", (("operation", operation),))] == 0
 
 
-def test_a_stalled_disk_shows_on_metrics_as_scans_waiting_for_their_journal_commit(tmp_path: Path) -> None:
+def test_a_stalled_disk_shows_on_metrics_as_scans_waiting_for_their_journal_commit(
+    durable: ServiceProcess,
+) -> None:
     """A disk that stalls (a journal commit that hangs) moved no metric: with durable storage a scan
     counts as integrated only once its row commits, so `fleetmap_journal_commits_total` and
     `fleetmap_scans_integrated_total` stopped together, and docs/api.md's alert for it (commits at 0
     while scans are integrated) could never fire; the workers go on applying scans, so the ingest
     queue stayed empty too. The journal's backlog now shows it: rows waiting and the oldest's age.
     Here another program holds the database's write lock, as a stalled disk holds the commit."""
-    with ServiceProcess(tmp_path) as svc:
-        post_scans(svc.base_url, "m", "r", range(1, 3))
+    post_scans(durable.base_url, "stalled", "r", range(1, 3))
 
-        def scrape() -> dict[str, float]:
-            text = httpx.get(f"{svc.base_url}/metrics").text
-            return {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples}
+    def scrape() -> dict[str, float]:
+        text = httpx.get(f"{durable.base_url}/metrics").text
+        return {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples}
 
-        before = scrape()
-        assert before["fleetmap_journal_rows_waiting"] == 0
-        assert before["fleetmap_journal_backlog_seconds"] == 0
-        data_dir = Path(svc.args[svc.args.index("--data-dir") + 1])
-        holder = sqlite3.connect(data_dir / DB_NAME, isolation_level=None, timeout=30)
-        holder.execute("BEGIN EXCLUSIVE")
-        answers: list[httpx.Response] = []
-        sender = threading.Thread(
-            target=lambda: answers.append(
-                httpx.post(f"{svc.base_url}/maps/m/scans", params={"robot_id": "r"}, json=scan_body(3),
-                           timeout=60)
-            )
-        )  # fmt: skip
-        try:
-            sender.start()
-            stalled = wait_for(
-                lambda: (m := scrape())["fleetmap_journal_backlog_seconds"] > 0.5 and m,
-                20,
-                what="the stalled commit on /metrics",
-            )
-        finally:
-            holder.execute("ROLLBACK")
-            holder.close()
-        sender.join(60)
-        assert stalled["fleetmap_journal_rows_waiting"] == 1
-        # What the alert used to watch did not move: neither would tell a stalled disk.
-        assert stalled["fleetmap_journal_commits_total"] == before["fleetmap_journal_commits_total"]
-        assert stalled["fleetmap_queue_depth"] == 0
-        after = wait_for(
-            lambda: (m := scrape())["fleetmap_journal_rows_waiting"] == 0 and m, 20, what="the commit"
+    before = scrape()
+    assert before["fleetmap_journal_rows_waiting"] == 0
+    assert before["fleetmap_journal_backlog_seconds"] == 0
+    data_dir = Path(durable.args[durable.args.index("--data-dir") + 1])
+    holder = sqlite3.connect(data_dir / DB_NAME, isolation_level=None, timeout=30)
+    holder.execute("BEGIN EXCLUSIVE")
+    answers: list[httpx.Response] = []
+    sender = threading.Thread(
+        target=lambda: answers.append(
+            httpx.post(f"{durable.base_url}/maps/stalled/scans", params={"robot_id": "r"}, json=scan_body(3),
+                       timeout=60)
         )
-        assert after["fleetmap_journal_backlog_seconds"] == 0
-        assert after["fleetmap_journal_rows_total"] == before["fleetmap_journal_rows_total"] + 1
-        assert answers and answers[0].status_code in (200, 503)  # 503: not integrated within 10 s
+    )  # fmt: skip
+    try:
+        sender.start()
+        stalled = wait_for(
+            lambda: (m := scrape())["fleetmap_journal_backlog_seconds"] > 0.5 and m,
+            20,
+            what="the stalled commit on /metrics",
+        )
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+    sender.join(60)
+    assert stalled["fleetmap_journal_rows_waiting"] == 1
+    # What the alert used to watch did not move: neither would tell a stalled disk.
+    assert stalled["fleetmap_journal_commits_total"] == before["fleetmap_journal_commits_total"]
+    assert stalled["fleetmap_queue_depth"] == 0
+    after = wait_for(
+        lambda: (m := scrape())["fleetmap_journal_rows_waiting"] == 0 and m, 20, what="the commit"
+    )
+    assert after["fleetmap_journal_backlog_seconds"] == 0
+    assert after["fleetmap_journal_rows_total"] == before["fleetmap_journal_rows_total"] + 1
+    assert answers and answers[0].status_code in (200, 503)  # 503: not integrated within 10 s
 
 
 def test_a_stalled_disk_holds_the_scans_in_the_bounded_ingest_queue_not_in_memory_without_end(
-    tmp_path: Path,
+    durable: ServiceProcess,
 ) -> None:
     """While no journal commit came back (a stalled disk: a frozen file system, a hung network
     mount), the workers went on applying scans and appending them to the journal's queue, each
@@ -870,55 +891,56 @@ def test_a_stalled_disk_holds_the_scans_in_the_bounded_ingest_queue_not_in_memor
     the commits here, as in the test above."""
     limit = JournalWriter.MAX_WAITING
     count = limit + QUEUE_PER_ROBOT + 500  # past the rows waiting, one scan held and the robot's FIFO
-    with ServiceProcess(tmp_path) as svc:
-        post_scans(svc.base_url, "m", "r", range(1))
+    post_scans(durable.base_url, "bounded", "r", range(1))
 
-        def scrape() -> dict[str, float]:
-            text = httpx.get(f"{svc.base_url}/metrics").text
-            return {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples}
+    def scrape() -> dict[str, float]:
+        text = httpx.get(f"{durable.base_url}/metrics").text
+        return {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples}
 
-        def robot() -> dict:
-            return httpx.get(f"{svc.base_url}/maps/m").json()["stats"]["robots"]["r"]
+    def robot() -> dict:
+        return httpx.get(f"{durable.base_url}/maps/bounded").json()["stats"]["robots"]["r"]
 
-        data_dir = Path(svc.args[svc.args.index("--data-dir") + 1])
-        # Open until every scan is in: the deferred ones wait in its cache, which close() gives up.
-        with ScanPublisher("m", "r", connect=[svc.zenoh_endpoint], backlog=count) as pub:
-            assert pub.wait_connected(20), pub.last_connect_error
-            holder = sqlite3.connect(data_dir / DB_NAME, isolation_level=None, timeout=30)
-            holder.execute("BEGIN EXCLUSIVE")
-            try:
-                for seq in range(1, count + 1):
-                    pub.publish(
-                        Scan.from_fan((0.0, 0.5, 0.001 * seq), -1.5, 0.05, [2.0] * 61, 0.1, 10.0), seq=seq
-                    )
-                # Until the service has seen every scan: waiting for its commit, queued, held by a
-                # worker, or deferred (left in the robot's cache), or until more wait than the bound.
-                stalled = wait_for(
-                    lambda: (
-                        (
-                            (m := scrape())["fleetmap_journal_rows_waiting"] > limit
-                            or m["fleetmap_journal_rows_waiting"]
-                            + m["fleetmap_queue_depth"]
-                            + m["fleetmap_zenoh_scans_deferred_total"]
-                            >= count - 1
-                        )
-                        and m
-                    ),
-                    25,
-                    what="every scan taken in while the commits stall",
+    data_dir = Path(durable.args[durable.args.index("--data-dir") + 1])
+    deferred = scrape()["fleetmap_zenoh_scans_deferred_total"]  # the module's earlier tests'
+    # Open until every scan is in: the deferred ones wait in its cache, which close() gives up.
+    with ScanPublisher("bounded", "r", connect=[durable.zenoh_endpoint], backlog=count) as pub:
+        assert pub.wait_connected(20), pub.last_connect_error
+        holder = sqlite3.connect(data_dir / DB_NAME, isolation_level=None, timeout=30)
+        holder.execute("BEGIN EXCLUSIVE")
+        try:
+            for seq in range(1, count + 1):
+                pub.publish(
+                    Scan.from_fan((0.0, 0.5, 0.001 * seq), -1.5, 0.05, [2.0] * 61, 0.1, 10.0), seq=seq
                 )
-            finally:
-                holder.execute("ROLLBACK")
-                holder.close()
-            assert stalled["fleetmap_journal_rows_waiting"] <= limit
-            assert stalled["fleetmap_zenoh_scans_deferred_total"] > 0
-            # The disk moves again: every scan is integrated (none applied and lost, none dropped).
-            report = pub.flush(60)
-        assert report.confirmed, report
-        final = robot()
-        # lost 1: the publisher's session, a restart after the REST scan, began at seq 1, not 0.
-        assert (final["not_durable"], final["dropped"], final["lost"]) == (0, 0, 1), final
-        assert final["scans_integrated"] == count + 1
+            # Until the service has seen every scan: waiting for its commit, queued, held by a
+            # worker, or deferred (left in the robot's cache), or until more wait than the bound.
+            stalled = wait_for(
+                lambda: (
+                    (
+                        (m := scrape())["fleetmap_journal_rows_waiting"] > limit
+                        or m["fleetmap_journal_rows_waiting"]
+                        + m["fleetmap_queue_depth"]
+                        + m["fleetmap_zenoh_scans_deferred_total"]
+                        - deferred
+                        >= count - 1
+                    )
+                    and m
+                ),
+                25,
+                what="every scan taken in while the commits stall",
+            )
+        finally:
+            holder.execute("ROLLBACK")
+            holder.close()
+        assert stalled["fleetmap_journal_rows_waiting"] <= limit
+        assert stalled["fleetmap_zenoh_scans_deferred_total"] > deferred
+        # The disk moves again: every scan is integrated (none applied and lost, none dropped).
+        report = pub.flush(60)
+    assert report.confirmed, report
+    final = robot()
+    # lost 1: the publisher's session, a restart after the REST scan, began at seq 1, not 0.
+    assert (final["not_durable"], final["dropped"], final["lost"]) == (0, 0, 1), final
+    assert final["scans_integrated"] == count + 1
 
 
 def test_a_scrape_holds_the_registry_lock_only_to_copy_the_counters() -> None:
@@ -1037,34 +1059,29 @@ def test_zenoh_sessions_are_held_to_what_the_descriptors_leave_http(tmp_path: Pa
                 robot.close()
 
 
-def test_zenoh_decode_errors_say_they_count_scans_past_the_input_limits(tmp_path: Path) -> None:
+def test_zenoh_decode_errors_say_they_count_scans_past_the_input_limits(in_memory: ServiceProcess) -> None:
     """`fleetmap_zenoh_decode_errors_total` counts well-formed scans refused at the input limits (a
     pose outside `--world-bound`, too many beams) as well as undecodable ones (docs/protocol.md,
     "Sequence numbers"), but its HELP text ("Zenoh scan messages not decoded") and the table of
     docs/api.md ("scans that could not be decoded (a robot's bug, or garbage)") said only the
     latter: an operator reading a rise of it as garbage on the network looked in the wrong place."""
-    with ServiceProcess(tmp_path, ["--in-memory"]) as svc:
-        session = zenoh.open(zenoh_client_config(svc.zenoh_endpoint))
-        try:
-            publisher = session.declare_publisher(
-                "fleetmap/m/far/scan", encoding=zenoh.Encoding(BINARY_ENCODING)
-            )
-            wait_for(lambda: publisher.matching_status.matching, 10, what="the service's subscriber")
-            far = Scan.from_fan((1e9, 0.0, 0.0), -1.0, 0.01, [3.0] * 10, 0.05, 30.0)
-            publisher.put(codec.encode_binary(far, 0, stamp=1.0, session=7))
+    session = zenoh.open(zenoh_client_config(in_memory.zenoh_endpoint))
+    try:
+        publisher = session.declare_publisher("fleetmap/m/far/scan", encoding=zenoh.Encoding(BINARY_ENCODING))
+        wait_for(lambda: publisher.matching_status.matching, 10, what="the service's subscriber")
+        far = Scan.from_fan((1e9, 0.0, 0.0), -1.0, 0.01, [3.0] * 10, 0.05, 30.0)
+        publisher.put(codec.encode_binary(far, 0, stamp=1.0, session=7))
 
-            def family() -> Metric | None:
-                text = httpx.get(f"{svc.base_url}/metrics").text
-                found = [
-                    f
-                    for f in text_string_to_metric_families(text)
-                    if f.name == "fleetmap_zenoh_decode_errors"
-                ]
-                return found[0] if found and found[0].samples[0].value == 1 else None
+        def family() -> Metric | None:
+            text = httpx.get(f"{in_memory.base_url}/metrics").text
+            found = [
+                f for f in text_string_to_metric_families(text) if f.name == "fleetmap_zenoh_decode_errors"
+            ]
+            return found[0] if found and found[0].samples[0].value == 1 else None
 
-            counted = wait_for(family, 10, what="the scan past the world bound counted")
-        finally:
-            session.close()
+        counted = wait_for(family, 10, what="the scan past the world bound counted")
+    finally:
+        session.close()
     assert "input limits" in counted.documentation, counted.documentation
     row = next(
         line
