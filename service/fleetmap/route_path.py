@@ -29,7 +29,13 @@ def route_path(scope: Scope) -> str:
     """The request's path as the routes name it (`/maps/a`): its path without the root path, or as it
     is when it does not start with it (an app called without uvicorn's root path)."""
     path: str = scope["path"]
-    root = root_path(scope)
+    below = path_below(path, root_path(scope))
+    return path if below is None else below
+
+
+def path_below(path: str, root: str) -> str | None:
+    """`path` without its start `root` (`/fleetmap/maps` below `/fleetmap`: `/maps`; `/fleetmap`:
+    `/`), or None when it does not start with that path (`/fleetmapx`) or `root` is `""`."""
     if root and (path == root or path.startswith(root + "/")):
         return path[len(root) :] or "/"
-    return path
+    return None

@@ -29,7 +29,7 @@ from fleetmap.grid_map import LayerUnavailableError, RayLimitError
 from fleetmap.map_entry import IngestRejected
 from fleetmap.memory_budget import MemoryBudgetError
 from fleetmap.registry import InvalidId, MapConflict, MapNotFound, NotDurable
-from fleetmap.route_path import root_path, route_path
+from fleetmap.route_path import path_below, root_path, route_path
 from fleetmap.scan import ScanError
 from fleetmap.tile_render import TileError
 from fleetmap.tiles import TileLimitError
@@ -421,8 +421,8 @@ def _kept_prefix_hint(scope: Scope) -> str:
     """For a path that still starts with the root path once it is taken off (`--root-path /fleetmap`,
     `/fleetmap/fleetmap/maps`), the hint that the proxy in front passed the prefix on: every request
     through it is then a 404, which said nothing of why."""
-    root, path = root_path(scope), route_path(scope)
-    if root and (path == root or path.startswith(root + "/")):
+    root = root_path(scope)
+    if path_below(route_path(scope), root) is not None:
         return (
             f" (the service was started with --root-path {root}, for a reverse proxy that strips that "
             "prefix from the requests it passes on; this one still had it)"
