@@ -106,7 +106,10 @@ class PushedOutRows:
         del self._data[: count * self._format.size]
 
     def _index(self, key: int) -> int | None:
-        return self._keys.index(key) if key in self._keys else None
+        try:
+            return self._keys.index(key)  # one scan of the keys (`in`, then `index`, made two)
+        except ValueError:
+            return None
 
     def _row(self, index: int) -> tuple[Value, ...]:
         return self._decoded(self._format.unpack_from(self._data, index * self._format.size))
