@@ -706,7 +706,9 @@ def test_build_of_the_intel_log_equals_the_library_map(datasets_dir: Path, tmp_p
     assert (want == 0).sum() > 10_000 and (want == 254).sum() > 100_000  # a real map, walls and floor
     # map.png the same way, from the float32 probabilities the map gives (unknown as p = 0.5). The
     # images are made a storage tile at a time: this window spans several tiles and ends inside one.
-    gray = np.round(255.0 * (1.0 - np.nan_to_num(p.astype(np.float32), nan=0.5))).astype(np.uint8)
+    # 255 (1 - p) is rounded exactly, not in float32 (which drew a cell hit once, 76.500003, as 76).
+    reported = np.nan_to_num(p.astype(np.float32), nan=0.5).astype(np.float64)
+    gray = np.round(255.0 * (1.0 - reported)).astype(np.uint8)
     with Image.open(tmp_path / "map.png") as image:
         np.testing.assert_array_equal(np.asarray(image), gray[::-1])
     tile = MapConfig().tile_size

@@ -15,13 +15,16 @@ import math
 import threading
 import warnings
 from concurrent.futures import Future
+from fractions import Fraction
 
 import numpy as np
 import pytest
 from PIL import Image
 
 from fleetmap import tile_cache
-from fleetmap.config import MapConfig
+from fleetmap.api.routes_data import region_pixels
+from fleetmap.config import MapConfig, log_odds_to_probability
+from fleetmap.export import Window, map_png
 from fleetmap.grid_map import REGION_LAYERS, STATE_OCCUPIED, GridMap
 from fleetmap.map_entry import MapEntry
 from fleetmap.scan import Scan
@@ -223,8 +226,8 @@ def test_zoomed_out_matches_reference(layer: str) -> None:
         assert known.any()
         assert ((img[..., 3] == 255) == known).all()
         if layer == "probability":
-            grey = np.rint(255 * (1 - 1 / (1 + np.exp(-ref[known].astype(np.float64)))))
-            assert np.abs(img[..., 0][known].astype(int) - grey).max() <= 1
+            grey = nearest_grey(log_odds_to_probability(ref[known]))
+            np.testing.assert_array_equal(img[..., 0][known], grey)
         elif layer == "tsdf":
             # Positive (in front of a surface) is red, negative blue; near 0 both are near white.
             clear = known & (np.abs(np.nan_to_num(ref)) > 0.02)
@@ -302,6 +305,49 @@ def test_every_layer_renders_with_plausible_colours(hit_map: GridMap) -> None:
     assert img["tsdf"][behind][2] > img["tsdf"][behind][0] and img["tsdf"][behind][3] == 255
     assert img["tsdf"][far_free][3] == 0 and img["tsdf_weight"][far_free][3] == 0
     assert img["tsdf_weight"][hit][3] == 255
+
+
+def nearest_grey(probability: np.ndarray) -> np.ndarray:
+    """The documented grey `255 (1 - p)` of each reported probability (float32, as `/cells` and the
+    `probability` region give it), rounded exactly (in fractions, half to even) to an integer."""
+    greys = {float(p): round(255 * (1 - Fraction(float(p)))) for p in np.unique(probability)}
+    return np.vectorize(greys.__getitem__, otypes=[np.int64])(probability)
+
+
+def test_grey_is_255_1_minus_p_to_the_nearest_integer_in_every_image() -> None:
+    """Tiles (zoomed in and out), the exported map PNG and the region PNGs show each known cell as
+    the grey nearest `255 (1 - p)` of the probability the map reports. In float32 a cell hit once
+    (p = 0.699999988, 255 (1 - p) = 76.500003) drew 76 everywhere, not 77."""
+    gmap = make_map(*scattered_scans(1))
+    i0, j0, i1, j1, _ = tile_window(0, 0, -1)  # cells [0, 256) x [0, 256)
+    probability = gmap.region("probability", i0, j0, i1, j1)[::-1]  # top row = highest j
+    known = ~np.isnan(probability)
+    one_hit = np.isclose(probability, 0.7)
+    assert one_hit.sum() > 50  # the premise: many cells were hit once
+    expected = nearest_grey(probability[known])
+    assert expected[one_hit[known]].tolist() == [77] * int(one_hit.sum())
+    for layer in ("probability", "log_odds"):
+        img = decode(render_tile(gmap, layer, 0, 0, -1))
+        assert (img[..., 3][known] == 255).all()
+        np.testing.assert_array_equal(img[..., 0][known], expected)
+    # Zoomed in, tile (2, 0, -4) holds cells [0, 64) x [192, 256), each a block of 4 x 4 pixels.
+    corner, corner_known = probability[:64, :64], known[:64, :64]
+    zoomed_in = decode(render_tile(gmap, "probability", 2, 0, -4))
+    np.testing.assert_array_equal(zoomed_in[::4, ::4, 0][corner_known], nearest_grey(corner[corner_known]))
+    # Zoomed out, a pixel shows its block's most occupied known cell (`reference_tile`) in that grey.
+    ref = reference_tile(gmap, "probability", -1, 0, -1)
+    shown = ~np.isnan(ref)
+    zoomed_out = decode(render_tile(gmap, "probability", -1, 0, -1))
+    np.testing.assert_array_equal(
+        zoomed_out[..., 0][shown], nearest_grey(log_odds_to_probability(ref[shown]))
+    )
+    # The export's PNG (map.png of `fleetmap build`) and the region PNG of both layers.
+    window = Window(i0, j0, i1, j1)
+    exported = np.asarray(Image.open(io.BytesIO(map_png(gmap, window))))
+    np.testing.assert_array_equal(exported[known], expected)
+    for layer in ("probability", "log_odds"):
+        pixels = region_pixels(layer, gmap.region(layer, i0, j0, i1, j1))
+        np.testing.assert_array_equal(pixels[..., 0][known], expected)
 
 
 def test_hit_count_colour_is_consistent_between_tiles() -> None:

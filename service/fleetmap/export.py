@@ -367,11 +367,20 @@ def export_resolution(map_resolution: float, scale: int) -> float:
     return map_resolution if scale == 1 else float(f"{scale * map_resolution:.{RESOLUTION_DIGITS}g}")
 
 
+def probability_grey(probability: np.ndarray) -> np.ndarray:
+    """The grey of each probability, `255 (1 - p)` to the nearest integer (half to even), as float64;
+    NaN stays NaN. The one rule of every grey image of a map: tiles, region PNGs, exports.
+
+    Computed in double precision from the float32 `p` the map reports, where `1 - p` and the product
+    are exact: in float32 both were rounded, and a cell hit once (p = 0.699999988, 76.500003) was
+    drawn 76, not 77."""
+    return np.rint(255.0 * (1.0 - np.asarray(probability, dtype=np.float64)))
+
+
 def probability_to_gray(probability: np.ndarray) -> np.ndarray:
-    """Grayscale pixels, darker = more likely occupied (255 * (1 - p)); unknown as p = 0.5. Rows
-    stay in the order given (`map_image` turns the image top row = highest y)."""
-    p = np.nan_to_num(probability, nan=0.5)
-    return np.round(255.0 * (1.0 - p)).astype(np.uint8)
+    """Grayscale pixels, darker = more likely occupied (`probability_grey`); unknown as p = 0.5.
+    Rows stay in the order given (`map_image` turns the image top row = highest y)."""
+    return probability_grey(np.nan_to_num(probability, nan=0.5)).astype(np.uint8)
 
 
 def png_bytes(pixels: np.ndarray) -> bytes:

@@ -9,6 +9,8 @@ import math
 import numpy as np
 
 from fleetmap.cell_queries import STATE_FREE, STATE_OCCUPIED
+from fleetmap.config import log_odds_to_probability
+from fleetmap.export import probability_grey
 from fleetmap.grid_map import GridMap
 
 #: A hit / miss count at or above this is the top of the colour ramp (log scale below it).
@@ -33,7 +35,7 @@ _VIRIDIS = _ramp_lut([
 ])  # fmt: skip
 #: Blue - white - red (ColorBrewer RdBu ends).
 _DIVERGING = _ramp_lut([(33, 102, 172), (247, 247, 247), (178, 24, 43)])
-#: Index = round(255 * (1 - p)) -> that grey; index 256 = unknown (transparent).
+#: Index = `export.probability_grey` -> that grey; index 256 = unknown (transparent).
 _GREY = np.zeros((257, 4), dtype=np.uint8)
 _GREY[:256, :3] = np.arange(256, dtype=np.uint8)[:, None]
 _GREY[:256, 3] = 255
@@ -59,11 +61,9 @@ def _ramp_index(values: np.ndarray, scale: float) -> np.ndarray:
 def colour_index(gmap: GridMap, layer: str, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """`(index, lut, transparent_index)`: RGBA = lut[index]."""
     if layer in ("probability", "log_odds"):
-        with np.errstate(over="ignore"):
-            p = 1.0 / (1.0 + np.exp(-grid))  # float32; NaN stays NaN
-        idx = np.rint(255.0 * (1.0 - np.nan_to_num(p, nan=0.5))).astype(np.uint16)
-        idx[np.isnan(grid)] = 256
-        return idx, _GREY, 256
+        # The probability the map reports for the cell (`/cells`), so the tile shows its grey.
+        grey = probability_grey(log_odds_to_probability(grid))
+        return np.nan_to_num(grey, nan=256).astype(np.uint16), _GREY, 256
     if layer == "state":
         return gmap.classify(grid), _STATE, 0
     if layer in ("hits", "misses"):

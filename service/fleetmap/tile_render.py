@@ -23,8 +23,9 @@ as that cell alone is: free cells beside it do not make the block free.
 
 Colours (RGBA; unknown is fully transparent, everything known is opaque):
 
-- `probability`, `log_odds`: grey `255 * (1 - p)`, darker = more likely occupied (as the exported
-  PNG); a known cell at p = 0.5 is mid-grey, not transparent.
+- `probability`, `log_odds`: grey `255 * (1 - p)` to the nearest integer, p as the map reports it
+  (`export.probability_grey`), darker = more likely occupied (as the exported PNG); a known cell at
+  p = 0.5 is mid-grey, not transparent.
 - `state`: occupied near-black, free near-white; unknown (including known cells between the map's
   free and occupied thresholds) transparent.
 - `hits`, `misses`: a viridis-like ramp of `log1p(count) / log1p(COUNT_SCALE)` (fixed, so tiles agree

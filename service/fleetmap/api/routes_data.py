@@ -48,8 +48,9 @@ from fleetmap.export import (
     nav2_zip,
     npy_bytes,
     png_bytes,
+    probability_grey,
 )
-from fleetmap.grid_map import GridMap
+from fleetmap.grid_map import GridMap, log_odds_to_probability
 
 router = APIRouter(route_class=StrictRoute)
 # The most values a valid body holds: a point is two numbers and a comma between them, and one
@@ -344,8 +345,8 @@ def region_pixels(layer: str, values: np.ndarray) -> np.ndarray:
     """Gray + alpha pixels (h, w, 2) of a region (row 0 = lowest y in, top row = highest y out)."""
     if layer in ("probability", "log_odds"):
         known = ~np.isnan(values)
-        p = values if layer == "probability" else 1.0 - 1.0 / (1.0 + np.exp(np.clip(values, -50, 50)))
-        gray = 255.0 * (1.0 - np.nan_to_num(p, nan=0.5))
+        p = values if layer == "probability" else log_odds_to_probability(values)
+        gray = probability_grey(np.nan_to_num(p, nan=0.5))
     elif layer == "state":
         known = values != 0
         gray = np.where(values == STATE_OCCUPIED, 0.0, np.where(values == STATE_FREE, 254.0, 205.0))
