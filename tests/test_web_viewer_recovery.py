@@ -387,6 +387,45 @@ def test_tiles_that_failed_are_asked_again(page: Any, shared_svc: ServiceProcess
     assert not page.page_errors, page.page_errors
 
 
+def test_a_change_before_the_first_stream_opened_is_shown(page: Any, shared_svc: ServiceProcess) -> None:
+    """A scan lands after the page loaded the map's tiles but before its event stream opened (a
+    slow network, or a browser whose 6 connections to the service were all loading tiles). The
+    stream started from the map's version when it opened, after that change, so the page never
+    heard of it: the changed tiles stayed stale until their cells changed again, on a finished
+    map for good. The first stream now resumes from the version the map had when the page read it
+    (`?since=`), before its tiles were asked for."""
+    base, map_id = shared_svc.base_url, "late-stream"  # a map of its own on the shared service
+    _make_map(base, {"r1": (2.0, 2.0)}, map_id=map_id)
+    held: list[Any] = []
+    page.route(f"**/maps/{map_id}/events**", lambda route: held.append(route))
+    try:
+        page.goto(f"{base}/#map={map_id}&layer=probability")
+        _wait(page, _TILES_LOADED_JS, what="every tile loaded")
+        for _ in range(100):  # the stream's request reaches the route
+            if held:
+                break
+            page.wait_for_timeout(50)
+        assert len(held) == 1, "the page opened no event stream"
+        before = page.evaluate(_TILE_URLS_JS)
+        _scan(base, map_id, "r2", 1, 2.5, 2.0)  # changes the tiles in view
+        held[0].continue_()
+    finally:
+        page.unroute(f"**/maps/{map_id}/events**")
+    _wait(
+        page,
+        "() => window.fleetmapViewer.state.robots.get('r2')?.data?.scans_integrated === 1",
+        what="the robot of the scan, through the stream",
+    )
+    _wait(
+        page,
+        f"(before) => ({_TILES_LOADED_JS})() && ({_TILE_URLS_JS})().some((u) => !before.includes(u))",
+        before,
+        what="the tiles the scan changed asked for again",
+    )
+    assert page.evaluate("() => document.getElementById('status').dataset.state") == "connected"
+    assert not page.page_errors, page.page_errors
+
+
 def test_a_stream_that_died_silently_is_opened_again(
     page: Any, service_factory: Callable[..., ServiceProcess]
 ) -> None:

@@ -8,7 +8,8 @@
  *   GET maps/{id}/tiles/{z}/{x}/{y}.png?layer=L&v=V
  *                                 -> the map itself on L.CRS.Simple: one map unit = one CELL,
  *                                    lng = cell x index i, lat = cell y index j, zoom 0 = one pixel per cell
- *   GET maps/{id}/events?robots=delta (SSE)
+ *   GET maps/{id}/events?robots=delta&keepalive=event[&since=stats.version] (SSE; `since` on a
+ *                                    map's first stream: its version when read, before its tiles)
  *                                 -> `tiles` {version, tiles: [[i0, j0, i1, j1], ...]} or {version, reset},
  *                                    `robots` {robots: {id: {online, pose, trail, scans_integrated}}}
  *                                    (every robot: first, and after `replaced`), then

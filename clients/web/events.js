@@ -27,8 +27,14 @@ export function closeEvents() {
   state.events = null;
 }
 
-/** Open map `mapId`'s event stream in place of any other (unless the tab is hidden: see pauseWhileHidden). */
-export function openEvents(mapId) {
+/**
+ * Open map `mapId`'s event stream in place of any other (unless the tab is hidden: see
+ * pauseWhileHidden). `since`: the map's change version when the page read it, before it asked for
+ * its tiles (a selection's first stream): the stream tells of every change from then. Started from
+ * the version when it opened instead, it said nothing of a scan that changed tiles already loaded
+ * while it was on its way, and those tiles stayed stale.
+ */
+export function openEvents(mapId, since = null) {
   closeEvents();
   if (document.visibilityState === 'hidden') {
     // Nobody looks: no stream until the tab is shown (see the visibilitychange listener). The map
@@ -39,7 +45,8 @@ export function openEvents(mapId) {
     return;
   }
   setConnection('connecting');
-  const es = new EventSource(`maps/${enc(mapId)}/events?robots=delta&keepalive=event`);
+  const from = Number.isSafeInteger(since) && since >= 0 ? `&since=${since}` : '';
+  const es = new EventSource(`maps/${enc(mapId)}/events?robots=delta&keepalive=event${from}`);
   state.events = es;
   let interval = 0; // seconds between the stream's keepalives, once its first one said
   // Anything the stream sends shows it alive: wait for the next thing, at most a few keepalives long.

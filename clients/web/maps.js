@@ -149,7 +149,9 @@ export async function selectMap(mapId) {
     return;
   }
   tiles.addTo(map);
-  openEvents(mapId);
+  // From the version read with the map, before any of its tiles: a change while the stream is on
+  // its way is told, not lost.
+  openEvents(mapId, state.info.stats?.version);
 }
 
 /**
