@@ -613,6 +613,20 @@ def test_mat_range_overrides(tmp_path: Path) -> None:
     np.testing.assert_array_equal(scan.no_return_mask(), [False, False, True])
 
 
+@pytest.mark.parametrize("range_min", [UNBOUNDED_RANGE_MAX, 2e6])
+def test_a_range_min_no_scan_could_reach_past_is_refused_at_load(tmp_path: Path, range_min: float) -> None:
+    """A .mat file has no maximum range: its scans get UNBOUNDED_RANGE_MAX, the largest any reader
+    gives. A range_min at or past it was taken by load_dataset, and every scan then failed as it was
+    built (ScanError in the middle of iterating, where the readers promise DatasetError at load:
+    fleetmap build --range-min 2000000 ended in a traceback); a CARMEN log's scans cannot have a
+    larger range_max either."""
+    mat = write_mat(tmp_path / "far.mat", np.array([[1.0]]), np.zeros((1, 1)), np.zeros((3, 1)))
+    log = write_log(tmp_path / "far.log", [flaser([1.0])])
+    for path in (mat, log):
+        with pytest.raises(DatasetError, match="range_min must be .* below 1e\\+06 m"):
+            load_dataset(path, range_min=range_min)
+
+
 @pytest.mark.parametrize("name", ["course.mat.gz", "course.gz", "course.bin"])
 def test_a_gzipped_mat_file_reads_as_the_mat_file(tmp_path: Path, name: str) -> None:
     """A .mat file compressed with gzip (as logs are, and as a course's files are shared) reads as

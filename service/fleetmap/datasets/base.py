@@ -60,8 +60,13 @@ def check_range_window(range_min: float | None, range_max: float | None) -> tupl
     would accept, so a bad override fails at load time rather than on the first scan.
     """
     rmin = DEFAULT_RANGE_MIN if range_min is None else _number("range_min", range_min)
-    if not (math.isfinite(rmin) and rmin >= 0.0):
-        raise DatasetError(f"range_min must be finite and >= 0, got {range_min!r}")
+    # Below UNBOUNDED_RANGE_MAX too: no scan of any reader has a larger range_max (a .mat file's all
+    # have it), so a larger range_min was taken here and every scan failed as it was built, mid-build.
+    if not (math.isfinite(rmin) and 0.0 <= rmin < UNBOUNDED_RANGE_MAX):
+        raise DatasetError(
+            f"range_min must be finite, >= 0 and below {UNBOUNDED_RANGE_MAX:g} m (the largest range_max "
+            f"a scan of a log may have), got {range_min!r}"
+        )
     if range_max is None:
         return rmin, None
     rmax = _number("range_max", range_max)
