@@ -547,6 +547,19 @@ def test_write_build_outputs_writes_one_state_of_a_map_being_integrated(tmp_path
     assert not integrated  # it waited
 
 
+def test_write_build_outputs_of_a_map_past_the_address_space_is_out_of_memory(tmp_path: Path) -> None:
+    """A pose 5e10 m from the others (a log's glitch; the engine takes cells up to 2**40) spans a
+    window of 10**24 cells: numpy refuses its arrays with a ValueError ('array is too big'), not the
+    MemoryError of any other allocation that does not fit, and fleetmap build passed numpy's words
+    on as its error, where a map a little smaller got its own, naming the far pose (cli._too_large)."""
+    gmap = GridMap()
+    gmap.integrate(_fan())
+    gmap.integrate(_fan((5e10, 5e10, 0.0)))
+    with pytest.raises(MemoryError, match="address space"):
+        write_build_outputs(gmap, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("margin", [-2, -1000, 2.5, True, "2"])
 def test_write_build_outputs_refuses_a_margin_that_is_not_cells_around_the_map(
     tmp_path: Path, margin: object

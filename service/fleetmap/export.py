@@ -402,6 +402,10 @@ def npy_bytes(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+#: Bytes a cell takes in the largest arrays `write_build_outputs` makes over its window (a layer's,
+#: float32 or uint32).
+BUILD_CELL_BYTES = 4
+
 #: Every file `write_build_outputs` may write: map.yaml, map.pgm and map.png (not for a TSDF-only
 #: map), one .npy per stored layer array, and meta.json.
 BUILD_FILES = (
@@ -419,7 +423,8 @@ def write_build_outputs(gmap: GridMap, out_dir: str | os.PathLike[str], margin: 
     same folder wrote (`earlier_build_files`) that this map has none of (of other layers) is
     removed: it described another map (another window, resolution or data), and a reader of the
     folder, nav2 loading map.yaml or a script loading hits.npy, took it for this one's. Returns the
-    paths written; raises ValueError for a map with no observed cell.
+    paths written; raises ValueError for a map with no observed cell, and MemoryError for one whose
+    window does not fit in memory (nothing written).
 
     Each file is written beside its final name (`.NAME.partial`) and all take their names only once
     every one is written: a build that fails on the way (a full disk, a file-size limit) leaves the
@@ -439,6 +444,11 @@ def _write_build_outputs(gmap: GridMap, out_dir: Path, margin: int) -> list[Path
     window = known_window(gmap, margin)
     if window is None:
         raise ValueError("the map has no observed cell: nothing to export")
+    if window.cells * BUILD_CELL_BYTES > np.iinfo(np.intp).max:
+        # numpy refuses an array past the address space with a ValueError ('array is too big'), not
+        # the MemoryError of any other allocation that does not fit: fleetmap build passed its words
+        # on, where a map a little smaller got the build's own error, naming the far pose.
+        raise MemoryError(f"the map's window of {window.cells:,} cells is past this machine's address space")
     written: list[Path] = []
     earlier: list[Path] = []
     made_dir = not out_dir.exists()
