@@ -644,6 +644,25 @@ def test_a_gzipped_mat_file_reads_as_the_mat_file(tmp_path: Path, name: str) -> 
         np.testing.assert_array_equal(got.ranges, want.ranges)
 
 
+@pytest.mark.parametrize("name", ["course.mat.gz", "course.MAT"])
+def test_a_gzipped_mat_v4_file_named_so_reads_as_the_mat_file(tmp_path: Path, name: str) -> None:
+    """A MATLAB v4 file has no text header, so only its `.mat` name tells it (the reader takes v4 to
+    v7.2): gzipped, it was taken for a gzipped CARMEN log, refused as 'not UTF-8 text: not a CARMEN
+    log' (the uncompressed file reads), or, gzipped under its own name, handed to scipy still
+    compressed ('not a readable .mat file')."""
+    path = tmp_path / "v4.mat"
+    scipy.io.savemat(path, {"ranges": np.array([[1.0], [2.0]]), "scanAngles": np.array([[-0.5], [0.5]]),
+                            "pose": np.array([[1.0], [2.0], [0.1]])}, format="4")  # fmt: skip
+    assert not path.read_bytes().startswith(b"MATLAB")  # no header: the name is all there is
+    expected = load_dataset(path)
+    packed = tmp_path / name
+    packed.write_bytes(gzip.compress(path.read_bytes()))
+    ds = load_dataset(packed)
+    assert (ds.format, len(ds)) == ("matlab", 1)
+    np.testing.assert_array_equal(ds.poses, expected.poses)
+    np.testing.assert_array_equal(ds[0].ranges, expected[0].ranges)
+
+
 GOOD_MAT = {"ranges": np.ones((3, 2)), "scanAngles": np.zeros(3), "pose": np.zeros((3, 2))}
 
 

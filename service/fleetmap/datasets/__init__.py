@@ -6,8 +6,9 @@
     for scan in ds:      # fleetmap.scan.Scan objects in log order, sensor poses in the map frame
         ...
 
-`load_dataset` picks the reader: MATLAB for a `.mat` name or a file starting with a MAT-file header
-(plain or gzip), CARMEN for everything else (plain or gzip, detected from the content). Every reader
+`load_dataset` picks the reader: MATLAB for a `.mat` name (`.mat.gz` gzipped) or a file starting
+with a MAT-file header (plain or gzip), CARMEN for everything else (plain or gzip, detected from the
+content). Every reader
 parses the whole file up front, so a malformed file raises `DatasetError` from `load_dataset`, never
 mid-iteration.
 """
@@ -57,10 +58,11 @@ def load_dataset(
     with open_log(path) as stream:
         head = stream.read(8)
         stream.seek(0)
-        unpacked = _gunzipped_mat(stream, path) if head.startswith(GZIP_MAGIC) else None
+        named_mat = _named_mat(path)
+        unpacked = _gunzipped_mat(stream, path, named_mat) if head.startswith(GZIP_MAGIC) else None
         if unpacked is not None:
             return read_matlab(path, range_min=range_min, range_max=range_max, stream=unpacked)
-        if path.suffix.lower() == ".mat" or _is_mat(head):
+        if named_mat or _is_mat(head):
             return read_matlab(path, range_min=range_min, range_max=range_max, stream=stream)
         return read_carmen(path, range_min=range_min, range_max=range_max, stream=stream)
 
@@ -70,19 +72,28 @@ def _is_mat(head: bytes) -> bool:
     return head.startswith(_MAT_HEADER) or head == HDF5_MAGIC
 
 
-def _gunzipped_mat(stream: BinaryIO, path: Path) -> BinaryIO | None:
-    """A gzip `stream`'s content, in memory (a course's file is a few MB), when it is a MAT-file;
-    else None, the stream at its start again: a gzipped CARMEN log, or data too corrupt to tell,
-    which the CARMEN reader reports. A gzipped .mat was read as a CARMEN log, and refused as 'not
-    UTF-8 text: not a CARMEN log'. `DatasetError` for a MAT-file whose gzip data is corrupt."""
+def _named_mat(path: Path) -> bool:
+    """Whether `path`'s name says a MAT-file: `.mat`, or `.mat.gz` gzipped (any case). A MATLAB v4
+    file has no text header: its name is all that tells it."""
+    name = path.name.lower()
+    return name.endswith((".mat", ".mat.gz"))
+
+
+def _gunzipped_mat(stream: BinaryIO, path: Path, named_mat: bool) -> BinaryIO | None:
+    """A gzip `stream`'s content, in memory (a course's file is a few MB), when it is a MAT-file:
+    one starting with a MAT-file header, or any when `named_mat` (`_named_mat`: a v4 file has no
+    header, and gzipped was read as a CARMEN log, or handed to scipy still compressed); else None,
+    the stream at its start again: a gzipped CARMEN log, or data too corrupt to tell, which the
+    CARMEN reader reports. A gzipped .mat was read as a CARMEN log, and refused as 'not UTF-8 text:
+    not a CARMEN log'. `DatasetError` for a MAT-file whose gzip data is corrupt."""
     head = b""
     try:
         with gzip.GzipFile(fileobj=stream, mode="rb") as file:
             head = file.read(8)
-            if _is_mat(head):
+            if named_mat or _is_mat(head):
                 return io.BytesIO(head + file.read())
     except (OSError, EOFError, zlib.error) as exc:  # gzip.BadGzipFile is an OSError
-        if _is_mat(head):
+        if named_mat or _is_mat(head):
             raise DatasetError(f"{path}: a gzipped .mat file whose gzip data is corrupt: {exc}") from None
     stream.seek(0)
     return None
