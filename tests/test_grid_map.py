@@ -22,7 +22,14 @@ from numba.core.dispatcher import Dispatcher
 from fleetmap import update_plan
 from fleetmap.config import MapConfig, OccupancyParams
 from fleetmap.datasets import load_dataset
-from fleetmap.grid_map import STATE_FREE, STATE_OCCUPIED, STATE_UNKNOWN, GridMap, LayerUnavailableError
+from fleetmap.grid_map import (
+    STATE_FREE,
+    STATE_OCCUPIED,
+    STATE_UNKNOWN,
+    GridMap,
+    IntegrationResult,
+    LayerUnavailableError,
+)
 from fleetmap.kernels import integrate_scan
 from fleetmap.kernels.tile_index import index_find
 from fleetmap.kernels.traversal import EXACT, segment_cells
@@ -230,6 +237,33 @@ def test_a_saturated_map_reports_no_change(layers: list[str]) -> None:
     else:
         assert len(result.changed_tiles) == plan.num_tiles
         assert (m.store.versions[: len(m.store)] != before).all()
+
+
+@pytest.mark.parametrize("preset", ["int8", "octomap"])
+def test_a_per_ray_scan_whose_cells_end_as_they_began_changes_no_tile(preset: str) -> None:
+    """Per-ray updates apply in order, so a cell may move and come back within one scan: at a clamp,
+    moved off it by one ray and back by the next (int8 at -128: a hit, + 9, then a miss, - 9;
+    OctoMap's at its upper clamp: a miss, then a hit that clamps). Its tile was as before the scan,
+    yet it got a new version and was reported changed, which the service pushes to every viewer
+    as a changed tile and a new ETag. A scan that does move a cell still changes its tile."""
+    m = make_map(layers=["occupancy"], update="per_ray", occupancy={"preset": preset})
+    sensor = (0.1, 0.1, 0.0)  # beams along row 0 from cell 0, 0.25 m cells: 2 m ends in cell 8
+
+    def scan(*ranges: float) -> IntegrationResult:
+        return m.integrate(Scan.from_angles(sensor, [0.0] * len(ranges), list(ranges)))
+
+    # Cells 0-7 and 9-11 at the lower clamp, 8 and 12 at the upper.
+    for ranges in [3.0] * 40 + [2.0] * 40:
+        scan(ranges)
+    before = m.region("log_odds", 0, 0, 16, 1)
+    version = m.store.version((0, 0))
+    # int8: cell 4 hit (by the 1 m beam), then missed (by the 2 m one). OctoMap: cell 8 missed (by
+    # the 3 m beam), then hit back to the clamp (by the 2 m one).
+    result = scan(*([1.0, 2.0] if preset == "int8" else [3.0, 2.0]))
+    np.testing.assert_array_equal(m.region("log_odds", 0, 0, 16, 1), before)
+    assert result.changed_tiles == [] and m.store.version((0, 0)) == version
+    result = scan(1.0)  # cell 4 hit: off its clamp
+    assert result.changed_tiles == [(0, 0)] and m.store.version((0, 0)) != version
 
 
 def test_tile_cap_rejects_whole_scan() -> None:

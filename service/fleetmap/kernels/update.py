@@ -271,22 +271,38 @@ def apply_entries(
     """Apply hits and misses in order, each clamped (per-ray semantics); return updates applied.
 
     Entry k lies in the plan's tile `tile[k]`, which is pool slot `slots[tile[k]]`; `changed[tile]`
-    is set to 1 where a stored value changed. A disabled layer is passed as an empty array.
+    is set to 1 where a stored value is not what it was before the entries. A disabled layer is
+    passed as an empty array.
     """
     mask = (1 << shift) - 1
+    # Without counts, which only grow, a cell may end where it began: in order, a ray may move it
+    # off its clamp and the next one back (a miss, then a hit clamping at l_max). Its tile did not
+    # change, and is judged by each cell's value before the entries (a new version for it was a
+    # changed tile pushed to every viewer, and a new ETag). With counts, every update changes one.
+    net = hits.size == 0 and log_odds.size > 0
+    before = np.empty(ci.size if net else 0, dtype=np.float32)
+    for k in range(before.size):
+        before[k] = log_odds[slots[tile[k]], cj[k] & mask, ci[k] & mask]
     for k in range(ci.size):
-        if _apply_one(
-            slots[tile[k]],
-            cj[k] & mask,
-            ci[k] & mask,
-            (kind[k] & CELL_HIT) != 0,
-            log_odds,
-            hits,
-            misses,
-            l_hit,
-            l_miss,
-            l_min,
-            l_max,
+        if (
+            _apply_one(
+                slots[tile[k]],
+                cj[k] & mask,
+                ci[k] & mask,
+                (kind[k] & CELL_HIT) != 0,
+                log_odds,
+                hits,
+                misses,
+                l_hit,
+                l_miss,
+                l_min,
+                l_max,
+            )
+            and not net
         ):
+            changed[tile[k]] = 1
+    for k in range(before.size):
+        # An updated cell is never NaN, and NaN (unknown before) differs from every value.
+        if log_odds[slots[tile[k]], cj[k] & mask, ci[k] & mask] != before[k]:
             changed[tile[k]] = 1
     return ci.size
