@@ -6,6 +6,7 @@ that need them are skipped, with the path in the reason, when that directory is 
 
 from __future__ import annotations
 
+import codecs
 import gzip
 import math
 import os
@@ -258,20 +259,29 @@ def test_lines_may_end_in_cr_lf_or_a_lone_cr(tmp_path: Path, ending: str, compre
         load_dataset(write("bad.log", [*lines[:3], "FLASER 1 x 0 0 0 0 0 0 0 h 0", lines[4]]))
 
 
+BYTE_ORDER_MARKS = {
+    "utf-16-le": codecs.BOM_UTF16_LE,
+    "utf-16-be": codecs.BOM_UTF16_BE,
+    "utf-32-le": codecs.BOM_UTF32_LE,
+    "utf-32-be": codecs.BOM_UTF32_BE,
+}
+
+
 @pytest.mark.parametrize("compress", [False, True])
-@pytest.mark.parametrize("encoding", ["utf-16-le", "utf-16-be"])
-def test_a_utf16_log_reads_as_its_utf8_text(tmp_path: Path, encoding: str, compress: bool) -> None:
+@pytest.mark.parametrize("encoding", list(BYTE_ORDER_MARKS))
+def test_a_utf16_or_utf32_log_reads_as_its_utf8_text(tmp_path: Path, encoding: str, compress: bool) -> None:
     """A log saved as UTF-16 with its byte order mark (Windows PowerShell 5's `>` writes so, CR LF
     line ends included) reads as the same text in UTF-8: it was refused as 'not UTF-8 text: not a
-    CARMEN log'. Its malformed lines are named by their numbers, and UTF-16 that does not decode
-    is one clear error."""
+    CARMEN log'. So does one saved as UTF-32 with its mark (`Out-File -Encoding utf32`), which,
+    its little-endian mark starting as UTF-16's does, was read as UTF-16 and refused as 'no FLASER
+    or ROBOTLASER1 message: not a CARMEN laser log'. Its malformed lines are named by their
+    numbers, and text that does not decode is one clear error."""
     lines = ["PARAM robot_frontlaser_offset 0.5 1.0 host 1.0", flaser([1.0, 2.0], 1.0, 2.0, 0.0)]
     lines.append(robotlaser1([4.0, 5.0], (1.0, 1.0, 1.0)))
     expected = load_dataset(write_log(tmp_path / "utf8.log", lines))
 
     def write(name: str, text: str) -> Path:
-        bom = b"\xff\xfe" if encoding.endswith("le") else b"\xfe\xff"
-        data = bom + text.encode(encoding)
+        data = BYTE_ORDER_MARKS[encoding] + text.encode(encoding)
         path = tmp_path / name
         path.write_bytes(gzip.compress(data) if compress else data)
         return path
@@ -287,7 +297,7 @@ def test_a_utf16_log_reads_as_its_utf8_text(tmp_path: Path, encoding: str, compr
     broken = write("broken.log", "\n".join(lines))
     data = gzip.decompress(broken.read_bytes()) if compress else broken.read_bytes()
     broken.write_bytes(data[:-1])  # half a character at its end
-    with pytest.raises(DatasetError, match="not UTF-16 text"):
+    with pytest.raises(DatasetError, match=f"not UTF-{encoding[4:6]} text"):
         load_dataset(broken)
 
 

@@ -22,7 +22,8 @@ Readings at or above `range_max` are kept as they are: `Scan` treats them as "no
 `range_min` is `DEFAULT_RANGE_MIN` (1 mm) rather than 0, so that zero readings, the laser's "no
 measurement" code, are ignored, as are negative readings. `#` comments, `ODOM`,
 `NEFF`, `SYNC`, `RLASER`, `TRUEPOS`, `ROBOTLASER2` (the rear laser) and every unknown message type
-are skipped (comments whatever their encoding: the rest of a log must be UTF-8 or UTF-16 text);
+are skipped (comments whatever their encoding: the rest of a log must be UTF-8, or UTF-16 or UTF-32
+with its byte order mark);
 PARAM lines are skipped except for the two parameters above.
 
 Every FLASER / ROBOTLASER1 line must have exactly the number of fields the format implies: a line
@@ -50,6 +51,7 @@ from the previous scan's; mirroring the beam order raises that to 0.3-0.4 m, and
 
 from __future__ import annotations
 
+import codecs
 import contextlib
 import gzip
 import io
@@ -76,8 +78,13 @@ from .base import (
 DEFAULT_FLASER_RANGE_MAX = 80.0
 
 GZIP_MAGIC = b"\x1f\x8b"
-#: The byte order marks of UTF-16 text, little- and big-endian.
-_UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")
+#: The byte order marks of UTF-32 and UTF-16 text, little- and big-endian, each with its codec
+#: (which reads the mark to tell the byte order). UTF-32's first: its little-endian mark starts
+#: with UTF-16's.
+_BYTE_ORDER_MARKS = (
+    (codecs.BOM_UTF32_LE, "utf-32"), (codecs.BOM_UTF32_BE, "utf-32"), (codecs.BOM_UTF16_LE, "utf-16"),
+    (codecs.BOM_UTF16_BE, "utf-16"),
+)  # fmt: skip
 
 # Field counts around the ranges, from the message layouts in the module docstring.
 _FLASER_TAIL = 9  # x y theta odom_x odom_y odom_theta ipc_ts host logger_ts
@@ -152,14 +159,18 @@ def _numbered_lines(stream: BinaryIO, path: Path) -> Iterator[tuple[int, str]]:
 
     A file that starts with a UTF-16 byte order mark is UTF-16 text: Windows PowerShell 5's `>`
     writes so (`gzip -dc intel.log.gz > intel.log`), and such a log was refused as 'not UTF-8
-    text: not a CARMEN log'."""
+    text: not a CARMEN log'. One that starts with a UTF-32 mark is UTF-32 text (`Out-File
+    -Encoding utf32`): read as UTF-16, whose little-endian mark its own starts with, it was
+    refused as holding no laser message."""
     compressed = stream.read(2) == GZIP_MAGIC
     stream.seek(0)
     lineno = 0
     with gzip.GzipFile(fileobj=stream, mode="rb") if compressed else contextlib.nullcontext(stream) as f:
-        if f.read(2) in _UTF16_BOMS:
+        head = f.read(4)
+        codec = next((codec for mark, codec in _BYTE_ORDER_MARKS if head.startswith(mark)), None)
+        if codec is not None:
             f.seek(0)  # the codec reads the mark, to tell the byte order
-            yield from _utf16_lines(f.read(), path)
+            yield from _marked_lines(f.read(), path, codec)
             return
         f.seek(0)
         for raw in f:
@@ -188,14 +199,16 @@ def _decode_line(line: bytes, lineno: int, path: Path) -> str:
         raise DatasetError(f"{path}:{lineno}: not UTF-8 text: not a CARMEN log") from None
 
 
-def _utf16_lines(data: bytes, path: Path) -> Iterator[tuple[int, str]]:
-    """(1-based line number, line) of UTF-16 text that starts with its byte order mark, lines
-    ending as `_numbered_lines` ends them (LF, CR LF or CR). A whole log in memory is a few MB."""
+def _marked_lines(data: bytes, path: Path, codec: str) -> Iterator[tuple[int, str]]:
+    """(1-based line number, line) of text in `codec` (`utf-16` or `utf-32`) that starts with its
+    byte order mark, lines ending as `_numbered_lines` ends them (LF, CR LF or CR). A whole log in
+    memory is a few MB."""
+    name = codec.upper()
     try:
-        text = data.decode("utf-16")
+        text = data.decode(codec)
     except UnicodeDecodeError as exc:
         raise DatasetError(
-            f"{path}: not UTF-16 text (byte {exc.start}), though it starts as UTF-16 does"
+            f"{path}: not {name} text (byte {exc.start}), though it starts as {name} does"
         ) from None
     # A StringIO with newline=None ends lines at LF, CR LF and CR only (str.splitlines ends them
     # at form feeds and other separators too, where a UTF-8 log's lines do not end).
