@@ -6,6 +6,7 @@ import contextlib
 import gc
 import json
 import logging
+import os
 import re
 import sqlite3
 import threading
@@ -25,6 +26,7 @@ from fleetmap.codec import WireScan
 from fleetmap.config import MapConfig
 from fleetmap.fair_queue import FairQueue
 from fleetmap.grid_map import GridMap
+from fleetmap.journal import JournalWriter
 from fleetmap.map_entry import IngestRejected
 from fleetmap.persistence import DurableStore
 from fleetmap.pushed_out import PushedOutRows
@@ -1208,6 +1210,53 @@ def _crashed_with_maps(data_dir: Path, scans: dict[str, int]) -> None:
     for t in registry._workers:
         t.join(5)
     registry.durable.close()  # type: ignore[union-attr]
+
+
+#: Maps of the stop after a crash restore below; `FLEETMAP_STOP_MAPS=5000` makes it the one seen
+#: taking 33-41 s (its seconds printed: `pytest -s`).
+STOP_MAPS = int(os.environ.get("FLEETMAP_STOP_MAPS", "24"))
+
+
+def test_a_stop_after_a_crash_restore_snapshots_its_maps_in_a_few_transactions(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After a crash every restored map has journal rows, so a stop snapshots every map, and each
+    map's last snapshot took about five synced transactions of its own (its tile rows, its switch,
+    its checkpoint's, the deletion of its journal rows) after waiting `ATTACH_WAIT` for a group
+    commit that no scan would make: 5,000 maps took 33-41 s to stop, past `docker stop`'s 10 s,
+    whose SIGKILL made the next start a crash restore again. Now the last snapshots share
+    transactions. `ATTACH_WAIT` is made an hour here: a stop that waits for it does not end."""
+    maps = {f"m{i}": 3 for i in range(STOP_MAPS)}
+    _crashed_with_maps(tmp_path, maps)
+    monkeypatch.setattr(JournalWriter, "ATTACH_WAIT", 3600.0)
+    registry = MapRegistry(durable=DurableStore(tmp_path, snapshot_interval=3600.0))
+    registry.start()
+    want = {map_id: _tiles(registry.get(map_id).gmap) for map_id in maps}
+    before = _snapshot_generations(tmp_path)
+    commits: list[str] = []
+    registry.durable.writer._conn.set_trace_callback(  # type: ignore[union-attr]
+        lambda sql: commits.append(sql) if sql == "COMMIT" else None
+    )
+    stopping = threading.Thread(target=registry.close, daemon=True)  # (daemon: a hung one is left behind)
+    started = time.monotonic()
+    stopping.start()
+    stopping.join(120)
+    assert not stopping.is_alive(), "the stop's last snapshots waited for a group commit"
+    print(f"stopped after restoring {len(maps)} maps in {time.monotonic() - started:.1f} s")
+    assert len(commits) <= len(maps) // 4, f"{len(commits)} transactions to stop {len(maps)} maps"
+    after = _snapshot_generations(tmp_path)
+    assert all(after[map_id] != before[map_id] for map_id in maps), "a map was not snapshotted"
+    with contextlib.closing(sqlite3.connect(tmp_path / "fleetmap.db")) as conn:
+        assert conn.execute("SELECT COUNT(*) FROM journal").fetchone()[0] == 0
+    with _restarted(tmp_path) as again:
+        for map_id, count in maps.items():
+            entry = again.get(map_id)
+            assert entry.robots["r"].scans_integrated == count and entry.robots["r"].last_seq == count - 1
+            got = _tiles(entry.gmap)
+            assert got.keys() == want[map_id].keys()
+            for key, arrays in want[map_id].items():
+                for name, array in arrays.items():
+                    np.testing.assert_array_equal(got[key][name], array)
 
 
 def test_the_restore_logs_totals_not_a_line_per_map(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:

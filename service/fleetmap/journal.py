@@ -48,11 +48,13 @@ class JournalEntry:
 
 
 class _AttachedRow(NamedTuple):
-    """A row `JournalWriter.attach` carries into one of its next transactions."""
+    """A row (or operation) `JournalWriter.attach` (`attach_op`) carries into one of its next
+    transactions."""
 
     map_id: str | None  # held back while this map's change is not stored (`change_map`)
-    sql: str
-    params: tuple
+    op: Callable[[sqlite3.Connection], object]  # run inside the transaction; its result is the future's
+    size: int  # bytes of the row's blobs, towards `ATTACH_BYTES`
+    row: bool  # a row (`attach`), not an operation (`attach_op`)
     future: Future
 
 
@@ -107,6 +109,7 @@ class JournalWriter:
         # still to be deleted. Only the writer thread touches it (from `trim`, called in an op).
         self._trim: dict[str, int] = {}
         self._attached: collections.deque[_AttachedRow] = collections.deque()
+        self._attached_bytes = 0  # of the rows in `_attached`, under `_attached_lock`
         # map id -> the latest change of that map (create, replace, delete) whose transaction failed,
         # retried before every later transaction until it commits (`change_map`). Only the writer
         # thread touches it; `unstored` is its keys for other threads, replaced whole.
@@ -148,11 +151,39 @@ class JournalWriter:
         they compete for SQLite's one write lock, and a journal commit that finds it taken sleeps in
         SQLite's busy handler (1, 2, 5, 10, ... ms); with a snapshot's 17 tile transactions that
         made group commits take 20-60 ms."""
+
+        def row(conn: sqlite3.Connection) -> None:
+            conn.execute(sql, params)
+
+        return self._attach(map_id, row, sum(len(p) for p in params if isinstance(p, bytes)), True)
+
+    def attach_op(self, op: Callable[[sqlite3.Connection], object], map_id: str | None = None) -> Future:
+        """Run `op` inside one of the writer's next transactions, after the rows attached before it
+        (in the same transaction or a later one), as `attach` runs a row. `op` must not begin or end
+        the transaction, and raises only `sqlite3.Error` (which fails the whole transaction, every
+        row and operation in it). The future is resolved with its result once that transaction
+        commits. Never blocks."""
+        return self._attach(map_id, op, 0, False)
+
+    def _attach(
+        self, map_id: str | None, op: Callable[[sqlite3.Connection], object], size: int, row: bool
+    ) -> Future:
         future: Future = Future()
         with self._attached_lock:
-            self._attached.append(_AttachedRow(map_id, sql, params, future))
+            self._attached.append(_AttachedRow(map_id, op, size, row, future))
+            self._attached_bytes += size
         self._queue.put(_WAKE)
         return future
+
+    def commit_attached(self) -> None:
+        """Commit every row and operation attached so far, next, in transactions of `ATTACH_BYTES`,
+        without waiting `ATTACH_WAIT` for a group commit to ride along with: for a caller that knows
+        no scan is coming (a stopping service's last snapshots). Never blocks."""
+        self._queue.put(self._commit_attached)
+
+    def _commit_attached(self, conn: sqlite3.Connection) -> None:
+        while self._attached and self._commit([]):
+            pass
 
     def append(self, entry: JournalEntry) -> None:
         # Under the lock, so that `_waiting` is in the queue's order, which the writer takes rows in.
@@ -369,7 +400,8 @@ class JournalWriter:
                 if isinstance(item, JournalEntry):
                     batch.append(item)
                 elif item is _WAKE:  # attached rows wait for the next group, or for ATTACH_WAIT
-                    pass
+                    if self._attached_bytes >= self.ATTACH_BYTES:  # (read unlocked: at worst late)
+                        break  # a transaction's worth: committed now (see below)
                 else:
                     if batch:  # (an empty one would commit background rows alone: an extra fsync)
                         self._commit(batch)
@@ -385,7 +417,10 @@ class JournalWriter:
                     item = self._queue.get_nowait()
                 except queue.Empty:
                     break
-            if batch:
+            # Also a transaction's worth of attached rows and no scan: rows attached faster than
+            # every ATTACH_WAIT (a stopping service's snapshots, unpaced) never let the writer idle,
+            # and piled up in memory until the last was attached: every changed tile of every map.
+            if batch or self._attached_bytes >= self.ATTACH_BYTES:
                 self._commit(batch)
 
     def _finish(self) -> None:
@@ -402,19 +437,28 @@ class JournalWriter:
                 extra={"map_id": map_id},
             )
 
-    def _trim_some(self) -> tuple[str, bool] | None:
-        """Inside the open transaction, delete up to `TRIM_ROWS` superseded rows of one map; return
-        (map id, whether none of its superseded rows are left) or None if nothing was pending."""
-        if not self._trim:
-            return None
-        map_id, upto = next(iter(self._trim.items()))
-        cur = self._conn.execute(
-            "DELETE FROM journal WHERE id IN (SELECT id FROM journal WHERE map_id = ? AND id <= ? "
-            "ORDER BY id LIMIT ?)",
-            (map_id, upto, self.TRIM_ROWS),
-        )
-        self.trimmed += max(cur.rowcount, 0)
-        return map_id, cur.rowcount < self.TRIM_ROWS
+    def _trim_some(self) -> list[str]:
+        """Inside the open transaction, delete up to `TRIM_ROWS` superseded rows, of as many maps as
+        they take (those pending longest first); return the maps none of whose superseded rows are
+        left. Deleting one map's rows a transaction made a synced transaction of every map's few
+        rows: a stop after a crash restore of 500 maps spent 500 of them on it."""
+        finished: list[str] = []
+        left = self.TRIM_ROWS
+        for map_id, upto in self._trim.items():
+            if left <= 0:
+                break
+            cur = self._conn.execute(
+                "DELETE FROM journal WHERE id IN (SELECT id FROM journal WHERE map_id = ? AND id <= ? "
+                "ORDER BY id LIMIT ?)",
+                (map_id, upto, left),
+            )
+            deleted = max(cur.rowcount, 0)
+            self.trimmed += deleted
+            if deleted == left:
+                break  # (perhaps more of them left)
+            finished.append(map_id)
+            left -= max(deleted, 1)  # (at least 1: at most TRIM_ROWS statements a transaction)
+        return finished
 
     def _take_attached(self) -> list[_AttachedRow]:
         """The attached rows for one transaction: up to `ATTACH_BYTES`, at least one if any."""
@@ -424,7 +468,8 @@ class JournalWriter:
             while self._attached and (not taken or size < self.ATTACH_BYTES):
                 row = self._attached.popleft()
                 taken.append(row)
-                size += sum(len(p) for p in row.params if isinstance(p, bytes))
+                size += row.size
+            self._attached_bytes -= size
         return taken
 
     def _hold_back(
@@ -477,8 +522,7 @@ class JournalWriter:
                 )
                 assert cur.lastrowid is not None  # set by every INSERT
                 ids.append(cur.lastrowid)
-            for a in attached:
-                self._conn.execute(a.sql, a.params)
+            results = [a.op(self._conn) for a in attached]
             trimmed = self._trim_some()
             self._check_database_file()  # (two stats: a few us per group commit)
             self._conn.execute("COMMIT")
@@ -506,10 +550,10 @@ class JournalWriter:
                 "maps' next snapshots)", self._failed_commits, self._failed_scans,
             )  # fmt: skip
             self._failed_commits = self._failed_scans = 0
-        for a in attached:
-            a.future.set_result(None)
-        if trimmed is not None and trimmed[1]:
-            del self._trim[trimmed[0]]
+        for a, result in zip(attached, results, strict=True):
+            a.future.set_result(result)
+        for map_id in trimmed:
+            del self._trim[map_id]
         if not batch:
             return True
         self.commits += 1
@@ -520,13 +564,18 @@ class JournalWriter:
 
 
 def _failed_commit(batch: list[JournalEntry], attached: list[_AttachedRow], exc: Exception) -> str:
-    """The log line of a failed transaction that held `batch` and `attached` (a snapshot's tile rows,
-    the only rows attached), saying what it held: one of tile rows or superseded rows' deletion
-    alone was "journal commit failed (0 scans not durable)", a journal failure that lost nothing."""
+    """The log line of a failed transaction that held `batch` and `attached` (snapshots' tile rows,
+    and the switches of a stopping service's last snapshots, the only things attached), saying what
+    it held: one of tile rows or superseded rows' deletion alone was "journal commit failed (0 scans
+    not durable)", a journal failure that lost nothing."""
     if batch:
         return f"journal commit failed ({len(batch)} scans not durable): {exc}"
     if attached:
-        rows = f"{len(attached)} tile row{'s' if len(attached) > 1 else ''}"
+        tiles = sum(1 for a in attached if a.row)
+        rows = f"{tiles} tile row{'s' if tiles != 1 else ''}"
+        switches = len(attached) - tiles  # (`DurableStore.snapshot(last=True)`)
+        if switches:
+            return f"storing {rows} and switching {switches} map(s) to their last snapshots failed: {exc}"
         return f"storing {rows} of a snapshot failed (the snapshot is retried): {exc}"
     return f"deleting journal rows a snapshot superseded failed (harmless: ignored, and deleted later): {exc}"
 

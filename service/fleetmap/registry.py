@@ -370,6 +370,8 @@ class MapRegistry:
         says so)."""
         if self.durable is None:
             return
+        # The last pass queues every map's snapshot before it waits for any (`last_snapshot`).
+        taken: list[tuple[MapEntry, list[tuple[dict, int]], Future[int]]] = []
         for entry in self.list():
             # Refusals, duplicates and drops are journaled nowhere: only a snapshot stores their
             # counts (and a forgotten robot's tombstone). Checked at the full passes only, which the
@@ -383,17 +385,35 @@ class MapRegistry:
                 # Listed above, perhaps seconds ago (each snapshot takes its time): the map may have
                 # been deleted or replaced since, and a new map of its id must not get its snapshot.
                 current = functools.partial(self._is_current, entry)
-                try:
-                    self.durable.snapshot(entry.id, entry.gmap, counters, current)
-                    if saved:
-                        stored, unjournaled = saved[0]
-                        self._stones_stored(entry, stored["forgotten"])
-                        entry.unjournaled_stored = unjournaled
-                except (sqlite3.Error, OSError, StorageError) as exc:
-                    then = "the last one: the service is stopping" if last else "retried at the next one"
-                    self._snapshot_log.error(
-                        "snapshot", f"snapshot of map {entry.id} failed ({then}): {exc}", map_id=entry.id
+                if last:
+                    taken.append(
+                        (entry, saved, self.durable.last_snapshot(entry.id, entry.gmap, counters, current))
                     )
+                else:
+                    self._snapshot_stored(entry, saved, functools.partial(
+                        self.durable.snapshot, entry.id, entry.gmap, counters, current
+                    ), last)  # fmt: skip
+        if last:
+            self.durable.last_snapshots_queued()
+        for entry, saved, written in taken:
+            self._snapshot_stored(entry, saved, written.result, last)
+
+    def _snapshot_stored(
+        self, entry: MapEntry, saved: list[tuple[dict, int]], written: Callable[[], int], last: bool
+    ) -> None:
+        """Wait for a snapshot of map `entry` (`written()`, raising its failure) whose counters are
+        `saved` (`_saved_counters`): what it stored is pending no more; a failure is logged."""
+        try:
+            written()
+            if saved:
+                stored, unjournaled = saved[0]
+                self._stones_stored(entry, stored["forgotten"])
+                entry.unjournaled_stored = unjournaled
+        except (sqlite3.Error, OSError, StorageError) as exc:
+            then = "the last one: the service is stopping" if last else "retried at the next one"
+            self._snapshot_log.error(
+                "snapshot", f"snapshot of map {entry.id} failed ({then}): {exc}", map_id=entry.id
+            )
 
     def _current(self, entry: MapEntry) -> MapEntry | None:
         """The map of `entry`'s id now: `entry` itself while it is not retired, else the map that
