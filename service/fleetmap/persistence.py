@@ -991,6 +991,11 @@ class DurableStore:
     def overdue(self, map_id: str) -> bool:
         return self._rows_since.get(map_id, 0) >= self.snapshot_rows
 
+    @property
+    def stopping(self) -> bool:
+        """Whether the service stops (`stop_periodic` was called): only its last snapshots are left."""
+        return self._stop.is_set()
+
     def stop_periodic(self) -> None:
         """Stop the periodic snapshots (`start_periodic`), the one under way finished first, and pace
         no snapshot from now on: the service is stopping, and its last snapshots are all that is

@@ -367,12 +367,17 @@ class MapRegistry:
         threshold if `only_overdue`; every map with `every_map`. A map whose snapshot fails (a full
         or failing disk) is logged and reported by `DurableStore.health`, and the others are still
         snapshotted. `last`: the registry is closing, and a failed snapshot is not retried (its line
-        says so)."""
+        says so); any other pass ends, with the snapshot under way, once the registry closes."""
         if self.durable is None:
             return
         # The last pass queues every map's snapshot before it waits for any (`last_snapshot`).
         taken: list[tuple[MapEntry, list[tuple[dict, int]], Future[int]]] = []
         for entry in self.list():
+            if not last and self.durable.stopping:
+                # The stop waits for this pass (`stop_periodic`), then its own takes the maps left,
+                # in shared transactions: one synced snapshot after another here, a stop during the
+                # first pass after a crash restore of 5,000 maps took 52 s.
+                return
             # Refusals, duplicates and drops are journaled nowhere: only a snapshot stores their
             # counts (and a forgotten robot's tombstone). Checked at the full passes only, which the
             # refusals alone make due: a map whose robots' scans were all refused since its last
