@@ -112,6 +112,38 @@ def test_superseded_journal_rows_are_deleted_a_few_per_commit(tmp_path: Path, mo
         store.close()
 
 
+def test_a_last_snapshot_whose_switch_fails_is_undone_alone_and_the_writer_goes_on(tmp_path: Path) -> None:
+    """The last snapshots of a stop share the writer's transactions (`DurableStore.last_snapshot`).
+    A switch that fails half-way (here robot counters that do not encode as JSON: a bug) must not
+    end the writer thread, which every later snapshot and the close wait on, nor be committed
+    half-made with the other maps' switches in its transaction: it is undone alone."""
+    store = DurableStore(tmp_path)
+    try:
+        maps = {map_id: GridMap(MapConfig(tile_size=16)) for map_id in ("bad", "good")}
+        for map_id, gmap in maps.items():
+            store.map_created(map_id, gmap).result()
+            with gmap.lock:
+                gmap.integrate(fan(0.0, n=61))
+        generations = dict(sqlite3.connect(tmp_path / DB_NAME).execute("SELECT id, snapshot_gen FROM maps"))
+        store.stop_periodic()
+        bad = store.last_snapshot(
+            "bad",
+            maps["bad"],
+            lambda: {"scans_integrated": 1, "scans_rejected": 0, "robots": {"r": object()}},
+        )
+        good = store.last_snapshot("good", maps["good"], counters)
+        store.last_snapshots_queued()
+        with pytest.raises(TypeError):
+            bad.result(timeout=30)
+        assert good.result(timeout=30) > 0
+        store.writer.run(lambda conn: None)  # the writer still runs
+        with sqlite3.connect(tmp_path / DB_NAME) as conn:
+            now = dict(conn.execute("SELECT id, snapshot_gen FROM maps"))
+            assert now["bad"] == generations["bad"] and now["good"] != generations["good"]
+    finally:
+        store.close()
+
+
 def test_superseded_rows_left_by_a_crash_are_deleted_at_start(tmp_path: Path, monkeypatch) -> None:
     """A crash before the writer deleted them: the restarted store replays only the rows after the
     snapshot, and deletes the others."""

@@ -895,11 +895,14 @@ class DurableStore:
 
             def switched(done: Future) -> None:
                 """The switch's outcome (True: committed; False: the map was gone; None: not tried,
-                a tile row failed), told to `written_tiles` once this store's own records follow it."""
+                a tile row failed; an exception: undone, it failed), told to `written_tiles` once
+                this store's own records follow it."""
                 try:
                     outcome = done.result()
                     if outcome is None:
                         next(f for f in written if f.exception() is not None).result()  # raises
+                    if isinstance(outcome, BaseException):
+                        raise outcome
                     if outcome:
                         self._switched(map_id, created, clock, awaiting)
                 except BaseException as exc:
@@ -909,12 +912,23 @@ class DurableStore:
 
             if last:
 
-                def switch_attached(conn: sqlite3.Connection) -> bool | None:
+                def switch_attached(conn: sqlite3.Connection) -> bool | None | Exception:
                     # A row of an earlier transaction failed: this map's generation lacks it. (Rows
                     # in this one failing fail the switch with them.)
                     if any(f.done() and f.exception() is not None for f in written):
                         return None
-                    if not switch_rows(conn):
+                    # A savepoint: a switch that fails half-way (a bug, a statement refused) is
+                    # undone alone, not committed half-made with the other maps' in this
+                    # transaction; raised, anything but an sqlite3.Error ended the writer thread.
+                    conn.execute("SAVEPOINT last_snapshot")
+                    try:
+                        made = switch_rows(conn)
+                    except Exception as exc:
+                        conn.execute("ROLLBACK TO last_snapshot")  # (raises if SQLite ended it all)
+                        conn.execute("RELEASE last_snapshot")
+                        return exc
+                    conn.execute("RELEASE last_snapshot")
+                    if not made:
                         return False
                     # In the switch's transaction, which `_trim_some` may delete a share of them in
                     # too: a transaction that fails forgets every pending trim.
