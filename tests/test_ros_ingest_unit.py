@@ -103,6 +103,28 @@ def test_namespace_tf_first_else_the_root_tree() -> None:
     assert set(ingest.status()["tf_trees"]) == {"/", "/robot3"}
 
 
+def test_a_namespace_whose_tf_publisher_exists_waits_for_its_tf_not_the_root_tree() -> None:
+    """A robot in a namespace beside one without (a mixed fleet: `/scan` and `/tf` of the first
+    robot, `/robot1/scan` and `/robot1/tf` of the second, both naming their frames `map`, `laser`):
+    robot1's first scans, which often come before its first TF (its laser driver up before its
+    TF publishers), were posed in the root tree, at the other robot's laser, and integrated there.
+    rmw_zenoh's graph shows robot1's tf publisher from its start: its scans now wait for its own TF,
+    as a tf2 listener in robot1's namespace does. Without such a publisher, the root tree still
+    poses them (robots whose frames are prefixed in one tree)."""
+    ingest, registry = make()
+    ingest._handle_tf(tf_key("/tf"), tf(1.0, ("map", "laser", 9.0)))  # the robot without a namespace
+    ingest._handle_tf(tf_key("/tf"), tf(3.0, ("map", "laser", 9.0)))
+    node = RosNode(0, "a1b2c3", node_id=0, name="robot_state_publisher", namespace="/robot1")
+    ingest._on_tf_token(_tf_publisher(node, 1, "/robot1/tf", True))  # type: ignore[arg-type]
+    ingest._handle_scan(scan_key("/robot1/scan"), laser(2.0), None)
+    ingest._pass()
+    assert registry.submitted == []  # waiting for robot1's own TF
+    ingest._handle_tf(tf_key("/robot1/tf"), tf(1.0, ("map", "laser", 2.0)))
+    ingest._handle_tf(tf_key("/robot1/tf"), tf(3.0, ("map", "laser", 2.0)))
+    ingest._pass()
+    assert [(r, w.scan.pose.x) for _, r, w in registry.submitted] == [("robot1", 2.0)]
+
+
 def test_scans_wait_for_tf_in_order_and_are_dropped_after_the_timeout() -> None:
     ingest, registry = make(tf_timeout=0.2)
     ingest._handle_tf(tf_key("/r/tf"), tf(1.0, ("map", "laser", 0.0)))

@@ -6,7 +6,8 @@ domain, on the key expressions rmw_zenoh publishes them on (`fleetmap.ros.rmw_ze
 type hash (Humble's `TypeHashNotSupported` too). TF goes into one `TfBuffer` per namespace: messages
 on `/<ns>/tf` and `/<ns>/tf_static` into the tree of `<ns>`, `/tf` and `/tf_static` into the root
 tree. A scan on `/<ns>/<name>` is posed in the tree of `<ns>` if that namespace has published TF,
-else in that of its nearest parent namespace that has, else in the root tree: the pose of its
+else in that of its nearest parent namespace that has, else in the root tree (a namespace whose
+`tf` or `tf_static` publisher the ROS graph shows is waited for instead: its TF is coming): the pose of its
 `header.frame_id` in the fixed frame at `header.stamp`, projected onto the map's plane
 (`sensor_pose_2d`). It is then handed to `MapRegistry.submit` as the robot `<ns>` (`/` -> `_`;
 `robot` without a namespace; `<ns>_<name>` for a topic not named `scan`: `robot_id_for`), exactly
@@ -705,9 +706,14 @@ class RosScanIngest:
         msg = item.msg
         assert msg is not None  # only a refused scan has none
         with self._tf_lock:
-            tree = self._tree_for(item.namespace)
+            tree, announced = self._tree_for(item.namespace)
             if tree is None and normalize_frame(msg.frame_id) == normalize_frame(self.fixed_frame):
                 tree = TfBuffer()  # a scan in the fixed frame needs no TF: the identity (`lookup`)
+            if tree is None and announced is not None:
+                raise TfPending(
+                    f"no TF received yet on {announced}/tf or {announced}/tf_static, whose publisher the "
+                    "ROS graph shows"
+                )
             if tree is None:
                 where = f"{item.namespace}/tf" if item.namespace else "/tf"
                 raise TfPending(f"no TF received on {where}, a parent namespace's tf or /tf")
@@ -724,17 +730,36 @@ class RosScanIngest:
         )
         return self.registry.input_limits.check(WireScan(item.seq, msg.stamp, scan, item.session))
 
-    def _tree_for(self, namespace: str) -> TfBuffer | None:
+    def _tree_for(self, namespace: str) -> tuple[TfBuffer | None, str | None]:
         """The TF tree a scan of `namespace` (`/robot1/front`, or '' for the root) is posed in
         (caller holds `_tf_lock`): that of the namespace itself or, failing that, of its nearest
         parent that published TF (`/robot1/front/scan` posed by `/robot1/tf`: a robot's lasers in
-        sub-namespaces share its tree), else the root tree (None: no TF at all yet)."""
-        while namespace:
-            tree = self._trees.get(namespace)
+        sub-namespaces share its tree), else the root tree; None when there is none yet. Also None
+        when, on the way up, a namespace that has no tree yet has a `tf` or `tf_static` publisher in
+        the ROS graph (`_graph_topics`): its TF is coming, and its robot's scans wait for it (the
+        second value names that namespace, else None). A laser driver often sends scans before its
+        robot's TF publishers send anything, and a parent's or the root tree is another robot's
+        there: in a fleet where a robot without a namespace names its frames as the namespaced ones
+        do (`map`, `laser` on `/tf`), the root tree posed a namespaced robot's first scans at that
+        robot's laser, and they were integrated there."""
+        level = namespace
+        while level:
+            tree = self._trees.get(level)
             if tree is not None:
-                return tree
-            namespace = namespace.rpartition("/")[0]
-        return self._trees.get("")
+                return tree, None
+            if self._publishes_tf(level):
+                return None, level
+            level = level.rpartition("/")[0]
+        return self._trees.get(""), None
+
+    def _publishes_tf(self, namespace: str) -> bool:
+        """Whether the ROS graph shows a publisher of `namespace`'s `tf` or `tf_static` topic (the
+        caller holds `_tf_lock`: `_lock` is taken inside it, the one order they nest in)."""
+        with self._lock:
+            return any(
+                (f"{namespace}/{name}", tf_message.ROS_TYPE) in self._graph_topics
+                for name in (TF_TOPIC_NAME, TF_STATIC_TOPIC_NAME)
+            )
 
     def _submit(self, robot_id: str, wire: WireScan) -> None:
         try:
