@@ -280,7 +280,6 @@ def test_node_and_publisher_tokens() -> None:
     assert not zenoh.KeyExpr(watched).intersects(zenoh.KeyExpr(token))
     assert qos_keyexpr(graph.MAP_UPDATES_QOS) == "::,1:,:,:,,"  # RELIABLE, VOLATILE: the defaults, left empty
     assert len(entity_gid(token)) == 16 and entity_gid(token) == entity_gid(token) != entity_gid(token + "x")
-    assert len(entity_gid(token, 24)) == 24  # Humble's RMW_GID_STORAGE_SIZE
 
 
 def test_type_hash_per_distribution_matches_rosbags() -> None:

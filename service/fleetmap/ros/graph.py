@@ -38,6 +38,12 @@ RELIABILITY_RELIABLE, RELIABILITY_BEST_EFFORT = 1, 2
 DURABILITY_TRANSIENT_LOCAL, DURABILITY_VOLATILE = 1, 2
 HISTORY_KEEP_LAST, HISTORY_KEEP_ALL = 1, 2
 
+#: The bytes of an rmw_zenoh gid, in every distribution: Humble's rmw_zenoh too hard-codes 16 where
+#: Humble's RMW_GID_STORAGE_SIZE says 24 (ros2/rmw_zenoh#388), and its subscriptions read the
+#: attachment's gid as a `std::array<uint8_t, 16>`, which zenoh-cpp's deserializer refuses for a
+#: sequence of any other length: every sample with a 24-byte gid was dropped.
+GID_SIZE = 16
+
 _HASH_CHUNK = re.compile(r"^[A-Za-z0-9_]{1,128}$")
 
 
@@ -194,11 +200,11 @@ class RosNode:
         return "/".join([self._prefix(entity_id, kind), *parts])
 
 
-def entity_gid(token: str, size: int = 16) -> bytes:
-    """The gid (`size` bytes: 16 from Jazzy on, 24 in Humble) a publisher puts in each sample's
-    attachment (`source_gid`), derived from its token so that it is stable and unique. rmw_zenoh
-    hashes the token with XXH3-128; this uses BLAKE2b (hashlib: no dependency). A subscriber passes
-    it on to the application (`rmw_message_info_t.publisher_gid`), where rclcpp compares it only
-    with its own process's publishers (intra-process delivery), which a gid of fleetmap never
-    equals; the graph cache computes its own gids from the tokens."""
-    return hashlib.blake2b(token.encode(), digest_size=size).digest()
+def entity_gid(token: str) -> bytes:
+    """The gid (`GID_SIZE` bytes) a publisher puts in each sample's attachment (`source_gid`),
+    derived from its token so that it is stable and unique. rmw_zenoh hashes the token with
+    XXH3-128; this uses BLAKE2b (hashlib: no dependency). A subscriber passes it on to the
+    application (`rmw_message_info_t.publisher_gid`), where rclcpp compares it only with its own
+    process's publishers (intra-process delivery), which a gid of fleetmap never equals; the graph
+    cache computes its own gids from the tokens."""
+    return hashlib.blake2b(token.encode(), digest_size=GID_SIZE).digest()

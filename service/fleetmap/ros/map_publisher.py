@@ -110,11 +110,10 @@ DEFAULT_TOPIC = "/map"
 #: and nav2's static layer (`map_topic + "_updates"`) expect it.
 UPDATES_SUFFIX = "_updates"
 #: The ROS 2 distributions whose subscribers can be served: Jazzy (and Kilted, Rolling) key topics
-#: by the message's RIHS01 hash and have 16-byte gids; Humble's rmw_zenoh (a backport) writes
-#: `HUMBLE_TYPE_HASH` in the hash's place and has 24-byte gids (RMW_GID_STORAGE_SIZE), which its
-#: subscribers read from the attachment as a fixed-size array.
+#: by the message's RIHS01 hash; Humble's rmw_zenoh (a backport) writes `HUMBLE_TYPE_HASH` in the
+#: hash's place. Both have 16-byte gids (`entity_gid`): Humble's rmw_zenoh hard-codes 16 where
+#: Humble's RMW_GID_STORAGE_SIZE says 24.
 DISTROS = ("jazzy", "humble")
-GID_SIZES = {"jazzy": 16, "humble": 24}
 #: The largest window published, in cells: the REST API's bound for an export (16 Mi cells: a
 #: 16 MiB grid). A bigger map is not published, and says so in the log.
 MAX_GRID_CELLS = 16 * 1024 * 1024
@@ -347,7 +346,7 @@ class RosMapPublisher:
         hash_text = type_hash(self.options.distro, ros_type)
         token_key = self.node.publisher_token(entity_id, topic, dds_type_name(ros_type), hash_text, qos)
         key = topic_key(self.options.domain_id, topic, ros_type, hash_text)
-        return _Publisher(topic, key, token_key, entity_gid(token_key, GID_SIZES[self.options.distro]), qos)
+        return _Publisher(topic, key, token_key, entity_gid(token_key), qos)
 
     def start(self) -> None:
         """Declare the node's token, watch the grids' subscriptions, and start publishing (the first

@@ -100,14 +100,14 @@ def parse_topic_key(key: str) -> TopicKey | None:
 @dataclass(frozen=True)
 class Attachment:
     """rmw_zenoh's per-message metadata: the publisher's sequence number (from 1), its send time in
-    ns since the epoch, and its gid (16 bytes in Jazzy and later)."""
+    ns since the epoch, and its gid (16 bytes, Humble's rmw_zenoh too)."""
 
     sequence_number: int
     source_timestamp: int
     source_gid: bytes
 
 
-_MAX_GID = 64  # RMW_GID_STORAGE_SIZE is 16 (24 in Humble); anything far beyond is not an attachment
+_MAX_GID = 64  # rmw_zenoh's gids are 16 bytes (Humble's too); anything far beyond is not an attachment
 
 
 def _varint(data: bytes, pos: int) -> tuple[int, int]:
