@@ -22,7 +22,7 @@ from typing import Any
 import httpx
 import pytest
 from service_process import ServiceProcess
-from test_web_viewer import _ALL_TILES_OF_LAYER_JS, CHROMIUM, SHOW_MS, _wait
+from test_web_viewer import _ALL_TILES_OF_LAYER_JS, _LAYER_OPTIONS_JS, CHROMIUM, SHOW_MS, _wait
 from test_web_viewer_recovery import _CENTRED_ON_JS, _scan
 
 pytestmark = pytest.mark.skipif(
@@ -965,5 +965,25 @@ def test_tiles_the_user_brings_into_view_while_a_replaced_map_loads(
         page.wait_for_timeout(700)  # the new view's tiles are made (and were asked for at once)
     _wait(page, _ALL_TILES_OF_LAYER_JS, "hits", what="tiles of the hits layer")
     _wait(page, _TILES_OF_MAP_JS, "replaced-moved", what="every tile loaded")
+    assert refused == [], refused
+    assert not page.page_errors, page.page_errors
+
+
+def test_a_replaced_map_whose_get_fails_is_asked_for_again(
+    new_page: Callable[..., Any], shared_service: ServiceProcess
+) -> None:
+    """The map shown is replaced by one without the layer shown, and the page's GET of the new map
+    fails (the service overloaded for a moment). The page never asked again: it kept the old map's
+    layers and asked for its tiles in the old layer, each refused (422) every 3 s for good. It now
+    asks for the map again until it knows the new map's layers, and no tile is asked for meanwhile."""
+    base = shared_service.base_url
+    snapshot, page, refused = _page_of_a_map_to_replace(new_page, base, "replaced-failed", "keeps-counts-3")
+    with _map_get_held(page, "replaced-failed") as held:
+        _replace(base, "replaced-failed", snapshot)
+        _until_held(page, held, "the page's GET of the replaced map")  # after the `replaced` event
+        held.pop().fulfill(status=503, content_type="application/json", body='{"detail": "overloaded"}')
+    _wait(page, _ALL_TILES_OF_LAYER_JS, "hits", what="tiles of the hits layer")
+    _wait(page, _TILES_OF_MAP_JS, "replaced-failed", what="every tile loaded")
+    assert page.evaluate(f"() => {_LAYER_OPTIONS_JS}") == "hits,misses"
     assert refused == [], refused
     assert not page.page_errors, page.page_errors

@@ -29,7 +29,7 @@
  * new request, never a stale browser-cache hit) only when (a) it is in view, (b) its previous request
  * has finished, (c) TILE_REFRESH_MS have passed since that request began, (d) the page is visible,
  * and (e) the map's layers are known (not while a replaced or reconnected map's GET is under way:
- * the layer shown may be one it no longer keeps). So a tile that changes 50 times a second is
+ * the layer shown may be one it no longer keeps; a failed one is asked again every MAP_RETRY_MS). So a tile that changes 50 times a second is
  * fetched at most 1000 / TILE_REFRESH_MS times a second, a slow service is never asked for a tile it
  * is still rendering, and a hidden tab fetches nothing (it also closes its event stream until shown
  * again).

@@ -15,6 +15,7 @@ export const TILE_FLUSH_MS = 100;      // changed windows are applied to the til
 export const TILE_REFRESH_MS = 500;    // one tile is requested again at most this often (2 per second)
 export const TILE_RETRY_MS = 3000;     // a tile that failed to load is asked for again after this long
 export const RECONNECT_MS = 3000;      // retry delay when the browser gives up on the event stream
+export const MAP_RETRY_MS = 3000;      // a replaced map's GET that failed is asked again after this long
 export const MAX_RETRY_AFTER_MS = 60000; // the longest a refusal's Retry-After holds the stream's retry back
 // The event stream sends a `keepalive` event after every `interval` seconds without news (it says
 // how many when it opens): one that sent nothing for this many intervals died without a word (a

@@ -5,7 +5,7 @@
  * Answers for a map no longer selected are dropped (state.selectToken).
  */
 import { clearCell } from './cell.js';
-import { RECONNECT_SPREAD_MS } from './config.js';
+import { MAP_RETRY_MS, RECONNECT_SPREAD_MS } from './config.js';
 import { emptyEl, layerSelect, mapSelect, noScansEl, noScansKey, signInEl } from './dom.js';
 import { closeEvents, openEvents } from './events.js';
 import { readHash } from './hash.js';
@@ -159,6 +159,8 @@ export async function selectMap(mapId) {
  * robots are new. Forget what the page knew of the old one and load it again, as a selection does,
  * but keep the event stream (it goes on with the new map) and the map selector as they are.
  * `spread`: reload the tiles after a random delay of up to RECONNECT_SPREAD_MS (after a reconnect).
+ * A failed GET is tried again every MAP_RETRY_MS, with no tile asked for, until it answers or the
+ * page leaves the map (another selection) or reloads it again.
  */
 export async function reloadMap(refit = true, spread = false) {
   const token = state.selectToken;
@@ -173,7 +175,16 @@ export async function reloadMap(refit = true, spread = false) {
   // resolution changed (refreshInfo refits then: the same cell indices are other places).
   if (refit) state.fitted = false;
   clearCell();
-  await refreshInfo(token, true);
+  // Until the GET answers: a failed one (the service overloaded for a moment) is asked again. Given
+  // up, the page kept the old map's layers and asked for its tiles in a layer the new map may not
+  // keep, each refused (422) every TILE_RETRY_MS for good. Tiles stay held meanwhile. A newer reload,
+  // or another selection (a deleted map, a sign-in form), takes over.
+  const superseded = () => token !== state.selectToken || reload !== state.reloads;
+  while (!(await refreshInfo(token, true))) {
+    if (superseded()) return;
+    await new Promise((resolve) => { setTimeout(resolve, MAP_RETRY_MS); });
+    if (superseded()) return;
+  }
   if (state.tilesHeldBy === reload) state.tilesHeldBy = 0;
   // Every tile, after the layer selector knows the new map's layers (the layer may have changed).
   const reset = () => { if (token === state.selectToken) queueTiles({ reset: true }); };
