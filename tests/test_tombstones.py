@@ -27,7 +27,7 @@ from fleetmap.map_entry import IngestRejected
 from fleetmap.persistence import DurableStore
 from fleetmap.registry import MapRegistry, NotDurable
 from fleetmap.robot_state import MAX_SESSIONS, RobotState
-from fleetmap.tombstones import Tombstone, Tombstones
+from fleetmap.tombstones import MAX_BURIED_SESSIONS, BuriedSessions, Tombstone, Tombstones
 
 SESSION = 7_000_000_000_123  # a publisher session id (64-bit, as `ScanPublisher` makes them)
 SCANS = scans_for(sim=3, beams=61, count=12)
@@ -289,7 +289,8 @@ def test_at_most_max_tombstones_are_kept_the_oldest_forgotten(monkeypatch: pytes
     assert len(stones) == 3
     assert [stones.buried(f"m{k}", "r") for k in range(5)] == [False, False, True, True, True]
     loaded = Tombstones(
-        [Tombstone(f"m{k}", "r", 1000.0 + k, {SESSION: 4}) for k in (4, 0, 2, 1, 3)], now=1005.0
+        [Tombstone(f"m{k}", "r", 1000.0 + k, BuriedSessions([(SESSION, 4)])) for k in (4, 0, 2, 1, 3)],
+        now=1005.0,
     )
     assert [loaded.buried(f"m{k}", "r") for k in range(5)] == [False, False, True, True, True]
 
@@ -365,21 +366,57 @@ def test_a_robot_buried_again_and_again_keeps_its_most_recent_sessions_only() ->
     """A map deleted every day (a scratch map reset each night), its robot's process restarted every
     day: each burial merged the robot's sessions into its tombstone, whose time each burial renews,
     so the tombstone (memory, and its JSON in the database) grew by a session a day without end.
-    It keeps the `MAX_SESSIONS` heard most recently, as the live bookkeeping does."""
+    It keeps the `MAX_BURIED_SESSIONS` heard most recently, as many as the live bookkeeping tells
+    apart."""
     stones = Tombstones()
-    for day in range(3 * MAX_SESSIONS):
+    for day in range(3 * MAX_BURIED_SESSIONS):
         state = RobotState()
         state.accept(100, 100.0, SESSION + day)
         stones.bury("m", {"r": state}, now=1000.0 + day * 86400)
-    last = 3 * MAX_SESSIONS - 1
+    last = 3 * MAX_BURIED_SESSIONS - 1
     covered = [stones.covers("m", "r", SESSION + day, 100) is not None for day in range(last + 1)]
-    assert covered == [day > last - MAX_SESSIONS for day in range(last + 1)]
+    assert covered == [day > last - MAX_BURIED_SESSIONS for day in range(last + 1)]
     state = RobotState()  # one heard long ago, heard again: kept, as recent
-    state.accept(7, 7.0, SESSION + last - MAX_SESSIONS + 1)
+    state.accept(7, 7.0, SESSION + last - MAX_BURIED_SESSIONS + 1)
     state.accept(200, 200.0, SESSION + 1000)
     stones.bury("m", {"r": state}, now=1000.0 + (last + 1) * 86400)
-    assert stones.covers("m", "r", SESSION + last - MAX_SESSIONS + 1, 100) is not None
-    assert stones.covers("m", "r", SESSION + last - MAX_SESSIONS + 2, 100) is None  # the oldest then
+    assert stones.covers("m", "r", SESSION + last - MAX_BURIED_SESSIONS + 1, 100) is not None
+    assert stones.covers("m", "r", SESSION + last - MAX_BURIED_SESSIONS + 2, 100) is None  # the oldest then
+
+
+def test_a_deleted_maps_robot_with_more_sessions_than_its_recent_ones_stays_deleted(data: Path) -> None:
+    """More robots under one robot id than `MAX_SESSIONS` (a fleet started from one image with its
+    default id) push each other's sessions out of the robot's recent ones, which its bookkeeping
+    still tells apart (`RobotState.pushed_out`). The tombstone kept the recent ones only: after a
+    deletion and a restart, the copies of a pushed-out session's scans (its cache fetched again)
+    made the deleted map again with them (seen on the real service: ten `ScanPublisher`s under one
+    id, the map deleted, the service restarted: back with 6 scans), and the delivery query told that
+    session's flush `no_map` and nothing of its scans, which it then waited for until its timeout."""
+    from fleetmap.delivery import delivery_status
+
+    count = MAX_SESSIONS + 2
+    first = registry(data)
+    for seq in range(3):
+        for k in range(count):
+            first.submit("m", "r", wire(seq, session=SESSION + k))
+    assert wait_idle(first)
+    assert len(first.get("m").robots["r"].sessions) == MAX_SESSIONS  # two pushed out of them
+    first.delete("m", wait=True)
+    first.close()
+    again = registry(data)
+    try:
+        for k in range(count):
+            for seq in range(3):
+                refused = refusal(again, "m", "r", wire(seq, session=SESSION + k))
+                assert refused.status == 200 and refused.kind == "duplicate", (k, refused.reason)
+        assert "m" not in again.maps
+        status = delivery_status(again, "m", "r", SESSION)  # a pushed-out session's flush asks
+        assert status.status == "no_map"
+        assert [(b.session, b.last_seq) for b in status.buried] == [(SESSION, 2)]
+        listed = delivery_status(again, "m", "r").buried  # unasked, the recent ones, as on a live map
+        assert [b.session for b in listed] == [SESSION + k for k in range(2, count)]
+    finally:
+        again.close()
 
 
 @pytest.mark.parametrize("sessions", ["[1, 2]", '{"x": 1}', '{"1": "two"}', "not json", "null"])

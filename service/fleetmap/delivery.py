@@ -15,6 +15,7 @@ from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 from fleetmap.robot_state import LEDGER_HISTORY, MAX_SESSIONS, SessionSeqs, pairs
+from fleetmap.tombstones import Tombstone
 from fleetmap.wire import BuriedSession, DeliveryStatus, SessionDelivery
 
 if TYPE_CHECKING:
@@ -36,15 +37,7 @@ def delivery_status(
         entry = registry.maps.get(map_id)
         robot = None if entry is None else entry.robots.get(robot_id)
         stone = registry.tombstones.get(map_id, robot_id)
-        buried = (
-            []
-            if stone is None or stone.forgotten
-            else [
-                BuriedSession(session=key, last_seq=seq, deleted_at=stone.deleted_at)
-                for key, seq in stone.sessions.items()
-                if session is None or key == session
-            ]
-        )
+        buried = [] if stone is None or stone.forgotten else _buried(stone, session)
         if robot is None:
             # Without its map, or room on it: the sessions whose scans were refused so, if any.
             refused, last_refusal = registry.unmapped.deliveries(map_id, robot_id, session)
@@ -78,6 +71,19 @@ def delivery_status(
         sessions=_with_refusals_before([_session_delivery(*row) for row in rows], before), buried=buried,
         last_error=last_error,
     )  # fmt: skip
+
+
+def _buried(stone: Tombstone, session: int | None) -> list[BuriedSession]:
+    """The delivery query's `buried` of a deleted or replaced map's robot: the `MAX_SESSIONS` of
+    its sessions heard most recently (only `session` if given, which may be an older one), as the
+    query lists a robot's sessions on a live map. A tombstone remembers more (those its robot's
+    bookkeeping pushed out: `Tombstones.bury`), and its robot's flush asks for its own."""
+    if session is None:
+        listed = stone.sessions.pairs()[-MAX_SESSIONS:]
+    else:
+        seq = stone.sessions.get(session)
+        listed = [] if seq is None else [(session, seq)]
+    return [BuriedSession(session=key, last_seq=seq, deleted_at=stone.deleted_at) for key, seq in listed]
 
 
 def _with_refusals_before(

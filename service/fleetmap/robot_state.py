@@ -365,6 +365,7 @@ class SessionSeqs:
 #: seqs (`SessionSeqs.saved`: last_seq, stamp, first_scan_no, last_scan_no, start_lost, conflict),
 #: its ledger's counts (`SessionLedger.saved`) and its `start_stamp`.
 _PUSHED_OUT_LAYOUT = "qdqqq?" + "qqqqqq" + "d"
+_LAST_SEQ = 0  # its column that a tombstone reads (`RobotState.last_seqs`)
 _LAST_SCAN_NO, _START_LOST, _CONFLICT = 3, 4, 5  # its columns that a conflict found reads
 
 
@@ -615,6 +616,16 @@ class RobotState:
         if rec is None and (row := self.pushed_out.get(key)) is not None:
             rec = _pushed_out_seqs(row)
         return rec
+
+    def last_seqs(self) -> list[tuple[int, int]]:
+        """(session key, last seq) of every session the robot knows, least recently heard first:
+        those pushed out (`pushed_out`, least recently pushed out first, then `settling`), then the
+        recent `sessions` (what a tombstone remembers: `fleetmap.tombstones.merged_sessions`)."""
+        return [
+            *zip(self.pushed_out.keys(), self.pushed_out.columns(_LAST_SEQ), strict=True),
+            *((key, rec.last_seq) for key, rec in self.settling.items()),
+            *((key, rec.last_seq) for key, rec in self.sessions.items()),
+        ]
 
     def _keep(self, key: int, rec: SessionSeqs) -> None:
         """Session `key`'s bookkeeping `rec`, from `session_seqs` and changed since, is kept: a

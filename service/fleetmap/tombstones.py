@@ -9,7 +9,11 @@ record, they re-created the deleted map with its old scans. Likewise a robot's l
 seen again after a restart, re-created it empty.
 
 So when a map is deleted or replaced by an upload, each of its robots is buried (`Tombstones.bury`):
-the last seq of each of its publisher sessions, and when. A scan of a buried session at or below
+the last seq of each of its publisher sessions, and when: of every session its bookkeeping knows, the
+recent ones and those pushed out of them (`RobotState.pushed_out`: more robots under one id than
+`MAX_SESSIONS`), kept compactly (`BuriedSessions`). With the recent ones only, the copies of a
+pushed-out session's scans (its robot's cache fetched again after a restart of the service) made the
+deleted map again with them. A scan of a buried session at or below
 that seq is from before the deletion and is ignored as a duplicate (`covers`); a token of a buried
 robot creates no map (`buried`). A new scan, or a new session (a robot process that restarted),
 goes through as before and, with auto-create, makes a new map.
@@ -47,22 +51,63 @@ every use.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Mapping
+from array import array
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 
-from fleetmap.robot_state import MAX_SESSIONS, NO_SESSION, RobotState, session_key
+from fleetmap.robot_state import MAX_SESSIONS, MAX_SESSIONS_PUSHED_OUT, NO_SESSION, RobotState, session_key
 
 #: Days a deleted map's robots (and a map's forgotten robots) are remembered.
 TOMBSTONE_DAYS = 30.0
 #: Buried robots remembered at most, the most recently buried: about 64 MB of memory with one
-#: publisher session a stone, 100 MB with `MAX_SESSIONS` (measured, 2026-11-28). A service whose
-#: maps are deleted or whose full maps forget robots fills it at that rate, then holds it there.
+#: publisher session a stone, 70 MB with `MAX_SESSIONS`, 293 MB with `MAX_BURIED_SESSIONS`
+#: (tracemalloc, 2026-11-29; 126 MB with `MAX_SESSIONS` as a dict, before `BuriedSessions`). A
+#: service whose maps are deleted or whose full maps forget robots fills it at that rate, then holds
+#: it there.
 MAX_TOMBSTONES = 100_000
+#: Sessions a tombstone remembers at most, the most recently heard: as many as a robot's bookkeeping
+#: tells apart (`MAX_SESSIONS` recent ones and `MAX_SESSIONS_PUSHED_OUT` pushed out of them).
+MAX_BURIED_SESSIONS = MAX_SESSIONS + MAX_SESSIONS_PUSHED_OUT
 
 
 def forgotten_before(now: float) -> float:
     """Robots buried before this time are forgotten at `now`."""
     return now - TOMBSTONE_DAYS * 86400.0
+
+
+class BuriedSessions(Mapping[int, int]):
+    """A tombstone's sessions, session id -> the last seq the service had of it, least recently
+    heard first, as two arrays of machine integers: 16 bytes a session where a dict took about 100,
+    for up to `MAX_BURIED_SESSIONS` sessions of each of `MAX_TOMBSTONES` robots. Finding an id scans
+    the ids, at C speed (136 at most)."""
+
+    __slots__ = ("_keys", "_seqs")
+
+    def __init__(self, items: Iterable[tuple[int, int]] = ()) -> None:
+        """The sessions `items`, (session id, last seq) least recently heard first, each id once."""
+        listed = list(items)
+        self._keys = array("q", [key for key, _ in listed])
+        self._seqs = array("q", [seq for _, seq in listed])
+
+    def __getitem__(self, key: int) -> int:
+        try:
+            return self._seqs[self._keys.index(key)]
+        except ValueError:
+            raise KeyError(key) from None
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __repr__(self) -> str:
+        return f"BuriedSessions({self.pairs()!r})"
+
+    def pairs(self) -> list[tuple[int, int]]:
+        """(session id, last seq) of each, least recently heard first (what `items` gives, without
+        a look-up of each id)."""
+        return list(zip(self._keys, self._seqs, strict=True))
 
 
 @dataclass(frozen=True)
@@ -86,7 +131,7 @@ class Tombstone:
     map_id: str
     robot_id: str
     deleted_at: float
-    sessions: Mapping[int, int]
+    sessions: BuriedSessions
     refused_scans: frozenset[tuple[int, int]] = frozenset()
     forgotten: bool = False
     plain: tuple[int, float | None] | None = None
@@ -103,7 +148,7 @@ class Tombstone:
 
     def sessions_json(self) -> str:
         """`sessions` as stored (a JSON object of decimal strings: session ids need 64 bits)."""
-        return json.dumps({str(k): v for k, v in self.sessions.items()})
+        return json.dumps({str(k): v for k, v in self.sessions.pairs()})
 
     @classmethod
     def from_row(
@@ -128,24 +173,23 @@ class Tombstone:
         if not isinstance(stored, dict):
             raise ValueError(f"tombstone of {map_id}/{robot_id}: sessions are not a JSON object")
         try:
-            sessions = {int(k): int(v) for k, v in stored.items()}
+            sessions = BuriedSessions(zip(map(int, stored), map(int, stored.values()), strict=True))
         except TypeError:  # a seq that is a list or an object (int() of a wrong string: ValueError)
             raise ValueError(f"tombstone of {map_id}/{robot_id}: a session's seq is not a number") from None
         plain = None if plain_seq is None else (plain_seq, plain_stamp)
         return cls(map_id, robot_id, deleted_at, sessions, forgotten=bool(forgotten), plain=plain)
 
 
-def merged_sessions(old: Mapping[int, int], state: RobotState) -> dict[int, int]:
+def merged_sessions(old: BuriedSessions, state: RobotState) -> BuriedSessions:
     """The sessions of a tombstone that had `old` (least recently heard first) and buries `state`
     now: each session the higher of its two seqs, sessions without an id left out, at most the
-    `MAX_SESSIONS` heard most recently (`state`'s, in its order, count as heard last)."""
-    sessions = dict(old)
-    for key, rec in state.sessions.items():
+    `MAX_BURIED_SESSIONS` heard most recently (`state`'s, those it pushed out first, in its order,
+    count as heard last)."""
+    sessions = dict(old.pairs())
+    for key, seq in state.last_seqs():
         if key != NO_SESSION:
-            sessions[key] = max(rec.last_seq, sessions.pop(key, rec.last_seq))
-    while len(sessions) > MAX_SESSIONS:
-        del sessions[next(iter(sessions))]
-    return sessions
+            sessions[key] = max(seq, sessions.pop(key, seq))
+    return BuriedSessions(list(sessions.items())[-MAX_BURIED_SESSIONS:])
 
 
 def merged_plain(old: Tombstone | None, state: RobotState) -> tuple[int, float | None] | None:
@@ -199,7 +243,7 @@ class Tombstones:
         """Remember every robot of map `map_id`, being deleted or replaced at `now`; return the
         tombstones to store. A robot buried before (the map was deleted, made again and deleted)
         keeps the sessions it had then, and each session the higher of its two seqs, up to the
-        `MAX_SESSIONS` heard most recently: each burial renews the tombstone's time, so without
+        `MAX_BURIED_SESSIONS` heard most recently: each burial renews the tombstone's time, so without
         that bound a map deleted every day grew its robots' tombstones by a session a day for good.
         (The live bookkeeping keeps no more: an older session's scans were new to it too.)
 
@@ -208,7 +252,7 @@ class Tombstones:
         made = []
         for robot_id, state in robots.items():
             old = self._drop(map_id, robot_id)
-            sessions = merged_sessions({} if old is None else old.sessions, state)
+            sessions = merged_sessions(BuriedSessions() if old is None else old.sessions, state)
             stone = Tombstone(
                 map_id, robot_id, now, sessions, frozenset(state.refused_scans),
                 plain=merged_plain(old, state),
@@ -236,7 +280,7 @@ class Tombstones:
             return None
         old = self._drop(map_id, robot_id)
         stone = Tombstone(
-            map_id, robot_id, now, merged_sessions({} if old is None else old.sessions, state),
+            map_id, robot_id, now, merged_sessions(BuriedSessions() if old is None else old.sessions, state),
             frozenset(state.refused_scans), forgotten=True, plain=merged_plain(old, state),
         )  # fmt: skip
         self._put(stone)
