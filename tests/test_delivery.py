@@ -45,7 +45,7 @@ from fleetmap.grid_map import GridMap
 from fleetmap.map_entry import IngestRejected, Job
 from fleetmap.memory_budget import MemoryBudget, MemoryBudgetError
 from fleetmap.registry import MapRegistry
-from fleetmap.robot_state import LEDGER_HISTORY, Receipt, RobotState, SessionLedger, pairs
+from fleetmap.robot_state import LEDGER_HISTORY, MAX_SESSIONS, Receipt, RobotState, SessionLedger, pairs
 from fleetmap.scan import Scan
 from fleetmap.unmapped_refusals import MAX_UNMAPPED_ROBOTS
 from fleetmap.wire import (
@@ -1180,6 +1180,29 @@ def test_a_copy_refused_at_the_limits_of_a_scan_from_before_its_map_went_changes
     reg.reject("m", "r", "scan seq 7 refused: pose (1e+06, 0) is outside the world bound", (7, 7.0, 7))
     entry = reg.get("m")
     assert sorted(entry.robots) == ["x"] and entry.scans_rejected == 1
+    reg.close()
+
+
+def test_refusals_of_more_robots_under_one_id_than_its_recent_sessions_settle_every_flush() -> None:
+    """More robots under one robot id than `MAX_SESSIONS` (a fleet started from one image with its
+    default id), their map not created (`--no-auto-create`): the refusals of 8 sessions a robot were
+    remembered, each new one pushed the oldest out, and those robots' flushes, told a bare `no_map`,
+    waited until their timeout (seen on the real service: ten `ScanPublisher`s under one id, the
+    first two flushes took their 8 s timeout). As many are remembered as the service tells apart on a
+    map; the query lists the 8 refused most recently unless asked for one."""
+    count = MAX_SESSIONS + 2
+    reg = MapRegistry(auto_create=False)  # workers not started: nothing is integrated
+    for seq in range(3):
+        for k in range(count):
+            with pytest.raises(IngestRejected, match="no map"):
+                reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 100 + k))
+    for k in range(count):
+        status = reg.delivery_status("m", "r", 100 + k)
+        report = delivery_report(status, 100 + k, 0, 2)
+        assert (status.status, report.settled, report.refused) == ("no_map", True, 3), (k, report, status)
+        assert status.last_error is not None and "auto-create is off" in status.last_error
+    listed = reg.delivery_status("m", "r").sessions
+    assert [entry.session for entry in listed] == [100 + k for k in range(2, count)]
     reg.close()
 
 

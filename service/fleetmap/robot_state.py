@@ -31,6 +31,10 @@ MAX_SESSIONS = 8
 #: its lists, as a row of numbers (`PushedOutRows`): 105 bytes, about 14 kB for all 128 with the
 #: buffer's slack (tracemalloc; as objects, 8 of them took 13 kB).
 MAX_SESSIONS_PUSHED_OUT = 128
+#: Publisher sessions of one robot id that the service tells apart: its recent ones and those pushed
+#: out of them. What is remembered of a robot's sessions elsewhere keeps as many (a deleted map's
+#: tombstone, `fleetmap.tombstones`; its scans refused for want of a map, `fleetmap.unmapped_refusals`).
+SESSIONS_TOLD_APART = MAX_SESSIONS + MAX_SESSIONS_PUSHED_OUT
 #: A session pushed out is forgotten once the robot has accepted this many scans of its other
 #: sessions since its last (a day and more of a robot's 10 scans a second): a robot that restarts
 #: every hour does not keep 128 sessions of processes long gone in its bookkeeping and its saved

@@ -55,7 +55,7 @@ from array import array
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 
-from fleetmap.robot_state import MAX_SESSIONS, MAX_SESSIONS_PUSHED_OUT, NO_SESSION, RobotState, session_key
+from fleetmap.robot_state import NO_SESSION, SESSIONS_TOLD_APART, RobotState, session_key
 
 #: Days a deleted map's robots (and a map's forgotten robots) are remembered.
 TOMBSTONE_DAYS = 30.0
@@ -67,7 +67,7 @@ TOMBSTONE_DAYS = 30.0
 MAX_TOMBSTONES = 100_000
 #: Sessions a tombstone remembers at most, the most recently heard: as many as a robot's bookkeeping
 #: tells apart (`MAX_SESSIONS` recent ones and `MAX_SESSIONS_PUSHED_OUT` pushed out of them).
-MAX_BURIED_SESSIONS = MAX_SESSIONS + MAX_SESSIONS_PUSHED_OUT
+MAX_BURIED_SESSIONS = SESSIONS_TOLD_APART
 
 
 def forgotten_before(now: float) -> float:

@@ -14,9 +14,13 @@ So each such refusal is remembered here per (map id, robot id) and publisher ses
 rest never arrived: lost) and the last reason. Scans without a session id are not remembered: their
 seqs may start again at any time, so no range of them could be settled.
 
-Bounds: `MAX_UNMAPPED_ROBOTS` robots, each with at most `MAX_SESSIONS` sessions. Anyone who may
-publish can make up map and robot ids, so past the bound the least recently refused robot without a
-liveliness token is forgotten first (real publishers declare one), then the least recently refused.
+Bounds: `MAX_UNMAPPED_ROBOTS` robots, each with at most `SESSIONS_TOLD_APART` sessions, as many as a
+robot's bookkeeping on a map tells apart (more robots under one id than its `MAX_SESSIONS` recent
+sessions): with `MAX_SESSIONS`, the sessions of the ninth and later robots under one id pushed the
+first ones' out, and those robots' flushes, told only `no_map`, waited until their timeout. Kept as
+rows of numbers (`PushedOutRows`), with the robot's last reason. Anyone who may publish can make up
+map and robot ids, so past the bound the least recently refused robot without a liveliness token is
+forgotten first (real publishers declare one), then the least recently refused.
 
 A robot's record goes when its map is deleted or replaced, or forgets the robot (`forget`): its
 tombstone tells the rest. Not saved: after a restart the robots' caches, fetched again, are refused
@@ -26,27 +30,28 @@ and remembered again. Plain data, no locks: the registry holds its lock around e
 from __future__ import annotations
 
 from collections.abc import Container, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from fleetmap.robot_state import MAX_SESSIONS
+from fleetmap.pushed_out import PushedOutRows
+from fleetmap.robot_state import MAX_SESSIONS, SESSIONS_TOLD_APART
 from fleetmap.wire import SessionDelivery
 
 #: Robots (map id, robot id) whose refused scans are remembered, the most recent. Each holds at most
-#: MAX_SESSIONS sessions of 3 numbers and a reason (some 400 bytes each): 3.2 MB measured with
-#: 64-character ids, whatever ids senders make up.
+#: SESSIONS_TOLD_APART sessions of 3 numbers (32 bytes each with its key) and its last reason:
+#: 6.1 MB with 64-character ids, whatever ids senders make up (1.4 MB with MAX_SESSIONS each, where
+#: a session as an object with its own reason took 3.2 MB; tracemalloc, 2026-11-29).
 MAX_UNMAPPED_ROBOTS = 1024
 
 
 @dataclass(slots=True)
-class UnmappedSession:
-    """A publisher session's scans refused for want of their map, or of room on it: seqs `first_seq`
-    to `last_seq` are settled, `refused` of them refused (the rest never arrived: lost), the last
-    refusal's `reason`."""
+class UnmappedRobot:
+    """A robot's publisher sessions whose scans were refused for want of their map, or of room on it,
+    least recently refused first: per session (key: its id) the row (`first_seq`, `last_seq`,
+    `refused`): seqs `first_seq` to `last_seq` are settled, `refused` of them refused (the rest never
+    arrived: lost). `reason`: why its last counted refusal was."""
 
-    first_seq: int
-    last_seq: int
-    refused: int
-    reason: str
+    sessions: PushedOutRows = field(default_factory=lambda: PushedOutRows("qqq"))
+    reason: str = ""
 
 
 class UnmappedRefusals:
@@ -56,8 +61,8 @@ class UnmappedRefusals:
 
     def __init__(self, alive: Container[tuple[str, str]]) -> None:
         self._alive = alive
-        # (map id, robot id) -> session id -> its refused scans; least recently refused first.
-        self._robots: dict[tuple[str, str], dict[int, UnmappedSession]] = {}
+        # (map id, robot id) -> its refused scans; least recently refused first.
+        self._robots: dict[tuple[str, str], UnmappedRobot] = {}
 
     def __len__(self) -> int:
         return len(self._robots)
@@ -81,18 +86,18 @@ class UnmappedRefusals:
             return
         last = seq if last is None else last
         key = (map_id, robot_id)
-        sessions = self._robots.pop(key, {})
-        self._robots[key] = sessions  # the most recent last
+        robot = self._robots.pop(key, None) or UnmappedRobot()
+        self._robots[key] = robot  # the most recent last
         while len(self._robots) > MAX_UNMAPPED_ROBOTS:
             del self._robots[self._to_forget()]
-        counted = sessions.pop(session, None) or UnmappedSession(seq, seq - 1, 0, reason)
-        if seq > counted.last_seq:
-            counted.last_seq, counted.refused, counted.reason = last, counted.refused + count, reason
-        elif last > counted.last_seq:
-            counted.last_seq, counted.reason = last, reason
-        sessions[session] = counted
-        while len(sessions) > MAX_SESSIONS:
-            del sessions[next(iter(sessions))]
+        first_seq, last_seq, refused = robot.sessions.pop(session) or (seq, seq - 1, 0)
+        assert isinstance(last_seq, int) and isinstance(refused, int)  # (numbers put below: no None)
+        if seq > last_seq:
+            last_seq, refused, robot.reason = last, refused + count, reason
+        elif last > last_seq:
+            last_seq, robot.reason = last, reason
+        robot.sessions.put(session, (first_seq, last_seq, refused))  # the most recent last
+        robot.sessions.drop_first(max(0, len(robot.sessions) - SESSIONS_TOLD_APART))
 
     def forget(self, map_id: str, robot_ids: Iterable[str]) -> None:
         """Robots `robot_ids` of map `map_id` were buried with it (deleted or replaced) or forgotten
@@ -107,20 +112,27 @@ class UnmappedRefusals:
     def deliveries(
         self, map_id: str, robot_id: str, session: int | None = None
     ) -> tuple[list[SessionDelivery], str | None]:
-        """The delivery query's sessions of a robot without a map, or without room on it (only
-        `session` if given), each settled through its last refused seq; and the last reason any of
-        its scans was refused for (None if none was)."""
-        sessions = self._robots.get((map_id, robot_id), {})
+        """The delivery query's sessions of a robot without a map, or without room on it, each
+        settled through its last refused seq: the `MAX_SESSIONS` refused most recently, as the
+        query lists a robot's sessions on a map, or only `session` if given (one of any it
+        remembers: its flush asks); and the last reason any of its scans was refused for (None if
+        none was)."""
+        robot = self._robots.get((map_id, robot_id))
+        if robot is None:
+            return [], None
+        if session is None:
+            listed = list(robot.sessions.items())[-MAX_SESSIONS:]
+        else:
+            row = robot.sessions.get(session)
+            listed = [] if row is None else [(session, row)]
         answer = [
             SessionDelivery(
-                session=key, first_seq=u.first_seq, last_accepted=u.last_seq, settled=u.last_seq,
-                integrated=0, refused=u.refused, lost=u.last_seq - u.first_seq + 1 - u.refused,
-                duplicates=0,
+                session=key, first_seq=first_seq, last_accepted=last_seq, settled=last_seq, integrated=0,
+                refused=refused, lost=last_seq - first_seq + 1 - refused, duplicates=0,  # type: ignore[operator]
             )
-            for key, u in sessions.items()
-            if session is None or key == session
+            for key, (first_seq, last_seq, refused) in listed
         ]  # fmt: skip
-        return answer, next(reversed(sessions.values())).reason if sessions else None
+        return answer, robot.reason
 
     def _to_forget(self) -> tuple[str, str]:
         """The robot to forget past MAX_UNMAPPED_ROBOTS: the least recently refused without a
