@@ -1166,6 +1166,31 @@ def test_scans_refused_on_a_map_they_created_are_settled_once_the_map_is_removed
         reg.close()
 
 
+def test_scans_of_more_robots_under_one_id_refused_on_a_map_they_created_are_all_settled() -> None:
+    """As above, with more robots under one id than `MAX_SESSIONS`: only the robot's recent sessions
+    were remembered when the map was removed again, and the flushes of those pushed out of them
+    (`RobotState.pushed_out`), told a bare `no_map`, waited until their timeout."""
+    reg = MapRegistry(workers=1, memory_budget=MemoryBudget(1))
+    count = MAX_SESSIONS + 2
+    try:
+        futures = [  # all queued before a worker runs: one map holds every session
+            reg.submit("m", "r", WireScan(seq, float(seq), _scan(), 100 + k), wait=True)
+            for seq in range(3)
+            for k in range(count)
+        ]
+        reg.start()
+        for future in futures:
+            with pytest.raises(IngestRejected):
+                future.result(timeout=120)
+        assert wait_idle(reg, 120)
+        for k in range(count):
+            status = reg.delivery_status("m", "r", 100 + k)
+            report = delivery_report(status, 100 + k, 0, 2)
+            assert (status.status, report.settled, report.refused) == ("no_map", True, 3), (k, report, status)
+    finally:
+        reg.close()
+
+
 def test_a_copy_refused_at_the_limits_of_a_scan_from_before_its_map_went_changes_nothing() -> None:
     """A deleted map's robot's cache, fetched again, holds a scan the input limits refuse: on the
     map created again under that id it is ignored as `submit` ignores the other copies (the

@@ -906,9 +906,12 @@ class MapRegistry:
         (`_remove_unclaimed`): remember its robots' sessions for the delivery query, as scans
         refused for want of a map are (`UnmappedRefusals`). Their ledgers go with the map, and the query
         answered `no_map` and nothing of them: a flush waited for ever for scans the service had
-        refused (its memory budget used up, its queue full). Call under the registry's lock."""
+        refused (its memory budget used up, its queue full). Every session the robot knows, those
+        pushed out of its recent ones too (more robots under one id than `MAX_SESSIONS`): with the
+        recent ones only, the others' flushes, told `no_map` alone, waited until their timeout. Call
+        under the registry's lock."""
         for robot_id, robot in entry.robots.items():
-            for key, seqs in robot.sessions.items():
+            for key, seqs in robot.every_session():
                 ledger = seqs.ledger
                 if key != NO_SESSION and ledger.first_seq is not None and ledger.refused:
                     reason = robot.last_error or "refused"

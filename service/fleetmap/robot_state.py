@@ -631,6 +631,15 @@ class RobotState:
             *((key, rec.last_seq) for key, rec in self.sessions.items()),
         ]
 
+    def every_session(self) -> list[tuple[int, SessionSeqs]]:
+        """(session key, bookkeeping) of every session the robot knows, in `last_seqs`'s order: those
+        of `pushed_out` as copies of their rows, to read, not to change."""
+        return [
+            *((key, _pushed_out_seqs(row)) for key, row in self.pushed_out.items()),
+            *self.settling.items(),
+            *self.sessions.items(),
+        ]
+
     def _keep(self, key: int, rec: SessionSeqs) -> None:
         """Session `key`'s bookkeeping `rec`, from `session_seqs` and changed since, is kept: a
         pushed-out one's row is written again (the others `rec` is)."""
