@@ -419,7 +419,9 @@ def test_a_deleted_maps_robot_with_more_sessions_than_its_recent_ones_stays_dele
         again.close()
 
 
-@pytest.mark.parametrize("sessions", ["[1, 2]", '{"x": 1}', '{"1": "two"}', "not json", "null"])
+@pytest.mark.parametrize(
+    "sessions", ["[1, 2]", '{"x": 1}', '{"1": "two"}', "not json", "null", '{"1": 1e30}', f'{{"{2**64}": 1}}']
+)
 def test_a_damaged_tombstone_is_a_clear_error_at_start(data: Path, sessions: str) -> None:
     """A `tombstones` row whose sessions are not a JSON object of session ids and seqs (a damaged
     or hand-edited database) stops the start with the database's clear error, naming the file, as

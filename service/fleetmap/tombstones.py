@@ -176,6 +176,10 @@ class Tombstone:
             sessions = BuriedSessions(zip(map(int, stored), map(int, stored.values()), strict=True))
         except TypeError:  # a seq that is a list or an object (int() of a wrong string: ValueError)
             raise ValueError(f"tombstone of {map_id}/{robot_id}: a session's seq is not a number") from None
+        except OverflowError:  # past the 64 bits of `BuriedSessions`' machine integers
+            raise ValueError(
+                f"tombstone of {map_id}/{robot_id}: a session's id or seq is past 64 bits"
+            ) from None
         plain = None if plain_seq is None else (plain_seq, plain_stamp)
         return cls(map_id, robot_id, deleted_at, sessions, forgotten=bool(forgotten), plain=plain)
 
