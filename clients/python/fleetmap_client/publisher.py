@@ -824,8 +824,9 @@ class ScanPublisher:
         final once the service has settled every scan of the session it accepted: the seqs after
         the last one it accepted count as `lost`, and the report is `settled`. It returns at once,
         unsettled, when the service counts nothing of the session (none of its scans arrived, or the
-        service forgot it: an in-memory service restarted since, or the robot's 8 more recent
-        sessions), and on the timeout otherwise (None: no limit). Asks and raises as `flush` does, and
+        service forgot it: an in-memory service restarted since, the robot's 136 more recent
+        sessions, 8 and 128 pushed out of them, or a map full of robots forgot the robot), and on the
+        timeout otherwise (None: no limit). Asks and raises as `flush` does, and
         ValueError for a session id outside [0, 2**53) or a seq outside [0, 2**63), or a last_seq
         below first_seq.
         Do not call it for a session whose publisher still runs (it may deliver more): `flush` that
