@@ -15,6 +15,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import pytest
+from fleetmap_client.delivery import delivery_report
 from registry_idle import wait_idle
 from robot_process import scans_for
 
@@ -442,6 +443,42 @@ def test_a_damaged_tombstone_is_a_clear_error_at_start(data: Path, sessions: str
             store.load_tombstones()
     finally:
         store.close()
+
+
+def test_a_robot_that_waited_for_room_on_a_deleted_map_brings_it_back_neither_by_token_nor_by_cache(
+    data: Path,
+) -> None:
+    """A map full of online robots (`--max-robots-per-map 1`) has no room for robot b: its token and
+    scans are refused (429). The map is deleted; after a restart, b's token, seen again, made the
+    map again, and its cache, fetched again, put its refused scans from before the deletion in it.
+    It is buried with the map: its token makes none, its old scans are ignored, a new one makes the
+    map as any robot's does, and its flush still says its old scans were refused, not gone."""
+    from fleetmap.delivery import delivery_status
+
+    first = MapRegistry(durable=DurableStore(data), max_robots_per_map=1)
+    first.start()
+    first.set_online("m", "a", True)
+    first.submit("m", "a", wire(0))
+    assert first.set_online("m", "b", True) is not None  # no room: not on the map
+    for seq in range(3):
+        assert refusal(first, "m", "b", wire(seq, session=SESSION + 1)).status == 429
+    assert wait_idle(first)
+    first.delete("m", wait=True)
+    report = delivery_report(delivery_status(first, "m", "b", SESSION + 1), SESSION + 1, 0, 2)
+    assert (report.settled, report.refused, report.gone) == (True, 3, 0), report
+    first.close()
+    again = MapRegistry(durable=DurableStore(data), max_robots_per_map=1)
+    again.start()
+    try:
+        assert again.set_online("m", "b", True) is not None  # buried: no map made
+        for seq in range(3):
+            assert refusal(again, "m", "b", wire(seq, session=SESSION + 1)).status == 200
+        assert "m" not in again.maps
+        again.submit("m", "b", wire(3, session=SESSION + 1))  # newer than the deletion: a new map
+        assert wait_idle(again)
+        assert again.get("m").scans_integrated == 1
+    finally:
+        again.close()
 
 
 # -- robots a full map forgot -------------------------------------------------------------------------

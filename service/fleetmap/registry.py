@@ -560,9 +560,7 @@ class MapRegistry:
                 reservation.install(gmap.store)  # the last step that may refuse: nothing changed yet
             dropped = self._retire(old) if old is not None else []
             # The old map's robots' cached scans must not go into the upload either.
-            buried = self.tombstones.bury(map_id, old.robots, time.time()) if old is not None else []
-            if old is not None:
-                self.unmapped.forget(map_id, old.robots)
+            buried = self._bury(old) if old is not None else []
             entry = MapEntry(map_id, self._charged(gmap), self._next_generation())
             self._add(entry)
             if old is not None:
@@ -608,8 +606,7 @@ class MapRegistry:
                 if expect is not None:
                     expect(old)
                 dropped = self._retire(old)
-                buried = self.tombstones.bury(map_id, old.robots, time.time())
-                self.unmapped.forget(map_id, old.robots)
+                buried = self._bury(old)
                 if self.durable is not None:
                     stored = self.durable.map_deleted(map_id, buried)
         for job in dropped:
@@ -617,6 +614,25 @@ class MapRegistry:
         log.info("deleted map %s", map_id, extra={"map_id": map_id})
         if wait:
             _wait_stored(stored, f"map {map_id!r} was deleted")
+
+    def _bury(self, old: MapEntry) -> list[Tombstone]:
+        """Bury the robots of map `old`, being deleted or replaced (`Tombstones.bury`), and forget
+        their scans refused before they were on it (`UnmappedRefusals.forget`: their tombstones say
+        the rest); return the tombstones to store. Call under the registry's lock.
+
+        The robots that waited for it are buried too: those whose scans it refused for want of room
+        (or that were refused for want of it before it was made). Left out, after a restart of the
+        service the token of a robot the full map had no room for made the deleted map again, and
+        the robot's cache, fetched again, put its refused scans from before the deletion in it.
+        Their refusals stay remembered: they are what became of those scans (refused, not gone with
+        the map). Not those with only a liveliness token on it: any Zenoh peer can declare tokens
+        under made-up robot ids without bound, and their stones, a deleted map's, would push out
+        the other deleted maps' robots (`MAX_TOMBSTONES`); the robots remembered with refusals are
+        bounded (`MAX_UNMAPPED_ROBOTS`)."""
+        waiting = self.unmapped.sessions_of(old.id)
+        buried = self.tombstones.bury(old.id, old.robots, time.time(), waiting)
+        self.unmapped.forget(old.id, old.robots)
+        return buried
 
     @contextlib.contextmanager
     def _removing(self, map_id: str) -> Iterator[MapEntry | None]:

@@ -16,7 +16,10 @@ pushed-out session's scans (its robot's cache fetched again after a restart of t
 deleted map again with them. A scan of a buried session at or below
 that seq is from before the deletion and is ignored as a duplicate (`covers`); a token of a buried
 robot creates no map (`buried`). A new scan, or a new session (a robot process that restarted),
-goes through as before and, with auto-create, makes a new map.
+goes through as before and, with auto-create, makes a new map. The robots that waited for the map
+(their scans refused for want of room on it: `MapRegistry._bury`) are buried with it too: the
+token of one, seen again after a restart, made the deleted map again, and its cache put its refused
+scans from before the deletion in it.
 
 A map full of robots forgets an idle one to make room for a new one (`MapRegistry._room_for`), and
 its seq bookkeeping goes with it: without a record, the same cache fetched again (the service
@@ -184,13 +187,14 @@ class Tombstone:
         return cls(map_id, robot_id, deleted_at, sessions, forgotten=bool(forgotten), plain=plain)
 
 
-def merged_sessions(old: BuriedSessions, state: RobotState) -> BuriedSessions:
-    """The sessions of a tombstone that had `old` (least recently heard first) and buries `state`
-    now: each session the higher of its two seqs, sessions without an id left out, at most the
-    `MAX_BURIED_SESSIONS` heard most recently (`state`'s, those it pushed out first, in its order,
-    count as heard last)."""
+def merged_sessions(old: BuriedSessions, heard: Iterable[tuple[int, int]]) -> BuriedSessions:
+    """The sessions of a tombstone that had `old` (least recently heard first) and buries the
+    sessions `heard` now ((session key, last seq), least recently heard first: a robot's
+    `RobotState.last_seqs`): each session the higher of its two seqs, sessions without an id left
+    out, at most the `MAX_BURIED_SESSIONS` heard most recently (`heard`, in its order, count as
+    heard last)."""
     sessions = dict(old.pairs())
-    for key, seq in state.last_seqs():
+    for key, seq in heard:
         if key != NO_SESSION:
             sessions[key] = max(seq, sessions.pop(key, seq))
     return BuriedSessions(list(sessions.items())[-MAX_BURIED_SESSIONS:])
@@ -243,7 +247,13 @@ class Tombstones:
     def __len__(self) -> int:
         return len(self._stones)
 
-    def bury(self, map_id: str, robots: Mapping[str, RobotState], now: float) -> list[Tombstone]:
+    def bury(
+        self,
+        map_id: str,
+        robots: Mapping[str, RobotState],
+        now: float,
+        waiting: Mapping[str, Iterable[tuple[int, int]]] | None = None,
+    ) -> list[Tombstone]:
         """Remember every robot of map `map_id`, being deleted or replaced at `now`; return the
         tombstones to store. A robot buried before (the map was deleted, made again and deleted)
         keeps the sessions it had then, and each session the higher of its two seqs, up to the
@@ -252,17 +262,27 @@ class Tombstones:
         (The live bookkeeping keeps no more: an older session's scans were new to it too.)
 
         The robots the map forgot (`forget`) are buried with it: their stones become ordinary ones
-        of this time, returned too (their scans went with the map)."""
+        of this time, returned too (their scans went with the map). So are the robots `waiting`
+        for room on it, or for it (robot id -> the (session key, last seq) of its scans refused so:
+        `UnmappedRefusals.sessions_of`), not among `robots`: their scans from before are not the
+        map's, nor their tokens a reason to make it again."""
         made = []
         for robot_id, state in robots.items():
             old = self._drop(map_id, robot_id)
-            sessions = merged_sessions(BuriedSessions() if old is None else old.sessions, state)
+            sessions = merged_sessions(BuriedSessions() if old is None else old.sessions, state.last_seqs())
             stone = Tombstone(
                 map_id, robot_id, now, sessions, frozenset(state.refused_scans),
                 plain=merged_plain(old, state),
             )  # fmt: skip
             self._put(stone)
             made.append(stone)
+        for robot_id, heard in (waiting or {}).items():
+            if robot_id not in robots:
+                old = self._drop(map_id, robot_id)
+                sessions = merged_sessions(BuriedSessions() if old is None else old.sessions, heard)
+                stone = Tombstone(map_id, robot_id, now, sessions, plain=None if old is None else old.plain)
+                self._put(stone)
+                made.append(stone)
         for robot_id in sorted(self._forgotten.get(map_id, ())):  # (a copy: `_put` changes it)
             old = self._stones[map_id, robot_id]
             stone = Tombstone(map_id, robot_id, now, old.sessions, old.refused_scans, plain=old.plain)
@@ -284,7 +304,8 @@ class Tombstones:
             return None
         old = self._drop(map_id, robot_id)
         stone = Tombstone(
-            map_id, robot_id, now, merged_sessions(BuriedSessions() if old is None else old.sessions, state),
+            map_id, robot_id, now,
+            merged_sessions(BuriedSessions() if old is None else old.sessions, state.last_seqs()),
             frozenset(state.refused_scans), forgotten=True, plain=merged_plain(old, state),
         )  # fmt: skip
         self._put(stone)

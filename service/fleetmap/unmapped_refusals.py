@@ -109,6 +109,17 @@ class UnmappedRefusals:
             for robot_id in robot_ids:
                 self._robots.pop((map_id, robot_id), None)
 
+    def sessions_of(self, map_id: str) -> dict[str, list[tuple[int, int]]]:
+        """Robot id -> (session id, last seq settled) of each of its sessions refused for want of
+        map `map_id`, or of room on it, least recently refused first: the robots that waited for it
+        when it is deleted or replaced (`Tombstones.bury`). Walks every robot remembered: at most
+        MAX_UNMAPPED_ROBOTS."""
+        return {
+            robot_id: list(zip(robot.sessions.keys(), robot.sessions.columns(1), strict=True))
+            for (refused_map, robot_id), robot in self._robots.items()
+            if refused_map == map_id
+        }
+
     def deliveries(
         self, map_id: str, robot_id: str, session: int | None = None
     ) -> tuple[list[SessionDelivery], str | None]:
