@@ -364,15 +364,18 @@ def test_the_limits_tables_give_the_services_limits() -> None:
     """docs/security.md's table of input checks said a binary scan must be "version 1" long after
     the service read version 2 (the one with a session id, which `ScanPublisher` sends): a reader
     writing a robot in another language from that table would think session ids unreadable. The
-    limits the tables of security.md and protocol.md state are the code's."""
+    limits the tables of security.md and protocol.md state are the code's, and so are the sessions
+    a robot's bookkeeping remembers, as docs/clients.md gives them for `flush_ended`."""
     from fleetmap.codec import DEFAULT_LIMITS, VERSION, VERSION_SESSION
     from fleetmap.config import MapConfig
     from fleetmap.registry import QUEUE_BYTES, QUEUE_PER_ROBOT, QUEUE_TOTAL
     from fleetmap.robot_state import MAX_SESSIONS
+    from fleetmap.robot_state import MAX_SESSIONS_PUSHED_OUT as PUSHED_OUT
 
     limits = DEFAULT_LIMITS
     security = re.sub(r"\s+", " ", (REPO_DIR / "docs" / "security.md").read_text(encoding="utf-8"))
     protocol = re.sub(r"\s+", " ", (REPO_DIR / "docs" / "protocol.md").read_text(encoding="utf-8"))
+    clients = re.sub(r"\s+", " ", (REPO_DIR / "docs" / "clients.md").read_text(encoding="utf-8"))
     number = r"([0-9][0-9 ,]*[0-9]|[0-9])"
     checks = [
         (security, rf"`--world-bound` metres \(default {number}\)", limits.world_bound),
@@ -384,6 +387,12 @@ def test_the_limits_tables_give_the_services_limits() -> None:
         (protocol, rf"\| sensor pose \| .{{0,20}} ≤ {number} m \(`--world-bound`\)", limits.world_bound),
         (protocol, rf"\| trusted range \| {number} m \(`--max-range`\)", limits.max_range),
         (protocol, rf"\| sessions remembered \| {number} per robot", MAX_SESSIONS),
+        (protocol, rf"\| sessions remembered \| [^|]*, and {number} more pushed out", PUSHED_OUT),
+        # `flush_ended` of a session the robot has had too many others since: clients.md said 16
+        # (and 8 after a restart) long after the service remembered 136, saved across restarts.
+        (clients, rf"the robot has had more than {number} sessions since", MAX_SESSIONS + PUSHED_OUT),
+        (clients, rf"it remembers a robot's {number} sessions heard last", MAX_SESSIONS),
+        (clients, rf"heard last and {number} more pushed out by them", PUSHED_OUT),
         (protocol, rf"\| queued scans \| {number} per robot", QUEUE_PER_ROBOT),
         (protocol, rf"\| queued scans \| [^|]*, {number} in total", QUEUE_TOTAL),
         (protocol, rf"\| queued scans \| [^|]*, {number} MiB of decoded beams", QUEUE_BYTES / 2**20),
