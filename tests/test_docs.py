@@ -7,7 +7,9 @@
   `--option` named exists in one of them (or is one of the few of other tools, listed here);
 - every `fleetmap_*` and `process_*` metric named is exported on the service's /metrics, and every
   metric exported is in docs/api.md's table of them;
-- README.md's "Layout" table places every module of the service and the clients, and names no other.
+- README.md's "Layout" table places every module of the service and the clients, and names no other;
+- every relative link leads to a file, and its `#anchor` to a heading there; every file
+  docs/architecture.md names exists.
 """
 
 from __future__ import annotations
@@ -502,3 +504,56 @@ def test_the_map_configuration_table_gives_every_field_its_default() -> None:
             wrong.append(f"{name}: the table says {shown}, the default is {actual!r}")
     assert checked >= 6, checked  # the pattern still reads the table
     assert not wrong, "docs/api.md, PUT /maps/{map_id}:\n" + "\n".join(wrong)
+
+
+def heading_anchors(doc: Path) -> set[str]:
+    """The anchors GitHub gives the headings of `doc` (outside code blocks, whose `# comments` are
+    no headings): lower case, punctuation but `-` and `_` left out, spaces as `-`, a repeated one
+    numbered `-1`, `-2`, ..."""
+    text = re.sub(r"^```.*?^```", "", doc.read_text(encoding="utf-8"), flags=re.M | re.S)
+    anchors: set[str] = set()
+    for heading in re.findall(r"^#{1,6} (.*)$", text, re.M):
+        slug = re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+        anchor, n = slug, 0
+        while anchor in anchors:
+            n += 1
+            anchor = f"{slug}-{n}"
+        anchors.add(anchor)
+    return anchors
+
+
+def test_every_link_of_the_docs_leads_somewhere() -> None:
+    """A reader follows the pages' links ([docs/protocol.md](protocol.md#sessions)): each relative
+    link names a file of the repository, and its `#anchor`, in a Markdown file, a heading there.
+    A heading renamed leaves the links to it pointing at the top of the page, with no error."""
+    wrong = []
+    for doc in USER_DOCS:
+        text = re.sub(r"^```.*?^```", "", doc.read_text(encoding="utf-8"), flags=re.M | re.S)
+        for link in re.findall(r"\]\(([^)\s]+)\)", text):
+            if re.match(r"[a-z]+:", link):  # https:, mailto:
+                continue
+            path, _, anchor = link.partition("#")
+            target = (doc.parent / path).resolve() if path else doc
+            if not target.exists():
+                wrong.append(f"{doc.name}: ({link}): no file {path}")
+            elif anchor and target.suffix == ".md" and anchor not in heading_anchors(target):
+                wrong.append(f"{doc.name}: ({link}): no heading #{anchor} in {target.name}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_every_file_architecture_md_names_exists() -> None:
+    """docs/architecture.md is read with the code beside it: every file it names in a code span
+    (`zenoh_ingest.py`, `api/events.py`, `clients/web/`'s `tiles.js`) is one of the repository's
+    (found by the end of its path), so a module renamed or split leaves no name to search for
+    in vain."""
+    text = (REPO_DIR / "docs" / "architecture.md").read_text(encoding="utf-8")
+    files = {
+        p.relative_to(REPO_DIR).as_posix()
+        for top in ("service", "clients", "tests", "scripts")
+        for p in (REPO_DIR / top).rglob("*")
+        if p.suffix in (".py", ".js")
+    }
+    named = set(re.findall(r"`([\w/]+\.(?:py|js))`", text))
+    assert len(named) >= 50, named  # the pattern still finds the page's file names
+    missing = sorted(n for n in named if not any(f == n or f.endswith(f"/{n}") for f in files))
+    assert not missing, f"docs/architecture.md names files that do not exist: {missing}"
