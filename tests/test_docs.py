@@ -557,3 +557,19 @@ def test_every_file_architecture_md_names_exists() -> None:
     assert len(named) >= 50, named  # the pattern still finds the page's file names
     missing = sorted(n for n in named if not any(f == n or f.endswith(f"/{n}") for f in files))
     assert not missing, f"docs/architecture.md names files that do not exist: {missing}"
+
+
+def test_the_threads_table_of_architecture_md_lists_every_thread_the_service_names() -> None:
+    """docs/architecture.md's "Threads and locks" table is where a reader of a thread dump or a
+    lock nesting looks a thread up: every `fleetmap-*` thread the service's code starts has a row
+    (`fleetmap-sighup`, SIGHUP's token reload, had none)."""
+    text = (REPO_DIR / "docs" / "architecture.md").read_text(encoding="utf-8")
+    table = text.split("| thread in `fleetmap serve` |", 1)[1].split("\n\n", 1)[0]
+    listed = set(re.findall(r"^\| `(fleetmap-[\w<>-]+)`", table, re.M))
+    started = {
+        re.sub(r"\{\w+\}", "<k>", name)
+        for path in (REPO_DIR / "service" / "fleetmap").rglob("*.py")
+        for name in re.findall(r"name=f?\"(fleetmap-[\w{}-]+)\"", path.read_text(encoding="utf-8"))
+    }
+    assert len(started) >= 7, started  # the pattern still finds the threads' names
+    assert not started - listed, f"docs/architecture.md's threads table lacks {sorted(started - listed)}"
