@@ -771,6 +771,9 @@ def test_client_config_takes_one_endpoint_as_a_string_and_says_what_is_wrong(tmp
         ValueError, match=r"^'tcp/h' has no port: a Zenoh tcp endpoint is tcp/HOST:PORT, e.g. tcp/h:7447$"
     ):
         ScanPublisher("m", "r", connect="tcp/h")
+    # A port past 65535: Zenoh's "invalid port value" named no endpoint either.
+    with pytest.raises(ValueError, match=r"^'tcp/\[::1\]:70000' has port 70000: a port is at most 65535$"):
+        ScanPublisher("m", "r", connect="tcp/[::1]:70000")
     config_file = tmp_path / "robot.json5"
     config_file.write_text('{mode: "client", connect: {endpoints: ["127.0.0.1:7447"]}}')
     with pytest.raises(ValueError) as bad:

@@ -367,6 +367,12 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
         # an option the command line did not hold (the Docker image sets the variable).
         ((), {"FLEETMAP_HTTP": "localhost"}, "$FLEETMAP_HTTP='localhost': expected HOST:PORT"),
         (("--http", "127.0.0.1:99999"), {}, "argument --http: port must be at most 65535, got"),
+        # Zenoh's "invalid port value" named no endpoint, once every map was loaded.
+        (
+            ("--zenoh-listen", "tcp/127.0.0.1:99999"),
+            {},
+            "argument --zenoh-listen: 'tcp/127.0.0.1:99999' has port 99999: a port is at most 65535",
+        ),
     ]
     for args, env, message in cases:
         done = serve_error(*args, "--data-dir", str(tmp_path / "d"), **env)

@@ -115,6 +115,8 @@ def _json5_error_sentence(found: re.Match[str]) -> str:
     return sentence
 
 
+#: The largest TCP or UDP port.
+MAX_PORT = 65535
 #: Zenoh's link protocols whose address is HOST:PORT (not a path, as `unixsock-stream`'s).
 _PORTED_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})
 
@@ -124,8 +126,8 @@ def check_endpoint_form(endpoint: str) -> None:
     the Zenoh endpoint `PROTOCOL/ADDRESS` (`tcp/127.0.0.1:7447`): Zenoh takes the URL for protocol
     `tcp:` and address `/127.0.0.1:7447`, so a robot given one waited for the service for ever and
     the service failed to listen with "Unicast not supported for tcp: protocol"; or one of a
-    protocol of host and port (`tcp`, `udp`, ...) without its port. Other mistakes are Zenoh's own
-    to report (`zenoh_error_text`)."""
+    protocol of host and port (`tcp`, `udp`, ...) without its port, or with one past `MAX_PORT`.
+    Other mistakes are Zenoh's own to report (`zenoh_error_text`)."""
     protocol, slash, rest = endpoint.partition("/")
     if slash and protocol.endswith(":") and rest.startswith("/"):
         raise ValueError(
@@ -135,10 +137,18 @@ def check_endpoint_form(endpoint: str) -> None:
     # Without its port (`tcp/127.0.0.1`), Zenoh says only "invalid socket address", naming no
     # endpoint, and the service said so only once it had loaded every map.
     address = re.split(r"[?#]", rest, maxsplit=1)[0]
-    if slash and protocol in _PORTED_PROTOCOLS and not re.search(r":\d+$", address):
+    if not (slash and protocol in _PORTED_PROTOCOLS):
+        return
+    port = re.search(r":(\d+)$", address)
+    if port is None:
         raise ValueError(
             f"{shown_endpoint(endpoint)!r} has no port: a Zenoh {protocol} endpoint is {protocol}/HOST:PORT, "
             f"e.g. {protocol}/{address.rstrip(':') or '127.0.0.1'}:7447"
+        )
+    # Nor past the last port: Zenoh says only "invalid port value", as late.
+    if int(port.group(1)) > MAX_PORT:
+        raise ValueError(
+            f"{shown_endpoint(endpoint)!r} has port {int(port.group(1))}: a port is at most {MAX_PORT}"
         )
 
 
