@@ -27,6 +27,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from fleetmap_client.publisher import ScanPublisher
 from registry_idle import wait_idle
 from robot_process import scans_for
 from service_process import RobotProcess, ServiceProcess, fleetmap_command, free_port, reaped, wait_for
@@ -814,6 +815,31 @@ def test_a_robots_refusals_before_a_journaled_scan_outlive_a_crash_as_refusals(t
         assert again.status_code == 200 and again.json()["status"] == "integrated", again.text
         assert post(svc.base_url, 1, far).json()["status"] == "duplicate"  # once
         assert robot(svc.base_url) == {**before, "scans_integrated": 3}
+
+
+def test_a_robot_heard_only_by_its_liveliness_token_outlives_a_restart(tmp_path: Path) -> None:
+    """A robot whose liveliness token appeared (its process up, its laser not) but which sent no
+    scan is kept by its map, listed by `GET /maps/{id}` and given `fleetmap_robot_online`, which
+    docs/api.md says stays while the map keeps the robot, for an alert on a robot gone. Only
+    journaled scans and counts the journal lacks made a map's snapshot due, so such a robot was
+    never stored: the service's next start had forgotten it, and the alert stopped firing."""
+    data = ["--data-dir", str(tmp_path / "data")]
+
+    def quiet(url: str) -> dict | None:
+        robots: dict = stats(url, "m")["robots"]
+        return robots.get("quiet")
+
+    with ServiceProcess(tmp_path, data) as svc:
+        with ScanPublisher("m", "quiet", connect=[svc.zenoh_endpoint]) as pub:
+            assert pub.wait_connected(timeout=30)
+            wait_for(lambda: (quiet(svc.base_url) or {}).get("online"), what="the robot online")
+        wait_for(lambda: quiet(svc.base_url)["online"] is False, what="the robot offline")
+        assert svc.stop() == 0
+    with ServiceProcess(tmp_path, data) as svc:
+        robot = quiet(svc.base_url)
+        assert robot is not None and robot["online"] is False and robot["scans_integrated"] == 0
+        scrape = httpx.get(f"{svc.base_url}/metrics", timeout=10).text
+        assert 'fleetmap_robot_online{map="m",robot="quiet"} 0.0' in scrape.splitlines()
 
 
 def test_a_snapshot_that_never_switched_is_ignored(tmp_path: Path) -> None:

@@ -62,6 +62,10 @@ class MapEntry:
     #: `unjournaled()` as its last snapshot stored it (or as restored at start): a change since makes
     #: a snapshot due (`MapRegistry.snapshot_all`).
     unjournaled_stored: int = 0
+    #: The ids of the robots its last snapshot stored (or restored at start): a robot not among
+    #: them makes a snapshot due. One made by a scan comes again from the journal, but one only a
+    #: liveliness token made (`MapRegistry.set_online`) is stored by nothing else.
+    robots_stored: frozenset[str] = frozenset()
 
     def __post_init__(self) -> None:
         self.changes = ChangeFeed(start=self.generation)

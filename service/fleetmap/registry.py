@@ -271,6 +271,7 @@ class MapRegistry:
         entry.scans_rejected = counters["scans_rejected"]
         entry.robots = counters["robots"]
         entry.unjournaled_stored = entry.unjournaled()  # as stored: no snapshot due for them
+        entry.robots_stored = frozenset(entry.robots)
         started = time.monotonic()
         for replayed, (robot_id, seq, stamp, session, refused, row) in enumerate(journal):
             try:
@@ -414,6 +415,7 @@ class MapRegistry:
                 stored, unjournaled = saved[0]
                 self._stones_stored(entry, stored["forgotten"])
                 entry.unjournaled_stored = unjournaled
+                entry.robots_stored = frozenset(stored["robots"])
         except (sqlite3.Error, OSError, StorageError) as exc:
             then = "the last one: the service is stopping" if last else "retried at the next one"
             self._snapshot_log.error(
@@ -437,11 +439,16 @@ class MapRegistry:
 
     def _unsaved(self, entry: MapEntry) -> bool:
         """Whether map `entry` holds what only a snapshot stores and its last one did not: scans
-        counted without a journal row (`MapEntry.unjournaled`), or the tombstones of robots it
+        counted without a journal row (`MapEntry.unjournaled`), the tombstones of robots it
         forgot (`MapEntry.unstored_stones`; a robot's token can make a full map forget one, with no
-        scan at all)."""
+        scan at all), or robots it does not hold (`MapEntry.robots_stored`: one that only its
+        liveliness token made was forgotten by every restart, its `fleetmap_robot_online` with it)."""
         with self.lock:
-            return entry.unjournaled() != entry.unjournaled_stored or bool(entry.unstored_stones)
+            return (
+                entry.unjournaled() != entry.unjournaled_stored
+                or bool(entry.unstored_stones)
+                or not entry.robots_stored.issuperset(entry.robots)
+            )
 
     def _saved_counters(self, entry: MapEntry, taken: list[tuple[dict, int]]) -> dict:
         """What a snapshot of map `entry` stores of its robots (and appends to `taken`, with its
