@@ -343,6 +343,8 @@ def serve_error(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
 def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> None:
     not_text = tmp_path / "map-config.json"
     not_text.write_bytes(b'{"resolution": 0.1\xff}')  # not text: was a traceback and exit 1
+    broken_zenoh = tmp_path / "zenoh.json5"
+    broken_zenoh.write_text('{mode: "router",')
     cases = [
         (("--config", str(not_text)), {}, f"cannot read config {not_text}: not UTF-8 text (byte 18)"),
         (("--workers", "0"), {}, "argument --workers: must be between 1 and 64, got 0"),
@@ -373,6 +375,14 @@ def test_bad_options_and_variables_are_refused_in_one_line(tmp_path: Path) -> No
             {},
             "argument --zenoh-listen: 'tcp/127.0.0.1:99999' has port 99999: a port is at most 65535",
         ),
+        # Both were found only once the kernels were loaded and every map restored (minutes for a
+        # fleet's maps, a start for nothing), the data directory made meanwhile.
+        (
+            ("--zenoh-config", str(tmp_path / "absent.json5")),
+            {},
+            f"cannot load Zenoh config {tmp_path / 'absent.json5'}: No such file or directory",
+        ),
+        ((), {"FLEETMAP_ZENOH_CONFIG": str(broken_zenoh)}, f"cannot load Zenoh config {broken_zenoh}: "),
     ]
     for args, env, message in cases:
         done = serve_error(*args, "--data-dir", str(tmp_path / "d"), **env)

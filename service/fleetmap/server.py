@@ -85,7 +85,7 @@ from fleetmap.shown_endpoint import shown_endpoints
 from fleetmap.signal_event import HANGUPS, SignalEvent, SignalWakeups
 from fleetmap.tiles import TileStore
 from fleetmap.warm_up import compile_in_child, warm_up
-from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest
+from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest, load_config_file
 
 if TYPE_CHECKING:
     from fleetmap.ros.ingest import RosScanIngest
@@ -293,6 +293,11 @@ def _checked_options(args: argparse.Namespace) -> _StartOptions:
     Raises CliError."""
     host, port = parse_http(args.http)
     default_config = load_config(args.config)
+    if args.zenoh_config:
+        try:
+            load_config_file(args.zenoh_config)  # checked now; the ingest loads it once the maps are in
+        except IngestStartError as exc:
+            raise CliError(str(exc)) from None
     create_app, settings_cls = _load_api()
     input_limits = InputLimits(args.world_bound, args.max_beams, args.max_range)
     if args.forwarded_allow_ips is None:  # else the option (or its variable) wins, as documented

@@ -17,7 +17,7 @@ publication order.
 
 Session set-up (`start`):
 
-1. The JSON5 file `config_file`, if given, is loaded first (`zenoh.Config.from_file`).
+1. The JSON5 file `config_file`, if given, is loaded first (`load_config_file`).
 2. The constructor's arguments are applied on top of it:
    - `mode`: given explicitly, it wins. Otherwise the file's `mode` if the file sets one; otherwise
      `router` when there are no `connect` endpoints (the service IS the network: robots connect to it
@@ -280,11 +280,7 @@ class ZenohIngest:
     def build_config(self) -> zenoh.Config:
         """The session's configuration: the file, then the arguments on top (see the module doc).
         Sets `self.mode` and `self.listen`. Raises `IngestStartError`."""
-        try:
-            cfg = zenoh.Config.from_file(str(self.config_file)) if self.config_file else zenoh.Config()
-        except zenoh.ZError as exc:
-            message = f"cannot load Zenoh config {self.config_file}: {zenoh_error_text(exc)}"
-            raise IngestStartError(message) from None
+        cfg = load_config_file(self.config_file) if self.config_file else zenoh.Config()
         file_mode = json.loads(cfg.get_json("mode"))
         file_listen = json.loads(cfg.get_json("listen/endpoints"))
         # Zenoh's built-in default is a per-mode dict; only a list means "the file chose endpoints".
@@ -748,6 +744,18 @@ def _open_files_limit() -> str:
 
 #: The most characters of a key a log line quotes (as the ROS ingest's lines do).
 SHOWN_KEY_CHARS = 200
+
+
+def load_config_file(path: str | Path) -> zenoh.Config:
+    """The Zenoh configuration in file `path` (`--zenoh-config`). Raises `IngestStartError` saying
+    why it cannot be loaded: absent, unreadable, not JSON5, not a Zenoh configuration. `fleetmap
+    serve` calls it among its checks of the options too: found only when the session opened, after
+    the kernels were loaded and every map restored, a typo in the file's path or syntax took
+    minutes to tell."""
+    try:
+        return zenoh.Config.from_file(str(path))
+    except zenoh.ZError as exc:
+        raise IngestStartError(f"cannot load Zenoh config {path}: {zenoh_error_text(exc)}") from None
 
 
 def _shown_key(key: str) -> str:
