@@ -268,6 +268,22 @@ def layout_paths() -> set[Path]:
     return paths
 
 
+def test_the_alert_on_refused_scans_covers_those_counted_on_no_robot() -> None:
+    """A scan refused for want of its map (`--no-auto-create`, or the service holding the most maps
+    scans create) or of room for its robot on it (`--max-robots-per-map`) is counted on no robot:
+    no `fleetmap_scans_*` series moves, only `fleetmap_zenoh_scans_refused_total` by its reason
+    (and `fleetmap_ros_scans_refused_total` for ROS 2 robots). docs/api.md's alert on refused scans
+    named the robots' series alone, so a fleet grown past the map's robots, whose new robots' scans
+    were all refused, fired no documented alert; nothing answers a robot over Zenoh."""
+    text = API_DOC.read_text(encoding="utf-8")
+    section = text.split("What to alert on, from `/metrics` alone:", 1)[1].split("\n\n", 2)[1]
+    (row,) = [row for row in section.splitlines() if row.startswith("| scans lost, dropped, refused |")]
+    expressions = re.findall(r"`([^`]+)`", row)
+    for reason in ("no_map", "too_many_robots"):
+        for metric in ("fleetmap_zenoh_scans_refused_total", "fleetmap_ros_scans_refused_total"):
+            assert any(metric in e and reason in e for e in expressions), (metric, reason, row)
+
+
 def test_the_readme_layout_places_every_module() -> None:
     paths = layout_paths()
     missing = sorted(p.as_posix() for p in paths if not (REPO_DIR / p).exists())
