@@ -477,6 +477,35 @@ def test_zenoh_beyond_loopback_without_credentials_is_warned_of(
     assert unauthenticated_endpoints(["tcp/0.0.0.0:1"], users) == []
 
 
+def test_an_empty_user_password_dictionary_is_warned_of(tmp_path: Path) -> None:
+    """A `usrpwd` dictionary file that holds no user (empty, or blank lines only: one made before its
+    users were added) turns Zenoh's user / password authentication off rather than refusing everyone:
+    a robot without credentials opens a session. The endpoint was not warned of, as if every robot
+    needed a password."""
+    dictionary = tmp_path / "users.txt"
+    dictionary.write_text("\n  \n")
+    port = free_port()
+    service = zenoh.Config()
+    service.insert_json5("mode", '"router"')
+    service.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    service.insert_json5("scouting/multicast/enabled", "false")
+    service.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(dictionary)))
+    robot = zenoh.Config()
+    robot.insert_json5("mode", '"client"')
+    robot.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    robot.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(service), zenoh.open(robot):  # no credentials, and let in (zenoh 1.10.2)
+        pass
+    assert unauthenticated_endpoints(["tcp/0.0.0.0:1"], service) == ["tcp/0.0.0.0:1"]
+    dictionary.write_text("robot-7:correct-horse-battery-staple\n")
+    assert unauthenticated_endpoints(["tcp/0.0.0.0:1"], service) == []
+    # The service's own user alone (the robot's side of the exchange) asks every robot for one it
+    # cannot check: none is let in, nothing to warn of.
+    own_user = zenoh.Config()
+    own_user.insert_json5("transport/auth/usrpwd", '{"user": "service", "password": "a-long-password"}')
+    assert unauthenticated_endpoints(["tcp/0.0.0.0:1"], own_user) == []
+
+
 def test_in_memory_with_a_data_dir_says_the_directory_is_not_used(tmp_path: Path) -> None:
     """--in-memory with --data-dir (the Docker image sets $FLEETMAP_DATA_DIR): a warning at start
     says the directory is not used, and nothing is written there."""

@@ -168,12 +168,33 @@ def with_free_port(endpoint: str) -> str:
 _CERTIFICATE_PROTOCOLS = frozenset({"tls", "quic"})
 
 
+def asks_for_passwords(cfg: zenoh.Config) -> bool:
+    """Whether `cfg`'s user / password authentication (`transport/auth/usrpwd`) is on: the session has
+    a user of its own, or a dictionary file that holds a user. Zenoh (1.10.2) turns it off when the
+    dictionary holds none (an empty file, or blank lines only, as one made before its users were
+    added) and the session has no user: a robot without credentials is then let in. A dictionary that
+    cannot be read now counts as on: Zenoh read it when the session opened (a file it could not read
+    stopped the start), and it is not for this check to say otherwise."""
+    usrpwd = json.loads(cfg.get_json("transport/auth/usrpwd"))
+    if not isinstance(usrpwd, dict):
+        return False
+    if usrpwd.get("user"):
+        return True
+    dictionary = usrpwd.get("dictionary_file")
+    if not dictionary:
+        return False
+    try:
+        text = Path(dictionary).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return True
+    return any(line.strip() for line in text.splitlines())
+
+
 def unauthenticated_endpoints(listen: Sequence[str], cfg: zenoh.Config) -> list[str]:
     """The endpoints of `listen` that anyone beyond this host may connect to without credentials:
     not loopback, and neither TLS / QUIC with mutual TLS, in a configuration without user /
-    password authentication (`transport/auth/usrpwd`)."""
-    usrpwd = json.loads(cfg.get_json("transport/auth/usrpwd"))
-    if isinstance(usrpwd, dict) and (usrpwd.get("dictionary_file") or usrpwd.get("user")):
+    password authentication (`asks_for_passwords`: a dictionary file without users asks for none)."""
+    if asks_for_passwords(cfg):
         return []
     mtls = json.loads(cfg.get_json("transport/link/tls/enable_mtls")) is True
     found = []
