@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import json
 import os
 import shutil
 import signal
@@ -407,6 +408,59 @@ def test_an_upload_whose_token_is_revoked_while_it_arrives_changes_nothing(tmp_p
         # The same upload with a token still in force is installed.
         r = httpx.put(f"{url}/maps/copy/snapshot", content=snapshot, headers={**headers, **bearer(ADMIN)})
         assert r.status_code == 201, r.text
+
+
+def test_a_scan_or_map_whose_token_is_revoked_while_its_body_arrives_changes_nothing(
+    tmp_path: Path,
+) -> None:
+    """A request's body may follow its head by up to a minute (`--http-body-timeout`), and its token
+    be revoked meanwhile: the scan was integrated all the same (its map made), and `PUT /maps/{id}`
+    made the map, by a token no longer let in. Both are now a 401 saying so, nothing changed."""
+    tokens = write_tokens(tmp_path / "tokens.txt", f"write {WRITE}", f"admin {ADMIN}")
+    with ServiceProcess(tmp_path, ["--in-memory", "--auth-tokens", str(tokens)]) as svc:
+        assert svc.proc is not None
+        url = svc.base_url
+        revoked = threading.Event()
+
+        def body(whole: bytes) -> Iterator[bytes]:
+            yield whole[:10]
+            assert revoked.wait(30)
+            yield whole[10:]
+
+        answers: dict[str, httpx.Response] = {}
+        scan = json.dumps(SCAN).encode()
+        config = json.dumps({"resolution": 0.1}).encode()
+        json_headers = {**bearer(WRITE), "Content-Type": "application/json"}
+        requests = [
+            threading.Thread(
+                target=lambda: answers.setdefault(
+                    "scan",
+                    httpx.post(
+                        f"{url}/maps/s/scans?robot_id=r", content=body(scan), headers=json_headers, timeout=30
+                    ),
+                )
+            ),
+            threading.Thread(
+                target=lambda: answers.setdefault(
+                    "map", httpx.put(f"{url}/maps/p", content=body(config), headers=json_headers, timeout=30)
+                )
+            ),
+        ]
+        for request in requests:
+            request.start()
+        wait_for(lambda: metric(svc, "fleetmap_http_connections") >= 3, 10, what="both requests under way")
+        write_tokens(tokens, f"admin {ADMIN}")  # the write token revoked
+        svc.proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: "SIGHUP: 1 API tokens read" in svc.logs(), 10, what="the reload's log line")
+        revoked.set()
+        for request in requests:
+            request.join(30)
+        for name in ("scan", "map"):
+            answer = answers[name]
+            assert answer.status_code == 401, (name, answer.text)
+            assert "revoked" in answer.json()["detail"] and "nothing changed" in answer.json()["detail"]
+            assert answer.headers["www-authenticate"] == 'Bearer realm="fleetmap"'
+        assert httpx.get(f"{url}/maps", headers=bearer(ADMIN)).json()["maps"] == []
 
 
 class StreamReader:

@@ -12,6 +12,7 @@ from fleetmap.api.conditional import Conditions, tag_map
 from fleetmap.api.config_body import MapConfigBody, PastTodaysLimits
 from fleetmap.api.errors import ApiError, error_responses
 from fleetmap.api.http_semantics import created_status
+from fleetmap.api.revocation import refuse_if_revoked
 from fleetmap.api.state import MapId, RobotId, State
 from fleetmap.api.strict_requests import StrictRoute, limit_json_values
 from fleetmap.api_models import (
@@ -82,7 +83,9 @@ def put_map(
     exists with that `ETag` (412 otherwise, before the configurations are compared). 507: a new
     map of a configuration whose one tile needs more than the whole memory budget
     (`--max-memory`), which could never hold one: nothing is made. The answer carries the map's
-    `ETag`."""
+    `ETag`. 401, nothing made, if the request's token was revoked while its body arrived
+    (`refuse_if_revoked`)."""
+    refuse_if_revoked(request.scope)  # its body came after the token was checked
     expect = conditions.expectation(map_id)
     # What the body's validator gives (typed as a MapConfig, for the spec), None for no body.
     given = cast("MapConfig | PastTodaysLimits | None", config)
@@ -203,9 +206,11 @@ async def post_scan(
     (`--max-memory`) cannot hold: it is refused whole, counted as rejected, and the map is unchanged
     (sent again with the same seq once memory is freed, it is integrated). `If-Match`: only into the
     map of that `ETag` (412 otherwise, the scan taken nowhere, counted nowhere); `If-None-Match: *`:
-    only into a map it makes."""
+    only into a map it makes. 401, nothing changed (nor counted), if the request's token was revoked
+    while its body arrived (`refuse_if_revoked`)."""
     registry = state.registry
     body = await request.body()
+    refuse_if_revoked(request.scope)  # before it is counted on the robot, too
     content_type = request.headers.get("content-type", "")
     limits = registry.input_limits
     try:

@@ -16,10 +16,10 @@ from starlette.types import Receive, Scope, Send
 from fleetmap.api.conditional import Conditions, Preconditions, tag_map
 from fleetmap.api.errors import CLIENT_CLOSED_REQUEST, ApiError, error_responses, validation_detail
 from fleetmap.api.http_semantics import created_status, is_head
+from fleetmap.api.revocation import refuse_if_revoked
 from fleetmap.api.state import MapId, Slots, State
 from fleetmap.api.strict_requests import StrictRoute
 from fleetmap.api_models import MapInfo, map_info
-from fleetmap.auth import CHALLENGE, revoked_during
 from fleetmap.config import MapConfig
 from fleetmap.grid_map import GridMap
 from fleetmap.map_entry import MapEntry
@@ -352,7 +352,7 @@ async def install_upload(
     its spool, again once it is in, and last where the map is installed, under the registry's
     lock, so that of two uploads sent with the same ETag one is installed and the other gets 412.
     401, nothing changed, if the request's token was revoked (or demoted) while the upload was read
-    (`auth.revoked_during`)."""
+    (`refuse_if_revoked`)."""
 
     def current() -> MapEntry | None:
         with contextlib.suppress(MapNotFound):
@@ -378,9 +378,7 @@ async def install_upload(
                 # it: the reader stops at its next chunk rather than decompress on to 4 GiB into the
                 # temporary directory, for the process's exit to wait for (asyncio joins its threads).
                 stop.set()
-            revoked = revoked_during(request.scope)
-            if revoked is not None:
-                raise ApiError(401, revoked, headers={"WWW-Authenticate": CHALLENGE})
+            refuse_if_revoked(request.scope)
             read_with = config if reads_config else ANY_CONFIG
             return await _install(state, map_id, request, response, gmap, conditions, reservation, read_with)
 
