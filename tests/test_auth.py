@@ -176,6 +176,22 @@ def test_token_files_are_checked_without_echoing_tokens(tmp_path: Path) -> None:
     assert out.returncode == 2 and "cannot read token file" in out.stderr
 
 
+def test_tokens_given_where_the_token_file_goes_are_not_echoed() -> None:
+    """`--auth-tokens` (`$FLEETMAP_AUTH_TOKENS`) takes a file's path, and a value that holds the
+    tokens themselves (`write <token>`, as $FLEETMAP_TOKENS would) was quoted whole as the file that
+    could not be read: the token written to the log, journald's or the container's. Such a value is
+    now named as tokens and not quoted; a path is still quoted."""
+    for value in (f"write {WRITE}", f"  admin\t{ADMIN}; read {READ}", f"read {READ}\n"):
+        with pytest.raises(TokenFileError) as refused:
+            TokenSet.load(value)
+        message = str(refused.value)
+        assert "ROLE TOKEN" in message and "$FLEETMAP_TOKENS" in message, message
+        for secret in (READ, WRITE, ADMIN):
+            assert secret not in message
+    with pytest.raises(TokenFileError, match="cannot read token file /nowhere/writers.txt: No such file"):
+        TokenSet.load("/nowhere/writers.txt")
+
+
 def test_a_zenoh_configuration_it_cannot_read_is_reported_without_its_values(tmp_path: Path) -> None:
     """A Zenoh configuration file may hold a robot's password (`transport/auth/usrpwd`) or a private
     key inline (`*_base64`), and its errors go to the log (`fleetmap serve`) or to the robot's

@@ -77,6 +77,9 @@ GRANT_SCOPE_KEY = "fleetmap.grant"
 UNKNOWN_SESSION = "unknown token (the session cookie's token is unknown or was revoked: sign in again)"
 #: A comment: `#` at the start of a line or after whitespace (a `#` inside a token is part of it).
 _COMMENT = re.compile(r"(^|\s)#.*$")
+#: A token file's path that is no path but what such a file holds (`ROLE TOKEN`, the form of
+#: $FLEETMAP_TOKENS too), which the error about a file it cannot read would otherwise quote.
+_NAMES_TOKENS = re.compile(r"^\s*(" + "|".join(ROLES) + r")\s+\S")
 #: What a token may hold: printable ASCII, no space. A header's bytes are read as Latin-1, so any
 #: other character could never match what a client sends (the clients check theirs against it too).
 TOKEN_CHARACTERS = re.compile(r"^[\x21-\x7e]+$")
@@ -144,6 +147,11 @@ class TokenSet:
             try:
                 raw = Path(path).read_bytes()
             except OSError as exc:
+                if _NAMES_TOKENS.match(path):  # the tokens themselves, where a path goes: never quoted
+                    raise TokenFileError(
+                        "the token file's path (--auth-tokens, $FLEETMAP_AUTH_TOKENS) holds 'ROLE TOKEN' "
+                        f"lines instead (not shown): put them in a file, or in ${TOKENS_ENV}"
+                    ) from None
                 raise TokenFileError(f"cannot read token file {path}: {exc.strerror}") from None
             # Windows editors (Notepad) start UTF-8 files with a byte order mark: it was read as part
             # of the first role, and a file that looked right was refused ("expected 'ROLE TOKEN'").
