@@ -15,6 +15,8 @@ from fleetmap_client.zenoh_config import client_config
 from service_process import ServiceProcess, free_port
 
 from fleetmap.auth import TokenFileError, TokenSet, required_role
+from fleetmap.registry import MapRegistry
+from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest
 
 READ, WRITE, ADMIN = "read-token-0123456789", "write-token-0123456789", "admin-token-0123456789"
 SCAN = {"seq": 0, "pose": {"x": 0, "y": 0, "theta": 0}, "angle_min": -0.5, "angle_increment": 0.1,
@@ -226,6 +228,24 @@ def test_a_zenoh_configuration_it_cannot_read_is_reported_without_its_values(tmp
         with pytest.raises(ValueError, match="cannot read Zenoh configuration") as robot:
             client_config(zenoh_config=config)
         assert secret not in str(robot.value) and expected.get(fault, "line 5") in str(robot.value)
+
+
+def test_a_zenoh_configuration_given_where_its_file_goes_is_not_echoed() -> None:
+    """`--zenoh-config` (`$FLEETMAP_ZENOH_CONFIG`) and a robot's `zenoh_config=` take a file's path,
+    and a configuration given inline instead (as a container's environment tends to be filled) was
+    quoted whole as the file that could not be read, the robot's password in it. It is now named as
+    a configuration and not quoted; a path still is."""
+    password = "correct-horse-battery-staple"
+    inline = f'{{transport: {{auth: {{usrpwd: {{user: "svc", password: "{password}"}}}}}}}}'
+    for given in (inline, f"\n  {inline}\n", "mode: 'router'\ntransport: {}"):
+        with pytest.raises(IngestStartError) as service:
+            ZenohIngest(MapRegistry(), config_file=given).build_config()
+        with pytest.raises(ValueError) as robot:
+            client_config(zenoh_config=given)
+        for refusal in (str(service.value), str(robot.value)):
+            assert "not shown" in refusal and password not in refusal and "mode:" not in refusal, refusal
+    with pytest.raises(IngestStartError, match="cannot load Zenoh config /nowhere/service.json5: No such"):
+        ZenohIngest(MapRegistry(), config_file="/nowhere/service.json5").build_config()
 
 
 def test_a_token_holding_a_hash_is_the_whole_token(tmp_path: Path) -> None:

@@ -106,6 +106,20 @@ def zenoh_error_text(exc: BaseException) -> str:
     return " ".join(text.split())
 
 
+#: A Zenoh configuration given where its file's path goes: JSON5 itself (an object, or lines).
+_INLINE_CONFIG = re.compile(r"^\s*\{|[\r\n]")
+
+
+def shown_config_path(path: str) -> str:
+    """A Zenoh configuration file's `path` as an error names it: as it is, unless it is a
+    configuration itself, given where its path goes (as a container's environment tends to be
+    filled: `--zenoh-config`, `zenoh_config=`), which may hold a robot's password or a private key
+    (`zenoh_error_text`) and was quoted whole as the file that could not be read."""
+    if _INLINE_CONFIG.search(path):
+        return "(a configuration itself, not shown, where the path of its JSON5 file goes)"
+    return path
+
+
 def _json5_error_sentence(found: re.Match[str]) -> str:
     """The sentence of a `_ZENOH_JSON5_ERROR`; where a value is left out of it
     (`_ZENOH_QUOTED_VALUE`), with the place instead (`(line 5, column 15)`), which is that value's."""

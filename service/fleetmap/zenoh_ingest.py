@@ -119,6 +119,7 @@ from fleetmap.wire import (
     SESSION_LIMIT,
     check_endpoint_form,
     is_valid_id,
+    shown_config_path,
     zenoh_error_text,
 )
 
@@ -776,7 +777,9 @@ def load_config_file(path: str | Path) -> zenoh.Config:
     try:
         return zenoh.Config.from_file(str(path))
     except zenoh.ZError as exc:
-        raise IngestStartError(f"cannot load Zenoh config {path}: {zenoh_error_text(exc)}") from None
+        # A configuration given itself where its path goes is not shown: it may hold a password.
+        shown = shown_config_path(str(path))
+        raise IngestStartError(f"cannot load Zenoh config {shown}: {zenoh_error_text(exc)}") from None
 
 
 def _shown_key(key: str) -> str:

@@ -13,7 +13,13 @@ from typing import Any
 
 import zenoh
 
-from fleetmap.wire import CONNECT_RETRY, DEFAULT_ENDPOINT, check_endpoint_form, zenoh_error_text
+from fleetmap.wire import (
+    CONNECT_RETRY,
+    DEFAULT_ENDPOINT,
+    check_endpoint_form,
+    shown_config_path,
+    zenoh_error_text,
+)
 
 #: Where `fleetmap serve` listens by default.
 DEFAULT_CONNECT = (DEFAULT_ENDPOINT,)
@@ -67,7 +73,8 @@ def client_config(
             cfg = zenoh.Config.from_file(os.fspath(zenoh_config))
         except (zenoh.ZError, OSError) as exc:
             message = zenoh_error_text(exc)
-            raise ValueError(f"cannot read Zenoh configuration {zenoh_config}: {message}") from None
+            shown = shown_config_path(os.fspath(zenoh_config))
+            raise ValueError(f"cannot read Zenoh configuration {shown}: {message}") from None
     if config_value(cfg, "mode") is None:
         cfg.insert_json5("mode", '"client"')
     if connect is not None or not connect_endpoints(cfg):
