@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
 import httpx
@@ -489,3 +490,71 @@ def test_a_volatile_subscriber_such_as_rviz_by_default_gets_a_grid_at_once(
         assert topic.grid.published == 2 and topic.subscribers_seen == 2
     finally:
         publisher.close()
+
+
+def test_a_volatile_subscription_that_appears_while_an_earlier_ones_flag_is_cleared_still_gets_a_grid(
+    in_process: InProcess,  # noqa: F811 - the fixture
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """`_check` reads a topic's new-subscriber flags and clears them when the cache serves the
+    subscriptions they stand for; Zenoh's thread sets them. A VOLATILE subscription (RViz's) whose
+    token arrives between that read and the clear was wiped with the earlier TRANSIENT_LOCAL one's
+    flag, and got no grid until the map next changed: the hand-over is now under a lock. The
+    interleaving is forced: the token is handed to `_on_subscription` (from another thread, as
+    Zenoh's) just after `_check` has read the VOLATILE flag."""
+    registry = in_process.registry
+    publisher = RosMapPublisher(registry, in_process.router, RosMapOptions((MapTopic("a"),), period=3600.0))
+    try:
+        registry.create("a", MapConfig(resolution=0.05))[0].gmap.integrate(square_room_scan(20.0, 20.0))
+        assert publisher.publish_changed() == 1  # the first grid: the cache is current
+        topic = publisher.topics[0]
+        topic.new_subscriber = True  # an earlier TRANSIENT_LOCAL subscription, which the cache serves
+        rviz = RosNode(0, "1f", node_id=0, name="rviz").subscription_token(
+            1,
+            "/map",
+            "nav_msgs::msg::dds_::OccupancyGrid_",
+            HASH,
+            Qos(durability=DURABILITY_VOLATILE, depth=5),
+        )
+        sample = SimpleNamespace(kind=zenoh.SampleKind.PUT, key_expr=rviz)
+        # Set when Zenoh's thread waits for the lock `_check` holds, or has handed the token over.
+        arrived = threading.Event()
+        monkeypatch.setattr(
+            publisher, "_subscribers_lock", _SignallingLock(publisher._subscribers_lock, arrived)
+        )
+        zenoh_thread = threading.Thread(target=lambda: (publisher._on_subscription(sample), arrived.set()))
+
+        class Interleaved(type(topic)):  # type: ignore[misc]
+            def __getattribute__(self, name: str) -> Any:
+                value = super().__getattribute__(name)
+                if name == "new_volatile_subscriber" and not zenoh_thread.is_alive() and not arrived.is_set():
+                    # The token arrives just after `_check` read the flag, before it acts on it.
+                    zenoh_thread.start()
+                    assert arrived.wait(timeout=30)
+                return value
+
+        topic.__class__ = Interleaved
+        assert publisher.publish_changed() == 0  # the map has not changed
+        zenoh_thread.join(timeout=30)
+        topic.__class__ = Interleaved.__mro__[1]
+        assert topic.subscribers_seen == 1 and topic.new_volatile_subscriber
+        assert publisher.publish_changed(new_subscribers_only=True) == 1  # RViz's grid
+        assert topic.grid.published == 2
+    finally:
+        publisher.close()
+
+
+class _SignallingLock:
+    """A lock that sets `waiting` before it waits to be acquired: how a test knows another thread
+    is blocked on it."""
+
+    def __init__(self, lock: Any, waiting: threading.Event) -> None:
+        self._lock, self._waiting = lock, waiting
+
+    def __enter__(self) -> bool:
+        if threading.current_thread() is not threading.main_thread():
+            self._waiting.set()
+        return bool(self._lock.__enter__())
+
+    def __exit__(self, *exc: object) -> None:
+        self._lock.__exit__(*exc)

@@ -306,7 +306,8 @@ class _Topic:
     grid_at: float = 0.0  # time.monotonic() of the last full grid
     #: Updates went out since the last full grid: the grid in the cache is behind the map.
     behind: bool = False
-    #: A subscription of the grid's topic appeared since the last full grid (set by Zenoh's thread).
+    #: A subscription of the grid's topic appeared since the last full grid (set by Zenoh's thread;
+    #: this and the next under `RosMapPublisher._subscribers_lock`).
     new_subscriber: bool = False
     #: One of them is VOLATILE: it asks no cache, so only a grid sent now reaches it.
     new_volatile_subscriber: bool = False
@@ -339,6 +340,10 @@ class RosMapPublisher:
         self._subscriptions: Any = None  # the liveliness subscriber of the grids' subscriptions
         self._stop = threading.Event()
         self._wake = threading.Event()  # set by a new subscription (and by close)
+        #: Guards the topics' new-subscriber flags, which Zenoh's thread sets and `_check` reads and
+        #: clears: a subscription that appears between that read and the clear would be cleared
+        #: with the earlier ones, and a VOLATILE one then gets no grid until the map next changes.
+        self._subscribers_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._warnings = RateLimitedLog(log)
 
@@ -432,10 +437,11 @@ class RosMapPublisher:
         volatile = durability_of_token(token) == DURABILITY_VOLATILE
         for topic in self.topics:
             if topic.spec.topic == parsed[1]:
-                topic.subscribers_seen += 1
-                if volatile:
-                    topic.new_volatile_subscriber = True
-                topic.new_subscriber = True
+                with self._subscribers_lock:
+                    topic.subscribers_seen += 1
+                    if volatile:
+                        topic.new_volatile_subscriber = True
+                    topic.new_subscriber = True
                 self._wake.set()
 
     def _run(self) -> None:
@@ -497,16 +503,18 @@ class RosMapPublisher:
             self._undeclare(topic)
         if not topic.declared:
             self._declare(topic)
-        if topic.new_subscriber and (
-            topic.window is None or not (topic.behind or topic.new_volatile_subscriber)
-        ):
-            # No grid sent yet (the first goes to it too), or the cache's grid is current and the new
-            # node asks for it: it has what it needs.
-            topic.new_subscriber = topic.new_volatile_subscriber = False
+        with self._subscribers_lock:  # read and cleared as one (see `_subscribers_lock`)
+            if topic.new_subscriber and (
+                topic.window is None or not (topic.behind or topic.new_volatile_subscriber)
+            ):
+                # No grid sent yet (the first goes to it too), or the cache's grid is current and the
+                # new node asks for it: it has what it needs.
+                topic.new_subscriber = topic.new_volatile_subscriber = False
+            new_subscriber = topic.new_subscriber
         # A grid is due for a new subscription the cache does not serve (behind the map, or the
         # subscription VOLATILE), and when the cache's grid has been behind the map for long.
         since_grid = time.monotonic() - topic.grid_at
-        grid_due = topic.new_subscriber or (topic.behind and since_grid >= self.options.full_grid_interval)
+        grid_due = new_subscriber or (topic.behind and since_grid >= self.options.full_grid_interval)
         if new_subscribers_only and not grid_due:
             return 0
         # Before the cells: a scan applied while they are read advances the clock past this, so the
@@ -567,7 +575,8 @@ class RosMapPublisher:
                 parts = None
         if parts is None:
             # Cleared before the cells are read: a subscription that appears meanwhile gets another.
-            topic.new_subscriber = topic.new_volatile_subscriber = False
+            with self._subscribers_lock:
+                topic.new_subscriber = topic.new_volatile_subscriber = False
             # The window too: read after the clock, it may differ between two topics of one clock
             # (a scan that grew the map in between), and a grid is only good for its own window.
             key: tuple[Any, ...] = ("grid", spec.map_id, generation, clock, window)
