@@ -517,12 +517,17 @@ def twice_config(directory: Path) -> Path:
     ("make_args", "words"),
     [
         (lambda d: [d / "missing.log"], "missing.log"),
-        (lambda d: [scene_log(d / "s.log"), "--resolution", "0"], "resolution"),
-        (lambda d: [scene_log(d / "s.log"), "--config", d / "nope.json"], "cannot read config"),
+        # The option the user gave is named, not the configuration's field.
         (
-            lambda d: [scene_log(d / "s.log"), "--config", bad_config(d)],
-            "invalid map configuration: resolution: Input should be greater than 0.001; "
-            "tsdf.max_weight: Input should be a finite number",
+            lambda d: [scene_log(d / "s.log"), "--resolution", "0"],
+            "invalid map configuration: --resolution: Input should be greater than 0.001",
+        ),
+        (lambda d: [scene_log(d / "s.log"), "--config", d / "nope.json"], "cannot read config"),
+        # The file's fields are named with the file, an option given with it as the option.
+        (
+            lambda d: [scene_log(d / "s.log"), "--config", bad_config(d), "--no-return-range", "-1"],
+            "bad.json: Input should be greater than 0.001; --no-return-range: Input should be greater "
+            "than or equal to 0; tsdf.max_weight in ",
         ),
         (
             lambda d: [scene_log(d / "s.log"), "--config", twice_config(d)],
@@ -533,7 +538,11 @@ def twice_config(directory: Path) -> Path:
             lambda d: [scene_log(d / "s.log"), "--config", deep_config(d)],
             "deep.json: its JSON nests too deeply",
         ),
-        (lambda d: [scene_log(d / "s.log"), "--range-min", "3", "--range-max", "2"], "range"),
+        (
+            lambda d: [scene_log(d / "s.log"), "--range-min", "3", "--range-max", "2"],
+            "error: --range-max must be greater than --range-min (3.0)",
+        ),
+        (lambda d: [scene_log(d / "s.log"), "--range-min", "-1"], "error: --range-min must be finite, >= 0"),
         # Every reading below range_min: no observed cell, nothing to export.
         (lambda d: [scene_log(d / "s.log"), "--range-min", "5"], "no observed cell"),
         # One pose 2,000 km from the others: the sparse map holds it, its dense exports cannot (a
@@ -552,6 +561,7 @@ def twice_config(directory: Path) -> Path:
         "a-key-twice",
         "a-deep-config",
         "inverted-ranges",
+        "negative-range-min",
         "nothing-observed",
         "a-far-pose",
     ],  # fmt: skip

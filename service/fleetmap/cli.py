@@ -262,10 +262,12 @@ def dataset_error(path: str, exc: Exception) -> CliError:
 
 
 def load_config(path: str | None, **overrides: object) -> MapConfig:
-    """A map configuration from a JSON file (or defaults), with command-line overrides applied.
-    Raises `CliError` if the file cannot be read, is not JSON text (UTF-8, or the UTF-16 / 32 that
-    JSON allows), nests too deeply for the parser, holds a key twice in one object or does not
-    validate."""
+    """A map configuration from a JSON file (or defaults), with command-line overrides applied: each
+    keyword is a field, given by the option `--field-name` (`no_return_range`: `--no-return-range`),
+    or None when not given. Raises `CliError` if the file cannot be read, is not JSON text (UTF-8, or
+    the UTF-16 / 32 that JSON allows), nests too deeply for the parser, holds a key twice in one
+    object or does not validate; a field that does not is named as the user gave it: the option, or
+    the field in the file."""
     data: dict[str, object] = {}
     if path:
         try:
@@ -280,12 +282,26 @@ def load_config(path: str | None, **overrides: object) -> MapConfig:
             raise CliError(f"cannot read config {path}: its JSON nests too deeply") from None
         if not isinstance(data, dict):
             raise CliError(f"config {path} must hold a JSON object")
-    data.update({k: v for k, v in overrides.items() if v is not None})
+    given = {k: v for k, v in overrides.items() if v is not None}
+    data.update(given)
     try:
         return MapConfig.model_validate(data)
     except ValidationError as exc:
-        problems = [f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors()]
+        problems = [f"{_config_source(e['loc'], given, path)}: {e['msg']}" for e in exc.errors()]
         raise CliError("invalid map configuration: " + "; ".join(problems)) from None
+
+
+def _config_source(loc: tuple[int | str, ...], options: dict[str, object], path: str | None) -> str:
+    """Where the value at `loc` of a configuration came from, as the user gave it: `--resolution`
+    for an option's (`load_config`'s keyword `resolution`), `tsdf.max_weight in FILE.json` for the
+    file's. Naming the field for an option's value ("resolution: Input should be ...") left whoever
+    typed `--resolution 0` to work out that it meant the option."""
+    field = ".".join(map(str, loc))
+    if not field:
+        return "config"
+    if loc[0] in options:
+        return "--" + str(loc[0]).replace("_", "-")
+    return f"{field} in {path}" if path else field
 
 
 class _RepeatedKey(Exception):
@@ -356,12 +372,18 @@ def _build(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from fleetmap.datasets import DatasetError, load_dataset
+    from fleetmap.datasets.base import check_range_window
     from fleetmap.export import earlier_build_files, write_build_outputs
     from fleetmap.grid_map import GridMap
     from fleetmap.scan import ScanError
     from fleetmap.tiles import TileLimitError
 
     config = load_config(args.config, resolution=args.resolution, no_return_range=args.no_return_range)
+    try:
+        # Here, with the options' names, not only as the log is read (which names the fields).
+        check_range_window(args.range_min, args.range_max, names=("--range-min", "--range-max"))
+    except DatasetError as exc:
+        raise CliError(str(exc)) from None
     if not args.out.strip():
         # Path("") is the current folder: `--out "$OUT"` with OUT unset wrote the map there.
         raise CliError("--out is empty: give the folder to write the map into")

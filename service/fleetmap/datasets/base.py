@@ -52,29 +52,33 @@ def open_log(path: Path) -> Iterator[BinaryIO]:
         yield file if file.seekable() else io.BytesIO(file.read())
 
 
-def check_range_window(range_min: float | None, range_max: float | None) -> tuple[float, float | None]:
+def check_range_window(
+    range_min: float | None, range_max: float | None, names: tuple[str, str] = ("range_min", "range_max")
+) -> tuple[float, float | None]:
     """Validate caller overrides; return `(range_min, range_max)` with defaults filled in.
 
     `range_min` defaults to `DEFAULT_RANGE_MIN`; `range_max` stays None ("use the file's value") when
     not given, and +inf becomes `UNBOUNDED_RANGE_MAX`. Raises `DatasetError` for a window no `Scan`
-    would accept, so a bad override fails at load time rather than on the first scan.
+    would accept, so a bad override fails at load time rather than on the first scan; its message
+    calls the two `names` (`fleetmap build` passes its options', `--range-min` and `--range-max`).
     """
-    rmin = DEFAULT_RANGE_MIN if range_min is None else _number("range_min", range_min)
+    min_name, max_name = names
+    rmin = DEFAULT_RANGE_MIN if range_min is None else _number(min_name, range_min)
     # Below UNBOUNDED_RANGE_MAX too: no scan of any reader has a larger range_max (a .mat file's all
     # have it), so a larger range_min was taken here and every scan failed as it was built, mid-build.
     if not (math.isfinite(rmin) and 0.0 <= rmin < UNBOUNDED_RANGE_MAX):
         raise DatasetError(
-            f"range_min must be finite, >= 0 and below {UNBOUNDED_RANGE_MAX:g} m (the largest range_max "
+            f"{min_name} must be finite, >= 0 and below {UNBOUNDED_RANGE_MAX:g} m (the largest range_max "
             f"a scan of a log may have), got {range_min!r}"
         )
     if range_max is None:
         return rmin, None
-    rmax = _number("range_max", range_max)
+    rmax = _number(max_name, range_max)
     if rmax == math.inf:
         rmax = UNBOUNDED_RANGE_MAX
     if not (rmax > rmin and rmax <= UNBOUNDED_RANGE_MAX):
         raise DatasetError(
-            f"range_max must be greater than range_min ({rmin}) and at most {UNBOUNDED_RANGE_MAX:g} m "
+            f"{max_name} must be greater than {min_name} ({rmin}) and at most {UNBOUNDED_RANGE_MAX:g} m "
             f"(or inf), got {range_max!r}"
         )
     return rmin, rmax
