@@ -280,6 +280,18 @@ def test_scan_built_directly_means_what_from_angles_means() -> None:
         (lambda: Scan.from_fan((True, 0, 0), 0, 0.1, [1.0]), "pose must be a Pose2D"),
         (lambda: Scan.from_fan((0, 0, 0), np.bool_(True), 0.1, [1.0]), "angle_min must be a number"),
         (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, [np.timedelta64(2, "s")]), "ranges must be numbers or"),
+        # Beams in an order of their own: a generator of ranges was taken where one of angles was
+        # refused ("not 'generator'"), and a set of ranges in the set's order, not the beams'.
+        (
+            lambda: Scan.from_angles((0, 0, 0), (a for a in [0.0, 0.1]), [1.0, 2.0]),
+            "angles must be a sequence or an array of numbers, got generator: give a list or an array",
+        ),
+        (
+            lambda: Scan.from_angles((0, 0, 0), [0.0, 0.1], (r for r in [1.0, 2.0])),
+            "ranges must be a sequence or an array of numbers or None, got generator: give a list",
+        ),
+        (lambda: Scan.from_fan((0, 0, 0), 0, 0.1, {3.0, 1.0}), "ranges must be a sequence.*, got set"),
+        (lambda: Scan((0, 0, 0), {0.0, 0.1}, [1.0, 2.0], 0.0, 5.0), "angles must be a sequence.*, got set"),  # type: ignore[arg-type]
     ],
 )  # fmt: skip
 def test_scan_inputs_that_are_not_numbers_raise_scan_error(build: object, message: str) -> None:

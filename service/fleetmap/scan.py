@@ -8,7 +8,7 @@ builds nothing.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,11 +47,12 @@ class Scan:
     or NaN are ignored by every sensor model, and the scan's other beams are integrated.
 
     Build one with `from_fan` (ROS LaserScan style) or `from_angles`, or directly, which takes the
-    same inputs: a `Pose2D` or an (x, y, theta) sequence, sequences or arrays of numbers (stored as
-    contiguous float64; None in `ranges` means "no return", as in JSON, and a masked element of a
-    masked array of ranges an invalid reading, NaN; masked angles are refused), and numbers for the
-    range window. Anything invalid (non-finite pose or angles, mismatched lengths, a range window that is
-    not `0 <= range_min < range_max`, inputs that are not numbers) raises `ScanError`, a ValueError.
+    same inputs: a `Pose2D` or an (x, y, theta) sequence, sequences or arrays of numbers (not a
+    generator or a set: the beams' order is theirs; stored as contiguous float64; None in `ranges`
+    means "no return", as in JSON, and a masked element of a masked array of ranges an invalid
+    reading, NaN; masked angles are refused), and numbers for the range window. Anything invalid
+    (non-finite pose or angles, mismatched lengths, a range window that is not
+    `0 <= range_min < range_max`, inputs that are not numbers) raises `ScanError`, a ValueError.
     Arrays that are contiguous float64 already are kept, not copied (every decoded scan comes so):
     the checks hold for them as they were when the scan was built, so do not write into an array a
     scan holds (a NaN angle written later is no longer refused, and fails the integration).
@@ -131,7 +132,7 @@ class Scan:
         range_max: float = math.inf,
     ) -> Scan:
         """Build a scan from an explicit list of beam bearings (radians, relative to the heading),
-        one per range."""
+        one per range; both a sequence or an array (see the class doc)."""
         angles_array = _as_floats("angles", angles)
         return cls(_as_pose(pose), angles_array, ranges_to_array(ranges), range_min, range_max)
 
@@ -172,8 +173,7 @@ def ranges_to_array(ranges: Sequence[float | None] | np.ndarray) -> np.ndarray:
         return np.where(np.ma.getmaskarray(ranges), np.nan, ranges_to_array(ranges.data))
     if isinstance(ranges, np.ndarray) and ranges.dtype != object:
         return _as_floats("ranges", ranges)
-    if isinstance(ranges, str | bytes) or not isinstance(ranges, Iterable):
-        raise ScanError(f"ranges must be a sequence of numbers or None, got {type(ranges).__name__}")
+    _check_beam_values("ranges", ranges, "numbers or None")
     try:
         return np.array([math.inf if v is None else real_number(v) for v in ranges], dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an int past float's range
@@ -183,8 +183,7 @@ def ranges_to_array(ranges: Sequence[float | None] | np.ndarray) -> np.ndarray:
 def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
     """`values` as a float64 array, or `ScanError` naming `name` (not numpy's bare ValueError):
     `float_array`'s rules (no complex numbers, no text), and no mask."""
-    if isinstance(values, str | bytes):
-        raise ScanError(f"{name} must be a sequence of numbers, got {type(values).__name__}")
+    _check_beam_values(name, values, "numbers")
     if np.ma.is_masked(values):  # numpy would read the values under the mask, dropping it
         raise ScanError(f"{name} must not be masked: give every beam its value, or mask its range instead")
     if np.iscomplexobj(values):  # numpy would drop the imaginary parts, with a warning only
@@ -193,6 +192,20 @@ def _as_floats(name: str, values: Sequence[float] | np.ndarray) -> np.ndarray:
         return float_array(values)
     except (TypeError, ValueError) as exc:
         raise ScanError(f"{name} must be numbers: {exc}") from None
+
+
+def _check_beam_values(name: str, values: object, what: str) -> None:
+    """`ScanError` unless `values` (one value per beam, `what` they may be) is a sequence or an
+    array: the beams' order is theirs. A generator of ranges was taken where one of angles was
+    refused (as numpy's "not 'generator'"), and a set's order, which is not the beams', was read as
+    theirs; text is refused, whose characters are no beams."""
+    if isinstance(values, str | bytes | bytearray) or not (
+        isinstance(values, Sequence | np.ndarray) or hasattr(values, "__array__")
+    ):
+        raise ScanError(
+            f"{name} must be a sequence or an array of {what}, got {type(values).__name__}: give a list "
+            "or an array"
+        )
 
 
 def directions_finite(theta: float, angles: np.ndarray) -> bool:
