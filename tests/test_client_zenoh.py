@@ -1012,7 +1012,7 @@ def test_a_rate_too_slow_for_a_thread_to_wait_out_is_refused_before_anything_sta
         check_fleet(1, rate=1e-12, seconds=None)
     assert cli.main(["sim", "--robots", "1", "--rate", "1e-12", "--connect", nobody]) == 2
     out, err = capsys.readouterr()
-    assert "fleetmap sim: error: rate 1e-12 is too slow" in err and "robots on map" not in out, (out, err)
+    assert "fleetmap sim: error: --rate 1e-12 is too slow" in err and "robots on map" not in out, (out, err)
     check_fleet(1, rate=1e-9, seconds=None)  # a scan every 31 years: slow, but a thread can wait it
 
 
@@ -1178,15 +1178,17 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
     assert "robots on map" not in bad.stdout
     # So is a fleet that cannot run (it announced "0 robots on map ..." first).
     # --beams 0 (or past a scan's limit) let every robot's thread die with a traceback, then said
-    # "sim: 3 robots published 0 scans" and exited 0; --speed -1 came after the banner.
+    # "sim: 3 robots published 0 scans" and exited 0; --speed -1 came after the banner. Each error
+    # names the option given ("robots must be >= 1" named run_sim's parameter).
     for option, value, words in [
-        ("--robots", "0", "robots must be >= 1"),
-        ("--rate", "0", "rate must be"),
-        ("--beams", "0", "beams must be 1 to 100000, got 0"),
-        ("--beams", "100001", "beams must be 1 to 100000, got 100001"),
-        ("--speed", "-1", "speed must be finite and >= 0, got -1.0"),
+        ("--robots", "0", "error: --robots must be >= 1"),
+        ("--rate", "0", "error: --rate must be"),
+        ("--seconds", "-1", "error: --seconds must be >= 0, got -1.0"),
+        ("--beams", "0", "error: --beams must be 1 to 100000, got 0"),
+        ("--beams", "100001", "--beams must be 1 to 100000, got 100001"),
+        ("--speed", "-1", "error: --speed must be finite and >= 0, got -1.0"),
         # numpy's "expected non-negative integer", after the banner, naming no option.
-        ("--seed", "-1", "seed must be >= 0, got -1"),
+        ("--seed", "-1", "error: --seed must be >= 0, got -1"),
     ]:
         args = [*command, "--map", "m", option, value]
         bad = subprocess.run(args, capture_output=True, text=True, timeout=60)

@@ -190,6 +190,9 @@ def run_replay(args: argparse.Namespace) -> int:
 
 #: Seconds `fleetmap sim` waits, once its robots stop, for the service to confirm their scans.
 SIM_CONFIRM_TIMEOUT = 10.0
+#: `check_fleet`'s parameters as `fleetmap sim`'s options, which its errors name: "robots must be
+#: >= 1" left whoever typed `--robots 0` to work out which value was meant.
+SIM_OPTIONS = {name: f"--{name}" for name in ("robots", "rate", "seconds", "beams", "speed", "seed")}
 
 
 def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
@@ -238,7 +241,7 @@ def run_sim_command(args: argparse.Namespace) -> int:
     # As fleetmap serve does; before check_fleet, which counts the file descriptors robots need.
     raise_descriptor_limit()
     try:  # before the line announcing the robots
-        check_fleet(args.robots, args.rate, args.seconds, args.beams, args.speed, args.seed)
+        check_fleet(args.robots, args.rate, args.seconds, args.beams, args.speed, args.seed, SIM_OPTIONS)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     # Before the line announcing the robots too, named as options (run_sim checks them again).

@@ -23,7 +23,7 @@ import os
 import resource
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from fleetmap.scan import MAX_BEAMS
@@ -138,29 +138,40 @@ def check_capacity(robots: int) -> None:
 
 
 def check_fleet(
-    robots: int, rate: float, seconds: float | None, beams: int = 1081, speed: float = 1.0, seed: int = 1
+    robots: int,
+    rate: float,
+    seconds: float | None,
+    beams: int = 1081,
+    speed: float = 1.0,
+    seed: int = 1,
+    names: Mapping[str, str] | None = None,
 ) -> None:
     """ValueError unless `run_sim` can run `robots` robots at `rate` scans/s for `seconds` (None: no
     limit), with lidars of `beams` beams, at `speed` m/s, on the floor plan of `seed`: at least one
     robot, a finite rate above 0 whose period a thread can wait (`check_period`), seconds not
     negative, 1 to `MAX_BEAMS` beams (a scan holds no more), a finite speed not negative, a seed not
     negative (numpy's generators take no other), and no more robots than this process's file
-    descriptors and threads allow (`check_capacity`)."""
+    descriptors and threads allow (`check_capacity`). The message calls each value by its name in
+    `names` (`fleetmap sim` passes its options', `SIM_OPTIONS`), else by its parameter's."""
+
+    def name(parameter: str) -> str:
+        return (names or {}).get(parameter, parameter)
+
     if seed < 0:  # was numpy's "expected non-negative integer", from inside the floor plan's draw
-        raise ValueError(f"seed must be >= 0, got {seed}")
+        raise ValueError(f"{name('seed')} must be >= 0, got {seed}")
     if robots < 1:
-        raise ValueError(f"robots must be >= 1, got {robots}")
+        raise ValueError(f"{name('robots')} must be >= 1, got {robots}")
     if not (rate > 0.0 and rate != float("inf")):
-        raise ValueError(f"rate must be a finite number > 0, got {rate}")
-    check_period(1.0 / rate, f"rate {rate:g}")
+        raise ValueError(f"{name('rate')} must be a finite number > 0, got {rate}")
+    check_period(1.0 / rate, f"{name('rate')} {rate:g}")
     if seconds is not None and not seconds >= 0.0:
-        raise ValueError(f"seconds must be >= 0, got {seconds}")
+        raise ValueError(f"{name('seconds')} must be >= 0, got {seconds}")
     # Checked here, not at the first scan: --beams 0 let every robot thread die with a traceback,
     # and the command still printed its summary ("published 0 scans") and exited 0.
     if not 1 <= beams <= MAX_BEAMS:
-        raise ValueError(f"beams must be 1 to {MAX_BEAMS}, got {beams}")
+        raise ValueError(f"{name('beams')} must be 1 to {MAX_BEAMS}, got {beams}")
     if not (math.isfinite(speed) and speed >= 0.0):
-        raise ValueError(f"speed must be finite and >= 0, got {speed}")
+        raise ValueError(f"{name('speed')} must be finite and >= 0, got {speed}")
     check_capacity(robots)
 
 
