@@ -25,9 +25,11 @@ import pytest
 import zenoh
 import zenoh.ext
 from fleetmap_client import cli
+from fleetmap_client import sim as sim_module
+from fleetmap_client.delivery import DeliveryReport
 from fleetmap_client.publisher import RECONNECT_HOLD_MAX_S, PublisherClosed, ScanPublisher
 from fleetmap_client.replay import NOMINAL_SCAN_RATE, ReplayError, replay
-from fleetmap_client.sim import SimError, check_fleet, robot_ids, run_sim
+from fleetmap_client.sim import SimError, SimResult, check_fleet, robot_ids, run_sim
 from fleetmap_client.zenoh_config import client_config, config_value, connect_endpoints
 from service_process import DATASETS_DIR, FreezableProxy, ServiceProcess, free_port, reaped, wait_for
 
@@ -1510,3 +1512,23 @@ print(loaded)
     done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[True]", done.stdout + done.stderr
+
+
+def test_sim_says_a_single_confirmed_scan_in_the_singular(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A sim that published one scan said "sim: all 1 scans confirmed integrated", where its other
+    lines count as `counted` does ("1 robot published 1 scan")."""
+    report = DeliveryReport(1, 1, 1, integrated=1, settled=True, answered=True, counted_from=1)
+    result = SimResult(["sim-1"], published={"sim-1": 1}, seconds=0.5, delivery={"sim-1": report})
+    monkeypatch.setattr(sim_module, "run_sim", lambda *args, **kwargs: result)
+    assert cli.main(["sim", "--robots", "1", "--seconds", "0.5", "--connect", "tcp/127.0.0.1:1"]) == 0
+    out = capsys.readouterr().out
+    assert "sim: 1 robot published 1 scan in 0.5 s\n" in out, out
+    assert "sim: the 1 scan confirmed integrated\n" in out, out
+    result.published["sim-1"] = 2
+    result.delivery["sim-1"] = DeliveryReport(
+        2, 1, 2, integrated=2, settled=True, answered=True, counted_from=1
+    )
+    assert cli.main(["sim", "--robots", "1", "--seconds", "0.5", "--connect", "tcp/127.0.0.1:1"]) == 0
+    assert "sim: all 2 scans confirmed integrated\n" in capsys.readouterr().out

@@ -337,7 +337,8 @@ def run_sim_command(args: argparse.Namespace) -> int:
     if not result.confirmed:
         return 1
     integrated = sum(report.integrated for report in result.delivery.values())
-    print(f"sim: all {integrated} scans confirmed integrated")
+    # "all 1 scans" was said of a sim that published one (`--seconds` shorter than a period).
+    print(f"sim: {'the 1 scan' if integrated == 1 else f'all {integrated} scans'} confirmed integrated")
     return 0
 
 
