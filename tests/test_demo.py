@@ -176,8 +176,9 @@ def test_demo_whose_service_cannot_start_says_so_without_blaming_the_ports(tmp_p
         (["--robots", "0"], "--robots must be at least 1, got 0"),
         (["--rate", "0"], "--rate must be a number of scans per second above 0, got 0"),
         # Slower than a thread can wait for: the service started, and the robots' first waits
-        # ended the demo in SimError's traceback ("OverflowError: timestamp out of range").
-        (["--rate", "1e-300"], "rate 1e-300 is too slow: a scan every 1e+300 s"),
+        # ended the demo in SimError's traceback ("OverflowError: timestamp out of range"). Named as
+        # the option, as the demo's other errors are.
+        (["--rate", "1e-300"], "--rate 1e-300 is too slow: a scan every 1e+300 s"),
         (["--seconds", "-1"], "--seconds must be 0 or more (or left out: until Ctrl-C), got -1"),
         (["--map", "bad/id"], "--map 'bad/id' is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -"),
         # Started the service, waited for it, then ended in numpy's traceback.

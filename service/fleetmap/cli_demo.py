@@ -211,6 +211,7 @@ def _check_fleet(args: argparse.Namespace) -> None:
         raise CliError(f"--seed must be 0 or more, got {args.seed}")
     if not is_valid_id(args.map):
         raise CliError(f"--map {args.map!r} is no map id: use 1 to 64 characters from A-Z a-z 0-9 _ -")
+    from fleetmap_client.cli import SIM_OPTIONS
     from fleetmap_client.sim import check_fleet
 
     from fleetmap.http_limits import raise_descriptor_limit
@@ -220,7 +221,8 @@ def _check_fleet(args: argparse.Namespace) -> None:
     # once the service was up.
     raise_descriptor_limit()
     try:
-        check_fleet(args.robots, args.rate, args.seconds, seed=args.seed)
+        # Named as the demo's options, which are the sim's ("rate 1e-300 is too slow" named none).
+        check_fleet(args.robots, args.rate, args.seconds, seed=args.seed, names=SIM_OPTIONS)
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
