@@ -1177,7 +1177,8 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
     assert sim.returncode == 0 and "sim: 1 robot published" in out, out
     bad = subprocess.run([*command, "--map", "bad id"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "map id 'bad id' must match" in bad.stderr
-    assert "robots on map" not in bad.stdout
+    # " on map ", not "robots on map": the command runs 1 robot, whose banner says "1 robot on map".
+    assert " on map " not in bad.stdout
     # So is a fleet that cannot run (it announced "0 robots on map ..." first).
     # --beams 0 (or past a scan's limit) let every robot's thread die with a traceback, then said
     # "sim: 3 robots published 0 scans" and exited 0; --speed -1 came after the banner. Each error
@@ -1191,12 +1192,15 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
         ("--speed", "-1", "error: --speed must be finite and >= 0, got -1.0"),
         # numpy's "expected non-negative integer", after the banner, naming no option.
         ("--seed", "-1", "error: --seed must be >= 0, got -1"),
+        # Refused once the banner had announced the robots, as their sessions opened.
+        ("--connect", "foo", "'foo']: Endpoints must be of the form"),
+        ("--zenoh-config", str(tmp_path / "none.json5"), "error: cannot read Zenoh configuration"),
     ]:
         args = [*command, "--map", "m", option, value]
         bad = subprocess.run(args, capture_output=True, text=True, timeout=60)
         assert bad.returncode == 2 and words in bad.stderr, bad.stderr
         assert "Traceback" not in bad.stderr, bad.stderr
-        assert "robots on map" not in bad.stdout, bad.stdout
+        assert " on map " not in bad.stdout, bad.stdout
 
 
 def test_sim_command_stops_on_sigterm_as_on_ctrl_c(router: Router) -> None:

@@ -235,6 +235,7 @@ def run_sim_command(args: argparse.Namespace) -> int:
     from fleetmap.wire import ID_PATTERN, is_valid_id
 
     from .sim import SERVICE_SESSIONS, SimError, check_fleet, run_sim
+    from .zenoh_config import client_config
 
     if not is_valid_id(args.map_id):
         raise CliError(f"map id {args.map_id!r} must match {ID_PATTERN}")
@@ -242,6 +243,9 @@ def run_sim_command(args: argparse.Namespace) -> int:
     raise_descriptor_limit()
     try:  # before the line announcing the robots
         check_fleet(args.robots, args.rate, args.seconds, args.beams, args.speed, args.seed, SIM_OPTIONS)
+        # The robots' Zenoh configuration too (an endpoint `foo`, a missing --zenoh-config file): it
+        # was refused only as their sessions opened, after the banner had announced them.
+        client_config(args.connect, args.zenoh_config)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     # Before the line announcing the robots too, named as options (run_sim checks them again).
