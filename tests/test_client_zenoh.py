@@ -1009,7 +1009,7 @@ def test_a_rate_too_slow_for_a_thread_to_wait_out_is_refused_before_anything_sta
         replay(log, "m", "r", rate=1e-300, connect=[nobody], wait_timeout=0.5, progress=False)
     command = ["replay", str(log), "--map", "m", "--robot", "r", "--connect", nobody, "--quiet"]
     assert cli.main([*command, "--rate", "1e-300"]) == 2
-    assert "fleetmap replay: error: rate 1e-300 is too slow" in capsys.readouterr().err
+    assert "fleetmap replay: error: --rate 1e-300 is too slow" in capsys.readouterr().err
     with pytest.raises(ValueError, match=r"rate 1e-12 is too slow: a scan every 1e\+12 s"):
         check_fleet(1, rate=1e-12, seconds=None)
     assert cli.main(["sim", "--robots", "1", "--rate", "1e-12", "--connect", nobody]) == 2
@@ -1536,3 +1536,18 @@ def test_sim_says_a_single_confirmed_scan_in_the_singular(
     )
     assert cli.main(["sim", "--robots", "1", "--seconds", "0.5", "--connect", "tcp/127.0.0.1:1"]) == 0
     assert "sim: all 2 scans confirmed integrated\n" in capsys.readouterr().out
+
+
+def test_replay_errors_name_the_option_given(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`fleetmap replay`'s errors named `replay`'s parameters ("limit must be >= 0" for --limit -1,
+    "wait_timeout must be ..." for --wait-timeout -1), as `fleetmap sim`'s once did: each names the
+    option given now, and is said before the log is read."""
+    command = ["replay", str(tmp_path / "absent.log"), "--map", "m", "--robot", "r", "--quiet"]
+    for option, value, says in [
+        ("--rate", "-1", "--rate must be a finite number >= 0, got -1.0"),
+        ("--limit", "-1", "--limit must be >= 0, got -1"),
+        ("--wait-timeout", "-1", "--wait-timeout must be a number of seconds >= 0, got -1.0"),
+        ("--confirm-timeout", "nan", "--confirm-timeout must be a number of seconds >= 0, got nan"),
+    ]:
+        assert cli.main([*command, option, value]) == 2
+        assert f"fleetmap replay: error: {says}\n" == capsys.readouterr().err

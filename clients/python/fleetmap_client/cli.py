@@ -90,6 +90,13 @@ def _waiting(pub: ScanPublisher) -> None:
 # -- replay ----------------------------------------------------------------------------------------
 
 
+#: `check_replay`'s parameters as `fleetmap replay`'s options, which its errors name ("limit must be
+#: >= 0" was said of `--limit -1`).
+REPLAY_OPTIONS = {
+    name: "--" + name.replace("_", "-") for name in ("rate", "limit", "wait_timeout", "confirm_timeout")
+}
+
+
 def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "replay",
@@ -133,8 +140,12 @@ def add_replay_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
 def run_replay(args: argparse.Namespace) -> int:
     from fleetmap.datasets import DatasetError, load_dataset
 
-    from .replay import ReplayError, replay
+    from .replay import ReplayError, check_replay, replay
 
+    try:  # before the log is read (the Intel log takes a second), named as the options
+        check_replay(args.rate, args.limit, args.wait_timeout, args.confirm_timeout, REPLAY_OPTIONS)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     try:
         dataset = load_dataset(args.dataset)
     except (DatasetError, OSError) as exc:

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -71,6 +71,32 @@ class ReplayResult:
         return self.delivery is not None and self.delivery.confirmed
 
 
+def check_replay(
+    rate: float,
+    limit: int | None,
+    wait_timeout: float | None,
+    confirm_timeout: float | None,
+    names: Mapping[str, str] | None = None,
+) -> float:
+    """The seconds between two scans at `rate` (0: as fast as possible); ValueError unless `replay`
+    takes these arguments: a finite `rate` not negative whose period a thread can wait
+    (`check_period`), a `limit` not negative, timeouts not negative nor NaN (`check_timeouts`). The
+    message calls each value by its name in `names` (`fleetmap replay` passes its options',
+    `REPLAY_OPTIONS`), else by its parameter's."""
+
+    def name(parameter: str) -> str:
+        return (names or {}).get(parameter, parameter)
+
+    if not (rate >= 0.0 and rate != float("inf")):
+        raise ValueError(f"{name('rate')} must be a finite number >= 0, got {rate}")
+    period = 0.0 if rate == 0.0 else 1.0 / (NOMINAL_SCAN_RATE * rate)
+    check_period(period, f"{name('rate')} {rate:g}")
+    if limit is not None and limit < 0:
+        raise ValueError(f"{name('limit')} must be >= 0, got {limit}")
+    check_timeouts(**{name("wait_timeout"): wait_timeout, name("confirm_timeout"): confirm_timeout})
+    return period
+
+
 def replay(
     dataset: Dataset | str | Path,
     map_id: str,
@@ -99,13 +125,7 @@ def replay(
     service's answer was an error, or not a fleetmap one). Raises ValueError for
     bad arguments, `DatasetError` / `OSError` for an unreadable dataset path.
     """
-    if not (rate >= 0.0 and rate != float("inf")):
-        raise ValueError(f"rate must be a finite number >= 0, got {rate}")
-    period = 0.0 if rate == 0.0 else 1.0 / (NOMINAL_SCAN_RATE * rate)
-    check_period(period, f"rate {rate:g}")
-    if limit is not None and limit < 0:
-        raise ValueError(f"limit must be >= 0, got {limit}")
-    check_timeouts(wait_timeout=wait_timeout, confirm_timeout=confirm_timeout)
+    period = check_replay(rate, limit, wait_timeout, confirm_timeout)
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     count = len(ds) if limit is None else min(limit, len(ds))
     with ScanPublisher(
