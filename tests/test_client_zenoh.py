@@ -1551,3 +1551,13 @@ def test_replay_errors_name_the_option_given(tmp_path: Path, capsys: pytest.Capt
     ]:
         assert cli.main([*command, option, value]) == 2
         assert f"fleetmap replay: error: {says}\n" == capsys.readouterr().err
+
+
+def test_sim_announces_infinite_seconds_as_no_limit(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--seconds inf` is no limit to `run_sim`, as leaving it out is; the banner said "for inf s"."""
+    result = SimResult(["sim-1"])
+    monkeypatch.setattr(sim_module, "run_sim", lambda *args, **kwargs: result)
+    assert cli.main(["sim", "--robots", "1", "--seconds", "inf", "--connect", "tcp/127.0.0.1:1"]) == 0
+    assert "sim: 1 robot on map 'sim' (floor plan seed 1), 10 scans/s each\n" in capsys.readouterr().out

@@ -289,7 +289,9 @@ def run_sim_command(args: argparse.Namespace) -> int:
     print(
         f"sim: {counted(args.robots, 'robot')} on map {args.map_id!r} "
         f"(floor plan seed {args.seed}), "
-        f"{args.rate:g} scans/s each" + (f" for {args.seconds:g} s" if args.seconds is not None else ""),
+        f"{args.rate:g} scans/s each"
+        # inf is no limit to run_sim, as None: "for inf s" announced one.
+        + (f" for {args.seconds:g} s" if args.seconds not in (None, float("inf")) else ""),
         flush=True,
     )
     try:
