@@ -1272,20 +1272,22 @@ def test_a_stop_does_not_wait_for_the_periodic_pass_to_snapshot_every_map_one_by
     assert durable is not None
     closing = threading.Thread(target=registry.close, daemon=True)  # (daemon: a hung one is left behind)
     begun: list[bool] = []  # per periodic snapshot: whether the service was stopping as it began
+    # Set once the stop is under way: the first snapshot appends to `begun` before it starts the
+    # stop, so a wait for `begun` alone could join the closing thread before it was started.
+    stopping = threading.Event()
     snapshot = durable.snapshot
 
     def observed(*args: Any, **kwargs: Any) -> int:
         begun.append(durable._stop.is_set())
         if len(begun) == 1:  # the pass is under way: the service stops now
             closing.start()
+            stopping.set()
             assert durable._stop.wait(60)
         return snapshot(*args, **kwargs)
 
     durable.snapshot = observed  # type: ignore[method-assign]
     registry.start()
-    waited = time.monotonic() + 60
-    while not begun and time.monotonic() < waited:
-        time.sleep(0.01)
+    assert stopping.wait(60), "no periodic snapshot began"
     closing.join(120)
     assert not closing.is_alive()
     assert begun == [False], f"the pass went on through {begun.count(True)} more maps after the stop began"
