@@ -13,6 +13,7 @@ import threading
 import time
 import tracemalloc
 from collections.abc import Iterator
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -1295,6 +1296,39 @@ def test_a_stop_does_not_wait_for_the_periodic_pass_to_snapshot_every_map_one_by
         assert conn.execute("SELECT COUNT(*) FROM journal").fetchone()[0] == 0  # the last pass took them
     with _restarted(tmp_path) as again:
         assert all(again.get(map_id).robots["r"].scans_integrated == 1 for map_id in maps)
+
+
+def test_snapshot_failures_held_back_at_the_stop_are_counted_in_the_log(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A full disk fails every map's last snapshot at a stop. The log wrote the first failure and
+    held the others back, to be counted by the next line of their kind, which never came: the
+    service stopped. Now the stop's pass ends with one line counting them."""
+    registry = MapRegistry(durable=DurableStore(tmp_path))
+    registry.start()
+    maps = ["a", "b", "c", "d"]
+    for map_id in maps:
+        registry.create(map_id, MapConfig(tile_size=16), wait=True)
+        registry.submit(map_id, "r", WireScan(0, 0.0, scan_at(0.0)), wait=True).result(10)  # type: ignore[union-attr]
+    durable = registry.durable
+    assert durable is not None
+
+    def full_disk(*args: Any, **kwargs: Any) -> Future[int]:
+        failed: Future[int] = Future()
+        failed.set_exception(sqlite3.OperationalError("database or disk is full"))
+        return failed
+
+    monkeypatch.setattr(durable, "last_snapshot", full_disk)
+    caplog.set_level(logging.ERROR, logger="fleetmap.registry")
+    registry.close()
+    lines = [r.getMessage() for r in caplog.records]
+    failed = [line for line in lines if line.startswith("snapshot of map ")]
+    assert len(failed) == 1, lines  # the first one; the others within the log's interval are held
+    counted = [line for line in lines if "more snapshot failures at the stop" in line]
+    assert counted == [
+        f"{len(maps) - 1} more snapshot failures at the stop, not logged one by one (the last line names "
+        "the maps storage failed to keep)"
+    ], lines
 
 
 def test_the_restore_logs_totals_not_a_line_per_map(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:

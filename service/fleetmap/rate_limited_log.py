@@ -83,3 +83,16 @@ class RateLimitedLog:
             suffix += f" ({other} other messages suppressed)"
         self.logger.log(level, "%s%s", message, suffix, exc_info=exc_info, extra=fields)
         return True
+
+    def log_held(self, level: int, message: str) -> int:
+        """Log one line counting every message held back since its category's last line (and those
+        the overall budget held), `message` with `%d` for their number, and forget them; return how
+        many (no line for none). For a caller about to end: the next line of a category says what
+        it held back, and at a stop no next line comes."""
+        with self._lock:
+            held = sum(self._held.values()) + self._other
+            self._held.clear()
+            self._other = 0
+        if held:
+            self.logger.log(level, message, held)
+        return held

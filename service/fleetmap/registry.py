@@ -403,6 +403,14 @@ class MapRegistry:
             self.durable.last_snapshots_queued()
         for entry, saved, written in taken:
             self._snapshot_stored(entry, saved, written.result, last)
+        if last:
+            # The failures held back after the first one's line (a full disk fails every map's):
+            # no later line of theirs would count them, the service is stopping.
+            self._snapshot_log.log_held(
+                logging.ERROR,
+                "%d more snapshot failures at the stop, not logged one by one (the last line names the "
+                "maps storage failed to keep)",
+            )
 
     def _snapshot_stored(
         self, entry: MapEntry, saved: list[tuple[dict, int]], written: Callable[[], int], last: bool
