@@ -1190,6 +1190,8 @@ def test_sim_command_stops_on_ctrl_c_with_its_summary_and_checks_the_map_id_firs
         ("--beams", "0", "error: --beams must be 1 to 100000, got 0"),
         ("--beams", "100001", "--beams must be 1 to 100000, got 100001"),
         ("--speed", "-1", "error: --speed must be finite and >= 0, got -1.0"),
+        # Taken, and each step re-planned routes for a second: "this machine is too busy".
+        ("--speed", "1e9", "error: --speed must be at most 50 m/s, got 1e+09"),
         # numpy's "expected non-negative integer", after the banner, naming no option.
         ("--seed", "-1", "error: --seed must be >= 0, got -1"),
         # Refused once the banner had announced the robots, as their sessions opened.

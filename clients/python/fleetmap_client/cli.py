@@ -226,7 +226,7 @@ def add_sim_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
         "--seconds", type=float, default=None, metavar="T", help="stop after T s (default: Ctrl-C)"
     )
     p.add_argument("--beams", type=int, default=1081, help="beams per scan over 270 degrees (default 1081)")
-    p.add_argument("--speed", type=float, default=1.0, help="robot speed, m/s (default 1)")
+    p.add_argument("--speed", type=float, default=1.0, help="robot speed, m/s, 0 to 50 (default 1)")
     p.add_argument(
         "--confirm-timeout", type=float, default=SIM_CONFIRM_TIMEOUT, metavar="S",
         help="once the robots stop, wait at most S seconds in all for the service to confirm every "

@@ -88,6 +88,10 @@ FDS_PER_ROBOT = 2
 #: Threads one simulated robot runs: its own (`_drive`), its publisher's opener and link watcher,
 #: and its publisher's fetch watcher (measured: 3.1 per robot with 100).
 THREADS_PER_ROBOT = 3
+#: The fastest a simulated robot drives, m/s (180 km/h: past any robot that maps with a 2D laser).
+#: Its route is planned again as it reaches each end, so a step's work grows with the metres it
+#: drives: at 1e9 m/s a step took a second of re-planning, and the sim blamed a busy machine.
+MAX_SPEED = 50.0
 #: Robots a fleetmap service takes at once by default: Zenoh's `transport/unicast/max_sessions`.
 SERVICE_SESSIONS = 1000
 #: File descriptors and threads the rest of the process needs (interpreter, Zenoh's runtime).
@@ -149,7 +153,7 @@ def check_fleet(
     """ValueError unless `run_sim` can run `robots` robots at `rate` scans/s for `seconds` (None: no
     limit), with lidars of `beams` beams, at `speed` m/s, on the floor plan of `seed`: at least one
     robot, a finite rate above 0 whose period a thread can wait (`check_period`), seconds not
-    negative, 1 to `MAX_BEAMS` beams (a scan holds no more), a finite speed not negative, a seed not
+    negative, 1 to `MAX_BEAMS` beams (a scan holds no more), a speed from 0 to `MAX_SPEED`, a seed not
     negative (numpy's generators take no other), and no more robots than this process's file
     descriptors and threads allow (`check_capacity`). The message calls each value by its name in
     `names` (`fleetmap sim` passes its options', `SIM_OPTIONS`), else by its parameter's."""
@@ -172,6 +176,8 @@ def check_fleet(
         raise ValueError(f"{name('beams')} must be 1 to {MAX_BEAMS}, got {beams}")
     if not (math.isfinite(speed) and speed >= 0.0):
         raise ValueError(f"{name('speed')} must be finite and >= 0, got {speed}")
+    if speed > MAX_SPEED:
+        raise ValueError(f"{name('speed')} must be at most {MAX_SPEED:g} m/s, got {speed:g}")
     check_capacity(robots)
 
 
