@@ -27,7 +27,7 @@ from fleetmap.registry import MapRegistry
 from fleetmap.scan import Scan
 from fleetmap.sim import SimulatedRobot, generate_floorplan
 from fleetmap.wire import ALIVE_KEY, BINARY_ENCODING, JSON_ENCODING, SCAN_KEY
-from fleetmap.zenoh_ingest import IngestStartError, ZenohIngest, parse_key
+from fleetmap.zenoh_ingest import DEFAULT_LISTEN, IngestStartError, ZenohIngest, parse_key
 
 PLAN = generate_floorplan(3, width_m=16.0, height_m=12.0)
 
@@ -613,6 +613,32 @@ def test_config_file_is_loaded_first_and_arguments_apply_on_top(registry: MapReg
         session.close()
     finally:
         overridden.close()
+
+
+def test_a_config_file_giving_listen_endpoints_per_mode_listens_on_the_services_modes(
+    registry: MapRegistry, tmp_path: Path
+) -> None:
+    """Zenoh takes `listen/endpoints` per mode too (`{router: [...], peer: [...]}`), and the
+    service took such a file's endpoints for none: it listened on loopback alone, robots on other
+    machines kept out without a word. It listens on its mode's now; a file that repeats Zenoh's own
+    default per-mode endpoints still gets the service's default, loopback."""
+    router_port, peer_port = free_port(), free_port()
+    path = tmp_path / "zenoh.json5"
+    path.write_text(
+        f"{{ listen: {{ endpoints: {{ router: ['tcp/127.0.0.1:{router_port}'], "
+        f"peer: ['tcp/127.0.0.1:{peer_port}'] }} }} }}"
+    )
+    as_router = ZenohIngest(registry, config_file=path)
+    as_router.build_config()
+    assert as_router.mode == "router" and as_router.listen == [f"tcp/127.0.0.1:{router_port}"]
+    as_peer = ZenohIngest(registry, config_file=path, mode="peer")
+    as_peer.build_config()
+    assert as_peer.listen == [f"tcp/127.0.0.1:{peer_port}"]
+    default = json.loads(zenoh.Config().get_json("listen/endpoints"))
+    path.write_text(json.dumps({"listen": {"endpoints": default}}))
+    copied = ZenohIngest(registry, config_file=path)
+    copied.build_config()
+    assert copied.listen == list(DEFAULT_LISTEN)
 
 
 @pytest.mark.parametrize(

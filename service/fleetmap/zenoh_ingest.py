@@ -26,7 +26,8 @@ Session set-up (`start`):
      router(s) reach it over the connect link), or as a `client` of that network's router when it
      does not listen.
    - `listen`: given (a list, possibly empty), it wins. `None` keeps the file's endpoints if the file
-     sets them, else `DEFAULT_LISTEN` without `connect` endpoints and no listening with them.
+     sets them (a list, or per mode: the service's mode's), else `DEFAULT_LISTEN` without `connect`
+     endpoints and no listening with them.
    - `connect`: non-empty, it replaces the file's.
    - multicast scouting is switched off (robots find the service by its endpoint), unless the file
      sets `scouting/multicast/enabled` itself.
@@ -305,12 +306,21 @@ class ZenohIngest:
         cfg = load_config_file(self.config_file) if self.config_file else zenoh.Config()
         file_mode = json.loads(cfg.get_json("mode"))
         file_listen = json.loads(cfg.get_json("listen/endpoints"))
-        # Zenoh's built-in default is a per-mode dict; only a list means "the file chose endpoints".
-        file_sets_listen = self.config_file is not None and isinstance(file_listen, list)
+        # Zenoh's built-in default is a per-mode dict: a list, or a dict other than that default,
+        # means "the file chose endpoints". A dict gives each mode's own (Zenoh's own form): taken
+        # as "no endpoints", the service listened on loopback alone, robots elsewhere kept out.
+        if self.config_file is None or file_listen == json.loads(zenoh.Config().get_json("listen/endpoints")):
+            file_listen = None
         if self._listen_arg is not None:
             listen = self._listen_arg
-        elif file_sets_listen:
+        elif isinstance(file_listen, list):
             listen = list(file_listen)
+        elif isinstance(file_listen, dict):
+            # The mode's own, as Zenoh picks them: the mode as decided below without endpoints to
+            # go by (a peer's with `connect` endpoints and no mode said: a peer if it has any).
+            mode_of_file = self._mode_arg or (str(file_mode) if file_mode is not None else None)
+            mode_of_file = mode_of_file or ("router" if not self.connect else "peer")
+            listen = list(file_listen.get(mode_of_file) or [])
         else:
             listen = [] if self.connect else list(DEFAULT_LISTEN)
         if twice := sorted({e for e in listen if listen.count(e) > 1 and _PORT_ZERO.fullmatch(e) is None}):
