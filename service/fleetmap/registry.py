@@ -399,11 +399,10 @@ class MapRegistry:
                     self._snapshot_stored(entry, saved, functools.partial(
                         self.durable.snapshot, entry.id, entry.gmap, counters, current
                     ), last)  # fmt: skip
-        if last:
+        if last:  # (`taken` holds the last pass's snapshots, queued above)
             self.durable.last_snapshots_queued()
-        for entry, saved, written in taken:
-            self._snapshot_stored(entry, saved, written.result, last)
-        if last:
+            for entry, saved, written in taken:
+                self._snapshot_stored(entry, saved, written.result, last)
             # The failures held back after the first one's line (a full disk fails every map's):
             # no later line of theirs would count them, the service is stopping.
             self._snapshot_log.log_held(
